@@ -1,0 +1,319 @@
+"""Pure functions behind the in-out renderer (Mahajan, Tseng & Ramamoorthi 2008 §2 eq. 2–4, §6).
+
+1. **BRDF factorization** (eq. 2). The BRDF of one material is sampled on the equal-area
+   (cos θ, φ) grid of the visible hemisphere (``methods.inout.analysis.direction_grid``; n × n
+   cells of solid angle Δ = 2π/n² for each of ω_i and ω_o). The three colour channels are stacked
+   along the *outgoing* axis, ``A[(c, o), i] = ρ_c(ω_i, ω_o)`` (3n², n²), and one SVD
+   ``A = U S Vᵀ`` gives
+
+       ρ_c(ω_i, ω_o) = Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i),
+       σ_k = Δ S_k,  h_{k,c}(ω_o) = U[(c, o), k]/√Δ,  g_k(ω_i) = V[i, k]/√Δ,
+
+   with h_k (jointly over channels) and g_k orthonormal in L² of the hemisphere (the analysis
+   module's scaling). The incident factor g_k is shared by the three channels, so the transport
+   T_k (eq. 3) is colour-free and costs K (not 3K) vectors per vertex; the material's colours live
+   in h_k. The rank of the stacked matrix equals the rank of one channel whenever the channels are
+   combinations of the same lobes (kd/π + ks·lobe: the span of {constant, lobe rows}), so the
+   term counts K of ``analysis.k_rule`` apply unchanged. The diffuse part kd/π is in ρ, hence in
+   the factorization (for a Lambert material the stacked matrix has rank 1).
+
+2. **Off-grid factors by the SVD identity (Nyström extension).** Run time needs g_k at cube-map
+   texel directions (in each vertex's local frame) and h_k at every G-buffer sample's ω_o. Instead
+   of interpolating the coarse SVD grid we evaluate the exact identities of the SVD,
+
+       g_k(ω_i) = (1/σ_k) Σ_c ∫ ρ_c(ω_i, ω_o) h_{k,c}(ω_o) dω_o ≈ (Δ/σ_k) Σ_{c,o} ρ_c(ω_i, ω_o^j) h_{k,c}(ω_o^j)
+       h_{k,c}(ω_o) = (1/σ_k) ∫ ρ_c(ω_i, ω_o) g_k(ω_i) dω_i ≈ (Δ/σ_k) Σ_i ρ_c(ω_i^j, ω_o) g_k(ω_i^j),
+
+   which reproduce the grid values exactly at grid directions (Aᵀu_k = S_k v_k, A v_k = S_k u_k)
+   and between them inherit the smoothness of ρ itself (the BRDF is evaluated analytically in the
+   free direction; only the integral over the other direction is a grid quadrature). Evaluating
+   this per (vertex, texel) costs n² BRDF evaluations each, too much for 10⁴ vertices, so we
+   tabulate it once per material on a fine look-up table (``lut_res`` × ``lut_res`` nodes,
+   default 64, much finer than the SVD grid) and interpolate that bilinearly.
+
+   The look-up table is parametrised by the *hemi-octahedral* map (Cigolle et al. 2014, JCGT 3(2),
+   "A Survey of Efficient Representations for Independent Unit Vectors"): local direction
+   d (z ≥ 0) ↦ p = (d_x, d_y)/(|d_x|+|d_y|+d_z), (u, v) = (p_x + p_y, p_x − p_y) ∈ [−1, 1]².
+   Unlike a (cos θ, φ) table it has no pole (near the normal a uniform cos θ table has a θ spacing
+   of ~√(2/R) rad — 10° at R = 64 — exactly where glossy h_k vary most) and no φ seam; nodes are
+   corner-aligned so the horizon is on the table's boundary. Nodes on the horizon (z = 0) are
+   evaluated at z = ``HORIZON_Z`` (the limit from above: the materials return 0 *at* z = 0).
+
+3. **Transport in the cube-map Haar basis** (eq. 3–4, Ng 2003). For vertex x with normal n and
+   world texel direction ω_t, T_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t). The dot
+   product T_k · L must equal ∫ T_k L dω. On the cube map this integral is Σ_t T_k(ω_t) Ω_t L_t,
+   with Ω_t the exact texel solid angle and L_t the texel-averaged radiance. The Haar transform
+   of ``methods.core.cubemap`` is orthonormal in the texel-count measure (Parseval), so we fold the
+   solid angle into the transport, T̃_t = T_k(ω_t) Ω_t, leave the lighting as plain texel
+   radiance, and then ``Haar(T̃) · Haar(L) = Σ_t T̃_t L_t = ∫ T_k L dω`` exactly (before
+   truncation). Keeping the largest |Haar(T̃)| coefficients is then the L²-optimal non-linear
+   approximation of the kernel of that integral.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from methods.core import cubemap
+from methods.core.frames import frame_matrix
+from methods.core.visibility import DEFAULT_OFFSET_EPS, offset_origins
+
+# The materials return 0 for z <= 0; look-up-table nodes on the horizon are evaluated this far
+# above it (the one-sided limit), so bilinear weights near the horizon see the true values.
+HORIZON_Z = 1e-4
+# Terms with S_k below this fraction of S_1 are numerically zero: the stacked matrix has lower rank
+# than K (e.g. a Lambert material has rank 1) and their Nyström extension would divide by ~0.
+RANK_RTOL = 1e-7
+
+
+# -- the BRDF factorization (eq. 2) -------------------------------------------------------------
+
+
+@dataclass
+class Factorization:
+    """In-out factorization of one material on the hemisphere grid (Mahajan 2008 eq. 2).
+
+    sigma: (K,) σ_k of the continuous operator (Δ·S_k), descending.
+    g: (K, n²) g_k at the grid directions; h: (K, 3, n²) h_{k,c} at the grid directions.
+    dirs: (n², 3) local grid directions (both ω_i and ω_o); delta: cell solid angle Δ.
+    energy: (n²·…,) all singular values σ (for the captured-energy fraction).
+    """
+
+    sigma: Tensor
+    g: Tensor
+    h: Tensor
+    dirs: Tensor
+    delta: float
+    energy: Tensor
+
+    @property
+    def K(self) -> int:
+        return int(self.sigma.numel())
+
+    def captured_energy(self) -> float:
+        """Σ_{k≤K} σ_k² / Σ_k σ_k² (Mahajan 2008 Fig. 3A's accuracy measure)."""
+        e = self.energy.square()
+        return float(e[: self.K].sum() / e.sum().clamp_min(1e-300))
+
+
+def _rgb_eval(material: Any, wi: Tensor, wo: Tensor) -> Tensor:
+    """ρ_c(ω_i, ω_o) as (..., 3), broadcasting scalar BRDF outputs to RGB."""
+    v = material.eval(wi, wo)
+    if v.shape == wi.shape[:-1]:
+        v = v.unsqueeze(-1).expand(*v.shape, 3)
+    if v.shape != (*wi.shape[:-1], 3):
+        raise ValueError(f"material.eval returned {tuple(v.shape)} for directions {tuple(wi.shape)}")
+    return v
+
+
+def brdf_rgb_matrix(material: Any, n: int, *, dtype=torch.float64, chunk: int = 256) -> tuple[Tensor, Tensor, float]:
+    """The stacked hemisphere BRDF matrix A[(c, o), i] = ρ_c(ω_i^i, ω_o^o), (3n², n²).
+
+    Returns A, the grid directions (n², 3) (``analysis.direction_grid``) and Δ = 2π/n².
+    """
+    from methods.inout.analysis import cell_solid_angle, direction_grid  # noqa: PLC0415
+
+    d = direction_grid(n, domain="hemisphere", dtype=dtype)
+    N = d.shape[0]
+    A = torch.empty(3, N, N, dtype=dtype)
+    for a in range(0, N, chunk):
+        wo = d[a:a + chunk, None, :].expand(-1, N, 3)
+        wi = d[None, :, :].expand(wo.shape[0], N, 3)
+        A[:, a:a + chunk] = _rgb_eval(material, wi, wo).to(dtype).permute(2, 0, 1)
+    return A.reshape(3 * N, N), d, cell_solid_angle(n, "hemisphere")
+
+
+def factorize(material: Any, n: int, K: int) -> Factorization:
+    """SVD of the stacked RGB BRDF matrix, truncated to K terms (capped at the numerical rank).
+
+    Mahajan 2008 eq. 2 with the scaling of ``methods.inout.analysis`` (σ_k = Δ·S_k).
+    """
+    if not isinstance(K, int) or K < 1:
+        raise ValueError(f"K must be a positive int, got {K!r}")
+    A, d, delta = brdf_rgb_matrix(material, n)
+    U, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    if not S[0] > 0:
+        raise ValueError(f"the BRDF {material!r} is zero on the hemisphere grid")
+    rank = int((S > RANK_RTOL * S[0]).sum())
+    K = min(K, rank)
+    sq = math.sqrt(delta)
+    N = d.shape[0]
+    h = (U[:, :K] / sq).T.reshape(K, 3, N)  # h_{k,c}(ω_o^o)
+    g = Vh[:K] / sq                          # g_k(ω_i^i)
+    return Factorization(sigma=S[:K] * delta, g=g, h=h, dirs=d, delta=delta, energy=S * delta)
+
+
+# -- hemi-octahedral look-up tables -------------------------------------------------------------
+
+
+def hemioct_encode(d: Tensor) -> Tensor:
+    """Local directions (..., 3) with z >= 0 → hemi-octahedral coordinates (..., 2) in [−1, 1]².
+
+    Cigolle et al. 2014 (JCGT 3(2)) hemisphere octahedral map; z < 0 is folded onto z = 0.
+    """
+    x, y, z = d.unbind(-1)
+    s = (x.abs() + y.abs() + z.clamp_min(0.0)).clamp_min(1e-30)
+    px, py = x / s, y / s
+    return torch.stack([px + py, px - py], -1)
+
+
+def hemioct_decode(uv: Tensor) -> Tensor:
+    """Inverse of `hemioct_encode`: (..., 2) in [−1, 1]² → unit local directions (..., 3)."""
+    u, v = uv.unbind(-1)
+    px, py = 0.5 * (u + v), 0.5 * (u - v)
+    z = 1.0 - px.abs() - py.abs()
+    d = torch.stack([px, py, z], -1)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def lut_directions(R: int, *, dtype=torch.float64) -> Tensor:
+    """(R·R, 3) local directions of the corner-aligned R × R hemi-octahedral nodes, row-major
+    (row = v index, col = u index); horizon nodes lifted to z = HORIZON_Z."""
+    if R < 2:
+        raise ValueError(f"lut_res must be >= 2, got {R}")
+    c = torch.linspace(-1.0, 1.0, R, dtype=dtype)
+    vv, uu = torch.meshgrid(c, c, indexing="ij")
+    d = hemioct_decode(torch.stack([uu, vv], -1)).reshape(-1, 3)
+    # lift horizon nodes to z = HORIZON_Z, keeping their azimuth
+    xy = d[:, :2]
+    lifted = torch.cat([xy * (math.sqrt(1.0 - HORIZON_Z**2) / xy.norm(dim=-1, keepdim=True).clamp_min(1e-30)),
+                        torch.full_like(d[:, 2:], HORIZON_Z)], -1)
+    return torch.where(d[:, 2:] < HORIZON_Z, lifted, d)
+
+
+def lut_lookup(lut: Tensor, d: Tensor) -> Tensor:
+    """Bilinear look-up of an (R·R, C) hemi-octahedral table at local directions d (M, 3) → (M, C).
+
+    Directions below the horizon are folded onto it (callers mask them).
+    """
+    RR, C = lut.shape
+    R = int(round(math.sqrt(RR)))
+    if R * R != RR:
+        raise ValueError(f"lut must be (R·R, C), got {tuple(lut.shape)}")
+    uv = (hemioct_encode(d.to(lut.dtype)) + 1.0) * (0.5 * (R - 1))  # continuous node coordinates
+    uv = uv.clamp(0.0, R - 1)
+    i0 = uv.floor().clamp(max=R - 2)
+    f = uv - i0
+    i0 = i0.long()
+    cu, cv = i0[:, 0], i0[:, 1]
+    fu, fv = f[:, :1], f[:, 1:]
+    base = cv * R + cu
+    v00 = lut.index_select(0, base)
+    v01 = lut.index_select(0, base + 1)
+    v10 = lut.index_select(0, base + R)
+    v11 = lut.index_select(0, base + R + 1)
+    return (v00 * (1 - fu) + v01 * fu) * (1 - fv) + (v10 * (1 - fu) + v11 * fu) * fv
+
+
+def nystrom_tables(material: Any, fac: Factorization, R: int, *, chunk: int = 512) -> tuple[Tensor, Tensor]:
+    """Look-up tables of g_k and σ_k h_{k,c} by the SVD identities (module docstring, item 2).
+
+    Returns:
+        g_lut (R·R, K) — g_k at the nodes; sh_lut (R·R, K·3) — σ_k h_{k,c} at the nodes
+        (index k·3 + c), both float64.
+    """
+    nodes = lut_directions(R, dtype=torch.float64)
+    grid = fac.dirs
+    Ng, K = grid.shape[0], fac.K
+    M = nodes.shape[0]
+    g_lut = torch.empty(M, K, dtype=torch.float64)
+    sh_lut = torch.empty(M, K * 3, dtype=torch.float64)
+    hw = fac.h.permute(2, 1, 0).reshape(Ng * 3, K) * fac.delta  # (o,c) × k: Δ h_{k,c}(ω_o^o)
+    gw = fac.g.T * fac.delta                                      # (i, k): Δ g_k(ω_i^i)
+    for a in range(0, M, chunk):
+        x = nodes[a:a + chunk]
+        m = x.shape[0]
+        # g_k(x) = (1/σ_k) Σ_{o,c} Δ ρ_c(x, ω_o) h_{k,c}(ω_o)
+        rho = _rgb_eval(material, x[:, None, :].expand(m, Ng, 3), grid[None].expand(m, Ng, 3)).double()
+        g_lut[a:a + m] = (rho.reshape(m, Ng * 3) @ hw) / fac.sigma
+        # σ_k h_{k,c}(x) = Σ_i Δ ρ_c(ω_i, x) g_k(ω_i)   (σ_k cancels the 1/σ_k of the identity)
+        rho = _rgb_eval(material, grid[None].expand(m, Ng, 3), x[:, None, :].expand(m, Ng, 3)).double()
+        sh_lut[a:a + m] = torch.einsum("mic,ik->mkc", rho, gw).reshape(m, K * 3)
+    return g_lut, sh_lut
+
+
+# -- per-vertex transport in the Haar basis (eq. 3) ---------------------------------------------
+
+
+def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, *,
+                   n_coeffs: int | None, supersample: int = 1, select_weights: Tensor | None = None,
+                   eps: float = DEFAULT_OFFSET_EPS, progress: bool = False, chunk: int = 64,
+                   desc: str = "inout transport") -> tuple[Tensor, Tensor]:
+    """Sparse Haar coefficients of T̃_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t) Ω_t.
+
+    Mahajan 2008 eq. 3 with the solid angle folded in (module docstring, item 3), projected on the
+    cube-map Haar basis and truncated to the ``n_coeffs`` largest |c|·w per (vertex, k) (Ng 2003).
+
+    Args:
+        g_lut: (R·R, K) float table of g_k (`nystrom_tables`).
+        vis: ``methods.core.visibility.Visibility`` of the scene.
+        points, normals: (V, 3) vertex positions and unit normals (world).
+        N: cube face resolution (power of two); supersample: s → s×s sub-directions per texel
+            (T averaged with their exact solid angles).
+        n_coeffs: kept per (vertex, k); None keeps all 6N².
+        select_weights: optional (6N²,) selection weights (e.g. Haar support areas).
+        eps: shadow-ray origin offset along the normal, relative to the scene size
+            (``methods.core.visibility.offset_origins``).
+    Returns:
+        idx (V, K, n) int32 Haar indices into the flattened (6, N, N) layout, val (V, K, n) float32.
+    """
+    from tqdm.auto import tqdm  # noqa: PLC0415
+
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"points, normals must be (V, 3), got {tuple(points.shape)}, {tuple(normals.shape)}")
+    K = g_lut.shape[1]
+    D = 6 * N * N
+    n_keep = D if n_coeffs is None else min(int(n_coeffs), D)
+    s = int(supersample)
+    dirs = cubemap.texel_directions_supersampled(N, s, dtype=torch.float32).reshape(-1, 3)  # (D·s², 3)
+    w_sub = cubemap.texel_solid_angles(N * s, dtype=torch.float64)
+    w_sub = w_sub.reshape(6, N, s, N, s).permute(0, 1, 3, 2, 4).reshape(-1).float()        # (D·s²,) Ω
+    g_lut = g_lut.float()
+    P = points.detach().cpu().float()
+    Nn = normals.detach().cpu().float()
+    nV = P.shape[0]
+    idx_out = torch.empty(nV, K, n_keep, dtype=torch.int32)
+    val_out = torch.empty(nV, K, n_keep, dtype=torch.float32)
+    for a in tqdm(range(0, nV, chunk), disable=not progress, desc=desc, unit="chunk"):
+        b = min(nV, a + chunk)
+        n_ = Nn[a:b]
+        cos = n_ @ dirs.T                                   # (v, D·s²) n·ω
+        live = cos > 0
+        vi, ti = live.nonzero(as_tuple=True)
+        w = dirs[ti]                                        # (M, 3) world directions
+        o = offset_origins(P[a:b][vi], n_[vi], eps, scale=vis.scale)
+        free = ~torch.from_numpy(vis.occluded(o.numpy(), w.numpy())).bool()
+        keep = free.nonzero(as_tuple=True)[0]
+        vi, ti, w = vi[keep], ti[keep], w[keep]
+        wl = (frame_matrix(n_[vi]) @ w.unsqueeze(-1)).squeeze(-1)  # to_local
+        gk = lut_lookup(g_lut, wl)                                   # (M, K)
+        # T̃ = V g_k cos Ω (sub-texel solid angles sum to the texel's: supersampled average)
+        gk = gk * (cos[vi, ti] * w_sub[ti]).unsqueeze(-1)
+        T = torch.zeros(b - a, D, K, dtype=torch.float32)
+        T.index_put_((vi, ti // (s * s)), gk, accumulate=True)
+        T = T.permute(0, 2, 1).reshape(b - a, K, 6, N, N)
+        C = cubemap.haar_forward(T).reshape(b - a, K, D)
+        ix, vals = cubemap.keep_largest(C, n_keep, weights=select_weights)
+        idx_out[a:b] = ix.to(torch.int32)
+        val_out[a:b] = vals
+    return idx_out, val_out
+
+
+def sparse_rows(idx: Tensor, val: Tensor, D: int) -> Tensor:
+    """CSR matrix (V·K, D) from per-row indices/values (V, K, n) (int32 indices), for T·L."""
+    V, K, n = idx.shape
+    rows = V * K
+    crow = torch.arange(0, rows + 1, dtype=torch.int64) * n
+    if rows * n < 2**31:
+        crow = crow.to(torch.int32)
+        col = idx.reshape(-1).to(torch.int32)
+    else:
+        col = idx.reshape(-1).long()
+    order = torch.sort(col.view(rows, n).long(), dim=1)  # CSR columns sorted within a row
+    col = order.values.to(col.dtype).reshape(-1)
+    vals = torch.gather(val.reshape(rows, n), 1, order.indices).reshape(-1)
+    return torch.sparse_csr_tensor(crow, col, vals, size=(rows, D), check_invariants=False)

@@ -1,0 +1,132 @@
+"""The harness's view of the rest of the project: scenes, sequences, G-buffers, references, metrics.
+
+A cell names its backend by module (``Cell.backend``, default ``"reports.backend"``) so it stays
+picklable and a spawned child process can import the same backend; tests use
+``reports.fakes`` (tiny torch-only scenes and references). A backend module provides:
+
+``get_scene(name, size)``, ``make_sequence(scene, kind, n_frames, seed)``,
+``make_gbuffer(scene, frame, S)``, ``render_reference(scene, frame, *, bounces, spp, seed)``,
+``all_metrics(img, ref, mask, *, exposure)``, ``make_exposure(ref, mask)``, ``geometry(scene, frame) -> (V (N,3), F (M,3))``,
+``reference_seconds(ref) -> float | None`` and ``render_reference_uncached(...)`` (for timing).
+"""
+from __future__ import annotations
+
+import importlib
+import time
+from pathlib import Path
+
+SCENE_FILE_PREFIX = "file:"
+
+
+def load_backend(name: str = "reports.backend"):
+    """Import a backend module by name (``ValueError`` if it lacks a required function)."""
+    mod = importlib.import_module(name)
+    need = ("get_scene", "make_sequence", "make_gbuffer", "render_reference", "all_metrics", "geometry")
+    missing = [f for f in need if not hasattr(mod, f)]
+    if missing:
+        raise ValueError(f"backend {name!r} lacks {missing}")
+    return mod
+
+
+def _ensure_mitsuba() -> None:
+    from references.mitsuba_setup import ensure_variant
+
+    ensure_variant()
+
+
+def get_scene(name: str, size: str = "test"):
+    """A library scene by name, or a TOML scene file given as ``"file:<path>"``."""
+    if name.startswith(SCENE_FILE_PREFIX):
+        from scenes import scenefile
+
+        path = Path(name[len(SCENE_FILE_PREFIX):])
+        for fn in ("load_scene_file", "load_scene", "load"):
+            if hasattr(scenefile, fn):
+                return getattr(scenefile, fn)(path)
+        raise ValueError("scenes.scenefile has no loader (load_scene_file/load_scene/load)")
+    from scenes.library import get_scene as _get
+
+    return _get(name, size)
+
+
+def scene_names() -> list[str]:
+    from scenes.library import SCENES
+
+    return list(SCENES)
+
+
+def make_sequence(scene, kind: str, n_frames: int, seed: int):
+    from scenes.sequences import make_sequence as _mk
+
+    return _mk(scene, kind, n_frames, seed)
+
+
+def make_gbuffer(scene, frame, S: int):
+    _ensure_mitsuba()
+    from references.gbuffer import make_gbuffer as _mk
+
+    return _mk(scene, frame, S)
+
+
+def _ref_bounces(bounces: int) -> int | None:
+    """Cells say −1 for full GI; ``references.render`` says None."""
+    return None if bounces is not None and bounces < 0 else bounces
+
+
+def render_reference(scene, frame, *, bounces: int, spp: int, seed: int, spp_side: int = 2, use_cache: bool = True):
+    _ensure_mitsuba()
+    from references.render import render_reference as _r
+
+    return _r(scene, frame, bounces=_ref_bounces(bounces), spp=spp, seed=seed, spp_side=spp_side, use_cache=use_cache)
+
+
+def set_threads(n: int) -> None:
+    """Dr.Jit's thread pool too, so references and methods are timed with the same threads."""
+    import drjit as dr
+
+    dr.set_thread_count(n)
+
+
+def reference_seconds(ref) -> float | None:
+    """Render time recorded in a reference's meta, if the renderer records one."""
+    meta = getattr(ref, "meta", None) or {}
+    for k in ("render_seconds", "render_time", "seconds", "time"):
+        v = meta.get(k) if isinstance(meta, dict) else None
+        if isinstance(v, (int, float)) and v > 0:
+            return float(v)
+    return None
+
+
+def timed_reference(scene, frame, *, bounces: int, spp: int, seed: int, spp_side: int = 2):
+    """(reference, seconds): the render time recorded in the reference's meta (kept by the cache,
+    so a cache hit still reports the original render time); else the wall time of an uncached
+    render."""
+    ref = render_reference(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side)
+    sec = reference_seconds(ref)
+    if sec is not None:
+        return ref, sec
+    t0 = time.perf_counter()
+    ref = render_reference(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side, use_cache=False)
+    return ref, time.perf_counter() - t0
+
+
+def make_exposure(ref, mask):
+    """Display exposure fixed per scene (``references.metrics.Exposure.from_reference``)."""
+    from references.metrics import Exposure
+
+    return Exposure.from_reference(ref, mask)
+
+
+def all_metrics(img, ref, mask, *, exposure=None) -> dict:
+    from references.metrics import all_metrics as _m
+
+    return _m(img, ref, mask, exposure=exposure)
+
+
+def geometry(scene, frame):
+    g = scene.geometry(getattr(frame, "pose", None))
+    return g.V, g.F
+
+
+def is_dynamic(scene) -> bool:
+    return getattr(scene, "skeleton", None) is not None

@@ -1,0 +1,432 @@
+"""Self-contained HTML report of one run (a single file; images are base64 PNG data URIs, so it
+opens from disk with no network and no side files).
+
+Sections: run facts; summary per scene × method (error with noise floor, memory, precompute, fps
+per sequence kind, roofline efficiency, equal-error speedup); error–memory–time trade-off plots
+(matplotlib); per scene an image comparison (reference / method / error map) with an exposure
+slider; the capability matrix with n/a reasons; regressions since the previous run; per-vertex
+error on the mesh (pyvista off-screen renders; skipped with the reason if VTK cannot render).
+
+Exposure slider — honest re-exposure: the linear float radiance is embedded (float16, base64) and
+the page re-tonemaps it (× 2^EV, clip, sRGB OETF) into a canvas, instead of brightening 8-bit
+pixels with a CSS filter (which would invent detail that clipped). The initial ``<img>`` holds the
+EV 0 image rendered by Python with the same tone map, so the report also reads without JS.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from reports.store import atomic_write_text
+
+KIND_ORDER = ["V", "VB", "VBL", "P"]
+# The display exposure maps this percentile of the reference's luminance to white (same rule as
+# references.metrics.Exposure).
+WHITE_PERCENTILE = 99.0
+LUM = np.array([0.2126, 0.7152, 0.0722])  # Rec.709 luminance weights
+MAX_EMBED_SIDE = 256  # larger images are box-downsampled before embedding (report size)
+
+
+# -- small helpers ----------------------------------------------------------------------------
+
+
+def esc(x) -> str:
+    return html.escape(str(x))
+
+
+def png_data_uri(rgb8: np.ndarray) -> str:
+    """(H, W, 3|4) uint8 → ``data:image/png;base64,…`` (matplotlib's PNG writer)."""
+    import matplotlib.image as mpimg
+
+    buf = io.BytesIO()
+    mpimg.imsave(buf, rgb8, format="png")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def fig_data_uri(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def srgb_oetf(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def tonemap(img: np.ndarray, scale: float, ev: float = 0.0) -> np.ndarray:
+    """Linear radiance (H, W, 3) → uint8 sRGB: × scale·2^EV, clip, sRGB OETF (what the JS does)."""
+    return (srgb_oetf(np.nan_to_num(img, nan=0.0, posinf=0.0) * scale * 2.0**ev) * 255.0 + 0.5).astype(np.uint8)
+
+
+def auto_scale(ref: np.ndarray, mask: np.ndarray | None = None) -> float:
+    lum = ref @ LUM
+    v = lum[mask] if mask is not None and mask.any() else lum.reshape(-1)
+    w = float(np.percentile(v, WHITE_PERCENTILE)) if v.size else 0.0
+    return 1.0 / w if w > 0 else 1.0
+
+
+def downsample(img: np.ndarray, max_side: int = MAX_EMBED_SIDE) -> np.ndarray:
+    H, W = img.shape[:2]
+    f = int(math.ceil(max(H, W) / max_side))
+    if f <= 1:
+        return img
+    H2, W2 = H // f, W // f
+    return img[: H2 * f, : W2 * f].reshape(H2, f, W2, f, *img.shape[2:]).mean((1, 3))
+
+
+def f16_b64(img: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(img, dtype="<f2").tobytes()).decode()
+
+
+def error_map(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, vmax: float) -> np.ndarray:
+    """|img − ref| averaged over RGB, magma colour map on [0, vmax], uncovered pixels grey."""
+    import matplotlib
+
+    e = np.abs(np.nan_to_num(img, nan=1e9) - ref).mean(-1)
+    rgba = matplotlib.colormaps["magma"](np.clip(e / max(vmax, 1e-30), 0, 1))
+    rgb = (rgba[..., :3] * 255 + 0.5).astype(np.uint8)
+    rgb[~mask] = 96
+    return rgb
+
+
+def fmt(v, spec: str = ".3g", unit: str = "") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:{spec}}{unit}"
+
+
+def fmt_bytes(b) -> str:
+    if b is None or not math.isfinite(b):
+        return "–"
+    for u in ("B", "KiB", "MiB", "GiB"):
+        if abs(b) < 1024 or u == "GiB":
+            return f"{b:.0f} {u}" if u == "B" else f"{b:.1f} {u}"
+        b /= 1024.0
+    return "–"
+
+
+def _val(g: pd.DataFrame, metric: str, frame: int = -1):
+    r = g[(g["metric"] == metric) & (g["frame"] == frame)]
+    if len(r) == 0:
+        return None, None
+    return float(r.iloc[0]["value"]), float(r.iloc[0]["noise_floor"])
+
+
+def _blabel(b: int) -> str:
+    return "full" if int(b) == -1 else str(int(b))
+
+
+def _method_label(method: str, config: str) -> str:
+    return method if config in ("{}", "") else f"{method} {config}"
+
+
+# -- sections ---------------------------------------------------------------------------------
+
+
+def summary_table(df: pd.DataFrame) -> str:
+    ok = df[df["status"] == "ok"]
+    if len(ok) == 0:
+        return "<p>No cell ran successfully.</p>"
+    kinds = [k for k in KIND_ORDER if k in set(ok["sequence"])]
+    head = ("<tr><th>scene</th><th>method</th><th>bounces</th><th>RMSE (noise floor)</th><th>FLIP</th>"
+            "<th>memory</th><th>peak RSS</th><th>precompute</th>" + "".join(f"<th>fps {k}</th>" for k in kinds)
+            + "<th>roofline eff.</th><th>eq.-error speedup</th></tr>")
+    body = []
+    for (scene, method, config, b), g in ok.groupby(["scene", "method", "config", "bounces"], sort=True):
+        cells = {k: gg for k, gg in g.groupby("sequence")}
+        first = cells[[k for k in KIND_ORDER if k in cells][0]]
+        rm = [(v, f) for k, gg in cells.items() for v, f in [_val(gg, "rmse")] if v is not None]
+        rmse = f"{np.mean([v for v, _ in rm]):.4g} ({np.mean([f for _, f in rm]):.2g})" if rm else "–"
+        fl = [v for gg in cells.values() for v, _ in [_val(gg, "flip")] if v is not None]
+        mem = _val(first, "memory_bytes")[0]
+        rss = [v for gg in cells.values() for v, _ in [_val(gg, "peak_rss_bytes")] if v is not None]
+        pre = _val(first, "precompute_time")[0]
+        fps = "".join(f"<td>{fmt(_val(cells[k], 'fps')[0], '.1f') if k in cells else '–'}</td>" for k in kinds)
+        roof = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_efficiency")] if v is not None]
+        sp = [v for gg in cells.values() for v, _ in [_val(gg, "eq_error_speedup")] if v is not None and math.isfinite(v)]
+        body.append(
+            f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td><td>{_blabel(b)}</td>"
+            f"<td>{rmse}</td><td>{fmt(np.mean(fl) if fl else None, '.3f')}</td><td>{fmt_bytes(mem)}</td>"
+            f"<td>{fmt_bytes(max(rss)) if rss else '–'}</td><td>{fmt(pre, '.3g', ' s')}</td>{fps}"
+            f"<td>{fmt(float(np.median(roof)) if roof else None, '.2%')}</td>"
+            f"<td>{fmt(float(np.median(sp)) if sp else None, '.3g', '×')}</td></tr>")
+    note = ("<p class=note>RMSE: mean over sequence kinds and scored frames, against the reference of the "
+            "cell's bounce count; in brackets the reference noise floor (an RMSE below it is not resolved). "
+            "fps: 1 / median frame time, warm-up frame excluded. Roofline efficiency: (bytes per frame ÷ triad "
+            "bandwidth) ÷ frame time. Equal-error speedup: Mitsuba time to reach the method's RMSE "
+            "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time.</p>")
+    return f"<table>{head}{''.join(body)}</table>{note}"
+
+
+def tradeoff_plots(df: pd.DataFrame) -> str:
+    """RMSE vs memory and RMSE vs frame time (one point per ok cell; colour = method)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = df[(df["status"] == "ok") & (df["frame"] == -1)]
+    pts = []
+    for (scene, method, config, seq, b), g in ok.groupby(["scene", "method", "config", "sequence", "bounces"]):
+        r, _ = _val(g, "rmse")
+        m, _ = _val(g, "memory_bytes")
+        t, _ = _val(g, "render_time_median")
+        if r is not None:
+            pts.append((scene, _method_label(method, config), seq, r, m, t))
+    if not pts:
+        return "<p>No error measurements to plot.</p>"
+    methods = sorted({p[1] for p in pts})
+    scenes = sorted({p[0] for p in pts})
+    markers = "osD^v<>ph*"
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, idx, xl in ((axes[0], 4, "memory (bytes)"), (axes[1], 5, "median frame time (s)")):
+        for i, meth in enumerate(methods):
+            for j, sc in enumerate(scenes):
+                sel = [p for p in pts if p[1] == meth and p[0] == sc and p[idx] is not None and p[idx] > 0]
+                if sel:
+                    ax.scatter([p[idx] for p in sel], [p[3] for p in sel], color=f"C{i % 10}",
+                               marker=markers[j % len(markers)], label=f"{meth} / {sc}", s=36)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xl)
+        ax.set_ylabel("RMSE")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[1].legend(fontsize=7, loc="best")
+    fig.suptitle("error – memory – time trade-off (one point per cell; colour = method, marker = scene)")
+    return f'<img class=plot alt="trade-off plot" src="{fig_data_uri(fig)}">'
+
+
+def capability_matrix(df: pd.DataFrame) -> str:
+    cells = df.drop_duplicates("cell")
+    cols = sorted({(s, int(b)) for s, b in zip(cells["sequence"], cells["bounces"])},
+                  key=lambda x: (KIND_ORDER.index(x[0]) if x[0] in KIND_ORDER else 9, x[1] if x[1] >= 0 else 99))
+    head = "<tr><th>scene</th><th>method</th>" + "".join(f"<th>{esc(s)}, b={_blabel(b)}</th>" for s, b in cols) + "</tr>"
+    body = []
+    for (scene, method, config), g in cells.groupby(["scene", "method", "config"], sort=True):
+        tds = []
+        for s, b in cols:
+            r = g[(g["sequence"] == s) & (g["bounces"] == b)]
+            if len(r) == 0:
+                tds.append("<td class=none>·</td>")
+                continue
+            st, reason = r.iloc[0]["status"], r.iloc[0]["reason"]
+            if st == "ok":
+                tds.append("<td class=ok>✓</td>")
+            elif st == "na":
+                tds.append(f"<td class=na>n/a: {esc(reason)}</td>")
+            else:
+                tds.append(f"<td class=err title='{esc(reason)}'>error: {esc(str(reason)[:80])}</td>")
+        body.append(f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td>{''.join(tds)}</tr>")
+    return f"<table class=matrix>{head}{''.join(body)}</table>"
+
+
+def regressions_section(changes: pd.DataFrame | None, prev_run: str | None) -> str:
+    if changes is None or prev_run is None:
+        return "<p>No previous run in the history: nothing to compare with.</p>"
+    fl = changes[changes["flag"] != ""]
+    intro = f"<p>Compared with run <code>{esc(prev_run)}</code>: {len(changes)} values compared, " \
+            f"{int((fl['flag'] == 'regression').sum())} regression(s), {int((fl['flag'] == 'improvement').sum())} improvement(s).</p>"
+    if len(fl) == 0:
+        return intro
+    rows = []
+    for _, r in fl.iterrows():
+        cls = "reg" if r["flag"] == "regression" else "imp"
+        rc = f"{100 * r['rel_change']:+.1f}%" if math.isfinite(r["rel_change"]) else "–"
+        pv = f"{r['p_value']:.1e}" if math.isfinite(r["p_value"]) else "–"
+        rows.append(f"<tr class={cls}><td>{esc(r['flag'])}</td><td>{esc(r['scene'])}</td><td>{esc(r['sequence'])}</td>"
+                    f"<td>{esc(_method_label(r['method'], r['config']))}</td><td>{_blabel(r['bounces'])}</td>"
+                    f"<td>{esc(r['metric'])}</td><td>{fmt(r['old'], '.4g')}</td><td>{fmt(r['new'], '.4g')}</td>"
+                    f"<td>{rc}</td><td>{pv}</td><td>{esc(r['test'])}</td></tr>")
+    head = ("<tr><th>flag</th><th>scene</th><th>seq</th><th>method</th><th>b</th><th>metric</th><th>old</th>"
+            "<th>new</th><th>change</th><th>p</th><th>test</th></tr>")
+    return intro + f"<table>{head}{''.join(rows)}</table>"
+
+
+def _load_images(out_dir: Path, df: pd.DataFrame) -> dict:
+    """(scene, sequence, bounces) → list of (method label, arrays) from the cells' npz files."""
+    art = {}
+    ok = df[(df["status"] == "ok")].drop_duplicates("cell")
+    for _, r in ok.iterrows():
+        p = out_dir / "images" / f"{r['cell']}.npz"
+        if not p.exists():
+            continue
+        with np.load(p) as z:
+            arrays = {k: z[k] for k in z.files}
+        art.setdefault((r["scene"], r["sequence"], int(r["bounces"])), []).append((_method_label(r["method"], r["config"]), arrays))
+    return art
+
+
+def _pick_comparisons(art: dict) -> list[tuple]:
+    """One comparison per scene: bounces 0 if present, the most dynamic sequence kind."""
+    by_scene: dict[str, tuple] = {}
+    for key in art:
+        scene, seq, b = key
+        rank = (0 if b == 0 else 1, -(KIND_ORDER.index(seq) if seq in KIND_ORDER else -1))
+        if scene not in by_scene or rank < by_scene[scene][0]:
+            by_scene[scene] = (rank, key)
+    return [by_scene[s][1] for s in sorted(by_scene)]
+
+
+def image_comparisons(art: dict) -> str:
+    parts = []
+    for n, key in enumerate(_pick_comparisons(art)):
+        scene, seq, b = key
+        entries = sorted(art[key], key=lambda e: e[0])
+        ref = downsample(entries[0][1]["reference"].astype(np.float32))
+        mask = downsample(entries[0][1]["mask"].astype(np.float32)) > 0.5
+        scale = auto_scale(ref, mask)
+        imgs = [downsample(a["method"].astype(np.float32)) for _, a in entries]
+        errs = [np.abs(np.nan_to_num(i, nan=0) - ref).mean(-1)[mask] for i in imgs]
+        allerr = np.concatenate(errs) if errs else np.zeros(1)
+        vmax = float(np.percentile(allerr, 99)) if allerr.size else 1.0
+        vmax = vmax if vmax > 0 else 1.0
+        H, W = ref.shape[:2]
+        figs = [("reference", ref)] + [(lab, im) for (lab, _), im in zip(entries, imgs)]
+        tiles = []
+        for j, (lab, im) in enumerate(figs):
+            iid = f"cmp{n}_{j}"
+            tiles.append(f'<figure><img class="hdr" id="{iid}" data-w="{W}" data-h="{H}" data-f16="{f16_b64(im)}" '
+                         f'src="{png_data_uri(tonemap(im, scale))}" alt="{esc(lab)}"><figcaption>{esc(lab)}</figcaption></figure>')
+        for (lab, _), im in zip(entries, imgs):
+            tiles.append(f'<figure><img class="errmap" src="{png_data_uri(error_map(im, ref, mask, vmax))}" '
+                         f'alt="error {esc(lab)}"><figcaption>|error| {esc(lab)}</figcaption></figure>')
+        frame = int(entries[0][1].get("frame", -1))
+        parts.append(
+            f'<div class=cmp data-scale="{scale:.6g}"><h3>{esc(scene)} — sequence {esc(seq)}, bounces {_blabel(b)}, frame {frame}</h3>'
+            f'<label>exposure <input type=range class=ev min=-8 max=8 step=0.25 value=0> '
+            f'<span class=evv>0 EV</span></label> <span class=note>(relative to the auto exposure: '
+            f'{WHITE_PERCENTILE:g}th-percentile reference luminance → white; re-tonemapped from the linear data)</span>'
+            f'<div class=tiles>{"".join(tiles)}</div>'
+            f'<p class=note>Error maps: |method − reference| averaged over RGB, magma colour map on [0, {vmax:.3g}] '
+            f'(99th percentile of this scene\'s errors); grey = not covered.</p></div>')
+    return "".join(parts) or "<p>No images were saved.</p>"
+
+
+def vertex_error_renders(art: dict, *, window: int = 260) -> str:
+    """Per-vertex squared error on the mesh, rendered off-screen with pyvista."""
+    try:
+        import pyvista as pv
+
+        pv.OFF_SCREEN = True
+    except Exception as e:  # pragma: no cover - pyvista missing
+        return f"<p>Per-vertex error skipped: pyvista unavailable ({esc(e)}).</p>"
+    parts = []
+    for key in _pick_comparisons(art):
+        scene, seq, b = key
+        entries = sorted(art[key], key=lambda e: e[0])
+        vals = np.concatenate([a["vertex_sq_error"] for _, a in entries])
+        vals = vals[np.isfinite(vals)]
+        vmax = float(np.percentile(vals, 99)) if vals.size else 1.0
+        figs = []
+        for lab, a in entries:
+            V, F, e = a["V"], a["F"], a["vertex_sq_error"]
+            try:
+                faces = np.hstack([np.full((len(F), 1), 3), F]).astype(np.int64).ravel()
+                mesh = pv.PolyData(V.astype(np.float64), faces)
+                mesh.point_data["sq_error"] = np.nan_to_num(e, nan=0.0)
+                p = pv.Plotter(off_screen=True, window_size=(window, window))
+                p.add_mesh(mesh, scalars="sq_error", cmap="magma", clim=(0, max(vmax, 1e-30)), show_scalar_bar=False)
+                p.view_isometric()
+                img = p.screenshot(return_img=True)
+                p.close()
+            except Exception as ex:  # VTK without an off-screen context
+                return f"<p>Per-vertex error skipped: pyvista off-screen rendering failed ({esc(type(ex).__name__)}: {esc(ex)}).</p>"
+            figs.append(f'<figure><img class=vtx src="{png_data_uri(np.asarray(img, dtype=np.uint8))}" alt="vertex error {esc(lab)}">'
+                        f"<figcaption>{esc(lab)}</figcaption></figure>")
+        parts.append(f"<h3>{esc(scene)} — sequence {esc(seq)}, bounces {_blabel(b)}</h3><div class=tiles>{''.join(figs)}</div>"
+                     f"<p class=note>Each G-buffer sample carries its pixel's squared error (mean over RGB), splatted onto "
+                     f"its triangle's vertices with its barycentric weights; magma on [0, {vmax:.3g}]; black = unseen.</p>")
+    return "".join(parts) or "<p>No per-vertex errors were saved.</p>"
+
+
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1400px}
+table{border-collapse:collapse;margin:.5em 0;font-size:13px}
+td,th{border:1px solid #ccc;padding:3px 6px;text-align:left;vertical-align:top}
+th{background:#f0f0f0}.ok{background:#e6f5e6}.na{background:#f3f3f3;color:#666}.err{background:#fbe0e0}
+tr.reg{background:#fbe0e0}tr.imp{background:#e6f5e6}.note{color:#666;font-size:12px}
+.tiles{display:flex;flex-wrap:wrap;gap:8px}figure{margin:0}figure img{width:200px;image-rendering:pixelated}
+img.plot{max-width:100%}figcaption{font-size:12px;text-align:center}code{background:#f4f4f4}
+"""
+
+_JS = r"""
+(function(){
+function h2f(h){var s=(h&0x8000)?-1:1,e=(h>>10)&31,f=h&1023;
+ if(e===0)return s*Math.pow(2,-14)*(f/1024); if(e===31)return f?NaN:s*Infinity;
+ return s*Math.pow(2,e-15)*(1+f/1024);}
+function oetf(x){x=x<0?0:(x>1?1:x);return x<=0.0031308?12.92*x:1.055*Math.pow(x,1/2.4)-0.055;}
+function decode(img){if(img._lin)return img._lin;var bin=atob(img.dataset.f16),n=bin.length/2,
+ out=new Float32Array(n);for(var i=0;i<n;i++){out[i]=h2f(bin.charCodeAt(2*i)|(bin.charCodeAt(2*i+1)<<8));}
+ img._lin=out;return out;}
+function render(img,k){var w=+img.dataset.w,h=+img.dataset.h,lin=decode(img);
+ var c=document.createElement('canvas');c.width=w;c.height=h;var ctx=c.getContext('2d');
+ var im=ctx.createImageData(w,h);for(var p=0;p<w*h;p++){for(var ch=0;ch<3;ch++){var v=lin[3*p+ch];
+ im.data[4*p+ch]=Math.round(255*oetf(isFinite(v)?v*k:0));}im.data[4*p+3]=255;}
+ ctx.putImageData(im,0,0);img.src=c.toDataURL('image/png');}
+document.querySelectorAll('div.cmp').forEach(function(div){var s=+div.dataset.scale;
+ var sl=div.querySelector('input.ev'),lab=div.querySelector('.evv');
+ sl.addEventListener('input',function(){var ev=+sl.value;lab.textContent=ev+' EV';
+ div.querySelectorAll('img.hdr').forEach(function(img){render(img,s*Math.pow(2,ev));});});});
+})();
+"""
+
+
+def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str | os.PathLike | None = None,
+                 meta: dict | None = None, changes: pd.DataFrame | None = None, prev_run: str | None = None,
+                 vertex_renders: bool = True) -> Path:
+    """Write the HTML report of run table ``df`` (``reports.store.COLUMNS``) to ``out_path``.
+
+    run_dir: where the cells' ``images/*.npz`` are (default: the report's folder).
+    """
+    out_path = Path(out_path)
+    run_dir = Path(run_dir) if run_dir is not None else out_path.parent
+    meta = dict(meta or {})
+    run_rows = df[df["status"] == "run"]
+    df = df[df["status"] != "run"]
+    art = _load_images(run_dir, df)
+    first = df.iloc[0] if len(df) else None
+    facts = {
+        "run": meta.get("run_id", first["run_id"] if first is not None else "?"),
+        "suite": meta.get("suite", "?"), "time (UTC)": meta.get("time", first["time"] if first is not None else "?"),
+        "git": meta.get("git_sha", first["git_sha"] if first is not None else "?"),
+        "machine": meta.get("machine", first["machine"] if first is not None else "?"),
+        "threads": meta.get("threads", first["threads"] if first is not None else "?"),
+    }
+    bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
+    if len(bw):
+        facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"
+    n_ok, n_na, n_err = (int((df.drop_duplicates('cell')["status"] == s).sum()) for s in ("ok", "na", "error"))
+    facts["cells"] = f"{n_ok} ok, {n_na} n/a, {n_err} failed"
+    if first is not None:
+        facts["versions"] = ", ".join(f"{k} {v}" for k, v in json.loads(first["versions"] or "{}").items())
+    fact_html = "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in facts.items())
+    errors = df[df["status"] == "error"].drop_duplicates("cell")
+    err_html = "".join(f"<li><code>{esc(r['cell'])}</code>: {esc(r['reason'])}</li>" for _, r in errors.iterrows())
+    body = f"""<!DOCTYPE html>
+<html lang=en><head><meta charset="utf-8"><title>prtbench report {esc(facts['run'])}</title>
+<style>{_CSS}</style></head><body>
+<h1>prtbench report</h1>
+<table class=facts>{fact_html}</table>
+{f'<h2>Failed cells</h2><ul>{err_html}</ul>' if err_html else ''}
+<h2 id=summary>Summary per scene × method</h2>{summary_table(df)}
+<h2 id=tradeoff>Error – memory – time</h2>{tradeoff_plots(df)}
+<h2 id=images>Images</h2>{image_comparisons(art)}
+<h2 id=matrix>Capability matrix</h2>{capability_matrix(df)}
+<h2 id=regressions>Regressions since the last run</h2>{regressions_section(changes, prev_run)}
+<h2 id=vertex>Per-vertex error on the mesh</h2>{vertex_error_renders(art) if vertex_renders else '<p>Skipped.</p>'}
+<script>{_JS}</script>
+</body></html>
+"""
+    return Path(atomic_write_text(out_path, body))

@@ -1,0 +1,155 @@
+"""A whole benchmark run: plan cells → run them (resumable) → long table → history → regressions
+→ HTML report. ``run_bench.py`` is a thin command line over these functions.
+
+Run directory layout (``--out``):
+``run.json`` (run id, time, git sha, versions, machine, bandwidth — written once, kept on resume),
+``plan.json`` (the cells), ``cells/<key>.json`` (one result per finished cell), ``images/<key>.npz``,
+``calib/*.json`` (reference convergence fits), ``results.parquet``, ``changes.csv``, ``report.html``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from reports import measure, regress, store
+from reports.cells import STATUS_OK, Cell, CellResult, load_result, run_cells
+from reports.suites import Suite, plan_cells, reference_jobs
+
+TRIAD_ELEMENTS = 1 << 24  # 64 MiB per float32 array: far beyond the caches of this machine kind
+
+
+@dataclass
+class RunOutput:
+    run_id: str
+    out_dir: Path
+    table: Path
+    report: Path | None
+    history: Path | None
+    n_ok: int
+    n_na: int
+    n_error: int
+    changes: pd.DataFrame | None
+
+
+def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_ELEMENTS) -> dict:
+    """The run's facts; created (with one triad-bandwidth measurement) on the first call and
+    re-read on resume, so a resumed run keeps its id."""
+    p = out_dir / "run.json"
+    if p.exists():
+        return json.loads(p.read_text())
+    now = datetime.now(timezone.utc)
+    sha = store.git_sha()
+    meta = {
+        "run_id": f"{suite_name}-{now.strftime('%Y%m%dT%H%M%SZ')}-{sha[:8]}",
+        "suite": suite_name,
+        "time": now.isoformat(timespec="seconds"),
+        "git_sha": sha,
+        "versions": store.package_versions(),
+        "machine": store.machine_description(),
+        "threads": torch.get_num_threads(),
+        "triad_bandwidth": measure.triad_bandwidth(bandwidth_elements),
+    }
+    store.atomic_write_json(p, meta)
+    return meta
+
+
+def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
+    """Cell results + run facts → the run's long table (``store.COLUMNS``), with the roofline
+    efficiency computed from the run's bandwidth, and one ``status="run"`` row for the bandwidth."""
+    base = {"run_id": meta["run_id"], "time": meta["time"], "git_sha": meta["git_sha"],
+            "versions": json.dumps(meta["versions"], sort_keys=True), "machine": meta["machine"]}
+    rows = [{**base, "threads": meta["threads"], "scene": "", "size": "", "sequence": "", "frame": -1, "method": "",
+             "config": "", "bounces": -1, "metric": "triad_bandwidth", "value": meta["triad_bandwidth"], "unit": "B/s",
+             "noise_floor": float("nan"), "status": "run", "reason": "", "cell": ""}]
+    for r in results:
+        c = Cell.from_dict(r.cell)
+        ident = {**base, "threads": r.info.get("threads", c.threads or meta["threads"]), "scene": c.scene,
+                 "size": c.size, "sequence": c.kind, "method": c.method, "config": c.config, "bounces": c.bounces,
+                 "status": r.status, "reason": r.reason, "cell": r.key}
+        if r.status != STATUS_OK:
+            rows.append({**ident, "frame": -1, "metric": "status", "value": float("nan"), "unit": "",
+                         "noise_floor": float("nan")})
+            continue
+        vals = {row["metric"]: row["value"] for row in r.rows if row["frame"] == -1}
+        rows += [{**ident, **row} for row in r.rows]
+        eff = measure.roofline_efficiency(vals.get("bytes_per_frame"), meta["triad_bandwidth"],
+                                          vals.get("render_time_median", float("nan")))
+        if eff is not None:
+            rows.append({**ident, "frame": -1, "metric": "roofline_efficiency", "value": eff, "unit": "1",
+                         "noise_floor": float("nan")})
+    return store.to_frame(rows)
+
+
+def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=None, executor=None,
+              history: str | os.PathLike | None = store.DEFAULT_HISTORY, backend: str = "reports.backend",
+              plugins: tuple[str, ...] = (), isolate: bool | None = None, progress: bool = True,
+              report: bool = True, vertex_renders: bool = True, bandwidth_elements: int = TRIAD_ELEMENTS) -> RunOutput:
+    """Run ``suite`` into ``out_dir`` (resuming whatever is already there)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
+    store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in cells])
+    meta = run_meta(out_dir, suite.name, bandwidth_elements=bandwidth_elements)
+    results = run_cells(cells, out_dir, executor=executor, progress=progress)
+    return finish_run(out_dir, results, meta, history=history, report=report, vertex_renders=vertex_renders)
+
+
+def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=store.DEFAULT_HISTORY,
+               report: bool = True, vertex_renders: bool = True) -> RunOutput:
+    df = collect(results, meta)
+    table = store.write_table(df, out_dir / "results.parquet")
+    changes, prev_id = None, None
+    hist_path = None
+    if history is not None:
+        hist = store.read_history(history)
+        prev = regress.previous_run(hist, meta["run_id"])
+        if prev is not None and len(prev):
+            prev_id = str(prev["run_id"].iloc[0])
+            changes = regress.compare_runs(prev, df)
+            store.atomic_save(out_dir / "changes.csv", lambda tmp: changes.to_csv(tmp, index=False))
+        hist_path = store.append_history(df, history)
+    rep = None
+    if report:
+        from reports.html import build_report
+
+        rep = build_report(df, out_dir / "report.html", run_dir=out_dir, meta=meta, changes=changes, prev_run=prev_id,
+                           vertex_renders=vertex_renders)
+    st = df.drop_duplicates("cell")
+    st = st[st["status"] != "run"]["status"]
+    return RunOutput(meta["run_id"], out_dir, table, rep, hist_path, int((st == "ok").sum()), int((st == "na").sum()),
+                     int((st == "error").sum()), changes)
+
+
+def build_references(suite: Suite, *, methods=None, scenes=None, backend: str = "reports.backend",
+                     plugins: tuple[str, ...] = (), progress: bool = True) -> int:
+    """Render (into the reference cache) every reference the suite's in-scope cells need,
+    including the equal-error spp ladder. Returns the number of references requested."""
+    from tqdm.auto import tqdm
+
+    from reports.backend import load_backend
+
+    be = load_backend(backend)
+    cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins)
+    jobs = reference_jobs(cells)
+    todo = []
+    for scene_name, size, kind, n_frames, seed, bounces, spp, frames, ladder in jobs:
+        todo += [(scene_name, size, kind, n_frames, seed, bounces, spp, i) for i in frames]
+        if ladder:
+            todo += [(scene_name, size, kind, n_frames, seed, bounces, s, frames[0]) for s in ladder if s != spp]
+    todo = list(dict.fromkeys(todo))
+    seqs: dict = {}
+    for scene_name, size, kind, n_frames, seed, bounces, spp, i in tqdm(todo, desc="references", disable=None if progress else True):
+        k = (scene_name, size, kind, n_frames, seed)
+        if k not in seqs:
+            sc = be.get_scene(scene_name, size)
+            seqs[k] = (sc, be.make_sequence(sc, kind, n_frames, seed))
+        sc, frames = seqs[k]
+        be.render_reference(sc, frames[i], bounces=bounces, spp=spp, seed=seed, spp_side=suite.spp_side)
+    return len(todo)

@@ -1,0 +1,191 @@
+"""Results store: one long-format parquet table per run, plus a history table every run appends to.
+
+Every file is written atomically (write a temporary file in the same directory, then
+``os.replace``), so a killed run never leaves a half-written file behind.
+
+Columns of the long table (``COLUMNS``; one row per measured value):
+run_id, time (UTC ISO), git_sha, versions (JSON), machine, threads, scene, size, sequence, frame
+(−1 = summary over the sequence), method, config (canonical JSON), bounces (−1 = full), metric,
+value, unit, noise_floor (RMSE of the reference the value was measured against; NaN if none),
+status ("ok" | "na" | "error"), reason (n/a reason or error message), cell (cell key).
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable
+
+import pandas as pd
+
+COLUMNS = [
+    "run_id", "time", "git_sha", "versions", "machine", "threads",
+    "scene", "size", "sequence", "frame", "method", "config", "bounces",
+    "metric", "value", "unit", "noise_floor", "status", "reason", "cell",
+]
+_DTYPES = {
+    "threads": "int64", "frame": "int64", "bounces": "int64",
+    "value": "float64", "noise_floor": "float64",
+}
+DEFAULT_HISTORY = Path("out") / "history.parquet"
+
+
+# -- atomic writes ----------------------------------------------------------------------------
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temp file in the same directory + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
+    return atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=_json_default))
+
+
+def atomic_save(path: str | os.PathLike, writer) -> Path:
+    """Atomically create ``path`` with ``writer(tmp_path)`` (for writers that need a file name)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        writer(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def _json_default(o):
+    if hasattr(o, "item"):
+        return o.item()
+    if isinstance(o, (set, frozenset, tuple)):
+        return list(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+# -- tables -----------------------------------------------------------------------------------
+
+
+def to_frame(rows: Iterable[dict]) -> pd.DataFrame:
+    """Rows (dicts with ``COLUMNS`` keys; missing ones become NA) → a typed long table."""
+    df = pd.DataFrame(list(rows))
+    for c in COLUMNS:
+        if c not in df.columns:
+            df[c] = float("nan") if c in ("value", "noise_floor") else ("" if c not in _DTYPES else -1)
+    df = df[COLUMNS].copy()
+    for c, t in _DTYPES.items():
+        df[c] = pd.to_numeric(df[c], errors="coerce")
+        if t == "int64":
+            df[c] = df[c].fillna(-1).astype("int64")
+        else:
+            df[c] = df[c].astype("float64")
+    for c in set(COLUMNS) - set(_DTYPES):
+        df[c] = df[c].fillna("").astype(str)
+    return df
+
+
+def write_table(df: pd.DataFrame, path: str | os.PathLike) -> Path:
+    """Write a long table as parquet, atomically."""
+    missing = set(COLUMNS) - set(df.columns)
+    if missing:
+        raise ValueError(f"results table lacks columns {sorted(missing)}")
+    return atomic_save(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def read_table(path: str | os.PathLike) -> pd.DataFrame:
+    """Read a run table: a parquet file or a run directory holding ``results.parquet``."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "results.parquet"
+    if not p.exists():
+        raise FileNotFoundError(f"no results table at {p}")
+    return pd.read_parquet(p)
+
+
+def append_history(df: pd.DataFrame, history: str | os.PathLike = DEFAULT_HISTORY) -> Path:
+    """Append one run's table to the history parquet (atomic). Rows of the same ``run_id`` already
+    in the history are replaced, so re-finishing a resumed run does not duplicate it."""
+    history = Path(history)
+    if history.exists():
+        old = pd.read_parquet(history)
+        run_ids = set(df["run_id"].unique())
+        old = old[~old["run_id"].isin(run_ids)]
+        df = pd.concat([old, df], ignore_index=True) if len(old) else df
+    return write_table(df, history)
+
+
+def read_history(history: str | os.PathLike = DEFAULT_HISTORY) -> pd.DataFrame:
+    history = Path(history)
+    if not history.exists():
+        return to_frame([])
+    return pd.read_parquet(history)
+
+
+# -- run metadata -----------------------------------------------------------------------------
+
+
+def git_sha(root: str | os.PathLike | None = None) -> str:
+    root = Path(root) if root else Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        sha = out.stdout.strip()
+        if out.returncode != 0 or not sha:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        return sha + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def package_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in ("prtbench", "torch", "mitsuba", "drjit", "numpy", "scipy", "pandas", "embreex"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def machine_description() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.node()} | {cpu} | {os.cpu_count()} cpu | {platform.system()} {platform.release()}"

@@ -1,0 +1,120 @@
+"""Benchmark suites and the capability matrix that turns a suite into cells.
+
+* ``smoke``: test-size scene(s), sequences V and VBL of 3 frames, 64-spp references, bounces 0,
+  every available method, each cell in its own spawned process (peak RSS per cell). A few minutes
+  on 2 cores.
+* ``nightly``: every library scene at bench size, all methods, V / VB / VBL (+ P for dynamic
+  scenes), bounces 0 (+ 1, 2, full for methods with ``max_bounces > 0``), 8-frame sequences with 3
+  scored frames, 256-spp references. Target ≤ 30 min.
+
+``Capabilities.why_not`` decides which cells are in scope; out-of-scope cells are still planned,
+with their reason in ``Cell.na``, so the report shows the whole matrix.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+from reports.cells import FULL, Cell, canonical_config, capability_bounces
+
+
+@dataclass(frozen=True)
+class Suite:
+    """What a suite runs (see the module docstring).
+
+    scenes: library names (None = every scene of the backend). kinds: sequence kinds of every
+    scene; dynamic_kinds: added for scenes with a skeleton. extra_bounces: bounce counts tried
+    besides 0 for methods with ``max_bounces > 0``. configs: (method, config JSON) pairs; a method
+    without any runs its default config. methods: None = every available method.
+    """
+
+    name: str
+    size: str
+    kinds: tuple[str, ...]
+    n_frames: int
+    ref_spp: int
+    scenes: tuple[str, ...] | None = None
+    dynamic_kinds: tuple[str, ...] = ("P",)
+    score_frames: tuple[int, ...] = ()
+    spp_side: int = 2  # = references.render's default coverage S
+    extra_bounces: tuple[int, ...] = ()
+    methods: tuple[str, ...] | None = None
+    configs: tuple[tuple[str, str], ...] = ()
+    eq_err_spp: tuple[int, ...] = ()
+    isolate: bool = True
+    threads: int | None = None
+    seed: int = 0
+
+
+SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=(),
+              n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True)
+NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VBL"), dynamic_kinds=("P",),
+                n_frames=8, score_frames=(1, 4, 7), ref_spp=256, extra_bounces=(1, 2, FULL),
+                eq_err_spp=(32, 128, 256), isolate=True)
+SUITES = {"smoke": SMOKE, "nightly": NIGHTLY}
+
+
+def get_suite(name: str) -> Suite:
+    try:
+        return SUITES[name]
+    except KeyError:
+        raise ValueError(f"unknown suite {name!r}; available: {', '.join(SUITES)}") from None
+
+
+def _configs_for(suite: Suite, method: str) -> list[str]:
+    cfgs = [canonical_config(c) for m, c in suite.configs if m == method]
+    return cfgs or ["{}"]
+
+
+def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[str] | None = None,
+               backend: str = "reports.backend", plugins: tuple[str, ...] = (),
+               isolate: bool | None = None) -> list[Cell]:
+    """Every cell of ``suite`` (in-scope and n/a), optionally restricted to ``methods``/``scenes``.
+
+    ``scenes`` may contain ``"file:<path>"`` entries (TOML scene files).
+    """
+    from methods.base import available_methods, get_method
+    from reports.backend import load_backend
+
+    be = load_backend(backend)
+    for mod in plugins:
+        importlib.import_module(mod)
+    scene_names = list(scenes or suite.scenes or be.scene_names())
+    method_names = list(methods or suite.methods or available_methods())
+    classes = {}
+    for m in method_names:
+        try:
+            classes[m] = get_method(m)
+        except KeyError as e:
+            raise ValueError(str(e.args[0])) from None
+    cells: list[Cell] = []
+    for sc in scene_names:
+        scene = be.get_scene(sc, suite.size)
+        dynamic = be.is_dynamic(scene) if hasattr(be, "is_dynamic") else False
+        kinds = tuple(suite.kinds) + (tuple(suite.dynamic_kinds) if dynamic else ())
+        for m, cls in classes.items():
+            caps = cls.capabilities
+            bounces = (0,) + (tuple(suite.extra_bounces) if caps.max_bounces > 0 else ())
+            for cfg in _configs_for(suite, m):
+                for k in kinds:
+                    for b in bounces:
+                        na = caps.why_not(scene, k, capability_bounces(b))
+                        cells.append(Cell(scene=sc, size=suite.size, kind=k, method=m, config=cfg, bounces=b,
+                                          n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
+                                          ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
+                                          threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
+                                          na=na, backend=backend, plugins=tuple(plugins)))
+    return cells
+
+
+def reference_jobs(cells: list[Cell]) -> list[tuple[str, str, str, int, int, int, int, tuple[int, ...], tuple[int, ...]]]:
+    """Distinct reference renders the in-scope cells need: (scene, size, kind, n_frames, seed,
+    bounces, spp, frames, eq_err_spp)."""
+    seen = []
+    for c in cells:
+        if c.na is not None:
+            continue
+        j = (c.scene, c.size, c.kind, c.n_frames, c.seed, c.bounces, c.ref_spp, tuple(c.scored()), tuple(c.eq_err_spp))
+        if j not in seen:
+            seen.append(j)
+    return seen

@@ -1,0 +1,169 @@
+#!/usr/bin/env python3
+"""prtbench command line.
+
+  python run_bench.py run --suite smoke [--methods M …] [--scenes S …] [--scene-file F.toml]
+                          [--out DIR] [--executor local] [--history PATH]
+  python run_bench.py references --suite smoke          # pre-build the reference cache
+  python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged
+  python run_bench.py study NAME [--out DIR] [--quick]  # a convergence study (reports/studies.py)
+  python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
+
+A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _parser() -> argparse.ArgumentParser:
+    from reports.suites import SUITES
+
+    p = argparse.ArgumentParser(prog="prtbench", description="Benchmark precomputation-based relighting methods "
+                                "against Mitsuba 3 references.")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def selection(sp):
+        sp.add_argument("--suite", choices=sorted(SUITES), default="smoke")
+        sp.add_argument("--methods", nargs="+", metavar="M", help="method names (default: all available)")
+        sp.add_argument("--scenes", nargs="+", metavar="S", help="library scene names (default: the suite's)")
+        sp.add_argument("--scene-file", action="append", default=[], metavar="F.toml",
+                        help="a TOML scene file to run as well (repeatable)")
+        # for tests / alternative installations: where scenes, references and metrics come from
+        sp.add_argument("--backend", default="reports.backend", help=argparse.SUPPRESS)
+        sp.add_argument("--plugin", action="append", default=[], help=argparse.SUPPRESS)
+
+    r = sub.add_parser("run", help="run a benchmark suite and write its report")
+    selection(r)
+    r.add_argument("--out", type=Path, help="run directory (default out/<suite>); re-use it to resume")
+    r.add_argument("--executor", choices=["local"], default="local", help="where cells run (in-process now)")
+    r.add_argument("--history", type=Path, default=None, help="history parquet every run appends to "
+                   "(default out/history.parquet)")
+    r.add_argument("--no-history", action="store_true", help="do not read or append the history")
+    iso = r.add_mutually_exclusive_group()
+    iso.add_argument("--isolate", dest="isolate", action="store_true", default=None,
+                     help="run every cell in a spawned child process (its own peak RSS)")
+    iso.add_argument("--no-isolate", dest="isolate", action="store_false", help="run cells in this process")
+    r.add_argument("--no-vertex-renders", action="store_true", help="skip the pyvista per-vertex error renders")
+    r.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    ref = sub.add_parser("references", help="pre-build the reference cache of a suite")
+    selection(ref)
+    ref.add_argument("--quiet", action="store_true")
+
+    c = sub.add_parser("compare", help="compare two runs (run directories or results.parquet files)")
+    c.add_argument("run_a", type=Path)
+    c.add_argument("run_b", type=Path)
+    c.add_argument("--all", action="store_true", help="list unchanged values too")
+
+    s = sub.add_parser("study", help="run a study from reports/studies.py")
+    s.add_argument("name")
+    s.add_argument("--out", type=Path, default=None, help="output folder (default out/studies/<name>)")
+    s.add_argument("--quick", action="store_true", help="a small, fast version")
+
+    rep = sub.add_parser("report", help="rebuild the HTML report of a run directory")
+    rep.add_argument("run_dir", type=Path)
+    rep.add_argument("--history", type=Path, default=None)
+    return p
+
+
+def _scenes(args) -> list[str] | None:
+    names = list(args.scenes or [])
+    names += [f"file:{Path(f).resolve()}" for f in args.scene_file]
+    if args.scene_file and not args.scenes:
+        return names  # only the scene files
+    return names or None
+
+
+def cmd_run(args) -> int:
+    from reports.cells import make_executor
+    from reports.pipeline import run_suite
+    from reports.store import DEFAULT_HISTORY
+    from reports.suites import get_suite
+
+    suite = get_suite(args.suite)
+    out = args.out or Path("out") / suite.name
+    history = None if args.no_history else (args.history or DEFAULT_HISTORY)
+    res = run_suite(suite, out, methods=args.methods, scenes=_scenes(args), executor=make_executor(args.executor),
+                    history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
+                    progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
+    print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_na} n/a, {res.n_error} failed")
+    if res.changes is not None:
+        from reports.regress import flagged, format_changes
+
+        fl = flagged(res.changes)
+        print(format_changes(res.changes, only_flagged=True) if len(fl) else "no regressions since the last run")
+    print(f"results: {res.table.resolve()}")
+    if res.history:
+        print(f"history: {res.history.resolve()}")
+    print(f"report:  {res.report.resolve()}")
+    return 0 if res.n_error == 0 else 1
+
+
+def cmd_references(args) -> int:
+    from reports.pipeline import build_references
+    from reports.suites import get_suite
+
+    n = build_references(get_suite(args.suite), methods=args.methods, scenes=_scenes(args), backend=args.backend,
+                         plugins=tuple(args.plugin), progress=not args.quiet)
+    print(f"{n} references ready in the cache")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from reports.regress import compare_runs, flagged, format_changes
+    from reports.store import read_table
+
+    a, b = read_table(args.run_a), read_table(args.run_b)
+    ch = compare_runs(a, b)
+    print(f"{a['run_id'].iloc[0] if len(a) else args.run_a}  →  {b['run_id'].iloc[0] if len(b) else args.run_b}")
+    print(format_changes(ch, only_flagged=not args.all))
+    return 1 if (len(ch) and (flagged(ch)["flag"] == "regression").any()) else 0
+
+
+def cmd_study(args) -> int:
+    from reports import studies
+
+    if args.name not in studies.STUDIES:
+        print(f"unknown study {args.name!r}; available: {', '.join(sorted(studies.STUDIES))}", file=sys.stderr)
+        return 2
+    out = args.out or Path("out") / "studies" / args.name
+    paths = studies.run_study(args.name, out, quick=args.quick)
+    for p in paths:
+        print(p)
+    return 0
+
+
+def cmd_report(args) -> int:
+    import json
+
+    from reports import regress, store
+    from reports.html import build_report
+
+    df = store.read_table(args.run_dir)
+    meta = json.loads((args.run_dir / "run.json").read_text()) if (args.run_dir / "run.json").exists() else {}
+    changes = prev_id = None
+    hist_path = args.history or store.DEFAULT_HISTORY
+    if Path(hist_path).exists() and len(df):
+        prev = regress.previous_run(store.read_history(hist_path), str(df["run_id"].iloc[0]))
+        if prev is not None and len(prev):
+            prev_id = str(prev["run_id"].iloc[0])
+            changes = regress.compare_runs(prev, df)
+    p = build_report(df, args.run_dir / "report.html", run_dir=args.run_dir, meta=meta, changes=changes, prev_run=prev_id)
+    print(f"report:  {p.resolve()}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return {"run": cmd_run, "references": cmd_references, "compare": cmd_compare, "study": cmd_study,
+                "report": cmd_report}[args.cmd](args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"prtbench: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,548 @@
+"""Lat-long environment maps with Mitsuba 3.9's `envmap` conventions (docs/ARCHITECTURE.md).
+
+Mapping (mitsuba3 src/emitters/envmap.cpp, `direction_to_uv` and `eval_spectrum`): a local
+direction d goes to
+    u = atan2(d.x, −d.z)/(2π),  v = acos(d.y)/π,
+then ``u −= 0.5/W`` (half-texel shift: columns are texel-centred, u = (x+0.5)/W), ``uv −= floor(uv)``
+(wrapping; note this is applied to v too, so the exact south pole d.y = −1 wraps to v = 0 as in
+Mitsuba), ``x = u·W``, ``y = v·(H−1)`` (rows are corner-aligned, v = y/(H−1)), and the texel
+values are interpolated bilinearly in an image extended by one column that repeats column 0
+(Mitsuba's "periodic boundary" column). Row 0 is the top of the image (d.y = +1).
+Inverse (`uv_to_direction`): φ = 2πu, θ = πv, d = (sinφ sinθ, cosθ, −cosφ sinθ).
+
+`EnvMap.to_world` is the emitter's to_world rotation; a world direction d is looked up at
+``to_world.T @ d``.
+
+Importance sampling (our own, not Mitsuba's Hierarchical2D): piecewise constant in solid angle
+over the W×(H−1) cells of the bilinear lattice (cell (i, j) spans lattice columns j..j+1 and rows
+i..i+1). A cell's probability is proportional to the mean luminance of its 4 corner texels times
+its solid angle; within a cell, directions are uniform in (φ, cosθ), i.e. uniform in solid angle.
+A cell's bilinear radiance is positive somewhere iff its probability is positive, so MIS with the
+BRDF stays unbiased. ``pdf(d)`` is exactly the density of ``sample``.
+"""
+from __future__ import annotations
+
+import math
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# Rec.709 luminance weights (Mitsuba's `luminance()` for RGB).
+_LUM = (0.212671, 0.715160, 0.072169)
+
+PROCEDURAL_NAMES = ("sky_sun", "studio", "window", "overcast")
+
+# to_world must be a rotation to this tolerance (float32 round-off of a composed rotation).
+_ROTATION_TOL = 1e-4
+
+
+def _as_rotation(R) -> Tensor:
+    R = torch.as_tensor(np.asarray(R.detach().cpu() if isinstance(R, Tensor) else R, dtype=np.float64))
+    if R.shape != (3, 3):
+        raise ValueError(f"to_world must be a (3, 3) rotation matrix, got shape {tuple(R.shape)}")
+    if not torch.isfinite(R).all():
+        raise ValueError("to_world contains NaN/Inf")
+    err = (R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max().item()
+    if err > _ROTATION_TOL or torch.linalg.det(R).item() < 0:
+        raise ValueError(f"to_world must be a proper rotation (orthonormal, det +1); |R R^T − I| = {err:.2e}")
+    return R
+
+
+def _check_data(data) -> Tensor:
+    if isinstance(data, Tensor):
+        t = data.detach().to("cpu", torch.float32)
+    else:
+        try:
+            t = torch.from_numpy(np.ascontiguousarray(np.asarray(data, dtype=np.float32)))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"env map data must be a numeric (H, W, 3) array: {e}") from None
+    if t.ndim != 3 or t.shape[2] != 3:
+        raise ValueError(f"env map data must have shape (H, W, 3), got {tuple(t.shape)}")
+    if t.shape[0] < 3 or t.shape[1] < 2:
+        raise ValueError(f"env map must be at least 3 rows × 2 columns (Mitsuba's limit), got {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError("env map data contains NaN/Inf texels")
+    if (t < 0).any():
+        raise ValueError("env map data contains negative texels")
+    return t.contiguous()
+
+
+def direction_to_uv(d: Tensor) -> tuple[Tensor, Tensor]:
+    """Local directions (..., 3) → lat-long (u, v) ∈ [−½, ½] × [0, 1] (Mitsuba `direction_to_uv`)."""
+    u = torch.atan2(d[..., 0], -d[..., 2]) * (0.5 / math.pi)
+    v = torch.acos(d[..., 1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    return u, v
+
+
+def uv_to_direction(u: Tensor, v: Tensor) -> Tensor:
+    """(u, v) (...) → local unit directions (..., 3) (Mitsuba `uv_to_direction`)."""
+    theta, phi = v * math.pi, u * (2.0 * math.pi)
+    st = torch.sin(theta)
+    return torch.stack([torch.sin(phi) * st, torch.cos(theta), -torch.cos(phi) * st], dim=-1)
+
+
+def extend_periodic(data: Tensor) -> Tensor:
+    """(H, W, 3) → (H·(W+1), 3): Mitsuba's extra column repeating column 0 (periodic boundary)."""
+    return torch.cat([data, data[:, :1]], dim=1).reshape(-1, 3)
+
+
+def bilinear_lookup(data: Tensor, d_local: Tensor, ext: Tensor | None = None) -> Tensor:
+    """Mitsuba envmap `eval_spectrum` for local directions.
+
+    Args:
+        data: (H, W, 3) texels; d_local: (..., 3) unit directions in the emitter frame;
+        ext: optional precomputed `extend_periodic(data)` in d_local's dtype/device.
+    Returns:
+        (..., 3) radiance, dtype/device of d_local.
+    """
+    H, W, _ = data.shape
+    if ext is None:
+        ext = extend_periodic(data.to(d_local.device, d_local.dtype))
+    u, v = direction_to_uv(d_local)
+    u = u - 0.5 / W  # half-texel shift: texel-centred columns
+    u = u - torch.floor(u)
+    v = v - torch.floor(v)
+    x, y = u * W, v * (H - 1)
+    ix = x.to(torch.int64).clamp(max=W - 1)
+    iy = y.to(torch.int64).clamp(max=H - 2)
+    w1x, w1y = (x - ix)[..., None], (y - iy)[..., None]
+    w0x, w0y = 1.0 - w1x, 1.0 - w1y
+    idx = iy * (W + 1) + ix
+    v00, v10 = ext[idx], ext[idx + 1]
+    v01, v11 = ext[idx + W + 1], ext[idx + W + 2]
+    v0 = w0x * v00 + w1x * v10
+    v1 = w0x * v01 + w1x * v11
+    return w0y * v0 + w1y * v1
+
+
+class EnvMap:
+    """A lat-long HDR environment map (radiance, linear Rec.709 RGB) and its rotation.
+
+    data: (H, W, 3) float32 texels, row 0 = top (+Y); to_world: (3, 3) rotation (emitter→world).
+    """
+
+    def __init__(self, data, to_world=None) -> None:
+        self.data: Tensor = _check_data(data)
+        self.to_world: Tensor = _as_rotation(np.eye(3) if to_world is None else to_world)
+        self._table: tuple[Tensor, Tensor, Tensor] | None = None  # sampling tables (lazy)
+        self._ext: dict = {}  # (device, dtype) → periodic-extended texels for `radiance`
+
+    # -- basics
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    def __repr__(self) -> str:
+        return f"EnvMap({self.height}×{self.width}, to_world={self.to_world.tolist()})"
+
+    def rotated(self, R) -> "EnvMap":
+        """The same map rotated by R (3, 3): new to_world = R @ to_world; shares the data."""
+        out = EnvMap.__new__(EnvMap)
+        out.data = self.data
+        out.to_world = _as_rotation(_as_rotation(R) @ self.to_world)
+        out._table = self._table
+        out._ext = self._ext  # same data ⇒ same extended copies
+        return out
+
+    def to_local(self, d: Tensor) -> Tensor:
+        """World directions (..., 3) → emitter frame: to_world.T @ d."""
+        R = self.to_world.to(d.device, d.dtype)
+        return d @ R  # (d @ R)_j = Σ_i d_i R_ij = (R^T d)_j
+
+    def to_world_dirs(self, d_local: Tensor) -> Tensor:
+        R = self.to_world.to(d_local.device, d_local.dtype)
+        return d_local @ R.T
+
+    def radiance(self, d: Tensor) -> Tensor:
+        """Radiance arriving from world directions d (..., 3) (unit) → (..., 3); equals Mitsuba's
+        envmap ``eval`` with ``si.wi = −d``."""
+        if d.shape[-1] != 3:
+            raise ValueError(f"directions must have shape (..., 3), got {tuple(d.shape)}")
+        key = (d.device, d.dtype)
+        if key not in self._ext:
+            self._ext[key] = extend_periodic(self.data.to(d.device, d.dtype))
+        return bilinear_lookup(self.data, self.to_local(d), self._ext[key])
+
+    def mean_radiance(self) -> Tensor:
+        """(3,) average radiance over the sphere (solid-angle weighted, from the sampling cells)."""
+        _, _, omega = self._tables()
+        ext = torch.cat([self.data, self.data[:, :1]], 1).double()
+        cell = 0.25 * (ext[:-1, :-1] + ext[:-1, 1:] + ext[1:, :-1] + ext[1:, 1:])  # (H−1, W, 3)
+        return ((cell * omega[:, None, None]).sum((0, 1)) / (4 * math.pi)).float()
+
+    # -- importance sampling
+    def _tables(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(cdf (C,), cell probabilities (H−1, W), cell solid angles (H−1,)), float64."""
+        if self._table is None:
+            H, W = self.height, self.width
+            lum = (self.data.double() * torch.tensor(_LUM, dtype=torch.float64)).sum(-1)
+            ext = torch.cat([lum, lum[:, :1]], 1)  # (H, W+1)
+            corner = 0.25 * (ext[:-1, :-1] + ext[:-1, 1:] + ext[1:, :-1] + ext[1:, 1:])  # (H−1, W)
+            rows = torch.arange(H, dtype=torch.float64)
+            z = torch.cos(math.pi * rows / (H - 1))
+            omega = (2 * math.pi / W) * (z[:-1] - z[1:])  # (H−1,) solid angle of a cell in each row
+            w = corner * omega[:, None]
+            if w.sum() <= 0:  # all-black map: uniform in solid angle
+                w = omega[:, None].expand(H - 1, W).clone()
+            p = w / w.sum()
+            cdf = torch.cumsum(p.reshape(-1), 0)
+            cdf[-1] = 1.0
+            self._table = (cdf, p, omega)
+        return self._table
+
+    def sample(self, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Sample world directions ∝ (piecewise-constant) luminance.
+
+        Args:
+            u: (..., 2) uniforms in [0, 1).
+        Returns:
+            d (..., 3) world unit directions and pdf (...) w.r.t. solid angle (dtype of u).
+        """
+        if u.shape[-1] != 2:
+            raise ValueError(f"u must have shape (..., 2), got {tuple(u.shape)}")
+        cdf, p, omega = self._tables()
+        H, W = self.height, self.width
+        dev = u.device
+        cdf_d, p_flat = cdf.to(dev), p.reshape(-1).to(dev)
+        u0, u1 = u[..., 0].double(), u[..., 1].double()
+        k = torch.searchsorted(cdf_d, u0.contiguous(), right=True).clamp(max=cdf_d.numel() - 1)
+        # skip zero-probability cells that searchsorted can land on at exact boundaries
+        lo = torch.where(k > 0, cdf_d[(k - 1).clamp_min(0)], torch.zeros_like(u0))
+        pk = p_flat[k]
+        r = ((u0 - lo) / pk.clamp_min(1e-300)).clamp(0.0, 1.0)
+        iy, ix = k // W, k % W
+        phi = 2 * math.pi * (ix.double() + 0.5 + r) / W
+        z_top = torch.cos(math.pi * iy.double() / (H - 1))
+        z_bot = torch.cos(math.pi * (iy.double() + 1) / (H - 1))
+        zc = z_top - u1 * (z_top - z_bot)
+        st = (1 - zc * zc).clamp_min(0).sqrt()
+        d_local = torch.stack([torch.sin(phi) * st, zc, -torch.cos(phi) * st], -1)
+        pdf = pk / omega.to(dev)[iy]
+        d = self.to_world_dirs(d_local)
+        return d.to(u.dtype), pdf.to(u.dtype)
+
+    def pdf(self, d: Tensor) -> Tensor:
+        """Solid-angle density of `sample` at world directions d (..., 3) → (...)."""
+        if d.shape[-1] != 3:
+            raise ValueError(f"directions must have shape (..., 3), got {tuple(d.shape)}")
+        _, p, omega = self._tables()
+        H, W = self.height, self.width
+        dl = self.to_local(d.double())
+        u, v = direction_to_uv(dl)
+        xf = u * W - 0.5
+        ix = torch.remainder(torch.floor(xf).to(torch.int64), W)
+        iy = torch.floor(v * (H - 1)).to(torch.int64).clamp(0, H - 2)
+        pd = p.to(d.device)[iy, ix] / omega.to(d.device)[iy]
+        return pd.to(d.dtype)
+
+    # -- files
+    @classmethod
+    def load(cls, path, to_world=None) -> "EnvMap":
+        """Read an ``.exr`` (OpenEXR) or ``.hdr`` (Radiance RGBE) lat-long map."""
+        return cls(read_image(path), to_world)
+
+    def save(self, path) -> None:
+        """Write the texels (not the rotation) as ``.exr`` (float32) or ``.hdr`` (RGBE)."""
+        write_image(path, self.data.numpy())
+
+    @classmethod
+    def procedural(cls, name: str, *, height: int = 128, seed: int = 0) -> "EnvMap":
+        return procedural(name, height=height, seed=seed)
+
+
+# -- file I/O ----------------------------------------------------------------------------------
+
+
+def read_image(path) -> np.ndarray:
+    """(H, W, 3) float32 from .exr / .hdr; ValueError with the reason for anything unreadable."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext not in (".exr", ".hdr", ".pic", ".rgbe"):
+        raise ValueError(f"cannot read env map {str(p)!r}: unsupported extension {ext!r} (use .exr or .hdr)")
+    if not p.is_file():
+        raise ValueError(f"cannot read env map {str(p)!r}: file not found")
+    try:
+        arr = _read_exr(p) if ext == ".exr" else _read_rgbe(p)
+    except Exception as e:  # corrupt file: one clear message with the underlying reason
+        raise ValueError(f"cannot read env map {str(p)!r}: corrupt or unsupported file ({type(e).__name__}: {e})") from e
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def write_image(path, data: np.ndarray) -> None:
+    """Write (H, W, 3) float data as .exr (float32, ZIP) or .hdr (RGBE, RLE)."""
+    p = Path(path)
+    data = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
+    if data.ndim != 3 or data.shape[2] != 3:
+        raise ValueError(f"image must have shape (H, W, 3), got {data.shape}")
+    ext = p.suffix.lower()
+    if ext == ".exr":
+        _write_exr(p, data)
+    elif ext in (".hdr", ".pic", ".rgbe"):
+        _write_rgbe(p, data)
+    else:
+        raise ValueError(f"cannot write env map {str(p)!r}: unsupported extension {ext!r} (use .exr or .hdr)")
+
+
+def _read_exr(p: Path) -> np.ndarray:
+    import OpenEXR
+
+    if not OpenEXR.isOpenExrFile(str(p)):
+        raise ValueError("not an OpenEXR file")
+    with OpenEXR.File(str(p)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            arr = np.asarray(ch["RGB"].pixels)
+        elif "RGBA" in ch:
+            arr = np.asarray(ch["RGBA"].pixels)[..., :3]
+        elif all(c in ch for c in "RGB"):
+            arr = np.stack([np.asarray(ch[c].pixels) for c in "RGB"], -1)
+        elif "Y" in ch:
+            arr = np.repeat(np.asarray(ch["Y"].pixels)[..., None], 3, -1)
+        else:
+            raise ValueError(f"no RGB/Y channels (found {sorted(ch)})")
+    return arr.astype(np.float32)
+
+
+def _write_exr(p: Path, data: np.ndarray) -> None:
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"RGB": data}) as f:
+        f.write(str(p))
+
+
+def rgbe_encode(data: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float → (H, W, 4) uint8 RGBE (Ward, Graphics Gems II "Real pixels")."""
+    v = data.max(-1)
+    m, e = np.frexp(v)
+    scale = np.where(v > 1e-32, m * 256.0 / np.where(v > 1e-32, v, 1.0), 0.0)
+    rgb = np.clip(np.floor(data * scale[..., None]), 0, 255).astype(np.uint8)
+    ex = np.where(v > 1e-32, e + 128, 0).astype(np.uint8)
+    return np.concatenate([rgb, ex[..., None]], -1)
+
+
+def rgbe_decode(rgbe: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8 → (H, W, 3) float32 with Radiance's (mantissa + ½)·2^(e−136)."""
+    e = rgbe[..., 3].astype(np.int32)
+    f = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0)
+    return ((rgbe[..., :3].astype(np.float64) + 0.5) * f[..., None]).astype(np.float32)
+
+
+def _write_rgbe(p: Path, data: np.ndarray) -> None:
+    H, W, _ = data.shape
+    enc = rgbe_encode(data)
+    out = bytearray(b"#?RADIANCE\n# written by prtbench\nFORMAT=32-bit_rle_rgbe\n\n")
+    out += f"-Y {H} +X {W}\n".encode()
+    rle = 8 <= W < 0x8000
+    for y in range(H):
+        row = enc[y]
+        if not rle:
+            out += row.tobytes()
+            continue
+        out += bytes([2, 2, W >> 8, W & 0xFF])
+        for c in range(4):  # "new" RLE, each component separately; literal chunks and runs
+            comp = row[:, c]
+            i = 0
+            while i < W:
+                j = i + 1
+                while j < W and j - i < 127 and comp[j] == comp[i]:
+                    j += 1
+                if j - i >= 4:  # run
+                    out += bytes([128 + (j - i), int(comp[i])])
+                    i = j
+                    continue
+                j = i  # literal chunk until the next run of >= 4 (or 128 bytes)
+                while j < W and j - i < 128:
+                    if j + 3 < W and comp[j] == comp[j + 1] == comp[j + 2] == comp[j + 3]:
+                        break
+                    j += 1
+                out += bytes([j - i]) + comp[i:j].tobytes()
+                i = j
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_bytes(bytes(out))
+    os.replace(tmp, p)
+
+
+def _read_rgbe(p: Path) -> np.ndarray:
+    raw = p.read_bytes()
+    if not (raw.startswith(b"#?RADIANCE") or raw.startswith(b"#?RGBE")):
+        raise ValueError("missing '#?RADIANCE' signature")
+    pos = 0
+    fmt_ok = True
+    while True:  # header lines until an empty line
+        end = raw.index(b"\n", pos)
+        line = raw[pos:end].strip()
+        pos = end + 1
+        if not line:
+            break
+        if line.startswith(b"FORMAT=") and line != b"FORMAT=32-bit_rle_rgbe":
+            fmt_ok = False
+    if not fmt_ok:
+        raise ValueError("only FORMAT=32-bit_rle_rgbe is supported")
+    end = raw.index(b"\n", pos)
+    res = raw[pos:end].split()
+    pos = end + 1
+    if len(res) != 4 or res[0] != b"-Y" or res[2] != b"+X":
+        raise ValueError(f"unsupported resolution line {raw[pos:end]!r} (need '-Y H +X W')")
+    H, W = int(res[1]), int(res[3])
+    if H <= 0 or W <= 0:
+        raise ValueError("bad resolution")
+    out = np.zeros((H, W, 4), np.uint8)
+    buf = memoryview(raw)
+    for y in range(H):
+        if pos + 4 > len(raw):
+            raise ValueError("truncated pixel data")
+        b0, b1, b2, b3 = raw[pos], raw[pos + 1], raw[pos + 2], raw[pos + 3]
+        if 8 <= W < 0x8000 and b0 == 2 and b1 == 2 and b2 < 128:
+            if (b2 << 8 | b3) != W:
+                raise ValueError("scanline width mismatch")
+            pos += 4
+            for c in range(4):
+                x = 0
+                while x < W:
+                    n = raw[pos]
+                    pos += 1
+                    if n > 128:
+                        n -= 128
+                        if x + n > W:
+                            raise ValueError("run overflows scanline")
+                        out[y, x:x + n, c] = raw[pos]
+                        pos += 1
+                    else:
+                        if n == 0 or x + n > W or pos + n > len(raw):
+                            raise ValueError("bad literal chunk")
+                        out[y, x:x + n, c] = np.frombuffer(buf[pos:pos + n], np.uint8)
+                        pos += n
+                    x += n
+        else:  # flat (uncompressed) scanline
+            n = 4 * W
+            if pos + n > len(raw):
+                raise ValueError("truncated pixel data")
+            out[y] = np.frombuffer(buf[pos:pos + n], np.uint8).reshape(W, 4)
+            pos += n
+    return rgbe_decode(out)
+
+
+def load(path, to_world=None) -> EnvMap:
+    """`EnvMap.load`."""
+    return EnvMap.load(path, to_world)
+
+
+def save(env: EnvMap, path) -> None:
+    """`EnvMap.save`."""
+    env.save(path)
+
+
+# -- procedural maps -----------------------------------------------------------------------------
+
+
+def texel_directions(height: int, width: int) -> Tensor:
+    """(H, W, 3) float64 local directions of the texels: u = (x+½)/W, v = y/(H−1)."""
+    v = torch.arange(height, dtype=torch.float64) / (height - 1)
+    u = (torch.arange(width, dtype=torch.float64) + 0.5) / width
+    return uv_to_direction(u[None, :].expand(height, width), v[:, None].expand(height, width))
+
+
+def _smoothstep(e0: float, e1: float, x: Tensor) -> Tensor:
+    t = ((x - e0) / (e1 - e0)).clamp(0, 1)
+    return t * t * (3 - 2 * t)
+
+
+def _dir(az_deg: float, el_deg: float) -> Tensor:
+    """Local direction at azimuth φ (u = φ/2π) and elevation above the horizon (degrees)."""
+    az, el = math.radians(az_deg), math.radians(el_deg)
+    return torch.tensor([math.sin(az) * math.cos(el), math.sin(el), -math.cos(az) * math.cos(el)], dtype=torch.float64)
+
+
+def _rect_mask(d: Tensor, centre: Tensor, w_deg: float, h_deg: float, soft: float) -> Tensor:
+    """Soft rectangle in angular coordinates around `centre` (w × h degrees, edge width `soft` rad)."""
+    up0 = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    right = torch.linalg.cross(up0, centre)
+    if right.norm() < 1e-6:
+        right = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    right = right / right.norm()
+    up = torch.linalg.cross(centre, right)
+    c = d @ centre
+    a = torch.atan2(d @ right, c).abs()
+    b = torch.atan2(d @ up, c).abs()
+    ma = 1 - _smoothstep(math.radians(w_deg) / 2 - soft / 2, math.radians(w_deg) / 2 + soft / 2, a)
+    mb = 1 - _smoothstep(math.radians(h_deg) / 2 - soft / 2, math.radians(h_deg) / 2 + soft / 2, b)
+    return ma * mb * (c > 0)
+
+
+def procedural(name: str, *, height: int = 128, seed: int = 0) -> EnvMap:
+    """Synthetic HDR maps (width = 2·height), deterministic in (name, height, seed):
+
+    * ``sky_sun``: smooth sky gradient + dark ground + a small very bright sun disc (≈2° radius)
+      carrying most of the energy (hard shadows).
+    * ``studio``: dark background + three bright rectangular softboxes (key, fill, rim).
+    * ``window``: dim room + one small, very bright window with a dark cross mullion
+      (all-frequency shadows).
+    * ``overcast``: smooth, low-frequency CIE-overcast-like sky (soft lighting).
+    """
+    if name not in PROCEDURAL_NAMES:
+        raise ValueError(f"unknown procedural env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES)}")
+    height = int(height)
+    if height < 3:
+        raise ValueError(f"height must be >= 3, got {height}")
+    W = 2 * height
+    g = torch.Generator().manual_seed(int(seed))
+
+    def rnd(lo, hi):
+        return lo + (hi - lo) * torch.rand((), generator=g, dtype=torch.float64).item()
+
+    d = texel_directions(height, W)  # (H, W, 3)
+    y = d[..., 1]
+    texel = math.pi / (height - 1)  # angular texel size (rows)
+    col = lambda *c: torch.tensor(c, dtype=torch.float64)  # noqa: E731
+
+    if name == "sky_sun":
+        sun = _dir(rnd(0, 360), rnd(30, 50))
+        zenith, horizon, ground = col(0.20, 0.40, 0.85), col(0.95, 0.95, 1.0), col(0.20, 0.18, 0.15)
+        t = (1 - y.clamp(0, 1)) ** 3
+        sky = zenith * (1 - t[..., None]) + horizon * t[..., None]
+        gamma = torch.acos((d @ sun).clamp(-1, 1))
+        sky = sky + 0.8 * torch.exp(-(gamma / 0.25) ** 2)[..., None] * col(1.0, 0.9, 0.7)  # circumsolar
+        blend = _smoothstep(-0.03, 0.03, y)[..., None]
+        L = blend * sky + (1 - blend) * ground
+        r = max(math.radians(2.0), 1.5 * texel)
+        disc = 1 - _smoothstep(r - 0.5 * texel, r + 0.5 * texel, gamma)
+        L = L + disc[..., None] * (1500.0 * (math.radians(2.0) / r) ** 2) * col(1.0, 0.95, 0.85)
+    elif name == "studio":
+        L = (0.02 + 0.01 * y.clamp(0, 1))[..., None] * col(1.0, 1.0, 1.0)
+        a0 = rnd(0, 360)
+        boxes = [  # (azimuth offset, elevation, width, height, radiance, colour)
+            (0.0, 35.0, 35.0, 25.0, 8.0, (1.0, 0.97, 0.92)),   # key
+            (120.0, 15.0, 25.0, 40.0, 3.0, (0.90, 0.95, 1.0)),  # fill
+            (215.0, 50.0, 40.0, 12.0, 6.0, (1.0, 1.0, 1.0)),   # rim / top strip
+        ]
+        for daz, el, w, h, rad, c in boxes:
+            m = _rect_mask(d, _dir(a0 + daz + rnd(-10, 10), el + rnd(-5, 5)), w, h, texel)
+            L = L + (rad * m)[..., None] * col(*c)
+    elif name == "window":
+        L = (0.03 + 0.01 * y.clamp(0, 1))[..., None] * col(1.0, 0.93, 0.85)
+        centre = _dir(rnd(0, 360), rnd(15, 30))
+        win = _rect_mask(d, centre, 14.0, 20.0, 0.5 * texel)
+        bars = _rect_mask(d, centre, 1.5, 20.0, 0.5 * texel) + _rect_mask(d, centre, 14.0, 1.5, 0.5 * texel)
+        win = (win - bars.clamp(max=1)).clamp(0, 1)
+        L = L + (80.0 * win)[..., None] * col(0.92, 0.96, 1.0)
+    else:  # overcast: CIE overcast sky L ∝ (1 + 2 sin(elevation))/3 + low-frequency variation
+        sky = ((1 + 2 * y.clamp(0, 1)) / 3)[..., None] * col(0.95, 0.97, 1.0)
+        ground = col(0.12, 0.11, 0.10)
+        blend = _smoothstep(-0.2, 0.2, y)[..., None]
+        a = torch.rand(4, generator=g, dtype=torch.float64) * 2 - 1
+        vary = 1 + 0.15 * (a[0] * d[..., 0] + a[1] * d[..., 2] + a[2] * d[..., 0] * d[..., 2] + a[3] * (d[..., 0] ** 2 - d[..., 2] ** 2))
+        L = (blend * sky + (1 - blend) * ground) * vary[..., None]
+    return EnvMap(L.clamp_min(0).float())
+
+
+__all__ = ["EnvMap", "procedural", "load", "save", "read_image", "write_image", "PROCEDURAL_NAMES",
+           "direction_to_uv", "uv_to_direction", "bilinear_lookup", "texel_directions"]

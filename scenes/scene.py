@@ -1,0 +1,201 @@
+"""A scene: shapes (each a mesh with one region/material), camera, env map, materials, and for
+dynamic scenes a skeleton with skin weights.
+
+`scene.geometry(pose)` merges every shape into one indexed triangle mesh (`SceneGeometry`), the
+layout every method, the G-buffer and the Mitsuba exporter share: shape i owns vertices
+vertex_offset[i]:vertex_offset[i+1] and faces face_offset[i]:face_offset[i+1] (global indices).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from scenes.mesh import Mesh
+
+
+@dataclass
+class Shape:
+    """One mesh with one region (material) name."""
+
+    name: str
+    region: str
+    mesh: Mesh
+
+
+@dataclass
+class SceneGeometry:
+    """Merged geometry. V (N, 3) f32, F (M, 3) i64, N (N, 3) f32 unit normals, uv (N, 2) | None,
+    vertex_region (N,) i64 and face_region (M,) i64 indices into `scene.regions`,
+    face_offset (S+1,) and vertex_offset (S+1,) i64 per shape, shape_names (S,)."""
+
+    V: Tensor
+    F: Tensor
+    N: Tensor
+    uv: Tensor | None
+    vertex_region: Tensor
+    face_region: Tensor
+    face_offset: Tensor
+    vertex_offset: Tensor
+    shape_names: tuple[str, ...] = ()
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.V.shape[0])
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.F.shape[0])
+
+    def shape_mesh(self, i: int) -> Mesh:
+        """The i-th shape's mesh (local vertex indices) — e.g. for exporting one Mitsuba shape."""
+        v0, v1 = int(self.vertex_offset[i]), int(self.vertex_offset[i + 1])
+        f0, f1 = int(self.face_offset[i]), int(self.face_offset[i + 1])
+        return Mesh(self.V[v0:v1], self.F[f0:f1] - v0, self.N[v0:v1], None if self.uv is None else self.uv[v0:v1])
+
+
+@dataclass(eq=False)
+class Scene:
+    """name; shapes: list[Shape]; regions: list[str] (index order used by vertex/face_region);
+    camera: scenes.camera.Camera; envmap: scenes.envmap.EnvMap; materials: region → Material;
+    skeleton: scenes.skeleton.Skeleton | None; skin_weights: shape name → (N_shape, J) weights of
+    the skinned shapes (others are static); size: "test" | "bench"."""
+
+    name: str
+    shapes: list[Shape]
+    regions: list[str]
+    camera: Any
+    envmap: Any
+    materials: dict[str, Any]
+    skeleton: Any = None
+    skin_weights: dict[str, Tensor] | None = None
+    size: str = "test"
+    _rest: SceneGeometry | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.shapes = list(self.shapes)
+        self.regions = list(self.regions)
+        if not self.shapes:
+            raise ValueError(f"scene {self.name!r} has no shapes")
+        names = [s.name for s in self.shapes]
+        if len(set(names)) != len(names):
+            raise ValueError(f"scene {self.name!r} has duplicate shape names: {names}")
+        if len(set(self.regions)) != len(self.regions):
+            raise ValueError(f"scene {self.name!r} has duplicate regions: {self.regions}")
+        for s in self.shapes:
+            if s.region not in self.regions:
+                raise ValueError(f"shape {s.name!r} has region {s.region!r} not in regions {self.regions}")
+        missing = [r for r in self.regions if r not in self.materials]
+        if missing:
+            raise ValueError(f"scene {self.name!r}: no material for region(s) {missing}")
+        extra = [r for r in self.materials if r not in self.regions]
+        if extra:
+            raise ValueError(f"scene {self.name!r}: materials for unknown region(s) {extra}")
+        self.shapes = [Shape(s.name, s.region, s.mesh if s.mesh.N is not None else s.mesh.validate()) for s in self.shapes]
+        if self.skin_weights is not None:
+            if self.skeleton is None:
+                raise ValueError("skin_weights given without a skeleton")
+            from scenes.skeleton import check_weights
+
+            by_name = {s.name: s for s in self.shapes}
+            sw = {}
+            for k, w in self.skin_weights.items():
+                if k not in by_name:
+                    raise ValueError(f"skin_weights for unknown shape {k!r}")
+                sw[k] = check_weights(torch.as_tensor(w, dtype=torch.float32), by_name[k].mesh.num_vertices,
+                                      self.skeleton.num_joints)
+            self.skin_weights = sw
+        elif self.skeleton is not None:
+            raise ValueError("a scene with a skeleton needs skin_weights")
+
+    # ARCHITECTURE.md spells the constructor argument `skin`; both names refer to the same data.
+    @property
+    def skin(self) -> dict[str, Tensor] | None:
+        return self.skin_weights
+
+    @property
+    def dynamic(self) -> bool:
+        return self.skeleton is not None
+
+    def region_index(self, region: str) -> int:
+        return self.regions.index(region)
+
+    def rest_geometry(self) -> SceneGeometry:
+        if self._rest is None:
+            self._rest = _merge(self.shapes, self.regions)
+        return self._rest
+
+    def geometry(self, pose=None) -> SceneGeometry:
+        """Merged geometry, skinned by `pose` (J,) if the scene has a skeleton (rest pose if None)."""
+        g = self.rest_geometry()
+        if pose is None:
+            return g
+        if self.skeleton is None:
+            raise ValueError(f"scene {self.name!r} has no skeleton; pose must be None")
+        from scenes.skeleton import skin
+
+        T = self.skeleton.forward_kinematics(torch.as_tensor(pose, dtype=torch.float32))
+        V, N = g.V.clone(), g.N.clone()
+        for i, s in enumerate(self.shapes):
+            if s.name not in self.skin_weights:
+                continue
+            a, b = int(g.vertex_offset[i]), int(g.vertex_offset[i + 1])
+            V[a:b], N[a:b] = skin(g.V[a:b], g.N[a:b], self.skin_weights[s.name], T)
+        return SceneGeometry(V, g.F, N, g.uv, g.vertex_region, g.face_region, g.face_offset, g.vertex_offset,
+                             g.shape_names)
+
+    def default_frame(self, pose=None):
+        """The scene's own frame (its env map, camera, materials; rest pose)."""
+        from methods.base import Frame
+
+        return Frame(envmap=self.envmap, camera=self.camera, materials=dict(self.materials), pose=pose)
+
+    def content_hash(self) -> str:
+        """sha256 over rest geometry bytes, regions, materials, env map data, camera, skeleton/skin."""
+        from scenes.hashing import hash_envmap, hash_materials, hash_params, hash_tensor
+
+        g = self.rest_geometry()
+        parts = {
+            "geometry": [hash_tensor(t) for t in (g.V, g.F, g.N, g.vertex_region, g.face_offset, g.vertex_offset)]
+                        + [None if g.uv is None else hash_tensor(g.uv)],
+            "shapes": [[s.name, s.region] for s in self.shapes],
+            "regions": self.regions,
+            "materials": hash_materials(self.materials),
+            "envmap": hash_envmap(self.envmap),
+            "camera": self.camera.params(),
+            "skeleton": None if self.skeleton is None else hash_params(self.skeleton.params()),
+            "skin": None if self.skin_weights is None else {k: hash_tensor(v) for k, v in sorted(self.skin_weights.items())},
+        }
+        return hash_params(parts)
+
+    def replace(self, **changes) -> "Scene":
+        """A copy with some constructor fields changed (geometry cache dropped)."""
+        kw = dict(name=self.name, shapes=self.shapes, regions=self.regions, camera=self.camera, envmap=self.envmap,
+                  materials=self.materials, skeleton=self.skeleton, skin_weights=self.skin_weights, size=self.size)
+        kw.update(changes)
+        return Scene(**kw)
+
+
+def _merge(shapes: list[Shape], regions: list[str]) -> SceneGeometry:
+    Vs, Fs, Ns, uvs, vr, fr = [], [], [], [], [], []
+    voff, foff = [0], [0]
+    for s in shapes:
+        m = s.mesh
+        r = regions.index(s.region)
+        Vs.append(m.V)
+        Fs.append(m.F + voff[-1])
+        Ns.append(m.N)
+        uvs.append(m.uv)
+        vr.append(torch.full((m.num_vertices,), r, dtype=torch.int64))
+        fr.append(torch.full((m.num_faces,), r, dtype=torch.int64))
+        voff.append(voff[-1] + m.num_vertices)
+        foff.append(foff[-1] + m.num_faces)
+    uv = torch.cat(uvs) if all(u is not None for u in uvs) else None
+    return SceneGeometry(
+        V=torch.cat(Vs).float().contiguous(), F=torch.cat(Fs).contiguous(), N=torch.cat(Ns).float().contiguous(), uv=uv,
+        vertex_region=torch.cat(vr), face_region=torch.cat(fr),
+        face_offset=torch.tensor(foff, dtype=torch.int64), vertex_offset=torch.tensor(voff, dtype=torch.int64),
+        shape_names=tuple(s.name for s in shapes),
+    )

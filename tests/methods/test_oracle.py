@@ -1,0 +1,90 @@
+"""The oracle agrees with Mitsuba's direct-lighting reference, and the agreement is noise, not bias.
+
+If these fail, a convention differs between our side (scenes, materials, env map, camera, G-buffer)
+and Mitsuba's; no method score means anything until they pass.
+
+Estimator budgets: "lo" = 64 samples per pixel on both sides (oracle: 2×2 G-buffer sub-samples ×
+(8 env + 8 BRDF) MIS samples; reference: 64 spp), "hi" = 4× that (4×4 sub-samples; 256 spp).
+RMSE² = var_oracle + var_reference + bias²: with no bias, quadrupling both budgets halves the RMSE.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from methods.base import get_method
+from references.gbuffer import make_gbuffer
+from references.metrics import rmse
+from references.render import render_reference
+from scenes.envmap import procedural
+from scenes.library import SCENES, get_scene
+from scenes.sequences import make_sequence
+
+# Halving ±30 % (the issue's criterion). The RMSE of a Monte-Carlo estimate over ~4K pixels is
+# itself known to a few percent; the pixel-integration error of the stratified G-buffer falls at
+# least as fast as the noise, so an unbiased pair lands in [0.35, 0.65].
+HALVING, HALVING_TOL = 0.5, 0.3
+LO = dict(S=2, light=8, brdf=8, spp=64)
+HI = dict(S=4, light=8, brdf=8, spp=256)
+ENVMAPS = ["sky_sun", "studio", "window", "overcast"]
+
+CASES = [(s, None) for s in SCENES] + [("sphere_plane", e) for e in ENVMAPS]
+
+
+def _frame(scene, env_name):
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    if env_name is not None:
+        frame = dataclasses.replace(frame, envmap=procedural(env_name, height=64))
+    return frame
+
+
+def _oracle_vs_reference(scene, frame, budget, seed):
+    gb = make_gbuffer(scene, frame, budget["S"])
+    oracle = get_method("oracle")(light_samples=budget["light"], brdf_samples=budget["brdf"], seed=seed)
+    oracle.precompute(scene)
+    img = oracle.render(frame, gb)
+    ref = render_reference(scene, frame, bounces=0, spp=budget["spp"], seed=seed + 1)
+    return img, ref, gb.coverage
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene_name,env_name", CASES, ids=[f"{s}-{e or 'own'}" for s, e in CASES])
+def test_oracle_matches_mitsuba_direct_and_converges(scene_name, env_name):
+    scene = get_scene(scene_name, "test")
+    frame = _frame(scene, env_name)
+    img_lo, ref_lo, cov_lo = _oracle_vs_reference(scene, frame, LO, seed=11)
+    img_hi, ref_hi, cov_hi = _oracle_vs_reference(scene, frame, HI, seed=23)
+    mask = cov_lo & cov_hi & ref_lo.coverage & ref_hi.coverage
+    assert mask.float().mean() > 0.2, "scene covers too few pixels to test anything"
+    e_lo = rmse(img_lo, ref_lo.image, mask)
+    e_hi = rmse(img_hi, ref_hi.image, mask)
+    scale = ref_hi.image[mask].mean().item()
+    ratio = e_hi / e_lo
+    print(f"{scene_name}/{env_name or 'own'}: rmse lo {e_lo:.4g} hi {e_hi:.4g} ratio {ratio:.3f} "
+          f"(mean radiance {scale:.4g}; ref floors {ref_lo.noise_floor:.4g} {ref_hi.noise_floor:.4g})")
+    assert abs(ratio - HALVING) <= HALVING_TOL * HALVING, (
+        f"oracle-reference RMSE went {e_lo:.4g} -> {e_hi:.4g} (ratio {ratio:.3f}) when both budgets "
+        f"quadrupled: not pure noise, a convention differs")
+    # The mean over the image must agree too (a global scale error would show here first).
+    m_o, m_r = img_hi[mask].mean().item(), ref_hi.image[mask].mean().item()
+    assert abs(m_o - m_r) <= 3 * e_hi / mask.sum().item() ** 0.5 + 1e-3 * m_r
+
+
+def test_oracle_is_deterministic():
+    scene = get_scene("sphere_plane", "test")
+    frame = _frame(scene, None)
+    gb = make_gbuffer(scene, frame, 1)
+    a = get_method("oracle")(light_samples=2, brdf_samples=2, seed=3)
+    a.precompute(scene)
+    b = get_method("oracle")(light_samples=2, brdf_samples=2, seed=3)
+    b.precompute(scene)
+    assert torch.equal(a.render(frame, gb), b.render(frame, gb))
+
+
+@pytest.mark.parametrize("bad", [dict(light_samples=-1), dict(light_samples=0, brdf_samples=0),
+                                 dict(brdf_samples=1.5)])
+def test_oracle_rejects_bad_config(bad):
+    with pytest.raises(ValueError):
+        get_method("oracle")(**bad)

@@ -1,0 +1,91 @@
+"""reports.studies: registries and the quick terms-vs-exponent study."""
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from reports import studies as S
+
+
+@pytest.fixture
+def clean_registries():
+    saved = (dict(S.STUDIES), dict(S.TERMS_CONTRIBUTORS), dict(S.ERROR_VS_TERMS))
+    yield
+    for reg, old in zip((S.STUDIES, S.TERMS_CONTRIBUTORS, S.ERROR_VS_TERMS), saved):
+        reg.clear()
+        reg.update(old)
+
+
+def test_builtin_registrations():
+    assert "terms-vs-exponent" in S.STUDIES
+    c = S.TERMS_CONTRIBUTORS["inout"]
+    assert c.target == 0.99 and callable(c.resolve())
+
+
+def test_register_and_run_study(tmp_path, clean_registries):
+    def run(out, *, quick):
+        p = out / "x.txt"
+        p.write_text(str(quick))
+        return [p]
+
+    S.register_study(S.Study("dummy", "test", run))
+    with pytest.raises(ValueError):
+        S.register_study(S.Study("dummy", "again", run))
+    files = S.run_study("dummy", tmp_path / "o", quick=True)
+    assert files[0].read_text() == "True"
+    with pytest.raises(ValueError):
+        S.run_study("no-such-study", tmp_path)
+
+
+def test_terms_contributors(clean_registries):
+    S.register_terms_contributor("fake", lambda s, t: int(3 * s), target=0.5, target_kind="x")
+    S.register_terms_contributor(
+        "rich", lambda s, t: S.TermsRecord("rich", s, t, 7, "y", "note"), target=0.1)
+    with pytest.raises(ValueError):
+        S.register_terms_contributor("fake", lambda s, t: 1)
+    with pytest.raises(ValueError):
+        S.register_terms_contributor("bad", 42)
+    rows = S.terms_table([2.0, 4.0], ["fake", "rich"])
+    assert [(r.method, r.exponent, r.terms, r.target) for r in rows] == [
+        ("fake", 2.0, 6, 0.5), ("fake", 4.0, 12, 0.5), ("rich", 2.0, 7, 0.1), ("rich", 4.0, 7, 0.1)]
+    S.register_terms_contributor("neg", lambda s, t: -1)
+    with pytest.raises(ValueError):
+        S.terms_table([1.0], ["neg"])
+    with pytest.raises(ValueError):
+        S.terms_table([1.0], ["unknown"])
+
+
+def test_lazy_string_contributor(clean_registries):
+    S.register_terms_contributor("lazy", "builtins:max")  # max(exponent, target)
+    assert S.terms_table([3.0], ["lazy"])[0].terms == 3
+
+
+def test_fit_line():
+    a, b = S.fit_line([1, 2, 3], [5, 7, 9])
+    assert a == pytest.approx(2) and b == pytest.approx(3)
+    with pytest.raises(ValueError):
+        S.fit_line([1], [2])
+
+
+def test_quick_terms_vs_exponent(tmp_path, clean_registries):
+    # The in-out contributor (40×40 SVDs) is tested in tests/methods/inout; a cheap stand-in here.
+    S.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
+    S.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
+    files = S.run_study("terms-vs-exponent", tmp_path, quick=True)
+    names = {f.name for f in files}
+    for n in ("k_vs_s.csv", "k_vs_s.png", "sv_vs_Fl.csv", "sv_vs_Fl.png", "ts_k_vs_lstar.csv",
+              "ts_k_vs_lstar.png", "terms_by_method.csv", "terms_by_method.png",
+              "error_vs_terms.csv", "summary.json"):
+        assert n in names and (tmp_path / n).stat().st_size > 0
+    rows = list(csv.DictReader(open(tmp_path / "k_vs_s.csv")))
+    K = [int(r["K_sphere"]) for r in rows]
+    assert K == sorted(K) and K[0] < K[-1]  # more terms for shinier lobes
+    for r in rows:  # the quick grid (16²) is not capping K at s ≤ 8
+        assert abs(int(r["K_sphere"]) - int(r["K_sphere_exact"])) <= 2
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["slope_sphere"] > summary["slope_hemisphere"] > 0
+    assert summary["error_vs_terms"] == "written"
+    t = list(csv.DictReader(open(tmp_path / "terms_by_method.csv")))
+    assert {r["method"] for r in t} == {"inout"}
