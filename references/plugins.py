@@ -59,6 +59,14 @@ def envmap_to_mitsuba(env, *, scale: float = 1.0) -> dict:
     """Mitsuba ``envmap`` emitter dict for a `scenes.envmap.EnvMap` (data + to_world rotation).
 
     Mitsuba's envmap eval at ``si.wi = −d`` then equals ``env.radiance(d)`` (to float32 round-off).
+    Checked against mitsuba3 src/emitters/envmap.cpp (3.9): the float32 RGB bitmap is used as is
+    (``mi.Bitmap`` of a float32 (H, W, 3) array has srgb_gamma = 0, no conversion); at load time
+    Mitsuba appends a copy of column 0 as column W (periodic boundary) — `EnvMap.radiance` does
+    the same; ``eval`` multiplies by ``scale`` (default 1; pass `scale` only on purpose).
+    Do not update the emitter's ``data`` through ``mi.traverse``: its ``parameters_changed``
+    expects the (H, W+1) extended layout and averages the first and last columns; build a new
+    emitter from a new EnvMap instead. Mitsuba samples the emitter with its own Hierarchical2D
+    warp (luminance × sinθ of the bilinear map); only ``eval`` is required to match ours.
     """
     ensure_variant()
     import mitsuba as mi

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 import os
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -214,7 +213,7 @@ class EnvMap:
         cdf_d, p_flat = cdf.to(dev), p.reshape(-1).to(dev)
         u0, u1 = u[..., 0].double(), u[..., 1].double()
         k = torch.searchsorted(cdf_d, u0.contiguous(), right=True).clamp(max=cdf_d.numel() - 1)
-        # skip zero-probability cells that searchsorted can land on at exact boundaries
+        # right=True: the first cell with cdf > u0, never a zero-probability cell
         lo = torch.where(k > 0, cdf_d[(k - 1).clamp_min(0)], torch.zeros_like(u0))
         pk = p_flat[k]
         r = ((u0 - lo) / pk.clamp_min(1e-300)).clamp(0.0, 1.0)

@@ -43,7 +43,7 @@ the equal-area integral.
 from __future__ import annotations
 
 import math
-from functools import cached_property
+from functools import lru_cache
 from typing import Callable
 
 import torch
@@ -366,17 +366,6 @@ def triple_integral(f: Tensor, g: Tensor, h: Tensor) -> Tensor:
     return out
 
 
-def _lookup_sorted(keys: Tensor, vals: Tensor, q: Tensor) -> Tensor:
-    """Batched sparse lookup: keys (B, n) sorted ascending, vals (B, n), q (B, m) → (B, m),
-    0 where q is absent."""
-    n = keys.shape[-1]
-    if n == 0:
-        return torch.zeros(q.shape, dtype=vals.dtype, device=vals.device)
-    pos = torch.searchsorted(keys, q).clamp_max(n - 1)
-    hit = keys.gather(-1, pos) == q
-    return torch.where(hit, vals.gather(-1, pos), torch.zeros((), dtype=vals.dtype, device=vals.device))
-
-
 def _decode(idx: Tensor, L: int):
     """Global coefficient index → (level l (−1 = scaling), node i, type t)."""
     lvl = torch.full_like(idx, -1)
@@ -388,32 +377,59 @@ def _decode(idx: Tensor, L: int):
     return lvl, node, t
 
 
-def _sparse_average(keys: Tensor, vals: Tensor, lvl: Tensor, node: Tensor, L: int) -> Tensor:
-    """Average of a sparse function over T_node^lvl (its level-lvl scaling coefficient), from the
-    coefficients of its strictly coarser basis functions. keys/vals (B, n) sorted; lvl, node (B, m)."""
-    S = _signs(vals.dtype, vals.device)  # (3, 4)
+def _ancestors(lvl: Tensor, node: Tensor, L: int, dtype) -> tuple[Tensor, Tensor]:
+    """All basis functions strictly coarser than level `lvl` whose support contains T_node^lvl.
+
+    Args: lvl, node (..., m) (lvl >= 0 where used).
+    Returns: idx (..., m, 1 + 3L) global coefficient indices (0 where unused) and sign (..., m,
+    1 + 3L), the function's value on T_node^lvl (0 where unused): a function's average over
+    T_node^lvl is Σ coeff[idx] · sign (its level-lvl scaling coefficient).
+    """
+    S = _signs(dtype, node.device)  # (3, 4)
     lv = lvl.clamp_min(0)
-    root = node >> (2 * lv)
-    s = _lookup_sorted(keys, vals, root)
-    for lp in range(L):  # ancestors at level lp < lvl
+    idx = [node >> (2 * lv)]  # level-0 scaling function of the root triangle
+    sgn = [torch.ones(node.shape, dtype=dtype, device=node.device)]
+    for lp in range(L):
         valid = lvl > lp
         sh = (2 * (lv - lp)).clamp_min(0)
         anc = node >> sh
         pos = (node >> (sh - 2).clamp_min(0)) & 3  # child position at level lp+1
         for t in range(3):
-            q = 20 * 4 ** lp + 3 * anc + t
-            c = _lookup_sorted(keys, vals, torch.where(valid, q, torch.full_like(q, -1)))
-            s = s + torch.where(valid, c * S[t][pos], torch.zeros_like(c))
-    return s
+            idx.append(torch.where(valid, 20 * 4 ** lp + 3 * anc + t, torch.zeros_like(anc)))
+            sgn.append(torch.where(valid, S[t][pos], torch.zeros((), dtype=dtype, device=node.device)))
+    return torch.stack(idx, -1), torch.stack(sgn, -1)
 
 
-def triple_integral_sparse(a_idx: Tensor, a_val: Tensor, b_idx: Tensor, b_val: Tensor, c: Tensor) -> Tensor:
+@lru_cache(maxsize=16)
+def _structure(L: int):
+    """Per-coefficient tables for level L (CPU, cached): level (K,) (−1 = scaling), type (K,),
+    ancestor indices (K, 1+3L) and their signs (K, 1+3L) (see `_ancestors`; all-zero rows for
+    scaling functions, which have no coarser ancestors)."""
+    idx = torch.arange(n_triangles(L))
+    lvl, node, t = _decode(idx, L)
+    anc_i, anc_s = _ancestors(lvl, node, L, torch.float64)
+    anc_s = torch.where((lvl >= 0)[:, None], anc_s, torch.zeros_like(anc_s))
+    return lvl, t, anc_i, anc_s
+
+
+def _avg(dense: Tensor, anc_idx: Tensor, anc_sign: Tensor) -> Tensor:
+    """dense (B, K); anc_idx/sign (B, m, P) → (B, m) averages Σ dense[idx]·sign."""
+    B, m, P = anc_idx.shape
+    return (dense.gather(-1, anc_idx.reshape(B, m * P)).reshape(B, m, P) * anc_sign).sum(-1)
+
+
+def triple_integral_sparse(a_idx: Tensor, a_val: Tensor, b_idx: Tensor, b_val: Tensor, c: Tensor, *,
+                           chunk_elems: int = 1 << 22) -> Tensor:
     """Σ C_ijk a_i b_j c_k for two sparse (truncated) functions and one dense one — Ma 2006 eq. 7
-    B = Σ C L V ρ with V and ρ truncated per vertex / per BRDF slice and L dense. Cost
-    O(n · L · log n) per row (only rule terms touching a's and b's non-zeros are visited).
+    B = Σ C L V ρ with V and ρ truncated (per vertex / per BRDF slice) and L dense.
+
+    Only tripling coefficients touching a's and b's non-zeros are visited (the three rules; the
+    coarser function of rule 3 enters through its average over the wavelets' support, gathered from
+    its 1 + 3L ancestors): O(n·L) gathers per row. a and b are scattered into dense row buffers
+    (chunks of ≈ `chunk_elems` elements) so every lookup is a gather.
 
     Args:
-        a_idx, a_val: (B, n) coefficient indices (distinct per row) and values of function a.
+        a_idx, a_val: (B, n) coefficient indices (distinct within a row) and values of function a.
         b_idx, b_val: (B, m) the same for b.
         c: (B, K) or (K,) dense coefficients of the third function.
     Returns:
@@ -432,53 +448,53 @@ def triple_integral_sparse(a_idx: Tensor, a_val: Tensor, b_idx: Tensor, b_val: T
         c = c.unsqueeze(0)
     if c.ndim != 2 or c.shape[0] not in (1, B):
         raise ValueError(f"c must be (K,) or (B, K) = ({B}, {K}), got {tuple(c.shape)}")
+    for name, ix in (("a_idx", a_idx), ("b_idx", b_idx)):
+        if ix.numel() and (ix.min() < 0 or ix.max() >= K):
+            raise ValueError(f"{name} must lie in [0, {K})")
     dt = torch.promote_types(torch.promote_types(a_val.dtype, b_val.dtype), c.dtype)
     a_val, b_val, c = a_val.to(dt), b_val.to(dt), c.to(dt)
-    bk, border = b_idx.sort(-1)
-    bv = b_val.gather(-1, border)
-    ak, aorder = a_idx.sort(-1)
-    av = a_val.gather(-1, aorder)
-    # c's averages over every coarse triangle (computed once when c is shared by all rows)
-    cp = torch.cat(scaling_pyramid(c)[:-1], -1) if L > 0 else c[..., :0]  # (B|1, Σ_l<L n_l)
-    c, cp = c.expand(B, K), cp.expand(B, cp.shape[-1])
-    pyr_off = [0]
-    for l in range(L):
-        pyr_off.append(pyr_off[-1] + n_triangles(l))
-    pyr_off_t = torch.tensor(pyr_off, device=c.device)
+    zero = torch.zeros((), dtype=dt, device=c.device)
 
-    def c_avg(lvl, node):  # c's average over T_node^lvl (lvl >= 0)
-        return cp.gather(-1, pyr_off_t[lvl.clamp_min(0)] + node)
-
-    total = torch.zeros(B, dtype=dt, device=c.device)
-    # walk over a's coefficients; every non-zero C_ijk with i ∈ a is visited once
-    lvl, node, t = _decode(a_idx, L)
-    A = 0.25 ** lvl.clamp_min(0).to(dt)
-    is_sc = lvl < 0
-    is_w = ~is_sc
-    b_same = _lookup_sorted(bk, bv, a_idx)  # b at the same index
-    c_same = c.gather(-1, a_idx)
-    # rule 1: a, b, c all the same level-0 scaling function
-    total += torch.where(is_sc, a_val * b_same * c_same, torch.zeros_like(a_val)).sum(-1)
-    # rule 3: a, b identical wavelets, c coarser
-    total += torch.where(is_w, A * a_val * b_same * c_avg(lvl, node), torch.zeros_like(a_val)).sum(-1)
-    # rule 3: a, c identical wavelets, b coarser (b's average over a's support)
-    b_avg = _sparse_average(bk, bv, lvl, node, L)
-    total += torch.where(is_w, A * a_val * c_same * b_avg, torch.zeros_like(a_val)).sum(-1)
-    # rule 2: a, b, c the three different types of one triangle (a type t, b type t', c the third)
-    base = a_idx - t
-    for dt1 in (1, 2):
-        t1 = (t + dt1) % 3
-        t2 = 3 - t - t1
-        bq = torch.where(is_w, base + t1, torch.full_like(base, -1))
-        bvv = _lookup_sorted(bk, bv, bq)
-        cvv = c.gather(-1, torch.where(is_w, base + t2, torch.zeros_like(base)))
-        total += torch.where(is_w, A * a_val * bvv * cvv, torch.zeros_like(a_val)).sum(-1)
-    # rule 3: b, c identical wavelets, a coarser (a's average over b's support)
-    lvb, nodeb, _ = _decode(b_idx, L)
+    # per-coefficient structure (independent of the values; tables cached per level)
+    lvl_t, typ_t, anc_t, sgn_t = (x.to(c.device) for x in _structure(L))
+    sgn_t = sgn_t.to(dt)
+    lva, ta = lvl_t[a_idx], typ_t[a_idx]
+    lvb = lvl_t[b_idx]
+    Aa = 0.25 ** lva.clamp_min(0).to(dt)  # A_l of a's basis functions
     Ab = 0.25 ** lvb.clamp_min(0).to(dt)
-    a_avg = _sparse_average(ak, av, lvb, nodeb, L)
-    total += torch.where(lvb >= 0, Ab * b_val * c.gather(-1, b_idx) * a_avg, torch.zeros_like(b_val)).sum(-1)
-    return total
+    wa, wb = lva >= 0, lvb >= 0
+    out = torch.empty(B, dtype=dt, device=c.device)
+    rows = max(1, chunk_elems // K)
+    for r0 in range(0, B, rows):
+        r1 = min(B, r0 + rows)
+        n_r = r1 - r0
+        ai, av, bi, bv = a_idx[r0:r1], a_val[r0:r1], b_idx[r0:r1], b_val[r0:r1]
+        cc = c if c.shape[0] == 1 else c[r0:r1]
+        cc = cc.expand(n_r, K)
+        ad = torch.zeros(n_r, K, dtype=dt, device=c.device).scatter_(1, ai, av)
+        bd = torch.zeros(n_r, K, dtype=dt, device=c.device).scatter_(1, bi, bv)
+        tA, AA, wA = ta[r0:r1], Aa[r0:r1], wa[r0:r1]
+        b_same = bd.gather(1, ai)
+        c_same = cc.gather(1, ai)
+        # rule 1: all three the same level-0 scaling function (A_0 = 1)
+        tot = torch.where(wA, zero, av * b_same * c_same).sum(-1)
+        # rule 3 over a's wavelets: (a, b identical; c coarser) + (a, c identical; b coarser)
+        anc_i, anc_s = anc_t[ai], sgn_t[ai]
+        t3 = b_same * _avg(cc, anc_i, anc_s) + c_same * _avg(bd, anc_i, anc_s)
+        tot = tot + torch.where(wA, AA * av * t3, zero).sum(-1)
+        # rule 2: the three wavelet types of one triangle (a type t, b type t', c the third)
+        base = torch.where(wA, ai - tA, torch.zeros_like(ai))
+        for d1 in (1, 2):
+            t1 = (tA + d1) % 3
+            t2 = 3 - tA - t1
+            r2 = bd.gather(1, base + t1) * cc.gather(1, base + t2)
+            tot = tot + torch.where(wA, AA * av * r2, zero).sum(-1)
+        # rule 3 over b's wavelets: (b, c identical; a coarser)
+        anc_i, anc_s = anc_t[bi], sgn_t[bi]
+        r3b = bv * cc.gather(1, bi) * _avg(ad, anc_i, anc_s)
+        tot = tot + torch.where(wb[r0:r1], Ab[r0:r1] * r3b, zero).sum(-1)
+        out[r0:r1] = tot
+    return out
 
 
 def product_project(f: Tensor, g: Tensor) -> Tensor:

@@ -5,8 +5,19 @@ import csv
 import json
 
 import pytest
+import torch
 
 from reports import studies as S
+
+
+@pytest.fixture
+def one_torch_thread():
+    # Small eigen-decompositions: 2 torch threads per xdist worker on 2 shared cores
+    # oversubscribe the machine (measured 10× slower); restored afterwards.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 @pytest.fixture
@@ -69,7 +80,7 @@ def test_fit_line():
         S.fit_line([1], [2])
 
 
-def test_quick_terms_vs_exponent(tmp_path, clean_registries):
+def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):
     # The in-out contributor (40×40 SVDs) is tested in tests/methods/inout; a cheap stand-in here.
     S.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
     S.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
