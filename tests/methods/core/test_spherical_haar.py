@@ -119,6 +119,9 @@ def test_triple_integral_sparse_matches_quadrature(n_a, n_b):
     bd = sh.keep_top_dense(b, n_b)
     got = sh.triple_integral_sparse(ai, av, bi, bv, c)
     torch.testing.assert_close(got, _quadrature_triple(ad, bd, c), atol=F64_EXACT * K, rtol=F64_EXACT)
+    # row chunking does not change the result
+    torch.testing.assert_close(sh.triple_integral_sparse(ai, av, bi, bv, c, chunk_elems=2 * K), got,
+                               atol=F64_EXACT * K, rtol=F64_EXACT)
     # shared dense third function (K,)
     got1 = sh.triple_integral_sparse(ai, av, bi, bv, c[0])
     torch.testing.assert_close(got1, _quadrature_triple(ad, bd, c[:1]), atol=F64_EXACT * K, rtol=F64_EXACT)
