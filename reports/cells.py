@@ -354,26 +354,37 @@ def calibrate(cell: Cell, out_dir: Path, be, scene, frame) -> measure.Convergenc
     return fit
 
 
-def _save_images(cell: Cell, out_dir: Path, be, scene, i, frame, gb, img, ref, mask) -> str:
-    """Reference, method image, mask and the per-vertex squared error of the last scored frame.
+def splat_vertex_error(e_pix: torch.Tensor, gb, F: torch.Tensor, n_vertices: int, mask: torch.Tensor) -> torch.Tensor:
+    """Per-vertex error from per-pixel error.
 
-    Per-vertex error: each G-buffer sample carries its pixel's squared error (mean over RGB); it is
-    splatted onto the three vertices of its triangle with the sample's barycentric weights and
-    normalised by the splatted weight (vertices seen by no covered sample get NaN).
+    e_pix: (H, W) per-pixel error (e.g. squared error); mask: (H, W) bool scored pixels;
+    F: (M, 3) faces of the frame's geometry; returns (N,) float64.
+    Each G-buffer sample carries its pixel's error; it is splatted onto its triangle's three
+    vertices with the sample's barycentric weights and normalised by the splatted weight
+    (vertices no scored sample sees get NaN).
     """
+    H, W, S2 = gb.height, gb.width, gb.spp_side**2
+    if tuple(e_pix.shape) != (H, W) or tuple(mask.shape) != (H, W):
+        raise ValueError(f"e_pix and mask must be ({H}, {W}), got {tuple(e_pix.shape)}, {tuple(mask.shape)}")
+    e_smp = e_pix.reshape(-1).double().cpu().repeat_interleave(S2)  # (P,) pixel-major (y, x, s)
+    ok = gb.hit.cpu() & mask.cpu().reshape(-1).repeat_interleave(S2)
+    idx, w = gb.vertex_weights(F.cpu())
+    w = w.cpu().double() * ok[:, None]
+    flat = idx.reshape(-1).cpu()
+    num = torch.zeros(n_vertices, dtype=torch.float64).index_add_(0, flat, (w * e_smp[:, None]).reshape(-1))
+    den = torch.zeros(n_vertices, dtype=torch.float64).index_add_(0, flat, w.reshape(-1))
+    return torch.where(den > 0, num / den.clamp_min(1e-300), torch.full_like(num, float("nan")))
+
+
+def _save_images(cell: Cell, out_dir: Path, be, scene, i, frame, gb, img, ref, mask) -> str:
+    """Reference, method image, mask and the per-vertex squared error (``splat_vertex_error``)
+    of the last scored frame → ``<out>/images/<key>.npz``."""
     ref_img = torch.as_tensor(ref.image).float()
     e_pix = ((img - ref_img) ** 2).mean(-1) * mask  # (H, W)
-    S2 = gb.spp_side**2
-    e_smp = e_pix.reshape(-1).repeat_interleave(S2)  # (P,) pixel-major (y, x, s)
-    ok = gb.hit.cpu() & mask.reshape(-1).repeat_interleave(S2)
     V, F = be.geometry(scene, frame)
     V = torch.as_tensor(V).float().cpu()
     F = torch.as_tensor(F).long().cpu()
-    idx, w = gb.vertex_weights(F)
-    w = w.cpu().double() * ok[:, None]
-    num = torch.zeros(len(V), dtype=torch.float64).index_add_(0, idx.reshape(-1).cpu(), (w * e_smp.double()[:, None]).reshape(-1))
-    den = torch.zeros(len(V), dtype=torch.float64).index_add_(0, idx.reshape(-1).cpu(), w.reshape(-1))
-    verr = torch.where(den > 0, num / den.clamp_min(1e-30), torch.full_like(num, float("nan")))
+    verr = splat_vertex_error(e_pix, gb, F, len(V), mask)
     rel = Path("images") / f"{cell.key()}.npz"
     arrays = dict(reference=ref_img.numpy().astype(np.float32), method=img.numpy().astype(np.float32),
                   mask=mask.numpy(), frame=np.int64(i), V=V.numpy(), F=F.numpy(), vertex_sq_error=verr.numpy())

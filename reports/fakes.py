@@ -180,3 +180,11 @@ class FakeFailingMethod(FakeMethod):
 
     def render(self, frame, gbuffer):
         raise RuntimeError("planted failure")
+
+
+@register
+class FakeGIMethod(FakeMethod):
+    """Claims one indirect bounce and dynamic BRDFs (tests the bounce / capability planning)."""
+
+    name = "fake_gi"
+    capabilities = Capabilities(dynamic_brdf=True, max_bounces=1, brdfs=frozenset({"lambert"}))

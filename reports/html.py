@@ -269,11 +269,12 @@ def _load_images(out_dir: Path, df: pd.DataFrame) -> dict:
 
 
 def _pick_comparisons(art: dict) -> list[tuple]:
-    """One comparison per scene: bounces 0 if present, the most dynamic sequence kind."""
+    """One comparison per scene: bounces 0 if present, then the sequence kind most methods ran,
+    then the most dynamic kind."""
     by_scene: dict[str, tuple] = {}
     for key in art:
         scene, seq, b = key
-        rank = (0 if b == 0 else 1, -(KIND_ORDER.index(seq) if seq in KIND_ORDER else -1))
+        rank = (0 if b == 0 else 1, -len(art[key]), -(KIND_ORDER.index(seq) if seq in KIND_ORDER else -1))
         if scene not in by_scene or rank < by_scene[scene][0]:
             by_scene[scene] = (rank, key)
     return [by_scene[s][1] for s in sorted(by_scene)]
@@ -379,6 +380,10 @@ document.querySelectorAll('div.cmp').forEach(function(div){var s=+div.dataset.sc
  var sl=div.querySelector('input.ev'),lab=div.querySelector('.evv');
  sl.addEventListener('input',function(){var ev=+sl.value;lab.textContent=ev+' EV';
  div.querySelectorAll('img.hdr').forEach(function(img){render(img,s*Math.pow(2,ev));});});});
+// "report.html#ev=2" opens at +2 EV (used by the headless-browser test of the re-tonemapping)
+var m=location.hash.match(/ev=(-?[0-9.]+)/);
+if(m){document.querySelectorAll('input.ev').forEach(function(sl){sl.value=m[1];
+ sl.dispatchEvent(new Event('input'));});}
 })();
 """
 

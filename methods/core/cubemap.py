@@ -32,7 +32,6 @@ texel-count measure (Parseval: Σ pixel² = Σ coefficient²), so each face carr
 """
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import torch
@@ -45,6 +44,7 @@ __all__ = [
     "texel_directions_supersampled",
     "texel_solid_angles",
     "dir_to_texel",
+    "dir_to_face_uv",
     "haar_forward",
     "haar_inverse",
     "haar_support_area",

@@ -219,3 +219,45 @@ def test_visibility_sh_zonal_closed_form():
     assert abs(c[sh_index(1, 0)].item() - math.sqrt(3 / (4 * math.pi)) * math.pi * cos_a**2) < SH_QUAD_TOL
     for l, m in ((1, -1), (1, 1), (2, -2), (2, -1), (2, 1), (2, 2)):
         assert abs(c[sh_index(l, m)].item()) < SH_QUAD_TOL
+
+
+def test_intersect_matches_mitsuba_prim_uv():
+    """Closest hits agree with Mitsuba's ray_intersect_preliminary (t, prim_index, prim_uv)."""
+    from references.mitsuba_setup import ensure_variant
+
+    ensure_variant()
+    import mitsuba as mi
+
+    rng = np.random.default_rng(5)
+    M, R = 2000, 20000
+    C = rng.uniform(-1, 1, (M, 1, 3))
+    V = (C + rng.normal(scale=0.05, size=(M, 3, 3))).reshape(-1, 3).astype(np.float32)
+    F = np.arange(3 * M).reshape(M, 3)
+    o = rng.uniform(-1, 1, (R, 3)).astype(np.float32)
+    d = rng.normal(size=(R, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    mesh = mi.Mesh("soup", vertex_count=len(V), face_count=len(F), has_vertex_normals=False,
+                   has_vertex_texcoords=False)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(V.ravel())
+    p["faces"] = mi.UInt32(F.astype(np.uint32).ravel())
+    p.update()
+    scene = mi.load_dict({"type": "scene", "m": mesh})
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].copy()) for k in range(3)]),
+                   mi.Vector3f(*[mi.Float(d[:, k].copy()) for k in range(3)]))
+    si = scene.ray_intersect_preliminary(ray)
+    t_mi, prim_mi, uv_mi = np.array(si.t), np.array(si.prim_index), np.array(si.prim_uv)
+    t, face, u, v = Visibility(V, F).intersect(o, d)
+    hit = np.isfinite(t)
+    assert 0.2 < hit.mean() < 0.95
+    np.testing.assert_array_equal(np.isfinite(t_mi), hit)
+    same = prim_mi[hit] == face[hit]
+    assert same.mean() > 0.9999  # near-coincident triangles may resolve differently in float32
+    # both are float32 Möller–Trumbore-like solves over O(1) coordinates and 0.05-sized triangles:
+    # measured differences 2e-6 (t) and 5e-5 (u, v); bounds with 4× margin
+    np.testing.assert_allclose(t[hit][same], t_mi[hit][same], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(u[hit][same], uv_mi[0][hit][same], atol=2e-4, rtol=0)
+    np.testing.assert_allclose(v[hit][same], uv_mi[1][hit][same], atol=2e-4, rtol=0)
+    # shadow rays: measured 1 disagreement in 5e5 rays (an edge-grazing ray)
+    agree = (np.array(scene.ray_test(ray), dtype=bool) == Visibility(V, F).occluded(o, d)).mean()
+    assert agree > 0.9995

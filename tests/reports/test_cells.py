@@ -1,0 +1,165 @@
+"""reports.cells / reports.suites with the fake backend (reports.fakes): measuring, n/a and failed
+cells, resume after a kill, process isolation, per-vertex error splatting, the capability matrix."""
+import json
+import math
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from reports import cells as C
+from reports import fakes
+from reports.suites import NIGHTLY, SMOKE, Suite, plan_cells
+
+FAKE = dict(backend="reports.fakes", plugins=("reports.fakes",))
+# Fake method error: truth·(1+bias) vs a noisy reference → RMSE² ≈ bias²·mean(truth²) + floor².
+# The floor term has a few % sampling error on 63 pixels × 3 channels → 15 % tolerance.
+RMSE_RTOL = 0.15
+
+
+def _cell(**kw):
+    d = dict(scene="fake_plane", size="test", kind="V", method="fake", n_frames=4, ref_spp=64, spp_side=1,
+             eq_err_spp=(8, 32), **FAKE)
+    d.update(kw)
+    return C.Cell(**d)
+
+
+def test_cell_is_picklable_and_key_identifies_it():
+    c = _cell(config=C.canonical_config({"bias": 0.1}))
+    assert pickle.loads(pickle.dumps(c)) == c
+    assert C.Cell.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    assert c.key() == _cell(config='{"bias":0.1}').key()
+    assert c.key() != _cell(config='{"bias":0.2}').key()
+    assert c.key() == _cell(config='{"bias":0.1}', isolate=True).key()  # isolation measures the same thing
+    with pytest.raises(ValueError):
+        _cell(kind="X")
+    with pytest.raises(ValueError):
+        _cell(score_frames=(9,))
+
+
+def test_run_cell_measures_everything(tmp_path):
+    bias = 0.1
+    r = C.run_cell(_cell(config=C.canonical_config({"bias": bias})), tmp_path, progress=False)
+    assert r.status == "ok", r.reason
+    summ = {row["metric"]: row for row in r.rows if row["frame"] == -1}
+    for m in ("precompute_time", "render_time_median", "render_time_iqr", "fps", "rmse", "psnr", "memory_bytes",
+              "bytes_per_frame", "harness_peak_rss_bytes", "eq_error_speedup", "mitsuba_time_eq_error"):
+        assert m in summ, m
+    assert summ["memory_bytes"]["value"] == 1024  # 256 float32 coefficients
+    assert summ["timed_frames"]["value"] == 3  # 4 frames, warm-up excluded
+    assert len([row for row in r.rows if row["metric"] == "render_time"]) == 4
+    # RMSE vs the closed form; every score carries the reference's noise floor
+    per_frame = [row for row in r.rows if row["metric"] == "rmse" and row["frame"] >= 0]
+    frames = fakes.make_sequence(fakes.get_scene("fake_plane"), "V", 4, 0)
+    cov = fakes._coverage()
+    for row, fr in zip(per_frame, frames):
+        t = fakes.truth(fr)[cov]
+        expect = math.sqrt(bias**2 * float((t**2).mean()) + row["noise_floor"] ** 2)
+        assert row["value"] == pytest.approx(expect, rel=RMSE_RTOL)
+        assert row["noise_floor"] == pytest.approx(fakes.SIGMA / 8, rel=0.2)  # σ/sqrt(spp), spp = 64
+    # calibration fit: the fake renderer converges exactly as σ/sqrt(spp) → c ≈ σ
+    fit = r.info["convergence_fit"]
+    assert fit["c"] == pytest.approx(fakes.SIGMA, rel=0.2)
+    with np.load(tmp_path / r.artifacts["images"]) as z:
+        assert z["reference"].shape == (8, 8, 3) and z["method"].shape == (8, 8, 3)
+        assert z["vertex_sq_error"].shape == (4,) and np.isfinite(z["vertex_sq_error"]).any()
+
+
+def test_na_and_failing_cells_are_recorded(tmp_path):
+    na = C.run_cell(_cell(kind="VBL", na="BRDFs fixed at precompute"), tmp_path)
+    assert na.status == "na" and na.reason == "BRDFs fixed at precompute" and na.rows == []
+    bad = C.run_cell(_cell(method="fake_fail"), tmp_path, progress=False)
+    assert bad.status == "error" and "planted failure" in bad.reason and "Traceback" in bad.info["traceback"]
+    assert C.result_path(tmp_path, _cell(method="fake_fail")).exists()
+    assert not C.is_finished(tmp_path, _cell(method="fake_fail"))  # failed cells are retried on resume
+
+
+class _Killed(BaseException):
+    """Stands in for SIGINT/SIGKILL in the middle of a cell."""
+
+
+def test_killed_run_resumes_without_recomputing(tmp_path, monkeypatch):
+    cells = [_cell(seed=s, eq_err_spp=()) for s in range(4)]
+    calls = []
+    real = C._measure
+
+    def counting(cell, out_dir, progress):
+        calls.append(cell.seed)
+        if cell.seed == 2 and len(calls) == 3:
+            raise _Killed()
+        return real(cell, out_dir, progress)
+
+    monkeypatch.setattr(C, "_measure", counting)
+    with pytest.raises(_Killed):
+        C.run_cells(cells, tmp_path, progress=False)
+    assert calls == [0, 1, 2]
+    done = sorted(p.name for p in (tmp_path / "cells").iterdir())
+    assert done == sorted(f"{c.key()}.json" for c in cells[:2])  # no partial file for the killed cell
+    res = C.run_cells(cells, tmp_path, progress=False)
+    assert calls == [0, 1, 2, 2, 3]  # only the unfinished cells ran again
+    assert [r.status for r in res] == ["ok"] * 4
+    assert [r.key for r in res] == [c.key() for c in cells]
+
+
+def test_run_cells_with_a_process_pool_like_executor(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    cells = [_cell(seed=s, eq_err_spp=()) for s in range(3)]
+    with ThreadPoolExecutor(2) as ex:
+        res = C.run_cells(cells, tmp_path, executor=ex, max_in_flight=2, progress=False)
+    assert [r.key for r in res] == [c.key() for c in cells] and all(r.status == "ok" for r in res)
+
+
+def test_isolated_cell_runs_in_a_spawned_child(tmp_path):
+    import os
+
+    r = C.run_cell(_cell(isolate=True, eq_err_spp=()), tmp_path, progress=False)
+    assert r.status == "ok", r.reason
+    assert r.info["pid"] != os.getpid()
+    rss = [row["value"] for row in r.rows if row["metric"] == "peak_rss_bytes"]
+    assert len(rss) == 1 and rss[0] > 10 * 2**20  # a python + torch process holds > 10 MiB
+
+
+def test_splat_vertex_error_constant_and_hand_example():
+    gb = fakes.make_gbuffer(None, None, 2)
+    V, F = fakes.geometry(None, None)
+    mask = gb.coverage
+    const = C.splat_vertex_error(torch.full((8, 8), 0.25), gb, F, len(V), mask)
+    seen = torch.isfinite(const)
+    assert seen.any() and torch.allclose(const[seen], torch.tensor(0.25, dtype=torch.float64))
+    # one scored pixel only: its error lands (normalised) on exactly its triangle's vertices
+    m1 = torch.zeros(8, 8, dtype=torch.bool)
+    m1[3, 5] = True
+    e = torch.zeros(8, 8)
+    e[3, 5] = 2.0
+    v = C.splat_vertex_error(e, gb, F, len(V), m1)
+    tri = set(F[gb.face.view(8, 8, 4)[3, 5, 0]].tolist())
+    assert set(torch.nonzero(torch.isfinite(v)).flatten().tolist()) == tri
+    assert torch.allclose(v[list(tri)], torch.tensor(2.0, dtype=torch.float64))
+    with pytest.raises(ValueError):
+        C.splat_vertex_error(torch.zeros(4, 4), gb, F, len(V), mask)
+
+
+def test_plan_capability_matrix_and_bounces():
+    suite = Suite(name="t", size="test", kinds=("V", "VBL"), n_frames=3, ref_spp=16,
+                  scenes=("fake_plane", "fake_creature"), extra_bounces=(1, 2, C.FULL), isolate=False)
+    cells = plan_cells(suite, methods=["fake", "fake_gi"], **FAKE)
+    by = {(c.scene, c.method, c.kind, c.bounces): c.na for c in cells}
+    assert by[("fake_plane", "fake", "V", 0)] is None
+    assert by[("fake_plane", "fake", "VBL", 0)] == "BRDFs fixed at precompute"
+    assert ("fake_plane", "fake", "V", 1) not in by  # extra bounces only for methods with max_bounces > 0
+    assert by[("fake_plane", "fake_gi", "VBL", 1)] is None
+    assert by[("fake_plane", "fake_gi", "V", 2)] == "at most 1 bounce(s)"
+    assert by[("fake_plane", "fake_gi", "V", C.FULL)] == "at most 1 bounce(s)"
+    assert by[("fake_creature", "fake", "P", 0)] == "static geometry only"  # dynamic scene gets P
+    assert ("fake_plane", "fake", "P", 0) not in by
+    with pytest.raises(ValueError):
+        plan_cells(suite, methods=["no_such_method"], **FAKE)
+
+
+def test_suite_definitions_follow_the_issue():
+    assert SMOKE.size == "test" and set(SMOKE.kinds) == {"V", "VBL"} and 2 <= SMOKE.n_frames <= 3
+    assert 64 <= SMOKE.ref_spp <= 256 and len(SMOKE.scenes) <= 2 and SMOKE.isolate
+    assert NIGHTLY.size == "bench" and set(NIGHTLY.kinds) == {"V", "VB", "VBL"} and "P" in NIGHTLY.dynamic_kinds
+    assert set(NIGHTLY.extra_bounces) == {1, 2, C.FULL} and NIGHTLY.scenes is None

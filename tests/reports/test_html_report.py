@@ -1,0 +1,90 @@
+"""reports.html: the self-contained report of a tiny fake run, checked in headless Chromium
+(loads from disk, images/plots present as data URIs, JS re-exposure matches the Python tone map,
+screenshot not blank)."""
+import base64
+import io
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from reports import html as H
+from reports.pipeline import run_suite
+from reports.suites import Suite
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+# JS decodes float16 and rounds; Python tone-maps float32: at most 2 of 255 levels apart.
+TONEMAP_ATOL = 2
+# A rendered report page has text, tables and images: far from a uniform screenshot.
+MIN_SCREENSHOT_STD = 10.0
+
+SUITE = Suite(name="smoke", size="test", kinds=("V", "VBL"), n_frames=3, ref_spp=16, spp_side=1,
+              scenes=("fake_plane",), eq_err_spp=(8, 32), isolate=False)
+
+
+@pytest.fixture(scope="module")
+def fake_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    res = run_suite(SUITE, out, methods=["fake", "fake_gi", "fake_fail"], history=out / "hist.parquet",
+                    backend="reports.fakes", plugins=("reports.fakes",), progress=False, bandwidth_elements=1 << 16)
+    return res
+
+
+def _chromium(args, tmp_path, timeout=90):
+    if not shutil.which(CHROMIUM):
+        pytest.skip("chromium not installed (scripts/setup.sh installs it)")
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={tmp_path / 'chromium-profile'}", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+def _png(uri: str) -> np.ndarray:
+    import matplotlib.image as mpimg
+
+    assert uri.startswith("data:image/png;base64,")
+    img = mpimg.imread(io.BytesIO(base64.b64decode(uri.split(",", 1)[1])), format="png")
+    return np.round(np.asarray(img)[..., :3] * 255).astype(int)
+
+
+def test_report_sections_without_browser(fake_run):
+    text = fake_run.report.read_text()
+    assert fake_run.n_ok == 3 and fake_run.n_error == 1 and fake_run.n_na == 2
+    assert "n/a: BRDFs fixed at precompute" in text  # capability matrix reason
+    assert "planted failure" in text
+    assert "No previous run" in text
+    assert "http://" not in text and "https://" not in text  # nothing fetched from the network
+
+
+def test_report_in_headless_chromium(fake_run, tmp_path):
+    ev = 2.0
+    url = fake_run.report.resolve().as_uri() + f"#ev={ev:g}"
+    dom = _chromium(["--dump-dom", url], tmp_path)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    html = dom.stdout
+    assert "prtbench report" in html and "Capability matrix" in html
+    imgs = re.findall(r"<img[^>]*>", html)
+    srcs = [re.search(r'src="([^"]+)"', t).group(1) for t in imgs]
+    assert all(s.startswith("data:image/png;base64,") for s in srcs)
+    classes = [re.search(r'class="?([\w-]+)', t).group(1) for t in imgs]
+    # reference + 2 methods (exposure-adjustable), 2 error maps, 1 trade-off plot, >= 1 vertex render
+    # (or the reason it was skipped)
+    assert classes.count("hdr") == 3 and classes.count("errmap") == 2 and classes.count("plot") == 1
+    assert classes.count("vtx") == 2 or "Per-vertex error skipped" in html
+    # the slider's JS re-tonemapped the embedded linear data at +2 EV, exactly like tonemap()
+    with np.load(next((fake_run.out_dir / "images").glob("fake_plane-test-V-fake-b0-*.npz"))) as z:
+        ref, mask = z["reference"], z["mask"]
+    scale = H.auto_scale(ref, mask)
+    js_ref = _png(srcs[classes.index("hdr")])
+    assert np.abs(js_ref - H.tonemap(ref, scale, ev).astype(int)).max() <= TONEMAP_ATOL
+    assert np.abs(js_ref - H.tonemap(ref, scale, 0.0).astype(int)).max() > TONEMAP_ATOL  # it did change
+
+    shot = tmp_path / "shot.png"
+    r = _chromium([f"--screenshot={shot}", "--window-size=1200,1600", fake_run.report.resolve().as_uri()], tmp_path)
+    assert r.returncode == 0 and shot.exists(), r.stderr[-2000:]
+    import matplotlib.image as mpimg
+
+    px = mpimg.imread(shot)
+    assert px.std() * 255 > MIN_SCREENSHOT_STD
