@@ -45,6 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     iso.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                      help="run every cell in a spawned child process (its own peak RSS)")
     iso.add_argument("--no-isolate", dest="isolate", action="store_false", help="run cells in this process")
+    r.add_argument("--fresh", action="store_true", help="start a new run in --out instead of resuming the one there")
     r.add_argument("--no-vertex-renders", action="store_true", help="skip the pyvista per-vertex error renders")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -85,6 +86,16 @@ def cmd_run(args) -> int:
     suite = get_suite(args.suite)
     out = args.out or Path("out") / suite.name
     history = None if args.no_history else (args.history or DEFAULT_HISTORY)
+    if args.fresh:
+        from reports.pipeline import clear_run
+
+        clear_run(out)
+    elif (out / "run.json").exists():
+        import json
+
+        old = json.loads((out / "run.json").read_text())
+        print(f"resuming run {old['run_id']} in {out} (git {old['git_sha'][:12]}); --fresh starts a new one",
+              file=sys.stderr)
     res = run_suite(suite, out, methods=args.methods, scenes=_scenes(args), executor=make_executor(args.executor),
                     history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
                     progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
@@ -146,7 +157,10 @@ def cmd_report(args) -> int:
     changes = prev_id = None
     hist_path = args.history or store.DEFAULT_HISTORY
     if Path(hist_path).exists() and len(df):
-        prev = regress.previous_run(store.read_history(hist_path), str(df["run_id"].iloc[0]))
+        hist = store.read_history(hist_path)
+        suite = meta.get("suite", str(df["run_id"].iloc[0]).split("-")[0])
+        hist = hist[hist["run_id"].astype(str).str.startswith(f"{suite}-")]
+        prev = regress.previous_run(hist, str(df["run_id"].iloc[0]))
         if prev is not None and len(prev):
             prev_id = str(prev["run_id"].iloc[0])
             changes = regress.compare_runs(prev, df)

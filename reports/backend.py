@@ -80,6 +80,15 @@ def render_reference(scene, frame, *, bounces: int, spp: int, seed: int, spp_sid
     return _r(scene, frame, bounces=_ref_bounces(bounces), spp=spp, seed=seed, spp_side=spp_side, use_cache=use_cache)
 
 
+def _dr_threads() -> int | None:
+    try:
+        import drjit as dr
+
+        return int(dr.thread_count())
+    except Exception:
+        return None
+
+
 def set_threads(n: int) -> None:
     """Dr.Jit's thread pool too, so references and methods are timed with the same threads."""
     import drjit as dr
@@ -99,15 +108,17 @@ def reference_seconds(ref) -> float | None:
 
 def timed_reference(scene, frame, *, bounces: int, spp: int, seed: int, spp_side: int = 2):
     """(reference, seconds): the render time recorded in the reference's meta (kept by the cache,
-    so a cache hit still reports the original render time); else the wall time of an uncached
-    render."""
+    so a cache hit still reports the original render time) if it was rendered with this process's
+    Dr.Jit thread count; else the wall time of an uncached render here."""
     ref = render_reference(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side)
     sec = reference_seconds(ref)
-    if sec is not None:
+    if sec is not None and ref.meta.get("threads") in (None, -1, _dr_threads()):
         return ref, sec
+    # no recorded time, or recorded with another thread count: time it here
     t0 = time.perf_counter()
     ref = render_reference(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side, use_cache=False)
-    return ref, time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    return ref, reference_seconds(ref) or wall  # the renderer's own timer excludes scene export
 
 
 def make_exposure(ref, mask):

@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
-import math
 import multiprocessing as mp
 import os
 import time
@@ -388,6 +387,10 @@ def _save_images(cell: Cell, out_dir: Path, be, scene, i, frame, gb, img, ref, m
     rel = Path("images") / f"{cell.key()}.npz"
     arrays = dict(reference=ref_img.numpy().astype(np.float32), method=img.numpy().astype(np.float32),
                   mask=mask.numpy(), frame=np.int64(i), V=V.numpy(), F=F.numpy(), vertex_sq_error=verr.numpy())
+    cam = getattr(frame, "camera", None)
+    if cam is not None and all(hasattr(cam, a) for a in ("origin", "target", "up", "fov_deg", "width", "height")):
+        arrays["camera"] = np.array([*np.asarray(cam.origin, float), *np.asarray(cam.target, float),
+                                     *np.asarray(cam.up, float), float(cam.fov_deg), cam.width, cam.height])
     atomic_save(out_dir / rel, lambda tmp: np.savez_compressed(tmp, **arrays))
     return str(rel)
 

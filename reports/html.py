@@ -194,12 +194,16 @@ def tradeoff_plots(df: pd.DataFrame) -> str:
     for ax, idx, xl in ((axes[0], 4, "memory (bytes)"), (axes[1], 5, "median frame time (s)")):
         for i, meth in enumerate(methods):
             for j, sc in enumerate(scenes):
-                sel = [p for p in pts if p[1] == meth and p[0] == sc and p[idx] is not None and p[idx] > 0]
+                sel = [p for p in pts if p[1] == meth and p[0] == sc and p[idx] is not None and p[idx] >= 0]
                 if sel:
                     ax.scatter([p[idx] for p in sel], [p[3] for p in sel], color=f"C{i % 10}",
                                marker=markers[j % len(markers)], label=f"{meth} / {sc}", s=36)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        xs = [p[idx] for p in pts if p[idx] is not None and p[idx] > 0]
+        ys = [p[3] for p in pts if p[3] > 0]
+        if xs and max(xs) > 10 * min(xs):  # log only where the data spans a decade
+            ax.set_xscale("log")
+        if ys and max(ys) > 10 * min(ys):
+            ax.set_yscale("log")
         ax.set_xlabel(xl)
         ax.set_ylabel("RMSE")
         ax.grid(True, which="both", alpha=0.3)
@@ -336,10 +340,20 @@ def vertex_error_renders(art: dict, *, window: int = 260) -> str:
             try:
                 faces = np.hstack([np.full((len(F), 1), 3), F]).astype(np.int64).ravel()
                 mesh = pv.PolyData(V.astype(np.float64), faces)
-                mesh.point_data["sq_error"] = np.nan_to_num(e, nan=0.0)
-                p = pv.Plotter(off_screen=True, window_size=(window, window))
-                p.add_mesh(mesh, scalars="sq_error", cmap="magma", clim=(0, max(vmax, 1e-30)), show_scalar_bar=False)
-                p.view_isometric()
+                mesh.point_data["sq_error"] = e.astype(np.float64)
+                size = (window, window)
+                if "camera" in a:
+                    size = (window, max(16, int(round(window * a["camera"][11] / a["camera"][10]))))
+                p = pv.Plotter(off_screen=True, window_size=size)
+                p.add_mesh(mesh, scalars="sq_error", cmap="magma", clim=(0, max(vmax, 1e-30)), nan_color="grey",
+                           show_scalar_bar=False)
+                if "camera" in a:  # the frame's own camera (fov along x → vertical angle for VTK)
+                    c = a["camera"]
+                    p.camera_position = [tuple(c[0:3]), tuple(c[3:6]), tuple(c[6:9])]
+                    aspect = c[11] / c[10]
+                    p.camera.view_angle = float(np.degrees(2 * np.arctan(np.tan(np.radians(c[9]) / 2) * aspect)))
+                else:
+                    p.view_isometric()
                 img = p.screenshot(return_img=True)
                 p.close()
             except Exception as ex:  # VTK without an off-screen context
@@ -348,7 +362,7 @@ def vertex_error_renders(art: dict, *, window: int = 260) -> str:
                         f"<figcaption>{esc(lab)}</figcaption></figure>")
         parts.append(f"<h3>{esc(scene)} — sequence {esc(seq)}, bounces {_blabel(b)}</h3><div class=tiles>{''.join(figs)}</div>"
                      f"<p class=note>Each G-buffer sample carries its pixel's squared error (mean over RGB), splatted onto "
-                     f"its triangle's vertices with its barycentric weights; magma on [0, {vmax:.3g}]; black = unseen.</p>")
+                     f"its triangle's vertices with its barycentric weights; magma on [0, {vmax:.3g}]; grey = seen by no scored sample; seen from the frame's camera.</p>")
     return "".join(parts) or "<p>No per-vertex errors were saved.</p>"
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import os
-import time
+import uuid
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -19,7 +19,7 @@ import pandas as pd
 import torch
 
 from reports import measure, regress, store
-from reports.cells import STATUS_OK, Cell, CellResult, load_result, run_cells
+from reports.cells import STATUS_OK, Cell, CellResult, run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
 TRIAD_ELEMENTS = 1 << 24  # 64 MiB per float32 array: far beyond the caches of this machine kind
@@ -47,9 +47,9 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
     now = datetime.now(timezone.utc)
     sha = store.git_sha()
     meta = {
-        "run_id": f"{suite_name}-{now.strftime('%Y%m%dT%H%M%SZ')}-{sha[:8]}",
+        "run_id": f"{suite_name}-{now.strftime('%Y%m%dT%H%M%SZ')}-{sha[:8]}-{uuid.uuid4().hex[:4]}",
         "suite": suite_name,
-        "time": now.isoformat(timespec="seconds"),
+        "time": now.isoformat(timespec="microseconds"),
         "git_sha": sha,
         "versions": store.package_versions(),
         "machine": store.machine_description(),
@@ -87,16 +87,32 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
     return store.to_frame(rows)
 
 
+RUN_FILES = ("run.json", "plan.json", "results.parquet", "changes.csv", "report.html")
+RUN_DIRS = ("cells", "images", "calib")
+
+
+def clear_run(out_dir: str | os.PathLike) -> None:
+    """Remove a previous run's files from ``out_dir`` (only the files a run writes)."""
+    import shutil
+
+    out_dir = Path(out_dir)
+    for f in RUN_FILES:
+        (out_dir / f).unlink(missing_ok=True)
+    for d in RUN_DIRS:
+        if (out_dir / d).is_dir():
+            shutil.rmtree(out_dir / d)
+
+
 def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=None, executor=None,
               history: str | os.PathLike | None = store.DEFAULT_HISTORY, backend: str = "reports.backend",
               plugins: tuple[str, ...] = (), isolate: bool | None = None, progress: bool = True,
-              report: bool = True, vertex_renders: bool = True, bandwidth_elements: int = TRIAD_ELEMENTS) -> RunOutput:
+              report: bool = True, vertex_renders: bool = True, bandwidth_elements: int | None = None) -> RunOutput:
     """Run ``suite`` into ``out_dir`` (resuming whatever is already there)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
     store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in cells])
-    meta = run_meta(out_dir, suite.name, bandwidth_elements=bandwidth_elements)
+    meta = run_meta(out_dir, suite.name, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
     results = run_cells(cells, out_dir, executor=executor, progress=progress)
     return finish_run(out_dir, results, meta, history=history, report=report, vertex_renders=vertex_renders)
 
@@ -109,6 +125,7 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     hist_path = None
     if history is not None:
         hist = store.read_history(history)
+        hist = hist[hist["run_id"].astype(str).str.startswith(f"{meta['suite']}-")]  # same suite only
         prev = regress.previous_run(hist, meta["run_id"])
         if prev is not None and len(prev):
             prev_id = str(prev["run_id"].iloc[0])

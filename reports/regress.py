@@ -42,7 +42,10 @@ CHANGE_COLUMNS = CELL_ID + ["metric", "old", "new", "rel_change", "p_value", "th
 
 
 def _key(df: pd.DataFrame) -> pd.Series:
-    return df[CELL_ID].astype(str).agg("|".join, axis=1)
+    k = df[CELL_ID[0]].astype(str)
+    for c in CELL_ID[1:]:
+        k = k + "|" + df[c].astype(str)
+    return k
 
 
 def _rel(old: float, new: float) -> float:
@@ -58,6 +61,7 @@ def compare_runs(old: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
     old = old.assign(_k=_key(old))
     new = new.assign(_k=_key(new))
     ok_old = set(old.loc[old["status"] == "ok", "_k"])
+    old_groups = {k: g for k, g in old.groupby("_k", sort=False)}
     for k, g_new in new.groupby("_k", sort=True):
         ident = {c: g_new.iloc[0][c] for c in CELL_ID}
         if k not in ok_old:
@@ -70,7 +74,7 @@ def compare_runs(old: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
             continue
         if status != "ok":
             continue
-        g_old = old[old["_k"] == k]
+        g_old = old_groups[k]
         out += _compare_errors(ident, g_old, g_new)
         out += _compare_times(ident, g_old, g_new)
         out += _compare_memory(ident, g_old, g_new)
@@ -162,7 +166,7 @@ def run_ids(history: pd.DataFrame) -> list[str]:
     """Run ids of ``history`` oldest first (by run time)."""
     if len(history) == 0:
         return []
-    t = history.groupby("run_id")["time"].min().sort_values()
+    t = pd.to_datetime(history["time"], utc=True, format="ISO8601").groupby(history["run_id"]).min().sort_values()
     return list(t.index)
 
 

@@ -4,8 +4,8 @@
   every available method, each cell in its own spawned process (peak RSS per cell). A few minutes
   on 2 cores.
 * ``nightly``: every library scene at bench size, all methods, V / VB / VBL (+ P for dynamic
-  scenes), bounces 0 (+ 1, 2, full for methods with ``max_bounces > 0``), 8-frame sequences with 3
-  scored frames, 256-spp references. Target ≤ 30 min.
+  scenes), bounces 0 (+ 1, 2, full for methods with ``max_bounces > 0``), 5-frame sequences with 2
+  scored frames, 256-spp references, the oracle at 4+4 samples. Target ≤ 30 min (see NIGHTLY).
 
 ``Capabilities.why_not`` decides which cells are in scope; out-of-scope cells are still planned,
 with their reason in ``Cell.na``, so the report shows the whole matrix.
@@ -48,9 +48,15 @@ class Suite:
 
 SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=(),
               n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True)
+# Nightly budget (≤ 30 min on 2 cores), estimated from the smoke run (64² px, S = 2): the oracle at
+# 32+32 samples takes ~4 s per test-size frame → ~64 s per 256² frame; at 4+4 samples ~8 s, so
+# 5 frames × ~16 (scene, kind) pairs ≈ 11 min. References (~0.15 s per 64² at 64 spp → ~10 s per
+# 256² at 256 spp) are cached after the first night. Cells run in-process (spawning one child per
+# cell costs ~6 s of imports each); ``--isolate`` gives per-cell peak RSS at that price.
 NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VBL"), dynamic_kinds=("P",),
-                n_frames=8, score_frames=(1, 4, 7), ref_spp=256, extra_bounces=(1, 2, FULL),
-                eq_err_spp=(32, 128, 256), isolate=True)
+                n_frames=5, score_frames=(1, 4), ref_spp=256, extra_bounces=(1, 2, FULL),
+                configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),),
+                eq_err_spp=(32, 128, 256), isolate=False)
 SUITES = {"smoke": SMOKE, "nightly": NIGHTLY}
 
 

@@ -17,6 +17,18 @@ if ! ls /usr/lib/x86_64-linux-gnu/libLLVM*.so.* 2>/dev/null | grep -qE 'libLLVM(
   fi
 fi
 
+# 1b. Debian's chromium, for the headless-browser test of the HTML report
+#     (tests/reports/test_html_report.py; the test is skipped without it).
+if ! command -v chromium >/dev/null 2>&1 && [ ! -x /usr/bin/chromium ]; then
+  if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+    echo "[setup] installing chromium for the HTML report's headless-browser test"
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
+      || echo "[setup] WARNING: chromium could not be installed; the report's browser test will be skipped"
+  else
+    echo "[setup] WARNING: no chromium and not root; the report's browser test will be skipped"
+  fi
+fi
+
 # 2. Python packages.  torch is pinned to the CPU build that lies on this machine's disk; it is
 #    installed first and alone so nothing else can pull a CUDA build.
 $PY -m pip install -q --disable-pip-version-check "torch==2.13.0"

@@ -1,0 +1,93 @@
+"""run_bench.py command line, on the fake backend (reports.fakes): run → resume → compare, study
+wiring, errors."""
+import re
+import sys
+import types
+
+import pandas as pd
+import pytest
+
+import run_bench
+from reports import pipeline
+
+FAKE = ["--backend", "reports.fakes", "--plugin", "reports.fakes", "--scenes", "fake_plane"]
+
+
+@pytest.fixture(autouse=True)
+def small_triad(monkeypatch):
+    monkeypatch.setattr(pipeline, "TRIAD_ELEMENTS", 1 << 16)  # bandwidth measurement cost, not its value
+
+
+def _run(capsys, out, hist, *extra):
+    code = run_bench.main(["run", "--suite", "smoke", *FAKE, "--methods", "fake", "fake_gi", "--out", str(out),
+                           "--history", str(hist), "--no-isolate", "--no-vertex-renders", "--quiet", *extra])
+    return code, capsys.readouterr().out
+
+
+def test_run_resume_and_compare(tmp_path, capsys):
+    hist = tmp_path / "history.parquet"
+    code, out = _run(capsys, tmp_path / "a", hist)
+    assert code == 0, out
+    run_id = re.search(r"run (\S+):", out).group(1)
+    assert "3 cells ok, 1 n/a, 0 failed" in out
+    report = re.search(r"report:\s+(\S+)", out).group(1)
+    assert report.endswith("a/report.html") and (tmp_path / "a" / "report.html").exists()
+
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "a" / "cells").iterdir()}
+    code, out2 = _run(capsys, tmp_path / "a", hist)  # resume: same run, nothing recomputed
+    assert code == 0 and f"run {run_id}:" in out2
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "a" / "cells").iterdir()} == stamps
+    assert pd.read_parquet(hist)["run_id"].nunique() == 1
+
+    code, out_f = _run(capsys, tmp_path / "c", hist)
+    code, out_f2 = _run(capsys, tmp_path / "c", hist, "--fresh")  # --fresh: a new run, not a resume
+    assert code == 0 and re.search(r"run (\S+):", out_f).group(1) != re.search(r"run (\S+):", out_f2).group(1)
+
+    code, out3 = _run(capsys, tmp_path / "b", hist)  # a new run compares against the history
+    assert code == 0 and "no regressions since the last run" in out3
+    assert pd.read_parquet(hist)["run_id"].nunique() == 4
+
+    # plant a 30 % error rise in run b (the fake references are noisy: 5 % is below their floor)
+    t = pd.read_parquet(tmp_path / "b" / "results.parquet")
+    t.loc[t.metric == "rmse", "value"] *= 1.3
+    t.to_parquet(tmp_path / "b" / "results.parquet")
+    code = run_bench.main(["compare", str(tmp_path / "a"), str(tmp_path / "b")])
+    out4 = capsys.readouterr().out
+    assert code == 1 and "!!" in out4 and "rmse" in out4
+    assert run_bench.main(["compare", str(tmp_path / "a"), str(tmp_path / "a")]) == 0
+    assert "no changes" in capsys.readouterr().out
+
+
+def test_references_subcommand(capsys):
+    assert run_bench.main(["references", "--suite", "smoke", *FAKE, "--methods", "fake", "--quiet"]) == 0
+    # smoke: V only for "fake" (VBL is n/a) → 3 frames + the equal-error ladder's other spp (16)
+    assert "4 references ready" in capsys.readouterr().out
+
+
+def test_study_subcommand_is_wired(tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def run_study(name, out_dir, *, quick=False):
+        calls.append((name, out_dir, quick))
+        return [out_dir / "plot.png"]
+
+    fake = types.ModuleType("reports.studies")
+    fake.STUDIES = {"terms": None}
+    fake.run_study = run_study
+    monkeypatch.setitem(sys.modules, "reports.studies", fake)
+    import reports
+
+    monkeypatch.setattr(reports, "studies", fake, raising=False)
+    assert run_bench.main(["study", "terms", "--out", str(tmp_path), "--quick"]) == 0
+    assert calls == [("terms", tmp_path, True)]
+    assert str(tmp_path / "plot.png") in capsys.readouterr().out
+    assert run_bench.main(["study", "nope"]) == 2
+
+
+def test_bad_input_is_reported(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        run_bench.main(["run", "--suite", "weekly"])
+    assert e.value.code == 2
+    code = run_bench.main(["run", *FAKE, "--methods", "no_such_method", "--out", str(tmp_path), "--no-history"])
+    assert code == 2 and "unknown method" in capsys.readouterr().err
+    assert run_bench.main(["compare", str(tmp_path / "x"), str(tmp_path / "y")]) == 2
