@@ -96,7 +96,8 @@ def phong_operator(alpha: float, order: int = 4, *, dtype=torch.float32, device=
         beta[k] = beta[k - 1] * k / (a + k + 1.0)
     M = np.zeros((n2, n2))
     for i, j, d in _u_moments(order):
-        M[i, j] = float(np.dot(d, beta[: d.shape[0]]))
+        if i <= j:
+            M[i, j] = M[j, i] = float(np.dot(d, beta[: d.shape[0]]))
     return torch.as_tensor(M, dtype=dtype, device=device)
 
 
@@ -106,7 +107,12 @@ def phong_transfer_operator(alpha: float, order: int = 4, *, dtype=torch.float32
         dtype=dtype, device=device)
 
 
-def phong_operator_quadrature(alpha: float, order: int = 4, *, n_theta: int = 512, dtype=torch.float64,
+@functools.lru_cache(maxsize=8)
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.polynomial.legendre.leggauss(n)   # O(n³) eigen-solve: cache it
+
+
+def phong_operator_quadrature(alpha: float, order: int = 4, *, n_theta: int = 256, dtype=torch.float64,
                               device=None) -> Tensor:
     """M^α by direct quadrature with `methods.core.sh.sh_eval` (the independent check).
 
@@ -117,7 +123,7 @@ def phong_operator_quadrature(alpha: float, order: int = 4, *, n_theta: int = 51
     from methods.core.sh import sh_eval
 
     a = _check(alpha, order)
-    x, wx = np.polynomial.legendre.leggauss(int(n_theta))
+    x, wx = _leggauss(int(n_theta))
     w = 0.5 * (x + 1.0)                      # w ∈ (0, 1)
     t = 1.0 - w * w                          # dt = 2w dw
     wt = wx * 0.5 * 2.0 * w

@@ -1,0 +1,293 @@
+"""ZH-predicted shadowing with 1D BRDFs (Nowrouzezahrai, Kalogerakis, Simari & Fiume 2008) behind
+the common `methods.base.Method` interface.
+
+Precompute (`methods.zh_shadow.precompute`, §3): f training poses → per-vertex order-n SH of the
+unweighted visibility in the skinned local frame → c ZH lobes per vertex → linear model
+X (J+1, N, 6c) from joint angles (+ bias) to the lobe parameters.
+
+Render (§4.3), per G-buffer sample (default, ``shading="sample"``) or per vertex + barycentric
+interpolation of the radiance (``shading="vertex"``, the paper's GPU per-vertex shading):
+  1. synthesize the lobes: [pose, 1] · X (CPU, per vertex), axes taken to world space through the
+     posed vertex frame;
+  2. rotate the lobe axes into the frame of the reflection vector R = reflect(ωo, n) (and of the
+     normal n for the diffuse term) — a ZH lobe rotates by rotating its axis;
+  3. ZH → SH (eq. 1);
+  4. apply the operator: t = ((α+1)/(2π)) M^α v (eq. 2, `convolution.phong_operator`), α = the
+     Phong exponent about R, α = 1 about n for the diffuse (Lambert) term;
+  5. dot with the SH lighting rotated into that frame (`methods.core.sh_rotation`).
+  Per sample, the three vertices' lobes are all kept (3c lobes with the barycentric weights folded
+  into their ZH coefficients): that IS the barycentric interpolation of the SH visibility vector,
+  evaluated without interpolating lobe axes (which would mix unrelated lobes).
+
+Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
+BRDFs). ``specular="published"`` (default) is the paper's Phong convolution, which leaves out the
+cos θ_i = max(0, n·ω) factor of the rendering equation; ``specular="cosine"`` puts it back: the
+order-n SH of V(ω)·max(0, n·ω) is M¹ v_n (exact for the band-limited v), rotated to the R frame
+by a full SH rotation (the lobes cannot carry it: it is no longer a sum of ZH lobes).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from methods.base import Capabilities, Frame, GBuffer, Method, cache_dir, register, tensor_bytes
+from methods.core.frames import frame_matrix, reflect
+from methods.core.sh import project_latlong
+from methods.core.sh_rotation import rotate_coeffs
+from methods.core.zh import zh_lobes_to_sh
+from methods.zh_shadow import precompute as pc
+from methods.zh_shadow.convolution import phong_operator
+
+# Bump when the precompute's output changes meaning (invalidates the disk cache).
+CACHE_VERSION = 2
+# Samples shaded per batch (bounds the (Q, n², 3) rotated-lighting temporaries).
+SHADE_CHUNK = 1 << 15
+SUPPORTED_BRDFS = frozenset({"lambert", "phong"})
+
+
+def _choice(name: str, value: Any, options: tuple) -> Any:
+    if value not in options:
+        raise ValueError(f"{name} must be one of {options}, got {value!r}")
+    return value
+
+
+def _int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
+        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ValueError(f"{name} must be an int {rng}, got {value!r}")
+    return value
+
+
+def shade(k: Tensor, axes: Tensor, normal: Tensor, wo: Tensor, light: Tensor, kd: Tensor, ks: Tensor,
+          alpha: Tensor, *, specular: str = "published", ops: dict | None = None) -> Tensor:
+    """Run-time steps 2–5 of §4.3 for Q shading points, each with L weighted ZH lobes.
+
+    Args:
+        k: (Q, L, n) ZH coefficients (weights folded in); axes: (Q, L, 3) unit world-space axes.
+        normal: (Q, 3) unit shading normals; wo: (Q, 3) unit directions towards the viewer.
+        light: (n², 3) world-space SH of the env map.
+        kd, ks: (Q, 3) diffuse / specular albedo; alpha: (Q,) Phong exponents (ignored where ks = 0).
+        specular: "published" (no cos θ_i, the paper) or "cosine" (with it).
+        ops: cache {α: M^α} (filled on demand).
+    Returns:
+        (Q, 3) exit radiance.
+    """
+    Q, Lb, n = k.shape
+    n2 = n * n
+    if axes.shape != (Q, Lb, 3) or normal.shape != (Q, 3) or wo.shape != (Q, 3) or light.shape != (n2, 3):
+        raise ValueError("shade: inconsistent shapes "
+                         f"k {tuple(k.shape)}, axes {tuple(axes.shape)}, normal {tuple(normal.shape)}, "
+                         f"wo {tuple(wo.shape)}, light {tuple(light.shape)}")
+    ops = {} if ops is None else ops
+    dt, dev = k.dtype, k.device
+
+    def op(a: float) -> Tensor:
+        if a not in ops:
+            ops[a] = phong_operator(a, n, dtype=dt, device=dev)
+        return ops[a]
+
+    light = light.to(dt)
+    Fn = frame_matrix(normal)                                          # world → normal frame
+    v_n = zh_lobes_to_sh(k, (Fn[:, None] @ axes[..., None]).squeeze(-1))   # (Q, n²) eq. 1
+    L_n = rotate_coeffs(light, Fn)                                     # (Q, n², 3)
+    M1 = op(1.0)
+    out = kd * torch.einsum("qi,ij,qjc->qc", v_n, M1, L_n) / math.pi  # (2/(2π)) M¹: Lambert
+    spec = (ks > 0).any(-1)
+    if spec.any():
+        idx = spec.nonzero().squeeze(-1)
+        R = reflect(wo[idx], normal[idx])
+        R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        FR = frame_matrix(R)                                           # world → reflection frame
+        if specular == "published":
+            v_R = zh_lobes_to_sh(k[idx], (FR[:, None] @ axes[idx][..., None]).squeeze(-1))
+        else:
+            vcos_n = v_n[idx] @ M1                                     # SH of V·max(0, n·ω)
+            v_R = rotate_coeffs(vcos_n[..., None], FR @ Fn[idx].transpose(-1, -2))[..., 0]
+        L_R = rotate_coeffs(light, FR)                                 # (Qs, n², 3)
+        a_s = alpha[idx]
+        sp = torch.zeros(idx.shape[0], 3, dtype=dt, device=dev)
+        for a in torch.unique(a_s).tolist():
+            sel = a_s == a
+            t = v_R[sel] @ op(float(a)) * ((a + 1.0) / (2.0 * math.pi))   # eq. 2 (M symmetric)
+            sp[sel] = torch.einsum("qj,qjc->qc", t, L_R[sel])
+        out[idx] = out[idx] + ks[idx] * sp
+    front = (normal * wo).sum(-1, keepdim=True) > 0
+    return torch.where(front, out, torch.zeros_like(out))
+
+
+@register
+class ZHShadow(Method):
+    """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
+
+    Config (keyword-only): order (SH order, default 4), lobes (c ZH lobes, 1..4), train_poses (f),
+    train_source ("animation" | "uniform"), train_seed, n_dirs (rays per vertex and pose),
+    fit_iters (Adam steps of the lobe refinement), axis_anchor (pose-smoothness weight of the lobe
+    axes, `precompute.AXIS_ANCHOR`), specular ("published" | "cosine"), shading
+    ("sample" | "vertex"), below_horizon ("trace" | "hide"), cache (reuse precompute on disk).
+    """
+
+    name = "zh_shadow"
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=True,
+                                dynamic_geometry=True, max_bounces=0, brdfs=SUPPORTED_BRDFS)
+
+    def __init__(self, *, order: int = 4, lobes: int = 2, train_poses: int = 32, train_source: str = "animation",
+                 train_seed: int = 1234, n_dirs: int = 1024, fit_iters: int = 60, specular: str = "published",
+                 shading: str = "sample", below_horizon: str = "trace", axis_anchor: float = pc.AXIS_ANCHOR,
+                 cache: bool = True) -> None:
+        _int("order", order, 2, 8)
+        _int("lobes", lobes, 1, 4)
+        _int("train_poses", train_poses, 2)
+        _int("n_dirs", n_dirs, 16)
+        _int("fit_iters", fit_iters, 0)
+        _int("train_seed", train_seed, 0)
+        if isinstance(axis_anchor, bool) or not isinstance(axis_anchor, (int, float)) or not axis_anchor >= 0 \
+                or not math.isfinite(axis_anchor):
+            raise ValueError(f"axis_anchor must be a finite number >= 0, got {axis_anchor!r}")
+        _choice("train_source", train_source, ("animation", "uniform"))
+        _choice("specular", specular, ("published", "cosine"))
+        _choice("shading", shading, ("sample", "vertex"))
+        _choice("below_horizon", below_horizon, ("trace", "hide"))
+        super().__init__(order=order, lobes=lobes, train_poses=train_poses, train_source=train_source,
+                         train_seed=train_seed, n_dirs=n_dirs, fit_iters=fit_iters, specular=specular,
+                         shading=shading, below_horizon=below_horizon, axis_anchor=float(axis_anchor))
+        self.use_cache = bool(cache)
+        self.scene = None
+        self.model: pc.ZHModel | None = None
+        self.stats: dict[str, float] = {}
+        self._ops: dict[float, Tensor] = {}          # α → M^α
+        self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
+
+    # -- precompute ---------------------------------------------------------------------------
+    def _cache_path(self, scene):
+        keys = ("order", "lobes", "train_poses", "train_source", "train_seed", "n_dirs", "fit_iters",
+                "below_horizon", "axis_anchor")
+        blob = json.dumps({"v": CACHE_VERSION, "scene": scene.content_hash(),
+                           **{k: self.config[k] for k in keys}}, sort_keys=True)
+        return cache_dir("zh_shadow") / (hashlib.sha256(blob.encode()).hexdigest()[:24] + ".pt")
+
+    def precompute(self, scene) -> None:
+        self.scene = scene
+        self._light = None
+        path = self._cache_path(scene) if self.use_cache else None
+        if path is not None and path.exists():
+            d = torch.load(path, weights_only=True)
+            self.model = pc.ZHModel(d["X"], int(d["order"]), int(d["lobes"]))
+            self.stats = {k: float(v) for k, v in d["stats"].items()}
+            return
+        cfg = self.config
+        t0 = time.perf_counter()
+        if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
+            poses = torch.zeros(1, 0)
+        else:
+            poses = pc.training_poses(scene, cfg["train_poses"], source=cfg["train_source"],
+                                      seed=cfg["train_seed"])
+        v, _ = pc.pose_visibility(_PoseAdapter(scene), poses, cfg["order"], n_dirs=cfg["n_dirs"],
+                                  below_horizon=cfg["below_horizon"])
+        t1 = time.perf_counter()
+        with pc.torch_threads(1):
+            self.model, fitted = pc.build_model(v, poses, cfg["lobes"], iters=cfg["fit_iters"],
+                                                anchor=cfg["axis_anchor"])
+        t2 = time.perf_counter()
+        train_pred = pc.synthesize(self.model.X, poses)                          # (f, N, d)
+        kk, ax = pc.params_to_lobes(train_pred, self.model.lobes)
+        e_lin = pc.sh_error(pc.lobes_sh(kk.flatten(0, 1), ax.flatten(0, 1)), v.flatten(0, 1), pc.NORM_V)
+        e_fit = pc.sh_error(fitted, v, pc.NORM_V)
+        self.stats = {"time_visibility_s": t1 - t0, "time_fit_s": t2 - t1,
+                      "lobe_fit_err_mean": float(e_fit.mean()), "lobe_fit_err_std": float(e_fit.std()),
+                      "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
+                      "model_mb": self.model.nbytes / 1e6}
+        if path is not None:  # atomic: parallel test workers may race on the same key
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            torch.save({"X": self.model.X, "order": self.model.order, "lobes": self.model.lobes,
+                        "stats": self.stats}, tmp)
+            os.replace(tmp, path)
+
+    # -- render -------------------------------------------------------------------------------
+    def _lighting(self, env) -> Tensor:
+        data = torch.as_tensor(env.data)
+        key = (id(env.data), data.data_ptr(), tuple(data.shape), tuple(torch.as_tensor(env.to_world).flatten().tolist()))
+        if self._light is None or self._light[0] != key:
+            self._light = (key, project_latlong(env, self.config["order"]).float())
+        return self._light[1]
+
+    def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """kd, ks (Q, 3) and α (Q,) from the frame's per-region materials."""
+        Q = region.shape[0]
+        kd = torch.zeros(Q, 3)
+        ks = torch.zeros(Q, 3)
+        al = torch.ones(Q)
+        for r, name in enumerate(self.scene.regions):
+            mat = frame.materials[name]
+            if mat.kind not in SUPPORTED_BRDFS:
+                raise ValueError(f"zh_shadow supports {sorted(SUPPORTED_BRDFS)} BRDFs, region {name!r} is {mat.kind!r}")
+            sel = region == r
+            kd[sel] = torch.tensor(mat.kd, dtype=torch.float32)
+            if mat.kind == "phong":
+                ks[sel] = torch.tensor(mat.ks, dtype=torch.float32)
+                al[sel] = float(mat.s)
+        return kd, ks, al
+
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        if self.model is None or self.scene is None:
+            raise RuntimeError("call precompute(scene) before render()")
+        scene, m = self.scene, self.model
+        pose = frame.pose
+        if scene.skeleton is None:
+            pose_vec = torch.zeros(0)
+            geom = scene.geometry()
+        else:
+            pose_vec = torch.zeros(scene.skeleton.num_joints) if pose is None else torch.as_tensor(pose).float()
+            geom = scene.geometry(pose_vec)
+        light = self._lighting(frame.envmap)
+        k, ax = m.lobes_at(pose_vec)                                          # (N, c, n), (N, c, 3) local
+        Fv = frame_matrix(geom.N.float())                                      # (N, 3, 3) world → local
+        ax_w = (Fv.transpose(-1, -2)[:, None] @ ax[..., None]).squeeze(-1)     # (N, c, 3) world
+        out = torch.zeros(gbuffer.num_samples, 3)
+        if self.config["shading"] == "vertex":
+            cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32)
+            wo = cam - geom.V
+            wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            rad = torch.zeros(geom.num_vertices, 3)
+            kd, ks, al = self._material_arrays(frame, geom.vertex_region)
+            for a in range(0, geom.num_vertices, SHADE_CHUNK):
+                s = slice(a, a + SHADE_CHUNK)
+                rad[s] = shade(k[s], ax_w[s], geom.N[s], wo[s], light, kd[s], ks[s], al[s],
+                               specular=self.config["specular"], ops=self._ops)
+            out = gbuffer.interpolate(rad, geom.F)
+        else:
+            idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
+            hits = gbuffer.hit.nonzero().squeeze(-1)
+            c, n = m.lobes, m.order
+            for a in range(0, hits.shape[0], SHADE_CHUNK):
+                h = hits[a:a + SHADE_CHUNK]
+                vi, wi = idx[h], w[h]                                          # (Q, 3)
+                kq = (k[vi] * wi[..., None, None]).reshape(-1, 3 * c, n)      # barycentric weights
+                aq = ax_w[vi].reshape(-1, 3 * c, 3)
+                kd, ks, al = self._material_arrays(frame, gbuffer.region[h])
+                out[h] = shade(kq, aq, gbuffer.normal[h], gbuffer.wo[h], light, kd, ks, al,
+                               specular=self.config["specular"], ops=self._ops)
+        return gbuffer.resolve(out)
+
+    def memory(self) -> dict[str, int]:
+        if self.model is None:
+            return {}
+        return {"linear_model_X": tensor_bytes(self.model.X),
+                "operators": sum(tensor_bytes(t) for t in self._ops.values()),
+                "light_sh": 0 if self._light is None else tensor_bytes(self._light[1])}
+
+
+class _PoseAdapter:
+    """Scene view for `pose_visibility` that also accepts the empty pose of a static scene."""
+
+    def __init__(self, scene):
+        self._s = scene
+
+    def geometry(self, pose):
+        return self._s.geometry(None if self._s.skeleton is None else pose)

@@ -1,0 +1,157 @@
+"""ZH lobe fitting, lobe parameterisation, linear model (Nowrouzezahrai 2008 §3), and the fit
+errors of Figs. 3 and 5 on the test creature (held-out poses)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from methods.zh_shadow import precompute as pc
+from methods.zh_shadow.convolution import phong_operator
+
+EXACT = 1e-9          # float64 algebra
+# Lobe recovery after a grid search + fixed-step Adam refinement (relative SH error; Adam with a
+# fixed step stalls at ~lr²-sized axis jitter: measured ≤ 5e-4 with lr = 0.02, 100 steps).
+FIT_EXACT = 2e-3
+
+
+def _rand_axes(g, shape):
+    a = torch.randn(*shape, 3, generator=g, dtype=torch.float64)
+    a = a / a.norm(dim=-1, keepdim=True)
+    return torch.where(a[..., 2:3] < 0, -a, a)
+
+
+def test_chart_round_trip():
+    g = torch.Generator().manual_seed(0)
+    a = _rand_axes(g, (500,))
+    assert (pc.chart_to_axis(pc.axis_to_chart(a)) - a).abs().max() <= EXACT
+    assert pc.axis_to_chart(torch.tensor([0.0, 0.0, 1.0])).abs().max() == 0   # the normal ↦ (0, 0)
+    far = pc.chart_to_axis(torch.tensor([[10.0, 0.0]], dtype=torch.float64))  # clamped to r = 2: −z
+    assert torch.allclose(far, torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64), atol=EXACT)
+
+
+def test_canonical_flip_preserves_the_function():
+    g = torch.Generator().manual_seed(1)
+    k = torch.randn(50, 2, 4, generator=g, dtype=torch.float64)
+    a = torch.randn(50, 2, 3, generator=g, dtype=torch.float64)
+    a = a / a.norm(dim=-1, keepdim=True)
+    k2, a2 = pc.canonical_lobes(k, a)
+    assert (a2[..., 2] >= 0).all()
+    assert (pc.lobes_sh(k2, a2) - pc.lobes_sh(k, a)).abs().max() <= EXACT
+
+
+def test_coefficients_are_least_squares():
+    """Closed-form per-band normal equations recover the ZH coefficients of known lobes."""
+    g = torch.Generator().manual_seed(2)
+    a = _rand_axes(g, (40, 2))
+    k = torch.randn(40, 2, 4, generator=g, dtype=torch.float64)
+    k[:, 1, 0] = 0.0        # band 0 is shared by the lobes: make the split unique
+    k[:, 0, 0] = 1.0
+    v = pc.lobes_sh(k, a)
+    k_hat = pc.solve_lobe_coeffs(v, a, ridge=1e-10)   # band 0 is singular without a ridge
+    assert (pc.lobes_sh(k_hat, a) - v).abs().max() <= 1e-5   # the ridge's bias on band 0
+    assert (k_hat[:, :, 1:] - k[:, :, 1:]).abs().max() <= 1e-6
+
+
+def test_fit_recovers_a_single_lobe():
+    g = torch.Generator().manual_seed(3)
+    a = _rand_axes(g, (64, 1))
+    k = torch.randn(64, 1, 4, generator=g, dtype=torch.float64)
+    v = pc.lobes_sh(k, a)
+    k1, a1 = pc.fit_zh_lobes(v, 1, iters=100, lr=0.02)
+    err = (pc.lobes_sh(k1, a1) - v).norm(dim=1) / v.norm(dim=1)
+    assert err.max() <= FIT_EXACT
+    k2, a2 = pc.fit_zh_lobes(v, 2, iters=30)
+    # two lobes for one-lobe data: the c ≥ 2 ridge (LOBE_RIDGE) biases near-parallel pairs
+    # (measured max 4.2 %)
+    assert ((pc.lobes_sh(k2, a2) - v).norm(dim=1) / v.norm(dim=1)).max() <= 0.08
+
+
+def test_linear_model_is_exact_for_linear_data():
+    g = torch.Generator().manual_seed(4)
+    P = torch.rand(12, 5, generator=g)
+    Xt = torch.randn(6, 7, 3, generator=g)
+    B = pc.synthesize(Xt, P)
+    X = pc.fit_linear_model(P, B)
+    assert (X - Xt).abs().max() <= 1e-4
+    assert pc.synthesize(X, P[0]).shape == (7, 3)
+    with pytest.raises(ValueError):
+        pc.fit_linear_model(P[:5], B)
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError):
+        pc.fit_zh_lobes(torch.zeros(3, 15), 1)
+    with pytest.raises(ValueError):
+        pc.fit_zh_lobes(torch.zeros(3, 16), 0)
+    from scenes.library import get_scene
+
+    with pytest.raises(ValueError):
+        pc.training_poses(get_scene("creature", "test"), 8, source="mocap")
+    with pytest.raises(ValueError):
+        pc.training_poses(get_scene("sphere_plane", "test"), 8)
+
+
+# -- Figs. 3 and 5 on the test creature ----------------------------------------------------------
+# Config of the measurement (kept small for the test budget): 24 training poses of the creature's
+# animation (seed 1234), 4 held-out poses of the same cycle at other phases (seed 7), 256 rays per
+# vertex, order 4, 30 refinement steps. Errors: ‖v_pred − v_true‖ / ‖unoccluded‖ (`pc.sh_error`)
+# over the creature's vertices × held-out poses, mean ± std.
+FIG_POSES, FIG_HELD, FIG_DIRS, FIG_ITERS = 24, 4, 256, 30
+# Measured (this machine, torch 2.13): see PINNED; the pins hold to ±REL_PIN relative — the fits use
+# a deterministic grid + Adam, so changes beyond that mean the algorithm or the data changed.
+PINNED = {
+    ("v", 1): 0.125, ("v", 2): 0.071,            # Fig. 5: 1 vs 2 lobes (unweighted visibility)
+    ("vcos", 1): 0.106, ("vcos", 2): 0.067,      # Fig. 3 red: linear fit of cosine-weighted data
+    ("blue", 1): 0.123, ("blue", 2): 0.078,      # Fig. 3 blue: M¹ · (unweighted prediction)
+}
+# (measured std: 0.089 / 0.073, 0.086 / 0.080, 0.096 / 0.078; lobe fit alone 0.120 / 0.056;
+# order-4 truncation floor of the blue curve 0.042; all 16 SH coefficients predicted linearly
+# 0.055.) NOT reproduced: the paper's Fig. 3 has blue < red; here red < blue for both c.
+REL_PIN = 0.15
+
+
+@pytest.fixture(scope="module")
+def fig_errors():
+    from scenes.library import get_scene
+
+    scene = get_scene("creature", "test")
+    creature = scene.geometry().vertex_region == scene.region_index("creature")
+    P = pc.training_poses(scene, FIG_POSES, seed=1234)
+    H = pc.training_poses(scene, FIG_HELD, seed=7)
+    v, vc = pc.pose_visibility(scene, P, 4, n_dirs=FIG_DIRS)
+    vh, vch = pc.pose_visibility(scene, H, 4, n_dirs=FIG_DIRS)
+    v, vc, vh, vch = (x[:, creature] for x in (v, vc, vh, vch))
+    M1 = phong_operator(1.0, 4)
+    out = {}
+    with pc.torch_threads(1):
+        for c in (1, 2):
+            m, fitted = pc.build_model(v, P, c, iters=FIG_ITERS)
+            pred = torch.stack([m.sh_at(p) for p in H])
+            out[("fit", c)] = pc.sh_error(fitted, v, pc.NORM_V)
+            out[("v", c)] = pc.sh_error(pred, vh, pc.NORM_V)
+            out[("blue", c)] = pc.sh_error(pred @ M1, vch, pc.NORM_VCOS)
+            mc, _ = pc.build_model(vc, P, c, iters=FIG_ITERS)
+            out[("vcos", c)] = pc.sh_error(torch.stack([mc.sh_at(p) for p in H]), vch, pc.NORM_VCOS)
+    out["floor_blue"] = pc.sh_error(vh @ M1, vch, pc.NORM_VCOS)     # order-4 truncation alone
+    out["direct_sh"] = pc.sh_error(pc.synthesize(pc.fit_linear_model(P, v), H), vh, pc.NORM_V)
+    return out
+
+
+def test_two_lobes_beat_one(fig_errors):
+    """Fig. 5: the 2-lobe model's held-out error is below the 1-lobe model's (mean and std)."""
+    e1, e2 = fig_errors[("v", 1)], fig_errors[("v", 2)]
+    assert e2.mean() < e1.mean()
+    assert fig_errors[("fit", 2)].mean() < fig_errors[("fit", 1)].mean()   # lobe fit alone too
+
+
+def test_fit_errors_pinned(fig_errors):
+    msg = {k: (round(float(e.mean()), 4), round(float(e.std()), 4)) for k, e in fig_errors.items()}
+    for key, want in PINNED.items():
+        got = float(fig_errors[key].mean())
+        assert abs(got - want) <= REL_PIN * want, f"{key}: {got:.4f} vs pinned {want} ({msg})"
+    # every prediction is worse than the truncation floor, and the ZH model is worse than
+    # predicting all 16 SH coefficients linearly (the price of the rotatable lobes)
+    assert fig_errors[("blue", 1)].mean() > fig_errors["floor_blue"].mean()
+    assert fig_errors[("v", 2)].mean() > fig_errors["direct_sh"].mean()
