@@ -206,7 +206,9 @@ def register(cls: type[Method]) -> type[Method]:
 def _load_builtin() -> None:
     import importlib
 
-    for mod in ("methods.oracle", "methods.inout", "methods.zh_shadow", "methods.triple_product", "methods.ptt"):
+    # The module of each method that registers it (packages keep their __init__ light).
+    for mod in ("methods.oracle", "methods.inout.method", "methods.zh_shadow", "methods.triple_product",
+                "methods.ptt.method"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as e:  # a method package not written yet

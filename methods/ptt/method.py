@@ -1,0 +1,367 @@
+"""Precomputed transfer tensors for relighting with dynamic BRDFs (Sun, Zhou, Chen, Lin, Shi, Guo
+2007) behind the common `methods.base.Method` interface.
+
+Precompute (static geometry): the BRDF basis b_p and its shared factorization
+(``methods.ptt.transport``); per vertex the direct transport T̃⁰ (Haar, n_L kept per k), the
+one-bounce PTT T¹(r, p, s, l) on the coarse 6×n₁×n₁ lighting and the two-bounce PTT
+T²(l, r1, p1, r2, p2) on 6×n₂×n₂ (``methods.ptt.bounce``).
+
+Run time (Sun eq. 3–4), per frame, three cached stages keyed on ``frame.changed``:
+
+1. lighting (only when "light" changed): C^L = Haar of the env map on the cube map;
+   E⁰_x(k) = Σ_l C^L_l U^{I0}_x(l, k); T¹L_x(r, p, s) = Σ_l C^L_l T¹_x(r, p, s, l);
+   T²L_x(r1, p1, r2, p2) = Σ_l C^L_l T²_x(l, r1, p1, r2, p2)                        (eq. 4 terms)
+2. BRDFs (when "brdf" or "light" changed): H(r, p, c) = basis coordinates of frame.materials;
+   E_x(k) = E⁰_x(k) + Σ_s C^{ωi}(s, k) Σ_{r,p} H(r,p) T¹L_x(r,p,s)
+            + C^{ωi}(k) Σ H(r1,p1) H(r2,p2) T²L_x(r1,p1,r2,p2)            (U^{I0} + U^{I1} + U^{I2})
+3. view (every frame): per G-buffer sample, for each vertex v of its triangle, the view factor
+   g_v(k) = Σ_p H(r, p) W(p, ωo in v's frame, k) (the D ×_h U^h ×_ωo U^{ωo} part of eq. 3) and
+   B_v = Σ_k g_v(k) E_v(k); the sample's radiance is the barycentric mix of B_v (values living in a
+   vertex's local frame are never interpolated across frames), clamped at 0.
+
+So V-only frames do only stage 3, V&B frames skip the lighting wavelet products (stage 1), V,B&L
+frames do all three (Sun Table 1).
+
+Not (yet) here, and why: the Tucker BRDF tensor of ``methods.ptt.brdf_tensor`` (eq. 2) is not
+used — the shading factors come from the BRDF basis itself (`transport.factor_basis`); the
+separated specular lobes (§4.1, prefiltered env maps × fractional visibility) are a hook
+(`PTT._specular_lobes`, returns None); compression (§4.3 CPCA + clustered tensor approximation)
+is ``methods.ptt.compress`` (optional, ``compress=``; T² is kept dense).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.core.frames import to_local
+from methods.core.visibility import Visibility
+from methods.ptt import bounce as _bounce
+from methods.ptt import compress as _cmp
+from methods.ptt import transport as _tp
+
+# G-buffer samples shaded per batch (a batch holds (Q, 3, n_P, K) view factors).
+RENDER_CHUNK = 1 << 15
+
+# Paper settings (Sun 2007 §4.3): 6×64×64 cube map, n_L = 96, n_ωi = 8, one-bounce lighting 6×8×8,
+# two-bounce 6×2×2, 4th-order SH.
+PAPER = dict(cube_res=64, n_L=96, n_wi=8, light_res_1=8, light_res_2=2, sh_order=4)
+
+
+def _check_int(name: str, v: Any, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+    return v
+
+
+def _check_pow2(name: str, v: Any) -> int:
+    _check_int(name, v, 1)
+    if v & (v - 1):
+        raise ValueError(f"{name} must be a power of two, got {v}")
+    return v
+
+
+@register
+class PTT(Method):
+    """Sun 2007 precomputed transfer tensors: dynamic lighting, view and BRDFs; 0–2 bounces.
+
+    Config (keyword-only; everything that changes a score):
+        bounces: 0 (direct), 1 or 2 interreflections.
+        basis: a `transport.BRDFBasis` (e.g. the n_P = 5 PCA basis of ``methods.ptt.pca``) or None
+            for `transport.scene_basis` (Lambert + the scene's specular lobes; other BRDFs of the
+            same families are least-squares fitted).
+        n_wi: K incident factors of the shading factorization (paper 8).
+        brdf_grid, brdf_table: disk-grid resolutions of the factorization SVD and its look-up tables.
+        cube_res: N of the 6×N×N direct-lighting cube map (paper 64); n_L: kept coefficients per k
+            (paper 96); area_weighted: Ng 2003 area-weighted selection (paper).
+        light_res_1, light_res_2: coarse lighting of the one-/two-bounce PTTs (paper 8, 2).
+        sh_order: SH order of the one-bounce incident radiance (paper 4).
+        rays: hemisphere rays per vertex for the PTTs; light_supersample: env → cube sub-samples.
+        seed: ray-rotation seed.
+        compress: None (dense T¹) or dict(clusters=, eigenvectors=, light_dim=) for the CPCA +
+            clustered tensor approximation of T¹ (``methods.ptt.compress``; paper 32 / 64, about
+            one cluster per 1000 vertices).
+    """
+
+    name = "ptt"
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=True,
+                                dynamic_geometry=False, max_bounces=2,
+                                brdfs=frozenset({"lambert", "phong", "blinnphong", "cooktorrance"}))
+
+    def __init__(self, *, bounces: int = 2, basis: Any = None, n_wi: int = 16, brdf_grid: int = 24,
+                 brdf_table: int = 48, cube_res: int = 32, n_L: int = 96, area_weighted: bool = True,
+                 light_res_1: int = 8, light_res_2: int = 2, sh_order: int = 4, rays: int = 128,
+                 light_supersample: int = 2, seed: int = 0, compress: dict | None = None) -> None:
+        if isinstance(bounces, bool) or bounces not in (0, 1, 2):
+            raise ValueError(f"bounces must be 0, 1 or 2, got {bounces!r}")
+        if basis is not None and not isinstance(basis, _tp.BRDFBasis):
+            raise ValueError(f"basis must implement BRDFBasis (n_P, eval, coords) or be None, got {basis!r}")
+        _check_int("n_wi", n_wi, 1)
+        _check_int("brdf_grid", brdf_grid, 2)
+        _check_int("brdf_table", brdf_table, 2)
+        _check_pow2("cube_res", cube_res)
+        _check_int("n_L", n_L, 1)
+        _check_pow2("light_res_1", light_res_1)
+        _check_pow2("light_res_2", light_res_2)
+        if light_res_1 > cube_res or light_res_2 > light_res_1:
+            raise ValueError(f"need light_res_2 <= light_res_1 <= cube_res, got {light_res_2}, {light_res_1}, {cube_res}")
+        _check_int("sh_order", sh_order, 1)
+        _check_int("rays", rays, 1)
+        _check_int("light_supersample", light_supersample, 1)
+        if compress is not None:
+            if not isinstance(compress, dict) or set(compress) != {"clusters", "eigenvectors", "light_dim"}:
+                raise ValueError("compress must be None or a dict with keys clusters, eigenvectors, light_dim")
+            for k, v in compress.items():
+                _check_int(f"compress[{k!r}]", v, 1)
+            compress = dict(compress)
+        basis_name = None if basis is None else f"{type(basis).__module__}.{type(basis).__name__}(n_P={basis.n_P})"
+        super().__init__(bounces=bounces, basis=basis_name, n_wi=n_wi,
+                         brdf_grid=brdf_grid, brdf_table=brdf_table, cube_res=cube_res, n_L=n_L,
+                         area_weighted=bool(area_weighted), light_res_1=light_res_1,
+                         light_res_2=light_res_2, sh_order=sh_order, rays=rays,
+                         light_supersample=light_supersample, seed=seed, compress=compress)
+        self.bounces = bounces
+        self._basis_arg = basis
+        self.scene = None
+        self.timings: dict[str, float] = {}
+        self._reset_cache()
+
+    def _reset_cache(self) -> None:
+        self._env = None     # env map object of the cached lighting stage
+        self._light = None   # (E0 (V,K,3), T1L (V,R,P,S,3) | None, T2L (V,R,P,R,P,3) | None)
+        self._H = None       # (R, P, 3) coordinates of the cached BRDF stage
+        self._E = None       # (V, K, 3) Σ_l C^L_l U^I_x(l, k, H)
+        self._coords: dict[Any, Tensor] = {}
+        self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
+
+    # -- precompute ------------------------------------------------------------------------------
+    def precompute(self, scene) -> None:
+        import time
+
+        c = self.config
+        t0 = time.perf_counter()
+        geom = scene.geometry()
+        self.scene = scene
+        self.regions = list(scene.regions)
+        self.V, self.F, self.N = geom.V.float(), geom.F.long(), geom.N.float()
+        self.face_region = geom.face_region.long()
+        self.basis = self._basis_arg if self._basis_arg is not None else _tp.scene_basis(scene.materials)
+        self.factors = _tp.factor_basis(self.basis, n_wi=c["n_wi"], grid=c["brdf_grid"], table=c["brdf_table"])
+        t1 = time.perf_counter()
+        vis = Visibility(self.V, self.F)
+        N = c["cube_res"]
+        P0 = _tp.ray_points(self.V, self.F)  # ray origins just inside each vertex's faces
+        self.dt = _tp.direct_transport(vis, P0, self.N, self.factors, N=N, n_L=c["n_L"],
+                                       area_weighted=c["area_weighted"],
+                                       coarse=c["light_res_1"] if self.bounces >= 1 else 0)
+        self.dt.idx = self.dt.idx.to(torch.int32)  # run-time storage
+        t2 = time.perf_counter()
+        self.C = self.Cu = self.T1 = self.T2 = self.T1c = None
+        R = len(self.regions)
+        if self.bounces >= 1:
+            self.blk1 = _tp.block_index(N, c["light_res_1"])
+            self.C = _tp.sh_light_matrix(self.factors, c["sh_order"])  # (S, K)
+            hits = _bounce.trace_hemispheres(vis, P0, self.N, c["rays"], seed=c["seed"])
+            self.T1 = _bounce.one_bounce_ptt(hits, self.F, self.N, self.face_region, R, self.factors,
+                                             self.dt.coarse, order=c["sh_order"])
+            self.dt.coarse = None  # precompute-only
+            if self.bounces >= 2:
+                self.blk2 = _tp.block_index(N, c["light_res_2"])
+                sub = _tp.block_index(c["light_res_1"], c["light_res_2"])  # 6n₂² block inside 6n₁²
+                self.Cu = _tp.uniform_light_vector(self.factors)  # (K,)
+                self.T2 = _bounce.two_bounce_ptt(hits, self.F, self.N, self.face_region, R, self.factors,
+                                                 self.C, self.T1[..., sub].contiguous())
+        t3 = time.perf_counter()
+        self.T1c = None
+        if self.T1 is not None and c["compress"] is not None:
+            nv, R_, P_, S_, L1 = self.T1.shape
+            self.T1c = _cmp.compress_ptt(self.T1.reshape(nv, R_ * P_ * S_, L1), seed=c["seed"], **c["compress"])
+            self.T1 = None
+        t4 = time.perf_counter()
+        self.timings = {"brdf_factorization": t1 - t0, "direct": t2 - t1, "bounces": t3 - t2,
+                        "compress": t4 - t3, "total": t4 - t0}
+        self._reset_cache()
+
+    def with_bounces(self, bounces: int) -> "PTT":
+        """A copy sharing this precomputation that renders only ``bounces`` (<= self.bounces)
+        interreflections (Fig. 11's direct / +1 / +2 columns from one precompute)."""
+        import copy
+
+        if isinstance(bounces, bool) or bounces not in (0, 1, 2) or bounces > self.bounces:
+            raise ValueError(f"bounces must be 0..{self.bounces}, got {bounces!r}")
+        m = copy.copy(self)
+        m.config = dict(self.config, bounces=bounces)
+        m.bounces = bounces
+        if bounces < 2:
+            m.T2 = m.Cu = None
+        if bounces < 1:
+            m.T1 = m.T1c = m.C = None
+        m._reset_cache()
+        return m
+
+    # -- run time ---------------------------------------------------------------------------------
+    def coords(self, materials: dict[str, Any]) -> Tensor:
+        """H (R, n_P, 3) float32 of a frame's materials (memoised per material)."""
+        rows = []
+        for r in self.regions:
+            m = materials[r]
+            if m not in self._coords:
+                self._coords[m] = torch.as_tensor(self.basis.coords(m), dtype=torch.float32)
+            rows.append(self._coords[m])
+        return torch.stack(rows)
+
+    def _lighting_stage(self, envmap) -> None:
+        c = self.config
+        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
+        E0 = _tp.direct_incidence(self.dt, CL)  # (V, K, 3)
+        T1L = T2L = None
+        if self.T1 is not None:
+            T1L = torch.einsum("vrpsl,lc->vrpsc", self.T1, CL[self.blk1])
+        elif self.T1c is not None:
+            R_, P_, S_ = len(self.regions), self.factors.n_P, self.C.shape[0]
+            T1L = self.T1c.contract_light(CL[self.blk1]).reshape(-1, R_, P_, S_, 3)
+        if self.T2 is not None:
+            T2L = torch.einsum("vlrptq,lc->vrptqc", self.T2, CL[self.blk2])
+        self._light = (E0, T1L, T2L)
+        self._env = envmap
+        self.stats["light"] += 1
+
+    def _brdf_stage(self, H: Tensor) -> None:
+        E0, T1L, T2L = self._light
+        E = E0.clone()
+        if T1L is not None:  # Sun §3.3 U^{I1}
+            I1 = torch.einsum("rpc,vrpsc->vsc", H, T1L)
+            E += torch.einsum("sk,vsc->vkc", self.C, I1)
+        if T2L is not None:  # Sun §3.3 U^{I2}
+            I2 = torch.einsum("rpc,tqc,vrptqc->vc", H, H, T2L)
+            E += self.Cu[None, :, None] * I2[:, None, :]
+        self._E, self._H = E, H
+        self.stats["brdf"] += 1
+
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before render()")
+        missing = [r for r in self.regions if r not in frame.materials]
+        if missing:
+            raise ValueError(f"frame.materials lacks regions {missing}")
+        H = self.coords(frame.materials)
+        if self._light is None or "light" in frame.changed or frame.envmap is not self._env:
+            self._lighting_stage(frame.envmap)
+            self._E = None
+        if self._E is None or "brdf" in frame.changed or not torch.equal(H, self._H):
+            self._brdf_stage(H)
+        self.stats["view"] += 1
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
+        hit = torch.nonzero(gbuffer.hit).squeeze(-1)
+        vidx, bw = gbuffer.vertex_weights(self.F)
+        for a in range(0, hit.numel(), RENDER_CHUNK):
+            sel = hit[a:a + RENDER_CHUNK]
+            out[sel] = self._shade(vidx[sel], bw[sel], gbuffer.wo[sel].float(), H[gbuffer.region[sel]])
+        lobes = self._specular_lobes(frame, gbuffer)
+        if lobes is not None:
+            out = out + lobes
+        return gbuffer.resolve(out)
+
+    def _shade(self, vidx: Tensor, bw: Tensor, wo: Tensor, Hs: Tensor) -> Tensor:
+        """Eq. 3 at samples: vidx, bw (Q, 3); wo (Q, 3) world; Hs (Q, P, 3) → (Q, 3)."""
+        B = torch.zeros(wo.shape[0], 3)
+        for j in range(3):
+            v = vidx[:, j]
+            W = self.factors.W(to_local(wo, self.N[v]))  # (Q, P, K)
+            g = torch.einsum("qpk,qpc->qkc", W, Hs)
+            B += bw[:, j, None] * (g * self._E[v]).sum(1)
+        return B.clamp_min(0.0)
+
+    def _specular_lobes(self, frame: Frame, gbuffer: GBuffer) -> Tensor | None:
+        """Hook for Sun §4.1's separated specular lobes f_s^{(k)} × prefiltered env × fractional
+        visibility (needs ``methods.ptt.lobes``); None = not applied."""
+        return None
+
+    def memory(self) -> dict[str, int]:
+        if self.scene is None:
+            return {}
+        m = {"direct_idx": tensor_bytes(self.dt.idx), "direct_val": tensor_bytes(self.dt.val),
+             "brdf_tables": tensor_bytes(self.factors.U_tab, self.factors.W_tab),
+             "normals_faces": tensor_bytes(self.N, self.F)}
+        if self.T1 is not None:
+            m["T1"] = tensor_bytes(self.T1)
+        if self.T1c is not None:
+            m["T1_compressed"] = tensor_bytes(*self.T1c.tensors())
+        if self.C is not None:
+            m["C"] = tensor_bytes(self.C)
+        if self.T2 is not None:
+            m["T2"] = tensor_bytes(self.T2)
+            m["Cu"] = tensor_bytes(self.Cu)
+        return m
+
+
+# -- command line: Fig. 11 numbers, Table 1 style costs ------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m methods.ptt.method [--scene alcove] [--size test] [--spp 512] [--frames 6]
+    [--config '{"rays": 64, "cube_res": 16}']``: precompute time and memory per vertex, Sun Fig. 11
+    (RMSE against Mitsuba of the same bounce count and of full GI, for 0 / 1 / 2 bounces) and the
+    median frame time of V, V&B and V,B&L sequences (first frame excluded: it fills the caches)."""
+    import argparse
+    import json
+    import statistics
+    import time
+
+    from references.gbuffer import make_gbuffer
+    from references.metrics import rmse
+    from references.render import render_reference
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--scene", default="alcove")
+    ap.add_argument("--size", default="test")
+    ap.add_argument("--spp", type=int, default=512)
+    ap.add_argument("--frames", type=int, default=6)
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--config", default='{"rays": 64, "cube_res": 16}')
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    scene = get_scene(a.scene, a.size)
+    m = PTT(**json.loads(a.config))
+    t = time.perf_counter()
+    m.precompute(scene)
+    pre = time.perf_counter() - t
+    nv = int(m.V.shape[0])
+    mem = m.memory()
+    out = {"scene": a.scene, "size": a.size, "config": m.config, "threads": a.threads, "vertices": nv,
+           "precompute_s": pre, "precompute_per_vertex_ms": 1e3 * pre / nv, "timings": m.timings,
+           "memory_bytes": mem, "memory_per_vertex_kib": sum(mem.values()) / nv / 1024}
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(scene, frame, 2)
+    refs = {b: render_reference(scene, frame, bounces=b, spp=a.spp, seed=0) for b in (0, 1, 2, None)}
+    mask = refs[0].coverage & gb.coverage
+    fig11 = {}
+    for b in range(m.bounces + 1):
+        img = m.with_bounces(b).render(frame, gb)
+        fig11[b] = {"rmse_same": rmse(img, refs[b].image, mask), "rmse_full": rmse(img, refs[None].image, mask),
+                    "floor_same": refs[b].noise_floor, "mean": img[mask].mean().item(),
+                    "ref_mean": refs[b].image[mask].mean().item()}
+    out["fig11"] = fig11
+    out["full_gi_ref_mean"] = refs[None].image[mask].mean().item()
+    times = {}
+    for kind in ("V", "VB", "VBL"):
+        frames = make_sequence(scene, kind, n_frames=a.frames, seed=1)
+        gbs = [make_gbuffer(scene, f, 1) for f in frames]
+        r = m.with_bounces(m.bounces)
+        ts = []
+        for f, g in zip(frames, gbs):
+            t = time.perf_counter()
+            r.render(f, g)
+            ts.append(time.perf_counter() - t)
+        times[kind] = {"median_s": statistics.median(ts[1:]), "all_s": ts}
+    out["frame_times"] = times
+    print(json.dumps(out, indent=1, default=float))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,166 @@
+"""The PCA BRDF basis of the PTTs (Sun et al. 2007 §3.1, §4.3 "Indirect-lighting BRDFs").
+
+"we represent these BRDFs in terms of n_P basis functions computed by PCA on a given BRDF
+dataset. The BRDF of a surface region r can then be dynamically changed by adjusting the
+coefficients H(r, p)" (§3.1); "five basis functions (four specular and one diffuse) for both the
+Cook-Torrance and Blinn-Phong BRDFs, which give a squared reconstruction error of 6.23e-4 and
+1.61e-7, respectively ... even though the PCA basis includes specular lobe components" (§4.3).
+
+So the PCA runs on the full specular BRDFs f_h of a BRDF space (no lobe separation), each a
+vector over the direction pairs (ωo, ωi) of a `DiskGrid`. We do it through the N_h × N_h Gram
+matrix G[h, h'] = Σ_{o,i} W_oi f_h f_h' (never forming the N_h × N² data matrix):
+
+    G = V Λ Vᵀ,  b_p = Σ_h V[h,p] f_h / √λ_p  (orthonormal),  c(h, p) = ⟨f_h, b_p⟩ = √λ_p V[h,p],
+
+(uncentred PCA = SVD of the data matrix; with `center=True` the first specular basis function is
+the mean BRDF with coefficient 1 and the others are the leading PCs of the centred data). Every
+basis function is a combination Σ_h M[h,p] f_h of the analytic sampled BRDFs, so it can be
+evaluated exactly at any direction pair (what the PTT precomputation needs at ray hits).
+
+A region's BRDF kd/π + ks Σ_h w_h f_h (`brdf_space`) is, in this basis,
+    H(r, p) = ks · Σ_h w_h c(h, p)   (p < n_spec),      H(r, n_spec) = kd   (b_{n_spec} = 1/π),
+per RGB channel — linear in the navigation weights w, which is what makes PTTs work.
+
+Error: `rel_sq_err` = Σ_h ‖f_h − f̂_h‖² / Σ_h ‖f_h‖² over the whole sampled space (the diffuse part
+is exact); also `sse`, and `mse` = sse / (N_h · N²). W_oi = 1 ("samples", the discrete norm of the
+sampled table, as for Fig. 5) or Ω_o Ω_i ("solid_angle", the L² norm over the hemisphere pair).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from methods.ptt.brdf_space import BRDFSpace, get_space
+from methods.ptt.brdf_tensor import DiskGrid
+
+__all__ = ["brdf_gram", "BRDFBasis", "pca_basis", "PAPER_PCA_ERROR", "N_SPEC"]
+
+# Sun 2007 §4.3: n_P = 5 = 4 specular + 1 diffuse.
+N_SPEC = 4
+# Sun 2007 §4.3: squared reconstruction error of the 5-term basis.
+PAPER_PCA_ERROR = {"ct": 6.23e-4, "bp": 1.61e-7}
+
+
+def brdf_gram(space: BRDFSpace, grid: DiskGrid, *, weighting: str = "samples",
+              block: int = 16) -> Tensor:
+    """G[h, h'] = Σ_{o,i} W_oi f_h(ωi, ωo) f_h'(ωi, ωo) over the grid's direction pairs.
+
+    Args:
+        weighting: "samples" (W = 1) or "solid_angle" (W = Ω_o Ω_i); block: ωo per batch.
+    Returns:
+        (N_h, N_h) float64.
+    """
+    if weighting not in ("samples", "solid_angle"):
+        raise ValueError(f"weighting must be 'samples' or 'solid_angle', got {weighting!r}")
+    d, om = grid.dirs, grid.solid_angle
+    G = torch.zeros(space.n_h, space.n_h, dtype=torch.float64)
+    for s in range(0, grid.N, block):
+        wo = d[s:s + block, None, :]
+        X = space.eval_samples(d[None, :, :], wo).to(torch.float64)      # (N_h, b, N)
+        if weighting == "solid_angle":
+            X = X * torch.sqrt(om[s:s + block, None] * om[None, :])
+        X = X.reshape(space.n_h, -1)
+        G += X @ X.T
+    return G
+
+
+@dataclass(eq=False)
+class BRDFBasis:
+    """n_P = n_spec + 1 BRDF basis functions for the PTTs (Sun 2007 §3.1/§4.3).
+
+    M (N_h, n_spec): b_p = Σ_h M[h, p] f_h (specular basis over the space's sampled BRDFs);
+    C (N_h, n_spec): c(h, p), the coordinates of sampled BRDF h; eigvals (N_h,) of the
+    (centred if `center`) Gram matrix, descending; norm2 = Σ_h ‖f_h‖²; basis n_spec is 1/π.
+
+    Implements the `methods.ptt.transport.BRDFBasis` protocol: `n_P`, `eval(wi, wo) -> (..., n_P)`,
+    `coords(material) -> (n_P, 3)`.
+    """
+
+    space: BRDFSpace
+    M: Tensor
+    C: Tensor
+    eigvals: Tensor
+    norm2: float
+    n_pairs: int
+    center: bool
+    weighting: str
+
+    @property
+    def n_spec(self) -> int:
+        return self.M.shape[1]
+
+    @property
+    def n_P(self) -> int:
+        return self.n_spec + 1
+
+    def sq_error(self) -> dict[str, float]:
+        """Squared reconstruction error of the sampled specular BRDFs in this basis."""
+        k = self.n_spec - 1 if self.center else self.n_spec
+        sse = float(self.eigvals[k:].clamp_min(0).sum())
+        return dict(rel_sq_err=sse / self.norm2, sse=sse, mse=sse / (self.M.shape[0] * self.n_pairs))
+
+    def spec_coords(self, w: Tensor) -> Tensor:
+        """Σ_h w_h c(h, ·): w (..., N_h) navigation weights → (..., n_spec)."""
+        return w.to(self.C) @ self.C
+
+    def H(self, w: Tensor, *, kd=(0.0, 0.0, 0.0), ks=(1.0, 1.0, 1.0)) -> Tensor:
+        """H(r, ·) of one region: w (N_h,) weights, kd, ks RGB (or scalars) → (n_P, 3)."""
+        c = self.spec_coords(w)
+        ks_t = torch.as_tensor(ks, dtype=c.dtype).expand(3)
+        kd_t = torch.as_tensor(kd, dtype=c.dtype).expand(3)
+        return torch.cat([c[:, None] * ks_t[None, :], kd_t[None, :]], dim=0)
+
+    def coords(self, material) -> Tensor:
+        """H(r, ·) (n_P, 3) float64 for a project material of the space's kind (`scenes.materials`)
+        or a `Lambert` (specular coordinates 0)."""
+        if not hasattr(material, "ks"):
+            return self.H(torch.zeros(self.C.shape[0], dtype=self.C.dtype), kd=material.kd, ks=0.0)
+        w, kd, ks = self.space.material_weights(material)
+        return self.H(w, kd=kd, ks=ks)
+
+    def eval(self, wi: Tensor, wo: Tensor) -> Tensor:
+        """All n_P basis functions b_p(ωi, ωo) (no cosine, 0 below either horizon); the last is 1/π.
+
+        Args:
+            wi, wo: (..., 3) broadcastable local directions. Returns: (..., n_P).
+        """
+        f = self.space.eval_samples(wi, wo)                               # (N_h, ...)
+        spec = torch.einsum("hp,h...->...p", self.M.to(f), f)
+        wi, wo = torch.broadcast_tensors(wi, wo)
+        up = ((wi[..., 2] > 0) & (wo[..., 2] > 0)).to(f.dtype)
+        return torch.cat([spec, (up / math.pi)[..., None]], dim=-1)
+
+    def reconstruct(self, H: Tensor, wi: Tensor, wo: Tensor) -> Tensor:
+        """Σ_p H(p, c) b_p(ωi, ωo): H (n_P, 3), wi, wo (..., 3) → (..., 3)."""
+        b = self.eval(wi, wo)
+        return b @ H.to(b)
+
+
+def pca_basis(space: BRDFSpace | str, *, grid_n: int = 16, n_spec: int = N_SPEC,
+              center: bool = False, weighting: str = "samples") -> BRDFBasis:
+    """PCA of a BRDF space's sampled specular BRDFs over DiskGrid(grid_n)² direction pairs."""
+    space = get_space(space) if isinstance(space, str) else space
+    if not 1 <= n_spec <= space.n_h:
+        raise ValueError(f"n_spec must be in [1, {space.n_h}], got {n_spec}")
+    grid = DiskGrid(grid_n)
+    G = brdf_gram(space, grid, weighting=weighting)
+    norm2 = float(torch.diagonal(G).sum())
+    N = space.n_h
+    if center:
+        C = torch.eye(N, dtype=G.dtype) - 1.0 / N
+        lam, V = torch.linalg.eigh(C @ G @ C)
+    else:
+        lam, V = torch.linalg.eigh(G)
+    lam, V = lam.flip(0), V.flip(1)                                       # descending
+    k = n_spec - 1 if center else n_spec
+    lam_k = lam[:k].clamp_min(torch.finfo(lam.dtype).tiny)
+    M = V[:, :k] / lam_k.sqrt()                                           # b_p = Σ_h M[h,p] f_h
+    coords = V[:, :k] * lam_k.sqrt()                                      # c(h,p) = √λ_p V[h,p]
+    if center:
+        C = torch.eye(N, dtype=G.dtype) - 1.0 / N
+        M = torch.cat([torch.full((N, 1), 1.0 / N, dtype=G.dtype), C @ M], dim=1)
+        coords = torch.cat([torch.ones(N, 1, dtype=G.dtype), coords], dim=1)
+    return BRDFBasis(space, M, coords, lam, norm2, grid.N * grid.N, center, weighting)
