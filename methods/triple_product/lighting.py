@@ -1,0 +1,203 @@
+"""Local frames and the pre-rotated lighting grid (Ma 2006 §3.2, §4.1–4.2).
+
+Ma 2006 eq. 7 integrates in the local frame of the shading point x (normal n(x), tangent t(x)):
+
+    B^{x,ωo} = ∫ L^x(ω) V^x(ω) ρ̃^{ωo}(ω) dω,   L^x(ω) = L(R_x^T ω)                  (Ma 2006 eq. 7)
+
+with R_x the world→local rotation (rows s, t, n). Spherical wavelets cannot be rotated, so the
+global lighting is resampled into a *grid of local frames* (the paper: 32 × 16 normals × 32 tangent
+angles = 16384 rotations, §4.1) and each shading point looks up nearby ones by (n, t) (§4.2).
+
+Frame grid (`FrameGrid(n_theta, n_phi, n_psi)`)
+-----------------------------------------------
+World is +Y up. A normal is parameterised by θ ∈ [0, π] from +Y and φ ∈ [0, 2π):
+    n(θ, φ) = (sin θ cos φ, cos θ, sin θ sin φ).
+Its *reference tangent* is s0 = ∂n/∂θ = (cos θ cos φ, −sin θ, cos θ sin φ), t0 = n × s0 (a smooth
+field except at the poles ±Y, where φ = atan2(n_z, n_x) = 0 for an exact pole normal, so every
+exactly-vertical normal — e.g. a floor — gets the same frame). A frame of the grid is
+(θ_i, φ_j, ψ_k) with tangent s = cos ψ s0 + sin ψ t0:
+    θ_i = i·π/(n_theta − 1)  (poles included, so a floor hits a node exactly),
+    φ_j = 2πj/n_phi,  ψ_k = 2πk/n_psi.
+Grid frame index = (i·n_phi + j)·n_psi + k.
+
+Tangent fields (`tangent` argument)
+-----------------------------------
+* ``"grid"``: the shading point's tangent is the reference tangent s0(n) (ψ = 0): one tangent angle
+  suffices (n_psi = 1, the paper's isotropic 32 × 16 layout, Table 1's 170 MB). Valid for isotropic
+  BRDFs only (the BRDF then does not care which tangent the frame has).
+* ``"duff"``: the tangent of `methods.core.frames.coordinate_system` (Mitsuba's, Duff et al. 2017),
+  the frame an anisotropic BRDF (Ward) is authored in by the references; needs the ψ dimension.
+
+Look-up (`lookup_weights`)
+--------------------------
+* ``"nearest"``: the nearest node in (θ, φ, ψ) index space (one frame);
+* ``"trilinear"``: linear weights in θ (clamped), φ and ψ (periodic): 8 frames (the paper
+  "interpolat[es] coefficients of nearby lighting functions", §4.2). Linear in the coefficients =
+  linear in the functions, so this blends rotated copies of the lighting (it blurs sharp lights
+  by up to half a grid step instead of displacing them by up to half a step as nearest does).
+The ``"exact"`` alternative (project the lighting per shading point) lives in `project_lighting`
+called on the points' own frames.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from methods.core.frames import coordinate_system
+from methods.core.spherical_haar import Geodesic
+
+TANGENTS = ("grid", "duff")
+LOOKUPS = ("nearest", "trilinear", "exact")
+
+# Paper preset (Ma 2006 §4.1: 32 × 16 normals × 32 tangent angles = 16384 rotations; with our
+# pole-inclusive θ nodes "16 elevations" is n_theta = 16).
+PAPER_FRAME_GRID = (16, 32, 32)
+
+
+@dataclass(frozen=True)
+class FrameGrid:
+    """Sizes of the pre-rotated lighting grid: n_theta (≥ 2, poles included), n_phi, n_psi (≥ 1)."""
+
+    n_theta: int = 9
+    n_phi: int = 16
+    n_psi: int = 1
+
+    def __post_init__(self) -> None:
+        for k, lo in (("n_theta", 2), ("n_phi", 1), ("n_psi", 1)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"frame grid {k} must be an int >= {lo}, got {v!r}")
+
+    @property
+    def size(self) -> int:
+        return self.n_theta * self.n_phi * self.n_psi
+
+
+def _spherical(n: Tensor) -> tuple[Tensor, Tensor]:
+    """θ ∈ [0, π] from +Y and φ ∈ [0, 2π) of unit normals (..., 3)."""
+    theta = torch.acos(n[..., 1].clamp(-1.0, 1.0))
+    phi = torch.remainder(torch.atan2(n[..., 2], n[..., 0]), 2 * math.pi)
+    return theta, phi
+
+
+def reference_tangent(theta: Tensor, phi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """n, s0 = ∂n/∂θ, t0 = n × s0 (each (..., 3)) of the module docstring's parameterisation."""
+    st, ct, sp, cp = torch.sin(theta), torch.cos(theta), torch.sin(phi), torch.cos(phi)
+    n = torch.stack([st * cp, ct, st * sp], -1)
+    s0 = torch.stack([ct * cp, -st, ct * sp], -1)
+    t0 = torch.cross(n, s0, dim=-1)
+    return n, s0, t0
+
+
+def local_frames(n: Tensor, tangent: str = "grid") -> Tensor:
+    """World→local rotations (..., 3, 3), rows (s, t, n), of unit normals n (..., 3).
+
+    ``tangent``: "grid" (s = reference tangent s0(n)) or "duff" (Mitsuba's coordinate_system).
+    The normal row is n itself (not re-derived from θ, φ).
+    """
+    if n.shape[-1] != 3:
+        raise ValueError(f"normals must be (..., 3), got {tuple(n.shape)}")
+    if tangent == "duff":
+        s, t = coordinate_system(n)
+    elif tangent == "grid":
+        theta, phi = _spherical(n)
+        _, s0, _ = reference_tangent(theta, phi)
+        s = s0 - (s0 * n).sum(-1, keepdim=True) * n  # exact orthogonality to the given n
+        s = s / s.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        t = torch.cross(n, s, dim=-1)
+    else:
+        raise ValueError(f"tangent must be one of {TANGENTS}, got {tangent!r}")
+    return torch.stack([s, t, n], -2)
+
+
+def grid_frames(grid: FrameGrid, *, dtype=torch.float64) -> Tensor:
+    """(F, 3, 3) world→local rotations of every grid frame, F = grid.size (index order above)."""
+    th = torch.arange(grid.n_theta, dtype=torch.float64) * (math.pi / (grid.n_theta - 1))
+    ph = torch.arange(grid.n_phi, dtype=torch.float64) * (2 * math.pi / grid.n_phi)
+    ps = torch.arange(grid.n_psi, dtype=torch.float64) * (2 * math.pi / grid.n_psi)
+    T, P, S = torch.meshgrid(th, ph, ps, indexing="ij")
+    n, s0, t0 = reference_tangent(T, P)
+    s = torch.cos(S)[..., None] * s0 + torch.sin(S)[..., None] * t0
+    t = torch.cross(n, s, dim=-1)
+    return torch.stack([s, t, n], -2).reshape(-1, 3, 3).to(dtype)
+
+
+def frame_coordinates(R: Tensor, grid: FrameGrid) -> tuple[Tensor, Tensor, Tensor]:
+    """Fractional grid coordinates (fi, fj, fk) (each (B,)) of frames R (B, 3, 3) (rows s, t, n)."""
+    n, s = R[:, 2], R[:, 0]
+    theta, phi = _spherical(n)
+    _, s0, t0 = reference_tangent(theta, phi)
+    psi = torch.remainder(torch.atan2((s * t0).sum(-1), (s * s0).sum(-1)), 2 * math.pi)
+    fi = (theta / (math.pi / (grid.n_theta - 1))).clamp(0, grid.n_theta - 1)
+    fj = phi / (2 * math.pi / grid.n_phi)
+    fk = psi / (2 * math.pi / grid.n_psi)
+    return fi, fj, fk
+
+
+def lookup_weights(R: Tensor, grid: FrameGrid, mode: str = "trilinear") -> tuple[Tensor, Tensor]:
+    """Grid frames and weights approximating the frames R (B, 3, 3).
+
+    Returns idx (B, k) int64 and w (B, k) (k = 1 nearest, 8 trilinear; weights sum to 1).
+    """
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise ValueError(f"R must be (B, 3, 3), got {tuple(R.shape)}")
+    fi, fj, fk = frame_coordinates(R.double(), grid)
+    if mode == "nearest":
+        i = fi.round().long().clamp(0, grid.n_theta - 1)
+        j = torch.remainder(fj.round().long(), grid.n_phi)
+        k = torch.remainder(fk.round().long(), grid.n_psi)
+        idx = ((i * grid.n_phi + j) * grid.n_psi + k)[:, None]
+        return idx, torch.ones_like(fi, dtype=R.dtype)[:, None]
+    if mode != "trilinear":
+        raise ValueError(f"lookup must be 'nearest' or 'trilinear', got {mode!r}")
+    i0 = fi.floor().long().clamp(0, grid.n_theta - 2)
+    ai = (fi - i0).clamp(0, 1)
+    j0 = fj.floor().long()
+    aj = fj - j0
+    k0 = fk.floor().long()
+    ak = fk - k0
+    idx, w = [], []
+    for di, wi in ((0, 1 - ai), (1, ai)):
+        for dj, wj in ((0, 1 - aj), (1, aj)):
+            for dk, wk in ((0, 1 - ak), (1, ak)):
+                i = i0 + di
+                j = torch.remainder(j0 + dj, grid.n_phi)
+                k = torch.remainder(k0 + dk, grid.n_psi)
+                idx.append((i * grid.n_phi + j) * grid.n_psi + k)
+                w.append(wi * wj * wk)
+    return torch.stack(idx, -1), torch.stack(w, -1).to(R.dtype)
+
+
+def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1,
+                     frames_per_chunk: int = 32, progress: bool = False) -> Tensor:
+    """Wavelet coefficients of the lighting seen in local frames: L^R(ω) = L(R^T ω) (eq. 7).
+
+    Args:
+        radiance: callable world directions (..., 3) → (..., 3) radiance (``EnvMap.radiance``).
+        R: (F, 3, 3) world→local rotations (rows s, t, n).
+        geo: the geodesic grid (level L, K = 20·4^L); supersample: 4^s sub-triangle samples per
+            fine triangle (`Geodesic.project`).
+    Returns:
+        (F, 3, K) float32 coefficients (equal-area measure; the real solid angle is folded into the
+        BRDF table, see `brdf_table`).
+    """
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise ValueError(f"R must be (F, 3, 3), got {tuple(R.shape)}")
+    from tqdm.auto import tqdm
+
+    Rf = R.float()
+    out = []
+    for a in tqdm(range(0, R.shape[0], frames_per_chunk), disable=not progress, desc="lighting", unit="chunk"):
+        Rc = Rf[a:a + frames_per_chunk]  # (f, 3, 3)
+
+        def fn(c: Tensor, Rc=Rc) -> Tensor:
+            d = torch.einsum("pj,fji->fpi", c.float(), Rc)  # world = R^T c  (f, P, 3)
+            L = radiance(d)  # (f, P, 3)
+            return L.permute(1, 0, 2).reshape(c.shape[0], -1)  # (P, f·3)
+
+        co = geo.project(fn, supersample=supersample, dtype=torch.float32)  # (f·3, K)
+        out.append(co.reshape(Rc.shape[0], 3, -1))
+    return torch.cat(out, 0)
