@@ -2,13 +2,17 @@
 """prtbench command line.
 
   python run_bench.py run --suite smoke [--methods M …] [--scenes S …] [--scene-file F.toml]
-                          [--out DIR] [--executor local] [--history PATH]
+                          [--out DIR] [--executor {local,processes,dask}] [--scheduler ADDRESS]
+                          [--workers N] [--history PATH]
   python run_bench.py references --suite smoke          # pre-build the reference cache
   python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged
   python run_bench.py study NAME [--out DIR] [--quick]  # a convergence study (reports/studies.py)
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
 
-A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped.
+A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped (failed
+cells are redone). ``--executor processes`` runs cells in a spawn-based process pool, ``--executor
+dask`` on an embedded Dask ``LocalCluster`` or, with ``--scheduler tcp://host:8786``, on an existing
+Dask cluster (``reports/executors.py``; timings are taken one at a time per machine).
 """
 from __future__ import annotations
 
@@ -37,7 +41,12 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a benchmark suite and write its report")
     selection(r)
     r.add_argument("--out", type=Path, help="run directory (default out/<suite>); re-use it to resume")
-    r.add_argument("--executor", choices=["local"], default="local", help="where cells run (in-process now)")
+    r.add_argument("--executor", choices=["local", "processes", "dask"], default="local",
+                   help="where cells run: in this process (default), a spawn-based process pool, or Dask")
+    r.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="with --executor dask: an existing scheduler (tcp://host:8786) instead of a LocalCluster")
+    r.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="processes / LocalCluster workers (default: one per core); with --scheduler: wait for N")
     r.add_argument("--history", type=Path, default=None, help="history parquet every run appends to "
                    "(default out/history.parquet)")
     r.add_argument("--no-history", action="store_true", help="do not read or append the history")
@@ -96,9 +105,15 @@ def cmd_run(args) -> int:
         old = json.loads((out / "run.json").read_text())
         print(f"resuming run {old['run_id']} in {out} (git {old['git_sha'][:12]}); --fresh starts a new one",
               file=sys.stderr)
-    res = run_suite(suite, out, methods=args.methods, scenes=_scenes(args), executor=make_executor(args.executor),
-                    history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
-                    progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
+    executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler)
+    try:
+        if not args.quiet:
+            print(f"executor: {executor.describe()}", file=sys.stderr)
+        res = run_suite(suite, out, methods=args.methods, scenes=_scenes(args), executor=executor,
+                        history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
+                        progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
+    finally:
+        executor.shutdown()
     print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_na} n/a, {res.n_error} failed")
     if res.changes is not None:
         from reports.regress import flagged, format_changes
@@ -164,6 +179,8 @@ def cmd_report(args) -> int:
         if prev is not None and len(prev):
             prev_id = str(prev["run_id"].iloc[0])
             changes = regress.compare_runs(prev, df)
+    if (args.run_dir / "provenance.json").exists():
+        meta["provenance"] = json.loads((args.run_dir / "provenance.json").read_text())
     p = build_report(df, args.run_dir / "report.html", run_dir=args.run_dir, meta=meta, changes=changes, prev_run=prev_id)
     print(f"report:  {p.resolve()}")
     return 0

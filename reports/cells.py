@@ -3,8 +3,10 @@
 A *cell* is (scene, size, sequence kind, method, config, bounces) plus the measuring settings:
 a small frozen, picklable dataclass, independent of every other cell, executed by
 ``run_cell(cell, out_dir) -> CellResult``. ``run_cells`` drives any ``concurrent.futures``-like
-executor (``submit(fn, *args) -> future``; ``future.result()``): in-process now, a process pool
-or a Dask ``Client`` later (their futures have the same two methods).
+executor (``submit(fn, *args) -> future``; ``future.result()``): in process, a spawn-based process
+pool or a Dask cluster (``reports/executors.py``). Parallel executors run each cell as two tasks —
+image errors (in parallel) and timings (one at a time per machine) — merged into one result
+(``run_part``, ``merge_parts``).
 
 Resuming: each finished cell writes ``<out>/cells/<key>.json`` atomically (temp + ``os.replace``);
 ``run_cell`` returns that file's result without recomputing. Cells that failed are retried.
@@ -25,7 +27,7 @@ import os
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -181,8 +183,15 @@ def is_finished(out_dir, cell: Cell) -> bool:
 # -- running one cell -------------------------------------------------------------------------
 
 
-def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True) -> CellResult:
-    """Run ``cell`` (or return its stored result) and store the result atomically."""
+THREADS_ENV = "PRTBENCH_THREADS"  # a worker's share of its machine's cores (set by reports.executors)
+PARTS = ("errors", "timing")  # how a parallel executor splits a cell (see ``run_part``)
+
+
+def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True,
+             context: dict | None = None) -> CellResult:
+    """Run ``cell`` (or return its stored result) and store the result atomically.
+
+    context: the executor's description (``executor``, ``workers``, …), recorded in ``info``."""
     out_dir = Path(out_dir)
     old = load_result(out_dir, cell)
     if old is not None and old.status != STATUS_ERROR:
@@ -197,15 +206,33 @@ def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True) -
                              info={"traceback": traceback.format_exc()})
     else:
         res = execute_cell(cell, out_dir, progress=progress)
+    if cell.na is None:
+        res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}})
     atomic_write_json(result_path(out_dir, cell), res.to_dict())
     return res
 
 
-def _run_isolated(cell: Cell, out_dir: Path, progress: bool) -> CellResult:
-    """Run the cell in a fresh spawned process, so its ``ru_maxrss`` is the cell's alone."""
+def _run_isolated(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
+    """Run the cell in a fresh spawned process, so its ``ru_maxrss`` is the cell's alone.
+
+    A daemonic process (e.g. a Dask worker with ``distributed.worker.daemon: true``) may not have
+    children: the cell then runs here, without isolation, and says so in ``info["isolate"]``."""
+    if mp.current_process().daemon:
+        res = execute_cell(replace(cell, isolate=False), out_dir, progress=progress, part=part)
+        res.info["isolate"] = "skipped: daemonic worker process"
+        return res
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as ex:
-        return ex.submit(execute_cell, cell, out_dir, progress=progress).result()
+        return ex.submit(execute_cell, cell, out_dir, progress=progress, part=part).result()
+
+
+def task_threads(cell: Cell) -> int | None:
+    """Threads a cell's task uses: the cell's own ``threads`` if set, else the worker's share of its
+    machine's cores (``PRTBENCH_THREADS``, set by ``reports.executors``), else None (defaults)."""
+    if cell.threads is not None:
+        return cell.threads
+    v = os.environ.get(THREADS_ENV)
+    return int(v) if v else None
 
 
 def _set_threads(n: int | None, backend) -> int:
@@ -218,14 +245,124 @@ def _set_threads(n: int | None, backend) -> int:
     return torch.get_num_threads()
 
 
-def execute_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True) -> CellResult:
+def execute_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True, part: str = "all") -> CellResult:
     """Measure ``cell`` in this process (no result file; ``run_cell`` writes it). Never raises:
-    a failure becomes an ``error`` result carrying the traceback."""
+    a failure becomes an ``error`` result carrying the traceback.
+
+    part: ``"all"`` (everything), ``"errors"`` (image errors only) or ``"timing"`` (times, memory and
+    the reference convergence fit only) — see ``run_part``."""
     try:
-        return _measure(cell, Path(out_dir), progress)
+        if part == "all":
+            return _measure(cell, Path(out_dir), progress)
+        if part not in PARTS:
+            raise ValueError(f"unknown cell part {part!r}")
+        return _measure(cell, Path(out_dir), progress, part=part)
     except Exception as e:
         return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"{type(e).__name__}: {e}",
-                          info={"traceback": traceback.format_exc()})
+                          info={"traceback": traceback.format_exc(), "threads": torch.get_num_threads()})
+
+
+# -- a cell in two parts (parallel executors) -------------------------------------------------
+
+
+def part_path(out_dir: str | os.PathLike, cell: Cell, part: str) -> Path:
+    return Path(out_dir) / "cells" / "parts" / f"{cell.key()}.{part}.json"
+
+
+def load_part(out_dir: str | os.PathLike, cell: Cell, part: str) -> CellResult | None:
+    p = part_path(out_dir, cell, part)
+    if not p.exists():
+        return None
+    try:
+        return CellResult.from_dict(json.loads(p.read_text()))
+    except (json.JSONDecodeError, TypeError):
+        return None
+
+
+def where() -> dict[str, Any]:
+    """Where this code runs: host, pid and (inside a Dask worker) the worker's address."""
+    import socket
+
+    d: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        from distributed import get_worker
+
+        d["worker"] = get_worker().address
+    except (ImportError, ValueError):
+        pass
+    return d
+
+
+def run_part(cell: Cell, part: str, out_dir: str | os.PathLike, *, progress: bool = False,
+             context: dict | None = None) -> CellResult:
+    """Run one part of ``cell`` (or return its stored result) and store it in
+    ``<out>/cells/parts/<key>.<part>.json``.
+
+    A parallel executor splits every cell in two so timings stay honest (issue #9):
+    ``"errors"`` — precompute, render the whole sequence, score the ``score_frames`` against the
+    references, save the images; runs on any worker, in parallel. ``"timing"`` — precompute (timed),
+    render the whole sequence (timed), memory, bytes per frame, peak RSS and the reference
+    convergence fit; runs one at a time per machine (``reports.executors``). ``merge_parts`` joins
+    them into the same ``CellResult`` as ``run_cell``. ``context``: the executor's description,
+    recorded in ``info``. The errors part never runs isolated (it measures no memory)."""
+    out_dir = Path(out_dir)
+    old = load_part(out_dir, cell, part)
+    if old is not None and old.status != STATUS_ERROR:
+        return old
+    if part not in PARTS:
+        raise ValueError(f"unknown cell part {part!r}")
+    t_start = time.time()
+    if cell.isolate and part == "timing":
+        try:
+            res = _run_isolated(cell, out_dir, progress, part=part)
+        except Exception as e:
+            res = CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"child process failed: {e!r}",
+                             info={"traceback": traceback.format_exc()})
+    else:
+        res = execute_cell(replace(cell, isolate=False), out_dir, progress=progress, part=part)
+        res.cell = cell.to_dict()
+    res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}, "part": part,
+                     "wall": [t_start, time.time()]})
+    atomic_write_json(part_path(out_dir, cell, part), res.to_dict())
+    return res
+
+
+def _eq_error_rows(fit: dict | None, rmse0: float, noise_floor0: float, median: float) -> list[dict]:
+    """Equal-error speedup rows from the convergence fit and the first scored frame's RMSE."""
+    if fit is None:
+        return []
+    f = measure.ConvergenceFit(**fit)
+    sp = measure.equal_error_speedup(f, rmse0, median)
+    rows = [_row("eq_error_speedup", sp, noise_floor=noise_floor0)]
+    if sp is not None:
+        rows.append(_row("mitsuba_time_eq_error", f.time_for_rmse(rmse0)))
+    return rows
+
+
+PROVENANCE_KEYS = ("executor", "workers", "scheduler", "host", "worker", "threads", "pid", "isolate", "wall")
+
+
+def merge_parts(cell: Cell, errors: CellResult, timing: CellResult) -> CellResult:
+    """The cell's result from its two parts (``run_part``): the same rows as ``run_cell`` gives;
+    ``info["parts"]`` says where (executor, workers, host, threads) each part ran."""
+    parts = {p: {k: r.info[k] for k in PROVENANCE_KEYS if k in r.info} for p, r in (("errors", errors),
+                                                                                    ("timing", timing))}
+    bad = [(p, r) for p, r in (("errors", errors), ("timing", timing)) if r.status != STATUS_OK]
+    if bad:
+        return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR,
+                          reason="; ".join(f"{p} part: {r.reason}" for p, r in bad),
+                          info={"parts": parts, "traceback": "\n".join(r.info.get("traceback", "") for _, r in bad)})
+    rows = list(timing.rows) + list(errors.rows)
+    first = cell.scored()[0]
+    rmse0 = [r for r in errors.rows if r["metric"] == "rmse" and r["frame"] == first]
+    median = [r["value"] for r in timing.rows if r["metric"] == "render_time_median"]
+    if rmse0 and median:
+        rows += _eq_error_rows(timing.info.get("convergence_fit"), rmse0[0]["value"], rmse0[0]["noise_floor"],
+                               median[0])
+    info = {**timing.info, "parts": parts}
+    info.pop("part", None)
+    return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts={**timing.artifacts,
+                      **errors.artifacts}, info=info)
 
 
 def _row(metric: str, value, frame: int = -1, noise_floor: float = float("nan")) -> dict:
@@ -241,16 +378,19 @@ def _finite_float(x) -> float:
     return x
 
 
-def _measure(cell: Cell, out_dir: Path, progress: bool) -> CellResult:
+def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
+    """Measure ``cell`` here. part ``"all"``: everything; ``"errors"``: only the image errors (and
+    images); ``"timing"``: only times, memory, peak RSS and the convergence fit (``run_part``)."""
     from tqdm.auto import tqdm
 
     from methods.base import get_method
     from reports.backend import load_backend
 
+    score, timed = part in ("all", "errors"), part in ("all", "timing")
     be = load_backend(cell.backend)
     for mod in cell.plugins:
         importlib.import_module(mod)
-    threads = _set_threads(cell.threads, be)
+    threads = _set_threads(task_threads(cell), be)
     scene = be.get_scene(cell.scene, cell.size)
     frames = be.make_sequence(scene, cell.kind, cell.n_frames, cell.seed)
     if len(frames) != cell.n_frames:
@@ -260,7 +400,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool) -> CellResult:
     rows: list[dict] = []
     t0 = time.perf_counter()
     method.precompute(scene)
-    rows.append(_row("precompute_time", time.perf_counter() - t0))
+    if timed:
+        rows.append(_row("precompute_time", time.perf_counter() - t0))
 
     scored = set(cell.scored())
     times: list[float] = []
@@ -274,10 +415,11 @@ def _measure(cell: Cell, out_dir: Path, progress: bool) -> CellResult:
         img = method.render(frame, gb)
         dt = time.perf_counter() - t0
         times.append(dt)
-        rows.append(_row("render_time", dt, frame=i))
+        if timed:
+            rows.append(_row("render_time", dt, frame=i))
         if tuple(img.shape) != (gb.height, gb.width, 3):
             raise ValueError(f"{cell.method}.render returned {tuple(img.shape)}, expected ({gb.height}, {gb.width}, 3)")
-        if i not in scored:
+        if not score or i not in scored:
             continue
         ref = be.render_reference(scene, frame, bounces=cell.bounces, spp=cell.ref_spp, seed=cell.seed,
                                   spp_side=cell.spp_side)
@@ -292,44 +434,59 @@ def _measure(cell: Cell, out_dir: Path, progress: bool) -> CellResult:
         last = (i, frame, gb, img.detach().cpu().float(), ref, mask)
 
     stats = measure.frame_time_stats(times, warmup=1)
-    rows += [_row("render_time_median", stats["median"]), _row("render_time_iqr", stats["iqr"]),
-             _row("timed_frames", stats["n"]),
-             _row("fps", 1.0 / stats["median"] if stats["median"] > 0 else float("inf"))]
+    if timed:
+        rows += [_row("render_time_median", stats["median"]), _row("render_time_iqr", stats["iqr"]),
+                 _row("timed_frames", stats["n"]),
+                 _row("fps", 1.0 / stats["median"] if stats["median"] > 0 else float("inf"))]
     for k, vals in errors.items():
         v = np.array([a for a, _ in vals])
         f = np.array([b for _, b in vals])
         rows.append(_row(k, float(np.mean(v)), noise_floor=float(np.mean(f))))
 
-    mem = method.memory()
-    rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
-    bpf = method.bytes_per_frame(cell.kind)
-    if bpf is not None:
-        rows.append(_row("bytes_per_frame", bpf))
-    rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
-
-    info: dict[str, Any] = {"threads": threads, "memory": {k: int(b) for k, b in mem.items()},
-                            "frame_times": times, "pid": os.getpid()}
+    info: dict[str, Any] = {"threads": threads, "pid": os.getpid()}
+    if timed:
+        mem = method.memory()
+        rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
+        bpf = method.bytes_per_frame(cell.kind)
+        if bpf is not None:
+            rows.append(_row("bytes_per_frame", bpf))
+        rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
+        info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times})
     artifacts: dict[str, str] = {}
-    if cell.eq_err_spp and "rmse" in errors and last is not None:
+    if timed and cell.eq_err_spp and (part == "timing" or ("rmse" in errors and last is not None)):
         i0 = cell.scored()[0]
-        fit = calibrate(cell, out_dir, be, scene, frames[i0])
+        fit = calibrate(cell, out_dir, be, scene, frames[i0], fresh=part == "timing")
         if fit is not None:
-            rmse0 = errors["rmse"][0][0]
-            sp = measure.equal_error_speedup(fit, rmse0, stats["median"])
-            rows.append(_row("eq_error_speedup", sp, noise_floor=errors["rmse"][0][1]))
-            if sp is not None:
-                rows.append(_row("mitsuba_time_eq_error", fit.time_for_rmse(rmse0)))
             info["convergence_fit"] = fit.to_dict()
-    if cell.save_images and last is not None:
+            if part == "all":
+                rows += _eq_error_rows(fit.to_dict(), errors["rmse"][0][0], errors["rmse"][0][1], stats["median"])
+    if score and cell.save_images and last is not None:
         artifacts["images"] = _save_images(cell, out_dir, be, scene, *last)
     return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts=artifacts, info=info)
 
 
-def calibrate(cell: Cell, out_dir: Path, be, scene, frame) -> measure.ConvergenceFit | None:
+def _fresh_timed_reference(be, scene, frame, **kw):
+    """(reference, seconds) rendered here and now, bypassing the reference cache when the backend
+    allows it: a cached reference may have been rendered while other work shared the machine."""
+    import inspect
+
+    if "use_cache" not in inspect.signature(be.render_reference).parameters:
+        return be.timed_reference(scene, frame, **kw)
+    t0 = time.perf_counter()
+    ref = be.render_reference(scene, frame, use_cache=False, **kw)
+    wall = time.perf_counter() - t0
+    sec = be.reference_seconds(ref) if hasattr(be, "reference_seconds") else None
+    return ref, sec or wall
+
+
+def calibrate(cell: Cell, out_dir: Path, be, scene, frame, *, fresh: bool = False) -> measure.ConvergenceFit | None:
     """Fit the reference renderer's convergence on ``frame`` (cached per run in
-    ``<out>/calib/``, shared by every method of the same scene/sequence/bounces)."""
+    ``<out>/calib/``, shared by every method of the same scene/sequence/bounces).
+
+    fresh: time renders made now (not the reference cache's recorded times) — the timing part of a
+    parallel run, where the cached references were rendered next to other work."""
     spec = {"scene": cell.scene, "size": cell.size, "kind": cell.kind, "seed": cell.seed, "bounces": cell.bounces,
-            "spp": list(cell.eq_err_spp), "threads": cell.threads, "frame": int(getattr(frame, "index", 0)),
+            "spp": list(cell.eq_err_spp), "threads": task_threads(cell), "frame": int(getattr(frame, "index", 0)),
             "backend": cell.backend, "n_frames": cell.n_frames}
     key = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
     path = out_dir / "calib" / f"{key}.json"
@@ -338,8 +495,8 @@ def calibrate(cell: Cell, out_dir: Path, be, scene, frame) -> measure.Convergenc
         return measure.ConvergenceFit(**d["fit"]) if d.get("fit") else None
     spp, floors, secs = [], [], []
     for s in cell.eq_err_spp:
-        ref, sec = be.timed_reference(scene, frame, bounces=cell.bounces, spp=int(s), seed=cell.seed,
-                                      spp_side=cell.spp_side)
+        kw = dict(bounces=cell.bounces, spp=int(s), seed=cell.seed, spp_side=cell.spp_side)
+        ref, sec = _fresh_timed_reference(be, scene, frame, **kw) if fresh else be.timed_reference(scene, frame, **kw)
         if sec is None:
             atomic_write_json(path, {"spec": spec, "fit": None, "why": "renderer reports no time"})
             return None
@@ -419,53 +576,142 @@ class InlineExecutor:
         self.shutdown()
 
 
-def make_executor(name: str = "local", workers: int = 1):
-    """``local`` → in-process. (A process pool or Dask client can be passed to ``run_cells``.)"""
-    if name == "local":
-        return InlineExecutor()
-    raise ValueError(f"unknown executor {name!r} (available: local)")
+def make_executor(name: str = "local", workers: int | None = None, scheduler: str | None = None):
+    """An executor by name (``reports.executors.make_executor``): ``local``, ``processes``, ``dask``."""
+    from reports.executors import make_executor as _mk
+
+    return _mk(name, workers=workers, scheduler=scheduler)
 
 
-def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=None, max_in_flight: int = 1,
+RETRIES_AFTER_WORKER_LOSS = 1  # a task whose worker died runs once more, alone (see ``run_cells``)
+
+
+def _lost(cell: Cell, e: BaseException, part: str) -> CellResult:
+    what = "" if part == "all" else f"{part} part: "
+    return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"{what}worker lost: {type(e).__name__}: {e}",
+                      info={"traceback": "".join(traceback.format_exception(e)), "part": part})
+
+
+def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=None, max_in_flight: int | None = None,
               progress: bool = True) -> list[CellResult]:
     """Run every cell not finished yet in ``out_dir``; results in the order of ``cells``.
 
-    ``executor``: anything with ``submit(fn, *args, **kw) -> future`` whose futures have
-    ``result()`` (and ``done()``); at most ``max_in_flight`` cells are submitted at once.
+    ``executor``: a ``concurrent.futures.Executor`` (or anything with ``submit(fn, *args, **kw) ->
+    future`` whose futures have ``result()`` and ``done()``). At most ``max_in_flight`` tasks are
+    submitted at once (default: the executor's ``slots``, else 1).
+
+    An executor from ``reports.executors`` with ``parallel = True`` gets every cell as two tasks
+    (``run_part``): the ``errors`` part through ``submit`` and the ``timing`` part through
+    ``submit_timing`` (at most ``timing_in_flight`` of them at once, when the executor sets it),
+    so timings are taken one at a time per machine while error work runs in parallel.
+
+    Failures: a cell that raises is an ``error`` result (``execute_cell``). A task whose future
+    raises (its worker died, the pool broke, the scheduler gave up) is run once more *alone* — so a
+    cell that kills its worker cannot take innocent cells down with it — and recorded as an
+    ``error`` result if it fails again; the rest of the sweep goes on. Finished cells are on disk
+    as soon as they finish, so a re-run redoes only what failed.
     """
     from tqdm.auto import tqdm
 
     cells = list(cells)
     out_dir = Path(out_dir)
     ex = executor or InlineExecutor()
+    split = bool(getattr(ex, "parallel", False))
+    context = ex.describe() if hasattr(ex, "describe") else {"executor": type(ex).__name__}
+    slots = max(1, max_in_flight or getattr(ex, "slots", 1))
+    timing_cap = getattr(ex, "timing_in_flight", None)
     results: dict[int, CellResult] = {}
-    todo = []
+    parts: dict[int, dict[str, CellResult]] = {}
+    queue: list[tuple[int, str]] = []
     for j, c in enumerate(cells):
         r = load_result(out_dir, c)
         if r is not None and r.status != STATUS_ERROR:
             results[j] = r
+        elif c.na is not None or not split:
+            queue.append((j, "all"))
         else:
-            todo.append(j)
+            parts[j] = {}
+            for p in PARTS:
+                old = load_part(out_dir, c, p)
+                if old is not None and old.status != STATUS_ERROR:
+                    parts[j][p] = old
+                else:
+                    queue.append((j, p))
+            if len(parts[j]) == len(PARTS):  # both parts were done; the merge was not
+                results[j] = _finish_merge(cells[j], parts.pop(j), out_dir)
     bar = tqdm(total=len(cells), initial=len(results), desc="run", unit="cell", disable=None if progress else True)
-    pending: dict[Any, int] = {}
-    queue = list(todo)
+    pending: dict[Any, tuple[int, str]] = {}
+    attempts: dict[tuple[int, str], int] = {}
+    solo: list[tuple[int, str]] = []  # tasks whose worker died: re-run one at a time
+
+    def submit(t: tuple[int, str]) -> None:
+        j, p = t
+        attempts[t] = attempts.get(t, 0) + 1
+        if p == "all":
+            f = ex.submit(run_cell, cells[j], str(out_dir), progress=progress, context=context)
+        elif p == "timing":
+            f = ex.submit_timing(run_part, cells[j], p, str(out_dir), progress=False, context=context)
+        else:
+            f = ex.submit(run_part, cells[j], p, str(out_dir), progress=False, context=context)
+        pending[f] = t
+
+    def finished(t: tuple[int, str], r: CellResult) -> None:
+        j, p = t
+        if p == "all":
+            results[j] = r
+        else:
+            parts[j][p] = r
+            if len(parts[j]) < len(PARTS):
+                return
+            results[j] = _finish_merge(cells[j], parts.pop(j), out_dir)
+        bar.set_postfix_str(f"{cells[j].method}/{cells[j].scene}/{cells[j].kind}: {results[j].status}")
+        bar.update(1)
+
     try:
-        while queue or pending:
-            while queue and len(pending) < max(1, max_in_flight):
-                j = queue.pop(0)
-                pending[ex.submit(run_cell, cells[j], str(out_dir), progress=progress)] = j
+        while queue or pending or solo:
+            if solo:
+                if not pending:
+                    submit(solo.pop(0))
+            else:
+                n_timing = sum(1 for t in pending.values() if t[1] == "timing")
+                for t in list(queue):
+                    if len(pending) >= slots:
+                        break
+                    if t[1] == "timing" and timing_cap is not None and n_timing >= timing_cap:
+                        continue
+                    queue.remove(t)
+                    if t[1] == "all" and cells[t[0]].na is not None:
+                        finished(t, run_cell(cells[t[0]], out_dir))  # n/a: nothing to run
+                        continue
+                    submit(t)
+                    n_timing += t[1] == "timing"
+            if not pending:
+                continue
             done = [f for f in pending if f.done()]
             if not done:
                 if all(isinstance(f, Future) for f in pending):
                     done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
-                else:  # foreign futures (e.g. Dask): poll
+                else:  # foreign futures: poll
                     time.sleep(0.05)
                     continue
             for f in done:
-                j = pending.pop(f)
-                results[j] = f.result()
-                bar.set_postfix_str(f"{cells[j].method}/{cells[j].scene}/{cells[j].kind}: {results[j].status}")
-                bar.update(1)
+                t = pending.pop(f)
+                try:
+                    r = f.result()
+                except Exception as e:  # the task did not return: its worker died / the pool broke
+                    if attempts[t] <= RETRIES_AFTER_WORKER_LOSS:
+                        solo.append(t)
+                        continue
+                    r = _lost(cells[t[0]], e, t[1])
+                    atomic_write_json(result_path(out_dir, cells[t[0]]) if t[1] == "all"
+                                      else part_path(out_dir, cells[t[0]], t[1]), r.to_dict())
+                finished(t, r)
     finally:
         bar.close()
     return [results[j] for j in range(len(cells))]
+
+
+def _finish_merge(cell: Cell, parts: dict[str, CellResult], out_dir: Path) -> CellResult:
+    res = merge_parts(cell, parts["errors"], parts["timing"])
+    atomic_write_json(result_path(out_dir, cell), res.to_dict())
+    return res

@@ -236,6 +236,33 @@ def capability_matrix(df: pd.DataFrame) -> str:
     return f"<table class=matrix>{head}{''.join(body)}</table>"
 
 
+def executor_summary(prov: list[dict] | None) -> str:
+    """One line per (executor, workers, threads, part): how many cells' numbers it produced (plain
+    text; the caller escapes it)."""
+    if not prov:
+        return "?"
+    counts: dict[tuple, int] = {}
+    for p in prov:
+        k = (p.get("executor", "?"), p.get("workers", "?"), p.get("threads", "?"), p.get("part", "all"))
+        counts[k] = counts.get(k, 0) + 1
+    what = {"all": "all numbers", "errors": "image errors", "timing": "timings (one at a time per machine)"}
+    return "; ".join(f"{e} ({w} worker{'s' if w != 1 else ''}, {t} thread{'s' if t != 1 else ''} "
+                     f"per task): {what.get(part, part)} of {n} cell{'s' if n != 1 else ''}"
+                     for (e, w, t, part), n in sorted(counts.items(), key=lambda kv: str(kv[0])))
+
+
+def provenance_table(prov: list[dict] | None) -> str:
+    """Which executor, workers, host and threads produced each cell's numbers."""
+    if not prov:
+        return "<p>Not recorded.</p>"
+    cols = ["method", "scene", "sequence", "bounces", "part", "executor", "workers", "threads", "host", "worker",
+            "status"]
+    head = "<tr>" + "".join(f"<th>{c}</th>" for c in cols) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td>{esc(_blabel(p[c]) if c == 'bounces' else p.get(c, ''))}</td>"
+                                    for c in cols) + "</tr>" for p in prov)
+    return f"<table class=prov>{head}{body}</table>"
+
+
 def regressions_section(changes: pd.DataFrame | None, prev_run: str | None) -> str:
     if changes is None or prev_run is None:
         return "<p>No previous run in the history: nothing to compare with.</p>"
@@ -423,6 +450,8 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
         "machine": meta.get("machine", first["machine"] if first is not None else "?"),
         "threads": meta.get("threads", first["threads"] if first is not None else "?"),
     }
+    if meta.get("provenance"):
+        facts["executor"] = executor_summary(meta["provenance"])
     bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
     if len(bw):
         facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"
@@ -444,6 +473,7 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
 <h2 id=images>Images</h2>{image_comparisons(art)}
 <h2 id=matrix>Capability matrix</h2>{capability_matrix(df)}
 <h2 id=regressions>Regressions since the last run</h2>{regressions_section(changes, prev_run)}
+<h2 id=provenance>Where the numbers come from</h2>{provenance_table(meta.get("provenance"))}
 <h2 id=vertex>Per-vertex error on the mesh</h2>{vertex_error_renders(art) if vertex_renders else '<p>Skipped.</p>'}
 <script>{_JS}</script>
 </body></html>

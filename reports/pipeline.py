@@ -4,7 +4,9 @@
 Run directory layout (``--out``):
 ``run.json`` (run id, time, git sha, versions, machine, bandwidth — written once, kept on resume),
 ``plan.json`` (the cells), ``cells/<key>.json`` (one result per finished cell), ``images/<key>.npz``,
-``calib/*.json`` (reference convergence fits), ``results.parquet``, ``changes.csv``, ``report.html``.
+``calib/*.json`` (reference convergence fits), ``results.parquet``, ``changes.csv``, ``report.html``,
+``provenance.json`` (executor, workers, host and threads behind each cell's numbers);
+``cells/parts/<key>.{errors,timing}.json`` when a parallel executor split the cells.
 """
 from __future__ import annotations
 
@@ -87,7 +89,26 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
     return store.to_frame(rows)
 
 
-RUN_FILES = ("run.json", "plan.json", "results.parquet", "changes.csv", "report.html")
+RUN_FILES = ("run.json", "plan.json", "results.parquet", "changes.csv", "report.html", "provenance.json")
+
+
+def provenance(results: list[CellResult]) -> list[dict]:
+    """Which executor, how many workers, which host and how many threads produced each cell's
+    numbers (one dict per run cell; the errors and timing parts separately when a parallel
+    executor split the cell)."""
+    out = []
+    for r in results:
+        if r.status == "na":
+            continue
+        c = Cell.from_dict(r.cell)
+        base = {"cell": r.key, "method": c.method, "scene": c.scene, "sequence": c.kind, "bounces": c.bounces,
+                "status": r.status}
+        parts = r.info.get("parts") or {"all": r.info}
+        for part, i in parts.items():
+            out.append({**base, "part": part, "executor": i.get("executor", "?"), "workers": i.get("workers", "?"),
+                        "scheduler": i.get("scheduler", ""), "host": i.get("host", ""),
+                        "worker": i.get("worker", ""), "threads": i.get("threads", "?")})
+    return out
 RUN_DIRS = ("cells", "images", "calib")
 
 
@@ -120,6 +141,8 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
 def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=store.DEFAULT_HISTORY,
                report: bool = True, vertex_renders: bool = True) -> RunOutput:
     df = collect(results, meta)
+    prov = provenance(results)
+    store.atomic_write_json(out_dir / "provenance.json", prov)
     table = store.write_table(df, out_dir / "results.parquet")
     changes, prev_id = None, None
     hist_path = None
@@ -136,7 +159,8 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     if report:
         from reports.html import build_report
 
-        rep = build_report(df, out_dir / "report.html", run_dir=out_dir, meta=meta, changes=changes, prev_run=prev_id,
+        rep = build_report(df, out_dir / "report.html", run_dir=out_dir, meta={**meta, "provenance": prov},
+                           changes=changes, prev_run=prev_id,
                            vertex_renders=vertex_renders)
     st = df.drop_duplicates("cell")
     st = st[st["status"] != "run"]["status"]

@@ -52,7 +52,8 @@ SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "
 # 32+32 samples takes ~4 s per test-size frame → ~64 s per 256² frame; at 4+4 samples ~8 s, so
 # 5 frames × ~16 (scene, kind) pairs ≈ 11 min. References (~0.15 s per 64² at 64 spp → ~10 s per
 # 256² at 256 spp) are cached after the first night. Cells run in-process (spawning one child per
-# cell costs ~6 s of imports each); ``--isolate`` gives per-cell peak RSS at that price.
+# cell costs ~6 s of imports each); ``--isolate`` gives per-cell peak RSS at that price. On more
+# machines: ``--executor dask --scheduler tcp://host:8786`` (reports/executors.py, README).
 NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VBL"), dynamic_kinds=("P",),
                 n_frames=5, score_frames=(1, 4), ref_spp=256, extra_bounces=(1, 2, FULL),
                 configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),),

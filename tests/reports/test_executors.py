@@ -1,0 +1,273 @@
+"""reports.executors + the parallel paths of reports.cells.run_cells (issue #9), on the fake backend
+(reports.fakes): the same error table from local / processes / dask (LocalCluster, 2 workers ×
+1 thread, 127.0.0.1), timing parts never overlapping, failing cells recorded, killed workers losing
+no finished cell, a re-run redoing only what failed. Every cluster and pool is shut down."""
+import importlib.util
+import json
+import os
+import signal
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+import pandas as pd
+import pytest
+
+from reports import cells as C
+from reports import executors as X
+from reports.pipeline import collect, provenance
+
+FAKE = dict(backend="reports.fakes", plugins=("reports.fakes",))
+ERROR_METRICS = ["rmse", "psnr", "rel_mse"]  # what reports.fakes.all_metrics returns
+
+
+def _cell(**kw):
+    d = dict(scene="fake_plane", size="test", kind="V", method="fake", n_frames=3, ref_spp=64, spp_side=1,
+             eq_err_spp=(8, 32), **FAKE)
+    d.update(kw)
+    return C.Cell(**d)
+
+
+def _sweep():
+    """A small smoke-like sweep: two biases × two sequences, a failing cell and an n/a cell."""
+    cells = [_cell(config=C.canonical_config({"bias": b}), seed=s) for b in (0.05, 0.2) for s in (0, 1)]
+    return cells + [_cell(method="fake_fail"), _cell(kind="VBL", na="BRDFs fixed at precompute")]
+
+
+def _error_table(results):
+    meta = {"run_id": "t", "time": "", "git_sha": "", "versions": {}, "machine": "", "threads": 1,
+            "triad_bandwidth": 1e9}
+    df = collect(results, meta)
+    df = df[df["metric"].isin(ERROR_METRICS)][["cell", "frame", "metric", "value", "noise_floor"]]
+    return df.sort_values(["cell", "frame", "metric"]).reset_index(drop=True)
+
+
+def _mtimes(d):
+    return {p.name: p.stat().st_mtime_ns for p in d.iterdir() if p.is_file()}
+
+
+class _ThreadsParallel(X.BenchExecutor):
+    """A parallel BenchExecutor on threads (in-process, fast): exercises the split/merge runner."""
+
+    name, parallel, workers, slots, timing_in_flight = "threads", True, 3, 3, 1
+
+    def __init__(self):
+        self._pool = ThreadPoolExecutor(3)
+
+    def submit(self, fn, /, *args, **kwargs):
+        return self._pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait=True, **kw):
+        self._pool.shutdown(wait=wait)
+
+
+def test_share_of_cores_and_bad_input():
+    assert X.share_of_cores(8, 3) == 2 and X.share_of_cores(2, 2) == 1 and X.share_of_cores(2, 4) == 1
+    assert X.share_of_cores(16, 1) == 16
+    with pytest.raises(ValueError):
+        X.share_of_cores(0, 1)
+    with pytest.raises(ValueError):
+        X.make_executor("slurm")
+    with pytest.raises(ValueError):
+        X.make_executor("processes", scheduler="tcp://127.0.0.1:1")
+    with pytest.raises(ValueError):
+        X.make_executor("processes", workers=0)
+    assert X.make_executor("local").describe() == {"executor": "local", "workers": 1}
+
+
+def test_split_cells_give_the_same_rows_as_whole_cells(tmp_path, monkeypatch):
+    """errors part + timing part, merged == run_cell: bit-identical errors, the same metric set,
+    timing parts one at a time while error parts overlap."""
+    cells = _sweep()
+    whole = C.run_cells(cells, tmp_path / "whole", progress=False)
+    intervals = {"timing": [], "errors": []}
+    real = C.run_part
+
+    def spy(cell, part, out_dir, **kw):
+        t0 = time.monotonic()
+        r = real(cell, part, out_dir, **kw)
+        intervals[part].append((t0, time.monotonic()))
+        return r
+
+    monkeypatch.setattr(C, "run_part", spy)
+    slow = [C.Cell.from_dict({**c.to_dict(), "config": C.canonical_config({**json.loads(c.config), "delay": 0.02})})
+            if c.method == "fake" else c for c in cells]
+    with _ThreadsParallel() as ex:
+        split = C.run_cells(cells, tmp_path / "split", executor=ex, progress=False)
+        C.run_cells(slow, tmp_path / "slow", executor=ex, progress=False)
+    assert [r.status for r in split] == [r.status for r in whole] == ["ok"] * 4 + ["error", "na"]
+    pd.testing.assert_frame_equal(_error_table(split), _error_table(whole))  # seeded: bit-identical
+    for a, b in zip(whole[:4], split[:4]):
+        metrics = [sorted({(r["metric"], r["frame"]) for r in x.rows}) for x in (a, b)]
+        assert metrics[0] == metrics[1]
+        assert set(b.info["parts"]) == {"errors", "timing"} and b.info["parts"]["timing"]["executor"] == "threads"
+    assert "errors part: RuntimeError: planted failure" in split[4].reason
+    t = sorted(intervals["timing"])
+    assert len(t) >= 4 and all(t0 >= t1 for (_, t1), (t0, _) in zip(t, t[1:]))  # never two timing parts at once
+    e = sorted(intervals["errors"])
+    assert any(b0 < a1 for (_, a1), (b0, _) in zip(e, e[1:]))  # error parts do run in parallel
+    prov = provenance(split)
+    assert {(p["part"], p["executor"]) for p in prov} == {("errors", "threads"), ("timing", "threads")}
+
+
+class _Dying(_ThreadsParallel):
+    """Every timing task of the cells with seed 1 "loses its worker" (the future raises)."""
+
+    def submit_timing(self, fn, /, *args, **kwargs):
+        if args[0].seed == 1:
+            f = Future()
+            f.set_exception(BrokenProcessPool("worker died"))
+            return f
+        return self.submit(fn, *args, **kwargs)
+
+
+def test_lost_worker_is_recorded_and_rerun_redoes_only_that(tmp_path):
+    cells = _sweep()
+    with _Dying() as ex:
+        res = C.run_cells(cells, tmp_path, executor=ex, progress=False)
+    assert [r.status for r in res] == ["ok", "error", "ok", "error", "error", "na"]
+    for r in (res[1], res[3]):  # retried once alone, then recorded with the error
+        assert "timing part: worker lost: BrokenProcessPool: worker died" in r.reason
+    assert C.load_part(tmp_path, cells[1], "errors").status == "ok"
+    before = _mtimes(tmp_path / "cells" / "parts")
+    with _ThreadsParallel() as ex:
+        res2 = C.run_cells(cells, tmp_path, executor=ex, progress=False)
+    assert [r.status for r in res2] == ["ok"] * 4 + ["error", "na"]
+    after = _mtimes(tmp_path / "cells" / "parts")
+    redone = {k for k in after if after[k] != before.get(k)}
+    assert redone == {f"{c.key()}.{p}.json" for c in cells[1:4:2] for p in ["timing"]} | {
+        f"{cells[4].key()}.{p}.json" for p in C.PARTS}
+
+
+def test_processes_executor_same_errors_and_killed_worker(tmp_path):
+    cells = _sweep()
+    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    with X.make_executor("processes", workers=2) as ex:
+        assert ex.threads == X.share_of_cores(X.machine_cores(), 2)
+        res = C.run_cells(cells, tmp_path / "proc", executor=ex, progress=False)
+        pd.testing.assert_frame_equal(_error_table(res), _error_table(local))
+        assert [r.status for r in res] == ["ok"] * 4 + ["error", "na"]
+        assert {r.info["threads"] for r in res[:4]} == {ex.threads}  # the worker's share, recorded
+        assert {r.info["parts"]["errors"]["workers"] for r in res[:4]} == {2}
+
+        # a worker killed mid-sweep: finished cells stay, the lost tasks run again (alone), all finish
+        slow = [_cell(config='{"delay":0.4}', seed=s, eq_err_spp=()) for s in range(4)]
+        out = tmp_path / "kill"
+        box = {}
+        th = threading.Thread(target=lambda: box.update(r=C.run_cells(slow, out, executor=ex, progress=False)))
+        th.start()
+        before = _wait_for_finished(out, th)
+        victim = ex.pids()[0]
+        os.kill(victim, signal.SIGKILL)
+        th.join(60)
+        assert victim not in ex.pids()  # a fresh pool took over
+    assert not th.is_alive() and [r.status for r in box["r"]] == ["ok"] * 4
+    after = _mtimes(out / "cells")
+    assert all(after[k] == v for k, v in before.items())  # finished cells were not redone
+
+
+def _wait_for_finished(out, th, timeout=60.0):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout and th.is_alive():
+        if (out / "cells").is_dir() and any(p.suffix == ".json" for p in (out / "cells").iterdir()):
+            return _mtimes(out / "cells")
+        time.sleep(0.05)
+    raise AssertionError("no cell finished")
+
+
+def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    monkeypatch.setenv(X.LOCK_DIR_ENV, str(tmp_path))  # the lock file of the --scheduler run below
+    cells = _sweep()
+    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    with X.make_executor("dask", workers=2) as ex:
+        info = ex.client.scheduler_info(n_workers=-1)["workers"]
+        assert len(info) == 2 and all(a.startswith("tcp://127.0.0.1:") for a in info)
+        assert sum(w["resources"].get(X.TIMING_RESOURCE, 0) for w in info.values()) == 1  # one slot per machine
+        assert ex.client.scheduler.address.startswith("tcp://127.0.0.1:")
+        out = tmp_path / "dask"
+        res = C.run_cells(cells, out, executor=ex, progress=False)
+        pd.testing.assert_frame_equal(_error_table(res), _error_table(local))  # bit-identical (seeded)
+        assert [r.status for r in res] == ["ok"] * 4 + ["error", "na"]
+        assert "planted failure" in res[4].reason
+        parts = [r.info["parts"] for r in res[:4]]
+        assert {p["timing"]["worker"] for p in parts} == {_timing_worker(ex)}  # timing on the slot holder
+        assert {p["errors"]["threads"] for p in parts} == {1} and {p["errors"]["workers"] for p in parts} == {2}
+        walls = sorted(p["timing"]["wall"] for p in parts)
+        assert all(b[0] >= a[1] for a, b in zip(walls, walls[1:]))  # timing parts one at a time
+
+        # re-run: only the failed cell's parts run again
+        before = _mtimes(out / "cells" / "parts")
+        res2 = C.run_cells(cells, out, executor=ex, progress=False)
+        after = _mtimes(out / "cells" / "parts")
+        redone = {k for k in after if after[k] != before.get(k)}
+        assert redone == {f"{cells[4].key()}.errors.json", f"{cells[4].key()}.timing.json"}
+        assert [r.status for r in res2] == [r.status for r in res]
+
+        # a worker killed mid-sweep: finished cells stay, the scheduler re-runs the lost task
+        slow = [_cell(config='{"delay":0.4}', seed=s, eq_err_spp=()) for s in range(4)]
+        out = tmp_path / "kill"
+        box = {}
+        th = threading.Thread(target=lambda: box.update(r=C.run_cells(slow, out, executor=ex, progress=False)))
+        th.start()
+        before = _wait_for_finished(out, th)
+        busy = [a for a, ts in ex.client.processing().items() if ts] or list(ex.worker_pids())
+        victim = ex.worker_pids()[busy[0]]
+        os.kill(victim, signal.SIGKILL)
+        th.join(90)
+        assert victim not in ex.worker_pids().values()
+        assert not th.is_alive() and [r.status for r in box["r"]] == ["ok"] * 4
+        after = _mtimes(out / "cells")
+        assert all(after[k] == v for k, v in before.items())
+
+        # the command line against an existing scheduler (this cluster's)
+        import run_bench
+        from reports import pipeline
+
+        pipeline.TRIAD_ELEMENTS, triad = 1 << 16, pipeline.TRIAD_ELEMENTS
+        try:
+            code = run_bench.main(["run", "--suite", "smoke", "--backend", "reports.fakes", "--plugin", "reports.fakes",
+                                   "--scenes", "fake_plane", "--methods", "fake", "--out", str(tmp_path / "cli"),
+                                   "--no-history", "--no-isolate", "--no-vertex-renders", "--quiet",
+                                   "--executor", "dask", "--scheduler", ex.scheduler])
+        finally:
+            pipeline.TRIAD_ELEMENTS = triad
+        assert code == 0
+        prov = json.loads((tmp_path / "cli" / "provenance.json").read_text())
+        assert {(p["part"], p["scheduler"], p["workers"]) for p in prov} == {("errors", ex.scheduler, 2),
+                                                                              ("timing", ex.scheduler, 2)}
+        assert "Where the numbers come from" in (tmp_path / "cli" / "report.html").read_text()
+    assert ex.cluster is None  # shut down
+
+
+def _timing_worker(ex):
+    info = ex.client.scheduler_info(n_workers=-1)["workers"]
+    (addr,) = [a for a, w in info.items() if w["resources"].get(X.TIMING_RESOURCE)]
+    return addr
+
+
+# -- one real scene -----------------------------------------------------------------------------
+
+REAL_NEEDED = ["scenes.library", "scenes.sequences", "references.render", "references.gbuffer", "references.metrics",
+               "methods.oracle"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(any(importlib.util.find_spec(m) is None for m in REAL_NEEDED),
+                    reason="project pieces missing")
+def test_real_scene_errors_identical_local_and_dask(tmp_path):
+    """The oracle on the test-size sphere_plane (2 frames of V): the same error metrics, bit for bit,
+    in process (default threads) and on a 2-worker LocalCluster (1 thread per task)."""
+    pytest.importorskip("distributed")
+    from reports.suites import Suite, plan_cells
+
+    suite = Suite(name="e2e", size="test", scenes=("sphere_plane",), kinds=("V",), dynamic_kinds=(), n_frames=2,
+                  ref_spp=16, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),), isolate=False)
+    cells = plan_cells(suite, methods=["oracle"])
+    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    with X.make_executor("dask", workers=2) as ex:
+        dask = C.run_cells(cells, tmp_path / "dask", executor=ex, progress=False)
+    assert [r.status for r in local] == [r.status for r in dask] == ["ok"]
+    assert len(_error_table(local)) > 0
+    pd.testing.assert_frame_equal(_error_table(dask), _error_table(local))
