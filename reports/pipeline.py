@@ -53,6 +53,7 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
         "suite": suite_name,
         "time": now.isoformat(timespec="microseconds"),
         "git_sha": sha,
+        "code": store.code_fingerprint(),
         "versions": store.package_versions(),
         "machine": store.machine_description(),
         "threads": torch.get_num_threads(),
@@ -131,11 +132,32 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
     """Run ``suite`` into ``out_dir`` (resuming whatever is already there)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    stale = _stale_run(out_dir)
+    if stale:
+        print(f"[prtbench] {out_dir}: {stale}; starting a fresh run there", flush=True)
+        clear_run(out_dir)
     cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
     store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in cells])
     meta = run_meta(out_dir, suite.name, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
     results = run_cells(cells, out_dir, executor=executor, progress=progress)
     return finish_run(out_dir, results, meta, history=history, report=report, vertex_renders=vertex_renders)
+
+
+def _stale_run(out_dir: Path) -> str | None:
+    """Why the run in ``out_dir`` must not be resumed (its code or package versions differ from
+    this process'), or None. Resuming it would mix numbers of different code in one table."""
+    p = out_dir / "run.json"
+    if not p.exists():
+        return None
+    try:
+        old = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return "run.json is unreadable"
+    if old.get("code") != store.code_fingerprint():
+        return "the code changed since this run started"
+    if old.get("versions") != store.package_versions():
+        return "package versions changed since this run started"
+    return None
 
 
 def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=store.DEFAULT_HISTORY,

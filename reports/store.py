@@ -167,6 +167,26 @@ def git_sha(root: str | os.PathLike | None = None) -> str:
         return "unknown"
 
 
+CODE_PACKAGES = ("scenes", "references", "methods", "reports")
+
+
+def code_fingerprint(root: str | os.PathLike | None = None) -> str:
+    """sha256 over the source of every package whose code can change a number (and run_bench.py).
+
+    Unlike ``git_sha`` ("+dirty" says nothing about *what* changed), two checkouts with the same
+    fingerprint run the same code; a resumed run uses it to refuse mixing results of different code.
+    """
+    import hashlib
+
+    root = Path(root) if root else Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    files = [root / "run_bench.py"] + sorted(p for pkg in CODE_PACKAGES for p in (root / pkg).rglob("*.py"))
+    for f in files:
+        if f.is_file():
+            h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
 def package_versions() -> dict[str, str]:
     from importlib import metadata
 

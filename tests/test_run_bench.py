@@ -91,3 +91,16 @@ def test_bad_input_is_reported(tmp_path, capsys):
     code = run_bench.main(["run", *FAKE, "--methods", "no_such_method", "--out", str(tmp_path), "--no-history"])
     assert code == 2 and "unknown method" in capsys.readouterr().err
     assert run_bench.main(["compare", str(tmp_path / "x"), str(tmp_path / "y")]) == 2
+
+
+def test_changed_code_is_not_resumed(tmp_path, capsys, monkeypatch):
+    """Resuming a run made with other code would mix numbers of two versions in one table."""
+    hist = tmp_path / "history.parquet"
+    code, out = _run(capsys, tmp_path / "a", hist)
+    run_id = re.search(r"run (\S+):", out).group(1)
+    from reports import store
+
+    monkeypatch.setattr(store, "code_fingerprint", lambda root=None: "someotherversion")
+    code, out2 = _run(capsys, tmp_path / "a", hist)
+    assert code == 0 and "the code changed since this run started" in out2
+    assert re.search(r"run (\S+):", out2).group(1) != run_id
