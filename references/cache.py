@@ -20,13 +20,13 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from methods.base import cache_dir
+from references.atomic import atomic_write_bytes
 
 # Bump when the meaning of a cached reference changes in a way the key does not see.
 CACHE_VERSION = 1
@@ -81,22 +81,6 @@ def paths(key: str) -> tuple[Path, Path]:
     return d / f"{key}.npz", d / f"{key}.json"
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def store(key: str, fields: dict, arrays: dict[str, np.ndarray], meta: dict) -> Path:
     """Write an entry atomically (``.npz`` then the sidecar). Returns the ``.npz`` path."""
     npz, side = paths(key)
@@ -104,7 +88,7 @@ def store(key: str, fields: dict, arrays: dict[str, np.ndarray], meta: dict) -> 
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     np.savez(buf, **arrays)
     data = buf.getvalue()
-    _atomic_write(npz, data)
+    atomic_write_bytes(npz, data)
     sidecar = {
         "key": key,
         "fields": fields,
@@ -112,7 +96,7 @@ def store(key: str, fields: dict, arrays: dict[str, np.ndarray], meta: dict) -> 
         "arrays": {k: {"shape": list(v.shape), "dtype": v.dtype.str} for k, v in arrays.items()},
         "npz_sha256": hashlib.sha256(data).hexdigest(),
     }
-    _atomic_write(side, json.dumps(sidecar, sort_keys=True, indent=1, default=str).encode())
+    atomic_write_bytes(side, json.dumps(sidecar, sort_keys=True, indent=1, default=str).encode())
     return npz
 
 

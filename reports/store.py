@@ -15,11 +15,12 @@ import json
 import os
 import platform
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable
 
 import pandas as pd
+
+from references.atomic import atomic_save, atomic_write_bytes  # noqa: F401  (re-exported)
 
 COLUMNS = [
     "run_id", "time", "git_sha", "versions", "machine", "threads",
@@ -33,27 +34,7 @@ _DTYPES = {
 DEFAULT_HISTORY = Path("out") / "history.parquet"
 
 
-# -- atomic writes ----------------------------------------------------------------------------
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same directory + ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
+# -- atomic writes (references/atomic.py) ---------------------------------------------------
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
@@ -62,24 +43,6 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=_json_default))
-
-
-def atomic_save(path: str | os.PathLike, writer) -> Path:
-    """Atomically create ``path`` with ``writer(tmp_path)`` (for writers that need a file name)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        writer(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
 
 
 def _json_default(o):
