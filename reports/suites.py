@@ -46,7 +46,7 @@ class Suite:
     seed: int = 0
 
 
-SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=(),
+SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=("P",),
               n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True)
 # Nightly budget (≤ 30 min on 2 cores), estimated from the smoke run (64² px, S = 2): the oracle at
 # 32+32 samples takes ~4 s per test-size frame → ~64 s per 256² frame; at 4+4 samples ~8 s, so

@@ -55,6 +55,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import warnings
+
 import torch
 from torch import Tensor
 
@@ -316,4 +318,6 @@ def sparse_rows(idx: Tensor, val: Tensor, D: int) -> Tensor:
     order = torch.sort(col.view(rows, n).long(), dim=1)  # CSR columns sorted within a row
     col = order.values.to(col.dtype).reshape(-1)
     vals = torch.gather(val.reshape(rows, n), 1, order.indices).reshape(-1)
-    return torch.sparse_csr_tensor(crow, col, vals, size=(rows, D), check_invariants=False)
+    with warnings.catch_warnings():  # torch flags sparse CSR as "beta"; the product we use is stable
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, col, vals, size=(rows, D), check_invariants=False)

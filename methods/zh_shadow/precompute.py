@@ -302,6 +302,9 @@ def design_matrix(poses: Tensor) -> Tensor:
     return torch.cat([poses, torch.ones(poses.shape[0], 1, dtype=poses.dtype, device=poses.device)], 1)
 
 
+POSE_RCOND = 1e-6  # relative singular-value cut-off of the pose least squares; float32 poses carry ~1e-7 round-off
+
+
 def fit_linear_model(poses: Tensor, B: Tensor) -> Tensor:
     """Least-squares A X = B (§3.1), one model per vertex and dimension.
 
@@ -314,7 +317,11 @@ def fit_linear_model(poses: Tensor, B: Tensor) -> Tensor:
     A = design_matrix(poses).double()
     if A.shape[0] != f:
         raise ValueError(f"poses ({A.shape[0]}) and B ({f}) disagree on the number of frames")
-    X = torch.linalg.lstsq(A, B.reshape(f, -1).double(), driver="gelsd").solution
+    # Truncate singular values below POSE_RCOND·σ_max: an animation often drives several joints with
+    # the same (or an affinely related) curve, so A is rank-deficient; without truncation gelsd keeps
+    # round-off singular values (the creature animation spans 4 of its 10 joint dimensions: cond(A) ~ 1e23) and the model explodes (|X| ~ 1e6) at
+    # any pose off the training manifold, e.g. the rest pose of V sequences. Truncated = minimum norm.
+    X = torch.linalg.lstsq(A, B.reshape(f, -1).double(), rcond=POSE_RCOND, driver="gelsd").solution
     return X.reshape(A.shape[1], *B.shape[1:]).float()
 
 
