@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from methods.core.frames import coordinate_system
+from methods.core.sampling import cosine_hemisphere_pdf, from_cos_phi, sample_cosine_hemisphere
 
 # Rec.709 luminance weights (also Mitsuba's `luminance()` for RGB variants).
 LUMINANCE_WEIGHTS = (0.212671, 0.715160, 0.072169)
@@ -76,26 +77,10 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(-1)
 
 
-def _from_spherical(cos_t: Tensor, phi: Tensor) -> Tensor:
-    sin_t = (1.0 - cos_t * cos_t).clamp_min(0.0).sqrt()
-    return torch.stack([sin_t * torch.cos(phi), sin_t * torch.sin(phi), cos_t], dim=-1)
-
-
-def cosine_hemisphere_sample(u: Tensor) -> Tensor:
-    """Cosine-weighted directions about +z, (..., 2) uniforms → (..., 3)."""
-    cos_t = (1.0 - u[..., 0]).clamp_min(0.0).sqrt()  # p(θ) ∝ cosθ sinθ
-    return _from_spherical(cos_t, 2.0 * math.pi * u[..., 1])
-
-
-def cosine_hemisphere_pdf(w: Tensor) -> Tensor:
-    """Solid-angle density cosθ/π of `cosine_hemisphere_sample` for w (..., 3)."""
-    return w[..., 2].clamp_min(0.0) / math.pi
-
-
 def power_cosine_sample(u: Tensor, s: float) -> Tensor:
     """Directions about +z with density (s+1)/(2π) cos^s θ on the hemisphere (..., 2) → (..., 3)."""
     cos_t = (1.0 - u[..., 0]).clamp_min(0.0).pow(1.0 / (s + 1.0))
-    return _from_spherical(cos_t, 2.0 * math.pi * u[..., 1])
+    return from_cos_phi(cos_t, 2.0 * math.pi * u[..., 1])
 
 
 def power_cosine_pdf(cos_t: Tensor, s: float) -> Tensor:
@@ -134,7 +119,7 @@ def beckmann_sample(u: Tensor, m: float) -> Tensor:
     """Half vectors with density D(h)cosθh, D Beckmann of roughness m; (..., 2) → (..., 3)."""
     tan2 = -(m * m) * torch.log1p(-u[..., 0].clamp(max=1.0 - 1e-7))
     cos_t = torch.rsqrt(1.0 + tan2)
-    return _from_spherical(cos_t, 2.0 * math.pi * u[..., 1])
+    return from_cos_phi(cos_t, 2.0 * math.pi * u[..., 1])
 
 
 def beckmann_D(cos_t: Tensor, m: float) -> Tensor:
@@ -152,7 +137,7 @@ def ts_sample(u: Tensor, sigma: float) -> Tensor:
     E = 1.0 - math.exp(-((math.pi / 2) / sigma) ** 2)
     theta = sigma * torch.sqrt(-torch.log1p(-u[..., 0] * E))
     theta = theta.clamp(max=math.pi / 2)
-    return _from_spherical(torch.cos(theta), 2.0 * math.pi * u[..., 1])
+    return from_cos_phi(torch.cos(theta), 2.0 * math.pi * u[..., 1])
 
 
 def ts_half_pdf(cos_t: Tensor, sigma: float) -> Tensor:
@@ -298,7 +283,7 @@ class Material:
         pd = 1.0 - ps
         u0, u1 = u[..., 0], u[..., 1]
         one_minus = 1.0 - torch.finfo(u.dtype).eps
-        wi = cosine_hemisphere_sample(torch.stack([(u0 / max(pd, _TINY)).clamp(0, one_minus), u1], -1))
+        wi = sample_cosine_hemisphere(torch.stack([(u0 / max(pd, _TINY)).clamp(0, one_minus), u1], -1))[0]
         if ps > 0:
             us = torch.stack([((u0 - pd) / ps).clamp(0, one_minus), u1], -1)
             wi_s = self._spec_sample(wo, us)

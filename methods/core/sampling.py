@@ -39,10 +39,13 @@ def _check_pos(**kw):
             raise ValueError(f"{k} must be an int >= 1, got {v!r}")
 
 
-def _from_cos_phi(z: Tensor, phi: Tensor) -> Tensor:
+def from_cos_phi(z: Tensor, phi: Tensor) -> Tensor:
     """Directions (..., 3) from cos θ (...) and φ (...), z-polar."""
     r = torch.sqrt((1.0 - z * z).clamp_min(0.0))
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+_from_cos_phi = from_cos_phi
 
 
 def _cells(n_theta: int, n_phi: int, z_lo: float, ju: Tensor | None, jv: Tensor | None,
