@@ -171,6 +171,7 @@ def terms_table(exponents: list[float], methods: list[str] | None = None, *,
 # Built-in contributor (lazy: importing reports.studies imports no method).
 register_terms_contributor("inout", "methods.inout.analysis:terms_needed", target=0.99,
                            target_kind="energy fraction (Mahajan 2008, hemisphere, 40x40)")
+register_error_vs_terms("inout", "methods.inout.study:error_vs_terms")
 register_terms_contributor("triple_product", "methods.triple_product.study:terms_needed", target=0.05,
                            target_kind="relative RMS shading error vs all coefficients (level 4, sky_sun, V=1)")
 register_terms_contributor("zh_shadow", "methods.zh_shadow.study:terms_needed", target=0.99,

@@ -83,6 +83,7 @@ def test_fit_line():
 def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):
     # The real contributors are tested with their methods (tests/methods/*); cheap stand-ins here.
     S.TERMS_CONTRIBUTORS.clear()
+    S.ERROR_VS_TERMS.clear()
     S.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
     S.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
     files = S.run_study("terms-vs-exponent", tmp_path, quick=True)
