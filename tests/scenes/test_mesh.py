@@ -264,3 +264,36 @@ def test_torus_knot_closed_valid():
     m = P.torus_knot(2, 3, n_u=48, n_v=8)
     assert _closed(m)
     assert _signed_volume(m) > 0
+
+
+def test_lathe_cylinder_closed_and_sized():
+    """A closed cylinder profile (radius 0.5, height 1.2) with creases at the rims."""
+    prof = [(0.0, 0.0), (0.5, 0.0), (0.5, 0.6), (0.5, 1.2), (0.0, 1.2)]
+    m = P.lathe(prof, n_seg=16)
+    assert _closed(m)
+    V = m.V.double()
+    r = V[:, [0, 2]].norm(dim=1)
+    assert float(r.max()) == pytest.approx(0.5, abs=F32_ATOL)
+    assert float(V[:, 1].min()) == pytest.approx(0.0, abs=F32_ATOL)
+    assert float(V[:, 1].max()) == pytest.approx(1.2, abs=F32_ATOL)
+    # volume of the inscribed 16-gon prism: ½·16·sin(2π/16)·r²·h
+    assert _signed_volume(m) == pytest.approx(0.5 * 16 * math.sin(2 * math.pi / 16) * 0.25 * 1.2, rel=1e-5)
+    # crease at the rims: the side vertices have horizontal normals, the caps vertical ones
+    side = (r > 0.5 - F32_ATOL) & (V[:, 1] > 0.3) & (V[:, 1] < 0.9)
+    assert side.any() and (m.N[side][:, 1].abs() < F32_ATOL).all()
+    cap = r < 0.25
+    assert (m.N[cap][:, 1].abs() > 1 - F32_ATOL).all()
+
+
+def test_chess_piece_scale():
+    a = P.chess_piece("rook", n_seg=8, detail=2)
+    b = P.chess_piece("rook", n_seg=8, detail=2, scale=2.0, center=(1.0, 0.5, 0.0))
+    torch.testing.assert_close(b.V, a.V * 2 + torch.tensor([1.0, 0.5, 0.0]), atol=F32_ATOL, rtol=0)
+    torch.testing.assert_close(b.N, a.N, atol=F32_ATOL, rtol=0)
+
+
+def test_closed_check_detects_holes():
+    """The helper used above must be able to fail: an open plane and a box with a face removed."""
+    assert not _closed(P.plane((1.0, 1.0), (2, 2)))
+    b = P.box()
+    assert not _closed(Mesh(b.V, b.F[1:], b.N))
