@@ -145,15 +145,16 @@ def _envmap(ctx: _Ctx, t: Any):
         for k in ("height", "seed"):
             if k in t:
                 raise ctx.error(w, f"{k} is only valid with 'procedural'")
-        p = ctx.path.parent / _string(ctx, w, "file", t["file"])
+        rel = _string(ctx, w, "file", t["file"])
+        p = ctx.path.parent / rel
         if not p.is_file():
-            raise ctx.error(w, f"file {str(p)!r} not found")
+            raise ctx.error(w, f"file {rel!r} not found (looked for {p})")
         if p.suffix.lower() not in (".exr", ".hdr"):
-            raise ctx.error(w, f"file {str(p)!r} must be .exr or .hdr")
+            raise ctx.error(w, f"file {rel!r} must be .exr or .hdr")
         try:
             env = EnvMap.load(p)
         except Exception as e:  # OpenEXR / RGBE readers raise many types on corrupt files
-            raise ctx.error(w, f"file {str(p)!r} cannot be read: {type(e).__name__}: {e}") from e
+            raise ctx.error(w, f"file {rel!r} cannot be read: {e}") from e
     else:
         name = _string(ctx, w, "procedural", t["procedural"])
         if name not in PROCEDURAL_NAMES:
@@ -179,7 +180,8 @@ def _shape(ctx: _Ctx, i: int, t: Any):
     t = _check_keys(ctx, w, t, SHAPE_KEYS, SHAPE_REQUIRED)
     name = _string(ctx, w, "name", t["name"])
     region = _string(ctx, w, "region", t["region"])
-    mesh_path = ctx.path.parent / _string(ctx, w, "mesh", t["mesh"])
+    mesh_rel = _string(ctx, w, "mesh", t["mesh"])
+    mesh_path = ctx.path.parent / mesh_rel
     if "scale" in t:
         s = t["scale"]
         scale = (_number(ctx, w, "scale", s),) * 3 if _is_number(s) else _vec3(ctx, w, "scale", s)
@@ -191,7 +193,7 @@ def _shape(ctx: _Ctx, i: int, t: Any):
     try:
         mesh = load_mesh(mesh_path)
     except ValueError as e:
-        raise ctx.error(w, f"mesh {str(mesh_path)!r}: {e}") from e
+        raise ctx.error(w, f"mesh {mesh_rel!r}: {e}") from e
     if scale != (1.0, 1.0, 1.0) or translate != (0.0, 0.0, 0.0):
         M = torch.eye(4, dtype=torch.float64)
         M[:3, :3] = torch.diag(torch.tensor(scale, dtype=torch.float64))

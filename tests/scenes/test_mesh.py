@@ -297,3 +297,34 @@ def test_closed_check_detects_holes():
     assert not _closed(P.plane((1.0, 1.0), (2, 2)))
     b = P.box()
     assert not _closed(Mesh(b.V, b.F[1:], b.N))
+
+
+def test_empty_mesh_raises():
+    with pytest.raises(ValueError, match="empty"):
+        Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)).validate()
+
+
+def test_transformed_normals_use_inverse_transpose():
+    """Under a non-uniform scale, transformed normals stay perpendicular to the transformed faces."""
+    m = P.icosphere(1)
+    M = torch.tensor([[3.0, 0.5, 0, 1], [0, 1.0, 0, 2], [0, 0, 0.2, 3], [0, 0, 0, 1]])
+    t = m.transformed(M)
+    torch.testing.assert_close(t.V, m.V @ M[:3, :3].T + M[:3, 3], atol=F32_ATOL, rtol=0)
+    # a flat mesh: its vertex normals equal its face normal, before and after
+    q = P.quad((0, 0, 0), (1.0, 0.2, 0.0), (0.0, 0.3, 1.0), 2, 2)
+    tq = q.transformed(M)
+    fn, _ = tq.face_normals()
+    torch.testing.assert_close(tq.N, fn[:1].expand_as(tq.N), atol=F32_ATOL, rtol=0)
+    torch.testing.assert_close(t.N.norm(dim=1), torch.ones(t.num_vertices), atol=F32_ATOL, rtol=0)
+
+
+def test_merge_offsets_faces():
+    from scenes.mesh import merge
+
+    a, b = P.icosphere(0), P.box()
+    m = merge([a, b])
+    assert m.num_vertices == a.num_vertices + b.num_vertices
+    assert torch.equal(m.F[a.num_faces:], b.F + a.num_vertices)
+    assert torch.equal(m.N, torch.cat([a.N, b.N]))
+    with pytest.raises(ValueError):
+        merge([])

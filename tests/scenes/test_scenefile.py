@@ -108,8 +108,9 @@ def test_envmap_file_and_rotation(tmp_path):
     scene = load_scene_file(_write(tmp_path, text))
     assert scene.envmap.height == 8
     # R_y(90°) maps +X to −Z
-    assert torch.allclose(scene.envmap.to_world @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0]),
-                          atol=POS_TOL)
+    R = scene.envmap.to_world.double()
+    assert torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                          torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), atol=POS_TOL)
 
 
 BAD = [

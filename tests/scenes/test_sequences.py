@@ -104,3 +104,14 @@ def test_posed_sequence_geometry_moves():
     fr = make_sequence(sc, "P", N_FRAMES, seed=0)
     g0, g1 = sc.geometry(fr[0].pose), sc.geometry(fr[1].pose)
     assert (g0.V - g1.V).abs().max() > 1e-2
+
+
+def test_frame_hash_ignores_bookkeeping_and_sees_content():
+    from methods.base import Frame
+
+    sc = get_scene("sphere_plane", "test")
+    f = sc.default_frame()
+    h = hash_frame(f)
+    assert hash_frame(Frame(f.envmap, f.camera, dict(f.materials), None, index=7, changed=frozenset())) == h
+    assert hash_frame(Frame(f.envmap, f.camera.orbited(1e-3), f.materials)) != h
+    assert hash_frame(Frame(f.envmap, f.camera, f.materials, pose=torch.zeros(2))) != h

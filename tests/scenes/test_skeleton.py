@@ -170,3 +170,10 @@ GROUND_ATOL = 1e-3
 def test_creature_stands_on_ground(creature):
     mesh, _, _ = creature
     assert float(mesh.V[:, 1].min()) == pytest.approx(0.0, abs=GROUND_ATOL)
+
+
+def test_animated_creature_never_sinks_below_ground(creature):
+    """Hinge swings only raise the feet; LBS blending must not push skin through y = 0."""
+    mesh, sk, W = creature
+    lowest = min(float(sk.pose_mesh(mesh, W, p).V[:, 1].min()) for p in creature_animation(16))
+    assert lowest >= -GROUND_ATOL
