@@ -187,7 +187,7 @@ def make_creature(size: str = "test"):
     BLEND = 0.09  # fraction of leg length over which weights blend at each joint
     torso_c = np.array([0.0, 1.25, 0.0])
     torso_r = np.array([0.9, 0.42, 0.42])
-    leg_len, leg_r = 1.05, 0.13
+    leg_len, leg_r = 1.1, 0.13  # hips at y = 1.1: feet touch y = 0
     hips = {"fl": (0.55, 0.28), "fr": (0.55, -0.28), "bl": (-0.55, 0.28), "br": (-0.55, -0.28)}
     neck = np.array([0.82, 1.45, 0.0])
     head_c = np.array([1.2, 1.75, 0.0])

@@ -165,8 +165,6 @@ def test_creature_and_animation_consistent(creature):
 GROUND_ATOL = 1e-3
 
 
-@pytest.mark.xfail(strict=True, reason="make_creature: hips at y = 1.1 but leg_len = 1.05, so the feet hover "
-                                       "0.05 above y = 0 (docstring: 'standing on y = 0')")
 def test_creature_stands_on_ground(creature):
     mesh, _, _ = creature
     assert float(mesh.V[:, 1].min()) == pytest.approx(0.0, abs=GROUND_ATOL)
