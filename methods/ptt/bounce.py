@@ -90,6 +90,19 @@ def _tri(F: Tensor, face: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]
     return F[face], torch.stack([1.0 - u - v, u, v], -1)
 
 
+def _chunk_hits(hits: Hits, F: Tensor, a: int, b: int):
+    """The rays of vertices a:b that hit something: flat indices sel (H,) into the chunk's
+    (b−a)·J rays, their faces f (H,), triangle vertices tri (H, 3), barycentric weights bw (H, 3)
+    and directions back towards the shading vertex wo (H, 3); None if no ray hit."""
+    face = hits.face[a:b].reshape(-1)
+    sel = torch.nonzero(face >= 0).squeeze(-1)
+    if sel.numel() == 0:
+        return None
+    f = face[sel]
+    tri, bw = _tri(F, f, hits.u[a:b].reshape(-1)[sel], hits.v[a:b].reshape(-1)[sel])
+    return sel, f, tri, bw, hits.wo[a:b].reshape(-1, 3)[sel]
+
+
 def one_bounce_ptt(hits: Hits, F: Tensor, normals: Tensor, face_region: Tensor, n_regions: int,
                    factors: BasisFactors, coarse: Tensor, *, order: int = 4, chunk: int = 8,
                    progress: bool | None = None) -> Tensor:
@@ -117,13 +130,10 @@ def one_bounce_ptt(hits: Hits, F: Tensor, normals: Tensor, face_region: Tensor, 
         progress = sys.stderr.isatty()
     for a in tqdm(range(0, nv, chunk), disable=not progress, desc="one-bounce PTT", unit="chunk"):
         b = min(nv, a + chunk)
-        face = hits.face[a:b].reshape(-1)
-        sel = torch.nonzero(face >= 0).squeeze(-1)
-        if sel.numel() == 0:
+        chunk_hits = _chunk_hits(hits, F, a, b)
+        if chunk_hits is None:
             continue
-        f = face[sel]
-        tri, bw = _tri(F, f, hits.u[a:b].reshape(-1)[sel], hits.v[a:b].reshape(-1)[sel])
-        wo = hits.wo[a:b].reshape(-1, 3)[sel]
+        sel, f, tri, bw, wo = chunk_hits
         D = torch.zeros(sel.numel(), P, L1)
         for j in range(3):
             vid = tri[:, j]
@@ -163,13 +173,10 @@ def two_bounce_ptt(hits: Hits, F: Tensor, normals: Tensor, face_region: Tensor, 
         progress = sys.stderr.isatty()
     for a in tqdm(range(0, nv, chunk), disable=not progress, desc="two-bounce PTT", unit="chunk"):
         b = min(nv, a + chunk)
-        face = hits.face[a:b].reshape(-1)
-        sel = torch.nonzero(face >= 0).squeeze(-1)
-        if sel.numel() == 0:
+        chunk_hits = _chunk_hits(hits, F, a, b)
+        if chunk_hits is None:
             continue
-        f = face[sel]
-        tri, bw = _tri(F, f, hits.u[a:b].reshape(-1)[sel], hits.v[a:b].reshape(-1)[sel])
-        wo = hits.wo[a:b].reshape(-1, 3)[sel]
+        sel, f, tri, bw, wo = chunk_hits
         X = torch.zeros(sel.numel(), R, P, P, L2)
         for j in range(3):
             vid = tri[:, j]
