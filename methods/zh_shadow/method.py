@@ -163,6 +163,8 @@ class ZHShadow(Method):
         self.stats: dict[str, float] = {}
         self._ops: dict[float, Tensor] = {}          # α → M^α
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
+        self._last_samples: int | None = None           # points shaded by the last render
+        self._env_bytes = 0                             # bytes of the last projected env map
 
     # -- precompute ---------------------------------------------------------------------------
     def _cache_path(self, scene):
@@ -215,6 +217,7 @@ class ZHShadow(Method):
         key = (id(env.data), data.data_ptr(), tuple(data.shape), tuple(torch.as_tensor(env.to_world).flatten().tolist()))
         if self._light is None or self._light[0] != key:
             self._light = (key, project_latlong(env, self.config["order"]).float())
+            self._env_bytes = int(data.numel() * data.element_size())
         return self._light[1]
 
     def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -246,6 +249,7 @@ class ZHShadow(Method):
             pose_vec = torch.zeros(scene.skeleton.num_joints) if pose is None else torch.as_tensor(pose).float()
             geom = scene.geometry(pose_vec)
         light = self._lighting(frame.envmap)
+        self._last_samples = int(gbuffer.hit.sum()) if self.config["shading"] == "sample" else int(geom.num_vertices)
         k, ax = m.lobes_at(pose_vec)                                          # (N, c, n), (N, c, 3) local
         Fv = frame_matrix(geom.N.float())                                      # (N, 3, 3) world → local
         ax_w = (Fv.transpose(-1, -2)[:, None] @ ax[..., None]).squeeze(-1)     # (N, c, 3) world
@@ -281,6 +285,21 @@ class ZHShadow(Method):
         return {"linear_model_X": tensor_bytes(self.model.X),
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1])}
+
+    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
+        """Bytes one frame reads/writes (roofline model): the linear model X (every frame: lobes are
+        synthesised from the pose; a static scene still reads its bias row), the Phong operators, the
+        per-shaded-point inputs (G-buffer face, bary, normal, ωo, region; vertex positions/normals in
+        vertex mode) and the RGB output; plus the env map read for the SH projection when the lighting
+        changes ("L" in the kind). None before the first render."""
+        if self.model is None or getattr(self, "_last_samples", None) is None:
+            return None
+        per_point = 8 + 8 + 12 + 12 + 8 + 12  # face/vertex ids, bary, normal, ωo, region, output
+        total = tensor_bytes(self.model.X) + sum(tensor_bytes(t) for t in self._ops.values())
+        total += self._last_samples * per_point
+        if "L" in frame_kind:
+            total += self._env_bytes
+        return int(total)
 
 
 class _PoseAdapter:

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from methods.base import get_method
+from methods.base import get_method, tensor_bytes
 from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import reconstruct, sh_eval
 from methods.zh_shadow import ZHShadow
@@ -130,6 +130,10 @@ def rendered():
             out[(sh, sp)] = rmse(m.render(frame, gb).numpy(), ref, mask)
     out["memory"] = m.memory()
     m.config.update(shading="sample", specular="published")
+    m.render(frame, gb)
+    out["bytes"] = {k: m.bytes_per_frame(k) for k in ("V", "VBL")}
+    out["bytes_expected"] = (tensor_bytes(m.model.X) + sum(tensor_bytes(t) for t in m._ops.values())
+                             + int(gb.hit.sum()) * 60, frame.envmap.data.numel() * 4)
     model = m.model
     v, _ = pc.pose_visibility(scene, frame.pose[None], 4, n_dirs=CFG["n_dirs"])
     with pc.torch_threads(1):
@@ -162,6 +166,8 @@ def test_rendered_error_vs_oracle(rendered):
     assert abs(r[("vertex", "published")] - e) <= 0.2 * e, msg   # per-vertex shading: similar
     assert abs(r[("sample", "cosine")] - e) <= 0.1 * e, msg      # cos θ_i matters little at s = 12
     assert r["memory"]["linear_model_X"] == 11 * 1385 * 12 * 4   # (J+1) × N × 6c float32
+    base, env = r["bytes_expected"]                              # roofline model (bytes_per_frame)
+    assert r["bytes"] == {"V": base, "VBL": base + env}, (r["bytes"], base, env)
 
 
 def test_static_scene_uses_the_bias_row_alone():
