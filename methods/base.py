@@ -160,6 +160,9 @@ class Method(ABC):
 
     name: ClassVar[str]
     capabilities: ClassVar[Capabilities]
+    # Opt in to the harness's disk cache of precomputations (``reports.precompute_cache``): the
+    # instance's state after ``precompute`` must pickle, and depend only on (scene, config, code).
+    cache_precompute: ClassVar[bool] = False
 
     def __init__(self, **config: Any) -> None:
         self.config: dict[str, Any] = dict(config)

@@ -34,7 +34,7 @@ from typing import Any, Iterable
 import numpy as np
 import torch
 
-from reports import measure
+from reports import measure, precompute_cache
 from reports.store import atomic_save, atomic_write_json
 
 FULL = -1  # bounces = −1: full global illumination (Mitsuba max_depth = −1)
@@ -47,6 +47,7 @@ UNITS = {
     "fps": "1/s", "precompute_time": "s", "memory_bytes": "B", "peak_rss_bytes": "B",
     "harness_peak_rss_bytes": "B", "bytes_per_frame": "B", "roofline_efficiency": "1",
     "eq_error_speedup": "x", "mitsuba_time_eq_error": "s", "timed_frames": "1",
+    "rmse_full_gi": "radiance", "precompute_cached": "1", "precompute_load_time": "s",
 }
 
 
@@ -82,6 +83,9 @@ class Cell:
     eq_err_spp: reference spp ladder for the equal-error speedup (empty = skip).
     threads: torch / Dr.Jit threads (None = leave the defaults). isolate: run in a spawned child.
     na: the n/a reason from the capability matrix (None = in scope); the cell is then not run.
+    score_full_gi: also score every scored frame against the full-GI reference (metric
+    ``rmse_full_gi``; Sun 2007 Fig. 11: a method that renders k bounces is also judged by how far it
+    is from the real image) — set by the suites for methods with ``max_bounces > 0``.
     backend: module providing scenes/references/metrics (see ``reports.backend``).
     plugins: modules imported before the method is looked up (e.g. tests registering a method).
     """
@@ -102,6 +106,7 @@ class Cell:
     isolate: bool = False
     save_images: bool = True
     na: str | None = None
+    score_full_gi: bool = False
     backend: str = "reports.backend"
     plugins: tuple[str, ...] = ()
 
@@ -398,10 +403,11 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     method = get_method(cell.method)(**json.loads(cell.config))
 
     rows: list[dict] = []
-    t0 = time.perf_counter()
-    method.precompute(scene)
+    pre = precompute_cache.precompute(method, scene, cell.config)  # opt-in disk cache (its docstring)
     if timed:
-        rows.append(_row("precompute_time", time.perf_counter() - t0))
+        rows.append(_row("precompute_time", pre["seconds"]))
+        if pre["cached"]:
+            rows += [_row("precompute_cached", 1), _row("precompute_load_time", pre["load_seconds"])]
 
     scored = set(cell.scored())
     times: list[float] = []
@@ -431,6 +437,15 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         for k, v in m.items():
             rows.append(_row(k, _finite_float(v), frame=i, noise_floor=floor))
             errors.setdefault(k, []).append((_finite_float(v), floor))
+        if cell.score_full_gi and cell.bounces != FULL:  # Sun 2007 Fig. 11: distance to the real image
+            full = be.render_reference(scene, frame, bounces=FULL, spp=cell.ref_spp, seed=cell.seed,
+                                       spp_side=cell.spp_side)
+            fmask = mask & torch.as_tensor(full.coverage, dtype=torch.bool)
+            v = _finite_float(be.all_metrics(img.detach().cpu().float(), torch.as_tensor(full.image).float(), fmask,
+                                             exposure=exposure)["rmse"])
+            ffloor = _finite_float(full.noise_floor)
+            rows.append(_row("rmse_full_gi", v, frame=i, noise_floor=ffloor))
+            errors.setdefault("rmse_full_gi", []).append((v, ffloor))
         last = (i, frame, gb, img.detach().cpu().float(), ref, mask)
 
     stats = measure.frame_time_stats(times, warmup=1)

@@ -35,6 +35,9 @@ class FakeScene:
     materials: dict = field(default_factory=lambda: {"floor": FakeMaterial()})
     skeleton: Any = None
 
+    def content_hash(self) -> str:
+        return f"{self.name}-{self.size}-{sorted(self.materials.items())}"
+
 
 @dataclass
 class FakeReference:
@@ -188,3 +191,25 @@ class FakeGIMethod(FakeMethod):
 
     name = "fake_gi"
     capabilities = Capabilities(dynamic_brdf=True, max_bounces=1, brdfs=frozenset({"lambert"}))
+
+
+@register
+class FakeCachedMethod(FakeMethod):
+    """Opts in to the harness's precompute cache; its precompute sleeps ``precompute_delay`` s and
+    counts its calls in ``PRECOMPUTE_CALLS`` (tests of ``reports.precompute_cache``)."""
+
+    name = "fake_cached"
+    cache_precompute = True
+
+    def __init__(self, *, bias: float = 0.05, delay: float = 0.0, precompute_delay: float = 0.05):
+        super().__init__(bias=bias, delay=delay)
+        self.config["precompute_delay"] = precompute_delay
+        self.precompute_delay = precompute_delay
+
+    def precompute(self, scene) -> None:
+        PRECOMPUTE_CALLS.append(scene.name)
+        time.sleep(self.precompute_delay)
+        self.coeffs = torch.arange(256, dtype=torch.float32)
+
+
+PRECOMPUTE_CALLS: list[str] = []

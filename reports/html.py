@@ -170,6 +170,35 @@ def summary_table(df: pd.DataFrame) -> str:
     return f"<table>{head}{''.join(body)}</table>{note}"
 
 
+def bounces_table(df: pd.DataFrame) -> str:
+    """Sun 2007 Fig. 11 as numbers: for methods scored against full GI too (``rmse_full_gi``), the
+    RMSE against the reference of the cell's own bounce count and against full GI, per bounce count
+    (mean over sequence kinds). Adding bounces must bring the image closer to full GI."""
+    ok = df[(df["status"] == "ok") & (df["frame"] == -1)]
+    full = ok[ok["metric"] == "rmse_full_gi"]
+    if len(full) == 0:
+        return "<p>No cell was scored against full global illumination.</p>"
+    bs = sorted({int(b) for b in full["bounces"]})
+    head = ("<tr><th>scene</th><th>method</th>" + "".join(
+        f"<th>{b} bounce{'s' if b != 1 else ''}: RMSE vs same (floor)</th><th>vs full GI (floor)</th>" for b in bs)
+        + "</tr>")
+    body = []
+    for (scene, method, config), g in full.groupby(["scene", "method", "config"], sort=True):
+        tds = []
+        for b in bs:
+            same = ok[(ok["scene"] == scene) & (ok["method"] == method) & (ok["config"] == config)
+                      & (ok["bounces"] == b) & (ok["metric"] == "rmse")]
+            fb = g[g["bounces"] == b]
+            for part in (same, fb):
+                tds.append(f"<td>{part['value'].mean():.4g} ({part['noise_floor'].mean():.2g})</td>"
+                           if len(part) else "<td>–</td>")
+        body.append(f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td>{''.join(tds)}</tr>")
+    note = ("<p class=note>Sun 2007 Fig. 11: each column pair is one precomputation rendered with that many "
+            "indirect bounces; the error against full GI should fall as bounces are added, the error against "
+            "the same-bounce reference measures the method's own approximation.</p>")
+    return f"<table>{head}{''.join(body)}</table>{note}"
+
+
 def tradeoff_plots(df: pd.DataFrame) -> str:
     """RMSE vs memory and RMSE vs frame time (one point per ok cell; colour = method)."""
     import matplotlib
@@ -469,6 +498,7 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
 <table class=facts>{fact_html}</table>
 {f'<h2>Failed cells</h2><ul>{err_html}</ul>' if err_html else ''}
 <h2 id=summary>Summary per scene × method</h2>{summary_table(df)}
+<h2 id=bounces>Interreflection: error vs bounces (Sun 2007 Fig. 11)</h2>{bounces_table(df)}
 <h2 id=tradeoff>Error – memory – time</h2>{tradeoff_plots(df)}
 <h2 id=images>Images</h2>{image_comparisons(art)}
 <h2 id=matrix>Capability matrix</h2>{capability_matrix(df)}

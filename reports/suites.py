@@ -110,7 +110,8 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
                                           n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
                                           ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
                                           threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
-                                          na=na, backend=backend, plugins=tuple(plugins)))
+                                          na=na, backend=backend, plugins=tuple(plugins),
+                                          score_full_gi=caps.max_bounces > 0 and b != FULL))
     return cells
 
 
@@ -124,4 +125,8 @@ def reference_jobs(cells: list[Cell]) -> list[tuple[str, str, str, int, int, int
         j = (c.scene, c.size, c.kind, c.n_frames, c.seed, c.bounces, c.ref_spp, tuple(c.scored()), tuple(c.eq_err_spp))
         if j not in seen:
             seen.append(j)
+        if c.score_full_gi and c.bounces != FULL:  # the full-GI reference it is also scored against
+            jf = (c.scene, c.size, c.kind, c.n_frames, c.seed, FULL, c.ref_spp, tuple(c.scored()), ())
+            if jf not in seen:
+                seen.append(jf)
     return seen

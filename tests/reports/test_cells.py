@@ -154,8 +154,30 @@ def test_plan_capability_matrix_and_bounces():
     assert by[("fake_plane", "fake_gi", "V", C.FULL)] == "at most 1 bounce(s)"
     assert by[("fake_creature", "fake", "P", 0)] == "static geometry only"  # dynamic scene gets P
     assert ("fake_plane", "fake", "P", 0) not in by
+    # a method that renders interreflection is also scored against full GI (Sun 2007 Fig. 11)
+    full = {(c.method, c.bounces): c.score_full_gi for c in cells if c.scene == "fake_plane" and c.kind == "VBL"}
+    assert full == {("fake", 0): False, ("fake_gi", 0): True, ("fake_gi", 1): True, ("fake_gi", 2): True,
+                    ("fake_gi", C.FULL): False}
+    from reports.suites import reference_jobs
+    jobs = {(j[0], j[2], j[5]) for j in reference_jobs(cells)}
+    assert ("fake_plane", "VBL", C.FULL) in jobs  # no in-scope FULL cell, but the full-GI scores need it
     with pytest.raises(ValueError):
         plan_cells(suite, methods=["no_such_method"], **FAKE)
+
+
+def test_cell_scored_against_full_gi(tmp_path):
+    c = _cell(method="fake_gi", bounces=1, kind="V", score_full_gi=True, eq_err_spp=())
+    r = C.run_cell(c, tmp_path, progress=False)
+    assert r.status == "ok", r.reason
+    same = {row["frame"]: row["value"] for row in r.rows if row["metric"] == "rmse"}
+    full = {row["frame"]: row["value"] for row in r.rows if row["metric"] == "rmse_full_gi"}
+    assert set(full) == set(same) and -1 in full
+    # the fake backend's truth does not depend on the bounce count and references are seeded per
+    # frame, so the full-GI reference is the same image: the two scores must agree exactly
+    for f in same:
+        assert full[f] == pytest.approx(same[f], rel=1e-6)
+    plain = C.run_cell(_cell(method="fake_gi", bounces=1, kind="V", eq_err_spp=()), tmp_path / "b", progress=False)
+    assert not [row for row in plain.rows if row["metric"] == "rmse_full_gi"]
 
 
 def test_suite_definitions_follow_the_issue():
@@ -163,3 +185,45 @@ def test_suite_definitions_follow_the_issue():
     assert 64 <= SMOKE.ref_spp <= 256 and len(SMOKE.scenes) <= 2 and SMOKE.isolate
     assert NIGHTLY.size == "bench" and set(NIGHTLY.kinds) == {"V", "VB", "VBL"} and "P" in NIGHTLY.dynamic_kinds
     assert set(NIGHTLY.extra_bounces) == {1, 2, C.FULL} and NIGHTLY.scenes is None
+
+
+def test_precompute_cache_reports_the_original_time(tmp_path, monkeypatch):
+    """Cells of one (scene, method, config) share a precomputation (reports.precompute_cache): the
+    second cell loads it, reports the original seconds and says it was cached; the image is the same."""
+    monkeypatch.setenv("PRTBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("PRTBENCH_NO_PRECOMPUTE_CACHE", raising=False)
+    fakes.PRECOMPUTE_CALLS.clear()
+    cfg = C.canonical_config({"precompute_delay": 0.2})
+    a = C.run_cell(_cell(method="fake_cached", config=cfg, kind="V", eq_err_spp=()), tmp_path / "a")
+    b = C.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "b")
+    assert a.status == b.status == "ok", (a.reason, b.reason)
+    assert fakes.PRECOMPUTE_CALLS == ["fake_plane"]  # computed once
+    sa = {r["metric"]: r["value"] for r in a.rows if r["frame"] == -1}
+    sb = {r["metric"]: r["value"] for r in b.rows if r["frame"] == -1}
+    assert "precompute_cached" not in sa and sb["precompute_cached"] == 1
+    assert sb["precompute_time"] == sa["precompute_time"] >= 0.2  # the original seconds, not the load
+    assert sb["memory_bytes"] == sa["memory_bytes"] == 1024
+    # another config is another precomputation; the switch turns the cache off
+    C.run_cell(_cell(method="fake_cached", config=C.canonical_config({"precompute_delay": 0.0}), eq_err_spp=()),
+               tmp_path / "c")
+    monkeypatch.setenv("PRTBENCH_NO_PRECOMPUTE_CACHE", "1")
+    C.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "d")
+    assert fakes.PRECOMPUTE_CALLS == ["fake_plane"] * 3
+
+
+def test_corrupt_precompute_cache_entry_is_recomputed(tmp_path, monkeypatch):
+    from reports import precompute_cache as PC
+
+    monkeypatch.setenv("PRTBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("PRTBENCH_NO_PRECOMPUTE_CACHE", raising=False)
+    fakes.PRECOMPUTE_CALLS.clear()
+    m = fakes.FakeCachedMethod(precompute_delay=0.0)
+    scene = fakes.get_scene("fake_plane")
+    path = PC.cache_path(scene, m, C.canonical_config(m.config))
+    path.write_bytes(b"not a pickle")
+    with pytest.warns(UserWarning, match="ignoring precompute cache"):
+        info = PC.precompute(m, scene, C.canonical_config(m.config))
+    assert not info["cached"] and fakes.PRECOMPUTE_CALLS == ["fake_plane"]
+    m2 = fakes.FakeCachedMethod(precompute_delay=0.0)
+    assert PC.precompute(m2, scene, C.canonical_config(m.config))["cached"]
+    assert torch.equal(m2.coeffs, torch.arange(256, dtype=torch.float32))

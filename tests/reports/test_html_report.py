@@ -55,6 +55,8 @@ def test_report_sections_without_browser(fake_run):
     assert "n/a: BRDFs fixed at precompute" in text  # capability matrix reason
     assert "planted failure" in text
     assert "No previous run" in text
+    sec = text.split("<h2 id=bounces>", 1)[1].split("<h2 id=tradeoff>", 1)[0]  # Sun 2007 Fig. 11 table
+    assert "<td>fake_gi</td>" in sec and "<td>fake</td>" not in sec  # only methods scored against full GI
     assert "http://" not in text and "https://" not in text  # nothing fetched from the network
 
 
