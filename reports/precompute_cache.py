@@ -14,6 +14,8 @@ RSS of such a cell is that of loading, not computing (the report's memory column
 Key: sha256 over the scene's content hash, the method name, its canonical config, the code
 fingerprint of every package that can change a number (``reports.store.code_fingerprint``) and the
 torch version — any code change recomputes. ``PRTBENCH_NO_PRECOMPUTE_CACHE=1`` turns it off.
+A method with a cache of its own sets ``cached_precompute_seconds`` (the original seconds) after a
+``precompute`` that loaded from it (None otherwise); it is reported the same way.
 Files live in ``<cache>/precompute/`` (``methods.base.cache_dir``) and are written atomically, so
 parallel workers and killed runs never see half a file.
 """
@@ -59,7 +61,11 @@ def precompute(method: Any, scene: Any, config: str) -> dict[str, Any]:
     if not enabled(method):
         t0 = time.perf_counter()
         method.precompute(scene)
-        return {"seconds": time.perf_counter() - t0, "cached": False, "load_seconds": 0.0}
+        dt = time.perf_counter() - t0
+        own = getattr(method, "cached_precompute_seconds", None)  # a method's own cache (e.g. zh_shadow)
+        if own is not None:
+            return {"seconds": float(own), "cached": True, "load_seconds": dt}
+        return {"seconds": dt, "cached": False, "load_seconds": 0.0}
     path = cache_path(scene, method, config)
     if path.exists():
         t0 = time.perf_counter()
