@@ -29,6 +29,20 @@ Render:
     truncated (zero-filled) vectors — numerically identical to visiting only the stored
     coefficients (`triple_integral_sparse`), which is the GPU-friendly form of the paper.
 
+UV-space extras (``shading="pixel"`` only; `textures` holds the pure functions and conventions):
+  * visibility textures ``vis_texture`` = res (Ma 2006 §3.3): every shape with a UV map gets a
+    res × res texture of visibility coefficient vectors (texel centres rasterised in UV space →
+    surface point + interpolated normal → its local frame → `visibility_coeffs`, truncated like
+    vertices), stored as extra rows of the visibility table (so `_shade` is unchanged: V is a
+    blend of table rows, 4 bilinear texel taps instead of 3 vertices). Taps on uncovered texels
+    or on another UV chart (farther than `VIS_TEX_REACH` texel footprints, or facing the other
+    way) are dropped and the rest renormalised; no valid tap → the triangle's vertices.
+  * `set_blend(region, material_b, weight)` (§5 SBRDF): ρ̃ = (1 − w) ρ̃_a + w ρ̃_b, w bilinear in
+    a (H, W) map over UV.
+  * `set_bump(region, height, scale)` (§5): the shading normal is perturbed by the height gradient
+    in the UV tangent frame (`textures.perturb_normals`); L and ρ̃ are taken in the perturbed
+    frame, V stays the geometric one (`shading_normals(gbuffer)` gives the normals used).
+
 Materials: regions use ``scene.materials`` at precompute; a frame whose ``materials[region]``
 differs rebuilds that region's table first (Ma 2006 §5 material editing, timed in ``stats``);
 the harness does not score BRDF-changing sequences (``dynamic_brdf=False``: the BRDF is fixed at
@@ -39,6 +53,7 @@ default config is isotropic-only) but accepted by ``precompute`` when configured
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any
@@ -51,12 +66,19 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.core.visibility import Visibility
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
-from methods.triple_product.precompute import SELECTIONS, blend_sparse, truncate, visibility_coeffs
+from methods.triple_product import textures as tx
+from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
 SHADINGS = ("vertex", "pixel")
 ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torrancesparrow"})
 # Shading points per batch in render(): each batch holds a few (B, 3, K) float32 tensors.
 RENDER_FLOATS = 1 << 22
+# Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
+# this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
+# most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
+# normal faces the same side — taps from other UV charts (overlapping or adjacent in UV, far apart
+# on the surface) are dropped instead of leaking their shadows.
+VIS_TEX_REACH = 2.0
 
 
 def _int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
@@ -87,7 +109,8 @@ class TripleProduct(Method):
                  shading: str = "pixel", brdf_dirs: tuple[int, int] = (8, 16),
                  frame_grid: tuple[int, int, int] = (17, 32, 1), tangent: str = "grid",
                  light_lookup: str = "trilinear", vis_supersample: int = 0, brdf_supersample: int = 2,
-                 light_supersample: int = 1, progress: bool | None = None) -> None:
+                 light_supersample: int = 1, vis_texture: int | None = None,
+                 progress: bool | None = None) -> None:
         """
         level: geodesic level L (K = 20·4^L coefficients per function; paper 4 = 5120).
         n_coeffs: coefficients kept per function (V per vertex, L per grid frame, ρ̃ per ωo);
@@ -99,6 +122,8 @@ class TripleProduct(Method):
         tangent: "grid" (isotropic BRDFs; n_psi = 1 suffices) | "duff" (Mitsuba's tangent; Ward).
         light_lookup: "nearest" | "trilinear" | "exact".
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
+        vis_texture: texels per side of the visibility texture of every shape with a UV map
+            (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
         """
         _int("level", level, 0)
         if level > 6:
@@ -117,10 +142,14 @@ class TripleProduct(Method):
         for k, v in (("vis_supersample", vis_supersample), ("brdf_supersample", brdf_supersample),
                      ("light_supersample", light_supersample)):
             _int(k, v, 0)
+        _int("vis_texture", vis_texture, 1, none_ok=True)
+        if vis_texture is not None and shading != "pixel":
+            raise ValueError("vis_texture needs shading='pixel' (textures are looked up per G-buffer sample)")
         super().__init__(level=level, n_coeffs=n_coeffs, selection=selection, shading=shading,
                          brdf_dirs=tuple(brdf_dirs), frame_grid=tuple(frame_grid), tangent=tangent,
                          light_lookup=light_lookup, vis_supersample=vis_supersample,
-                         brdf_supersample=brdf_supersample, light_supersample=light_supersample)
+                         brdf_supersample=brdf_supersample, light_supersample=light_supersample,
+                         vis_texture=vis_texture)
         self.level = level
         self.K = 20 * 4 ** level
         self.outgoing = bd
@@ -140,6 +169,19 @@ class TripleProduct(Method):
         self.L_val: Tensor | None = None      # (F, 3, n) float32
         self._light_key = None                # identity of the env map the grid was built for
         self._exact_env = None                # env map used by light_lookup="exact"
+        # UV-space extras (Ma 2006 §3.3, §5), pixel shading only:
+        self.uv: Tensor | None = None         # (N, 2) float32 vertex UVs (0 on shapes without a UV map)
+        self.face_uv: Tensor | None = None    # (M,) bool: the face's shape has a UV map
+        self.dpdu: Tensor | None = None       # (M, 3) float32 ∂p/∂u per face (0: no usable UVs)
+        self.dpdv: Tensor | None = None       # (M, 3) float32 ∂p/∂v per face
+        self.n_vertex_rows = 0                # rows [0, N) of V_idx/V_val are vertices, the rest texels
+        self.face_tex: Tensor | None = None   # (M,) int64 visibility-texture slot of each face (−1: none)
+        self.tex_rows: Tensor | None = None   # (S_t, res²) int32 row of each texel in V_idx/V_val (−1: uncovered)
+        self.tex_pos: Tensor | None = None    # (T, 3) float32 surface point of each texel row
+        self.tex_nrm: Tensor | None = None    # (T, 3) float32 unit normal of each texel row
+        self.blends: dict[str, tuple[Any, Tensor, Tensor, Tensor]] = {}  # region → (material b,
+        #                                       idx (n_o, n), val (n_o, 3, n), weight (H, W)) (SBRDF)
+        self.bumps: dict[str, tuple[Tensor, float]] = {}  # region → (height (H, W), scale)
         self.stats: dict[str, Any] = {}
 
     # -- precompute ----------------------------------------------------------------------------
@@ -197,8 +239,13 @@ class TripleProduct(Method):
         Vc = visibility_coeffs(vis, V, N, self.R, self.geo, supersample=cfg["vis_supersample"],
                                progress=self.progress)                          # (N, K)
         self.V_idx, self.V_val = truncate(Vc, self._n(), cfg["selection"], self.level)
+        self.n_vertex_rows = int(V.shape[0])
+        self._setup_uv(scene, geom, V, N, F)
+        if cfg["vis_texture"] is not None:
+            self._visibility_textures(vis, V, N, F, geom)
         tb = time.perf_counter()
         self.tables, self.materials = {}, {}
+        self.blends, self.bumps = {}, {}  # UV-space edits belong to the previous scene
         table_s = {}
         for region in scene.regions:
             tc = time.perf_counter()
@@ -208,7 +255,8 @@ class TripleProduct(Method):
         self.L_idx = self.L_val = None
         self._light_key = None
         self.stats = {"visibility_seconds": tb - ta, "brdf_table_seconds": table_s,
-                      "precompute_seconds": time.perf_counter() - t0, "vertices": int(V.shape[0])}
+                      "precompute_seconds": time.perf_counter() - t0, "vertices": int(V.shape[0]),
+                      "texels": int(self.V_idx.shape[0]) - self.n_vertex_rows}
 
     # -- lighting ------------------------------------------------------------------------------
     def _set_lighting(self, envmap) -> None:
@@ -258,6 +306,218 @@ class TripleProduct(Method):
         rho = self.brdf_at(region, wo_l)                                  # (B, 3, K)
         return triple_integral(L, Vd[:, None, :], rho)                   # Ma 2006 eq. 7
 
+
+    # -- UV-space extras (Ma 2006 §3.3 visibility textures, §5 SBRDF and bump mapping) ----------
+    def _setup_uv(self, scene, geom, V: Tensor, N: Tensor, F: Tensor) -> None:
+        """Per-vertex UVs of the shapes that have a UV map (``geom.uv`` is None as soon as one shape
+        has none, so they are read per shape) and the per-face UV Jacobians."""
+        nV, nF = V.shape[0], F.shape[0]
+        uv = torch.zeros(nV, 2)
+        face_uv = torch.zeros(nF, dtype=torch.bool)
+        vo, fo = geom.vertex_offset.tolist(), geom.face_offset.tolist()
+        for i, shape in enumerate(scene.shapes):
+            m_uv = shape.mesh.uv
+            if m_uv is None:
+                continue
+            m_uv = torch.as_tensor(m_uv).float().cpu()
+            if m_uv.shape != (vo[i + 1] - vo[i], 2):
+                raise ValueError(f"shape {shape.name!r}: uv must be ({vo[i + 1] - vo[i]}, 2), got {tuple(m_uv.shape)}")
+            if not torch.isfinite(m_uv).all():
+                raise ValueError(f"shape {shape.name!r}: non-finite UVs")
+            uv[vo[i]:vo[i + 1]] = m_uv
+            face_uv[fo[i]:fo[i + 1]] = True
+        if not face_uv.any():
+            self.uv = self.face_uv = self.dpdu = self.dpdv = None
+            return
+        dpdu, dpdv, ok = tx.uv_jacobian(V, F, uv)
+        self.uv, self.face_uv = uv, face_uv
+        self.dpdu = torch.where((ok & face_uv)[:, None], dpdu, torch.zeros_like(dpdu))
+        self.dpdv = torch.where((ok & face_uv)[:, None], dpdv, torch.zeros_like(dpdv))
+
+    def _visibility_textures(self, vis: Visibility, V: Tensor, N: Tensor, F: Tensor, geom) -> None:
+        """Ma 2006 §3.3: visibility sampled per texel of each UV-mapped shape, projected and truncated
+        like vertex visibility, appended as rows N.. of the visibility table (V_idx, V_val)."""
+        cfg, res = self.config, self.config["vis_texture"]
+        self.face_tex = torch.full((F.shape[0],), -1, dtype=torch.int64)
+        maps, pos, nrm, idx, val = [], [], [], [], []
+        row = self.n_vertex_rows
+        if self.uv is not None:
+            fo = geom.face_offset.tolist()
+            for i in range(len(fo) - 1):
+                f0, f1 = fo[i], fo[i + 1]
+                if f1 == f0 or not bool(self.face_uv[f0]):
+                    continue
+                texel, _, p, n = texel_points(V, N, F[f0:f1], self.uv, res)
+                rows = torch.full((res * res,), -1, dtype=torch.int32)
+                rows[texel] = torch.arange(row, row + texel.numel(), dtype=torch.int32)
+                self.face_tex[f0:f1] = len(maps)
+                maps.append(rows)
+                row += texel.numel()
+                if texel.numel():
+                    R = lt.local_frames(n, cfg["tangent"])
+                    Vc = visibility_coeffs(vis, p, n, R, self.geo, supersample=cfg["vis_supersample"],
+                                           progress=self.progress)              # (T, K)
+                    i_, v_ = truncate(Vc, self._n(), cfg["selection"], self.level)
+                    pos.append(p); nrm.append(n); idx.append(i_); val.append(v_)
+        self.tex_rows = torch.stack(maps) if maps else torch.zeros(0, res * res, dtype=torch.int32)
+        self.tex_pos = torch.cat(pos) if pos else torch.zeros(0, 3)
+        self.tex_nrm = torch.cat(nrm) if nrm else torch.zeros(0, 3)
+        if idx:
+            self.V_idx = torch.cat([self.V_idx] + idx).contiguous()
+            self.V_val = torch.cat([self.V_val] + val).contiguous()
+
+    def _region_with_uv(self, region: str, what: str) -> int:
+        if self.scene is None:
+            raise RuntimeError(f"call precompute(scene) before {what}()")
+        if self.config["shading"] != "pixel":
+            raise ValueError(f"{what} needs shading='pixel' (textures are looked up per G-buffer sample)")
+        if region not in self.scene.regions:
+            raise ValueError(f"unknown region {region!r}; regions: {self.scene.regions}")
+        r = self.scene.regions.index(region)
+        faces = torch.as_tensor(self.scene.geometry().face_region).cpu() == r
+        if self.face_uv is None or not bool(self.face_uv[faces].all()):
+            raise ValueError(f"region {region!r} has no UV map on every shape: {what} needs one")
+        return r
+
+    @staticmethod
+    def _texture(name: str, t, *, unit: bool) -> Tensor:
+        t = torch.as_tensor(t)
+        if t.ndim != 2 or t.shape[0] < 1 or t.shape[1] < 1:
+            raise ValueError(f"{name} must be a 2-D (H, W) tensor, got shape {tuple(t.shape)}")
+        if not t.is_floating_point():
+            t = t.float()
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{name} must be finite")
+        if unit and (t.min() < 0 or t.max() > 1):
+            raise ValueError(f"{name} must lie in [0, 1], got [{t.min().item()}, {t.max().item()}]")
+        return t.detach().float().cpu().contiguous()
+
+    def set_blend(self, region: str, material_b, weight) -> float:
+        """Spatially varying BRDF (Ma 2006 §5, "a composition of multiple BRDFs"): in ``region``,
+        ρ̃ = (1 − w) ρ̃_a + w ρ̃_b with ρ̃_a the region's material, ρ̃_b ``material_b``'s table and
+        w = ``weight`` (H, W) in [0, 1] looked up bilinearly at the sample's UV (`textures`
+        convention). Linear in the coefficients, so it is the exact table of the mixed BRDF.
+        ``weight=None`` removes the blend. Builds material b's table; returns its seconds."""
+        self._region_with_uv(region, "set_blend")
+        if weight is None:
+            self.blends.pop(region, None)
+            return 0.0
+        w = self._texture("weight", weight, unit=True)
+        self._check_material(region, material_b)
+        t0 = time.perf_counter()
+        idx, val = self.build_table(material_b)
+        self.blends[region] = (material_b, idx, val, w)
+        return time.perf_counter() - t0
+
+    def set_bump(self, region: str, height, scale: float = 1.0) -> None:
+        """Bump map (Ma 2006 §5: "rotate the lighting by the perturbed normal"): the shading normal
+        of ``region``'s samples is perturbed by the gradient of ``height`` (H, W) over UV times
+        ``scale`` (`textures.perturb_normals`); L and ρ̃ are taken in the perturbed frame, V stays in
+        the geometric frames. ``height=None`` removes the bump."""
+        self._region_with_uv(region, "set_bump")
+        if height is None:
+            self.bumps.pop(region, None)
+            return
+        h = self._texture("height", height, unit=False)
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale):
+            raise ValueError(f"scale must be a finite number, got {scale!r}")
+        self.bumps[region] = (h, float(scale))
+
+    def sample_uv(self, gbuffer: GBuffer) -> tuple[Tensor, Tensor]:
+        """UV (P, 2) of every G-buffer sample and ok (P,) bool (hit on a shape with a UV map)."""
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before sample_uv()")
+        P = gbuffer.num_samples
+        if self.uv is None:
+            return torch.zeros(P, 2), torch.zeros(P, dtype=torch.bool)
+        ok = gbuffer.hit & self.face_uv[gbuffer.face.clamp_min(0)]
+        return gbuffer.interpolate(self.uv, self.F), ok
+
+    def shading_normals(self, gbuffer: GBuffer) -> Tensor:
+        """Unit shading normals (P, 3) of the G-buffer samples with every region's bump map applied
+        (the frame pixel shading uses for L and ρ̃; also what an oracle must shade with to compare)."""
+        n = torch.nn.functional.normalize(gbuffer.normal.float(), dim=-1)
+        if not self.bumps:
+            return n
+        uv, ok = self.sample_uv(gbuffer)
+        n = n.clone()
+        for region, (h, scale) in self.bumps.items():
+            m = ok & (gbuffer.region == self.scene.regions.index(region))
+            if m.any():
+                f = gbuffer.face[m]
+                g = tx.bilinear_gradient(h, uv[m])
+                n[m] = tx.perturb_normals(n[m], self.dpdu[f], self.dpdv[f], g, scale)
+        return n
+
+    def blend_weights(self, gbuffer: GBuffer) -> Tensor:
+        """SBRDF weight w (P,) of every G-buffer sample (0 outside blended regions)."""
+        w = torch.zeros(gbuffer.num_samples)
+        if not self.blends:
+            return w
+        uv, ok = self.sample_uv(gbuffer)
+        for region, (_, _, _, wt) in self.blends.items():
+            m = ok & (gbuffer.region == self.scene.regions.index(region))
+            if m.any():
+                w[m] = tx.bilinear(wt, uv[m])
+        return w
+
+    def _visibility_rows(self, s: Tensor, gbuffer: GBuffer, uv: Tensor, vrows: Tensor,
+                         vw: Tensor) -> tuple[Tensor, Tensor]:
+        """Visibility blend rows/weights (B, 4) of samples s (B,): the bilinear texel taps of the
+        visibility texture where one covers the sample (uncovered / foreign-chart taps dropped and
+        the rest renormalised), else the 3 vertices of its triangle (+ a zero-weight 4th row)."""
+        rows = torch.cat([vrows, vrows[:, :1]], 1)
+        w = torch.cat([vw, torch.zeros_like(vw[:, :1])], 1)
+        f = gbuffer.face[s]
+        slot = self.face_tex[f]
+        use = torch.nonzero(slot >= 0, as_tuple=False).squeeze(-1)
+        if use.numel() == 0:
+            return rows, w
+        res = self.config["vis_texture"]
+        taps, tw = tx.bilinear_taps(uv[use], res, res)                   # (U, 4)
+        trow = self.tex_rows[slot[use][:, None], taps].long()            # (U, 4), −1 uncovered
+        r = (trow - self.n_vertex_rows).clamp_min(0)
+        fu = f[use]
+        reach = VIS_TEX_REACH * (self.dpdu[fu].norm(dim=-1) + self.dpdv[fu].norm(dim=-1)) / res
+        dist = (self.tex_pos[r] - gbuffer.position[s][use][:, None, :].float()).norm(dim=-1)
+        n = gbuffer.normal[s][use].float()
+        valid = (trow >= 0) & (dist <= reach[:, None] + 1e-6) & ((self.tex_nrm[r] * n[:, None, :]).sum(-1) > 0)
+        tw = torch.where(valid, tw.float(), torch.zeros_like(tw, dtype=torch.float32))
+        tot = tw.sum(1)
+        good = tot > 0
+        u = use[good]
+        rows[u] = torch.where(valid[good], trow[good], torch.zeros_like(trow[good]))
+        w[u] = (tw[good] / tot[good, None]).to(w.dtype)
+        return rows, w
+
+    def visibility_blend(self, gbuffer: GBuffer) -> tuple[Tensor, Tensor]:
+        """Rows into the visibility table (V_idx, V_val) and weights, (P, 4) each, that pixel shading
+        blends for every G-buffer sample (texel taps or the triangle's vertices; 0 on misses)."""
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before visibility_blend()")
+        vidx, vw = gbuffer.vertex_weights(self.F)
+        if self.tex_rows is None or self.tex_rows.shape[0] == 0:
+            return torch.cat([vidx, vidx[:, :1]], 1), torch.cat([vw, torch.zeros_like(vw[:, :1])], 1)
+        s = torch.arange(gbuffer.num_samples)
+        rows, w = self._visibility_rows(s, gbuffer, self.sample_uv(gbuffer)[0], vidx, vw)
+        return rows, torch.where(gbuffer.hit[:, None], w, torch.zeros_like(w))
+
+    def _shade_blend(self, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+                     mix: Tensor) -> Tensor:
+        """`_shade` with the SBRDF blend (Ma 2006 §5): ρ̃ = (1 − mix) ρ̃_a + mix ρ̃_b in the blended
+        regions; mix (B,) → (B, 3)."""
+        wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
+        L = self.lighting_at(R)                                          # (B, 3, K)
+        Vd = blend_sparse(self.V_idx, self.V_val, vrows, vw, self.K)      # (B, K)
+        rho = self.brdf_at(region, wo_l)                                  # (B, 3, K)
+        rows, w = bt.outgoing_weights(wo_l, self.outgoing)
+        for name, (_, idx, val, _) in self.blends.items():
+            m = region == self.scene.regions.index(name)
+            if m.any():
+                a = mix[m][:, None, None].to(rho.dtype)
+                rho[m] = (1 - a) * rho[m] + a * blend_sparse(idx, val, rows[m], w[m], self.K)
+        return triple_integral(L, Vd[:, None, :], rho)                   # Ma 2006 eq. 7
+
     # -- render --------------------------------------------------------------------------------
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         if self.scene is None:
@@ -281,18 +541,42 @@ class TripleProduct(Method):
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             vidx, vw = gbuffer.vertex_weights(self.F)
+            normals = self.shading_normals(gbuffer)                     # bump maps applied
+            mix = self.blend_weights(gbuffer)
+            textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
+            uv = self.sample_uv(gbuffer)[0] if textured else None
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
-                n = torch.nn.functional.normalize(gbuffer.normal[s].float(), dim=-1)
-                R = lt.local_frames(n, self.config["tangent"])
-                out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], vidx[s], vw[s])
+                R = lt.local_frames(normals[s], self.config["tangent"])
+                rows, w = vidx[s], vw[s]
+                if textured:
+                    rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
+                if self.blends:
+                    out[s] = self._shade_blend(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w, mix[s])
+                else:
+                    out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w)
         return gbuffer.resolve(out)
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:
-        mem = {"visibility_idx": tensor_bytes(self.V_idx), "visibility_val": tensor_bytes(self.V_val),
+        nv = self.n_vertex_rows
+        vi = None if self.V_idx is None else self.V_idx[:nv]
+        vv = None if self.V_val is None else self.V_val[:nv]
+        mem = {"visibility_idx": tensor_bytes(vi), "visibility_val": tensor_bytes(vv),
                "frames": tensor_bytes(self.R),
                "lighting_idx": tensor_bytes(self.L_idx), "lighting_val": tensor_bytes(self.L_val)}
         for region, (i, v) in self.tables.items():
             mem[f"brdf[{region}]"] = tensor_bytes(i, v)
+        if self.tex_rows is not None:  # visibility textures (Ma 2006 §3.3)
+            mem["vis_texture_idx"] = tensor_bytes(self.V_idx[nv:])
+            mem["vis_texture_val"] = tensor_bytes(self.V_val[nv:])
+            mem["vis_texture_map"] = tensor_bytes(self.tex_rows, self.face_tex)
+            mem["vis_texture_points"] = tensor_bytes(self.tex_pos, self.tex_nrm)
+        for region, (_, i, v, w) in self.blends.items():
+            mem[f"brdf_b[{region}]"] = tensor_bytes(i, v)
+            mem[f"blend_weight[{region}]"] = tensor_bytes(w)
+        for region, (h, _) in self.bumps.items():
+            mem[f"bump_height[{region}]"] = tensor_bytes(h)
+        if self.uv is not None and (self.tex_rows is not None or self.blends or self.bumps):
+            mem["uv"] = tensor_bytes(self.uv, self.face_uv, self.dpdu, self.dpdv)
         return mem

@@ -1,5 +1,6 @@
 """Precomputation pieces of the local-frame triple product (Ma 2006 §3.2, §4.1): per-vertex
-local-frame visibility V^x on the geodesic grid, and coefficient truncation (§4.1, Figs. 7–8).
+local-frame visibility V^x on the geodesic grid, coefficient truncation (§4.1, Figs. 7–8), and the
+surface samples of visibility textures (§3.3, `texel_points`).
 
 Truncation keeps n coefficients per function:
 * ``"adaptive"``: the n largest *area-weighted* magnitudes |c_k|·A_k (A_k = support area of Ψ_k
@@ -18,6 +19,9 @@ from methods.core.spherical_haar import Geodesic, keep_largest, support_areas
 from methods.core.visibility import Visibility, offset_origins
 
 SELECTIONS = ("adaptive", "top")
+# Interpolated normals shorter than this (opposite vertex normals) fall back to the face normal,
+# as in `references.gbuffer`.
+NORMAL_EPS = 1e-12
 
 
 def visibility_coeffs(vis: Visibility, points: Tensor, normals: Tensor, R: Tensor, geo: Geodesic, *,
@@ -111,3 +115,42 @@ def blend_sparse(idx: Tensor, val: Tensor, rows: Tensor, w: Tensor, K: int) -> T
     vv = (val[rows] * w[..., None, None].to(val.dtype)).permute(0, 2, 1, 3).reshape(B, C, k * n)
     return torch.zeros(B, C, K, dtype=val.dtype, device=val.device).scatter_add_(
         2, ii[:, None, :].expand(B, C, k * n), vv)
+
+
+def texel_points(V: Tensor, N: Tensor, F: Tensor, uv: Tensor, res: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Surface samples of a res×res visibility texture over one shape's UV map (Ma 2006 §3.3:
+    "for each texel of this map we find its corresponding position on the surface of the 3D mesh").
+
+    The shape's triangles are rasterised in UV space (`textures.rasterize_uv`); every covered texel
+    centre gives a 3-D point (barycentric interpolation of V) and a unit normal (normalised
+    interpolation of N, the shading normal the G-buffer uses).
+
+    Args:
+        V (N, 3), N (N, 3) vertex positions and unit normals; F (M, 3) the shape's faces (indices
+        into V); uv (N, 2) vertex UVs; res: texels per side.
+    Returns:
+        texel (T,) int64 flat texel indices (i·res + j) of the covered texels, face (T,) int64 local
+        face index, points (T, 3) and normals (T, 3) float32.
+    """
+    from methods.triple_product.textures import rasterize_uv
+
+    if V.ndim != 2 or V.shape[1] != 3 or N.shape != V.shape or uv.shape != (V.shape[0], 2):
+        raise ValueError(f"V, N (N, 3) and uv (N, 2) expected, got {tuple(V.shape)}, {tuple(N.shape)}, "
+                         f"{tuple(uv.shape)}")
+    if isinstance(res, bool) or not isinstance(res, int) or res < 1:
+        raise ValueError(f"res must be an int >= 1, got {res!r}")
+    face, bary = rasterize_uv(uv, F, res, res)
+    texel = torch.nonzero(face >= 0, as_tuple=False).squeeze(-1)
+    f = face[texel]
+    b = bary[texel].double()
+    w = torch.stack([1 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], -1)           # (T, 3)
+    idx = F[f]
+    pts = (V.double()[idx] * w[..., None]).sum(1)
+    n = (N.double()[idx] * w[..., None]).sum(1)
+    P = V.double()[idx]
+    ng = torch.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], dim=-1)  # fallback: geometric normal
+    ng = torch.where(((ng * n).sum(-1, keepdim=True) < 0), -ng, ng)
+    ln = n.norm(dim=-1, keepdim=True)
+    ng = ng / ng.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    nrm = torch.where(ln > NORMAL_EPS, n / ln.clamp_min(NORMAL_EPS), ng)
+    return texel, f, pts.float(), nrm.float()
