@@ -432,7 +432,8 @@ class DirectTransport:
 
 def direct_transport(vis: Visibility, V: Tensor, normals: Tensor, factors: BasisFactors, *,
                      N: int = 32, n_L: int = 96, area_weighted: bool = True, coarse: int = 0,
-                     chunk: int = 128, progress: bool | None = None) -> DirectTransport:
+                     chunk: int = 128, progress: bool | None = None,
+                     visibility_hook: Any = None) -> DirectTransport:
     """T̃⁰_x(ω, k) = U^{ωi}(ω_local, k)(ω·n_x)V_x(ω) per vertex, Haar, keep n_L largest per k.
 
     Args:
@@ -442,6 +443,9 @@ def direct_transport(vis: Visibility, V: Tensor, normals: Tensor, factors: Basis
         N: cube-map face resolution (paper 64); n_L: coefficients kept per (vertex, k) (paper 96).
         area_weighted: select by |c|·support area (Ng 2003 §5, as the paper) instead of |c|.
         coarse: also return the untruncated coarse block 6×coarse×coarse (0 = none).
+        visibility_hook: optional callable ``hook(a, b, vis)`` receiving each chunk's traced
+            visibility, vertices a:b, vis (b − a, 6N²) bool (flat face, row, col; directions below
+            the vertex's horizon False) — lets callers reuse the rays (``methods.ptt.specular``).
     Returns:
         `DirectTransport`.
     """
@@ -467,6 +471,8 @@ def direct_transport(vis: Visibility, V: Tensor, normals: Tensor, factors: Basis
     for a in tqdm(range(0, nv, chunk), disable=not progress, desc="direct transport", unit="chunk"):
         b = min(nv, a + chunk)
         vb = vertex_visibility(vis, V[a:b], normals[a:b], dirs, below_horizon="hide", progress=False)  # (c, T)
+        if visibility_hook is not None:
+            visibility_hook(a, b, vb)
         loc = to_local(dirs[None].expand(b - a, -1, 3), normals[a:b, None, :].expand(-1, dirs.shape[0], 3))
         Uc = factors.Ucos(loc)  # (c, T, K) U^{ωi}(ω_local, k)(ω·n_x)
         t = Uc * (vb.float() * omega)[..., None]  # ∫_texel T̃⁰ dω
