@@ -32,8 +32,12 @@ adds Σ_k a_k(H, θo)[E^(k)(R) V_c^(k)(x, R) + max(0, n·R) L1^(k)(R)] per sampl
 Light reflected by a *hit point's* separated lobe is missing from the bounce tensors (they are built
 from f_r), and the two-bounce radiance is not applied to the lobes (as the paper).
 
-Not (yet) here, and why: the Tucker BRDF tensor of ``methods.ptt.brdf_tensor`` (eq. 2) is not
-used — the shading factors come from the BRDF basis itself (`transport.factor_basis`);
+BRDF factorization (eq. 2–3): the shading factors come from the BRDF basis itself
+(`transport.factor_basis`): a Tucker factorization whose h mode is the basis (H = the region's
+coordinates, the role of U^h(H, ·)), ωi mode of rank ``n_wi`` and ωo mode of rank ``n_wo`` (None =
+untruncated table). The sampled-BRDF-space tensor of ``methods.ptt.brdf_tensor`` (Fig. 5, the n_h
+study) is not what renders: its h mode indexes BRDF samples that H maps onto only through the
+PCA basis, which is the basis here;
 compression (§4.3 CPCA + clustered tensor approximation) is ``methods.ptt.compress`` (optional,
 ``compress=``; T² is kept dense).
 """
@@ -59,7 +63,7 @@ RENDER_CHUNK = 1 << 15
 
 # Paper settings (Sun 2007 §4.3): 6×64×64 cube map, n_L = 96, n_ωi = 8, one-bounce lighting 6×8×8,
 # two-bounce 6×2×2, 4th-order SH.
-PAPER = dict(cube_res=64, n_L=96, n_wi=8, light_res_1=8, light_res_2=2, sh_order=4, separate=True,
+PAPER = dict(cube_res=64, n_L=96, n_wi=8, n_wo=8, light_res_1=8, light_res_2=2, sh_order=4, separate=True,
              lobe_degrees=[0.0, 7.0, 14.0, 21.0])
 
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
@@ -90,6 +94,8 @@ class PTT(Method):
             for `transport.scene_basis` (Lambert + the scene's specular lobes; other BRDFs of the
             same families are least-squares fitted).
         n_wi: K incident factors of the shading factorization (paper 8).
+        n_wo: rank of its view mode (paper 8; None = full table resolution): the Tucker form of
+            Sun eq. 2–3 with the h mode = the basis (`transport.factor_basis`).
         brdf_grid, brdf_table: disk-grid resolutions of the factorization SVD and its look-up tables.
         cube_res: N of the 6×N×N direct-lighting cube map (paper 64); n_L: kept coefficients per k
             (paper 96); area_weighted: Ng 2003 area-weighted selection (paper).
@@ -126,7 +132,7 @@ class PTT(Method):
     def __init__(self, *, bounces: int = 2, basis: Any = None, n_wi: int = 16, brdf_grid: int = 24,
                  brdf_table: int = 48, cube_res: int = 32, n_L: int = 96, area_weighted: bool = True,
                  light_res_1: int = 8, light_res_2: int = 2, sh_order: int = 4, rays: int = 128,
-                 light_supersample: int = 2, seed: int = 0, compress: dict | None = None,
+                 light_supersample: int = 2, seed: int = 0, compress: dict | None = None, n_wo: int | None = None,
                  separate: bool = SEPARATE_DEFAULT, lobe_degrees: Any = _lobes.LOBE_DEGREES,
                  lobe_theta: int = 32, lobe_fit_samples: int = 16384, lobe_vis_res: int = 16,
                  lobe_vis_samples: int = 4096, env_res: int = 32) -> None:
@@ -152,6 +158,8 @@ class PTT(Method):
             for k, v in compress.items():
                 _check_int(f"compress[{k!r}]", v, 1)
             compress = dict(compress)
+        if n_wo is not None:
+            _check_int("n_wo", n_wo, 1)
         if not isinstance(separate, bool):
             raise ValueError(f"separate must be a bool, got {separate!r}")
         lobe_degrees = list(_spec.check_lobe_degrees(lobe_degrees))
@@ -167,7 +175,7 @@ class PTT(Method):
                          brdf_grid=brdf_grid, brdf_table=brdf_table, cube_res=cube_res, n_L=n_L,
                          area_weighted=bool(area_weighted), light_res_1=light_res_1,
                          light_res_2=light_res_2, sh_order=sh_order, rays=rays,
-                         light_supersample=light_supersample, seed=seed, compress=compress,
+                         light_supersample=light_supersample, seed=seed, compress=compress, n_wo=n_wo,
                          separate=separate, lobe_degrees=lobe_degrees, lobe_theta=lobe_theta,
                          lobe_fit_samples=lobe_fit_samples, lobe_vis_res=lobe_vis_res,
                          lobe_vis_samples=lobe_vis_samples, env_res=env_res)
@@ -207,7 +215,8 @@ class PTT(Method):
             self.lobe_table = _spec.fit_lobe_table(self.basis, c["lobe_degrees"], n_theta=c["lobe_theta"],
                                                    fit_samples=c["lobe_fit_samples"])
             factored = _spec.RemainderBasis(self.basis, self.lobe_table)
-        self.factors = _tp.factor_basis(factored, n_wi=c["n_wi"], grid=c["brdf_grid"], table=c["brdf_table"])
+        self.factors = _tp.factor_basis(factored, n_wi=c["n_wi"], grid=c["brdf_grid"], table=c["brdf_table"],
+                                        n_wo=c["n_wo"])
         t1 = time.perf_counter()
         vis = Visibility(self.V, self.F)
         N = c["cube_res"]

@@ -309,7 +309,7 @@ class BasisFactors:
 
 
 def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int = 48,
-                 cos_power: float = COS_POWER, dtype=torch.float32) -> BasisFactors:
+                 cos_power: float = COS_POWER, n_wo: int | None = None, dtype=torch.float32) -> BasisFactors:
     """Factor every basis BRDF with one shared incident factor (module docstring).
 
     Args:
@@ -317,10 +317,17 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
         n_wi: K, number of incident factors (paper n_{ωi} = 8).
         grid: disk-grid resolution of the SVD (grid² directions for ωi and for ωo).
         table: resolution of the look-up tables of U^{ωi} and W.
+        n_wo: None = the view mode at full table resolution; else the rank n_{ωo} of the view mode
+            (paper 8): W(p, ωo, k) ≈ Σ_j D(p, k, j) U^{ωo}(ωo, j), the best weighted-L2 rank-n_{ωo}
+            approximation over ωo of the (p, k) vectors (SVD on the grid with the same √dω·cos^γ
+            row weights): the three-mode Tucker form D ×_h H ×_{ωo} U^{ωo} ×_{ωi} U^{ωi} of Sun eq. 2–3
+            with the h mode = the basis. The truncated W is stored on the table (Q Qᵀ W).
     """
     for k, v in (("n_wi", n_wi), ("grid", grid), ("table", table)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{k} must be a positive int, got {v!r}")
+    if n_wo is not None and (isinstance(n_wo, bool) or not isinstance(n_wo, int) or n_wo < 1):
+        raise ValueError(f"n_wo must be a positive int or None, got {n_wo!r}")
     P = int(basis.n_P)
     d, w = disk_grid(grid)
     inside = w > 0
@@ -349,6 +356,11 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
     U_grid = coef.T @ M  # (K, D)
     Bt = basis.eval(d32[None, :, :].expand(td32.shape[0], D, 3), td32[:, None, :].expand(-1, D, 3)).double()  # (t, i, P)
     W_tab = torch.einsum("tip,i,ki->pkt", Bt, c * c, U_grid).reshape(P * K, T, T)
+    if n_wo is not None and n_wo < P * K:  # Sun eq. 2: rank-n_ωo view mode (docstring)
+        Wg = (U * S_k / a[:, None]).reshape(P, D, K).permute(1, 0, 2).reshape(D, P * K)  # W on the grid
+        _, _, Vh = torch.linalg.svd(Wg * (w.sqrt() * d[:, 2] ** cos_power)[:, None], full_matrices=False)
+        Q = Vh[:n_wo].T  # (P·K, n_ωo): D(p, k, j)
+        W_tab = (Q @ (Q.T @ W_tab.reshape(P * K, T * T))).reshape(P * K, T, T)
     return BasisFactors(U_tab.to(dtype), W_tab.to(dtype), S_k.to(dtype), captured, P)
 
 

@@ -68,6 +68,28 @@ def test_shared_factorization_converges_with_rank(basis):
     assert errs[2][0] < 0.05
 
 
+def test_view_mode_rank_is_a_tucker_truncation(basis):
+    """Sun eq. 2–3: with n_wo the view factor W(p, ωo, k) has rank n_wo over ωo (the (P·K) × T²
+    table matrix), n_wo = P·K or None is the untruncated factorization, and the BRDF error falls as
+    the rank grows (weighted by the same √dω cos^γ the SVD minimises)."""
+    full = tp.factor_basis(basis, n_wi=8, grid=16, table=32)
+    P, K = full.n_P, full.K
+    assert torch.equal(tp.factor_basis(basis, n_wi=8, grid=16, table=32, n_wo=P * K).W_tab, full.W_tab)
+    g = torch.Generator().manual_seed(1)
+    wo = torch.randn(3000, 3, generator=g, dtype=torch.float64); wo[:, 2] = wo[:, 2].abs()
+    wo = torch.nn.functional.normalize(wo, dim=-1)
+    ref = full.W(wo)
+    errs = []
+    for n in (1, 2, 4, 8):
+        f = tp.factor_basis(basis, n_wi=8, grid=16, table=32, n_wo=n)
+        s = torch.linalg.svdvals(f.W_tab.reshape(P * K, -1).double())
+        assert (s[n:] <= 1e-5 * s[0]).all(), (n, s[: n + 2])  # rank n over ωo
+        errs.append(float((f.W(wo) - ref).norm() / ref.norm()))
+    assert all(a > b for a, b in zip(errs, errs[1:])), errs
+    with pytest.raises(ValueError):
+        tp.factor_basis(basis, n_wo=0)
+
+
 def test_direct_incidence_is_the_texel_quadrature(factors):
     """With every coefficient kept, Σ_l C^L_l U^{I0}(l, k) = Σ_texels L̄ U(ω_loc, k)(ω·n)V Ω
     (Parseval for the orthonormal Haar basis) — checked against a direct texel sum, with a
