@@ -25,9 +25,11 @@ Render:
     own ωo (§3.3 second pseudocode), then eq. 7.
   * L look-up ``light_lookup``: "nearest", "trilinear" (8 grid frames) or "exact" (project the
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
-  * Tripling: the exact O(K)-per-point dense evaluation `spherical_haar.triple_integral` of the
-    truncated (zero-filled) vectors — numerically identical to visiting only the stored
-    coefficients (`triple_integral_sparse`), which is the GPU-friendly form of the paper.
+  * Tripling (``evaluator``): `perf.shade` — the blends kept as index/value lists, summed exactly
+    by the fine-value identity ("dense") or by visiting only the stored coefficients with the
+    three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
+    zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
+    size; the independent path the fast ones are tested against).
 
 UV-space extras (``shading="pixel"`` only; `textures` holds the pure functions and conventions):
   * visibility textures ``vis_texture`` = res (Ma 2006 §3.3): every shape with a UV map gets a
@@ -66,6 +68,7 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.core.visibility import Visibility
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
+from methods.triple_product import perf
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
@@ -109,7 +112,7 @@ class TripleProduct(Method):
                  shading: str = "pixel", brdf_dirs: tuple[int, int] = (8, 16),
                  frame_grid: tuple[int, int, int] = (17, 32, 1), tangent: str = "grid",
                  light_lookup: str = "trilinear", vis_supersample: int = 0, brdf_supersample: int = 2,
-                 light_supersample: int = 1, vis_texture: int | None = None,
+                 light_supersample: int = 1, vis_texture: int | None = None, evaluator: str = "auto",
                  progress: bool | None = None) -> None:
         """
         level: geodesic level L (K = 20·4^L coefficients per function; paper 4 = 5120).
@@ -124,6 +127,9 @@ class TripleProduct(Method):
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
         vis_texture: texels per side of the visibility texture of every shape with a UV map
             (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
+        evaluator: how eq. 7 is summed — "auto" | "dense" | "sparse" (`perf`: exact, fast) or
+            "reference" (zero-filled dense vectors through `spherical_haar.triple_integral`: the
+            independent slow path the fast ones are tested against). Same image to float32 rounding.
         """
         _int("level", level, 0)
         if level > 6:
@@ -143,13 +149,15 @@ class TripleProduct(Method):
                      ("light_supersample", light_supersample)):
             _int(k, v, 0)
         _int("vis_texture", vis_texture, 1, none_ok=True)
+        if evaluator not in perf.EVALUATORS:
+            raise ValueError(f"evaluator must be one of {perf.EVALUATORS}, got {evaluator!r}")
         if vis_texture is not None and shading != "pixel":
             raise ValueError("vis_texture needs shading='pixel' (textures are looked up per G-buffer sample)")
         super().__init__(level=level, n_coeffs=n_coeffs, selection=selection, shading=shading,
                          brdf_dirs=tuple(brdf_dirs), frame_grid=tuple(frame_grid), tangent=tangent,
                          light_lookup=light_lookup, vis_supersample=vis_supersample,
                          brdf_supersample=brdf_supersample, light_supersample=light_supersample,
-                         vis_texture=vis_texture)
+                         vis_texture=vis_texture, evaluator=evaluator)
         self.level = level
         self.K = 20 * 4 ** level
         self.outgoing = bd
@@ -297,13 +305,25 @@ class TripleProduct(Method):
                 out[m] = blend_sparse(idx, val, rows[m], w[m], self.K)
         return out
 
-    def _shade(self, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor) -> Tensor:
+    def _shade(self, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+               mix: Tensor | None = None) -> Tensor:
         """Eq. 7 for B points: frames R (B, 3, 3), world ωo (B, 3), region (B,), visibility blend
-        rows/weights (B, k) into the vertex table → (B, 3)."""
+        rows/weights (B, k) into the visibility table, SBRDF weight mix (B,) or None → (B, 3).
+        ``evaluator`` "reference": the dense zero-filled path below; else `perf.shade` (exact, fast)."""
+        ev = self.config["evaluator"]
+        if ev != "reference":
+            return perf.shade(self, R, wo_world, region, vrows, vw, mix, evaluator=ev)
         wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
         L = self.lighting_at(R)                                          # (B, 3, K)
         Vd = blend_sparse(self.V_idx, self.V_val, vrows, vw, self.K)      # (B, K)
         rho = self.brdf_at(region, wo_l)                                  # (B, 3, K)
+        if mix is not None and self.blends:  # Ma 2006 §5 SBRDF: ρ̃ = (1 − w) ρ̃_a + w ρ̃_b
+            rows, w = bt.outgoing_weights(wo_l, self.outgoing)
+            for name, (_, idx, val, _) in self.blends.items():
+                m = region == self.scene.regions.index(name)
+                if m.any():
+                    a = mix[m][:, None, None].to(rho.dtype)
+                    rho[m] = (1 - a) * rho[m] + a * blend_sparse(idx, val, rows[m], w[m], self.K)
         return triple_integral(L, Vd[:, None, :], rho)                   # Ma 2006 eq. 7
 
 
@@ -502,22 +522,6 @@ class TripleProduct(Method):
         rows, w = self._visibility_rows(s, gbuffer, self.sample_uv(gbuffer)[0], vidx, vw)
         return rows, torch.where(gbuffer.hit[:, None], w, torch.zeros_like(w))
 
-    def _shade_blend(self, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-                     mix: Tensor) -> Tensor:
-        """`_shade` with the SBRDF blend (Ma 2006 §5): ρ̃ = (1 − mix) ρ̃_a + mix ρ̃_b in the blended
-        regions; mix (B,) → (B, 3)."""
-        wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
-        L = self.lighting_at(R)                                          # (B, 3, K)
-        Vd = blend_sparse(self.V_idx, self.V_val, vrows, vw, self.K)      # (B, K)
-        rho = self.brdf_at(region, wo_l)                                  # (B, 3, K)
-        rows, w = bt.outgoing_weights(wo_l, self.outgoing)
-        for name, (_, idx, val, _) in self.blends.items():
-            m = region == self.scene.regions.index(name)
-            if m.any():
-                a = mix[m][:, None, None].to(rho.dtype)
-                rho[m] = (1 - a) * rho[m] + a * blend_sparse(idx, val, rows[m], w[m], self.K)
-        return triple_integral(L, Vd[:, None, :], rho)                   # Ma 2006 eq. 7
-
     # -- render --------------------------------------------------------------------------------
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         if self.scene is None:
@@ -551,13 +555,15 @@ class TripleProduct(Method):
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
-                if self.blends:
-                    out[s] = self._shade_blend(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w, mix[s])
-                else:
-                    out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w)
+                out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
+                                     mix[s] if self.blends else None)
         return gbuffer.resolve(out)
 
     # -- bookkeeping ---------------------------------------------------------------------------
+    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
+        """Compulsory bytes of a frame of this kind (the roofline model of `perf.bytes_per_frame`)."""
+        return perf.bytes_per_frame(self, frame_kind)
+
     def memory(self) -> dict[str, int]:
         nv = self.n_vertex_rows
         vi = None if self.V_idx is None else self.V_idx[:nv]
