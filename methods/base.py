@@ -179,6 +179,14 @@ class Method(ABC):
     def memory(self) -> dict[str, int]:
         """Bytes of every array kept for run time, by name."""
 
+    def with_bounces(self, bounces: int) -> "Method":
+        """A method rendering exactly ``bounces`` indirect bounces, sharing this precomputation.
+        Methods with ``capabilities.max_bounces > 0`` must implement it (the harness calls it after
+        ``precompute`` with the cell's bounce count); raise ValueError for a count they cannot do."""
+        if bounces != 0 or self.capabilities.max_bounces > 0:
+            raise NotImplementedError(f"{type(self).__name__} does not implement with_bounces")
+        return self
+
     def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
         """Bytes a frame of this kind touches (for the roofline); None if unknown."""
         return None

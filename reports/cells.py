@@ -409,6 +409,10 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         if pre["cached"]:
             rows += [_row("precompute_cached", 1), _row("precompute_load_time", pre["load_seconds"])]
 
+    if method.capabilities.max_bounces > 0 and cell.bounces != FULL:
+        # one precomputation for every bounce count; the cell renders exactly cell.bounces
+        # (`Method.with_bounces`, e.g. Sun 2007 Fig. 11's direct / +1 / +2 columns)
+        method = method.with_bounces(cell.bounces)
     scored = set(cell.scored())
     times: list[float] = []
     errors: dict[str, list[tuple[float, float]]] = {}

@@ -192,6 +192,15 @@ class FakeGIMethod(FakeMethod):
     name = "fake_gi"
     capabilities = Capabilities(dynamic_brdf=True, max_bounces=1, brdfs=frozenset({"lambert"}))
 
+    def with_bounces(self, bounces: int) -> "FakeGIMethod":
+        if bounces > 1:
+            raise ValueError(f"at most 1 bounce, got {bounces}")
+        WITH_BOUNCES_CALLS.append(bounces)
+        return self
+
+
+WITH_BOUNCES_CALLS: list[int] = []
+
 
 @register
 class FakeCachedMethod(FakeMethod):

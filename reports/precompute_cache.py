@@ -21,6 +21,7 @@ parallel workers and killed runs never see half a file.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import pickle
@@ -39,11 +40,18 @@ def enabled(method: Any) -> bool:
     return bool(getattr(type(method), "cache_precompute", False)) and os.environ.get(ENV_OFF, "") in ("", "0")
 
 
-def cache_key(scene: Any, method: Any, config: str) -> str:
+@functools.lru_cache(maxsize=1)
+def _process_fingerprint() -> str:
+    """The code fingerprint once per process: the code a process runs is what it imported, so an
+    edit of the working tree during a run must not split one run's cells over two keys."""
     from reports.store import code_fingerprint
 
+    return code_fingerprint()
+
+
+def cache_key(scene: Any, method: Any, config: str) -> str:
     h = hashlib.sha256()
-    for part in (str(VERSION), scene.content_hash(), type(method).name, config, code_fingerprint(),
+    for part in (str(VERSION), scene.content_hash(), type(method).name, config, _process_fingerprint(),
                  torch.__version__):
         h.update(part.encode() + b"\0")
     return h.hexdigest()[:24]

@@ -56,7 +56,10 @@ SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "
 # machines: ``--executor dask --scheduler tcp://host:8786`` (reports/executors.py, README).
 NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VBL"), dynamic_kinds=("P",),
                 n_frames=5, score_frames=(1, 4), ref_spp=256, extra_bounces=(1, 2, FULL),
-                configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),),
+                configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),
+                         # one-bounce lighting 6×4×4 instead of 6×8×8: T¹ 0.75 GiB instead of 3 GiB on
+                         # chess (bench); measured on the Fig. 8 sweep (methods.ptt.study fig8)
+                         ("ptt", '{"light_res_1":4}')),
                 eq_err_spp=(32, 128, 256), isolate=False)
 SUITES = {"smoke": SMOKE, "nightly": NIGHTLY}
 

@@ -167,8 +167,10 @@ def test_plan_capability_matrix_and_bounces():
 
 def test_cell_scored_against_full_gi(tmp_path):
     c = _cell(method="fake_gi", bounces=1, kind="V", score_full_gi=True, eq_err_spp=())
+    fakes.WITH_BOUNCES_CALLS.clear()
     r = C.run_cell(c, tmp_path, progress=False)
     assert r.status == "ok", r.reason
+    assert fakes.WITH_BOUNCES_CALLS == [1]  # the method was told how many bounces to render
     same = {row["frame"]: row["value"] for row in r.rows if row["metric"] == "rmse"}
     full = {row["frame"]: row["value"] for row in r.rows if row["metric"] == "rmse_full_gi"}
     assert set(full) == set(same) and -1 in full
