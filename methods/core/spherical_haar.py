@@ -90,7 +90,8 @@ def _check_level(level: int) -> int:
     return int(level)
 
 
-def _level_of_size(K: int) -> int:
+def level_of_size(K: int) -> int:
+    """Level L of a coefficient vector of length K = 20·4^L (ValueError otherwise)."""
     L = 0
     while n_triangles(L) < K:
         L += 1
@@ -242,7 +243,7 @@ def forward(f_fine: Tensor) -> Tensor:
         (..., 20·4^L) coefficients; exact inverse `inverse`.
     """
     f_fine = torch.as_tensor(f_fine)
-    L = _level_of_size(f_fine.shape[-1])
+    L = level_of_size(f_fine.shape[-1])
     S = _signs(f_fine.dtype, f_fine.device)
     s = f_fine
     blocks = []
@@ -263,7 +264,7 @@ def scaling_pyramid(coeffs: Tensor) -> list[Tensor]:
         list of L+1 tensors (..., 20·4^l); the last one equals `inverse(coeffs)`.
     """
     coeffs = torch.as_tensor(coeffs)
-    L = _level_of_size(coeffs.shape[-1])
+    L = level_of_size(coeffs.shape[-1])
     S = _signs(coeffs.dtype, coeffs.device)
     s = coeffs[..., :20]
     out = [s]
@@ -355,7 +356,7 @@ def triple_integral(f: Tensor, g: Tensor, h: Tensor) -> Tensor:
         (...,) integrals.
     """
     f, g, h = torch.broadcast_tensors(torch.as_tensor(f), torch.as_tensor(g), torch.as_tensor(h))
-    L = _level_of_size(f.shape[-1])
+    L = level_of_size(f.shape[-1])
     pf, pg, ph = scaling_pyramid(f), scaling_pyramid(g), scaling_pyramid(h)
     out = (f[..., :20] * g[..., :20] * h[..., :20]).sum(-1)  # rule 1, A_0 = 1
     perms = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
@@ -403,7 +404,7 @@ def _ancestors(lvl: Tensor, node: Tensor, L: int, dtype) -> tuple[Tensor, Tensor
 
 
 @lru_cache(maxsize=16)
-def _structure(L: int):
+def coefficient_structure(L: int):
     """Per-coefficient tables for level L (CPU, cached): level (K,) (−1 = scaling), type (K,),
     ancestor indices (K, 1+3L) and their signs (K, 1+3L) (see `_ancestors`; all-zero rows for
     scaling functions, which have no coarser ancestors)."""
@@ -445,7 +446,7 @@ def triple_integral_sparse(a_idx: Tensor, a_val: Tensor, b_idx: Tensor, b_val: T
     if b_idx.shape[0] != B:
         raise ValueError(f"batch sizes differ: {B} vs {b_idx.shape[0]}")
     K = c.shape[-1]
-    L = _level_of_size(K)
+    L = level_of_size(K)
     if c.ndim == 1:
         c = c.unsqueeze(0)
     if c.ndim != 2 or c.shape[0] not in (1, B):
@@ -458,7 +459,7 @@ def triple_integral_sparse(a_idx: Tensor, a_val: Tensor, b_idx: Tensor, b_val: T
     zero = torch.zeros((), dtype=dt, device=c.device)
 
     # per-coefficient structure (independent of the values; tables cached per level)
-    lvl_t, typ_t, anc_t, sgn_t = (x.to(c.device) for x in _structure(L))
+    lvl_t, typ_t, anc_t, sgn_t = (x.to(c.device) for x in coefficient_structure(L))
     sgn_t = sgn_t.to(dt)
     lva, ta = lvl_t[a_idx], typ_t[a_idx]
     lvb = lvl_t[b_idx]

@@ -56,7 +56,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from methods.core.spherical_haar import _structure, n_triangles
+from methods.core.spherical_haar import coefficient_structure, level_of_size, n_triangles
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product.precompute import truncate
@@ -74,15 +74,6 @@ SPARSE_BREAK_EVEN = 12.0
 INNER_POINTS = 32
 
 SparseList = tuple[Tensor | None, Tensor]  # idx (B, m) int64, val (B, C, m); or (None, (B, C, K)) dense
-
-
-def _level_of(K: int) -> int:
-    L = 0
-    while n_triangles(L) < K:
-        L += 1
-    if n_triangles(L) != K:
-        raise ValueError(f"coefficient count {K} is not 20·4^L")
-    return L
 
 
 def _check_list(name: str, lst: SparseList, B: int | None = None, K: int | None = None) -> SparseList:
@@ -254,7 +245,7 @@ def fine_values(x: Tensor) -> Tensor:
     """`spherical_haar.inverse` with the sign matrix unrolled (child = s ± w0 ± w1 ± w2).
 
     Args: x (..., 20·4^L) coefficients. Returns (..., 20·4^L) fine values."""
-    L = _level_of(x.shape[-1])
+    L = level_of_size(x.shape[-1])
     s = x[..., :20]
     for l in range(L):
         lo = n_triangles(l)
@@ -299,7 +290,7 @@ def _blocked_inverse(level: int, device_type: str) -> Tensor:
 def fine_values_blocked(x: Tensor) -> Tensor:
     """Fine values (in the order ord_L, `blocked_order`) of coefficients x (..., K) in the blocked
     layout; each level is 8 contiguous block operations."""
-    L = _level_of(x.shape[-1])
+    L = level_of_size(x.shape[-1])
     s = x[..., :20]
     for l in range(L):
         lo = n_triangles(l)
@@ -355,13 +346,13 @@ def triple_dense(a: SparseList, b: SparseList, c: SparseList, K: int, *, K_eff: 
     Returns:
         (B, C_out) sums, C_out = max channels.
     """
-    _level_of(K)
+    level_of_size(K)
     B = a[1].shape[0]
     a, b, c = _check_list("a", a, B, K), _check_list("b", b, B, K), _check_list("c", c, B, K)
     Ke = _effective_size(a, b, c) if K_eff is None else K_eff
     if Ke > K or _round_size(Ke) != Ke:
         raise ValueError(f"K_eff = {Ke} must be 20·4^l ≤ K = {K}")
-    Le = _level_of(Ke)
+    Le = level_of_size(Ke)
     pos = blocked_order(Le).to(a[1].device)
     Cs = [x[1].shape[1] for x in (a, b, c)]
     dense = any(x[0] is None for x in (a, b, c))
@@ -386,11 +377,11 @@ def triple_dense(a: SparseList, b: SparseList, c: SparseList, K: int, *, K_eff: 
 @lru_cache(maxsize=8)
 def _tables(L: int, device_type: str):
     """Per-coefficient tables for the sparse evaluator at level L (cached):
-    anc (K, 1+3L) int64 ancestors and sgn (K, 1+3L) float32 signs (`spherical_haar._structure`),
+    anc (K, 1+3L) int64 ancestors and sgn (K, 1+3L) float32 signs (`spherical_haar.coefficient_structure`),
     sib (K, 2) int64 the other two wavelet types of the same triangle (self for scaling
     functions), m1 (K,) 1 for level-0 scaling functions else 0 (rule 1, A_0 = 1), mw (K,) A_l for
     wavelets else 0 (rules 2, 3)."""
-    lvl, typ, anc, sgn = _structure(L)
+    lvl, typ, anc, sgn = coefficient_structure(L)
     k = torch.arange(n_triangles(L))
     wav = lvl >= 0
     base = k - typ
@@ -415,7 +406,7 @@ def triple_sparse(a: SparseList, b: SparseList, c: SparseList, K: int) -> Tensor
     Returns:
         (B, C_out) sums, C_out = max channels.
     """
-    L = _level_of(K)
+    L = level_of_size(K)
     B = a[1].shape[0]
     a, b, c = _check_list("a", a, B, K), _check_list("b", b, B, K), _check_list("c", c, B, K)
     a, b, c = ((torch.arange(v.shape[2], device=v.device).expand(B, -1) if i is None else i, v)

@@ -76,7 +76,7 @@ def test_orthogonality_gram_matrix():
 
 
 def _quadrature_triple(f, g, h):
-    L = sh._level_of_size(f.shape[-1])
+    L = sh.level_of_size(f.shape[-1])
     return (sh.inverse(f) * sh.inverse(g) * sh.inverse(h)).sum(-1) * 0.25 ** L
 
 
