@@ -176,6 +176,13 @@ register_terms_contributor("triple_product", "methods.triple_product.study:terms
                            target_kind="relative RMS shading error vs all coefficients (level 4, sky_sun, V=1)")
 register_terms_contributor("zh_shadow", "methods.zh_shadow.study:terms_needed", target=0.99,
                            target_kind="energy fraction of the Phong lobe in order-n SH (n² terms)")
+# PTT: one curve without and one with Sun §4.1 lobe separation (the study plots one curve per name)
+register_terms_contributor("ptt", "methods.ptt.study:terms_needed", target=0.01,
+                           target_kind="relative squared error of the Blinn-Phong BRDF tensor "
+                                       "(1 BRDF, DiskGrid 32, n_wo = n_wi) -> n_wi")
+register_terms_contributor("ptt_separated", "methods.ptt.study:terms_needed_separated", target=0.01,
+                           target_kind="relative squared error of the Blinn-Phong BRDF tensor with Sun §4.1 "
+                                       "lobe separation (1 BRDF, DiskGrid 32) -> n_wi")
 
 
 # -- helpers ----------------------------------------------------------------------------------
@@ -421,3 +428,13 @@ def _save(fig, path: Path, plt) -> Path:
 register_study(Study("terms-vs-exponent",
                      "Terms needed vs Phong exponent (Mahajan 2008 Fig. 2, 3A, 5, 7C + every "
                      "registered method)", terms_vs_exponent))
+
+
+def _ptt_figures(out_dir: Path, *, quick: bool = False) -> list[Path]:
+    from methods.ptt.study import run_all  # noqa: PLC0415  (lazy: no method imported at load)
+
+    return run_all(out_dir, quick=quick)
+
+
+register_study(Study("ptt-figures", "Sun 2007 Fig. 8 (one-bounce lighting resolution), Figs. 9-10 "
+                     "(CPCA eigenvectors / lighting dimension), PTT terms vs shininess", _ptt_figures))

@@ -33,6 +33,9 @@ def test_builtin_registrations():
     assert "terms-vs-exponent" in S.STUDIES
     c = S.TERMS_CONTRIBUTORS["inout"]
     assert c.target == 0.99 and callable(c.resolve())
+    for name in ("triple_product", "zh_shadow", "ptt", "ptt_separated"):  # every method has a row
+        assert callable(S.TERMS_CONTRIBUTORS[name].resolve()), name
+    assert "ptt-figures" in S.STUDIES
 
 
 def test_register_and_run_study(tmp_path, clean_registries):

@@ -1,0 +1,738 @@
+"""Sun et al. 2007 figures as study outputs: Fig. 8 (lighting resolution of the one-bounce PTT),
+Figs. 9–10 (clustered tensor approximation of T¹: tensor error and rendered images vs eigenvectors
+/ lighting dimension), and PTT's row of the terms-vs-exponent study (`reports.studies`).
+
+Every figure is a function returning a ``pandas.DataFrame``; given ``out_dir`` it also writes
+``<fig>.csv`` and ``<fig>.png`` there. Command line (defaults sized for a 2-core machine)::
+
+    python -m methods.ptt.study fig8  --out DIR     # 5 precomputes, ≈ 30 s CPU
+    python -m methods.ptt.study fig9  --out DIR     # ≈ 12 s (tensor errors; --images: + a precompute a cell)
+    python -m methods.ptt.study fig10 --out DIR     # 9 precomputes, ≈ 35 s CPU
+    python -m methods.ptt.study terms --out DIR     # ≈ 13 s CPU (1.8 s per exponent)
+
+Image figures: scene ``alcove`` (test size), the first frame of its "V" sequence, a 2-spp
+G-buffer, PTT with ``BASE_CONFIG`` (the settings of ``tests/methods/ptt/test_method.py``), scored
+on the Mitsuba reference's coverage mask against `references.render.render_reference` with
+``bounces=1`` (direct + one bounce, the +1 column of Sun Fig. 11). "indirect" is the +1-bounce
+part alone: PTT ``with_bounces(1) − with_bounces(0)`` against Mitsuba ``bounces=1 − bounces=0``
+(same seeds, so the direct-lighting noise largely cancels; its own floor from the two halves).
+
+Terms-vs-exponent (Sun 2007 eq. 2, §4.1, §4.3): for Blinn–Phong shininess s the BRDF tensor of
+ONE material, F[h, ωo, ωi] with N_h = 1 (ks = 1, no cosine, `brdf_tensor.DiskGrid(TERMS_GRID_N)`
+for ωo and ωi), is Tucker-factorised with n_h = 1 and n_ωo = n_ωi = n_ω (§4.3 "we set n_ωo to be
+equal to n_ωi"; for N_h = 1 the truncated HOSVD is the rank-n_ω truncated SVD, the optimum). The
+reported terms are **n_ωi**: the number of incidence components E_x(k) every vertex carries at run
+time (eq. 3's k), i.e. what a shinier material costs per vertex. Error measure: Fig. 5's
+``rel_sq_err`` = ‖F − F̂‖²/‖F‖², F *unseparated*, F̂ = F_s + Tucker(F_r) with separation
+(`brdf_tensor.separate_tensor`, lobes 0°/7°/14°/21°; the lobes are stored beside the tensor —
+four per-vertex fractional visibilities — and are not counted in the terms; the note says so).
+Two contributors: ``ptt`` (no separation) and ``ptt_separated``.
+
+Measured 2026-11-22 (alcove/test: 1014 vertices, 1 cluster; ``BASE_CONFIG`` with the PTT's
+default separated lobes — numbers without them, measured earlier the same day, in brackets;
+256-spp references):
+
+* Fig. 8, n₁ = 1, 2, 4, 8, 16 (= cube_res, "full"): RMSE vs the full image 4.5e-3, 1.8e-3, 4.6e-4,
+  1.0e-4, 0 (19 %, 7.6 %, 1.9 %, 0.42 % of the mean indirect radiance 0.024) [4.6e-3 … 9.8e-5];
+  indirect part vs Mitsuba's 0.0078, 0.0064, 0.0061, 0.0061, 0.0061 (its floor 0.0048);
+  direct + 1 vs Mitsuba 0.0133, 0.0127, 0.0127, 0.0127, 0.0127 [0.0146 … 0.0140] (floor 0.0107).
+  The error flattens from 6×4×4 on; the paper calls 6×4×4 too low because of a caustic, which
+  alcove does not have.
+* Fig. 9 (n₁ = 8, L = 384): ‖T¹ − T̂¹‖²/‖T¹‖² at 32/64 (paper) 0.070 [0.073], 64/64 0.024
+  [0.028], full/64 1.6e-3 [2.2e-3], 32/full 0.069 [0.073], full/full 1e-15: along the lighting
+  axis the error saturates at m ≈ 32–64 for e <= 64.
+* Fig. 10 (n₁ = 8): image RMSE vs dense T¹ 8/64 3.5e-3, 16/64 2.3e-3, 32/16 1.3e-3, 32/32 1.2e-3,
+  32/64 1.2e-3, 32/96 1.2e-3, 64/64 8.5e-4, full 1.4e-8 [4.4e-3, 3.7e-3, 3.2e-3, 2.7e-3, 2.7e-3,
+  2.7e-3, 1.2e-3, 2e-8]; vs Mitsuba 0.0133 … 0.0126 (dense 0.0127): eigenvectors matter, lighting
+  dimensions >= 32 do not (Sun §4.3).
+* Terms (rel_sq_err <= 1 %), s = 1, 2, 4, 8, 16, 32, 64: n_ωi = 3, 3, 5, 7, 13, 24, 48 without
+  separation, 39, 47, 56, 66, 77, 86, 91 with it; at s = 256: 217 vs 56. The separated Gaussian
+  lobes (σ <= 7°) are narrower than every Blinn–Phong lobe of the ladder, so on it separation
+  leaves a narrow, high-rank remainder; it pays beyond s ≈ 128.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from methods.ptt.brdf_tensor import DiskGrid, separate_tensor
+from methods.ptt.lobes import LOBE_DEGREES
+
+__all__ = [
+    "BASE_CONFIG",
+    "FIG8_LIGHT_RES",
+    "FIG9_EIGENVECTORS",
+    "FIG9_LIGHT_DIMS",
+    "FIG10_COMBOS",
+    "REF_SPP",
+    "TERMS_EXPONENTS",
+    "TERMS_GRID_N",
+    "TERMS_TARGET",
+    "TERMS_TARGET_KIND",
+    "fig8_lighting_resolution",
+    "fig9_tensor_error",
+    "fig10_compression_images",
+    "tensor_error_curve",
+    "terms_needed",
+    "terms_needed_separated",
+    "terms_study",
+    "run_all",
+    "main",
+]
+
+# PTT settings of the image figures (those of tests/methods/ptt/test_method.py: 64 hemisphere rays,
+# 6×16×16 direct cube map; everything else the PTT defaults).
+BASE_CONFIG: dict[str, Any] = dict(rays=64, cube_res=16)
+# Mitsuba reference samples per pixel (the Fig. 11 test's; cached on disk after the first run).
+REF_SPP = 256
+# G-buffer samples per pixel for the image figures.
+GBUFFER_SPP = 2
+
+# Sun 2007 Fig. 8 shows 6×4×4, 6×8×8, 6×16×16; we add 1 and 2 to see where the error flattens.
+FIG8_LIGHT_RES: tuple[int, ...] = (1, 2, 4, 8)
+# Fig. 9 axes (None = full rank: every vertex of a cluster / every lighting coefficient).
+FIG9_EIGENVECTORS: tuple[int | None, ...] = (1, 4, 8, 16, 32, 64, 128, None)
+FIG9_LIGHT_DIMS: tuple[int | None, ...] = (1, 4, 8, 16, 32, 64, 96, 128, None)
+# Sun 2007 Fig. 10: eigenvectors / lighting dimension 8/64, 16/64, 32/16, 32/32, 32/64, 32/96,
+# 64/64, ground truth (= full rank here: must reproduce the dense image).
+FIG10_COMBOS: tuple[tuple[int | None, int | None], ...] = (
+    (8, 64), (16, 64), (32, 16), (32, 32), (32, 64), (32, 96), (64, 64), (None, None))
+
+# Lower clip of log-scale error plots (full-rank errors are float round-off).
+PLOT_FLOOR = 1e-6
+
+# Terms-vs-exponent: the study's Blinn–Phong ladder (reports.studies.TermsStudyConfig.table_exponents),
+# the disk grid (812 directions; the counts at s <= 128 change by <= 1-2 terms at 48, 1804 directions),
+# and the accuracy target (relative squared error 1 % = 10 % relative Frobenius error).
+TERMS_EXPONENTS: tuple[float, ...] = (1, 2, 4, 8, 16, 32, 64)
+TERMS_GRID_N = 32
+TERMS_TARGET = 0.01
+TERMS_TARGET_KIND = ("relative squared error ||F-F^||^2/||F||^2 of the Blinn-Phong BRDF tensor "
+                     f"(1 BRDF, DiskGrid {TERMS_GRID_N}, n_wo = n_wi) -> n_wi")
+
+
+# -- shared set-up of the image figures --------------------------------------------------------
+
+
+@dataclass
+class _Setup:
+    scene: Any
+    frame: Any
+    gbuffer: Any
+    ref0: Any      # references.render.Reference, bounces=0
+    ref1: Any      # bounces=1
+    mask: Tensor   # (H, W) bool: reference coverage & G-buffer coverage
+    indirect_floor: float
+
+
+def _setup(scene_name: str, size: str, spp: int, seed: int = 0) -> _Setup:
+    """Scene, first "V" frame, 2-spp G-buffer, Mitsuba references (0 and 1 bounce) and mask."""
+    from references.gbuffer import make_gbuffer
+    from references.metrics import rmse
+    from references.render import render_reference
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    _check_pos("spp", spp)
+    scene = get_scene(scene_name, size)
+    frame = make_sequence(scene, "V", n_frames=1, seed=seed)[0]
+    gb = make_gbuffer(scene, frame, GBUFFER_SPP)
+    r0 = render_reference(scene, frame, bounces=0, spp=spp, seed=seed)
+    r1 = render_reference(scene, frame, bounces=1, spp=spp, seed=seed)
+    mask = r0.coverage & gb.coverage
+    # noise floor of the indirect reference r1 − r0 from its two independent halves
+    floor = rmse(r1.half_a - r0.half_a, r1.half_b - r0.half_b, mask) / 2
+    return _Setup(scene, frame, gb, r0, r1, mask, floor)
+
+
+def _check_pos(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name} must be a positive int, got {v!r}")
+    return v
+
+
+def _ptt(scene, **config):
+    """A precomputed one-bounce PTT (public constructor + precompute only)."""
+    from methods.ptt.method import PTT
+
+    cfg = dict(BASE_CONFIG, bounces=1, **config)
+    m = PTT(**cfg)
+    t = time.perf_counter()
+    m.precompute(scene)
+    return m, time.perf_counter() - t
+
+
+def _images(m, st: _Setup) -> tuple[Tensor, Tensor]:
+    """(direct image, direct + one-bounce image), each (H, W, 3)."""
+    return m.with_bounces(0).render(st.frame, st.gbuffer), m.with_bounces(1).render(st.frame, st.gbuffer)
+
+
+def _mean(img, mask) -> float:
+    return float(img[torch.as_tensor(mask)].mean())
+
+
+def _default_clusters(n_vertices: int) -> int:
+    """Sun 2007 §4.3: "about one cluster per 1000 vertices"."""
+    return max(1, round(n_vertices / 1000))
+
+
+def _ptt_setting(config: dict, name: str) -> Any:
+    """A PTT keyword's value in BASE_CONFIG + config, else the constructor's default."""
+    import inspect
+
+    from methods.ptt.method import PTT
+
+    cfg = dict(BASE_CONFIG, **config)
+    return cfg[name] if name in cfg else inspect.signature(PTT).parameters[name].default
+
+
+def _resolve_light_res(light_res_1: int, config: dict) -> dict:
+    """config + light_res_1 (<= cube_res) and light_res_2 lowered to it if needed (PTT needs
+    light_res_2 <= light_res_1 even for one bounce)."""
+    cube = _ptt_setting(config, "cube_res")
+    if light_res_1 > cube:
+        raise ValueError(f"light_res_1 ({light_res_1}) must be <= cube_res ({cube})")
+    return dict(config, light_res_1=light_res_1, light_res_2=min(_ptt_setting(config, "light_res_2"), light_res_1))
+
+
+# -- Fig. 8 -------------------------------------------------------------------------------------
+
+
+def fig8_lighting_resolution(scene: str = "alcove", size: str = "test", *,
+                             light_res: Sequence[int] = FIG8_LIGHT_RES, full: bool = True,
+                             spp: int = REF_SPP, config: dict | None = None,
+                             out_dir: str | Path | None = None, progress: bool = False):
+    """Sun 2007 Fig. 8: the one-bounce image as the PTT's lighting resolution 6×n₁×n₁ grows.
+
+    Args:
+        scene, size: `scenes.library.get_scene` arguments.
+        light_res: n₁ values (``light_res_1``; powers of two <= cube_res).
+        full: also n₁ = cube_res (the "full" one-bounce lighting, no down-sampling) and report every
+            row's error against it.
+        spp: Mitsuba reference spp; config: extra PTT keyword arguments (over ``BASE_CONFIG``).
+        out_dir: if given, write ``fig8.csv``, ``fig8.png`` (errors vs n₁) and ``fig8_images.png``
+            (the indirect part per n₁, as the paper's figure).
+    Returns:
+        DataFrame, one row per n₁: light_res_1, L (= 6 n₁²), rmse_vs_ref (direct + 1 bounce vs
+        Mitsuba bounces=1), rmse_indirect_vs_ref (indirect part vs Mitsuba's), rmse_vs_full
+        (vs the n₁ = cube_res image; NaN without ``full``), rel_vs_full (rmse_vs_full / mean
+        indirect radiance of the full image), indirect_mean, ref_indirect_mean, ref_floor (noise
+        floor of the 1-bounce reference), indirect_floor, T1_bytes, precompute_s.
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    from references.metrics import rmse
+
+    config = dict(config or {})
+    if not light_res:
+        raise ValueError("light_res must be non-empty")
+    for n in light_res:
+        if _check_pos("light_res", n) & (n - 1):
+            raise ValueError(f"light_res values must be powers of two, got {n}")
+        _resolve_light_res(n, config)  # <= cube_res
+    cube = _ptt_setting(config, "cube_res")
+    res = sorted(set(light_res) | ({cube} if full else set()))
+    st = _setup(scene, size, spp)
+    ind_ref = st.ref1.image - st.ref0.image
+    out = {}
+    for n in tqdm(res, desc="fig8", disable=not progress):
+        m, pre = _ptt(st.scene, **_resolve_light_res(n, config))
+        i0, i1 = _images(m, st)
+        out[n] = (i0, i1, pre, int(m.memory().get("T1", 0)))
+        del m
+    full_img = out[cube][1] if full else None
+    full_ind = (out[cube][1] - out[cube][0]) if full else None
+    rows = []
+    for n in res:
+        i0, i1, pre, nbytes = out[n]
+        ind = i1 - i0
+        rows.append(dict(
+            scene=scene, size=size, light_res_1=n, L=6 * n * n, full=bool(full and n == cube),
+            rmse_vs_ref=rmse(i1, st.ref1.image, st.mask),
+            rmse_indirect_vs_ref=rmse(ind, ind_ref, st.mask),
+            rmse_vs_full=rmse(i1, full_img, st.mask) if full else math.nan,
+            rel_vs_full=(rmse(i1, full_img, st.mask) / _mean(full_ind, st.mask)) if full else math.nan,
+            indirect_mean=_mean(ind, st.mask), ref_indirect_mean=_mean(ind_ref, st.mask),
+            ref_floor=st.ref1.noise_floor, indirect_floor=st.indirect_floor,
+            T1_bytes=nbytes, precompute_s=pre))
+    df = pd.DataFrame(rows)
+    if out_dir is not None:
+        od = _outdir(out_dir)
+        df.to_csv(od / "fig8.csv", index=False)
+        _plot_fig8(df, od / "fig8.png")
+        tiles = [(f"6x{n}x{n}" + (" (full)" if full and n == cube else ""), out[n][1] - out[n][0]) for n in res]
+        tiles.append(("Mitsuba (1 bounce - direct)", ind_ref))
+        _montage(tiles, od / "fig8_images.png", title="Sun 2007 Fig. 8: one-bounce part vs lighting resolution",
+                 scale=0.5 / max(_mean(ind_ref, st.mask), 1e-6))
+    return df
+
+
+def _plot_fig8(df, path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    x = df["light_res_1"]
+    ax.plot(x, df["rmse_vs_ref"], "o-", label="direct+1 vs Mitsuba 1-bounce")
+    ax.plot(x, df["rmse_indirect_vs_ref"], "s-", label="indirect part vs Mitsuba's")
+    if df["rmse_vs_full"].notna().any():
+        d = df[df["rmse_vs_full"] > 0]
+        ax.plot(d["light_res_1"], d["rmse_vs_full"], "^-", label="vs full lighting (n1 = cube_res)")
+    ax.axhline(df["ref_floor"].iloc[0], color="gray", ls=":", label="1-bounce reference noise floor")
+    ax.axhline(df["indirect_floor"].iloc[0], color="gray", ls="--", label="indirect reference noise floor")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("one-bounce lighting resolution n1 (6 x n1 x n1)")
+    ax.set_ylabel("RMSE")
+    ax.set_title(f"Sun 2007 Fig. 8 — {df['scene'].iloc[0]}/{df['size'].iloc[0]}")
+    ax.legend(fontsize=7)
+    _save(fig, path, plt)
+
+
+# -- Figs. 9 and 10 -------------------------------------------------------------------------------
+
+
+def _dense_T1(m) -> Tensor:
+    """The dense one-bounce PTT of a precomputed PTT, flattened to (V, R·P·S, L)."""
+    T1 = getattr(m, "T1", None)
+    if T1 is None or T1.ndim != 5:
+        raise ValueError("the PTT has no dense (V, R, P, S, L) T1 (precompute with bounces >= 1, no compress)")
+    V, R, P, S, L = T1.shape
+    return T1.reshape(V, R * P * S, L)
+
+
+def fig9_tensor_error(scene: str = "alcove", size: str = "test", *, light_res_1: int = 8,
+                      eigenvectors: Sequence[int | None] = FIG9_EIGENVECTORS,
+                      light_dims: Sequence[int | None] = FIG9_LIGHT_DIMS, clusters: int | None = None,
+                      images: bool = False, spp: int = REF_SPP, config: dict | None = None,
+                      out_dir: str | Path | None = None, progress: bool = False):
+    """Sun 2007 Fig. 9: clustered tensor approximation error of T¹ over eigenvectors × lighting
+    dimension (``methods.ptt.compress``; None = full rank).
+
+    The tensor error ``rel_sq_err`` = ‖T¹ − T̂¹‖²/‖T¹‖² (`compress.relative_error`) is computed from
+    one dense precompute; with ``images`` every cell is also rendered by a ``PTT(compress=...)``
+    (one precompute each) and scored against the dense image and the Mitsuba 1-bounce reference.
+    With one cluster the truncations are nested, so the tensor error cannot grow with either rank;
+    with several, CPCA's basis size is ``eigenvectors`` and the clusters change along that axis.
+
+    Args:
+        light_res_1: n₁ of T¹ (L = 6 n₁²); clusters: CPCA clusters (default: one per 1000
+            vertices, Sun §4.3); the rest as `fig8_lighting_resolution`.
+    Returns:
+        DataFrame, one row per (eigenvectors, light_dim): clusters, eigenvectors, light_dim (the
+        requested value; full rank = n_vertices / L), label, full_rank, rel_sq_err, bytes
+        (compressed T¹) and dense_bytes; with images also rmse_vs_dense, rmse_vs_ref,
+        rmse_dense_vs_ref.
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    from methods.ptt.compress import compress_ptt, relative_error
+    from references.metrics import rmse
+
+    config = dict(config or {})
+    st = _setup(scene, size, spp) if images else None
+    sc = st.scene if st else _scene(scene, size)
+    dense, _ = _ptt(sc, **_resolve_light_res(light_res_1, config))
+    T = _dense_T1(dense)
+    V, D, L = T.shape
+    k = _default_clusters(V) if clusters is None else _check_pos("clusters", clusters)
+    seed = dense.config["seed"]
+    dense_img = dense.render(st.frame, st.gbuffer) if images else None
+    grid = _one_cluster_error_grid(T, seed) if k == 1 else None
+    rows = []
+    cells = [(e, m) for e in eigenvectors for m in light_dims]
+    for e, m in tqdm(cells, desc="fig9", disable=not progress):
+        ev, lm = _rank(e, V, "eigenvectors"), _rank(m, L, "light_dim")
+        if grid is not None:
+            err = float(grid[min(ev, V) - 1, min(lm, L) - 1])
+            nbytes = _tucker2_bytes(V, D, L, min(ev, V), min(lm, L))
+        else:
+            ct = compress_ptt(T, clusters=k, eigenvectors=ev, light_dim=lm, seed=seed)
+            err = relative_error(T, ct)
+            nbytes = sum(t.numel() * t.element_size() for t in ct.tensors())
+        row = dict(scene=scene, size=size, light_res_1=light_res_1, L=L, vertices=V, clusters=k,
+                   eigenvectors=ev, light_dim=lm, label=_label(e, m), full_rank=(e is None and m is None),
+                   rel_sq_err=err, bytes=nbytes, dense_bytes=T.numel() * T.element_size())
+        if images:
+            mc, _ = _ptt(st.scene, **_resolve_light_res(light_res_1, config),
+                         compress=dict(clusters=k, eigenvectors=ev, light_dim=lm))
+            img = mc.render(st.frame, st.gbuffer)
+            row.update(rmse_vs_dense=rmse(img, dense_img, st.mask), rmse_vs_ref=rmse(img, st.ref1.image, st.mask),
+                       rmse_dense_vs_ref=rmse(dense_img, st.ref1.image, st.mask))
+        rows.append(row)
+    df = pd.DataFrame(rows)
+    if out_dir is not None:
+        od = _outdir(out_dir)
+        df.to_csv(od / "fig9.csv", index=False)
+        _plot_fig9(df, od / "fig9.png")
+    return df
+
+
+def _one_cluster_error_grid(T: Tensor, seed: int) -> Tensor:
+    """rel_sq_err of the one-cluster Tucker-2 model for every (e, m) from ONE full-rank
+    `compress.compress_ptt` (float64).
+
+    The truncated factors of ranks (e, m) are the leading columns of the full-rank ones (the same
+    eigendecompositions), and for orthonormal factors ‖X − X̂‖² = ‖X‖² − ‖G[:e, :, :m]‖²
+    (Pythagoras, as `brdf_tensor.hosvd_error_grid`), so the whole Fig. 9 grid is a 2-D cumulative
+    sum of the squared core (checked against per-cell `compress_ptt` in the tests).
+
+    Args:
+        T: (V, D, L). Returns: (V, L) float64, entry [e − 1, m − 1].
+    """
+    from methods.ptt.compress import compress_ptt
+
+    V, D, L = T.shape
+    X = T.double()
+    ct = compress_ptt(X, clusters=1, eigenvectors=V, light_dim=L, seed=seed)
+    G = ct.G[0]                                   # (V, D, L) core, columns by decreasing energy
+    kept = G.square().sum(1).cumsum(0).cumsum(1)  # ‖G[:e, :, :m]‖²
+    total = X.square().sum()
+    return ((total - kept).clamp_min(0) / total.clamp_min(1e-300))
+
+
+def _tucker2_bytes(V: int, D: int, L: int, e: int, m: int, itemsize: int = 4) -> int:
+    """Stored size of a one-cluster `ClusteredTensor` (ids int64, verts int64, A, G, B float32)."""
+    return 8 * V + 8 * V + itemsize * (V * e + e * D * m + L * m)
+
+
+def _scene(name: str, size: str):
+    from scenes.library import get_scene
+
+    return get_scene(name, size)
+
+
+def _rank(v: int | None, full: int, name: str) -> int:
+    return full if v is None else _check_pos(name, v)
+
+
+def _label(e: int | None, m: int | None) -> str:
+    return f"{'full' if e is None else e}/{'full' if m is None else m}"
+
+
+def _plot_fig9(df, path: Path) -> None:
+    plt = _pyplot()
+    cols = ["rel_sq_err"] + (["rmse_vs_dense"] if "rmse_vs_dense" in df else [])
+    fig, axes = plt.subplots(1, len(cols), figsize=(6 * len(cols), 4.5), squeeze=False)
+    for ax, col in zip(axes[0], cols):
+        for j, (e, g) in enumerate(df.groupby("eigenvectors")):
+            g = g.sort_values("light_dim")
+            y = g[col].clip(lower=PLOT_FLOOR)  # full rank is ~1e-15: keep the scale readable
+            full = " (full)" if e == g["vertices"].iloc[0] else ""
+            ax.plot(g["light_dim"], y, "o-", color=f"C{j % 10}", label=f"{e} eigenvectors{full}")
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_ylim(bottom=PLOT_FLOOR / 2)
+        ax.set_xlabel(f"lighting dimension (of L = {df['L'].iloc[0]})")
+        ax.set_ylabel({"rel_sq_err": "||T1 - T1^||^2 / ||T1||^2", "rmse_vs_dense": "image RMSE vs dense T1"}[col])
+        ax.legend(fontsize=7)
+    fig.suptitle(f"Sun 2007 Fig. 9 — {df['scene'].iloc[0]}/{df['size'].iloc[0]}, "
+                 f"{df['clusters'].iloc[0]} cluster(s), 6x{df['light_res_1'].iloc[0]}^2 lighting")
+    _save(fig, path, plt)
+
+
+def fig10_compression_images(scene: str = "alcove", size: str = "test", *, light_res_1: int = 8,
+                             combos: Sequence[tuple[int | None, int | None]] = FIG10_COMBOS,
+                             clusters: int | None = None, spp: int = REF_SPP, config: dict | None = None,
+                             out_dir: str | Path | None = None, progress: bool = False):
+    """Sun 2007 Fig. 10: renders with CTA compression levels (eigenvectors / lighting dimension),
+    each a ``PTT(compress=dict(clusters, eigenvectors, light_dim))`` precompute, scored against the
+    dense-T¹ image and the Mitsuba 1-bounce reference. (None, None) = full rank (must equal the
+    dense image: "ground truth" of the paper's figure).
+
+    Returns:
+        DataFrame, one row per combo plus one for the dense PTT (label "dense"): label,
+        eigenvectors, light_dim (None → the full rank used), clusters, rmse_vs_dense,
+        rel_vs_dense (/ mean indirect radiance of the dense image), rmse_vs_ref, bytes
+        (``memory()`` of the compressed or dense T¹), precompute_s. With ``out_dir``:
+        ``fig10.csv``, ``fig10.png`` (errors per combo) and ``fig10_images.png`` (the renders).
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    from references.metrics import rmse
+
+    config = dict(config or {})
+    if not combos:
+        raise ValueError("combos must be non-empty")
+    st = _setup(scene, size, spp)
+    lcfg = _resolve_light_res(light_res_1, config)
+    dense, pre = _ptt(st.scene, **lcfg)
+    V = int(dense.V.shape[0])
+    L = 6 * light_res_1 * light_res_1
+    k = _default_clusters(V) if clusters is None else _check_pos("clusters", clusters)
+    d0, d1 = _images(dense, st)
+    ind_mean = _mean(d1 - d0, st.mask)
+    rows = [dict(scene=scene, size=size, label="dense", eigenvectors=None, light_dim=None, clusters=0,
+                 rmse_vs_dense=0.0, rel_vs_dense=0.0, rmse_vs_ref=rmse(d1, st.ref1.image, st.mask),
+                 bytes=int(dense.memory().get("T1", 0)), precompute_s=pre)]
+    tiles = []
+    for e, m in tqdm(list(combos), desc="fig10", disable=not progress):
+        ev, lm = _rank(e, V, "eigenvectors"), _rank(m, L, "light_dim")
+        mc, pre = _ptt(st.scene, **lcfg, compress=dict(clusters=k, eigenvectors=ev, light_dim=lm))
+        img = mc.render(st.frame, st.gbuffer)
+        r = rmse(img, d1, st.mask)
+        rows.append(dict(scene=scene, size=size, label=_label(e, m), eigenvectors=ev, light_dim=lm, clusters=k,
+                         rmse_vs_dense=r, rel_vs_dense=r / ind_mean, rmse_vs_ref=rmse(img, st.ref1.image, st.mask),
+                         bytes=int(mc.memory().get("T1_compressed", 0)), precompute_s=pre))
+        tiles.append((f"{_label(e, m)}  rmse {r:.2g}", img))
+    df = pd.DataFrame(rows)
+    if out_dir is not None:
+        od = _outdir(out_dir)
+        df.to_csv(od / "fig10.csv", index=False)
+        _plot_fig10(df, od / "fig10.png")
+        tiles += [("dense T1", d1), ("Mitsuba 1 bounce", st.ref1.image)]
+        _montage(tiles, od / "fig10_images.png", title="Sun 2007 Fig. 10: eigenvectors / lighting dimension")
+    return df
+
+
+def _plot_fig10(df, path: Path) -> None:
+    plt = _pyplot()
+    d = df[df["label"] != "dense"]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    x = range(len(d))
+    ax.bar([i - 0.2 for i in x], d["rmse_vs_dense"].clip(lower=1e-12), 0.4, label="vs dense T1 image")
+    ax.bar([i + 0.2 for i in x], d["rmse_vs_ref"], 0.4, label="vs Mitsuba 1-bounce")
+    ax.axhline(float(df.loc[df["label"] == "dense", "rmse_vs_ref"].iloc[0]), color="k", ls=":",
+               label="dense T1 vs Mitsuba")
+    ax.set_xticks(list(x), list(d["label"]), rotation=30)
+    ax.set_yscale("log")
+    ax.set_xlabel("eigenvectors / lighting dimension")
+    ax.set_ylabel("RMSE")
+    ax.set_title(f"Sun 2007 Fig. 10 — {df['scene'].iloc[0]}/{df['size'].iloc[0]}")
+    ax.legend(fontsize=7)
+    _save(fig, path, plt)
+
+
+# -- terms vs exponent (reports.studies contributor) ---------------------------------------------
+
+
+@lru_cache(maxsize=8)
+def _grid(n: int) -> DiskGrid:
+    return DiskGrid(n)
+
+
+@lru_cache(maxsize=64)
+def _error_curve(exponent: float, separated: bool, grid_n: int, degrees: tuple[float, ...]) -> tuple[float, ...]:
+    from scenes.materials import BlinnPhong
+
+    g = _grid(grid_n)
+    # Sun 2007 §3.2: F[h, ωo, ωi] = f_h(ωi, ωo), here N_h = 1, specular only, no cosine
+    F = BlinnPhong(kd=0.0, ks=1.0, s=float(exponent)).eval(g.dirs[None, :, :], g.dirs[:, None, :])[..., 0][None]
+    norm2 = float(F.square().sum())
+    X = separate_tensor(F, g, degrees=degrees)[0] if separated else F  # §4.1: F = F_s + F_r
+    # With N_h = 1 the truncated HOSVD of rank (1, b, b) projects the (ωo, ωi) matrix onto its own
+    # leading b left and right singular vectors: the rank-b truncated SVD (Eckart–Young), so
+    # ‖X − X̂‖² = Σ_{j>b} σ_j² for every b from one `svdvals` (equal to
+    # `brdf_tensor.hosvd_error_grid(X, [1], [b])`, checked in the tests; that loop is 10× slower).
+    sv2 = torch.linalg.svdvals(X[0]).square().flip(0)
+    tail = torch.cumsum(sv2, 0).flip(0)  # tail[j] = Σ_{i>=j} σ_i²
+    errs = torch.cat([tail[1:], tail.new_zeros(1)])  # error at rank b = tail[b]
+    return tuple(float(e) / norm2 for e in errs)
+
+
+def tensor_error_curve(exponent: float, *, separated: bool = False, grid_n: int = TERMS_GRID_N,
+                       degrees: Sequence[float] = LOBE_DEGREES) -> Tensor:
+    """‖F − F̂‖²/‖F‖² of the rank-(1, n_ω, n_ω) Tucker model of one Blinn–Phong BRDF tensor, for
+    n_ω = 1..N (module docstring; cached per exponent).
+
+    Args:
+        exponent: shininess s > 0; separated: lobe separation (Sun §4.1) before the Tucker fit;
+        grid_n: `DiskGrid` resolution (N ≈ π grid_n²/4 directions); degrees: lobe sizes.
+    Returns:
+        (N,) float64 tensor, entry n_ω − 1; non-increasing, 0 at n_ω = N.
+    """
+    s = float(exponent)
+    if not math.isfinite(s) or s <= 0:
+        raise ValueError(f"exponent must be finite and > 0, got {exponent!r}")
+    if isinstance(grid_n, bool) or not isinstance(grid_n, int) or grid_n < 2:
+        raise ValueError(f"grid_n must be an int >= 2, got {grid_n!r}")
+    return torch.tensor(_error_curve(s, bool(separated), grid_n, tuple(float(d) for d in degrees)),
+                        dtype=torch.float64)
+
+
+def _terms(exponent: float, target: float, separated: bool, grid_n: int, degrees: Sequence[float]):
+    from reports.studies import TermsRecord
+
+    if not 0 < target < 1:
+        raise ValueError(f"target must be in (0, 1), got {target!r}")
+    curve = tensor_error_curve(exponent, separated=separated, grid_n=grid_n, degrees=degrees)
+    n = int(torch.nonzero(curve <= target)[0, 0]) + 1  # curve[-1] = 0, so always found
+    name = "ptt_separated" if separated else "ptt"
+    lobes = f"; +{len(degrees)} separated lobes ({'/'.join(f'{d:g}' for d in degrees)} deg) not counted" if separated else ""
+    return TermsRecord(name, float(exponent), float(target), n, TERMS_TARGET_KIND.replace(
+        f"DiskGrid {TERMS_GRID_N}", f"DiskGrid {grid_n}"),
+        f"n_wi = n_wo = {n}, n_h = 1, N = {curve.numel()} directions, rel_sq_err {float(curve[n - 1]):.3g} "
+        f"(rank 1: {float(curve[0]):.3g}){lobes}")
+
+
+def terms_needed(exponent: float, target: float = TERMS_TARGET, *, grid_n: int = TERMS_GRID_N):
+    """`reports.studies` contributor "ptt": smallest n_ωi (= n_ωo, n_h = 1) whose Tucker model of
+    the Blinn–Phong(s = exponent) BRDF tensor, WITHOUT lobe separation, has ‖F − F̂‖²/‖F‖² <=
+    target → ``reports.studies.TermsRecord``."""
+    return _terms(exponent, target, False, grid_n, LOBE_DEGREES)
+
+
+def terms_needed_separated(exponent: float, target: float = TERMS_TARGET, *, grid_n: int = TERMS_GRID_N):
+    """Contributor "ptt_separated": as `terms_needed`, WITH Sun §4.1 lobe separation (F̂ = F_s +
+    Tucker(F_r), error against the unseparated F; the four lobes are not counted as terms)."""
+    return _terms(exponent, target, True, grid_n, LOBE_DEGREES)
+
+
+def terms_study(exponents: Sequence[float] = TERMS_EXPONENTS, *, targets: Sequence[float] = (0.05, TERMS_TARGET, 0.001),
+                grid_n: int = TERMS_GRID_N, out_dir: str | Path | None = None, progress: bool = False):
+    """PTT's terms-vs-exponent rows for several targets, with and without lobe separation.
+
+    Returns:
+        DataFrame: exponent, target, separated, n_wi (terms), rel_sq_err at n_wi, rank1_err,
+        core_terms (n_ωo·n_ωi, the core D's size for n_h = 1). With ``out_dir``:
+        ``ptt_terms.csv`` and ``ptt_terms.png``.
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    rows = []
+    for s in tqdm(list(exponents), desc="ptt terms", disable=not progress):
+        for sep in (False, True):
+            curve = tensor_error_curve(s, separated=sep, grid_n=grid_n)
+            for t in targets:
+                r = _terms(s, t, sep, grid_n, LOBE_DEGREES)
+                rows.append(dict(exponent=float(s), target=float(t), separated=sep, n_wi=r.terms,
+                                 rel_sq_err=float(curve[r.terms - 1]), rank1_err=float(curve[0]),
+                                 core_terms=r.terms ** 2, grid_n=grid_n, N=curve.numel()))
+    df = pd.DataFrame(rows)
+    if out_dir is not None:
+        od = _outdir(out_dir)
+        df.to_csv(od / "ptt_terms.csv", index=False)
+        plt = _pyplot()
+        fig, ax = plt.subplots(figsize=(6, 4.5))
+        for j, t in enumerate(targets):
+            for sep, ls in ((False, "o-"), (True, "s--")):
+                d = df[(df["target"] == t) & (df["separated"] == sep)]
+                ax.plot(d["exponent"], d["n_wi"], ls, color=f"C{j}",
+                        label=f"{'separated' if sep else 'no separation'}, rel sq err <= {t:g}")
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("Blinn-Phong shininess s")
+        ax.set_ylabel("n_wi (= n_wo, n_h = 1)")
+        ax.set_title(f"PTT BRDF tensor terms vs exponent (DiskGrid {grid_n})")
+        ax.legend(fontsize=7)
+        _save(fig, od / "ptt_terms.png", plt)
+    return df
+
+
+# -- plotting helpers -----------------------------------------------------------------------------
+
+
+def _outdir(p: str | Path) -> Path:
+    out = Path(p)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path, plt) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: float = 1.0) -> None:
+    """Images (H, W, 3) linear → sRGB-ish (× scale, clip, ^1/2.2) in a grid of ≤ 4 columns."""
+    import numpy as np
+
+    plt = _pyplot()
+    n = len(tiles)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 3 * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, (name, img) in zip(axes.flat, tiles):
+        a = torch.as_tensor(img).detach().cpu().double().numpy()
+        ax.imshow(np.clip(a * scale, 0, 1) ** (1 / 2.2))
+        ax.set_title(name, fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    _save(fig, path, plt)
+
+
+# -- reports.studies hook ---------------------------------------------------------------------------
+
+
+def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
+    """Every figure of this module into ``out_dir`` (a `reports.studies.Study.run`): Fig. 8, 9, 10
+    and the terms table; quick = a few cells each (one-bounce lighting 6×4×4, seconds per figure).
+    Returns the files written."""
+    od = _outdir(out_dir)
+    if quick:
+        fig8_lighting_resolution(light_res=(2, 4), full=False, out_dir=od)
+        fig9_tensor_error(light_res_1=4, eigenvectors=(8, None), light_dims=(16, None), out_dir=od)
+        fig10_compression_images(light_res_1=4, combos=((32, 64), (None, None)), out_dir=od)
+        terms_study((4.0, 16.0), out_dir=od)
+    else:
+        fig8_lighting_resolution(out_dir=od, progress=True)
+        fig9_tensor_error(out_dir=od, progress=True)
+        fig10_compression_images(out_dir=od, progress=True)
+        terms_study(out_dir=od, progress=True)
+    names = ("fig8.csv", "fig8.png", "fig8_images.png", "fig9.csv", "fig9.png", "fig10.csv", "fig10.png",
+             "fig10_images.png", "ptt_terms.csv", "ptt_terms.png")
+    return [od / n for n in names if (od / n).exists()]
+
+
+# -- command line ---------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None):
+    """``python -m methods.ptt.study <fig8|fig9|fig10|terms> --out DIR [--scene alcove] [--size test]
+    [--spp 256] [--light-res-1 8] [--clusters K] [--images] [--config JSON]``; prints the table."""
+    import json
+
+    import pandas as pd
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("figure", choices=("fig8", "fig9", "fig10", "terms"))
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--scene", default="alcove")
+    ap.add_argument("--size", default="test")
+    ap.add_argument("--spp", type=int, default=REF_SPP)
+    ap.add_argument("--light-res-1", type=int, default=8)
+    ap.add_argument("--clusters", type=int, default=None)
+    ap.add_argument("--images", action="store_true", help="fig9: also render every cell")
+    ap.add_argument("--config", default="{}", help="extra PTT keyword arguments (JSON)")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    cfg = json.loads(a.config)
+    common = dict(spp=a.spp, config=cfg, out_dir=a.out, progress=True)
+    if a.figure == "fig8":
+        df = fig8_lighting_resolution(a.scene, a.size, **common)
+    elif a.figure == "fig9":
+        df = fig9_tensor_error(a.scene, a.size, light_res_1=a.light_res_1, clusters=a.clusters,
+                               images=a.images, **common)
+    elif a.figure == "fig10":
+        df = fig10_compression_images(a.scene, a.size, light_res_1=a.light_res_1, clusters=a.clusters, **common)
+    else:
+        df = terms_study(out_dir=a.out, progress=True)
+    with pd.option_context("display.max_rows", 200, "display.width", 200):
+        print(df.drop(columns=[c for c in ("scene", "size") if c in df]).to_string(index=False))
+    return df
+
+
+if __name__ == "__main__":
+    main()
