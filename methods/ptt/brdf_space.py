@@ -12,6 +12,9 @@ analytic materials (`scenes.materials`) with kd = 0, ks = 1 (values without the 
 
 * `BlinnPhongSpace` — shininess sampled at the integers 1..200; any shininess in [1, 200] is the
   linear interpolation of its two neighbouring samples (§4.2).
+* `PhongSpace` — the same for Phong lobes (s+1)/(2π) cos^s α. Not in the paper (its spaces are
+  Blinn-Phong and Cook-Torrance); our library scenes also use Phong regions (chess board, alcove
+  vase), and this space lets the PCA-basis mode of the PTT method navigate them the same way.
 * `CookTorranceSpace` — materials scattered over the (Fresnel F0, roughness m) plane, triangulated
   (scipy.spatial.Delaunay); a point inside the convex hull gets the barycentric weights of its
   triangle (§4.2, Fig. 7). The paper's points are Cook–Torrance fits to the 100 measured MERL
@@ -21,17 +24,19 @@ analytic materials (`scenes.materials`) with kd = 0, ks = 1 (values without the 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from scenes.materials import BlinnPhong, CookTorrance, Material
+from scenes.materials import BlinnPhong, CookTorrance, Material, Phong, beckmann_D, half_vector, reflect_z
 
 __all__ = [
     "BRDFSpace",
     "BlinnPhongSpace",
+    "PhongSpace",
     "CookTorranceSpace",
     "cook_torrance_samples",
     "get_space",
@@ -118,6 +123,16 @@ class BRDFSpace:
         return self.weights(self.point_of(material)), tuple(material.kd), tuple(material.ks_rgb)
 
 
+def _upper(wi: Tensor, wo: Tensor) -> Tensor:
+    """1 where both directions are above the horizon (every BRDF is 0 elsewhere), else 0."""
+    return ((wi[..., 2] > 0) & (wo[..., 2] > 0)).to(wi.dtype)
+
+
+def _column(x: Sequence[float], like: Tensor) -> Tensor:
+    """(N_h, 1, …, 1) tensor of per-sample parameters broadcasting against ``like``."""
+    return torch.tensor(x, dtype=like.dtype, device=like.device).reshape(-1, *([1] * like.ndim))
+
+
 def _check_weights(w: Tensor, n: int) -> Tensor:
     w = torch.as_tensor(w)
     if w.shape != (n,):
@@ -167,9 +182,43 @@ class BlinnPhongSpace(BRDFSpace):
         W.scatter_add_(1, j[:, None], t[:, None])
         return W.reshape(*s.shape, len(grid))
 
+    def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
+        """`BRDFSpace.eval_samples` for all shininess samples at once: (s+2)/(8π) max(0, n·h)^s
+        (the formula of `scenes.materials.BlinnPhong`, the half vector computed once)."""
+        wi, wo = torch.broadcast_tensors(wi, wo)
+        h, valid = half_vector(wi, wo)
+        c = h[..., 2].clamp_min(0.0)
+        sh = _column(self.shininess, c)
+        return (sh + 2.0) / (8.0 * math.pi) * c.pow(sh) * (valid.to(c.dtype) * _upper(wi, wo))
+
     def point_of(self, material: Material) -> float:
         if not isinstance(material, BlinnPhong):
             raise ValueError(f"the Blinn-Phong space needs a BlinnPhong material, got {material.kind}")
+        return float(material.s)
+
+
+@dataclass(frozen=True, eq=False)
+class PhongSpace(BlinnPhongSpace):
+    """Phong specular lobes (s+1)/(2π) max(0, R·ωi)^s sampled at exponents (default the integers
+    1..200), linearly interpolated like `BlinnPhongSpace` (an extension: the paper's spaces are
+    Blinn-Phong and Cook-Torrance)."""
+
+    kind: str = "phong"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "materials", tuple(Phong(kd=0.0, ks=1.0, s=x) for x in self.shininess))
+
+    def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
+        """All exponent samples at once: (s+1)/(2π) max(0, R·ωi)^s (`scenes.materials.Phong`)."""
+        wi, wo = torch.broadcast_tensors(wi, wo)
+        c = (reflect_z(wo) * wi).sum(-1)
+        sh = _column(self.shininess, c)
+        return (sh + 1.0) / (2.0 * math.pi) * c.clamp_min(0.0).pow(sh) * ((c > 0).to(c.dtype) * _upper(wi, wo))
+
+    def point_of(self, material: Material) -> float:
+        if not isinstance(material, Phong):
+            raise ValueError(f"the Phong space needs a Phong material, got {material.kind}")
         return float(material.s)
 
 
@@ -264,6 +313,19 @@ class CookTorranceSpace(BRDFSpace):
         W = torch.from_numpy(W)
         return W.reshape(*q.shape[:-1], self.n_h)
 
+    def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
+        """All (F0, m) samples at once: D·F·G/(4 cosθi cosθo) (`scenes.materials.CookTorrance`;
+        h, G and the denominator computed once, D and F per sample)."""
+        wi, wo = torch.broadcast_tensors(wi, wo)
+        h, valid = half_vector(wi, wo)
+        nh, ni, no = h[..., 2], wi[..., 2], wo[..., 2]
+        oh = (wo * h).sum(-1).clamp_min(1e-12)
+        G = torch.minimum(torch.ones_like(nh), torch.minimum(2 * nh * no / oh, 2 * nh * ni / oh))
+        common = G / (4.0 * ni * no).clamp_min(1e-12) * (valid.to(nh.dtype) * _upper(wi, wo))
+        F0, m = _column(self.points[:, 0], nh), _column(self.points[:, 1], nh)
+        F = F0 + (1.0 - F0) * (1.0 - oh).clamp_min(0.0) ** 5
+        return beckmann_D(nh, m) * F * common
+
     def point_of(self, material: Material) -> tuple[float, float]:
         if not isinstance(material, CookTorrance):
             raise ValueError(f"the Cook-Torrance space needs a CookTorrance material, got {material.kind}")
@@ -271,9 +333,11 @@ class CookTorranceSpace(BRDFSpace):
 
 
 def get_space(kind: str, **kw) -> BRDFSpace:
-    """'bp' → `BlinnPhongSpace(**kw)`, 'ct' → `CookTorranceSpace(**kw)`."""
+    """'bp' → `BlinnPhongSpace(**kw)`, 'ct' → `CookTorranceSpace(**kw)`, 'phong' → `PhongSpace(**kw)`."""
     if kind == "bp":
         return BlinnPhongSpace(**kw)
+    if kind == "phong":
+        return PhongSpace(**kw)
     if kind == "ct":
         return CookTorranceSpace(**kw)
-    raise ValueError(f"unknown BRDF space {kind!r}; use 'bp' or 'ct'")
+    raise ValueError(f"unknown BRDF space {kind!r}; use 'bp', 'ct' or 'phong'")

@@ -55,6 +55,7 @@ from methods.core.visibility import Visibility
 from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
 from methods.ptt import lobes as _lobes
+from methods.ptt import pca as _pca
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
 
@@ -90,9 +91,14 @@ class PTT(Method):
 
     Config (keyword-only; everything that changes a score):
         bounces: 0 (direct), 1 or 2 interreflections.
-        basis: a `transport.BRDFBasis` (e.g. the n_P = 5 PCA basis of ``methods.ptt.pca``) or None
-            for `transport.scene_basis` (Lambert + the scene's specular lobes; other BRDFs of the
-            same families are least-squares fitted).
+        basis: "scene" / None: `transport.scene_basis` (Lambert + the scene's own specular lobes,
+            exact for them; a changed material — another exponent or roughness — is least-squares
+            fitted onto those lobes). "pca": the paper's basis (Sun §3.1, §4.3): per specular family
+            of the scene (Blinn-Phong, Cook-Torrance, Phong) the ``pca_terms``-term PCA of its BRDF
+            space (``methods.ptt.pca.family_pca_basis``; paper: 4 specular + 1 diffuse), so any
+            point of the space is exact navigation weights → H. Or a `transport.BRDFBasis` object.
+        pca_terms, pca_grid: specular PCA terms per family and the disk-grid resolution of the PCA
+            (only with basis="pca").
         n_wi: K incident factors of the shading factorization (paper 8).
         n_wo: rank of its view mode (paper 8; None = full table resolution): the Tucker form of
             Sun eq. 2–3 with the h mode = the basis (`transport.factor_basis`).
@@ -135,11 +141,17 @@ class PTT(Method):
                  light_supersample: int = 2, seed: int = 0, compress: dict | None = None, n_wo: int | None = None,
                  separate: bool = SEPARATE_DEFAULT, lobe_degrees: Any = _lobes.LOBE_DEGREES,
                  lobe_theta: int = 32, lobe_fit_samples: int = 16384, lobe_vis_res: int = 16,
-                 lobe_vis_samples: int = 4096, env_res: int = 32) -> None:
+                 lobe_vis_samples: int = 4096, env_res: int = 32, pca_terms: int = _pca.N_SPEC,
+                 pca_grid: int = 16) -> None:
         if isinstance(bounces, bool) or bounces not in (0, 1, 2):
             raise ValueError(f"bounces must be 0, 1 or 2, got {bounces!r}")
-        if basis is not None and not isinstance(basis, _tp.BRDFBasis):
-            raise ValueError(f"basis must implement BRDFBasis (n_P, eval, coords) or be None, got {basis!r}")
+        if basis == "scene":
+            basis = None
+        if basis is not None and basis != "pca" and (isinstance(basis, str) or not isinstance(basis, _tp.BRDFBasis)):
+            raise ValueError(f"basis must be 'scene' (or None), 'pca' or implement BRDFBasis (n_P, eval, coords), "
+                             f"got {basis!r}")
+        _check_int("pca_terms", pca_terms, 1)
+        _check_int("pca_grid", pca_grid, 2)
         _check_int("n_wi", n_wi, 1)
         _check_int("brdf_grid", brdf_grid, 2)
         _check_int("brdf_table", brdf_table, 2)
@@ -170,7 +182,8 @@ class PTT(Method):
         _check_pow2("env_res", env_res)
         if env_res < _spec.MIN_ENV_RES:
             raise ValueError(f"env_res must be >= {_spec.MIN_ENV_RES}, got {env_res}")
-        basis_name = None if basis is None else f"{type(basis).__module__}.{type(basis).__name__}(n_P={basis.n_P})"
+        basis_name = (basis if basis is None or basis == "pca"
+                      else f"{type(basis).__module__}.{type(basis).__name__}(n_P={basis.n_P})")
         super().__init__(bounces=bounces, basis=basis_name, n_wi=n_wi,
                          brdf_grid=brdf_grid, brdf_table=brdf_table, cube_res=cube_res, n_L=n_L,
                          area_weighted=bool(area_weighted), light_res_1=light_res_1,
@@ -178,7 +191,8 @@ class PTT(Method):
                          light_supersample=light_supersample, seed=seed, compress=compress, n_wo=n_wo,
                          separate=separate, lobe_degrees=lobe_degrees, lobe_theta=lobe_theta,
                          lobe_fit_samples=lobe_fit_samples, lobe_vis_res=lobe_vis_res,
-                         lobe_vis_samples=lobe_vis_samples, env_res=env_res)
+                         lobe_vis_samples=lobe_vis_samples, env_res=env_res,
+                         **({"pca_terms": pca_terms, "pca_grid": pca_grid} if basis == "pca" else {}))
         self.separate = separate
         self.bounces = bounces
         self._basis_arg = basis
@@ -208,7 +222,12 @@ class PTT(Method):
         self.regions = list(scene.regions)
         self.V, self.F, self.N = geom.V.float(), geom.F.long(), geom.N.float()
         self.face_region = geom.face_region.long()
-        self.basis = self._basis_arg if self._basis_arg is not None else _tp.scene_basis(scene.materials)
+        if self._basis_arg == "pca":  # Sun §4.3: n_P = pca_terms + 1 per family's BRDF space
+            self.basis = _pca.family_pca_basis(scene.materials, n_spec=c["pca_terms"], grid_n=c["pca_grid"])
+        elif self._basis_arg is not None:
+            self.basis = self._basis_arg
+        else:
+            self.basis = _tp.scene_basis(scene.materials)
         factored = self.basis
         self.lobe_table = self.lobe_vis = self.env_filters = self.lobe_sh = None
         if self.separate:  # Sun §4.1: only the remainder goes through the factorization

@@ -36,7 +36,8 @@ from torch import Tensor
 from methods.ptt.brdf_space import BRDFSpace, get_space
 from methods.ptt.brdf_tensor import DiskGrid
 
-__all__ = ["brdf_gram", "BRDFBasis", "pca_basis", "PAPER_PCA_ERROR", "N_SPEC"]
+__all__ = ["brdf_gram", "BRDFBasis", "pca_basis", "FamilyPCABasis", "family_pca_basis", "SPACE_OF_KIND",
+           "PAPER_PCA_ERROR", "N_SPEC"]
 
 # Sun 2007 §4.3: n_P = 5 = 4 specular + 1 diffuse.
 N_SPEC = 4
@@ -164,3 +165,84 @@ def pca_basis(space: BRDFSpace | str, *, grid_n: int = 16, n_spec: int = N_SPEC,
         M = torch.cat([torch.full((N, 1), 1.0 / N, dtype=G.dtype), C @ M], dim=1)
         coords = torch.cat([torch.ones(N, 1, dtype=G.dtype), coords], dim=1)
     return BRDFBasis(space, M, coords, lam, norm2, grid.N * grid.N, center, weighting)
+
+
+# Which BRDF space (`brdf_space.get_space`) navigates which material family (`Material.kind`).
+SPACE_OF_KIND = {"blinnphong": "bp", "cooktorrance": "ct", "phong": "phong"}
+
+
+class FamilyPCABasis:
+    """The PCA bases of several BRDF families behind one diffuse function: the PTT basis of a scene
+    whose regions use more than one family (Sun 2007 uses one space per scene — Blinn-Phong *or*
+    Cook-Torrance; `chess` has Blinn-Phong, Cook-Torrance and Phong regions).
+
+    b = [b^(f1)_0 .. b^(f1)_{n1−1}, b^(f2)_0 .., …, 1/π]: the specular functions of each family's
+    `BRDFBasis` in the order of ``bases``, then the shared Lambert function (last, as in
+    `BRDFBasis`). A material of family f gets H = its own basis' coordinates in f's block and kd
+    in the last row, 0 elsewhere — linear in the navigation weights, so any point of the space
+    (shininess 1..200, a Cook-Torrance point in the hull) is a run-time change of H only.
+    Implements the `transport.BRDFBasis` protocol.
+    """
+
+    def __init__(self, bases: dict[str, BRDFBasis]) -> None:
+        if not bases:
+            raise ValueError("FamilyPCABasis needs at least one family basis")
+        self.bases = dict(bases)
+        self.offsets: dict[str, int] = {}
+        o = 0
+        for kind, b in self.bases.items():
+            if not isinstance(b, BRDFBasis):
+                raise ValueError(f"basis of {kind!r} must be a pca.BRDFBasis, got {b!r}")
+            self.offsets[kind] = o
+            o += b.n_spec
+        self.n_P = o + 1
+
+    def __repr__(self) -> str:
+        return ("FamilyPCABasis(" + ", ".join(f"{k}: {b.space.kind} n_spec={b.n_spec}" for k, b in self.bases.items())
+                + ")")
+
+    def sq_error(self) -> dict[str, float]:
+        """Relative squared PCA reconstruction error of each family's sampled space."""
+        return {k: b.sq_error()["rel_sq_err"] for k, b in self.bases.items()}
+
+    def eval(self, wi: Tensor, wo: Tensor) -> Tensor:
+        """b_p(wi, wo): (..., 3) local directions → (..., n_P); no cosine, 0 below either horizon."""
+        parts = [b.eval(wi, wo) for b in self.bases.values()]
+        return torch.cat([p[..., :-1] for p in parts] + [parts[0][..., -1:]], dim=-1)
+
+    def coords(self, material) -> Tensor:
+        """H (n_P, 3) float64 of a Lambert or a material of one of the families (ValueError else,
+        and for a point outside its space: shininess outside the samples, CT outside the hull)."""
+        H = torch.zeros(self.n_P, 3, dtype=torch.float64)
+        if not hasattr(material, "ks"):
+            H[-1] = torch.as_tensor(material.kd, dtype=torch.float64)
+            return H
+        kind = material.kind
+        if kind not in self.bases:
+            raise ValueError(f"the PCA basis covers the families {sorted(self.bases)}, not {kind!r}")
+        h = self.bases[kind].coords(material)
+        o = self.offsets[kind]
+        H[o:o + h.shape[0] - 1] = h[:-1]
+        H[-1] = h[-1]
+        return H
+
+
+def family_pca_basis(materials, *, n_spec: int = N_SPEC, grid_n: int = 16, center: bool = False,
+                     weighting: str = "samples") -> FamilyPCABasis:
+    """A `FamilyPCABasis` with one n_spec-term PCA basis (`pca_basis`, default spaces of
+    `brdf_space.get_space`) per specular family among ``materials`` (a dict or a sequence;
+    Lambert needs none). ValueError for a family without a BRDF space (see `SPACE_OF_KIND`)."""
+    mats = list(materials.values()) if isinstance(materials, dict) else list(materials)
+    kinds = []
+    for m in mats:
+        if not hasattr(m, "ks"):
+            continue
+        if m.kind not in SPACE_OF_KIND:
+            raise ValueError(f"no BRDF space for the {m.kind!r} family (PCA basis families: "
+                             f"{', '.join(sorted(SPACE_OF_KIND))})")
+        if m.kind not in kinds:
+            kinds.append(m.kind)
+    if not kinds:  # an all-Lambert scene: keep one specular family so the basis is not empty
+        kinds = ["blinnphong"]
+    return FamilyPCABasis({k: pca_basis(SPACE_OF_KIND[k], grid_n=grid_n, n_spec=n_spec, center=center,
+                                        weighting=weighting) for k in kinds})

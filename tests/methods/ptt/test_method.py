@@ -112,7 +112,7 @@ def test_cached_frames_equal_cold_renders(alcove, kind):
 
 @pytest.mark.parametrize("kw", [dict(bounces=3), dict(bounces=-1), dict(bounces=True), dict(cube_res=12),
                                 dict(light_res_1=64), dict(light_res_2=16), dict(n_L=0), dict(rays=0),
-                                dict(basis="pca"), dict(n_wi=1.5), dict(compress=dict(clusters=2)),
+                                dict(basis="pcb"), dict(basis="pca", pca_terms=0), dict(n_wi=1.5), dict(compress=dict(clusters=2)),
                                 dict(compress=dict(clusters=0, eigenvectors=8, light_dim=8))])
 def test_bad_config_raises(kw):
     with pytest.raises(ValueError):
