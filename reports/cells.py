@@ -24,6 +24,7 @@ import importlib
 import json
 import multiprocessing as mp
 import os
+import sys
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -659,6 +660,7 @@ def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=Non
             if len(parts[j]) == len(PARTS):  # both parts were done; the merge was not
                 results[j] = _finish_merge(cells[j], parts.pop(j), out_dir)
     bar = tqdm(total=len(cells), initial=len(results), desc="run", unit="cell", disable=None if progress else True)
+    t_start = time.perf_counter()
     pending: dict[Any, tuple[int, str]] = {}
     attempts: dict[tuple[int, str], int] = {}
     solo: list[tuple[int, str]] = []  # tasks whose worker died: re-run one at a time
@@ -685,6 +687,10 @@ def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=Non
             results[j] = _finish_merge(cells[j], parts.pop(j), out_dir)
         bar.set_postfix_str(f"{cells[j].method}/{cells[j].scene}/{cells[j].kind}: {results[j].status}")
         bar.update(1)
+        if progress and bar.disable:  # not a terminal (cron, CI logs): one line per finished cell
+            c = cells[j]
+            print(f"[prtbench] {len(results)}/{len(cells)} {c.method}/{c.scene}/{c.kind}/b{c.bounces}: {results[j].status} "
+                  f"({time.perf_counter() - t_start:.0f} s)", file=sys.stderr, flush=True)
 
     try:
         while queue or pending or solo:

@@ -229,3 +229,15 @@ def test_corrupt_precompute_cache_entry_is_recomputed(tmp_path, monkeypatch):
     m2 = fakes.FakeCachedMethod(precompute_delay=0.0)
     assert PC.precompute(m2, scene, C.canonical_config(m.config))["cached"]
     assert torch.equal(m2.coeffs, torch.arange(256, dtype=torch.float32))
+
+
+def test_progress_without_a_terminal_prints_one_line_per_cell(tmp_path, capsys):
+    """A cron or CI log is not a terminal (tqdm stays silent): each finished cell gets one line."""
+    cells = [_cell(seed=s, eq_err_spp=()) for s in (0, 1)] + [_cell(kind="P", na="static geometry only")]
+    C.run_cells(cells, tmp_path, progress=True)
+    lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("[prtbench] ")]
+    assert len(lines) == 3, lines
+    assert lines[0].startswith("[prtbench] 1/3 fake/fake_plane/V/b0: ok")
+    assert lines[2].startswith("[prtbench] 3/3 fake/fake_plane/P/b0: na")
+    C.run_cells(cells, tmp_path, progress=False)  # progress off: silent
+    assert "[prtbench]" not in capsys.readouterr().err
