@@ -48,7 +48,9 @@ class Suite:
 
 
 SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=("P",),
-              n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True)
+              n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True,
+              # PTT twice: its default (the scene's own lobes) and the paper's PCA BRDF basis
+              configs=(("ptt", "{}"), ("ptt", '{"basis":"pca"}')))
 # Nightly budget (≤ 30 min on 2 cores), estimated from the smoke run (64² px, S = 2): the oracle at
 # 32+32 samples takes ~4 s per test-size frame → ~64 s per 256² frame; at 4+4 samples ~8 s, so
 # 5 frames × ~16 (scene, kind) pairs ≈ 11 min. References (~0.15 s per 64² at 64 spp → ~10 s per
