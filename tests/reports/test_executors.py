@@ -43,8 +43,14 @@ def _error_table(results):
     return df.sort_values(["cell", "frame", "metric"]).reset_index(drop=True)
 
 
+def _files(d):
+    """Files of a results folder without in-flight atomic writes (`references.atomic`: a dot-file
+    temporary, renamed away a moment later — a snapshot that caught one cannot find it after)."""
+    return [p for p in d.iterdir() if p.is_file() and not p.name.startswith(".")]
+
+
 def _mtimes(d):
-    return {p.name: p.stat().st_mtime_ns for p in d.iterdir() if p.is_file()}
+    return {p.name: p.stat().st_mtime_ns for p in _files(d)}
 
 
 class _ThreadsParallel(X.BenchExecutor):
@@ -170,7 +176,7 @@ def test_processes_executor_same_errors_and_killed_worker(tmp_path):
 def _wait_for_finished(out, th, timeout=60.0):
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout and th.is_alive():
-        if (out / "cells").is_dir() and any(p.suffix == ".json" for p in (out / "cells").iterdir()):
+        if (out / "cells").is_dir() and any(p.suffix == ".json" for p in _files(out / "cells")):
             return _mtimes(out / "cells")
         time.sleep(0.05)
     raise AssertionError("no cell finished")
