@@ -436,5 +436,6 @@ def _ptt_figures(out_dir: Path, *, quick: bool = False) -> list[Path]:
     return run_all(out_dir, quick=quick)
 
 
-register_study(Study("ptt-figures", "Sun 2007 Fig. 8 (one-bounce lighting resolution), Figs. 9-10 "
-                     "(CPCA eigenvectors / lighting dimension), PTT terms vs shininess", _ptt_figures))
+register_study(Study("ptt-figures", "Sun 2007 Figs. 5-6 (BRDF tensor error, lobe separation), Fig. 8 "
+                     "(one-bounce lighting resolution), Figs. 9-10 (CPCA eigenvectors / lighting dimension), "
+                     "PTT terms vs shininess", _ptt_figures))

@@ -676,9 +676,12 @@ def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: flo
 
 
 def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
-    """Every figure of this module into ``out_dir`` (a `reports.studies.Study.run`): Fig. 8, 9, 10
-    and the terms table; quick = a few cells each (one-bounce lighting 6×4×4, seconds per figure).
-    Returns the files written."""
+    """Every figure of this module into ``out_dir`` (a `reports.studies.Study.run`): Fig. 8, 9, 10,
+    the terms table, and the BRDF-side Figs. 5 (`brdf_tensor.fig5`, Cook-Torrance and Blinn-Phong
+    spaces) and 6 (`brdf_tensor.fig6_lobe_study` as a CSV); quick = a few cells each (one-bounce
+    lighting 6×4×4, coarse BRDF grids, seconds per figure). Returns the files written."""
+    from methods.ptt.brdf_tensor import fig5, fig6_lobe_study
+
     od = _outdir(out_dir)
     if quick:
         fig8_lighting_resolution(light_res=(2, 4), full=False, out_dir=od)
@@ -690,8 +693,12 @@ def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
         fig9_tensor_error(out_dir=od, progress=True)
         fig10_compression_images(out_dir=od, progress=True)
         terms_study(out_dir=od, progress=True)
+    for kind in ("ct", "bp"):  # ≈ 2 and 3 min at the default DiskGrid(24)
+        fig5(od, kind, **({"grid_n": 8, "n_omega": (4, 8)} if quick else {"progress": True}))
+    fig6_lobe_study("bp", **({"grid_n": 8} if quick else {})).to_csv(od / "fig6_bp.csv", index=False)
     names = ("fig8.csv", "fig8.png", "fig8_images.png", "fig9.csv", "fig9.png", "fig10.csv", "fig10.png",
-             "fig10_images.png", "ptt_terms.csv", "ptt_terms.png")
+             "fig10_images.png", "ptt_terms.csv", "ptt_terms.png", "fig5_ct.csv", "fig5_ct_nosep.png",
+             "fig5_ct_sep.png", "fig5_bp.csv", "fig5_bp_nosep.png", "fig5_bp_sep.png", "fig6_bp.csv")
     return [od / n for n in names if (od / n).exists()]
 
 

@@ -228,3 +228,20 @@ def test_one_cluster_error_grid_equals_per_cell_compression():
         ct = compress_ptt(T.double(), clusters=1, eigenvectors=e, light_dim=m)
         assert grid[e - 1, m - 1].item() == pytest.approx(relative_error(T.double(), ct), rel=1e-9, abs=1e-12)
         assert S._tucker2_bytes(40, 10, 24, e, m, itemsize=8) == sum(t.numel() * t.element_size() for t in ct.tensors())
+
+
+def test_run_all_writes_the_brdf_side_figures_too(tmp_path, monkeypatch):
+    """The `ptt-figures` study also writes Figs. 5 (CT and BP) and 6 (the image figures are
+    stubbed out here: they have their own tests above)."""
+    for name in ("fig8_lighting_resolution", "fig9_tensor_error", "fig10_compression_images", "terms_study"):
+        monkeypatch.setattr(S, name, lambda *a, **k: None)
+    files = S.run_all(tmp_path, quick=True)
+    assert sorted(p.name for p in files) == sorted(["fig5_ct.csv", "fig5_ct_nosep.png", "fig5_ct_sep.png",
+                                                    "fig5_bp.csv", "fig5_bp_nosep.png", "fig5_bp_sep.png",
+                                                    "fig6_bp.csv"])
+    f5 = pd.read_csv(tmp_path / "fig5_ct.csv")
+    t = f5.pivot_table(index=["n_h", "n_omega"], columns="separated", values="rel_sq_err")
+    assert (t[True] < t[False]).all()  # Sun Fig. 5: separation lowers the tensor error
+    f6 = pd.read_csv(tmp_path / "fig6_bp.csv")
+    tot = f6.groupby("n_lobes")["total_rel_sq_err"].first()
+    assert tot.iloc[-1] < tot.iloc[0]  # Sun Fig. 6: more lobe components, better approximation
