@@ -131,6 +131,29 @@ def beckmann_D(cos_t: Tensor, m: float) -> Tensor:
     return torch.where(cos_t > 0, d, torch.zeros_like(d))
 
 
+def phong_lobe(wi: Tensor, wo: Tensor, s) -> Tensor:
+    """Phong specular lobe (s+1)/(2π) max(0, R·wi)^s, R = reflect(wo) (Mahajan 2008 eq. 5), no ks.
+    ``s`` a float or a tensor broadcasting against the (...) result (a family of exponents)."""
+    return power_cosine_pdf(_dot(reflect_z(wo), wi), s)
+
+
+def blinn_phong_lobe(wi: Tensor, wo: Tensor, s) -> Tensor:
+    """Blinn-Phong specular lobe (s+2)/(8π) (n·h)^s, no ks; ``s`` as in `phong_lobe`."""
+    h, valid = half_vector(wi, wo)
+    return (s + 2.0) / (8.0 * math.pi) * h[..., 2].clamp_min(0.0).pow(s) * valid
+
+
+def cook_torrance_lobe(wi: Tensor, wo: Tensor, m, F0) -> Tensor:
+    """Cook–Torrance specular lobe D·F·G/(4 cosθi cosθo) (see `CookTorrance`), no ks; ``m`` and
+    ``F0`` floats or tensors broadcasting against the (...) result (h and G are computed once)."""
+    h, valid = half_vector(wi, wo)
+    nh, ni, no = h[..., 2], wi[..., 2], wo[..., 2]
+    oh = _dot(wo, h).clamp_min(_TINY)
+    G = torch.minimum(torch.ones_like(nh), torch.minimum(2 * nh * no / oh, 2 * nh * ni / oh))
+    F = F0 + (1.0 - F0) * (1.0 - oh).clamp_min(0.0) ** 5  # Schlick 1994
+    return beckmann_D(nh, m) * F * (G / (4.0 * ni * no).clamp_min(_TINY) * valid)
+
+
 def ts_sample(u: Tensor, sigma: float) -> Tensor:
     """Half vectors for the Torrance–Sparrow lobe exp(−(θh/σ)²): θh has density
     ∝ θ exp(−θ²/σ²) on [0, π/2] (a 2-D Gaussian in polar coordinates, truncated), φ uniform."""
@@ -323,8 +346,7 @@ class Phong(Material):
         object.__setattr__(self, "s", _positive_float(self.s, "s"))
 
     def _spec_eval(self, wi, wo):
-        c = _dot(reflect_z(wo), wi)
-        return self._ks(wi) * power_cosine_pdf(c, self.s)[..., None]  # Mahajan eq. 5
+        return self._ks(wi) * phong_lobe(wi, wo, self.s)[..., None]  # Mahajan eq. 5
 
     def _spec_sample(self, wo, u):
         R = reflect_z(wo)
@@ -350,9 +372,7 @@ class BlinnPhong(Material):
         object.__setattr__(self, "s", _positive_float(self.s, "s"))
 
     def _spec_eval(self, wi, wo):
-        h, valid = half_vector(wi, wo)
-        v = (self.s + 2.0) / (8.0 * math.pi) * h[..., 2].clamp_min(0.0).pow(self.s) * valid
-        return self._ks(wi) * v[..., None]
+        return self._ks(wi) * blinn_phong_lobe(wi, wo, self.s)[..., None]
 
     def _spec_sample(self, wo, u):
         return reflect_about(wo, power_cosine_sample(u, self.s))
@@ -381,15 +401,7 @@ class CookTorrance(Material):
         object.__setattr__(self, "F0", F0)
 
     def _spec_eval(self, wi, wo):
-        h, valid = half_vector(wi, wo)
-        nh, ni, no = h[..., 2], wi[..., 2], wo[..., 2]
-        oh = _dot(wo, h).clamp_min(_TINY)
-        D = beckmann_D(nh, self.m)
-        F = self.F0 + (1.0 - self.F0) * (1.0 - oh).clamp_min(0.0) ** 5  # Schlick 1994
-        G = torch.minimum(torch.ones_like(nh), torch.minimum(2 * nh * no / oh, 2 * nh * ni / oh))
-        denom = (4.0 * ni * no).clamp_min(_TINY)
-        v = D * F * G / denom * valid
-        return self._ks(wi) * v[..., None]
+        return self._ks(wi) * cook_torrance_lobe(wi, wo, self.m, self.F0)[..., None]
 
     def _spec_sample(self, wo, u):
         return reflect_about(wo, beckmann_sample(u, self.m))

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from scenes.materials import BlinnPhong, CookTorrance, Material, Phong, beckmann_D, half_vector, reflect_z
+from scenes.materials import (BlinnPhong, CookTorrance, Material, Phong, blinn_phong_lobe, cook_torrance_lobe,
+                              phong_lobe)
 
 __all__ = [
     "BRDFSpace",
@@ -183,13 +184,10 @@ class BlinnPhongSpace(BRDFSpace):
         return W.reshape(*s.shape, len(grid))
 
     def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
-        """`BRDFSpace.eval_samples` for all shininess samples at once: (s+2)/(8π) max(0, n·h)^s
-        (the formula of `scenes.materials.BlinnPhong`, the half vector computed once)."""
+        """`BRDFSpace.eval_samples` for all shininess samples at once (`scenes.materials.blinn_phong_lobe`
+        with a column of exponents: the half vector is computed once)."""
         wi, wo = torch.broadcast_tensors(wi, wo)
-        h, valid = half_vector(wi, wo)
-        c = h[..., 2].clamp_min(0.0)
-        sh = _column(self.shininess, c)
-        return (sh + 2.0) / (8.0 * math.pi) * c.pow(sh) * (valid.to(c.dtype) * _upper(wi, wo))
+        return blinn_phong_lobe(wi, wo, _column(self.shininess, wi[..., 0])) * _upper(wi, wo)
 
     def point_of(self, material: Material) -> float:
         if not isinstance(material, BlinnPhong):
@@ -210,11 +208,9 @@ class PhongSpace(BlinnPhongSpace):
         object.__setattr__(self, "materials", tuple(Phong(kd=0.0, ks=1.0, s=x) for x in self.shininess))
 
     def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
-        """All exponent samples at once: (s+1)/(2π) max(0, R·ωi)^s (`scenes.materials.Phong`)."""
+        """All exponent samples at once (`scenes.materials.phong_lobe`)."""
         wi, wo = torch.broadcast_tensors(wi, wo)
-        c = (reflect_z(wo) * wi).sum(-1)
-        sh = _column(self.shininess, c)
-        return (sh + 1.0) / (2.0 * math.pi) * c.clamp_min(0.0).pow(sh) * ((c > 0).to(c.dtype) * _upper(wi, wo))
+        return phong_lobe(wi, wo, _column(self.shininess, wi[..., 0])) * _upper(wi, wo)
 
     def point_of(self, material: Material) -> float:
         if not isinstance(material, Phong):
@@ -314,17 +310,11 @@ class CookTorranceSpace(BRDFSpace):
         return W.reshape(*q.shape[:-1], self.n_h)
 
     def eval_samples(self, wi: Tensor, wo: Tensor) -> Tensor:
-        """All (F0, m) samples at once: D·F·G/(4 cosθi cosθo) (`scenes.materials.CookTorrance`;
-        h, G and the denominator computed once, D and F per sample)."""
+        """All (F0, m) samples at once (`scenes.materials.cook_torrance_lobe`: h, G and the
+        denominator computed once, D and F per sample)."""
         wi, wo = torch.broadcast_tensors(wi, wo)
-        h, valid = half_vector(wi, wo)
-        nh, ni, no = h[..., 2], wi[..., 2], wo[..., 2]
-        oh = (wo * h).sum(-1).clamp_min(1e-12)
-        G = torch.minimum(torch.ones_like(nh), torch.minimum(2 * nh * no / oh, 2 * nh * ni / oh))
-        common = G / (4.0 * ni * no).clamp_min(1e-12) * (valid.to(nh.dtype) * _upper(wi, wo))
-        F0, m = _column(self.points[:, 0], nh), _column(self.points[:, 1], nh)
-        F = F0 + (1.0 - F0) * (1.0 - oh).clamp_min(0.0) ** 5
-        return beckmann_D(nh, m) * F * common
+        x = wi[..., 0]
+        return cook_torrance_lobe(wi, wo, _column(self.points[:, 1], x), _column(self.points[:, 0], x)) * _upper(wi, wo)
 
     def point_of(self, material: Material) -> tuple[float, float]:
         if not isinstance(material, CookTorrance):

@@ -147,7 +147,7 @@ class PTT(Method):
             raise ValueError(f"bounces must be 0, 1 or 2, got {bounces!r}")
         if basis == "scene":
             basis = None
-        if basis is not None and basis != "pca" and (isinstance(basis, str) or not isinstance(basis, _tp.BRDFBasis)):
+        if basis is not None and basis != "pca" and not isinstance(basis, _tp.BRDFBasis):
             raise ValueError(f"basis must be 'scene' (or None), 'pca' or implement BRDFBasis (n_P, eval, coords), "
                              f"got {basis!r}")
         _check_int("pca_terms", pca_terms, 1)
