@@ -6,7 +6,8 @@
                           [--workers N] [--history PATH]
   python run_bench.py references --suite smoke          # pre-build the reference cache
   python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged
-  python run_bench.py study NAME [--out DIR] [--quick]  # a convergence study (reports/studies.py)
+  python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
+  python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
 
 A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped (failed
@@ -67,8 +68,9 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("run_b", type=Path)
     c.add_argument("--all", action="store_true", help="list unchanged values too")
 
-    s = sub.add_parser("study", help="run a study from reports/studies.py")
-    s.add_argument("name")
+    s = sub.add_parser("study", help="run a paper figure/table or a sweep (methods/<m>/study.py, reports/studies.py)")
+    s.add_argument("name", nargs="?")
+    s.add_argument("--list", action="store_true", help="list every registered study and exit")
     s.add_argument("--out", type=Path, default=None, help="output folder (default out/studies/<name>)")
     s.add_argument("--quick", action="store_true", help="a small, fast version")
 
@@ -87,7 +89,7 @@ def _scenes(args) -> list[str] | None:
 
 
 def cmd_run(args) -> int:
-    from reports.cells import make_executor
+    from reports.executors import make_executor
     from reports.pipeline import run_suite
     from reports.store import DEFAULT_HISTORY
     from reports.suites import get_suite
@@ -151,6 +153,10 @@ def cmd_compare(args) -> int:
 def cmd_study(args) -> int:
     from reports import studies
 
+    if args.list or args.name is None:
+        for name, st in sorted(studies.STUDIES.items()):
+            print(f"{name:28s} {st.paper or 'cross-method':18s} {st.description}")
+        return 0 if args.list else 2
     if args.name not in studies.STUDIES:
         print(f"unknown study {args.name!r}; available: {', '.join(sorted(studies.STUDIES))}", file=sys.stderr)
         return 2

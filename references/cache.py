@@ -12,21 +12,20 @@ with ``os.replace``; the ``.npz`` first, the sidecar last (the sidecar is the co
 load, an entry whose sidecar is unreadable or disagrees with the key fields, whose ``.npz`` is
 missing, has other bytes than the sidecar's hash, or does not hold the recorded arrays, is reported
 stale (a warning), deleted, and treated as a miss, so the caller re-renders — never reuses it.
-``PRTBENCH_CACHE`` relocates the cache root (see ``methods.base.cache_dir``).
+``PRTBENCH_CACHE`` relocates the cache root (see ``scenes.io.cache_dir``).
 """
 from __future__ import annotations
 
 import hashlib
 import io
 import json
-import os
+
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from methods.base import cache_dir
-from references.atomic import atomic_write_bytes
+from scenes.io import atomic_write_bytes, cache_dir
 
 # Bump when the meaning of a cached reference changes in a way the key does not see.
 CACHE_VERSION = 1

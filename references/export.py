@@ -9,7 +9,7 @@ meshes carry the same names, so a Mitsuba shape maps back to our shape index by 
 
 Each shape's BSDF is ``references.plugins.material_to_mitsuba(frame.materials[shape.region])``;
 the emitter is ``references.plugins.envmap_to_mitsuba(frame.envmap)``; the sensor is
-``frame.camera.to_mitsuba()`` (perspective, box reconstruction filter) with an ``independent``
+``camera_to_mitsuba(frame.camera)`` (perspective, box reconstruction filter) with an ``independent``
 sampler; the integrator is ``path`` with ``max_depth`` (2 = direct lighting only, 3 = +1 bounce,
 4 = +2 bounces, −1 = full global illumination) and ``hide_emitters=True``.
 """
@@ -133,9 +133,25 @@ def shape_meshes(scene, frame, *, with_bsdfs: bool = True) -> list:
     return meshes
 
 
+def camera_to_mitsuba(camera) -> dict:
+    """Mitsuba ``perspective`` sensor dict of a ``scenes.camera.Camera`` (fov along x, box
+    reconstruction filter, RGB film)."""
+    mi = _mi()
+    return {
+        "type": "perspective",
+        "fov": camera.fov_deg,
+        "fov_axis": "x",
+        "near_clip": camera.near_clip,
+        "to_world": mi.ScalarTransform4f().look_at(origin=list(camera.origin), target=list(camera.target),
+                                                    up=list(camera.up)),
+        "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
+
+
 def sensor_dict(camera, *, spp: int = 1, seed: int = 0) -> dict:
-    """``camera.to_mitsuba()`` with an ``independent`` sampler and a box-filtered RGB film."""
-    s = dict(camera.to_mitsuba())
+    """``camera_to_mitsuba(camera)`` with an ``independent`` sampler and a box-filtered RGB film."""
+    s = camera_to_mitsuba(camera)
     film = dict(s.get("film", {"type": "hdrfilm", "width": camera.width, "height": camera.height}))
     film["rfilter"] = {"type": "box"}  # the G-buffer's resolve() is a box filter too
     film["pixel_format"] = "rgb"

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from methods.base import GBuffer
+from scenes.frame import GBuffer
 from references.export import _mi, geometry_dict, shape_indices, shape_slices
 
 # Unit-normal guard: interpolated normals shorter than this (opposite vertex normals) are replaced

@@ -1,5 +1,5 @@
 """Where benchmark cells run (issue #9): in process, in a spawn-based process pool, or on a Dask
-cluster — three ``concurrent.futures.Executor``s driven by the one runner ``reports.cells.run_cells``.
+cluster — three ``concurrent.futures.Executor``s driven by the one runner ``reports.runner.run_cells``.
 
 * ``local`` — in this process, one cell after the other (the cell keeps the default thread counts).
 * ``processes`` — a ``ProcessPoolExecutor`` of spawned workers on this machine.
@@ -8,10 +8,10 @@ cluster — three ``concurrent.futures.Executor``s driven by the one runner ``re
 
 Thread discipline: every worker gets its share of its machine's cores, ``cores // task slots on
 that machine`` (at least 1), in the environment variable ``PRTBENCH_THREADS``; each task sets torch
-and Dr.Jit to it (``reports.cells.task_threads``) and records it in the results (``threads``).
+and Dr.Jit to it (``reports.measure_cell.task_threads``) and records it in the results (``threads``).
 
 Honest timings: the parallel executors (``parallel = True``) get every cell as an *errors* task
-and a *timing* task (``reports.cells.run_part``). Timing tasks run one at a time per machine:
+and a *timing* task (``reports.measure_cell.run_part``). Timing tasks run one at a time per machine:
 ``processes`` lets at most one be in flight (``timing_in_flight = 1``); ``dask`` submits them with
 the resource ``TIMING=1``, which exactly one worker per machine holds (``TimingSlotPlugin``: the
 worker that takes a per-machine lock file advertises it; when it dies the lock is released and its
@@ -29,7 +29,7 @@ import os
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from reports.cells import THREADS_ENV, InlineExecutor
+from reports.cells import THREADS_ENV
 
 EXECUTORS = ("local", "processes", "dask")
 TIMING_RESOURCE = "TIMING"
@@ -85,15 +85,18 @@ class BenchExecutor(cf.Executor):
 
 
 class LocalExecutor(BenchExecutor):
-    """In this process, at once (``InlineExecutor``): today's behaviour."""
+    """The in-process executor: ``submit`` runs the call at once and returns a finished future
+    (an exception is delivered through the future, as a pool would)."""
 
     name = "local"
 
-    def __init__(self) -> None:
-        self._inline = InlineExecutor()
-
     def submit(self, fn, /, *args, **kwargs) -> cf.Future:
-        return self._inline.submit(fn, *args, **kwargs)
+        f: cf.Future = cf.Future()
+        try:
+            f.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # noqa: BLE001
+            f.set_exception(e)
+        return f
 
 
 class ProcessesExecutor(BenchExecutor):

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from reports.store import atomic_write_text
+from scenes.io import atomic_write_text
 
 KIND_ORDER = ["V", "VB", "VBL", "P"]
 # The display exposure maps this percentile of the reference's luminance to white (same rule as

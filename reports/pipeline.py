@@ -21,7 +21,8 @@ import pandas as pd
 import torch
 
 from reports import measure, regress, store
-from reports.cells import STATUS_OK, Cell, CellResult, run_cells
+from reports.cells import STATUS_OK, Cell, CellResult
+from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
 TRIAD_ELEMENTS = 1 << 24  # 64 MiB per float32 array: far beyond the caches of this machine kind

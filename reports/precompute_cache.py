@@ -95,7 +95,7 @@ def precompute(method: Any, scene: Any, config: str) -> dict[str, Any]:
     except Exception as e:  # an unpicklable attribute: run uncached, say so once
         warnings.warn(f"{type(method).name}: precompute not cacheable ({e!r})", stacklevel=2)
         return {"seconds": seconds, "cached": False, "load_seconds": 0.0}
-    from references.atomic import atomic_write_bytes
+    from scenes.io import atomic_write_bytes
 
     atomic_write_bytes(path, data)
     return {"seconds": seconds, "cached": False, "load_seconds": 0.0}

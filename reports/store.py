@@ -11,16 +11,15 @@ status ("ok" | "na" | "error"), reason (n/a reason or error message), cell (cell
 """
 from __future__ import annotations
 
-import json
 import os
 import platform
 import subprocess
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Iterable
 
 import pandas as pd
 
-from references.atomic import atomic_save, atomic_write_bytes  # noqa: F401  (re-exported)
+from scenes.io import atomic_save, atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: F401  (re-exported)
 
 COLUMNS = [
     "run_id", "time", "git_sha", "versions", "machine", "threads",
@@ -32,27 +31,6 @@ _DTYPES = {
     "value": "float64", "noise_floor": "float64",
 }
 DEFAULT_HISTORY = Path("out") / "history.parquet"
-
-
-# -- atomic writes (references/atomic.py) ---------------------------------------------------
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=_json_default))
-
-
-def _json_default(o):
-    if hasattr(o, "item"):
-        return o.item()
-    if isinstance(o, (set, frozenset, tuple)):
-        return list(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
 # -- tables -----------------------------------------------------------------------------------

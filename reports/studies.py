@@ -1,24 +1,9 @@
-"""Studies: parameter sweeps that write CSV tables and PNG plots (``run_bench.py study <name>``).
+"""The cross-method study ``terms-vs-exponent`` (``run_bench.py study terms-vs-exponent``).
 
-Pluggable at two levels.
-
-* ``STUDIES`` — name → ``Study(name, description, run)``; ``run(out_dir: Path, *, quick: bool)
-  -> list[Path]`` returns the files it wrote. Add one with ``register_study``; run one with
-  ``run_study(name, out_dir, quick=False)``.
-* The **terms-vs-exponent** study (DESIGN.md: "studies plot how many basis terms each method needs
-  as materials get shinier") has two contributor registries so every method adds its own row
-  without this module knowing it:
-  - ``register_terms_contributor(method, fn, *, target, target_kind)`` — ONE function
-    ``terms_needed(exponent: float, target: float) -> int | TermsRecord``: the number of basis
-    terms the method needs for a Phong exponent ``exponent`` to reach ``target`` (what the target
-    means is the contributor's ``target_kind``, e.g. "energy fraction" or "relative RMSE").
-    ``fn`` may be a callable or a lazy ``"module:function"`` string (imported on first use, so
-    registering costs nothing). Built in: ``inout`` → ``methods.inout.analysis:terms_needed``
-    (Mahajan 2008: K capturing 99 % of the hemisphere BRDF-matrix energy, 40 × 40 grid).
-  - ``register_error_vs_terms(method, fn)`` — ``fn(exponent: float, terms: int) -> float``, the
-    rendered image error with ``terms`` terms (Mahajan 2008 Fig. 3B/C, Fig. 6). PENDING: it needs
-    the in-out renderer; until one is registered the study writes no error-vs-terms table and says
-    so in ``summary.json``.
+Paper figures and tables live beside their methods (``methods/<m>/study.py``) and register in
+``methods.studies``; this module holds only what compares methods: it runs Mahajan 2008's
+analysis figures (the terms-vs-exponent question is Mahajan's) and calls every registered
+terms contributor (``methods.studies.register_terms_contributor``) and error-vs-terms function.
 
 terms-vs-exponent outputs (in ``out_dir``):
   ``k_vs_s.csv/png`` (Fig. 3A: K(99 %) vs Phong s, sphere and hemisphere, the 5s and 2.5s lines,
@@ -32,158 +17,17 @@ terms-vs-exponent outputs (in ``out_dir``):
 from __future__ import annotations
 
 import csv
-import importlib
 import json
 import math
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-# -- registries -------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Study:
-    """A named sweep. run(out_dir, *, quick) -> files written (quick: test-sized, seconds)."""
-
-    name: str
-    description: str
-    run: Callable[..., list[Path]]
-
-
-STUDIES: dict[str, Study] = {}
-
-
-def register_study(study: Study, *, replace: bool = False) -> Study:
-    """Add ``study`` to ``STUDIES`` (``ValueError`` if the name is taken and not ``replace``)."""
-    if not isinstance(study, Study):
-        raise ValueError(f"expected a Study, got {type(study)}")
-    if study.name in STUDIES and not replace:
-        raise ValueError(f"study {study.name!r} is already registered")
-    STUDIES[study.name] = study
-    return study
-
-
-def run_study(name: str, out_dir: str | Path, *, quick: bool = False) -> list[Path]:
-    """Run the study ``name``, writing into ``out_dir`` (created); returns the files written."""
-    if name not in STUDIES:
-        raise ValueError(f"unknown study {name!r}; known: {', '.join(sorted(STUDIES))}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    return list(STUDIES[name].run(out, quick=quick))
-
-
-@dataclass(frozen=True)
-class TermsRecord:
-    """One row of the terms-vs-exponent table.
-
-    method: contributor name; exponent: Phong s; target: accuracy target (meaning: target_kind);
-    terms: number of basis terms the method needs; note: free text (resolution, caveats).
-    """
-
-    method: str
-    exponent: float
-    target: float
-    terms: int
-    target_kind: str = ""
-    note: str = ""
-
-
-@dataclass(frozen=True)
-class TermsContributor:
-    method: str
-    fn: Callable[[float, float], Any] | str  # callable or lazy "module:function"
-    target: float
-    target_kind: str
-
-    def resolve(self) -> Callable[[float, float], Any]:
-        return _resolve(self.fn)
-
-
-TERMS_CONTRIBUTORS: dict[str, TermsContributor] = {}
-ERROR_VS_TERMS: dict[str, Callable[[float, int], float] | str] = {}
-
-
-def _resolve(fn: Callable | str) -> Callable:
-    if callable(fn):
-        return fn
-    if isinstance(fn, str) and ":" in fn:
-        mod, attr = fn.split(":", 1)
-        return getattr(importlib.import_module(mod), attr)
-    raise ValueError(f"expected a callable or 'module:function', got {fn!r}")
-
-
-def register_terms_contributor(method_name: str, fn: Callable[[float, float], Any] | str, *,
-                               target: float = 0.99, target_kind: str = "energy fraction",
-                               replace: bool = False) -> TermsContributor:
-    """Register ``fn(exponent, target) -> int | TermsRecord`` as ``method_name``'s row of the
-    terms-vs-exponent study; ``target`` is the value the study passes (its meaning: target_kind)."""
-    if not method_name:
-        raise ValueError("method_name must be non-empty")
-    if not (callable(fn) or (isinstance(fn, str) and ":" in fn)):
-        raise ValueError(f"fn must be callable or 'module:function', got {fn!r}")
-    if method_name in TERMS_CONTRIBUTORS and not replace:
-        raise ValueError(f"terms contributor {method_name!r} is already registered")
-    c = TermsContributor(method_name, fn, float(target), target_kind)
-    TERMS_CONTRIBUTORS[method_name] = c
-    return c
-
-
-def register_error_vs_terms(method_name: str, fn: Callable[[float, int], float] | str, *,
-                            replace: bool = False) -> None:
-    """Register ``fn(exponent, terms) -> rendered error`` (Mahajan 2008 Fig. 3B/C, Fig. 6).
-
-    PENDING for in-out: needs the renderer (``methods/inout``), which is not written yet.
-    """
-    if not (callable(fn) or (isinstance(fn, str) and ":" in fn)):
-        raise ValueError(f"fn must be callable or 'module:function', got {fn!r}")
-    if method_name in ERROR_VS_TERMS and not replace:
-        raise ValueError(f"error-vs-terms function {method_name!r} is already registered")
-    ERROR_VS_TERMS[method_name] = fn
-
-
-def terms_table(exponents: list[float], methods: list[str] | None = None, *,
-                progress: Any = None) -> list[TermsRecord]:
-    """Call every (or the named) contributor at every exponent → records (method-major order)."""
-    names = sorted(TERMS_CONTRIBUTORS) if methods is None else methods
-    rows: list[TermsRecord] = []
-    for name in names:
-        if name not in TERMS_CONTRIBUTORS:
-            raise ValueError(f"unknown terms contributor {name!r}")
-        c = TERMS_CONTRIBUTORS[name]
-        fn = c.resolve()
-        for s in exponents:
-            r = fn(float(s), c.target)
-            if isinstance(r, TermsRecord):
-                rows.append(r)
-            else:
-                if int(r) != r or r < 0:
-                    raise ValueError(f"{name}: terms_needed returned {r!r}, expected an int >= 0")
-                rows.append(TermsRecord(name, float(s), c.target, int(r), c.target_kind))
-            if progress is not None:
-                progress.update(1)
-    return rows
-
-
-# Built-in contributor (lazy: importing reports.studies imports no method).
-register_terms_contributor("inout", "methods.inout.analysis:terms_needed", target=0.99,
-                           target_kind="energy fraction (Mahajan 2008, hemisphere, 40x40)")
-register_error_vs_terms("inout", "methods.inout.study:error_vs_terms")
-register_terms_contributor("triple_product", "methods.triple_product.study:terms_needed", target=0.05,
-                           target_kind="relative RMS shading error vs all coefficients (level 4, sky_sun, V=1)")
-register_terms_contributor("zh_shadow", "methods.zh_shadow.study:terms_needed", target=0.99,
-                           target_kind="energy fraction of the Phong lobe in order-n SH (n² terms)")
-# PTT: one curve without and one with Sun §4.1 lobe separation (the study plots one curve per name)
-register_terms_contributor("ptt", "methods.ptt.study:terms_needed", target=0.01,
-                           target_kind="relative squared error of the Blinn-Phong BRDF tensor "
-                                       "(1 BRDF, DiskGrid 32, n_wo = n_wi) -> n_wi")
-register_terms_contributor("ptt_separated", "methods.ptt.study:terms_needed_separated", target=0.01,
-                           target_kind="relative squared error of the Blinn-Phong BRDF tensor with Sun §4.1 "
-                                       "lobe separation (1 BRDF, DiskGrid 32) -> n_wi")
-
+import methods.registry  # noqa: F401  (loads every method's study registrations)
+from methods.studies import ERROR_VS_TERMS, STUDIES, TERMS_CONTRIBUTORS, Study, register_study, run_study, terms_table  # noqa: F401  (STUDIES, run_study: the CLI's)
 
 # -- helpers ----------------------------------------------------------------------------------
 
@@ -391,7 +235,7 @@ def terms_vs_exponent(out_dir: Path, *, quick: bool = False,
     if ERROR_VS_TERMS:
         rows = []
         for name, fn in sorted(ERROR_VS_TERMS.items()):
-            f = _resolve(fn)
+            f = fn
             for s in cfg.s_values:
                 for K in sorted({1, 4, 16, max(1, round(2.5 * s)), max(1, round(5 * s))}):
                     rows.append({"method": name, "s": s, "K": K, "error": float(f(float(s), K))})
@@ -428,14 +272,3 @@ def _save(fig, path: Path, plt) -> Path:
 register_study(Study("terms-vs-exponent",
                      "Terms needed vs Phong exponent (Mahajan 2008 Fig. 2, 3A, 5, 7C + every "
                      "registered method)", terms_vs_exponent))
-
-
-def _ptt_figures(out_dir: Path, *, quick: bool = False) -> list[Path]:
-    from methods.ptt.study import run_all  # noqa: PLC0415  (lazy: no method imported at load)
-
-    return run_all(out_dir, quick=quick)
-
-
-register_study(Study("ptt-figures", "Sun 2007 Figs. 5-6 (BRDF tensor error, lobe separation), Fig. 8 "
-                     "(one-bounce lighting resolution), Figs. 9-10 (CPCA eigenvectors / lighting dimension), "
-                     "PTT terms vs shininess", _ptt_figures))

@@ -89,7 +89,7 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
 
     ``scenes`` may contain ``"file:<path>"`` entries (TOML scene files).
     """
-    from methods.base import available_methods, get_method
+    from methods.registry import available_methods, get_method
     from reports.backend import load_backend
 
     be = load_backend(backend)

@@ -136,20 +136,3 @@ class Camera:
         """JSON-able description (used by hashing)."""
         return {"origin": list(self.origin), "target": list(self.target), "up": list(self.up),
                 "fov_deg": self.fov_deg, "width": self.width, "height": self.height, "near_clip": self.near_clip}
-
-    def to_mitsuba(self) -> dict:
-        """Mitsuba `perspective` sensor dict (box reconstruction filter, RGB film)."""
-        import mitsuba as mi
-
-        from references.mitsuba_setup import ensure_variant
-
-        ensure_variant()
-        return {
-            "type": "perspective",
-            "fov": self.fov_deg,
-            "fov_axis": "x",
-            "near_clip": self.near_clip,
-            "to_world": mi.ScalarTransform4f().look_at(origin=list(self.origin), target=list(self.target), up=list(self.up)),
-            "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
-                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-        }

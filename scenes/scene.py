@@ -13,7 +13,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from scenes.frame import Frame
+from scenes.hashing import hash_envmap, hash_materials, hash_params, hash_tensor
 from scenes.mesh import Mesh
+from scenes.skeleton import check_weights, skin
 
 
 @dataclass
@@ -97,8 +100,6 @@ class Scene:
         if self.skin_weights is not None:
             if self.skeleton is None:
                 raise ValueError("skin_weights given without a skeleton")
-            from scenes.skeleton import check_weights
-
             by_name = {s.name: s for s in self.shapes}
             sw = {}
             for k, w in self.skin_weights.items():
@@ -134,8 +135,6 @@ class Scene:
             return g
         if self.skeleton is None:
             raise ValueError(f"scene {self.name!r} has no skeleton; pose must be None")
-        from scenes.skeleton import skin
-
         T = self.skeleton.forward_kinematics(torch.as_tensor(pose, dtype=torch.float32))
         V, N = g.V.clone(), g.N.clone()
         for i, s in enumerate(self.shapes):
@@ -148,14 +147,10 @@ class Scene:
 
     def default_frame(self, pose=None):
         """The scene's own frame (its env map, camera, materials; rest pose)."""
-        from methods.base import Frame
-
         return Frame(envmap=self.envmap, camera=self.camera, materials=dict(self.materials), pose=pose)
 
     def content_hash(self) -> str:
         """sha256 over rest geometry bytes, regions, materials, env map data, camera, skeleton/skin."""
-        from scenes.hashing import hash_envmap, hash_materials, hash_params, hash_tensor
-
         g = self.rest_geometry()
         parts = {
             "geometry": [hash_tensor(t) for t in (g.V, g.F, g.N, g.vertex_region, g.face_offset, g.vertex_offset)]

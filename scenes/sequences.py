@@ -17,7 +17,7 @@ import math
 import numpy as np
 import torch
 
-from methods.base import Frame
+from scenes.frame import Frame
 
 KINDS = ("V", "VB", "VBL", "P")
 ALL_CHANGED = frozenset({"view", "brdf", "light", "pose"})

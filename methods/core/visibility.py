@@ -21,7 +21,7 @@ Threads
 embreex releases the GIL inside ``EmbreeScene.run``, so a large batch is split into ``threads``
 contiguous chunks traced concurrently. Measured: 1.85× with 2 threads on an idle 2-core machine
 (icosphere, 400K rays); no gain when the cores are oversubscribed (load ≈ 5–7, see
-``python -m methods.core.bench_visibility``). Results are identical to the single-threaded call.
+``python -m benchmarks.visibility``). Results are identical to the single-threaded call.
 embreex traces one ray per Embree call; Mitsuba's ``scene.ray_test`` (llvm_ad_rgb, Embree packets)
 measured 1.6–10× faster on the same rays, so very large precomputations may prefer it.
 """

@@ -10,6 +10,9 @@ from __future__ import annotations
 import dataclasses
 from functools import lru_cache
 
+from methods.inout.analysis import terms_needed
+from methods.studies import register_error_vs_terms, register_terms_contributor
+
 REF_SPP = 256  # reference samples per pixel (noise floor ≈ 5 % of the RMSE scale at this size)
 
 
@@ -41,3 +44,9 @@ def error_vs_terms(exponent: float, terms: int) -> float:
     m = InOut(terms=int(terms), progress=False)
     m.precompute(scene)
     return rmse(m.render(frame, gb), ref.image, mask) / ref.image[mask].mean().item()
+
+
+# -- registration (methods.studies) ----------------------------------------------------------------
+register_terms_contributor("inout", terms_needed, target=0.99,
+                           target_kind="energy fraction (Mahajan 2008, hemisphere, 40x40)")
+register_error_vs_terms("inout", error_vs_terms)

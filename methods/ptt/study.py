@@ -65,6 +65,7 @@ from torch import Tensor
 
 from methods.ptt.brdf_tensor import DiskGrid, separate_tensor
 from methods.ptt.lobes import LOBE_DEGREES
+from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
 
 __all__ = [
     "BASE_CONFIG",
@@ -560,7 +561,6 @@ def tensor_error_curve(exponent: float, *, separated: bool = False, grid_n: int 
 
 
 def _terms(exponent: float, target: float, separated: bool, grid_n: int, degrees: Sequence[float]):
-    from reports.studies import TermsRecord
 
     if not 0 < target < 1:
         raise ValueError(f"target must be in (0, 1), got {target!r}")
@@ -739,6 +739,19 @@ def main(argv: list[str] | None = None):
     with pd.option_context("display.max_rows", 200, "display.width", 200):
         print(df.drop(columns=[c for c in ("scene", "size") if c in df]).to_string(index=False))
     return df
+
+
+# -- registration (methods.studies) ----------------------------------------------------------------
+# One curve without and one with Sun §4.1 lobe separation (the study plots one curve per name).
+register_terms_contributor("ptt", terms_needed, target=0.01,
+                           target_kind="relative squared error of the Blinn-Phong BRDF tensor "
+                                       "(1 BRDF, DiskGrid 32, n_wo = n_wi) -> n_wi")
+register_terms_contributor("ptt_separated", terms_needed_separated, target=0.01,
+                           target_kind="relative squared error of the Blinn-Phong BRDF tensor with Sun §4.1 "
+                                       "lobe separation (1 BRDF, DiskGrid 32) -> n_wi")
+register_study(Study("ptt-figures", "Sun 2007 Figs. 5-6 (BRDF tensor error, lobe separation), Fig. 8 "
+                     "(one-bounce lighting resolution), Figs. 9-10 (CPCA eigenvectors / lighting dimension), "
+                     "PTT terms vs shininess", run_all, paper="Sun 2007"))
 
 
 if __name__ == "__main__":

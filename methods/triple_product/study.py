@@ -27,6 +27,7 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.triple_product import brdf_table as bt
 from methods.triple_product.lighting import project_lighting
 from methods.triple_product.precompute import blend_sparse, truncate
+from methods.studies import TermsRecord, register_terms_contributor
 
 # n ladder searched by `terms_needed` (the paper's 20 / 80 / 320 are on it).
 LADDER = (5, 10, 20, 40, 80, 160, 320, 640, 1280, 2560, 5120, 20480)
@@ -91,7 +92,6 @@ def shading_error(exponent: float, n: int | None, *, level: int = 4, selection: 
 
 def terms_needed(exponent: float, target: float = 0.05, *, level: int = 4, selection: str = "adaptive"):
     """Smallest n on `LADDER` (≤ K) with `shading_error` ≤ target → ``reports.studies.TermsRecord``."""
-    from reports.studies import TermsRecord
 
     if not 0 < target < 1:
         raise ValueError(f"target must be in (0, 1), got {target}")
@@ -200,3 +200,8 @@ def main(argv: list[str] | None = None) -> list:
 
 if __name__ == "__main__":
     main()
+
+
+# -- registration (methods.studies) ----------------------------------------------------------------
+register_terms_contributor("triple_product", terms_needed, target=0.05,
+                           target_kind="relative RMS shading error vs all coefficients (level 4, sky_sun, V=1)")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 from methods.core.zh import phong_kernel
+from methods.studies import TermsRecord, register_terms_contributor
 
 # Orders searched (n² ≤ 40 000 terms: enough for α ≈ 10⁵ at 99 %).
 MAX_ORDER = 200
@@ -49,12 +50,13 @@ def order_needed(exponent: float, target: float = 0.99) -> int:
 
 
 def terms_needed(exponent: float, target: float = 0.99):
-    """`reports.studies` contributor: n² SH terms for Phong exponent `exponent` (TermsRecord)."""
+    """terms-vs-exponent contributor: n² SH terms for Phong exponent `exponent` (TermsRecord)."""
     n = order_needed(exponent, target)
-    try:
-        from reports.studies import TermsRecord
-    except ImportError:  # the study module is optional for this function
-        return n * n
     return TermsRecord("zh_shadow", float(exponent), float(target), n * n,
                        "energy fraction of the Phong lobe in order-n SH (n² terms)",
                        f"order {n}; paper's order 4 holds {lobe_energy_fraction(exponent, 4):.3f}")
+
+
+# -- registration (methods.studies) ----------------------------------------------------------------
+register_terms_contributor("zh_shadow", terms_needed, target=0.99,
+                           target_kind="energy fraction of the Phong lobe in order-n SH (n² terms)")

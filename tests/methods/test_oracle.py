@@ -14,7 +14,7 @@ import dataclasses
 import pytest
 import torch
 
-from methods.base import get_method
+from methods.registry import get_method
 from references.gbuffer import make_gbuffer
 from references.metrics import rmse
 from references.render import render_reference

@@ -9,6 +9,8 @@ import pytest
 import torch
 
 from reports import cells as C
+from reports import measure_cell as MC
+from reports import runner as R
 from reports import fakes
 from reports.suites import NIGHTLY, SMOKE, Suite, plan_cells
 
@@ -40,7 +42,7 @@ def test_cell_is_picklable_and_key_identifies_it():
 
 def test_run_cell_measures_everything(tmp_path):
     bias = 0.1
-    r = C.run_cell(_cell(config=C.canonical_config({"bias": bias})), tmp_path, progress=False)
+    r = MC.run_cell(_cell(config=C.canonical_config({"bias": bias})), tmp_path, progress=False)
     assert r.status == "ok", r.reason
     summ = {row["metric"]: row for row in r.rows if row["frame"] == -1}
     for m in ("precompute_time", "render_time_median", "render_time_iqr", "fps", "rmse", "psnr", "memory_bytes",
@@ -67,9 +69,9 @@ def test_run_cell_measures_everything(tmp_path):
 
 
 def test_na_and_failing_cells_are_recorded(tmp_path):
-    na = C.run_cell(_cell(kind="VBL", na="BRDFs fixed at precompute"), tmp_path)
+    na = MC.run_cell(_cell(kind="VBL", na="BRDFs fixed at precompute"), tmp_path)
     assert na.status == "na" and na.reason == "BRDFs fixed at precompute" and na.rows == []
-    bad = C.run_cell(_cell(method="fake_fail"), tmp_path, progress=False)
+    bad = MC.run_cell(_cell(method="fake_fail"), tmp_path, progress=False)
     assert bad.status == "error" and "planted failure" in bad.reason and "Traceback" in bad.info["traceback"]
     assert C.result_path(tmp_path, _cell(method="fake_fail")).exists()
     assert not C.is_finished(tmp_path, _cell(method="fake_fail"))  # failed cells are retried on resume
@@ -82,7 +84,7 @@ class _Killed(BaseException):
 def test_killed_run_resumes_without_recomputing(tmp_path, monkeypatch):
     cells = [_cell(seed=s, eq_err_spp=()) for s in range(4)]
     calls = []
-    real = C._measure
+    real = MC._measure
 
     def counting(cell, out_dir, progress):
         calls.append(cell.seed)
@@ -90,13 +92,13 @@ def test_killed_run_resumes_without_recomputing(tmp_path, monkeypatch):
             raise _Killed()
         return real(cell, out_dir, progress)
 
-    monkeypatch.setattr(C, "_measure", counting)
+    monkeypatch.setattr(MC, "_measure", counting)
     with pytest.raises(_Killed):
-        C.run_cells(cells, tmp_path, progress=False)
+        R.run_cells(cells, tmp_path, progress=False)
     assert calls == [0, 1, 2]
     done = sorted(p.name for p in (tmp_path / "cells").iterdir())
     assert done == sorted(f"{c.key()}.json" for c in cells[:2])  # no partial file for the killed cell
-    res = C.run_cells(cells, tmp_path, progress=False)
+    res = R.run_cells(cells, tmp_path, progress=False)
     assert calls == [0, 1, 2, 2, 3]  # only the unfinished cells ran again
     assert [r.status for r in res] == ["ok"] * 4
     assert [r.key for r in res] == [c.key() for c in cells]
@@ -107,14 +109,14 @@ def test_run_cells_with_a_process_pool_like_executor(tmp_path):
 
     cells = [_cell(seed=s, eq_err_spp=()) for s in range(3)]
     with ThreadPoolExecutor(2) as ex:
-        res = C.run_cells(cells, tmp_path, executor=ex, max_in_flight=2, progress=False)
+        res = R.run_cells(cells, tmp_path, executor=ex, max_in_flight=2, progress=False)
     assert [r.key for r in res] == [c.key() for c in cells] and all(r.status == "ok" for r in res)
 
 
 def test_isolated_cell_runs_in_a_spawned_child(tmp_path):
     import os
 
-    r = C.run_cell(_cell(isolate=True, eq_err_spp=()), tmp_path, progress=False)
+    r = MC.run_cell(_cell(isolate=True, eq_err_spp=()), tmp_path, progress=False)
     assert r.status == "ok", r.reason
     assert r.info["pid"] != os.getpid()
     rss = [row["value"] for row in r.rows if row["metric"] == "peak_rss_bytes"]
@@ -125,7 +127,7 @@ def test_splat_vertex_error_constant_and_hand_example():
     gb = fakes.make_gbuffer(None, None, 2)
     V, F = fakes.geometry(None, None)
     mask = gb.coverage
-    const = C.splat_vertex_error(torch.full((8, 8), 0.25), gb, F, len(V), mask)
+    const = MC.splat_vertex_error(torch.full((8, 8), 0.25), gb, F, len(V), mask)
     seen = torch.isfinite(const)
     assert seen.any() and torch.allclose(const[seen], torch.tensor(0.25, dtype=torch.float64))
     # one scored pixel only: its error lands (normalised) on exactly its triangle's vertices
@@ -133,12 +135,12 @@ def test_splat_vertex_error_constant_and_hand_example():
     m1[3, 5] = True
     e = torch.zeros(8, 8)
     e[3, 5] = 2.0
-    v = C.splat_vertex_error(e, gb, F, len(V), m1)
+    v = MC.splat_vertex_error(e, gb, F, len(V), m1)
     tri = set(F[gb.face.view(8, 8, 4)[3, 5, 0]].tolist())
     assert set(torch.nonzero(torch.isfinite(v)).flatten().tolist()) == tri
     assert torch.allclose(v[list(tri)], torch.tensor(2.0, dtype=torch.float64))
     with pytest.raises(ValueError):
-        C.splat_vertex_error(torch.zeros(4, 4), gb, F, len(V), mask)
+        MC.splat_vertex_error(torch.zeros(4, 4), gb, F, len(V), mask)
 
 
 def test_plan_capability_matrix_and_bounces():
@@ -168,7 +170,7 @@ def test_plan_capability_matrix_and_bounces():
 def test_cell_scored_against_full_gi(tmp_path):
     c = _cell(method="fake_gi", bounces=1, kind="V", score_full_gi=True, eq_err_spp=())
     fakes.WITH_BOUNCES_CALLS.clear()
-    r = C.run_cell(c, tmp_path, progress=False)
+    r = MC.run_cell(c, tmp_path, progress=False)
     assert r.status == "ok", r.reason
     assert fakes.WITH_BOUNCES_CALLS == [1]  # the method was told how many bounces to render
     same = {row["frame"]: row["value"] for row in r.rows if row["metric"] == "rmse"}
@@ -178,7 +180,7 @@ def test_cell_scored_against_full_gi(tmp_path):
     # frame, so the full-GI reference is the same image: the two scores must agree exactly
     for f in same:
         assert full[f] == pytest.approx(same[f], rel=1e-6)
-    plain = C.run_cell(_cell(method="fake_gi", bounces=1, kind="V", eq_err_spp=()), tmp_path / "b", progress=False)
+    plain = MC.run_cell(_cell(method="fake_gi", bounces=1, kind="V", eq_err_spp=()), tmp_path / "b", progress=False)
     assert not [row for row in plain.rows if row["metric"] == "rmse_full_gi"]
 
 
@@ -196,8 +198,8 @@ def test_precompute_cache_reports_the_original_time(tmp_path, monkeypatch):
     monkeypatch.delenv("PRTBENCH_NO_PRECOMPUTE_CACHE", raising=False)
     fakes.PRECOMPUTE_CALLS.clear()
     cfg = C.canonical_config({"precompute_delay": 0.2})
-    a = C.run_cell(_cell(method="fake_cached", config=cfg, kind="V", eq_err_spp=()), tmp_path / "a")
-    b = C.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "b")
+    a = MC.run_cell(_cell(method="fake_cached", config=cfg, kind="V", eq_err_spp=()), tmp_path / "a")
+    b = MC.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "b")
     assert a.status == b.status == "ok", (a.reason, b.reason)
     assert fakes.PRECOMPUTE_CALLS == ["fake_plane"]  # computed once
     sa = {r["metric"]: r["value"] for r in a.rows if r["frame"] == -1}
@@ -206,10 +208,10 @@ def test_precompute_cache_reports_the_original_time(tmp_path, monkeypatch):
     assert sb["precompute_time"] == sa["precompute_time"] >= 0.2  # the original seconds, not the load
     assert sb["memory_bytes"] == sa["memory_bytes"] == 1024
     # another config is another precomputation; the switch turns the cache off
-    C.run_cell(_cell(method="fake_cached", config=C.canonical_config({"precompute_delay": 0.0}), eq_err_spp=()),
+    MC.run_cell(_cell(method="fake_cached", config=C.canonical_config({"precompute_delay": 0.0}), eq_err_spp=()),
                tmp_path / "c")
     monkeypatch.setenv("PRTBENCH_NO_PRECOMPUTE_CACHE", "1")
-    C.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "d")
+    MC.run_cell(_cell(method="fake_cached", config=cfg, kind="VBL", eq_err_spp=()), tmp_path / "d")
     assert fakes.PRECOMPUTE_CALLS == ["fake_plane"] * 3
 
 
@@ -234,10 +236,10 @@ def test_corrupt_precompute_cache_entry_is_recomputed(tmp_path, monkeypatch):
 def test_progress_without_a_terminal_prints_one_line_per_cell(tmp_path, capsys):
     """A cron or CI log is not a terminal (tqdm stays silent): each finished cell gets one line."""
     cells = [_cell(seed=s, eq_err_spp=()) for s in (0, 1)] + [_cell(kind="P", na="static geometry only")]
-    C.run_cells(cells, tmp_path, progress=True)
+    R.run_cells(cells, tmp_path, progress=True)
     lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("[prtbench] ")]
     assert len(lines) == 3, lines
     assert lines[0].startswith("[prtbench] 1/3 fake/fake_plane/V/b0: ok")
     assert lines[2].startswith("[prtbench] 3/3 fake/fake_plane/P/b0: na")
-    C.run_cells(cells, tmp_path, progress=False)  # progress off: silent
+    R.run_cells(cells, tmp_path, progress=False)  # progress off: silent
     assert "[prtbench]" not in capsys.readouterr().err

@@ -15,6 +15,8 @@ import pandas as pd
 import pytest
 
 from reports import cells as C
+from reports import measure_cell as MC
+from reports import runner as R
 from reports import executors as X
 from reports.pipeline import collect, provenance
 
@@ -44,7 +46,7 @@ def _error_table(results):
 
 
 def _files(d):
-    """Files of a results folder without in-flight atomic writes (`references.atomic`: a dot-file
+    """Files of a results folder without in-flight atomic writes (`scenes.io`: a dot-file
     temporary, renamed away a moment later — a snapshot that caught one cannot find it after)."""
     return [p for p in d.iterdir() if p.is_file() and not p.name.startswith(".")]
 
@@ -86,9 +88,9 @@ def test_split_cells_give_the_same_rows_as_whole_cells(tmp_path, monkeypatch):
     """errors part + timing part, merged == run_cell: bit-identical errors, the same metric set,
     timing parts one at a time while error parts overlap."""
     cells = _sweep()
-    whole = C.run_cells(cells, tmp_path / "whole", progress=False)
+    whole = R.run_cells(cells, tmp_path / "whole", progress=False)
     intervals = {"timing": [], "errors": []}
-    real = C.run_part
+    real = MC.run_part
 
     def spy(cell, part, out_dir, **kw):
         t0 = time.monotonic()
@@ -96,12 +98,12 @@ def test_split_cells_give_the_same_rows_as_whole_cells(tmp_path, monkeypatch):
         intervals[part].append((t0, time.monotonic()))
         return r
 
-    monkeypatch.setattr(C, "run_part", spy)
+    monkeypatch.setattr(R, "run_part", spy)
     slow = [C.Cell.from_dict({**c.to_dict(), "config": C.canonical_config({**json.loads(c.config), "delay": 0.02})})
             if c.method == "fake" else c for c in cells]
     with _ThreadsParallel() as ex:
-        split = C.run_cells(cells, tmp_path / "split", executor=ex, progress=False)
-        C.run_cells(slow, tmp_path / "slow", executor=ex, progress=False)
+        split = R.run_cells(cells, tmp_path / "split", executor=ex, progress=False)
+        R.run_cells(slow, tmp_path / "slow", executor=ex, progress=False)
     assert [r.status for r in split] == [r.status for r in whole] == ["ok"] * 4 + ["error", "na"]
     pd.testing.assert_frame_equal(_error_table(split), _error_table(whole))  # seeded: bit-identical
     for a, b in zip(whole[:4], split[:4]):
@@ -131,14 +133,14 @@ class _Dying(_ThreadsParallel):
 def test_lost_worker_is_recorded_and_rerun_redoes_only_that(tmp_path):
     cells = _sweep()
     with _Dying() as ex:
-        res = C.run_cells(cells, tmp_path, executor=ex, progress=False)
+        res = R.run_cells(cells, tmp_path, executor=ex, progress=False)
     assert [r.status for r in res] == ["ok", "error", "ok", "error", "error", "na"]
     for r in (res[1], res[3]):  # retried once alone, then recorded with the error
         assert "timing part: worker lost: BrokenProcessPool: worker died" in r.reason
     assert C.load_part(tmp_path, cells[1], "errors").status == "ok"
     before = _mtimes(tmp_path / "cells" / "parts")
     with _ThreadsParallel() as ex:
-        res2 = C.run_cells(cells, tmp_path, executor=ex, progress=False)
+        res2 = R.run_cells(cells, tmp_path, executor=ex, progress=False)
     assert [r.status for r in res2] == ["ok"] * 4 + ["error", "na"]
     after = _mtimes(tmp_path / "cells" / "parts")
     redone = {k for k in after if after[k] != before.get(k)}
@@ -148,10 +150,10 @@ def test_lost_worker_is_recorded_and_rerun_redoes_only_that(tmp_path):
 
 def test_processes_executor_same_errors_and_killed_worker(tmp_path):
     cells = _sweep()
-    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    local = R.run_cells(cells, tmp_path / "local", progress=False)
     with X.make_executor("processes", workers=2) as ex:
         assert ex.threads == X.share_of_cores(X.machine_cores(), 2)
-        res = C.run_cells(cells, tmp_path / "proc", executor=ex, progress=False)
+        res = R.run_cells(cells, tmp_path / "proc", executor=ex, progress=False)
         pd.testing.assert_frame_equal(_error_table(res), _error_table(local))
         assert [r.status for r in res] == ["ok"] * 4 + ["error", "na"]
         assert {r.info["threads"] for r in res[:4]} == {ex.threads}  # the worker's share, recorded
@@ -161,7 +163,7 @@ def test_processes_executor_same_errors_and_killed_worker(tmp_path):
         slow = [_cell(config='{"delay":0.4}', seed=s, eq_err_spp=()) for s in range(4)]
         out = tmp_path / "kill"
         box = {}
-        th = threading.Thread(target=lambda: box.update(r=C.run_cells(slow, out, executor=ex, progress=False)))
+        th = threading.Thread(target=lambda: box.update(r=R.run_cells(slow, out, executor=ex, progress=False)))
         th.start()
         before = _wait_for_finished(out, th)
         victim = ex.pids()[0]
@@ -186,14 +188,14 @@ def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkey
     pytest.importorskip("distributed")
     monkeypatch.setenv(X.LOCK_DIR_ENV, str(tmp_path))  # the lock file of the --scheduler run below
     cells = _sweep()
-    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    local = R.run_cells(cells, tmp_path / "local", progress=False)
     with X.make_executor("dask", workers=2) as ex:
         info = ex.client.scheduler_info(n_workers=-1)["workers"]
         assert len(info) == 2 and all(a.startswith("tcp://127.0.0.1:") for a in info)
         assert sum(w["resources"].get(X.TIMING_RESOURCE, 0) for w in info.values()) == 1  # one slot per machine
         assert ex.client.scheduler.address.startswith("tcp://127.0.0.1:")
         out = tmp_path / "dask"
-        res = C.run_cells(cells, out, executor=ex, progress=False)
+        res = R.run_cells(cells, out, executor=ex, progress=False)
         pd.testing.assert_frame_equal(_error_table(res), _error_table(local))  # bit-identical (seeded)
         assert [r.status for r in res] == ["ok"] * 4 + ["error", "na"]
         assert "planted failure" in res[4].reason
@@ -205,7 +207,7 @@ def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkey
 
         # re-run: only the failed cell's parts run again
         before = _mtimes(out / "cells" / "parts")
-        res2 = C.run_cells(cells, out, executor=ex, progress=False)
+        res2 = R.run_cells(cells, out, executor=ex, progress=False)
         after = _mtimes(out / "cells" / "parts")
         redone = {k for k in after if after[k] != before.get(k)}
         assert redone == {f"{cells[4].key()}.errors.json", f"{cells[4].key()}.timing.json"}
@@ -215,7 +217,7 @@ def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkey
         slow = [_cell(config='{"delay":0.4}', seed=s, eq_err_spp=()) for s in range(4)]
         out = tmp_path / "kill"
         box = {}
-        th = threading.Thread(target=lambda: box.update(r=C.run_cells(slow, out, executor=ex, progress=False)))
+        th = threading.Thread(target=lambda: box.update(r=R.run_cells(slow, out, executor=ex, progress=False)))
         th.start()
         before = _wait_for_finished(out, th)
         busy = [a for a, ts in ex.client.processing().items() if ts] or list(ex.worker_pids())
@@ -271,9 +273,9 @@ def test_real_scene_errors_identical_local_and_dask(tmp_path):
     suite = Suite(name="e2e", size="test", scenes=("sphere_plane",), kinds=("V",), dynamic_kinds=(), n_frames=2,
                   ref_spp=16, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),), isolate=False)
     cells = plan_cells(suite, methods=["oracle"])
-    local = C.run_cells(cells, tmp_path / "local", progress=False)
+    local = R.run_cells(cells, tmp_path / "local", progress=False)
     with X.make_executor("dask", workers=2) as ex:
-        dask = C.run_cells(cells, tmp_path / "dask", executor=ex, progress=False)
+        dask = R.run_cells(cells, tmp_path / "dask", executor=ex, progress=False)
     assert [r.status for r in local] == [r.status for r in dask] == ["ok"]
     assert len(_error_table(local)) > 0
     pd.testing.assert_frame_equal(_error_table(dask), _error_table(local))

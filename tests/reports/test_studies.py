@@ -1,4 +1,5 @@
-"""reports.studies: registries and the quick terms-vs-exponent study."""
+"""methods.studies (the registries, loaded through methods.registry) and reports.studies (the quick
+terms-vs-exponent study)."""
 from __future__ import annotations
 
 import csv
@@ -7,7 +8,8 @@ import json
 import pytest
 import torch
 
-from reports import studies as S
+from methods import studies as MS
+from reports import studies as S  # registers terms-vs-exponent and loads every method's studies
 
 
 @pytest.fixture
@@ -22,20 +24,20 @@ def one_torch_thread():
 
 @pytest.fixture
 def clean_registries():
-    saved = (dict(S.STUDIES), dict(S.TERMS_CONTRIBUTORS), dict(S.ERROR_VS_TERMS))
+    saved = (dict(MS.STUDIES), dict(MS.TERMS_CONTRIBUTORS), dict(MS.ERROR_VS_TERMS))
     yield
-    for reg, old in zip((S.STUDIES, S.TERMS_CONTRIBUTORS, S.ERROR_VS_TERMS), saved):
+    for reg, old in zip((MS.STUDIES, MS.TERMS_CONTRIBUTORS, MS.ERROR_VS_TERMS), saved):
         reg.clear()
         reg.update(old)
 
 
 def test_builtin_registrations():
-    assert "terms-vs-exponent" in S.STUDIES
-    c = S.TERMS_CONTRIBUTORS["inout"]
-    assert c.target == 0.99 and callable(c.resolve())
+    assert "terms-vs-exponent" in MS.STUDIES
+    c = MS.TERMS_CONTRIBUTORS["inout"]
+    assert c.target == 0.99 and callable(c.fn)
     for name in ("triple_product", "zh_shadow", "ptt", "ptt_separated"):  # every method has a row
-        assert callable(S.TERMS_CONTRIBUTORS[name].resolve()), name
-    assert "ptt-figures" in S.STUDIES
+        assert callable(MS.TERMS_CONTRIBUTORS[name].fn), name
+    assert "ptt-figures" in MS.STUDIES
 
 
 def test_register_and_run_study(tmp_path, clean_registries):
@@ -44,36 +46,38 @@ def test_register_and_run_study(tmp_path, clean_registries):
         p.write_text(str(quick))
         return [p]
 
-    S.register_study(S.Study("dummy", "test", run))
+    MS.register_study(MS.Study("dummy", "test", run))
     with pytest.raises(ValueError):
-        S.register_study(S.Study("dummy", "again", run))
-    files = S.run_study("dummy", tmp_path / "o", quick=True)
+        MS.register_study(MS.Study("dummy", "again", run))
+    files = MS.run_study("dummy", tmp_path / "o", quick=True)
     assert files[0].read_text() == "True"
     with pytest.raises(ValueError):
-        S.run_study("no-such-study", tmp_path)
+        MS.run_study("no-such-study", tmp_path)
 
 
 def test_terms_contributors(clean_registries):
-    S.register_terms_contributor("fake", lambda s, t: int(3 * s), target=0.5, target_kind="x")
-    S.register_terms_contributor(
-        "rich", lambda s, t: S.TermsRecord("rich", s, t, 7, "y", "note"), target=0.1)
+    MS.register_terms_contributor("fake", lambda s, t: int(3 * s), target=0.5, target_kind="x")
+    MS.register_terms_contributor(
+        "rich", lambda s, t: MS.TermsRecord("rich", s, t, 7, "y", "note"), target=0.1)
     with pytest.raises(ValueError):
-        S.register_terms_contributor("fake", lambda s, t: 1)
+        MS.register_terms_contributor("fake", lambda s, t: 1)
     with pytest.raises(ValueError):
-        S.register_terms_contributor("bad", 42)
-    rows = S.terms_table([2.0, 4.0], ["fake", "rich"])
+        MS.register_terms_contributor("bad", 42)
+    rows = MS.terms_table([2.0, 4.0], ["fake", "rich"])
     assert [(r.method, r.exponent, r.terms, r.target) for r in rows] == [
         ("fake", 2.0, 6, 0.5), ("fake", 4.0, 12, 0.5), ("rich", 2.0, 7, 0.1), ("rich", 4.0, 7, 0.1)]
-    S.register_terms_contributor("neg", lambda s, t: -1)
+    MS.register_terms_contributor("neg", lambda s, t: -1)
     with pytest.raises(ValueError):
-        S.terms_table([1.0], ["neg"])
+        MS.terms_table([1.0], ["neg"])
     with pytest.raises(ValueError):
-        S.terms_table([1.0], ["unknown"])
+        MS.terms_table([1.0], ["unknown"])
 
 
-def test_lazy_string_contributor(clean_registries):
-    S.register_terms_contributor("lazy", "builtins:max")  # max(exponent, target)
-    assert S.terms_table([3.0], ["lazy"])[0].terms == 3
+def test_contributors_are_callables_not_module_strings(clean_registries):
+    """Registration takes a callable (a method's study module registers its own function at
+    import); a "module:function" string — a hidden import by name — is refused."""
+    with pytest.raises(ValueError):
+        MS.register_terms_contributor("lazy", "builtins:max")
 
 
 def test_fit_line():
@@ -85,11 +89,11 @@ def test_fit_line():
 
 def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):
     # The real contributors are tested with their methods (tests/methods/*); cheap stand-ins here.
-    S.TERMS_CONTRIBUTORS.clear()
-    S.ERROR_VS_TERMS.clear()
-    S.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
-    S.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
-    files = S.run_study("terms-vs-exponent", tmp_path, quick=True)
+    MS.TERMS_CONTRIBUTORS.clear()
+    MS.ERROR_VS_TERMS.clear()
+    MS.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
+    MS.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
+    files = MS.run_study("terms-vs-exponent", tmp_path, quick=True)
     names = {f.name for f in files}
     for n in ("k_vs_s.csv", "k_vs_s.png", "sv_vs_Fl.csv", "sv_vs_Fl.png", "ts_k_vs_lstar.csv",
               "ts_k_vs_lstar.png", "terms_by_method.csv", "terms_by_method.png",

@@ -25,7 +25,9 @@ def _mitsuba_rays(cam: Camera, px: np.ndarray):
     from references.mitsuba_setup import ensure_variant
 
     ensure_variant()
-    sensor = mi.load_dict(cam.to_mitsuba())
+    from references.export import camera_to_mitsuba
+
+    sensor = mi.load_dict(camera_to_mitsuba(cam))
     n = px.shape[0]
     film = mi.Point2f(px[:, 0] / cam.width, px[:, 1] / cam.height)
     # time 0, wavelength sample 0.5, aperture sample (0.5, 0.5) (irrelevant for a pinhole)

@@ -50,7 +50,7 @@ def _write(dir_: Path, text: str, name: str = "scene.toml") -> Path:
 
 
 def test_example_loads_and_renders_through_the_pipeline():
-    from methods.base import get_method
+    from methods.registry import get_method
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 

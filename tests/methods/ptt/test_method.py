@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import methods.ptt.method  # noqa: F401  (registers "ptt")
-from methods.base import get_method
+from methods.registry import get_method
 from methods.oracle import Oracle
 from methods.ptt.method import PTT
 from references.gbuffer import make_gbuffer

@@ -186,12 +186,11 @@ def test_lobe_separation_pays_only_for_shiny_lobes():
 
 
 def test_terms_contributors_plug_into_the_study(monkeypatch):
-    from reports import studies
+    from methods import studies
 
-    monkeypatch.setitem(studies.TERMS_CONTRIBUTORS, "ptt", studies.TermsContributor(
-        "ptt", "methods.ptt.study:terms_needed", S.TERMS_TARGET, S.TERMS_TARGET_KIND))
-    monkeypatch.setitem(studies.TERMS_CONTRIBUTORS, "ptt_separated", studies.TermsContributor(
-        "ptt_separated", "methods.ptt.study:terms_needed_separated", S.TERMS_TARGET, S.TERMS_TARGET_KIND))
+    # the module registered both rows at import (methods.ptt.study)
+    assert studies.TERMS_CONTRIBUTORS["ptt"].fn is S.terms_needed
+    assert studies.TERMS_CONTRIBUTORS["ptt_separated"].fn is S.terms_needed_separated
     recs = studies.terms_table([4.0, 16.0], ["ptt", "ptt_separated"])
     assert [(r.method, r.exponent) for r in recs] == [("ptt", 4.0), ("ptt", 16.0), ("ptt_separated", 4.0),
                                                       ("ptt_separated", 16.0)]

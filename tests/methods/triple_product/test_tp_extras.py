@@ -20,7 +20,7 @@ import math
 import pytest
 import torch
 
-from methods.base import get_method
+from methods.registry import get_method
 from methods.triple_product import TripleProduct
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import texel_points

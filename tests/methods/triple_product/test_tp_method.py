@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import methods.triple_product  # noqa: F401  (registers)
-from methods.base import get_method
+from methods.registry import get_method
 from methods.triple_product import TripleProduct
 from references.gbuffer import make_gbuffer
 from references.metrics import rmse

@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from methods.base import get_method, tensor_bytes
+from methods.base import tensor_bytes
+from methods.registry import get_method
 from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import reconstruct, sh_eval
 from methods.zh_shadow import ZHShadow

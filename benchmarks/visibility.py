@@ -1,6 +1,6 @@
 """Shadow-ray throughput: embreex (1 and 2 threads) vs Mitsuba's ``scene.ray_test``.
 
-    python -m methods.core.bench_visibility [--rays N] [--repeats R]
+    python -m benchmarks.visibility [--rays N] [--repeats R]
 
 Builds a bench-size mesh (``scenes.library.get_scene("shadow_detail", "bench")`` when available,
 else a procedural ground grid with spheres, >= 10K triangles), shoots the same random shadow rays

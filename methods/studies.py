@@ -1,0 +1,133 @@
+"""Registries of studies and of terms-vs-exponent rows (no study code lives here).
+
+A *study* is a paper figure or table, or a sweep, that writes CSV tables and PNG plots. Each
+method package registers its paper's figures in ``methods/<m>/study.py`` at import;
+``methods.registry.load_studies()`` imports them all and ``run_bench.py study NAME`` runs one
+(``run_bench.py study --list`` lists them). This module sits beside ``methods/base.py`` so method
+packages can register without importing ``reports``.
+
+* ``STUDIES`` — name → ``Study(name, description, run, paper)``; ``run(out_dir: Path, *, quick: bool)
+  -> list[Path]`` returns the files it wrote. Add one with ``register_study``; run one with
+  ``run_study(name, out_dir, quick=False)``.
+* ``register_terms_contributor(method, fn, *, target, target_kind)`` — ``fn(exponent, target) ->
+  int | TermsRecord``: the number of basis terms ``method`` needs at Phong exponent ``exponent`` to
+  reach ``target`` (its meaning: ``target_kind``). The cross-method study
+  ``terms-vs-exponent`` (``reports/studies.py``) calls every contributor.
+* ``register_error_vs_terms(method, fn)`` — ``fn(exponent, terms) -> rendered image error``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+# -- registries -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Study:
+    """A named sweep. run(out_dir, *, quick) -> files written (quick: test-sized, seconds)."""
+
+    name: str
+    description: str
+    run: Callable[..., list[Path]]
+    paper: str = ""  # the paper whose figures/tables it reproduces ("" for cross-method sweeps)
+
+
+STUDIES: dict[str, Study] = {}
+
+
+def register_study(study: Study, *, replace: bool = False) -> Study:
+    """Add ``study`` to ``STUDIES`` (``ValueError`` if the name is taken and not ``replace``)."""
+    if not isinstance(study, Study):
+        raise ValueError(f"expected a Study, got {type(study)}")
+    if study.name in STUDIES and not replace:
+        raise ValueError(f"study {study.name!r} is already registered")
+    STUDIES[study.name] = study
+    return study
+
+
+def run_study(name: str, out_dir: str | Path, *, quick: bool = False) -> list[Path]:
+    """Run the study ``name``, writing into ``out_dir`` (created); returns the files written."""
+    if name not in STUDIES:
+        raise ValueError(f"unknown study {name!r}; known: {', '.join(sorted(STUDIES))}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return list(STUDIES[name].run(out, quick=quick))
+
+
+@dataclass(frozen=True)
+class TermsRecord:
+    """One row of the terms-vs-exponent table.
+
+    method: contributor name; exponent: Phong s; target: accuracy target (meaning: target_kind);
+    terms: number of basis terms the method needs; note: free text (resolution, caveats).
+    """
+
+    method: str
+    exponent: float
+    target: float
+    terms: int
+    target_kind: str = ""
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class TermsContributor:
+    method: str
+    fn: Callable[[float, float], Any]
+    target: float
+    target_kind: str
+
+
+TERMS_CONTRIBUTORS: dict[str, TermsContributor] = {}
+ERROR_VS_TERMS: dict[str, Callable[[float, int], float]] = {}
+
+
+def register_terms_contributor(method_name: str, fn: Callable[[float, float], Any], *,
+                               target: float = 0.99, target_kind: str = "energy fraction",
+                               replace: bool = False) -> TermsContributor:
+    """Register ``fn(exponent, target) -> int | TermsRecord`` as ``method_name``'s row of the
+    terms-vs-exponent study; ``target`` is the value the study passes (its meaning: target_kind)."""
+    if not method_name:
+        raise ValueError("method_name must be non-empty")
+    if not callable(fn):
+        raise ValueError(f"fn must be callable, got {fn!r}")
+    if method_name in TERMS_CONTRIBUTORS and not replace:
+        raise ValueError(f"terms contributor {method_name!r} is already registered")
+    c = TermsContributor(method_name, fn, float(target), target_kind)
+    TERMS_CONTRIBUTORS[method_name] = c
+    return c
+
+
+def register_error_vs_terms(method_name: str, fn: Callable[[float, int], float], *,
+                            replace: bool = False) -> None:
+    """Register ``fn(exponent, terms) -> rendered error`` (Mahajan 2008 Fig. 3B/C, Fig. 6)."""
+    if not callable(fn):
+        raise ValueError(f"fn must be callable, got {fn!r}")
+    if method_name in ERROR_VS_TERMS and not replace:
+        raise ValueError(f"error-vs-terms function {method_name!r} is already registered")
+    ERROR_VS_TERMS[method_name] = fn
+
+
+def terms_table(exponents: list[float], methods: list[str] | None = None, *,
+                progress: Any = None) -> list[TermsRecord]:
+    """Call every (or the named) contributor at every exponent → records (method-major order)."""
+    names = sorted(TERMS_CONTRIBUTORS) if methods is None else methods
+    rows: list[TermsRecord] = []
+    for name in names:
+        if name not in TERMS_CONTRIBUTORS:
+            raise ValueError(f"unknown terms contributor {name!r}")
+        c = TERMS_CONTRIBUTORS[name]
+        fn = c.fn
+        for s in exponents:
+            r = fn(float(s), c.target)
+            if isinstance(r, TermsRecord):
+                rows.append(r)
+            else:
+                if int(r) != r or r < 0:
+                    raise ValueError(f"{name}: terms_needed returned {r!r}, expected an int >= 0")
+                rows.append(TermsRecord(name, float(s), c.target, int(r), c.target_kind))
+            if progress is not None:
+                progress.update(1)
+    return rows

@@ -1,0 +1,392 @@
+"""Measuring one cell: precompute, render its sequence, score it against the references.
+
+``run_cell(cell, out_dir) -> CellResult`` measures a cell (or returns its stored result) and
+writes ``<out>/cells/<key>.json`` atomically; a cell that failed is measured again. A parallel
+executor runs each cell as two tasks (``run_part``): image errors (in parallel) and timings (one at
+a time per machine), joined by ``merge_parts`` into the same result.
+
+Measuring (DESIGN.md "Measuring"): precompute time; per-frame render time (``perf_counter``, first
+frame = warm-up excluded from median/IQR; all frames stored); ``Method.memory()``; peak RSS of the
+cell's process (``ru_maxrss``) — the cell's own when ``isolate`` runs it in a spawned child;
+``bytes_per_frame``; error metrics against the reference of the cell's bounce count on the
+``score_frames``; the equal-error speedup (``reports.measure.fit_convergence``).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib
+import inspect
+import json
+import multiprocessing as mp
+import os
+import socket
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from methods.registry import get_method
+from reports import measure, precompute_cache
+from reports.backend import load_backend
+from reports.cells import (FULL, PARTS, STATUS_ERROR, STATUS_NA, STATUS_OK, THREADS_ENV, UNITS, Cell, CellResult,
+                           load_part, load_result, part_path, result_path)
+from scenes.io import atomic_save, atomic_write_json
+
+
+def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True,
+             context: dict | None = None) -> CellResult:
+    """Run ``cell`` (or return its stored result) and store the result atomically.
+
+    context: the executor's description (``executor``, ``workers``, …), recorded in ``info``."""
+    out_dir = Path(out_dir)
+    old = load_result(out_dir, cell)
+    if old is not None and old.status != STATUS_ERROR:
+        return old
+    if cell.na is not None:
+        res = CellResult(cell.key(), cell.to_dict(), STATUS_NA, reason=cell.na)
+    elif cell.isolate:
+        try:
+            res = _run_isolated(cell, out_dir, progress)
+        except Exception as e:  # the child died (BrokenProcessPool, OOM kill, …)
+            res = CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"child process failed: {e!r}",
+                             info={"traceback": traceback.format_exc()})
+    else:
+        res = execute_cell(cell, out_dir, progress=progress)
+    if cell.na is None:
+        res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}})
+    atomic_write_json(result_path(out_dir, cell), res.to_dict())
+    return res
+
+
+def _run_isolated(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
+    """Run the cell in a fresh spawned process, so its ``ru_maxrss`` is the cell's alone.
+
+    A daemonic process (e.g. a Dask worker with ``distributed.worker.daemon: true``) may not have
+    children: the cell then runs here, without isolation, and says so in ``info["isolate"]``."""
+    if mp.current_process().daemon:
+        res = execute_cell(replace(cell, isolate=False), out_dir, progress=progress, part=part)
+        res.info["isolate"] = "skipped: daemonic worker process"
+        return res
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as ex:
+        return ex.submit(execute_cell, cell, out_dir, progress=progress, part=part).result()
+
+
+def task_threads(cell: Cell) -> int | None:
+    """Threads a cell's task uses: the cell's own ``threads`` if set, else the worker's share of its
+    machine's cores (``PRTBENCH_THREADS``, set by ``reports.executors``), else None (defaults)."""
+    if cell.threads is not None:
+        return cell.threads
+    v = os.environ.get(THREADS_ENV)
+    return int(v) if v else None
+
+
+def _set_threads(n: int | None, backend) -> int:
+    if n is not None:
+        if n < 1:
+            raise ValueError("threads must be >= 1")
+        torch.set_num_threads(n)
+        if hasattr(backend, "set_threads"):
+            backend.set_threads(n)
+    return torch.get_num_threads()
+
+
+def execute_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True, part: str = "all") -> CellResult:
+    """Measure ``cell`` in this process (no result file; ``run_cell`` writes it). Never raises:
+    a failure becomes an ``error`` result carrying the traceback.
+
+    part: ``"all"`` (everything), ``"errors"`` (image errors only) or ``"timing"`` (times, memory and
+    the reference convergence fit only) — see ``run_part``."""
+    try:
+        if part == "all":
+            return _measure(cell, Path(out_dir), progress)
+        if part not in PARTS:
+            raise ValueError(f"unknown cell part {part!r}")
+        return _measure(cell, Path(out_dir), progress, part=part)
+    except Exception as e:
+        return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"{type(e).__name__}: {e}",
+                          info={"traceback": traceback.format_exc(), "threads": torch.get_num_threads()})
+
+
+def where() -> dict[str, Any]:
+    """Where this code runs: host, pid and (inside a Dask worker) the worker's address."""
+    d: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        from distributed import get_worker
+
+        d["worker"] = get_worker().address
+    except (ImportError, ValueError):
+        pass
+    return d
+
+
+def run_part(cell: Cell, part: str, out_dir: str | os.PathLike, *, progress: bool = False,
+             context: dict | None = None) -> CellResult:
+    """Run one part of ``cell`` (or return its stored result) and store it in
+    ``<out>/cells/parts/<key>.<part>.json``.
+
+    A parallel executor splits every cell in two so timings stay honest (issue #9):
+    ``"errors"`` — precompute, render the whole sequence, score the ``score_frames`` against the
+    references, save the images; runs on any worker, in parallel. ``"timing"`` — precompute (timed),
+    render the whole sequence (timed), memory, bytes per frame, peak RSS and the reference
+    convergence fit; runs one at a time per machine (``reports.executors``). ``merge_parts`` joins
+    them into the same ``CellResult`` as ``run_cell``. ``context``: the executor's description,
+    recorded in ``info``. The errors part never runs isolated (it measures no memory)."""
+    out_dir = Path(out_dir)
+    old = load_part(out_dir, cell, part)
+    if old is not None and old.status != STATUS_ERROR:
+        return old
+    if part not in PARTS:
+        raise ValueError(f"unknown cell part {part!r}")
+    t_start = time.time()
+    if cell.isolate and part == "timing":
+        try:
+            res = _run_isolated(cell, out_dir, progress, part=part)
+        except Exception as e:
+            res = CellResult(cell.key(), cell.to_dict(), STATUS_ERROR, reason=f"child process failed: {e!r}",
+                             info={"traceback": traceback.format_exc()})
+    else:
+        res = execute_cell(replace(cell, isolate=False), out_dir, progress=progress, part=part)
+        res.cell = cell.to_dict()
+    res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}, "part": part,
+                     "wall": [t_start, time.time()]})
+    atomic_write_json(part_path(out_dir, cell, part), res.to_dict())
+    return res
+
+
+def _eq_error_rows(fit: dict | None, rmse0: float, noise_floor0: float, median: float) -> list[dict]:
+    """Equal-error speedup rows from the convergence fit and the first scored frame's RMSE."""
+    if fit is None:
+        return []
+    f = measure.ConvergenceFit(**fit)
+    sp = measure.equal_error_speedup(f, rmse0, median)
+    rows = [_row("eq_error_speedup", sp, noise_floor=noise_floor0)]
+    if sp is not None:
+        rows.append(_row("mitsuba_time_eq_error", f.time_for_rmse(rmse0)))
+    return rows
+
+
+PROVENANCE_KEYS = ("executor", "workers", "scheduler", "host", "worker", "threads", "pid", "isolate", "wall")
+
+
+def merge_parts(cell: Cell, errors: CellResult, timing: CellResult) -> CellResult:
+    """The cell's result from its two parts (``run_part``): the same rows as ``run_cell`` gives;
+    ``info["parts"]`` says where (executor, workers, host, threads) each part ran."""
+    parts = {p: {k: r.info[k] for k in PROVENANCE_KEYS if k in r.info} for p, r in (("errors", errors),
+                                                                                    ("timing", timing))}
+    bad = [(p, r) for p, r in (("errors", errors), ("timing", timing)) if r.status != STATUS_OK]
+    if bad:
+        return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR,
+                          reason="; ".join(f"{p} part: {r.reason}" for p, r in bad),
+                          info={"parts": parts, "traceback": "\n".join(r.info.get("traceback", "") for _, r in bad)})
+    rows = list(timing.rows) + list(errors.rows)
+    first = cell.scored()[0]
+    rmse0 = [r for r in errors.rows if r["metric"] == "rmse" and r["frame"] == first]
+    median = [r["value"] for r in timing.rows if r["metric"] == "render_time_median"]
+    if rmse0 and median:
+        rows += _eq_error_rows(timing.info.get("convergence_fit"), rmse0[0]["value"], rmse0[0]["noise_floor"],
+                               median[0])
+    info = {**timing.info, "parts": parts}
+    info.pop("part", None)
+    return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts={**timing.artifacts,
+                      **errors.artifacts}, info=info)
+
+
+def _row(metric: str, value, frame: int = -1, noise_floor: float = float("nan")) -> dict:
+    v = float("nan") if value is None else float(value)
+    return {"frame": frame, "metric": metric, "value": v, "unit": UNITS.get(metric, ""), "noise_floor": noise_floor}
+
+
+def _finite_float(x) -> float:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return float("nan")
+    return x
+
+
+def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
+    """Measure ``cell`` here. part ``"all"``: everything; ``"errors"``: only the image errors (and
+    images); ``"timing"``: only times, memory, peak RSS and the convergence fit (``run_part``)."""
+    score, timed = part in ("all", "errors"), part in ("all", "timing")
+    be = load_backend(cell.backend)
+    for mod in cell.plugins:
+        importlib.import_module(mod)
+    threads = _set_threads(task_threads(cell), be)
+    scene = be.get_scene(cell.scene, cell.size)
+    frames = be.make_sequence(scene, cell.kind, cell.n_frames, cell.seed)
+    if len(frames) != cell.n_frames:
+        raise ValueError(f"sequence has {len(frames)} frames, expected {cell.n_frames}")
+    method = get_method(cell.method)(**json.loads(cell.config))
+
+    rows: list[dict] = []
+    pre = precompute_cache.precompute(method, scene, cell.config)  # opt-in disk cache (its docstring)
+    if timed:
+        rows.append(_row("precompute_time", pre["seconds"]))
+        if pre["cached"]:
+            rows += [_row("precompute_cached", 1), _row("precompute_load_time", pre["load_seconds"])]
+
+    if method.capabilities.max_bounces > 0 and cell.bounces != FULL:
+        # one precomputation for every bounce count; the cell renders exactly cell.bounces
+        # (`Method.with_bounces`, e.g. Sun 2007 Fig. 11's direct / +1 / +2 columns)
+        method = method.with_bounces(cell.bounces)
+    scored = set(cell.scored())
+    times: list[float] = []
+    errors: dict[str, list[tuple[float, float]]] = {}
+    exposure = None
+    last = None
+    bar = tqdm(frames, desc=cell.key()[:48], leave=False, disable=None if progress else True, unit="frame")
+    for i, frame in enumerate(bar):
+        gb = be.make_gbuffer(scene, frame, cell.spp_side)
+        t0 = time.perf_counter()
+        img = method.render(frame, gb)
+        dt = time.perf_counter() - t0
+        times.append(dt)
+        if timed:
+            rows.append(_row("render_time", dt, frame=i))
+        if tuple(img.shape) != (gb.height, gb.width, 3):
+            raise ValueError(f"{cell.method}.render returned {tuple(img.shape)}, expected ({gb.height}, {gb.width}, 3)")
+        if not score or i not in scored:
+            continue
+        ref = be.render_reference(scene, frame, bounces=cell.bounces, spp=cell.ref_spp, seed=cell.seed,
+                                  spp_side=cell.spp_side)
+        mask = torch.as_tensor(ref.coverage, dtype=torch.bool) & gb.coverage.cpu().bool()
+        if exposure is None:  # fixed per (scene, sequence): from the first scored reference
+            exposure = be.make_exposure(ref.image, mask)
+        m = be.all_metrics(img.detach().cpu().float(), torch.as_tensor(ref.image).float(), mask, exposure=exposure)
+        floor = _finite_float(ref.noise_floor)
+        for k, v in m.items():
+            rows.append(_row(k, _finite_float(v), frame=i, noise_floor=floor))
+            errors.setdefault(k, []).append((_finite_float(v), floor))
+        if cell.score_full_gi and cell.bounces != FULL:  # Sun 2007 Fig. 11: distance to the real image
+            full = be.render_reference(scene, frame, bounces=FULL, spp=cell.ref_spp, seed=cell.seed,
+                                       spp_side=cell.spp_side)
+            fmask = mask & torch.as_tensor(full.coverage, dtype=torch.bool)
+            v = _finite_float(be.all_metrics(img.detach().cpu().float(), torch.as_tensor(full.image).float(), fmask,
+                                             exposure=exposure)["rmse"])
+            ffloor = _finite_float(full.noise_floor)
+            rows.append(_row("rmse_full_gi", v, frame=i, noise_floor=ffloor))
+            errors.setdefault("rmse_full_gi", []).append((v, ffloor))
+        last = (i, frame, gb, img.detach().cpu().float(), ref, mask)
+
+    stats = measure.frame_time_stats(times, warmup=1)
+    if timed:
+        rows += [_row("render_time_median", stats["median"]), _row("render_time_iqr", stats["iqr"]),
+                 _row("timed_frames", stats["n"]),
+                 _row("fps", 1.0 / stats["median"] if stats["median"] > 0 else float("inf"))]
+    for k, vals in errors.items():
+        v = np.array([a for a, _ in vals])
+        f = np.array([b for _, b in vals])
+        rows.append(_row(k, float(np.mean(v)), noise_floor=float(np.mean(f))))
+
+    info: dict[str, Any] = {"threads": threads, "pid": os.getpid()}
+    if timed:
+        mem = method.memory()
+        rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
+        bpf = method.bytes_per_frame(cell.kind)
+        if bpf is not None:
+            rows.append(_row("bytes_per_frame", bpf))
+        rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
+        info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times})
+    artifacts: dict[str, str] = {}
+    if timed and cell.eq_err_spp and (part == "timing" or ("rmse" in errors and last is not None)):
+        i0 = cell.scored()[0]
+        fit = calibrate(cell, out_dir, be, scene, frames[i0], fresh=part == "timing")
+        if fit is not None:
+            info["convergence_fit"] = fit.to_dict()
+            if part == "all":
+                rows += _eq_error_rows(fit.to_dict(), errors["rmse"][0][0], errors["rmse"][0][1], stats["median"])
+    if score and cell.save_images and last is not None:
+        artifacts["images"] = _save_images(cell, out_dir, be, scene, *last)
+    return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts=artifacts, info=info)
+
+
+def _fresh_timed_reference(be, scene, frame, **kw):
+    """(reference, seconds) rendered here and now, bypassing the reference cache when the backend
+    allows it: a cached reference may have been rendered while other work shared the machine."""
+    if "use_cache" not in inspect.signature(be.render_reference).parameters:
+        return be.timed_reference(scene, frame, **kw)
+    t0 = time.perf_counter()
+    ref = be.render_reference(scene, frame, use_cache=False, **kw)
+    wall = time.perf_counter() - t0
+    sec = be.reference_seconds(ref) if hasattr(be, "reference_seconds") else None
+    return ref, sec or wall
+
+
+def calibrate(cell: Cell, out_dir: Path, be, scene, frame, *, fresh: bool = False) -> measure.ConvergenceFit | None:
+    """Fit the reference renderer's convergence on ``frame`` (cached per run in
+    ``<out>/calib/``, shared by every method of the same scene/sequence/bounces).
+
+    fresh: time renders made now (not the reference cache's recorded times) — the timing part of a
+    parallel run, where the cached references were rendered next to other work."""
+    spec = {"scene": cell.scene, "size": cell.size, "kind": cell.kind, "seed": cell.seed, "bounces": cell.bounces,
+            "spp": list(cell.eq_err_spp), "threads": task_threads(cell), "frame": int(getattr(frame, "index", 0)),
+            "backend": cell.backend, "n_frames": cell.n_frames}
+    key = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+    path = out_dir / "calib" / f"{key}.json"
+    if path.exists():
+        d = json.loads(path.read_text())
+        return measure.ConvergenceFit(**d["fit"]) if d.get("fit") else None
+    spp, floors, secs = [], [], []
+    for s in cell.eq_err_spp:
+        kw = dict(bounces=cell.bounces, spp=int(s), seed=cell.seed, spp_side=cell.spp_side)
+        ref, sec = _fresh_timed_reference(be, scene, frame, **kw) if fresh else be.timed_reference(scene, frame, **kw)
+        if sec is None:
+            atomic_write_json(path, {"spec": spec, "fit": None, "why": "renderer reports no time"})
+            return None
+        spp.append(s), floors.append(float(ref.noise_floor)), secs.append(sec)
+    try:
+        fit = measure.fit_convergence(spp, floors, secs)
+    except ValueError as e:
+        atomic_write_json(path, {"spec": spec, "fit": None, "why": str(e)})
+        return None
+    atomic_write_json(path, {"spec": spec, "fit": fit.to_dict(), "spp": spp, "noise_floor": floors, "seconds": secs})
+    return fit
+
+
+def splat_vertex_error(e_pix: torch.Tensor, gb, F: torch.Tensor, n_vertices: int, mask: torch.Tensor) -> torch.Tensor:
+    """Per-vertex error from per-pixel error.
+
+    e_pix: (H, W) per-pixel error (e.g. squared error); mask: (H, W) bool scored pixels;
+    F: (M, 3) faces of the frame's geometry; returns (N,) float64.
+    Each G-buffer sample carries its pixel's error; it is splatted onto its triangle's three
+    vertices with the sample's barycentric weights and normalised by the splatted weight
+    (vertices no scored sample sees get NaN).
+    """
+    H, W, S2 = gb.height, gb.width, gb.spp_side**2
+    if tuple(e_pix.shape) != (H, W) or tuple(mask.shape) != (H, W):
+        raise ValueError(f"e_pix and mask must be ({H}, {W}), got {tuple(e_pix.shape)}, {tuple(mask.shape)}")
+    e_smp = e_pix.reshape(-1).double().cpu().repeat_interleave(S2)  # (P,) pixel-major (y, x, s)
+    ok = gb.hit.cpu() & mask.cpu().reshape(-1).repeat_interleave(S2)
+    idx, w = gb.vertex_weights(F.cpu())
+    w = w.cpu().double() * ok[:, None]
+    flat = idx.reshape(-1).cpu()
+    num = torch.zeros(n_vertices, dtype=torch.float64).index_add_(0, flat, (w * e_smp[:, None]).reshape(-1))
+    den = torch.zeros(n_vertices, dtype=torch.float64).index_add_(0, flat, w.reshape(-1))
+    return torch.where(den > 0, num / den.clamp_min(1e-300), torch.full_like(num, float("nan")))
+
+
+def _save_images(cell: Cell, out_dir: Path, be, scene, i, frame, gb, img, ref, mask) -> str:
+    """Reference, method image, mask and the per-vertex squared error (``splat_vertex_error``)
+    of the last scored frame → ``<out>/images/<key>.npz``."""
+    ref_img = torch.as_tensor(ref.image).float()
+    e_pix = ((img - ref_img) ** 2).mean(-1) * mask  # (H, W)
+    V, F = be.geometry(scene, frame)
+    V = torch.as_tensor(V).float().cpu()
+    F = torch.as_tensor(F).long().cpu()
+    verr = splat_vertex_error(e_pix, gb, F, len(V), mask)
+    rel = Path("images") / f"{cell.key()}.npz"
+    arrays = dict(reference=ref_img.numpy().astype(np.float32), method=img.numpy().astype(np.float32),
+                  mask=mask.numpy(), frame=np.int64(i), V=V.numpy(), F=F.numpy(), vertex_sq_error=verr.numpy())
+    cam = getattr(frame, "camera", None)
+    if cam is not None and all(hasattr(cam, a) for a in ("origin", "target", "up", "fov_deg", "width", "height")):
+        arrays["camera"] = np.array([*np.asarray(cam.origin, float), *np.asarray(cam.target, float),
+                                     *np.asarray(cam.up, float), float(cam.fov_deg), cam.width, cam.height])
+    atomic_save(out_dir / rel, lambda tmp: np.savez_compressed(tmp, **arrays))
+    return str(rel)
