@@ -15,7 +15,7 @@ nightly: setup
 	$(PYTHON) run_bench.py run --suite nightly --out out/nightly-$$(date +%Y%m%d)
 
 test: setup
-	$(PYTHON) -m pytest -n 2 -q
+	$(PYTHON) -m pytest -n 2 -q --durations=25
 
 clean:
 	rm -rf out .cache

@@ -42,8 +42,12 @@ def main(argv=None) -> dict:
     out = {"size": a.size, "threads": torch.get_num_threads(), "precompute_s": time.perf_counter() - t0,
            "stats": m.stats, "config": m.config}
     gbs = [make_gbuffer(scene, f, a.spp_side) for f in frames]
+    precomputed = m
     for mode in ("sample", "vertex"):
-        m.config["shading"] = mode
+        # the same precomputation rendered with another run-time shading mode (a config is fixed at
+        # construction: a new instance with that config takes over the precomputed arrays)
+        m = ZHShadow(**{**precomputed.config, "shading": mode})
+        m.__dict__.update({k: v for k, v in precomputed.__dict__.items() if k != "_config"})
         m.render(frames[0], gbs[0])                                   # warm-up (lighting SH, operators)
         ts = []
         for r in range(a.repeats):

@@ -3,7 +3,8 @@
 Contract (the harness relies on every word):
 
 * ``Method(**config)`` — every parameter that changes a score is a keyword argument and is recorded
-  in the results (``method.config``). Bad values raise ``ValueError`` at construction.
+  in the results (``method.config``, read-only: fixed at construction, so the recorded config is
+  the one that ran). Bad values raise ``ValueError`` at construction.
 * ``precompute(scene)`` — all heavy work; timed by the harness. May cache to disk under
   ``cache_dir()`` keyed by ``scene.content_hash()`` and the config.
 * ``render(frame, gbuffer) -> (H, W, 3)`` float32 linear RGB *exit radiance* towards the camera, for
@@ -13,7 +14,9 @@ Contract (the harness relies on every word):
   the previous frame) but must return the right image for every frame.
 * ``memory() -> dict[str, int]`` — bytes of every array kept for run time, by name.
 * ``capabilities`` — what the method claims; the harness never scores a cell outside it and the
-  report says why ("n/a: static geometry only").
+  report says why ("n/a: static geometry only"). A class attribute; a method whose claims depend on
+  its config sets ``self.capabilities`` in ``__init__`` from the config alone (the harness plans
+  cells from an instance built with the cell's config).
 
 A *frame* holds everything that may change at run time: lighting (env map + rotation), camera,
 per-region material parameters, and the pose of an articulated scene.
@@ -21,7 +24,9 @@ per-region material parameters, and the pose of an articulated scene.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 from torch import Tensor
@@ -37,7 +42,6 @@ class Capabilities:
     """What a method claims to handle. The harness builds cells only inside it."""
 
     dynamic_lighting: bool = True
-    dynamic_view: bool = True
     dynamic_brdf: bool = False
     dynamic_geometry: bool = False
     max_bounces: int = 0  # 0 = direct lighting only
@@ -75,7 +79,12 @@ class Method(ABC):
     cache_precompute: ClassVar[bool] = False
 
     def __init__(self, **config: Any) -> None:
-        self.config: dict[str, Any] = dict(config)
+        self._config: dict[str, Any] = dict(config)
+
+    @property
+    def config(self) -> Mapping[str, Any]:
+        """The constructor's keyword arguments (read-only: ``method.config[k] = v`` raises)."""
+        return MappingProxyType(self._config)
 
     @abstractmethod
     def precompute(self, scene) -> None:

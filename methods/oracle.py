@@ -47,7 +47,7 @@ class Oracle(Method):
     """Brute-force MIS direct lighting on the G-buffer (no precomputation, no approximation)."""
 
     name = "oracle"
-    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=True,
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=True,
                                 dynamic_geometry=True, max_bounces=0)
 
     def __init__(self, *, light_samples: int = 32, brdf_samples: int = 32, seed: int = 0,

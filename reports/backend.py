@@ -2,7 +2,7 @@
 
 A cell names its backend by module (``Cell.backend``, default ``"reports.backend"``) so it stays
 picklable and a spawned child process can import the same backend; tests use
-``reports.fakes`` (tiny torch-only scenes and references). A backend module provides:
+``testing.fakes`` (tiny torch-only scenes and references). A backend module provides:
 
 ``get_scene(name, size)``, ``make_sequence(scene, kind, n_frames, seed)``,
 ``make_gbuffer(scene, frame, S)``, ``render_reference(scene, frame, *, bounces, spp, seed)``,

@@ -14,12 +14,16 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 FULL = -1  # bounces = −1: full global illumination (Mitsuba max_depth = −1)
 STATUS_OK, STATUS_NA, STATUS_ERROR = "ok", "na", "error"
+# Measured, but the sanity gate (reports.gate) found the image plainly wrong; its numbers are kept.
+STATUS_SUSPECT = "suspect"
+MEASURED = (STATUS_OK, STATUS_SUSPECT)  # statuses whose rows hold measurements
 
 
 UNITS = {
@@ -29,6 +33,7 @@ UNITS = {
     "harness_peak_rss_bytes": "B", "bytes_per_frame": "B", "roofline_efficiency": "1",
     "eq_error_speedup": "x", "mitsuba_time_eq_error": "s", "timed_frames": "1",
     "rmse_full_gi": "radiance", "precompute_cached": "1", "precompute_load_time": "s",
+    "negative_frac": "1", "mean_ratio": "1", "region_mean_ratio_min": "1", "region_mean_ratio_max": "1",
 }
 
 
@@ -38,6 +43,8 @@ def canonical_config(config: dict | str | None) -> str:
         config = {}
     if isinstance(config, str):
         config = json.loads(config)
+    if isinstance(config, Mapping):
+        config = dict(config)
     if not isinstance(config, dict):
         raise ValueError(f"method config must be a dict, got {type(config).__name__}")
     return json.dumps(config, sort_keys=True, separators=(",", ":"))

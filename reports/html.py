@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from reports.cells import MEASURED
 from scenes.io import atomic_write_text
 
 KIND_ORDER = ["V", "VB", "VBL", "P"]
@@ -136,7 +137,7 @@ def _method_label(method: str, config: str) -> str:
 
 
 def summary_table(df: pd.DataFrame) -> str:
-    ok = df[df["status"] == "ok"]
+    ok = df[df["status"].isin(MEASURED)]
     if len(ok) == 0:
         return "<p>No cell ran successfully.</p>"
     kinds = [k for k in KIND_ORDER if k in set(ok["sequence"])]
@@ -174,7 +175,7 @@ def bounces_table(df: pd.DataFrame) -> str:
     """Sun 2007 Fig. 11 as numbers: for methods scored against full GI too (``rmse_full_gi``), the
     RMSE against the reference of the cell's own bounce count and against full GI, per bounce count
     (mean over sequence kinds). Adding bounces must bring the image closer to full GI."""
-    ok = df[(df["status"] == "ok") & (df["frame"] == -1)]
+    ok = df[df["status"].isin(MEASURED) & (df["frame"] == -1)]
     full = ok[ok["metric"] == "rmse_full_gi"]
     if len(full) == 0:
         return "<p>No cell was scored against full global illumination.</p>"
@@ -206,7 +207,7 @@ def tradeoff_plots(df: pd.DataFrame) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ok = df[(df["status"] == "ok") & (df["frame"] == -1)]
+    ok = df[df["status"].isin(MEASURED) & (df["frame"] == -1)]
     pts = []
     for (scene, method, config, seq, b), g in ok.groupby(["scene", "method", "config", "sequence", "bounces"]):
         r, _ = _val(g, "rmse")
@@ -257,6 +258,8 @@ def capability_matrix(df: pd.DataFrame) -> str:
             st, reason = r.iloc[0]["status"], r.iloc[0]["reason"]
             if st == "ok":
                 tds.append("<td class=ok>✓</td>")
+            elif st == "suspect":
+                tds.append(f"<td class=sus title='{esc(reason)}'>suspect: {esc(str(reason)[:80])}</td>")
             elif st == "na":
                 tds.append(f"<td class=na>n/a: {esc(reason)}</td>")
             else:
@@ -317,7 +320,7 @@ def regressions_section(changes: pd.DataFrame | None, prev_run: str | None) -> s
 def _load_images(out_dir: Path, df: pd.DataFrame) -> dict:
     """(scene, sequence, bounces) → list of (method label, arrays) from the cells' npz files."""
     art = {}
-    ok = df[(df["status"] == "ok")].drop_duplicates("cell")
+    ok = df[df["status"].isin(MEASURED)].drop_duplicates("cell")
     for _, r in ok.iterrows():
         p = out_dir / "images" / f"{r['cell']}.npz"
         if not p.exists():
@@ -426,7 +429,7 @@ _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1400px}
 table{border-collapse:collapse;margin:.5em 0;font-size:13px}
 td,th{border:1px solid #ccc;padding:3px 6px;text-align:left;vertical-align:top}
-th{background:#f0f0f0}.ok{background:#e6f5e6}.na{background:#f3f3f3;color:#666}.err{background:#fbe0e0}
+th{background:#f0f0f0}.ok{background:#e6f5e6}.na{background:#f3f3f3;color:#666}.err{background:#fbe0e0}.sus{background:#fff0c8}
 tr.reg{background:#fbe0e0}tr.imp{background:#e6f5e6}.note{color:#666;font-size:12px}
 .tiles{display:flex;flex-wrap:wrap;gap:8px}figure{margin:0}figure img{width:200px;image-rendering:pixelated}
 img.plot{max-width:100%}figcaption{font-size:12px;text-align:center}code{background:#f4f4f4}
@@ -484,19 +487,23 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
     if len(bw):
         facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"
-    n_ok, n_na, n_err = (int((df.drop_duplicates('cell')["status"] == s).sum()) for s in ("ok", "na", "error"))
-    facts["cells"] = f"{n_ok} ok, {n_na} n/a, {n_err} failed"
+    n_ok, n_na, n_err, n_sus = (int((df.drop_duplicates('cell')["status"] == s).sum())
+                                for s in ("ok", "na", "error", "suspect"))
+    facts["cells"] = f"{n_ok} ok, {n_sus} suspect, {n_na} n/a, {n_err} failed"
     if first is not None:
         facts["versions"] = ", ".join(f"{k} {v}" for k, v in json.loads(first["versions"] or "{}").items())
     fact_html = "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in facts.items())
     errors = df[df["status"] == "error"].drop_duplicates("cell")
     err_html = "".join(f"<li><code>{esc(r['cell'])}</code>: {esc(r['reason'])}</li>" for _, r in errors.iterrows())
+    suspects = df[df["status"] == "suspect"].drop_duplicates("cell")
+    sus_html = "".join(f"<li><code>{esc(r['cell'])}</code>: {esc(r['reason'])}</li>" for _, r in suspects.iterrows())
     body = f"""<!DOCTYPE html>
 <html lang=en><head><meta charset="utf-8"><title>prtbench report {esc(facts['run'])}</title>
 <style>{_CSS}</style></head><body>
 <h1>prtbench report</h1>
 <table class=facts>{fact_html}</table>
 {f'<h2>Failed cells</h2><ul>{err_html}</ul>' if err_html else ''}
+{f'<h2>Suspect cells</h2><p>Measured, but the sanity gate (reports/gate.py) found the image plainly wrong: a material region far from the reference mean, or negative radiance. Their numbers stay in the tables.</p><ul>{sus_html}</ul>' if sus_html else ''}
 <h2 id=summary>Summary per scene × method</h2>{summary_table(df)}
 <h2 id=bounces>Interreflection: error vs bounces (Sun 2007 Fig. 11)</h2>{bounces_table(df)}
 <h2 id=tradeoff>Error – memory – time</h2>{tradeoff_plots(df)}

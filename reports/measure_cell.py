@@ -32,10 +32,10 @@ import torch
 from tqdm.auto import tqdm
 
 from methods.registry import get_method
-from reports import measure, precompute_cache
+from reports import gate, measure, precompute_cache
 from reports.backend import load_backend
-from reports.cells import (FULL, PARTS, STATUS_ERROR, STATUS_NA, STATUS_OK, THREADS_ENV, UNITS, Cell, CellResult,
-                           load_part, load_result, part_path, result_path)
+from reports.cells import (FULL, MEASURED, PARTS, STATUS_ERROR, STATUS_NA, STATUS_OK, STATUS_SUSPECT, THREADS_ENV,
+                           UNITS, Cell, CellResult, load_part, load_result, part_path, result_path)
 from scenes.io import atomic_save, atomic_write_json
 
 
@@ -180,7 +180,7 @@ def merge_parts(cell: Cell, errors: CellResult, timing: CellResult) -> CellResul
     ``info["parts"]`` says where (executor, workers, host, threads) each part ran."""
     parts = {p: {k: r.info[k] for k in PROVENANCE_KEYS if k in r.info} for p, r in (("errors", errors),
                                                                                     ("timing", timing))}
-    bad = [(p, r) for p, r in (("errors", errors), ("timing", timing)) if r.status != STATUS_OK]
+    bad = [(p, r) for p, r in (("errors", errors), ("timing", timing)) if r.status not in MEASURED]
     if bad:
         return CellResult(cell.key(), cell.to_dict(), STATUS_ERROR,
                           reason="; ".join(f"{p} part: {r.reason}" for p, r in bad),
@@ -194,8 +194,8 @@ def merge_parts(cell: Cell, errors: CellResult, timing: CellResult) -> CellResul
                                median[0])
     info = {**timing.info, "parts": parts}
     info.pop("part", None)
-    return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts={**timing.artifacts,
-                      **errors.artifacts}, info=info)
+    return CellResult(cell.key(), cell.to_dict(), errors.status, reason=errors.reason, rows=rows,
+                      artifacts={**timing.artifacts, **errors.artifacts}, info=info)  # the gate judges the errors part
 
 
 def _row(metric: str, value, frame: int = -1, noise_floor: float = float("nan")) -> dict:
@@ -259,7 +259,10 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         mask = torch.as_tensor(ref.coverage, dtype=torch.bool) & gb.coverage.cpu().bool()
         if exposure is None:  # fixed per (scene, sequence): from the first scored reference
             exposure = be.make_exposure(ref.image, mask)
-        m = be.all_metrics(img.detach().cpu().float(), torch.as_tensor(ref.image).float(), mask, exposure=exposure)
+        ref_img = torch.as_tensor(ref.image).float()
+        m = be.all_metrics(img.detach().cpu().float(), ref_img, mask, exposure=exposure)
+        regions = gate.pixel_regions(gb.region.cpu(), gb.height, gb.width) if getattr(gb, "region", None) is not None else None
+        m.update(gate.frame_sanity(img.detach().cpu().float(), ref_img, mask, regions))  # the sanity gate
         floor = _finite_float(ref.noise_floor)
         for k, v in m.items():
             rows.append(_row(k, _finite_float(v), frame=i, noise_floor=floor))
@@ -283,7 +286,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     for k, vals in errors.items():
         v = np.array([a for a, _ in vals])
         f = np.array([b for _, b in vals])
-        rows.append(_row(k, float(np.mean(v)), noise_floor=float(np.mean(f))))
+        agg = np.min if k == "region_mean_ratio_min" else np.max if k in ("region_mean_ratio_max", "negative_frac") else np.mean
+        rows.append(_row(k, float(agg(v)), noise_floor=float(np.mean(f))))
 
     info: dict[str, Any] = {"threads": threads, "pid": os.getpid()}
     if timed:
@@ -304,7 +308,9 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
                 rows += _eq_error_rows(fit.to_dict(), errors["rmse"][0][0], errors["rmse"][0][1], stats["median"])
     if score and cell.save_images and last is not None:
         artifacts["images"] = _save_images(cell, out_dir, be, scene, *last)
-    return CellResult(cell.key(), cell.to_dict(), STATUS_OK, rows=rows, artifacts=artifacts, info=info)
+    suspect = gate.verdict(rows) if score else None
+    return CellResult(cell.key(), cell.to_dict(), STATUS_SUSPECT if suspect else STATUS_OK, reason=suspect or "",
+                      rows=rows, artifacts=artifacts, info=info)
 
 
 def _fresh_timed_reference(be, scene, frame, **kw):

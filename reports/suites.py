@@ -14,6 +14,7 @@ with their reason in ``Cell.na``, so the report shows the whole matrix.
 from __future__ import annotations
 
 import importlib
+import json
 from dataclasses import dataclass
 
 from reports.cells import FULL, Cell, canonical_config, capability_bounces
@@ -109,9 +110,9 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
         dynamic = be.is_dynamic(scene) if hasattr(be, "is_dynamic") else False
         kinds = tuple(suite.kinds) + (tuple(suite.dynamic_kinds) if dynamic else ())
         for m, cls in classes.items():
-            caps = cls.capabilities
-            bounces = (0,) + (tuple(suite.extra_bounces) if caps.max_bounces > 0 else ())
             for cfg in _configs_for(suite, m):
+                caps = cls(**json.loads(cfg)).capabilities  # per instance: claims may depend on the config
+                bounces = (0,) + (tuple(suite.extra_bounces) if caps.max_bounces > 0 else ())
                 for k in kinds:
                     for b in bounces:
                         na = caps.why_not(scene, k, capability_bounces(b))

@@ -1,4 +1,4 @@
-"""run_bench.py command line, on the fake backend (reports.fakes): run → resume → compare, study
+"""run_bench.py command line, on the fake backend (testing.fakes): run → resume → compare, study
 wiring, errors."""
 import re
 import sys
@@ -10,7 +10,7 @@ import pytest
 import run_bench
 from reports import pipeline
 
-FAKE = ["--backend", "reports.fakes", "--plugin", "reports.fakes", "--scenes", "fake_plane"]
+FAKE = ["--backend", "testing.fakes", "--plugin", "testing.fakes", "--scenes", "fake_plane"]
 
 
 @pytest.fixture(autouse=True)

@@ -77,7 +77,7 @@ class InOut(Method):
 
     name = "inout"
     capabilities = Capabilities(
-        dynamic_lighting=True, dynamic_view=True, dynamic_brdf=False, dynamic_geometry=False,
+        dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,
         brdfs=frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torrancesparrow"}))
 

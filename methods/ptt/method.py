@@ -131,7 +131,7 @@ class PTT(Method):
 
     name = "ptt"
     cache_precompute = True  # the nightly's 15 cells per scene share one precomputation (reports.precompute_cache)
-    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=True,
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=True,
                                 dynamic_geometry=False, max_bounces=2,
                                 brdfs=frozenset({"lambert", "phong", "blinnphong", "cooktorrance"}))
 

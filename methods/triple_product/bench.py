@@ -94,10 +94,7 @@ def time_sequence(method, frames, gbuffers, evaluator: str) -> tuple[list[float]
     lighting set). On a shared machine the CPU time (1 thread) is the steadier of the two."""
     from methods.triple_product import perf
 
-    if evaluator == "class":
-        perf.use_reference_shading(method)
-    else:
-        perf.use_fast_shading(method, evaluator)
+    method = perf.use_reference_shading(method) if evaluator == "class" else perf.use_fast_shading(method, evaluator)
     method._light_key = None  # the first frame builds the lighting grid
     method.render(frames[0], gbuffers[0])
     ts, cpu = [], []
@@ -106,7 +103,6 @@ def time_sequence(method, frames, gbuffers, evaluator: str) -> tuple[list[float]
         method.render(f, g)
         ts.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
-    perf.use_reference_shading(method)
     return ts, cpu
 
 
@@ -114,15 +110,13 @@ def check_equal(method, frame, gbuffer, evaluators) -> dict[str, float]:
     """Max |image − "class" image| / max |"class" image| of each evaluator on one frame."""
     from methods.triple_product import perf
 
-    perf.use_reference_shading(method)
-    ref = method.render(frame, gbuffer)
+    ref = perf.use_reference_shading(method).render(frame, gbuffer)
     out = {}
     for ev in evaluators:
         if ev == "class":
             continue
-        perf.use_fast_shading(method, ev)
-        out[ev] = float((method.render(frame, gbuffer) - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
-    perf.use_reference_shading(method)
+        img = perf.use_fast_shading(method, ev).render(frame, gbuffer)
+        out[ev] = float((img - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
     return out
 
 

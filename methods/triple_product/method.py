@@ -50,11 +50,13 @@ differs rebuilds that region's table first (Ma 2006 §5 material editing, timed 
 the harness does not score BRDF-changing sequences (``dynamic_brdf=False``: the BRDF is fixed at
 precompute, editing is a re-precompute step of ~seconds, not a per-frame operation).
 Anisotropic Ward needs ``tangent="duff"`` (the tangent the references author it in) and either
-``n_psi > 1`` or ``light_lookup="exact"``; it is therefore not in the class ``capabilities`` (the
-default config is isotropic-only) but accepted by ``precompute`` when configured so.
+``n_psi > 1`` or ``light_lookup="exact"``; an instance configured so claims it in its
+``capabilities`` (the class's, i.e. the default config's, are isotropic-only).
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 import sys
 import time
@@ -102,11 +104,8 @@ class TripleProduct(Method):
     """Ma 2006 local-frame spherical-wavelet triple product (module docstring)."""
 
     name = "triple_product"
-    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=False,
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=False,
                                 dynamic_geometry=False, max_bounces=0, brdfs=ISOTROPIC)
-    # Ward works with tangent="duff" and n_psi > 1 or light_lookup="exact" (tested), but not with
-    # the default config, and capabilities are per class: it is not claimed to the harness.
-    supported_brdfs = ISOTROPIC | {"ward"}
 
     def __init__(self, *, level: int = 3, n_coeffs: int | None = None, selection: str = "adaptive",
                  shading: str = "pixel", brdf_dirs: tuple[int, int] = (8, 16),
@@ -158,6 +157,8 @@ class TripleProduct(Method):
                          light_lookup=light_lookup, vis_supersample=vis_supersample,
                          brdf_supersample=brdf_supersample, light_supersample=light_supersample,
                          vis_texture=vis_texture, evaluator=evaluator)
+        if tangent == "duff" and (light_lookup == "exact" or fg.n_psi > 1):  # Ward's frame is resolved
+            self.capabilities = dataclasses.replace(type(self).capabilities, brdfs=ISOTROPIC | {"ward"})
         self.level = level
         self.K = 20 * 4 ** level
         self.outgoing = bd
@@ -192,6 +193,15 @@ class TripleProduct(Method):
         self.bumps: dict[str, tuple[Tensor, float]] = {}  # region → (height (H, W), scale)
         self.stats: dict[str, Any] = {}
 
+    def with_evaluator(self, evaluator: str) -> "TripleProduct":
+        """A copy of this (precomputed) method that sums eq. 7 with ``evaluator`` — the same arrays,
+        a config that says which evaluator ran ("reference": the dense path of ``_shade``)."""
+        if evaluator not in perf.EVALUATORS:
+            raise ValueError(f"evaluator must be one of {perf.EVALUATORS}, got {evaluator!r}")
+        m = copy.copy(self)
+        m._config = {**self._config, "evaluator": evaluator}
+        return m
+
     # -- precompute ----------------------------------------------------------------------------
     def _n(self) -> int | None:
         return self.config["n_coeffs"]
@@ -218,13 +228,11 @@ class TripleProduct(Method):
 
     def _check_material(self, region: str, mat) -> None:
         kind = getattr(mat, "kind", type(mat).__name__)
-        if kind not in self.supported_brdfs:
+        if kind == "ward" and kind not in self.capabilities.brdfs:
+            raise ValueError(f"region {region!r}: anisotropic {kind!r} needs tangent='duff' and "
+                             "frame_grid n_psi > 1 (or light_lookup='exact')")
+        if kind not in self.capabilities.brdfs:
             raise ValueError(f"region {region!r}: BRDF family {kind!r} is not supported by triple_product")
-        if kind not in ISOTROPIC:
-            cfg = self.config
-            if cfg["tangent"] != "duff" or (cfg["light_lookup"] != "exact" and self.grid.n_psi < 2):
-                raise ValueError(f"region {region!r}: anisotropic {kind!r} needs tangent='duff' and "
-                                 "frame_grid n_psi > 1 (or light_lookup='exact')")
 
     def precompute(self, scene) -> None:
         cfg = self.config

@@ -487,19 +487,15 @@ def shade(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw
 
 
 def use_fast_shading(method, evaluator: str = "auto"):
-    """Make ``method`` (a `TripleProduct`) sum eq. 7 with `shade`'s ``evaluator`` (sets its
-    ``config["evaluator"]``). Returns the method."""
-    if evaluator not in EVALUATORS:
-        raise ValueError(f"evaluator must be one of {EVALUATORS}, got {evaluator!r}")
-    method.config["evaluator"] = evaluator
-    return method
+    """``method`` (a precomputed `TripleProduct`) summing eq. 7 with `shade`'s ``evaluator``: a copy
+    sharing its arrays (``method.with_evaluator``); the method itself is unchanged."""
+    return method.with_evaluator(evaluator)
 
 
 def use_reference_shading(method):
-    """Make ``method`` use its independent dense `triple_integral` path (``evaluator="reference"``
-    of `TripleProduct`, not `shade`'s list-based "reference"). Returns the method."""
-    method.config["evaluator"] = "reference"
-    return method
+    """``method`` with its independent dense `triple_integral` path (``evaluator="reference"`` of
+    `TripleProduct`, not `shade`'s list-based "reference"): a copy sharing its arrays."""
+    return method.with_evaluator("reference")
 
 
 # -- roofline -----------------------------------------------------------------------------------------

@@ -134,7 +134,7 @@ class ZHShadow(Method):
     """
 
     name = "zh_shadow"
-    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=True,
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=True,
                                 dynamic_geometry=True, max_bounces=0, brdfs=SUPPORTED_BRDFS)
 
     def __init__(self, *, order: int = 4, lobes: int = 2, train_poses: int = 32, train_source: str = "animation",
@@ -232,8 +232,8 @@ class ZHShadow(Method):
         al = torch.ones(Q)
         for r, name in enumerate(self.scene.regions):
             mat = frame.materials[name]
-            if mat.kind not in SUPPORTED_BRDFS:
-                raise ValueError(f"zh_shadow supports {sorted(SUPPORTED_BRDFS)} BRDFs, region {name!r} is {mat.kind!r}")
+            if mat.kind not in self.capabilities.brdfs:
+                raise ValueError(f"zh_shadow supports {sorted(self.capabilities.brdfs)} BRDFs, region {name!r} is {mat.kind!r}")
             sel = region == r
             kd[sel] = torch.tensor(mat.kd, dtype=torch.float32)
             if mat.kind == "phong":

@@ -10,7 +10,7 @@ import torch
 
 from scenes.envmap import EnvMap, procedural
 
-mi = pytest.importorskip("mitsuba")
+import mitsuba as mi
 
 # Both sides run in float32. Differences come from float32 round-off of the direction → (u, v)
 # map (atan2/acos, and the to_world product for rotated maps), amplified by the texel gradient;

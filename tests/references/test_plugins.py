@@ -8,7 +8,7 @@ import torch
 
 from scenes.materials import BlinnPhong, CookTorrance, Lambert, Phong, TorranceSparrow, Ward
 
-mi = pytest.importorskip("mitsuba")
+import mitsuba as mi
 
 # Plugin (Dr.Jit float32) vs torch float64 on significant values (≥ 1e-4 × max): float32
 # round-off amplified by the lobes' exp/pow; measured ≤ 1e-5 (eval) and ≤ 4e-5 (the
@@ -162,14 +162,17 @@ def _chi2(mat, pdf_mat=None, wi=(0.5, 0.3, 0.7)):
 
 
 @pytest.mark.parametrize("mat", MATS, ids=IDS)
-def test_chi2_sampling(mitsuba, mat):
+def test_chi2_sampling(mitsuba, mat, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # Mitsuba's ChiSquareTest dumps chi2_data.py into the cwd on failure
     ok, msg = _chi2(mat)
     assert ok, msg
 
 
-def test_chi2_detects_wrong_pdf(mitsuba):
+def test_chi2_detects_wrong_pdf(mitsuba, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the failure dump (chi2_data.py) goes here, not into the work tree
     ok, _ = _chi2(Phong(0.3, 0.5, 20), pdf_mat=Phong(0.3, 0.5, 24))
     assert not ok
+    assert (tmp_path / "chi2_data.py").exists()
 
 
 def test_invalid_parameters_rejected(mitsuba):

@@ -1,4 +1,4 @@
-"""reports.cells / reports.suites with the fake backend (reports.fakes): measuring, n/a and failed
+"""reports.cells / reports.suites with the fake backend (testing.fakes): measuring, n/a and failed
 cells, resume after a kill, process isolation, per-vertex error splatting, the capability matrix."""
 import json
 import math
@@ -11,10 +11,10 @@ import torch
 from reports import cells as C
 from reports import measure_cell as MC
 from reports import runner as R
-from reports import fakes
+from testing import fakes
 from reports.suites import NIGHTLY, SMOKE, Suite, plan_cells
 
-FAKE = dict(backend="reports.fakes", plugins=("reports.fakes",))
+FAKE = dict(backend="testing.fakes", plugins=("testing.fakes",))
 # Fake method error: truth·(1+bias) vs a noisy reference → RMSE² ≈ bias²·mean(truth²) + floor².
 # The floor term has a few % sampling error on 63 pixels × 3 channels → 15 % tolerance.
 RMSE_RTOL = 0.15

@@ -1,6 +1,5 @@
 """One real end-to-end run (Mitsuba references, the oracle, the HTML report) on the tiny test-size
-sphere_plane scene: 2 frames of sequence V. Skipped until every piece it needs exists."""
-import importlib.util
+sphere_plane scene: 2 frames of sequence V."""
 import math
 
 import pytest
@@ -8,8 +7,6 @@ import pytest
 from reports.pipeline import run_suite
 from reports.suites import Suite
 
-NEEDED = ["scenes.library", "scenes.sequences", "references.render", "references.gbuffer", "references.metrics",
-          "methods.oracle"]
 # The oracle and the reference are both unbiased estimates of direct lighting; with 16+16 oracle
 # samples per sub-sample (×4 sub-samples) the oracle's own noise is about the reference's floor, so
 # E[RMSE] ≈ sqrt(2)·floor. 4× the floor leaves room for the sun's heavy-tailed noise while any
@@ -18,7 +15,6 @@ RMSE_OVER_FLOOR_MAX = 4.0
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(any(importlib.util.find_spec(m) is None for m in NEEDED), reason="project pieces missing")
 def test_real_smoke_run_oracle_sphere_plane(tmp_path):
     suite = Suite(name="e2e", size="test", scenes=("sphere_plane",), kinds=("V",), dynamic_kinds=(), n_frames=2,
                   ref_spp=32, configs=(("oracle", '{"brdf_samples":16,"light_samples":16}'),), isolate=False)

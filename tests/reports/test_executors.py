@@ -1,8 +1,8 @@
 """reports.executors + the parallel paths of reports.cells.run_cells (issue #9), on the fake backend
-(reports.fakes): the same error table from local / processes / dask (LocalCluster, 2 workers ×
+(testing.fakes): the same error table from local / processes / dask (LocalCluster, 2 workers ×
 1 thread, 127.0.0.1), timing parts never overlapping, failing cells recorded, killed workers losing
 no finished cell, a re-run redoing only what failed. Every cluster and pool is shut down."""
-import importlib.util
+
 import json
 import os
 import signal
@@ -20,8 +20,8 @@ from reports import runner as R
 from reports import executors as X
 from reports.pipeline import collect, provenance
 
-FAKE = dict(backend="reports.fakes", plugins=("reports.fakes",))
-ERROR_METRICS = ["rmse", "psnr", "rel_mse"]  # what reports.fakes.all_metrics returns
+FAKE = dict(backend="testing.fakes", plugins=("testing.fakes",))
+ERROR_METRICS = ["rmse", "psnr", "rel_mse"]  # what testing.fakes.all_metrics returns
 
 
 def _cell(**kw):
@@ -185,7 +185,6 @@ def _wait_for_finished(out, th, timeout=60.0):
 
 
 def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkeypatch):
-    pytest.importorskip("distributed")
     monkeypatch.setenv(X.LOCK_DIR_ENV, str(tmp_path))  # the lock file of the --scheduler run below
     cells = _sweep()
     local = R.run_cells(cells, tmp_path / "local", progress=False)
@@ -235,7 +234,7 @@ def test_dask_local_cluster_same_errors_failures_kill_and_rerun(tmp_path, monkey
 
         pipeline.TRIAD_ELEMENTS, triad = 1 << 16, pipeline.TRIAD_ELEMENTS
         try:
-            code = run_bench.main(["run", "--suite", "smoke", "--backend", "reports.fakes", "--plugin", "reports.fakes",
+            code = run_bench.main(["run", "--suite", "smoke", "--backend", "testing.fakes", "--plugin", "testing.fakes",
                                    "--scenes", "fake_plane", "--methods", "fake", "--out", str(tmp_path / "cli"),
                                    "--no-history", "--no-isolate", "--no-vertex-renders", "--quiet",
                                    "--executor", "dask", "--scheduler", ex.scheduler])
@@ -257,17 +256,10 @@ def _timing_worker(ex):
 
 # -- one real scene -----------------------------------------------------------------------------
 
-REAL_NEEDED = ["scenes.library", "scenes.sequences", "references.render", "references.gbuffer", "references.metrics",
-               "methods.oracle"]
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(any(importlib.util.find_spec(m) is None for m in REAL_NEEDED),
-                    reason="project pieces missing")
 def test_real_scene_errors_identical_local_and_dask(tmp_path):
     """The oracle on the test-size sphere_plane (2 frames of V): the same error metrics, bit for bit,
     in process (default threads) and on a 2-worker LocalCluster (1 thread per task)."""
-    pytest.importorskip("distributed")
     from reports.suites import Suite, plan_cells
 
     suite = Suite(name="e2e", size="test", scenes=("sphere_plane",), kinds=("V",), dynamic_kinds=(), n_frames=2,

@@ -140,6 +140,15 @@ def test_ward_needs_tangent_dimension(setup):
         TripleProduct(level=1).precompute(ward)
 
 
+def test_capabilities_follow_the_config():
+    """Ward is claimed (to the harness's planner) exactly by the configs that can render it."""
+    assert "ward" not in TripleProduct(level=1).capabilities.brdfs
+    assert "ward" not in TripleProduct(level=1, tangent="duff").capabilities.brdfs  # n_psi = 1
+    assert "ward" in TripleProduct(level=1, tangent="duff", frame_grid=(5, 8, 4)).capabilities.brdfs
+    assert "ward" in TripleProduct(level=1, tangent="duff", light_lookup="exact").capabilities.brdfs
+    assert "ward" not in TripleProduct.capabilities.brdfs  # the class = the default config
+
+
 def test_ward_anisotropic_matches_oracle_overcast(setup):
     """Ward (tangent = Mitsuba's coordinate_system s, the frame the references author it in):
     measured RMSE 0.0196 vs a 32+32-sample oracle pair with floor 0.0183 (mean 0.325)."""

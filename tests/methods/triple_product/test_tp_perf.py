@@ -121,10 +121,10 @@ def test_render_equals_reference_render(scene_frame, cfg):
     scale = ref.abs().max()
     assert scale > 0
     for ev in ("auto", "dense", "sparse"):  # "auto" = the default config
-        perf.use_fast_shading(m, ev)
-        img = m.render(frame, gb)
+        fast = perf.use_fast_shading(m, ev)
+        assert fast.config["evaluator"] == ev and m.config["evaluator"] == "reference"  # a copy says what ran
+        img = fast.render(frame, gb)
         assert (img - ref).abs().max() <= F32 * scale, ev
-    perf.use_reference_shading(m)
     assert torch.equal(m.render(frame, gb), ref)
 
 
@@ -140,9 +140,7 @@ def test_render_with_texture_sbrdf_bump_equals_reference(scene_frame, level, n):
     m.set_bump("plane", torch.rand(8, 8, generator=gen), 0.02)
     ref = m.render(frame, gb)
     for ev in ("dense", "sparse"):
-        perf.use_fast_shading(m, ev)
-        assert (m.render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
-    perf.use_reference_shading(m)
+        assert (perf.use_fast_shading(m, ev).render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
 
 
 def test_bytes_per_frame_tiny_config(scene_frame):
@@ -166,10 +164,14 @@ def test_bytes_per_frame_tiny_config(scene_frame):
     assert perf.bytes_per_frame(m, "VL") == perf.bytes_per_frame(m, "VL", envmap=scene.envmap)  # default
     with pytest.raises(ValueError):
         perf.bytes_per_frame(m, "P")
-    m.config["shading"] = "pixel"          # frames are rebuilt from the G-buffer: not read
-    assert perf.bytes_per_frame(m, "V") == vis + tables + grid
-    m.config["light_lookup"] = "exact"
-    assert perf.bytes_per_frame(m, "V") is None
+    cfg = dict(m.config)
+    pixel = TripleProduct(**{**cfg, "shading": "pixel"}, progress=False)  # frames are rebuilt from the G-buffer: not read
+    pixel.precompute(scene)
+    pixel.render(frame, gb)
+    assert perf.bytes_per_frame(pixel, "V") == vis + tables + grid
+    exact = TripleProduct(**{**cfg, "light_lookup": "exact"}, progress=False)
+    exact.precompute(scene)
+    assert perf.bytes_per_frame(exact, "V") is None
 
 
 def test_fast_shading_follows_material_edits(scene_frame):
@@ -179,11 +181,10 @@ def test_fast_shading_follows_material_edits(scene_frame):
     scene, frame, gb = scene_frame
     m = TripleProduct(level=2, n_coeffs=20, progress=False)
     m.precompute(scene)
-    perf.use_fast_shading(m, "dense")
+    m = perf.use_fast_shading(m, "dense")
     first = m.render(frame, gb)
     edited = dataclasses.replace(frame, materials={**frame.materials, "sphere": Phong(kd=0.1, ks=0.6, s=40.0)})
     fast = m.render(edited, gb)
-    perf.use_reference_shading(m)
-    ref = m.render(edited, gb)
+    ref = perf.use_reference_shading(m).render(edited, gb)
     assert (fast - first).abs().max() > 100 * F32 * ref.abs().max()  # the edit shows
     assert (fast - ref).abs().max() <= F32 * ref.abs().max()

@@ -62,7 +62,7 @@ def test_constant_visibility_gives_the_zonal_lobe(alpha):
 def test_sympy_derivation_of_the_corrected_entries():
     """Derive the entries the OCR'd appendix gets wrong (or omits) symbolically; show the printed
     forms are wrong and the corrected ones (`appendix_a`) right."""
-    sp = pytest.importorskip("sympy")
+    import sympy as sp
     a, t = sp.symbols("alpha t", positive=True)
 
     def entry(l1, l2, m):

@@ -1,6 +1,6 @@
 """A tiny, torch-only stand-in for the project (scenes, G-buffers, references, metrics, methods)
 so the harness, store, report and CLI can be tested in milliseconds. Used as
-``Cell.backend = "reports.fakes"``; importing it registers the fake methods ``fake`` and
+``Cell.backend = "testing.fakes"``; importing it registers the fake methods ``fake`` and
 ``fake_fail``. Nothing here is used by real runs.
 
 The "truth" image of a frame is ``intensity · pattern`` on an H×W grid; a reference at ``spp``
@@ -152,10 +152,10 @@ class FakeMethod(Method):
     name = "fake"
     capabilities = Capabilities(dynamic_brdf=False, max_bounces=0, brdfs=frozenset({"lambert"}))
 
-    def __init__(self, *, bias: float = 0.05, delay: float = 0.0):
+    def __init__(self, *, bias: float = 0.05, delay: float = 0.0, _extra: dict | None = None):
         if delay < 0:
             raise ValueError("delay must be >= 0")
-        super().__init__(bias=bias, delay=delay)
+        super().__init__(bias=bias, delay=delay, **(_extra or {}))
         self.bias, self.delay = bias, delay
         self.coeffs: torch.Tensor | None = None
 
@@ -211,8 +211,7 @@ class FakeCachedMethod(FakeMethod):
     cache_precompute = True
 
     def __init__(self, *, bias: float = 0.05, delay: float = 0.0, precompute_delay: float = 0.05):
-        super().__init__(bias=bias, delay=delay)
-        self.config["precompute_delay"] = precompute_delay
+        super().__init__(bias=bias, delay=delay, _extra={"precompute_delay": precompute_delay})
         self.precompute_delay = precompute_delay
 
     def precompute(self, scene) -> None:
