@@ -55,7 +55,7 @@ class Capabilities:
             return "static geometry only"
         if "B" in sequence_kind and not self.dynamic_brdf:
             return "BRDFs fixed at precompute"
-        if "L" in sequence_kind and not self.dynamic_lighting:
+        if ("L" in sequence_kind or sequence_kind == "E") and not self.dynamic_lighting:
             return "lighting fixed at precompute"
         if bounces > self.max_bounces:
             return f"at most {self.max_bounces} bounce(s)" if self.max_bounces else "direct lighting only"

@@ -19,6 +19,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from scenes.sequences import KINDS
+
 FULL = -1  # bounces = −1: full global illumination (Mitsuba max_depth = −1)
 STATUS_OK, STATUS_NA, STATUS_ERROR = "ok", "na", "error"
 # Measured, but the sanity gate (reports.gate) found the image plainly wrong; its numbers are kept.
@@ -64,7 +66,7 @@ class Cell:
     """One independent unit of a run (picklable; ``key()`` identifies its result file).
 
     scene: library name, or ``"file:<path>"`` for a TOML scene file. size: "test" | "bench".
-    kind: sequence kind "V" | "VB" | "VBL" | "P". method: registry name; config: canonical JSON.
+    kind: sequence kind (``scenes.sequences.KINDS``: V, VB, VBL, P, L, E, VL). method: registry name; config: canonical JSON.
     bounces: 0 = direct lighting, k = k indirect bounces, −1 = full GI.
     n_frames, seed: the sequence. score_frames: frame indices scored against references (empty =
     all). ref_spp: reference samples per pixel. spp_side: G-buffer S (S×S sub-samples).
@@ -99,7 +101,7 @@ class Cell:
     plugins: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.kind not in ("V", "VB", "VBL", "P"):
+        if self.kind not in KINDS:
             raise ValueError(f"unknown sequence kind {self.kind!r}")
         if self.n_frames < 1:
             raise ValueError("n_frames must be >= 1")

@@ -543,5 +543,13 @@ def procedural(name: str, *, height: int = 128, seed: int = 0) -> EnvMap:
     return EnvMap(L.clamp_min(0).float())
 
 
-__all__ = ["EnvMap", "procedural", "load", "save", "read_image", "write_image", "PROCEDURAL_NAMES",
+def named_envmap(name: str, *, height: int = 64, seed: int = 0) -> EnvMap:
+    """An env map by name, ``height`` rows (width 2·height): a procedural map (``PROCEDURAL_NAMES``).
+    The one place sequences and scene files turn a name into a map."""
+    if name in PROCEDURAL_NAMES:
+        return procedural(name, height=height, seed=seed)
+    raise ValueError(f"unknown env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES)}")
+
+
+__all__ = ["EnvMap", "named_envmap", "procedural", "load", "save", "read_image", "write_image", "PROCEDURAL_NAMES",
            "direction_to_uv", "uv_to_direction", "bilinear_lookup", "texel_directions"]

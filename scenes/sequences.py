@@ -7,6 +7,16 @@
 * "P":   pose animation of an articulated scene (view, lighting, materials fixed); ValueError
          for a scene without a skeleton.
 
+Lighting-only kinds (relighting is what PRT exists for):
+* "L":   fixed view and materials; the env map rotates about a seeded, tilted axis (elevation
+         LIGHT_AXIS_ELEV_DEG from the horizon, never +Y, so SH rotation about arbitrary axes and
+         re-projection of a tilted map are exercised) by LIGHT_ROT_DEG over the sequence.
+* "E":   fixed view and materials; every frame a different env map: frame 0 the scene's own, then
+         the probes of ``probes`` (default ``PROBES``) in turn, at the scene map's resolution — so
+         a method that kept a cached lighting projection renders the wrong probe.
+* "VL":  view + lighting (the L rotation), materials fixed: Sun's "V,B&L" without B, so methods
+         with fixed BRDFs get a combined row.
+
 `Frame.changed` is computed by comparing each frame with the previous one (the first frame has
 every flag), so it is right by construction. Everything is deterministic in `seed`.
 """
@@ -19,12 +29,18 @@ import torch
 
 from scenes.frame import Frame
 
-KINDS = ("V", "VB", "VBL", "P")
+KINDS = ("V", "VB", "VBL", "P", "L", "E", "VL")
+LIGHTING_KINDS = ("VBL", "L", "E", "VL")  # kinds whose lighting changes between frames
 ALL_CHANGED = frozenset({"view", "brdf", "light", "pose"})
 # Total orbit of the camera over a sequence (degrees); the alcove is seen only through its opening.
 ORBIT_DEG = {"default": 40.0, "alcove": 16.0}
 # Env-map rotation over a VBL sequence (degrees).
 LIGHT_SPIN_DEG = 120.0
+# L / VL: total rotation about the tilted axis (degrees; ≥ 90) and the axis' elevation range.
+LIGHT_ROT_DEG = 120.0
+LIGHT_AXIS_ELEV_DEG = (20.0, 70.0)
+# E: the maps swapped in after frame 0 (names for ``scenes.envmap.named_envmap``).
+PROBES = ("studio", "window", "overcast", "sky_sun")
 
 
 def rotation_y(angle_rad: float) -> torch.Tensor:
@@ -69,12 +85,30 @@ def _pose_track(scene, n_frames: int, rng: np.random.Generator) -> torch.Tensor:
     return ((lo + hi) / 2 + (hi - lo) / 2 * 0.9 * torch.sin(t + ph)).float()
 
 
+def rotation_axis_angle(axis, angle_rad: float) -> torch.Tensor:
+    """(3, 3) float32 rotation by ``angle_rad`` about the unit ``axis`` (right-hand rule, Rodrigues)."""
+    k = torch.as_tensor(axis, dtype=torch.float64)
+    k = k / k.norm()
+    K = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=torch.float64)
+    R = torch.eye(3, dtype=torch.float64) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * (K @ K)
+    return R.float()
+
+
+def tilted_axis(rng: np.random.Generator) -> tuple[float, float, float]:
+    """A unit axis at a random azimuth and an elevation in LIGHT_AXIS_ELEV_DEG (never ±Y)."""
+    az = rng.uniform(0, 2 * math.pi)
+    el = math.radians(rng.uniform(*LIGHT_AXIS_ELEV_DEG))
+    return (math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az))
+
+
 def _same_env(a, b) -> bool:
     return a is b or (a.data is b.data and torch.equal(a.to_world, b.to_world))
 
 
-def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0) -> list[Frame]:
-    """Frames of sequence `kind` ("V", "VB", "VBL", "P") for `scene`, deterministic in `seed`."""
+def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0, *, probes=None) -> list[Frame]:
+    """Frames of sequence `kind` (``KINDS``, module docstring) for `scene`, deterministic in `seed`.
+    probes: env maps (``EnvMap``) or names (``scenes.envmap.named_envmap``) for "E" (default
+    ``PROBES``), resampled to nothing: a named map is made at the scene map's height."""
     if kind not in KINDS:
         raise ValueError(f"unknown sequence kind {kind!r}; choose from {', '.join(KINDS)}")
     n_frames = int(n_frames)
@@ -87,17 +121,23 @@ def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0) -> list[Fr
     start = -orbit / 2 + rng.uniform(-0.1, 0.1) * orbit
     spin_sign = 1.0 if rng.uniform() < 0.5 else -1.0
     poses = _pose_track(scene, n_frames, rng) if kind == "P" else None
+    axis = tilted_axis(rng) if kind in ("L", "VL") else None
+    swaps = _probe_maps(scene, probes) if kind == "E" else None
 
     frames: list[Frame] = []
     for i in range(n_frames):
         f = i / max(n_frames - 1, 1)
         cam, env, mats, pose = scene.camera, scene.envmap, dict(scene.materials), None
-        if kind != "P":
+        if kind in ("V", "VB", "VBL", "VL"):
             cam = scene.camera.orbited(start + orbit * f)
         if kind in ("VB", "VBL") and i > 0:
             mats = {r: perturb_material(m, rng) for r, m in scene.materials.items()}
         if kind == "VBL" and i > 0:  # frame 0 keeps the scene's own lighting
             env = scene.envmap.rotated(rotation_y(spin_sign * math.radians(LIGHT_SPIN_DEG) * f))
+        if kind in ("L", "VL") and i > 0:
+            env = scene.envmap.rotated(rotation_axis_angle(axis, spin_sign * math.radians(LIGHT_ROT_DEG) * f))
+        if kind == "E" and i > 0:
+            env = swaps[(i - 1) % len(swaps)]
         if kind == "P":
             pose = poses[i]
         if i == 0:
@@ -116,3 +156,16 @@ def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0) -> list[Fr
             changed = frozenset(ch)
         frames.append(Frame(envmap=env, camera=cam, materials=mats, pose=pose, index=i, changed=changed))
     return frames
+
+
+def _probe_maps(scene, probes) -> list:
+    """The E sequence's maps (module docstring): EnvMaps as given, names made at the scene map's
+    height; at least 2 so consecutive frames always differ (frame 0 is the scene's own map)."""
+    from scenes.envmap import EnvMap, named_envmap
+
+    names = PROBES if probes is None else tuple(probes)
+    maps = [p if isinstance(p, EnvMap) else named_envmap(p, height=scene.envmap.height) for p in names]
+    maps = [m for m in maps if not torch.equal(m.data, scene.envmap.data)] or maps
+    if len(maps) < 2:
+        raise ValueError(f"sequence 'E' needs >= 2 probes besides the scene's own map, got {len(maps)}")
+    return maps
