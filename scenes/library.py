@@ -3,6 +3,11 @@
 size "test": ≤ 2K vertices, 64×64 film, env maps of height 64 (unit tests, CI).
 size "bench": 5–20K vertices, 256×256 film, env maps of height 256 (nightly benchmark).
 
+Scanned scenes (`bunny`, `dragon`): real scans (scenes/assets/meshes/, sources in
+scenes/assets/ASSETS.md) under captured light probes (`scenes.envmap.PROBE_NAMES`). The vendored
+mesh is the bench-size object; the test size is produced at load time by quadric decimation
+(VTK via pyvista, `decimate`) to the test budget.
+
 Light placement: the procedural env maps put their key light (sun, window, key softbox) at a
 seeded azimuth; each scene rotates its env map about +Y so the key light shines from a chosen
 azimuth relative to the camera (shadows fall visibly in front of the camera).
@@ -10,6 +15,7 @@ azimuth relative to the camera (shadows fall visibly in front of the camera).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -18,8 +24,11 @@ from scenes import procedural as P
 from scenes.camera import Camera
 from scenes.scene import Scene, Shape
 
-SCENES = ["sphere_plane", "chess", "alcove", "shadow_detail", "creature"]
+SCENES = ["sphere_plane", "chess", "alcove", "shadow_detail", "creature", "bunny", "dragon"]
 SIZES = {"test": dict(film=64, env=64), "bench": dict(film=256, env=256)}
+ASSET_DIR = Path(__file__).resolve().parent / "assets"
+# Vertex budget of a scanned object at test size (the ground adds 441 vertices: ≤ 2K in all).
+TEST_SCAN_VERTICES = 1400
 
 
 def _check_size(size: str) -> dict:
@@ -60,9 +69,9 @@ def aim_key_light(env, azimuth_deg: float):
 
 
 def _env(name: str, size: str, azimuth_deg: float | None, seed: int = 0):
-    from scenes.envmap import procedural
+    from scenes.envmap import named
 
-    env = procedural(name, height=SIZES[size]["env"], seed=seed)
+    env = named(name, height=SIZES[size]["env"], seed=seed)
     return env if azimuth_deg is None else aim_key_light(env, azimuth_deg)
 
 
@@ -80,6 +89,63 @@ def graded_plane(half_size: float, n: int, *, y: float = 0.0, k: float = 8.0, ce
     V[:, 2] = g(V[:, 2]) + center[1]
     V[:, 1] = y
     return P.Mesh(V.float(), m.F, m.N, m.uv).validate()
+
+
+def decimate(mesh: "P.Mesh", max_vertices: int) -> "P.Mesh":
+    """Quadric-error decimation (VTK `vtkQuadricDecimation` via pyvista, volume preserving) of a
+    triangle mesh to at most `max_vertices` vertices; deterministic. Returns the mesh unchanged
+    if it is already within budget; normals are recomputed (area-weighted) and the result is
+    validated. `mesh`: Mesh with V (N, 3), F (M, 3)."""
+    import pyvista as pv
+
+    from scenes.mesh import Mesh
+
+    max_vertices = int(max_vertices)
+    if max_vertices < 4:
+        raise ValueError(f"max_vertices must be >= 4, got {max_vertices}")
+    if mesh.num_vertices <= max_vertices:
+        return mesh
+    pd = pv.PolyData.from_regular_faces(mesh.V.double().numpy(), mesh.F.numpy())
+    target = max_vertices
+    for _ in range(20):  # a closed mesh has ~2 faces per vertex; shrink the target until it fits
+        d = pd.decimate(1.0 - 2.0 * target / pd.n_cells, volume_preservation=True)
+        if d.n_points <= max_vertices:
+            break
+        target -= max(1, (d.n_points - max_vertices))
+    else:
+        raise ValueError(f"decimation could not reach {max_vertices} vertices")
+    F = torch.as_tensor(np.asarray(d.regular_faces, dtype=np.int64))
+    V = torch.as_tensor(np.asarray(d.points, dtype=np.float64))
+    # drop faces decimation collapsed to zero area, then unreferenced vertices
+    c = torch.linalg.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    F = F[c.norm(dim=1) > 1e-12 * float(((V.max(0).values - V.min(0).values) ** 2).sum())]
+    used = torch.unique(F)
+    remap = torch.full((V.shape[0],), -1, dtype=torch.int64)
+    remap[used] = torch.arange(used.numel())
+    return Mesh(V[used].float(), remap[F]).validate()
+
+
+_SCANS: dict[tuple[str, int | None], "P.Mesh"] = {}
+
+
+def scanned_mesh(name: str, *, height: float, max_vertices: int | None = None) -> "P.Mesh":
+    """A vendored scan (scenes/assets/meshes/<name>.ply, +Y up as stored) scaled to `height`,
+    centred on the Y axis and resting on y = 0 (lifted by 0.2 % of its height so its base is not
+    coplanar with a ground plane); decimated to `max_vertices` first if given."""
+    from scenes.mesh import load_mesh
+
+    key = (name, max_vertices)
+    if key not in _SCANS:
+        m = load_mesh(ASSET_DIR / "meshes" / f"{name}.ply")
+        _SCANS[key] = m if max_vertices is None else decimate(m, max_vertices)
+    m = _SCANS[key]
+    lo, hi = m.V.double().min(0).values, m.V.double().max(0).values
+    s = height / float(hi[1] - lo[1])
+    c = 0.5 * (lo + hi)
+    M = torch.eye(4, dtype=torch.float64) * s
+    M[3, 3] = 1.0
+    M[:3, 3] = torch.stack([-s * c[0], -s * lo[1] + 0.002 * height, -s * c[2]])
+    return P.Mesh(m.V, m.F, None, m.uv).transformed(M).validate()
 
 
 # -- scenes --------------------------------------------------------------------------------------
@@ -169,8 +235,35 @@ def creature(size: str = "test") -> Scene:
                  skeleton=skel, skin_weights={"creature": W}, size=size)
 
 
+def bunny(size: str = "test") -> Scene:
+    """The Stanford bunny (scan) in glossy Phong on a diffuse ground under the `sunrise` probe."""
+    from scenes.materials import Lambert, Phong
+
+    q = _check_size(size)
+    obj = scanned_mesh("bunny", height=1.5, max_vertices=TEST_SCAN_VERTICES if size == "test" else None)
+    n = 20 if size == "test" else 60
+    shapes = [Shape("bunny", "bunny", obj), Shape("ground", "ground", graded_plane(30.0, n))]
+    cam = Camera((0.6, 2.4, 4.0), (0.0, 0.65, 0.0), (0.0, 1.0, 0.0), 38.0, q["film"], q["film"])
+    mats = {"bunny": Phong(kd=(0.55, 0.42, 0.3), ks=(0.3, 0.3, 0.3), s=40.0), "ground": Lambert(kd=(0.5, 0.5, 0.48))}
+    return Scene("bunny", shapes, ["bunny", "ground"], cam, _env("sunrise", size, -150.0), mats, size=size)
+
+
+def dragon(size: str = "test") -> Scene:
+    """The Stanford dragon (scan) in Blinn-Phong on a diffuse ground under the `forest` probe."""
+    from scenes.materials import BlinnPhong, Lambert
+
+    q = _check_size(size)
+    obj = scanned_mesh("dragon", height=1.4, max_vertices=TEST_SCAN_VERTICES if size == "test" else None)
+    n = 20 if size == "test" else 60
+    shapes = [Shape("dragon", "dragon", obj), Shape("ground", "ground", graded_plane(30.0, n))]
+    cam = Camera((0.0, 1.9, 3.3), (0.0, 0.55, 0.0), (0.0, 1.0, 0.0), 40.0, q["film"], q["film"])
+    mats = {"dragon": BlinnPhong(kd=(0.15, 0.4, 0.25), ks=(0.35, 0.35, 0.35), s=80.0),
+            "ground": Lambert(kd=(0.45, 0.42, 0.38))}
+    return Scene("dragon", shapes, ["dragon", "ground"], cam, _env("forest", size, -140.0), mats, size=size)
+
+
 _BUILDERS = {"sphere_plane": sphere_plane, "chess": chess, "alcove": alcove, "shadow_detail": shadow_detail,
-             "creature": creature}
+             "creature": creature, "bunny": bunny, "dragon": dragon}
 _CACHE: dict[tuple[str, str], Scene] = {}
 
 
