@@ -587,5 +587,6 @@ def named(name: str, *, height: int, seed: int = 0) -> EnvMap:
     raise ValueError(f"unknown env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES + PROBE_NAMES)}")
 
 
-__all__ = ["EnvMap", "procedural", "probe", "named", "PROBE_NAMES", "load", "save", "read_image", "write_image", "PROCEDURAL_NAMES",
+__all__ = ["EnvMap", "procedural", "probe", "named", "PROBE_NAMES", "load", "save", "read_image", "write_image",
+           "PROCEDURAL_NAMES",
            "direction_to_uv", "uv_to_direction", "bilinear_lookup", "texel_directions"]

@@ -3,10 +3,11 @@
 size "test": ≤ 2K vertices, 64×64 film, env maps of height 64 (unit tests, CI).
 size "bench": 5–20K vertices, 256×256 film, env maps of height 256 (nightly benchmark).
 
-Scanned scenes (`bunny`, `dragon`): real scans (scenes/assets/meshes/, sources in
-scenes/assets/ASSETS.md) under captured light probes (`scenes.envmap.PROBE_NAMES`). The vendored
-mesh is the bench-size object; the test size is produced at load time by quadric decimation
-(VTK via pyvista, `decimate`) to the test budget.
+Real-asset scenes (`bunny`, `dragon`: scans; `character`: a skinned glTF human): vendored files
+under scenes/assets/ (sources and licences in scenes/assets/ASSETS.md) under captured light
+probes (`scenes.envmap.PROBE_NAMES`). The vendored mesh is the bench-size object; the test size is
+produced at load time by quadric decimation (VTK via pyvista: `decimate`, `decimate_skinned`) to
+TEST_SCAN_VERTICES.
 
 Light placement: the procedural env maps put their key light (sun, window, key softbox) at a
 seeded azimuth; each scene rotates its env map about +Y so the key light shines from a chosen
@@ -24,7 +25,7 @@ from scenes import procedural as P
 from scenes.camera import Camera
 from scenes.scene import Scene, Shape
 
-SCENES = ["sphere_plane", "chess", "alcove", "shadow_detail", "creature", "bunny", "dragon"]
+SCENES = ["sphere_plane", "chess", "alcove", "shadow_detail", "creature", "bunny", "dragon", "character"]
 SIZES = {"test": dict(film=64, env=64), "bench": dict(film=256, env=256)}
 ASSET_DIR = Path(__file__).resolve().parent / "assets"
 # Vertex budget of a scanned object at test size (the ground adds 441 vertices: ≤ 2K in all).
@@ -123,6 +124,34 @@ def decimate(mesh: "P.Mesh", max_vertices: int) -> "P.Mesh":
     remap = torch.full((V.shape[0],), -1, dtype=torch.int64)
     remap[used] = torch.arange(used.numel())
     return Mesh(V[used].float(), remap[F]).validate()
+
+
+def decimate_skinned(mesh: "P.Mesh", weights: torch.Tensor, max_vertices: int) -> tuple["P.Mesh", torch.Tensor]:
+    """`decimate` a skinned mesh and carry its skin weights over: each new vertex takes the
+    barycentric interpolation of the weights of the original triangle closest to it (VTK cell
+    locator), rows renormalised. weights: (N, J) → returns (Mesh, (N', J) float32)."""
+    import pyvista as pv
+
+    W = torch.as_tensor(weights, dtype=torch.float64)
+    if W.dim() != 2 or W.shape[0] != mesh.num_vertices:
+        raise ValueError(f"weights must be ({mesh.num_vertices}, J), got {tuple(W.shape)}")
+    d = decimate(mesh, max_vertices)
+    if d is mesh:
+        return mesh, W.float()
+    pd = pv.PolyData.from_regular_faces(mesh.V.double().numpy(), mesh.F.numpy())
+    cells, pts = pd.find_closest_cell(d.V.double().numpy(), return_closest_point=True)
+    tri = mesh.F[torch.as_tensor(cells, dtype=torch.int64)]                 # (N', 3)
+    a, b, c = (mesh.V.double()[tri[:, k]] for k in range(3))
+    p = torch.as_tensor(np.asarray(pts, dtype=np.float64))
+    v0, v1, v2 = b - a, c - a, p - a                                         # barycentric coordinates
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    den = (d00 * d11 - d01 * d01).clamp_min(1e-300)
+    l1, l2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    bary = torch.stack([1 - l1 - l2, l1, l2], 1).clamp_min(0.0)
+    bary = bary / bary.sum(1, keepdim=True)
+    Wn = (bary[:, :, None] * W[tri]).sum(1)
+    return d, (Wn / Wn.sum(1, keepdim=True)).float()
 
 
 _SCANS: dict[tuple[str, int | None], "P.Mesh"] = {}
@@ -262,8 +291,53 @@ def dragon(size: str = "test") -> Scene:
     return Scene("dragon", shapes, ["dragon", "ground"], cam, _env("forest", size, -140.0), mats, size=size)
 
 
+_RIGS: dict[str, tuple] = {}
+
+
+def character_rig(size: str = "test"):
+    """The vendored skinned character (scenes/assets/characters/bcn_epileptic.glb) standing on y = 0,
+    centred on the Y axis: (mesh, skeleton, weights (N, J), clip joint angles (F, J), times (F,)).
+    At test size the mesh is decimated to TEST_SCAN_VERTICES with its weights carried over.
+    Memoised: treat the returned objects as read-only."""
+    _check_size(size)
+    if size not in _RIGS:
+        _RIGS[size] = _character_rig(size)
+    return _RIGS[size]
+
+
+def _character_rig(size: str):
+    from scenes.gltf import load_skinned_glb_rig
+    from scenes.skeleton import Skeleton
+
+    mesh, rig = load_skinned_glb_rig(ASSET_DIR / "characters" / "bcn_epileptic.glb")
+    W = rig.weights
+    if size == "test":
+        mesh, W = decimate_skinned(mesh, W, TEST_SCAN_VERTICES)
+    lo, hi = mesh.V.double().min(0).values, mesh.V.double().max(0).values
+    t = torch.stack([-0.5 * (lo[0] + hi[0]), -lo[1] + 0.002 * (hi[1] - lo[1]), -0.5 * (lo[2] + hi[2])])
+    M = torch.eye(4, dtype=torch.float64)
+    M[:3, 3] = t
+    sk = rig.skeleton
+    skel = Skeleton(sk.parents, sk.joint_positions.double() + t, sk.axes, names=sk.names, limits=sk.limits)
+    return mesh.transformed(M).validate(), skel, W, rig.animation, rig.times
+
+
+def character(size: str = "test") -> Scene:
+    """The skinned human (rest pose) in Phong on a diffuse ground under the `courtyard` probe."""
+    from scenes.materials import Lambert, Phong
+
+    q = _check_size(size)
+    mesh, skel, W, _, _ = character_rig(size)
+    n = 20 if size == "test" else 60
+    shapes = [Shape("character", "character", mesh), Shape("ground", "ground", graded_plane(30.0, n))]
+    cam = Camera((0.7, 1.5, 3.0), (0.0, 0.85, 0.0), (0.0, 1.0, 0.0), 40.0, q["film"], q["film"])
+    mats = {"character": Phong(kd=(0.45, 0.3, 0.22), ks=(0.2, 0.2, 0.2), s=25.0), "ground": Lambert(kd=(0.5, 0.5, 0.5))}
+    return Scene("character", shapes, ["character", "ground"], cam, _env("courtyard", size, -140.0), mats,
+                 skeleton=skel, skin_weights={"character": W}, size=size)
+
+
 _BUILDERS = {"sphere_plane": sphere_plane, "chess": chess, "alcove": alcove, "shadow_detail": shadow_detail,
-             "creature": creature, "bunny": bunny, "dragon": dragon}
+             "creature": creature, "bunny": bunny, "dragon": dragon, "character": character}
 _CACHE: dict[tuple[str, str], Scene] = {}
 
 

@@ -73,9 +73,10 @@ def make_probes(src_dir: Path) -> None:
 
 def make_character(src: Path) -> None:
     """BCN_Epileptic: assimp's .X → .glb export (``assimp export BCN_Epileptic.X in.glb -fglb2``,
-    assimp 5.2.5) has three skinned meshes (torso, head, legs) sharing one skin (a skinned mesh
-    node's own transform is ignored by glTF 2.0, §3.7.3.3 "Skins"); join them into the torso mesh (primitives moved, the head/legs nodes lose their
-    mesh) so that a loader reading the first skinned mesh gets the whole body. Nothing else changes."""
+    assimp 5.2.5) has three skinned meshes (torso, head, legs) sharing one skin (the glTF 2.0
+    specification, "Skins": a skinned mesh node's own transform is ignored). Join them into the
+    torso mesh (primitives moved, the head/legs nodes lose their mesh; unused meshes dropped) so
+    that a loader reading the first skinned mesh gets the whole body. Nothing else changes."""
     import pygltflib
 
     g = pygltflib.GLTF2().load(str(src))

@@ -43,7 +43,8 @@ def test_licences_present_and_named():
     assert lic, "no licence files"
     for p in lic:
         assert p.stat().st_size > 50 and f"LICENSES/{p.name}" in text
-    assert "Neither the names of the copyright holders" in (ASSET_DIR / "LICENSES" / "BSD-3-Clause-assimp.txt").read_text()
+    bsd = (ASSET_DIR / "LICENSES" / "BSD-3-Clause-assimp.txt").read_text()
+    assert "Neither the names of the copyright holders" in bsd   # the third clause
     assert "CC0" in (ASSET_DIR / "LICENSES" / "CC0-blender-studiolights-world.txt").read_text()
     # every asset section states source, author, licence, attribution and changes
     sections = text.split("\n### ")[1:]
@@ -146,3 +147,32 @@ def test_skinned_character_loads_with_its_clip():
     T = rig.skeleton.forward_kinematics(rig.animation[50])
     V, N = skin(mesh.V, mesh.N, rig.weights, T)
     assert torch.isfinite(V).all() and (V - mesh.V).norm(dim=1).max() > 0.05
+
+
+def test_character_scene_sizes_pose_and_weight_transfer():
+    """`character`: the glTF rig as a library scene; the test size is decimated with its weights
+    carried over, so posing it by a clip frame stays on the posed full-resolution surface."""
+    import pyvista as pv
+
+    from scenes.library import character_rig
+    from scenes.sequences import make_sequence
+    from scenes.skeleton import skin
+
+    for size, lo, hi in (("test", 0, 2000), ("bench", 5000, 20000)):
+        sc = get_scene("character", size)
+        assert sc.dynamic and lo <= sc.geometry().num_vertices <= hi
+        obj = next(s.mesh for s in sc.shapes if s.name == "character")
+        assert 0.0 < float(obj.V[:, 1].min()) < 0.01                 # rest pose stands on the ground
+        torch.testing.assert_close(sc.skin_weights["character"].sum(1), torch.ones(obj.num_vertices))
+        frames = make_sequence(sc, "P", n_frames=3, seed=0)             # P cells can be planned
+        assert all(torch.isfinite(sc.geometry(f.pose).V).all() for f in frames)
+    full, sk_f, W_f, clip, _ = character_rig("bench")
+    small, sk_s, W_s, _, _ = character_rig("test")
+    assert small.num_vertices <= TEST_SCAN_VERTICES
+    height = float(full.V[:, 1].max() - full.V[:, 1].min())
+    pd = lambda V, F: pv.PolyData.from_regular_faces(V.double().numpy(), F.numpy())  # noqa: E731
+    for k in (30, 60):
+        Vf, _ = skin(full.V, full.N, W_f, sk_f.forward_kinematics(clip[k]))
+        Vs, _ = skin(small.V, small.N, W_s, sk_s.forward_kinematics(clip[k]))
+        d = np.abs(pd(Vs, small.F).compute_implicit_distance(pd(Vf, full.F))["implicit_distance"])
+        assert d.max() < 0.015 * height, (k, d.max() / height)
