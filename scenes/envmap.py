@@ -35,6 +35,12 @@ _LUM = (0.212671, 0.715160, 0.072169)
 
 PROCEDURAL_NAMES = ("sky_sun", "studio", "window", "overcast")
 
+# Captured HDR light probes vendored under scenes/assets/probes/ (sources and licences in
+# scenes/assets/ASSETS.md). Stored lat-long at PROBE_HEIGHT rows × 2·PROBE_HEIGHT columns.
+PROBE_NAMES = ("courtyard", "forest", "interior", "sunrise")
+PROBE_DIR = Path(__file__).resolve().parent / "assets" / "probes"
+PROBE_HEIGHT = 256
+
 # to_world must be a rotation to this tolerance (float32 round-off of a composed rotation).
 _ROTATION_TOL = 1e-4
 
@@ -543,13 +549,44 @@ def procedural(name: str, *, height: int = 128, seed: int = 0) -> EnvMap:
     return EnvMap(L.clamp_min(0).float())
 
 
-def named_envmap(name: str, *, height: int = 64, seed: int = 0) -> EnvMap:
-    """An env map by name, ``height`` rows (width 2·height): a procedural map (``PROCEDURAL_NAMES``).
-    The one place sequences and scene files turn a name into a map."""
+# -- captured probes ----------------------------------------------------------------------------
+
+
+def probe(name: str, *, height: int = PROBE_HEIGHT) -> EnvMap:
+    """A vendored captured light probe (`PROBE_NAMES`) at `height` rows (width = 2·height).
+
+    The stored map (PROBE_HEIGHT × 2·PROBE_HEIGHT) is box-averaged by the integer factor
+    PROBE_HEIGHT / height (each output texel is the mean of a k×k block), so `height` must divide
+    PROBE_HEIGHT. The file is validated on load like any env map (ValueError on NaN/Inf or
+    negative texels, unreadable file).
+    """
+    if name not in PROBE_NAMES:
+        raise ValueError(f"unknown probe {name!r}; choose from {', '.join(PROBE_NAMES)}")
+    height = int(height)
+    if height < 3 or PROBE_HEIGHT % height:
+        raise ValueError(f"probe height must divide {PROBE_HEIGHT} and be >= 3, got {height}")
+    data = read_image(PROBE_DIR / f"{name}.exr")
+    if data.shape != (PROBE_HEIGHT, 2 * PROBE_HEIGHT, 3):
+        raise ValueError(f"probe file {name!r} has shape {data.shape}, expected "
+                         f"({PROBE_HEIGHT}, {2 * PROBE_HEIGHT}, 3)")
+    env = EnvMap(data)  # validates the stored texels
+    k = PROBE_HEIGHT // height
+    if k > 1:
+        d = env.data.double().reshape(height, k, 2 * height, k, 3).mean((1, 3))
+        env = EnvMap(d.float())
+    return env
+
+
+def named(name: str, *, height: int, seed: int = 0) -> EnvMap:
+    """Any named env map: a procedural one (`PROCEDURAL_NAMES`, seeded) or a captured probe
+    (`PROBE_NAMES`; `seed` unused)."""
+    if name in PROBE_NAMES:
+        return probe(name, height=height)
     if name in PROCEDURAL_NAMES:
         return procedural(name, height=height, seed=seed)
-    raise ValueError(f"unknown env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES)}")
+    raise ValueError(f"unknown env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES + PROBE_NAMES)}")
 
 
-__all__ = ["EnvMap", "named_envmap", "procedural", "load", "save", "read_image", "write_image", "PROCEDURAL_NAMES",
+__all__ = ["EnvMap", "procedural", "probe", "named", "PROBE_NAMES", "load", "save", "read_image", "write_image",
+           "PROCEDURAL_NAMES",
            "direction_to_uv", "uv_to_direction", "bilinear_lookup", "texel_directions"]

@@ -39,8 +39,8 @@ LIGHT_SPIN_DEG = 120.0
 # L / VL: total rotation about the tilted axis (degrees; ≥ 90) and the axis' elevation range.
 LIGHT_ROT_DEG = 120.0
 LIGHT_AXIS_ELEV_DEG = (20.0, 70.0)
-# E: the maps swapped in after frame 0 (names for ``scenes.envmap.named_envmap``).
-PROBES = ("studio", "window", "overcast", "sky_sun")
+# E: the captured probes swapped in after frame 0 (scenes/assets/probes, ``scenes.envmap.named``).
+PROBES = ("courtyard", "forest", "interior", "sunrise")
 
 
 def rotation_y(angle_rad: float) -> torch.Tensor:
@@ -107,7 +107,7 @@ def _same_env(a, b) -> bool:
 
 def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0, *, probes=None) -> list[Frame]:
     """Frames of sequence `kind` (``KINDS``, module docstring) for `scene`, deterministic in `seed`.
-    probes: env maps (``EnvMap``) or names (``scenes.envmap.named_envmap``) for "E" (default
+    probes: env maps (``EnvMap``) or names (``scenes.envmap.named``) for "E" (default
     ``PROBES``), resampled to nothing: a named map is made at the scene map's height."""
     if kind not in KINDS:
         raise ValueError(f"unknown sequence kind {kind!r}; choose from {', '.join(KINDS)}")
@@ -161,10 +161,10 @@ def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0, *, probes=
 def _probe_maps(scene, probes) -> list:
     """The E sequence's maps (module docstring): EnvMaps as given, names made at the scene map's
     height; at least 2 so consecutive frames always differ (frame 0 is the scene's own map)."""
-    from scenes.envmap import EnvMap, named_envmap
+    from scenes.envmap import EnvMap, named
 
     names = PROBES if probes is None else tuple(probes)
-    maps = [p if isinstance(p, EnvMap) else named_envmap(p, height=scene.envmap.height) for p in names]
+    maps = [p if isinstance(p, EnvMap) else named(p, height=scene.envmap.height) for p in names]
     maps = [m for m in maps if not torch.equal(m.data, scene.envmap.data)] or maps
     if len(maps) < 2:
         raise ValueError(f"sequence 'E' needs >= 2 probes besides the scene's own map, got {len(maps)}")
