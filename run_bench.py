@@ -9,6 +9,7 @@
   python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
+  python run_bench.py list                              # scenes, methods, suites, kinds, studies
 
 A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped (failed
 cells are redone). ``--executor processes`` runs cells in a spawn-based process pool, ``--executor
@@ -73,6 +74,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--list", action="store_true", help="list every registered study and exit")
     s.add_argument("--out", type=Path, default=None, help="output folder (default out/studies/<name>)")
     s.add_argument("--quick", action="store_true", help="a small, fast version")
+
+    ls = sub.add_parser("list", help="what can be run: scenes, methods, suites, sequence kinds, studies")
+    ls.add_argument("--test-only", action="store_true", help="vertex counts at test size only (faster)")
 
     rep = sub.add_parser("report", help="rebuild the HTML report of a run directory")
     rep.add_argument("run_dir", type=Path)
@@ -192,11 +196,19 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_list(args) -> int:
+    from reports import studies  # noqa: F401  (registers the cross-method studies too)
+    from reports.listing import catalogue
+
+    print(catalogue(sizes=("test",) if args.test_only else ("test", "bench")))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return {"run": cmd_run, "references": cmd_references, "compare": cmd_compare, "study": cmd_study,
-                "report": cmd_report}[args.cmd](args)
+                "report": cmd_report, "list": cmd_list}[args.cmd](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"prtbench: error: {e}", file=sys.stderr)
         return 2

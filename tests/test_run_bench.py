@@ -104,3 +104,18 @@ def test_changed_code_is_not_resumed(tmp_path, capsys, monkeypatch):
     code, out2 = _run(capsys, tmp_path / "a", hist)
     assert code == 0 and "the code changed since this run started" in out2
     assert re.search(r"run (\S+):", out2).group(1) != run_id
+
+
+def test_list_shows_what_can_be_run(capsys):
+    import run_bench
+    from methods.registry import available_methods
+    from scenes.library import SCENES
+    from scenes.sequences import KINDS
+
+    assert run_bench.main(["list", "--test-only"]) == 0
+    out = capsys.readouterr().out
+    for name in [*SCENES, *available_methods(), "smoke", "nightly", "terms-vs-exponent"]:
+        assert f"\n{name} " in out or out.startswith(f"{name} "), name
+    for k in KINDS:
+        assert f"\n{k} " in out, k
+    assert "bunny" in SCENES and "character" in SCENES  # the vendored real scenes are listed

@@ -28,7 +28,8 @@ from scenes.library import SCENES, get_scene
 from scenes.sequences import make_sequence
 
 PINNED = {"sphere_plane": (0.2819, 0.1679), "chess": (0.0633, 0.0592), "alcove": (0.0229, 0.0219),
-          "shadow_detail": (0.1106, 0.0545), "creature": (0.0890, 0.0800)}
+          "shadow_detail": (0.1106, 0.0545), "creature": (0.0890, 0.0800),
+          "bunny": (0.1461, 0.1002), "dragon": (0.0609, 0.0348), "character": (0.0386, 0.0342)}
 # Room for float/BLAS differences between machines in a deterministic pipeline (same seeds).
 SLACK = 1.05
 
