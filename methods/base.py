@@ -66,6 +66,37 @@ class Capabilities:
         return None
 
 
+# -- cost model -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameCost:
+    """The compulsory work of one frame (``Method.frame_cost``), what the roofline divides by the
+    machine's limits: efficiency = max(bytes / bandwidth, flops / peak) / frame time.
+
+    bytes: bytes the frame must move at least once — every run-time array it reads (each element
+        once, a perfect cache), the G-buffer inputs it reads, and the (P, 3) float32 output it writes.
+    flops: floating-point operations it must do (a multiply-add counts 2), for the arithmetic that
+        the method's equations require per frame (not work a faster implementation could skip).
+    """
+
+    bytes: int
+    flops: int
+
+    def __post_init__(self) -> None:
+        if self.bytes < 0 or self.flops < 0:
+            raise ValueError(f"FrameCost must be non-negative, got {self}")
+
+    def bound(self, bandwidth: float, peak_flops: float) -> tuple[float, str]:
+        """(seconds at the roofline, "memory" | "compute"): the larger of the two lower bounds."""
+        tb, tf = self.bytes / bandwidth, self.flops / peak_flops
+        return (tb, "memory") if tb >= tf else (tf, "compute")
+
+
+GBUFFER_BYTES_PER_SAMPLE = 4 * (3 + 3 + 1) + 8 + 8  # what shading reads per sample: normal, wo, hit (as
+# float32 words), face index (int64) and barycentrics (2 × float32); methods add what else they read
+
+
 # -- methods ----------------------------------------------------------------------------------
 
 
@@ -106,8 +137,15 @@ class Method(ABC):
             raise NotImplementedError(f"{type(self).__name__} does not implement with_bounces")
         return self
 
+    def frame_cost(self, frame_kind: str, num_samples: int) -> "FrameCost | None":
+        """The compulsory work of one frame of ``frame_kind`` (a sequence kind: which inputs changed)
+        on a G-buffer of ``num_samples`` samples — the roofline's numerators (``FrameCost``). Called
+        after ``precompute``; None = not modelled. The count is the minimum any implementation of
+        the method must do, never what ours happens to do: arrays read once, no padding."""
+        return None
+
     def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes a frame of this kind touches (for the roofline); None if unknown."""
+        """Deprecated: bytes a frame touches, without the G-buffer (use ``frame_cost``)."""
         return None
 
     def __repr__(self) -> str:

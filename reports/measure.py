@@ -60,6 +60,33 @@ def triad_bandwidth(n: int = 1 << 24, *, repeats: int = 5, dtype=torch.float32, 
     return 3.0 * n * b.element_size() / max(best, 1e-12)
 
 
+def matmul_peak(n: int = 1024, *, repeats: int = 5, dtype=torch.float32, device="cpu") -> float:
+    """Dense matmul (sgemm) throughput in FLOP/s: 2·n³ per (n × n) @ (n × n), best of ``repeats``
+    after one warm-up — the machine's compute roof for the threads torch uses."""
+    if n < 1 or repeats < 1:
+        raise ValueError("n and repeats must be >= 1")
+    a = torch.rand(n, n, dtype=dtype, device=device)
+    b = torch.rand(n, n, dtype=dtype, device=device)
+    c = a @ b
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.matmul(a, b, out=c)
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * n**3 / max(best, 1e-12)
+
+
+def roofline(cost_bytes: float | None, cost_flops: float | None, bandwidth: float, peak_flops: float,
+             frame_time: float) -> tuple[float, str] | None:
+    """(efficiency, bound): max(bytes / bandwidth, flops / peak) / frame time and which term is the
+    larger ("memory" | "compute"); None when the method reports no cost or a time is not positive."""
+    if cost_bytes is None or not (bandwidth > 0) or not (frame_time > 0):
+        return None
+    tb = float(cost_bytes) / float(bandwidth)
+    tf = float(cost_flops or 0.0) / float(peak_flops) if peak_flops and peak_flops > 0 else 0.0
+    return (max(tb, tf) / float(frame_time), "memory" if tb >= tf else "compute")
+
+
 def roofline_efficiency(bytes_per_frame: float | None, bandwidth: float, frame_time: float) -> float | None:
     """Fraction of the bandwidth roofline a method reaches: (bytes / bandwidth) / frame time.
 

@@ -293,9 +293,12 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     if timed:
         mem = method.memory()
         rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
-        bpf = method.bytes_per_frame(cell.kind)
+        cost = method.frame_cost(cell.kind, frames and gb.num_samples)  # the roofline's numerators
+        bpf = cost.bytes if cost is not None else method.bytes_per_frame(cell.kind)
         if bpf is not None:
             rows.append(_row("bytes_per_frame", bpf))
+        if cost is not None:
+            rows.append(_row("flops_per_frame", cost.flops))
         rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
         info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times})
     artifacts: dict[str, str] = {}
