@@ -293,7 +293,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     if timed:
         mem = method.memory()
         rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
-        cost = method.frame_cost(cell.kind, frames and gb.num_samples)  # the roofline's numerators
+        cost = method.frame_cost(cell.kind, gb.num_samples)  # the roofline numerators
         bpf = cost.bytes if cost is not None else method.bytes_per_frame(cell.kind)
         if bpf is not None:
             rows.append(_row("bytes_per_frame", bpf))
