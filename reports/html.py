@@ -171,6 +171,41 @@ def summary_table(df: pd.DataFrame) -> str:
     return f"<table>{head}{''.join(body)}</table>{note}"
 
 
+RELIGHT_KINDS = ("V", "L", "E", "VL")
+
+
+def relighting_table(df: pd.DataFrame) -> str:
+    """What PRT exists for: per scene × method, the error on the lighting-only sequences (L: the env
+    map rotates about a tilted axis; E: captured probes swapped each frame) and view + lighting (VL),
+    next to view-only (V) — RMSE (× the reference's noise floor) and FLIP, direct lighting."""
+    ok = df[df["status"].isin(MEASURED) & (df["frame"] == -1) & (df["bounces"] == 0)]
+    kinds = [k for k in RELIGHT_KINDS if k in set(ok["sequence"])]
+    if not any(k in kinds for k in ("L", "E", "VL")):
+        return "<p>No lighting-only sequence in this run.</p>"
+    head = ("<tr><th>scene</th><th>method</th>" + "".join(f"<th>{k}: RMSE (× floor)</th><th>{k}: FLIP</th>" for k in kinds)
+            + "</tr>")
+    body = []
+    for (scene, method, config), g in ok.groupby(["scene", "method", "config"], sort=True):
+        tds = []
+        for k in kinds:
+            gk = g[g["sequence"] == k]
+            r = gk[gk["metric"] == "rmse"]
+            f = gk[gk["metric"] == "flip"]
+            if len(r):
+                v, fl = float(r["value"].iloc[0]), float(r["noise_floor"].iloc[0])
+                sus = " class=sus" if (gk["status"] == "suspect").any() else ""
+                tds.append(f"<td{sus}>{v:.3g} ({v / fl:.1f}×)</td>" if fl > 0 else f"<td{sus}>{v:.3g}</td>")
+            else:
+                tds.append("<td class=none>·</td>")
+            tds.append(f"<td>{float(f['value'].iloc[0]):.3g}</td>" if len(f) else "<td class=none>·</td>")
+        body.append(f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td>{''.join(tds)}</tr>")
+    note = ("<p class=note>Mean over each sequence's scored frames. L: fixed view and materials, the env map "
+            "rotates about a seeded tilted axis; E: fixed view and materials, a different captured probe every "
+            "frame; VL: view and lighting change together. A method whose L/E error is far above its V error "
+            "does not relight correctly.</p>")
+    return f"<table>{head}{''.join(body)}</table>{note}"
+
+
 def bounces_table(df: pd.DataFrame) -> str:
     """Sun 2007 Fig. 11 as numbers: for methods scored against full GI too (``rmse_full_gi``), the
     RMSE against the reference of the cell's own bounce count and against full GI, per bounce count
@@ -378,6 +413,38 @@ def image_comparisons(art: dict) -> str:
     return "".join(parts) or "<p>No images were saved.</p>"
 
 
+def probe_strip(out_dir: Path | None, df: pd.DataFrame) -> str:
+    """One E sequence as pictures: a row per frame (a different captured probe each), the reference
+    and every method side by side, one exposure per row (from its reference)."""
+    if out_dir is None:
+        return ""
+    ok = df[df["status"].isin(MEASURED) & (df["sequence"] == "E") & (df["bounces"] == 0)].drop_duplicates("cell")
+    if len(ok) == 0:
+        return "<p>No E sequence in this run.</p>"
+    scene = sorted(set(ok["scene"]))[-1]  # the real scan sorts after sphere_plane in the smoke suite
+    cols = []
+    for _, r in ok[ok["scene"] == scene].sort_values(["method", "config"]).iterrows():
+        p = out_dir / "images" / f"{r['cell']}.frames.npz"
+        if p.exists():
+            with np.load(p) as z:
+                cols.append((_method_label(r["method"], r["config"]), {k: z[k] for k in z.files}))
+    if not cols:
+        return "<p>No E-sequence images were saved.</p>"
+    rows = []
+    for i in cols[0][1]["frames"].tolist():
+        ref = downsample(cols[0][1][f"reference_{i}"].astype(np.float32))
+        mask = downsample(cols[0][1][f"mask_{i}"].astype(np.float32)) > 0.5
+        scale = auto_scale(ref, mask)
+        tiles = [("reference", ref)] + [(lab, downsample(a[f"method_{i}"].astype(np.float32))) for lab, a in cols
+                                        if f"method_{i}" in a]
+        rows.append(f"<tr><th>frame {i}</th>" + "".join(
+            f'<td><img src="{png_data_uri(tonemap(im, scale))}" alt="{esc(lab)} frame {i}"></td>' for lab, im in tiles)
+            + "</tr>")
+    head = "<tr><th></th><th>reference</th>" + "".join(f"<th>{esc(lab)}</th>" for lab, _ in cols) + "</tr>"
+    return (f"<h3>{esc(scene)} — sequence E (frame 0: the scene's probe; then one captured probe per frame)</h3>"
+            f"<table class=strip>{head}{''.join(rows)}</table>")
+
+
 def vertex_error_renders(art: dict, *, window: int = 260) -> str:
     """Per-vertex squared error on the mesh, rendered off-screen with pyvista."""
     try:
@@ -505,6 +572,8 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
 {f'<h2>Failed cells</h2><ul>{err_html}</ul>' if err_html else ''}
 {f'<h2>Suspect cells</h2><p>Measured, but the sanity gate (reports/gate.py) found the image plainly wrong: a material region far from the reference mean, or negative radiance. Their numbers stay in the tables.</p><ul>{sus_html}</ul>' if sus_html else ''}
 <h2 id=summary>Summary per scene × method</h2>{summary_table(df)}
+<h2 id=relighting>Relighting: lighting-only sequences next to view-only</h2>{relighting_table(df)}
+{probe_strip(Path(run_dir) if run_dir is not None else None, df)}
 <h2 id=bounces>Interreflection: error vs bounces (Sun 2007 Fig. 11)</h2>{bounces_table(df)}
 <h2 id=tradeoff>Error – memory – time</h2>{tradeoff_plots(df)}
 <h2 id=images>Images</h2>{image_comparisons(art)}

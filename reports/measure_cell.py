@@ -241,6 +241,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     errors: dict[str, list[tuple[float, float]]] = {}
     exposure = None
     last = None
+    strip: list[tuple] = []
     bar = tqdm(frames, desc=cell.key()[:48], leave=False, disable=None if progress else True, unit="frame")
     for i, frame in enumerate(bar):
         gb = be.make_gbuffer(scene, frame, cell.spp_side)
@@ -277,6 +278,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
             rows.append(_row("rmse_full_gi", v, frame=i, noise_floor=ffloor))
             errors.setdefault("rmse_full_gi", []).append((v, ffloor))
         last = (i, frame, gb, img.detach().cpu().float(), ref, mask)
+        if cell.kind == "E":  # every probe's image, for the report's strip (reports.html.probe_strip)
+            strip.append((i, last[3], ref_img, mask))
 
     stats = measure.frame_time_stats(times, warmup=1)
     if timed:
@@ -311,6 +314,12 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
                 rows += _eq_error_rows(fit.to_dict(), errors["rmse"][0][0], errors["rmse"][0][1], stats["median"])
     if score and cell.save_images and last is not None:
         artifacts["images"] = _save_images(cell, out_dir, be, scene, *last)
+        if strip:
+            rel = Path("images") / f"{cell.key()}.frames.npz"
+            arrays = {f"{name}_{i}": a.numpy() for i, img, ref_img, mask in strip
+                      for name, a in (("method", img), ("reference", ref_img), ("mask", mask))}
+            atomic_save(out_dir / rel, lambda tmp: np.savez_compressed(tmp, frames=np.array([i for i, *_ in strip]), **arrays))
+            artifacts["frames"] = str(rel)
     suspect = gate.verdict(rows) if score else None
     return CellResult(cell.key(), cell.to_dict(), STATUS_SUSPECT if suspect else STATUS_OK, reason=suspect or "",
                       rows=rows, artifacts=artifacts, info=info)

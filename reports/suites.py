@@ -48,8 +48,11 @@ class Suite:
     seed: int = 0
 
 
-SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane",), kinds=("V", "VBL"), dynamic_kinds=("P",),
-              n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True,
+# smoke: one synthetic scene and one real scan under a captured probe (bunny: Stanford bunny, the
+# "sunrise" probe); view (V), view+BRDF+lighting (VBL) and the two lighting-only kinds (L: rotation
+# about a tilted axis, E: captured probes swapped) so every method is scored on relighting.
+SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane", "bunny"), kinds=("V", "VBL", "L", "E"),
+              dynamic_kinds=("P",), n_frames=3, ref_spp=64, eq_err_spp=(16, 64), isolate=True,
               # PTT twice: its default (the scene's own lobes) and the paper's PCA BRDF basis
               configs=(("ptt", "{}"), ("ptt", '{"basis":"pca"}')))
 # Nightly budget (≤ 30 min on 2 cores), estimated from the smoke run (64² px, S = 2): the oracle at

@@ -89,3 +89,18 @@ def test_report_in_headless_chromium(fake_run, tmp_path):
 
     px = mpimg.imread(shot)
     assert px.std() * 255 > MIN_SCREENSHOT_STD
+
+
+def test_relighting_table_and_probe_strip(tmp_path):
+    """A run with lighting-only sequences gets the relighting table (L and E next to V, RMSE in
+    units of the noise floor) and the E sequence's image strip (one row per frame/probe)."""
+    suite = Suite(name="relight", size="test", kinds=("V", "L", "E"), n_frames=3, ref_spp=16, spp_side=1,
+                  scenes=("fake_plane",), isolate=False)
+    res = run_suite(suite, tmp_path, methods=["fake"], history=tmp_path / "hist.parquet", backend="testing.fakes",
+                    plugins=("testing.fakes",), progress=False, bandwidth_elements=1 << 16)
+    text = res.report.read_text()
+    sec = text.split("<h2 id=relighting>", 1)[1].split("<h2 id=bounces>", 1)[0]
+    assert "<th>L: RMSE (× floor)</th>" in sec and "<th>E: RMSE (× floor)</th>" in sec and "<th>V: FLIP</th>" in sec
+    assert "sequence E" in sec
+    strip = sec.split("<table class=strip>", 1)[1].split("</table>", 1)[0]
+    assert strip.count("<tr><th>frame ") == 3 and strip.count("data:image/png;base64,") == 6  # ref + fake per frame
