@@ -327,13 +327,13 @@ def character(size: str = "test") -> Scene:
     from scenes.materials import Lambert, Phong
 
     q = _check_size(size)
-    mesh, skel, W, _, _ = character_rig(size)
+    mesh, skel, W, clip, _ = character_rig(size)
     n = 20 if size == "test" else 60
     shapes = [Shape("character", "character", mesh), Shape("ground", "ground", graded_plane(30.0, n))]
     cam = Camera((0.7, 1.5, 3.0), (0.0, 0.85, 0.0), (0.0, 1.0, 0.0), 40.0, q["film"], q["film"])
     mats = {"character": Phong(kd=(0.45, 0.3, 0.22), ks=(0.2, 0.2, 0.2), s=25.0), "ground": Lambert(kd=(0.5, 0.5, 0.5))}
     return Scene("character", shapes, ["character", "ground"], cam, _env("courtyard", size, -140.0), mats,
-                 skeleton=skel, skin_weights={"character": W}, size=size)
+                 skeleton=skel, skin_weights={"character": W}, size=size, animation=clip)
 
 
 _BUILDERS = {"sphere_plane": sphere_plane, "chess": chess, "alcove": alcove, "shadow_detail": shadow_detail,

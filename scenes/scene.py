@@ -64,7 +64,8 @@ class Scene:
     """name; shapes: list[Shape]; regions: list[str] (index order used by vertex/face_region);
     camera: scenes.camera.Camera; envmap: scenes.envmap.EnvMap; materials: region → Material;
     skeleton: scenes.skeleton.Skeleton | None; skin_weights: shape name → (N_shape, J) weights of
-    the skinned shapes (others are static); size: "test" | "bench"."""
+    the skinned shapes (others are static); size: "test" | "bench"; animation: the scene's own clip,
+    (F, J) joint angles per clip frame (e.g. a glTF's animation), which drives its "P" sequences."""
 
     name: str
     shapes: list[Shape]
@@ -75,6 +76,7 @@ class Scene:
     skeleton: Any = None
     skin_weights: dict[str, Tensor] | None = None
     size: str = "test"
+    animation: Tensor | None = None
     _rest: SceneGeometry | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -97,6 +99,14 @@ class Scene:
         if extra:
             raise ValueError(f"scene {self.name!r}: materials for unknown region(s) {extra}")
         self.shapes = [Shape(s.name, s.region, s.mesh if s.mesh.N is not None else s.mesh.validate()) for s in self.shapes]
+        if self.animation is not None:
+            if self.skeleton is None:
+                raise ValueError(f"scene {self.name!r}: an animation needs a skeleton")
+            a = torch.as_tensor(self.animation, dtype=torch.float32)
+            if a.dim() != 2 or a.shape[0] < 2 or a.shape[1] != self.skeleton.num_joints or not torch.isfinite(a).all():
+                raise ValueError(f"scene {self.name!r}: animation must be finite (F >= 2, J = "
+                                 f"{self.skeleton.num_joints}) joint angles, got {tuple(a.shape)}")
+            self.animation = a
         if self.skin_weights is not None:
             if self.skeleton is None:
                 raise ValueError("skin_weights given without a skeleton")
@@ -163,12 +173,15 @@ class Scene:
             "skeleton": None if self.skeleton is None else hash_params(self.skeleton.params()),
             "skin": None if self.skin_weights is None else {k: hash_tensor(v) for k, v in sorted(self.skin_weights.items())},
         }
+        if self.animation is not None:  # (absent key: hashes of scenes without a clip are unchanged)
+            parts["animation"] = hash_tensor(self.animation)
         return hash_params(parts)
 
     def replace(self, **changes) -> "Scene":
         """A copy with some constructor fields changed (geometry cache dropped)."""
         kw = dict(name=self.name, shapes=self.shapes, regions=self.regions, camera=self.camera, envmap=self.envmap,
-                  materials=self.materials, skeleton=self.skeleton, skin_weights=self.skin_weights, size=self.size)
+                  materials=self.materials, skeleton=self.skeleton, skin_weights=self.skin_weights, size=self.size,
+                  animation=self.animation)
         kw.update(changes)
         return Scene(**kw)
 

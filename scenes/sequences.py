@@ -4,8 +4,8 @@
 * "VB":  view + material parameters change (every region keeps its BRDF family; colours,
          exponents/roughness vary).
 * "VBL": view + materials + the env map rotates about +Y (by up to LIGHT_SPIN_DEG).
-* "P":   pose animation of an articulated scene (view, lighting, materials fixed); ValueError
-         for a scene without a skeleton.
+* "P":   pose animation of an articulated scene (view, lighting, materials fixed): its own clip
+         (``scene.animation``) when it has one, else a generic track; ValueError without a skeleton.
 
 Lighting-only kinds (relighting is what PRT exists for):
 * "L":   fixed view and materials; the env map rotates about a seeded, tilted axis (elevation
@@ -74,6 +74,13 @@ def _pose_track(scene, n_frames: int, rng: np.random.Generator) -> torch.Tensor:
 
     sk = scene.skeleton
     phase = float(rng.uniform(0, 2 * math.pi))
+    clip = getattr(scene, "animation", None)
+    if clip is not None:  # the scene's own clip: n_frames evenly over it from a seeded start, linear in between
+        F = clip.shape[0]
+        t = (phase / (2 * math.pi) * F + torch.arange(n_frames, dtype=torch.float64) * F / max(n_frames, 1)) % F
+        i0 = t.floor().long()
+        w = (t - i0)[:, None].float()
+        return (1 - w) * clip[i0] + w * clip[(i0 + 1) % F]
     if sk.names is not None and tuple(sk.names) == CREATURE_JOINTS:
         return creature_animation(n_frames, phase=phase)
     # generic skeleton: smooth sinusoids inside the joint limits (or ±0.5 rad)
