@@ -292,7 +292,7 @@ class PTT(Method):
         if isinstance(bounces, bool) or bounces not in (0, 1, 2) or bounces > self.bounces:
             raise ValueError(f"bounces must be 0..{self.bounces}, got {bounces!r}")
         m = copy.copy(self)
-        m.config = dict(self.config, bounces=bounces)
+        m._config = {**self._config, "bounces": bounces}  # a new method: its config says what it renders
         m.bounces = bounces
         if bounces < 2:
             m.T2 = m.Cu = None
