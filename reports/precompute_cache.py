@@ -53,6 +53,7 @@ import importlib
 import json
 import math
 import os
+import pickle  # only for its exception type: nothing here unpickles
 import re
 import tempfile
 import time
@@ -212,7 +213,7 @@ class _Encoder:
         if x.dtype.kind not in "biufc" or x.dtype.byteorder not in "=|" + ("<" if np.little_endian else ">"):
             raise NotCacheable(f"{where}: numpy array of dtype {x.dtype}")
         n = self._new_id(x)
-        data = torch.from_numpy(np.ascontiguousarray(x)).clone()
+        data = torch.from_numpy(np.array(x, copy=True, order="C"))
         return {"$": "ndarray", "id": n, "i": self._tensor(data), "writeable": bool(x.flags.writeable)}
 
     def _enc_object(self, x: Any, where: str) -> dict:
@@ -314,7 +315,8 @@ class _Decoder:
             return self._reg(x, t.requires_grad_() if x.get("requires_grad") else t)
         if tag == "ndarray":
             a = self._t(x["i"]).numpy()
-            a.flags.writeable = bool(x.get("writeable", True))
+            if not x.get("writeable", True):
+                a.flags.writeable = False
             return self._reg(x, a)
         if tag == "obj":
             cls = _resolve_class(x["cls"])
@@ -470,13 +472,16 @@ def _load(side: Path, method: Any, scene: Any) -> dict:
     with open(data, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         if size != meta["bytes"]:
-            raise CorruptEntry(f"data file has {size} B, the sidecar says {meta['bytes']} B (truncated?)")
+            raise CorruptEntry(f"data file has {size} B, the sidecar says {meta['bytes']} B (truncated or replaced?)")
         if _sha256(f) != meta["sha256"]:
             raise CorruptEntry("sha256 mismatch (corrupt or replaced data file)")
         f.seek(0)
         try:
             blob = torch.load(f, weights_only=True)
-        except Exception as e:  # the unpickler's refusal (a planted payload) or a damaged archive
+        except pickle.UnpicklingError as e:  # e.g. a planted __reduce__ payload
+            raise CorruptEntry("refused by the weights-only unpickler (it holds pickled objects, not just "
+                               "tensors)") from e
+        except Exception as e:  # a damaged archive
             msg = (str(e).strip().splitlines() or [""])[0][:160]
             raise CorruptEntry(f"not a tensor archive ({type(e).__name__}: {msg})") from e
     if type(blob) is not dict or blob.get("format") != FORMAT or blob.get("version") != VERSION \
