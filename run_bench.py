@@ -220,8 +220,8 @@ def cmd_cache(args) -> int:
         r = pc.clear()
         print(f"cleared {pc.cache_folder()}: {r['files']} files, {gb(r['freed'])}")
     elif args.action == "prune":
-        if args.max_gb is not None and not (args.max_gb >= 0):
-            raise ValueError(f"--max-gb must be >= 0, got {args.max_gb}")
+        if args.max_gb is not None and not (0 <= args.max_gb < float("inf")):
+            raise ValueError(f"--max-gb must be a number of GB >= 0, got {args.max_gb}")
         r = pc.prune(None if args.max_gb is None else int(args.max_gb * 1e9))
         print(f"pruned {pc.cache_folder()}: {r['removed']} entries and {r['files']} other files removed "
               f"({gb(r['freed'])}), {gb(r['bytes'])} left")

@@ -436,7 +436,7 @@ def _read_sidecar(side: Path) -> tuple[dict, Path]:
         raise CorruptEntry("sidecar too large")
     try:
         meta = json.loads(side.read_bytes())
-    except (ValueError, UnicodeDecodeError) as e:
+    except (ValueError, RecursionError) as e:
         raise CorruptEntry(f"sidecar is not JSON ({e})") from e
     if type(meta) is not dict or meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise CorruptEntry("sidecar of another format or version")
@@ -454,13 +454,15 @@ def _write_sidecar(side: Path, meta: dict) -> None:
 
 
 def _unlink(*paths: Path) -> int:
+    """Delete files (gone already, or not deletable — e.g. a folder in a file's place: skipped);
+    returns the bytes freed."""
     freed = 0
     for p in paths:
         try:
             size = p.stat().st_size
             p.unlink()
             freed += size
-        except FileNotFoundError:
+        except OSError:
             pass
     return freed
 

@@ -304,6 +304,18 @@ def test_damaged_entry_is_detected_deleted_and_recomputed(cache, damage):
     assert _fresh(scene)[1]["cached"]
 
 
+def test_a_folder_in_place_of_an_entry_file_costs_a_warning_not_the_cell(cache):
+    scene = _Scene()
+    _fresh(scene)
+    side, data = _entry_files(cache)
+    data.unlink()
+    data.mkdir()
+    with pytest.warns(UserWarning, match="ignoring precompute cache"):
+        m, info = _fresh(scene)
+    assert not info["cached"]
+    _check(m, scene)
+
+
 def test_a_sidecar_cannot_make_the_cache_read_or_delete_files_elsewhere(cache, tmp_path):
     scene = _Scene()
     _fresh(scene)
@@ -408,6 +420,9 @@ def test_cli_cache_info_prune_clear(cache, capsys, monkeypatch):
     size = _entry_bytes(cache) - 3
     assert run_bench.main(["cache", "prune", "--max-gb", str(0.6 * size / 1e9)]) == 0
     assert "pruned" in capsys.readouterr().out and PC.info()["entries"] == 1 and not (cache / "stale.pkl").exists()
+    for bad in ("-1", "inf", "nan"):
+        assert run_bench.main(["cache", "prune", "--max-gb", bad]) == 2
+        assert "--max-gb must be" in capsys.readouterr().err
     monkeypatch.setenv(PC.ENV_MAX_GB, "nope")
     assert run_bench.main(["cache", "prune"]) == 2
     assert PC.ENV_MAX_GB in capsys.readouterr().err
