@@ -170,9 +170,9 @@ def test_codec_refuses_anything_it_cannot_rebuild_without_running_code(bad, wher
 
 
 @pytest.mark.parametrize("cls", ["os:system", "builtins:eval", "subprocess:Popen", "methods.base:Tensor",
-                                 "methods.base:get_method", "methods.base:os", "methods.base:Method.render",
+                                 "methods.registry:get_method", "methods.base:MappingProxyType", "methods.base:Method.render",
                                  "scenes.materials:Phong.__init__", "methods:../os", "methods.nonexistent:X",
-                                 "reports.fakes:FakeMethod", "methods.base:<locals>.X", 42])
+                                 "testing.fakes:FakeMethod", "methods.base:<locals>.X", 42])
 def test_decoder_resolves_only_classes_defined_in_our_packages(cls):
     """A tree naming anything but a class defined in methods/ or scenes/ is refused before any
     call: no function, no imported alias (methods.base imports torch's Tensor), no other package."""
