@@ -488,8 +488,8 @@ def _load(side: Path, method: Any, scene: Any) -> dict:
             raise CorruptEntry(f"not a tensor archive ({type(e).__name__}: {msg})") from e
     if type(blob) is not dict or blob.get("format") != FORMAT or blob.get("version") != VERSION \
             or type(blob.get("tree")) is not str or type(blob.get("tensors")) is not list \
-            or any(type(t) is not torch.Tensor for t in blob["tensors"]):
-        raise CorruptEntry("data file of another format or version")
+            or any(type(t) is not torch.Tensor or t.layout != torch.strided for t in blob["tensors"]):
+        raise CorruptEntry("data file of another format or version, or not plain tensors")
     if meta.get("class") != type(method).__qualname__:
         raise CorruptEntry(f"entry of class {meta.get('class')!r}")
     state = decode_state(blob["tree"], blob["tensors"], scene)

@@ -304,6 +304,26 @@ def test_damaged_entry_is_detected_deleted_and_recomputed(cache, damage):
     assert _fresh(scene)[1]["cached"]
 
 
+def test_an_archive_of_the_right_format_but_unexpected_content_is_refused(cache):
+    """Sparse tensors are stored as their dense parts; a file that lists one directly (or a tree
+    naming a tensor it does not hold) is not ours."""
+    scene = _Scene()
+    _fresh(scene)
+    side, _ = _entry_files(cache)
+    for blob in ({"format": PC.FORMAT, "version": PC.VERSION, "tree": '{"$":"dict","id":0,"items":[]}',
+                  "tensors": [torch.eye(2).to_sparse()]},
+                 {"format": PC.FORMAT, "version": PC.VERSION, "tensors": [],
+                  "tree": '{"$":"dict","id":0,"items":[["table",{"$":"tensor","id":1,"i":5}]]}'}):
+        buf = io.BytesIO()
+        torch.save(blob, buf)
+        _plant(side, buf.getvalue(), "consistent")
+        with pytest.warns(UserWarning, match="ignoring precompute cache"):
+            m, info = _fresh(scene)
+        assert not info["cached"]
+        _check(m, scene)
+        side, _ = _entry_files(cache)
+
+
 def test_a_folder_in_place_of_an_entry_file_costs_a_warning_not_the_cell(cache):
     scene = _Scene()
     _fresh(scene)
