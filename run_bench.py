@@ -10,6 +10,7 @@
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
   python run_bench.py list                              # scenes, methods, suites, kinds, studies
+  python run_bench.py cache {info,prune,clear}          # the precompute cache (reports/precompute_cache.py)
 
 A killed ``run`` resumes: run it again with the same ``--out`` and finished cells are skipped (failed
 cells are redone). ``--executor processes`` runs cells in a spawn-based process pool, ``--executor
@@ -81,6 +82,11 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="rebuild the HTML report of a run directory")
     rep.add_argument("run_dir", type=Path)
     rep.add_argument("--history", type=Path, default=None)
+
+    ca = sub.add_parser("cache", help="inspect, prune or clear the precompute cache")
+    ca.add_argument("action", choices=["info", "prune", "clear"])
+    ca.add_argument("--max-gb", type=float, default=None,
+                    help="prune to this size (default $PRTBENCH_CACHE_MAX_GB, else 5)")
     return p
 
 
@@ -204,11 +210,38 @@ def cmd_list(args) -> int:
     return 0
 
 
+def cmd_cache(args) -> int:
+    from reports import precompute_cache as pc
+
+    def gb(n: int) -> str:
+        return f"{n / 1e9:.3f} GB"
+
+    if args.action == "clear":
+        r = pc.clear()
+        print(f"cleared {pc.cache_folder()}: {r['files']} files, {gb(r['freed'])}")
+    elif args.action == "prune":
+        if args.max_gb is not None and not (0 <= args.max_gb < float("inf")):
+            raise ValueError(f"--max-gb must be a number of GB >= 0, got {args.max_gb}")
+        r = pc.prune(None if args.max_gb is None else int(args.max_gb * 1e9))
+        print(f"pruned {pc.cache_folder()}: {r['removed']} entries and {r['files']} other files removed "
+              f"({gb(r['freed'])}), {gb(r['bytes'])} left")
+    else:
+        i = pc.info()
+        print(f"precompute cache {i['folder']}: {i['entries']} entries, {gb(i['bytes'])} "
+              f"(cap {gb(i['max_bytes'])}, ${pc.ENV_MAX_GB})")
+        for name, d in sorted(i["per_method"].items()):
+            print(f"  {name}: {d['entries']} entries, {gb(d['bytes'])}")
+        if i["other_files"]:
+            print(f"  not entries (removed by prune): {i['other_files']} files, {gb(i['other_bytes'])}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return {"run": cmd_run, "references": cmd_references, "compare": cmd_compare, "study": cmd_study,
-                "report": cmd_report, "list": cmd_list}[args.cmd](args)
+                "report": cmd_report, "list": cmd_list,
+                "cache": cmd_cache}[args.cmd](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"prtbench: error: {e}", file=sys.stderr)
         return 2

@@ -5,8 +5,9 @@ Contract (the harness relies on every word):
 * ``Method(**config)`` — every parameter that changes a score is a keyword argument and is recorded
   in the results (``method.config``, read-only: fixed at construction, so the recorded config is
   the one that ran). Bad values raise ``ValueError`` at construction.
-* ``precompute(scene)`` — all heavy work; timed by the harness. May cache to disk under
-  ``cache_dir()`` keyed by ``scene.content_hash()`` and the config.
+* ``precompute(scene)`` — all heavy work; timed by the harness. A method keeps no disk cache of
+  its own: with ``cache_precompute = True`` the harness stores its state after ``precompute``
+  (``reports.precompute_cache``) and reports the original precompute seconds.
 * ``render(frame, gbuffer) -> (H, W, 3)`` float32 linear RGB *exit radiance* towards the camera, for
   the pixels of ``gbuffer`` (pixels not covered return 0). Methods shade the G-buffer's sub-pixel
   samples and return ``gbuffer.resolve(per_sample)``, the box filter the references use.
@@ -106,7 +107,8 @@ class Method(ABC):
     name: ClassVar[str]
     capabilities: ClassVar[Capabilities]
     # Opt in to the harness's disk cache of precomputations (``reports.precompute_cache``): the
-    # instance's state after ``precompute`` must pickle, and depend only on (scene, config, code).
+    # instance's state after ``precompute`` must depend only on (scene, config, code) and hold only
+    # tensors, numpy arrays, scalars, containers and instances of classes from methods/ and scenes/.
     cache_precompute: ClassVar[bool] = False
 
     def __init__(self, **config: Any) -> None:

@@ -21,16 +21,14 @@ default config (level 3, all 1280 coefficients) class 36.1, auto 4.9; level 4 n 
 class 31.9, auto 1.8; level 4 n = 20 adaptive dense 6.2, sparse 2.7; paper preset (level 4,
 n = 320 adaptive, 16 384-frame grid) auto 9.0 ("VL": 62, mostly the grid re-projection).
 
-Precompute results are cached (pickle) under ``cache_dir("triple_product_bench")`` keyed by the
-scene's content hash and the config; ``--no-cache`` recomputes.
+Every run precomputes (no cache of its own: the harness's ``reports.precompute_cache`` is the
+project's one precompute cache and serves ``run_bench.py`` cells).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
-import pickle
 import statistics
 import time
 
@@ -55,27 +53,12 @@ def preset_config(name: str) -> dict:
     raise ValueError(f"unknown preset {name!r} (default | paper)")
 
 
-def precomputed(scene, cfg: dict, *, cache: bool = True):
-    """A precomputed TripleProduct (from the pickle cache when possible) and its precompute seconds."""
-    from methods.base import cache_dir
+def precomputed(scene, cfg: dict):
+    """A TripleProduct precomputed for ``scene`` and its precompute seconds."""
     from methods.triple_product import TripleProduct
 
     m = TripleProduct(**cfg, progress=True)
-    key = hashlib.sha1((scene.content_hash() + repr(sorted(m.config.items()))).encode()).hexdigest()[:16]
-    path = cache_dir("triple_product_bench") / f"{scene.name}_{key}.pkl"
-    if cache and path.exists():
-        with open(path, "rb") as f:
-            state = pickle.load(f)
-        m.__dict__.update(state)
-        m.scene = scene
-        return m, state["stats"].get("precompute_seconds")
     m.precompute(scene)
-    if cache:
-        state = {k: v for k, v in m.__dict__.items() if k != "scene"}
-        tmp = path.with_suffix(".tmp")
-        with open(tmp, "wb") as f:
-            pickle.dump(state, f)
-        tmp.replace(path)
     return m, m.stats["precompute_seconds"]
 
 
@@ -167,7 +150,6 @@ def main(argv=None) -> dict:
                     help="comma list of class|auto|dense|sparse|reference")
     ap.add_argument("--kinds", default="V,VL")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--micro", action="store_true", help="only the evaluator micro-benchmark (1 and 2 threads)")
     a = ap.parse_args(argv)
     if a.micro:
@@ -185,7 +167,7 @@ def main(argv=None) -> dict:
         k, v = kv.split("=", 1)
         cfg[k] = ast.literal_eval(v)
     scene = get_scene(a.scene, a.size)
-    m, pre_s = precomputed(scene, cfg, cache=not a.no_cache)
+    m, pre_s = precomputed(scene, cfg)
     evaluators = a.evaluators.split(",")
     out = {"scene": a.scene, "size": a.size, "preset": a.preset, "config": m.config, "threads": a.threads,
            "precompute_s": pre_s, "paper_fps_table3": PAPER_FPS}

@@ -104,6 +104,7 @@ class TripleProduct(Method):
     """Ma 2006 local-frame spherical-wavelet triple product (module docstring)."""
 
     name = "triple_product"
+    cache_precompute = True  # cells and re-runs of one scene/config share it (reports.precompute_cache)
     capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=False,
                                 dynamic_geometry=False, max_bounces=0, brdfs=ISOTROPIC)
 

@@ -27,17 +27,14 @@ by a full SH rotation (the lobes cannot carry it: it is no longer a sum of ZH lo
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-import os
 import time
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, cache_dir, register, tensor_bytes
+from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
 from methods.core.frames import frame_matrix, reflect
 from methods.core.sh import project_latlong
 from methods.core.sh_rotation import rotate_coeffs
@@ -45,8 +42,6 @@ from methods.core.zh import zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
 from methods.zh_shadow.convolution import phong_operator
 
-# Bump when the precompute's output changes meaning (invalidates the disk cache).
-CACHE_VERSION = 2
 # Samples shaded per batch (bounds the (Q, n², 3) rotated-lighting temporaries).
 SHADE_CHUNK = 1 << 15
 SUPPORTED_BRDFS = frozenset({"lambert", "phong"})
@@ -130,17 +125,17 @@ class ZHShadow(Method):
     train_source ("animation" | "uniform"), train_seed, n_dirs (rays per vertex and pose),
     fit_iters (Adam steps of the lobe refinement), axis_anchor (pose-smoothness weight of the lobe
     axes, `precompute.AXIS_ANCHOR`), specular ("published" | "cosine"), shading
-    ("sample" | "vertex"), below_horizon ("trace" | "hide"), cache (reuse precompute on disk).
+    ("sample" | "vertex"), below_horizon ("trace" | "hide").
     """
 
     name = "zh_shadow"
+    cache_precompute = True  # cells of one scene/config share the fitted model (reports.precompute_cache)
     capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=True,
                                 dynamic_geometry=True, max_bounces=0, brdfs=SUPPORTED_BRDFS)
 
     def __init__(self, *, order: int = 4, lobes: int = 2, train_poses: int = 32, train_source: str = "animation",
                  train_seed: int = 1234, n_dirs: int = 1024, fit_iters: int = 60, specular: str = "published",
-                 shading: str = "sample", below_horizon: str = "trace", axis_anchor: float = pc.AXIS_ANCHOR,
-                 cache: bool = True) -> None:
+                 shading: str = "sample", below_horizon: str = "trace", axis_anchor: float = pc.AXIS_ANCHOR) -> None:
         _int("order", order, 2, 8)
         _int("lobes", lobes, 1, 4)
         _int("train_poses", train_poses, 2)
@@ -157,7 +152,6 @@ class ZHShadow(Method):
         super().__init__(order=order, lobes=lobes, train_poses=train_poses, train_source=train_source,
                          train_seed=train_seed, n_dirs=n_dirs, fit_iters=fit_iters, specular=specular,
                          shading=shading, below_horizon=below_horizon, axis_anchor=float(axis_anchor))
-        self.use_cache = bool(cache)
         self.scene = None
         self.model: pc.ZHModel | None = None
         self.stats: dict[str, float] = {}
@@ -165,28 +159,11 @@ class ZHShadow(Method):
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
         self._last_samples: int | None = None           # points shaded by the last render
         self._env_bytes = 0                             # bytes of the last projected env map
-        self.cached_precompute_seconds: float | None = None  # set when precompute loaded the disk cache
 
     # -- precompute ---------------------------------------------------------------------------
-    def _cache_path(self, scene):
-        keys = ("order", "lobes", "train_poses", "train_source", "train_seed", "n_dirs", "fit_iters",
-                "below_horizon", "axis_anchor")
-        blob = json.dumps({"v": CACHE_VERSION, "scene": scene.content_hash(),
-                           **{k: self.config[k] for k in keys}}, sort_keys=True)
-        return cache_dir("zh_shadow") / (hashlib.sha256(blob.encode()).hexdigest()[:24] + ".pt")
-
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = None
-        path = self._cache_path(scene) if self.use_cache else None
-        if path is not None and path.exists():
-            d = torch.load(path, weights_only=True)
-            self.model = pc.ZHModel(d["X"], int(d["order"]), int(d["lobes"]))
-            self.stats = {k: float(v) for k, v in d["stats"].items()}
-            # the harness reports the original precompute seconds, not the load (reports.precompute_cache)
-            self.cached_precompute_seconds = self.stats["time_visibility_s"] + self.stats["time_fit_s"]
-            return
-        self.cached_precompute_seconds = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -209,11 +186,6 @@ class ZHShadow(Method):
                       "lobe_fit_err_mean": float(e_fit.mean()), "lobe_fit_err_std": float(e_fit.std()),
                       "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
                       "model_mb": self.model.nbytes / 1e6}
-        if path is not None:  # atomic: parallel test workers may race on the same key
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
-            torch.save({"X": self.model.X, "order": self.model.order, "lobes": self.model.lobes,
-                        "stats": self.stats}, tmp)
-            os.replace(tmp, path)
 
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:

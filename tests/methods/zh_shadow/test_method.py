@@ -178,7 +178,7 @@ def test_static_scene_uses_the_bias_row_alone():
     from scenes.library import get_scene
 
     scene = get_scene("sphere_plane", "test")
-    m = ZHShadow(n_dirs=128, fit_iters=5, cache=False)
+    m = ZHShadow(n_dirs=128, fit_iters=5)
     with pc.torch_threads(1):
         m.precompute(scene)
     assert m.model.X.shape[0] == 1
@@ -186,20 +186,3 @@ def test_static_scene_uses_the_bias_row_alone():
     frame = scene.default_frame()
     img = m.render(frame, make_gbuffer(scene, frame, 1))
     assert img.shape == (64, 64, 3) and torch.isfinite(img).all() and img.mean() > 0
-
-
-def test_disk_cache_reports_the_original_precompute_time(tmp_path, monkeypatch):
-    """Loading the fitted model from zh_shadow's disk cache must not be reported as a 0.1 s precompute."""
-    from reports import precompute_cache as PC
-    from scenes.library import get_scene
-
-    monkeypatch.setenv("PRTBENCH_CACHE", str(tmp_path))
-    scene = get_scene("sphere_plane", "test")
-    cfg = dict(n_dirs=64, fit_iters=2)
-    first = PC.precompute(ZHShadow(**cfg), scene, "{}")
-    assert not first["cached"]
-    second = PC.precompute(ZHShadow(**cfg), scene, "{}")
-    assert second["cached"] and second["seconds"] <= first["seconds"]
-    m = ZHShadow(**cfg)
-    m.precompute(scene)
-    assert m.cached_precompute_seconds == pytest.approx(m.stats["time_visibility_s"] + m.stats["time_fit_s"])
