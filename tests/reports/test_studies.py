@@ -80,13 +80,6 @@ def test_contributors_are_callables_not_module_strings(clean_registries):
         MS.register_terms_contributor("lazy", "builtins:max")
 
 
-def test_fit_line():
-    a, b = S.fit_line([1, 2, 3], [5, 7, 9])
-    assert a == pytest.approx(2) and b == pytest.approx(3)
-    with pytest.raises(ValueError):
-        S.fit_line([1], [2])
-
-
 def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):
     # The real contributors are tested with their methods (tests/methods/*); cheap stand-ins here.
     MS.TERMS_CONTRIBUTORS.clear()
