@@ -839,7 +839,11 @@ def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: flo
 
 # Fig. 5 / Fig. 6 quick settings: coarse BRDF grids (seconds).
 _FIG5_QUICK = {"grid_n": 8, "n_omega": (4, 8)}
-_FIG6_QUICK = {"grid_n": 8}
+_FIG6_QUICK = {"grid_n": 8, "lobe_sets": ((), (0.0,), (0.0, 7.0))}
+
+
+def _written(od: Path, names) -> list[Path]:
+    return [od / n for n in names if (od / n).exists()]
 
 
 def study_fig5(out_dir, *, quick: bool = False) -> list[Path]:
@@ -848,15 +852,14 @@ def study_fig5(out_dir, *, quick: bool = False) -> list[Path]:
     od = _outdir(out_dir)
     for kind in ("ct", "bp"):
         fig5(od, kind, **(_FIG5_QUICK if quick else {"progress": True}))
-    names = [f"fig5_{k}{x}" for k in ("ct", "bp") for x in (".csv", "_nosep.png", "_sep.png")]
-    return [od / n for n in names if (od / n).exists()]
+    return _written(od, [f"fig5_{k}{x}" for k in ("ct", "bp") for x in (".csv", "_nosep.png", "_sep.png")])
 
 
 def study_fig6(out_dir, *, quick: bool = False) -> list[Path]:
     """``sun-fig6``: `fig6_lobe_study` of the Blinn–Phong space → fig6_bp.csv."""
     od = _outdir(out_dir)
     fig6_lobe_study("bp", **(_FIG6_QUICK if quick else {})).to_csv(od / "fig6_bp.csv", index=False)
-    return [od / "fig6_bp.csv"]
+    return _written(od, ["fig6_bp.csv"])
 
 
 def study_fig8(out_dir, *, quick: bool = False) -> list[Path]:
@@ -866,7 +869,7 @@ def study_fig8(out_dir, *, quick: bool = False) -> list[Path]:
         fig8_lighting_resolution(light_res=(2, 4), full=False, out_dir=od)
     else:
         fig8_lighting_resolution(out_dir=od, progress=True)
-    return [od / n for n in ("fig8.csv", "fig8.png", "fig8_images.png")]
+    return _written(od, ("fig8.csv", "fig8.png", "fig8_images.png"))
 
 
 def study_fig9(out_dir, *, quick: bool = False) -> list[Path]:
@@ -876,7 +879,7 @@ def study_fig9(out_dir, *, quick: bool = False) -> list[Path]:
         fig9_tensor_error(light_res_1=4, eigenvectors=(8, None), light_dims=(16, None), out_dir=od)
     else:
         fig9_tensor_error(out_dir=od, progress=True)
-    return [od / n for n in ("fig9.csv", "fig9.png")]
+    return _written(od, ("fig9.csv", "fig9.png"))
 
 
 def study_fig10(out_dir, *, quick: bool = False) -> list[Path]:
@@ -886,7 +889,7 @@ def study_fig10(out_dir, *, quick: bool = False) -> list[Path]:
         fig10_compression_images(light_res_1=4, combos=((32, 64), (None, None)), out_dir=od)
     else:
         fig10_compression_images(out_dir=od, progress=True)
-    return [od / n for n in ("fig10.csv", "fig10.png", "fig10_images.png")]
+    return _written(od, ("fig10.csv", "fig10.png", "fig10_images.png"))
 
 
 def study_terms(out_dir, *, quick: bool = False) -> list[Path]:
@@ -896,7 +899,7 @@ def study_terms(out_dir, *, quick: bool = False) -> list[Path]:
         terms_study((4.0, 16.0), out_dir=od)
     else:
         terms_study(out_dir=od, progress=True)
-    return [od / "ptt_terms.csv", od / "ptt_terms.png"]
+    return _written(od, ("ptt_terms.csv", "ptt_terms.png"))
 
 
 def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
