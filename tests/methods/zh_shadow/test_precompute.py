@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from methods.zh_shadow import precompute as pc
-from methods.zh_shadow.convolution import phong_operator
 
 EXACT = 1e-9          # float64 algebra
 # Lobe recovery after a grid search + fixed-step Adam refinement (relative SH error; Adam with a
