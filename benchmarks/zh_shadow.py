@@ -1,4 +1,4 @@
-"""Timing and error of ZHShadow on the creature: `python -m methods.zh_shadow.bench --size test`.
+"""Timing and error of ZHShadow on the creature: `python -m benchmarks.zh_shadow --size test`.
 
 Prints precompute time, model size, per-frame render time (median and IQR of `--repeats` renders
 after one warm-up, torch thread count recorded) for both shading modes, and the RMSE against the
@@ -29,19 +29,15 @@ def main(argv=None) -> dict:
     if a.threads:
         torch.set_num_threads(a.threads)
 
+    from benchmarks.common import setup
     from methods.zh_shadow import ZHShadow
-    from references.gbuffer import make_gbuffer
-    from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
-    scene = get_scene("creature", a.size)
-    frames = make_sequence(scene, "P", 4, seed=5)
+    scene, frames, gbs, _ = setup("creature", a.size, kind="P", n_frames=4, seed=5, spp_side=a.spp_side)
     m = ZHShadow(train_poses=a.train_poses, n_dirs=a.n_dirs, lobes=a.lobes, order=a.order)
     t0 = time.perf_counter()
     m.precompute(scene)
     out = {"size": a.size, "threads": torch.get_num_threads(), "precompute_s": time.perf_counter() - t0,
            "stats": m.stats, "config": m.config}
-    gbs = [make_gbuffer(scene, f, a.spp_side) for f in frames]
     precomputed = m
     for mode in ("sample", "vertex"):
         # the same precomputation rendered with another run-time shading mode (a config is fixed at

@@ -84,6 +84,17 @@ def test_study_subcommand_is_wired(tmp_path, monkeypatch, capsys):
     assert run_bench.main(["study", "nope"]) == 2
 
 
+def test_study_list_shows_every_paper_figure(capsys):
+    assert run_bench.main(["study", "--list"]) == 0
+    out = capsys.readouterr().out
+    listed = {line.split()[0] for line in out.splitlines() if line.strip()}
+    for name in ("terms-vs-exponent", "mahajan-fig3a", "mahajan-fig2-5", "mahajan-fig7c", "mahajan-fig6",
+                 "sun-fig5", "sun-fig6", "sun-fig8", "sun-fig9", "sun-fig10", "ptt-terms", "ptt-figures",
+                 "ma-fig7-8", "ma-tables", "nowrouzezahrai-fig3-5"):
+        assert name in listed, name
+    assert "Mahajan 2008" in out and "Sun 2007" in out and "Ma 2006" in out and "Nowrouzezahrai 2008" in out
+
+
 def test_bad_input_is_reported(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         run_bench.main(["run", "--suite", "weekly"])

@@ -1,4 +1,4 @@
-"""The BRDF tensor of Sun et al. 2007 §3.2 (eq. 2), its Tucker factorisation, and Fig. 5.
+"""The BRDF tensor of Sun et al. 2007 §3.2 (eq. 2) and its Tucker factorisation.
 
     F[h, ωo, ωi] ≈ D ×_h U^h ×_ωo U^ωo ×_ωi U^ωi,
     f(h, ωo, ωi) ≈ Σ_{i,j,k} D(i,j,k) U^h(h,i) U^ωo(ωo,j) U^ωi(ωi,k)          (Sun 2007 eq. 2)
@@ -16,24 +16,19 @@ the same grid serves ωo and ωi (N_ωo = N_ωi). The grid is symmetric about th
 mirror direction (−x, −y, z) of a node is a node. Factors are evaluated off the grid by bilinear
 interpolation in (x, y). The paper does not give its N_ω; Fig. 5 needs N_ω ≥ 32.
 
-Tucker: `methods.core.tensors` (HOSVD; HOOI through tensorly). Fig. 5's grid over (n_h, n_ω) with
-n_ωo = n_ωi = n_ω (§4.3 "we set n_ωo to be equal to n_ωi") is computed, for the truncated HOSVD,
-from one HOSVD at the largest ranks: truncated-HOSVD factors of smaller ranks are leading columns
+Tucker: `methods.core.tensors` (HOSVD; HOOI through tensorly). `hosvd_error_grid` — the error
+grid over (n_h, n_ω) with n_ωo = n_ωi = n_ω (§4.3 "we set n_ωo to be equal to n_ωi") of Fig. 5
+(drawn by `methods.ptt.study.fig5`) — is computed, for the truncated HOSVD, from one HOSVD at the
+largest ranks: truncated-HOSVD factors of smaller ranks are leading columns
 of the same mode-n singular vectors, and for orthonormal factors
 ‖X − X ×_n U_n U_nᵀ‖² = ‖X‖² − ‖X ×_n U_nᵀ‖² (Pythagoras), i.e. ‖X‖² minus the squared norm of a
 leading sub-block of the big core.
-
-Error measure reported for Fig. 5 ("squared error", normalisation not stated in the paper):
-`rel_sq_err` = ‖F − F̂‖²_F / ‖F‖²_F with F the *unseparated* specular tensor and
-F̂ = F_s + Tucker(F_r) (F_s is exact), plus the absolute `sse` and per-entry `mse`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -49,25 +44,11 @@ __all__ = [
     "TensorBRDF",
     "build_tensor_brdf",
     "hosvd_error_grid",
-    "fig5_grid",
-    "plot_fig5",
-    "fig5",
-    "fig6_lobe_study",
     "DEFAULT_RANKS",
-    "FIG5_N_H",
-    "FIG5_N_OMEGA",
-    "FIG5_N_OMEGA_PAPER",
-    "PAPER_FIG5_NO_SEPARATION",
 ]
 
 # Sun 2007 §4.3: n_h = 4 (Cook–Torrance) or 3 (Blinn–Phong), n_ωo = n_ωi = 8.
 DEFAULT_RANKS = {"ct": (4, 8, 8), "bp": (3, 8, 8)}
-FIG5_N_H: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
-FIG5_N_OMEGA: tuple[int, ...] = (4, 8, 16, 32)
-FIG5_N_OMEGA_PAPER: tuple[int, ...] = (4, 8, 12, 16, 20, 24, 28, 32)  # §4.3's full sweep
-# §4.1: "the squared error of tensor approximation without specular lobe separation is 0.952465"
-# (n_h = 6, n_ωi = 32, 100 Cook–Torrance fits of MERL materials).
-PAPER_FIG5_NO_SEPARATION = 0.952465
 
 
 # -- the disk grid ---------------------------------------------------------------------------
@@ -330,7 +311,7 @@ def build_tensor_brdf(space: BRDFSpace | str, *, grid_n: int = 24, ranks: Sequen
                       None if a is None else cast(a), tuple(float(k) for k in degrees) if separate else ())
 
 
-# -- Fig. 5 ----------------------------------------------------------------------------------
+# -- truncation error grid (Fig. 5) -------------------------------------------------------------
 
 
 def hosvd_error_grid(X: Tensor, n_h: Sequence[int], n_omega: Sequence[int]) -> dict[tuple[int, int], float]:
@@ -346,140 +327,3 @@ def hosvd_error_grid(X: Tensor, n_h: Sequence[int], n_omega: Sequence[int]) -> d
     total = float(X.square().sum())
     c2 = core.square()
     return {(a, b): max(total - float(c2[:a, :b, :b].sum()), 0.0) for a in n_h for b in n_omega}
-
-
-def fig5_grid(space: BRDFSpace | str = "ct", *, grid_n: int = 24, n_h: Sequence[int] = FIG5_N_H,
-              n_omega: Sequence[int] = FIG5_N_OMEGA, separation: Sequence[bool] = (False, True),
-              degrees: Sequence[float] = LOBE_DEGREES, method: str = "hosvd",
-              hooi_iters: int = 20, progress: bool = False):
-    """Sun 2007 Fig. 5: tensor approximation error over n_h × n_ωi (n_ωo = n_ωi), with and without
-    lobe separation.
-
-    Args:
-        space: "ct", "bp" or a `BRDFSpace`; grid_n: `DiskGrid` resolution (N ≈ π grid_n²/4 must
-            be ≥ max(n_omega)); method: "hosvd" (all cells from one HOSVD, fast) or "hooi"
-            (one HOSVD-initialised HOOI per cell via `methods.core.tensors.tucker`; slow for
-            grid_n ≳ 24); progress: tqdm bar.
-    Returns:
-        pandas.DataFrame, one row per (separated, n_h, n_omega), columns: space, grid_n, N_omega,
-        N_h, separated, n_h, n_omega, method, rel_sq_err (‖F − F̂‖²/‖F‖², F unseparated),
-        sse (‖F − F̂‖²), mse (sse / F.numel()).
-    """
-    import pandas as pd
-    from tqdm import tqdm
-
-    space = get_space(space) if isinstance(space, str) else space
-    grid = DiskGrid(grid_n)
-    if max(n_omega) > grid.N or max(n_h) > space.n_h:
-        raise ValueError(f"ranks exceed the tensor ({space.n_h}, {grid.N}, {grid.N})")
-    if method not in ("hosvd", "hooi"):
-        raise ValueError(f"method must be 'hosvd' or 'hooi', got {method!r}")
-    F = brdf_tensor(space, grid)
-    norm2 = float(F.square().sum())
-    rows = []
-    for sep in tqdm(list(separation), desc="fig5", disable=not progress):
-        X = separate_tensor(F, grid, degrees=degrees)[0] if sep else F
-        if method == "hosvd":
-            errs = hosvd_error_grid(X, n_h, n_omega)
-        else:
-            errs = {}
-            for a in n_h:
-                for b in n_omega:
-                    D, U = fit_brdf_tensor(X, (a, b, b), method="hooi", n_iter_max=hooi_iters)
-                    errs[(a, b)] = float((X - T.tucker_reconstruct(D, U)).square().sum())
-        for (a, b), e in errs.items():
-            rows.append(dict(space=space.kind, grid_n=grid_n, N_omega=grid.N, N_h=space.n_h,
-                             separated=bool(sep), n_h=a, n_omega=b, method=method,
-                             rel_sq_err=e / norm2, sse=e, mse=e / F.numel()))
-    return pd.DataFrame(rows)
-
-
-def plot_fig5(df, out_dir: str | Path, *, stem: str = "fig5") -> list[Path]:
-    """Write Fig. 5 plots (matplotlib Agg) to `out_dir`: one log-scale heatmap of rel_sq_err over
-    (n_h, n_ω) per (space, separated), and the paper-style curves (error vs n_ωi, one curve per
-    n_h). Returns the PNG paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for (kind, sep), g in df.groupby(["space", "separated"]):
-        tab = g.pivot(index="n_h", columns="n_omega", values="rel_sq_err").sort_index()
-        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-        vals = tab.to_numpy()
-        im = ax[0].imshow(vals, origin="lower", aspect="auto",
-                          norm=LogNorm(vmin=max(vals.min(), 1e-12), vmax=max(vals.max(), 1e-11)))
-        ax[0].set_xticks(range(tab.shape[1]), [str(c) for c in tab.columns])
-        ax[0].set_yticks(range(tab.shape[0]), [str(r) for r in tab.index])
-        for (r, c), v in np.ndenumerate(vals):
-            ax[0].text(c, r, f"{v:.2g}", ha="center", va="center", fontsize=7,
-                       color="k" if im.norm(v) > 0.6 else "w")
-        ax[0].set_xlabel("n_ωi = n_ωo")
-        ax[0].set_ylabel("n_h")
-        fig.colorbar(im, ax=ax[0], label="‖F − F̂‖² / ‖F‖²")
-        for r in tab.index:
-            ax[1].plot(tab.columns, tab.loc[r], marker="o", label=f"n_h={r}")
-        ax[1].set_yscale("log")
-        ax[1].set_xlabel("n_ωi")
-        ax[1].set_ylabel("relative squared error")
-        ax[1].legend(fontsize=7)
-        title = f"Sun 2007 Fig. 5 — {kind.upper()} {'with' if sep else 'without'} lobe separation"
-        fig.suptitle(title)
-        fig.tight_layout()
-        p = out / f"{stem}_{kind}_{'sep' if sep else 'nosep'}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-    return paths
-
-
-def fig5(out_dir: str | Path, space: BRDFSpace | str = "ct", **kw):
-    """`fig5_grid(space, **kw)`, then write `fig5_<space>.csv` and the PNGs of `plot_fig5` into
-    `out_dir`. Returns the DataFrame."""
-    df = fig5_grid(space, **kw)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    kind = df["space"].iloc[0]
-    df.to_csv(out / f"fig5_{kind}.csv", index=False)
-    plot_fig5(df, out)
-    return df
-
-
-# -- Fig. 6 (numeric form) -------------------------------------------------------------------
-
-
-def fig6_lobe_study(space: BRDFSpace | str = "bp", *, grid_n: int = 16, ranks: Sequence[int] | None = None,
-                    lobe_sets: Sequence[Sequence[float]] = ((), (0.0,), (0.0, 7.0), (0.0, 7.0, 14.0),
-                                                            (0.0, 7.0, 14.0, 21.0)),
-                    method: str = "hosvd"):
-    """Sun 2007 Fig. 6 as numbers: tensor-BRDF error per sampled BRDF for 0–4 lobe components
-    ("a greater number of lobe components leads to better approximations").
-
-    Returns:
-        pandas.DataFrame with columns space, grid_n, lobes (e.g. "0,7"), n_lobes, h, param (the
-        BRDF's parameters), rel_sq_err (‖F_h − F̂_h‖²/‖F_h‖² of that BRDF) and total_rel_sq_err
-        (over the whole space), at `ranks` (default `DEFAULT_RANKS[space.kind]`).
-    """
-    import pandas as pd
-
-    space = get_space(space) if isinstance(space, str) else space
-    grid = DiskGrid(grid_n)
-    ranks = tuple(DEFAULT_RANKS[space.kind] if ranks is None else ranks)
-    F = brdf_tensor(space, grid)
-    nF = F.square().sum((1, 2))
-    rows = []
-    for degs in lobe_sets:
-        X = separate_tensor(F, grid, degrees=degs)[0] if len(degs) else F
-        D, U = fit_brdf_tensor(X, ranks, method=method)
-        e = (X - T.tucker_reconstruct(D, U)).square().sum((1, 2))
-        tot = float(e.sum() / nF.sum())
-        for h, mat in enumerate(space.materials):
-            par = {k: v for k, v in mat.params().items() if k in ("s", "m", "F0")}
-            rows.append(dict(space=space.kind, grid_n=grid_n, lobes=",".join(f"{k:g}" for k in degs),
-                             n_lobes=len(degs), h=h, param=par, rel_sq_err=float(e[h] / nF[h]),
-                             total_rel_sq_err=tot))
-    return pd.DataFrame(rows)

@@ -115,7 +115,7 @@ class PTT(Method):
         separate: Sun §4.1 run-time specular lobes (``methods.ptt.specular``): the factorization
             and transport see only the remainder f_r = f − f_s; f_s is rendered per sample from
             prefiltered env maps × per-vertex fractional visibility (+ the one-bounce SH radiance).
-            Default True (SEPARATE_DEFAULT), measured with ``python -m methods.ptt.method --size
+            Default True (SEPARATE_DEFAULT), measured with ``python -m benchmarks.ptt --size
             test`` (rays 64, cube 16; RMSE vs Mitsuba of the same bounce count, direct / +1 / +2):
             chess 0.0616 / 0.0654 / 0.0665 → 0.0528 / 0.0563 / 0.0576 (direct mean 0.201 → 0.214,
             reference 0.224); alcove 0.0109 / 0.0121 / 0.0124 → 0.0092 / 0.0104 / 0.0110. Costs
@@ -476,74 +476,3 @@ class PTT(Method):
             if self.lobe_sh is not None:
                 m["lobe_sh"] = tensor_bytes(self.lobe_sh)
         return m
-
-
-# -- command line: Fig. 11 numbers, Table 1 style costs ------------------------------------------------
-
-
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m methods.ptt.method [--scene alcove] [--size test] [--spp 512] [--frames 6]
-    [--config '{"rays": 64, "cube_res": 16}']``: precompute time and memory per vertex, Sun Fig. 11
-    (RMSE against Mitsuba of the same bounce count and of full GI, for 0 / 1 / 2 bounces) and the
-    median frame time of V, V&B and V,B&L sequences (first frame excluded: it fills the caches)."""
-    import argparse
-    import json
-    import statistics
-    import time
-
-    from references.gbuffer import make_gbuffer
-    from references.metrics import rmse
-    from references.render import render_reference
-    from scenes.library import get_scene
-    from scenes.sequences import make_sequence
-
-    ap = argparse.ArgumentParser(description=main.__doc__)
-    ap.add_argument("--scene", default="alcove")
-    ap.add_argument("--size", default="test")
-    ap.add_argument("--spp", type=int, default=512)
-    ap.add_argument("--frames", type=int, default=6)
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
-    ap.add_argument("--config", default='{"rays": 64, "cube_res": 16}')
-    a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    scene = get_scene(a.scene, a.size)
-    m = PTT(**json.loads(a.config))
-    t = time.perf_counter()
-    m.precompute(scene)
-    pre = time.perf_counter() - t
-    nv = int(m.V.shape[0])
-    mem = m.memory()
-    out = {"scene": a.scene, "size": a.size, "config": m.config, "threads": a.threads, "vertices": nv,
-           "precompute_s": pre, "precompute_per_vertex_ms": 1e3 * pre / nv, "timings": m.timings,
-           "memory_bytes": mem, "memory_per_vertex_kib": sum(mem.values()) / nv / 1024}
-    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
-    gb = make_gbuffer(scene, frame, 2)
-    refs = {b: render_reference(scene, frame, bounces=b, spp=a.spp, seed=0) for b in (0, 1, 2, None)}
-    mask = refs[0].coverage & gb.coverage
-    fig11 = {}
-    for b in range(m.bounces + 1):
-        img = m.with_bounces(b).render(frame, gb)
-        fig11[b] = {"rmse_same": rmse(img, refs[b].image, mask), "rmse_full": rmse(img, refs[None].image, mask),
-                    "floor_same": refs[b].noise_floor, "mean": img[mask].mean().item(),
-                    "ref_mean": refs[b].image[mask].mean().item()}
-    out["fig11"] = fig11
-    out["full_gi_ref_mean"] = refs[None].image[mask].mean().item()
-    times = {}
-    for kind in ("V", "VB", "VBL"):
-        frames = make_sequence(scene, kind, n_frames=a.frames, seed=1)
-        gbs = [make_gbuffer(scene, f, 1) for f in frames]
-        r = m.with_bounces(m.bounces)
-        ts = []
-        for f, g in zip(frames, gbs):
-            t = time.perf_counter()
-            r.render(f, g)
-            ts.append(time.perf_counter() - t)
-        times[kind] = {"median_s": statistics.median(ts[1:]), "all_s": ts}
-    out["frame_times"] = times
-    out["bytes_per_frame"] = {kind: r.bytes_per_frame(kind) for kind in ("V", "VB", "VBL")}
-    print(json.dumps(out, indent=1, default=float))
-    return out
-
-
-if __name__ == "__main__":
-    main()

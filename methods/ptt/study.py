@@ -1,14 +1,23 @@
-"""Sun et al. 2007 figures as study outputs: Fig. 8 (lighting resolution of the one-bounce PTT),
-Figs. 9–10 (clustered tensor approximation of T¹: tensor error and rendered images vs eigenvectors
-/ lighting dimension), and PTT's row of the terms-vs-exponent study (`reports.studies`).
+"""Sun et al. 2007 figures as studies: Fig. 5 (BRDF tensor error over n_h × n_ωi, with and without
+lobe separation), Fig. 6 (error per sampled BRDF for 0–4 lobes), Fig. 8 (lighting resolution of the
+one-bounce PTT), Figs. 9–10 (clustered tensor approximation of T¹: tensor error and rendered images
+vs eigenvectors / lighting dimension), and PTT's row of the terms-vs-exponent study
+(`reports.studies`).
 
 Every figure is a function returning a ``pandas.DataFrame``; given ``out_dir`` it also writes
-``<fig>.csv`` and ``<fig>.png`` there. Command line (defaults sized for a 2-core machine)::
+``<fig>.csv`` and ``<fig>.png`` there. Each is registered as a study (defaults sized for a
+2-core machine; ``--quick``: a few cells each, seconds)::
 
-    python -m methods.ptt.study fig8  --out DIR     # 5 precomputes, ≈ 30 s CPU
-    python -m methods.ptt.study fig9  --out DIR     # ≈ 12 s (tensor errors; --images: + a precompute a cell)
-    python -m methods.ptt.study fig10 --out DIR     # 9 precomputes, ≈ 35 s CPU
-    python -m methods.ptt.study terms --out DIR     # ≈ 13 s CPU (1.8 s per exponent)
+    python run_bench.py study sun-fig5      # Cook-Torrance and Blinn-Phong spaces, DiskGrid(24)
+    python run_bench.py study sun-fig6
+    python run_bench.py study sun-fig8      # 5 precomputes
+    python run_bench.py study sun-fig9      # tensor errors from one dense precompute
+    python run_bench.py study sun-fig10     # 9 precomputes
+    python run_bench.py study ptt-terms
+    python run_bench.py study ptt-figures   # all of the above into one folder
+
+Other scenes, reference spp, PTT settings or ``images=True`` (Fig. 9 renders): call the
+functions from Python.
 
 Image figures: scene ``alcove`` (test size), the first frame of its "V" sequence, a 2-spp
 G-buffer, PTT with ``BASE_CONFIG`` (the settings of ``tests/methods/ptt/test_method.py``), scored
@@ -16,6 +25,11 @@ on the Mitsuba reference's coverage mask against `references.render.render_refer
 ``bounces=1`` (direct + one bounce, the +1 column of Sun Fig. 11). "indirect" is the +1-bounce
 part alone: PTT ``with_bounces(1) − with_bounces(0)`` against Mitsuba ``bounces=1 − bounces=0``
 (same seeds, so the direct-lighting noise largely cancels; its own floor from the two halves).
+
+Fig. 5's error measure ("squared error", normalisation not stated in the paper): ``rel_sq_err`` =
+‖F − F̂‖²_F / ‖F‖²_F with F the *unseparated* specular tensor (`brdf_tensor.brdf_tensor`) and
+F̂ = F_s + Tucker(F_r) (F_s is exact), plus the absolute ``sse`` and per-entry ``mse``; the grid
+over (n_h, n_ω) comes from one HOSVD (`brdf_tensor.hosvd_error_grid`).
 
 Terms-vs-exponent (Sun 2007 eq. 2, §4.1, §4.3): for Blinn–Phong shininess s the BRDF tensor of
 ONE material, F[h, ωo, ωi] with N_h = 1 (ks = 1, no cosine, `brdf_tensor.DiskGrid(TERMS_GRID_N)`
@@ -52,7 +66,6 @@ default separated lobes — numbers without them, measured earlier the same day,
 """
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from dataclasses import dataclass
@@ -60,10 +73,14 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from methods.ptt.brdf_tensor import DiskGrid, separate_tensor
+from methods.core import tensors as T
+from methods.ptt.brdf_space import BRDFSpace, get_space
+from methods.ptt.brdf_tensor import (DEFAULT_RANKS, DiskGrid, brdf_tensor, fit_brdf_tensor, hosvd_error_grid,
+                                     separate_tensor)
 from methods.ptt.lobes import LOBE_DEGREES
 from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
 
@@ -73,11 +90,19 @@ __all__ = [
     "FIG9_EIGENVECTORS",
     "FIG9_LIGHT_DIMS",
     "FIG10_COMBOS",
+    "FIG5_N_H",
+    "FIG5_N_OMEGA",
+    "FIG5_N_OMEGA_PAPER",
+    "PAPER_FIG5_NO_SEPARATION",
     "REF_SPP",
     "TERMS_EXPONENTS",
     "TERMS_GRID_N",
     "TERMS_TARGET",
     "TERMS_TARGET_KIND",
+    "fig5_grid",
+    "plot_fig5",
+    "fig5",
+    "fig6_lobe_study",
     "fig8_lighting_resolution",
     "fig9_tensor_error",
     "fig10_compression_images",
@@ -86,7 +111,6 @@ __all__ = [
     "terms_needed_separated",
     "terms_study",
     "run_all",
-    "main",
 ]
 
 # PTT settings of the image figures (those of tests/methods/ptt/test_method.py: 64 hemisphere rays,
@@ -120,6 +144,151 @@ TERMS_TARGET_KIND = ("relative squared error ||F-F^||^2/||F||^2 of the Blinn-Pho
                      f"(1 BRDF, DiskGrid {TERMS_GRID_N}, n_wo = n_wi) -> n_wi")
 
 
+# -- Fig. 5 (BRDF tensor error) -------------------------------------------------------------------
+
+FIG5_N_H: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+FIG5_N_OMEGA: tuple[int, ...] = (4, 8, 16, 32)
+FIG5_N_OMEGA_PAPER: tuple[int, ...] = (4, 8, 12, 16, 20, 24, 28, 32)  # §4.3's full sweep
+# §4.1: "the squared error of tensor approximation without specular lobe separation is 0.952465"
+# (n_h = 6, n_ωi = 32, 100 Cook–Torrance fits of MERL materials).
+PAPER_FIG5_NO_SEPARATION = 0.952465
+
+
+def fig5_grid(space: BRDFSpace | str = "ct", *, grid_n: int = 24, n_h: Sequence[int] = FIG5_N_H,
+              n_omega: Sequence[int] = FIG5_N_OMEGA, separation: Sequence[bool] = (False, True),
+              degrees: Sequence[float] = LOBE_DEGREES, method: str = "hosvd",
+              hooi_iters: int = 20, progress: bool = False):
+    """Sun 2007 Fig. 5: tensor approximation error over n_h × n_ωi (n_ωo = n_ωi), with and without
+    lobe separation.
+
+    Args:
+        space: "ct", "bp" or a `BRDFSpace`; grid_n: `DiskGrid` resolution (N ≈ π grid_n²/4 must
+            be ≥ max(n_omega)); method: "hosvd" (all cells from one HOSVD, fast) or "hooi"
+            (one HOSVD-initialised HOOI per cell via `methods.core.tensors.tucker`; slow for
+            grid_n ≳ 24); progress: tqdm bar.
+    Returns:
+        pandas.DataFrame, one row per (separated, n_h, n_omega), columns: space, grid_n, N_omega,
+        N_h, separated, n_h, n_omega, method, rel_sq_err (‖F − F̂‖²/‖F‖², F unseparated),
+        sse (‖F − F̂‖²), mse (sse / F.numel()).
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    space = get_space(space) if isinstance(space, str) else space
+    grid = DiskGrid(grid_n)
+    if max(n_omega) > grid.N or max(n_h) > space.n_h:
+        raise ValueError(f"ranks exceed the tensor ({space.n_h}, {grid.N}, {grid.N})")
+    if method not in ("hosvd", "hooi"):
+        raise ValueError(f"method must be 'hosvd' or 'hooi', got {method!r}")
+    F = brdf_tensor(space, grid)
+    norm2 = float(F.square().sum())
+    rows = []
+    for sep in tqdm(list(separation), desc="fig5", disable=not progress):
+        X = separate_tensor(F, grid, degrees=degrees)[0] if sep else F
+        if method == "hosvd":
+            errs = hosvd_error_grid(X, n_h, n_omega)
+        else:
+            errs = {}
+            for a in n_h:
+                for b in n_omega:
+                    D, U = fit_brdf_tensor(X, (a, b, b), method="hooi", n_iter_max=hooi_iters)
+                    errs[(a, b)] = float((X - T.tucker_reconstruct(D, U)).square().sum())
+        for (a, b), e in errs.items():
+            rows.append(dict(space=space.kind, grid_n=grid_n, N_omega=grid.N, N_h=space.n_h,
+                             separated=bool(sep), n_h=a, n_omega=b, method=method,
+                             rel_sq_err=e / norm2, sse=e, mse=e / F.numel()))
+    return pd.DataFrame(rows)
+
+
+def plot_fig5(df, out_dir: str | Path, *, stem: str = "fig5") -> list[Path]:
+    """Write Fig. 5 plots (matplotlib Agg) to `out_dir`: one log-scale heatmap of rel_sq_err over
+    (n_h, n_ω) per (space, separated), and the paper-style curves (error vs n_ωi, one curve per
+    n_h). Returns the PNG paths."""
+    from matplotlib.colors import LogNorm
+
+    plt = _pyplot()
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for (kind, sep), g in df.groupby(["space", "separated"]):
+        tab = g.pivot(index="n_h", columns="n_omega", values="rel_sq_err").sort_index()
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        vals = tab.to_numpy()
+        im = ax[0].imshow(vals, origin="lower", aspect="auto",
+                          norm=LogNorm(vmin=max(vals.min(), 1e-12), vmax=max(vals.max(), 1e-11)))
+        ax[0].set_xticks(range(tab.shape[1]), [str(c) for c in tab.columns])
+        ax[0].set_yticks(range(tab.shape[0]), [str(r) for r in tab.index])
+        for (r, c), v in np.ndenumerate(vals):
+            ax[0].text(c, r, f"{v:.2g}", ha="center", va="center", fontsize=7,
+                       color="k" if im.norm(v) > 0.6 else "w")
+        ax[0].set_xlabel("n_ωi = n_ωo")
+        ax[0].set_ylabel("n_h")
+        fig.colorbar(im, ax=ax[0], label="‖F − F̂‖² / ‖F‖²")
+        for r in tab.index:
+            ax[1].plot(tab.columns, tab.loc[r], marker="o", label=f"n_h={r}")
+        ax[1].set_yscale("log")
+        ax[1].set_xlabel("n_ωi")
+        ax[1].set_ylabel("relative squared error")
+        ax[1].legend(fontsize=7)
+        title = f"Sun 2007 Fig. 5 — {kind.upper()} {'with' if sep else 'without'} lobe separation"
+        fig.suptitle(title)
+        fig.tight_layout()
+        p = out / f"{stem}_{kind}_{'sep' if sep else 'nosep'}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def fig5(out_dir: str | Path, space: BRDFSpace | str = "ct", **kw):
+    """`fig5_grid(space, **kw)`, then write `fig5_<space>.csv` and the PNGs of `plot_fig5` into
+    `out_dir`. Returns the DataFrame."""
+    df = fig5_grid(space, **kw)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    kind = df["space"].iloc[0]
+    df.to_csv(out / f"fig5_{kind}.csv", index=False)
+    plot_fig5(df, out)
+    return df
+
+
+# -- Fig. 6 (numeric form) -----------------------------------------------------------------------
+
+
+def fig6_lobe_study(space: BRDFSpace | str = "bp", *, grid_n: int = 16, ranks: Sequence[int] | None = None,
+                    lobe_sets: Sequence[Sequence[float]] = ((), (0.0,), (0.0, 7.0), (0.0, 7.0, 14.0),
+                                                            (0.0, 7.0, 14.0, 21.0)),
+                    method: str = "hosvd"):
+    """Sun 2007 Fig. 6 as numbers: tensor-BRDF error per sampled BRDF for 0–4 lobe components
+    ("a greater number of lobe components leads to better approximations").
+
+    Returns:
+        pandas.DataFrame with columns space, grid_n, lobes (e.g. "0,7"), n_lobes, h, param (the
+        BRDF's parameters), rel_sq_err (‖F_h − F̂_h‖²/‖F_h‖² of that BRDF) and total_rel_sq_err
+        (over the whole space), at `ranks` (default `DEFAULT_RANKS[space.kind]`).
+    """
+    import pandas as pd
+
+    space = get_space(space) if isinstance(space, str) else space
+    grid = DiskGrid(grid_n)
+    ranks = tuple(DEFAULT_RANKS[space.kind] if ranks is None else ranks)
+    F = brdf_tensor(space, grid)
+    nF = F.square().sum((1, 2))
+    rows = []
+    for degs in lobe_sets:
+        X = separate_tensor(F, grid, degrees=degs)[0] if len(degs) else F
+        D, U = fit_brdf_tensor(X, ranks, method=method)
+        e = (X - T.tucker_reconstruct(D, U)).square().sum((1, 2))
+        tot = float(e.sum() / nF.sum())
+        for h, mat in enumerate(space.materials):
+            par = {k: v for k, v in mat.params().items() if k in ("s", "m", "F0")}
+            rows.append(dict(space=space.kind, grid_n=grid_n, lobes=",".join(f"{k:g}" for k in degs),
+                             n_lobes=len(degs), h=h, param=par, rel_sq_err=float(e[h] / nF[h]),
+                             total_rel_sq_err=tot))
+    return pd.DataFrame(rows)
+
+
 # -- shared set-up of the image figures --------------------------------------------------------
 
 
@@ -136,22 +305,18 @@ class _Setup:
 
 def _setup(scene_name: str, size: str, spp: int, seed: int = 0) -> _Setup:
     """Scene, first "V" frame, 2-spp G-buffer, Mitsuba references (0 and 1 bounce) and mask."""
-    from references.gbuffer import make_gbuffer
     from references.metrics import rmse
-    from references.render import render_reference
+    from references.setup import frame_setup
     from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
     _check_pos("spp", spp)
-    scene = get_scene(scene_name, size)
-    frame = make_sequence(scene, "V", n_frames=1, seed=seed)[0]
-    gb = make_gbuffer(scene, frame, GBUFFER_SPP)
-    r0 = render_reference(scene, frame, bounces=0, spp=spp, seed=seed)
-    r1 = render_reference(scene, frame, bounces=1, spp=spp, seed=seed)
-    mask = r0.coverage & gb.coverage
+    su = frame_setup(get_scene(scene_name, size), kind="V", n_frames=1, seed=seed, spp_side=GBUFFER_SPP,
+                     ref_spp=spp, bounces=(0, 1))
+    r0, r1 = su.references[0], su.references[1]
+    mask = su.mask(0)
     # noise floor of the indirect reference r1 − r0 from its two independent halves
     floor = rmse(r1.half_a - r0.half_a, r1.half_b - r0.half_b, mask) / 2
-    return _Setup(scene, frame, gb, r0, r1, mask, floor)
+    return _Setup(su.scene, su.frame, su.gbuffer, r0, r1, mask, floor)
 
 
 def _check_pos(name: str, v: Any) -> int:
@@ -655,8 +820,6 @@ def _save(fig, path: Path, plt) -> None:
 
 def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: float = 1.0) -> None:
     """Images (H, W, 3) linear → sRGB-ish (× scale, clip, ^1/2.2) in a grid of ≤ 4 columns."""
-    import numpy as np
-
     plt = _pyplot()
     n = len(tiles)
     cols = min(4, n)
@@ -672,73 +835,80 @@ def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: flo
     _save(fig, path, plt)
 
 
-# -- reports.studies hook ---------------------------------------------------------------------------
+# -- registered studies (methods.studies) ---------------------------------------------------------
+
+# Fig. 5 / Fig. 6 quick settings: coarse BRDF grids (seconds).
+_FIG5_QUICK = {"grid_n": 8, "n_omega": (4, 8)}
+_FIG6_QUICK = {"grid_n": 8, "lobe_sets": ((), (0.0,), (0.0, 7.0))}
 
 
-def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
-    """Every figure of this module into ``out_dir`` (a `reports.studies.Study.run`): Fig. 8, 9, 10,
-    the terms table, and the BRDF-side Figs. 5 (`brdf_tensor.fig5`, Cook-Torrance and Blinn-Phong
-    spaces) and 6 (`brdf_tensor.fig6_lobe_study` as a CSV); quick = a few cells each (one-bounce
-    lighting 6×4×4, coarse BRDF grids, seconds per figure). Returns the files written."""
-    from methods.ptt.brdf_tensor import fig5, fig6_lobe_study
-
-    od = _outdir(out_dir)
-    if quick:
-        fig8_lighting_resolution(light_res=(2, 4), full=False, out_dir=od)
-        fig9_tensor_error(light_res_1=4, eigenvectors=(8, None), light_dims=(16, None), out_dir=od)
-        fig10_compression_images(light_res_1=4, combos=((32, 64), (None, None)), out_dir=od)
-        terms_study((4.0, 16.0), out_dir=od)
-    else:
-        fig8_lighting_resolution(out_dir=od, progress=True)
-        fig9_tensor_error(out_dir=od, progress=True)
-        fig10_compression_images(out_dir=od, progress=True)
-        terms_study(out_dir=od, progress=True)
-    for kind in ("ct", "bp"):  # ≈ 2 and 3 min at the default DiskGrid(24)
-        fig5(od, kind, **({"grid_n": 8, "n_omega": (4, 8)} if quick else {"progress": True}))
-    fig6_lobe_study("bp", **({"grid_n": 8} if quick else {})).to_csv(od / "fig6_bp.csv", index=False)
-    names = ("fig8.csv", "fig8.png", "fig8_images.png", "fig9.csv", "fig9.png", "fig10.csv", "fig10.png",
-             "fig10_images.png", "ptt_terms.csv", "ptt_terms.png", "fig5_ct.csv", "fig5_ct_nosep.png",
-             "fig5_ct_sep.png", "fig5_bp.csv", "fig5_bp_nosep.png", "fig5_bp_sep.png", "fig6_bp.csv")
+def _written(od: Path, names) -> list[Path]:
     return [od / n for n in names if (od / n).exists()]
 
 
-# -- command line ---------------------------------------------------------------------------------
+def study_fig5(out_dir, *, quick: bool = False) -> list[Path]:
+    """``sun-fig5``: `fig5` for the Cook–Torrance and Blinn–Phong spaces (full: DiskGrid(24),
+    minutes each) → fig5_{ct,bp}.csv and fig5_{ct,bp}_{nosep,sep}.png."""
+    od = _outdir(out_dir)
+    for kind in ("ct", "bp"):
+        fig5(od, kind, **(_FIG5_QUICK if quick else {"progress": True}))
+    return _written(od, [f"fig5_{k}{x}" for k in ("ct", "bp") for x in (".csv", "_nosep.png", "_sep.png")])
 
 
-def main(argv: list[str] | None = None):
-    """``python -m methods.ptt.study <fig8|fig9|fig10|terms> --out DIR [--scene alcove] [--size test]
-    [--spp 256] [--light-res-1 8] [--clusters K] [--images] [--config JSON]``; prints the table."""
-    import json
+def study_fig6(out_dir, *, quick: bool = False) -> list[Path]:
+    """``sun-fig6``: `fig6_lobe_study` of the Blinn–Phong space → fig6_bp.csv."""
+    od = _outdir(out_dir)
+    fig6_lobe_study("bp", **(_FIG6_QUICK if quick else {})).to_csv(od / "fig6_bp.csv", index=False)
+    return _written(od, ["fig6_bp.csv"])
 
-    import pandas as pd
 
-    ap = argparse.ArgumentParser(description=main.__doc__)
-    ap.add_argument("figure", choices=("fig8", "fig9", "fig10", "terms"))
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--scene", default="alcove")
-    ap.add_argument("--size", default="test")
-    ap.add_argument("--spp", type=int, default=REF_SPP)
-    ap.add_argument("--light-res-1", type=int, default=8)
-    ap.add_argument("--clusters", type=int, default=None)
-    ap.add_argument("--images", action="store_true", help="fig9: also render every cell")
-    ap.add_argument("--config", default="{}", help="extra PTT keyword arguments (JSON)")
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
-    a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    cfg = json.loads(a.config)
-    common = dict(spp=a.spp, config=cfg, out_dir=a.out, progress=True)
-    if a.figure == "fig8":
-        df = fig8_lighting_resolution(a.scene, a.size, **common)
-    elif a.figure == "fig9":
-        df = fig9_tensor_error(a.scene, a.size, light_res_1=a.light_res_1, clusters=a.clusters,
-                               images=a.images, **common)
-    elif a.figure == "fig10":
-        df = fig10_compression_images(a.scene, a.size, light_res_1=a.light_res_1, clusters=a.clusters, **common)
+def study_fig8(out_dir, *, quick: bool = False) -> list[Path]:
+    """``sun-fig8``: `fig8_lighting_resolution` on alcove/test (quick: n₁ = 2, 4, no full image)."""
+    od = _outdir(out_dir)
+    if quick:
+        fig8_lighting_resolution(light_res=(2, 4), full=False, out_dir=od)
     else:
-        df = terms_study(out_dir=a.out, progress=True)
-    with pd.option_context("display.max_rows", 200, "display.width", 200):
-        print(df.drop(columns=[c for c in ("scene", "size") if c in df]).to_string(index=False))
-    return df
+        fig8_lighting_resolution(out_dir=od, progress=True)
+    return _written(od, ("fig8.csv", "fig8.png", "fig8_images.png"))
+
+
+def study_fig9(out_dir, *, quick: bool = False) -> list[Path]:
+    """``sun-fig9``: `fig9_tensor_error` on alcove/test (quick: 6×4×4 lighting, a 2 × 2 grid)."""
+    od = _outdir(out_dir)
+    if quick:
+        fig9_tensor_error(light_res_1=4, eigenvectors=(8, None), light_dims=(16, None), out_dir=od)
+    else:
+        fig9_tensor_error(out_dir=od, progress=True)
+    return _written(od, ("fig9.csv", "fig9.png"))
+
+
+def study_fig10(out_dir, *, quick: bool = False) -> list[Path]:
+    """``sun-fig10``: `fig10_compression_images` on alcove/test (quick: 6×4×4 lighting, 2 combos)."""
+    od = _outdir(out_dir)
+    if quick:
+        fig10_compression_images(light_res_1=4, combos=((32, 64), (None, None)), out_dir=od)
+    else:
+        fig10_compression_images(out_dir=od, progress=True)
+    return _written(od, ("fig10.csv", "fig10.png", "fig10_images.png"))
+
+
+def study_terms(out_dir, *, quick: bool = False) -> list[Path]:
+    """``ptt-terms``: `terms_study` (quick: s = 4, 16) → ptt_terms.csv / .png."""
+    od = _outdir(out_dir)
+    if quick:
+        terms_study((4.0, 16.0), out_dir=od)
+    else:
+        terms_study(out_dir=od, progress=True)
+    return _written(od, ("ptt_terms.csv", "ptt_terms.png"))
+
+
+def run_all(out_dir: str | Path, *, quick: bool = False) -> list[Path]:
+    """``ptt-figures``: every study of this module into one folder — Figs. 8, 9, 10, the terms
+    table, Fig. 5 (both spaces) and Fig. 6; quick = a few cells each. Returns the files written."""
+    files: list[Path] = []
+    for run in (study_fig8, study_fig9, study_fig10, study_terms, study_fig5, study_fig6):
+        files += run(out_dir, quick=quick)
+    return files
 
 
 # -- registration (methods.studies) ----------------------------------------------------------------
@@ -749,10 +919,15 @@ register_terms_contributor("ptt", terms_needed, target=0.01,
 register_terms_contributor("ptt_separated", terms_needed_separated, target=0.01,
                            target_kind="relative squared error of the Blinn-Phong BRDF tensor with Sun §4.1 "
                                        "lobe separation (1 BRDF, DiskGrid 32) -> n_wi")
-register_study(Study("ptt-figures", "Sun 2007 Figs. 5-6 (BRDF tensor error, lobe separation), Fig. 8 "
-                     "(one-bounce lighting resolution), Figs. 9-10 (CPCA eigenvectors / lighting dimension), "
-                     "PTT terms vs shininess", run_all, paper="Sun 2007"))
-
-
-if __name__ == "__main__":
-    main()
+for _name, _desc, _run in (
+        ("sun-fig5", "Fig. 5: BRDF tensor error over n_h x n_wi, with and without lobe separation "
+                     "(Cook-Torrance and Blinn-Phong spaces)", study_fig5),
+        ("sun-fig6", "Fig. 6: BRDF tensor error per sampled BRDF for 0-4 separated lobes", study_fig6),
+        ("sun-fig8", "Fig. 8: one-bounce image vs lighting resolution 6 x n1 x n1 (alcove, Mitsuba)", study_fig8),
+        ("sun-fig9", "Fig. 9: clustered tensor approximation error of T1 over eigenvectors x lighting "
+                     "dimension", study_fig9),
+        ("sun-fig10", "Fig. 10: renders at CTA compression levels vs dense T1 and Mitsuba", study_fig10),
+        ("ptt-terms", "PTT BRDF tensor terms n_wi vs Blinn-Phong shininess, with and without lobe "
+                      "separation", study_terms),
+        ("ptt-figures", "Figs. 5, 6, 8, 9, 10 and the terms table, all into one folder", run_all)):
+    register_study(Study(_name, f"Sun 2007 {_desc}", _run, paper="Sun 2007"))

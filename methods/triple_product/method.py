@@ -25,7 +25,7 @@ Render:
     own ωo (§3.3 second pseudocode), then eq. 7.
   * L look-up ``light_lookup``: "nearest", "trilinear" (8 grid frames) or "exact" (project the
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
-  * Tripling (``evaluator``): `perf.shade` — the blends kept as index/value lists, summed exactly
+  * Tripling (``evaluator``): `fast_eval.shade` — the blends kept as index/value lists, summed exactly
     by the fine-value identity ("dense") or by visiting only the stored coefficients with the
     three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
     zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
@@ -70,7 +70,7 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.core.visibility import Visibility
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
-from methods.triple_product import perf
+from methods.triple_product import fast_eval
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
@@ -127,7 +127,7 @@ class TripleProduct(Method):
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
         vis_texture: texels per side of the visibility texture of every shape with a UV map
             (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
-        evaluator: how eq. 7 is summed — "auto" | "dense" | "sparse" (`perf`: exact, fast) or
+        evaluator: how eq. 7 is summed — "auto" | "dense" | "sparse" (`fast_eval`: exact, fast) or
             "reference" (zero-filled dense vectors through `spherical_haar.triple_integral`: the
             independent slow path the fast ones are tested against). Same image to float32 rounding.
         """
@@ -149,8 +149,8 @@ class TripleProduct(Method):
                      ("light_supersample", light_supersample)):
             _int(k, v, 0)
         _int("vis_texture", vis_texture, 1, none_ok=True)
-        if evaluator not in perf.EVALUATORS:
-            raise ValueError(f"evaluator must be one of {perf.EVALUATORS}, got {evaluator!r}")
+        if evaluator not in fast_eval.EVALUATORS:
+            raise ValueError(f"evaluator must be one of {fast_eval.EVALUATORS}, got {evaluator!r}")
         if vis_texture is not None and shading != "pixel":
             raise ValueError("vis_texture needs shading='pixel' (textures are looked up per G-buffer sample)")
         super().__init__(level=level, n_coeffs=n_coeffs, selection=selection, shading=shading,
@@ -197,8 +197,8 @@ class TripleProduct(Method):
     def with_evaluator(self, evaluator: str) -> "TripleProduct":
         """A copy of this (precomputed) method that sums eq. 7 with ``evaluator`` — the same arrays,
         a config that says which evaluator ran ("reference": the dense path of ``_shade``)."""
-        if evaluator not in perf.EVALUATORS:
-            raise ValueError(f"evaluator must be one of {perf.EVALUATORS}, got {evaluator!r}")
+        if evaluator not in fast_eval.EVALUATORS:
+            raise ValueError(f"evaluator must be one of {fast_eval.EVALUATORS}, got {evaluator!r}")
         m = copy.copy(self)
         m._config = {**self._config, "evaluator": evaluator}
         return m
@@ -318,10 +318,10 @@ class TripleProduct(Method):
                mix: Tensor | None = None) -> Tensor:
         """Eq. 7 for B points: frames R (B, 3, 3), world ωo (B, 3), region (B,), visibility blend
         rows/weights (B, k) into the visibility table, SBRDF weight mix (B,) or None → (B, 3).
-        ``evaluator`` "reference": the dense zero-filled path below; else `perf.shade` (exact, fast)."""
+        ``evaluator`` "reference": the dense zero-filled path below; else `fast_eval.shade` (exact, fast)."""
         ev = self.config["evaluator"]
         if ev != "reference":
-            return perf.shade(self, R, wo_world, region, vrows, vw, mix, evaluator=ev)
+            return fast_eval.shade(self, R, wo_world, region, vrows, vw, mix, evaluator=ev)
         wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
         L = self.lighting_at(R)                                          # (B, 3, K)
         Vd = blend_sparse(self.V_idx, self.V_val, vrows, vw, self.K)      # (B, K)
@@ -570,8 +570,8 @@ class TripleProduct(Method):
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Compulsory bytes of a frame of this kind (the roofline model of `perf.bytes_per_frame`)."""
-        return perf.bytes_per_frame(self, frame_kind)
+        """Compulsory bytes of a frame of this kind (the roofline model of `fast_eval.bytes_per_frame`)."""
+        return fast_eval.bytes_per_frame(self, frame_kind)
 
     def memory(self) -> dict[str, int]:
         nv = self.n_vertex_rows

@@ -1,5 +1,8 @@
 """Storage of global- vs local-frame parameterisation (Ma 2006 Tables 1–2, §3.2, §4.1).
 
+The formulas; the table itself (the paper's settings as rows) is the study ``ma-tables``
+(`methods.triple_product.study.storage_table`, ``python run_bench.py study ma-tables``).
+
 Table 2 symbols (restored from the OCR-damaged text):
     n_L   sampling resolution of a lighting function (n^ω_L)
     r_L   number of precomputed rotations of the lighting
@@ -70,32 +73,3 @@ def storage_bytes(p: StorageParams) -> dict[str, int]:
     """{"global": bytes, "local": bytes} for the parameters."""
     return {"global": global_frame_values(p) * p.bytes_per_value,
             "local": local_frame_values(p) * p.bytes_per_value}
-
-
-def storage_table(params: dict[str, StorageParams] | None = None) -> list[dict]:
-    """Rows (setting, local MiB, global MiB, global "GB" as the paper prints it = MiB/1000,
-    global GiB) for the paper's isotropic and anisotropic settings (or ``params``)."""
-    params = params or {"isotropic": PAPER_ISOTROPIC, "anisotropic": PAPER_ANISOTROPIC}
-    rows = []
-    for name, p in params.items():
-        b = storage_bytes(p)
-        rows.append({"setting": name, "local_MiB": b["local"] / MIB, "global_MiB": b["global"] / MIB,
-                     "global_paper_GB": b["global"] / MIB / 1000, "global_GiB": b["global"] / 2 ** 30})
-    return rows
-
-
-def print_storage_table(params: dict[str, StorageParams] | None = None) -> str:
-    """Format (and print) `storage_table`; returns the text."""
-    lines = [f"{'setting':<12} {'local [MiB]':>12} {'global [MiB]':>14} {'global [paper GB]':>18} {'global [GiB]':>13}"]
-    for r in storage_table(params):
-        lines.append(f"{r['setting']:<12} {r['local_MiB']:>12.1f} {r['global_MiB']:>14.1f} "
-                     f"{r['global_paper_GB']:>18.2f} {r['global_GiB']:>13.2f}")
-    lines.append("Ma 2006 §4.1: local ≈ 170 MB (isotropic) / 480 MB (anisotropic), global ≈ 82 GB (isotropic);"
-                 " visibility excluded, 1 material, 4 B/value.")
-    text = "\n".join(lines)
-    print(text)
-    return text
-
-
-if __name__ == "__main__":  # python -m methods.triple_product.storage
-    print_storage_table()

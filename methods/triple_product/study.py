@@ -1,4 +1,12 @@
-"""Triple-product row of the terms-vs-exponent study (DESIGN.md "Studies"; Ma 2006 §4.1, Figs. 7–8).
+"""Ma 2006's figures and tables as studies, and the triple product's row of terms-vs-exponent.
+
+Registered studies (``python run_bench.py study NAME [--quick]``):
+  * ``ma-fig7-8`` — Figs. 7–8: image RMSE vs coefficients kept per function n (`truncation_sweep`,
+    `plot_truncation_sweep`; fig7_8.csv / .png);
+  * ``ma-tables`` — Tables 1–2 / §4.1: storage of the local vs global frame parameterisation at the
+    paper's settings (`storage_table`; ma_tables.csv / .txt).
+
+Terms-vs-exponent row (DESIGN.md "Studies"; Ma 2006 §4.1, Figs. 7–8):
 
 For a Phong lobe (kd = 0, ks = 1, exponent s) this measures how many wavelet coefficients per
 function (lighting and BRDF slice, both truncated the same way, visibility = 1) the local-frame
@@ -11,15 +19,13 @@ error ≤ target against the untruncated product on the same geodesic grid:
 The lighting is the procedural ``sky_sun`` map (height 128). The error is the *truncation* error
 only; the grid's own resolution limit (level 4: triangles ≈ 3°, so lobes with s ≳ 400 are under
 -resolved) is a separate, fixed error not counted here — say so when plotting.
-
-Registration (reports/studies.py, next to the inout line):
-    register_terms_contributor("triple_product", "methods.triple_product.study:terms_needed",
-                               target=0.05, target_kind="relative RMS shading error (level 4, sky_sun)")
 """
 from __future__ import annotations
 
+import csv
 import math
 from functools import lru_cache
+from pathlib import Path
 
 import torch
 
@@ -27,7 +33,8 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.triple_product import brdf_table as bt
 from methods.triple_product.lighting import project_lighting
 from methods.triple_product.precompute import blend_sparse, truncate
-from methods.studies import TermsRecord, register_terms_contributor
+from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
+from methods.triple_product import storage as st
 
 # n ladder searched by `terms_needed` (the paper's 20 / 80 / 320 are on it).
 LADDER = (5, 10, 20, 40, 80, 160, 320, 640, 1280, 2560, 5120, 20480)
@@ -116,20 +123,22 @@ def truncation_sweep(scene_name: str = "sphere_plane", size: str = "test", *,
 
     Returns rows {"selection", "n", "rmse_vs_all", "rmse_vs_reference"}.
     """
-    from references.gbuffer import make_gbuffer
     from references.metrics import rmse
+    from references.setup import frame_setup
     from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
     from methods.triple_product.method import TripleProduct
 
+    mitsuba = isinstance(reference, str)
+    if mitsuba and reference != "mitsuba":
+        raise ValueError(f"reference must be None, 'mitsuba' or an (H, W, 3) image, got {reference!r}")
     scene = get_scene(scene_name, size)
-    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
-    gb = make_gbuffer(scene, frame, 1)
-    if reference == "mitsuba":  # direct-lighting path-traced reference of the same frame
-        from references.render import render_reference
-
-        reference = render_reference(scene, frame, bounces=0, spp=256, seed=0, spp_side=1).image
+    # with "mitsuba": a 256-spp direct-lighting path-traced reference of the same frame
+    su = frame_setup(scene, kind="V", n_frames=1, seed=0, spp_side=1, ref_spp=256 if mitsuba else 0,
+                     bounces=(0,), ref_spp_side=1)
+    frame, gb = su.frame, su.gbuffer
+    if mitsuba:
+        reference = su.references[0].image
 
     def render(**kw):
         m = TripleProduct(**{**config, **kw})
@@ -148,9 +157,6 @@ def truncation_sweep(scene_name: str = "sphere_plane", size: str = "test", *,
 
 def plot_truncation_sweep(rows: list[dict], out_dir) -> list:
     """fig7_8.csv and fig7_8.png (RMSE vs n, log-log, one line per selection and error kind)."""
-    import csv
-    from pathlib import Path
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -180,28 +186,65 @@ def plot_truncation_sweep(rows: list[dict], out_dir) -> list:
     return [csv_path, png]
 
 
-def main(argv: list[str] | None = None) -> list:
-    """``python -m methods.triple_product.study --out DIR [--scene sphere_plane] [--size test]
-    [--level 3]``: the Figs. 7–8 sweep (n = 5 … 640, adaptive and top-only) against the untruncated
-    render and a 256-spp Mitsuba direct reference; writes fig7_8.csv / .png and prints the rows."""
-    import argparse
-
-    ap = argparse.ArgumentParser(description=main.__doc__)
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--scene", default="sphere_plane")
-    ap.add_argument("--size", default="test")
-    ap.add_argument("--level", type=int, default=3)
-    a = ap.parse_args(argv)
-    rows = truncation_sweep(a.scene, a.size, reference="mitsuba", level=a.level, progress=False)
-    for r in rows:
-        print(r)
-    return plot_truncation_sweep(rows, a.out)
+def fig7_8(out_dir, *, quick: bool = False) -> list[Path]:
+    """Study ``ma-fig7-8``: `truncation_sweep` on sphere_plane/test against the untruncated render
+    and a 256-spp Mitsuba direct reference, n = 5 … 640, adaptive and top-only, level 3 (quick:
+    level 2, n = 10 / 40 / 160, a coarse lighting grid and BRDF table); fig7_8.csv / .png."""
+    if quick:
+        rows = truncation_sweep("sphere_plane", "test", ns=(10, 40, 160), reference="mitsuba", level=2,
+                                frame_grid=(9, 16, 1), brdf_dirs=(4, 8), progress=False)
+    else:
+        rows = truncation_sweep("sphere_plane", "test", reference="mitsuba", level=3, progress=False)
+    return plot_truncation_sweep(rows, out_dir)
 
 
-if __name__ == "__main__":
-    main()
+# -- Tables 1–2 (storage, §4.1) ---------------------------------------------------------------------
+
+
+def storage_table(params: dict[str, st.StorageParams] | None = None) -> list[dict]:
+    """Rows (setting, local MiB, global MiB, global "GB" as the paper prints it = MiB/1000,
+    global GiB) of `storage.storage_bytes` for the paper's isotropic and anisotropic settings
+    (or ``params``)."""
+    params = params or {"isotropic": st.PAPER_ISOTROPIC, "anisotropic": st.PAPER_ANISOTROPIC}
+    rows = []
+    for name, p in params.items():
+        b = st.storage_bytes(p)
+        rows.append({"setting": name, "local_MiB": b["local"] / st.MIB, "global_MiB": b["global"] / st.MIB,
+                     "global_paper_GB": b["global"] / st.MIB / 1000, "global_GiB": b["global"] / 2 ** 30})
+    return rows
+
+
+def format_storage_table(params: dict[str, st.StorageParams] | None = None) -> str:
+    """`storage_table` as text, with the paper's numbers for comparison."""
+    lines = [f"{'setting':<12} {'local [MiB]':>12} {'global [MiB]':>14} {'global [paper GB]':>18} {'global [GiB]':>13}"]
+    for r in storage_table(params):
+        lines.append(f"{r['setting']:<12} {r['local_MiB']:>12.1f} {r['global_MiB']:>14.1f} "
+                     f"{r['global_paper_GB']:>18.2f} {r['global_GiB']:>13.2f}")
+    lines.append("Ma 2006 §4.1: local ≈ 170 MB (isotropic) / 480 MB (anisotropic), global ≈ 82 GB (isotropic);"
+                 " visibility excluded, 1 material, 4 B/value.")
+    return "\n".join(lines)
+
+
+def tables(out_dir, *, quick: bool = False) -> list[Path]:
+    """Study ``ma-tables``: ma_tables.csv and ma_tables.txt (`storage_table`; instant, quick
+    changes nothing)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = storage_table()
+    csv_path = out / "ma_tables.csv"
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    txt = out / "ma_tables.txt"
+    txt.write_text(format_storage_table() + "\n")
+    return [csv_path, txt]
 
 
 # -- registration (methods.studies) ----------------------------------------------------------------
 register_terms_contributor("triple_product", terms_needed, target=0.05,
                            target_kind="relative RMS shading error vs all coefficients (level 4, sky_sun, V=1)")
+register_study(Study("ma-fig7-8", "Ma 2006 Figs. 7-8: image RMSE vs wavelet coefficients kept per function "
+                     "(adaptive / top), vs all coefficients and vs Mitsuba", fig7_8, paper="Ma 2006"))
+register_study(Study("ma-tables", "Ma 2006 Tables 1-2 / §4.1: local vs global frame storage at the paper's "
+                     "settings (170 MB / 480 MB / 82 GB)", tables, paper="Ma 2006"))

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
 from methods import studies as MS
-from reports import studies as S  # registers terms-vs-exponent and loads every method's studies
+from reports import studies  # noqa: F401  (registers terms-vs-exponent and loads every method's studies)
 
 
 @pytest.fixture
@@ -38,6 +39,44 @@ def test_builtin_registrations():
     for name in ("triple_product", "zh_shadow", "ptt", "ptt_separated"):  # every method has a row
         assert callable(MS.TERMS_CONTRIBUTORS[name].fn), name
     assert "ptt-figures" in MS.STUDIES
+
+
+# Every paper figure/table the project reproduces, by paper (`run_bench.py study --list`).
+PAPER_STUDIES = {
+    "Mahajan 2008": {"mahajan-fig3a", "mahajan-fig2-5", "mahajan-fig7c", "mahajan-fig6"},
+    "Sun 2007": {"sun-fig5", "sun-fig6", "sun-fig8", "sun-fig9", "sun-fig10", "ptt-terms", "ptt-figures"},
+    "Ma 2006": {"ma-fig7-8", "ma-tables"},
+    "Nowrouzezahrai 2008": {"nowrouzezahrai-fig3-5"},
+}
+# Studies whose quick run takes a few seconds (measured by hand, 1 thread: ma-tables 0.0 s,
+# mahajan-fig3a 2.0 s, mahajan-fig2-5 0.7 s, mahajan-fig7c 1.3 s). The others run in their
+# method's tests through the same functions (tests/methods/*/test_*study*.py) or by hand.
+CHEAP_STUDIES = ("ma-tables", "mahajan-fig3a", "mahajan-fig2-5", "mahajan-fig7c")
+
+
+def test_every_paper_figure_is_a_registered_study():
+    for paper, names in PAPER_STUDIES.items():
+        missing = names - set(MS.STUDIES)
+        assert not missing, f"{paper}: {sorted(missing)} not registered"
+        for n in names:
+            assert MS.STUDIES[n].paper == paper, n
+    assert MS.STUDIES["terms-vs-exponent"].paper == ""  # the cross-method sweep
+
+
+@pytest.mark.parametrize("name", CHEAP_STUDIES)
+def test_cheap_studies_run_quick(name, tmp_path, one_torch_thread):
+    files = MS.run_study(name, tmp_path, quick=True)
+    assert files, name
+    for f in files:
+        assert f.parent == tmp_path and f.stat().st_size > 0, f
+
+
+def test_no_entry_points_left_in_methods():
+    """Paper figures run through `run_bench.py study`, benchmarks through `python -m benchmarks.*`:
+    no module under methods/ is a script."""
+    root = Path(__file__).resolve().parents[2] / "methods"
+    scripts = [str(p.relative_to(root.parent)) for p in root.rglob("*.py") if "__main__" in p.read_text()]
+    assert not scripts, scripts
 
 
 def test_register_and_run_study(tmp_path, clean_registries):
@@ -78,13 +117,6 @@ def test_contributors_are_callables_not_module_strings(clean_registries):
     import); a "module:function" string — a hidden import by name — is refused."""
     with pytest.raises(ValueError):
         MS.register_terms_contributor("lazy", "builtins:max")
-
-
-def test_fit_line():
-    a, b = S.fit_line([1, 2, 3], [5, 7, 9])
-    assert a == pytest.approx(2) and b == pytest.approx(3)
-    with pytest.raises(ValueError):
-        S.fit_line([1], [2])
 
 
 def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):

@@ -8,16 +8,12 @@ import torch
 
 from methods.core import tensors as T
 from methods.ptt.brdf_space import BlinnPhongSpace
-from methods.ptt.brdf_tensor import (PAPER_FIG5_NO_SEPARATION, DiskGrid, brdf_tensor,
-                                     build_tensor_brdf, fig5, fig5_grid, hosvd_error_grid,
-                                     plot_fig5, separate_tensor)
+from methods.ptt.brdf_tensor import DiskGrid, brdf_tensor, build_tensor_brdf, hosvd_error_grid, separate_tensor
 
 # float64 interpolation / reconstruction of O(1)–O(1e3) values.
 F64_RTOL = 1e-10
 # Pythagoras shortcut vs explicit reconstruction: both float64, cancellation in ‖X‖² − ‖G‖².
 GRID_RTOL = 1e-8
-# Fig. 5 setting of the tests: Cook–Torrance space (100 materials), DiskGrid(12) (112 directions).
-FIG5_GRID_N = 12
 
 
 def test_disk_grid_geometry():
@@ -89,47 +85,3 @@ def test_default_ranks_and_bad_input():
     assert tb.D.shape == (3, 8, 8) and tb.D.dtype == torch.float32  # Sun 2007 §4.3 (BP)
     with pytest.raises(ValueError):
         DiskGrid(1)
-    with pytest.raises(ValueError):
-        fig5_grid(BlinnPhongSpace(shininess=(1.0, 2.0)), grid_n=4, n_omega=(4, 32))
-
-
-def test_fig5_writes_csv_and_pngs(tmp_path):
-    df = fig5(tmp_path, BlinnPhongSpace(shininess=(5.0, 50.0, 200.0)), grid_n=8, n_h=(1, 2), n_omega=(4, 8))
-    assert len(df) == 8
-    names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["fig5_bp.csv", "fig5_bp_nosep.png", "fig5_bp_sep.png"]
-
-
-@pytest.fixture(scope="module")
-def ct_fig5():
-    return fig5_grid("ct", grid_n=FIG5_GRID_N)
-
-
-def test_fig5_grid_monotone_in_ranks(ct_fig5, tmp_path):
-    df = ct_fig5
-    assert len(df) == 2 * 6 * 4 and set(df.columns) >= {"separated", "n_h", "n_omega", "rel_sq_err"}
-    for sep, g in df.groupby("separated"):
-        tab = g.pivot(index="n_h", columns="n_omega", values="rel_sq_err")
-        # more terms never hurt (nested truncated-HOSVD subspaces); 1e-12 allows round-off
-        assert (tab.diff(axis=0).iloc[1:] <= 1e-12).all().all()
-        assert (tab.diff(axis=1).iloc[:, 1:] <= 1e-12).all().all()
-        assert ((tab > 0) & (tab < 1)).all().all()
-    paths = plot_fig5(df, tmp_path)
-    assert len(paths) == 2 and all(p.stat().st_size > 1000 for p in paths)
-
-
-def test_fig5_separation_lowers_error(ct_fig5):
-    """Sun 2007 §4.1/Fig. 5: with separation the error is far lower at every (n_h, n_ω), and even
-    the coarsest separated setting beats the finest unseparated one."""
-    t = ct_fig5.pivot_table(index=["n_h", "n_omega"], columns="separated", values="rel_sq_err")
-    assert (t[True] < 0.1 * t[False]).all()
-    assert t[True].max() < t[False].min()
-
-
-@pytest.mark.xfail(strict=True, reason="Sun 2007 reports 0.952465 without separation at n_h = 6, "
-                   "n_ωi = 32 (100 MERL fits, N_ω and normalisation unstated); we measure "
-                   "rel_sq_err 0.109 on DiskGrid(12) and 0.0618 on DiskGrid(32) (N = 812) for our "
-                   "generated Cook-Torrance set")
-def test_fig5_paper_value_without_separation(ct_fig5):
-    row = ct_fig5.query("not separated and n_h == 6 and n_omega == 32")
-    assert float(row.rel_sq_err.iloc[0]) == pytest.approx(PAPER_FIG5_NO_SEPARATION, rel=0.1)

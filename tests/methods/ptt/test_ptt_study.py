@@ -211,8 +211,6 @@ def test_bad_figure_arguments_raise():
         S.fig8_lighting_resolution(light_res=(32,), full=False)  # > cube_res 16
     with pytest.raises(ValueError):
         S.fig10_compression_images(combos=())
-    with pytest.raises(SystemExit):
-        S.main(["fig7", "--out", "x"])
 
 
 def test_one_cluster_error_grid_equals_per_cell_compression():

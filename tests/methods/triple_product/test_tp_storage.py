@@ -6,6 +6,7 @@ import dataclasses
 import pytest
 
 from methods.triple_product import storage as st
+from methods.triple_product import study as tps
 
 # The paper prints 170 MB / 480 MB / 82 GB: two to three significant digits. Our formulas give
 # exactly 170.0 / 480.0 MiB and 81.92 (MiB/1000): the tolerance is the paper's rounding.
@@ -13,7 +14,7 @@ PAPER_ROUNDING_REL = 0.01
 
 
 def test_paper_numbers_reproduce():
-    rows = {r["setting"]: r for r in st.storage_table()}
+    rows = {r["setting"]: r for r in tps.storage_table()}
     assert rows["isotropic"]["local_MiB"] == pytest.approx(170.0, rel=PAPER_ROUNDING_REL)
     assert rows["anisotropic"]["local_MiB"] == pytest.approx(480.0, rel=PAPER_ROUNDING_REL)
     assert rows["isotropic"]["global_paper_GB"] == pytest.approx(82.0, rel=PAPER_ROUNDING_REL)
@@ -27,7 +28,7 @@ def test_formulas_closed_form_and_ordering():
     # the paper's argument: local < global iff (r_L − 1) n_L < (r_rho − 1) n_m n_o n_rho
     b = st.storage_bytes(st.PAPER_ISOTROPIC)
     assert b["local"] < b["global"]
-    assert "170.0" in st.print_storage_table()
+    assert "170.0" in tps.format_storage_table()
 
 
 def test_bad_params():

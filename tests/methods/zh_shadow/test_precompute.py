@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from methods.zh_shadow import precompute as pc
-from methods.zh_shadow.convolution import phong_operator
 
 EXACT = 1e-9          # float64 algebra
 # Lobe recovery after a grid search + fixed-step Adam refinement (relative SH error; Adam with a
@@ -117,29 +116,9 @@ REL_PIN = 0.15
 
 @pytest.fixture(scope="module")
 def fig_errors():
-    from scenes.library import get_scene
+    from methods.zh_shadow.study import fig3_5_errors
 
-    scene = get_scene("creature", "test")
-    creature = scene.geometry().vertex_region == scene.region_index("creature")
-    P = pc.training_poses(scene, FIG_POSES, seed=1234)
-    H = pc.training_poses(scene, FIG_HELD, seed=7)
-    v, vc = pc.pose_visibility(scene, P, 4, n_dirs=FIG_DIRS)
-    vh, vch = pc.pose_visibility(scene, H, 4, n_dirs=FIG_DIRS)
-    v, vc, vh, vch = (x[:, creature] for x in (v, vc, vh, vch))
-    M1 = phong_operator(1.0, 4)
-    out = {}
-    with pc.torch_threads(1):
-        for c in (1, 2):
-            m, fitted = pc.build_model(v, P, c, iters=FIG_ITERS)
-            pred = torch.stack([m.sh_at(p) for p in H])
-            out[("fit", c)] = pc.sh_error(fitted, v, pc.NORM_V)
-            out[("v", c)] = pc.sh_error(pred, vh, pc.NORM_V)
-            out[("blue", c)] = pc.sh_error(pred @ M1, vch, pc.NORM_VCOS)
-            mc, _ = pc.build_model(vc, P, c, iters=FIG_ITERS)
-            out[("vcos", c)] = pc.sh_error(torch.stack([mc.sh_at(p) for p in H]), vch, pc.NORM_VCOS)
-    out["floor_blue"] = pc.sh_error(vh @ M1, vch, pc.NORM_VCOS)     # order-4 truncation alone
-    out["direct_sh"] = pc.sh_error(pc.synthesize(pc.fit_linear_model(P, v), H), vh, pc.NORM_V)
-    return out
+    return fig3_5_errors(poses=FIG_POSES, held=FIG_HELD, n_dirs=FIG_DIRS, iters=FIG_ITERS)
 
 
 def test_two_lobes_beat_one(fig_errors):

@@ -1,4 +1,4 @@
-"""Fast evaluators of Ma 2006 eq. 7 (`methods.triple_product.perf`) against the dense reference
+"""Fast evaluators of Ma 2006 eq. 7 (`methods.triple_product.fast_eval`) against the dense reference
 `spherical_haar.triple_integral`, and the bytes-per-frame model on a tiny config."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from methods.core.spherical_haar import inverse, support_areas, triple_integral, triple_integral_sparse
-from methods.triple_product import TripleProduct, perf
+from methods.triple_product import TripleProduct, fast_eval
 from references.gbuffer import make_gbuffer
 from scenes.library import get_scene
 from scenes.materials import Phong
@@ -36,7 +36,7 @@ def _lists(B, K, n, gen, dtype, top=False):
 
 
 def _reference(V, rho, L, K):
-    return perf.evaluate(V, rho, L, K, "reference")
+    return fast_eval.evaluate(V, rho, L, K, "reference")
 
 
 @pytest.mark.parametrize("K,n", [(80, 7), (320, 20), (1280, 40)])
@@ -47,7 +47,7 @@ def test_evaluators_match_dense_reference_float64(K, n):
     assert ref.shape == (16, 3)
     scale = ref.abs().max()
     for ev in ("dense", "sparse", "auto"):
-        got = perf.evaluate(V, rho, L, K, ev)
+        got = fast_eval.evaluate(V, rho, L, K, ev)
         assert (got - ref).abs().max() <= F64 * scale, ev
 
 
@@ -62,7 +62,7 @@ def test_sparse_matches_core_sparse_triple():
     c = torch.randn(B, K, generator=gen, dtype=torch.float64)
     want = triple_integral_sparse(a_idx, a_val, b_idx, b_val, c)
     full = torch.arange(K).expand(B, K)
-    got = perf.triple_sparse((a_idx, a_val[:, None]), (b_idx, b_val[:, None]), (full, c[:, None]), K)
+    got = fast_eval.triple_sparse((a_idx, a_val[:, None]), (b_idx, b_val[:, None]), (full, c[:, None]), K)
     assert (got[:, 0] - want).abs().max() <= F64 * want.abs().max()
 
 
@@ -70,21 +70,21 @@ def test_top_selection_runs_at_the_coarse_level_and_matches():
     """Indices < 80 at K = 1280: the dense evaluator works at K' = 80 (level 1) — same sums."""
     gen = torch.Generator().manual_seed(1)
     V, rho, L = _lists(8, 1280, 80, gen, torch.float64, top=True)
-    assert perf._effective_size(V, rho, L) == 80
+    assert fast_eval._effective_size(V, rho, L) == 80
     ref = _reference(V, rho, L, 1280)
-    got = perf.evaluate(V, rho, L, 1280, "dense")
+    got = fast_eval.evaluate(V, rho, L, 1280, "dense")
     assert (got - ref).abs().max() <= F64 * ref.abs().max()
 
 
 def test_fine_values_and_blocked_layout():
     gen = torch.Generator().manual_seed(2)
     x = torch.randn(4, 1280, generator=gen, dtype=torch.float64)
-    assert torch.allclose(perf.fine_values(x), inverse(x), rtol=0, atol=1e-12)
-    pos = perf.blocked_order(3)
+    assert torch.allclose(fast_eval.fine_values(x), inverse(x), rtol=0, atol=1e-12)
+    pos = fast_eval.blocked_order(3)
     assert torch.equal(torch.sort(pos).values, torch.arange(1280))  # a permutation
     xb = torch.empty_like(x)
     xb[:, pos] = x
-    fb = perf.fine_values_blocked(xb)
+    fb = fast_eval.fine_values_blocked(xb)
     # same multiset of fine values (the order is ord_L)
     assert torch.allclose(fb.sort(-1).values, inverse(x).sort(-1).values, rtol=0, atol=1e-12)
 
@@ -92,11 +92,11 @@ def test_fine_values_and_blocked_layout():
 def test_bad_inputs():
     idx = torch.zeros(2, 3, dtype=torch.long)
     with pytest.raises(ValueError):
-        perf.evaluate((idx, torch.zeros(2, 2, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 80)
+        fast_eval.evaluate((idx, torch.zeros(2, 2, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 80)
     with pytest.raises(ValueError):
-        perf.evaluate((idx, torch.zeros(2, 1, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 81)
+        fast_eval.evaluate((idx, torch.zeros(2, 1, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 81)
     with pytest.raises(ValueError):
-        perf.evaluate((idx, torch.zeros(2, 1, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 80,
+        fast_eval.evaluate((idx, torch.zeros(2, 1, 3)), (idx, torch.zeros(2, 3, 3)), (idx, torch.zeros(2, 3, 3)), 80,
                       "fastest")
 
 
@@ -121,7 +121,7 @@ def test_render_equals_reference_render(scene_frame, cfg):
     scale = ref.abs().max()
     assert scale > 0
     for ev in ("auto", "dense", "sparse"):  # "auto" = the default config
-        fast = perf.use_fast_shading(m, ev)
+        fast = fast_eval.use_fast_shading(m, ev)
         assert fast.config["evaluator"] == ev and m.config["evaluator"] == "reference"  # a copy says what ran
         img = fast.render(frame, gb)
         assert (img - ref).abs().max() <= F32 * scale, ev
@@ -140,7 +140,7 @@ def test_render_with_texture_sbrdf_bump_equals_reference(scene_frame, level, n):
     m.set_bump("plane", torch.rand(8, 8, generator=gen), 0.02)
     ref = m.render(frame, gb)
     for ev in ("dense", "sparse"):
-        assert (perf.use_fast_shading(m, ev).render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
+        assert (fast_eval.use_fast_shading(m, ev).render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
 
 
 def test_bytes_per_frame_tiny_config(scene_frame):
@@ -154,24 +154,24 @@ def test_bytes_per_frame_tiny_config(scene_frame):
     frames = N * 9 * 4                          # vertex frames (vertex shading)
     tables = R * n_o * n * (4 + 3 * 4)          # idx + RGB values per ωo
     grid = F * n * (4 + 3 * 4)                  # truncated lighting grid
-    assert perf.bytes_per_frame(m, "V") == vis + frames + tables + grid   # before the lighting is set
+    assert fast_eval.bytes_per_frame(m, "V") == vis + frames + tables + grid   # before the lighting is set
     m.render(frame, gb)
-    assert perf.bytes_per_frame(m, "V") == vis + frames + tables + grid
+    assert fast_eval.bytes_per_frame(m, "V") == vis + frames + tables + grid
     H, W = frame.envmap.data.shape[:2]
     relight = H * W * 3 * 4 + 2 * F * 3 * K * 4 + grid
-    assert perf.bytes_per_frame(m, "VL", envmap=frame.envmap) == vis + frames + tables + grid + relight
-    assert perf.bytes_per_frame(m, "VBL", envmap=frame.envmap) == perf.bytes_per_frame(m, "VL", envmap=frame.envmap)
-    assert perf.bytes_per_frame(m, "VL") == perf.bytes_per_frame(m, "VL", envmap=scene.envmap)  # default
+    assert fast_eval.bytes_per_frame(m, "VL", envmap=frame.envmap) == vis + frames + tables + grid + relight
+    assert fast_eval.bytes_per_frame(m, "VBL", envmap=frame.envmap) == fast_eval.bytes_per_frame(m, "VL", envmap=frame.envmap)
+    assert fast_eval.bytes_per_frame(m, "VL") == fast_eval.bytes_per_frame(m, "VL", envmap=scene.envmap)  # default
     with pytest.raises(ValueError):
-        perf.bytes_per_frame(m, "P")
+        fast_eval.bytes_per_frame(m, "P")
     cfg = dict(m.config)
     pixel = TripleProduct(**{**cfg, "shading": "pixel"}, progress=False)  # frames are rebuilt from the G-buffer: not read
     pixel.precompute(scene)
     pixel.render(frame, gb)
-    assert perf.bytes_per_frame(pixel, "V") == vis + tables + grid
+    assert fast_eval.bytes_per_frame(pixel, "V") == vis + tables + grid
     exact = TripleProduct(**{**cfg, "light_lookup": "exact"}, progress=False)
     exact.precompute(scene)
-    assert perf.bytes_per_frame(exact, "V") is None
+    assert fast_eval.bytes_per_frame(exact, "V") is None
 
 
 def test_fast_shading_follows_material_edits(scene_frame):
@@ -181,10 +181,10 @@ def test_fast_shading_follows_material_edits(scene_frame):
     scene, frame, gb = scene_frame
     m = TripleProduct(level=2, n_coeffs=20, progress=False)
     m.precompute(scene)
-    m = perf.use_fast_shading(m, "dense")
+    m = fast_eval.use_fast_shading(m, "dense")
     first = m.render(frame, gb)
     edited = dataclasses.replace(frame, materials={**frame.materials, "sphere": Phong(kd=0.1, ks=0.6, s=40.0)})
     fast = m.render(edited, gb)
-    ref = perf.use_reference_shading(m).render(edited, gb)
+    ref = fast_eval.use_reference_shading(m).render(edited, gb)
     assert (fast - first).abs().max() > 100 * F32 * ref.abs().max()  # the edit shows
     assert (fast - ref).abs().max() <= F32 * ref.abs().max()

@@ -1,18 +1,18 @@
 """Frame times, memory and roofline of TripleProduct (Ma 2006; issue #7 "Performance").
 
-    python -m methods.triple_product.bench --size bench                  # default config
-    python -m methods.triple_product.bench --size bench --preset paper   # level 4, n = 320, paper grid
-    python -m methods.triple_product.bench --micro                        # evaluator micro-benchmark
+    python -m benchmarks.triple_product --size bench                  # default config
+    python -m benchmarks.triple_product --size bench --preset paper   # level 4, n = 320, paper grid
+    python -m benchmarks.triple_product --micro                        # evaluator micro-benchmark
 
 Per evaluator — "class": whatever ``TripleProduct._shade`` does (today the dense `triple_integral`
-of densified vectors in chunks of ~1000 points); the names of `perf.EVALUATORS` go through
-`perf.shade` ("reference" = that same dense `triple_integral`, in `perf.INNER_POINTS` sub-batches)
+of densified vectors in chunks of ~1000 points); the names of `fast_eval.EVALUATORS` go through
+`fast_eval.shade` ("reference" = that same dense `triple_integral`, in `fast_eval.INNER_POINTS` sub-batches)
 — the median wall and process-CPU time (CPU time is the steadier number on a shared machine) of
 ``--frames`` − 1 frames after one warm-up frame, for a "V" sequence (view changes; lighting fixed)
 and a "VL" sequence (`make_sequence` "VBL" with the materials held at the scene's: the env map
 rotates every frame, so each frame re-projects the lighting grid; BRDF edits are not scored for
 this method). Also: `method.memory()` (after the renders, lighting grid included),
-`perf.bytes_per_frame` and the roofline efficiency (bytes_per_frame / BANDWIDTH) / frame time.
+`fast_eval.bytes_per_frame` and the roofline efficiency (bytes_per_frame / BANDWIDTH) / frame time.
 Paper (Ma 2006 Table 3, 1024×768, ATI X1900 XTX, 2006): 15–97 fps with visibility textures,
 6.8–21.5 fps with interpolated per-vertex visibility (the mode of the default config).
 
@@ -75,9 +75,9 @@ def vl_sequence(scene, n_frames: int, seed: int):
 def time_sequence(method, frames, gbuffers, evaluator: str) -> tuple[list[float], list[float]]:
     """Wall and process-CPU seconds per frame for frames[1:] after rendering frames[0] (warm-up,
     lighting set). On a shared machine the CPU time (1 thread) is the steadier of the two."""
-    from methods.triple_product import perf
+    from methods.triple_product import fast_eval
 
-    method = perf.use_reference_shading(method) if evaluator == "class" else perf.use_fast_shading(method, evaluator)
+    method = fast_eval.use_reference_shading(method) if evaluator == "class" else fast_eval.use_fast_shading(method, evaluator)
     method._light_key = None  # the first frame builds the lighting grid
     method.render(frames[0], gbuffers[0])
     ts, cpu = [], []
@@ -91,14 +91,14 @@ def time_sequence(method, frames, gbuffers, evaluator: str) -> tuple[list[float]
 
 def check_equal(method, frame, gbuffer, evaluators) -> dict[str, float]:
     """Max |image − "class" image| / max |"class" image| of each evaluator on one frame."""
-    from methods.triple_product import perf
+    from methods.triple_product import fast_eval
 
-    ref = perf.use_reference_shading(method).render(frame, gbuffer)
+    ref = fast_eval.use_reference_shading(method).render(frame, gbuffer)
     out = {}
     for ev in evaluators:
         if ev == "class":
             continue
-        img = perf.use_fast_shading(method, ev).render(frame, gbuffer)
+        img = fast_eval.use_fast_shading(method, ev).render(frame, gbuffer)
         out[ev] = float((img - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
     return out
 
@@ -108,7 +108,7 @@ def micro(threads: int, points: int = 32, reps: int = 5) -> list[dict]:
     3 V rows, 4 ρ̃ rows, 8 L rows of n entries each (dense lists when n = K). The costs depend on
     the list lengths and K, not on the index values."""
     from methods.core.spherical_haar import support_areas
-    from methods.triple_product import perf
+    from methods.triple_product import fast_eval
 
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(0)
@@ -128,10 +128,10 @@ def micro(threads: int, points: int = 32, reps: int = 5) -> list[dict]:
             for _ in range(reps):
                 for ev in evs:
                     t = time.perf_counter()
-                    perf.evaluate(V, rho, L, K, ev)
+                    fast_eval.evaluate(V, rho, L, K, ev)
                     best[ev] = min(best[ev], time.perf_counter() - t)
             rows.append({"threads": threads, "K": K, "n": n,
-                         "auto": perf.choose_evaluator(7 * n, K) if n < K else "dense",
+                         "auto": fast_eval.choose_evaluator(7 * n, K) if n < K else "dense",
                          **{f"{e}_us": round(v / points * 1e6, 1) for e, v in best.items()}})
             print(json.dumps(rows[-1]), flush=True)
     return rows
@@ -156,10 +156,9 @@ def main(argv=None) -> dict:
         return {"micro": micro(1) + micro(2)}
     import ast
 
-    from methods.triple_product import perf
-    from references.gbuffer import make_gbuffer
+    from benchmarks.common import setup
+    from methods.triple_product import fast_eval
     from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
     torch.set_num_threads(a.threads)
     cfg = preset_config(a.preset)
@@ -172,13 +171,10 @@ def main(argv=None) -> dict:
     out = {"scene": a.scene, "size": a.size, "preset": a.preset, "config": m.config, "threads": a.threads,
            "precompute_s": pre_s, "paper_fps_table3": PAPER_FPS}
     for kind in a.kinds.split(","):
-        if kind == "V":
-            frames = make_sequence(scene, "V", n_frames=a.frames, seed=0)
-        else:
-            frames = vl_sequence(scene, a.frames, 0)
-        gbs = [make_gbuffer(scene, f, a.spp_side) for f in frames]
+        _, frames, gbs, _ = setup(scene, kind="V", n_frames=a.frames, seed=0, spp_side=a.spp_side,
+                                  frames=None if kind == "V" else vl_sequence(scene, a.frames, 0))
         out["shading_points"] = int(gbs[0].hit.sum())
-        bpf = perf.bytes_per_frame(m, kind, envmap=frames[-1].envmap)
+        bpf = fast_eval.bytes_per_frame(m, kind, envmap=frames[-1].envmap)
         out[f"bytes_per_frame_{kind}"] = bpf
         if kind == "V":
             out["max_rel_diff_vs_class"] = check_equal(m, frames[0], gbs[0], evaluators)

@@ -8,7 +8,7 @@ vertices, ρ̃ = Σ_o w_o ρ̃_o over four tabulated outgoing directions. A blen
 *list*: indices (B, m) with duplicates allowed and values (B, C, m), m = k·n, C = 1 or 3 — the
 tripling is trilinear, so a list with repeated indices is the same function as its coalesced form.
 
-Two exact evaluators of the same sum (chosen by `choose_evaluator`; measured in ``bench.py``):
+Two exact evaluators of the same sum (chosen by `choose_evaluator`; measured by ``python -m benchmarks.triple_product --micro``):
 
 * ``"dense"`` — scatter the three lists into dense vectors and use the *fine-value identity*: the
   product of three level-L piecewise-constant functions is level-L piecewise constant, so
@@ -64,7 +64,7 @@ from methods.triple_product.precompute import truncate
 EVALUATORS = ("auto", "dense", "sparse", "reference")
 # "auto" picks "sparse" when the enumerated entries per point (m_a + m_b) times this factor are
 # fewer than K: a sparse entry costs ≈ 6·(1 + 3L) gathers, a dense coefficient ≈ 20 streaming ops
-# over 7 channels. Measured (`python -m methods.triple_product.bench --micro`, 32 points, 1 thread,
+# over 7 channels. Measured (`python -m benchmarks.triple_product --micro`, 32 points, 1 thread,
 # µs/point dense vs sparse): K = 5120, n = 20 (K/(7n) = 37): 87 vs 54; K = 1280, n = 20 (ratio 9):
 # 20 vs 25; K = 5120, n = 80 (ratio 9): 99 vs 131. On a real bench-size frame (sphere_plane,
 # level 4, n = 20): sparse 2.7 s vs dense 6.2 s CPU.

@@ -1,0 +1,27 @@
+"""The set-up every benchmark script starts from: scene → frames → G-buffers → references.
+
+    scene, frames, gbuffers, references = setup("alcove", "test", ref_spp=256, bounces=(0, 1))
+
+A thin wrapper of `references.setup.frame_setup` (the same helper the paper studies in
+``methods/<m>/study.py`` use) that also builds the scene by name.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+from references.setup import frame_setup
+from scenes.library import get_scene
+
+
+def setup(scene_name, size: str = "test", *, kind: str = "V", n_frames: int = 1, seed: int = 0,
+          spp_side: int = 2, ref_spp: int = 0, bounces: Sequence[int | None] = (0,), frames=None):
+    """(scene, frames, gbuffers, references) for ``scene_name`` (a library name, or a `Scene`).
+
+    frames: ``make_sequence(scene, kind, n_frames, seed)`` unless given; gbuffers: one per frame
+    (``spp_side``² samples per pixel); references: bounces → `references.render.Reference` of the
+    first frame at ``ref_spp`` samples per pixel (seed ``seed``; empty when ``ref_spp`` is 0).
+    """
+    scene = get_scene(scene_name, size) if isinstance(scene_name, str) else scene_name
+    st = frame_setup(scene, frames=frames, kind=kind, n_frames=n_frames, seed=seed, spp_side=spp_side,
+                     ref_spp=ref_spp, bounces=bounces)
+    return st.scene, st.frames, st.gbuffers, st.references
