@@ -165,7 +165,7 @@ def cmd_study(args) -> int:
 
     if args.list or args.name is None:
         for name, st in sorted(studies.STUDIES.items()):
-            print(f"{name:28s} {st.paper or 'cross-method':18s} {st.description}")
+            print(f"{name:28s} {st.paper or 'cross-method':20s} {st.description}")
         return 0 if args.list else 2
     if args.name not in studies.STUDIES:
         print(f"unknown study {args.name!r}; available: {', '.join(sorted(studies.STUDIES))}", file=sys.stderr)

@@ -29,7 +29,8 @@ def test_run_resume_and_compare(tmp_path, capsys):
     code, out = _run(capsys, tmp_path / "a", hist)
     assert code == 0, out
     run_id = re.search(r"run (\S+):", out).group(1)
-    assert "3 cells ok, 1 n/a, 0 failed" in out
+    # smoke kinds V, VBL, L, E: fake runs V, L, E (VBL n/a: fixed BRDFs), fake_gi all four
+    assert "7 cells ok, 1 n/a, 0 failed" in out
     report = re.search(r"report:\s+(\S+)", out).group(1)
     assert report.endswith("a/report.html") and (tmp_path / "a" / "report.html").exists()
 
@@ -60,8 +61,8 @@ def test_run_resume_and_compare(tmp_path, capsys):
 
 def test_references_subcommand(capsys):
     assert run_bench.main(["references", "--suite", "smoke", *FAKE, "--methods", "fake", "--quiet"]) == 0
-    # smoke: V only for "fake" (VBL is n/a) → 3 frames + the equal-error ladder's other spp (16)
-    assert "4 references ready" in capsys.readouterr().out
+    # smoke: V, L, E for "fake" (VBL is n/a) → 3 × (3 frames + the equal-error ladder's other spp (16))
+    assert "12 references ready" in capsys.readouterr().out
 
 
 def test_study_subcommand_is_wired(tmp_path, monkeypatch, capsys):
