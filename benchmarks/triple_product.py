@@ -16,10 +16,7 @@ this method). Also: `method.memory()` (after the renders, lighting grid included
 Paper (Ma 2006 Table 3, 1024×768, ATI X1900 XTX, 2006): 15–97 fps with visibility textures,
 6.8–21.5 fps with interpolated per-vertex visibility (the mode of the default config).
 
-Measured (sphere_plane bench, 256², S = 1 → 65 536 points, 1 thread, CPU s/frame, "V"):
-default config (level 3, all 1280 coefficients) class 36.1, auto 4.9; level 4 n = 320 "top"
-class 31.9, auto 1.8; level 4 n = 20 adaptive dense 6.2, sparse 2.7; paper preset (level 4,
-n = 320 adaptive, 16 384-frame grid) auto 9.0 ("VL": 62, mostly the grid re-projection).
+Its numbers are in the README (frame times at bench size), not here: they drift with the machine.
 
 Every run precomputes (no cache of its own: the harness's ``reports.precompute_cache`` is the
 project's one precompute cache and serves ``run_bench.py`` cells).

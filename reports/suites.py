@@ -5,8 +5,8 @@
   on 2 cores.
 * ``nightly``: every library scene at bench size, all methods, V / VB / VBL (+ P for dynamic
   scenes), bounces 0 (+ 1, 2, full for methods with ``max_bounces > 0``), 5-frame sequences with 2
-  scored frames, 256-spp references, the oracle at 4+4 samples. Target ≤ 30 min, NOT met today
-  (measured per method, see NIGHTLY).
+  scored frames, 256-spp references, the oracle at 4+4 samples. Target ≤ 30 min on 2 cores (the
+  README gives the measured wall time).
 
 ``Capabilities.why_not`` decides which cells are in scope; out-of-scope cells are still planned,
 with their reason in ``Cell.na``, so the report shows the whole matrix.
@@ -61,9 +61,6 @@ SMOKE = Suite(name="smoke", size="test", scenes=("sphere_plane", "bunny"), kinds
 # 256² at 256 spp) are cached after the first night. Cells run in-process (spawning one child per
 # cell costs ~6 s of imports each); ``--isolate`` gives per-cell peak RSS at that price. On more
 # machines: ``--executor dask --scheduler tcp://host:8786`` (reports/executors.py, README).
-# Measured 2026-12-02 (2 cores): triple_product's 5 V cells 39 min (≈ 5 min each alone: five 45-s
-# frames of 256² × 4 samples), ptt on chess + alcove ≈ 11 min — so the whole suite takes well over an
-# hour on this machine kind; it has not been timed end to end.
 NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VBL"), dynamic_kinds=("P",),
                 n_frames=5, score_frames=(1, 4), ref_spp=256, extra_bounces=(1, 2, FULL),
                 configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'),
