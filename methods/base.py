@@ -24,12 +24,15 @@ per-region material parameters, and the pose of an articulated scene.
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar
 
+import torch
 from torch import Tensor
 
 from scenes.frame import Frame, GBuffer  # noqa: F401  (re-exported: part of the Method contract)
@@ -150,9 +153,58 @@ class Method(ABC):
         """Deprecated: bytes a frame touches, without the G-buffer (use ``frame_cost``)."""
         return None
 
+    def to(self, device) -> "Method":
+        """This (precomputed) method with every run-time tensor on ``device``: a copy whose tensor
+        attributes — also inside dicts, lists, tuples and objects of this project's classes — are
+        moved; shared inputs (the scene) are copied, never moved in place. Methods render on the
+        device of their arrays and of the G-buffer (device-agnostic torch), so the harness calls
+        ``method.to(d)`` after ``precompute`` and renders ``gbuffer.to(d)``."""
+        device = torch.device(device)
+        memo: dict[int, Any] = {}
+        m = copy.copy(self)
+        m.__dict__ = {k: _to_device(v, device, memo) for k, v in self.__dict__.items()}
+        return m
+
     def __repr__(self) -> str:
         cfg = ", ".join(f"{k}={v!r}" for k, v in sorted(self.config.items()))
         return f"{type(self).__name__}({cfg})"
+
+
+def _to_device(x, device, memo: dict[int, Any]):
+    """``x`` with its tensors on ``device`` (``Method.to``): containers and project objects are
+    rebuilt (memoised by identity, so shared and cyclic references stay shared), other values kept."""
+    if isinstance(x, (str, bytes, int, float, bool, type(None), torch.device, torch.dtype)):
+        return x
+    if id(x) in memo:
+        return memo[id(x)]
+    if isinstance(x, Tensor):
+        memo[id(x)] = out = x if x.device == device else x.to(device)
+        return out
+    if isinstance(x, dict):
+        out: Any = {}
+        memo[id(x)] = out
+        out.update({k: _to_device(v, device, memo) for k, v in x.items()})
+        return out
+    if isinstance(x, list):
+        out = []
+        memo[id(x)] = out
+        out.extend(_to_device(v, device, memo) for v in x)
+        return out
+    if isinstance(x, tuple) and not hasattr(x, "_fields"):
+        out = tuple(_to_device(v, device, memo) for v in x)
+        memo[id(x)] = out
+        return out
+    mod = type(x).__module__ or ""
+    if hasattr(x, "__dict__") and not isinstance(x, type) and mod.split(".")[0] in ("methods", "scenes"):
+        out = copy.copy(x)
+        memo[id(x)] = out
+        if dataclasses.is_dataclass(x) and getattr(type(x), "__dataclass_params__").frozen:
+            for k, v in x.__dict__.items():
+                object.__setattr__(out, k, _to_device(v, device, memo))
+        else:
+            out.__dict__.update({k: _to_device(v, device, memo) for k, v in x.__dict__.items()})
+        return out
+    return x
 
 
 def tensor_bytes(*tensors: Tensor | None) -> int:

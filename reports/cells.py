@@ -78,6 +78,8 @@ class Cell:
     is from the real image) — set by the suites for methods with ``max_bounces > 0``.
     backend: module providing scenes/references/metrics (see ``reports.backend``).
     plugins: modules imported before the method is looked up (e.g. tests registering a method).
+    device: torch device the method renders on ("cpu", "cuda"): after ``precompute`` the method and
+    every G-buffer are moved there (``Method.to``, ``GBuffer.to``); metrics are computed on the CPU.
     """
 
     scene: str
@@ -99,6 +101,7 @@ class Cell:
     score_full_gi: bool = False
     backend: str = "reports.backend"
     plugins: tuple[str, ...] = ()
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:

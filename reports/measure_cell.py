@@ -236,6 +236,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         # one precomputation for every bounce count; the cell renders exactly cell.bounces
         # (`Method.with_bounces`, e.g. Sun 2007 Fig. 11's direct / +1 / +2 columns)
         method = method.with_bounces(cell.bounces)
+    if cell.device != "cpu":
+        method = method.to(cell.device)
     scored = set(cell.scored())
     times: list[float] = []
     errors: dict[str, list[tuple[float, float]]] = {}
@@ -245,8 +247,12 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     bar = tqdm(frames, desc=cell.key()[:48], leave=False, disable=None if progress else True, unit="frame")
     for i, frame in enumerate(bar):
         gb = be.make_gbuffer(scene, frame, cell.spp_side)
+        if cell.device != "cpu":
+            gb = gb.to(cell.device)
         t0 = time.perf_counter()
         img = method.render(frame, gb)
+        if img.device.type == "cuda":
+            torch.cuda.synchronize(img.device)  # the frame is done when its image is
         dt = time.perf_counter() - t0
         times.append(dt)
         if timed:
@@ -277,7 +283,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
             ffloor = _finite_float(full.noise_floor)
             rows.append(_row("rmse_full_gi", v, frame=i, noise_floor=ffloor))
             errors.setdefault("rmse_full_gi", []).append((v, ffloor))
-        last = (i, frame, gb, img.detach().cpu().float(), ref, mask)
+        last = (i, frame, gb.to("cpu"), img.detach().cpu().float(), ref, mask)
         if cell.kind == "E":  # every probe's image, for the report's strip (reports.html.probe_strip)
             strip.append((i, last[3], ref_img, mask))
 

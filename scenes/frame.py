@@ -94,6 +94,15 @@ class GBuffer:
         w = w.to(values.dtype).view(*w.shape, *([1] * (values.dim() - 1)))
         return (vals * w).sum(1)
 
+    def to(self, device) -> "GBuffer":
+        """This G-buffer with every array on ``device`` (a copy; itself if already there)."""
+        device = torch.device(device)
+        if self.hit.device == device:
+            return self
+        arrays = {k: getattr(self, k).to(device) for k in ("hit", "face", "bary", "position", "normal", "wo", "region",
+                                                           "coverage")}
+        return GBuffer(self.height, self.width, self.spp_side, **arrays)
+
     def resolve(self, per_sample: Tensor) -> Tensor:
         """Box-filter per-sample radiance (P, 3) into an image (H, W, 3); misses count as 0."""
         if per_sample.shape != (self.num_samples, 3):
