@@ -9,11 +9,38 @@ A film sample (sx, sy) ∈ [0,1]² (0,0 = top-left) maps to the camera-space poi
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
+
+
+# Largest film the harness accepts (width × height): G-buffers, references and method images hold
+# several float32 values per sub-sample, so memory grows ~100 B per pixel per buffer. The default
+# allows the bench sizes with room (4096² px); the environment variable overrides it.
+MAX_PIXELS = 4096 * 4096
+MAX_PIXELS_ENV = "PRTBENCH_MAX_PIXELS"
+
+
+def _env_limit(var: str, default: int) -> int:
+    """A positive integer limit from the environment variable ``var`` (``default`` if unset)."""
+    raw = os.environ.get(var)
+    if raw is None or raw.strip() == "":
+        return default
+    try:
+        v = int(raw)
+    except ValueError:
+        raise ValueError(f"environment variable {var} must be a positive integer, got {raw!r}") from None
+    if v < 1:
+        raise ValueError(f"environment variable {var} must be a positive integer, got {raw!r}")
+    return v
+
+
+def max_pixels() -> int:
+    """The film size limit in pixels: ``$PRTBENCH_MAX_PIXELS`` or `MAX_PIXELS`."""
+    return _env_limit(MAX_PIXELS_ENV, MAX_PIXELS)
 
 
 def _vec3(x, name: str) -> tuple[float, float, float]:
@@ -50,6 +77,11 @@ class Camera:
             if int(v) != v or int(v) < 1:
                 raise ValueError(f"camera {k} must be a positive integer, got {v!r}")
             object.__setattr__(self, k, int(v))
+        limit = max_pixels()
+        if self.width * self.height > limit:
+            raise ValueError(f"camera width × height = {self.width} × {self.height} = "
+                             f"{self.width * self.height} pixels exceeds the limit of {limit} "
+                             f"(set {MAX_PIXELS_ENV} to raise it)")
         d = np.subtract(self.target, self.origin)
         if np.linalg.norm(d) == 0:
             raise ValueError("camera origin and target coincide")

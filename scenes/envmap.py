@@ -44,6 +44,55 @@ PROBE_HEIGHT = 256
 # to_world must be a rotation to this tolerance (float32 round-off of a composed rotation).
 _ROTATION_TOL = 1e-4
 
+# Largest env map accepted (H × W texels; the bench maps are far smaller): the texels, their
+# sampling tables and the methods' projections are each several float32/float64 copies of the map.
+# Default 4096 × 8192; the environment variable overrides it.
+MAX_ENV_TEXELS = 4096 * 8192
+MAX_ENV_TEXELS_ENV = "PRTBENCH_MAX_ENV_TEXELS"
+# An env map whose brightest texel or solid-angle mean luminance is at or below this lights
+# nothing measurable: every method would score a "perfect" error of ~0 against a black reference.
+MIN_ENV_RADIANCE = 1e-6
+
+
+def max_env_texels() -> int:
+    """The env-map size limit in texels: ``$PRTBENCH_MAX_ENV_TEXELS`` or `MAX_ENV_TEXELS`."""
+    raw = os.environ.get(MAX_ENV_TEXELS_ENV)
+    if raw is None or raw.strip() == "":
+        return MAX_ENV_TEXELS
+    try:
+        v = int(raw)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise ValueError(f"environment variable {MAX_ENV_TEXELS_ENV} must be a positive integer, got {raw!r}")
+    return v
+
+
+class TooLarge(ValueError):
+    """An env map above the size limit (`check_size`)."""
+
+
+def check_size(height: int, width: int, what: str = "env map") -> None:
+    """`TooLarge` (a ValueError) if an H × W map exceeds `max_env_texels()` (call before allocating it)."""
+    limit = max_env_texels()
+    if height * width > limit:
+        raise TooLarge(f"{what} height × width = {height} × {width} = {height * width} texels exceeds the "
+                         f"limit of {limit} (set {MAX_ENV_TEXELS_ENV} to raise it)")
+
+
+def check_lit(env: "EnvMap", what: str = "env map") -> "EnvMap":
+    """``env`` if it lights the scene; ValueError if it is black or nearly black (its brightest
+    texel, or its solid-angle mean luminance, is at most `MIN_ENV_RADIANCE`)."""
+    peak = float(env.data.max())
+    if peak <= MIN_ENV_RADIANCE:
+        raise ValueError(f"{what} is black (brightest texel {peak:.3g} <= {MIN_ENV_RADIANCE:g}): it lights nothing, "
+                         f"so every method would score a perfect error against a black reference")
+    lum = float((env.mean_radiance().double() * torch.tensor(_LUM, dtype=torch.float64)).sum())
+    if lum <= MIN_ENV_RADIANCE:
+        raise ValueError(f"{what} is nearly black (mean luminance {lum:.3g} <= {MIN_ENV_RADIANCE:g} over the sphere): "
+                         f"it lights nothing measurable")
+    return env
+
 
 def _as_rotation(R) -> Tensor:
     R = torch.as_tensor(np.asarray(R.detach().cpu() if isinstance(R, Tensor) else R, dtype=np.float64))
@@ -69,6 +118,7 @@ def _check_data(data) -> Tensor:
         raise ValueError(f"env map data must have shape (H, W, 3), got {tuple(t.shape)}")
     if t.shape[0] < 3 or t.shape[1] < 2:
         raise ValueError(f"env map must be at least 3 rows × 2 columns (Mitsuba's limit), got {tuple(t.shape)}")
+    check_size(int(t.shape[0]), int(t.shape[1]))
     if not torch.isfinite(t).all():
         raise ValueError("env map data contains NaN/Inf texels")
     if (t < 0).any():
@@ -251,8 +301,9 @@ class EnvMap:
     # -- files
     @classmethod
     def load(cls, path, to_world=None) -> "EnvMap":
-        """Read an ``.exr`` (OpenEXR) or ``.hdr`` (Radiance RGBE) lat-long map."""
-        return cls(read_image(path), to_world)
+        """Read an ``.exr`` (OpenEXR) or ``.hdr`` (Radiance RGBE) lat-long map; ValueError if it is
+        unreadable, too large (`check_size`) or black (`check_lit`)."""
+        return check_lit(cls(read_image(path), to_world), f"env map {str(path)!r}")
 
     def save(self, path) -> None:
         """Write the texels (not the rotation) as ``.exr`` (float32) or ``.hdr`` (RGBE)."""
@@ -276,6 +327,8 @@ def read_image(path) -> np.ndarray:
         raise ValueError(f"cannot read env map {str(p)!r}: file not found")
     try:
         arr = _read_exr(p) if ext == ".exr" else _read_rgbe(p)
+    except TooLarge as e:
+        raise TooLarge(f"env map {str(p)!r}: {e}") from e
     except Exception as e:  # corrupt file: one clear message with the underlying reason
         raise ValueError(f"cannot read env map {str(p)!r}: corrupt or unsupported file ({type(e).__name__}: {e})") from e
     return np.ascontiguousarray(arr, dtype=np.float32)
@@ -301,6 +354,9 @@ def _read_exr(p: Path) -> np.ndarray:
 
     if not OpenEXR.isOpenExrFile(str(p)):
         raise ValueError("not an OpenEXR file")
+    with OpenEXR.File(str(p), header_only=True) as f:  # the size before the pixels are allocated
+        (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in f.header()["dataWindow"])
+    check_size(y1 - y0 + 1, x1 - x0 + 1)
     with OpenEXR.File(str(p)) as f:
         ch = f.channels()
         if "RGB" in ch:
@@ -400,6 +456,7 @@ def _read_rgbe(p: Path) -> np.ndarray:
     H, W = int(res[1]), int(res[3])
     if H <= 0 or W <= 0:
         raise ValueError("bad resolution")
+    check_size(H, W)  # before allocating the pixels
     out = np.zeros((H, W, 4), np.uint8)
     buf = memoryview(raw)
     for y in range(H):
@@ -499,6 +556,7 @@ def procedural(name: str, *, height: int = 128, seed: int = 0) -> EnvMap:
     if height < 3:
         raise ValueError(f"height must be >= 3, got {height}")
     W = 2 * height
+    check_size(height, W, f"procedural env map {name!r}")
     g = torch.Generator().manual_seed(int(seed))
 
     def rnd(lo, hi):
@@ -587,6 +645,7 @@ def named(name: str, *, height: int, seed: int = 0) -> EnvMap:
     raise ValueError(f"unknown env map {name!r}; choose from {', '.join(PROCEDURAL_NAMES + PROBE_NAMES)}")
 
 
-__all__ = ["EnvMap", "procedural", "probe", "named", "PROBE_NAMES", "load", "save", "read_image", "write_image",
+__all__ = ["EnvMap", "procedural", "probe", "named", "PROBE_NAMES", "check_lit", "check_size", "TooLarge",
+           "max_env_texels", "MAX_ENV_TEXELS", "MIN_ENV_RADIANCE", "load", "save", "read_image", "write_image",
            "PROCEDURAL_NAMES",
            "direction_to_uv", "uv_to_direction", "bilinear_lookup", "texel_directions"]

@@ -37,6 +37,38 @@ LUMINANCE_WEIGHTS = (0.212671, 0.715160, 0.072169)
 # Guard for divisions by |wo·h| and normalisations of nearly-opposite vectors.
 _TINY = 1e-12
 
+# -- float32 limits of the lobe parameters (the Mitsuba references and the methods run in float32) --
+# Rule: a lobe's peak normalisation must stay 2²⁴ below FLT_MAX (headroom for the 1/cos factors
+# and the radiance it multiplies).
+# Beckmann (1/(πm²cos⁴θh)), Torrance–Sparrow (1/(4πσ²)) and Ward (1/(4π ax ay √(cosθi cosθo)))
+# peak as 1/(π w²) in the lobe width w: 1/(π w²) ≤ FLT_MAX/2²⁴ ⇔ w ≥ √(2²⁴/(π·FLT_MAX)) ≈ 1.25e-16
+# (Ward: w = √(ax·ay)). The references overflow from m ≈ 1e-19, σ ≈ 1e-21, a ≈ 1e-25 on.
+# Blinn-Phong's (s+2)/(8π) gives s ≤ 8π·FLT_MAX/2²⁴ ≈ 5.1e32 (n·h of a normalised h stays ≤ 1 in
+# float32; its reference is finite up to s = 1e12).
+# Phong is different: its normalisation (s+1)/(2π) is harmless, but R·wi of float32 unit vectors
+# rounds up to δ = 2 ulp = 2·2⁻²³ above 1, and (1+δ)^s = e^{sδ} multiplies the peak: it overflows
+# float32 (ln FLT_MAX = 88.7) at s ≈ (88.7 − ln((s+1)/2π))/δ ≈ 3.0e8, where the Mitsuba reference
+# turns NaN/Inf (pixels of ~1e9 already at s = 1e8). We stop where that factor reaches e (sδ = 1):
+# s ≤ 2²², above any lobe the float32 sphere resolves.
+FLT32_MAX = float(torch.finfo(torch.float32).max)
+_HEADROOM = 2.0**24
+MIN_LOBE_WIDTH = math.sqrt(_HEADROOM / (math.pi * FLT32_MAX))
+MAX_BLINN_EXPONENT = 8.0 * math.pi * FLT32_MAX / _HEADROOM
+MAX_PHONG_EXPONENT = 2.0**22
+
+
+def _max_exponent(s: float, name: str, bound: float, why: str) -> float:
+    if s > bound:
+        raise ValueError(f"{name} = {s!r} exceeds {bound:.3g}: {why}")
+    return s
+
+
+def _min_width(w: float, name: str) -> float:
+    if w < MIN_LOBE_WIDTH:
+        raise ValueError(f"{name} = {w!r} is below {MIN_LOBE_WIDTH:.3g}: the lobe's peak 1/(π·{name}²) overflows "
+                         f"float32 in the Mitsuba reference")
+    return w
+
 
 # -- validation helpers ---------------------------------------------------------------------
 
@@ -343,7 +375,9 @@ class Phong(Material):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        object.__setattr__(self, "s", _positive_float(self.s, "s"))
+        object.__setattr__(self, "s", _max_exponent(
+            _positive_float(self.s, "s"), "s", MAX_PHONG_EXPONENT,
+            "float32 rounding of cos^s overflows the lobe (the Mitsuba reference turns NaN/Inf near s = 3e8)"))
 
     def _spec_eval(self, wi, wo):
         return self._ks(wi) * phong_lobe(wi, wo, self.s)[..., None]  # Mahajan eq. 5
@@ -369,7 +403,8 @@ class BlinnPhong(Material):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        object.__setattr__(self, "s", _positive_float(self.s, "s"))
+        object.__setattr__(self, "s", _max_exponent(
+            _positive_float(self.s, "s"), "s", MAX_BLINN_EXPONENT, "the normalisation (s+2)/(8π) overflows float32"))
 
     def _spec_eval(self, wi, wo):
         return self._ks(wi) * blinn_phong_lobe(wi, wo, self.s)[..., None]
@@ -394,7 +429,7 @@ class CookTorrance(Material):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        object.__setattr__(self, "m", _positive_float(self.m, "m"))
+        object.__setattr__(self, "m", _min_width(_positive_float(self.m, "m"), "m"))
         F0 = _positive_float(self.F0, "F0", allow_zero=True)
         if F0 > 1:
             raise ValueError(f"F0 must lie in [0, 1], got {self.F0!r}")
@@ -428,7 +463,7 @@ class TorranceSparrow(Material):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        object.__setattr__(self, "sigma", _positive_float(self.sigma, "sigma"))
+        object.__setattr__(self, "sigma", _min_width(_positive_float(self.sigma, "sigma"), "sigma"))
 
     def _spec_eval(self, wi, wo):
         h, valid = half_vector(wi, wo)
@@ -458,6 +493,7 @@ class Ward(Material):
         super().__post_init__()
         object.__setattr__(self, "ax", _positive_float(self.ax, "ax"))
         object.__setattr__(self, "ay", _positive_float(self.ay, "ay"))
+        _min_width(math.sqrt(self.ax * self.ay), "sqrt(ax·ay)")
 
     def _spec_eval(self, wi, wo):
         h = wi + wo  # unnormalised: only ratios hx/hz, hy/hz enter
@@ -477,5 +513,5 @@ class Ward(Material):
 
 MATERIAL_KINDS: tuple[str, ...] = ("lambert", "phong", "blinnphong", "cooktorrance", "torrancesparrow", "ward")
 
-__all__ = ["Material", "Lambert", "Phong", "BlinnPhong", "CookTorrance", "TorranceSparrow", "Ward",
+__all__ = ["MAX_PHONG_EXPONENT", "MAX_BLINN_EXPONENT", "MIN_LOBE_WIDTH", "Material", "Lambert", "Phong", "BlinnPhong", "CookTorrance", "TorranceSparrow", "Ward",
            "MATERIAL_KINDS", "luminance"]

@@ -18,6 +18,10 @@ from torch import Tensor
 AREA_EPS = 1e-12
 # Normals shorter than this cannot be normalised reliably.
 NORMAL_EPS = 1e-8
+# A mesh whose bounding-box diagonal is below MIN_EXTENT_REL·(1 + max|p|) is degenerate for float32
+# ray tracing: Mitsuba offsets secondary rays by 1500·2⁻²⁴·(1 + max|p|) ≈ 8.9e-5·(1 + max|p|)
+# (math::RayEpsilon), so such a mesh is at most ~11 ray offsets across and shadows itself at random.
+MIN_EXTENT_REL = 1e-3
 
 
 def _as_tensor(x, dtype) -> Tensor | None:
@@ -159,6 +163,21 @@ def validate(mesh: Mesh) -> Mesh:
     if uv is not None and not torch.isfinite(uv).all():
         raise ValueError("mesh uv has NaN/Inf values")
     return Mesh(V.clone(), F.clone(), N.contiguous(), None if uv is None else uv.clone())
+
+
+def check_extent(mesh: Mesh, what: str = "mesh") -> Mesh:
+    """``mesh`` if its extent is resolvable in float32 ray tracing; ValueError naming ``what`` if its
+    bounding-box diagonal is below `MIN_EXTENT_REL`·(1 + max|p|) (e.g. collapsed by a tiny scale)."""
+    V = mesh.V.double()
+    if V.shape[0] == 0 or not torch.isfinite(V).all():
+        return mesh  # validate() reports these
+    diag = float((V.max(0).values - V.min(0).values).norm())
+    far = float(V.abs().max())
+    if not diag >= MIN_EXTENT_REL * (1.0 + far):
+        raise ValueError(f"{what} is degenerate: its bounding-box diagonal {diag:.3g} is below "
+                         f"{MIN_EXTENT_REL:g}·(1 + max|p|) = {MIN_EXTENT_REL * (1.0 + far):.3g}, too small for float32 "
+                         f"ray tracing at that distance (a collapsed scale?)")
+    return mesh
 
 
 def merge(meshes: list[Mesh]) -> Mesh:

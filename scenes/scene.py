@@ -15,7 +15,8 @@ from torch import Tensor
 
 from scenes.frame import Frame
 from scenes.hashing import hash_envmap, hash_materials, hash_params, hash_tensor
-from scenes.mesh import Mesh
+from scenes.envmap import EnvMap, check_lit
+from scenes.mesh import Mesh, check_extent
 from scenes.skeleton import check_weights, skin
 
 
@@ -107,6 +108,10 @@ class Scene:
                 raise ValueError(f"scene {self.name!r}: animation must be finite (F >= 2, J = "
                                  f"{self.skeleton.num_joints}) joint angles, got {tuple(a.shape)}")
             self.animation = a
+        for s in self.shapes:
+            check_extent(s.mesh, f"shape {s.name!r}")
+        if isinstance(self.envmap, EnvMap):
+            check_lit(self.envmap, f"scene {self.name!r}: env map")
         if self.skin_weights is not None:
             if self.skeleton is None:
                 raise ValueError("skin_weights given without a skeleton")
@@ -184,6 +189,58 @@ class Scene:
                   animation=self.animation)
         kw.update(changes)
         return Scene(**kw)
+
+
+# Sub-samples per pixel side of the coverage test (= references.render's default coverage S).
+COVERAGE_S = 2
+# Pixels of the coarse grid `covered_pixels` tests on a large film (per side).
+COVERAGE_GRID = 64
+# Largest projected-bounding-box region `covered_pixels` tests pixel by pixel.
+COVERAGE_REGION_PIXELS = 4096
+
+
+def covered_pixels(scene: "Scene", camera=None, *, S: int = COVERAGE_S) -> int:
+    """How many of the tested pixels of ``camera`` (default the scene's) are fully covered by the
+    rest geometry: all S×S sub-sample rays (``Camera.pixel_rays``' pattern) hit a triangle — the
+    coverage mask the references score on. 0 means the camera sees no geometry.
+
+    Cheap: it tests a coarse grid of at most `COVERAGE_GRID`² pixels over the film plus every pixel
+    of the film-space bounding box of the vertices in front of the camera when that box holds at
+    most `COVERAGE_REGION_PIXELS` pixels (the case of geometry seen as a few pixels), with Embree.
+    """
+    import math
+
+    import numpy as np
+
+    from methods.core.visibility import Visibility
+
+    cam = camera if camera is not None else scene.camera
+    W, H = cam.width, cam.height
+    g = scene.rest_geometry()
+    step = max(1, math.ceil(max(W, H) / COVERAGE_GRID))
+    jj, ii = np.meshgrid(np.arange(0, H, step), np.arange(0, W, step), indexing="ij")
+    pix = [np.stack([ii.reshape(-1), jj.reshape(-1)], 1)]
+    # film positions of the vertices in front of the camera (Camera.rays inverted)
+    loc = (g.V.double().numpy() - np.asarray(cam.origin)) @ cam.axes()
+    loc = loc[loc[:, 2] > cam.near_clip]
+    if len(loc):
+        tx = math.tan(math.radians(cam.fov_deg) / 2)
+        ty = tx / cam.aspect
+        fx = (1 - loc[:, 0] / (loc[:, 2] * tx)) / 2 * W
+        fy = (1 - loc[:, 1] / (loc[:, 2] * ty)) / 2 * H
+        x0, x1 = int(np.clip(np.floor(fx.min()) - 1, 0, W)), int(np.clip(np.ceil(fx.max()) + 1, 0, W))
+        y0, y1 = int(np.clip(np.floor(fy.min()) - 1, 0, H)), int(np.clip(np.ceil(fy.max()) + 1, 0, H))
+        if 0 < (x1 - x0) * (y1 - y0) <= COVERAGE_REGION_PIXELS:
+            jj, ii = np.meshgrid(np.arange(y0, y1), np.arange(x0, x1), indexing="ij")
+            pix.append(np.stack([ii.reshape(-1), jj.reshape(-1)], 1))
+    pix = np.unique(np.concatenate(pix), axis=0)  # (P, 2) pixel (i, j)
+    s = (np.arange(S) + 0.5) / S
+    sub = np.stack(np.meshgrid(s, s, indexing="xy"), -1).reshape(-1, 2)  # (S², 2) (x, y) offsets
+    px = (pix[:, None, :] + sub[None]).reshape(-1, 2)
+    o, d = cam.rays(torch.as_tensor(px, dtype=torch.float64))
+    hit = Visibility(g.V, g.F, threads=1).occluded(o.float(), d.float())
+    hit = np.asarray(hit).reshape(len(pix), S * S)
+    return int(hit.all(1).sum())
 
 
 def _merge(shapes: list[Shape], regions: list[str]) -> SceneGeometry:

@@ -132,7 +132,7 @@ def _camera(ctx: _Ctx, t: Any):
 
 
 def _envmap(ctx: _Ctx, t: Any):
-    from scenes.envmap import PROCEDURAL_NAMES, EnvMap, procedural
+    from scenes.envmap import PROCEDURAL_NAMES, EnvMap, TooLarge, check_lit, check_size, procedural, read_image
     from scenes.library import aim_key_light, rotation_y
 
     w = "[envmap]"
@@ -152,15 +152,25 @@ def _envmap(ctx: _Ctx, t: Any):
         if p.suffix.lower() not in (".exr", ".hdr"):
             raise ctx.error(w, f"file {rel!r} must be .exr or .hdr")
         try:
-            env = EnvMap.load(p)
+            data = read_image(p)
+        except TooLarge as e:
+            raise ctx.error(w, f"file {rel!r}: {e}") from e
         except Exception as e:  # OpenEXR / RGBE readers raise many types on corrupt files
             raise ctx.error(w, f"file {rel!r} cannot be read: {e}") from e
+        try:
+            env = check_lit(EnvMap(data), "env map")
+        except ValueError as e:
+            raise ctx.error(w, f"file {rel!r}: {e}") from e
     else:
         name = _string(ctx, w, "procedural", t["procedural"])
         if name not in PROCEDURAL_NAMES:
             raise ctx.error(w, f"procedural {name!r} unknown; one of {', '.join(PROCEDURAL_NAMES)}")
         height = _integer(ctx, w, "height", t.get("height", DEFAULT_ENV_HEIGHT), lo=3)
         seed = _integer(ctx, w, "seed", t.get("seed", 0), lo=0)
+        try:
+            check_size(height, 2 * height, "height: procedural map")  # before allocating it
+        except ValueError as e:
+            raise ctx.error(w, str(e)) from e
         env = procedural(name, height=height, seed=seed)
     if "rotate_y_deg" in t:
         a = math.radians(_number(ctx, w, "rotate_y_deg", t["rotate_y_deg"]))
@@ -171,7 +181,7 @@ def _envmap(ctx: _Ctx, t: Any):
 
 
 def _shape(ctx: _Ctx, i: int, t: Any):
-    from scenes.mesh import load_mesh
+    from scenes.mesh import check_extent, load_mesh
     from scenes.scene import Shape
 
     w = f"[[shape]] #{i}"
@@ -198,7 +208,10 @@ def _shape(ctx: _Ctx, i: int, t: Any):
         M = torch.eye(4, dtype=torch.float64)
         M[:3, :3] = torch.diag(torch.tensor(scale, dtype=torch.float64))
         M[:3, 3] = torch.tensor(translate, dtype=torch.float64)
-        mesh = mesh.transformed(M)
+        try:  # a collapsing scale leaves zero-area faces or a point
+            mesh = check_extent(mesh.transformed(M).validate(), "mesh")
+        except ValueError as e:
+            raise ctx.error(w, f"scale/translate: mesh {mesh_rel!r} after the transform: {e}") from e
     return Shape(name, region, mesh)
 
 
@@ -234,7 +247,7 @@ def load_scene_file(path) -> "Scene":  # noqa: F821
     Relative mesh / env-map paths resolve against the TOML file's folder. Any problem raises one
     ValueError naming the file and the offending key.
     """
-    from scenes.scene import Scene
+    from scenes.scene import Scene, covered_pixels
 
     path = Path(path)
     ctx = _Ctx(path)
@@ -278,6 +291,11 @@ def load_scene_file(path) -> "Scene":  # noqa: F821
     materials = {r: _material(ctx, r, mats_t[r]) for r in regions}
     envmap = _envmap(ctx, doc["envmap"])
     try:
-        return Scene(name, shapes, regions, camera, envmap, materials)
+        scene = Scene(name, shapes, regions, camera, envmap, materials)
     except ValueError as e:
         raise ValueError(f"{path.name}: {e}") from e
+    if covered_pixels(scene) == 0:
+        raise ctx.error("[camera]", f"fov_deg/origin/target: the camera sees no geometry (no pixel of its "
+                                    f"{camera.width}×{camera.height} film is covered; fov_deg = {camera.fov_deg:g}, "
+                                    f"origin = {list(camera.origin)}, target = {list(camera.target)})")
+    return scene
