@@ -91,6 +91,18 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _scenes(args) -> list[str] | None:
+    """The scene selection; an unknown library scene or a missing scene file is a ValueError (one
+    line, like an unknown method) before anything is written."""
+    from reports.backend import load_backend
+
+    be = load_backend(args.backend)
+    known = list(be.scene_names()) if hasattr(be, "scene_names") else None
+    for n in args.scenes or []:
+        if known is not None and n not in known and not n.startswith("file:"):
+            raise ValueError(f"unknown scene {n!r}; available: {', '.join(known)}")
+    for f in args.scene_file:
+        if not Path(f).is_file():
+            raise ValueError(f"{f}: scene file not found")
     names = list(args.scenes or [])
     names += [f"file:{Path(f).resolve()}" for f in args.scene_file]
     if args.scene_file and not args.scenes:
@@ -104,24 +116,24 @@ def cmd_run(args) -> int:
     from reports.store import DEFAULT_HISTORY
     from reports.suites import get_suite
 
+    from reports.pipeline import read_run_json
+
     suite = get_suite(args.suite)
+    scenes = _scenes(args)
     out = args.out or Path("out") / suite.name
     history = None if args.no_history else (args.history or DEFAULT_HISTORY)
     if args.fresh:
         from reports.pipeline import clear_run
 
         clear_run(out)
-    elif (out / "run.json").exists():
-        import json
-
-        old = json.loads((out / "run.json").read_text())
+    elif (old := read_run_json(out)) is not None:
         print(f"resuming run {old['run_id']} in {out} (git {old['git_sha'][:12]}); --fresh starts a new one",
               file=sys.stderr)
     executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler)
     try:
         if not args.quiet:
             print(f"executor: {executor.describe()}", file=sys.stderr)
-        res = run_suite(suite, out, methods=args.methods, scenes=_scenes(args), executor=executor,
+        res = run_suite(suite, out, methods=args.methods, scenes=scenes, executor=executor,
                         history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
                         progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
     finally:
@@ -182,9 +194,10 @@ def cmd_report(args) -> int:
 
     from reports import regress, store
     from reports.html import build_report
+    from reports.pipeline import read_run_json
 
     df = store.read_table(args.run_dir)
-    meta = json.loads((args.run_dir / "run.json").read_text()) if (args.run_dir / "run.json").exists() else {}
+    meta = read_run_json(args.run_dir) or {}
     changes = prev_id = None
     hist_path = args.history or store.DEFAULT_HISTORY
     if Path(hist_path).exists() and len(df):

@@ -15,7 +15,7 @@ import importlib
 import time
 from pathlib import Path
 
-SCENE_FILE_PREFIX = "file:"
+from reports.cells import SCENE_FILE_PREFIX
 
 
 def load_backend(name: str = "reports.backend"):
@@ -46,7 +46,10 @@ def get_scene(name: str, size: str = "test"):
         raise ValueError("scenes.scenefile has no loader (load_scene_file/load_scene/load)")
     from scenes.library import get_scene as _get
 
-    return _get(name, size)
+    try:
+        return _get(name, size)
+    except KeyError as e:  # the library names the available scenes; one line like an unknown method
+        raise ValueError(str(e.args[0]) if e.args else f"unknown scene {name!r}") from None
 
 
 def scene_names() -> list[str]:

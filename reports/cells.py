@@ -14,13 +14,16 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from scenes.sequences import KINDS
 
+SCENE_FILE_PREFIX = "file:"  # a TOML scene file given as a scene name (``reports.backend.get_scene``)
 FULL = -1  # bounces = −1: full global illumination (Mitsuba max_depth = −1)
 STATUS_OK, STATUS_NA, STATUS_ERROR = "ok", "na", "error"
 # Measured, but the sanity gate (reports.gate) found the image plainly wrong; its numbers are kept.
@@ -65,7 +68,12 @@ def capability_bounces(b: int) -> int:
 class Cell:
     """One independent unit of a run (picklable; ``key()`` identifies its result file).
 
-    scene: library name, or ``"file:<path>"`` for a TOML scene file. size: "test" | "bench".
+    scene: the scene's name — a library name, or a TOML scene file's ``name`` (default its stem); it
+    is what results, the report and file names show. scene_file: the TOML file's path for a
+    file scene ("" for library scenes; internal: loads the scene, never shown in tables, not part of
+    the key). scene_hash: the scene's content hash (``Scene.content_hash``: geometry, materials,
+    env map, camera, skeleton) filled by the planner, so an edited scene gets new keys and is
+    re-run. size: "test" | "bench".
     kind: sequence kind (``scenes.sequences.KINDS``: V, VB, VBL, P, L, E, VL). method: registry name; config: canonical JSON.
     bounces: 0 = direct lighting, k = k indirect bounces, −1 = full GI.
     n_frames, seed: the sequence. score_frames: frame indices scored against references (empty =
@@ -102,6 +110,8 @@ class Cell:
     backend: str = "reports.backend"
     plugins: tuple[str, ...] = ()
     device: str = "cpu"
+    scene_file: str = ""
+    scene_hash: str = ""
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -118,9 +128,17 @@ class Cell:
         """Readable, unique, filesystem-safe id (``isolate`` does not change what is measured)."""
         d = asdict(self)
         d.pop("isolate")
+        d.pop("scene_file")  # where the file lives is not what is measured; scene_hash is
+        if not d["scene_hash"]:
+            d.pop("scene_hash")  # keys of cells planned without a hash stay as they were
         h = hashlib.sha1(json.dumps(d, sort_keys=True, default=list).encode()).hexdigest()[:12]
-        scene = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(self.scene).stem)
+        scene = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in self.scene)[:64]
         return f"{scene}-{self.size}-{self.kind}-{self.method}-b{bounces_label(self.bounces)}-{h}"
+
+    @property
+    def scene_ref(self) -> str:
+        """What the backend's ``get_scene`` loads: ``"file:<path>"`` for a file scene, else ``scene``."""
+        return f"{SCENE_FILE_PREFIX}{self.scene_file}" if self.scene_file else self.scene
 
     def scored(self) -> list[int]:
         return sorted(self.score_frames) if self.score_frames else list(range(self.n_frames))
@@ -164,13 +182,68 @@ def result_path(out_dir: str | os.PathLike, cell: Cell) -> Path:
 
 
 def load_result(out_dir: str | os.PathLike, cell: Cell) -> CellResult | None:
-    p = result_path(out_dir, cell)
-    if not p.exists():
+    """The stored result of ``cell``, or None (not run yet, or its file was corrupt: moved aside
+    with one line on stderr, see `read_result_file`, so the cell is re-run)."""
+    return read_result_file(result_path(out_dir, cell), cell)
+
+
+def move_aside(p: Path, why: str) -> Path:
+    """Rename a corrupt run file or folder to ``<name>.corrupt-<UTC timestamp>`` and say so on
+    stderr in one line naming the file; returns the new path."""
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+    dest = p.with_name(f"{p.name}.corrupt-{stamp}")
+    os.replace(p, dest)
+    print(f"[prtbench] {p}: {why}; moved to {dest.name}, it will be recomputed", file=sys.stderr, flush=True)
+    return dest
+
+
+def _result_problem(d: Any, cell: Cell | None) -> str | None:
+    """Why ``d`` (parsed JSON) is not a stored ``CellResult`` (of ``cell``), or None."""
+    if not isinstance(d, dict):
+        return f"not a cell result (a JSON {type(d).__name__})"
+    need = {"key": str, "cell": dict, "status": str, "reason": str, "rows": list, "artifacts": dict, "info": dict}
+    missing = [k for k in need if k not in d]
+    if missing:
+        return f"not a cell result (missing {', '.join(missing)})"
+    bad = [k for k, t in need.items() if not isinstance(d[k], t)]
+    if bad:
+        return f"not a cell result (wrong type of {', '.join(bad)})"
+    extra = set(d) - set(need)
+    if extra:
+        return f"not a cell result (unknown key(s) {', '.join(sorted(extra))})"
+    if d["status"] not in (STATUS_OK, STATUS_NA, STATUS_ERROR, STATUS_SUSPECT):
+        return f"unknown status {d['status']!r}"
+    if cell is not None and d["key"] != cell.key():
+        return f"holds cell {d['key']!r}, not {cell.key()!r}"
+    if not all(isinstance(r, dict) for r in d["rows"]):
+        return "rows are not all objects"
+    return None
+
+
+def read_result_file(p: Path, cell: Cell | None = None) -> CellResult | None:
+    """A stored ``CellResult`` from ``p``; None if there is none. A corrupt entry — a folder in
+    place of the file, unreadable bytes, not UTF-8, not JSON, not a cell result, another cell's
+    result — is moved aside (`move_aside`, one line naming the file) and None returned."""
+    p = Path(p)
+    if not p.exists() and not p.is_symlink():
+        return None
+    if p.is_dir():
+        move_aside(p, "a folder in place of a cell file")
         return None
     try:
-        return CellResult.from_dict(json.loads(p.read_text()))
-    except (json.JSONDecodeError, TypeError):
-        return None  # cannot happen with atomic writes; recompute if it does
+        d = json.loads(p.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:
+        why = f"not UTF-8 text ({e.reason} at byte {e.start})"
+    except json.JSONDecodeError as e:
+        why = f"not JSON ({e.msg} at line {e.lineno} column {e.colno})"
+    except OSError as e:
+        why = f"unreadable ({e.strerror or e})"
+    else:
+        why = _result_problem(d, cell)
+        if why is None:
+            return CellResult.from_dict(d)
+    move_aside(p, why)
+    return None
 
 
 def is_finished(out_dir, cell: Cell) -> bool:
@@ -189,10 +262,5 @@ def part_path(out_dir: str | os.PathLike, cell: Cell, part: str) -> Path:
 
 
 def load_part(out_dir: str | os.PathLike, cell: Cell, part: str) -> CellResult | None:
-    p = part_path(out_dir, cell, part)
-    if not p.exists():
-        return None
-    try:
-        return CellResult.from_dict(json.loads(p.read_text()))
-    except (json.JSONDecodeError, TypeError):
-        return None
+    """The stored ``part`` of ``cell``, or None (a corrupt file is moved aside, like `load_result`)."""
+    return read_result_file(part_path(out_dir, cell, part), cell)

@@ -21,7 +21,7 @@ import pandas as pd
 import torch
 
 from reports import measure, regress, store
-from reports.cells import STATUS_OK, Cell, CellResult
+from reports.cells import STATUS_OK, Cell, CellResult, move_aside
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
@@ -45,8 +45,11 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
     """The run's facts; created (with one triad-bandwidth measurement) on the first call and
     re-read on resume, so a resumed run keeps its id."""
     p = out_dir / "run.json"
-    if p.exists():
-        return json.loads(p.read_text())
+    old, why = _read_run_json(p)
+    if old is not None:
+        return old
+    if why is not None:
+        move_aside(p, why)
     now = datetime.now(timezone.utc)
     sha = store.git_sha()
     meta = {
@@ -62,6 +65,35 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
     }
     store.atomic_write_json(p, meta)
     return meta
+
+
+RUN_META_KEYS = ("run_id", "suite", "time", "git_sha", "versions", "machine", "threads", "triad_bandwidth")
+
+
+def _read_run_json(p: Path) -> tuple[dict | None, str | None]:
+    """(meta, None) from a valid run.json; (None, None) if there is none; (None, why) if it is
+    corrupt (a folder, not UTF-8, not JSON, not a run's facts). No side effects."""
+    if not p.exists() and not p.is_symlink():
+        return None, None
+    if p.is_dir():
+        return None, "a folder in place of run.json"
+    try:
+        d = json.loads(p.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:
+        return None, f"not UTF-8 text ({e.reason} at byte {e.start})"
+    except json.JSONDecodeError as e:
+        return None, f"not JSON ({e.msg} at line {e.lineno} column {e.colno})"
+    except OSError as e:
+        return None, f"unreadable ({e.strerror or e})"
+    if not isinstance(d, dict) or any(k not in d for k in RUN_META_KEYS) or not isinstance(d["run_id"], str):
+        return None, "not a run's facts (needs " + ", ".join(RUN_META_KEYS) + ")"
+    return d, None
+
+
+def read_run_json(out_dir: str | os.PathLike) -> dict | None:
+    """The run facts in ``<out_dir>/run.json``, or None if it is missing or corrupt (no side
+    effects: ``run_suite`` moves a corrupt one aside and starts afresh)."""
+    return _read_run_json(Path(out_dir) / "run.json")[0]
 
 
 def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
@@ -148,12 +180,12 @@ def _stale_run(out_dir: Path) -> str | None:
     """Why the run in ``out_dir`` must not be resumed (its code or package versions differ from
     this process'), or None. Resuming it would mix numbers of different code in one table."""
     p = out_dir / "run.json"
-    if not p.exists():
+    old, why = _read_run_json(p)
+    if why is not None:
+        move_aside(p, why)
+        return "its run.json was corrupt, so its cells' code is unknown"
+    if old is None:
         return None
-    try:
-        old = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return "run.json is unreadable"
     if old.get("code") != store.code_fingerprint():
         return "the code changed since this run started"
     if old.get("versions") != store.package_versions():

@@ -16,8 +16,9 @@ from __future__ import annotations
 import importlib
 import json
 from dataclasses import dataclass
+from pathlib import Path
 
-from reports.cells import FULL, Cell, canonical_config, capability_bounces
+from reports.cells import FULL, SCENE_FILE_PREFIX, Cell, canonical_config, capability_bounces
 
 
 @dataclass(frozen=True)
@@ -104,9 +105,24 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
             classes[m] = get_method(m)
         except KeyError as e:
             raise ValueError(str(e.args[0])) from None
+    library = set(be.scene_names()) if hasattr(be, "scene_names") else set()
     cells: list[Cell] = []
+    sources: dict[str, str] = {}  # scene name → where it came from (library or file)
     for sc in scene_names:
-        scene = be.get_scene(sc, suite.size)
+        scene = _load_scene(be, sc, suite.size)
+        if sc.startswith(SCENE_FILE_PREFIX):  # a TOML scene file: shown by its name, loaded by its path
+            scene_file = sc[len(SCENE_FILE_PREFIX):]
+            name = str(getattr(scene, "name", "") or "") or Path(scene_file).stem
+            src = scene_file
+            if name in library:
+                raise ValueError(f"{Path(scene_file).name}: scene name {name!r} is a library scene's name; "
+                                 f"give the file another 'name'")
+        else:
+            name, scene_file, src = sc, "", "the library"
+        if name in sources:
+            raise ValueError(f"scene name {name!r} is used twice ({sources[name]} and {src}); scene names must be unique")
+        sources[name] = src
+        scene_hash = scene.content_hash() if hasattr(scene, "content_hash") else ""
         dynamic = be.is_dynamic(scene) if hasattr(be, "is_dynamic") else False
         kinds = tuple(suite.kinds) + (tuple(suite.dynamic_kinds) if dynamic else ())
         for m, cls in classes.items():
@@ -116,7 +132,7 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
                 for k in kinds:
                     for b in bounces:
                         na = caps.why_not(scene, k, capability_bounces(b))
-                        cells.append(Cell(scene=sc, size=suite.size, kind=k, method=m, config=cfg, bounces=b,
+                        cells.append(Cell(scene=name, scene_file=scene_file, scene_hash=scene_hash, size=suite.size, kind=k, method=m, config=cfg, bounces=b,
                                           n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
                                           ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
                                           threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
@@ -125,18 +141,26 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
     return cells
 
 
+def _load_scene(be, name: str, size: str):
+    """``be.get_scene`` with an unknown name as one ``ValueError`` line (like an unknown method)."""
+    try:
+        return be.get_scene(name, size)
+    except KeyError as e:
+        raise ValueError(str(e.args[0]) if e.args else f"unknown scene {name!r}") from None
+
+
 def reference_jobs(cells: list[Cell]) -> list[tuple[str, str, str, int, int, int, int, tuple[int, ...], tuple[int, ...]]]:
     """Distinct reference renders the in-scope cells need: (scene, size, kind, n_frames, seed,
-    bounces, spp, frames, eq_err_spp)."""
+    bounces, spp, frames, eq_err_spp); scene is what the backend loads (``Cell.scene_ref``)."""
     seen = []
     for c in cells:
         if c.na is not None:
             continue
-        j = (c.scene, c.size, c.kind, c.n_frames, c.seed, c.bounces, c.ref_spp, tuple(c.scored()), tuple(c.eq_err_spp))
+        j = (c.scene_ref, c.size, c.kind, c.n_frames, c.seed, c.bounces, c.ref_spp, tuple(c.scored()), tuple(c.eq_err_spp))
         if j not in seen:
             seen.append(j)
         if c.score_full_gi and c.bounces != FULL:  # the full-GI reference it is also scored against
-            jf = (c.scene, c.size, c.kind, c.n_frames, c.seed, FULL, c.ref_spp, tuple(c.scored()), ())
+            jf = (c.scene_ref, c.size, c.kind, c.n_frames, c.seed, FULL, c.ref_spp, tuple(c.scored()), ())
             if jf not in seen:
                 seen.append(jf)
     return seen
