@@ -20,8 +20,11 @@ from torch import Tensor
 # Largest film the harness accepts (width × height): G-buffers, references and method images hold
 # several float32 values per sub-sample, so memory grows ~100 B per pixel per buffer. The default
 # allows the bench sizes with room (4096² px); the environment variable overrides it.
+# A film side above MAX_FILM_SIDE is refused too (a 100000 × 64 film is a typo, not a benchmark).
 MAX_PIXELS = 4096 * 4096
 MAX_PIXELS_ENV = "PRTBENCH_MAX_PIXELS"
+MAX_FILM_SIDE = 4096
+MAX_FILM_SIDE_ENV = "PRTBENCH_MAX_FILM_SIDE"
 
 
 def _env_limit(var: str, default: int) -> int:
@@ -41,6 +44,11 @@ def _env_limit(var: str, default: int) -> int:
 def max_pixels() -> int:
     """The film size limit in pixels: ``$PRTBENCH_MAX_PIXELS`` or `MAX_PIXELS`."""
     return _env_limit(MAX_PIXELS_ENV, MAX_PIXELS)
+
+
+def max_film_side() -> int:
+    """The film width/height limit: ``$PRTBENCH_MAX_FILM_SIDE`` or `MAX_FILM_SIDE`."""
+    return _env_limit(MAX_FILM_SIDE_ENV, MAX_FILM_SIDE)
 
 
 def _vec3(x, name: str) -> tuple[float, float, float]:
@@ -77,6 +85,11 @@ class Camera:
             if int(v) != v or int(v) < 1:
                 raise ValueError(f"camera {k} must be a positive integer, got {v!r}")
             object.__setattr__(self, k, int(v))
+        side = max_film_side()
+        for k in ("width", "height"):
+            if getattr(self, k) > side:
+                raise ValueError(f"camera {k} = {getattr(self, k)} exceeds the limit of {side} pixels "
+                                 f"(set {MAX_FILM_SIDE_ENV} to raise it)")
         limit = max_pixels()
         if self.width * self.height > limit:
             raise ValueError(f"camera width × height = {self.width} × {self.height} = "
