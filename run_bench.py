@@ -91,8 +91,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _scenes(args) -> list[str] | None:
-    """The scene selection; an unknown library scene or a missing scene file is a ValueError (one
-    line, like an unknown method) before anything is written."""
+    """The scene selection; an unknown library scene or a missing or bad scene file is a ValueError
+    (one line naming the file and key, like an unknown method) before anything is written."""
     from reports.backend import load_backend
 
     be = load_backend(args.backend)
@@ -103,6 +103,7 @@ def _scenes(args) -> list[str] | None:
     for f in args.scene_file:
         if not Path(f).is_file():
             raise ValueError(f"{f}: scene file not found")
+        be.get_scene(f"file:{Path(f).resolve()}", "test")  # load it once: its errors before --fresh clears anything
     names = list(args.scenes or [])
     names += [f"file:{Path(f).resolve()}" for f in args.scene_file]
     if args.scene_file and not args.scenes:

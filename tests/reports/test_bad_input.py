@@ -49,6 +49,16 @@ def test_unknown_scene_is_one_line_like_unknown_method(tmp_path, capsys):
     assert code == 2 and err == f"prtbench: error: {tmp_path / 'missing.toml'}: scene file not found"
 
 
+def test_bad_scene_file_is_one_line_and_writes_nothing(tmp_path, capsys):
+    p = _scene_dir(tmp_path)
+    p.write_text(p.read_text().replace("fov_deg = 45.0", "fov_deg = 179.99"))
+    code = run_bench.main(["run", "--suite", "smoke", "--scene-file", str(p), "--methods", "oracle",
+                           "--out", str(tmp_path / "out"), "--no-history", "--quiet", "--fresh"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("prtbench: error: my_scene_file.toml: [camera] fov_deg/origin/target: ")
+    assert "\n" not in err and not (tmp_path / "out").exists()
+
+
 def test_unknown_library_scene_in_the_real_backend_is_a_value_error():
     from reports.backend import get_scene
 
