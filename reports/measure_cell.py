@@ -349,7 +349,8 @@ def calibrate(cell: Cell, out_dir: Path, be, scene, frame, *, fresh: bool = Fals
 
     fresh: time renders made now (not the reference cache's recorded times) — the timing part of a
     parallel run, where the cached references were rendered next to other work."""
-    spec = {"scene": cell.scene, "scene_hash": cell.scene_hash, "size": cell.size, "kind": cell.kind, "seed": cell.seed, "bounces": cell.bounces,
+    spec = {"scene": cell.scene, "scene_hash": cell.scene_hash, "size": cell.size, "kind": cell.kind, "seed": cell.seed,
+            "bounces": cell.bounces,
             "spp": list(cell.eq_err_spp), "threads": task_threads(cell), "frame": int(getattr(frame, "index", 0)),
             "backend": cell.backend, "n_frames": cell.n_frames}
     key = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]

@@ -132,7 +132,8 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
                 for k in kinds:
                     for b in bounces:
                         na = caps.why_not(scene, k, capability_bounces(b))
-                        cells.append(Cell(scene=name, scene_file=scene_file, scene_hash=scene_hash, size=suite.size, kind=k, method=m, config=cfg, bounces=b,
+                        cells.append(Cell(scene=name, scene_file=scene_file, scene_hash=scene_hash, size=suite.size,
+                                          kind=k, method=m, config=cfg, bounces=b,
                                           n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
                                           ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
                                           threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
