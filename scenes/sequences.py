@@ -130,6 +130,8 @@ def make_sequence(scene, kind: str, n_frames: int = 4, seed: int = 0, *, probes=
     poses = _pose_track(scene, n_frames, rng) if kind == "P" else None
     axis = tilted_axis(rng) if kind in ("L", "VL") else None
     swaps = _probe_maps(scene, probes) if kind == "E" else None
+    if swaps is not None:  # the probes' order and each one's azimuth are seeded
+        swaps = [swaps[j].rotated(rotation_y(rng.uniform(0, 2 * math.pi))) for j in rng.permutation(len(swaps))]
 
     frames: list[Frame] = []
     for i in range(n_frames):
