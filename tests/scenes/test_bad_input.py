@@ -51,7 +51,9 @@ def _load_error(p: Path) -> str:
 def test_camera_pixel_limit(monkeypatch):
     with pytest.raises(ValueError, match=r"camera width = 100000 exceeds the limit of 4096 .*PRTBENCH_MAX_FILM_SIDE"):
         Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 100000, 64)  # ate 9 GB
-    Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 4096, 4096)  # the defaults allow the bench sizes
+    Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 2048, 2048)  # the defaults allow the bench sizes (256²) with room
+    with pytest.raises(ValueError, match=r"4096 × 4096 = 16777216 pixels exceeds the limit of 4194304"):
+        Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 4096, 4096)
     monkeypatch.setenv("PRTBENCH_MAX_FILM_SIDE", "100000")
     Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 100000, 64)
     with pytest.raises(ValueError, match=r"camera width × height = 100000 × 1000 .* PRTBENCH_MAX_PIXELS"):
