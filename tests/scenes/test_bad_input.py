@@ -55,7 +55,7 @@ def test_camera_pixel_limit(monkeypatch):
     with pytest.raises(ValueError, match=r"4096 × 4096 = 16777216 pixels exceeds the limit of 4194304"):
         Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 4096, 4096)
     monkeypatch.setenv("PRTBENCH_MAX_FILM_SIDE", "100000")
-    Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 100000, 64)
+    Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 100000, 40)  # 4 Mpx: under the pixel limit
     with pytest.raises(ValueError, match=r"camera width × height = 100000 × 1000 .* PRTBENCH_MAX_PIXELS"):
         Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 100000, 1000)
     monkeypatch.setenv("PRTBENCH_MAX_PIXELS", "100")
