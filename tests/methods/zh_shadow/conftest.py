@@ -58,18 +58,32 @@ def phong_chess(size: str = "test"):
     return sc.replace(materials=mats)
 
 
+def generic_creature(size: str = "test"):
+    """The library `creature` with an anonymous skeleton: its P sequences are then the generic
+    per-joint sinusoids of `scenes.sequences` (each joint at its own seeded phase), as for any
+    skinned character without the creature's hand-made walk — so poses of one seed's clip lie off
+    another seed's (the case of a rigged character whose frames leave the training clip)."""
+    import dataclasses
+
+    from scenes.library import get_scene
+
+    sc = get_scene("creature", size)
+    return sc.replace(name="creature_generic", skeleton=dataclasses.replace(sc.skeleton, names=None))
+
+
 @pytest.fixture(scope="session")
 def zh_scene():
     """Callable name → test-size scene: the library scenes zh_shadow renders (chess with Phong
-    stand-ins, `phong_chess`) and "thin_parts" (`thin_part_scene`)."""
+    stand-ins, `phong_chess`), "thin_parts" (`thin_part_scene`) and "creature_generic"
+    (`generic_creature`)."""
     from scenes.library import get_scene
 
+    special = {"thin_parts": thin_part_scene, "chess": phong_chess, "creature_generic": generic_creature}
     built = {}
 
     def get(name: str):
         if name not in built:
-            built[name] = (thin_part_scene() if name == "thin_parts" else phong_chess() if name == "chess"
-                           else get_scene(name, "test"))
+            built[name] = special[name]() if name in special else get_scene(name, "test")
         return built[name]
 
     return get

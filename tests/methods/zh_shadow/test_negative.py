@@ -11,28 +11,37 @@ phase it was not trained on). Against a 256-spp Mitsuba direct-lighting referenc
   * RMSE (mean over the frames) pinned.
 Default config except the creature's cheaper fit (`CREATURE_CFG`, the one of test_method.py).
 
-Measured (this machine, 1 thread; mean over the frames; "before" = the code before issue 19,
-i.e. no clamp and a training clip without the rest pose, default config; window none):
+Measured (this machine, 1 thread; mean over the frames; "before" = the code before issue 19: no
+clamp, a training clip without the rest pose; window none in both):
 
-    scene           floor   RMSE before → after   neg. frac. before → after   mean ratio before → after
-    sphere_plane    0.049   0.452 → 0.452          0.61 % (max 1.6 %) → 0      0.994–1.023 → same
-    chess (Phong)   0.015   0.091 → 0.091          0.53 % (max 1.1 %) → 0      0.934–1.026 → same
-    alcove          0.010   0.0227 → 0.0227        0 → 0                       0.977–0.993 → same
-    shadow_detail   0.014   0.108 → 0.108          0.70 % (max 1.6 %) → 0      0.959–0.990 → same
-    thin_parts      0.011   0.102 → 0.101          2.5 % (max 3.1 %) → 0       0.931–1.012 → 0.932–1.014
-    creature V/VBL  0.034   0.372 → 0.104          0 → 0                       0.57 → 0.99
-    creature P      0.034   0.104 → 0.103          0 → 0                       0.995
+    scene              frames  floor  RMSE before → after  neg. px before → after  mean ratio before → after
+    sphere_plane       V, VBL  0.049  0.4519 → 0.4518      0.61 % (max 1.6 %) → 0   0.994–1.023 → 0.994–1.024
+    chess (Phong)      V, VBL  0.014  0.0841 → 0.0841      0.53 % (max 1.1 %) → 0   0.932–1.023 → 0.932–1.024
+    alcove             V, VBL  0.010  0.0227 → 0.0227      0 → 0                    0.977–0.993 → same
+    shadow_detail      V, VBL  0.013  0.1078 → 0.1078      0.70 % (max 1.6 %) → 0   0.959–0.990 → 0.959–0.991
+    thin_parts         V, VBL  0.011  0.1017 → 0.1015      2.5 % (max 3.1 %) → 0    0.931–1.012 → 0.933–1.015
+    creature           V, VBL  0.034  0.372 → 0.1005       0 → 0                    0.566–0.574 → 0.984–0.998
+    creature           P       0.034  0.1029 → 0.1028      0 → 0                    0.990–0.994 → 0.991–0.994
+    creature_generic   V, VBL  0.034  0.607 → 0.1017       0 → 0                    0.280–0.285 → 0.982–0.998
+    creature_generic   P       0.034  0.143 → 0.1069       0 → 0                    0.903–1.136 → 0.983–0.991
+
+(creature_generic: conftest `generic_creature`, P frames off the training clip.) The rest-pose
+and off-clip errors are the pose model extrapolating: with a clip that never passes the rest pose,
+the bias row of the linear model is an extrapolation, and every pose direction the clip does not
+explore falls back on it.
 
 Cause (see methods/zh_shadow/method.py): the order-4 projection of the probes rings — it is
 negative over 40 % (sky_sun) to 46 % (window) of the sphere, down to −2.0× / −3.5× the probe's
 mean. On the thin-part scene (unclamped): fitted lobes 2.5 % negative pixels, exact ray-cast SH
-visibility 3.5 %, no visibility at all (V ≡ 1) 5.1 %. Windowing the lighting, RMSE relative to no
-window (sphere_plane, chess, alcove, shadow_detail, creature-before-fix, thin_parts):
-    Hanning w = 4   1.18 1.21 1.07 1.52 1.21 1.05       Lanczos w = 4   1.12 1.14 1.02 1.35 1.14 0.98
-    Hanning w = 6   1.07 1.07 1.00 1.21 1.09 0.95       Lanczos w = 6   1.04 1.04 1.00 1.13 1.06 0.95
-    Hanning w = 8   1.03 1.03 1.00 1.10 1.05 0.95       (and the images 5–15 % darker at w = 4)
-and Hanning w = 4 still leaves 3.1 % negative pixels under the window probe (its windowed
-lighting is still negative over 38 % of the sphere). A non-negative least-squares lighting fit:
+visibility 3.5 %, no visibility at all (V ≡ 1) 5.1 %. Windowing the lighting (`window`,
+`window_width`; clamped in every case), RMSE relative to no window on frames V0, V2, VBL0, VBL2
+(sphere_plane, chess, alcove, shadow_detail, creature, thin_parts; creature_generic = creature):
+    Hanning w = 4   1.18 1.24 1.06 1.50 1.53 1.08       Lanczos w = 4   1.12 1.16 1.02 1.34 1.32 1.02
+    Hanning w = 6   1.07 1.09 1.01 1.20 1.16 0.98       Lanczos w = 6   1.04 1.05 1.00 1.12 1.08 0.97
+    Hanning w = 8   1.03 1.04 1.00 1.10 1.06 0.97
+with the images 0.7–13 % (w = 4) / 0.4–6.5 % (w = 6) darker; unclamped, Hanning w = 4 still
+leaves 3.1 % negative pixels on thin_parts (the windowed `window` probe is still negative over 38 %
+of the sphere). A non-negative least-squares lighting fit:
 images 1.4–1.7× too bright. So: no window, clamp at 0 (the defaults).
 """
 from __future__ import annotations
@@ -46,15 +55,15 @@ import torch
 from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import precompute as pc
 
-SCENES = ("sphere_plane", "chess", "alcove", "shadow_detail", "creature", "thin_parts")
+SCENES = ("sphere_plane", "chess", "alcove", "shadow_detail", "creature", "thin_parts", "creature_generic")
 CREATURE_CFG = dict(train_poses=24, n_dirs=512, fit_iters=30)
 NEG_MAX = 1e-3          # issue 19: < 0.1 % negative pixels
 MEAN_TOL = 0.10         # issue 19: mean brightness within 10 % of the reference
 REST_VS_ANIM = 1.5      # issue 15: rest-pose RMSE within 1.5× the animation's
 # RMSE (mean over the frames, clamped default) pinned per scene: measured values; SLACK covers
 # float / BLAS differences of a deterministic pipeline with fixed seeds (as test_tp_vs_mitsuba.py).
-PINNED = {"sphere_plane": 0.452, "chess": 0.0908, "alcove": 0.0227, "shadow_detail": 0.1078,
-          "creature": 0.104, "thin_parts": 0.1014}
+PINNED = {"sphere_plane": 0.4518, "chess": 0.0841, "alcove": 0.0227, "shadow_detail": 0.1078,
+          "creature": 0.1013, "thin_parts": 0.1015, "creature_generic": 0.1034}
 SLACK = 1.05
 WINDOWS = [("hanning", 4.0), ("hanning", 6.0), ("lanczos", 6.0)]
 
@@ -84,7 +93,7 @@ def _results(name, zh_scene) -> dict:
     from scenes.sequences import make_sequence
 
     scene = zh_scene(name)
-    m = ZHShadow(**CREATURE_CFG) if name == "creature" else ZHShadow(cache=False)
+    m = ZHShadow(**CREATURE_CFG) if scene.skeleton is not None else ZHShadow(cache=False)
     with pc.torch_threads(1):
         m.precompute(scene)
     kinds = ("V", "VBL", "P") if scene.skeleton is not None else ("V", "VBL")
@@ -93,8 +102,9 @@ def _results(name, zh_scene) -> dict:
         for i, fr in enumerate(make_sequence(scene, kind, 3, seed=0)):
             gb = make_gbuffer(scene, fr, 2)
             ref = render_reference(scene, fr, bounces=0, spp=256, seed=0)
-            variants = [("default", {})] + [("unclamped", {"clamp": False})] + \
-                       [((w, ww), {"window": w, "window_width": ww}) for w, ww in WINDOWS]
+            variants = [("default", {}), ("unclamped", {"clamp": False})]
+            if kind != "P" and i != 1:     # the windows on 4 frames per scene (test time)
+                variants += [((w, ww), {"window": w, "window_width": ww}) for w, ww in WINDOWS]
             for key, cfg in variants:
                 m.config.update(clamp=True, window="none", window_width=None)
                 m.config.update(cfg)
@@ -139,14 +149,17 @@ def test_default_window_has_the_lowest_error(zh_scene):
         logs = []
         for name in SCENES:
             res = _results(name, zh_scene)
-            logs.append(math.log(_mean(res, w) / _mean(res, "default")))
+            frames = {(k, i) for (v, k, i) in res if v == w}
+            same = [(res[("default", k, i)]["rmse"], res[(w, k, i)]["rmse"]) for k, i in sorted(frames)]
+            logs.append(math.log(np.mean([x for _, x in same]) / np.mean([d for d, _ in same])))
         assert math.exp(np.mean(logs)) > 1.0, (w, [round(math.exp(x), 3) for x in logs])
 
 
-def test_rest_pose_error_at_the_animation_level(zh_scene):
+@pytest.mark.parametrize("name", ["creature", "creature_generic"])
+def test_rest_pose_error_at_the_animation_level(name, zh_scene):
     """Issue 15: the training clip eases in from the rest pose, so the rest-pose frames (V, VBL) are
-    about as right as the animation (P) (measured 0.104 vs 0.103; 0.372 before, 43 % too dark)."""
-    res = _results("creature", zh_scene)
+    about as right as the animation (P) (see the module docstring for before/after)."""
+    res = _results(name, zh_scene)
     rest, anim = _mean(res, "default", ("V", "VBL")), _mean(res, "default", ("P",))
     assert rest <= REST_VS_ANIM * anim, (rest, anim)
 
