@@ -85,7 +85,8 @@ def torch_threads(n: int):
 
 # -- 1. training poses ------------------------------------------------------------------------
 
-def training_poses(scene, n: int, *, source: str = "animation", seed: int = 1234, rest: float = REST_FRACTION) -> Tensor:
+def training_poses(scene, n: int, *, source: str = "animation", seed: int = 1234,
+                   rest: float = REST_FRACTION) -> Tensor:
     """(n, J) training joint angles: a clip that starts at the rest pose (§3.1 trains on animation
     frames; the model must also hold at the poses it is rendered in).
 
@@ -102,7 +103,8 @@ def training_poses(scene, n: int, *, source: str = "animation", seed: int = 1234
     if not isinstance(n, int) or n < 2:
         raise ValueError(f"number of training poses must be an int >= 2, got {n!r}")
     if isinstance(rest, bool) or not isinstance(rest, (int, float)) or not 0.0 <= rest < 1.0:
-        raise ValueError(f"rest (fraction of training frames easing in from the rest pose) must be in [0, 1), got {rest!r}")
+        raise ValueError("rest (fraction of training frames easing in from the rest pose) must be in [0, 1), "
+                         f"got {rest!r}")
     n_rest = 0 if rest == 0 else min(n - 1, max(1, round(rest * n)))
     m = n - n_rest
     if source == "animation":
