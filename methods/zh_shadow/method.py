@@ -222,6 +222,19 @@ class ZHShadow(Method):
                       "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
                       "model_mb": self.model.nbytes / 1e6}
 
+    # Config keys that only the render reads: a precomputed model serves every value of them.
+    RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
+
+    def with_render_config(self, **changes) -> "ZHShadow":
+        """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
+        one's precomputed model (its config records what it renders). ValueError for other keys."""
+        bad = sorted(set(changes) - set(self.RENDER_KEYS))
+        if bad:
+            raise ValueError(f"with_render_config changes only {self.RENDER_KEYS}, got {bad}")
+        m = type(self)(**{**self.config, **changes})
+        m.scene, m.model, m.stats, m._ops = self.scene, self.model, self.stats, self._ops
+        return m
+
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
         data = torch.as_tensor(env.data)

@@ -89,26 +89,27 @@ def test_window_and_clamp_apply_once_to_every_mode():
     scene = get_scene("shadow_detail", "test")
     frame = scene.default_frame()
     gb = make_gbuffer(scene, frame, 1)
-    m = ZHShadow(n_dirs=128, fit_iters=5, cache=False, clamp=False)
+    base = ZHShadow(n_dirs=128, fit_iters=5, clamp=False)
     with pc.torch_threads(1):
-        m.precompute(scene)
+        base.precompute(scene)
     sig = window_factors("lanczos", 4, 5.0)
     for sh in ("sample", "vertex"):
         for sp in ("published", "cosine"):
-            m.config.update(shading=sh, specular=sp, window="lanczos", window_width=5.0, clamp=False)
-            win = m.render(frame, gb)
-            key, light = m._light
-            m._light = (key, convolve_factors(light, sig.float()))              # windowed lighting baked in
-            m.config.update(window="none", window_width=None)
-            baked = m.render(frame, gb)
-            m._light = (key, light)
-            assert (win - baked).abs().max() <= 1e-5 * baked.abs().max(), (sh, sp)
-            raw = m.render(frame, gb)
-            m.config.update(clamp=True)
-            clamped = m.render(frame, gb)
+            win = base.with_render_config(shading=sh, specular=sp, window="lanczos", window_width=5.0)
+            assert win.config["window"] == "lanczos" and win.model is base.model
+            img_win = win.render(frame, gb)
+            plain = base.with_render_config(shading=sh, specular=sp)
+            raw = plain.render(frame, gb)
+            key, light = plain._light
+            plain._light = (key, convolve_factors(light, sig.float()))          # windowed lighting baked in
+            baked = plain.render(frame, gb)
+            assert (img_win - baked).abs().max() <= 1e-5 * baked.abs().max(), (sh, sp)
+            clamped = base.with_render_config(shading=sh, specular=sp, clamp=True).render(frame, gb)
             assert raw.min() < 0 and clamped.min() >= 0, (sh, sp)             # this view has negatives
             if sh == "sample":   # per shaded sample then S = 1 resolve: exactly max(0, ·) per pixel
                 assert torch.equal(clamped, raw.clamp_min(0)), sp
+    with pytest.raises(ValueError, match="render"):
+        base.with_render_config(n_dirs=64)                                  # a precompute key
     d = ZHShadow().config
     assert (d["window"], d["window_width"], d["clamp"], d["train_rest"]) == ("none", None, True, pc.REST_FRACTION)
 
@@ -164,10 +165,8 @@ def rendered():
     out = {"noise": rmse(refs[0], refs[1], mask) / 2 / math.sqrt(2), "stats": m.stats}
     for sh in ("sample", "vertex"):
         for sp in ("published", "cosine"):
-            m.config.update(shading=sh, specular=sp)
-            out[(sh, sp)] = rmse(m.render(frame, gb).numpy(), ref, mask)
+            out[(sh, sp)] = rmse(m.with_render_config(shading=sh, specular=sp).render(frame, gb).numpy(), ref, mask)
     out["memory"] = m.memory()
-    m.config.update(shading="sample", specular="published")
     m.render(frame, gb)
     out["bytes"] = {k: m.bytes_per_frame(k) for k in ("V", "VBL")}
     out["bytes_expected"] = (tensor_bytes(m.model.X) + sum(tensor_bytes(t) for t in m._ops.values())
