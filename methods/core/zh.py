@@ -196,6 +196,45 @@ def phong_kernel(s: float, order: int, *, dtype=torch.float64, device=None) -> T
     return (phong_factors(s, order) / band_norms(order)).to(dtype=dtype, device=device)
 
 
+WINDOWS = ("none", "hanning", "lanczos")
+
+
+def window_factors(kind: str, order: int, width: float | None = None, *, dtype=torch.float64, device=None) -> Tensor:
+    """Per-band SH windowing ("σ-factors") that damp Gibbs ringing (Sloan 2008, "Stupid Spherical
+    Harmonics (SH) Tricks", §"Windowing"): multiply band l of an SH expansion by σ_l (a zonal
+    convolution, so it commutes with rotation; apply with `convolve_factors`).
+
+        none:     σ_l = 1
+        hanning:  σ_l = (1 + cos(π l / w)) / 2   for l ≤ w, else 0
+        lanczos:  σ_l = sin(π l / w) / (π l / w)  (σ_0 = 1), for l ≤ w, else 0
+
+    Args:
+        kind: one of `WINDOWS`; order: n ≥ 1 (bands 0..n−1).
+        width: window width w > 0 (default n: the band n, one past the last kept, would get σ = 0
+            for Hanning and Lanczos); larger w = weaker damping.
+    Returns:
+        (n,) factors, σ_0 = 1 (the mean is kept).
+    """
+    _check_order(order)
+    if kind not in WINDOWS:
+        raise ValueError(f"window kind must be one of {WINDOWS}, got {kind!r}")
+    w = float(order if width is None else width)
+    if not math.isfinite(w) or w <= 0:
+        raise ValueError(f"window width must be a finite number > 0, got {width!r}")
+    l = torch.arange(order, dtype=torch.float64)
+    x = l / w
+    if kind == "none":
+        s = torch.ones(order, dtype=torch.float64)
+    elif kind == "hanning":
+        s = 0.5 * (1.0 + torch.cos(math.pi * x))
+    else:
+        px = math.pi * x
+        s = torch.where(l == 0, torch.ones_like(x), torch.sin(px) / torch.where(l == 0, torch.ones_like(px), px))
+    if kind != "none":
+        s = torch.where(x <= 1.0, s, torch.zeros_like(s))
+    return s.to(dtype=dtype, device=device)
+
+
 def gauss_legendre(n: int, *, dtype=torch.float64, device=None) -> tuple[Tensor, Tensor]:
     """Gauss–Legendre nodes t (n,) in (−1, 1) (ascending) and weights (n,)."""
     if not isinstance(n, int) or n < 1:

@@ -24,6 +24,25 @@ BRDFs). ``specular="published"`` (default) is the paper's Phong convolution, whi
 cos θ_i = max(0, n·ω) factor of the rendering equation; ``specular="cosine"`` puts it back: the
 order-n SH of V(ω)·max(0, n·ω) is M¹ v_n (exact for the band-limited v), rotated to the R frame
 by a full SH rotation (the lobes cannot carry it: it is no longer a sum of ZH lobes).
+
+Negative radiance (issue 19). The order-4 SH projection of a probe whose energy sits in a small,
+very bright source (a sun, a window) rings: the projected lighting is negative over a large part of
+the sphere, by more than the probe's mean radiance. Against the whole lighting the negative lobes
+are cancelled by the source's positive one, but where visibility removes the source (cast and self
+shadows, thin parts) or the Phong lobe is narrow (the shade is then almost a point sample of the
+lighting) they show as negative pixels. The lighting's truncation is the cause, not the lobe fit
+or the pose model: exact ray-cast SH visibility in place of the fitted lobes gives as many negative
+pixels, static scenes (no pose model) have them, and unshadowed shading (V ≡ 1) already goes
+negative (tests/methods/zh_shadow/test_negative.py has the measurements). The paper says nothing
+about it: §4.3 step 5 ends with shade = t · l, neither windowed nor clamped (a GPU render target
+clamps at display). Windowing the lighting (Hanning / Lanczos σ-factors,
+`methods.core.zh.window_factors`) removes the negative lobes only at widths that blur and darken
+the lighting enough to raise the error against Mitsuba on most library scenes; a non-negative
+least-squares fit of the lighting adds energy (images far too bright). Clamping each shade at 0
+removes every negative pixel at no cost in error. Hence the defaults ``window="none"``,
+``clamp=True``; the window stays a config (``window``, ``window_width``), applied once, to the SH
+lighting, for every term and shading mode (a per-band scale: it commutes with the rotations and
+equals windowing the transfer vector t).
 """
 from __future__ import annotations
 
@@ -38,7 +57,7 @@ from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_
 from methods.core.frames import frame_matrix, reflect
 from methods.core.sh import project_latlong
 from methods.core.sh_rotation import rotate_coeffs
-from methods.core.zh import zh_lobes_to_sh
+from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
 from methods.zh_shadow.convolution import phong_operator
 
@@ -122,10 +141,13 @@ class ZHShadow(Method):
     """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
 
     Config (keyword-only): order (SH order, default 4), lobes (c ZH lobes, 1..4), train_poses (f),
-    train_source ("animation" | "uniform"), train_seed, n_dirs (rays per vertex and pose),
+    train_source ("animation" | "uniform"), train_seed, train_rest (fraction of the training frames
+    easing in from the rest pose, `precompute.REST_FRACTION`), n_dirs (rays per vertex and pose),
     fit_iters (Adam steps of the lobe refinement), axis_anchor (pose-smoothness weight of the lobe
     axes, `precompute.AXIS_ANCHOR`), specular ("published" | "cosine"), shading
-    ("sample" | "vertex"), below_horizon ("trace" | "hide").
+    ("sample" | "vertex"), below_horizon ("trace" | "hide"), window ("none" | "hanning" |
+    "lanczos": σ-factors on the SH lighting) and window_width (w, default the order), clamp (shade
+    clamped at 0). See the module docstring on negative radiance.
     """
 
     name = "zh_shadow"
@@ -134,8 +156,10 @@ class ZHShadow(Method):
                                 dynamic_geometry=True, max_bounces=0, brdfs=SUPPORTED_BRDFS)
 
     def __init__(self, *, order: int = 4, lobes: int = 2, train_poses: int = 32, train_source: str = "animation",
-                 train_seed: int = 1234, n_dirs: int = 1024, fit_iters: int = 60, specular: str = "published",
-                 shading: str = "sample", below_horizon: str = "trace", axis_anchor: float = pc.AXIS_ANCHOR) -> None:
+                 train_seed: int = 1234, train_rest: float = pc.REST_FRACTION, n_dirs: int = 1024,
+                 fit_iters: int = 60, specular: str = "published", shading: str = "sample",
+                 below_horizon: str = "trace", axis_anchor: float = pc.AXIS_ANCHOR, window: str = "none",
+                 window_width: float | None = None, clamp: bool = True) -> None:
         _int("order", order, 2, 8)
         _int("lobes", lobes, 1, 4)
         _int("train_poses", train_poses, 2)
@@ -149,9 +173,20 @@ class ZHShadow(Method):
         _choice("specular", specular, ("published", "cosine"))
         _choice("shading", shading, ("sample", "vertex"))
         _choice("below_horizon", below_horizon, ("trace", "hide"))
+        _choice("window", window, WINDOWS)
+        if isinstance(train_rest, bool) or not isinstance(train_rest, (int, float)) or not 0 <= train_rest < 1:
+            raise ValueError(f"train_rest must be a number in [0, 1), got {train_rest!r}")
+        if window_width is not None:
+            if isinstance(window_width, bool) or not isinstance(window_width, (int, float)) \
+                    or not math.isfinite(window_width) or window_width <= 0:
+                raise ValueError(f"window_width must be a finite number > 0 or None, got {window_width!r}")
+            window_width = float(window_width)
+        if not isinstance(clamp, bool):
+            raise ValueError(f"clamp must be a bool, got {clamp!r}")
         super().__init__(order=order, lobes=lobes, train_poses=train_poses, train_source=train_source,
-                         train_seed=train_seed, n_dirs=n_dirs, fit_iters=fit_iters, specular=specular,
-                         shading=shading, below_horizon=below_horizon, axis_anchor=float(axis_anchor))
+                         train_seed=train_seed, train_rest=float(train_rest), n_dirs=n_dirs, fit_iters=fit_iters,
+                         specular=specular, shading=shading, below_horizon=below_horizon,
+                         axis_anchor=float(axis_anchor), window=window, window_width=window_width, clamp=clamp)
         self.scene = None
         self.model: pc.ZHModel | None = None
         self.stats: dict[str, float] = {}
@@ -170,7 +205,7 @@ class ZHShadow(Method):
             poses = torch.zeros(1, 0)
         else:
             poses = pc.training_poses(scene, cfg["train_poses"], source=cfg["train_source"],
-                                      seed=cfg["train_seed"])
+                                      seed=cfg["train_seed"], rest=cfg["train_rest"])
         v, _ = pc.pose_visibility(_PoseAdapter(scene), poses, cfg["order"], n_dirs=cfg["n_dirs"],
                                   below_horizon=cfg["below_horizon"])
         t1 = time.perf_counter()
@@ -186,6 +221,19 @@ class ZHShadow(Method):
                       "lobe_fit_err_mean": float(e_fit.mean()), "lobe_fit_err_std": float(e_fit.std()),
                       "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
                       "model_mb": self.model.nbytes / 1e6}
+
+    # Config keys that only the render reads: a precomputed model serves every value of them.
+    RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
+
+    def with_render_config(self, **changes) -> "ZHShadow":
+        """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
+        one's precomputed model (its config records what it renders). ValueError for other keys."""
+        bad = sorted(set(changes) - set(self.RENDER_KEYS))
+        if bad:
+            raise ValueError(f"with_render_config changes only {self.RENDER_KEYS}, got {bad}")
+        m = type(self)(**{**self.config, **changes})
+        m.scene, m.model, m.stats, m._ops = self.scene, self.model, self.stats, self._ops
+        return m
 
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
@@ -225,6 +273,10 @@ class ZHShadow(Method):
             pose_vec = torch.zeros(scene.skeleton.num_joints) if pose is None else torch.as_tensor(pose).float()
             geom = scene.geometry(pose_vec)
         light = self._lighting(frame.envmap)
+        if self.config["window"] != "none":   # once, on the lighting: every term and mode sees it
+            light = convolve_factors(light, window_factors(self.config["window"], m.order,
+                                                           self.config["window_width"], dtype=light.dtype))
+        clamp = self.config["clamp"]
         self._last_samples = int(gbuffer.hit.sum()) if self.config["shading"] == "sample" else int(geom.num_vertices)
         k, ax = m.lobes_at(pose_vec)                                          # (N, c, n), (N, c, 3) local
         Fv = frame_matrix(geom.N.float())                                      # (N, 3, 3) world → local
@@ -240,6 +292,8 @@ class ZHShadow(Method):
                 s = slice(a, a + SHADE_CHUNK)
                 rad[s] = shade(k[s], ax_w[s], geom.N[s], wo[s], light, kd[s], ks[s], al[s],
                                specular=self.config["specular"], ops=self._ops)
+            if clamp:   # per vertex, before the interpolation (module docstring: negative radiance)
+                rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
         else:
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
@@ -253,6 +307,8 @@ class ZHShadow(Method):
                 kd, ks, al = self._material_arrays(frame, gbuffer.region[h])
                 out[h] = shade(kq, aq, gbuffer.normal[h], gbuffer.wo[h], light, kd, ks, al,
                                specular=self.config["specular"], ops=self._ops)
+            if clamp:   # per shaded sample, before the pixel resolve (the paper does not clamp; see above)
+                out = out.clamp_min(0.0)
         return gbuffer.resolve(out)
 
     def memory(self) -> dict[str, int]:

@@ -70,10 +70,48 @@ def test_shade_equals_quadrature(alpha):
 def test_config_errors():
     bad = [dict(order=1), dict(order=9), dict(lobes=0), dict(lobes=5), dict(train_poses=1), dict(n_dirs=0),
            dict(specular="exact"), dict(shading="pixel"), dict(below_horizon="clip"), dict(train_source="mocap"),
-           dict(axis_anchor=-1.0), dict(axis_anchor=float("nan")), dict(fit_iters=-1), dict(order=4.0)]
+           dict(axis_anchor=-1.0), dict(axis_anchor=float("nan")), dict(fit_iters=-1), dict(order=4.0),
+           dict(window="gauss"), dict(window_width=0.0), dict(window_width=float("inf")), dict(clamp=1),
+           dict(train_rest=1.0), dict(train_rest=-0.1), dict(train_rest=True)]
     for kw in bad:
         with pytest.raises(ValueError):
             ZHShadow(**kw)
+
+
+def test_window_and_clamp_apply_once_to_every_mode():
+    """`window` is one per-band scale of the SH lighting (the same image as rendering with the
+    windowed lighting baked in), in both shading modes and both specular variants; `clamp` only
+    zeroes negative shades; both are recorded in the config."""
+    from methods.core.zh import convolve_factors, window_factors
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    scene = get_scene("shadow_detail", "test")
+    frame = scene.default_frame()
+    gb = make_gbuffer(scene, frame, 1)
+    base = ZHShadow(n_dirs=128, fit_iters=5, clamp=False)
+    with pc.torch_threads(1):
+        base.precompute(scene)
+    sig = window_factors("lanczos", 4, 5.0)
+    for sh in ("sample", "vertex"):
+        for sp in ("published", "cosine"):
+            win = base.with_render_config(shading=sh, specular=sp, window="lanczos", window_width=5.0)
+            assert win.config["window"] == "lanczos" and win.model is base.model
+            img_win = win.render(frame, gb)
+            plain = base.with_render_config(shading=sh, specular=sp)
+            raw = plain.render(frame, gb)
+            key, light = plain._light
+            plain._light = (key, convolve_factors(light, sig.float()))          # windowed lighting baked in
+            baked = plain.render(frame, gb)
+            assert (img_win - baked).abs().max() <= 1e-5 * baked.abs().max(), (sh, sp)
+            clamped = base.with_render_config(shading=sh, specular=sp, clamp=True).render(frame, gb)
+            assert raw.min() < 0 and clamped.min() >= 0, (sh, sp)             # this view has negatives
+            if sh == "sample":   # per shaded sample then S = 1 resolve: exactly max(0, ·) per pixel
+                assert torch.equal(clamped, raw.clamp_min(0)), sp
+    with pytest.raises(ValueError, match="render"):
+        base.with_render_config(n_dirs=64)                                  # a precompute key
+    d = ZHShadow().config
+    assert (d["window"], d["window_width"], d["clamp"], d["train_rest"]) == ("none", None, True, pc.REST_FRACTION)
 
 
 def test_registered_and_guards():
@@ -127,10 +165,8 @@ def rendered():
     out = {"noise": rmse(refs[0], refs[1], mask) / 2 / math.sqrt(2), "stats": m.stats}
     for sh in ("sample", "vertex"):
         for sp in ("published", "cosine"):
-            m.config.update(shading=sh, specular=sp)
-            out[(sh, sp)] = rmse(m.render(frame, gb).numpy(), ref, mask)
+            out[(sh, sp)] = rmse(m.with_render_config(shading=sh, specular=sp).render(frame, gb).numpy(), ref, mask)
     out["memory"] = m.memory()
-    m.config.update(shading="sample", specular="published")
     m.render(frame, gb)
     out["bytes"] = {k: m.bytes_per_frame(k) for k in ("V", "VBL")}
     out["bytes_expected"] = (tensor_bytes(m.model.X) + sum(tensor_bytes(t) for t in m._ops.values())
