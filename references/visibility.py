@@ -20,8 +20,9 @@ The backend comes from the ``backend`` argument, else the environment variable
 says which one a call will use and `backend_id` names it with its version, for run records.
 
 Same rays, same hits: both tracers start a ray at t = 0 on the segment convention of
-``RayCaster._prepare`` and both run Embree's watertight triangle test, so they disagree only on
-rays that graze an edge or a surface within float32 round-off (``tests/references/
+``RayCaster._prepare`` and both run Embree's robust (watertight) traversal — Mitsuba's is switched
+on here, its default fast mode leaks rays through shared edges —, so they disagree only on rays
+that graze an edge or a surface within float32 round-off (``tests/references/
 test_visibility_mitsuba.py`` measures it on every library scene). Mitsuba's answer for a ray
 depends only on that ray: the same rays give the same hits whatever the chunking, their order in a
 batch and Dr.Jit's thread count (tested). Dr.Jit's thread pool is process-wide
@@ -91,8 +92,8 @@ def make_visibility(V: Any, F: Any, *, backend: str | None = None, **kwargs) -> 
 
     Args:
         backend: "auto" | "mitsuba" | "embree" (None: ``$PRTBENCH_VISIBILITY``, else "auto").
-        kwargs: passed to the backend's constructor (``threads``/``robust`` for embreex,
-            ``chunk_rays`` for Mitsuba).
+        kwargs: passed to the backend's constructor (``robust`` for both, ``threads`` for
+            embreex, ``chunk_rays`` for Mitsuba).
     Returns:
         `MitsubaVisibility` or ``methods.core.visibility.Visibility``; its ``backend`` attribute
         names it.
@@ -107,12 +108,17 @@ class MitsubaVisibility(RayCaster):
 
     Args:
         V: (N, 3) vertex positions; F: (M, 3) triangle vertex indices (torch or numpy).
+        robust: Embree's robust (watertight) traversal, Mitsuba's scene flag
+            ``embree_use_robust_intersections``; default True, as the embreex tracer. Mitsuba's
+            own default (False, the fast mode) lets rays through shared edges and vertices, which
+            structured rays (from vertices along axis and diagonal directions) hit often
+            (mitsuba3 issue #1149); robust mode closes them (tested).
         chunk_rays: rays per Dr.Jit batch (bounds memory; results do not depend on it).
     """
 
     backend = "mitsuba"
 
-    def __init__(self, V: Any, F: Any, *, chunk_rays: int = DEFAULT_CHUNK_RAYS):
+    def __init__(self, V: Any, F: Any, *, robust: bool = True, chunk_rays: int = DEFAULT_CHUNK_RAYS):
         if int(chunk_rays) < 1:
             raise ValueError(f"chunk_rays must be >= 1, got {chunk_rays}")
         super().__init__(V, F)
@@ -130,16 +136,21 @@ class MitsubaVisibility(RayCaster):
         p["vertex_positions"] = mi.Float(self.V.ravel())
         p["faces"] = mi.UInt32(self.F.astype(np.uint32).ravel())
         p.update()
-        self._scene = mi.load_dict({"type": "scene", "mesh": mesh})  # builds the BVH once
+        self.robust = bool(robust)
+        self._scene = mi.load_dict({"type": "scene", "mesh": mesh,  # builds the BVH once
+                                    "embree_use_robust_intersections": self.robust})
 
     def _rays(self, o: np.ndarray, d: np.ndarray, seg: np.ndarray):
-        """Dr.Jit rays of one chunk: o, d (R, 3), seg (R,) → mi.Ray3f with maxt = seg."""
+        """Dr.Jit rays of one chunk: o, d (R, 3), seg (R,) or 0-d → mi.Ray3f with maxt = seg."""
         import drjit as dr
         import mitsuba as mi
 
         ray = mi.Ray3f(dr.unravel(mi.Point3f, mi.Float(np.ascontiguousarray(o).ravel())),
                        dr.unravel(mi.Vector3f, mi.Float(np.ascontiguousarray(d).ravel())))
-        ray.maxt = mi.Float(np.ascontiguousarray(seg))
+        if seg.ndim:
+            ray.maxt = mi.Float(np.ascontiguousarray(seg))
+        elif np.isfinite(seg):  # else Mitsuba's default maxt (the largest float) = unbounded
+            ray.maxt = mi.Float(float(seg))
         return ray
 
     def occluded(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
@@ -157,7 +168,7 @@ class MitsubaVisibility(RayCaster):
         hit = np.zeros(R, bool)
         for a in range(0, R, self.chunk_rays):
             b = min(R, a + self.chunk_rays)
-            hit[a:b] = self._scene.ray_test(self._rays(o[a:b], d[a:b], seg[a:b])).numpy()
+            hit[a:b] = self._scene.ray_test(self._rays(o[a:b], d[a:b], seg[a:b] if seg.ndim else seg)).numpy()
         return self._wrap(hit, origins)
 
     def intersect(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
@@ -180,7 +191,7 @@ class MitsubaVisibility(RayCaster):
         v = np.zeros(R, np.float32)
         for a in range(0, R, self.chunk_rays):
             b = min(R, a + self.chunk_rays)
-            pi = self._scene.ray_intersect_preliminary(self._rays(o[a:b], d[a:b], seg[a:b]))
+            pi = self._scene.ray_intersect_preliminary(self._rays(o[a:b], d[a:b], seg[a:b] if seg.ndim else seg))
             valid = pi.is_valid()
             dr.eval(pi.t, pi.prim_index, pi.prim_uv, valid)
             ok = valid.numpy()

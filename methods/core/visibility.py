@@ -86,12 +86,12 @@ def _out(a: np.ndarray, like: Any) -> Any:
 
 
 def _per_ray(x: Any, R: int, name: str) -> np.ndarray:
-    """Scalar or (R,) → float64 (R,) array."""
+    """Scalar or (R,) → float64 array: 0-d for a scalar (it broadcasts), else (R,)."""
     if isinstance(x, Tensor):
         x = x.detach().cpu().numpy()
     a = np.asarray(x, dtype=np.float64)
     if a.ndim == 0:
-        return np.full(R, float(a))
+        return a
     if a.shape != (R,):
         raise ValueError(f"{name} must be a scalar or have shape ({R},), got {a.shape}")
     return a
@@ -134,8 +134,9 @@ class RayCaster:
         return int(self.F.shape[0])
 
     def _prepare(self, origins, dirs, tnear, tfar):
-        """→ o (R, 3), d (R, 3) float32 contiguous, tn (R,) float64, seg (R,) float32: the segment
-        starts at o (the origin moved to tnear) and has length seg (inf allowed)."""
+        """→ o (R, 3), d (R, 3) float32 contiguous, tn float64, seg float32: the segment starts at
+        o (the origin moved to tnear) and has length seg (inf allowed); tn and seg are (R,) arrays,
+        or 0-d when tnear and tfar are both scalars (the common case: no per-ray arrays built)."""
         o = _as_np(origins, "origins", (3,))
         d = _as_np(dirs, "dirs", (3,))
         if o.shape != d.shape:
@@ -147,8 +148,10 @@ class RayCaster:
             raise ValueError("tnear must be >= 0")
         # the tracers start rays at t = 0: move the origin to tnear instead (same segment).
         if (tn != 0).any():
-            o = np.ascontiguousarray(o + (tn[:, None] * d).astype(np.float32))
+            o = np.ascontiguousarray(o + (tn[..., None] * d).astype(np.float32))
         seg = np.maximum(tf - tn, 0.0).astype(np.float32)  # inf stays inf (Embree accepts inf)
+        if tn.ndim != seg.ndim:  # one scalar bound, one per-ray: per-ray both
+            tn = np.broadcast_to(tn, seg.shape)
         return o, d, tn, seg
 
     # numpy result → the array kind of the input (torch on its device, else numpy)
@@ -218,7 +221,9 @@ class Visibility(RayCaster):
 
         def job(sl: slice):
             # embreex writes the hit distance into `dists` in place: pass a private copy
-            return self._scene.run(o[sl], d[sl], dists=seg[sl].copy(), query=query, output=output)
+            n_sl = sl.stop - sl.start
+            dists = np.full(n_sl, seg, np.float32) if seg.ndim == 0 else seg[sl].copy()
+            return self._scene.run(o[sl], d[sl], dists=dists, query=query, output=output)
 
         if n == 1:
             return [job(slice(0, R))]
