@@ -6,7 +6,8 @@ For every G-buffer sample x with outgoing direction ωo it estimates
 
 with multiple importance sampling (Veach 1997, power heuristic β = 2) of two strategies: the env
 map's luminance distribution (``EnvMap.sample``) and the material's lobe (``Material.sample``).
-Visibility is traced with embreex (``methods.core.visibility``). The estimator is the same one
+Visibility is traced by ``references.visibility.make_visibility`` (Mitsuba's ``ray_test`` or embreex,
+``PRTBENCH_VISIBILITY``). The estimator is the same one
 Mitsuba's ``path`` integrator uses for ``max_depth = 2``, so oracle and reference must agree up to
 noise; a bias means a convention differs somewhere (env-map orientation, BRDF normalisation,
 cosine placement, camera rays, normals). ``tests/methods/test_oracle.py`` proves it on every named
@@ -22,6 +23,7 @@ from torch import Tensor
 from methods.base import Capabilities, Frame, GBuffer, Method, register
 from methods.core.frames import coordinate_system
 from methods.core.visibility import Visibility
+from references.visibility import make_visibility
 
 # Shadow-ray origin offset, as a fraction of the scene's bounding-box diagonal (Mitsuba offsets by
 # a relative epsilon too; any value well above float32 round-off of positions and well below
@@ -75,7 +77,7 @@ class Oracle(Method):
     def _visibility(self, geom, pose: Tensor | None) -> Visibility:
         key = "rest" if pose is None else repr(pose.detach().cpu().tolist())
         if self._vis is None or self._vis[0] != key:
-            self._vis = (key, Visibility(geom.V, geom.F))
+            self._vis = (key, make_visibility(geom.V, geom.F))
         return self._vis[1]
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:

@@ -23,7 +23,9 @@ contiguous chunks traced concurrently. Measured: 1.85× with 2 threads on an idl
 (icosphere, 400K rays); no gain when the cores are oversubscribed (load ≈ 5–7, see
 ``python -m benchmarks.visibility``). Results are identical to the single-threaded call.
 embreex traces one ray per Embree call; Mitsuba's ``scene.ray_test`` (llvm_ad_rgb, Embree packets)
-measured 1.6–10× faster on the same rays, so very large precomputations may prefer it.
+is faster on the same rays. It lives a layer up (the core is renderer-free):
+``references.visibility.MitsubaVisibility`` implements the same `RayCaster` interface, and
+``references.visibility.make_visibility`` picks the backend (``PRTBENCH_VISIBILITY``).
 """
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ import embreex.mesh_construction as _emc
 import embreex.rtcore_scene as _ers
 
 __all__ = [
+    "RayCaster",
     "Visibility",
     "offset_origins",
     "vertex_visibility",
@@ -83,28 +86,34 @@ def _out(a: np.ndarray, like: Any) -> Any:
 
 
 def _per_ray(x: Any, R: int, name: str) -> np.ndarray:
-    """Scalar or (R,) → float64 (R,) array."""
+    """Scalar or (R,) → float64 array: 0-d for a scalar (it broadcasts), else (R,)."""
     if isinstance(x, Tensor):
         x = x.detach().cpu().numpy()
     a = np.asarray(x, dtype=np.float64)
     if a.ndim == 0:
-        return np.full(R, float(a))
+        return a
     if a.shape != (R,):
         raise ValueError(f"{name} must be a scalar or have shape ({R},), got {a.shape}")
     return a
 
 
-class Visibility:
-    """An Embree scene over one triangle mesh.
+class RayCaster:
+    """What every visibility backend shares: the mesh, its checks, the ray-segment convention.
 
-    Args:
-        V: (N, 3) vertex positions; F: (M, 3) triangle vertex indices (torch or numpy).
-        threads: worker threads used for large batches (default 2; 1 = calling thread only).
-        robust: Embree's robust traversal mode (watertight edges; no rays slip between
-            triangles sharing an edge). Default True.
+    A backend (`Visibility` here; ``references.visibility.MitsubaVisibility`` on Mitsuba's
+    ``scene.ray_test``) implements `occluded` and `intersect` with the signatures below, on the
+    segment convention of `_prepare`: a ray (o, d, tnear, tfar) is traced as the segment from
+    o + tnear·d of length tfar − tnear (both tracers start rays at t = 0), so the same rays give the
+    same hits on either backend up to grazing rays.
+
+    Attributes:
+        V (N, 3) float32, F (M, 3) int32 numpy arrays; bbox (lo, hi); scale: bounding-box
+        diagonal (the unit of scale-aware ray offsets, `offset_origins`); backend: its name.
     """
 
-    def __init__(self, V: Any, F: Any, *, threads: int = 2, robust: bool = True):
+    backend: str = "?"
+
+    def __init__(self, V: Any, F: Any):
         Vn = _as_np(V, "V", (3,))
         Fn = _as_np(F, "F", (3,), dtype=np.int64)
         if Fn.shape[0] == 0:
@@ -113,28 +122,21 @@ class Visibility:
             raise ValueError("V contains NaN or Inf")
         if Fn.min() < 0 or Fn.max() >= Vn.shape[0]:
             raise ValueError(f"F indexes outside V (0..{Vn.shape[0] - 1})")
-        if threads < 1:
-            raise ValueError(f"threads must be >= 1, got {threads}")
         self.V = Vn  # (N, 3) float32
         self.F = Fn.astype(np.int32)  # (M, 3) int32
-        self.threads = int(threads)
-        self._scene = _ers.EmbreeScene(robust=robust)
-        self._mesh = _emc.TriangleMesh(self._scene, self.V, self.F)  # keep alive with the scene
         lo, hi = Vn.min(0), Vn.max(0)
         self.bbox = (lo, hi)
         # (scalar) scene scale: bounding-box diagonal, used for scale-aware ray offsets
         self.scale = float(np.linalg.norm(hi - lo)) or 1.0
-        # Commit the BVH now (embreex commits lazily on the first query; doing it here keeps the
-        # first threaded call free of a race on the commit).
-        self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), query="OCCLUDED")
 
     @property
     def num_faces(self) -> int:
         return int(self.F.shape[0])
 
-    # -- raw queries -------------------------------------------------------------------------
-
     def _prepare(self, origins, dirs, tnear, tfar):
+        """→ o (R, 3), d (R, 3) float32 contiguous, tn float64, seg float32: the segment starts at
+        o (the origin moved to tnear) and has length seg (inf allowed); tn and seg are (R,) arrays,
+        or 0-d when tnear and tfar are both scalars (the common case: no per-ray arrays built)."""
         o = _as_np(origins, "origins", (3,))
         d = _as_np(dirs, "dirs", (3,))
         if o.shape != d.shape:
@@ -144,11 +146,73 @@ class Visibility:
         tf = _per_ray(tfar, R, "tfar")
         if (tn < 0).any():
             raise ValueError("tnear must be >= 0")
-        # embreex always starts rays at t = 0: move the origin to tnear instead (same segment).
+        # the tracers start rays at t = 0: move the origin to tnear instead (same segment).
         if (tn != 0).any():
-            o = np.ascontiguousarray(o + (tn[:, None] * d).astype(np.float32))
+            o = np.ascontiguousarray(o + (tn[..., None] * d).astype(np.float32))
         seg = np.maximum(tf - tn, 0.0).astype(np.float32)  # inf stays inf (Embree accepts inf)
+        if tn.ndim != seg.ndim:  # one scalar bound, one per-ray: per-ray both
+            tn = np.broadcast_to(tn, seg.shape)
         return o, d, tn, seg
+
+    # numpy result → the array kind of the input (torch on its device, else numpy)
+    _wrap = staticmethod(_out)
+
+    @staticmethod
+    def _hits(origins: Any, tn: np.ndarray, t: np.ndarray, face: np.ndarray, u: np.ndarray, v: np.ndarray):
+        """Closest-hit outputs in the `intersect` convention (misses: face < 0 → t = inf, −1, 0, 0),
+        t measured from the original origin; arrays of the kind of `origins`."""
+        face = face.astype(np.int64)
+        miss = face < 0
+        t = (t.astype(np.float64) + tn).astype(np.float32)
+        u = u.astype(np.float32)
+        v = v.astype(np.float32)
+        face[miss] = -1
+        t[miss] = np.inf
+        u[miss] = 0.0
+        v[miss] = 0.0
+        return _out(t, origins), _out(face, origins), _out(u, origins), _out(v, origins)
+
+    def occluded(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
+                 threads: int | None = None) -> Any:
+        """(R,) bool, True where the segment is blocked (contract: `Visibility.occluded`)."""
+        raise NotImplementedError
+
+    def intersect(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
+                  threads: int | None = None):
+        """Closest hit t, face, u, v (contract: `Visibility.intersect`)."""
+        raise NotImplementedError
+
+    def visible(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
+                threads: int | None = None) -> Any:
+        """(R,) bool, True where the ray segment is free (= ~occluded)."""
+        occ = self.occluded(origins, dirs, tnear, tfar, threads=threads)
+        return ~occ
+
+
+class Visibility(RayCaster):
+    """An Embree scene over one triangle mesh (embreex).
+
+    Args:
+        V: (N, 3) vertex positions; F: (M, 3) triangle vertex indices (torch or numpy).
+        threads: worker threads used for large batches (default 2; 1 = calling thread only).
+        robust: Embree's robust traversal mode (watertight edges; no rays slip between
+            triangles sharing an edge). Default True.
+    """
+
+    backend = "embree"
+
+    def __init__(self, V: Any, F: Any, *, threads: int = 2, robust: bool = True):
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        super().__init__(V, F)
+        self.threads = int(threads)
+        self._scene = _ers.EmbreeScene(robust=robust)
+        self._mesh = _emc.TriangleMesh(self._scene, self.V, self.F)  # keep alive with the scene
+        # Commit the BVH now (embreex commits lazily on the first query; doing it here keeps the
+        # first threaded call free of a race on the commit).
+        self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), query="OCCLUDED")
+
+    # -- raw queries -------------------------------------------------------------------------
 
     def _run(self, o: np.ndarray, d: np.ndarray, seg: np.ndarray, query: str, output: bool, threads: int | None):
         R = o.shape[0]
@@ -157,7 +221,9 @@ class Visibility:
 
         def job(sl: slice):
             # embreex writes the hit distance into `dists` in place: pass a private copy
-            return self._scene.run(o[sl], d[sl], dists=seg[sl].copy(), query=query, output=output)
+            n_sl = sl.stop - sl.start
+            dists = np.full(n_sl, seg, np.float32) if seg.ndim == 0 else seg[sl].copy()
+            return self._scene.run(o[sl], d[sl], dists=dists, query=query, output=output)
 
         if n == 1:
             return [job(slice(0, R))]
@@ -181,7 +247,7 @@ class Visibility:
             return _out(np.zeros(0, bool), origins)
         parts = self._run(o, d, seg, "OCCLUDED", False, threads)
         hit = np.concatenate(parts) != -1  # embreex returns geomID of the blocker, -1 when free
-        return _out(hit, origins)
+        return self._wrap(hit, origins)
 
     def intersect(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
                   threads: int | None = None):
@@ -199,22 +265,8 @@ class Visibility:
             z = np.zeros(0, np.float32)
             return (_out(z, origins), _out(np.zeros(0, np.int64), origins), _out(z, origins), _out(z, origins))
         parts = self._run(o, d, seg, "INTERSECT", True, threads)
-        face = np.concatenate([p["primID"] for p in parts]).astype(np.int64)
-        miss = face < 0
-        t = (np.concatenate([p["tfar"] for p in parts]).astype(np.float64) + tn).astype(np.float32)
-        u = np.concatenate([p["u"] for p in parts]).astype(np.float32)
-        v = np.concatenate([p["v"] for p in parts]).astype(np.float32)
-        face[miss] = -1
-        t[miss] = np.inf
-        u[miss] = 0.0
-        v[miss] = 0.0
-        return _out(t, origins), _out(face, origins), _out(u, origins), _out(v, origins)
-
-    def visible(self, origins: Any, dirs: Any, tnear: Any = 0.0, tfar: Any = math.inf, *,
-                threads: int | None = None) -> Any:
-        """(R,) bool, True where the ray segment is free (= ~occluded)."""
-        occ = self.occluded(origins, dirs, tnear, tfar, threads=threads)
-        return ~occ
+        cat = lambda k: np.concatenate([p[k] for p in parts])  # noqa: E731
+        return self._hits(origins, tn, cat("tfar"), cat("primID"), cat("u"), cat("v"))
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -244,14 +296,14 @@ def offset_origins(p: Tensor, n: Tensor, eps: float = DEFAULT_OFFSET_EPS, *,
     return p + off * n
 
 
-def vertex_visibility(vis: Visibility, points: Tensor, normals: Tensor, dirs: Tensor, *,
+def vertex_visibility(vis: RayCaster, points: Tensor, normals: Tensor, dirs: Tensor, *,
                       local: bool = False, eps: float = DEFAULT_OFFSET_EPS,
                       below_horizon: str = "trace", chunk_rays: int = 1 << 20,
                       progress: bool | None = None) -> Tensor:
     """Binary visibility of a direction set from every point.
 
     Args:
-        vis: the scene's `Visibility`.
+        vis: the scene's `RayCaster` (embreex `Visibility` or another backend).
         points: (V, 3) surface points; normals: (V, 3) unit normals (origins are offset along them
             with `offset_origins(..., scale=vis.scale)`).
         dirs: (D, 3) unit directions, world frame (``local=False``) or each point's local frame
@@ -303,7 +355,7 @@ def vertex_visibility(vis: Visibility, points: Tensor, normals: Tensor, dirs: Te
     return out.to(dev)
 
 
-def visibility_cubemap(vis: Visibility, points: Tensor, normals: Tensor, N: int, *,
+def visibility_cubemap(vis: RayCaster, points: Tensor, normals: Tensor, N: int, *,
                        local: bool = False, supersample: int = 1, eps: float = DEFAULT_OFFSET_EPS,
                        below_horizon: str = "trace", progress: bool | None = None) -> Tensor:
     """Visibility as cube maps (`methods.core.cubemap` face order/orientation).
@@ -327,7 +379,7 @@ def visibility_cubemap(vis: Visibility, points: Tensor, normals: Tensor, N: int,
     return vis_b.float().reshape(points.shape[0], 6, N, N, s * s).mean(-1)
 
 
-def visibility_sh(vis: Visibility, points: Tensor, normals: Tensor, order: int, *,
+def visibility_sh(vis: RayCaster, points: Tensor, normals: Tensor, order: int, *,
                   n_dirs: int = 4096, local: bool = True, eps: float = DEFAULT_OFFSET_EPS,
                   below_horizon: str = "trace", progress: bool | None = None) -> Tensor:
     """SH projection of binary visibility by quadrature on a shared spherical Fibonacci set

@@ -41,7 +41,7 @@ from torch import Tensor
 from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
 from methods.core import cubemap
 from methods.core.frames import frame_matrix
-from methods.core.visibility import Visibility
+from references.visibility import make_visibility
 from methods.inout import transport as tp
 
 # Floats per (Q, K, 3) temporary in render(): samples per batch = RENDER_FLOATS / (3K) (~16 MB).
@@ -148,7 +148,7 @@ class InOut(Method):
         face_region = torch.as_tensor(geom.face_region).long().cpu()
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or Nrm.shape != V.shape:
             raise ValueError(f"bad geometry: V {tuple(V.shape)}, F {tuple(F.shape)}, N {tuple(Nrm.shape)}")
-        vis = Visibility(V, F)
+        vis = make_visibility(V, F)
         weights = None
         if cfg["select"] == "area":
             weights = cubemap.haar_support_area(N, solid_angle=True).reshape(-1)

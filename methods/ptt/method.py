@@ -51,7 +51,7 @@ from torch import Tensor
 from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
-from methods.core.visibility import Visibility
+from references.visibility import make_visibility
 from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
 from methods.ptt import lobes as _lobes
@@ -237,7 +237,7 @@ class PTT(Method):
         self.factors = _tp.factor_basis(factored, n_wi=c["n_wi"], grid=c["brdf_grid"], table=c["brdf_table"],
                                         n_wo=c["n_wo"])
         t1 = time.perf_counter()
-        vis = Visibility(self.V, self.F)
+        vis = make_visibility(self.V, self.F)
         N = c["cube_res"]
         P0 = _tp.ray_points(self.V, self.F)  # ray origins just inside each vertex's faces
         hook = None

@@ -68,6 +68,7 @@ from torch import Tensor
 from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
 from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.core.visibility import Visibility
+from references.visibility import make_visibility
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import fast_eval
@@ -251,7 +252,7 @@ class TripleProduct(Method):
         self.F, self.V = F, V
         self.vertex_region = torch.as_tensor(geom.vertex_region).long().cpu()
         self.R = lt.local_frames(N, cfg["tangent"])
-        vis = Visibility(V, F)
+        vis = make_visibility(V, F)
         ta = time.perf_counter()
         Vc = visibility_coeffs(vis, V, N, self.R, self.geo, supersample=cfg["vis_supersample"],
                                progress=self.progress)                          # (N, K)

@@ -44,7 +44,8 @@ from torch import Tensor
 from methods.core.frames import coordinate_system
 from methods.core.sampling import fibonacci_hemisphere, fibonacci_sphere
 from methods.core.sh import sh_eval
-from methods.core.visibility import Visibility, vertex_visibility
+from methods.core.visibility import vertex_visibility
+from references.visibility import make_visibility
 from methods.core.zh import band_norms, expand_bands, legendre, zh_lobes_to_sh
 
 # Ridge added to the per-band c × c normal equations of the lobe coefficients when c ≥ 2 (relative
@@ -152,7 +153,7 @@ def pose_visibility(scene, poses: Tensor, order: int, *, n_dirs: int = 1024, bel
     vs, vcs = [], []
     for pose in tqdm(poses, disable=not progress, desc="zh_shadow visibility", unit="pose"):
         g = scene.geometry(pose)
-        vis = Visibility(g.V, g.F)
+        vis = make_visibility(g.V, g.F)
         vb = vertex_visibility(vis, g.V, g.N, dirs, local=True, below_horizon=below_horizon,
                                progress=False).float()          # (N, D)
         vs.append(vb @ Y)
