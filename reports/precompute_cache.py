@@ -65,6 +65,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from references.visibility import backend_id
+
 ENV_OFF = "PRTBENCH_NO_PRECOMPUTE_CACHE"
 ENV_MAX_GB = "PRTBENCH_CACHE_MAX_GB"
 DEFAULT_MAX_GB = 5.0
@@ -392,7 +394,7 @@ def _process_fingerprint() -> str:
 def cache_key(scene: Any, method: Any, config: str) -> str:
     h = hashlib.sha256()
     for part in (str(VERSION), scene.content_hash(), type(method).name, config, _process_fingerprint(),
-                 torch.__version__):
+                 torch.__version__, backend_id()):  # the ray tracer that made the visibility
         h.update(part.encode() + b"\0")
     return h.hexdigest()[:24]
 
