@@ -37,13 +37,10 @@ def _ensure_mitsuba() -> None:
 def get_scene(name: str, size: str = "test"):
     """A library scene by name, or a TOML scene file given as ``"file:<path>"``."""
     if name.startswith(SCENE_FILE_PREFIX):
-        from scenes import scenefile
+        from scenes.scenefile import load_scene_file
 
-        path = Path(name[len(SCENE_FILE_PREFIX):])
-        for fn in ("load_scene_file", "load_scene", "load"):
-            if hasattr(scenefile, fn):
-                return getattr(scenefile, fn)(path)
-        raise ValueError("scenes.scenefile has no loader (load_scene_file/load_scene/load)")
+        # the suite's size: meshes decimated to its vertex budget, film and env map at its size
+        return load_scene_file(Path(name[len(SCENE_FILE_PREFIX):]), size=size)
     from scenes.library import get_scene as _get
 
     try:

@@ -131,7 +131,7 @@ def test_black_env_map_rejected(tmp_path):
 def test_collapsed_mesh_rejected(tmp_path, scale, translate, what):
     p = _scene_file(tmp_path, **{"scale = [0.5, 1.0, 0.5]": f"scale = {scale}", "translate = [-0.5": f"translate = {translate}"})
     msg = _load_error(p)
-    assert "[[shape]] #0 ('tall_box') scale/translate" in msg and re.search(what, msg), msg
+    assert "[[shape]] #0 ('tall_box') scale/rotate/translate" in msg and re.search(what, msg), msg
 
 
 def test_scene_rejects_degenerate_shape():
