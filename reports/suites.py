@@ -8,6 +8,9 @@
   scored frames, 256-spp references, the oracle at 4+4 samples. Target ≤ 30 min on 2 cores (the
   README gives the measured wall time).
 
+* ``perf``: chess and creature at bench size, every frame kind (V, VB, VBL, L, E, VL, P), 4 timed
+  frames: the suite the frame-time and roofline numbers come from.
+
 ``Capabilities.why_not`` decides which cells are in scope; out-of-scope cells are still planned,
 with their reason in ``Cell.na``, so the report shows the whole matrix.
 """
@@ -69,7 +72,14 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=None, kinds=("V", "VB", "VB
                          # chess (bench); measured on the Fig. 8 sweep (methods.ptt.study fig8)
                          ("ptt", '{"light_res_1":4}')),
                 eq_err_spp=(32, 128, 256), isolate=False)
-SUITES = {"smoke": SMOKE, "nightly": NIGHTLY}
+# perf: what the run-time numbers (frame times, roofline efficiency, equal-error speedup) come from —
+# every method on two bench-size scenes (chess: static, three BRDF families; creature: articulated),
+# every frame kind a method claims, 1 warm-up + 4 timed frames, one scored frame per sequence (the
+# equal-error speedup needs its error), precomputations shared through the precompute cache.
+PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
+             dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
+             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}')))
+SUITES = {"smoke": SMOKE, "nightly": NIGHTLY, "perf": PERF}
 
 
 def get_suite(name: str) -> Suite:
