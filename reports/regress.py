@@ -5,7 +5,7 @@ Cell identity: ``CELL_ID`` = (scene, size, sequence, method, config, bounces) �
 it, so a code change is compared with the numbers of the code before it.
 
 Baseline (``baseline_rows``): for every cell of a new run, the most recent *earlier* run in the
-history (by run time, same suite, the new run itself excluded) in which that same cell finished ok
+history (by run time, same suite, the new run itself excluded) in which that same cell was measured
 — not "the latest run of the suite", which may not contain the cell (a ``--methods oracle`` run
 must not hide an inout regression). A run's suite is the first part of its id (``suite_of``):
 ``smoke``, ``nightly``, … and ``smoke+files`` for a run that includes scene files. Scene files are
@@ -42,7 +42,9 @@ Rules (each value of a cell compared with the same cell's baseline):
   so no within-run statistic helps. Frame-time flags are trustworthy only on a reserved machine
   (as the nightly's should be); on a shared machine most of them are load, not code.
 * Memory (``memory_bytes``) is deterministic: flagged above ``MEMORY_REL``.
-* A cell that finished ok in its baseline run and now fails is flagged.
+* A cell that finished in its baseline run and now fails is flagged, and so is one that was ``ok``
+  and is now ``suspect`` (its images failed the sanity gate, ``reports/gate.py``); suspect cells'
+  numbers are compared like ok ones.
 Improvements by the same rules are reported as ``improvement``.
 """
 from __future__ import annotations
@@ -69,6 +71,10 @@ TIME_SPREAD_K = 2.0
 TIME_ABS_FLOOR = 2e-4
 # Memory of run-time arrays is deterministic; 1 % guards against metadata-sized differences.
 MEMORY_REL = 0.01
+
+# Cell statuses that carry numbers: "suspect" = measured, but its images failed the sanity gate
+# (reports/gate.py).
+MEASURED = ("ok", "suspect")
 
 CHANGE_COLUMNS = CELL_ID + ["metric", "old", "new", "rel_change", "p_value", "threshold", "flag", "test", "baseline"]
 
@@ -100,7 +106,7 @@ def _run_times(df: pd.DataFrame) -> pd.Series:
 
 def baseline_rows(history: pd.DataFrame, new: pd.DataFrame, *, same_suite: bool = True) -> pd.DataFrame:
     """For every cell of ``new`` (one run), that cell's rows from the most recent earlier run of
-    ``history`` in which it finished ok (``CELL_ID``; see the module docstring). Runs of ``new``'s
+    ``history`` in which it was measured (``MEASURED``) (``CELL_ID``; see the module docstring). Runs of ``new``'s
     own id(s) and runs that started at or after it are not candidates; with ``same_suite`` only runs
     of the same suite (``suite_of``) are. The rows of several earlier runs may be returned
     (each cell from its own baseline run)."""
@@ -118,8 +124,8 @@ def baseline_rows(history: pd.DataFrame, new: pd.DataFrame, *, same_suite: bool 
     h = h[h["run_id"].map(t) < t_new]
     keys = _key(h)
     h = h.assign(_k=keys, _t=h["run_id"].map(t))
-    want = set(_key(new[new["status"].isin(["ok", "error"])]))
-    ok = h[(h["status"] == "ok") & h["_k"].isin(want)]
+    want = set(_key(new[new["status"].isin(MEASURED + ("error",))]))
+    ok = h[h["status"].isin(MEASURED) & h["_k"].isin(want)]
     if len(ok) == 0:
         return history.iloc[0:0]
     latest = ok.groupby("_k")["_t"].transform("max")
@@ -132,7 +138,7 @@ def compare_with_history(history: pd.DataFrame, new: pd.DataFrame) -> pd.DataFra
 
 
 def compare_runs(old: pd.DataFrame, new: pd.DataFrame, *, require_common: bool = False) -> pd.DataFrame:
-    """All compared values of cells present in both tables — ok in ``old`` — with ``flag`` in
+    """All compared values of cells present in both tables — measured in ``old`` — with ``flag`` in
     {"regression", "improvement", ""} (``CHANGE_COLUMNS``; ``baseline`` = the run id the cell was
     compared with). ``old`` may hold rows of several runs, at most one per cell (``baseline_rows``).
 
@@ -148,7 +154,7 @@ def compare_runs(old: pd.DataFrame, new: pd.DataFrame, *, require_common: bool =
         return pd.DataFrame(columns=CHANGE_COLUMNS)
     old = old.assign(_k=_key(old))
     new = new.assign(_k=_key(new))
-    ok_old = set(old.loc[old["status"] == "ok", "_k"])
+    ok_old = set(old.loc[old["status"].isin(MEASURED), "_k"])
     old_groups = {k: g for k, g in old.groupby("_k", sort=False)}
     for k, g_new in new.groupby("_k", sort=True):
         ident = {c: g_new.iloc[0][c] for c in CELL_ID}
@@ -162,8 +168,12 @@ def compare_runs(old: pd.DataFrame, new: pd.DataFrame, *, require_common: bool =
                         "p_value": float("nan"), "threshold": float("nan"), "flag": "regression",
                         "test": f"cell failed: {g_new.iloc[0]['reason']}"})
             continue
-        if status != "ok":
+        if status not in MEASURED:
             continue
+        if status == "suspect" and g_old.iloc[0]["status"] == "ok":
+            out.append({**ident, "metric": "status", "old": float("nan"), "new": float("nan"), "rel_change": float("nan"),
+                        "p_value": float("nan"), "threshold": float("nan"), "flag": "regression",
+                        "test": f"cell became suspect: {g_new.iloc[0]['reason']}"})
         out += _compare_errors(ident, g_old, g_new)
         out += _compare_times(ident, g_old, g_new)
         out += _compare_memory(ident, g_old, g_new)

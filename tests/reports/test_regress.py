@@ -139,6 +139,21 @@ def test_memory_growth_and_failed_cell_are_flagged():
     assert ((fl.metric == "status") & (fl.scene == "chess") & (fl.method == "b")).sum() == 1
 
 
+def test_suspect_cells_are_compared_and_becoming_suspect_is_flagged():
+    rng = np.random.default_rng(7)
+    old = _run("r1", 1, rng)
+    new = _run("r2", 2, rng, err=1.05)
+    sus = (new.scene == "sphere_plane") & (new.method == "b")
+    new.loc[sus, "status"], new.loc[sus, "reason"] = "suspect", "frame 1: 9 % negative pixels"
+    fl = regress.flagged(regress.compare_runs(old, new))
+    got = {(r.metric, r.flag) for r in fl.itertuples() if (r.scene, r.method) == ("sphere_plane", "b")}
+    assert got == {("status", "regression"), ("rmse", "regression"), ("psnr", "regression")}
+    assert "became suspect: frame 1" in fl[fl.metric == "status"].iloc[0]["test"]
+    # suspect → suspect: numbers compared, no status flag
+    fl2 = regress.flagged(regress.compare_runs(new, new))
+    assert len(fl2) == 0
+
+
 def test_baseline_is_the_latest_earlier_run_with_that_cell():
     """Issue 17: the latest run of the suite (here an ``--methods a`` run) is not every cell's
     baseline; each cell is compared with the most recent earlier run that has it ok."""
