@@ -231,8 +231,8 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
     stale = stale_reason(out_dir, label)
     if stale:
         dest = preserve_run(out_dir)
-        print(f"[prtbench] {out_dir}: {stale}; its results were moved to {dest}; starting a fresh run there",
-              flush=True)
+        kept = f"its results were moved to {dest}" if dest is not None else "it had no results to keep"
+        print(f"[prtbench] {out_dir}: {stale}; {kept}; starting a fresh run there", flush=True)
     cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
     everything, others = _merge_plans(earlier_cells(out_dir), cells)
     store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in everything])
