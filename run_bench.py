@@ -5,7 +5,8 @@
                           [--out DIR] [--executor {local,processes,dask}] [--scheduler ADDRESS]
                           [--workers N] [--history PATH]
   python run_bench.py references --suite smoke          # pre-build the reference cache
-  python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged
+  python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged (exit 1:
+                                                        # regressions, 2: no cell in common)
   python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
@@ -128,7 +129,8 @@ def cmd_run(args) -> int:
 
         clear_run(out)
     elif (old := read_run_json(out)) is not None:
-        print(f"resuming run {old['run_id']} in {out} (git {old['git_sha'][:12]}); --fresh starts a new one",
+        print(f"resuming run {old['run_id']} in {out} (git {old['git_sha'][:12]}) unless it cannot be (then it is "
+              f"moved aside): finished cells are kept, this selection is added; --fresh starts a new one",
               file=sys.stderr)
     executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler)
     try:
@@ -141,10 +143,17 @@ def cmd_run(args) -> int:
         executor.shutdown()
     print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_na} n/a, {res.n_error} failed")
     if res.changes is not None:
-        from reports.regress import flagged, format_changes
+        from reports.regress import baseline_runs, cells_compared, flagged, format_changes
 
         fl = flagged(res.changes)
-        print(format_changes(res.changes, only_flagged=True) if len(fl) else "no regressions since the last run")
+        if len(fl):
+            print(format_changes(res.changes, only_flagged=True))
+        if not (fl["flag"] == "regression").any():
+            print("no regressions since the last run")
+        print(f"compared {cells_compared(res.changes)} cell(s), each with its most recent earlier run: "
+              f"{baseline_runs(res.changes)}")
+    elif history is not None:
+        print("no earlier run in the history has any of these cells: nothing compared")
     print(f"results: {res.table.resolve()}")
     if res.history:
         print(f"history: {res.history.resolve()}")
@@ -163,13 +172,21 @@ def cmd_references(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from reports.regress import compare_runs, flagged, format_changes
+    from reports.regress import NoCommonCells, cells_compared, compare_runs, flagged, format_changes
     from reports.store import read_table
 
     a, b = read_table(args.run_a), read_table(args.run_b)
-    ch = compare_runs(a, b)
     print(f"{a['run_id'].iloc[0] if len(a) else args.run_a}  →  {b['run_id'].iloc[0] if len(b) else args.run_b}")
+    try:
+        ch = compare_runs(a, b, require_common=True)
+    except NoCommonCells as e:
+        print(f"prtbench: compare: {e} ({args.run_a} vs {args.run_b})", file=sys.stderr)
+        return 2
     print(format_changes(ch, only_flagged=not args.all))
+    if len(ch) == 0:
+        print("the shared cells did not finish ok in both runs: no values compared")
+    else:
+        print(f"{cells_compared(ch)} cell(s) compared")
     return 1 if (len(ch) and (flagged(ch)["flag"] == "regression").any()) else 0
 
 
@@ -202,13 +219,9 @@ def cmd_report(args) -> int:
     changes = prev_id = None
     hist_path = args.history or store.DEFAULT_HISTORY
     if Path(hist_path).exists() and len(df):
-        hist = store.read_history(hist_path)
-        suite = meta.get("suite", str(df["run_id"].iloc[0]).split("-")[0])
-        hist = hist[hist["run_id"].astype(str).str.startswith(f"{suite}-")]
-        prev = regress.previous_run(hist, str(df["run_id"].iloc[0]))
-        if prev is not None and len(prev):
-            prev_id = str(prev["run_id"].iloc[0])
-            changes = regress.compare_runs(prev, df)
+        changes = regress.compare_with_history(store.read_history(hist_path), df)
+        prev_id = regress.baseline_runs(changes)
+        changes = changes if prev_id is not None else None
     if (args.run_dir / "provenance.json").exists():
         meta["provenance"] = json.loads((args.run_dir / "provenance.json").read_text())
     p = build_report(df, args.run_dir / "report.html", run_dir=args.run_dir, meta=meta, changes=changes, prev_run=prev_id)

@@ -7,6 +7,12 @@ Run directory layout (``--out``):
 ``calib/*.json`` (reference convergence fits), ``results.parquet``, ``changes.csv``, ``report.html``,
 ``provenance.json`` (executor, workers, host and threads behind each cell's numbers);
 ``cells/parts/<key>.{errors,timing}.json`` when a parallel executor split the cells.
+
+Re-running into the same ``--out`` adds to the run there: cells already finished are kept (also
+those of methods/scenes not selected this time), so the results table, the report and the history
+cover every cell of the run. A run that cannot be resumed (other code, package versions or suite,
+or a corrupt ``run.json``) is moved aside to ``<out>.prev-<UTC time>`` (``preserve_run``), never
+deleted.
 """
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ import pandas as pd
 import torch
 
 from reports import measure, regress, store
-from reports.cells import STATUS_OK, Cell, CellResult, move_aside
+from reports.cells import STATUS_OK, Cell, CellResult, load_result, move_aside
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
@@ -41,9 +47,16 @@ class RunOutput:
     changes: pd.DataFrame | None
 
 
+def suite_label(suite_name: str, scenes=None) -> str:
+    """How a run names its suite (the first part of its id, ``regress.suite_of``): the suite's name,
+    plus ``+files`` when the run includes scene files — such a run is not a run of the suite's own
+    scenes and must not pass for one."""
+    return suite_name + ("+files" if any(str(s).startswith("file:") for s in (scenes or ())) else "")
+
+
 def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_ELEMENTS) -> dict:
     """The run's facts; created (with one triad-bandwidth measurement) on the first call and
-    re-read on resume, so a resumed run keeps its id."""
+    re-read on resume, so a resumed run keeps its id. ``suite_name``: the ``suite_label``."""
     p = out_dir / "run.json"
     old, why = _read_run_json(p)
     if old is not None:
@@ -158,27 +171,105 @@ def clear_run(out_dir: str | os.PathLike) -> None:
             shutil.rmtree(out_dir / d)
 
 
+def preserve_run(out_dir: str | os.PathLike) -> Path | None:
+    """Move a previous run's files (``RUN_FILES``, ``RUN_DIRS``) out of ``out_dir`` into a new
+    sibling folder ``<out>.prev-<UTC time>``; returns it (None if there was nothing to move).
+    ``run.json`` moves last, so an interrupted move is still recognised (and finished) next time."""
+    out_dir = Path(out_dir)
+    names = [n for n in RUN_DIRS + RUN_FILES if n != "run.json" and (out_dir / n).exists()]
+    if (out_dir / "run.json").exists():
+        names.append("run.json")
+    if not names:
+        return None
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    dest = out_dir.parent / f"{out_dir.name}.prev-{stamp}"
+    n = 1
+    while True:
+        try:
+            dest.mkdir(parents=True)
+            break
+        except FileExistsError:
+            n += 1
+            dest = out_dir.parent / f"{out_dir.name}.prev-{stamp}-{n}"
+    for name in names:
+        os.replace(out_dir / name, dest / name)
+    return dest
+
+
+def earlier_cells(out_dir: Path) -> list[Cell]:
+    """The cells of the run already in ``out_dir`` (its ``plan.json``; empty if none/unreadable)."""
+    p = out_dir / "plan.json"
+    if not p.exists():
+        return []
+    try:
+        return [Cell.from_dict(d) for d in json.loads(p.read_text())]
+    except (OSError, ValueError, TypeError, AttributeError) as e:
+        print(f"[prtbench] {p}: unreadable ({type(e).__name__}: {e}); earlier cells of this run are not "
+              f"added to its table", flush=True)
+        return []
+
+
+def _merge_plans(earlier: list[Cell], cells: list[Cell]) -> tuple[list[Cell], list[Cell]]:
+    """(every cell of the run — earlier ones in their order, replaced by this selection's cell of the
+    same key, then this selection's new cells; the earlier cells not in this selection)."""
+    mine = {c.key(): c for c in cells}
+    others = [c for c in earlier if c.key() not in mine]
+    order = list(dict.fromkeys([c.key() for c in earlier] + list(mine)))
+    by_key = {**{c.key(): c for c in others}, **mine}
+    return [by_key[k] for k in order], others
+
+
 def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=None, executor=None,
               history: str | os.PathLike | None = store.DEFAULT_HISTORY, backend: str = "reports.backend",
               plugins: tuple[str, ...] = (), isolate: bool | None = None, progress: bool = True,
               report: bool = True, vertex_renders: bool = True, bandwidth_elements: int | None = None) -> RunOutput:
-    """Run ``suite`` into ``out_dir`` (resuming whatever is already there)."""
+    """Run ``suite`` into ``out_dir``: resume the run there, adding this selection's cells to it;
+    a run there that cannot be resumed (``stale_reason``) is moved aside (``preserve_run``) first."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    stale = _stale_run(out_dir)
+    label = suite_label(suite.name, scenes)
+    stale = stale_reason(out_dir, label)
     if stale:
-        print(f"[prtbench] {out_dir}: {stale}; starting a fresh run there", flush=True)
-        clear_run(out_dir)
+        dest = preserve_run(out_dir)
+        kept = f"its results were moved to {dest}" if dest is not None else "it had no results to keep"
+        print(f"[prtbench] {out_dir}: {stale}; {kept}; starting a fresh run there", flush=True)
     cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
-    store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in cells])
-    meta = run_meta(out_dir, suite.name, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
+    everything, others = _merge_plans(earlier_cells(out_dir), cells)
+    store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in everything])
+    meta = run_meta(out_dir, label, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
     results = run_cells(cells, out_dir, executor=executor, progress=progress)
+    report_failures(results)
+    kept = {}
+    for c in others:  # finished cells of earlier invocations of this run, not selected this time
+        r = load_result(out_dir, c)
+        if r is not None:
+            kept[c.key()] = r
+    mine = {r.key: r for r in results}
+    results = [mine.get(c.key()) or kept[c.key()] for c in everything if c.key() in mine or c.key() in kept]
     return finish_run(out_dir, results, meta, history=history, report=report, vertex_renders=vertex_renders)
 
 
-def _stale_run(out_dir: Path) -> str | None:
-    """Why the run in ``out_dir`` must not be resumed (its code or package versions differ from
-    this process'), or None. Resuming it would mix numbers of different code in one table."""
+def report_failures(results: list[CellResult], file=None) -> int:
+    """Print one line per failed cell (method/scene/sequence/bounces: its reason — exception type and
+    message — on one line) on stderr; returns how many failed."""
+    import sys
+
+    n = 0
+    for r in results:
+        if r.status != "error":
+            continue
+        n += 1
+        c = r.cell
+        reason = " ".join(str(r.reason).split()) or "no reason recorded"
+        print(f"[prtbench] FAILED {c.get('method')}/{c.get('scene')}/{c.get('kind')}/b{c.get('bounces')}: "
+              f"{reason[:500]}", file=file or sys.stderr, flush=True)
+    return n
+
+
+def stale_reason(out_dir: Path, label: str | None = None) -> str | None:
+    """Why the run in ``out_dir`` must not be resumed (its code, package versions or suite label
+    differ from this one's, or its run.json is corrupt — that file is then moved aside), or None.
+    Resuming it would mix numbers of different code in one table."""
     p = out_dir / "run.json"
     old, why = _read_run_json(p)
     if why is not None:
@@ -190,6 +281,8 @@ def _stale_run(out_dir: Path) -> str | None:
         return "the code changed since this run started"
     if old.get("versions") != store.package_versions():
         return "package versions changed since this run started"
+    if label is not None and old.get("suite") != label:
+        return f"it is a run of suite {old.get('suite')!r}, not {label!r}"
     return None
 
 
@@ -202,12 +295,11 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     changes, prev_id = None, None
     hist_path = None
     if history is not None:
-        hist = store.read_history(history)
-        hist = hist[hist["run_id"].astype(str).str.startswith(f"{meta['suite']}-")]  # same suite only
-        prev = regress.previous_run(hist, meta["run_id"])
-        if prev is not None and len(prev):
-            prev_id = str(prev["run_id"].iloc[0])
-            changes = regress.compare_runs(prev, df)
+        changes = regress.compare_with_history(store.read_history(history), df)
+        prev_id = regress.baseline_runs(changes)
+        if prev_id is None:
+            changes = None
+        else:
             store.atomic_save(out_dir / "changes.csv", lambda tmp: changes.to_csv(tmp, index=False))
         hist_path = store.append_history(df, history)
     rep = None

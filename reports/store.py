@@ -1,7 +1,9 @@
 """Results store: one long-format parquet table per run, plus a history table every run appends to.
 
 Every file is written atomically (write a temporary file in the same directory, then
-``os.replace``), so a killed run never leaves a half-written file behind.
+``os.replace``), so a killed run never leaves a half-written file behind; files get the permissions
+a plain ``open()`` gives (0o666 minus the umask). The history is appended under a file lock
+(``<history>.lock``), so runs finishing together cannot drop each other's rows.
 
 Columns of the long table (``COLUMNS``; one row per measured value):
 run_id, time (UTC ISO), git_sha, versions (JSON), machine, threads, scene, size, sequence, frame
@@ -38,7 +40,12 @@ DEFAULT_HISTORY = Path("out") / "history.parquet"
 
 def to_frame(rows: Iterable[dict]) -> pd.DataFrame:
     """Rows (dicts with ``COLUMNS`` keys; missing ones become NA) → a typed long table."""
-    df = pd.DataFrame(list(rows))
+    return normalize(pd.DataFrame(list(rows)))
+
+
+def normalize(df: pd.DataFrame) -> pd.DataFrame:
+    """A table with (at least) some of ``COLUMNS`` → exactly ``COLUMNS``, typed (missing → NA)."""
+    df = df.copy()
     for c in COLUMNS:
         if c not in df.columns:
             df[c] = float("nan") if c in ("value", "noise_floor") else ("" if c not in _DTYPES else -1)
@@ -72,16 +79,40 @@ def read_table(path: str | os.PathLike) -> pd.DataFrame:
     return pd.read_parquet(p)
 
 
-def append_history(df: pd.DataFrame, history: str | os.PathLike = DEFAULT_HISTORY) -> Path:
-    """Append one run's table to the history parquet (atomic). Rows of the same ``run_id`` already
-    in the history are replaced, so re-finishing a resumed run does not duplicate it."""
+HISTORY_LOCK_TIMEOUT = 600.0  # seconds a run waits for another run's history append
+
+
+def history_lock(history: str | os.PathLike, timeout: float = HISTORY_LOCK_TIMEOUT):
+    """The inter-process lock of a history file (``<history>.lock``, a ``filelock.FileLock``)."""
+    from filelock import FileLock
+
     history = Path(history)
-    if history.exists():
-        old = pd.read_parquet(history)
-        run_ids = set(df["run_id"].unique())
-        old = old[~old["run_id"].isin(run_ids)]
-        df = pd.concat([old, df], ignore_index=True) if len(old) else df
-    return write_table(df, history)
+    history.parent.mkdir(parents=True, exist_ok=True)
+    return FileLock(str(history) + ".lock", timeout=timeout)
+
+
+def merge_rows(old: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
+    """``old`` plus ``new``, where ``new``'s rows replace the rows of the same (run_id, cell) in
+    ``old``: re-finishing a resumed run does not duplicate it, and a re-run of the same run with
+    fewer methods adds its cells without dropping the others. (The run-level rows have cell "".)"""
+    if len(old) == 0:
+        return normalize(new)
+    if len(new) == 0:
+        return normalize(old)
+    pair_old = old["run_id"].astype(str) + "\0" + old["cell"].astype(str)
+    pair_new = set(new["run_id"].astype(str) + "\0" + new["cell"].astype(str))
+    kept = old[~pair_old.isin(pair_new)]
+    return normalize(pd.concat([normalize(kept), normalize(new)], ignore_index=True))
+
+
+def append_history(df: pd.DataFrame, history: str | os.PathLike = DEFAULT_HISTORY, *,
+                   timeout: float = HISTORY_LOCK_TIMEOUT) -> Path:
+    """Append one run's table to the history parquet: read, merge (``merge_rows``) and atomically
+    replace, all under the history's file lock, so concurrent runs cannot lose each other's rows."""
+    history = Path(history)
+    with history_lock(history, timeout):
+        old = pd.read_parquet(history) if history.exists() else to_frame([])
+        return write_table(merge_rows(old, df), history)
 
 
 def read_history(history: str | os.PathLike = DEFAULT_HISTORY) -> pd.DataFrame:

@@ -4,7 +4,10 @@
   ``<project>/.cache``; references, precomputations and studies live under it.
 * ``atomic_save(path, writer)`` and the ``atomic_write_{bytes,text,json}`` wrappers — a temp file in
   the target's directory, then ``os.replace``: a killed process never leaves a half-written result,
-  reference, cache entry or report behind. Every writer in the project goes through them.
+  reference, cache entry or report behind. Every writer in the project goes through them. The file
+  gets the permissions a plain ``open(path, "w")`` gives (0o666 minus the umask; ``tempfile.mkstemp``
+  would make it 0o600, so a report written by a nightly job could not be served by a web server
+  running as another user).
 
 This module sits in the lowest layer that touches the file system (``scenes``), so references,
 methods and reports can all use it without importing upwards.
@@ -13,7 +16,7 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +31,29 @@ def cache_dir(*parts: str) -> Path:
     return p
 
 
+_TMP_TRIES = 100
+
+
+def _create_temp(path: Path) -> str:
+    """Create an empty, exclusive temp file next to ``path`` (mode 0o666 & ~umask, as ``open`` does)."""
+    for _ in range(_TMP_TRIES):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return str(tmp)
+    raise FileExistsError(f"could not create a temporary file next to {path}")
+
+
 def atomic_save(path: str | os.PathLike, writer) -> Path:
-    """Atomically create ``path`` with ``writer(tmp_path)`` (for writers that need a file name)."""
+    """Atomically create ``path`` with ``writer(tmp_path)`` (for writers that need a file name).
+
+    The file gets the permissions a plain ``open()`` would give it (0o666 minus the umask)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = _create_temp(path)
     try:
         writer(tmp)
         os.replace(tmp, path)
