@@ -192,3 +192,20 @@ def test_compare_requires_a_common_cell():
         regress.compare_runs(a, b, require_common=True)
     assert len(regress.compare_runs(a, b)) == 0
     assert regress.cells_compared(regress.compare_runs(a, a, require_common=True)) == 1
+
+
+def test_five_percent_rmse_rise_flagged_even_below_the_noise_floor():
+    """The smoke case: RMSE 0.153 against a floor 0.105 (0.1 × floor = 6.9 % of the RMSE). Against
+    the same cached reference (identical floor) a deterministic method repeats its RMSE exactly, so a
+    5 % rise is flagged; against a re-rendered reference (another floor) the floor slack applies."""
+    def one(rid, rmse, floor):
+        r = _run(rid, 1, np.random.default_rng(1))
+        sel = (r["metric"] == "rmse") & (r["scene"] == "sphere_plane") & (r["method"] == "b")
+        r.loc[sel, "value"], r.loc[r["metric"] == "rmse", "noise_floor"] = rmse, floor
+        return r
+
+    old = one("smoke-r1", 0.153, 0.105)
+    same_ref = regress.compare_runs(old, one("smoke-r2", 0.153 * 1.05, 0.105))
+    assert ("sphere_plane", "b", "rmse", "regression") in _flags(same_ref)
+    new_ref = regress.compare_runs(old, one("smoke-r2", 0.153 * 1.05, 0.1051))
+    assert ("sphere_plane", "b", "rmse", "regression") not in _flags(new_ref)
