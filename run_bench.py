@@ -61,6 +61,14 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--fresh", action="store_true", help="start a new run in --out instead of resuming the one there")
     r.add_argument("--no-vertex-renders", action="store_true", help="skip the pyvista per-vertex error renders")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--strict", action="store_true", help="exit 1 when a cell is suspect (the sanity gate), "
+                   "not only when one fails")
+    r.add_argument("--device", default="cpu", help="torch device the methods render on: cpu (default) or cuda")
+    r.add_argument("--ref-spp", type=int, default=None, metavar="N",
+                   help="reference samples per pixel (default: the suite's); raise it when the noise floor hides "
+                   "the differences between methods")
+    r.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="frames per sequence (default: the suite's); frames past N are dropped from the scored ones")
 
     ref = sub.add_parser("references", help="pre-build the reference cache of a suite")
     selection(ref)
@@ -120,7 +128,7 @@ def cmd_run(args) -> int:
 
     from reports.pipeline import read_run_json
 
-    suite = get_suite(args.suite)
+    suite = _overridden(get_suite(args.suite), args)
     scenes = _scenes(args)
     out = args.out or Path("out") / suite.name
     history = None if args.no_history else (args.history or DEFAULT_HISTORY)
@@ -138,10 +146,10 @@ def cmd_run(args) -> int:
             print(f"executor: {executor.describe()}", file=sys.stderr)
         res = run_suite(suite, out, methods=args.methods, scenes=scenes, executor=executor,
                         history=history, backend=args.backend, plugins=tuple(args.plugin), isolate=args.isolate,
-                        progress=not args.quiet, vertex_renders=not args.no_vertex_renders)
+                        progress=not args.quiet, vertex_renders=not args.no_vertex_renders, device=args.device)
     finally:
         executor.shutdown()
-    print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_na} n/a, {res.n_error} failed")
+    print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_suspect} suspect, {res.n_na} n/a, {res.n_error} failed")
     if res.changes is not None:
         from reports.regress import baseline_runs, cells_compared, flagged, format_changes
 
@@ -158,7 +166,35 @@ def cmd_run(args) -> int:
     if res.history:
         print(f"history: {res.history.resolve()}")
     print(f"report:  {res.report.resolve()}")
-    return 0 if res.n_error == 0 else 1
+    if res.n_suspect:
+        print(f"{res.n_suspect} suspect cell(s): the sanity gate found a plainly wrong image (listed above and in "
+              f"the report){'' if args.strict else '; --strict makes this fail the run'}")
+    return 0 if res.n_error == 0 and not (args.strict and res.n_suspect) else 1
+
+
+def _overridden(suite, args):
+    """The suite with --ref-spp / --frames / --device applied (validated here: one clear error)."""
+    import dataclasses
+
+    import torch
+
+    if args.device not in ("cpu", "cuda") and not str(args.device).startswith("cuda:"):
+        raise ValueError(f"--device must be cpu or cuda[:N], got {args.device!r}")
+    if str(args.device).startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {args.device}: torch sees no CUDA device on this machine")
+    changes = {}
+    if args.ref_spp is not None:
+        if args.ref_spp < 2 or args.ref_spp % 2:
+            raise ValueError(f"--ref-spp must be an even number >= 2 (references are two halves), got {args.ref_spp}")
+        changes["ref_spp"] = args.ref_spp
+        changes["eq_err_spp"] = tuple(sorted({min(s, args.ref_spp) for s in suite.eq_err_spp} | {args.ref_spp})) \
+            if suite.eq_err_spp else ()
+    if args.frames is not None:
+        if args.frames < 1:
+            raise ValueError(f"--frames must be >= 1, got {args.frames}")
+        changes["n_frames"] = args.frames
+        changes["score_frames"] = tuple(f for f in suite.score_frames if f < args.frames)
+    return dataclasses.replace(suite, **changes) if changes else suite
 
 
 def cmd_references(args) -> int:

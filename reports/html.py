@@ -156,17 +156,20 @@ def summary_table(df: pd.DataFrame) -> str:
         pre = _val(first, "precompute_time")[0]
         fps = "".join(f"<td>{fmt(_val(cells[k], 'fps')[0], '.1f') if k in cells else '–'}</td>" for k in kinds)
         roof = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_efficiency")] if v is not None]
+        cb = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_compute_bound")] if v is not None]
+        bound = "" if not cb else " (compute)" if np.mean(cb) > 0.5 else " (memory)"
         sp = [v for gg in cells.values() for v, _ in [_val(gg, "eq_error_speedup")] if v is not None and math.isfinite(v)]
         body.append(
             f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td><td>{_blabel(b)}</td>"
             f"<td>{rmse}</td><td>{fmt(np.mean(fl) if fl else None, '.3f')}</td><td>{fmt_bytes(mem)}</td>"
             f"<td>{fmt_bytes(max(rss)) if rss else '–'}</td><td>{fmt(pre, '.3g', ' s')}</td>{fps}"
-            f"<td>{fmt(float(np.median(roof)) if roof else None, '.2%')}</td>"
+            f"<td>{fmt(float(np.median(roof)) if roof else None, '.2%')}{bound if roof else ''}</td>"
             f"<td>{fmt(float(np.median(sp)) if sp else None, '.3g', '×')}</td></tr>")
     note = ("<p class=note>RMSE: mean over sequence kinds and scored frames, against the reference of the "
             "cell's bounce count; in brackets the reference noise floor (an RMSE below it is not resolved). "
-            "fps: 1 / median frame time, warm-up frame excluded. Roofline efficiency: (bytes per frame ÷ triad "
-            "bandwidth) ÷ frame time. Equal-error speedup: Mitsuba time to reach the method's RMSE "
+            "fps: 1 / median frame time, warm-up frame excluded. Roofline efficiency: max(bytes per frame ÷ triad "
+            "bandwidth, flops per frame ÷ dense-matmul peak) ÷ frame time, both limits measured in this run; in "
+            "brackets the bound that applies (the larger term). Equal-error speedup: Mitsuba time to reach the method's RMSE "
             "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time.</p>")
     return f"<table>{head}{''.join(body)}</table>{note}"
 

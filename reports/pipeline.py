@@ -27,7 +27,7 @@ import pandas as pd
 import torch
 
 from reports import measure, regress, store
-from reports.cells import STATUS_OK, Cell, CellResult, load_result, move_aside
+from reports.cells import MEASURED, Cell, CellResult, load_result, move_aside
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
@@ -45,6 +45,7 @@ class RunOutput:
     n_na: int
     n_error: int
     changes: pd.DataFrame | None
+    n_suspect: int = 0
 
 
 def suite_label(suite_name: str, scenes=None) -> str:
@@ -75,6 +76,7 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
         "machine": store.machine_description(),
         "threads": torch.get_num_threads(),
         "triad_bandwidth": measure.triad_bandwidth(bandwidth_elements),
+        "matmul_peak": measure.matmul_peak(256 if bandwidth_elements < TRIAD_ELEMENTS else 1024),
     }
     store.atomic_write_json(p, meta)
     return meta
@@ -122,17 +124,20 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
         ident = {**base, "threads": r.info.get("threads", c.threads or meta["threads"]), "scene": c.scene,
                  "size": c.size, "sequence": c.kind, "method": c.method, "config": c.config, "bounces": c.bounces,
                  "status": r.status, "reason": r.reason, "cell": r.key}
-        if r.status != STATUS_OK:
+        if r.status not in MEASURED:
             rows.append({**ident, "frame": -1, "metric": "status", "value": float("nan"), "unit": "",
                          "noise_floor": float("nan")})
             continue
         vals = {row["metric"]: row["value"] for row in r.rows if row["frame"] == -1}
         rows += [{**ident, **row} for row in r.rows]
-        eff = measure.roofline_efficiency(vals.get("bytes_per_frame"), meta["triad_bandwidth"],
-                                          vals.get("render_time_median", float("nan")))
-        if eff is not None:
-            rows.append({**ident, "frame": -1, "metric": "roofline_efficiency", "value": eff, "unit": "1",
+        # roofline: max(bytes / bandwidth, flops / peak) / frame time, and which bound applies
+        roof = measure.roofline(vals.get("bytes_per_frame"), vals.get("flops_per_frame"), meta["triad_bandwidth"],
+                                meta.get("matmul_peak", float("nan")), vals.get("render_time_median", float("nan")))
+        if roof is not None:
+            rows.append({**ident, "frame": -1, "metric": "roofline_efficiency", "value": roof[0], "unit": "1",
                          "noise_floor": float("nan")})
+            rows.append({**ident, "frame": -1, "metric": "roofline_compute_bound", "value": float(roof[1] == "compute"),
+                         "unit": "1", "noise_floor": float("nan")})
     return store.to_frame(rows)
 
 
@@ -222,7 +227,8 @@ def _merge_plans(earlier: list[Cell], cells: list[Cell]) -> tuple[list[Cell], li
 def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=None, executor=None,
               history: str | os.PathLike | None = store.DEFAULT_HISTORY, backend: str = "reports.backend",
               plugins: tuple[str, ...] = (), isolate: bool | None = None, progress: bool = True,
-              report: bool = True, vertex_renders: bool = True, bandwidth_elements: int | None = None) -> RunOutput:
+              report: bool = True, vertex_renders: bool = True, bandwidth_elements: int | None = None,
+              device: str = "cpu") -> RunOutput:
     """Run ``suite`` into ``out_dir``: resume the run there, adding this selection's cells to it;
     a run there that cannot be resumed (``stale_reason``) is moved aside (``preserve_run``) first."""
     out_dir = Path(out_dir)
@@ -233,7 +239,8 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
         dest = preserve_run(out_dir)
         kept = f"its results were moved to {dest}" if dest is not None else "it had no results to keep"
         print(f"[prtbench] {out_dir}: {stale}; {kept}; starting a fresh run there", flush=True)
-    cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate)
+    cells = plan_cells(suite, methods=methods, scenes=scenes, backend=backend, plugins=plugins, isolate=isolate,
+                       device=device)
     everything, others = _merge_plans(earlier_cells(out_dir), cells)
     store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in everything])
     meta = run_meta(out_dir, label, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
@@ -250,18 +257,19 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
 
 
 def report_failures(results: list[CellResult], file=None) -> int:
-    """Print one line per failed cell (method/scene/sequence/bounces: its reason — exception type and
-    message — on one line) on stderr; returns how many failed."""
+    """Print one line per failed or suspect cell (method/scene/sequence/bounces: its reason — the
+    exception, or what the sanity gate found — on one line) on stderr; returns how many failed."""
     import sys
 
     n = 0
     for r in results:
-        if r.status != "error":
+        if r.status not in ("error", "suspect"):
             continue
-        n += 1
+        n += r.status == "error"
         c = r.cell
         reason = " ".join(str(r.reason).split()) or "no reason recorded"
-        print(f"[prtbench] FAILED {c.get('method')}/{c.get('scene')}/{c.get('kind')}/b{c.get('bounces')}: "
+        what = "FAILED" if r.status == "error" else "SUSPECT"
+        print(f"[prtbench] {what} {c.get('method')}/{c.get('scene')}/{c.get('kind')}/b{c.get('bounces')}: "
               f"{reason[:500]}", file=file or sys.stderr, flush=True)
     return n
 
@@ -312,7 +320,7 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     st = df.drop_duplicates("cell")
     st = st[st["status"] != "run"]["status"]
     return RunOutput(meta["run_id"], out_dir, table, rep, hist_path, int((st == "ok").sum()), int((st == "na").sum()),
-                     int((st == "error").sum()), changes)
+                     int((st == "error").sum()), changes, n_suspect=int((st == "suspect").sum()))
 
 
 def build_references(suite: Suite, *, methods=None, scenes=None, backend: str = "reports.backend",

@@ -96,7 +96,7 @@ def _configs_for(suite: Suite, method: str) -> list[str]:
 
 def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[str] | None = None,
                backend: str = "reports.backend", plugins: tuple[str, ...] = (),
-               isolate: bool | None = None) -> list[Cell]:
+               isolate: bool | None = None, device: str = "cpu") -> list[Cell]:
     """Every cell of ``suite`` (in-scope and n/a), optionally restricted to ``methods``/``scenes``.
 
     ``scenes`` may contain ``"file:<path>"`` entries (TOML scene files).
@@ -147,7 +147,7 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
                                           n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
                                           ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
                                           threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
-                                          na=na, backend=backend, plugins=tuple(plugins),
+                                          na=na, backend=backend, plugins=tuple(plugins), device=device,
                                           score_full_gi=caps.max_bounces > 0 and b != FULL))
     return cells
 

@@ -30,7 +30,7 @@ def test_run_resume_and_compare(tmp_path, capsys):
     assert code == 0, out
     run_id = re.search(r"run (\S+):", out).group(1)
     # smoke kinds V, VBL, L, E: fake runs V, L, E (VBL n/a: fixed BRDFs), fake_gi all four
-    assert "7 cells ok, 1 n/a, 0 failed" in out
+    assert "7 cells ok, 0 suspect, 1 n/a, 0 failed" in out
     report = re.search(r"report:\s+(\S+)", out).group(1)
     assert report.endswith("a/report.html") and (tmp_path / "a" / "report.html").exists()
 

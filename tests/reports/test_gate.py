@@ -96,3 +96,37 @@ def test_measured_cells_become_suspect(tmp_path):
         r = MC.run_cell(_cell(bias), tmp_path, progress=False)
         assert r.status == "suspect" and words in r.reason, (bias, r.status, r.reason)
         assert any(row["metric"] == "rmse" for row in r.rows)  # the numbers are kept
+
+
+def test_suspect_cells_are_counted_printed_and_kept_in_the_table(tmp_path, capsys):
+    from reports.pipeline import run_suite
+    from reports.suites import Suite
+    import pandas as pd
+
+    suite = Suite(name="gate", size="test", kinds=("V",), n_frames=2, ref_spp=16, spp_side=1, scenes=("fake_plane",),
+                  isolate=False, configs=(("fake", '{"bias":2.0}'),))
+    res = run_suite(suite, tmp_path, methods=["fake"], history=None, progress=False, bandwidth_elements=1 << 16, **FAKE)
+    assert (res.n_ok, res.n_suspect, res.n_error) == (0, 1, 0)
+    assert "[prtbench] SUSPECT fake/fake_plane/V/b0: frame" in capsys.readouterr().err
+    df = pd.read_parquet(res.table)
+    cell = df[df["method"] == "fake"]
+    assert set(cell["status"]) == {"suspect"} and (cell["metric"] == "rmse").any()  # numbers kept
+    assert (cell["metric"] == "roofline_efficiency").any()  # and the roofline
+    assert "Suspect cells" in res.report.read_text()
+
+
+def test_run_overrides_and_strict_exit(tmp_path, capsys):
+    import argparse
+
+    import pytest
+
+    import run_bench
+    from reports.suites import SMOKE
+
+    ns = argparse.Namespace(ref_spp=512, frames=2, device="cpu")
+    s = run_bench._overridden(SMOKE, ns)
+    assert (s.ref_spp, s.n_frames) == (512, 2) and max(s.eq_err_spp) == 512
+    for bad in (dict(ref_spp=7, frames=None, device="cpu"), dict(ref_spp=None, frames=0, device="cpu"),
+                dict(ref_spp=None, frames=None, device="tpu")):
+        with pytest.raises(ValueError):
+            run_bench._overridden(SMOKE, argparse.Namespace(**bad))
