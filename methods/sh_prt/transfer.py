@@ -1,0 +1,246 @@
+"""Precomputed radiance transfer (Sloan, Kautz & Snyder 2002): per-vertex diffuse transfer vectors
+and glossy transfer matrices over real SH of order n (n² coefficients, `methods.core.sh`).
+
+Notation (the method card /work/shared/methods/sh_prt.md; Sloan 2002 §4–§6). Everything is in the
+*global* (world) SH frame, like the paper's transfer vectors: the lighting l is projected once per
+frame and every vertex dots it with its own vector/matrix. t is kept WITHOUT the receiver's albedo ρ
+(ρ multiplies at run time, so diffuse colour is a run-time parameter).
+
+Diffuse transfer (Sloan 2002 §5, the three transfer functions T_DU, T_DS, T_DI):
+    unshadowed   t⁰_i(x) = (1/π) ∫ y_i(s) H_N(s) ds,                 H_N(s) = max(N·s, 0)
+    shadowed     t⁰_i(x) = (1/π) ∫ y_i(s) V_x(s) H_N(s) ds
+    bounce b ≥ 1 t^b_i(x) = (1/π) ∫ y_i-transfer of the light reflected at the hit point:
+                 t^b_i(x) = (1/π) ∫ (1 − V_x(s)) ρ(y_s) t^{b−1}_i(y_s) H_N(s) ds,  y_s = hit(x, s)
+    with t^{b−1} interpolated barycentrically at the hit, ρ(y) the hit region's diffuse albedo and
+    zero from the back side of one-sided surfaces (as Mitsuba's BSDFs). t = Σ_b t^b (§5: the paper
+    iterates until the added energy is small; here a fixed number of passes, config `bounces`).
+    The unshadowed vector is the clamped cosine ZH rotated to N, in closed form:
+    t_lm = Â_l y_lm(N)/π (Ramamoorthi–Hanrahan Â_l, `zh.clamped_cosine_factors`).
+
+Glossy transfer (Sloan 2002 §6): a matrix per vertex mapping source radiance to *transferred
+incident radiance*, l' = M_x l, here WITH the cosine folded in (like the diffuse vectors):
+    (M⁰_x)_ij = ∫ y_i(s) V_x(s) H_N(s) y_j(s) ds
+    (M^b_x)_ij = ∫ y_i(s) (1 − V_x(s)) H_N(s) ρ(y_s) t^{b−1}_j(y_s) ds            (b ≥ 1)
+At run time the exit radiance towards v of a lobe circularly symmetric about R = reflect(v, N) is
+Σ_lm G_l (M_x l)_lm y_lm(R) (§6, Funk–Hecke; `methods.sh_prt.method`). Folding H_N into M makes the
+run time the exact rendering-equation integral ∫ L V H_N lobe(R·s) ds up to the order-n truncation
+of the transferred radiance and of the lobe (a transfer matrix without H_N would need the cosine
+applied per direction, which a zonal kernel about R cannot do). The glossy lobes of *hit points*
+are not propagated (bounces carry the hit points' diffuse reflection only).
+
+Quadrature: every vertex traces J rays over its upper hemisphere (a spherical-Fibonacci set,
+rotated about the normal by a seeded random azimuth per vertex, as `methods.ptt.bounce`); closest
+hits give both V and the bounce points. The shadowed transfer is computed as the closed-form
+unshadowed transfer MINUS the quadrature of the blocked part (a control variate: exact for fully
+visible vertices, quadrature error only where rays are blocked).
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from methods.core import sh as _sh
+from methods.core import zh as _zh
+from methods.core.frames import frame_matrix, to_world
+from methods.core.sampling import fibonacci_hemisphere, gauss_legendre_sphere
+from methods.core.sh_rotation import sh_rotation_matrix
+from methods.core.visibility import Visibility, interpolate_at_hits, offset_origins
+
+MIN_ORDER, MAX_ORDER = 2, 10
+# Vertices per batch of the (v, J, n²) quadrature temporaries.
+CHUNK = 64
+
+
+def check_order(order) -> int:
+    """n in [MIN_ORDER, MAX_ORDER] (ValueError naming ``order`` otherwise)."""
+    if isinstance(order, bool) or not isinstance(order, int) or not MIN_ORDER <= order <= MAX_ORDER:
+        raise ValueError(f"order must be an int in [{MIN_ORDER}, {MAX_ORDER}], got {order!r}")
+    return order
+
+
+# -- unshadowed transfer (closed form) ---------------------------------------------------------
+
+
+def unshadowed_diffuse(normals: Tensor, order: int) -> Tensor:
+    """Sloan 2002 §5 T_DU without ρ: t_lm = Â_l y_lm(N)/π (the clamped cosine ZH rotated to N).
+
+    Args:
+        normals: (V, 3) unit normals.
+    Returns:
+        (V, n²) float32.
+    """
+    check_order(order)
+    k = _zh.clamped_cosine_kernel(order)                      # (n,) ZH coefficients of H
+    return (_zh.zh_to_sh(k, normals.double()) / math.pi).float()
+
+
+def unshadowed_glossy_local(order: int, *, dtype=torch.float64) -> Tensor:
+    """(M_loc)_ij = ∫ y_i(s) y_j(s) max(s_z, 0) ds in the frame z = N → (n², n²).
+
+    Gauss–Legendre in s_z ∈ [0, 1] × uniform φ: the integrand is a polynomial of degree ≤ 2n−1 in
+    (x, y, z) on the hemisphere, so n+2 nodes in z and 2n+2 in φ integrate it exactly.
+    """
+    check_order(order)
+    d, w = gauss_legendre_sphere(order + 2, 2 * order + 2, hemisphere=True, dtype=torch.float64)
+    Y = _sh.sh_eval(d, order)                                  # (D, n²)
+    return ((Y * (w * d[:, 2])[:, None]).T @ Y).to(dtype)
+
+
+def unshadowed_glossy(normals: Tensor, order: int) -> Tensor:
+    """Sloan 2002 §6 unshadowed glossy transfer with H_N: M_U(N) = D(R) M_loc D(R)ᵀ, R the
+    local→world rotation of N's frame (`frames.frame_matrix`ᵀ), D its SH rotation
+    (`sh_rotation.sh_rotation_matrix`: y(R u) = D(R) y(u)).
+
+    Args:
+        normals: (V, 3) unit normals.
+    Returns:
+        (V, n², n²) float32.
+    """
+    check_order(order)
+    M_loc = unshadowed_glossy_local(order)
+    D = sh_rotation_matrix(frame_matrix(normals.double()).transpose(-1, -2), order)  # (V, n², n²)
+    return (D @ M_loc @ D.transpose(-1, -2)).float()
+
+
+# -- rays ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Rays:
+    """Closest hits of every vertex's hemisphere rays (Sloan 2002 §5 "shadowed"/"interreflected").
+
+    dirs: (V, J, 3) unit world directions; weight: (J,) solid-angle weights (2π/J);
+    cos: (V, J) N·s (> 0); face: (V, J) int64 hit face (−1 = the ray escapes, V_x(s) = 1);
+    u, v: (V, J) barycentrics of the hit (Mitsuba prim_uv).
+    """
+
+    dirs: Tensor
+    weight: Tensor
+    cos: Tensor
+    face: Tensor
+    u: Tensor
+    v: Tensor
+
+    @property
+    def blocked(self) -> Tensor:
+        """(V, J) bool: 1 − V_x(s)."""
+        return self.face >= 0
+
+
+def trace_rays(vis: Visibility, points: Tensor, normals: Tensor, n_rays: int, *, seed: int = 0) -> Rays:
+    """Trace ``n_rays`` hemisphere rays from every vertex.
+
+    Args:
+        vis: Embree scene of the static geometry; points, normals: (V, 3) vertices and unit normals
+            (origins offset along N by `visibility.offset_origins(scale=vis.scale)`).
+        n_rays: J ≥ 1; seed: the per-vertex azimuth rotation.
+    """
+    if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
+        raise ValueError(f"rays must be a positive int, got {n_rays!r}")
+    P = torch.as_tensor(points, dtype=torch.float32)
+    N = torch.as_tensor(normals, dtype=torch.float32)
+    nv = P.shape[0]
+    d, w = fibonacci_hemisphere(n_rays, dtype=torch.float32)            # (J, 3), (J,) = 2π/J
+    gen = torch.Generator().manual_seed(int(seed))
+    phi = torch.rand(nv, generator=gen) * (2.0 * math.pi)
+    c, s = torch.cos(phi)[:, None], torch.sin(phi)[:, None]
+    loc = torch.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2].expand(nv, -1)], -1)
+    world = to_world(loc, N[:, None, :].expand(nv, n_rays, 3))
+    world = world / world.norm(dim=-1, keepdim=True)
+    o = offset_origins(P, N, scale=vis.scale)[:, None, :].expand(nv, n_rays, 3)
+    _, face, u, v = vis.intersect(o.reshape(-1, 3).contiguous(), world.reshape(-1, 3).contiguous())
+    return Rays(world, w, loc[..., 2].clamp_min(0.0), face.reshape(nv, n_rays),
+                u.reshape(nv, n_rays), v.reshape(nv, n_rays))
+
+
+# -- shadowed transfer ---------------------------------------------------------------------------
+
+
+def shadowed_diffuse(rays: Rays, normals: Tensor, order: int) -> Tensor:
+    """Sloan 2002 §5 T_DS without ρ: t = t_U − (1/π) Σ_k w_k (1 − V_k) H_N(s_k) y(s_k) → (V, n²)."""
+    t = unshadowed_diffuse(normals, order)
+    wb = rays.weight[None] * rays.cos * rays.blocked.float() / math.pi     # (V, J)
+    for a in range(0, t.shape[0], CHUNK):
+        b = min(a + CHUNK, t.shape[0])
+        Y = _sh.sh_eval(rays.dirs[a:b], order)                             # (v, J, n²)
+        t[a:b] -= torch.einsum("vj,vji->vi", wb[a:b], Y)
+    return t
+
+
+def shadowed_glossy(rays: Rays, normals: Tensor, order: int, verts: Tensor) -> Tensor:
+    """Sloan 2002 §6 shadowed glossy transfer with H_N (module docstring) for vertices ``verts``:
+    M = M_U − Σ_k w_k (1 − V_k) H_N(s_k) y(s_k) y(s_k)ᵀ.
+
+    Args:
+        verts: (Vg,) vertex indices (the glossy regions' vertices).
+    Returns:
+        (Vg, n², n²) float32.
+    """
+    M = unshadowed_glossy(normals[verts], order)
+    wb = (rays.weight[None] * rays.cos * rays.blocked.float())[verts]      # (Vg, J)
+    dirs = rays.dirs[verts]
+    for a in range(0, M.shape[0], CHUNK):
+        b = min(a + CHUNK, M.shape[0])
+        Y = _sh.sh_eval(dirs[a:b], order)                                  # (v, J, n²)
+        M[a:b] -= (Y * wb[a:b, :, None]).transpose(1, 2) @ Y
+    return M
+
+
+# -- interreflections ------------------------------------------------------------------------------
+
+
+def hit_radiance_transfer(rays: Rays, a: int, b: int, F: Tensor, normals: Tensor, face_albedo: Tensor,
+                          t_prev: Tensor) -> Tensor:
+    """Transfer of the radiance the hit points of vertices a:b send back along −s:
+    ρ(y) t^{b−1}(y) (barycentric at the hit), 0 on misses and from back faces.
+
+    Args:
+        F: (M, 3) faces; normals: (V, 3) unit vertex normals; face_albedo: (M, 3) diffuse albedo of
+        each face's region; t_prev: (V, n², C) previous-bounce transfer (C = 1 or 3).
+    Returns:
+        (b−a, J, n², 3).
+    """
+    face = rays.face[a:b].reshape(-1)
+    u, v = rays.u[a:b].reshape(-1), rays.v[a:b].reshape(-1)
+    tp = interpolate_at_hits(t_prev, F, face, u, v)                     # (h, n², C), 0 on misses
+    n_hit = interpolate_at_hits(normals, F, face, u, v)                 # (h, 3) shading normal at y
+    front = (n_hit * rays.dirs[a:b].reshape(-1, 3)).sum(-1) < 0        # x is on y's front side
+    rho = face_albedo[face.clamp_min(0)] * (front & (face >= 0)).float()[:, None]  # (h, 3)
+    out = tp * rho[:, None, :]                                          # (h, n², 3)
+    return out.reshape(b - a, -1, out.shape[1], 3)
+
+
+def bounce(rays: Rays, F: Tensor, normals: Tensor, face_albedo: Tensor, t_prev: Tensor, order: int,
+           glossy_verts: Tensor, *, progress: bool | None = None) -> tuple[Tensor, Tensor]:
+    """One interreflection pass (Sloan 2002 §5 T_DI, §6; module docstring).
+
+    Args:
+        rays, F, normals, face_albedo: as `hit_radiance_transfer`; t_prev: (V, n², C).
+        glossy_verts: (Vg,) vertices that also get a glossy matrix.
+    Returns:
+        t^b (V, n², 3) and M^b (Vg, n², n², 3), float32.
+    """
+    from tqdm.auto import tqdm
+
+    nv, n2 = normals.shape[0], order * order
+    t = torch.zeros(nv, n2, 3)
+    gpos = torch.full((nv,), -1, dtype=torch.int64)
+    gpos[glossy_verts] = torch.arange(glossy_verts.numel())
+    M = torch.zeros(glossy_verts.numel(), n2, n2, 3)
+    wc = rays.weight[None] * rays.cos                                    # (V, J) w_k H_N(s_k)
+    if progress is None:
+        progress = sys.stderr.isatty()
+    for a in tqdm(range(0, nv, CHUNK), disable=not progress, desc="sh_prt bounce", unit="chunk"):
+        b = min(a + CHUNK, nv)
+        Lt = hit_radiance_transfer(rays, a, b, F, normals, face_albedo, t_prev)  # (v, J, n², 3)
+        t[a:b] = torch.einsum("vj,vjic->vic", wc[a:b], Lt) / math.pi
+        g = gpos[a:b]
+        sel = (g >= 0).nonzero().squeeze(-1)
+        if sel.numel():
+            Y = _sh.sh_eval(rays.dirs[a:b][sel], order) * wc[a:b][sel][..., None]   # (s, J, n²)
+            M[g[sel]] = torch.einsum("sji,sjkc->sikc", Y, Lt[sel])
+    return t, M
