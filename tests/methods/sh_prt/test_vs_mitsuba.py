@@ -1,0 +1,116 @@
+"""SH PRT (Sloan 2002) against Mitsuba references: error falls with the order n, regression pins on
+every library scene, interreflection adds the references' indirect light.
+
+Setting: frame 0 of the V sequence, test size (64², S = 2 G-buffer samples per pixel), 256-spp
+references (seed 0, cached under $PRTBENCH_CACHE), default config (order 5, 256 rays per vertex,
+seed 0) precomputed with bounces 0 unless stated. RMSE measured with 1 thread (2026-12-02):
+
+    scene          floor   RMSE     ×floor  note
+    sphere_plane   0.0511  0.4965   9.7     sharp sun + s = 40 Phong sphere: far beyond order 5
+    chess (BP)     0.0134  0.0621   4.6     Cook-Torrance "black" → Blinn-Phong s = 2/m² − 2 (see below)
+    alcove         0.0104  0.0228   2.2
+    shadow_detail  0.0139  0.1017   7.3     window light + thin occluders: low-order shadows blur
+    creature       0.0343  0.0882   2.6
+    alcove b = 1   0.0107  0.0250   2.3     (against the one-bounce reference)
+    alcove b = 2   0.0106  0.0272   2.6     (against the two-bounce reference)
+
+The library chess scene has a Cook-Torrance region, which this method does not support (n/a in the
+harness, `test_method.test_registered_with_its_capabilities`); it is pinned here with that region
+replaced by the Blinn-Phong lobe of the same Beckmann roughness (s = 2/m² − 2, Walter et al. 2007).
+"""
+from __future__ import annotations
+
+import pytest
+
+from methods.sh_prt.method import SHPRT
+from references.gbuffer import make_gbuffer
+from references.metrics import rmse
+from references.render import render_reference
+from scenes.library import SCENES, get_scene
+from scenes.materials import BlinnPhong, Lambert
+from scenes.sequences import make_sequence
+
+# RMSE (bounces 0) per library scene (module docstring).
+PINNED = {"sphere_plane": 0.4965, "chess": 0.0621, "alcove": 0.0228, "shadow_detail": 0.1017, "creature": 0.0882}
+PINNED_BOUNCES = {1: 0.0250, 2: 0.0272}  # alcove
+# Room for float/BLAS differences between machines in a deterministic pipeline (same seeds).
+SLACK = 1.05
+# Error vs order on sphere_plane (n = 3, 5, 8): measured 0.6131, 0.4965, 0.2960.
+PINNED_ORDERS = {3: 0.6131, 5: 0.4965, 8: 0.2960}
+
+
+def _scene(name: str):
+    scene = get_scene(name, "test")
+    if name == "chess":
+        b = scene.materials["black"]
+        scene = scene.replace(materials={**scene.materials,
+                                         "black": BlinnPhong(kd=b.kd, ks=b.ks, s=2.0 / b.m**2 - 2.0)})
+    return scene
+
+
+def _setup(scene, bounces=0):
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(scene, frame, 2)
+    refs = {b: render_reference(scene, frame, bounces=b, spp=256, seed=0) for b in range(bounces + 1)}
+    return frame, gb, refs
+
+
+def test_every_library_scene_is_pinned():
+    assert set(PINNED) == set(SCENES)
+
+
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_error_against_mitsuba_per_scene(name):
+    scene = _scene(name)
+    frame, gb, refs = _setup(scene)
+    m = SHPRT(bounces=0)
+    m.precompute(scene)
+    ref = refs[0]
+    mask = ref.coverage & gb.coverage
+    err = rmse(m.render(frame, gb), ref.image, mask)
+    print(name, "floor", ref.noise_floor, "rmse", err, "x floor", err / ref.noise_floor)
+    assert err <= SLACK * PINNED[name], (err, PINNED[name])
+    assert err > ref.noise_floor  # the pin is a real error, not reference noise
+
+
+def test_error_falls_as_the_order_grows():
+    scene = get_scene("sphere_plane", "test")
+    frame, gb, refs = _setup(scene)
+    mask = refs[0].coverage & gb.coverage
+    err = {}
+    for n in sorted(PINNED_ORDERS):
+        m = SHPRT(order=n, bounces=0)
+        m.precompute(scene)
+        err[n] = rmse(m.render(frame, gb), refs[0].image, mask)
+    print("sphere_plane error vs order", err)
+    assert err[3] > err[5] > err[8]
+    for n, pin in PINNED_ORDERS.items():
+        assert err[n] <= SLACK * pin, (n, err[n], pin)
+
+
+def test_interreflections_against_the_bounce_references():
+    """alcove: pins against the 1- and 2-bounce references; with the vase made Lambertian (no glossy
+    light at hit points, which the method does not propagate) the light each pass ADDS matches the
+    references' added light: measured −5 % (pass 1: 0.0197 vs 0.0207) and −11 % (pass 2: 0.00341
+    vs 0.00384) — order-5 truncation of the bounced transfer and 256-ray quadrature."""
+    scene = get_scene("alcove", "test")
+    frame, gb, refs = _setup(scene, bounces=2)
+    m = SHPRT(bounces=2)
+    m.precompute(scene)
+    for b, pin in PINNED_BOUNCES.items():
+        mask = refs[b].coverage & gb.coverage
+        err = rmse(m.with_bounces(b).render(frame, gb), refs[b].image, mask)
+        print("alcove bounces", b, "floor", refs[b].noise_floor, "rmse", err)
+        assert err <= SLACK * pin, (b, err, pin)
+
+    lam = scene.replace(materials={**scene.materials, "object": Lambert(kd=scene.materials["object"].kd)})
+    frame, gb, refs = _setup(lam, bounces=2)
+    m = SHPRT(bounces=2)
+    m.precompute(lam)
+    mask = refs[0].coverage & gb.coverage
+    imgs = [m.with_bounces(b).render(frame, gb) for b in range(3)]
+    for b, tol in ((1, 0.10), (2, 0.20)):
+        ours = float((imgs[b] - imgs[b - 1])[mask].mean())
+        theirs = float((refs[b].image - refs[b - 1].image)[mask].mean())
+        print("added by pass", b, ours, theirs)
+        assert abs(ours - theirs) <= tol * theirs, (b, ours, theirs)
