@@ -28,9 +28,9 @@ BRDFs covered (state exactly):
   * Cook-Torrance, Torrance-Sparrow, Ward: not supported (Sloan 2002's arbitrary-BRDF path is not
     implemented); the harness reports such scenes as n/a.
 The k_s, s and k_d of the frame's materials are used as given, but interreflections (b ≥ 1) bake
-the hit surfaces' albedo of the scene's materials at precompute; so the capabilities claim fixed
-BRDFs (dynamic_brdf False). Glossy reflection at bounce *hit points* is not propagated (diffuse
-interreflection only).
+the hit surfaces' materials of the scene at precompute; so the capabilities claim fixed
+BRDFs (dynamic_brdf False). Bounces carry the diffuse and the glossy (as above) reflection of the
+hit points.
 """
 from __future__ import annotations
 
@@ -139,10 +139,15 @@ class SHPRT(Method):
         M = _tr.shadowed_glossy(rays, self.N, n, self.glossy_verts)[..., None]  # (Vg, n², n², 1) §6
         self.t_parts, self.M_parts = [t], [M]
         t2 = time.perf_counter()
-        albedo = torch.tensor([scene.materials[r].kd for r in self.regions], dtype=torch.float32)
-        face_albedo = albedo[geom.face_region.long()]                     # (M, 3)
+        fr = geom.face_region.long()
+        mats = [scene.materials[r] for r in self.regions]
+        face_albedo = torch.tensor([m.kd for m in mats], dtype=torch.float32)[fr]               # (M, 3)
+        face_ks = torch.tensor([m.ks_rgb for m in mats], dtype=torch.float32)[fr]               # (M, 3)
+        G = torch.stack([_zh.expand_bands(lobe_factors(m, n)).float() if m.kind in GLOSSY_BRDFS
+                         else torch.zeros(n * n) for m in mats])[fr]                             # (M, n²)
         for _ in range(self.bounces):                                      # §5 T_DI, one pass each
-            tb, Mb = _tr.bounce(rays, self.F, self.N, face_albedo, self.t_parts[-1], n, self.glossy_verts)
+            gl = _tr.GlossyHits(self.M_parts[-1], self.gpos, face_ks, G)
+            tb, Mb = _tr.bounce(rays, self.F, self.N, face_albedo, self.t_parts[-1], n, self.glossy_verts, gl)
             self.t_parts.append(tb)
             self.M_parts.append(Mb)
         t3 = time.perf_counter()

@@ -12,7 +12,9 @@ Diffuse transfer (Sloan 2002 §5, the three transfer functions T_DU, T_DS, T_DI)
     bounce b ≥ 1 t^b_i(x) = (1/π) ∫ y_i-transfer of the light reflected at the hit point:
                  t^b_i(x) = (1/π) ∫ (1 − V_x(s)) ρ(y_s) t^{b−1}_i(y_s) H_N(s) ds,  y_s = hit(x, s)
     with t^{b−1} interpolated barycentrically at the hit, ρ(y) the hit region's diffuse albedo and
-    zero from the back side of one-sided surfaces (as Mitsuba's BSDFs). t = Σ_b t^b (§5: the paper
+    zero from the back side of one-sided surfaces (as Mitsuba's BSDFs). A glossy hit point also
+    sends its glossy reflection, k_s Σ_i G_i y_i(R_y) (M^{b−1}_y l)_i with R_y = reflect(−s, N_y)
+    (`hit_radiance_transfer`; the run-time formula below, evaluated towards x). t = Σ_b t^b (§5: the paper
     iterates until the added energy is small; here a fixed number of passes, config `bounces`).
     The unshadowed vector is the clamped cosine ZH rotated to N, in closed form:
     t_lm = Â_l y_lm(N)/π (Ramamoorthi–Hanrahan Â_l, `zh.clamped_cosine_factors`).
@@ -25,8 +27,8 @@ At run time the exit radiance towards v of a lobe circularly symmetric about R =
 Σ_lm G_l (M_x l)_lm y_lm(R) (§6, Funk–Hecke; `methods.sh_prt.method`). Folding H_N into M makes the
 run time the exact rendering-equation integral ∫ L V H_N lobe(R·s) ds up to the order-n truncation
 of the transferred radiance and of the lobe (a transfer matrix without H_N would need the cosine
-applied per direction, which a zonal kernel about R cannot do). The glossy lobes of *hit points*
-are not propagated (bounces carry the hit points' diffuse reflection only).
+applied per direction, which a zonal kernel about R cannot do). Bounces carry both the diffuse and
+the glossy reflection of the hit points, with the scene's materials at precompute time.
 
 Quadrature: every vertex traces J rays over its upper hemisphere (a spherical-Fibonacci set,
 rotated about the normal by a seeded random azimuth per vertex, as `methods.ptt.bounce`); closest
@@ -45,7 +47,7 @@ from torch import Tensor
 
 from methods.core import sh as _sh
 from methods.core import zh as _zh
-from methods.core.frames import frame_matrix, to_world
+from methods.core.frames import frame_matrix, reflect, to_world
 from methods.core.sampling import fibonacci_hemisphere, gauss_legendre_sphere
 from methods.core.sh_rotation import sh_rotation_matrix
 from methods.core.visibility import Visibility, interpolate_at_hits, offset_origins
@@ -193,33 +195,75 @@ def shadowed_glossy(rays: Rays, normals: Tensor, order: int, verts: Tensor) -> T
 # -- interreflections ------------------------------------------------------------------------------
 
 
+@dataclass
+class GlossyHits:
+    """What a pass needs to send the glossy reflection of hit points y back towards x:
+    M_prev (Vg, n², n², C) the previous pass's glossy transfer, gpos (V,) vertex → row of M_prev
+    (−1 if none), face_ks (M, 3) specular albedo and face_G (M, n²) lobe factors G_l of each face's
+    region (0 for Lambert faces)."""
+
+    M_prev: Tensor
+    gpos: Tensor
+    face_ks: Tensor
+    face_G: Tensor
+
+
+# Floats of the (h, n², n², C) gathers of previous-pass matrices per batch.
+GATHER_FLOATS = 1 << 23
+
+
 def hit_radiance_transfer(rays: Rays, a: int, b: int, F: Tensor, normals: Tensor, face_albedo: Tensor,
-                          t_prev: Tensor) -> Tensor:
-    """Transfer of the radiance the hit points of vertices a:b send back along −s:
-    ρ(y) t^{b−1}(y) (barycentric at the hit), 0 on misses and from back faces.
+                          t_prev: Tensor, glossy: GlossyHits | None = None) -> Tensor:
+    """Transfer of the radiance the hit points y of vertices a:b send back along −s, as a linear
+    function of the source lighting (row j ↔ source coefficient j):
+        ρ(y) t^{b−1}(y) + k_s(y) Σ_i G_i(y) y_i(R_y) (M^{b−1}_y)_{ij},   R_y = reflect(−s, N_y),
+    (the glossy term only with ``glossy``), barycentric at the hit, 0 on misses and from back
+    faces (one-sided BSDFs, as Mitsuba's).
 
     Args:
         F: (M, 3) faces; normals: (V, 3) unit vertex normals; face_albedo: (M, 3) diffuse albedo of
-        each face's region; t_prev: (V, n², C) previous-bounce transfer (C = 1 or 3).
+        each face's region; t_prev: (V, n², C) previous-pass diffuse transfer (C = 1 or 3).
     Returns:
         (b−a, J, n², 3).
     """
     face = rays.face[a:b].reshape(-1)
     u, v = rays.u[a:b].reshape(-1), rays.v[a:b].reshape(-1)
+    s = rays.dirs[a:b].reshape(-1, 3)
     tp = interpolate_at_hits(t_prev, F, face, u, v)                     # (h, n², C), 0 on misses
     n_hit = interpolate_at_hits(normals, F, face, u, v)                 # (h, 3) shading normal at y
-    front = (n_hit * rays.dirs[a:b].reshape(-1, 3)).sum(-1) < 0        # x is on y's front side
-    rho = face_albedo[face.clamp_min(0)] * (front & (face >= 0)).float()[:, None]  # (h, 3)
+    live = ((n_hit * s).sum(-1) < 0) & (face >= 0)                      # x is on y's front side
+    fc = face.clamp_min(0)
+    rho = face_albedo[fc] * live.float()[:, None]                       # (h, 3)
     out = tp * rho[:, None, :]                                          # (h, n², 3)
+    if glossy is not None:
+        gl = (live & (glossy.face_G[fc].abs().sum(-1) > 0)).nonzero().squeeze(-1)
+        if gl.numel():
+            n2 = glossy.face_G.shape[1]
+            order = math.isqrt(n2)
+            C = glossy.M_prev.shape[-1]
+            ny = torch.nn.functional.normalize(n_hit[gl], dim=-1)
+            R = reflect(-s[gl], ny)
+            wR = _sh.sh_eval(torch.nn.functional.normalize(R, dim=-1), order) * glossy.face_G[fc[gl]]  # (g, n²)
+            tri = F[fc[gl]]                                                 # (g, 3)
+            bw = torch.stack([1.0 - u[gl] - v[gl], u[gl], v[gl]], -1)       # (g, 3)
+            step = max(1, GATHER_FLOATS // (n2 * n2 * C))
+            for c0 in range(0, gl.numel(), step):
+                sl = slice(c0, c0 + step)
+                acc = torch.zeros(wR[sl].shape[0], n2, C)
+                for k in range(3):                                          # y's triangle vertices
+                    Mk = glossy.M_prev[glossy.gpos[tri[sl, k]]]             # (g', n², n², C)
+                    acc += bw[sl, k, None, None] * torch.einsum("gi,gijc->gjc", wR[sl], Mk)
+                out[gl[sl]] += acc * glossy.face_ks[fc[gl[sl]]][:, None, :]
     return out.reshape(b - a, -1, out.shape[1], 3)
 
 
 def bounce(rays: Rays, F: Tensor, normals: Tensor, face_albedo: Tensor, t_prev: Tensor, order: int,
-           glossy_verts: Tensor, *, progress: bool | None = None) -> tuple[Tensor, Tensor]:
+           glossy_verts: Tensor, glossy: GlossyHits | None = None, *,
+           progress: bool | None = None) -> tuple[Tensor, Tensor]:
     """One interreflection pass (Sloan 2002 §5 T_DI, §6; module docstring).
 
     Args:
-        rays, F, normals, face_albedo: as `hit_radiance_transfer`; t_prev: (V, n², C).
+        rays, F, normals, face_albedo, glossy: as `hit_radiance_transfer`; t_prev: (V, n², C).
         glossy_verts: (Vg,) vertices that also get a glossy matrix.
     Returns:
         t^b (V, n², 3) and M^b (Vg, n², n², 3), float32.
@@ -236,7 +280,7 @@ def bounce(rays: Rays, F: Tensor, normals: Tensor, face_albedo: Tensor, t_prev: 
         progress = sys.stderr.isatty()
     for a in tqdm(range(0, nv, CHUNK), disable=not progress, desc="sh_prt bounce", unit="chunk"):
         b = min(a + CHUNK, nv)
-        Lt = hit_radiance_transfer(rays, a, b, F, normals, face_albedo, t_prev)  # (v, J, n², 3)
+        Lt = hit_radiance_transfer(rays, a, b, F, normals, face_albedo, t_prev, glossy)  # (v, J, n², 3)
         t[a:b] = torch.einsum("vj,vjic->vic", wc[a:b], Lt) / math.pi
         g = gpos[a:b]
         sel = (g >= 0).nonzero().squeeze(-1)

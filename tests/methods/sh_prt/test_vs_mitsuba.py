@@ -11,8 +11,8 @@ seed 0) precomputed with bounces 0 unless stated. RMSE measured with 1 thread (2
     alcove         0.0104  0.0228   2.2
     shadow_detail  0.0139  0.1017   7.3     window light + thin occluders: low-order shadows blur
     creature       0.0343  0.0882   2.6
-    alcove b = 1   0.0107  0.0250   2.3     (against the one-bounce reference)
-    alcove b = 2   0.0106  0.0272   2.6     (against the two-bounce reference)
+    alcove b = 1   0.0107  0.0247   2.3     (against the one-bounce reference)
+    alcove b = 2   0.0106  0.0264   2.5     (against the two-bounce reference)
 
 The library chess scene has a Cook-Torrance region, which this method does not support (n/a in the
 harness, `test_method.test_registered_with_its_capabilities`); it is pinned here with that region
@@ -27,12 +27,12 @@ from references.gbuffer import make_gbuffer
 from references.metrics import rmse
 from references.render import render_reference
 from scenes.library import SCENES, get_scene
-from scenes.materials import BlinnPhong, Lambert
+from scenes.materials import BlinnPhong
 from scenes.sequences import make_sequence
 
 # RMSE (bounces 0) per library scene (module docstring).
 PINNED = {"sphere_plane": 0.4965, "chess": 0.0621, "alcove": 0.0228, "shadow_detail": 0.1017, "creature": 0.0882}
-PINNED_BOUNCES = {1: 0.0250, 2: 0.0272}  # alcove
+PINNED_BOUNCES = {1: 0.0247, 2: 0.0264}  # alcove
 # Room for float/BLAS differences between machines in a deterministic pipeline (same seeds).
 SLACK = 1.05
 # Error vs order on sphere_plane (n = 3, 5, 8): measured 0.6131, 0.4965, 0.2960.
@@ -89,28 +89,39 @@ def test_error_falls_as_the_order_grows():
 
 
 def test_interreflections_against_the_bounce_references():
-    """alcove: pins against the 1- and 2-bounce references; with the vase made Lambertian (no glossy
-    light at hit points, which the method does not propagate) the light each pass ADDS matches the
-    references' added light: measured −5 % (pass 1: 0.0197 vs 0.0207) and −11 % (pass 2: 0.00341
-    vs 0.00384) — order-5 truncation of the bounced transfer and 256-ray quadrature."""
+    """alcove: pins against the 1- and 2-bounce references, and the light each pass ADDS matches
+    the references' added light: measured −5 % (pass 1: 0.0236 vs 0.0249) and −11 % (pass 2: 0.0048
+    vs 0.0054) — order-5 truncation of the bounced transfer and 256-ray quadrature."""
     scene = get_scene("alcove", "test")
     frame, gb, refs = _setup(scene, bounces=2)
     m = SHPRT(bounces=2)
     m.precompute(scene)
-    for b, pin in PINNED_BOUNCES.items():
-        mask = refs[b].coverage & gb.coverage
-        err = rmse(m.with_bounces(b).render(frame, gb), refs[b].image, mask)
-        print("alcove bounces", b, "floor", refs[b].noise_floor, "rmse", err)
-        assert err <= SLACK * pin, (b, err, pin)
-
-    lam = scene.replace(materials={**scene.materials, "object": Lambert(kd=scene.materials["object"].kd)})
-    frame, gb, refs = _setup(lam, bounces=2)
-    m = SHPRT(bounces=2)
-    m.precompute(lam)
     mask = refs[0].coverage & gb.coverage
     imgs = [m.with_bounces(b).render(frame, gb) for b in range(3)]
+    for b, pin in PINNED_BOUNCES.items():
+        err = rmse(imgs[b], refs[b].image, mask)
+        print("alcove bounces", b, "floor", refs[b].noise_floor, "rmse", err)
+        assert err <= SLACK * pin, (b, err, pin)
     for b, tol in ((1, 0.10), (2, 0.20)):
         ours = float((imgs[b] - imgs[b - 1])[mask].mean())
         theirs = float((refs[b].image - refs[b - 1].image)[mask].mean())
-        print("added by pass", b, ours, theirs)
+        print("alcove: added by pass", b, ours, theirs)
         assert abs(ours - theirs) <= tol * theirs, (b, ours, theirs)
+
+
+# sphere_plane, pass 1: the plane receives the Phong sphere's glossy reflection (hit points send
+# k_s Σ G_l y(R_y)·M l back). Measured added light 0.0578 vs the reference's 0.0573 (+0.9 %); with
+# the hit points' diffuse reflection only it was 0.0488 (−15 %).
+ADDED_GLOSSY_TOL = 0.05
+
+
+def test_bounce_carries_the_glossy_reflection_of_hit_points():
+    scene = get_scene("sphere_plane", "test")
+    frame, gb, refs = _setup(scene, bounces=1)
+    m = SHPRT(bounces=1)
+    m.precompute(scene)
+    mask = refs[0].coverage & gb.coverage
+    ours = float((m.render(frame, gb) - m.with_bounces(0).render(frame, gb))[mask].mean())
+    theirs = float((refs[1].image - refs[0].image)[mask].mean())
+    print("sphere_plane: added by pass 1", ours, theirs)
+    assert abs(ours - theirs) <= ADDED_GLOSSY_TOL * theirs, (ours, theirs)
