@@ -10,8 +10,8 @@ with the cosine H_N folded in).
 Run time (Sloan 2002 §7), per frame:
   1. lighting: l = SH of the env map in its own frame (`sh.project_latlong`, exact for the bilinear
      map), cached while the map's texels are unchanged; a rotated map (new ``to_world``) ROTATES
-     these coefficients (`sh_rotation.rotate_coeffs`) instead of re-projecting (§7: "rotate the
-     lighting into the object's frame"). Then per vertex e_x = t_x · l (a dot product) and, for
+     these coefficients (`sh_rotation.rotate_coeffs`) instead of re-projecting (§7 rotates the
+     lighting SH into the object's frame the same way). Then per vertex e_x = t_x · l (a dot product) and, for
      glossy vertices, l'_x = M_x l (a matrix–vector product); both cached until the lighting changes.
   2. per G-buffer sample (barycentric interpolation of the per-vertex results, Gouraud as the paper):
         L_o = ρ · e + k_s · Σ_lm G_l (l')_lm y_lm(R),   R = reflect(ωo, n)
@@ -35,9 +35,7 @@ hit points.
 from __future__ import annotations
 
 import copy
-import math
 import time
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -263,13 +261,13 @@ class SHPRT(Method):
         return m
 
     def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes a frame must touch: "V" (and "VB": materials are a few scalars) = the per-sample
-        G-buffer inputs (face, bary, normal, ωo, region) and RGB output, the faces, the per-vertex
-        e = t·l and l' = M l; any kind with "L" also reads t and M, the env map's texels (projection;
-        a pure rotation would only need the n² cached coefficients) and writes e and l'. None before
-        the first render."""
-        if frame_kind not in ("V", "VB", "VBL", "L", "VL"):
-            raise ValueError(f"frame_kind must be one of V, VB, VBL, L, VL, got {frame_kind!r}")
+        """Bytes a frame of kind ``frame_kind`` must touch: every kind reads the per-sample G-buffer
+        inputs (face, bary, normal, ωo, region) and writes the RGB output, and reads the faces and
+        the per-vertex e = t·l and l' = M l; a kind with lighting change ("L" in it) also reads t, M
+        and the env map's texels (projection; a pure rotation would need only the n² cached
+        coefficients) and writes e and l'. Materials are a few scalars. None before the first render."""
+        if not isinstance(frame_kind, str):
+            raise ValueError(f"frame_kind must be a sequence-kind string, got {frame_kind!r}")
         if self.scene is None or self._e is None:
             return None
         total = self._last_samples * (8 + 8 + 12 + 12 + 8 + 12) + tensor_bytes(self.F, self.gpos)

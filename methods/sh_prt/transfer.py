@@ -19,8 +19,9 @@ Diffuse transfer (Sloan 2002 §5, the three transfer functions T_DU, T_DS, T_DI)
     The unshadowed vector is the clamped cosine ZH rotated to N, in closed form:
     t_lm = Â_l y_lm(N)/π (Ramamoorthi–Hanrahan Â_l, `zh.clamped_cosine_factors`).
 
-Glossy transfer (Sloan 2002 §6): a matrix per vertex mapping source radiance to *transferred
-incident radiance*, l' = M_x l, here WITH the cosine folded in (like the diffuse vectors):
+Glossy transfer (Sloan 2002 §6, T_GU / T_GS / T_GI): a matrix per vertex mapping source radiance
+to *transferred incident radiance*, l' = M_x l, here WITH the cosine H_N folded in (the method
+card's M has none; like the diffuse vectors):
     (M⁰_x)_ij = ∫ y_i(s) V_x(s) H_N(s) y_j(s) ds
     (M^b_x)_ij = ∫ y_i(s) (1 − V_x(s)) H_N(s) ρ(y_s) t^{b−1}_j(y_s) ds            (b ≥ 1)
 At run time the exit radiance towards v of a lobe circularly symmetric about R = reflect(v, N) is

@@ -133,3 +133,13 @@ def test_terms_needed_is_the_first_order_holding_99_percent():
     assert 1.7 < ns[-1] / ns[-2] < 2.3                            # n ∝ √s asymptotically
     with pytest.raises(ValueError, match="exponent"):
         study.terms_needed(-1.0)
+
+
+def test_precomputation_pickles_for_the_harness_cache(alcove):
+    """`cache_precompute = True`: the state after precompute must round-trip through pickle."""
+    import pickle
+
+    scene, m, frame, gb = alcove
+    m2 = pickle.loads(pickle.dumps(m))
+    assert SHPRT.cache_precompute
+    assert torch.equal(m2.render(frame, gb), m.render(frame, gb))
