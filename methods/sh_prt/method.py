@@ -190,7 +190,7 @@ class SHPRT(Method):
         key = (env.data, env.data._version, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
         if self._key is not None and self._key[0] is key[0] and self._key[1:] == key[1:]:
             return
-        l = self.lighting(env)
+        l = self.lighting(env).to(self.t.device)
         self._light = l
         self._e = torch.einsum("vic,ic->vc", self.t, l)                          # (V, 3) t · l
         self._lg = torch.einsum("gijc,jc->gic", self.M, l)                       # (Vg, n², 3) M l
@@ -199,21 +199,21 @@ class SHPRT(Method):
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) of the frame's materials (G = 0 for Lambert)."""
-        R, n = len(self.regions), self.order
-        kd, ks, G = torch.zeros(R, 3), torch.zeros(R, 3), torch.zeros(R, n * n)
+        R, n, dev = len(self.regions), self.order, self.t.device
+        kd, ks, G = (torch.zeros(R, 3, device=dev), torch.zeros(R, 3, device=dev), torch.zeros(R, n * n, device=dev))
         for r, name in enumerate(self.regions):
             if name not in frame.materials:
                 raise ValueError(f"frame.materials lacks region {name!r}")
             m = frame.materials[name]
             if m.kind not in SUPPORTED_BRDFS:
                 raise ValueError(f"sh_prt supports {sorted(SUPPORTED_BRDFS)}, region {name!r} is {m.kind!r}")
-            kd[r] = torch.tensor(m.kd)
+            kd[r] = torch.tensor(m.kd, device=dev)
             if m.kind in GLOSSY_BRDFS:
                 if not self.glossy_regions[r]:
                     raise ValueError(f"region {name!r} became glossy ({m.kind}) but was precomputed without "
                                      "glossy transfer matrices")
-                ks[r] = torch.tensor(m.ks)
-                G[r] = _zh.expand_bands(lobe_factors(m, n)).float()
+                ks[r] = torch.tensor(m.ks, device=dev)
+                G[r] = _zh.expand_bands(lobe_factors(m, n)).float().to(dev)
         return kd, ks, G
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
@@ -222,13 +222,14 @@ class SHPRT(Method):
         self._light_stage(frame.envmap)
         kd, ks, G = self._materials(frame)
         self.stats["view"] += 1
+        dev = self.t.device
         hit = gbuffer.hit.nonzero().squeeze(-1)
-        vidx, bw = gbuffer.vertex_weights(self.F)                                  # (P, 3) each
-        out = torch.zeros(gbuffer.num_samples, 3)
+        vidx, bw = gbuffer.vertex_weights(self.F.to(gbuffer.face.device))         # (P, 3) each
+        out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
         for a in range(0, hit.numel(), RENDER_CHUNK):
             sel = hit[a:a + RENDER_CHUNK]
-            out[sel] = self._shade(vidx[sel], bw[sel], gbuffer.normal[sel].float(), gbuffer.wo[sel].float(),
-                                   gbuffer.region[sel], kd, ks, G)
+            out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
+                                   gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G).to(out.device)
         self._last_samples = int(hit.numel())
         return gbuffer.resolve(out)
 
