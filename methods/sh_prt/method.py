@@ -22,9 +22,12 @@ Run time (Sloan 2002 §7), per frame:
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
   * Phong (normalised, about R; Mahajan 2008 eq. 5): G_l = F_l(s), exact Phong factors.
-  * Blinn-Phong (s+2)/(8π)(n·h)^s: APPROXIMATED by the Phong lobe about R with exponent s/4 and
-    scale (s+2)/(s+4) — the two agree to second order in the angle from R at normal incidence;
-    the Blinn-Phong lobe's stretching at grazing view is not modelled.
+  * Blinn-Phong (s+2)/(8π)(n·h)^s: APPROXIMATED by (n·ωo)·(s+2)/(s+4)·Phong(s/4) about R
+    (`lobe_factors`, `VIEW_COSINE_BRDFS`): at normal incidence the two lobes agree to second order
+    in the angle from R (cos^s(θ/2) ≈ cos^{s/4}θ, equal peaks); at oblique view the half-vector
+    Jacobian dω_i = 4(ωo·h) dω_h with h ≈ n near the peak shrinks the Blinn-Phong lobe's ω_i
+    integral by n·ωo, which the factor restores. The lobe's anisotropy (compressed in the plane of
+    incidence at oblique view) is not modelled.
   * Cook-Torrance, Torrance-Sparrow, Ward: not supported (Sloan 2002's arbitrary-BRDF path is not
     implemented); the harness reports such scenes as n/a.
 The k_s, s and k_d of the frame's materials are used as given, but interreflections (b ≥ 1) bake
@@ -50,6 +53,8 @@ from methods.sh_prt import transfer as _tr
 
 SUPPORTED_BRDFS = frozenset({"lambert", "phong", "blinnphong"})
 GLOSSY_BRDFS = frozenset({"phong", "blinnphong"})
+# Lobes approximated about R with an extra factor n·ωo (module docstring, Blinn-Phong).
+VIEW_COSINE_BRDFS = frozenset({"blinnphong"})
 MAX_BOUNCES = 2
 DEFAULT_ORDER = 5  # Sloan 2002: 25 coefficients, 25×25 matrices
 # G-buffer samples shaded per batch (bounds the (Q, 3, n², 3) interpolation temporaries).
@@ -59,7 +64,8 @@ RENDER_CHUNK = 1 << 14
 def lobe_factors(mat, order: int) -> Tensor:
     """G_l (n,) float64 of a material's specular lobe about R, with k_s left out (module docstring).
 
-    Phong: the exact factors F_l(s). Blinn-Phong: (s+2)/(s+4) F_l(s/4). Others: ValueError."""
+    Phong: the exact factors F_l(s). Blinn-Phong: (s+2)/(s+4) F_l(s/4) (times n·ωo at run time,
+    `VIEW_COSINE_BRDFS`). Others: ValueError."""
     if mat.kind == "phong":
         return _zh.phong_factors(float(mat.s), order)
     if mat.kind == "blinnphong":
@@ -143,8 +149,9 @@ class SHPRT(Method):
         face_ks = torch.tensor([m.ks_rgb for m in mats], dtype=torch.float32)[fr]               # (M, 3)
         G = torch.stack([_zh.expand_bands(lobe_factors(m, n)).float() if m.kind in GLOSSY_BRDFS
                          else torch.zeros(n * n) for m in mats])[fr]                             # (M, n²)
+        vcos = torch.tensor([m.kind in VIEW_COSINE_BRDFS for m in mats])[fr]                     # (M,)
         for _ in range(self.bounces):                                      # §5 T_DI, one pass each
-            gl = _tr.GlossyHits(self.M_parts[-1], self.gpos, face_ks, G)
+            gl = _tr.GlossyHits(self.M_parts[-1], self.gpos, face_ks, G, vcos)
             tb, Mb = _tr.bounce(rays, self.F, self.N, face_albedo, self.t_parts[-1], n, self.glossy_verts, gl)
             self.t_parts.append(tb)
             self.M_parts.append(Mb)
@@ -197,10 +204,12 @@ class SHPRT(Method):
         self._key = key
         self.stats["light"] += 1
 
-    def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor]:
-        """kd (R, 3), ks (R, 3), G (R, n²) of the frame's materials (G = 0 for Lambert)."""
+    def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool
+        (`VIEW_COSINE_BRDFS`) of the frame's materials."""
         R, n, dev = len(self.regions), self.order, self.t.device
         kd, ks, G = (torch.zeros(R, 3, device=dev), torch.zeros(R, 3, device=dev), torch.zeros(R, n * n, device=dev))
+        vcos = torch.zeros(R, dtype=torch.bool, device=dev)
         for r, name in enumerate(self.regions):
             if name not in frame.materials:
                 raise ValueError(f"frame.materials lacks region {name!r}")
@@ -214,13 +223,14 @@ class SHPRT(Method):
                                      "glossy transfer matrices")
                 ks[r] = torch.tensor(m.ks, device=dev)
                 G[r] = _zh.expand_bands(lobe_factors(m, n)).float().to(dev)
-        return kd, ks, G
+                vcos[r] = m.kind in VIEW_COSINE_BRDFS
+        return kd, ks, G, vcos
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         self._light_stage(frame.envmap)
-        kd, ks, G = self._materials(frame)
+        kd, ks, G, vcos = self._materials(frame)
         self.stats["view"] += 1
         dev = self.t.device
         hit = gbuffer.hit.nonzero().squeeze(-1)
@@ -229,14 +239,14 @@ class SHPRT(Method):
         for a in range(0, hit.numel(), RENDER_CHUNK):
             sel = hit[a:a + RENDER_CHUNK]
             out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
-                                   gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G).to(out.device)
+                                   gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G, vcos).to(out.device)
         self._last_samples = int(hit.numel())
         return gbuffer.resolve(out)
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
-               G: Tensor) -> Tensor:
+               G: Tensor, vcos: Tensor) -> Tensor:
         """Sloan 2002 §7 at Q samples: vi, w (Q, 3) vertex ids / barycentric weights; n, wo (Q, 3);
-        reg (Q,) region ids; kd, ks (R, 3), G (R, n²) → (Q, 3)."""
+        reg (Q,) region ids; kd, ks (R, 3), G (R, n²), vcos (R,) (`_materials`) → (Q, 3)."""
         e = (self._e[vi] * w[..., None]).sum(1)                                   # (Q, 3)
         out = kd[reg] * e
         glossy = self.glossy_regions[reg].nonzero().squeeze(-1)
@@ -247,6 +257,8 @@ class SHPRT(Method):
             R = reflect(wo[glossy], nn)
             R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             yR = _sh.sh_eval(R, self.order) * G[reg[glossy]]                       # (Qg, n²) G_l y_lm(R)
+            c = (nn * wo[glossy]).sum(-1, keepdim=True).clamp_min(0.0)
+            yR = torch.where(vcos[reg[glossy]][:, None], yR * c, yR)               # Blinn-Phong: × n·ωo
             out[glossy] += ks[reg[glossy]] * torch.einsum("qi,qic->qc", yR, lq)    # §6 eq. of L_o
         front = (n * wo).sum(-1, keepdim=True) > 0
         return torch.where(front, out, torch.zeros_like(out)).clamp_min(0.0)

@@ -201,12 +201,14 @@ class GlossyHits:
     """What a pass needs to send the glossy reflection of hit points y back towards x:
     M_prev (Vg, n², n², C) the previous pass's glossy transfer, gpos (V,) vertex → row of M_prev
     (−1 if none), face_ks (M, 3) specular albedo and face_G (M, n²) lobe factors G_l of each face's
-    region (0 for Lambert faces)."""
+    region (0 for Lambert faces), face_vcos (M,) bool: the lobe carries an extra factor N·ωo
+    (Blinn-Phong approximated about R, `methods.sh_prt.method`)."""
 
     M_prev: Tensor
     gpos: Tensor
     face_ks: Tensor
     face_G: Tensor
+    face_vcos: Tensor
 
 
 # Floats of the (h, n², n², C) gathers of previous-pass matrices per batch.
@@ -245,6 +247,8 @@ def hit_radiance_transfer(rays: Rays, a: int, b: int, F: Tensor, normals: Tensor
             ny = torch.nn.functional.normalize(n_hit[gl], dim=-1)
             R = reflect(-s[gl], ny)
             wR = _sh.sh_eval(torch.nn.functional.normalize(R, dim=-1), order) * glossy.face_G[fc[gl]]  # (g, n²)
+            c = (ny * -s[gl]).sum(-1, keepdim=True).clamp_min(0.0)          # N_y·ωo, ωo = −s towards x
+            wR = torch.where(glossy.face_vcos[fc[gl]][:, None], wR * c, wR)
             tri = F[fc[gl]]                                                 # (g, 3)
             bw = torch.stack([1.0 - u[gl] - v[gl], u[gl], v[gl]], -1)       # (g, 3)
             step = max(1, GATHER_FLOATS // (n2 * n2 * C))
