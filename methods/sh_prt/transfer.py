@@ -9,13 +9,13 @@ frame and every vertex dots it with its own vector/matrix. t is kept WITHOUT the
 Diffuse transfer (Sloan 2002 §5, the three transfer functions T_DU, T_DS, T_DI):
     unshadowed   t⁰_i(x) = (1/π) ∫ y_i(s) H_N(s) ds,                 H_N(s) = max(N·s, 0)
     shadowed     t⁰_i(x) = (1/π) ∫ y_i(s) V_x(s) H_N(s) ds
-    bounce b ≥ 1 t^b_i(x) = (1/π) ∫ y_i-transfer of the light reflected at the hit point:
-                 t^b_i(x) = (1/π) ∫ (1 − V_x(s)) ρ(y_s) t^{b−1}_i(y_s) H_N(s) ds,  y_s = hit(x, s)
-    with t^{b−1} interpolated barycentrically at the hit, ρ(y) the hit region's diffuse albedo and
-    zero from the back side of one-sided surfaces (as Mitsuba's BSDFs). A glossy hit point also
-    sends its glossy reflection, k_s Σ_i G_i y_i(R_y) (M^{b−1}_y l)_i with R_y = reflect(−s, N_y)
-    (`hit_radiance_transfer`; the run-time formula below, evaluated towards x). t = Σ_b t^b (§5: the paper
-    iterates until the added energy is small; here a fixed number of passes, config `bounces`).
+    bounce b ≥ 1 t^b_i(x) = (1/π) ∫ (1 − V_x(s)) T^{b−1}_i(y_s, −s) H_N(s) ds,    y_s = hit(x, s)
+    with T^{b−1}_i(y, ω) the transfer of the radiance y sends towards ω after the previous pass
+    (`hit_radiance_transfer`): ρ(y) t^{b−1}_i(y), plus on glossy regions
+    k_s(y) Σ_k G_k(y) y_k(R_y) (M^{b−1}_y)_{ki} with R_y = reflect(ω, N_y) (the run-time formula of
+    `methods.sh_prt.method`); barycentric at the hit, 0 from the back side of one-sided surfaces
+    (as Mitsuba's BSDFs). t = Σ_b t^b (§5: the paper iterates until the added energy is small;
+    here a fixed number of passes, config `bounces`).
     The unshadowed vector is the clamped cosine ZH rotated to N, in closed form:
     t_lm = Â_l y_lm(N)/π (Ramamoorthi–Hanrahan Â_l, `zh.clamped_cosine_factors`).
 
@@ -23,7 +23,7 @@ Glossy transfer (Sloan 2002 §6, T_GU / T_GS / T_GI): a matrix per vertex mappin
 to *transferred incident radiance*, l' = M_x l, here WITH the cosine H_N folded in (the method
 card's M has none; like the diffuse vectors):
     (M⁰_x)_ij = ∫ y_i(s) V_x(s) H_N(s) y_j(s) ds
-    (M^b_x)_ij = ∫ y_i(s) (1 − V_x(s)) H_N(s) ρ(y_s) t^{b−1}_j(y_s) ds            (b ≥ 1)
+    (M^b_x)_ij = ∫ y_i(s) (1 − V_x(s)) H_N(s) T^{b−1}_j(y_s, −s) ds             (b ≥ 1)
 At run time the exit radiance towards v of a lobe circularly symmetric about R = reflect(v, N) is
 Σ_lm G_l (M_x l)_lm y_lm(R) (§6, Funk–Hecke; `methods.sh_prt.method`). Folding H_N into M makes the
 run time the exact rendering-equation integral ∫ L V H_N lobe(R·s) ds up to the order-n truncation
