@@ -211,8 +211,48 @@ class GlossyHits:
     face_vcos: Tensor
 
 
-# Floats of the (h, n², n², C) gathers of previous-pass matrices per batch.
+# Floats of the (segments, n², K) gathers of per-vertex matrices per batch (`segment_vecmat`).
 GATHER_FLOATS = 1 << 23
+# Rows per padded segment of `segment_vecmat` (a vertex hit by more rows gets several segments).
+SEGMENT_CAP = 32
+
+
+def segment_vecmat(a: Tensor, idx: Tensor, M: Tensor) -> Tensor:
+    """out_p = a_p · M[idx_p] for many rows sharing few matrices, gathering each matrix once per
+    segment of ≤ SEGMENT_CAP rows with the same idx (rows grouped and zero-padded, one bmm)
+    instead of once per row.
+
+    Args:
+        a: (P, D) rows; idx: (P,) int64 matrix index per row; M: (U, D, K) matrices.
+    Returns:
+        (P, K).
+    """
+    P, D = a.shape
+    K = M.shape[-1]
+    out = torch.zeros(P, K, dtype=a.dtype, device=a.device)
+    if P == 0:
+        return out
+    order = torch.argsort(idx, stable=True)
+    si = idx[order]
+    new = torch.ones(P, dtype=torch.bool, device=a.device)
+    new[1:] = si[1:] != si[:-1]
+    start = torch.cummax(torch.where(new, torch.arange(P, device=a.device), 0), 0).values
+    rank = torch.arange(P, device=a.device) - start                    # position within its idx run
+    seg_new = new | (rank % SEGMENT_CAP == 0)
+    seg = torch.cumsum(seg_new.long(), 0) - 1                           # (P,) segment of each sorted row
+    col = rank % SEGMENT_CAP
+    seg_mat = si[seg_new]                                               # (S,) matrix of each segment
+    n_seg = int(seg_mat.numel())
+    step = max(1, GATHER_FLOATS // (D * K))
+    for s0 in range(0, n_seg, step):
+        s1 = min(n_seg, s0 + step)
+        rows = ((seg >= s0) & (seg < s1)).nonzero().squeeze(-1)         # sorted rows of these segments
+        A = torch.zeros(s1 - s0, SEGMENT_CAP, D, dtype=a.dtype, device=a.device)
+        A[seg[rows] - s0, col[rows]] = a[order[rows]]
+        Y = torch.bmm(A, M[seg_mat[s0:s1]])                             # (s, CAP, K)
+        out[order[rows]] = Y[seg[rows] - s0, col[rows]]
+    return out
+
 
 
 def hit_radiance_transfer(rays: Rays, a: int, b: int, F: Tensor, normals: Tensor, face_albedo: Tensor,
@@ -251,14 +291,11 @@ def hit_radiance_transfer(rays: Rays, a: int, b: int, F: Tensor, normals: Tensor
             wR = torch.where(glossy.face_vcos[fc[gl]][:, None], wR * c, wR)
             tri = F[fc[gl]]                                                 # (g, 3)
             bw = torch.stack([1.0 - u[gl] - v[gl], u[gl], v[gl]], -1)       # (g, 3)
-            step = max(1, GATHER_FLOATS // (n2 * n2 * C))
-            for c0 in range(0, gl.numel(), step):
-                sl = slice(c0, c0 + step)
-                acc = torch.zeros(wR[sl].shape[0], n2, C)
-                for k in range(3):                                          # y's triangle vertices
-                    Mk = glossy.M_prev[glossy.gpos[tri[sl, k]]]             # (g', n², n², C)
-                    acc += bw[sl, k, None, None] * torch.einsum("gi,gijc->gjc", wR[sl], Mk)
-                out[gl[sl]] += acc * glossy.face_ks[fc[gl[sl]]][:, None, :]
+            a_p = (bw[..., None] * wR[:, None, :]).reshape(-1, n2)          # (3g, n²) per (hit, vertex)
+            Mf = glossy.M_prev.reshape(glossy.M_prev.shape[0], n2, n2 * C)
+            g_p = segment_vecmat(a_p, glossy.gpos[tri.reshape(-1)], Mf)     # (3g, n² C)
+            acc = g_p.reshape(-1, 3, n2, C).sum(1)                           # barycentric sum
+            out[gl] += acc * glossy.face_ks[fc[gl]][:, None, :]
     return out.reshape(b - a, -1, out.shape[1], 3)
 
 
