@@ -110,3 +110,22 @@ def test_order_out_of_range_is_a_value_error():
     for bad in (1, 11, 5.0, True):
         with pytest.raises(ValueError, match="order"):
             T.check_order(bad)
+
+
+def test_segment_vecmat_equals_per_row_products():
+    """Grouped, padded rows (runs longer than SEGMENT_CAP, empty matrices, one batch split) give the
+    per-row a_p · M[idx_p] exactly (float32 summation order aside)."""
+    g = torch.Generator().manual_seed(0)
+    M = torch.randn(50, 9, 12, generator=g)
+    idx = torch.randint(0, 40, (1000,), generator=g)
+    idx[:100] = 3                                              # one long run: several segments
+    a = torch.randn(1000, 9, generator=g)
+    ref = torch.einsum("pd,pdk->pk", a, M[idx])
+    old = T.GATHER_FLOATS
+    try:
+        for floats in (old, 9 * 12 * 5):                       # one batch; five segments per batch
+            T.GATHER_FLOATS = floats
+            assert (T.segment_vecmat(a, idx, M) - ref).abs().max() < 1e-5
+    finally:
+        T.GATHER_FLOATS = old
+    assert T.segment_vecmat(a[:0], idx[:0], M).shape == (0, 12)
