@@ -43,7 +43,8 @@ import time
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
+                          tensor_bytes)
 from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
@@ -86,9 +87,9 @@ class SHPRT(Method):
     """
 
     name = "sh_prt"
-    cache_precompute = True
-    capabilities = Capabilities(dynamic_lighting=True, dynamic_view=True, dynamic_brdf=False,
-                                dynamic_geometry=False, max_bounces=MAX_BOUNCES, brdfs=SUPPORTED_BRDFS)
+    cache_precompute = False  # round-trips through reports.precompute_cache (tests); opting in needs its case there
+    capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
+                                max_bounces=MAX_BOUNCES, brdfs=SUPPORTED_BRDFS)
 
     def __init__(self, *, order: int = DEFAULT_ORDER, bounces: int = MAX_BOUNCES, rays: int = 256,
                  seed: int = 0) -> None:
@@ -113,7 +114,7 @@ class SHPRT(Method):
         self._light = None      # (n², 3) world-frame lighting l
         self._e = None          # (V, 3) t_x · l
         self._lg = None         # (Vg, n², 3) M_x l
-        self._last_samples = 0
+        self._glossy_share = None  # fraction of the last render's hit samples on glossy regions
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0}
 
     # -- precompute -------------------------------------------------------------------------------
@@ -174,7 +175,7 @@ class SHPRT(Method):
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before with_bounces()")
         m = copy.copy(self)
-        m.config = dict(self.config, bounces=bounces)
+        m._config = dict(self._config, bounces=bounces)
         m.bounces = bounces
         m.t_parts, m.M_parts = self.t_parts[:bounces + 1], self.M_parts[:bounces + 1]
         m._assemble()
@@ -240,7 +241,8 @@ class SHPRT(Method):
             sel = hit[a:a + RENDER_CHUNK]
             out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
                                    gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G, vcos).to(out.device)
-        self._last_samples = int(hit.numel())
+        if hit.numel():
+            self._glossy_share = float(self.glossy_regions[gbuffer.region[hit].cpu()].float().mean())
         return gbuffer.resolve(out)
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
@@ -273,19 +275,36 @@ class SHPRT(Method):
             m["per_vertex_light"] = tensor_bytes(self._e, self._lg, self._light, self._l_local)
         return m
 
-    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes a frame of kind ``frame_kind`` must touch: every kind reads the per-sample G-buffer
-        inputs (face, bary, normal, ωo, region) and writes the RGB output, and reads the faces and
-        the per-vertex e = t·l and l' = M l; a kind with lighting change ("L" in it) also reads t, M
-        and the env map's texels (projection; a pure rotation would need only the n² cached
-        coefficients) and writes e and l'. Materials are a few scalars. None before the first render."""
-        if not isinstance(frame_kind, str):
-            raise ValueError(f"frame_kind must be a sequence-kind string, got {frame_kind!r}")
-        if self.scene is None or self._e is None:
+    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+        """Compulsory work of one frame (Sloan 2002 §7 run time; ``methods.base.FrameCost``).
+
+        Every frame: per sample the G-buffer inputs, its region id (int64) and the RGB output; the
+        faces and the per-vertex e = t·l (V, 3) and l' = M l (Vg, n², 3) read once; flops: the
+        barycentric mix of e (18) and ρ·e (3) per sample, and per glossy sample the mix of l'
+        (18 n²), y(R) (≈ 3 n² for the polynomial/recurrence), G_l y(R) (n²) and its dot with l'
+        (6 n²). The glossy share of the samples is that of the last render (before any render: the
+        glossy share of the vertices). A lighting change ("L" in the kind: rotated map) also reads
+        t and M, rotates the n² cached coefficients (Σ_l 2(2l+1)²·3 flops) and computes e and l'
+        (2·3·V·n² + 2·3·Vg·n⁴ flops, written once); a new map ("E") additionally projects it
+        (reads its H·W·3 texels, ≈ 2·3·H·W·n flops for the exact separable projection).
+        """
+        if self.scene is None:
             return None
-        total = self._last_samples * (8 + 8 + 12 + 12 + 8 + 12) + tensor_bytes(self.F, self.gpos)
-        total += tensor_bytes(self._e, self._lg)
-        if "L" in frame_kind:
-            total += tensor_bytes(self.t, self.M, self._e, self._lg)
-            total += int(self.scene.envmap.data.numel() * 4)
-        return int(total)
+        if not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be a non-negative int, got {num_samples!r}")
+        n2, f4 = self.order ** 2, 4
+        nv, ng = int(self.t.shape[0]), int(self.M.shape[0])
+        share = self._glossy_share if self._glossy_share is not None else ng / max(nv, 1)
+        qg = int(round(share * num_samples))
+        e_b, lg_b = nv * 3 * f4, ng * n2 * 3 * f4
+        nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12) + tensor_bytes(self.F) + e_b + lg_b
+        flops = num_samples * 21 + qg * (18 + 3 + 1 + 6) * n2
+        light = "L" in frame_kind or "E" in frame_kind
+        if light:
+            nbytes += tensor_bytes(self.t, self.M) + e_b + lg_b
+            flops += sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * (nv * n2 + ng * n2 * n2)
+        if "E" in frame_kind:
+            H, W = int(self.scene.envmap.data.shape[0]), int(self.scene.envmap.data.shape[1])
+            nbytes += H * W * 3 * f4
+            flops += 2 * 3 * H * W * self.order
+        return FrameCost(int(nbytes), int(flops))

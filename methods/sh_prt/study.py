@@ -7,15 +7,17 @@ energy ∫ lobe² dω = Σ_l f_l² = (s+1)² / (2π (2s+1)) (Parseval; the lobe 
 method needs for exponent s are n², n the smallest order whose bands hold a fraction ``target``
 of that energy.
 
-Pure functions (no import of `reports`: layering). Registration belongs in `reports/studies.py`:
-    register_terms_contributor("sh_prt", "methods.sh_prt.study:terms_needed", target=0.99,
-                               target_kind="energy fraction of the Phong lobe in order-n SH (n² terms)")
+Registered with `methods.studies` at import (``methods.registry`` imports this module); the
+cross-method study ``terms-vs-exponent`` calls `terms_needed`.
 """
 from __future__ import annotations
 
 import math
 
 from methods.core.zh import phong_kernel
+from methods.studies import TermsRecord, register_terms_contributor
+
+TARGET_KIND = "energy fraction of the Phong lobe in order-n SH (n² terms)"
 
 # Orders searched (n² ≤ 40 000 terms: enough for s ≈ 10⁵ at 99 %).
 MAX_ORDER = 200
@@ -48,7 +50,11 @@ def order_needed(exponent: float, target: float = 0.99) -> int:
     return int(hit[0, 0]) + 1
 
 
-def terms_needed(exponent: float, target: float = 0.99) -> int:
-    """SH coefficients n² that hold ``target`` of a Phong lobe's energy (the study contributor)."""
+def terms_needed(exponent: float, target: float = 0.99) -> TermsRecord:
+    """terms-vs-exponent contributor: n² SH coefficients holding ``target`` of a Phong lobe's energy."""
     n = order_needed(exponent, target)
-    return n * n
+    return TermsRecord("sh_prt", float(exponent), float(target), n * n, TARGET_KIND,
+                       f"order {n}; the paper's order 5 holds {energy_fraction(exponent, 5):.3f}")
+
+
+register_terms_contributor("sh_prt", terms_needed, target=0.99, target_kind=TARGET_KIND)
