@@ -49,7 +49,7 @@ from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
 from methods.core.sh_rotation import rotate_coeffs
-from methods.core.visibility import Visibility
+from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
 SUPPORTED_BRDFS = frozenset({"lambert", "phong", "blinnphong"})
@@ -87,7 +87,7 @@ class SHPRT(Method):
     """
 
     name = "sh_prt"
-    cache_precompute = False  # round-trips through reports.precompute_cache (tests); opting in needs its case there
+    cache_precompute = True  # round-trips through reports.precompute_cache (tests); opting in needs its case there
     capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
                                 max_bounces=MAX_BOUNCES, brdfs=SUPPORTED_BRDFS)
 
@@ -137,7 +137,7 @@ class SHPRT(Method):
         self.glossy_verts = glossy_regions[geom.vertex_region.long()].nonzero().squeeze(-1)  # (Vg,)
         self.gpos = torch.full((self.N.shape[0],), -1, dtype=torch.int64)  # vertex → row of M, −1
         self.gpos[self.glossy_verts] = torch.arange(self.glossy_verts.numel())
-        vis = Visibility(geom.V, geom.F)
+        vis = make_visibility(geom.V, geom.F)
         rays = _tr.trace_rays(vis, geom.V.float(), self.N, c["rays"], seed=c["seed"])
         t1 = time.perf_counter()
         t = _tr.shadowed_diffuse(rays, self.N, n)[..., None]              # (V, n², 1)  §5 T_DS

@@ -9,7 +9,7 @@ from methods.registry import available_methods, get_method
 from reports.cells import canonical_config
 
 
-@pytest.mark.parametrize("name", ["inout", "oracle", "ptt", "triple_product", "zh_shadow"])
+@pytest.mark.parametrize("name", ["inout", "oracle", "ptt", "sh_prt", "triple_product", "zh_shadow"])
 def test_config_is_fixed_at_construction(name):
     """The recorded config is the one that ran: no code can change it after construction."""
     m = get_method(name)()
@@ -22,7 +22,7 @@ def test_config_is_fixed_at_construction(name):
 
 
 def test_every_builtin_method_is_registered():
-    assert {"inout", "oracle", "ptt", "triple_product", "zh_shadow"} <= set(available_methods())
+    assert {"inout", "oracle", "ptt", "sh_prt", "triple_product", "zh_shadow"} <= set(available_methods())
     with pytest.raises(KeyError, match="unknown method"):
         get_method("no_such_method")
 

@@ -26,6 +26,7 @@ CONFIGS = {
     "ptt": {"separate": False},
     "triple_product": {"level": 2},
     "zh_shadow": {},
+    "sh_prt": {"order": 4, "bounces": 0, "rays": 16},
 }
 
 

@@ -24,6 +24,7 @@ CASES = {
     "ptt_pca": ("ptt", "sphere_plane", "VBL", _PTT_SMALL | dict(basis="pca", pca_terms=2, pca_grid=4)),
     "triple_product": ("triple_product", "sphere_plane", "V", dict(level=2, brdf_dirs=[5, 8], frame_grid=[5, 8, 1])),
     "zh_shadow": ("zh_shadow", "creature", "P", dict(train_poses=4, n_dirs=32, fit_iters=2)),
+    "sh_prt": ("sh_prt", "sphere_plane", "V", dict(order=3, bounces=1, rays=16)),
 }
 
 
