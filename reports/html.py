@@ -129,8 +129,13 @@ def _blabel(b: int) -> str:
     return "full" if int(b) == -1 else str(int(b))
 
 
+# The method every one of the four papers improves on, marked in every table and legend.
+BASELINE = {"sh_prt": "baseline: SH PRT, Sloan 2002"}
+
+
 def _method_label(method: str, config: str) -> str:
-    return method if config in ("{}", "") else f"{method} {config}"
+    name = f"{method} ({BASELINE[method]})" if method in BASELINE else method
+    return name if config in ("{}", "") else f"{name} {config}"
 
 
 # -- sections ---------------------------------------------------------------------------------
