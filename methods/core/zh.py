@@ -275,3 +275,36 @@ def zh_project(f: Callable[[Tensor], Tensor] | Tensor, order: int, *, n_quad: in
         raise ValueError(f"f must give shape ({t.shape[0]},) or ({t.shape[0]}, C), got {tuple(g.shape)}")
     B = zh_basis(t.to(g.dtype), order) * (2.0 * math.pi * w.to(g.dtype))[:, None]  # (Q, n)
     return B.transpose(0, 1) @ g
+
+
+# -- how much of a Phong lobe order n keeps (the terms-vs-exponent rows of SH/ZH methods) ----------
+
+PHONG_MAX_ORDER = 200  # orders searched (n² ≤ 40 000 terms: enough for s ≈ 10⁵ at 99 %)
+
+
+def phong_lobe_energy(exponent: float) -> float:
+    """∫ lobe² dω of the normalised Phong lobe (s+1)/(2π) max(0, cos)^s: (s+1)² / (2π (2s+1));
+    by Parseval (the lobe is zonal) also Σ_l f_l² over all bands of `phong_kernel`."""
+    s = float(exponent)
+    return (s + 1.0) ** 2 / (2.0 * math.pi * (2.0 * s + 1.0))
+
+
+def phong_energy_fraction(exponent: float, order: int) -> float:
+    """Fraction of the Phong lobe's energy ∫ lobe² held by SH bands l < order."""
+    k = phong_kernel(float(exponent), order)
+    return float((k * k).sum()) / phong_lobe_energy(exponent)
+
+
+def phong_order_needed(exponent: float, target: float = 0.99) -> int:
+    """Smallest SH order n whose bands l < n hold ``target`` of the Phong lobe's energy."""
+    s = float(exponent)
+    if not math.isfinite(s) or s < 0:
+        raise ValueError(f"exponent must be finite and >= 0, got {exponent!r}")
+    if not 0 < target < 1:
+        raise ValueError(f"target must be in (0, 1), got {target!r}")
+    k = phong_kernel(s, PHONG_MAX_ORDER)
+    cum = (k.double() ** 2).cumsum(0) / phong_lobe_energy(s)
+    hit = (cum >= target).nonzero()
+    if hit.numel() == 0:
+        raise ValueError(f"exponent {s} needs more than order {PHONG_MAX_ORDER} for {target:.3%}")
+    return int(hit[0, 0]) + 1

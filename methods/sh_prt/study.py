@@ -12,42 +12,13 @@ cross-method study ``terms-vs-exponent`` calls `terms_needed`.
 """
 from __future__ import annotations
 
-import math
-
-from methods.core.zh import phong_kernel
+from methods.core.zh import phong_energy_fraction, phong_lobe_energy, phong_order_needed
 from methods.studies import TermsRecord, register_terms_contributor
 
 TARGET_KIND = "energy fraction of the Phong lobe in order-n SH (n² terms)"
 
-# Orders searched (n² ≤ 40 000 terms: enough for s ≈ 10⁵ at 99 %).
-MAX_ORDER = 200
-
-
-def lobe_energy(exponent: float) -> float:
-    """∫ lobe² dω of the normalised Phong lobe: (s+1)² / (2π (2s+1))."""
-    s = float(exponent)
-    return (s + 1.0) ** 2 / (2.0 * math.pi * (2.0 * s + 1.0))
-
-
-def energy_fraction(exponent: float, order: int) -> float:
-    """Fraction of the Phong lobe's energy in SH bands l < order."""
-    k = phong_kernel(float(exponent), order)
-    return float((k * k).sum()) / lobe_energy(exponent)
-
-
-def order_needed(exponent: float, target: float = 0.99) -> int:
-    """Smallest SH order n whose bands hold ``target`` of the Phong lobe's energy."""
-    s = float(exponent)
-    if not math.isfinite(s) or s < 0:
-        raise ValueError(f"exponent must be finite and >= 0, got {exponent!r}")
-    if not 0 < target < 1:
-        raise ValueError(f"target must be in (0, 1), got {target!r}")
-    k = phong_kernel(s, MAX_ORDER)
-    cum = (k * k).cumsum(0) / lobe_energy(s)
-    hit = (cum >= target).nonzero()
-    if hit.numel() == 0:
-        raise ValueError(f"exponent {s} needs more than order {MAX_ORDER} for {target:.3%}")
-    return int(hit[0, 0]) + 1
+# The lobe-energy arithmetic is shared with zh_shadow's row (methods/core/zh.py).
+lobe_energy, energy_fraction, order_needed = phong_lobe_energy, phong_energy_fraction, phong_order_needed
 
 
 def terms_needed(exponent: float, target: float = 0.99) -> TermsRecord:

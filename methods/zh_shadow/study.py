@@ -19,41 +19,15 @@ SH coefficients of visibility and lighting; the order, not the lobe count, caps 
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 
 import torch
 
-from methods.core.zh import phong_kernel
+from methods.core.zh import phong_energy_fraction, phong_order_needed
 from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
 
-# Orders searched (n² ≤ 40 000 terms: enough for α ≈ 10⁵ at 99 %).
-MAX_ORDER = 200
-
-
-def lobe_energy_fraction(exponent: float, order: int) -> float:
-    """Fraction of ∫ lobe² of the normalised Phong lobe captured by SH bands l < order."""
-    s = float(exponent)
-    k = phong_kernel(s, order)
-    total = (s + 1.0) ** 2 / (2.0 * math.pi * (2.0 * s + 1.0))
-    return float((k * k).sum()) / total
-
-
-def order_needed(exponent: float, target: float = 0.99) -> int:
-    """Smallest SH order n whose bands hold `target` of the Phong lobe's energy."""
-    s = float(exponent)
-    if not math.isfinite(s) or s < 0:
-        raise ValueError(f"exponent must be finite and >= 0, got {exponent!r}")
-    if not 0 < target < 1:
-        raise ValueError(f"target must be in (0, 1), got {target!r}")
-    k = phong_kernel(s, MAX_ORDER)
-    total = (s + 1.0) ** 2 / (2.0 * math.pi * (2.0 * s + 1.0))
-    acc = 0.0
-    for n in range(1, MAX_ORDER + 1):
-        acc += float(k[n - 1]) ** 2
-        if acc >= target * total:
-            return n
-    raise ValueError(f"exponent {s} needs more than order {MAX_ORDER} for {target:.3%}")
+# The lobe-energy arithmetic is shared with sh_prt's row (methods/core/zh.py).
+lobe_energy_fraction, order_needed = phong_energy_fraction, phong_order_needed
 
 
 def terms_needed(exponent: float, target: float = 0.99):
