@@ -14,7 +14,8 @@ Pluggable at two levels.
     means is the contributor's ``target_kind``, e.g. "energy fraction" or "relative RMSE").
     ``fn`` may be a callable or a lazy ``"module:function"`` string (imported on first use, so
     registering costs nothing). Built in: ``inout`` → ``methods.inout.analysis:terms_needed``
-    (Mahajan 2008: K capturing 99 % of the hemisphere BRDF-matrix energy, 40 × 40 grid).
+    (Mahajan 2008: K capturing 99 % of the hemisphere BRDF-matrix energy, 40 × 40 grid, in the
+    BRDF's own norm — the renderer counts its K in the cosine-weighted norm, methods/inout).
   - ``register_error_vs_terms(method, fn)`` — ``fn(exponent: float, terms: int) -> float``, the
     rendered image error with ``terms`` terms (Mahajan 2008 Fig. 3B/C, Fig. 6). PENDING: it needs
     the in-out renderer; until one is registered the study writes no error-vs-terms table and says

@@ -1,14 +1,18 @@
 """The in-out BRDF factorization renderer (Mahajan, Tseng & Ramamoorthi 2008 §2 eq. 2–4, §6).
 
 Precompute (static geometry, static BRDFs):
-  * per region's material, the SVD factorization ρ_c(ω_i, ω_o) ≈ Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i)
-    on the hemisphere equal-area grid (eq. 2; ``brdf_res`` × ``brdf_res`` per direction), with
-    K from ``methods.inout.analysis.k_rule`` (eq. 13, §4) unless ``terms`` overrides it, and the
-    off-grid factors by the SVD identities tabulated on a fine hemi-octahedral table
-    (``methods.inout.transport``, docstring item 2);
-  * per vertex of the region, T̃_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
+  * per region's material, the SVD factorization ρ_c(ω_i, ω_o) cos θ_i ≈ Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i)
+    on the hemisphere equal-area grid (eq. 2; ``brdf_res`` × ``brdf_res`` per direction) in the
+    cosine-weighted norm of ``methods.inout.transport`` (docstring item 1: why), with K capturing
+    99 % of that norm's energy and at least the paper's rule ``analysis.k_rule`` (eq. 13, §4) for
+    the families it covers, unless ``terms`` overrides it (``InOut._factorize``; K per region and
+    how it was chosen are in ``stats["regions"]``), and the off-grid factors by the SVD identities
+    tabulated on a fine hemi-octahedral table (``methods.inout.transport``, docstring item 2);
+  * per vertex of the region, T̃_k(x, ω_t) = V(x', ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
     ``cube_res`` cube map (eq. 3, texel solid angle Ω_t folded in), Haar-transformed, keeping the
-    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²).
+    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²);
+    x' is the vertex moved a hair into its faces (``transport.visibility_points``: a vertex on a
+    contact line would otherwise see every shadow ray blocked).
 
 Render (dynamic lighting and view):
   * L = frame.envmap resampled on the cube map (``light_supersample``² sub-samples per texel, exact
@@ -163,7 +167,7 @@ class InOut(Method):
         if K_req is not None:
             info["K_source"] = "terms"
             return tp.factorize(material, n, K_req, norm=norm), info
-        if norm == "brdf":
+        if norm == "brdf":  # the pre-cosine behaviour, kept as it was (no group completion)
             K_req = int(k_rule(material))
             info.update(K_requested=K_req, K_source="k_rule")
             return tp.factorize(material, n, K_req, norm=norm), info
@@ -173,7 +177,7 @@ class InOut(Method):
             rule = int(k_rule(material))
             info["K_rule"] = rule
             if rule > fac.K:
-                fac = tp.factorize(material, n, rule, norm=norm)
+                fac = tp.factorize(material, n, rule, norm=norm, complete=True)
                 info.update(K_requested=rule, K_source="k_rule")
         return fac, info
 

@@ -63,7 +63,7 @@
    evaluated at z = ``HORIZON_Z`` (the limit from above: the materials return 0 *at* z = 0).
 
 3. **Transport in the cube-map Haar basis** (eq. 3–4, Ng 2003). For vertex x with normal n and
-   world texel direction ω_t, T_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t). The dot
+   world texel direction ω_t, T_k(x, ω_t) = V(x, ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t). The dot
    product T_k · L must equal ∫ T_k L dω. On the cube map this integral is Σ_t T_k(ω_t) Ω_t L_t,
    with Ω_t the exact texel solid angle and L_t the texel-averaged radiance. The Haar transform
    of ``methods.core.cubemap`` is orthonormal in the texel-count measure (Parseval), so we fold the
@@ -93,6 +93,9 @@ HORIZON_Z = 1e-4
 # Terms with S_k below this fraction of S_1 are numerically zero: the stacked matrix has lower rank
 # than K (e.g. a Lambert material has rank 1) and their Nyström extension would divide by ~0.
 RANK_RTOL = 1e-7
+# Singular values this close (relative) are one degenerate group (`factorize`'s ``complete``); the
+# (cos θ, φ) grid is exactly symmetric under φ → φ + 2π/n, so pairs agree to round-off.
+DEGENERATE_RTOL = 1e-6
 # Fraction of the way towards its faces' centroid at which a vertex's visibility is sampled
 # (`visibility_points`): far above float32 error, far below the size of a face.
 INWARD_PULL = 1e-2
@@ -193,12 +196,16 @@ def norm_weights(dirs: Tensor, norm: str) -> tuple[Tensor, Tensor]:
 
 
 def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
-              frac: float = ENERGY_FRACTION) -> Factorization:
+              frac: float = ENERGY_FRACTION, complete: bool = False) -> Factorization:
     """SVD of the stacked RGB BRDF matrix in ``norm``, truncated to K terms (capped at the rank).
 
     Mahajan 2008 eq. 2 with the scaling of ``methods.inout.analysis`` (σ_k = Δ·S_k). norm "brdf":
     the matrix of ρ itself (the paper's); "cosine": of cos θ_o ρ cos θ_i (module docstring, item 1).
     K None: the smallest K capturing ``frac`` of Σ σ_k² of that matrix (Fig. 3A's 99 % rule).
+    complete (always for K None): raise K to the end of a group of equal singular values. An
+    isotropic BRDF's singular values come in equal pairs (cos mφ, sin mφ: the Y_l,±m of eq. 9);
+    cutting a pair keeps an arbitrary, round-off-dependent direction of its 2-D singular space —
+    an azimuthally anisotropic reflection that changes with the thread count of the SVD.
     """
     if K is not None and (isinstance(K, bool) or not isinstance(K, int) or K < 1):
         raise ValueError(f"K must be a positive int or None, got {K!r}")
@@ -215,7 +222,10 @@ def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
     if K is None:
         c = torch.cumsum(S.square(), 0)
         K = int(torch.searchsorted(c, frac * c[-1]).item()) + 1
+        complete = True
     K = min(K, rank)
+    while complete and K < rank and S[K] >= (1.0 - DEGENERATE_RTOL) * S[K - 1]:
+        K += 1
     sq = math.sqrt(delta)
     h = (U[:, :K] / sq).T.reshape(K, 3, N) / a  # h_{k,c}(ω_o^o), orthonormal in L²(a² dω_o)
     g = Vh[:K] / sq                              # g_k(ω_i^i), orthonormal in L²(dω_i)
@@ -320,13 +330,13 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
                    n_coeffs: int | None, supersample: int = 1, select_weights: Tensor | None = None,
                    eps: float = DEFAULT_OFFSET_EPS, progress: bool = False, chunk: int = 64,
                    desc: str = "inout transport") -> tuple[Tensor, Tensor]:
-    """Sparse Haar coefficients of T̃_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t) Ω_t.
+    """Sparse Haar coefficients of T̃_k(x, ω_t) = V(x, ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t.
 
     Mahajan 2008 eq. 3 with the solid angle folded in (module docstring, item 3), projected on the
     cube-map Haar basis and truncated to the ``n_coeffs`` largest |c|·w per (vertex, k) (Ng 2003).
 
     Args:
-        g_lut: (R·R, K) float table of g_k (`nystrom_tables`).
+        g_lut: (R·R, K) float table of ĝ_k (`nystrom_tables`).
         vis: ``methods.core.visibility.Visibility`` of the scene.
         points, normals: (V, 3) vertex positions and unit normals (world).
         N: cube face resolution (power of two); supersample: s → s×s sub-directions per texel
