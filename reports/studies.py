@@ -6,6 +6,8 @@ analysis figures (the terms-vs-exponent question is Mahajan's; the figure functi
 `methods.inout.study`, also registered alone as ``mahajan-fig3a``, ``mahajan-fig2-5``,
 ``mahajan-fig7c``) and calls every registered terms contributor
 (``methods.studies.register_terms_contributor``) and error-vs-terms function.
+The in-out row's K is counted in the BRDF's own norm (Mahajan 2008 Fig. 3A: 99 % of the hemisphere
+BRDF-matrix energy, 40 × 40 grid); the renderer chooses its K in the cosine-weighted norm (methods/inout).
 
 terms-vs-exponent outputs (in ``out_dir``):
   ``k_vs_s.csv/png`` (Fig. 3A), ``sv_vs_Fl.csv/png`` (Fig. 2 right / Fig. 5),

@@ -429,6 +429,11 @@ def k_rule(material: Any, *, frac: float = ENERGY_FRACTION, n_fallback: int = FA
     - Anything else (Cook–Torrance, Ward, ...): measured — K(frac) of the hemisphere BRDF matrix at
       ``n_fallback`` × ``n_fallback`` (24 by default: a few seconds; an estimate, capped by the grid
       for very sharp lobes).
+
+    All in the BRDF's own norm (the paper's). The renderer's default (``InOut(norm="cosine")``)
+    counts K(99 %) of cos θo ρ cos θi instead and uses this rule only as a floor for Lambert, Phong
+    and the half-angle families: for a BRDF with a 1/(cos θi cos θo) factor the measured fallback
+    here spends its terms on the grazing spike (``methods.inout.transport`` docstring, item 1).
     """
     kind = getattr(material, "kind", type(material).__name__).lower().replace("_", "")
     if kind == "lambert" or _ks_zero(material):
@@ -454,6 +459,9 @@ def _specular_only(material: Any) -> Any:
 def terms_needed(exponent: float, target: float = ENERGY_FRACTION) -> int:
     """This paper's row of the terms-vs-exponent study: measured K(target) for Phong exponent s on
     the visible hemisphere at the paper's 40 × 40 resolution (Mahajan 2008 Fig. 3A, hemisphere).
+
+    The energy is that of the BRDF matrix ρ itself (the paper's norm, as in Fig. 3A), not of the
+    cosine-weighted cos θo ρ cos θi in which the renderer (``InOut``, norm "cosine") counts its K.
 
     exponent: Phong s (> 0); target: captured energy fraction in (0, 1].
     """

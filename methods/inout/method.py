@@ -1,14 +1,18 @@
 """The in-out BRDF factorization renderer (Mahajan, Tseng & Ramamoorthi 2008 §2 eq. 2–4, §6).
 
 Precompute (static geometry, static BRDFs):
-  * per region's material, the SVD factorization ρ_c(ω_i, ω_o) ≈ Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i)
-    on the hemisphere equal-area grid (eq. 2; ``brdf_res`` × ``brdf_res`` per direction), with
-    K from ``methods.inout.analysis.k_rule`` (eq. 13, §4) unless ``terms`` overrides it, and the
-    off-grid factors by the SVD identities tabulated on a fine hemi-octahedral table
-    (``methods.inout.transport``, docstring item 2);
-  * per vertex of the region, T̃_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
+  * per region's material, the SVD factorization ρ_c(ω_i, ω_o) cos θ_i ≈ Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i)
+    on the hemisphere equal-area grid (eq. 2; ``brdf_res`` × ``brdf_res`` per direction) in the
+    cosine-weighted norm of ``methods.inout.transport`` (docstring item 1: why), with K capturing
+    99 % of that norm's energy and at least the paper's rule ``analysis.k_rule`` (eq. 13, §4) for
+    the families it covers, unless ``terms`` overrides it (``InOut._factorize``; K per region and
+    how it was chosen are in ``stats["regions"]``), and the off-grid factors by the SVD identities
+    tabulated on a fine hemi-octahedral table (``methods.inout.transport``, docstring item 2);
+  * per vertex of the region, T̃_k(x, ω_t) = V(x', ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
     ``cube_res`` cube map (eq. 3, texel solid angle Ω_t folded in), Haar-transformed, keeping the
-    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²).
+    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²);
+    x' is the vertex moved a hair into its faces (``transport.visibility_points``: a vertex on a
+    contact line would otherwise see every shadow ray blocked).
 
 Render (dynamic lighting and view):
   * L = frame.envmap resampled on the cube map (``light_supersample``² sub-samples per texel, exact
@@ -29,7 +33,6 @@ tangent frame a Ward BRDF could be authored in).
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -44,6 +47,8 @@ from methods.core.frames import frame_matrix
 from references.visibility import make_visibility
 from methods.inout import transport as tp
 
+# Families with a closed-form K rule of the paper (analysis.k_rule: eq. 13 and §4).
+PAPER_RULE_KINDS = frozenset({"lambert", "phong", "blinnphong", "torrancesparrow"})
 # Floats per (Q, K, 3) temporary in render(): samples per batch = RENDER_FLOATS / (3K) (~16 MB).
 RENDER_FLOATS = 1 << 22
 
@@ -84,7 +89,7 @@ class InOut(Method):
     def __init__(self, *, terms: int | dict[str, int] | None = None, brdf_res: int = 24,
                  cube_res: int = 16, n_coeffs: int | None = 128, light_coeffs: int | None = None,
                  lut_res: int = 64, supersample: int = 1, light_supersample: int = 4,
-                 select: str = "magnitude", progress: bool | None = None) -> None:
+                 select: str = "magnitude", norm: str = "cosine", progress: bool | None = None) -> None:
         """
         terms: K for every region (int), per region name (dict; missing regions use the rule),
             or None = ``analysis.k_rule(material)`` (Mahajan 2008 eq. 13 / §4).
@@ -97,6 +102,10 @@ class InOut(Method):
         light_supersample: sub-samples per texel side when resampling the env map.
         select: "magnitude" (plain |c| of the solid-angle-weighted T̃: L²-optimal) or "area"
             (|c| × Haar support solid angle, Ng 2003's area-weighted selection) for T.
+        norm: the norm of the factorization and of its 99 %-energy term count (``transport``
+            docstring, item 1): "cosine" (default) factorizes cos θ_o ρ cos θ_i, "brdf" factorizes
+            ρ as eq. 2 is written (renders BRDFs with a 1/(cos θ_i cos θ_o) factor, such as
+            Cook–Torrance, nearly black: kept for comparison).
         progress: tqdm bars (default: when stderr is a TTY).
         """
         if terms is not None and not isinstance(terms, dict):
@@ -115,9 +124,11 @@ class InOut(Method):
         _check_int("light_supersample", light_supersample, 1)
         if select not in ("magnitude", "area"):
             raise ValueError(f"select must be 'magnitude' or 'area', got {select!r}")
+        if norm not in tp.NORMS:
+            raise ValueError(f"norm must be one of {tp.NORMS}, got {norm!r}")
         super().__init__(terms=terms, brdf_res=brdf_res, cube_res=cube_res, n_coeffs=n_coeffs,
                          light_coeffs=light_coeffs, lut_res=lut_res, supersample=supersample,
-                         light_supersample=light_supersample, select=select)
+                         light_supersample=light_supersample, select=select, norm=norm)
         self.progress = sys.stderr.isatty() if progress is None else bool(progress)
         self.scene = None
         self.F: Tensor | None = None           # (M, 3) int64 faces of the static geometry
@@ -127,15 +138,47 @@ class InOut(Method):
         self._last_samples = 0
 
     # -- precompute ---------------------------------------------------------------------------
-    def _terms_for(self, region: str, material) -> int:
+    def _terms_for(self, region: str, material) -> int | None:
+        """K from ``terms`` for this region, or None (choose by rule, `precompute`)."""
         t = self.config["terms"]
         if isinstance(t, int):
             return t
         if isinstance(t, dict) and region in t:
             return int(t[region])
+        return None
+
+    def _factorize(self, region: str, material) -> tuple[tp.Factorization, dict[str, Any]]:
+        """The region's factorization and how its K was chosen (the ``stats`` entry).
+
+        Explicit ``terms``: that K. norm "brdf": ``analysis.k_rule`` (Mahajan 2008 eq. 13, §4), the
+        paper's rules, in the BRDF's own norm. norm "cosine" (default): the paper's 99 %-energy
+        criterion (Fig. 3A) applied to the matrix the renderer factorizes, cos θ_o ρ cos θ_i
+        (``transport`` docstring, item 1, for why this norm); for the families with a closed-form
+        rule of the paper (Lambert, Phong eq. 13, half-angle §4) K is never below that rule, so
+        they keep the paper's K (or more).
+        """
         from methods.inout.analysis import k_rule  # noqa: PLC0415
 
-        return int(k_rule(material))
+        cfg = self.config
+        n, norm = cfg["brdf_res"], cfg["norm"]
+        K_req = self._terms_for(region, material)
+        info: dict[str, Any] = {"norm": norm, "K_requested": K_req}
+        if K_req is not None:
+            info["K_source"] = "terms"
+            return tp.factorize(material, n, K_req, norm=norm), info
+        if norm == "brdf":  # the pre-cosine behaviour, kept as it was (no group completion)
+            K_req = int(k_rule(material))
+            info.update(K_requested=K_req, K_source="k_rule")
+            return tp.factorize(material, n, K_req, norm=norm), info
+        fac = tp.factorize(material, n, None, norm=norm)          # K(99 %) in the cosine norm
+        info.update(K_requested=fac.K, K_energy=fac.K, K_source="energy99_cosine")
+        if getattr(material, "kind", "") in PAPER_RULE_KINDS:
+            rule = int(k_rule(material))
+            info["K_rule"] = rule
+            if rule > fac.K:
+                fac = tp.factorize(material, n, rule, norm=norm, complete=True)
+                info.update(K_requested=rule, K_source="k_rule")
+        return fac, info
 
     def precompute(self, scene) -> None:
         cfg = self.config
@@ -149,6 +192,7 @@ class InOut(Method):
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or Nrm.shape != V.shape:
             raise ValueError(f"bad geometry: V {tuple(V.shape)}, F {tuple(F.shape)}, N {tuple(Nrm.shape)}")
         vis = make_visibility(V, F)
+        Vs = tp.visibility_points(V, F, Nrm)  # V(x, ω) sampled a hair inside the vertex's faces
         weights = None
         if cfg["select"] == "area":
             weights = cubemap.haar_support_area(N, solid_angle=True).reshape(-1)
@@ -164,14 +208,14 @@ class InOut(Method):
                 raise ValueError(f"region {name!r}: BRDF family {getattr(mat, 'kind', type(mat).__name__)!r}"
                                  " is not supported by inout (isotropic families only)")
             ta = time.perf_counter()
-            K_req = self._terms_for(name, mat)
-            fac = tp.factorize(mat, cfg["brdf_res"], K_req)              # Mahajan 2008 eq. 2
+            fac, kinfo = self._factorize(name, mat)                      # Mahajan 2008 eq. 2
+            K_req = int(kinfo["K_requested"])
             g_lut, sh_lut = tp.nystrom_tables(mat, fac, cfg["lut_res"])
             tb = time.perf_counter()
             verts = torch.unique(F[faces].reshape(-1))
             local_of = torch.full((V.shape[0],), -1, dtype=torch.int64)
             local_of[verts] = torch.arange(verts.numel())
-            idx, val = tp.transport_haar(g_lut, vis, V[verts], Nrm[verts], N,   # eq. 3 + Haar
+            idx, val = tp.transport_haar(g_lut, vis, Vs[verts], Nrm[verts], N,  # eq. 3 + Haar
                                          n_coeffs=cfg["n_coeffs"], supersample=cfg["supersample"],
                                          select_weights=weights, progress=self.progress,
                                          desc=f"inout T[{name}]")
@@ -180,7 +224,7 @@ class InOut(Method):
                 name=name, K=fac.K, K_requested=K_req, captured=fac.captured_energy(), verts=verts,
                 local_of=local_of, T=tp.sparse_rows(idx, val, D), sh_lut=sh_lut.float(),
                 sigma=fac.sigma.float()))
-            self.stats["regions"][name] = {"K": fac.K, "K_requested": K_req,
+            self.stats["regions"][name] = {**kinfo, "K": fac.K, "K_requested": K_req,
                                            "captured_energy": fac.captured_energy(),
                                            "vertices": int(verts.numel()),
                                            "brdf_seconds": tb - ta, "transport_seconds": tc - tb}

@@ -1,30 +1,53 @@
 """Pure functions behind the in-out renderer (Mahajan, Tseng & Ramamoorthi 2008 §2 eq. 2–4, §6).
 
-1. **BRDF factorization** (eq. 2). The BRDF of one material is sampled on the equal-area
-   (cos θ, φ) grid of the visible hemisphere (``methods.inout.analysis.direction_grid``; n × n
-   cells of solid angle Δ = 2π/n² for each of ω_i and ω_o). The three colour channels are stacked
-   along the *outgoing* axis, ``A[(c, o), i] = ρ_c(ω_i, ω_o)`` (3n², n²), and one SVD
+1. **BRDF factorization** (eq. 2), in the norm the image sees. The BRDF of one material is
+   sampled on the equal-area (cos θ, φ) grid of the visible hemisphere
+   (``methods.inout.analysis.direction_grid``; n × n cells of solid angle Δ = 2π/n² for each of
+   ω_i and ω_o). The three colour channels are stacked along the *outgoing* axis and the matrix is
+   weighted by a(ω_o) b(ω_i), ``A[(c, o), i] = a(ω_o) ρ_c(ω_i, ω_o) b(ω_i)`` (3n², n²); one SVD
    ``A = U S Vᵀ`` gives
 
-       ρ_c(ω_i, ω_o) = Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i),
-       σ_k = Δ S_k,  h_{k,c}(ω_o) = U[(c, o), k]/√Δ,  g_k(ω_i) = V[i, k]/√Δ,
+       ρ_c(ω_i, ω_o) b(ω_i) = Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i),
+       σ_k = Δ S_k,  h_{k,c}(ω_o) = U[(c, o), k]/(√Δ a(ω_o)),  g_k(ω_i) = V[i, k]/√Δ,
 
-   with h_k (jointly over channels) and g_k orthonormal in L² of the hemisphere (the analysis
-   module's scaling). The incident factor g_k is shared by the three channels, so the transport
-   T_k (eq. 3) is colour-free and costs K (not 3K) vectors per vertex; the material's colours live
-   in h_k. The rank of the stacked matrix equals the rank of one channel whenever the channels are
-   combinations of the same lobes (kd/π + ks·lobe: the span of {constant, lobe rows}), so the
-   term counts K of ``analysis.k_rule`` apply unchanged. The diffuse part kd/π is in ρ, hence in
-   the factorization (for a Lambert material the stacked matrix has rank 1).
+   with h_k (jointly over channels) orthonormal in L²(a² dω_o) and g_k in L²(dω_i) of the
+   hemisphere (the analysis module's scaling). By Eckart–Young the K-term truncation is the best
+   rank-K approximation in ∫∫ a² |ρ b − Σ_k…|² dω_i dω_o, and K(99 %) (Fig. 3A) is counted in it.
+
+   *Which norm.* ``norm="brdf"`` (a = b = 1) is eq. 2 as written, the matrix the paper analyses
+   (§3–4; ``analysis`` keeps it for Fig. 3A/5/7). The paper itself says the image accuracy
+   "ultimately depends on equation 4" (§2) and uses ρ as a proxy, which is sound for the BRDFs it
+   analyses — Phong f(R·ω_i) (§3) and half-angle lobes "for exitant angles far from grazing" (§4;
+   its measured curves omit grazing angles, Fig. 7) — whose matrix energy sits in the lobe. A
+   microfacet BRDF D F G/(4 cos θ_i cos θ_o) (Cook–Torrance) breaks the proxy: ρ grows like
+   1/cos² towards grazing mirror pairs, Σ σ_k² is dominated by them (and grows as the grid
+   refines), and the 99 % rule spends every term there — on directions that eq. 1 multiplies by
+   n·ω_i ≈ 0 and that reach few pixels (a surface seen at θ_o covers ∝ cos θ_o of the image) — so
+   away from grazing the K-term BRDF is almost entirely wrong and the render comes out nearly
+   black. ``norm="cosine"`` (the default of ``InOut``) factorizes ρ̃ = cos θ_o ρ cos θ_i
+   (a = cos θ_o, b = cos θ_i): cos θ_i is eq. 1's own factor (the kernel that multiplies L·V in
+   eq. 4 is ρ cos θ_i) and cos θ_o weights each exitant direction by the projected area through
+   which it reaches the image. ρ̃ is symmetric (reciprocity) and bounded for every family (for
+   Cook–Torrance it is D F G/4 ≤ 1/(4π m²)), so its energy is finite and converged in n and the
+   99 % rule measures the lobe again, as in §3–4. For Phong and half-angle lobes the weights only
+   damp the grazing tail (the paper's rules stay a floor on K: ``method``). (A √cos θ_o weight —
+   the plain pixel measure — still leaves ρ cos θ_i √cos θ_o ∝ 1/√cos θ_o at grazing mirror
+   pairs; measured, its 99 % K under-resolves a pure Cook–Torrance lobe.)
+
+   Rendering is eq. 3–4 unchanged: with ĝ_k = g_k / b, T_k(x, ω_i) = V(x, ω_i) ĝ_k(ω_i) (n·ω_i)
+   and B = Σ_k σ_k h_k(ω_o) T_k · L (for "brdf", ĝ_k = g_k). The incident factor is shared by the
+   three channels, so the transport T_k is colour-free and costs K (not 3K) vectors per vertex;
+   the material's colours live in h_k. The diffuse part kd/π is in ρ, hence in the factorization
+   (for a Lambert material the stacked matrix has rank 1 in either norm).
 
 2. **Off-grid factors by the SVD identity (Nyström extension).** Run time needs g_k at cube-map
    texel directions (in each vertex's local frame) and h_k at every G-buffer sample's ω_o. Instead
    of interpolating the coarse SVD grid we evaluate the exact identities of the SVD,
 
-       g_k(ω_i) = (1/σ_k) Σ_c ∫ ρ_c(ω_i, ω_o) h_{k,c}(ω_o) dω_o ≈ (Δ/σ_k) Σ_{c,o} ρ_c(ω_i, ω_o^j) h_{k,c}(ω_o^j)
-       h_{k,c}(ω_o) = (1/σ_k) ∫ ρ_c(ω_i, ω_o) g_k(ω_i) dω_i ≈ (Δ/σ_k) Σ_i ρ_c(ω_i^j, ω_o) g_k(ω_i^j),
+       ĝ_k(ω_i) = (1/σ_k) Σ_c ∫ ρ_c(ω_i, ω_o) a(ω_o)² h_{k,c}(ω_o) dω_o ≈ (Δ/σ_k) Σ_{c,o} ρ_c(ω_i, ω_o^j) a² h_{k,c}(ω_o^j)
+       h_{k,c}(ω_o) = (1/σ_k) ∫ ρ_c(ω_i, ω_o) b(ω_i) g_k(ω_i) dω_i ≈ (Δ/σ_k) Σ_i ρ_c(ω_i^j, ω_o) b g_k(ω_i^j),
 
-   which reproduce the grid values exactly at grid directions (Aᵀu_k = S_k v_k, A v_k = S_k u_k)
+   (neither divides by a weight, so both stay finite at grazing angles), which reproduce the grid values exactly at grid directions (Aᵀu_k = S_k v_k, A v_k = S_k u_k)
    and between them inherit the smoothness of ρ itself (the BRDF is evaluated analytically in the
    free direction; only the integral over the other direction is a grid quadrature). Evaluating
    this per (vertex, texel) costs n² BRDF evaluations each, too much for 10⁴ vertices, so we
@@ -40,7 +63,7 @@
    evaluated at z = ``HORIZON_Z`` (the limit from above: the materials return 0 *at* z = 0).
 
 3. **Transport in the cube-map Haar basis** (eq. 3–4, Ng 2003). For vertex x with normal n and
-   world texel direction ω_t, T_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t). The dot
+   world texel direction ω_t, T_k(x, ω_t) = V(x, ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t). The dot
    product T_k · L must equal ∫ T_k L dω. On the cube map this integral is Σ_t T_k(ω_t) Ω_t L_t,
    with Ω_t the exact texel solid angle and L_t the texel-averaged radiance. The Haar transform
    of ``methods.core.cubemap`` is orthonormal in the texel-count measure (Parseval), so we fold the
@@ -70,19 +93,36 @@ HORIZON_Z = 1e-4
 # Terms with S_k below this fraction of S_1 are numerically zero: the stacked matrix has lower rank
 # than K (e.g. a Lambert material has rank 1) and their Nyström extension would divide by ~0.
 RANK_RTOL = 1e-7
+# Singular values this close (relative) are one degenerate group (`factorize`'s ``complete``); the
+# (cos θ, φ) grid is exactly symmetric under φ → φ + 2π/n, so pairs agree to round-off.
+DEGENERATE_RTOL = 1e-6
+# Fraction of the way towards its faces' centroid at which a vertex's visibility is sampled
+# (`visibility_points`): far above float32 error, far below the size of a face.
+INWARD_PULL = 1e-2
 
 
 # -- the BRDF factorization (eq. 2) -------------------------------------------------------------
 
 
+NORMS = ("brdf", "cosine")
+# Mahajan 2008 Fig. 3A: K captures 99 % of the energy Σ σ_k² (of the matrix that is factorized).
+ENERGY_FRACTION = 0.99
+
+
 @dataclass
 class Factorization:
-    """In-out factorization of one material on the hemisphere grid (Mahajan 2008 eq. 2).
+    """In-out factorization of one material on the hemisphere grid (Mahajan 2008 eq. 2), in a norm.
+
+    The factorized kernel is ρ_c(ω_i, ω_o) b(ω_i) ≈ Σ_k σ_k h_{k,c}(ω_o) g_k(ω_i), the SVD in
+    L²(a² dω_o) × L²(dω_i) (module docstring, item 1): norm "brdf" has a = b = 1 (eq. 2 as
+    written), norm "cosine" has a = cos θ_o, b = cos θ_i.
 
     sigma: (K,) σ_k of the continuous operator (Δ·S_k), descending.
     g: (K, n²) g_k at the grid directions; h: (K, 3, n²) h_{k,c} at the grid directions.
     dirs: (n², 3) local grid directions (both ω_i and ω_o); delta: cell solid angle Δ.
-    energy: (n²·…,) all singular values σ (for the captured-energy fraction).
+    w_out: (n²,) a(ω_o); w_in: (n²,) b(ω_i) at the grid directions.
+    energy: (r,) all singular values σ (for the captured-energy fraction).
+    norm: "brdf" or "cosine".
     """
 
     sigma: Tensor
@@ -91,13 +131,28 @@ class Factorization:
     dirs: Tensor
     delta: float
     energy: Tensor
+    w_out: Tensor | None = None
+    w_in: Tensor | None = None
+    norm: str = "brdf"
+
+    def __post_init__(self) -> None:
+        n2 = self.dirs.shape[0]
+        if self.w_out is None:
+            self.w_out = torch.ones(n2, dtype=self.dirs.dtype)
+        if self.w_in is None:
+            self.w_in = torch.ones(n2, dtype=self.dirs.dtype)
 
     @property
     def K(self) -> int:
         return int(self.sigma.numel())
 
+    @property
+    def g_hat(self) -> Tensor:
+        """(K, n²) ĝ_k = g_k / b at the grid: the factor eq. 3 multiplies by V(ω_i)(n·ω_i)."""
+        return self.g / self.w_in
+
     def captured_energy(self) -> float:
-        """Σ_{k≤K} σ_k² / Σ_k σ_k² (Mahajan 2008 Fig. 3A's accuracy measure)."""
+        """Σ_{k≤K} σ_k² / Σ_k σ_k² in the factorization's norm (Mahajan 2008 Fig. 3A's measure)."""
         e = self.energy.square()
         return float(e[: self.K].sum() / e.sum().clamp_min(1e-300))
 
@@ -129,24 +184,53 @@ def brdf_rgb_matrix(material: Any, n: int, *, dtype=torch.float64, chunk: int = 
     return A.reshape(3 * N, N), d, cell_solid_angle(n, "hemisphere")
 
 
-def factorize(material: Any, n: int, K: int) -> Factorization:
-    """SVD of the stacked RGB BRDF matrix, truncated to K terms (capped at the numerical rank).
+def norm_weights(dirs: Tensor, norm: str) -> tuple[Tensor, Tensor]:
+    """Grid weights (a(ω_o), b(ω_i)), each (n²,), of the factorization norm (module docstring 1)."""
+    if norm not in NORMS:
+        raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
+    if norm == "brdf":
+        one = torch.ones(dirs.shape[0], dtype=dirs.dtype)
+        return one, one
+    c = dirs[:, 2].clamp_min(0.0)
+    return c, c
 
-    Mahajan 2008 eq. 2 with the scaling of ``methods.inout.analysis`` (σ_k = Δ·S_k).
+
+def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
+              frac: float = ENERGY_FRACTION, complete: bool = False) -> Factorization:
+    """SVD of the stacked RGB BRDF matrix in ``norm``, truncated to K terms (capped at the rank).
+
+    Mahajan 2008 eq. 2 with the scaling of ``methods.inout.analysis`` (σ_k = Δ·S_k). norm "brdf":
+    the matrix of ρ itself (the paper's); "cosine": of cos θ_o ρ cos θ_i (module docstring, item 1).
+    K None: the smallest K capturing ``frac`` of Σ σ_k² of that matrix (Fig. 3A's 99 % rule).
+    complete (always for K None): raise K to the end of a group of equal singular values. An
+    isotropic BRDF's singular values come in equal pairs (cos mφ, sin mφ: the Y_l,±m of eq. 9);
+    cutting a pair keeps an arbitrary, round-off-dependent direction of its 2-D singular space —
+    an azimuthally anisotropic reflection that changes with the thread count of the SVD.
     """
-    if not isinstance(K, int) or K < 1:
-        raise ValueError(f"K must be a positive int, got {K!r}")
+    if K is not None and (isinstance(K, bool) or not isinstance(K, int) or K < 1):
+        raise ValueError(f"K must be a positive int or None, got {K!r}")
+    if not 0.0 < frac <= 1.0:
+        raise ValueError(f"frac must be in (0, 1], got {frac!r}")
     A, d, delta = brdf_rgb_matrix(material, n)
+    a, b = norm_weights(d, norm)
+    N = d.shape[0]
+    A = A * a.repeat(3)[:, None] * b[None, :]
     U, S, Vh = torch.linalg.svd(A, full_matrices=False)
     if not S[0] > 0:
         raise ValueError(f"the BRDF {material!r} is zero on the hemisphere grid")
     rank = int((S > RANK_RTOL * S[0]).sum())
+    if K is None:
+        c = torch.cumsum(S.square(), 0)
+        K = int(torch.searchsorted(c, frac * c[-1]).item()) + 1
+        complete = True
     K = min(K, rank)
+    while complete and K < rank and S[K] >= (1.0 - DEGENERATE_RTOL) * S[K - 1]:
+        K += 1
     sq = math.sqrt(delta)
-    N = d.shape[0]
-    h = (U[:, :K] / sq).T.reshape(K, 3, N)  # h_{k,c}(ω_o^o)
-    g = Vh[:K] / sq                          # g_k(ω_i^i)
-    return Factorization(sigma=S[:K] * delta, g=g, h=h, dirs=d, delta=delta, energy=S * delta)
+    h = (U[:, :K] / sq).T.reshape(K, 3, N) / a  # h_{k,c}(ω_o^o), orthonormal in L²(a² dω_o)
+    g = Vh[:K] / sq                              # g_k(ω_i^i), orthonormal in L²(dω_i)
+    return Factorization(sigma=S[:K] * delta, g=g, h=h, dirs=d, delta=delta, energy=S * delta,
+                         w_out=a, w_in=b, norm=norm)
 
 
 # -- hemi-octahedral look-up tables -------------------------------------------------------------
@@ -212,11 +296,11 @@ def lut_lookup(lut: Tensor, d: Tensor) -> Tensor:
 
 
 def nystrom_tables(material: Any, fac: Factorization, R: int, *, chunk: int = 512) -> tuple[Tensor, Tensor]:
-    """Look-up tables of g_k and σ_k h_{k,c} by the SVD identities (module docstring, item 2).
+    """Look-up tables of ĝ_k and σ_k h_{k,c} by the SVD identities (module docstring, item 2).
 
     Returns:
-        g_lut (R·R, K) — g_k at the nodes; sh_lut (R·R, K·3) — σ_k h_{k,c} at the nodes
-        (index k·3 + c), both float64.
+        g_lut (R·R, K) — ĝ_k = g_k/b at the nodes (the factor T_k multiplies by V (n·ω_i));
+        sh_lut (R·R, K·3) — σ_k h_{k,c} at the nodes (index k·3 + c), both float64.
     """
     nodes = lut_directions(R, dtype=torch.float64)
     grid = fac.dirs
@@ -224,15 +308,16 @@ def nystrom_tables(material: Any, fac: Factorization, R: int, *, chunk: int = 51
     M = nodes.shape[0]
     g_lut = torch.empty(M, K, dtype=torch.float64)
     sh_lut = torch.empty(M, K * 3, dtype=torch.float64)
-    hw = fac.h.permute(2, 1, 0).reshape(Ng * 3, K) * fac.delta  # (o,c) × k: Δ h_{k,c}(ω_o^o)
-    gw = fac.g.T * fac.delta                                      # (i, k): Δ g_k(ω_i^i)
+    # (o,c) × k: Δ a(ω_o)² h_{k,c}(ω_o^o); (i, k): Δ b(ω_i) g_k(ω_i^i)
+    hw = (fac.h * fac.w_out.square()).permute(2, 1, 0).reshape(Ng * 3, K) * fac.delta
+    gw = (fac.g * fac.w_in).T * fac.delta
     for a in range(0, M, chunk):
         x = nodes[a:a + chunk]
         m = x.shape[0]
-        # g_k(x) = (1/σ_k) Σ_{o,c} Δ ρ_c(x, ω_o) h_{k,c}(ω_o)
+        # ĝ_k(x) = (1/σ_k) Σ_{o,c} Δ ρ_c(x, ω_o) a(ω_o)² h_{k,c}(ω_o)
         rho = _rgb_eval(material, x[:, None, :].expand(m, Ng, 3), grid[None].expand(m, Ng, 3)).double()
         g_lut[a:a + m] = (rho.reshape(m, Ng * 3) @ hw) / fac.sigma
-        # σ_k h_{k,c}(x) = Σ_i Δ ρ_c(ω_i, x) g_k(ω_i)   (σ_k cancels the 1/σ_k of the identity)
+        # σ_k h_{k,c}(x) = Σ_i Δ ρ_c(ω_i, x) b(ω_i) g_k(ω_i)   (σ_k cancels the 1/σ_k of the identity)
         rho = _rgb_eval(material, grid[None].expand(m, Ng, 3), x[:, None, :].expand(m, Ng, 3)).double()
         sh_lut[a:a + m] = torch.einsum("mic,ik->mkc", rho, gw).reshape(m, K * 3)
     return g_lut, sh_lut
@@ -245,13 +330,13 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
                    n_coeffs: int | None, supersample: int = 1, select_weights: Tensor | None = None,
                    eps: float = DEFAULT_OFFSET_EPS, progress: bool = False, chunk: int = 64,
                    desc: str = "inout transport") -> tuple[Tensor, Tensor]:
-    """Sparse Haar coefficients of T̃_k(x, ω_t) = V(x, ω_t) g_k(to_local(ω_t)) max(0, n·ω_t) Ω_t.
+    """Sparse Haar coefficients of T̃_k(x, ω_t) = V(x, ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t.
 
     Mahajan 2008 eq. 3 with the solid angle folded in (module docstring, item 3), projected on the
     cube-map Haar basis and truncated to the ``n_coeffs`` largest |c|·w per (vertex, k) (Ng 2003).
 
     Args:
-        g_lut: (R·R, K) float table of g_k (`nystrom_tables`).
+        g_lut: (R·R, K) float table of ĝ_k (`nystrom_tables`).
         vis: ``methods.core.visibility.Visibility`` of the scene.
         points, normals: (V, 3) vertex positions and unit normals (world).
         N: cube face resolution (power of two); supersample: s → s×s sub-directions per texel
@@ -303,6 +388,30 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
         idx_out[a:b] = ix.to(torch.int32)
         val_out[a:b] = vals
     return idx_out, val_out
+
+
+def visibility_points(V: Tensor, F: Tensor, normals: Tensor, frac: float = INWARD_PULL) -> Tensor:
+    """Points (Nv, 3) at which eq. 3's V(x, ω) of each vertex is sampled: the vertex moved by
+    ``frac`` of the tangential part of (c − x), c the mean centroid of its incident faces.
+
+    A vertex on a contact line (a box standing on the ground: its bottom vertices lie *in* the
+    ground plane) is a degenerate visibility sample — every shadow ray starts on the other surface
+    and is reported occluded, although the surface a hair above it sees the whole upper sky — and
+    per-vertex transport interpolated across a large face carries that darkness over the face.
+    Sampling a hair inside the vertex's own faces is the usual cure; the pull is tangential (it
+    never moves the point under a curved surface) and 0 for a vertex at the centre of a regular
+    one-ring (smooth meshes are unchanged). V (Nv, 3), F (M, 3) int64, normals (Nv, 3) unit.
+    """
+    if not 0.0 <= frac < 1.0:
+        raise ValueError(f"frac must be in [0, 1), got {frac!r}")
+    Vd = V.double()
+    cen = Vd[F].mean(1)                                              # (M, 3) face centroids
+    acc = torch.zeros_like(Vd).index_add_(0, F.reshape(-1), cen.repeat_interleave(3, 0))
+    cnt = torch.zeros(V.shape[0], dtype=Vd.dtype).index_add_(0, F.reshape(-1), torch.ones(F.numel(), dtype=Vd.dtype))
+    d = torch.where(cnt[:, None] > 0, acc / cnt.clamp_min(1)[:, None] - Vd, torch.zeros_like(Vd))
+    n = normals.double()
+    d = d - (d * n).sum(-1, keepdim=True) * n                        # tangential part
+    return (Vd + frac * d).to(V.dtype)
 
 
 def sparse_rows(idx: Tensor, val: Tensor, D: int) -> Tensor:
