@@ -310,6 +310,10 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
             rows.append(_row("flops_per_frame", cost.flops))
         rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
         info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times})
+        # terms per material region, for methods that choose them per region (in-out's K)
+        for region, st in (getattr(method, "stats", {}) or {}).get("regions", {}).items():
+            if isinstance(st, dict) and isinstance(st.get("K"), (int, float)):
+                rows.append(_row(f"terms[{region}]", st["K"]))
     artifacts: dict[str, str] = {}
     if timed and cell.eq_err_spp and (part == "timing" or ("rmse" in errors and last is not None)):
         i0 = cell.scored()[0]

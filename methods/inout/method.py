@@ -81,6 +81,7 @@ class InOut(Method):
     """In-out BRDF factorization PRT with Haar cube-map transport (Mahajan 2008 eq. 2–4)."""
 
     name = "inout"
+    cache_precompute = True  # the cells of one scene/config share one stored precomputation
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,

@@ -25,6 +25,7 @@ CASES = {
     "triple_product": ("triple_product", "sphere_plane", "V", dict(level=2, brdf_dirs=[5, 8], frame_grid=[5, 8, 1])),
     "zh_shadow": ("zh_shadow", "creature", "P", dict(train_poses=4, n_dirs=32, fit_iters=2)),
     "sh_prt": ("sh_prt", "sphere_plane", "V", dict(order=3, bounces=1, rays=16)),
+    "inout": ("inout", "sphere_plane", "V", dict(terms=8, brdf_res=8, cube_res=8)),
 }
 
 
