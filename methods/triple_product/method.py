@@ -544,7 +544,9 @@ class TripleProduct(Method):
         out = torch.zeros(gbuffer.num_samples, 3)
         hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":
-            used = torch.unique(self.F[gbuffer.face[hit]].reshape(-1))
+            faces = torch.unique(gbuffer.face[hit])
+            used = torch.unique(self.F[faces].reshape(-1))
+            self._record_frame(gbuffer, hit, faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
             Bv = torch.zeros(self.V.shape[0], 3)
             for a in range(0, used.numel(), chunk):
@@ -558,26 +560,40 @@ class TripleProduct(Method):
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
+            touched = []
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
                 R = lt.local_frames(normals[s], self.config["tangent"])
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
+                touched.append(torch.unique(rows[w != 0]))
                 out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
                                      mix[s] if self.blends else None)
+            rows = torch.unique(torch.cat(touched)) if touched else hit[:0]
+            self._record_frame(gbuffer, hit, torch.unique(gbuffer.face[hit]), rows, None)
         return gbuffer.resolve(out)
 
+    def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,
+                      vertices: Tensor | None) -> None:
+        """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
+        visibility rows (vertices / texels) and shaded vertices (vertex shading)."""
+        self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(hit.numel()),
+                                    "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
+                                    "vertices": 0 if vertices is None else int(vertices.numel())}
+
     # -- bookkeeping ---------------------------------------------------------------------------
-    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Compulsory bytes of a frame of this kind (the roofline model of `fast_eval.bytes_per_frame`)."""
-        return fast_eval.bytes_per_frame(self, frame_kind)
+    def frame_cost(self, frame_kind: str, num_samples: int):
+        """Compulsory bytes and flops of a frame of ``frame_kind`` on ``num_samples`` G-buffer samples
+        (`fast_eval.frame_cost`: the counts of the last rendered frame of that size)."""
+        return fast_eval.frame_cost(self, frame_kind, num_samples)
 
     def memory(self) -> dict[str, int]:
         nv = self.n_vertex_rows
         vi = None if self.V_idx is None else self.V_idx[:nv]
         vv = None if self.V_val is None else self.V_val[:nv]
         mem = {"visibility_idx": tensor_bytes(vi), "visibility_val": tensor_bytes(vv),
+               "fine_values": fast_eval.fine_bytes(self),  # fast-path tables (`fast_eval.fine_table`)
                "frames": tensor_bytes(self.R),
                "lighting_idx": tensor_bytes(self.L_idx), "lighting_val": tensor_bytes(self.L_val)}
         for region, (i, v) in self.tables.items():
