@@ -25,7 +25,9 @@ Render:
     own ωo (§3.3 second pseudocode), then eq. 7.
   * L look-up ``light_lookup``: "nearest", "trilinear" (8 grid frames) or "exact" (project the
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
-  * Tripling (``evaluator``): `fast_eval.shade` — the blends kept as index/value lists, summed exactly
+  * Tripling (``evaluator``): `fast_eval.shade` — with full tables (all coefficients, or "top")
+    "fine": blends of precomputed fine-value rows and one product per point (`fast_eval.shade_fine`,
+    what "auto" runs then); else the blends kept as index/value lists, summed exactly
     by the fine-value identity ("dense") or by visiting only the stored coefficients with the
     three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
     zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
@@ -78,6 +80,9 @@ SHADINGS = ("vertex", "pixel")
 ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torrancesparrow"})
 # Shading points per batch in render(): each batch holds a few (B, 3, K) float32 tensors.
 RENDER_FLOATS = 1 << 22
+# Shading points per batch when the fine-value path runs (it chunks its (B, 3, K') blends itself;
+# its look-ups are O(B) per batch).
+FINE_RENDER_POINTS = 1 << 15
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
@@ -127,7 +132,7 @@ class TripleProduct(Method):
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
         vis_texture: texels per side of the visibility texture of every shape with a UV map
             (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
-        evaluator: how eq. 7 is summed — "auto" | "dense" | "sparse" (`fast_eval`: exact, fast) or
+        evaluator: how eq. 7 is summed — "auto" | "fine" | "dense" | "sparse" (`fast_eval`: exact, fast) or
             "reference" (zero-filled dense vectors through `spherical_haar.triple_integral`: the
             independent slow path the fast ones are tested against). Same image to float32 rounding.
         """
@@ -541,6 +546,8 @@ class TripleProduct(Method):
                 self.edit_material(region, m)
         self._set_lighting(frame.envmap)
         chunk = max(1, RENDER_FLOATS // (3 * self.K))
+        if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
+            chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
         out = torch.zeros(gbuffer.num_samples, 3)
         hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":

@@ -203,6 +203,9 @@ def test_frame_cost_tiny_config(scene_frame, n):
     want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
     want_f = nh * (2 * nk * (3 + 4 * 3 + 4 * 3) + triple)
     assert (c.bytes, c.flops) == (want_b, want_f)
+    # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
+    nrows = pixel.V_idx.shape[0]
+    assert pixel.memory()["fine_values"] == ((nrows * K + R * n_o * 3 * K + F * 3 * K) * 4 if n is None else 0)
     exact = TripleProduct(**{**dict(m.config), "light_lookup": "exact"}, progress=False)
     exact.precompute(scene)
     assert exact.frame_cost("V", P) is None
