@@ -173,7 +173,7 @@ def _is_full(method, name: str, idx: Tensor) -> bool:
     key = ("full", name)
     if key not in cache or cache[key][0] is not idx:  # holds idx: no id reuse while cached
         n = idx.shape[-1]
-        cache[key] = (idx, bool(torch.equal(idx, torch.arange(n, dtype=idx.dtype).expand_as(idx))))
+        cache[key] = (idx, bool(torch.equal(idx, torch.arange(n, dtype=idx.dtype, device=idx.device).expand_as(idx))))
     return cache[key][1]
 
 

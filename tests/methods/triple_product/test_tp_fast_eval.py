@@ -120,7 +120,7 @@ def test_render_equals_reference_render(scene_frame, cfg):
     ref = m.render(frame, gb)
     scale = ref.abs().max()
     assert scale > 0
-    for ev in ("auto", "dense", "sparse"):  # "auto" = the default config
+    for ev in ("auto", "dense", "sparse") + (("fine",) if fast_eval.fine_ok(m) else ()):  # "auto" = the default config
         fast = fast_eval.use_fast_shading(m, ev)
         assert fast.config["evaluator"] == ev and m.config["evaluator"] == "reference"  # a copy says what ran
         img = fast.render(frame, gb)
@@ -139,8 +139,11 @@ def test_render_with_texture_sbrdf_bump_equals_reference(scene_frame, level, n):
     m.set_blend("plane", Phong(kd=0.2, ks=0.5, s=20.0), torch.rand(8, 8, generator=gen))
     m.set_bump("plane", torch.rand(8, 8, generator=gen), 0.02)
     ref = m.render(frame, gb)
-    for ev in ("dense", "sparse"):
+    for ev in ("dense", "sparse", "auto") + (("fine",) if n is None else ()):  # "fine": texel taps, 8 ρ̃ rows
         assert (fast_eval.use_fast_shading(m, ev).render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
+    if n is not None:
+        with pytest.raises(ValueError, match="fine"):  # truncated adaptive tables: no fine-value path
+            fast_eval.use_fast_shading(m, "fine").render(frame, gb)
 
 
 def _hand_triple(m, n, full):
