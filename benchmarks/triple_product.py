@@ -2,7 +2,7 @@
 
     python -m benchmarks.triple_product --size bench                  # default config
     python -m benchmarks.triple_product --size bench --preset paper   # level 4, n = 320, paper grid
-    python -m benchmarks.triple_product --micro                        # evaluator micro-benchmark
+    python -m benchmarks.triple_product --micro                        # evaluator micro-benchmarks
 
 Per evaluator — "class": the independent dense path (``with_evaluator("reference")``); the names
 of `fast_eval.EVALUATORS` go through `fast_eval.shade` ("auto" = production: the fine-value path
@@ -142,6 +142,37 @@ def micro(threads: int, points: int = 32, reps: int = 5) -> list[dict]:
     return rows
 
 
+def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]:
+    """The fine-value kernel (`fast_eval.fine_kernel`, the production path with full tables) on
+    random tables of the bench default's shapes (16803 vertex rows, 2 regions × 128 ωo rows, 544
+    grid rows; K' = 1280 and 5120) with pixel-like coherence (neighbouring points share rows):
+    µs per point (best wall time of ``reps``, like the matmul peak) and the model's GFLOP/s (3 V + 4 ρ̃
+    + 4 L rows blended, 3 flops per channel and fine triangle in the product) beside
+    `reports.measure.matmul_peak` — what bounds a pixel frame."""
+    from methods.triple_product import fast_eval
+    from reports.measure import matmul_peak
+
+    torch.set_num_threads(threads)
+    peak = matmul_peak()
+    g = torch.Generator().manual_seed(0)
+    rows = []
+    for Kp in (1280, 5120):
+        Vt, Rt, Lt = (torch.randn(n, c * Kp, generator=g) for n, c in ((16803, 1), (256, 3), (544, 3)))
+        i = torch.arange(points)[:, None]
+        vr, br, lr = (i // 8 + torch.arange(3)) % 16803, (i // 16 + torch.arange(4)) % 256, (i // 32 + torch.arange(4)) % 544
+        vw, bw, lw = torch.rand(points, 3, generator=g), torch.rand(points, 4, generator=g), torch.rand(points, 4, generator=g)
+        best = float("inf")
+        for _ in range(reps):
+            c = time.perf_counter()
+            fast_eval.fine_kernel(Vt, Rt, Lt, vr, vw, br, bw, lr, lw)
+            best = min(best, time.perf_counter() - c)
+        flops = points * (2 * Kp * (3 + 12 + 12) + 9 * Kp)
+        rows.append({"threads": threads, "K'": Kp, "us_per_point": round(best / points * 1e6, 2),
+                     "model_GFLOPs": round(flops / best / 1e9, 2), "matmul_peak_GFLOPs": round(peak / 1e9, 1)})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="test", choices=["test", "bench"])
@@ -158,7 +189,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--micro", action="store_true", help="only the evaluator micro-benchmark (1 and 2 threads)")
     a = ap.parse_args(argv)
     if a.micro:
-        return {"micro": micro(1) + micro(2)}
+        return {"micro": micro(1) + micro(2), "fine": micro_fine(1) + micro_fine(2)}
     import ast
 
     from benchmarks.common import setup

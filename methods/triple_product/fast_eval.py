@@ -523,7 +523,6 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
     Each blend is one weighted `embedding_bag` (rows read once per point, no gathered copies),
     the sum over t two in-place products and a sum; chunks of ``points`` (`FINE_POINTS`) bound the memory.
     Same arguments as `shade`."""
-    B = R.shape[0]
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
     (vp,), rps, (lp,) = spec
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
@@ -544,11 +543,23 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
         Rt = hit[2]
         brows = torch.cat([rps[0][3], rps[1][3] + Ra.shape[0]], 1)
         bw = torch.cat([rps[0][4], rps[1][4]], 1)
+    # A_L' of the evaluation level (equal-area measure)
+    return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
+
+
+def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+                lrows: Tensor, lw: Tensor, *, points: int | None = None) -> Tensor:
+    """Σ_t V̂(t) ρ̂_c(t) L̂_c(t) for B points from fine-value tables (`shade_fine` without the A_L'
+    factor): Vt (N_V, K'), Rt (N_ρ, 3K'), Lt (N_L, 3K'); rows/weights (B, k) per table. → (B, 3)."""
+    Kp = Vt.shape[1]
+    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
+        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
     dt = Vt.dtype
-    vr, vwt = vp[3].long(), vp[4].to(dt)
+    vr, vwt = vrows.long(), vw.to(dt)
     brows, bw, lrows, lw = brows.long(), bw.to(dt), lrows.long(), lw.to(dt)
+    B = vr.shape[0]
     p = FINE_POINTS if points is None else int(points)
-    out = torch.empty(B, 3, dtype=dt, device=R.device)
+    out = torch.empty(B, 3, dtype=dt, device=Vt.device)
     eb = torch.nn.functional.embedding_bag
     for a in range(0, B, p):
         s = slice(a, a + p)
@@ -557,7 +568,7 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
         Rx = eb(brows[s], Rt, per_sample_weights=bw[s], mode="sum")      # (b, 3K')
         Lx = eb(lrows[s], Lt, per_sample_weights=lw[s], mode="sum")      # (b, 3K')
         out[s] = Rx.mul_(Lx).view(b, 3, Kp).mul_(Vx.unsqueeze(1)).sum(-1)
-    return out.mul_(0.25 ** Le)  # A_L' of the evaluation level (equal-area measure)
+    return out
 
 
 # -- front end --------------------------------------------------------------------------------------
