@@ -2,17 +2,20 @@
 
     python -m benchmarks.triple_product --size bench                  # default config
     python -m benchmarks.triple_product --size bench --preset paper   # level 4, n = 320, paper grid
-    python -m benchmarks.triple_product --micro                        # evaluator micro-benchmark
+    python -m benchmarks.triple_product --micro                        # evaluator micro-benchmarks
 
-Per evaluator — "class": whatever ``TripleProduct._shade`` does (today the dense `triple_integral`
-of densified vectors in chunks of ~1000 points); the names of `fast_eval.EVALUATORS` go through
-`fast_eval.shade` ("reference" = that same dense `triple_integral`, in `fast_eval.INNER_POINTS` sub-batches)
-— the median wall and process-CPU time (CPU time is the steadier number on a shared machine) of
-``--frames`` − 1 frames after one warm-up frame, for a "V" sequence (view changes; lighting fixed)
-and a "VL" sequence (`make_sequence` "VBL" with the materials held at the scene's: the env map
-rotates every frame, so each frame re-projects the lighting grid; BRDF edits are not scored for
-this method). Also: `method.memory()` (after the renders, lighting grid included),
-`fast_eval.bytes_per_frame` and the roofline efficiency (bytes_per_frame / BANDWIDTH) / frame time.
+Per evaluator — "class": the independent dense path (``with_evaluator("reference")``); the names
+of `fast_eval.EVALUATORS` go through `fast_eval.shade` ("auto" = production: the fine-value path
+for full tables, else the list evaluators; "dense" = the list evaluator in `fast_eval.INNER_POINTS`
+sub-batches, the previous production path for full tables) — the median wall and process-CPU time
+of ``--frames`` − 1 frames after one warm-up frame per evaluator, the evaluators *alternating frame
+by frame in one process* (the machine is shared: old/new ratios are taken under the same load),
+for a "V" sequence (view changes; lighting fixed) and a "VL" sequence (`make_sequence` "VBL" with
+the materials held at the scene's: the env map rotates every frame, so each frame re-projects the
+lighting grid; BRDF edits are not scored for this method). Also: `method.memory()` (after the
+renders, lighting grid included), `TripleProduct.frame_cost` and the roofline efficiency
+max(bytes / bandwidth, flops / peak) / frame time with `reports.measure.triad_bandwidth` and
+`reports.measure.matmul_peak` measured in the same run.
 Paper (Ma 2006 Table 3, 1024×768, ATI X1900 XTX, 2006): 15–97 fps with visibility textures,
 6.8–21.5 fps with interpolated per-vertex visibility (the mode of the default config).
 
@@ -31,8 +34,6 @@ import time
 
 import torch
 
-# Machine facts of the project's bench host (brief H4): torch triad bandwidth.
-BANDWIDTH = 34e9
 # Ma 2006 Table 3 (fps at 1024×768): model → (vis. texture n=80, n=320, interpolated n=80, n=320).
 PAPER_FPS = {"Dragon 25k": (97.4, 38.4, 21.5, 8.5), "XYZRGB 50k": (46.6, 16.9, 14.7, 6.9),
              "Buddha 50k": (43.5, 17.6, 15.1, 6.8)}
@@ -69,21 +70,28 @@ def vl_sequence(scene, n_frames: int, seed: int):
     return out
 
 
-def time_sequence(method, frames, gbuffers, evaluator: str) -> tuple[list[float], list[float]]:
-    """Wall and process-CPU seconds per frame for frames[1:] after rendering frames[0] (warm-up,
-    lighting set). On a shared machine the CPU time (1 thread) is the steadier of the two."""
+def _with(method, evaluator: str):
     from methods.triple_product import fast_eval
 
-    method = fast_eval.use_reference_shading(method) if evaluator == "class" else fast_eval.use_fast_shading(method, evaluator)
-    method._light_key = None  # the first frame builds the lighting grid
-    method.render(frames[0], gbuffers[0])
-    ts, cpu = [], []
+    return fast_eval.use_reference_shading(method) if evaluator == "class" else fast_eval.use_fast_shading(method, evaluator)
+
+
+def time_sequences(method, frames, gbuffers, evaluators) -> dict[str, tuple[list[float], list[float]]]:
+    """Wall and process-CPU seconds per frame for frames[1:] of every evaluator, after one warm-up
+    render of frames[0] each (lighting set, run-time tables built); the evaluators alternate frame
+    by frame so all see the same machine load."""
+    ms = {ev: _with(method, ev) for ev in evaluators}
+    for m in ms.values():
+        m._light_key = None  # the warm-up frame builds the lighting grid
+        m.render(frames[0], gbuffers[0])
+    out: dict[str, tuple[list[float], list[float]]] = {ev: ([], []) for ev in evaluators}
     for f, g in zip(frames[1:], gbuffers[1:]):
-        t, c = time.perf_counter(), time.process_time()
-        method.render(f, g)
-        ts.append(time.perf_counter() - t)
-        cpu.append(time.process_time() - c)
-    return ts, cpu
+        for ev, m in ms.items():
+            t, c = time.perf_counter(), time.process_time()
+            m.render(f, g)
+            out[ev][0].append(time.perf_counter() - t)
+            out[ev][1].append(time.process_time() - c)
+    return out
 
 
 def check_equal(method, frame, gbuffer, evaluators) -> dict[str, float]:
@@ -134,6 +142,37 @@ def micro(threads: int, points: int = 32, reps: int = 5) -> list[dict]:
     return rows
 
 
+def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]:
+    """The fine-value kernel (`fast_eval.fine_kernel`, the production path with full tables) on
+    random tables of the bench default's shapes (16803 vertex rows, 2 regions × 128 ωo rows, 544
+    grid rows; K' = 1280 and 5120) with pixel-like coherence (neighbouring points share rows):
+    µs per point (best wall time of ``reps``, like the matmul peak) and the model's GFLOP/s (3 V + 4 ρ̃
+    + 4 L rows blended, 3 flops per channel and fine triangle in the product) beside
+    `reports.measure.matmul_peak` — what bounds a pixel frame."""
+    from methods.triple_product import fast_eval
+    from reports.measure import matmul_peak
+
+    torch.set_num_threads(threads)
+    peak = matmul_peak()
+    g = torch.Generator().manual_seed(0)
+    rows = []
+    for Kp in (1280, 5120):
+        Vt, Rt, Lt = (torch.randn(n, c * Kp, generator=g) for n, c in ((16803, 1), (256, 3), (544, 3)))
+        i = torch.arange(points)[:, None]
+        vr, br, lr = (i // 8 + torch.arange(3)) % 16803, (i // 16 + torch.arange(4)) % 256, (i // 32 + torch.arange(4)) % 544
+        vw, bw, lw = torch.rand(points, 3, generator=g), torch.rand(points, 4, generator=g), torch.rand(points, 4, generator=g)
+        best = float("inf")
+        for _ in range(reps):
+            c = time.perf_counter()
+            fast_eval.fine_kernel(Vt, Rt, Lt, vr, vw, br, bw, lr, lw)
+            best = min(best, time.perf_counter() - c)
+        flops = points * (2 * Kp * (3 + 12 + 12) + 9 * Kp)
+        rows.append({"threads": threads, "K'": Kp, "us_per_point": round(best / points * 1e6, 2),
+                     "model_GFLOPs": round(flops / best / 1e9, 2), "matmul_peak_GFLOPs": round(peak / 1e9, 1)})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="test", choices=["test", "bench"])
@@ -143,18 +182,17 @@ def main(argv=None) -> dict:
                     help="override a config value (python literal), e.g. --set n_coeffs=80")
     ap.add_argument("--frames", type=int, default=3, help="frames per sequence (the first is a warm-up)")
     ap.add_argument("--spp-side", type=int, default=1)
-    ap.add_argument("--evaluators", default="class,auto",
+    ap.add_argument("--evaluators", default="dense,auto",
                     help="comma list of class|auto|dense|sparse|reference")
     ap.add_argument("--kinds", default="V,VL")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--micro", action="store_true", help="only the evaluator micro-benchmark (1 and 2 threads)")
     a = ap.parse_args(argv)
     if a.micro:
-        return {"micro": micro(1) + micro(2)}
+        return {"micro": micro(1) + micro(2), "fine": micro_fine(1) + micro_fine(2)}
     import ast
 
     from benchmarks.common import setup
-    from methods.triple_product import fast_eval
     from scenes.library import get_scene
 
     torch.set_num_threads(a.threads)
@@ -167,22 +205,34 @@ def main(argv=None) -> dict:
     evaluators = a.evaluators.split(",")
     out = {"scene": a.scene, "size": a.size, "preset": a.preset, "config": m.config, "threads": a.threads,
            "precompute_s": pre_s, "paper_fps_table3": PAPER_FPS}
+    from reports.measure import matmul_peak, triad_bandwidth
+
+    bw, peak = triad_bandwidth(), matmul_peak()
+    out["triad_bandwidth"], out["matmul_peak"] = bw, peak
     for kind in a.kinds.split(","):
         _, frames, gbs, _ = setup(scene, kind="V", n_frames=a.frames, seed=0, spp_side=a.spp_side,
                                   frames=None if kind == "V" else vl_sequence(scene, a.frames, 0))
         out["shading_points"] = int(gbs[0].hit.sum())
-        bpf = fast_eval.bytes_per_frame(m, kind, envmap=frames[-1].envmap)
-        out[f"bytes_per_frame_{kind}"] = bpf
         if kind == "V":
             out["max_rel_diff_vs_class"] = check_equal(m, frames[0], gbs[0], evaluators)
+        res = time_sequences(m, frames, gbs, evaluators)
+        m.render(frames[-1], gbs[-1])  # the cost model reads the last frame's counts
+        cost = m.frame_cost(kind, gbs[-1].num_samples)
+        out[f"frame_cost_{kind}"] = None if cost is None else {"bytes": cost.bytes, "flops": cost.flops}
         for ev in evaluators:
-            ts, cpu = time_sequence(m, frames, gbs, ev)
+            ts, cpu = res[ev]
             t = statistics.median(ts)
+            eff = None if cost is None else cost.bound(bw, peak)
             out[f"{kind}/{ev}"] = {"median_s": t, "fps": 1.0 / t, "times_s": ts,
                                    "median_cpu_s": statistics.median(cpu), "cpu_s": cpu,
-                                   "roofline_eff": None if bpf is None else bpf / BANDWIDTH / t,
+                                   "roofline_eff": None if eff is None else eff[0] / t,
+                                   "bound": None if eff is None else eff[1],
                                    "lighting_s": m.stats.get("lighting_seconds")}
             print(kind, ev, json.dumps(out[f"{kind}/{ev}"]), flush=True)
+        if len(evaluators) > 1:
+            first = statistics.median(res[evaluators[0]][0])
+            out[f"{kind}/ratio"] = {ev: first / statistics.median(res[ev][0]) for ev in evaluators[1:]}
+            print(kind, f"median time ratio {evaluators[0]} / other", json.dumps(out[f"{kind}/ratio"]), flush=True)
     out["memory"] = m.memory()  # after the renders: includes the truncated lighting grid
     out["memory_bytes"] = sum(out["memory"].values())
     print(json.dumps(out, indent=1, default=str))

@@ -1,4 +1,4 @@
-"""Fast exact evaluation of Ma 2006 eq. 7 and the bytes-per-frame model of `TripleProduct`.
+"""Fast exact evaluation of Ma 2006 eq. 7 and the frame-cost (roofline) model of `TripleProduct`.
 
     B^{x,ωo} = Σ_ijk C_ijk L^x_i V^x_j ρ̃^{ωo}_k                                   (Ma 2006 eq. 7)
 
@@ -8,7 +8,8 @@ vertices, ρ̃ = Σ_o w_o ρ̃_o over four tabulated outgoing directions. A blen
 *list*: indices (B, m) with duplicates allowed and values (B, C, m), m = k·n, C = 1 or 3 — the
 tripling is trilinear, so a list with repeated indices is the same function as its coalesced form.
 
-Two exact evaluators of the same sum (chosen by `choose_evaluator`; measured by ``python -m benchmarks.triple_product --micro``):
+Three exact evaluators of the same sum ("dense" / "sparse" chosen by `choose_evaluator`, measured by
+``python -m benchmarks.triple_product --micro``; "fine" when the tables allow it):
 
 * ``"dense"`` — scatter the three lists into dense vectors and use the *fine-value identity*: the
   product of three level-L piecewise-constant functions is level-L piecewise constant, so
@@ -32,22 +33,37 @@ Two exact evaluators of the same sum (chosen by `choose_evaluator`; measured by 
 
 The lighting list (the longest, k_L·n entries) is never enumerated ("c"); V is "a", ρ̃ is "b".
 
-Bytes per frame (the roofline model, `bytes_per_frame`): the compulsory traffic of a frame = every
-stored array the frame reads, counted once at its stored size (a perfect cache; re-reads of the
-same row by neighbouring pixels are free):
-  * "V" (view changes; lighting and BRDF unchanged): every array of ``method.memory()`` (the
-    run-time data: visibility idx+val of vertices and texels, every region's ρ̃ table idx+val,
-    SBRDF / bump / UV textures when set, the truncated lighting grid idx+val — the paper's
-    "textures"), except the vertex frames R when shading per pixel (pixel shading rebuilds frames
-    from the G-buffer normals; the G-buffer itself is an input, not counted). Every stored row is
-    counted although a view sees only part of the scene (an upper bound on the compulsory bytes);
-  * "VL" / "VBL" (the lighting changed): + the env map texels read by the re-projection of the
-    lighting into the frame grid (each of the F·K·4^s sub-samples reads 4 bilinear texels of
-    3 float32 — counted as the env map's size, H·W·3·4 B, under the perfect-cache model) + the
-    dense (F, 3, K) float32 projection written and read once by the truncation (2·F·3·K·4 B) +
-    the truncated grid written (idx + val). "B" (BRDF edit) adds nothing: the harness does not
-    score BRDF-changing frames for this method (`Capabilities.dynamic_brdf=False`).
-  ``light_lookup="exact"`` projects per shading point: its frame traffic is not modelled (None).
+* ``"fine"`` (what "auto" runs when every table is *full* — every row's indices 0..n−1: all
+  coefficients kept, or ``selection="top"``): the fine-value identity with the blends done on
+  *fine-value tables* (`fine_table`: each stored row's fine values, computed once per table; fine
+  values are linear, so blending them = the fine values of the blend) — three weighted
+  `embedding_bag` blends and one batched product per chunk of `FINE_POINTS` points (`shade_fine`).
+
+Frame cost (the roofline model, `frame_cost` → `methods.base.FrameCost`): the minimum work of a
+frame, n = kept coefficients per function, counts of the last rendered frame of the same size
+(``method.stats["last_frame"]``: shaded samples, distinct faces, distinct visibility rows, shaded
+vertices; before any render, upper bounds from the sample count):
+  * bytes — every array read once: the visibility rows the G-buffer touches (n values + n indices;
+    indices of a full table carry nothing and are not counted), every ρ̃ table (SBRDF "b" tables
+    too), the truncated lighting grid, the touched faces' vertex indices, per shaded vertex its
+    frame, position and region (vertex shading), the UV-space extras' arrays whole (small); the
+    G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region per sample for pixel shading;
+    vertex shading reads no normal / ωo); the (P, 3) float32 output. Frames whose lighting changed
+    ("L" or "E" in the kind) add the env map's texels read and the truncated grid written.
+  * flops — per shading point (pixel: every hit sample; vertex: every shaded vertex, plus 9
+    multiply-adds per hit sample to interpolate): forming the three functions from their stored
+    rows, 2n flops per channel and row (V: 3 vertex rows for pixels, none for vertices; ρ̃: 4 ωo
+    rows × 3; L: the look-up's distinct grid rows × 3 — 4 for trilinear with n_psi = 1, 8 else,
+    1 nearest), plus eq. 7's triple sum with n coefficients per function, the smaller of
+    (a) the sparse tripling rules (Ma 2006 §3.1, the parent-sum form of ``"sparse"``), per output
+        channel Σ_{V entries}(10 + 2A) + Σ_{ρ̃ entries}(3 + A), A = 1 + 3l the rule-3 ancestor
+        count of a level-l wavelet (0 for scaling functions), averaged over the stored indices;
+    (b) the fine-value product: 3 flops per channel per fine triangle of K' (K' = the smallest
+        20·4^l holding the kept prefix when tables are full, then no transform is needed since
+        full rows can be kept as fine values at the same size; else K plus 7 inverse transforms,
+        8(K − 20)/3 flops each).
+    Frames whose lighting changed add the re-projection (`relight_flops`).
+  ``light_lookup="exact"`` projects per shading point: not modelled (None).
 """
 from __future__ import annotations
 
@@ -61,7 +77,7 @@ from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product.precompute import truncate
 
-EVALUATORS = ("auto", "dense", "sparse", "reference")
+EVALUATORS = ("auto", "fine", "dense", "sparse", "reference")
 # "auto" picks "sparse" when the enumerated entries per point (m_a + m_b) times this factor are
 # fewer than K: a sparse entry costs ≈ 6·(1 + 3L) gathers, a dense coefficient ≈ 20 streaming ops
 # over 7 channels. Measured (`python -m benchmarks.triple_product --micro`, 32 points, 1 thread,
@@ -157,7 +173,7 @@ def _is_full(method, name: str, idx: Tensor) -> bool:
     key = ("full", name)
     if key not in cache or cache[key][0] is not idx:  # holds idx: no id reuse while cached
         n = idx.shape[-1]
-        cache[key] = (idx, bool(torch.equal(idx, torch.arange(n, dtype=idx.dtype).expand_as(idx))))
+        cache[key] = (idx, bool(torch.equal(idx, torch.arange(n, dtype=idx.dtype, device=idx.device).expand_as(idx))))
     return cache[key][1]
 
 
@@ -439,6 +455,122 @@ def triple_sparse(a: SparseList, b: SparseList, c: SparseList, K: int) -> Tensor
     return tot
 
 
+# -- fine-value tables (all coefficients kept) ---------------------------------------------------------
+
+
+# Points per chunk of `shade_fine`: its (B, 3, K') float32 blends stay ≈ 4 MB at K' = 1280, near
+# the L2 cache (64–512 measured within noise of each other, 1 thread; 4096 is 2–3× slower).
+FINE_POINTS = 256
+
+
+def fine_table(method, name: str, idx: Tensor, val: Tensor, Kp: int) -> Tensor:
+    """Fine values (`fine_values`, equal-area measure) of every row of a *full* stored table
+    (every row's indices are 0..n−1; zero-padded to K' = 20·4^l ≥ n): (N, C·K') float32, cached on
+    the identity of ``val`` (a new lighting grid or an edited BRDF table replaces the tensor).
+
+    Fine values are linear in the coefficients, so the fine values of a blend of rows are the same
+    blend of the rows' fine values (Ma 2006 §3.1: the level-L scaling basis is another basis of
+    the same space): the per-point blends need no inverse transform."""
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    key = ("fine", name)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is val and hit[1] == Kp:
+        return hit[2]
+    v = val if val.ndim == 3 else val[:, None, :]
+    n = v.shape[-1]
+    if n != idx.shape[-1] or n > Kp:
+        raise ValueError(f"{name}: table of {n} coefficients does not fit K' = {Kp}")
+    if n < Kp:
+        v = torch.nn.functional.pad(v, (0, Kp - n))
+    tab = fine_values(v.float()).reshape(v.shape[0], -1).contiguous()
+    cache[key] = (val, Kp, tab)  # holds val: no id reuse while cached
+    return tab
+
+
+def fine_bytes(method) -> int:
+    """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``)."""
+    cache = method.__dict__.get("_perf_cache", {})
+    return sum(v[2].element_size() * v[2].nelement() for k, v in cache.items() if k[0] == "fine")
+
+
+def fine_ok(method, mix: Tensor | None = None) -> bool:
+    """`shade_fine` applies: every table the frame blends is full (all coefficients or "top") and
+    the lighting comes from the grid (not ``light_lookup="exact"``)."""
+    if method.config["light_lookup"] == "exact" or method.L_idx is None:
+        return False
+    bi, _ = _brdf_stack(method)
+    ok = _is_full(method, "V", method.V_idx) and _is_full(method, "rho", bi) and _is_full(method, "L", method.L_idx)
+    if ok and mix is not None and getattr(method, "blends", None):
+        ok = _is_full(method, "rho_b", _brdf_stack(method, "b")[0])
+    return ok
+
+
+def _merge_psi(rows: Tensor, w: Tensor, n_psi: int) -> tuple[Tensor, Tensor]:
+    """Trilinear grid look-ups with one tangent angle (n_psi = 1) name each of their 4 (θ, φ) rows
+    twice (dk = 0, 1, adjacent in `lighting.lookup_weights`): merge them (4 rows, weights summed)."""
+    if n_psi != 1 or rows.shape[1] != 8:
+        return rows, w
+    return rows[:, 0::2], w[:, 0::2] + w[:, 1::2]
+
+
+def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+               mix: Tensor | None = None, *, points: int | None = None) -> Tensor:
+    """Eq. 7 for B points → (B, 3) when every table is full (`fine_ok`): the fine-value identity
+    (module docstring, "dense") with the blends done on fine-value tables (`fine_table`):
+
+        B_c = A_L' Σ_t V̂(t) ρ̂_c(t) L̂_c(t),  V̂ = Σ_v w_v V̂_v,  ρ̂ = Σ_o w_o ρ̂_o,  L̂ = Σ_r w_r L̂_r
+
+    Each blend is one weighted `embedding_bag` (rows read once per point, no gathered copies),
+    the sum over t two in-place products and a sum; chunks of ``points`` (`FINE_POINTS`) bound the memory.
+    Same arguments as `shade`."""
+    spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
+    (vp,), rps, (lp,) = spec
+    Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
+    Le = level_of_size(Kp)
+    Vt = fine_table(method, "V", vp[1], vp[2], Kp)                       # (N_V, K')
+    Lt = fine_table(method, "L", lp[1], lp[2], Kp)                       # (F, 3K')
+    lrows, lw = _merge_psi(lp[3], lp[4], method.grid.n_psi)
+    if len(rps) == 1:
+        Rt = fine_table(method, "rho", rps[0][1], rps[0][2], Kp)          # (R·n_o, 3K')
+        brows, bw = rps[0][3], rps[0][4]
+    else:  # SBRDF: the two stacks side by side, rows of "b" offset (Ma 2006 §5, linear in ρ̃)
+        Ra = fine_table(method, "rho", rps[0][1], rps[0][2], Kp)
+        Rb = fine_table(method, "rho_b", rps[1][1], rps[1][2], Kp)
+        cache = method.__dict__["_perf_cache"]
+        hit = cache.get(("fine", "rho_ab"))
+        if hit is None or hit[0] is not Ra or hit[1] is not Rb:
+            hit = cache[("fine", "rho_ab")] = (Ra, Rb, torch.cat([Ra, Rb]))
+        Rt = hit[2]
+        brows = torch.cat([rps[0][3], rps[1][3] + Ra.shape[0]], 1)
+        bw = torch.cat([rps[0][4], rps[1][4]], 1)
+    # A_L' of the evaluation level (equal-area measure)
+    return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
+
+
+def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+                lrows: Tensor, lw: Tensor, *, points: int | None = None) -> Tensor:
+    """Σ_t V̂(t) ρ̂_c(t) L̂_c(t) for B points from fine-value tables (`shade_fine` without the A_L'
+    factor): Vt (N_V, K'), Rt (N_ρ, 3K'), Lt (N_L, 3K'); rows/weights (B, k) per table. → (B, 3)."""
+    Kp = Vt.shape[1]
+    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
+        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
+    dt = Vt.dtype
+    vr, vwt = vrows.long(), vw.to(dt)
+    brows, bw, lrows, lw = brows.long(), bw.to(dt), lrows.long(), lw.to(dt)
+    B = vr.shape[0]
+    p = FINE_POINTS if points is None else int(points)
+    out = torch.empty(B, 3, dtype=dt, device=Vt.device)
+    eb = torch.nn.functional.embedding_bag
+    for a in range(0, B, p):
+        s = slice(a, a + p)
+        b = min(B, a + p) - a
+        Vx = eb(vr[s], Vt, per_sample_weights=vwt[s], mode="sum")        # (b, K')
+        Rx = eb(brows[s], Rt, per_sample_weights=bw[s], mode="sum")      # (b, 3K')
+        Lx = eb(lrows[s], Lt, per_sample_weights=lw[s], mode="sum")      # (b, 3K')
+        out[s] = Rx.mul_(Lx).view(b, 3, Kp).mul_(Vx.unsqueeze(1)).sum(-1)
+    return out
+
+
 # -- front end --------------------------------------------------------------------------------------
 
 
@@ -459,6 +591,8 @@ def evaluate(V: SparseList, rho: SparseList, Lgt: SparseList, K: int, evaluator:
 
         return triple_integral(_scatter(Lgt, K), _scatter(V, K), _scatter(rho, K))
     Ke = _effective_size(V, rho, Lgt)
+    if evaluator == "fine":  # the list form of `shade_fine`'s sum
+        evaluator = "dense"
     if evaluator == "auto":
         evaluator = choose_evaluator(V[1].shape[2] + rho[1].shape[2], Ke)
     if evaluator == "sparse":
@@ -476,6 +610,11 @@ def shade(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw
     scratch stay in the L2 cache (measured 2–3× faster than batches of ~1000 points)."""
     if evaluator not in EVALUATORS:
         raise ValueError(f"evaluator must be one of {EVALUATORS}, got {evaluator!r}")
+    if evaluator == "fine" or (evaluator == "auto" and fine_ok(method, mix)):
+        if not fine_ok(method, mix):
+            raise ValueError("evaluator 'fine' needs full tables (n_coeffs=None or selection='top') "
+                             "and a grid light_lookup")
+        return shade_fine(method, R, wo_world, region, vrows, vw, mix)
     B = R.shape[0]
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
     p = INNER_POINTS if points is None else int(points)
@@ -498,46 +637,126 @@ def use_reference_shading(method):
     return method.with_evaluator("reference")
 
 
-# -- roofline -----------------------------------------------------------------------------------------
+# -- roofline ---------------------------------------------------------------------------------------
 
 
-FRAME_KINDS = ("V", "VL", "VBL")
+def _kept(method) -> int:
+    """n: coefficients kept per function (all K when ``n_coeffs`` is None)."""
+    n = method._n()
+    return method.K if n is None else min(n, method.K)
 
 
-def bytes_per_frame(method, frame_kind: str = "VBL", *, envmap=None) -> int | None:
-    """Compulsory bytes a frame of ``frame_kind`` touches (module docstring model).
+def _idx_bytes(method, name: str, idx: Tensor | None) -> int:
+    """Bytes per stored entry of an index table: 0 when the table is full (every row 0..n−1, so
+    the indices carry no information a frame must read), else the element size."""
+    if idx is None:
+        return 4 if method._n() is not None and method._n() < method.K and method.config["selection"] != "top" else 0
+    return 0 if _is_full(method, name, idx) else idx.element_size()
+
+
+def _mean_ancestors(method, name: str, idx: Tensor | None) -> float:
+    """Mean of A = 1 + 3l (a level-l wavelet's coarser functions: Ma 2006 §3.1 rule 3; 0 for
+    level-0 scaling functions) over the kept coefficients of a table (cached per tensor)."""
+    if idx is None:
+        return 0.0
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    hit = cache.get(("anc", name))
+    if hit is None or hit[0] is not idx:
+        lvl = coefficient_structure(method.level)[0].to(idx.device)[idx.long()]
+        a = torch.where(lvl >= 0, 1.0 + 3.0 * lvl.double(), torch.zeros((), dtype=torch.float64))
+        hit = cache[("anc", name)] = (idx, float(a.mean()) if a.numel() else 0.0)
+    return hit[1]
+
+
+def triple_flops(method) -> int:
+    """Minimum flops of eq. 7's triple sum at one shading point once its three functions are
+    formed, n kept coefficients per function (module docstring "Frame cost"): min(sparse rule,
+    fine-value product)."""
+    n, C = _kept(method), 3
+    bi = _brdf_stack(method)[0] if method.tables else None
+    av, ab = _mean_ancestors(method, "V", method.V_idx), _mean_ancestors(method, "rho", bi)
+    sparse = C * (n * (10 + 2 * av) + n * (3 + ab))
+    full = all(x is not None and _is_full(method, nm, x) for nm, x in (("V", method.V_idx), ("rho", bi))) and \
+        (method.config["selection"] == "top" or method._n() is None or method._n() >= method.K)
+    Kp = _round_size(n) if full else method.K
+    dense = 3 * C * Kp + (0 if full else 7 * 8 * (Kp - 20) // 3)
+    return int(min(sparse, dense))
+
+
+def blend_flops(method, k_v: int) -> int:
+    """Flops of forming V, ρ̃ and L at one point from k_v visibility rows, 4 ρ̃ rows and the grid
+    look-up's distinct rows (multiply-add per stored value: 2n per channel and row)."""
+    k_l = {"nearest": 1, "trilinear": 4 if method.grid.n_psi == 1 else 8}[method.config["light_lookup"]]
+    return 2 * _kept(method) * (k_v * 1 + 4 * 3 + k_l * 3)
+
+
+def relight_flops(method, envmap) -> int:
+    """Flops of re-projecting the lighting into the F grid frames (`lighting.project_lighting`):
+    per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
+    (24) and its solid-angle-weighted accumulation (6); per frame the RGB forward transform
+    (8 adds per 4 children per level: 8(K − 20)/3 per channel)."""
+    K, s = method.K, method.config["light_supersample"]
+    return int(method.grid.size * (45 * K * 4 ** s + 3 * 8 * (K - 20) // 3))
+
+
+def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
+    """The compulsory work of a frame (`methods.base.FrameCost`; model in the module docstring).
 
     Args:
-        method: a precomputed `TripleProduct` (its lighting set, or ``envmap`` given, for "L" kinds).
-        frame_kind: "V" | "VL" | "VBL" (any string of "V", "B", "L"; "L" = the lighting changed).
-        envmap: the env map of an "L" frame (its texel count enters); default: ``method._envmap``
-            if the method records the env map it built its grid from, else the scene's (sequences
-            rotate it: same texel count).
+        method: a precomputed `TripleProduct`.
+        frame_kind: a sequence kind ("V", "L", "E", "VL", "VB", "VBL", ...); "L"/"E" in it = the
+            lighting changed (re-projection counted).
+        num_samples: G-buffer samples P of the frame.
+        envmap: the env map of an "L"/"E" frame (its texel count enters); default the scene's.
     Returns:
-        bytes, or None for ``light_lookup="exact"`` (per-point projection, not modelled).
+        FrameCost(bytes, flops), or None for ``light_lookup="exact"`` (per-point projection).
     """
-    if not frame_kind or set(frame_kind) - set("VBLP"):
-        raise ValueError(f"frame_kind must be made of 'V', 'B', 'L', got {frame_kind!r}")
+    from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost
+
+    if not isinstance(frame_kind, str) or not frame_kind or set(frame_kind) - set("VBLEP"):
+        raise ValueError(f"frame_kind must be a sequence kind made of 'V', 'B', 'L', 'E', got {frame_kind!r}")
     if "P" in frame_kind:
-        raise ValueError("triple_product has static geometry: no 'P' frames")
+        raise ValueError("frame_kind: triple_product has static geometry, no 'P' frames")
+    if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+        raise ValueError(f"num_samples must be an int >= 0, got {num_samples!r}")
     if method.scene is None:
-        raise ValueError("bytes_per_frame needs a precomputed method")
+        raise ValueError("frame_cost needs a precomputed method")
     cfg = method.config
     if cfg["light_lookup"] == "exact":
         return None
-    mem = method.memory()
-    total = sum(mem.values())
-    if cfg["shading"] == "pixel":
-        total -= mem.get("frames", 0)  # pixel shading builds its frames from the G-buffer normals
-    grid = mem.get("lighting_idx", 0) + mem.get("lighting_val", 0)
-    if method.L_idx is None:  # lighting not set yet: the truncated size it will have
-        n = method.K if method._n() is None else min(method._n(), method.K)
-        grid = method.grid.size * n * (4 + 3 * 4)
-        total += grid
-    if "L" in frame_kind:
-        if envmap is None:
-            envmap = getattr(method, "_envmap", None) or method.scene.envmap
-        total += int(envmap.data.numel()) * 4                         # texels read (perfect cache)
-        total += 2 * method.grid.size * 3 * method.K * 4               # dense projection written + read
-        total += grid                                                  # truncated grid written
-    return total
+    n = _kept(method)
+    pixel = cfg["shading"] == "pixel"
+    rec = method.stats.get("last_frame") or {}
+    if rec.get("samples") != num_samples:  # no frame of this size rendered yet: upper bounds
+        rec = {"shaded": num_samples, "faces": min(int(method.F.shape[0]), num_samples),
+               "vis_rows": min(int(method.V_idx.shape[0]), (4 if method.tex_rows is not None else 3) * num_samples),
+               "vertices": min(int(method.V.shape[0]), 3 * num_samples)}
+    f4 = 4
+    # run-time arrays read once
+    vis = rec["vis_rows"] * n * (f4 + _idx_bytes(method, "V", method.V_idx))
+    bi = _brdf_stack(method)[0]
+    n_tab = len(method.tables) + len(getattr(method, "blends", {}) or {})
+    brdf = n_tab * method.outgoing.size * n * (3 * f4 + _idx_bytes(method, "rho", bi))
+    grid = method.grid.size * n * (3 * f4 + _idx_bytes(method, "L", method.L_idx))
+    mesh = rec["faces"] * 3 * method.F.element_size()                  # the faces' vertex indices
+    if pixel:
+        gbuf = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8)               # + region (int64)
+        extras = sum(v for k, v in method.memory().items()
+                              if k.startswith(("blend_weight", "bump_height", "uv", "vis_texture_map", "vis_texture_points")))
+        per_vertex = 0
+    else:
+        gbuf = num_samples * (GBUFFER_BYTES_PER_SAMPLE - 2 * 3 * 4)      # normal and ωo are not read
+        extras = 0
+        per_vertex = rec["vertices"] * (9 * f4 + 3 * f4 + method.vertex_region.element_size())  # R, p, region
+    out = num_samples * 3 * f4
+    nbytes = vis + brdf + grid + mesh + gbuf + extras + per_vertex + out
+    # flops: per shading point, form the three functions and sum eq. 7
+    if pixel:
+        flops = rec["shaded"] * (blend_flops(method, 3) + triple_flops(method))
+    else:
+        flops = rec["vertices"] * (blend_flops(method, 0) + triple_flops(method)) + rec["shaded"] * 2 * 9
+    if "L" in frame_kind or "E" in frame_kind:
+        env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
+        nbytes += int(env.data.numel()) * f4 + grid                     # texels read, grid written
+        flops += relight_flops(method, env)
+    return FrameCost(int(nbytes), int(flops))

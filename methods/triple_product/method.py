@@ -25,7 +25,9 @@ Render:
     own ωo (§3.3 second pseudocode), then eq. 7.
   * L look-up ``light_lookup``: "nearest", "trilinear" (8 grid frames) or "exact" (project the
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
-  * Tripling (``evaluator``): `fast_eval.shade` — the blends kept as index/value lists, summed exactly
+  * Tripling (``evaluator``): `fast_eval.shade` — with full tables (all coefficients, or "top")
+    "fine": blends of precomputed fine-value rows and one product per point (`fast_eval.shade_fine`,
+    what "auto" runs then); else the blends kept as index/value lists, summed exactly
     by the fine-value identity ("dense") or by visiting only the stored coefficients with the
     three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
     zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
@@ -79,6 +81,9 @@ SHADINGS = ("vertex", "pixel")
 ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torrancesparrow"})
 # Shading points per batch in render(): each batch holds a few (B, 3, K) float32 tensors.
 RENDER_FLOATS = 1 << 22
+# Shading points per batch when the fine-value path runs (it chunks its (B, 3, K') blends itself;
+# its look-ups are O(B) per batch).
+FINE_RENDER_POINTS = 1 << 15
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
@@ -128,7 +133,7 @@ class TripleProduct(Method):
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
         vis_texture: texels per side of the visibility texture of every shape with a UV map
             (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
-        evaluator: how eq. 7 is summed — "auto" | "dense" | "sparse" (`fast_eval`: exact, fast) or
+        evaluator: how eq. 7 is summed — "auto" | "fine" | "dense" | "sparse" (`fast_eval`: exact, fast) or
             "reference" (zero-filled dense vectors through `spherical_haar.triple_integral`: the
             independent slow path the fast ones are tested against). Same image to float32 rounding.
         """
@@ -542,10 +547,14 @@ class TripleProduct(Method):
                 self.edit_material(region, m)
         self._set_lighting(frame.envmap)
         chunk = max(1, RENDER_FLOATS // (3 * self.K))
+        if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
+            chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
         out = torch.zeros(gbuffer.num_samples, 3)
         hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":
-            used = torch.unique(self.F[gbuffer.face[hit]].reshape(-1))
+            faces = torch.unique(gbuffer.face[hit])
+            used = torch.unique(self.F[faces].reshape(-1))
+            self._record_frame(gbuffer, hit, faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
             Bv = torch.zeros(self.V.shape[0], 3)
             for a in range(0, used.numel(), chunk):
@@ -559,26 +568,40 @@ class TripleProduct(Method):
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
+            touched = []
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
                 R = lt.local_frames(normals[s], self.config["tangent"])
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
+                touched.append(torch.unique(rows[w != 0]))
                 out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
                                      mix[s] if self.blends else None)
+            rows = torch.unique(torch.cat(touched)) if touched else hit[:0]
+            self._record_frame(gbuffer, hit, torch.unique(gbuffer.face[hit]), rows, None)
         return gbuffer.resolve(out)
 
+    def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,
+                      vertices: Tensor | None) -> None:
+        """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
+        visibility rows (vertices / texels) and shaded vertices (vertex shading)."""
+        self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(hit.numel()),
+                                    "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
+                                    "vertices": 0 if vertices is None else int(vertices.numel())}
+
     # -- bookkeeping ---------------------------------------------------------------------------
-    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Compulsory bytes of a frame of this kind (the roofline model of `fast_eval.bytes_per_frame`)."""
-        return fast_eval.bytes_per_frame(self, frame_kind)
+    def frame_cost(self, frame_kind: str, num_samples: int):
+        """Compulsory bytes and flops of a frame of ``frame_kind`` on ``num_samples`` G-buffer samples
+        (`fast_eval.frame_cost`: the counts of the last rendered frame of that size)."""
+        return fast_eval.frame_cost(self, frame_kind, num_samples)
 
     def memory(self) -> dict[str, int]:
         nv = self.n_vertex_rows
         vi = None if self.V_idx is None else self.V_idx[:nv]
         vv = None if self.V_val is None else self.V_val[:nv]
         mem = {"visibility_idx": tensor_bytes(vi), "visibility_val": tensor_bytes(vv),
+               "fine_values": fast_eval.fine_bytes(self),  # fast-path tables (`fast_eval.fine_table`)
                "frames": tensor_bytes(self.R),
                "lighting_idx": tensor_bytes(self.L_idx), "lighting_val": tensor_bytes(self.L_val)}
         for region, (i, v) in self.tables.items():

@@ -1,5 +1,5 @@
 """Fast evaluators of Ma 2006 eq. 7 (`methods.triple_product.fast_eval`) against the dense reference
-`spherical_haar.triple_integral`, and the bytes-per-frame model on a tiny config."""
+`spherical_haar.triple_integral`, and the frame-cost model on a tiny config."""
 from __future__ import annotations
 
 import pytest
@@ -8,7 +8,7 @@ import torch
 from methods.core.spherical_haar import inverse, support_areas, triple_integral, triple_integral_sparse
 from methods.triple_product import TripleProduct, fast_eval
 from references.gbuffer import make_gbuffer
-from scenes.library import get_scene
+from scenes.library import SCENES, get_scene
 from scenes.materials import Phong
 from scenes.sequences import make_sequence
 
@@ -120,7 +120,7 @@ def test_render_equals_reference_render(scene_frame, cfg):
     ref = m.render(frame, gb)
     scale = ref.abs().max()
     assert scale > 0
-    for ev in ("auto", "dense", "sparse"):  # "auto" = the default config
+    for ev in ("auto", "dense", "sparse") + (("fine",) if fast_eval.fine_ok(m) else ()):  # "auto" = the default config
         fast = fast_eval.use_fast_shading(m, ev)
         assert fast.config["evaluator"] == ev and m.config["evaluator"] == "reference"  # a copy says what ran
         img = fast.render(frame, gb)
@@ -139,39 +139,79 @@ def test_render_with_texture_sbrdf_bump_equals_reference(scene_frame, level, n):
     m.set_blend("plane", Phong(kd=0.2, ks=0.5, s=20.0), torch.rand(8, 8, generator=gen))
     m.set_bump("plane", torch.rand(8, 8, generator=gen), 0.02)
     ref = m.render(frame, gb)
-    for ev in ("dense", "sparse"):
+    for ev in ("dense", "sparse", "auto") + (("fine",) if n is None else ()):  # "fine": texel taps, 8 ρ̃ rows
         assert (fast_eval.use_fast_shading(m, ev).render(frame, gb) - ref).abs().max() <= F32 * ref.abs().max(), ev
+    if n is not None:
+        with pytest.raises(ValueError, match="fine"):  # truncated adaptive tables: no fine-value path
+            fast_eval.use_fast_shading(m, "fine").render(frame, gb)
 
 
-def test_bytes_per_frame_tiny_config(scene_frame):
+def _hand_triple(m, n, full):
+    """Eq. 7's per-point triple flops by hand (level 1: indices < 20 are level-0 scaling functions,
+    A = 0; the rest level-0 wavelets, A = 1 + 3·0 = 1)."""
+    K = 80
+    bi = torch.cat([i for i, _ in m.tables.values()])
+    av, ab = float((m.V_idx >= 20).double().mean()), float((bi >= 20).double().mean())
+    sparse = 3 * (n * (10 + 2 * av) + n * (3 + ab))
+    dense = 9 * K if full else 9 * K + 7 * 8 * (K - 20) // 3
+    return int(min(sparse, dense))
+
+
+@pytest.mark.parametrize("n", [10, None])
+def test_frame_cost_tiny_config(scene_frame, n):
+    """`frame_cost` = a hand count (module docstring of `fast_eval`), vertex and pixel shading, "V"
+    and lighting-change kinds; indices of full tables (n = None) are not counted."""
+    from methods.base import GBUFFER_BYTES_PER_SAMPLE
+
     scene, frame, gb = scene_frame
-    m = TripleProduct(level=1, n_coeffs=10, frame_grid=(2, 2, 1), brdf_dirs=(1, 2), shading="vertex",
+    m = TripleProduct(level=1, n_coeffs=n, frame_grid=(2, 2, 1), brdf_dirs=(1, 2), shading="vertex",
                       progress=False)
     m.precompute(scene)
-    N = scene.geometry().V.shape[0]
-    K, n, F, n_o, R = 80, 10, 4, 2, len(scene.regions)
-    vis = N * n * (4 + 4)                       # int32 idx + float32 value per kept coefficient
-    frames = N * 9 * 4                          # vertex frames (vertex shading)
-    tables = R * n_o * n * (4 + 3 * 4)          # idx + RGB values per ωo
-    grid = F * n * (4 + 3 * 4)                  # truncated lighting grid
-    assert fast_eval.bytes_per_frame(m, "V") == vis + frames + tables + grid   # before the lighting is set
+    K, F, n_o, R, P = 80, 4, 2, len(scene.regions), gb.num_samples
+    nk = K if n is None else n
+    ib = 0 if n is None else 4                  # int32 index per kept coefficient (not for full tables)
+    hit = gb.hit
+    faces = torch.unique(gb.face[hit])
+    verts = torch.unique(m.F[faces].reshape(-1))
+    nf, nv, nh = faces.numel(), verts.numel(), int(hit.sum())
+    tables = R * n_o * nk * (3 * 4 + ib)       # RGB values (+ index) per ωo
+    grid = F * nk * (3 * 4 + ib)               # truncated lighting grid
+    mesh = nf * 3 * 8                          # vertex indices of the touched faces
+    out = P * 3 * 4
+    triple = _hand_triple(m, nk, n is None)
+    blend_v = 2 * nk * (4 * 3 + 4 * 3)         # ρ̃: 4 rows × RGB; L: 4 distinct trilinear rows × RGB
     m.render(frame, gb)
-    assert fast_eval.bytes_per_frame(m, "V") == vis + frames + tables + grid
+    got = m.frame_cost("V", P)
+    want_b = nv * nk * (4 + ib) + tables + grid + mesh + nv * (9 * 4 + 3 * 4 + 8) \
+        + P * (GBUFFER_BYTES_PER_SAMPLE - 24) + out
+    want_f = nv * (blend_v + triple) + nh * 18
+    assert (got.bytes, got.flops) == (want_b, want_f)
     H, W = frame.envmap.data.shape[:2]
-    relight = H * W * 3 * 4 + 2 * F * 3 * K * 4 + grid
-    assert fast_eval.bytes_per_frame(m, "VL", envmap=frame.envmap) == vis + frames + tables + grid + relight
-    assert fast_eval.bytes_per_frame(m, "VBL", envmap=frame.envmap) == fast_eval.bytes_per_frame(m, "VL", envmap=frame.envmap)
-    assert fast_eval.bytes_per_frame(m, "VL") == fast_eval.bytes_per_frame(m, "VL", envmap=scene.envmap)  # default
+    relight_f = F * (45 * K * 4 + 3 * 8 * (K - 20) // 3)   # light_supersample = 1: 4 samples per triangle
+    for kind in ("L", "VL", "E", "VBL"):
+        c = m.frame_cost(kind, P)
+        assert (c.bytes, c.flops) == (want_b + H * W * 3 * 4 + grid, want_f + relight_f), kind
+    for bad in ("P", "X", ""):
+        with pytest.raises(ValueError):
+            m.frame_cost(bad, P)
     with pytest.raises(ValueError):
-        fast_eval.bytes_per_frame(m, "P")
-    cfg = dict(m.config)
-    pixel = TripleProduct(**{**cfg, "shading": "pixel"}, progress=False)  # frames are rebuilt from the G-buffer: not read
+        m.frame_cost("V", -1)
+
+    pixel = TripleProduct(**{**dict(m.config), "shading": "pixel"}, progress=False)
     pixel.precompute(scene)
     pixel.render(frame, gb)
-    assert fast_eval.bytes_per_frame(pixel, "V") == vis + tables + grid
-    exact = TripleProduct(**{**cfg, "light_lookup": "exact"}, progress=False)
+    idx, w = gb.vertex_weights(pixel.F)
+    rows = torch.unique(idx[hit][w[hit] != 0])
+    c = pixel.frame_cost("V", P)
+    want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
+    want_f = nh * (2 * nk * (3 + 4 * 3 + 4 * 3) + triple)
+    assert (c.bytes, c.flops) == (want_b, want_f)
+    # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
+    nrows = pixel.V_idx.shape[0]
+    assert pixel.memory()["fine_values"] == ((nrows * K + R * n_o * 3 * K + F * 3 * K) * 4 if n is None else 0)
+    exact = TripleProduct(**{**dict(m.config), "light_lookup": "exact"}, progress=False)
     exact.precompute(scene)
-    assert fast_eval.bytes_per_frame(exact, "V") is None
+    assert exact.frame_cost("V", P) is None
 
 
 def test_fast_shading_follows_material_edits(scene_frame):
@@ -188,3 +228,26 @@ def test_fast_shading_follows_material_edits(scene_frame):
     ref = fast_eval.use_reference_shading(m).render(edited, gb)
     assert (fast - first).abs().max() > 100 * F32 * ref.abs().max()  # the edit shows
     assert (fast - ref).abs().max() <= F32 * ref.abs().max()
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_production_path_equals_reference_on_library(name):
+    """The default evaluator ("auto": the fine-value path for full tables, the list evaluators for
+    truncated ones) renders every library scene like the independent dense path
+    (``with_evaluator("reference")``) to float32 round-off, on view ("V") and lighting ("L") frames."""
+    scene = get_scene(name, "test")
+    frames = make_sequence(scene, "V", n_frames=2, seed=1) + make_sequence(scene, "L", n_frames=2, seed=1)[1:]
+    assert frames[2].changed == {"light"}  # the lighting rotated: the grid is re-projected
+    gbs = [make_gbuffer(scene, f, 1) for f in frames]
+    small = dict(frame_grid=(5, 8, 1), brdf_dirs=(4, 4), brdf_supersample=1)
+    for cfg in (dict(level=1), dict(level=2, n_coeffs=20, shading="vertex")):
+        m = TripleProduct(**cfg, **small, progress=False)
+        m.precompute(scene)
+        ref_m = m.with_evaluator("reference")
+        for frame, gb in zip(frames, gbs):
+            ref = ref_m.render(frame, gb)
+            img = m.render(frame, gb)
+            scale = ref.abs().max()
+            assert scale > 0, (name, cfg)
+            assert (img - ref).abs().max() <= F32 * scale, (name, cfg, frame.changed)
+        assert fast_eval.fine_ok(m) == (cfg.get("n_coeffs") is None)  # level 1: the fine-value path ran
