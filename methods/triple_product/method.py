@@ -305,13 +305,14 @@ class TripleProduct(Method):
         if cfg["light_lookup"] == "exact":
             Lc = lt.project_lighting(self._exact_env.radiance, R, self.geo, supersample=cfg["light_supersample"])
             idx, val = truncate(Lc, self._n(), cfg["selection"], self.level)
-            return blend_sparse(idx, val, torch.arange(R.shape[0])[:, None], torch.ones(R.shape[0], 1), self.K)
+            return blend_sparse(idx, val, torch.arange(R.shape[0], device=R.device)[:, None],
+                                torch.ones(R.shape[0], 1, device=R.device), self.K)
         rows, w = lt.lookup_weights(R, self.grid, cfg["light_lookup"])
         return blend_sparse(self.L_idx, self.L_val, rows, w, self.K)
 
     def brdf_at(self, region: Tensor, wo_local: Tensor) -> Tensor:
         """Dense (B, 3, K) ρ̃ coefficients for region ids (B,) and local outgoing directions (B, 3)."""
-        out = torch.zeros(region.shape[0], 3, self.K)
+        out = torch.zeros(region.shape[0], 3, self.K, device=region.device)
         rows, w = bt.outgoing_weights(wo_local, self.outgoing)
         for r, name in enumerate(self.scene.regions):
             m = region == r
@@ -464,7 +465,7 @@ class TripleProduct(Method):
             raise RuntimeError("call precompute(scene) before sample_uv()")
         P = gbuffer.num_samples
         if self.uv is None:
-            return torch.zeros(P, 2), torch.zeros(P, dtype=torch.bool)
+            return torch.zeros(P, 2, device=gbuffer.hit.device), torch.zeros(P, dtype=torch.bool, device=gbuffer.hit.device)
         ok = gbuffer.hit & self.face_uv[gbuffer.face.clamp_min(0)]
         return gbuffer.interpolate(self.uv, self.F), ok
 
@@ -486,7 +487,7 @@ class TripleProduct(Method):
 
     def blend_weights(self, gbuffer: GBuffer) -> Tensor:
         """SBRDF weight w (P,) of every G-buffer sample (0 outside blended regions)."""
-        w = torch.zeros(gbuffer.num_samples)
+        w = torch.zeros(gbuffer.num_samples, device=gbuffer.hit.device)
         if not self.blends:
             return w
         uv, ok = self.sample_uv(gbuffer)
@@ -533,7 +534,7 @@ class TripleProduct(Method):
         vidx, vw = gbuffer.vertex_weights(self.F)
         if self.tex_rows is None or self.tex_rows.shape[0] == 0:
             return torch.cat([vidx, vidx[:, :1]], 1), torch.cat([vw, torch.zeros_like(vw[:, :1])], 1)
-        s = torch.arange(gbuffer.num_samples)
+        s = torch.arange(gbuffer.num_samples, device=gbuffer.hit.device)
         rows, w = self._visibility_rows(s, gbuffer, self.sample_uv(gbuffer)[0], vidx, vw)
         return rows, torch.where(gbuffer.hit[:, None], w, torch.zeros_like(w))
 
@@ -549,18 +550,18 @@ class TripleProduct(Method):
         chunk = max(1, RENDER_FLOATS // (3 * self.K))
         if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
             chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
-        out = torch.zeros(gbuffer.num_samples, 3)
+        out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
         hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":
             faces = torch.unique(gbuffer.face[hit])
             used = torch.unique(self.F[faces].reshape(-1))
             self._record_frame(gbuffer, hit, faces, used, used)
-            cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
-            Bv = torch.zeros(self.V.shape[0], 3)
+            cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
+            Bv = torch.zeros(self.V.shape[0], 3, device=self.V.device)
             for a in range(0, used.numel(), chunk):
                 v = used[a:a + chunk]
                 wo = torch.nn.functional.normalize(cam - self.V[v], dim=-1)
-                Bv[v] = self._shade(self.R[v], wo, self.vertex_region[v], v[:, None], torch.ones(v.numel(), 1))
+                Bv[v] = self._shade(self.R[v], wo, self.vertex_region[v], v[:, None], torch.ones(v.numel(), 1, device=v.device))
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             vidx, vw = gbuffer.vertex_weights(self.F)
