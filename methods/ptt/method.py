@@ -54,13 +54,16 @@ from methods.core.frames import reflect, to_local
 from methods.core.visibility import Visibility
 from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
+from methods.ptt import fast as _fast
 from methods.ptt import lobes as _lobes
 from methods.ptt import pca as _pca
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
 
-# G-buffer samples shaded per batch (a batch holds (Q, 3, n_P, K) view factors).
+# G-buffer samples shaded per batch by the reference path (a batch holds (Q, 3, n_P, K) view factors)
+# and by the fast path (a batch holds a few hundred bytes per sample).
 RENDER_CHUNK = 1 << 15
+FAST_CHUNK = 1 << 18
 
 # Paper settings (Sun 2007 §4.3): 6×64×64 cube map, n_L = 96, n_ωi = 8, one-bounce lighting 6×8×8,
 # two-bounce 6×2×2, 4th-order SH.
@@ -207,9 +210,15 @@ class PTT(Method):
         self._E = None       # (V, K, 3) Σ_l C^L_l U^I_x(l, k, H)
         self._Ek = None      # separated lobes: prefiltered env maps E^(k) (EnvMap per lobe)
         self._I1k = None     # separated lobes: (V, L, S, 3) lobe-prefiltered one-bounce SH radiance
-        self._last_samples = 0
         self._coords: dict[Any, Tensor] = {}
         self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
+        # fast path (`render`, ``methods.ptt.fast``): its own caches, same stages
+        self._f_env = None    # env map object of the cached lighting products
+        self._f_light = None  # (E0 (V,K,3), T1L (V,RP,S,3) | None, T2L (V,(RP)²,3) | None, E^(k) maps | None)
+        self._f_H = None      # (R, P, 3) coordinates of the cached region tables
+        self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
+        self._f_E = None      # (E (V, K, 3), I1w (V, S·3) | None) for the cached (lighting, H)
+        self._last_view = None  # (num_samples, hit faces (Q,)) of the last fast render (frame_cost)
 
     # -- precompute ------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -280,9 +289,26 @@ class PTT(Method):
             self.T1c = _cmp.compress_ptt(self.T1.reshape(nv, R_ * P_ * S_, L1), seed=c["seed"], **c["compress"])
             self.T1 = None
         t4 = time.perf_counter()
+        self._fs = None
+        self._fast_static()  # run-time layouts and per-vertex frames of the fast path
+        t5 = time.perf_counter()
         self.timings = {"brdf_factorization": t1 - t0, "direct": t2 - t1, "bounces": t3 - t2,
-                        "compress": t4 - t3, "total": t4 - t0}
+                        "compress": t4 - t3, "fast_layout": t5 - t4, "total": t5 - t0}
         self._reset_cache()
+
+    def _fast_static(self) -> _fast.FastStatic:
+        """The fast path's static arrays (``fast.FastStatic``), built once (also for a method
+        unpickled from before they existed); T² and the lobe-visibility tables are re-laid out
+        lighting-last / texel-major in place (the reference path reads views of the same storage)."""
+        if getattr(self, "_fs", None) is None:
+            if self.T2 is not None and not self.T2.permute(0, 2, 3, 4, 5, 1).is_contiguous():
+                self.T2 = _fast.relayout_t2(self.T2)
+            if self.lobe_vis is not None and not self.lobe_vis.permute(0, 2, 3, 1).is_contiguous():
+                self.lobe_vis = self.lobe_vis.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+            need_sh = self.separate and self.bounces >= 1
+            self._fs = _fast.build_static(self.N, self.F, self.face_region, len(self.regions),
+                                          self.config["sh_order"] if need_sh else None)
+        return self._fs
 
     def with_bounces(self, bounces: int) -> "PTT":
         """A copy sharing this precomputation that renders only ``bounces`` (<= self.bounces)
@@ -346,13 +372,94 @@ class PTT(Method):
         self._E, self._H = E, H
         self.stats["brdf"] += 1
 
-    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+    def _check_frame(self, frame: Frame) -> Tensor:
+        """H (R, P, 3) of the frame's materials; RuntimeError before precompute, ValueError for
+        missing regions."""
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         missing = [r for r in self.regions if r not in frame.materials]
         if missing:
             raise ValueError(f"frame.materials lacks regions {missing}")
-        H = self.coords(frame.materials)
+        return self.coords(frame.materials)
+
+    # -- fast path (``methods.ptt.fast``; equals `_render_reference` to float32 round-off) --------
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """Sun eq. 3–4 with the three cached stages (module docstring), batched (``methods.ptt.fast``)."""
+        H = self._check_frame(frame)
+        st = self._fast_static()
+        light = self._f_light is None or "light" in frame.changed or frame.envmap is not self._f_env
+        if light:
+            self._fast_lighting(frame.envmap)
+        if self._f_H is None or "brdf" in frame.changed or not torch.equal(H, self._f_H):
+            self._f_tabs = _fast.region_tables(H, self.factors.W_tab, self.factors.K,
+                                               self.lobe_table.a if self.separate else None)
+            self._f_H, self._f_E = H, None
+        if self._f_E is None:  # Sun eq. 4 for (lighting, H)
+            E0, T1L, T2L, _ = self._f_light
+            E, I1 = _fast.brdf_products(H, E0, T1L, self.C, T2L, self.Cu)
+            I1w = None
+            if I1 is not None and self.lobe_sh is not None:  # world-frame SH for the lobes (§4.1)
+                I1w = torch.bmm(st.sh_rot, I1).reshape(I1.shape[0], -1)
+            self._f_E = (E.contiguous(), I1w)
+            self.stats["brdf"] += 1
+        self.stats["view"] += 1
+        return self._fast_view(frame, gbuffer, st)
+
+    def _fast_lighting(self, envmap) -> None:
+        """Stage 1 (lighting products of Sun eq. 4) for ``envmap``."""
+        c = self.config
+        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
+        E0 = _fast.direct_incidence(self.dt.idx, self.dt.val, CL)  # (V, K, 3)
+        nv, R, P = int(self.V.shape[0]), len(self.regions), self.factors.n_P
+        T1L = T2L = None
+        if self.T1 is not None:
+            L1 = self.T1.shape[-1]
+            T1L = (self.T1.reshape(-1, L1) @ CL[self.blk1]).reshape(nv, R * P, -1, 3)
+        elif self.T1c is not None:
+            T1L = self.T1c.contract_light(CL[self.blk1]).reshape(nv, R * P, -1, 3)
+        if self.T2 is not None:  # stored lighting-last (`_fast_static`)
+            T2t = self.T2.permute(0, 2, 3, 4, 5, 1)
+            T2L = (T2t.reshape(-1, T2t.shape[-1]) @ CL[self.blk2]).reshape(nv, -1, 3)
+        Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"]) if self.separate else None
+        self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
+        self.stats["light"] += 1
+
+    def _fast_view(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
+        """Stage 3 at the G-buffer's hit samples, FAST_CHUNK samples at a time."""
+        c = self.config
+        E, I1w = self._f_E
+        Wr, ar = self._f_tabs
+        T, K = self.factors.W_tab.shape[-1], self.factors.K
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
+        win = _fast.view_windows(st, self.V, cam, Wr, E, T, K)
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32, device=self.V.device)
+        hit = torch.nonzero(gbuffer.hit).squeeze(-1)
+        if self.separate:
+            Tv = self.lobe_vis.shape[-1]
+            vis_rows = self.lobe_vis.permute(0, 2, 3, 1).reshape(-1, self.lobe_vis.shape[1])  # a view
+        for a in range(0, hit.numel(), FAST_CHUNK):
+            sel = hit[a:a + FAST_CHUNK]
+            face = gbuffer.face[sel]
+            vidx = self.F[face]
+            u, v = gbuffer.bary[sel].float().unbind(-1)
+            bw = torch.stack([1.0 - u - v, u, v], -1)
+            wo = gbuffer.wo[sel].float()
+            region = gbuffer.region[sel]
+            fq = st.frames[vidx]  # (Q, 3, 3, 3)
+            loc_wo = torch.einsum("qjab,qb->qja", fq, wo)
+            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc_wo)
+            if self.separate:
+                res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
+                                                 I1w, self.lobe_sh, c["sh_order"], gbuffer.normal[sel].float(), wo,
+                                                 region, vidx, bw, fq)
+            out[sel] = res
+        self._last_view = (gbuffer.num_samples, gbuffer.face[hit])
+        return gbuffer.resolve(out)
+
+    # -- reference path: the stages as written in Sun's notation (the test oracle of the fast path) --
+    def _render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The per-stage reference implementation (slow; kept as the fast path's test oracle)."""
+        H = self._check_frame(frame)
         if self._light is None or "light" in frame.changed or frame.envmap is not self._env:
             self._lighting_stage(frame.envmap)
             self._E = None
@@ -365,7 +472,6 @@ class PTT(Method):
         for a in range(0, hit.numel(), RENDER_CHUNK):
             sel = hit[a:a + RENDER_CHUNK]
             out[sel] = self._shade(vidx[sel], bw[sel], gbuffer.wo[sel].float(), H[gbuffer.region[sel]])
-        self._last_samples = int(hit.numel())
         lobes = self._specular_lobes(gbuffer, H, hit, vidx, bw)
         if lobes is not None:
             out = out + lobes
