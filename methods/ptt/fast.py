@@ -152,8 +152,43 @@ def _bilinear(uv: Tensor, T: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 
 def _corner_weights(tx: Tensor, ty: Tensor, w: Tensor) -> Tensor:
-    """(..., 4) weights w·bilinear of corners (0,0), (1,0), (0,1), (1,1) (dx, dy)."""
-    return torch.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], -1) * w[..., None]
+    """(..., 4) weights w·bilinear of corners (dx, dy) = (0,0), (1,0), (0,1), (1,1)."""
+    wx = torch.stack([1 - tx, tx], -1)
+    wy = torch.stack([1 - ty, ty], -1) * w[..., None]
+    return (wy[..., :, None] * wx[..., None, :]).flatten(-2)
+
+
+def to_vertex_frames(frames_q: Tensor, d: Tensor) -> Tensor:
+    """Directions d (Q, m, 3) in the frames (Q, 3, 3, 3) of each sample's 3 vertices → (Q, 3, m, 3)
+    (``core.frames.to_local`` per vertex)."""
+    return (frames_q[:, :, None, :, :] * d[:, None, :, None, :]).sum(-1)
+
+
+def latlong_lookup(maps: list, d: Tensor) -> Tensor:
+    """``EnvMap.radiance`` of several maps at the same world directions d (Q, 3) → (Q, len(maps), 3),
+    the lat-long coordinates computed once per distinct map rotation (``scenes.envmap.bilinear_lookup``)."""
+    from scenes.envmap import direction_to_uv, extend_periodic
+
+    out, uv = [], {}
+    for e in maps:
+        key = e.to_world.to(d).flatten().tolist()
+        if tuple(key) not in uv:
+            uv[tuple(key)] = direction_to_uv(e.to_local(d))
+        u, v = uv[tuple(key)]
+        H, W, _ = e.data.shape
+        if (d.device, d.dtype) not in e._ext:
+            e._ext[(d.device, d.dtype)] = extend_periodic(e.data.to(d.device, d.dtype))
+        u = u - 0.5 / W
+        u = u - torch.floor(u)
+        v = v - torch.floor(v)
+        x, y = u * W, v * (H - 1)
+        ix = x.to(torch.int64).clamp(max=W - 1)
+        iy = y.to(torch.int64).clamp(max=H - 2)
+        idx = iy * (W + 1) + ix
+        rows = torch.stack([idx, idx + 1, idx + W + 1, idx + W + 2], -1)
+        wgt = _corner_weights(x - ix, y - iy, torch.ones_like(x))
+        out.append(Fnn.embedding_bag(rows, e._ext[(d.device, d.dtype)], per_sample_weights=wgt, mode="sum"))
+    return torch.stack(out, 1)
 
 
 def view_windows(st: FastStatic, V: Tensor, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
@@ -218,7 +253,7 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
     `PTT._specular_lobes`): Σ_k a_k(H, θo) [E^(k)(R) Σ_v β_v V_c^(k)(v, R) + max(0, n·R) L1^(k)(R)].
 
     ar (R·n_θ, L·3) region lobe weights; Ek: L prefiltered maps; lobe_vis_rows (V·Tv², L);
-    I1w (V, S·3) world-frame one-bounce SH radiance or None; lobe_sh (L, order) Funk–Hecke factors;
+    I1w (V, 3·S) world-frame one-bounce SH radiance (channel-major) or None; lobe_sh (L, order) Funk–Hecke factors;
     normal, wo (Q, 3); region (Q,); vidx, bw (Q, 3); frames_q (Q, 3, 3, 3) the vertex frames.
     Returns (Q, 3)."""
     Q = wo.shape[0]
@@ -237,9 +272,9 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
     rows = torch.stack([region * nt + i0, region * nt + (i0 + 1).clamp(max=nt - 1)], -1)
     ak = Fnn.embedding_bag(rows, ar, per_sample_weights=torch.stack([(1 - t) * up, t * up], -1), mode="sum")
     ak = ak.reshape(Q, L, 3)
-    Erad = torch.stack([e.radiance(R) for e in Ek], 1)  # (Q, L, 3)
+    Erad = latlong_lookup(Ek, R)  # (Q, L, 3)
     # V_c^(k): per-vertex tables at R in each vertex's frame, interpolated over the triangle
-    Rl = torch.einsum("qjab,qb->qja", frames_q, R)
+    Rl = to_vertex_frames(frames_q, R[:, None, :])[:, :, 0]
     ix, iy, tx, ty = _bilinear(table_coords(Rl), Tv)
     wc = _corner_weights(tx, ty, bw * (Rl[..., 2] > 0).to(bw.dtype))  # (Q, 3, 4)
     base = vidx * (Tv * Tv) + iy * Tv + ix
@@ -249,10 +284,9 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
     Lk = Erad * Vc[..., None]
     if I1w is not None:  # one-bounce SH radiance, lobe-prefiltered, evaluated at R (world frame)
         S = order * order
-        I = Fnn.embedding_bag(vidx, I1w, per_sample_weights=bw, mode="sum").reshape(Q, S, 3)
-        Y = _sh.sh_eval(R, order)  # (Q, S)
-        IY = I * Y[..., None]
-        Z = torch.stack([IY[:, b * b:(b + 1) * (b + 1)].sum(1) for b in range(order)], 1)  # (Q, order, 3)
-        Li = torch.einsum("lb,qbc->qlc", lobe_sh, Z)
+        I = Fnn.embedding_bag(vidx, I1w, per_sample_weights=bw, mode="sum").reshape(Q, 3, S)
+        IY = (I * _sh.sh_eval(R, order)[:, None, :]).reshape(Q * 3, S)
+        band = torch.cat([torch.full((2 * b + 1,), b, device=wo.device) for b in range(order)])
+        Li = (IY @ lobe_sh[:, band].T).reshape(Q, 3, L).transpose(1, 2)  # Σ_s f(l, band s) Y_s I_s
         Lk = Lk + Li.clamp_min(0.0) * (n * R).sum(-1).clamp_min(0.0)[:, None, None]
     return (ak * Lk).sum(1)

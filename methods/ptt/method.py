@@ -217,7 +217,7 @@ class PTT(Method):
         self._f_light = None  # (E0 (V,K,3), T1L (V,RP,S,3) | None, T2L (V,(RP)²,3) | None, E^(k) maps | None)
         self._f_H = None      # (R, P, 3) coordinates of the cached region tables
         self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
-        self._f_E = None      # (E (V, K, 3), I1w (V, S·3) | None) for the cached (lighting, H)
+        self._f_E = None      # (E (V, K, 3), I1w (V, 3·S) | None) for the cached (lighting, H)
         self._last_view = None  # (num_samples, hit faces (Q,)) of the last fast render (frame_cost)
 
     # -- precompute ------------------------------------------------------------------------------
@@ -399,7 +399,7 @@ class PTT(Method):
             E, I1 = _fast.brdf_products(H, E0, T1L, self.C, T2L, self.Cu)
             I1w = None
             if I1 is not None and self.lobe_sh is not None:  # world-frame SH for the lobes (§4.1)
-                I1w = torch.bmm(st.sh_rot, I1).reshape(I1.shape[0], -1)
+                I1w = torch.bmm(st.sh_rot, I1).transpose(1, 2).reshape(I1.shape[0], -1)  # (V, 3·S)
             self._f_E = (E.contiguous(), I1w)
             self.stats["brdf"] += 1
         self.stats["view"] += 1
@@ -446,7 +446,7 @@ class PTT(Method):
             wo = gbuffer.wo[sel].float()
             region = gbuffer.region[sel]
             fq = st.frames[vidx]  # (Q, 3, 3, 3)
-            loc_wo = torch.einsum("qjab,qb->qja", fq, wo)
+            loc_wo = _fast.to_vertex_frames(fq, wo[:, None, :])[:, :, 0]
             res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc_wo)
             if self.separate:
                 res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
