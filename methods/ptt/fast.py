@@ -151,17 +151,27 @@ def _bilinear(uv: Tensor, T: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return i0[..., 0], i0[..., 1], t[..., 0], t[..., 1]
 
 
-def _corner_weights(tx: Tensor, ty: Tensor, w: Tensor) -> Tensor:
-    """(..., 4) weights w·bilinear of corners (dx, dy) = (0,0), (1,0), (0,1), (1,1)."""
-    wx = torch.stack([1 - tx, tx], -1)
-    wy = torch.stack([1 - ty, ty], -1) * w[..., None]
-    return (wy[..., :, None] * wx[..., None, :]).flatten(-2)
+def _corner_weights(tx: Tensor, ty: Tensor, w: Tensor) -> list[Tensor]:
+    """Weights w·bilinear of the corners (dx, dy) = (0,0), (1,0), (0,1), (1,1), four tensors of tx's shape."""
+    a, b = (1 - tx) * w, tx * w
+    return [a * (1 - ty), b * (1 - ty), a * ty, b * ty]
+
+
+def _bilinear_bag(table: Tensor, base: Tensor, T: int, wc: list[Tensor]) -> Tensor:
+    """Σ_{rows j, corners} wc[corner][q, j] table[base[q, j] + corner offset]: base (Q, m) flat index
+    of the top-left corner in a row-major T-wide table (T·rows, C) → (Q, C); one bag per corner."""
+    out = None
+    for off, w in zip((0, 1, T, T + 1), wc):
+        o = Fnn.embedding_bag(base + off if off else base, table, per_sample_weights=w, mode="sum")
+        out = o if out is None else out + o
+    return out
 
 
 def to_vertex_frames(frames_q: Tensor, d: Tensor) -> Tensor:
-    """Directions d (Q, m, 3) in the frames (Q, 3, 3, 3) of each sample's 3 vertices → (Q, 3, m, 3)
-    (``core.frames.to_local`` per vertex)."""
-    return (frames_q[:, :, None, :, :] * d[:, None, :, None, :]).sum(-1)
+    """Directions d (Q, 3, m) (m column vectors) in the frames (Q, 3, 3, 3) of each sample's 3
+    vertices → (Q, 3, 3, m): [q, j, :, i] = frame_j @ d[q, :, i] (``core.frames.to_local``)."""
+    Q, m = d.shape[0], d.shape[-1]
+    return torch.bmm(frames_q.reshape(Q, 9, 3), d).reshape(Q, 3, 3, m)
 
 
 def latlong_lookup(maps: list, d: Tensor) -> Tensor:
@@ -185,9 +195,9 @@ def latlong_lookup(maps: list, d: Tensor) -> Tensor:
         ix = x.to(torch.int64).clamp(max=W - 1)
         iy = y.to(torch.int64).clamp(max=H - 2)
         idx = iy * (W + 1) + ix
-        rows = torch.stack([idx, idx + 1, idx + W + 1, idx + W + 2], -1)
-        wgt = _corner_weights(x - ix, y - iy, torch.ones_like(x))
-        out.append(Fnn.embedding_bag(rows, e._ext[(d.device, d.dtype)], per_sample_weights=wgt, mode="sum"))
+        ext = e._ext[(d.device, d.dtype)]
+        wc = _corner_weights(x - ix, y - iy, torch.ones_like(x))
+        out.append(sum(w[:, None] * ext[idx + o] for w, o in zip(wc, (0, 1, W + 1, W + 2))))
     return torch.stack(out, 1)
 
 
@@ -220,19 +230,17 @@ def shade(st: FastStatic, win: tuple[Tensor, Tensor, Tensor], Wr: Tensor, E: Ten
     nR = st.pair_of.numel() // st.frames.shape[0]
     ix, iy, tx, ty = _bilinear(table_coords(loc_wo), T)  # (Q, 3)
     w = bw * (loc_wo[..., 2] > 0).to(bw.dtype)
-    wc = _corner_weights(tx, ty, w)  # (Q, 3, 4)
     pair = st.pair_of[vidx * nR + region[:, None]]  # (Q, 3)
     p = pair.clamp_min(0)
     dx, dy = ix - ax[p], iy - ay[p]
     inside = (pair >= 0) & (dx >= 0) & (dx <= window - 2) & (dy >= 0) & (dy <= window - 2)
     base = p * (window * window) + dy.clamp(0, window - 2) * window + dx.clamp(0, window - 2)
-    off = torch.tensor([0, 1, window, window + 1], device=vidx.device)
-    rows = (base[..., None] + off).reshape(Q, 12)
-    out = Fnn.embedding_bag(rows, X, per_sample_weights=(wc * inside[..., None]).reshape(Q, 12), mode="sum")
+    out = _bilinear_bag(X, base, window, _corner_weights(tx, ty, w * inside.to(w.dtype)))
     miss = torch.nonzero(~inside & (w != 0))
     if miss.numel():
         q, j = miss[:, 0], miss[:, 1]
-        out.index_add_(0, q, _glossy_outliers(Wr, E, T, K, vidx[q, j], region[q], ix[q, j], iy[q, j], wc[q, j]))
+        wc = torch.stack(_corner_weights(tx[q, j], ty[q, j], w[q, j]), -1)
+        out.index_add_(0, q, _glossy_outliers(Wr, E, T, K, vidx[q, j], region[q], ix[q, j], iy[q, j], wc))
     return out.clamp_min(0.0)
 
 
@@ -246,21 +254,25 @@ def _glossy_outliers(Wr: Tensor, E: Tensor, T: int, K: int, v: Tensor, r: Tensor
     return (Wi.reshape(-1, K, 3) * E[v]).sum(1)
 
 
+def reflection(normal: Tensor, wo: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit shading normal n and mirror direction R = reflect(wo, n) (Q, 3) each, as the reference."""
+    n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    R = reflect(wo, n)
+    return n, R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
 def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tensor, Tv: int,
-                   I1w: Tensor | None, lobe_sh: Tensor | None, order: int, normal: Tensor, wo: Tensor,
-                   region: Tensor, vidx: Tensor, bw: Tensor, frames_q: Tensor) -> Tensor:
+                   I1w: Tensor | None, lobe_sh: Tensor | None, order: int, n: Tensor, R: Tensor, wo: Tensor,
+                   region: Tensor, vidx: Tensor, bw: Tensor, Rl: Tensor) -> Tensor:
     """Sun §4.1 separated lobes at hit samples (``specular`` docstring; the reference is
     `PTT._specular_lobes`): Σ_k a_k(H, θo) [E^(k)(R) Σ_v β_v V_c^(k)(v, R) + max(0, n·R) L1^(k)(R)].
 
     ar (R·n_θ, L·3) region lobe weights; Ek: L prefiltered maps; lobe_vis_rows (V·Tv², L);
     I1w (V, 3·S) world-frame one-bounce SH radiance (channel-major) or None; lobe_sh (L, order) Funk–Hecke factors;
-    normal, wo (Q, 3); region (Q,); vidx, bw (Q, 3); frames_q (Q, 3, 3, 3) the vertex frames.
-    Returns (Q, 3)."""
+    n, R (Q, 3) from `reflection`; wo (Q, 3); region (Q,); vidx, bw (Q, 3); Rl (Q, 3, 3) R in each
+    vertex's frame. Returns (Q, 3)."""
     Q = wo.shape[0]
     L = len(Ek)
-    n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    R = reflect(wo, n)
-    R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     cos_o = (n * wo).sum(-1)
     # a_k(H, θo): linear in θo over the nodes (specular.lobe_weights), per region
     nt = lobe_theta_n
@@ -274,13 +286,9 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
     ak = ak.reshape(Q, L, 3)
     Erad = latlong_lookup(Ek, R)  # (Q, L, 3)
     # V_c^(k): per-vertex tables at R in each vertex's frame, interpolated over the triangle
-    Rl = to_vertex_frames(frames_q, R[:, None, :])[:, :, 0]
     ix, iy, tx, ty = _bilinear(table_coords(Rl), Tv)
-    wc = _corner_weights(tx, ty, bw * (Rl[..., 2] > 0).to(bw.dtype))  # (Q, 3, 4)
-    base = vidx * (Tv * Tv) + iy * Tv + ix
-    off = torch.tensor([0, 1, Tv, Tv + 1], device=wo.device)
-    Vc = Fnn.embedding_bag((base[..., None] + off).reshape(Q, 12), lobe_vis_rows,
-                           per_sample_weights=wc.reshape(Q, 12), mode="sum")  # (Q, L)
+    wc = _corner_weights(tx, ty, bw * (Rl[..., 2] > 0).to(bw.dtype))
+    Vc = _bilinear_bag(lobe_vis_rows, vidx * (Tv * Tv) + iy * Tv + ix, Tv, wc)  # (Q, L)
     Lk = Erad * Vc[..., None]
     if I1w is not None:  # one-bounce SH radiance, lobe-prefiltered, evaluated at R (world frame)
         S = order * order

@@ -446,12 +446,16 @@ class PTT(Method):
             wo = gbuffer.wo[sel].float()
             region = gbuffer.region[sel]
             fq = st.frames[vidx]  # (Q, 3, 3, 3)
-            loc_wo = _fast.to_vertex_frames(fq, wo[:, None, :])[:, :, 0]
-            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc_wo)
+            if self.separate:
+                n, R = _fast.reflection(gbuffer.normal[sel].float(), wo)
+                loc = _fast.to_vertex_frames(fq, torch.stack([wo, R], -1))  # (Q, 3, 3, 2): ωo, R per vertex
+            else:
+                loc = _fast.to_vertex_frames(fq, wo[:, :, None])
+            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc[..., 0])
             if self.separate:
                 res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
-                                                 I1w, self.lobe_sh, c["sh_order"], gbuffer.normal[sel].float(), wo,
-                                                 region, vidx, bw, fq)
+                                                 I1w, self.lobe_sh, c["sh_order"], n, R, wo, region, vidx, bw,
+                                                 loc[..., 1])
             out[sel] = res
         self._last_view = (gbuffer.num_samples, gbuffer.face[hit])
         return gbuffer.resolve(out)
