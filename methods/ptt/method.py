@@ -48,7 +48,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
+                          tensor_bytes)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
 from methods.core.visibility import Visibility
@@ -218,7 +219,7 @@ class PTT(Method):
         self._f_H = None      # (R, P, 3) coordinates of the cached region tables
         self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
         self._f_E = None      # (E (V, K, 3), I1w (V, 3·S) | None) for the cached (lighting, H)
-        self._last_view = None  # (num_samples, hit faces (Q,)) of the last fast render (frame_cost)
+        self._last_view = None  # (num_samples, hit faces (Q,), their regions (Q,)) of the last render (cost_terms)
 
     # -- precompute ------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -457,7 +458,7 @@ class PTT(Method):
                                                  I1w, self.lobe_sh, c["sh_order"], n, R, wo, region, vidx, bw,
                                                  loc[..., 1])
             out[sel] = res
-        self._last_view = (gbuffer.num_samples, gbuffer.face[hit])
+        self._last_view = (gbuffer.num_samples, gbuffer.face[hit], gbuffer.region[hit])
         return gbuffer.resolve(out)
 
     # -- reference path: the stages as written in Sun's notation (the test oracle of the fast path) --
@@ -522,46 +523,137 @@ class PTT(Method):
             out[sel] = (ak * L).sum(1)
         return out
 
-    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes of the arrays each stage reads or writes per frame (Sun Table 1 stages): "V" =
-        stage 3 only (G-buffer inputs, W tables, E, normals/faces, lobe tables and prefiltered maps,
-        output), "VB" = stages 2–3 (+ E⁰, T¹L, T²L, C, Cu and the E write), "VBL" = all (+ the direct
-        transport, C^L, T¹ (or its compressed factors), T², the lobe prefilters). Per-sample terms
-        use the hit-sample count of the last `render` (0 before the first)."""
-        if frame_kind not in ("V", "VB", "VBL"):
-            raise ValueError(f"frame_kind must be 'V', 'VB' or 'VBL', got {frame_kind!r}")
+    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+        """Compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples (the
+        roofline numerators, ``methods.base.FrameCost``): the sums of `cost_terms`."""
+        terms = self.cost_terms(frame_kind, num_samples)
+        if terms is None:
+            return None
+        nbytes, flops = terms
+        return FrameCost(int(sum(nbytes.values())), int(sum(flops.values())))
+
+    def cost_terms(self, frame_kind: str, num_samples: int) -> tuple[dict[str, int], dict[str, int]] | None:
+        """(bytes by array, flops by equation) of one frame; None before `precompute`.
+
+        Stages (Sun Table 1): "V" runs the view stage only; "VB" also the BRDF stage (H products);
+        "VBL" and the lighting kinds "L", "E", "VL" also the lighting stage (L, E, VL keep H, so the
+        per-region tables are not rebuilt). Each array is counted once per frame (a perfect cache):
+        a cache the frame rebuilds counts as its write, one it reuses as the read of the rows the
+        G-buffer references.
+
+        Minimum arithmetic (multiply-add = 2 flops; direction transforms and the interpolations
+        counted, transcendentals / SH polynomials / the env-map cube resampling and Haar transform
+        not — a lower bound):
+        * view, per hit sample: the glossy term of Sun eq. 3 in the reassociated form
+          X(v, r, texel) = Σ_k W_r(texel, k) E_v(k) — at least one bilinear cell (4 texels) per
+          referenced (vertex, region) pair, K·3 MACs each — then 3 vertices × 4 corners × 3 MACs per
+          sample, and ωo in 3 vertex frames (27 MACs); with lobes (§4.1) R in 3 frames (27), a_k by 2
+          θ nodes (2·L·3), E^(k) bilinear (4·L·3), V_c^(k) (3·4·L), and with bounces the SH term
+          (interpolation 3·S·3, Y·I S·3, lobe factors L·order·3), E·V_c + Li·cos (2·L·3), Σ_k (L·3);
+        * BRDF stage (eq. 4), per vertex: Σ_{r,p} H T¹L (R·P·S·3), C^{ωi} (S·K·3), Σ H H T²L
+          ((R·P)²·3), C^{ωi}(k) (K·3), the world-frame rotation of the SH radiance for the lobes
+          (Σ_b (2b+1)²·3); when H changed, the per-region tables D ×_h U^h(H) (R·T²·K·P·3) and lobe
+          weights (R·n_θ·L·P·3);
+        * lighting stage, per vertex: Σ_l C^L U^{I0} (K·n_L·3), T¹ (R·P·S·L1·3; compressed: the
+          per-cluster contractions of ``compress``), T² (L2·(R·P)²·3); the lobe prefilters (nnz·3).
+
+        Referenced rows/pairs and the hit count come from the last `render` on a G-buffer of
+        ``num_samples`` samples; without one, every sample is taken as a hit and every vertex and
+        (vertex, region) pair as referenced (an upper bound of those terms)."""
+        kinds = ("V", "VB", "VBL", "L", "E", "VL")
+        if frame_kind not in kinds:
+            raise ValueError(f"frame_kind must be one of {kinds}, got {frame_kind!r}")
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be an int >= 0, got {num_samples!r}")
         if self.scene is None:
             return None
+        st = self._fast_static()
         c, f4 = self.config, 4
-        nv, K, P, R = int(self.V.shape[0]), self.factors.K, self.factors.n_P, len(self.regions)
-        S, N = c["sh_order"] ** 2, c["cube_res"]
-        Q = self._last_samples
-        E = nv * K * 3 * f4
-        lobe_maps = 0
-        if self.separate:
-            lobe_maps = sum(2 * f.res * 4 * f.res * 3 * f4 for f in self.env_filters if f is not None)
-        I1k = nv * len(c["lobe_degrees"]) * S * 3 * f4 if (self.separate and self.lobe_sh is not None) else 0
-        # stage 3: face, bary, normal, wo, region, hit, output per sample; tables; E; H
-        total = Q * (8 + 8 + 12 + 12 + 8 + 1 + 12) + tensor_bytes(self.factors.W_tab, self.N, self.F) + E
-        total += R * P * 3 * f4
-        if self.separate:
-            total += tensor_bytes(self.lobe_table.a, self.lobe_vis) + lobe_maps + I1k
-            total += self.scene.envmap.data.numel() * f4  # the 0° lobe reads the unfiltered map
-        T1L = nv * R * P * S * 3 * f4 if (self.T1 is not None or self.T1c is not None) else 0
-        T2L = nv * R * P * R * P * 3 * f4 if self.T2 is not None else 0
-        if "B" in frame_kind:  # stage 2
-            total += 2 * E + T1L + T2L + tensor_bytes(self.C, self.Cu) + I1k
-        if "L" in frame_kind:  # stage 1
-            total += tensor_bytes(self.dt.idx, self.dt.val, self.T1, self.T2) + 6 * N * N * 3 * f4 + E + T1L + T2L
-            if self.T1c is not None:
-                total += tensor_bytes(*self.T1c.tensors())
-            if self.separate:
-                for flt in self.env_filters:
-                    if flt is not None:
-                        total += tensor_bytes(flt.kernel.values(), flt.kernel.col_indices(), flt.kernel.crow_indices())
-                        total += 6 * flt.res * flt.res * 3 * f4
-                total += lobe_maps
-        return int(total)
+        nv, nf = int(self.V.shape[0]), int(self.F.shape[0])
+        K, P, R, S, order = self.factors.K, self.factors.n_P, len(self.regions), c["sh_order"] ** 2, c["sh_order"]
+        T = self.factors.W_tab.shape[-1]
+        light = frame_kind in ("VBL", "L", "E", "VL")
+        brdf = "B" in frame_kind
+        lobes = self.separate
+        sh = lobes and self.lobe_sh is not None and (self.T1 is not None or self.T1c is not None)
+        Lb = len(c["lobe_degrees"]) if lobes else 0
+        n_theta = self.lobe_table.theta.shape[0] if lobes else 0
+        if self._last_view is not None and self._last_view[0] == num_samples:
+            faces, regs = self._last_view[1], self._last_view[2]
+            Q = int(faces.numel())
+            ref_faces = int(torch.unique(faces).numel())
+            ref_verts = int(torch.unique(self.F[faces]).numel())
+            ref_pairs = int(torch.unique(st.pair_of[self.F[faces] * R + regs[:, None]]).numel())
+        else:
+            Q, ref_faces, ref_verts, ref_pairs = num_samples, nf, nv, int(st.pair_v.numel())
+        env = self._f_env if self._f_env is not None else self.scene.envmap
+        B, Fl = {}, {}
+        # -- view stage (every frame)
+        B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4  # + region (int64); misses: hit word
+        B["output"] = num_samples * 3 * f4
+        B["faces"] = ref_faces * 3 * self.F.element_size()
+        B["normals"] = ref_verts * 3 * f4
+        rows = {"E": ref_verts * K * 3 * f4, "W_r": R * T * T * K * 3 * f4}
+        if lobes:
+            rows["lobe_visibility"] = min(ref_verts * 4 * Lb * f4, tensor_bytes(self.lobe_vis))  # >= one cell each
+            rows["a_r"] = R * n_theta * Lb * 3 * f4
+            if any(flt is None for flt in self.env_filters):  # the 0° lobe reads the env map itself at R
+                B["env_map"] = min(tensor_bytes(env.data), Q * 4 * 3 * f4)
+            B["prefiltered_maps"] = sum(2 * flt.res * 4 * flt.res * 3 * f4 for flt in self.env_filters if flt is not None)
+        if sh:
+            rows["I1w"] = ref_verts * S * 3 * f4
+        Fl["view_glossy"] = 2 * (ref_pairs * 4 * K * 3 + Q * 3 * 4 * 3 + Q * 27)
+        if lobes:
+            Fl["view_lobes"] = 2 * Q * (27 + 2 * Lb * 3 + 4 * Lb * 3 + 3 * 4 * Lb + 2 * Lb * 3 + Lb * 3)
+            if sh:
+                Fl["view_lobes_sh"] = 2 * Q * (3 * S * 3 + S * 3 + Lb * order * 3)
+        # -- BRDF stage (H or lighting changed): caches it rebuilds count as their full write
+        if brdf or light:
+            rows["E"] = nv * K * 3 * f4
+            if sh:
+                rows["I1w"] = nv * S * 3 * f4
+                B["sh_rotation"] = nv * sum((2 * b + 1) ** 2 for b in range(order)) * f4
+                Fl["brdf_sh_rotation"] = 2 * nv * sum((2 * b + 1) ** 2 for b in range(order)) * 3
+            B["E0"] = nv * K * 3 * f4
+            Fl["brdf_E"] = 2 * nv * K * 3
+            if self.T1 is not None or self.T1c is not None:
+                B["T1L"] = nv * R * P * S * 3 * f4
+                B["C"] = tensor_bytes(self.C)
+                Fl["brdf_I1"] = 2 * nv * (R * P * S * 3 + S * K * 3)
+            if self.T2 is not None:
+                B["T2L"] = nv * (R * P) ** 2 * 3 * f4
+                B["Cu"] = tensor_bytes(self.Cu)
+                Fl["brdf_I2"] = 2 * nv * ((R * P) ** 2 * 3 + K * 3) + (R * P) ** 2 * 3
+        if brdf:
+            B["W_tables"] = tensor_bytes(self.factors.W_tab)
+            Fl["brdf_W_r"] = 2 * R * T * T * K * P * 3
+            if lobes:
+                B["lobe_weights"] = tensor_bytes(self.lobe_table.a)
+                Fl["brdf_a_r"] = 2 * R * n_theta * Lb * P * 3
+        B.update(rows)
+        # -- lighting stage
+        if light:
+            N = c["cube_res"]
+            B["env_map"] = tensor_bytes(env.data)
+            B["direct_transport"] = tensor_bytes(self.dt.idx, self.dt.val)
+            Fl["light_E0"] = 2 * nv * K * self.dt.val.shape[-1] * 3
+            if self.T1 is not None:
+                B["T1"] = tensor_bytes(self.T1)
+                Fl["light_T1"] = 2 * self.T1.numel() * 3
+            elif self.T1c is not None:
+                B["T1_compressed"] = tensor_bytes(*self.T1c.tensors())
+                D = R * P * S
+                Fl["light_T1"] = 2 * 3 * sum(Bc.shape[0] * Bc.shape[1] + A.shape[1] * D * Bc.shape[1] + A.numel() * D
+                                             for A, Bc in zip(self.T1c.A, self.T1c.B))
+            if self.T2 is not None:
+                B["T2"] = tensor_bytes(self.T2)
+                Fl["light_T2"] = 2 * self.T2.numel() * 3
+            if lobes:
+                kern = [flt.kernel for flt in self.env_filters if flt is not None]
+                B["lobe_prefilters"] = sum(tensor_bytes(k.values(), k.col_indices(), k.crow_indices()) + 6 * k.shape[1] * 3 * f4
+                                           for k in kern)
+                Fl["light_prefilter"] = 2 * sum(k.values().numel() for k in kern) * 3
+        return {k: int(v) for k, v in B.items()}, {k: int(v) for k, v in Fl.items()}
 
     def memory(self) -> dict[str, int]:
         if self.scene is None:
