@@ -650,8 +650,7 @@ class PTT(Method):
                 Fl["light_T2"] = 2 * self.T2.numel() * 3
             if lobes:
                 kern = [flt.kernel for flt in self.env_filters if flt is not None]
-                B["lobe_prefilters"] = sum(tensor_bytes(k.values(), k.col_indices(), k.crow_indices()) + 6 * k.shape[1] * 3 * f4
-                                           for k in kern)
+                B["lobe_prefilters"] = sum(tensor_bytes(k.values(), k.col_indices(), k.crow_indices()) for k in kern)
                 Fl["light_prefilter"] = 2 * sum(k.values().numel() for k in kern) * 3
         return {k: int(v) for k, v in B.items()}, {k: int(v) for k, v in Fl.items()}
 
@@ -677,4 +676,8 @@ class PTT(Method):
                                    for f in self.env_filters if f is not None)
             if self.lobe_sh is not None:
                 m["lobe_sh"] = tensor_bytes(self.lobe_sh)
+        st = self._fast_static()
+        m["fast_frames_pairs"] = tensor_bytes(st.frames, st.pair_of, st.pair_v, st.pair_r)
+        if st.sh_rot is not None:
+            m["sh_rotation"] = tensor_bytes(st.sh_rot)
         return m
