@@ -532,6 +532,12 @@ class PTT(Method):
         nbytes, flops = terms
         return FrameCost(int(sum(nbytes.values())), int(sum(flops.values())))
 
+    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
+        """Deprecated (``benchmarks/ptt.py`` still prints it): `frame_cost` bytes on the last
+        rendered G-buffer's sample count."""
+        cost = self.frame_cost(frame_kind, self._last_view[0] if self._last_view is not None else 0)
+        return None if cost is None else cost.bytes
+
     def cost_terms(self, frame_kind: str, num_samples: int) -> tuple[dict[str, int], dict[str, int]] | None:
         """(bytes by array, flops by equation) of one frame; None before `precompute`.
 
