@@ -20,7 +20,10 @@ Run time (Sun eq. 3–4), per frame, three cached stages keyed on ``frame.change
    vertex's local frame are never interpolated across frames), clamped at 0.
 
 So V-only frames do only stage 3, V&B frames skip the lighting wavelet products (stage 1), V,B&L
-frames do all three (Sun Table 1).
+frames do all three (Sun Table 1). `render` runs these stages batched (``methods.ptt.fast``: the
+same sums, regrouped); `_render_reference` is the stage-by-stage code above, kept as the test
+oracle of the fast path (equal to float32 round-off). `frame_cost` / `cost_terms` state the minimum
+bytes and flops of each frame kind (the roofline's numerators).
 
 Specular lobe separation (§4.1, ``separate=True``; all formulas and normalisations in
 ``methods.ptt.specular``): the lobe weights a_k^p(θo) of every basis function are fitted at
