@@ -47,8 +47,9 @@ from methods.ptt.transport import table_coords
 __all__ = ["FastStatic", "build_static", "relayout_t2", "direct_incidence", "region_tables", "brdf_products",
            "view_windows", "shade", "specular_lobes", "WINDOW"]
 
-# Side of the per-(vertex, region) texel window of the glossy term (`view_windows`): a sample's
-# bilinear cell may sit ±(WINDOW − 2)/2 texels from the anchor and still be read from the window.
+# Side of the per-(vertex, region) texel window of the glossy term (`view_windows`; at most the
+# table size): a sample's bilinear cell may sit ±(WINDOW − 2)/2 texels from the anchor and still be
+# read from the window (the rest take the exact per-entry path).
 WINDOW = 4
 
 

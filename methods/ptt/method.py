@@ -435,7 +435,8 @@ class PTT(Method):
         Wr, ar = self._f_tabs
         T, K = self.factors.W_tab.shape[-1], self.factors.K
         cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
-        win = _fast.view_windows(st, self.V, cam, Wr, E, T, K)
+        window = min(_fast.WINDOW, T)
+        win = _fast.view_windows(st, self.V, cam, Wr, E, T, K, window)
         out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32, device=self.V.device)
         hit = torch.nonzero(gbuffer.hit).squeeze(-1)
         if self.separate:
@@ -455,7 +456,7 @@ class PTT(Method):
                 loc = _fast.to_vertex_frames(fq, torch.stack([wo, R], -1))  # (Q, 3, 3, 2): ωo, R per vertex
             else:
                 loc = _fast.to_vertex_frames(fq, wo[:, :, None])
-            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc[..., 0])
+            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc[..., 0], window)
             if self.separate:
                 res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
                                                  I1w, self.lobe_sh, c["sh_order"], n, R, wo, region, vidx, bw,
