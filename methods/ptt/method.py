@@ -424,7 +424,9 @@ class PTT(Method):
         if self.T2 is not None:  # stored lighting-last (`_fast_static`)
             T2t = self.T2.permute(0, 2, 3, 4, 5, 1)
             T2L = (T2t.reshape(-1, T2t.shape[-1]) @ CL[self.blk2]).reshape(nv, -1, 3)
-        Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"]) if self.separate else None
+        Ek = None
+        if self.separate:  # Sun §4.1 E^(k)
+            Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"])
         self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
         self.stats["light"] += 1
 
@@ -609,7 +611,8 @@ class PTT(Method):
             rows["a_r"] = R * n_theta * Lb * 3 * f4
             if any(flt is None for flt in self.env_filters):  # the 0° lobe reads the env map itself at R
                 B["env_map"] = min(tensor_bytes(env.data), Q * 4 * 3 * f4)
-            B["prefiltered_maps"] = sum(2 * flt.res * 4 * flt.res * 3 * f4 for flt in self.env_filters if flt is not None)
+            B["prefiltered_maps"] = sum(2 * flt.res * 4 * flt.res * 3 * f4
+                                        for flt in self.env_filters if flt is not None)
         if sh:
             rows["I1w"] = ref_verts * S * 3 * f4
         Fl["view_glossy"] = 2 * (ref_pairs * 4 * K * 3 + Q * 3 * 4 * 3 + Q * 27)
