@@ -227,7 +227,6 @@ def shade(st: FastStatic, win: tuple[Tensor, Tensor, Tensor], Wr: Tensor, E: Ten
     """Glossy part of Sun eq. 3 at hit samples (module docstring): vidx, bw (Q, 3); region (Q,);
     loc_wo (Q, 3, 3) ωo in each vertex's frame → (Q, 3), clamped at 0 like the reference."""
     ax, ay, X = win
-    Q = vidx.shape[0]
     nR = st.pair_of.numel() // st.frames.shape[0]
     ix, iy, tx, ty = _bilinear(table_coords(loc_wo), T)  # (Q, 3)
     w = bw * (loc_wo[..., 2] > 0).to(bw.dtype)

@@ -646,7 +646,6 @@ class PTT(Method):
         B.update(rows)
         # -- lighting stage
         if light:
-            N = c["cube_res"]
             B["env_map"] = tensor_bytes(env.data)
             B["direct_transport"] = tensor_bytes(self.dt.idx, self.dt.val)
             Fl["light_E0"] = 2 * nv * K * self.dt.val.shape[-1] * 3
