@@ -24,7 +24,7 @@ TINY = dict(rays=4, cube_res=4, n_wi=4, brdf_grid=8, brdf_table=8, light_res_1=2
 # Per scene: which run-time branches it exercises besides the default (2 bounces, lobes, dense T¹).
 VARIANTS = {"sphere_plane": {}, "chess": dict(sh_order=3), "alcove": dict(separate=False),
             "shadow_detail": dict(bounces=1), "creature": dict(bounces=0),
-            "bunny": dict(compress=dict(clusters=2, eigenvectors=4, light_dim=6)),
+            "bunny": dict(compress=dict(clusters=1, eigenvectors=4, light_dim=6)),
             "dragon": dict(brdf_table=3),  # a view table smaller than the window
             "character": {}}
 KINDS = ("V", "VB", "VBL", "L", "E")
