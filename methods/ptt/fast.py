@@ -141,6 +141,12 @@ def brdf_products(H: Tensor, E0: Tensor, T1L: Tensor | None, C: Tensor | None, T
 # -- view stage -------------------------------------------------------------------------------------
 
 
+def rows(t: Tensor, idx: Tensor) -> Tensor:
+    """t[idx] for an integer index of any shape, as one ``index_select`` along dim 0 (faster than
+    advanced indexing on CPU)."""
+    return torch.index_select(t, 0, idx.reshape(-1)).reshape(*idx.shape, *t.shape[1:])
+
+
 def _bilinear(uv: Tensor, T: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Texel-centred bilinear cell of table coordinates uv (..., 2) on a T×T table, border-clamped
     like ``grid_sample(align_corners=False, padding_mode="border")`` (and
@@ -198,7 +204,7 @@ def latlong_lookup(maps: list, d: Tensor) -> Tensor:
         idx = iy * (W + 1) + ix
         ext = e._ext[(d.device, d.dtype)]
         wc = _corner_weights(x - ix, y - iy, torch.ones_like(x))
-        out.append(sum(w[:, None] * ext[idx + o] for w, o in zip(wc, (0, 1, W + 1, W + 2))))
+        out.append(sum(w[:, None] * rows(ext, idx + o) for w, o in zip(wc, (0, 1, W + 1, W + 2))))
     return torch.stack(out, 1)
 
 
@@ -208,17 +214,17 @@ def view_windows(st: FastStatic, V: Tensor, cam_origin: Tensor, Wr: Tensor, E: T
     X (n_pairs·window², 3) = Σ_k W_r(texel, k, c) E_v(k, c) on its texels (row-major in the window).
     The window is centred on the bilinear cell of the direction from the vertex to cam_origin (3,)."""
     v, r = st.pair_v, st.pair_r
-    d = cam_origin[None, :] - V[v]
+    d = cam_origin[None, :] - rows(V, v)
     d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    loc = torch.einsum("nab,nb->na", st.frames[v], d)
+    loc = torch.einsum("nab,nb->na", rows(st.frames, v), d)
     ix, iy, _, _ = _bilinear(table_coords(loc), T)
     h = (window - 2) // 2
     ax = (ix - h).clamp(0, T - window)
     ay = (iy - h).clamp(0, T - window)
     o = torch.arange(window, device=V.device)
     tex = (ay[:, None, None] + o[None, :, None]) * T + ax[:, None, None] + o[None, None, :]  # (n, w, w)
-    rows = (r[:, None, None] * (T * T) + tex).reshape(-1)
-    X = (Wr[rows].reshape(v.numel(), window * window, K, 3) * E[v][:, None]).sum(2)
+    idx = (r[:, None, None] * (T * T) + tex).reshape(v.numel(), window * window)
+    X = (rows(Wr, idx).reshape(v.numel(), window * window, K, 3) * rows(E, v).reshape(-1, 1, K, 3)).sum(2)
     return ax, ay, X.reshape(-1, 3)
 
 
@@ -230,9 +236,9 @@ def shade(st: FastStatic, win: tuple[Tensor, Tensor, Tensor], Wr: Tensor, E: Ten
     nR = st.pair_of.numel() // st.frames.shape[0]
     ix, iy, tx, ty = _bilinear(table_coords(loc_wo), T)  # (Q, 3)
     w = bw * (loc_wo[..., 2] > 0).to(bw.dtype)
-    pair = st.pair_of[vidx * nR + region[:, None]]  # (Q, 3)
+    pair = rows(st.pair_of, vidx * nR + region[:, None])  # (Q, 3)
     p = pair.clamp_min(0)
-    dx, dy = ix - ax[p], iy - ay[p]
+    dx, dy = ix - rows(ax, p), iy - rows(ay, p)
     inside = (pair >= 0) & (dx >= 0) & (dx <= window - 2) & (dy >= 0) & (dy <= window - 2)
     base = p * (window * window) + dy.clamp(0, window - 2) * window + dx.clamp(0, window - 2)
     out = _bilinear_bag(X, base, window, _corner_weights(tx, ty, w * inside.to(w.dtype)))
@@ -249,9 +255,9 @@ def _glossy_outliers(Wr: Tensor, E: Tensor, T: int, K: int, v: Tensor, r: Tensor
     """The glossy term of sample–vertex entries outside their window, straight from W_r and E:
     v, r, ix, iy (n,); wc (n, 4) corner weights → (n, 3)."""
     base = r * (T * T) + iy * T + ix
-    Wi = (wc[:, 0, None] * Wr[base] + wc[:, 1, None] * Wr[base + 1]
-          + wc[:, 2, None] * Wr[base + T] + wc[:, 3, None] * Wr[base + T + 1])
-    return (Wi.reshape(-1, K, 3) * E[v]).sum(1)
+    Wi = (wc[:, 0, None] * rows(Wr, base) + wc[:, 1, None] * rows(Wr, base + 1)
+          + wc[:, 2, None] * rows(Wr, base + T) + wc[:, 3, None] * rows(Wr, base + T + 1))
+    return (Wi.reshape(-1, K, 3) * rows(E, v).reshape(-1, K, 3)).sum(1)
 
 
 def reflection(normal: Tensor, wo: Tensor) -> tuple[Tensor, Tensor]:
@@ -281,8 +287,8 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
     i0 = x.floor().long().clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=torch.long)
     t = x - i0.to(x.dtype)
     up = (cos_o > 0).to(t.dtype)
-    rows = torch.stack([region * nt + i0, region * nt + (i0 + 1).clamp(max=nt - 1)], -1)
-    ak = Fnn.embedding_bag(rows, ar, per_sample_weights=torch.stack([(1 - t) * up, t * up], -1), mode="sum")
+    r0 = region * nt
+    ak = rows(ar, r0 + i0) * ((1 - t) * up)[:, None] + rows(ar, r0 + (i0 + 1).clamp(max=nt - 1)) * (t * up)[:, None]
     ak = ak.reshape(Q, L, 3)
     Erad = latlong_lookup(Ek, R)  # (Q, L, 3)
     # V_c^(k): per-vertex tables at R in each vertex's frame, interpolated over the triangle

@@ -447,12 +447,12 @@ class PTT(Method):
         for a in range(0, hit.numel(), FAST_CHUNK):
             sel = hit[a:a + FAST_CHUNK]
             face = gbuffer.face[sel]
-            vidx = self.F[face]
+            vidx = _fast.rows(self.F, face)
             u, v = gbuffer.bary[sel].float().unbind(-1)
             bw = torch.stack([1.0 - u - v, u, v], -1)
             wo = gbuffer.wo[sel].float()
             region = gbuffer.region[sel]
-            fq = st.frames[vidx]  # (Q, 3, 3, 3)
+            fq = _fast.rows(st.frames, vidx)  # (Q, 3, 3, 3)
             if self.separate:
                 n, R = _fast.reflection(gbuffer.normal[sel].float(), wo)
                 loc = _fast.to_vertex_frames(fq, torch.stack([wo, R], -1))  # (Q, 3, 3, 2): ωo, R per vertex
