@@ -20,7 +20,10 @@ Run time (Sun eq. 3–4), per frame, three cached stages keyed on ``frame.change
    vertex's local frame are never interpolated across frames), clamped at 0.
 
 So V-only frames do only stage 3, V&B frames skip the lighting wavelet products (stage 1), V,B&L
-frames do all three (Sun Table 1).
+frames do all three (Sun Table 1). `render` runs these stages batched (``methods.ptt.fast``: the
+same sums, regrouped); `_render_reference` is the stage-by-stage code above, kept as the test
+oracle of the fast path (equal to float32 round-off). `frame_cost` / `cost_terms` state the minimum
+bytes and flops of each frame kind (the roofline's numerators).
 
 Specular lobe separation (§4.1, ``separate=True``; all formulas and normalisations in
 ``methods.ptt.specular``): the lobe weights a_k^p(θo) of every basis function are fitted at
@@ -48,19 +51,23 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
+                          tensor_bytes)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
 from references.visibility import make_visibility
 from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
+from methods.ptt import fast as _fast
 from methods.ptt import lobes as _lobes
 from methods.ptt import pca as _pca
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
 
-# G-buffer samples shaded per batch (a batch holds (Q, 3, n_P, K) view factors).
+# G-buffer samples shaded per batch by the reference path (a batch holds (Q, 3, n_P, K) view factors)
+# and by the fast path (a batch holds a few hundred bytes per sample).
 RENDER_CHUNK = 1 << 15
+FAST_CHUNK = 1 << 18
 
 # Paper settings (Sun 2007 §4.3): 6×64×64 cube map, n_L = 96, n_ωi = 8, one-bounce lighting 6×8×8,
 # two-bounce 6×2×2, 4th-order SH.
@@ -207,9 +214,15 @@ class PTT(Method):
         self._E = None       # (V, K, 3) Σ_l C^L_l U^I_x(l, k, H)
         self._Ek = None      # separated lobes: prefiltered env maps E^(k) (EnvMap per lobe)
         self._I1k = None     # separated lobes: (V, L, S, 3) lobe-prefiltered one-bounce SH radiance
-        self._last_samples = 0
         self._coords: dict[Any, Tensor] = {}
         self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
+        # fast path (`render`, ``methods.ptt.fast``): its own caches, same stages
+        self._f_env = None    # env map object of the cached lighting products
+        self._f_light = None  # (E0 (V,K,3), T1L (V,RP,S,3) | None, T2L (V,(RP)²,3) | None, E^(k) maps | None)
+        self._f_H = None      # (R, P, 3) coordinates of the cached region tables
+        self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
+        self._f_E = None      # (E (V, K, 3), I1w (V, 3·S) | None) for the cached (lighting, H)
+        self._last_view = None  # (num_samples, hit faces (Q,), their regions (Q,)) of the last render (cost_terms)
 
     # -- precompute ------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -280,9 +293,26 @@ class PTT(Method):
             self.T1c = _cmp.compress_ptt(self.T1.reshape(nv, R_ * P_ * S_, L1), seed=c["seed"], **c["compress"])
             self.T1 = None
         t4 = time.perf_counter()
+        self._fs = None
+        self._fast_static()  # run-time layouts and per-vertex frames of the fast path
+        t5 = time.perf_counter()
         self.timings = {"brdf_factorization": t1 - t0, "direct": t2 - t1, "bounces": t3 - t2,
-                        "compress": t4 - t3, "total": t4 - t0}
+                        "compress": t4 - t3, "fast_layout": t5 - t4, "total": t5 - t0}
         self._reset_cache()
+
+    def _fast_static(self) -> _fast.FastStatic:
+        """The fast path's static arrays (``fast.FastStatic``), built once (also for a method
+        unpickled from before they existed); T² and the lobe-visibility tables are re-laid out
+        lighting-last / texel-major in place (the reference path reads views of the same storage)."""
+        if getattr(self, "_fs", None) is None:
+            if self.T2 is not None and not self.T2.permute(0, 2, 3, 4, 5, 1).is_contiguous():
+                self.T2 = _fast.relayout_t2(self.T2)
+            if self.lobe_vis is not None and not self.lobe_vis.permute(0, 2, 3, 1).is_contiguous():
+                self.lobe_vis = self.lobe_vis.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+            need_sh = self.separate and self.bounces >= 1
+            self._fs = _fast.build_static(self.N, self.F, self.face_region, len(self.regions),
+                                          self.config["sh_order"] if need_sh else None)
+        return self._fs
 
     def with_bounces(self, bounces: int) -> "PTT":
         """A copy sharing this precomputation that renders only ``bounces`` (<= self.bounces)
@@ -346,13 +376,101 @@ class PTT(Method):
         self._E, self._H = E, H
         self.stats["brdf"] += 1
 
-    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+    def _check_frame(self, frame: Frame) -> Tensor:
+        """H (R, P, 3) of the frame's materials; RuntimeError before precompute, ValueError for
+        missing regions."""
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         missing = [r for r in self.regions if r not in frame.materials]
         if missing:
             raise ValueError(f"frame.materials lacks regions {missing}")
-        H = self.coords(frame.materials)
+        return self.coords(frame.materials)
+
+    # -- fast path (``methods.ptt.fast``; equals `_render_reference` to float32 round-off) --------
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """Sun eq. 3–4 with the three cached stages (module docstring), batched (``methods.ptt.fast``)."""
+        H = self._check_frame(frame)
+        st = self._fast_static()
+        light = self._f_light is None or "light" in frame.changed or frame.envmap is not self._f_env
+        if light:
+            self._fast_lighting(frame.envmap)
+        if self._f_H is None or "brdf" in frame.changed or not torch.equal(H, self._f_H):
+            self._f_tabs = _fast.region_tables(H, self.factors.W_tab, self.factors.K,
+                                               self.lobe_table.a if self.separate else None)
+            self._f_H, self._f_E = H, None
+        if self._f_E is None:  # Sun eq. 4 for (lighting, H)
+            E0, T1L, T2L, _ = self._f_light
+            E, I1 = _fast.brdf_products(H, E0, T1L, self.C, T2L, self.Cu)
+            I1w = None
+            if I1 is not None and self.lobe_sh is not None:  # world-frame SH for the lobes (§4.1)
+                I1w = torch.bmm(st.sh_rot, I1).transpose(1, 2).reshape(I1.shape[0], -1)  # (V, 3·S)
+            self._f_E = (E.contiguous(), I1w)
+            self.stats["brdf"] += 1
+        self.stats["view"] += 1
+        return self._fast_view(frame, gbuffer, st)
+
+    def _fast_lighting(self, envmap) -> None:
+        """Stage 1 (lighting products of Sun eq. 4) for ``envmap``."""
+        c = self.config
+        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
+        E0 = _fast.direct_incidence(self.dt.idx, self.dt.val, CL)  # (V, K, 3)
+        nv, R, P = int(self.V.shape[0]), len(self.regions), self.factors.n_P
+        T1L = T2L = None
+        if self.T1 is not None:
+            L1 = self.T1.shape[-1]
+            T1L = (self.T1.reshape(-1, L1) @ CL[self.blk1]).reshape(nv, R * P, -1, 3)
+        elif self.T1c is not None:
+            T1L = self.T1c.contract_light(CL[self.blk1]).reshape(nv, R * P, -1, 3)
+        if self.T2 is not None:  # stored lighting-last (`_fast_static`)
+            T2t = self.T2.permute(0, 2, 3, 4, 5, 1)
+            T2L = (T2t.reshape(-1, T2t.shape[-1]) @ CL[self.blk2]).reshape(nv, -1, 3)
+        Ek = None
+        if self.separate:  # Sun §4.1 E^(k)
+            Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"])
+        self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
+        self.stats["light"] += 1
+
+    def _fast_view(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
+        """Stage 3 at the G-buffer's hit samples, FAST_CHUNK samples at a time."""
+        c = self.config
+        E, I1w = self._f_E
+        Wr, ar = self._f_tabs
+        T, K = self.factors.W_tab.shape[-1], self.factors.K
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
+        window = min(_fast.WINDOW, T)
+        win = _fast.view_windows(st, self.V, cam, Wr, E, T, K, window)
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32, device=self.V.device)
+        hit = torch.nonzero(gbuffer.hit).squeeze(-1)
+        if self.separate:
+            Tv = self.lobe_vis.shape[-1]
+            vis_rows = self.lobe_vis.permute(0, 2, 3, 1).reshape(-1, self.lobe_vis.shape[1])  # a view
+        for a in range(0, hit.numel(), FAST_CHUNK):
+            sel = hit[a:a + FAST_CHUNK]
+            face = gbuffer.face[sel]
+            vidx = _fast.rows(self.F, face)
+            u, v = gbuffer.bary[sel].float().unbind(-1)
+            bw = torch.stack([1.0 - u - v, u, v], -1)
+            wo = gbuffer.wo[sel].float()
+            region = gbuffer.region[sel]
+            fq = _fast.rows(st.frames, vidx)  # (Q, 3, 3, 3)
+            if self.separate:
+                n, R = _fast.reflection(gbuffer.normal[sel].float(), wo)
+                loc = _fast.to_vertex_frames(fq, torch.stack([wo, R], -1))  # (Q, 3, 3, 2): ωo, R per vertex
+            else:
+                loc = _fast.to_vertex_frames(fq, wo[:, :, None])
+            res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc[..., 0], window)
+            if self.separate:
+                res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
+                                                 I1w, self.lobe_sh, c["sh_order"], n, R, wo, region, vidx, bw,
+                                                 loc[..., 1])
+            out[sel] = res
+        self._last_view = (gbuffer.num_samples, gbuffer.face[hit], gbuffer.region[hit])
+        return gbuffer.resolve(out)
+
+    # -- reference path: the stages as written in Sun's notation (the test oracle of the fast path) --
+    def _render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The per-stage reference implementation (slow; kept as the fast path's test oracle)."""
+        H = self._check_frame(frame)
         if self._light is None or "light" in frame.changed or frame.envmap is not self._env:
             self._lighting_stage(frame.envmap)
             self._E = None
@@ -365,7 +483,6 @@ class PTT(Method):
         for a in range(0, hit.numel(), RENDER_CHUNK):
             sel = hit[a:a + RENDER_CHUNK]
             out[sel] = self._shade(vidx[sel], bw[sel], gbuffer.wo[sel].float(), H[gbuffer.region[sel]])
-        self._last_samples = int(hit.numel())
         lobes = self._specular_lobes(gbuffer, H, hit, vidx, bw)
         if lobes is not None:
             out = out + lobes
@@ -412,46 +529,142 @@ class PTT(Method):
             out[sel] = (ak * L).sum(1)
         return out
 
+    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+        """Compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples (the
+        roofline numerators, ``methods.base.FrameCost``): the sums of `cost_terms`."""
+        terms = self.cost_terms(frame_kind, num_samples)
+        if terms is None:
+            return None
+        nbytes, flops = terms
+        return FrameCost(int(sum(nbytes.values())), int(sum(flops.values())))
+
     def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes of the arrays each stage reads or writes per frame (Sun Table 1 stages): "V" =
-        stage 3 only (G-buffer inputs, W tables, E, normals/faces, lobe tables and prefiltered maps,
-        output), "VB" = stages 2–3 (+ E⁰, T¹L, T²L, C, Cu and the E write), "VBL" = all (+ the direct
-        transport, C^L, T¹ (or its compressed factors), T², the lobe prefilters). Per-sample terms
-        use the hit-sample count of the last `render` (0 before the first)."""
-        if frame_kind not in ("V", "VB", "VBL"):
-            raise ValueError(f"frame_kind must be 'V', 'VB' or 'VBL', got {frame_kind!r}")
+        """Deprecated (``benchmarks/ptt.py`` still prints it): `frame_cost` bytes on the last
+        rendered G-buffer's sample count."""
+        cost = self.frame_cost(frame_kind, self._last_view[0] if self._last_view is not None else 0)
+        return None if cost is None else cost.bytes
+
+    def cost_terms(self, frame_kind: str, num_samples: int) -> tuple[dict[str, int], dict[str, int]] | None:
+        """(bytes by array, flops by equation) of one frame; None before `precompute`.
+
+        Stages (Sun Table 1): "V" runs the view stage only; "VB" also the BRDF stage (H products);
+        "VBL" and the lighting kinds "L", "E", "VL" also the lighting stage (L, E, VL keep H, so the
+        per-region tables are not rebuilt). Each array is counted once per frame (a perfect cache):
+        a cache the frame rebuilds counts as its write, one it reuses as the read of the rows the
+        G-buffer references.
+
+        Minimum arithmetic (multiply-add = 2 flops; direction transforms and the interpolations
+        counted, transcendentals / SH polynomials / the env-map cube resampling and Haar transform
+        not — a lower bound):
+        * view, per hit sample: the glossy term of Sun eq. 3 in the reassociated form
+          X(v, r, texel) = Σ_k W_r(texel, k) E_v(k) — at least one bilinear cell (4 texels) per
+          referenced (vertex, region) pair, K·3 MACs each — then 3 vertices × 4 corners × 3 MACs per
+          sample, and ωo in 3 vertex frames (27 MACs); with lobes (§4.1) R in 3 frames (27), a_k by 2
+          θ nodes (2·L·3), E^(k) bilinear (4·L·3), V_c^(k) (3·4·L), and with bounces the SH term
+          (interpolation 3·S·3, Y·I S·3, lobe factors L·order·3), E·V_c + Li·cos (2·L·3), Σ_k (L·3);
+        * BRDF stage (eq. 4), per vertex: Σ_{r,p} H T¹L (R·P·S·3), C^{ωi} (S·K·3), Σ H H T²L
+          ((R·P)²·3), C^{ωi}(k) (K·3), the world-frame rotation of the SH radiance for the lobes
+          (Σ_b (2b+1)²·3); when H changed, the per-region tables D ×_h U^h(H) (R·T²·K·P·3) and lobe
+          weights (R·n_θ·L·P·3);
+        * lighting stage, per vertex: Σ_l C^L U^{I0} (K·n_L·3), T¹ (R·P·S·L1·3; compressed: the
+          per-cluster contractions of ``compress``), T² (L2·(R·P)²·3); the lobe prefilters (nnz·3).
+
+        Referenced rows/pairs and the hit count come from the last `render` on a G-buffer of
+        ``num_samples`` samples; without one, every sample is taken as a hit and every vertex and
+        (vertex, region) pair as referenced (an upper bound of those terms)."""
+        kinds = ("V", "VB", "VBL", "L", "E", "VL")
+        if frame_kind not in kinds:
+            raise ValueError(f"frame_kind must be one of {kinds}, got {frame_kind!r}")
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be an int >= 0, got {num_samples!r}")
         if self.scene is None:
             return None
+        st = self._fast_static()
         c, f4 = self.config, 4
-        nv, K, P, R = int(self.V.shape[0]), self.factors.K, self.factors.n_P, len(self.regions)
-        S, N = c["sh_order"] ** 2, c["cube_res"]
-        Q = self._last_samples
-        E = nv * K * 3 * f4
-        lobe_maps = 0
-        if self.separate:
-            lobe_maps = sum(2 * f.res * 4 * f.res * 3 * f4 for f in self.env_filters if f is not None)
-        I1k = nv * len(c["lobe_degrees"]) * S * 3 * f4 if (self.separate and self.lobe_sh is not None) else 0
-        # stage 3: face, bary, normal, wo, region, hit, output per sample; tables; E; H
-        total = Q * (8 + 8 + 12 + 12 + 8 + 1 + 12) + tensor_bytes(self.factors.W_tab, self.N, self.F) + E
-        total += R * P * 3 * f4
-        if self.separate:
-            total += tensor_bytes(self.lobe_table.a, self.lobe_vis) + lobe_maps + I1k
-            total += self.scene.envmap.data.numel() * f4  # the 0° lobe reads the unfiltered map
-        T1L = nv * R * P * S * 3 * f4 if (self.T1 is not None or self.T1c is not None) else 0
-        T2L = nv * R * P * R * P * 3 * f4 if self.T2 is not None else 0
-        if "B" in frame_kind:  # stage 2
-            total += 2 * E + T1L + T2L + tensor_bytes(self.C, self.Cu) + I1k
-        if "L" in frame_kind:  # stage 1
-            total += tensor_bytes(self.dt.idx, self.dt.val, self.T1, self.T2) + 6 * N * N * 3 * f4 + E + T1L + T2L
-            if self.T1c is not None:
-                total += tensor_bytes(*self.T1c.tensors())
-            if self.separate:
-                for flt in self.env_filters:
-                    if flt is not None:
-                        total += tensor_bytes(flt.kernel.values(), flt.kernel.col_indices(), flt.kernel.crow_indices())
-                        total += 6 * flt.res * flt.res * 3 * f4
-                total += lobe_maps
-        return int(total)
+        nv, nf = int(self.V.shape[0]), int(self.F.shape[0])
+        K, P, R, S, order = self.factors.K, self.factors.n_P, len(self.regions), c["sh_order"] ** 2, c["sh_order"]
+        T = self.factors.W_tab.shape[-1]
+        light = frame_kind in ("VBL", "L", "E", "VL")
+        brdf = "B" in frame_kind
+        lobes = self.separate
+        sh = lobes and self.lobe_sh is not None and (self.T1 is not None or self.T1c is not None)
+        Lb = len(c["lobe_degrees"]) if lobes else 0
+        n_theta = self.lobe_table.theta.shape[0] if lobes else 0
+        if self._last_view is not None and self._last_view[0] == num_samples:
+            faces, regs = self._last_view[1], self._last_view[2]
+            Q = int(faces.numel())
+            ref_faces = int(torch.unique(faces).numel())
+            ref_verts = int(torch.unique(self.F[faces]).numel())
+            ref_pairs = int(torch.unique(st.pair_of[self.F[faces] * R + regs[:, None]]).numel())
+        else:
+            Q, ref_faces, ref_verts, ref_pairs = num_samples, nf, nv, int(st.pair_v.numel())
+        env = self._f_env if self._f_env is not None else self.scene.envmap
+        B, Fl = {}, {}
+        # -- view stage (every frame)
+        B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4  # + region (int64); misses: hit word
+        B["output"] = num_samples * 3 * f4
+        B["faces"] = ref_faces * 3 * self.F.element_size()
+        B["normals"] = ref_verts * 3 * f4
+        rows = {"E": ref_verts * K * 3 * f4, "W_r": R * T * T * K * 3 * f4}
+        if lobes:
+            rows["lobe_visibility"] = min(ref_verts * 4 * Lb * f4, tensor_bytes(self.lobe_vis))  # >= one cell each
+            rows["a_r"] = R * n_theta * Lb * 3 * f4
+            if any(flt is None for flt in self.env_filters):  # the 0° lobe reads the env map itself at R
+                B["env_map"] = min(tensor_bytes(env.data), Q * 4 * 3 * f4)
+            B["prefiltered_maps"] = sum(2 * flt.res * 4 * flt.res * 3 * f4
+                                        for flt in self.env_filters if flt is not None)
+        if sh:
+            rows["I1w"] = ref_verts * S * 3 * f4
+        Fl["view_glossy"] = 2 * (ref_pairs * 4 * K * 3 + Q * 3 * 4 * 3 + Q * 27)
+        if lobes:
+            Fl["view_lobes"] = 2 * Q * (27 + 2 * Lb * 3 + 4 * Lb * 3 + 3 * 4 * Lb + 2 * Lb * 3 + Lb * 3)
+            if sh:
+                Fl["view_lobes_sh"] = 2 * Q * (3 * S * 3 + S * 3 + Lb * order * 3)
+        # -- BRDF stage (H or lighting changed): caches it rebuilds count as their full write
+        if brdf or light:
+            rows["E"] = nv * K * 3 * f4
+            if sh:
+                rows["I1w"] = nv * S * 3 * f4
+                B["sh_rotation"] = nv * sum((2 * b + 1) ** 2 for b in range(order)) * f4
+                Fl["brdf_sh_rotation"] = 2 * nv * sum((2 * b + 1) ** 2 for b in range(order)) * 3
+            B["E0"] = nv * K * 3 * f4
+            Fl["brdf_E"] = 2 * nv * K * 3
+            if self.T1 is not None or self.T1c is not None:
+                B["T1L"] = nv * R * P * S * 3 * f4
+                B["C"] = tensor_bytes(self.C)
+                Fl["brdf_I1"] = 2 * nv * (R * P * S * 3 + S * K * 3)
+            if self.T2 is not None:
+                B["T2L"] = nv * (R * P) ** 2 * 3 * f4
+                B["Cu"] = tensor_bytes(self.Cu)
+                Fl["brdf_I2"] = 2 * nv * ((R * P) ** 2 * 3 + K * 3) + (R * P) ** 2 * 3
+        if brdf:
+            B["W_tables"] = tensor_bytes(self.factors.W_tab)
+            Fl["brdf_W_r"] = 2 * R * T * T * K * P * 3
+            if lobes:
+                B["lobe_weights"] = tensor_bytes(self.lobe_table.a)
+                Fl["brdf_a_r"] = 2 * R * n_theta * Lb * P * 3
+        B.update(rows)
+        # -- lighting stage
+        if light:
+            B["env_map"] = tensor_bytes(env.data)
+            B["direct_transport"] = tensor_bytes(self.dt.idx, self.dt.val)
+            Fl["light_E0"] = 2 * nv * K * self.dt.val.shape[-1] * 3
+            if self.T1 is not None:
+                B["T1"] = tensor_bytes(self.T1)
+                Fl["light_T1"] = 2 * self.T1.numel() * 3
+            elif self.T1c is not None:
+                B["T1_compressed"] = tensor_bytes(*self.T1c.tensors())
+                D = R * P * S
+                Fl["light_T1"] = 2 * 3 * sum(Bc.shape[0] * Bc.shape[1] + A.shape[1] * D * Bc.shape[1] + A.numel() * D
+                                             for A, Bc in zip(self.T1c.A, self.T1c.B))
+            if self.T2 is not None:
+                B["T2"] = tensor_bytes(self.T2)
+                Fl["light_T2"] = 2 * self.T2.numel() * 3
+            if lobes:
+                kern = [flt.kernel for flt in self.env_filters if flt is not None]
+                B["lobe_prefilters"] = sum(tensor_bytes(k.values(), k.col_indices(), k.crow_indices()) for k in kern)
+                Fl["light_prefilter"] = 2 * sum(k.values().numel() for k in kern) * 3
+        return {k: int(v) for k, v in B.items()}, {k: int(v) for k, v in Fl.items()}
 
     def memory(self) -> dict[str, int]:
         if self.scene is None:
@@ -475,4 +688,8 @@ class PTT(Method):
                                    for f in self.env_filters if f is not None)
             if self.lobe_sh is not None:
                 m["lobe_sh"] = tensor_bytes(self.lobe_sh)
+        st = self._fast_static()
+        m["fast_frames_pairs"] = tensor_bytes(st.frames, st.pair_of, st.pair_v, st.pair_r)
+        if st.sh_rot is not None:
+            m["sh_rotation"] = tensor_bytes(st.sh_rot)
         return m

@@ -1,0 +1,306 @@
+"""Batched run time of the PTT method (Sun et al. 2007 eq. 3–4, §4.1) — the same image as the
+per-stage reference path of ``methods.ptt.method`` (`PTT._render_reference`), to float32 round-off,
+with the work arranged for the machine instead of for reading:
+
+Lighting stage (Sun eq. 4, "light" changed):
+* E⁰_x(k) = Σ_l C^L_l U^{I0}_x(l, k) as one ``embedding_bag`` over the kept (index, value) pairs
+  (no (V, K, n_L, 3) gather);
+* T¹L = T¹ ·_l C^L and T²L = T² ·_l C^L as plain GEMMs over the contiguous (…, l) layout
+  (`relayout_t2` stores T² lighting-last once, at precompute; the reference reads a view of it).
+
+BRDF stage ("brdf" or "light" changed), products of H cached for the view stage:
+* the per-region view tables W_r(ωo, k, c) = Σ_p H(r, p, c) W(p, ωo, k) — Sun eq. 3's
+  D ×_h U^h(H) — and lobe weights a_k(r, θo, c) = Σ_p H(r, p, c) a_k^p(θo) (§4.1);
+* E_x(k) (U^{I0} + U^{I1} + U^{I2}) and the one-bounce SH radiance rotated to the world frame,
+  I1w_x = M(F_xᵀ) I1_x (``methods.core.sh_rotation``; exact for band-limited SH), so the §4.1
+  lobes' SH term is interpolated over the triangle *before* evaluation — one SH evaluation at the
+  world reflection direction per sample instead of one per vertex frame.
+
+View stage (every frame), per hit sample and vertex v of its triangle:
+* glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
+  Σ_corners w X(v, r, corner) with X(v, r, t) = Σ_k W_r(t, k) E_v(k). X is formed once per frame
+  on a WINDOW×WINDOW texel window per (vertex, region) pair around the camera's direction from the
+  vertex (`view_windows`); the sample–vertex entries whose bilinear cell lies in the window are
+  one ``embedding_bag`` (12 weighted rows per sample), the rest (a few near silhouettes / on large
+  triangles) are evaluated exactly from W_r and E (`_glossy_outliers`). The window only decides
+  *where* the sum is formed, never its terms;
+* lobes: a_k by a 2-row bag over the region tables, the prefiltered maps E^(k)(R) as the
+  reference, V_c^(k) as a 12-row bag over the per-vertex tables (stored texel-major), and the SH
+  term from the 3-row bag of I1w.
+
+Everything is plain torch on the device of the precomputed arrays.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as Fnn
+from torch import Tensor
+
+from methods.core import sh as _sh
+from methods.core.frames import frame_matrix, reflect
+from methods.core.sh_rotation import sh_rotation_matrix
+from methods.ptt.transport import table_coords
+
+__all__ = ["FastStatic", "build_static", "relayout_t2", "direct_incidence", "region_tables", "brdf_products",
+           "view_windows", "shade", "specular_lobes", "WINDOW"]
+
+# Side of the per-(vertex, region) texel window of the glossy term (`view_windows`; at most the
+# table size): a sample's bilinear cell may sit ±(WINDOW − 2)/2 texels from the anchor and still be
+# read from the window (the rest take the exact per-entry path).
+WINDOW = 4
+
+
+@dataclass
+class FastStatic:
+    """View- and lighting-independent arrays of the fast path (built once after precompute).
+
+    frames: (V, 3, 3) vertex frame matrices (rows s, t, n; ``core.frames.frame_matrix``).
+    pair_of: (V·R,) int64 index of the (vertex, region) pair v·R + r (−1: no face of region r
+        touches v); pair_v, pair_r: (n_pairs,) its vertex and region.
+    sh_rot: (V, S, S) block-diagonal SH rotation local → world per vertex, or None.
+    """
+
+    frames: Tensor
+    pair_of: Tensor
+    pair_v: Tensor
+    pair_r: Tensor
+    sh_rot: Tensor | None
+
+    def tensors(self) -> list[Tensor]:
+        return [t for t in (self.frames, self.pair_of, self.pair_v, self.pair_r, self.sh_rot) if t is not None]
+
+
+def build_static(N: Tensor, F: Tensor, face_region: Tensor, n_regions: int, sh_order: int | None) -> FastStatic:
+    """`FastStatic` of a mesh: N (V, 3) unit vertex normals, F (M, 3) faces, face_region (M,);
+    sh_order: order of the per-vertex SH rotations (None: not needed)."""
+    nv, dev = N.shape[0], N.device
+    frames = frame_matrix(N.float())
+    key = (F.long() * n_regions + face_region.long()[:, None]).reshape(-1)
+    used = torch.zeros(nv * n_regions, dtype=torch.bool, device=dev)
+    used[key] = True
+    pairs = torch.nonzero(used).squeeze(-1)
+    pair_of = torch.full((nv * n_regions,), -1, dtype=torch.int64, device=dev)
+    pair_of[pairs] = torch.arange(pairs.numel(), device=dev)
+    sh_rot = None
+    if sh_order is not None:
+        # local coefficients c: f(d_world) = Σ c_s Y_s(F d_world) = f'(d) with f'(d) = f(Rᵀ d), R = Fᵀ
+        sh_rot = sh_rotation_matrix(frames.double().transpose(1, 2), sh_order).float()
+    return FastStatic(frames, pair_of, pairs // n_regions, pairs % n_regions, sh_rot)
+
+
+def relayout_t2(T2: Tensor) -> Tensor:
+    """T² (V, L2, R, P, R, P) → the same values stored lighting-last, returned as a (V, L2, R, P, R, P)
+    view of that storage (so `T2.permute(0, 2, 3, 4, 5, 1)` is contiguous)."""
+    return T2.permute(0, 2, 3, 4, 5, 1).contiguous().permute(0, 5, 1, 2, 3, 4)
+
+
+# -- lighting / BRDF stages -------------------------------------------------------------------------
+
+
+def direct_incidence(idx: Tensor, val: Tensor, CL: Tensor) -> Tensor:
+    """E⁰_x(k) = Σ_n val[x, k, n] C^L[idx[x, k, n]]: idx, val (V, K, n_L); CL (6N², 3) → (V, K, 3)."""
+    nv, K, nL = val.shape
+    out = Fnn.embedding_bag(idx.reshape(nv * K, nL), CL, per_sample_weights=val.reshape(nv * K, nL), mode="sum")
+    return out.reshape(nv, K, 3)
+
+
+def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """Products of the BRDF coordinates H (R, P, 3) cached for the view stage:
+    W_r (R·T², K·3) rows (r, texel) of Σ_p H(r, p, c) W(p, ·, k) (W_tab (P·K, T, T)), and
+    a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None."""
+    R, P, _ = H.shape
+    T2 = W_tab.shape[-1] * W_tab.shape[-2]
+    Wr = torch.einsum("rpc,pkt->rtkc", H, W_tab.reshape(P, K, T2)).reshape(R * T2, K * 3)
+    ar = None
+    if lobe_a is not None:
+        n, L = lobe_a.shape[1:]
+        ar = torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * n, L * 3)
+    return Wr.contiguous(), ar
+
+
+def brdf_products(H: Tensor, E0: Tensor, T1L: Tensor | None, C: Tensor | None, T2L: Tensor | None,
+                  Cu: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """Sun eq. 4 for the current H (R, P, 3): E (V, K, 3) = E⁰ + Σ_s C(s, k) I1(s) + C_u(k) I2 and
+    the one-bounce SH radiance I1 (V, S, 3) (None without bounces).
+    T1L (V, R·P, S, 3); C (S, K); T2L (V, (R·P)², 3); Cu (K,)."""
+    E, I1 = E0, None
+    Hf = H.reshape(-1, 3)
+    if T1L is not None:  # U^{I1}
+        I1 = torch.einsum("xc,vxsc->vsc", Hf, T1L)
+        E = E + torch.einsum("sk,vsc->vkc", C, I1)
+    if T2L is not None:  # U^{I2}
+        HH = (Hf[:, None, :] * Hf[None, :, :]).reshape(-1, 3)
+        I2 = torch.einsum("vxc,xc->vc", T2L, HH)
+        E = E + Cu[None, :, None] * I2[:, None, :]
+    return E, I1
+
+
+# -- view stage -------------------------------------------------------------------------------------
+
+
+def rows(t: Tensor, idx: Tensor) -> Tensor:
+    """t[idx] for an integer index of any shape, as one ``index_select`` along dim 0 (faster than
+    advanced indexing on CPU)."""
+    return torch.index_select(t, 0, idx.reshape(-1)).reshape(*idx.shape, *t.shape[1:])
+
+
+def _bilinear(uv: Tensor, T: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Texel-centred bilinear cell of table coordinates uv (..., 2) on a T×T table, border-clamped
+    like ``grid_sample(align_corners=False, padding_mode="border")`` (and
+    ``specular.lookup_vertex_tables``): column, row of the top-left corner (int64) and the
+    fractions tx, ty."""
+    x = ((uv + 1.0) * (T / 2.0) - 0.5).clamp(0.0, T - 1.0)
+    i0 = x.floor().long().clamp(max=T - 2)
+    t = x - i0.to(x.dtype)
+    return i0[..., 0], i0[..., 1], t[..., 0], t[..., 1]
+
+
+def _corner_weights(tx: Tensor, ty: Tensor, w: Tensor) -> list[Tensor]:
+    """Weights w·bilinear of the corners (dx, dy) = (0,0), (1,0), (0,1), (1,1), four tensors of tx's shape."""
+    a, b = (1 - tx) * w, tx * w
+    return [a * (1 - ty), b * (1 - ty), a * ty, b * ty]
+
+
+def _bilinear_bag(table: Tensor, base: Tensor, T: int, wc: list[Tensor]) -> Tensor:
+    """Σ_{rows j, corners} wc[corner][q, j] table[base[q, j] + corner offset]: base (Q, m) flat index
+    of the top-left corner in a row-major T-wide table (T·rows, C) → (Q, C); one bag per corner."""
+    out = None
+    for off, w in zip((0, 1, T, T + 1), wc):
+        o = Fnn.embedding_bag(base + off if off else base, table, per_sample_weights=w, mode="sum")
+        out = o if out is None else out + o
+    return out
+
+
+def to_vertex_frames(frames_q: Tensor, d: Tensor) -> Tensor:
+    """Directions d (Q, 3, m) (m column vectors) in the frames (Q, 3, 3, 3) of each sample's 3
+    vertices → (Q, 3, 3, m): [q, j, :, i] = frame_j @ d[q, :, i] (``core.frames.to_local``)."""
+    Q, m = d.shape[0], d.shape[-1]
+    return torch.bmm(frames_q.reshape(Q, 9, 3), d).reshape(Q, 3, 3, m)
+
+
+def latlong_lookup(maps: list, d: Tensor) -> Tensor:
+    """``EnvMap.radiance`` of several maps at the same world directions d (Q, 3) → (Q, len(maps), 3),
+    the lat-long coordinates computed once per distinct map rotation (``scenes.envmap.bilinear_lookup``)."""
+    from scenes.envmap import direction_to_uv, extend_periodic
+
+    out, uv = [], {}
+    for e in maps:
+        key = e.to_world.to(d).flatten().tolist()
+        if tuple(key) not in uv:
+            uv[tuple(key)] = direction_to_uv(e.to_local(d))
+        u, v = uv[tuple(key)]
+        H, W, _ = e.data.shape
+        if (d.device, d.dtype) not in e._ext:
+            e._ext[(d.device, d.dtype)] = extend_periodic(e.data.to(d.device, d.dtype))
+        u = u - 0.5 / W
+        u = u - torch.floor(u)
+        v = v - torch.floor(v)
+        x, y = u * W, v * (H - 1)
+        ix = x.to(torch.int64).clamp(max=W - 1)
+        iy = y.to(torch.int64).clamp(max=H - 2)
+        idx = iy * (W + 1) + ix
+        ext = e._ext[(d.device, d.dtype)]
+        wc = _corner_weights(x - ix, y - iy, torch.ones_like(x))
+        out.append(sum(w[:, None] * rows(ext, idx + o) for w, o in zip(wc, (0, 1, W + 1, W + 2))))
+    return torch.stack(out, 1)
+
+
+def view_windows(st: FastStatic, V: Tensor, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
+                 window: int = WINDOW) -> tuple[Tensor, Tensor, Tensor]:
+    """Per (vertex, region) pair: the window's first column/row (n_pairs,) int64 and
+    X (n_pairs·window², 3) = Σ_k W_r(texel, k, c) E_v(k, c) on its texels (row-major in the window).
+    The window is centred on the bilinear cell of the direction from the vertex to cam_origin (3,)."""
+    v, r = st.pair_v, st.pair_r
+    d = cam_origin[None, :] - rows(V, v)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    loc = torch.einsum("nab,nb->na", rows(st.frames, v), d)
+    ix, iy, _, _ = _bilinear(table_coords(loc), T)
+    h = (window - 2) // 2
+    ax = (ix - h).clamp(0, T - window)
+    ay = (iy - h).clamp(0, T - window)
+    o = torch.arange(window, device=V.device)
+    tex = (ay[:, None, None] + o[None, :, None]) * T + ax[:, None, None] + o[None, None, :]  # (n, w, w)
+    idx = (r[:, None, None] * (T * T) + tex).reshape(v.numel(), window * window)
+    X = (rows(Wr, idx).reshape(v.numel(), window * window, K, 3) * rows(E, v).reshape(-1, 1, K, 3)).sum(2)
+    return ax, ay, X.reshape(-1, 3)
+
+
+def shade(st: FastStatic, win: tuple[Tensor, Tensor, Tensor], Wr: Tensor, E: Tensor, T: int, K: int,
+          vidx: Tensor, bw: Tensor, region: Tensor, loc_wo: Tensor, window: int = WINDOW) -> Tensor:
+    """Glossy part of Sun eq. 3 at hit samples (module docstring): vidx, bw (Q, 3); region (Q,);
+    loc_wo (Q, 3, 3) ωo in each vertex's frame → (Q, 3), clamped at 0 like the reference."""
+    ax, ay, X = win
+    nR = st.pair_of.numel() // st.frames.shape[0]
+    ix, iy, tx, ty = _bilinear(table_coords(loc_wo), T)  # (Q, 3)
+    w = bw * (loc_wo[..., 2] > 0).to(bw.dtype)
+    pair = rows(st.pair_of, vidx * nR + region[:, None])  # (Q, 3)
+    p = pair.clamp_min(0)
+    dx, dy = ix - rows(ax, p), iy - rows(ay, p)
+    inside = (pair >= 0) & (dx >= 0) & (dx <= window - 2) & (dy >= 0) & (dy <= window - 2)
+    base = p * (window * window) + dy.clamp(0, window - 2) * window + dx.clamp(0, window - 2)
+    out = _bilinear_bag(X, base, window, _corner_weights(tx, ty, w * inside.to(w.dtype)))
+    miss = torch.nonzero(~inside & (w != 0))
+    if miss.numel():
+        q, j = miss[:, 0], miss[:, 1]
+        wc = torch.stack(_corner_weights(tx[q, j], ty[q, j], w[q, j]), -1)
+        out.index_add_(0, q, _glossy_outliers(Wr, E, T, K, vidx[q, j], region[q], ix[q, j], iy[q, j], wc))
+    return out.clamp_min(0.0)
+
+
+def _glossy_outliers(Wr: Tensor, E: Tensor, T: int, K: int, v: Tensor, r: Tensor, ix: Tensor, iy: Tensor,
+                     wc: Tensor) -> Tensor:
+    """The glossy term of sample–vertex entries outside their window, straight from W_r and E:
+    v, r, ix, iy (n,); wc (n, 4) corner weights → (n, 3)."""
+    base = r * (T * T) + iy * T + ix
+    Wi = (wc[:, 0, None] * rows(Wr, base) + wc[:, 1, None] * rows(Wr, base + 1)
+          + wc[:, 2, None] * rows(Wr, base + T) + wc[:, 3, None] * rows(Wr, base + T + 1))
+    return (Wi.reshape(-1, K, 3) * rows(E, v).reshape(-1, K, 3)).sum(1)
+
+
+def reflection(normal: Tensor, wo: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit shading normal n and mirror direction R = reflect(wo, n) (Q, 3) each, as the reference."""
+    n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    R = reflect(wo, n)
+    return n, R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tensor, Tv: int,
+                   I1w: Tensor | None, lobe_sh: Tensor | None, order: int, n: Tensor, R: Tensor, wo: Tensor,
+                   region: Tensor, vidx: Tensor, bw: Tensor, Rl: Tensor) -> Tensor:
+    """Sun §4.1 separated lobes at hit samples (``specular`` docstring; the reference is
+    `PTT._specular_lobes`): Σ_k a_k(H, θo) [E^(k)(R) Σ_v β_v V_c^(k)(v, R) + max(0, n·R) L1^(k)(R)].
+
+    ar (R·n_θ, L·3) region lobe weights; Ek: L prefiltered maps; lobe_vis_rows (V·Tv², L);
+    I1w (V, 3·S) world-frame one-bounce SH radiance (channel-major) or None; lobe_sh (L, order) Funk–Hecke factors;
+    n, R (Q, 3) from `reflection`; wo (Q, 3); region (Q,); vidx, bw (Q, 3); Rl (Q, 3, 3) R in each
+    vertex's frame. Returns (Q, 3)."""
+    Q = wo.shape[0]
+    L = len(Ek)
+    cos_o = (n * wo).sum(-1)
+    # a_k(H, θo): linear in θo over the nodes (specular.lobe_weights), per region
+    nt = lobe_theta_n
+    th = torch.acos(cos_o.clamp(-1.0, 1.0))
+    x = (th / (math.pi / 2) * nt - 0.5).clamp(0.0, nt - 1.0)
+    i0 = x.floor().long().clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=torch.long)
+    t = x - i0.to(x.dtype)
+    up = (cos_o > 0).to(t.dtype)
+    r0 = region * nt
+    ak = rows(ar, r0 + i0) * ((1 - t) * up)[:, None] + rows(ar, r0 + (i0 + 1).clamp(max=nt - 1)) * (t * up)[:, None]
+    ak = ak.reshape(Q, L, 3)
+    Erad = latlong_lookup(Ek, R)  # (Q, L, 3)
+    # V_c^(k): per-vertex tables at R in each vertex's frame, interpolated over the triangle
+    ix, iy, tx, ty = _bilinear(table_coords(Rl), Tv)
+    wc = _corner_weights(tx, ty, bw * (Rl[..., 2] > 0).to(bw.dtype))
+    Vc = _bilinear_bag(lobe_vis_rows, vidx * (Tv * Tv) + iy * Tv + ix, Tv, wc)  # (Q, L)
+    Lk = Erad * Vc[..., None]
+    if I1w is not None:  # one-bounce SH radiance, lobe-prefiltered, evaluated at R (world frame)
+        S = order * order
+        I = Fnn.embedding_bag(vidx, I1w, per_sample_weights=bw, mode="sum").reshape(Q, 3, S)
+        IY = (I * _sh.sh_eval(R, order)[:, None, :]).reshape(Q * 3, S)
+        band = torch.cat([torch.full((2 * b + 1,), b, device=wo.device) for b in range(order)])
+        Li = (IY @ lobe_sh[:, band].T).reshape(Q, 3, L).transpose(1, 2)  # Σ_s f(l, band s) Y_s I_s
+        Lk = Lk + Li.clamp_min(0.0) * (n * R).sum(-1).clamp_min(0.0)[:, None, None]
+    return (ak * Lk).sum(1)

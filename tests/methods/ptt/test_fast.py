@@ -1,0 +1,149 @@
+"""The PTT fast run-time path (``methods.ptt.fast``) against the reference path it replaced
+(`PTT._render_reference`, the per-stage code kept as the oracle), and the cost model
+(`PTT.frame_cost` / `cost_terms`) against a hand count from the arrays' shapes.
+
+Tiny precompute settings (4 rays, 6×4×4 cube, K = 4, order-2 SH): this is about the run-time
+arithmetic, not accuracy, so every library scene stays within a few seconds.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost, tensor_bytes
+from methods.core import sh as _sh
+from methods.ptt.method import PTT
+from references.gbuffer import make_gbuffer
+from scenes.library import SCENES, get_scene
+from scenes.sequences import make_sequence
+
+TINY = dict(rays=4, cube_res=4, n_wi=4, brdf_grid=8, brdf_table=8, light_res_1=2, light_res_2=1, n_L=16,
+            lobe_fit_samples=256, lobe_vis_samples=128, lobe_vis_res=4, env_res=4, lobe_theta=4, sh_order=2)
+# Per scene: which run-time branches it exercises besides the default (2 bounces, lobes, dense T¹).
+VARIANTS = {"sphere_plane": {}, "chess": dict(sh_order=3), "alcove": dict(separate=False),
+            "shadow_detail": dict(bounces=1), "creature": dict(bounces=0),
+            "bunny": dict(compress=dict(clusters=1, eigenvectors=4, light_dim=6)),
+            "dragon": dict(brdf_table=3),  # a view table smaller than the window
+            "character": {}}
+KINDS = ("V", "VB", "VBL", "L", "E")
+
+
+def _small(frame, side=32):
+    """The frame seen by a side×side camera (same view)."""
+    return dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=side, height=side))
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_fast_path_equals_reference(name):
+    """Every library scene PTT accepts, V / VB / VBL / L / E sequences rendered in order (so the
+    caches of both paths are exercised): the fast image equals the reference to float32 round-off."""
+    scene = get_scene(name, "test")
+    if PTT.capabilities.why_not(scene, "VBL", 0) is not None:
+        pytest.skip(PTT.capabilities.why_not(scene, "VBL", 0))
+    m = PTT(**{**TINY, **VARIANTS[name]})
+    m.precompute(scene)
+    kinds = KINDS if name in ("chess", "alcove") else ("V", "VB", "VBL")
+    for kind in kinds:
+        for frame in make_sequence(scene, kind, n_frames=2, seed=3):
+            frame = _small(frame)
+            gb = make_gbuffer(scene, frame, 1)
+            fast, ref = m.render(frame, gb), m._render_reference(frame, gb)
+            scale = float(ref.abs().max())
+            assert scale > 0
+            torch.testing.assert_close(fast, ref, rtol=1e-5, atol=2e-6 * max(scale, 1.0),
+                                       msg=lambda s: f"{name} {kind} frame {frame.index}: {s}")
+
+
+def test_world_frame_sh_equals_local_evaluation():
+    """The lobes' SH term is evaluated in the world frame: Σ_s I1w(s) Y_s(R) = Σ_s I1(s) Y_s(F R)
+    for the rotation built per vertex (``fast.build_static``)."""
+    from methods.ptt.fast import build_static
+
+    g = torch.Generator().manual_seed(0)
+    N = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
+    F = torch.tensor([[0, 1, 2]])
+    st = build_static(N, F, torch.zeros(1, dtype=torch.int64), 1, 4)
+    I1 = torch.randn(50, 16, 3, generator=g)
+    R = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
+    local = torch.einsum("vab,vb->va", st.frames, R)
+    ref = (I1 * _sh.sh_eval(local, 4)[..., None]).sum(1)
+    got = (torch.bmm(st.sh_rot, I1) * _sh.sh_eval(R, 4)[..., None]).sum(1)
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    scene = get_scene("sphere_plane", "test")
+    m = PTT(**TINY)
+    m.precompute(scene)
+    frame = _small(make_sequence(scene, "V", n_frames=1, seed=0)[0], 24)
+    gb = make_gbuffer(scene, frame, 1)
+    return m, frame, gb
+
+
+def test_frame_cost_is_the_hand_count(tiny):
+    """flops and bytes of every frame kind re-derived here from the arrays' shapes."""
+    m, frame, gb = tiny
+    assert m.frame_cost("V", gb.num_samples) is not None
+    m.render(frame, gb)
+    nv = m.V.shape[0]
+    R, P, K = len(m.regions), m.factors.n_P, m.factors.K
+    S, order, L = m.C.shape[0], 2, len(m.config["lobe_degrees"])
+    T, nt = m.factors.W_tab.shape[-1], m.lobe_table.theta.shape[0]
+    hit = torch.nonzero(gb.hit).squeeze(-1)
+    Q, P_all = hit.numel(), gb.num_samples
+    faces = gb.face[hit]
+    verts = torch.unique(m.F[faces]).numel()
+    pairs = torch.unique(m.F[faces] * R + gb.region[hit][:, None]).numel()
+    blocks = 1 + 9  # Σ_b (2b+1)² for order 2
+    # view stage: glossy (X on >= 4 texels per pair, 12 corners·3 per sample, 27 frame MACs),
+    # lobes (frames 27, a_k 2L·3, E^(k) 4L·3, V_c 12L, E·V_c + Li·cos 2L·3, Σ_k L·3), SH term
+    view = 2 * (pairs * 4 * K * 3 + Q * (36 + 27)) + 2 * Q * (27 + 6 * L + 12 * L + 12 * L + 6 * L + 3 * L) \
+        + 2 * Q * (9 * S + 3 * S + 3 * L * order)
+    brdf = 2 * nv * (R * P * S * 3 + S * K * 3) + 2 * nv * ((R * P) ** 2 * 3 + 3 * K) + (R * P) ** 2 * 3 \
+        + 2 * nv * K * 3 + 2 * nv * blocks * 3
+    tables = 2 * R * T * T * K * P * 3 + 2 * R * nt * L * P * 3
+    nnz = sum(f.kernel.values().numel() for f in m.env_filters if f is not None)
+    L1, L2 = 6 * 2 ** 2, 6 * 1 ** 2  # light_res_1 = 2, light_res_2 = 1
+    light = 2 * nv * K * 16 * 3 + 2 * 3 * nv * R * P * S * L1 + 2 * 3 * nv * L2 * (R * P) ** 2 + 2 * 3 * nnz
+    assert m.frame_cost("V", P_all).flops == view
+    assert m.frame_cost("VB", P_all).flops == view + brdf + tables
+    assert m.frame_cost("VBL", P_all).flops == view + brdf + tables + light
+    assert m.frame_cost("L", P_all).flops == m.frame_cost("E", P_all).flops == view + brdf + light
+    # bytes: G-buffer + output + referenced rows (V); a rebuilt cache counts its whole write
+    f4 = 4
+    gbuf = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P_all - Q) * 4 + P_all * 12
+    maps = sum(2 * f.res * 4 * f.res * 3 * f4 for f in m.env_filters if f is not None)
+    envb = min(m.scene.envmap.data.numel() * f4, Q * 48)
+    v_bytes = gbuf + torch.unique(faces).numel() * 24 + verts * 12 + verts * K * 12 + R * T * T * K * 12 \
+        + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + R * nt * L * 12 + envb + maps + verts * S * 12
+    assert m.frame_cost("V", P_all).bytes == v_bytes
+    vb = m.cost_terms("VB", P_all)[0]
+    assert vb["E"] == nv * K * 12 and vb["T1L"] == nv * R * P * S * 12 and vb["T2L"] == nv * (R * P) ** 2 * 12
+    vbl = m.cost_terms("VBL", P_all)[0]
+    assert vbl["T1"] == tensor_bytes(m.T1) and vbl["T2"] == tensor_bytes(m.T2)
+    assert vbl["direct_transport"] == tensor_bytes(m.dt.idx, m.dt.val)
+
+
+def test_frame_cost_bytes_bounded_by_the_arrays_read(tiny):
+    """No padding: a frame's bytes never exceed G-buffer + output + every run-time array and cache."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    E0, T1L, T2L, Ek = m._f_light
+    caches = tensor_bytes(E0, T1L, T2L, *m._f_tabs, *[t for t in m._f_E if t is not None], *[e.data for e in Ek])
+    everything = sum(m.memory().values()) + caches + tensor_bytes(m.scene.envmap.data) \
+        + gb.num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12)
+    costs = [m.frame_cost(k, gb.num_samples) for k in KINDS]
+    assert all(isinstance(c, FrameCost) for c in costs)
+    assert all(0 < c.bytes <= everything for c in costs)
+    v, vb, vbl = costs[:3]
+    assert v.bytes < vb.bytes < vbl.bytes and v.flops < vb.flops < vbl.flops
+
+
+def test_frame_cost_validates_and_needs_precompute():
+    assert PTT().frame_cost("V", 10) is None
+    for kind, n in (("X", 10), ("P", 10), ("V", -1), ("V", 1.5)):
+        with pytest.raises(ValueError):
+            PTT().frame_cost(kind, n)
