@@ -42,27 +42,8 @@ time (eq. 3's k), i.e. what a shinier material costs per vertex. Error measure: 
 four per-vertex fractional visibilities — and are not counted in the terms; the note says so).
 Two contributors: ``ptt`` (no separation) and ``ptt_separated``.
 
-Measured 2026-11-22 (alcove/test: 1014 vertices, 1 cluster; ``BASE_CONFIG`` with the PTT's
-default separated lobes — numbers without them, measured earlier the same day, in brackets;
-256-spp references):
-
-* Fig. 8, n₁ = 1, 2, 4, 8, 16 (= cube_res, "full"): RMSE vs the full image 4.5e-3, 1.8e-3, 4.6e-4,
-  1.0e-4, 0 (19 %, 7.6 %, 1.9 %, 0.42 % of the mean indirect radiance 0.024) [4.6e-3 … 9.8e-5];
-  indirect part vs Mitsuba's 0.0078, 0.0064, 0.0061, 0.0061, 0.0061 (its floor 0.0048);
-  direct + 1 vs Mitsuba 0.0133, 0.0127, 0.0127, 0.0127, 0.0127 [0.0146 … 0.0140] (floor 0.0107).
-  The error flattens from 6×4×4 on; the paper calls 6×4×4 too low because of a caustic, which
-  alcove does not have.
-* Fig. 9 (n₁ = 8, L = 384): ‖T¹ − T̂¹‖²/‖T¹‖² at 32/64 (paper) 0.070 [0.073], 64/64 0.024
-  [0.028], full/64 1.6e-3 [2.2e-3], 32/full 0.069 [0.073], full/full 1e-15: along the lighting
-  axis the error saturates at m ≈ 32–64 for e <= 64.
-* Fig. 10 (n₁ = 8): image RMSE vs dense T¹ 8/64 3.5e-3, 16/64 2.3e-3, 32/16 1.3e-3, 32/32 1.2e-3,
-  32/64 1.2e-3, 32/96 1.2e-3, 64/64 8.5e-4, full 1.4e-8 [4.4e-3, 3.7e-3, 3.2e-3, 2.7e-3, 2.7e-3,
-  2.7e-3, 1.2e-3, 2e-8]; vs Mitsuba 0.0133 … 0.0126 (dense 0.0127): eigenvectors matter, lighting
-  dimensions >= 32 do not (Sun §4.3).
-* Terms (rel_sq_err <= 1 %), s = 1, 2, 4, 8, 16, 32, 64: n_ωi = 3, 3, 5, 7, 13, 24, 48 without
-  separation, 39, 47, 56, 66, 77, 86, 91 with it; at s = 256: 217 vs 56. The separated Gaussian
-  lobes (σ <= 7°) are narrower than every Blinn–Phong lobe of the ladder, so on it separation
-  leaves a narrow, high-rank remainder; it pays beyond s ≈ 128.
+The measured numbers of every figure are in the README ("PTT figures") and pinned in
+tests/methods/ptt/test_ptt_study.py; they are not repeated here.
 """
 from __future__ import annotations
 
