@@ -23,7 +23,9 @@ RTOL = 2e-5
 # Small configs: the property under test is independent of the term counts.
 CONFIGS = {
     "inout": {"terms": 8},
-    "ptt": {"separate": False},
+    "ptt": dict(bounces=1, n_wi=4, brdf_grid=8, brdf_table=16, cube_res=8, light_res_1=2, rays=16,
+                lobe_fit_samples=1024, lobe_vis_samples=256, lobe_vis_res=4, lobe_theta=4, env_res=8,
+                lobe_degrees=[0, 14]),  # one bounce and separated lobes: every lighting path runs
     "triple_product": {"level": 2},
     "zh_shadow": {},
     "sh_prt": {"order": 4, "bounces": 0, "rays": 16},
