@@ -329,44 +329,46 @@ class ZHShadow(Method):
                 sel = (reg == r).nonzero().squeeze(-1)
                 wo = cam - V[sel]
                 wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                n_spec += self._shade_group(rad, sel, v[sel], N[sel], wo, light, lkey, kd, ks, al)
+                n_spec += self._shade_group(rad, sel, v[sel].T, N[sel].T, wo.T, light, lkey, kd, ks, al)
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F.to(dev))
             self._last_counts = (gbuffer.num_samples, int(geom.num_vertices), n_spec)
         else:
             F = geom.F.to(dev)
+            vT = v.T.contiguous()                                                 # (n², N)
             hits = gbuffer.hit.nonzero().squeeze(-1)
-            reg = gbuffer.region[hits]
+            reg = gbuffer.region.index_select(0, hits)
             for r, (kd, ks, al) in enumerate(mats):
                 h = hits[reg == r]
-                if h.numel() == 0:
-                    continue
-                vi = F[gbuffer.face[h]]                                           # (Q, 3) vertex ids
-                u, w2 = gbuffer.bary[h].unbind(-1)
-                wts = torch.stack([1.0 - u - w2, u, w2], -1)                      # barycentric weights
-                vs = (v[vi] * wts[..., None]).sum(1)                              # (Q, n²) interpolated eq. 1
-                n_spec += self._shade_group(out, h, vs, gbuffer.normal[h], gbuffer.wo[h], light, lkey, kd, ks, al)
+                for a in range(0, h.shape[0], rt.CHUNK):
+                    hq = h[a:a + rt.CHUNK]
+                    vi = F.index_select(0, gbuffer.face.index_select(0, hq)).T         # (3, Q) vertex ids
+                    u, w2 = gbuffer.bary.index_select(0, hq).T                         # barycentrics
+                    vsT = vT.index_select(1, vi[0]) * (1.0 - u - w2) + vT.index_select(1, vi[1]) * u \
+                        + vT.index_select(1, vi[2]) * w2                               # (n², Q) interpolated eq. 1
+                    n_spec += self._shade_group(out, hq, vsT, gbuffer.normal.index_select(0, hq).T,
+                                                gbuffer.wo.index_select(0, hq).T, light, lkey, kd, ks, al)
             if self.config["clamp"]:   # per shaded sample, before the pixel resolve
                 out = out.clamp_min(0.0)
             self._last_counts = (gbuffer.num_samples, int(hits.numel()), n_spec)
         return gbuffer.resolve(out)
 
-    def _shade_group(self, out: Tensor, idx: Tensor, v: Tensor, normal: Tensor, wo: Tensor, light: Tensor, lkey,
+    def _shade_group(self, out: Tensor, idx: Tensor, vT: Tensor, nT: Tensor, woT: Tensor, light: Tensor, lkey,
                      kd: Tensor, ks: Tensor, alpha: float) -> int:
-        """out[idx] = kd · diffuse + ks · specular (0 where n·ωo ≤ 0) for points of one material;
-        returns the number of points with a specular term. v (Q, n²), normal/wo (Q, 3) unit."""
+        """out[idx] = kd · diffuse + ks · specular (0 where n·ωo ≤ 0) for Q points of one material;
+        returns the number of points with a specular term. vT (n², Q), nT/woT (3, Q) unit."""
         dev = out.device
         Wd = self._table(light, lkey, 1.0, True).to(dev)
         spec = bool((ks > 0).any())
         Ws = self._table(light, lkey, alpha, False).to(dev) if spec else None
-        kd, ks = kd.to(dev), ks.to(dev)
+        kd, ks = kd.to(dev)[:, None], ks.to(dev)[:, None]
         for a in range(0, idx.shape[0], rt.CHUNK):
             s = slice(a, a + rt.CHUNK)
-            d, sp = rt.shade_terms(v[s], normal[s], wo[s], Wd, Ws)
-            rad = kd * d if sp is None else kd * d + ks * sp
-            front = (normal[s] * wo[s]).sum(-1, keepdim=True) > 0
-            out[idx[s]] = torch.where(front, rad, torch.zeros_like(rad))
+            d, sp = rt.shade_terms(vT[:, s], nT[:, s], woT[:, s], Wd, Ws)
+            rad = kd * d if sp is None else kd * d + ks * sp                       # (3, Q)
+            front = (nT[:, s] * woT[:, s]).sum(0) > 0
+            out.index_copy_(0, idx[s], torch.where(front, rad, torch.zeros_like(rad)).T)
         return int(idx.shape[0]) if spec else 0
 
     def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -89,42 +89,68 @@ def monomial_basis(order: int, diffuse: bool) -> tuple[Tensor, Tensor, Tensor]:
 
 
 @functools.lru_cache(maxsize=None)
-def _chain(order: int, diffuse: bool) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
-    """Index tables to build every monomial of degree k from degree k−1 times one coordinate, and
-    the selection of `monomial_basis`'s features from the concatenated levels."""
-    et, _, _ = monomial_basis(order, diffuse)
-    D = 2 * order - 2
-    levels = [_monos(1)]
+def _plan(order: int, diffuse: bool) -> tuple[list[tuple[Tensor, Tensor]], list[tuple[int, int, Tensor, Tensor]]]:
+    """How `features` builds the monomials of `monomial_basis` with few batched products.
+
+    steps: degree k (2..h, h = n−1) from degree k−1 times one coordinate (row indices I, J);
+    blocks: (deg_a, deg_b, I, J): the final rows, in `monomial_basis` order, as products of a
+    degree-deg_a row I and a degree-deg_b row J (degree 2n−2 = h + h, 2n−3 = (h−1) + h; degree 1
+    for the diffuse features is the direction itself, deg_b = 0).
+    """
+    h = order - 1
+    levels = {1: _monos(1)}
     steps = []
-    for deg in range(2, D + 1):
-        cur = _monos(deg)
+    for deg in range(2, h + 1):
         I, J = [], []
-        for e in cur:
+        for e in _monos(deg):
             j = next(q for q in range(3) if e[q] > 0)
             f = list(e)
             f[j] -= 1
-            I.append(levels[-1].index(tuple(f)))
+            I.append(levels[deg - 1].index(tuple(f)))
             J.append(j)
         steps.append((torch.tensor(I), torch.tensor(J)))
-        levels.append(cur)
-    flat = [e for lv in levels for e in lv]
-    sel = torch.tensor([flat.index(tuple(e)) for e in et.tolist()])
-    return steps, sel
+        levels[deg] = _monos(deg)
+
+    def split(deg: int, da: int) -> tuple[int, int, Tensor, Tensor]:
+        db = deg - da
+        I, J = [], []
+        for e in _monos(deg):
+            for ea in levels[da]:
+                rest = tuple(x - y for x, y in zip(e, ea))
+                if min(rest) >= 0:
+                    I.append(levels[da].index(ea))
+                    J.append(levels[db].index(rest))
+                    break
+        return da, db, torch.tensor(I), torch.tensor(J)
+
+    blocks = [split(2 * h, h)]
+    blocks.append((1, 0, torch.arange(3), torch.zeros(3, dtype=torch.long)) if diffuse else split(2 * h - 1, h - 1))
+    return steps, blocks
 
 
-def features(r: Tensor, order: int, diffuse: bool) -> Tensor:
-    """(K, Q) per-point features of unit directions r (Q, 3): monomials (order ≤
-    `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`)."""
+def features(dT: Tensor, order: int, diffuse: bool) -> Tensor:
+    """(K, Q) per-point features of unit directions dT (3, Q) (coordinates as rows): monomials
+    (order ≤ `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`)."""
     if order > MONOMIAL_MAX_ORDER:
-        Y = sh_eval(r, 2 * order - 1).T
-        return Y[_table_rows(order, diffuse).to(r.device)] if diffuse else Y
-    steps, sel = _chain(order, diffuse)
-    dT = r.T.contiguous()                                      # (3, Q): rows x, y, z
-    cur, lv = dT, [dT]
-    for I, J in steps:                                         # degree k = degree k−1 · one coordinate
-        cur = cur.index_select(0, I.to(r.device)) * dT.index_select(0, J.to(r.device))
-        lv.append(cur)
-    return torch.cat(lv).index_select(0, sel.to(r.device))
+        Y = sh_eval(dT.T, 2 * order - 1).T
+        return Y.index_select(0, _table_rows(order, diffuse).to(dT.device)) if diffuse else Y
+    if order < 3:   # degrees ≤ 2: the plan's split needs h ≥ 2
+        et = monomial_basis(order, diffuse)[0].to(dT.device)
+        return (dT.T[:, None, :] ** et[None]).prod(-1).T
+    steps, blocks = _plan(order, diffuse)
+    lv = {1: dT}
+    for k, (I, J) in enumerate(steps, start=2):                  # degree k = degree k−1 · one coordinate
+        lv[k] = lv[k - 1].index_select(0, I.to(dT.device)) * dT.index_select(0, J.to(dT.device))
+    out = torch.empty(sum(b[2].shape[0] for b in blocks), dT.shape[1], dtype=dT.dtype, device=dT.device)
+    r = 0
+    for da, db, I, J in blocks:
+        rows = out[r:r + I.shape[0]]
+        if db == 0:
+            rows.copy_(lv[da])
+        else:
+            torch.mul(lv[da].index_select(0, I.to(dT.device)), lv[db].index_select(0, J.to(dT.device)), out=rows)
+        r += I.shape[0]
+    return out
 
 
 def _table_rows(order: int, diffuse: bool) -> Tensor:
@@ -155,21 +181,22 @@ def table(light: Tensor, alpha: float, *, diffuse: bool) -> Tensor:
     return Wy.to(dtype=light.dtype, device=light.device)
 
 
-def shade_terms(v: Tensor, normal: Tensor, wo: Tensor, Wd: Tensor, Ws: Tensor | None) -> tuple[Tensor, Tensor | None]:
-    """Diffuse and specular terms of Q points (before kd, ks), front-facing test not applied.
+def shade_terms(vT: Tensor, nT: Tensor, woT: Tensor, Wd: Tensor, Ws: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """Diffuse and specular terms of Q points (before kd, ks; front-facing test not applied), in
+    the point-minor layout the batched products want (rows = components, columns = points).
 
     Args:
-        v: (Q, n²) world-space SH visibility; normal, wo: (Q, 3) unit vectors.
+        vT: (n², Q) world-space SH visibility; nT, woT: (3, Q) unit normals / directions to the viewer.
         Wd: `table`(·, 1, diffuse=True); Ws: `table`(·, α) or None (no specular term).
     Returns:
-        diffuse (Q, 3) = v · T¹(n); specular (Q, 3) = v · T^α(R) or None.
+        diffuse (3, Q) = v · T¹(n); specular (3, Q) = v · T^α(R) or None.
     """
-    Q, n2 = v.shape
+    n2, Q = vT.shape
     n = math.isqrt(n2)
-    diff = torch.einsum("qj,qjc->qc", v, (features(normal, n, True).T @ Wd).view(Q, n2, -1))
+    diff = ((Wd.T @ features(nT, n, True)).view(n2, -1, Q) * vT[:, None]).sum(0)
     if Ws is None:
         return diff, None
-    R = 2.0 * (wo * normal).sum(-1, keepdim=True) * normal - wo                  # reflect(ωo, n)
-    R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    spec = torch.einsum("qj,qjc->qc", v, (features(R, n, False).T @ Ws).view(Q, n2, -1))
+    R = 2.0 * (woT * nT).sum(0, keepdim=True) * nT - woT                         # reflect(ωo, n)
+    R = R / R.norm(dim=0, keepdim=True).clamp_min(1e-12)
+    spec = ((Ws.T @ features(R, n, False)).view(n2, -1, Q) * vT[:, None]).sum(0)
     return diff, spec
