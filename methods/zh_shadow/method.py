@@ -19,6 +19,15 @@ interpolation of the radiance (``shading="vertex"``, the paper's GPU per-vertex 
   into their ZH coefficients): that IS the barycentric interpolation of the SH visibility vector,
   evaluated without interpolating lobe axes (which would mix unrelated lobes).
 
+Two implementations of these steps (issue 14). `ZHShadow.render` is the fast path
+(`methods.zh_shadow.runtime`): step 1 and eq. 1 once per vertex and pose (cached while the pose
+does not change), the world-space SH visibility interpolated per sample, and steps 2–5 as one
+batched polynomial in n and R whose coefficient tables fold the per-point rotations, M^α and the
+lighting (built once per lighting and exponent, cached). `ZHShadow._render_reference` is the slow
+path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
+(equal to float32 round-off) and renders the ``specular="cosine"`` variant, whose cos θ_i-weighted
+visibility is not a sum of ZH lobes.
+
 Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
 BRDFs). ``specular="published"`` (default) is the paper's Phong convolution, which leaves out the
 cos θ_i = max(0, n·ω) factor of the rendering equation; ``specular="cosine"`` puts it back: the
@@ -194,7 +203,6 @@ class ZHShadow(Method):
         self.stats: dict[str, float] = {}
         self._ops: dict[float, Tensor] = {}          # α → M^α
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
-        self._last_samples: int | None = None           # points shaded by the last render
         self._env_bytes = 0                             # bytes of the last projected env map
         self._env_local: tuple[Any, Tensor] | None = None  # (env data key, (n², 3) SH in the map's frame, float64)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
