@@ -215,7 +215,15 @@ def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
     a, b = norm_weights(d, norm)
     N = d.shape[0]
     A = A * a.repeat(3)[:, None] * b[None, :]
-    U, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    # One LAPACK thread: the singular vectors of (near-)equal singular values depend on the
+    # reduction order, i.e. on the thread count; a fixed order makes every result of the method
+    # independent of the threads it runs with (issue 17: local vs process-pool runs must agree).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        U, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    finally:
+        torch.set_num_threads(threads)
     if not S[0] > 0:
         raise ValueError(f"the BRDF {material!r} is zero on the hemisphere grid")
     rank = int((S > RANK_RTOL * S[0]).sum())
