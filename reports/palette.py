@@ -4,7 +4,6 @@
 vision deficiencies). ``method_color(name)``: that colour; a config-qualified label such as
 ``"inout (terms=8)"`` or ``"ptt_separated"`` takes its method's colour; an unknown name gets a
 fixed grey-free colour from its name (the same in every figure and every run).
-``TARGET_STYLES``: line style of an accuracy target in the cross-method figures.
 """
 from __future__ import annotations
 
@@ -20,9 +19,6 @@ METHOD_COLORS: dict[str, str] = {
 }
 # Colours for methods not listed above (picked by a hash of the name).
 _EXTRA = ("#56B4E9", "#F0E442", "#882255", "#117733", "#44AA99", "#999933", "#AA4499", "#332288")
-
-# Relative-RMSE targets of the terms-vs-exponent study: solid = the tighter target.
-TARGET_STYLES: dict[float, str] = {0.05: "-", 0.10: "--"}
 
 
 def method_color(name: str) -> str:
