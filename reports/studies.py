@@ -306,20 +306,24 @@ def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
                                            ("bytes_per_vertex", "run-time memory per vertex (bytes)"))):
             ax = axes[i, j]
             for m in methods_:
+                c = method_color(m)
                 for t in targets:
                     rr = [r for r in rows if r["scene"] == sc and r["method"] == m and r["target"] == t]
-                    ls = style[t]
-                    c = method_color(m)
                     ok = [r for r in rr if r["reached"]]
-                    ax.plot([r["exponent"] for r in ok], [r[key] for r in ok], ls, color=c, marker="o", ms=4, lw=1.4)
+                    ax.plot([r["exponent"] for r in ok], [r[key] for r in ok], style[t], color=c, marker="o", ms=4,
+                            lw=1.4)
                     no = [r for r in rr if not r["reached"]]
                     ax.plot([r["exponent"] for r in no], [r[key] for r in no], linestyle="none", marker="o", ms=7,
                             markerfacecolor="none", markeredgecolor=c, mew=1.3)
-                    if no:  # direct label at the first failure
-                        ax.annotate("not reached", (no[0]["exponent"], no[0][key]), textcoords="offset points",
-                                    xytext=(4, 5 if t == targets[0] else -10), fontsize=6, color=c)
+                first = min((r for r in rows if r["scene"] == sc and r["method"] == m and not r["reached"]),
+                            key=lambda r: (r["exponent"], r["target"]), default=None)
+                if first is not None:  # one direct label per method, at its first failure
+                    ax.annotate("not reached", (first["exponent"], first[key]), textcoords="offset points",
+                                xytext=(-8, 7), ha="right", fontsize=6.5, color=c)
             ax.set_xscale("log", base=2)
             ax.set_yscale("log")
+            xs = sorted({r["exponent"] for r in rows})
+            ax.set_xticks(xs, [f"{x:g}" for x in xs])
             ax.grid(True, which="both", alpha=0.25)
             ax.set_xlabel("Phong exponent s (dimensionless)")
             ax.set_ylabel(ylabel)
@@ -335,7 +339,7 @@ def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
     tgt = " / ".join(f"{t:.0%}" for t in targets)
     fig.suptitle(f"Smallest configuration whose image reaches relative RMSE {tgt}\n"
                  f"(RMSE / mean radiance vs Mitsuba, direct lighting, {ref_spp} spp)", fontsize=11)
-    fig.tight_layout(rect=(0, 0, 1 - 2.4 / (4.6 * len(scenes) + 2.6), 1))
+    fig.tight_layout(rect=(0, 0, 1 - 1.9 / (4.6 * len(scenes) + 2.6), 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
