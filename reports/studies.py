@@ -31,6 +31,7 @@ methods: that is what ``terms-vs-exponent`` is for) → ``terms_by_method.csv/pn
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -123,7 +124,7 @@ def _phong_frame(scene_name: str, region: str, s: float, cfg: YardstickConfig) -
 
 class _Evaluator:
     """Renders rung i of a ladder at (scene, s) once per run; keeps one precompute per rung of a
-    ``material_at_render`` ladder (per scene)."""
+    ``material_at_render`` ladder (per scene) and renders a copy of it per exponent."""
 
     def __init__(self, ladder: TermLadder, rungs: tuple[dict, ...], scene_name: str, region: str):
         self.ladder, self.rungs, self.scene_name, self.region = ladder, rungs, scene_name, region
@@ -138,13 +139,17 @@ class _Evaluator:
             return self.cache[key]
         cfg = self.rungs[i]
         t0, c0 = time.perf_counter(), time.process_time()
-        if self.ladder.material_at_render and i in self._pre:
-            m = self._pre[i]
+        if self.ladder.material_at_render:
+            if i not in self._pre:
+                m = self.ladder.make(dict(cfg), self.region)
+                m.precompute(fr.scene)
+                self._pre[i] = m
+            # a fresh copy per exponent: run-time caches of one exponent (e.g. zh_shadow's M^α) are
+            # neither reused nor counted in another exponent's memory
+            m = copy.deepcopy(self._pre[i])
         else:
             m = self.ladder.make(dict(cfg), self.region)
             m.precompute(fr.scene)
-            if self.ladder.material_at_render:
-                self._pre = {i: m, **{k: v for k, v in self._pre.items() if k != i}}
         img = m.render(fr.frame, fr.gbuffer)
         err = rmse(img, fr.reference.image, fr.mask) / fr.mean
         mem = int(sum(m.memory().values()))
