@@ -324,7 +324,7 @@ def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
                             key=lambda r: (r["exponent"], r["target"]), default=None)
                 if first is not None:  # one direct label per method, at its first failure
                     ax.annotate("not reached", (first["exponent"], first[key]), textcoords="offset points",
-                                xytext=(-8, 7), ha="right", fontsize=6.5, color=c)
+                                xytext=(5, 6), ha="left", fontsize=6.5, color=c)
             ax.set_xscale("log", base=2)
             ax.set_yscale("log")
             xs = sorted({r["exponent"] for r in rows})
