@@ -314,9 +314,9 @@ def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
                 c = method_color(m)
                 for t in targets:
                     rr = [r for r in rows if r["scene"] == sc and r["method"] == m and r["target"] == t]
-                    ok = [r for r in rr if r["reached"]]
-                    ax.plot([r["exponent"] for r in ok], [r[key] for r in ok], style[t], color=c, marker="o", ms=4,
-                            lw=1.4)
+                    # reached points joined; a not-reached exponent breaks the line (NaN)
+                    ax.plot([r["exponent"] for r in rr], [r[key] if r["reached"] else float("nan") for r in rr],
+                            style[t], color=c, marker="o", ms=4, lw=1.4)
                     no = [r for r in rr if not r["reached"]]
                     ax.plot([r["exponent"] for r in no], [r[key] for r in no], linestyle="none", marker="o", ms=7,
                             markerfacecolor="none", markeredgecolor=c, mew=1.3)
