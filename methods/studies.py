@@ -14,12 +14,17 @@ packages can register without importing ``reports``.
   reach ``target`` (its meaning: ``target_kind``). The cross-method study
   ``terms-vs-exponent`` (``reports/studies.py``) calls every contributor.
 * ``register_error_vs_terms(method, fn)`` — ``fn(exponent, terms) -> rendered image error``.
+* ``register_term_ladder(method, ladder, make, terms_of, ...)`` — the method's own term ladder
+  (in-out K, SH/ZH order, wavelet coefficients n, PTT n_ωi, ...) for the one-yardstick study
+  ``terms-vs-exponent`` (``reports/studies.py``): it renders ``make(config, region)`` at every
+  rung it needs and keeps the smallest rung whose image reaches a fixed relative RMSE against a
+  Mitsuba reference. Adding a method = one ``register_term_ladder`` call in its ``study.py``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping, Sequence
 
 # -- registries -------------------------------------------------------------------------------
 
@@ -131,3 +136,80 @@ def terms_table(exponents: list[float], methods: list[str] | None = None, *,
             if progress is not None:
                 progress.update(1)
     return rows
+
+
+# -- term ladders (the one-yardstick terms-vs-exponent study) ---------------------------------
+
+
+@dataclass(frozen=True)
+class TermLadder:
+    """A method's configurations ordered by cost, searched by the ``terms-vs-exponent`` study.
+
+    ladder: configs (dicts of the factory's keys), cheapest first; the study assumes the rendered
+        error does not grow along it (it bisects) and records the rung below the one it keeps.
+    make(config, region) -> an un-precomputed `methods.base.Method`; ``region`` names the scene
+        region whose material the study varies (a factory may spend the config's terms there only).
+    terms_of(config) -> int: the method's own term count at that rung (non-decreasing along ladder).
+    quick: the (short, cheap) ladder of ``--quick`` runs.
+    material_at_render: True if ``precompute`` does not read the varied region's material (it is
+        applied at render time from ``frame.materials``): one precompute per config serves every
+        exponent.
+    term_name: what a term is ("K", "n^2 (SH order n)", ...), for the CSV and the legend.
+    """
+
+    method: str
+    ladder: tuple[dict, ...]
+    make: Callable[[dict, str], Any]
+    terms_of: Callable[[dict], int]
+    quick: tuple[dict, ...]
+    material_at_render: bool = False
+    term_name: str = "terms"
+    note: str = ""
+
+
+TERM_LADDERS: dict[str, TermLadder] = {}
+
+
+def register_term_ladder(method_name: str, ladder: Sequence[Mapping], make: Callable[[dict, str], Any],
+                         terms_of: Callable[[dict], int] | None = None, *, quick: Sequence[Mapping] | None = None,
+                         material_at_render: bool = False, term_name: str = "terms", note: str = "",
+                         replace: bool = False) -> TermLadder:
+    """Register ``method_name``'s term ladder (`TermLadder`). ``terms_of`` defaults to
+    ``config["terms"]``; ``quick`` defaults to the ladder's first two rungs. ``ValueError`` for an
+    empty ladder, a non-callable factory, terms that decrease along a ladder, or a taken name."""
+    if not method_name:
+        raise ValueError("method_name must be non-empty")
+    if not callable(make):
+        raise ValueError(f"make must be callable, got {make!r}")
+    if terms_of is None:
+        terms_of = _terms_key
+    if not callable(terms_of):
+        raise ValueError(f"terms_of must be callable, got {terms_of!r}")
+    if method_name in TERM_LADDERS and not replace:
+        raise ValueError(f"term ladder {method_name!r} is already registered")
+    rungs = _check_ladder("ladder", ladder, terms_of)
+    q = _check_ladder("quick", ladder[:2] if quick is None else quick, terms_of)
+    lad = TermLadder(method_name, rungs, make, terms_of, q, bool(material_at_render), term_name, note)
+    TERM_LADDERS[method_name] = lad
+    return lad
+
+
+def _terms_key(config: dict) -> int:
+    return config["terms"]
+
+
+def _check_ladder(name: str, ladder: Sequence[Mapping], terms_of: Callable[[dict], int]) -> tuple[dict, ...]:
+    if isinstance(ladder, (str, bytes)) or not isinstance(ladder, Sequence) or not ladder:
+        raise ValueError(f"{name} must be a non-empty sequence of config dicts, got {ladder!r}")
+    rungs = []
+    for c in ladder:
+        if not isinstance(c, Mapping):
+            raise ValueError(f"{name}: every rung must be a dict, got {c!r}")
+        rungs.append(dict(c))
+    terms = [terms_of(c) for c in rungs]
+    for t in terms:
+        if isinstance(t, bool) or int(t) != t or t < 1:
+            raise ValueError(f"{name}: terms_of must return ints >= 1, got {terms}")
+    if any(b < a for a, b in zip(terms, terms[1:])):
+        raise ValueError(f"{name}: terms must not decrease along the ladder, got {terms}")
+    return tuple(rungs)

@@ -5,7 +5,9 @@ Sections: run facts; summary per scene × method (error with noise floor, memory
 per sequence kind, roofline efficiency, equal-error speedup); error–memory–time trade-off plots
 (matplotlib); per scene an image comparison (reference / method / error map) with an exposure
 slider; the capability matrix with n/a reasons; regressions since the previous run; per-vertex
-error on the mesh (pyvista off-screen renders; skipped with the reason if VTK cannot render).
+error on the mesh (pyvista off-screen renders; skipped with the reason if VTK cannot render);
+the latest cross-method study figures (``<studies_dir>/terms-vs-exponent/*.png`` embedded, with
+their CSV paths; other studies' PNGs linked). Method colours: `reports.palette`.
 
 Exposure slider — honest re-exposure: the linear float radiance is embedded (float16, base64) and
 the page re-tonemaps it (× 2^EV, clip, sRGB OETF) into a canvas, instead of brightening 8-bit
@@ -26,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from reports.cells import MEASURED
+from reports.palette import method_color
 from scenes.io import atomic_write_text
 
 KIND_ORDER = ["V", "VB", "VBL", "P"]
@@ -34,6 +37,8 @@ KIND_ORDER = ["V", "VB", "VBL", "P"]
 WHITE_PERCENTILE = 99.0
 LUM = np.array([0.2126, 0.7152, 0.0722])  # Rec.709 luminance weights
 MAX_EMBED_SIDE = 256  # larger images are box-downsampled before embedding (report size)
+# Studies whose PNGs the report embeds (the rest of <studies_dir>/*/*.png is linked).
+EMBED_STUDIES = ("terms-vs-exponent",)
 
 
 # -- small helpers ----------------------------------------------------------------------------
@@ -257,10 +262,11 @@ def tradeoff_plots(df: pd.DataFrame) -> str:
         m, _ = _val(g, "memory_bytes")
         t, _ = _val(g, "render_time_median")
         if r is not None:
-            pts.append((scene, _method_label(method, config), seq, r, m, t))
+            pts.append((scene, _method_label(method, config), seq, r, m, t, method))
     if not pts:
         return "<p>No error measurements to plot.</p>"
     methods = sorted({p[1] for p in pts})
+    base_of = {p[1]: p[6] for p in pts}
     scenes = sorted({p[0] for p in pts})
     markers = "osD^v<>ph*"
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -269,7 +275,7 @@ def tradeoff_plots(df: pd.DataFrame) -> str:
             for j, sc in enumerate(scenes):
                 sel = [p for p in pts if p[1] == meth and p[0] == sc and p[idx] is not None and p[idx] >= 0]
                 if sel:
-                    ax.scatter([p[idx] for p in sel], [p[3] for p in sel], color=f"C{i % 10}",
+                    ax.scatter([p[idx] for p in sel], [p[3] for p in sel], color=method_color(base_of[meth]),
                                marker=markers[j % len(markers)], label=f"{meth} / {sc}", s=36)
         xs = [p[idx] for p in pts if p[idx] is not None and p[idx] > 0]
         ys = [p[3] for p in pts if p[3] > 0]
@@ -280,9 +286,38 @@ def tradeoff_plots(df: pd.DataFrame) -> str:
         ax.set_xlabel(xl)
         ax.set_ylabel("RMSE")
         ax.grid(True, which="both", alpha=0.3)
-    axes[1].legend(fontsize=7, loc="best")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
     fig.suptitle("error – memory – time trade-off (one point per cell; colour = method, marker = scene)")
     return f'<img class=plot alt="trade-off plot" src="{fig_data_uri(fig)}">'
+
+
+def study_figures(studies_dir: str | os.PathLike | None, report_dir: Path) -> str:
+    """The latest study outputs under ``studies_dir`` (``out/studies`` by default): the PNGs of
+    ``EMBED_STUDIES`` as data URIs with their CSV paths, every other study's PNGs as relative
+    links. "" if there is no such folder."""
+    if studies_dir is None or not Path(studies_dir).is_dir():
+        return ""
+    root = Path(studies_dir)
+    parts = []
+    for name in EMBED_STUDIES:
+        d = root / name
+        pngs = sorted(d.glob("*.png")) if d.is_dir() else []
+        if not pngs:
+            continue
+        csvs = ", ".join(f"<code>{esc(p)}</code>" for p in sorted(d.glob("*.csv")))
+        figs = "".join(f'<figure><img class=plot alt="{esc(p.name)}" src="data:image/png;base64,'
+                       f'{base64.b64encode(p.read_bytes()).decode()}"><figcaption>{esc(p)}</figcaption></figure>'
+                       for p in pngs)
+        parts.append(f"<h3>{esc(name)}</h3><p class=note>run_bench.py study {esc(name)}; data: {csvs or 'no CSV'}</p>{figs}")
+    links = []
+    for d in sorted(p for p in root.iterdir() if p.is_dir() and p.name not in EMBED_STUDIES):
+        for png in sorted(d.glob("*.png")):
+            links.append(f'<a href="{esc(os.path.relpath(png, report_dir))}">{esc(d.name)}/{esc(png.name)}</a>')
+    if links:
+        parts.append(f"<p>Other study figures: {' · '.join(links)}</p>")
+    if not parts:
+        return ""
+    return "<h2 id=studies>Study figures (latest)</h2>" + "".join(parts)
 
 
 def capability_matrix(df: pd.DataFrame) -> str:
@@ -538,10 +573,12 @@ if(m){document.querySelectorAll('input.ev').forEach(function(sl){sl.value=m[1];
 
 def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str | os.PathLike | None = None,
                  meta: dict | None = None, changes: pd.DataFrame | None = None, prev_run: str | None = None,
-                 vertex_renders: bool = True) -> Path:
+                 vertex_renders: bool = True, studies_dir: str | os.PathLike | None = None) -> Path:
     """Write the HTML report of run table ``df`` (``reports.store.COLUMNS``) to ``out_path``.
 
     run_dir: where the cells' ``images/*.npz`` are (default: the report's folder).
+    studies_dir: where ``run_bench.py study`` wrote its folders (default: ``<run_dir>/../studies``,
+        i.e. ``out/studies`` for a run in ``out/<suite>``); the latest figures are shown if present.
     """
     out_path = Path(out_path)
     run_dir = Path(run_dir) if run_dir is not None else out_path.parent
@@ -549,6 +586,8 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     run_rows = df[df["status"] == "run"]
     df = df[df["status"] != "run"]
     art = _load_images(run_dir, df)
+    if studies_dir is None:
+        studies_dir = run_dir.resolve().parent / "studies"
     first = df.iloc[0] if len(df) else None
     facts = {
         "run": meta.get("run_id", first["run_id"] if first is not None else "?"),
@@ -584,6 +623,7 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
 {probe_strip(Path(run_dir) if run_dir is not None else None, df)}
 <h2 id=bounces>Interreflection: error vs bounces (Sun 2007 Fig. 11)</h2>{bounces_table(df)}
 <h2 id=tradeoff>Error – memory – time</h2>{tradeoff_plots(df)}
+{study_figures(studies_dir, out_path.resolve().parent)}
 <h2 id=images>Images</h2>{image_comparisons(art)}
 <h2 id=matrix>Capability matrix</h2>{capability_matrix(df)}
 <h2 id=regressions>Regressions since the last run</h2>{regressions_section(changes, prev_run)}

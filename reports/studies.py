@@ -1,105 +1,429 @@
-"""The cross-method study ``terms-vs-exponent`` (``run_bench.py study terms-vs-exponent``).
+"""Cross-method studies (``run_bench.py study NAME``); paper figures and tables live beside their
+methods (``methods/<m>/study.py``) and register in ``methods.studies``.
 
-Paper figures and tables live beside their methods (``methods/<m>/study.py``) and register in
-``methods.studies``; this module holds only what compares methods: it runs Mahajan 2008's
-analysis figures (the terms-vs-exponent question is Mahajan's; the figure functions are in
-`methods.inout.study`, also registered alone as ``mahajan-fig3a``, ``mahajan-fig2-5``,
-``mahajan-fig7c``) and calls every registered terms contributor
-(``methods.studies.register_terms_contributor``) and error-vs-terms function.
-The in-out row's K is counted in the BRDF's own norm (Mahajan 2008 Fig. 3A: 99 % of the hemisphere
-BRDF-matrix energy, 40 × 40 grid); the renderer chooses its K in the cosine-weighted norm (methods/inout).
+``terms-vs-exponent`` — one yardstick for every method (`terms_vs_exponent`): on the same scenes
+(sphere_plane: a glossy sphere shadowing a plane; shadow_detail: a glossy object shadowing
+itself), with the glossy object's material made Phong of exponent s (its kd, ks kept), for s = 1,
+2, 4, ..., 256, find on each registered term ladder (`methods.studies.register_term_ladder`) the
+smallest configuration whose rendered image reaches a relative RMSE (RMSE / mean reference
+radiance over covered pixels) of 5 % and of 10 % against a converged Mitsuba reference of the same
+frame (direct lighting, ``ref_spp`` samples per pixel, cached on disk); record the term count and
+the run-time bytes per vertex (``sum(method.memory()) / vertices``). The ladder is bisected
+(renders cached per (method, rung, s) within a run); targets are searched loosest first, the
+tighter one starting at the looser one's rung. Outputs (in ``out_dir``):
 
-terms-vs-exponent outputs (in ``out_dir``):
-  ``k_vs_s.csv/png`` (Fig. 3A), ``sv_vs_Fl.csv/png`` (Fig. 2 right / Fig. 5),
-  ``ts_k_vs_lstar.csv/png`` (Fig. 7C) — see `methods.inout.study`; ``terms_by_method.csv/png``
-  (every registered contributor), ``error_vs_terms.csv`` (only if registered), ``summary.json``.
+* ``terms_vs_exponent.png`` — terms (top) and bytes per vertex (bottom) vs s, one column per
+  scene, one colour per method (`reports.palette`), solid 5 %, dashed 10 %; an open marker = not
+  reached (plotted at the largest rung tried);
+* ``terms_vs_exponent.csv`` — every plotted number, one row per (scene, method, s, target): the
+  kept rung, its terms and bytes, its error, the rung below (the ladder step) and its error, the
+  noise floor of the reference, ``monotone`` (False: fewer terms than at a smaller s, or reached
+  after a smaller s was not) and a note saying why;
+* ``ladder_evaluations.csv`` — every render the search made (scene, method, s, rung, error,
+  bytes, seconds); ``summary.json`` — settings, floors, seconds per method.
+
+``terms-own-criteria`` — each method's terms-vs-exponent contributor
+(`methods.studies.register_terms_contributor`) under its own criterion (not comparable across
+methods: that is what ``terms-vs-exponent`` is for) → ``terms_by_method.csv/png``, and Mahajan
+2008 Fig. 3B/C / 6's rendered error vs K of every ``register_error_vs_terms`` function →
+``error_vs_terms.csv``. Mahajan 2008's analysis figures (Figs. 2, 3A, 5, 7C) are the studies
+``mahajan-fig2-5``, ``mahajan-fig3a``, ``mahajan-fig7c``. The in-out contributor's K is counted in
+the BRDF's own norm (Fig. 3A: 99 % of the hemisphere BRDF-matrix energy, 40 × 40 grid); the
+renderer chooses its K in the cosine-weighted norm (methods/inout) — and ``terms-vs-exponent``
+measures what the rendered image needs, which no energy criterion does.
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
+import math
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import methods.registry  # noqa: F401  (loads every method's study registrations)
 from methods.inout import study as mahajan
-from methods.studies import ERROR_VS_TERMS, STUDIES, TERMS_CONTRIBUTORS, Study, register_study, run_study, terms_table  # noqa: F401  (STUDIES, run_study: the CLI's)
+from methods.studies import (ERROR_VS_TERMS, STUDIES, TERM_LADDERS, TERMS_CONTRIBUTORS, Study,  # noqa: F401
+                             TermLadder, register_study, run_study, terms_table)  # (STUDIES, run_study: the CLI's)
+from reports.palette import method_color
 
-# -- the terms-vs-exponent study (Mahajan 2008 + contributors) --------------------------------
+# -- terms-vs-exponent: one yardstick ---------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class TermsStudyConfig:
-    """Sweep sizes. n: grid per direction (paper 40); n_ts_check: a finer grid for the
-    Torrance–Sparrow convergence column (0 = skip); table_exponents: the contributors' exponents."""
+class YardstickConfig:
+    """Sweep of `terms_vs_exponent`.
 
-    s_values: tuple[float, ...] = mahajan.FULL.s_values
-    n: int = mahajan.FULL.n
-    sv_s: tuple[float, ...] = mahajan.FULL.sv_s
-    sigmas: tuple[float, ...] = mahajan.FULL.sigmas
-    n_ts_check: int = mahajan.FULL.n_ts_check
-    table_exponents: tuple[float, ...] = (1, 2, 4, 8, 16, 32, 64)
+    scenes: (scene name, region whose material becomes Phong(kd, ks of the scene, s)); size: scene
+    size; exponents: Phong s; targets: relative RMSE targets; ref_spp: reference samples per pixel
+    (direct lighting; its noise floor is in the CSV); spp_side: G-buffer sub-samples per pixel
+    side; methods: ladder names (None = every registered one); quick: use each ladder's quick rungs.
+    """
+
+    scenes: tuple[tuple[str, str], ...] = (("sphere_plane", "sphere"), ("shadow_detail", "object"))
+    size: str = "test"
+    exponents: tuple[float, ...] = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+    targets: tuple[float, ...] = (0.05, 0.10)
+    ref_spp: int = 16384
+    spp_side: int = 2
+    methods: tuple[str, ...] | None = None
+    quick: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.scenes or not self.exponents or not self.targets:
+            raise ValueError("scenes, exponents and targets must be non-empty")
+        if any(not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0) for s in self.exponents):
+            raise ValueError(f"exponents must be finite numbers > 0, got {self.exponents}")
+        if any(not 0 < t < 1 for t in self.targets):
+            raise ValueError(f"targets must be in (0, 1), got {self.targets}")
+        if isinstance(self.ref_spp, bool) or not isinstance(self.ref_spp, int) or self.ref_spp < 2 or self.ref_spp % 2:
+            raise ValueError(f"ref_spp must be an even int >= 2, got {self.ref_spp!r}")
 
 
-FULL_CONFIG = TermsStudyConfig()
-QUICK_CONFIG = TermsStudyConfig(s_values=mahajan.QUICK.s_values, n=mahajan.QUICK.n, sv_s=mahajan.QUICK.sv_s,
-                                sigmas=mahajan.QUICK.sigmas, n_ts_check=mahajan.QUICK.n_ts_check,
-                                table_exponents=(2,))
+YARDSTICK = YardstickConfig()
+# --quick: one scene, two exponents, each ladder's two cheap rungs, a noisy reference (64 spp: floor
+# ≈ 9 %) and targets above it (tests; tens of seconds).
+YARDSTICK_QUICK = YardstickConfig(scenes=(("sphere_plane", "sphere"),), exponents=(1, 16), targets=(0.25, 0.5),
+                                 ref_spp=64, quick=True)
 
 
-def terms_vs_exponent(out_dir: Path, *, quick: bool = False,
-                      config: TermsStudyConfig | None = None) -> list[Path]:
-    """Mahajan 2008 Fig. 2, 3A, 5, 7C + every method's terms-vs-exponent row (module docstring)."""
-    from methods.inout.analysis import ENERGY_FRACTION
+@dataclass
+class _Frame:
+    """One (scene, s): the Phong-s scene, its frame, G-buffer, reference, mask and its statistics."""
 
-    cfg = config or (QUICK_CONFIG if quick else FULL_CONFIG)
+    scene: Any
+    frame: Any
+    gbuffer: Any
+    reference: Any
+    mask: Any
+    mean: float
+    floor: float
+    vertices: int
+
+
+def _phong_frame(scene_name: str, region: str, s: float, cfg: YardstickConfig) -> _Frame:
+    from references.metrics import rmse
+    from references.setup import frame_setup
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    base = get_scene(scene_name, cfg.size)
+    if region not in base.materials:
+        raise ValueError(f"scene {scene_name!r} has no region {region!r}; regions: {sorted(base.materials)}")
+    old = base.materials[region]
+    mats = dict(base.materials)
+    mats[region] = Phong(kd=old.kd, ks=old.ks, s=float(s))
+    scene = dataclasses.replace(base, materials=mats)
+    frame = dataclasses.replace(make_sequence(scene, "V", n_frames=1, seed=0)[0], materials=mats)
+    su = frame_setup(scene, frames=[frame], spp_side=cfg.spp_side, ref_spp=cfg.ref_spp, bounces=(0,), seed=0)
+    ref, mask = su.references[0], su.mask(0)
+    mean = float(ref.image[mask].mean())
+    floor = rmse(ref.half_a, ref.half_b, mask) / 2 / mean  # the full image's own relative RMSE
+    return _Frame(scene, frame, su.gbuffer, ref, mask, mean, floor, int(scene.geometry().V.shape[0]))
+
+
+class _Evaluator:
+    """Renders rung i of a ladder at (scene, s) once per run; keeps one precompute per rung of a
+    ``material_at_render`` ladder (per scene) and renders a copy of it per exponent."""
+
+    def __init__(self, ladder: TermLadder, rungs: tuple[dict, ...], scene_name: str, region: str):
+        self.ladder, self.rungs, self.scene_name, self.region = ladder, rungs, scene_name, region
+        self.cache: dict[tuple[int, float], dict] = {}
+        self._pre: dict[int, Any] = {}
+
+    def __call__(self, i: int, s: float, fr: _Frame) -> dict:
+        from references.metrics import rmse
+
+        key = (i, float(s))
+        if key in self.cache:
+            return self.cache[key]
+        cfg = self.rungs[i]
+        t0, c0 = time.perf_counter(), time.process_time()
+        if self.ladder.material_at_render:
+            if i not in self._pre:
+                m = self.ladder.make(dict(cfg), self.region)
+                m.precompute(fr.scene)
+                self._pre[i] = m
+            # a fresh copy per exponent: run-time caches of one exponent (e.g. zh_shadow's M^α) are
+            # neither reused nor counted in another exponent's memory
+            m = copy.deepcopy(self._pre[i])
+        else:
+            m = self.ladder.make(dict(cfg), self.region)
+            m.precompute(fr.scene)
+        img = m.render(fr.frame, fr.gbuffer)
+        err = rmse(img, fr.reference.image, fr.mask) / fr.mean
+        mem = int(sum(m.memory().values()))
+        rec = {"scene": self.scene_name, "method": self.ladder.method, "exponent": float(s), "rung": i,
+               "terms": int(self.ladder.terms_of(cfg)), "config": json.dumps(cfg, sort_keys=True),
+               "rel_rmse": float(err), "bytes_per_vertex": mem / fr.vertices, "memory_bytes": mem,
+               "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+        self.cache[key] = rec
+        return rec
+
+
+def _first_below(ev: _Evaluator, s: float, fr: _Frame, t: float, lo: int, hint: int) -> int | None:
+    """Smallest rung i in [lo, top] with rel_rmse <= t, assuming the error does not grow along the
+    ladder (None: not even the top rung): gallop up from ``hint`` (the same target's rung at the
+    previous s), then bisect — a few renders when the answer moves by a rung or two."""
+    top = len(ev.rungs) - 1
+
+    def ok(i: int) -> bool:
+        e = ev(i, s, fr)["rel_rmse"]
+        return math.isfinite(e) and e <= t
+
+    h = min(max(hint, lo), top)
+    step = 1
+    if ok(h):  # gallop down: b reaches t, a misses it (or is below lo)
+        b = h
+        while True:
+            cand = b - step
+            if cand < lo:
+                a = lo - 1
+                break
+            if not ok(cand):
+                a = cand
+                break
+            b, step = cand, 2 * step
+    else:  # gallop up
+        a = h
+        while True:
+            if a == top:
+                return None
+            cand = min(a + step, top)
+            if ok(cand):
+                b = cand
+                break
+            a, step = cand, 2 * step
+    while b - a > 1:  # err(a) > t >= err(b)
+        mid = (a + b) // 2
+        if ok(mid):
+            b = mid
+        else:
+            a = mid
+    return b
+
+
+def _search(ev: _Evaluator, s: float, fr: _Frame, targets: tuple[float, ...],
+            hints: dict[float, int]) -> dict[float, dict]:
+    """Per target: the smallest rung reaching it (`_first_below`), its record, the rung below's
+    record if rendered; loosest target first, the tighter one searched from its rung up."""
+    top = len(ev.rungs) - 1
+    lo = 0
+    out: dict[float, dict] = {}
+    for t in sorted(targets, reverse=True):
+        i = None if lo > top else _first_below(ev, s, fr, t, lo, hints.get(t, lo))
+        if i is None:
+            k = ev(top, s, fr)
+            out[t] = {"reached": False, "kept": k, "below": None}
+            lo = top + 1
+            continue
+        below = ev.cache.get((i - 1, float(s))) if i > 0 else None
+        out[t] = {"reached": True, "kept": ev(i, s, fr), "below": below}
+        hints[t] = i
+        lo = i
+    return out
+
+
+def _flag_monotone(rows: list[dict]) -> None:
+    """Set ``monotone`` / ``note`` of rows of one (scene, method, target), in increasing s."""
+    best: dict | None = None  # the row with the most terms so far (reached)
+    failed_at: float | None = None
+    for r in rows:
+        r["monotone"], r["note"] = True, ""
+        if not r["reached"]:
+            failed_at = r["exponent"] if failed_at is None else failed_at
+            continue
+        if failed_at is not None:
+            r["monotone"] = False
+            r["note"] = (f"reached although s={failed_at:g} was not (errors near the target: "
+                         f"{r['rel_rmse']:.4f} here)")
+        elif best is not None and r["terms"] < best["terms"]:
+            r["monotone"] = False
+            below = f"{r['prev_rel_rmse']:.4f}" if r["prev_rel_rmse"] != "" else "not rendered"
+            r["note"] = (f"{r['terms']} terms < {best['terms']} at s={best['exponent']:g}: kept rung error "
+                         f"{r['rel_rmse']:.4f}, rung below {below}, at s={best['exponent']:g} "
+                         f"{best['rel_rmse']:.4f} (one ladder step; the error curves cross near the target)")
+        if best is None or r["terms"] >= best["terms"]:
+            best = r
+
+
+def yardstick_table(cfg: YardstickConfig = YARDSTICK, *, progress=None) -> tuple[list[dict], list[dict], dict]:
+    """Run the search (module docstring) → (figure rows, every evaluation, per-(scene, s) floors)."""
+    names = sorted(TERM_LADDERS) if cfg.methods is None else list(cfg.methods)
+    for n in names:
+        if n not in TERM_LADDERS:
+            raise ValueError(f"no term ladder registered for {n!r}; registered: {sorted(TERM_LADDERS)}")
+    bar = progress or mahajan._NoBar()
+    rows: list[dict] = []
+    evals: list[dict] = []
+    floors: dict[str, dict] = {}
+    for scene_name, region in cfg.scenes:
+        frames = {}
+        for s in cfg.exponents:
+            frames[float(s)] = _phong_frame(scene_name, region, float(s), cfg)
+        floors[scene_name] = {f"{s:g}": fr.floor for s, fr in frames.items()}
+        for name in names:
+            lad = TERM_LADDERS[name]
+            rungs = lad.quick if cfg.quick else lad.ladder
+            ev = _Evaluator(lad, rungs, scene_name, region)
+            mrows: dict[float, list[dict]] = {t: [] for t in cfg.targets}
+            hints: dict[float, int] = {}
+            for s, fr in frames.items():
+                found = _search(ev, s, fr, tuple(cfg.targets), hints)
+                for t in cfg.targets:
+                    f = found[t]
+                    k, b = f["kept"], f["below"]
+                    row = {"scene": scene_name, "vertices": fr.vertices, "method": name,
+                           "term_name": lad.term_name, "exponent": s, "target": t, "reached": f["reached"],
+                           "terms": k["terms"], "bytes_per_vertex": k["bytes_per_vertex"],
+                           "rel_rmse": k["rel_rmse"], "config": k["config"], "rung": k["rung"],
+                           "ladder_len": len(rungs),
+                           "prev_terms": b["terms"] if b else ("" if k["rung"] == 0 or not f["reached"]
+                                                               else lad.terms_of(rungs[k["rung"] - 1])),
+                           "prev_rel_rmse": b["rel_rmse"] if b else "",
+                           "top_terms": lad.terms_of(rungs[-1]),
+                           "top_rel_rmse": ev.cache[(len(rungs) - 1, s)]["rel_rmse"]
+                           if (len(rungs) - 1, s) in ev.cache else "",
+                           "noise_floor": fr.floor, "ref_spp": cfg.ref_spp}
+                    row["ladder_step"] = (row["terms"] / row["prev_terms"]) if row["prev_terms"] not in ("", 0) else ""
+                    mrows[t].append(row)
+                bar.update(1)
+            for t in cfg.targets:
+                _flag_monotone(mrows[t])
+                rows += mrows[t]
+            evals += sorted(ev.cache.values(), key=lambda r: (r["exponent"], r["rung"]))
+    return rows, evals, floors
+
+
+def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
+    """terms (top row) and bytes per vertex (bottom row) vs s, one column per scene (module
+    docstring); legend outside the axes."""
+    from matplotlib.lines import Line2D
+
+    plt = mahajan.pyplot()
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    methods_ = list(dict.fromkeys(r["method"] for r in rows))
+    targets = sorted({r["target"] for r in rows})
+    style = {t: ("-", "--", ":", "-.")[i % 4] for i, t in enumerate(targets)}  # tightest solid
+    fig, axes = plt.subplots(2, len(scenes), figsize=(4.6 * len(scenes) + 2.6, 7.4), squeeze=False)
+    for j, sc in enumerate(scenes):
+        for i, (key, ylabel) in enumerate((("terms", "terms needed (each method's own count)"),
+                                           ("bytes_per_vertex", "run-time memory per vertex (bytes)"))):
+            ax = axes[i, j]
+            for m in methods_:
+                c = method_color(m)
+                for t in targets:
+                    rr = [r for r in rows if r["scene"] == sc and r["method"] == m and r["target"] == t]
+                    # reached points joined; a not-reached exponent breaks the line (NaN)
+                    ax.plot([r["exponent"] for r in rr], [r[key] if r["reached"] else float("nan") for r in rr],
+                            style[t], color=c, marker="o", ms=4, lw=1.4)
+                    no = [r for r in rr if not r["reached"]]
+                    ax.plot([r["exponent"] for r in no], [r[key] for r in no], linestyle="none", marker="o", ms=7,
+                            markerfacecolor="none", markeredgecolor=c, mew=1.3)
+                first = min((r for r in rows if r["scene"] == sc and r["method"] == m and not r["reached"]),
+                            key=lambda r: (r["exponent"], r["target"]), default=None)
+                if first is not None:  # one direct label per method, at its first failure
+                    ax.annotate("not reached", (first["exponent"], first[key]), textcoords="offset points",
+                                xytext=(5, 6), ha="left", fontsize=6.5, color=c)
+            ax.set_xscale("log", base=2)
+            ax.set_yscale("log")
+            xs = sorted({r["exponent"] for r in rows})
+            ax.set_xticks(xs, [f"{x:g}" for x in xs])
+            ax.grid(True, which="both", alpha=0.25)
+            ax.set_xlabel("Phong exponent s (dimensionless)")
+            ax.set_ylabel(ylabel)
+            if i == 0:
+                v = next(r["vertices"] for r in rows if r["scene"] == sc)
+                ax.set_title(f"{sc} (test size, {v} vertices)", fontsize=10)
+    handles = [Line2D([], [], color=method_color(m), lw=2, label=m) for m in methods_]
+    handles += [Line2D([], [], color="k", ls=style[t], label=f"rel. RMSE <= {t:.0%}")
+                for t in targets]
+    handles.append(Line2D([], [], color="k", ls="none", marker="o", markerfacecolor="none",
+                          label="not reached (at the\nlargest rung tried)"))
+    fig.legend(handles=handles, loc="center right", fontsize=8, frameon=False)
+    tgt = " / ".join(f"{t:.0%}" for t in targets)
+    fig.suptitle(f"Smallest configuration whose image reaches relative RMSE {tgt}\n"
+                 f"(RMSE / mean radiance vs Mitsuba, direct lighting, {ref_spp} spp)", fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1 - 1.9 / (4.6 * len(scenes) + 2.6), 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def terms_vs_exponent(out_dir: Path, *, quick: bool = False, config: YardstickConfig | None = None) -> list[Path]:
+    """The one-yardstick study (module docstring) → terms_vs_exponent.csv/.png,
+    ladder_evaluations.csv, summary.json."""
+    cfg = config or (YARDSTICK_QUICK if quick else YARDSTICK)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n_methods = len(TERM_LADDERS) if cfg.methods is None else len(cfg.methods)
+    bar = mahajan.progress_bar(len(cfg.scenes) * len(cfg.exponents) * n_methods, "terms-vs-exponent")
+    t0, c0 = time.perf_counter(), time.process_time()
+    rows, evals, floors = yardstick_table(cfg, progress=bar)
+    bar.close()
+    files = [mahajan.write_csv(out / "terms_vs_exponent.csv", rows),
+             mahajan.write_csv(out / "ladder_evaluations.csv", evals),
+             plot_yardstick(rows, out / "terms_vs_exponent.png", ref_spp=cfg.ref_spp)]
+    secs: dict[str, dict] = {}
+    for e in evals:
+        d = secs.setdefault(e["method"], {"renders": 0, "seconds": 0.0, "cpu_seconds": 0.0})
+        d["renders"] += 1
+        d["seconds"] += e["seconds"]
+        d["cpu_seconds"] += e["cpu_seconds"]
+    summary = {"config": asdict(cfg), "noise_floor": floors, "per_method": secs,
+               "total_seconds": time.perf_counter() - t0, "total_cpu_seconds": time.process_time() - c0,
+               "not_monotone": [{k: r[k] for k in ("scene", "method", "target", "exponent", "terms", "note")}
+                                for r in rows if not r["monotone"]]}
+    path = out / "summary.json"
+    path.write_text(json.dumps(summary, indent=2, default=float))
+    return files + [path]
+
+
+# -- terms-own-criteria: each contributor under its own criterion ------------------------------
+
+OWN_CRITERIA_EXPONENTS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+OWN_CRITERIA_EXPONENTS_QUICK = (2,)
+
+
+def terms_own_criteria(out_dir: Path, *, quick: bool = False) -> list[Path]:
+    """Every registered terms contributor at every exponent → terms_by_method.csv/.png (each curve
+    its own criterion, stated in the legend) and, if registered, error_vs_terms.csv."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plt = mahajan.pyplot()
-    n_ts = 1 + (1 if cfg.n_ts_check else 0)
-    total = (2 * len(cfg.s_values) + 2 * len(cfg.sv_s) + n_ts * len(cfg.sigmas)
-             + len(TERMS_CONTRIBUTORS) * len(cfg.table_exponents)
-             + len(ERROR_VS_TERMS) * len(cfg.s_values))
-    bar = mahajan.progress_bar(total, "terms-vs-exponent")
-    summary: dict[str, Any] = {"n": cfg.n, "energy_fraction": ENERGY_FRACTION, "quick": quick}
-
-    files, s3a = mahajan.fig3a_k_vs_s(out, s_values=cfg.s_values, n=cfg.n, progress=bar)
-    summary.update(s3a)
-    files += mahajan.fig2_5_singular_values(out, sv_s=cfg.sv_s, n=cfg.n, progress=bar)
-    f7c, s7c = mahajan.fig7c_torrance_sparrow(out, sigmas=cfg.sigmas, n=cfg.n, n_ts_check=cfg.n_ts_check,
-                                              progress=bar)
-    files += f7c
-    summary.update(s7c)
-
-    # Every registered method's terms vs exponent.
-    recs = terms_table(list(cfg.table_exponents), progress=bar)
-    files.append(mahajan.write_csv(out / "terms_by_method.csv", [asdict(r) for r in recs]))
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    exps = OWN_CRITERIA_EXPONENTS_QUICK if quick else OWN_CRITERIA_EXPONENTS
+    s_err = mahajan.FIG6_S_QUICK if quick else mahajan.FIG6_S
+    bar = mahajan.progress_bar(len(TERMS_CONTRIBUTORS) * len(exps) + len(ERROR_VS_TERMS) * len(s_err),
+                               "terms-own-criteria")
+    recs = terms_table(list(exps), progress=bar)
+    files = [mahajan.write_csv(out / "terms_by_method.csv", [asdict(r) for r in recs])]
+    fig, ax = plt.subplots(figsize=(10, 4.5))
     for name in sorted({r.method for r in recs}):
         rr = [r for r in recs if r.method == name]
-        ax.plot([r.exponent for r in rr], [r.terms for r in rr], "o-",
-                label=f"{name} ({rr[0].target_kind} {rr[0].target:g})")
+        ax.plot([r.exponent for r in rr], [r.terms for r in rr], "o--" if name.endswith("_separated") else "o-",
+                color=method_color(name), label=f"{name}: {rr[0].target_kind} {rr[0].target:g}")
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
-    ax.set_xlabel("Phong exponent s")
-    ax.set_ylabel("terms needed")
-    ax.legend(fontsize=7)
+    ax.set_xlabel("Phong exponent s (dimensionless)")
+    ax.set_ylabel("terms needed (each method's own count)")
+    ax.set_title("Terms vs exponent, each method under its OWN criterion (not comparable;\n"
+                 "see terms-vs-exponent for one yardstick)", fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     files.append(mahajan.save_fig(fig, out / "terms_by_method.png", plt))
-
-    # Rendered error vs K (Fig. 3B/C, Fig. 6): only when a renderer registered a function.
     if ERROR_VS_TERMS:
-        files += mahajan.error_vs_terms_table(out, dict(ERROR_VS_TERMS), cfg.s_values, progress=bar, plot=False)
-        summary["error_vs_terms"] = "written"
-    else:
-        summary["error_vs_terms"] = "pending: no renderer registered (register_error_vs_terms)"
+        files += mahajan.error_vs_terms_table(out, dict(ERROR_VS_TERMS), s_err, progress=bar, plot=False)
     bar.close()
-
-    path = out / "summary.json"
-    path.write_text(json.dumps(summary, indent=2, default=float))
-    files.append(path)
     return files
 
 
 register_study(Study("terms-vs-exponent",
-                     "Terms needed vs Phong exponent (Mahajan 2008 Fig. 2, 3A, 5, 7C + every "
-                     "registered method)", terms_vs_exponent))
+                     "One yardstick: smallest configuration of every method whose image reaches 5 % / 10 % "
+                     "relative RMSE vs Mitsuba, terms and bytes per vertex vs Phong exponent 1-256",
+                     terms_vs_exponent))
+register_study(Study("terms-own-criteria",
+                     "Terms vs Phong exponent of every method under its own criterion (energy, tensor "
+                     "error, shading error) + Mahajan Fig. 6 rendered error vs K", terms_own_criteria))

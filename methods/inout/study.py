@@ -35,7 +35,7 @@ import numpy as np
 
 from methods.inout import analysis as A
 from methods.inout.analysis import terms_needed
-from methods.studies import Study, register_error_vs_terms, register_study, register_terms_contributor
+from methods.studies import Study, register_error_vs_terms, register_study, register_term_ladder, register_terms_contributor
 
 # -- output helpers (also used by reports.studies) ---------------------------------------------------
 
@@ -367,3 +367,23 @@ _study("mahajan-fig3a", "Fig. 3A: terms K(99 %) vs Phong exponent, sphere and he
 _study("mahajan-fig2-5", "Figs. 2 and 5: singular values vs the exact Phong F_l", _fig2_5)
 _study("mahajan-fig7c", "Fig. 7C: Torrance-Sparrow K(99 %) vs (l*)^2", _fig7c)
 _study("mahajan-fig6", "Figs. 3B/C and 6: rendered in-out error vs K (Mitsuba references)", _fig6)
+
+
+# -- term ladder of the one-yardstick terms-vs-exponent study (reports.studies) ----------------
+# K on the varied (glossy) region; every other region keeps its rule (Lambert: K = 1); every other
+# setting at the method's defaults (brdf_res 24, cube_res 16: the lighting texel, not K, limits
+# the sharpest lobes). Ratio between rungs <= 1.5 so the study's step is fine.
+TERM_LADDER = tuple(dict(terms=k) for k in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256))
+TERM_LADDER_QUICK = (dict(terms=1, brdf_res=8, cube_res=8, n_coeffs=32),
+                     dict(terms=4, brdf_res=8, cube_res=8, n_coeffs=32))
+
+
+def make_for_ladder(config: dict, region: str):
+    """InOut with K = config["terms"] on ``region`` (other config keys: constructor settings)."""
+    from methods.inout.method import InOut
+
+    cfg = dict(config)
+    return InOut(terms={region: int(cfg.pop("terms"))}, progress=False, **cfg)
+
+
+register_term_ladder("inout", TERM_LADDER, make_for_ladder, quick=TERM_LADDER_QUICK, term_name="K (in-out terms)")

@@ -63,7 +63,7 @@ from methods.ptt.brdf_space import BRDFSpace, get_space
 from methods.ptt.brdf_tensor import (DEFAULT_RANKS, DiskGrid, brdf_tensor, fit_brdf_tensor, hosvd_error_grid,
                                      separate_tensor)
 from methods.ptt.lobes import LOBE_DEGREES
-from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
+from methods.studies import Study, TermsRecord, register_study, register_term_ladder, register_terms_contributor
 
 __all__ = [
     "BASE_CONFIG",
@@ -912,3 +912,26 @@ for _name, _desc, _run in (
                       "separation", study_terms),
         ("ptt-figures", "Figs. 5, 6, 8, 9, 10 and the terms table, all into one folder", run_all)):
     register_study(Study(_name, f"Sun 2007 {_desc}", _run, paper="Sun 2007"))
+
+
+# -- term ladder of the one-yardstick terms-vs-exponent study (reports.studies) ----------------
+# n_ωi: the incidence components E_x(k) every vertex carries (eq. 3's k), direct lighting only
+# (bounces = 0, the study's references are direct), the image figures' BASE_CONFIG otherwise
+# (64 rays, 6×16×16 cube map), lobe separation at the PTT default (the lobes are not counted).
+TERM_LADDER = tuple(dict(n_wi=n) for n in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64))
+TERM_LADDER_QUICK = (dict(n_wi=1, rays=8, cube_res=4, light_res_1=4, light_res_2=2, brdf_grid=8, brdf_table=12,
+                          lobe_fit_samples=1024, lobe_vis_samples=256, lobe_theta=8),
+                     dict(n_wi=4, rays=8, cube_res=4, light_res_1=4, light_res_2=2, brdf_grid=8, brdf_table=12,
+                          lobe_fit_samples=1024, lobe_vis_samples=256, lobe_theta=8))
+
+
+def make_for_ladder(config: dict, region: str):
+    """A direct-lighting PTT with config["n_wi"] incidence components (other keys: constructor
+    settings over ``BASE_CONFIG``); ``region`` unused (one factorization for every region)."""
+    from methods.ptt.method import PTT
+
+    return PTT(**{**BASE_CONFIG, "bounces": 0, **config})
+
+
+register_term_ladder("ptt", TERM_LADDER, make_for_ladder, lambda c: c["n_wi"], quick=TERM_LADDER_QUICK,
+                     term_name="n_wi (incidence components per vertex)")

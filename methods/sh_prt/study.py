@@ -13,7 +13,8 @@ cross-method study ``terms-vs-exponent`` calls `terms_needed`.
 from __future__ import annotations
 
 from methods.core.zh import phong_energy_fraction, phong_lobe_energy, phong_order_needed
-from methods.studies import TermsRecord, register_terms_contributor
+from methods.sh_prt.method import SHPRT
+from methods.studies import TermsRecord, register_term_ladder, register_terms_contributor
 
 TARGET_KIND = "energy fraction of the Phong lobe in order-n SH (n² terms)"
 
@@ -29,3 +30,10 @@ def terms_needed(exponent: float, target: float = 0.99) -> TermsRecord:
 
 
 register_terms_contributor("sh_prt", terms_needed, target=0.99, target_kind=TARGET_KIND)
+
+
+# The one-yardstick terms-vs-exponent study (reports/studies.py): SH order n = 2..10 (n² terms),
+# direct lighting (bounces = 0, so the material may change at render time).
+register_term_ladder("sh_prt", [dict(order=n) for n in range(2, 11)], lambda c, r: SHPRT(bounces=0, **c),
+                     lambda c: c["order"] ** 2, quick=[dict(order=2, rays=32), dict(order=3, rays=32)],
+                     material_at_render=True, term_name="n^2 (SH order n)")

@@ -33,7 +33,7 @@ from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.triple_product import brdf_table as bt
 from methods.triple_product.lighting import project_lighting
 from methods.triple_product.precompute import blend_sparse, truncate
-from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
+from methods.studies import Study, TermsRecord, register_study, register_term_ladder, register_terms_contributor
 from methods.triple_product import storage as st
 
 # n ladder searched by `terms_needed` (the paper's 20 / 80 / 320 are on it).
@@ -248,3 +248,29 @@ register_study(Study("ma-fig7-8", "Ma 2006 Figs. 7-8: image RMSE vs wavelet coef
                      "(adaptive / top), vs all coefficients and vs Mitsuba", fig7_8, paper="Ma 2006"))
 register_study(Study("ma-tables", "Ma 2006 Tables 1-2 / §4.1: local vs global frame storage at the paper's "
                      "settings (170 MB / 480 MB / 82 GB)", tables, paper="Ma 2006"))
+
+
+# -- term ladder of the one-yardstick terms-vs-exponent study (reports.studies) ----------------
+# Coefficients kept per function n (Ma 2006 §3.2, "adaptive") at the default level 3 (K = 1280;
+# None = all K, the last rung), every other setting at the method's defaults.
+TERM_LADDER_LEVEL = 3
+TERM_LADDER = tuple(dict(n_coeffs=n) for n in (5, 10, 20, 40, 80, 160, 320, 640, None))
+TERM_LADDER_QUICK = (dict(n_coeffs=10, level=1, frame_grid=(5, 8, 1), brdf_dirs=(4, 8)),
+                     dict(n_coeffs=None, level=1, frame_grid=(5, 8, 1), brdf_dirs=(4, 8)))
+
+
+def _ladder_terms(config: dict) -> int:
+    n = config["n_coeffs"]
+    return 20 * 4 ** config.get("level", TERM_LADDER_LEVEL) if n is None else int(n)
+
+
+def make_for_ladder(config: dict, region: str):
+    """TripleProduct keeping config["n_coeffs"] coefficients per function (other keys: constructor
+    settings); ``region`` unused (one n for every function)."""
+    from methods.triple_product.method import TripleProduct
+
+    return TripleProduct(**{"level": TERM_LADDER_LEVEL, "progress": False, **config})
+
+
+register_term_ladder("triple_product", TERM_LADDER, make_for_ladder, _ladder_terms, quick=TERM_LADDER_QUICK,
+                     term_name="n (wavelet coefficients per function)")

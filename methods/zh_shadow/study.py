@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from methods.core.zh import phong_energy_fraction, phong_order_needed
-from methods.studies import Study, TermsRecord, register_study, register_terms_contributor
+from methods.studies import Study, TermsRecord, register_study, register_term_ladder, register_terms_contributor
 
 # The lobe-energy arithmetic is shared with sh_prt's row (methods/core/zh.py).
 lobe_energy_fraction, order_needed = phong_energy_fraction, phong_order_needed
@@ -145,3 +145,24 @@ register_terms_contributor("zh_shadow", terms_needed, target=0.99,
 register_study(Study("nowrouzezahrai-fig3-5", "Nowrouzezahrai 2008 Figs. 3 and 5: held-out error of the "
                      "pose-linear ZH visibility model, 1 vs 2 lobes, unweighted and cosine-weighted",
                      fig3_5, paper="Nowrouzezahrai 2008"))
+
+
+# -- term ladder of the one-yardstick terms-vs-exponent study (reports.studies) ----------------
+# SH order n = 2..8 (the constructor's range), 2 lobes (the paper's): terms = n², the SH
+# coefficients of visibility and lighting every shade dots (the order, not the lobe count, caps the
+# exponent; module docstring). The Phong exponent is read from frame.materials at render time, so
+# one precompute per order serves every exponent.
+TERM_LADDER = tuple(dict(order=n) for n in range(2, 9))
+TERM_LADDER_QUICK = (dict(order=2, n_dirs=64), dict(order=3, n_dirs=64))
+
+
+def make_for_ladder(config: dict, region: str):
+    """ZHShadow at SH order config["order"] (other keys: constructor settings); ``region`` unused
+    (one order for every region)."""
+    from methods.zh_shadow.method import ZHShadow
+
+    return ZHShadow(**config)
+
+
+register_term_ladder("zh_shadow", TERM_LADDER, make_for_ladder, lambda c: c["order"] ** 2, quick=TERM_LADDER_QUICK,
+                     material_at_render=True, term_name="n^2 (SH order n, 2 ZH lobes)")

@@ -3,7 +3,6 @@ terms-vs-exponent study)."""
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import pytest
@@ -60,7 +59,8 @@ def test_every_paper_figure_is_a_registered_study():
         assert not missing, f"{paper}: {sorted(missing)} not registered"
         for n in names:
             assert MS.STUDIES[n].paper == paper, n
-    assert MS.STUDIES["terms-vs-exponent"].paper == ""  # the cross-method sweep
+    assert MS.STUDIES["terms-vs-exponent"].paper == ""  # the cross-method sweeps
+    assert MS.STUDIES["terms-own-criteria"].paper == ""
 
 
 @pytest.mark.parametrize("name", CHEAP_STUDIES)
@@ -119,25 +119,18 @@ def test_contributors_are_callables_not_module_strings(clean_registries):
         MS.register_terms_contributor("lazy", "builtins:max")
 
 
-def test_quick_terms_vs_exponent(tmp_path, clean_registries, one_torch_thread):
+def test_quick_terms_own_criteria(tmp_path, clean_registries, one_torch_thread):
     # The real contributors are tested with their methods (tests/methods/*); cheap stand-ins here.
     MS.TERMS_CONTRIBUTORS.clear()
     MS.ERROR_VS_TERMS.clear()
     MS.register_terms_contributor("inout", lambda s, t: int(2.5 * s), replace=True)
     MS.register_error_vs_terms("fake", lambda s, k: 1.0 / (k + s))
-    files = MS.run_study("terms-vs-exponent", tmp_path, quick=True)
+    files = MS.run_study("terms-own-criteria", tmp_path, quick=True)
     names = {f.name for f in files}
-    for n in ("k_vs_s.csv", "k_vs_s.png", "sv_vs_Fl.csv", "sv_vs_Fl.png", "ts_k_vs_lstar.csv",
-              "ts_k_vs_lstar.png", "terms_by_method.csv", "terms_by_method.png",
-              "error_vs_terms.csv", "summary.json"):
+    for n in ("terms_by_method.csv", "terms_by_method.png", "error_vs_terms.csv"):
         assert n in names and (tmp_path / n).stat().st_size > 0
-    rows = list(csv.DictReader(open(tmp_path / "k_vs_s.csv")))
-    K = [int(r["K_sphere"]) for r in rows]
-    assert K == sorted(K) and K[0] < K[-1]  # more terms for shinier lobes
-    for r in rows:  # the quick grid (16²) is not capping K at s ≤ 8
-        assert abs(int(r["K_sphere"]) - int(r["K_sphere_exact"])) <= 2
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["slope_sphere"] > summary["slope_hemisphere"] > 0
-    assert summary["error_vs_terms"] == "written"
     t = list(csv.DictReader(open(tmp_path / "terms_by_method.csv")))
     assert {r["method"] for r in t} == {"inout"}
+    assert [int(r["terms"]) for r in t] == [int(2.5 * s) for s in studies.OWN_CRITERIA_EXPONENTS_QUICK]
+    e = list(csv.DictReader(open(tmp_path / "error_vs_terms.csv")))
+    assert e and all(abs(float(r["error"]) - 1.0 / (int(r["K"]) + float(r["s"]))) < 1e-12 for r in e)

@@ -1,0 +1,199 @@
+"""The one-yardstick terms-vs-exponent study (`reports.studies.terms_vs_exponent`) and its registry
+(`methods.studies.register_term_ladder`): the search on stand-in methods with known error curves,
+the CSV's shape and monotonicity flags, and one quick run of every registered ladder."""
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+import torch
+
+from methods import studies as MS
+from methods.base import Method
+from reports import studies as S
+from reports.palette import METHOD_COLORS, method_color
+
+
+@pytest.fixture
+def clean_ladders():
+    saved = dict(MS.TERM_LADDERS)
+    yield
+    MS.TERM_LADDERS.clear()
+    MS.TERM_LADDERS.update(saved)
+
+
+class _Fake(Method):
+    """Renders the (constant 1) reference × (1 + err(s, K)): its relative RMSE is err(s, K)."""
+
+    name = "fake"
+    err = staticmethod(lambda s, k: s / (10.0 * k))
+
+    def __init__(self, *, terms: int):
+        super().__init__(terms=terms)
+        self.precomputes = 0
+
+    def precompute(self, scene) -> None:
+        self.s = scene["s"]
+
+    def render(self, frame, gbuffer):
+        return torch.full((4, 4, 3), 1.0 + type(self).err(frame["s"], self.config["terms"]))
+
+    def memory(self):
+        return {"x": 100 * self.config["terms"]}
+
+
+class _Ref:
+    image = torch.ones(4, 4, 3)
+
+
+def _fake_frame(scene_name, region, s, cfg):
+    return S._Frame({"s": s}, {"s": s}, None, _Ref(), torch.ones(4, 4, dtype=torch.bool), 1.0, 0.001, 10)
+
+
+def _ladder(name, err, renders):
+    class M(_Fake):
+        pass
+
+    M.err = staticmethod(err)
+
+    def make(config, region):
+        renders.append((name, config["terms"]))
+        return M(**config)
+
+    return MS.register_term_ladder(name, [dict(terms=k) for k in range(1, 65)], make, replace=True)
+
+
+def test_register_term_ladder_validates(clean_ladders):
+    make = lambda c, r: None  # noqa: E731
+    with pytest.raises(ValueError, match="ladder"):
+        MS.register_term_ladder("x", [], make)
+    with pytest.raises(ValueError, match="decrease"):
+        MS.register_term_ladder("x", [dict(terms=4), dict(terms=2)], make)
+    with pytest.raises(ValueError, match="make"):
+        MS.register_term_ladder("x", [dict(terms=1)], 3)
+    with pytest.raises(ValueError, match=">= 1"):
+        MS.register_term_ladder("x", [dict(order=2)], make, lambda c: 0)
+    lad = MS.register_term_ladder("x", [dict(order=n) for n in (2, 3, 4)], make, lambda c: c["order"] ** 2)
+    assert [lad.terms_of(c) for c in lad.quick] == [4, 9]  # default quick ladder: the first two rungs
+    with pytest.raises(ValueError, match="already"):
+        MS.register_term_ladder("x", [dict(terms=1)], make)
+
+
+def test_every_method_has_a_ladder():
+    for name in ("inout", "zh_shadow", "triple_product", "ptt"):
+        lad = MS.TERM_LADDERS[name]
+        assert len(lad.ladder) >= 7 and lad.quick, name
+        terms = [lad.terms_of(c) for c in lad.ladder]
+        assert terms == sorted(terms) and terms[-1] > terms[0]
+        # fine: <= 2x between rungs, except SH order 2 -> 3 (4 -> 9 terms: no order in between)
+        assert max(b / a for a, b in zip(terms, terms[1:])) <= 2.25, name
+    assert MS.TERM_LADDERS["zh_shadow"].material_at_render
+
+
+def test_search_matches_exhaustive_and_csv_shape(tmp_path, monkeypatch, clean_ladders):
+    """err = 0.9 s / (10 K): the smallest K reaching t is ceil(0.09 s / t) (not reached beyond K = 64;
+    0.9: no answer sits exactly on a float32 boundary);
+    the bisected answer equals the exhaustive one, with the rung below missing the target."""
+    monkeypatch.setattr(S, "_phong_frame", _fake_frame)
+    MS.TERM_LADDERS.clear()
+    renders: list = []
+    _ladder("fake", lambda s, k: 0.09 * s / k, renders)
+    # non-monotone in s: at s = 8 the error is 4x smaller than the smooth curve
+    _ladder("dip", lambda s, k: 0.09 * (s / 4 if s == 8 else s) / k, renders)
+    exps = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+    cfg = S.YardstickConfig(scenes=(("a", "r"), ("b", "r")), exponents=exps, targets=(0.05, 0.1), ref_spp=2)
+    files = S.terms_vs_exponent(tmp_path, config=cfg)
+    assert {f.name for f in files} == {"terms_vs_exponent.csv", "terms_vs_exponent.png", "ladder_evaluations.csv",
+                                       "summary.json"}
+    rows = list(csv.DictReader(open(tmp_path / "terms_vs_exponent.csv")))
+    assert len(rows) == 2 * 2 * len(exps) * 2  # scenes × methods × exponents × targets
+    assert {(r["scene"], r["method"], float(r["exponent"]), float(r["target"])) for r in rows} == {
+        (sc, m, float(s), t) for sc in "ab" for m in ("fake", "dip") for s in exps for t in (0.05, 0.1)}
+    for r in rows:
+        s, t = float(r["exponent"]), float(r["target"])
+        se = s / 4 if r["method"] == "dip" and s == 8 else s
+        want = math.ceil(0.09 * se / t)
+        if want > 64:
+            assert r["reached"] == "False" and int(r["terms"]) == 64  # plotted at the largest rung tried
+        else:
+            assert r["reached"] == "True" and int(r["terms"]) == want, r
+            assert float(r["rel_rmse"]) <= t
+            assert float(r["bytes_per_vertex"]) == 10 * want  # 100 B per term / 10 vertices
+            if want > 1:
+                assert int(r["prev_terms"]) == want - 1 and float(r["prev_rel_rmse"]) > t
+        flagged = r["monotone"] == "False"
+        # fake is monotone; dip needs fewer terms at s = 8 than at s = 4 (when resolved by the ladder)
+        assert flagged == (r["method"] == "dip" and s == 8 and math.ceil(0.18 / t) < math.ceil(0.36 / t)), r
+        assert bool(r["note"]) == flagged
+    # cached per (method, rung, s): no render repeated
+    evals = list(csv.DictReader(open(tmp_path / "ladder_evaluations.csv")))
+    keys = [(e["scene"], e["method"], e["exponent"], e["rung"]) for e in evals]
+    assert len(keys) == len(set(keys)) == len(renders)
+    assert len(renders) < 0.25 * 2 * 2 * len(exps) * 64  # far fewer renders than the whole ladder
+
+
+def test_quick_terms_vs_exponent_every_ladder(tmp_path):
+    """The real ladders' quick rungs on sphere_plane (64-spp reference): the CSV has every (method,
+    s, target) and each method's terms are non-decreasing in s or flagged."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        MS.run_study("terms-vs-exponent", tmp_path, quick=True)
+    finally:
+        torch.set_num_threads(n)
+    cfg = S.YARDSTICK_QUICK
+    rows = list(csv.DictReader(open(tmp_path / "terms_vs_exponent.csv")))
+    names = sorted(MS.TERM_LADDERS)
+    assert len(rows) == len(names) * len(cfg.exponents) * len(cfg.targets) * len(cfg.scenes)
+    assert sorted({r["method"] for r in rows}) == names
+    for m in names:
+        for t in cfg.targets:
+            rr = sorted((r for r in rows if r["method"] == m and float(r["target"]) == t),
+                        key=lambda r: float(r["exponent"]))
+            most = 0
+            for r in rr:
+                e = float(r["rel_rmse"])
+                assert math.isfinite(e) and e > 0
+                assert (e <= t) == (r["reached"] == "True")
+                if r["reached"] == "True":
+                    assert int(r["terms"]) >= most or r["monotone"] == "False", (m, t, r)
+                    most = max(most, int(r["terms"]))
+                assert float(r["bytes_per_vertex"]) > 0
+    assert any(r["reached"] == "True" for r in rows)  # the quick targets are reachable by someone
+    assert (tmp_path / "terms_vs_exponent.png").stat().st_size > 10_000
+
+
+def test_palette_one_colour_per_method():
+    assert len(set(METHOD_COLORS.values())) == len(METHOD_COLORS)
+    assert method_color("ptt_separated") == METHOD_COLORS["ptt"]
+    assert method_color("new_method") == method_color("new_method") and method_color("new_method").startswith("#")
+    with pytest.raises(ValueError):
+        method_color("")
+
+
+def test_report_embeds_latest_study_figures(tmp_path):
+    """reports.html.study_figures: terms-vs-exponent PNGs embedded as data URIs with their CSV
+    paths, other studies' PNGs linked relative to the report; nothing when there is no folder."""
+    import base64
+
+    import numpy as np
+    from matplotlib import image as mpimg
+
+    from reports import html as H
+
+    root = tmp_path / "studies"
+    (root / "terms-vs-exponent").mkdir(parents=True)
+    (root / "mahajan-fig3a").mkdir()
+    png = root / "terms-vs-exponent" / "terms_vs_exponent.png"
+    mpimg.imsave(png, np.zeros((4, 4, 3), np.uint8))
+    (root / "terms-vs-exponent" / "terms_vs_exponent.csv").write_text("a\n1\n")
+    mpimg.imsave(root / "mahajan-fig3a" / "k_vs_s.png", np.zeros((4, 4, 3), np.uint8))
+    run = tmp_path / "smoke"
+    run.mkdir()
+    out = H.study_figures(root, run)
+    assert "data:image/png;base64," + base64.b64encode(png.read_bytes()).decode() in out
+    assert "terms_vs_exponent.csv" in out
+    assert 'href="../studies/mahajan-fig3a/k_vs_s.png"' in out
+    assert H.study_figures(tmp_path / "nowhere", run) == ""
+    assert H.study_figures(None, run) == ""
