@@ -31,7 +31,7 @@ from reports.cells import MEASURED
 from reports.palette import method_color
 from scenes.io import atomic_write_text
 
-KIND_ORDER = ["V", "VB", "VBL", "P"]
+KIND_ORDER = ["V", "VB", "VBL", "P", "L", "E", "VL"]
 # The display exposure maps this percentile of the reference's luminance to white (same rule as
 # references.metrics.Exposure).
 WHITE_PERCENTILE = 99.0
