@@ -185,6 +185,7 @@ def summary_table(df: pd.DataFrame) -> str:
 
 
 RELIGHT_KINDS = ("V", "L", "E", "VL")
+REAL_SCENES = ("bunny", "dragon", "character")  # library scenes under captured probes (scenes/assets)
 
 
 def relighting_table(df: pd.DataFrame) -> str:
@@ -464,7 +465,10 @@ def probe_strip(out_dir: Path | None, df: pd.DataFrame) -> str:
     ok = df[df["status"].isin(MEASURED) & (df["sequence"] == "E") & (df["bounces"] == 0)].drop_duplicates("cell")
     if len(ok) == 0:
         return "<p>No E sequence in this run.</p>"
-    scene = sorted(set(ok["scene"]))[-1]  # the real scan sorts after sphere_plane in the smoke suite
+    # one scene: the one with a captured probe of its own when there is one (in the smoke suite the
+    # bunny scan under "sunrise"), else the first by name
+    scenes = sorted(set(ok["scene"]))
+    scene = next((s for s in scenes if s in REAL_SCENES), scenes[0])
     cols = []
     for _, r in ok[ok["scene"] == scene].sort_values(["method", "config"]).iterrows():
         p = out_dir / "images" / f"{r['cell']}.frames.npz"
