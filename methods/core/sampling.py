@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from methods.core.frames import to_world
+
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # 2π(1 − 1/φ), φ the golden ratio
 
 
@@ -298,3 +300,24 @@ def latlong_grid(height: int, width: int, *, dtype=None, device=None) -> tuple[T
     w = latlong_row_weights(height, dtype=torch.float64, device=device)[:, None]
     w = (w * (2.0 * math.pi / width)).expand(height, width).reshape(-1)
     return d.reshape(-1, 3), w.to(d.dtype)
+
+
+def rotated_hemisphere_dirs(normals: Tensor, n_rays: int, *, seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+    """``n_rays`` Fibonacci hemisphere directions about every normal, each vertex's set turned by
+    its own random azimuth (deterministic in ``seed``), for per-vertex hemisphere quadrature.
+
+    normals: (V, 3) unit normals. Returns local (V, J, 3) directions in each normal's frame
+    (z = normal; ``methods.core.frames.to_world`` convention), world (V, J, 3) unit directions and
+    weights (J,) = 2π/J.
+    """
+    if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
+        raise ValueError(f"the number of rays must be a positive int, got {n_rays!r}")
+    N = torch.as_tensor(normals, dtype=torch.float32)
+    nv = N.shape[0]
+    d, w = fibonacci_hemisphere(n_rays, dtype=torch.float32)            # (J, 3), (J,) = 2π/J
+    gen = torch.Generator().manual_seed(int(seed))
+    phi = torch.rand(nv, generator=gen) * (2.0 * math.pi)
+    c, s = torch.cos(phi)[:, None], torch.sin(phi)[:, None]
+    loc = torch.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2].expand(nv, -1)], -1)
+    world = to_world(loc, N[:, None, :].expand(nv, n_rays, 3))
+    return loc, world / world.norm(dim=-1, keepdim=True), w

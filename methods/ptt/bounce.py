@@ -38,8 +38,8 @@ import torch
 from torch import Tensor
 
 from methods.core import sh as _sh
-from methods.core.frames import to_local, to_world
-from methods.core.sampling import fibonacci_hemisphere
+from methods.core.frames import to_local
+from methods.core.sampling import rotated_hemisphere_dirs
 from methods.core.visibility import Visibility, offset_origins
 from methods.ptt.transport import BasisFactors
 
@@ -67,19 +67,10 @@ class Hits:
 def trace_hemispheres(vis: Visibility, V: Tensor, normals: Tensor, n_rays: int, *, seed: int = 0) -> Hits:
     """Trace ``n_rays`` hemisphere rays from every vertex: V (Nv, 3) ray origins
     (`transport.ray_points`), normals (Nv, 3)."""
-    if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
-        raise ValueError(f"n_rays must be a positive int, got {n_rays!r}")
     V = torch.as_tensor(V, dtype=torch.float32)
     normals = torch.as_tensor(normals, dtype=torch.float32)
     nv = V.shape[0]
-    d, w = fibonacci_hemisphere(n_rays, dtype=torch.float32)  # (J, 3), (J,) = 2π/J
-    gen = torch.Generator().manual_seed(int(seed))
-    phi = torch.rand(nv, generator=gen) * (2.0 * math.pi)
-    c, s = torch.cos(phi)[:, None], torch.sin(phi)[:, None]
-    loc = torch.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2].expand(nv, -1)], -1)
-    nrm = normals[:, None, :].expand(nv, n_rays, 3)
-    world = to_world(loc, nrm)
-    world = world / world.norm(dim=-1, keepdim=True)
+    loc, world, w = rotated_hemisphere_dirs(normals, n_rays, seed=seed)
     o = offset_origins(V, normals, scale=vis.scale)[:, None, :].expand(nv, n_rays, 3)
     _, face, u, v = vis.intersect(o.reshape(-1, 3).contiguous(), world.reshape(-1, 3).contiguous())
     return Hits(loc, w, -world, face.reshape(nv, n_rays), u.reshape(nv, n_rays), v.reshape(nv, n_rays))

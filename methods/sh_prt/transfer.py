@@ -48,8 +48,8 @@ from torch import Tensor
 
 from methods.core import sh as _sh
 from methods.core import zh as _zh
-from methods.core.frames import frame_matrix, reflect, to_world
-from methods.core.sampling import fibonacci_hemisphere, gauss_legendre_sphere
+from methods.core.frames import frame_matrix, reflect
+from methods.core.sampling import gauss_legendre_sphere, rotated_hemisphere_dirs
 from methods.core.sh_rotation import sh_rotation_matrix
 from methods.core.visibility import Visibility, interpolate_at_hits, offset_origins
 
@@ -142,18 +142,10 @@ def trace_rays(vis: Visibility, points: Tensor, normals: Tensor, n_rays: int, *,
             (origins offset along N by `visibility.offset_origins(scale=vis.scale)`).
         n_rays: J ≥ 1; seed: the per-vertex azimuth rotation.
     """
-    if isinstance(n_rays, bool) or not isinstance(n_rays, int) or n_rays < 1:
-        raise ValueError(f"rays must be a positive int, got {n_rays!r}")
     P = torch.as_tensor(points, dtype=torch.float32)
     N = torch.as_tensor(normals, dtype=torch.float32)
     nv = P.shape[0]
-    d, w = fibonacci_hemisphere(n_rays, dtype=torch.float32)            # (J, 3), (J,) = 2π/J
-    gen = torch.Generator().manual_seed(int(seed))
-    phi = torch.rand(nv, generator=gen) * (2.0 * math.pi)
-    c, s = torch.cos(phi)[:, None], torch.sin(phi)[:, None]
-    loc = torch.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2].expand(nv, -1)], -1)
-    world = to_world(loc, N[:, None, :].expand(nv, n_rays, 3))
-    world = world / world.norm(dim=-1, keepdim=True)
+    loc, world, w = rotated_hemisphere_dirs(N, n_rays, seed=seed)
     o = offset_origins(P, N, scale=vis.scale)[:, None, :].expand(nv, n_rays, 3)
     _, face, u, v = vis.intersect(o.reshape(-1, 3).contiguous(), world.reshape(-1, 3).contiguous())
     return Rays(world, w, loc[..., 2].clamp_min(0.0), face.reshape(nv, n_rays),
