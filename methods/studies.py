@@ -213,3 +213,24 @@ def _check_ladder(name: str, ladder: Sequence[Mapping], terms_of: Callable[[dict
     if any(b < a for a, b in zip(terms, terms[1:])):
         raise ValueError(f"{name}: terms must not decrease along the ladder, got {terms}")
     return tuple(rungs)
+
+
+# -- figure plumbing shared by every study module ---------------------------------------------------
+
+
+def pyplot():
+    """matplotlib.pyplot with the Agg backend (studies write files; no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_fig(fig, path: Path, plt) -> Path:
+    """Tight layout, 110 dpi PNG at ``path``, figure closed; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -46,7 +46,7 @@ from typing import Any
 import methods.registry  # noqa: F401  (loads every method's study registrations)
 from methods.inout import study as mahajan
 from methods.studies import (ERROR_VS_TERMS, STUDIES, TERM_LADDERS, TERMS_CONTRIBUTORS, Study,  # noqa: F401
-                             TermLadder, register_study, run_study, terms_table)  # (STUDIES, run_study: the CLI's)
+                             TermLadder, pyplot, register_study, run_study, save_fig, terms_table)  # (STUDIES, run_study: the CLI's)
 from reports.palette import method_color
 
 # -- terms-vs-exponent: one yardstick ---------------------------------------------------------
@@ -303,7 +303,7 @@ def plot_yardstick(rows: list[dict], path: Path, *, ref_spp: int) -> Path:
     docstring); legend outside the axes."""
     from matplotlib.lines import Line2D
 
-    plt = mahajan.pyplot()
+    plt = pyplot()
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     methods_ = list(dict.fromkeys(r["method"] for r in rows))
     targets = sorted({r["target"] for r in rows})
@@ -393,7 +393,7 @@ def terms_own_criteria(out_dir: Path, *, quick: bool = False) -> list[Path]:
     its own criterion, stated in the legend) and, if registered, error_vs_terms.csv."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    plt = mahajan.pyplot()
+    plt = pyplot()
     exps = OWN_CRITERIA_EXPONENTS_QUICK if quick else OWN_CRITERIA_EXPONENTS
     s_err = mahajan.FIG6_S_QUICK if quick else mahajan.FIG6_S
     bar = mahajan.progress_bar(len(TERMS_CONTRIBUTORS) * len(exps) + len(ERROR_VS_TERMS) * len(s_err),
@@ -413,7 +413,7 @@ def terms_own_criteria(out_dir: Path, *, quick: bool = False) -> list[Path]:
                  "see terms-vs-exponent for one yardstick)", fontsize=10)
     ax.grid(True, which="both", alpha=0.25)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    files.append(mahajan.save_fig(fig, out / "terms_by_method.png", plt))
+    files.append(save_fig(fig, out / "terms_by_method.png", plt))
     if ERROR_VS_TERMS:
         files += mahajan.error_vs_terms_table(out, dict(ERROR_VS_TERMS), s_err, progress=bar, plot=False)
     bar.close()

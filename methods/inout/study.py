@@ -35,7 +35,8 @@ import numpy as np
 
 from methods.inout import analysis as A
 from methods.inout.analysis import terms_needed
-from methods.studies import Study, register_error_vs_terms, register_study, register_term_ladder, register_terms_contributor
+from methods.studies import (Study, pyplot, register_error_vs_terms, register_study, register_term_ladder,  # noqa: F401
+                             register_terms_contributor, save_fig)
 
 # -- output helpers (also used by reports.studies) ---------------------------------------------------
 
@@ -50,23 +51,6 @@ def write_csv(path: Path, rows: list[dict]) -> Path:
         w.writeheader()
         w.writerows(rows)
     tmp.replace(path)
-    return path
-
-
-def pyplot():
-    """matplotlib.pyplot with the Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_fig(fig, path: Path, plt) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

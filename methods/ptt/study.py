@@ -64,6 +64,8 @@ from methods.ptt.brdf_tensor import (DEFAULT_RANKS, DiskGrid, brdf_tensor, fit_b
                                      separate_tensor)
 from methods.ptt.lobes import LOBE_DEGREES
 from methods.studies import Study, TermsRecord, register_study, register_term_ladder, register_terms_contributor
+from methods.studies import pyplot as _pyplot
+from methods.studies import save_fig as _save
 
 __all__ = [
     "BASE_CONFIG",
@@ -782,21 +784,6 @@ def _outdir(p: str | Path) -> Path:
     out = Path(p)
     out.mkdir(parents=True, exist_ok=True)
     return out
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path, plt) -> None:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _montage(tiles: list[tuple[str, Any]], path: Path, *, title: str, scale: float = 1.0) -> None:
