@@ -458,6 +458,10 @@ class InOut(Method):
             m[f"{reg.name}/c"] = (4 * 3 * reg.K + 1) * reg.verts.numel()   # c_k and its validity flag
             m[f"{reg.name}/sh_table_fast"] = tensor_bytes(reg.sh_lut)       # σ_k h_k regrouped (fast path)
         m["faces"] = tensor_bytes(self.F)
+        nv = sum(int(reg.verts.numel()) for reg in self.regions)
+        # fast path (`fast.FastStatic`): per face its concatenated vertex ids (3 int32) and region
+        # (int64); per vertex position (3 float32), frame (9 float32) and K (int64)
+        m["fast_static"] = int(self.F.shape[0]) * (3 * 4 + 8) + nv * (12 * 4 + 8) if self.F is not None else 0
         N = self.config["cube_res"]
         m["L"] = tensor_bytes(self.L) if self.L is not None else 4 * 6 * N * N * 3
         return m

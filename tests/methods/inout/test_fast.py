@@ -236,3 +236,14 @@ def test_frame_cost_validates_and_needs_precompute(tiny):
     for kind, n in (("VB", 10), ("VBL", 10), ("P", 10), ("X", 10), ("V", -1), ("V", 1.5), ("V", True)):
         with pytest.raises(ValueError):
             m.frame_cost(kind, n)
+
+
+def test_memory_counts_the_fast_arrays(tiny):
+    """memory() reports the fast path's static arrays and c_k at their real sizes."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    st, mem = m._fast_static(), m.memory()
+    assert mem["fast_static"] == tensor_bytes(st.face_gl, st.face_region, st.pos, st.frames, st.K)
+    for reg in m.regions:
+        assert mem[f"{reg.name}/c"] == tensor_bytes(m._cf[reg.name], m._cf_valid[reg.name])
+        assert mem[f"{reg.name}/sh_table_fast"] == tensor_bytes(st.regions[m.regions.index(reg)].sh_nc)
