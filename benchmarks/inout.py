@@ -11,9 +11,10 @@ machine load. Frame 0 of each sequence fills the caches and is not timed. Prints
 ratio, the roofline efficiency max(bytes / triad bandwidth, flops / matmul peak) / time with
 ``InOut.frame_cost`` and both machine limits measured in this run (before and after the frames;
 the higher of each is used), the largest |old − new| pixel difference, and micro-benchmarks of the
-kernels that bound a frame: the lighting product c = T̃ · L over the referenced rows beside one
-streaming read of the same bytes, the window products X (sampled dense-dense product) and the
-per-sample 12-row bag, and one pass over the G-buffer arrays a frame reads.
+parts of a fast frame against the kernels that bound them (`micro`): the per-frame set-up (c_k and
+the window products X), the per-sample stage (inputs; eq. 4's 12 weighted reads per sample), one
+read of the G-buffer arrays, and the lighting product c = T̃ · L over the referenced rows beside
+one streaming read of the same bytes.
 """
 from __future__ import annotations
 
@@ -27,7 +28,6 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as Fnn
 
 from benchmarks.common import setup
 from methods.base import cache_dir
@@ -67,17 +67,35 @@ def _time(fn, repeats: int = 5) -> float:
     return statistics.median(ts)
 
 
-def micro(m: InOut, gb) -> dict[str, float]:
-    """Seconds (median of 5 after a warm-up) of the kernels that bound a frame, on the arrays of the
-    largest region of the last fast render on G-buffer ``gb``."""
+def micro(m: InOut, frame, gb) -> dict[str, float]:
+    """Seconds (median of 5 after a warm-up) of the parts and kernels of a fast frame, on the last
+    frame of the V sequence (``frame`` on G-buffer ``gb``; c_k cached): the per-frame set-up
+    (`InOut._view_setup`:
+    referenced vertices, c_k, the window products X), the per-sample stage split into its inputs
+    (``fast.sample_inputs``) and eq. 4 (``fast.shade``), against the kernels that bound them: one
+    read of the G-buffer arrays a frame reads (the bulk of the roofline's bytes) and, for a lighting
+    change, c = T̃ · L over the referenced rows against one streaming read of the same bytes."""
+    out: dict[str, float] = {}
+    view = m._view_setup(frame, gb)
+    out["view_setup_s"] = _time(lambda: m._view_setup(frame, gb))
+    out["window"] = view.wins.W
+    blocks = [(a, min(view.Q, a + view.step)) for a in range(0, view.Q, view.step)]
+    inputs = [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5]) for a, b in blocks]
+    out["sample_inputs_s"] = _time(lambda: [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5])
+                                            for a, b in blocks])
+    out["shade_s"] = _time(lambda: [fast.shade(view.st, view.cs, view.wins, gl, bw, cell)
+                                    for gl, bw, cell, _ in inputs])
+    out["X_nodes"] = int(view.wins.XT.shape[1])
+    arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
+    out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
+    out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])
     reg = max(m.regions, key=lambda r: r.T.values().numel())
     fr = m._fast_static().regions[m.regions.index(reg)]
-    valid = m._cf_valid[reg.name]
-    ref = valid.nonzero(as_tuple=True)[0]
+    ref = m._cf_valid[reg.name].nonzero(as_tuple=True)[0]
     runs = fast.light_runs(ref, reg.verts.numel())
     rows = sum(v1 - v0 for v0, v1 in runs) * reg.K
-    out: dict[str, float] = {"region": reg.name, "K": reg.K, "referenced_vertices": int(ref.numel()),
-                             "light_rows": rows, "light_bytes": rows * fr.col.shape[1] * 8}
+    out.update(region=reg.name, K=reg.K, c_valid_vertices=int(ref.numel()), light_rows=rows,
+               light_bytes=rows * fr.col.shape[1] * (fr.val.element_size() + fr.col.element_size()))
 
     def light():
         for v0, v1 in runs:
@@ -90,21 +108,6 @@ def micro(m: InOut, gb) -> dict[str, float]:
 
     out["light_product_s"] = _time(light)
     out["light_stream_read_s"] = _time(stream)
-    c = m._cf[reg.name]
-    g = torch.Generator().manual_seed(0)
-    R, W = fr.R, 5
-    ax = torch.randint(0, R - W, (ref.numel(),), generator=g)
-    ay = torch.randint(0, R - W, (ref.numel(),), generator=g)
-    out["window_products_W5_s"] = _time(lambda: fast.view_windows(fr, ref, c, ax, ay, W))
-    out["window_products_W5_flops"] = 2 * ref.numel() * W * W * 3 * reg.K
-    Q = int(gb.hit.sum())
-    X = torch.rand(ref.numel() * W * W, 3, generator=g)
-    idx = torch.randint(0, X.shape[0], (Q, 12), generator=g)
-    w = torch.rand(Q, 12, generator=g)
-    out["bag_12_rows_s"] = _time(lambda: Fnn.embedding_bag(idx, X, per_sample_weights=w, mode="sum"))
-    arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
-    out["gbuffer_pass_s"] = _time(lambda: [a.sum() for a in arrays])
-    out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
     return out
 
 
@@ -147,7 +150,8 @@ def main(argv: list[str] | None = None) -> dict:
         kinds[kind] = {"old_s": t_old, "new_s": t_new, "old_median_s": statistics.median(t_old[1:]),
                        "new_median_s": statistics.median(t_new[1:]), "max_abs_diff": diff, "image_max": scale,
                        "bytes": cost.bytes, "flops": cost.flops, "hit_samples": int(gbs[-1].hit.sum())}
-        last = (new, gbs[-1])
+        if last is None or kind == "V":   # the micro-benchmarks run on a view-only frame when there is one
+            last = (new, frames[-1], gbs[-1])
     bw.append(measure.triad_bandwidth())
     peak.append(measure.matmul_peak())
     B, Pk = max(bw), max(peak)
@@ -167,6 +171,14 @@ def main(argv: list[str] | None = None) -> dict:
     for kind, r in kinds.items():
         print(f"{kind:5} {1e3 * r['old_median_s']:9.1f} {1e3 * r['new_median_s']:9.1f} {r['speedup']:8.1f} "
               f"{1e3 * r['roofline_s']:8.2f} {r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} {r['bound']}")
+    if "micro" in out:
+        u = out["micro"]
+        print(f"last frame: set-up (c_k, X; W = {u['window']}) {1e3 * u['view_setup_s']:.1f} ms, sample inputs "
+              f"{1e3 * u['sample_inputs_s']:.1f} ms, eq. 4 {1e3 * u['shade_s']:.1f} ms; one G-buffer read "
+              f"{1e3 * u['gbuffer_read_s']:.2f} ms ({u['gbuffer_bytes'] / u['gbuffer_read_s'] / 1e9:.1f} GB/s)")
+        print(f"lighting ({u['region']}, {u['light_rows']} rows): c = T·L {1e3 * u['light_product_s']:.1f} ms "
+              f"({u['light_bytes'] / u['light_product_s'] / 1e9:.1f} GB/s), one read of T "
+              f"{1e3 * u['light_stream_read_s']:.1f} ms ({u['light_bytes'] / u['light_stream_read_s'] / 1e9:.1f} GB/s)")
     return out
 
 

@@ -165,10 +165,14 @@ class Oracle(Method):
         return (contrib * L).sum(1)
 
     # -- accounting ---------------------------------------------------------------------------
-    # Flops of the estimator per shaded sample and per ray, by term (multiply-add = 2; see frame_cost).
-    FLOPS_PER_SAMPLE = 2 * 9 + 12 + 15 + 6 + 5   # ω_o to local, the frame, geometric normal (edges + cross), its normalisation and side
-    FLOPS_PER_RAY = 2 * 9 + 6 + 3 + 4            # direction between world and shading frame, MIS weight / pdf, ρ (≥ the diffuse term), f·cos·w
-    FLOPS_PER_LIVE_RAY = 2 * 3 + 2 * 9 + 2 * 12 + 2 * 3  # shadow-ray origin, map rotation, bilinear radiance, Σ contribution·L
+    # Flops of the estimator by term (multiply-add = 2; see frame_cost). Per shaded sample: ω_o to
+    # local, the frame, the geometric normal (edges + cross), its normalisation and side.
+    FLOPS_PER_SAMPLE = 2 * 9 + 12 + 15 + 6 + 5
+    # Per ray: its direction between world and shading frame, MIS weight / pdf, ρ (at least the
+    # diffuse term), f·cos·w.
+    FLOPS_PER_RAY = 2 * 9 + 6 + 3 + 4
+    # Per live ray: the shadow-ray origin, the env map's rotation, the bilinear radiance, Σ contribution·L.
+    FLOPS_PER_LIVE_RAY = 2 * 3 + 2 * 9 + 2 * 12 + 2 * 3
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """Compulsory work of one frame of the estimator (``methods.base.FrameCost``): the oracle

@@ -40,7 +40,8 @@ from torch import Tensor
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW", "OUTLIER_COST", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK"]
+           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW",
+           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK"]
 
 # Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
@@ -52,9 +53,10 @@ MAX_WINDOW = 16
 CHUNK = 1 << 15
 # The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
-# Work of one sample–vertex entry on the exact path (`_outliers`: a gathered c row and 4 nodes' dot
-# products) in units of one node of X in a window (3 dot products of a sampled product): measured
-# with ``benchmarks.inout``'s kernels (≈ 1 µs per entry against ≈ 50 ns per node on one core).
+# Work of one sample–vertex entry on the exact path (`_outliers`: a gathered c row, 4 nodes' dot
+# products, its own small sparse pattern) in units of one node of X in a window (3 dot products of
+# the frame's one sampled product), as the two kernels' times compare on a CPU (``benchmarks.inout``
+# on sphere_plane bench: larger windows win over more outliers until about this ratio).
 OUTLIER_COST = 24
 # Rows of T̃ per sparse product in `light_rows`.
 LIGHT_CHUNK_ROWS = 1 << 15

@@ -80,6 +80,31 @@ class _Region:
     sigma: Tensor          # (K,) float32 (reporting only; σ is folded into sh_lut)
 
 
+@dataclass
+class _View:
+    """One frame's fast-path set-up (`InOut._view_setup`): the shaded samples — all P (misses with
+    weight 0) when ``sel`` is None, else the hits ``sel`` (Q,) — in blocks of ``step``, the c of each
+    region (``cs``) and the windows' products (``wins``)."""
+
+    gbuffer: GBuffer
+    st: Any
+    sel: Tensor | None
+    Q: int
+    step: int
+    cs: list = None
+    wins: Any = None
+
+    def block(self, a: int, b: int):
+        """(normal, wo, bary, face, region, live) of shaded samples a..b (live: the hit mask, or
+        None when every sample of the block is a hit)."""
+        g = self.gbuffer
+        if self.sel is None:
+            return g.normal[a:b], g.wo[a:b], g.bary[a:b], g.face[a:b].clamp_min(0), g.region[a:b], g.hit[a:b]
+        i = self.sel[a:b]
+        return (g.normal.index_select(0, i), g.wo.index_select(0, i), g.bary.index_select(0, i),
+                g.face.index_select(0, i), g.region.index_select(0, i), None)
+
+
 def _check_int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
     if v is None and none_ok:
         return
@@ -147,7 +172,7 @@ class InOut(Method):
         self.regions: list[_Region] = []
         self.L: Tensor | None = None           # (6N², 3) float32 Haar coefficients of the lighting
         self.stats: dict[str, Any] = {}        # precompute timings and per-region K
-        self._c: dict[str, Tensor] = {}        # region → (Vr, K, 3) c_k = T̃_k · L of the lighting L (reference path)
+        self._c: dict[str, Tensor] = {}        # region → (Vr, K, 3) c_k = T̃_k · L (reference path)
         self._cf: dict[str, Tensor] = {}       # region → (Vr, 3, K) the same for the fast path, filled lazily:
         self._cf_valid: dict[str, Tensor] = {}  # region → (Vr,) bool, which rows of _cf are computed
         self._fast = None                      # the fast path's static arrays (`_fast_static`), built on first use
@@ -350,7 +375,8 @@ class InOut(Method):
             verts = torch.cat([reg.verts for reg in self.regions]) if self.regions else self.F.new_zeros(0)
             K = torch.cat([torch.full((int(reg.verts.numel()),), reg.K, dtype=torch.int64, device=dev)
                            for reg in self.regions]) if self.regions else self.F.new_zeros(0)
-            self._fast = _fast.FastStatic(regions=regions, voff=voff, face_gl=face_gl.T.contiguous(), face_region=face_region,
+            self._fast = _fast.FastStatic(regions=regions, voff=voff, face_gl=face_gl.T.contiguous(),
+                                          face_region=face_region,
                                           pos=V[verts].contiguous(), frames=frame_matrix(Nrm[verts]).contiguous(),
                                           K=K, R=Rs.pop() if Rs else 2)
         return self._fast
@@ -369,12 +395,10 @@ class InOut(Method):
             valid[v0:v1] = True
         return c
 
-    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
-        """The fast path (``methods.inout.fast``): the image of `_render_reference` to float32
-        round-off; c_k computed only for the vertices the samples reference; the per-sample stage
-        in blocks of ``fast.CHUNK`` samples."""
-        if self.scene is None:
-            raise RuntimeError("call precompute(scene) before render()")
+    def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
+        """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
+        the referenced vertices and their c_k (`_ensure_c`), and the windows' products X
+        (``fast.prepare``, the window side chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
         self._relight(frame)
         st = self._fast_static()
         dev = gbuffer.hit.device
@@ -383,22 +407,12 @@ class InOut(Method):
         M = st.face_region.numel()
         # every sample is shaded (misses with weight 0) unless many miss: then only the hits
         sel = None if int(hit.sum()) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
-        Q = P if sel is None else sel.numel()
-        step = max(S2, _fast.CHUNK // S2 * S2)                 # whole pixels per block (the box filter)
-
-        def block(a: int, b: int):
-            """(normal, wo, bary, face, region, live) of samples a..b of the shaded set."""
-            if sel is None:
-                return (gbuffer.normal[a:b], gbuffer.wo[a:b], gbuffer.bary[a:b], gbuffer.face[a:b].clamp_min(0),
-                        gbuffer.region[a:b], hit[a:b])
-            i = sel[a:b]
-            return (gbuffer.normal.index_select(0, i), gbuffer.wo.index_select(0, i), gbuffer.bary.index_select(0, i),
-                    gbuffer.face.index_select(0, i), gbuffer.region.index_select(0, i), None)
-
+        view = _View(gbuffer=gbuffer, st=st, sel=sel, Q=P if sel is None else sel.numel(),
+                     step=max(S2, _fast.CHUNK // S2 * S2))          # whole pixels per block (the box filter)
         # referenced vertices: those of every hit face (and the region check)
         fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
-        for a in range(0, Q, step):
-            _, _, _, face, region, live = block(a, min(Q, a + step))
+        for a in range(0, view.Q, view.step):
+            _, _, _, face, region, live = view.block(a, min(view.Q, a + view.step))
             bad = st.face_region.index_select(0, face) != region
             if live is not None:
                 bad &= live
@@ -411,9 +425,8 @@ class InOut(Method):
         vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
         vmask[st.face_gl.index_select(1, faces).reshape(-1)] = True
         ref = vmask.nonzero(as_tuple=True)[0]                                 # ascending
-        cs = [self._ensure_c(s, ref[(ref >= st.voff[s]) & (ref < st.voff[s + 1])] - st.voff[s])
-              for s in range(len(self.regions))]
-        # the windows, their side chosen on a subsample of the samples
+        view.cs = [self._ensure_c(s, ref[(ref >= st.voff[s]) & (ref < st.voff[s + 1])] - st.voff[s])
+                   for s in range(len(self.regions))]
         k = _fast.WINDOW_SUBSAMPLE
         if sel is None:                       # strided views: the G-buffer's arrays need not be row-major
             sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k].clamp_min(0), hit[::k])
@@ -423,17 +436,27 @@ class InOut(Method):
                    gbuffer.face.index_select(0, i), None)
         gl, bw, (iu, iv, _, _), _ = _fast.sample_inputs(st, *sub)
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        wins = _fast.prepare(st, cs, ref, cam, gl, bw, iu, iv, Q / max(gl.shape[1], 1))
-        # the per-sample stage, block by block
+        view.wins = _fast.prepare(st, view.cs, ref, cam, gl, bw, iu, iv, view.Q / max(gl.shape[1], 1))
+        return view
+
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The fast path (``methods.inout.fast``): the image of `_render_reference` to float32
+        round-off; c_k computed only for the vertices the samples reference (`_view_setup`), the
+        per-sample stage in blocks of ``fast.CHUNK`` samples."""
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before render()")
+        view = self._view_setup(frame, gbuffer)
+        st, sel, Q, dev = view.st, view.sel, view.Q, gbuffer.hit.device
+        P, S2 = gbuffer.num_samples, gbuffer.spp_side ** 2
         img = torch.zeros(3, P // S2, dtype=torch.float32, device=dev)
         front_all = torch.zeros(Q, dtype=torch.bool, device=dev)
         cell_all = torch.zeros(Q, dtype=torch.int32, device=dev)
         B_all = None if sel is None else torch.zeros(3, P, dtype=torch.float32, device=dev)
-        for a in range(0, Q, step):
-            b = min(Q, a + step)
-            normal, wo, bary, face, _, live = block(a, b)
+        for a in range(0, Q, view.step):
+            b = min(Q, a + view.step)
+            normal, wo, bary, face, _, live = view.block(a, b)
             gl, bw, cell, front = _fast.sample_inputs(st, normal, wo, bary, face, live)
-            B = _fast.shade(st, cs, wins, gl, bw, cell)                         # (3, b − a)
+            B = _fast.shade(st, view.cs, view.wins, gl, bw, cell)              # (3, b − a)
             front_all[a:b], cell_all[a:b] = front, cell[1] * st.R + cell[0]
             if sel is None:                                                     # box filter (GBuffer.resolve)
                 img[:, a // S2:b // S2] = B.view(3, -1, S2).mean(-1)
@@ -441,8 +464,8 @@ class InOut(Method):
                 B_all.index_copy_(1, sel[a:b], B)
         if sel is not None:
             img = B_all.view(3, -1, S2).mean(-1)
-        self._last_view = (P, {"hit": int(hit.sum()), "face": gbuffer.face if sel is None else gbuffer.face[sel],
-                               "front": front_all, "cell": cell_all})
+        self._last_view = (P, {"hit": int(gbuffer.hit.sum()), "front": front_all, "cell": cell_all,
+                               "face": gbuffer.face if sel is None else gbuffer.face[sel], "window": view.wins.W})
         return img.view(3, gbuffer.height, gbuffer.width).permute(1, 2, 0).contiguous()
 
     # -- accounting ---------------------------------------------------------------------------
