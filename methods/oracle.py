@@ -20,7 +20,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register
+import math
+
+from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
+from scenes.sequences import KINDS
 from methods.core.frames import coordinate_system
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
@@ -66,6 +69,8 @@ class Oracle(Method):
         self.max_rays = max_rays_per_batch
         self.scene = None
         self._vis: tuple[str, Visibility] | None = None  # (pose key, embree scene of that pose)
+        # (P, hit samples, live rays, faces hit, their vertices, env map (H, W)) of the last render (frame_cost)
+        self._last: tuple | None = None
 
     # -- interface ----------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -94,6 +99,7 @@ class Oracle(Method):
         hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         spp = self.n_light + self.n_brdf
         chunk = max(1, self.max_rays // spp)
+        live = [0]
         for r, region in enumerate(scene.regions):
             mat = frame.materials[region]
             idx = hit_idx[gbuffer.region[hit_idx] == r]
@@ -101,13 +107,17 @@ class Oracle(Method):
                 sel = idx[c0:c0 + chunk]
                 out[sel] = self._shade(mat, frame.envmap, vis, eps,
                                        gbuffer.position[sel], gbuffer.normal[sel], gbuffer.wo[sel],
-                                       geometric_normals(geom.V, geom.F, gbuffer.face[sel]), gen)
+                                       geometric_normals(geom.V, geom.F, gbuffer.face[sel]), gen, live)
+        faces = torch.unique(gbuffer.face[hit_idx])
+        self._last = (gbuffer.num_samples, int(hit_idx.numel()), live[0], int(faces.numel()),
+                      int(torch.unique(geom.F[faces]).numel()), tuple(int(x) for x in frame.envmap.data.shape[:2]))
         return gbuffer.resolve(out)
 
     # -- the estimator ------------------------------------------------------------------------
     def _shade(self, mat, env, vis: Visibility, eps: float, p: Tensor, n: Tensor, wo: Tensor,
-               ng: Tensor, gen: torch.Generator) -> Tensor:
-        """MIS direct-lighting estimate for samples p, n, wo, ng: (Q, 3) each → (Q, 3)."""
+               ng: Tensor, gen: torch.Generator, live_count: list[int] | None = None) -> Tensor:
+        """MIS direct-lighting estimate for samples p, n, wo, ng: (Q, 3) each → (Q, 3). Adds the
+        number of live rays (traced: a non-zero contribution) to ``live_count[0]``."""
         Q = p.shape[0]
         s, t = coordinate_system(n)
         frame = torch.stack([s, t, n], dim=-2)  # (Q, 3, 3) world → local rows
@@ -142,6 +152,8 @@ class Oracle(Method):
         cos = wi_l[..., 2].clamp_min(0.0)
         contrib = f * (cos * w).unsqueeze(-1)
         live = (contrib.amax(-1) > 0)
+        if live_count is not None:
+            live_count[0] += int(live.sum())
         L = torch.zeros_like(contrib)
         if live.any():
             dl = d[live]
@@ -151,3 +163,60 @@ class Oracle(Method):
             Ld = env.radiance(dl)
             L[live] = torch.where(blocked[:, None], torch.zeros_like(Ld), Ld)
         return (contrib * L).sum(1)
+
+    # -- accounting ---------------------------------------------------------------------------
+    # Flops of the estimator by term (multiply-add = 2; see frame_cost). Per shaded sample: ω_o to
+    # local, the frame, the geometric normal (edges + cross), its normalisation and side.
+    FLOPS_PER_SAMPLE = 2 * 9 + 12 + 15 + 6 + 5
+    # Per ray: its direction between world and shading frame, MIS weight / pdf, ρ (at least the
+    # diffuse term), f·cos·w.
+    FLOPS_PER_RAY = 2 * 9 + 6 + 3 + 4
+    # Per live ray: the shadow-ray origin, the env map's rotation, the bilinear radiance, Σ contribution·L.
+    FLOPS_PER_LIVE_RAY = 2 * 3 + 2 * 9 + 2 * 12 + 2 * 3
+
+    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+        """Compulsory work of one frame of the estimator (``methods.base.FrameCost``): the oracle
+        keeps nothing between frames, so every kind costs the same, plus the skinning of a posed
+        frame ("P" in the kind, articulated scenes). Multiply-add = 2 flops; transcendentals
+        (sin, cos, acos, atan2, pow, sqrt), the CDF searches and the shadow rays' traversal (done by
+        the ray tracer, ``references.visibility``; its cost depends on the BVH) are not counted.
+
+        bytes: per hit sample its position, normal and ω_o (3 × 3 float32), face and region (int64)
+        and hit word (4 B), per missed sample the hit word, the (P, 3) float32 output; the faces hit
+        (3 int64) and their distinct vertices (3 float32) for the geometric normals; of the env map, the
+        texels the radiance look-ups touch (4 per live ray, at most H·W float32 RGB) and the
+        sampling tables a light sample reads (⌈log₂ C⌉ CDF entries by binary search and one cell
+        probability, C = (H − 1)·W cells, float64, at most C each).
+        flops: per shaded sample ``FLOPS_PER_SAMPLE``, per ray (``light_samples + brdf_samples`` per
+        shaded sample) ``FLOPS_PER_RAY``, per live ray (non-zero contribution: traced and looked
+        up) ``FLOPS_PER_LIVE_RAY``. "P": per skinned vertex the blended matrix (12 MACs per joint)
+        applied to its position and normal (21 MACs), reading position, normal and its weights.
+
+        Hit samples, live rays and faces come from the last `render` on a G-buffer of
+        ``num_samples`` samples; without one every sample is a hit, every ray live and every face
+        hit (an upper bound of those terms). None before `precompute`.
+        """
+        if frame_kind not in KINDS:
+            raise ValueError(f"frame_kind must be one of {KINDS}, got {frame_kind!r}")
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be an int >= 0, got {num_samples!r}")
+        if self.scene is None:
+            return None
+        P, rays = num_samples, self.n_light + self.n_brdf
+        if self._last is not None and self._last[0] == P:
+            _, Q, live, faces, verts, (H, W) = self._last
+        else:
+            geom = self.scene.geometry()
+            Q, live, faces, verts = P, P * rays, int(geom.F.shape[0]), int(geom.V.shape[0])
+            H, W = (int(x) for x in self.scene.envmap.data.shape[:2])
+        C = (H - 1) * W
+        b = Q * (9 * 4 + 8 + 8 + 4) + (P - Q) * 4 + P * 3 * 4 + faces * 3 * 8 + verts * 3 * 4
+        b += min(H * W, 4 * live) * 3 * 4
+        b += min(C, Q * self.n_light * math.ceil(math.log2(max(C, 2)))) * 8 + min(C, Q * self.n_light) * 8
+        f = Q * self.FLOPS_PER_SAMPLE + Q * rays * self.FLOPS_PER_RAY + live * self.FLOPS_PER_LIVE_RAY
+        if "P" in frame_kind and self.scene.skin_weights:
+            for w in self.scene.skin_weights.values():
+                nv, J = int(w.shape[0]), int(w.shape[1])
+                b += nv * (6 + J) * 4
+                f += nv * 2 * (12 * J + 21)
+        return FrameCost(int(b), int(f))

@@ -10,9 +10,11 @@ Precompute (static geometry, static BRDFs):
     tabulated on a fine hemi-octahedral table (``methods.inout.transport``, docstring item 2);
   * per vertex of the region, T̃_k(x, ω_t) = V(x', ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
     ``cube_res`` cube map (eq. 3, texel solid angle Ω_t folded in), Haar-transformed, keeping the
-    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²);
-    x' is the vertex moved a hair into its faces (``transport.visibility_points``: a vertex on a
-    contact line would otherwise see every shadow ray blocked).
+    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²)
+    with the region's vertices in Morton order (``transport.locality_order``: the vertices one view
+    sees are few runs of rows, for the run time's lazy c_k); x' is the vertex moved a hair into its
+    faces (``transport.visibility_points``: a vertex on a contact line would otherwise see every
+    shadow ray blocked).
 
 Render (dynamic lighting and view):
   * L = frame.envmap resampled on the cube map (``light_supersample``² sub-samples per texel, exact
@@ -23,8 +25,13 @@ Render (dynamic lighting and view):
     V-only frames skip it entirely);
   * per G-buffer sample: c_k interpolated barycentrically from the vertices, h_k evaluated at the
     sample's *own* ω_o in its own shading frame (better than evaluating eq. 4 per vertex and
-    interpolating radiance, which would blur highlights across triangles, and as cheap: h_k is a
-    table look-up), B = Σ_k σ_k h_k(ω_o) c_k (eq. 4).
+    interpolating radiance, which would blur highlights across triangles), B = Σ_k σ_k h_k(ω_o) c_k
+    (eq. 4).
+
+`_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
+image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k only for the
+vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
+σ_k h_k table. `frame_cost` states the compulsory bytes and flops of each frame kind.
 
 Direct lighting only. Materials are the scene's (``frame.materials`` are not read: the BRDF is
 baked into T_k; sequences that change BRDFs are outside ``capabilities``). Isotropic families only
@@ -41,16 +48,21 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
+                          tensor_bytes)
 from methods.core import cubemap
 from methods.core.frames import frame_matrix
 from references.visibility import make_visibility
+from methods.inout import fast as _fast
 from methods.inout import transport as tp
 
 # Families with a closed-form K rule of the paper (analysis.k_rule: eq. 13 and §4).
 PAPER_RULE_KINDS = frozenset({"lambert", "phong", "blinnphong", "torrancesparrow"})
-# Floats per (Q, K, 3) temporary in render(): samples per batch = RENDER_FLOATS / (3K) (~16 MB).
+# Floats per (Q, K, 3) temporary in `_render_reference`: samples per batch = RENDER_FLOATS / (3K) (~16 MB).
 RENDER_FLOATS = 1 << 22
+# `render` shades every G-buffer sample (misses with weight 0) when at least this fraction hits,
+# else gathers the hits first (a gather of every per-sample array costs more than a few misses).
+DENSE_HIT_FRACTION = 0.75
 
 
 @dataclass
@@ -66,7 +78,31 @@ class _Region:
     T: Tensor              # CSR (Vr·K, 6N²) float32 Haar coefficients of T̃_k (eq. 3)
     sh_lut: Tensor         # (R·R, K·3) float32 σ_k h_{k,c} on the hemi-octahedral table
     sigma: Tensor          # (K,) float32 (reporting only; σ is folded into sh_lut)
-    c: Tensor | None = None  # (Vr, K, 3) float32 cached T̃_k · L of the current lighting
+
+
+@dataclass
+class _View:
+    """One frame's fast-path set-up (`InOut._view_setup`): the shaded samples — all P (misses with
+    weight 0) when ``sel`` is None, else the hits ``sel`` (Q,) — in blocks of ``step``, the c of each
+    region (``cs``) and the windows' products (``wins``)."""
+
+    gbuffer: GBuffer
+    st: Any
+    sel: Tensor | None
+    Q: int
+    step: int
+    cs: list = None
+    wins: Any = None
+
+    def block(self, a: int, b: int):
+        """(normal, wo, bary, face, region, live) of shaded samples a..b (live: the hit mask, or
+        None when every sample of the block is a hit)."""
+        g = self.gbuffer
+        if self.sel is None:
+            return g.normal[a:b], g.wo[a:b], g.bary[a:b], g.face[a:b].clamp_min(0), g.region[a:b], g.hit[a:b]
+        i = self.sel[a:b]
+        return (g.normal.index_select(0, i), g.wo.index_select(0, i), g.bary.index_select(0, i),
+                g.face.index_select(0, i), g.region.index_select(0, i), None)
 
 
 def _check_int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
@@ -136,7 +172,12 @@ class InOut(Method):
         self.regions: list[_Region] = []
         self.L: Tensor | None = None           # (6N², 3) float32 Haar coefficients of the lighting
         self.stats: dict[str, Any] = {}        # precompute timings and per-region K
-        self._last_samples = 0
+        self._c: dict[str, Tensor] = {}        # region → (Vr, K, 3) c_k = T̃_k · L (reference path)
+        self._cf: dict[str, Tensor] = {}       # region → (Vr, 3, K) the same for the fast path, filled lazily:
+        self._cf_valid: dict[str, Tensor] = {}  # region → (Vr,) bool, which rows of _cf are computed
+        self._fast = None                      # the fast path's static arrays (`_fast_static`), built on first use
+        self._last_view = None                 # (P, what `frame_cost` counts) of the last fast render
+        self._env_shape = None                 # (H, W) of the env map of the current lighting
 
     # -- precompute ---------------------------------------------------------------------------
     def _terms_for(self, region: str, material) -> int | None:
@@ -214,6 +255,7 @@ class InOut(Method):
             g_lut, sh_lut = tp.nystrom_tables(mat, fac, cfg["lut_res"])
             tb = time.perf_counter()
             verts = torch.unique(F[faces].reshape(-1))
+            verts = verts[tp.locality_order(V[verts])]  # Morton order: a view's vertices are few runs of rows
             local_of = torch.full((V.shape[0],), -1, dtype=torch.int64)
             local_of[verts] = torch.arange(verts.numel())
             idx, val = tp.transport_haar(g_lut, vis, Vs[verts], Nrm[verts], N,  # eq. 3 + Haar
@@ -232,7 +274,8 @@ class InOut(Method):
         self.stats["precompute_seconds"] = time.perf_counter() - t0
         self.scene = scene
         self.F = F
-        self.L = None
+        self._fast = None
+        self._reset_cache()
 
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, envmap) -> Tensor:
@@ -248,45 +291,182 @@ class InOut(Method):
             C = torch.zeros_like(C).index_copy_(1, idx, C.index_select(1, idx))
         return C.T.contiguous().float()
 
-    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
-        if self.scene is None:
-            raise RuntimeError("call precompute(scene) before render()")
-        relight = self.L is None or "light" in frame.changed
-        if relight:
-            self.L = self._lighting(frame.envmap)
-            for reg in self.regions:
-                # c_k = T̃_k · L = ∫ T_k L dω (Mahajan 2008 eq. 4), per vertex and colour
-                reg.c = (reg.T @ self.L).view(reg.verts.numel(), reg.K, 3)
-        P = gbuffer.num_samples
-        self._last_samples = P
-        out = torch.zeros(P, 3, dtype=torch.float32)
-        vidx, bw = gbuffer.vertex_weights(self.F)  # (P, 3) global vertex ids, barycentric weights
+    def _reset_cache(self) -> None:
+        """Forget the lighting and every per-vertex c_k (the next frame recomputes them): gives a
+        copy of a precomputed method caches of its own."""
+        self.L = None
+        self._c, self._cf, self._cf_valid = {}, {}, {}
+        self._last_view = None
+
+    def _relight(self, frame: Frame) -> None:
+        """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
+        if self.L is not None and "light" not in frame.changed:
+            return
+        self.L = self._lighting(frame.envmap).to(self.regions[0].T.device if self.regions else "cpu")
+        self._env_shape = tuple(int(x) for x in frame.envmap.data.shape[:2])
+        self._c, self._cf, self._cf_valid = {}, {}, {}  # c_k of the new lighting: none computed yet
+
+    def _region_samples(self, gbuffer: GBuffer):
+        """(region, sample indices (Q,)) of the hit samples of every precomputed region."""
         for r_index, name in enumerate(self.scene.regions):
             reg = next((x for x in self.regions if x.name == name), None)
-            if reg is None:
-                continue
-            sel = (gbuffer.hit & (gbuffer.region == r_index)).nonzero(as_tuple=True)[0]
+            if reg is not None:
+                yield reg, (gbuffer.hit & (gbuffer.region == r_index)).nonzero(as_tuple=True)[0]
+
+    def _render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The per-sample reference path (the test oracle of `render`): c_k = T̃_k · L for every
+        vertex by one sparse-dense product when the lighting changes, then per sample the
+        barycentric c̄_k, the bilinear σ_k h_k(ω_o) and their dot product (`_shade`)."""
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before render()")
+        self._relight(frame)
+        for reg in self.regions:
+            if reg.name not in self._c:
+                # c_k = T̃_k · L = ∫ T_k L dω (Mahajan 2008 eq. 4), per vertex and colour
+                self._c[reg.name] = (reg.T @ self.L).view(reg.verts.numel(), reg.K, 3)
+        P = gbuffer.num_samples
+        out = torch.zeros(P, 3, dtype=torch.float32, device=gbuffer.hit.device)
+        vidx, bw = gbuffer.vertex_weights(self.F)  # (P, 3) global vertex ids, barycentric weights
+        for reg, sel in self._region_samples(gbuffer):
             chunk = max(256, RENDER_FLOATS // (3 * reg.K))
             for a in range(0, sel.numel(), chunk):
                 s = sel[a:a + chunk]
-                out[s] = self._shade(reg, vidx[s], bw[s].float(), gbuffer.normal[s].float(),
+                out[s] = self._shade(reg, self._c[reg.name], vidx[s], bw[s].float(), gbuffer.normal[s].float(),
                                      gbuffer.wo[s].float())
         return gbuffer.resolve(out)
 
     @staticmethod
-    def _shade(reg: _Region, vidx: Tensor, bw: Tensor, n: Tensor, wo: Tensor) -> Tensor:
-        """B = Σ_k σ_k h_k(ω_o) c_k for samples (Q,) (Mahajan 2008 eq. 4) → (Q, 3)."""
+    def _shade(reg: _Region, c: Tensor, vidx: Tensor, bw: Tensor, n: Tensor, wo: Tensor) -> Tensor:
+        """B = Σ_k σ_k h_k(ω_o) c_k for samples (Q,) (Mahajan 2008 eq. 4) → (Q, 3); c (Vr, K, 3)."""
         loc = reg.local_of[vidx]                                   # (Q, 3)
         if (loc < 0).any():
             raise ValueError(f"G-buffer samples of region {reg.name!r} lie on faces of another region")
-        c = reg.c[loc[:, 0]] * bw[:, 0, None, None]                # (Q, K, 3) barycentric c_k
-        c += reg.c[loc[:, 1]] * bw[:, 1, None, None]
-        c += reg.c[loc[:, 2]] * bw[:, 2, None, None]
+        cb = c[loc[:, 0]] * bw[:, 0, None, None]                   # (Q, K, 3) barycentric c_k
+        cb += c[loc[:, 1]] * bw[:, 1, None, None]
+        cb += c[loc[:, 2]] * bw[:, 2, None, None]
         n = torch.nn.functional.normalize(n, dim=-1)
         wl = (frame_matrix(n) @ wo.unsqueeze(-1)).squeeze(-1)      # ω_o in the sample's frame
         sh = tp.lut_lookup(reg.sh_lut, wl).view(-1, reg.K, 3)      # σ_k h_{k,c}(ω_o)
-        B = (sh * c).sum(1)
+        B = (sh * cb).sum(1)
         return torch.where(wl[:, 2:] > 0, B, torch.zeros_like(B))  # ρ = 0 for ω_o below the horizon
+
+    def _fast_static(self) -> _fast.FastStatic:
+        """The fast path's static arrays (``fast.FastStatic``), built on first use from the
+        precomputed regions and the scene's geometry (not stored by the precompute cache: views,
+        regroupings and per-vertex geometry)."""
+        if self._fast is None:
+            dev = self.F.device
+            geom = self.scene.geometry()
+            V = torch.as_tensor(geom.V).float().to(dev)
+            Nrm = torch.nn.functional.normalize(torch.as_tensor(geom.N).float().to(dev), dim=-1)
+            face_region = torch.as_tensor(geom.face_region).long().to(dev)
+            regions = [_fast.build_region(reg.T, reg.sh_lut) for reg in self.regions]
+            Rs = {fr.R for fr in regions}
+            if len(Rs) > 1:
+                raise ValueError(f"regions have tables of different sizes {sorted(Rs)}")
+            voff = [0]
+            face_gl = torch.full(self.F.shape, -1, dtype=torch.int32, device=dev)
+            for reg in self.regions:
+                faces = (face_region == list(self.scene.regions).index(reg.name)).nonzero(as_tuple=True)[0]
+                face_gl[faces] = (reg.local_of[self.F[faces]] + voff[-1]).to(torch.int32)
+                voff.append(voff[-1] + int(reg.verts.numel()))
+            if bool((face_gl < 0).any()):
+                raise ValueError("faces whose region has no precomputation")
+            verts = torch.cat([reg.verts for reg in self.regions]) if self.regions else self.F.new_zeros(0)
+            K = torch.cat([torch.full((int(reg.verts.numel()),), reg.K, dtype=torch.int64, device=dev)
+                           for reg in self.regions]) if self.regions else self.F.new_zeros(0)
+            self._fast = _fast.FastStatic(regions=regions, voff=voff, face_gl=face_gl.T.contiguous(),
+                                          face_region=face_region,
+                                          pos=V[verts].contiguous(), frames=frame_matrix(Nrm[verts]).contiguous(),
+                                          K=K, R=Rs.pop() if Rs else 2)
+        return self._fast
+
+    def _ensure_c(self, s: int, ref: Tensor) -> Tensor:
+        """The fast path's c (Vr, 3, K) of slot ``s`` with the rows of its referenced vertices
+        ``ref`` (ascending local ids) valid: the missing ones computed now, by whole blocks
+        (`fast.light_runs`)."""
+        reg, fr = self.regions[s], self._fast.regions[s]
+        if reg.name not in self._cf:
+            self._cf[reg.name] = torch.empty(reg.verts.numel(), 3, reg.K, device=self.L.device)
+            self._cf_valid[reg.name] = torch.zeros(reg.verts.numel(), dtype=torch.bool, device=self.L.device)
+        c, valid = self._cf[reg.name], self._cf_valid[reg.name]
+        for v0, v1 in _fast.light_runs(ref[~valid[ref]], reg.verts.numel()):
+            c[v0:v1] = _fast.light_rows(fr, self.L, v0, v1).transpose(1, 2)
+            valid[v0:v1] = True
+        return c
+
+    def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
+        """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
+        the referenced vertices and their c_k (`_ensure_c`), and the windows' products X
+        (``fast.prepare``, the window side chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
+        self._relight(frame)
+        st = self._fast_static()
+        dev = gbuffer.hit.device
+        P, S2 = gbuffer.num_samples, gbuffer.spp_side ** 2
+        hit = gbuffer.hit
+        M = st.face_region.numel()
+        # every sample is shaded (misses with weight 0) unless many miss: then only the hits
+        sel = None if int(hit.sum()) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
+        view = _View(gbuffer=gbuffer, st=st, sel=sel, Q=P if sel is None else sel.numel(),
+                     step=max(S2, _fast.CHUNK // S2 * S2))          # whole pixels per block (the box filter)
+        # referenced vertices: those of every hit face (and the region check)
+        fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
+        for a in range(0, view.Q, view.step):
+            _, _, _, face, region, live = view.block(a, min(view.Q, a + view.step))
+            bad = st.face_region.index_select(0, face) != region
+            if live is not None:
+                bad &= live
+                face = torch.where(live, face, M)
+            if bool(bad.any()):
+                name = self.scene.regions[int(region[bad][0])]
+                raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
+            fmask[face] = True
+        faces = fmask[:M].nonzero(as_tuple=True)[0]
+        vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
+        vmask[st.face_gl.index_select(1, faces).reshape(-1)] = True
+        ref = vmask.nonzero(as_tuple=True)[0]                                 # ascending
+        view.cs = [self._ensure_c(s, ref[(ref >= st.voff[s]) & (ref < st.voff[s + 1])] - st.voff[s])
+                   for s in range(len(self.regions))]
+        k = _fast.WINDOW_SUBSAMPLE
+        if sel is None:                       # strided views: the G-buffer's arrays need not be row-major
+            sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k].clamp_min(0), hit[::k])
+        else:
+            i = sel[::k]
+            sub = (gbuffer.normal.index_select(0, i), gbuffer.wo.index_select(0, i), gbuffer.bary.index_select(0, i),
+                   gbuffer.face.index_select(0, i), None)
+        gl, bw, (iu, iv, _, _), _ = _fast.sample_inputs(st, *sub)
+        cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        view.wins = _fast.prepare(st, view.cs, ref, cam, gl, bw, iu, iv, view.Q / max(gl.shape[1], 1))
+        return view
+
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The fast path (``methods.inout.fast``): the image of `_render_reference` to float32
+        round-off; c_k computed only for the vertices the samples reference (`_view_setup`), the
+        per-sample stage in blocks of ``fast.CHUNK`` samples."""
+        if self.scene is None:
+            raise RuntimeError("call precompute(scene) before render()")
+        view = self._view_setup(frame, gbuffer)
+        st, sel, Q, dev = view.st, view.sel, view.Q, gbuffer.hit.device
+        P, S2 = gbuffer.num_samples, gbuffer.spp_side ** 2
+        img = torch.zeros(3, P // S2, dtype=torch.float32, device=dev)
+        front_all = torch.zeros(Q, dtype=torch.bool, device=dev)
+        cell_all = torch.zeros(Q, dtype=torch.int32, device=dev)
+        B_all = None if sel is None else torch.zeros(3, P, dtype=torch.float32, device=dev)
+        for a in range(0, Q, view.step):
+            b = min(Q, a + view.step)
+            normal, wo, bary, face, _, live = view.block(a, b)
+            gl, bw, cell, front = _fast.sample_inputs(st, normal, wo, bary, face, live)
+            B = _fast.shade(st, view.cs, view.wins, gl, bw, cell)              # (3, b − a)
+            front_all[a:b], cell_all[a:b] = front, cell[1] * st.R + cell[0]
+            if sel is None:                                                     # box filter (GBuffer.resolve)
+                img[:, a // S2:b // S2] = B.view(3, -1, S2).mean(-1)
+            else:
+                B_all.index_copy_(1, sel[a:b], B)
+        if sel is not None:
+            img = B_all.view(3, -1, S2).mean(-1)
+        self._last_view = (P, {"hit": int(gbuffer.hit.sum()), "front": front_all, "cell": cell_all,
+                               "face": gbuffer.face if sel is None else gbuffer.face[sel], "window": view.wins.W})
+        return img.view(3, gbuffer.height, gbuffer.width).permute(1, 2, 0).contiguous()
 
     # -- accounting ---------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:
@@ -298,26 +478,93 @@ class InOut(Method):
             m[f"{reg.name}/T_rows"] = tensor_bytes(T.crow_indices())
             m[f"{reg.name}/sh_lut"] = tensor_bytes(reg.sh_lut)
             m[f"{reg.name}/vertex_map"] = tensor_bytes(reg.verts, reg.local_of)
-            m[f"{reg.name}/c"] = tensor_bytes(reg.c) if reg.c is not None else 4 * reg.verts.numel() * reg.K * 3
+            m[f"{reg.name}/c"] = (4 * 3 * reg.K + 1) * reg.verts.numel()   # c_k and its validity flag
+            m[f"{reg.name}/sh_table_fast"] = tensor_bytes(reg.sh_lut)       # σ_k h_k regrouped (fast path)
         m["faces"] = tensor_bytes(self.F)
+        nv = sum(int(reg.verts.numel()) for reg in self.regions)
+        # fast path (`fast.FastStatic`): per face its concatenated vertex ids (3 int32) and region
+        # (int64); per vertex position (3 float32), frame (9 float32) and K (int64)
+        m["fast_static"] = int(self.F.shape[0]) * (3 * 4 + 8) + nv * (12 * 4 + 8) if self.F is not None else 0
         N = self.config["cube_res"]
         m["L"] = tensor_bytes(self.L) if self.L is not None else 4 * 6 * N * N * 3
         return m
 
-    def bytes_per_frame(self, frame_kind: str = "VBL") -> int | None:
-        """Bytes read/written by one frame: the G-buffer inputs and c_k/h_k tables per sample
-        (every frame), plus T, L and the c_k write when the lighting changes ("L" in the kind)."""
+    FRAME_KINDS = ("V", "L", "E", "VL")  # the sequence kinds in scope (static geometry and BRDFs)
+
+    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+        """Compulsory work of one frame (Mahajan 2008 eq. 4 at run time; ``methods.base.FrameCost``),
+        whatever our implementation does. Multiply-add = 2 flops; transcendentals (the normalising
+        square roots, hemi-octahedral division, the env map's atan2/acos) are not counted.
+
+        Every frame (view part): per hit sample the G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE`) and
+        its int64 region, per missed sample its hit word (4 B), the (P, 3) float32 output. A *shaded*
+        sample is a hit whose ω_o is above its horizon (eq. 4 is 0 below); per region with K terms:
+        the faces of the shaded samples (3 int64 each), the c_k (K·3 float32) of their vertices
+        (*referenced* vertices) and the σ_k h_k rows (3K float32) of every table node their bilinear
+        cells touch. Flops: per hit sample ω_o into its frame (9 MACs); per shaded sample the 12
+        vertex × node weights β_j w_n (4 + 12 products) and B = Σ 12 weights × X (12·3 MACs); per
+        referenced vertex at least one cell of X(v, n) = Σ_k σ_k h_k(n) c_{v,k} (4 nodes × 3K MACs;
+        the reassociated form of eq. 4, ``methods.inout.fast``: no implementation does less).
+
+        A lighting change ("L" or "E" in the kind: L, E, VL) adds: the env map resampled on the
+        cube map (6N²s² sub-samples, s = ``light_supersample``: the texels they touch, at most H·W
+        float32 RGB, read; per sub-sample the rotation into the map's frame (9 MACs), the bilinear
+        texel mix (4·3 MACs) and the weighted mean (3 MACs)), its Haar transform (4 flops per
+        texel and channel over all levels) and the (6N², 3) float32 L written; the kept rows of T̃
+        of every referenced vertex read once (values float32 + column indices at their stored
+        width) and c_k = T̃_k · L computed for them (2·3 flops per kept coefficient; the c write is
+        the c read counted above, once). Vertices no sample references need no c (the fast path
+        computes c lazily per vertex, ``methods.inout.fast``).
+
+        Hit and shaded samples, referenced vertices, faces and table nodes come from the last
+        `render` on a G-buffer of ``num_samples`` samples; without one, every sample is taken as
+        shaded and every vertex, face and node as referenced (an upper bound of those terms). None
+        before `precompute`.
+        """
+        if frame_kind not in self.FRAME_KINDS:
+            raise ValueError(f"frame_kind must be one of {self.FRAME_KINDS} (inout: static geometry and BRDFs), "
+                             f"got {frame_kind!r}")
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be an int >= 0, got {num_samples!r}")
         if self.scene is None:
             return None
-        N = self.config["cube_res"]
-        P = self._last_samples
-        total = P * (8 + 8 + 12 + 12 + 8 + 1 + 12)  # face, bary, normal, wo, region, hit, output
-        for reg in self.regions:
-            cb = 4 * reg.verts.numel() * reg.K * 3
-            total += tensor_bytes(reg.sh_lut) + cb
-            if "L" in frame_kind:
-                T = reg.T
-                total += tensor_bytes(T.values(), T.col_indices(), T.crow_indices()) + cb
-        if "L" in frame_kind:
-            total += 4 * 6 * N * N * 3
-        return int(total)
+        cfg, f4 = self.config, 4
+        P = num_samples
+        light = "L" in frame_kind or "E" in frame_kind
+        last = self._last_view[1] if self._last_view is not None and self._last_view[0] == P else None
+        b = P * 3 * f4                                                   # output
+        f = 0
+        if last is not None:
+            st = self._fast_static()
+            faces = last["face"][last["front"]]
+            verts = torch.unique(st.face_gl.index_select(1, faces).reshape(-1).long())      # concatenated ids
+            cells, face_region = last["cell"][last["front"]].long(), st.face_region.index_select(0, faces)
+        for s, reg in enumerate(self.regions):
+            K, R = reg.K, int(round(reg.sh_lut.shape[0] ** 0.5))
+            if last is None:
+                nref, nodes = int(reg.verts.numel()), R * R
+            else:
+                nref = int(((verts >= st.voff[s]) & (verts < st.voff[s + 1])).sum())
+                cell = cells[face_region == list(self.scene.regions).index(reg.name)]
+                nodes = int(torch.unique(cell[:, None] + torch.tensor([0, 1, R, R + 1], device=cell.device)).numel())
+            b += nref * K * 3 * f4 + nodes * 3 * K * f4                  # c rows, σ_k h_k rows
+            f += nref * 4 * 3 * K * 2                                     # one cell of X per vertex
+            if light:
+                n = int(reg.T.values().numel()) // max(int(reg.T.shape[0]), 1)
+                b += nref * K * n * (reg.T.values().element_size() + reg.T.col_indices().element_size())
+                f += 2 * 3 * nref * K * n                                 # c_k = T̃_k · L
+        if last is None:
+            hit = Q = P
+            nfaces = int(self.F.shape[0])
+        else:
+            hit, Q = last["hit"], int(last["front"].sum())
+            nfaces = int(torch.unique(faces).numel())
+        b += hit * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - hit) * 4 + nfaces * 3 * self.F.element_size()
+        f += hit * 2 * 9 + Q * (16 + 2 * 12 * 3)
+        if light:
+            N, s = cfg["cube_res"], cfg["light_supersample"]
+            D, sub = 6 * N * N, 6 * N * N * s * s
+            H, W = self._env_shape or tuple(int(x) for x in self.scene.envmap.data.shape[:2])
+            b += min(H * W, 4 * sub) * 3 * f4 + D * 3 * f4                # texels read, L written
+            f += sub * 2 * (9 + 4 * 3 + 3) + D * 3 * 4                    # resampling, Haar
+        return FrameCost(int(b), int(f))

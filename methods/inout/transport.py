@@ -279,6 +279,28 @@ def lut_directions(R: int, *, dtype=torch.float64) -> Tensor:
     return torch.where(d[:, 2:] < HORIZON_Z, lifted, d)
 
 
+def lut_cell(d: Tensor, R: int) -> tuple[Tensor, Tensor]:
+    """The bilinear cell of local directions d (M, 3) on a corner-aligned R × R hemi-octahedral
+    table: the flat index (M,) int64 of its first node (row-major, row = v) and the fractions
+    (M, 2) (f_u, f_v) in d's dtype. The cell's nodes are base, base + 1, base + R, base + R + 1
+    with weights (1−f_u)(1−f_v), f_u(1−f_v), (1−f_u)f_v, f_u f_v (`lut_lookup`)."""
+    iu, iv, fu, fv = lut_cell_xyz(*d.unbind(-1), R)
+    return iv * R + iu, torch.stack([fu, fv], -1)
+
+
+def lut_cell_xyz(x: Tensor, y: Tensor, z: Tensor, R: int, *,
+                 index_dtype: torch.dtype = torch.int64) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`lut_cell` of directions given by their components (M,) each: the cell's first column and
+    row (M,) of ``index_dtype`` and the fractions f_u, f_v (M,) (the arithmetic of `hemioct_encode`)."""
+    s = (x.abs() + y.abs() + z.clamp_min(0.0)).clamp_min(1e-30)
+    px, py = x / s, y / s
+    h = 0.5 * (R - 1)
+    u = ((px + py + 1.0) * h).clamp_(0.0, R - 1)  # continuous node coordinates
+    v = ((px - py + 1.0) * h).clamp_(0.0, R - 1)
+    iu, iv = u.floor().clamp_(max=R - 2), v.floor().clamp_(max=R - 2)
+    return iu.to(index_dtype), iv.to(index_dtype), u - iu, v - iv
+
+
 def lut_lookup(lut: Tensor, d: Tensor) -> Tensor:
     """Bilinear look-up of an (R·R, C) hemi-octahedral table at local directions d (M, 3) → (M, C).
 
@@ -288,14 +310,8 @@ def lut_lookup(lut: Tensor, d: Tensor) -> Tensor:
     R = int(round(math.sqrt(RR)))
     if R * R != RR:
         raise ValueError(f"lut must be (R·R, C), got {tuple(lut.shape)}")
-    uv = (hemioct_encode(d.to(lut.dtype)) + 1.0) * (0.5 * (R - 1))  # continuous node coordinates
-    uv = uv.clamp(0.0, R - 1)
-    i0 = uv.floor().clamp(max=R - 2)
-    f = uv - i0
-    i0 = i0.long()
-    cu, cv = i0[:, 0], i0[:, 1]
+    base, f = lut_cell(d.to(lut.dtype), R)
     fu, fv = f[:, :1], f[:, 1:]
-    base = cv * R + cu
     v00 = lut.index_select(0, base)
     v01 = lut.index_select(0, base + 1)
     v10 = lut.index_select(0, base + R)
@@ -420,6 +436,30 @@ def visibility_points(V: Tensor, F: Tensor, normals: Tensor, frac: float = INWAR
     n = normals.double()
     d = d - (d * n).sum(-1, keepdim=True) * n                        # tangential part
     return (Vd + frac * d).to(V.dtype)
+
+
+def _spread_bits(x: Tensor) -> Tensor:
+    """Insert two zero bits after each of the 10 low bits of x (int64): the Morton-code spread."""
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x030000FF
+    x = (x | (x << 8)) & 0x0300F00F
+    x = (x | (x << 4)) & 0x030C30C3
+    return (x | (x << 2)) & 0x09249249
+
+
+def locality_order(points: Tensor) -> Tensor:
+    """Permutation (N,) int64 sorting points (N, 3) along a Z-order (Morton) curve of their bounding
+    box (10 bits per axis): points close in space get close indices, so the vertices one view sees
+    are few runs of consecutive rows (the run time computes c_k per run, ``methods.inout.fast``)."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if points.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64, device=points.device)
+    p = points.double()
+    lo, hi = p.min(0).values, p.max(0).values
+    q = ((p - lo) / (hi - lo).clamp_min(1e-30) * 1023.0).round().long().clamp(0, 1023)
+    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << 1) | (_spread_bits(q[:, 2]) << 2)
+    return torch.sort(code, stable=True).indices
 
 
 def sparse_rows(idx: Tensor, val: Tensor, D: int) -> Tensor:

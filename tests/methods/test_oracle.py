@@ -88,3 +88,75 @@ def test_oracle_is_deterministic():
 def test_oracle_rejects_bad_config(bad):
     with pytest.raises(ValueError):
         get_method("oracle")(**bad)
+
+
+# -- the cost model ------------------------------------------------------------------------------
+
+
+def _counting_visibility(monkeypatch):
+    """Patch the oracle's ray tracer so that it counts the shadow rays it is asked to trace."""
+    import methods.oracle as oracle_mod
+
+    traced = [0]
+    real = oracle_mod.make_visibility
+
+    class Counting:
+        def __init__(self, vis):
+            self.vis = vis
+
+        def occluded(self, o, d):
+            traced[0] += int(o.shape[0])
+            return self.vis.occluded(o, d)
+
+    monkeypatch.setattr(oracle_mod, "make_visibility", lambda V, F: Counting(real(V, F)))
+    return traced
+
+
+def test_oracle_frame_cost_is_the_hand_count(monkeypatch):
+    """Bytes and flops of the estimator counted here from the G-buffer, the scene and the rays it
+    traced (Oracle.frame_cost's docstring): every frame kind costs the same on a static scene."""
+    import math
+
+    from methods.base import FrameCost
+    from methods.oracle import Oracle
+
+    traced = _counting_visibility(monkeypatch)
+    scene = get_scene("sphere_plane", "test")
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    frame = dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=16, height=16))
+    gb = make_gbuffer(scene, frame, 1)
+    o = Oracle(light_samples=2, brdf_samples=3)
+    assert o.frame_cost("V", gb.num_samples) is None
+    o.precompute(scene)
+    o.render(frame, gb)
+    P, Q = gb.num_samples, int(gb.hit.sum())
+    faces = torch.unique(gb.face[gb.hit])
+    verts = torch.unique(scene.geometry().F[faces]).numel()
+    H, W = scene.envmap.data.shape[:2]
+    C = (H - 1) * W
+    live = traced[0]
+    assert 0 < live < Q * 5
+    b = Q * 56 + (P - Q) * 4 + P * 12 + faces.numel() * 24 + verts * 12 + min(H * W, 4 * live) * 12 \
+        + min(C, Q * 2 * math.ceil(math.log2(C))) * 8 + min(C, Q * 2) * 8
+    f = Q * 56 + Q * 5 * 31 + live * 54
+    for kind in ("V", "VBL", "L", "E", "P"):          # static scene: a "P" frame skins nothing
+        assert o.frame_cost(kind, P) == FrameCost(b, f), kind
+    big = o.frame_cost("V", 4 * P)                     # no render of that size: all hit, all live
+    assert big.flops == 4 * P * (56 + 5 * 31 + 5 * 54)
+    for kind, n in (("X", P), ("V", -1), ("V", 2.0)):
+        with pytest.raises(ValueError):
+            o.frame_cost(kind, n)
+
+
+def test_oracle_frame_cost_of_a_posed_frame():
+    """A "P" frame adds the skinning: per skinned vertex 12 MACs per joint and 21 to apply it."""
+    from methods.oracle import Oracle
+
+    scene = get_scene("creature", "test")
+    o = Oracle(light_samples=1, brdf_samples=1)
+    o.precompute(scene)
+    v, p = o.frame_cost("V", 100), o.frame_cost("P", 100)
+    shapes = [(int(w.shape[0]), int(w.shape[1])) for w in scene.skin_weights.values()]
+    assert shapes
+    assert p.bytes - v.bytes == sum(n * (6 + J) * 4 for n, J in shapes)
+    assert p.flops - v.flops == sum(n * 2 * (12 * J + 21) for n, J in shapes)

@@ -1,0 +1,186 @@
+"""In-out frame times, old (reference) vs new (fast) path, in one process (issue 14).
+
+    python -m benchmarks.inout [--scene sphere_plane] [--size bench] [--config '{}'] [--frames 5]
+                               [--threads 2] [--spp-side 2] [--kinds V L E] [--no-micro]
+
+Precomputes once (kept in ``<cache>/inout_frames/``, keyed by the scene's content hash and the
+config; delete it after changing the precompute), then renders each sequence kind with two copies
+sharing the precomputed arrays — ``_render_reference`` (the old path) and ``render`` (the fast
+path, ``methods.inout.fast``) — frame by frame, alternating which goes first, so both see the same
+machine load. Frame 0 of each sequence fills the caches and is not timed. Prints the medians, their
+ratio, the roofline efficiency max(bytes / triad bandwidth, flops / matmul peak) / time with
+``InOut.frame_cost`` and both machine limits measured in this run (before and after the frames;
+the higher of each is used), the largest |old − new| pixel difference, and micro-benchmarks of the
+parts of a fast frame against the kernels that bound them (`micro`): the per-frame set-up (c_k and
+the window products X), the per-sample stage (inputs; eq. 4's 12 weighted reads per sample), one
+read of the G-buffer arrays, and the lighting product c = T̃ · L over the referenced rows beside
+one streaming read of the same bytes.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import hashlib
+import json
+import pickle
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import setup
+from methods.base import cache_dir
+from methods.inout import fast
+from methods.inout.method import InOut
+from reports import measure
+
+
+def _precomputed(scene, config: dict) -> tuple[InOut, float | None]:
+    key = hashlib.sha256((scene.content_hash() + json.dumps(config, sort_keys=True)).encode()).hexdigest()[:16]
+    path = Path(cache_dir()) / "inout_frames" / f"{scene.name}_{key}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            m = pickle.load(f)
+        m._fast = None
+        m._reset_cache()
+        return m, None
+    m = InOut(**config)
+    t0 = time.perf_counter()
+    m.precompute(scene)
+    pre = time.perf_counter() - t0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(m, f, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(path)
+    return m, pre
+
+
+def _time(fn, repeats: int = 5) -> float:
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def micro(m: InOut, frame, gb) -> dict[str, float]:
+    """Seconds (median of 5 after a warm-up) of the parts and kernels of a fast frame, on the last
+    frame of the V sequence (``frame`` on G-buffer ``gb``; c_k cached): the per-frame set-up
+    (`InOut._view_setup`:
+    referenced vertices, c_k, the window products X), the per-sample stage split into its inputs
+    (``fast.sample_inputs``) and eq. 4 (``fast.shade``), against the kernels that bound them: one
+    read of the G-buffer arrays a frame reads (the bulk of the roofline's bytes) and, for a lighting
+    change, c = T̃ · L over the referenced rows against one streaming read of the same bytes."""
+    out: dict[str, float] = {}
+    view = m._view_setup(frame, gb)
+    out["view_setup_s"] = _time(lambda: m._view_setup(frame, gb))
+    out["window"] = view.wins.W
+    blocks = [(a, min(view.Q, a + view.step)) for a in range(0, view.Q, view.step)]
+    inputs = [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5]) for a, b in blocks]
+    out["sample_inputs_s"] = _time(lambda: [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5])
+                                            for a, b in blocks])
+    out["shade_s"] = _time(lambda: [fast.shade(view.st, view.cs, view.wins, gl, bw, cell)
+                                    for gl, bw, cell, _ in inputs])
+    out["X_nodes"] = int(view.wins.XT.shape[1])
+    arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
+    out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
+    out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])
+    reg = max(m.regions, key=lambda r: r.T.values().numel())
+    fr = m._fast_static().regions[m.regions.index(reg)]
+    ref = m._cf_valid[reg.name].nonzero(as_tuple=True)[0]
+    runs = fast.light_runs(ref, reg.verts.numel())
+    rows = sum(v1 - v0 for v0, v1 in runs) * reg.K
+    out.update(region=reg.name, K=reg.K, c_valid_vertices=int(ref.numel()), light_rows=rows,
+               light_bytes=rows * fr.col.shape[1] * (fr.val.element_size() + fr.col.element_size()))
+
+    def light():
+        for v0, v1 in runs:
+            fast.light_rows(fr, m.L, v0, v1)
+
+    def stream():  # one read of the same values and indices (a vectorised max: no arithmetic to speak of)
+        for v0, v1 in runs:
+            fr.val[v0 * reg.K:v1 * reg.K].max()
+            fr.col[v0 * reg.K:v1 * reg.K].max()
+
+    out["light_product_s"] = _time(light)
+    out["light_stream_read_s"] = _time(stream)
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="sphere_plane")
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--config", default="{}")
+    ap.add_argument("--frames", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--spp-side", type=int, default=2)
+    ap.add_argument("--kinds", nargs="+", default=["V", "L", "E"])
+    ap.add_argument("--no-micro", action="store_true")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    cfg = json.loads(a.config)
+    scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1, spp_side=a.spp_side)
+    m, pre = _precomputed(scene, cfg)
+    out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "threads": a.threads, "spp_side": a.spp_side,
+                 "K": {r.name: r.K for r in m.regions}, "vertices": {r.name: int(r.verts.numel()) for r in m.regions},
+                 "precompute_s": pre}
+    bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
+    kinds, last = {}, None
+    for kind in a.kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
+        old, new = copy.copy(m), copy.copy(m)
+        old._reset_cache()
+        new._reset_cache()
+        t_old, t_new, diff, scale = [], [], 0.0, 0.0
+        for i, (f, g) in enumerate(zip(frames, gbs)):
+            order = ("old", "new") if i % 2 == 0 else ("new", "old")
+            imgs = {}
+            for which in order:
+                t0 = time.perf_counter()
+                imgs[which] = old._render_reference(f, g) if which == "old" else new.render(f, g)
+                (t_old if which == "old" else t_new).append(time.perf_counter() - t0)
+            diff = max(diff, float((imgs["old"] - imgs["new"]).abs().max()))
+            scale = max(scale, float(imgs["old"].abs().max()))
+        cost = new.frame_cost(kind, gbs[-1].num_samples)
+        kinds[kind] = {"old_s": t_old, "new_s": t_new, "old_median_s": statistics.median(t_old[1:]),
+                       "new_median_s": statistics.median(t_new[1:]), "max_abs_diff": diff, "image_max": scale,
+                       "bytes": cost.bytes, "flops": cost.flops, "hit_samples": int(gbs[-1].hit.sum())}
+        if last is None or kind == "V":   # the micro-benchmarks run on a view-only frame when there is one
+            last = (new, frames[-1], gbs[-1])
+    bw.append(measure.triad_bandwidth())
+    peak.append(measure.matmul_peak())
+    B, Pk = max(bw), max(peak)
+    out.update(triad_bandwidth=bw, matmul_peak=peak)
+    for kind, r in kinds.items():
+        for which in ("old", "new"):
+            eff, bound = measure.roofline(r["bytes"], r["flops"], B, Pk, r[f"{which}_median_s"])
+            r[f"{which}_efficiency"], r["bound"] = eff, bound
+        r["roofline_s"] = max(r["bytes"] / B, r["flops"] / Pk)
+        r["speedup"] = r["old_median_s"] / r["new_median_s"]
+    out["kinds"] = kinds
+    if not a.no_micro and last is not None:
+        out["micro"] = micro(*last)
+    print(json.dumps(out, indent=1, default=float))
+    print(f"\n{a.scene} {a.size}, {a.threads} threads, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
+    print(f"{'kind':5} {'old ms':>9} {'new ms':>9} {'speedup':>8} {'roof ms':>8} {'old eff':>8} {'new eff':>8} bound")
+    for kind, r in kinds.items():
+        print(f"{kind:5} {1e3 * r['old_median_s']:9.1f} {1e3 * r['new_median_s']:9.1f} {r['speedup']:8.1f} "
+              f"{1e3 * r['roofline_s']:8.2f} {r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} {r['bound']}")
+    if "micro" in out:
+        u = out["micro"]
+        print(f"last frame: set-up (c_k, X; W = {u['window']}) {1e3 * u['view_setup_s']:.1f} ms, sample inputs "
+              f"{1e3 * u['sample_inputs_s']:.1f} ms, eq. 4 {1e3 * u['shade_s']:.1f} ms; one G-buffer read "
+              f"{1e3 * u['gbuffer_read_s']:.2f} ms ({u['gbuffer_bytes'] / u['gbuffer_read_s'] / 1e9:.1f} GB/s)")
+        print(f"lighting ({u['region']}, {u['light_rows']} rows): c = T·L {1e3 * u['light_product_s']:.1f} ms "
+              f"({u['light_bytes'] / u['light_product_s'] / 1e9:.1f} GB/s), one read of T "
+              f"{1e3 * u['light_stream_read_s']:.1f} ms ({u['light_bytes'] / u['light_stream_read_s'] / 1e9:.1f} GB/s)")
+    return out
+
+
+if __name__ == "__main__":
+    main()

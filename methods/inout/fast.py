@@ -1,0 +1,325 @@
+"""Batched run time of the in-out renderer (Mahajan, Tseng & Ramamoorthi 2008 eq. 4) — the same
+image as the per-sample reference path (`InOut._render_reference`) to float32 round-off, with the
+work arranged for the machine instead of for reading.
+
+Lighting (a frame whose ``changed`` has "light"): c_k = T̃_k · L (eq. 4's dot product) per vertex,
+as CSR × dense products over runs of rows of T̃ read in place (`light_rows`), and only for the
+vertices the frame's samples reference: c is cached per vertex with a validity mask that a
+lighting change clears, and a later frame that sees more of the mesh fills in what it references.
+The region's vertices are stored in Morton order (``transport.locality_order``), so the vertices
+one view sees are few runs of consecutive rows; c is computed for whole blocks of LIGHT_BLOCK
+vertices (`light_runs`). A vertex's c never depends on which others were computed.
+
+View (every frame): at a sample with vertices v_j and barycentric weights β_j, eq. 4 reads
+B = Σ_k σ_k h_k(ω_o) c̄_k with c̄ = Σ_j β_j c_{v_j} and σ_k h_k the bilinear look-up of one cell of
+the hemi-octahedral table (nodes n with weights w_n, ``transport.lut_cell``). Both are linear, so
+
+    B = Σ_j β_j Σ_n w_n X(v_j, n),     X(v, n)_c = Σ_k sh_lut[n, (k, c)] c_{v,k,c},
+
+and X is what a frame forms (`prepare`), on a W × W window of table nodes per referenced vertex
+centred on the cell of the direction from the vertex to the camera in the vertex's own frame
+(`anchors`: the samples around a vertex see it from nearly that direction), with W chosen per
+frame on a subsample of the samples to minimise the work (`choose_window`). X of all windows is
+one sampled dense-dense product per region (`view_windows`); each sample then reads 3 vertices ×
+4 nodes of X (`shade`). Sample–vertex entries whose cell leaves the window (where
+``core.frames.coordinate_system`` flips the tangent, or a triangle spans many cells) are summed
+exactly from sh_lut and c (`_outliers`). The window decides only *where* a sum is formed, never its
+terms; each sample takes ω_o in its own shading frame, as the reference path does
+(`sample_frame`). The per-sample stage runs in blocks of CHUNK samples (`InOut.render`).
+
+Plain torch on the device of the precomputed arrays; no per-sample Python loops.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as Fnn
+from torch import Tensor
+
+from methods.inout.transport import lut_cell_xyz
+
+__all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
+           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW",
+           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK"]
+
+# Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
+# more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
+# exact path instead of growing every window.
+MAX_WINDOW = 16
+# Samples per block of the per-sample stage: its temporaries ((3, CHUNK) arrays) stay in cache and
+# below the allocator's threshold for fresh pages (full-size temporaries of a 256² × 4 frame cost
+# more in page faults than in arithmetic).
+CHUNK = 1 << 15
+# The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
+WINDOW_SUBSAMPLE = 8
+# Work of one sample–vertex entry on the exact path (`_outliers`: a gathered c row, 4 nodes' dot
+# products, its own small sparse pattern) in units of one node of X in a window (3 dot products of
+# the frame's one sampled product), as the two kernels' times compare on a CPU (``benchmarks.inout``
+# on sphere_plane bench: larger windows win over more outliers until about this ratio).
+OUTLIER_COST = 24
+# Rows of T̃ per sparse product in `light_rows`.
+LIGHT_CHUNK_ROWS = 1 << 15
+# Vertices per block of `light_runs`: c is computed for whole blocks of consecutive vertices, so a
+# lighting change makes at most Vr / LIGHT_BLOCK products per region and computes at most
+# LIGHT_BLOCK − 1 unreferenced vertices per run.
+LIGHT_BLOCK = 16
+
+
+@dataclass
+class FastRegion:
+    """Lighting- and view-independent arrays of one region for the fast path (`build_region`).
+
+    col, val: (Vr·K, n) int32 Haar indices / float32 values of T̃ — views of the CSR arrays;
+        crow: (Vr·K + 1,) the row pointers 0, n, 2n, … (any block of rows starts at 0).
+    sh_lut: (R², 3K) σ_k h_{k,c} at the table nodes (index 3k + c, the reference's table);
+    sh_nc: (R²·3, K) the same regrouped, row (node, colour): the K-vector X's dot products read.
+    K: terms; R: nodes per side of the table.
+    """
+
+    col: Tensor
+    val: Tensor
+    crow: Tensor
+    sh_lut: Tensor
+    sh_nc: Tensor
+    K: int
+    R: int
+
+
+@dataclass
+class FastStatic:
+    """The fast path's arrays of all regions (built once per precompute, `InOut._fast_static`).
+
+    regions: one `FastRegion` per precomputed region (a *slot*); voff: the S + 1 offsets of the
+        slots' vertices in the concatenation of their local ids (a *concatenated id*).
+    face_gl: (3, M) int32 concatenated ids of each face's vertices (in its region's slot);
+    face_region: (M,) int64 the scene region index of each face.
+    pos: (ΣVr, 3) float32 vertex positions, frames: (ΣVr, 3, 3) world → local rows (s, t, n) of
+        the vertex normals (`core.frames.frame_matrix`), K: (ΣVr,) int64 the terms of each vertex's
+        slot — all by concatenated id, for the window anchors (`anchors`).
+    R: nodes per side of the tables (all slots).
+    """
+
+    regions: list[FastRegion]
+    voff: list[int]
+    face_gl: Tensor
+    face_region: Tensor
+    pos: Tensor
+    frames: Tensor
+    K: Tensor
+    R: int
+
+
+def build_region(T: Tensor, sh_lut: Tensor) -> FastRegion:
+    """`FastRegion` of a region: T the CSR (Vr·K, D) transport with the same number of entries in
+    every row (``transport.sparse_rows``), sh_lut (R², 3K) the σ_k h_{k,c} table (index 3k + c)."""
+    crow, col, val = T.crow_indices(), T.col_indices(), T.values()
+    rows = T.shape[0]
+    n = col.numel() // max(rows, 1)
+    if col.numel() != rows * n or not bool((crow == torch.arange(rows + 1, device=crow.device) * n).all()):
+        raise ValueError("the fast path needs the same number of kept coefficients in every row of T")
+    RR, K3 = sh_lut.shape
+    R = int(round(RR ** 0.5))
+    sh_nc = sh_lut.view(RR, K3 // 3, 3).transpose(1, 2).reshape(RR * 3, K3 // 3).contiguous()
+    return FastRegion(col=col.view(rows, n), val=val.view(rows, n), crow=crow, sh_lut=sh_lut, sh_nc=sh_nc,
+                      K=K3 // 3, R=R)
+
+
+def sample_frame(n: Tensor, wo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """ω_o in each sample's shading frame, ``frame_matrix(normalize(n)) @ wo`` in closed form:
+    n, wo (Q, 3) → the local components (x, y, z), (Q,) each. With the frame of
+    ``core.frames.coordinate_system`` (sign = ±1 as n_z ≥ 0, A = −1/(sign + n_z)) and
+    u = A (n_x ω_x + n_y ω_y) − ω_z: x = ω_x + sign n_x u, y = sign ω_y + n_y u, z = n·ω_o."""
+    nx, ny, nz = n.unbind(-1)
+    a, b, c = wo.unbind(-1)
+    inv = (nx * nx + ny * ny + nz * nz).sqrt_().clamp_min_(1e-12).reciprocal_()   # F.normalize's eps
+    nx, ny, nz = nx * inv, ny * inv, nz * inv
+    sign = torch.where(nz >= 0, 1.0, -1.0).to(nz.dtype)
+    A = (sign + nz).reciprocal_().neg_()
+    d = nx * a + ny * b
+    u = A * d - c
+    return a + sign * nx * u, sign * b + ny * u, d + nz * c
+
+
+def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[int, int]]:
+    """Vertex ranges [v0, v1) covering the vertices ``todo`` (ascending local ids) with whole blocks
+    of ``block`` consecutive vertices, consecutive blocks merged: at most nv / block ranges."""
+    if todo.numel() == 0:
+        return []
+    b = torch.unique_consecutive(todo // block)
+    brk = (b[1:] - b[:-1] > 1).nonzero(as_tuple=True)[0]
+    starts = torch.cat([b[:1], b[1:][brk]]).tolist()
+    ends = torch.cat([b[:-1][brk], b[-1:]]).tolist()
+    return [(s0 * block, min(nv, (e0 + 1) * block)) for s0, e0 in zip(starts, ends)]
+
+
+def light_rows(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
+    """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices v0 ≤ v < v1
+    → (v1 − v0, K, 3): CSR × dense products over blocks of rows read in place, with L zero-padded
+    to 4 columns (aligned rows: the product's inner loop is a 4-wide gather)."""
+    K = fr.K
+    L4 = torch.zeros(L.shape[0], 4, dtype=L.dtype, device=L.device)
+    L4[:, :L.shape[1]] = L
+    r0, r1 = v0 * K, v1 * K
+    out = torch.empty(r1 - r0, 4, dtype=L.dtype, device=L.device)
+    for a in range(r0, r1, chunk_rows):
+        b = min(r1, a + chunk_rows)
+        T = torch.sparse_csr_tensor(fr.crow[:b - a + 1], fr.col[a:b].reshape(-1), fr.val[a:b].reshape(-1),
+                                    size=(b - a, L4.shape[0]), check_invariants=False)
+        out[a - r0:b - r0] = T @ L4
+    return out[:, :L.shape[1]].reshape(v1 - v0, K, L.shape[1])
+
+
+def anchors(st: FastStatic, ref: Tensor, cam: Tensor) -> tuple[Tensor, Tensor]:
+    """Table cell (column, row) (m,) int32 of the direction from each vertex ``ref`` (m,)
+    (concatenated ids) to the camera position cam (3,), in the vertex's frame: where the cells of
+    the samples around the vertex cluster (they see it from nearly that direction)."""
+    d = cam[None, :] - st.pos.index_select(0, ref)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    dl = torch.bmm(st.frames.index_select(0, ref), d.unsqueeze(-1)).squeeze(-1)
+    iu, iv, _, _ = lut_cell_xyz(*dl.unbind(-1), st.R, index_dtype=torch.int32)
+    return iu, iv
+
+
+def choose_window(hist: Tensor, k_total: float, max_window: int = MAX_WINDOW) -> int:
+    """Even window side W (2 ≤ W ≤ max_window) minimising the view stage's work: W² nodes of X per
+    referenced vertex (k_total = Σ K over them) plus ``OUTLIER_COST`` nodes per sample–vertex entry
+    its window misses. hist[d]: Σ K of the entries whose cell is d cells (Chebyshev) from their
+    vertex's anchor (last bin: d ≥ len − 1); a window of side W centred on the anchor holds the
+    entries with d ≤ W/2 − 1."""
+    Ws = torch.arange(2, max_window + 1, 2, device=hist.device)
+    tail = hist.flip(0).cumsum(0).flip(0)                      # tail[d] = Σ_{d' ≥ d} hist[d']
+    missed = tail[(Ws // 2).clamp(max=hist.numel() - 1)] * (Ws // 2 < hist.numel())
+    cost = k_total * Ws * Ws + OUTLIER_COST * missed
+    return int(Ws[int(torch.argmin(cost))])
+
+
+def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int) -> Tensor:
+    """X (3, m·W²) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node window (first column ax,
+    first row ay, (m,) each; row-major in the window) of each vertex ``ref`` (m,) (local ids), as one
+    sampled dense-dense product (``torch.sparse.sampled_addmm``: only the windows' entries of the
+    product c · σh): rows (vertex, colour) of c (Vr, 3, K), columns (node, colour) of ``fr.sh_nc``."""
+    m, R, K = ref.numel(), fr.R, fr.K
+    dev = ref.device
+    if m == 0:
+        return torch.zeros(3, 0, dtype=c.dtype, device=dev)
+    o = torch.arange(W, device=dev)
+    nodes = ((ay.long()[:, None, None] + o[None, :, None]) * R + ax.long()[:, None, None]
+             + o[None, None, :]).reshape(m, 1, W * W)
+    cols = (nodes * 3 + torch.arange(3, device=dev)[None, :, None]).reshape(-1)     # rows (i, c), W² each
+    crow = torch.arange(0, m * 3 * W * W + 1, W * W, device=dev)
+    pattern = torch.sparse_csr_tensor(crow, cols, torch.zeros(cols.numel(), dtype=c.dtype, device=dev),
+                                      size=(m * 3, R * R * 3), check_invariants=False)
+    A = c.index_select(0, ref).reshape(m * 3, K)
+    Xv = torch.sparse.sampled_addmm(pattern, A, fr.sh_nc.T, beta=0.0).values()     # (m·3·W²,)
+    return Xv.view(m, 3, W * W).transpose(0, 1).reshape(3, m * W * W)
+
+
+@dataclass
+class Windows:
+    """A frame's products X on the windows of its referenced vertices (`prepare`).
+
+    W: window side (even); win: (3, ΣVr) int32 per concatenated vertex id the window's first
+    column, first row and the offset of its W² nodes in X (0 for unreferenced vertices);
+    XT: (3, Σ m W²) float32 X channels first, the slots' windows one after the other.
+    """
+
+    W: int
+    win: Tensor
+    XT: Tensor
+
+
+def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor | None
+                  ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor, Tensor, Tensor], Tensor]:
+    """Per-sample inputs of eq. 4 for q G-buffer samples: normal, wo (q, 3), bary (q, 2), face (q,)
+    (clamped to a valid face where ``live`` is False), live (q,) bool or None (all live).
+    Returns gl (3, q) int32 concatenated vertex ids, bw (3, q) barycentric weights (0 where the
+    sample is not shaded: not live, or ω_o below its horizon), the table cell (iu, iv, fu, fv) of
+    ω_o in the sample's frame (`sample_frame`, ``transport.lut_cell_xyz``) and front (q,) bool."""
+    wl = sample_frame(normal.float(), wo.float())
+    front = wl[2] > 0                                                           # ρ = 0 below the horizon
+    if live is not None:
+        front &= live
+    gl = torch.stack([f.index_select(0, face) for f in st.face_gl])
+    u, v = bary.float().unbind(-1)
+    fw = front.to(u.dtype)
+    bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw])
+    return gl, bw, lut_cell_xyz(*wl, st.R, index_dtype=torch.int32), front
+
+
+def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, gl: Tensor, bw: Tensor, iu: Tensor,
+            iv: Tensor, scale: float, max_window: int = MAX_WINDOW) -> Windows:
+    """The frame's `Windows`: anchors of the referenced vertices ``ref`` (m,) (concatenated ids,
+    ascending) towards the camera cam (3,), the window side from the entries of a subsample of the
+    frame's samples (gl, bw (3, q), cells iu, iv (q,); each standing for ``scale`` samples), and X
+    = the windows' products with the c of each slot (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
+    R, dev, n_all, m = st.R, ref.device, st.voff[-1], ref.numel()
+    au, av = anchors(st, ref, cam)
+    a_all = torch.zeros(2, n_all, dtype=torch.int32, device=dev)
+    a_all[0, ref], a_all[1, ref] = au, av
+    # window side: Chebyshev distance of the subsample's entries from their vertices' anchors
+    g = gl.reshape(-1)
+    d = torch.maximum((iu.repeat(3) - a_all[0].index_select(0, g)).abs_(),
+                      (iv.repeat(3) - a_all[1].index_select(0, g)).abs_())
+    live = bw.reshape(-1) != 0
+    hist = torch.bincount(d.clamp_(max=max_window // 2)[live], weights=st.K.index_select(0, g[live]).double(),
+                          minlength=max_window // 2 + 1) * scale
+    W = min(choose_window(hist, float(st.K[ref].sum()), max_window), R - R % 2)
+    h = W // 2 - 1
+    win = torch.zeros(3, n_all, dtype=torch.int32, device=dev)
+    win[0, ref] = (au - h).clamp_(0, R - W)
+    win[1, ref] = (av - h).clamp_(0, R - W)
+    win[2, ref] = torch.arange(0, m * W * W, W * W, dtype=torch.int32, device=dev)
+    b = [int(x) for x in torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()]
+    XT = torch.cat([view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], win[0, ref[b[s]:b[s + 1]]],
+                                 win[1, ref[b[s]:b[s + 1]]], W) for s, fr in enumerate(st.regions)], 1)
+    return Windows(W=W, win=win, XT=XT)
+
+
+def shade(st: FastStatic, cs: list[Tensor], wins: Windows, gl: Tensor, bw: Tensor,
+          cell: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
+    """Eq. 4 at q samples (module docstring), channels first: gl, bw (3, q) and the cells (iu, iv,
+    fu, fv) (q,) of `sample_inputs`; cs[s] (Vr_s, 3, K_s) the c of slot s. Returns B (3, q)
+    (0 where bw is 0)."""
+    iu, iv, fu, fv = cell
+    W, win, XT = wins.W, wins.win, wins.XT
+    q = gl.shape[1]
+    flat = gl.reshape(-1)
+    dx = iu - win[0].index_select(0, flat).view(3, q)                            # (j, q)
+    dy = iv - win[1].index_select(0, flat).view(3, q)
+    inside = (torch.minimum(dx, dy) >= 0) & (torch.maximum(dx, dy) <= W - 2)
+    base = win[2].index_select(0, flat).view(3, q) + dy.clamp_(0, W - 2) * W + dx.clamp_(0, W - 2)  # first node
+    wi = bw * inside
+    gu, gv = 1 - fu, 1 - fv
+    wc = (gu * gv, fu * gv, gu * fv, fu * fv)                                   # bilinear weights, (q,) each
+    B = torch.zeros(3, q, dtype=bw.dtype, device=bw.device)
+    for j in range(3):                                                          # B = Σ_j Σ_n β_j w_n X(v_j, n)
+        for wn, off in zip(wc, (0, 1, W, W + 1)):
+            B.addcmul_(XT.index_select(1, base[j] + off if off else base[j]), wi[j] * wn)
+    miss = torch.nonzero(bw != wi)                   # a weight outside its window: the exact path
+    if miss.numel():
+        j, k = miss[:, 0], miss[:, 1]
+        v = gl[j, k].long()
+        wcm = torch.stack([w[k] for w in wc], -1) * bw[j, k, None]
+        first = (iv * st.R + iu)[k].long()
+        for s, fr in enumerate(st.regions):
+            sel = ((v >= st.voff[s]) & (v < st.voff[s + 1])).nonzero(as_tuple=True)[0]
+            if sel.numel():
+                B.index_add_(1, k[sel], _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel]).T)
+    return B
+
+
+def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
+    """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: one
+    sampled dense-dense product (rows (entry, colour) of c, columns the 4 nodes × that colour of
+    ``fr.sh_nc``). v, cell (n,) int64 local vertex / first node; wc (n, 4) node weights (β_j
+    folded in); c (Vr, 3, K) → (n, 3)."""
+    n, R, K = v.numel(), fr.R, fr.K
+    dev = v.device
+    nodes = cell[:, None] + torch.tensor([0, 1, R, R + 1], device=dev)                # (n, 4) ascending
+    cols = (nodes[:, None, :] * 3 + torch.arange(3, device=dev)[None, :, None]).reshape(-1)
+    crow = torch.arange(0, n * 12 + 1, 4, device=dev)
+    pattern = torch.sparse_csr_tensor(crow, cols, torch.zeros(cols.numel(), dtype=c.dtype, device=dev),
+                                      size=(n * 3, R * R * 3), check_invariants=False)
+    Xe = torch.sparse.sampled_addmm(pattern, c.index_select(0, v).reshape(n * 3, K), fr.sh_nc.T, beta=0.0)
+    return (Xe.values().view(n, 3, 4) * wc[:, None, :]).sum(-1)

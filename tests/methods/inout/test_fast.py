@@ -1,0 +1,249 @@
+"""The in-out fast run-time path (``methods.inout.fast``, `InOut.render`) against the reference path it
+replaced (`InOut._render_reference`, Mahajan 2008 eq. 4 per sample, kept as the oracle), its building
+blocks against their definitions, and the cost model (`InOut.frame_cost`) against a hand count.
+
+Tiny precompute settings (8×8 BRDF grid, 4×4 cube faces, 16 kept coefficients, a 16² table): this is
+about the run-time arithmetic, not accuracy, so every library scene stays within seconds.
+"""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost, tensor_bytes
+from methods.core.frames import frame_matrix
+from methods.inout import fast
+from methods.inout import method as inout_method
+from methods.inout import transport as tp
+from methods.inout.method import InOut
+from references.gbuffer import make_gbuffer
+from scenes.library import SCENES, get_scene
+from scenes.sequences import make_sequence
+
+TINY = dict(brdf_res=8, cube_res=4, n_coeffs=16, lut_res=16, light_supersample=2, terms=6)
+# Per scene, what it exercises besides the default: K from the paper's rule (K = 100 for the Phong
+# sphere: many terms), all lighting coefficients kept vs the light_coeffs largest.
+VARIANTS = {"sphere_plane": dict(terms=None), "chess": dict(light_coeffs=24), "alcove": {}, "shadow_detail": {},
+            "creature": {}, "bunny": dict(terms=None), "dragon": {}, "character": {}}
+KINDS = ("V", "L", "E")
+# Fast vs reference: float32, the same terms summed in another order (X per vertex and node, then
+# the 12 weights, vs c̄ and σh per sample, then the K-term dot product); measured ≤ 3e-7 of the
+# image's peak on sphere_plane at K = 100.
+RTOL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def precomputed():
+    built = {}
+
+    def get(name: str) -> InOut:
+        if name not in built:
+            scene = get_scene(name, "test")
+            m = InOut(**{**TINY, **VARIANTS.get(name, {})})
+            m.precompute(scene)
+            built[name] = m
+        return built[name]
+
+    return get
+
+
+def _pair(m: InOut) -> tuple[InOut, InOut]:
+    """Two copies of one precomputation with caches of their own (fast, reference)."""
+    a, b = copy.copy(m), copy.copy(m)
+    a._reset_cache()
+    b._reset_cache()
+    return a, b
+
+
+def _assert_sequence_equal(m: InOut, kind: str, spp_side: int = 1, n_frames: int = 3, seed: int = 3) -> None:
+    fast_m, ref_m = _pair(m)
+    for frame in make_sequence(m.scene, kind, n_frames=n_frames, seed=seed):  # frames 1, 2: the caches
+        gb = make_gbuffer(m.scene, frame, spp_side)
+        got, want = fast_m.render(frame, gb), ref_m._render_reference(frame, gb)
+        scale = float(want.abs().max())
+        assert scale > 0
+        err = float((got - want).abs().max())
+        assert err <= RTOL * scale, f"{m.scene.name} {kind} frame {frame.index}: {err} vs peak {scale}"
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_fast_path_equals_reference(precomputed, name):
+    """Every library scene in-out accepts, V / L / E sequences rendered in order (so both paths'
+    caches are exercised): the fast image equals the reference to float32 round-off."""
+    scene = get_scene(name, "test")
+    why = InOut.capabilities.why_not(scene, "L", 0)
+    if why is not None:
+        pytest.skip(why)
+    m = precomputed(name)
+    for kind in KINDS:
+        _assert_sequence_equal(m, kind)
+
+
+@pytest.mark.parametrize("patch", [{"DENSE_HIT_FRACTION": 2.0}, {"DENSE_HIT_FRACTION": 0.0},
+                                   {"MAX_WINDOW": 2}, {"CHUNK": 100}])
+def test_every_branch_equals_reference(precomputed, monkeypatch, patch):
+    """The branches the defaults may not reach on a scene: only the hits gathered first (a G-buffer
+    with many misses) or every sample shaded, windows of one cell (nearly every entry on the exact
+    path), blocks smaller than a scanline."""
+    for key, value in patch.items():
+        monkeypatch.setattr(inout_method if key == "DENSE_HIT_FRACTION" else fast, key, value)
+    m = precomputed("bunny")
+    for kind in ("V", "L"):
+        _assert_sequence_equal(m, kind, spp_side=2)
+
+
+def test_lighting_is_computed_only_where_seen(precomputed):
+    """A lighting change computes c_k for the vertices the view references (in whole blocks), not for
+    every vertex; a frame that then sees other vertices fills those in (the image stays exact)."""
+    m = precomputed("sphere_plane")
+    fast_m, _ = _pair(m)
+    frames = make_sequence(m.scene, "V", n_frames=3, seed=5)
+    fast_m.render(frames[0], make_gbuffer(m.scene, frames[0], 1))
+    valid = {name: v.clone() for name, v in fast_m._cf_valid.items()}
+    assert any(not bool(v.all()) for v in valid.values())            # the far side was not computed
+    for frame in frames[1:]:
+        fast_m.render(frame, make_gbuffer(m.scene, frame, 1))
+    for name, v in fast_m._cf_valid.items():
+        assert bool((v | ~valid[name]).all())                          # once valid, stays valid (no relight)
+    _assert_sequence_equal(m, "V", n_frames=3, seed=5)
+
+
+def test_sample_frame_is_frame_matrix():
+    """The closed form of ω_o in the sample's frame equals frame_matrix(normalize(n)) @ ω_o,
+    for normals on both sides of the tangent flip at n_z = 0 and not quite unit."""
+    g = torch.Generator().manual_seed(0)
+    n = torch.randn(5000, 3, generator=g) * 1.001
+    n[:10, 2] = 0.0
+    n[10:20, 2] = -1e-7
+    wo = torch.nn.functional.normalize(torch.randn(5000, 3, generator=g), dim=-1)
+    want = (frame_matrix(torch.nn.functional.normalize(n, dim=-1)) @ wo.unsqueeze(-1)).squeeze(-1)
+    got = torch.stack(fast.sample_frame(n, wo), -1)
+    assert (got - want).abs().max() <= 1e-6
+
+
+def test_lut_cell_xyz_is_lut_cell():
+    g = torch.Generator().manual_seed(1)
+    d = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g), dim=-1)
+    base, f = tp.lut_cell(d, 16)
+    iu, iv, fu, fv = tp.lut_cell_xyz(*d.unbind(-1), 16, index_dtype=torch.int32)
+    assert torch.equal(base, (iv * 16 + iu).long()) and torch.equal(f, torch.stack([fu, fv], -1))
+
+
+def test_locality_order_is_a_morton_permutation():
+    g = torch.Generator().manual_seed(2)
+    p = torch.rand(500, 3, generator=g)
+    perm = tp.locality_order(p)
+    assert torch.equal(torch.sort(perm).values, torch.arange(500))
+    # the 8 corners of a cube come in Z-order: x fastest, then y, then z
+    corners = torch.tensor([[x, y, z] for z in (0.0, 1.0) for y in (0.0, 1.0) for x in (0.0, 1.0)])
+    assert torch.equal(tp.locality_order(corners.flip(0)), torch.arange(7, -1, -1))
+    with pytest.raises(ValueError):
+        tp.locality_order(torch.zeros(4, 2))
+
+
+def test_choose_window_balances_windows_and_outliers():
+    """W² nodes per vertex against OUTLIER_COST per missed entry (hist: K-weighted entries by
+    distance from their anchor)."""
+    hist = torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64)      # every entry on its anchor cell
+    assert fast.choose_window(hist, 10.0, 16) == 2
+    far = torch.tensor([0.0, 0.0, 1e9], dtype=torch.float64)          # many entries 2+ cells away
+    assert fast.choose_window(far, 10.0, 16) == 6                     # the smallest window holding them
+    assert fast.choose_window(far, 10.0, 4) == 2                      # capped: W = 4 would miss them too
+    mid = torch.tensor([0.0, 100.0, 0.0], dtype=torch.float64)        # 1 cell away: W = 4 holds them
+    assert fast.choose_window(mid, 10.0, 16) == 4
+    assert fast.choose_window(mid, 1e9, 16) == 2                      # unless 16 nodes per vertex cost more
+
+
+# -- the cost model ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny(precomputed):
+    m = precomputed("sphere_plane")
+    fast_m, _ = _pair(m)
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 2)
+    return fast_m, frame, gb
+
+
+def test_frame_cost_is_the_hand_count(tiny):
+    """Bytes and flops of every frame kind, re-derived here from the G-buffer, the scene and the
+    precomputed arrays' shapes (method docstring of `InOut.frame_cost`)."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    P = gb.num_samples
+    hit = gb.hit
+    wl = (frame_matrix(torch.nn.functional.normalize(gb.normal.float(), dim=-1))
+          @ gb.wo.float().unsqueeze(-1)).squeeze(-1)
+    shaded = hit & (wl[:, 2] > 0)
+    Qh, Qs = int(hit.sum()), int(shaded.sum())
+    faces = gb.face[shaded]
+    geom_F = m.F
+    b = P * 12 + Qh * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - Qh) * 4 + torch.unique(faces).numel() * 24
+    f = Qh * 18 + Qs * (16 + 72)
+    light_b, light_f = 0, 0
+    for r, name in enumerate(m.scene.regions):
+        reg = next(x for x in m.regions if x.name == name)
+        K, R = reg.K, m.config["lut_res"]
+        mine = shaded & (gb.region == r)
+        verts = torch.unique(geom_F[gb.face[mine]])
+        assert bool((reg.local_of[verts] >= 0).all())
+        cells, _ = tp.lut_cell(wl[mine], R)
+        nodes = torch.unique(torch.cat([cells, cells + 1, cells + R, cells + R + 1])).numel()
+        b += verts.numel() * K * 12 + nodes * K * 12
+        f += verts.numel() * 4 * 3 * K * 2
+        n = m.config["n_coeffs"]
+        light_b += verts.numel() * K * n * (4 + reg.T.col_indices().element_size())
+        light_f += 2 * 3 * verts.numel() * K * n
+    N, s = m.config["cube_res"], m.config["light_supersample"]
+    H, W = m.scene.envmap.data.shape[:2]
+    light_b += min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12
+    light_f += 6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4
+    assert m.frame_cost("V", P) == FrameCost(b, f)
+    for kind in ("L", "E", "VL"):
+        assert m.frame_cost(kind, P) == FrameCost(b + light_b, f + light_f)
+
+
+def test_frame_cost_upper_bound_without_a_render(tiny):
+    """No render on that G-buffer size: every sample shaded, every vertex, face and node referenced."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    P = 1000
+    R = m.config["lut_res"]
+    b = P * 12 + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + m.F.shape[0] * 24
+    f = P * (18 + 16 + 72)
+    for reg in m.regions:
+        b += reg.verts.numel() * reg.K * 12 + R * R * reg.K * 12
+        f += reg.verts.numel() * 4 * 3 * reg.K * 2
+    assert m.frame_cost("V", P) == FrameCost(b, f)
+
+
+def test_frame_cost_bytes_bounded_by_the_arrays_read(tiny):
+    """No padding: a frame's bytes never exceed the G-buffer + output + every run-time array."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    everything = sum(m.memory().values()) + tensor_bytes(m.scene.envmap.data) \
+        + gb.num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12)
+    v, light = m.frame_cost("V", gb.num_samples), m.frame_cost("L", gb.num_samples)
+    assert 0 < v.bytes < light.bytes <= everything and 0 < v.flops < light.flops
+
+
+def test_frame_cost_validates_and_needs_precompute(tiny):
+    assert InOut().frame_cost("V", 10) is None
+    m, _, _ = tiny
+    for kind, n in (("VB", 10), ("VBL", 10), ("P", 10), ("X", 10), ("V", -1), ("V", 1.5), ("V", True)):
+        with pytest.raises(ValueError):
+            m.frame_cost(kind, n)
+
+
+def test_memory_counts_the_fast_arrays(tiny):
+    """memory() reports the fast path's static arrays and c_k at their real sizes."""
+    m, frame, gb = tiny
+    m.render(frame, gb)
+    st, mem = m._fast_static(), m.memory()
+    assert mem["fast_static"] == tensor_bytes(st.face_gl, st.face_region, st.pos, st.frames, st.K)
+    for reg in m.regions:
+        assert mem[f"{reg.name}/c"] == tensor_bytes(m._cf[reg.name], m._cf_valid[reg.name])
+        assert mem[f"{reg.name}/sh_table_fast"] == tensor_bytes(st.regions[m.regions.index(reg)].sh_nc)
