@@ -30,6 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from methods.core.threads import torch_threads
+
 # Rec.709 luminance weights (Mitsuba's `luminance()` for RGB).
 _LUM = (0.212671, 0.715160, 0.072169)
 
@@ -231,7 +233,8 @@ class EnvMap:
         _, _, omega = self._tables()
         ext = torch.cat([self.data, self.data[:, :1]], 1).double()
         cell = 0.25 * (ext[:-1, :-1] + ext[:-1, 1:] + ext[1:, :-1] + ext[1:, 1:])  # (H−1, W, 3)
-        return ((cell * omega[:, None, None]).sum((0, 1)) / (4 * math.pi)).float()
+        with torch_threads(1):  # summed in an order independent of the thread count (methods.core.threads)
+            return ((cell * omega[:, None, None]).sum((0, 1)) / (4 * math.pi)).float()
 
     # -- importance sampling
     def _tables(self) -> tuple[Tensor, Tensor, Tensor]:
@@ -245,9 +248,12 @@ class EnvMap:
             z = torch.cos(math.pi * rows / (H - 1))
             omega = (2 * math.pi / W) * (z[:-1] - z[1:])  # (H−1,) solid angle of a cell in each row
             w = corner * omega[:, None]
-            if w.sum() <= 0:  # all-black map: uniform in solid angle
+            with torch_threads(1):  # a sum in an order that does not depend on the thread count
+                total = w.sum()     # (methods.core.threads): the oracle's pdf divides by it
+            if total <= 0:  # all-black map: uniform in solid angle
                 w = omega[:, None].expand(H - 1, W).clone()
-            p = w / w.sum()
+                total = w.sum()
+            p = w / total
             cdf = torch.cumsum(p.reshape(-1), 0)
             cdf[-1] = 1.0
             self._table = (cdf, p, omega)

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from methods.core.threads import torch_threads
+
 __all__ = ["CPCAResult", "cpca", "cpca_fit_clusters", "cpca_project", "reconstruct", "squared_error"]
 
 
@@ -51,8 +53,10 @@ def cpca_fit_clusters(X: Tensor, ids: Tensor, K: int, M: int) -> tuple[Tensor, T
         mk = Xk.mean(0)
         means[k] = mk
         if M > 0:
-            # full_matrices so that clusters with < M points still get M orthonormal rows
-            _, _, Vh = torch.linalg.svd(Xk - mk, full_matrices=True)
+            # full_matrices so that clusters with < M points still get M orthonormal rows; one
+            # LAPACK thread: the vectors must not depend on the thread count (methods.core.threads)
+            with torch_threads(1):
+                _, _, Vh = torch.linalg.svd(Xk - mk, full_matrices=True)
             bases[k] = Vh[:M]
     return means, bases
 
@@ -79,8 +83,10 @@ def reconstruct(ids: Tensor, means: Tensor, bases: Tensor, coeffs: Tensor) -> Te
 
 
 def squared_error(X: Tensor, X_hat: Tensor) -> Tensor:
-    """Total squared error Σ_p ‖x_p − x̃_p‖² (scalar)."""
-    return (X - X_hat).square().sum()
+    """Total squared error Σ_p ‖x_p − x̃_p‖² (scalar; summed in an order that does not depend on the
+    thread count: it decides when `cpca` stops)."""
+    with torch_threads(1):
+        return (X - X_hat).square().sum()
 
 
 def _kmeanspp(X: Tensor, K: int, gen: torch.Generator) -> Tensor:

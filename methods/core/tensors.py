@@ -19,6 +19,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from methods.core.threads import torch_threads
+
 __all__ = [
     "truncated_svd",
     "low_rank",
@@ -47,7 +49,8 @@ def truncated_svd(A: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor]:
     m, n = A.shape[-2:]
     if not 1 <= k <= min(m, n):
         raise ValueError(f"k must be in [1, {min(m, n)}], got {k}")
-    U, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    with torch_threads(1):  # LAPACK's vectors depend on the thread count otherwise (methods.core.threads)
+        U, S, Vh = torch.linalg.svd(A, full_matrices=False)
     return U[..., :k], S[..., :k], Vh[..., :k, :]
 
 
@@ -163,6 +166,7 @@ def hosvd_error_bound(X: Tensor, ranks: Sequence[int]) -> Tensor:
     ranks = _check_ranks(X, ranks)
     tot = X.new_zeros(())
     for n, r in enumerate(ranks):
-        s = torch.linalg.svdvals(unfold(X, n))
+        with torch_threads(1):  # as `truncated_svd`
+            s = torch.linalg.svdvals(unfold(X, n))
         tot = tot + s[r:].square().sum()
     return tot.sqrt()

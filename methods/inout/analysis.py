@@ -45,6 +45,7 @@ from torch import Tensor
 
 from methods.core.frames import reflect
 from methods.core.sampling import equal_area_hemisphere, equal_area_sphere
+from methods.core.threads import torch_threads
 from methods.core.zh import gauss_legendre, legendre, phong_factors
 
 __all__ = [
@@ -203,13 +204,14 @@ def singular_values(M: Tensor, domain: str | None = None, *, method: str = "gram
     if M.dim() != 2 or M.shape[0] != M.shape[1]:
         raise ValueError(f"M must be square (N, N), got {tuple(M.shape)}")
     M = M.to(torch.float64)
-    if method == "svd":
-        sv = torch.linalg.svdvals(M)
-    elif method == "gram":
-        lam = torch.linalg.eigvalsh(M.T @ M)  # ascending
-        sv = torch.sqrt(torch.flip(lam, (0,)).clamp(min=0.0))
-    else:
+    if method not in ("svd", "gram"):
         raise ValueError(f"method must be 'gram' or 'svd', got {method!r}")
+    with torch_threads(1):  # LAPACK rounds differently with other thread counts (methods.core.threads)
+        if method == "svd":
+            sv = torch.linalg.svdvals(M)
+        else:
+            lam = torch.linalg.eigvalsh(M.T @ M)  # ascending
+            sv = torch.sqrt(torch.flip(lam, (0,)).clamp(min=0.0))
     if domain is None:
         return sv
     _check_domain(domain)

@@ -85,6 +85,7 @@ from torch import Tensor
 
 from methods.core import cubemap
 from methods.core.frames import frame_matrix
+from methods.core.threads import torch_threads
 from methods.core.visibility import DEFAULT_OFFSET_EPS, offset_origins
 
 # The materials return 0 for z <= 0; look-up-table nodes on the horizon are evaluated this far
@@ -218,12 +219,8 @@ def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
     # One LAPACK thread: the singular vectors of (near-)equal singular values depend on the
     # reduction order, i.e. on the thread count; a fixed order makes every result of the method
     # independent of the threads it runs with (issue 17: local vs process-pool runs must agree).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         U, S, Vh = torch.linalg.svd(A, full_matrices=False)
-    finally:
-        torch.set_num_threads(threads)
     if not S[0] > 0:
         raise ValueError(f"the BRDF {material!r} is zero on the hemisphere grid")
     rank = int((S > RANK_RTOL * S[0]).sum())

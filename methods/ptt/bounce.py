@@ -40,6 +40,7 @@ from torch import Tensor
 from methods.core import sh as _sh
 from methods.core.frames import to_local
 from methods.core.sampling import rotated_hemisphere_dirs
+from methods.core.threads import bmm
 from methods.core.visibility import Visibility, offset_origins
 from methods.ptt.transport import BasisFactors
 
@@ -129,7 +130,7 @@ def one_bounce_ptt(hits: Hits, F: Tensor, normals: Tensor, face_region: Tensor, 
         for j in range(3):
             vid = tri[:, j]
             Wv = factors.W(to_local(wo, normals[vid])) * bw[:, j, None, None]  # (H, P, K)
-            D += torch.bmm(Wv, coarse[vid])  # (H, P, L1)
+            D += bmm(Wv, coarse[vid])  # (H, P, L1); a batch of one hit on one thread (methods.core.threads)
         Dfull = torch.zeros((b - a) * J, P, L1)
         Dfull[sel] = D
         reg = torch.full(((b - a) * J,), -1, dtype=torch.int64)

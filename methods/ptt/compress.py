@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from methods.core.cpca import cpca
+from methods.core.threads import torch_threads
 
 __all__ = ["ClusteredTensor", "compress_ptt", "relative_error"]
 
@@ -100,7 +101,9 @@ def compress_ptt(T: Tensor, *, clusters: int, eigenvectors: int, light_dim: int,
         # CPCA on the vertices' coordinates in the global top-CLUSTER_FEATURES PCA basis (the
         # distances CPCA needs, at a fraction of the cost of 25 000-dimensional signals)
         X = T.reshape(V, D * L).double()
-        w, U = torch.linalg.eigh(X @ X.T)
+        G = X @ X.T
+        with torch_threads(1):  # MKL's eigh rounds differently with other thread counts (methods.core.threads)
+            w, U = torch.linalg.eigh(G)
         top = torch.argsort(w, descending=True)[:CLUSTER_FEATURES]
         feats = U[:, top] * w[top].clamp_min(0).sqrt()
         ids = cpca(feats, clusters, min(eigenvectors, feats.shape[1]), n_iter=cpca_iters, seed=seed).ids
@@ -123,7 +126,9 @@ def compress_ptt(T: Tensor, *, clusters: int, eigenvectors: int, light_dim: int,
 
 def _leading(M: Tensor, r: int) -> Tensor:
     """Leading r left singular vectors of a wide matrix M (I, J) from its Gram matrix (I, I)."""
-    w, U = torch.linalg.eigh(M @ M.T)
+    G = M @ M.T
+    with torch_threads(1):  # as in `compress_ptt`
+        w, U = torch.linalg.eigh(G)
     return U[:, torch.argsort(w, descending=True)[:r]]
 
 

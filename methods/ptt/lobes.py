@@ -35,6 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from methods.core.threads import torch_threads
+
 __all__ = [
     "LOBE_DEGREES",
     "lobe_sigma",
@@ -129,7 +131,9 @@ def fit_lobe_weights(f: Tensor, B: Tensor, *, weights: Tensor | None = None) -> 
         for S in itertools.combinations(range(K), r):
             S = list(S)
             A_S = A[:, S][:, :, S]                                # (No, r, r)
-            a_S = torch.einsum("ors,...os->...or", torch.linalg.pinv(A_S, hermitian=True), b[..., S])
+            with torch_threads(1):  # LAPACK (eigh) rounds differently with other thread counts (methods.core.threads)
+                A_inv = torch.linalg.pinv(A_S, hermitian=True)
+            a_S = torch.einsum("ors,...os->...or", A_inv, b[..., S])
             scale = a_S.abs().amax(-1, keepdim=True).clamp_min(torch.finfo(a_S.dtype).tiny)
             feasible = (a_S >= -_FEAS_TOL * scale).all(-1)
             gain = (a_S * b[..., S]).sum(-1)                      # ‖f‖² − objective at the LS point

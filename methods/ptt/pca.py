@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from methods.core.threads import torch_threads
 from methods.ptt.brdf_space import BRDFSpace, get_space
 from methods.ptt.brdf_tensor import DiskGrid
 
@@ -150,11 +151,12 @@ def pca_basis(space: BRDFSpace | str, *, grid_n: int = 16, n_spec: int = N_SPEC,
     G = brdf_gram(space, grid, weighting=weighting)
     norm2 = float(torch.diagonal(G).sum())
     N = space.n_h
-    if center:
-        C = torch.eye(N, dtype=G.dtype) - 1.0 / N
-        lam, V = torch.linalg.eigh(C @ G @ C)
-    else:
-        lam, V = torch.linalg.eigh(G)
+    with torch_threads(1):  # MKL's eigh rounds differently with other thread counts (methods.core.threads)
+        if center:
+            C = torch.eye(N, dtype=G.dtype) - 1.0 / N
+            lam, V = torch.linalg.eigh(C @ G @ C)
+        else:
+            lam, V = torch.linalg.eigh(G)
     lam, V = lam.flip(0), V.flip(1)                                       # descending
     k = n_spec - 1 if center else n_spec
     lam_k = lam[:k].clamp_min(torch.finfo(lam.dtype).tiny)

@@ -70,6 +70,7 @@ from methods.core import cubemap
 from methods.core import sh as _sh
 from methods.core.frames import to_local
 from methods.core.sampling import fibonacci_hemisphere
+from methods.core.threads import torch_threads
 from methods.core.visibility import Visibility, vertex_visibility
 
 __all__ = [
@@ -184,7 +185,10 @@ class LobeBasis:
         B, G = self._gram
         f = material.eval(wi.expand(d.shape[0], -1, 3), wo.expand(-1, d.shape[0], 3)).double() * wt[..., None]
         rhs = B.T @ f.reshape(-1, 3)
-        return torch.linalg.lstsq(G, rhs).solution
+        # gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in the
+        # last bits, and LAPACK's with the thread count (methods.core.threads)
+        with torch_threads(1):
+            return torch.linalg.lstsq(G, rhs, driver="gelsd").solution
 
 
 def scene_basis(materials: dict[str, Any] | Sequence[Any]) -> LobeBasis:
@@ -284,7 +288,9 @@ class BasisFactors:
         shp = d.shape[:-1]
         g = table_coords(d.reshape(1, 1, -1, 3)).to(tab.dtype)
         out = Fnn.grid_sample(tab[None], g, mode="bilinear", padding_mode="border", align_corners=False)
-        out = out[0, :, 0, :].T.reshape(*shp, tab.shape[0])
+        # contiguous rows: ``torch.bmm`` of batches with a batch stride of 1 (the transposed view)
+        # rounds differently with 1 and 2 threads (methods.core.threads)
+        out = out[0, :, 0, :].T.contiguous().reshape(*shp, tab.shape[0])
         return out * (d[..., 2:3] > 0).to(out.dtype)
 
     def Ucos(self, wi: Tensor) -> Tensor:
@@ -338,7 +344,10 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
     a = (w.sqrt() * d[:, 2] ** cos_power).repeat(P)  # row weights √dωo cos^γ θo
     c = w.sqrt() * d[:, 2] ** cos_power              # column weights √dωi cos^γ θi
     A = a[:, None] * M * c[None, :]
-    U, S, _ = torch.linalg.svd(A, full_matrices=False)
+    # one LAPACK thread: the singular vectors of the equal singular-value pairs of isotropic lobes
+    # (cos mφ, sin mφ) depend on the thread count otherwise (methods.core.threads)
+    with torch_threads(1):
+        U, S, _ = torch.linalg.svd(A, full_matrices=False)
     K = min(n_wi, int((S > S[0] * 1e-10).sum()))
     U, S_k = U[:, :K], S[:K]
     captured = float((S_k.square().sum() / S.square().sum()).item())
@@ -358,7 +367,8 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
     W_tab = torch.einsum("tip,i,ki->pkt", Bt, c * c, U_grid).reshape(P * K, T, T)
     if n_wo is not None and n_wo < P * K:  # Sun eq. 2: rank-n_ωo view mode (docstring)
         Wg = (U * S_k / a[:, None]).reshape(P, D, K).permute(1, 0, 2).reshape(D, P * K)  # W on the grid
-        _, _, Vh = torch.linalg.svd(Wg * (w.sqrt() * d[:, 2] ** cos_power)[:, None], full_matrices=False)
+        with torch_threads(1):  # as above
+            _, _, Vh = torch.linalg.svd(Wg * (w.sqrt() * d[:, 2] ** cos_power)[:, None], full_matrices=False)
         Q = Vh[:n_wo].T  # (P·K, n_ωo): D(p, k, j)
         W_tab = (Q @ (Q.T @ W_tab.reshape(P * K, T * T))).reshape(P * K, T, T)
     return BasisFactors(U_tab.to(dtype), W_tab.to(dtype), S_k.to(dtype), captured, P)
@@ -370,14 +380,16 @@ def sh_light_matrix(factors: BasisFactors, order: int = 4, *, n_quad: int = 8192
     d, w = fibonacci_hemisphere(n_quad, dtype=torch.float64)
     Y = _sh.sh_eval(d, order)  # (Q, S)
     Uc = factors.Ucos(d.to(factors.U_tab.dtype)).double()  # (Q, K)
-    return ((Y * w[:, None]).T @ Uc).to(factors.U_tab.dtype)
+    with torch_threads(1):  # an (S, Q)·(Q, K) product, Q = 8192: its sum order varies with the threads
+        return ((Y * w[:, None]).T @ Uc).to(factors.U_tab.dtype)
 
 
 def uniform_light_vector(factors: BasisFactors, *, n_quad: int = 8192) -> Tensor:
     """C^{ωi}(k) = ∫_{H+} U^{ωi}(ω, k) cos θ dω (Sun §3.3 "Two-Bounce"). Returns (K,)."""
     d, w = fibonacci_hemisphere(n_quad, dtype=torch.float64)
     Uc = factors.Ucos(d.to(factors.U_tab.dtype)).double()
-    return (w @ Uc).to(factors.U_tab.dtype)
+    with torch_threads(1):  # as `sh_light_matrix`
+        return (w @ Uc).to(factors.U_tab.dtype)
 
 
 # -- lighting ------------------------------------------------------------------------------------

@@ -240,6 +240,9 @@ class ZHShadow(Method):
         v, _ = pc.pose_visibility(_PoseAdapter(scene), poses, cfg["order"], n_dirs=cfg["n_dirs"],
                                   below_horizon=cfg["below_horizon"])
         t1 = time.perf_counter()
+        # one thread: the lobe fit is a loop of small batched ops whose OpenMP synchronisation
+        # dominates (on a loaded 2-core machine 14.5 s with 1 thread vs 188 s with 2), and its
+        # lstsq / solves then do not depend on the caller's thread count (methods.core.threads)
         with pc.torch_threads(1):
             self.model, fitted = pc.build_model(v, poses, cfg["lobes"], iters=cfg["fit_iters"],
                                                 anchor=cfg["axis_anchor"])

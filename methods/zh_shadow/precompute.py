@@ -32,7 +32,6 @@ Pipeline (one pure function per step):
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import sys
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ from torch import Tensor
 from methods.core.frames import coordinate_system
 from methods.core.sampling import fibonacci_hemisphere, fibonacci_sphere
 from methods.core.sh import sh_eval
+from methods.core.threads import torch_threads  # noqa: F401  (re-exported: callers use pc.torch_threads)
 from methods.core.visibility import vertex_visibility
 from references.visibility import make_visibility
 from methods.core.zh import band_norms, expand_bands, legendre, zh_lobes_to_sh
@@ -69,19 +69,6 @@ AXIS_ANCHOR = 1.0
 REST_FRACTION = 0.25
 # Largest radius of the equal-area chart (the whole sphere but −z); predictions are clamped to it.
 CHART_RMAX = 2.0
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    """Temporarily limit torch's intra-op threads (the lobe fit is a loop of small batched ops whose
-    OpenMP synchronisation dominates on a loaded 2-core machine: measured 14.5 s with 1 thread vs
-    188 s with 2 while other jobs ran)."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 # -- 1. training poses ------------------------------------------------------------------------

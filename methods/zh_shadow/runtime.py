@@ -36,6 +36,7 @@ from torch import Tensor
 
 from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import sh_eval
+from methods.core.threads import torch_threads
 from methods.core.zh import expand_bands, phong_factors
 
 # Largest SH order whose features are monomials: the monomial basis of degree 2n−2 ⊕ 2n−3 has
@@ -84,7 +85,10 @@ def monomial_basis(order: int, diffuse: bool) -> tuple[Tensor, Tensor, Tensor]:
     d = d / d.norm(dim=-1, keepdim=True)
     et = torch.tensor(ex)
     M = (d[:, None, :] ** et[None]).prod(-1)
-    C = torch.linalg.lstsq(M, sh_eval(d, B)[:, rows]).solution
+    # gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in the last
+    # bits, and LAPACK's with the thread count (methods.core.threads)
+    with torch_threads(1):
+        C = torch.linalg.lstsq(M, sh_eval(d, B)[:, rows], driver="gelsd").solution
     return et, rows, C
 
 

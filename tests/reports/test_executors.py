@@ -84,6 +84,26 @@ def test_share_of_cores_and_bad_input():
     assert X.make_executor("local").describe() == {"executor": "local", "workers": 1}
 
 
+def test_worker_thread_share_reaches_torch_and_drjit(monkeypatch):
+    """A task applies ``PRTBENCH_THREADS`` (the worker's share, set by the executors) to torch and to
+    Dr.Jit's pool (Mitsuba references, G-buffers and visibility run there)."""
+    import drjit as dr
+    import torch
+
+    from reports import backend
+
+    before = torch.get_num_threads(), dr.thread_count()
+    monkeypatch.setenv(C.THREADS_ENV, "3")
+    try:
+        assert MC.task_threads(_cell()) == 3
+        assert MC.task_threads(_cell(threads=2)) == 2  # a cell's own count wins
+        assert MC._set_threads(MC.task_threads(_cell()), backend) == 3
+        assert (torch.get_num_threads(), dr.thread_count()) == (3, 3)
+    finally:
+        torch.set_num_threads(before[0])
+        dr.set_thread_count(before[1])
+
+
 def test_split_cells_give_the_same_rows_as_whole_cells(tmp_path, monkeypatch):
     """errors part + timing part, merged == run_cell: bit-identical errors, the same metric set,
     timing parts one at a time while error parts overlap."""
@@ -271,3 +291,57 @@ def test_real_scene_errors_identical_local_and_dask(tmp_path):
     assert [r.status for r in local] == [r.status for r in dask] == ["ok"]
     assert len(_error_table(local)) > 0
     pd.testing.assert_frame_equal(_error_table(dask), _error_table(local))
+
+
+@pytest.mark.slow
+def test_every_method_bit_identical_local_two_threads_and_processes_one_thread(tmp_path, monkeypatch):
+    """Issue 17: one small cell per registered method (``testing.small_configs``), run in process
+    with 2 torch / Dr.Jit threads and in a 2-worker process pool with 1 thread per worker: every
+    error value (rmse, psnr, rel_mse, ssim, flip, ΔE, the sanity gate's) is the same bit for bit.
+    No precompute cache, so both executors precompute; the references are the shared cache's."""
+    import torch
+    import drjit as dr
+
+    from methods.registry import available_methods
+    from reports import precompute_cache
+    from reports.cells import canonical_config
+    from testing.small_configs import CASES
+
+    monkeypatch.setenv(precompute_cache.ENV_OFF, "1")
+    cells = [C.Cell(scene=scene, size="test", kind="P" if scene == "creature" and method == "zh_shadow" else "L",
+                    method=method, config=canonical_config(config), n_frames=2, ref_spp=16, spp_side=1,
+                    save_images=False) for method, scene, config in CASES.values()]
+    assert {c.method for c in cells} == set(available_methods())
+    torch_before, dr_before = torch.get_num_threads(), dr.thread_count()
+    monkeypatch.setenv(C.THREADS_ENV, "2")  # what a local run on a 2-core machine uses
+    try:
+        local = R.run_cells(cells, tmp_path / "local", progress=False)
+    finally:
+        torch.set_num_threads(torch_before)
+        dr.set_thread_count(dr_before)
+        monkeypatch.delenv(C.THREADS_ENV)
+    with X.ProcessesExecutor(2, threads=1) as ex:
+        proc = R.run_cells(cells, tmp_path / "proc", executor=ex, progress=False)
+    assert [r.status for r in local] == [r.status for r in proc] == ["ok"] * len(cells), \
+        [r.reason for r in local + proc if r.status != "ok"]
+    assert {r.info["threads"] for r in local} == {2}
+    assert {r.info["parts"]["errors"]["threads"] for r in proc} == {1}
+    a, b = _scores(local), _scores(proc)
+    rmse = a[(a["metric"] == "rmse") & (a["frame"] >= 0)]
+    assert len(rmse) == 2 * len(cells) and set(rmse["cell"]) == {c.key() for c in cells}  # both frames scored
+    m = a.merge(b, on=["cell", "method", "frame", "metric"], how="outer", suffixes=("_local", "_proc"))
+    same = (m["value_local"] == m["value_proc"]) | (m["value_local"].isna() & m["value_proc"].isna())
+    bad = m[~same].assign(d=lambda t: (t["value_local"] - t["value_proc"]).abs())
+    assert bad.empty, "error values differ: " + "; ".join(
+        f"{k}: {len(g)} values ({', '.join(sorted(set(g['metric'])))}), max |Δrmse| "
+        f"{g.loc[g['metric'] == 'rmse', 'd'].max():.3g}" for k, g in bad.groupby("method"))
+    pd.testing.assert_frame_equal(a, b, check_exact=True)  # and the noise floors
+
+
+def _scores(results):
+    """Every error value of a run (the rows scored against a reference carry its noise floor)."""
+    meta = {"run_id": "t", "time": "", "git_sha": "", "versions": {}, "machine": "", "threads": 1,
+            "triad_bandwidth": 1e9}
+    df = collect(results, meta)
+    df = df[df["noise_floor"].notna()][["cell", "method", "frame", "metric", "value", "noise_floor"]]
+    return df.sort_values(["cell", "frame", "metric"]).reset_index(drop=True)

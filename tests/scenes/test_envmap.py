@@ -264,3 +264,19 @@ def test_sky_sun_energy_in_the_sun():
 def test_procedural_bad_name():
     with pytest.raises(ValueError, match="unknown procedural"):
         procedural("beach")
+
+
+def test_sampling_tables_do_not_depend_on_the_thread_count():
+    """Issue 17: the importance-sampling pdf (the oracle divides by its normaliser) and the mean
+    radiance, bit for bit with 1 and 2 torch threads, on a map big enough (256 × 512 cells) for
+    torch to split a whole-tensor sum over the threads."""
+    from methods.core.threads import torch_threads
+
+    env = procedural("sky_sun", height=256, seed=0)
+    out = []
+    for t in (1, 2):
+        env._table = None
+        with torch_threads(t):
+            out.append((*env._tables(), env.mean_radiance()))
+    for a, b in zip(*out):
+        assert torch.equal(a, b)
