@@ -207,12 +207,15 @@ class ZHShadow(Method):
         self._env_local: tuple[Any, Tensor] | None = None  # (env data key, (n², 3) SH in the map's frame, float64)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
-        self._last_counts: tuple[int, int, int] | None = None  # (G-buffer samples, shaded points, specular points)
+        self._last_counts: tuple[int, int, int, int] | None = None  # (G-buffer samples, shaded points,
+        #                                              specular points, points shaded as planes)
+        self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp), v) of the last sample-shaded frame
+        self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
-        self._light = self._env_local = self._posed = self._tables = None
+        self._light = self._env_local = self._posed = self._tables = self._frame_state = self._relight = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -297,10 +300,7 @@ class ZHShadow(Method):
         key = tuple(pose_vec.tolist())
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
-            k, ax = m.lobes_at(pose_vec)                                      # (N, c, n), (N, c, 3) local
-            Fv = frame_matrix(geom.N.float())                                  # (N, 3, 3) world → local
-            ax_w = (Fv.transpose(-1, -2)[:, None] @ ax[..., None]).squeeze(-1)
-            self._posed = (key, geom, zh_lobes_to_sh(k, ax_w))                  # (N, n²) world SH, eq. 1
+            self._posed = (key, geom, rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes))  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
     def _table(self, light: Tensor, light_key, alpha: float, diffuse: bool) -> Tensor:
@@ -314,70 +314,72 @@ class ZHShadow(Method):
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """§4.3 for every covered sample (or vertex), batched (`methods.zh_shadow.runtime`); equal to
-        `_render_reference` to float32 round-off. The per-pose visibility, the lighting SH and its
-        tables are cached between frames (keyed on the pose / the env map and its rotation)."""
+        `_render_reference` to float32 round-off. Cached between frames: the per-pose visibility
+        (keyed on the pose), the lighting SH and its tables (the env map and its rotation), and —
+        for a frame whose ``changed`` is only "light" and whose camera, pose, exponents and sample
+        count equal the previous frame's — the samples' lighting-free transfer
+        (`runtime.relight_cache`, built by the first such frame)."""
         if self.model is None or self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
             return self._render_reference(frame, gbuffer)
         _, geom, v = self._pose_state(frame)
+        pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
         mats = self._region_materials(frame)
         dev = gbuffer.hit.device
         v = v.to(dev)
-        out = torch.zeros(gbuffer.num_samples, 3, device=dev)
-        n_spec = 0
-        if self.config["shading"] == "vertex":
+        P = gbuffer.num_samples
+        Wd = self._table(light, lkey, 1.0, True).to(dev)
+        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
+                for kd, ks, al in mats]
+        vreg = geom.vertex_region.to(dev)
+        state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
+                 P, gbuffer.spp_side, self.config["shading"])
+        relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
+                   and self._frame_state[0] == state and self._frame_state[1] is v)
+        self._frame_state = (state, v)
+        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v:
+            hits, cache = self._relight[2], self._relight[3]
+        else:
+            self._relight = None
+            hits = None if bool(gbuffer.hit.all()) else gbuffer.hit.nonzero().squeeze(-1)
+
+            def take(x: Tensor) -> Tensor:   # the covered samples' rows
+                return x if hits is None else x.index_select(0, hits)
+
+            vi = geom.F.to(dev).index_select(0, take(gbuffer.face))                  # (Q, 3) vertex ids
+            u, w2 = take(gbuffer.bary).unbind(-1)
+            b = torch.stack([1.0 - u - w2, u, w2], -1)                               # (Q, 3) barycentrics
+            if relight:   # the first lighting-only frame: build the transfer, then shade from it
+                cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
+                                         take(gbuffer.region), list(state[2]))
+                self._relight = (state, v, hits, cache)
+        if relight:
+            out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
+            counts = {"specular": cache["specular"], "planar": cache["planar"]}
+        elif self.config["shading"] == "vertex":
             cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-            V, N = geom.V.to(dev), geom.N.to(dev).float()
-            rad = torch.zeros(geom.num_vertices, 3, device=dev)
-            reg = geom.vertex_region.to(dev)
-            for r, (kd, ks, al) in enumerate(mats):
-                sel = (reg == r).nonzero().squeeze(-1)
-                wo = cam - V[sel]
-                wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                n_spec += self._shade_group(rad, sel, v[sel].T, N[sel].T, wo.T, light, lkey, kd, ks, al)
+            nT = rt.rows(geom.N.to(dev).float())
+            woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+            woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+            Nv = geom.num_vertices
+            rad, counts = rt.shade(v, torch.arange(Nv, device=dev)[:, None], torch.ones(Nv, 1, device=dev),
+                                   nT, woT, vreg, vreg, tabs)
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                 rad = rad.clamp_min(0.0)
-            out = gbuffer.interpolate(rad, geom.F.to(dev))
-            self._last_counts = (gbuffer.num_samples, int(geom.num_vertices), n_spec)
+            out = rt.interpolate(rad.T.contiguous(), vi, b).T                        # (3, Q)
         else:
-            F = geom.F.to(dev)
-            vT = v.T.contiguous()                                                 # (n², N)
-            hits = gbuffer.hit.nonzero().squeeze(-1)
-            reg = gbuffer.region.index_select(0, hits)
-            for r, (kd, ks, al) in enumerate(mats):
-                h = hits[reg == r]
-                for a in range(0, h.shape[0], rt.CHUNK):
-                    hq = h[a:a + rt.CHUNK]
-                    vi = F.index_select(0, gbuffer.face.index_select(0, hq)).T         # (3, Q) vertex ids
-                    u, w2 = gbuffer.bary.index_select(0, hq).T                         # barycentrics
-                    vsT = vT.index_select(1, vi[0]) * (1.0 - u - w2) + vT.index_select(1, vi[1]) * u \
-                        + vT.index_select(1, vi[2]) * w2                               # (n², Q) interpolated eq. 1
-                    n_spec += self._shade_group(out, hq, vsT, gbuffer.normal.index_select(0, hq).T,
-                                                gbuffer.wo.index_select(0, hq).T, light, lkey, kd, ks, al)
-            if self.config["clamp"]:   # per shaded sample, before the pixel resolve
-                out = out.clamp_min(0.0)
-            self._last_counts = (gbuffer.num_samples, int(hits.numel()), n_spec)
-        return gbuffer.resolve(out)
-
-    def _shade_group(self, out: Tensor, idx: Tensor, vT: Tensor, nT: Tensor, woT: Tensor, light: Tensor, lkey,
-                     kd: Tensor, ks: Tensor, alpha: float) -> int:
-        """out[idx] = kd · diffuse + ks · specular (0 where n·ωo ≤ 0) for Q points of one material;
-        returns the number of points with a specular term. vT (n², Q), nT/woT (3, Q) unit."""
-        dev = out.device
-        Wd = self._table(light, lkey, 1.0, True).to(dev)
-        spec = bool((ks > 0).any())
-        Ws = self._table(light, lkey, alpha, False).to(dev) if spec else None
-        kd, ks = kd.to(dev)[:, None], ks.to(dev)[:, None]
-        for a in range(0, idx.shape[0], rt.CHUNK):
-            s = slice(a, a + rt.CHUNK)
-            d, sp = rt.shade_terms(vT[:, s], nT[:, s], woT[:, s], Wd, Ws)
-            rad = kd * d if sp is None else kd * d + ks * sp                       # (3, Q)
-            front = (nT[:, s] * woT[:, s]).sum(0) > 0
-            out.index_copy_(0, idx[s], torch.where(front, rad, torch.zeros_like(rad)).T)
-        return int(idx.shape[0]) if spec else 0
+            out, counts = rt.shade(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
+                                   take(gbuffer.region), vreg, tabs)
+        if self.config["clamp"] and self.config["shading"] == "sample":   # per sample, before the resolve
+            out = out.clamp_min(0.0)
+        shaded = geom.num_vertices if self.config["shading"] == "vertex" else out.shape[1]
+        self._last_counts = (P, int(shaded), counts["specular"], counts["planar"])
+        if hits is not None:
+            out = torch.zeros(3, P, device=dev).index_copy_(1, hits, out)
+        return gbuffer.resolve(out, channels_first=True)
 
     def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """kd, ks (Q, 3) and α (Q,) from the frame's per-region materials."""
