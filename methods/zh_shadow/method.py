@@ -207,8 +207,8 @@ class ZHShadow(Method):
         self._env_local: tuple[Any, Tensor] | None = None  # (env data key, (n², 3) SH in the map's frame, float64)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
-        self._last_counts: tuple[int, int, int, int] | None = None  # (G-buffer samples, shaded points,
-        #                                              specular points, points shaded as planes)
+        self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
+        #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
         self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp), v) of the last sample-shaded frame
         self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
 
@@ -354,11 +354,11 @@ class ZHShadow(Method):
             b = torch.stack([1.0 - u - w2, u, w2], -1)                               # (Q, 3) barycentrics
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                         take(gbuffer.region), list(state[2]))
+                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
                 self._relight = (state, v, hits, cache)
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
-            counts = {"specular": cache["specular"], "planar": cache["planar"]}
+            counts = cache["counts"]
         elif self.config["shading"] == "vertex":
             cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
             nT = rt.rows(geom.N.to(dev).float())
@@ -366,20 +366,24 @@ class ZHShadow(Method):
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
             Nv = geom.num_vertices
             rad, counts = rt.shade(v, torch.arange(Nv, device=dev)[:, None], torch.ones(Nv, 1, device=dev),
-                                   nT, woT, vreg, vreg, tabs)
+                                   nT, woT, vreg, vreg, geom.N.to(dev), tabs)
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                 rad = rad.clamp_min(0.0)
             out = rt.interpolate(rad.T.contiguous(), vi, b).T                        # (3, Q)
         else:
             out, counts = rt.shade(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                   take(gbuffer.region), vreg, tabs)
+                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs)
         if self.config["clamp"] and self.config["shading"] == "sample":   # per sample, before the resolve
             out = out.clamp_min(0.0)
         shaded = geom.num_vertices if self.config["shading"] == "vertex" else out.shape[1]
-        self._last_counts = (P, int(shaded), counts["specular"], counts["planar"])
+        self._last_counts = {"P": P, "Q": int(shaded), **counts}
         if hits is not None:
             out = torch.zeros(3, P, device=dev).index_copy_(1, hits, out)
         return gbuffer.resolve(out, channels_first=True)
+
+    def _spec_regions(self, frame: Frame) -> list[bool]:
+        """Per region: does its material have a specular term (ks > 0)?"""
+        return [bool((ks > 0).any()) for _, ks, _ in self._region_materials(frame)]
 
     def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """kd, ks (Q, 3) and α (Q,) from the frame's per-region materials."""
@@ -434,9 +438,10 @@ class ZHShadow(Method):
             if clamp:   # per vertex, before the interpolation (module docstring: negative radiance)
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
-            self._last_counts = (gbuffer.num_samples, int(geom.num_vertices), int((ks > 0).any(-1).sum()))
+            self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices),
+                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame),
+                                                   geom.N, geom.vertex_region)}
         else:
-            n_spec = 0
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)
             c, n = m.lobes, m.order
@@ -446,12 +451,13 @@ class ZHShadow(Method):
                 kq = (k[vi] * wi[..., None, None]).reshape(-1, 3 * c, n)      # barycentric weights
                 aq = ax_w[vi].reshape(-1, 3 * c, 3)
                 kd, ks, al = self._material_arrays(frame, gbuffer.region[h])
-                n_spec += int((ks > 0).any(-1).sum())
                 out[h] = shade(kq, aq, gbuffer.normal[h], gbuffer.wo[h], light, kd, ks, al,
                                specular=self.config["specular"], ops=self._ops)
             if clamp:   # per shaded sample, before the pixel resolve (the paper does not clamp; see above)
                 out = out.clamp_min(0.0)
-            self._last_counts = (gbuffer.num_samples, int(hits.numel()), n_spec)
+            self._last_counts = {"P": gbuffer.num_samples, "Q": int(hits.numel()),
+                                 **rt.point_counts(rt.rows(gbuffer.normal[hits]), gbuffer.region[hits],
+                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
         return gbuffer.resolve(out)
 
     def memory(self) -> dict[str, int]:
@@ -468,28 +474,40 @@ class ZHShadow(Method):
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
-        Shaded points: the covered samples ("sample" shading) or the vertices ("vertex"), counted
-        from the last render on a G-buffer of ``num_samples`` samples (every sample covered and
-        specular if there was none). Per kind (frame_kind letters; what did not change is reused):
+        Points: the covered samples ("sample" shading) or the vertices ("vertex"), counted by the
+        last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
+        specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
+        (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
+        specular. A point on a plane needs no frame of its own for its diffuse term: the lighting
+        is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and M¹, 6·nnz), each
+        plane vertex dots its v with that (6n²) and a sample interpolates the result (18) — fewer
+        flops than the per-point rotations counted for the other points. Per kind (frame_kind
+        letters; what did not change is reused):
 
-        * bytes: G-buffer (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region in "sample" shading) and the
-          (P, 3) float32 output per sample; the faces F (int64, face → vertices); the BRDF parameters
-          (kd, ks, α per region) and the M^α operators' non-zeros (diffuse + one per specular
-          region); the (n², 3) SH lighting — and for "E" the new env map (H·W·3 float32);
-          per vertex: with "P" the linear model X ((J+1)·N·6c float32) and the posed normals (the
-          local → world frame), else the cached visibility in its smallest form
-          (min(n², 6c + 3) floats: SH, or lobes + normal); "vertex" shading reads positions and
-          normals (N·6 float32).
+        * bytes: the (P, 3) float32 output; the faces F (int64); the BRDF parameters (kd, ks, α per
+          region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
+          SH lighting — and for "E" the new env map (H·W·3 float32). Frames that are not
+          lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
+          region; "vertex": hit, face and barycentrics — 20 bytes — to interpolate the radiance,
+          and the vertex positions and normals, N·6 float32) and per vertex, with "P", the linear
+          model X ((J+1)·N·6c float32) and the posed normals, else the cached visibility in its
+          smallest form (min(n², 6c + 3) floats). Lighting-only frames ("L", "E") read instead the
+          cached lighting-free transfer t = M^α v of the points off the planes, in world space
+          (n² floats per term: diffuse + specular), for a specular point on a plane its specular
+          t, for a sample on a plane its face and barycentrics (16 bytes; "vertex": 20 bytes per
+          sample for the radiance), and the plane vertices' v (n² floats).
         * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·6c) and
-          per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y, sum);
-          with a lighting change (L, E, VL, VBL) one rotation of the SH lighting (6·Σ(2l+1)²) and
-          for "E" its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); per shaded point:
-          the barycentric interpolation of v ("sample": 6n²), then per term (diffuse about n, α = 1;
-          specular about R where ks > 0) the lighting rotated into the frame (6·Σ(2l+1)²), v
-          rotated into it (2·Σ(2l+1)², specular only: the diffuse one is the vertex frame), M^α v
-          (2·nnz) and the dot (6n²); plus R (9), n·ωo (5) and kd/ks (12). Frames that change only
-          the lighting ("L", "E") reuse t = M^α v per point (bytes: n² floats per term, read) and
-          redo only the rotation and the dot. Not counted: building rotation matrices, skinning.
+          per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
+          sum); with a lighting change one rotation of the SH lighting (6·Σ(2l+1)²) and for "E"
+          its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); the planes (above: per plane,
+          per plane vertex, per sample on a plane). Per point off the planes, the diffuse term
+          about n: the lighting rotated into the frame (6·Σ(2l+1)²), M¹ v (2·nnz) and the dot
+          (6n²); per specular point the same about R plus v rotated into R's frame (2·Σ(2l+1)²)
+          and R (9); "sample": the barycentric interpolation of v (6n²) for every point whose v
+          is needed (off the planes, and specular on them); per point n·ωo (5) and kd/ks (12);
+          "vertex": the radiance interpolated per sample (18). Lighting-only frames do per term
+          only the dot t·l (6n²) and kd/ks (12) per point (t and n·ωo are the cached ones).
+          Not counted: building rotation matrices, skinning.
         """
         if self.model is None or self.scene is None:
             return None
@@ -501,37 +519,44 @@ class ZHShadow(Method):
         N, nF = int(geom.num_vertices), int(geom.F.shape[0])
         J1 = int(m.X.shape[0])
         P = int(num_samples)
-        if self._last_counts is not None and self._last_counts[0] == P:
-            Q, Qs = self._last_counts[1], self._last_counts[2]
+        vertex = cfg["shading"] == "vertex"
+        lc = self._last_counts
+        if lc is not None and lc["P"] == P:
+            Q, Qs, Qp, Qps, G = (lc[k] for k in ("Q", "specular", "planar", "planar_specular", "groups"))
+            Np = lc["plane_vertices"]() if callable(lc["plane_vertices"]) else lc["plane_vertices"]
         else:
-            Q = Qs = N if cfg["shading"] == "vertex" else P
+            Q = Qs = N if vertex else P
+            Qp = Qps = Np = G = 0
+        Qo = Q - Qp                                                # points off the planes
         regions = self.scene.regions
         n_spec_regions = sum(1 for r in regions if self.scene.materials[r].kind == "phong")
         nnz = int((self._op(1.0) != 0).sum())
         pose, light_ch = "P" in kind, any(ch in kind for ch in "LE")
+        lighting_only = kind in ("L", "E")
         env_bytes = int(torch.as_tensor(self.scene.envmap.data).numel()) * 4
         H = int(torch.as_tensor(self.scene.envmap.data).shape[0])
         # -- bytes
-        b = P * (GBUFFER_BYTES_PER_SAMPLE + (8 if cfg["shading"] == "sample" else 0)) + P * 3 * 4
-        b += nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
+        b = P * 3 * 4 + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
-        b += (J1 * N * 6 * c + N * 3) * 4 if pose else N * min(n2, 6 * c + 3) * 4
-        b += N * 6 * 4 if cfg["shading"] == "vertex" else 0
+        if lighting_only:
+            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (P * 20 if vertex else Qp * 16)
+        else:
+            b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
+            b += (J1 * N * 6 * c + N * 3) * 4 if pose else N * min(n2, 6 * c + 3) * 4
         # -- flops
         f = N * (2 * J1 * 6 * c + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
             f += 6 * rot
         if "E" in kind:
             f += 2 * (env_bytes // 4) * (2 * n - 1) + 2 * H * n2 * 3
-        lighting_only = kind in ("L", "E")
-        per_d = 6 * rot + 6 * n2 + (0 if lighting_only else 2 * nnz)
-        per_s = 6 * rot + 6 * n2 + (0 if lighting_only else 2 * rot + 2 * nnz + 9)
+        f += G * (12 * rot + 6 * nnz) + Np * 6 * n2 + (0 if vertex else Qp * 18)
         if lighting_only:
-            b += (Q + Qs) * n2 * 4
-        f += Q * (per_d + 5 + 12) + Qs * per_s
-        if cfg["shading"] == "sample" and not lighting_only:
-            f += Q * 6 * n2
-        if cfg["shading"] == "vertex":
+            f += (Qo + Qs) * 6 * n2 + Q * 12
+        else:
+            f += Qo * (6 * rot + 2 * nnz + 6 * n2) + Qs * (6 * rot + 2 * nnz + 6 * n2 + 2 * rot + 9) + Q * (5 + 12)
+            if not vertex:
+                f += (Qo + Qps) * 6 * n2
+        if vertex:
             f += P * 3 * 3 * 2                                    # interpolate the radiance
         return FrameCost(bytes=int(b), flops=int(f))
 

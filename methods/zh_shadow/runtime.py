@@ -227,17 +227,17 @@ def rows(x: Tensor) -> Tensor:
     return torch.stack(x.unbind(-1))
 
 
-def planar_groups(nT: Tensor, *, min_points: int = PLANAR_MIN_POINTS,
-                  max_groups: int = PLANAR_MAX_GROUPS) -> tuple[list[tuple[Tensor, Tensor | None]], Tensor | None,
-                                                                Tensor | None]:
+def planar_groups(nT: Tensor, *, min_points: int | None = None,
+                  max_groups: int | None = None) -> tuple[list[tuple[Tensor, Tensor | None]], Tensor | None,
+                                                          Tensor | None]:
     """Points whose normals are bitwise equal (a plane), as groups, and the rest.
 
     A group shares the diffuse factor T¹(n) (n², C), so its diffuse term v · T¹(n) is linear in v:
     per vertex, then interpolated, exactly (`shade`). Candidates are the normals of the first
     remaining point and of 7 evenly spaced ones; a candidate makes a group when at least
-    ``min_points`` points share it (a smaller group would not pay for its per-vertex pass; every
-    16th point screens a candidate first). Stops when no candidate qualifies or after
-    ``max_groups`` groups.
+    ``min_points`` (default `PLANAR_MIN_POINTS`) points share it (a smaller group would not pay for
+    its per-vertex pass; every 16th point screens a candidate first). Stops when no candidate
+    qualifies or after ``max_groups`` (`PLANAR_MAX_GROUPS`) groups.
 
     Args:
         nT: (3, Q) unit normals (rows = components).
@@ -246,6 +246,8 @@ def planar_groups(nT: Tensor, *, min_points: int = PLANAR_MIN_POINTS,
         more than half the points: its mask is returned instead)], that mask (Q,) bool or None,
         and the rest's positions (ascending; None when there is no group: every point).
     """
+    min_points = PLANAR_MIN_POINTS if min_points is None else min_points
+    max_groups = PLANAR_MAX_GROUPS if max_groups is None else max_groups
     Q = nT.shape[1]
     groups: list[tuple[Tensor, Tensor | None]] = []
     mask = rest = None
@@ -278,6 +280,47 @@ def planar_groups(nT: Tensor, *, min_points: int = PLANAR_MIN_POINTS,
     return groups, mask, rest
 
 
+def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_normal: Tensor,
+                  vertex_region: Tensor) -> dict:
+    """{"planar": points on the planes, "groups": planes, "plane_vertices": a zero-argument
+    function (evaluated on demand, by `ZHShadow.frame_cost`) counting the vertices whose normal
+    is a plane's and whose region has points on that plane — the per-vertex pass a plane needs at
+    least}, and zeros for "specular", "planar_specular" (filled by the caller)."""
+    out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
+    for _, pos in groups:
+        out["planar"] += int(mask.sum()) if pos is None else int(pos.shape[0])
+
+    def plane_vertices() -> int:
+        nv, total = vertex_normal, 0
+        for n0, pos in groups:
+            regs = torch.unique(region[mask] if pos is None else region[pos])
+            on = (nv[:, 0] == n0[0]) & (nv[:, 1] == n0[1]) & (nv[:, 2] == n0[2])
+            total += int((on & torch.isin(vertex_region, regs)).sum())
+        return total
+
+    out["plane_vertices"] = plane_vertices
+    return out
+
+
+def point_counts(nT: Tensor, region: Tensor, spec_regions: list[bool], vertex_normal: Tensor,
+                 vertex_region: Tensor) -> dict:
+    """The counts `shade` reports, without shading: planes (`planar_groups`, `_plane_counts`) and
+    the points with a specular term (region in ``spec_regions``), on planes or not."""
+    Q = nT.shape[1]
+    groups, mask, _ = planar_groups(nT) if Q >= PLANAR_MIN_POINTS else ([], None, None)
+    counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
+    spec = torch.tensor(spec_regions, dtype=torch.bool, device=region.device)[region.clamp_min(0)]
+    counts["specular"] = int(spec.sum())
+    on_plane = torch.zeros(Q, dtype=torch.bool, device=nT.device)
+    for _, pos in groups:
+        if pos is None:
+            on_plane |= mask
+        else:
+            on_plane[pos] = True
+    counts["planar_specular"] = int((spec & on_plane).sum())
+    return counts
+
+
 def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
     """(n², C) T¹(n0): the diffuse factor of every SH visibility coefficient at one normal n0 (3,)."""
     n2 = Wd.shape[1] // C
@@ -285,7 +328,7 @@ def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
 
 
 def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
-          mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], *, planar: bool = True,
+          vertex_normal: Tensor, mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], *, planar: bool = True,
           chunk: int = CHUNK) -> tuple[Tensor, dict[str, int]]:
     """Exit radiance of Q points (§4.3 steps 2–5 through the tables, module docstring).
 
@@ -299,18 +342,17 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
     Args:
         v: (N, n²) per-vertex world-space SH visibility; vi, b: (Q, k) vertex ids / weights;
         nT, woT: (3, Q) unit normals / directions to the viewer; region: (Q,) int64 region of
-        each point; vertex_region: (N,) int64;
+        each point; vertex_region: (N,) int64; vertex_normal: (N, 3) (counts only);
         mats: per region (kd (3,), ks (3,), Wd, Ws or None: no specular term); one Wd for all.
         planar: use `planar_groups` (False: every point through the GEMMs).
     Returns:
-        (3, Q) radiance (0 where n·ωo ≤ 0, as the BRDFs) and counts {"planar": points whose
-        diffuse term came from a plane's per-vertex pass, "planar_groups", "specular": points
-        with a specular term}.
+        (3, Q) radiance (0 where n·ωo ≤ 0, as the BRDFs) and counts (`_plane_counts`, plus
+        "specular": points with a specular term, "planar_specular": those of them on planes).
     """
     Q, dev, dt = nT.shape[1], v.device, v.dtype
     groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
     Wd = mats[0][2]
-    counts = {"planar": 0, "planar_groups": len(groups), "specular": 0}
+    counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
     out = None
     if groups:
         kd_v = torch.stack([m[0] for m in mats]).to(dev, dt).index_select(0, vertex_region)   # (N, 3)
@@ -318,12 +360,10 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
             u = (v @ diffuse_at(Wd, n0)) * kd_v                                     # (N, 3) per vertex
             if pos is None:   # most points: interpolate everywhere, keep the group's (no gathers)
                 out = rows(interpolate(u, vi, b)).mul_(mask)
-                counts["planar"] += int(mask.sum())
             else:
                 if out is None:
                     out = torch.zeros(3, Q, dtype=dt, device=dev)
                 out.index_copy_(1, pos, interpolate(u, vi.index_select(0, pos), b.index_select(0, pos)).T)
-                counts["planar"] += int(pos.shape[0])
     if out is None:
         out = torch.empty(3, Q, dtype=dt, device=dev)
 
@@ -374,6 +414,7 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                 if pg.shape[0]:
                     general(pg, kd, ks, None, Ws, add=True)
                     counts["specular"] += int(pg.shape[0])
+                    counts["planar_specular"] += int(pg.shape[0])
     return out.mul_((nT * woT).sum(0) > 0), counts                             # 0 where n·ωo ≤ 0
 
 
@@ -385,8 +426,9 @@ def _identity_table(order: int, alpha: float, diffuse: bool) -> Tensor:
     return table(torch.eye(n2, dtype=torch.float64), alpha, diffuse=diffuse).float()
 
 
-def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor,
-                  alphas: list[float | None], *, planar: bool = True, chunk: int = CHUNK) -> dict:
+def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
+                  vertex_normal: Tensor, alphas: list[float | None], *, planar: bool = True,
+                  chunk: int = CHUNK) -> dict:
     """What a frame that changes only the lighting needs of the points of `shade` (same args;
     ``alphas``: per region the Phong exponent, None for no specular term): their lighting-free
     transfer, so that the frame is one small product per region (`relight`).
@@ -405,14 +447,13 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     n = math.isqrt(v.shape[1])
     groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
     front = (nT * woT).sum(0) > 0
-    cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [], "planar": 0, "specular": 0}
+    cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [], "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
+    counts = cache["counts"]
     for n0, pos in groups:
         if pos is None:
             cache["groups"].append((n0, None, None, b * (mask & front)[:, None]))
-            cache["planar"] += int(mask.sum())
         else:
             cache["groups"].append((n0, pos, vi.index_select(0, pos), b.index_select(0, pos) * front[pos, None]))
-            cache["planar"] += int(pos.shape[0])
     Wd = _identity_table(n, 1.0, True).to(dev, dt)
 
     def transfer(p: Tensor | None, Wd_: Tensor | None, Ws: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
@@ -446,7 +487,7 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
         if p is None or p.shape[0]:
             entries.append((p, *transfer(p, Wd, Ws)))
             if Ws is not None:
-                cache["specular"] += Q if p is None else int(p.shape[0])
+                counts["specular"] += Q if p is None else int(p.shape[0])
         if Ws is not None:
             for _, pos in groups:                                                  # the planes' specular term
                 if pos is None:
@@ -454,7 +495,8 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
                 pg = pos if single else pos[region.index_select(0, pos) == r]
                 if pg.shape[0]:
                     entries.append((pg, None, transfer(pg, None, Ws)[1]))
-                    cache["specular"] += int(pg.shape[0])
+                    counts["specular"] += int(pg.shape[0])
+                    counts["planar_specular"] += int(pg.shape[0])
         cache["regions"].append(entries)
     return cache
 
