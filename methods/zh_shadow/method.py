@@ -204,7 +204,8 @@ class ZHShadow(Method):
         self._ops: dict[float, Tensor] = {}          # α → M^α
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
         self._env_bytes = 0                             # bytes of the last projected env map
-        self._env_local: tuple[Any, Tensor] | None = None  # (env data key, (n², 3) SH in the map's frame, float64)
+        self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
+        #                                                 frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
@@ -254,18 +255,25 @@ class ZHShadow(Method):
 
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
-        """(n², 3) float32 world-space SH of ``env`` (cached): the exact projection in the map's
-        own frame is kept per map, a new ``to_world`` (L/VL/VBL frames rotate the map) only
-        rotates it (`methods.core.sh_rotation`, float64, then float32 as `project_latlong`)."""
+        """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
+        world space (`project_latlong` with its ``to_world``: one rotation); a new ``to_world`` of
+        the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
+        (`methods.core.sh_rotation`, float64; projected once, on the first such frame), then
+        float32 as `project_latlong`."""
         data = torch.as_tensor(env.data)
         dkey = (id(env.data), data.data_ptr(), tuple(data.shape))
         key = (dkey, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
         if self._light is None or self._light[0] != key:
-            if self._env_local is None or self._env_local[0] != dkey:
-                self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
-                self._env_bytes = int(data.numel() * data.element_size())
             R = torch.as_tensor(env.to_world, dtype=torch.float64, device=data.device)
-            self._light = (key, rotate_coeffs(self._env_local[1], R).to(data.dtype).float())
+            if self._env_local is None or self._env_local[0] != dkey:   # a new map
+                self._env_local = (dkey, None)
+                self._env_bytes = int(data.numel() * data.element_size())
+                world = project_latlong(_MapView(data.double(), R), self.config["order"])
+            else:
+                if self._env_local[1] is None:
+                    self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
+                world = rotate_coeffs(self._env_local[1], R)
+            self._light = (key, world.to(data.dtype).float())
         return self._light[1]
 
     def _window(self, light: Tensor) -> Tensor:
@@ -349,9 +357,8 @@ class ZHShadow(Method):
             def take(x: Tensor) -> Tensor:   # the covered samples' rows
                 return x if hits is None else x.index_select(0, hits)
 
-            vi = geom.F.to(dev).index_select(0, take(gbuffer.face))                  # (Q, 3) vertex ids
-            u, w2 = take(gbuffer.bary).unbind(-1)
-            b = torch.stack([1.0 - u - w2, u, w2], -1)                               # (Q, 3) barycentrics
+            vi = geom.F.to(dev, torch.int32).index_select(0, take(gbuffer.face))     # (Q, 3) vertex ids
+            b = rt.barycentrics(take(gbuffer.bary))                                   # (Q, 3)
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
                                          take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
@@ -468,7 +475,8 @@ class ZHShadow(Method):
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
-                "shade_tables": sum(tensor_bytes(t) for t in tabs)}
+                "shade_tables": sum(tensor_bytes(t) for t in tabs),
+                "relight_transfer": 0 if self._relight is None else rt.relight_cache_bytes(self._relight[3])}
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
@@ -564,6 +572,13 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+class _MapView:
+    """An env map's texels and rotation, as `project_latlong` reads an EnvMap (.data, .to_world)."""
+
+    def __init__(self, data: Tensor, to_world: Tensor):
+        self.data, self.to_world = data, to_world
 
 
 class _PoseAdapter:

@@ -34,7 +34,7 @@ import math
 import torch
 from torch import Tensor
 
-from methods.core.frames import coordinate_system
+from methods.core.frames import coordinate_system_rows
 from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import sh_eval
 from methods.core.zh import band_norms, expand_bands, phong_factors
@@ -191,11 +191,17 @@ def _term(vT: Tensor, dT: Tensor, W: Tensor, diffuse: bool) -> Tensor:
     return (T * vT[:, None]).sum(0)
 
 
+def dot_T(aT: Tensor, bT: Tensor) -> Tensor:
+    """(Q,) a·b of (3, Q) vectors (rows = components): two fused multiply-adds on rows, no
+    reduction over the short leading dim."""
+    return torch.addcmul(torch.addcmul(aT[0] * bT[0], aT[1], bT[1]), aT[2], bT[2])
+
+
 def reflect_T(nT: Tensor, woT: Tensor) -> Tensor:
     """(3, Q) unit R = reflect(ωo, n) = 2(n·ωo)n − ωo of unit nT, woT (3, Q), renormalised as
     `methods.core.frames.reflect` + the reference path's normalisation."""
-    R = 2.0 * (woT * nT).sum(0, keepdim=True) * nT - woT
-    return R / (R * R).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    R = torch.addcmul(-woT, 2.0 * dot_T(woT, nT), nT)
+    return R / dot_T(R, R).sqrt().clamp_min(1e-12)
 
 
 def shade_terms(vT: Tensor, nT: Tensor, woT: Tensor, Wd: Tensor, Ws: Tensor | None) -> tuple[Tensor, Tensor | None]:
@@ -216,9 +222,16 @@ def shade_terms(vT: Tensor, nT: Tensor, woT: Tensor, Wd: Tensor, Ws: Tensor | No
 
 def interpolate(values: Tensor, vi: Tensor, b: Tensor) -> Tensor:
     """(Q, C) = Σ_k b[q, k] · values[vi[q, k]]: barycentric interpolation of per-vertex rows
-    (values (N, C); vi (Q, k) int64 vertex ids, b (Q, k) weights; k = 1 is a plain gather), as one
+    (values (N, C); vi (Q, k) int32 or int64 vertex ids, b (Q, k) weights; k = 1 is a plain gather), as one
     fused gather-and-sum (``embedding_bag``, mode "sum" with per-sample weights)."""
     return torch.nn.functional.embedding_bag(vi, values, per_sample_weights=b.to(values.dtype), mode="sum")
+
+
+def barycentrics(uv: Tensor) -> Tensor:
+    """(Q, 3) weights (1 − u − v, u, v) of the G-buffer's (Q, 2) barycentrics (u, v)
+    (`GBuffer.vertex_weights` without the miss mask)."""
+    u, v = uv.unbind(-1)
+    return torch.stack([1.0 - u - v, u, v], -1)
 
 
 def rows(x: Tensor) -> Tensor:
@@ -415,7 +428,7 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                     general(pg, kd, ks, None, Ws, add=True)
                     counts["specular"] += int(pg.shape[0])
                     counts["planar_specular"] += int(pg.shape[0])
-    return out.mul_((nT * woT).sum(0) > 0), counts                             # 0 where n·ωo ≤ 0
+    return out.mul_(dot_T(nT, woT) > 0), counts                                # 0 where n·ωo ≤ 0
 
 
 @functools.lru_cache(maxsize=None)
@@ -446,7 +459,7 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     Q, dev, dt = nT.shape[1], v.device, v.dtype
     n = math.isqrt(v.shape[1])
     groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
-    front = (nT * woT).sum(0) > 0
+    front = dot_T(nT, woT) > 0
     cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [], "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
     counts = cache["counts"]
     for n0, pos in groups:
@@ -501,6 +514,13 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     return cache
 
 
+def relight_cache_bytes(cache: dict) -> int:
+    """Bytes of the arrays a `relight_cache` holds (the vertex ids are the frame's, counted too)."""
+    ts = [cache["vi"]] + [x for g in cache["groups"] for x in g[1:] if x is not None]
+    ts += [x for entries in cache["regions"] for e in entries for x in e if x is not None]
+    return sum(t.element_size() * t.nelement() for t in ts)
+
+
 def relight(cache: dict, v: Tensor, Wd: Tensor, light: Tensor, vertex_region: Tensor,
             mats: list[tuple[Tensor, Tensor]]) -> Tensor:
     """(3, Q) radiance of a lighting-only frame from `relight_cache`: planes through their
@@ -547,7 +567,7 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Ten
     """(N, n²) world-space SH visibility of every vertex at one pose: §4.3 step 1 (the linear
     model [pose, 1] · X, one matrix-vector product), the lobe axes from their chart
     (`precompute.chart_to_axis`) taken to world space through the vertex frame (s, t, n)
-    (`methods.core.frames.coordinate_system`, the frame the visibility was fitted in), and eq. 1
+    (`methods.core.frames.coordinate_system_rows`, the frame the visibility was fitted in), and eq. 1
     with y(s) from monomials (`sh_monomials`), in the point-minor layout. The same numbers as
     `ZHModel.lobes_at` + `frame_matrix` + `zh_lobes_to_sh` (the reference path) to round-off.
 
@@ -560,20 +580,15 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Ten
     a = torch.cat([pose.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype, device=X.device)])
     if a.shape[0] != J1:
         raise ValueError(f"pose has {a.shape[0] - 1} joints, the model {J1 - 1}")
-    pT = rows((a @ X.reshape(J1, N * d)).view(N, d))                          # (c·(2+n), N): [pose, 1] · X
-    nrm = normal.to(X.dtype)
-    s, t = (rows(x) for x in coordinate_system(nrm))                         # (3, N) each
-    nT = rows(nrm)
-    aw = torch.empty(3, lobes * N, dtype=X.dtype, device=X.device)           # world axes, lobe-major
-    for x in range(lobes):
-        ax = rows(chart_to_axis(pT[x * per:x * per + 2].T))                   # (3, N) local
-        aw[:, x * N:(x + 1) * N] = s * ax[0] + t * ax[1] + nT * ax[2]
+    pT = rows((a @ X.reshape(J1, N * d)).view(N, d)).view(lobes, per, N)    # [pose, 1] · X, point-minor
+    nT = rows(normal.to(X.dtype))
+    s, t = coordinate_system_rows(nT)                                        # (3, N) each
+    ax = chart_to_axis(pT[:, :2].transpose(1, 2))                            # (c, N, 3) local axes
+    ax = ax.permute(2, 0, 1)                                                 # (3, c, N)
+    aw = (s[:, None] * ax[0] + t[:, None] * ax[1] + nT[:, None] * ax[2]).reshape(3, lobes * N)   # world
     Y = sh_monomials(n).to(X.dtype).T.to(X.device) @ sh_features(aw, n)       # (n², c·N) y(s)
     band = torch.repeat_interleave(torch.arange(n, device=X.device), torch.arange(n, device=X.device) * 2 + 1)
     lam = band_norms(n, dtype=X.dtype, device=X.device)[:, None]
-    vT = None
-    for x in range(lobes):
-        k = (pT[x * per + 2:(x + 1) * per] * lam).index_select(0, band)       # (n², N) Λ_l k_l
-        term = Y[:, x * N:(x + 1) * N] * k
-        vT = term if vT is None else vT + term                                # eq. 1, sum of lobes
+    k = (pT[:, 2:] * lam).index_select(1, band)                               # (c, n², N) Λ_l k_l
+    vT = (Y.view(n * n, lobes, N) * k.transpose(0, 1)).sum(1)                 # eq. 1, sum of lobes
     return vT.T.contiguous()
