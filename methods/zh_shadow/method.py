@@ -20,10 +20,15 @@ interpolation of the radiance (``shading="vertex"``, the paper's GPU per-vertex 
   evaluated without interpolating lobe axes (which would mix unrelated lobes).
 
 Two implementations of these steps (issue 14). `ZHShadow.render` is the fast path
-(`methods.zh_shadow.runtime`): step 1 and eq. 1 once per vertex and pose (cached while the pose
-does not change), the world-space SH visibility interpolated per sample, and steps 2–5 as one
-batched polynomial in n and R whose coefficient tables fold the per-point rotations, M^α and the
-lighting (built once per lighting and exponent, cached). `ZHShadow._render_reference` is the slow
+(`methods.zh_shadow.runtime`): step 1 and eq. 1 once per vertex and pose (`runtime.world_visibility`,
+cached while the pose does not change), the world-space SH visibility interpolated per sample,
+and steps 2–5 as one batched polynomial in n and R whose coefficient tables fold the per-point
+rotations, M^α and the lighting (built once per lighting and exponent, cached). Two exact
+shortcuts: samples on a plane (bitwise-equal normals, `runtime.planar_groups` — every library
+scene's ground) share the diffuse factor, so their diffuse term is computed per vertex and
+interpolated like v; and a frame that changes only the lighting (L, E) dots the samples' cached
+lighting-free transfer vectors with the new lighting (`runtime.relight_cache`, built by the first
+such frame after the camera, pose or exponents changed). `ZHShadow._render_reference` is the slow
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
 (equal to float32 round-off) and renders the ``specular="cosine"`` variant, whose cos θ_i-weighted
 visibility is not a sum of ZH lobes.
@@ -210,7 +215,7 @@ class ZHShadow(Method):
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
-        self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp), v) of the last sample-shaded frame
+        self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp, shading), v): last frame
         self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
 
     # -- precompute ---------------------------------------------------------------------------
@@ -446,8 +451,8 @@ class ZHShadow(Method):
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
             self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices),
-                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame),
-                                                   geom.N, geom.vertex_region)}
+                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region,
+                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
         else:
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)

@@ -24,6 +24,17 @@ instead of two per-point SH rotations of the lighting. The features are the mono
 (`monomial_basis`; cheaper to evaluate than the SH recurrence) — for order ≤ `MONOMIAL_MAX_ORDER`,
 the SH themselves above. The diffuse factors F_l(1) vanish for odd l ≥ 3, so the diffuse term only
 needs the even-degree monomials and r itself.
+
+Layout and batching (`shade`): points are processed in chunks in the point-minor layout (rows =
+components), a point's visibility Σ_k b_k v[vi_k] is one fused gather (`interpolate`), and the
+monomials come from three broadcast products per degree (`_monomial_levels`). Two exact
+shortcuts, both from the linearity of the terms in v and in l:
+
+* planes (`planar_groups`): points whose normals are bitwise equal share T¹(n), so their diffuse
+  term Σ_k b_k (v[vi_k] · T¹(n)) is a 3-vector per vertex, interpolated — no per-point GEMM;
+* lighting-only frames (`relight_cache`, `relight`): with the tables of the identity lighting
+  (n² channels) the same GEMMs give each point's lighting-free transfer t (term = t · l); kept,
+  a frame with new lighting is one (3, n²) @ (n², Q) product per region and term.
 """
 from __future__ import annotations
 
@@ -460,7 +471,8 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     n = math.isqrt(v.shape[1])
     groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
     front = dot_T(nT, woT) > 0
-    cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [], "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
+    cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [],
+                   "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
     counts = cache["counts"]
     for n0, pos in groups:
         if pos is None:

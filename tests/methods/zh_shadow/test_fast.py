@@ -203,7 +203,7 @@ def test_frame_cost_hand_count():
     assert Qp == Q - Qs and Qp >= 1024 and Np == int((g.vertex_region == sc.regions.index("plane")).sum()) > 0
     J1 = 1                                                                   # static: the bias row
     H, W = sc.envmap.data.shape[:2]
-    plane = 12 * 84 + 6 * 44 + Np * 6 * 16                                  # lighting to the plane's frame, v·T per vertex
+    plane = 12 * 84 + 6 * 44 + Np * 6 * 16                                  # l to the plane's frame; v·T per vertex
     gbuf = P * (GBUFFER_BYTES_PER_SAMPLE + 8) + P * 12                     # + region, + output
     fixed = nF * 3 * 8 + 2 * 7 * 4 + 2 * 44 * 4 + 16 * 3 * 4                # F, BRDFs, M¹ + M^s, lighting
     vis = N * 15 * 4                                                         # min(16, 6·2 + 3) floats
@@ -221,7 +221,7 @@ def test_frame_cost_hand_count():
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
     pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
     assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
-    lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 16          # t_d, t_s off the plane; plane v, face+bary
+    lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 16          # t_d, t_s; plane v, face + bary
     lo_f = Qs * 2 * 6 * 16 + Q * 12 + Qp * 18 + plane + 6 * 84                # t·l per term, kd/ks, plane, rotate l
     c = m.frame_cost("L", P)
     assert (c.bytes, c.flops) == (lo_b, lo_f)
