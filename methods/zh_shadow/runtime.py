@@ -153,18 +153,26 @@ def _monomial_levels(dT: Tensor, degrees: tuple[int, ...], out: Tensor) -> None:
         blocks[0].fill_(1.0)
 
 
-def features(dT: Tensor, order: int, diffuse: bool) -> Tensor:
+def features(dT: Tensor, order: int, diffuse: bool, *, out: Tensor | None = None) -> Tensor:
     """(K, Q) per-point features of unit directions dT (3, Q) (coordinates as rows): monomials
-    (order ≤ `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`)."""
+    (order ≤ `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`);
+    written into ``out`` (K, Q) when given."""
     if order > MONOMIAL_MAX_ORDER:
         Y = sh_eval(dT.T, 2 * order - 1).T
-        return Y.index_select(0, _table_rows(order, diffuse).to(dT.device)) if diffuse else Y
+        Y = Y.index_select(0, _table_rows(order, diffuse).to(dT.device)) if diffuse else Y
+        return Y if out is None else out.copy_(Y)
     D = 2 * order - 2
     degrees = (D, 1) if diffuse else (D, D - 1)
     dT = dT.contiguous()
-    out = torch.empty(sum((k + 1) * (k + 2) // 2 for k in degrees), dT.shape[1], dtype=dT.dtype, device=dT.device)
+    if out is None:
+        out = torch.empty(sum((k + 1) * (k + 2) // 2 for k in degrees), dT.shape[1], dtype=dT.dtype, device=dT.device)
     _monomial_levels(dT, degrees, out)
     return out
+
+
+def n_features(order: int, diffuse: bool) -> int:
+    """K, the number of rows of `features`."""
+    return int(_table_rows(order, diffuse).shape[0])
 
 
 def _table_rows(order: int, diffuse: bool) -> Tensor:
@@ -391,8 +399,14 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
     if out is None:
         out = torch.empty(3, Q, dtype=dt, device=dev)
 
+    n = math.isqrt(v.shape[1])
+
     def general(p: Tensor | None, kd: Tensor, ks: Tensor, Wd_: Tensor | None, Ws: Tensor | None, add: bool) -> None:
-        """out[:, p] (= or +=) kd ⊙ diffuse (unless Wd_ is None) + ks ⊙ specular (if Ws)."""
+        """out[:, p] (= or +=) kd ⊙ diffuse (unless Wd_ is None) + ks ⊙ specular (if Ws): one
+        GEMM per chunk, the albedos folded into the stacked tables [Wd ⊙ kd; Ws ⊙ ks]."""
+        Ws_ = [] if Ws is None else [(Ws.view(Ws.shape[0], -1, 3) * ks).view(Ws.shape[0], -1)]
+        W = torch.cat(([] if Wd_ is None else [(Wd_.view(Wd_.shape[0], -1, 3) * kd).view(Wd_.shape[0], -1)]) + Ws_)
+        Kd = 0 if Wd_ is None else Wd_.shape[0]
         m = Q if p is None else p.shape[0]
         for a in range(0, m, chunk):
             if p is None:
@@ -402,13 +416,13 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                 pc = p[a:a + chunk]
                 vi_c, b_c = vi.index_select(0, pc), b.index_select(0, pc)
                 n_c, wo_c = nT.index_select(1, pc), woT.index_select(1, pc)
-            vT = rows(interpolate(v, vi_c, b_c))                                    # (n², Q_c)
-            rad = None
+            f = torch.empty(W.shape[0], n_c.shape[1], dtype=dt, device=dev)
             if Wd_ is not None:
-                rad = kd[:, None] * _term(vT, n_c, Wd_, True)
+                features(n_c, n, True, out=f[:Kd])
             if Ws is not None:
-                sp = ks[:, None] * _term(vT, reflect_T(n_c, wo_c), Ws, False)
-                rad = sp if rad is None else rad + sp
+                features(reflect_T(n_c, wo_c), n, False, out=f[Kd:])
+            vT = rows(interpolate(v, vi_c, b_c))                                    # (n², Q_c)
+            rad = ((W.T @ f).view(n * n, 3, -1) * vT[:, None]).sum(0)                # (3, Q_c)
             if p is None:
                 if add:
                     out[:, s] += rad
