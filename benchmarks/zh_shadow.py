@@ -77,10 +77,11 @@ def load_baseline(rev: str):
 def micro(m, frame, gbuffer, repeats: int) -> dict:
     """CPU seconds (best of ``repeats``) of the kernels of one sample-shaded P frame at its real
     sizes: skinning (`Scene.geometry`), the pose model + eq. 1 (`runtime.world_visibility`), the
-    planes' interpolation (one `runtime.interpolate` of a 3-vector per vertex over every covered
-    sample), and for the samples off the planes the feature GEMMs (diffuse 31 → 48, specular
-    49 → 48: ``gemm_flops``; their rate against `matmul_peak` says how close to the compute roof
-    the dominant kernel runs) and everything else of their chunks (`runtime.shade_terms`)."""
+    planes' diffuse term (one `runtime.interpolate` of a 3-vector per vertex over every covered
+    sample), the samples off the planes (`runtime.shade` of those alone, planes off) and, of
+    that, the feature GEMM alone (``gemm_flops``: [Wd; Ws]ᵀ (n²·3 × K_d+K_s) @ features, 31 + 49
+    rows at order 4; its rate against `matmul_peak` says how close to the compute roof the
+    dominant kernel runs), and the resolve."""
     from methods.zh_shadow import runtime as rt
 
     scene = m.scene
@@ -91,37 +92,35 @@ def micro(m, frame, gbuffer, repeats: int) -> dict:
     out["pose_model_s"] = _best(lambda: rt.world_visibility(X, pose, geom.N.float(), m.model.lobes), repeats)
     v = rt.world_visibility(X, pose, geom.N.float(), m.model.lobes)
     hits = gbuffer.hit.nonzero().squeeze(-1)
-    vi = geom.F.index_select(0, gbuffer.face.index_select(0, hits))
+    vi = geom.F.to(torch.int32).index_select(0, gbuffer.face.index_select(0, hits))
     b = rt.barycentrics(gbuffer.bary.index_select(0, hits))
     u = v[:, :3].contiguous()
     out["planes_interpolate_s"] = _best(lambda: rt.interpolate(u, vi, b), repeats)
     nT = rt.rows(gbuffer.normal.index_select(0, hits))
     woT = rt.rows(gbuffer.wo.index_select(0, hits))
+    region = gbuffer.region.index_select(0, hits)
     _, _, rest = rt.planar_groups(nT)
     rest = torch.arange(hits.shape[0]) if rest is None else rest
     light = m._lighting(frame.envmap)
     Wd = rt.table(light, 1.0, diffuse=True)
-    Ws = rt.table(light, 12.0, diffuse=False)
-    Q = int(rest.shape[0])
-    vT = rt.rows(rt.interpolate(v, vi[rest], b[rest]))
-    n_r, wo_r = nT[:, rest], woT[:, rest]
-    fd, fs = rt.features(n_r, m.model.order, True), rt.features(n_r, m.model.order, False)
+    tabs = [(kd, ks, Wd, rt.table(light, al, diffuse=False) if bool((ks > 0).any()) else None)
+            for kd, ks, al in m._region_materials(frame)]
+    args = (v, vi[rest], b[rest], nT[:, rest], woT[:, rest], region[rest], geom.vertex_region, geom.N, tabs)
+    out["off_plane_samples"] = Q = int(rest.shape[0])
+    out["off_plane_shade_s"] = _best(lambda: rt.shade(*args, planar=False), repeats)
+    Ws = next(t[3] for t in tabs if t[3] is not None)
+    W = torch.cat([Wd, Ws])
+    n = m.model.order
+    f = torch.cat([rt.features(nT[:, rest], n, True), rt.features(nT[:, rest], n, False)])
     C = rt.CHUNK
 
     def gemms():
         for a in range(0, Q, C):
-            Wd.T @ fd[:, a:a + C]
-            Ws.T @ fs[:, a:a + C]
+            W.T @ f[:, a:a + C]
 
-    def chunks():
-        for a in range(0, Q, C):
-            rt.shade_terms(vT[:, a:a + C], n_r[:, a:a + C], wo_r[:, a:a + C], Wd, Ws)
-
-    out["off_plane_samples"] = Q
-    out["gemm_flops"] = 2 * Q * Wd.shape[1] * (Wd.shape[0] + Ws.shape[0])
+    out["gemm_flops"] = 2 * Q * W.shape[0] * W.shape[1]
     out["gemm_s"] = _best(gemms, repeats)
     out["gemm_flops_per_s"] = out["gemm_flops"] / max(out["gemm_s"], 1e-12)
-    out["shade_terms_s"] = _best(chunks, repeats)
     out["resolve_s"] = _best(lambda: gbuffer.resolve(torch.zeros(3, gbuffer.num_samples), channels_first=True),
                              repeats)
     return out

@@ -170,11 +170,6 @@ def features(dT: Tensor, order: int, diffuse: bool, *, out: Tensor | None = None
     return out
 
 
-def n_features(order: int, diffuse: bool) -> int:
-    """K, the number of rows of `features`."""
-    return int(_table_rows(order, diffuse).shape[0])
-
-
 def _table_rows(order: int, diffuse: bool) -> Tensor:
     B = 2 * order - 1
     band = torch.repeat_interleave(torch.arange(B), torch.arange(B) * 2 + 1)

@@ -84,6 +84,17 @@ def test_fast_equals_reference_variants(small_model):
     _check_sequence(m.with_render_config(window="hanning", clamp=False), "L", n_frames=3)
 
 
+@pytest.mark.parametrize("order", (2, 3, 6, 8))
+def test_fast_equals_reference_orders(zh_scene, order):
+    """Other SH orders: monomial features and eq. 1 by monomials (2, 3), SH features above
+    `MONOMIAL_MAX_ORDER` (6, 8 — the order of the suites' physical ZH setting), V and lighting-only
+    frames, on the creature (P frames: the pose model)."""
+    m = ZHShadow(**SMALL, order=order)
+    m.precompute(zh_scene("creature"))
+    for kind, n in (("P", 2), ("L", 3)):
+        _check_sequence(m.with_render_config(), kind, n_frames=n)
+
+
 @pytest.mark.parametrize("name", ("alcove", "creature"))
 def test_fast_equals_reference_small_planes(small_model, monkeypatch, name):
     """Planes down to 16 points, so vertex shading has them too (the test-size grounds have
