@@ -10,6 +10,14 @@ import torch
 from torch import Tensor
 
 
+def _coordinate_components(x: Tensor, y: Tensor, z: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+    """The components of s and t (Duff et al. 2017) from those of the unit normal."""
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))  # copysign(1, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    return [1.0 + sign * x * x * a, sign * b, -sign * x], [b, sign + y * y * a, -y]
+
+
 def coordinate_system(n: Tensor) -> tuple[Tensor, Tensor]:
     """Tangent frame for unit normals.
 
@@ -20,13 +28,22 @@ def coordinate_system(n: Tensor) -> tuple[Tensor, Tensor]:
     """
     if n.shape[-1] != 3:
         raise ValueError(f"normals must have shape (..., 3), got {tuple(n.shape)}")
-    x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))  # copysign(1, z)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    s = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
-    t = torch.stack([b, sign + y * y * a, -y], dim=-1)
-    return s, t
+    s, t = _coordinate_components(*n.unbind(-1))
+    return torch.stack(s, dim=-1), torch.stack(t, dim=-1)
+
+
+def coordinate_system_rows(nT: Tensor) -> tuple[Tensor, Tensor]:
+    """`coordinate_system` in the point-minor layout (the same numbers, bit for bit).
+
+    Args:
+        nT: (3, ...) unit normals, components first.
+    Returns:
+        s, t: (3, ...) each.
+    """
+    if nT.shape[0] != 3:
+        raise ValueError(f"normals must have shape (3, ...), got {tuple(nT.shape)}")
+    s, t = _coordinate_components(*nT.unbind(0))
+    return torch.stack(s), torch.stack(t)
 
 
 def frame_matrix(n: Tensor, s: Tensor | None = None) -> Tensor:

@@ -31,6 +31,7 @@ Coefficient arrays are (n², C): coefficient index first, channels last.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -296,8 +297,14 @@ def _latlong_theta_weights(H: int, order: int, device) -> Tensor:
     """T[y, i] = ∫ hat_y(θ) y_{l,|m|}(θ, φ=0) sin θ dθ (float64) for every flat index i → (H, n²).
 
     hat_y is the piecewise-linear row hat on θ_y = πy/(H−1); Gauss–Legendre with n+8 nodes per
-    interval [θ_j, θ_{j+1}] (analytic integrand, so the rule is exact to round-off).
+    interval [θ_j, θ_{j+1}] (analytic integrand, so the rule is exact to round-off). Cached per
+    (H, order, device): a map swap reprojects with the same weights; read-only.
     """
+    return _latlong_theta_weights_cached(int(H), int(order), None if device is None else torch.device(device))
+
+
+@functools.lru_cache(maxsize=16)
+def _latlong_theta_weights_cached(H: int, order: int, device) -> Tensor:
     n = order
     dl = math.pi / (H - 1)
     t, wt = np.polynomial.legendre.leggauss(n + 8)

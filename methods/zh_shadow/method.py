@@ -20,10 +20,15 @@ interpolation of the radiance (``shading="vertex"``, the paper's GPU per-vertex 
   evaluated without interpolating lobe axes (which would mix unrelated lobes).
 
 Two implementations of these steps (issue 14). `ZHShadow.render` is the fast path
-(`methods.zh_shadow.runtime`): step 1 and eq. 1 once per vertex and pose (cached while the pose
-does not change), the world-space SH visibility interpolated per sample, and steps 2–5 as one
-batched polynomial in n and R whose coefficient tables fold the per-point rotations, M^α and the
-lighting (built once per lighting and exponent, cached). `ZHShadow._render_reference` is the slow
+(`methods.zh_shadow.runtime`): step 1 and eq. 1 once per vertex and pose (`runtime.world_visibility`,
+cached while the pose does not change), the world-space SH visibility interpolated per sample,
+and steps 2–5 as one batched polynomial in n and R whose coefficient tables fold the per-point
+rotations, M^α and the lighting (built once per lighting and exponent, cached). Two exact
+shortcuts: samples on a plane (bitwise-equal normals, `runtime.planar_groups` — every library
+scene's ground) share the diffuse factor, so their diffuse term is computed per vertex and
+interpolated like v; and a frame that changes only the lighting (L, E) dots the samples' cached
+lighting-free transfer vectors with the new lighting (`runtime.relight_cache`, built by the first
+such frame after the camera, pose or exponents changed). `ZHShadow._render_reference` is the slow
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
 (equal to float32 round-off) and renders the ``specular="cosine"`` variant, whose cos θ_i-weighted
 visibility is not a sum of ZH lobes.
@@ -221,15 +226,19 @@ class ZHShadow(Method):
         self._ops: dict[float, Tensor] = {}          # α → M^α
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
         self._env_bytes = 0                             # bytes of the last projected env map
-        self._env_local: tuple[Any, Tensor] | None = None  # (env data key, (n², 3) SH in the map's frame, float64)
+        self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
+        #                                                 frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
-        self._last_counts: tuple[int, int, int] | None = None  # (G-buffer samples, shaded points, specular points)
+        self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
+        #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
+        self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp, shading), v): last frame
+        self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
-        self._light = self._env_local = self._posed = self._tables = None
+        self._light = self._env_local = self._posed = self._tables = self._frame_state = self._relight = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -271,18 +280,25 @@ class ZHShadow(Method):
 
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
-        """(n², 3) float32 world-space SH of ``env`` (cached): the exact projection in the map's
-        own frame is kept per map, a new ``to_world`` (L/VL/VBL frames rotate the map) only
-        rotates it (`methods.core.sh_rotation`, float64, then float32 as `project_latlong`)."""
+        """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
+        world space (`project_latlong` with its ``to_world``: one rotation); a new ``to_world`` of
+        the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
+        (`methods.core.sh_rotation`, float64; projected once, on the first such frame), then
+        float32 as `project_latlong`."""
         data = torch.as_tensor(env.data)
         dkey = (id(env.data), data.data_ptr(), tuple(data.shape))
         key = (dkey, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
         if self._light is None or self._light[0] != key:
-            if self._env_local is None or self._env_local[0] != dkey:
-                self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
-                self._env_bytes = int(data.numel() * data.element_size())
             R = torch.as_tensor(env.to_world, dtype=torch.float64, device=data.device)
-            self._light = (key, rotate_coeffs(self._env_local[1], R).to(data.dtype).float())
+            if self._env_local is None or self._env_local[0] != dkey:   # a new map
+                self._env_local = (dkey, None)
+                self._env_bytes = int(data.numel() * data.element_size())
+                world = project_latlong(_MapView(data.double(), R), self.config["order"])
+            else:
+                if self._env_local[1] is None:
+                    self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
+                world = rotate_coeffs(self._env_local[1], R)
+            self._light = (key, world.to(data.dtype).float())
         return self._light[1]
 
     def _window(self, light: Tensor) -> Tensor:
@@ -317,10 +333,7 @@ class ZHShadow(Method):
         key = tuple(pose_vec.tolist())
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
-            k, ax = m.lobes_at(pose_vec)                                      # (N, c, n), (N, c, 3) local
-            Fv = frame_matrix(geom.N.float())                                  # (N, 3, 3) world → local
-            ax_w = (Fv.transpose(-1, -2)[:, None] @ ax[..., None]).squeeze(-1)
-            self._posed = (key, geom, zh_lobes_to_sh(k, ax_w))                  # (N, n²) world SH, eq. 1
+            self._posed = (key, geom, rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes))  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
     def _table(self, light: Tensor, light_key, alpha: float, diffuse: bool) -> Tensor:
@@ -334,70 +347,75 @@ class ZHShadow(Method):
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """§4.3 for every covered sample (or vertex), batched (`methods.zh_shadow.runtime`); equal to
-        `_render_reference` to float32 round-off. The per-pose visibility, the lighting SH and its
-        tables are cached between frames (keyed on the pose / the env map and its rotation)."""
+        `_render_reference` to float32 round-off. Cached between frames: the per-pose visibility
+        (keyed on the pose), the lighting SH and its tables (the env map and its rotation), and —
+        for a frame whose ``changed`` is only "light" and whose camera, pose, exponents and sample
+        count equal the previous frame's — the samples' lighting-free transfer
+        (`runtime.relight_cache`, built by the first such frame)."""
         if self.model is None or self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
             return self._render_reference(frame, gbuffer)
         _, geom, v = self._pose_state(frame)
+        pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
         mats = self._region_materials(frame)
         dev = gbuffer.hit.device
         v = v.to(dev)
-        out = torch.zeros(gbuffer.num_samples, 3, device=dev)
-        n_spec = 0
-        if self.config["shading"] == "vertex":
+        P = gbuffer.num_samples
+        Wd = self._table(light, lkey, 1.0, True).to(dev)
+        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
+                for kd, ks, al in mats]
+        vreg = geom.vertex_region.to(dev)
+        state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
+                 P, gbuffer.spp_side, self.config["shading"])
+        relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
+                   and self._frame_state[0] == state and self._frame_state[1] is v)
+        self._frame_state = (state, v)
+        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v:
+            hits, cache = self._relight[2], self._relight[3]
+        else:
+            self._relight = None
+            hits = None if bool(gbuffer.hit.all()) else gbuffer.hit.nonzero().squeeze(-1)
+
+            def take(x: Tensor) -> Tensor:   # the covered samples' rows
+                return x if hits is None else x.index_select(0, hits)
+
+            vi = geom.F.to(dev, torch.int32).index_select(0, take(gbuffer.face))     # (Q, 3) vertex ids
+            b = rt.barycentrics(take(gbuffer.bary))                                   # (Q, 3)
+            if relight:   # the first lighting-only frame: build the transfer, then shade from it
+                cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
+                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
+                self._relight = (state, v, hits, cache)
+        if relight:
+            out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
+            counts = cache["counts"]
+        elif self.config["shading"] == "vertex":
             cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-            V, N = geom.V.to(dev), geom.N.to(dev).float()
-            rad = torch.zeros(geom.num_vertices, 3, device=dev)
-            reg = geom.vertex_region.to(dev)
-            for r, (kd, ks, al) in enumerate(mats):
-                sel = (reg == r).nonzero().squeeze(-1)
-                wo = cam - V[sel]
-                wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                n_spec += self._shade_group(rad, sel, v[sel].T, N[sel].T, wo.T, light, lkey, kd, ks, al)
+            nT = rt.rows(geom.N.to(dev).float())
+            woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+            woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+            Nv = geom.num_vertices
+            rad, counts = rt.shade(v, torch.arange(Nv, device=dev)[:, None], torch.ones(Nv, 1, device=dev),
+                                   nT, woT, vreg, vreg, geom.N.to(dev), tabs)
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                 rad = rad.clamp_min(0.0)
-            out = gbuffer.interpolate(rad, geom.F.to(dev))
-            self._last_counts = (gbuffer.num_samples, int(geom.num_vertices), n_spec)
+            out = rt.interpolate(rad.T.contiguous(), vi, b).T                        # (3, Q)
         else:
-            F = geom.F.to(dev)
-            vT = v.T.contiguous()                                                 # (n², N)
-            hits = gbuffer.hit.nonzero().squeeze(-1)
-            reg = gbuffer.region.index_select(0, hits)
-            for r, (kd, ks, al) in enumerate(mats):
-                h = hits[reg == r]
-                for a in range(0, h.shape[0], rt.CHUNK):
-                    hq = h[a:a + rt.CHUNK]
-                    vi = F.index_select(0, gbuffer.face.index_select(0, hq)).T         # (3, Q) vertex ids
-                    u, w2 = gbuffer.bary.index_select(0, hq).T                         # barycentrics
-                    vsT = vT.index_select(1, vi[0]) * (1.0 - u - w2) + vT.index_select(1, vi[1]) * u \
-                        + vT.index_select(1, vi[2]) * w2                               # (n², Q) interpolated eq. 1
-                    n_spec += self._shade_group(out, hq, vsT, gbuffer.normal.index_select(0, hq).T,
-                                                gbuffer.wo.index_select(0, hq).T, light, lkey, kd, ks, al)
-            if self.config["clamp"]:   # per shaded sample, before the pixel resolve
-                out = out.clamp_min(0.0)
-            self._last_counts = (gbuffer.num_samples, int(hits.numel()), n_spec)
-        return gbuffer.resolve(out)
+            out, counts = rt.shade(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
+                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs)
+        if self.config["clamp"] and self.config["shading"] == "sample":   # per sample, before the resolve
+            out = out.clamp_min(0.0)
+        shaded = geom.num_vertices if self.config["shading"] == "vertex" else out.shape[1]
+        self._last_counts = {"P": P, "Q": int(shaded), **counts}
+        if hits is not None:
+            out = torch.zeros(3, P, device=dev).index_copy_(1, hits, out)
+        return gbuffer.resolve(out, channels_first=True)
 
-    def _shade_group(self, out: Tensor, idx: Tensor, vT: Tensor, nT: Tensor, woT: Tensor, light: Tensor, lkey,
-                     kd: Tensor, ks: Tensor, alpha: float) -> int:
-        """out[idx] = kd · diffuse + ks · specular (0 where n·ωo ≤ 0) for Q points of one material;
-        returns the number of points with a specular term. vT (n², Q), nT/woT (3, Q) unit."""
-        dev = out.device
-        Wd = self._table(light, lkey, 1.0, True).to(dev)
-        spec = bool((ks > 0).any())
-        Ws = self._table(light, lkey, alpha, False).to(dev) if spec else None
-        kd, ks = kd.to(dev)[:, None], ks.to(dev)[:, None]
-        for a in range(0, idx.shape[0], rt.CHUNK):
-            s = slice(a, a + rt.CHUNK)
-            d, sp = rt.shade_terms(vT[:, s], nT[:, s], woT[:, s], Wd, Ws)
-            rad = kd * d if sp is None else kd * d + ks * sp                       # (3, Q)
-            front = (nT[:, s] * woT[:, s]).sum(0) > 0
-            out.index_copy_(0, idx[s], torch.where(front, rad, torch.zeros_like(rad)).T)
-        return int(idx.shape[0]) if spec else 0
+    def _spec_regions(self, frame: Frame) -> list[bool]:
+        """Per region: does its material have a specular term (ks > 0)?"""
+        return [bool((ks > 0).any()) for _, ks, _ in self._region_materials(frame)]
 
     def _material_arrays(self, frame: Frame, region: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """kd, ks (Q, 3) and α (Q,) from the frame's per-region materials."""
@@ -452,9 +470,10 @@ class ZHShadow(Method):
             if clamp:   # per vertex, before the interpolation (module docstring: negative radiance)
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
-            self._last_counts = (gbuffer.num_samples, int(geom.num_vertices), int((ks > 0).any(-1).sum()))
+            self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices),
+                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region,
+                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
         else:
-            n_spec = 0
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)
             c, n = m.lobes, m.order
@@ -464,12 +483,13 @@ class ZHShadow(Method):
                 kq = (k[vi] * wi[..., None, None]).reshape(-1, 3 * c, n)      # barycentric weights
                 aq = ax_w[vi].reshape(-1, 3 * c, 3)
                 kd, ks, al = self._material_arrays(frame, gbuffer.region[h])
-                n_spec += int((ks > 0).any(-1).sum())
                 out[h] = shade(kq, aq, gbuffer.normal[h], gbuffer.wo[h], light, kd, ks, al,
                                specular=self.config["specular"], ops=self._ops)
             if clamp:   # per shaded sample, before the pixel resolve (the paper does not clamp; see above)
                 out = out.clamp_min(0.0)
-            self._last_counts = (gbuffer.num_samples, int(hits.numel()), n_spec)
+            self._last_counts = {"P": gbuffer.num_samples, "Q": int(hits.numel()),
+                                 **rt.point_counts(rt.rows(gbuffer.normal[hits]), gbuffer.region[hits],
+                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
         return gbuffer.resolve(out)
 
     def memory(self) -> dict[str, int]:
@@ -480,34 +500,47 @@ class ZHShadow(Method):
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
-                "shade_tables": sum(tensor_bytes(t) for t in tabs)}
+                "shade_tables": sum(tensor_bytes(t) for t in tabs),
+                "relight_transfer": 0 if self._relight is None else rt.relight_cache_bytes(self._relight[3])}
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
-        Shaded points: the covered samples ("sample" shading) or the vertices ("vertex"), counted
-        from the last render on a G-buffer of ``num_samples`` samples (every sample covered and
-        specular if there was none). Per kind (frame_kind letters; what did not change is reused):
+        Points: the covered samples ("sample" shading) or the vertices ("vertex"), counted by the
+        last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
+        specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
+        (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
+        specular. A point on a plane needs no frame of its own for its diffuse term: the lighting
+        is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and M¹, 6·nnz), each
+        plane vertex dots its v with that (6n²) and a sample interpolates the result (18) — fewer
+        flops than the per-point rotations counted for the other points. Per kind (frame_kind
+        letters; what did not change is reused):
 
-        * bytes: G-buffer (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region in "sample" shading) and the
-          (P, 3) float32 output per sample; the faces F (int64, face → vertices); the BRDF parameters
-          (kd, ks, α per region) and the M^α operators' non-zeros (diffuse + one per specular
-          region); the (n², 3) SH lighting — and for "E" the new env map (H·W·3 float32);
-          per vertex: with "P" the linear model X ((J+1)·N·6c float32) and the posed normals (the
-          local → world frame), else the cached visibility in its smallest form
-          (min(n², 6c + 3) floats: SH, or lobes + normal); "vertex" shading reads positions and
-          normals (N·6 float32).
+        * bytes: the (P, 3) float32 output; the faces F (int64); the BRDF parameters (kd, ks, α per
+          region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
+          SH lighting — and for "E" the new env map (H·W·3 float32). Frames that are not
+          lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
+          region; "vertex": hit, face and barycentrics — 20 bytes — to interpolate the radiance,
+          and the vertex positions and normals, N·6 float32) and per vertex, with "P", the linear
+          model X ((J+1)·N·6c float32) and the posed normals, else the cached visibility in its
+          smallest form (min(n², 6c + 3) floats). Lighting-only frames ("L", "E") read instead the
+          cached lighting-free transfer t = M^α v of the points off the planes, in world space
+          (n² floats per term: diffuse + specular), for a specular point on a plane its specular
+          t, for a sample on a plane its face and barycentrics (16 bytes; "vertex": 20 bytes per
+          sample for the radiance), and the plane vertices' v (n² floats).
         * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·6c) and
-          per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y, sum);
-          with a lighting change (L, E, VL, VBL) one rotation of the SH lighting (6·Σ(2l+1)²) and
-          for "E" its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); per shaded point:
-          the barycentric interpolation of v ("sample": 6n²), then per term (diffuse about n, α = 1;
-          specular about R where ks > 0) the lighting rotated into the frame (6·Σ(2l+1)²), v
-          rotated into it (2·Σ(2l+1)², specular only: the diffuse one is the vertex frame), M^α v
-          (2·nnz) and the dot (6n²); plus R (9), n·ωo (5) and kd/ks (12). Frames that change only
-          the lighting ("L", "E") reuse t = M^α v per point (bytes: n² floats per term, read) and
-          redo only the rotation and the dot. Not counted: building rotation matrices, skinning.
+          per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
+          sum); with a lighting change one rotation of the SH lighting (6·Σ(2l+1)²) and for "E"
+          its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); the planes (above: per plane,
+          per plane vertex, per sample on a plane). Per point off the planes, the diffuse term
+          about n: the lighting rotated into the frame (6·Σ(2l+1)²), M¹ v (2·nnz) and the dot
+          (6n²); per specular point the same about R plus v rotated into R's frame (2·Σ(2l+1)²)
+          and R (9); "sample": the barycentric interpolation of v (6n²) for every point whose v
+          is needed (off the planes, and specular on them); per point n·ωo (5) and kd/ks (12);
+          "vertex": the radiance interpolated per sample (18). Lighting-only frames do per term
+          only the dot t·l (6n²) and kd/ks (12) per point (t and n·ωo are the cached ones).
+          Not counted: building rotation matrices, skinning.
         """
         if self.model is None or self.scene is None:
             return None
@@ -519,37 +552,44 @@ class ZHShadow(Method):
         N, nF = int(geom.num_vertices), int(geom.F.shape[0])
         J1 = int(m.X.shape[0])
         P = int(num_samples)
-        if self._last_counts is not None and self._last_counts[0] == P:
-            Q, Qs = self._last_counts[1], self._last_counts[2]
+        vertex = cfg["shading"] == "vertex"
+        lc = self._last_counts
+        if lc is not None and lc["P"] == P:
+            Q, Qs, Qp, Qps, G = (lc[k] for k in ("Q", "specular", "planar", "planar_specular", "groups"))
+            Np = lc["plane_vertices"]() if callable(lc["plane_vertices"]) else lc["plane_vertices"]
         else:
-            Q = Qs = N if cfg["shading"] == "vertex" else P
+            Q = Qs = N if vertex else P
+            Qp = Qps = Np = G = 0
+        Qo = Q - Qp                                                # points off the planes
         regions = self.scene.regions
         n_spec_regions = sum(1 for r in regions if self.scene.materials[r].kind == "phong")
         nnz = int((self._op(1.0) != 0).sum())
         pose, light_ch = "P" in kind, any(ch in kind for ch in "LE")
+        lighting_only = kind in ("L", "E")
         env_bytes = int(torch.as_tensor(self.scene.envmap.data).numel()) * 4
         H = int(torch.as_tensor(self.scene.envmap.data).shape[0])
         # -- bytes
-        b = P * (GBUFFER_BYTES_PER_SAMPLE + (8 if cfg["shading"] == "sample" else 0)) + P * 3 * 4
-        b += nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
+        b = P * 3 * 4 + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
-        b += (J1 * N * 6 * c + N * 3) * 4 if pose else N * min(n2, 6 * c + 3) * 4
-        b += N * 6 * 4 if cfg["shading"] == "vertex" else 0
+        if lighting_only:
+            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (P * 20 if vertex else Qp * 16)
+        else:
+            b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
+            b += (J1 * N * 6 * c + N * 3) * 4 if pose else N * min(n2, 6 * c + 3) * 4
         # -- flops
         f = N * (2 * J1 * 6 * c + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
             f += 6 * rot
         if "E" in kind:
             f += 2 * (env_bytes // 4) * (2 * n - 1) + 2 * H * n2 * 3
-        lighting_only = kind in ("L", "E")
-        per_d = 6 * rot + 6 * n2 + (0 if lighting_only else 2 * nnz)
-        per_s = 6 * rot + 6 * n2 + (0 if lighting_only else 2 * rot + 2 * nnz + 9)
+        f += G * (12 * rot + 6 * nnz) + Np * 6 * n2 + (0 if vertex else Qp * 18)
         if lighting_only:
-            b += (Q + Qs) * n2 * 4
-        f += Q * (per_d + 5 + 12) + Qs * per_s
-        if cfg["shading"] == "sample" and not lighting_only:
-            f += Q * 6 * n2
-        if cfg["shading"] == "vertex":
+            f += (Qo + Qs) * 6 * n2 + Q * 12
+        else:
+            f += Qo * (6 * rot + 2 * nnz + 6 * n2) + Qs * (6 * rot + 2 * nnz + 6 * n2 + 2 * rot + 9) + Q * (5 + 12)
+            if not vertex:
+                f += (Qo + Qps) * 6 * n2
+        if vertex:
             f += P * 3 * 3 * 2                                    # interpolate the radiance
         return FrameCost(bytes=int(b), flops=int(f))
 
@@ -557,6 +597,13 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+class _MapView:
+    """An env map's texels and rotation, as `project_latlong` reads an EnvMap (.data, .to_world)."""
+
+    def __init__(self, data: Tensor, to_world: Tensor):
+        self.data, self.to_world = data, to_world
 
 
 class _PoseAdapter:

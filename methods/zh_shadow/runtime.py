@@ -24,6 +24,17 @@ instead of two per-point SH rotations of the lighting. The features are the mono
 (`monomial_basis`; cheaper to evaluate than the SH recurrence) — for order ≤ `MONOMIAL_MAX_ORDER`,
 the SH themselves above. The diffuse factors F_l(1) vanish for odd l ≥ 3, so the diffuse term only
 needs the even-degree monomials and r itself.
+
+Layout and batching (`shade`): points are processed in chunks in the point-minor layout (rows =
+components), a point's visibility Σ_k b_k v[vi_k] is one fused gather (`interpolate`), and the
+monomials come from three broadcast products per degree (`_monomial_levels`). Two exact
+shortcuts, both from the linearity of the terms in v and in l:
+
+* planes (`planar_groups`): points whose normals are bitwise equal share T¹(n), so their diffuse
+  term Σ_k b_k (v[vi_k] · T¹(n)) is a 3-vector per vertex, interpolated — no per-point GEMM;
+* lighting-only frames (`relight_cache`, `relight`): with the tables of the identity lighting
+  (n² channels) the same GEMMs give each point's lighting-free transfer t (term = t · l); kept,
+  a frame with new lighting is one (3, n²) @ (n², Q) product per region and term.
 """
 from __future__ import annotations
 
@@ -34,10 +45,12 @@ import math
 import torch
 from torch import Tensor
 
+from methods.core.frames import coordinate_system_rows
 from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import sh_eval
 from methods.core.threads import torch_threads
-from methods.core.zh import expand_bands, phong_factors
+from methods.core.zh import band_norms, expand_bands, phong_factors
+from methods.zh_shadow.precompute import chart_to_axis
 
 # Largest SH order whose features are monomials: the monomial basis of degree 2n−2 ⊕ 2n−3 has
 # condition number 37 (n = 4), 167 (n = 5), 844 (n = 6), 2.3e4 (n = 8) on the sphere (measured
@@ -45,7 +58,11 @@ from methods.core.zh import expand_bands, phong_factors
 MONOMIAL_MAX_ORDER = 5
 # Points per batch of the per-point kernel (bounds the (Q, n²·3) GEMM outputs; small enough that
 # a batch's temporaries stay in the last-level cache).
-CHUNK = 1 << 14
+CHUNK = 1 << 13
+# Planar groups (`planar_groups`): a plane's diffuse term costs one (N, n²) @ (n², 3) product and a
+# gather per point; below this many points the feature GEMM is as cheap as the group's fixed cost.
+PLANAR_MIN_POINTS = 1024
+PLANAR_MAX_GROUPS = 16
 
 
 def _monos(deg: int) -> list[tuple[int, int, int]]:
@@ -65,6 +82,22 @@ def product_tensor(order: int) -> Tensor:
     return torch.where(G.abs() < 1e-12, torch.zeros_like(G), G)
 
 
+def _fit_monomials(degrees: tuple[int, int], B: int, rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Exponents (K, 3) of the monomials of the two ``degrees`` (`_monos` order) and C (K, |rows|)
+    float64 with y_rows(d) = mono(d) @ C for unit d, y the order-B SH (least squares on random
+    directions; exact to round-off when the monomials span those SH on the sphere)."""
+    ex = _monos(degrees[0]) + _monos(degrees[1])
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(8 * len(ex), 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    et = torch.tensor(ex)
+    M = (d[:, None, :] ** et[None]).prod(-1)
+    # gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in the last
+    # bits, and LAPACK's with the thread count (methods.core.threads)
+    with torch_threads(1):
+        return et, torch.linalg.lstsq(M, sh_eval(d, B)[:, rows], driver="gelsd").solution
+
+
 @functools.lru_cache(maxsize=None)
 def monomial_basis(order: int, diffuse: bool) -> tuple[Tensor, Tensor, Tensor]:
     """The per-point features of `features` and their map to the order-B SH.
@@ -75,85 +108,69 @@ def monomial_basis(order: int, diffuse: bool) -> tuple[Tensor, Tensor, Tensor]:
             F_l(1) ≠ 0 for ``diffuse``: l = 1 and even l);
         C (K, K) float64 with y_rows(d) = mono(d) @ C on the unit sphere (exact to round-off).
     """
-    B = 2 * order - 1
     D = 2 * order - 2
-    ex = _monos(D) + (_monos(1) if diffuse else _monos(D - 1))
-    band = torch.repeat_interleave(torch.arange(B), torch.arange(B) * 2 + 1)
-    rows = ((band % 2 == 0) | (band == 1)).nonzero().squeeze(-1) if diffuse else torch.arange(B * B)
-    g = torch.Generator().manual_seed(0)
-    d = torch.randn(8 * len(ex), 3, generator=g, dtype=torch.float64)
-    d = d / d.norm(dim=-1, keepdim=True)
-    et = torch.tensor(ex)
-    M = (d[:, None, :] ** et[None]).prod(-1)
-    # gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in the last
-    # bits, and LAPACK's with the thread count (methods.core.threads)
-    with torch_threads(1):
-        C = torch.linalg.lstsq(M, sh_eval(d, B)[:, rows], driver="gelsd").solution
+    rows = _table_rows(order, diffuse)
+    et, C = _fit_monomials((D, 1 if diffuse else D - 1), 2 * order - 1, rows)
     return et, rows, C
 
 
 @functools.lru_cache(maxsize=None)
-def _plan(order: int, diffuse: bool) -> tuple[list[tuple[Tensor, Tensor]], list[tuple[int, int, Tensor, Tensor]]]:
-    """How `features` builds the monomials of `monomial_basis` with few batched products.
-
-    steps: degree k (2..h, h = n−1) from degree k−1 times one coordinate (row indices I, J);
-    blocks: (deg_a, deg_b, I, J): the final rows, in `monomial_basis` order, as products of a
-    degree-deg_a row I and a degree-deg_b row J (degree 2n−2 = h + h, 2n−3 = (h−1) + h; degree 1
-    for the diffuse features is the direction itself, deg_b = 0).
-    """
-    h = order - 1
-    levels = {1: _monos(1)}
-    steps = []
-    for deg in range(2, h + 1):
-        I, J = [], []
-        for e in _monos(deg):
-            j = next(q for q in range(3) if e[q] > 0)
-            f = list(e)
-            f[j] -= 1
-            I.append(levels[deg - 1].index(tuple(f)))
-            J.append(j)
-        steps.append((torch.tensor(I), torch.tensor(J)))
-        levels[deg] = _monos(deg)
-
-    def split(deg: int, da: int) -> tuple[int, int, Tensor, Tensor]:
-        db = deg - da
-        I, J = [], []
-        for e in _monos(deg):
-            for ea in levels[da]:
-                rest = tuple(x - y for x, y in zip(e, ea))
-                if min(rest) >= 0:
-                    I.append(levels[da].index(ea))
-                    J.append(levels[db].index(rest))
-                    break
-        return da, db, torch.tensor(I), torch.tensor(J)
-
-    blocks = [split(2 * h, h)]
-    blocks.append((1, 0, torch.arange(3), torch.zeros(3, dtype=torch.long)) if diffuse else split(2 * h - 1, h - 1))
-    return steps, blocks
+def sh_monomials(order: int) -> Tensor:
+    """C (n², n²) float64 with y(d) = mono(d) @ C on the unit sphere: the order-n SH from the
+    monomials of degree n−1 and n−2 (`sh_features`), which span them there exactly."""
+    return _fit_monomials((order - 1, order - 2), order, torch.arange(order * order))[1]
 
 
-def features(dT: Tensor, order: int, diffuse: bool) -> Tensor:
+def sh_features(dT: Tensor, order: int) -> Tensor:
+    """(n², Q) monomials of degree n−1 and n−2 of unit directions dT (3, Q) (`sh_monomials`)."""
+    dT = dT.contiguous()
+    out = torch.empty(order * order, dT.shape[1], dtype=dT.dtype, device=dT.device)
+    _monomial_levels(dT, (order - 1, order - 2), out)
+    return out
+
+
+def _monomial_levels(dT: Tensor, degrees: tuple[int, ...], out: Tensor) -> None:
+    """Write the monomials of each degree in ``degrees`` (each ≥ 0, `_monos` order) of the
+    directions dT (3, Q) into consecutive row blocks of ``out``.
+
+    Degree k from degree k−1 with three broadcast products and no gathers: in `_monos` order
+    (exponents descending) the degree-k monomials are x·(every degree-(k−1) one), then y·(the last
+    k of them, those without x), then z·(the last one, z^(k−1)) — in that order."""
+    top = max(max(degrees), 1)
+    blocks, r = {}, 0
+    for k in degrees:
+        m = (k + 1) * (k + 2) // 2
+        blocks[k] = out[r:r + m]
+        r += m
+    prev = dT
+    for k in range(2, top + 1):
+        m = (k + 1) * (k + 2) // 2
+        cur = blocks[k] if k in blocks else torch.empty(m, dT.shape[1], dtype=dT.dtype, device=dT.device)
+        p = prev.shape[0]
+        torch.mul(prev, dT[0:1], out=cur[:p])
+        torch.mul(prev[p - k:], dT[1:2], out=cur[p:p + k])
+        torch.mul(prev[p - 1:], dT[2:3], out=cur[p + k:])
+        prev = cur
+    if 1 in blocks:
+        blocks[1].copy_(dT)
+    if 0 in blocks:
+        blocks[0].fill_(1.0)
+
+
+def features(dT: Tensor, order: int, diffuse: bool, *, out: Tensor | None = None) -> Tensor:
     """(K, Q) per-point features of unit directions dT (3, Q) (coordinates as rows): monomials
-    (order ≤ `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`)."""
+    (order ≤ `MONOMIAL_MAX_ORDER`, `monomial_basis`) or the order-B SH themselves (rows of `table`);
+    written into ``out`` (K, Q) when given."""
     if order > MONOMIAL_MAX_ORDER:
         Y = sh_eval(dT.T, 2 * order - 1).T
-        return Y.index_select(0, _table_rows(order, diffuse).to(dT.device)) if diffuse else Y
-    if order < 3:   # degrees ≤ 2: the plan's split needs h ≥ 2
-        et = monomial_basis(order, diffuse)[0].to(dT.device)
-        return (dT.T[:, None, :] ** et[None]).prod(-1).T
-    steps, blocks = _plan(order, diffuse)
-    lv = {1: dT}
-    for k, (I, J) in enumerate(steps, start=2):                  # degree k = degree k−1 · one coordinate
-        lv[k] = lv[k - 1].index_select(0, I.to(dT.device)) * dT.index_select(0, J.to(dT.device))
-    out = torch.empty(sum(b[2].shape[0] for b in blocks), dT.shape[1], dtype=dT.dtype, device=dT.device)
-    r = 0
-    for da, db, I, J in blocks:
-        rows = out[r:r + I.shape[0]]
-        if db == 0:
-            rows.copy_(lv[da])
-        else:
-            torch.mul(lv[da].index_select(0, I.to(dT.device)), lv[db].index_select(0, J.to(dT.device)), out=rows)
-        r += I.shape[0]
+        Y = Y.index_select(0, _table_rows(order, diffuse).to(dT.device)) if diffuse else Y
+        return Y if out is None else out.copy_(Y)
+    D = 2 * order - 2
+    degrees = (D, 1) if diffuse else (D, D - 1)
+    dT = dT.contiguous()
+    if out is None:
+        out = torch.empty(sum((k + 1) * (k + 2) // 2 for k in degrees), dT.shape[1], dtype=dT.dtype, device=dT.device)
+    _monomial_levels(dT, degrees, out)
     return out
 
 
@@ -185,6 +202,26 @@ def table(light: Tensor, alpha: float, *, diffuse: bool) -> Tensor:
     return Wy.to(dtype=light.dtype, device=light.device)
 
 
+def _term(vT: Tensor, dT: Tensor, W: Tensor, diffuse: bool) -> Tensor:
+    """(C, Q) = Σ_j v_j T_jc(d): the feature GEMM W_ᵀ features(d) (n²·C, Q) and the n²-term dot."""
+    n2, Q = vT.shape
+    T = (W.T @ features(dT, math.isqrt(n2), diffuse)).view(n2, -1, Q)
+    return (T * vT[:, None]).sum(0)
+
+
+def dot_T(aT: Tensor, bT: Tensor) -> Tensor:
+    """(Q,) a·b of (3, Q) vectors (rows = components): two fused multiply-adds on rows, no
+    reduction over the short leading dim."""
+    return torch.addcmul(torch.addcmul(aT[0] * bT[0], aT[1], bT[1]), aT[2], bT[2])
+
+
+def reflect_T(nT: Tensor, woT: Tensor) -> Tensor:
+    """(3, Q) unit R = reflect(ωo, n) = 2(n·ωo)n − ωo of unit nT, woT (3, Q), renormalised as
+    `methods.core.frames.reflect` + the reference path's normalisation."""
+    R = torch.addcmul(-woT, 2.0 * dot_T(woT, nT), nT)
+    return R / dot_T(R, R).sqrt().clamp_min(1e-12)
+
+
 def shade_terms(vT: Tensor, nT: Tensor, woT: Tensor, Wd: Tensor, Ws: Tensor | None) -> tuple[Tensor, Tensor | None]:
     """Diffuse and specular terms of Q points (before kd, ks; front-facing test not applied), in
     the point-minor layout the batched products want (rows = components, columns = points).
@@ -195,12 +232,388 @@ def shade_terms(vT: Tensor, nT: Tensor, woT: Tensor, Wd: Tensor, Ws: Tensor | No
     Returns:
         diffuse (3, Q) = v · T¹(n); specular (3, Q) = v · T^α(R) or None.
     """
-    n2, Q = vT.shape
-    n = math.isqrt(n2)
-    diff = ((Wd.T @ features(nT, n, True)).view(n2, -1, Q) * vT[:, None]).sum(0)
+    diff = _term(vT, nT, Wd, True)
     if Ws is None:
         return diff, None
-    R = 2.0 * (woT * nT).sum(0, keepdim=True) * nT - woT                         # reflect(ωo, n)
-    R = R / R.norm(dim=0, keepdim=True).clamp_min(1e-12)
-    spec = ((Ws.T @ features(R, n, False)).view(n2, -1, Q) * vT[:, None]).sum(0)
-    return diff, spec
+    return diff, _term(vT, reflect_T(nT, woT), Ws, False)
+
+
+def interpolate(values: Tensor, vi: Tensor, b: Tensor) -> Tensor:
+    """(Q, C) = Σ_k b[q, k] · values[vi[q, k]]: barycentric interpolation of per-vertex rows
+    (values (N, C); vi (Q, k) int32 or int64 vertex ids, b (Q, k) weights; k = 1 is a plain gather), as one
+    fused gather-and-sum (``embedding_bag``, mode "sum" with per-sample weights)."""
+    return torch.nn.functional.embedding_bag(vi, values, per_sample_weights=b.to(values.dtype), mode="sum")
+
+
+def barycentrics(uv: Tensor) -> Tensor:
+    """(Q, 3) weights (1 − u − v, u, v) of the G-buffer's (Q, 2) barycentrics (u, v)
+    (`GBuffer.vertex_weights` without the miss mask)."""
+    u, v = uv.unbind(-1)
+    return torch.stack([1.0 - u - v, u, v], -1)
+
+
+def rows(x: Tensor) -> Tensor:
+    """(C, Q) contiguous copy of a (Q, C) tensor (one strided row copy per column: several times
+    faster than ``x.T.contiguous()`` for small C)."""
+    return torch.stack(x.unbind(-1))
+
+
+def planar_groups(nT: Tensor, *, min_points: int | None = None,
+                  max_groups: int | None = None) -> tuple[list[tuple[Tensor, Tensor | None]], Tensor | None,
+                                                          Tensor | None]:
+    """Points whose normals are bitwise equal (a plane), as groups, and the rest.
+
+    A group shares the diffuse factor T¹(n) (n², C), so its diffuse term v · T¹(n) is linear in v:
+    per vertex, then interpolated, exactly (`shade`). Candidates are the normals of the first
+    remaining point and of 7 evenly spaced ones; a candidate makes a group when at least
+    ``min_points`` (default `PLANAR_MIN_POINTS`) points share it (a smaller group would not pay for
+    its per-vertex pass; every 16th point screens a candidate first). Stops when no candidate
+    qualifies or after ``max_groups`` (`PLANAR_MAX_GROUPS`) groups.
+
+    Args:
+        nT: (3, Q) unit normals (rows = components).
+    Returns:
+        groups [(n0 (3,), positions (Q_g,) int64 ascending — None for a first group that holds
+        more than half the points: its mask is returned instead)], that mask (Q,) bool or None,
+        and the rest's positions (ascending; None when there is no group: every point).
+    """
+    min_points = PLANAR_MIN_POINTS if min_points is None else min_points
+    max_groups = PLANAR_MAX_GROUPS if max_groups is None else max_groups
+    Q = nT.shape[1]
+    groups: list[tuple[Tensor, Tensor | None]] = []
+    mask = rest = None
+    cur = nT
+    while len(groups) < max_groups and cur.shape[1] >= min_points:
+        m = cur.shape[1]
+        sub = cur[:, ::16]
+        for c in range(8):
+            n0 = cur[:, c * m // 8].clone()
+            if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
+                continue                                                   # under half the size, screened
+            eq = (cur[0] == n0[0]) & (cur[1] == n0[1]) & (cur[2] == n0[2])
+            cnt = int(eq.sum())
+            if cnt >= min_points:
+                break
+        else:
+            break
+        keep = ~eq
+        if rest is None:
+            if 2 * cnt > Q:
+                mask = eq
+                groups.append((n0, None))
+            else:
+                groups.append((n0, eq.nonzero().squeeze(-1)))
+            rest = keep.nonzero().squeeze(-1)
+            cur = cur.index_select(1, rest)
+        else:
+            groups.append((n0, rest[eq]))
+            rest, cur = rest[keep], cur[:, keep]
+    return groups, mask, rest
+
+
+def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_normal: Tensor,
+                  vertex_region: Tensor) -> dict:
+    """{"planar": points on the planes, "groups": planes, "plane_vertices": a zero-argument
+    function (evaluated on demand, by `ZHShadow.frame_cost`) counting the vertices whose normal
+    is a plane's and whose region has points on that plane — the per-vertex pass a plane needs at
+    least}, and zeros for "specular", "planar_specular" (filled by the caller)."""
+    out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
+    for _, pos in groups:
+        out["planar"] += int(mask.sum()) if pos is None else int(pos.shape[0])
+
+    def plane_vertices() -> int:
+        nv, total = vertex_normal, 0
+        for n0, pos in groups:
+            regs = torch.unique(region[mask] if pos is None else region[pos])
+            on = (nv[:, 0] == n0[0]) & (nv[:, 1] == n0[1]) & (nv[:, 2] == n0[2])
+            total += int((on & torch.isin(vertex_region, regs)).sum())
+        return total
+
+    out["plane_vertices"] = plane_vertices
+    return out
+
+
+def point_counts(nT: Tensor, region: Tensor, spec_regions: list[bool], vertex_normal: Tensor,
+                 vertex_region: Tensor) -> dict:
+    """The counts `shade` reports, without shading: planes (`planar_groups`, `_plane_counts`) and
+    the points with a specular term (region in ``spec_regions``), on planes or not."""
+    Q = nT.shape[1]
+    groups, mask, _ = planar_groups(nT) if Q >= PLANAR_MIN_POINTS else ([], None, None)
+    counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
+    spec = torch.tensor(spec_regions, dtype=torch.bool, device=region.device)[region.clamp_min(0)]
+    counts["specular"] = int(spec.sum())
+    on_plane = torch.zeros(Q, dtype=torch.bool, device=nT.device)
+    for _, pos in groups:
+        if pos is None:
+            on_plane |= mask
+        else:
+            on_plane[pos] = True
+    counts["planar_specular"] = int((spec & on_plane).sum())
+    return counts
+
+
+def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
+    """(n², C) T¹(n0): the diffuse factor of every SH visibility coefficient at one normal n0 (3,)."""
+    n2 = Wd.shape[1] // C
+    return (Wd.T @ features(n0.reshape(3, 1).to(Wd.dtype), math.isqrt(n2), True)).view(n2, C)
+
+
+def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
+          vertex_normal: Tensor, mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], *, planar: bool = True,
+          chunk: int = CHUNK) -> tuple[Tensor, dict[str, int]]:
+    """Exit radiance of Q points (§4.3 steps 2–5 through the tables, module docstring).
+
+    A point's visibility is Σ_k b[q, k] v[vi[q, k]] (a G-buffer sample: its face's three vertices
+    and barycentrics; a vertex: itself with weight 1). Points on a plane (`planar_groups`, over all
+    regions: the diffuse table does not depend on the material) get their diffuse term per vertex,
+    u = kd(vertex) ⊙ v · T¹(n0), interpolated like v — exact, the term is linear in v and a face's
+    vertices share its region. Every other diffuse term and every specular term goes through the
+    feature GEMMs (`shade_terms`), per region, in chunks of ``chunk`` points.
+
+    Args:
+        v: (N, n²) per-vertex world-space SH visibility; vi, b: (Q, k) vertex ids / weights;
+        nT, woT: (3, Q) unit normals / directions to the viewer; region: (Q,) int64 region of
+        each point; vertex_region: (N,) int64; vertex_normal: (N, 3) (counts only);
+        mats: per region (kd (3,), ks (3,), Wd, Ws or None: no specular term); one Wd for all.
+        planar: use `planar_groups` (False: every point through the GEMMs).
+    Returns:
+        (3, Q) radiance (0 where n·ωo ≤ 0, as the BRDFs) and counts (`_plane_counts`, plus
+        "specular": points with a specular term, "planar_specular": those of them on planes).
+    """
+    Q, dev, dt = nT.shape[1], v.device, v.dtype
+    groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
+    Wd = mats[0][2]
+    counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
+    out = None
+    if groups:
+        kd_v = torch.stack([m[0] for m in mats]).to(dev, dt).index_select(0, vertex_region)   # (N, 3)
+        for g, (n0, pos) in enumerate(groups):
+            u = (v @ diffuse_at(Wd, n0)) * kd_v                                     # (N, 3) per vertex
+            if pos is None:   # most points: interpolate everywhere, keep the group's (no gathers)
+                out = rows(interpolate(u, vi, b)).mul_(mask)
+            else:
+                if out is None:
+                    out = torch.zeros(3, Q, dtype=dt, device=dev)
+                out.index_copy_(1, pos, interpolate(u, vi.index_select(0, pos), b.index_select(0, pos)).T)
+    if out is None:
+        out = torch.empty(3, Q, dtype=dt, device=dev)
+
+    n = math.isqrt(v.shape[1])
+
+    def general(p: Tensor | None, kd: Tensor, ks: Tensor, Wd_: Tensor | None, Ws: Tensor | None, add: bool) -> None:
+        """out[:, p] (= or +=) kd ⊙ diffuse (unless Wd_ is None) + ks ⊙ specular (if Ws): one
+        GEMM per chunk, the albedos folded into the stacked tables [Wd ⊙ kd; Ws ⊙ ks]."""
+        Ws_ = [] if Ws is None else [(Ws.view(Ws.shape[0], -1, 3) * ks).view(Ws.shape[0], -1)]
+        W = torch.cat(([] if Wd_ is None else [(Wd_.view(Wd_.shape[0], -1, 3) * kd).view(Wd_.shape[0], -1)]) + Ws_)
+        Kd = 0 if Wd_ is None else Wd_.shape[0]
+        m = Q if p is None else p.shape[0]
+        for a in range(0, m, chunk):
+            if p is None:
+                s = slice(a, a + chunk)
+                vi_c, b_c, n_c, wo_c = vi[s], b[s], nT[:, s], woT[:, s]
+            else:
+                pc = p[a:a + chunk]
+                vi_c, b_c = vi.index_select(0, pc), b.index_select(0, pc)
+                n_c, wo_c = nT.index_select(1, pc), woT.index_select(1, pc)
+            f = torch.empty(W.shape[0], n_c.shape[1], dtype=dt, device=dev)
+            if Wd_ is not None:
+                features(n_c, n, True, out=f[:Kd])
+            if Ws is not None:
+                features(reflect_T(n_c, wo_c), n, False, out=f[Kd:])
+            vT = rows(interpolate(v, vi_c, b_c))                                    # (n², Q_c)
+            rad = ((W.T @ f).view(n * n, 3, -1) * vT[:, None]).sum(0)                # (3, Q_c)
+            if p is None:
+                if add:
+                    out[:, s] += rad
+                else:
+                    out[:, s] = rad
+            elif add:
+                out.index_add_(1, pc, rad)
+            else:
+                out.index_copy_(1, pc, rad)
+
+    single = len(mats) == 1
+    for r, (kd, ks, _, Ws) in enumerate(mats):
+        kd, ks = kd.to(dev, dt), ks.to(dev, dt)
+        if not groups and single:
+            p = None                                                               # every point, in order
+        else:
+            ids = rest if groups else torch.arange(Q, device=dev)
+            p = ids if single else ids[region.index_select(0, ids) == r]
+        if p is None or p.shape[0]:
+            general(p, kd, ks, Wd, Ws, add=False)
+        if Ws is not None:
+            counts["specular"] += Q if p is None else int(p.shape[0])
+            for _, pos in groups:                                                  # the planes' specular term
+                if pos is None:
+                    pos = mask.nonzero().squeeze(-1)
+                pg = pos if single else pos[region.index_select(0, pos) == r]
+                if pg.shape[0]:
+                    general(pg, kd, ks, None, Ws, add=True)
+                    counts["specular"] += int(pg.shape[0])
+                    counts["planar_specular"] += int(pg.shape[0])
+    return out.mul_(dot_T(nT, woT) > 0), counts                                # 0 where n·ωo ≤ 0
+
+
+@functools.lru_cache(maxsize=None)
+def _identity_table(order: int, alpha: float, diffuse: bool) -> Tensor:
+    """`table` of the identity lighting (n² channels, lighting coefficient i = e_i): W (K, n²·n²)
+    with Σ_j v_j T_ji(r) the transfer vector t_i(r) of the lighting coefficient i (float32)."""
+    n2 = order * order
+    return table(torch.eye(n2, dtype=torch.float64), alpha, diffuse=diffuse).float()
+
+
+def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
+                  vertex_normal: Tensor, alphas: list[float | None], *, planar: bool = True,
+                  chunk: int = CHUNK) -> dict:
+    """What a frame that changes only the lighting needs of the points of `shade` (same args;
+    ``alphas``: per region the Phong exponent, None for no specular term): their lighting-free
+    transfer, so that the frame is one small product per region (`relight`).
+
+    * planes (`planar_groups`): the vertex ids and barycentrics (front-facing test and group folded
+      into the weights); the per-vertex diffuse factor v · T¹(n0) is the lighting's part;
+    * every other point: t_d(q) = Σ_j v_j T¹_j·(n) ((n², Q), the diffuse transfer vector of the
+      world-space lighting: term = t_d · l, linear in l) and, where there is a specular term,
+      t_s(q) = Σ_j v_j T^α_j·(R) — `_term` with the tables of the identity lighting
+      (`_identity_table`); the front-facing test folded in.
+
+    Built once per view, pose and exponents (the first lighting-only frame after they changed):
+    2·n²·K flops per point and term instead of 2·3·K, then reused by every lighting-only frame.
+    """
+    Q, dev, dt = nT.shape[1], v.device, v.dtype
+    n = math.isqrt(v.shape[1])
+    groups, mask, rest = planar_groups(nT) if planar and Q >= PLANAR_MIN_POINTS else ([], None, None)
+    front = dot_T(nT, woT) > 0
+    cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [],
+                   "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
+    counts = cache["counts"]
+    for n0, pos in groups:
+        if pos is None:
+            cache["groups"].append((n0, None, None, b * (mask & front)[:, None]))
+        else:
+            cache["groups"].append((n0, pos, vi.index_select(0, pos), b.index_select(0, pos) * front[pos, None]))
+    Wd = _identity_table(n, 1.0, True).to(dev, dt)
+
+    def transfer(p: Tensor | None, Wd_: Tensor | None, Ws: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+        m = Q if p is None else p.shape[0]
+        td = torch.empty(v.shape[1], m, dtype=dt, device=dev) if Wd_ is not None else None
+        ts = torch.empty(v.shape[1], m, dtype=dt, device=dev) if Ws is not None else None
+        for a in range(0, m, chunk):
+            s = slice(a, a + chunk)
+            if p is None:
+                vi_c, b_c, n_c, wo_c, f_c = vi[s], b[s], nT[:, s], woT[:, s], front[s]
+            else:
+                pc = p[s]
+                vi_c, b_c = vi.index_select(0, pc), b.index_select(0, pc)
+                n_c, wo_c, f_c = nT.index_select(1, pc), woT.index_select(1, pc), front.index_select(0, pc)
+            vT = rows(interpolate(v, vi_c, b_c))
+            if td is not None:
+                torch.mul(_term(vT, n_c, Wd_, True), f_c, out=td[:, s])
+            if ts is not None:
+                torch.mul(_term(vT, reflect_T(n_c, wo_c), Ws, False), f_c, out=ts[:, s])
+        return td, ts
+
+    single = len(alphas) == 1
+    for r, al in enumerate(alphas):
+        Ws = None if al is None else _identity_table(n, float(al), False).to(dev, dt)
+        if not groups and single:
+            p = None
+        else:
+            ids = rest if groups else torch.arange(Q, device=dev)
+            p = ids if single else ids[region.index_select(0, ids) == r]
+        entries = []
+        if p is None or p.shape[0]:
+            entries.append((p, *transfer(p, Wd, Ws)))
+            if Ws is not None:
+                counts["specular"] += Q if p is None else int(p.shape[0])
+        if Ws is not None:
+            for _, pos in groups:                                                  # the planes' specular term
+                if pos is None:
+                    pos = mask.nonzero().squeeze(-1)
+                pg = pos if single else pos[region.index_select(0, pos) == r]
+                if pg.shape[0]:
+                    entries.append((pg, None, transfer(pg, None, Ws)[1]))
+                    counts["specular"] += int(pg.shape[0])
+                    counts["planar_specular"] += int(pg.shape[0])
+        cache["regions"].append(entries)
+    return cache
+
+
+def relight_cache_bytes(cache: dict) -> int:
+    """Bytes of the arrays a `relight_cache` holds (the vertex ids are the frame's, counted too)."""
+    ts = [cache["vi"]] + [x for g in cache["groups"] for x in g[1:] if x is not None]
+    ts += [x for entries in cache["regions"] for e in entries for x in e if x is not None]
+    return sum(t.element_size() * t.nelement() for t in ts)
+
+
+def relight(cache: dict, v: Tensor, Wd: Tensor, light: Tensor, vertex_region: Tensor,
+            mats: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """(3, Q) radiance of a lighting-only frame from `relight_cache`: planes through their
+    per-vertex diffuse factor (as `shade`), every other term t · (l ⊙ k) — one (3, n²) @ (n², Q_r)
+    product per region and term.
+
+    Args:
+        v: (N, n²); Wd: `table`(light, 1, diffuse=True); light: (n², 3) world-space SH lighting;
+        mats: per region (kd (3,), ks (3,)).
+    """
+    Q, dev, dt = cache["Q"], v.device, v.dtype
+    out = None
+    if cache["groups"]:
+        kd_v = torch.stack([m[0] for m in mats]).to(dev, dt).index_select(0, vertex_region)
+        for n0, pos, vi_g, b_g in cache["groups"]:
+            u = (v @ diffuse_at(Wd, n0)) * kd_v
+            if pos is None:
+                out = rows(interpolate(u, cache["vi"], b_g))
+            else:
+                if out is None:
+                    out = torch.zeros(3, Q, dtype=dt, device=dev)
+                out.index_copy_(1, pos, interpolate(u, vi_g, b_g).T)
+    if out is None:
+        out = torch.empty(3, Q, dtype=dt, device=dev)
+    light = light.to(dev, dt)
+    for (kd, ks), entries in zip(mats, cache["regions"]):
+        for p, td, ts in entries:
+            rad = None
+            if td is not None:
+                rad = (light * kd.to(dev, dt)).T @ td                              # (3, Q_r)
+            if ts is not None:
+                sp = (light * ks.to(dev, dt)).T @ ts
+                rad = sp if rad is None else rad + sp
+            if p is None:
+                out = rad
+            elif td is None:
+                out.index_add_(1, p, rad)
+            else:
+                out.index_copy_(1, p, rad)
+    return out
+
+
+def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Tensor:
+    """(N, n²) world-space SH visibility of every vertex at one pose: §4.3 step 1 (the linear
+    model [pose, 1] · X, one matrix-vector product), the lobe axes from their chart
+    (`precompute.chart_to_axis`) taken to world space through the vertex frame (s, t, n)
+    (`methods.core.frames.coordinate_system_rows`, the frame the visibility was fitted in), and eq. 1
+    with y(s) from monomials (`sh_monomials`), in the point-minor layout. The same numbers as
+    `ZHModel.lobes_at` + `frame_matrix` + `zh_lobes_to_sh` (the reference path) to round-off.
+
+    Args:
+        X: (J+1, N, c·(2+n)) linear model; pose: (J,) joint angles; normal: (N, 3) unit posed normals.
+    """
+    J1, N, d = X.shape
+    per = d // lobes
+    n = per - 2
+    a = torch.cat([pose.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype, device=X.device)])
+    if a.shape[0] != J1:
+        raise ValueError(f"pose has {a.shape[0] - 1} joints, the model {J1 - 1}")
+    pT = rows((a @ X.reshape(J1, N * d)).view(N, d)).view(lobes, per, N)    # [pose, 1] · X, point-minor
+    nT = rows(normal.to(X.dtype))
+    s, t = coordinate_system_rows(nT)                                        # (3, N) each
+    ax = chart_to_axis(pT[:, :2].transpose(1, 2))                            # (c, N, 3) local axes
+    ax = ax.permute(2, 0, 1)                                                 # (3, c, N)
+    aw = (s[:, None] * ax[0] + t[:, None] * ax[1] + nT[:, None] * ax[2]).reshape(3, lobes * N)   # world
+    Y = sh_monomials(n).to(X.dtype).T.to(X.device) @ sh_features(aw, n)       # (n², c·N) y(s)
+    band = torch.repeat_interleave(torch.arange(n, device=X.device), torch.arange(n, device=X.device) * 2 + 1)
+    lam = band_norms(n, dtype=X.dtype, device=X.device)[:, None]
+    k = (pT[:, 2:] * lam).index_select(1, band)                               # (c, n², N) Λ_l k_l
+    vT = (Y.view(n * n, lobes, N) * k.transpose(0, 1)).sum(1)                 # eq. 1, sum of lobes
+    return vT.T.contiguous()

@@ -146,3 +146,24 @@ def test_sequences_changed():
             assert all(f.materials[r].kind == s.materials[r].kind for r in s.regions)
     with pytest.raises(ValueError):
         make_sequence(get_scene("sphere_plane"), "P")
+
+
+def test_gbuffer_resolve_channels_first():
+    """`GBuffer.resolve(channels_first=True)` on (3, P) radiance = the (P, 3) box filter (misses
+    count as 0, whatever the radiance there), with and without misses; bad shapes rejected."""
+    from scenes.frame import GBuffer
+
+    H, W, S = 3, 5, 2
+    P = H * W * S * S
+    g = torch.Generator().manual_seed(0)
+    rad = torch.randn(P, 3, generator=g)
+    for hit in (torch.ones(P, dtype=torch.bool), torch.rand(P, generator=g) > 0.3):
+        z = torch.zeros(P)
+        gb = GBuffer(H, W, S, hit, z.long(), torch.zeros(P, 2), torch.zeros(P, 3), torch.zeros(P, 3),
+                     torch.zeros(P, 3), z.long(), torch.ones(H, W, dtype=torch.bool))
+        want = gb.resolve(rad)
+        got = gb.resolve(rad.T.contiguous(), channels_first=True)
+        assert got.shape == (H, W, 3)
+        assert (got - want).abs().max() <= 1e-6
+        with pytest.raises(ValueError, match="channel-major"):
+            gb.resolve(rad, channels_first=True)

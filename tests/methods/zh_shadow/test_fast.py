@@ -26,51 +26,122 @@ SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
 
 
 @pytest.fixture(scope="module")
-def small_model():
-    from scenes.library import get_scene
-
+def small_model(zh_scene):
+    """name → a ZHShadow precomputed on that test-size scene (`zh_scene`: "chess" is the Phong
+    stand-in). Callers that render take ``.with_render_config()`` (fresh frame caches)."""
     built = {}
 
     def get(name: str):
         if name not in built:
-            sc = get_scene(name, "test")
             m = ZHShadow(**SMALL)
-            m.precompute(sc)
+            m.precompute(zh_scene(name))
             built[name] = m
-        return built[name]
+        return built[name].with_render_config()
 
     return get
 
 
-def _check_sequence(m, kind: str, n_frames: int = 2, seed: int = 3):
+def _check_frames(m, frames, label: str = ""):
     from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
 
-    for fr in make_sequence(m.scene, kind, n_frames, seed=seed):   # frame 1 exercises the caches
+    for fr in frames:
         gb = make_gbuffer(m.scene, fr, 2)
         fast, ref = m.render(fr, gb), m._render_reference(fr, gb)
         assert ref.abs().max() > 0.05, "degenerate test image"
         err = (fast - ref).abs().max().item()
-        assert err <= RENDER_TOL, f"{m.scene.name} {kind} frame {fr.index} {m.config['shading']}: {err}"
+        assert err <= RENDER_TOL, f"{m.scene.name} {label} frame {fr.index} {m.config['shading']}: {err}"
 
 
-@pytest.mark.parametrize("name", SCENES)
+def _check_sequence(m, kind: str, n_frames: int = 2, seed: int = 3):
+    """Fast == reference on every frame of a ``kind`` sequence (frame 1 on exercises the caches; the
+    second lighting-only frame of an L or E sequence shades from the cached transfer)."""
+    from scenes.sequences import make_sequence
+
+    _check_frames(m, make_sequence(m.scene, kind, n_frames, seed=seed), kind)
+    if kind in ("L", "E") and n_frames >= 3 and m.config["shading"] == "sample":
+        assert m._relight is not None, "lighting-only frames did not use the transfer cache"
+
+
+@pytest.mark.parametrize("name", SCENES + ("chess",))
 def test_fast_equals_reference(small_model, name):
-    """V and L frames (P frames too on the articulated scenes), sample shading, default config."""
+    """V, L and E frames (3 of each lighting kind: the cached transfer is built, then used) and P
+    frames on the articulated scenes; sample shading, default config. Planes cover the cases:
+    one plane holding most samples (every scene), a second one spanning two regions with a
+    specular one (alcove), a specular plane (chess: its Phong board)."""
     m = small_model(name)
-    kinds = ("V", "L", "P") if name in ARTICULATED else ("V", "L")
-    for kind in kinds:
-        _check_sequence(m, kind)
+    for kind in ("V", "L", "E") + (("P",) if name in ARTICULATED else ()):
+        _check_sequence(m, kind, n_frames=3 if kind in ("L", "E") else 2)
 
 
 def test_fast_equals_reference_variants(small_model):
-    """Vertex shading, a new probe (E: the cached lighting must follow), material changes (VB:
-    new exponents), a window and clamp off — on the creature."""
+    """Vertex shading, material changes (VB: new exponents), view + lighting (VL) with a window and
+    clamp off, and no planar groups — on the creature."""
     m = small_model("creature")
     _check_sequence(m.with_render_config(shading="vertex"), "P")
-    _check_sequence(m, "E", n_frames=3)
+    _check_sequence(m.with_render_config(shading="vertex"), "L", n_frames=3)
     _check_sequence(m, "VB")
     _check_sequence(m.with_render_config(window="hanning", clamp=False), "VL")
+    _check_sequence(m.with_render_config(window="hanning", clamp=False), "L", n_frames=3)
+
+
+@pytest.mark.parametrize("order", (2, 3, 6, 8))
+def test_fast_equals_reference_orders(zh_scene, order):
+    """Other SH orders: monomial features and eq. 1 by monomials (2, 3), SH features above
+    `MONOMIAL_MAX_ORDER` (6, 8 — the order of the suites' physical ZH setting), V and lighting-only
+    frames, on the creature (P frames: the pose model)."""
+    m = ZHShadow(**SMALL, order=order)
+    m.precompute(zh_scene("creature"))
+    for kind, n in (("P", 2), ("L", 3)):
+        _check_sequence(m.with_render_config(), kind, n_frames=n)
+
+
+@pytest.mark.parametrize("name", ("alcove", "creature"))
+def test_fast_equals_reference_small_planes(small_model, monkeypatch, name):
+    """Planes down to 16 points, so vertex shading has them too (the test-size grounds have
+    < `PLANAR_MIN_POINTS` vertices) and sample shading finds more, smaller ones."""
+    monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 16)
+    m = small_model(name)
+    for shading in ("sample", "vertex"):
+        mm = m.with_render_config(shading=shading)
+        _check_sequence(mm, "V")
+        _check_sequence(mm, "L", n_frames=3)
+        if shading == "vertex":
+            assert mm._last_counts["groups"] >= 1
+
+
+def test_transfer_cache_invalidation(small_model):
+    """A frame that says only the lighting changed but whose camera, pose or exponents differ
+    from the previous frame's is shaded from scratch (the cache key), a real lighting-only frame
+    after it rebuilds the cache, and a changed albedo (kd, ks: applied at shading time) is
+    honoured by the cached transfer."""
+    import dataclasses
+
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    L = make_sequence(m.scene, "L", 4, seed=5)
+    V = make_sequence(m.scene, "V", 2, seed=5)
+    P = make_sequence(m.scene, "P", 2, seed=5)
+    light_only = frozenset({"light"})
+    lie_view = dataclasses.replace(V[1], envmap=L[2].envmap, changed=light_only)
+    lie_pose = dataclasses.replace(P[1], envmap=L[2].envmap, changed=light_only)
+    mat = m.scene.materials["creature"]
+    lie_alpha = dataclasses.replace(L[2], materials={**L[2].materials, "creature": Phong(kd=mat.kd, ks=mat.ks, s=3.0)},
+                                    changed=light_only)
+    albedo = dataclasses.replace(L[3], materials={**L[3].materials,
+                                                  "creature": Phong(kd=(0.2, 0.6, 0.3), ks=(0.4, 0.1, 0.2), s=mat.s)},
+                                 changed=light_only)
+    cached = []
+    for fr in (L[0], L[1], L[2], albedo, lie_view, L[3], lie_pose, L[1], L[2], lie_alpha, L[3]):
+        _check_frames(m, [fr], "mixed")
+        cached.append(None if m._relight is None else id(m._relight[3]))
+    # L[1], the first lighting-only frame after L[0], builds the transfer; L[2] and the albedo
+    # change reuse it; every lie is shaded from scratch (and drops it), so is the frame after it
+    # (its predecessor's state differs); the next true lighting-only frame rebuilds.
+    assert cached[0] is None and cached[1] is not None and cached[1] == cached[2] == cached[3]
+    assert cached[4:8] == [None] * 4
+    assert cached[8] is not None and cached[9] is None and cached[10] is None
 
 
 def test_shade_terms_equal_reference_shade():
@@ -120,7 +191,9 @@ def test_product_tensor_and_features():
 
 def test_frame_cost_hand_count():
     """Bytes and flops of every frame kind on a tiny static scene, counted by hand (order 4,
-    2 lobes: Σ(2l+1)² = 84 rotation entries, 44 non-zeros of M^α, 16 SH coefficients)."""
+    2 lobes: Σ(2l+1)² = 84 rotation entries, 44 non-zeros of M^α, 16 SH coefficients). The plane's
+    samples (Lambert, all with the normal +y) are counted here from the G-buffer and the mesh,
+    independently of `runtime.planar_groups`."""
     from references.gbuffer import make_gbuffer
     from scenes.library import get_scene
 
@@ -130,39 +203,73 @@ def test_frame_cost_hand_count():
     assert m.frame_cost("V", 1000) is not None
     fr = sc.default_frame()
     gb = make_gbuffer(sc, fr, 1)
-    m.render(fr, gb)
     P = gb.num_samples
-    Q = int(gb.hit.sum())                                                    # covered samples
-    Qs = int((gb.region[gb.hit] == sc.regions.index("sphere")).sum())        # the Phong sphere
+    up = torch.tensor([0.0, 1.0, 0.0])
     g = sc.geometry()
     N, nF = g.num_vertices, g.F.shape[0]
+    Q = int(gb.hit.sum())                                                    # covered samples
+    Qs = int((gb.region[gb.hit] == sc.regions.index("sphere")).sum())        # the Phong sphere
+    Qp = int((gb.hit & (gb.normal == up).all(-1)).sum())                     # on the plane (Lambert)
+    Np = int(((g.N == up).all(-1) & (g.vertex_region == sc.regions.index("plane"))).sum())  # the plane's vertices
+    assert Qp == Q - Qs and Qp >= 1024 and Np == int((g.vertex_region == sc.regions.index("plane")).sum()) > 0
     J1 = 1                                                                   # static: the bias row
     H, W = sc.envmap.data.shape[:2]
+    plane = 12 * 84 + 6 * 44 + Np * 6 * 16                                  # l to the plane's frame; v·T per vertex
     gbuf = P * (GBUFFER_BYTES_PER_SAMPLE + 8) + P * 12                     # + region, + output
     fixed = nF * 3 * 8 + 2 * 7 * 4 + 2 * 44 * 4 + 16 * 3 * 4                # F, BRDFs, M¹ + M^s, lighting
     vis = N * 15 * 4                                                         # min(16, 6·2 + 3) floats
     diff = 6 * 84 + 6 * 16 + 2 * 44                                           # rotate l, dot, M¹ v
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9                              # + rotate v, R
-    per = Q * (diff + 5 + 12 + 6 * 16) + Qs * spec                            # + n·ωo, kd/ks, interpolation
-    c = m.frame_cost("V", P)
-    assert (c.bytes, c.flops) == (gbuf + fixed + vis, per)
+    per = Qs * (diff + spec + 6 * 16) + Q * (5 + 12) + Qp * 18 + plane        # + interpolation of v / of v·T
+    for shading in ("sample", "sample-reference"):
+        mm = m.with_render_config()
+        (mm._render_reference if shading.endswith("reference") else mm.render)(fr, gb)
+        c = mm.frame_cost("V", P)
+        assert (c.bytes, c.flops) == (gbuf + fixed + vis, per), shading
+    m.render(fr, gb)
     c = m.frame_cost("VBL", P)
     assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + 6 * 84)
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
     pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
     assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
-    c = m.frame_cost("L", P)                                                 # t = M v reused: rotation + dot
-    lo = Q * (6 * 84 + 6 * 16 + 5 + 12) + Qs * (6 * 84 + 6 * 16)
-    assert (c.bytes, c.flops) == (gbuf + fixed + vis + (Q + Qs) * 16 * 4, lo + 6 * 84)
+    lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 16          # t_d, t_s; plane v, face + bary
+    lo_f = Qs * 2 * 6 * 16 + Q * 12 + Qp * 18 + plane + 6 * 84                # t·l per term, kd/ks, plane, rotate l
+    c = m.frame_cost("L", P)
+    assert (c.bytes, c.flops) == (lo_b, lo_f)
     c = m.frame_cost("E", P)
     proj = 2 * H * W * 3 * 7 + 2 * H * 16 * 3
-    assert (c.bytes, c.flops) == (gbuf + fixed + vis + (Q + Qs) * 16 * 4 + H * W * 3 * 4, lo + 6 * 84 + proj)
+    assert (c.bytes, c.flops) == (lo_b + H * W * 3 * 4, lo_f + proj)
     big = m.frame_cost("V", 4 * P)                                           # no render on that size: all covered
     assert big.flops == 4 * P * (diff + 5 + 12 + 6 * 16 + spec)
     mv = m.with_render_config(shading="vertex")
     mv.render(fr, gb)
+    assert mv._last_counts["groups"] == 0              # 625 plane vertices < PLANAR_MIN_POINTS: no plane
     c = mv.frame_cost("V", P)
-    Ns = int((g.vertex_region == sc.regions.index("sphere")).sum())
-    assert c.bytes == P * GBUFFER_BYTES_PER_SAMPLE + P * 12 + fixed + vis + N * 6 * 4
-    assert c.flops == N * (diff + 5 + 12) + Ns * spec + P * 18
+    Ns = N - Np                                                              # the sphere's vertices
+    assert c.bytes == P * 20 + P * 12 + fixed + vis + N * 6 * 4
+    assert c.flops == N * diff + Ns * spec + N * (5 + 12) + P * 18
     assert math.isfinite(c.bytes) and c.flops > 0
+
+
+def test_frame_cost_vertex_planes(monkeypatch):
+    """Vertex shading with planes (threshold lowered to 64 points): the plane's 625 vertices and the
+    sphere's pole (its normal is exactly +y too) form one plane over both regions; counted by hand."""
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
+    sc = get_scene("sphere_plane", "test")
+    m = ZHShadow(**SMALL, shading="vertex")
+    m.precompute(sc)
+    fr = sc.default_frame()
+    gb = make_gbuffer(sc, fr, 1)
+    m.render(fr, gb)
+    P, g = gb.num_samples, sc.geometry()
+    N = g.num_vertices
+    on = (g.N == torch.tensor([0.0, 1.0, 0.0])).all(-1)
+    Np, Ns = int(on.sum()), int((g.vertex_region == sc.regions.index("sphere")).sum())
+    assert Np == 626 and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
+    diff = 6 * 84 + 6 * 16 + 2 * 44
+    spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9
+    c = m.frame_cost("V", P)
+    assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (N - Np) * diff + Ns * spec + N * (5 + 12) + P * 18
