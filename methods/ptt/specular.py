@@ -433,23 +433,28 @@ def prefilter_env(envmap: Any, filters: Sequence[EnvFilter | None], *, supersamp
 
 def on_env_grid(maps: Sequence[Any], envmap: Any) -> list[Any]:
     """The prefiltered maps E^(k) (`prefilter_env`) resampled onto ``envmap``'s own lat-long grid and
-    frame: E^(k) at each texel's world direction by the bilinear look-up of ``EnvMap.radiance``,
-    as an EnvMap with ``envmap``'s to_world (the 0° lobe is ``envmap`` itself). Every lobe then has
-    the same grid and frame, so the run time reads all of them with one bilinear look-up per shading
-    point (``fast.EnvStack``). The resampling adds a bilinear interpolation of the (coarser,
-    smooth) prefiltered map; the env map is never resampled."""
-    from scenes.envmap import EnvMap, texel_directions
+    frame: E^(k) at each texel's world direction by the bilinear look-up of ``EnvMap.radiance``
+    (as `latlong_cells`), as an EnvMap with ``envmap``'s to_world (the 0° lobe is ``envmap``
+    itself). Every lobe then has the same grid and frame, so the run time reads all of them with
+    one bilinear look-up per shading point (``fast.EnvStack``). The resampling adds a bilinear
+    interpolation of the (coarser, smooth) prefiltered map; the env map is never resampled."""
+    from scenes.envmap import EnvMap, extend_periodic
 
     H, W = envmap.data.shape[:2]
-    d = None
+    uv = None
     out = []
     for m in maps:
         if m is envmap:
             out.append(m)
             continue
-        if d is None:
-            d = envmap.to_world_dirs(texel_directions(H, W).to(torch.float32))
-        out.append(EnvMap(m.radiance(d), to_world=envmap.to_world))
+        if uv is None:  # world directions of the env texels in the maps' frame, (u, v) once
+            d = envmap.to_world.to(torch.float32) @ _texel_dirs(H, W)  # (3, H·W)
+            uv = _latlong_uv(d, m.to_world)
+        elif not torch.equal(m.to_world, maps[-1].to_world):
+            raise ValueError("the prefiltered maps must share one frame")
+        idx, w = _uv_cells(*uv, m.height, m.width)
+        E = torch.nn.functional.embedding_bag(idx, extend_periodic(m.data), per_sample_weights=w, mode="sum")
+        out.append(EnvMap(E.reshape(H, W, 3), to_world=envmap.to_world))
     return out
 
 
@@ -470,24 +475,45 @@ def mirror_dirs(normal: Tensor, wo: Tensor) -> Tensor:
     return R.mul_(inv)
 
 
+@functools.lru_cache(maxsize=8)
+def _texel_dirs(H: int, W: int) -> Tensor:
+    """(3, H·W) float32 local directions of an H×W lat-long map's texels (``scenes.envmap.texel_directions``)."""
+    from scenes.envmap import texel_directions
+
+    return texel_directions(H, W).reshape(-1, 3).T.to(torch.float32).contiguous()
+
+
 def latlong_cells(R: Tensor, to_world: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     """Mitsuba's bilinear lat-long look-up (``scenes.envmap.bilinear_lookup``; the ARCHITECTURE.md
     env-map convention) of an H×W map with frame ``to_world`` at world directions R (3, Q)
     (`mirror_dirs`): rows (Q, 4) int64 into its periodic-extended texels
     (``scenes.envmap.extend_periodic``, H·(W+1) rows) and their weights (Q, 4), corners
     (x, y), (x+1, y), (x, y+1), (x+1, y+1)."""
+    return _uv_cells(*_latlong_uv(R, to_world), H, W)
+
+
+def _latlong_uv(R: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
+    """(u, v) ∈ [−½, ½] × [0, 1] of world directions R (3, Q) in a map of frame ``to_world``
+    (``scenes.envmap.direction_to_uv``)."""
     d = to_world.to(R).T @ R  # local = to_worldᵀ d (EnvMap.to_local), (3, Q)
-    u = torch.atan2(d[0], -d[2]).mul_(0.5 / math.pi).sub_(0.5 / W)  # half-texel shift: texel-centred columns
-    x = u.sub_(torch.floor(u)).mul_(W)
+    u = torch.atan2(d[0], -d[2]).mul_(0.5 / math.pi)
     v = torch.acos(d[1].clamp(-1.0, 1.0)).mul_(1.0 / math.pi)
-    y = v.sub_(torch.floor(v)).mul_(H - 1)
+    return u, v
+
+
+def _uv_cells(u: Tensor, v: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """The bilinear cell of `latlong_cells` from (u, v) of `_latlong_uv` (not modified)."""
+    u = u - 0.5 / W  # half-texel shift: texel-centred columns
+    x = u.sub_(torch.floor(u)).mul_(W)
+    y = v - torch.floor(v)
+    y = y.mul_(H - 1)
     ix = x.to(torch.int64).clamp_(max=W - 1)
     iy = y.to(torch.int64).clamp_(max=H - 2)
     fx, fy = x.sub_(ix), y.sub_(iy)
     gx, gy = 1.0 - fx, 1.0 - fy
     i0 = iy.mul_(W + 1).add_(ix)
     idx = i0[:, None] + torch.tensor([0, 1, W + 1, W + 2], dtype=i0.dtype, device=i0.device)
-    w = torch.empty(idx.shape, dtype=R.dtype, device=R.device)
+    w = torch.empty(idx.shape, dtype=fx.dtype, device=fx.device)
     torch.mul(gx, gy, out=w[:, 0])
     torch.mul(fx, gy, out=w[:, 1])
     torch.mul(gx, fy, out=w[:, 2])
