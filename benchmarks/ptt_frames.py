@@ -12,9 +12,11 @@ shading) — frame by frame, alternating which goes first, so both see the same 
 0 of each sequence fills the caches and is not timed. Prints the median wall and CPU (process)
 times, their ratio, the roofline efficiency max(bytes / triad bandwidth, flops / matmul peak) / time
 with ``PTT.frame_cost`` and both machine limits measured in this run (before and after the frames;
-the higher of each is used), the largest |old − new| pixel difference (the two view stages differ
-by design), with ``--check`` the largest |fast − reference| of the new shading on the last frame,
-and micro-benchmarks of the kernels that bound a frame.
+the higher of each is used) — also with the CPU time in place of the wall time ("eff(cpu)": at one
+thread on a shared machine, roughly what an unshared core would take; caches and memory bandwidth
+are still shared) — the largest |old − new| pixel difference (the two view stages differ by
+design), with ``--check`` the largest |fast − reference| of the new shading on the last frame, and
+micro-benchmarks (wall and CPU) of the kernels that bound a frame.
 """
 from __future__ import annotations
 
@@ -56,18 +58,20 @@ def _precomputed(scene, config: dict) -> tuple[PTT, float | None]:
     return m, pre
 
 
-def _time(fn, repeats: int = 5) -> float:
+def _time(fn, repeats: int = 5) -> dict[str, float]:
+    """Median wall and process-CPU seconds of ``fn`` (one warm-up call)."""
     fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+        cs.append(time.process_time() - c0)
+    return {"wall": statistics.median(ts), "cpu": statistics.median(cs)}
 
 
 def micro(m: PTT, frame, gb) -> dict[str, float]:
-    """Seconds of the kernels that bound a frame (shading="vertex"), on the arrays of ``frame``:
+    """Seconds (wall and CPU) of the kernels that bound a frame (shading="vertex"), on the arrays of ``frame``:
     the per-vertex view rows, the per-sample shading and its two bags, one elementwise pass over
     the per-sample arrays, and the lighting products (T¹ and T² GEMMs, direct incidence)."""
     from methods.core.zh import expand_bands
@@ -88,19 +92,27 @@ def micro(m: PTT, frame, gb) -> dict[str, float]:
                      vis=m.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L), I1=I1,
                      f=None if I1 is None else expand_bands(m.lobe_sh), order=m.config["sh_order"])
         env = m._f_light[3][1]
-    table = _fast.vertex_view(st, m.V, cam, Wr, E, T, K, lobes)
-    Q = gb.num_samples
+    table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
+    Q, B = gb.num_samples, _fast.SAMPLE_CHUNK
     a, b = torch.rand(Q, 3), torch.rand(Q, 3)
     fp = _fast.rows(st.face_pairs, gb.face)
     bw = torch.rand(Q, 3)
     out = {"samples": Q, "pairs": int(st.pair_v.numel()),
-           "vertex_view_s": _time(lambda: _fast.vertex_view(st, m.V, cam, Wr, E, T, K, lobes)),
-           "shade_samples_s": _time(lambda: _fast.shade_samples(st.face_pairs, table, gb.face, gb.bary, gb.normal,
-                                                                gb.wo, env, L)),
+           "vertex_view_s": _time(lambda: _fast.vertex_view(st, cam, Wr, E, T, K, lobes)),
+           "shade_samples_one_pass_s": _time(lambda: _fast.shade_samples(st.face_pairs, table, gb.face, gb.bary,
+                                                                         gb.normal, gb.wo, env, L)),
+           "shade_samples_chunked_s": _time(lambda: [
+               _fast.shade_samples(st.face_pairs, table, gb.face[i:i + B], gb.bary[i:i + B], gb.normal[i:i + B],
+                                   gb.wo[i:i + B], env, L) for i in range(0, Q, B)]),
            "elementwise_pass_Qx3_s": _time(lambda: torch.mul(a, b)),
            "bag_Qx3_rows_of_C_s": _time(lambda: Fnn.embedding_bag(fp, table, per_sample_weights=bw, mode="sum"))}
     if env is not None:
-        idx, w = _fast.stack_corners(env, torch.nn.functional.normalize(a, dim=-1))
+        from methods.ptt import specular as _spec
+
+        out["mirror_dirs_s"] = _time(lambda: _spec.mirror_dirs(gb.normal, gb.wo))
+        R = _spec.mirror_dirs(gb.normal, gb.wo)
+        out["latlong_cells_s"] = _time(lambda: _spec.latlong_cells(R, env.to_world, env.H, env.W))
+        idx, w = _spec.latlong_cells(R, env.to_world, env.H, env.W)
         out["env_bag_Qx4_rows_of_3L_s"] = _time(lambda: Fnn.embedding_bag(idx, env.ext, per_sample_weights=w,
                                                                           mode="sum"))
     CL = _tp.env_haar(frame.envmap, m.config["cube_res"], supersample=m.config["light_supersample"])
@@ -179,6 +191,9 @@ def main(argv: list[str] | None = None) -> dict:
         for which in ("old", "new"):
             eff, bound = measure.roofline(r[f"{which}_bytes"], r[f"{which}_flops"], B, Pk, r[f"{which}_median_s"])
             r[f"{which}_efficiency"], r[f"{which}_bound"] = eff, bound
+            # the same with the process CPU time: at 1 thread, what an unshared core would give
+            r[f"{which}_cpu_efficiency"] = measure.roofline(r[f"{which}_bytes"], r[f"{which}_flops"], B, Pk,
+                                                            r[f"{which}_cpu_median_s"])[0]
         r["speedup"] = r["old_median_s"] / r["new_median_s"]
     out["kinds"] = kinds
     if not a.no_micro:
@@ -188,11 +203,11 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"\n{a.scene} {a.size}, {a.threads} threads, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s; "
           f"old = {a.old}, new = {a.new}")
     print(f"{'kind':5} {'old ms':>9} {'new ms':>9} {'speedup':>8} {'old cpu':>8} {'new cpu':>8} {'old eff':>8} "
-          f"{'new eff':>8} bound")
+          f"{'new eff':>8} {'eff(cpu)':>8} bound")
     for kind, r in kinds.items():
         print(f"{kind:5} {1e3 * r['old_median_s']:9.1f} {1e3 * r['new_median_s']:9.1f} {r['speedup']:8.1f} "
               f"{1e3 * r['old_cpu_median_s']:8.1f} {1e3 * r['new_cpu_median_s']:8.1f} "
-              f"{r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} {r['new_bound']}")
+              f"{r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} {r['new_cpu_efficiency']:8.4f} {r['new_bound']}")
     return out
 
 

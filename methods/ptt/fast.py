@@ -519,7 +519,7 @@ def lookup_stack(st: EnvStack, R: Tensor) -> Tensor:
 
 
 def shade_samples(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
-                  wo: Tensor | None, env: EnvStack | None, L: int) -> Tensor:
+                  wo: Tensor | None, env: EnvStack | None, L: int, out: Tensor | None = None) -> Tensor:
     """Radiance (Q, 3) of hit samples from the per-pair rows of `vertex_view` (the reference is
     `PTT._shade_vertex`): Gouraud interpolation with the barycentrics β of the rows of the sample's
     face (one 3-row bag), B clamped at 0 after it + u + Σ_k E^(k)(R) s_k with the prefiltered maps
@@ -528,11 +528,11 @@ def shade_samples(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor,
     then stay in the L2 cache.
 
     face_pairs (M, 3) pair row of each face corner; table (n_pairs + 1, C); face (Q,) int64;
-    bary (Q, 2); normal, wo (Q, 3)."""
+    bary (Q, 2); normal, wo (Q, 3); out: optional (Q, 3) tensor written in place."""
     u, v = bary.unbind(-1)
     bw = torch.stack([1.0 - u - v, u, v], -1)
     acc = Fnn.embedding_bag(rows(face_pairs, face), table, per_sample_weights=bw, mode="sum")
-    out = acc[:, :3].clamp_min(0.0)
+    out = torch.clamp_min(acc[:, :3], 0.0, out=out)
     if env is None:
         return out
     Ek = lookup_stack(env, _spec.mirror_dirs(normal, wo))  # (Q, 3·L), lobe-major

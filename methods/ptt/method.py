@@ -502,8 +502,8 @@ class PTT(Method):
         if bool(gb.hit.all()):  # no gathers of the G-buffer
             out = torch.empty(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
             for a in range(0, gb.num_samples, B):
-                out[a:a + B] = _fast.shade_samples(st.face_pairs, table, gb.face[a:a + B], gb.bary[a:a + B],
-                                                   gb.normal[a:a + B], gb.wo[a:a + B], env, L)
+                _fast.shade_samples(st.face_pairs, table, gb.face[a:a + B], gb.bary[a:a + B], gb.normal[a:a + B],
+                                    gb.wo[a:a + B], env, L, out=out[a:a + B])
             return _fast.box_filter(out, gb.height, gb.width, gb.spp_side ** 2)
         out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
         hit = torch.nonzero(gb.hit).squeeze(-1)
