@@ -382,7 +382,8 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
 # -- view stage, per vertex (Sun's run time) --------------------------------------------------------
 
 
-def pair_view_dirs(st: FastStatic, V: Tensor, cam_origin: Tensor, pairs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def pair_view_dirs(st: FastStatic, V: Tensor, cam_origin: Tensor,
+                   pairs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Vertex v, region r and ωo_x in x's frame (n, 3) of the (vertex, region) pairs ``pairs``
     (None: all), ωo_x = (cam − x)/|cam − x| the direction from the vertex to the camera."""
     v, r = (st.pair_v, st.pair_r) if pairs is None else (st.pair_v[pairs], st.pair_r[pairs])
@@ -407,7 +408,8 @@ def _cell(c: Tensor, T: int) -> tuple[Tensor, Tensor]:
     return i, x.sub_(i)
 
 
-def _bilinear_rows(base: Tensor, ix: Tensor, iy: Tensor, tx: Tensor, ty: Tensor, T: int, w: Tensor) -> tuple[Tensor, Tensor]:
+def _bilinear_rows(base: Tensor, ix: Tensor, iy: Tensor, tx: Tensor, ty: Tensor, T: int,
+                   w: Tensor) -> tuple[Tensor, Tensor]:
     """Rows (n, 4) base + (iy + dy)·T + ix + dx of the corners (0,0), (1,0), (0,1), (1,1) of a T-wide
     table and their weights (n, 4) = w · bilinear."""
     i0 = base + iy * T + ix

@@ -747,7 +747,8 @@ class PTT(Method):
             Q = int(faces.numel())
             ref_faces = int(torch.unique(faces).numel())
             ref_verts = int(torch.unique(self.F[faces]).numel())
-            pairs = torch.unique(st.face_pairs[faces] if vertex else st.pair_of[self.F[faces] * R + gb.region[hit][:, None]])
+            pairs = torch.unique(st.face_pairs[faces] if vertex
+                                 else st.pair_of[self.F[faces] * R + gb.region[hit][:, None]])
         else:
             Q, ref_faces, ref_verts, pairs = num_samples, nf, nv, None
         ref_pairs = int(st.pair_v.numel()) if pairs is None else int(pairs.numel())
@@ -792,7 +793,8 @@ class PTT(Method):
                 if sh:
                     Fl["view_lobes_sh"] = 2 * ref_pairs * (S * 3 + Lb * order * 3 + Lb * 3 + 3)
         else:
-            B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4  # + region (int64); misses: hit word
+            # + region (int64); misses: hit word
+            B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4
             B["normals"] = ref_verts * 3 * f4
             rows = {"E": ref_verts * K * 3 * f4, "W_r": tex_W * K * 3 * f4}
             if lobes:
