@@ -6,17 +6,30 @@ Lighting stage (Sun eq. 4, "light" changed):
 * E⁰_x(k) = Σ_l C^L_l U^{I0}_x(l, k) as one ``embedding_bag`` over the kept (index, value) pairs
   (no (V, K, n_L, 3) gather);
 * T¹L = T¹ ·_l C^L and T²L = T² ·_l C^L as plain GEMMs over the contiguous (…, l) layout
-  (`relayout_t2` stores T² lighting-last once, at precompute; the reference reads a view of it).
+  (`relayout_t1` / `relayout_t2` store T¹ (vertex, SH)-major and T² lighting-last once; the
+  reference reads views of the same storage), with the (3, n_l) lighting operand row-major
+  (`light_product`);
+* the prefiltered maps E^(k) on the env map's grid (``specular.on_env_grid``), stacked
+  (`EnvStack`) so one bilinear look-up reads every lobe.
 
 BRDF stage ("brdf" or "light" changed), products of H cached for the view stage:
 * the per-region view tables W_r(ωo, k, c) = Σ_p H(r, p, c) W(p, ωo, k) — Sun eq. 3's
   D ×_h U^h(H) — and lobe weights a_k(r, θo, c) = Σ_p H(r, p, c) a_k^p(θo) (§4.1);
-* E_x(k) (U^{I0} + U^{I1} + U^{I2}) and the one-bounce SH radiance rotated to the world frame,
-  I1w_x = M(F_xᵀ) I1_x (``methods.core.sh_rotation``; exact for band-limited SH), so the §4.1
-  lobes' SH term is interpolated over the triangle *before* evaluation — one SH evaluation at the
-  world reflection direction per sample instead of one per vertex frame.
+* E_x(k) (U^{I0} + U^{I1} + U^{I2}): the sums over (r, p) are GEMMs with per-channel weights
+  (`brdf_products`); the one-bounce SH radiance I1_x stays in x's frame (shading="vertex") or is
+  rotated to the world frame, I1w_x = M(F_xᵀ) I1_x (``methods.core.sh_rotation``; exact for
+  band-limited SH; shading="pixel", where it is interpolated over the triangle before evaluation).
 
-View stage (every frame), per hit sample and vertex v of its triangle:
+View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpolated), every frame:
+* per (vertex, region) pair at the vertex's own view direction ωo_x (`vertex_view`): the glossy
+  term B_x = Σ_k W_r(ωo_x, k) E_x(k) (one 4-row bag of the region table), the lobe factors
+  s_x(k) = a_k(θo_x) V_c^(k)(x, R_x) (2-node interpolation, 4-row bag of the visibility tables) and
+  the one-bounce lobe term u_x (SH at R_x, one GEMM with the Funk–Hecke factors);
+* per hit sample (`shade_samples`, on L2-sized chunks): one 3-row bag of those rows with the
+  barycentrics, the mirror direction R about the interpolated shading normal, one 4-row bag of the
+  stacked E^(k) at R, and Σ_k s_k E^(k)(R).
+
+View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
   Σ_corners w X(v, r, corner) with X(v, r, t) = Σ_k W_r(t, k) E_v(k). X is formed once per frame
   on a WINDOW×WINDOW texel window per (vertex, region) pair around the camera's direction from the
@@ -28,7 +41,7 @@ View stage (every frame), per hit sample and vertex v of its triangle:
   reference, V_c^(k) as a 12-row bag over the per-vertex tables (stored texel-major), and the SH
   term from the 3-row bag of I1w.
 
-Everything is plain torch on the device of the precomputed arrays.
+Everything is plain torch on the device of the precomputed arrays (no compiled kernels).
 """
 from __future__ import annotations
 
@@ -42,6 +55,7 @@ from torch import Tensor
 from methods.core import sh as _sh
 from methods.core.frames import frame_matrix, reflect
 from methods.core.sh_rotation import sh_rotation_matrix
+from methods.ptt import specular as _spec
 from methods.ptt.transport import table_coords
 
 __all__ = ["FastStatic", "build_static", "relayout_t2", "direct_incidence", "region_tables", "brdf_products",
@@ -61,6 +75,11 @@ class FastStatic:
     pair_of: (V·R,) int64 index of the (vertex, region) pair v·R + r (−1: no face of region r
         touches v); pair_v, pair_r: (n_pairs,) its vertex and region.
     sh_rot: (V, S, S) block-diagonal SH rotation local → world per vertex, or None.
+    face_pairs: (M, 3) the pair of each face corner (its vertex with the face's region).
+    pair_pos: (3, n_pairs) vertex positions, pair_frame: (9, n_pairs) frame rows s, t, n of each
+        pair's vertex, components as contiguous rows (shading="vertex").
+    pair_is_vertex: the pairs are the vertices in order (every vertex shades one region), so
+        per-vertex rows need no gather.
     """
 
     frames: Tensor
@@ -68,14 +87,20 @@ class FastStatic:
     pair_v: Tensor
     pair_r: Tensor
     sh_rot: Tensor | None
+    face_pairs: Tensor | None = None
+    pair_pos: Tensor | None = None
+    pair_frame: Tensor | None = None
+    pair_is_vertex: bool = False
 
     def tensors(self) -> list[Tensor]:
-        return [t for t in (self.frames, self.pair_of, self.pair_v, self.pair_r, self.sh_rot) if t is not None]
+        return [t for t in (self.frames, self.pair_of, self.pair_v, self.pair_r, self.sh_rot, self.face_pairs,
+                            self.pair_pos, self.pair_frame) if t is not None]
 
 
-def build_static(N: Tensor, F: Tensor, face_region: Tensor, n_regions: int, sh_order: int | None) -> FastStatic:
-    """`FastStatic` of a mesh: N (V, 3) unit vertex normals, F (M, 3) faces, face_region (M,);
-    sh_order: order of the per-vertex SH rotations (None: not needed)."""
+def build_static(V: Tensor, N: Tensor, F: Tensor, face_region: Tensor, n_regions: int,
+                 sh_order: int | None) -> FastStatic:
+    """`FastStatic` of a mesh: V (V, 3) positions, N (V, 3) unit vertex normals, F (M, 3) faces,
+    face_region (M,); sh_order: order of the per-vertex SH rotations (None: not needed)."""
     nv, dev = N.shape[0], N.device
     frames = frame_matrix(N.float())
     key = (F.long() * n_regions + face_region.long()[:, None]).reshape(-1)
@@ -88,13 +113,25 @@ def build_static(N: Tensor, F: Tensor, face_region: Tensor, n_regions: int, sh_o
     if sh_order is not None:
         # local coefficients c: f(d_world) = Σ c_s Y_s(F d_world) = f'(d) with f'(d) = f(Rᵀ d), R = Fᵀ
         sh_rot = sh_rotation_matrix(frames.double().transpose(1, 2), sh_order).float()
-    return FastStatic(frames, pair_of, pairs // n_regions, pairs % n_regions, sh_rot)
+    face_pairs = pair_of[key].view(-1, 3).contiguous()
+    pv = pairs // n_regions
+    return FastStatic(frames, pair_of, pv, pairs % n_regions, sh_rot, face_pairs,
+                      V.float()[pv].T.contiguous(), frames[pv].reshape(-1, 9).T.contiguous(),
+                      bool(pv.numel() == nv and torch.equal(pv, torch.arange(nv, device=dev))))
 
 
 def relayout_t2(T2: Tensor) -> Tensor:
     """T² (V, L2, R, P, R, P) → the same values stored lighting-last, returned as a (V, L2, R, P, R, P)
     view of that storage (so `T2.permute(0, 2, 3, 4, 5, 1)` is contiguous)."""
     return T2.permute(0, 2, 3, 4, 5, 1).contiguous().permute(0, 5, 1, 2, 3, 4)
+
+
+def relayout_t1(T1: Tensor) -> Tensor:
+    """T¹ (V, R, P, S, L1) → the same values stored (V, S, R, P, L1), returned as a (V, R, P, S, L1)
+    view of that storage (so `T1.permute(0, 3, 1, 2, 4)` is contiguous): the lighting product
+    then comes out with the (r, p) pairs of one (vertex, SH coefficient) next to each other, and the
+    BRDF stage's sum over them is one GEMM (`brdf_products`)."""
+    return T1.permute(0, 3, 1, 2, 4).contiguous().permute(0, 2, 3, 1, 4)
 
 
 # -- lighting / BRDF stages -------------------------------------------------------------------------
@@ -105,6 +142,30 @@ def direct_incidence(idx: Tensor, val: Tensor, CL: Tensor) -> Tensor:
     nv, K, nL = val.shape
     out = Fnn.embedding_bag(idx.reshape(nv * K, nL), CL, per_sample_weights=val.reshape(nv * K, nL), mode="sum")
     return out.reshape(nv, K, 3)
+
+
+def light_product(T: Tensor, CL: Tensor) -> Tensor:
+    """Σ_l T[..., l] C^L[l, c]: T (..., n_l) contiguous, CL (n_l, 3) → (..., 3), as one GEMM with the
+    lighting operand transposed (``F.linear``: MKL's skinny N = 3 product is several times faster
+    with the (3, n_l) operand row-major than with (n_l, 3))."""
+    return Fnn.linear(T.reshape(-1, T.shape[-1]), CL.T.contiguous()).reshape(*T.shape[:-1], 3)
+
+
+def lighting_products(T1: Tensor | None, T1c, CL1: Tensor | None, T2: Tensor | None, CL2: Tensor | None,
+                      n_rp: int) -> tuple[Tensor | None, Tensor | None]:
+    """T¹L (V, S, R·P, 3) = T¹ ·_l C^L (dense T¹ stored as `relayout_t1`, or the compressed
+    ``compress`` form T1c) and T²L (V, (R·P)², 3) = T² ·_l C^L (T² stored as `relayout_t2`)."""
+    T1L = T2L = None
+    if T1 is not None:
+        T1L = light_product(T1.permute(0, 3, 1, 2, 4), CL1)
+        T1L = T1L.reshape(T1L.shape[0], T1L.shape[1], n_rp, 3)
+    elif T1c is not None:
+        T1L = T1c.contract_light(CL1)  # (V, R·P·S, 3)
+        T1L = T1L.reshape(T1L.shape[0], n_rp, -1, 3).permute(0, 2, 1, 3).contiguous()
+    if T2 is not None:
+        T2L = light_product(T2.permute(0, 2, 3, 4, 5, 1), CL2)
+        T2L = T2L.reshape(T2L.shape[0], -1, 3)
+    return T1L, T2L
 
 
 def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None) -> tuple[Tensor, Tensor | None]:
@@ -121,19 +182,31 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None) -> tu
     return Wr.contiguous(), ar
 
 
+def _channel_weights(w: Tensor) -> Tensor:
+    """(n, 3) weights → (3, n·3) matrix M with M[c, i·3 + c] = w[i, c] (0 elsewhere): x (…, n·3)
+    @ Mᵀ is Σ_i x[…, i, c] w[i, c] per channel c as one GEMM."""
+    n = w.shape[0]
+    M = torch.zeros(3, n, 3, dtype=w.dtype, device=w.device)
+    for c in range(3):
+        M[c, :, c] = w[:, c]
+    return M.reshape(3, n * 3)
+
+
 def brdf_products(H: Tensor, E0: Tensor, T1L: Tensor | None, C: Tensor | None, T2L: Tensor | None,
                   Cu: Tensor | None) -> tuple[Tensor, Tensor | None]:
     """Sun eq. 4 for the current H (R, P, 3): E (V, K, 3) = E⁰ + Σ_s C(s, k) I1(s) + C_u(k) I2 and
     the one-bounce SH radiance I1 (V, S, 3) (None without bounces).
-    T1L (V, R·P, S, 3); C (S, K); T2L (V, (R·P)², 3); Cu (K,)."""
+    T1L (V, S, R·P, 3); C (S, K); T2L (V, (R·P)², 3); Cu (K,). The sums over (r, p) are GEMMs over
+    the contiguous (r, p, c) rows with per-channel weights (`_channel_weights`)."""
     E, I1 = E0, None
     Hf = H.reshape(-1, 3)
     if T1L is not None:  # U^{I1}
-        I1 = torch.einsum("xc,vxsc->vsc", Hf, T1L)
+        nv, S = T1L.shape[:2]
+        I1 = Fnn.linear(T1L.reshape(nv * S, -1), _channel_weights(Hf)).reshape(nv, S, 3)
         E = E + torch.einsum("sk,vsc->vkc", C, I1)
     if T2L is not None:  # U^{I2}
         HH = (Hf[:, None, :] * Hf[None, :, :]).reshape(-1, 3)
-        I2 = torch.einsum("vxc,xc->vc", T2L, HH)
+        I2 = Fnn.linear(T2L.reshape(T2L.shape[0], -1), _channel_weights(HH))
         E = E + Cu[None, :, None] * I2[:, None, :]
     return E, I1
 
@@ -304,3 +377,183 @@ def specular_lobes(lobe_theta_n: int, ar: Tensor, Ek: list, lobe_vis_rows: Tenso
         Li = (IY @ lobe_sh[:, band].T).reshape(Q, 3, L).transpose(1, 2)  # Σ_s f(l, band s) Y_s I_s
         Lk = Lk + Li.clamp_min(0.0) * (n * R).sum(-1).clamp_min(0.0)[:, None, None]
     return (ak * Lk).sum(1)
+
+
+# -- view stage, per vertex (Sun's run time) --------------------------------------------------------
+
+
+def pair_view_dirs(st: FastStatic, V: Tensor, cam_origin: Tensor,
+                   pairs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Vertex v, region r and ωo_x in x's frame (n, 3) of the (vertex, region) pairs ``pairs``
+    (None: all), ωo_x = (cam − x)/|cam − x| the direction from the vertex to the camera."""
+    v, r = (st.pair_v, st.pair_r) if pairs is None else (st.pair_v[pairs], st.pair_r[pairs])
+    d = cam_origin[None, :] - rows(V, v)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return v, r, torch.bmm(rows(st.frames, v), d[:, :, None])[:, :, 0]
+
+
+def theta_nodes(cos_o: Tensor, nt: int) -> tuple[Tensor, Tensor]:
+    """Node i0 (int64) and fraction t of θo = acos(cos_o) on the n_θ lobe-table nodes, linear in θo and
+    clamped at the end nodes (``specular.lobe_weights``)."""
+    th = torch.acos(cos_o.clamp(-1.0, 1.0))
+    x = (th * (nt / (math.pi / 2)) - 0.5).clamp(0.0, nt - 1.0)
+    i0 = x.floor().long().clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=torch.long)
+    return i0, x - i0.to(x.dtype)
+
+
+def _cell(c: Tensor, T: int) -> tuple[Tensor, Tensor]:
+    """One axis of `_bilinear`: table coordinate c (n,) in [−1, 1] → first texel (int64), fraction."""
+    x = c.add(1.0).mul_(T / 2.0).sub_(0.5).clamp_(0.0, T - 1.0)
+    i = x.floor().long().clamp_(max=T - 2)
+    return i, x.sub_(i)
+
+
+def _bilinear_rows(base: Tensor, ix: Tensor, iy: Tensor, tx: Tensor, ty: Tensor, T: int,
+                   w: Tensor) -> tuple[Tensor, Tensor]:
+    """Rows (n, 4) base + (iy + dy)·T + ix + dx of the corners (0,0), (1,0), (0,1), (1,1) of a T-wide
+    table and their weights (n, 4) = w · bilinear."""
+    i0 = base + iy * T + ix
+    idx = i0[:, None] + torch.tensor([0, 1, T, T + 1], dtype=i0.dtype, device=i0.device)
+    a, b = (1.0 - tx) * w, tx * w
+    wt = torch.empty(idx.shape, dtype=w.dtype, device=w.device)
+    torch.mul(a, 1.0 - ty, out=wt[:, 0])
+    torch.mul(b, 1.0 - ty, out=wt[:, 1])
+    torch.mul(a, ty, out=wt[:, 2])
+    torch.mul(b, ty, out=wt[:, 3])
+    return idx, wt
+
+
+def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
+                lobes: dict | None = None) -> Tensor:
+    """Per (vertex, region) pair, at the vertex's own view direction ωo_x = (cam − x)/|cam − x|:
+    the rows (n_pairs + 1, C) that the samples interpolate (the last row is 0, for padding). The
+    reference is `PTT._vertex_terms`.
+
+    Columns: B (3) = Σ_k W_r(ωo_x, k) E_x(k) (Sun eq. 3, glossy remainder; 0 when ωo_x is below
+    x's horizon); with lobes (§4.1) also s (3L, lobe-major) = a_k(r, θo_x) V_c^(k)(x, R_x) and,
+    with the one-bounce SH radiance, u (3) = cos⁺θo_x Σ_k a_k(r, θo_x) max(0, L1^(k)_x(R_x)), R_x
+    the mirror direction of ωo_x about n_x (in x's frame (−ωo_x, −ωo_y, ωo_z), so its table
+    coordinates are those of ωo_x negated).
+
+    Wr (R·T², K·3), E (V, K·3) row-major; lobes: dict(ar (R·n_θ, L·3), n_theta, vis (V·Tv², L)
+    texel-major, Tv, I1 (V, S, 3) local-frame one-bounce SH radiance or None, f (L, S) the lobes'
+    Funk–Hecke factors per SH coefficient, order). Components are handled as contiguous rows
+    (``FastStatic.pair_pos`` / ``pair_frame``)."""
+    v, r = st.pair_v, st.pair_r
+    n = v.numel()
+    px, py, pz = st.pair_pos.unbind(0)
+    dx, dy, dz = cam_origin[0] - px, cam_origin[1] - py, cam_origin[2] - pz
+    inv = torch.rsqrt(dx * dx + dy * dy + dz * dz)
+    f = st.pair_frame
+    x = (f[0] * dx + f[1] * dy + f[2] * dz) * inv  # ωo_x in the frame (s, t, n)
+    y = (f[3] * dx + f[4] * dy + f[5] * dz) * inv
+    z = (f[6] * dx + f[7] * dy + f[8] * dz) * inv
+    up = (z > 0).to(z.dtype)
+    # table coordinates (transport.table_coords) of ωo_x
+    rho = torch.sqrt(x * x + y * y)
+    sc = torch.atan2(rho, z).mul_(2.0 / math.pi).div_(rho.clamp_min(1e-12))
+    sc = torch.where(rho > 1e-12, sc, torch.full_like(sc, 2.0 / math.pi))
+    cu, cv = x * sc, y * sc
+    ix, tx = _cell(cu, T)
+    iy, ty = _cell(cv, T)
+    idx, wt = _bilinear_rows(r * (T * T), ix, iy, tx, ty, T, up)
+    Wi = Fnn.embedding_bag(idx, Wr, per_sample_weights=wt, mode="sum")  # (n, K·3)
+    Ex = E if st.pair_is_vertex else rows(E, v)
+    C = 3
+    if lobes is not None:
+        L = lobes["ar"].shape[1] // 3
+        C += 3 * L + (3 if lobes["I1"] is not None else 0)
+    out = torch.zeros(n + 1, C, dtype=E.dtype, device=E.device)
+    torch.sum((Wi * Ex).view(n, K, 3), 1, out=out[:n, :3])
+    if lobes is None:
+        return out
+    nt, Tv = lobes["n_theta"], lobes["Tv"]
+    i0, t = theta_nodes(z, nt)  # a_k(θo): linear in θo over the nodes (specular.lobe_weights)
+    r0 = r * nt + i0
+    ar = lobes["ar"]
+    ak = rows(ar, r0).mul_(((1 - t) * up)[:, None]).add_(rows(ar, r0 + (1 if nt > 1 else 0)).mul_((t * up)[:, None]))
+    jx, ux = _cell(-cu, Tv)  # R_x = (−x, −y, z): table coordinates negated
+    jy, uy = _cell(-cv, Tv)
+    vidx, vwt = _bilinear_rows(v * (Tv * Tv), jx, jy, ux, uy, Tv, up)
+    Vc = Fnn.embedding_bag(vidx, lobes["vis"], per_sample_weights=vwt, mode="sum")  # (n, L); R_z = cos θo
+    ak = ak.view(n, L, 3)
+    torch.mul(ak, Vc[:, :, None], out=out[:n, 3:3 + 3 * L].view(n, L, 3))
+    if lobes["I1"] is not None:
+        Y = _sh.sh_eval(torch.stack([-x, -y, z], -1), lobes["order"])  # (n, S)
+        I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
+        IY = (I1x * Y[:, :, None]).transpose(1, 2).reshape(n * 3, -1)  # (n·3, S)
+        Li = Fnn.linear(IY, lobes["f"]).view(n, 3, L).transpose(1, 2).clamp_min(0.0)  # (n, L, 3)
+        torch.sum(ak * Li, 1, out=out[:n, 3 + 3 * L:])
+        out[:n, 3 + 3 * L:].mul_(z.clamp_min(0.0)[:, None])
+    return out
+
+
+@dataclass
+class EnvStack:
+    """The L maps E^(k) on one lat-long grid (``specular.on_env_grid``: the env map's, in its frame),
+    their texels side by side so one bilinear look-up reads every lobe (`lookup_stack`):
+    ext (H·(W+1), 3·L) periodic-extended (``scenes.envmap.extend_periodic``) texels, lobe-major
+    columns (k, c); to_world (3, 3) the maps' common frame (local = d @ to_world); H, W the grid."""
+
+    ext: Tensor
+    to_world: Tensor
+    H: int
+    W: int
+
+
+def env_stack(maps: list) -> EnvStack:
+    """`EnvStack` of EnvMaps sharing one grid and frame (``specular.on_env_grid``); ValueError if not."""
+    from scenes.envmap import extend_periodic
+
+    H, W = maps[0].data.shape[:2]
+    if any(m.data.shape[:2] != (H, W) or not torch.equal(m.to_world, maps[0].to_world) for m in maps):
+        raise ValueError("the maps of an EnvStack must share their grid and to_world (specular.on_env_grid)")
+    ext = torch.cat([extend_periodic(m.data.float()) for m in maps], 1).contiguous()
+    return EnvStack(ext, maps[0].to_world.to(ext.device, torch.float32).contiguous(), H, W)
+
+
+def lookup_stack(st: EnvStack, R: Tensor) -> Tensor:
+    """``EnvMap.radiance`` of every map of the stack at unit world directions R (3, Q)
+    (``specular.mirror_dirs``) → (Q, 3·L): ``specular.latlong_cells`` once, the four corners as one
+    weighted bag."""
+    idx, w = _spec.latlong_cells(R, st.to_world, st.H, st.W)
+    return Fnn.embedding_bag(idx, st.ext, per_sample_weights=w, mode="sum")
+
+
+def shade_samples(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
+                  wo: Tensor | None, env: EnvStack | None, L: int, out: Tensor | None = None) -> Tensor:
+    """Radiance (Q, 3) of hit samples from the per-pair rows of `vertex_view` (the reference is
+    `PTT._shade_vertex`): Gouraud interpolation with the barycentrics β of the rows of the sample's
+    face (one 3-row bag), B clamped at 0 after it + u + Σ_k E^(k)(R) s_k with the prefiltered maps
+    read per sample at the mirror direction R of ωo about the interpolated shading normal (env None:
+    no lobes). Call it on chunks of `SAMPLE_CHUNK` samples: its dozen passes over (Q, ≥ 12) arrays
+    then stay in the L2 cache.
+
+    face_pairs (M, 3) pair row of each face corner; table (n_pairs + 1, C); face (Q,) int64;
+    bary (Q, 2); normal, wo (Q, 3); out: optional (Q, 3) tensor written in place."""
+    u, v = bary.unbind(-1)
+    bw = torch.stack([1.0 - u - v, u, v], -1)
+    acc = Fnn.embedding_bag(rows(face_pairs, face), table, per_sample_weights=bw, mode="sum")
+    out = torch.clamp_min(acc[:, :3], 0.0, out=out)
+    if env is None:
+        return out
+    Ek = lookup_stack(env, _spec.mirror_dirs(normal, wo))  # (Q, 3·L), lobe-major
+    for k in range(L):
+        out.addcmul_(acc[:, 3 + 3 * k:6 + 3 * k], Ek[:, 3 * k:3 * k + 3])
+    if acc.shape[1] > 3 + 3 * L:
+        out.add_(acc[:, 3 + 3 * L:])
+    return out
+
+
+# Samples per `shade_samples` call: its working set (≈ 200 bytes per sample) fits the L2 cache.
+SAMPLE_CHUNK = 1 << 15
+
+
+def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:
+    """``GBuffer.resolve`` of an image whose every sample hit: per-sample radiance (H·W·S2, 3) →
+    (H, W, 3), the mean of each pixel's S2 sub-samples as sums of slices."""
+    x = per_sample.view(H * W, S2 * 3)
+    out = x[:, :3].clone()
+    for j in range(1, S2):
+        out.add_(x[:, 3 * j:3 * j + 3])
+    return out.mul_(1.0 / S2).view(H, W, 3)

@@ -14,10 +14,27 @@ Run time (Sun eq. 3–4), per frame, three cached stages keyed on ``frame.change
 2. BRDFs (when "brdf" or "light" changed): H(r, p, c) = basis coordinates of frame.materials;
    E_x(k) = E⁰_x(k) + Σ_s C^{ωi}(s, k) Σ_{r,p} H(r,p) T¹L_x(r,p,s)
             + C^{ωi}(k) Σ H(r1,p1) H(r2,p2) T²L_x(r1,p1,r2,p2)            (U^{I0} + U^{I1} + U^{I2})
-3. view (every frame): per G-buffer sample, for each vertex v of its triangle, the view factor
-   g_v(k) = Σ_p H(r, p) W(p, ωo in v's frame, k) (the D ×_h U^h ×_ωo U^{ωo} part of eq. 3) and
-   B_v = Σ_k g_v(k) E_v(k); the sample's radiance is the barycentric mix of B_v (values living in a
-   vertex's local frame are never interpolated across frames), clamped at 0.
+3. view (every frame), the view factor g_x(k) = Σ_p H(r, p) W(p, ωo in x's frame, k) (the
+   D ×_h U^h ×_ωo U^{ωo} part of eq. 3) and B_x = Σ_k g_x(k) E_x(k), where (config ``shading``):
+   * "vertex" (default; Sun's run time — §3: eq. 1 is evaluated "for determining the exit
+     radiance at each point toward the viewer", the points being the vertices that carry the
+     transfer; §4.1: the fractional visibility "is computed from the visibility maps of each
+     vertex"; §4.3: "for direct lighting, performance is linearly dependent on the number of
+     vertices"; §5: "the computation of the transferred incident radiance is performed on the
+     CPU, and the final shading is done on the GPU"): x is a vertex
+     and ωo its own direction to the camera; a sample's radiance is max(0, Σ_v β_v B_v) with its
+     barycentrics β (Gouraud). The separated lobes' per-vertex factors (a_k(θo_x), the fractional
+     visibility V_c^(k)(x, R_x) from the vertex's visibility table, the one-bounce term) are
+     interpolated the same way; only the prefiltered maps E^(k) are read per sample, at the
+     mirror direction of the interpolated normal (the GPU's final shading with prefiltered
+     environment textures), so mirror-like reflections stay sharp.
+   * "pixel": per G-buffer sample, for each vertex v of its triangle, B_v with the *sample's* ωo
+     in v's frame and the lobes at the sample's mirror direction in each vertex's frame; the
+     sample's radiance is the barycentric mix of B_v (values living in a vertex's local frame are
+     never interpolated across frames), clamped at 0. Per-sample look-ups make it ≈ 10× slower
+     per V frame; it is more accurate on coarse meshes (test-size alcove direct RMSE vs Mitsuba
+     0.0092 vs 0.0109 "vertex", shadow_detail 0.075 vs 0.085; chess 0.0528 vs 0.0533; chess
+     bench 0.0355 vs 0.0358).
 
 So V-only frames do only stage 3, V&B frames skip the lighting wavelet products (stage 1), V,B&L
 frames do all three (Sun Table 1). `render` runs these stages batched (``methods.ptt.fast``: the
@@ -30,8 +47,10 @@ Specular lobe separation (§4.1, ``separate=True``; all formulas and normalisati
 precompute and the factorization, direct transport and PTTs see only the remainder basis
 f_r = f − f_s. Per vertex, the direct transport's visibility rays also give the cosine-weighted
 fractional visibility V_c^(k)(x, R) on a T×T local table per lobe; stage 1 prefilters the env map
-with each unit-mass Gaussian (E^(k)); stage 2 prefilters the one-bounce SH radiance per lobe; stage 3
-adds Σ_k a_k(H, θo)[E^(k)(R) V_c^(k)(x, R) + max(0, n·R) L1^(k)(R)] per sample (`_specular_lobes`).
+with each unit-mass Gaussian (E^(k), resampled onto the env map's own grid:
+``specular.on_env_grid``); stage 2 prefilters the one-bounce SH radiance per lobe; stage 3 adds
+Σ_k a_k(H, θo)[E^(k)(R) V_c^(k)(x, R) + max(0, n·R) L1^(k)(R)] (per vertex but E^(k)(R) per sample
+with shading="vertex", `_vertex_terms`; per sample with "pixel", `_specular_lobes`).
 Light reflected by a *hit point's* separated lobe is missing from the bounce tensors (they are built
 from f_r), and the two-bounce radiance is not applied to the lobes (as the paper).
 
@@ -63,6 +82,8 @@ from methods.ptt import lobes as _lobes
 from methods.ptt import pca as _pca
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
+from methods.ptt.transport import table_coords
+from scenes.envmap import extend_periodic
 
 # G-buffer samples shaded per batch by the reference path (a batch holds (Q, 3, n_P, K) view factors)
 # and by the fast path (a batch holds a few hundred bytes per sample).
@@ -73,6 +94,11 @@ FAST_CHUNK = 1 << 18
 # two-bounce 6×2×2, 4th-order SH.
 PAPER = dict(cube_res=64, n_L=96, n_wi=8, n_wo=8, light_res_1=8, light_res_2=2, sh_order=4, separate=True,
              lobe_degrees=[0.0, 7.0, 14.0, 21.0])
+
+# Where the view stage evaluates Sun eq. 3 (the `shading` config, class docstring): "vertex" (Sun's
+# run time, the default) or "pixel" (per G-buffer sample; slower, sharper on coarse meshes).
+SHADINGS = ("vertex", "pixel")
+SHADING_DEFAULT = "vertex"
 
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
@@ -134,6 +160,9 @@ class PTT(Method):
         lobe_vis_res, lobe_vis_samples: T of the per-vertex T×T fractional-visibility tables and
             the local sample count they are filtered from.
         env_res: finest cube resolution of the prefiltered env maps.
+        shading: "vertex" (default: Sun's per-vertex run time, module docstring) or "pixel" (the
+            view stage per G-buffer sample). The precomputation does not depend on it
+            (`with_shading` shares it).
     """
 
     name = "ptt"
@@ -149,7 +178,7 @@ class PTT(Method):
                  separate: bool = SEPARATE_DEFAULT, lobe_degrees: Any = _lobes.LOBE_DEGREES,
                  lobe_theta: int = 32, lobe_fit_samples: int = 16384, lobe_vis_res: int = 16,
                  lobe_vis_samples: int = 4096, env_res: int = 32, pca_terms: int = _pca.N_SPEC,
-                 pca_grid: int = 16) -> None:
+                 pca_grid: int = 16, shading: str = SHADING_DEFAULT) -> None:
         if isinstance(bounces, bool) or bounces not in (0, 1, 2):
             raise ValueError(f"bounces must be 0, 1 or 2, got {bounces!r}")
         if basis == "scene":
@@ -186,6 +215,8 @@ class PTT(Method):
         _check_int("lobe_fit_samples", lobe_fit_samples, 16)
         _check_int("lobe_vis_res", lobe_vis_res, 2)
         _check_int("lobe_vis_samples", lobe_vis_samples, 16)
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
         _check_pow2("env_res", env_res)
         if env_res < _spec.MIN_ENV_RES:
             raise ValueError(f"env_res must be >= {_spec.MIN_ENV_RES}, got {env_res}")
@@ -198,7 +229,7 @@ class PTT(Method):
                          light_supersample=light_supersample, seed=seed, compress=compress, n_wo=n_wo,
                          separate=separate, lobe_degrees=lobe_degrees, lobe_theta=lobe_theta,
                          lobe_fit_samples=lobe_fit_samples, lobe_vis_res=lobe_vis_res,
-                         lobe_vis_samples=lobe_vis_samples, env_res=env_res,
+                         lobe_vis_samples=lobe_vis_samples, env_res=env_res, shading=shading,
                          **({"pca_terms": pca_terms, "pca_grid": pca_grid} if basis == "pca" else {}))
         self.separate = separate
         self.bounces = bounces
@@ -218,11 +249,13 @@ class PTT(Method):
         self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
         # fast path (`render`, ``methods.ptt.fast``): its own caches, same stages
         self._f_env = None    # env map object of the cached lighting products
-        self._f_light = None  # (E0 (V,K,3), T1L (V,RP,S,3) | None, T2L (V,(RP)²,3) | None, E^(k) maps | None)
+        self._f_light = None  # (E0 (V,K,3), T1L (V,RP,S,3) | None, T2L (V,(RP)²,3) | None,
+        #                       (E^(k) maps, their fast.LatLongStack) | None)
         self._f_H = None      # (R, P, 3) coordinates of the cached region tables
         self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
-        self._f_E = None      # (E (V, K, 3), I1w (V, 3·S) | None) for the cached (lighting, H)
-        self._last_view = None  # (num_samples, hit faces (Q,), their regions (Q,)) of the last render (cost_terms)
+        self._f_E = None      # (E (V, K·3), I1 | None) for the cached (lighting, H): the one-bounce SH
+        # radiance, (V, S, 3) local frame (shading="vertex") or (V, 3·S) world frame (shading="pixel")
+        self._last_view = None  # (num_samples, G-buffer, camera origin (3,)) of the last render (cost_terms)
 
     # -- precompute ------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -303,16 +336,33 @@ class PTT(Method):
     def _fast_static(self) -> _fast.FastStatic:
         """The fast path's static arrays (``fast.FastStatic``), built once (also for a method
         unpickled from before they existed); T² and the lobe-visibility tables are re-laid out
-        lighting-last / texel-major in place (the reference path reads views of the same storage)."""
-        if getattr(self, "_fs", None) is None:
+        lighting-last / texel-major and T¹ (vertex, SH)-major in place (the reference path reads views
+        of the same storage).
+        The per-vertex SH rotations are built only when shading="pixel" needs them."""
+        need_sh = self.separate and self.bounces >= 1 and self.config["shading"] == "pixel"
+        fs = getattr(self, "_fs", None)
+        if fs is None or fs.pair_pos is None or (need_sh and fs.sh_rot is None):
             if self.T2 is not None and not self.T2.permute(0, 2, 3, 4, 5, 1).is_contiguous():
                 self.T2 = _fast.relayout_t2(self.T2)
+            if self.T1 is not None and not self.T1.permute(0, 3, 1, 2, 4).is_contiguous():
+                self.T1 = _fast.relayout_t1(self.T1)
             if self.lobe_vis is not None and not self.lobe_vis.permute(0, 2, 3, 1).is_contiguous():
                 self.lobe_vis = self.lobe_vis.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
-            need_sh = self.separate and self.bounces >= 1
-            self._fs = _fast.build_static(self.N, self.F, self.face_region, len(self.regions),
+            self._fs = _fast.build_static(self.V, self.N, self.F, self.face_region, len(self.regions),
                                           self.config["sh_order"] if need_sh else None)
         return self._fs
+
+    def with_shading(self, shading: str) -> "PTT":
+        """A copy sharing this precomputation whose view stage shades per ``shading`` ("vertex" |
+        "pixel"; the precomputation does not depend on it)."""
+        import copy
+
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
+        m = copy.copy(self)
+        m._config = {**self._config, "shading": shading}
+        m._reset_cache()
+        return m
 
     def with_bounces(self, bounces: int) -> "PTT":
         """A copy sharing this precomputation that renders only ``bounces`` (<= self.bounces)
@@ -355,8 +405,9 @@ class PTT(Method):
         if self.T2 is not None:
             T2L = torch.einsum("vlrptq,lc->vrptqc", self.T2, CL[self.blk2])
         self._light = (E0, T1L, T2L)
-        if self.separate:  # Sun §4.1 E^(k)
-            self._Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"])
+        if self.separate:  # Sun §4.1 E^(k), on the env map's grid
+            self._Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters,
+                                                              supersample=c["light_supersample"]), envmap)
         self._env = envmap
         self.stats["light"] += 1
 
@@ -401,37 +452,70 @@ class PTT(Method):
         if self._f_E is None:  # Sun eq. 4 for (lighting, H)
             E0, T1L, T2L, _ = self._f_light
             E, I1 = _fast.brdf_products(H, E0, T1L, self.C, T2L, self.Cu)
-            I1w = None
-            if I1 is not None and self.lobe_sh is not None:  # world-frame SH for the lobes (§4.1)
-                I1w = torch.bmm(st.sh_rot, I1).transpose(1, 2).reshape(I1.shape[0], -1)  # (V, 3·S)
-            self._f_E = (E.contiguous(), I1w)
+            if I1 is None or self.lobe_sh is None:
+                I1 = None
+            elif self.config["shading"] == "pixel":  # world-frame SH, interpolated before evaluation
+                I1 = torch.bmm(st.sh_rot, I1).transpose(1, 2).reshape(I1.shape[0], -1)  # (V, 3·S)
+            self._f_E = (E.reshape(E.shape[0], -1).contiguous(), I1)
             self.stats["brdf"] += 1
         self.stats["view"] += 1
-        return self._fast_view(frame, gbuffer, st)
+        if self.config["shading"] == "pixel":
+            return self._fast_view_pixel(frame, gbuffer, st)
+        return self._fast_view_vertex(frame, gbuffer, st)
 
     def _fast_lighting(self, envmap) -> None:
         """Stage 1 (lighting products of Sun eq. 4) for ``envmap``."""
         c = self.config
         CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
         E0 = _fast.direct_incidence(self.dt.idx, self.dt.val, CL)  # (V, K, 3)
-        nv, R, P = int(self.V.shape[0]), len(self.regions), self.factors.n_P
-        T1L = T2L = None
-        if self.T1 is not None:
-            L1 = self.T1.shape[-1]
-            T1L = (self.T1.reshape(-1, L1) @ CL[self.blk1]).reshape(nv, R * P, -1, 3)
-        elif self.T1c is not None:
-            T1L = self.T1c.contract_light(CL[self.blk1]).reshape(nv, R * P, -1, 3)
-        if self.T2 is not None:  # stored lighting-last (`_fast_static`)
-            T2t = self.T2.permute(0, 2, 3, 4, 5, 1)
-            T2L = (T2t.reshape(-1, T2t.shape[-1]) @ CL[self.blk2]).reshape(nv, -1, 3)
+        bounce = self.T1 is not None or self.T1c is not None
+        T1L, T2L = _fast.lighting_products(self.T1, self.T1c, CL[self.blk1] if bounce else None, self.T2,
+                                           CL[self.blk2] if self.T2 is not None else None,
+                                           len(self.regions) * self.factors.n_P)
         Ek = None
-        if self.separate:  # Sun §4.1 E^(k)
-            Ek = _spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"])
+        if self.separate:  # Sun §4.1 E^(k) on the env map's grid, stacked for the per-sample look-ups
+            Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"]),
+                                   envmap)
+            Ek = (Ek, _fast.env_stack(Ek))
         self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
         self.stats["light"] += 1
 
-    def _fast_view(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
-        """Stage 3 at the G-buffer's hit samples, FAST_CHUNK samples at a time."""
+    def _fast_view_vertex(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
+        """Stage 3, shading="vertex": the pair rows of `fast.vertex_view`, then per hit sample one
+        interpolation and the prefiltered maps at R (`fast.shade_samples`)."""
+        c = self.config
+        E, I1 = self._f_E
+        Wr, ar = self._f_tabs
+        T, K = self.factors.W_tab.shape[-1], self.factors.K
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
+        lobes = env = None
+        L = 0
+        if self.separate:
+            L = len(c["lobe_degrees"])
+            lobes = dict(ar=ar, n_theta=self.lobe_table.theta.shape[0], Tv=self.lobe_vis.shape[-1],
+                         vis=self.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L),  # a view (`_fast_static`)
+                         I1=I1, f=None if I1 is None else _zh.expand_bands(self.lobe_sh), order=c["sh_order"])
+            env = self._f_light[3][1]
+        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
+        gb, B = gbuffer, _fast.SAMPLE_CHUNK
+        self._last_view = (gb.num_samples, gb, cam)
+        if bool(gb.hit.all()):  # no gathers of the G-buffer
+            out = torch.empty(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
+            for a in range(0, gb.num_samples, B):
+                _fast.shade_samples(st.face_pairs, table, gb.face[a:a + B], gb.bary[a:a + B], gb.normal[a:a + B],
+                                    gb.wo[a:a + B], env, L, out=out[a:a + B])
+            return _fast.box_filter(out, gb.height, gb.width, gb.spp_side ** 2)
+        out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
+        hit = torch.nonzero(gb.hit).squeeze(-1)
+        for a in range(0, hit.numel(), B):
+            sel = hit[a:a + B]
+            out[sel] = _fast.shade_samples(st.face_pairs, table, gb.face[sel], gb.bary[sel],
+                                           gb.normal[sel] if env is not None else None,
+                                           gb.wo[sel] if env is not None else None, env, L)
+        return gb.resolve(out)
+
+    def _fast_view_pixel(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
+        """Stage 3, shading="pixel", at the G-buffer's hit samples, FAST_CHUNK samples at a time."""
         c = self.config
         E, I1w = self._f_E
         Wr, ar = self._f_tabs
@@ -460,11 +544,11 @@ class PTT(Method):
                 loc = _fast.to_vertex_frames(fq, wo[:, :, None])
             res = _fast.shade(st, win, Wr, E, T, K, vidx, bw, region, loc[..., 0], window)
             if self.separate:
-                res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3], vis_rows, Tv,
+                res = res + _fast.specular_lobes(self.lobe_table.theta.shape[0], ar, self._f_light[3][0], vis_rows, Tv,
                                                  I1w, self.lobe_sh, c["sh_order"], n, R, wo, region, vidx, bw,
                                                  loc[..., 1])
             out[sel] = res
-        self._last_view = (gbuffer.num_samples, gbuffer.face[hit], gbuffer.region[hit])
+        self._last_view = (gbuffer.num_samples, gbuffer, cam)
         return gbuffer.resolve(out)
 
     # -- reference path: the stages as written in Sun's notation (the test oracle of the fast path) --
@@ -480,6 +564,13 @@ class PTT(Method):
         out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         hit = torch.nonzero(gbuffer.hit).squeeze(-1)
         vidx, bw = gbuffer.vertex_weights(self.F)
+        if self.config["shading"] == "vertex":
+            keys, B, s, u = self._vertex_terms(torch.as_tensor(frame.camera.origin, dtype=torch.float32), H)
+            for a in range(0, hit.numel(), RENDER_CHUNK):
+                sel = hit[a:a + RENDER_CHUNK]
+                out[sel] = self._shade_vertex(keys, B, s, u, vidx[sel], bw[sel], gbuffer.region[sel],
+                                              gbuffer.normal[sel].float(), gbuffer.wo[sel].float())
+            return gbuffer.resolve(out)
         for a in range(0, hit.numel(), RENDER_CHUNK):
             sel = hit[a:a + RENDER_CHUNK]
             out[sel] = self._shade(vidx[sel], bw[sel], gbuffer.wo[sel].float(), H[gbuffer.region[sel]])
@@ -488,8 +579,57 @@ class PTT(Method):
             out = out + lobes
         return gbuffer.resolve(out)
 
+    def _vertex_terms(self, cam: Tensor, H: Tensor) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """shading="vertex": the per-vertex part of Sun eq. 3 at each vertex x's own view direction
+        ωo_x = (cam − x)/|cam − x|, for every (vertex, region) pair of the mesh (a vertex shading one
+        region's faces uses that region's BRDF H(r)):
+        B_x = Σ_k g_x(k) E_x(k), g_x(k) = Σ_p H(r, p) W(p, ωo_x, k) (the glossy remainder);
+        with lobes (§4.1), at the mirror direction R_x of ωo_x about n_x:
+        s_x(k) = a_k(H, θo_x) V_c^(k)(x, R_x) and u_x = Σ_k a_k(H, θo_x) max(0, n_x·R_x) L1^(k)_x(R_x).
+        cam (3,); H (R, P, 3). Returns keys (n,) = v·R + r sorted, B (n, 3), s (n, L, 3) | None,
+        u (n, 3) | None."""
+        R = len(self.regions)
+        keys = torch.unique(self.F * R + self.face_region[:, None])
+        v, r = keys // R, keys % R
+        n = self.N[v]
+        wo = cam[None, :] - self.V[v]
+        wo = wo / wo.norm(dim=-1, keepdim=True)
+        g = torch.einsum("npk,npc->nkc", self.factors.W(to_local(wo, n)), H[r])  # Sun eq. 3: D ×_h U^h ×_ωo U^ωo
+        B = (g * self._E[v]).sum(1)
+        if not self.separate:
+            return keys, B, None, None
+        Rw = reflect(wo, n)
+        Rw = Rw / Rw.norm(dim=-1, keepdim=True)
+        Rl = to_local(Rw, n)
+        ak = torch.einsum("npl,npc->nlc", _spec.lobe_weights(self.lobe_table, (n * wo).sum(-1)), H[r])
+        s = ak * _spec.lookup_vertex_tables(self.lobe_vis, v, Rl)[..., None]
+        u = None
+        if self._I1k is not None:
+            Li = _spec.sh_at(self._I1k[v], Rl[:, None, :], self.config["sh_order"])  # (n, L, 3)
+            u = (ak * Li.clamp_min(0.0)).sum(1) * (n * Rw).sum(-1).clamp_min(0.0)[:, None]
+        return keys, B, s, u
+
+    def _shade_vertex(self, keys: Tensor, B: Tensor, s: Tensor | None, u: Tensor | None, vidx: Tensor, bw: Tensor,
+                      region: Tensor, normal: Tensor, wo: Tensor) -> Tensor:
+        """shading="vertex" at samples: the `_vertex_terms` of the sample's triangle interpolated with
+        its barycentrics β, max(0, Σ_v β_v B_v) + Σ_v β_v u_v + Σ_k E^(k)(R) Σ_v β_v s_v(k), R the
+        mirror direction of ωo about the interpolated shading normal. vidx, bw (Q, 3); region (Q,);
+        normal, wo (Q, 3) → (Q, 3)."""
+        j = torch.searchsorted(keys, vidx * len(self.regions) + region[:, None])  # (Q, 3) pair of each vertex
+        out = (bw[..., None] * B[j]).sum(1).clamp_min(0.0)
+        if s is None:
+            return out
+        if u is not None:
+            out = out + (bw[..., None] * u[j]).sum(1)
+        R = _spec.mirror_dirs(normal, wo)  # (3, Q)
+        E = []
+        for e in self._Ek:  # E^(k)(R): each map by Mitsuba's bilinear look-up
+            idx, w = _spec.latlong_cells(R, e.to_world, e.height, e.width)
+            E.append((extend_periodic(e.data)[idx] * w[..., None]).sum(1))
+        return out + ((bw[..., None, None] * s[j]).sum(1) * torch.stack(E, 1)).sum(1)
+
     def _shade(self, vidx: Tensor, bw: Tensor, wo: Tensor, Hs: Tensor) -> Tensor:
-        """Eq. 3 at samples: vidx, bw (Q, 3); wo (Q, 3) world; Hs (Q, P, 3) → (Q, 3)."""
+        """shading="pixel": eq. 3 at samples: vidx, bw (Q, 3); wo (Q, 3) world; Hs (Q, P, 3) → (Q, 3)."""
         B = torch.zeros(wo.shape[0], 3)
         for j in range(3):
             v = vidx[:, j]
@@ -550,28 +690,34 @@ class PTT(Method):
         Stages (Sun Table 1): "V" runs the view stage only; "VB" also the BRDF stage (H products);
         "VBL" and the lighting kinds "L", "E", "VL" also the lighting stage (L, E, VL keep H, so the
         per-region tables are not rebuilt). Each array is counted once per frame (a perfect cache):
-        a cache the frame rebuilds counts as its write, one it reuses as the read of the rows the
-        G-buffer references.
+        a cache the frame rebuilds counts as its write, one it reuses as the read of the rows (or
+        texels) the frame references.
 
         Minimum arithmetic (multiply-add = 2 flops; direction transforms and the interpolations
         counted, transcendentals / SH polynomials / the env-map cube resampling and Haar transform
         not — a lower bound):
-        * view, per hit sample: the glossy term of Sun eq. 3 in the reassociated form
+        * view, shading="vertex", per referenced (vertex, region) pair: ωo_x in x's frame (9 + 3),
+          the glossy term Σ_k W_r(ωo_x, k) E_x(k) (bilinear 4·K·3 + K·3); with lobes (§4.1) a_k by
+          2 θ nodes (2·L·3), V_c^(k) bilinear (4·L), s = a_k V_c (L·3), with bounces the SH term
+          (Y·I S·3, lobe factors L·order·3, Σ_k a_k L1 L·3 + 3); per hit sample the interpolation
+          of the C pair columns (3·C), with lobes R (6), E^(k) bilinear (4·L·3) and Σ_k s E (L·3);
+        * view, shading="pixel", per hit sample: the glossy term in the reassociated form
           X(v, r, texel) = Σ_k W_r(texel, k) E_v(k) — at least one bilinear cell (4 texels) per
           referenced (vertex, region) pair, K·3 MACs each — then 3 vertices × 4 corners × 3 MACs per
           sample, and ωo in 3 vertex frames (27 MACs); with lobes (§4.1) R in 3 frames (27), a_k by 2
           θ nodes (2·L·3), E^(k) bilinear (4·L·3), V_c^(k) (3·4·L), and with bounces the SH term
           (interpolation 3·S·3, Y·I S·3, lobe factors L·order·3), E·V_c + Li·cos (2·L·3), Σ_k (L·3);
         * BRDF stage (eq. 4), per vertex: Σ_{r,p} H T¹L (R·P·S·3), C^{ωi} (S·K·3), Σ H H T²L
-          ((R·P)²·3), C^{ωi}(k) (K·3), the world-frame rotation of the SH radiance for the lobes
-          (Σ_b (2b+1)²·3); when H changed, the per-region tables D ×_h U^h(H) (R·T²·K·P·3) and lobe
-          weights (R·n_θ·L·P·3);
+          ((R·P)²·3), C^{ωi}(k) (K·3), with shading="pixel" the world-frame rotation of the SH
+          radiance for the lobes (Σ_b (2b+1)²·3); when H changed, the per-region tables
+          D ×_h U^h(H) (K·P·3 per texel: every texel with "pixel", the texels the view reads with
+          "vertex") and lobe weights (R·n_θ·L·P·3);
         * lighting stage, per vertex: Σ_l C^L U^{I0} (K·n_L·3), T¹ (R·P·S·L1·3; compressed: the
           per-cluster contractions of ``compress``), T² (L2·(R·P)²·3); the lobe prefilters (nnz·3).
 
-        Referenced rows/pairs and the hit count come from the last `render` on a G-buffer of
-        ``num_samples`` samples; without one, every sample is taken as a hit and every vertex and
-        (vertex, region) pair as referenced (an upper bound of those terms)."""
+        Referenced rows, pairs, texels and the hit count come from the last `render` on a G-buffer
+        of ``num_samples`` samples; without one, every sample is taken as a hit and every vertex,
+        (vertex, region) pair and table texel as referenced (an upper bound of those terms)."""
         kinds = ("V", "VB", "VBL", "L", "E", "VL")
         if frame_kind not in kinds:
             raise ValueError(f"frame_kind must be one of {kinds}, got {frame_kind!r}")
@@ -581,6 +727,7 @@ class PTT(Method):
             return None
         st = self._fast_static()
         c, f4 = self.config, 4
+        vertex = c["shading"] == "vertex"
         nv, nf = int(self.V.shape[0]), int(self.F.shape[0])
         K, P, R, S, order = self.factors.K, self.factors.n_P, len(self.regions), c["sh_order"] ** 2, c["sh_order"]
         T = self.factors.W_tab.shape[-1]
@@ -590,41 +737,83 @@ class PTT(Method):
         sh = lobes and self.lobe_sh is not None and (self.T1 is not None or self.T1c is not None)
         Lb = len(c["lobe_degrees"]) if lobes else 0
         n_theta = self.lobe_table.theta.shape[0] if lobes else 0
-        if self._last_view is not None and self._last_view[0] == num_samples:
-            faces, regs = self._last_view[1], self._last_view[2]
+        env = self._f_env if self._f_env is not None else self.scene.envmap
+        maps = [env.data.shape[:2]] * Lb  # E^(k) on the env map's grid (specular.on_env_grid)
+        last = self._last_view if self._last_view is not None and self._last_view[0] == num_samples else None
+        if last is not None:
+            gb, cam = last[1], last[2]
+            hit = torch.nonzero(gb.hit).squeeze(-1)
+            faces = gb.face[hit]
             Q = int(faces.numel())
             ref_faces = int(torch.unique(faces).numel())
             ref_verts = int(torch.unique(self.F[faces]).numel())
-            ref_pairs = int(torch.unique(st.pair_of[self.F[faces] * R + regs[:, None]]).numel())
+            pairs = torch.unique(st.face_pairs[faces] if vertex
+                                 else st.pair_of[self.F[faces] * R + gb.region[hit][:, None]])
         else:
-            Q, ref_faces, ref_verts, ref_pairs = num_samples, nf, nv, int(st.pair_v.numel())
-        env = self._f_env if self._f_env is not None else self.scene.envmap
+            Q, ref_faces, ref_verts, pairs = num_samples, nf, nv, None
+        ref_pairs = int(st.pair_v.numel()) if pairs is None else int(pairs.numel())
+        # texels of the view tables (W_r, a_r) and lat-long maps (E^(k)) the view stage reads
+        # (vertex mode: those of the last render; else every one): W_r texels (r, t) and texels t,
+        # a_r rows (r, θ node) and θ nodes, texels of each map
+        tex_W, tex_t, rows_a, nodes_a = R * T * T, T * T, R * n_theta, n_theta
+        tex_maps = [h * w for h, w in maps]
+        if vertex and last is not None:
+            _, r, loc = _fast.pair_view_dirs(st, self.V, cam, pairs)
+            ix, iy, _, _ = _fast._bilinear(table_coords(loc), T)
+            cell = torch.stack([iy * T + ix, iy * T + ix + 1, (iy + 1) * T + ix, (iy + 1) * T + ix + 1])
+            tex_W = int(torch.unique(r * (T * T) + cell).numel())
+            tex_t = int(torch.unique(cell).numel())
+            if lobes:
+                i0, _ = _fast.theta_nodes(loc[:, 2], n_theta)
+                node = torch.stack([i0, (i0 + 1).clamp(max=n_theta - 1)])
+                rows_a = int(torch.unique(r * n_theta + node).numel())
+                nodes_a = int(torch.unique(node).numel())
+                Rq = _spec.mirror_dirs(gb.normal[hit].float(), gb.wo[hit].float())
+                idx, _ = _spec.latlong_cells(Rq, env.to_world, env.height, env.width)
+                tex_maps = [int(torch.unique(idx).numel())] * Lb  # one grid for every lobe (specular.on_env_grid)
         B, Fl = {}, {}
         # -- view stage (every frame)
-        B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4  # + region (int64); misses: hit word
         B["output"] = num_samples * 3 * f4
-        B["faces"] = ref_faces * 3 * self.F.element_size()
-        B["normals"] = ref_verts * 3 * f4
-        rows = {"E": ref_verts * K * 3 * f4, "W_r": R * T * T * K * 3 * f4}
-        if lobes:
-            rows["lobe_visibility"] = min(ref_verts * 4 * Lb * f4, tensor_bytes(self.lobe_vis))  # >= one cell each
-            rows["a_r"] = R * n_theta * Lb * 3 * f4
-            if any(flt is None for flt in self.env_filters):  # the 0° lobe reads the env map itself at R
-                B["env_map"] = min(tensor_bytes(env.data), Q * 4 * 3 * f4)
-            B["prefiltered_maps"] = sum(2 * flt.res * 4 * flt.res * 3 * f4
-                                        for flt in self.env_filters if flt is not None)
-        if sh:
-            rows["I1w"] = ref_verts * S * 3 * f4
-        Fl["view_glossy"] = 2 * (ref_pairs * 4 * K * 3 + Q * 3 * 4 * 3 + Q * 27)
-        if lobes:
-            Fl["view_lobes"] = 2 * Q * (27 + 2 * Lb * 3 + 4 * Lb * 3 + 3 * 4 * Lb + 2 * Lb * 3 + Lb * 3)
+        B["faces"] = ref_faces * 3 * (8 if vertex else self.F.element_size())  # face_pairs (int64) / F
+        if vertex:
+            # G-buffer: face (int64), barycentrics, the hit word; with lobes the shading normal and ωo
+            B["gbuffer"] = Q * (8 + 8 + 4 + (24 if lobes else 0)) + (num_samples - Q) * 4
+            B["vertices"] = ref_verts * 6 * f4  # position + normal
+            rows = {"E": ref_verts * K * 3 * f4, "W_r": tex_W * K * 3 * f4}
+            if lobes:
+                rows["lobe_visibility"] = min(ref_verts * 4 * Lb * f4, tensor_bytes(self.lobe_vis))  # >= one cell each
+                rows["a_r"] = rows_a * Lb * 3 * f4
+                B["env_maps"] = sum(tex_maps) * 3 * f4
             if sh:
-                Fl["view_lobes_sh"] = 2 * Q * (3 * S * 3 + S * 3 + Lb * order * 3)
+                rows["I1"] = ref_verts * S * 3 * f4
+            C = 3 + (3 * Lb if lobes else 0) + (3 if sh else 0)
+            Fl["view_glossy"] = 2 * (ref_pairs * (12 + 4 * K * 3 + K * 3) + Q * 3 * C)
+            if lobes:
+                Fl["view_lobes"] = 2 * (ref_pairs * (2 * Lb * 3 + 4 * Lb + Lb * 3) + Q * (6 + 4 * Lb * 3 + Lb * 3))
+                if sh:
+                    Fl["view_lobes_sh"] = 2 * ref_pairs * (S * 3 + Lb * order * 3 + Lb * 3 + 3)
+        else:
+            # + region (int64); misses: hit word
+            B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4
+            B["normals"] = ref_verts * 3 * f4
+            rows = {"E": ref_verts * K * 3 * f4, "W_r": tex_W * K * 3 * f4}
+            if lobes:
+                rows["lobe_visibility"] = min(ref_verts * 4 * Lb * f4, tensor_bytes(self.lobe_vis))  # >= one cell each
+                rows["a_r"] = rows_a * Lb * 3 * f4
+                B["env_maps"] = sum(min(t, Q * 4) for t in tex_maps) * 3 * f4  # >= a bilinear cell per sample
+            if sh:
+                rows["I1w"] = ref_verts * S * 3 * f4
+            Fl["view_glossy"] = 2 * (ref_pairs * 4 * K * 3 + Q * 3 * 4 * 3 + Q * 27)
+            if lobes:
+                Fl["view_lobes"] = 2 * Q * (27 + 2 * Lb * 3 + 4 * Lb * 3 + 3 * 4 * Lb + 2 * Lb * 3 + Lb * 3)
+                if sh:
+                    Fl["view_lobes_sh"] = 2 * Q * (3 * S * 3 + S * 3 + Lb * order * 3)
         # -- BRDF stage (H or lighting changed): caches it rebuilds count as their full write
         if brdf or light:
             rows["E"] = nv * K * 3 * f4
             if sh:
-                rows["I1w"] = nv * S * 3 * f4
+                rows["I1" if vertex else "I1w"] = nv * S * 3 * f4
+            if sh and not vertex:
                 B["sh_rotation"] = nv * sum((2 * b + 1) ** 2 for b in range(order)) * f4
                 Fl["brdf_sh_rotation"] = 2 * nv * sum((2 * b + 1) ** 2 for b in range(order)) * 3
             B["E0"] = nv * K * 3 * f4
@@ -637,12 +826,12 @@ class PTT(Method):
                 B["T2L"] = nv * (R * P) ** 2 * 3 * f4
                 B["Cu"] = tensor_bytes(self.Cu)
                 Fl["brdf_I2"] = 2 * nv * ((R * P) ** 2 * 3 + K * 3) + (R * P) ** 2 * 3
-        if brdf:
-            B["W_tables"] = tensor_bytes(self.factors.W_tab)
-            Fl["brdf_W_r"] = 2 * R * T * T * K * P * 3
+        if brdf:  # the per-region tables at the texels / θ nodes the view stage reads
+            B["W_tables"] = tex_t * P * K * f4
+            Fl["brdf_W_r"] = 2 * tex_W * K * P * 3
             if lobes:
-                B["lobe_weights"] = tensor_bytes(self.lobe_table.a)
-                Fl["brdf_a_r"] = 2 * R * n_theta * Lb * P * 3
+                B["lobe_weights"] = nodes_a * P * Lb * f4
+                Fl["brdf_a_r"] = 2 * rows_a * Lb * P * 3
         B.update(rows)
         # -- lighting stage
         if light:
@@ -664,6 +853,10 @@ class PTT(Method):
                 kern = [flt.kernel for flt in self.env_filters if flt is not None]
                 B["lobe_prefilters"] = sum(tensor_bytes(k.values(), k.col_indices(), k.crow_indices()) for k in kern)
                 Fl["light_prefilter"] = 2 * sum(k.values().numel() for k in kern) * 3
+                # the prefiltered maps resampled onto the env grid (specular.on_env_grid): written once
+                # each, a bilinear cell (4 texels · 3) per texel
+                B["lobe_maps"] = len(kern) * env.data.shape[0] * env.data.shape[1] * 3 * f4
+                Fl["light_resample"] = 2 * len(kern) * env.data.shape[0] * env.data.shape[1] * 4 * 3
         return {k: int(v) for k, v in B.items()}, {k: int(v) for k, v in Fl.items()}
 
     def memory(self) -> dict[str, int]:

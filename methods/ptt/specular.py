@@ -67,9 +67,19 @@ vertex's world-cube visibility of the direct transport (nearest texel, so its re
 ``cube_res``) resampled at a fixed local spherical-Fibonacci set of ``samples`` directions, so the
 lobe kernels are one sparse matrix shared by every vertex: (V, L, T, T) floats per scene.
 
-Per G-buffer sample (stage 3) the lobes use the interpolated shading normal n (as the references):
-R = reflect(ωo, n), a_k at θo = acos(n·ωo), E^(k)(R) once, and V_c^(k) interpolated over the
-triangle with each vertex's table read at R in that vertex's frame:
+Run time (stage 3). The maps E^(k) are resampled onto the env map's own grid and frame
+(`on_env_grid`) and read at the per-sample mirror direction R = reflect(ωo, n) of the
+interpolated shading normal n; with shading="vertex" every lobe with one bilinear look-up
+(`latlong_cells`, Mitsuba's convention, at `mirror_dirs`; both shared by the reference and the
+fast path, so they look the maps up at the same bits). With shading="vertex"
+(Sun's run time: the fractional visibility "is computed from the visibility maps of each vertex")
+the factors are per vertex x at its own view direction, R_x = reflect(ωo_x, n_x), and
+interpolated with the barycentrics β:
+
+    L_s = Σ_k E^(k)(R) · Σ_v β_v a_k(H, θo_v) V_c^(k)(v, R_v);
+
+with shading="pixel" a_k is taken at the sample's θo = acos(n·ωo) and each vertex's table is
+read at the sample's R in that vertex's frame:
 
     L_s = Σ_k a_k(H, θo) · E^(k)(R) · Σ_v β_v V_c^(k)(v, R).
 
@@ -77,7 +87,8 @@ Indirect term (bounces ≥ 1, Sun §4.1 "computed with respect to transferred in
 one-bounce interreflection ... using prefiltered SH basis functions"): the one-bounce incident
 radiance of vertex v in SH (I1_v(s), order 4, local frame; from the BRDF stage) convolved with each
 unit-mass lobe's zonal kernel (Funk–Hecke factors Λ_l k_l, `lobe_sh_kernels`) is evaluated at R and multiplied by
-max(0, n·R) (no visibility: it *is* the occluded part); vertices interpolated as above, clamped at 0.
+max(0, n·R) (no visibility: it *is* the occluded part); vertices interpolated as above, clamped at 0
+(with shading="vertex" evaluated per vertex at R_x and interpolated).
 The two-bounce uniform radiance is disregarded for the lobes (as the paper). The bounce tensors
 themselves are built from the remainder basis, so light reflected by a *hit point's* separated lobe
 is missing from the interreflections (see ``methods.ptt.method``).
@@ -418,6 +429,96 @@ def prefilter_env(envmap: Any, filters: Sequence[EnvFilter | None], *, supersamp
         E = (flt.kernel @ cube.reshape(-1, 3)).clamp_min(0.0).reshape(*flt.shape, 3)
         out.append(EnvMap(E))
     return out
+
+
+def on_env_grid(maps: Sequence[Any], envmap: Any) -> list[Any]:
+    """The prefiltered maps E^(k) (`prefilter_env`) resampled onto ``envmap``'s own lat-long grid and
+    frame: E^(k) at each texel's world direction by the bilinear look-up of ``EnvMap.radiance``
+    (as `latlong_cells`), as an EnvMap with ``envmap``'s to_world (the 0° lobe is ``envmap``
+    itself). Every lobe then has the same grid and frame, so the run time reads all of them with
+    one bilinear look-up per shading point (``fast.EnvStack``). The resampling adds a bilinear
+    interpolation of the (coarser, smooth) prefiltered map; the env map is never resampled."""
+    from scenes.envmap import EnvMap, extend_periodic
+
+    H, W = envmap.data.shape[:2]
+    uv = None
+    out = []
+    for m in maps:
+        if m is envmap:
+            out.append(m)
+            continue
+        if uv is None:  # world directions of the env texels in the maps' frame, (u, v) once
+            d = envmap.to_world.to(torch.float32) @ _texel_dirs(H, W)  # (3, H·W)
+            uv = _latlong_uv(d, m.to_world)
+        elif not torch.equal(m.to_world, maps[-1].to_world):
+            raise ValueError("the prefiltered maps must share one frame")
+        idx, w = _uv_cells(*uv, m.height, m.width)
+        E = torch.nn.functional.embedding_bag(idx, extend_periodic(m.data), per_sample_weights=w, mode="sum")
+        out.append(EnvMap(E.reshape(H, W, 3), to_world=envmap.to_world))
+    return out
+
+
+def mirror_dirs(normal: Tensor, wo: Tensor) -> Tensor:
+    """Unit mirror directions R = reflect(ωo, n̂)/|·| (``core.frames.reflect``, n̂ = n/|n|) of G-buffer
+    samples: normal, wo (Q, 3) → (3, Q), the components as contiguous rows (what `latlong_cells`
+    reads; the reference and the fast path share it, so both look the maps up at the same bits)."""
+    nx, ny, nz = normal.unbind(-1)
+    wx, wy, wz = wo.unbind(-1)
+    s = (nx * wx).add_(ny * wy).add_(nz * wz)
+    n2 = (nx * nx).add_(ny * ny).add_(nz * nz).clamp_min_(1e-24)
+    s = s.div_(n2).mul_(2.0)  # 2 (n̂·ωo) / |n|, so R = s n − ωo
+    R = torch.empty(3, normal.shape[0], dtype=normal.dtype, device=normal.device)
+    torch.mul(s, nx, out=R[0]).sub_(wx)
+    torch.mul(s, ny, out=R[1]).sub_(wy)
+    torch.mul(s, nz, out=R[2]).sub_(wz)
+    inv = (R[0] * R[0]).add_(R[1] * R[1]).add_(R[2] * R[2]).clamp_min_(1e-24).rsqrt_()
+    return R.mul_(inv)
+
+
+@functools.lru_cache(maxsize=8)
+def _texel_dirs(H: int, W: int) -> Tensor:
+    """(3, H·W) float32 local directions of an H×W lat-long map's texels (``scenes.envmap.texel_directions``)."""
+    from scenes.envmap import texel_directions
+
+    return texel_directions(H, W).reshape(-1, 3).T.to(torch.float32).contiguous()
+
+
+def latlong_cells(R: Tensor, to_world: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """Mitsuba's bilinear lat-long look-up (``scenes.envmap.bilinear_lookup``; the ARCHITECTURE.md
+    env-map convention) of an H×W map with frame ``to_world`` at world directions R (3, Q)
+    (`mirror_dirs`): rows (Q, 4) int64 into its periodic-extended texels
+    (``scenes.envmap.extend_periodic``, H·(W+1) rows) and their weights (Q, 4), corners
+    (x, y), (x+1, y), (x, y+1), (x+1, y+1)."""
+    return _uv_cells(*_latlong_uv(R, to_world), H, W)
+
+
+def _latlong_uv(R: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
+    """(u, v) ∈ [−½, ½] × [0, 1] of world directions R (3, Q) in a map of frame ``to_world``
+    (``scenes.envmap.direction_to_uv``)."""
+    d = to_world.to(R).T @ R  # local = to_worldᵀ d (EnvMap.to_local), (3, Q)
+    u = torch.atan2(d[0], -d[2]).mul_(0.5 / math.pi)
+    v = torch.acos(d[1].clamp(-1.0, 1.0)).mul_(1.0 / math.pi)
+    return u, v
+
+
+def _uv_cells(u: Tensor, v: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """The bilinear cell of `latlong_cells` from (u, v) of `_latlong_uv` (not modified)."""
+    u = u - 0.5 / W  # half-texel shift: texel-centred columns
+    x = u.sub_(torch.floor(u)).mul_(W)
+    y = v - torch.floor(v)
+    y = y.mul_(H - 1)
+    ix = x.to(torch.int64).clamp_(max=W - 1)
+    iy = y.to(torch.int64).clamp_(max=H - 2)
+    fx, fy = x.sub_(ix), y.sub_(iy)
+    gx, gy = 1.0 - fx, 1.0 - fy
+    i0 = iy.mul_(W + 1).add_(ix)
+    idx = i0[:, None] + torch.tensor([0, 1, W + 1, W + 2], dtype=i0.dtype, device=i0.device)
+    w = torch.empty(idx.shape, dtype=fx.dtype, device=fx.device)
+    torch.mul(gx, gy, out=w[:, 0])
+    torch.mul(fx, gy, out=w[:, 1])
+    torch.mul(gx, fy, out=w[:, 2])
+    torch.mul(fx, fy, out=w[:, 3])
+    return idx, w
 
 
 def lobe_sh_kernels(degrees: Sequence[float], order: int) -> Tensor:

@@ -172,23 +172,36 @@ class LobeBasis:
         return H
 
     def _fit(self, material: Any) -> Tensor:
-        # least squares over disk-grid pairs, weight cosθi dωi dωo (error in reflected radiance)
-        dirs, w = disk_grid(self.fit_res)
-        inside = w > 0
-        d, w = dirs[inside], w[inside]
-        wi, wo = d[None, :, :], d[:, None, :]
-        wt = (w[None, :] * d[None, :, 2] * w[:, None]).sqrt()  # (o, i)
+        """Least squares over disk-grid pairs, weight cosθi dωi dωo (error in reflected radiance).
+        Every material is kd/π + ks·lobe (``scenes.materials.Material.eval``) and the fit is
+        linear, so H = g_d ⊗ kd + g_s ⊗ ks with g_d = G⁻¹Bᵀ(1/π) fitted once and g_s = G⁻¹Bᵀ lobe
+        from one evaluation of the unit-weight lobe (`_spec_lobe`): a changed material costs
+        one scalar lobe evaluation on the grid (the run time's BRDF navigation)."""
         if self._gram is None:
-            B = self.eval(wi, wo) * wt[..., None]  # (o, i, P)
-            B = B.reshape(-1, self.n_P)
-            self._gram = (B, B.T @ B)
-        B, G = self._gram
-        f = material.eval(wi.expand(d.shape[0], -1, 3), wo.expand(-1, d.shape[0], 3)).double() * wt[..., None]
-        rhs = B.T @ f.reshape(-1, 3)
-        # gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in the
-        # last bits, and LAPACK's with the thread count (methods.core.threads)
-        with torch_threads(1):
-            return torch.linalg.lstsq(G, rhs, driver="gelsd").solution
+            dirs, w = disk_grid(self.fit_res)
+            inside = w > 0
+            d, w = dirs[inside], w[inside]
+            wi, wo = d[None, :, :], d[:, None, :]
+            wt = (w[None, :] * d[None, :, 2] * w[:, None]).sqrt()  # (o, i)
+            B = (self.eval(wi, wo) * wt[..., None]).reshape(-1, self.n_P)  # (o·i, P)
+            G = B.T @ B
+            g_d = _solve(G, B.T @ (wt.reshape(-1, 1) / math.pi))  # (P, 1)
+            self._gram = (wi.expand(d.shape[0], -1, 3), wo.expand(-1, d.shape[0], 3), wt, B, G, g_d)
+        wi, wo, wt, B, G, g_d = self._gram
+        H = g_d * torch.tensor(material.kd, dtype=torch.float64)[None, :]
+        lobe = _spec_lobe(material)
+        if lobe is not None:
+            f = lobe.eval(wi, wo)[..., 0].double() * wt  # (o, i), unit ks
+            g_s = _solve(G, B.T @ f.reshape(-1, 1))
+            H = H + g_s * torch.tensor(material.ks_rgb, dtype=torch.float64)[None, :]
+        return H
+
+
+def _solve(G: Tensor, rhs: Tensor) -> Tensor:
+    """G⁻¹ rhs by gelsd (SVD) on one thread: the default gelsy's answer varies from call to call in
+    the last bits, and LAPACK's with the thread count (methods.core.threads)."""
+    with torch_threads(1):
+        return torch.linalg.lstsq(G, rhs, driver="gelsd").solution
 
 
 def scene_basis(materials: dict[str, Any] | Sequence[Any]) -> LobeBasis:

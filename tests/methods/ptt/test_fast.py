@@ -8,6 +8,7 @@ arithmetic, not accuracy, so every library scene stays within a few seconds.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -35,14 +36,16 @@ def _small(frame, side=32):
     return dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=side, height=side))
 
 
+@pytest.mark.parametrize("shading", ["vertex", "pixel"])
 @pytest.mark.parametrize("name", SCENES)
-def test_fast_path_equals_reference(name):
-    """Every library scene PTT accepts, V / VB / VBL / L / E sequences rendered in order (so the
-    caches of both paths are exercised): the fast image equals the reference to float32 round-off."""
+def test_fast_path_equals_reference(name, shading):
+    """Every library scene PTT accepts, both view stages, V / VB / VBL / L / E sequences rendered in
+    order (so the caches of both paths are exercised): the fast image equals the reference to
+    float32 round-off."""
     scene = get_scene(name, "test")
     if PTT.capabilities.why_not(scene, "VBL", 0) is not None:
         pytest.skip(PTT.capabilities.why_not(scene, "VBL", 0))
-    m = PTT(**{**TINY, **VARIANTS[name]})
+    m = PTT(**{**TINY, **VARIANTS[name]}, shading=shading)
     m.precompute(scene)
     kinds = KINDS if name in ("chess", "alcove") else ("V", "VB", "VBL")
     for kind in kinds:
@@ -64,7 +67,7 @@ def test_world_frame_sh_equals_local_evaluation():
     g = torch.Generator().manual_seed(0)
     N = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
     F = torch.tensor([[0, 1, 2]])
-    st = build_static(N, F, torch.zeros(1, dtype=torch.int64), 1, 4)
+    st = build_static(torch.randn(50, 3, generator=g), N, F, torch.zeros(1, dtype=torch.int64), 1, 4)
     I1 = torch.randn(50, 16, 3, generator=g)
     R = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
     local = torch.einsum("vab,vb->va", st.frames, R)
@@ -73,14 +76,46 @@ def test_world_frame_sh_equals_local_evaluation():
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
 
 
-@pytest.fixture(scope="module")
-def tiny():
+@pytest.fixture(scope="module", params=["vertex", "pixel"])
+def tiny(request):
     scene = get_scene("sphere_plane", "test")
-    m = PTT(**TINY)
+    m = PTT(**TINY, shading=request.param)
     m.precompute(scene)
     frame = _small(make_sequence(scene, "V", n_frames=1, seed=0)[0], 24)
     gb = make_gbuffer(scene, frame, 1)
     return m, frame, gb
+
+
+def _referenced_texels(m, gb, hit, cam_origin):
+    """Hand count of the view tables' texels a shading="vertex" frame reads: per referenced
+    (vertex, region) pair the bilinear cell of ωo_x in the W_r table (per region and across
+    regions) and the two θo nodes of the lobe table; per hit sample the bilinear cell of R in
+    the env grid. Built from the reference's functions (to_local, table_coords, reflect)."""
+    from methods.core.frames import reflect, to_local
+    from methods.ptt import specular as spec
+    from methods.ptt.transport import table_coords
+
+    R_, T, nt = len(m.regions), m.factors.W_tab.shape[-1], m.lobe_table.theta.shape[0]
+    faces = gb.face[hit]
+    key = torch.unique(m.F[faces] * R_ + gb.region[hit][:, None])
+    v, r = key // R_, key % R_
+    cam = torch.tensor(cam_origin, dtype=torch.float32)
+    wo = torch.nn.functional.normalize(cam - m.V[v], dim=-1)
+    loc = to_local(wo, m.N[v])
+    x = ((table_coords(loc) + 1.0) * (T / 2.0) - 0.5).clamp(0.0, T - 1.0)
+    i = x.floor().long().clamp(max=T - 2)
+    cells = [(i[:, 1] + dy) * T + i[:, 0] + dx for dy in (0, 1) for dx in (0, 1)]
+    texW = torch.unique(torch.cat([r * T * T + c for c in cells])).numel()
+    tex = torch.unique(torch.cat(cells)).numel()
+    th = torch.acos(loc[:, 2].clamp(-1, 1))
+    i0 = (th / (math.pi / 2) * nt - 0.5).clamp(0.0, nt - 1.0).floor().long().clamp(max=nt - 2)
+    nodes = torch.cat([i0, i0 + 1])
+    rows_a, n_a = torch.unique(torch.cat([r * nt + i0, r * nt + i0 + 1])).numel(), torch.unique(nodes).numel()
+    n = torch.nn.functional.normalize(gb.normal[hit], dim=-1)
+    Rq = torch.nn.functional.normalize(reflect(gb.wo[hit], n), dim=-1)
+    env = m._f_env
+    idx, _ = spec.latlong_cells(Rq.T.contiguous(), env.to_world, env.height, env.width)
+    return texW, tex, rows_a, n_a, torch.unique(idx).numel()
 
 
 def test_frame_cost_is_the_hand_count(tiny):
@@ -88,6 +123,7 @@ def test_frame_cost_is_the_hand_count(tiny):
     m, frame, gb = tiny
     assert m.frame_cost("V", gb.num_samples) is not None
     m.render(frame, gb)
+    vertex = m.config["shading"] == "vertex"
     nv = m.V.shape[0]
     R, P, K = len(m.regions), m.factors.n_P, m.factors.K
     S, order, L = m.C.shape[0], 2, len(m.config["lobe_degrees"])
@@ -97,42 +133,65 @@ def test_frame_cost_is_the_hand_count(tiny):
     faces = gb.face[hit]
     verts = torch.unique(m.F[faces]).numel()
     pairs = torch.unique(m.F[faces] * R + gb.region[hit][:, None]).numel()
-    blocks = 1 + 9  # Σ_b (2b+1)² for order 2
-    # view stage: glossy (X on >= 4 texels per pair, 12 corners·3 per sample, 27 frame MACs),
-    # lobes (frames 27, a_k 2L·3, E^(k) 4L·3, V_c 12L, E·V_c + Li·cos 2L·3, Σ_k L·3), SH term
-    view = 2 * (pairs * 4 * K * 3 + Q * (36 + 27)) + 2 * Q * (27 + 6 * L + 12 * L + 12 * L + 6 * L + 3 * L) \
-        + 2 * Q * (9 * S + 3 * S + 3 * L * order)
-    brdf = 2 * nv * (R * P * S * 3 + S * K * 3) + 2 * nv * ((R * P) ** 2 * 3 + 3 * K) + (R * P) ** 2 * 3 \
-        + 2 * nv * K * 3 + 2 * nv * blocks * 3
-    tables = 2 * R * T * T * K * P * 3 + 2 * R * nt * L * P * 3
+    H, W = m._f_env.height, m._f_env.width
     nnz = sum(f.kernel.values().numel() for f in m.env_filters if f is not None)
+    n_filt = sum(f is not None for f in m.env_filters)
+    if vertex:
+        texW, tex, rows_a, n_a, tex_env = _referenced_texels(m, gb, hit, frame.camera.origin)
+        C = 3 + 3 * L + 3
+        # per pair: ωo (12), glossy bilinear + dot (5·K·3), a_k (2L·3), V_c (4L), s (3L), SH term;
+        # per sample: interpolation (3·C), R (6), E^(k) bilinear (4L·3), Σ_k s E (3L)
+        view = 2 * pairs * (12 + 5 * K * 3) + 2 * Q * 3 * C + 2 * pairs * (6 * L + 4 * L + 3 * L) \
+            + 2 * Q * (6 + 12 * L + 3 * L) + 2 * pairs * (3 * S + 3 * L * order + 3 * L + 3)
+        brdf = 2 * nv * (R * P * S * 3 + S * K * 3) + 2 * nv * ((R * P) ** 2 * 3 + 3 * K) + (R * P) ** 2 * 3 \
+            + 2 * nv * K * 3
+        tables = 2 * texW * K * P * 3 + 2 * rows_a * L * P * 3
+    else:
+        blocks = 1 + 9  # Σ_b (2b+1)² for order 2
+        # view stage: glossy (X on >= 4 texels per pair, 12 corners·3 per sample, 27 frame MACs),
+        # lobes (frames 27, a_k 2L·3, E^(k) 4L·3, V_c 12L, E·V_c + Li·cos 2L·3, Σ_k L·3), SH term
+        view = 2 * (pairs * 4 * K * 3 + Q * (36 + 27)) + 2 * Q * (27 + 6 * L + 12 * L + 12 * L + 6 * L + 3 * L) \
+            + 2 * Q * (9 * S + 3 * S + 3 * L * order)
+        brdf = 2 * nv * (R * P * S * 3 + S * K * 3) + 2 * nv * ((R * P) ** 2 * 3 + 3 * K) + (R * P) ** 2 * 3 \
+            + 2 * nv * K * 3 + 2 * nv * blocks * 3
+        tables = 2 * R * T * T * K * P * 3 + 2 * R * nt * L * P * 3
     L1, L2 = 6 * 2 ** 2, 6 * 1 ** 2  # light_res_1 = 2, light_res_2 = 1
-    light = 2 * nv * K * 16 * 3 + 2 * 3 * nv * R * P * S * L1 + 2 * 3 * nv * L2 * (R * P) ** 2 + 2 * 3 * nnz
+    light = 2 * nv * K * 16 * 3 + 2 * 3 * nv * R * P * S * L1 + 2 * 3 * nv * L2 * (R * P) ** 2 + 2 * 3 * nnz \
+        + 2 * n_filt * H * W * 12
     assert m.frame_cost("V", P_all).flops == view
     assert m.frame_cost("VB", P_all).flops == view + brdf + tables
     assert m.frame_cost("VBL", P_all).flops == view + brdf + tables + light
     assert m.frame_cost("L", P_all).flops == m.frame_cost("E", P_all).flops == view + brdf + light
     # bytes: G-buffer + output + referenced rows (V); a rebuilt cache counts its whole write
     f4 = 4
-    gbuf = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P_all - Q) * 4 + P_all * 12
-    maps = sum(2 * f.res * 4 * f.res * 3 * f4 for f in m.env_filters if f is not None)
-    envb = min(m.scene.envmap.data.numel() * f4, Q * 48)
-    v_bytes = gbuf + torch.unique(faces).numel() * 24 + verts * 12 + verts * K * 12 + R * T * T * K * 12 \
-        + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + R * nt * L * 12 + envb + maps + verts * S * 12
+    if vertex:  # face, barycentrics, hit word, normal and ωo; face_pairs rows; positions + normals
+        v_bytes = Q * 44 + (P_all - Q) * 4 + P_all * 12 + torch.unique(faces).numel() * 24 + verts * 24 \
+            + verts * K * 12 + texW * K * 12 + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + rows_a * L * 12 \
+            + L * tex_env * 12 + verts * S * 12
+    else:
+        gbuf = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P_all - Q) * 4 + P_all * 12
+        v_bytes = gbuf + torch.unique(faces).numel() * 24 + verts * 12 + verts * K * 12 + R * T * T * K * 12 \
+            + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + R * nt * L * 12 + L * min(H * W, Q * 4) * 12 \
+            + verts * S * 12
     assert m.frame_cost("V", P_all).bytes == v_bytes
     vb = m.cost_terms("VB", P_all)[0]
     assert vb["E"] == nv * K * 12 and vb["T1L"] == nv * R * P * S * 12 and vb["T2L"] == nv * (R * P) ** 2 * 12
+    assert vb["W_tables"] == (tex if vertex else T * T) * P * K * f4
+    assert vb["lobe_weights"] == (n_a if vertex else nt) * P * L * f4
+    assert ("sh_rotation" in vb) == (not vertex)
     vbl = m.cost_terms("VBL", P_all)[0]
     assert vbl["T1"] == tensor_bytes(m.T1) and vbl["T2"] == tensor_bytes(m.T2)
     assert vbl["direct_transport"] == tensor_bytes(m.dt.idx, m.dt.val)
+    assert vbl["lobe_maps"] == n_filt * H * W * 12
 
 
 def test_frame_cost_bytes_bounded_by_the_arrays_read(tiny):
     """No padding: a frame's bytes never exceed G-buffer + output + every run-time array and cache."""
     m, frame, gb = tiny
     m.render(frame, gb)
-    E0, T1L, T2L, Ek = m._f_light
-    caches = tensor_bytes(E0, T1L, T2L, *m._f_tabs, *[t for t in m._f_E if t is not None], *[e.data for e in Ek])
+    E0, T1L, T2L, (Ek, stack) = m._f_light
+    caches = tensor_bytes(E0, T1L, T2L, *m._f_tabs, *[t for t in m._f_E if t is not None], *[e.data for e in Ek],
+                          stack.ext)
     everything = sum(m.memory().values()) + caches + tensor_bytes(m.scene.envmap.data) \
         + gb.num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12)
     costs = [m.frame_cost(k, gb.num_samples) for k in KINDS]

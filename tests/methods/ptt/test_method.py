@@ -113,10 +113,26 @@ def test_cached_frames_equal_cold_renders(alcove, kind):
 @pytest.mark.parametrize("kw", [dict(bounces=3), dict(bounces=-1), dict(bounces=True), dict(cube_res=12),
                                 dict(light_res_1=64), dict(light_res_2=16), dict(n_L=0), dict(rays=0),
                                 dict(basis="pcb"), dict(basis="pca", pca_terms=0), dict(n_wi=1.5), dict(compress=dict(clusters=2)),
-                                dict(compress=dict(clusters=0, eigenvectors=8, light_dim=8))])
+                                dict(compress=dict(clusters=0, eigenvectors=8, light_dim=8)), dict(shading="gouraud"),
+                                dict(shading=None)])
 def test_bad_config_raises(kw):
     with pytest.raises(ValueError):
         PTT(**kw)
+
+
+def test_with_shading_shares_the_precomputation(alcove):
+    """`with_shading` gives a method of the other view stage on the same precomputed arrays (its
+    config says what it renders); both stages see the same lighting and BRDF products."""
+    scene, frame, m = alcove
+    assert m.config["shading"] == "vertex"  # Sun's run time is the default
+    p = m.with_shading("pixel")
+    assert p.config["shading"] == "pixel" and m.config["shading"] == "vertex"
+    assert p.T1 is m.T1 and p.dt is m.dt
+    gb = make_gbuffer(scene, frame, 1)
+    a, b = m.render(frame, gb), p.render(frame, gb)
+    assert a.shape == b.shape and float((a - b).abs().max()) > 0  # two different view stages
+    with pytest.raises(ValueError):
+        m.with_shading("gouraud")
 
 
 def test_render_before_precompute_and_bad_frame(alcove):

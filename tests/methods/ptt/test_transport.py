@@ -47,6 +47,24 @@ def test_basis_coordinates_exact_and_least_squares(basis):
     assert (f_fit - f_true).norm() < (f_one - f_true).norm()
 
 
+def test_fit_is_the_rgb_least_squares(basis):
+    """`LobeBasis._fit` fits one scalar lobe and scales it by ks (every material is kd/π + ks·lobe):
+    the same coordinates as the least squares of the RGB BRDF itself on the same grid and weights."""
+    from scenes.materials import CookTorrance, Phong
+
+    dirs, w = tp.disk_grid(basis.fit_res)
+    inside = w > 0
+    d, w = dirs[inside], w[inside]
+    wi, wo = d[None, :, :].expand(d.shape[0], -1, 3), d[:, None, :].expand(-1, d.shape[0], 3)
+    wt = (w[None, :] * d[None, :, 2] * w[:, None]).sqrt()
+    B = (basis.eval(wi, wo) * wt[..., None]).reshape(-1, basis.n_P)
+    for m in (BlinnPhong(kd=(0.2, 0.3, 0.4), ks=(0.5, 0.4, 0.3), s=16.0), Phong(kd=0.1, ks=(0.3, 0.2, 0.1), s=5.0),
+              CookTorrance(kd=(0.05, 0.1, 0.0), ks=0.6, m=0.3, F0=0.04), Lambert(kd=(0.3, 0.5, 0.7))):
+        f = (m.eval(wi, wo).double() * wt[..., None]).reshape(-1, 3)
+        want = torch.linalg.lstsq(B.T @ B, B.T @ f).solution
+        torch.testing.assert_close(basis._fit(m), want, rtol=1e-9, atol=1e-10)
+
+
 def test_shared_factorization_converges_with_rank(basis):
     g = torch.Generator().manual_seed(0)
     wi = torch.randn(4000, 3, generator=g); wi[:, 2] = wi[:, 2].abs(); wi = torch.nn.functional.normalize(wi, dim=-1)
