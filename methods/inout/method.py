@@ -387,7 +387,7 @@ class InOut(Method):
         (`fast.light_runs`)."""
         reg, fr = self.regions[s], self._fast.regions[s]
         if reg.name not in self._cf:
-            self._cf[reg.name] = torch.empty(reg.verts.numel(), 3, reg.K, device=self.L.device)
+            self._cf[reg.name] = torch.zeros(reg.verts.numel(), 3, reg.K, device=self.L.device)  # no stale memory in the state
             self._cf_valid[reg.name] = torch.zeros(reg.verts.numel(), dtype=torch.bool, device=self.L.device)
         c, valid = self._cf[reg.name], self._cf_valid[reg.name]
         for v0, v1 in _fast.light_runs(ref[~valid[ref]], reg.verts.numel()):
