@@ -336,13 +336,13 @@ class ZHShadow(Method):
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
             return self._render_reference(frame, gbuffer)
-        _, geom, v = self._pose_state(frame)
+        _, geom, v0 = self._pose_state(frame)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
         mats = self._region_materials(frame)
         dev = gbuffer.hit.device
-        v = v.to(dev)
+        v = v0.to(dev)
         P = gbuffer.num_samples
         Wd = self._table(light, lkey, 1.0, True).to(dev)
         tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
@@ -351,9 +351,9 @@ class ZHShadow(Method):
         state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
         relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
-                   and self._frame_state[0] == state and self._frame_state[1] is v)
-        self._frame_state = (state, v)
-        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v:
+                   and self._frame_state[0] == state and self._frame_state[1] is v0)
+        self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
+        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0:
             hits, cache = self._relight[2], self._relight[3]
         else:
             self._relight = None
@@ -367,7 +367,7 @@ class ZHShadow(Method):
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
                                          take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
-                self._relight = (state, v, hits, cache)
+                self._relight = (state, v0, hits, cache)
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
             counts = cache["counts"]
