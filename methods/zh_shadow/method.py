@@ -491,11 +491,12 @@ class ZHShadow(Method):
         last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
         specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
-        specular. A point on a plane needs no frame of its own for its diffuse term: the lighting
-        is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and M¹, 6·nnz), each
-        plane vertex dots its v with that (6n²) and a sample interpolates the result (18) — fewer
-        flops than the per-point rotations counted for the other points. Per kind (frame_kind
-        letters; what did not change is reused):
+        specular (a plane of fewer than `runtime.PLANAR_MIN_POINTS` points is not looked for: its
+        points count as the others). A point on a plane needs no frame of its own for its diffuse
+        term: the lighting is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and
+        M¹, 6·nnz), each plane vertex dots its v with that (6n²) and a sample interpolates the
+        result (18) — fewer flops than the per-point rotations counted for the other points. Per
+        kind (frame_kind letters; what did not change is reused):
 
         * bytes: the (P, 3) float32 output; the faces F (int64); the BRDF parameters (kd, ks, α per
           region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
