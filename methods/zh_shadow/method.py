@@ -356,13 +356,13 @@ class ZHShadow(Method):
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
             return self._render_reference(frame, gbuffer)
-        _, geom, v = self._pose_state(frame)
+        _, geom, v0 = self._pose_state(frame)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
         mats = self._region_materials(frame)
         dev = gbuffer.hit.device
-        v = v.to(dev)
+        v = v0.to(dev)
         P = gbuffer.num_samples
         Wd = self._table(light, lkey, 1.0, True).to(dev)
         tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
@@ -371,9 +371,9 @@ class ZHShadow(Method):
         state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
         relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
-                   and self._frame_state[0] == state and self._frame_state[1] is v)
-        self._frame_state = (state, v)
-        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v:
+                   and self._frame_state[0] == state and self._frame_state[1] is v0)
+        self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
+        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0:
             hits, cache = self._relight[2], self._relight[3]
         else:
             self._relight = None
@@ -387,7 +387,7 @@ class ZHShadow(Method):
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
                                          take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
-                self._relight = (state, v, hits, cache)
+                self._relight = (state, v0, hits, cache)
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
             counts = cache["counts"]
@@ -511,11 +511,12 @@ class ZHShadow(Method):
         last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
         specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
-        specular. A point on a plane needs no frame of its own for its diffuse term: the lighting
-        is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and M¹, 6·nnz), each
-        plane vertex dots its v with that (6n²) and a sample interpolates the result (18) — fewer
-        flops than the per-point rotations counted for the other points. Per kind (frame_kind
-        letters; what did not change is reused):
+        specular (a plane of fewer than `runtime.PLANAR_MIN_POINTS` points is not looked for: its
+        points count as the others). A point on a plane needs no frame of its own for its diffuse
+        term: the lighting is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and
+        M¹, 6·nnz), each plane vertex dots its v with that (6n²) and a sample interpolates the
+        result (18) — fewer flops than the per-point rotations counted for the other points. Per
+        kind (frame_kind letters; what did not change is reused):
 
         * bytes: the (P, 3) float32 output; the faces F (int64); the BRDF parameters (kd, ks, α per
           region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
