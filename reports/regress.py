@@ -233,13 +233,14 @@ def _rel_iqr(x: np.ndarray) -> float:
 
 
 def time_change(old: np.ndarray, new: np.ndarray, *, rel: float = TIME_REL, spread_k: float = TIME_SPREAD_K,
-                abs_floor: float = TIME_ABS_FLOOR) -> tuple[str, float, float]:
+                abs_floor: float | None = None) -> tuple[str, float, float]:
     """(flag, median ratio − 1, threshold) of frame-time samples ``old`` (n,) vs ``new`` (m,), seconds.
 
     Flag ``"regression"`` when ``median(new)/median(old) − 1 ≥ threshold`` and the medians differ by
     at least ``abs_floor`` seconds; ``threshold = max(rel, spread_k · spread)`` with ``spread`` the
     larger relative IQR (IQR / median, numpy's linear percentiles) of the two samples.
     ``"improvement"`` by the mirror rule (``median(old)/median(new) − 1 ≥ threshold``)."""
+    abs_floor = TIME_ABS_FLOOR if abs_floor is None else abs_floor  # read at call time (tests set it)
     old = np.asarray(old, dtype=np.float64)
     new = np.asarray(new, dtype=np.float64)
     if old.ndim != 1 or new.ndim != 1 or len(old) == 0 or len(new) == 0:

@@ -22,3 +22,11 @@ CASES: dict[str, tuple[str, str, dict]] = {
     "triple_product": ("triple_product", "sphere_plane", {"level": 2}),
     "zh_shadow": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10}),
 }
+
+
+def project_methods() -> set[str]:
+    """The registered methods that ship with the project (``methods.*``), without the test doubles
+    other tests in the same process may have registered (``testing.fakes``)."""
+    from methods.registry import available_methods, get_method
+
+    return {n for n in available_methods() if get_method(n).__module__.startswith("methods.")}

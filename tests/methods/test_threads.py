@@ -17,16 +17,16 @@ import pytest
 import torch
 
 from methods.core.threads import torch_threads
-from methods.registry import available_methods, get_method
+from methods.registry import get_method
 from references.gbuffer import make_gbuffer
 from scenes.library import get_scene
 from scenes.sequences import make_sequence
-from testing.small_configs import CASES
+from testing.small_configs import CASES, project_methods
 
 
 
 def test_every_method_is_covered():
-    assert {m for m, _, _ in CASES.values()} == set(available_methods())
+    assert {m for m, _, _ in CASES.values()} == project_methods()
 
 
 def _clear_method_caches() -> None:

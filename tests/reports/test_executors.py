@@ -302,16 +302,15 @@ def test_every_method_bit_identical_local_two_threads_and_processes_one_thread(t
     import torch
     import drjit as dr
 
-    from methods.registry import available_methods
     from reports import precompute_cache
     from reports.cells import canonical_config
-    from testing.small_configs import CASES
+    from testing.small_configs import CASES, project_methods
 
     monkeypatch.setenv(precompute_cache.ENV_OFF, "1")
     cells = [C.Cell(scene=scene, size="test", kind="P" if scene == "creature" and method == "zh_shadow" else "L",
                     method=method, config=canonical_config(config), n_frames=2, ref_spp=16, spp_side=1,
                     save_images=False) for method, scene, config in CASES.values()]
-    assert {c.method for c in cells} == set(available_methods())
+    assert {c.method for c in cells} == project_methods()
     torch_before, dr_before = torch.get_num_threads(), dr.thread_count()
     monkeypatch.setenv(C.THREADS_ENV, "2")  # what a local run on a 2-core machine uses
     try:
