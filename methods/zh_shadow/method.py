@@ -256,14 +256,17 @@ class ZHShadow(Method):
             self.model, fitted = pc.build_model(v, poses, cfg["lobes"], iters=cfg["fit_iters"],
                                                 anchor=cfg["axis_anchor"])
         t2 = time.perf_counter()
-        train_pred = pc.synthesize(self.model.X, poses)                          # (f, N, d)
-        kk, ax = pc.params_to_lobes(train_pred, self.model.lobes)
-        e_lin = pc.sh_error(pc.lobes_sh(kk.flatten(0, 1), ax.flatten(0, 1)), v.flatten(0, 1), pc.NORM_V)
-        e_fit = pc.sh_error(fitted, v, pc.NORM_V)
-        self.stats = {"time_visibility_s": t1 - t0, "time_fit_s": t2 - t1,
-                      "lobe_fit_err_mean": float(e_fit.mean()), "lobe_fit_err_std": float(e_fit.std()),
-                      "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
-                      "model_mb": self.model.nbytes / 1e6}
+        # the training-set summaries on one thread too: whole-tensor means and a float32 product
+        # with f rows would otherwise round with the thread count (methods.core.threads)
+        with pc.torch_threads(1):
+            train_pred = pc.synthesize(self.model.X, poses)                      # (f, N, d)
+            kk, ax = pc.params_to_lobes(train_pred, self.model.lobes)
+            e_lin = pc.sh_error(pc.lobes_sh(kk.flatten(0, 1), ax.flatten(0, 1)), v.flatten(0, 1), pc.NORM_V)
+            e_fit = pc.sh_error(fitted, v, pc.NORM_V)
+            self.stats = {"time_visibility_s": t1 - t0, "time_fit_s": t2 - t1,
+                          "lobe_fit_err_mean": float(e_fit.mean()), "lobe_fit_err_std": float(e_fit.std()),
+                          "train_model_err_mean": float(e_lin.mean()), "train_model_err_std": float(e_lin.std()),
+                          "model_mb": self.model.nbytes / 1e6}
 
     # Config keys that only the render reads: a precomputed model serves every value of them.
     RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
