@@ -25,3 +25,15 @@ def setup(scene_name, size: str = "test", *, kind: str = "V", n_frames: int = 1,
     st = frame_setup(scene, frames=frames, kind=kind, n_frames=n_frames, seed=seed, spp_side=spp_side,
                      ref_spp=ref_spp, bounces=bounces)
     return st.scene, st.frames, st.gbuffers, st.references
+
+
+def precomputed(cls, scene, config: dict):
+    """``(cls(**config) precomputed on scene, precompute seconds or None when it came from the
+    cache)`` through the harness's one precompute cache (`reports.precompute_cache`: tensors only,
+    hash-checked, nothing in the cache folder can run code; issue 17)."""
+    from reports import precompute_cache
+    from reports.cells import canonical_config
+
+    m = cls(**config)
+    pre = precompute_cache.precompute(m, scene, canonical_config(config))
+    return m, (None if pre["cached"] else pre["seconds"])

@@ -20,40 +20,22 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
-import pickle
 import statistics
 import time
-from pathlib import Path
 
 import torch
 
-from benchmarks.common import setup
-from methods.base import cache_dir
+from benchmarks.common import precomputed, setup
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
 
 
 def _precomputed(scene, config: dict) -> tuple[InOut, float | None]:
-    key = hashlib.sha256((scene.content_hash() + json.dumps(config, sort_keys=True)).encode()).hexdigest()[:16]
-    path = Path(cache_dir()) / "inout_frames" / f"{scene.name}_{key}.pkl"
-    if path.exists():
-        with open(path, "rb") as f:
-            m = pickle.load(f)
-        m._fast = None
-        m._reset_cache()
-        return m, None
-    m = InOut(**config)
-    t0 = time.perf_counter()
-    m.precompute(scene)
-    pre = time.perf_counter() - t0
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(m, f, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(path)
+    m, pre = precomputed(InOut, scene, config)
+    m._fast = None
+    m._reset_cache()
     return m, pre
 
 

@@ -21,40 +21,22 @@ micro-benchmarks (wall and CPU) of the kernels that bound a frame.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import pickle
 import statistics
 import time
-from pathlib import Path
 
 import torch
 import torch.nn.functional as Fnn
 
-from benchmarks.common import setup
-from methods.base import cache_dir
+from benchmarks.common import precomputed, setup
 from methods.ptt.method import PTT
 from reports import measure
 
 
 def _precomputed(scene, config: dict) -> tuple[PTT, float | None]:
-    key = hashlib.sha256((scene.content_hash() + json.dumps(config, sort_keys=True)).encode()).hexdigest()[:16]
-    path = Path(cache_dir()) / "ptt_frames" / f"{scene.name}_{key}.pkl"
-    if path.exists():
-        with open(path, "rb") as f:
-            m = pickle.load(f)
-        m = m.with_shading("vertex")  # (a pickle from before the shading config has none)
-        m._fast_static()  # run-time layouts once, shared by the copies of each shading
-        return m, None
-    m = PTT(**config)
-    t0 = time.perf_counter()
-    m.precompute(scene)
-    pre = time.perf_counter() - t0
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(m, f, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(path)
+    m, pre = precomputed(PTT, scene, config)
+    m = m.with_shading("vertex")
+    m._fast_static()  # run-time layouts once, shared by the copies of each shading
     return m, pre
 
 
