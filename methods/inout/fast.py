@@ -70,8 +70,9 @@ LIGHT_BLOCK = 16
 class FastRegion:
     """Lighting- and view-independent arrays of one region for the fast path (`build_region`).
 
-    col, val: (Vr·K, n) int32 Haar indices / float32 values of T̃ — views of the CSR arrays;
-        crow: (Vr·K + 1,) the row pointers 0, n, 2n, … (any block of rows starts at 0).
+    col, val: (nnz,) int32 Haar indices / float32 values of T̃ — the CSR arrays, read in place;
+        crow: (Vr·K + 1,) int64 row pointers (rows hold different numbers of coefficients: the
+        per-vertex budget, ``transport`` docstring item 4).
     sh_lut: (R², 3K) σ_k h_{k,c} at the table nodes (index 3k + c, the reference's table);
     sh_nc: (R²·3, K) the same regrouped, row (node, colour): the K-vector X's dot products read.
     K: terms; R: nodes per side of the table.
@@ -111,17 +112,13 @@ class FastStatic:
 
 
 def build_region(T: Tensor, sh_lut: Tensor) -> FastRegion:
-    """`FastRegion` of a region: T the CSR (Vr·K, D) transport with the same number of entries in
-    every row (``transport.sparse_rows``), sh_lut (R², 3K) the σ_k h_{k,c} table (index 3k + c)."""
-    crow, col, val = T.crow_indices(), T.col_indices(), T.values()
-    rows = T.shape[0]
-    n = col.numel() // max(rows, 1)
-    if col.numel() != rows * n or not bool((crow == torch.arange(rows + 1, device=crow.device) * n).all()):
-        raise ValueError("the fast path needs the same number of kept coefficients in every row of T")
+    """`FastRegion` of a region: T the CSR (Vr·K, D) transport (``transport.transport_haar``),
+    sh_lut (R², 3K) the σ_k h_{k,c} table (index 3k + c)."""
+    crow, col, val = T.crow_indices().long(), T.col_indices(), T.values()
     RR, K3 = sh_lut.shape
     R = int(round(RR ** 0.5))
     sh_nc = sh_lut.view(RR, K3 // 3, 3).transpose(1, 2).reshape(RR * 3, K3 // 3).contiguous()
-    return FastRegion(col=col.view(rows, n), val=val.view(rows, n), crow=crow, sh_lut=sh_lut, sh_nc=sh_nc,
+    return FastRegion(col=col, val=val, crow=crow, sh_lut=sh_lut, sh_nc=sh_nc,
                       K=K3 // 3, R=R)
 
 
@@ -164,7 +161,9 @@ def light_rows(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LI
     out = torch.empty(r1 - r0, 4, dtype=L.dtype, device=L.device)
     for a in range(r0, r1, chunk_rows):
         b = min(r1, a + chunk_rows)
-        T = torch.sparse_csr_tensor(fr.crow[:b - a + 1], fr.col[a:b].reshape(-1), fr.val[a:b].reshape(-1),
+        crow = fr.crow[a:b + 1]
+        s0, s1 = int(crow[0]), int(crow[-1])
+        T = torch.sparse_csr_tensor((crow - s0).to(fr.col.dtype), fr.col[s0:s1], fr.val[s0:s1],
                                     size=(b - a, L4.shape[0]), check_invariants=False)
         out[a - r0:b - r0] = T @ L4
     return out[:, :L.shape[1]].reshape(v1 - v0, K, L.shape[1])

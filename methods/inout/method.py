@@ -10,7 +10,9 @@ Precompute (static geometry, static BRDFs):
     tabulated on a fine hemi-octahedral table (``methods.inout.transport``, docstring item 2);
   * per vertex of the region, T̃_k(x, ω_t) = V(x', ω_t) ĝ_k(to_local(ω_t)) max(0, n·ω_t) Ω_t on a
     ``cube_res`` cube map (eq. 3, texel solid angle Ω_t folded in), Haar-transformed, keeping the
-    ``n_coeffs`` largest coefficients per (vertex, k) (Ng 2003), stored as a CSR matrix (V·K, 6N²)
+    largest σ_k-weighted coefficients of each vertex over all its terms, ``n_coeffs`` × K of them
+    (``budget="vertex"``; ``transport`` docstring item 4: why not ``n_coeffs`` per (vertex, k), Ng
+    2003's per-function rule, ``budget="term"``), stored as a CSR matrix (V·K, 6N²)
     with the region's vertices in Morton order (``transport.locality_order``: the vertices one view
     sees are few runs of rows, for the run time's lazy c_k); x' is the vertex moved a hair into its
     faces (``transport.visibility_points``: a vertex on a contact line would otherwise see every
@@ -126,13 +128,18 @@ class InOut(Method):
     def __init__(self, *, terms: int | dict[str, int] | None = None, brdf_res: int = 24,
                  cube_res: int = 16, n_coeffs: int | None = 128, light_coeffs: int | None = None,
                  lut_res: int = 64, supersample: int = 1, light_supersample: int = 4,
-                 select: str = "magnitude", norm: str = "cosine", progress: bool | None = None) -> None:
+                 select: str = "magnitude", norm: str = "cosine", budget: str = "vertex",
+                 progress: bool | None = None) -> None:
         """
         terms: K for every region (int), per region name (dict; missing regions use the rule),
             or None = ``analysis.k_rule(material)`` (Mahajan 2008 eq. 13 / §4).
         brdf_res: n of the n × n (cos θ, φ) hemisphere grid per direction of the SVD (paper: 40).
         cube_res: cube-map face resolution N (power of two) of T and L.
-        n_coeffs: Haar coefficients kept per (vertex, k) (None = all 6N²).
+        n_coeffs: Haar coefficients kept per (vertex, k) — on average over k with
+            ``budget="vertex"`` (None = all 6N²).
+        budget: "vertex" (default): each vertex keeps its n_coeffs·K largest σ_k-weighted
+            coefficients over all terms; "term": n_coeffs per (vertex, k) (``transport``
+            docstring, item 4).
         light_coeffs: Haar coefficients of L kept per frame (None = all).
         lut_res: nodes per side of the hemi-octahedral tables of g_k and σ_k h_k.
         supersample: s×s sub-directions per cube texel when building T (visibility, g, cosine).
@@ -163,9 +170,11 @@ class InOut(Method):
             raise ValueError(f"select must be 'magnitude' or 'area', got {select!r}")
         if norm not in tp.NORMS:
             raise ValueError(f"norm must be one of {tp.NORMS}, got {norm!r}")
+        if budget not in tp.BUDGETS:
+            raise ValueError(f"budget must be one of {tp.BUDGETS}, got {budget!r}")
         super().__init__(terms=terms, brdf_res=brdf_res, cube_res=cube_res, n_coeffs=n_coeffs,
                          light_coeffs=light_coeffs, lut_res=lut_res, supersample=supersample,
-                         light_supersample=light_supersample, select=select, norm=norm)
+                         light_supersample=light_supersample, select=select, norm=norm, budget=budget)
         self.progress = sys.stderr.isatty() if progress is None else bool(progress)
         self.scene = None
         self.F: Tensor | None = None           # (M, 3) int64 faces of the static geometry
@@ -258,14 +267,14 @@ class InOut(Method):
             verts = verts[tp.locality_order(V[verts])]  # Morton order: a view's vertices are few runs of rows
             local_of = torch.full((V.shape[0],), -1, dtype=torch.int64)
             local_of[verts] = torch.arange(verts.numel())
-            idx, val = tp.transport_haar(g_lut, vis, Vs[verts], Nrm[verts], N,  # eq. 3 + Haar
-                                         n_coeffs=cfg["n_coeffs"], supersample=cfg["supersample"],
-                                         select_weights=weights, progress=self.progress,
-                                         desc=f"inout T[{name}]")
+            T = tp.transport_haar(g_lut, vis, Vs[verts], Nrm[verts], N,  # eq. 3 + Haar
+                                  n_coeffs=cfg["n_coeffs"], supersample=cfg["supersample"],
+                                  select_weights=weights, term_weights=fac.sigma[:fac.K].float(),
+                                  budget=cfg["budget"], progress=self.progress, desc=f"inout T[{name}]")
             tc = time.perf_counter()
             self.regions.append(_Region(
                 name=name, K=fac.K, K_requested=K_req, captured=fac.captured_energy(), verts=verts,
-                local_of=local_of, T=tp.sparse_rows(idx, val, D), sh_lut=sh_lut.float(),
+                local_of=local_of, T=T, sh_lut=sh_lut.float(),
                 sigma=fac.sigma.float()))
             self.stats["regions"][name] = {**kinfo, "K": fac.K, "K_requested": K_req,
                                            "captured_energy": fac.captured_energy(),
@@ -510,8 +519,8 @@ class InOut(Method):
         cube map (6N²s² sub-samples, s = ``light_supersample``: the texels they touch, at most H·W
         float32 RGB, read; per sub-sample the rotation into the map's frame (9 MACs), the bilinear
         texel mix (4·3 MACs) and the weighted mean (3 MACs)), its Haar transform (4 flops per
-        texel and channel over all levels) and the (6N², 3) float32 L written; the kept rows of T̃
-        of every referenced vertex read once (values float32 + column indices at their stored
+        texel and channel over all levels) and the (6N², 3) float32 L written; the kept coefficients
+        of T̃ of every referenced vertex (their count varies per vertex) read once (values float32 + column indices at their stored
         width) and c_k = T̃_k · L computed for them (2·3 flops per kept coefficient; the c write is
         the c read counted above, once). Vertices no sample references need no c (the fast path
         computes c lazily per vertex, ``methods.inout.fast``).
@@ -541,18 +550,21 @@ class InOut(Method):
             cells, face_region = last["cell"][last["front"]].long(), st.face_region.index_select(0, faces)
         for s, reg in enumerate(self.regions):
             K, R = reg.K, int(round(reg.sh_lut.shape[0] ** 0.5))
+            crow = reg.T.crow_indices()
             if last is None:
                 nref, nodes = int(reg.verts.numel()), R * R
+                nnz = int(crow[-1])                                       # kept coefficients of every vertex
             else:
-                nref = int(((verts >= st.voff[s]) & (verts < st.voff[s + 1])).sum())
+                loc = verts[(verts >= st.voff[s]) & (verts < st.voff[s + 1])] - st.voff[s]
+                nref = int(loc.numel())
+                nnz = int((crow[(loc + 1) * K].long() - crow[loc * K].long()).sum())
                 cell = cells[face_region == list(self.scene.regions).index(reg.name)]
                 nodes = int(torch.unique(cell[:, None] + torch.tensor([0, 1, R, R + 1], device=cell.device)).numel())
             b += nref * K * 3 * f4 + nodes * 3 * K * f4                  # c rows, σ_k h_k rows
             f += nref * 4 * 3 * K * 2                                     # one cell of X per vertex
             if light:
-                n = int(reg.T.values().numel()) // max(int(reg.T.shape[0]), 1)
-                b += nref * K * n * (reg.T.values().element_size() + reg.T.col_indices().element_size())
-                f += 2 * 3 * nref * K * n                                 # c_k = T̃_k · L
+                b += nnz * (reg.T.values().element_size() + reg.T.col_indices().element_size())
+                f += 2 * 3 * nnz                                          # c_k = T̃_k · L
         if last is None:
             hit = Q = P
             nfaces = int(self.F.shape[0])

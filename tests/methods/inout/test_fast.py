@@ -194,9 +194,12 @@ def test_frame_cost_is_the_hand_count(tiny):
         nodes = torch.unique(torch.cat([cells, cells + 1, cells + R, cells + R + 1])).numel()
         b += verts.numel() * K * 12 + nodes * K * 12
         f += verts.numel() * 4 * 3 * K * 2
-        n = m.config["n_coeffs"]
-        light_b += verts.numel() * K * n * (4 + reg.T.col_indices().element_size())
-        light_f += 2 * 3 * verts.numel() * K * n
+        # the kept coefficients of the referenced vertices (their number varies per vertex: budget "vertex")
+        crow, loc = reg.T.crow_indices().long(), reg.local_of[verts]
+        nnz = int(sum(int(crow[(v + 1) * K] - crow[v * K]) for v in loc.tolist()))
+        assert nnz > 0
+        light_b += nnz * (4 + reg.T.col_indices().element_size())
+        light_f += 2 * 3 * nnz
     N, s = m.config["cube_res"], m.config["light_supersample"]
     H, W = m.scene.envmap.data.shape[:2]
     light_b += min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12

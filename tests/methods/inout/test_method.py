@@ -12,7 +12,7 @@ from scenes.materials import Lambert, Phong
 LUT_TOL = 0.05
 
 
-@pytest.mark.parametrize("cfg", [dict(terms=0), dict(cube_res=12), dict(n_coeffs=0), dict(brdf_res=1),
+@pytest.mark.parametrize("cfg", [dict(terms=0), dict(cube_res=12), dict(n_coeffs=0), dict(budget="row"), dict(brdf_res=1),
                                  dict(select="x"), dict(terms={"a": -1}), dict(lut_res=1)])
 def test_bad_config_raises(cfg):
     with pytest.raises(ValueError):
@@ -50,10 +50,12 @@ def test_nystrom_tables_reproduce_grid_and_brdf():
 # -- rendered error against Mitsuba (Mahajan 2008 Fig. 3B/C, Fig. 6: blur until K reaches the rule) --
 
 # Regression pin for sphere_plane (test size, Phong s = 40 sphere, K = 2.5 s = 100, n_coeffs = 128)
-# against Mitsuba's 256-spp direct reference: measured 0.1156 (reference noise floor 0.051, mean
+# against Mitsuba's 256-spp direct reference: measured 0.1067 (reference noise floor 0.051, mean
 # radiance 0.893; the 64+64-sample oracle scores 0.103 on the same pixels). Both sides are
 # deterministic (seeded reference, deterministic method), so 10 % headroom flags real regressions.
-INOUT_RMSE_PIN = 0.1156
+# Moved from 0.1156 (0.1132 on the tree before the change) when the per-vertex coefficient budget
+# became the default (`budget="vertex"`, transport docstring item 4; "term" still measures 0.1132).
+INOUT_RMSE_PIN = 0.1067
 PIN_HEADROOM = 1.10
 
 
@@ -83,3 +85,30 @@ def test_error_falls_with_K_and_rule_matches_reference(sphere_plane_direct):
     assert errs[1] > errs[4] > errs[16] > errs[None], errs  # Fig. 6: K = 4, 12 blur; K = 75+ matches
     assert errs[None] <= INOUT_RMSE_PIN * PIN_HEADROOM, errs
     assert errs[None] >= ref.noise_floor  # cannot beat the reference's own noise
+
+
+def test_vertex_budget_beats_per_term_budget_at_equal_bytes(sphere_plane_direct):
+    """Transport docstring item 4: keeping each vertex's n·K largest σ_k-weighted coefficients over
+    all its terms approximates the all-coefficient render better than n per (vertex, k), with
+    exactly the same number of stored coefficients. Measured (test size, K = 100, n = 128): relative
+    difference to the all-coefficient image 0.036 ("term") vs 0.024 ("vertex"); at bench size the
+    per-term budget left 0.6-1.2 % negative pixels on the sphere."""
+    scene, frame, gb, ref, mask = sphere_plane_direct
+    imgs, nnz = {}, {}
+    for budget, n in (("term", 128), ("vertex", 128), ("vertex", None)):
+        m = InOut(budget=budget, n_coeffs=n)
+        m.precompute(scene)
+        imgs[budget, n] = m.render(frame, gb)
+        nnz[budget, n] = {r.name: int(r.T.values().numel()) for r in m.regions}
+        if n is not None:  # exactly n·K kept per vertex, as many bytes in both budgets
+            for r in m.regions:
+                assert nnz[budget, n][r.name] == r.verts.numel() * r.K * n
+    assert nnz["term", 128] == nnz["vertex", 128]
+    full = imgs["vertex", None][mask]
+
+    def rel(img):
+        return float((img[mask] - full).norm() / full.norm())
+
+    e_term, e_vertex = rel(imgs["term", 128]), rel(imgs["vertex", 128])
+    assert e_vertex < 0.8 * e_term, (e_term, e_vertex)
+    assert not bool((imgs["vertex", 128][mask] < -1e-4).any())
