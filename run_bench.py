@@ -155,7 +155,8 @@ def cmd_run(args) -> int:
                         progress=not args.quiet, vertex_renders=not args.no_vertex_renders, device=args.device)
     finally:
         executor.shutdown()
-    print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_suspect} suspect, {res.n_na} n/a, {res.n_error} failed")
+    print(f"run {res.run_id}: {res.n_ok} cells ok, {res.n_suspect} suspect, {res.n_na} n/a, {res.n_error} failed"
+          + (f"; wall time {res.wall_time}" if res.wall_time else ""))
     if res.changes is not None:
         from reports.regress import baseline_runs, cells_compared, flagged, format_changes
 

@@ -575,6 +575,18 @@ if(m){document.querySelectorAll('input.ev').forEach(function(sl){sl.value=m[1];
 """
 
 
+def wall_time_text(meta: dict) -> str | None:
+    """'42.0 min' (one invocation) or '42.0 min (2 invocations: 30.0 + 12.0 min)', or None."""
+    inv = meta.get("invocations") or []
+    if not inv:
+        return None
+    mins = [float(i.get("seconds", 0.0)) / 60 for i in inv]
+    text = f"{sum(mins):.1f} min"
+    if len(mins) > 1:
+        text += f" ({len(mins)} invocations: {' + '.join(f'{m:.1f}' for m in mins)} min)"
+    return text
+
+
 def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str | os.PathLike | None = None,
                  meta: dict | None = None, changes: pd.DataFrame | None = None, prev_run: str | None = None,
                  vertex_renders: bool = True, studies_dir: str | os.PathLike | None = None) -> Path:
@@ -602,6 +614,9 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     }
     if meta.get("provenance"):
         facts["executor"] = executor_summary(meta["provenance"])
+    wall = wall_time_text(meta)
+    if wall:
+        facts["wall time"] = wall + " (references and cells; not this report)"
     bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
     if len(bw):
         facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import uuid
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -28,6 +29,7 @@ import torch
 
 from reports import measure, regress, store
 from reports.cells import MEASURED, Cell, CellResult, load_result, move_aside
+from reports.html import wall_time_text
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
@@ -46,6 +48,7 @@ class RunOutput:
     n_error: int
     changes: pd.DataFrame | None
     n_suspect: int = 0
+    wall_time: str | None = None   # `html.wall_time_text` of the run's invocations
 
 
 def suite_label(suite_name: str, scenes=None) -> str:
@@ -79,6 +82,15 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
         "matmul_peak": measure.matmul_peak(256 if bandwidth_elements < TRIAD_ELEMENTS else 1024),
     }
     store.atomic_write_json(p, meta)
+    return meta
+
+
+def record_invocation(out_dir: Path, meta: dict, *, started: str, seconds: float, cells: int) -> dict:
+    """Append this invocation's wall time (planning, references and cells; not the report) to the
+    run's facts in run.json, so a resumed run's report gives every invocation and their sum."""
+    meta = {**meta, "invocations": [*meta.get("invocations", []),
+                                    {"started": started, "seconds": round(float(seconds), 1), "cells": int(cells)}]}
+    store.atomic_write_json(out_dir / "run.json", meta)
     return meta
 
 
@@ -243,8 +255,12 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
                        device=device)
     everything, others = _merge_plans(earlier_cells(out_dir), cells)
     store.atomic_write_json(out_dir / "plan.json", [c.to_dict() for c in everything])
+    started = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    t0 = time.perf_counter()
     meta = run_meta(out_dir, label, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
     results = run_cells(cells, out_dir, executor=executor, progress=progress)
+    meta = record_invocation(out_dir, meta, started=started, seconds=time.perf_counter() - t0,
+                             cells=sum(c.na is None for c in cells))
     report_failures(results)
     kept = {}
     for c in others:  # finished cells of earlier invocations of this run, not selected this time
@@ -320,7 +336,8 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     st = df.drop_duplicates("cell")
     st = st[st["status"] != "run"]["status"]
     return RunOutput(meta["run_id"], out_dir, table, rep, hist_path, int((st == "ok").sum()), int((st == "na").sum()),
-                     int((st == "error").sum()), changes, n_suspect=int((st == "suspect").sum()))
+                     int((st == "error").sum()), changes, n_suspect=int((st == "suspect").sum()),
+                     wall_time=wall_time_text(meta))
 
 
 def build_references(suite: Suite, *, methods=None, scenes=None, backend: str = "reports.backend",

@@ -95,3 +95,19 @@ def test_compare_runs_without_common_cells_exits_2(tmp_path, capsys):
     assert "share no cell" in capsys.readouterr().err
     assert run_bench.main(["compare", str(tmp_path / "a"), str(tmp_path / "a")]) == 0
     assert "no changes" in capsys.readouterr().out
+
+
+def test_wall_time_of_every_invocation_in_run_json_console_and_report(tmp_path):
+    """Issue 14 item 6: the suite's wall time is in the report header; a resumed run lists each
+    invocation (planning, references and cells) and their sum."""
+    out = tmp_path / "run"
+    a = pipeline.run_suite(SUITE, out, methods=["fake"], history=None, **KW)
+    inv = json.loads((out / "run.json").read_text())["invocations"]
+    assert len(inv) == 1 and inv[0]["cells"] == 1 and inv[0]["seconds"] >= 0
+    assert a.wall_time is not None and "invocations" not in a.wall_time
+    b = pipeline.run_suite(SUITE, out, methods=["fake_gi"], history=None, **{**KW, "report": True})
+    inv = json.loads((out / "run.json").read_text())["invocations"]
+    assert [i["cells"] for i in inv] == [1, 1] and b.run_id == a.run_id
+    assert "(2 invocations:" in b.wall_time
+    html = b.report.read_text()
+    assert "wall time" in html and "2 invocations" in html
