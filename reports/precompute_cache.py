@@ -12,9 +12,10 @@ precompute seconds (recorded when it was computed, with the thread count it ran 
 RSS of such a cell is that of loading, not computing (the report's memory column is
 ``Method.memory()``, unaffected).
 
-Key: sha256 over the scene's content hash, the method name, its canonical config, the code
-fingerprint of every package that can change a number (``reports.store.code_fingerprint``) and the
-torch version — any code change recomputes. ``PRTBENCH_NO_PRECOMPUTE_CACHE=1`` turns it off.
+Key: sha256 over the scene's content hash, the method name, its canonical config, the fingerprint
+of the code the method runs — its module and every project module it imports, transitively
+(``reports.store.code_closure_fingerprint``) — and the torch version: a change of that code
+recomputes, a change elsewhere (the report, another method) keeps the night's precomputations. ``PRTBENCH_NO_PRECOMPUTE_CACHE=1`` turns it off.
 
 Storage that cannot run code (the folder may be shared between machines, so a file in it is
 untrusted input): an entry is two files in ``<cache>/precompute/`` (``scenes.io.cache_dir``),
@@ -382,18 +383,23 @@ def enabled(method: Any) -> bool:
     return bool(getattr(type(method), "cache_precompute", False)) and os.environ.get(ENV_OFF, "") in ("", "0")
 
 
-@functools.lru_cache(maxsize=1)
-def _process_fingerprint() -> str:
-    """The code fingerprint once per process: the code a process runs is what it imported, so an
-    edit of the working tree during a run must not split one run's cells over two keys."""
-    from reports.store import code_fingerprint
+@functools.lru_cache(maxsize=None)
+def _process_fingerprint(module: str) -> str:
+    """The fingerprint of the code ``module`` runs (`reports.store.code_closure_fingerprint`), once
+    per process and module: the code a process runs is what it imported, so an edit of the working
+    tree during a run must not split one run's cells over two keys. A method defined outside the
+    project's packages (a plugin, a test double) gets the whole tree's `code_fingerprint`, as before."""
+    from reports.store import CODE_PACKAGES, code_closure_fingerprint, code_fingerprint
 
-    return code_fingerprint()
+    if module.split(".")[0] not in CODE_PACKAGES:
+        return code_fingerprint()
+    return code_closure_fingerprint(module)
 
 
 def cache_key(scene: Any, method: Any, config: str) -> str:
     h = hashlib.sha256()
-    for part in (str(VERSION), scene.content_hash(), type(method).name, config, _process_fingerprint(),
+    for part in (str(VERSION), scene.content_hash(), type(method).name, config,
+                 _process_fingerprint(type(method).__module__),
                  torch.__version__, backend_id()):  # the ray tracer that made the visibility
         h.update(part.encode() + b"\0")
     return h.hexdigest()[:24]

@@ -159,6 +159,68 @@ def code_fingerprint(root: str | os.PathLike | None = None) -> str:
     return h.hexdigest()[:16]
 
 
+def module_closure(module: str, root: str | os.PathLike | None = None) -> list[Path]:
+    """The project source files ``module`` runs: its own file and, transitively, every project
+    module it imports (module level or inside functions, read from the AST — the same reading as
+    tests/test_layers.py), with the ``__init__.py`` of every package on the way. Sorted paths.
+
+    ``from pkg import name`` counts ``pkg/name.py`` when that file exists (a submodule) and
+    ``pkg/__init__.py`` otherwise. Imports outside the project (torch, mitsuba, ...) are not
+    followed; their versions are part of the keys that use this (``package_versions``)."""
+    import ast
+
+    root = Path(root) if root else Path(__file__).resolve().parent.parent
+    tops = set(CODE_PACKAGES)
+
+    def files_of(name: str) -> list[Path]:
+        parts = name.split(".")
+        if parts[0] not in tops:
+            return []
+        out = [root.joinpath(*parts[:i], "__init__.py") for i in range(1, len(parts) + 1)]
+        out.append(root.joinpath(*parts).with_suffix(".py"))
+        return [f for f in out if f.is_file()]
+
+    todo, seen = list(files_of(module)), set()
+    if not todo:
+        raise ValueError(f"{module!r} is not a module of the project under {root}")
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"), filename=str(f))):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            for n in names:
+                todo.extend(x for x in files_of(n) if x not in seen)
+    return sorted(seen)
+
+
+# Packages whose every file is part of `code_closure_fingerprint`: a method receives a
+# ``scenes.scene.Scene`` and runs scene code through it (geometry, posing, materials' evaluation)
+# without importing the module that defines it.
+CLOSURE_ALWAYS = ("scenes",)
+
+
+def code_closure_fingerprint(module: str, root: str | os.PathLike | None = None) -> str:
+    """sha256 over the sources of `module_closure` and of every package in `CLOSURE_ALWAYS`
+    (paths and bytes): equal as long as no file ``module`` can run changed — an edit of the report
+    code or of another method keeps it."""
+    import hashlib
+
+    root = Path(root) if root else Path(__file__).resolve().parent.parent
+    files = set(module_closure(module, root))
+    for pkg in CLOSURE_ALWAYS:
+        files.update(p for p in (root / pkg).rglob("*.py") if p.is_file())
+    h = hashlib.sha256()
+    for f in sorted(files):
+        h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
 def package_versions() -> dict[str, str]:
     from importlib import metadata
 

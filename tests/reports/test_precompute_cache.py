@@ -448,3 +448,52 @@ def test_cli_cache_info_prune_clear(cache, capsys, monkeypatch):
     assert PC.ENV_MAX_GB in capsys.readouterr().err
     assert run_bench.main(["cache", "clear"]) == 0
     assert "cleared" in capsys.readouterr().out and not any(cache.iterdir())
+
+
+# -- the key follows the code the method runs (not the whole tree) --------------------------------
+
+
+def _copy_tree(tmp_path):
+    import shutil
+
+    from reports.store import CODE_PACKAGES
+    from scenes.io import PROJECT_ROOT
+
+    for pkg in CODE_PACKAGES:
+        shutil.copytree(PROJECT_ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    return tmp_path
+
+
+def _touch(root, rel):
+    p = root / rel
+    p.write_text(p.read_text() + "\n# edited\n")
+
+
+def test_closure_follows_module_and_function_level_imports():
+    from reports.store import module_closure
+    from scenes.io import PROJECT_ROOT
+
+    rel = {str(p.relative_to(PROJECT_ROOT)) for p in module_closure("methods.inout.method")}
+    assert {"methods/inout/method.py", "methods/inout/transport.py", "methods/inout/fast.py",  # module level
+            "methods/inout/analysis.py",          # imported inside InOut._factorize only
+            "methods/core/cubemap.py", "methods/base.py", "methods/__init__.py", "methods/inout/__init__.py"} <= rel
+    assert not any(r.startswith(("reports/", "methods/ptt/", "methods/zh_shadow/")) for r in rel), rel
+    with pytest.raises(ValueError, match="not a module of the project"):
+        module_closure("torch.nn")
+
+
+@pytest.mark.parametrize("rel, changes", [
+    ("reports/html.py", False),              # the report: not run by the method
+    ("methods/ptt/method.py", False),        # another method
+    ("methods/inout/transport.py", True),    # its own code
+    ("methods/inout/analysis.py", True),     # imported inside a function
+    ("methods/core/cubemap.py", True),       # shared math it imports
+    ("scenes/library.py", True),             # scene code (run through the Scene object: always included)
+])
+def test_precompute_key_changes_exactly_when_code_the_method_runs_changes(tmp_path, rel, changes):
+    from reports.store import code_closure_fingerprint
+
+    root = _copy_tree(tmp_path)
+    before = code_closure_fingerprint("methods.inout.method", root)
+    _touch(root, rel)
+    assert (code_closure_fingerprint("methods.inout.method", root) != before) == changes
