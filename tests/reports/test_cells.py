@@ -1,5 +1,6 @@
 """reports.cells / reports.suites with the fake backend (testing.fakes): measuring, n/a and failed
 cells, resume after a kill, process isolation, per-vertex error splatting, the capability matrix."""
+import dataclasses
 import json
 import math
 import pickle
@@ -165,6 +166,11 @@ def test_plan_capability_matrix_and_bounces():
     assert ("fake_plane", "VBL", C.FULL) in jobs  # no in-scope FULL cell, but the full-GI scores need it
     with pytest.raises(ValueError):
         plan_cells(suite, methods=["no_such_method"], **FAKE)
+    # bounce_kinds: the extra bounce counts only on those kinds (not planned at all elsewhere)
+    cut = plan_cells(dataclasses.replace(suite, bounce_kinds=("V",)), methods=["fake", "fake_gi"], **FAKE)
+    cut_by = {(c.scene, c.method, c.kind, c.bounces): c.na for c in cut}
+    assert {k for k in cut_by if k[3] != 0} == {k for k in by if k[3] != 0 and k[2] == "V"}
+    assert {k: v for k, v in cut_by.items() if k[3] == 0} == {k: v for k, v in by.items() if k[3] == 0}
 
 
 def test_cell_scored_against_full_gi(tmp_path):
@@ -190,6 +196,7 @@ def test_suite_definitions_follow_the_issue():
     assert "bunny" in SMOKE.scenes  # a real scan under a captured probe (issue 15)
     assert NIGHTLY.size == "bench" and {"V", "VB", "VBL", "L", "E", "VL"} <= set(NIGHTLY.kinds)
     assert "P" in NIGHTLY.dynamic_kinds and set(NIGHTLY.extra_bounces) == {1, 2, C.FULL}
+    assert set(NIGHTLY.bounce_kinds) == {"V", "L"}  # Sun 2007 Fig. 11 (V) and relighting with interreflection (L)
     assert "bunny" in NIGHTLY.scenes and "creature" in NIGHTLY.scenes  # a real scan; an articulated scene
 
 
