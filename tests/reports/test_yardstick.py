@@ -197,3 +197,67 @@ def test_report_embeds_latest_study_figures(tmp_path):
     assert 'href="../studies/mahajan-fig3a/k_vs_s.png"' in out
     assert H.study_figures(tmp_path / "nowhere", run) == ""
     assert H.study_figures(None, run) == ""
+
+
+def _csv_rows(path, drop=("seconds", "cpu_seconds")):
+    return [{k: v for k, v in r.items() if k not in drop} for r in csv.DictReader(open(path))]
+
+
+def test_parallel_shared_path_equals_plain_path(tmp_path):
+    """The CLI's path (2 worker processes, rung-independent precompute pieces shared within a search:
+    `methods.base.shared_precompute`) writes the same CSV rows, every number as the same string, as
+    the plain path (one process, every precompute from scratch) — only the seconds differ. The quick
+    rungs of the ladders that share pieces (in-out's rule-K regions, PTT's lobe tables and env
+    filters) and one cheap ladder, two exponents."""
+    cfg = S.restrict(S.YARDSTICK_QUICK, methods=["inout", "ptt", "sh_prt"])
+    S.terms_vs_exponent(tmp_path / "plain", config=cfg, jobs=1, shared=False)
+    S.terms_vs_exponent(tmp_path / "fast", config=cfg, jobs=2, shared=True)
+    for name in ("terms_vs_exponent.csv", "ladder_evaluations.csv"):
+        plain, fast = _csv_rows(tmp_path / "plain" / name), _csv_rows(tmp_path / "fast" / name)
+        assert len(plain) == len(fast) > 0
+        assert plain == fast, name
+    evals = _csv_rows(tmp_path / "fast" / "ladder_evaluations.csv", drop=())
+    assert all(float(e["cpu_seconds"]) > 0 for e in evals)  # measured in the workers
+
+
+def test_shared_precompute_reuses_pieces_and_keeps_images():
+    """One memo over two rungs and two exponents: the second precompute takes in-out's rule-K region
+    and PTT's lobe tables from it (the same objects), and every image equals a from-scratch one."""
+    from methods.base import shared_precompute
+
+    cfg = S.YARDSTICK_QUICK
+    frames = [S._phong_frame("sphere_plane", "sphere", s, cfg) for s in (1.0, 16.0)]
+    for name in ("inout", "ptt"):
+        lad = MS.TERM_LADDERS[name]
+        memo: dict = {}
+        made = []
+        for fr in frames:
+            for rung in lad.quick:
+                plain = lad.make(dict(rung), "sphere")
+                plain.precompute(fr.scene)
+                shared = lad.make(dict(rung), "sphere")
+                with shared_precompute(memo):
+                    shared.precompute(fr.scene)
+                assert torch.equal(plain.render(fr.frame, fr.gbuffer), shared.render(fr.frame, fr.gbuffer)), name
+                assert plain.memory() == shared.memory()
+                made.append(shared)
+        assert memo, name
+        if name == "inout":  # the plane (Lambert, K by rule) is one object in every precompute
+            planes = [next(r for r in m.regions if r.name == "plane") for m in made]
+            assert all(p is planes[0] for p in planes)
+            assert all(next(r for r in m.regions if r.name == "sphere") is not None for m in made)
+        else:
+            assert made[1].lobe_vis.data_ptr() != 0 and made[0].env_filters is made[-1].env_filters
+
+
+def test_restrict_and_run_study_options(tmp_path):
+    cfg = S.restrict(S.YARDSTICK, scenes=["shadow_detail"], exponents=[2, 8], methods=["sh_prt"])
+    assert cfg.scenes == (("shadow_detail", "object"),) and cfg.exponents == (2.0, 8.0) and cfg.methods == ("sh_prt",)
+    with pytest.raises(ValueError, match="unknown scene"):
+        S.restrict(S.YARDSTICK, scenes=["nope"])
+    with pytest.raises(ValueError, match="no term ladder"):
+        S.restrict(S.YARDSTICK, methods=["nope"])
+    with pytest.raises(ValueError, match="jobs"):
+        S.yardstick_table(S.YARDSTICK_QUICK, jobs=0)
+    with pytest.raises(ValueError, match="takes no option"):
+        MS.run_study("terms-own-criteria", tmp_path, quick=True, jobs=2)
