@@ -141,7 +141,8 @@ class _Evaluator:
         # rung- and exponent-independent precompute pieces shared by this search's precomputes
         # (`methods.base.shared_precompute`: the same objects, so the same numbers; the in-out
         # regions the ladder does not vary, PTT's lobe visibility tables and env filters, PTT's lobe
-        # fit per exponent); the shared ones are not counted again in a render's seconds
+        # fit per exponent, triple product's visibility and BRDF tables before truncation); a
+        # render's seconds count only what it computed
         self.memo: dict = {}
 
     def __call__(self, i: int, s: float, fr: _Frame) -> dict:
@@ -301,10 +302,14 @@ def _search_one(scene_name: str, region: str, name: str, frames: dict[float, _Fr
 
 # -- parallel searches (``jobs`` > 1) ----------------------------------------------------------
 # Each (scene, method) search is independent of the others, so ``jobs`` worker processes (spawned:
-# fresh interpreters) run them; the parent renders the frames and references once and sends them.
-# A worker runs with this process's torch thread count (unless told): a method's numbers are
-# deterministic for a given thread count, and every search is the sequential one of the plain path,
-# so the rows are the plain path's bit for bit (tests/reports/test_yardstick.py checks it). Only
+# fresh interpreters, one torch thread each unless told) run them; the parent renders the frames and
+# references once and sends them. Every search is the sequential one of the plain path and the
+# methods' numbers do not depend on the thread count (``methods.core.threads``), so the rows are the
+# plain path's (tests/reports/test_yardstick.py) — with one known exception: zh_shadow's SH order 3
+# (a float32 product of a 9-row matrix, `methods.zh_shadow.runtime.world_visibility`) rounds differently
+# with 1 and 2 threads, so its order-3 errors match a 2-thread plain run to float32 round-off only
+# (bit for bit with ``worker_threads=2`` or a 1-thread plain run). One thread per worker, because
+# two processes of two threads on two busy cores spend much of their CPU time in OpenMP waits. Only
 # ladders registered at import (``methods.registry``) exist in a worker; the workers are handed the
 # most expensive searches first (a scheduling hint only).
 SEARCH_COST_HINT = {"ptt": 4.0, "inout": 3.5, "triple_product": 2.0}
@@ -377,9 +382,9 @@ def yardstick_table(cfg: YardstickConfig = YARDSTICK, *, progress=None, jobs: in
     """Run the search (module docstring) → (figure rows, every evaluation, per-(scene, s) floors).
 
     jobs: 1 = every search in this process (any registered ladder); > 1 = that many worker
-    processes (ladders registered at import only; same rows) with ``worker_threads`` torch threads
-    each (default: this process's count — the same numbers bit for bit; with 1 thread zh_shadow's
-    order-3 render differs in the last float32 bit, a 9-row sgemm, ``methods.core.threads``).
+    processes (ladders registered at import only; the same rows, see the comment above
+    `SEARCH_COST_HINT` for the one float32 round-off exception) with ``worker_threads`` torch
+    threads each (default 1).
     shared: share rung-independent precompute pieces within a search (`_Evaluator`); False
     precomputes every rung from scratch (the oracle of the shared path)."""
     names = sorted(TERM_LADDERS) if cfg.methods is None else list(cfg.methods)
@@ -407,9 +412,7 @@ def yardstick_table(cfg: YardstickConfig = YARDSTICK, *, progress=None, jobs: in
         all_frames[scene_name] = {float(s): _phong_frame(scene_name, region, float(s), cfg) for s in cfg.exponents}
         floors[scene_name] = {f"{s:g}": fr.floor for s, fr in all_frames[scene_name].items()}
     units = [(sc, reg, name) for sc, reg in cfg.scenes for name in names]
-    import torch
-
-    threads = torch.get_num_threads() if worker_threads is None else int(worker_threads)
+    threads = 1 if worker_threads is None else int(worker_threads)
     done = _run_parallel(min(jobs, len(units)), units, all_frames, cfg, bar, threads, shared)
     for sc, _reg, name in units:  # the plain path's order
         r, e = done[(sc, name)]
