@@ -8,6 +8,7 @@
   python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged (exit 1:
                                                         # regressions, 2: no cell in common)
   python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
+  python run_bench.py study terms-vs-exponent [--jobs N] [--scenes S,..] [--exponents 1,16,..] [--methods M,..]
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
   python run_bench.py list                              # scenes, methods, suites, kinds, studies

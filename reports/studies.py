@@ -22,6 +22,12 @@ tighter one starting at the looser one's rung. Outputs (in ``out_dir``):
 * ``ladder_evaluations.csv`` — every render the search made (scene, method, s, rung, error,
   bytes, seconds); ``summary.json`` — settings, floors, seconds per method.
 
+Speed (the numbers are not affected): the (scene, method) searches run in ``jobs`` worker
+processes (the CLI: cores, at most 2; `yardstick_table`), and the precomputes of one search share
+the pieces that depend on neither the rung nor the exponent (`methods.base.shared_precompute`),
+so a render's ``seconds`` count only what it computed. ``--scenes/--exponents/--methods`` run a
+reduced study (`restrict`).
+
 ``terms-own-criteria`` — each method's terms-vs-exponent contributor
 (`methods.studies.register_terms_contributor`) under its own criterion (not comparable across
 methods: that is what ``terms-vs-exponent`` is for) → ``terms_by_method.csv/png``, and Mahajan
