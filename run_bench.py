@@ -8,6 +8,7 @@
   python run_bench.py compare RUN_A RUN_B               # changes between two runs, flagged (exit 1:
                                                         # regressions, 2: no cell in common)
   python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
+  python run_bench.py study terms-vs-exponent [--jobs N] [--scenes S,..] [--exponents 1,16,..] [--methods M,..]
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
   python run_bench.py list                              # scenes, methods, suites, kinds, studies
@@ -90,6 +91,16 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--list", action="store_true", help="list every registered study and exit")
     s.add_argument("--out", type=Path, default=None, help="output folder (default out/studies/<name>)")
     s.add_argument("--quick", action="store_true", help="a small, fast version")
+    s.add_argument("--jobs", type=int, default=None,
+                   help="terms-vs-exponent: worker processes, one torch thread each (default: cores, at most 2; "
+                        "1 = in this process); the numbers do not depend on it (but for float32 round-off of "
+                        "zh_shadow order 3, reports/studies.py)")
+    s.add_argument("--scenes", default=None,
+                   help="terms-vs-exponent: comma-separated scenes of the study (default: all), for reduced runs")
+    s.add_argument("--exponents", default=None,
+                   help="terms-vs-exponent: comma-separated Phong exponents (default: 1,2,...,256)")
+    s.add_argument("--methods", default=None,
+                   help="terms-vs-exponent: comma-separated term ladders (default: every registered one)")
 
     ls = sub.add_parser("list", help="what can be run: scenes, methods, suites, sequence kinds, studies")
     ls.add_argument("--test-only", action="store_true", help="vertex counts at test size only (faster)")
@@ -244,7 +255,25 @@ def cmd_study(args) -> int:
         print(f"unknown study {args.name!r}; available: {', '.join(sorted(studies.STUDIES))}", file=sys.stderr)
         return 2
     out = args.out or Path("out") / "studies" / args.name
-    paths = studies.run_study(args.name, out, quick=args.quick)
+    options: dict = {}
+    if args.jobs is not None:
+        options["jobs"] = args.jobs
+    for key in ("scenes", "methods"):
+        if getattr(args, key) is not None:
+            options[key] = [x.strip() for x in getattr(args, key).split(",") if x.strip()]
+    if args.exponents is not None:
+        try:
+            options["exponents"] = [float(x) for x in args.exponents.split(",") if x.strip()]
+        except ValueError:
+            print(f"--exponents must be comma-separated numbers, got {args.exponents!r}", file=sys.stderr)
+            return 2
+    try:
+        paths = studies.run_study(args.name, out, quick=args.quick, **options)
+    except ValueError as e:
+        if not options:
+            raise
+        print(f"study {args.name}: {e}", file=sys.stderr)
+        return 2
     for p in paths:
         print(p)
     return 0

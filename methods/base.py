@@ -24,10 +24,12 @@ per-region material parameters, and the pose of an articulated scene.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import dataclasses
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -37,6 +39,49 @@ from torch import Tensor
 
 from scenes.frame import Frame, GBuffer  # noqa: F401  (re-exported: part of the Method contract)
 from scenes.io import cache_dir  # noqa: F401  (re-exported for methods' convenience)
+
+# -- shared precompute pieces -----------------------------------------------------------------
+# A caller that precomputes many instances of one method on one geometry (the terms-vs-exponent
+# study: every rung of a term ladder at every Phong exponent) may open ``shared_precompute(memo)``
+# around their ``precompute`` calls. A method that supports it (``precompute_memo()`` is not None)
+# stores in ``memo`` the pieces of its precompute that depend on neither the config keys the caller
+# varies nor the material it varies — keyed by *everything* they do depend on (`geometry_key`,
+# config values, material hashes) — and takes them from there instead of recomputing: the same
+# objects, so the same numbers, and never mutated afterwards (tests compare with and without).
+# Without a memo (the harness, the nightly runs) nothing changes. A context variable, not an
+# attribute: the precompute cache stores a method's ``__dict__`` and must not see the memo.
+_PRECOMPUTE_MEMO: contextvars.ContextVar[dict | None] = contextvars.ContextVar("precompute_memo", default=None)
+
+
+@contextlib.contextmanager
+def shared_precompute(memo: dict) -> Iterator[dict]:
+    """Let the ``precompute`` calls inside the block share rung-independent pieces through ``memo``
+    (a dict the caller owns and drops; comment above)."""
+    if not isinstance(memo, dict):
+        raise ValueError(f"memo must be a dict, got {type(memo).__name__}")
+    token = _PRECOMPUTE_MEMO.set(memo)
+    try:
+        yield memo
+    finally:
+        _PRECOMPUTE_MEMO.reset(token)
+
+
+def precompute_memo() -> dict | None:
+    """The memo of the enclosing `shared_precompute` block, or None."""
+    return _PRECOMPUTE_MEMO.get()
+
+
+def geometry_key(*tensors: Tensor) -> str:
+    """sha256 over the dtype, shape and bytes of ``tensors`` (a memo key of geometry-only pieces)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for t in tensors:
+        a = torch.as_tensor(t).detach().cpu().contiguous()
+        h.update(f"{a.dtype}{tuple(a.shape)}".encode())
+        h.update(a.numpy().tobytes())
+    return h.hexdigest()
+
 
 # -- capabilities -----------------------------------------------------------------------------
 

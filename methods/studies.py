@@ -52,13 +52,24 @@ def register_study(study: Study, *, replace: bool = False) -> Study:
     return study
 
 
-def run_study(name: str, out_dir: str | Path, *, quick: bool = False) -> list[Path]:
-    """Run the study ``name``, writing into ``out_dir`` (created); returns the files written."""
+def run_study(name: str, out_dir: str | Path, *, quick: bool = False, **options: Any) -> list[Path]:
+    """Run the study ``name``, writing into ``out_dir`` (created); returns the files written.
+    ``options`` (keyword arguments of that study's ``run``, e.g. terms-vs-exponent's ``jobs``,
+    ``scenes``, ``exponents``, ``methods``) are passed only when given; a study that takes none of
+    them is a ``ValueError``."""
+    import inspect
+
     if name not in STUDIES:
         raise ValueError(f"unknown study {name!r}; known: {', '.join(sorted(STUDIES))}")
+    run = STUDIES[name].run
+    if options:
+        params = inspect.signature(run).parameters
+        bad = sorted(k for k in options if k not in params)
+        if bad:
+            raise ValueError(f"study {name!r} takes no option(s) {bad}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    return list(STUDIES[name].run(out, quick=quick))
+    return list(run(out, quick=quick, **options))
 
 
 @dataclass(frozen=True)

@@ -51,10 +51,11 @@ import torch
 from torch import Tensor
 
 from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes)
+                          tensor_bytes, geometry_key, precompute_memo)
 from methods.core import cubemap
 from methods.core.frames import frame_matrix
 from references.visibility import make_visibility
+from scenes.hashing import hash_materials
 from methods.inout import fast as _fast
 from methods.inout import transport as tp
 
@@ -250,6 +251,8 @@ class InOut(Method):
         t0 = time.perf_counter()
         self.regions = []
         self.stats = {"regions": {}}
+        memo = precompute_memo()
+        gkey = geometry_key(V, F, Nrm, face_region) if memo is not None else None
         for r, name in enumerate(scene.regions):
             faces = (face_region == r).nonzero(as_tuple=True)[0]
             if faces.numel() == 0:
@@ -258,6 +261,20 @@ class InOut(Method):
             if getattr(mat, "kind", "") not in self.capabilities.brdfs:
                 raise ValueError(f"region {name!r}: BRDF family {getattr(mat, 'kind', type(mat).__name__)!r}"
                                  " is not supported by inout (isotropic families only)")
+            # shared precompute (methods.base.shared_precompute): a region is a function of the
+            # geometry, its faces, its material, its K setting and every other config value. Only
+            # regions whose K is chosen by rule are shared: a region with an explicit ``terms`` K
+            # is the one a term ladder varies (sharing it would keep every rung's T alive for
+            # nothing)
+            mkey = None
+            if memo is not None and self._terms_for(name, mat) is None:
+                mkey = ("inout.region", gkey, r, name, hash_materials({name: mat}), self._terms_for(name, mat),
+                        tuple(sorted((k, v) for k, v in cfg.items() if k != "terms")))
+                if mkey in memo:
+                    region, rstats = memo[mkey]
+                    self.regions.append(region)
+                    self.stats["regions"][name] = {**rstats, "shared": True}
+                    continue
             ta = time.perf_counter()
             fac, kinfo = self._factorize(name, mat)                      # Mahajan 2008 eq. 2
             K_req = int(kinfo["K_requested"])
@@ -280,6 +297,8 @@ class InOut(Method):
                                            "captured_energy": fac.captured_energy(),
                                            "vertices": int(verts.numel()),
                                            "brdf_seconds": tb - ta, "transport_seconds": tc - tb}
+            if mkey is not None:
+                memo[mkey] = (self.regions[-1], dict(self.stats["regions"][name]))
         self.stats["precompute_seconds"] = time.perf_counter() - t0
         self.scene = scene
         self.F = F

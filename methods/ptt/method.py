@@ -71,7 +71,7 @@ import torch
 from torch import Tensor
 
 from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes)
+                          tensor_bytes, geometry_key, precompute_memo)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
 from references.visibility import make_visibility
@@ -84,6 +84,7 @@ from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
 from methods.ptt.transport import table_coords
 from scenes.envmap import extend_periodic
+from scenes.hashing import hash_materials
 
 # G-buffer samples shaded per batch by the reference path (a batch holds (Q, 3, n_P, K) view factors)
 # and by the fast path (a batch holds a few hundred bytes per sample).
@@ -276,9 +277,23 @@ class PTT(Method):
             self.basis = _tp.scene_basis(scene.materials)
         factored = self.basis
         self.lobe_table = self.lobe_vis = self.env_filters = self.lobe_sh = None
+        # shared precompute (methods.base.shared_precompute): the lobe fit is a function of the
+        # materials (scene_basis) and its settings; the lobe visibility tables of the geometry,
+        # the cube-map rays and their settings; the env filters of their settings only
+        memo = precompute_memo()
+        gkey = geometry_key(self.V, self.F, self.N) if memo is not None else None
         if self.separate:  # Sun §4.1: only the remainder goes through the factorization
-            self.lobe_table = _spec.fit_lobe_table(self.basis, c["lobe_degrees"], n_theta=c["lobe_theta"],
-                                                   fit_samples=c["lobe_fit_samples"])
+            lkey = None
+            if memo is not None and self._basis_arg is None:
+                lkey = ("ptt.lobe_table", hash_materials(scene.materials), tuple(self.regions),
+                        tuple(c["lobe_degrees"]), c["lobe_theta"], c["lobe_fit_samples"])
+            if lkey is not None and lkey in memo:
+                self.lobe_table = memo[lkey]
+            else:
+                self.lobe_table = _spec.fit_lobe_table(self.basis, c["lobe_degrees"], n_theta=c["lobe_theta"],
+                                                       fit_samples=c["lobe_fit_samples"])
+                if lkey is not None:
+                    memo[lkey] = self.lobe_table
             factored = _spec.RemainderBasis(self.basis, self.lobe_table)
         self.factors = _tp.factor_basis(factored, n_wi=c["n_wi"], grid=c["brdf_grid"], table=c["brdf_table"],
                                         n_wo=c["n_wo"])
@@ -287,15 +302,28 @@ class PTT(Method):
         N = c["cube_res"]
         P0 = _tp.ray_points(self.V, self.F)  # ray origins just inside each vertex's faces
         hook = None
+        vkey = None
         if self.separate:
-            lv = _spec.lobe_visibility(c["lobe_degrees"], T=c["lobe_vis_res"], samples=c["lobe_vis_samples"])
-            T = c["lobe_vis_res"]
-            self.lobe_vis = torch.empty(self.V.shape[0], len(c["lobe_degrees"]), T, T)
+            degs = tuple(c["lobe_degrees"])
+            vkey = ("ptt.lobe_vis", gkey, N, degs, c["lobe_vis_res"], c["lobe_vis_samples"]) if memo is not None else None
+            if vkey is not None and vkey in memo:
+                self.lobe_vis = memo[vkey]
+                vkey = None  # nothing to store
+            else:
+                lv = _spec.lobe_visibility(c["lobe_degrees"], T=c["lobe_vis_res"], samples=c["lobe_vis_samples"])
+                T = c["lobe_vis_res"]
+                self.lobe_vis = torch.empty(self.V.shape[0], len(c["lobe_degrees"]), T, T)
 
-            def hook(a, b, vb):  # reuse the direct transport's visibility rays
-                self.lobe_vis[a:b] = _spec.vertex_lobe_tables(lv, vb, self.N[a:b], N)
+                def hook(a, b, vb):  # reuse the direct transport's visibility rays
+                    self.lobe_vis[a:b] = _spec.vertex_lobe_tables(lv, vb, self.N[a:b], N)
 
-            self.env_filters = _spec.env_filters(c["lobe_degrees"], c["env_res"])
+            fkey = ("ptt.env_filters", degs, c["env_res"])
+            if memo is not None and fkey in memo:
+                self.env_filters = memo[fkey]
+            else:
+                self.env_filters = _spec.env_filters(c["lobe_degrees"], c["env_res"])
+                if memo is not None:
+                    memo[fkey] = self.env_filters
             if self.bounces >= 1:
                 self.lobe_sh = _spec.lobe_sh_kernels(c["lobe_degrees"], c["sh_order"])  # (L, order)
         self.dt = _tp.direct_transport(vis, P0, self.N, self.factors, N=N, n_L=c["n_L"],
@@ -303,6 +331,8 @@ class PTT(Method):
                                        coarse=c["light_res_1"] if self.bounces >= 1 else 0,
                                        visibility_hook=hook)
         self.dt.idx = self.dt.idx.to(torch.int32)  # run-time storage
+        if vkey is not None:
+            memo[vkey] = self.lobe_vis
         t2 = time.perf_counter()
         self.C = self.Cu = self.T1 = self.T2 = self.T1c = None
         R = len(self.regions)

@@ -67,7 +67,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import Capabilities, Frame, GBuffer, Method, register, tensor_bytes
+from methods.base import Capabilities, Frame, GBuffer, Method, geometry_key, precompute_memo, register, tensor_bytes
+from scenes.hashing import hash_materials
 from methods.core.spherical_haar import Geodesic, triple_integral
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
@@ -216,7 +217,15 @@ class TripleProduct(Method):
     def build_table(self, material) -> tuple[Tensor, Tensor]:
         """The truncated ρ̃ table of one material: idx (n_o, n) int32, val (n_o, 3, n) float32."""
         cfg = self.config
-        tab = bt.brdf_table(material, self.geo, self.outgoing, supersample=cfg["brdf_supersample"])
+        memo = precompute_memo()  # shared precompute (methods.base): the table before truncation
+        key = ("triple_product.brdf_table", hash_materials({"m": material}), self.level, cfg["brdf_dirs"],
+               cfg["brdf_supersample"])
+        if memo is not None and key in memo:
+            tab = memo[key]
+        else:
+            tab = bt.brdf_table(material, self.geo, self.outgoing, supersample=cfg["brdf_supersample"])
+            if memo is not None:
+                memo[key] = tab
         return truncate(tab, self._n(), cfg["selection"], self.level)
 
     def edit_material(self, region: str, material) -> float:
@@ -259,8 +268,16 @@ class TripleProduct(Method):
         self.R = lt.local_frames(N, cfg["tangent"])
         vis = make_visibility(V, F)
         ta = time.perf_counter()
-        Vc = visibility_coeffs(vis, V, N, self.R, self.geo, supersample=cfg["vis_supersample"],
-                               progress=self.progress)                          # (N, K)
+        memo = precompute_memo()  # shared precompute (methods.base): Vc before truncation
+        vkey = ("triple_product.vis_coeffs", geometry_key(V, F, N), self.level, cfg["tangent"],
+                cfg["vis_supersample"]) if memo is not None else None
+        if vkey is not None and vkey in memo:
+            Vc = memo[vkey]
+        else:
+            Vc = visibility_coeffs(vis, V, N, self.R, self.geo, supersample=cfg["vis_supersample"],
+                                   progress=self.progress)                      # (N, K)
+            if vkey is not None:
+                memo[vkey] = Vc
         self.V_idx, self.V_val = truncate(Vc, self._n(), cfg["selection"], self.level)
         self.n_vertex_rows = int(V.shape[0])
         self._setup_uv(scene, geom, V, N, F)

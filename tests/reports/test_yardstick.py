@@ -197,3 +197,73 @@ def test_report_embeds_latest_study_figures(tmp_path):
     assert 'href="../studies/mahajan-fig3a/k_vs_s.png"' in out
     assert H.study_figures(tmp_path / "nowhere", run) == ""
     assert H.study_figures(None, run) == ""
+
+
+def _csv_rows(path, drop=("seconds", "cpu_seconds")):
+    return [{k: v for k, v in r.items() if k not in drop} for r in csv.DictReader(open(path))]
+
+
+def test_parallel_shared_path_equals_plain_path(tmp_path):
+    """The CLI's path (2 worker processes of one torch thread, rung-independent precompute pieces
+    shared within a search: `methods.base.shared_precompute`) writes the same CSV rows, every number
+    as the same string, as the plain path (this process, every precompute from scratch) — only the
+    seconds differ. (zh_shadow is left out: its order-3 render is not thread-count independent,
+    reports.studies comment above SEARCH_COST_HINT.) The quick
+    rungs of the ladders that share pieces (in-out's rule-K regions, PTT's lobe tables and env
+    filters, triple product's untruncated V and BRDF tables) and one cheap ladder, two exponents."""
+    cfg = S.restrict(S.YARDSTICK_QUICK, methods=["inout", "ptt", "triple_product", "sh_prt"])
+    S.terms_vs_exponent(tmp_path / "plain", config=cfg, jobs=1, shared=False)
+    S.terms_vs_exponent(tmp_path / "fast", config=cfg, jobs=2, shared=True)
+    for name in ("terms_vs_exponent.csv", "ladder_evaluations.csv"):
+        plain, fast = _csv_rows(tmp_path / "plain" / name), _csv_rows(tmp_path / "fast" / name)
+        assert len(plain) == len(fast) > 0
+        assert plain == fast, name
+    evals = _csv_rows(tmp_path / "fast" / "ladder_evaluations.csv", drop=())
+    assert all(float(e["cpu_seconds"]) > 0 for e in evals)  # measured in the workers
+
+
+def test_shared_precompute_reuses_pieces_and_keeps_images():
+    """One memo over two rungs and two exponents: later precomputes take in-out's rule-K region, PTT's
+    lobe fit and env filters and triple product's untruncated tables from it (the same objects), and
+    every image and memory() equals a from-scratch one."""
+    from methods.base import shared_precompute
+
+    cfg = S.YARDSTICK_QUICK
+    frames = [S._phong_frame("sphere_plane", "sphere", s, cfg) for s in (1.0, 16.0)]
+    for name in ("inout", "ptt", "triple_product"):
+        lad = MS.TERM_LADDERS[name]
+        memo: dict = {}
+        made = []
+        for fr in frames:
+            for rung in lad.quick:
+                plain = lad.make(dict(rung), "sphere")
+                plain.precompute(fr.scene)
+                shared = lad.make(dict(rung), "sphere")
+                with shared_precompute(memo):
+                    shared.precompute(fr.scene)
+                assert torch.equal(plain.render(fr.frame, fr.gbuffer), shared.render(fr.frame, fr.gbuffer)), name
+                assert plain.memory() == shared.memory()
+                made.append(shared)
+        assert memo, name
+        if name == "inout":  # the plane (Lambert, K by rule) is one object in every precompute
+            planes = [next(r for r in m.regions if r.name == "plane") for m in made]
+            assert all(p is planes[0] for p in planes)
+            assert all(next(r for r in m.regions if r.name == "sphere") is not None for m in made)
+        elif name == "ptt":
+            assert made[0].env_filters is made[-1].env_filters and made[0].lobe_table is made[1].lobe_table
+        else:  # the untruncated visibility (one geometry) and one BRDF table per material
+            assert sum(k[0] == "triple_product.vis_coeffs" for k in memo) == 1
+            assert sum(k[0] == "triple_product.brdf_table" for k in memo) == 3  # plane, sphere at s = 1, 16
+
+
+def test_restrict_and_run_study_options(tmp_path):
+    cfg = S.restrict(S.YARDSTICK, scenes=["shadow_detail"], exponents=[2, 8], methods=["sh_prt"])
+    assert cfg.scenes == (("shadow_detail", "object"),) and cfg.exponents == (2.0, 8.0) and cfg.methods == ("sh_prt",)
+    with pytest.raises(ValueError, match="unknown scene"):
+        S.restrict(S.YARDSTICK, scenes=["nope"])
+    with pytest.raises(ValueError, match="no term ladder"):
+        S.restrict(S.YARDSTICK, methods=["nope"])
+    with pytest.raises(ValueError, match="jobs"):
+        S.yardstick_table(S.YARDSTICK_QUICK, jobs=0)
+    with pytest.raises(ValueError, match="takes no option"):
+        MS.run_study("terms-own-criteria", tmp_path, quick=True, jobs=2)
