@@ -93,8 +93,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--quick", action="store_true", help="a small, fast version")
     s.add_argument("--jobs", type=int, default=None,
                    help="terms-vs-exponent: worker processes, one torch thread each (default: cores, at most 2; "
-                        "1 = in this process); the numbers do not depend on it (but for float32 round-off of "
-                        "zh_shadow order 3, reports/studies.py)")
+                        "1 = in this process); the numbers do not depend on it")
     s.add_argument("--scenes", default=None,
                    help="terms-vs-exponent: comma-separated scenes of the study (default: all), for reduced runs")
     s.add_argument("--exponents", default=None,

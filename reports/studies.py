@@ -311,10 +311,9 @@ def _search_one(scene_name: str, region: str, name: str, frames: dict[float, _Fr
 # fresh interpreters, one torch thread each unless told) run them; the parent renders the frames and
 # references once and sends them. Every search is the sequential one of the plain path and the
 # methods' numbers do not depend on the thread count (``methods.core.threads``), so the rows are the
-# plain path's (tests/reports/test_yardstick.py) — with one known exception: zh_shadow's SH order 3
-# (a float32 product of a 9-row matrix, `methods.zh_shadow.runtime.world_visibility`) rounds differently
-# with 1 and 2 threads, so its order-3 errors match a 2-thread plain run to float32 round-off only
-# (bit for bit with ``worker_threads=2`` or a 1-thread plain run). One thread per worker, because
+# plain path's (tests/reports/test_yardstick.py; zh_shadow's SH order 3, whose 9-row float32 product
+# rounded differently with 1 and 2 threads, now runs it on one thread: `methods.zh_shadow.runtime.
+# world_visibility`, tests/methods/test_threads.py). One thread per worker, because
 # two processes of two threads on two busy cores spend much of their CPU time in OpenMP waits. Only
 # ladders registered at import (``methods.registry``) exist in a worker; the workers are handed the
 # most expensive searches first (a scheduling hint only).
@@ -389,7 +388,7 @@ def yardstick_table(cfg: YardstickConfig = YARDSTICK, *, progress=None, jobs: in
 
     jobs: 1 = every search in this process (any registered ladder); > 1 = that many worker
     processes (ladders registered at import only; the same rows, see the comment above
-    `SEARCH_COST_HINT` for the one float32 round-off exception) with ``worker_threads`` torch
+    `SEARCH_COST_HINT`) with ``worker_threads`` torch
     threads each (default 1).
     shared: share rung-independent precompute pieces within a search (`_Evaluator`); False
     precomputes every rung from scratch (the oracle of the shared path)."""

@@ -21,6 +21,8 @@ CASES: dict[str, tuple[str, str, dict]] = {
     "sh_prt": ("sh_prt", "creature", {"rays": 64}),
     "triple_product": ("triple_product", "sphere_plane", {"level": 2}),
     "zh_shadow": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10}),
+    # order 3: 9-row float32 products, a shape MKL splits over threads (methods.core.threads)
+    "zh_shadow-order3": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10, "order": 3}),
 }
 
 
