@@ -38,6 +38,7 @@ shortcuts, both from the linearity of the terms in v and in l:
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import math
@@ -611,13 +612,9 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Ten
     ax = chart_to_axis(pT[:, :2].transpose(1, 2))                            # (c, N, 3) local axes
     ax = ax.permute(2, 0, 1)                                                 # (3, c, N)
     aw = (s[:, None] * ax[0] + t[:, None] * ax[1] + nT[:, None] * ax[2]).reshape(3, lobes * N)   # world
-    M = sh_monomials(n).to(X.dtype).T.to(X.device)
-    F = sh_features(aw, n)
-    if n * n < 16:   # a product of one matrix with 4 or 9 rows: MKL splits it over threads (core.threads)
-        with torch_threads(1):
-            Y = M @ F                                                        # (n², c·N) y(s)
-    else:
-        Y = M @ F
+    # a product of one matrix with 4 or 9 rows: MKL splits it over threads (methods.core.threads)
+    with torch_threads(1) if n * n < 16 else contextlib.nullcontext():
+        Y = sh_monomials(n).to(X.dtype).T.to(X.device) @ sh_features(aw, n)   # (n², c·N) y(s)
     band = torch.repeat_interleave(torch.arange(n, device=X.device), torch.arange(n, device=X.device) * 2 + 1)
     lam = band_norms(n, dtype=X.dtype, device=X.device)[:, None]
     k = (pT[:, 2:] * lam).index_select(1, band)                               # (c, n², N) Λ_l k_l
