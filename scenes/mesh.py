@@ -194,6 +194,34 @@ def merge(meshes: list[Mesh]) -> Mesh:
     return Mesh(torch.cat([m.V for m in meshes]), torch.cat(Fs), N, uv)
 
 
+def subdivide(mesh: Mesh, levels: int) -> Mesh:
+    """``levels`` rounds of midpoint 1-to-4 subdivision: every edge gets its midpoint (shared by the
+    two faces of an edge), every face becomes 4. Positions, uv linearly; normals interpolated and
+    renormalised. Flat faces keep their exact shape (curved surfaces do not get smoother: this is
+    not Loop subdivision); vertices the input keeps apart (a box's per-face corners) stay apart.
+    What it is for: per-vertex transport (every PRT method here) cannot show a shadow or highlight
+    inside one face, so a scene file's coarse mesh is refined to the tessellation PRT needs."""
+    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
+        raise ValueError(f"subdivision levels must be an int >= 0, got {levels!r}")
+    V, F, N, uv = mesh.V, mesh.F, mesh.N, mesh.uv
+    for _ in range(levels):
+        M = F.shape[0]
+        e = torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).sort(1).values   # (3M, 2)
+        uniq, inv = torch.unique(e, dim=0, return_inverse=True)
+        mid = V.shape[0] + inv.view(3, M).T                                         # (M, 3): 01, 12, 20
+        V = torch.cat([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
+        if N is not None:
+            n = N[uniq[:, 0]] + N[uniq[:, 1]]
+            N = torch.cat([N, n / n.norm(dim=1, keepdim=True).clamp_min(1e-30)])
+        if uv is not None:
+            uv = torch.cat([uv, 0.5 * (uv[uniq[:, 0]] + uv[uniq[:, 1]])])
+        a, b, c = F.T
+        ab, bc, ca = mid.T
+        F = torch.cat([torch.stack([a, ab, ca], 1), torch.stack([ab, b, bc], 1),
+                       torch.stack([ca, bc, c], 1), torch.stack([ab, bc, ca], 1)])
+    return Mesh(V, F, N, uv)
+
+
 def load_mesh(path: str | Path) -> Mesh:
     """Load an OBJ/PLY/GLB file as one triangle mesh (validated; area-weighted vertex normals).
 

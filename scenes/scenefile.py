@@ -38,6 +38,9 @@ size's height unless the file sets one. Without ``size`` the file is taken as wr
     rotate = [-90.0, 0.0, 0.0]        # optional: Euler degrees about x, then y, then z (after scale;
                                       # e.g. a Z-up scan becomes +Y up with [-90, 0, 0])
     translate = [0.0, 0.5, 0.0]       # optional: 3 numbers (applied last)
+    subdivide = 2                     # optional: rounds of midpoint 1-to-4 subdivision (0-6) before
+                                      # the transform; every method here stores transport per vertex,
+                                      # so a shadow or highlight inside one big face is lost without it
     skeleton = true                   # optional, .glb/.gltf only: keep the file's skin and its first
                                       # animation clip (default: true when the file is skinned). The
                                       # clip drives the scene's P sequences and the pose models.
@@ -72,7 +75,9 @@ CAMERA_REQUIRED = ("origin", "target", "fov_deg", "width", "height")
 CAMERA_KEYS = CAMERA_REQUIRED + ("up",)
 ENVMAP_KEYS = ("file", "procedural", "probe", "height", "seed", "rotate_y_deg", "key_azimuth_deg")
 SHAPE_REQUIRED = ("name", "region", "mesh")
-SHAPE_KEYS = SHAPE_REQUIRED + ("scale", "rotate", "translate", "skeleton")
+SHAPE_KEYS = SHAPE_REQUIRED + ("scale", "rotate", "translate", "skeleton", "subdivide")
+# Most midpoint-subdivision levels a shape may ask for (4^6 = 4096 faces per input face).
+MAX_SUBDIVIDE = 6
 # Vertex budget of a whole scene per size (scenes/library.py's test / bench sizes).
 VERTEX_BUDGET = {"test": 2000, "bench": 20000}
 DEFAULT_ENV_HEIGHT = 64  # the "test" size of scenes/library.py
@@ -212,7 +217,7 @@ def _envmap(ctx: _Ctx, t: Any, env_height: int = DEFAULT_ENV_HEIGHT):
 
 
 def _shape(ctx: _Ctx, i: int, t: Any):
-    from scenes.mesh import check_extent, load_mesh
+    from scenes.mesh import check_extent, load_mesh, subdivide
     from scenes.scene import Shape
 
     w = f"[[shape]] #{i}"
@@ -247,6 +252,13 @@ def _shape(ctx: _Ctx, i: int, t: Any):
             mesh = load_mesh(mesh_path)
     except ValueError as e:
         raise ctx.error(w, f"mesh {mesh_rel!r}: {e}") from e
+    if "subdivide" in t:
+        k = t["subdivide"]
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= MAX_SUBDIVIDE:
+            raise ctx.error(w, f"subdivide must be an integer in [0, {MAX_SUBDIVIDE}], got {k!r}")
+        if rig is not None:
+            raise ctx.error(w, "subdivide is not available for a skinned mesh (its weights are per vertex)")
+        mesh = subdivide(mesh, k)
     R = euler_xyz(rotate)
     if scale != (1.0, 1.0, 1.0) or translate != (0.0, 0.0, 0.0) or rotate != (0.0, 0.0, 0.0):
         M = torch.eye(4, dtype=torch.float64)

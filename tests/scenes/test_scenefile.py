@@ -59,7 +59,8 @@ def test_example_loads_and_renders_through_the_pipeline():
     assert scene.regions == ["red", "blue", "ground"]
     assert [s.name for s in scene.shapes] == ["tall_box", "small_box", "ground"]
     g = scene.geometry()
-    assert g.num_vertices == 24 + 24 + 81 and g.num_faces == 12 + 12 + 128
+    # subdivide = 2: 16 faces per input face; box faces 5 x 5 vertices, the 9 x 9 ground 33 x 33
+    assert g.num_vertices == 2 * 6 * 25 + 33 * 33 and g.num_faces == 16 * (12 + 12 + 128)
     # boxes are closed with outward faces: each face normal points away from its box centre
     for i in range(2):
         m = g.shape_mesh(i)
@@ -95,6 +96,28 @@ def test_scale_translate_and_relative_paths(tmp_path, monkeypatch):
     assert load_scene_file(str(p)).content_hash() == scene.content_hash()
 
 
+def test_subdivide_refines_a_box_without_changing_its_shape(tmp_path):
+    from scenes.mesh import subdivide
+
+    base = load_scene_file(_write(tmp_path, GOOD)).shapes[0].mesh
+    fine = load_scene_file(_write(tmp_path, GOOD.replace('mesh = "box.obj"', 'mesh = "box.obj"\nsubdivide = 2'))).shapes[0].mesh
+    assert fine.num_faces == 16 * base.num_faces
+    # each of the 6 faces (2 triangles, 4 own corners) becomes a 5 x 5 grid of vertices
+    assert base.num_vertices == 24 and fine.num_vertices == 6 * 25
+    assert torch.allclose(fine.V.min(0).values, base.V.min(0).values) and torch.allclose(fine.V.max(0).values, base.V.max(0).values)
+    a0, a1 = base.face_normals()[1].sum(), fine.face_normals()[1].sum()
+    assert abs(float(a1 - a0)) < 1e-5 * float(a0)
+    # every new vertex lies on a face of the box (|coordinate| = half extent on one axis) with its face's normal
+    half = base.V.abs().max()
+    on_face = (fine.V.abs() - half).abs().min(1).values < 1e-6
+    assert bool(on_face.all())
+    nz = fine.N.abs().argmax(1)
+    assert bool(((fine.V.abs() - half).abs().gather(1, nz[:, None]).squeeze(1) < 1e-6).all())
+    assert subdivide(base, 0).num_faces == base.num_faces
+    with pytest.raises(ValueError):
+        subdivide(base, -1)
+
+
 def test_default_name_is_file_stem(tmp_path):
     p = _write(tmp_path, GOOD.replace('name = "t"\n', ""), "my_room.toml")
     assert load_scene_file(p).name == "my_room"
@@ -128,6 +151,9 @@ BAD = [
     ('mesh = "box.obj"', 'mesh = "box.obj"\ntranslate = [1, 2]', ["[[shape]]", "translate"]),
     ('mesh = "box.obj"', 'mesh = "box.obj"\ncolour = 1', ["[[shape]]", "colour"]),
     ('region = "r"\n', "", ["[[shape]]", "region"]),
+    ('mesh = "box.obj"', 'mesh = "box.obj"\nsubdivide = 7', ["[[shape]]", "subdivide", "[0, 6]"]),
+    ('mesh = "box.obj"', 'mesh = "box.obj"\nsubdivide = 1.5', ["[[shape]]", "subdivide"]),
+    ('mesh = "box.obj"', 'mesh = "box.obj"\nsubdivide = -1', ["[[shape]]", "subdivide"]),
     ('name = "b"', "name = 3", ["[[shape]]", "name"]),
     ('procedural = "overcast"', 'procedural = "disco"', ["[envmap]", "disco", "sky_sun"]),
     ('procedural = "overcast"\nheight = 8', 'file = "missing.exr"', ["[envmap]", "file", "missing.exr"]),

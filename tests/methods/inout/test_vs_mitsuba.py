@@ -1,6 +1,6 @@
 """In-out (Mahajan 2008) on every BRDF family it claims, against Mitsuba, region by region.
 
-The example scene ``scenes/examples/two_boxes.toml`` (64², 129 vertices: a Phong box, a
+The example scene ``scenes/examples/two_boxes.toml`` (64², 1389 vertices: a Phong box, a
 Cook–Torrance box standing on a Lambert ground) and variants whose blue box is Blinn–Phong or
 Torrance–Sparrow. Frame 0 of the V sequence, S = 2 G-buffer samples
 per pixel, 256-spp direct-lighting reference (seed 0), default ``InOut()``.
@@ -49,12 +49,14 @@ LUT_TOL = 0.05
 LOBE_TOL = 0.2
 # Region RMSE / region noise floor, measured with the default InOut() (see the module docstring):
 # variant -> region -> pinned multiple. Region floors ≈ 0.017 (boxes), 0.039 (ground). The ground
-# (Lambert, K = 1) sits at ≈ 2× its floor: per-vertex visibility on a 9 × 9 grid blurs the box
-# shadows and the 16² cube map the sun.
+# (Lambert, K = 1) sits at ≈ 1.9× its floor: the 16² cube map blurs the sun's shadows. Re-pinned when
+# the example's meshes were subdivided (one quad per box face and a 9 × 9 ground → 5 × 5 vertices
+# per face and 33 × 33; ``subdivide = 2``): red 2.21 → 2.08, blue 1.80 → 1.82 (Blinn–Phong 2.38 →
+# 1.88, Torrance–Sparrow 1.92 → 2.01), ground 1.96 → 1.91.
 PINNED = {
-    "two_boxes": {"red": 2.21, "blue": 1.80, "ground": 1.96},
-    "blue_blinnphong": {"red": 2.21, "blue": 2.38, "ground": 1.96},
-    "blue_torrancesparrow": {"red": 2.21, "blue": 1.92, "ground": 1.96},
+    "two_boxes": {"red": 2.08, "blue": 1.82, "ground": 1.91},
+    "blue_blinnphong": {"red": 2.08, "blue": 1.88, "ground": 1.91},
+    "blue_torrancesparrow": {"red": 2.08, "blue": 2.01, "ground": 1.91},
 }
 # The blue box's material per variant (None = the file's Cook–Torrance m = 0.3, F0 = 0.04).
 BLUE_KD = (0.08, 0.15, 0.45)
@@ -187,8 +189,10 @@ def test_visibility_points_pull_contact_vertices_off_the_ground():
     box = torch.as_tensor(geom.face_region) != scene.regions.index("ground")
     bv = torch.unique(F[box].reshape(-1))
     side = bv[(N[bv, 1].abs() < 0.5) & (V[bv, 1].abs() < 1e-6)]  # side-face vertices on the ground
-    assert side.numel() == 16
-    assert (P[side, 1] > 1e-3).all()                                  # lifted into their face
+    assert side.numel() == 2 * 4 * 5   # 2 boxes × 4 side faces × 5 bottom-edge vertices (subdivide = 2)
+    # lifted into their face by INWARD_PULL (1 %) of the way to their faces' mean centroid, about a
+    # third of a cell row up (measured 5e-4 to 1.2e-3 here), far above float32 round-off
+    assert (P[side, 1] > 1e-4).all()
     assert ((P - V) * N).sum(-1).abs().max() < 1e-6                     # tangential only
     assert (P - V).norm(dim=-1).max() < 0.02 * 1.2                      # 1 % of ≤ 1.2 (face size)
 
