@@ -16,9 +16,11 @@ Decisions (measured with ``benchmarks/fused.py``):
 * Shapes: the sample count of a frame varies; Inductor's kernels with a *symbolic* row count ran
   20-30× slower than with a static one (16 ms vs 0.55 ms for the resolve above), so `map_rows` calls
   the compiled function on blocks of exactly ``chunk`` rows (the last block padded by repeating its
-  last row, the padding dropped) — one static shape per function. Other dimensions (vertex counts)
-  may vary: Dynamo then makes them symbolic after the second size it sees, which costs nothing
-  measurable for gathers.
+  last row, the padding dropped) — one static shape per function. Other dimensions (vertex or
+  table counts) are NOT made symbolic by themselves with ``dynamic=False``: every new size
+  recompiles, and past Dynamo's recompile limit (8) the function silently runs eagerly. A caller
+  whose tables vary in size marks those dimensions with ``torch._dynamo.maybe_mark_dynamic``
+  (found by the helpers who fused PTT, in-out and triple product).
 * Threads: ``cpp.dynamic_threads`` — a kernel uses the thread count at the call, not at the
   compilation (otherwise a kernel compiled under ``torch_threads(1)`` would stay on one thread).
   Each output element is computed by one thread, so results do not depend on the count
