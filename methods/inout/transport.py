@@ -388,8 +388,8 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
 
     Mahajan 2008 eq. 3 with the solid angle folded in (module docstring, item 3), projected on the
     cube-map Haar basis and truncated (item 4): ``budget="vertex"`` keeps the
-    ``n_coeffs``·max(K, MIN_BUDGET_TERMS) largest |c|·σ_k·w of each vertex over all its terms, ``"term"`` the ``n_coeffs`` largest |c|·w
-    of every (vertex, k) (Ng 2003).
+    ``n_coeffs``·max(K, MIN_BUDGET_TERMS) largest |c|·σ_k·w of each vertex over all its terms,
+    ``"term"`` the ``n_coeffs`` largest |c|·w of every (vertex, k) (Ng 2003).
 
     Args:
         g_lut: (R·R, K) float table of ĝ_k (`nystrom_tables`).
@@ -417,6 +417,7 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
     D = 6 * N * N
     n_keep = D if n_coeffs is None else min(int(n_coeffs), D)
     n_vertex = min(n_keep * max(K, MIN_BUDGET_TERMS), K * D)   # budget="vertex" (item 4, its floor)
+    keep_all = n_vertex >= K * D if budget == "vertex" else n_keep >= D
     if term_weights is not None and term_weights.shape != (K,):
         raise ValueError(f"term_weights must be ({K},), got {tuple(term_weights.shape)}")
     s = int(supersample)
@@ -452,7 +453,7 @@ def transport_haar(g_lut: Tensor, vis, points: Tensor, normals: Tensor, N: int, 
         T.index_put_((vi, ti // (s * s)), gk, accumulate=True)
         T = T.permute(0, 2, 1).reshape(b - a, K, 6, N, N)
         C = cubemap.haar_forward(T).reshape(b - a, K, D)
-        if n_keep >= D or (budget == "vertex" and n_vertex >= K * D):
+        if keep_all:
             mask = torch.ones(b - a, K, D, dtype=torch.bool)
         elif budget == "vertex":
             score = (C.abs() * score_w).reshape(b - a, K * D)
