@@ -18,9 +18,11 @@ Decisions (measured with ``benchmarks/fused.py``):
   the compiled function on blocks of exactly ``chunk`` rows (the last block padded by repeating its
   last row, the padding dropped) — one static shape per function. Other dimensions (vertex or
   table counts) are NOT made symbolic by themselves with ``dynamic=False``: every new size
-  recompiles, and past Dynamo's recompile limit (8) the function silently runs eagerly. A caller
-  whose tables vary in size marks those dimensions with ``torch._dynamo.maybe_mark_dynamic``
-  (found by the helpers who fused PTT, in-out and triple product).
+  recompiles (up to `RECOMPILE_LIMIT` variants per function; past it `fused` warns and runs that
+  function eagerly). A caller whose tables take many sizes marks those dimensions with
+  ``torch._dynamo.maybe_mark_dynamic`` (found by the helpers who fused PTT, in-out and triple
+  product: with Dynamo's default limit of 8 the fallback was silent, and a study's worker and its
+  parent process differed in round-off).
 * Threads: ``cpp.dynamic_threads`` — a kernel uses the thread count at the call, not at the
   compilation (otherwise a kernel compiled under ``torch_threads(1)`` would stay on one thread).
   Each output element is computed by one thread, so results do not depend on the count
@@ -53,10 +55,21 @@ def compile_enabled() -> bool:
     return os.environ.get("PRTBENCH_COMPILE", "1").strip() not in ("0", "false", "no", "off")
 
 
+# Compiled variants kept per function (one per distinct static shape signature; see the module
+# docstring). Dynamo's default (8) is reached by a study's ladder of table sizes; past the limit
+# Dynamo raises here (``fail_on_recompile_limit_hit``) instead of silently running eagerly, so
+# `fused` warns and falls back for that function in this process — never a silent mix of compiled
+# and eager round-off between processes of one run.
+RECOMPILE_LIMIT = 64
+
+
 def _configure_inductor() -> None:
+    import torch._dynamo.config as dc
     import torch._inductor.config as ic
 
     ic.cpp.dynamic_threads = True
+    dc.recompile_limit = max(int(dc.recompile_limit), RECOMPILE_LIMIT)
+    dc.fail_on_recompile_limit_hit = True
 
 
 def fused(fn: Callable) -> Callable:

@@ -72,3 +72,30 @@ def test_off_switch_runs_eagerly_and_bad_input_raises_the_eager_error(data, monk
     g = fused(_resolve)
     with pytest.raises((RuntimeError, IndexError)):
         g(vidx, bw[:10], col)   # shapes disagree: the eager function's error, not a warning
+
+
+def _scale_table(table, x):
+    return table * x
+
+
+def test_many_table_sizes_stay_compiled_and_past_the_limit_warn(monkeypatch):
+    """A study's ladder gives a fused function more table sizes than Dynamo's default of 8: each
+    still compiles (no fallback warning); past `RECOMPILE_LIMIT` the fallback is announced, never
+    silent."""
+    import warnings
+
+    from methods.core import fused as fmod
+
+    f = fused(_scale_table)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for n in range(1, 13):
+            torch.testing.assert_close(f(torch.ones(n), 2.0), torch.full((n,), 2.0))
+    monkeypatch.setattr(fmod, "RECOMPILE_LIMIT", 2)
+    import torch._dynamo.config as dc
+    monkeypatch.setattr(dc, "recompile_limit", 2)
+    g = fused(_pair)
+    with pytest.warns(RuntimeWarning, match="could not compile"):
+        for n in range(1, 6):
+            a, _ = g(torch.ones(n, 2), 3.0)
+            torch.testing.assert_close(a, torch.full((n, 2), 3.0))
