@@ -30,8 +30,10 @@ interpolated like v; and a frame that changes only the lighting (L, E) dots the 
 lighting-free transfer vectors with the new lighting (`runtime.relight_cache`, built by the first
 such frame after the camera, pose or exponents changed). `ZHShadow._render_reference` is the slow
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
-(equal to float32 round-off) and renders the ``specular="cosine"`` variant, whose cos θ_i-weighted
-visibility is not a sum of ZH lobes.
+(equal to float32 round-off). The ``specular="cosine"`` variant, whose cos θ_i-weighted visibility
+w = M(R_n) M¹ M(R_n)ᵀ v is not a sum of ZH lobes, goes through the same tables with w in place of v
+for the specular term (`runtime.cosine_visibility`: three fixed GEMMs and four per-point z
+rotations; per vertex and pose with vertex shading, cached with v).
 
 Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
 BRDFs). ``specular="published"`` (default) is the paper's Phong convolution, which leaves out the
@@ -229,6 +231,8 @@ class ZHShadow(Method):
         self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
         #                                                 frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
+        self._posed_cos: tuple[Tensor, Tensor] | None = None  # (that visibility, (N, n²) its cos θ_i-weighted
+        #                                                 form about the vertex normals: vertex shading)
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
@@ -238,7 +242,8 @@ class ZHShadow(Method):
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
-        self._light = self._env_local = self._posed = self._tables = self._frame_state = self._relight = None
+        self._light = self._env_local = self._posed = self._posed_cos = self._tables = self._frame_state = None
+        self._relight = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -339,6 +344,14 @@ class ZHShadow(Method):
             self._posed = (key, geom, rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes))  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
+    def _cosine_visibility(self, nT: Tensor) -> Tensor:
+        """(N, n²) per-vertex cos θ_i-weighted world-space visibility (`runtime.cosine_visibility` of
+        the posed visibility about the vertex normals nT (3, N)), cached with the pose's visibility."""
+        v0 = self._posed[2]
+        if self._posed_cos is None or self._posed_cos[0] is not v0:
+            self._posed_cos = (v0, rt.cosine_visibility(rt.rows(v0), nT.to(v0.device)).T.contiguous())
+        return self._posed_cos[1]
+
     def _table(self, light: Tensor, light_key, alpha: float, diffuse: bool) -> Tensor:
         if self._tables is None or self._tables[0] != light_key:
             self._tables = (light_key, {})
@@ -357,8 +370,7 @@ class ZHShadow(Method):
         (`runtime.relight_cache`, built by the first such frame)."""
         if self.model is None or self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
-        if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
-            return self._render_reference(frame, gbuffer)
+        cosine = self.config["specular"] == "cosine"
         _, geom, v0 = self._pose_state(frame)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
@@ -389,7 +401,7 @@ class ZHShadow(Method):
             b = rt.barycentrics(take(gbuffer.bary))                                   # (Q, 3)
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
+                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]), cosine=cosine)
                 self._relight = (state, v0, hits, cache)
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
@@ -400,14 +412,15 @@ class ZHShadow(Method):
             woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
             Nv = geom.num_vertices
+            wv = self._cosine_visibility(nT).to(dev) if cosine and any(t[3] is not None for t in tabs) else None
             rad, counts = rt.shade(v, torch.arange(Nv, device=dev)[:, None], torch.ones(Nv, 1, device=dev),
-                                   nT, woT, vreg, vreg, geom.N.to(dev), tabs)
+                                   nT, woT, vreg, vreg, geom.N.to(dev), tabs, cosine=cosine, wv=wv)
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                 rad = rad.clamp_min(0.0)
             out = rt.interpolate(rad.T.contiguous(), vi, b).T                        # (3, Q)
         else:
             out, counts = rt.shade(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs)
+                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs, cosine=cosine)
         if self.config["clamp"] and self.config["shading"] == "sample":   # per sample, before the resolve
             out = out.clamp_min(0.0)
         shaded = geom.num_vertices if self.config["shading"] == "vertex" else out.shape[1]
