@@ -302,6 +302,41 @@ def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
     return zonal_conjugate(vT, nT, ("phong", 1.0))
 
 
+def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas: list[float | None], *,
+                   cosine: bool = False) -> tuple[Tensor, Tensor | None]:
+    """Lighting-free transfer vectors of Q points by frame rotations (`zonal_conjugate`): diffuse
+    t_d = (1/π) M(R_n) M¹ M(R_n)ᵀ v and specular t_s = ((α+1)/(2π)) M(R_R) M^α M(R_R)ᵀ v' (v' = v,
+    or for ``cosine`` the cos θ_i-weighted w = π t_d), so that the terms are t · l (§4.3 #2–#5:
+    v_nᵀ M¹ L_n = vᵀ M(R_n) M¹ M(R_n)ᵀ l, the rotations being orthogonal). Per point 3 (n², n²)
+    GEMMs per term — fewer flops than `_identity_table`'s K·n⁴, and at orders above
+    `MONOMIAL_MAX_ORDER` fewer than the lighting tables' K·3n² (vertex shading: `ZHShadow.render`).
+
+    Args:
+        vT: (n², Q) world-space SH visibility; nT, woT: (3, Q) unit normals / directions to the
+            viewer; vregion: (Q,) int64 region of each point; alphas: per region the Phong exponent,
+            None for no specular term.
+    Returns:
+        t_d (n², Q) and t_s (n², Q) (zero where the region has no specular term; None if none has).
+    """
+    w = cosine_visibility(vT, nT)
+    td = w * (1.0 / math.pi)
+    if all(a is None for a in alphas):
+        return td, None
+    src = w if cosine else vT
+    R = reflect_T(nT, woT)
+    ts = torch.zeros_like(vT)
+    for r, a in enumerate(alphas):
+        if a is None:
+            continue
+        p = (vregion == r).nonzero().squeeze(-1)
+        if p.shape[0] == vregion.shape[0]:
+            ts = zonal_conjugate(src, R, ("phong", float(a))).mul_((a + 1.0) / (2.0 * math.pi))
+        elif p.shape[0]:
+            t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
+            ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
+    return td, ts
+
+
 def dot_T(aT: Tensor, bT: Tensor) -> Tensor:
     """(Q,) a·b of (3, Q) vectors (rows = components): two fused multiply-adds on rows, no
     reduction over the short leading dim."""
@@ -453,7 +488,7 @@ def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
 
 def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
           vertex_normal: Tensor, mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], *, planar: bool = True,
-          chunk: int = CHUNK, cosine: bool = False, wv: Tensor | None = None) -> tuple[Tensor, dict[str, int]]:
+          chunk: int = CHUNK, cosine: bool = False) -> tuple[Tensor, dict[str, int]]:
     """Exit radiance of Q points (§4.3 steps 2–5 through the tables, module docstring).
 
     A point's visibility is Σ_k b[q, k] v[vi[q, k]] (a G-buffer sample: its face's three vertices
@@ -472,8 +507,6 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
         cosine: the specular term of ``specular="cosine"``: v · T^α(R) with v replaced by the
             cos θ_i-weighted visibility w = `cosine_visibility`(v, n) of the point (same tables:
             the term is linear in the visibility it dots).
-        wv: (N, n²) per-vertex w, interpolated instead of computed per point — only where the points'
-            normals are their vertices' (vertex shading; w depends on n).
     Returns:
         (3, Q) radiance (0 where n·ωo ≤ 0, as the BRDFs) and counts (`_plane_counts`, plus
         "specular": points with a specular term, "planar_specular": those of them on planes).
@@ -508,9 +541,10 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
         if split:
             WdT, WsT = W[:Kd].T.contiguous(), W[Kd:].T.contiguous()
         m = Q if p is None else p.shape[0]
+        acc = None if p is None else torch.empty(3, m, dtype=dt, device=dev)   # scattered once, per row
         for a in range(0, m, chunk):
+            s = slice(a, a + chunk)
             if p is None:
-                s = slice(a, a + chunk)
                 vi_c, b_c, n_c, wo_c = vi[s], b[s], nT[:, s], woT[:, s]
             else:
                 pc = p[a:a + chunk]
@@ -525,7 +559,7 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
             if not split:
                 rad = ((W.T @ f).view(n * n, 3, -1) * vT[:, None]).sum(0)            # (3, Q_c)
             else:
-                wT = cosine_visibility(vT, n_c) if wv is None else rows(interpolate(wv, vi_c, b_c))
+                wT = cosine_visibility(vT, n_c)
                 rad = ((WsT @ f[Kd:]).view(n * n, 3, -1) * wT[:, None]).sum(0)
                 if Kd:
                     rad += ((WdT @ f[:Kd]).view(n * n, 3, -1) * vT[:, None]).sum(0)
@@ -534,10 +568,11 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                     out[:, s] += rad
                 else:
                     out[:, s] = rad
-            elif add:
-                out.index_add_(1, pc, rad)
             else:
-                out.index_copy_(1, pc, rad)
+                acc[:, s] = rad
+        if p is not None:   # row by row: a 1-D scatter is several times faster than one along dim 1
+            for c in range(3):
+                (out[c].index_add_ if add else out[c].index_copy_)(0, p, acc[c])
 
     single = len(mats) == 1
     for r, (kd, ks, _, Ws) in enumerate(mats):

@@ -268,6 +268,10 @@ def test_frame_cost_hand_count():
     m.render(fr, gb)
     c = m.frame_cost("VBL", P)
     assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + 6 * 84)
+    mc = m.with_render_config(specular="cosine")                             # + M¹ v per specular point
+    mc.render(fr, gb)
+    c = mc.frame_cost("V", P)
+    assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + Qs * 2 * 44)
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
     pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
     assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
