@@ -79,6 +79,7 @@ run both the paper's setting and ``order=8, specular="cosine"`` (reports/suites.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from typing import Any
@@ -432,10 +433,11 @@ class ZHShadow(Method):
         _, _, td, ts, front, counts = vt
         light = light.to(dev)
         kd = torch.stack([m[0] for m in mats]).to(dev).index_select(0, vreg).T      # (3, N)
-        rad = (light.T @ td).mul_(kd)
-        if ts is not None:
-            ks = torch.stack([m[1] for m in mats]).to(dev).index_select(0, vreg).T
-            rad.addcmul_(light.T @ ts, ks)
+        with pc.torch_threads(1) if td.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
+            rad = (light.T @ td).mul_(kd)
+            if ts is not None:
+                ks = torch.stack([m[1] for m in mats]).to(dev).index_select(0, vreg).T
+                rad.addcmul_(light.T @ ts, ks)
         rad.mul_(front)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             rad.clamp_min_(0.0)

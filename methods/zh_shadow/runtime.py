@@ -289,9 +289,11 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     def rz(a: Tensor, C: Tensor, S: Tensor, sign: float) -> Tensor:     # M(R_z(±angle)) a
         return torch.addcmul(a * C, a.index_select(0, perm), S, value=sign)
 
-    a = Xf @ rz(vT, Cp, Sp, -1.0)
-    a = K @ rz(a, Ct, St, -1.0)
-    a = Xf.T @ rz(a, Ct, St, 1.0)
+    # products with 4 or 9 rows: MKL splits them over threads (methods.core.threads; `world_visibility`)
+    with torch_threads(1) if n2 < 16 else contextlib.nullcontext():
+        a = Xf @ rz(vT, Cp, Sp, -1.0)
+        a = K @ rz(a, Ct, St, -1.0)
+        a = Xf.T @ rz(a, Ct, St, 1.0)
     return rz(a, Cp, Sp, 1.0)
 
 
