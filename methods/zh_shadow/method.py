@@ -232,7 +232,8 @@ class ZHShadow(Method):
         self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
         #                                                 frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
-        self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_d, t_s, front): vertex shading
+        self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w, t_d) per pose: vertex shading
+        self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
@@ -243,6 +244,7 @@ class ZHShadow(Method):
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
+        self._vertex_diffuse = None
         self._relight = None
         cfg = self.config
         t0 = time.perf_counter()
@@ -413,24 +415,30 @@ class ZHShadow(Method):
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, light: Tensor, mats: list,
                        cosine: bool) -> Tensor:
         """Vertex shading (§4.3 on the GPU): per vertex the lighting-free transfer t_d, t_s
-        (`runtime.point_transfer`, by frame rotations) — cached while the camera, pose (v) and
-        exponents do not change, so a lighting-only frame is one (3, n²) @ (n², N) product per term —
+        (`runtime.point_transfer`, by frame rotations) — t_d cached per pose, t_s while the camera,
+        pose (v) and exponents do not change, so a lighting-only frame is one (3, n²) @ (n², N) product
+        per term —
         the radiance kd ⊙ (l·t_d) + ks ⊙ (l·t_s) per vertex (0 where n·ωo ≤ 0, clamped if
         configured), interpolated per sample."""
         dev = gbuffer.hit.device
         vreg = geom.vertex_region.to(dev)
         alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
         key = (frame.camera, tuple(alphas))
+        vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
+        if vd is None or vd[0] is not v0:
+            nT, vT = rt.rows(geom.N.to(dev).float()), rt.rows(v0.to(dev))
+            w = rt.cosine_visibility(vT, nT)
+            self._vertex_diffuse = vd = (v0, nT, vT, w, w * (1.0 / math.pi))
+        _, nT, vT, w, td = vd
         vt = self._vertex_transfer
         if vt is None or vt[0] != key or vt[1] is not v0:
             cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-            nT = rt.rows(geom.N.to(dev).float())
             woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
-            td, ts = rt.point_transfer(rt.rows(v0.to(dev)), nT, woT, vreg, alphas, cosine=cosine)
+            ts = rt.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas)
             counts = rt.point_counts(nT, vreg, [a is not None for a in alphas], geom.N.to(dev), vreg)
-            self._vertex_transfer = vt = (key, v0, td, ts, rt.dot_T(nT, woT) > 0, counts)
-        _, _, td, ts, front, counts = vt
+            self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
+        _, _, ts, front, counts = vt
         light = light.to(dev)
         kd = torch.stack([m[0] for m in mats]).to(dev).index_select(0, vreg).T      # (3, N)
         with pc.torch_threads(1) if td.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
@@ -539,8 +547,9 @@ class ZHShadow(Method):
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs),
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
-                + (0 if self._vertex_transfer is None
-                   else sum(tensor_bytes(t) for t in self._vertex_transfer[2:4] if t is not None))}
+                + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
+                   else tensor_bytes(self._vertex_transfer[2]))
+                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[4]))}
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:

@@ -321,12 +321,18 @@ def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas:
         t_d (n², Q) and t_s (n², Q) (zero where the region has no specular term; None if none has).
     """
     w = cosine_visibility(vT, nT)
-    td = w * (1.0 / math.pi)
+    return w * (1.0 / math.pi), specular_transfer(w if cosine else vT, nT, woT, vregion, alphas)
+
+
+def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
+                      alphas: list[float | None]) -> Tensor | None:
+    """The t_s of `point_transfer` from the visibility it rotates (srcT (n², Q): v, or w for the
+    cosine variant) — apart, since only it depends on the view and the exponents."""
     if all(a is None for a in alphas):
-        return td, None
-    src = w if cosine else vT
+        return None
+    src = srcT
     R = reflect_T(nT, woT)
-    ts = torch.zeros_like(vT)
+    ts = torch.zeros_like(srcT)
     for r, a in enumerate(alphas):
         if a is None:
             continue
@@ -336,7 +342,7 @@ def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas:
         elif p.shape[0]:
             t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
             ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
-    return td, ts
+    return ts
 
 
 def dot_T(aT: Tensor, bT: Tensor) -> Tensor:
