@@ -107,7 +107,9 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=("sphere_plane", "chess", "
 # equal-error speedup needs its error), precomputations shared through the precompute cache.
 PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
              dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
-             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}')))
+             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
+                                     # ZH twice, as the nightly: the paper's setting and the physical one per vertex
+                                     ("zh_shadow", "{}"), ("zh_shadow", ZH_PHYSICAL_VERTEX)))
 SUITES = {"smoke": SMOKE, "nightly": NIGHTLY, "perf": PERF}
 
 
