@@ -232,15 +232,16 @@ def test_fast_shading_follows_material_edits(scene_frame):
 
 @pytest.mark.parametrize("name", SCENES)
 def test_production_path_equals_reference_on_library(name):
-    """The default evaluator ("auto": the fine-value path for full tables, the list evaluators for
-    truncated ones) renders every library scene like the independent dense path
-    (``with_evaluator("reference")``) to float32 round-off, on view ("V") and lighting ("L") frames."""
+    """The default evaluator ("auto": the compiled fine-value path `fast_eval.fine_block` for full
+    tables, per sample and per vertex; the list evaluators for truncated ones) renders every library
+    scene like the independent dense path (``with_evaluator("reference")``) to float32 round-off, on
+    view ("V") and lighting ("L") frames."""
     scene = get_scene(name, "test")
     frames = make_sequence(scene, "V", n_frames=2, seed=1) + make_sequence(scene, "L", n_frames=2, seed=1)[1:]
     assert frames[2].changed == {"light"}  # the lighting rotated: the grid is re-projected
     gbs = [make_gbuffer(scene, f, 1) for f in frames]
     small = dict(frame_grid=(5, 8, 1), brdf_dirs=(4, 4), brdf_supersample=1)
-    for cfg in (dict(level=1), dict(level=2, n_coeffs=20, shading="vertex")):
+    for cfg in (dict(level=1), dict(level=1, shading="vertex"), dict(level=2, n_coeffs=20, shading="vertex")):
         m = TripleProduct(**cfg, **small, progress=False)
         m.precompute(scene)
         ref_m = m.with_evaluator("reference")
