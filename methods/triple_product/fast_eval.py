@@ -54,11 +54,13 @@ vertices; before any render, upper bounds from the sample count):
     G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region per sample for pixel shading;
     vertex shading reads no normal / ωo); the (P, 3) float32 output. Frames whose lighting changed
     ("L" or "E" in the kind) add the env map's texels read and the truncated grid written.
-  * flops — per shading point (pixel: every hit sample; vertex: every shaded vertex, plus 9
-    multiply-adds per hit sample to interpolate): forming the three functions from their stored
-    rows, 2n flops per channel and row (V: 3 vertex rows for pixels, none for vertices; ρ̃: 4 ωo
-    rows × 3; L: the look-up's distinct grid rows × 3 — 4 for trilinear with n_psi = 1, 8 else,
-    1 nearest), plus eq. 7's triple sum with n coefficients per function, the smaller of
+  * flops — per shading point (pixel: every hit sample; vertex: every shaded vertex, plus the
+    Gouraud blend of 3 vertex colours per hit sample, 3·5 flops): forming the three functions from
+    their stored rows, a blend of k rows costing (2k − 1)·n flops per channel (k multiplies, k − 1
+    adds; none for a single row of weight 1) — V: 3 vertex rows for pixels (1 channel), its own
+    row for a vertex; ρ̃: 4 ωo rows × 3 channels; L: the look-up's distinct grid rows × 3 — 4 for
+    trilinear with n_psi = 1, 8 else, 1 nearest — plus eq. 7's triple sum with n coefficients per
+    function, the smaller of
     (a) the sparse tripling rules (Ma 2006 §3.1, the parent-sum form of ``"sparse"``), per output
         channel Σ_{V entries}(10 + 2A) + Σ_{ρ̃ entries}(3 + A), A = 1 + 3l the rule-3 ancestor
         count of a level-l wavelet (0 for scaling functions), averaged over the stored indices;
@@ -576,6 +578,8 @@ def fine_block(vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor, lrows: Tens
 _fine_block = fused(fine_block)
 # Points per compiled block of `fine_kernel` (`methods.core.fused.map_rows`: one static shape).
 FINE_BLOCK = 8192
+# ... and of the remainder (a per-vertex frame shades ~10⁴ points: one 8192 block would pad 35 %).
+FINE_TAIL = 1024
 
 
 def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
@@ -591,7 +595,43 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     for t in (Vt, R3, L3):  # table row counts vary by scene / grid / regions: one compiled variant
         torch._dynamo.maybe_mark_dynamic(t, 0)
     rows = (vrows.long(), vw.to(dt), brows.long(), bw.to(dt), lrows.long(), lw.to(dt))
-    return map_rows(_fine_block, rows, (Vt, R3, L3), chunk=FINE_BLOCK if points is None else int(points))
+    p = FINE_BLOCK if points is None else int(points)
+    head = rows[0].shape[0] // p * p if rows[0].shape[0] > p else 0
+    tail = min(p, FINE_TAIL)  # the rest in small blocks: padding ≤ FINE_TAIL − 1 points
+    parts = [map_rows(_fine_block, [r[:head] for r in rows], (Vt, R3, L3), chunk=p)] if head else []
+    if head < rows[0].shape[0] or not head:
+        parts.append(map_rows(_fine_block, [r[head:] for r in rows], (Vt, R3, L3), chunk=tail))
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+def gouraud_block(face: Tensor, bary: Tensor, hit: Tensor, F: Tensor, Bv: Tensor) -> Tensor:
+    """Gouraud resolve of a block of b pixels (Ma 2006 §3.3, per-vertex shading): each of the S²
+    samples interpolates its triangle's vertex colours barycentrically (0 on a miss), the pixel is
+    their mean (`GBuffer.interpolate` then `GBuffer.resolve` in one pass).
+
+    Args: face (b, S²) int64 (−1 miss), bary (b, S², 2) (u, v), hit (b, S²) bool; F (M, 3) int64;
+        Bv (N, 3) vertex colours. Returns (b, 3)."""
+    vi = F[face.clamp_min(0)]                                            # (b, S², 3)
+    u, v = bary[..., 0:1], bary[..., 1:2]
+    c = (1.0 - u - v) * Bv[vi[..., 0]] + u * Bv[vi[..., 1]] + v * Bv[vi[..., 2]]
+    c = torch.where(hit[..., None], c, torch.zeros((), dtype=c.dtype, device=c.device))
+    return c.mean(1)
+
+
+_gouraud_block = fused(gouraud_block)
+# Pixels per compiled block of `gouraud_image`.
+GOURAUD_BLOCK = 1 << 13
+
+
+def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:
+    """The (H, W, 3) image of per-vertex colours Bv (N, 3) on ``gbuffer`` (Gouraud, `gouraud_block`
+    compiled over static blocks of `GOURAUD_BLOCK` pixels; = ``gbuffer.resolve(gbuffer.interpolate(Bv,
+    F))`` to float32 round-off)."""
+    H, W, S2 = gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2
+    for t in (F, Bv):  # vertex / face counts vary by scene: one compiled variant
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    rows = (gbuffer.face.view(H * W, S2), gbuffer.bary.float().view(H * W, S2, 2), gbuffer.hit.view(H * W, S2))
+    return map_rows(_gouraud_block, rows, (F, Bv.float()), chunk=GOURAUD_BLOCK).view(H, W, 3)
 
 
 # -- front end --------------------------------------------------------------------------------------
@@ -706,11 +746,17 @@ def triple_flops(method) -> int:
     return int(min(sparse, dense))
 
 
+def blend_terms(k: int) -> int:
+    """Flops per output value of a weighted blend of k rows: k multiplies and k − 1 adds (2k − 1);
+    0 for k ≤ 1 (a single row has weight 1: it is used as stored)."""
+    return 2 * k - 1 if k > 1 else 0
+
+
 def blend_flops(method, k_v: int) -> int:
-    """Flops of forming V, ρ̃ and L at one point from k_v visibility rows, 4 ρ̃ rows and the grid
-    look-up's distinct rows (multiply-add per stored value: 2n per channel and row)."""
+    """Flops of forming V, ρ̃ and L at one point from k_v visibility rows (1 channel), 4 ρ̃ rows and
+    the grid look-up's distinct rows (3 channels each): (2k − 1)·n per blend of k rows and channel."""
     k_l = {"nearest": 1, "trilinear": 4 if method.grid.n_psi == 1 else 8}[method.config["light_lookup"]]
-    return 2 * _kept(method) * (k_v * 1 + 4 * 3 + k_l * 3)
+    return _kept(method) * (blend_terms(k_v) + 3 * blend_terms(4) + 3 * blend_terms(k_l))
 
 
 def relight_flops(method, envmap) -> int:
@@ -777,7 +823,7 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
     if pixel:
         flops = rec["shaded"] * (blend_flops(method, 3) + triple_flops(method))
     else:
-        flops = rec["vertices"] * (blend_flops(method, 0) + triple_flops(method)) + rec["shaded"] * 2 * 9
+        flops = rec["vertices"] * (blend_flops(method, 1) + triple_flops(method)) + rec["shaded"] * 3 * blend_terms(3)
     if "L" in frame_kind or "E" in frame_kind:
         env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
         nbytes += int(env.data.numel()) * f4 + grid                     # texels read, grid written

@@ -179,12 +179,14 @@ def test_frame_cost_tiny_config(scene_frame, n):
     mesh = nf * 3 * 8                          # vertex indices of the touched faces
     out = P * 3 * 4
     triple = _hand_triple(m, nk, n is None)
-    blend_v = 2 * nk * (4 * 3 + 4 * 3)         # ρ̃: 4 rows × RGB; L: 4 distinct trilinear rows × RGB
+    # a blend of k rows: k multiplies + (k − 1) adds per value — ρ̃: 4 rows × RGB; L: 4 distinct
+    # trilinear rows × RGB; V of a vertex is its own row (no flops)
+    blend_v = nk * (3 * (4 + 3) + 3 * (4 + 3))
     m.render(frame, gb)
     got = m.frame_cost("V", P)
     want_b = nv * nk * (4 + ib) + tables + grid + mesh + nv * (9 * 4 + 3 * 4 + 8) \
         + P * (GBUFFER_BYTES_PER_SAMPLE - 24) + out
-    want_f = nv * (blend_v + triple) + nh * 18
+    want_f = nv * (blend_v + triple) + nh * 3 * (3 + 2)  # Gouraud: 3 weights × RGB + 2 adds
     assert (got.bytes, got.flops) == (want_b, want_f)
     H, W = frame.envmap.data.shape[:2]
     relight_f = F * (45 * K * 4 + 3 * 8 * (K - 20) // 3)   # light_supersample = 1: 4 samples per triangle
@@ -204,7 +206,7 @@ def test_frame_cost_tiny_config(scene_frame, n):
     rows = torch.unique(idx[hit][w[hit] != 0])
     c = pixel.frame_cost("V", P)
     want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
-    want_f = nh * (2 * nk * (3 + 4 * 3 + 4 * 3) + triple)
+    want_f = nh * (nk * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
     nrows = pixel.V_idx.shape[0]
