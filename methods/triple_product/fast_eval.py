@@ -489,6 +489,16 @@ def fine_table(method, name: str, idx: Tensor, val: Tensor, Kp: int) -> Tensor:
     return tab
 
 
+def seed_fine_table(method, name: str, val: Tensor, fine: Tensor) -> None:
+    """Set the fine-value table of a full table ``val`` (N, C, K) to fine values already at hand
+    (N, C, K) in `fine_values` order — `lighting.project_env` returns the grid's fine values
+    before transforming them, = ``fine_values(val)`` to float32 round-off."""
+    if fine.shape != val.shape or val.ndim != 3:
+        raise ValueError(f"fine values {tuple(fine.shape)} must match the table {tuple(val.shape)}")
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    cache[("fine", name)] = (val, val.shape[-1], fine.float().reshape(val.shape[0], -1).contiguous())
+
+
 def fine_bytes(method) -> int:
     """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``)."""
     cache = method.__dict__.get("_perf_cache", {})

@@ -318,9 +318,18 @@ class TripleProduct(Method):
             self.L_idx = self.L_val = None
         else:
             Rg = lt.grid_frames(self.grid)
-            Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
-                                     progress=self.progress)                    # (F, 3, K)
+            fine = None
+            # the compiled projection serves the fine-value path (all coefficients kept); the
+            # reference evaluator and truncated tables use the slow one (an "adaptive" truncation
+            # picks among near-equal coefficients: round-off would flip which ones it keeps)
+            if cfg["evaluator"] == "reference" or self._n() is not None and self._n() < self.K:
+                Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
+                                         progress=self.progress)                # (F, 3, K)
+            else:                                # one compiled pass (`lighting.project_env`)
+                Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"])
             self.L_idx, self.L_val = truncate(Lc, self._n(), cfg["selection"], self.level)
+            if fine is not None and self.L_val.shape[-1] == self.K and fast_eval._is_full(self, "L", self.L_idx):
+                fast_eval.seed_fine_table(self, "L", self.L_val, fine)  # the grid's fine values as projected
         self._light_key = key
         self.stats["lighting_seconds"] = time.perf_counter() - t0
 
