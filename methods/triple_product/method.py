@@ -14,7 +14,10 @@ Precompute (static geometry, BRDFs fixed at precompute):
 Per lighting (built on the first frame and whenever the env map changes; the paper precomputes it
 once because its lighting is fixed per session, so here it counts in the first frame's time):
   * the env map resampled in a grid of local frames ``frame_grid`` = (n_theta, n_phi, n_psi)
-    (`lighting.project_lighting`; the paper: 32 × 16 normals × 32 tangents), truncated.
+    (the paper: 32 × 16 normals × 32 tangents), truncated: `lighting.project_lighting` step by step
+    (the reference evaluator, and truncated tables, whose "adaptive" selection must not see
+    round-off differences), else `lighting.project_env` — the same projection in one compiled
+    pass that also writes the fine values the fast path reads.
 Render:
   * ``shading="vertex"``: B per vertex (ωo = direction to the camera at the vertex, in the vertex's
     frame), barycentrically interpolated to the G-buffer samples (Gouraud; Ma 2006 §3.3 first
