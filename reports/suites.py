@@ -107,7 +107,10 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=("sphere_plane", "chess", "
 # equal-error speedup needs its error), precomputations shared through the precompute cache.
 PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
              dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
-             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}')))
+             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
+                                     # in-out twice: eq. 4 per G-buffer sample (default) and per vertex,
+                                     # Gouraud-interpolated (the paper's run time, Mahajan 2008 §6)
+                                     ("inout", "{}"), ("inout", '{"shading":"vertex"}')))
 SUITES = {"smoke": SMOKE, "nightly": NIGHTLY, "perf": PERF}
 
 
