@@ -36,8 +36,12 @@ Render (dynamic lighting and view):
     barycentrics (``methods.core.gouraud``). Only the vertices of the faces the hit samples lie on
     are shaded, and the view part (those vertices and their table cells) is kept while the camera
     and the G-buffer's hits are unchanged, so a lighting-only frame recomputes c_k and B_v only.
-    Measured error vs the per-sample shading: see ``README``/the branch's commit message (RMSE within
-    a few % on the library scenes: the vertex density of the bench meshes resolves the highlights).
+    Its cost is per vertex, not per sample; its error follows the mesh density (a highlight or a
+    shadow edge narrower than a triangle is blurred): RMSE against the references 1.00–1.11× the
+    per-sample shading's at bench size (perf suite: chess, creature; sphere_plane V 1.03×, E
+    1.00×), 1.0–1.9× at test size (coarse meshes: sphere_plane, shadow_detail, dragon, character
+    the worst); no region mean ratio leaves [0.9, 1.1] where the per-sample one stays inside
+    (measured 2026-12-03 on V and E frames; the table is in the commit message that added this).
 
 `_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
 image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k only for the
