@@ -146,7 +146,7 @@ def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]
     """The fine-value kernel (`fast_eval.fine_kernel`, the production path with full tables) on
     random tables of the bench default's shapes (16803 vertex rows, 2 regions × 128 ωo rows, 544
     grid rows; K' = 1280 and 5120) with pixel-like coherence (neighbouring points share rows):
-    µs per point (best wall time of ``reps``, like the matmul peak) and the model's GFLOP/s (3 V + 4 ρ̃
+    µs per point (best wall time of ``reps``, like the matmul peak; the first compiles) and the model's GFLOP/s (3 V + 4 ρ̃
     + 4 L rows blended, 3 flops per channel and fine triangle in the product) beside
     `reports.measure.matmul_peak` — what bounds a pixel frame."""
     from methods.triple_product import fast_eval
@@ -166,7 +166,7 @@ def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]
             c = time.perf_counter()
             fast_eval.fine_kernel(Vt, Rt, Lt, vr, vw, br, bw, lr, lw)
             best = min(best, time.perf_counter() - c)
-        flops = points * (2 * Kp * (3 + 12 + 12) + 9 * Kp)
+        flops = points * (Kp * (5 + 3 * 7 + 3 * 7) + 9 * Kp)  # (2k − 1)·K' per blend of k rows and channel
         rows.append({"threads": threads, "K'": Kp, "us_per_point": round(best / points * 1e6, 2),
                      "model_GFLOPs": round(flops / best / 1e9, 2), "matmul_peak_GFLOPs": round(peak / 1e9, 1)})
         print(json.dumps(rows[-1]), flush=True)

@@ -25,6 +25,11 @@ CASES: dict[str, tuple[str, str, dict]] = {
     "zh_shadow": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10}),
     # order 3: 9-row float32 products, a shape MKL splits over threads (methods.core.threads)
     "zh_shadow-order3": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10, "order": 3}),
+    # the cosine variant shaded per vertex (the suites' ZH_PHYSICAL_VERTEX at order 3): frame rotations
+    # (runtime.zonal_conjugate) and 9-row products again
+    "zh_shadow-order3-vertex-cosine": ("zh_shadow", "creature", {"train_poses": 6, "n_dirs": 256, "fit_iters": 10,
+                                                                 "order": 3, "shading": "vertex",
+                                                                 "specular": "cosine"}),
 }
 
 

@@ -201,3 +201,74 @@ def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1
         co = geo.project(fn, supersample=supersample, dtype=torch.float32)  # (f·3, K)
         out.append(co.reshape(Rc.shape[0], 3, -1))
     return torch.cat(out, 0)
+
+
+# -- fast projection (run time) ----------------------------------------------------------------------
+
+# Grid frames per compiled block of `project_env` (`methods.core.fused.map_rows`).
+ENV_BLOCK = 16
+
+
+def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
+    """The sample directions and weights of `Geodesic.project`: c (n·4^s, 3) float32 unit centres of
+    the 4^s sub-triangles of every fine triangle, wn (n, 4^s) float32 their solid angles divided by
+    the fine triangle's sum (cached on ``geo``)."""
+    from methods.core.spherical_haar import _spherical_triangle_area, _subdivide
+
+    cache = geo.__dict__.setdefault("_env_samples", {})
+    if supersample not in cache:
+        T = geo.triangles[-1]
+        for _ in range(supersample):
+            T = _subdivide(T)
+        c = T.mean(1)
+        c = c / c.norm(dim=-1, keepdim=True)
+        w = _spherical_triangle_area(T).reshape(geo.n, 4 ** supersample)
+        cache[supersample] = (c.float().contiguous(), (w / w.sum(1, keepdim=True)).float().contiguous())
+    return cache[supersample]
+
+
+def env_block(R: Tensor, c: Tensor, wn: Tensor, T: Tensor, data: Tensor, ext: Tensor) -> Tensor:
+    """Fine-triangle means of the env map seen in f frames (`project_lighting` before its forward
+    transform): directions R_f^T c in the world, then in the emitter frame (·T, T = to_world, as
+    `EnvMap.to_local`), the map's bilinear radiance (`scenes.envmap.bilinear_lookup`), averaged over
+    each fine triangle's 4^s samples with solid-angle weights wn. R (f, 3, 3), c (n·S, 3), wn (n, S),
+    T (3, 3), data (H, W, 3), ext `extend_periodic(data)`. Returns (f, n, 3)."""
+    from scenes.envmap import bilinear_lookup
+
+    dw = [c[None, :, 0] * R[:, 0, i, None] + c[None, :, 1] * R[:, 1, i, None] + c[None, :, 2] * R[:, 2, i, None]
+          for i in range(3)]                                              # world R^T c
+    d = torch.stack([dw[0] * T[0, k] + dw[1] * T[1, k] + dw[2] * T[2, k] for k in range(3)], -1)  # (f, n·S, 3)
+    L = bilinear_lookup(data, d, ext).view(R.shape[0], wn.shape[0], wn.shape[1], 3)
+    acc = L[:, :, 0] * wn[None, :, 0, None]
+    for k in range(1, wn.shape[1]):  # unrolled: 4^s terms
+        acc = acc + L[:, :, k] * wn[None, :, k, None]
+    return acc
+
+
+_env_block = None
+
+
+def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1) -> tuple[Tensor, Tensor]:
+    """`project_lighting(envmap.radiance, R, geo, supersample)` at run time: the sampling, the env
+    look-ups and the per-triangle means of all frames in one compiled pass (`env_block` through
+    `methods.core.fused`, blocks of `ENV_BLOCK` frames), then one float32 forward transform.
+
+    Args: envmap (`scenes.envmap.EnvMap`); R (F, 3, 3) world→local rotations; geo; supersample.
+    Returns: coefficients (F, 3, K) float32 (= `project_lighting` to float32 round-off) and the fine
+        values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
+    """
+    global _env_block
+    from methods.core.fused import fused, map_rows
+    from methods.core.spherical_haar import forward
+    from scenes.envmap import extend_periodic
+
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise ValueError(f"R must be (F, 3, 3), got {tuple(R.shape)}")
+    if _env_block is None:
+        _env_block = fused(env_block)
+    c, wn = _env_samples(geo, supersample)
+    data = envmap.data.float()
+    fine = map_rows(_env_block, (R.float(),), (c, wn, envmap.to_world.float(), data, extend_periodic(data)),
+                    chunk=ENV_BLOCK)                                     # (F, n, 3)
+    fine = fine.permute(0, 2, 1).contiguous()                            # (F, 3, n)
+    return forward(fine), fine

@@ -14,7 +14,10 @@ Precompute (static geometry, BRDFs fixed at precompute):
 Per lighting (built on the first frame and whenever the env map changes; the paper precomputes it
 once because its lighting is fixed per session, so here it counts in the first frame's time):
   * the env map resampled in a grid of local frames ``frame_grid`` = (n_theta, n_phi, n_psi)
-    (`lighting.project_lighting`; the paper: 32 × 16 normals × 32 tangents), truncated.
+    (the paper: 32 × 16 normals × 32 tangents), truncated: `lighting.project_lighting` step by step
+    (the reference evaluator, and truncated tables, whose "adaptive" selection must not see
+    round-off differences), else `lighting.project_env` — the same projection in one compiled
+    pass that also writes the fine values the fast path reads.
 Render:
   * ``shading="vertex"``: B per vertex (ωo = direction to the camera at the vertex, in the vertex's
     frame), barycentrically interpolated to the G-buffer samples (Gouraud; Ma 2006 §3.3 first
@@ -91,6 +94,14 @@ FINE_RENDER_POINTS = 1 << 15
 # normal faces the same side — taps from other UV charts (overlapping or adjacent in UV, far apart
 # on the surface) are dropped instead of leaking their shadows.
 VIS_TEX_REACH = 2.0
+
+
+def _distinct(idx: Tensor, n: int) -> Tensor:
+    """Sorted distinct values of idx (any shape, values in [0, n)) — `torch.unique` by marking an
+    (n,) array instead of sorting (O(len + n); the frame's bookkeeping of what it read)."""
+    seen = torch.zeros(n, dtype=torch.bool, device=idx.device)
+    seen[idx.reshape(-1)] = True
+    return torch.nonzero(seen, as_tuple=False).squeeze(-1)
 
 
 def _int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
@@ -310,9 +321,18 @@ class TripleProduct(Method):
             self.L_idx = self.L_val = None
         else:
             Rg = lt.grid_frames(self.grid)
-            Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
-                                     progress=self.progress)                    # (F, 3, K)
+            fine = None
+            # the compiled projection serves the fine-value path (all coefficients kept); the
+            # reference evaluator and truncated tables use the slow one (an "adaptive" truncation
+            # picks among near-equal coefficients: round-off would flip which ones it keeps)
+            if cfg["evaluator"] == "reference" or self._n() is not None and self._n() < self.K:
+                Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
+                                         progress=self.progress)                # (F, 3, K)
+            else:                                # one compiled pass (`lighting.project_env`)
+                Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"])
             self.L_idx, self.L_val = truncate(Lc, self._n(), cfg["selection"], self.level)
+            if fine is not None and self.L_val.shape[-1] == self.K and fast_eval._is_full(self, "L", self.L_idx):
+                fast_eval.seed_fine_table(self, "L", self.L_val, fine)  # the grid's fine values as projected
         self._light_key = key
         self.stats["lighting_seconds"] = time.perf_counter() - t0
 
@@ -570,8 +590,8 @@ class TripleProduct(Method):
         out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
         hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":
-            faces = torch.unique(gbuffer.face[hit])
-            used = torch.unique(self.F[faces].reshape(-1))
+            faces = _distinct(gbuffer.face[hit], self.F.shape[0])
+            used = _distinct(self.F[faces].reshape(-1), self.V.shape[0])
             self._record_frame(gbuffer, hit, faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
             Bv = torch.zeros(self.V.shape[0], 3, device=self.V.device)
@@ -579,6 +599,8 @@ class TripleProduct(Method):
                 v = used[a:a + chunk]
                 wo = torch.nn.functional.normalize(cam - self.V[v], dim=-1)
                 Bv[v] = self._shade(self.R[v], wo, self.vertex_region[v], v[:, None], torch.ones(v.numel(), 1, device=v.device))
+            if self.config["evaluator"] != "reference":                  # Gouraud (Ma 2006 §3.3), fused
+                return fast_eval.gouraud_image(gbuffer, self.F, Bv)
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             vidx, vw = gbuffer.vertex_weights(self.F)
@@ -586,18 +608,18 @@ class TripleProduct(Method):
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
-            touched = []
+            touched = torch.zeros(self.V_idx.shape[0], dtype=torch.bool, device=hit.device)
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
                 R = lt.local_frames(normals[s], self.config["tangent"])
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
-                touched.append(torch.unique(rows[w != 0]))
+                touched[rows[w != 0]] = True
                 out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
                                      mix[s] if self.blends else None)
-            rows = torch.unique(torch.cat(touched)) if touched else hit[:0]
-            self._record_frame(gbuffer, hit, torch.unique(gbuffer.face[hit]), rows, None)
+            rows = torch.nonzero(touched, as_tuple=False).squeeze(-1)
+            self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None)
         return gbuffer.resolve(out)
 
     def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,

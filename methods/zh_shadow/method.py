@@ -30,8 +30,10 @@ interpolated like v; and a frame that changes only the lighting (L, E) dots the 
 lighting-free transfer vectors with the new lighting (`runtime.relight_cache`, built by the first
 such frame after the camera, pose or exponents changed). `ZHShadow._render_reference` is the slow
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
-(equal to float32 round-off) and renders the ``specular="cosine"`` variant, whose cos θ_i-weighted
-visibility is not a sum of ZH lobes.
+(equal to float32 round-off). The ``specular="cosine"`` variant, whose cos θ_i-weighted visibility
+w = M(R_n) M¹ M(R_n)ᵀ v is not a sum of ZH lobes, goes through the same tables with w in place of v
+for the specular term (`runtime.cosine_visibility`: three fixed GEMMs and four per-point z
+rotations; per vertex and pose with vertex shading, cached with v).
 
 Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
 BRDFs). ``specular="published"`` (default) is the paper's Phong convolution, which leaves out the
@@ -77,6 +79,7 @@ run both the paper's setting and ``order=8, specular="cosine"`` (reports/suites.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from typing import Any
@@ -229,6 +232,8 @@ class ZHShadow(Method):
         self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
         #                                                 frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
+        self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w, t_d) per pose: vertex shading
+        self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
@@ -238,7 +243,9 @@ class ZHShadow(Method):
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
-        self._light = self._env_local = self._posed = self._tables = self._frame_state = self._relight = None
+        self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
+        self._vertex_diffuse = None
+        self._relight = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -357,8 +364,7 @@ class ZHShadow(Method):
         (`runtime.relight_cache`, built by the first such frame)."""
         if self.model is None or self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
-        if self.config["specular"] != "published":   # the cos θ_i variant: not a ZH lobe sum (reference path)
-            return self._render_reference(frame, gbuffer)
+        cosine = self.config["specular"] == "cosine"
         _, geom, v0 = self._pose_state(frame)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
@@ -367,6 +373,8 @@ class ZHShadow(Method):
         dev = gbuffer.hit.device
         v = v0.to(dev)
         P = gbuffer.num_samples
+        if self.config["shading"] == "vertex":
+            return self._render_vertex(frame, gbuffer, geom, v0, light, mats, cosine)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
         tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
                 for kd, ks, al in mats]
@@ -389,32 +397,66 @@ class ZHShadow(Method):
             b = rt.barycentrics(take(gbuffer.bary))                                   # (Q, 3)
             if relight:   # the first lighting-only frame: build the transfer, then shade from it
                 cache = rt.relight_cache(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]))
+                                         take(gbuffer.region), vreg, geom.N.to(dev), list(state[2]), cosine=cosine)
                 self._relight = (state, v0, hits, cache)
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
             counts = cache["counts"]
-        elif self.config["shading"] == "vertex":
-            cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-            nT = rt.rows(geom.N.to(dev).float())
-            woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-            woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
-            Nv = geom.num_vertices
-            rad, counts = rt.shade(v, torch.arange(Nv, device=dev)[:, None], torch.ones(Nv, 1, device=dev),
-                                   nT, woT, vreg, vreg, geom.N.to(dev), tabs)
-            if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
-                rad = rad.clamp_min(0.0)
-            out = rt.interpolate(rad.T.contiguous(), vi, b).T                        # (3, Q)
         else:
             out, counts = rt.shade(v, vi, b, rt.rows(take(gbuffer.normal)), rt.rows(take(gbuffer.wo)),
-                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs)
-        if self.config["clamp"] and self.config["shading"] == "sample":   # per sample, before the resolve
+                                   take(gbuffer.region), vreg, geom.N.to(dev), tabs, cosine=cosine)
+        if self.config["clamp"]:   # per sample, before the resolve
             out = out.clamp_min(0.0)
-        shaded = geom.num_vertices if self.config["shading"] == "vertex" else out.shape[1]
-        self._last_counts = {"P": P, "Q": int(shaded), **counts}
+        self._last_counts = {"P": P, "Q": int(out.shape[1]), **counts}
         if hits is not None:
             out = torch.zeros(3, P, device=dev).index_copy_(1, hits, out)
         return gbuffer.resolve(out, channels_first=True)
+
+    def _render_vertex(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, light: Tensor, mats: list,
+                       cosine: bool) -> Tensor:
+        """Vertex shading (§4.3 on the GPU): per vertex the lighting-free transfer t_d, t_s
+        (`runtime.point_transfer`, by frame rotations) — t_d cached per pose, t_s while the camera,
+        pose (v) and exponents do not change, so a lighting-only frame is one (3, n²) @ (n², N) product
+        per term —
+        the radiance kd ⊙ (l·t_d) + ks ⊙ (l·t_s) per vertex (0 where n·ωo ≤ 0, clamped if
+        configured), interpolated per sample."""
+        dev = gbuffer.hit.device
+        vreg = geom.vertex_region.to(dev)
+        alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
+        key = (frame.camera, tuple(alphas))
+        vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
+        if vd is None or vd[0] is not v0:
+            nT, vT = rt.rows(geom.N.to(dev).float()), rt.rows(v0.to(dev))
+            w = rt.cosine_visibility(vT, nT)
+            self._vertex_diffuse = vd = (v0, nT, vT, w, w * (1.0 / math.pi))
+        _, nT, vT, w, td = vd
+        vt = self._vertex_transfer
+        if vt is None or vt[0] != key or vt[1] is not v0:
+            cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+            woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+            woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+            ts = rt.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas)
+            counts = rt.point_counts(nT, vreg, [a is not None for a in alphas], geom.N.to(dev), vreg)
+            self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
+        _, _, ts, front, counts = vt
+        light = light.to(dev)
+        kd = torch.stack([m[0] for m in mats]).to(dev).index_select(0, vreg).T      # (3, N)
+        with pc.torch_threads(1) if td.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
+            rad = (light.T @ td).mul_(kd)
+            if ts is not None:
+                ks = torch.stack([m[1] for m in mats]).to(dev).index_select(0, vreg).T
+                rad.addcmul_(light.T @ ts, ks)
+        rad.mul_(front)
+        if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+            rad.clamp_min_(0.0)
+        hits = None if bool(gbuffer.hit.all()) else gbuffer.hit.nonzero().squeeze(-1)
+        take = (lambda x: x) if hits is None else (lambda x: x.index_select(0, hits))
+        vi = geom.F.to(dev, torch.int32).index_select(0, take(gbuffer.face))
+        out = rt.interpolate(rad.T.contiguous(), vi, rt.barycentrics(take(gbuffer.bary))).T    # (3, Q)
+        self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices), **counts}
+        if hits is not None:
+            out = torch.zeros(3, gbuffer.num_samples, device=dev).index_copy_(1, hits, out)
+        return gbuffer.resolve(out.contiguous(), channels_first=True)
 
     def _spec_regions(self, frame: Frame) -> list[bool]:
         """Per region: does its material have a specular term (ks > 0)?"""
@@ -504,7 +546,10 @@ class ZHShadow(Method):
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs),
-                "relight_transfer": 0 if self._relight is None else rt.relight_cache_bytes(self._relight[3])}
+                "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
+                + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
+                   else tensor_bytes(self._vertex_transfer[2]))
+                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[4]))}
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
@@ -540,7 +585,8 @@ class ZHShadow(Method):
           per plane vertex, per sample on a plane). Per point off the planes, the diffuse term
           about n: the lighting rotated into the frame (6·Σ(2l+1)²), M¹ v (2·nnz) and the dot
           (6n²); per specular point the same about R plus v rotated into R's frame (2·Σ(2l+1)²)
-          and R (9); "sample": the barycentric interpolation of v (6n²) for every point whose v
+          and R (9) — for ``specular="cosine"`` also M¹ v (2·nnz: the cos θ_i weighting, in the normal's
+          frame, before the rotation); "sample": the barycentric interpolation of v (6n²) for every point whose v
           is needed (off the planes, and specular on them); per point n·ωo (5) and kd/ks (12);
           "vertex": the radiance interpolated per sample (18). Lighting-only frames do per term
           only the dot t·l (6n²) and kd/ks (12) per point (t and n·ωo are the cached ones).
@@ -590,7 +636,8 @@ class ZHShadow(Method):
         if lighting_only:
             f += (Qo + Qs) * 6 * n2 + Q * 12
         else:
-            f += Qo * (6 * rot + 2 * nnz + 6 * n2) + Qs * (6 * rot + 2 * nnz + 6 * n2 + 2 * rot + 9) + Q * (5 + 12)
+            spec = 6 * rot + 2 * nnz + 6 * n2 + 2 * rot + 9 + (2 * nnz if cfg["specular"] == "cosine" else 0)
+            f += Qo * (6 * rot + 2 * nnz + 6 * n2) + Qs * spec + Q * (5 + 12)
             if not vertex:
                 f += (Qo + Qps) * 6 * n2
         if vertex:

@@ -210,6 +210,141 @@ def _term(vT: Tensor, dT: Tensor, W: Tensor, diffuse: bool) -> Tensor:
     return (T * vT[:, None]).sum(0)
 
 
+@functools.lru_cache(maxsize=None)
+def _zyz_tables(order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Constants of `zonal_conjugate` (float64): perm (n²,) the index of (l, −m) for (l, m); absm
+    (n²,) |m|; sgn (n²,) with M(R_z(φ))[(l, m), (l, −m)] = sgn·sin(|m|φ) (and cos(mφ) on the
+    diagonal: a z rotation mixes only the pairs ±m); X = M(R_x(90°)) (n², n²), so that
+    M(R_y(θ)) = Xᵀ M(R_z(θ)) X (`methods.core.sh_rotation` semantics)."""
+    from methods.core.sh_rotation import sh_rotation_matrix
+
+    n2 = order * order
+    l = torch.repeat_interleave(torch.arange(order), torch.arange(order) * 2 + 1)
+    m = torch.arange(n2) - l * (l + 1)
+    perm = l * (l + 1) - m
+    phi = 0.1
+    c, s = math.cos(phi), math.sin(phi)
+    Mz = sh_rotation_matrix(torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64), order)
+    sin_m = torch.sin(m.abs().double() * phi)
+    sgn = torch.where(m == 0, torch.zeros((), dtype=torch.float64), (Mz[torch.arange(n2), perm] / sin_m).round())
+    X = sh_rotation_matrix(torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64), order)
+    return perm, m.abs(), sgn, X
+
+
+@functools.lru_cache(maxsize=None)
+def _conjugated(op_key: tuple, order: int) -> Tensor:
+    """X · M · Xᵀ (float64) of the zonal operator M named by ``op_key`` (("phong", α): M^α of
+    `convolution.phong_operator`), the fixed middle factor of `zonal_conjugate`."""
+    from methods.zh_shadow.convolution import phong_operator
+
+    X = _zyz_tables(order)[3]
+    M = phong_operator(op_key[1], order, dtype=torch.float64)
+    return X @ M @ X.T
+
+
+def _angles(cT: Tensor, sT: Tensor, order: int, absm: Tensor) -> tuple[Tensor, Tensor]:
+    """cos(|m|φ), sin(|m|φ) (n², Q) of the per-point angles with cos φ = cT, sin φ = sT (Q,)
+    (the Chebyshev recurrence of the angle sums)."""
+    cs, ss = [torch.ones_like(cT), cT], [torch.zeros_like(sT), sT]
+    for _ in range(2, order):
+        c, s = cs[-1], ss[-1]
+        cs.append(c * cT - s * sT)
+        ss.append(s * cT + c * sT)
+    return torch.stack(cs).index_select(0, absm), torch.stack(ss).index_select(0, absm)
+
+
+def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
+    """(n², Q) M(R_n) · M · M(R_n)ᵀ v per point: the world-space SH of the function whose
+    coefficients in a frame with z = n are M times those of v — for a zonal (z-symmetric) operator
+    M such as the hemispherical M^α (`convolution.phong_operator`), so the tangent of the frame
+    does not matter. With R_n = R_z(φ) R_y(θ) (n = (sin θ cos φ, sin θ sin φ, cos θ)) and
+    M(R_y(θ)) = Xᵀ M(R_z(θ)) X (X = M(R_x(90°)), `_zyz_tables`):
+
+        M(R_n) M M(R_n)ᵀ = R_z(φ) Xᵀ R_z(θ) · (X M Xᵀ) · R_z(−θ) X R_z(−φ),
+
+    three fixed (n², n²) GEMMs and four per-point z rotations (cos/sin of |m| times the angle on
+    the ±m pairs) — instead of building each point's SH rotation (`methods.core.sh_rotation`).
+
+    Args:
+        vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
+    """
+    n2, Q = vT.shape
+    n = math.isqrt(n2)
+    perm, absm, sgn, X = _zyz_tables(n)
+    dt, dev = vT.dtype, vT.device
+    perm, absm = perm.to(dev), absm.to(dev)
+    sgn = sgn.to(dt).to(dev)[:, None]
+    Xf = X.to(dt).to(dev)
+    K = _conjugated(op_key, n).to(dt).to(dev)
+    x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
+    rho = torch.sqrt(x * x + y * y)
+    ok = rho > 1e-20
+    safe = torch.where(ok, rho, torch.ones_like(rho))
+    cp = torch.where(ok, x / safe, torch.ones_like(x))            # φ (any φ on the pole: M is zonal)
+    sp = torch.where(ok, y / safe, torch.zeros_like(y))
+    Cp, Sp = _angles(cp, sp, n, absm)
+    Ct, St = _angles(z, rho, n, absm)
+    Sp, St = Sp * sgn, St * sgn
+
+    def rz(a: Tensor, C: Tensor, S: Tensor, sign: float) -> Tensor:     # M(R_z(±angle)) a
+        return torch.addcmul(a * C, a.index_select(0, perm), S, value=sign)
+
+    # products with 4 or 9 rows: MKL splits them over threads (methods.core.threads; `world_visibility`)
+    with torch_threads(1) if n2 < 16 else contextlib.nullcontext():
+        a = Xf @ rz(vT, Cp, Sp, -1.0)
+        a = K @ rz(a, Ct, St, -1.0)
+        a = Xf.T @ rz(a, Ct, St, 1.0)
+    return rz(a, Cp, Sp, 1.0)
+
+
+def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
+    """(n², Q) world-space SH of V(ω)·max(0, n·ω) (order-n projection; `method.shade`'s
+    ``specular="cosine"``: M¹ v in the frame of n, taken back to world space) for the points'
+    visibility vT (n², Q) and unit normals nT (3, Q) — `zonal_conjugate` with M¹."""
+    return zonal_conjugate(vT, nT, ("phong", 1.0))
+
+
+def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas: list[float | None], *,
+                   cosine: bool = False) -> tuple[Tensor, Tensor | None]:
+    """Lighting-free transfer vectors of Q points by frame rotations (`zonal_conjugate`): diffuse
+    t_d = (1/π) M(R_n) M¹ M(R_n)ᵀ v and specular t_s = ((α+1)/(2π)) M(R_R) M^α M(R_R)ᵀ v' (v' = v,
+    or for ``cosine`` the cos θ_i-weighted w = π t_d), so that the terms are t · l (§4.3 #2–#5:
+    v_nᵀ M¹ L_n = vᵀ M(R_n) M¹ M(R_n)ᵀ l, the rotations being orthogonal). Per point 3 (n², n²)
+    GEMMs per term — fewer flops than `_identity_table`'s K·n⁴, and at orders above
+    `MONOMIAL_MAX_ORDER` fewer than the lighting tables' K·3n² (vertex shading: `ZHShadow.render`).
+
+    Args:
+        vT: (n², Q) world-space SH visibility; nT, woT: (3, Q) unit normals / directions to the
+            viewer; vregion: (Q,) int64 region of each point; alphas: per region the Phong exponent,
+            None for no specular term.
+    Returns:
+        t_d (n², Q) and t_s (n², Q) (zero where the region has no specular term; None if none has).
+    """
+    w = cosine_visibility(vT, nT)
+    return w * (1.0 / math.pi), specular_transfer(w if cosine else vT, nT, woT, vregion, alphas)
+
+
+def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
+                      alphas: list[float | None]) -> Tensor | None:
+    """The t_s of `point_transfer` from the visibility it rotates (srcT (n², Q): v, or w for the
+    cosine variant) — apart, since only it depends on the view and the exponents."""
+    if all(a is None for a in alphas):
+        return None
+    src = srcT
+    R = reflect_T(nT, woT)
+    ts = torch.zeros_like(srcT)
+    for r, a in enumerate(alphas):
+        if a is None:
+            continue
+        p = (vregion == r).nonzero().squeeze(-1)
+        if p.shape[0] == vregion.shape[0]:
+            ts = zonal_conjugate(src, R, ("phong", float(a))).mul_((a + 1.0) / (2.0 * math.pi))
+        elif p.shape[0]:
+            t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
+            ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
+    return ts
+
+
 def dot_T(aT: Tensor, bT: Tensor) -> Tensor:
     """(Q,) a·b of (3, Q) vectors (rows = components): two fused multiply-adds on rows, no
     reduction over the short leading dim."""
@@ -361,7 +496,7 @@ def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
 
 def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
           vertex_normal: Tensor, mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], *, planar: bool = True,
-          chunk: int = CHUNK) -> tuple[Tensor, dict[str, int]]:
+          chunk: int = CHUNK, cosine: bool = False) -> tuple[Tensor, dict[str, int]]:
     """Exit radiance of Q points (§4.3 steps 2–5 through the tables, module docstring).
 
     A point's visibility is Σ_k b[q, k] v[vi[q, k]] (a G-buffer sample: its face's three vertices
@@ -377,6 +512,9 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
         each point; vertex_region: (N,) int64; vertex_normal: (N, 3) (counts only);
         mats: per region (kd (3,), ks (3,), Wd, Ws or None: no specular term); one Wd for all.
         planar: use `planar_groups` (False: every point through the GEMMs).
+        cosine: the specular term of ``specular="cosine"``: v · T^α(R) with v replaced by the
+            cos θ_i-weighted visibility w = `cosine_visibility`(v, n) of the point (same tables:
+            the term is linear in the visibility it dots).
     Returns:
         (3, Q) radiance (0 where n·ωo ≤ 0, as the BRDFs) and counts (`_plane_counts`, plus
         "specular": points with a specular term, "planar_specular": those of them on planes).
@@ -407,10 +545,14 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
         Ws_ = [] if Ws is None else [(Ws.view(Ws.shape[0], -1, 3) * ks).view(Ws.shape[0], -1)]
         W = torch.cat(([] if Wd_ is None else [(Wd_.view(Wd_.shape[0], -1, 3) * kd).view(Wd_.shape[0], -1)]) + Ws_)
         Kd = 0 if Wd_ is None else Wd_.shape[0]
+        split = cosine and Ws is not None            # the specular term dots w, not v: its own GEMM
+        if split:
+            WdT, WsT = W[:Kd].T.contiguous(), W[Kd:].T.contiguous()
         m = Q if p is None else p.shape[0]
+        acc = None if p is None else torch.empty(3, m, dtype=dt, device=dev)   # scattered once, per row
         for a in range(0, m, chunk):
+            s = slice(a, a + chunk)
             if p is None:
-                s = slice(a, a + chunk)
                 vi_c, b_c, n_c, wo_c = vi[s], b[s], nT[:, s], woT[:, s]
             else:
                 pc = p[a:a + chunk]
@@ -422,16 +564,23 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
             if Ws is not None:
                 features(reflect_T(n_c, wo_c), n, False, out=f[Kd:])
             vT = rows(interpolate(v, vi_c, b_c))                                    # (n², Q_c)
-            rad = ((W.T @ f).view(n * n, 3, -1) * vT[:, None]).sum(0)                # (3, Q_c)
+            if not split:
+                rad = ((W.T @ f).view(n * n, 3, -1) * vT[:, None]).sum(0)            # (3, Q_c)
+            else:
+                wT = cosine_visibility(vT, n_c)
+                rad = ((WsT @ f[Kd:]).view(n * n, 3, -1) * wT[:, None]).sum(0)
+                if Kd:
+                    rad += ((WdT @ f[:Kd]).view(n * n, 3, -1) * vT[:, None]).sum(0)
             if p is None:
                 if add:
                     out[:, s] += rad
                 else:
                     out[:, s] = rad
-            elif add:
-                out.index_add_(1, pc, rad)
             else:
-                out.index_copy_(1, pc, rad)
+                acc[:, s] = rad
+        if p is not None:   # row by row: a 1-D scatter is several times faster than one along dim 1
+            for c in range(3):
+                (out[c].index_add_ if add else out[c].index_copy_)(0, p, acc[c])
 
     single = len(mats) == 1
     for r, (kd, ks, _, Ws) in enumerate(mats):
@@ -466,7 +615,7 @@ def _identity_table(order: int, alpha: float, diffuse: bool) -> Tensor:
 
 def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,
                   vertex_normal: Tensor, alphas: list[float | None], *, planar: bool = True,
-                  chunk: int = CHUNK) -> dict:
+                  chunk: int = CHUNK, cosine: bool = False) -> dict:
     """What a frame that changes only the lighting needs of the points of `shade` (same args;
     ``alphas``: per region the Phong exponent, None for no specular term): their lighting-free
     transfer, so that the frame is one small product per region (`relight`).
@@ -476,7 +625,8 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     * every other point: t_d(q) = Σ_j v_j T¹_j·(n) ((n², Q), the diffuse transfer vector of the
       world-space lighting: term = t_d · l, linear in l) and, where there is a specular term,
       t_s(q) = Σ_j v_j T^α_j·(R) — `_term` with the tables of the identity lighting
-      (`_identity_table`); the front-facing test folded in.
+      (`_identity_table`); the front-facing test folded in. ``cosine``: t_s from the cos θ_i-weighted
+      visibility w (`cosine_visibility`) instead of v, as `shade`.
 
     Built once per view, pose and exponents (the first lighting-only frame after they changed):
     2·n²·K flops per point and term instead of 2·3·K, then reused by every lighting-only frame.
@@ -511,7 +661,8 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
             if td is not None:
                 torch.mul(_term(vT, n_c, Wd_, True), f_c, out=td[:, s])
             if ts is not None:
-                torch.mul(_term(vT, reflect_T(n_c, wo_c), Ws, False), f_c, out=ts[:, s])
+                wT = cosine_visibility(vT, n_c) if cosine else vT
+                torch.mul(_term(wT, reflect_T(n_c, wo_c), Ws, False), f_c, out=ts[:, s])
         return td, ts
 
     single = len(alphas) == 1

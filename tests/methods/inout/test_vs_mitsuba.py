@@ -52,11 +52,13 @@ LOBE_TOL = 0.2
 # (Lambert, K = 1) sits at ≈ 1.9× its floor: the 16² cube map blurs the sun's shadows. Re-pinned when
 # the example's meshes were subdivided (one quad per box face and a 9 × 9 ground → 5 × 5 vertices
 # per face and 33 × 33; ``subdivide = 2``): red 2.21 → 2.08, blue 1.80 → 1.82 (Blinn–Phong 2.38 →
-# 1.88, Torrance–Sparrow 1.92 → 2.01), ground 1.96 → 1.91.
+# 1.88, Torrance–Sparrow 1.92 → 2.01), ground 1.96 → 1.91. Re-pinned when the default n_coeffs
+# went 128 → 256: red 2.08 → 1.71, blue 1.82 → 1.83 (Blinn–Phong 1.88 → 1.91, Torrance–Sparrow
+# 2.01 → 1.90), ground 1.91 → 1.90.
 PINNED = {
-    "two_boxes": {"red": 2.08, "blue": 1.82, "ground": 1.91},
-    "blue_blinnphong": {"red": 2.08, "blue": 1.88, "ground": 1.91},
-    "blue_torrancesparrow": {"red": 2.08, "blue": 2.01, "ground": 1.91},
+    "two_boxes": {"red": 1.71, "blue": 1.83, "ground": 1.90},
+    "blue_blinnphong": {"red": 1.71, "blue": 1.91, "ground": 1.90},
+    "blue_torrancesparrow": {"red": 1.71, "blue": 1.90, "ground": 1.90},
 }
 # The blue box's material per variant (None = the file's Cook–Torrance m = 0.3, F0 = 0.04).
 BLUE_KD = (0.08, 0.15, 0.45)
@@ -222,6 +224,35 @@ def test_regions_against_mitsuba(name):
         assert lo <= e["ratio"] <= hi, (name, region, e)
         pin = PINNED[name][region]
         assert e["rmse"] <= pin * PIN_HEADROOM * e["floor"], (name, region, e, pin)
+
+
+# Every frame of the example's V, L and E sequences (3 frames each, the smoke suite's), against
+# 1024-spp references: the issue-19 criterion, each region's mean within [0.9, 1.1] of the
+# reference's. With 128 coefficients per term the red Phong box fell to 0.874 (E frame 2, a
+# captured probe) and 0.897 (V frame 2); 256 (the default since) measured [0.964, 1.025] over all
+# regions and frames (``methods.inout.transport`` docstring, item 4).
+SEQ_SPP = 1024
+
+
+def test_regions_on_every_frame_of_view_and_lighting_sequences():
+    from references.gbuffer import make_gbuffer
+    from references.render import render_reference
+    from scenes.scenefile import load_scene_file
+    from scenes.sequences import make_sequence
+
+    scene = load_scene_file(SCENE_FILE)
+    m = InOut(progress=False)
+    m.precompute(scene)
+    lo, hi = RATIO_RANGE
+    seen = {}
+    for kind in ("V", "L", "E"):
+        for i, f in enumerate(make_sequence(scene, kind, n_frames=3, seed=0)):
+            gb = make_gbuffer(scene, f, 2)
+            ref = render_reference(scene, f, bounces=0, spp=SEQ_SPP, seed=0)
+            for region, e in region_errors(scene, f, gb, m.render(f, gb), ref).items():
+                seen[kind, i, region] = round(e["ratio"], 3)
+    bad = {k: v for k, v in seen.items() if not lo <= v <= hi}
+    assert len(seen) == 27 and not bad, (bad, seen)
 
 
 def test_k_is_reported_per_region():

@@ -144,6 +144,45 @@ def test_transfer_cache_invalidation(small_model):
     assert cached[8] is not None and cached[9] is None and cached[10] is None
 
 
+@pytest.mark.parametrize("order", (4, 8))
+def test_fast_equals_reference_cosine(zh_scene, order):
+    """``specular="cosine"`` (the suites' physical setting at order 8): sample shading on P, VB and
+    lighting-only frames (the transfer cache with the cos θ_i-weighted t_s), vertex shading on P
+    and L (the per-vertex w cached with the pose)."""
+    m = ZHShadow(**SMALL, order=order, specular="cosine")
+    m.precompute(zh_scene("creature"))
+    _check_sequence(m.with_render_config(), "P")
+    _check_sequence(m.with_render_config(), "VB")
+    _check_sequence(m.with_render_config(), "L", n_frames=3)
+    _check_sequence(m.with_render_config(shading="vertex"), "P")
+    _check_sequence(m.with_render_config(shading="vertex"), "L", n_frames=3)
+
+
+def test_cosine_visibility_equals_rotations():
+    """`runtime.cosine_visibility` = M¹ applied in the frame of n through explicit SH rotations
+    (`methods.core.sh_rotation`, the reference path's way), orders 2–8, normals at the poles
+    included; float64 to round-off, float32 within 2e-6."""
+    from methods.core.frames import frame_matrix
+    from methods.core.sh_rotation import rotate_coeffs
+    from methods.zh_shadow.convolution import phong_operator
+
+    g = torch.Generator().manual_seed(2)
+    for order in (2, 3, 4, 5, 8):
+        Q = 300
+        nrm = torch.randn(Q, 3, generator=g, dtype=torch.float64)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        nrm[:3] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+        v = torch.randn(Q, order * order, generator=g, dtype=torch.float64)
+        Fn = frame_matrix(nrm)
+        vn = rotate_coeffs(v[..., None], Fn)[..., 0]
+        want = rotate_coeffs((vn @ phong_operator(1.0, order, dtype=torch.float64))[..., None],
+                             Fn.transpose(-1, -2))[..., 0]
+        got = rt.cosine_visibility(v.T.contiguous(), nrm.T.contiguous()).T
+        assert (got - want).abs().max() <= 1e-13 * want.abs().max(), order
+        got32 = rt.cosine_visibility(v.T.float().contiguous(), nrm.T.float().contiguous()).T.double()
+        assert (got32 - want).abs().max() <= 2e-6 * want.abs().max(), order
+
+
 def test_shade_terms_equal_reference_shade():
     """`runtime.shade_terms` = `method.shade` (per-point rotations, M^α) for random lobes, normals,
     views, lighting and exponents, orders 2–6 (monomial and SH features), float64."""
@@ -229,6 +268,10 @@ def test_frame_cost_hand_count():
     m.render(fr, gb)
     c = m.frame_cost("VBL", P)
     assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + 6 * 84)
+    mc = m.with_render_config(specular="cosine")                             # + M¹ v per specular point
+    mc.render(fr, gb)
+    c = mc.frame_cost("V", P)
+    assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + Qs * 2 * 44)
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
     pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
     assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
