@@ -115,6 +115,9 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=("sphere_plane", "chess", "
 PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
              dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
              isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
+                                     # in-out twice: eq. 4 per G-buffer sample (default) and per vertex,
+                                     # Gouraud-interpolated (the paper's run time, Mahajan 2008 §6)
+                                     ("inout", "{}"), ("inout", '{"shading":"vertex"}'),
                                      # ZH twice, as the nightly: the paper's setting and the physical one per vertex
                                      ("zh_shadow", "{}"), ("zh_shadow", ZH_PHYSICAL_VERTEX),
                                      # triple product both ways Ma 2006 §3.3 describes: per pixel

@@ -13,6 +13,8 @@ _PTT = {"rays": 32, "cube_res": 8, "n_L": 48, "brdf_grid": 12, "brdf_table": 16,
 
 CASES: dict[str, tuple[str, str, dict]] = {
     "inout": ("inout", "sphere_plane", {"brdf_res": 12, "cube_res": 8, "n_coeffs": 48, "lut_res": 16}),
+    "inout-vertex": ("inout", "sphere_plane", {"brdf_res": 12, "cube_res": 8, "n_coeffs": 48, "lut_res": 16,
+                                               "shading": "vertex"}),
     "oracle": ("oracle", "sphere_plane", {"brdf_samples": 4, "light_samples": 4}),
     "ptt": ("ptt", "sphere_plane", {**_PTT, "light_res_1": 4}),
     "ptt-pca-compressed": ("ptt", "sphere_plane", {**_PTT, "basis": "pca", "pca_grid": 8, "lobe_theta": 8,

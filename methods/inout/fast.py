@@ -41,7 +41,7 @@ from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
            "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW",
-           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK"]
+           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance"]
 
 # Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
@@ -306,6 +306,14 @@ def shade(st: FastStatic, cs: list[Tensor], wins: Windows, gl: Tensor, bw: Tenso
             if sel.numel():
                 B.index_add_(1, k[sel], _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel]).T)
     return B
+
+
+def vertex_radiance(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
+    """Eq. 4 at vertices (shading "vertex", ``InOut._render_vertex``): B_v = Σ_n w_n X(v, n) over
+    the 4 nodes of each vertex's own cell (the direction to the camera in its frame) — the sum
+    `_outliers` forms for a sample–vertex entry, here once per vertex. v, cell (n,) int64 local
+    vertex / first node; wc (n, 4) bilinear node weights; c (Vr, 3, K) → (n, 3)."""
+    return _outliers(fr, c, v, cell, wc)
 
 
 def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:

@@ -30,6 +30,19 @@ Render (dynamic lighting and view):
     interpolating radiance, which would blur highlights across triangles), B = Σ_k σ_k h_k(ω_o) c_k
     (eq. 4).
 
+  * or, with ``shading="vertex"``, eq. 4 per vertex as the paper renders (§6, "interactive at 17K
+    vertices"): B_v = Σ_k σ_k h_k(ω_o) c_k with ω_o towards the camera from the vertex in the
+    vertex's frame (0 below its horizon), Gouraud-interpolated to the samples with the G-buffer's
+    barycentrics (``methods.core.gouraud``). Only the vertices of the faces the hit samples lie on
+    are shaded, and the view part (those vertices and their table cells) is kept while the camera
+    and the G-buffer's hits are unchanged, so a lighting-only frame recomputes c_k and B_v only.
+    Its cost is per vertex, not per sample; its error follows the mesh density (a highlight or a
+    shadow edge narrower than a triangle is blurred): RMSE against the references 1.00–1.11× the
+    per-sample shading's at bench size (perf suite: chess, creature; sphere_plane V 1.03×, E
+    1.00×), 1.0–1.9× at test size (coarse meshes: sphere_plane, shadow_detail, dragon, character
+    the worst); no region mean ratio leaves [0.9, 1.1] where the per-sample one stays inside
+    (measured 2026-12-03 on V and E frames; the table is in the commit message that added this).
+
 `_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
 image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k only for the
 vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
@@ -52,7 +65,7 @@ from torch import Tensor
 
 from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
                           tensor_bytes, geometry_key, precompute_memo)
-from methods.core import cubemap
+from methods.core import cubemap, gouraud
 from methods.core.frames import frame_matrix
 from references.visibility import make_visibility
 from scenes.hashing import hash_materials
@@ -66,6 +79,8 @@ RENDER_FLOATS = 1 << 22
 # `render` shades every G-buffer sample (misses with weight 0) when at least this fraction hits,
 # else gathers the hits first (a gather of every per-sample array costs more than a few misses).
 DENSE_HIT_FRACTION = 0.75
+# Where eq. 4 is evaluated (``shading``): per G-buffer sample, or per vertex and Gouraud-interpolated.
+SHADINGS = ("sample", "vertex")
 
 
 @dataclass
@@ -130,7 +145,7 @@ class InOut(Method):
                  cube_res: int = 16, n_coeffs: int | None = 256, light_coeffs: int | None = None,
                  lut_res: int = 64, supersample: int = 1, light_supersample: int = 4,
                  select: str = "magnitude", norm: str = "cosine", budget: str = "vertex",
-                 progress: bool | None = None) -> None:
+                 shading: str = "sample", progress: bool | None = None) -> None:
         """
         terms: K for every region (int), per region name (dict; missing regions use the rule),
             or None = ``analysis.k_rule(material)`` (Mahajan 2008 eq. 13 / §4).
@@ -152,6 +167,10 @@ class InOut(Method):
             docstring, item 1): "cosine" (default) factorizes cos θ_o ρ cos θ_i, "brdf" factorizes
             ρ as eq. 2 is written (renders BRDFs with a 1/(cos θ_i cos θ_o) factor, such as
             Cook–Torrance, nearly black: kept for comparison).
+        shading: "sample" (default): eq. 4 per G-buffer sample, each at its own ω_o (module
+            docstring); "vertex": eq. 4 per vertex with ω_o towards the camera from the vertex,
+            the radiance Gouraud-interpolated to the samples (the paper's run time, §6:
+            "interactive at 17K vertices"; ``methods.core.gouraud``).
         progress: tqdm bars (default: when stderr is a TTY).
         """
         if terms is not None and not isinstance(terms, dict):
@@ -174,9 +193,12 @@ class InOut(Method):
             raise ValueError(f"norm must be one of {tp.NORMS}, got {norm!r}")
         if budget not in tp.BUDGETS:
             raise ValueError(f"budget must be one of {tp.BUDGETS}, got {budget!r}")
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
         super().__init__(terms=terms, brdf_res=brdf_res, cube_res=cube_res, n_coeffs=n_coeffs,
                          light_coeffs=light_coeffs, lut_res=lut_res, supersample=supersample,
-                         light_supersample=light_supersample, select=select, norm=norm, budget=budget)
+                         light_supersample=light_supersample, select=select, norm=norm, budget=budget,
+                         shading=shading)
         self.progress = sys.stderr.isatty() if progress is None else bool(progress)
         self.scene = None
         self.F: Tensor | None = None           # (M, 3) int64 faces of the static geometry
@@ -189,6 +211,7 @@ class InOut(Method):
         self._fast = None                      # the fast path's static arrays (`_fast_static`), built on first use
         self._last_view = None                 # (P, what `frame_cost` counts) of the last fast render
         self._env_shape = None                 # (H, W) of the env map of the current lighting
+        self._vview = None                     # shading "vertex": the view's referenced vertices (`_vertex_view`)
 
     # -- precompute ---------------------------------------------------------------------------
     def _terms_for(self, region: str, material) -> int | None:
@@ -270,7 +293,7 @@ class InOut(Method):
             mkey = None
             if memo is not None and self._terms_for(name, mat) is None:
                 mkey = ("inout.region", gkey, r, name, hash_materials({name: mat}), self._terms_for(name, mat),
-                        tuple(sorted((k, v) for k, v in cfg.items() if k != "terms")))
+                        tuple(sorted((k, v) for k, v in cfg.items() if k not in ("terms", "shading"))))
                 if mkey in memo:
                     region, rstats = memo[mkey]
                     self.regions.append(region)
@@ -327,6 +350,7 @@ class InOut(Method):
         self.L = None
         self._c, self._cf, self._cf_valid = {}, {}, {}
         self._last_view = None
+        self._vview = None
 
     def _relight(self, frame: Frame) -> None:
         """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
@@ -350,10 +374,9 @@ class InOut(Method):
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         self._relight(frame)
-        for reg in self.regions:
-            if reg.name not in self._c:
-                # c_k = T̃_k · L = ∫ T_k L dω (Mahajan 2008 eq. 4), per vertex and colour
-                self._c[reg.name] = (reg.T @ self.L).view(reg.verts.numel(), reg.K, 3)
+        self._ensure_c_reference()
+        if self.config["shading"] == "vertex":
+            return self._render_vertex_reference(frame, gbuffer)
         P = gbuffer.num_samples
         out = torch.zeros(P, 3, dtype=torch.float32, device=gbuffer.hit.device)
         vidx, bw = gbuffer.vertex_weights(self.F)  # (P, 3) global vertex ids, barycentric weights
@@ -363,6 +386,39 @@ class InOut(Method):
                 s = sel[a:a + chunk]
                 out[s] = self._shade(reg, self._c[reg.name], vidx[s], bw[s].float(), gbuffer.normal[s].float(),
                                      gbuffer.wo[s].float())
+        return gbuffer.resolve(out)
+
+    def _ensure_c_reference(self) -> None:
+        """The reference paths' c_k of every vertex of every region (one product per lighting)."""
+        for reg in self.regions:
+            if reg.name not in self._c:
+                # c_k = T̃_k · L = ∫ T_k L dω (Mahajan 2008 eq. 4), per vertex and colour
+                self._c[reg.name] = (reg.T @ self.L).view(reg.verts.numel(), reg.K, 3)
+
+    def _render_vertex_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """Shading "vertex" step by step (the test oracle of `_render_vertex`): eq. 4 at every vertex
+        of every region by the per-sample code (`_shade`) evaluated at the vertex — its normal, ω_o
+        towards the camera from its position, its own c_k (barycentric weights (1, 0, 0)) — then
+        each hit sample's radiance the barycentric mix of its face's three vertex radiances of the
+        sample's region (Gouraud, Mahajan 2008 §6), box-filtered (``GBuffer.resolve``)."""
+        dev = gbuffer.hit.device
+        geom = self.scene.geometry()
+        V = torch.as_tensor(geom.V).float().to(dev)
+        Nrm = torch.nn.functional.normalize(torch.as_tensor(geom.N).float().to(dev), dim=-1)
+        cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32, device=dev)
+        vidx, bw = gbuffer.vertex_weights(self.F)
+        for reg, sel in self._region_samples(gbuffer):
+            if bool((reg.local_of[vidx[sel]] < 0).any()):
+                raise ValueError(f"G-buffer samples of region {reg.name!r} lie on faces of another region")
+            Bv = torch.zeros(V.shape[0], 3, dtype=torch.float32, device=dev)   # radiance of the region's vertices
+            chunk = max(256, RENDER_FLOATS // (3 * reg.K))
+            for a in range(0, reg.verts.numel(), chunk):
+                v = reg.verts[a:a + chunk]
+                one = torch.tensor([1.0, 0.0, 0.0], device=dev).expand(v.numel(), 3)
+                wo = torch.nn.functional.normalize(cam - V[v], dim=-1)
+                Bv[v] = self._shade(reg, self._c[reg.name], v[:, None].expand(-1, 3), one, Nrm[v], wo)
+            out[sel] = (Bv[vidx[sel]] * bw[sel].float()[..., None]).sum(1)
         return gbuffer.resolve(out)
 
     @staticmethod
@@ -475,6 +531,8 @@ class InOut(Method):
         per-sample stage in blocks of ``fast.CHUNK`` samples."""
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
+        if self.config["shading"] == "vertex":
+            return self._render_vertex(frame, gbuffer)
         view = self._view_setup(frame, gbuffer)
         st, sel, Q, dev = view.st, view.sel, view.Q, gbuffer.hit.device
         P, S2 = gbuffer.num_samples, gbuffer.spp_side ** 2
@@ -497,6 +555,63 @@ class InOut(Method):
         self._last_view = (P, {"hit": int(gbuffer.hit.sum()), "front": front_all, "cell": cell_all,
                                "face": gbuffer.face if sel is None else gbuffer.face[sel], "window": view.wins.W})
         return img.view(3, gbuffer.height, gbuffer.width).permute(1, 2, 0).contiguous()
+
+    def _vertex_view(self, frame: Frame, gbuffer: GBuffer) -> dict[str, Any]:
+        """Shading "vertex": what the view decides — the referenced vertices (those of the faces
+        the hit samples lie on) and, for those above their horizon as seen from the camera, the
+        table cell of ω_o in the vertex's frame and its bilinear weights, per slot. Cached while the
+        camera position and the G-buffer's hits and faces are unchanged (a lighting change keeps
+        it: L and E frames recompute only c_k and B_v)."""
+        st = self._fast_static()
+        key = (gbuffer.num_samples, tuple(float(x) for x in frame.camera.origin))
+        vv = self._vview
+        if vv is not None and vv["key"] == key and torch.equal(vv["hit"], gbuffer.hit) \
+                and torch.equal(vv["face"], gbuffer.face):
+            return vv
+        dev, hit, face = gbuffer.hit.device, gbuffer.hit, gbuffer.face
+        M, R = st.face_region.numel(), st.R
+        f = face.clamp_min(0)
+        if bool((hit & (st.face_region.index_select(0, f) != gbuffer.region)).any()):
+            bad = hit & (st.face_region.index_select(0, f) != gbuffer.region)
+            name = self.scene.regions[int(gbuffer.region[bad][0])]
+            raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
+        fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
+        fmask[torch.where(hit, f, M)] = True
+        faces = fmask[:M].nonzero(as_tuple=True)[0]
+        vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
+        vmask[st.face_gl.index_select(1, faces).reshape(-1).long()] = True
+        ref = vmask.nonzero(as_tuple=True)[0]                                  # ascending concatenated ids
+        cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        d = cam[None, :] - st.pos.index_select(0, ref)                         # towards the camera
+        x, y, z = torch.bmm(st.frames.index_select(0, ref), d.unsqueeze(-1)).squeeze(-1).unbind(-1)
+        front = z > 0                                                          # ρ = 0 below the horizon
+        iu, iv, fu, fv = tp.lut_cell_xyz(x, y, z, R)                           # scale-free: d need not be unit
+        gu, gv = 1 - fu, 1 - fv
+        wc = torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1)
+        slots = []
+        for s in range(len(self.regions)):
+            sel = ((ref >= st.voff[s]) & (ref < st.voff[s + 1]) & front).nonzero(as_tuple=True)[0]
+            slots.append((ref[sel] - st.voff[s], (iv * R + iu)[sel], wc[sel]))
+        self._vview = {"key": key, "hit": hit.clone(), "face": face.clone(), "slots": slots,
+                       "faces": int(faces.numel()), "ref": int(ref.numel()), "hits": int(hit.sum())}
+        return self._vview
+
+    def _render_vertex(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """Shading "vertex", the fast path (`_render_vertex_reference` to float32 round-off): c_k of
+        the referenced vertices above their horizon (`_ensure_c`, lazily as the per-sample path),
+        B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (``fast.vertex_radiance``, one
+        sampled product per region), then the Gouraud resolve (``core.gouraud.resolve``)."""
+        self._relight(frame)
+        st = self._fast_static()
+        vv = self._vertex_view(frame, gbuffer)
+        Bv = torch.zeros(st.voff[-1], 3, dtype=torch.float32, device=gbuffer.hit.device)
+        for s, (loc, first, wc) in enumerate(vv["slots"]):
+            if loc.numel():
+                c = self._ensure_c(s, loc)
+                Bv[st.voff[s] + loc] = _fast.vertex_radiance(st.regions[s], c, loc, first, wc)
+        self._last_view = (gbuffer.num_samples, {"vertex": vv})
+        return gouraud.resolve(Bv, st.face_gl, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                               gbuffer.width, gbuffer.spp_side)
 
     # -- accounting ---------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:
@@ -561,6 +676,8 @@ class InOut(Method):
         cfg, f4 = self.config, 4
         P = num_samples
         light = "L" in frame_kind or "E" in frame_kind
+        if cfg["shading"] == "vertex":
+            return self._frame_cost_vertex(P, light)
         last = self._last_view[1] if self._last_view is not None and self._last_view[0] == P else None
         b = P * 3 * f4                                                   # output
         f = 0
@@ -595,9 +712,66 @@ class InOut(Method):
         b += hit * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - hit) * 4 + nfaces * 3 * self.F.element_size()
         f += hit * 2 * 9 + Q * (16 + 2 * 12 * 3)
         if light:
-            N, s = cfg["cube_res"], cfg["light_supersample"]
-            D, sub = 6 * N * N, 6 * N * N * s * s
-            H, W = self._env_shape or tuple(int(x) for x in self.scene.envmap.data.shape[:2])
-            b += min(H * W, 4 * sub) * 3 * f4 + D * 3 * f4                # texels read, L written
-            f += sub * 2 * (9 + 4 * 3 + 3) + D * 3 * 4                    # resampling, Haar
+            lb, lf = self._lighting_cost()
+            b, f = b + lb, f + lf
+        return FrameCost(int(b), int(f))
+
+    def _lighting_cost(self) -> tuple[int, int]:
+        """(bytes, flops) of a lighting change before the per-vertex products (`frame_cost`): the
+        env map resampled on the cube map, its Haar transform, L written."""
+        cfg, f4 = self.config, 4
+        N, s = cfg["cube_res"], cfg["light_supersample"]
+        D, sub = 6 * N * N, 6 * N * N * s * s
+        H, W = self._env_shape or tuple(int(x) for x in self.scene.envmap.data.shape[:2])
+        return (min(H * W, 4 * sub) * 3 * f4 + D * 3 * f4,                # texels read, L written
+                sub * 2 * (9 + 4 * 3 + 3) + D * 3 * 4)                      # resampling, Haar
+
+    def _frame_cost_vertex(self, P: int, light: bool) -> FrameCost:
+        """`frame_cost` of shading "vertex" (eq. 4 per vertex, Gouraud to the samples).
+
+        Every frame: per hit sample its face index (int64), barycentrics (2 float32) and hit word
+        (4 B) — not its normal or ω_o —, per missed sample its hit word, the (P, 3) float32 output
+        (the convention of the per-sample path); per *referenced* face (a hit sample lies on it)
+        its 3 vertex ids; per referenced vertex its position and normal (6 float32); per *shaded*
+        vertex (referenced, and the camera above its horizon: eq. 4 is 0 below) its c_k (3K
+        float32) and the σ_k h_k rows (3K float32) of every table node the shaded vertices' cells
+        touch. Flops: per hit sample the Gouraud mix (3 vertices × 3 MACs); per referenced vertex
+        the direction to the camera (3) into its frame (9 MACs; the hemi-octahedral cell needs
+        no unit vector); per shaded vertex the 4 bilinear weights (4), B_v = Σ_n w_n Σ_k σ_k
+        h_k(n) c_{v,k} (4 nodes × 3K MACs + 4 × 3 MACs).
+
+        A lighting change adds the env map's resampling, Haar transform and L (as the per-sample
+        path) and, per shaded vertex, its kept coefficients of T̃ read and c_k = T̃_k · L (2·3 flops
+        per coefficient). Without a render on ``P`` samples: every sample hit, every face and
+        vertex referenced and shaded, every node touched (an upper bound of those terms)."""
+        f4 = 4
+        last = self._last_view[1].get("vertex") if self._last_view is not None and self._last_view[0] == P else None
+        b = P * 3 * f4
+        f = 0
+        if last is None:
+            hit, nfaces = P, int(self.F.shape[0])
+            nref = sum(int(reg.verts.numel()) for reg in self.regions)
+        else:
+            hit, nfaces, nref = last["hits"], last["faces"], last["ref"]
+        b += hit * (8 + 8 + 4) + (P - hit) * 4 + nfaces * 3 * self.F.element_size() + nref * 6 * f4
+        f += hit * 2 * 9 + nref * (3 + 2 * 9)
+        for s, reg in enumerate(self.regions):
+            K, R = reg.K, int(round(reg.sh_lut.shape[0] ** 0.5))
+            crow = reg.T.crow_indices()
+            if last is None:
+                loc = torch.arange(reg.verts.numel(), device=crow.device)
+                nodes = R * R
+            else:
+                loc, first, _ = last["slots"][s]
+                nodes = int(torch.unique(first[:, None] + torch.tensor([0, 1, R, R + 1], device=first.device)).numel())
+            nv = int(loc.numel())
+            b += nv * K * 3 * f4 + nodes * 3 * K * f4                     # c rows, σ_k h_k rows
+            f += nv * (4 + 2 * 4 * 3 * K + 2 * 4 * 3)
+            if light:
+                nnz = int((crow[(loc + 1) * K].long() - crow[loc * K].long()).sum())
+                b += nnz * (reg.T.values().element_size() + reg.T.col_indices().element_size())
+                f += 2 * 3 * nnz
+        if light:
+            lb, lf = self._lighting_cost()
+            b, f = b + lb, f + lf
         return FrameCost(int(b), int(f))

@@ -250,3 +250,166 @@ def test_memory_counts_the_fast_arrays(tiny):
     for reg in m.regions:
         assert mem[f"{reg.name}/c"] == tensor_bytes(m._cf[reg.name], m._cf_valid[reg.name])
         assert mem[f"{reg.name}/sh_table_fast"] == tensor_bytes(st.regions[m.regions.index(reg)].sh_nc)
+
+
+# -- shading "vertex" (eq. 4 per vertex, Gouraud to the samples) -----------------------------------
+
+
+def _vertex(m: InOut) -> InOut:
+    """The precomputation ``m`` shading per vertex, with caches of its own (shading is a run-time
+    setting: the precomputation is the same)."""
+    v = copy.copy(m)
+    v._config = {**m._config, "shading": "vertex"}
+    v._reset_cache()
+    return v
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_vertex_fast_path_equals_reference(precomputed, name):
+    """Every library scene, V / L / E in order, 1 and 2×2 samples per pixel: `_render_vertex` equals
+    `_render_vertex_reference` (the per-sample code evaluated at each vertex, then the G-buffer's
+    interpolate + resolve) to float32 round-off."""
+    scene = get_scene(name, "test")
+    why = InOut.capabilities.why_not(scene, "L", 0)
+    if why is not None:
+        pytest.skip(why)
+    m = _vertex(precomputed(name))
+    for spp in (1, 2):
+        _assert_sequence_equal(m, "V", spp_side=spp)
+    for kind in ("L", "E"):
+        _assert_sequence_equal(m, kind)
+
+
+def test_vertex_reference_is_per_sample_at_the_vertices(precomputed):
+    """The vertex reference's per-vertex radiance is the per-sample reference evaluated with a G-buffer
+    whose samples sit on the vertices (barycentrics (0, 0): the face's first corner), normal the
+    vertex normal and ω_o towards the camera."""
+    m = _vertex(precomputed("sphere_plane"))
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 1)
+    geom = m.scene.geometry()
+    F = m.F
+    hitf = torch.unique(gb.face[gb.hit])[:50]
+    v0 = F[hitf, 0]
+    V = torch.as_tensor(geom.V).float()
+    Nrm = torch.nn.functional.normalize(torch.as_tensor(geom.N).float(), dim=-1)
+    cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
+    n = hitf.numel()
+    fake = type(gb)(1, n, 1, hit=torch.ones(n, dtype=torch.bool), face=hitf, bary=torch.zeros(n, 2),
+                    position=V[v0], normal=Nrm[v0], wo=torch.nn.functional.normalize(cam - V[v0], dim=-1),
+                    region=m._fast_static().face_region[hitf], coverage=torch.ones(1, n, dtype=torch.bool))
+    s = copy.copy(precomputed("sphere_plane"))
+    s._reset_cache()
+    want = s._render_reference(frame, fake)
+    got = m._render_reference(frame, fake)
+    assert (got - want).abs().max() <= 1e-6 * float(want.abs().max())
+
+
+def test_vertex_view_is_kept_across_lighting_changes(precomputed):
+    """L / E frames: the view's referenced vertices and cells are reused (only c_k and B_v recomputed);
+    a new camera, or the same camera with another G-buffer, recomputes them."""
+    m = _vertex(precomputed("sphere_plane"))
+    frames = make_sequence(m.scene, "L", n_frames=3, seed=1)
+    gb = make_gbuffer(m.scene, frames[0], 1)
+    m.render(frames[0], gb)
+    vv = m._vview
+    m.render(frames[1], make_gbuffer(m.scene, frames[1], 1))
+    assert m._vview is vv
+    m.render(frames[2], make_gbuffer(m.scene, frames[2], 2))                # another sample count
+    assert m._vview is not vv
+    vv = m._vview
+    gb2 = make_gbuffer(m.scene, frames[2], 1)
+    gb2.face = gb2.face.clone()
+    gb2.hit = gb2.hit.clone()
+    gb2.face[gb2.hit.nonzero()[0, 0]] = -1                                  # one hit fewer, same camera
+    gb2.hit = gb2.face >= 0
+    m.render(frames[2], gb2)
+    assert m._vview is not vv and m._vview["hits"] == int(gb2.hit.sum())
+    for f in make_sequence(m.scene, "V", n_frames=2, seed=2):
+        m.render(f, make_gbuffer(m.scene, f, 1))
+    assert m._vview["key"][1] == tuple(float(x) for x in f.camera.origin)
+
+
+@pytest.mark.parametrize("kind", ["L", "E"])
+def test_vertex_lighting_frame_equals_fresh_precompute(kind):
+    """As ``tests/methods/test_relighting.py`` for shading "vertex": frame 2 of a lighting-only
+    sequence equals a fresh precompute with that lighting baked in (no stale c_k or B_v)."""
+    import dataclasses
+
+    scene = get_scene("sphere_plane", "test")
+    frames = make_sequence(scene, kind, n_frames=3, seed=1)
+    gbs = [make_gbuffer(scene, f, 1) for f in frames]
+    m = InOut(terms=8, shading="vertex", **{k: v for k, v in TINY.items() if k != "terms"})
+    m.precompute(scene)
+    imgs = [m.render(f, g) for f, g in zip(frames, gbs)]
+    fresh = InOut(terms=8, shading="vertex", **{k: v for k, v in TINY.items() if k != "terms"})
+    fresh.precompute(dataclasses.replace(scene, envmap=frames[-1].envmap))
+    want = fresh.render(dataclasses.replace(frames[-1], index=0, changed=frozenset({"view", "brdf", "light", "pose"})),
+                        gbs[-1])
+    scale = float(want.abs().max())
+    assert float((imgs[-1] - want).abs().max()) <= 2e-5 * scale
+    assert float((imgs[-1] - imgs[0]).abs().max()) > 2e-3 * scale
+
+
+def test_vertex_frame_cost_is_the_hand_count(tiny):
+    """Shading "vertex" (`InOut._frame_cost_vertex` docstring), re-derived from the G-buffer, the
+    geometry and the precomputed arrays: only hit faces' vertices, only those the camera sees above
+    their horizon read c_k, T̃ and σ_k h_k."""
+    m0, frame, gb = tiny
+    m = _vertex(m0)
+    m.render(frame, gb)
+    P, hit = gb.num_samples, gb.hit
+    Qh = int(hit.sum())
+    geom = m.scene.geometry()
+    V = torch.as_tensor(geom.V).float()
+    Nrm = torch.nn.functional.normalize(torch.as_tensor(geom.N).float(), dim=-1)
+    cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
+    faces = torch.unique(gb.face[hit])
+    b = P * 12 + Qh * 20 + (P - Qh) * 4 + faces.numel() * 24
+    f = Qh * 18
+    light_b, light_f = 0, 0
+    nref = culled = 0
+    face_region = torch.as_tensor(geom.face_region).long()
+    for r, name in enumerate(m.scene.regions):
+        reg = next(x for x in m.regions if x.name == name)
+        K, R = reg.K, m.config["lut_res"]
+        verts = torch.unique(m.F[faces[face_region[faces] == r]])           # per region: its own copies
+        nref += verts.numel()
+        d = torch.nn.functional.normalize(cam - V[verts], dim=-1)
+        wl = (frame_matrix(Nrm[verts]) @ d.unsqueeze(-1)).squeeze(-1)
+        front = wl[:, 2] > 0
+        cells, _ = tp.lut_cell(wl[front], R)
+        nodes = torch.unique(torch.cat([cells, cells + 1, cells + R, cells + R + 1])).numel()
+        nv = int(front.sum())
+        assert nv > 0
+        culled += verts.numel() - nv
+        b += nv * K * 12 + nodes * K * 12
+        f += nv * (4 + 24 * K + 24)
+        crow, loc = reg.T.crow_indices().long(), reg.local_of[verts[front]]
+        nnz = int(sum(int(crow[(v + 1) * K] - crow[v * K]) for v in loc.tolist()))
+        light_b += nnz * (4 + reg.T.col_indices().element_size())
+        light_f += 6 * nnz
+    assert culled > 0                                                          # the sphere's silhouette rim
+    b += nref * 24
+    f += nref * 21
+    N, s = m.config["cube_res"], m.config["light_supersample"]
+    H, W = m.scene.envmap.data.shape[:2]
+    light_b += min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12
+    light_f += 6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4
+    assert m.frame_cost("V", P) == FrameCost(b, f)
+    for kind in ("L", "E", "VL"):
+        assert m.frame_cost(kind, P) == FrameCost(b + light_b, f + light_f)
+    # no render of that size: the upper bound (every sample, face, vertex, node)
+    Pn = 1000
+    ub = m.frame_cost("V", Pn)
+    nall = sum(int(reg.verts.numel()) for reg in m.regions)
+    b = Pn * 12 + Pn * 20 + m.F.shape[0] * 24 + nall * 24
+    f = Pn * 18 + nall * 21
+    for reg in m.regions:
+        R = m.config["lut_res"]
+        b += reg.verts.numel() * reg.K * 12 + R * R * reg.K * 12
+        f += reg.verts.numel() * (4 + 24 * reg.K + 24)
+    assert ub == FrameCost(b, f)
+    # and it reads less than the per-sample path on the same frame
+    m0.render(frame, gb)
+    assert m.frame_cost("V", P).bytes < m0.frame_cost("V", P).bytes

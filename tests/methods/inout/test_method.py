@@ -13,10 +13,16 @@ LUT_TOL = 0.05
 
 
 @pytest.mark.parametrize("cfg", [dict(terms=0), dict(cube_res=12), dict(n_coeffs=0), dict(budget="row"), dict(brdf_res=1),
-                                 dict(select="x"), dict(terms={"a": -1}), dict(lut_res=1)])
+                                 dict(select="x"), dict(terms={"a": -1}), dict(lut_res=1),
+                                 dict(shading="pixel"), dict(shading=None)])
 def test_bad_config_raises(cfg):
     with pytest.raises(ValueError):
         InOut(**cfg)
+
+
+def test_bad_shading_names_the_choices():
+    with pytest.raises(ValueError, match=r"shading must be one of \('sample', 'vertex'\), got 'pixel'"):
+        InOut(shading="pixel")
 
 
 def test_lambert_is_rank_one():

@@ -1,0 +1,68 @@
+"""Gouraud resolve: per-vertex radiance interpolated to the G-buffer's samples with their
+barycentrics and box-filtered into pixels, in one pass over the samples (issue 14).
+
+The reference is two ``scenes.frame.GBuffer`` calls, ``resolve(interpolate(values, F))``: gather the
+three vertex rows of each sample's face, weight them by (1 − u − v, u, v), zero the misses, average
+each pixel's S² sub-samples. `resolve` computes the same sums per pixel (unrolled: three vertices,
+S² sub-samples) as one compiled kernel over static blocks of pixels (``methods.core.fused``), so the
+per-sample radiance is never written to memory; it equals the reference to float32 round-off.
+
+Used by the methods that shade per vertex and interpolate the radiance (the paper's run time of
+Mahajan 2008 "interactive at 17K vertices", Ma 2006 §3.3, Sun 2007's GPU path).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from methods.core.fused import CHUNK, fused, map_rows
+
+__all__ = ["resolve", "resolve_reference"]
+
+
+@fused
+def _pixels(face: Tensor, bary: Tensor, hit: Tensor, fv: Tensor, values: Tensor) -> Tensor:
+    """(n, C) pixel radiance of n pixels: face (n, S²) int64 (−1 on a miss), bary (n, S², 2), hit
+    (n, S²) bool; fv (3, M) vertex rows of each face's corners; values (N, C) per-vertex radiance."""
+    S2 = face.shape[1]
+    out = None
+    for s in range(S2):                       # unrolled: each pixel's sum is one thread's, in order
+        f = face[:, s].clamp_min(0)
+        u, v = bary[:, s, 0:1], bary[:, s, 1:2]
+        b = (values[fv[0][f]] * (1.0 - u - v) + values[fv[1][f]] * u + values[fv[2][f]] * v)
+        b = torch.where(hit[:, s, None], b, torch.zeros((), dtype=b.dtype))
+        out = b if out is None else out + b
+    return out * (1.0 / S2)
+
+
+def resolve(values: Tensor, fv: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
+            spp_side: int) -> Tensor:
+    """The (height, width, C) image of per-vertex radiance ``values`` (N, C) Gouraud-interpolated to
+    the samples (face (P,) int64, −1 on a miss; bary (P, 2) float32 (u, v); hit (P,) bool; P =
+    height·width·spp_side², pixel-major as ``GBuffer``) and box-filtered; fv (3, M) int the rows of
+    ``values`` at each face's three corners (a face's corner may map to a per-region copy of a vertex).
+    Misses count as 0. Equals `resolve_reference` to float32 round-off."""
+    S2 = spp_side * spp_side
+    n = height * width
+    if face.shape[0] != n * S2:
+        raise ValueError(f"G-buffer has {face.shape[0]} samples, expected {height}x{width}x{S2}")
+    # the tables' sizes vary per scene: symbolic, so one compiled kernel serves every scene
+    torch._dynamo.maybe_mark_dynamic(values, 0)
+    torch._dynamo.maybe_mark_dynamic(fv, 1)
+    rows = (face.view(n, S2), bary.float().view(n, S2, 2), hit.view(n, S2))
+    img = map_rows(_pixels, rows, (fv, values.float()), chunk=max(1, CHUNK // S2))
+    return img.view(height, width, -1)
+
+
+def resolve_reference(values: Tensor, fv: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int,
+                      width: int, spp_side: int) -> Tensor:
+    """`resolve` step by step (the test oracle): the G-buffer's barycentric interpolation, then its
+    box filter (``GBuffer.interpolate`` and ``GBuffer.resolve``)."""
+    f = face.clamp_min(0)
+    idx = fv.T.long()[f]                                              # (P, 3)
+    u, v = bary.float().unbind(-1)
+    w = torch.stack([1.0 - u - v, u, v], -1)
+    w = torch.where(hit[:, None], w, torch.zeros_like(w))
+    per_sample = (values.float()[idx] * w[..., None]).sum(1)
+    x = torch.where(hit[:, None], per_sample, torch.zeros_like(per_sample))
+    return x.view(height, width, spp_side * spp_side, -1).mean(2)

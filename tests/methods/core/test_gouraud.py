@@ -1,0 +1,53 @@
+"""The Gouraud resolve (``methods.core.gouraud``): the fused pass equals the G-buffer's own
+interpolate + resolve, compiled and eager, for every sub-pixel count, with misses."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from methods.core import gouraud
+from scenes.frame import GBuffer
+
+
+def _case(H: int, W: int, S: int, N: int = 50, M: int = 80, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    P = H * W * S * S
+    values = torch.rand(N, 3, generator=g)
+    F = torch.randint(0, N, (M, 3), generator=g)
+    face = torch.randint(-1, M, (P,), generator=g)
+    face[: P // 7] = -1                                                   # a run of misses
+    hit = face >= 0
+    uv = torch.rand(P, 2, generator=g) * 0.5
+    gb = GBuffer(H, W, S, hit=hit, face=face, bary=uv, position=torch.zeros(P, 3), normal=torch.zeros(P, 3),
+                 wo=torch.zeros(P, 3), region=torch.where(hit, 0, -1), coverage=torch.zeros(H, W, dtype=torch.bool))
+    return values, F, gb
+
+
+@pytest.mark.parametrize("S", [1, 2, 3])
+@pytest.mark.parametrize("compile_", ["1", "0"])
+def test_resolve_equals_gbuffer_interpolate_and_resolve(S, compile_, monkeypatch):
+    monkeypatch.setenv("PRTBENCH_COMPILE", compile_)
+    values, F, gb = _case(5, 7, S)
+    want = gb.resolve(gb.interpolate(values, F))
+    fv = F.T.contiguous().to(torch.int32)
+    ref = gouraud.resolve_reference(values, fv, gb.face, gb.bary, gb.hit, 5, 7, S)
+    got = gouraud.resolve(values, fv, gb.face, gb.bary, gb.hit, 5, 7, S)
+    assert got.shape == (5, 7, 3)
+    assert (ref - want).abs().max() <= 1e-6
+    assert (got - want).abs().max() <= 1e-6
+    assert bool((got[0, 0] == 0).all())                                  # a pixel of misses is black
+
+
+def test_resolve_many_blocks_and_table_sizes():
+    """More pixels than one block (padding of the last one) and another table size (no stale kernel)."""
+    for N in (50, 77):
+        values, F, gb = _case(200, 190, 1, N=N, seed=N)
+        fv = F.T.contiguous().to(torch.int32)
+        want = gb.resolve(gb.interpolate(values, F))
+        assert (gouraud.resolve(values, fv, gb.face, gb.bary, gb.hit, 200, 190, 1) - want).abs().max() <= 1e-6
+
+
+def test_resolve_checks_the_sample_count():
+    values, F, gb = _case(5, 7, 2)
+    with pytest.raises(ValueError):
+        gouraud.resolve(values, F.T.contiguous(), gb.face, gb.bary, gb.hit, 5, 6, 2)
