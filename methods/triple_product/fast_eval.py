@@ -614,34 +614,15 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
-def gouraud_block(face: Tensor, bary: Tensor, hit: Tensor, F: Tensor, Bv: Tensor) -> Tensor:
-    """Gouraud resolve of a block of b pixels (Ma 2006 §3.3, per-vertex shading): each of the S²
-    samples interpolates its triangle's vertex colours barycentrically (0 on a miss), the pixel is
-    their mean (`GBuffer.interpolate` then `GBuffer.resolve` in one pass).
-
-    Args: face (b, S²) int64 (−1 miss), bary (b, S², 2) (u, v), hit (b, S²) bool; F (M, 3) int64;
-        Bv (N, 3) vertex colours. Returns (b, 3)."""
-    vi = F[face.clamp_min(0)]                                            # (b, S², 3)
-    u, v = bary[..., 0:1], bary[..., 1:2]
-    c = (1.0 - u - v) * Bv[vi[..., 0]] + u * Bv[vi[..., 1]] + v * Bv[vi[..., 2]]
-    c = torch.where(hit[..., None], c, torch.zeros((), dtype=c.dtype, device=c.device))
-    return c.mean(1)
-
-
-_gouraud_block = fused(gouraud_block)
-# Pixels per compiled block of `gouraud_image`.
-GOURAUD_BLOCK = 1 << 13
-
-
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:
-    """The (H, W, 3) image of per-vertex colours Bv (N, 3) on ``gbuffer`` (Gouraud, `gouraud_block`
-    compiled over static blocks of `GOURAUD_BLOCK` pixels; = ``gbuffer.resolve(gbuffer.interpolate(Bv,
-    F))`` to float32 round-off)."""
-    H, W, S2 = gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2
-    for t in (F, Bv):  # vertex / face counts vary by scene: one compiled variant
-        torch._dynamo.maybe_mark_dynamic(t, 0)
-    rows = (gbuffer.face.view(H * W, S2), gbuffer.bary.float().view(H * W, S2, 2), gbuffer.hit.view(H * W, S2))
-    return map_rows(_gouraud_block, rows, (F, Bv.float()), chunk=GOURAUD_BLOCK).view(H, W, 3)
+    """The (H, W, 3) image of per-vertex colours Bv (N, 3) on ``gbuffer`` (Ma 2006 §3.3, per-vertex
+    shading: each sample interpolates its triangle's vertex colours barycentrically, 0 on a miss, the
+    pixel is their mean) — the shared compiled Gouraud resolve, `methods.core.gouraud.resolve`
+    (= ``gbuffer.resolve(gbuffer.interpolate(Bv, F))`` to float32 round-off)."""
+    from methods.core.gouraud import resolve
+
+    return resolve(Bv, F.T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
+                   gbuffer.spp_side)
 
 
 # -- front end --------------------------------------------------------------------------------------
