@@ -228,6 +228,30 @@ class EnvMap:
             self._ext[key] = extend_periodic(self.data.to(d.device, d.dtype))
         return bilinear_lookup(self.data, self.to_local(d), self._ext[key])
 
+    def box_downsampled(self, k: int) -> "EnvMap":
+        """The map with each k×k block of texels averaged (as `probe` sizes the vendored maps),
+        same rotation; k must divide height and width and leave ≥ 3 rows. k = 1: ``self``."""
+        k = int(k)
+        if k == 1:
+            return self
+        if k < 1 or self.height % k or self.width % k or self.height // k < 3:
+            raise ValueError(f"cannot box-downsample a {self.height}x{self.width} env map by {k}")
+        d = self.data.double().reshape(self.height // k, k, self.width // k, k, 3).mean((1, 3))
+        return EnvMap(d.float(), self.to_world)
+
+    def prefiltered_for_spacing(self, spacing: float) -> "EnvMap":
+        """The map box-downsampled (by a power of two) until its texels are at least twice a point
+        sampler's ``spacing`` (radians), so that every texel gets sub-samples: a sampler coarser
+        than the texels aliases a small bright source (a sun of a few texels is missed or counted
+        over a whole sample's solid angle). ``self`` when its texels are already that coarse."""
+        k = 1
+        while math.pi / (self.height // k) < 1.9 * spacing:  # 2 per texel side, 5 % slack on a mean spacing
+            k2 = 2 * k
+            if self.height % k2 or self.width % k2 or self.height // k2 < 3:
+                break
+            k = k2
+        return self.box_downsampled(k)
+
     def mean_radiance(self) -> Tensor:
         """(3,) average radiance over the sphere (solid-angle weighted, from the sampling cells)."""
         _, _, omega = self._tables()

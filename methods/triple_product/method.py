@@ -316,6 +316,7 @@ class TripleProduct(Method):
         if key == self._light_key:
             return
         t0 = time.perf_counter()
+        envmap = lt.prefiltered(envmap, self.geo, cfg["light_supersample"])  # no aliasing of a small sun
         if cfg["light_lookup"] == "exact":
             self._exact_env = envmap
             self.L_idx = self.L_val = None

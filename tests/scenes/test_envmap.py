@@ -280,3 +280,27 @@ def test_sampling_tables_do_not_depend_on_the_thread_count():
             out.append((*env._tables(), env.mean_radiance()))
     for a, b in zip(*out):
         assert torch.equal(a, b)
+
+
+def test_box_downsample_and_prefilter_for_a_sampler():
+    import math
+
+    import pytest
+    import torch
+
+    from scenes.envmap import EnvMap
+
+    env = EnvMap(torch.rand(256, 512, 3), to_world=torch.tensor([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]]))
+    half = env.box_downsampled(2)
+    assert (half.height, half.width) == (128, 256) and torch.equal(half.to_world, env.to_world)
+    torch.testing.assert_close(half.data[3, 5].double(), env.data[6:8, 10:12].double().mean((0, 1)))
+    assert env.box_downsampled(1) is env
+    for bad in (3, 0, 128):
+        with pytest.raises(ValueError, match="box-downsample"):
+            env.box_downsampled(bad)
+    # texels at least ~2 sampler spacings (5 % slack), a power-of-two factor, never below 3 rows
+    for spacing in (1e-3, 0.0123, 0.0495, 0.2, 10.0):
+        h = env.prefiltered_for_spacing(spacing).height
+        assert h == 256 or math.pi / h >= 1.9 * spacing or h // 2 < 3, (spacing, h)
+        assert h == 256 or math.pi / (2 * h) < 1.9 * spacing, (spacing, h)
+    assert env.prefiltered_for_spacing(0.0495).height == 32

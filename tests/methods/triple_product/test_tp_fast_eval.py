@@ -276,3 +276,45 @@ def test_production_path_equals_reference_on_library(name):
             tol = F32_LIGHT if cfg.get("n_coeffs") is None else F32  # full tables: projected by `project_env`
             assert (img - ref).abs().max() <= tol * scale, (name, cfg, frame.changed)
         assert fast_eval.fine_ok(m) == (cfg.get("n_coeffs") is None)  # level 1: the fine-value path ran
+
+
+def test_prefiltered_lighting_keeps_a_small_suns_energy():
+    """`lighting.prefiltered`: the projection's point samples (level 3, 4 per fine triangle, 2.8°
+    apart) on a 256 × 512 map with a 2 × 2-texel sun (99 % of the energy), at 8 sun positions.
+    Unfiltered, the sampled ∫ L dω misses or multiplies the sun (measured −92 % to +93 %; the bench
+    bunny's ground came out at 0.63 of the reference); prefiltered to 32 rows (5.6° texels, two
+    samples per texel side) the worst is 15 % (measured): what is left is the block mean's own
+    error — rows are corner-aligned (Mitsuba), so a k × k block's mean sits up to half a block
+    away from its rows and is weighted by its own row's solid angle. On the bench bunny the ground
+    went 0.63 → 1.06 of the reference (README)."""
+    import math
+
+    from methods.core.spherical_haar import Geodesic, _spherical_triangle_area
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap
+
+    geo = Geodesic(3)
+    c, wn = lt._env_samples(geo, 1)
+    tri = _spherical_triangle_area(geo.triangles[-1]).double()
+
+    def sampled(env):
+        vals = env.radiance(c.double()).double().reshape(geo.n, -1, 3)
+        return ((vals * wn.double()[..., None]).sum(1) * tri[:, None]).sum(0)
+
+    H, W = 256, 512
+    theta = torch.arange(H, dtype=torch.float64) * math.pi / (H - 1)    # corner-aligned rows
+    dA = (2 * math.pi / W) * (math.pi / (H - 1)) * torch.sin(theta)      # each texel's hat integral
+    gen = torch.Generator().manual_seed(5)
+    worst_raw, worst_pre = 0.0, 0.0
+    for _ in range(8):
+        data = torch.full((H, W, 3), 0.2)
+        r, col = int(torch.randint(20, 110, (1,), generator=gen)), int(torch.randint(0, 510, (1,), generator=gen))
+        data[r:r + 2, col:col + 2] = 5.0e4
+        env = EnvMap(data)
+        ref = (data.double() * dA[:, None, None]).sum((0, 1))
+        pre_env = lt.prefiltered(env, geo, 1)
+        assert pre_env.height == 32
+        worst_raw = max(worst_raw, float(((sampled(env) - ref).abs() / ref).max()))
+        worst_pre = max(worst_pre, float(((sampled(pre_env) - ref).abs() / ref).max()))
+    assert worst_pre < 0.16, worst_pre
+    assert worst_raw > 0.5, worst_raw
