@@ -6,11 +6,19 @@ trilinear look-up), frame 0 of the V sequence, test size (64²), S = 2 G-buffer 
 RMSE against a 256-spp reference (seed 0), measured with 1 thread:
 
     scene          floor   mean    per-vertex  per-pixel
-    sphere_plane   0.051   0.893   0.2819      0.1679    (sharp sun on an s = 40 Phong sphere)
-    chess          0.012   0.224   0.0633      0.0592
-    alcove         0.010   0.146   0.0229      0.0219
-    shadow_detail  0.014   0.475   0.1106      0.0545    (thin occluders: vertex visibility blurs)
-    creature       0.034   0.831   0.0890      0.0800
+    sphere_plane   0.051   0.893   0.2864      0.1781    (sharp sun on an s = 40 Phong sphere)
+    chess          0.012   0.224   0.0626      0.0586
+    alcove         0.010   0.146   0.0231      0.0221
+    shadow_detail  0.014   0.475   0.1104      0.0535    (thin occluders: vertex visibility blurs)
+    creature       0.034   0.831   0.0858      0.0766
+    bunny, dragon, character: PINNED below
+
+Re-pinned (2026-12-03) when the lighting projection began prefiltering the env map to two samples
+per texel (``lighting.prefiltered``: a few-texel sun aliased; the bench bunny's ground was at 0.63
+of the reference): bunny 0.1461 / 0.1002 → 0.1376 / 0.0848, creature 0.0890 / 0.0800 → 0.0858 /
+0.0766, chess and shadow_detail slightly better, alcove, dragon and character within 2 %, and
+sphere_plane 0.2819 / 0.1679 → 0.2864 / 0.1781 — the procedural sun blurred over the prefiltered
+5.6° texels on the s = 40 highlight, the price of not aliasing it.
 
 The residual above the floor is the level-3 piecewise-constant basis (a 1280-triangle sphere:
 ≈ 5.6° per triangle) against sharp suns and lobes; per-pixel shading beats per-vertex shading on
@@ -27,9 +35,9 @@ from references.render import render_reference
 from scenes.library import SCENES, get_scene
 from scenes.sequences import make_sequence
 
-PINNED = {"sphere_plane": (0.2819, 0.1679), "chess": (0.0633, 0.0592), "alcove": (0.0229, 0.0219),
-          "shadow_detail": (0.1106, 0.0545), "creature": (0.0890, 0.0800),
-          "bunny": (0.1461, 0.1002), "dragon": (0.0609, 0.0348), "character": (0.0386, 0.0342)}
+PINNED = {"sphere_plane": (0.2864, 0.1781), "chess": (0.0626, 0.0586), "alcove": (0.0231, 0.0221),
+          "shadow_detail": (0.1104, 0.0535), "creature": (0.0858, 0.0766),
+          "bunny": (0.1376, 0.0848), "dragon": (0.0603, 0.0345), "character": (0.0394, 0.0350)}
 # Room for float/BLAS differences between machines in a deterministic pipeline (same seeds).
 SLACK = 1.05
 
