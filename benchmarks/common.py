@@ -27,6 +27,19 @@ def setup(scene_name, size: str = "test", *, kind: str = "V", n_frames: int = 1,
     return st.scene, st.frames, st.gbuffers, st.references
 
 
+def frame_args(ap, *, scene: str, config: str = "{}", frames: int = 5, kinds: Sequence[str] = ("V", "L", "E")):
+    """The options every frame-timing benchmark takes (scene, size, method config, frames per kind,
+    torch threads, G-buffer samples per pixel side, sequence kinds), added to ``ap``."""
+    ap.add_argument("--scene", default=scene)
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--config", default=config)
+    ap.add_argument("--frames", type=int, default=frames)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--spp-side", type=int, default=2)
+    ap.add_argument("--kinds", nargs="+", default=list(kinds))
+    return ap
+
+
 def precomputed(cls, scene, config: dict):
     """``(cls(**config) precomputed on scene, precompute seconds or None when it came from the
     cache)`` through the harness's one precompute cache (`reports.precompute_cache`: tensors only,

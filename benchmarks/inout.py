@@ -26,7 +26,7 @@ import time
 
 import torch
 
-from benchmarks.common import precomputed, setup
+from benchmarks.common import frame_args, precomputed, setup
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -97,13 +97,7 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="sphere_plane")
-    ap.add_argument("--size", default="bench")
-    ap.add_argument("--config", default="{}")
-    ap.add_argument("--frames", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--spp-side", type=int, default=2)
-    ap.add_argument("--kinds", nargs="+", default=["V", "L", "E"])
+    frame_args(ap, scene="sphere_plane", frames=5)
     ap.add_argument("--no-micro", action="store_true")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

@@ -22,7 +22,7 @@ import time
 
 import torch
 
-from benchmarks.common import precomputed, setup
+from benchmarks.common import frame_args, precomputed, setup
 from methods.core import gouraud
 from methods.inout import fast
 from methods.inout.method import InOut
@@ -83,13 +83,7 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="sphere_plane")
-    ap.add_argument("--size", default="bench")
-    ap.add_argument("--config", default="{}")
-    ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--spp-side", type=int, default=2)
-    ap.add_argument("--kinds", nargs="+", default=["V", "L", "E"])
+    frame_args(ap, scene="sphere_plane", frames=8)
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     cfg = {k: v for k, v in json.loads(a.config).items() if k != "shading"}

@@ -28,7 +28,7 @@ import time
 import torch
 import torch.nn.functional as Fnn
 
-from benchmarks.common import precomputed, setup
+from benchmarks.common import frame_args, precomputed, setup
 from methods.ptt.method import PTT
 from reports import measure
 
@@ -117,13 +117,7 @@ def _render(m: PTT, which: str, f, g):
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="chess")
-    ap.add_argument("--size", default="bench")
-    ap.add_argument("--config", default='{"light_res_1":4}')
-    ap.add_argument("--frames", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--spp-side", type=int, default=2)
-    ap.add_argument("--kinds", nargs="+", default=["V", "VB", "VBL", "L"])
+    frame_args(ap, scene="chess", config='{"light_res_1":4}', frames=5, kinds=("V", "VB", "VBL", "L"))
     ap.add_argument("--old", default="pixel", choices=["pixel", "vertex", "reference"])
     ap.add_argument("--new", default="vertex", choices=["pixel", "vertex"])
     ap.add_argument("--check", action="store_true", help="compare the new fast path with its reference")

@@ -200,6 +200,15 @@ class Geodesic:
             idx = cand.gather(-1, sc.argmax(-1, keepdim=True)).squeeze(-1)
         return idx.reshape(shp)
 
+    def subsamples(self, supersample: int) -> tuple[Tensor, Tensor]:
+        """The sample points of `project`: c (n·4^s, 3) float64 unit centres of the 4^s
+        sub-triangles of every fine triangle (fine triangle-major), w (n, 4^s) their solid angles."""
+        T = self.triangles[-1]
+        for _ in range(_check_level(supersample)):
+            T = _subdivide(T)
+        c = T.mean(1)
+        return c / c.norm(dim=-1, keepdim=True), _spherical_triangle_area(T).reshape(self.n, 4 ** supersample)
+
     def project(self, fn: Callable[[Tensor], Tensor], *, supersample: int = 2,
                 solid_angle_weight: bool = False, dtype=torch.float32) -> Tensor:
         """Wavelet coefficients of a spherical function.
@@ -215,12 +224,7 @@ class Geodesic:
             (K,) or (C, K) coefficients, K = 20·4^L (channels first, transform on the last dim).
         """
         s = _check_level(supersample)
-        T = self.triangles[-1]
-        for _ in range(s):
-            T = _subdivide(T)
-        c = T.mean(1)
-        c = c / c.norm(dim=-1, keepdim=True)
-        w = _spherical_triangle_area(T).reshape(self.n, 4 ** s)
+        c, w = self.subsamples(s)
         vals = torch.as_tensor(fn(c.to(dtype))).to(torch.float64)
         chan = vals.ndim == 2
         vals = vals.reshape(self.n, 4 ** s, -1)

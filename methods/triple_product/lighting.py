@@ -229,16 +229,9 @@ def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
     """The sample directions and weights of `Geodesic.project`: c (n·4^s, 3) float32 unit centres of
     the 4^s sub-triangles of every fine triangle, wn (n, 4^s) float32 their solid angles divided by
     the fine triangle's sum (cached on ``geo``)."""
-    from methods.core.spherical_haar import _spherical_triangle_area, _subdivide
-
     cache = geo.__dict__.setdefault("_env_samples", {})
     if supersample not in cache:
-        T = geo.triangles[-1]
-        for _ in range(supersample):
-            T = _subdivide(T)
-        c = T.mean(1)
-        c = c / c.norm(dim=-1, keepdim=True)
-        w = _spherical_triangle_area(T).reshape(geo.n, 4 ** supersample)
+        c, w = geo.subsamples(supersample)
         cache[supersample] = (c.float().contiguous(), (w / w.sum(1, keepdim=True)).float().contiguous())
     return cache[supersample]
 
