@@ -27,6 +27,20 @@ def setup(scene_name, size: str = "test", *, kind: str = "V", n_frames: int = 1,
     return st.scene, st.frames, st.gbuffers, st.references
 
 
+def median_time(fn, repeats: int = 5) -> float:
+    """Median wall seconds of ``repeats`` calls of ``fn`` after one warm-up call."""
+    import statistics
+    import time
+
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
 def frame_args(ap, *, scene: str, config: str = "{}", frames: int = 5, kinds: Sequence[str] = ("V", "L", "E")):
     """The options every frame-timing benchmark takes (scene, size, method config, frames per kind,
     torch threads, G-buffer samples per pixel side, sequence kinds), added to ``ap``."""

@@ -26,7 +26,7 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, precomputed, setup
+from benchmarks.common import frame_args, median_time, precomputed, setup
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -39,14 +39,8 @@ def _precomputed(scene, config: dict) -> tuple[InOut, float | None]:
     return m, pre
 
 
-def _time(fn, repeats: int = 5) -> float:
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+def _time(fn) -> float:
+    return median_time(fn, 5)
 
 
 def micro(m: InOut, frame, gb) -> dict[str, float]:

@@ -22,21 +22,15 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, precomputed, setup
+from benchmarks.common import frame_args, median_time, precomputed, setup
 from methods.core import gouraud
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
 
 
-def _time(fn, repeats: int = 7) -> float:
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+def _time(fn) -> float:
+    return median_time(fn, 7)
 
 
 def _copy(m: InOut, shading: str) -> InOut:
