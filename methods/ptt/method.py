@@ -90,6 +90,9 @@ from scenes.hashing import hash_materials
 # and by the fast path (a batch holds a few hundred bytes per sample).
 RENDER_CHUNK = 1 << 15
 FAST_CHUNK = 1 << 18
+# shading="vertex": the per-sample view stage through the compiled ``fast.shade_block`` (True) or
+# the eager ``fast.shade_samples`` (False; the same numbers to float32 round-off).
+FUSED_VIEW = True
 
 # Paper settings (Sun 2007 §4.3): 6×64×64 cube map, n_L = 96, n_ωi = 8, one-bounce lighting 6×8×8,
 # two-bounce 6×2×2, 4th-order SH.
@@ -529,6 +532,16 @@ class PTT(Method):
         table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
+        if FUSED_VIEW:  # one compiled loop per block of samples (fast.shade_block)
+            if bool(gb.hit.all()):  # no gathers of the G-buffer
+                out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L)
+                return _fast.box_filter(out, gb.height, gb.width, gb.spp_side ** 2)
+            out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
+            hit = torch.nonzero(gb.hit).squeeze(-1)
+            out[hit] = _fast.shade_samples_fused(st.face_pairs, table, gb.face[hit], gb.bary[hit],
+                                                 gb.normal[hit] if env is not None else None,
+                                                 gb.wo[hit] if env is not None else None, env, L)
+            return gb.resolve(out)
         if bool(gb.hit.all()):  # no gathers of the G-buffer
             out = torch.empty(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
             for a in range(0, gb.num_samples, B):
