@@ -122,7 +122,7 @@ def test_direct_incidence_is_the_texel_quadrature(factors):
     dt = tp.direct_transport(vis, pts, nrm, factors, N=N, n_L=6 * N * N, coarse=2)
     E0 = tp.direct_incidence(dt, tp.env_haar(env, N))[0]  # (K, 3)
     d = cubemap.texel_directions(N).reshape(-1, 3)
-    Lbar = cubemap.from_radiance(env.radiance, N, supersample=2).reshape(-1, 3)
+    Lbar = cubemap.from_radiance(env.radiance, N, supersample=2, source_res=env.height).reshape(-1, 3)  # as env_haar
     vb = vertex_visibility(vis, pts, nrm, d, below_horizon="hide")[0].float()
     assert 0.05 < 1 - vb[d[:, 1] > 0].mean() < 0.95, "the occluder should block part of the sky"
     loc = to_local(d, nrm.expand_as(d))
