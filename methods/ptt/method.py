@@ -90,7 +90,7 @@ from scenes.hashing import hash_materials
 # and by the fast path (a batch holds a few hundred bytes per sample).
 RENDER_CHUNK = 1 << 15
 FAST_CHUNK = 1 << 18
-# shading="vertex": the per-sample view stage through the compiled ``fast.shade_block`` (True) or
+# shading="vertex": the per-sample view stage through the compiled ``fast.shade_samples_fused`` (True) or
 # the eager ``fast.shade_samples`` (False; the same numbers to float32 round-off).
 FUSED_VIEW = True
 
@@ -532,7 +532,7 @@ class PTT(Method):
         table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
-        if FUSED_VIEW:  # one compiled loop per block of samples (fast.shade_block)
+        if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
             if bool(gb.hit.all()):  # no gathers of the G-buffer
                 out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L)
                 return _fast.box_filter(out, gb.height, gb.width, gb.spp_side ** 2)
