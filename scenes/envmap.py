@@ -186,7 +186,7 @@ class EnvMap:
         self.data: Tensor = _check_data(data)
         self.to_world: Tensor = _as_rotation(np.eye(3) if to_world is None else to_world)
         self._table: tuple[Tensor, Tensor, Tensor] | None = None  # sampling tables (lazy)
-        self._ext: dict = {}  # (device, dtype) → periodic-extended texels for `radiance`
+        self._ext: dict = {}  # (device, dtype, planes) → periodic-extended texels (`periodic_texels`)
 
     # -- basics
     @property
@@ -223,10 +223,17 @@ class EnvMap:
         envmap ``eval`` with ``si.wi = −d``."""
         if d.shape[-1] != 3:
             raise ValueError(f"directions must have shape (..., 3), got {tuple(d.shape)}")
-        key = (d.device, d.dtype)
+        return bilinear_lookup(self.data, self.to_local(d), self.periodic_texels(d.device, d.dtype))
+
+    def periodic_texels(self, device=None, dtype=torch.float32, *, planes: bool = False) -> Tensor:
+        """`extend_periodic` (data) on ``device`` in ``dtype``, (H·(W+1), 3): the table `radiance`
+        interpolates; ``planes=True``: its transpose as contiguous channel planes (3, H·(W+1)).
+        Cached per (device, dtype, planes) and shared by `rotated` copies (same data)."""
+        key = (torch.device("cpu") if device is None else torch.device(device), dtype, bool(planes))
         if key not in self._ext:
-            self._ext[key] = extend_periodic(self.data.to(d.device, d.dtype))
-        return bilinear_lookup(self.data, self.to_local(d), self._ext[key])
+            ext = extend_periodic(self.data.to(key[0], dtype))
+            self._ext[key] = ext.T.contiguous() if planes else ext
+        return self._ext[key]
 
     def box_downsampled(self, k: int) -> "EnvMap":
         """The map with each k×k block of texels averaged (as `probe` sizes the vendored maps),

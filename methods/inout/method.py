@@ -334,8 +334,7 @@ class InOut(Method):
         """(6N², 3) Haar coefficients of the env map's texel radiance (module docstring)."""
         cfg = self.config
         N = cfg["cube_res"]
-        Lt = cubemap.from_radiance(envmap.radiance, N, supersample=cfg["light_supersample"],  # (6,N,N,3)
-                                   source_res=envmap.data.shape[0])
+        Lt = cubemap.from_envmap(envmap, N, supersample=cfg["light_supersample"])  # (6,N,N,3)
         C = cubemap.haar_forward(Lt.permute(3, 0, 1, 2)).reshape(3, -1)                        # (3, 6N²)
         if cfg["light_coeffs"] is not None:
             # Ng 2003 §5: keep the largest area-weighted coefficients, selected on the channel sum

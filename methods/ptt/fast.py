@@ -258,7 +258,7 @@ def to_vertex_frames(frames_q: Tensor, d: Tensor) -> Tensor:
 def latlong_lookup(maps: list, d: Tensor) -> Tensor:
     """``EnvMap.radiance`` of several maps at the same world directions d (Q, 3) → (Q, len(maps), 3),
     the lat-long coordinates computed once per distinct map rotation (``scenes.envmap.bilinear_lookup``)."""
-    from scenes.envmap import direction_to_uv, extend_periodic
+    from scenes.envmap import direction_to_uv
 
     out, uv = [], {}
     for e in maps:
@@ -267,8 +267,6 @@ def latlong_lookup(maps: list, d: Tensor) -> Tensor:
             uv[tuple(key)] = direction_to_uv(e.to_local(d))
         u, v = uv[tuple(key)]
         H, W, _ = e.data.shape
-        if (d.device, d.dtype) not in e._ext:
-            e._ext[(d.device, d.dtype)] = extend_periodic(e.data.to(d.device, d.dtype))
         u = u - 0.5 / W
         u = u - torch.floor(u)
         v = v - torch.floor(v)
@@ -276,7 +274,7 @@ def latlong_lookup(maps: list, d: Tensor) -> Tensor:
         ix = x.to(torch.int64).clamp(max=W - 1)
         iy = y.to(torch.int64).clamp(max=H - 2)
         idx = iy * (W + 1) + ix
-        ext = e._ext[(d.device, d.dtype)]
+        ext = e.periodic_texels(d.device, d.dtype)
         wc = _corner_weights(x - ix, y - iy, torch.ones_like(x))
         out.append(sum(w[:, None] * rows(ext, idx + o) for w, o in zip(wc, (0, 1, W + 1, W + 2))))
     return torch.stack(out, 1)

@@ -425,8 +425,7 @@ def prefilter_env(envmap: Any, filters: Sequence[EnvFilter | None], *, supersamp
         if flt is None:
             out.append(envmap)
             continue
-        cube = cubemap.from_radiance(envmap.radiance, flt.res, supersample=supersample,
-                                     source_res=envmap.data.shape[0], dtype=torch.float32)
+        cube = cubemap.from_envmap(envmap, flt.res, supersample=supersample, dtype=torch.float32)
         E = (flt.kernel @ cube.reshape(-1, 3)).clamp_min(0.0).reshape(*flt.shape, 3)
         out.append(EnvMap(E))
     return out

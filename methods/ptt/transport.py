@@ -423,8 +423,7 @@ def env_haar(envmap: Any, N: int, *, supersample: int = 2, dtype=torch.float32) 
 
     Returns (6N², 3): column c = haar_forward of channel c, flattened (face, row, col).
     """
-    cube = cubemap.from_radiance(envmap.radiance, N, supersample=supersample, source_res=envmap.data.shape[0],
-                                 dtype=torch.float32)
+    cube = cubemap.from_envmap(envmap, N, supersample=supersample, dtype=torch.float32)
     return cubemap.haar_forward(cube.permute(3, 0, 1, 2).double()).reshape(3, -1).T.to(dtype).contiguous()
 
 
