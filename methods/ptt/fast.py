@@ -582,18 +582,31 @@ def _combine(acc: Tensor, Ek: Tensor, L: int) -> Tensor:
     return out
 
 
+def _combine_resolve(acc: Tensor, Ek: Tensor, L: int, S2: int) -> Tensor:
+    """`_combine` followed by the box filter of `box_filter` on whole pixels (the block's rows are
+    pixel-major groups of S2 sub-samples) → (rows / S2, 3): the same sums in the same order, so
+    the resolve is no separate pass over the frame's samples."""
+    v = _combine(acc, Ek, L).view(-1, S2, 3)
+    out = v[:, 0]
+    for j in range(1, S2):
+        out = out + v[:, j]
+    return out * (1.0 / S2)
+
+
 sample_cells = fused(_sample_cells)
 combine = fused(_combine)
+combine_resolve = fused(_combine_resolve)
 
 
 def _shade_chunk(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, table: Tensor,
-                 env: EnvStack, L: int) -> Tensor:
-    """`shade_samples` (with lobes) of one block: compiled `sample_cells`, the two bags, compiled `combine`."""
+                 env: EnvStack, L: int, S2: int = 0) -> Tensor:
+    """`shade_samples` (with lobes) of one block: compiled `sample_cells`, the two bags, compiled `combine`
+    (S2 > 0: `combine_resolve`, the block's pixels)."""
     u, v = _spec._latlong_uv(_spec.mirror_dirs(normal, wo), env.to_world)
     bw, idx, w = sample_cells(bary, u, v, env.H, env.W)
     acc = Fnn.embedding_bag(rows(face_pairs, face), table, per_sample_weights=bw, mode="sum")
     Ek = Fnn.embedding_bag(idx, env.ext, per_sample_weights=w, mode="sum")
-    return combine(acc, Ek, L)
+    return combine(acc, Ek, L) if S2 == 0 else combine_resolve(acc, Ek, L, S2)
 
 
 def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
@@ -604,6 +617,27 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
     if env is None:
         return shade_samples(face_pairs, table, face, bary, None, None, None, 0)
     return map_rows(_shade_chunk, [face, bary, normal, wo], (face_pairs, table, env, L), chunk=SAMPLE_CHUNK)
+
+
+def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor,
+                       wo: Tensor, env: EnvStack, L: int, S2: int) -> Tensor | None:
+    """`shade_samples_fused` and `box_filter` of a G-buffer whose every sample hit, pixel-major with
+    S2 sub-samples per pixel, in one pass: each static block of `SAMPLE_CHUNK` samples ends in
+    `combine_resolve` and writes its pixels into the image (no per-sample radiance array, no
+    concatenation, no separate resolve pass) → (Q / S2, 3). None when the blocks cannot hold whole
+    pixels (SAMPLE_CHUNK not a multiple of S2); the caller then takes the two-pass route."""
+    q, B = int(face.shape[0]), SAMPLE_CHUNK
+    if B % S2 or q % S2:
+        return None
+    out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
+    for a in range(0, q, B):
+        blk = [t[a:a + B] for t in (face, bary, normal, wo)]
+        n = blk[0].shape[0]
+        if n < B:  # pad whole pixels by repeating the last sample (map_rows); the padding is dropped
+            blk = [torch.cat([b, b[-1:].expand(B - n, *b.shape[1:])]) for b in blk]
+        o = _shade_chunk(*blk, face_pairs, table, env, L, S2)
+        out[a // S2:(a + n) // S2].copy_(o[:n // S2])
+    return out
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

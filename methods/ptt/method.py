@@ -534,8 +534,13 @@ class PTT(Method):
         self._last_view = (gb.num_samples, gb, cam)
         if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
             if bool(gb.hit.all()):  # no gathers of the G-buffer
+                S2 = gb.spp_side ** 2
+                if env is not None:  # samples shaded and resolved per block (fast.shade_pixels_fused)
+                    img = _fast.shade_pixels_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, S2)
+                    if img is not None:
+                        return img.view(gb.height, gb.width, 3)
                 out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L)
-                return _fast.box_filter(out, gb.height, gb.width, gb.spp_side ** 2)
+                return _fast.box_filter(out, gb.height, gb.width, S2)
             out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
             hit = torch.nonzero(gb.hit).squeeze(-1)
             out[hit] = _fast.shade_samples_fused(st.face_pairs, table, gb.face[hit], gb.bary[hit],

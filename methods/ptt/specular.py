@@ -472,7 +472,9 @@ def mirror_dirs(normal: Tensor, wo: Tensor) -> Tensor:
     torch.mul(s, ny, out=R[1]).sub_(wy)
     torch.mul(s, nz, out=R[2]).sub_(wz)
     inv = (R[0] * R[0]).add_(R[1] * R[1]).add_(R[2] * R[2]).clamp_min_(1e-24).rsqrt_()
-    return R.mul_(inv)
+    for i in range(3):  # row by row: the same products as R.mul_(inv), in passes of Q elements
+        R[i].mul_(inv)
+    return R
 
 
 @functools.lru_cache(maxsize=8)
@@ -495,9 +497,13 @@ def latlong_cells(R: Tensor, to_world: Tensor, H: int, W: int) -> tuple[Tensor, 
 def _latlong_uv(R: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
     """(u, v) ∈ [−½, ½] × [0, 1] of world directions R (3, Q) in a map of frame ``to_world``
     (``scenes.envmap.direction_to_uv``)."""
-    d = to_world.to(R).T @ R  # local = to_worldᵀ d (EnvMap.to_local), (3, Q)
-    u = torch.atan2(d[0], -d[2]).mul_(0.5 / math.pi)
-    v = torch.acos(d[1].clamp(-1.0, 1.0)).mul_(1.0 / math.pi)
+    m = to_world.to(torch.float64).tolist()  # local = to_worldᵀ d (EnvMap.to_local), component by component:
+
+    def comp(i: int) -> Tensor:  # Σ_j to_world[j, i] R[j] (a 3×3 matmul over Q columns is a slow GEMM shape)
+        return torch.mul(R[0], m[0][i]).add_(R[1], alpha=m[1][i]).add_(R[2], alpha=m[2][i])
+
+    u = torch.atan2(comp(0), comp(2).neg_()).mul_(0.5 / math.pi)
+    v = torch.acos(comp(1).clamp_(-1.0, 1.0)).mul_(1.0 / math.pi)
     return u, v
 
 

@@ -230,3 +230,28 @@ def test_fused_sample_stage_equals_eager(n_samples):
         ref = F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L)
         out = F.shade_samples_fused(face_pairs, table, face, bary, normal, wo, env, L)
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+
+
+@pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, (1 << 13) + 5)])
+def test_fused_pixel_stage_equals_eager(S2, n_pixels):
+    """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `combine_resolve`)
+    equals the eager `fast.shade_samples` + `fast.box_filter` to float32 round-off, including a last
+    block shorter than `SAMPLE_CHUNK`; it declines (None) when a block cannot hold whole pixels."""
+    from methods.ptt import fast as F
+
+    g = torch.Generator().manual_seed(1)
+    n_pairs, L, H, W = 300, 4, 16, 32
+    n = S2 * n_pixels
+    face_pairs = torch.randint(0, n_pairs + 1, (500, 3), generator=g)
+    face = torch.randint(0, 500, (n,), generator=g)
+    bary = torch.rand(n, 2, generator=g) * 0.5
+    normal = torch.randn(n, 3, generator=g)
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    to_world = torch.linalg.qr(torch.randn(3, 3, generator=g))[0].contiguous()
+    env = F.EnvStack(torch.rand(H * (W + 1), 3 * L, generator=g), to_world, H, W)
+    for C in (3 + 3 * L, 6 + 3 * L):
+        table = torch.randn(n_pairs + 1, C, generator=g)
+        ref = F.box_filter(F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L), n_pixels, 1, S2)
+        out = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
+        torch.testing.assert_close(out.view(n_pixels, 1, 3), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+    assert F.shade_pixels_fused(face_pairs, table, face[:9], bary[:9], normal[:9], wo[:9], env, L, 9) is None
