@@ -32,7 +32,7 @@ such frame after the camera, pose or exponents changed). `ZHShadow._render_refer
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
 (equal to float32 round-off). The ``specular="cosine"`` variant, whose cos θ_i-weighted visibility
 w = M(R_n) M¹ M(R_n)ᵀ v is not a sum of ZH lobes, goes through the same tables with w in place of v
-for the specular term (`runtime.cosine_visibility`: three fixed GEMMs and four per-point z
+for the specular term (`runtime.cosine_visibility`: three fixed products and four per-point z
 rotations; per vertex and pose with vertex shading, cached with v).
 
 Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
