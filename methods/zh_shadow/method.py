@@ -32,7 +32,7 @@ such frame after the camera, pose or exponents changed). `ZHShadow._render_refer
 path, steps 2–5 per point with explicit rotations (`shade`); it is the test oracle of the fast one
 (equal to float32 round-off). The ``specular="cosine"`` variant, whose cos θ_i-weighted visibility
 w = M(R_n) M¹ M(R_n)ᵀ v is not a sum of ZH lobes, goes through the same tables with w in place of v
-for the specular term (`runtime.cosine_visibility`: three fixed GEMMs and four per-point z
+for the specular term (`runtime.cosine_visibility`: three fixed products and four per-point z
 rotations; per vertex and pose with vertex shading, cached with v).
 
 Radiance = kd · (1/π) v_nᵀ M¹ L_n + ks · ((α+1)/(2π)) v_Rᵀ M^α L_R, zero where n·ωo ≤ 0 (as the
@@ -89,6 +89,7 @@ from torch import Tensor
 
 from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
                           tensor_bytes)
+from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.sh import project_latlong
 from methods.core.sh_rotation import rotate_coeffs
@@ -419,7 +420,8 @@ class ZHShadow(Method):
         pose (v) and exponents do not change, so a lighting-only frame is one (3, n²) @ (n², N) product
         per term —
         the radiance kd ⊙ (l·t_d) + ks ⊙ (l·t_s) per vertex (0 where n·ωo ≤ 0, clamped if
-        configured), interpolated per sample."""
+        configured), interpolated per sample and box-filtered by the shared compiled Gouraud resolve
+        (`methods.core.gouraud.resolve`)."""
         dev = gbuffer.hit.device
         vreg = geom.vertex_region.to(dev)
         alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
@@ -449,14 +451,10 @@ class ZHShadow(Method):
         rad.mul_(front)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             rad.clamp_min_(0.0)
-        hits = None if bool(gbuffer.hit.all()) else gbuffer.hit.nonzero().squeeze(-1)
-        take = (lambda x: x) if hits is None else (lambda x: x.index_select(0, hits))
-        vi = geom.F.to(dev, torch.int32).index_select(0, take(gbuffer.face))
-        out = rt.interpolate(rad.T.contiguous(), vi, rt.barycentrics(take(gbuffer.bary))).T    # (3, Q)
         self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices), **counts}
-        if hits is not None:
-            out = torch.zeros(3, gbuffer.num_samples, device=dev).index_copy_(1, hits, out)
-        return gbuffer.resolve(out.contiguous(), channels_first=True)
+        # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
+        return gouraud.resolve(rad.T.contiguous(), geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
+                               gbuffer.height, gbuffer.width, gbuffer.spp_side)
 
     def _spec_regions(self, frame: Frame) -> list[bool]:
         """Per region: does its material have a specular term (ks > 0)?"""
