@@ -130,7 +130,7 @@ class TripleProduct(Method):
                  shading: str = "pixel", brdf_dirs: tuple[int, int] = (8, 16),
                  frame_grid: tuple[int, int, int] = (17, 32, 1), tangent: str = "grid",
                  light_lookup: str = "trilinear", vis_supersample: int = 0, brdf_supersample: int = 2,
-                 light_supersample: int = 1, vis_texture: int | None = None, evaluator: str = "auto",
+                 light_supersample: int = 2, vis_texture: int | None = None, evaluator: str = "auto",
                  progress: bool | None = None) -> None:
         """
         level: geodesic level L (K = 20·4^L coefficients per function; paper 4 = 5120).
@@ -143,6 +143,11 @@ class TripleProduct(Method):
         tangent: "grid" (isotropic BRDFs; n_psi = 1 suffices) | "duff" (Mitsuba's tangent; Ward).
         light_lookup: "nearest" | "trilinear" | "exact".
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
+            light_supersample defaults to 2 (16 samples 1.4° apart at level 3): the lighting
+            projection is then converged (s = 3 gives the same region means to 0.1 %); with 1 and
+            the coarser prefilter it needs (`lighting.prefiltered`), a sun just below the ground's
+            horizon was blurred over triangles above it (smoke bunny L frame 1: bunny 1.51× the
+            reference vs 1.30× converged). Costs ≈ 1.8× per lighting change.
         vis_texture: texels per side of the visibility texture of every shape with a UV map
             (Ma 2006 §3.3; None = vertex visibility only). Needs shading="pixel".
         evaluator: how eq. 7 is summed — "auto" | "fine" | "dense" | "sparse" (`fast_eval`: exact, fast) or

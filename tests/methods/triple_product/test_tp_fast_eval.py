@@ -194,7 +194,8 @@ def test_frame_cost_tiny_config(scene_frame, n):
     want_f = nv * (blend_v + triple) + nh * 3 * (3 + 2)  # Gouraud: 3 weights × RGB + 2 adds
     assert (got.bytes, got.flops) == (want_b, want_f)
     H, W = frame.envmap.data.shape[:2]
-    relight_f = F * (45 * K * 4 + 3 * 8 * (K - 20) // 3)   # light_supersample = 1: 4 samples per triangle
+    S = 4 ** m.config["light_supersample"]               # sub-samples per fine triangle (default 2: 16)
+    relight_f = F * (45 * K * S + 3 * 8 * (K - 20) // 3)
     for kind in ("L", "VL", "E", "VBL"):
         c = m.frame_cost(kind, P)
         assert (c.bytes, c.flops) == (want_b + H * W * 3 * 4 + grid, want_f + relight_f), kind
