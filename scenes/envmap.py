@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from methods.core.latlong import bilinear_taps
 from methods.core.threads import torch_threads
 
 # Rec.709 luminance weights (Mitsuba's `luminance()` for RGB).
@@ -160,15 +161,9 @@ def bilinear_lookup(data: Tensor, d_local: Tensor, ext: Tensor | None = None) ->
     if ext is None:
         ext = extend_periodic(data.to(d_local.device, d_local.dtype))
     u, v = direction_to_uv(d_local)
-    u = u - 0.5 / W  # half-texel shift: texel-centred columns
-    u = u - torch.floor(u)
-    v = v - torch.floor(v)
-    x, y = u * W, v * (H - 1)
-    ix = x.to(torch.int64).clamp(max=W - 1)
-    iy = y.to(torch.int64).clamp(max=H - 2)
-    w1x, w1y = (x - ix)[..., None], (y - iy)[..., None]
+    idx, fx, fy = bilinear_taps(u, v, H, W)  # texel-centred columns, u wraps
+    w1x, w1y = fx[..., None], fy[..., None]
     w0x, w0y = 1.0 - w1x, 1.0 - w1y
-    idx = iy * (W + 1) + ix
     v00, v10 = ext[idx], ext[idx + 1]
     v01, v11 = ext[idx + W + 1], ext[idx + W + 2]
     v0 = w0x * v00 + w1x * v10

@@ -41,6 +41,7 @@ import torch
 from torch import Tensor
 
 from methods.core.fused import fused, map_rows
+from methods.core.latlong import bilinear_taps
 
 __all__ = [
     "FACE_NAMES",
@@ -368,15 +369,8 @@ def _weighted_lookup(dx: Tensor, dy: Tensor, dz: Tensor, w: Tensor, R: Tensor, e
     x, y, z = (dx * R[0, j] + dy * R[1, j] + dz * R[2, j] for j in range(3))
     u = torch.atan2(x, -z) * (0.5 / math.pi)          # scenes.envmap.direction_to_uv
     v = torch.acos(y.clamp(-1.0, 1.0)) * (1.0 / math.pi)
-    u = u - 0.5 / W
-    u = u - torch.floor(u)
-    v = v - torch.floor(v)
-    px, py = u * W, v * (H - 1)
-    ix = px.to(torch.int64).clamp(max=W - 1)
-    iy = py.to(torch.int64).clamp(max=H - 2)
-    w1x, w1y = px - ix, py - iy
+    idx, w1x, w1y = bilinear_taps(u, v, H, W)
     w0x, w0y = 1.0 - w1x, 1.0 - w1y
-    idx = iy * (W + 1) + ix
     out = []
     for c in range(3):
         e = ext[c]

@@ -216,15 +216,7 @@ def test_fused_sample_stage_equals_eager(n_samples):
     last block shorter than `SAMPLE_CHUNK`."""
     from methods.ptt import fast as F
 
-    g = torch.Generator().manual_seed(0)
-    n_pairs, L, H, W = 300, 4, 16, 32
-    face_pairs = torch.randint(0, n_pairs + 1, (500, 3), generator=g)
-    face = torch.randint(0, 500, (n_samples,), generator=g)
-    bary = torch.rand(n_samples, 2, generator=g) * 0.5
-    normal = torch.randn(n_samples, 3, generator=g)
-    wo = torch.nn.functional.normalize(torch.randn(n_samples, 3, generator=g), dim=-1)
-    to_world = torch.linalg.qr(torch.randn(3, 3, generator=g))[0].contiguous()
-    env = F.EnvStack(torch.rand(H * (W + 1), 3 * L, generator=g), to_world, H, W)
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(n_samples, 0)
     for C in (3 + 3 * L, 6 + 3 * L):
         table = torch.randn(n_pairs + 1, C, generator=g)
         ref = F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L)
@@ -239,9 +231,22 @@ def test_fused_pixel_stage_equals_eager(S2, n_pixels):
     block shorter than `SAMPLE_CHUNK`; it declines (None) when a block cannot hold whole pixels."""
     from methods.ptt import fast as F
 
-    g = torch.Generator().manual_seed(1)
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pixels, 1)
+    for C in (3 + 3 * L, 6 + 3 * L):
+        table = torch.randn(n_pairs + 1, C, generator=g)
+        ref = F.box_filter(F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L), n_pixels, 1, S2)
+        out = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
+        torch.testing.assert_close(out.view(n_pixels, 1, 3), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+    assert F.shade_pixels_fused(face_pairs, table, face[:9], bary[:9], normal[:9], wo[:9], env, L, 9) is None
+
+
+def _random_shading_inputs(n: int, seed: int):
+    """Random inputs of `fast.shade_samples` for n samples: (generator, n_pairs, L, face_pairs, face,
+    bary, normal, wo, env); 4 lobes, 300 vertex/region pairs, a 16 × 32 env stack."""
+    from methods.ptt import fast as F
+
+    g = torch.Generator().manual_seed(seed)
     n_pairs, L, H, W = 300, 4, 16, 32
-    n = S2 * n_pixels
     face_pairs = torch.randint(0, n_pairs + 1, (500, 3), generator=g)
     face = torch.randint(0, 500, (n,), generator=g)
     bary = torch.rand(n, 2, generator=g) * 0.5
@@ -249,9 +254,4 @@ def test_fused_pixel_stage_equals_eager(S2, n_pixels):
     wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
     to_world = torch.linalg.qr(torch.randn(3, 3, generator=g))[0].contiguous()
     env = F.EnvStack(torch.rand(H * (W + 1), 3 * L, generator=g), to_world, H, W)
-    for C in (3 + 3 * L, 6 + 3 * L):
-        table = torch.randn(n_pairs + 1, C, generator=g)
-        ref = F.box_filter(F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L), n_pixels, 1, S2)
-        out = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
-        torch.testing.assert_close(out.view(n_pixels, 1, 3), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
-    assert F.shade_pixels_fused(face_pairs, table, face[:9], bary[:9], normal[:9], wo[:9], env, L, 9) is None
+    return g, n_pairs, L, face_pairs, face, bary, normal, wo, env
