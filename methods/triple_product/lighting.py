@@ -184,7 +184,7 @@ def prefiltered(envmap, geo: Geodesic, supersample: int):
     ground came out at 0.63 of the reference under its 256 × 512 sunrise probe (1.10 with 64 samples
     per triangle, and with this prefilter — see README). The blur is the fine triangles' own scale
     (5.7° at level 3 with 4 samples per triangle), which the level's Haar basis cannot resolve
-    below anyway — but the blur reaches across a triangle's edges: a sun 0.9° below the ground's
+    below anyway — but the blur reaches across a triangle's edges: a sun 10° below the ground's
     horizon leaked into the triangles above it (1.51× vs 1.30× converged on the smoke bunny's L frame
     1), hence the method's default of 16 samples per triangle, prefiltered to 2.7° texels at most."""
     return envmap.prefiltered_for_spacing(sample_spacing(geo, supersample))

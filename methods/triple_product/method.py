@@ -145,7 +145,7 @@ class TripleProduct(Method):
         vis_supersample, brdf_supersample, light_supersample: 4^s sub-samples per fine triangle.
             light_supersample defaults to 2 (16 samples 1.4° apart at level 3): the lighting
             projection is then converged (s = 3 gives the same region means to 0.1 %); with 1 and
-            the coarser prefilter it needs (`lighting.prefiltered`), a sun just below the ground's
+            the coarser prefilter it needs (`lighting.prefiltered`), a sun 10° below the ground's
             horizon was blurred over triangles above it (smoke bunny L frame 1: bunny 1.51× the
             reference vs 1.30× converged). Costs ≈ 1.8× per lighting change.
         vis_texture: texels per side of the visibility texture of every shape with a UV map

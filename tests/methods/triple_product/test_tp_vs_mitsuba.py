@@ -23,7 +23,7 @@ sphere_plane 0.2819 / 0.1679 → 0.2864 / 0.1781 — the procedural sun blurred 
 Re-pinned (2026-12-03, session 9) when ``light_supersample`` became 2 (16 samples per fine triangle,
 1.4° apart; the map is then prefiltered only where its texels are finer than 2.7°, i.e. not at all
 for the 64 × 128 test-size probes). With 4 samples and the 5.6° prefilter, the box blur spread a
-sun 0.9° below the ground's horizon (the smoke suite's bunny L frame 1) over triangles above it: the
+sun 10.4° below the ground's horizon (the smoke suite's bunny L frame 1) over triangles above it: the
 bunny came out at 1.51× the reference (the sanity gate's `suspect`); the converged projection
 (s = 2 and s = 3 agree: 1.297 / 1.296) gives 1.30×, the level-3 basis' own limit. Moves: sphere_plane
 0.2864 / 0.1781 → 0.2794 / 0.1654 (its sun no longer blurred), bunny 0.1376 / 0.0848 → 0.1412 /
