@@ -64,3 +64,30 @@ def precomputed(cls, scene, config: dict):
     m = cls(**config)
     pre = precompute_cache.precompute(m, scene, canonical_config(config))
     return m, (None if pre["cached"] else pre["seconds"])
+
+
+def inout_regions(m) -> dict:
+    """K and vertex count per region of a precomputed `methods.inout.InOut` (the benchmarks' header)."""
+    return {"K": {r.name: r.K for r in m.regions}, "vertices": {r.name: int(r.verts.numel()) for r in m.regions}}
+
+
+def machine_limits(out: dict, bw: list, peak: list) -> tuple[float, float]:
+    """Measure triad bandwidth and matmul peak once more (after the frames; ``bw``/``peak`` hold the
+    measurements from before them), record both lists in ``out`` and return the best of each."""
+    from reports import measure
+
+    bw.append(measure.triad_bandwidth())
+    peak.append(measure.matmul_peak())
+    out.update(triad_bandwidth=bw, matmul_peak=peak)
+    return max(bw), max(peak)
+
+
+def roofline_columns(kinds: dict, labels: Sequence[str], B: float, Pk: float) -> None:
+    """Per kind's result r and label w: r[w_efficiency], r[w_bound] from r[w_bytes], r[w_flops] and
+    r[w_median_s] (`reports.measure.roofline`)."""
+    from reports import measure
+
+    for r in kinds.values():
+        for w in labels:
+            r[f"{w}_efficiency"], r[f"{w}_bound"] = measure.roofline(r[f"{w}_bytes"], r[f"{w}_flops"], B, Pk,
+                                                                     r[f"{w}_median_s"])

@@ -26,7 +26,7 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, median_time, precomputed, setup
+from benchmarks.common import frame_args, inout_regions, machine_limits, median_time, precomputed, setup
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -99,8 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1, spp_side=a.spp_side)
     m, pre = _precomputed(scene, cfg)
     out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "threads": a.threads, "spp_side": a.spp_side,
-                 "K": {r.name: r.K for r in m.regions}, "vertices": {r.name: int(r.verts.numel()) for r in m.regions},
-                 "precompute_s": pre}
+                 **inout_regions(m), "precompute_s": pre}
     bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
     kinds, last = {}, None
     for kind in a.kinds:
@@ -124,10 +123,7 @@ def main(argv: list[str] | None = None) -> dict:
                        "bytes": cost.bytes, "flops": cost.flops, "hit_samples": int(gbs[-1].hit.sum())}
         if last is None or kind == "V":   # the micro-benchmarks run on a view-only frame when there is one
             last = (new, frames[-1], gbs[-1])
-    bw.append(measure.triad_bandwidth())
-    peak.append(measure.matmul_peak())
-    B, Pk = max(bw), max(peak)
-    out.update(triad_bandwidth=bw, matmul_peak=peak)
+    B, Pk = machine_limits(out, bw, peak)
     for kind, r in kinds.items():
         for which in ("old", "new"):
             eff, bound = measure.roofline(r["bytes"], r["flops"], B, Pk, r[f"{which}_median_s"])

@@ -22,7 +22,8 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, median_time, precomputed, setup
+from benchmarks.common import (frame_args, inout_regions, machine_limits, median_time, precomputed, roofline_columns,
+                               setup)
 from methods.core import gouraud
 from methods.inout import fast
 from methods.inout.method import InOut
@@ -86,8 +87,7 @@ def main(argv: list[str] | None = None) -> dict:
     m._fast = None
     m._reset_cache()
     out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "threads": a.threads, "spp_side": a.spp_side,
-                 "K": {r.name: r.K for r in m.regions}, "vertices": {r.name: int(r.verts.numel()) for r in m.regions},
-                 "precompute_s": pre}
+                 **inout_regions(m), "precompute_s": pre}
     bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
     kinds, last = {}, None
     for kind in a.kinds:
@@ -111,14 +111,9 @@ def main(argv: list[str] | None = None) -> dict:
         kinds[kind] = r
         if last is None or kind == "V":
             last = (ms["vertex"], frames[-1], gbs[-1])
-    bw.append(measure.triad_bandwidth())
-    peak.append(measure.matmul_peak())
-    B, Pk = max(bw), max(peak)
-    out.update(triad_bandwidth=bw, matmul_peak=peak)
-    for kind, r in kinds.items():
-        for which in ("sample", "vertex"):
-            eff, bound = measure.roofline(r[f"{which}_bytes"], r[f"{which}_flops"], B, Pk, r[f"{which}_median_s"])
-            r[f"{which}_efficiency"], r[f"{which}_bound"] = eff, bound
+    B, Pk = machine_limits(out, bw, peak)
+    roofline_columns(kinds, ("sample", "vertex"), B, Pk)
+    for r in kinds.values():
         r["speedup"] = r["sample_median_s"] / r["vertex_median_s"]
     out["kinds"] = kinds
     out["micro"] = micro(*last)

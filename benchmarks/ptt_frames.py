@@ -28,7 +28,7 @@ import time
 import torch
 import torch.nn.functional as Fnn
 
-from benchmarks.common import frame_args, precomputed, setup
+from benchmarks.common import frame_args, machine_limits, precomputed, roofline_columns, setup
 from methods.ptt.method import PTT
 from reports import measure
 
@@ -159,14 +159,10 @@ def main(argv: list[str] | None = None) -> dict:
             r["max_abs_diff_fast_reference"] = float((img_ref - imgs["new"]).abs().max())
             r["image_max"] = float(img_ref.abs().max())
         kinds[kind] = r
-    bw.append(measure.triad_bandwidth())
-    peak.append(measure.matmul_peak())
-    B, Pk = max(bw), max(peak)
-    out.update(triad_bandwidth=bw, matmul_peak=peak)
+    B, Pk = machine_limits(out, bw, peak)
+    roofline_columns(kinds, ("old", "new"), B, Pk)
     for kind, r in kinds.items():
         for which in ("old", "new"):
-            eff, bound = measure.roofline(r[f"{which}_bytes"], r[f"{which}_flops"], B, Pk, r[f"{which}_median_s"])
-            r[f"{which}_efficiency"], r[f"{which}_bound"] = eff, bound
             # the same with the process CPU time: at 1 thread, what an unshared core would give
             r[f"{which}_cpu_efficiency"] = measure.roofline(r[f"{which}_bytes"], r[f"{which}_flops"], B, Pk,
                                                             r[f"{which}_cpu_median_s"])[0]

@@ -195,15 +195,12 @@ def test_frame_cost_is_the_hand_count(tiny):
         b += verts.numel() * K * 12 + nodes * K * 12
         f += verts.numel() * 4 * 3 * K * 2
         # the kept coefficients of the referenced vertices (their number varies per vertex: budget "vertex")
-        crow, loc = reg.T.crow_indices().long(), reg.local_of[verts]
-        nnz = int(sum(int(crow[(v + 1) * K] - crow[v * K]) for v in loc.tolist()))
+        nnz = _kept_nnz(reg, verts, K)
         assert nnz > 0
         light_b += nnz * (4 + reg.T.col_indices().element_size())
         light_f += 2 * 3 * nnz
-    N, s = m.config["cube_res"], m.config["light_supersample"]
-    H, W = m.scene.envmap.data.shape[:2]
-    light_b += min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12
-    light_f += 6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4
+    rb, rf = _resample_cost(m)
+    light_b, light_f = light_b + rb, light_f + rf
     assert m.frame_cost("V", P) == FrameCost(b, f)
     for kind in ("L", "E", "VL"):
         assert m.frame_cost(kind, P) == FrameCost(b + light_b, f + light_f)
@@ -385,17 +382,14 @@ def test_vertex_frame_cost_is_the_hand_count(tiny):
         culled += verts.numel() - nv
         b += nv * K * 12 + nodes * K * 12
         f += nv * (4 + 24 * K + 24)
-        crow, loc = reg.T.crow_indices().long(), reg.local_of[verts[front]]
-        nnz = int(sum(int(crow[(v + 1) * K] - crow[v * K]) for v in loc.tolist()))
+        nnz = _kept_nnz(reg, verts[front], K)
         light_b += nnz * (4 + reg.T.col_indices().element_size())
         light_f += 6 * nnz
     assert culled > 0                                                          # the sphere's silhouette rim
     b += nref * 24
     f += nref * 21
-    N, s = m.config["cube_res"], m.config["light_supersample"]
-    H, W = m.scene.envmap.data.shape[:2]
-    light_b += min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12
-    light_f += 6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4
+    rb, rf = _resample_cost(m)
+    light_b, light_f = light_b + rb, light_f + rf
     assert m.frame_cost("V", P) == FrameCost(b, f)
     for kind in ("L", "E", "VL"):
         assert m.frame_cost(kind, P) == FrameCost(b + light_b, f + light_f)
@@ -413,3 +407,20 @@ def test_vertex_frame_cost_is_the_hand_count(tiny):
     # and it reads less than the per-sample path on the same frame
     m0.render(frame, gb)
     assert m.frame_cost("V", P).bytes < m0.frame_cost("V", P).bytes
+
+
+def _kept_nnz(reg, verts, K: int) -> int:
+    """Kept transport coefficients of the region's vertices ``verts`` (their number varies per vertex
+    under the "vertex" budget): the CSR rows of their K terms."""
+    crow, loc = reg.T.crow_indices().long(), reg.local_of[verts]
+    return int(sum(int(crow[(v + 1) * K] - crow[v * K]) for v in loc.tolist()))
+
+
+def _resample_cost(m) -> tuple[int, int]:
+    """Hand count of a lighting change's env → cube resampling (bytes, flops): the texels its
+    6N²s² sub-samples touch (at most H·W) and the cube written; the flops as `InOut.frame_cost`
+    documents them (per sub-sample, per texel and channel)."""
+    N, s = m.config["cube_res"], m.config["light_supersample"]
+    H, W = m.scene.envmap.data.shape[:2]
+    return (min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12,
+            6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4)
