@@ -186,8 +186,23 @@ def prefiltered(envmap, geo: Geodesic, supersample: int):
     (5.7° at level 3 with 4 samples per triangle), which the level's Haar basis cannot resolve
     below anyway — but the blur reaches across a triangle's edges: a sun 10° below the ground's
     horizon leaked into the triangles above it (1.51× vs 1.30× converged on the smoke bunny's L frame
-    1), hence the method's default of 16 samples per triangle, prefiltered to 2.7° texels at most."""
-    return envmap.prefiltered_for_spacing(sample_spacing(geo, supersample))
+    1), hence the method's default of 16 samples per triangle, prefiltered to 2.7° texels at most.
+
+    The box filter does not depend on the rotation: the last filtered texels per spacing are kept
+    and reused for every rotated copy of the same data (an L / VL frame rotates the map only; the
+    float64 box filter of a 256 × 512 probe was ~5 ms of such a frame)."""
+    from scenes.envmap import EnvMap
+
+    sp = sample_spacing(geo, supersample)
+    hit = _PREFILTERED.get(sp)
+    if hit is None or hit[0] is not envmap.data:
+        hit = (envmap.data, envmap.prefiltered_for_spacing(sp).data)
+        _PREFILTERED[sp] = hit
+    return envmap if hit[1] is envmap.data else EnvMap(hit[1], envmap.to_world)
+
+
+# sample spacing → (source texels, their box-filtered texels) of the last `prefiltered` call
+_PREFILTERED: dict[float, tuple[Tensor, Tensor]] = {}
 
 
 def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1,

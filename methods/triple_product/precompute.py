@@ -76,17 +76,14 @@ def truncate(coeffs: Tensor, n: int | None, selection: str, level: int) -> tuple
     K = coeffs.shape[-1]
     n = K if n is None else min(int(n), K)
     B = coeffs.shape[0]
-    if coeffs.ndim == 2:
-        mag = coeffs.abs()
-    elif coeffs.ndim == 3:
-        mag = coeffs.abs().sum(1)
-    else:
+    if coeffs.ndim not in (2, 3):
         raise ValueError(f"coeffs must be (B, K) or (B, C, K), got {tuple(coeffs.shape)}")
     if n == K:
         idx = torch.arange(K, device=coeffs.device).expand(B, K)
     elif selection == "top":
         idx = torch.arange(n, device=coeffs.device).expand(B, n)
-    else:
+    else:  # the magnitudes only where they select (a lighting change keeps all K: no pass over them)
+        mag = coeffs.abs() if coeffs.ndim == 2 else coeffs.abs().sum(1)
         w = support_areas(level, dtype=mag.dtype, device=mag.device)
         idx, _ = keep_largest(mag, n, weights=w)
     if coeffs.ndim == 2:

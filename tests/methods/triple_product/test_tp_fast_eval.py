@@ -254,6 +254,44 @@ def test_project_env_equals_project_lighting():
     assert (fine - want).abs().max() <= F32_LIGHT * want.abs().max()
 
 
+def test_project_env_does_not_depend_on_threads():
+    """`lighting.env_block` sums each output's samples in one thread: 1 and 2 threads agree bit for
+    bit (blocks of `lighting.ENV_BLOCK` frames, the last one padded)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+
+    env = get_scene("bunny", "test").envmap.rotated([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    geo, R = Geodesic(2), lt.grid_frames(lt.FrameGrid(5, 7, 1))       # 35 frames: a partial block
+    with torch_threads(1):
+        one = lt.project_env(env, R, geo, supersample=2)
+    with torch_threads(2):
+        two = lt.project_env(env, R, geo, supersample=2)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+
+
+def test_prefiltered_reuses_the_box_filter_across_rotations_only():
+    """`lighting.prefiltered` keeps the last box-filtered texels: a rotated copy of the same data gets
+    them with its own rotation; a new map (new data) is filtered anew."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap
+
+    geo = Geodesic(3)
+    sp = lt.sample_spacing(geo, 2)
+    env = EnvMap(torch.rand(256, 512, 3, generator=torch.Generator().manual_seed(3)))
+    a = lt.prefiltered(env, geo, 2)
+    assert a.height < env.height and torch.equal(a.data, env.prefiltered_for_spacing(sp).data)
+    rot = env.rotated([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    b = lt.prefiltered(rot, geo, 2)
+    assert b.data.data_ptr() == a.data.data_ptr() and torch.equal(b.to_world, rot.to_world)  # not filtered again
+    other = EnvMap(env.data * 2.0, rot.to_world)
+    c = lt.prefiltered(other, geo, 2)
+    assert torch.equal(c.data, other.prefiltered_for_spacing(sp).data) and torch.equal(c.to_world, other.to_world)
+    small = EnvMap(torch.rand(16, 32, 3))                                # coarse enough already
+    assert lt.prefiltered(small, geo, 2) is small
+
+
 @pytest.mark.parametrize("name", SCENES)
 def test_production_path_equals_reference_on_library(name):
     """The default evaluator ("auto": the compiled fine-value path `fast_eval.fine_block` for full
