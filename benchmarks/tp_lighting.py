@@ -79,15 +79,15 @@ def main(argv=None) -> dict:
     samples = R.shape[0] * cp.shape[1] * cp.shape[2]
     flops = 45 * samples
     out = {"frames": R.shape[0], "samples": samples, "env": [env.height, env.width], "threads": a.threads,
-           "block": lt.ENV_BLOCK, "matmul_peak_gflops": measure.matmul_peak() / 1e9,
+           "block": lt.env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2]), "matmul_peak_gflops": measure.matmul_peak() / 1e9,
            "triad_gbs": measure.triad_bandwidth() / 1e9}
     for name, fn in (("env_block", lt.env_block), ("no_trig", _variant("no_trig")), ("no_gather", _variant("no_gather"))):
         f = fused(fn)
-        map_rows(f, (R,), args, chunk=lt.ENV_BLOCK)                   # compile / warm up
+        map_rows(f, (R,), args, chunk=out["block"])                   # compile / warm up
         ts = []
         for _ in range(a.reps):
             t = time.process_time()
-            map_rows(f, (R,), args, chunk=lt.ENV_BLOCK)
+            map_rows(f, (R,), args, chunk=out["block"])
             ts.append(time.process_time() - t)
         t = statistics.median(ts)
         out[name] = {"cpu_ms": 1e3 * t, "ns_per_sample": 1e9 * t / samples * a.threads, "gflops": flops / t / 1e9}

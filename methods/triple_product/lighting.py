@@ -239,11 +239,20 @@ def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1
 
 # -- fast projection (run time) ----------------------------------------------------------------------
 
-# Grid frames per compiled block of `project_env` (`methods.core.fused.map_rows`): 8 frames × n·4^s
-# samples keep the block's direction / (u, v) temporaries (5 × 8 × 20480 floats at level 3, s = 2)
-# in one core's L2 (measured 117 ms against 132 ms (4) and 140 ms (16), chess bench L frames,
-# 1 thread, load ~8).
-ENV_BLOCK = 8
+# Samples per compiled block of `project_env` (`methods.core.fused.map_rows`): the F grid frames are
+# split into ceil(F·n·4^s / ENV_BLOCK_SAMPLES) equal blocks (one static shape per configuration; the
+# default grid's 544 frames at level 3, s = 2: 8 blocks of 68 frames). Few large blocks, because
+# every call is an OpenMP region with three barriers, and on this shared 2-core machine (load 10-12)
+# a barrier waits for a descheduled thread: 2 threads, 68 blocks of 8 frames 1347 ms wall, 17 of 32
+# 614 ms, 8 of 68 486 ms; 1 thread: 160 / 140 ms CPU for 8 / 68 frames (the block's ~28 MB of
+# direction and (u, v) temporaries stream through L3 at no visible cost), 159 ms for 136.
+ENV_BLOCK_SAMPLES = 3 << 19
+
+
+def env_block_frames(F: int, samples_per_frame: int) -> int:
+    """Frames per `project_env` block for F frames of ``samples_per_frame`` samples each."""
+    blocks = max(1, -(-F * samples_per_frame // ENV_BLOCK_SAMPLES))
+    return max(1, -(-F // blocks))
 
 
 def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
@@ -306,7 +315,7 @@ _env_block = None
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1) -> tuple[Tensor, Tensor]:
     """`project_lighting(envmap.radiance, R, geo, supersample)` at run time: the sampling, the env
     look-ups and the per-triangle means of all frames in one compiled pass (`env_block` through
-    `methods.core.fused`, blocks of `ENV_BLOCK` frames), then one float32 forward transform.
+    `methods.core.fused`, blocks of `env_block_frames` frames), then one float32 forward transform.
 
     Args: envmap (`scenes.envmap.EnvMap`); R (F, 3, 3) world→local rotations; geo; supersample.
     Returns: coefficients (F, 3, K) float32 (= `project_lighting` to float32 round-off) and the fine
@@ -324,5 +333,5 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1) -> tu
     H, W = envmap.height, envmap.width
     planes = envmap.periodic_texels(R.device, torch.float32, planes=True)
     fine = map_rows(_env_block, (R.float(),), (cp, wT, envmap.to_world.float(), planes, H, W),
-                    chunk=ENV_BLOCK)                                     # (F, 3, n)
+                    chunk=env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2]))  # (F, 3, n)
     return forward(fine), fine

@@ -254,20 +254,25 @@ def test_project_env_equals_project_lighting():
     assert (fine - want).abs().max() <= F32_LIGHT * want.abs().max()
 
 
-def test_project_env_does_not_depend_on_threads():
+def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.env_block` sums each output's samples in one thread: 1 and 2 threads agree bit for
-    bit (blocks of `lighting.ENV_BLOCK` frames, the last one padded)."""
+    bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
     from methods.core.spherical_haar import Geodesic
     from methods.core.threads import torch_threads
     from methods.triple_product import lighting as lt
 
     env = get_scene("bunny", "test").envmap.rotated([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    geo, R = Geodesic(2), lt.grid_frames(lt.FrameGrid(5, 7, 1))       # 35 frames: a partial block
+    geo, R = Geodesic(2), lt.grid_frames(lt.FrameGrid(5, 7, 1))       # 35 frames
+    assert lt.env_block_frames(35, 320 * 16) == 35 and lt.env_block_frames(544, 20480) == 68
+    with torch_threads(2):
+        whole = lt.project_env(env, R, geo, supersample=2)                # one block of 35
+    monkeypatch.setattr(lt, "ENV_BLOCK_SAMPLES", 4 * 320 * 16)          # 9 blocks of 4, the last padded
     with torch_threads(1):
         one = lt.project_env(env, R, geo, supersample=2)
     with torch_threads(2):
         two = lt.project_env(env, R, geo, supersample=2)
     assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+    assert torch.equal(one[1], whole[1])
 
 
 def test_prefiltered_reuses_the_box_filter_across_rotations_only():
