@@ -209,12 +209,14 @@ def test_frame_cost_validates_and_needs_precompute():
 
 
 @pytest.mark.parametrize("n_samples", [1, 1000, (1 << 15) + 7])
-def test_fused_sample_stage_equals_eager(n_samples):
+def test_fused_sample_stage_equals_eager(n_samples, monkeypatch):
     """shading="vertex": the per-sample stage with its elementwise parts compiled
     (`fast.shade_samples_fused`: `sample_cells`, `combine`, static blocks) equals the eager
     `fast.shade_samples` to float32 round-off, with and without the one-bounce column, including a
-    last block shorter than `SAMPLE_CHUNK`."""
+    last block shorter than the others (blocks capped at 2¹² here, so 2¹⁵ + 7 samples take nine)."""
     from methods.ptt import fast as F
+
+    monkeypatch.setattr(F, "MAX_SAMPLE_BLOCK", 1 << 12)
 
     g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(n_samples, 0)
     for C in (3 + 3 * L, 6 + 3 * L):
@@ -225,11 +227,14 @@ def test_fused_sample_stage_equals_eager(n_samples):
 
 
 @pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, (1 << 13) + 5)])
-def test_fused_pixel_stage_equals_eager(S2, n_pixels):
+def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
     """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `combine_resolve`)
     equals the eager `fast.shade_samples` + `fast.box_filter` to float32 round-off, including a last
-    block shorter than `SAMPLE_CHUNK`; it declines (None) when a block cannot hold whole pixels."""
+    block shorter than the others (blocks capped at 2¹² here); it declines (None) when a block cannot
+    hold whole pixels."""
     from methods.ptt import fast as F
+
+    monkeypatch.setattr(F, "MAX_SAMPLE_BLOCK", 1 << 12)
 
     g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pixels, 1)
     for C in (3 + 3 * L, 6 + 3 * L):
