@@ -526,13 +526,16 @@ def _merge_psi(rows: Tensor, w: Tensor, n_psi: int) -> tuple[Tensor, Tensor]:
 
 
 def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-               mix: Tensor | None = None, *, points: int | None = None) -> Tensor:
+               mix: Tensor | None = None, *, points: int | None = None, grouped: bool | None = None) -> Tensor:
     """Eq. 7 for B points → (B, 3) when every table is full (`fine_ok`): the fine-value identity
     (module docstring, "dense") with the blends done on fine-value tables (`fine_table`):
 
         B_c = A_L' Σ_t V̂(t) ρ̂_c(t) L̂_c(t),  V̂ = Σ_v w_v V̂_v,  ρ̂ = Σ_o w_o ρ̂_o,  L̂ = Σ_r w_r L̂_r
 
-    The blends and the sum over t run in one compiled loop per point and channel (`fine_kernel`).
+    The blends and the sum over t run in one compiled loop per point and channel (`fine_kernel`),
+    or — when the points share their rows (pixel shading: ≈ 11 G-buffer samples per distinct
+    (visibility row, L rows, ρ̃ rows), `grouping_pays`) — the trilinear form of the same sum
+    (`fine_grouped`). ``grouped``: force one of the two (None: `grouping_pays`).
     Same arguments as `shade`."""
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
     (vp,), rps, (lp,) = spec
@@ -555,7 +558,10 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
         brows = torch.cat([rps[0][3], rps[1][3] + Ra.shape[0]], 1)
         bw = torch.cat([rps[0][4], rps[1][4]], 1)
     # A_L' of the evaluation level (equal-area measure)
-    return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
+    if grouped is None:
+        grouped = grouping_pays(vp[3], lrows, brows)
+    kern = fine_grouped if grouped else fine_kernel
+    return kern(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
 
 
 def _blend_rows(table: Tensor, rows: Tensor, w: Tensor) -> Tensor:
@@ -612,6 +618,124 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     if head < rows[0].shape[0] or not head:
         parts.append(map_rows(_fine_block, [r[head:] for r in rows], (Vt, R3, L3), chunk=tail))
     return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+# -- grouped evaluation: once per distinct (visibility row, L look-up, ρ̃ look-up) ----------------------
+#
+# Eq. 7 is trilinear, so with V̂ = Σ_i w_i V̂_i, L̂ = Σ_j w_j L̂_j, ρ̂ = Σ_k w_k ρ̂_k
+#
+#     B_c = Σ_i w_i Σ_j w_j Σ_k w_k T_c[v_i, l_j, b_k],    T_c[v, l, b] = Σ_t V̂_v(t) L̂_{l,c}(t) ρ̂_{b,c}(t)
+#
+# A grid look-up's rows are a function of its first row (the trilinear cell of `lighting.lookup_weights`,
+# the bilinear cell of `brdf_table.outgoing_weights`, offset by the region / SBRDF stack), so every
+# G-buffer sample touching visibility row v with the same two cells needs the same k_L·k_ρ·3 values
+# T_c[v, ·, ·]: a *group* (v, l_0, b_0). Pixel frames of the bench have ≈ 0.07–0.09 groups per sample
+# (chess, creature: 4 spp, neighbouring samples share triangle and cells), so the K'-long sums are done
+# once per group (`group_block`: per t, 1 + 2·3·4 loads for 3·(4 + 2·16) flops, against 27 loads and
+# 72 flops per t for every sample in `fine_block`), and each sample blends its 3·16·3 values.
+
+
+def grouping_pays(vrows: Tensor, lrows: Tensor, brows: Tensor) -> bool:
+    """The grouped form does less work than the per-point one: the points are G-buffer samples (more
+    than one visibility row each) and there are enough of them to share cells (a per-vertex frame
+    has one visibility row per point: nothing to share)."""
+    return vrows.shape[1] > 1 and vrows.shape[0] >= GROUP_MIN_POINTS and lrows.shape[1] * brows.shape[1] <= 64
+
+
+def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The distinct groups (v, L cell, ρ̃ cell) of B points and each point's group per visibility row.
+
+    Args: vrows (B, k_v), lrows (B, k_L), brows (B, k_ρ) int64 table rows (a look-up's rows are a
+        function of its first one, module comment above).
+    Returns: gv (G,), gl (G, k_L), gb (G, k_ρ) int64 rows of every group (sorted by v, then cells)
+        and inv (B, k_v) int64 group of every (point, visibility row)."""
+    B, kv = vrows.shape
+    nl = int(lrows[:, 0].max()) + 1 if B else 1
+    nb = int(brows[:, 0].max()) + 1 if B else 1
+    cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
+    key = vrows * (nl * nb) + cell[:, None]                               # (B, k_v)
+    uk, inv = torch.unique(key.reshape(-1), return_inverse=True)
+    G = uk.numel()
+    gl = torch.empty(G, lrows.shape[1], dtype=lrows.dtype, device=lrows.device)
+    gb = torch.empty(G, brows.shape[1], dtype=brows.dtype, device=brows.device)
+    flat = inv.view(B, kv)
+    for i in range(kv):  # every writer of a group writes the same rows: deterministic
+        gl[flat[:, i]] = lrows
+        gb[flat[:, i]] = brows
+    return uk // (nl * nb), gl, gb, flat
+
+
+def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:
+    """T_c[v, l_j, b_k] = Σ_t V̂_v(t) L̂_{l_j,c}(t) ρ̂_{b_k,c}(t) of a block of g groups (module
+    comment above; no A_L' factor): gv (g,), gl (g, k_L), gb (g, k_ρ) rows; Vt (N_V, K'),
+    Rt (N_ρ, 3, K'), Lt (N_L, 3, K') fine-value tables. Returns (g, 3·k_L·k_ρ), index (c, j, k).
+    One expression of 3·k_L·k_ρ sums over t: Inductor emits one loop over t per group, every row
+    loaded once per t (the products V̂·L̂_j formed once and reused for the k_ρ rows)."""
+    V = Vt[gv]                                                           # (g, K')
+    out = []
+    for c in range(3):
+        Rc = [Rt[gb[:, k], c] for k in range(gb.shape[1])]
+        for j in range(gl.shape[1]):
+            u = V * Lt[gl[:, j], c]
+            out += [(u * r).sum(-1) for r in Rc]
+    return torch.stack(out, -1)
+
+
+def group_blend(inv: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> Tensor:
+    """Σ_i vw_i Σ_j lw_j Σ_k bw_k T[inv_i, c, j, k] of a block of b points → (b, 3): inv (b, k_v)
+    groups, vw (b, k_v), lw (b, k_L), bw (b, k_ρ) weights, T (G, 3·k_L·k_ρ). The small sums are
+    unrolled (a reduction over them would be split across threads by Inductor)."""
+    kl, kb = lw.shape[1], bw.shape[1]
+    out = []
+    for c in range(3):
+        acc = None
+        for i in range(inv.shape[1]):
+            Ti = T[inv[:, i]]
+            si = None
+            for j in range(kl):
+                sj = None
+                for k in range(kb):
+                    x = bw[:, k] * Ti[:, (c * kl + j) * kb + k]
+                    sj = x if sj is None else sj + x
+                sj = lw[:, j] * sj
+                si = sj if si is None else si + sj
+            si = vw[:, i] * si
+            acc = si if acc is None else acc + si
+        out.append(acc)
+    return torch.stack(out, -1)
+
+
+_group_block = fused(group_block)
+_group_blend = fused(group_blend)
+# Groups per compiled block of `fine_grouped` (and its remainder blocks), points per blend block.
+GROUP_BLOCK = 1024
+GROUP_TAIL = 128
+GROUP_BLEND_POINTS = 1 << 14
+# Fewer points than this: the per-point kernel (no grouping overhead; tests' tiny frames use both).
+GROUP_MIN_POINTS = 256
+
+
+def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+                 lrows: Tensor, lw: Tensor, *, points: int | None = None) -> Tensor:
+    """`fine_kernel` (same arguments and result) by groups: `group_rows`, `group_block` over the
+    groups (compiled static blocks), `group_blend` per point. ``points``: groups per block."""
+    Kp = Vt.shape[1]
+    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
+        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
+    dt = Vt.dtype
+    R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
+    for t in (Vt, R3, L3):  # table row counts vary by scene / grid / regions: one compiled variant
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long())
+    p = GROUP_BLOCK if points is None else int(points)
+    G = gv.shape[0]
+    head = G // p * p if G > p else 0
+    parts = [map_rows(_group_block, [gv[:head], gl[:head], gb[:head]], (Vt, R3, L3), chunk=p)] if head else []
+    if head < G or not head:
+        parts.append(map_rows(_group_block, [gv[head:], gl[head:], gb[head:]], (Vt, R3, L3), chunk=min(p, GROUP_TAIL)))
+    T = parts[0] if len(parts) == 1 else torch.cat(parts)
+    torch._dynamo.maybe_mark_dynamic(T, 0)
+    return map_rows(_group_blend, [inv, vw.to(dt), lw.to(dt), bw.to(dt)], (T,), chunk=GROUP_BLEND_POINTS)
 
 
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:

@@ -87,7 +87,7 @@ ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torran
 RENDER_FLOATS = 1 << 22
 # Shading points per batch when the fine-value path runs (it chunks its (B, 3, K') blends itself;
 # its look-ups are O(B) per batch).
-FINE_RENDER_POINTS = 1 << 15
+FINE_RENDER_POINTS = 1 << 18
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
