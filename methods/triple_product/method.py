@@ -615,6 +615,7 @@ class TripleProduct(Method):
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
             touched = torch.zeros(self.V_idx.shape[0], dtype=torch.bool, device=hit.device)
+            self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
                 R = lt.local_frames(normals[s], self.config["tangent"])
@@ -625,16 +626,19 @@ class TripleProduct(Method):
                 out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
                                      mix[s] if self.blends else None)
             rows = torch.nonzero(touched, as_tuple=False).squeeze(-1)
-            self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None)
+            self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None,
+                               self.stats.pop("frame_groups", 0))
         return gbuffer.resolve(out)
 
     def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,
-                      vertices: Tensor | None) -> None:
+                      vertices: Tensor | None, groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
-        visibility rows (vertices / texels) and shaded vertices (vertex shading)."""
+        visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
+        was summed for (`fast_eval.fine_grouped`; 0: per point)."""
         self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(hit.numel()),
                                     "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
-                                    "vertices": 0 if vertices is None else int(vertices.numel())}
+                                    "vertices": 0 if vertices is None else int(vertices.numel()),
+                                    "groups": int(groups)}
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def frame_cost(self, frame_kind: str, num_samples: int):

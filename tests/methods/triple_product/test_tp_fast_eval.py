@@ -213,6 +213,20 @@ def test_frame_cost_tiny_config(scene_frame, n):
     c = pixel.frame_cost("V", P)
     want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
     want_f = nh * (nk * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
+    if n is None:  # full tables: summed by groups (fast_eval.fine_grouped) — its count is smaller
+        from methods.triple_product import brdf_table as bt, lighting as lt
+
+        s = torch.nonzero(hit).squeeze(-1)
+        Rs = lt.local_frames(torch.nn.functional.normalize(gb.normal[s].float(), dim=-1), "grid")
+        l0 = lt.lookup_weights(Rs, pixel.grid, "trilinear")[0][:, 0]     # a grid cell: its first row
+        b0 = bt.outgoing_weights((Rs @ gb.wo[s].float()[..., None])[..., 0], pixel.outgoing)[0][:, 0] \
+            + gb.region[s].long() * 2                                       # ωo cell in its region's table
+        groups = torch.unique(torch.stack([idx[s], l0[:, None].expand(-1, 3), b0[:, None].expand(-1, 3)], -1)
+                              .reshape(-1, 3), dim=0).shape[0]
+        # per group and channel: 4 products V̂·L̂_j and 16 sums of (·ρ̂_k), 2 flops each, per fine
+        # triangle; per sample and channel: 3 vertices × (16 products and adds + 4 L weights) + 2 adds
+        want_f = min(want_f, groups * 3 * K * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
+        assert 0 < groups < 3 * nh
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
     nrows = pixel.V_idx.shape[0]
