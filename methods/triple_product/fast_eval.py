@@ -207,8 +207,8 @@ def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Ten
                          f"{tuple(R.shape)}, {tuple(wo_world.shape)}, {tuple(region.shape)}, {tuple(vrows.shape)}")
     cfg = method.config
     Vp = [("blend", method.V_idx, method.V_val, vrows, vw, _is_full(method, "V", method.V_idx))]
-    wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
-    rows, w = bt.outgoing_weights(wo_l, method.outgoing)
+    grid_mode = None if cfg["light_lookup"] == "exact" else cfg["light_lookup"]
+    rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode)
     bi, bv = _brdf_stack(method)
     brows = rows + region[:, None].long() * method.outgoing.size
     blends = getattr(method, "blends", None)
@@ -229,9 +229,44 @@ def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Ten
         li, lv = truncate(Lc, method._n(), cfg["selection"], method.level)
         Lp = [("list", li.long(), lv)]
     else:
-        lrows, lw = lt.lookup_weights(R, method.grid, cfg["light_lookup"])
         Lp = [("blend", method.L_idx, method.L_val, lrows, lw, _is_full(method, "L", method.L_idx))]
     return [Vp, rp, Lp]
+
+
+def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
+    """`brdf_table.outgoing_weights` at ωo in the local frames R and `lighting.lookup_weights`
+    of R (mode None: no grid look-up), as one function to compile."""
+    rows, w = bt.outgoing_weights((R @ wo_world.unsqueeze(-1)).squeeze(-1), outgoing)
+    if mode is None:
+        return rows, w
+    return (rows, w) + lt.lookup_weights(R, grid, mode)
+
+
+_lookups_fused = fused(_lookups)
+_local_frames_fused = fused(lt.local_frames)
+# Points per compiled block of the per-sample look-ups (a frame's front end: trig in float64 that
+# eager torch runs as ~40 passes over (P,) arrays); smaller batches (per-vertex frames) use the tail.
+LOOKUP_BLOCK = 1 << 15
+LOOKUP_TAIL = 1 << 12
+
+
+def _rows_chunk(B: int) -> int:
+    return LOOKUP_BLOCK if B >= LOOKUP_BLOCK else LOOKUP_TAIL
+
+
+def local_frames(n: Tensor, tangent: str) -> Tensor:
+    """`lighting.local_frames` (B, 3) → (B, 3, 3), compiled over static blocks (`methods.core.fused`)."""
+    if n.ndim != 2 or n.shape[1] != 3:
+        raise ValueError(f"normals must be (B, 3), got {tuple(n.shape)}")
+    return map_rows(_local_frames_fused, [n], (tangent,), chunk=_rows_chunk(n.shape[0]))
+
+
+def grid_lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
+    """The ωo look-up (rows, w (B, 4), `brdf_table.outgoing_weights` of ωo in the frames R (B, 3, 3))
+    and, unless ``mode`` is None, the lighting-grid look-up (`lighting.lookup_weights` of R), compiled
+    over static blocks: (rows, w) or (rows, w, lrows, lw)."""
+    out = map_rows(_lookups_fused, [R, wo_world], (outgoing, grid, mode), chunk=_rows_chunk(R.shape[0]))
+    return out if mode is not None else (out[0], out[1], None, None)
 
 
 def lists_from_rows(spec: list[list[tuple]], s: slice, K: int) -> tuple[SparseList, SparseList, SparseList]:
@@ -668,13 +703,10 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Ten
     key = vrows * (nl * nb) + cell[:, None]                               # (B, k_v)
     uk, inv = torch.unique(key.reshape(-1), return_inverse=True)
     G = uk.numel()
-    gl = torch.empty(G, lrows.shape[1], dtype=lrows.dtype, device=lrows.device)
-    gb = torch.empty(G, brows.shape[1], dtype=brows.dtype, device=brows.device)
-    flat = inv.view(B, kv)
-    for i in range(kv):  # every writer of a group writes the same rows: deterministic
-        gl[flat[:, i]] = lrows
-        gb[flat[:, i]] = brows
-    return uk // (nl * nb), gl, gb, flat
+    # a member point of every group (whichever write lands: all members have the group's rows)
+    rep = torch.empty(G, dtype=torch.int64, device=inv.device)
+    rep[inv] = torch.arange(B, device=inv.device).repeat_interleave(kv)
+    return uk // (nl * nb), lrows[rep], brows[rep], inv.view(B, kv)
 
 
 def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:

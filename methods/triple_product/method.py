@@ -30,7 +30,8 @@ Render:
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
   * Tripling (``evaluator``): `fast_eval.shade` — with full tables (all coefficients, or "top")
     "fine": blends of precomputed fine-value rows and one product per point (`fast_eval.shade_fine`,
-    what "auto" runs then); else the blends kept as index/value lists, summed exactly
+    what "auto" runs then; pixel frames sum it once per distinct (vertex, L cell, ρ̃ cell) group
+    and blend the groups' values per sample, `fast_eval.fine_grouped`); else the blends kept as index/value lists, summed exactly
     by the fine-value identity ("dense") or by visiting only the stored coefficients with the
     three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
     zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
@@ -86,7 +87,8 @@ ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torran
 # Shading points per batch in render(): each batch holds a few (B, 3, K) float32 tensors.
 RENDER_FLOATS = 1 << 22
 # Shading points per batch when the fine-value path runs (it chunks its (B, 3, K') blends itself;
-# its look-ups are O(B) per batch).
+# its look-ups are O(B) per batch): a whole bench frame (256² × 4 samples) in one batch, so its
+# grouped sums (`fast_eval.fine_grouped`) are shared by every sample of the frame.
 FINE_RENDER_POINTS = 1 << 18
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
@@ -618,7 +620,8 @@ class TripleProduct(Method):
             self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
-                R = lt.local_frames(normals[s], self.config["tangent"])
+                R = (lt.local_frames if self.config["evaluator"] == "reference" else fast_eval.local_frames)(
+                    normals[s], self.config["tangent"])
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
