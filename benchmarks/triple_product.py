@@ -3,6 +3,7 @@
     python -m benchmarks.triple_product --size bench                  # default config
     python -m benchmarks.triple_product --size bench --preset paper   # level 4, n = 320, paper grid
     python -m benchmarks.triple_product --micro                        # evaluator micro-benchmarks
+    python -m benchmarks.triple_product --micro-fine                   # fine-value / grouped kernels only
 
 Per evaluator — "class": the independent dense path (``with_evaluator("reference")``); the names
 of `fast_eval.EVALUATORS` go through `fast_eval.shade` ("auto" = production: the fine-value path
@@ -148,7 +149,9 @@ def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]
     grid rows; K' = 1280 and 5120) with pixel-like coherence (neighbouring points share rows):
     µs per point (best wall time of ``reps``, like the matmul peak; the first compiles) and the model's GFLOP/s (3 V + 4 ρ̃
     + 4 L rows blended, 3 flops per channel and fine triangle in the product) beside
-    `reports.measure.matmul_peak` — what bounds a pixel frame."""
+    `reports.measure.matmul_peak`; and the grouped form pixel frames run (`fast_eval.fine_grouped`):
+    µs per point of the whole, GFLOP/s and gathered GB/s of its per-group sums (`group_block`) —
+    what bounds a pixel frame."""
     from methods.triple_product import fast_eval
     from reports.measure import matmul_peak
 
@@ -167,8 +170,28 @@ def micro_fine(threads: int, points: int = 1 << 14, reps: int = 5) -> list[dict]
             fast_eval.fine_kernel(Vt, Rt, Lt, vr, vw, br, bw, lr, lw)
             best = min(best, time.perf_counter() - c)
         flops = points * (Kp * (5 + 3 * 7 + 3 * 7) + 9 * Kp)  # (2k − 1)·K' per blend of k rows and channel
+        # the grouped form pixel frames run (`fast_eval.fine_grouped`): its sums per distinct
+        # (vertex, L cell, ρ̃ cell) alone (`group_block`), then the whole (with `group_rows` and the blend)
+        gv, gl, gb, _ = fast_eval.group_rows(vr, lr, br)
+        R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
+        blk = fast_eval.GROUP_BLOCK
+        gv, gl, gb = (x[:gv.shape[0] // blk * blk] for x in (gv, gl, gb))  # whole blocks only
+        g_best = w_best = float("inf")
+        for _ in range(reps):
+            c = time.perf_counter()
+            fast_eval.map_rows(fast_eval._group_block, [gv, gl, gb], (Vt, R3, L3), chunk=blk)
+            g_best = min(g_best, time.perf_counter() - c)
+            c = time.perf_counter()
+            fast_eval.fine_grouped(Vt, Rt, Lt, vr, vw, br, bw, lr, lw)
+            w_best = min(w_best, time.perf_counter() - c)
+        g_flops = gv.shape[0] * 3 * Kp * (4 + 2 * 16)                   # `fast_eval.grouped_flops`, per group
+        g_bytes = gv.shape[0] * 4 * Kp * (1 + 2 * 3 * 4)                 # rows gathered per group (from cache)
         rows.append({"threads": threads, "K'": Kp, "us_per_point": round(best / points * 1e6, 2),
-                     "model_GFLOPs": round(flops / best / 1e9, 2), "matmul_peak_GFLOPs": round(peak / 1e9, 1)})
+                     "model_GFLOPs": round(flops / best / 1e9, 2), "matmul_peak_GFLOPs": round(peak / 1e9, 1),
+                     "groups_per_point": round(gv.shape[0] / points, 3),
+                     "grouped_us_per_point": round(w_best / points * 1e6, 3),
+                     "group_block_GFLOPs": round(g_flops / g_best / 1e9, 2),
+                     "group_block_gathered_GBs": round(g_bytes / g_best / 1e9, 1)})
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -187,7 +210,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--kinds", default="V,VL")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--micro", action="store_true", help="only the evaluator micro-benchmark (1 and 2 threads)")
+    ap.add_argument("--micro-fine", action="store_true",
+                    help="only the fine-value / grouped kernel micro-benchmark (1 and 2 threads)")
     a = ap.parse_args(argv)
+    if a.micro_fine:
+        return {"fine": micro_fine(1) + micro_fine(2)}
     if a.micro:
         return {"micro": micro(1) + micro(2), "fine": micro_fine(1) + micro_fine(2)}
     import ast

@@ -42,11 +42,16 @@ The lighting list (the longest, k_L·n entries) is never enumerated ("c"); V is 
   Measured on chess (bench, 262144 samples, same process, load ~12 on 2 cores): 1.0-1.6 s against
   10.2 s for the previous eager form (three weighted `embedding_bag` blends and a batched product
   per 256 points).
+  Pixel frames (G-buffer samples, several visibility rows each) go *by groups* (`fine_grouped`,
+  comment before `grouping_pays`): eq. 7 is trilinear, so its K'-long sums are done once per
+  distinct (visibility row, L cell, ρ̃ cell) — 0.07–0.09 per sample on the bench scenes — and every
+  sample blends its groups' k_L·k_ρ values. Chess bench V, same process, 1 thread: 2253 ms → 250 ms
+  process CPU per frame.
 
 Frame cost (the roofline model, `frame_cost` → `methods.base.FrameCost`): the minimum work of a
 frame, n = kept coefficients per function, counts of the last rendered frame of the same size
 (``method.stats["last_frame"]``: shaded samples, distinct faces, distinct visibility rows, shaded
-vertices; before any render, upper bounds from the sample count):
+vertices, groups of `fine_grouped`; before any render, upper bounds from the sample count):
   * bytes — every array read once: the visibility rows the G-buffer touches (n values + n indices;
     indices of a full table carry nothing and are not counted), every ρ̃ table (SBRDF "b" tables
     too), the truncated lighting grid, the touched faces' vertex indices, per shaded vertex its
@@ -68,6 +73,9 @@ vertices; before any render, upper bounds from the sample count):
         20·4^l holding the kept prefix when tables are full, then no transform is needed since
         full rows can be kept as fine values at the same size; else K plus 7 inverse transforms,
         8(K − 20)/3 flops each).
+    A pixel frame summed by groups (`fine_grouped`) counts instead, when smaller, the grouped form
+    (`grouped_flops`): per group and channel K'·(k_L + 2·k_L·k_ρ), per shaded sample and channel
+    k_v·(2·k_L·k_ρ + k_L) + k_v − 1 (k_v = 3, k_ρ = 4, k_L as above).
     Frames whose lighting changed add the re-projection (`relight_flops`).
   ``light_lookup="exact"`` projects per shading point: not modelled (None).
 """
@@ -199,8 +207,8 @@ def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Ten
                          f"{tuple(R.shape)}, {tuple(wo_world.shape)}, {tuple(region.shape)}, {tuple(vrows.shape)}")
     cfg = method.config
     Vp = [("blend", method.V_idx, method.V_val, vrows, vw, _is_full(method, "V", method.V_idx))]
-    wo_l = (R @ wo_world.unsqueeze(-1)).squeeze(-1)
-    rows, w = bt.outgoing_weights(wo_l, method.outgoing)
+    grid_mode = None if cfg["light_lookup"] == "exact" else cfg["light_lookup"]
+    rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode)
     bi, bv = _brdf_stack(method)
     brows = rows + region[:, None].long() * method.outgoing.size
     blends = getattr(method, "blends", None)
@@ -221,9 +229,44 @@ def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Ten
         li, lv = truncate(Lc, method._n(), cfg["selection"], method.level)
         Lp = [("list", li.long(), lv)]
     else:
-        lrows, lw = lt.lookup_weights(R, method.grid, cfg["light_lookup"])
         Lp = [("blend", method.L_idx, method.L_val, lrows, lw, _is_full(method, "L", method.L_idx))]
     return [Vp, rp, Lp]
+
+
+def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
+    """`brdf_table.outgoing_weights` at ωo in the local frames R and `lighting.lookup_weights`
+    of R (mode None: no grid look-up), as one function to compile."""
+    rows, w = bt.outgoing_weights((R @ wo_world.unsqueeze(-1)).squeeze(-1), outgoing)
+    if mode is None:
+        return rows, w
+    return (rows, w) + lt.lookup_weights(R, grid, mode)
+
+
+_lookups_fused = fused(_lookups)
+_local_frames_fused = fused(lt.local_frames)
+# Points per compiled block of the per-sample look-ups (a frame's front end: trig in float64 that
+# eager torch runs as ~40 passes over (P,) arrays); smaller batches (per-vertex frames) use the tail.
+LOOKUP_BLOCK = 1 << 15
+LOOKUP_TAIL = 1 << 12
+
+
+def _rows_chunk(B: int) -> int:
+    return LOOKUP_BLOCK if B >= LOOKUP_BLOCK else LOOKUP_TAIL
+
+
+def local_frames(n: Tensor, tangent: str) -> Tensor:
+    """`lighting.local_frames` (B, 3) → (B, 3, 3), compiled over static blocks (`methods.core.fused`)."""
+    if n.ndim != 2 or n.shape[1] != 3:
+        raise ValueError(f"normals must be (B, 3), got {tuple(n.shape)}")
+    return map_rows(_local_frames_fused, [n], (tangent,), chunk=_rows_chunk(n.shape[0]))
+
+
+def grid_lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
+    """The ωo look-up (rows, w (B, 4), `brdf_table.outgoing_weights` of ωo in the frames R (B, 3, 3))
+    and, unless ``mode`` is None, the lighting-grid look-up (`lighting.lookup_weights` of R), compiled
+    over static blocks: (rows, w) or (rows, w, lrows, lw)."""
+    out = map_rows(_lookups_fused, [R, wo_world], (outgoing, grid, mode), chunk=_rows_chunk(R.shape[0]))
+    return out if mode is not None else (out[0], out[1], None, None)
 
 
 def lists_from_rows(spec: list[list[tuple]], s: slice, K: int) -> tuple[SparseList, SparseList, SparseList]:
@@ -526,13 +569,16 @@ def _merge_psi(rows: Tensor, w: Tensor, n_psi: int) -> tuple[Tensor, Tensor]:
 
 
 def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-               mix: Tensor | None = None, *, points: int | None = None) -> Tensor:
+               mix: Tensor | None = None, *, points: int | None = None, grouped: bool | None = None) -> Tensor:
     """Eq. 7 for B points → (B, 3) when every table is full (`fine_ok`): the fine-value identity
     (module docstring, "dense") with the blends done on fine-value tables (`fine_table`):
 
         B_c = A_L' Σ_t V̂(t) ρ̂_c(t) L̂_c(t),  V̂ = Σ_v w_v V̂_v,  ρ̂ = Σ_o w_o ρ̂_o,  L̂ = Σ_r w_r L̂_r
 
-    The blends and the sum over t run in one compiled loop per point and channel (`fine_kernel`).
+    The blends and the sum over t run in one compiled loop per point and channel (`fine_kernel`),
+    or — when the points share their rows (pixel shading: ≈ 11 G-buffer samples per distinct
+    (visibility row, L rows, ρ̃ rows), `grouping_pays`) — the trilinear form of the same sum
+    (`fine_grouped`). ``grouped``: force one of the two (None: `grouping_pays`).
     Same arguments as `shade`."""
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
     (vp,), rps, (lp,) = spec
@@ -555,6 +601,13 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
         brows = torch.cat([rps[0][3], rps[1][3] + Ra.shape[0]], 1)
         bw = torch.cat([rps[0][4], rps[1][4]], 1)
     # A_L' of the evaluation level (equal-area measure)
+    if grouped is None:
+        grouped = grouping_pays(vp[3], lrows, brows)
+    if grouped:  # the frame's group count goes to `frame_cost` (``method.stats["frame_groups"]``)
+        st = {}
+        out = fine_grouped(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, stats=st)
+        method.stats["frame_groups"] = method.stats.get("frame_groups", 0) + st["groups"]
+        return out.mul_(0.25 ** Le)
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
 
 
@@ -612,6 +665,124 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     if head < rows[0].shape[0] or not head:
         parts.append(map_rows(_fine_block, [r[head:] for r in rows], (Vt, R3, L3), chunk=tail))
     return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+# -- grouped evaluation: once per distinct (visibility row, L look-up, ρ̃ look-up) ----------------------
+#
+# Eq. 7 is trilinear, so with V̂ = Σ_i w_i V̂_i, L̂ = Σ_j w_j L̂_j, ρ̂ = Σ_k w_k ρ̂_k
+#
+#     B_c = Σ_i w_i Σ_j w_j Σ_k w_k T_c[v_i, l_j, b_k],    T_c[v, l, b] = Σ_t V̂_v(t) L̂_{l,c}(t) ρ̂_{b,c}(t)
+#
+# A grid look-up's rows are a function of its first row (the trilinear cell of `lighting.lookup_weights`,
+# the bilinear cell of `brdf_table.outgoing_weights`, offset by the region / SBRDF stack), so every
+# G-buffer sample touching visibility row v with the same two cells needs the same k_L·k_ρ·3 values
+# T_c[v, ·, ·]: a *group* (v, l_0, b_0). Pixel frames of the bench have ≈ 0.07–0.09 groups per sample
+# (chess, creature: 4 spp, neighbouring samples share triangle and cells), so the K'-long sums are done
+# once per group (`group_block`: per t, 1 + 2·3·4 loads for 3·(4 + 2·16) flops, against 27 loads and
+# 72 flops per t for every sample in `fine_block`), and each sample blends its 3·16·3 values.
+
+
+def grouping_pays(vrows: Tensor, lrows: Tensor, brows: Tensor) -> bool:
+    """The grouped form does less work than the per-point one: the points are G-buffer samples (more
+    than one visibility row each) and there are enough of them to share cells (a per-vertex frame
+    has one visibility row per point: nothing to share)."""
+    return vrows.shape[1] > 1 and vrows.shape[0] >= GROUP_MIN_POINTS and lrows.shape[1] * brows.shape[1] <= 64
+
+
+def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The distinct groups (v, L cell, ρ̃ cell) of B points and each point's group per visibility row.
+
+    Args: vrows (B, k_v), lrows (B, k_L), brows (B, k_ρ) int64 table rows (a look-up's rows are a
+        function of its first one, module comment above).
+    Returns: gv (G,), gl (G, k_L), gb (G, k_ρ) int64 rows of every group (sorted by v, then cells)
+        and inv (B, k_v) int64 group of every (point, visibility row)."""
+    B, kv = vrows.shape
+    nl = int(lrows[:, 0].max()) + 1 if B else 1
+    nb = int(brows[:, 0].max()) + 1 if B else 1
+    cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
+    key = vrows * (nl * nb) + cell[:, None]                               # (B, k_v)
+    uk, inv = torch.unique(key.reshape(-1), return_inverse=True)
+    G = uk.numel()
+    # a member point of every group (whichever write lands: all members have the group's rows)
+    rep = torch.empty(G, dtype=torch.int64, device=inv.device)
+    rep[inv] = torch.arange(B, device=inv.device).repeat_interleave(kv)
+    return uk // (nl * nb), lrows[rep], brows[rep], inv.view(B, kv)
+
+
+def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:
+    """T_c[v, l_j, b_k] = Σ_t V̂_v(t) L̂_{l_j,c}(t) ρ̂_{b_k,c}(t) of a block of g groups (module
+    comment above; no A_L' factor): gv (g,), gl (g, k_L), gb (g, k_ρ) rows; Vt (N_V, K'),
+    Rt (N_ρ, 3, K'), Lt (N_L, 3, K') fine-value tables. Returns (g, 3·k_L·k_ρ), index (c, j, k).
+    One expression of 3·k_L·k_ρ sums over t: Inductor emits one loop over t per group, every row
+    loaded once per t (the products V̂·L̂_j formed once and reused for the k_ρ rows)."""
+    V = Vt[gv]                                                           # (g, K')
+    out = []
+    for c in range(3):
+        Rc = [Rt[gb[:, k], c] for k in range(gb.shape[1])]
+        for j in range(gl.shape[1]):
+            u = V * Lt[gl[:, j], c]
+            out += [(u * r).sum(-1) for r in Rc]
+    return torch.stack(out, -1)
+
+
+def group_blend(inv: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> Tensor:
+    """Σ_i vw_i Σ_j lw_j Σ_k bw_k T[inv_i, c, j, k] of a block of b points → (b, 3): inv (b, k_v)
+    groups, vw (b, k_v), lw (b, k_L), bw (b, k_ρ) weights, T (G, 3·k_L·k_ρ). The small sums are
+    unrolled (a reduction over them would be split across threads by Inductor)."""
+    kl, kb = lw.shape[1], bw.shape[1]
+    out = []
+    for c in range(3):
+        acc = None
+        for i in range(inv.shape[1]):
+            Ti = T[inv[:, i]]
+            si = None
+            for j in range(kl):
+                sj = None
+                for k in range(kb):
+                    x = bw[:, k] * Ti[:, (c * kl + j) * kb + k]
+                    sj = x if sj is None else sj + x
+                sj = lw[:, j] * sj
+                si = sj if si is None else si + sj
+            si = vw[:, i] * si
+            acc = si if acc is None else acc + si
+        out.append(acc)
+    return torch.stack(out, -1)
+
+
+_group_block = fused(group_block)
+_group_blend = fused(group_blend)
+# Groups per compiled block of `fine_grouped` (and its remainder blocks), points per blend block.
+GROUP_BLOCK = 1024
+GROUP_TAIL = 128
+GROUP_BLEND_POINTS = 1 << 14
+# Fewer points than this: the per-point kernel (no grouping overhead; tests' tiny frames use both).
+GROUP_MIN_POINTS = 256
+
+
+def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+                 lrows: Tensor, lw: Tensor, *, points: int | None = None, stats: dict | None = None) -> Tensor:
+    """`fine_kernel` (same arguments and result) by groups: `group_rows`, `group_block` over the
+    groups (compiled static blocks), `group_blend` per point. ``points``: groups per block;
+    ``stats``: receives ``"groups"``, the number of groups."""
+    Kp = Vt.shape[1]
+    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
+        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
+    dt = Vt.dtype
+    R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
+    for t in (Vt, R3, L3):  # table row counts vary by scene / grid / regions: one compiled variant
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long())
+    p = GROUP_BLOCK if points is None else int(points)
+    G = gv.shape[0]
+    if stats is not None:
+        stats["groups"] = int(G)
+    head = G // p * p if G > p else 0
+    parts = [map_rows(_group_block, [gv[:head], gl[:head], gb[:head]], (Vt, R3, L3), chunk=p)] if head else []
+    if head < G or not head:
+        parts.append(map_rows(_group_block, [gv[head:], gl[head:], gb[head:]], (Vt, R3, L3), chunk=min(p, GROUP_TAIL)))
+    T = parts[0] if len(parts) == 1 else torch.cat(parts)
+    torch._dynamo.maybe_mark_dynamic(T, 0)
+    return map_rows(_group_blend, [inv, vw.to(dt), lw.to(dt), bw.to(dt)], (T,), chunk=GROUP_BLEND_POINTS)
 
 
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:
@@ -750,6 +921,17 @@ def blend_flops(method, k_v: int) -> int:
     return _kept(method) * (blend_terms(k_v) + 3 * blend_terms(4) + 3 * blend_terms(k_l))
 
 
+def grouped_flops(method, groups: int, shaded: int, k_v: int = 3) -> int:
+    """Flops of eq. 7 by groups (`fine_grouped`, full tables, K' fine triangles): per group and
+    channel, the k_L products V̂·L̂_j and the k_L·k_ρ sums of their products with ρ̂_k
+    (K'·(k_L + 2·k_L·k_ρ)); per shaded sample and channel, the blend of its k_v groups' values,
+    Σ_i w_i (Σ_j w_j (Σ_k w_k T_ijk)): k_v·(2·k_L·k_ρ + k_L) + k_v − 1. k_ρ = 4 ωo rows, k_L the
+    look-up's distinct grid rows (as `blend_flops`)."""
+    k_l = {"nearest": 1, "trilinear": 4 if method.grid.n_psi == 1 else 8}[method.config["light_lookup"]]
+    k_b, Kp = 4, _round_size(_kept(method))
+    return int(groups * 3 * Kp * (k_l + 2 * k_l * k_b) + shaded * 3 * (k_v * (2 * k_l * k_b + k_l) + k_v - 1))
+
+
 def relight_flops(method, envmap) -> int:
     """Flops of re-projecting the lighting into the F grid frames (`lighting.project_lighting`):
     per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
@@ -813,6 +995,8 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
     # flops: per shading point, form the three functions and sum eq. 7
     if pixel:
         flops = rec["shaded"] * (blend_flops(method, 3) + triple_flops(method))
+        if rec.get("groups"):  # the trilinear form by groups ran (`fine_grouped`): its count if smaller
+            flops = min(flops, grouped_flops(method, rec["groups"], rec["shaded"]))
     else:
         flops = rec["vertices"] * (blend_flops(method, 1) + triple_flops(method)) + rec["shaded"] * 3 * blend_terms(3)
     if "L" in frame_kind or "E" in frame_kind:

@@ -30,7 +30,8 @@ Render:
     env map in each shading point's own frame: no grid error, V·K·4^s env look-ups per frame).
   * Tripling (``evaluator``): `fast_eval.shade` — with full tables (all coefficients, or "top")
     "fine": blends of precomputed fine-value rows and one product per point (`fast_eval.shade_fine`,
-    what "auto" runs then); else the blends kept as index/value lists, summed exactly
+    what "auto" runs then; pixel frames sum it once per distinct (vertex, L cell, ρ̃ cell) group
+    and blend the groups' values per sample, `fast_eval.fine_grouped`); else the blends kept as index/value lists, summed exactly
     by the fine-value identity ("dense") or by visiting only the stored coefficients with the
     three tripling rules ("sparse", the paper's GPU form; "auto" picks by size) — or "reference":
     zero-filled (B, 3, K) vectors through `spherical_haar.triple_integral` (7× slower at bench
@@ -86,8 +87,9 @@ ISOTROPIC = frozenset({"lambert", "phong", "blinnphong", "cooktorrance", "torran
 # Shading points per batch in render(): each batch holds a few (B, 3, K) float32 tensors.
 RENDER_FLOATS = 1 << 22
 # Shading points per batch when the fine-value path runs (it chunks its (B, 3, K') blends itself;
-# its look-ups are O(B) per batch).
-FINE_RENDER_POINTS = 1 << 15
+# its look-ups are O(B) per batch): a whole bench frame (256² × 4 samples) in one batch, so its
+# grouped sums (`fast_eval.fine_grouped`) are shared by every sample of the frame.
+FINE_RENDER_POINTS = 1 << 18
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
@@ -615,9 +617,11 @@ class TripleProduct(Method):
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
             touched = torch.zeros(self.V_idx.shape[0], dtype=torch.bool, device=hit.device)
+            self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
             for a in range(0, hit.numel(), chunk):
                 s = hit[a:a + chunk]
-                R = lt.local_frames(normals[s], self.config["tangent"])
+                R = (lt.local_frames if self.config["evaluator"] == "reference" else fast_eval.local_frames)(
+                    normals[s], self.config["tangent"])
                 rows, w = vidx[s], vw[s]
                 if textured:
                     rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
@@ -625,16 +629,19 @@ class TripleProduct(Method):
                 out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
                                      mix[s] if self.blends else None)
             rows = torch.nonzero(touched, as_tuple=False).squeeze(-1)
-            self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None)
+            self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None,
+                               self.stats.pop("frame_groups", 0))
         return gbuffer.resolve(out)
 
     def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,
-                      vertices: Tensor | None) -> None:
+                      vertices: Tensor | None, groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
-        visibility rows (vertices / texels) and shaded vertices (vertex shading)."""
+        visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
+        was summed for (`fast_eval.fine_grouped`; 0: per point)."""
         self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(hit.numel()),
                                     "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
-                                    "vertices": 0 if vertices is None else int(vertices.numel())}
+                                    "vertices": 0 if vertices is None else int(vertices.numel()),
+                                    "groups": int(groups)}
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def frame_cost(self, frame_kind: str, num_samples: int):

@@ -213,6 +213,20 @@ def test_frame_cost_tiny_config(scene_frame, n):
     c = pixel.frame_cost("V", P)
     want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
     want_f = nh * (nk * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
+    if n is None:  # full tables: summed by groups (fast_eval.fine_grouped) — its count is smaller
+        from methods.triple_product import brdf_table as bt, lighting as lt
+
+        s = torch.nonzero(hit).squeeze(-1)
+        Rs = lt.local_frames(torch.nn.functional.normalize(gb.normal[s].float(), dim=-1), "grid")
+        l0 = lt.lookup_weights(Rs, pixel.grid, "trilinear")[0][:, 0]     # a grid cell: its first row
+        b0 = bt.outgoing_weights((Rs @ gb.wo[s].float()[..., None])[..., 0], pixel.outgoing)[0][:, 0] \
+            + gb.region[s].long() * 2                                       # ωo cell in its region's table
+        groups = torch.unique(torch.stack([idx[s], l0[:, None].expand(-1, 3), b0[:, None].expand(-1, 3)], -1)
+                              .reshape(-1, 3), dim=0).shape[0]
+        # per group and channel: 4 products V̂·L̂_j and 16 sums of (·ρ̂_k), 2 flops each, per fine
+        # triangle; per sample and channel: 3 vertices × (16 products and adds + 4 L weights) + 2 adds
+        want_f = min(want_f, groups * 3 * K * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
+        assert 0 < groups < 3 * nh
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
     nrows = pixel.V_idx.shape[0]
@@ -362,3 +376,29 @@ def test_prefiltered_lighting_keeps_a_small_suns_energy():
         worst_pre = max(worst_pre, float(((sampled(pre_env) - ref).abs() / ref).max()))
     assert worst_pre < 0.16, worst_pre
     assert worst_raw > 0.5, worst_raw
+
+
+def test_grouped_kernel_equals_per_point_kernel():
+    """`fast_eval.fine_grouped` (eq. 7 once per distinct (visibility row, L cell, ρ̃ cell), then
+    blended per point) = `fine_kernel` (per point) to float32 round-off, on points that share cells
+    like neighbouring G-buffer samples; `group_rows` gives every point a group with its own rows."""
+    gen = torch.Generator().manual_seed(7)
+    Kp, B = 80, 700
+    Vt = torch.randn(40, Kp, generator=gen)
+    Rt = torch.randn(12, 3 * Kp, generator=gen)
+    Lt = torch.randn(24, 3 * Kp, generator=gen)
+    tri = torch.randint(0, 38, (B // 7 + 1,), generator=gen).repeat_interleave(7)[:B]
+    vrows = torch.stack([tri, tri + 1, tri + 2], 1)
+    l0 = torch.randint(0, 20, (B // 7 + 1,), generator=gen).repeat_interleave(7)[:B]
+    b0 = torch.randint(0, 8, (B // 7 + 1,), generator=gen).repeat_interleave(7)[:B]
+    lrows = torch.stack([l0, l0 + 1, l0 + 3, l0 + 4], 1)   # a cell's rows: a function of its first
+    brows = torch.stack([b0, b0 + 1, b0 + 2, b0 + 3], 1)
+    vw, lw, bw = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
+    gv, gl, gb, inv = fast_eval.group_rows(vrows, lrows, brows)
+    assert gv.numel() < B  # the 3·B (point, vertex) pairs share groups
+    for i in range(3):
+        assert torch.equal(gv[inv[:, i]], vrows[:, i])
+        assert torch.equal(gl[inv[:, i]], lrows) and torch.equal(gb[inv[:, i]], brows)
+    want = fast_eval.fine_kernel(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw)
+    got = fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, points=64)
+    assert (got - want).abs().max() <= F32 * want.abs().max()
