@@ -21,11 +21,13 @@ import torch
 from torch import Tensor
 
 import math
+from dataclasses import fields
 
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core.frames import coordinate_system
 from methods.core.fused import fused, map_rows
+from methods.core.sampling import cosine_hemisphere_pdf, sample_cosine_hemisphere
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
 from scenes.envmap import bilinear_lookup, cell_pdf, sample_cells
@@ -85,7 +87,7 @@ def _light_stage(n, wo, ng, u, cdf, p_flat, omega, R64, light: bool):
     if not light:
         return s, t, wo_l, ng, u, u[..., 0], u
     H, W = omega.shape[0] + 1, p_flat.shape[0] // omega.shape[0]
-    d, pdf = sample_cells(u, cdf, p_flat, omega, R64, H, W)
+    d, pdf = sample_cells(u, cdf, p_flat, omega, R64, H, W, branchless=True)
     d, pdf = d.float(), pdf.float()
     return s, t, wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
 
@@ -134,6 +136,62 @@ def _shade_stage(contrib, lit, d, data, ext, R32):
     return acc
 
 
+# BRDF families whose specular code (``scenes.materials``) takes tensor parameters: compiled once per
+# family with the parameters as inputs (a VB sequence changes them every frame). Others
+# (Torrance-Sparrow: Python-float normalisation) run eagerly.
+_TENSOR_KINDS = ("lambert", "phong", "blinnphong", "cooktorrance", "ward")
+
+
+class _TensorParams:
+    """A material's parameters as float64 0-d tensors (kd, ks: (3,)) for its specular methods called
+    on this object under ``torch.compile`` (inputs, not constants: no recompilation per value)."""
+
+    def __init__(self, mat) -> None:
+        for f in fields(mat):
+            setattr(self, f.name, torch.tensor(getattr(mat, f.name), dtype=torch.float64))
+        self.ps = torch.tensor(mat.spec_weight, dtype=torch.float64)
+
+    def _ks(self, like: Tensor) -> Tensor:
+        return self.ks.to(like.dtype)
+
+
+def _mix_pdf(cls, P, has_spec: bool, wi: Tensor, wo: Tensor) -> Tensor:
+    """``Material.pdf`` on tensor parameters P (`_TensorParams`)."""
+    p = (1.0 - P.ps) * cosine_hemisphere_pdf(wi)
+    if has_spec:
+        p = p + P.ps * cls._spec_pdf(P, wi, wo)
+    return p.to(wi.dtype)
+
+
+def _brdf_sample_stage(wo_l, u_b, wi_ll, cls, P, has_spec: bool, nl: int, nb: int):
+    """The BRDF's density at the light samples and its own samples (``Material.pdf`` and
+    ``Material.sample`` on tensor parameters) for rows of one region."""
+    out = []
+    if nl:
+        out.append(_mix_pdf(cls, P, has_spec, wi_ll, wo_l.unsqueeze(1).expand(-1, nl, 3)))
+    if nb:
+        wo = wo_l.unsqueeze(1).expand(-1, nb, 3)
+        pd = 1.0 - P.ps
+        u0, u1 = u_b[..., 0], u_b[..., 1]
+        one_minus = 1.0 - torch.finfo(u_b.dtype).eps
+        wi = sample_cosine_hemisphere(torch.stack([(u0 / pd.clamp_min(1e-12)).clamp(0, one_minus), u1], -1))[0]
+        if has_spec:
+            us = torch.stack([((u0 - pd) / P.ps).clamp(0, one_minus), u1], -1)
+            wi = torch.where((u0 >= pd)[..., None], cls._spec_sample(P, wo, us), wi)
+        out += [wi, _mix_pdf(cls, P, has_spec, wi, wo)]
+    return tuple(out)
+
+
+def _brdf_eval_stage(wi, wo_l, cls, P):
+    """``Material.eval`` on tensor parameters for rows of one region: (Q, K, 3)."""
+    wo = wo_l.unsqueeze(1).expand_as(wi)
+    f = P.kd.to(wi.dtype) / math.pi + cls._spec_eval(P, wi, wo)
+    up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+    return torch.where(up[..., None], f, torch.zeros_like(f))
+
+
+_brdf_sample_stage = fused(_brdf_sample_stage)
+_brdf_eval_stage = fused(_brdf_eval_stage)
 _light_stage = fused(_light_stage)
 _weight_stage = fused(_weight_stage)
 _ray_stage = fused(_ray_stage)
@@ -268,6 +326,15 @@ class Oracle(Method):
         wi_b = torch.empty(Q, NB, 3) if NB else wi_ll
         pdf_b = torch.empty(Q, NB) if NB else pdf_l
         for mat, a, b in mats:  # the BRDF's density of the light samples and its own samples
+            if mat.kind in _TENSOR_KINDS:
+                P = _TensorParams(mat)
+                res = map_rows(_brdf_sample_stage, [wo_l[a:b], U_b[a:b], wi_ll[a:b]],
+                               (type(mat), P, mat.spec_weight > 0, NL, NB), chunk=ROWS)
+                if NL:
+                    pdf_bl[a:b] = res[0]
+                if NB:
+                    wi_b[a:b], pdf_b[a:b] = res[-2:]
+                continue
             if NL:
                 pdf_bl[a:b] = mat.pdf(wi_ll[a:b], wo_l[a:b].unsqueeze(1).expand(b - a, NL, 3))
             if NB:
@@ -276,6 +343,9 @@ class Oracle(Method):
                             (p2d, omega, R64, NL, NB), chunk=ROWS)
         f = torch.empty_like(wi)
         for mat, a, b in mats:
+            if mat.kind in _TENSOR_KINDS:
+                f[a:b] = map_rows(_brdf_eval_stage, [wi[a:b], wo_l[a:b]], (type(mat), _TensorParams(mat)), chunk=ROWS)
+                continue
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
         contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
         rays = torch.nonzero(live.view(-1)).squeeze(-1)
