@@ -38,8 +38,9 @@ from scenes.envmap import bilinear_lookup, cell_pdf, sample_cells
 RAY_EPS_REL = 1e-5
 
 # G-buffer samples per block of the compiled stages (`methods.core.fused.map_rows`): each sample
-# carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB.
-ROWS = 1 << 13
+# carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB;
+# 8 blocks of a bench frame (2^13 rows: 32, and ~0.1 s more of per-call overhead per frame).
+ROWS = 1 << 15
 
 
 def _power_heuristic(pdf_a: Tensor, pdf_b: Tensor) -> Tensor:
@@ -85,18 +86,19 @@ def _light_stage(n, wo, ng, u, cdf, p_flat, omega, R64, light: bool):
     wo_l = _to_local(s, t, n, wo)
     ng = torch.where((_dot(ng, n) < 0).unsqueeze(-1), -ng, ng)
     if not light:
-        return s, t, wo_l, ng, u, u[..., 0], u
+        return wo_l, ng, u, u[..., 0], u
     H, W = omega.shape[0] + 1, p_flat.shape[0] // omega.shape[0]
     d, pdf = sample_cells(u, cdf, p_flat, omega, R64, H, W, branchless=True)
     d, pdf = d.float(), pdf.float()
-    return s, t, wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
+    return wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
 
 
-def _weight_stage(s, t, n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl: int, nb: int):
+def _weight_stage(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl: int, nb: int):
     """World directions of the BRDF samples, the env map's density there (`scenes.envmap.cell_pdf`)
     and every ray's MIS weight / pdf / count (power heuristic): → directions (Q, K, 3) world and
     local, weights (Q, K), light samples first."""
     ds, wis, ws = [], [], []
+    s, t = coordinate_system(n)
     if nl:
         w = _power_heuristic(pdf_l, pdf_bl) / pdf_l.clamp_min(1e-30) / nl
         ws.append(torch.where(pdf_l > 0, w, torch.zeros_like(w)))
@@ -319,7 +321,7 @@ class Oracle(Method):
         → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
         cdf, p_flat, p2d, omega, R64 = tables
-        s, t, wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
+        wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
                                                      (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)
         Q = p.shape[0]
         pdf_bl = torch.empty(Q, NL) if NL else pdf_l
@@ -339,7 +341,7 @@ class Oracle(Method):
                 pdf_bl[a:b] = mat.pdf(wi_ll[a:b], wo_l[a:b].unsqueeze(1).expand(b - a, NL, 3))
             if NB:
                 wi_b[a:b], pdf_b[a:b] = mat.sample(wo_l[a:b].unsqueeze(1).expand(b - a, NB, 3), U_b[a:b])
-        d, wi, w = map_rows(_weight_stage, [s, t, n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b],
+        d, wi, w = map_rows(_weight_stage, [n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b],
                             (p2d, omega, R64, NL, NB), chunk=ROWS)
         f = torch.empty_like(wi)
         for mat, a, b in mats:
