@@ -14,6 +14,14 @@ cosine placement, camera rays, normals). ``tests/methods/test_oracle.py`` proves
 scene and procedural env map.
 
 No precomputation: it handles dynamic lighting, view, BRDFs and geometry (a posed mesh per frame).
+
+Two paths compute the same estimate from the same random numbers (issue 14): `Oracle.render_reference`,
+the eager estimator (`Oracle._shade` per region and batch of samples), is the test oracle;
+`Oracle.render` runs its passes compiled (``methods.core.fused``) in static row blocks — the
+material-free ones (shading frame, env-map sampling, MIS weights, ray origins, radiance and the sum)
+over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
+(Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
+batch. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
 from __future__ import annotations
 
