@@ -14,6 +14,14 @@ cosine placement, camera rays, normals). ``tests/methods/test_oracle.py`` proves
 scene and procedural env map.
 
 No precomputation: it handles dynamic lighting, view, BRDFs and geometry (a posed mesh per frame).
+
+Two paths compute the same estimate from the same random numbers (issue 14): `Oracle.render_reference`,
+the eager estimator (`Oracle._shade` per region and batch of samples), is the test oracle;
+`Oracle.render` runs its passes compiled (``methods.core.fused``) in static row blocks — the
+material-free ones (shading frame, env-map sampling, MIS weights, ray origins, radiance and the sum)
+over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
+(Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
+batch. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
 from __future__ import annotations
 
@@ -21,17 +29,26 @@ import torch
 from torch import Tensor
 
 import math
+from dataclasses import fields
 
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core.frames import coordinate_system
+from methods.core.fused import fused, map_rows
+from methods.core.sampling import cosine_hemisphere_pdf, sample_cosine_hemisphere
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
+from scenes.envmap import bilinear_lookup, cell_pdf, sample_cells
 
 # Shadow-ray origin offset, as a fraction of the scene's bounding-box diagonal (Mitsuba offsets by
 # a relative epsilon too; any value well above float32 round-off of positions and well below
 # geometric detail gives the same image).
 RAY_EPS_REL = 1e-5
+
+# G-buffer samples per block of the compiled stages (`methods.core.fused.map_rows`): each sample
+# carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB;
+# 8 blocks of a bench frame (2^13 rows: 32, and ~0.1 s more of per-call overhead per frame).
+ROWS = 1 << 15
 
 
 def _power_heuristic(pdf_a: Tensor, pdf_b: Tensor) -> Tensor:
@@ -45,6 +62,150 @@ def geometric_normals(V: Tensor, F: Tensor, face: Tensor) -> Tensor:
     tri = V[F[face]]  # (P, 3, 3)
     ng = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
     return ng / ng.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+
+
+def _segments(regions: list, a: int, b: int) -> list:
+    """(material, start, end) ranges, relative to a, of the rows [a, b) of samples laid out region
+    after region (``regions``: (material, count) in that order)."""
+    out, r0 = [], 0
+    for mat, q in regions:
+        lo, hi = max(a, r0), min(b, r0 + q)
+        if lo < hi:
+            out.append((mat, lo - a, hi - a))
+        r0 += q
+    return out
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    """a · b over the last axis (3), unrolled."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _to_local(s: Tensor, t: Tensor, n: Tensor, v: Tensor) -> Tensor:
+    """World vectors v (..., 3) → the shading frame (rows s, t, n broadcast against v)."""
+    return torch.stack([_dot(s, v), _dot(t, v), _dot(n, v)], -1)
+
+
+def _light_stage(n, wo, ng, u, cdf, p_flat, omega, R64, light: bool):
+    """The shading frame, ω_o in it, the geometric normal on the shading normal's side, and the
+    env-map samples (`scenes.envmap.sample_cells`) in world and local coordinates with their
+    densities — `Oracle._shade` up to the BRDF calls. Rows: G-buffer samples."""
+    s, t = coordinate_system(n)
+    wo_l = _to_local(s, t, n, wo)
+    ng = torch.where((_dot(ng, n) < 0).unsqueeze(-1), -ng, ng)
+    if not light:
+        return wo_l, ng, u, u[..., 0], u
+    H, W = omega.shape[0] + 1, p_flat.shape[0] // omega.shape[0]
+    d, pdf = sample_cells(u, cdf, p_flat, omega, R64, H, W, branchless=True)
+    d, pdf = d.float(), pdf.float()
+    return wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
+
+
+def _weight_stage(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl: int, nb: int):
+    """World directions of the BRDF samples, the env map's density there (`scenes.envmap.cell_pdf`)
+    and every ray's MIS weight / pdf / count (power heuristic): → directions (Q, K, 3) world and
+    local, weights (Q, K), light samples first."""
+    ds, wis, ws = [], [], []
+    s, t = coordinate_system(n)
+    if nl:
+        w = _power_heuristic(pdf_l, pdf_bl) / pdf_l.clamp_min(1e-30) / nl
+        ws.append(torch.where(pdf_l > 0, w, torch.zeros_like(w)))
+        ds.append(d_l)
+        wis.append(wi_ll)
+    if nb:
+        d = wi_b[..., :1] * s[:, None] + wi_b[..., 1:2] * t[:, None] + wi_b[..., 2:] * n[:, None]
+        pdf_lb = cell_pdf(d, p2d, omega, R64).float() if nl else torch.zeros_like(pdf_b)
+        w = _power_heuristic(pdf_b, pdf_lb) / pdf_b.clamp_min(1e-30) / nb
+        ws.append(torch.where(pdf_b > 0, w, torch.zeros_like(w)))
+        ds.append(d)
+        wis.append(wi_b)
+    return torch.cat(ds, 1), torch.cat(wis, 1), torch.cat(ws, 1)
+
+
+def _ray_stage(f, wi, w, d, p, ng, eps):
+    """Each ray's contribution f·cos·w (Q, K, 3), whether it is live (non-zero: traced) and its
+    shadow-ray origin, offset along the geometric normal to the side of the ray."""
+    contrib = f * (wi[..., 2].clamp_min(0.0) * w).unsqueeze(-1)
+    live = contrib.amax(-1) > 0
+    side = torch.sign(_dot(ng[:, None], d)).unsqueeze(-1)
+    return contrib, live, p[:, None] + side * ng[:, None] * eps
+
+
+def _shade_stage(contrib, lit, d, data, ext, R32):
+    """Σ_k contribution · radiance over the rays lit (live and unblocked): (Q, 3). The radiance of
+    the others is not looked up (a fixed direction stands in) and counts 0."""
+    up = torch.zeros_like(d)
+    up[..., 1] = 1.0
+    dl = torch.where(lit.unsqueeze(-1), d, up)
+    dl = dl[..., :1] * R32[0] + dl[..., 1:2] * R32[1] + dl[..., 2:] * R32[2]  # EnvMap.to_local: d @ R
+    L = bilinear_lookup(data, dl, ext)
+    L = torch.where(lit.unsqueeze(-1), L, torch.zeros_like(L))
+    acc = contrib[:, 0] * L[:, 0]
+    for k in range(1, contrib.shape[1]):  # unrolled: one thread per sample whatever K
+        acc = acc + contrib[:, k] * L[:, k]
+    return acc
+
+
+# BRDF families whose specular code (``scenes.materials``) takes tensor parameters: compiled once per
+# family with the parameters as inputs (a VB sequence changes them every frame). Others
+# (Torrance-Sparrow: Python-float normalisation) run eagerly.
+_TENSOR_KINDS = ("lambert", "phong", "blinnphong", "cooktorrance", "ward")
+
+
+class _TensorParams:
+    """A material's parameters as float64 0-d tensors (kd, ks: (3,)) for its specular methods called
+    on this object under ``torch.compile`` (inputs, not constants: no recompilation per value)."""
+
+    def __init__(self, mat) -> None:
+        for f in fields(mat):
+            setattr(self, f.name, torch.tensor(getattr(mat, f.name), dtype=torch.float64))
+        self.ps = torch.tensor(mat.spec_weight, dtype=torch.float64)
+
+    def _ks(self, like: Tensor) -> Tensor:
+        return self.ks.to(like.dtype)
+
+
+def _mix_pdf(cls, P, has_spec: bool, wi: Tensor, wo: Tensor) -> Tensor:
+    """``Material.pdf`` on tensor parameters P (`_TensorParams`)."""
+    p = (1.0 - P.ps) * cosine_hemisphere_pdf(wi)
+    if has_spec:
+        p = p + P.ps * cls._spec_pdf(P, wi, wo)
+    return p.to(wi.dtype)
+
+
+def _brdf_sample_stage(wo_l, u_b, wi_ll, cls, P, has_spec: bool, nl: int, nb: int):
+    """The BRDF's density at the light samples and its own samples (``Material.pdf`` and
+    ``Material.sample`` on tensor parameters) for rows of one region."""
+    out = []
+    if nl:
+        out.append(_mix_pdf(cls, P, has_spec, wi_ll, wo_l.unsqueeze(1).expand(-1, nl, 3)))
+    if nb:
+        wo = wo_l.unsqueeze(1).expand(-1, nb, 3)
+        pd = 1.0 - P.ps
+        u0, u1 = u_b[..., 0], u_b[..., 1]
+        one_minus = 1.0 - torch.finfo(u_b.dtype).eps
+        wi = sample_cosine_hemisphere(torch.stack([(u0 / pd.clamp_min(1e-12)).clamp(0, one_minus), u1], -1))[0]
+        if has_spec:
+            us = torch.stack([((u0 - pd) / P.ps).clamp(0, one_minus), u1], -1)
+            wi = torch.where((u0 >= pd)[..., None], cls._spec_sample(P, wo, us), wi)
+        out += [wi, _mix_pdf(cls, P, has_spec, wi, wo)]
+    return tuple(out)
+
+
+def _brdf_eval_stage(wi, wo_l, cls, P):
+    """``Material.eval`` on tensor parameters for rows of one region: (Q, K, 3)."""
+    wo = wo_l.unsqueeze(1).expand_as(wi)
+    f = P.kd.to(wi.dtype) / math.pi + cls._spec_eval(P, wi, wo)
+    up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+    return torch.where(up[..., None], f, torch.zeros_like(f))
+
+
+_brdf_sample_stage = fused(_brdf_sample_stage)
+_brdf_eval_stage = fused(_brdf_eval_stage)
+_light_stage = fused(_light_stage)
+_weight_stage = fused(_weight_stage)
+_ray_stage = fused(_ray_stage)
+_shade_stage = fused(_shade_stage)
 
 
 @register
@@ -85,22 +246,31 @@ class Oracle(Method):
             self._vis = (key, make_visibility(geom.V, geom.F))
         return self._vis[1]
 
-    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+    def _frame_setup(self, frame: Frame):
+        """(geometry of the frame's pose, its tracer, shadow-ray offset, the frame's generator)."""
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
-        scene = self.scene
-        geom = scene.geometry(frame.pose)
+        geom = self.scene.geometry(frame.pose)
         vis = self._visibility(geom, frame.pose)
         extent = (geom.V.max(0).values - geom.V.min(0).values).norm().item()
         eps = RAY_EPS_REL * max(extent, 1e-6)
         gen = torch.Generator().manual_seed(int(self.seed) * 1_000_003 + int(frame.index))
+        return geom, vis, eps, gen
 
+    def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor, live: int, env) -> None:
+        faces = torch.unique(gbuffer.face[hit_idx])
+        self._last = (gbuffer.num_samples, int(hit_idx.numel()), live, int(faces.numel()),
+                      int(torch.unique(geom.F[faces]).numel()), tuple(int(x) for x in env.data.shape[:2]))
+
+    def render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The eager estimator (`_shade` per region and chunk of samples): the test oracle of
+        `render`, which computes the same estimate from the same random numbers in compiled stages."""
+        geom, vis, eps, gen = self._frame_setup(frame)
         out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
-        spp = self.n_light + self.n_brdf
-        chunk = max(1, self.max_rays // spp)
+        chunk = self._chunk()
         live = [0]
-        for r, region in enumerate(scene.regions):
+        for r, region in enumerate(self.scene.regions):
             mat = frame.materials[region]
             idx = hit_idx[gbuffer.region[hit_idx] == r]
             for c0 in range(0, idx.numel(), chunk):
@@ -108,10 +278,94 @@ class Oracle(Method):
                 out[sel] = self._shade(mat, frame.envmap, vis, eps,
                                        gbuffer.position[sel], gbuffer.normal[sel], gbuffer.wo[sel],
                                        geometric_normals(geom.V, geom.F, gbuffer.face[sel]), gen, live)
-        faces = torch.unique(gbuffer.face[hit_idx])
-        self._last = (gbuffer.num_samples, int(hit_idx.numel()), live[0], int(faces.numel()),
-                      int(torch.unique(geom.F[faces]).numel()), tuple(int(x) for x in frame.envmap.data.shape[:2]))
+        self._record(gbuffer, geom, hit_idx, live[0], frame.envmap)
         return gbuffer.resolve(out)
+
+    def _chunk(self) -> int:
+        """G-buffer samples per batch of rays (at most ``max_rays_per_batch`` rays)."""
+        return max(1, self.max_rays // (self.n_light + self.n_brdf))
+
+    def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """`render_reference`'s estimate, its material-free passes compiled (`_light_stage`,
+        `_weight_stage`, `_ray_stage`, `_shade_stage`, ``methods.core.fused``) and one shadow-ray
+        batch per ``max_rays_per_batch`` rays: the samples are taken region by region, the random
+        numbers drawn in the reference's order, the BRDF's sample/pdf/eval (Python-level
+        parameters) stay eager per region."""
+        geom, vis, eps, gen = self._frame_setup(frame)
+        env, NL, NB = frame.envmap, self.n_light, self.n_brdf
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
+        hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
+        chunk = self._chunk()
+        order, regions, U_l, U_b = [], [], [], []
+        for r, region in enumerate(self.scene.regions):
+            idx = hit_idx[gbuffer.region[hit_idx] == r]
+            for c0 in range(0, idx.numel(), chunk):  # the reference's draws: per region and chunk
+                q = min(chunk, idx.numel() - c0)
+                U_l.append(torch.rand(q, NL, 2, generator=gen) if NL else None)
+                U_b.append(torch.rand(q, NB, 2, generator=gen) if NB else None)
+            order.append(idx)
+            regions.append((frame.materials[region], idx.numel()))
+        order = torch.cat(order) if order else hit_idx
+        U_l = torch.cat(U_l) if NL and U_l else torch.zeros(order.numel(), 1, 2)
+        U_b = torch.cat(U_b) if NB and U_b else torch.zeros(order.numel(), 1, 2)
+        cdf, p, omega = env._tables()
+        tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64))
+        ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
+        eps_t = torch.tensor(eps, dtype=torch.float32)
+        live_total = 0
+        for a in range(0, order.numel(), chunk):
+            sel = order[a:a + chunk]
+            mats = _segments(regions, a, a + sel.numel())
+            o, live_n = self._shade_fast(mats, vis, eps_t, gbuffer.position[sel], gbuffer.normal[sel],
+                                         gbuffer.wo[sel], geometric_normals(geom.V, geom.F, gbuffer.face[sel]),
+                                         U_l[a:a + chunk], U_b[a:a + chunk], tables, env.data, ext, R32)
+            out[sel] = o
+            live_total += live_n
+        self._record(gbuffer, geom, hit_idx, live_total, env)
+        return gbuffer.resolve(out)
+
+    def _shade_fast(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
+        """`_shade` on samples of several regions (``mats``: (material, start, end) row ranges):
+        → ((Q, 3) estimates, live rays)."""
+        NL, NB = self.n_light, self.n_brdf
+        cdf, p_flat, p2d, omega, R64 = tables
+        wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
+                                                     (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)
+        Q = p.shape[0]
+        pdf_bl = torch.empty(Q, NL) if NL else pdf_l
+        wi_b = torch.empty(Q, NB, 3) if NB else wi_ll
+        pdf_b = torch.empty(Q, NB) if NB else pdf_l
+        for mat, a, b in mats:  # the BRDF's density of the light samples and its own samples
+            if mat.kind in _TENSOR_KINDS:
+                P = _TensorParams(mat)
+                res = map_rows(_brdf_sample_stage, [wo_l[a:b], U_b[a:b], wi_ll[a:b]],
+                               (type(mat), P, mat.spec_weight > 0, NL, NB), chunk=ROWS)
+                if NL:
+                    pdf_bl[a:b] = res[0]
+                if NB:
+                    wi_b[a:b], pdf_b[a:b] = res[-2:]
+                continue
+            if NL:
+                pdf_bl[a:b] = mat.pdf(wi_ll[a:b], wo_l[a:b].unsqueeze(1).expand(b - a, NL, 3))
+            if NB:
+                wi_b[a:b], pdf_b[a:b] = mat.sample(wo_l[a:b].unsqueeze(1).expand(b - a, NB, 3), U_b[a:b])
+        d, wi, w = map_rows(_weight_stage, [n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b],
+                            (p2d, omega, R64, NL, NB), chunk=ROWS)
+        f = torch.empty_like(wi)
+        for mat, a, b in mats:
+            if mat.kind in _TENSOR_KINDS:
+                f[a:b] = map_rows(_brdf_eval_stage, [wi[a:b], wo_l[a:b]], (type(mat), _TensorParams(mat)), chunk=ROWS)
+                continue
+            f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
+        contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
+        rays = torch.nonzero(live.view(-1)).squeeze(-1)
+        lit = live
+        if rays.numel():
+            blocked = torch.zeros(live.numel(), dtype=torch.bool)
+            blocked[rays] = torch.as_tensor(vis.occluded(o.view(-1, 3).index_select(0, rays),
+                                                         d.view(-1, 3).index_select(0, rays)))
+            lit = live & ~blocked.view(live.shape)
+        return map_rows(_shade_stage, [contrib, lit, d], (data, ext, R32), chunk=ROWS), int(rays.numel())
 
     # -- the estimator ------------------------------------------------------------------------
     def _shade(self, mat, env, vis: Visibility, eps: float, p: Tensor, n: Tensor, wo: Tensor,

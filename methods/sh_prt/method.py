@@ -48,6 +48,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
+from methods.core.fused import fused, map_rows
 from methods.core.sh_rotation import rotate_coeffs
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
@@ -60,6 +61,25 @@ MAX_BOUNCES = 2
 DEFAULT_ORDER = 5  # Sloan 2002: 25 coefficients, 25×25 matrices
 # G-buffer samples shaded per batch (bounds the (Q, 3, n², 3) interpolation temporaries).
 RENDER_CHUNK = 1 << 14
+
+
+@fused
+def _diffuse_rows(vi: Tensor, w: Tensor, reg: Tensor, e: Tensor, kd: Tensor) -> Tensor:
+    """ρ·e at Q samples (Sloan 2002 §7): e Gouraud-interpolated from the per-vertex t·l (V, 3) at the
+    vertices vi (Q, 3) with weights w (Q, 3), ρ = kd (R, 3) of the region reg (Q,) → (Q, 3)."""
+    ev = e[vi[:, 0]] * w[:, 0:1] + e[vi[:, 1]] * w[:, 1:2] + e[vi[:, 2]] * w[:, 2:3]
+    return kd[reg] * ev
+
+
+@fused
+def _glossy_rows(g: Tensor, w: Tensor, yR: Tensor, lg: Tensor) -> Tensor:
+    """Σ_i yR_i (l')_i at Qg samples, l' = Σ_j w_j lg[g_j] Gouraud-interpolated from the per-vertex
+    M l (Vg, n², 3) (Sloan 2002 §6-7); the n² sum unrolled (one thread per sample) → (Qg, 3)."""
+    acc = None
+    for i in range(yR.shape[1]):
+        lq = lg[g[:, 0], i] * w[:, 0:1] + lg[g[:, 1], i] * w[:, 1:2] + lg[g[:, 2], i] * w[:, 2:3]
+        acc = yR[:, i:i + 1] * lq if acc is None else acc + yR[:, i:i + 1] * lq
+    return acc
 
 
 def lobe_factors(mat, order: int) -> Tensor:
@@ -228,6 +248,16 @@ class SHPRT(Method):
         return kd, ks, G, vcos
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """Sloan 2002 §7 at the G-buffer's samples: the diffuse term ρ·e of every sample in one compiled
+        pass (`_diffuse_rows`), the glossy term on the glossy samples (`_glossy`); equals
+        `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
+        return self._render(frame, gbuffer, fast=True)
+
+    def render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """The eager per-chunk path (`_shade`): the test oracle of `render`."""
+        return self._render(frame, gbuffer, fast=False)
+
+    def _render(self, frame: Frame, gbuffer: GBuffer, fast: bool) -> Tensor:
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         self._light_stage(frame.envmap)
@@ -237,10 +267,22 @@ class SHPRT(Method):
         hit = gbuffer.hit.nonzero().squeeze(-1)
         vidx, bw = gbuffer.vertex_weights(self.F.to(gbuffer.face.device))         # (P, 3) each
         out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
-        for a in range(0, hit.numel(), RENDER_CHUNK):
-            sel = hit[a:a + RENDER_CHUNK]
-            out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
-                                   gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G, vcos).to(out.device)
+        if fast and hit.numel():
+            vi, w, reg = vidx[hit].to(dev), bw[hit].to(dev), gbuffer.region[hit].to(dev)
+            n, wo = gbuffer.normal[hit].float().to(dev), gbuffer.wo[hit].float().to(dev)
+            o = map_rows(_diffuse_rows, [vi, w, reg], (self._e, kd))
+            glossy = self.glossy_regions[reg].nonzero().squeeze(-1)
+            for a in range(0, glossy.numel(), RENDER_CHUNK):
+                g = glossy[a:a + RENDER_CHUNK]
+                o[g] += self._glossy(vi[g], w[g], n[g], wo[g], reg[g], ks, G, vcos, fast=True)
+            front = (n * wo).sum(-1, keepdim=True) > 0
+            out[hit] = torch.where(front, o, torch.zeros_like(o)).clamp_min(0.0).to(out.device)
+        else:
+            for a in range(0, hit.numel(), RENDER_CHUNK):
+                sel = hit[a:a + RENDER_CHUNK]
+                out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
+                                       gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G,
+                                       vcos).to(out.device)
         if hit.numel():
             self._glossy_share = float(self.glossy_regions[gbuffer.region[hit].cpu()].float().mean())
         return gbuffer.resolve(out)
@@ -253,17 +295,25 @@ class SHPRT(Method):
         out = kd[reg] * e
         glossy = self.glossy_regions[reg].nonzero().squeeze(-1)
         if glossy.numel():
-            g = self.gpos[vi[glossy]]                                              # (Qg, 3)
-            lq = (self._lg[g] * w[glossy][..., None, None]).sum(1)                 # (Qg, n², 3) l'
-            nn = n[glossy] / n[glossy].norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            R = reflect(wo[glossy], nn)
-            R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            yR = _sh.sh_eval(R, self.order) * G[reg[glossy]]                       # (Qg, n²) G_l y_lm(R)
-            c = (nn * wo[glossy]).sum(-1, keepdim=True).clamp_min(0.0)
-            yR = torch.where(vcos[reg[glossy]][:, None], yR * c, yR)               # Blinn-Phong: × n·ωo
-            out[glossy] += ks[reg[glossy]] * torch.einsum("qi,qic->qc", yR, lq)    # §6 eq. of L_o
+            out[glossy] += self._glossy(vi[glossy], w[glossy], n[glossy], wo[glossy], reg[glossy], ks, G, vcos)
         front = (n * wo).sum(-1, keepdim=True) > 0
         return torch.where(front, out, torch.zeros_like(out)).clamp_min(0.0)
+
+    def _glossy(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, ks: Tensor, G: Tensor,
+                vcos: Tensor, fast: bool = False) -> Tensor:
+        """The glossy term k_s Σ_lm G_l (l')_lm y_lm(R) at Qg glossy samples (arguments as `_shade`'s;
+        ``fast``: l' interpolated and dotted with G y(R) in one compiled pass, `_glossy_rows`)."""
+        g = self.gpos[vi]                                                          # (Qg, 3)
+        lq = None if fast else (self._lg[g] * w[..., None, None]).sum(1)          # (Qg, n², 3) l'
+        nn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        R = reflect(wo, nn)
+        R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        yR = _sh.sh_eval(R, self.order) * G[reg]                                   # (Qg, n²) G_l y_lm(R)
+        c = (nn * wo).sum(-1, keepdim=True).clamp_min(0.0)
+        yR = torch.where(vcos[reg][:, None], yR * c, yR)                           # Blinn-Phong: × n·ωo
+        if fast:
+            return ks[reg] * map_rows(_glossy_rows, [g, w, yR], (self._lg,))
+        return ks[reg] * torch.einsum("qi,qic->qc", yR, lq)                        # §6 eq. of L_o
 
     # -- accounting -------------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:

@@ -194,3 +194,27 @@ def test_lighting_frame_equals_fresh_precompute(kind):
     assert (imgs[-1] - want).abs().max() <= RELIGHT_RTOL * scale
     assert (imgs[-1] - imgs[0]).abs().max() > 100 * RELIGHT_RTOL * scale
     assert m.stats["light"] == 3 and m.stats["project"] == (1 if kind == "L" else 3)
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
+@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
+def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
+    """`SHPRT.render` (the diffuse term in one compiled pass, the glossy term on the glossy samples)
+    = `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
+    import dataclasses
+
+    from methods.sh_prt.method import SHPRT
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=3, bounces=0, rays=16)
+    m.precompute(scene)
+    for frame in make_sequence(scene, "VBL", n_frames=2, seed=1):
+        frame = dataclasses.replace(frame, materials=dict(scene.materials))
+        gb = make_gbuffer(scene, frame, 1)
+        ref = m.render_reference(frame, gb)
+        img = m.render(frame, gb)
+        assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
