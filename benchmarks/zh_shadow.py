@@ -14,7 +14,8 @@ the fast one) timed in the same process, alternating with the fast path frame by
 each). `--baseline REV`: the same alternation against the fast path of git revision REV (its
 `methods/zh_shadow` package loaded beside this one; the rest of the code is this checkout's) — the
 before/after of a change, in one process. `--micro` times the kernels that bound a P frame
-(`micro`). `--oracle` samples per strategy give the RMSE against the oracle on a held-out pose.
+(`micro`; `micro_vertex` with vertex shading: `--modes vertex --order 8 --specular cosine` is the
+perf suite's physical config). `--oracle` samples per strategy give the RMSE against the oracle on a held-out pose.
 
 Precomputation goes through the harness's cache (`reports.precompute_cache`: keyed on the scene,
 the config and the code), so repeated runs of unchanged code skip it.
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -126,6 +128,48 @@ def micro(m, frame, gbuffer, repeats: int) -> dict:
     return out
 
 
+def micro_vertex(m, frame, gbuffer, repeats: int, peak: float) -> dict:
+    """CPU seconds (best of ``repeats``) of the kernels of one vertex-shaded P frame at its real
+    sizes (N vertices): skinning, the pose model + eq. 1 (`runtime.world_visibility`, point-minor
+    as the vertex path takes it), the cos θ_i-weighted visibility and the specular transfer
+    (`runtime.cosine_visibility`, `runtime.zonal_conjugate` about R: the dominant kernels at order
+    8) and, of one of those, the dense (n², n²) @ (n², N) X M Xᵀ GEMM alone — its rate
+    (``gemm_flops_per_s``) against `matmul_peak` says how far the conjugation is from the compute
+    roof (``conjugate_flops_per_s``: the GEMM's flops over the whole conjugation's time) — and the
+    Gouraud resolve."""
+    from methods.core import gouraud
+    from methods.zh_shadow import runtime as rt
+
+    scene = m.scene
+    pose = torch.as_tensor(frame.pose).float() if frame.pose is not None else None
+    out = {"skinning_s": _best(lambda: scene.geometry(pose), repeats)}
+    geom = scene.geometry(pose)
+    X, c = m.model.X, m.model.lobes
+    nrm = geom.N.float()
+    out["pose_model_s"] = _best(lambda: rt.world_visibility(X, pose, nrm, c, point_minor=True), repeats)
+    vT = rt.world_visibility(X, pose, nrm, c, point_minor=True)
+    nT = rt.rows(nrm)
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32)
+    woT = cam[:, None] - rt.rows(geom.V.float())
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    R = rt.reflect_T(nT, woT)
+    out["vertices"] = N = int(vT.shape[1])
+    out["cosine_visibility_s"] = _best(lambda: rt.cosine_visibility(vT, nT), repeats)
+    al = next((float(a) for _, ks, a in m._region_materials(frame) if bool((ks > 0).any())), 1.0)
+    out["specular_conjugate_s"] = _best(lambda: rt.zonal_conjugate(vT, R, ("phong", al)), repeats)
+    n2 = vT.shape[0]
+    K = rt._conjugated(("phong", al), math.isqrt(n2)).float()
+    out["gemm_flops"] = 2 * n2 * n2 * N
+    out["gemm_s"] = _best(lambda: K @ vT, repeats)
+    out["gemm_flops_per_s"] = out["gemm_flops"] / max(out["gemm_s"], 1e-12)
+    out["conjugate_flops_per_s"] = out["gemm_flops"] / max(out["specular_conjugate_s"], 1e-12)
+    rad = torch.zeros(N, 3)
+    out["resolve_s"] = _best(lambda: gouraud.resolve(rad, geom.F.T, gbuffer.face, gbuffer.bary, gbuffer.hit,
+                                                     gbuffer.height, gbuffer.width, gbuffer.spp_side), repeats)
+    out["matmul_peak_flops"] = peak
+    return out
+
+
 def time_kind(m, frames, gbs, kind: str, repeats: int) -> dict:
     """Render frames[0] (warm-up) then frames[1:]; for L/E the first of those builds the transfer."""
     m.render(frames[0], gbs[0])
@@ -174,6 +218,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--fit-iters", type=int, default=60)
     ap.add_argument("--lobes", type=int, default=2)
     ap.add_argument("--order", type=int, default=4)
+    ap.add_argument("--specular", default="published", choices=["published", "cosine"])
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     a = ap.parse_args(argv)
     if a.threads:
@@ -202,7 +247,8 @@ def main(argv=None) -> dict:
         n = 1 + a.repeats + (1 if kind in ("L", "E") else 0)
         _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=n, seed=5, spp_side=a.spp_side)
         for mode in a.modes.split(","):
-            m = precomputed.with_render_config(shading=mode)  # the same precomputation, fresh frame caches
+            m = precomputed.with_render_config(shading=mode, specular=a.specular)   # the same precomputation,
+            #                                                                      fresh frame caches
             st = time_kind(m, frames, gbs, kind, a.repeats)
             cost = m.frame_cost(kind, gbs[1].num_samples)
             t_roof, bound = cost.bound(bw, peak)
@@ -222,8 +268,12 @@ def main(argv=None) -> dict:
             out[f"frame_{kind}_{mode}"] = st
     if a.micro:
         _, frames, gbs, _ = setup(scene, a.size, kind="P", n_frames=2, seed=5, spp_side=a.spp_side)
-        out["micro"] = micro(precomputed, frames[1], gbs[1], a.repeats)
-        out["micro"]["matmul_peak_flops"] = peak
+        modes = a.modes.split(",")
+        if "sample" in modes:
+            out["micro"] = micro(precomputed.with_render_config(specular=a.specular), frames[1], gbs[1], a.repeats)
+            out["micro"]["matmul_peak_flops"] = peak
+        if "vertex" in modes:
+            out["micro_vertex"] = micro_vertex(precomputed, frames[1], gbs[1], a.repeats, peak)
     out["memory"] = precomputed.memory()
     if a.oracle:
         from methods.oracle import Oracle

@@ -91,7 +91,21 @@ def sh_eval_recurrence(dirs: Tensor, order: int) -> Tensor:
         (..., order²).
     """
     _check(dirs, order)
-    x, y, z = dirs.unbind(-1)
+    return torch.stack(_terms_recurrence(*dirs.unbind(-1), order), dim=-1)
+
+
+def sh_terms(x: Tensor, y: Tensor, z: Tensor, order: int, *, fast: bool = True) -> list[Tensor]:
+    """`sh_eval` as a list of the n² basis values, each of the shape of the direction components
+    x, y, z (unit directions): for kernels that keep the coefficient index outside the points'
+    (``torch.stack(sh_terms(...))`` is the point-minor (n², ...) layout)."""
+    if not isinstance(order, int) or order < 1:
+        raise ValueError(f"order must be an int >= 1, got {order!r}")
+    if fast and order <= FAST_MAX_ORDER:
+        return _terms_fast(x, y, z, order)
+    return _terms_recurrence(x, y, z, order)
+
+
+def _terms_recurrence(x: Tensor, y: Tensor, z: Tensor, order: int) -> list[Tensor]:
     out = [None] * (order * order)
     sqrt2 = math.sqrt(2.0)
     # Sectoral start q_m^m = K_m^m (2m−1)!!, q_m^m = q_{m−1}^{m−1} √((2m+1)/(2m)); q_0^0 = 1/√(4π).
@@ -124,12 +138,15 @@ def sh_eval_recurrence(dirs: Tensor, order: int) -> Tensor:
                 out[l * (l + 1) - m] = sqrt2 * q * s
             if l > m:
                 q_prev2, q_prev = q_prev, q
-    return torch.stack(out, dim=-1)
+    return out
 
 
 def _sh_eval_fast(dirs: Tensor, order: int) -> Tensor:
     """Hard-coded polynomials for order ≤ 6 (generated symbolically from `sh_eval_recurrence`)."""
-    x, y, z = dirs.unbind(-1)
+    return torch.stack(_terms_fast(*dirs.unbind(-1), order), dim=-1)
+
+
+def _terms_fast(x: Tensor, y: Tensor, z: Tensor, order: int) -> list[Tensor]:
     out = []
     x2, y2, z2 = x * x, y * y, z * z
     x3, y3, z3 = x2 * x, y2 * y, z2 * z
@@ -137,19 +154,19 @@ def _sh_eval_fast(dirs: Tensor, order: int) -> Tensor:
     x5, y5, z5 = x4 * x, y4 * y, z4 * z
     out.append(torch.full_like(x, 0.28209479177387814))  # l=0, m=0
     if order == 1:
-        return torch.stack(out, dim=-1)
+        return out
     out.append(0.4886025119029199*y)  # l=1, m=-1
     out.append(0.4886025119029199*z)  # l=1, m=0
     out.append(0.4886025119029199*x)  # l=1, m=1
     if order == 2:
-        return torch.stack(out, dim=-1)
+        return out
     out.append(1.0925484305920792*x*y)  # l=2, m=-2
     out.append(1.0925484305920792*y*z)  # l=2, m=-1
     out.append(0.94617469575756*z2 - 0.31539156525252)  # l=2, m=0
     out.append(1.0925484305920792*x*z)  # l=2, m=1
     out.append(0.5462742152960396*x2 - 0.5462742152960396*y2)  # l=2, m=2
     if order == 3:
-        return torch.stack(out, dim=-1)
+        return out
     out.append(1.7701307697799304*x2*y - 0.5900435899266435*y3)  # l=3, m=-3
     out.append(2.8906114426405543*x*y*z)  # l=3, m=-2
     out.append(2.2852289973223288*y*z2 - 0.4570457994644657*y)  # l=3, m=-1
@@ -158,7 +175,7 @@ def _sh_eval_fast(dirs: Tensor, order: int) -> Tensor:
     out.append(1.4453057213202771*x2*z - 1.4453057213202771*y2*z)  # l=3, m=2
     out.append(0.5900435899266435*x3 - 1.7701307697799304*x*y2)  # l=3, m=3
     if order == 4:
-        return torch.stack(out, dim=-1)
+        return out
     out.append(2.5033429417967046*x3*y - 2.5033429417967046*x*y3)  # l=4, m=-4
     out.append(5.310392309339791*x2*y*z - 1.7701307697799304*y3*z)  # l=4, m=-3
     out.append(6.623222870302921*x*y*z2 - 0.94617469575756*x*y)  # l=4, m=-2
@@ -169,7 +186,7 @@ def _sh_eval_fast(dirs: Tensor, order: int) -> Tensor:
     out.append(1.7701307697799304*x3*z - 5.310392309339791*x*y2*z)  # l=4, m=3
     out.append(0.6258357354491761*x4 - 3.755014412695057*x2*y2 + 0.6258357354491761*y4)  # l=4, m=4
     if order == 5:
-        return torch.stack(out, dim=-1)
+        return out
     out.append(3.2819102842008507*x4*y - 6.5638205684017015*x2*y3 + 0.6563820568401701*y5)  # l=5, m=-5
     out.append(8.302649259524165*x3*y*z - 8.302649259524165*x*y3*z)  # l=5, m=-4
     out.append(13.209434084751761*x2*y*z2 - 1.467714898305751*x2*y - 4.403144694917254*y3*z2 + 0.4892382994352504*y3)  # l=5, m=-3
@@ -181,7 +198,7 @@ def _sh_eval_fast(dirs: Tensor, order: int) -> Tensor:
     out.append(4.403144694917254*x3*z2 - 0.4892382994352504*x3 - 13.209434084751761*x*y2*z2 + 1.467714898305751*x*y2)  # l=5, m=3
     out.append(2.075662314881041*x4*z - 12.453973889286248*x2*y2*z + 2.075662314881041*y4*z)  # l=5, m=4
     out.append(0.6563820568401701*x5 - 6.5638205684017015*x3*y2 + 3.2819102842008507*x*y4)  # l=5, m=5
-    return torch.stack(out, dim=-1)
+    return out
 
 
 def project(values: Tensor, dirs: Tensor, weights: Tensor, order: int) -> Tensor:

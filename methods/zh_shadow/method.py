@@ -3,7 +3,7 @@ the common `methods.base.Method` interface.
 
 Precompute (`methods.zh_shadow.precompute`, §3): f training poses → per-vertex order-n SH of the
 unweighted visibility in the skinned local frame → c ZH lobes per vertex → linear model
-X (J+1, N, 6c) from joint angles (+ bias) to the lobe parameters.
+X (J+1, N, c·(2+n)) from joint angles (+ bias) to the lobe parameters.
 
 Render (§4.3), per G-buffer sample (default, ``shading="sample"``) or per vertex + barycentric
 interpolation of the radiance (``shading="vertex"``, the paper's GPU per-vertex shading):
@@ -80,6 +80,7 @@ run both the paper's setting and ``order=8, specular="cosine"`` (reports/suites.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import time
 from typing import Any
@@ -344,7 +345,9 @@ class ZHShadow(Method):
         key = tuple(pose_vec.tolist())
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
-            self._posed = (key, geom, rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes))  # (N, n²)
+            vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
+            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex)
+            self._posed = (key, geom, v.T if vertex else v)                                  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
     def _table(self, light: Tensor, light_key, alpha: float, diffuse: bool) -> Tensor:
@@ -428,7 +431,7 @@ class ZHShadow(Method):
         key = (frame.camera, tuple(alphas))
         vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
         if vd is None or vd[0] is not v0:
-            nT, vT = rt.rows(geom.N.to(dev).float()), rt.rows(v0.to(dev))
+            nT, vT = rt.rows(geom.N.to(dev).float()), v0.to(dev).T.contiguous()   # (no copy: `_pose_state`)
             w = rt.cosine_visibility(vT, nT)
             self._vertex_diffuse = vd = (v0, nT, vT, w, w * (1.0 / math.pi))
         _, nT, vT, w, td = vd
@@ -438,7 +441,8 @@ class ZHShadow(Method):
             woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
             ts = rt.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas)
-            counts = rt.point_counts(nT, vreg, [a is not None for a in alphas], geom.N.to(dev), vreg)
+            counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
+                                                   geom.N.to(dev), vreg))
             self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
         _, _, ts, front, counts = vt
         light = light.to(dev)
@@ -451,7 +455,7 @@ class ZHShadow(Method):
         rad.mul_(front)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             rad.clamp_min_(0.0)
-        self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices), **counts}
+        self._last_counts = counts.with_fixed(P=gbuffer.num_samples, Q=int(geom.num_vertices))
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(rad.T.contiguous(), geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
@@ -570,13 +574,13 @@ class ZHShadow(Method):
           lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
           region; "vertex": hit, face and barycentrics — 20 bytes — to interpolate the radiance,
           and the vertex positions and normals, N·6 float32) and per vertex, with "P", the linear
-          model X ((J+1)·N·6c float32) and the posed normals, else the cached visibility in its
-          smallest form (min(n², 6c + 3) floats). Lighting-only frames ("L", "E") read instead the
+          model X ((J+1)·N·c(2+n) float32: 6c at order 4) and the posed normals, else the cached
+          visibility in its smallest form (min(n², c(2+n) + 3) floats). Lighting-only frames ("L", "E") read instead the
           cached lighting-free transfer t = M^α v of the points off the planes, in world space
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
           t, for a sample on a plane its face and barycentrics (16 bytes; "vertex": 20 bytes per
           sample for the radiance), and the plane vertices' v (n² floats).
-        * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·6c) and
+        * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·c(2+n)) and
           per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
           sum); with a lighting change one rotation of the SH lighting (6·Σ(2l+1)²) and for "E"
           its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); the planes (above: per plane,
@@ -599,6 +603,7 @@ class ZHShadow(Method):
         geom = self.scene.geometry()
         N, nF = int(geom.num_vertices), int(geom.F.shape[0])
         J1 = int(m.X.shape[0])
+        d = c * (2 + n)                                          # lobe parameters per vertex (X's width)
         P = int(num_samples)
         vertex = cfg["shading"] == "vertex"
         lc = self._last_counts
@@ -623,9 +628,9 @@ class ZHShadow(Method):
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (P * 20 if vertex else Qp * 16)
         else:
             b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
-            b += (J1 * N * 6 * c + N * 3) * 4 if pose else N * min(n2, 6 * c + 3) * 4
+            b += (J1 * N * d + N * 3) * 4 if pose else N * min(n2, d + 3) * 4
         # -- flops
-        f = N * (2 * J1 * 6 * c + c * (25 + 3 * n2)) if pose else 0
+        f = N * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
             f += 6 * rot
         if "E" in kind:
@@ -646,6 +651,27 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+class _LazyCounts(dict):
+    """The point counts of a vertex-shaded frame (`runtime.point_counts`: its planar groups), found
+    on first read — only `ZHShadow.frame_cost` reads them, the frame itself does not need them."""
+
+    def __init__(self, count, fixed: dict | None = None):
+        super().__init__(fixed or {})
+        self._count = count
+
+    def __missing__(self, key):
+        self.update({k: v for k, v in self._count().items() if k not in self})
+        self._count = dict
+        return dict.__getitem__(self, key)
+
+    def with_fixed(self, **fixed) -> "_LazyCounts":
+        """A copy with ``fixed`` entries set, sharing the count (computed at most once per copy)."""
+        return _LazyCounts(self._resolved, {**{k: v for k, v in self.items()}, **fixed})
+
+    def _resolved(self) -> dict:
+        return {k: self[k] for k in ("planar", "groups", "planar_specular", "specular", "plane_vertices")}
 
 
 class _MapView:

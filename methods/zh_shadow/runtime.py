@@ -46,12 +46,13 @@ import math
 import torch
 from torch import Tensor
 
-from methods.core.frames import coordinate_system_rows
+from methods.core.frames import _coordinate_components
+from methods.core.fused import fused
 from methods.core.sampling import gauss_legendre_sphere
-from methods.core.sh import sh_eval
+from methods.core.sh import sh_eval, sh_terms
 from methods.core.threads import torch_threads
 from methods.core.zh import band_norms, expand_bands, phong_factors
-from methods.zh_shadow.precompute import chart_to_axis
+from methods.zh_shadow.precompute import CHART_RMAX
 
 # Largest SH order whose features are monomials: the monomial basis of degree 2n−2 ⊕ 2n−3 has
 # condition number 37 (n = 4), 167 (n = 5), 844 (n = 6), 2.3e4 (n = 8) on the sphere (measured
@@ -63,6 +64,8 @@ CHUNK = 1 << 13
 # Planar groups (`planar_groups`): a plane's diffuse term costs one (N, n²) @ (n², 3) product and a
 # gather per point; below this many points the feature GEMM is as cheap as the group's fixed cost.
 PLANAR_MIN_POINTS = 1024
+# Vertices per block of the compiled per-vertex kernels (`_vertex_sh`): one static shape.
+VERTEX_CHUNK = 1 << 11
 PLANAR_MAX_GROUPS = 16
 
 
@@ -242,38 +245,81 @@ def _conjugated(op_key: tuple, order: int) -> Tensor:
     return X @ M @ X.T
 
 
-def _angles(cT: Tensor, sT: Tensor, order: int, absm: Tensor) -> tuple[Tensor, Tensor]:
-    """cos(|m|φ), sin(|m|φ) (n², Q) of the per-point angles with cos φ = cT, sin φ = sT (Q,)
+@functools.lru_cache(maxsize=None)
+def _conjugate_tables(order: int, dtype: torch.dtype, device) -> tuple:
+    """Tables of the compiled `zonal_conjugate` kernels: perm, |m| (n²,) int64 and sgn (n², 1) of
+    `_zyz_tables`; X = M(R_x(90°)) and Xᵀ each as k gathered terms per row — idx (n², k) int64
+    columns, w (n², k) values (zero-padded) with (X a)_r = Σ_j w[r, j] a[idx[r, j]] — k = 4 at
+    order 8: X has 176 non-zeros of 4096 (block-diagonal by band, and zero between the cos/sin
+    and odd/even-m parts of a band), so 4·n² multiply-adds per point instead of Σ(2l+1)²."""
+    perm, absm, sgn, X = _zyz_tables(order)
+    n2 = order * order
+
+    def gathered(A: Tensor) -> tuple[Tensor, Tensor]:
+        nz = A.abs() > 1e-12
+        k = int(nz.sum(1).max())
+        idx = torch.zeros(n2, k, dtype=torch.int64)
+        w = torch.zeros(n2, k, dtype=torch.float64)
+        for r in range(n2):
+            c = nz[r].nonzero().squeeze(-1)
+            idx[r, :c.shape[0]], w[r, :c.shape[0]] = c, A[r, c]
+        return idx.to(device), w.to(dtype).to(device)
+
+    return (perm.to(device), absm.to(device), sgn.to(dtype).to(device)[:, None], *gathered(X), *gathered(X.T))
+
+
+def _angles(cT: Tensor, sT: Tensor, order: int) -> tuple[Tensor, Tensor]:
+    """cos(mφ), sin(mφ) (n, Q), m = 0..n−1, of the per-point angles with cos φ = cT, sin φ = sT (Q,)
     (the Chebyshev recurrence of the angle sums)."""
     cs, ss = [torch.ones_like(cT), cT], [torch.zeros_like(sT), sT]
     for _ in range(2, order):
         c, s = cs[-1], ss[-1]
         cs.append(c * cT - s * sT)
         ss.append(s * cT + c * sT)
-    return torch.stack(cs).index_select(0, absm), torch.stack(ss).index_select(0, absm)
+    return torch.stack(cs[:order]), torch.stack(ss[:order])
 
 
-def _band_product(blocks: list[Tensor], a: Tensor, out: Tensor) -> Tensor:
-    """out = X a for a block-diagonal X given by its per-band blocks (X_l (2l+1, 2l+1), rows
-    l²..(l+1)² of ``a`` (n², Q)): Σ(2l+1)² multiply-adds per column instead of n⁴ (680 instead of
-    4096 at order 8). Each band is a product with 1–15 rows, which MKL splits over threads in a
-    way that changes its rounding (`methods.core.threads`): the caller runs it on one thread."""
-    for l, B in enumerate(blocks):
-        r = slice(l * l, (l + 1) * (l + 1))
-        if l == 0:
-            torch.mul(a[r], B, out=out[r])
-        else:
-            torch.matmul(B, a[r], out=out[r])
+@fused
+def _rz(aT: Tensor, C: Tensor, S: Tensor, perm: Tensor, absm: Tensor, sgn: Tensor) -> Tensor:
+    """M(R_z(±angle)) a per point (a (n², Q)): a·cos(|m|φ) + a[(l, −m)]·sgn·sin(|m|φ) (C, S (n, Q)
+    the cos/sin of `_angles`, sgn (n², 1) carrying the sign of the rotation), one compiled pass."""
+    return aT * C.index_select(0, absm) + aT.index_select(0, perm) * (S.index_select(0, absm) * sgn)
+
+
+@fused
+def _gathered_rz(aT: Tensor, idx: Tensor, w: Tensor, C: Tensor, S: Tensor, perm: Tensor, absm: Tensor,
+                 sgn: Tensor) -> Tensor:
+    """`_rz` of A a, A given by its gathered terms (`_conjugate_tables`: (A a)_r = Σ_j w[r, j]
+    a[idx[r, j]], unrolled over j), one compiled pass."""
+    out = aT.index_select(0, idx[:, 0]) * w[:, 0:1]
+    for j in range(1, idx.shape[1]):
+        out = out + aT.index_select(0, idx[:, j]) * w[:, j:j + 1]
+    return out * C.index_select(0, absm) + _gathered_perm(aT, idx, w, perm) * (S.index_select(0, absm) * sgn)
+
+
+def _gathered_perm(aT: Tensor, idx: Tensor, w: Tensor, perm: Tensor) -> Tensor:
+    """(A a)[(l, −m)] from A's gathered terms (rows permuted: no gather of a computed value)."""
+    ip, wp = idx.index_select(0, perm), w.index_select(0, perm)
+    out = aT.index_select(0, ip[:, 0]) * wp[:, 0:1]
+    for j in range(1, idx.shape[1]):
+        out = out + aT.index_select(0, ip[:, j]) * wp[:, j:j + 1]
     return out
 
 
-@functools.lru_cache(maxsize=None)
-def _x_blocks(order: int, dtype: torch.dtype, device) -> tuple[list[Tensor], list[Tensor]]:
-    """The bands of X = M(R_x(90°)) (`_zyz_tables`; a rotation matrix is block-diagonal by band) and
-    of Xᵀ, contiguous, in ``dtype`` on ``device``."""
-    X = _zyz_tables(order)[3].to(dtype).to(device)
-    bl = [X[l * l:(l + 1) ** 2, l * l:(l + 1) ** 2] for l in range(order)]
-    return [b.contiguous() for b in bl], [b.T.contiguous() for b in bl]
+def _column_blocks(fn, cols: tuple, args: tuple, block: int) -> Tensor:
+    """fn(*column blocks, *args) over static blocks of ``block`` columns (points) of the (r_i, Q)
+    tensors ``cols`` (the last block padded by repeating the last column); the (R, block) results
+    concatenated along the columns and trimmed to Q — one compiled shape per function
+    (`methods.core.fused`; the point-minor counterpart of `map_rows`)."""
+    Q = cols[0].shape[1]
+    parts = []
+    for s in range(0, Q, block):
+        m = min(block, Q - s)
+        blk = [c[:, s:s + m] for c in cols]
+        if m < block:
+            blk = [torch.cat([b, b[:, -1:].expand(-1, block - m)], 1) for b in blk]
+        parts.append(fn(*[b.contiguous() for b in blk], *args)[:, :m])
+    return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 1)
 
 
 def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
@@ -285,43 +331,37 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
 
         M(R_n) M M(R_n)ᵀ = R_z(φ) Xᵀ R_z(θ) · (X M Xᵀ) · R_z(−θ) X R_z(−φ),
 
-    three fixed products — X and Xᵀ band by band (`_band_product`: a rotation is block-diagonal by
-    band, Σ(2l+1)² multiply-adds per point instead of n⁴; 1.6× faster at order 8), the middle
-    X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the angle on
-    the ±m pairs), instead of building each point's SH rotation (`methods.core.sh_rotation`).
+    three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
+    the middle X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the
+    angle on the ±m pairs), instead of building each point's SH rotation
+    (`methods.core.sh_rotation`). Over static blocks of points (`_column_blocks`), each half
+    around the GEMM one compiled pass (`_conjugate_in`, `_conjugate_out`: no (n², Q) temporaries;
+    eager, the z rotations' gathers and temporaries took 85 % of the time).
 
     Args:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
     """
-    n2, Q = vT.shape
-    n = math.isqrt(n2)
-    perm, absm, sgn, _ = _zyz_tables(n)
+    n = math.isqrt(vT.shape[0])
     dt, dev = vT.dtype, vT.device
-    perm, absm = perm.to(dev), absm.to(dev)
-    sgn = sgn.to(dt).to(dev)[:, None]
     K = _conjugated(op_key, n).to(dt).to(dev)
+    perm, absm, sgn, xi, xw, ti, tw = _conjugate_tables(n, dt, dev)
     x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
     rho = torch.sqrt(x * x + y * y)
     ok = rho > 1e-20
     safe = torch.where(ok, rho, torch.ones_like(rho))
     cp = torch.where(ok, x / safe, torch.ones_like(x))            # φ (any φ on the pole: M is zonal)
     sp = torch.where(ok, y / safe, torch.zeros_like(y))
-    Cp, Sp = _angles(cp, sp, n, absm)
-    Ct, St = _angles(z, rho, n, absm)
-    Sp, St = Sp * sgn, St * sgn
-
-    def rz(a: Tensor, C: Tensor, S: Tensor, sign: float) -> Tensor:     # M(R_z(±angle)) a
-        return torch.addcmul(a * C, a.index_select(0, perm), S, value=sign)
-
-    Xb, XbT = _x_blocks(n, dt, dev)
-    with torch_threads(1):   # the band products (`_band_product`)
-        a = _band_product(Xb, rz(vT, Cp, Sp, -1.0), torch.empty_like(vT))
+    Cp, Sp = _angles(cp, sp, n)
+    Ct, St = _angles(z, rho, n)
+    vT = vT.contiguous()
+    for t in (vT, Cp, Sp, Ct, St):   # the point count varies: one compiled kernel for every count
+        torch._dynamo.maybe_mark_dynamic(t, 1)
     # products with 4 or 9 rows: MKL splits them over threads (methods.core.threads; `world_visibility`)
-    with torch_threads(1) if n2 < 16 else contextlib.nullcontext():
-        a = K @ rz(a, Ct, St, -1.0)
-    with torch_threads(1):
-        a = _band_product(XbT, rz(a, Ct, St, 1.0), torch.empty_like(a))
-    return rz(a, Cp, Sp, 1.0)
+    with torch_threads(1) if n * n < 16 else contextlib.nullcontext():
+        a = _gathered_rz(_rz(vT, Cp, Sp, perm, absm, -sgn), xi, xw, Ct, St, perm, absm, -sgn)
+        a = K @ a
+        torch._dynamo.maybe_mark_dynamic(a, 1)
+        return _gathered_rz(_rz(a, Ct, St, perm, absm, sgn), ti, tw, Cp, Sp, perm, absm, sgn)
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
@@ -767,13 +807,43 @@ def relight(cache: dict, v: Tensor, Wd: Tensor, light: Tensor, vertex_region: Te
     return out
 
 
-def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Tensor:
-    """(N, n²) world-space SH visibility of every vertex at one pose: §4.3 step 1 (the linear
-    model [pose, 1] · X, one matrix-vector product), the lobe axes from their chart
+@fused
+def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: int) -> Tensor:
+    """(n², Q) (``dim`` 0) or (Q, n²) (``dim`` 1) world-space SH visibility of Q vertices from their lobe parameters pT (c·(2+n), Q)
+    ([X, Y, k_0..k_{n−1}] per lobe, `precompute.lobes_to_params`) and unit normals nT (3, Q), in
+    the point-minor layout (every op a vector over the points): the chart → local axis
+    (`precompute.chart_to_axis`), local → world through the frame (s, t, n) (`methods.core.frames`),
+    y(axis) (`methods.core.sh.sh_eval`: a polynomial in the axis) scaled by Λ_l k_l (``lam`` the
+    Λ_l) and summed over the lobes (eq. 1), unrolled; one compiled pass (`methods.core.fused`)."""
+    per = 2 + order
+    s, t = _coordinate_components(nT[0], nT[1], nT[2])
+    out = None
+    for c in range(lobes):
+        q = pT[c * per:(c + 1) * per]
+        X, Y = q[0], q[1]                                                       # `chart_to_axis`
+        r2 = X * X + Y * Y
+        scale = torch.where(r2 > CHART_RMAX ** 2, CHART_RMAX / r2.clamp_min(1e-30).sqrt(), torch.ones_like(r2))
+        X, Y = X * scale, Y * scale
+        r2 = X * X + Y * Y
+        z = 1.0 - 0.5 * r2
+        f = (1.0 - 0.25 * r2).clamp_min(0.0).sqrt()
+        ax = (f * X, f * Y, z)                                                  # local axis
+        aw = [s[i] * ax[0] + t[i] * ax[1] + nT[i] * ax[2] for i in range(3)]    # world axis
+        Yl = sh_terms(aw[0], aw[1], aw[2], order)                               # n² × (Q,)
+        terms = [Yl[i] * (q[2 + l] * lam[l]) for l in range(order) for i in range(l * l, (l + 1) ** 2)]
+        out = terms if out is None else [o + u for o, u in zip(out, terms)]
+    return torch.stack(out, dim)
+
+
+def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False) -> Tensor:
+    """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
+    ``point_minor`` — : §4.3 step 1 (the linear model [pose, 1] · X, one matrix-vector product: the
+    frame's compulsory read of X), then per vertex the lobe axes from their chart
     (`precompute.chart_to_axis`) taken to world space through the vertex frame (s, t, n)
-    (`methods.core.frames.coordinate_system_rows`, the frame the visibility was fitted in), and eq. 1
-    with y(s) from monomials (`sh_monomials`), in the point-minor layout. The same numbers as
-    `ZHModel.lobes_at` + `frame_matrix` + `zh_lobes_to_sh` (the reference path) to round-off.
+    (`methods.core.frames.coordinate_system`, the frame the visibility was fitted in) and eq. 1
+    (y(s) by the SH polynomials, `methods.core.sh.sh_terms`), in one compiled pass over static
+    blocks of vertices (`_vertex_sh`). The same numbers as `ZHModel.lobes_at` + `frame_matrix` +
+    `zh_lobes_to_sh` (the reference path) to round-off.
 
     Args:
         X: (J+1, N, c·(2+n)) linear model; pose: (J,) joint angles; normal: (N, 3) unit posed normals.
@@ -784,17 +854,18 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int) -> Ten
     a = torch.cat([pose.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype, device=X.device)])
     if a.shape[0] != J1:
         raise ValueError(f"pose has {a.shape[0] - 1} joints, the model {J1 - 1}")
-    pT = rows((a @ X.reshape(J1, N * d)).view(N, d)).view(lobes, per, N)    # [pose, 1] · X, point-minor
-    nT = rows(normal.to(X.dtype))
-    s, t = coordinate_system_rows(nT)                                        # (3, N) each
-    ax = chart_to_axis(pT[:, :2].transpose(1, 2))                            # (c, N, 3) local axes
-    ax = ax.permute(2, 0, 1)                                                 # (3, c, N)
-    aw = (s[:, None] * ax[0] + t[:, None] * ax[1] + nT[:, None] * ax[2]).reshape(3, lobes * N)   # world
-    # a product of one matrix with 4 or 9 rows: MKL splits it over threads (methods.core.threads)
-    with torch_threads(1) if n * n < 16 else contextlib.nullcontext():
-        Y = sh_monomials(n).to(X.dtype).T.to(X.device) @ sh_features(aw, n)   # (n², c·N) y(s)
-    band = torch.repeat_interleave(torch.arange(n, device=X.device), torch.arange(n, device=X.device) * 2 + 1)
-    lam = band_norms(n, dtype=X.dtype, device=X.device)[:, None]
-    k = (pT[:, 2:] * lam).index_select(1, band)                               # (c, n², N) Λ_l k_l
-    vT = (Y.view(n * n, lobes, N) * k.transpose(0, 1)).sum(1)                 # eq. 1, sum of lobes
-    return vT.T.contiguous()
+    B = VERTEX_CHUNK
+    Np = -(-N // B) * B
+    p = torch.empty(Np, d, dtype=X.dtype, device=X.device)
+    torch.matmul(a[None], X.reshape(J1, N * d), out=p[:N].view(1, N * d))                 # [pose, 1] · X
+    nrm = torch.empty(Np, 3, dtype=X.dtype, device=X.device)
+    nrm[:N] = normal
+    p[N:], nrm[N:] = p[N - 1], nrm[N - 1]                                        # padding: repeat the last
+    pT, nT = p.T.contiguous(), nrm.T.contiguous()
+    lam = tuple(band_norms(n).tolist())
+    dim = 0 if point_minor else 1
+    parts = [_vertex_sh(pT[:, s:s + B].contiguous(), nT[:, s:s + B].contiguous(), lam, lobes, n, dim)
+             for s in range(0, Np, B)]
+    if point_minor:
+        return torch.cat(parts, 1)[:, :N].contiguous() if len(parts) > 1 or Np > N else parts[0]
+    return torch.cat(parts)[:N] if len(parts) > 1 else parts[0][:N]
