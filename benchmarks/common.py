@@ -41,6 +41,22 @@ def median_time(fn, repeats: int = 5) -> float:
     return statistics.median(ts)
 
 
+def wall_cpu_time(fn, repeats: int = 5) -> dict[str, float]:
+    """Median wall and process-CPU seconds (``"wall"``, ``"cpu"``) of ``repeats`` calls of ``fn``
+    after one warm-up call (process CPU time is the less load-sensitive of the two)."""
+    import statistics
+    import time
+
+    fn()
+    ts, cs = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        ts.append(time.perf_counter() - t0)
+        cs.append(time.process_time() - c0)
+    return {"wall": statistics.median(ts), "cpu": statistics.median(cs)}
+
+
 def frame_args(ap, *, scene: str, config: str = "{}", frames: int = 5, kinds: Sequence[str] = ("V", "L", "E")):
     """The options every frame-timing benchmark takes (scene, size, method config, frames per kind,
     torch threads, G-buffer samples per pixel side, sequence kinds), added to ``ap``."""

@@ -22,21 +22,9 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, machine_limits, setup
+from benchmarks.common import frame_args, machine_limits, setup, wall_cpu_time
 from methods.oracle import Oracle
 from reports import measure
-
-
-def _time(fn, repeats: int = 5) -> dict[str, float]:
-    """Median wall and process-CPU seconds of ``fn`` (one warm-up call)."""
-    fn()
-    ts, cs = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return {"wall": statistics.median(ts), "cpu": statistics.median(cs)}
 
 
 def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
@@ -59,7 +47,7 @@ def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
     finally:
         vis.occluded = real
     o, d = rays["o"], rays["d"]
-    out = {"rays": int(o.shape[0]), "backend": vis.backend, "occluded_s": _time(lambda: vis.occluded(o, d), repeats)}
+    out = {"rays": int(o.shape[0]), "backend": vis.backend, "occluded_s": wall_cpu_time(lambda: vis.occluded(o, d), repeats)}
     if vis.backend == "mitsuba":
         import drjit as dr
 
@@ -72,7 +60,7 @@ def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
             dr.eval(h)
             dr.sync_thread()
 
-        out["ray_test_s"] = _time(trace, repeats)
+        out["ray_test_s"] = wall_cpu_time(trace, repeats)
         out["drjit_threads"] = dr.thread_count()
     return out
 

@@ -28,7 +28,7 @@ import time
 import torch
 import torch.nn.functional as Fnn
 
-from benchmarks.common import frame_args, machine_limits, precomputed, roofline_columns, setup
+from benchmarks.common import frame_args, machine_limits, precomputed, roofline_columns, setup, wall_cpu_time
 from methods.ptt.method import PTT
 from reports import measure
 
@@ -38,18 +38,6 @@ def _precomputed(scene, config: dict) -> tuple[PTT, float | None]:
     m = m.with_shading("vertex")
     m._fast_static()  # run-time layouts once, shared by the copies of each shading
     return m, pre
-
-
-def _time(fn, repeats: int = 5) -> dict[str, float]:
-    """Median wall and process-CPU seconds of ``fn`` (one warm-up call)."""
-    fn()
-    ts, cs = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return {"wall": statistics.median(ts), "cpu": statistics.median(cs)}
 
 
 def micro(m: PTT, frame, gb) -> dict[str, float]:
@@ -80,34 +68,34 @@ def micro(m: PTT, frame, gb) -> dict[str, float]:
     fp = _fast.rows(st.face_pairs, gb.face)
     bw = torch.rand(Q, 3)
     out = {"samples": Q, "pairs": int(st.pair_v.numel()),
-           "vertex_view_s": _time(lambda: _fast.vertex_view(st, cam, Wr, E, T, K, lobes)),
-           "shade_samples_one_pass_s": _time(lambda: _fast.shade_samples(st.face_pairs, table, gb.face, gb.bary,
+           "vertex_view_s": wall_cpu_time(lambda: _fast.vertex_view(st, cam, Wr, E, T, K, lobes)),
+           "shade_samples_one_pass_s": wall_cpu_time(lambda: _fast.shade_samples(st.face_pairs, table, gb.face, gb.bary,
                                                                          gb.normal, gb.wo, env, L)),
-           "shade_samples_chunked_s": _time(lambda: [
+           "shade_samples_chunked_s": wall_cpu_time(lambda: [
                _fast.shade_samples(st.face_pairs, table, gb.face[i:i + B], gb.bary[i:i + B], gb.normal[i:i + B],
                                    gb.wo[i:i + B], env, L) for i in range(0, Q, B)]),
-           "elementwise_pass_Qx3_s": _time(lambda: torch.mul(a, b)),
-           "bag_Qx3_rows_of_C_s": _time(lambda: Fnn.embedding_bag(fp, table, per_sample_weights=bw, mode="sum"))}
+           "elementwise_pass_Qx3_s": wall_cpu_time(lambda: torch.mul(a, b)),
+           "bag_Qx3_rows_of_C_s": wall_cpu_time(lambda: Fnn.embedding_bag(fp, table, per_sample_weights=bw, mode="sum"))}
     if env is not None:
         from methods.ptt import specular as _spec
 
-        out["mirror_dirs_s"] = _time(lambda: _spec.mirror_dirs(gb.normal, gb.wo))
+        out["mirror_dirs_s"] = wall_cpu_time(lambda: _spec.mirror_dirs(gb.normal, gb.wo))
         R = _spec.mirror_dirs(gb.normal, gb.wo)
-        out["latlong_cells_s"] = _time(lambda: _spec.latlong_cells(R, env.to_world, env.H, env.W))
+        out["latlong_cells_s"] = wall_cpu_time(lambda: _spec.latlong_cells(R, env.to_world, env.H, env.W))
         idx, w = _spec.latlong_cells(R, env.to_world, env.H, env.W)
-        out["env_bag_Qx4_rows_of_3L_s"] = _time(lambda: Fnn.embedding_bag(idx, env.ext, per_sample_weights=w,
+        out["env_bag_Qx4_rows_of_3L_s"] = wall_cpu_time(lambda: Fnn.embedding_bag(idx, env.ext, per_sample_weights=w,
                                                                           mode="sum"))
     CL = _tp.env_haar(frame.envmap, m.config["cube_res"], supersample=m.config["light_supersample"])
-    out["direct_incidence_s"] = _time(lambda: _fast.direct_incidence(m.dt.idx, m.dt.val, CL), 3)
+    out["direct_incidence_s"] = wall_cpu_time(lambda: _fast.direct_incidence(m.dt.idx, m.dt.val, CL), 3)
     if m.T1 is not None:
         T1s, CL1 = m.T1.permute(0, 3, 1, 2, 4), CL[m.blk1]
-        out["T1_gemm_s"] = _time(lambda: _fast.light_product(T1s, CL1), 3)
+        out["T1_gemm_s"] = wall_cpu_time(lambda: _fast.light_product(T1s, CL1), 3)
         out["T1_gemm_bytes"] = m.T1.numel() * 4
         out["T1_gemm_flops"] = 2 * m.T1.numel() * 3
-        out["T1_stream_sum_s"] = _time(lambda: T1s.sum(), 3)  # one read of T¹ at the machine's pace
+        out["T1_stream_sum_s"] = wall_cpu_time(lambda: T1s.sum(), 3)  # one read of T¹ at the machine's pace
     if m.T2 is not None:
         T2s, CL2 = m.T2.permute(0, 2, 3, 4, 5, 1), CL[m.blk2]
-        out["T2_gemm_s"] = _time(lambda: _fast.light_product(T2s, CL2), 3)
+        out["T2_gemm_s"] = wall_cpu_time(lambda: _fast.light_product(T2s, CL2), 3)
     return out
 
 

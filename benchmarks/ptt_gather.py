@@ -19,13 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import torch
 import torch.nn.functional as Fnn
 
-from benchmarks.common import machine_limits, setup
+from benchmarks.common import machine_limits, setup, wall_cpu_time
 from methods.ptt import fast as _fast
 from methods.ptt import specular as _spec
 from reports import measure
@@ -33,15 +31,6 @@ from reports import measure
 L = 4  # lobes of the perf config (lobe_degrees 0, 7, 14, 21)
 
 
-def _time(fn, repeats: int) -> dict[str, float]:
-    fn()
-    ts, cs = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return {"wall_s": statistics.median(ts), "cpu_s": statistics.median(cs)}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -93,7 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     out: dict = {"scene": a.scene, "size": a.size, "threads": a.threads, "samples": Q, "pairs": n_pairs,
                  "env_grid": [H, W], "columns": C, "kernels": {}}
     for name, (fn, nbytes, flops) in kernels.items():
-        t = _time(fn, a.repeats)
+        t = wall_cpu_time(fn, a.repeats)
         out["kernels"][name] = {**t, "bytes": nbytes, "flops": flops}
     B, Pk = machine_limits(out, bw0, pk0)
     print(json.dumps(out, indent=1, default=float))
@@ -101,9 +90,9 @@ def main(argv: list[str] | None = None) -> dict:
           f"{B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
     print(f"{'kernel':16} {'wall ms':>8} {'cpu ms':>8} {'MB touched':>10} {'GB/s(cpu)':>10} {'GFLOP/s(cpu)':>13} {'roofline(cpu)':>13}")
     for name, r in out["kernels"].items():
-        c = r["cpu_s"]
+        c = r["cpu"]
         eff = measure.roofline(r["bytes"], r["flops"], B, Pk, c)[0]
-        print(f"{name:16} {1e3 * r['wall_s']:8.2f} {1e3 * c:8.2f} {r['bytes'] / 1e6:10.1f} {r['bytes'] / c / 1e9:10.2f} "
+        print(f"{name:16} {1e3 * r['wall']:8.2f} {1e3 * c:8.2f} {r['bytes'] / 1e6:10.1f} {r['bytes'] / c / 1e9:10.2f} "
               f"{r['flops'] / c / 1e9:13.2f} {eff:13.3f}")
     return out
 

@@ -645,18 +645,25 @@ FINE_BLOCK = 8192
 FINE_TAIL = 1024
 
 
+def _fine_tables(Vt: Tensor, Rt: Tensor, Lt: Tensor) -> tuple[int, torch.dtype, Tensor, Tensor]:
+    """K', dtype and the (N, 3, K') channel views of the ρ̃ and L fine-value tables of `fine_kernel` /
+    `fine_grouped` (checked); the table row counts vary by scene / grid / regions, so they are
+    marked dynamic (one compiled variant)."""
+    Kp = Vt.shape[1]
+    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
+        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
+    R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
+    for t in (Vt, R3, L3):
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    return Kp, Vt.dtype, R3, L3
+
+
 def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
                 lrows: Tensor, lw: Tensor, *, points: int | None = None) -> Tensor:
     """Σ_t V̂(t) ρ̂_c(t) L̂_c(t) for B points from fine-value tables (`shade_fine` without the A_L'
     factor): Vt (N_V, K'), Rt (N_ρ, 3K'), Lt (N_L, 3K'); rows/weights (B, k) per table. → (B, 3).
     `fine_block` compiled (`methods.core.fused`) over static blocks of ``points`` (`FINE_BLOCK`)."""
-    Kp = Vt.shape[1]
-    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
-        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
-    dt = Vt.dtype
-    R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
-    for t in (Vt, R3, L3):  # table row counts vary by scene / grid / regions: one compiled variant
-        torch._dynamo.maybe_mark_dynamic(t, 0)
+    Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     rows = (vrows.long(), vw.to(dt), brows.long(), bw.to(dt), lrows.long(), lw.to(dt))
     p = FINE_BLOCK if points is None else int(points)
     head = rows[0].shape[0] // p * p if rows[0].shape[0] > p else 0
@@ -764,13 +771,7 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     """`fine_kernel` (same arguments and result) by groups: `group_rows`, `group_block` over the
     groups (compiled static blocks), `group_blend` per point. ``points``: groups per block;
     ``stats``: receives ``"groups"``, the number of groups."""
-    Kp = Vt.shape[1]
-    if Rt.shape[1] != 3 * Kp or Lt.shape[1] != 3 * Kp:
-        raise ValueError(f"tables must be (N, K'), (N, 3K'), (N, 3K'), got {tuple(Vt.shape)}, {tuple(Rt.shape)}, {tuple(Lt.shape)}")
-    dt = Vt.dtype
-    R3, L3 = Rt.view(-1, 3, Kp), Lt.view(-1, 3, Kp)
-    for t in (Vt, R3, L3):  # table row counts vary by scene / grid / regions: one compiled variant
-        torch._dynamo.maybe_mark_dynamic(t, 0)
+    Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long())
     p = GROUP_BLOCK if points is None else int(points)
     G = gv.shape[0]
