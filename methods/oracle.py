@@ -152,6 +152,13 @@ def _shade_stage(contrib, lit, d, data, ext, R32):
 _TENSOR_KINDS = ("lambert", "phong", "blinnphong", "cooktorrance", "ward")
 
 
+def _compiles(mat) -> bool:
+    """Whether ``mat``'s BRDF runs compiled: a library material (``scenes.materials``) of a
+    `_TENSOR_KINDS` family. Anything else the oracle is given — a subclass elsewhere, or any object
+    with eval / pdf / sample (a test's mixture) — runs its own methods eagerly."""
+    return type(mat).__module__ == "scenes.materials" and getattr(mat, "kind", None) in _TENSOR_KINDS
+
+
 class _TensorParams:
     """A material's parameters as float64 0-d tensors (kd, ks: (3,)) for its specular methods called
     on this object under ``torch.compile`` (inputs, not constants: no recompilation per value)."""
@@ -336,7 +343,7 @@ class Oracle(Method):
         wi_b = torch.empty(Q, NB, 3) if NB else wi_ll
         pdf_b = torch.empty(Q, NB) if NB else pdf_l
         for mat, a, b in mats:  # the BRDF's density of the light samples and its own samples
-            if mat.kind in _TENSOR_KINDS:
+            if _compiles(mat):
                 P = _TensorParams(mat)
                 res = map_rows(_brdf_sample_stage, [wo_l[a:b], U_b[a:b], wi_ll[a:b]],
                                (type(mat), P, mat.spec_weight > 0, NL, NB), chunk=ROWS)
@@ -353,7 +360,7 @@ class Oracle(Method):
                             (p2d, omega, R64, NL, NB), chunk=ROWS)
         f = torch.empty_like(wi)
         for mat, a, b in mats:
-            if mat.kind in _TENSOR_KINDS:
+            if _compiles(mat):
                 f[a:b] = map_rows(_brdf_eval_stage, [wi[a:b], wo_l[a:b]], (type(mat), _TensorParams(mat)), chunk=ROWS)
                 continue
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
