@@ -79,6 +79,11 @@ class Cell:
     n_frames, seed: the sequence. score_frames: frame indices scored against references (empty =
     all). ref_spp: reference samples per pixel. spp_side: G-buffer S (S×S sub-samples).
     eq_err_spp: reference spp ladder for the equal-error speedup (empty = skip).
+    fresh_calibration: time that ladder's Mitsuba renders in this run, beside the method's frames,
+    instead of taking the render times the reference cache recorded (which may have been rendered
+    while other jobs shared the machine: a perf run on 2026-12-03 got Mitsuba 7–20× slower than in
+    the run before from cached entries rendered at load 15–20, and so equal-error speedups 10–20×
+    too high). Part of the key only when set.
     threads: torch / Dr.Jit threads (None = leave the defaults). isolate: run in a spawned child.
     na: the n/a reason from the capability matrix (None = in scope); the cell is then not run.
     score_full_gi: also score every scored frame against the full-GI reference (metric
@@ -102,6 +107,7 @@ class Cell:
     ref_spp: int = 64
     spp_side: int = 2
     eq_err_spp: tuple[int, ...] = ()
+    fresh_calibration: bool = False
     threads: int | None = None
     isolate: bool = False
     save_images: bool = True
@@ -131,6 +137,8 @@ class Cell:
         d.pop("scene_file")  # where the file lives is not what is measured; scene_hash is
         if not d["scene_hash"]:
             d.pop("scene_hash")  # keys of cells planned without a hash stay as they were
+        if not d["fresh_calibration"]:
+            d.pop("fresh_calibration")  # nor do the keys of cells that take the recorded times
         h = hashlib.sha1(json.dumps(d, sort_keys=True, default=list).encode()).hexdigest()[:12]
         scene = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in self.scene)[:64]
         return f"{scene}-{self.size}-{self.kind}-{self.method}-b{bounces_label(self.bounces)}-{h}"

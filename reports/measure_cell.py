@@ -317,7 +317,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     artifacts: dict[str, str] = {}
     if timed and cell.eq_err_spp and (part == "timing" or ("rmse" in errors and last is not None)):
         i0 = cell.scored()[0]
-        fit = calibrate(cell, out_dir, be, scene, frames[i0], fresh=part == "timing")
+        fit = calibrate(cell, out_dir, be, scene, frames[i0], fresh=part == "timing" or cell.fresh_calibration)
         if fit is not None:
             info["convergence_fit"] = fit.to_dict()
             if part == "all":

@@ -52,6 +52,7 @@ class Suite:
     methods: tuple[str, ...] | None = None
     configs: tuple[tuple[str, str], ...] = ()
     eq_err_spp: tuple[int, ...] = ()
+    fresh_calibration: bool = False  # `Cell.fresh_calibration`: Mitsuba's equal-error renders timed in the run
     isolate: bool = True
     threads: int | None = None
     seed: int = 0
@@ -114,7 +115,7 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=("sphere_plane", "chess", "
 # equal-error speedup needs its error), precomputations shared through the precompute cache.
 PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
              dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
-             isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
+             fresh_calibration=True, isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
                                      # in-out twice: eq. 4 per G-buffer sample (default) and per vertex,
                                      # Gouraud-interpolated (the paper's run time, Mahajan 2008 §6)
                                      ("inout", "{}"), ("inout", '{"shading":"vertex"}'),
@@ -193,6 +194,7 @@ def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[s
                                           kind=k, method=m, config=cfg, bounces=b,
                                           n_frames=suite.n_frames, seed=suite.seed, score_frames=suite.score_frames,
                                           ref_spp=suite.ref_spp, spp_side=suite.spp_side, eq_err_spp=suite.eq_err_spp,
+                                          fresh_calibration=suite.fresh_calibration,
                                           threads=suite.threads, isolate=suite.isolate if isolate is None else isolate,
                                           na=na, backend=backend, plugins=tuple(plugins), device=device,
                                           score_full_gi=caps.max_bounces > 0 and b != FULL))

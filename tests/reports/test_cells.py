@@ -252,3 +252,31 @@ def test_progress_without_a_terminal_prints_one_line_per_cell(tmp_path, capsys):
     assert lines[2].startswith("[prtbench] 3/3 fake/fake_plane/P/b0: na")
     R.run_cells(cells, tmp_path, progress=False)  # progress off: silent
     assert "[prtbench]" not in capsys.readouterr().err
+
+
+def test_fresh_calibration_times_mitsuba_in_the_run_not_the_cache(tmp_path, monkeypatch):
+    """A cell with ``fresh_calibration`` (the perf suite) fits Mitsuba's convergence on renders timed
+    now (``use_cache=False``), not on the render times the reference cache recorded; other cells
+    keep the recorded times and their keys. The recorded time here is 1000× the fresh one, as a
+    cache entry rendered on a busy machine would be."""
+    def render(scene, frame, *, bounces, spp, seed, spp_side=1, use_cache=True):
+        ref = fakes_render(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side)
+        if use_cache:
+            ref.meta["render_seconds"] *= 1000
+        return ref
+
+    fakes_render = fakes.render_reference
+    monkeypatch.setattr(fakes, "render_reference", render)
+    monkeypatch.setattr(fakes, "timed_reference", lambda scene, frame, **kw: (
+        lambda r: (r, fakes.reference_seconds(r)))(render(scene, frame, **kw)))
+    cfg = C.canonical_config({"bias": 0.1})
+    cached = MC.run_cell(_cell(config=cfg), tmp_path / "cached", progress=False)
+    fresh = MC.run_cell(_cell(config=cfg, fresh_calibration=True), tmp_path / "fresh", progress=False)
+    assert cached.status == fresh.status == "ok"
+    t_cached, t_fresh = (r.info["convergence_fit"]["t_spp"] for r in (cached, fresh))
+    assert t_cached == pytest.approx(1000 * t_fresh, rel=1e-6)
+    assert _cell(config=cfg).key() == _cell(config=cfg, fresh_calibration=False).key()
+    assert _cell(config=cfg).key() != _cell(config=cfg, fresh_calibration=True).key()
+    from reports.suites import PERF
+    perf = dataclasses.replace(PERF, scenes=("fake_plane",), configs=())
+    assert all(c.fresh_calibration for c in plan_cells(perf, backend="testing.fakes", plugins=("testing.fakes",)))
