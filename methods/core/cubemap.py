@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from methods.core.fused import fused, map_rows
-from methods.core.latlong import bilinear_taps
+from methods.core.latlong import planar_radiance
 
 __all__ = [
     "FACE_NAMES",
@@ -367,17 +367,8 @@ def _weighted_lookup(dx: Tensor, dy: Tensor, dz: Tensor, w: Tensor, R: Tensor, e
     vectorised the 3 channels and called scalar atan2/acos, 2× slower). ext: (3, H·(W+1)) channel
     planes of the periodic-extended texels (`scenes.envmap.extend_periodic`); H, W: map size."""
     x, y, z = (dx * R[0, j] + dy * R[1, j] + dz * R[2, j] for j in range(3))
-    u = torch.atan2(x, -z) * (0.5 / math.pi)          # scenes.envmap.direction_to_uv
-    v = torch.acos(y.clamp(-1.0, 1.0)) * (1.0 / math.pi)
-    idx, w1x, w1y = bilinear_taps(u, v, H, W)
-    w0x, w0y = 1.0 - w1x, 1.0 - w1y
-    out = []
-    for c in range(3):
-        e = ext[c]
-        v0 = w0x * e[idx] + w1x * e[idx + 1]
-        v1 = w0x * e[idx + W + 1] + w1x * e[idx + W + 2]
-        out.append((w0y * v0 + w1y * v1) * w)
-    return out[0], out[1], out[2]
+    r, g, b = planar_radiance(x, y, z, ext, H, W)
+    return r * w, g * w, b * w
 
 
 _weighted_lookup_fused = fused(_weighted_lookup)

@@ -290,23 +290,13 @@ def env_block(R: Tensor, cp: Tensor, wT: Tensor, T: Tensor, planes: Tensor, H: i
     wT (S, n) (`_env_sample_planes`); T (3, 3); planes (3, H·(W + 1)) the periodic-extended texels
     as channel planes (``EnvMap.periodic_texels(planes=True)``); H, W the map's size.
     Returns (f, 3, n)."""
-    from methods.core.latlong import bilinear_taps
+    from methods.core.latlong import planar_radiance
 
     cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, S, n)
     Rb = R[:, :, :, None, None]                                            # (f, 3, 3, 1, 1)
     dw = [cx * Rb[:, 0, i] + cy * Rb[:, 1, i] + cz * Rb[:, 2, i] for i in range(3)]  # world R^T c (f, S, n)
     d = [dw[0] * T[0, k] + dw[1] * T[1, k] + dw[2] * T[2, k] for k in range(3)]      # emitter frame
-    u = torch.atan2(d[0], -d[2]) * (0.5 / math.pi)                         # `direction_to_uv`
-    v = torch.acos(d[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
-    idx, fx, fy = bilinear_taps(u, v, H, W)
-    w0x, w0y = 1.0 - fx, 1.0 - fy
-    out = []
-    for ch in range(3):
-        e = planes[ch]
-        v0 = w0x * e[idx] + fx * e[idx + 1]
-        v1 = w0x * e[idx + W + 1] + fx * e[idx + W + 2]
-        out.append(((w0y * v0 + fy * v1) * wT[None]).sum(1))              # (f, n)
-    return torch.stack(out, 1)
+    return torch.stack([(L * wT[None]).sum(1) for L in planar_radiance(*d, planes, H, W)], 1)  # (f, 3, n)
 
 
 _env_block = None
