@@ -158,6 +158,10 @@ class Method(ABC):
     # instance's state after ``precompute`` must depend only on (scene, config, code) and hold only
     # tensors, numpy arrays, scalars, containers and instances of classes from methods/ and scenes/.
     cache_precompute: ClassVar[bool] = False
+    # Config keys that only `render` reads: the state `precompute` leaves is the same for every value
+    # of them (tests/reports/test_precompute_cache_methods.py checks it), so the precompute cache
+    # keys an entry without them and cells that differ only in them share one precomputation.
+    render_config_keys: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, **config: Any) -> None:
         self._config: dict[str, Any] = dict(config)

@@ -12,7 +12,10 @@ precompute seconds (recorded when it was computed, with the thread count it ran 
 RSS of such a cell is that of loading, not computing (the report's memory column is
 ``Method.memory()``, unaffected).
 
-Key: sha256 over the scene's content hash, the method name, its canonical config, the fingerprint
+Key: sha256 over the scene's content hash, the method name, its canonical config without the keys
+only its render reads (``Method.render_config_keys``; `precompute_config`: the perf suite's per-vertex
+and per-pixel cells of one method and scene share one entry, loaded with each cell's own values of
+those keys), the fingerprint
 of the code the method runs — its module and every project module it imports, transitively
 (``reports.store.code_closure_fingerprint``) — and the torch version: a change of that code
 recomputes, a change elsewhere (the report, another method) keeps the night's precomputations. ``PRTBENCH_NO_PRECOMPUTE_CACHE=1`` turns it off.
@@ -396,9 +399,29 @@ def _process_fingerprint(module: str) -> str:
     return code_closure_fingerprint(module)
 
 
+def precompute_config(method: Any, config: str) -> str:
+    """``config`` (canonical JSON) without the method's ``render_config_keys``: what its precomputation
+    depends on. Cells that differ only in those keys (e.g. in-out's ``shading``) share an entry."""
+    drop = tuple(getattr(type(method), "render_config_keys", ()) or ())
+    if not drop:
+        return config
+    cfg = json.loads(config) if config else {}
+    return json.dumps({k: v for k, v in cfg.items() if k not in drop}, sort_keys=True, separators=(",", ":"))
+
+
+def _keep_render_config(method: Any, live: dict) -> None:
+    """After a load: the method renders with its own ``render_config_keys`` values (``live``, its config
+    before the load), not those of the instance that computed the entry."""
+    drop = tuple(getattr(type(method), "render_config_keys", ()) or ())
+    cfg = getattr(method, "_config", None)
+    if drop and isinstance(cfg, dict):
+        method._config = {**{k: v for k, v in cfg.items() if k not in drop},
+                          **{k: live[k] for k in drop if k in live}}
+
+
 def cache_key(scene: Any, method: Any, config: str) -> str:
     h = hashlib.sha256()
-    for part in (str(VERSION), scene.content_hash(), type(method).name, config,
+    for part in (str(VERSION), scene.content_hash(), type(method).name, precompute_config(method, config),
                  _process_fingerprint(type(method).__module__),
                  torch.__version__, backend_id()):  # the ray tracer that made the visibility
         h.update(part.encode() + b"\0")
@@ -552,8 +575,10 @@ def precompute(method: Any, scene: Any, config: str) -> dict[str, Any]:
     if enabled(method):
         side = cache_path(scene, method, config)
         t0 = time.perf_counter()
+        live = dict(getattr(method, "_config", None) or {})
         try:
             meta = _load(side, method, scene)
+            _keep_render_config(method, live)
             return {"seconds": float(meta["seconds"]), "threads": meta.get("threads"), "cached": True,
                     "load_seconds": time.perf_counter() - t0}
         except FileNotFoundError:
@@ -568,7 +593,7 @@ def precompute(method: Any, scene: Any, config: str) -> dict[str, Any]:
     out = {"seconds": seconds, "threads": threads, "cached": False, "load_seconds": 0.0}
     if enabled(method):
         try:
-            _save(side, method, scene, config, seconds, threads)
+            _save(side, method, scene, precompute_config(method, config), seconds, threads)
         except NotCacheable as e:
             if type(method).name not in _WARNED:
                 _WARNED.add(type(method).name)

@@ -136,6 +136,7 @@ class InOut(Method):
 
     name = "inout"
     cache_precompute = True  # the cells of one scene/config share one stored precomputation
+    render_config_keys = ("shading",)  # where eq. 4 is evaluated: run time only
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,

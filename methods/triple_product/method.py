@@ -125,6 +125,7 @@ class TripleProduct(Method):
 
     name = "triple_product"
     cache_precompute = True  # cells and re-runs of one scene/config share it (reports.precompute_cache)
+    render_config_keys = ("shading",)  # per vertex or per pixel (§3.3): run time only
     capabilities = Capabilities(dynamic_lighting=True, dynamic_brdf=False,
                                 dynamic_geometry=False, max_bounces=0, brdfs=ISOTROPIC)
 

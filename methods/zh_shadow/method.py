@@ -279,6 +279,7 @@ class ZHShadow(Method):
 
     # Config keys that only the render reads: a precomputed model serves every value of them.
     RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
+    render_config_keys = RENDER_KEYS  # the precompute cache shares one entry across them too
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this

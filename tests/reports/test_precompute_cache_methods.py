@@ -88,3 +88,64 @@ def test_damaged_zh_shadow_entry_is_recomputed_with_the_right_image(cache, damag
     assert torch.equal(m.render(frame, gb), want)
     again = cls(**cfg)
     assert PC.precompute(again, scene, "{}")["cached"] and torch.equal(again.render(frame, gb), want)
+
+
+# case → the other values of its method's render_config_keys (every key changed at once)
+RENDER_CHANGES = {
+    "inout": dict(shading="vertex"),
+    "triple_product": dict(shading="vertex"),
+    "zh_shadow": dict(specular="cosine", shading="vertex", window="hanning", window_width=2.0, clamp=False),
+}
+
+
+def test_render_config_keys_have_a_case():
+    declared = {n for n in available_methods() if get_method(n).__module__.startswith("methods.")
+                and get_method(n).render_config_keys}
+    assert declared == {CASES[c][0] for c in RENDER_CHANGES}
+    for case, changes in RENDER_CHANGES.items():
+        assert set(changes) == set(get_method(CASES[case][0]).render_config_keys), case
+
+
+def _state(m) -> tuple[str, list[torch.Tensor]]:
+    """The encoded state without the config and without wall-clock stats (``*seconds*`` and ``time*`` entries)."""
+    tree, tensors = PC.encode_state({k: v for k, v in m.__dict__.items() if k != "_config"}, m.scene)
+
+    def strip(x):
+        if isinstance(x, list):
+            if len(x) == 2 and isinstance(x[0], str) and ("seconds" in x[0] or x[0].startswith("time")):
+                return [x[0], None]
+            return [strip(v) for v in x]
+        return {k: strip(v) for k, v in x.items()} if isinstance(x, dict) else x
+
+    return json.dumps(strip(json.loads(tree))), tensors
+
+
+@pytest.mark.parametrize("case", sorted(RENDER_CHANGES))
+def test_render_config_keys_leave_the_precomputation_unchanged(case):
+    """What lets two configs share an entry: precomputing with every render-only key changed leaves
+    the same state (all of ``__dict__`` but the config, tensors bit for bit)."""
+    cls, scene, frame, gb, cfg = _setup(case)
+    a, b = cls(**cfg), cls(**(cfg | RENDER_CHANGES[case]))
+    a.precompute(scene)
+    b.precompute(scene)
+    (ta, xa), (tb, xb) = _state(a), _state(b)
+    assert ta == tb
+    assert len(xa) == len(xb) and all(torch.equal(u, v) for u, v in zip(xa, xb))
+
+
+@pytest.mark.parametrize("case", sorted(RENDER_CHANGES))
+def test_entry_is_shared_across_render_config_and_renders_with_the_loaders_config(case, cache):
+    """The cell with the other render keys loads the first one's entry (one file, cached) and renders
+    exactly what it renders after computing its own precomputation."""
+    cls, scene, frame, gb, cfg = _setup(case)
+    other = cfg | RENDER_CHANGES[case]
+    PC.precompute(cls(**cfg), scene, json.dumps(cfg, sort_keys=True))
+    loaded = cls(**other)
+    info = PC.precompute(loaded, scene, json.dumps(other, sort_keys=True))
+    assert info["cached"] and len(list(cache.glob("*.json"))) == 1
+    assert dict(loaded.config) == dict(cls(**other).config)
+    computed = cls(**other)
+    computed.precompute(scene)
+    want, got = computed.render(frame, gb), loaded.render(frame, gb)
+    assert torch.isfinite(want).all() and want.abs().max() > 0
+    assert torch.equal(want, got), float((want - got).abs().max())
