@@ -111,7 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     ca = sub.add_parser("cache", help="inspect, prune or clear the precompute cache")
     ca.add_argument("action", choices=["info", "prune", "clear"])
     ca.add_argument("--max-gb", type=float, default=None,
-                    help="prune to this size (default $PRTBENCH_CACHE_MAX_GB, else 5)")
+                    help="prune to this size (default $PRTBENCH_CACHE_MAX_GB, else 20)")
     return p
 
 
