@@ -423,7 +423,7 @@ def test_bad_cap_is_one_clear_error(monkeypatch):
     monkeypatch.setenv(PC.ENV_MAX_GB, "0.5")
     assert PC.max_bytes() == 500_000_000
     monkeypatch.delenv(PC.ENV_MAX_GB)
-    assert PC.max_bytes() == 5_000_000_000
+    assert PC.max_bytes() == 20_000_000_000
 
 
 def test_cli_cache_info_prune_clear(cache, capsys, monkeypatch):
