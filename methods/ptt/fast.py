@@ -636,7 +636,17 @@ def _sample_cells(bary: Tensor, u: Tensor, v: Tensor, H: int, W: int) -> tuple[T
     (idx (Q, 4) int64, w (Q, 4); `specular.latlong_cells`) of the map coordinates (u, v) of
     ``specular._latlong_uv``. Those coordinates stay eager (`specular.mirror_dirs`): the reference
     reads the maps at the same bits, and a last-bit change of the direction shows at a bright
-    texel's edge (measured: 2.5e-4 on the test-size bunny with R compiled)."""
+    texel's edge (measured: 2.5e-4 on the test-size bunny with R compiled).
+
+    Decision (2026-12-03, ptt-v3; not built for lack of time): a tolerance-based comparison is not
+    sound here — the look-up is continuous, but its change under a last-bit change of (u, v) scales
+    with the HDR texel contrast (a sun texel is 10³–10⁴ × its neighbours), so no fixed round-off
+    tolerance bounds it. The route is one formula for both paths: compile R and (u, v) in a function
+    that `PTT._shade_vertex` (the reference) calls as well, so both read the maps at the same bits
+    (acos stays: changing it to atan2 would change the reference's images, not only the fast path's).
+    What it would save on the chess bench V frame (``python -m benchmarks.ptt_profile --micro``,
+    1 thread, CPU time): the eager `specular.mirror_dirs` 3.2 ms + `specular._latlong_uv` 1.9 ms of
+    a 23.8 ms sample stage, of which a compiled pass would keep ~1 ms."""
     b1, b2 = bary[:, 0], bary[:, 1]
     bw = torch.stack([1.0 - b1 - b2, b1, b2], -1)
     i0, fx, fy = bilinear_taps(u, v, H, W)
