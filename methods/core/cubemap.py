@@ -402,6 +402,21 @@ def from_envmap(envmap: Any, N: int, *, supersample: int = 4, dtype=torch.float3
     return torch.stack([c.reshape(6, N, N, s * s).sum(-1) for c in Lw], -1).to(dtype)
 
 
+def pool_means(cube: Tensor) -> Tensor:
+    """A (6, 2N, 2N, C) cube map of texel means → the (6, N, N, C) one: each texel the solid-angle
+    weighted mean Σ_c Ω_c m_c / Σ_c Ω_c of its 2×2 children (Ω exact, `texel_solid_angles`).
+    `from_envmap` (N, s) is this of `from_envmap` (2N, s/2) to float32 round-off — the same
+    sub-samples (the N·s grid), a parent's Ω-weighted sum of them regrouped by child."""
+    N2, C = int(cube.shape[1]), int(cube.shape[-1])
+    if cube.ndim != 4 or cube.shape[0] != 6 or cube.shape[2] != N2 or N2 % 2:
+        raise ValueError(f"need a (6, 2N, 2N, C) cube, got {tuple(cube.shape)}")
+    N = N2 // 2
+    w = texel_solid_angles(N2, dtype=torch.float64)[0].reshape(N, 2, N, 2).permute(0, 2, 1, 3).reshape(N, N, 4)
+    w = (w / w.sum(-1, keepdim=True)).to(cube.dtype)
+    c = cube.reshape(6, N, 2, N, 2, C).permute(0, 1, 3, 2, 4, 5).reshape(6, N, N, 4, C)
+    return (c * w[None, :, :, :, None]).sum(3)
+
+
 def lookup(cube: Tensor, d: Tensor) -> Tensor:
     """Nearest-texel lookup: cube (6, N, N, C) or (6, N, N), d (..., 3) → (..., C) or (...,)."""
     if cube.ndim < 3 or cube.shape[0] != 6 or cube.shape[1] != cube.shape[2]:

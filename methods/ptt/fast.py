@@ -3,8 +3,8 @@ per-stage reference path of ``methods.ptt.method`` (`PTT._render_reference`), to
 with the work arranged for the machine instead of for reading:
 
 Lighting stage (Sun eq. 4, "light" changed):
-* E⁰_x(k) = Σ_l C^L_l U^{I0}_x(l, k) as one ``embedding_bag`` over the kept (index, value) pairs
-  (no (V, K, n_L, 3) gather);
+* E⁰_x(k) = Σ_l C^L_l U^{I0}_x(l, k) as one sparse (CSR) × dense product over the kept (index,
+  value) pairs (no (V, K, n_L, 3) gather; `direct_incidence`);
 * T¹L = T¹ ·_l C^L and T²L = T² ·_l C^L as plain GEMMs over the contiguous (…, l) layout
   (`relayout_t1` / `relayout_t2` store T¹ (vertex, SH)-major and T² lighting-last once; the
   reference reads views of the same storage), with the (3, n_l) lighting operand row-major
@@ -46,6 +46,7 @@ Everything is plain torch on the device of the precomputed arrays (no compiled k
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -140,7 +141,25 @@ def relayout_t1(T1: Tensor) -> Tensor:
 
 
 def direct_incidence(idx: Tensor, val: Tensor, CL: Tensor) -> Tensor:
-    """E⁰_x(k) = Σ_n val[x, k, n] C^L[idx[x, k, n]]: idx, val (V, K, n_L); CL (6N², 3) → (V, K, 3)."""
+    """E⁰_x(k) = Σ_n val[x, k, n] C^L[idx[x, k, n]]: idx, val (V, K, n_L); CL (6N², 3) → (V, K, 3).
+
+    The kept (index, value) pairs are the rows of a CSR matrix (V·K, 6N²) with n_L entries each —
+    views of idx and val, only the row offsets are made — times the dense C^L (MKL's sparse × dense
+    product; each output row is one thread's, so the result does not depend on the thread count).
+    Measured on the chess bench (131 MB of pairs, 1 thread, process CPU time, load 7): 14.9 ms vs
+    23.8 ms for the weighted ``embedding_bag`` it replaces (`direct_incidence_bag`, kept as the
+    alternative in ``benchmarks.ptt_profile``), 48.8 ms as a compiled gather-and-sum."""
+    nv, K, nL = val.shape
+    n = nv * K
+    crow = torch.arange(0, n * nL + 1, nL, dtype=idx.dtype, device=idx.device)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta" (once per process)
+        warnings.simplefilter("ignore", UserWarning)
+        A = torch.sparse_csr_tensor(crow, idx.reshape(-1), val.reshape(-1), (n, CL.shape[0]))
+    return (A @ CL.to(val.dtype)).reshape(nv, K, 3)
+
+
+def direct_incidence_bag(idx: Tensor, val: Tensor, CL: Tensor) -> Tensor:
+    """`direct_incidence` as one weighted ``embedding_bag`` (the same sums; the previous fast path)."""
     nv, K, nL = val.shape
     out = Fnn.embedding_bag(idx.reshape(nv * K, nL), CL, per_sample_weights=val.reshape(nv * K, nL), mode="sum")
     return out.reshape(nv, K, 3)
@@ -617,7 +636,17 @@ def _sample_cells(bary: Tensor, u: Tensor, v: Tensor, H: int, W: int) -> tuple[T
     (idx (Q, 4) int64, w (Q, 4); `specular.latlong_cells`) of the map coordinates (u, v) of
     ``specular._latlong_uv``. Those coordinates stay eager (`specular.mirror_dirs`): the reference
     reads the maps at the same bits, and a last-bit change of the direction shows at a bright
-    texel's edge (measured: 2.5e-4 on the test-size bunny with R compiled)."""
+    texel's edge (measured: 2.5e-4 on the test-size bunny with R compiled).
+
+    Decision (2026-12-03, ptt-v3; not built for lack of time): a tolerance-based comparison is not
+    sound here — the look-up is continuous, but its change under a last-bit change of (u, v) scales
+    with the HDR texel contrast (a sun texel is 10³–10⁴ × its neighbours), so no fixed round-off
+    tolerance bounds it. The route is one formula for both paths: compile R and (u, v) in a function
+    that `PTT._shade_vertex` (the reference) calls as well, so both read the maps at the same bits
+    (acos stays: changing it to atan2 would change the reference's images, not only the fast path's).
+    What it would save on the chess bench V frame (``python -m benchmarks.ptt_profile --micro``,
+    1 thread, CPU time): the eager `specular.mirror_dirs` 3.2 ms + `specular._latlong_uv` 1.9 ms of
+    a 23.8 ms sample stage, of which a compiled pass would keep ~1 ms."""
     b1, b2 = bary[:, 0], bary[:, 1]
     bw = torch.stack([1.0 - b1 - b2, b1, b2], -1)
     i0, fx, fy = bilinear_taps(u, v, H, W)

@@ -427,7 +427,8 @@ class PTT(Method):
 
     def _lighting_stage(self, envmap) -> None:
         c = self.config
-        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
+        cubes: dict = {}  # resampled cube maps, shared by the Haar transform and the lobe prefilters
+        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"], cubes=cubes)  # (6N², 3)
         E0 = _tp.direct_incidence(self.dt, CL)  # (V, K, 3)
         T1L = T2L = None
         if self.T1 is not None:
@@ -439,8 +440,8 @@ class PTT(Method):
             T2L = torch.einsum("vlrptq,lc->vrptqc", self.T2, CL[self.blk2])
         self._light = (E0, T1L, T2L)
         if self.separate:  # Sun §4.1 E^(k), on the env map's grid
-            self._Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters,
-                                                              supersample=c["light_supersample"]), envmap)
+            self._Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"],
+                                                              cubes=cubes), envmap)
         self._env = envmap
         self.stats["light"] += 1
 
@@ -499,7 +500,8 @@ class PTT(Method):
     def _fast_lighting(self, envmap) -> None:
         """Stage 1 (lighting products of Sun eq. 4) for ``envmap``."""
         c = self.config
-        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"])  # (6N², 3)
+        cubes: dict = {}  # resampled cube maps, shared by the Haar transform and the lobe prefilters
+        CL = _tp.env_haar(envmap, c["cube_res"], supersample=c["light_supersample"], cubes=cubes)  # (6N², 3)
         E0 = _fast.direct_incidence(self.dt.idx, self.dt.val, CL)  # (V, K, 3)
         bounce = self.T1 is not None or self.T1c is not None
         T1L, T2L = _fast.lighting_products(self.T1, self.T1c, CL[self.blk1] if bounce else None, self.T2,
@@ -507,8 +509,8 @@ class PTT(Method):
                                            len(self.regions) * self.factors.n_P)
         Ek = None
         if self.separate:  # Sun §4.1 E^(k) on the env map's grid, stacked for the per-sample look-ups
-            Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"]),
-                                   envmap)
+            Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"],
+                                                       cubes=cubes), envmap)
             Ek = (Ek, _fast.env_stack(Ek))
         self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
         self.stats["light"] += 1

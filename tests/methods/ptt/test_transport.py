@@ -177,3 +177,24 @@ def test_bad_inputs_raise():
         tp.LobeBasis([Lambert(kd=0.5)])  # a lobe needs a specular term
     with pytest.raises(ValueError):
         tp.disk_grid(1)
+
+
+def test_env_cube_shares_and_pools_the_resampling():
+    """`transport.env_cube`: a lighting stage's memo returns the kept cube for a repeated (N, s) and
+    pools a half-resolution cube with the same sub-samples from it (``cubemap.pool_means``) — equal
+    to its own resampling to float32 round-off; without the shared grid it resamples."""
+    env = procedural("sky_sun", height=64, seed=3).rotated(
+        torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
+    cubes: dict = {}
+    c16 = tp.env_cube(env, 16, 2, cubes)  # s raised to 4 (64 rows / 16)
+    assert torch.equal(c16, cubemap.from_envmap(env, 16, supersample=2))
+    assert tp.env_cube(env, 16, 2, cubes) is c16
+    c8 = tp.env_cube(env, 8, 2, cubes)  # s = 8: the 16² cube's sub-samples, pooled
+    want = cubemap.from_envmap(env, 8, supersample=2)
+    torch.testing.assert_close(c8, want, rtol=F32_REL, atol=1e-6 * float(want.abs().max()))
+    c4 = tp.env_cube(env, 4, 8, cubes)  # s = 16 on a 4² face: 64 per side like the 8² cube's → pooled from it
+    torch.testing.assert_close(c4, cubemap.from_envmap(env, 4, supersample=8), rtol=F32_REL,
+                               atol=1e-6 * float(want.abs().max()))
+    other: dict = {}
+    tp.env_cube(env, 16, 8, other)  # s = 8 on 16²: 128 per side, not the 8² cube's 64 → resampled
+    assert torch.equal(tp.env_cube(env, 8, 2, other), want)
