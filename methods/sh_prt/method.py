@@ -64,11 +64,21 @@ RENDER_CHUNK = 1 << 14
 
 
 @fused
-def _diffuse_rows(vi: Tensor, w: Tensor, reg: Tensor, e: Tensor, kd: Tensor) -> Tensor:
-    """ρ·e at Q samples (Sloan 2002 §7): e Gouraud-interpolated from the per-vertex t·l (V, 3) at the
-    vertices vi (Q, 3) with weights w (Q, 3), ρ = kd (R, 3) of the region reg (Q,) → (Q, 3)."""
-    ev = e[vi[:, 0]] * w[:, 0:1] + e[vi[:, 1]] * w[:, 1:2] + e[vi[:, 2]] * w[:, 2:3]
-    return kd[reg] * ev
+def _diffuse_samples(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, F: Tensor,
+                     e: Tensor, kd: Tensor, glossy: Tensor) -> tuple[Tensor, Tensor]:
+    """ρ·e at Q G-buffer samples (Sloan 2002 §7), zero where the sample misses or n·ωo ≤ 0 (the BRDFs
+    vanish there; `SHPRT._render_fast` zeroes the glossy term alike, so the clamp at 0 of their sum
+    comes last): e Gouraud-interpolated from the per-vertex t·l (V, 3) at the vertices F (M, 3) of
+    the sample's face (face (Q,) int64, −1 on a miss; bary (Q, 2)), ρ = kd (R, 3) of its region reg
+    (Q,) int64 (−1 on a miss); hit (Q,) bool; normal, wo (Q, 3). Returns that (Q, 3) and which
+    samples are hits of a glossy region (glossy (R,) bool) → (Q,) bool."""
+    f = face.clamp_min(0)
+    r = reg.clamp_min(0)
+    u, v = bary[:, 0:1], bary[:, 1:2]
+    ev = e[F[f, 0]] * (1.0 - u - v) + e[F[f, 1]] * u + e[F[f, 2]] * v
+    o = kd[r] * ev
+    front = (normal * wo).sum(-1, keepdim=True) > 0
+    return torch.where(front & hit[:, None], o, torch.zeros((), dtype=o.dtype)), hit & glossy[r]
 
 
 @fused
@@ -134,7 +144,7 @@ class SHPRT(Method):
         self._light = None      # (n², 3) world-frame lighting l
         self._e = None          # (V, 3) t_x · l
         self._lg = None         # (Vg, n², 3) M_x l
-        self._glossy_share = None  # fraction of the last render's hit samples on glossy regions
+        self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0}
 
     # -- precompute -------------------------------------------------------------------------------
@@ -248,8 +258,8 @@ class SHPRT(Method):
         return kd, ks, G, vcos
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
-        """Sloan 2002 §7 at the G-buffer's samples: the diffuse term ρ·e of every sample in one compiled
-        pass (`_diffuse_rows`), the glossy term on the glossy samples (`_glossy`); equals
+        """Sloan 2002 §7 at the G-buffer's samples (`_render_fast`: the diffuse term of every sample in
+        one compiled pass, the glossy term on the glossy samples, `_glossy`); equals
         `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
         return self._render(frame, gbuffer, fast=True)
 
@@ -263,29 +273,43 @@ class SHPRT(Method):
         self._light_stage(frame.envmap)
         kd, ks, G, vcos = self._materials(frame)
         self.stats["view"] += 1
+        self._last_gbuffer = gbuffer          # `frame_cost` takes its glossy share (not a frame's work)
+        if fast:
+            return self._render_fast(gbuffer, kd, ks, G, vcos)
         dev = self.t.device
         hit = gbuffer.hit.nonzero().squeeze(-1)
         vidx, bw = gbuffer.vertex_weights(self.F.to(gbuffer.face.device))         # (P, 3) each
         out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
-        if fast and hit.numel():
-            vi, w, reg = vidx[hit].to(dev), bw[hit].to(dev), gbuffer.region[hit].to(dev)
-            n, wo = gbuffer.normal[hit].float().to(dev), gbuffer.wo[hit].float().to(dev)
-            o = map_rows(_diffuse_rows, [vi, w, reg], (self._e, kd))
-            glossy = self.glossy_regions[reg].nonzero().squeeze(-1)
-            for a in range(0, glossy.numel(), RENDER_CHUNK):
-                g = glossy[a:a + RENDER_CHUNK]
-                o[g] += self._glossy(vi[g], w[g], n[g], wo[g], reg[g], ks, G, vcos, fast=True)
-            front = (n * wo).sum(-1, keepdim=True) > 0
-            out[hit] = torch.where(front, o, torch.zeros_like(o)).clamp_min(0.0).to(out.device)
-        else:
-            for a in range(0, hit.numel(), RENDER_CHUNK):
-                sel = hit[a:a + RENDER_CHUNK]
-                out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
-                                       gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G,
-                                       vcos).to(out.device)
-        if hit.numel():
-            self._glossy_share = float(self.glossy_regions[gbuffer.region[hit].cpu()].float().mean())
+        for a in range(0, hit.numel(), RENDER_CHUNK):
+            sel = hit[a:a + RENDER_CHUNK]
+            out[sel] = self._shade(vidx[sel].to(dev), bw[sel].to(dev), gbuffer.normal[sel].float().to(dev),
+                                   gbuffer.wo[sel].float().to(dev), gbuffer.region[sel].to(dev), kd, ks, G,
+                                   vcos).to(out.device)
         return gbuffer.resolve(out)
+
+    def _render_fast(self, gb: GBuffer, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
+        """`render_reference`'s image to float32 round-off: ρ·e of every sample (misses and back
+        faces 0) in one compiled pass over the G-buffer as it is (`_diffuse_samples`: no gather of the
+        hits), the glossy term (`_glossy`) on the glossy regions' hits only, gathered once and shaded
+        in one call (whole blocks of `map_rows`), added; then the clamp at 0 and the box filter."""
+        dev = self.t.device
+        F, gl = self.F.to(dev), self.glossy_regions.to(dev)
+        for x in (F, self._e, kd, gl):   # per-scene sizes: one compiled kernel serves all
+            torch._dynamo.maybe_mark_dynamic(x, 0)
+        face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
+        normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
+        o, glossy = map_rows(_diffuse_samples, [face, bary, hit, normal, wo, reg], (F, self._e, kd, gl))
+        g = glossy.nonzero().squeeze(-1)
+        if g.numel():
+            vi = F.index_select(0, face.index_select(0, g))                          # (Qg, 3)
+            u, v = bary.index_select(0, g).unbind(-1)
+            w = torch.stack([1.0 - u - v, u, v], -1)
+            n, wg = normal.index_select(0, g), wo.index_select(0, g)
+            sg = self._glossy(vi, w, n, wg, reg.index_select(0, g), ks, G, vcos, fast=True)
+            front = (n * wg).sum(-1, keepdim=True) > 0
+            o.index_add_(0, g, torch.where(front, sg, torch.zeros_like(sg)))
+        img = o.clamp_min_(0.0).view(gb.height, gb.width, gb.spp_side ** 2, 3).mean(2)
+        return img.to(gb.hit.device)
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
                G: Tensor, vcos: Tensor) -> Tensor:
@@ -344,7 +368,11 @@ class SHPRT(Method):
             raise ValueError(f"num_samples must be a non-negative int, got {num_samples!r}")
         n2, f4 = self.order ** 2, 4
         nv, ng = int(self.t.shape[0]), int(self.M.shape[0])
-        share = self._glossy_share if self._glossy_share is not None else ng / max(nv, 1)
+        gb = self._last_gbuffer
+        if gb is not None and bool(gb.hit.any()):
+            share = float(self.glossy_regions[gb.region[gb.hit].cpu()].float().mean())
+        else:
+            share = ng / max(nv, 1)
         qg = int(round(share * num_samples))
         e_b, lg_b = nv * 3 * f4, ng * n2 * 3 * f4
         nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12) + tensor_bytes(self.F) + e_b + lg_b

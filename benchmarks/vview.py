@@ -1,0 +1,172 @@
+"""Same-process A/B of the SH PRT and in-out run time against another checkout's code (issue 14).
+
+    python -m benchmarks.vview --method sh_prt --scene creature [--kinds V L] [--frames 9]
+    python -m benchmarks.vview --method inout --config '{"shading":"vertex"}' --scene chess
+    options: --baseline /work/main (the checkout whose method modules are the "before"),
+             --threads 1 (1: process CPU time per frame, the load-robust measure; 2: wall time),
+             --precompute-code DIR (take the precomputation from the harness cache entry of the code
+             in DIR: this branch changes only run-time code, so the cached state is the same)
+
+Loads one precomputation, gives it to the method class of this tree and to the baseline's (the
+baseline's method module, and for in-out its ``fast`` module, imported from ``--baseline`` under
+other names), renders each kind's frames alternating which goes first, frame 0–1 untimed. Prints
+per kind the medians (process CPU and wall), their ratio, the roofline efficiency of the new code
+with its ``frame_cost`` and the machine limits measured in the run, and max |new − reference| /
+max |reference| (``render_reference``/``_render_reference``, this tree's oracle).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib.util
+import json
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+from benchmarks.common import machine_limits, precomputed, setup
+from reports import measure
+
+
+def _load(path: str, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def baseline_class(method: str, root: str):
+    """The method class of the checkout ``root`` (its own run-time modules, this tree's core)."""
+    from methods import base
+
+    saved = dict(base._REGISTRY)
+    try:
+        if method == "sh_prt":
+            return _load(os.path.join(root, "methods/sh_prt/method.py"), "_vview_base_sh_prt").SHPRT
+        fast = _load(os.path.join(root, "methods/inout/fast.py"), "_vview_base_inout_fast")
+        mod = _load(os.path.join(root, "methods/inout/method.py"), "_vview_base_inout")
+        mod._fast = fast
+        return mod.InOut
+    finally:
+        base._REGISTRY.clear()
+        base._REGISTRY.update(saved)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--method", choices=("sh_prt", "inout"), required=True)
+    ap.add_argument("--scene", default="creature")
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--config", default="{}")
+    ap.add_argument("--frames", type=int, default=9)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--kinds", nargs="+", default=["V"])
+    ap.add_argument("--baseline", default="/work/main")
+    ap.add_argument("--precompute-code", default=None)
+    ap.add_argument("--micro", action="store_true", help="sh_prt: time the V frame's two kernels alone")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+    cfg = json.loads(a.config)
+    if a.method == "sh_prt":
+        from methods.sh_prt.method import SHPRT as New
+    else:
+        from methods.inout.method import InOut as New
+    Base = baseline_class(a.method, a.baseline)
+    scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
+    m, _ = precomputed(New, scene, cfg)
+    out: dict = {"method": a.method, "scene": a.scene, "config": cfg, "threads": a.threads,
+                 "load": os.getloadavg()}
+    bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
+    kinds = {}
+    for kind in a.kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1)
+        new = copy.copy(m)
+        new._reset_cache()
+        if a.method == "inout":
+            new._fast = None
+        base = copy.copy(new)
+        base.__class__ = Base
+        ref = copy.copy(new)
+        t = {"new": ([], []), "base": ([], [])}
+        err = 0.0
+        for i, (f, g) in enumerate(zip(frames, gbs)):
+            for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
+                mm = new if which == "new" else base
+                t0, c0 = time.perf_counter(), time.process_time()
+                img = mm.render(f, g)
+                w, c = time.perf_counter() - t0, time.process_time() - c0
+                if i >= 2:
+                    t[which][0].append(w)
+                    t[which][1].append(c)
+                if which == "new":
+                    rimg = ref.render_reference(f, g) if a.method == "sh_prt" else ref._render_reference(f, g)
+                    err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
+        r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
+        cost = new.frame_cost(kind, gbs[-1].num_samples)
+        r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
+                 cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+        kinds[kind] = r
+    B, Pk = machine_limits(out, bw, peak)
+    for r in kinds.values():
+        tmin = max(r["bytes"] / B, r["flops"] / Pk)
+        r["eff_new_wall"] = tmin / (r["new"]["wall_ms"] / 1e3)
+        r["eff_new_cpu"] = tmin / (r["new"]["cpu_ms"] / 1e3)
+    out["kinds"] = kinds
+    if a.micro and a.method == "sh_prt":
+        out["micro"] = micro_sh_prt(new, frames[-1], gbs[-1], B, Pk)
+    out["load_end"] = os.getloadavg()
+    print(json.dumps(out, indent=1, default=float))
+    print(f"\n{a.method} {a.config} {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
+          f"{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
+    print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6} "
+          f"{'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
+    for kind, r in kinds.items():
+        print(f"{kind:4} {r['base']['cpu_ms']:9.2f} {r['new']['cpu_ms']:8.2f} {r['cpu_ratio']:6.2f} "
+              f"{r['base']['wall_ms']:9.2f} {r['new']['wall_ms']:8.2f} {r['wall_ratio']:6.2f} "
+              f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
+    for k, v in out.get("micro", {}).items():
+        print(f"micro {k}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
+    return out
+
+
+def micro_sh_prt(m, frame, gb, B: float, Pk: float) -> dict:
+    """The SH PRT V frame's dominant kernels alone on the frame's real sizes (process CPU ms, median
+    of 7 after a warm-up): the compiled diffuse pass over every sample (`_diffuse_samples`; its
+    compulsory bytes: face int64, bary, hit, normal, wo, region int64 read, (P, 3) written, the
+    per-vertex e) and the glossy stage on the glossy samples (`SHPRT._glossy`: y(R) eager + the
+    compiled `_glossy_rows`; flops (18 + 3 + 1 + 6)·n² per sample as `frame_cost`), each with its
+    achieved GB/s or GFLOP/s next to the machine's."""
+    from benchmarks.common import wall_cpu_time
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm
+
+    kd, ks, G, vcos = m._materials(frame)
+    F, gl = m.F, m.glossy_regions
+    rows = [gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region]
+    o, glossy = map_rows(shm._diffuse_samples, rows, (F, m._e, kd, gl))
+    g = glossy.nonzero().squeeze(-1)
+    vi = F.index_select(0, gb.face.index_select(0, g))
+    u, v = gb.bary.float().index_select(0, g).unbind(-1)
+    w = torch.stack([1.0 - u - v, u, v], -1)
+    n, wg, rg = gb.normal.float().index_select(0, g), gb.wo.float().index_select(0, g), gb.region.index_select(0, g)
+    P, n2 = gb.num_samples, m.order ** 2
+    t_d = wall_cpu_time(lambda: map_rows(shm._diffuse_samples, rows, (F, m._e, kd, gl)), 7)["cpu"]
+    t_g = wall_cpu_time(lambda: m._glossy(vi, w, n, wg, rg, ks, G, vcos, fast=True), 7)["cpu"]
+    b_d = P * (8 + 8 + 1 + 12 + 12 + 8 + 12 + 1) + m._e.numel() * 4
+    f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
+    return {"diffuse_pass": {"ms": 1e3 * t_d, "GB/s": b_d / t_d / 1e9, "triad GB/s": B / 1e9},
+            "glossy_stage": {"ms": 1e3 * t_g, "samples": float(g.numel()), "GFLOP/s": f_g / t_g / 1e9,
+                             "sgemm GFLOP/s": Pk / 1e9}}
+
+
+if __name__ == "__main__":
+    main()
