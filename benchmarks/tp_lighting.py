@@ -5,11 +5,13 @@ method does), and two ablations that show what bounds it:
 
 * ``no_trig``: (u, v) from the emitter-frame direction by a linear map instead of atan2 / acos (same
   gathers, same arithmetic otherwise) — the cost of the two transcendentals;
-* ``no_gather``: the bilinear weights summed without the 12 texel loads — the cost of the gathers.
+* ``no_gather``: the bilinear weights summed without the 12 texel loads — the cost of the gathers;
+* ``azimuthal``: the E-frame kernel (`lighting.env_block_azimuthal`: the map turned about +Y, each
+  frame's (u, v) the shifted base coordinates — no rotation, no atan2 / acos; 31 flops per sample).
 
 Prints per variant the median process-CPU ms per lighting change (1 thread, or ``--threads``), ns per
 sample, and the achieved GFLOP/s of the frame-cost count (`fast_eval.relight_flops`: 45 flops per
-sample) next to the machine's matmul peak and triad bandwidth (`reports.measure`).
+sample, 31 azimuthal) next to the machine's matmul peak and triad bandwidth (`reports.measure`).
 
     python -m benchmarks.tp_lighting [--threads 1] [--reps 7] [--scene chess] [--size bench]
 """
@@ -61,6 +63,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--size", default="bench")
     ap.add_argument("--level", type=int, default=3)
     ap.add_argument("--supersample", type=int, default=2)
+    ap.add_argument("--only", default="", help="comma-separated variants (default: all)")
     a = ap.parse_args(argv)
 
     from methods.core.fused import fused, map_rows
@@ -81,16 +84,28 @@ def main(argv=None) -> dict:
     out = {"frames": R.shape[0], "samples": samples, "env": [env.height, env.width], "threads": a.threads,
            "block": lt.env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2]), "matmul_peak_gflops": measure.matmul_peak() / 1e9,
            "triad_gbs": measure.triad_bandwidth() / 1e9}
-    for name, fn in (("env_block", lt.env_block), ("no_trig", _variant("no_trig")), ("no_gather", _variant("no_gather"))):
+    # E frames (a map turned about +Y): shifted base coordinates, no rotation or trig
+    grid = lt.FrameGrid(17, 32, 1)
+    u0, v0 = lt._azimuthal_samples(geo, a.supersample, grid)
+    f_ = torch.arange(grid.size)
+    base = f_ // (grid.n_phi * grid.n_psi) * grid.n_psi + f_ % grid.n_psi
+    shift = torch.remainder((f_ // grid.n_psi % grid.n_phi).double() / grid.n_phi - 0.7 / (2 * math.pi), 1.0)
+    az = ((shift, base), (u0, v0, wT, planes, env.height, env.width))
+    kinds = (("env_block", lt.env_block, (R,), args), ("no_trig", _variant("no_trig"), (R,), args),
+             ("no_gather", _variant("no_gather"), (R,), args), ("azimuthal", lt.env_block_azimuthal, *az))
+    for name, fn, rows, fargs in kinds:
+        if a.only and name not in a.only.split(","):
+            continue
         f = fused(fn)
-        map_rows(f, (R,), args, chunk=out["block"])                   # compile / warm up
+        map_rows(f, rows, fargs, chunk=out["block"])                  # compile / warm up
         ts = []
         for _ in range(a.reps):
             t = time.process_time()
-            map_rows(f, (R,), args, chunk=out["block"])
+            map_rows(f, rows, fargs, chunk=out["block"])
             ts.append(time.process_time() - t)
         t = statistics.median(ts)
-        out[name] = {"cpu_ms": 1e3 * t, "ns_per_sample": 1e9 * t / samples * a.threads, "gflops": flops / t / 1e9}
+        fl = 31 * samples if name == "azimuthal" else flops     # its frame-cost count (`relight_flops`)
+        out[name] = {"cpu_ms": 1e3 * t, "ns_per_sample": 1e9 * t / samples * a.threads, "gflops": fl / t / 1e9}
         print(name, json.dumps(out[name]), flush=True)
     print(json.dumps(out, indent=1))
     return out

@@ -8,7 +8,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["bilinear_taps", "planar_radiance"]
+__all__ = ["bilinear_taps", "planar_bilinear", "planar_radiance"]
 
 
 def bilinear_taps(u: Tensor, v: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -37,6 +37,12 @@ def planar_radiance(x: Tensor, y: Tensor, z: Tensor, planes: Tensor, H: int, W: 
     (``EnvMap.periodic_texels(planes=True)``). Returns three tensors of x's shape (R, G, B)."""
     u = torch.atan2(x, -z) * (0.5 / math.pi)
     v = torch.acos(y.clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    return planar_bilinear(u, v, planes, H, W)
+
+
+def planar_bilinear(u: Tensor, v: Tensor, planes: Tensor, H: int, W: int) -> list[Tensor]:
+    """The second half of `planar_radiance`: the bilinear look-up at lat-long coordinates (u, v) (any
+    one shape; ``scenes.envmap.direction_to_uv``) on channel planes (3, H·(W + 1)). Returns (R, G, B)."""
     idx, fx, fy = bilinear_taps(u, v, H, W)
     w0x, w0y = 1.0 - fx, 1.0 - fy
     out = []

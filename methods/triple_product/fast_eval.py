@@ -58,7 +58,8 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
     frame, position and region (vertex shading), the UV-space extras' arrays whole (small); the
     G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region per sample for pixel shading;
     vertex shading reads no normal / ωo); the (P, 3) float32 output. Frames whose lighting changed
-    ("L" or "E" in the kind) add the env map's texels read and the truncated grid written.
+    ("L" or "E" in the kind) add the env map's texels read and the truncated grid written (and the
+    base coordinates read when the last re-projection was azimuthal, `relight_table_bytes`).
   * flops — per shading point (pixel: every hit sample; vertex: every shaded vertex, plus the
     Gouraud blend of 3 vertex colours per hit sample, 3·5 flops): forming the three functions from
     their stored rows, a blend of k rows costing (2k − 1)·n flops per channel (k multiplies, k − 1
@@ -76,7 +77,8 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
     A pixel frame summed by groups (`fine_grouped`) counts instead, when smaller, the grouped form
     (`grouped_flops`): per group and channel K'·(k_L + 2·k_L·k_ρ), per shaded sample and channel
     k_v·(2·k_L·k_ρ + k_L) + k_v − 1 (k_v = 3, k_ρ = 4, k_L as above).
-    Frames whose lighting changed add the re-projection (`relight_flops`).
+    Frames whose lighting changed add the re-projection (`relight_flops`; 31 instead of 45 flops per
+    sample when the last one was azimuthal, ``method.stats["lighting_path"]``: a map turned about +Y).
   ``light_lookup="exact"`` projects per shading point: not modelled (None).
 """
 from __future__ import annotations
@@ -933,13 +935,22 @@ def grouped_flops(method, groups: int, shaded: int, k_v: int = 3) -> int:
     return int(groups * 3 * Kp * (k_l + 2 * k_l * k_b) + shaded * 3 * (k_v * (2 * k_l * k_b + k_l) + k_v - 1))
 
 
-def relight_flops(method, envmap) -> int:
+def relight_flops(method, envmap, *, azimuthal: bool = False) -> int:
     """Flops of re-projecting the lighting into the F grid frames (`lighting.project_lighting`):
     per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
     (24) and its solid-angle-weighted accumulation (6); per frame the RGB forward transform
-    (8 adds per 4 children per level: 8(K − 20)/3 per channel)."""
+    (8 adds per 4 children per level: 8(K − 20)/3 per channel). ``azimuthal``: the map turns about
+    +Y only (`lighting.env_block_azimuthal`): the rotation is one add to the base u (1 + 24 + 6)."""
     K, s = method.K, method.config["light_supersample"]
-    return int(method.grid.size * (45 * K * 4 ** s + 3 * 8 * (K - 20) // 3))
+    per_sample = 31 if azimuthal else 45
+    return int(method.grid.size * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
+
+
+def relight_table_bytes(method) -> int:
+    """Bytes of the base coordinates an azimuthal re-projection reads (`lighting._azimuthal_samples`:
+    float64 u0 and float32 v0 per sample of the n_theta·n_psi base frames)."""
+    g = method.grid
+    return g.n_theta * g.n_psi * method.K * 4 ** method.config["light_supersample"] * (8 + 4)
 
 
 def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
@@ -1002,6 +1013,7 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
         flops = rec["vertices"] * (blend_flops(method, 1) + triple_flops(method)) + rec["shaded"] * 3 * blend_terms(3)
     if "L" in frame_kind or "E" in frame_kind:
         env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
-        nbytes += int(env.data.numel()) * f4 + grid                     # texels read, grid written
-        flops += relight_flops(method, env)
+        az = method.stats.get("lighting_path") == "azimuthal"            # what the last re-projection ran
+        nbytes += int(env.data.numel()) * f4 + grid + (relight_table_bytes(method) if az else 0)  # texels read, grid written
+        flops += relight_flops(method, env, azimuthal=az)
     return FrameCost(int(nbytes), int(flops))

@@ -337,8 +337,10 @@ class TripleProduct(Method):
             if cfg["evaluator"] == "reference" or self._n() is not None and self._n() < self.K:
                 Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
                                          progress=self.progress)                # (F, 3, K)
+                self.stats["lighting_path"] = "general"
             else:                                # one compiled pass (`lighting.project_env`)
-                Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"])
+                Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
+                                           grid=self.grid, stats=self.stats)
             self.L_idx, self.L_val = truncate(Lc, self._n(), cfg["selection"], self.level)
             if fine is not None and self.L_val.shape[-1] == self.K and fast_eval._is_full(self, "L", self.L_idx):
                 fast_eval.seed_fine_table(self, "L", self.L_val, fine)  # the grid's fine values as projected
