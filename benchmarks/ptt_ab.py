@@ -1,7 +1,7 @@
-"""Same-process before/after of PTT frames (issue 14): a base checkout's ``methods`` package (default
-/work/main) against this checkout's, on one precomputation and the same frames.
+"""Same-process before/after of PTT frames (issue 14): a base checkout's ``methods`` package (``--base``,
+e.g. a git worktree of main) against this checkout's, on one precomputation and the same frames.
 
-    python -m benchmarks.ptt_ab [--base /work/main] [--scene chess] [--size bench]
+    python -m benchmarks.ptt_ab --base OTHER_CHECKOUT [--scene chess] [--size bench]
                                 [--config '{"light_res_1":4}'] [--bounces 0] [--frames 7]
                                 [--threads 1] [--kinds V VB VBL L E VL] [--no-limits]
 
@@ -75,7 +75,7 @@ def as_class(m: PTT, cls) -> PTT:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     frame_args(ap, scene="chess", config='{"light_res_1":4}', frames=7, kinds=("V", "VB", "VBL", "L", "E", "VL"))
-    ap.add_argument("--base", default="/work/main")
+    ap.add_argument("--base", required=True, help="the other checkout (e.g. a git worktree of main)")
     ap.add_argument("--bounces", type=int, default=0)
     ap.add_argument("--no-limits", action="store_true", help="skip the bandwidth / peak measurement")
     ap.add_argument("--own-precompute", action="store_true",

@@ -146,7 +146,7 @@ def main(argv=None):
     frame_args(ap, scene="chess", config='{"light_res_1":4}', frames=7, kinds=("V", "VB", "L"))
     ap.add_argument("--bounces", type=int, default=0, help="rendered bounces (the perf suite: 0)")
     ap.add_argument("--micro", action="store_true", help="also time the bounding kernels alone (`micro`)")
-    ap.add_argument("--precompute-of", default="/work/main",
+    ap.add_argument("--precompute-of", default="",
                     help="look the precomputation up under this checkout's code fingerprint ('' = this one's; "
                          "benchmarks.ptt_ab.base_fingerprint)")
     a = ap.parse_args(argv)

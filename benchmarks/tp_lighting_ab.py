@@ -1,6 +1,6 @@
 """Same-process A/B of TripleProduct's lighting change (`lighting.project_env`, the default grid at
-bench size): a baseline checkout's `methods/triple_product/lighting.py` (``--baseline``, default
-/work/main) against this tree's, alternating call by call on the same prefiltered maps of a scene's
+bench size): a baseline checkout's `methods/triple_product/lighting.py` (``--baseline``, e.g. a
+git worktree of main) against this tree's, alternating call by call on the same prefiltered maps of a scene's
 "E" (probes turned about +Y: `lighting.env_block_azimuthal` here) and "L" (tilted axis: the general
 kernel in both) frames; median process-CPU ms per lighting change (``--threads 1``) or wall ms, and
 max |new − old| relative to the largest coefficient.
@@ -36,7 +36,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--kinds", default="E,L")
     ap.add_argument("--wall", action="store_true", help="wall time (perf_counter) instead of process CPU")
-    ap.add_argument("--baseline", default="/work/main")
+    ap.add_argument("--baseline", required=True)
     a = ap.parse_args(argv)
 
     from methods.core.spherical_haar import Geodesic

@@ -2,7 +2,7 @@
 
     python -m benchmarks.vview --method sh_prt --scene creature [--kinds V L] [--frames 9]
     python -m benchmarks.vview --method inout --config '{"shading":"vertex"}' --scene chess
-    options: --baseline /work/main (the checkout whose method modules are the "before"),
+    options: --baseline OTHER_CHECKOUT (the checkout whose method modules are the "before"),
              --threads 1 (1: process CPU time per frame, the load-robust measure; 2: wall time),
              --precompute-code DIR (take the precomputation from the harness cache entry of the code
              in DIR: this branch changes only run-time code, so the cached state is the same)
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=9)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--kinds", nargs="+", default=["V"])
-    ap.add_argument("--baseline", default="/work/main")
+    ap.add_argument("--baseline", required=True)
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--micro", action="store_true", help="sh_prt: time the V frame's two kernels alone")
     a = ap.parse_args(argv)
