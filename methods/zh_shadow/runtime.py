@@ -306,22 +306,6 @@ def _gathered_perm(aT: Tensor, idx: Tensor, w: Tensor, perm: Tensor) -> Tensor:
     return out
 
 
-def _column_blocks(fn, cols: tuple, args: tuple, block: int) -> Tensor:
-    """fn(*column blocks, *args) over static blocks of ``block`` columns (points) of the (r_i, Q)
-    tensors ``cols`` (the last block padded by repeating the last column); the (R, block) results
-    concatenated along the columns and trimmed to Q — one compiled shape per function
-    (`methods.core.fused`; the point-minor counterpart of `map_rows`)."""
-    Q = cols[0].shape[1]
-    parts = []
-    for s in range(0, Q, block):
-        m = min(block, Q - s)
-        blk = [c[:, s:s + m] for c in cols]
-        if m < block:
-            blk = [torch.cat([b, b[:, -1:].expand(-1, block - m)], 1) for b in blk]
-        parts.append(fn(*[b.contiguous() for b in blk], *args)[:, :m])
-    return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 1)
-
-
 def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     """(n², Q) M(R_n) · M · M(R_n)ᵀ v per point: the world-space SH of the function whose
     coefficients in a frame with z = n are M times those of v — for a zonal (z-symmetric) operator
@@ -334,9 +318,11 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
     the middle X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the
     angle on the ±m pairs), instead of building each point's SH rotation
-    (`methods.core.sh_rotation`). Over static blocks of points (`_column_blocks`), each half
-    around the GEMM one compiled pass (`_conjugate_in`, `_conjugate_out`: no (n², Q) temporaries;
-    eager, the z rotations' gathers and temporaries took 85 % of the time).
+    (`methods.core.sh_rotation`). Each half around the GEMM is two compiled passes over all Q points
+    (`_rz`, then `_gathered_rz`: the z rotation, then X or Xᵀ by its non-zeros and the next z
+    rotation), the point count marked dynamic so one kernel serves every Q (eager, the z rotations'
+    gathers and temporaries took 85 % of the time; a variant over static blocks of 1024 points was
+    0.70× as fast, session 11).
 
     Args:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
