@@ -620,6 +620,15 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
     if len(bw):
         facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"
+    peak = meta.get("matmul_peak")
+    if isinstance(peak, (int, float)) and math.isfinite(peak):
+        facts["dense-matmul peak"] = f"{peak / 1e9:.1f} GFLOP/s"
+    samples = meta.get("limit_samples") or []
+    if len(samples) > 1:
+        facts["machine limits"] = (f"best of {len(samples)} measurements (" + "; ".join(
+            f"{s.get('when') or '?'}: {s['triad_bandwidth'] / 1e9:.1f} GB/s, {s['matmul_peak'] / 1e9:.0f} GFLOP/s"
+            for s in samples) + "); the roofline uses the best, so a load that slowed one of them does not "
+                                  "inflate the efficiencies")
     n_ok, n_na, n_err, n_sus = (int((df.drop_duplicates('cell')["status"] == s).sum())
                                 for s in ("ok", "na", "error", "suspect"))
     facts["cells"] = f"{n_ok} ok, {n_sus} suspect, {n_na} n/a, {n_err} failed"
