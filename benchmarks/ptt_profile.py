@@ -132,10 +132,9 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     erows = _fast.env_rows(env, width)
     lanes = _fast._lane_masks(C, L, width, S2)
     # the previous route (eager cells, ``embedding_bag``s), for comparison
-    R = _spec.mirror_dirs(gb.normal, gb.wo)
     idx, w = _spec._uv_cells(u, v, env.H, env.W)
     bw = torch.stack([1.0 - gb.bary[:, 0] - gb.bary[:, 1], gb.bary[:, 0], gb.bary[:, 1]], -1)
-    fp = _fast.rows(st.face_pairs, gb.face)
+    zf, zr = torch.zeros_like(gb.face), torch.zeros_like(idx[:, 0])
     f4 = 4
     # bytes each kernel must move at least: its inputs once and its output
     kern = {
@@ -147,6 +146,9 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
                                             Q * (8 + 8 + 8) + Q // S2 * 12),
         "  probe: its 7 row loads only": (lambda: _probe_rows(gb.face, st.face_pairs, table, erows, idx[:, 0], env.W),
                                           Q * (8 + 8) + Q * 4),
+        "  probe: the same 7 loads, every index 0 (L1)": (
+            lambda: _probe_rows(zf, st.face_pairs, table, erows, zr, env.W),
+            Q * (8 + 8) + Q * 4),
         "  probe: its per-sample scalars only": (lambda: _probe_scalars(gb.face, gb.bary, u, v, st.face_pairs, env.H, env.W),
                                                  Q * (8 + 8 + 8) + Q * 4),
         "samples: eager mirror_dirs + latlong_uv (before)": (

@@ -747,8 +747,8 @@ def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: T
     uu = u - 0.5 / W
     x = (uu - torch.floor(uu)) * W
     y = (v - torch.floor(v)) * (H - 1)
-    ix = x.to(torch.int64).clamp(max=W - 1)
-    iy = y.to(torch.int64).clamp(max=H - 2)
+    ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
+    iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
     fx, fy = x - ix, y - iy
     gx, gy = 1.0 - fx, 1.0 - fy
     r = iy * (W + 1) + ix
