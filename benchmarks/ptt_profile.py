@@ -25,6 +25,7 @@ from methods.ptt import fast as _fast
 from methods.ptt import method as _method
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
+from methods.core.fused import fused
 from methods.ptt.method import PTT
 
 T_CPU: dict = collections.defaultdict(float)
@@ -71,10 +72,38 @@ def instrumented():
             setattr(mod, name, f)
 
 
+def _probe_rows_fn(face, face_pairs, table, erows, r, W: int):
+    """`fast.shade_block`'s seven row loads (3 pair rows, 4 env rows) summed, without its arithmetic."""
+    p0, p1, p2 = face_pairs[face, 0], face_pairs[face, 1], face_pairs[face, 2]
+    t = table[p0] + table[p1] + table[p2] + erows[r] + erows[r + 1] + erows[r + (W + 1)] + erows[r + (W + 2)]
+    return t.sum(-1)
+
+
+def _probe_scalars_fn(face, bary, u, v, face_pairs, H: int, W: int):
+    """`fast.shade_block`'s per-sample scalar arithmetic (face-pair indices, Gouraud and lat-long cell
+    weights), without its row loads."""
+    p0, p1, p2 = face_pairs[face, 0], face_pairs[face, 1], face_pairs[face, 2]
+    b1, b2 = bary[:, 0], bary[:, 1]
+    uu = u - 0.5 / W
+    x = (uu - torch.floor(uu)) * W
+    y = (v - torch.floor(v)) * (H - 1)
+    ix = x.to(torch.int64).clamp(max=W - 1)
+    iy = y.to(torch.int64).clamp(max=H - 2)
+    fx, fy = x - ix, y - iy
+    r = iy * (W + 1) + ix
+    return (p0 + p1 + p2 + r).float() * (1.0 - b1 - b2) + fx * fy
+
+
+_probe_rows = fused(_probe_rows_fn)
+_probe_scalars = fused(_probe_scalars_fn)
+
+
 def micro(m: PTT, frame, gb, threads: int) -> None:
     """The kernels that bound the frames, alone on this frame's sizes, with their achieved GB/s next
     to the machine's triad bandwidth (``benchmarks.common.machine_limits``): the per-sample view stage
-    (`fast.shade_pixels_fused`) and its parts, the direct incidence product (CSR, and the
+    (`fast.shade_pixels_fused`) and its two compiled loops (`fast.mirror_uv`, `fast.shade_block`),
+    two probes that split `shade_block` into its row loads and its per-sample scalar arithmetic,
+    the eager passes and bags of the previous route, the direct incidence product (CSR, and the
     ``embedding_bag`` it replaced), one cube resampling of the env map (``cubemap.from_envmap``)
     and the resampling of the prefiltered maps onto the env grid (``specular.on_env_grid``)."""
     import torch.nn.functional as Fnn
@@ -95,30 +124,41 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
                  vis=m.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L), I1=I1,
                  f=None if I1 is None else expand_bands(m.lobe_sh), order=m.config["sh_order"])
     env = m._f_light[3][1]
-    table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
+    C = 3 + 3 * L + (3 if I1 is not None else 0)
+    width = _fast.table_width(C)
+    table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
     Q, S2 = gb.num_samples, gb.spp_side ** 2
-    R = _spec.mirror_dirs(gb.normal, gb.wo)
-    u, v = _spec._latlong_uv(R, env.to_world)
-    bw, idx, w = _fast.sample_cells(gb.bary, u, v, env.H, env.W)
-    fp = _fast.rows(st.face_pairs, gb.face)
-    acc = Fnn.embedding_bag(fp, table, per_sample_weights=bw, mode="sum")
-    Ek = Fnn.embedding_bag(idx, env.ext, per_sample_weights=w, mode="sum")
+    u, v = _fast.mirror_uv(gb.normal, gb.wo, env.to_world)
+    erows = _fast.env_rows(env, width)
+    lanes = _fast._lane_masks(C, L, width, S2)
+    # the previous route (eager cells, ``embedding_bag``s), for comparison
+    idx, w = _spec._uv_cells(u, v, env.H, env.W)
+    bw = torch.stack([1.0 - gb.bary[:, 0] - gb.bary[:, 1], gb.bary[:, 0], gb.bary[:, 1]], -1)
+    zf, zr = torch.zeros_like(gb.face), torch.zeros_like(idx[:, 0])
     f4 = 4
     # bytes each kernel must move at least: its inputs once and its output
     kern = {
         "samples: whole stage (shade_pixels_fused)": (lambda: _fast.shade_pixels_fused(
-            st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, S2), Q * (8 + 8 + 12 + 12) + Q // S2 * 12),
-        "samples: mirror_dirs (eager)": (lambda: _spec.mirror_dirs(gb.normal, gb.wo), Q * 36),
-        "samples: latlong_uv (eager atan2/acos)": (lambda: _spec._latlong_uv(R, env.to_world), Q * 20),
-        "samples: sample_cells (compiled)": (lambda: _fast.sample_cells(gb.bary, u, v, env.H, env.W), Q * (16 + 12 + 32 + 16)),
-        "samples: face rows + Gouraud bag": (lambda: Fnn.embedding_bag(_fast.rows(st.face_pairs, gb.face), table,
-                                                                       per_sample_weights=bw, mode="sum"),
-                                             Q * (8 + 12 + table.shape[1] * f4)),
-        "samples: env bag (4 rows of 3L)": (lambda: Fnn.embedding_bag(idx, env.ext, per_sample_weights=w, mode="sum"),
-                                            Q * (32 + 16 + 3 * L * f4)),
-        "samples: combine_resolve (compiled)": (lambda: _fast.combine_resolve(acc, Ek, L, S2),
-                                                Q * (acc.shape[1] + Ek.shape[1]) * f4 + Q // S2 * 12),
-        "pairs: vertex_view": (lambda: _fast.vertex_view(st, cam, Wr, E, T, K, lobes), table.numel() * f4),
+            st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, S2, C), Q * (8 + 8 + 12 + 12) + Q // S2 * 12),
+        "samples: mirror_uv (compiled)": (lambda: _fast.mirror_uv(gb.normal, gb.wo, env.to_world), Q * (24 + 8)),
+        "samples: shade_block (compiled)": (lambda: _fast.shade_block(gb.face, gb.bary, u, v, st.face_pairs, table, erows,
+                                                                      lanes, env.H, env.W, S2),
+                                            Q * (8 + 8 + 8) + Q // S2 * 12),
+        "  probe: its 7 row loads only": (lambda: _probe_rows(gb.face, st.face_pairs, table, erows, idx[:, 0], env.W),
+                                          Q * (8 + 8) + Q * 4),
+        "  probe: the same 7 loads, every index 0 (L1)": (
+            lambda: _probe_rows(zf, st.face_pairs, table, erows, zr, env.W),
+            Q * (8 + 8) + Q * 4),
+        "  probe: its per-sample scalars only": (lambda: _probe_scalars(gb.face, gb.bary, u, v, st.face_pairs, env.H, env.W),
+                                                 Q * (8 + 8 + 8) + Q * 4),
+        "samples: eager mirror_dirs + latlong_uv (before)": (
+            lambda: _spec._latlong_uv(_spec.mirror_dirs(gb.normal, gb.wo), env.to_world), Q * (24 + 8)),
+        "samples: face rows + Gouraud bag (before)": (
+            lambda: Fnn.embedding_bag(_fast.rows(st.face_pairs, gb.face), table[:, :C].contiguous(),
+                                      per_sample_weights=bw, mode="sum"), Q * (8 + 12 + C * f4)),
+        "samples: env bag (4 rows of 3L) (before)": (
+            lambda: Fnn.embedding_bag(idx, env.ext, per_sample_weights=w, mode="sum"), Q * (32 + 16 + 3 * L * f4)),
+        "pairs: vertex_view": (lambda: _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width), table.numel() * f4),
     }
     CL = _tp.env_haar(frame.envmap, m.config["cube_res"], supersample=m.config["light_supersample"])
     dt = (m.dt.idx.numel() * m.dt.idx.element_size() + m.dt.val.numel() * 4)
@@ -132,11 +172,12 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     lim: dict = {}
     B, Pk = machine_limits(lim, [measure.triad_bandwidth()], [measure.matmul_peak()])
     print(f"\nmicro-benchmarks ({threads} thread(s); {Q} samples, {table.shape[0] - 1} pairs; triad {B / 1e9:.1f} GB/s,"
-          f" sgemm {Pk / 1e9:.1f} GFLOP/s); ms wall / cpu, GB/s of the compulsory bytes on wall / cpu time"
+          f" sgemm {Pk / 1e9:.1f} GFLOP/s); ms wall / cpu, CPU ns per sample, GB/s of the compulsory bytes on wall / cpu time"
           f" (under load the CPU-time figure is the one to compare with a quiet machine's triad, ~36 GB/s):")
     for name, (fn, nbytes) in kern.items():
         t = wall_cpu_time(fn, 7)
-        print(f"  {name:44s} {1e3 * t['wall']:7.2f} {1e3 * t['cpu']:7.2f}  {nbytes / 1e6:7.1f} MB "
+        per = f"{1e9 * t['cpu'] / Q:5.1f} ns/sample" if name.lstrip().startswith(("samples", "probe")) else " " * 14
+        print(f"  {name:48s} {1e3 * t['wall']:7.2f} {1e3 * t['cpu']:7.2f}  {per}  {nbytes / 1e6:7.1f} MB "
               f"{nbytes / t['wall'] / 1e9:6.2f} / {nbytes / max(t['cpu'], 1e-9) / 1e9:6.2f} GB/s "
               f"({100 * nbytes / t['wall'] / B:.1f} % of the triad measured now)")
 

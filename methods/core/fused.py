@@ -72,11 +72,15 @@ def _configure_inductor() -> None:
     dc.fail_on_recompile_limit_hit = True
 
 
-def fused(fn: Callable) -> Callable:
+def fused(fn: Callable, *, options: dict | None = None) -> Callable:
     """``fn`` compiled with ``torch.compile`` on first use (module docstring); ``.eager`` is ``fn``.
 
     ``fn`` must be a pure tensor function (no Python side effects, no data-dependent Python control
-    flow) so that it compiles as one graph (``fullgraph=True``)."""
+    flow) so that it compiles as one graph (``fullgraph=True``). ``options``: Inductor settings for
+    this function only (``torch.compile(options=...)``), e.g. ``{"cpp.enable_tiling_heuristics":
+    False}``: Inductor's heuristics otherwise leave a loop whose loads are all strided (the
+    components of (Q, 3) arrays) scalar, with scalar libm transcendentals (measured 8x slower for
+    ``ptt.fast.mirror_uv``)."""
     state: dict = {"compiled": None, "failed": False}
 
     @functools.wraps(fn)
@@ -85,7 +89,7 @@ def fused(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
         if state["compiled"] is None:
             _configure_inductor()
-            state["compiled"] = torch.compile(fn, fullgraph=True, dynamic=False)
+            state["compiled"] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
         try:
             return state["compiled"](*args, **kwargs)
         except Exception as e:  # noqa: BLE001 — decided below: a compilation problem or bad input

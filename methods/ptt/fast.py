@@ -25,9 +25,13 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   term B_x = Σ_k W_r(ωo_x, k) E_x(k) (one 4-row bag of the region table), the lobe factors
   s_x(k) = a_k(θo_x) V_c^(k)(x, R_x) (2-node interpolation, 4-row bag of the visibility tables) and
   the one-bounce lobe term u_x (SH at R_x, one GEMM with the Funk–Hecke factors);
-* per hit sample (`shade_samples`, on L2-sized chunks): one 3-row bag of those rows with the
-  barycentrics, the mirror direction R about the interpolated shading normal, one 4-row bag of the
-  stacked E^(k) at R, and Σ_k s_k E^(k)(R).
+* per hit sample, two compiled loops per static block of samples: `mirror_uv` (the lat-long
+  coordinates of the mirror direction R about the interpolated shading normal — the one formula
+  the reference reads the maps with too) and `shade_block`: the face's three pair rows with the
+  barycentrics, the four corners of R's cell in the stacked E^(k) (`env_rows`, on the lanes of
+  the s_k columns), max(0, B) + u + Σ_k s_k E^(k)(R) and the box filter of the pixel's samples.
+  Each row is one contiguous 64-byte load; the rows live in L1/L2, so the loop is bound by its
+  per-sample scalar work (``benchmarks.ptt_profile --micro``). `shade_samples` is the eager form.
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
@@ -41,13 +45,15 @@ View stage, shading="pixel" (every frame), per hit sample and vertex v of its tr
   reference, V_c^(k) as a 12-row bag over the per-vertex tables (stored texel-major), and the SH
   term from the 3-row bag of I1w.
 
-Everything is plain torch on the device of the precomputed arrays (no compiled kernels).
+Plain torch on the device of the precomputed arrays; the per-pair and per-sample view passes are
+compiled loops (``methods.core.fused``) with eager twins that the tests compare them with.
 """
 from __future__ import annotations
 
+import functools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as Fnn
@@ -437,7 +443,7 @@ def _bilinear_rows(base: Tensor, ix: Tensor, iy: Tensor, tx: Tensor, ty: Tensor,
 
 
 def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
-                lobes: dict | None = None) -> Tensor:
+                lobes: dict | None = None, width: int = 0) -> Tensor:
     """Per (vertex, region) pair, at the vertex's own view direction ωo_x = (cam − x)/|cam − x|:
     the rows (n_pairs + 1, C) that the samples interpolate (the last row is 0, for padding). The
     reference is `PTT._vertex_terms`.
@@ -447,6 +453,9 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     with the one-bounce SH radiance, u (3) = cos⁺θo_x Σ_k a_k(r, θo_x) max(0, L1^(k)_x(R_x)), R_x
     the mirror direction of ωo_x about n_x (in x's frame (−ωo_x, −ωo_y, ωo_z), so its table
     coordinates are those of ωo_x negated).
+
+    width > C: the rows padded with zero columns to that width (`table_width`, what the compiled
+    sample stage reads).
 
     Wr (R·T², K·3), E (V, K·3) row-major; lobes: dict(ar (R·n_θ, L·3), n_theta, vis (V·Tv², L)
     texel-major, Tv, I1 (V, S, 3) local-frame one-bounce SH radiance or None, f (L, S) the lobes'
@@ -468,13 +477,13 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Wi = Fnn.embedding_bag(c[0], Wr, per_sample_weights=c[1], mode="sum")  # (n, K·3)
     Ex = E if st.pair_is_vertex else rows(E, v)
     if lobes is None:
-        return pair_rows(Wi, Ex, K)
+        return pair_rows(Wi, Ex, K, width=width)
     Vc = Fnn.embedding_bag(c[5], lobes["vis"], per_sample_weights=c[6], mode="sum")  # (n, L); R_z = cos θo
     I1x = None
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
     return pair_rows(Wi, Ex, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
-                     c[8] if order else None, lobes["f"] if order else None, c[7])
+                     c[8] if order else None, lobes["f"] if order else None, c[7], width)
 
 
 def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T: int, Tv: int, nt: int,
@@ -520,11 +529,11 @@ def _corner_rows(i0: Tensor, tx: Tensor, ty: Tensor, T: int, w: Tensor) -> tuple
 def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Tensor | None = None,
                w0: Tensor | None = None, w1: Tensor | None = None, Vc: Tensor | None = None, step: int = 1,
                I1x: Tensor | None = None, Y: Tensor | None = None, f: Tensor | None = None,
-               zc: Tensor | None = None) -> Tensor:
+               zc: Tensor | None = None, width: int = 0) -> Tensor:
     """The rows (n + 1, C) of `vertex_view` from the bagged table rows Wi (n, K·3) and E_x (n, K·3),
     for ``core.fused`` (sums unrolled): B = Σ_k Wi E_x; with lobes s = a_k V_c (a_k from the a_r rows
     r0, r0 + step with weights w0, w1; Vc (n, L)) and with I1x (n, S, 3), Y (n, S), f (L, S):
-    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s)."""
+    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``."""
     n = Wi.shape[0]
     B = Wi[:, 0:3] * Ex[:, 0:3]
     for k in range(1, K):
@@ -545,6 +554,9 @@ def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Ten
                 t = ak[:, 3 * k:3 * k + 3] * Li.clamp_min(0.0)
                 u = t if u is None else u + t
             cols.append(u * zc[:, None])
+    C = sum(c.shape[1] for c in cols)
+    if width > C:
+        cols.append(B.new_zeros(n, width - C))
     out = torch.cat(cols, 1)
     return torch.cat([out, torch.zeros_like(out[:1])], 0)
 
@@ -558,12 +570,14 @@ class EnvStack:
     """The L maps E^(k) on one lat-long grid (``specular.on_env_grid``: the env map's, in its frame),
     their texels side by side so one bilinear look-up reads every lobe (`lookup_stack`):
     ext (H·(W+1), 3·L) periodic-extended (``scenes.envmap.extend_periodic``) texels, lobe-major
-    columns (k, c); to_world (3, 3) the maps' common frame (local = d @ to_world); H, W the grid."""
+    columns (k, c); to_world (3, 3) the maps' common frame (local = d @ to_world); H, W the grid.
+    The lane-aligned copy of the texels that the compiled sample stage reads is `env_rows`."""
 
     ext: Tensor
     to_world: Tensor
     H: int
     W: int
+    rows: dict = field(default_factory=dict, repr=False)  # width → `env_rows` (built on first use)
 
 
 def env_stack(maps: list) -> EnvStack:
@@ -577,11 +591,65 @@ def env_stack(maps: list) -> EnvStack:
     return EnvStack(ext, maps[0].to_world.to(ext.device, torch.float32).contiguous(), H, W)
 
 
-def lookup_stack(st: EnvStack, R: Tensor) -> Tensor:
-    """``EnvMap.radiance`` of every map of the stack at unit world directions R (3, Q)
-    (``specular.mirror_dirs``) → (Q, 3·L): ``specular.latlong_cells`` once, the four corners as one
-    weighted bag."""
-    idx, w = _spec.latlong_cells(R, st.to_world, st.H, st.W)
+def env_rows(st: EnvStack, width: int) -> Tensor:
+    """The stack's texels (H·(W+1), width) on the lanes of the per-pair rows (`table_width`): E^(k)
+    channel c in column 3 + 3k + c (the column of s_k in `vertex_view`'s rows), 0 elsewhere. Built
+    once per stack and width (a lighting change), so one 64-byte row load per bilinear corner reads
+    every lobe in the compiled sample stage (`shade_block`)."""
+    if width not in st.rows:
+        out = torch.zeros(st.ext.shape[0], width, dtype=st.ext.dtype, device=st.ext.device)
+        out[:, 3:3 + st.ext.shape[1]] = st.ext
+        st.rows[width] = out
+    return st.rows[width]
+
+
+def _mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
+    """`specular.mirror_dirs` then `specular._latlong_uv` as one loop (for ``core.fused``): normal,
+    wo (Q, 3), to_world (3, 3) → the lat-long coordinates (u, v) (Q,) each of the unit mirror
+    direction R = reflect(ωo, n̂) in the map's frame."""
+    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
+    wx, wy, wz = wo[:, 0], wo[:, 1], wo[:, 2]
+    s = (nx * wx + ny * wy + nz * wz) / (nx * nx + ny * ny + nz * nz).clamp_min(1e-24) * 2.0
+    rx, ry, rz = s * nx - wx, s * ny - wy, s * nz - wz  # R = 2 (n̂·ωo) n̂ − ωo, unnormalised
+    inv = torch.rsqrt((rx * rx + ry * ry + rz * rz).clamp_min(1e-24))
+    rx, ry, rz = rx * inv, ry * inv, rz * inv
+    m = to_world
+    lx = rx * m[0, 0] + ry * m[1, 0] + rz * m[2, 0]  # local = to_worldᵀ R (EnvMap.to_local)
+    ly = rx * m[0, 1] + ry * m[1, 1] + rz * m[2, 1]
+    lz = rx * m[0, 2] + ry * m[1, 2] + rz * m[2, 2]
+    u = torch.atan2(lx, -lz) * (0.5 / math.pi)
+    v = torch.acos(ly.clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    return u, v
+
+
+# Vectorised over the samples although every load is strided (module docstring of ``core.fused``).
+mirror_uv_block = fused(_mirror_uv, options={"cpp.enable_tiling_heuristics": False})
+
+
+def mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
+    """Lat-long coordinates (u, v) (Q,) each, in a map of frame ``to_world`` (3, 3), of the mirror
+    directions of ωo (Q, 3) about the shading normals (Q, 3) — THE formula of the per-sample map
+    look-ups: the fast path (`shade_block`, `shade_samples`) and the reference
+    (`PTT._shade_vertex`) both call this one compiled function on static blocks of `sample_block`
+    rows, so they read the maps at the same bits.
+
+    Decision (2026-12-03, ptt-v4): a compiled acos / atan2 differs from the eager one in the last
+    bit for ~20–30 % of the samples, and a last-bit change of (u, v) flips a bilinear cell where the
+    value sits on a cell boundary — a change that scales with the HDR texel contrast, not bounded by
+    any round-off tolerance. So the reference does not keep its own eager copy of the formula;
+    ``tests/methods/ptt/test_fast.py`` checks this compiled function against the eager
+    `specular.mirror_dirs` + `specular._latlong_uv` to a few ulps (and the cells equal except
+    within a few ulps of a boundary). Measured on the chess bench V frame (262 144 samples, 1
+    thread, CPU time): 2.5 ms vs 2.9 ms eager (its strided (Q, 3) loads make it cost as much as the
+    eager passes); the win is that the cells and the gathers after it become one compiled loop."""
+    q = int(normal.shape[0])
+    return map_rows(mirror_uv_block, [normal, wo], (to_world.to(normal).contiguous(),), chunk=sample_block(q))
+
+
+def lookup_stack(st: EnvStack, u: Tensor, v: Tensor) -> Tensor:
+    """``EnvMap.radiance`` of every map of the stack at the lat-long coordinates (u, v) (Q,) of
+    `mirror_uv` → (Q, 3·L): ``specular._uv_cells`` once, the four corners as one weighted bag."""
+    idx, w = _spec._uv_cells(u, v, st.H, st.W)
     return Fnn.embedding_bag(idx, st.ext, per_sample_weights=w, mode="sum")
 
 
@@ -591,37 +659,43 @@ def shade_samples(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor,
     `PTT._shade_vertex`): Gouraud interpolation with the barycentrics β of the rows of the sample's
     face (one 3-row bag), B clamped at 0 after it + u + Σ_k E^(k)(R) s_k with the prefiltered maps
     read per sample at the mirror direction R of ωo about the interpolated shading normal (env None:
-    no lobes). Call it on chunks of `SAMPLE_CHUNK` samples: its dozen passes over (Q, ≥ 12) arrays
-    then stay in the L2 cache.
+    no lobes). The eager form of `shade_block` (kept for ``method.FUSED_VIEW = False`` and as its
+    test oracle); call it on chunks of `SAMPLE_CHUNK` samples.
 
-    face_pairs (M, 3) pair row of each face corner; table (n_pairs + 1, C); face (Q,) int64;
-    bary (Q, 2); normal, wo (Q, 3); out: optional (Q, 3) tensor written in place."""
+    face_pairs (M, 3) pair row of each face corner; table (n_pairs + 1, C) (C = 3 + 3L [+ 3]);
+    face (Q,) int64; bary (Q, 2); normal, wo (Q, 3); out: optional (Q, 3) tensor written in place."""
     u, v = bary.unbind(-1)
     bw = torch.stack([1.0 - u - v, u, v], -1)
     acc = Fnn.embedding_bag(rows(face_pairs, face), table, per_sample_weights=bw, mode="sum")
     out = torch.clamp_min(acc[:, :3], 0.0, out=out)
     if env is None:
         return out
-    Ek = lookup_stack(env, _spec.mirror_dirs(normal, wo))  # (Q, 3·L), lobe-major
+    Ek = lookup_stack(env, *mirror_uv(normal, wo, env.to_world))  # (Q, 3·L), lobe-major
     for k in range(L):
         out.addcmul_(acc[:, 3 + 3 * k:6 + 3 * k], Ek[:, 3 * k:3 * k + 3])
     if acc.shape[1] > 3 + 3 * L:
-        out.add_(acc[:, 3 + 3 * L:])
+        out.add_(acc[:, 3 + 3 * L:3 + 3 * L + 3])
     return out
 
 
 # Samples per `shade_samples` call: its working set (≈ 200 bytes per sample) fits the L2 cache.
 SAMPLE_CHUNK = 1 << 15
 
-# Static blocks of the compiled sample stage (`shade_samples_fused`, `shade_pixels_fused`): the
-# frame's sample count rounded up to a power of two within [MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK]
-# (`sample_block`), so a bench frame (256² × 4 samples) is one block. Measured on the chess bench V
-# frame (1 thread, process CPU time, same process, frames interleaved, load 6–8): whole-frame blocks
-# 23.5–26.4 ms vs 27.7–29.8 ms with blocks of 2¹⁵ (and 46 ms with 2¹³): the per-block cost of its
-# ~15 passes (launches, Dynamo guards) outweighs the L2 residency of smaller blocks. A power of two
-# keeps the compiled variants few (one per size class) and holds whole pixels of any S2 = 4^j.
+# Static blocks of the compiled sample stage (`shade_samples_fused`, `shade_pixels_fused`,
+# `mirror_uv`): the frame's sample count rounded up to a power of two within [MIN_SAMPLE_BLOCK,
+# MAX_SAMPLE_BLOCK] (`sample_block`), so a bench frame (256² × 4 samples) is one block. Measured on
+# the chess bench V frame (1 thread, process CPU time, same process, frames interleaved, load 6–8):
+# whole-frame blocks 23.5–26.4 ms vs 27.7–29.8 ms with blocks of 2¹⁵ (and 46 ms with 2¹³): the
+# per-block cost of a pass (launches, Dynamo guards) outweighs the L2 residency of smaller blocks.
+# A power of two keeps the compiled variants few (one per size class), holds whole pixels of any
+# S2 = 4^j and is a multiple of the vector width (no scalar tail loop, whose libm acos / atan2
+# would differ in the last bit from the vectorised ones: `mirror_uv`).
 MIN_SAMPLE_BLOCK = 1 << 10
 MAX_SAMPLE_BLOCK = 1 << 18
+
+# Lanes of the rows the compiled sample stage reads (`table_width`): one AVX-512 register / one
+# cache line per row for up to 5 lobes without the bounce column.
+LANES = 16
 
 
 def sample_block(q: int) -> int:
@@ -629,100 +703,110 @@ def sample_block(q: int) -> int:
     return min(MAX_SAMPLE_BLOCK, max(MIN_SAMPLE_BLOCK, 1 << max(int(q) - 1, 0).bit_length()))
 
 
-def _sample_cells(bary: Tensor, u: Tensor, v: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The gather-free per-sample arithmetic of `shade_samples`, for ``core.fused`` (one vectorised
-    loop; a loop with indirect loads would not vectorise, so the gathers stay ``embedding_bag``s):
-    Gouraud weights bw (Q, 3) = (1 − u − v, u, v) of the barycentrics and the lat-long bilinear cell
-    (idx (Q, 4) int64, w (Q, 4); `specular.latlong_cells`) of the map coordinates (u, v) of
-    ``specular._latlong_uv``. Those coordinates stay eager (`specular.mirror_dirs`): the reference
-    reads the maps at the same bits, and a last-bit change of the direction shows at a bright
-    texel's edge (measured: 2.5e-4 on the test-size bunny with R compiled).
+def table_width(C: int) -> int:
+    """Columns of the per-pair rows and the env rows of the compiled sample stage: C rounded up to
+    a multiple of `LANES` (the extra columns are 0)."""
+    return -(-int(C) // LANES) * LANES
 
-    Decision (2026-12-03, ptt-v3; not built for lack of time): a tolerance-based comparison is not
-    sound here — the look-up is continuous, but its change under a last-bit change of (u, v) scales
-    with the HDR texel contrast (a sun texel is 10³–10⁴ × its neighbours), so no fixed round-off
-    tolerance bounds it. The route is one formula for both paths: compile R and (u, v) in a function
-    that `PTT._shade_vertex` (the reference) calls as well, so both read the maps at the same bits
-    (acos stays: changing it to atan2 would change the reference's images, not only the fast path's).
-    What it would save on the chess bench V frame (``python -m benchmarks.ptt_profile --micro``,
-    1 thread, CPU time): the eager `specular.mirror_dirs` 3.2 ms + `specular._latlong_uv` 1.9 ms of
-    a 23.8 ms sample stage, of which a compiled pass would keep ~1 ms."""
+
+def padded(table: Tensor, width: int) -> Tensor:
+    """``table`` (n, C) with zero columns up to ``width`` (itself when already that wide)."""
+    if table.shape[1] == width:
+        return table
+    return torch.cat([table, table.new_zeros(table.shape[0], width - table.shape[1])], 1)
+
+
+@functools.lru_cache(maxsize=16)
+def _lane_masks(C: int, L: int, width: int, S2: int) -> Tensor:
+    """(5, width·S2) float32 lane masks of `shade_block` for rows of C columns B (3) | s (3L) | u (3)?:
+    0 clamp-at-0 lanes (B), 1 added lanes (u), 2–4 the lanes of channel c = 0, 1, 2 of a
+    pixel's S2 rows side by side."""
+    lane = torch.arange(width)
+    m = torch.zeros(5, width)
+    m[0, :3] = 1.0
+    m[1, 3 + 3 * L:C] = 1.0
+    for c in range(3):
+        m[2 + c] = ((lane < C) & (lane % 3 == c)).float()
+    return m.repeat(1, S2).contiguous()
+
+
+def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: Tensor, table: Tensor,
+                 env: Tensor, lanes: Tensor, H: int, W: int, S2: int) -> Tensor:
+    """The per-sample stage of `shade_samples` + `box_filter` as one compiled loop over a block's
+    samples, after `mirror_uv` (for ``core.fused``): per sample the face's three pair rows
+    (table (n_pairs + 1, width), `table_width` lanes) with the Gouraud weights (1 − β1 − β2, β1, β2)
+    and the four corners of its lat-long cell (``specular._uv_cells`` of (u, v), the same
+    arithmetic) in the lane-aligned env rows (`env_rows`), each a contiguous row load (Inductor
+    vectorises along the lanes; a per-column gather would cost one scalar load per value); then
+    t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane — exactly max(0, B), s_k E^(k) and u —
+    and each channel's sum over the lanes of the pixel's S2 samples (the box filter) / S2.
+    face (n,), bary (n, 2), u, v (n,) with n a multiple of S2 (pixel-major) → (n / S2, 3)."""
+    p0, p1, p2 = face_pairs[face, 0], face_pairs[face, 1], face_pairs[face, 2]
     b1, b2 = bary[:, 0], bary[:, 1]
-    bw = torch.stack([1.0 - b1 - b2, b1, b2], -1)
-    i0, fx, fy = bilinear_taps(u, v, H, W)
+    b0 = 1.0 - b1 - b2
+    uu = u - 0.5 / W
+    x = (uu - torch.floor(uu)) * W
+    y = (v - torch.floor(v)) * (H - 1)
+    ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
+    iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
+    fx, fy = x - ix, y - iy
     gx, gy = 1.0 - fx, 1.0 - fy
-    idx = torch.stack([i0, i0 + 1, i0 + (W + 1), i0 + (W + 2)], -1)
-    w = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1)
-    return bw, idx, w
-
-
-def _combine(acc: Tensor, Ek: Tensor, L: int) -> Tensor:
-    """max(0, B) + Σ_k s_k E^(k) (+ u) of `shade_samples` from the interpolated rows acc (Q, C) and
-    the lobe radiances Ek (Q, 3·L), for ``core.fused`` (the sum over k unrolled)."""
-    out = acc[:, :3].clamp_min(0.0)
-    for k in range(L):
-        out = out + acc[:, 3 + 3 * k:6 + 3 * k] * Ek[:, 3 * k:3 * k + 3]
-    if acc.shape[1] > 3 + 3 * L:
-        out = out + acc[:, 3 + 3 * L:]
-    return out
-
-
-def _combine_resolve(acc: Tensor, Ek: Tensor, L: int, S2: int) -> Tensor:
-    """`_combine` followed by the box filter of `box_filter` on whole pixels (the block's rows are
-    pixel-major groups of S2 sub-samples) → (rows / S2, 3): the same sums in the same order, so
-    the resolve is no separate pass over the frame's samples."""
-    v = _combine(acc, Ek, L).view(-1, S2, 3)
-    out = v[:, 0]
-    for j in range(1, S2):
-        out = out + v[:, j]
+    r = iy * (W + 1) + ix
+    a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
+    e = (env[r] * (gx * gy)[:, None] + env[r + 1] * (fx * gy)[:, None]
+         + env[r + (W + 1)] * (gx * fy)[:, None] + env[r + (W + 2)] * (fx * fy)[:, None])
+    width = table.shape[1]
+    t = (a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]).view(-1, S2 * width)
+    out = torch.stack([(t * lanes[2 + c]).sum(-1) for c in range(3)], -1)
     return out * (1.0 / S2)
 
 
-sample_cells = fused(_sample_cells)
-combine = fused(_combine)
-combine_resolve = fused(_combine_resolve)
+shade_block = fused(_shade_block)
 
 
-def _shade_chunk(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, table: Tensor,
-                 env: EnvStack, L: int, S2: int = 0) -> Tensor:
-    """`shade_samples` (with lobes) of one block: compiled `sample_cells`, the two bags, compiled `combine`
-    (S2 > 0: `combine_resolve`, the block's pixels)."""
-    u, v = _spec._latlong_uv(_spec.mirror_dirs(normal, wo), env.to_world)
-    bw, idx, w = sample_cells(bary, u, v, env.H, env.W)
-    acc = Fnn.embedding_bag(rows(face_pairs, face), table, per_sample_weights=bw, mode="sum")
-    Ek = Fnn.embedding_bag(idx, env.ext, per_sample_weights=w, mode="sum")
-    return combine(acc, Ek, L) if S2 == 0 else combine_resolve(acc, Ek, L, S2)
+def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None, S2: int) -> tuple[Tensor, Tensor, Tensor]:
+    C = table.shape[1] if C is None else C
+    width = table_width(C)
+    return padded(table, width), env_rows(env, width), _lane_masks(C, L, width, S2).to(table.device)
 
 
 def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
-                        wo: Tensor | None, env: EnvStack | None, L: int) -> Tensor:
-    """`shade_samples` of any number of hit samples with its elementwise parts compiled
-    (`sample_cells`, `combine`; static blocks of `sample_block` samples through
-    ``core.fused.map_rows``) → (Q, 3). Equal to `shade_samples` to float32 round-off."""
+                        wo: Tensor | None, env: EnvStack | None, L: int, C: int | None = None) -> Tensor:
+    """`shade_samples` of any number of hit samples as two compiled loops per static block of
+    `sample_block` samples (``core.fused.map_rows``): `mirror_uv` and `shade_block` (S2 = 1) → (Q, 3).
+    Equal to `shade_samples` to float32 round-off. C: the meaningful columns of ``table`` (None: all;
+    `vertex_view` may return it already `padded`)."""
     if env is None:
-        return shade_samples(face_pairs, table, face, bary, None, None, None, 0)
-    return map_rows(_shade_chunk, [face, bary, normal, wo], (face_pairs, table, env, L),
-                    chunk=sample_block(face.shape[0]))
+        return shade_samples(face_pairs, table[:, :3] if C is None else table[:, :C], face, bary, None, None, None, 0)
+    tab, erows, lanes = _fused_inputs(table, env, L, C, 1)
+
+    def block(face, bary, normal, wo):
+        u, v = mirror_uv_block(normal, wo, env.to_world)
+        return shade_block(face, bary, u, v, face_pairs, tab, erows, lanes, env.H, env.W, 1)
+
+    return map_rows(block, [face, bary, normal, wo], chunk=sample_block(face.shape[0]))
 
 
 def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor,
-                       wo: Tensor, env: EnvStack, L: int, S2: int) -> Tensor | None:
+                       wo: Tensor, env: EnvStack, L: int, S2: int, C: int | None = None) -> Tensor | None:
     """`shade_samples_fused` and `box_filter` of a G-buffer whose every sample hit, pixel-major with
-    S2 sub-samples per pixel, in one pass: each static block of `sample_block` samples ends in
-    `combine_resolve` and writes its pixels into the image (no per-sample radiance array, no
-    concatenation, no separate resolve pass) → (Q / S2, 3). None when the blocks cannot hold whole
-    pixels (the block not a multiple of S2); the caller then takes the two-pass route."""
+    S2 sub-samples per pixel, in two compiled loops per static block of `sample_block` samples
+    (`mirror_uv`, `shade_block`, which ends in the box filter: no per-sample radiance array, no
+    separate resolve pass) → (Q / S2, 3). None when the blocks cannot hold whole pixels (the block
+    not a multiple of S2); the caller then takes the two-pass route."""
     q = int(face.shape[0])
     B = sample_block(q)
     if B % S2 or q % S2:
         return None
+    tab, erows, lanes = _fused_inputs(table, env, L, C, S2)
     out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
     for a in range(0, q, B):
         blk = [t[a:a + B] for t in (face, bary, normal, wo)]
         n = blk[0].shape[0]
         if n < B:  # pad whole pixels by repeating the last sample (map_rows); the padding is dropped
             blk = [torch.cat([b, b[-1:].expand(B - n, *b.shape[1:])]) for b in blk]
-        o = _shade_chunk(*blk, face_pairs, table, env, L, S2)
+        u, v = mirror_uv_block(blk[2], blk[3], env.to_world)
+        o = shade_block(blk[0], blk[1], u, v, face_pairs, tab, erows, lanes, env.H, env.W, S2)
         out[a // S2:(a + n) // S2].copy_(o[:n // S2])
     return out
 

@@ -531,23 +531,26 @@ class PTT(Method):
                          vis=self.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L),  # a view (`_fast_static`)
                          I1=I1, f=None if I1 is None else _zh.expand_bands(self.lobe_sh), order=c["sh_order"])
             env = self._f_light[3][1]
-        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes)
+        C = 3 + 3 * L + (3 if I1 is not None and self.separate else 0)  # columns B | s | u of the pair rows
+        width = _fast.table_width(C) if FUSED_VIEW and env is not None else 0
+        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
         if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
             if bool(gb.hit.all()):  # no gathers of the G-buffer
                 S2 = gb.spp_side ** 2
                 if env is not None:  # samples shaded and resolved per block (fast.shade_pixels_fused)
-                    img = _fast.shade_pixels_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, S2)
+                    img = _fast.shade_pixels_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L,
+                                                   S2, C)
                     if img is not None:
                         return img.view(gb.height, gb.width, 3)
-                out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L)
+                out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, C)
                 return _fast.box_filter(out, gb.height, gb.width, S2)
             out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
             hit = torch.nonzero(gb.hit).squeeze(-1)
             out[hit] = _fast.shade_samples_fused(st.face_pairs, table, gb.face[hit], gb.bary[hit],
                                                  gb.normal[hit] if env is not None else None,
-                                                 gb.wo[hit] if env is not None else None, env, L)
+                                                 gb.wo[hit] if env is not None else None, env, L, C)
             return gb.resolve(out)
         if bool(gb.hit.all()):  # no gathers of the G-buffer
             out = torch.empty(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
@@ -671,10 +674,10 @@ class PTT(Method):
             return out
         if u is not None:
             out = out + (bw[..., None] * u[j]).sum(1)
-        R = _spec.mirror_dirs(normal, wo)  # (3, Q)
         E = []
         for e in self._Ek:  # E^(k)(R): each map by Mitsuba's bilinear look-up
-            idx, w = _spec.latlong_cells(R, e.to_world, e.height, e.width)
+            # (u, v) of R: the one compiled formula the fast path reads the maps with (fast.mirror_uv)
+            idx, w = _spec._uv_cells(*_fast.mirror_uv(normal, wo, e.to_world), e.height, e.width)
             E.append((extend_periodic(e.data)[idx] * w[..., None]).sum(1))
         return out + ((bw[..., None, None] * s[j]).sum(1) * torch.stack(E, 1)).sum(1)
 
@@ -818,8 +821,8 @@ class PTT(Method):
                 node = torch.stack([i0, (i0 + 1).clamp(max=n_theta - 1)])
                 rows_a = int(torch.unique(r * n_theta + node).numel())
                 nodes_a = int(torch.unique(node).numel())
-                Rq = _spec.mirror_dirs(gb.normal[hit].float(), gb.wo[hit].float())
-                idx, _ = _spec.latlong_cells(Rq, env.to_world, env.height, env.width)
+                uv = _fast.mirror_uv(gb.normal[hit].float(), gb.wo[hit].float(), env.to_world)
+                idx, _ = _spec._uv_cells(*uv, env.height, env.width)
                 tex_maps = [int(torch.unique(idx).numel())] * Lb  # one grid for every lobe (specular.on_env_grid)
         B, Fl = {}, {}
         # -- view stage (every frame)

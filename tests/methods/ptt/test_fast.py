@@ -210,10 +210,11 @@ def test_frame_cost_validates_and_needs_precompute():
 
 @pytest.mark.parametrize("n_samples", [1, 1000, (1 << 15) + 7])
 def test_fused_sample_stage_equals_eager(n_samples, monkeypatch):
-    """shading="vertex": the per-sample stage with its elementwise parts compiled
-    (`fast.shade_samples_fused`: `sample_cells`, `combine`, static blocks) equals the eager
-    `fast.shade_samples` to float32 round-off, with and without the one-bounce column, including a
-    last block shorter than the others (blocks capped at 2¹² here, so 2¹⁵ + 7 samples take nine)."""
+    """shading="vertex": the per-sample stage as compiled loops (`fast.shade_samples_fused`:
+    `mirror_uv`, `shade_block` with S2 = 1, static blocks) equals the eager `fast.shade_samples` to
+    float32 round-off, with and without the one-bounce column, with the rows as `vertex_view` gives
+    them to the fused path (`fast.padded` to `table_width`, C passed), including a last block shorter
+    than the others (blocks capped at 2¹² here, so 2¹⁵ + 7 samples take nine)."""
     from methods.ptt import fast as F
 
     monkeypatch.setattr(F, "MAX_SAMPLE_BLOCK", 1 << 12)
@@ -224,11 +225,14 @@ def test_fused_sample_stage_equals_eager(n_samples, monkeypatch):
         ref = F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L)
         out = F.shade_samples_fused(face_pairs, table, face, bary, normal, wo, env, L)
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+        wide = F.padded(table, F.table_width(C))
+        out = F.shade_samples_fused(face_pairs, wide, face, bary, normal, wo, env, L, C)
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
 
 
 @pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, (1 << 13) + 5)])
 def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
-    """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `combine_resolve`)
+    """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `shade_block`)
     equals the eager `fast.shade_samples` + `fast.box_filter` to float32 round-off, including a last
     block shorter than the others (blocks capped at 2¹² here); it declines (None) when a block cannot
     hold whole pixels."""
@@ -260,3 +264,38 @@ def _random_shading_inputs(n: int, seed: int):
     to_world = torch.linalg.qr(torch.randn(3, 3, generator=g))[0].contiguous()
     env = F.EnvStack(torch.rand(H * (W + 1), 3 * L, generator=g), to_world, H, W)
     return g, n_pairs, L, face_pairs, face, bary, normal, wo, env
+
+
+def test_mirror_uv_is_the_eager_formula_to_round_off():
+    """`fast.mirror_uv` — the ONE compiled formula that both the fast path and the reference
+    (`PTT._shade_vertex`) read the prefiltered maps with (its docstring: a compiled acos / atan2
+    differs from the eager one in the last bit, which flips lat-long cells at their boundaries) —
+    against the eager `specular.mirror_dirs` + `specular._latlong_uv`: (u, v) to a few ulps of the
+    direction (scaled by the conditioning of atan2 / acos near the poles, 1/ρ with ρ the direction's
+    distance from the map's axis), and the same bilinear cells wherever the eager coordinate is not
+    within that tolerance of a cell boundary."""
+    from methods.ptt import fast as F
+    from methods.ptt import specular as spec
+
+    g = torch.Generator().manual_seed(5)
+    n = 40_000 + 3  # several static blocks and a padded last one
+    normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))  # not unit
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
+    u, v = F.mirror_uv(normal, wo, to_world)
+    R = spec.mirror_dirs(normal, wo)
+    ue, ve = spec._latlong_uv(R, to_world)
+    ly = (to_world.T @ R)[1]
+    rho = (1.0 - ly.double() ** 2).clamp_min(0.0).sqrt().float().clamp_min(1e-4)
+    tol = 16 * torch.finfo(torch.float32).eps / rho
+    du = torch.remainder(u - ue + 0.5, 1.0) - 0.5  # u wraps at ±1/2
+    assert bool((du.abs() <= tol).all()) and bool(((v - ve).abs() <= tol).all())
+    assert 0 < int(((u != ue) | (v != ve)).sum()) < n  # compiled and eager do differ in the last bits
+    H, W = 32, 64
+    idx, _ = spec._uv_cells(u, v, H, W)
+    idx_e, _ = spec._uv_cells(ue, ve, H, W)
+    x = torch.remainder(ue - 0.5 / W, 1.0) * W
+    y = ve * (H - 1)
+    far = ((x - x.round()).abs() > W * tol) & ((y - y.round()).abs() > H * tol)
+    assert far.float().mean() > 0.95
+    assert torch.equal(idx[far], idx_e[far])
