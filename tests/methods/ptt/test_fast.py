@@ -290,7 +290,6 @@ def test_mirror_uv_is_the_eager_formula_to_round_off():
     tol = 16 * torch.finfo(torch.float32).eps / rho
     du = torch.remainder(u - ue + 0.5, 1.0) - 0.5  # u wraps at ±1/2
     assert bool((du.abs() <= tol).all()) and bool(((v - ve).abs() <= tol).all())
-    assert 0 < int(((u != ue) | (v != ve)).sum()) < n  # compiled and eager do differ in the last bits
     H, W = 32, 64
     idx, _ = spec._uv_cells(u, v, H, W)
     idx_e, _ = spec._uv_cells(ue, ve, H, W)
