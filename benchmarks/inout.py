@@ -34,7 +34,7 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, inout_regions, machine_limits, median_time, precomputed, setup
+from benchmarks.common import frame_args, inout_regions, machine_limits, precomputed, setup, wall_cpu_time
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -80,11 +80,13 @@ def base_fingerprint(root: str) -> str:
 
 
 def _time(fn) -> float:
-    return median_time(fn, 5)
+    """Median process-CPU seconds of 5 calls after a warm-up (at ``--threads 1`` the single-core time,
+    far less disturbed by other jobs than wall time)."""
+    return wall_cpu_time(fn, 5)["cpu"]
 
 
 def micro(m: InOut, frame, gb) -> dict[str, float]:
-    """Seconds (median of 5 after a warm-up) of the parts and kernels of a fast frame, on the last
+    """Process-CPU seconds (`_time`) of the parts and kernels of a fast frame, on the last
     frame of the V sequence (``frame`` on G-buffer ``gb``; c_k cached): the per-frame set-up
     (`InOut._view_setup`: referenced vertices, c_k, the window products X), the per-sample stage
     (``fast.shade_pixels``: eq. 4 and the box filter), against the kernels that bound them: one
@@ -102,6 +104,19 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
             torch.ones(view.sel.numel(), dtype=torch.bool), 1)
     out["shade_s"] = _time(lambda: fast.shade_pixels(view.st, view.cs, view.wins, *args))
     out["X_nodes"] = int(view.wins.X.shape[0])
+    # the dominant kernel alone: the compiled per-sample pass (`fast.shade_rows`) over the frame's
+    # blocks, its streamed bytes (the G-buffer arrays it reads, the pixels it writes) and its
+    # indirect loads (per sample 3 vertex ids, 3 × 3 window words, 3 vertices × 4 nodes × 3 channels)
+    q, S = int(args[0].shape[0]), args[-1]
+    npx, blk = q // S, max(1, fast.sample_block(q) // S)
+    rows = [t.unflatten(0, (npx, S)) for t in args[:5]]
+    pad = [[r[a:a + blk] for r in rows] for a in range(0, npx, blk)]
+    pad = [[torch.cat([b, b[-1:].expand(blk - b.shape[0], *b.shape[1:])]) for b in bl] for bl in pad]
+    st, w = view.st, view.wins
+    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, st.face_rows, w.win, w.X, st.R, w.W) for bl in pad])
+    out["shade_rows_samples"] = q
+    out["shade_rows_bytes"] = sum(t.numel() * t.element_size() for t in args[:5]) + npx * 3 * 4
+    out["shade_rows_gathers"] = q * (3 + 9 + 36)
     arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
     out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
     out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])
@@ -205,6 +220,10 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"last frame: set-up (c_k, X; W = {u['window']}) {1e3 * u['view_setup_s']:.1f} ms, per-sample stage "
               f"(eq. 4, box filter) {1e3 * u['shade_s']:.1f} ms; one G-buffer read "
               f"{1e3 * u['gbuffer_read_s']:.2f} ms ({u['gbuffer_bytes'] / u['gbuffer_read_s'] / 1e9:.1f} GB/s)")
+        print(f"per-sample kernel alone (fast.shade_rows, {u['shade_rows_samples']} samples): "
+              f"{1e3 * u['shade_rows_s']:.1f} ms = {1e9 * u['shade_rows_s'] / u['shade_rows_samples']:.1f} ns/sample, "
+              f"{u['shade_rows_bytes'] / u['shade_rows_s'] / 1e9:.2f} GB/s streamed (triad {B / 1e9:.1f}), "
+              f"{u['shade_rows_gathers'] / u['shade_rows_s'] / 1e9:.2f} G indirect loads/s")
         print(f"lighting ({u['region']}, {u['light_rows']} rows): c = T·L {1e3 * u['light_product_s']:.1f} ms "
               f"({u['light_bytes'] / u['light_product_s'] / 1e9:.1f} GB/s), one read of T "
               f"{1e3 * u['light_stream_read_s']:.1f} ms ({u['light_bytes'] / u['light_stream_read_s'] / 1e9:.1f} GB/s)")

@@ -19,13 +19,32 @@ the hemi-octahedral table (nodes n with weights w_n, ``transport.lut_cell``). Bo
 and X is what a frame forms (`prepare`), on a W × W window of table nodes per referenced vertex
 centred on the cell of the direction from the vertex to the camera in the vertex's own frame
 (`anchors`: the samples around a vertex see it from nearly that direction), with W chosen per
-frame on a subsample of the samples to minimise the work (`choose_window`). X of all windows is
-one sampled dense-dense product per region (`view_windows`); each sample then reads 3 vertices ×
-4 nodes of X (`shade`). Sample–vertex entries whose cell leaves the window (where
+frame on a subsample of the samples to minimise the work (`choose_window`, its histogram from the
+compiled `window_entries`). X of all windows is a compiled K-term reduction with the table rows
+gathered in place (`window_rows` through `view_windows`); each sample then reads 3 vertices × 4
+nodes of X. Sample–vertex entries whose cell leaves the window (where
 ``core.frames.coordinate_system`` flips the tangent, or a triangle spans many cells) are summed
-exactly from sh_lut and c (`_outliers`). The window decides only *where* a sum is formed, never its
-terms; each sample takes ω_o in its own shading frame, as the reference path does
-(`sample_frame`). The per-sample stage runs in blocks of CHUNK samples (`InOut.render`).
+exactly from sh_lut and c (`_outliers`, compiled `outlier_rows`). The window decides only *where* a
+sum is formed, never its terms; each sample takes ω_o in its own shading frame, as the reference
+path does (`sample_frame`).
+
+The per-sample stage is one compiled pass (``methods.core.fused``) over static blocks of
+`sample_block` samples (`shade_pixels` → `shade_rows`): per sample its frame, table cell, face
+vertices, the 12 weighted reads of X per channel and the box filter to the pixel, with only the
+pixels and a byte of window-miss flags per sample written; the flagged entries then take the exact
+path (their inputs from the compiled `entry_inputs`). Table-sized operands (X, the windows, the
+faces, c) are marked dynamic in their row count, so a frame's new X size does not recompile.
+
+Measured (issue 14, 2026-12-03, same process vs the eager stage before it, 1 thread, process CPU
+time, load 7–11; ``python -m benchmarks.inout --base MAIN_CHECKOUT``): V frames 1.3–1.5×, L / E /
+VL 1.15–1.3×. What bounds the V frame now (the micro-benchmark of ``benchmarks.inout``): the
+compiled per-sample kernel alone takes ~80 ns per sample on one core (chess bench, 2.6·10⁵
+samples: ~21 ms), 48 indirect loads per sample at ~0.6·10⁹ loads/s — Inductor emits a scalar loop
+(no vectorised gathers) with a bounds check per indirect index, far from the bytes' bound (the
+G-buffer and the pixels: ~13 MB, ~0.2 ms at triad bandwidth). Tried and dropped: the 2 × 2 nodes
+of a cell as one strided view of X (one bounds check per vertex instead of 12): 2.7× slower
+(Inductor materialised the gathered cells); c = T̃ · L as a weighted ``embedding_bag`` instead of
+the CSR product: 1.7× slower; the referenced-face mask as a compiled scatter: no gain.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
@@ -49,9 +68,9 @@ __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame"
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
 # exact path instead of growing every window.
 MAX_WINDOW = 16
-# Samples per block of the per-sample stage: its temporaries ((3, CHUNK) arrays) stay in cache and
-# below the allocator's threshold for fresh pages (full-size temporaries of a 256² × 4 frame cost
-# more in page faults than in arithmetic).
+# Samples per block of the eager referenced-face pass of `InOut._view_setup`: its temporaries stay
+# in cache and below the allocator's threshold for fresh pages (the compiled per-sample stage takes
+# `sample_block` samples per block).
 CHUNK = 1 << 15
 # The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
@@ -209,10 +228,9 @@ def _window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, 
 
 
 window_rows = fused(_window_rows)
-# Vertices per static block of `window_rows` / entries per block of `_outliers` (``core.fused.map_rows``:
-# the padding of the last block is at most this minus one rows).
+# Vertices per static block of `window_rows` (``core.fused.map_rows``: the padding of the last block is
+# at most this minus one rows; `_outliers` takes `sample_block` entries per block).
 WINDOW_BLOCK = 512
-OUTLIER_BLOCK = 1024
 
 
 def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int) -> Tensor:
@@ -260,23 +278,46 @@ def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face
     return gl, bw, lut_cell_xyz(*wl, st.R, index_dtype=torch.int32), front
 
 
-def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, gl: Tensor, bw: Tensor, iu: Tensor,
-            iv: Tensor, scale: float, max_window: int = MAX_WINDOW) -> Windows:
+def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
+                    anchor: Tensor, Kv: Tensor, R: int, cap: int) -> tuple[Tensor, Tensor]:
+    """Per sample–vertex entry of q samples (the `sample_inputs` arithmetic, for ``core.fused``): the
+    Chebyshev distance (q, 3) int64 of the sample's table cell from its vertex's anchor cell
+    (``anchor`` (ΣVr, 2) int32), capped at ``cap``, and the entry's weight in `choose_window`'s
+    histogram (q, 3) float64: the vertex's K where the entry is shaded (β_j ≠ 0, ω_o above the
+    horizon, live), else 0. face < 0 is clamped (a miss: not live)."""
+    x, y, z = sample_frame(normal, wo)
+    front = (z > 0) & live
+    iu, iv, _, _ = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
+    g = face_rows[face.clamp_min(0)]                                            # (q, 3)
+    a = anchor[g]                                                               # (q, 3, 2)
+    d = torch.maximum((iu[:, None] - a[..., 0]).abs(), (iv[:, None] - a[..., 1]).abs()).clamp(max=cap)
+    u, v = bary[:, 0], bary[:, 1]
+    fw = front.to(u.dtype)
+    bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw], -1)
+    return d.long(), Kv[g].double() * (bw != 0).double()
+
+
+window_entries = fused(_window_entries)
+
+
+def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple, scale: float,
+            max_window: int = MAX_WINDOW) -> Windows:
     """The frame's `Windows`: anchors of the referenced vertices ``ref`` (m,) (concatenated ids,
     ascending) towards the camera cam (3,), the window side from the entries of a subsample of the
-    frame's samples (gl, bw (3, q), cells iu, iv (q,); each standing for ``scale`` samples), and X
-    = the windows' products with the c of each slot (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
+    frame's samples (``sub`` = their normal, wo, bary, face (< 0: a miss), live; each standing for
+    ``scale`` samples; `window_entries`), and X = the windows' products with the c of each slot
+    (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
     R, dev, n_all, m = st.R, ref.device, st.voff[-1], ref.numel()
     au, av = anchors(st, ref, cam)
-    a_all = torch.zeros(2, n_all, dtype=torch.int32, device=dev)
-    a_all[0, ref], a_all[1, ref] = au, av
+    a_all = torch.zeros(n_all, 2, dtype=torch.int32, device=dev)
+    a_all[ref] = torch.stack([au, av], 1)
     # window side: Chebyshev distance of the subsample's entries from their vertices' anchors
-    g = gl.reshape(-1)
-    d = torch.maximum((iu.repeat(3) - a_all[0].index_select(0, g)).abs_(),
-                      (iv.repeat(3) - a_all[1].index_select(0, g)).abs_())
-    live = bw.reshape(-1) != 0
-    hist = torch.bincount(d.clamp_(max=max_window // 2)[live], weights=st.K.index_select(0, g[live]).double(),
-                          minlength=max_window // 2 + 1) * scale
+    cap = max_window // 2
+    for t in (a_all, st.face_rows, st.K):
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    d, w = map_rows(window_entries, list(sub), (st.face_rows, a_all, st.K, R, cap),
+                    chunk=sample_block(sub[0].shape[0]))
+    hist = torch.bincount(d.reshape(-1), weights=w.reshape(-1), minlength=cap + 1) * scale
     W = min(choose_window(hist, float(st.K[ref].sum()), max_window), R - R % 2)
     h = W // 2 - 1
     wr = torch.stack([(au - h).clamp_(0, R - W), (av - h).clamp_(0, R - W),
@@ -350,12 +391,31 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
 shade_rows = fused(_shade_rows)
 
 
+def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
+                  R: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`sample_inputs` of q samples for the exact path, for ``core.fused``: vertex ids (q, 3) int64,
+    barycentric weights (q, 3) (0 where not shaded), the 4 bilinear node weights (q, 4) and the
+    first node of the table cell (q,) int64. face < 0 is clamped (a miss: not live)."""
+    x, y, z = sample_frame(normal, wo)
+    front = (z > 0) & live
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R)
+    u, v = bary[:, 0], bary[:, 1]
+    fw = front.to(u.dtype)
+    bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw], -1)
+    gu, gv = 1 - fu, 1 - fv
+    return (face_rows[face.clamp_min(0)].long(), bw, torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1),
+            iv * R + iu)
+
+
+entry_inputs = fused(_entry_inputs)
+
+
 def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor, wo: Tensor, bary: Tensor,
                  face: Tensor, live: Tensor, S2: int) -> Tensor:
     """Eq. 4 at q = n·S2 samples (pixel-major, S2 sub-samples per pixel; normal, wo (q, 3), bary
     (q, 2), face (q,) int64 (< 0: a miss), live (q,) bool), box-filtered → (n, 3): the compiled
     `shade_rows` over static blocks of `sample_block` samples, then the entries outside their
-    windows from sh_lut and c (`_outliers`; their inputs recomputed eagerly by `sample_inputs`)."""
+    windows from sh_lut and c (`_outliers`; their inputs recomputed by the compiled `entry_inputs`)."""
     q = int(face.shape[0])
     npx = q // S2
     dev = wins.X.device
@@ -375,17 +435,15 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
         miss[a:a + n] = mb[:n]
     k = miss.view(-1).nonzero(as_tuple=True)[0]
     if k.numel():                                      # entries outside their windows: the exact path
-        gl, bw, (iu, iv, fu, fv), _ = sample_inputs(st, normal.index_select(0, k), wo.index_select(0, k),
-                                                    bary.index_select(0, k), face.index_select(0, k).clamp_min(0),
-                                                    live.index_select(0, k))
+        sub = [t.index_select(0, k) for t in (normal, wo, bary, face, live)]
+        g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=sample_block(k.numel()))
         bits = miss.view(-1).index_select(0, k)
-        e = torch.nonzero((bits[None, :] >> torch.arange(3, device=dev, dtype=torch.uint8)[:, None]) & 1)
-        j, i = e[:, 0], e[:, 1]
-        v = gl[j, i].long()
-        gu, gv = 1 - fu[i], 1 - fv[i]
-        wcm = torch.stack([gu * gv, fu[i] * gv, gu * fv[i], fu[i] * fv[i]], -1) * (bw[j, i] * (1.0 / S2))[:, None]
-        first = (iv * st.R + iu)[i].long()
-        px = k[i] // S2
+        e = ((bits[:, None] >> torch.arange(3, device=dev, dtype=torch.uint8)) & 1).nonzero()
+        i, j = e[:, 0], e[:, 1]
+        v = g[i, j]
+        wcm = wc.index_select(0, i) * (bw[i, j] * (1.0 / S2))[:, None]
+        first = cell.index_select(0, i)
+        px = k.index_select(0, i) // S2
         for s, fr in enumerate(st.regions):
             sel = ((v >= st.voff[s]) & (v < st.voff[s + 1])).nonzero(as_tuple=True)[0]
             if sel.numel():
@@ -418,9 +476,9 @@ outlier_rows = fused(_outlier_rows)
 
 def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
     """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: the
-    compiled `outlier_rows` over static blocks of `OUTLIER_BLOCK` entries. v, cell (n,) int64 local
+    compiled `outlier_rows` over static blocks of `sample_block` entries. v, cell (n,) int64 local
     vertex / first node; wc (n, 4) node weights (β_j folded in); c (Vr, 3, K) → (n, 3)."""
     if v.numel() == 0:
         return torch.zeros(0, 3, dtype=c.dtype, device=c.device)
     torch._dynamo.maybe_mark_dynamic(c, 0)
-    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=OUTLIER_BLOCK)
+    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=sample_block(v.numel()))

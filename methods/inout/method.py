@@ -516,14 +516,13 @@ class InOut(Method):
                    for s in range(len(self.regions))]
         k = _fast.WINDOW_SUBSAMPLE
         if sel is None:                       # strided views: the G-buffer's arrays need not be row-major
-            sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k].clamp_min(0), hit[::k])
+            sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k], hit[::k])
         else:
             i = sel[::k]
             sub = (gbuffer.normal.index_select(0, i), gbuffer.wo.index_select(0, i), gbuffer.bary.index_select(0, i),
-                   gbuffer.face.index_select(0, i), None)
-        gl, bw, (iu, iv, _, _), _ = _fast.sample_inputs(st, *sub)
+                   gbuffer.face.index_select(0, i), torch.ones(i.numel(), dtype=torch.bool, device=dev))
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        view.wins = _fast.prepare(st, view.cs, ref, cam, gl, bw, iu, iv, view.Q / max(gl.shape[1], 1))
+        view.wins = _fast.prepare(st, view.cs, ref, cam, sub, view.Q / max(sub[0].shape[0], 1))
         return view
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
