@@ -60,9 +60,10 @@ from methods.core.fused import fused, map_rows
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW",
+           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
-           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK"]
+           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
+           "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
 
 # Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
