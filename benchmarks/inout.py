@@ -2,6 +2,13 @@
 
     python -m benchmarks.inout [--scene sphere_plane] [--size bench] [--config '{}'] [--frames 5]
                                [--threads 2] [--spp-side 2] [--kinds V L E] [--no-micro]
+                               [--base OTHER_CHECKOUT]
+
+With ``--base`` the old path is a base checkout's fast path (its ``methods`` package imported beside
+this one's, ``benchmarks.ptt_ab`` style: e.g. a worktree of main) instead of the reference path, and
+the precomputation is looked up under the base's code fingerprint (the same arrays while this
+checkout's edits leave the precompute alone). Both wall and process-CPU time are recorded per
+frame; under load compare the CPU ratios at ``--threads 1``.
 
 Precomputes once (kept in ``<cache>/inout_frames/``, keyed by the scene's content hash and the
 config; delete it after changing the precompute), then renders each sequence kind with two copies
@@ -22,11 +29,12 @@ import argparse
 import copy
 import json
 import statistics
+import sys
 import time
 
 import torch
 
-from benchmarks.common import frame_args, inout_regions, machine_limits, median_time, precomputed, setup
+from benchmarks.common import frame_args, inout_regions, machine_limits, precomputed, setup, wall_cpu_time
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -39,29 +47,76 @@ def _precomputed(scene, config: dict) -> tuple[InOut, float | None]:
     return m, pre
 
 
+def base_class(root: str):
+    """The InOut class of the ``methods`` package under ``root``, imported beside this checkout's."""
+    def ours():
+        return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
+
+    saved = ours()
+    for k in saved:
+        del sys.modules[k]
+    sys.path.insert(0, root)
+    try:
+        import methods.inout.method  # noqa: F401 — the base's modules
+        mods = ours()
+    finally:
+        sys.path.remove(root)
+        for k in ours():
+            del sys.modules[k]
+        sys.modules.update(saved)
+    cls = mods["methods.inout.method"].InOut
+    if cls is InOut or not mods["methods.inout.method"].__file__.startswith(root):
+        raise RuntimeError(f"could not import the base InOut from {root}")
+    return cls
+
+
+def base_fingerprint(root: str) -> str:
+    """``reports.store.code_closure_fingerprint`` of the in-out module of the checkout at ``root``."""
+    import subprocess
+
+    cmd = "from reports.store import code_closure_fingerprint as f; print(f('methods.inout.method'))"
+    out = subprocess.run([sys.executable, "-c", cmd], cwd=root, capture_output=True, text=True, check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
 def _time(fn) -> float:
-    return median_time(fn, 5)
+    """Median process-CPU seconds of 5 calls after a warm-up (at ``--threads 1`` the single-core time,
+    far less disturbed by other jobs than wall time)."""
+    return wall_cpu_time(fn, 5)["cpu"]
 
 
 def micro(m: InOut, frame, gb) -> dict[str, float]:
-    """Seconds (median of 5 after a warm-up) of the parts and kernels of a fast frame, on the last
+    """Process-CPU seconds (`_time`) of the parts and kernels of a fast frame, on the last
     frame of the V sequence (``frame`` on G-buffer ``gb``; c_k cached): the per-frame set-up
-    (`InOut._view_setup`:
-    referenced vertices, c_k, the window products X), the per-sample stage split into its inputs
-    (``fast.sample_inputs``) and eq. 4 (``fast.shade``), against the kernels that bound them: one
+    (`InOut._view_setup`: referenced vertices, c_k, the window products X), the per-sample stage
+    (``fast.shade_pixels``: eq. 4 and the box filter), against the kernels that bound them: one
     read of the G-buffer arrays a frame reads (the bulk of the roofline's bytes) and, for a lighting
     change, c = T̃ · L over the referenced rows against one streaming read of the same bytes."""
     out: dict[str, float] = {}
     view = m._view_setup(frame, gb)
     out["view_setup_s"] = _time(lambda: m._view_setup(frame, gb))
     out["window"] = view.wins.W
-    blocks = [(a, min(view.Q, a + view.step)) for a in range(0, view.Q, view.step)]
-    inputs = [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5]) for a, b in blocks]
-    out["sample_inputs_s"] = _time(lambda: [fast.sample_inputs(view.st, *view.block(a, b)[:4], view.block(a, b)[5])
-                                            for a, b in blocks])
-    out["shade_s"] = _time(lambda: [fast.shade(view.st, view.cs, view.wins, gl, bw, cell)
-                                    for gl, bw, cell, _ in inputs])
-    out["X_nodes"] = int(view.wins.XT.shape[1])
+    S2 = gb.spp_side ** 2
+    if view.sel is None:
+        args = (gb.normal, gb.wo, gb.bary, gb.face, gb.hit, S2)
+    else:
+        args = tuple(t.index_select(0, view.sel) for t in (gb.normal, gb.wo, gb.bary, gb.face)) + (
+            torch.ones(view.sel.numel(), dtype=torch.bool), 1)
+    out["shade_s"] = _time(lambda: fast.shade_pixels(view.st, view.cs, view.wins, *args))
+    out["X_nodes"] = int(view.wins.X.shape[0])
+    # the dominant kernel alone: the compiled per-sample pass (`fast.shade_rows`) over the frame's
+    # blocks, its streamed bytes (the G-buffer arrays it reads, the pixels it writes) and its
+    # indirect loads (per sample 3 vertex ids, 3 × 3 window words, 3 vertices × 4 nodes × 3 channels)
+    q, S = int(args[0].shape[0]), args[-1]
+    npx, blk = q // S, max(1, fast.sample_block(q) // S)
+    rows = [t.unflatten(0, (npx, S)) for t in args[:5]]
+    pad = [[r[a:a + blk] for r in rows] for a in range(0, npx, blk)]
+    pad = [[torch.cat([b, b[-1:].expand(blk - b.shape[0], *b.shape[1:])]) for b in bl] for bl in pad]
+    st, w = view.st, view.wins
+    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, st.face_rows, w.win, w.X, st.R, w.W) for bl in pad])
+    out["shade_rows_samples"] = q
+    out["shade_rows_bytes"] = sum(t.numel() * t.element_size() for t in args[:5]) + npx * 3 * 4
+    out["shade_rows_gathers"] = q * (3 + 9 + 36)
     arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
     out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
     out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])
@@ -93,9 +148,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     frame_args(ap, scene="sphere_plane", frames=5)
     ap.add_argument("--no-micro", action="store_true")
+    ap.add_argument("--base", default=None, help="time this checkout's fast path (e.g. a worktree of main) "
+                                                 "as the old path instead of the reference path")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     cfg = json.loads(a.config)
+    Base = None
+    if a.base is not None:
+        from reports import precompute_cache
+
+        Base = base_class(a.base)
+        fp = base_fingerprint(a.base)
+        precompute_cache._process_fingerprint = lambda module: fp
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1, spp_side=a.spp_side)
     m, pre = _precomputed(scene, cfg)
     out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "threads": a.threads, "spp_side": a.spp_side,
@@ -105,21 +169,27 @@ def main(argv: list[str] | None = None) -> dict:
     for kind in a.kinds:
         _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
         old, new = copy.copy(m), copy.copy(m)
+        if Base is not None:
+            old.__class__ = Base
         old._reset_cache()
         new._reset_cache()
-        t_old, t_new, diff, scale = [], [], 0.0, 0.0
+        old_render = old.render if Base is not None else old._render_reference
+        t_old, t_new, c_old, c_new, diff, scale = [], [], [], [], 0.0, 0.0
         for i, (f, g) in enumerate(zip(frames, gbs)):
             order = ("old", "new") if i % 2 == 0 else ("new", "old")
             imgs = {}
             for which in order:
-                t0 = time.perf_counter()
-                imgs[which] = old._render_reference(f, g) if which == "old" else new.render(f, g)
+                t0, c0 = time.perf_counter(), time.process_time()
+                imgs[which] = old_render(f, g) if which == "old" else new.render(f, g)
                 (t_old if which == "old" else t_new).append(time.perf_counter() - t0)
+                (c_old if which == "old" else c_new).append(time.process_time() - c0)
             diff = max(diff, float((imgs["old"] - imgs["new"]).abs().max()))
             scale = max(scale, float(imgs["old"].abs().max()))
         cost = new.frame_cost(kind, gbs[-1].num_samples)
         kinds[kind] = {"old_s": t_old, "new_s": t_new, "old_median_s": statistics.median(t_old[1:]),
-                       "new_median_s": statistics.median(t_new[1:]), "max_abs_diff": diff, "image_max": scale,
+                       "new_median_s": statistics.median(t_new[1:]), "old_cpu_s": c_old, "new_cpu_s": c_new,
+                       "old_cpu_median_s": statistics.median(c_old[1:]),
+                       "new_cpu_median_s": statistics.median(c_new[1:]), "max_abs_diff": diff, "image_max": scale,
                        "bytes": cost.bytes, "flops": cost.flops, "hit_samples": int(gbs[-1].hit.sum())}
         if last is None or kind == "V":   # the micro-benchmarks run on a view-only frame when there is one
             last = (new, frames[-1], gbs[-1])
@@ -130,20 +200,30 @@ def main(argv: list[str] | None = None) -> dict:
             r[f"{which}_efficiency"], r["bound"] = eff, bound
         r["roofline_s"] = max(r["bytes"] / B, r["flops"] / Pk)
         r["speedup"] = r["old_median_s"] / r["new_median_s"]
+        r["cpu_speedup"] = r["old_cpu_median_s"] / r["new_cpu_median_s"]
+        r["new_cpu_efficiency"] = measure.roofline(r["bytes"], r["flops"], B, Pk, r["new_cpu_median_s"])[0]
     out["kinds"] = kinds
     if not a.no_micro and last is not None:
         out["micro"] = micro(*last)
     print(json.dumps(out, indent=1, default=float))
-    print(f"\n{a.scene} {a.size}, {a.threads} threads, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
-    print(f"{'kind':5} {'old ms':>9} {'new ms':>9} {'speedup':>8} {'roof ms':>8} {'old eff':>8} {'new eff':>8} bound")
+    print(f"\n{a.scene} {a.size}, {a.threads} threads, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s, "
+          f"old = {a.base + ' (base checkout)' if a.base else 'reference path'}")
+    print(f"{'kind':5} {'old ms':>9} {'new ms':>9} {'speedup':>8} {'old cpu':>8} {'new cpu':>8} {'cpu x':>6} "
+          f"{'roof ms':>8} {'old eff':>8} {'new eff':>8} {'cpu eff':>8} {'max|d|':>9} bound")
     for kind, r in kinds.items():
-        print(f"{kind:5} {1e3 * r['old_median_s']:9.1f} {1e3 * r['new_median_s']:9.1f} {r['speedup']:8.1f} "
-              f"{1e3 * r['roofline_s']:8.2f} {r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} {r['bound']}")
+        print(f"{kind:5} {1e3 * r['old_median_s']:9.1f} {1e3 * r['new_median_s']:9.1f} {r['speedup']:8.2f} "
+              f"{1e3 * r['old_cpu_median_s']:8.1f} {1e3 * r['new_cpu_median_s']:8.1f} {r['cpu_speedup']:6.2f} "
+              f"{1e3 * r['roofline_s']:8.2f} {r['old_efficiency']:8.4f} {r['new_efficiency']:8.4f} "
+              f"{r['new_cpu_efficiency']:8.4f} {r['max_abs_diff'] / max(r['image_max'], 1e-30):9.2e} {r['bound']}")
     if "micro" in out:
         u = out["micro"]
-        print(f"last frame: set-up (c_k, X; W = {u['window']}) {1e3 * u['view_setup_s']:.1f} ms, sample inputs "
-              f"{1e3 * u['sample_inputs_s']:.1f} ms, eq. 4 {1e3 * u['shade_s']:.1f} ms; one G-buffer read "
+        print(f"last frame: set-up (c_k, X; W = {u['window']}) {1e3 * u['view_setup_s']:.1f} ms, per-sample stage "
+              f"(eq. 4, box filter) {1e3 * u['shade_s']:.1f} ms; one G-buffer read "
               f"{1e3 * u['gbuffer_read_s']:.2f} ms ({u['gbuffer_bytes'] / u['gbuffer_read_s'] / 1e9:.1f} GB/s)")
+        print(f"per-sample kernel alone (fast.shade_rows, {u['shade_rows_samples']} samples): "
+              f"{1e3 * u['shade_rows_s']:.1f} ms = {1e9 * u['shade_rows_s'] / u['shade_rows_samples']:.1f} ns/sample, "
+              f"{u['shade_rows_bytes'] / u['shade_rows_s'] / 1e9:.2f} GB/s streamed (triad {B / 1e9:.1f}), "
+              f"{u['shade_rows_gathers'] / u['shade_rows_s'] / 1e9:.2f} G indirect loads/s")
         print(f"lighting ({u['region']}, {u['light_rows']} rows): c = T·L {1e3 * u['light_product_s']:.1f} ms "
               f"({u['light_bytes'] / u['light_product_s'] / 1e9:.1f} GB/s), one read of T "
               f"{1e3 * u['light_stream_read_s']:.1f} ms ({u['light_bytes'] / u['light_stream_read_s'] / 1e9:.1f} GB/s)")

@@ -19,13 +19,32 @@ the hemi-octahedral table (nodes n with weights w_n, ``transport.lut_cell``). Bo
 and X is what a frame forms (`prepare`), on a W × W window of table nodes per referenced vertex
 centred on the cell of the direction from the vertex to the camera in the vertex's own frame
 (`anchors`: the samples around a vertex see it from nearly that direction), with W chosen per
-frame on a subsample of the samples to minimise the work (`choose_window`). X of all windows is
-one sampled dense-dense product per region (`view_windows`); each sample then reads 3 vertices ×
-4 nodes of X (`shade`). Sample–vertex entries whose cell leaves the window (where
+frame on a subsample of the samples to minimise the work (`choose_window`, its histogram from the
+compiled `window_entries`). X of all windows is a compiled K-term reduction with the table rows
+gathered in place (`window_rows` through `view_windows`); each sample then reads 3 vertices × 4
+nodes of X. Sample–vertex entries whose cell leaves the window (where
 ``core.frames.coordinate_system`` flips the tangent, or a triangle spans many cells) are summed
-exactly from sh_lut and c (`_outliers`). The window decides only *where* a sum is formed, never its
-terms; each sample takes ω_o in its own shading frame, as the reference path does
-(`sample_frame`). The per-sample stage runs in blocks of CHUNK samples (`InOut.render`).
+exactly from sh_lut and c (`_outliers`, compiled `outlier_rows`). The window decides only *where* a
+sum is formed, never its terms; each sample takes ω_o in its own shading frame, as the reference
+path does (`sample_frame`).
+
+The per-sample stage is one compiled pass (``methods.core.fused``) over static blocks of
+`sample_block` samples (`shade_pixels` → `shade_rows`): per sample its frame, table cell, face
+vertices, the 12 weighted reads of X per channel and the box filter to the pixel, with only the
+pixels and a byte of window-miss flags per sample written; the flagged entries then take the exact
+path (their inputs from the compiled `entry_inputs`). Table-sized operands (X, the windows, the
+faces, c) are marked dynamic in their row count, so a frame's new X size does not recompile.
+
+Measured (issue 14, 2026-12-03, same process vs the eager stage before it, 1 thread, process CPU
+time, load 7–11; ``python -m benchmarks.inout --base MAIN_CHECKOUT``): V frames 1.3–1.5×, L / E /
+VL 1.15–1.3×. What bounds the V frame now (the micro-benchmark of ``benchmarks.inout``): the
+compiled per-sample kernel alone takes ~80 ns per sample on one core (chess bench, 2.6·10⁵
+samples: ~21 ms), 48 indirect loads per sample at ~0.6·10⁹ loads/s — Inductor emits a scalar loop
+(no vectorised gathers) with a bounds check per indirect index, far from the bytes' bound (the
+G-buffer and the pixels: ~13 MB, ~0.2 ms at triad bandwidth). Tried and dropped: the 2 × 2 nodes
+of a cell as one strided view of X (one bounds check per vertex instead of 12): 2.7× slower
+(Inductor materialised the gathered cells); c = T̃ · L as a weighted ``embedding_bag`` instead of
+the CSR product: 1.7× slower; the referenced-face mask as a compiled scatter: no gain.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
@@ -37,19 +56,22 @@ import torch
 import torch.nn.functional as Fnn
 from torch import Tensor
 
+from methods.core.fused import fused, map_rows
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "shade", "CHUNK", "MAX_WINDOW",
-           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance"]
+           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
+           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
+           "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
 
 # Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
 # exact path instead of growing every window.
 MAX_WINDOW = 16
-# Samples per block of the per-sample stage: its temporaries ((3, CHUNK) arrays) stay in cache and
-# below the allocator's threshold for fresh pages (full-size temporaries of a 256² × 4 frame cost
-# more in page faults than in arithmetic).
+# Samples per block of the eager referenced-face pass of `InOut._view_setup`: its temporaries stay
+# in cache and below the allocator's threshold for fresh pages (the compiled per-sample stage takes
+# `sample_block` samples per block).
 CHUNK = 1 << 15
 # The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
@@ -94,6 +116,7 @@ class FastStatic:
     regions: one `FastRegion` per precomputed region (a *slot*); voff: the S + 1 offsets of the
         slots' vertices in the concatenation of their local ids (a *concatenated id*).
     face_gl: (3, M) int32 concatenated ids of each face's vertices (in its region's slot);
+        face_rows: (M, 3) the same, row per face (the compiled stage's gather, `shade_rows`);
     face_region: (M,) int64 the scene region index of each face.
     pos: (ΣVr, 3) float32 vertex positions, frames: (ΣVr, 3, 3) world → local rows (s, t, n) of
         the vertex normals (`core.frames.frame_matrix`), K: (ΣVr,) int64 the terms of each vertex's
@@ -104,6 +127,7 @@ class FastStatic:
     regions: list[FastRegion]
     voff: list[int]
     face_gl: Tensor
+    face_rows: Tensor
     face_region: Tensor
     pos: Tensor
     frames: Tensor
@@ -193,39 +217,48 @@ def choose_window(hist: Tensor, k_total: float, max_window: int = MAX_WINDOW) ->
     return int(Ws[int(torch.argmin(cost))])
 
 
+def _window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, W: int) -> Tensor:
+    """X (m, W, W, 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node windows (first column ax,
+    first row ay, (m,) int32 each) of the vertices ``ref`` (m,) (local ids), for ``core.fused``: the
+    table rows gathered inside the K-term reduction (nothing of size m·W²·3K is formed); sh_nc
+    (R²·3, K) rows (node, colour), c (Vr, 3, K)."""
+    o = torch.arange(W, device=ax.device)
+    nodes = (ay.long()[:, None, None] + o[None, :, None]) * R + ax.long()[:, None, None] + o[None, None, :]
+    rows = nodes[..., None] * 3 + torch.arange(3, device=ax.device)                  # (m, W, W, 3)
+    return (sh_nc[rows] * c[ref.long()][:, None, None]).sum(-1)
+
+
+window_rows = fused(_window_rows)
+# Vertices per static block of `window_rows` (``core.fused.map_rows``: the padding of the last block is
+# at most this minus one rows; `_outliers` takes `sample_block` entries per block).
+WINDOW_BLOCK = 512
+
+
 def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int) -> Tensor:
-    """X (3, m·W²) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node window (first column ax,
-    first row ay, (m,) each; row-major in the window) of each vertex ``ref`` (m,) (local ids), as one
-    sampled dense-dense product (``torch.sparse.sampled_addmm``: only the windows' entries of the
-    product c · σh): rows (vertex, colour) of c (Vr, 3, K), columns (node, colour) of ``fr.sh_nc``."""
-    m, R, K = ref.numel(), fr.R, fr.K
-    dev = ref.device
+    """X (m·W², 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node window (first column ax,
+    first row ay, (m,) each; row-major in the window) of each vertex ``ref`` (m,) (local ids), node-major:
+    the compiled `window_rows` over static blocks of `WINDOW_BLOCK` vertices; c (Vr, 3, K)."""
+    m = ref.numel()
     if m == 0:
-        return torch.zeros(3, 0, dtype=c.dtype, device=dev)
-    o = torch.arange(W, device=dev)
-    nodes = ((ay.long()[:, None, None] + o[None, :, None]) * R + ax.long()[:, None, None]
-             + o[None, None, :]).reshape(m, 1, W * W)
-    cols = (nodes * 3 + torch.arange(3, device=dev)[None, :, None]).reshape(-1)     # rows (i, c), W² each
-    crow = torch.arange(0, m * 3 * W * W + 1, W * W, device=dev)
-    pattern = torch.sparse_csr_tensor(crow, cols, torch.zeros(cols.numel(), dtype=c.dtype, device=dev),
-                                      size=(m * 3, R * R * 3), check_invariants=False)
-    A = c.index_select(0, ref).reshape(m * 3, K)
-    Xv = torch.sparse.sampled_addmm(pattern, A, fr.sh_nc.T, beta=0.0).values()     # (m·3·W²,)
-    return Xv.view(m, 3, W * W).transpose(0, 1).reshape(3, m * W * W)
+        return torch.zeros(0, 3, dtype=c.dtype, device=ref.device)
+    torch._dynamo.maybe_mark_dynamic(c, 0)              # the region's vertex count: one variant per K, W
+    X = map_rows(window_rows, [ax, ay, ref], (fr.sh_nc, c, fr.R, W), chunk=WINDOW_BLOCK)
+    return X.reshape(m * W * W, 3)
 
 
 @dataclass
 class Windows:
     """A frame's products X on the windows of its referenced vertices (`prepare`).
 
-    W: window side (even); win: (3, ΣVr) int32 per concatenated vertex id the window's first
+    W: window side (even); win: (ΣVr, 3) int32 per concatenated vertex id the window's first
     column, first row and the offset of its W² nodes in X (0 for unreferenced vertices);
-    XT: (3, Σ m W²) float32 X channels first, the slots' windows one after the other.
+    X: (max(Σ m W², W²), 3) float32 node-major, the slots' windows one after the other (zero rows
+    added when no vertex is referenced: the compiled stage reads in-range rows for every sample).
     """
 
     W: int
     win: Tensor
-    XT: Tensor
+    X: Tensor
 
 
 def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor | None
@@ -246,66 +279,177 @@ def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face
     return gl, bw, lut_cell_xyz(*wl, st.R, index_dtype=torch.int32), front
 
 
-def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, gl: Tensor, bw: Tensor, iu: Tensor,
-            iv: Tensor, scale: float, max_window: int = MAX_WINDOW) -> Windows:
+def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
+                    anchor: Tensor, Kv: Tensor, R: int, cap: int) -> tuple[Tensor, Tensor]:
+    """Per sample–vertex entry of q samples (the `sample_inputs` arithmetic, for ``core.fused``): the
+    Chebyshev distance (q, 3) int64 of the sample's table cell from its vertex's anchor cell
+    (``anchor`` (ΣVr, 2) int32), capped at ``cap``, and the entry's weight in `choose_window`'s
+    histogram (q, 3) float64: the vertex's K where the entry is shaded (β_j ≠ 0, ω_o above the
+    horizon, live), else 0. face < 0 is clamped (a miss: not live)."""
+    x, y, z = sample_frame(normal, wo)
+    front = (z > 0) & live
+    iu, iv, _, _ = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
+    g = face_rows[face.clamp_min(0)]                                            # (q, 3)
+    a = anchor[g]                                                               # (q, 3, 2)
+    d = torch.maximum((iu[:, None] - a[..., 0]).abs(), (iv[:, None] - a[..., 1]).abs()).clamp(max=cap)
+    u, v = bary[:, 0], bary[:, 1]
+    fw = front.to(u.dtype)
+    bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw], -1)
+    return d.long(), Kv[g].double() * (bw != 0).double()
+
+
+window_entries = fused(_window_entries)
+
+
+def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple, scale: float,
+            max_window: int = MAX_WINDOW) -> Windows:
     """The frame's `Windows`: anchors of the referenced vertices ``ref`` (m,) (concatenated ids,
     ascending) towards the camera cam (3,), the window side from the entries of a subsample of the
-    frame's samples (gl, bw (3, q), cells iu, iv (q,); each standing for ``scale`` samples), and X
-    = the windows' products with the c of each slot (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
+    frame's samples (``sub`` = their normal, wo, bary, face (< 0: a miss), live; each standing for
+    ``scale`` samples; `window_entries`), and X = the windows' products with the c of each slot
+    (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
     R, dev, n_all, m = st.R, ref.device, st.voff[-1], ref.numel()
     au, av = anchors(st, ref, cam)
-    a_all = torch.zeros(2, n_all, dtype=torch.int32, device=dev)
-    a_all[0, ref], a_all[1, ref] = au, av
+    a_all = torch.zeros(n_all, 2, dtype=torch.int32, device=dev)
+    a_all[ref] = torch.stack([au, av], 1)
     # window side: Chebyshev distance of the subsample's entries from their vertices' anchors
-    g = gl.reshape(-1)
-    d = torch.maximum((iu.repeat(3) - a_all[0].index_select(0, g)).abs_(),
-                      (iv.repeat(3) - a_all[1].index_select(0, g)).abs_())
-    live = bw.reshape(-1) != 0
-    hist = torch.bincount(d.clamp_(max=max_window // 2)[live], weights=st.K.index_select(0, g[live]).double(),
-                          minlength=max_window // 2 + 1) * scale
+    cap = max_window // 2
+    for t in (a_all, st.face_rows, st.K):
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    d, w = map_rows(window_entries, list(sub), (st.face_rows, a_all, st.K, R, cap),
+                    chunk=sample_block(sub[0].shape[0]))
+    hist = torch.bincount(d.reshape(-1), weights=w.reshape(-1), minlength=cap + 1) * scale
     W = min(choose_window(hist, float(st.K[ref].sum()), max_window), R - R % 2)
     h = W // 2 - 1
-    win = torch.zeros(3, n_all, dtype=torch.int32, device=dev)
-    win[0, ref] = (au - h).clamp_(0, R - W)
-    win[1, ref] = (av - h).clamp_(0, R - W)
-    win[2, ref] = torch.arange(0, m * W * W, W * W, dtype=torch.int32, device=dev)
+    wr = torch.stack([(au - h).clamp_(0, R - W), (av - h).clamp_(0, R - W),
+                      torch.arange(0, m * W * W, W * W, dtype=torch.int32, device=dev)], 1)
+    win = torch.zeros(n_all, 3, dtype=torch.int32, device=dev)
+    win[ref] = wr
     b = [int(x) for x in torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()]
-    XT = torch.cat([view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], win[0, ref[b[s]:b[s + 1]]],
-                                 win[1, ref[b[s]:b[s + 1]]], W) for s, fr in enumerate(st.regions)], 1)
-    return Windows(W=W, win=win, XT=XT)
+    X = [view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], wr[b[s]:b[s + 1], 0], wr[b[s]:b[s + 1], 1], W)
+         for s, fr in enumerate(st.regions)]
+    if m == 0:
+        X.append(torch.zeros(W * W, 3, dtype=torch.float32, device=dev))
+    return Windows(W=W, win=win, X=torch.cat(X, 0))
 
 
-def shade(st: FastStatic, cs: list[Tensor], wins: Windows, gl: Tensor, bw: Tensor,
-          cell: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
-    """Eq. 4 at q samples (module docstring), channels first: gl, bw (3, q) and the cells (iu, iv,
-    fu, fv) (q,) of `sample_inputs`; cs[s] (Vr_s, 3, K_s) the c of slot s. Returns B (3, q)
-    (0 where bw is 0)."""
-    iu, iv, fu, fv = cell
-    W, win, XT = wins.W, wins.win, wins.XT
-    q = gl.shape[1]
-    flat = gl.reshape(-1)
-    dx = iu - win[0].index_select(0, flat).view(3, q)                            # (j, q)
-    dy = iv - win[1].index_select(0, flat).view(3, q)
-    inside = (torch.minimum(dx, dy) >= 0) & (torch.maximum(dx, dy) <= W - 2)
-    base = win[2].index_select(0, flat).view(3, q) + dy.clamp_(0, W - 2) * W + dx.clamp_(0, W - 2)  # first node
-    wi = bw * inside
+# Static blocks of the compiled per-sample stage (`shade_pixels`): the frame's shaded sample count
+# rounded up to a power of two within [MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK] (`sample_block`), so a
+# bench frame (256² × 4 samples) is one block (as PTT's sample stage: per-block launches and guards
+# cost more than the L2 residency of small blocks saves) and the compiled variants stay few.
+MIN_SAMPLE_BLOCK = 1 << 10
+MAX_SAMPLE_BLOCK = 1 << 18
+
+
+def sample_block(q: int) -> int:
+    """Samples per static block of `shade_pixels` for q shaded samples (`MAX_SAMPLE_BLOCK` comment)."""
+    return min(MAX_SAMPLE_BLOCK, max(MIN_SAMPLE_BLOCK, 1 << max(int(q) - 1, 0).bit_length()))
+
+
+def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
+                X: Tensor, R: int, W: int) -> tuple[Tensor, Tensor]:
+    """Eq. 4 (module docstring) at a block of n pixels × S sub-samples, every step of `sample_inputs`
+    and `shade` in one pass for ``core.fused`` (no per-sample intermediate leaves the block):
+    normal, wo (n, S, 3), bary (n, S, 2), face (n, S) int64 (< 0: a miss), live (n, S) bool;
+    face_gl (M, 3) int32 concatenated vertex ids of each face, win (ΣVr, 3) int32 each vertex's
+    window (first column, first row, offset in X; `Windows.win` transposed), X (N, 3) the windows'
+    products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
+    entries inside their windows, and per sample the bits j of the entries (vertex j) that are
+    shaded but outside their window (n, S) uint8: the caller adds those by the exact path."""
+    x, y, z = sample_frame(normal, wo)
+    front = (z > 0) & live                                                      # ρ = 0 below the horizon
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
+    g = face_gl[face.clamp_min(0)]                                              # (n, S, 3)
+    u, v = bary[..., 0], bary[..., 1]
+    fw = front.to(u.dtype)
+    beta = ((1.0 - u - v) * fw, u * fw, v * fw)
     gu, gv = 1 - fu, 1 - fv
-    wc = (gu * gv, fu * gv, gu * fv, fu * fv)                                   # bilinear weights, (q,) each
-    B = torch.zeros(3, q, dtype=bw.dtype, device=bw.device)
+    wc = (gu * gv, fu * gv, gu * fv, fu * fv)                                   # bilinear weights
+    Xf = X.reshape(-1)                          # node-major (N·3,): per channel, not per (n, S, 3) element
+    B = [None, None, None]                      # channels apart: a (.., 3) result would redo the indexing per channel
+    miss = torch.zeros_like(face, dtype=torch.uint8)
     for j in range(3):                                                          # B = Σ_j Σ_n β_j w_n X(v_j, n)
-        for wn, off in zip(wc, (0, 1, W, W + 1)):
-            B.addcmul_(XT.index_select(1, base[j] + off if off else base[j]), wi[j] * wn)
-    miss = torch.nonzero(bw != wi)                   # a weight outside its window: the exact path
-    if miss.numel():
-        j, k = miss[:, 0], miss[:, 1]
-        v = gl[j, k].long()
-        wcm = torch.stack([w[k] for w in wc], -1) * bw[j, k, None]
-        first = (iv * st.R + iu)[k].long()
+        wv = win[g[..., j]]                                                     # (n, S, 3)
+        dx, dy = iu - wv[..., 0], iv - wv[..., 1]
+        inside = (torch.minimum(dx, dy) >= 0) & (torch.maximum(dx, dy) <= W - 2)
+        base = (wv[..., 2] + dy.clamp(0, W - 2) * W + dx.clamp(0, W - 2)) * 3  # first node
+        wi = beta[j] * inside
+        for wn, off in zip(wc, (0, 3, 3 * W, 3 * W + 3)):
+            w = wi * wn
+            for c in range(3):
+                t = Xf[base + (off + c)] * w
+                B[c] = t if B[c] is None else B[c] + t
+        miss = miss | (((beta[j] != 0) & ~inside).to(torch.uint8) << j)
+    out = []
+    for c in range(3):                                                          # the box filter (GBuffer.resolve)
+        o = B[c][:, 0]
+        for s in range(1, B[c].shape[1]):
+            o = o + B[c][:, s]
+        out.append(o * (1.0 / B[c].shape[1]))
+    return torch.stack(out, -1), miss
+
+
+shade_rows = fused(_shade_rows)
+
+
+def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
+                  R: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`sample_inputs` of q samples for the exact path, for ``core.fused``: vertex ids (q, 3) int64,
+    barycentric weights (q, 3) (0 where not shaded), the 4 bilinear node weights (q, 4) and the
+    first node of the table cell (q,) int64. face < 0 is clamped (a miss: not live)."""
+    x, y, z = sample_frame(normal, wo)
+    front = (z > 0) & live
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R)
+    u, v = bary[:, 0], bary[:, 1]
+    fw = front.to(u.dtype)
+    bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw], -1)
+    gu, gv = 1 - fu, 1 - fv
+    return (face_rows[face.clamp_min(0)].long(), bw, torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1),
+            iv * R + iu)
+
+
+entry_inputs = fused(_entry_inputs)
+
+
+def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor, wo: Tensor, bary: Tensor,
+                 face: Tensor, live: Tensor, S2: int) -> Tensor:
+    """Eq. 4 at q = n·S2 samples (pixel-major, S2 sub-samples per pixel; normal, wo (q, 3), bary
+    (q, 2), face (q,) int64 (< 0: a miss), live (q,) bool), box-filtered → (n, 3): the compiled
+    `shade_rows` over static blocks of `sample_block` samples, then the entries outside their
+    windows from sh_lut and c (`_outliers`; their inputs recomputed by the compiled `entry_inputs`)."""
+    q = int(face.shape[0])
+    npx = q // S2
+    dev = wins.X.device
+    out = torch.empty(npx, 3, dtype=wins.X.dtype, device=dev)
+    miss = torch.empty(npx, S2, dtype=torch.uint8, device=dev)
+    rows = [t.unflatten(0, (npx, S2)) for t in (normal, wo, bary, face, live)]
+    P = max(1, sample_block(q) // S2)
+    for t in (wins.X, wins.win, st.face_rows):         # rows vary per frame / scene: one compiled variant
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    for a in range(0, npx, P):
+        blk = [t[a:a + P] for t in rows]
+        n = blk[0].shape[0]
+        if n < P:  # pad by repeating the last pixel (``core.fused.map_rows``); the padding is dropped
+            blk = [torch.cat([b, b[-1:].expand(P - n, *b.shape[1:])]) for b in blk]
+        o, mb = shade_rows(*blk, st.face_rows, wins.win, wins.X, st.R, wins.W)
+        out[a:a + n] = o[:n]
+        miss[a:a + n] = mb[:n]
+    k = miss.view(-1).nonzero(as_tuple=True)[0]
+    if k.numel():                                      # entries outside their windows: the exact path
+        sub = [t.index_select(0, k) for t in (normal, wo, bary, face, live)]
+        g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=sample_block(k.numel()))
+        bits = miss.view(-1).index_select(0, k)
+        e = ((bits[:, None] >> torch.arange(3, device=dev, dtype=torch.uint8)) & 1).nonzero()
+        i, j = e[:, 0], e[:, 1]
+        v = g[i, j]
+        wcm = wc.index_select(0, i) * (bw[i, j] * (1.0 / S2))[:, None]
+        first = cell.index_select(0, i)
+        px = k.index_select(0, i) // S2
         for s, fr in enumerate(st.regions):
             sel = ((v >= st.voff[s]) & (v < st.voff[s + 1])).nonzero(as_tuple=True)[0]
             if sel.numel():
-                B.index_add_(1, k[sel], _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel]).T)
-    return B
+                out.index_add_(0, px[sel], _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel]))
+    return out
 
 
 def vertex_radiance(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
@@ -316,17 +460,26 @@ def vertex_radiance(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tens
     return _outliers(fr, c, v, cell, wc)
 
 
+def _outlier_rows(v: Tensor, cell: Tensor, wc: Tensor, sh_nc: Tensor, c: Tensor, R: int) -> Tensor:
+    """Σ_n w_n Σ_k σ_k h_{k,c}(n) c_{v,k,c} over the 4 nodes n of each entry's cell, for ``core.fused``
+    (the 4 nodes unrolled, the table rows gathered inside the K-term reduction). v, cell (n,) int64
+    local vertex / first node; wc (n, 4) node weights; sh_nc (R²·3, K); c (Vr, 3, K) → (n, 3)."""
+    ch = torch.arange(3, device=v.device)
+    S = None
+    for i, off in enumerate((0, 1, R, R + 1)):
+        t = sh_nc[((cell + off) * 3)[:, None] + ch] * wc[:, i, None, None]         # (n, 3, K)
+        S = t if S is None else S + t
+    return (S * c[v]).sum(-1)
+
+
+outlier_rows = fused(_outlier_rows)
+
+
 def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
-    """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: one
-    sampled dense-dense product (rows (entry, colour) of c, columns the 4 nodes × that colour of
-    ``fr.sh_nc``). v, cell (n,) int64 local vertex / first node; wc (n, 4) node weights (β_j
-    folded in); c (Vr, 3, K) → (n, 3)."""
-    n, R, K = v.numel(), fr.R, fr.K
-    dev = v.device
-    nodes = cell[:, None] + torch.tensor([0, 1, R, R + 1], device=dev)                # (n, 4) ascending
-    cols = (nodes[:, None, :] * 3 + torch.arange(3, device=dev)[None, :, None]).reshape(-1)
-    crow = torch.arange(0, n * 12 + 1, 4, device=dev)
-    pattern = torch.sparse_csr_tensor(crow, cols, torch.zeros(cols.numel(), dtype=c.dtype, device=dev),
-                                      size=(n * 3, R * R * 3), check_invariants=False)
-    Xe = torch.sparse.sampled_addmm(pattern, c.index_select(0, v).reshape(n * 3, K), fr.sh_nc.T, beta=0.0)
-    return (Xe.values().view(n, 3, 4) * wc[:, None, :]).sum(-1)
+    """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: the
+    compiled `outlier_rows` over static blocks of `sample_block` entries. v, cell (n,) int64 local
+    vertex / first node; wc (n, 4) node weights (β_j folded in); c (Vr, 3, K) → (n, 3)."""
+    if v.numel() == 0:
+        return torch.zeros(0, 3, dtype=c.dtype, device=c.device)
+    torch._dynamo.maybe_mark_dynamic(c, 0)
+    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=sample_block(v.numel()))

@@ -462,6 +462,7 @@ class InOut(Method):
             K = torch.cat([torch.full((int(reg.verts.numel()),), reg.K, dtype=torch.int64, device=dev)
                            for reg in self.regions]) if self.regions else self.F.new_zeros(0)
             self._fast = _fast.FastStatic(regions=regions, voff=voff, face_gl=face_gl.T.contiguous(),
+                                          face_rows=face_gl.contiguous(),
                                           face_region=face_region,
                                           pos=V[verts].contiguous(), frames=frame_matrix(Nrm[verts]).contiguous(),
                                           K=K, R=Rs.pop() if Rs else 2)
@@ -515,46 +516,50 @@ class InOut(Method):
                    for s in range(len(self.regions))]
         k = _fast.WINDOW_SUBSAMPLE
         if sel is None:                       # strided views: the G-buffer's arrays need not be row-major
-            sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k].clamp_min(0), hit[::k])
+            sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k], hit[::k])
         else:
             i = sel[::k]
             sub = (gbuffer.normal.index_select(0, i), gbuffer.wo.index_select(0, i), gbuffer.bary.index_select(0, i),
-                   gbuffer.face.index_select(0, i), None)
-        gl, bw, (iu, iv, _, _), _ = _fast.sample_inputs(st, *sub)
+                   gbuffer.face.index_select(0, i), torch.ones(i.numel(), dtype=torch.bool, device=dev))
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        view.wins = _fast.prepare(st, view.cs, ref, cam, gl, bw, iu, iv, view.Q / max(gl.shape[1], 1))
+        view.wins = _fast.prepare(st, view.cs, ref, cam, sub, view.Q / max(sub[0].shape[0], 1))
         return view
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """The fast path (``methods.inout.fast``): the image of `_render_reference` to float32
         round-off; c_k computed only for the vertices the samples reference (`_view_setup`), the
-        per-sample stage in blocks of ``fast.CHUNK`` samples."""
+        per-sample stage one compiled pass over static blocks of samples (``fast.shade_pixels``)."""
         if self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["shading"] == "vertex":
             return self._render_vertex(frame, gbuffer)
         view = self._view_setup(frame, gbuffer)
-        st, sel, Q, dev = view.st, view.sel, view.Q, gbuffer.hit.device
-        P, S2 = gbuffer.num_samples, gbuffer.spp_side ** 2
-        img = torch.zeros(3, P // S2, dtype=torch.float32, device=dev)
-        front_all = torch.zeros(Q, dtype=torch.bool, device=dev)
-        cell_all = torch.zeros(Q, dtype=torch.int32, device=dev)
-        B_all = None if sel is None else torch.zeros(3, P, dtype=torch.float32, device=dev)
-        for a in range(0, Q, view.step):
-            b = min(Q, a + view.step)
-            normal, wo, bary, face, _, live = view.block(a, b)
-            gl, bw, cell, front = _fast.sample_inputs(st, normal, wo, bary, face, live)
-            B = _fast.shade(st, view.cs, view.wins, gl, bw, cell)              # (3, b − a)
-            front_all[a:b], cell_all[a:b] = front, cell[1] * st.R + cell[0]
-            if sel is None:                                                     # box filter (GBuffer.resolve)
-                img[:, a // S2:b // S2] = B.view(3, -1, S2).mean(-1)
-            else:
-                B_all.index_copy_(1, sel[a:b], B)
-        if sel is not None:
-            img = B_all.view(3, -1, S2).mean(-1)
-        self._last_view = (P, {"hit": int(gbuffer.hit.sum()), "front": front_all, "cell": cell_all,
-                               "face": gbuffer.face if sel is None else gbuffer.face[sel], "window": view.wins.W})
-        return img.view(3, gbuffer.height, gbuffer.width).permute(1, 2, 0).contiguous()
+        g, st, sel = gbuffer, view.st, view.sel
+        P, S2 = g.num_samples, g.spp_side ** 2
+        if sel is None:                                      # every sample, box-filtered per block
+            img = _fast.shade_pixels(st, view.cs, view.wins, g.normal, g.wo, g.bary, g.face, g.hit, S2)
+        else:                                                # the hits only, then the box filter
+            B = _fast.shade_pixels(st, view.cs, view.wins, g.normal.index_select(0, sel), g.wo.index_select(0, sel),
+                                   g.bary.index_select(0, sel), g.face.index_select(0, sel),
+                                   torch.ones(sel.numel(), dtype=torch.bool, device=sel.device), 1)
+            img = torch.zeros(P, 3, dtype=B.dtype, device=B.device).index_copy_(0, sel, B).view(-1, S2, 3).mean(1)
+        self._last_view = (P, {"gbuffer": g, "sel": sel, "window": view.wins.W})
+        return img.view(g.height, g.width, 3)
+
+    def _view_counts(self, last: dict) -> dict:
+        """What `frame_cost` counts of the last per-sample render (``last`` = its `_last_view` entry),
+        computed on first use (not in the timed frame): the hit count and, per shaded sample
+        (all P, or the hits ``sel``), whether ω_o is above its horizon (``front``), its table cell
+        (``cell``, first node) and its face."""
+        if "front" not in last:
+            g, sel, st = last["gbuffer"], last["sel"], self._fast_static()
+            idx = torch.arange(g.num_samples, device=g.hit.device) if sel is None else sel
+            face = g.face.index_select(0, idx)
+            _, _, (iu, iv, _, _), front = _fast.sample_inputs(
+                st, g.normal.index_select(0, idx), g.wo.index_select(0, idx), g.bary.index_select(0, idx),
+                face.clamp_min(0), g.hit.index_select(0, idx))
+            last.update(hit=int(g.hit.sum()), front=front, cell=iv * st.R + iu, face=face)
+        return last
 
     def _vertex_view(self, frame: Frame, gbuffer: GBuffer) -> dict[str, Any]:
         """Shading "vertex": what the view decides — the referenced vertices (those of the faces
@@ -679,6 +684,8 @@ class InOut(Method):
         if cfg["shading"] == "vertex":
             return self._frame_cost_vertex(P, light)
         last = self._last_view[1] if self._last_view is not None and self._last_view[0] == P else None
+        if last is not None:
+            last = self._view_counts(last)
         b = P * 3 * f4                                                   # output
         f = 0
         if last is not None:
