@@ -218,3 +218,20 @@ def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
         ref = m.render_reference(frame, gb)
         img = m.render(frame, gb)
         assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
+
+
+@pytest.mark.parametrize("C", [1, 3])
+def test_apply_lighting_equals_its_einsum(C):
+    """The per-channel matrix-vector products over channel-major transfer rows (`apply_lighting`,
+    the lighting stage's t·l and M l) = the einsum of the definition to float32 round-off, from
+    either memory layout."""
+    from methods.sh_prt.method import apply_lighting, apply_lighting_reference, channel_major
+
+    g = torch.Generator().manual_seed(0)
+    X, l = torch.randn(517, 16, C, generator=g), torch.randn(16, 3, generator=g)
+    want = apply_lighting_reference(X, l)
+    for x in (X, channel_major(X)):
+        got = apply_lighting(x, l)
+        assert got.shape == (3, 517)
+        assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+    assert channel_major(X).movedim(-1, 0).is_contiguous() and torch.equal(channel_major(X), X)
