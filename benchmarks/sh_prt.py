@@ -1,7 +1,7 @@
 """SH PRT frames against another checkout's code in one process, and what bounds them (issue 14).
 
     python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT [--scene creature] [--kinds V L E VL]
-                                [--frames 9] [--threads 1] [--micro] [--precompute-code DIR]
+                                [--frames 9] [--threads 1] [--bounces 0] [--micro] [--precompute-code DIR]
 
 Precomputes once (`benchmarks.common.precomputed`; ``--precompute-code DIR``: take the harness cache
 entry of the code in DIR — a change of run-time code only leaves the precomputed state the same),
@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--baseline", required=True, help="the checkout whose methods/sh_prt is the 'before'")
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--micro", action="store_true")
+    ap.add_argument("--bounces", type=int, default=0, help="interreflection passes rendered (`SHPRT.with_bounces`; "
+                    "the perf suite's cells: 0)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     if a.precompute_code:
@@ -56,7 +58,9 @@ def main(argv: list[str] | None = None) -> dict:
     Base = baseline_class("sh_prt", a.baseline)
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
     m, _ = precomputed(New, scene, cfg)
-    out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "threads": a.threads, "load": os.getloadavg()}
+    m = m.with_bounces(a.bounces)
+    out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "bounces": a.bounces, "threads": a.threads,
+                 "load": os.getloadavg()}
     bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
     kinds, last = {}, {}
     for kind in a.kinds:
@@ -96,7 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
         out["micro"] = micro(last["m"], last["frames"], last["gb"], B, Pk)
     out["load_end"] = os.getloadavg()
     print(json.dumps(out, indent=1, default=float))
-    print(f"\nsh_prt {a.config} {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
+    print(f"\nsh_prt {a.config} bounces {a.bounces}, {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
           f"{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
     print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6} "
           f"{'MB':>6} {'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
@@ -133,7 +137,7 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
         nb = X.numel() * X.element_size()
         res[f"light: {name}·l"] = {"ms": t_new, "MB": nb / 1e6, "GB/s": nb / t_new / 1e6, "einsum ms": t_ref,
                                    "stream-read ms": ms(lambda: X.sum()), "triad GB/s": B / 1e9}
-    res["light: corner table"] = {"ms": ms(lambda: m._e[m.F].reshape(-1, 9))}
+    res["light: corner table"] = {"ms": ms(lambda: m._e.contiguous().index_select(0, m.F.view(-1)).view(-1, 9))}
     S2, n = gb.spp_side ** 2, gb.height * gb.width
     face, bary, hit, normal, wo, reg = gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region
     rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3), reg.view(n, S2))

@@ -19,6 +19,20 @@ Run time (Sloan 2002 §7), per frame:
      without ρ) and G_l the lobe's convolution factors (Funk–Hecke; `zh.phong_factors`). Zero where
      n·ωo ≤ 0 (the BRDFs vanish there) and clamped at 0 (SH ringing).
 
+How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
+equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * t and M are stored channel-major (`channel_major`), so e and l' are one streaming
+    matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
+    block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
+    creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
+  * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
+    samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
+    of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
+    (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
+    The glossy pass bounds a V frame: ~150-225 ns per glossy sample (3 × 3 gathered n²-rows of l'
+    dotted with G y(R), 3-4 GFLOP/s of the counted flops); its per-sample index chains and the
+    (Qg, n²) y(R) buffer written with scattered stores dominate, not the arithmetic.
+
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
   * Phong (normalised, about R; Mahajan 2008 eq. 5): G_l = F_l(s), exact Phong factors.
@@ -131,21 +145,32 @@ def _glossy_samples(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: T
     return torch.stack(outs, -1)
 
 
-def channel_major(X: Tensor) -> Tensor:
-    """X (..., C) with its channel dimension outermost in memory (a (..., C) view of a contiguous
-    (C, ...) tensor; ``X`` itself when it already is): the layout `apply_lighting` streams."""
-    Xc = X.movedim(-1, 0)
-    return X if Xc.is_contiguous() else Xc.contiguous().movedim(0, -1)
+def lighting_major(X: Tensor) -> Tensor:
+    """X (rows..., n², C) with its channel and then its coefficient dimension outermost in memory
+    (a view of a contiguous (C, n², rows...) tensor; ``X`` itself when it already is so): the layout
+    in which `apply_lighting` contracts n² contiguous runs of rows."""
+    d = X.dim()
+    perm = (d - 1, d - 2, *range(d - 2))
+    Xp = X.permute(perm)
+    if Xp.is_contiguous():
+        return X
+    inv = [perm.index(k) for k in range(d)]
+    return Xp.contiguous().permute(inv)
 
 
 def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     """Σ_i X[:, i, c] l[i, c] of transfer rows X (N, n², C) — C = 3 (RGB transfer, bounces ≥ 1) or
     1 (grey, broadcast over the channels) — and the lighting l (n², 3): Sloan 2002 §7's t·l and M l,
-    channel-major (3, N). One matrix-vector product per channel over X in `channel_major` layout
-    (a streaming read of X; a batched or block-diagonal GEMM with 3 output columns ran 4-9× slower,
-    ``benchmarks/sh_prt.py --micro``); equals `apply_lighting_reference` to float32 round-off."""
-    Xc = channel_major(X).movedim(-1, 0)                                      # (C, N, n²) contiguous
-    return torch.stack([Xc[c if Xc.shape[0] > 1 else 0] @ l[:, c] for c in range(3)])
+    channel-major (3, N). With X in `lighting_major` layout ((C, n², N) in memory) this streams X
+    once: lᵀ X (C = 1, one GEMM with 3 output rows) or l_c X_c per channel. Measured on the
+    creature's M (1 thread, same process): C = 1 2.9 ms vs 4.4-6.2 for 3 GEMVs over (N, n²) rows and
+    9.8 for the (N, n²) × (n², 3) GEMM; C = 3 3.4-4.4 vs 4.3-4.8 and 17-25 for the einsum's batched
+    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off."""
+    Xp = lighting_major(X)
+    Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
+    if Xp.shape[0] == 1:
+        return l.T @ Xp[0]                                                    # (3, N)
+    return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
 
 
 def apply_lighting_reference(X: Tensor, l: Tensor) -> Tensor:
@@ -256,10 +281,10 @@ class SHPRT(Method):
 
     def _assemble(self) -> None:
         """t (V, n², C), M (Vg, n², n², C): the sum of the first ``bounces`` + 1 passes, stored
-        channel-major (`channel_major`, the layout `apply_lighting` streams)."""
+        (C, n², rows) (`lighting_major`, the layout `apply_lighting` streams)."""
         k = self.bounces + 1
-        self.t = channel_major(sum(self.t_parts[1:k], self.t_parts[0]) if k > 1 else self.t_parts[0])
-        self.M = channel_major(sum(self.M_parts[1:k], self.M_parts[0]) if k > 1 else self.M_parts[0])
+        self.t = lighting_major(sum(self.t_parts[1:k], self.t_parts[0]) if k > 1 else self.t_parts[0])
+        self.M = lighting_major(sum(self.M_parts[1:k], self.M_parts[0]) if k > 1 else self.M_parts[0])
         self._reset_cache()
 
     def with_bounces(self, bounces: int) -> "SHPRT":
@@ -299,13 +324,14 @@ class SHPRT(Method):
             return
         l = self.lighting(env).to(self.t.device)
         self._light = l
-        self.t, self.M = channel_major(self.t), channel_major(self.M)     # (no copy when built so)
+        self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
         self._e = apply_lighting(self.t, l).T                                     # (V, 3) t · l
         ng, n2 = self.M.shape[0], self.M.shape[1]
         lg = apply_lighting(self.M.reshape(ng * n2, *self.M.shape[2:]), l)        # (3, Vg·n²) M l
         self._lg3 = lg.view(3, ng, n2)                                            # (3, Vg, n²)
         self._lg = self._lg3.permute(1, 2, 0)                                     # (Vg, n², 3) view
-        self._ef = self._e[self.F.to(self._e.device)].reshape(-1, 9)              # (M, 9) e at the corners
+        F = self.F.to(self._e.device).view(-1)
+        self._ef = self._e.contiguous().index_select(0, F).view(-1, 9)            # (M, 9) e at the corners
         self._key = key
         self.stats["light"] += 1
 
