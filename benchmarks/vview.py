@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--kinds", nargs="+", default=["V"])
     ap.add_argument("--baseline", required=True)
     ap.add_argument("--precompute-code", default=None)
-    ap.add_argument("--micro", action="store_true", help="sh_prt: time the V frame's two kernels alone")
+    ap.add_argument("--micro", action="store_true", help="sh_prt: time the frame's stages alone")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     if a.precompute_code:
@@ -139,33 +139,11 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def micro_sh_prt(m, frame, gb, B: float, Pk: float) -> dict:
-    """The SH PRT V frame's dominant kernels alone on the frame's real sizes (process CPU ms, median
-    of 7 after a warm-up): the compiled diffuse pass over every sample (`_diffuse_samples`; its
-    compulsory bytes: face int64, bary, hit, normal, wo, region int64 read, (P, 3) written, the
-    per-vertex e) and the glossy stage on the glossy samples (`SHPRT._glossy`: y(R) eager + the
-    compiled `_glossy_rows`; flops (18 + 3 + 1 + 6)·n² per sample as `frame_cost`), each with its
-    achieved GB/s or GFLOP/s next to the machine's."""
-    from benchmarks.common import wall_cpu_time
-    from methods.core.fused import map_rows
-    from methods.sh_prt import method as shm
+    """The SH PRT frame's stages alone on the frame's real sizes, each with its achieved GB/s or
+    GFLOP/s next to the machine's (`benchmarks.sh_prt.micro`, which this defers to)."""
+    from benchmarks.sh_prt import micro
 
-    kd, ks, G, vcos = m._materials(frame)
-    F, gl = m.F, m.glossy_regions
-    rows = [gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region]
-    o, glossy = map_rows(shm._diffuse_samples, rows, (F, m._e, kd, gl))
-    g = glossy.nonzero().squeeze(-1)
-    vi = F.index_select(0, gb.face.index_select(0, g))
-    u, v = gb.bary.float().index_select(0, g).unbind(-1)
-    w = torch.stack([1.0 - u - v, u, v], -1)
-    n, wg, rg = gb.normal.float().index_select(0, g), gb.wo.float().index_select(0, g), gb.region.index_select(0, g)
-    P, n2 = gb.num_samples, m.order ** 2
-    t_d = wall_cpu_time(lambda: map_rows(shm._diffuse_samples, rows, (F, m._e, kd, gl)), 7)["cpu"]
-    t_g = wall_cpu_time(lambda: m._glossy(vi, w, n, wg, rg, ks, G, vcos, fast=True), 7)["cpu"]
-    b_d = P * (8 + 8 + 1 + 12 + 12 + 8 + 12 + 1) + m._e.numel() * 4
-    f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
-    return {"diffuse_pass": {"ms": 1e3 * t_d, "GB/s": b_d / t_d / 1e9, "triad GB/s": B / 1e9},
-            "glossy_stage": {"ms": 1e3 * t_g, "samples": float(g.numel()), "GFLOP/s": f_g / t_g / 1e9,
-                             "sgemm GFLOP/s": Pk / 1e9}}
+    return micro(m, [frame], gb, B, Pk)
 
 
 if __name__ == "__main__":

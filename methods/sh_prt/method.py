@@ -19,6 +19,20 @@ Run time (Sloan 2002 §7), per frame:
      without ρ) and G_l the lobe's convolution factors (Funk–Hecke; `zh.phong_factors`). Zero where
      n·ωo ≤ 0 (the BRDFs vanish there) and clamped at 0 (SH ringing).
 
+How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
+equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * t and M are stored channel-major (`channel_major`), so e and l' are one streaming
+    matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
+    block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
+    creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
+  * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
+    samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
+    of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
+    (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
+    The glossy pass bounds a V frame: ~150-225 ns per glossy sample (3 × 3 gathered n²-rows of l'
+    dotted with G y(R), 3-4 GFLOP/s of the counted flops); its per-sample index chains and the
+    (Qg, n²) y(R) buffer written with scattered stores dominate, not the arithmetic.
+
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
   * Phong (normalised, about R; Mahajan 2008 eq. 5): G_l = F_l(s), exact Phong factors.
@@ -38,6 +52,7 @@ hit points.
 from __future__ import annotations
 
 import copy
+import math
 import time
 
 import torch
@@ -61,35 +76,106 @@ MAX_BOUNCES = 2
 DEFAULT_ORDER = 5  # Sloan 2002: 25 coefficients, 25×25 matrices
 # G-buffer samples shaded per batch (bounds the (Q, 3, n², 3) interpolation temporaries).
 RENDER_CHUNK = 1 << 14
+# Static block sizes of the compiled passes (`methods.core.fused.map_rows`): samples per block of
+# `_pixels` and glossy samples per block of `_glossy_samples` (smaller: the last block is padded to
+# the full size, and a frame has some 10⁴ glossy samples). Few blocks: each call of a compiled
+# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame).
+PIXEL_CHUNK = 1 << 17
+GLOSSY_CHUNK = 1 << 13
 
 
 @fused
-def _diffuse_samples(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, F: Tensor,
-                     e: Tensor, kd: Tensor, glossy: Tensor) -> tuple[Tensor, Tensor]:
-    """ρ·e at Q G-buffer samples (Sloan 2002 §7), zero where the sample misses or n·ωo ≤ 0 (the BRDFs
-    vanish there; `SHPRT._render_fast` zeroes the glossy term alike, so the clamp at 0 of their sum
-    comes last): e Gouraud-interpolated from the per-vertex t·l (V, 3) at the vertices F (M, 3) of
-    the sample's face (face (Q,) int64, −1 on a miss; bary (Q, 2)), ρ = kd (R, 3) of its region reg
-    (Q,) int64 (−1 on a miss); hit (Q,) bool; normal, wo (Q, 3). Returns that (Q, 3) and which
-    samples are hits of a glossy region (glossy (R,) bool) → (Q,) bool."""
-    f = face.clamp_min(0)
-    r = reg.clamp_min(0)
-    u, v = bary[:, 0:1], bary[:, 1:2]
-    ev = e[F[f, 0]] * (1.0 - u - v) + e[F[f, 1]] * u + e[F[f, 2]] * v
-    o = kd[r] * ev
-    front = (normal * wo).sum(-1, keepdim=True) > 0
-    return torch.where(front & hit[:, None], o, torch.zeros((), dtype=o.dtype)), hit & glossy[r]
+def _pixels(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
+            kd: Tensor, glf: Tensor) -> tuple[Tensor, ...]:
+    """The box-filtered diffuse term ρ·e of the NON-glossy samples of n pixels (Sloan 2002 §7), one
+    (n,) tensor per colour channel: per sample e Gouraud-interpolated from the face-corner table ef
+    (M, 9) = e[F] (corner-major, `SHPRT._light_stage`), ρ = kd (R, 3) of its region, clamped at 0,
+    zero where it misses, n·ωo ≤ 0 or its region is glossy (glf (R,) 1.0: `_glossy_samples` shades
+    those samples whole); face (n, S²) int64 (−1 on a miss), bary (n, S², 2), hit (n, S²) bool, normal,
+    wo (n, S², 3), reg (n, S²) int64. The S² sub-samples are summed unrolled (one thread per pixel)
+    and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the three channels and then, per
+    sub-sample s, which pixels' sample s is a hit of a glossy region ((n,) bool each)."""
+    S2 = face.shape[1]
+    acc = [None, None, None]
+    glossy = []
+    for s in range(S2):
+        f, r = face[:, s].clamp_min(0), reg[:, s].clamp_min(0)
+        u, v = bary[:, s, 0], bary[:, s, 1]
+        w0 = 1.0 - u - v
+        gs = hit[:, s] & (glf[r] != 0)
+        keep = ((normal[:, s] * wo[:, s]).sum(-1) > 0) & hit[:, s] & ~gs
+        for c in range(3):
+            ev = ef[f, c] * w0 + ef[f, 3 + c] * u + ef[f, 6 + c] * v
+            x = torch.where(keep, (kd[r, c] * ev).clamp_min(0.0), 0.0)
+            acc[c] = x if acc[c] is None else acc[c] + x
+        glossy.append(gs)
+    return (acc[0] * (1.0 / S2), acc[1] * (1.0 / S2), acc[2] * (1.0 / S2), *glossy)
 
 
 @fused
-def _glossy_rows(g: Tensor, w: Tensor, yR: Tensor, lg: Tensor) -> Tensor:
-    """Σ_i yR_i (l')_i at Qg samples, l' = Σ_j w_j lg[g_j] Gouraud-interpolated from the per-vertex
-    M l (Vg, n², 3) (Sloan 2002 §6-7); the n² sum unrolled (one thread per sample) → (Qg, 3)."""
-    acc = None
-    for i in range(yR.shape[1]):
-        lq = lg[g[:, 0], i] * w[:, 0:1] + lg[g[:, 1], i] * w[:, 1:2] + lg[g[:, 2], i] * w[:, 2:3]
-        acc = yR[:, i:i + 1] * lq if acc is None else acc + yR[:, i:i + 1] * lq
-    return acc
+def _glossy_samples(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
+                    fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
+    """The whole radiance of Qg glossy samples g (Qg,) int64 (rows of the G-buffer arrays face, bary,
+    normal, wo, reg, as `_pixels`'): max(0, ρ·e + k_s Σ_i G_i y_i(R) (l')_i) (× n·ωo on Blinn-Phong,
+    `VIEW_COSINE_BRDFS`), zero where n·ωo ≤ 0 (Sloan 2002 §6-7) → (Qg, 3). e from the face-corner
+    table ef (M, 9); l' Gouraud-interpolated from the per-vertex M l in the channel-major layout lg3
+    (3, Vg, n²) at the glossy rows fg (M, 3) = gpos[F] of the face's corners; kd, ks (R, 3), G (R, n²),
+    vcos (R,) bool of the frame's materials (`SHPRT._materials`). Per channel, the three corners' rows
+    are dotted with G y(R) (contiguous n² reductions, fused into one loop) and then weighted: 1.3× the
+    speed of interpolating l' first and dotting once (same process, `/tmp` A/B of this session)."""
+    f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
+    u, v = bary[g, 0], bary[g, 1]
+    w0 = 1.0 - u - v
+    n, o = normal[g], wo[g]
+    front = (n * o).sum(-1) > 0
+    nn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    d = (nn * o).sum(-1, keepdim=True)
+    R = 2.0 * d * nn - o                                                        # reflect(ωo, n)
+    R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    order = math.isqrt(G.shape[1])
+    y = torch.stack(_sh.sh_terms(R[:, 0], R[:, 1], R[:, 2], order), -1) * G[r]   # (Qg, n²) G_l y_lm(R)
+    y = torch.where(vcos[r][:, None], y * d.clamp_min(0.0), y)                   # Blinn-Phong: × n·ωo
+    a, ec = fg[f], ef[f]
+    outs = []
+    for c in range(3):
+        spec = ((lg3[c][a[:, 0]] * y).sum(-1) * w0 + (lg3[c][a[:, 1]] * y).sum(-1) * u
+                + (lg3[c][a[:, 2]] * y).sum(-1) * v)                             # Σ_i y_i l'_i
+        e = ec[:, c] * w0 + ec[:, 3 + c] * u + ec[:, 6 + c] * v
+        outs.append(torch.where(front, kd[r, c] * e + ks[r, c] * spec, 0.0).clamp_min(0.0))
+    return torch.stack(outs, -1)
+
+
+def lighting_major(X: Tensor) -> Tensor:
+    """X (rows..., n², C) with its channel and then its coefficient dimension outermost in memory
+    (a view of a contiguous (C, n², rows...) tensor; ``X`` itself when it already is so): the layout
+    in which `apply_lighting` contracts n² contiguous runs of rows."""
+    d = X.dim()
+    perm = (d - 1, d - 2, *range(d - 2))
+    Xp = X.permute(perm)
+    if Xp.is_contiguous():
+        return X
+    inv = [perm.index(k) for k in range(d)]
+    return Xp.contiguous().permute(inv)
+
+
+def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
+    """Σ_i X[:, i, c] l[i, c] of transfer rows X (N, n², C) — C = 3 (RGB transfer, bounces ≥ 1) or
+    1 (grey, broadcast over the channels) — and the lighting l (n², 3): Sloan 2002 §7's t·l and M l,
+    channel-major (3, N). With X in `lighting_major` layout ((C, n², N) in memory) this streams X
+    once: lᵀ X (C = 1, one GEMM with 3 output rows) or l_c X_c per channel. Measured on the
+    creature's M (1 thread, same process): C = 1 2.9 ms vs 4.4-6.2 for 3 GEMVs over (N, n²) rows and
+    9.8 for the (N, n²) × (n², 3) GEMM; C = 3 3.4-4.4 vs 4.3-4.8 and 17-25 for the einsum's batched
+    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off."""
+    Xp = lighting_major(X)
+    Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
+    if Xp.shape[0] == 1:
+        return l.T @ Xp[0]                                                    # (3, N)
+    return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
+
+
+def apply_lighting_reference(X: Tensor, l: Tensor) -> Tensor:
+    """`apply_lighting` as the einsum of its definition (the test oracle)."""
+    return torch.einsum("nic,ic->cn", X, l)
 
 
 def lobe_factors(mat, order: int) -> Tensor:
@@ -143,7 +229,10 @@ class SHPRT(Method):
         self._key = None        # (data, version, to_world) of the cached per-vertex stage
         self._light = None      # (n², 3) world-frame lighting l
         self._e = None          # (V, 3) t_x · l
-        self._lg = None         # (Vg, n², 3) M_x l
+        self._lg = None         # (Vg, n², 3) M_x l (a view of _lg3)
+        self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
+        self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
+        self._fg = None         # (M, 3) rows of l' at each face's corners (gpos[F]; static)
         self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0}
 
@@ -191,10 +280,11 @@ class SHPRT(Method):
         self._assemble()
 
     def _assemble(self) -> None:
-        """t (V, n², C), M (Vg, n², n², C): the sum of the first ``bounces`` + 1 passes."""
+        """t (V, n², C), M (Vg, n², n², C): the sum of the first ``bounces`` + 1 passes, stored
+        (C, n², rows) (`lighting_major`, the layout `apply_lighting` streams)."""
         k = self.bounces + 1
-        self.t = sum(self.t_parts[1:k], self.t_parts[0]) if k > 1 else self.t_parts[0]
-        self.M = sum(self.M_parts[1:k], self.M_parts[0]) if k > 1 else self.M_parts[0]
+        self.t = lighting_major(sum(self.t_parts[1:k], self.t_parts[0]) if k > 1 else self.t_parts[0])
+        self.M = lighting_major(sum(self.M_parts[1:k], self.M_parts[0]) if k > 1 else self.M_parts[0])
         self._reset_cache()
 
     def with_bounces(self, bounces: int) -> "SHPRT":
@@ -225,13 +315,23 @@ class SHPRT(Method):
         return rotate_coeffs(self._l_local, R).float()                          # f(Rᵀd): to world
 
     def _light_stage(self, env) -> None:
+        """Per-vertex e = t·l (V, 3) and l' = M l (Vg, n², 3), cached until the lighting changes; each
+        product streams the transfer once (`apply_lighting`: a GEMV per channel), and the run-time layouts of
+        `_render_fast` are derived here: the face-corner table e[F] (M, 9); l' stays channel-major
+        (3, Vg, n²) as the GEMVs write it (``self._lg`` is a (Vg, n², 3) view of it)."""
         key = (env.data, env.data._version, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
         if self._key is not None and self._key[0] is key[0] and self._key[1:] == key[1:]:
             return
         l = self.lighting(env).to(self.t.device)
         self._light = l
-        self._e = torch.einsum("vic,ic->vc", self.t, l)                          # (V, 3) t · l
-        self._lg = torch.einsum("gijc,jc->gic", self.M, l)                       # (Vg, n², 3) M l
+        self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
+        self._e = apply_lighting(self.t, l).T                                     # (V, 3) t · l
+        ng, n2 = self.M.shape[0], self.M.shape[1]
+        lg = apply_lighting(self.M.reshape(ng * n2, *self.M.shape[2:]), l)        # (3, Vg·n²) M l
+        self._lg3 = lg.view(3, ng, n2)                                            # (3, Vg, n²)
+        self._lg = self._lg3.permute(1, 2, 0)                                     # (Vg, n², 3) view
+        F = self.F.to(self._e.device).view(-1)
+        self._ef = self._e.contiguous().index_select(0, F).view(-1, 9)            # (M, 9) e at the corners
         self._key = key
         self.stats["light"] += 1
 
@@ -258,9 +358,9 @@ class SHPRT(Method):
         return kd, ks, G, vcos
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
-        """Sloan 2002 §7 at the G-buffer's samples (`_render_fast`: the diffuse term of every sample in
-        one compiled pass, the glossy term on the glossy samples, `_glossy`); equals
-        `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
+        """Sloan 2002 §7 at the G-buffer's samples (`_render_fast`: the pixels' diffuse term in one
+        compiled pass, the glossy samples whole in another); equals `render_reference` (the per-chunk
+        eager `_shade`) to float32 round-off."""
         return self._render(frame, gbuffer, fast=True)
 
     def render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
@@ -288,28 +388,34 @@ class SHPRT(Method):
         return gbuffer.resolve(out)
 
     def _render_fast(self, gb: GBuffer, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
-        """`render_reference`'s image to float32 round-off: ρ·e of every sample (misses and back
-        faces 0) in one compiled pass over the G-buffer as it is (`_diffuse_samples`: no gather of the
-        hits), the glossy term (`_glossy`) on the glossy regions' hits only, gathered once and shaded
-        in one call (whole blocks of `map_rows`), added; then the clamp at 0 and the box filter."""
+        """`render_reference`'s image to float32 round-off in two compiled passes: every pixel's
+        box-filtered diffuse term of its non-glossy samples (`_pixels`, over static blocks of pixels;
+        the per-sample radiance is never written), and the whole radiance of the glossy regions' hits
+        (`_glossy_samples`, over static blocks of their indices), added to their pixels × 1/S²."""
         dev = self.t.device
-        F, gl = self.F.to(dev), self.glossy_regions.to(dev)
-        for x in (F, self._e, kd, gl):   # per-scene sizes: one compiled kernel serves all
+        S2 = gb.spp_side ** 2
+        n = gb.height * gb.width
+        if self._fg is None or self._fg.device != dev:
+            self._fg = self.gpos.to(dev)[self.F.to(dev)]                           # (M, 3) rows of l'
+        glf = self.glossy_regions.to(dev).float()
+        for x in (self._ef, self._fg, kd, ks, G, vcos, glf):  # per-scene sizes: one compiled kernel
             torch._dynamo.maybe_mark_dynamic(x, 0)
+        torch._dynamo.maybe_mark_dynamic(self._lg3, 1)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        o, glossy = map_rows(_diffuse_samples, [face, bary, hit, normal, wo, reg], (F, self._e, kd, gl))
-        g = glossy.nonzero().squeeze(-1)
+        rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3),
+                reg.view(n, S2))
+        out = map_rows(_pixels, rows, (self._ef, kd, glf), chunk=max(1, PIXEL_CHUNK // S2))
+        img = torch.stack(out[:3], -1)                                            # (n, 3)
+        g = torch.stack(out[3:], -1).view(-1).nonzero().squeeze(-1)               # glossy hits, ascending
         if g.numel():
-            vi = F.index_select(0, face.index_select(0, g))                          # (Qg, 3)
-            u, v = bary.index_select(0, g).unbind(-1)
-            w = torch.stack([1.0 - u - v, u, v], -1)
-            n, wg = normal.index_select(0, g), wo.index_select(0, g)
-            sg = self._glossy(vi, w, n, wg, reg.index_select(0, g), ks, G, vcos, fast=True)
-            front = (n * wg).sum(-1, keepdim=True) > 0
-            o.index_add_(0, g, torch.where(front, sg, torch.zeros_like(sg)))
-        img = o.clamp_min_(0.0).view(gb.height, gb.width, gb.spp_side ** 2, 3).mean(2)
-        return img.to(gb.hit.device)
+            for x in (face, bary, normal, wo, reg):
+                torch._dynamo.maybe_mark_dynamic(x, 0)
+            args = (face, bary, normal, wo, reg, self._ef, self._fg, self._lg3, kd, ks, G, vcos)
+            vals = map_rows(_glossy_samples, [g], args, chunk=GLOSSY_CHUNK) * (1.0 / S2)
+            # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here)
+            img.scatter_add_(0, (g // S2)[:, None].expand(-1, 3), vals)
+        return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
                G: Tensor, vcos: Tensor) -> Tensor:
@@ -324,19 +430,16 @@ class SHPRT(Method):
         return torch.where(front, out, torch.zeros_like(out)).clamp_min(0.0)
 
     def _glossy(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, ks: Tensor, G: Tensor,
-                vcos: Tensor, fast: bool = False) -> Tensor:
-        """The glossy term k_s Σ_lm G_l (l')_lm y_lm(R) at Qg glossy samples (arguments as `_shade`'s;
-        ``fast``: l' interpolated and dotted with G y(R) in one compiled pass, `_glossy_rows`)."""
+                vcos: Tensor) -> Tensor:
+        """The glossy term k_s Σ_lm G_l (l')_lm y_lm(R) at Qg glossy samples (arguments as `_shade`'s)."""
         g = self.gpos[vi]                                                          # (Qg, 3)
-        lq = None if fast else (self._lg[g] * w[..., None, None]).sum(1)          # (Qg, n², 3) l'
+        lq = (self._lg[g] * w[..., None, None]).sum(1)                            # (Qg, n², 3) l'
         nn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         R = reflect(wo, nn)
         R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         yR = _sh.sh_eval(R, self.order) * G[reg]                                   # (Qg, n²) G_l y_lm(R)
         c = (nn * wo).sum(-1, keepdim=True).clamp_min(0.0)
         yR = torch.where(vcos[reg][:, None], yR * c, yR)                           # Blinn-Phong: × n·ωo
-        if fast:
-            return ks[reg] * map_rows(_glossy_rows, [g, w, yR], (self._lg,))
         return ks[reg] * torch.einsum("qi,qic->qc", yR, lq)                        # §6 eq. of L_o
 
     # -- accounting -------------------------------------------------------------------------------

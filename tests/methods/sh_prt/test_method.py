@@ -218,3 +218,24 @@ def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
         ref = m.render_reference(frame, gb)
         img = m.render(frame, gb)
         assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
+
+
+@pytest.mark.parametrize("C", [1, 3])
+def test_apply_lighting_equals_its_einsum(C):
+    """The lighting stage's t·l and M l (`apply_lighting`: products over transfer rows stored
+    (C, n², rows)) = the einsum of the definition to float32 round-off, from either memory layout,
+    for the (V, n², C) vectors and the (Vg, n², n², C) matrices viewed as rows."""
+    from methods.sh_prt.method import apply_lighting, apply_lighting_reference, lighting_major
+
+    g = torch.Generator().manual_seed(0)
+    l = torch.randn(16, 3, generator=g)
+    X, M = torch.randn(517, 16, C, generator=g), torch.randn(37, 16, 16, C, generator=g)
+    for rows in (X, lighting_major(X), lighting_major(M).reshape(37 * 16, 16, C)):
+        want = apply_lighting_reference(rows.contiguous(), l)
+        got = apply_lighting(rows, l)
+        assert got.shape == (3, rows.shape[0])
+        assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+    for T in (X, M):
+        L = lighting_major(T)
+        assert torch.equal(L, T) and L.permute(L.dim() - 1, L.dim() - 2, *range(L.dim() - 2)).is_contiguous()
+        assert lighting_major(L) is L

@@ -1,0 +1,164 @@
+"""SH PRT frames against another checkout's code in one process, and what bounds them (issue 14).
+
+    python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT [--scene creature] [--kinds V L E VL]
+                                [--frames 9] [--threads 1] [--bounces 0] [--micro] [--precompute-code DIR]
+
+Precomputes once (`benchmarks.common.precomputed`; ``--precompute-code DIR``: take the harness cache
+entry of the code in DIR — a change of run-time code only leaves the precomputed state the same),
+gives the state to this tree's `SHPRT` and to the baseline's (its ``methods/sh_prt/method.py``
+imported under another name, `benchmarks.vview.baseline_class`), renders each kind's frames
+alternating which goes first, frames 0–1 untimed, and prints per kind the medians of process CPU
+and wall time, their ratio, the roofline efficiency of the new code (its ``frame_cost``, the machine
+limits measured in the run) and max |new − reference| / max |reference| (`render_reference`).
+
+``--micro``: each stage of the new code alone on the last frame's real sizes (median of 7 after a
+warm-up, process CPU ms), with its achieved GB/s or GFLOP/s next to the machine's:
+  light  project (E frames: SH of the env map), rotate (L: the cached coefficients), t·l and M l
+         (`apply_lighting`; bytes: t or M streamed once; also the einsum it replaced), the face-corner
+         table e[F];
+  view   the per-pixel diffuse pass (`_pixels`; bytes: the G-buffer inputs, region and the pixels
+         written), the glossy selection (nonzero of the pass's flags), the glossy pass (`_glossy_samples`: ns
+         per glossy sample and GFLOP/s of the counted (18 + 3 + 1 + 6)·n² flops per sample).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import statistics
+import time
+
+import torch
+
+from benchmarks.common import frame_args, machine_limits, precomputed, setup, wall_cpu_time
+from benchmarks.vview import baseline_class
+from reports import measure
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = frame_args(argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter),
+                    scene="creature", frames=9, kinds=("V", "L", "E", "VL"))
+    ap.set_defaults(threads=1)
+    ap.add_argument("--baseline", required=True, help="the checkout whose methods/sh_prt is the 'before'")
+    ap.add_argument("--precompute-code", default=None)
+    ap.add_argument("--micro", action="store_true")
+    ap.add_argument("--bounces", type=int, default=0, help="interreflection passes rendered (`SHPRT.with_bounces`; "
+                    "the perf suite's cells: 0)")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+    from methods.sh_prt.method import SHPRT as New
+
+    cfg = json.loads(a.config)
+    Base = baseline_class("sh_prt", a.baseline)
+    scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
+    m, _ = precomputed(New, scene, cfg)
+    m = m.with_bounces(a.bounces)
+    out: dict = {"scene": a.scene, "size": a.size, "config": cfg, "bounces": a.bounces, "threads": a.threads,
+                 "load": os.getloadavg()}
+    bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
+    kinds, last = {}, {}
+    for kind in a.kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
+        new = copy.copy(m)
+        new._reset_cache()
+        base = copy.copy(new)
+        base.__class__ = Base
+        ref = copy.copy(new)
+        t = {"new": ([], []), "base": ([], [])}
+        err = 0.0
+        for i, (f, g) in enumerate(zip(frames, gbs)):
+            for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
+                mm = new if which == "new" else base
+                t0, c0 = time.perf_counter(), time.process_time()
+                img = mm.render(f, g)
+                w, c = time.perf_counter() - t0, time.process_time() - c0
+                if i >= 2:
+                    t[which][0].append(w)
+                    t[which][1].append(c)
+                if which == "new":
+                    rimg = ref.render_reference(f, g)
+                    err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
+        r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
+        cost = new.frame_cost(kind, gbs[-1].num_samples)
+        r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
+                 cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+        kinds[kind] = r
+        last = {"m": new, "frame": frames[-1], "gb": gbs[-1], "frames": frames}
+    B, Pk = machine_limits(out, bw, peak)
+    for r in kinds.values():
+        tmin = max(r["bytes"] / B, r["flops"] / Pk)
+        r["eff_new_wall"] = tmin / (r["new"]["wall_ms"] / 1e3)
+        r["eff_new_cpu"] = tmin / (r["new"]["cpu_ms"] / 1e3)
+    out["kinds"] = kinds
+    if a.micro:
+        out["micro"] = micro(last["m"], last["frames"], last["gb"], B, Pk)
+    out["load_end"] = os.getloadavg()
+    print(json.dumps(out, indent=1, default=float))
+    print(f"\nsh_prt {a.config} bounces {a.bounces}, {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
+          f"{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
+    print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6} "
+          f"{'MB':>6} {'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
+    for kind, r in kinds.items():
+        print(f"{kind:4} {r['base']['cpu_ms']:9.2f} {r['new']['cpu_ms']:8.2f} {r['cpu_ratio']:6.2f} "
+              f"{r['base']['wall_ms']:9.2f} {r['new']['wall_ms']:8.2f} {r['wall_ratio']:6.2f} {r['bytes'] / 1e6:6.1f} "
+              f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
+    for k, v in out.get("micro", {}).items():
+        print(f"micro {k:22}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
+    return out
+
+
+def micro(m, frames, gb, B: float, Pk: float) -> dict:
+    """The stages of `SHPRT.render` alone on the frame's real sizes (module docstring)."""
+    from methods.core import sh as _sh
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm
+
+    ms = lambda fn: 1e3 * wall_cpu_time(fn, 7)["cpu"]  # noqa: E731
+    frame = frames[-1]
+    env = frame.envmap
+    m._light_stage(env)
+    kd, ks, G, vcos = m._materials(frame)
+    res: dict = {}
+    data = env.data.double()
+    res["light: project"] = {"ms": ms(lambda: _sh.project_latlong(data, m.order)), "texels": float(data.shape[0] * data.shape[1])}
+    res["light: rotate"] = {"ms": ms(lambda: m.lighting(env))}
+    l = m._light
+    ng, n2 = m.M.shape[0], m.M.shape[1]
+    Mr = m.M.reshape(ng * n2, *m.M.shape[2:])
+    for name, X in (("t", m.t), ("M", Mr)):
+        t_new = ms(lambda: shm.apply_lighting(X, l))
+        t_ref = ms(lambda: shm.apply_lighting_reference(X, l))
+        nb = X.numel() * X.element_size()
+        res[f"light: {name}·l"] = {"ms": t_new, "MB": nb / 1e6, "GB/s": nb / t_new / 1e6, "einsum ms": t_ref,
+                                   "stream-read ms": ms(lambda: X.sum()), "triad GB/s": B / 1e9}
+    res["light: corner table"] = {"ms": ms(lambda: m._e.contiguous().index_select(0, m.F.view(-1)).view(-1, 9))}
+    S2, n = gb.spp_side ** 2, gb.height * gb.width
+    face, bary, hit, normal, wo, reg = gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region
+    rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3), reg.view(n, S2))
+    glf = m.glossy_regions.float()
+    run_pix = lambda: map_rows(shm._pixels, rows, (m._ef, kd, glf), chunk=max(1, shm.PIXEL_CHUNK // S2))  # noqa: E731
+    t_pix = ms(run_pix)
+    P = gb.num_samples
+    b_pix = P * (8 + 8 + 1 + 12 + 12 + 8) + n * 12 + m._ef.numel() * 4
+    res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
+                                     "triad GB/s": B / 1e9}
+    out = run_pix()
+    res["view: glossy select"] = {"ms": ms(lambda: torch.stack(out[3:], -1).view(-1).nonzero())}
+    g = torch.stack(out[3:], -1).view(-1).nonzero().squeeze(-1)
+    args = (face, bary, normal, wo, reg, m._ef, m._fg, m._lg3, kd, ks, G, vcos)
+    t_g = ms(lambda: map_rows(shm._glossy_samples, [g], args, chunk=shm.GLOSSY_CHUNK))
+    f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
+    res["view: glossy samples"] = {"ms": t_g, "samples": float(g.numel()), "ns/sample": 1e6 * t_g / max(1, g.numel()),
+                                   "GFLOP/s": f_g / t_g / 1e6, "sgemm GFLOP/s": Pk / 1e9}
+    res["frame V (render)"] = {"ms": ms(lambda: m.render(frame, gb))}
+    return res
+
+
+if __name__ == "__main__":
+    main()
