@@ -72,11 +72,13 @@ def _configure_inductor() -> None:
     dc.fail_on_recompile_limit_hit = True
 
 
-def fused(fn: Callable) -> Callable:
+def fused(fn: Callable, *, options: dict | None = None) -> Callable:
     """``fn`` compiled with ``torch.compile`` on first use (module docstring); ``.eager`` is ``fn``.
 
     ``fn`` must be a pure tensor function (no Python side effects, no data-dependent Python control
-    flow) so that it compiles as one graph (``fullgraph=True``)."""
+    flow) so that it compiles as one graph (``fullgraph=True``). ``options``: Inductor settings for
+    this function only (``torch.compile(options=...)``), e.g. ``{"assert_indirect_indexing": False}``
+    for a kernel whose gather indices are clamped into range by construction."""
     state: dict = {"compiled": None, "failed": False}
 
     @functools.wraps(fn)
@@ -85,7 +87,7 @@ def fused(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
         if state["compiled"] is None:
             _configure_inductor()
-            state["compiled"] = torch.compile(fn, fullgraph=True, dynamic=False)
+            state["compiled"] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
         try:
             return state["compiled"](*args, **kwargs)
         except Exception as e:  # noqa: BLE001 — decided below: a compilation problem or bad input

@@ -940,7 +940,7 @@ def relight_flops(method, envmap, *, azimuthal: bool = False) -> int:
     per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
     (24) and its solid-angle-weighted accumulation (6); per frame the RGB forward transform
     (8 adds per 4 children per level: 8(K − 20)/3 per channel). ``azimuthal``: the map turns about
-    +Y only (`lighting.env_block_azimuthal`): the rotation is one add to the base u (1 + 24 + 6)."""
+    +Y only (`lighting.env_taps_azimuthal`): the rotation is one add to the base u (1 + 24 + 6)."""
     K, s = method.K, method.config["light_supersample"]
     per_sample = 31 if azimuthal else 45
     return int(method.grid.size * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
