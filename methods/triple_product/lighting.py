@@ -241,12 +241,13 @@ def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1
 
 # Samples per compiled block of `project_env` (`methods.core.fused.map_rows`): the F grid frames are
 # split into ceil(F·n·4^s / ENV_BLOCK_SAMPLES) equal blocks (one static shape per configuration; the
-# default grid's 544 frames at level 3, s = 2: 16 blocks of 34 frames). Few large blocks, because
+# default grid's 544 frames at level 3, s = 2: 8 blocks of 68 frames). Few large blocks, because
 # every call is an OpenMP region with barriers, and on this shared 2-core machine (load 10-12) a
 # barrier waits for a descheduled thread (2 threads, one kernel per block: 68 blocks of 8 frames
 # 1347 ms wall, 17 of 32 614 ms, 8 of 68 486 ms); the two kernels of a block (`env_taps`,
-# `quad_means`) pass 12 bytes per sample between them (8.4 MB per block of 34 frames).
-ENV_BLOCK_SAMPLES = 11 << 16
+# `quad_means`) pass 12 bytes per sample between them (16.7 MB per block of 68 frames; 1 thread,
+# blocks of 8 / 16 / 68 frames: 77 / 82 / 78 ms CPU, the same within the noise).
+ENV_BLOCK_SAMPLES = 3 << 19
 
 
 def env_block_frames(F: int, samples_per_frame: int) -> int:
