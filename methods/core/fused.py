@@ -80,7 +80,8 @@ def fused(fn: Callable, *, options: dict | None = None) -> Callable:
     this function only (``torch.compile(options=...)``), e.g. ``{"cpp.enable_tiling_heuristics":
     False}``: Inductor's heuristics otherwise leave a loop whose loads are all strided (the
     components of (Q, 3) arrays) scalar, with scalar libm transcendentals (measured 8x slower for
-    ``ptt.fast.mirror_uv``)."""
+    ``ptt.fast.mirror_uv``); or ``{"assert_indirect_indexing": False}`` for a kernel whose gather
+    indices are clamped into range by construction."""
     state: dict = {"compiled": None, "failed": False}
 
     @functools.wraps(fn)

@@ -259,6 +259,23 @@ def forward(f_fine: Tensor) -> Tensor:
     return torch.cat([s] + blocks[::-1], -1)
 
 
+def forward_butterfly(f_fine: Tensor) -> Tensor:
+    """`forward` with the sign matrix unrolled into sums and differences of the four children
+    (a + b ± (c + d), a − b ± (c − d), then × 1/4): the same coefficients to float32 round-off, as
+    element-wise passes that a compiled caller fuses (`triple_product.lighting.project_env`; the
+    eager `forward` is a (n, 4) @ (4, 3) product and a mean per level)."""
+    L = level_of_size(f_fine.shape[-1])
+    s = f_fine
+    blocks = []
+    for l in range(L - 1, -1, -1):
+        a, b, c, d = s.unflatten(-1, (n_triangles(l), 4)).unbind(-1)       # children a, b, c, d
+        p, q, r, t = a + b, c + d, a - b, c - d
+        # rows of `_SIGNS`: (a + b − c − d), (a − b + c − d), (a − b − c + d)
+        blocks.append(torch.stack(((p - q) * 0.25, (r + t) * 0.25, (r - t) * 0.25), -1).flatten(-2))
+        s = (p + q) * 0.25
+    return torch.cat([s] + blocks[::-1], -1)
+
+
 def scaling_pyramid(coeffs: Tensor) -> list[Tensor]:
     """Scaling coefficients (= averages over each triangle) of every level 0..L.
 

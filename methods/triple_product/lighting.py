@@ -242,10 +242,11 @@ def project_lighting(radiance, R: Tensor, geo: Geodesic, *, supersample: int = 1
 # Samples per compiled block of `project_env` (`methods.core.fused.map_rows`): the F grid frames are
 # split into ceil(F·n·4^s / ENV_BLOCK_SAMPLES) equal blocks (one static shape per configuration; the
 # default grid's 544 frames at level 3, s = 2: 8 blocks of 68 frames). Few large blocks, because
-# every call is an OpenMP region with three barriers, and on this shared 2-core machine (load 10-12)
-# a barrier waits for a descheduled thread: 2 threads, 68 blocks of 8 frames 1347 ms wall, 17 of 32
-# 614 ms, 8 of 68 486 ms; 1 thread: 160 / 140 ms CPU for 8 / 68 frames (the block's ~28 MB of
-# direction and (u, v) temporaries stream through L3 at no visible cost), 159 ms for 136.
+# every call is an OpenMP region with barriers, and on this shared 2-core machine (load 10-12) a
+# barrier waits for a descheduled thread (2 threads, one kernel per block: 68 blocks of 8 frames
+# 1347 ms wall, 17 of 32 614 ms, 8 of 68 486 ms); the two kernels of a block (`env_taps`,
+# `quad_means`) pass 12 bytes per sample between them (16.7 MB per block of 68 frames; 1 thread,
+# blocks of 8 / 16 / 68 frames: 77 / 82 / 78 ms CPU, the same within the noise).
 ENV_BLOCK_SAMPLES = 3 << 19
 
 
@@ -267,7 +268,7 @@ def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
 
 
 def _env_sample_planes(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
-    """`_env_samples` laid out for `env_block`: cp (3, 4^s, n) coordinate planes (sub-sample k of
+    """`_env_samples` laid out for `env_taps`: cp (3, 4^s, n) coordinate planes (sub-sample k of
     every fine triangle contiguous) and wT (4^s, n) (cached on ``geo``)."""
     cache = geo.__dict__.setdefault("_env_sample_planes", {})
     if supersample not in cache:
@@ -277,26 +278,45 @@ def _env_sample_planes(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]
     return cache[supersample]
 
 
-def env_block(R: Tensor, cp: Tensor, wT: Tensor, T: Tensor, planes: Tensor, H: int, W: int) -> Tensor:
-    """Fine-triangle means of the env map seen in f frames (`project_lighting` before its forward
-    transform, Ma 2006 eq. 7's L^x(ω) = L(R_x^T ω) averaged over each fine triangle): directions
-    R_f^T c in the world, then in the emitter frame (·T, T = to_world, as `EnvMap.to_local`), the
-    map's bilinear radiance (`scenes.envmap.bilinear_lookup`: `direction_to_uv`, `bilinear_taps`,
-    the same tap order), weighted by wT and summed over each triangle's 4^s samples in order.
+def env_taps(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The bilinear footprints (`methods.core.latlong.quad_taps`: idx int32, fx, fy, each (f, S, n))
+    of the env map seen in f frames at the projection's samples (Ma 2006 eq. 7's L^x(ω) = L(R_x^T ω)):
+    directions (R_f T)^T c in the emitter frame (T = to_world, as `EnvMap.to_local`; the two
+    rotations folded into one per frame), then `direction_to_uv` (atan2, acos).
+    R (f, 3, 3); cp (3, S, n) sample coordinate planes (`_env_sample_planes`); T (3, 3); H, W the
+    map's size. Every operand is a plane over the fine triangles: the compiled loop is vectorised
+    along them (atan2 / acos vectorised too)."""
+    from methods.core.latlong import quad_taps
 
-    Every operand is a plane over the fine triangles, so the compiled loop is vectorised along them
-    (16 triangles per AVX-512 vector) and the 4^s-term sum is an in-order reduction per output
-    (one thread each: thread-count independent). R (f, 3, 3); cp (3, S, n) sample coordinate planes,
-    wT (S, n) (`_env_sample_planes`); T (3, 3); planes (3, H·(W + 1)) the periodic-extended texels
-    as channel planes (``EnvMap.periodic_texels(planes=True)``); H, W the map's size.
-    Returns (f, 3, n)."""
-    from methods.core.latlong import planar_radiance
-
+    M = (R @ T)[:, :, :, None, None]                                       # (f, 3, 3, 1, 1)
     cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, S, n)
-    Rb = R[:, :, :, None, None]                                            # (f, 3, 3, 1, 1)
-    dw = [cx * Rb[:, 0, i] + cy * Rb[:, 1, i] + cz * Rb[:, 2, i] for i in range(3)]  # world R^T c (f, S, n)
-    d = [dw[0] * T[0, k] + dw[1] * T[1, k] + dw[2] * T[2, k] for k in range(3)]      # emitter frame
-    return torch.stack([(L * wT[None]).sum(1) for L in planar_radiance(*d, planes, H, W)], 1)  # (f, 3, n)
+    d = [cx * M[:, 0, k] + cy * M[:, 1, k] + cz * M[:, 2, k] for k in range(3)]  # emitter frame
+    u = torch.atan2(d[0], -d[2]) * (0.5 / math.pi)
+    v = torch.acos(d[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    return quad_taps(u, v, H, W)
+
+
+def _tree_sum(xs: list[Tensor]) -> Tensor:
+    """Σ xs pairwise ((x0 + x1) + (x2 + x3)) + …: a fixed order with independent adds (a running
+    sum is one chain of dependent vector adds)."""
+    while len(xs) > 1:
+        xs = [xs[i] + xs[i + 1] if i + 1 < len(xs) else xs[i] for i in range(0, len(xs), 2)]
+    return xs[0]
+
+
+def quad_means(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor) -> Tensor:
+    """Fine-triangle means of the map's bilinear radiance at footprints (idx, fx, fy) (f, S, n)
+    (`env_taps`): Σ_s wT[s] · bilinear(s) per frame, triangle and channel, from the quad rows Q
+    (H·(W + 1), 16) (`methods.core.latlong.quad_texels`; lanes: `quad_lanes`). Vectorised along each row (one vector
+    load per sample instead of 12 scalar ones); the S-term sum in a fixed pairwise order per
+    output (one thread each: thread-count independent). Returns (f, 3, n)."""
+    from methods.core.latlong import quad_lane_weights
+
+    terms = [Q[idx[:, s]] * (quad_lane_weights(fx[:, s], fy[:, s], lanes) * wT[s, :, None])  # (f, n, 16)
+             for s in range(idx.shape[1])]
+    acc = _tree_sum(terms)
+    return torch.stack([(acc[..., 4 * c] + acc[..., 4 * c + 1]) + (acc[..., 4 * c + 2] + acc[..., 4 * c + 3])
+                        for c in range(3)], 1)
 
 
 # -- lighting that turns about +Y (E frames: probes swapped at a random azimuth) ------------------------
@@ -337,60 +357,83 @@ def _azimuthal_samples(geo: Geodesic, supersample: int, grid: FrameGrid) -> tupl
     return cache[key]
 
 
-def env_block_azimuthal(shift: Tensor, base: Tensor, u0: Tensor, v0: Tensor, wT: Tensor, planes: Tensor,
-                        H: int, W: int) -> Tensor:
-    """`env_block` of f grid frames for an emitter turned about +Y (comment above): u = u0 + shift,
-    v = v0 of the frame's base row, then the same bilinear look-up and in-order weighted sum.
-    shift (f,) float64 (φ_j − γ)/2π mod 1; base (f,) int64 base row; u0 float64, v0 float32
-    (B, S, n) (`_azimuthal_samples`); wT (S, n); planes (3, H·(W + 1)). Returns (f, 3, n)."""
-    from methods.core.latlong import planar_bilinear
+def env_taps_azimuthal(shift: Tensor, base: Tensor, u0: Tensor, v0: Tensor, H: int, W: int
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+    """`env_taps` of f grid frames for an emitter turned about +Y (comment above): u = u0 + shift,
+    v = v0 of the frame's base row. shift (f,) float64 (φ_j − γ)/2π mod 1; base (f,) int64 base row;
+    u0 float64, v0 float32 (B, S, n) (`_azimuthal_samples`). Returns idx, fx, fy (f, S, n)."""
+    from methods.core.latlong import quad_taps
 
     u = (u0[base] + shift[:, None, None]).float()                          # (f, S, n), rounded once
-    return torch.stack([(L * wT[None]).sum(1) for L in planar_bilinear(u, v0[base], planes, H, W)], 1)
+    return quad_taps(u, v0[base], H, W)
 
 
-_env_block = None
-_env_block_azimuthal = None
+def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor
+                      ) -> tuple[Tensor, Tensor]:
+    """`quad_means` and their wavelet coefficients (`spherical_haar.forward_butterfly`), one compiled
+    graph per block: coefficients (f, 3, n), fine values (f, 3, n)."""
+    from methods.core.spherical_haar import forward_butterfly
+
+    fine = quad_means(idx, fx, fy, wT, Q, lanes)
+    return forward_butterfly(fine), fine
+
+
+# compiled with the index checks off: `quad_taps` clamps every index into the table
+_FUSE_OPTIONS = {"assert_indirect_indexing": False}
+_kernels: dict = {}
+
+
+def _kernel(fn):
+    """``fn`` through `methods.core.fused` (compiled on first use, `_FUSE_OPTIONS`)."""
+    from methods.core.fused import fused
+
+    if fn.__name__ not in _kernels:
+        _kernels[fn.__name__] = fused(fn, options=_FUSE_OPTIONS)
+    return _kernels[fn.__name__]
 
 
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None) -> tuple[Tensor, Tensor]:
-    """`project_lighting(envmap.radiance, R, geo, supersample)` at run time: the sampling, the env
-    look-ups and the per-triangle means of all frames in one compiled pass (`env_block` through
-    `methods.core.fused`, blocks of `env_block_frames` frames), then one float32 forward transform.
+    """`project_lighting(envmap.radiance, R, geo, supersample)` at run time, per block of
+    `env_block_frames` frames two compiled kernels (`methods.core.fused`): the samples' map
+    footprints (`env_taps`), then the per-triangle means from the map's quad rows and their float32
+    forward transform (`quad_means_coeffs`).
 
     Args: envmap (`scenes.envmap.EnvMap`); R (F, 3, 3) world→local rotations; geo; supersample;
         grid: the `FrameGrid` R was made from (``grid_frames(grid)``) or None — with it, a map turned
-        about +Y only (`azimuth_of`) takes the shifted base coordinates (`env_block_azimuthal`);
+        about +Y only (`azimuth_of`) takes the shifted base coordinates (`env_taps_azimuthal`);
         stats: receives ``"lighting_path"``, "azimuthal" or "general" (for `fast_eval.frame_cost`).
     Returns: coefficients (F, 3, K) float32 (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
-    global _env_block, _env_block_azimuthal
-    from methods.core.fused import fused, map_rows
-    from methods.core.spherical_haar import forward
+    from methods.core.fused import map_rows
+    from methods.core.latlong import quad_lanes, quad_texels
 
     if R.ndim != 3 or R.shape[1:] != (3, 3):
         raise ValueError(f"R must be (F, 3, 3), got {tuple(R.shape)}")
     if grid is not None and R.shape[0] != grid.size:
         raise ValueError(f"R has {R.shape[0]} frames, the grid {grid.size}")
-    if _env_block is None:
-        _env_block, _env_block_azimuthal = fused(env_block), fused(env_block_azimuthal)
     cp, wT = _env_sample_planes(geo, supersample)
     H, W = envmap.height, envmap.width
-    planes = envmap.periodic_texels(R.device, torch.float32, planes=True)
+    Q = quad_texels(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W)
+    lanes = quad_lanes(R.device)
     gamma = None if grid is None else azimuth_of(envmap.to_world)
     if stats is not None:
         stats["lighting_path"] = "general" if gamma is None else "azimuthal"
+    chunk = env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2])
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
         f = torch.arange(grid.size, device=R.device)
         j = f // grid.n_psi % grid.n_phi
         base = f // (grid.n_phi * grid.n_psi) * grid.n_psi + f % grid.n_psi
         shift = torch.remainder(j.double() / grid.n_phi - gamma / (2 * math.pi), 1.0)
-        fine = map_rows(_env_block_azimuthal, (shift, base), (u0.to(R.device), v0.to(R.device), wT, planes, H, W),
-                        chunk=env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2]))
-        return forward(fine), fine
-    fine = map_rows(_env_block, (R.float(),), (cp, wT, envmap.to_world.float(), planes, H, W),
-                    chunk=env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2]))  # (F, 3, n)
-    return forward(fine), fine
+        rows, taps, args = (shift, base), _kernel(env_taps_azimuthal), (u0.to(R.device), v0.to(R.device), H, W)
+    else:
+        rows, taps, args = (R.float(),), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
+    means = _kernel(quad_means_coeffs)
+
+    def block(*r):  # two compiled kernels per block of frames (a static shape each)
+        return means(*taps(*r, *args), wT, Q, lanes)
+
+    coef, fine = map_rows(block, rows, chunk=chunk)                       # (F, 3, n) each
+    return coef, fine

@@ -16,8 +16,9 @@ once because its lighting is fixed per session, so here it counts in the first f
   * the env map resampled in a grid of local frames ``frame_grid`` = (n_theta, n_phi, n_psi)
     (the paper: 32 × 16 normals × 32 tangents), truncated: `lighting.project_lighting` step by step
     (the reference evaluator, and truncated tables, whose "adaptive" selection must not see
-    round-off differences), else `lighting.project_env` — the same projection in one compiled
-    pass that also writes the fine values the fast path reads.
+    round-off differences), else `lighting.project_env` — the same projection compiled (per block of
+    grid frames the samples' map footprints, then one 64-byte quad row of the map per sample), which
+    also returns the fine values the fast path reads.
 Render:
   * ``shading="vertex"``: B per vertex (ωo = direction to the camera at the vertex, in the vertex's
     frame), barycentrically interpolated to the G-buffer samples (Gouraud; Ma 2006 §3.3 first
@@ -338,7 +339,7 @@ class TripleProduct(Method):
                 Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
                                          progress=self.progress)                # (F, 3, K)
                 self.stats["lighting_path"] = "general"
-            else:                                # one compiled pass (`lighting.project_env`)
+            else:                                # compiled (`lighting.project_env`)
                 Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
                                            grid=self.grid, stats=self.stats)
             self.L_idx, self.L_val = truncate(Lc, self._n(), cfg["selection"], self.level)

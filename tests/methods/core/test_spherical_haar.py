@@ -57,6 +57,17 @@ def test_round_trip_exact(level):
     torch.testing.assert_close(sh.forward(sh.inverse(c)), c, atol=F64_EXACT, rtol=0)
 
 
+@pytest.mark.parametrize("level", [0, 1, 3])
+def test_forward_butterfly_equals_forward(level):
+    """The unrolled forward transform (sums and differences of the children) = `forward` (float64 to
+    summation-order rounding, float32 to float32 round-off)."""
+    g = torch.Generator().manual_seed(level)
+    f = torch.randn(5, 3, sh.n_triangles(level), generator=g, dtype=torch.float64)
+    assert torch.allclose(sh.forward_butterfly(f), sh.forward(f), rtol=0, atol=1e-14)
+    f32 = f.float()
+    assert (sh.forward_butterfly(f32) - sh.forward(f32)).abs().max() <= 1e-6 * f32.abs().max()
+
+
 def test_orthogonality_gram_matrix():
     """Gram matrix in the equal-area measure (fine triangle area A_L) is diagonal with A_l."""
     L = 2

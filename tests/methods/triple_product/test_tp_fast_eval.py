@@ -198,7 +198,7 @@ def test_frame_cost_tiny_config(scene_frame, n):
     H, W = frame.envmap.data.shape[:2]
     S = 4 ** m.config["light_supersample"]               # sub-samples per fine triangle (default 2: 16)
     # the re-projection: per sample a rotation (15), the bilinear RGB look-up (24), the weighted sum
-    # (6); a map turned about +Y only (`lighting.env_block_azimuthal`) adds a shift to the base u (1)
+    # (6); a map turned about +Y only (`lighting.env_taps_azimuthal`) adds a shift to the base u (1)
     # instead of rotating, and reads the base coordinates (float64 u0 + float32 v0 per sample of the
     # n_theta·n_psi = 2 base frames)
     from methods.triple_product import lighting as lt
@@ -286,7 +286,7 @@ def test_project_env_equals_project_lighting():
 @pytest.mark.parametrize("grid", [(5, 8, 1), (4, 6, 3)])
 def test_project_env_azimuthal_equals_project_lighting(grid):
     """A map turned about +Y only (E frames) takes the shifted base coordinates
-    (`lighting.env_block_azimuthal`: no rotation, no atan2 / acos) = `project_lighting` to the look-up's
+    (`lighting.env_taps_azimuthal`: no rotation, no atan2 / acos) = `project_lighting` to the look-up's
     round-off (F32_LIGHT; measured ≤ 9.5e-6 of the largest coefficient on the bunny's unfiltered
     test map, which is sharper than any prefiltered one the method projects), with and without
     tangent angles; a tilted map keeps the general kernel."""
@@ -312,7 +312,7 @@ def test_project_env_azimuthal_equals_project_lighting(grid):
 
 
 def test_project_env_does_not_depend_on_threads(monkeypatch):
-    """`lighting.env_block` sums each output's samples in one thread: 1 and 2 threads agree bit for
+    """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
     from methods.core.spherical_haar import Geodesic
     from methods.core.threads import torch_threads

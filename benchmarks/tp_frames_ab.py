@@ -1,0 +1,101 @@
+"""Same-process A/B of TripleProduct frames: a baseline checkout's `methods/triple_product/lighting.py`
+and `fast_eval.py` (``--baseline``, e.g. a git worktree of main) against this tree's, on the same
+precomputed method (two copies), the same frames and G-buffers, alternating frame by frame; median
+process-CPU ms per frame (``--threads 1``; ``--wall`` for wall time), the ratio, max |new − old|
+relative to the image's maximum, and the roofline efficiency of the new frames with this run's
+machine limits (`benchmarks.common.machine_limits`).
+
+    python -m benchmarks.tp_frames_ab --baseline OTHER_CHECKOUT [--scene chess] [--shading vertex pixel]
+        [--kinds V L E] [--frames 8] [--threads 1] [--wall]
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import importlib.util
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def _load(root: str, name: str):
+    spec = importlib.util.spec_from_file_location(f"_baseline_tp_{name}", Path(root) / f"methods/triple_product/{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@contextlib.contextmanager
+def _swapped(lt, fe):
+    """`methods.triple_product.method` rendering with the baseline's lighting / fast_eval modules."""
+    import methods.triple_product.method as mm
+
+    old = mm.lt, mm.fast_eval
+    mm.lt, mm.fast_eval = lt, fe
+    try:
+        yield
+    finally:
+        mm.lt, mm.fast_eval = old
+
+
+def main(argv=None) -> dict:
+    from benchmarks.common import frame_args
+
+    ap = frame_args(argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter),
+                    scene="chess", frames=8)
+    ap.add_argument("--shading", nargs="+", default=["vertex", "pixel"])
+    ap.add_argument("--wall", action="store_true")
+    ap.add_argument("--baseline", required=True)
+    ap.set_defaults(threads=1)
+    a = ap.parse_args(argv)
+
+    from benchmarks.common import precomputed, setup
+    from methods.triple_product import TripleProduct
+    from reports import measure
+    from scenes.library import get_scene
+
+    torch.set_num_threads(a.threads)
+    old_lt = _load(a.baseline, "lighting")
+    old_fe = _load(a.baseline, "fast_eval")
+    old_fe.lt = old_lt
+    scene = get_scene(a.scene, a.size)
+    clock = time.perf_counter if a.wall else time.process_time
+    B, P = measure.triad_bandwidth(), measure.matmul_peak()
+    out = {"scene": a.scene, "threads": a.threads, "clock": "wall" if a.wall else "process_cpu",
+           "triad_gbs": B / 1e9, "matmul_gflops": P / 1e9}
+    for shading in a.shading:
+        m, _ = precomputed(TripleProduct, scene, {} if shading == "pixel" else {"shading": "vertex"})
+        base = copy.copy(m)
+        base.__dict__.pop("_perf_cache", None)
+        base.stats = {}
+        for kind in a.kinds:
+            _, frames, gbs, _ = setup(scene, kind=kind, n_frames=a.frames, seed=0, spp_side=a.spp_side)
+            with _swapped(old_lt, old_fe):
+                base._light_key = None
+                ref = base.render(frames[0], gbs[0])                    # warm-up (compiles, builds tables)
+            m._light_key = None
+            img = m.render(frames[0], gbs[0])
+            err = float((img - ref).abs().max() / ref.abs().max())
+            t_old, t_new = [], []
+            for f, g in zip(frames[1:], gbs[1:]):
+                with _swapped(old_lt, old_fe):
+                    t = clock(); base.render(f, g); t_old.append(clock() - t)
+                t = clock(); m.render(f, g); t_new.append(clock() - t)
+            mo, mn = statistics.median(t_old), statistics.median(t_new)
+            cost = m.frame_cost(kind, gbs[-1].num_samples)
+            eff, bound = measure.roofline(cost.bytes, cost.flops, B, P, mn)
+            r = {"old_ms": 1e3 * mo, "new_ms": 1e3 * mn, "ratio": mo / mn, "max_rel_diff": err,
+                 "mflop": cost.flops / 1e6, "mbytes": cost.bytes / 1e6, "roofline_new": eff, "bound": bound}
+            out[f"{shading}/{kind}"] = r
+            print(shading, kind, json.dumps(r), flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
