@@ -107,3 +107,43 @@ def roofline_columns(kinds: dict, labels: Sequence[str], B: float, Pk: float) ->
         for w in labels:
             r[f"{w}_efficiency"], r[f"{w}_bound"] = measure.roofline(r[f"{w}_bytes"], r[f"{w}_flops"], B, Pk,
                                                                      r[f"{w}_median_s"])
+
+
+def checkout_class(root: str, module: str, name: str):
+    """Class ``name`` of module ``module`` (e.g. ``"methods.ptt.method"``, ``"PTT"``) as the checkout at
+    ``root`` has it, imported beside this checkout's (its ``methods`` package under the same names,
+    then this checkout's modules restored): the 'before' of a same-process A/B."""
+    import importlib
+    import sys
+
+    def ours():
+        return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
+
+    mine = getattr(importlib.import_module(module), name)
+    saved = ours()
+    for k in saved:
+        del sys.modules[k]
+    sys.path.insert(0, root)
+    try:
+        importlib.import_module(module)  # the checkout's modules
+        mods = ours()
+    finally:
+        sys.path.remove(root)
+        for k in ours():
+            del sys.modules[k]
+        sys.modules.update(saved)
+    cls = getattr(mods[module], name)
+    if cls is mine or not mods[module].__file__.startswith(root):
+        raise RuntimeError(f"could not import the base {name} from {root}")
+    return cls
+
+
+def checkout_fingerprint(root: str, module: str) -> str:
+    """``reports.store.code_closure_fingerprint`` of ``module`` in the checkout at ``root`` (the key of its
+    precomputations in the harness's cache)."""
+    import subprocess
+    import sys
+
+    cmd = f"from reports.store import code_closure_fingerprint as f; print(f({module!r}))"
+    out = subprocess.run([sys.executable, "-c", cmd], cwd=root, capture_output=True, text=True, check=True)
+    return out.stdout.strip().splitlines()[-1]

@@ -29,12 +29,11 @@ import argparse
 import copy
 import json
 import statistics
-import sys
 import time
 
 import torch
 
-from benchmarks.common import frame_args, inout_regions, machine_limits, precomputed, setup, wall_cpu_time
+from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, inout_regions, machine_limits, precomputed, setup, wall_cpu_time
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -49,34 +48,12 @@ def _precomputed(scene, config: dict) -> tuple[InOut, float | None]:
 
 def base_class(root: str):
     """The InOut class of the ``methods`` package under ``root``, imported beside this checkout's."""
-    def ours():
-        return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
-
-    saved = ours()
-    for k in saved:
-        del sys.modules[k]
-    sys.path.insert(0, root)
-    try:
-        import methods.inout.method  # noqa: F401 — the base's modules
-        mods = ours()
-    finally:
-        sys.path.remove(root)
-        for k in ours():
-            del sys.modules[k]
-        sys.modules.update(saved)
-    cls = mods["methods.inout.method"].InOut
-    if cls is InOut or not mods["methods.inout.method"].__file__.startswith(root):
-        raise RuntimeError(f"could not import the base InOut from {root}")
-    return cls
+    return checkout_class(root, "methods.inout.method", "InOut")
 
 
 def base_fingerprint(root: str) -> str:
-    """``reports.store.code_closure_fingerprint`` of the in-out module of the checkout at ``root``."""
-    import subprocess
-
-    cmd = "from reports.store import code_closure_fingerprint as f; print(f('methods.inout.method'))"
-    out = subprocess.run([sys.executable, "-c", cmd], cwd=root, capture_output=True, text=True, check=True)
-    return out.stdout.strip().splitlines()[-1]
+    """``reports.store.code_closure_fingerprint`` of the InOut module of the checkout at ``root``."""
+    return checkout_fingerprint(root, "methods.inout.method")
 
 
 def _time(fn) -> float:

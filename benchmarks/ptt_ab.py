@@ -24,45 +24,22 @@ import argparse
 import copy
 import json
 import statistics
-import sys
 import time
 
 import torch
 
-from benchmarks.common import frame_args, machine_limits, precomputed, setup
+from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, machine_limits, precomputed, setup
 from methods.ptt.method import PTT
 
 
 def base_class(root: str):
     """The PTT class of the ``methods`` package under ``root``, imported beside this checkout's."""
-    def ours():
-        return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
-
-    saved = ours()
-    for k in saved:
-        del sys.modules[k]
-    sys.path.insert(0, root)
-    try:
-        import methods.ptt.method as base  # noqa: F401 — the base's modules
-        mods = ours()
-    finally:
-        sys.path.remove(root)
-        for k in ours():
-            del sys.modules[k]
-        sys.modules.update(saved)
-    cls = mods["methods.ptt.method"].PTT
-    if cls is PTT or not mods["methods.ptt.method"].__file__.startswith(root):
-        raise RuntimeError(f"could not import the base PTT from {root}")
-    return cls
+    return checkout_class(root, "methods.ptt.method", "PTT")
 
 
 def base_fingerprint(root: str) -> str:
     """``reports.store.code_closure_fingerprint`` of the PTT module of the checkout at ``root``."""
-    import subprocess
-
-    cmd = "from reports.store import code_closure_fingerprint as f; print(f('methods.ptt.method'))"
-    out = subprocess.run([sys.executable, "-c", cmd], cwd=root, capture_output=True, text=True, check=True)
-    return out.stdout.strip().splitlines()[-1]
+    return checkout_fingerprint(root, "methods.ptt.method")
 
 
 def as_class(m: PTT, cls) -> PTT:
