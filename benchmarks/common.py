@@ -147,3 +147,34 @@ def checkout_fingerprint(root: str, module: str) -> str:
     cmd = f"from reports.store import code_closure_fingerprint as f; print(f({module!r}))"
     out = subprocess.run([sys.executable, "-c", cmd], cwd=root, capture_output=True, text=True, check=True)
     return out.stdout.strip().splitlines()[-1]
+
+
+def ab_report(out: dict, kinds: dict, B: float, Pk: float, title: str, *, show_mb: bool = False) -> None:
+    """The end of a same-process A/B run (``benchmarks.vview``, ``benchmarks.sh_prt``): each kind's
+    roofline efficiency of the new code (``max(bytes / B, flops / Pk)`` over its wall and CPU time),
+    then the whole result as JSON and a table — base and new CPU / wall ms, their ratios, the
+    efficiencies, the largest relative image difference — and any ``out["micro"]`` lines.
+    ``kinds``: kind → {"base"/"new": {"wall_ms", "cpu_ms"}, bytes, flops, cpu_ratio, wall_ratio,
+    rel_err}; ``out`` gets ``kinds`` and ``load_end``."""
+    import json
+    import os
+
+    for r in kinds.values():
+        tmin = max(r["bytes"] / B, r["flops"] / Pk)
+        r["eff_new_wall"] = tmin / (r["new"]["wall_ms"] / 1e3)
+        r["eff_new_cpu"] = tmin / (r["new"]["cpu_ms"] / 1e3)
+    out["kinds"] = kinds
+    out["load_end"] = os.getloadavg()
+    print(json.dumps(out, indent=1, default=float))
+    print(f"\n{title}, load {out['load'][0]:.1f}→{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, "
+          f"sgemm {Pk / 1e9:.1f} GFLOP/s")
+    mb = f" {'MB':>6}" if show_mb else ""
+    print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6}{mb} "
+          f"{'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
+    for kind, r in kinds.items():
+        mb = f" {r['bytes'] / 1e6:6.1f}" if show_mb else ""
+        print(f"{kind:4} {r['base']['cpu_ms']:9.2f} {r['new']['cpu_ms']:8.2f} {r['cpu_ratio']:6.2f} "
+              f"{r['base']['wall_ms']:9.2f} {r['new']['wall_ms']:8.2f} {r['wall_ratio']:6.2f}{mb} "
+              f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
+    for k, v in out.get("micro", {}).items():
+        print(f"micro {k:22}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))

@@ -31,7 +31,7 @@ import time
 
 import torch
 
-from benchmarks.common import frame_args, machine_limits, precomputed, setup, wall_cpu_time
+from benchmarks.common import ab_report, frame_args, machine_limits, precomputed, setup, wall_cpu_time
 from benchmarks.vview import baseline_class
 from reports import measure
 
@@ -91,25 +91,10 @@ def main(argv: list[str] | None = None) -> dict:
         kinds[kind] = r
         last = {"m": new, "frame": frames[-1], "gb": gbs[-1], "frames": frames}
     B, Pk = machine_limits(out, bw, peak)
-    for r in kinds.values():
-        tmin = max(r["bytes"] / B, r["flops"] / Pk)
-        r["eff_new_wall"] = tmin / (r["new"]["wall_ms"] / 1e3)
-        r["eff_new_cpu"] = tmin / (r["new"]["cpu_ms"] / 1e3)
-    out["kinds"] = kinds
     if a.micro:
         out["micro"] = micro(last["m"], last["frames"], last["gb"], B, Pk)
-    out["load_end"] = os.getloadavg()
-    print(json.dumps(out, indent=1, default=float))
-    print(f"\nsh_prt {a.config} bounces {a.bounces}, {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
-          f"{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
-    print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6} "
-          f"{'MB':>6} {'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
-    for kind, r in kinds.items():
-        print(f"{kind:4} {r['base']['cpu_ms']:9.2f} {r['new']['cpu_ms']:8.2f} {r['cpu_ratio']:6.2f} "
-              f"{r['base']['wall_ms']:9.2f} {r['new']['wall_ms']:8.2f} {r['wall_ratio']:6.2f} {r['bytes'] / 1e6:6.1f} "
-              f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
-    for k, v in out.get("micro", {}).items():
-        print(f"micro {k:22}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
+    ab_report(out, kinds, B, Pk, f"sh_prt {a.config} bounces {a.bounces}, {a.scene} {a.size}, {a.threads} thread(s)",
+              show_mb=True)
     return out
 
 

@@ -27,7 +27,7 @@ import time
 
 import torch
 
-from benchmarks.common import machine_limits, precomputed, setup
+from benchmarks.common import ab_report, machine_limits, precomputed, setup
 from reports import measure
 
 
@@ -116,25 +116,9 @@ def main(argv: list[str] | None = None) -> dict:
                  cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
         kinds[kind] = r
     B, Pk = machine_limits(out, bw, peak)
-    for r in kinds.values():
-        tmin = max(r["bytes"] / B, r["flops"] / Pk)
-        r["eff_new_wall"] = tmin / (r["new"]["wall_ms"] / 1e3)
-        r["eff_new_cpu"] = tmin / (r["new"]["cpu_ms"] / 1e3)
-    out["kinds"] = kinds
     if a.micro and a.method == "sh_prt":
         out["micro"] = micro_sh_prt(new, frames[-1], gbs[-1], B, Pk)
-    out["load_end"] = os.getloadavg()
-    print(json.dumps(out, indent=1, default=float))
-    print(f"\n{a.method} {a.config} {a.scene} {a.size}, {a.threads} thread(s), load {out['load'][0]:.1f}→"
-          f"{out['load_end'][0]:.1f}, triad {B / 1e9:.1f} GB/s, sgemm {Pk / 1e9:.1f} GFLOP/s")
-    print(f"{'kind':4} {'base cpu':>9} {'new cpu':>8} {'ratio':>6} {'base wall':>9} {'new wall':>8} {'ratio':>6} "
-          f"{'eff(wall)':>9} {'eff(cpu)':>9} {'rel err':>8}")
-    for kind, r in kinds.items():
-        print(f"{kind:4} {r['base']['cpu_ms']:9.2f} {r['new']['cpu_ms']:8.2f} {r['cpu_ratio']:6.2f} "
-              f"{r['base']['wall_ms']:9.2f} {r['new']['wall_ms']:8.2f} {r['wall_ratio']:6.2f} "
-              f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
-    for k, v in out.get("micro", {}).items():
-        print(f"micro {k}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
+    ab_report(out, kinds, B, Pk, f"{a.method} {a.config} {a.scene} {a.size}, {a.threads} thread(s)")
     return out
 
 
