@@ -178,3 +178,34 @@ def ab_report(out: dict, kinds: dict, B: float, Pk: float, title: str, *, show_m
               f"{100 * r['eff_new_wall']:8.1f}% {100 * r['eff_new_cpu']:8.1f}% {r['rel_err']:8.1e}")
     for k, v in out.get("micro", {}).items():
         print(f"micro {k:22}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
+
+
+def ab_frames(new, base, reference, frames, gbs, kind: str) -> dict:
+    """Same-process A/B of one sequence: ``new`` and ``base`` (two method objects sharing one
+    precomputation) render every frame, alternating which goes first (the same machine load for
+    both); frames 0 and 1 warm up. ``reference(frame, gbuffer)`` is the slow path each new image is
+    checked against. → {"base"/"new": median {"wall_ms", "cpu_ms"}, bytes, flops (the new object's
+    ``frame_cost(kind, …)``), rel_err (largest |new − reference| / max |reference|), cpu_ratio,
+    wall_ratio} — a row of `ab_report`."""
+    import statistics
+    import time
+
+    t = {"new": ([], []), "base": ([], [])}
+    err = 0.0
+    for i, (f, g) in enumerate(zip(frames, gbs)):
+        for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
+            mm = new if which == "new" else base
+            t0, c0 = time.perf_counter(), time.process_time()
+            img = mm.render(f, g)
+            w, c = time.perf_counter() - t0, time.process_time() - c0
+            if i >= 2:
+                t[which][0].append(w)
+                t[which][1].append(c)
+            if which == "new":
+                rimg = reference(f, g)
+                err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
+    r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
+    cost = new.frame_cost(kind, gbs[-1].num_samples)
+    r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
+             cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+    return r

@@ -26,12 +26,10 @@ import argparse
 import copy
 import json
 import os
-import statistics
-import time
 
 import torch
 
-from benchmarks.common import ab_report, frame_args, machine_limits, precomputed, setup, wall_cpu_time
+from benchmarks.common import ab_frames, ab_report, frame_args, machine_limits, precomputed, setup, wall_cpu_time
 from benchmarks.vview import baseline_class
 from reports import measure
 
@@ -70,24 +68,7 @@ def main(argv: list[str] | None = None) -> dict:
         base = copy.copy(new)
         base.__class__ = Base
         ref = copy.copy(new)
-        t = {"new": ([], []), "base": ([], [])}
-        err = 0.0
-        for i, (f, g) in enumerate(zip(frames, gbs)):
-            for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
-                mm = new if which == "new" else base
-                t0, c0 = time.perf_counter(), time.process_time()
-                img = mm.render(f, g)
-                w, c = time.perf_counter() - t0, time.process_time() - c0
-                if i >= 2:
-                    t[which][0].append(w)
-                    t[which][1].append(c)
-                if which == "new":
-                    rimg = ref.render_reference(f, g)
-                    err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
-        r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
-        cost = new.frame_cost(kind, gbs[-1].num_samples)
-        r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
-                 cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+        r = ab_frames(new, base, ref.render_reference, frames, gbs, kind)
         kinds[kind] = r
         last = {"m": new, "frame": frames[-1], "gb": gbs[-1], "frames": frames}
     B, Pk = machine_limits(out, bw, peak)

@@ -21,13 +21,11 @@ import copy
 import importlib.util
 import json
 import os
-import statistics
 import sys
-import time
 
 import torch
 
-from benchmarks.common import ab_report, machine_limits, precomputed, setup
+from benchmarks.common import ab_frames, ab_report, machine_limits, precomputed, setup
 from reports import measure
 
 
@@ -96,24 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
         base = copy.copy(new)
         base.__class__ = Base
         ref = copy.copy(new)
-        t = {"new": ([], []), "base": ([], [])}
-        err = 0.0
-        for i, (f, g) in enumerate(zip(frames, gbs)):
-            for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
-                mm = new if which == "new" else base
-                t0, c0 = time.perf_counter(), time.process_time()
-                img = mm.render(f, g)
-                w, c = time.perf_counter() - t0, time.process_time() - c0
-                if i >= 2:
-                    t[which][0].append(w)
-                    t[which][1].append(c)
-                if which == "new":
-                    rimg = ref.render_reference(f, g) if a.method == "sh_prt" else ref._render_reference(f, g)
-                    err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
-        r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
-        cost = new.frame_cost(kind, gbs[-1].num_samples)
-        r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
-                 cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+        r = ab_frames(new, base, ref.render_reference if a.method == "sh_prt" else ref._render_reference, frames, gbs, kind)
         kinds[kind] = r
     B, Pk = machine_limits(out, bw, peak)
     if a.micro and a.method == "sh_prt":
