@@ -47,7 +47,9 @@ import torch
 from torch import Tensor
 
 from methods.core.frames import coordinate_system
-from methods.core.spherical_haar import Geodesic
+from methods.core.fused import fused, map_rows
+from methods.core.latlong import quad_lane_weights, quad_lanes, quad_taps, quad_texels
+from methods.core.spherical_haar import Geodesic, forward_butterfly
 
 TANGENTS = ("grid", "duff")
 LOOKUPS = ("nearest", "trilinear", "exact")
@@ -286,8 +288,6 @@ def env_taps(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int) -> tuple[Tensor, 
     R (f, 3, 3); cp (3, S, n) sample coordinate planes (`_env_sample_planes`); T (3, 3); H, W the
     map's size. Every operand is a plane over the fine triangles: the compiled loop is vectorised
     along them (atan2 / acos vectorised too)."""
-    from methods.core.latlong import quad_taps
-
     M = (R @ T)[:, :, :, None, None]                                       # (f, 3, 3, 1, 1)
     cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, S, n)
     d = [cx * M[:, 0, k] + cy * M[:, 1, k] + cz * M[:, 2, k] for k in range(3)]  # emitter frame
@@ -310,8 +310,6 @@ def quad_means(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes
     (H·(W + 1), 16) (`methods.core.latlong.quad_texels`; lanes: `quad_lanes`). Vectorised along each row (one vector
     load per sample instead of 12 scalar ones); the S-term sum in a fixed pairwise order per
     output (one thread each: thread-count independent). Returns (f, 3, n)."""
-    from methods.core.latlong import quad_lane_weights
-
     terms = [Q[idx[:, s]] * (quad_lane_weights(fx[:, s], fy[:, s], lanes) * wT[s, :, None])  # (f, n, 16)
              for s in range(idx.shape[1])]
     acc = _tree_sum(terms)
@@ -362,8 +360,6 @@ def env_taps_azimuthal(shift: Tensor, base: Tensor, u0: Tensor, v0: Tensor, H: i
     """`env_taps` of f grid frames for an emitter turned about +Y (comment above): u = u0 + shift,
     v = v0 of the frame's base row. shift (f,) float64 (φ_j − γ)/2π mod 1; base (f,) int64 base row;
     u0 float64, v0 float32 (B, S, n) (`_azimuthal_samples`). Returns idx, fx, fy (f, S, n)."""
-    from methods.core.latlong import quad_taps
-
     u = (u0[base] + shift[:, None, None]).float()                          # (f, S, n), rounded once
     return quad_taps(u, v0[base], H, W)
 
@@ -372,8 +368,6 @@ def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor
                       ) -> tuple[Tensor, Tensor]:
     """`quad_means` and their wavelet coefficients (`spherical_haar.forward_butterfly`), one compiled
     graph per block: coefficients (f, 3, n), fine values (f, 3, n)."""
-    from methods.core.spherical_haar import forward_butterfly
-
     fine = quad_means(idx, fx, fy, wT, Q, lanes)
     return forward_butterfly(fine), fine
 
@@ -385,8 +379,6 @@ _kernels: dict = {}
 
 def _kernel(fn):
     """``fn`` through `methods.core.fused` (compiled on first use, `_FUSE_OPTIONS`)."""
-    from methods.core.fused import fused
-
     if fn.__name__ not in _kernels:
         _kernels[fn.__name__] = fused(fn, options=_FUSE_OPTIONS)
     return _kernels[fn.__name__]
@@ -406,9 +398,6 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     Returns: coefficients (F, 3, K) float32 (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
-    from methods.core.fused import map_rows
-    from methods.core.latlong import quad_lanes, quad_texels
-
     if R.ndim != 3 or R.shape[1:] != (3, 3):
         raise ValueError(f"R must be (F, 3, 3), got {tuple(R.shape)}")
     if grid is not None and R.shape[0] != grid.size:
