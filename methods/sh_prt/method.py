@@ -253,7 +253,17 @@ class SHPRT(Method):
         self.N = N / N.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         glossy_regions = torch.tensor([kinds[r] in GLOSSY_BRDFS for r in self.regions])
         self.glossy_regions = glossy_regions                               # (R,) bool
-        self.glossy_verts = glossy_regions[geom.vertex_region.long()].nonzero().squeeze(-1)  # (Vg,)
+        # Vertices that get a glossy transfer matrix: those of glossy regions AND every corner of a
+        # glossy region's faces. A glossy face Gouraud-interpolates l' = M_x l over its three corners
+        # (Sloan 2002 §7), and M_x (§6: ∫ y_i V_x H_N y_j, + bounces) is a property of the vertex's
+        # position, normal and visibility only, not of its own region's material; so a corner the
+        # face shares with a non-glossy region (a mesh whose regions share vertices; the library's
+        # scenes give every shape its own vertices) gets its own M_x too. (Before: only vertices
+        # whose vertex_region is glossy, and such a corner read l' at row gpos = −1, the last row.)
+        fr = geom.face_region.long()
+        gv = glossy_regions[geom.vertex_region.long()].clone()
+        gv[self.F[glossy_regions[fr]].reshape(-1)] = True
+        self.glossy_verts = gv.nonzero().squeeze(-1)                         # (Vg,)
         self.gpos = torch.full((self.N.shape[0],), -1, dtype=torch.int64)  # vertex → row of M, −1
         self.gpos[self.glossy_verts] = torch.arange(self.glossy_verts.numel())
         vis = make_visibility(geom.V, geom.F)
@@ -263,7 +273,6 @@ class SHPRT(Method):
         M = _tr.shadowed_glossy(rays, self.N, n, self.glossy_verts)[..., None]  # (Vg, n², n², 1) §6
         self.t_parts, self.M_parts = [t], [M]
         t2 = time.perf_counter()
-        fr = geom.face_region.long()
         mats = [scene.materials[r] for r in self.regions]
         face_albedo = torch.tensor([m.kd for m in mats], dtype=torch.float32)[fr]               # (M, 3)
         face_ks = torch.tensor([m.ks_rgb for m in mats], dtype=torch.float32)[fr]               # (M, 3)

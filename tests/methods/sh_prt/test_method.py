@@ -239,3 +239,109 @@ def test_apply_lighting_equals_its_einsum(C):
         L = lighting_major(T)
         assert torch.equal(L, T) and L.permute(L.dim() - 1, L.dim() - 2, *range(L.dim() - 2)).is_contiguous()
         assert lighting_major(L) is L
+
+
+# A face corner's l' against the per-vertex M l computed directly for every vertex: the same rays
+# and the same float32 quadrature, only the row bookkeeping differs → float32 round-off of
+# radiances up to ~0.5 (measured 2-4e-7 relative; before the fix of `SHPRT.precompute` the
+# corners shared with the Lambert region read the last l' row: 0.13 relative).
+SHARED_VERTEX_RTOL = 1e-5
+
+
+def _valley_with_shared_crease():
+    """A V-shaped valley y = 0.5|x| (x, z ∈ [−1, 1], 6 × 4 cells), its left half (x ≤ 0) the Phong
+    region "gloss" and its right half the Lambert region "matte", the crease vertices x = 0 SHARED by
+    both regions' faces and assigned to "matte" (vertex_region). Library scenes never share vertices
+    between regions (`scenes.scene._merge` gives every shape its own), so the merged geometry is set
+    by hand. Returns (scene, the welded geometry)."""
+    from scenes.camera import Camera
+    from scenes.envmap import procedural as env_procedural
+    from scenes.mesh import Mesh, compute_vertex_normals
+    from scenes.scene import Scene, SceneGeometry, Shape
+
+    nx, nz = 6, 4
+    xs, zs = torch.linspace(-1.0, 1.0, nx + 1), torch.linspace(-1.0, 1.0, nz + 1)
+    X, Z = torch.meshgrid(xs, zs, indexing="ij")
+    V = torch.stack([X, 0.5 * X.abs(), Z], -1).reshape(-1, 3)
+    vid = lambda i, j: i * (nz + 1) + j  # noqa: E731
+    F, fr = [], []
+    for i in range(nx):
+        for j in range(nz):
+            a, b, c, d = vid(i, j), vid(i + 1, j), vid(i + 1, j + 1), vid(i, j + 1)
+            F += [[a, d, c], [a, c, b]]           # normals towards +y
+            fr += [0 if i < nx // 2 else 1] * 2
+    F = torch.tensor(F, dtype=torch.int64)
+    N = compute_vertex_normals(V, F)
+    assert (N[:, 1] > 0.5).all()
+    vr = (torch.arange(nx + 1) >= nx // 2).long().repeat_interleave(nz + 1)   # crease column i = 3: "matte"
+    left, right = F[torch.tensor(fr) == 0], F[torch.tensor(fr) == 1]
+    shapes = []
+    for name, Fh in (("gloss", left), ("matte", right)):             # the scene's own (unwelded) shapes
+        used = torch.unique(Fh)
+        remap = torch.full((V.shape[0],), -1, dtype=torch.int64)
+        remap[used] = torch.arange(used.numel())
+        shapes.append(Shape(name, name, Mesh(V[used], remap[Fh], N[used])))
+    cam = Camera((0.0, 2.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 45.0, 16, 16)
+    mats = {"gloss": Phong(kd=(0.1, 0.12, 0.08), ks=(0.6, 0.5, 0.4), s=12.0), "matte": Lambert(kd=(0.5, 0.4, 0.3))}
+    scene = Scene("valley", shapes, ["gloss", "matte"], cam, env_procedural("studio", height=32, seed=0), mats)
+    nf = [int(left.shape[0]), int(right.shape[0])]
+    geom = SceneGeometry(V, torch.cat([left, right]), N, None, vr, torch.tensor([0] * nf[0] + [1] * nf[1]),
+                         torch.tensor([0, nf[0], nf[0] + nf[1]]), torch.tensor([0, V.shape[0], V.shape[0]]),
+                         ("gloss", "matte"))
+    scene._rest = geom
+    return scene, geom
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
+def test_glossy_face_with_a_shared_non_glossy_corner(compiled, monkeypatch):
+    """A glossy face whose corner vertex belongs to a Lambert region (the regions share the vertex)
+    interpolates that vertex's OWN transferred radiance l' = M_x l (Sloan 2002 §7: l' is a per-vertex
+    quantity of the geometry, whatever the vertex's region; `SHPRT.precompute`), in the fast path and
+    the reference. The independent value: the shadowed glossy transfer of EVERY vertex from the same
+    rays (`transfer.shadowed_glossy`), l' = M l, interpolated at each sample of the glossy faces."""
+    from methods.core import sh as _sh
+    from methods.core import zh as _zh
+    from methods.sh_prt import transfer as _tr
+    from references.visibility import make_visibility
+    from scenes.frame import GBuffer
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
+    scene, geom = _valley_with_shared_crease()
+    n = 4
+    m = SHPRT(order=n, bounces=0, rays=64)
+    m.precompute(scene)
+    gl_faces = (geom.face_region == 0).nonzero().squeeze(-1)
+    shared = torch.isin(m.F[gl_faces], (geom.vertex_region == 1).nonzero().squeeze(-1))
+    assert shared.any()                                     # the case under test exists
+    # samples: every glossy face at its centre and near each corner (weight 0.8 there)
+    W = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]])
+    face = gl_faces.repeat_interleave(W.shape[0])
+    w = W.repeat(gl_faces.numel(), 1)                       # (P, 3) (1 − u − v, u, v)
+    P = face.numel()
+    tri = m.F[face]
+    pos = (geom.V[tri] * w[..., None]).sum(1)
+    nrm = torch.nn.functional.normalize((geom.N[tri] * w[..., None]).sum(1), dim=-1)
+    wo = torch.nn.functional.normalize(torch.tensor(scene.camera.origin, dtype=torch.float32) - pos, dim=-1)
+    gb = GBuffer(height=1, width=P, spp_side=1, hit=torch.ones(P, dtype=torch.bool), face=face,
+                 bary=w[:, 1:].contiguous(), position=pos, normal=nrm, wo=wo,
+                 region=geom.face_region[face], coverage=torch.ones(1, P, dtype=torch.bool))
+    frame = Frame(envmap=scene.envmap, camera=scene.camera, materials=dict(scene.materials))
+    # the independent per-vertex quantities
+    rays = _tr.trace_rays(make_visibility(geom.V, geom.F), geom.V.float(), m.N, 64, seed=0)
+    Nall = geom.V.shape[0]
+    M_all = _tr.shadowed_glossy(rays, m.N, n, torch.arange(Nall))              # (V, n², n²)
+    t_all = _tr.shadowed_diffuse(rays, m.N, n)                                  # (V, n²)
+    l = m.lighting(scene.envmap)                                                # (n², 3)
+    lp = torch.einsum("vij,jc->vic", M_all, l)                                  # (V, n², 3) l' = M l
+    e = t_all @ l                                                               # (V, 3)
+    mat = scene.materials["gloss"]
+    R = torch.nn.functional.normalize(2 * (nrm * wo).sum(-1, keepdim=True) * nrm - wo, dim=-1)
+    y = _sh.sh_eval(R, n) * _zh.expand_bands(lobe_factors(mat, n)).float()    # (P, n²) G_l y_lm(R)
+    lq = (lp[tri] * w[..., None, None]).sum(1)                                  # (P, n², 3)
+    want = (torch.tensor(mat.kd) * (e[tri] * w[..., None]).sum(1)
+            + torch.tensor(mat.ks_rgb) * torch.einsum("pi,pic->pc", y, lq)).clamp_min(0.0)
+    assert ((nrm * wo).sum(-1) > 0).all()
+    scale = want.abs().max().item()
+    for got in (m.render(frame, gb), m.render_reference(frame, gb)):
+        assert (got.view(P, 3) - want).abs().max().item() <= SHARED_VERTEX_RTOL * scale
+    assert (m.gpos[m.F[gl_faces]] >= 0).all()  # every corner of a glossy face has its row
