@@ -37,14 +37,22 @@ faces, c) are marked dynamic in their row count, so a frame's new X size does no
 
 Measured (issue 14, 2026-12-03, same process vs the eager stage before it, 1 thread, process CPU
 time, load 7–11; ``python -m benchmarks.inout --base MAIN_CHECKOUT``): V frames 1.3–1.5×, L / E /
-VL 1.15–1.3×. What bounds the V frame now (the micro-benchmark of ``benchmarks.inout``): the
-compiled per-sample kernel alone takes ~80 ns per sample on one core (chess bench, 2.6·10⁵
-samples: ~21 ms), 48 indirect loads per sample at ~0.6·10⁹ loads/s — Inductor emits a scalar loop
-(no vectorised gathers) with a bounds check per indirect index, far from the bytes' bound (the
-G-buffer and the pixels: ~13 MB, ~0.2 ms at triad bandwidth). Tried and dropped: the 2 × 2 nodes
-of a cell as one strided view of X (one bounds check per vertex instead of 12): 2.7× slower
-(Inductor materialised the gathered cells); c = T̃ · L as a weighted ``embedding_bag`` instead of
-the CSR product: 1.7× slower; the referenced-face mask as a compiled scatter: no gain.
+VL 1.15–1.3×. The compiled per-sample kernel then took ~80 ns per sample on one core (chess bench,
+2.6·10⁵ samples: ~21 ms), 48 indirect loads per sample in a scalar loop with a bounds check and a
+negative-index wrap per load. Now (`SHADE_OPTIONS`): no index checks (every index in range by
+construction, `_shade_rows`), gathers as ``embedding`` look-ups (no wrap), the loop vectorised 8
+samples wide: 1.55–1.6× the kernel (51–54 ns per sample), V frames 1.19× (chess bench, same
+process, ``benchmarks.inout --base``). What bounds it now: Inductor has no vector gather on the
+CPU — each of the 48 gathers per sample is 8 scalar loads into a buffer and one vector load, the
+arithmetic around them 8-wide; far from the bytes' bound (the G-buffer and the pixels: ~13 MB,
+~0.2 ms at triad bandwidth). The V frame's other half is the set-up (the windows' products X,
+~45 ms on chess bench) and the exact path of the entries outside their windows (~8 % of the
+samples at W = 12). Tried and dropped: the 2 × 2 nodes of a cell as one strided view of X (one
+bounds check per vertex instead of 12): 2.7× slower (Inductor materialised the gathered cells);
+c = T̃ · L as a weighted ``embedding_bag`` instead of the CSR product: 1.7× slower; the
+referenced-face mask as a compiled scatter: no gain; with the kernel vectorised: a per-frame table
+of each face's three windows (one 9-word look-up per sample instead of face → vertex → window):
+1.02× (noise); X read one node row (N, 3) per look-up, the 3 channels sharing its index: 0.93×.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
@@ -405,7 +413,7 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
 # construction, `_shade_rows`), and the loop vectorised over 8 samples although nearly all its loads
 # are gathers (Inductor's tiling heuristic leaves a loop with ≥ 35 non-contiguous loads scalar; the
 # gathers stay 8 scalar loads each, the arithmetic around them — the frame, the cell, the weights, the
-# index chains — runs 8-wide). Chess bench, 1 thread, same process: 79 → 54 ns per sample.
+# index chains — runs 8-wide). Chess bench, 1 thread, same process: 1.55–1.6× (79 → 51–54 ns per sample).
 SHADE_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
 shade_rows = fused(_shade_rows, options=SHADE_OPTIONS)
 
