@@ -41,8 +41,8 @@ VL 1.15–1.3×. The compiled per-sample kernel then took ~80 ns per sample on o
 2.6·10⁵ samples: ~21 ms), 48 indirect loads per sample in a scalar loop with a bounds check and a
 negative-index wrap per load. Now (`SHADE_OPTIONS`): no index checks (every index in range by
 construction, `_shade_rows`), gathers as ``embedding`` look-ups (no wrap), the loop vectorised 8
-samples wide: 1.55–1.6× the kernel (51–54 ns per sample), V frames 1.19× (chess bench, same
-process, ``benchmarks.inout --base``). What bounds it now: Inductor has no vector gather on the
+samples wide: 1.55–1.6× the kernel (51–54 ns per sample), V frames 1.19× on chess bench and 1.42×
+on the creature, L 1.08–1.10×, E 1.0–1.06× (same process, 1 thread, ``benchmarks.inout --base``). What bounds it now: Inductor has no vector gather on the
 CPU — each of the 48 gathers per sample is 8 scalar loads into a buffer and one vector load, the
 arithmetic around them 8-wide; far from the bytes' bound (the G-buffer and the pixels: ~13 MB,
 ~0.2 ms at triad bandwidth). The V frame's other half is the set-up (the windows' products X,
