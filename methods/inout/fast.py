@@ -37,14 +37,22 @@ faces, c) are marked dynamic in their row count, so a frame's new X size does no
 
 Measured (issue 14, 2026-12-03, same process vs the eager stage before it, 1 thread, process CPU
 time, load 7–11; ``python -m benchmarks.inout --base MAIN_CHECKOUT``): V frames 1.3–1.5×, L / E /
-VL 1.15–1.3×. What bounds the V frame now (the micro-benchmark of ``benchmarks.inout``): the
-compiled per-sample kernel alone takes ~80 ns per sample on one core (chess bench, 2.6·10⁵
-samples: ~21 ms), 48 indirect loads per sample at ~0.6·10⁹ loads/s — Inductor emits a scalar loop
-(no vectorised gathers) with a bounds check per indirect index, far from the bytes' bound (the
-G-buffer and the pixels: ~13 MB, ~0.2 ms at triad bandwidth). Tried and dropped: the 2 × 2 nodes
-of a cell as one strided view of X (one bounds check per vertex instead of 12): 2.7× slower
-(Inductor materialised the gathered cells); c = T̃ · L as a weighted ``embedding_bag`` instead of
-the CSR product: 1.7× slower; the referenced-face mask as a compiled scatter: no gain.
+VL 1.15–1.3×. The compiled per-sample kernel then took ~80 ns per sample on one core (chess bench,
+2.6·10⁵ samples: ~21 ms), 48 indirect loads per sample in a scalar loop with a bounds check and a
+negative-index wrap per load. Now (`SHADE_OPTIONS`): no index checks (every index in range by
+construction, `_shade_rows`), gathers as ``embedding`` look-ups (no wrap), the loop vectorised 8
+samples wide: 1.55–1.6× the kernel (51–54 ns per sample), V frames 1.19× on chess bench and 1.42×
+on the creature, L 1.08–1.10×, E 1.0–1.06× (same process, 1 thread, ``benchmarks.inout --base``). What bounds it now: Inductor has no vector gather on the
+CPU — each of the 48 gathers per sample is 8 scalar loads into a buffer and one vector load, the
+arithmetic around them 8-wide; far from the bytes' bound (the G-buffer and the pixels: ~13 MB,
+~0.2 ms at triad bandwidth). The V frame's other half is the set-up (the windows' products X,
+~45 ms on chess bench) and the exact path of the entries outside their windows (~8 % of the
+samples at W = 12). Tried and dropped: the 2 × 2 nodes of a cell as one strided view of X (one
+bounds check per vertex instead of 12): 2.7× slower (Inductor materialised the gathered cells);
+c = T̃ · L as a weighted ``embedding_bag`` instead of the CSR product: 1.7× slower; the
+referenced-face mask as a compiled scatter: no gain; with the kernel vectorised: a per-frame table
+of each face's three windows (one 9-word look-up per sample instead of face → vertex → window):
+1.02× (noise); X read one node row (N, 3) per look-up, the 3 channels sharing its index: 0.93×.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
@@ -355,21 +363,33 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     window (first column, first row, offset in X; `Windows.win` transposed), X (N, 3) the windows'
     products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
     entries inside their windows, and per sample the bits j of the entries (vertex j) that are
-    shaded but outside their window (n, S) uint8: the caller adds those by the exact path."""
+    shaded but outside their window (n, S) uint8: the caller adds those by the exact path.
+
+    Every gather is an ``embedding`` (a row look-up whose index Inductor does not wrap for negative
+    values, unlike ``X[i]``) and `shade_rows` is compiled without index checks (`SHADE_OPTIONS`),
+    so each index must be in range by construction, for any input (NaN or infinite normals and
+    directions included): the face is clamped into [0, M); a face's vertex ids are concatenated ids
+    < ΣVr (``InOut._fast_static`` checks them); a window row holds its offset in X (0 for a vertex
+    no face of the frame references: X has at least W² rows, `prepare`); and the node offsets in the
+    window, dx and dy, are clamped into [0, W − 2] whatever iu, iv are (a NaN direction gives NaN
+    cell coordinates in ``lut_cell_xyz``, an arbitrary integer after the cast), so the 12 nodes read
+    lie in the vertex's W × W window. Such a sample has ω_o not above its horizon (z > 0 is False
+    for NaN), so its weights are 0 and it sets no miss bit. ``test_fast.py`` checks the compiled
+    kernel against this function run eagerly (whose look-ups check their indices) on such inputs."""
     x, y, z = sample_frame(normal, wo)
     front = (z > 0) & live                                                      # ρ = 0 below the horizon
     iu, iv, fu, fv = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
-    g = face_gl[face.clamp_min(0)]                                              # (n, S, 3)
+    g = Fnn.embedding(face.clamp(0, face_gl.shape[0] - 1), face_gl)             # (n, S, 3)
     u, v = bary[..., 0], bary[..., 1]
     fw = front.to(u.dtype)
     beta = ((1.0 - u - v) * fw, u * fw, v * fw)
     gu, gv = 1 - fu, 1 - fv
     wc = (gu * gv, fu * gv, gu * fv, fu * fv)                                   # bilinear weights
-    Xf = X.reshape(-1)                          # node-major (N·3,): per channel, not per (n, S, 3) element
+    Xf = X.reshape(-1, 1)                       # node-major (N·3, 1): per channel, not per (n, S, 3) element
     B = [None, None, None]                      # channels apart: a (.., 3) result would redo the indexing per channel
     miss = torch.zeros_like(face, dtype=torch.uint8)
     for j in range(3):                                                          # B = Σ_j Σ_n β_j w_n X(v_j, n)
-        wv = win[g[..., j]]                                                     # (n, S, 3)
+        wv = Fnn.embedding(g[..., j], win)                                      # (n, S, 3)
         dx, dy = iu - wv[..., 0], iv - wv[..., 1]
         inside = (torch.minimum(dx, dy) >= 0) & (torch.maximum(dx, dy) <= W - 2)
         base = (wv[..., 2] + dy.clamp(0, W - 2) * W + dx.clamp(0, W - 2)) * 3  # first node
@@ -377,7 +397,7 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
         for wn, off in zip(wc, (0, 3, 3 * W, 3 * W + 3)):
             w = wi * wn
             for c in range(3):
-                t = Xf[base + (off + c)] * w
+                t = Fnn.embedding(base + (off + c), Xf)[..., 0] * w
                 B[c] = t if B[c] is None else B[c] + t
         miss = miss | (((beta[j] != 0) & ~inside).to(torch.uint8) << j)
     out = []
@@ -389,7 +409,13 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     return torch.stack(out, -1), miss
 
 
-shade_rows = fused(_shade_rows)
+# Inductor settings of `shade_rows`: no per-look-up index check (every index is in range by
+# construction, `_shade_rows`), and the loop vectorised over 8 samples although nearly all its loads
+# are gathers (Inductor's tiling heuristic leaves a loop with ≥ 35 non-contiguous loads scalar; the
+# gathers stay 8 scalar loads each, the arithmetic around them — the frame, the cell, the weights, the
+# index chains — runs 8-wide). Chess bench, 1 thread, same process: 1.55–1.6× (79 → 51–54 ns per sample).
+SHADE_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
+shade_rows = fused(_shade_rows, options=SHADE_OPTIONS)
 
 
 def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,

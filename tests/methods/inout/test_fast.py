@@ -110,6 +110,43 @@ def test_lighting_is_computed_only_where_seen(precomputed):
     _assert_sequence_equal(m, "V", n_frames=3, seed=5)
 
 
+def test_shade_rows_indices_in_range_for_any_input(precomputed):
+    """The compiled per-sample kernel reads without index checks (``fast.SHADE_OPTIONS``): on inputs
+    no G-buffer should hold — NaN, infinite and zero normals and directions, faces below −1 and past
+    the last face — it equals the eager function, whose look-ups check every index (an index out of
+    range raises there), and such samples add nothing and set no miss bit."""
+    m = precomputed("bunny")
+    fast_m, _ = _pair(m)
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 2)
+    view = fast_m._view_setup(frame, gb)
+    st, w = view.st, view.wins
+    n, S = fast.MIN_SAMPLE_BLOCK // 4, 4
+    q = n * S
+    g = torch.Generator().manual_seed(7)
+    normal = torch.randn(q, 3, generator=g)
+    wo = torch.randn(q, 3, generator=g)
+    bad = torch.tensor([[float("nan"), 0.0, 1.0], [float("inf"), 0.0, 0.0], [0.0, 0.0, 0.0],
+                        [-float("inf"), float("inf"), 1.0], [float("nan")] * 3])
+    normal[: 5 * 40] = bad.repeat(40, 1)
+    wo[100: 100 + 5 * 40] = bad.repeat(40, 1)
+    M = st.face_rows.shape[0]
+    face = torch.randint(-3, M + 3, (q,), generator=g)
+    face[::7] = M + 100
+    live = face >= 0
+    bary = torch.rand(q, 2, generator=g) * 0.5
+    args = [t.unflatten(0, (n, S)) for t in (normal, wo, bary, face, live)] + [st.face_rows, w.win, w.X, st.R, w.W]
+    got, got_miss = fast.shade_rows(*args)
+    want, want_miss = fast.shade_rows.eager(*args)
+    assert torch.equal(got_miss, want_miss)
+    scale = float(want[torch.isfinite(want)].abs().max())
+    assert torch.allclose(got, want, rtol=RTOL, atol=RTOL * scale, equal_nan=True)
+    # a NaN or infinite normal, a zero normal or a NaN direction: ω_o's z is NaN or 0, not above the horizon
+    unshaded = ~torch.isfinite(normal).all(-1) | torch.isnan(wo).any(-1) | (normal == 0).all(-1)
+    assert not bool(got_miss.reshape(-1)[unshaded].any())
+    assert bool(unshaded.any()) and bool(got_miss.any())            # both kinds of sample are present
+
+
 def test_sample_frame_is_frame_matrix():
     """The closed form of ω_o in the sample's frame equals frame_matrix(normalize(n)) @ ω_o,
     for normals on both sides of the tangent flip at n_z = 0 and not quite unit."""
