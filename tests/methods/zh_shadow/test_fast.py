@@ -212,6 +212,73 @@ def test_shade_terms_equal_reference_shade():
             assert torch.where(front, (s.T - want_s).abs(), zero).max() <= 1e-10 * scale, (order, alpha)
 
 
+# Per-vertex table vs per-point GEMMs (float64): the same sums in another order.
+TABLES_TOL = 1e-10
+
+
+@pytest.mark.parametrize("order", (2, 3, 4, 5, 6))
+def test_vertex_table_equals_point_gemms(order):
+    """`runtime.shade` through the per-vertex table U (`vertex_table`, `sample_terms`; compiled
+    features and interpolated dot) = through the per-point feature GEMMs (`shade_terms`), float64,
+    on random meshes of two regions (one without a specular term, exponents 1–40), a plane holding
+    most points (its specular term on the per-point path) and a point count that is not a multiple
+    of the block (the padded last block); orders 2–5 (monomial features) and 6 (SH features)."""
+    g = torch.Generator().manual_seed(order)
+    N, Q, n2 = 60, 3 * rt.SAMPLE_BLOCK // 2 + 7, order * order
+    v = torch.randn(N, n2, generator=g, dtype=torch.float64)
+    vreg = (torch.arange(N) >= N // 2).long()
+    face = torch.randint(0, N // 2, (Q, 3), generator=g)
+    region = (torch.rand(Q, generator=g) < 0.4).long()
+    vi = (face + region[:, None] * (N // 2)).to(torch.int32)               # a face's vertices share its region
+    b = torch.rand(Q, 3, generator=g, dtype=torch.float64)
+    b = b / b.sum(1, keepdim=True)
+    nrm = torch.randn(3, Q, generator=g, dtype=torch.float64)
+    plane = torch.rand(Q, generator=g) < 0.6
+    nrm[:, plane] = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)[:, None]
+    nrm = nrm / nrm.norm(dim=0, keepdim=True)
+    wo = torch.randn(3, Q, generator=g, dtype=torch.float64)
+    wo = wo / wo.norm(dim=0, keepdim=True)
+    light = torch.randn(n2, 3, generator=g, dtype=torch.float64)
+    Wd = rt.table(light, 1.0, diffuse=True)
+    for alphas in ((7.5, None), (40.0, 1.0), (None, None)):
+        mats = [(torch.rand(3, generator=g, dtype=torch.float64), torch.rand(3, generator=g, dtype=torch.float64), Wd,
+                 None if a is None else rt.table(light, a, diffuse=False)) for a in alphas]
+        for planar in (True, False):
+            want, cw = rt.shade(v, vi, b, nrm, wo, region, vreg, nrm.T, mats, planar=planar, tables="point")
+            got, cg = rt.shade(v, vi, b, nrm, wo, region, vreg, nrm.T, mats, planar=planar, tables="vertex")
+            U = rt.vertex_table(v, vreg, mats)
+            kept, _ = rt.shade(v, vi, b, nrm, wo, region, vreg, nrm.T, mats, planar=planar, U=U)
+            assert want.abs().max() > 0.1
+            err = max((got - want).abs().max().item(), (kept - want).abs().max().item())
+            assert err <= TABLES_TOL * want.abs().max().item(), (order, alphas, planar, err)
+            assert {k: v_ for k, v_ in cg.items() if k != "plane_vertices"} == \
+                {k: v_ for k, v_ in cw.items() if k != "plane_vertices"}
+    with pytest.raises(ValueError):
+        rt.shade(v, vi, b, nrm, wo, region, vreg, nrm.T, mats, tables="rows")
+
+
+def test_view_frames_keep_the_vertex_table(small_model):
+    """A view-only sequence builds the per-vertex table on its first view-only frame and shades
+    the next ones from it (fast == reference on each); a pose, lighting or material change drops
+    it (the key), and the cosine variant never uses it."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    frames = make_sequence(m.scene, "V", 4, seed=3)
+    _check_frames(m, frames[:2], "V")
+    U = m._vtable[2]
+    _check_frames(m, frames[2:], "V")
+    assert m._vtable[2] is U, "the view-only frames rebuilt the vertex table"
+    assert m.memory()["vertex_table"] == U.numel() * U.element_size()
+    fr = make_sequence(m.scene, "VB", 2, seed=4)[1]            # new materials, changed ⊄ {"view"}
+    m.render(fr, make_gbuffer(m.scene, fr, 2))
+    assert m._vtable[2] is U                                     # kept, but not used: its key differs
+    mc = m.with_render_config(specular="cosine")
+    _check_frames(mc, frames[:3], "V cosine")
+    assert mc._vtable is None
+
+
 def test_product_tensor_and_features():
     """G[a, j, i] reproduces the product y_j y_i pointwise (it is exact: the product is band-limited
     to 2n−1), and the monomial features map onto the order-B SH exactly on the sphere."""
