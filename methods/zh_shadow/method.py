@@ -339,7 +339,9 @@ class ZHShadow(Method):
     def _pose_state(self, frame: Frame):
         """(pose vector, posed geometry, (N, n²) world-space SH visibility), cached per pose:
         §4.3 #1 (lobes from the linear model), the local lobe axes taken to world space through the
-        posed vertex frame, and eq. 1 (ZH → SH) once per vertex."""
+        posed vertex frame, and eq. 1 (ZH → SH) once per vertex. With vertex shading and
+        ``specular="cosine"`` the SH is in each vertex's ZYZ normal frame instead (`runtime.zyz_axes`:
+        all that path needs, `_render_vertex`)."""
         scene, m = self.scene, self.model
         if scene.skeleton is None:
             pose_vec = torch.zeros(0)
@@ -349,7 +351,10 @@ class ZHShadow(Method):
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
             vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
-            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex)
+            # vertex shading with the cosine: only w = M(R_n) M¹ M(R_n)ᵀ v is needed, so v is made in
+            # the ZYZ frame of the normal, M(R_n)ᵀ v (`runtime.cosine_visibility_zyz`)
+            frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
+            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex, frame=frame)
             self._posed = (key, geom, v.T if vertex else v)                                  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
@@ -462,7 +467,8 @@ class ZHShadow(Method):
         vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
         if vd is None or vd[0] is not v0:
             nT, vT = rt.rows(geom.N.to(dev).float()), v0.to(dev).T.contiguous()   # (no copy: `_pose_state`)
-            w = rt.cosine_visibility(vT, nT)
+            # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
+            w = rt.cosine_visibility_zyz(vT, nT) if cosine else rt.cosine_visibility(vT, nT)
             self._vertex_diffuse = vd = (v0, nT, vT, w, w * (1.0 / math.pi))
         _, nT, vT, w, td = vd
         vt = self._vertex_transfer

@@ -477,26 +477,78 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
     """
     n = math.isqrt(vT.shape[0])
-    dt, dev = vT.dtype, vT.device
-    K = _conjugated(op_key, n).to(dt).to(dev)
-    perm, absm, sgn, xi, xw, ti, tw = _conjugate_tables(n, dt, dev)
+    K = _conjugated(op_key, n).to(vT.dtype).to(vT.device)
+    ang = _zyz_angles(nT, n)
+    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang)), ang)
+
+
+def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """cos/sin (n, Q) of m·φ and m·θ (`_angles`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
+    directions nT (3, Q) (φ = 0 on the pole: the operators conjugated are zonal), the point count
+    marked dynamic (one compiled kernel for every count)."""
     x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
     rho = torch.sqrt(x * x + y * y)
     ok = rho > 1e-20
     safe = torch.where(ok, rho, torch.ones_like(rho))
-    cp = torch.where(ok, x / safe, torch.ones_like(x))            # φ (any φ on the pole: M is zonal)
+    cp = torch.where(ok, x / safe, torch.ones_like(x))
     sp = torch.where(ok, y / safe, torch.zeros_like(y))
-    Cp, Sp = _angles(cp, sp, n)
-    Ct, St = _angles(z, rho, n)
-    vT = vT.contiguous()
-    for t in (vT, Cp, Sp, Ct, St):   # the point count varies: one compiled kernel for every count
+    Cp, Sp = _angles(cp, sp, order)
+    Ct, St = _angles(z, rho, order)
+    for t in (Cp, Sp, Ct, St):
         torch._dynamo.maybe_mark_dynamic(t, 1)
-    # products with 4 or 9 rows: MKL splits them over threads (methods.core.threads; `world_visibility`)
-    with torch_threads(1) if n * n < 16 else contextlib.nullcontext():
-        a = _gathered_rz(_rz(vT, Cp, Sp, perm, absm, -sgn), xi, xw, Ct, St, perm, absm, -sgn)
-        a = K @ a
-        torch._dynamo.maybe_mark_dynamic(a, 1)
-        return _gathered_rz(_rz(a, Ct, St, perm, absm, sgn), ti, tw, Cp, Sp, perm, absm, sgn)
+    return Cp, Sp, Ct, St
+
+
+def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
+    """R_z(−θ) X R_z(−φ) v (n², Q): the first half of `zonal_conjugate` (X M(R_n)ᵀ v)."""
+    n = len(ang[0])
+    perm, absm, sgn, xi, xw, _, _ = _conjugate_tables(n, vT.dtype, vT.device)
+    Cp, Sp, Ct, St = ang
+    vT = vT.contiguous()
+    torch._dynamo.maybe_mark_dynamic(vT, 1)
+    return _gathered_rz(_rz(vT, Cp, Sp, perm, absm, -sgn), xi, xw, Ct, St, perm, absm, -sgn)
+
+
+def _zyz_product(K: Tensor, aT: Tensor) -> Tensor:
+    """K @ a, (n², n²) @ (n², Q) — on one thread below 16 rows: MKL splits such thin products over
+    threads (methods.core.threads; `world_visibility`)."""
+    with torch_threads(1) if K.shape[0] < 16 else contextlib.nullcontext():
+        return K @ aT
+
+
+def _zyz_up(aT: Tensor, ang: tuple) -> Tensor:
+    """R_z(φ) Xᵀ R_z(θ) a (n², Q): the second half of `zonal_conjugate` (M(R_n) Xᵀ a)."""
+    n = len(ang[0])
+    perm, absm, sgn, _, _, ti, tw = _conjugate_tables(n, aT.dtype, aT.device)
+    Cp, Sp, Ct, St = ang
+    torch._dynamo.maybe_mark_dynamic(aT, 1)
+    return _gathered_rz(_rz(aT, Ct, St, perm, absm, sgn), ti, tw, Cp, Sp, perm, absm, sgn)
+
+
+@functools.lru_cache(maxsize=None)
+def _lifted(op_key: tuple, order: int) -> Tensor:
+    """X · M (float64) of the zonal operator M named by ``op_key`` (as `_conjugated`): the
+    product that takes the SH of a function in the ZYZ frame of n (`world_visibility`'s
+    ``frame="zyz"``) to the input of `_zyz_up` — X M Xᵀ (X M(R_n)ᵀ v) = X M v_zyz."""
+    from methods.zh_shadow.convolution import phong_operator
+
+    X = _zyz_tables(order)[3]
+    return X @ phong_operator(op_key[1], order, dtype=torch.float64)
+
+
+def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
+    """`cosine_visibility` from the visibility in the ZYZ frame of each point's normal (vzT (n², Q):
+    `world_visibility` with ``frame="zyz"``, v_zyz = M(R_n)ᵀ v): M(R_n) M¹ v_zyz — the second half
+    of `zonal_conjugate` alone, after one (n², n²) GEMM by X M¹ (`_lifted`): the lobes are taken to
+    that frame as 3-vectors before eq. 1, so the first half (two z rotations and X per point) is not
+    needed. Same numbers as `cosine_visibility` of the world-space v to round-off.
+
+    Args:
+        vzT: (n², Q) SH visibility in the frame (e1, e2, n) of `zyz_axes`; nT: (3, Q) unit normals.
+    """
+    n = math.isqrt(vzT.shape[0])
+    K = _lifted(("phong", 1.0), n).to(vzT.dtype).to(vzT.device)
+    return _zyz_up(_zyz_product(K, vzT.contiguous()), _zyz_angles(nT, n))
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
@@ -961,16 +1013,33 @@ def relight(cache: dict, v: Tensor, Wd: Tensor, light: Tensor, vertex_region: Te
     return out
 
 
+def zyz_axes(nT: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+    """The components of e1, e2 (3 × (Q,) each) of the ZYZ frame (e1, e2, n) = R_n = R_z(φ) R_y(θ)
+    of unit normals nT (3, Q) — the frame `zonal_conjugate` rotates through (e1 = (cos θ cos φ,
+    cos θ sin φ, −sin θ), e2 = (−sin φ, cos φ, 0); φ = 0 on the pole, as `_zyz_angles`)."""
+    x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
+    rho = torch.sqrt(x * x + y * y)
+    ok = rho > 1e-20
+    safe = torch.where(ok, rho, torch.ones_like(rho))
+    cp = torch.where(ok, x / safe, torch.ones_like(x))
+    sp = torch.where(ok, y / safe, torch.zeros_like(y))
+    return [z * cp, z * sp, -rho], [-sp, cp, torch.zeros_like(cp)]
+
+
 @fused
-def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: int) -> Tensor:
+def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: int, zyz: bool = False) -> Tensor:
     """(n², Q) (``dim`` 0) or (Q, n²) (``dim`` 1) world-space SH visibility of Q vertices from their lobe parameters pT (c·(2+n), Q)
     ([X, Y, k_0..k_{n−1}] per lobe, `precompute.lobes_to_params`) and unit normals nT (3, Q), in
     the point-minor layout (every op a vector over the points): the chart → local axis
     (`precompute.chart_to_axis`), local → world through the frame (s, t, n) (`methods.core.frames`),
     y(axis) (`methods.core.sh.sh_eval`: a polynomial in the axis) scaled by Λ_l k_l (``lam`` the
-    Λ_l) and summed over the lobes (eq. 1), unrolled; one compiled pass (`methods.core.fused`)."""
+    Λ_l) and summed over the lobes (eq. 1), unrolled; one compiled pass (`methods.core.fused`).
+    ``zyz``: the SH in the ZYZ frame (e1, e2, n) of each normal (`zyz_axes`) instead of world space
+    — the world axis's coordinates along e1, e2, n, i.e. M(R_n)ᵀ v (`cosine_visibility_zyz`)."""
     per = 2 + order
     s, t = _coordinate_components(nT[0], nT[1], nT[2])
+    if zyz:
+        e1, e2 = zyz_axes(nT)
     out = None
     for c in range(lobes):
         q = pT[c * per:(c + 1) * per]
@@ -983,13 +1052,16 @@ def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: 
         f = (1.0 - 0.25 * r2).clamp_min(0.0).sqrt()
         ax = (f * X, f * Y, z)                                                  # local axis
         aw = [s[i] * ax[0] + t[i] * ax[1] + nT[i] * ax[2] for i in range(3)]    # world axis
+        if zyz:                                                                 # → the frame (e1, e2, n)
+            aw = [e[0] * aw[0] + e[1] * aw[1] + e[2] * aw[2] for e in (e1, e2, [nT[0], nT[1], nT[2]])]
         Yl = sh_terms(aw[0], aw[1], aw[2], order)                               # n² × (Q,)
         terms = [Yl[i] * (q[2 + l] * lam[l]) for l in range(order) for i in range(l * l, (l + 1) ** 2)]
         out = terms if out is None else [o + u for o, u in zip(out, terms)]
     return torch.stack(out, dim)
 
 
-def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False) -> Tensor:
+def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
+                     frame: str = "world") -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
     ``point_minor`` — : §4.3 step 1 (the linear model [pose, 1] · X, one matrix-vector product: the
     frame's compulsory read of X), then per vertex the lobe axes from their chart
@@ -1001,7 +1073,11 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
 
     Args:
         X: (J+1, N, c·(2+n)) linear model; pose: (J,) joint angles; normal: (N, 3) unit posed normals.
+        frame: "world", or "zyz": each vertex's SH in the ZYZ frame of its normal (`zyz_axes`),
+            the input of `cosine_visibility_zyz`.
     """
+    if frame not in ("world", "zyz"):
+        raise ValueError(f"frame must be 'world' or 'zyz', got {frame!r}")
     J1, N, d = X.shape
     per = d // lobes
     n = per - 2
@@ -1018,7 +1094,7 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     pT, nT = p.T.contiguous(), nrm.T.contiguous()
     lam = tuple(band_norms(n).tolist())
     dim = 0 if point_minor else 1
-    parts = [_vertex_sh(pT[:, s:s + B].contiguous(), nT[:, s:s + B].contiguous(), lam, lobes, n, dim)
+    parts = [_vertex_sh(pT[:, s:s + B].contiguous(), nT[:, s:s + B].contiguous(), lam, lobes, n, dim, frame == "zyz")
              for s in range(0, Np, B)]
     if point_minor:
         return torch.cat(parts, 1)[:, :N].contiguous() if len(parts) > 1 or Np > N else parts[0]

@@ -183,6 +183,33 @@ def test_cosine_visibility_equals_rotations():
         assert (got32 - want).abs().max() <= 2e-6 * want.abs().max(), order
 
 
+def test_cosine_visibility_zyz_equals_world():
+    """`runtime.cosine_visibility_zyz` of the visibility made in the ZYZ normal frames
+    (`world_visibility`, ``frame="zyz"``: the vertex path with the cosine) = `cosine_visibility` of
+    the world-space one, orders 2–8, normals at the poles included: float64 to round-off; float32
+    within 2e-6 of the float32 world path (both are ~1e-3 from float64 here: the pose model's own
+    float32 round-off on these random charts, not the frame change)."""
+    g = torch.Generator().manual_seed(3)
+    for order in (2, 4, 5, 8):
+        N, c = 500, 2
+        X = torch.randn(4, N, c * (2 + order), generator=g, dtype=torch.float64) * 0.3
+        pose = torch.randn(3, generator=g, dtype=torch.float64)
+        nrm = torch.randn(N, 3, generator=g, dtype=torch.float64)
+        nrm[:3] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        nT = nrm.T.contiguous()
+        want = rt.cosine_visibility(rt.world_visibility(X, pose, nrm, c, point_minor=True), nT)
+        got = rt.cosine_visibility_zyz(rt.world_visibility(X, pose, nrm, c, point_minor=True, frame="zyz"), nT)
+        assert (got - want).abs().max() <= 1e-13 * want.abs().max(), order
+        X32, p32, n32 = X.float(), pose.float(), nrm.float()
+        want32 = rt.cosine_visibility(rt.world_visibility(X32, p32, n32, c, point_minor=True), nT.float()).double()
+        got32 = rt.cosine_visibility_zyz(rt.world_visibility(X32, p32, n32, c, point_minor=True, frame="zyz"),
+                                         nT.float()).double()
+        assert (got32 - want32).abs().max() <= 2e-6 * want.abs().max(), order
+    with pytest.raises(ValueError):
+        rt.world_visibility(X, pose, nrm, c, frame="local")
+
+
 def test_shade_terms_equal_reference_shade():
     """`runtime.shade_terms` = `method.shade` (per-point rotations, M^α) for random lobes, normals,
     views, lighting and exponents, orders 2–6 (monomial and SH features), float64."""
