@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from methods.core.spherical_haar import Geodesic
+from methods.triple_product.lighting import periodic_index
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,13 @@ def outgoing_weights(wo: Tensor, grid: OutgoingGrid) -> tuple[Tensor, Tensor]:
 
     Returns idx (B, 4) int64 table rows and w (B, 4) weights (sum 1).
     """
+    idx, w = outgoing_terms(wo, grid)
+    return torch.stack(idx, -1), torch.stack(w, -1)
+
+
+def outgoing_terms(wo: Tensor, grid: OutgoingGrid) -> tuple[list[Tensor], list[Tensor]]:
+    """`outgoing_weights` as 4 (B,) row tensors and 4 (B,) weight tensors (wo's dtype), unstacked
+    (a compiled caller keeps every output a 1-D plane: `fast_eval.grid_lookups`)."""
     if wo.ndim != 2 or wo.shape[1] != 3:
         raise ValueError(f"wo must be (B, 3), got {tuple(wo.shape)}")
     w64 = wo.double()
@@ -107,6 +115,6 @@ def outgoing_weights(wo: Tensor, grid: OutgoingGrid) -> tuple[Tensor, Tensor]:
     idx, w = [], []
     for di, wi in ((0, 1 - ai), (1, ai)):
         for dj, wj in ((0, 1 - aj), (1, aj)):
-            idx.append((i1 if di else i0) * grid.n_phi + torch.remainder(j0 + dj, grid.n_phi))
-            w.append(wi * wj)
-    return torch.stack(idx, -1), torch.stack(w, -1).to(wo.dtype)
+            idx.append((i1 if di else i0) * grid.n_phi + periodic_index(j0 + dj, grid.n_phi))
+            w.append((wi * wj).to(wo.dtype))
+    return idx, w

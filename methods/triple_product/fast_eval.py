@@ -235,13 +235,21 @@ def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Ten
     return [Vp, rp, Lp]
 
 
-def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
+def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None) -> tuple[Tensor, ...]:
     """`brdf_table.outgoing_weights` at ωo in the local frames R and `lighting.lookup_weights`
-    of R (mode None: no grid look-up), as one function to compile."""
-    rows, w = bt.outgoing_weights((R @ wo_world.unsqueeze(-1)).squeeze(-1), outgoing)
+    of R (mode None: no grid look-up) — for a trilinear look-up on a grid with one tangent angle
+    `lighting.cell_weights` (its 4 distinct frames, no ψ) — as one function to compile, every output
+    column a 1-D (b,) plane: 4 ωo rows, 4 weights, then the k_L grid rows and k_L weights. With
+    stacked (b, k) outputs Inductor left the loops scalar (libm trig, one loop per output shape,
+    each recomputing the trig)."""
+    rows, w = bt.outgoing_terms((R @ wo_world.unsqueeze(-1)).squeeze(-1), outgoing)
     if mode is None:
-        return rows, w
-    return (rows, w) + lt.lookup_weights(R, grid, mode)
+        return (*rows, *w)
+    if mode == "trilinear" and grid.n_psi == 1:
+        lrows, lw = lt.cell_terms(R, grid)
+        return (*rows, *w, *lrows, *lw)
+    lrows, lw = lt.lookup_weights(R, grid, mode)
+    return (*rows, *w, *lrows.unbind(1), *lw.unbind(1))
 
 
 # Inductor settings of the eq. 7 kernels (`fine_block`, `group_block`): the table rows they gather
@@ -252,8 +260,12 @@ def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
 # 14.4 -> 12.4 ms CPU.
 KERNEL_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 1000,
                   "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000}
-_lookups_fused = fused(_lookups)
-_local_frames_fused = fused(lt.local_frames)
+# Inductor's tiling heuristics leave these loops (loads of (b, 3) / (b, 3, 3) components, reductions
+# over the 3 components) scalar with scalar libm trig; without them the per-point front end of a pixel
+# frame ran ~1.5x faster (1 thread, 2^17 points, loaded machine).
+FRONT_OPTIONS = {"cpp.enable_tiling_heuristics": False}
+_lookups_fused = fused(_lookups, options=FRONT_OPTIONS)
+_local_frames_fused = fused(lt.local_frames, options=FRONT_OPTIONS)
 # Points per compiled block of the per-sample look-ups (a frame's front end: trig in float64 that
 # eager torch runs as ~40 passes over (P,) arrays); smaller batches (per-vertex frames) use the tail.
 LOOKUP_BLOCK = 1 << 15
@@ -271,12 +283,22 @@ def local_frames(n: Tensor, tangent: str) -> Tensor:
     return map_rows(_local_frames_fused, [n], (tangent,), chunk=_rows_chunk(n.shape[0]))
 
 
+def _unplane(planes: tuple[Tensor, ...], mode: str | None, grid) -> tuple:
+    """(rows, w, lrows, lw) (B, k) from `_lookups`' planes (lrows, lw None when ``mode`` is None)."""
+    rows, w = torch.stack(planes[0:4], 1), torch.stack(planes[4:8], 1)
+    if mode is None:
+        return rows, w, None, None
+    k = (len(planes) - 8) // 2
+    return rows, w, torch.stack(planes[8:8 + k], 1), torch.stack(planes[8 + k:], 1)
+
+
 def grid_lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
     """The ωo look-up (rows, w (B, 4), `brdf_table.outgoing_weights` of ωo in the frames R (B, 3, 3))
-    and, unless ``mode`` is None, the lighting-grid look-up (`lighting.lookup_weights` of R), compiled
-    over static blocks: (rows, w) or (rows, w, lrows, lw)."""
-    out = map_rows(_lookups_fused, [R, wo_world], (outgoing, grid, mode), chunk=_rows_chunk(R.shape[0]))
-    return out if mode is not None else (out[0], out[1], None, None)
+    and, unless ``mode`` is None, the lighting-grid look-up (`lighting.lookup_weights` of R; its 4
+    distinct frames, `lighting.cell_weights`, for a trilinear look-up with n_psi = 1), compiled over
+    static blocks: (rows, w, lrows, lw), the last two None when ``mode`` is None."""
+    planes = map_rows(_lookups_fused, [R, wo_world], (outgoing, grid, mode), chunk=_rows_chunk(R.shape[0]))
+    return _unplane(planes, mode, grid)
 
 
 def lists_from_rows(spec: list[list[tuple]], s: slice, K: int) -> tuple[SparseList, SparseList, SparseList]:

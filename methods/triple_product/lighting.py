@@ -127,16 +127,69 @@ def grid_frames(grid: FrameGrid, *, dtype=torch.float64) -> Tensor:
     return torch.stack([s, t, n], -2).reshape(-1, 3, 3).to(dtype)
 
 
+def _normal_coordinates(theta: Tensor, phi: Tensor, grid: FrameGrid) -> tuple[Tensor, Tensor]:
+    """Fractional grid coordinates (fi, fj) of normals at (θ, φ) (`_spherical`)."""
+    fi = (theta / (math.pi / (grid.n_theta - 1))).clamp(0, grid.n_theta - 1)
+    fj = phi / (2 * math.pi / grid.n_phi)
+    return fi, fj
+
+
 def frame_coordinates(R: Tensor, grid: FrameGrid) -> tuple[Tensor, Tensor, Tensor]:
     """Fractional grid coordinates (fi, fj, fk) (each (B,)) of frames R (B, 3, 3) (rows s, t, n)."""
     n, s = R[:, 2], R[:, 0]
     theta, phi = _spherical(n)
     _, s0, t0 = reference_tangent(theta, phi)
     psi = torch.remainder(torch.atan2((s * t0).sum(-1), (s * s0).sum(-1)), 2 * math.pi)
-    fi = (theta / (math.pi / (grid.n_theta - 1))).clamp(0, grid.n_theta - 1)
-    fj = phi / (2 * math.pi / grid.n_phi)
+    fi, fj = _normal_coordinates(theta, phi, grid)
     fk = psi / (2 * math.pi / grid.n_psi)
     return fi, fj, fk
+
+
+def periodic_index(j: Tensor, n: int) -> Tensor:
+    """j mod n of integer indices 0 ≤ j < 3n (a look-up's cell index, ⌊f⌋ of f ∈ [0, n] — n itself
+    when an angle rounds up to its period — plus 0 or 1) by two compare-and-subtracts: = torch.remainder
+    (j, n) there, without the per-lane integer division that kept the compiled look-ups slow
+    (`fast_eval.grid_lookups`: 2x per point, same results). A negative j (⌊f⌋ of a non-finite
+    angle) gives 0, so that every index names a row of the table (as the remainder did)."""
+    j = torch.where(j >= n, j - n, j)
+    return torch.where(j >= n, j - n, torch.where(j < 0, 0, j))
+
+
+def _bilinear_cell(fi: Tensor, fj: Tensor, grid: FrameGrid) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The trilinear look-up's (θ, φ) cell: i0, ai (θ clamped), j0, aj (φ periodic)."""
+    i0 = fi.floor().long().clamp(0, grid.n_theta - 2)
+    ai = (fi - i0).clamp(0, 1)
+    j0 = fj.floor().long()
+    aj = fj - j0
+    return i0, ai, j0, aj
+
+
+def cell_weights(R: Tensor, grid: FrameGrid) -> tuple[Tensor, Tensor]:
+    """`lookup_weights` (R, grid, "trilinear") of a grid with one tangent angle (n_psi = 1), each
+    (θ, φ) node once: there every node's two ψ entries (dk = 0, 1) are the same grid frame, with
+    weights w_ij·(1 − a_k) and w_ij·a_k, so the look-up is the 4 nodes of the (θ, φ) cell with
+    weights w_ij — no tangent angle ψ (its sin / cos / atan2) to compute. Returns idx (B, 4)
+    int64 (the even columns of `lookup_weights`' idx, same order) and w (B, 4) (the column pairs'
+    sums, to round-off)."""
+    idx, w = cell_terms(R, grid)
+    return torch.stack(idx, -1), torch.stack(w, -1)
+
+
+def cell_terms(R: Tensor, grid: FrameGrid) -> tuple[list[Tensor], list[Tensor]]:
+    """`cell_weights` as 4 (B,) row tensors and 4 (B,) weight tensors (R's dtype), unstacked (a
+    compiled caller keeps every output a 1-D plane: `fast_eval.grid_lookups`)."""
+    if grid.n_psi != 1:
+        raise ValueError(f"cell_weights needs a grid with n_psi = 1, got {grid}")
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise ValueError(f"R must be (B, 3, 3), got {tuple(R.shape)}")
+    theta, phi = _spherical(R.double()[:, 2])
+    i0, ai, j0, aj = _bilinear_cell(*_normal_coordinates(theta, phi, grid), grid)
+    idx, w = [], []
+    for di, wi in ((0, 1 - ai), (1, ai)):
+        for dj, wj in ((0, 1 - aj), (1, aj)):
+            idx.append((i0 + di) * grid.n_phi + periodic_index(j0 + dj, grid.n_phi))
+            w.append((wi * wj).to(R.dtype))
+    return idx, w
 
 
 def lookup_weights(R: Tensor, grid: FrameGrid, mode: str = "trilinear") -> tuple[Tensor, Tensor]:
@@ -155,10 +208,7 @@ def lookup_weights(R: Tensor, grid: FrameGrid, mode: str = "trilinear") -> tuple
         return idx, torch.ones_like(fi, dtype=R.dtype)[:, None]
     if mode != "trilinear":
         raise ValueError(f"lookup must be 'nearest' or 'trilinear', got {mode!r}")
-    i0 = fi.floor().long().clamp(0, grid.n_theta - 2)
-    ai = (fi - i0).clamp(0, 1)
-    j0 = fj.floor().long()
-    aj = fj - j0
+    i0, ai, j0, aj = _bilinear_cell(fi, fj, grid)
     k0 = fk.floor().long()
     ak = fk - k0
     idx, w = [], []
@@ -166,8 +216,8 @@ def lookup_weights(R: Tensor, grid: FrameGrid, mode: str = "trilinear") -> tuple
         for dj, wj in ((0, 1 - aj), (1, aj)):
             for dk, wk in ((0, 1 - ak), (1, ak)):
                 i = i0 + di
-                j = torch.remainder(j0 + dj, grid.n_phi)
-                k = torch.remainder(k0 + dk, grid.n_psi)
+                j = periodic_index(j0 + dj, grid.n_phi)
+                k = periodic_index(k0 + dk, grid.n_psi)
                 idx.append((i * grid.n_phi + j) * grid.n_psi + k)
                 w.append(wi * wj * wk)
     return torch.stack(idx, -1), torch.stack(w, -1).to(R.dtype)

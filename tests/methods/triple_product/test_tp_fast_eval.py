@@ -445,3 +445,28 @@ def test_grouped_kernel_equals_per_point_kernel():
     want = fast_eval.fine_kernel(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw)
     got = fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, points=64)
     assert (got - want).abs().max() <= F32 * want.abs().max()
+
+
+@pytest.mark.parametrize("grid,mode", [((17, 32, 1), "trilinear"), ((5, 8, 3), "trilinear"), ((5, 8, 1), "nearest")])
+def test_grid_lookups_equal_the_eager_lookups(grid, mode):
+    """`fast_eval.grid_lookups` (compiled, every output a 1-D plane; `lighting.cell_weights` for a
+    trilinear look-up with n_psi = 1) = the eager `brdf_table.outgoing_weights` and
+    `lighting.lookup_weights` (each node's two ψ entries merged when n_psi = 1) at random frames and
+    ωo (5000 points: whole blocks and a padded tail): the same rows, weights to float32 round-off."""
+    from methods.triple_product import brdf_table as bt
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(11)
+    n = torch.nn.functional.normalize(torch.randn(5000, 3, generator=gen), dim=-1)
+    n[:7] = torch.tensor([0.0, 1.0, 0.0])                                # floor normals: a grid node
+    wo = torch.nn.functional.normalize(torch.randn(5000, 3, generator=gen), dim=-1)
+    og, g = bt.OutgoingGrid(8, 16), lt.FrameGrid(*grid)
+    R = lt.local_frames(n, "grid")
+    rows, w, lrows, lw = fast_eval.grid_lookups(R, wo, og, g, mode)
+    er, ew = bt.outgoing_weights((R @ wo.unsqueeze(-1)).squeeze(-1), og)
+    el, elw = lt.lookup_weights(R, g, mode)
+    if mode == "trilinear" and g.n_psi == 1:
+        el, elw = el[:, 0::2], elw[:, 0::2] + elw[:, 1::2]
+    assert torch.equal(rows, er) and torch.equal(lrows, el)
+    assert (w - ew).abs().max() <= F32 and (lw - elw).abs().max() <= F32
+    assert fast_eval.grid_lookups(R, wo, og, g, None)[2:] == (None, None)

@@ -35,6 +35,29 @@ def test_grid_frames_orthonormal_and_lookup_hits_nodes():
         assert torch.allclose(w.amax(-1), torch.ones(keep.numel(), dtype=w.dtype), atol=1e-9)
 
 
+def test_cell_weights_are_the_merged_trilinear_lookup():
+    """`lighting.cell_weights` (n_psi = 1: each (θ, φ) node once, no ψ) = `lookup_weights`'
+    trilinear look-up with each node's two ψ entries merged: its even columns' rows, the column
+    pairs' summed weights to round-off — at random normals, the poles, and φ a hair below 2π (the
+    cell index rounds up to n_phi: `periodic_index`); and `periodic_index` = remainder on [0, 3n)."""
+    gen = torch.Generator().manual_seed(5)
+    n = torch.nn.functional.normalize(torch.randn(500, 3, generator=gen), dim=-1)
+    n = torch.cat([n, torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.6, 0.0, -1e-9], [1.0, 0.0, 0.0]])])
+    for g in (lt.FrameGrid(5, 8, 1), lt.FrameGrid(17, 32, 1), lt.FrameGrid(3, 1, 1)):
+        for R in (lt.local_frames(n, "grid"), lt.local_frames(n, "grid").double()):
+            idx, w = lt.lookup_weights(R, g, "trilinear")
+            ci, cw = lt.cell_weights(R, g)
+            assert ci.shape == (n.shape[0], 4) and cw.dtype == R.dtype
+            assert torch.equal(ci, idx[:, 0::2]) and torch.equal(idx[:, 0::2], idx[:, 1::2])
+            assert (cw - (w[:, 0::2] + w[:, 1::2])).abs().max() <= 4 * torch.finfo(R.dtype).eps
+            assert int(ci.min()) >= 0 and int(ci.max()) < g.size
+    with pytest.raises(ValueError):
+        lt.cell_weights(lt.local_frames(n, "grid"), lt.FrameGrid(5, 8, 2))
+    for m in (1, 2, 7, 32):
+        j = torch.arange(3 * m)
+        assert torch.equal(lt.periodic_index(j, m), torch.remainder(j, m))
+
+
 def test_local_frames_tangents():
     n = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     for tangent in lt.TANGENTS:
