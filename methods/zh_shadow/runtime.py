@@ -482,16 +482,23 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     return _zyz_up(_zyz_product(K, _zyz_down(vT, ang)), ang)
 
 
-def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """cos/sin (n, Q) of m·φ and m·θ (`_angles`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
-    directions nT (3, Q) (φ = 0 on the pole: the operators conjugated are zonal), the point count
-    marked dynamic (one compiled kernel for every count)."""
+def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """cos θ, sin θ, cos φ, sin φ (Q,) each of unit directions nT (3, Q) = (sin θ cos φ, sin θ sin φ,
+    cos θ), with φ = 0 on the pole (the ZYZ frame of `_zyz_angles` and `zyz_axes`)."""
     x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
     rho = torch.sqrt(x * x + y * y)
     ok = rho > 1e-20
     safe = torch.where(ok, rho, torch.ones_like(rho))
     cp = torch.where(ok, x / safe, torch.ones_like(x))
     sp = torch.where(ok, y / safe, torch.zeros_like(y))
+    return z, rho, cp, sp
+
+
+def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """cos/sin (n, Q) of m·φ and m·θ (`_angles`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
+    directions nT (3, Q) (φ = 0 on the pole: the operators conjugated are zonal), the point count
+    marked dynamic (one compiled kernel for every count)."""
+    z, rho, cp, sp = _polar(nT)
     Cp, Sp = _angles(cp, sp, order)
     Ct, St = _angles(z, rho, order)
     for t in (Cp, Sp, Ct, St):
@@ -1017,12 +1024,7 @@ def zyz_axes(nT: Tensor) -> tuple[list[Tensor], list[Tensor]]:
     """The components of e1, e2 (3 × (Q,) each) of the ZYZ frame (e1, e2, n) = R_n = R_z(φ) R_y(θ)
     of unit normals nT (3, Q) — the frame `zonal_conjugate` rotates through (e1 = (cos θ cos φ,
     cos θ sin φ, −sin θ), e2 = (−sin φ, cos φ, 0); φ = 0 on the pole, as `_zyz_angles`)."""
-    x, y, z = nT[0], nT[1], nT[2].clamp(-1.0, 1.0)
-    rho = torch.sqrt(x * x + y * y)
-    ok = rho > 1e-20
-    safe = torch.where(ok, rho, torch.ones_like(rho))
-    cp = torch.where(ok, x / safe, torch.ones_like(x))
-    sp = torch.where(ok, y / safe, torch.zeros_like(y))
+    z, rho, cp, sp = _polar(nT)
     return [z * cp, z * sp, -rho], [-sp, cp, torch.zeros_like(cp)]
 
 
