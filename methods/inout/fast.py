@@ -236,7 +236,29 @@ def _window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, 
     return (sh_nc[rows] * c[ref.long()][:, None, None]).sum(-1)
 
 
-window_rows = fused(_window_rows)
+def _window_span(W: int, device) -> Tensor:
+    """An empty (W,) tensor whose length carries the window side W into a compiled kernel, marked
+    dynamic: W changes from frame to frame (`choose_window`), and an int argument would specialise
+    the kernel on its value — a re-trace (and, on a cold Inductor cache, a compilation of seconds)
+    inside a timed frame each time a view picks a new W. One symbolic-W kernel serves every W."""
+    span = torch.empty(W, dtype=torch.uint8, device=device)
+    torch._dynamo.maybe_mark_dynamic(span, 0)
+    return span
+
+
+def _window_rows_span(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, span: Tensor) -> Tensor:
+    return _window_rows(ax, ay, ref, sh_nc, c, R, span.shape[0])
+
+
+_window_rows_compiled = fused(_window_rows_span)
+
+
+def window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, W: int) -> Tensor:
+    """`_window_rows` compiled, W symbolic (`_window_span`)."""
+    return _window_rows_compiled(ax, ay, ref, sh_nc, c, R, _window_span(W, ax.device))
+
+
+window_rows.eager = _window_rows  # type: ignore[attr-defined]
 # Vertices per static block of `window_rows` (``core.fused.map_rows``: the padding of the last block is
 # at most this minus one rows; `_outliers` takes `sample_block` entries per block).
 WINDOW_BLOCK = 512
@@ -415,7 +437,23 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
 # gathers stay 8 scalar loads each, the arithmetic around them — the frame, the cell, the weights, the
 # index chains — runs 8-wide). Chess bench, 1 thread, same process: 1.55–1.6× (79 → 51–54 ns per sample).
 SHADE_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
-shade_rows = fused(_shade_rows, options=SHADE_OPTIONS)
+
+
+def _shade_rows_span(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor,
+                     win: Tensor, X: Tensor, R: int, span: Tensor) -> tuple[Tensor, Tensor]:
+    return _shade_rows(normal, wo, bary, face, live, face_gl, win, X, R, span.shape[0])
+
+
+_shade_rows_compiled = fused(_shade_rows_span, options=SHADE_OPTIONS)
+
+
+def shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
+               X: Tensor, R: int, W: int) -> tuple[Tensor, Tensor]:
+    """`_shade_rows` compiled (`SHADE_OPTIONS`), W symbolic (`_window_span`)."""
+    return _shade_rows_compiled(normal, wo, bary, face, live, face_gl, win, X, R, _window_span(W, X.device))
+
+
+shade_rows.eager = _shade_rows  # type: ignore[attr-defined]
 
 
 def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,

@@ -461,3 +461,33 @@ def _resample_cost(m) -> tuple[int, int]:
     H, W = m.scene.envmap.data.shape[:2]
     return (min(H * W, 4 * 6 * N * N * s * s) * 12 + 6 * N * N * 12,
             6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4)
+
+
+def test_window_kernels_serve_every_window_side_without_recompiling(precomputed):
+    """The window side W changes from frame to frame (`fast.choose_window`); the compiled
+    `shade_rows` and `window_rows` take it as a symbolic size (`fast._window_span`), so a new W
+    does not re-trace them inside a timed frame — and each W still gives the eager result."""
+    from methods.core.fused import compile_enabled
+
+    if not compile_enabled():
+        pytest.skip("compilation disabled (PRTBENCH_COMPILE=0)")
+    from torch._dynamo.utils import counters
+
+    m = precomputed("bunny")
+    fast_m, _ = _pair(m)
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    view = fast_m._view_setup(frame, make_gbuffer(m.scene, frame, 2))
+    st = view.st
+    fr = st.regions[0]
+    n = fast.MIN_SAMPLE_BLOCK
+    g = torch.Generator().manual_seed(3)
+    ref = torch.randint(0, int(st.voff[1]), (n,), generator=g)
+    graphs = []
+    for W in (4, 8, 6, 10):
+        ax = torch.randint(0, fr.R - W + 1, (n,), generator=g, dtype=torch.int32)
+        ay = torch.randint(0, fr.R - W + 1, (n,), generator=g, dtype=torch.int32)
+        cw = torch.randn(int(st.voff[1]), 3, fr.sh_nc.shape[1], generator=g)
+        got = fast.window_rows(ax, ay, ref, fr.sh_nc, cw, fr.R, W)
+        assert torch.allclose(got, fast.window_rows.eager(ax, ay, ref, fr.sh_nc, cw, fr.R, W), rtol=RTOL, atol=1e-6)
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[-1] == graphs[0], graphs          # W = 8, 6, 10 reuse the kernel compiled for W = 4
