@@ -59,6 +59,7 @@ from methods.core.sampling import gauss_legendre_sphere
 from methods.core.sh import sh_eval, sh_terms
 from methods.core.threads import torch_threads
 from methods.core.zh import band_norms, expand_bands, phong_factors
+from methods.zh_shadow.convolution import phong_operator
 from methods.zh_shadow.precompute import CHART_RMAX
 
 # Largest SH order whose features are monomials: the monomial basis of degree 2n−2 ⊕ 2n−3 has
@@ -387,8 +388,6 @@ def _zyz_tables(order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 def _conjugated(op_key: tuple, order: int) -> Tensor:
     """X · M · Xᵀ (float64) of the zonal operator M named by ``op_key`` (("phong", α): M^α of
     `convolution.phong_operator`), the fixed middle factor of `zonal_conjugate`."""
-    from methods.zh_shadow.convolution import phong_operator
-
     X = _zyz_tables(order)[3]
     M = phong_operator(op_key[1], order, dtype=torch.float64)
     return X @ M @ X.T
@@ -537,8 +536,6 @@ def _lifted(op_key: tuple, order: int) -> Tensor:
     """X · M (float64) of the zonal operator M named by ``op_key`` (as `_conjugated`): the
     product that takes the SH of a function in the ZYZ frame of n (`world_visibility`'s
     ``frame="zyz"``) to the input of `_zyz_up` — X M Xᵀ (X M(R_n)ᵀ v) = X M v_zyz."""
-    from methods.zh_shadow.convolution import phong_operator
-
     X = _zyz_tables(order)[3]
     return X @ phong_operator(op_key[1], order, dtype=torch.float64)
 
