@@ -6,7 +6,8 @@ executor runs each cell as two tasks (``run_part``): image errors (in parallel) 
 a time per machine), joined by ``merge_parts`` into the same result.
 
 Measuring (DESIGN.md "Measuring"): precompute time; per-frame render time (``perf_counter``, first
-frame = warm-up excluded from median/IQR; all frames stored); ``Method.memory()``; peak RSS of the
+frame = warm-up excluded from median/IQR, rendered inside ``methods.core.fused.warming``; all frames
+stored); ``Method.memory()``; peak RSS of the
 cell's process (``ru_maxrss``) — the cell's own when ``isolate`` runs it in a spawned child;
 ``bytes_per_frame``; error metrics against the reference of the cell's bounce count on the
 ``score_frames``; the equal-error speedup (``reports.measure.fit_convergence``).
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from methods.core.fused import warming
 from methods.registry import get_method
 from reports import gate, measure, precompute_cache
 from reports.backend import load_backend
@@ -250,7 +252,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         if cell.device != "cpu":
             gb = gb.to(cell.device)
         t0 = time.perf_counter()
-        img = method.render(frame, gb)
+        with warming(i == 0):  # the untimed warm-up frame also compiles the block sizes later frames meet
+            img = method.render(frame, gb)
         if img.device.type == "cuda":
             torch.cuda.synchronize(img.device)  # the frame is done when its image is
         dt = time.perf_counter() - t0

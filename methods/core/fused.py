@@ -32,9 +32,22 @@ Decisions (measured with ``benchmarks/fused.py``):
   for that function. The first call of each function compiles (seconds; Inductor caches the code on
   disk, keyed by the thread count) — it lands in a method's warm-up frame, which the harness
   excludes from the frame-time median, and tests see it as test time.
+* Block sizes met later (`warming`, `warm_blocks`): a caller whose block follows a per-frame count
+  (`pow2_block`: the count rounded up to a power of two) compiles a new variant the first time a
+  frame's count lands in a new size class — a re-trace (0.2-0.8 s with Inductor's disk cache warm,
+  seconds cold) inside a *timed* frame. Measured in session 13's perf run: in-out per sample creature
+  V frames 2-3 at 264 / 270 ms against 65-75 ms, PTT chess V frame 4 at 783 ms against 13 ms. The
+  harness renders its untimed warm-up frame inside ``warming()``; there `warm_blocks` also compiles
+  the neighbouring size classes (×4 either way, `neighbour_blocks`) of every kernel call it sees, on
+  dummy blocks made of the call's first row, so later frames find their variant compiled — as an
+  interactive application compiles its kernels at load time. Outside ``warming()`` it does nothing
+  (tests and studies pay no extra compilations). Rows are made contiguous first (`map_rows`), so
+  a strided row tensor does not compile a second, padded-block variant (in-out's window columns
+  did: ``ax`` stride 3 in full blocks, 1 in the padded last one).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import warnings
@@ -43,7 +56,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["CHUNK", "compile_enabled", "fused", "map_rows"]
+__all__ = ["CHUNK", "compile_enabled", "fused", "map_rows", "neighbour_blocks", "pow2_block", "warm_blocks", "warming"]
 
 # Rows per block of `map_rows`: large enough that a block's launch overhead (~20 µs) is small against
 # its work, small enough that its temporaries stay in the L2 cache of one core.
@@ -104,14 +117,18 @@ def fused(fn: Callable, *, options: dict | None = None) -> Callable:
     return wrapper
 
 
-def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk: int = CHUNK):
+def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk: int = CHUNK,
+             warm: Sequence[int] = ()):
     """``fn(*row_blocks, *args)`` over blocks of exactly ``chunk`` rows of the ``rows`` tensors
     (all with the same leading size Q), results (a tensor or a tuple of tensors with leading size
     equal to the block's) concatenated and trimmed to Q rows. The last block is padded by repeating
     the last row, so a compiled ``fn`` sees one shape (module docstring). Q = 0 calls ``fn`` once on
-    the empty tensors (eagerly when ``fn`` is `fused`)."""
+    the empty tensors (eagerly when ``fn`` is `fused`). ``warm``: other block sizes this call's
+    kernels may meet in later frames (`neighbour_blocks`), compiled now when the harness is
+    `warming` (`warm_blocks`)."""
     if not rows:
         raise ValueError("map_rows needs at least one row tensor")
+    rows = [r.contiguous() for r in rows]  # one stride pattern for full and padded blocks (module docstring)
     q = int(rows[0].shape[0])
     if any(int(r.shape[0]) != q for r in rows):
         raise ValueError(f"row tensors differ in length: {[tuple(r.shape) for r in rows]}")
@@ -119,6 +136,8 @@ def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     if q == 0:
         return getattr(fn, "eager", fn)(*rows, *args)
+    if warm:
+        warm_blocks(fn, rows, args, [b for b in warm if b != chunk])
     outs = []
     for s in range(0, q, chunk):
         blk = [r[s:s + chunk] for r in rows]
@@ -130,3 +149,70 @@ def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk
     if isinstance(outs[0], Tensor):
         return outs[0] if len(outs) == 1 else torch.cat(outs)
     return tuple(torch.cat(parts) if len(parts) > 1 else parts[0] for parts in zip(*outs))
+
+
+# -- block sizes that follow a per-frame count (module docstring) --------------------------------------
+
+_warming = False
+_warmed: set = set()
+
+
+@contextlib.contextmanager
+def warming(on: bool = True):
+    """Within the block, `warm_blocks` compiles the block sizes it is given (the harness wraps its
+    untimed warm-up frame in it, `reports.measure_cell`). Not thread-safe: one frame at a time."""
+    global _warming
+    prev, _warming = _warming, bool(on)
+    try:
+        yield
+    finally:
+        _warming = prev
+
+
+def pow2_block(q: int, lo: int, hi: int) -> int:
+    """Rows per static block for q rows: q rounded up to a power of two, clamped to [lo, hi]
+    (powers of two themselves): few size classes, so few compiled variants."""
+    return min(hi, max(lo, 1 << max(int(q) - 1, 0).bit_length()))
+
+
+def neighbour_blocks(block: int, lo: int, hi: int, span: int = 4) -> tuple[int, ...]:
+    """The power-of-two block sizes within ``span`` times ``block`` either way, clamped to [lo, hi]:
+    what `warm_blocks` compiles besides ``block`` (a frame's count rarely moves 4× from the warm-up
+    frame's within a sequence; each size costs a compilation in the warm-up frame)."""
+    out, b = [], max(lo, block // span)
+    while b <= min(hi, block * span):
+        out.append(b)
+        b *= 2
+    return tuple(out)
+
+
+def _signature(t) -> object:
+    """What a compiled variant is specialised on, as far as `warm_blocks` needs: a tensor's dtype,
+    device and sizes (None for dimensions marked dynamic), any other argument itself when hashable."""
+    if isinstance(t, Tensor):
+        dyn = getattr(t, "_dynamo_weak_dynamic_indices", set()) | getattr(t, "_dynamo_dynamic_indices", set())
+        return (t.dtype, t.device.type, tuple(None if i in dyn else int(n) for i, n in enumerate(t.shape)))
+    try:
+        hash(t)
+        return t
+    except TypeError:
+        return type(t).__name__
+
+
+def warm_blocks(fn: Callable, rows: Sequence[Tensor], args: Sequence, sizes: Sequence[int]) -> int:
+    """While `warming`: ``fn(*blocks, *args)`` once for each block size in ``sizes``, the blocks made
+    of the first row of each of ``rows`` (valid input: a real row, repeated — as `map_rows` pads),
+    the results dropped; once per (``fn``, argument signature) in the process. ``fn``: a `fused`
+    function or a function of one block that calls such kernels (keyed by its code, so a closure
+    made per call counts once). Returns the number of warm-up calls made (0 outside `warming`)."""
+    if not _warming or not sizes or not compile_enabled() or not rows or int(rows[0].shape[0]) == 0:
+        return 0
+    code = getattr(getattr(fn, "eager", fn), "__code__", None)
+    key = (code if code is not None else id(fn), tuple(_signature(r[:0]) for r in rows),
+           tuple(_signature(a) for a in args), tuple(sizes))
+    if key in _warmed:
+        return 0
+    _warmed.add(key)
+    for b in sizes:
+        fn(*[r[:1].expand(b, *r.shape[1:]).contiguous() for r in rows], *args)
+    return len(sizes)

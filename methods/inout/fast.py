@@ -64,7 +64,7 @@ import torch
 import torch.nn.functional as Fnn
 from torch import Tensor
 
-from methods.core.fused import fused, map_rows
+from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, warm_blocks
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
@@ -346,8 +346,8 @@ def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tup
     cap = max_window // 2
     for t in (a_all, st.face_rows, st.K):
         torch._dynamo.maybe_mark_dynamic(t, 0)
-    d, w = map_rows(window_entries, list(sub), (st.face_rows, a_all, st.K, R, cap),
-                    chunk=sample_block(sub[0].shape[0]))
+    B = sample_block(sub[0].shape[0])
+    d, w = map_rows(window_entries, list(sub), (st.face_rows, a_all, st.K, R, cap), chunk=B, warm=warm_sizes(B))
     hist = torch.bincount(d.reshape(-1), weights=w.reshape(-1), minlength=cap + 1) * scale
     W = min(choose_window(hist, float(st.K[ref].sum()), max_window), R - R % 2)
     h = W // 2 - 1
@@ -373,7 +373,14 @@ MAX_SAMPLE_BLOCK = 1 << 18
 
 def sample_block(q: int) -> int:
     """Samples per static block of `shade_pixels` for q shaded samples (`MAX_SAMPLE_BLOCK` comment)."""
-    return min(MAX_SAMPLE_BLOCK, max(MIN_SAMPLE_BLOCK, 1 << max(int(q) - 1, 0).bit_length()))
+    return pow2_block(q, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK)
+
+
+def warm_sizes(block: int) -> tuple[int, ...]:
+    """The other `sample_block` sizes a later frame may meet, compiled in the harness's warm-up frame
+    (``core.fused.warm_blocks``: the count of entries outside their windows moved 4096-16384 over the
+    creature's V orbit, and each new size re-traced inside a timed frame)."""
+    return tuple(b for b in neighbour_blocks(block, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK) if b != block)
 
 
 def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
@@ -490,18 +497,21 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
     P = max(1, sample_block(q) // S2)
     for t in (wins.X, wins.win, st.face_rows):         # rows vary per frame / scene: one compiled variant
         torch._dynamo.maybe_mark_dynamic(t, 0)
+    args = (st.face_rows, wins.win, wins.X, st.R, wins.W)
+    warm_blocks(shade_rows, rows, args, [b // S2 for b in warm_sizes(P * S2) if b >= S2])
     for a in range(0, npx, P):
         blk = [t[a:a + P] for t in rows]
         n = blk[0].shape[0]
         if n < P:  # pad by repeating the last pixel (``core.fused.map_rows``); the padding is dropped
             blk = [torch.cat([b, b[-1:].expand(P - n, *b.shape[1:])]) for b in blk]
-        o, mb = shade_rows(*blk, st.face_rows, wins.win, wins.X, st.R, wins.W)
+        o, mb = shade_rows(*blk, *args)
         out[a:a + n] = o[:n]
         miss[a:a + n] = mb[:n]
     k = miss.view(-1).nonzero(as_tuple=True)[0]
     if k.numel():                                      # entries outside their windows: the exact path
         sub = [t.index_select(0, k) for t in (normal, wo, bary, face, live)]
-        g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=sample_block(k.numel()))
+        B = sample_block(k.numel())
+        g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=B, warm=warm_sizes(B))
         bits = miss.view(-1).index_select(0, k)
         e = ((bits[:, None] >> torch.arange(3, device=dev, dtype=torch.uint8)) & 1).nonzero()
         i, j = e[:, 0], e[:, 1]
@@ -511,8 +521,9 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
         px = k.index_select(0, i) // S2
         for s, fr in enumerate(st.regions):
             sel = ((v >= st.voff[s]) & (v < st.voff[s + 1])).nonzero(as_tuple=True)[0]
+            o = _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel])  # empty: warms only
             if sel.numel():
-                out.index_add_(0, px[sel], _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel]))
+                out.index_add_(0, px[sel], o)
     return out
 
 
@@ -543,7 +554,14 @@ def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) ->
     """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: the
     compiled `outlier_rows` over static blocks of `sample_block` entries. v, cell (n,) int64 local
     vertex / first node; wc (n, 4) node weights (β_j folded in); c (Vr, 3, K) → (n, 3)."""
-    if v.numel() == 0:
-        return torch.zeros(0, 3, dtype=c.dtype, device=c.device)
     torch._dynamo.maybe_mark_dynamic(c, 0)
-    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=sample_block(v.numel()))
+    if v.numel() == 0:
+        # a region with no such entry in the warm-up frame may have some later (the creature's
+        # second region: none in V frame 0, 1024 in frame 2, a re-trace inside a timed frame):
+        # warm its variants on one valid entry (vertex 0, node 0, zero weights)
+        one = torch.zeros(1, dtype=torch.long, device=c.device)
+        warm_blocks(outlier_rows, [one, one, torch.zeros(1, 4, dtype=c.dtype, device=c.device)], (fr.sh_nc, c, fr.R),
+                    neighbour_blocks(MIN_SAMPLE_BLOCK, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK))
+        return torch.zeros(0, 3, dtype=c.dtype, device=c.device)
+    B = sample_block(v.numel())
+    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=B, warm=warm_sizes(B))

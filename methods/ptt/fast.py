@@ -61,7 +61,7 @@ from torch import Tensor
 
 from methods.core import sh as _sh
 from methods.core.frames import frame_matrix, reflect
-from methods.core.fused import fused, map_rows
+from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, warm_blocks
 from methods.core.latlong import bilinear_taps
 from methods.core.sh_rotation import sh_rotation_matrix
 from methods.ptt import specular as _spec
@@ -643,7 +643,8 @@ def mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Ten
     thread, CPU time): 2.5 ms vs 2.9 ms eager (its strided (Q, 3) loads make it cost as much as the
     eager passes); the win is that the cells and the gathers after it become one compiled loop."""
     q = int(normal.shape[0])
-    return map_rows(mirror_uv_block, [normal, wo], (to_world.to(normal).contiguous(),), chunk=sample_block(q))
+    B = sample_block(q)
+    return map_rows(mirror_uv_block, [normal, wo], (to_world.to(normal).contiguous(),), chunk=B, warm=warm_sizes(B))
 
 
 def lookup_stack(st: EnvStack, u: Tensor, v: Tensor) -> Tensor:
@@ -700,7 +701,13 @@ LANES = 16
 
 def sample_block(q: int) -> int:
     """Rows per static block of the compiled sample stage for q samples (`MAX_SAMPLE_BLOCK` comment)."""
-    return min(MAX_SAMPLE_BLOCK, max(MIN_SAMPLE_BLOCK, 1 << max(int(q) - 1, 0).bit_length()))
+    return pow2_block(q, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK)
+
+
+def warm_sizes(block: int) -> tuple[int, ...]:
+    """The other `sample_block` sizes a later frame may meet, compiled in the harness's warm-up frame
+    (``core.fused.warm_blocks``; session 13's perf run: chess V frame 4 re-traced, 783 ms vs 13 ms)."""
+    return tuple(b for b in neighbour_blocks(block, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK) if b != block)
 
 
 def table_width(C: int) -> int:
@@ -784,7 +791,8 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
         u, v = mirror_uv_block(normal, wo, env.to_world)
         return shade_block(face, bary, u, v, face_pairs, tab, erows, lanes, env.H, env.W, 1)
 
-    return map_rows(block, [face, bary, normal, wo], chunk=sample_block(face.shape[0]))
+    B = sample_block(face.shape[0])
+    return map_rows(block, [face, bary, normal, wo], chunk=B, warm=warm_sizes(B))
 
 
 def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor,
@@ -800,15 +808,23 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
         return None
     tab, erows, lanes = _fused_inputs(table, env, L, C, S2)
     out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
+    warm_blocks(_shade_pixels_block, [face, bary, normal, wo], (face_pairs, tab, erows, lanes, env, S2),
+                [b for b in warm_sizes(B) if b % S2 == 0])
     for a in range(0, q, B):
         blk = [t[a:a + B] for t in (face, bary, normal, wo)]
         n = blk[0].shape[0]
         if n < B:  # pad whole pixels by repeating the last sample (map_rows); the padding is dropped
             blk = [torch.cat([b, b[-1:].expand(B - n, *b.shape[1:])]) for b in blk]
-        u, v = mirror_uv_block(blk[2], blk[3], env.to_world)
-        o = shade_block(blk[0], blk[1], u, v, face_pairs, tab, erows, lanes, env.H, env.W, S2)
+        o = _shade_pixels_block(*blk, face_pairs, tab, erows, lanes, env, S2)
         out[a // S2:(a + n) // S2].copy_(o[:n // S2])
     return out
+
+
+def _shade_pixels_block(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, tab: Tensor,
+                        erows: Tensor, lanes: Tensor, env: EnvStack, S2: int) -> Tensor:
+    """One block of `shade_pixels_fused`: `mirror_uv` and `shade_block` (S2 sub-samples per pixel)."""
+    u, v = mirror_uv_block(normal, wo, env.to_world)
+    return shade_block(face, bary, u, v, face_pairs, tab, erows, lanes, env.H, env.W, S2)
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

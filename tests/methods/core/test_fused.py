@@ -99,3 +99,67 @@ def test_many_table_sizes_stay_compiled_and_past_the_limit_warn(monkeypatch):
         for n in range(1, 6):
             a, _ = g(torch.ones(n, 2), 3.0)
             torch.testing.assert_close(a, torch.full((n, 2), 3.0))
+
+
+def _graphs() -> int:
+    from torch._dynamo.utils import counters
+    return int(counters["stats"]["unique_graphs"])
+
+
+def _bumped(vidx, bw, col):  # a distinct function per test: its own compiled variants
+    return (col[vidx.long()] * bw[..., None]).sum(1) + 1.0
+
+
+def _scaled(vidx, bw, col):
+    return (col[vidx.long()] * bw[..., None]).sum(1) * 2.0
+
+
+def test_warming_compiles_the_neighbour_blocks_so_a_later_count_does_not_retrace(data):
+    """A block size that follows a per-frame count (`pow2_block`) compiled a new variant inside a
+    timed frame the first time a count landed in a new size class; in `warming` (the harness's
+    warm-up frame) `map_rows(warm=...)` compiles the neighbouring sizes up front."""
+    from methods.core.fused import neighbour_blocks, pow2_block, warming
+
+    vidx, bw, col = data
+    lo, hi = 64, 4096
+
+    def frame(f, q):
+        B = pow2_block(q, lo, hi)
+        return map_rows(f, (vidx[:q], bw[:q]), (col,), chunk=B, warm=neighbour_blocks(B, lo, hi))
+
+    assert pow2_block(300, lo, hi) == 512 and neighbour_blocks(512, lo, hi) == (128, 256, 512, 1024, 2048)
+    for fn, warm in ((_bumped, True), (_scaled, False)):
+        f = fused(fn)
+        with warming(warm):
+            frame(f, 300)                         # the warm-up frame: block 512
+        g0 = _graphs()
+        for q in (1000, 130, 300):                # later frames: blocks 1024, 256, 512
+            torch.testing.assert_close(frame(f, q), fn(vidx[:q], bw[:q], col), rtol=1e-6, atol=1e-6)
+        assert (_graphs() - g0 == 0) if warm else (_graphs() - g0 >= 2), (fn.__name__, _graphs() - g0)
+
+
+def test_warm_blocks_does_nothing_outside_warming_and_warms_once_per_signature(data):
+    from methods.core.fused import warm_blocks, warming
+
+    vidx, bw, col = data
+    f = fused(_resolve)
+    assert warm_blocks(f, (vidx, bw), (col,), (64, 128)) == 0
+    with warming():
+        assert warm_blocks(f, (vidx, bw), (col,), (64, 128)) == 2
+        assert warm_blocks(f, (vidx[:5], bw[:5]), (col,), (64, 128)) == 0      # same signature
+        assert warm_blocks(f, (vidx, bw), (col.double(),), (64, 128)) == 2      # a new table dtype
+        assert warm_blocks(f, (vidx[:0], bw[:0]), (col,), (256,)) == 0         # nothing to repeat
+
+
+def test_strided_rows_compile_one_variant_for_full_and_padded_blocks():
+    """Rows that are a column of a wider array (stride > 1) are made contiguous first: full blocks
+    (views) and the padded last block (a copy) then share one compiled variant (in-out's window
+    columns compiled two)."""
+    g = torch.Generator().manual_seed(5)
+    col = torch.rand(50, 3, generator=g)
+    win = torch.randint(0, 50, (700, 3), generator=g)
+    f = fused(lambda a, b, t: t[a] + t[b])
+    g0 = _graphs()
+    got = map_rows(f, (win[:, 0], win[:, 1]), (col,), chunk=256)
+    assert _graphs() - g0 == 1
+    torch.testing.assert_close(got, col[win[:, 0]] + col[win[:, 1]])
