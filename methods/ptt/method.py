@@ -537,13 +537,16 @@ class PTT(Method):
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
         if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
+            # samples shaded and resolved per block (fast.shade_pixels_fused); a miss (face −1, the
+            # G-buffer's contract, checked) reads the zero face of `fast.miss_face_pairs`: 0, as
+            # GBuffer.resolve counts it
+            if env is not None and (bool(gb.hit.all()) or bool(((gb.face == -1) != gb.hit).all())):
+                img = _fast.shade_pixels_fused(_fast.miss_face_pairs(st), table, gb.face, gb.bary, gb.normal, gb.wo,
+                                               env, L, gb.spp_side ** 2, C)
+                if img is not None:
+                    return img.view(gb.height, gb.width, 3)
             if bool(gb.hit.all()):  # no gathers of the G-buffer
                 S2 = gb.spp_side ** 2
-                if env is not None:  # samples shaded and resolved per block (fast.shade_pixels_fused)
-                    img = _fast.shade_pixels_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L,
-                                                   S2, C)
-                    if img is not None:
-                        return img.view(gb.height, gb.width, 3)
                 out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, C)
                 return _fast.box_filter(out, gb.height, gb.width, S2)
             out = torch.zeros(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
