@@ -193,6 +193,20 @@ class LobeBasis:
         frames of perturbed materials, loaded 2-core machine; ``python -m benchmarks.ptt_fit``): one
         frame's fits chess bench 9.7 → 1.9 ms (×5.2), creature 3.0 → 0.8 ms (×3.9); the
         coordinates differ from the unfolded fit by float64 round-off (≤ 5e-14 relative)."""
+        grid, M, G, g_d = self.prepare()
+        H = g_d * torch.tensor(material.kd, dtype=torch.float64)[None, :]
+        lobe = _spec_lobe(material)
+        if lobe is not None:
+            fu = grid.eval(lobe).double()  # unit ks, pairs o <= i
+            g_s = _solve(G, (M @ fu)[:, None])
+            H = H + g_s * torch.tensor(material.ks_rgb, dtype=torch.float64)[None, :]
+        return H
+
+    def prepare(self) -> tuple:
+        """The fit's static part (`_fit`): the lobe evaluator on the grid pairs o <= i, the folded
+        matrix M (P, pairs), the Gram matrix G and g_d; built once (the first `_fit`, or a renderer's
+        warm-up frame: ``PTT.render`` calls it on its first frame so that the first changed material
+        of a timed frame does not pay it)."""
         fold = getattr(self, "_fold", None)
         if fold is None:
             from methods.ptt.lobe_grid import GridLobes
@@ -209,15 +223,11 @@ class LobeBasis:
             o, i = torch.triu_indices(d.shape[0], d.shape[0])  # the pairs o <= i
             Bw = B * wt[..., None]
             M = Bw[o, i] + torch.where((o != i)[:, None], Bw[i, o], torch.zeros_like(Bw[i, o]))  # (pairs, P)
-            fold = self._fold = (GridLobes(d[i], d[o]), M.T.contiguous(), G, g_d)
-        grid, M, G, g_d = fold
-        H = g_d * torch.tensor(material.kd, dtype=torch.float64)[None, :]
-        lobe = _spec_lobe(material)
-        if lobe is not None:
-            fu = grid.eval(lobe).double()  # unit ks, pairs o <= i
-            g_s = _solve(G, (M @ fu)[:, None])
-            H = H + g_s * torch.tensor(material.ks_rgb, dtype=torch.float64)[None, :]
-        return H
+            grid = GridLobes(d[i], d[o])
+            for lobe in self.lobes:  # the direction-only factors of the basis's families (a changed
+                grid.eval(lobe)      # material keeps its family: scenes.sequences.perturb_material)
+            fold = self._fold = (grid, M.T.contiguous(), G, g_d)
+        return fold
 
 
 def _solve(G: Tensor, rhs: Tensor) -> Tensor:
