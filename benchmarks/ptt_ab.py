@@ -8,7 +8,9 @@ e.g. a git worktree of main) against this checkout's, on one precomputation and 
 Both packages are imported into this process (the base's ``methods.*`` modules under their own
 names, then set aside in ``sys.modules``), the precomputation is loaded once through the harness
 cache (`benchmarks.common.precomputed`, the perf suite's ``with_bounces(bounces)``), and the base
-renders with a copy of the method whose class is the base's PTT — so both read the same arrays.
+renders with a copy of the method whose class is the base's PTT — so both read the same arrays —
+and whose BRDF basis, when it is the default ``LobeBasis``, is the base's class (`base_basis`: the
+run-time fit of changed materials is the base's code too).
 Unless ``--own-precompute``, the
 precomputation is looked up under the base's code fingerprint (valid while this checkout's edits
 leave the precompute alone; it saves recomputing it after every run-time edit). Frames alternate
@@ -42,9 +44,26 @@ def base_fingerprint(root: str) -> str:
     return checkout_fingerprint(root, "methods.ptt.method")
 
 
-def as_class(m: PTT, cls) -> PTT:
+def base_basis(m: PTT, root: str):
+    """``m.basis`` as the checkout at ``root`` would fit it: a `transport.LobeBasis` (the default
+    basis, whose `coords` fits every changed material at run time) re-classed to that checkout's
+    ``LobeBasis`` with empty fit caches, so the base's VB frames time the base's fit; any other basis
+    as is."""
+    from methods.ptt.transport import LobeBasis
+
+    if type(m.basis) is not LobeBasis:
+        return m.basis
+    b = copy.copy(m.basis)
+    b.__class__ = checkout_class(root, "methods.ptt.transport", "LobeBasis")
+    b._gram = b._fold = None
+    return b
+
+
+def as_class(m: PTT, cls, basis=None) -> PTT:
     out = copy.copy(m)
     out.__class__ = cls
+    if basis is not None:
+        out.basis = basis
     out._reset_cache()
     return out
 
@@ -75,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {"scene": a.scene, "threads": a.threads, "bounces": a.bounces, "base": a.base, "kinds": {}}
     for kind in a.kinds:
         _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
-        new, old = copy.copy(m), as_class(m, Base)
+        new, old = copy.copy(m), as_class(m, Base, base_basis(m, a.base))
         new._reset_cache()
         t = {"old": [], "new": []}
         c = {"old": [], "new": []}

@@ -107,6 +107,7 @@ from torch import Tensor
 from methods.core import cubemap
 from methods.core import sh as _sh
 from methods.core import zh as _zh
+from methods.core.fused import fused
 from methods.core.frames import to_world
 from methods.core.sampling import fibonacci_hemisphere, fibonacci_sphere
 from methods.ptt import lobes as _lobes
@@ -455,7 +456,60 @@ def on_env_grid(maps: Sequence[Any], envmap: Any) -> list[Any]:
     (as `latlong_cells`), as an EnvMap with ``envmap``'s to_world (the 0° lobe is ``envmap``
     itself). Every lobe then has the same grid and frame, so the run time reads all of them with
     one bilinear look-up per shading point (``fast.EnvStack``). The resampling adds a bilinear
-    interpolation of the (coarser, smooth) prefiltered map; the env map is never resampled."""
+    interpolation of the (coarser, smooth) prefiltered map; the env map is never resampled.
+
+    One compiled loop over the texels (`_grid_resample`: direction, (u, v), the cell in each map and
+    its four corners; ``methods.core.fused``), shared by the fast path and the reference. Measured on
+    the chess bench (256×512 env map, three lobe maps of 64×128, 64×128, 32×64; 1 thread, CPU time,
+    same process, 11 rotated maps, load ~5): 11.1 ms for the eager passes (`_on_env_grid_eager`, kept
+    as its test oracle: the same look-ups to float32 round-off, ≤ 2e-6 relative) → 4.7 ms (×2.4;
+    creature the same)."""
+    from scenes.envmap import extend_periodic
+
+    H, W = envmap.data.shape[:2]
+    todo = [m for m in maps if m is not envmap]
+    if not todo:
+        return list(maps)
+    if any(not torch.equal(m.to_world, todo[0].to_world) for m in todo):
+        raise ValueError("the prefiltered maps must share one frame")
+    # local direction of each env texel in the maps' frame: A d with A = M_mapsᵀ R_env (float64, then float32)
+    A = (todo[0].to_world.to(torch.float64).T @ envmap.to_world.to(torch.float64)).to(torch.float32).contiguous()
+    exts = [extend_periodic(m.data.to(torch.float32)) for m in todo]
+    dims = tuple((int(m.height), int(m.width)) for m in todo)
+    res = iter(_grid_resample(_texel_dirs(H, W), A, exts, dims))
+    return [m if m is envmap else _envmap(next(res).view(H, W, 3), envmap.to_world) for m in maps]
+
+
+def _grid_resample_fn(d: Tensor, A: Tensor, exts: list[Tensor], dims: tuple) -> list[Tensor]:
+    """For ``core.fused``: maps of resolutions ``dims`` ((H_k, W_k), periodic-extended texels
+    ``exts`` (H_k·(W_k + 1), 3)) looked up bilinearly (``scenes.envmap.bilinear_lookup``, the cells
+    of `_uv_cells`) at the directions A d (d (3, n) local texel directions, A (3, 3)) → one (n, 3)
+    per map."""
+    x = A[0, 0] * d[0] + A[0, 1] * d[1] + A[0, 2] * d[2]
+    y = A[1, 0] * d[0] + A[1, 1] * d[1] + A[1, 2] * d[2]
+    z = A[2, 0] * d[0] + A[2, 1] * d[1] + A[2, 2] * d[2]
+    u = torch.atan2(x, -z) * (0.5 / math.pi)
+    v = torch.acos(y.clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    out = []
+    for ext, (Hm, Wm) in zip(exts, dims):
+        uu = u - 0.5 / Wm
+        px = (uu - torch.floor(uu)) * Wm
+        py = (v - torch.floor(v)) * (Hm - 1)
+        ix = px.to(torch.int64).clamp(0, Wm - 1)
+        iy = py.to(torch.int64).clamp(0, Hm - 2)
+        fx, fy = px - ix, py - iy
+        gx, gy = 1.0 - fx, 1.0 - fy
+        r = iy * (Wm + 1) + ix
+        out.append(ext[r] * (gx * gy)[:, None] + ext[r + 1] * (fx * gy)[:, None]
+                   + ext[r + (Wm + 1)] * (gx * fy)[:, None] + ext[r + (Wm + 2)] * (fx * fy)[:, None])
+    return out
+
+
+_grid_resample = fused(_grid_resample_fn)
+
+
+def _on_env_grid_eager(maps: Sequence[Any], envmap: Any) -> list[Any]:
+    """`on_env_grid` as eager passes (the previous implementation; its test oracle)."""
     from scenes.envmap import extend_periodic
 
     H, W = envmap.data.shape[:2]
