@@ -390,3 +390,23 @@ def test_glossy_samples_kernel_equals_its_definition(order, compiled, monkeypatc
     assert got.shape == (g.numel(), 3)
     assert (want > 0).float().mean() > 0.2 and (want == 0).float().mean() > 0.2        # both cases present
     assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+
+
+@pytest.mark.parametrize("order", [2, 5, 7])
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
+def test_sampled_rotation_equals_band_recursion(order, compiled, monkeypatch):
+    """`rotate_sampled` (the lighting rotation of `SHPRT.lighting`: P Y(Rᵀ D) c) = the
+    Ivanic–Ruedenberg band recursion `sh_rotation.rotate_coeffs` to float64 round-off, for random
+    proper rotations; a wrong convention (R instead of Rᵀ) differs at O(1)."""
+    from methods.core.sh_rotation import rotate_coeffs
+    from methods.sh_prt.method import rotate_sampled
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
+    gen = torch.Generator().manual_seed(order)
+    c = torch.randn(order * order, 3, generator=gen, dtype=torch.float64)
+    for _ in range(3):
+        Q = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
+        R = Q * torch.sign(torch.det(Q))
+        want = rotate_coeffs(c, R)
+        assert (rotate_sampled(c, R) - want).abs().max() <= 1e-12 * want.abs().max()
+        assert (rotate_coeffs(c, R.T) - want).abs().max() > 1e-3 * want.abs().max()
