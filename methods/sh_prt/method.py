@@ -29,9 +29,17 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
     (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
-    The glossy pass bounds a V frame: ~150-225 ns per glossy sample (3 × 3 gathered n²-rows of l'
-    dotted with G y(R), 3-4 GFLOP/s of the counted flops); its per-sample index chains and the
-    (Qg, n²) y(R) buffer written with scattered stores dominate, not the arithmetic.
+    The glossy pass is the larger part of a V frame: per channel one reduction over the 24
+    non-constant coefficients of the interpolated l' against G y(R) (`_glossy_samples`; session 14:
+    1.33× the three dot products per channel it replaced), y(R) built vectorized over the samples
+    but stored with scattered stores into a (Qg, n²−1) buffer, ~130-165 ns per glossy sample under
+    load. A V frame makes 1 + 3 compiled calls (`_glossy_blocks`), each ~0.1-0.3 ms of Dynamo guards
+    and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
+    Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
+  * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
+    ~120 eager ops took 1.48); M l is a GEMM at ~9 GB/s (a compiled unrolled 25-term sum was 1.2×,
+    not adopted: one compiled variant per transfer size); the E frame's projection
+    (`sh.project_latlong`, ~4 ms) is shared core code, left as it is.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -79,7 +87,8 @@ RENDER_CHUNK = 1 << 14
 # Static block sizes of the compiled passes (`methods.core.fused.map_rows`): samples per block of
 # `_pixels` and glossy samples per block of `_glossy_samples` (smaller: the last block is padded to
 # the full size, and a frame has some 10⁴ glossy samples). Few blocks: each call of a compiled
-# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame).
+# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame; session
+# 14: one pixel block and 2 + 1 glossy blocks on the creature, 1.13× on V frames against 2 + 5).
 PIXEL_CHUNK = 1 << 18
 GLOSSY_CHUNK = 1 << 14
 # The glossy samples left over after whole blocks of GLOSSY_CHUNK go through blocks of this size
