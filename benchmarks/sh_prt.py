@@ -115,10 +115,10 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
                                      "triad GB/s": B / 1e9}
     out = run_pix()
-    res["view: glossy select"] = {"ms": ms(lambda: torch.stack(out[3:], -1).view(-1).nonzero())}
-    g = torch.stack(out[3:], -1).view(-1).nonzero().squeeze(-1)
+    res["view: glossy select"] = {"ms": ms(lambda: out[1].view(-1).nonzero())}
+    g = out[1].view(-1).nonzero().squeeze(-1)
     args = (face, bary, normal, wo, reg, m._ef, m._fg, m._lg3, kd, ks, G, vcos)
-    t_g = ms(lambda: map_rows(shm._glossy_samples, [g], args, chunk=shm.GLOSSY_CHUNK))
+    t_g = ms(lambda: shm._glossy_blocks(g, args))
     f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
     res["view: glossy samples"] = {"ms": t_g, "samples": float(g.numel()), "ns/sample": 1e6 * t_g / max(1, g.numel()),
                                    "GFLOP/s": f_g / t_g / 1e6, "sgemm GFLOP/s": Pk / 1e9}

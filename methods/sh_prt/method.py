@@ -10,7 +10,7 @@ with the cosine H_N folded in).
 Run time (Sloan 2002 §7), per frame:
   1. lighting: l = SH of the env map in its own frame (`sh.project_latlong`, exact for the bilinear
      map), cached while the map's texels are unchanged; a rotated map (new ``to_world``) ROTATES
-     these coefficients (`sh_rotation.rotate_coeffs`) instead of re-projecting (§7 rotates the
+     these coefficients (`rotate_sampled`, = `sh_rotation.rotate_coeffs`) instead of re-projecting (§7 rotates the
      lighting SH into the object's frame the same way). Then per vertex e_x = t_x · l (a dot product) and, for
      glossy vertices, l'_x = M_x l (a matrix–vector product); both cached until the lighting changes.
   2. per G-buffer sample (barycentric interpolation of the per-vertex results, Gouraud as the paper):
@@ -29,9 +29,17 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
     (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
-    The glossy pass bounds a V frame: ~150-225 ns per glossy sample (3 × 3 gathered n²-rows of l'
-    dotted with G y(R), 3-4 GFLOP/s of the counted flops); its per-sample index chains and the
-    (Qg, n²) y(R) buffer written with scattered stores dominate, not the arithmetic.
+    The glossy pass is the larger part of a V frame: per channel one reduction over the 24
+    non-constant coefficients of the interpolated l' against G y(R) (`_glossy_samples`; session 14:
+    1.33× the three dot products per channel it replaced), y(R) built vectorized over the samples
+    but stored with scattered stores into a (Qg, n²−1) buffer, ~130-165 ns per glossy sample under
+    load. A V frame makes 1 + 3 compiled calls (`_glossy_blocks`), each ~0.1-0.3 ms of Dynamo guards
+    and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
+    Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
+  * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
+    ~120 eager ops took 1.48); M l is a GEMM at ~9 GB/s (a compiled unrolled 25-term sum was 1.2×,
+    not adopted: one compiled variant per transfer size); the E frame's projection
+    (`sh.project_latlong`, ~4 ms) is shared core code, left as it is.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -52,6 +60,7 @@ hit points.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import time
 
@@ -64,7 +73,6 @@ from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
 from methods.core.fused import fused, map_rows
-from methods.core.sh_rotation import rotate_coeffs
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
@@ -79,9 +87,13 @@ RENDER_CHUNK = 1 << 14
 # Static block sizes of the compiled passes (`methods.core.fused.map_rows`): samples per block of
 # `_pixels` and glossy samples per block of `_glossy_samples` (smaller: the last block is padded to
 # the full size, and a frame has some 10⁴ glossy samples). Few blocks: each call of a compiled
-# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame).
-PIXEL_CHUNK = 1 << 17
-GLOSSY_CHUNK = 1 << 13
+# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame; session
+# 14: one pixel block and 2 + 1 glossy blocks on the creature, 1.13× on V frames against 2 + 5).
+PIXEL_CHUNK = 1 << 18
+GLOSSY_CHUNK = 1 << 14
+# The glossy samples left over after whole blocks of GLOSSY_CHUNK go through blocks of this size
+# (`_glossy_blocks`: a second compiled variant), so padding stays < GLOSSY_TAIL_CHUNK rows.
+GLOSSY_TAIL_CHUNK = 1 << 12
 
 
 @fused
@@ -93,8 +105,9 @@ def _pixels(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor,
     zero where it misses, n·ωo ≤ 0 or its region is glossy (glf (R,) 1.0: `_glossy_samples` shades
     those samples whole); face (n, S²) int64 (−1 on a miss), bary (n, S², 2), hit (n, S²) bool, normal,
     wo (n, S², 3), reg (n, S²) int64. The S² sub-samples are summed unrolled (one thread per pixel)
-    and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the three channels and then, per
-    sub-sample s, which pixels' sample s is a hit of a glossy region ((n,) bool each)."""
+    and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the pixels (n, 3) and which of their
+    samples are hits of a glossy region (n, S²) bool, both stacked in the compiled kernel (the eager
+    stacks of the channels and flags were ~4 % of a V frame in `perf`)."""
     S2 = face.shape[1]
     acc = [None, None, None]
     glossy = []
@@ -109,20 +122,39 @@ def _pixels(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor,
             x = torch.where(keep, (kd[r, c] * ev).clamp_min(0.0), 0.0)
             acc[c] = x if acc[c] is None else acc[c] + x
         glossy.append(gs)
-    return (acc[0] * (1.0 / S2), acc[1] * (1.0 / S2), acc[2] * (1.0 / S2), *glossy)
+    return torch.stack(acc, -1) * (1.0 / S2), torch.stack(glossy, -1)
 
 
-@fused
-def _glossy_samples(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
-                    fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
+# Inductor options of `_glossy_samples`: without the tiling heuristics the loop that builds y(R)
+# (each sample's n²−1 terms stored at stride n²−1) is vectorized over the samples instead of scalar;
+# the gather indices are in range by construction (``face`` ≥ 0 after the clamp and < M, ``fg`` holds
+# glossy rows for the faces of glossy regions, padded rows repeat a real one). Same process, creature
+# bench, 1 thread, load ~6 on 2 cores: 1.33× with both options against 1.22× without them (the
+# kernel otherwise as below).
+GLOSSY_OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False}
+
+
+def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
+                         ef: Tensor, fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor,
+                         vcos: Tensor) -> Tensor:
     """The whole radiance of Qg glossy samples g (Qg,) int64 (rows of the G-buffer arrays face, bary,
     normal, wo, reg, as `_pixels`'): max(0, ρ·e + k_s Σ_i G_i y_i(R) (l')_i) (× n·ωo on Blinn-Phong,
     `VIEW_COSINE_BRDFS`), zero where n·ωo ≤ 0 (Sloan 2002 §6-7) → (Qg, 3). e from the face-corner
     table ef (M, 9); l' Gouraud-interpolated from the per-vertex M l in the channel-major layout lg3
     (3, Vg, n²) at the glossy rows fg (M, 3) = gpos[F] of the face's corners; kd, ks (R, 3), G (R, n²),
-    vcos (R,) bool of the frame's materials (`SHPRT._materials`). Per channel, the three corners' rows
-    are dotted with G y(R) (contiguous n² reductions, fused into one loop) and then weighted: 1.3× the
-    speed of interpolating l' first and dotting once (same process, `/tmp` A/B of this session)."""
+    vcos (R,) bool of the frame's materials (`SHPRT._materials`).
+
+    Per channel ONE reduction over the coefficients i ≥ 1 of (w₀ l'_a₀ + u l'_a₁ + v l'_a₂)_i ·
+    G_i y_i(R) — the three corners' rows interpolated inside the reduction loop, so a sample costs
+    one horizontal sum per channel instead of three — and the constant band i = 0 (y₀ = 1/√(4π))
+    added outside it: n² − 1 = 24 coefficients are exactly three 8-float AVX2 vectors, where 25
+    left a masked one-element tail iteration per row. Same process, creature bench, 1 thread (load
+    ~6 on 2 cores): 1.33× the time of the previous kernel (three dot products per channel over the
+    25 coefficients of each corner, then weighted; that one was itself 1.3× interpolating l' into a
+    buffer first). The fully pointwise form (the n² terms of y(R) in registers, 3·3·n² scalar
+    gathers of l' per sample) was 0.7× and compiled for 75-97 s. The interpolation is linear, so
+    Σ_i (Σ_k w_k l'_k,i) y_i = Σ_k w_k Σ_i l'_k,i y_i: the same sum in another order (float32
+    round-off against `render_reference`)."""
     f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
     u, v = bary[g, 0], bary[g, 1]
     w0 = 1.0 - u - v
@@ -133,16 +165,75 @@ def _glossy_samples(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: T
     R = 2.0 * d * nn - o                                                        # reflect(ωo, n)
     R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     order = math.isqrt(G.shape[1])
-    y = torch.stack(_sh.sh_terms(R[:, 0], R[:, 1], R[:, 2], order), -1) * G[r]   # (Qg, n²) G_l y_lm(R)
-    y = torch.where(vcos[r][:, None], y * d.clamp_min(0.0), y)                   # Blinn-Phong: × n·ωo
-    a, ec = fg[f], ef[f]
+    terms = _sh.sh_terms(R[:, 0], R[:, 1], R[:, 2], order)
+    sc = torch.where(vcos[r], d[:, 0].clamp_min(0.0), 1.0)                      # Blinn-Phong: × n·ωo
+    y0 = terms[0] * G[r, 0] * sc                                                # (Qg,) G_0 y_0
+    a0, a1, a2 = fg[f, 0], fg[f, 1], fg[f, 2]
+    W0, U, V = w0[:, None], u[:, None], v[:, None]
+    ec = ef[f]
     outs = []
+    if order > 1:
+        y = torch.stack(terms[1:], -1) * G[r, 1:] * sc[:, None]                # (Qg, n²−1) G_i y_i(R)
     for c in range(3):
-        spec = ((lg3[c][a[:, 0]] * y).sum(-1) * w0 + (lg3[c][a[:, 1]] * y).sum(-1) * u
-                + (lg3[c][a[:, 2]] * y).sum(-1) * v)                             # Σ_i y_i l'_i
+        L = lg3[c]
+        spec = (L[a0, 0] * w0 + L[a1, 0] * u + L[a2, 0] * v) * y0               # Σ_i y_i l'_i: i = 0
+        if order > 1:
+            spec = ((L[a0, 1:] * W0 + L[a1, 1:] * U + L[a2, 1:] * V) * y).sum(-1) + spec
         e = ec[:, c] * w0 + ec[:, 3 + c] * u + ec[:, 6 + c] * v
         outs.append(torch.where(front, kd[r, c] * e + ks[r, c] * spec, 0.0).clamp_min(0.0))
     return torch.stack(outs, -1)
+
+
+_glossy_samples = fused(_glossy_samples_impl, options=GLOSSY_OPTIONS)
+
+
+def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
+    """`_glossy_samples` over the glossy sample indices g: whole blocks of GLOSSY_CHUNK rows, then
+    the rest in blocks of GLOSSY_TAIL_CHUNK (`methods.core.fused.map_rows` pads only the last one).
+    The creature's ~36k glossy samples take 2 + 1 calls and 2 % padding, where blocks of 8192 took
+    5 calls and 13 % padding (each call ~0.1-0.3 ms of guards and buffer allocation)."""
+    big = g.numel() // GLOSSY_CHUNK * GLOSSY_CHUNK
+    if big == 0:
+        return map_rows(_glossy_samples, [g], args, chunk=GLOSSY_TAIL_CHUNK)
+    head = map_rows(_glossy_samples, [g[:big]], args, chunk=GLOSSY_CHUNK)
+    if big == g.numel():
+        return head
+    return torch.cat([head, map_rows(_glossy_samples, [g[big:]], args, chunk=GLOSSY_TAIL_CHUNK)])
+
+
+@functools.lru_cache(maxsize=None)
+def _rotation_samples(order: int) -> tuple[Tensor, Tensor]:
+    """D (K, 3) float64 unit directions (a Fibonacci sphere of K = 4n² points) and P (n², K) the
+    pseudo-inverse of their SH matrix Y(D) (K, n²) — full column rank, so P Y(D) = I (`rotate_sampled`)."""
+    K = 4 * order * order
+    k = torch.arange(K, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * k / K
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    r = (1.0 - z * z).sqrt()
+    D = torch.stack([r * phi.cos(), r * phi.sin(), z], -1)
+    return D, torch.linalg.pinv(_sh.sh_eval(D, order))
+
+
+def _rotate_sampled_impl(c: Tensor, R: Tensor, D: Tensor, P: Tensor) -> Tensor:
+    X = D @ R                                                       # rows (Rᵀ d_j)ᵀ
+    Y = torch.stack(_sh.sh_terms(X[:, 0], X[:, 1], X[:, 2], math.isqrt(P.shape[0])), -1)   # (K, n²)
+    return P @ (Y @ c)
+
+
+_rotate_sampled = fused(_rotate_sampled_impl)
+
+
+def rotate_sampled(c: Tensor, R: Tensor) -> Tensor:
+    """`sh_rotation.rotate_coeffs(c, R)` for one rotation R (3, 3) and c (n², C) float64: the
+    coefficients of f'(d) = f(Rᵀd) from its values at K = 4n² fixed directions d_j, c' = P Y(Rᵀ D) c
+    with P = Y(D)⁺ (`_rotation_samples`). Exact up to float64 round-off: f' is band-limited to the
+    same order (rotations preserve each band), so it lies in the span of Y's columns and the
+    least-squares fit P reproduces it (the same coefficients as Ivanic–Ruedenberg; Sloan 2002 §7
+    rotates the lighting SH the same way). One compiled call (two small GEMMs and the n² polynomials)
+    instead of the band recursion's ~120 eager ops on (2l+1)² blocks: order 5, 1 thread, same
+    process: 0.44 ms against 1.48 ms (3.4×; equal to 7e-15), one per lighting frame."""
+    D, P = _rotation_samples(math.isqrt(c.shape[0]))
+    return _rotate_sampled(c, R, D, P)
 
 
 def lighting_major(X: Tensor) -> Tensor:
@@ -233,6 +324,7 @@ class SHPRT(Method):
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) rows of l' at each face's corners (gpos[F]; static)
+        self._mat = None        # (device and the regions' materials, `_materials`' tensors)
         self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0}
 
@@ -321,7 +413,7 @@ class SHPRT(Method):
             self.stats["project"] += 1
         R = torch.as_tensor(env.to_world, dtype=torch.float64)
         self.stats["rotate"] += 1
-        return rotate_coeffs(self._l_local, R).float()                          # f(Rᵀd): to world
+        return rotate_sampled(self._l_local, R).float()                         # f(Rᵀd): to world
 
     def _light_stage(self, env) -> None:
         """Per-vertex e = t·l (V, 3) and l' = M l (Vg, n², 3), cached until the lighting changes; each
@@ -346,7 +438,11 @@ class SHPRT(Method):
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool
-        (`VIEW_COSINE_BRDFS`) of the frame's materials."""
+        (`VIEW_COSINE_BRDFS`) of the frame's materials, cached while they are equal (0.3 ms of a V
+        frame: the lobe factors in float64 and a dozen small tensors per region)."""
+        key = (self.t.device, tuple(frame.materials.get(name) for name in self.regions))
+        if self._mat is not None and self._mat[0] == key:      # frozen materials: equal = same values
+            return self._mat[1]
         R, n, dev = len(self.regions), self.order, self.t.device
         kd, ks, G = (torch.zeros(R, 3, device=dev), torch.zeros(R, 3, device=dev), torch.zeros(R, n * n, device=dev))
         vcos = torch.zeros(R, dtype=torch.bool, device=dev)
@@ -364,6 +460,7 @@ class SHPRT(Method):
                 ks[r] = torch.tensor(m.ks, device=dev)
                 G[r] = _zh.expand_bands(lobe_factors(m, n)).float().to(dev)
                 vcos[r] = m.kind in VIEW_COSINE_BRDFS
+        self._mat = (key, (kd, ks, G, vcos))
         return kd, ks, G, vcos
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
@@ -415,13 +512,13 @@ class SHPRT(Method):
         rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3),
                 reg.view(n, S2))
         out = map_rows(_pixels, rows, (self._ef, kd, glf), chunk=max(1, PIXEL_CHUNK // S2))
-        img = torch.stack(out[:3], -1)                                            # (n, 3)
-        g = torch.stack(out[3:], -1).view(-1).nonzero().squeeze(-1)               # glossy hits, ascending
+        img = out[0]                                                              # (n, 3)
+        g = out[1].view(-1).nonzero().squeeze(-1)                                 # glossy hits, ascending
         if g.numel():
             for x in (face, bary, normal, wo, reg):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, self._lg3, kd, ks, G, vcos)
-            vals = map_rows(_glossy_samples, [g], args, chunk=GLOSSY_CHUNK) * (1.0 / S2)
+            vals = _glossy_blocks(g, args) * (1.0 / S2)
             # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here)
             img.scatter_add_(0, (g // S2)[:, None].expand(-1, 3), vals)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)

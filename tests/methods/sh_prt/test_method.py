@@ -345,3 +345,68 @@ def test_glossy_face_with_a_shared_non_glossy_corner(compiled, monkeypatch):
     for got in (m.render(frame, gb), m.render_reference(frame, gb)):
         assert (got.view(P, 3) - want).abs().max().item() <= SHARED_VERTEX_RTOL * scale
     assert (m.gpos[m.F[gl_faces]] >= 0).all()  # every corner of a glossy face has its row
+
+
+@pytest.mark.parametrize("order", [2, 5])
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
+def test_glossy_samples_kernel_equals_its_definition(order, compiled, monkeypatch):
+    """`_glossy_samples` (the glossy pass: l' interpolated inside one reduction per channel over the
+    coefficients i ≥ 1, band 0 added outside) = max(0, ρ·e + k_s Σ_k w_k Σ_i l'_{a_k,i} G_i y_i(R))
+    (× n·ωo for a Blinn-Phong region, 0 where n·ωo ≤ 0) written with `sh_eval` and an einsum, on
+    random tables: order 2 (one coefficient beyond band 0) and 5 (the bench's 24 + 1), a Phong and a
+    Blinn-Phong region, back-facing samples, unnormalised normals, and a sample count that is not a
+    multiple of the kernel's block (padded last block)."""
+    from methods.core import sh as _sh
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
+    gen = torch.Generator().manual_seed(order)
+    n2, P, M, Vg, R = order * order, 3000, 40, 30, 3
+    face = torch.randint(0, M, (P,), generator=gen)
+    u, v = torch.rand(P, generator=gen) * 0.5, torch.rand(P, generator=gen) * 0.5
+    bary = torch.stack([u, v], -1)
+    normal = torch.randn(P, 3, generator=gen) * 1.7
+    wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.rand(M, 9, generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen)
+    lg3 = torch.randn(3, Vg, n2, generator=gen)
+    kd, ks = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen)
+    G = torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    g = torch.randperm(P, generator=gen)[:2500].sort().values
+    got = map_rows(shm._glossy_samples, [g], (face, bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos), chunk=1024)
+    # the definition, sample by sample
+    f, r, w = face[g], reg[g], torch.stack([1 - u[g] - v[g], u[g], v[g]], -1)        # (Q, 3) corner weights
+    nn = torch.nn.functional.normalize(normal[g], dim=-1)
+    cos = (nn * wo[g]).sum(-1)
+    Rv = torch.nn.functional.normalize(2 * cos[:, None] * nn - wo[g], dim=-1)
+    yG = _sh.sh_eval(Rv, order) * G[r] * torch.where(vcos[r], cos.clamp_min(0), 1.0)[:, None]
+    lq = torch.einsum("qk,cqki->qci", w, lg3[:, fg[f]])                               # (Q, 3, n²) l'
+    spec = torch.einsum("qci,qi->qc", lq, yG)
+    e = torch.einsum("qk,qkc->qc", w, ef[f].view(-1, 3, 3))
+    want = torch.where((normal[g] * wo[g]).sum(-1, keepdim=True) > 0, kd[r] * e + ks[r] * spec, 0.0).clamp_min(0.0)
+    assert got.shape == (g.numel(), 3)
+    assert (want > 0).float().mean() > 0.2 and (want == 0).float().mean() > 0.2        # both cases present
+    assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+
+
+@pytest.mark.parametrize("order", [2, 5, 7])
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
+def test_sampled_rotation_equals_band_recursion(order, compiled, monkeypatch):
+    """`rotate_sampled` (the lighting rotation of `SHPRT.lighting`: P Y(Rᵀ D) c) = the
+    Ivanic–Ruedenberg band recursion `sh_rotation.rotate_coeffs` to float64 round-off, for random
+    proper rotations; a wrong convention (R instead of Rᵀ) differs at O(1)."""
+    from methods.core.sh_rotation import rotate_coeffs
+    from methods.sh_prt.method import rotate_sampled
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
+    gen = torch.Generator().manual_seed(order)
+    c = torch.randn(order * order, 3, generator=gen, dtype=torch.float64)
+    for _ in range(3):
+        Q = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
+        R = Q * torch.sign(torch.det(Q))
+        want = rotate_coeffs(c, R)
+        assert (rotate_sampled(c, R) - want).abs().max() <= 1e-12 * want.abs().max()
+        assert (rotate_coeffs(c, R.T) - want).abs().max() > 1e-3 * want.abs().max()
