@@ -65,10 +65,11 @@ import torch.nn.functional as Fnn
 from torch import Tensor
 
 from methods.core.fused import fused, map_rows
+from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "light_rows", "light_rows_torch", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -106,6 +107,7 @@ class FastRegion:
     sh_lut: (R², 3K) σ_k h_{k,c} at the table nodes (index 3k + c, the reference's table);
     sh_nc: (R²·3, K) the same regrouped, row (node, colour): the K-vector X's dot products read.
     K: terms; R: nodes per side of the table.
+    native: the CSR passed ``csr.check_csr`` (`light_rows` may use the native loop).
     """
 
     col: Tensor
@@ -115,6 +117,7 @@ class FastRegion:
     sh_nc: Tensor
     K: int
     R: int
+    native: bool = False
 
 
 @dataclass
@@ -151,7 +154,7 @@ def build_region(T: Tensor, sh_lut: Tensor) -> FastRegion:
     R = int(round(RR ** 0.5))
     sh_nc = sh_lut.view(RR, K3 // 3, 3).transpose(1, 2).reshape(RR * 3, K3 // 3).contiguous()
     return FastRegion(col=col, val=val, crow=crow, sh_lut=sh_lut, sh_nc=sh_nc,
-                      K=K3 // 3, R=R)
+                      K=K3 // 3, R=R, native=csr.check_csr(crow, col, val, T.shape[1]))
 
 
 def sample_frame(n: Tensor, wo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -184,8 +187,22 @@ def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[in
 
 def light_rows(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
     """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices v0 ≤ v < v1
-    → (v1 − v0, K, 3): CSR × dense products over blocks of rows read in place, with L zero-padded
-    to 4 columns (aligned rows: the product's inner loop is a 4-wide gather)."""
+    → (v1 − v0, K, 3), with L zero-padded to 4 columns (aligned 16-byte rows): the native loop over
+    the CSR arrays read in place (``methods.inout.csr``: 1.7–1.8× torch's product, one streaming
+    pass) when it is built and the region's arrays passed its check, else `light_rows_torch`."""
+    if not (fr.native and L.device.type == "cpu" and L.dtype == torch.float32 and csr.available()):
+        return light_rows_torch(fr, L, v0, v1, chunk_rows)
+    K = fr.K
+    L4 = torch.zeros(L.shape[0], 4, dtype=torch.float32, device=L.device)
+    L4[:, :L.shape[1]] = L
+    out = csr.csr_dense4(fr.crow, fr.col, fr.val, L4, v0 * K, v1 * K)
+    return out[:, :L.shape[1]].reshape(v1 - v0, K, L.shape[1])
+
+
+def light_rows_torch(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
+    """`light_rows` by torch's CSR × dense product (MKL on this build) over blocks of rows read in
+    place, L zero-padded to 4 columns (aligned rows: the product's inner loop is a 4-wide gather):
+    the fallback without the native loop, and its test oracle."""
     K = fr.K
     L4 = torch.zeros(L.shape[0], 4, dtype=L.dtype, device=L.device)
     L4[:, :L.shape[1]] = L
