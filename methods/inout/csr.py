@@ -46,32 +46,34 @@ from torch import Tensor
 
 from methods.core.fused import compile_enabled
 
-__all__ = ["available", "check_csr", "csr_dense4"]
+__all__ = ["available", "check_csr", "csr_blocks4", "csr_dense4"]
 
 _SOURCE = r"""
 #include <stdint.h>
 typedef float v4 __attribute__((vector_size(16)));
 
-/* out[r, 0:4] = sum over e in [crow[r], crow[r + 1]) of val[e - crow[0]] * L4[col[e - crow[0]], 0:4]
-   for 0 <= r < rows: col and val point at the coefficient crow[0]; L4 (D, 4) and out (rows, 4)
-   16-byte aligned. 4 accumulators, combined as (s0 + s1) + (s2 + s3). */
-void csr_dense4(const int64_t* crow, int64_t rows, const int32_t* col, const float* val,
-                const float* L4, float* out) {
+/* For each block i < n, the K rows first[i] <= r < first[i] + K of the CSR (crow, col, val):
+   out[i * K + r - first[i], 0:4] = sum over e in [crow[r], crow[r + 1]) of val[e] * L4[col[e], 0:4].
+   L4 (D, 4) and out (n * K, 4) 16-byte aligned. 4 accumulators, combined as (s0 + s1) + (s2 + s3). */
+void csr_blocks4(const int64_t* crow, const int64_t* first, int64_t n, int64_t K, const int32_t* col,
+                 const float* val, const float* L4, float* out) {
     const v4* L = (const v4*)L4;
-    const int64_t base = crow[0];
-    for (int64_t r = 0; r < rows; ++r) {
-        const int64_t b = crow[r + 1] - base;
-        int64_t e = crow[r] - base;
-        v4 s0 = {0, 0, 0, 0}, s1 = s0, s2 = s0, s3 = s0;
-        for (; e + 4 <= b; e += 4) {
-            s0 += val[e] * L[col[e]];
-            s1 += val[e + 1] * L[col[e + 1]];
-            s2 += val[e + 2] * L[col[e + 2]];
-            s3 += val[e + 3] * L[col[e + 3]];
+    v4* o = (v4*)out;
+    for (int64_t i = 0; i < n; ++i) {
+        for (int64_t r = first[i]; r < first[i] + K; ++r) {
+            const int64_t b = crow[r + 1];
+            int64_t e = crow[r];
+            v4 s0 = {0, 0, 0, 0}, s1 = s0, s2 = s0, s3 = s0;
+            for (; e + 4 <= b; e += 4) {
+                s0 += val[e] * L[col[e]];
+                s1 += val[e + 1] * L[col[e + 1]];
+                s2 += val[e + 2] * L[col[e + 2]];
+                s3 += val[e + 3] * L[col[e + 3]];
+            }
+            for (; e < b; ++e)
+                s0 += val[e] * L[col[e]];
+            *o++ = (s0 + s1) + (s2 + s3);
         }
-        for (; e < b; ++e)
-            s0 += val[e] * L[col[e]];
-        ((v4*)out)[r] = (s0 + s1) + (s2 + s3);
     }
 }
 """
@@ -97,13 +99,13 @@ def _library(cc: str | None):
                     f.write(_SOURCE)
                 subprocess.run([cc, *_FLAGS, src, "-o", so], check=True, capture_output=True)
                 os.replace(so, path)                           # atomic: a concurrent build finds a whole file
-        fn = ctypes.CDLL(path).csr_dense4
+        fn = ctypes.CDLL(path).csr_blocks4
     except (OSError, subprocess.CalledProcessError) as e:
         warnings.warn(f"inout: the native CSR kernel did not build ({e}); using torch's sparse product")
         return None
     fn.restype = None
-    fn.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                   ctypes.c_void_p]
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
+                   ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     return fn
 
 
@@ -145,33 +147,41 @@ _pool_size = 0
 
 
 def csr_dense4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, r0: int, r1: int) -> Tensor:
-    """Rows r0 ≤ r < r1 of the CSR (crow, col, val) times L4 (D, 4) float32 → (r1 − r0, 4): the native
-    loop over ``torch.get_num_threads()`` contiguous row ranges (module docstring). The CSR must
-    pass `check_csr` (the caller checks once) and `available` be True."""
+    """Rows r0 ≤ r < r1 of the CSR (crow, col, val) times L4 (D, 4) float32 → (r1 − r0, 4)
+    (`csr_blocks4` of one block)."""
+    if not 0 <= r0 <= r1 <= crow.numel() - 1:
+        raise ValueError(f"rows [{r0}, {r1}) outside the matrix's {crow.numel() - 1}")
+    return csr_blocks4(crow, col, val, L4, torch.tensor([r0], dtype=torch.int64), r1 - r0)
+
+
+def csr_blocks4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, first: Tensor, K: int) -> Tensor:
+    """Blocks of K consecutive rows, block i the rows first[i] ≤ r < first[i] + K, of the CSR
+    (crow, col, val) times L4 (D, 4) float32 → (n·K, 4), block-major: the native loop over
+    ``torch.get_num_threads()`` contiguous ranges of blocks of about equal coefficient counts (module
+    docstring). The CSR must pass `check_csr` (the caller checks once), `available` be True, and
+    every block lie in the matrix (checked here)."""
     fn = _kernel()
     L4 = L4.contiguous()
     if L4.dtype != torch.float32 or L4.ndim != 2 or L4.shape[1] != 4:
         raise ValueError(f"L4 must be (D, 4) float32, got {tuple(L4.shape)} {L4.dtype}")
-    if not 0 <= r0 <= r1 <= crow.numel() - 1:
-        raise ValueError(f"rows [{r0}, {r1}) outside the matrix's {crow.numel() - 1}")
-    out = torch.empty(r1 - r0, 4, dtype=torch.float32)
-    if r1 == r0:
+    first = first.to(torch.int64).contiguous()
+    n = first.numel()
+    out = torch.empty(n * K, 4, dtype=torch.float32)
+    if n == 0 or K == 0:
         return out
-    n = max(1, min(torch.get_num_threads(), (r1 - r0) // _MIN_ROWS_PER_THREAD))
-    cp, colp, valp, Lp, op = crow.data_ptr(), col.data_ptr(), val.data_ptr(), L4.data_ptr(), out.data_ptr()
-
-    def run(a: int, b: int) -> None:                    # rows [a, b) of the matrix
-        s = int(crow[a])
-        fn(cp + 8 * a, b - a, colp + 4 * s, valp + 4 * s, Lp, op + 16 * (a - r0))
-
-    if n == 1:
-        run(r0, r1)
+    if int(first.min()) < 0 or int(first.max()) + K > crow.numel() - 1:
+        raise ValueError(f"row blocks outside the matrix's {crow.numel() - 1} rows")
+    nt = max(1, min(torch.get_num_threads(), n * K // _MIN_ROWS_PER_THREAD))
+    cp, fp, colp, valp, Lp, op = (t.data_ptr() for t in (crow, first, col, val, L4, out))
+    if nt == 1:
+        fn(cp, fp, n, K, colp, valp, Lp, op)
         return out
-    # n ranges of about equal coefficient counts: the split points by the row pointers
-    targets = torch.linspace(float(crow[r0]), float(crow[r1]), n + 1)[1:-1].to(torch.int64)
-    cuts = [r0, *(int(x) for x in torch.searchsorted(crow[r0:r1 + 1], targets) + r0), r1]
+    # nt ranges of blocks of about equal coefficient counts
+    cum = (crow.index_select(0, first + K) - crow.index_select(0, first)).cumsum(0)
+    cuts = [0, *torch.searchsorted(cum, torch.linspace(0, float(cum[-1]), nt + 1)[1:-1]).tolist(), n]
     global _pool, _pool_size
-    if _pool is None or _pool_size < n:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="inout-csr"), n
-    list(_pool.map(lambda ab: run(*ab), [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]))
+    if _pool is None or _pool_size < nt:
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt, thread_name_prefix="inout-csr"), nt
+    jobs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    list(_pool.map(lambda ab: fn(cp, fp + 8 * ab[0], ab[1] - ab[0], K, colp, valp, Lp, op + 16 * K * ab[0]), jobs))
     return out

@@ -69,7 +69,7 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "light_rows_torch", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -185,17 +185,34 @@ def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[in
     return [(s0 * block, min(nv, (e0 + 1) * block)) for s0, e0 in zip(starts, ends)]
 
 
+def native(fr: FastRegion, L: Tensor) -> bool:
+    """Whether the lighting product of region ``fr`` under L runs the native loop
+    (``methods.inout.csr``: 1.7–1.8× torch's product, one streaming pass over T̃): it is built,
+    the region's arrays passed its check, L is float32 on the CPU."""
+    return fr.native and L.device.type == "cpu" and L.dtype == torch.float32 and csr.available()
+
+
+def _pad4(L: Tensor) -> Tensor:
+    L4 = torch.zeros(L.shape[0], 4, dtype=L.dtype, device=L.device)
+    L4[:, :L.shape[1]] = L
+    return L4
+
+
+def light_vertices(fr: FastRegion, L: Tensor, verts: Tensor) -> Tensor:
+    """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices ``verts`` (n,)
+    (local ids, any order) → (n, K, 3): the native loop over their K rows each (`native` must hold),
+    L zero-padded to 4 columns (aligned 16-byte rows)."""
+    out = csr.csr_blocks4(fr.crow, fr.col, fr.val, _pad4(L), verts * fr.K, fr.K)
+    return out[:, :L.shape[1]].reshape(verts.numel(), fr.K, L.shape[1])
+
+
 def light_rows(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
-    """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices v0 ≤ v < v1
-    → (v1 − v0, K, 3), with L zero-padded to 4 columns (aligned 16-byte rows): the native loop over
-    the CSR arrays read in place (``methods.inout.csr``: 1.7–1.8× torch's product, one streaming
-    pass) when it is built and the region's arrays passed its check, else `light_rows_torch`."""
-    if not (fr.native and L.device.type == "cpu" and L.dtype == torch.float32 and csr.available()):
+    """`light_vertices` of the vertices v0 ≤ v < v1 → (v1 − v0, K, 3): the native loop when `native`
+    holds, else `light_rows_torch`."""
+    if not native(fr, L):
         return light_rows_torch(fr, L, v0, v1, chunk_rows)
     K = fr.K
-    L4 = torch.zeros(L.shape[0], 4, dtype=torch.float32, device=L.device)
-    L4[:, :L.shape[1]] = L
-    out = csr.csr_dense4(fr.crow, fr.col, fr.val, L4, v0 * K, v1 * K)
+    out = csr.csr_dense4(fr.crow, fr.col, fr.val, _pad4(L), v0 * K, v1 * K)
     return out[:, :L.shape[1]].reshape(v1 - v0, K, L.shape[1])
 
 

@@ -79,6 +79,8 @@ RENDER_FLOATS = 1 << 22
 # `render` shades every G-buffer sample (misses with weight 0) when at least this fraction hits,
 # else gathers the hits first (a gather of every per-sample array costs more than a few misses).
 DENSE_HIT_FRACTION = 0.75
+# Relative margin of `_view_setup`'s shaded-sample test (a superset of the per-sample stage's).
+SHADED_MARGIN = 1e-4
 # Where eq. 4 is evaluated (``shading``): per G-buffer sample, or per vertex and Gouraud-interpolated.
 SHADINGS = ("sample", "vertex")
 
@@ -470,14 +472,19 @@ class InOut(Method):
 
     def _ensure_c(self, s: int, ref: Tensor) -> Tensor:
         """The fast path's c (Vr, 3, K) of slot ``s`` with the rows of its referenced vertices
-        ``ref`` (ascending local ids) valid: the missing ones computed now, by whole blocks
-        (`fast.light_runs`)."""
+        ``ref`` (ascending local ids) valid: the missing ones computed now — exactly those by the
+        native loop (``fast.light_vertices``), else by whole blocks (`fast.light_runs`)."""
         reg, fr = self.regions[s], self._fast.regions[s]
         if reg.name not in self._cf:
             self._cf[reg.name] = torch.zeros(reg.verts.numel(), 3, reg.K, device=self.L.device)  # no stale memory in the state
             self._cf_valid[reg.name] = torch.zeros(reg.verts.numel(), dtype=torch.bool, device=self.L.device)
         c, valid = self._cf[reg.name], self._cf_valid[reg.name]
-        for v0, v1 in _fast.light_runs(ref[~valid[ref]], reg.verts.numel()):
+        todo = ref[~valid[ref]]
+        if todo.numel() and _fast.native(fr, self.L):
+            c[todo] = _fast.light_vertices(fr, self.L, todo).transpose(1, 2)
+            valid[todo] = True
+            return c
+        for v0, v1 in _fast.light_runs(todo, reg.verts.numel()):
             c[v0:v1] = _fast.light_rows(fr, self.L, v0, v1).transpose(1, 2)
             valid[v0:v1] = True
         return c
@@ -496,18 +503,25 @@ class InOut(Method):
         sel = None if int(hit.sum()) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
         view = _View(gbuffer=gbuffer, st=st, sel=sel, Q=P if sel is None else sel.numel(),
                      step=max(S2, _fast.CHUNK // S2 * S2))          # whole pixels per block (the box filter)
-        # referenced vertices: those of every hit face (and the region check)
+        # referenced vertices: those of the faces of the shaded samples (the region check on every
+        # hit). Shaded here is n·ω_o > −SHADED_MARGIN |n| |ω_o|: a superset of the samples the
+        # per-sample stage finds above their horizon (z > 0 after normalising n, ``fast.sample_frame``,
+        # whose rounding moves z by ~1e-7 |ω_o|), so every vertex a shaded entry reads has its c and
+        # its window; the faces of hits below their horizon only (ρ = 0) need neither. Creature bench:
+        # 3.4·10³ of the 4.9·10³ vertices of hit faces (chess: 4.3 of 6.9·10³), c's bytes −30–38 %.
         fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
         for a in range(0, view.Q, view.step):
-            _, _, _, face, region, live = view.block(a, min(view.Q, a + view.step))
+            normal, wo, _, face, region, live = view.block(a, min(view.Q, a + view.step))
             bad = st.face_region.index_select(0, face) != region
+            n, w = normal.float(), wo.float()
+            shaded = (n * w).sum(-1) > -SHADED_MARGIN * ((n * n).sum(-1) * (w * w).sum(-1)).sqrt()
             if live is not None:
                 bad &= live
-                face = torch.where(live, face, M)
+                shaded &= live
             if bool(bad.any()):
                 name = self.scene.regions[int(region[bad][0])]
                 raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-            fmask[face] = True
+            fmask[torch.where(shaded, face, M)] = True
         faces = fmask[:M].nonzero(as_tuple=True)[0]
         vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
         vmask[st.face_gl.index_select(1, faces).reshape(-1)] = True
