@@ -69,7 +69,7 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -78,9 +78,8 @@ __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame"
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
 # exact path instead of growing every window.
 MAX_WINDOW = 16
-# Samples per block of the eager referenced-face pass of `InOut._view_setup`: its temporaries stay
-# in cache and below the allocator's threshold for fresh pages (the compiled per-sample stage takes
-# `sample_block` samples per block).
+# Samples per block of the former eager referenced-face pass of `InOut._view_setup` (now the compiled
+# `shaded_faces` over `sample_block` blocks); kept for callers that import it.
 CHUNK = 1 << 15
 # The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
@@ -341,6 +340,23 @@ def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face
     fw = front.to(u.dtype)
     bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw])
     return gl, bw, lut_cell_xyz(*wl, st.R, index_dtype=torch.int32), front
+
+
+def _shaded_faces(normal: Tensor, wo: Tensor, face: Tensor, region: Tensor, live: Tensor, face_region: Tensor,
+                  margin: float) -> tuple[Tensor, Tensor]:
+    """Per sample (for ``core.fused``, `InOut._view_setup`'s referenced-face pass): its face where it
+    is live and *shaded* — n·ω_o > −margin |n| |ω_o|, a superset of the samples the per-sample stage
+    finds above their horizon (z > 0 after normalising n, `sample_frame`, whose rounding moves z by
+    ~1e-7 |ω_o|) — else M = the face count (q,) int64, and whether a live sample's face lies in
+    another region than the sample's (q,) bool. face < 0 is clamped (a miss: not live)."""
+    dot = (normal * wo).sum(-1)
+    shaded = (dot > -margin * ((normal * normal).sum(-1) * (wo * wo).sum(-1)).sqrt()) & live
+    f = face.clamp_min(0)
+    bad = (face_region[f] != region) & live
+    return torch.where(shaded, f, face_region.shape[0]), bad
+
+
+shaded_faces = fused(_shaded_faces)
 
 
 def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,

@@ -171,6 +171,53 @@ def test_native_csr_product_is_the_sparse_product(monkeypatch, threads):
     assert not csr.check_csr(crow, col[:-1], val[:-1], D)                # crow[-1] past the arrays
 
 
+def test_light_vertices_is_the_sparse_product_of_those_rows():
+    """``fast.light_vertices`` (any vertex order, repeats) = the rows of `light_rows_torch`."""
+    from methods.inout import csr
+
+    if not csr.available():
+        pytest.skip("no C compiler: light_rows uses torch's product")
+    crow, col, val = _random_csr(600, 50, 2)
+    fr = fast.FastRegion(col=col, val=val, crow=crow, sh_lut=torch.zeros(4, 9), sh_nc=torch.zeros(12, 3), K=3, R=2,
+                         native=True)
+    L = torch.randn(50, 3, generator=torch.Generator().manual_seed(3))
+    assert fast.native(fr, L) and not fast.native(fr, L.double())
+    verts = torch.tensor([199, 0, 5, 5, 123, 17, 198])
+    want = fast.light_rows_torch(fr, L, 0, 200)[verts]
+    got = fast.light_vertices(fr, L, verts)
+    assert got.shape == (7, 3, 3)
+    assert float((got - want).abs().max()) <= 1e-6 * float(want.abs().max())
+    with pytest.raises(ValueError):
+        fast.light_vertices(fr, L, torch.tensor([200]))                       # rows 600..602: past the matrix
+
+
+def test_shaded_faces_is_a_superset_of_the_horizon_test():
+    """``fast.shaded_faces`` (the referenced-face pass) keeps every live sample the per-sample stage
+    shades (z > 0 in its frame, eager `sample_frame` and the compiled `entry_inputs`), near-grazing
+    directions included, drops the clearly back-facing ones, and flags faces of another region."""
+    g = torch.Generator().manual_seed(4)
+    q = 4096
+    n = torch.randn(q, 3, generator=g) * torch.rand(q, 1, generator=g) * 3
+    t = torch.linalg.cross(n, torch.randn(q, 3, generator=g))
+    eps = torch.randn(q, 1, generator=g) * torch.logspace(-9, -1, q)[:, None]
+    wo = torch.nn.functional.normalize(t, dim=-1) + eps * n                 # within ~eps of the horizon
+    wo[::3] = torch.randn(q // 3 + 1, 3, generator=g)                       # and arbitrary directions
+    face = torch.randint(-1, 10, (q,), generator=g)
+    face_region = torch.arange(10) % 2
+    region = face_region[face.clamp_min(0)]
+    region[7] = 1 - region[7]
+    live = face >= 0
+    f, bad = fast.shaded_faces(n, wo, face, region, live, face_region, inout_method.SHADED_MARGIN)
+    z = fast.sample_frame(n, wo)[2]
+    front = (z > 0) & live
+    _, bw, _, _ = fast.entry_inputs(n, wo, torch.full((q, 2), 0.25), face, live, torch.zeros(10, 3, dtype=torch.int32), 16)
+    assert bool((front <= (f < 10)).all()) and bool(((bw[:, 0] != 0) <= (f < 10)).all())
+    assert bool((f[front] == face[front]).all())
+    back = live & ((n * wo).sum(-1) < -1e-3 * n.norm(dim=-1) * wo.norm(dim=-1))
+    assert bool(back.any()) and bool((f[back] == 10).all())
+    assert bool(bad[7]) == bool(live[7]) and int(bad.sum()) == int(live[7])
+
+
 def test_shade_rows_indices_in_range_for_any_input(precomputed):
     """The compiled per-sample kernel reads without index checks (``fast.SHADE_OPTIONS``): on inputs
     no G-buffer should hold — NaN, infinite and zero normals and directions, faces below −1 and past
