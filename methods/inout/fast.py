@@ -3,12 +3,19 @@ image as the per-sample reference path (`InOut._render_reference`) to float32 ro
 work arranged for the machine instead of for reading.
 
 Lighting (a frame whose ``changed`` has "light"): c_k = T̃_k · L (eq. 4's dot product) per vertex,
-as CSR × dense products over runs of rows of T̃ read in place (`light_rows`), and only for the
-vertices the frame's samples reference: c is cached per vertex with a validity mask that a
-lighting change clears, and a later frame that sees more of the mesh fills in what it references.
-The region's vertices are stored in Morton order (``transport.locality_order``), so the vertices
-one view sees are few runs of consecutive rows; c is computed for whole blocks of LIGHT_BLOCK
-vertices (`light_runs`). A vertex's c never depends on which others were computed.
+and only for the vertices the frame's *shaded* samples reference (those of the faces of the hits
+above their horizon, `shaded_faces`: the hits below it have ρ = 0 and need no c): c is cached per
+vertex with a validity mask that a lighting change clears, and a later frame that sees more of the
+mesh fills in what it references. With the native loop (``methods.inout.csr``, `native`) exactly
+those vertices' K rows each are read in place (`light_vertices`); without it, torch's CSR × dense
+product over whole blocks of LIGHT_BLOCK vertices (`light_runs`, `light_rows_torch`; the region's
+vertices are stored in Morton order, ``transport.locality_order``, so one view's vertices are few
+runs of rows). A vertex's c never depends on which others were computed. Measured (creature bench,
+1 thread, process CPU time, same process against main, ``benchmarks.inout --base``): the native
+loop 1.69× torch's product over the same rows; c of the shaded faces' vertices only, exactly: 3434
+of the 4926 vertices the 16-vertex blocks of every hit face computed (chess: 4282 of 6884), which is
+the count ``InOut.frame_cost`` states; L / E / VL frames 1.35–1.5× (chess 1.44–1.73×, per-vertex
+shading 1.9×).
 
 View (every frame): at a sample with vertices v_j and barycentric weights β_j, eq. 4 reads
 B = Σ_k σ_k h_k(ω_o) c̄_k with c̄ = Σ_j β_j c_{v_j} and σ_k h_k the bilinear look-up of one cell of
