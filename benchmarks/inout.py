@@ -100,7 +100,8 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
     reg = max(m.regions, key=lambda r: r.T.values().numel())
     fr = m._fast_static().regions[m.regions.index(reg)]
     ref = m._cf_valid[reg.name].nonzero(as_tuple=True)[0]
-    runs = fast.light_runs(ref, reg.verts.numel())
+    nat = fast.native(fr, m.L)         # the native loop computes exactly ``ref``, torch's product whole blocks
+    runs = fast.light_runs(ref, reg.verts.numel(), block=1 if nat else fast.LIGHT_BLOCK)
     rows = sum(v1 - v0 for v0, v1 in runs) * reg.K
     spans = [(int(fr.crow[v0 * reg.K]), int(fr.crow[v1 * reg.K])) for v0, v1 in runs]   # CSR entries of each run
     nnz = sum(s1 - s0 for s0, s1 in spans)
@@ -108,6 +109,9 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
                light_bytes=nnz * (fr.val.element_size() + fr.col.element_size()))
 
     def light():
+        if nat:
+            fast.light_vertices(fr, m.L, ref)
+            return
         for v0, v1 in runs:
             fast.light_rows(fr, m.L, v0, v1)
 

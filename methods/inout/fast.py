@@ -3,12 +3,19 @@ image as the per-sample reference path (`InOut._render_reference`) to float32 ro
 work arranged for the machine instead of for reading.
 
 Lighting (a frame whose ``changed`` has "light"): c_k = T̃_k · L (eq. 4's dot product) per vertex,
-as CSR × dense products over runs of rows of T̃ read in place (`light_rows`), and only for the
-vertices the frame's samples reference: c is cached per vertex with a validity mask that a
-lighting change clears, and a later frame that sees more of the mesh fills in what it references.
-The region's vertices are stored in Morton order (``transport.locality_order``), so the vertices
-one view sees are few runs of consecutive rows; c is computed for whole blocks of LIGHT_BLOCK
-vertices (`light_runs`). A vertex's c never depends on which others were computed.
+and only for the vertices the frame's *shaded* samples reference (those of the faces of the hits
+above their horizon, `shaded_faces`: the hits below it have ρ = 0 and need no c): c is cached per
+vertex with a validity mask that a lighting change clears, and a later frame that sees more of the
+mesh fills in what it references. With the native loop (``methods.inout.csr``, `native`) exactly
+those vertices' K rows each are read in place (`light_vertices`); without it, torch's CSR × dense
+product over whole blocks of LIGHT_BLOCK vertices (`light_runs`, `light_rows_torch`; the region's
+vertices are stored in Morton order, ``transport.locality_order``, so one view's vertices are few
+runs of rows). A vertex's c never depends on which others were computed. Measured (creature bench,
+1 thread, process CPU time, same process against main, ``benchmarks.inout --base``): the native
+loop 1.69× torch's product over the same rows; c of the shaded faces' vertices only, exactly: 3434
+of the 4926 vertices the 16-vertex blocks of every hit face computed (chess: 4282 of 6884), which is
+the count ``InOut.frame_cost`` states; L / E / VL frames 1.35–1.5× (chess 1.44–1.73×, per-vertex
+shading 1.9×).
 
 View (every frame): at a sample with vertices v_j and barycentric weights β_j, eq. 4 reads
 B = Σ_k σ_k h_k(ω_o) c̄_k with c̄ = Σ_j β_j c_{v_j} and σ_k h_k the bilinear look-up of one cell of
@@ -65,10 +72,11 @@ import torch.nn.functional as Fnn
 from torch import Tensor
 
 from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, warm_blocks
+from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -77,9 +85,8 @@ __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame"
 # more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
 # exact path instead of growing every window.
 MAX_WINDOW = 16
-# Samples per block of the eager referenced-face pass of `InOut._view_setup`: its temporaries stay
-# in cache and below the allocator's threshold for fresh pages (the compiled per-sample stage takes
-# `sample_block` samples per block).
+# Samples per block of the former eager referenced-face pass of `InOut._view_setup` (now the compiled
+# `shaded_faces` over `sample_block` blocks); kept for callers that import it.
 CHUNK = 1 << 15
 # The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
@@ -106,6 +113,7 @@ class FastRegion:
     sh_lut: (R², 3K) σ_k h_{k,c} at the table nodes (index 3k + c, the reference's table);
     sh_nc: (R²·3, K) the same regrouped, row (node, colour): the K-vector X's dot products read.
     K: terms; R: nodes per side of the table.
+    native: the CSR passed ``csr.check_csr`` (`light_rows` may use the native loop).
     """
 
     col: Tensor
@@ -115,6 +123,7 @@ class FastRegion:
     sh_nc: Tensor
     K: int
     R: int
+    native: bool = False
 
 
 @dataclass
@@ -151,7 +160,7 @@ def build_region(T: Tensor, sh_lut: Tensor) -> FastRegion:
     R = int(round(RR ** 0.5))
     sh_nc = sh_lut.view(RR, K3 // 3, 3).transpose(1, 2).reshape(RR * 3, K3 // 3).contiguous()
     return FastRegion(col=col, val=val, crow=crow, sh_lut=sh_lut, sh_nc=sh_nc,
-                      K=K3 // 3, R=R)
+                      K=K3 // 3, R=R, native=csr.check_csr(crow, col, val, T.shape[1]))
 
 
 def sample_frame(n: Tensor, wo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -182,10 +191,41 @@ def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[in
     return [(s0 * block, min(nv, (e0 + 1) * block)) for s0, e0 in zip(starts, ends)]
 
 
+def native(fr: FastRegion, L: Tensor) -> bool:
+    """Whether the lighting product of region ``fr`` under L runs the native loop
+    (``methods.inout.csr``: 1.7–1.8× torch's product, one streaming pass over T̃): it is built,
+    the region's arrays passed its check, L is float32 on the CPU."""
+    return fr.native and L.device.type == "cpu" and L.dtype == torch.float32 and csr.available()
+
+
+def _pad4(L: Tensor) -> Tensor:
+    L4 = torch.zeros(L.shape[0], 4, dtype=L.dtype, device=L.device)
+    L4[:, :L.shape[1]] = L
+    return L4
+
+
+def light_vertices(fr: FastRegion, L: Tensor, verts: Tensor) -> Tensor:
+    """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices ``verts`` (n,)
+    (local ids, any order) → (n, K, 3): the native loop over their K rows each (`native` must hold),
+    L zero-padded to 4 columns (aligned 16-byte rows)."""
+    out = csr.csr_blocks4(fr.crow, fr.col, fr.val, _pad4(L), verts * fr.K, fr.K)
+    return out[:, :L.shape[1]].reshape(verts.numel(), fr.K, L.shape[1])
+
+
 def light_rows(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
-    """c_{v,k,c} = Σ_t T̃[(v, k), t] L[t, c] (Mahajan 2008 eq. 4) for the vertices v0 ≤ v < v1
-    → (v1 − v0, K, 3): CSR × dense products over blocks of rows read in place, with L zero-padded
-    to 4 columns (aligned rows: the product's inner loop is a 4-wide gather)."""
+    """`light_vertices` of the vertices v0 ≤ v < v1 → (v1 − v0, K, 3): the native loop when `native`
+    holds, else `light_rows_torch`."""
+    if not native(fr, L):
+        return light_rows_torch(fr, L, v0, v1, chunk_rows)
+    K = fr.K
+    out = csr.csr_dense4(fr.crow, fr.col, fr.val, _pad4(L), v0 * K, v1 * K)
+    return out[:, :L.shape[1]].reshape(v1 - v0, K, L.shape[1])
+
+
+def light_rows_torch(fr: FastRegion, L: Tensor, v0: int, v1: int, chunk_rows: int = LIGHT_CHUNK_ROWS) -> Tensor:
+    """`light_rows` by torch's CSR × dense product (MKL on this build) over blocks of rows read in
+    place, L zero-padded to 4 columns (aligned rows: the product's inner loop is a 4-wide gather):
+    the fallback without the native loop, and its test oracle."""
     K = fr.K
     L4 = torch.zeros(L.shape[0], 4, dtype=L.dtype, device=L.device)
     L4[:, :L.shape[1]] = L
@@ -307,6 +347,23 @@ def sample_inputs(st: FastStatic, normal: Tensor, wo: Tensor, bary: Tensor, face
     fw = front.to(u.dtype)
     bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw])
     return gl, bw, lut_cell_xyz(*wl, st.R, index_dtype=torch.int32), front
+
+
+def _shaded_faces(normal: Tensor, wo: Tensor, face: Tensor, region: Tensor, live: Tensor, face_region: Tensor,
+                  margin: float) -> tuple[Tensor, Tensor]:
+    """Per sample (for ``core.fused``, `InOut._view_setup`'s referenced-face pass): its face where it
+    is live and *shaded* — n·ω_o > −margin |n| |ω_o|, a superset of the samples the per-sample stage
+    finds above their horizon (z > 0 after normalising n, `sample_frame`, whose rounding moves z by
+    ~1e-7 |ω_o|) — else M = the face count (q,) int64, and whether a live sample's face lies in
+    another region than the sample's (q,) bool. face < 0 is clamped (a miss: not live)."""
+    dot = (normal * wo).sum(-1)
+    shaded = (dot > -margin * ((normal * normal).sum(-1) * (wo * wo).sum(-1)).sqrt()) & live
+    f = face.clamp_min(0)
+    bad = (face_region[f] != region) & live
+    return torch.where(shaded, f, face_region.shape[0]), bad
+
+
+shaded_faces = fused(_shaded_faces)
 
 
 def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,

@@ -110,6 +110,114 @@ def test_lighting_is_computed_only_where_seen(precomputed):
     _assert_sequence_equal(m, "V", n_frames=3, seed=5)
 
 
+def _random_csr(rows: int, D: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A CSR (int64 crow, int32 col, float32 val) with empty rows, rows of 1-3 entries (the loop's
+    tail only) and long rows, columns repeated within a row."""
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randint(0, 40, (rows,), generator=g)
+    n[::7] = 0
+    n[1::5] = torch.randint(1, 4, (n[1::5].numel(),), generator=g)
+    n[3::11] = 300
+    crow = torch.cat([torch.zeros(1, dtype=torch.int64), n.cumsum(0)])
+    nnz = int(crow[-1])
+    return crow, torch.randint(0, D, (nnz,), generator=g, dtype=torch.int32), torch.randn(nnz, generator=g)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_csr_product_is_the_sparse_product(monkeypatch, threads):
+    """``csr.csr_dense4`` (the native c = T̃ · L loop) on any row range equals torch's CSR × dense
+    product to float32 round-off, bit for bit the same at 1 and 2 threads (each row one thread's
+    sum), and `light_rows` takes it; `check_csr` refuses arrays the unchecked loop must not read."""
+    from methods.core.threads import torch_threads
+    from methods.inout import csr
+
+    if not csr.available():
+        pytest.skip("no C compiler: light_rows uses torch's product")
+    monkeypatch.setattr(csr, "_MIN_ROWS_PER_THREAD", 8)           # split even this small matrix
+    D = 96
+    crow, col, val = _random_csr(1000, D, 0)
+    assert csr.check_csr(crow, col, val, D)
+    L4 = torch.randn(D, 4, generator=torch.Generator().manual_seed(1))
+    want = torch.sparse_csr_tensor(crow, col.long(), val.double(), size=(1000, D)) @ L4.double()
+    peak = float(want.abs().max())
+    for r0, r1 in [(0, 1000), (7, 8), (3, 3), (250, 999), (998, 1000)]:
+        with torch_threads(threads):
+            got = csr.csr_dense4(crow, col, val, L4, r0, r1)
+        with torch_threads(1):
+            one = csr.csr_dense4(crow, col, val, L4, r0, r1)
+        assert got.shape == (r1 - r0, 4) and torch.equal(got, one)
+        assert float((got.double() - want[r0:r1]).abs().sum(1).max()) <= 1e-6 * peak if r1 > r0 else True
+    # light_rows of a region (K = 5 terms per vertex) takes the native loop and equals the torch path
+    fr = fast.FastRegion(col=col, val=val, crow=crow, sh_lut=torch.zeros(4, 15), sh_nc=torch.zeros(12, 5), K=5,
+                         R=2, native=True)
+    L = L4[:, :3].contiguous()
+    native, calls = csr.csr_dense4, []
+    monkeypatch.setattr(csr, "csr_dense4", lambda *a: calls.append(a[-2:]) or native(*a))
+    got = fast.light_rows(fr, L, 10, 150)
+    assert calls == [(50, 750)]
+    want_rows = fast.light_rows_torch(fr, L, 10, 150)
+    assert got.shape == want_rows.shape == (140, 5, 3)
+    assert float((got - want_rows).abs().max()) <= 1e-6 * float(want_rows.abs().max())
+    # arrays the loop must not read unchecked
+    bad = col.clone()
+    bad[5] = D
+    assert not csr.check_csr(crow, bad, val, D)
+    bad[5] = -1
+    assert not csr.check_csr(crow, bad, val, D)
+    dec = crow.clone()
+    dec[10] = dec[9] - 1
+    assert not csr.check_csr(dec, col, val, D)
+    assert not csr.check_csr(crow, col.long(), val, D)
+    assert not csr.check_csr(crow, col[:-1], val[:-1], D)                # crow[-1] past the arrays
+
+
+def test_light_vertices_is_the_sparse_product_of_those_rows():
+    """``fast.light_vertices`` (any vertex order, repeats) = the rows of `light_rows_torch`."""
+    from methods.inout import csr
+
+    if not csr.available():
+        pytest.skip("no C compiler: light_rows uses torch's product")
+    crow, col, val = _random_csr(600, 50, 2)
+    fr = fast.FastRegion(col=col, val=val, crow=crow, sh_lut=torch.zeros(4, 9), sh_nc=torch.zeros(12, 3), K=3, R=2,
+                         native=True)
+    L = torch.randn(50, 3, generator=torch.Generator().manual_seed(3))
+    assert fast.native(fr, L) and not fast.native(fr, L.double())
+    verts = torch.tensor([199, 0, 5, 5, 123, 17, 198])
+    want = fast.light_rows_torch(fr, L, 0, 200)[verts]
+    got = fast.light_vertices(fr, L, verts)
+    assert got.shape == (7, 3, 3)
+    assert float((got - want).abs().max()) <= 1e-6 * float(want.abs().max())
+    with pytest.raises(ValueError):
+        fast.light_vertices(fr, L, torch.tensor([200]))                       # rows 600..602: past the matrix
+
+
+def test_shaded_faces_is_a_superset_of_the_horizon_test():
+    """``fast.shaded_faces`` (the referenced-face pass) keeps every live sample the per-sample stage
+    shades (z > 0 in its frame, eager `sample_frame` and the compiled `entry_inputs`), near-grazing
+    directions included, drops the clearly back-facing ones, and flags faces of another region."""
+    g = torch.Generator().manual_seed(4)
+    q = 4096
+    n = torch.randn(q, 3, generator=g) * torch.rand(q, 1, generator=g) * 3
+    t = torch.linalg.cross(n, torch.randn(q, 3, generator=g))
+    eps = torch.randn(q, 1, generator=g) * torch.logspace(-9, -1, q)[:, None]
+    wo = torch.nn.functional.normalize(t, dim=-1) + eps * n                 # within ~eps of the horizon
+    wo[::3] = torch.randn(q // 3 + 1, 3, generator=g)                       # and arbitrary directions
+    face = torch.randint(-1, 10, (q,), generator=g)
+    face_region = torch.arange(10) % 2
+    region = face_region[face.clamp_min(0)]
+    region[7] = 1 - region[7]
+    live = face >= 0
+    f, bad = fast.shaded_faces(n, wo, face, region, live, face_region, inout_method.SHADED_MARGIN)
+    z = fast.sample_frame(n, wo)[2]
+    front = (z > 0) & live
+    _, bw, _, _ = fast.entry_inputs(n, wo, torch.full((q, 2), 0.25), face, live, torch.zeros(10, 3, dtype=torch.int32), 16)
+    assert bool((front <= (f < 10)).all()) and bool(((bw[:, 0] != 0) <= (f < 10)).all())
+    assert bool((f[front] == face[front]).all())
+    back = live & ((n * wo).sum(-1) < -1e-3 * n.norm(dim=-1) * wo.norm(dim=-1))
+    assert bool(back.any()) and bool((f[back] == 10).all())
+    assert bool(bad[7]) == bool(live[7]) and int(bad.sum()) == int(live[7])
+
+
 def test_shade_rows_indices_in_range_for_any_input(precomputed):
     """The compiled per-sample kernel reads without index checks (``fast.SHADE_OPTIONS``): on inputs
     no G-buffer should hold — NaN, infinite and zero normals and directions, faces below −1 and past

@@ -1,0 +1,187 @@
+"""c = T̃ · L (Mahajan 2008 eq. 4's dot product, per vertex, term and colour) as one streaming
+pass over the CSR arrays of T̃: a 20-line C loop compiled on first use and called through ctypes.
+
+Why not ``torch.sparse`` (the product `fast.light_rows` used before, and keeps as the fallback):
+torch's CPU CSR × dense product is MKL's ``mkl_sparse_s_mm``, which with 4 dense columns (L padded,
+`fast.light_rows`) ran at 6–8 GB/s of T̃'s bytes on this machine where one streaming read of the
+same values and column indices runs at 16–19 GB/s, and three CSR × vector products (one per colour)
+each ran at the read's speed (55 ms for the three against 37–40 ms for the 4-column product, creature
+bench, 4.9·10³ vertices × K = 30, 3.8·10⁷ kept coefficients, 1 thread, process CPU time). The loop
+here reads each coefficient and its column once, multiplies the 4-float row of L (16 B, aligned: L
+is 24 KB, L1-resident) by the value and accumulates it in one of 4 independent 4-wide accumulators
+(one accumulator chains each multiply-add on the previous: 4 cycles of latency per coefficient,
+which is MKL's speed): 21–23 ms for the same product, 13–14 GB/s (1.7–1.8×; GCC vector extensions
+at the x86-64 baseline, SSE2 — built with ``-march=native`` (AVX2, 8 coefficients per iteration,
+intrinsics) it was no faster: the loop is at the memory's speed, not the instructions'). An Inductor
+kernel cannot express it (a reduction over data-dependent row extents); ``embedding_bag`` with
+per-sample weights was 1.7× slower than MKL (``fast`` docstring).
+
+Each output row is summed by one thread in one order, whatever the thread count: ``torch.get_num_threads()``
+threads each take a contiguous range of rows of about equal coefficient counts (ctypes releases the
+GIL during the call), so results are bit for bit the same at 1 and 2 threads
+(``tests/methods/test_threads.py``).
+
+The library is compiled once per source text and compiler into a per-user cache directory (atomic
+rename, so concurrent processes are safe) with the C compiler ``$CC`` or ``cc``; without one, or with
+``PRTBENCH_COMPILE=0`` (``methods.core.fused``'s off switch), `available` is False and callers use
+the torch product. The loop reads without bounds checks: `check_csr` validates the arrays once
+(column indices in [0, D), row pointers non-decreasing and within the arrays), when
+``fast.build_region`` builds a region.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from torch import Tensor
+
+from methods.core.fused import compile_enabled
+
+__all__ = ["available", "check_csr", "csr_blocks4", "csr_dense4"]
+
+_SOURCE = r"""
+#include <stdint.h>
+typedef float v4 __attribute__((vector_size(16)));
+
+/* For each block i < n, the K rows first[i] <= r < first[i] + K of the CSR (crow, col, val):
+   out[i * K + r - first[i], 0:4] = sum over e in [crow[r], crow[r + 1]) of val[e] * L4[col[e], 0:4].
+   L4 (D, 4) and out (n * K, 4) 16-byte aligned. 4 accumulators, combined as (s0 + s1) + (s2 + s3). */
+void csr_blocks4(const int64_t* crow, const int64_t* first, int64_t n, int64_t K, const int32_t* col,
+                 const float* val, const float* L4, float* out) {
+    const v4* L = (const v4*)L4;
+    v4* o = (v4*)out;
+    for (int64_t i = 0; i < n; ++i) {
+        for (int64_t r = first[i]; r < first[i] + K; ++r) {
+            const int64_t b = crow[r + 1];
+            int64_t e = crow[r];
+            v4 s0 = {0, 0, 0, 0}, s1 = s0, s2 = s0, s3 = s0;
+            for (; e + 4 <= b; e += 4) {
+                s0 += val[e] * L[col[e]];
+                s1 += val[e + 1] * L[col[e + 1]];
+                s2 += val[e + 2] * L[col[e + 2]];
+                s3 += val[e + 3] * L[col[e + 3]];
+            }
+            for (; e < b; ++e)
+                s0 += val[e] * L[col[e]];
+            *o++ = (s0 + s1) + (s2 + s3);
+        }
+    }
+}
+"""
+_FLAGS = ("-O3", "-shared", "-fPIC", "-fno-math-errno")
+# Rows below which one thread does the product (a thread's hand-off costs more than its share).
+_MIN_ROWS_PER_THREAD = 1 << 12
+
+
+@functools.lru_cache(maxsize=None)
+def _library(cc: str | None):
+    """The compiled kernel (ctypes function) or None (no compiler, or the build failed: warns once)."""
+    if cc is None:
+        return None
+    key = hashlib.sha256("\0".join((_SOURCE, cc, *_FLAGS, sys.platform)).encode()).hexdigest()[:20]
+    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
+    path = os.path.join(root, f"inout_csr_{key}.so")
+    try:
+        if not os.path.exists(path):
+            os.makedirs(root, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=root) as tmp:
+                src, so = os.path.join(tmp, "csr.c"), os.path.join(tmp, "csr.so")
+                with open(src, "w") as f:
+                    f.write(_SOURCE)
+                subprocess.run([cc, *_FLAGS, src, "-o", so], check=True, capture_output=True)
+                os.replace(so, path)                           # atomic: a concurrent build finds a whole file
+        fn = ctypes.CDLL(path).csr_blocks4
+    except (OSError, subprocess.CalledProcessError) as e:
+        warnings.warn(f"inout: the native CSR kernel did not build ({e}); using torch's sparse product")
+        return None
+    fn.restype = None
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
+                   ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+    return fn
+
+
+@functools.lru_cache(maxsize=None)
+def _compiler() -> str | None:
+    """The C compiler's path (looked up once per process: a PATH search costs ~0.25 ms, against
+    ~0.1 ms for the product of a run of 16 vertices)."""
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    return shutil.which(cc) if cc else None
+
+
+def _kernel():
+    return _library(_compiler()) if compile_enabled() else None
+
+
+def available() -> bool:
+    """True when `csr_dense4` runs the native loop (else callers use the torch product)."""
+    return _kernel() is not None
+
+
+def check_csr(crow: Tensor, col: Tensor, val: Tensor, D: int) -> bool:
+    """Whether (crow, col, val) is a CSR the native loop may read without bounds checks: int64
+    row pointers, non-decreasing, from 0 to nnz; int32 column indices in [0, D); float32 values;
+    col and val contiguous, of nnz entries."""
+    if crow.dtype != torch.int64 or col.dtype != torch.int32 or val.dtype != torch.float32:
+        return False
+    if crow.device.type != "cpu" or not (crow.is_contiguous() and col.is_contiguous() and val.is_contiguous()):
+        return False
+    nnz = col.numel()
+    if crow.ndim != 1 or crow.numel() < 1 or val.numel() != nnz or int(crow[0]) != 0 or int(crow[-1]) != nnz:
+        return False
+    if bool((crow[1:] < crow[:-1]).any()):
+        return False
+    return nnz == 0 or (int(col.min()) >= 0 and int(col.max()) < D)
+
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def csr_dense4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, r0: int, r1: int) -> Tensor:
+    """Rows r0 ≤ r < r1 of the CSR (crow, col, val) times L4 (D, 4) float32 → (r1 − r0, 4)
+    (`csr_blocks4` of one block)."""
+    if not 0 <= r0 <= r1 <= crow.numel() - 1:
+        raise ValueError(f"rows [{r0}, {r1}) outside the matrix's {crow.numel() - 1}")
+    return csr_blocks4(crow, col, val, L4, torch.tensor([r0], dtype=torch.int64), r1 - r0)
+
+
+def csr_blocks4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, first: Tensor, K: int) -> Tensor:
+    """Blocks of K consecutive rows, block i the rows first[i] ≤ r < first[i] + K, of the CSR
+    (crow, col, val) times L4 (D, 4) float32 → (n·K, 4), block-major: the native loop over
+    ``torch.get_num_threads()`` contiguous ranges of blocks of about equal coefficient counts (module
+    docstring). The CSR must pass `check_csr` (the caller checks once), `available` be True, and
+    every block lie in the matrix (checked here)."""
+    fn = _kernel()
+    L4 = L4.contiguous()
+    if L4.dtype != torch.float32 or L4.ndim != 2 or L4.shape[1] != 4:
+        raise ValueError(f"L4 must be (D, 4) float32, got {tuple(L4.shape)} {L4.dtype}")
+    first = first.to(torch.int64).contiguous()
+    n = first.numel()
+    out = torch.empty(n * K, 4, dtype=torch.float32)
+    if n == 0 or K == 0:
+        return out
+    if int(first.min()) < 0 or int(first.max()) + K > crow.numel() - 1:
+        raise ValueError(f"row blocks outside the matrix's {crow.numel() - 1} rows")
+    nt = max(1, min(torch.get_num_threads(), n * K // _MIN_ROWS_PER_THREAD))
+    cp, fp, colp, valp, Lp, op = (t.data_ptr() for t in (crow, first, col, val, L4, out))
+    if nt == 1:
+        fn(cp, fp, n, K, colp, valp, Lp, op)
+        return out
+    # nt ranges of blocks of about equal coefficient counts
+    cum = (crow.index_select(0, first + K) - crow.index_select(0, first)).cumsum(0)
+    cuts = [0, *torch.searchsorted(cum, torch.linspace(0, float(cum[-1]), nt + 1)[1:-1]).tolist(), n]
+    global _pool, _pool_size
+    if _pool is None or _pool_size < nt:
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt, thread_name_prefix="inout-csr"), nt
+    jobs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    list(_pool.map(lambda ab: fn(cp, fp + 8 * ab[0], ab[1] - ab[0], K, colp, valp, Lp, op + 16 * K * ab[0]), jobs))
+    return out
