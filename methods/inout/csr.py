@@ -22,7 +22,8 @@ GIL during the call), so results are bit for bit the same at 1 and 2 threads
 (``tests/methods/test_threads.py``).
 
 The library is compiled once per source text and compiler into a per-user cache directory (atomic
-rename, so concurrent processes are safe) with the C compiler ``$CC`` or ``cc``; without one, or with
+rename, so concurrent processes are safe; loaded only from a directory this user owns and nobody
+else can write) with the C compiler ``$CC`` or ``cc``; without one, or with
 ``PRTBENCH_COMPILE=0`` (``methods.core.fused``'s off switch), `available` is False and callers use
 the torch product. The loop reads without bounds checks: `check_csr` validates the arrays once
 (column indices in [0, D), row pointers non-decreasing and within the arrays), when
@@ -91,8 +92,10 @@ def _library(cc: str | None):
     root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
     path = os.path.join(root, f"inout_csr_{key}.so")
     try:
+        os.makedirs(root, mode=0o700, exist_ok=True)
+        if not _private_dir(root):
+            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
         if not os.path.exists(path):
-            os.makedirs(root, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=root) as tmp:
                 src, so = os.path.join(tmp, "csr.c"), os.path.join(tmp, "csr.so")
                 with open(src, "w") as f:
@@ -107,6 +110,17 @@ def _library(cc: str | None):
     fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
                    ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     return fn
+
+
+def _private_dir(root: str) -> bool:
+    """Whether ``root`` is a real directory owned by this user that nobody else can write: the loaded
+    library comes from there, so a file planted by another user must not be (as Inductor's own
+    per-user cache in the temp directory)."""
+    st = os.lstat(root)
+    import stat
+
+    uid = os.getuid() if hasattr(os, "getuid") else st.st_uid
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not (st.st_mode & 0o022)
 
 
 @functools.lru_cache(maxsize=None)

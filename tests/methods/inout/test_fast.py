@@ -599,3 +599,28 @@ def test_window_kernels_serve_every_window_side_without_recompiling(precomputed)
         assert torch.allclose(got, fast.window_rows.eager(ax, ay, ref, fr.sh_nc, cw, fr.R, W), rtol=RTOL, atol=1e-6)
         graphs.append(counters["stats"]["unique_graphs"])
     assert graphs[-1] == graphs[0], graphs          # W = 8, 6, 10 reuse the kernel compiled for W = 4
+
+
+def test_native_kernel_is_not_loaded_from_a_directory_others_can_write(tmp_path, monkeypatch):
+    """The compiled CSR loop is loaded from a per-user directory in the temp folder: one another
+    user could write (a planted library) is refused, with a warning, and the torch product is used."""
+    import os
+    import tempfile
+
+    from methods.inout import csr
+
+    if csr._compiler() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(tempfile, "gettempdir", lambda: str(tmp_path))
+    root = tmp_path / f"prtbench-native-{os.getuid()}"
+    root.mkdir()
+    root.chmod(0o777)
+    csr._library.cache_clear()
+    try:
+        with pytest.warns(UserWarning, match="not a directory only this user can write"):
+            assert csr._library(csr._compiler()) is None
+        root.chmod(0o700)
+        csr._library.cache_clear()
+        assert csr._library(csr._compiler()) is not None
+    finally:
+        csr._library.cache_clear()
