@@ -2,7 +2,7 @@
 run-time code (`benchmarks.zh_shadow --baseline` only A/Bs sample shading).
 
     python -m benchmarks.zh_pose_ab --baseline /work/base [--config '{"order":8,"shading":"vertex","specular":"cosine"}']
-        [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile]
+        [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile] [--stages-ab]
 
 The baseline's `methods/zh_shadow/runtime.py` and `method.py` are imported under other names (this
 tree's `methods.core` and `precompute`); both classes get one precomputation (from the harness
@@ -11,7 +11,7 @@ state valid) and render each kind's frames alternating which goes first, frames 
 (`benchmarks.common.ab_frames`: medians of process CPU and wall time, their ratio, max
 |new − reference| / max |reference| against `_render_reference`). ``--profile``: the new code's
 P frame under ``torch.profiler`` (self CPU time per op / compiled kernel) and the split of its
-stages (`stages`).
+stages (`stages`); ``--stages-ab``: the conjugation stages alone, old against new (`stages_ab`).
 """
 from __future__ import annotations
 
@@ -107,6 +107,44 @@ def stages(m, frame, gb, repeats: int = 5) -> dict:
     return {k: 1e3 * v for k, v in out.items()}
 
 
+def stages_ab(m, frame, repeats: int = 15) -> dict:
+    """The conjugation stages of one P frame of ``m`` (vertex shading), the baseline's runtime
+    (`baseline_class` loads it as ``_zhp_base_runtime``) against this tree's, alternating call by
+    call: median process-CPU ms of w (`cosine_visibility_zyz` or `cosine_visibility`) and of
+    `specular_transfer`, and their ratios."""
+    import statistics
+
+    from methods.zh_shadow import runtime as rt
+
+    old = sys.modules["_zhp_base_runtime"]
+    cosine = m.config["specular"] == "cosine"
+    pose = torch.as_tensor(frame.pose).float() if frame.pose is not None else None
+    geom = m.scene.geometry(pose)
+    nrm = geom.N.float()
+    vT = rt.world_visibility(m.model.X, pose, nrm, m.model.lobes, point_minor=True, frame="zyz" if cosine else "world")
+    nT = rt.rows(nrm)
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32)
+    woT = cam[:, None] - rt.rows(geom.V.float())
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    alphas = [al if bool((ks > 0).any()) else None for _, ks, al in m._region_materials(frame)]
+    vreg = geom.vertex_region
+    out = {}
+    for name, fn in (("w", lambda r: r.cosine_visibility_zyz(vT, nT) if cosine else r.cosine_visibility(vT, nT)),
+                     ("specular_transfer", lambda r: r.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas))):
+        w = rt.cosine_visibility_zyz(vT, nT) if cosine else rt.cosine_visibility(vT, nT)
+        t = {"base": [], "new": []}
+        for r in (old, rt):
+            fn(r)
+        for i in range(repeats):
+            for k, r in ((("base", old), ("new", rt)) if i % 2 == 0 else (("new", rt), ("base", old))):
+                c = time.process_time()
+                fn(r)
+                t[k].append(time.process_time() - c)
+        mb, mn = statistics.median(t["base"]), statistics.median(t["new"])
+        out[name] = {"base_ms": 1e3 * mb, "new_ms": 1e3 * mn, "ratio": mb / mn}
+    return out
+
+
 def profile(m, frames, gbs) -> str:
     """torch.profiler table (self CPU time) of the new code's frames[1:] (frame 0 warms up)."""
     from torch.profiler import ProfilerActivity, profile as prof
@@ -130,6 +168,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--stages-ab", action="store_true", help="A/B the conjugation stages of a P frame alone")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     if a.precompute_code:
@@ -156,6 +195,9 @@ def main(argv: list[str] | None = None) -> dict:
         if a.profile and kind == "P":
             out["stages_ms"] = stages(m.with_render_config(), frames[-1], gbs[-1])
             print(profile(m.with_render_config(), frames, gbs))
+        if a.stages_ab and kind == "P":
+            out["stages_ab"] = stages_ab(m.with_render_config(), frames[-1])
+            print(json.dumps(out["stages_ab"]), flush=True)
     B, Pk = machine_limits(out, bw, peak)
     ab_report(out, kinds, B, Pk, f"zh_shadow {a.config} {a.scene} {a.size}, {a.threads} thread(s)")
     return out
