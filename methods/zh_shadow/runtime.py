@@ -503,7 +503,8 @@ def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 @fused
 def _zyz_angle_tables(nT: Tensor, order: int) -> Tensor:
     """(4, n, Q) the tables of `_zyz_angles` stacked, one compiled pass (eager, `_polar` and the two
-    Chebyshev recurrences were ~40 small ops: 0.9 ms per call at 13.4 K points, 1 thread)."""
+    Chebyshev recurrences were ~40 small ops: 0.88 ms per call at 13.4 K points, 0.31 ms
+    compiled, 1 thread)."""
     z, rho, cp, sp = _polar(nT)
     Cp, Sp = _angles(cp, sp, order)
     Ct, St = _angles(z, rho, order)
@@ -628,8 +629,10 @@ def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
             a0, a1 = int(p[0]), int(p[-1]) + 1
             if a1 - a0 == p.shape[0]:
                 # the region's points are one range of columns (a mesh's vertices: the creature's
-                # 9,694 of 13,415), taken as slices (row copies) — the column gather and scatter
-                # (index_select / index_copy_ along dim 1) took ~3 ms of the 9 ms specular transfer
+                # 9,694 of 13,415), taken as slices (row copies) instead of the column gather and
+                # scatter (index_select / index_copy_ along dim 1; index_copy_ alone was the 6th
+                # largest op of a P frame's profile); with the compiled angle tables the stage went
+                # 1.37x faster (benchmarks.zh_pose_ab --stages-ab, 1 thread, load ~10 on 2 cores)
                 t = zonal_conjugate(src[:, a0:a1], R[:, a0:a1], ("phong", float(a)))
                 ts[:, a0:a1] = t.mul_((a + 1.0) / (2.0 * math.pi))
             else:
