@@ -427,14 +427,19 @@ def _angles(cT: Tensor, sT: Tensor, order: int) -> tuple[Tensor, Tensor]:
     return torch.stack(cs[:order]), torch.stack(ss[:order])
 
 
-@fused
+# (gather indices in range by construction — `_conjugate_tables` — so no per-load bounds check:
+# 5-10 % of the two passes of a half, 1.65 → 1.5 ms at 13.4 K points, 1 thread)
+_NO_ASSERT = {"assert_indirect_indexing": False}
+
+
+@functools.partial(fused, options=_NO_ASSERT)
 def _rz(aT: Tensor, C: Tensor, S: Tensor, perm: Tensor, absm: Tensor, sgn: Tensor) -> Tensor:
     """M(R_z(±angle)) a per point (a (n², Q)): a·cos(|m|φ) + a[(l, −m)]·sgn·sin(|m|φ) (C, S (n, Q)
     the cos/sin of `_angles`, sgn (n², 1) carrying the sign of the rotation), one compiled pass."""
     return aT * C.index_select(0, absm) + aT.index_select(0, perm) * (S.index_select(0, absm) * sgn)
 
 
-@fused
+@functools.partial(fused, options=_NO_ASSERT)
 def _gathered_rz(aT: Tensor, idx: Tensor, w: Tensor, C: Tensor, S: Tensor, perm: Tensor, absm: Tensor,
                  sgn: Tensor) -> Tensor:
     """`_rz` of A a, A given by its gathered terms (`_conjugate_tables`: (A a)_r = Σ_j w[r, j]
@@ -466,11 +471,13 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
     the middle X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the
     angle on the ±m pairs), instead of building each point's SH rotation
-    (`methods.core.sh_rotation`). Each half around the GEMM is two compiled passes over all Q points
-    (`_rz`, then `_gathered_rz`: the z rotation, then X or Xᵀ by its non-zeros and the next z
-    rotation), the point count marked dynamic so one kernel serves every Q (eager, the z rotations'
-    gathers and temporaries took 85 % of the time; a variant over static blocks of 1024 points was
-    0.70× as fast, session 11).
+    (`methods.core.sh_rotation`). Each half around the GEMM is one compiled pass over all Q points
+    (`_zyz_half`: the z rotation `_rz`, X or Xᵀ by its non-zeros and the next z rotation,
+    `_gathered_rz`), the point count marked dynamic so one kernel serves every Q (eager, the z
+    rotations' gathers and temporaries took 85 % of the time; a variant over static blocks of 1024
+    points was 0.70× as fast, session 11; a block-major (blocks, n², 1024–2048) layout, each block's
+    rows in L2, gained only 1.1x over the flat one — the passes are bound by the instructions per
+    gathered row, not by the cache, session 14).
 
     Args:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
@@ -493,16 +500,37 @@ def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return z, rho, cp, sp
 
 
+@fused
+def _zyz_angle_tables(nT: Tensor, order: int) -> Tensor:
+    """(4, n, Q) the tables of `_zyz_angles` stacked, one compiled pass (eager, `_polar` and the two
+    Chebyshev recurrences were ~40 small ops: 0.88 ms per call at 13.4 K points, 0.31 ms
+    compiled, 1 thread)."""
+    z, rho, cp, sp = _polar(nT)
+    Cp, Sp = _angles(cp, sp, order)
+    Ct, St = _angles(z, rho, order)
+    return torch.stack([Cp, Sp, Ct, St])
+
+
 def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """cos/sin (n, Q) of m·φ and m·θ (`_angles`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
     directions nT (3, Q) (φ = 0 on the pole: the operators conjugated are zonal), the point count
     marked dynamic (one compiled kernel for every count)."""
-    z, rho, cp, sp = _polar(nT)
-    Cp, Sp = _angles(cp, sp, order)
-    Ct, St = _angles(z, rho, order)
+    nT = nT.contiguous()
+    torch._dynamo.maybe_mark_dynamic(nT, 1)
+    Cp, Sp, Ct, St = _zyz_angle_tables(nT, order).unbind(0)
     for t in (Cp, Sp, Ct, St):
         torch._dynamo.maybe_mark_dynamic(t, 1)
     return Cp, Sp, Ct, St
+
+
+@functools.partial(fused, options=_NO_ASSERT)
+def _zyz_half(aT: Tensor, C1: Tensor, S1: Tensor, C2: Tensor, S2: Tensor, perm: Tensor, absm: Tensor, sgn: Tensor,
+              idx: Tensor, w: Tensor) -> Tensor:
+    """R_z(angle 2) A R_z(angle 1) a: `_rz` then `_gathered_rz` (A by its gathered terms) as one
+    compiled function — Inductor makes it one pass, recomputing the first z rotation per gathered
+    term instead of storing it (1.14x over the two compiled passes at 13.4 K points, 1 thread,
+    load ~6 on 2 cores; equal numbers)."""
+    return _gathered_rz.eager(_rz.eager(aT, C1, S1, perm, absm, sgn), idx, w, C2, S2, perm, absm, sgn)
 
 
 def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
@@ -512,7 +540,7 @@ def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
     Cp, Sp, Ct, St = ang
     vT = vT.contiguous()
     torch._dynamo.maybe_mark_dynamic(vT, 1)
-    return _gathered_rz(_rz(vT, Cp, Sp, perm, absm, -sgn), xi, xw, Ct, St, perm, absm, -sgn)
+    return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw)
 
 
 def _zyz_product(K: Tensor, aT: Tensor) -> Tensor:
@@ -528,7 +556,7 @@ def _zyz_up(aT: Tensor, ang: tuple) -> Tensor:
     perm, absm, sgn, _, _, ti, tw = _conjugate_tables(n, aT.dtype, aT.device)
     Cp, Sp, Ct, St = ang
     torch._dynamo.maybe_mark_dynamic(aT, 1)
-    return _gathered_rz(_rz(aT, Ct, St, perm, absm, sgn), ti, tw, Cp, Sp, perm, absm, sgn)
+    return _zyz_half(aT, Ct, St, Cp, Sp, perm, absm, sgn, ti, tw)
 
 
 @functools.lru_cache(maxsize=None)
@@ -598,8 +626,18 @@ def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
         if p.shape[0] == vregion.shape[0]:
             ts = zonal_conjugate(src, R, ("phong", float(a))).mul_((a + 1.0) / (2.0 * math.pi))
         elif p.shape[0]:
-            t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
-            ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
+            a0, a1 = int(p[0]), int(p[-1]) + 1
+            if a1 - a0 == p.shape[0]:
+                # the region's points are one range of columns (a mesh's vertices: the creature's
+                # 9,694 of 13,415), taken as slices (row copies) instead of the column gather and
+                # scatter (index_select / index_copy_ along dim 1; index_copy_ alone was the 6th
+                # largest op of a P frame's profile); with the compiled angle tables the stage went
+                # 1.37x faster (benchmarks.zh_pose_ab --stages-ab, 1 thread, load ~10 on 2 cores)
+                t = zonal_conjugate(src[:, a0:a1], R[:, a0:a1], ("phong", float(a)))
+                ts[:, a0:a1] = t.mul_((a + 1.0) / (2.0 * math.pi))
+            else:
+                t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
+                ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
     return ts
 
 

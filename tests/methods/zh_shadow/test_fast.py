@@ -183,6 +183,32 @@ def test_cosine_visibility_equals_rotations():
         assert (got32 - want).abs().max() <= 2e-6 * want.abs().max(), order
 
 
+def test_specular_transfer_regions():
+    """`runtime.specular_transfer` with per-region exponents: a region whose points are one range
+    of columns (sliced) and one whose points are scattered (gathered) each equal `zonal_conjugate`
+    of all points scaled by (α+1)/(2π) on the region's columns, zero where there is no specular
+    term (float64, to round-off; the region of a vertex mesh is a range: the vertex path's case)."""
+    g = torch.Generator().manual_seed(5)
+    order, Q = 8, 301
+    v = torch.randn(order * order, Q, generator=g, dtype=torch.float64)
+    nT = torch.randn(3, Q, generator=g, dtype=torch.float64)
+    woT = torch.randn(3, Q, generator=g, dtype=torch.float64)
+    nT, woT = nT / nT.norm(dim=0), woT / woT.norm(dim=0)
+    R = rt.reflect_T(nT, woT)
+    vreg = torch.full((Q,), 2, dtype=torch.int64)
+    vreg[40:200] = 0                                   # a range
+    vreg[200::3] = 1                                   # scattered
+    vreg[0:40:7] = 1
+    alphas = [12.0, 3.0, None]
+    got = rt.specular_transfer(v, nT, woT, vreg, alphas)
+    want = torch.zeros_like(v)
+    for r, a in enumerate(alphas[:2]):
+        full = rt.zonal_conjugate(v, R, ("phong", a)) * ((a + 1.0) / (2.0 * math.pi))
+        want[:, vreg == r] = full[:, vreg == r]
+    assert (got[:, vreg == 2] == 0).all()
+    assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+
+
 def test_cosine_visibility_zyz_equals_world():
     """`runtime.cosine_visibility_zyz` of the visibility made in the ZYZ normal frames
     (`world_visibility`, ``frame="zyz"``: the vertex path with the cosine) = `cosine_visibility` of

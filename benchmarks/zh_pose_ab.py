@@ -1,0 +1,207 @@
+"""Same-process A/B of ZHShadow pose (P) frames — and any other kind — against another checkout's
+run-time code (`benchmarks.zh_shadow --baseline` only A/Bs sample shading).
+
+    python -m benchmarks.zh_pose_ab --baseline /work/base [--config '{"order":8,"shading":"vertex","specular":"cosine"}']
+        [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile] [--stages-ab]
+
+The baseline's `methods/zh_shadow/runtime.py` and `method.py` are imported under other names (this
+tree's `methods.core` and `precompute`); both classes get one precomputation (from the harness
+cache; ``--precompute-code DIR`` keys it on DIR's code — a run-time-only change keeps the cached
+state valid) and render each kind's frames alternating which goes first, frames 0–1 untimed
+(`benchmarks.common.ab_frames`: medians of process CPU and wall time, their ratio, max
+|new − reference| / max |reference| against `_render_reference`). ``--profile``: the new code's
+P frame under ``torch.profiler`` (self CPU time per op / compiled kernel) and the split of its
+stages (`stages`); ``--stages-ab``: the conjugation stages alone, old against new (`stages_ab`).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib.util
+import json
+import os
+import sys
+import time
+
+import torch
+
+from benchmarks.common import ab_frames, ab_report, machine_limits, precomputed, setup
+from reports import measure
+
+PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
+
+
+def _load(path: str, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def baseline_class(root: str):
+    """ZHShadow of the checkout ``root`` (its runtime and method modules, this tree's core)."""
+    from methods import base
+
+    saved = dict(base._REGISTRY)
+    try:
+        rt = _load(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
+        mod = _load(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
+        mod.rt = rt
+        return mod.ZHShadow
+    finally:
+        base._REGISTRY.clear()
+        base._REGISTRY.update(saved)
+
+
+def _best(f, repeats: int = 5) -> float:
+    f()
+    ts = []
+    for _ in range(repeats):
+        c = time.process_time()
+        f()
+        ts.append(time.process_time() - c)
+    return min(ts)
+
+
+def stages(m, frame, gb, repeats: int = 5) -> dict:
+    """Process-CPU seconds (best of ``repeats``) of the stages of one P frame of ``m`` at its real
+    sizes: skinning, the pose model + eq. 1 (`world_visibility`), the cos-weighted visibility w, the
+    specular transfer, the per-vertex radiance products and the Gouraud resolve, and the whole
+    frame (a fresh pose each time: caches dropped)."""
+    from methods.core import gouraud
+    from methods.zh_shadow import runtime as rt
+
+    scene, cosine = m.scene, m.config["specular"] == "cosine"
+    pose = torch.as_tensor(frame.pose).float() if frame.pose is not None else None
+    out = {"skinning": _best(lambda: scene.geometry(pose), repeats)}
+    geom = scene.geometry(pose)
+    X, c = m.model.X, m.model.lobes
+    nrm = geom.N.float()
+    fr = "zyz" if cosine else "world"
+    out["world_visibility"] = _best(lambda: rt.world_visibility(X, pose, nrm, c, point_minor=True, frame=fr), repeats)
+    vT = rt.world_visibility(X, pose, nrm, c, point_minor=True, frame=fr)
+    nT = rt.rows(nrm)
+    wfn = (lambda: rt.cosine_visibility_zyz(vT, nT)) if cosine else (lambda: rt.cosine_visibility(vT, nT))
+    out["cosine_visibility"] = _best(wfn, repeats)
+    w = wfn()
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32)
+    woT = cam[:, None] - rt.rows(geom.V.float())
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    mats = m._region_materials(frame)
+    alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
+    vreg = geom.vertex_region
+    out["specular_transfer"] = _best(lambda: rt.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas), repeats)
+    if hasattr(rt, "pose_transfer"):
+        out["pose_transfer(w+specular)"] = _best(lambda: rt.pose_transfer(vT, nT, woT, vreg, alphas, cosine=cosine),
+                                                 repeats)
+    rad = torch.zeros(int(nrm.shape[0]), 3)
+    out["resolve"] = _best(lambda: gouraud.resolve(rad, geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width,
+                                                   gb.spp_side), repeats)
+
+    def frame_fresh():
+        m._posed = m._vertex_diffuse = m._vertex_transfer = None
+        m.render(frame, gb)
+
+    out["frame"] = _best(frame_fresh, repeats)
+    return {k: 1e3 * v for k, v in out.items()}
+
+
+def stages_ab(m, frame, repeats: int = 15) -> dict:
+    """The conjugation stages of one P frame of ``m`` (vertex shading), the baseline's runtime
+    (`baseline_class` loads it as ``_zhp_base_runtime``) against this tree's, alternating call by
+    call: median process-CPU ms of w (`cosine_visibility_zyz` or `cosine_visibility`) and of
+    `specular_transfer`, and their ratios."""
+    import statistics
+
+    from methods.zh_shadow import runtime as rt
+
+    old = sys.modules["_zhp_base_runtime"]
+    cosine = m.config["specular"] == "cosine"
+    pose = torch.as_tensor(frame.pose).float() if frame.pose is not None else None
+    geom = m.scene.geometry(pose)
+    nrm = geom.N.float()
+    vT = rt.world_visibility(m.model.X, pose, nrm, m.model.lobes, point_minor=True, frame="zyz" if cosine else "world")
+    nT = rt.rows(nrm)
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32)
+    woT = cam[:, None] - rt.rows(geom.V.float())
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    alphas = [al if bool((ks > 0).any()) else None for _, ks, al in m._region_materials(frame)]
+    vreg = geom.vertex_region
+    out = {}
+    for name, fn in (("w", lambda r: r.cosine_visibility_zyz(vT, nT) if cosine else r.cosine_visibility(vT, nT)),
+                     ("specular_transfer", lambda r: r.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas))):
+        w = rt.cosine_visibility_zyz(vT, nT) if cosine else rt.cosine_visibility(vT, nT)
+        t = {"base": [], "new": []}
+        for r in (old, rt):
+            fn(r)
+        for i in range(repeats):
+            for k, r in ((("base", old), ("new", rt)) if i % 2 == 0 else (("new", rt), ("base", old))):
+                c = time.process_time()
+                fn(r)
+                t[k].append(time.process_time() - c)
+        mb, mn = statistics.median(t["base"]), statistics.median(t["new"])
+        out[name] = {"base_ms": 1e3 * mb, "new_ms": 1e3 * mn, "ratio": mb / mn}
+    return out
+
+
+def profile(m, frames, gbs) -> str:
+    """torch.profiler table (self CPU time) of the new code's frames[1:] (frame 0 warms up)."""
+    from torch.profiler import ProfilerActivity, profile as prof
+
+    m.render(frames[0], gbs[0])
+    with prof(activities=[ProfilerActivity.CPU]) as p:
+        for f, g in zip(frames[1:], gbs[1:]):
+            m.render(f, g)
+    return p.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="creature")
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--config", default=PHYSICAL)
+    ap.add_argument("--frames", type=int, default=9)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--kinds", nargs="+", default=["P"])
+    ap.add_argument("--baseline", required=True)
+    ap.add_argument("--precompute-code", default=None)
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--stages-ab", action="store_true", help="A/B the conjugation stages of a P frame alone")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+    from methods.zh_shadow.method import ZHShadow as New
+
+    cfg = json.loads(a.config)
+    Base = baseline_class(a.baseline)
+    scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
+    m, _ = precomputed(New, scene, cfg)
+    out: dict = {"method": "zh_shadow", "scene": a.scene, "config": cfg, "threads": a.threads, "load": os.getloadavg()}
+    bw, peak = [measure.triad_bandwidth()], [measure.matmul_peak()]
+    kinds = {}
+    for kind in a.kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=a.seed)
+        new = m.with_render_config()
+        base = copy.copy(new)
+        base.__class__ = Base
+        ref = m.with_render_config()
+        kinds[kind] = ab_frames(new, base, ref._render_reference, frames, gbs, kind)
+        if a.profile and kind == "P":
+            out["stages_ms"] = stages(m.with_render_config(), frames[-1], gbs[-1])
+            print(profile(m.with_render_config(), frames, gbs))
+        if a.stages_ab and kind == "P":
+            out["stages_ab"] = stages_ab(m.with_render_config(), frames[-1])
+            print(json.dumps(out["stages_ab"]), flush=True)
+    B, Pk = machine_limits(out, bw, peak)
+    ab_report(out, kinds, B, Pk, f"zh_shadow {a.config} {a.scene} {a.size}, {a.threads} thread(s)")
+    return out
+
+
+if __name__ == "__main__":
+    main()
