@@ -209,3 +209,30 @@ def ab_frames(new, base, reference, frames, gbs, kind: str) -> dict:
     r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
              cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
     return r
+
+
+def ab_options(ap, *, config: str = "{}", kinds: Sequence[str] = ("V",)) -> None:
+    """The options every same-process A/B against another checkout takes (`benchmarks.vview`,
+    `benchmarks.zh_pose_ab`): scene, size, config, frames, threads, kinds, --baseline (the checkout
+    whose method is the "before") and --precompute-code (take the precomputation from the harness
+    cache entry of the code in DIR: a branch that changes only run-time code has the same state)."""
+    ap.add_argument("--scene", default="creature")
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--config", default=config)
+    ap.add_argument("--frames", type=int, default=9)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--kinds", nargs="+", default=list(kinds))
+    ap.add_argument("--baseline", required=True)
+    ap.add_argument("--precompute-code", default=None)
+
+
+def apply_ab_options(a) -> None:
+    """Thread count and --precompute-code of `ab_options`, applied to this process."""
+    import torch
+
+    torch.set_num_threads(a.threads)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)

@@ -25,7 +25,7 @@ import sys
 
 import torch
 
-from benchmarks.common import ab_frames, ab_report, machine_limits, precomputed, setup
+from benchmarks.common import ab_frames, ab_options, ab_report, apply_ab_options, machine_limits, precomputed, setup
 from reports import measure
 
 
@@ -57,22 +57,10 @@ def baseline_class(method: str, root: str):
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--method", choices=("sh_prt", "inout"), required=True)
-    ap.add_argument("--scene", default="creature")
-    ap.add_argument("--size", default="bench")
-    ap.add_argument("--config", default="{}")
-    ap.add_argument("--frames", type=int, default=9)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--kinds", nargs="+", default=["V"])
-    ap.add_argument("--baseline", required=True)
-    ap.add_argument("--precompute-code", default=None)
+    ab_options(ap)
     ap.add_argument("--micro", action="store_true", help="sh_prt: time the frame's stages alone")
     a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    if a.precompute_code:
-        from reports import precompute_cache
-        from reports.store import code_closure_fingerprint
-
-        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+    apply_ab_options(a)
     cfg = json.loads(a.config)
     if a.method == "sh_prt":
         from methods.sh_prt.method import SHPRT as New

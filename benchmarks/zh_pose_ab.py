@@ -25,7 +25,7 @@ import time
 
 import torch
 
-from benchmarks.common import ab_frames, ab_report, machine_limits, precomputed, setup
+from benchmarks.common import ab_frames, ab_options, ab_report, apply_ab_options, machine_limits, precomputed, setup
 from reports import measure
 
 PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
@@ -158,24 +158,12 @@ def profile(m, frames, gbs) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="creature")
-    ap.add_argument("--size", default="bench")
-    ap.add_argument("--config", default=PHYSICAL)
-    ap.add_argument("--frames", type=int, default=9)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--kinds", nargs="+", default=["P"])
-    ap.add_argument("--baseline", required=True)
-    ap.add_argument("--precompute-code", default=None)
+    ab_options(ap, config=PHYSICAL, kinds=("P",))
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--stages-ab", action="store_true", help="A/B the conjugation stages of a P frame alone")
     a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    if a.precompute_code:
-        from reports import precompute_cache
-        from reports.store import code_closure_fingerprint
-
-        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+    apply_ab_options(a)
     from methods.zh_shadow.method import ZHShadow as New
 
     cfg = json.loads(a.config)
