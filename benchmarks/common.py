@@ -236,3 +236,16 @@ def apply_ab_options(a) -> None:
         from reports.store import code_closure_fingerprint
 
         precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
+
+
+def load_file_module(path: str, name: str):
+    """The module at ``path`` imported as ``name`` (beside this checkout's modules of the same file:
+    the "before" of a same-process A/B, e.g. another checkout's ``methods/<m>/runtime.py``)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod

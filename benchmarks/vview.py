@@ -18,23 +18,13 @@ from __future__ import annotations
 
 import argparse
 import copy
-import importlib.util
 import json
 import os
-import sys
 
 import torch
 
-from benchmarks.common import ab_frames, ab_options, ab_report, apply_ab_options, machine_limits, precomputed, setup
+from benchmarks.common import ab_frames, ab_options, load_file_module, ab_report, apply_ab_options, machine_limits, precomputed, setup
 from reports import measure
-
-
-def _load(path: str, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def baseline_class(method: str, root: str):
@@ -44,9 +34,9 @@ def baseline_class(method: str, root: str):
     saved = dict(base._REGISTRY)
     try:
         if method == "sh_prt":
-            return _load(os.path.join(root, "methods/sh_prt/method.py"), "_vview_base_sh_prt").SHPRT
-        fast = _load(os.path.join(root, "methods/inout/fast.py"), "_vview_base_inout_fast")
-        mod = _load(os.path.join(root, "methods/inout/method.py"), "_vview_base_inout")
+            return load_file_module(os.path.join(root, "methods/sh_prt/method.py"), "_vview_base_sh_prt").SHPRT
+        fast = load_file_module(os.path.join(root, "methods/inout/fast.py"), "_vview_base_inout_fast")
+        mod = load_file_module(os.path.join(root, "methods/inout/method.py"), "_vview_base_inout")
         mod._fast = fast
         return mod.InOut
     finally:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import importlib.util
 import json
 import os
 import sys
@@ -25,18 +24,10 @@ import time
 
 import torch
 
-from benchmarks.common import ab_frames, ab_options, ab_report, apply_ab_options, machine_limits, precomputed, setup
+from benchmarks.common import ab_frames, ab_options, load_file_module, ab_report, apply_ab_options, machine_limits, precomputed, setup
 from reports import measure
 
 PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
-
-
-def _load(path: str, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def baseline_class(root: str):
@@ -45,8 +36,8 @@ def baseline_class(root: str):
 
     saved = dict(base._REGISTRY)
     try:
-        rt = _load(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
-        mod = _load(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
+        rt = load_file_module(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
+        mod = load_file_module(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
         mod.rt = rt
         return mod.ZHShadow
     finally:
