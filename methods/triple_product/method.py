@@ -620,19 +620,23 @@ class TripleProduct(Method):
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
-            touched = torch.zeros(self.V_idx.shape[0], dtype=torch.bool, device=hit.device)
+            touched = torch.zeros(self.V_idx.shape[0] + 1, dtype=torch.bool, device=hit.device)
             self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
+            every = hit.numel() == gbuffer.num_samples  # every sample hit: slices, not gathers
             for a in range(0, hit.numel(), chunk):
-                s = hit[a:a + chunk]
-                R = (lt.local_frames if self.config["evaluator"] == "reference" else fast_eval.local_frames)(
-                    normals[s], self.config["tangent"])
+                s = slice(a, a + chunk) if every else hit[a:a + chunk]
                 rows, w = vidx[s], vw[s]
                 if textured:
-                    rows, w = self._visibility_rows(s, gbuffer, uv[s], rows, w)
-                touched[rows[w != 0]] = True
-                out[s] = self._shade(R, gbuffer.wo[s].float(), gbuffer.region[s], rows, w,
-                                     mix[s] if self.blends else None)
-            rows = torch.nonzero(touched, as_tuple=False).squeeze(-1)
+                    rows, w = self._visibility_rows(hit[s] if every else s, gbuffer, uv[s], rows, w)
+                touched[torch.where(w != 0, rows, touched.shape[0] - 1)] = True  # last slot: none
+                if self.config["evaluator"] == "reference":
+                    out[s] = self._shade(lt.local_frames(normals[s], self.config["tangent"]), gbuffer.wo[s].float(),
+                                         gbuffer.region[s], rows, w, mix[s] if self.blends else None)
+                else:  # frames from the normals inside `fast_eval.shade_pixels`
+                    out[s] = fast_eval.shade_pixels(self, normals[s], gbuffer.wo[s].float(), gbuffer.region[s],
+                                                    rows, w, mix[s] if self.blends else None,
+                                                    evaluator=self.config["evaluator"])
+            rows = torch.nonzero(touched[:-1], as_tuple=False).squeeze(-1)
             self._record_frame(gbuffer, hit, _distinct(gbuffer.face[hit], self.F.shape[0]), rows, None,
                                self.stats.pop("frame_groups", 0))
         return gbuffer.resolve(out)

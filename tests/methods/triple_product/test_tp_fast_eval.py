@@ -439,6 +439,13 @@ def test_grouped_kernel_equals_per_point_kernel():
     vw, lw, bw = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
     gv, gl, gb, inv = fast_eval.group_rows(vrows, lrows, brows)
     assert gv.numel() < B  # the 3·B (point, vertex) pairs share groups
+    # the run-then-unique dedup = one `torch.unique` of every (point, vertex) key: same sorted groups
+    nl, nb = int(lrows[:, 0].max()) + 1, int(brows[:, 0].max()) + 1
+    keys = vrows * (nl * nb) + (lrows[:, 0] * nb + brows[:, 0])[:, None]
+    uk, uinv = torch.unique(keys.reshape(-1), return_inverse=True)
+    assert torch.equal(gv * (nl * nb) + gl[:, 0] * nb + gb[:, 0], uk) and torch.equal(inv, uinv.view(B, 3))
+    shuffled = fast_eval.group_rows(vrows.flip(0), lrows.flip(0), brows.flip(0))  # runs in another order
+    assert torch.equal(shuffled[0], gv) and torch.equal(shuffled[3], inv.flip(0))
     for i in range(3):
         assert torch.equal(gv[inv[:, i]], vrows[:, i])
         assert torch.equal(gl[inv[:, i]], lrows) and torch.equal(gb[inv[:, i]], brows)
@@ -470,3 +477,15 @@ def test_grid_lookups_equal_the_eager_lookups(grid, mode):
     assert torch.equal(rows, er) and torch.equal(lrows, el)
     assert (w - ew).abs().max() <= F32 and (lw - elw).abs().max() <= F32
     assert fast_eval.grid_lookups(R, wo, og, g, None)[2:] == (None, None)
+    if mode == "trilinear" and g.n_psi == 1:
+        # from the normals, no frames formed (`pixel_lookups`) = the compiled chain it replaces in
+        # pixel frames (`fast_eval.local_frames`, then `grid_lookups`): the frames' float32 trig is
+        # the same vectorised code there, so the ωo weights agree to float32 round-off (against the
+        # eager frames' libm trig they differ by up to ~4e-6 near the ωo grid's poles, as
+        # `fast_eval.local_frames` does)
+        crow, cw, clrows, clw = fast_eval.grid_lookups(fast_eval.local_frames(n, "grid"), wo, og, g, mode)
+        prow, pw, plrows, plw = fast_eval.pixel_lookups(n, wo, og, g)
+        assert torch.equal(prow, crow) and torch.equal(plrows, el) and torch.equal(clrows, el)
+        assert (pw - cw).abs().max() <= F32 and (plw - elw).abs().max() <= F32
+        wrong = fast_eval.pixel_lookups(n, -wo, og, g)                   # ωo enters the ρ̃ look-up
+        assert not torch.equal(wrong[0], er) and torch.equal(wrong[2], el)
