@@ -212,6 +212,8 @@ def shading_rows(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vro
         raise ValueError("R (B, 3, 3), wo_world (B, 3), region (B,), vrows/vw (B, k) expected, got "
                          f"{None if R is None else tuple(R.shape)}, {tuple(wo_world.shape)}, {tuple(region.shape)}, {tuple(vrows.shape)}")
     cfg = method.config
+    if lookups is None and hasattr(method, "fill_lighting"):
+        method.fill_lighting()  # a lazily set grid (`TripleProduct._set_lighting`): every frame projected
     Vp = [("blend", method.V_idx, method.V_val, vrows, vw, _is_full(method, "V", method.V_idx))]
     grid_mode = None if cfg["light_lookup"] == "exact" else cfg["light_lookup"]
     rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode) if lookups is None \
@@ -693,7 +695,14 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     or — when the points share their rows (pixel shading: ≈ 11 G-buffer samples per distinct
     (visibility row, L rows, ρ̃ rows), `grouping_pays`) — the trilinear form of the same sum
     (`fine_grouped`). ``grouped``: force one of the two (None: `grouping_pays`).
-    Same arguments as `shade`; ``lookups`` as `shading_rows`."""
+    Same arguments as `shade`; ``lookups`` as `shading_rows`.
+    A lazily set lighting grid (`TripleProduct._set_lighting`): only the grid frames the points
+    look up with a non-zero weight are projected (`TripleProduct.fill_lighting`; a weight-0 row is
+    read as 0·finite, and an unprojected row is 0: the same sums)."""
+    if getattr(method, "_lazy_light", None) is not None and method.config["light_lookup"] != "exact":
+        if lookups is None:
+            lookups = grid_lookups(R, wo_world, method.outgoing, method.grid, method.config["light_lookup"])
+        method.fill_lighting(lookups[2][lookups[3] != 0])
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix, lookups=lookups)
     (vp,), rps, (lp,) = spec
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))

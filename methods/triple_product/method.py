@@ -206,6 +206,7 @@ class TripleProduct(Method):
         self.L_val: Tensor | None = None      # (F, 3, n) float32
         self._light_key = None                # identity of the env map the grid was built for
         self._exact_env = None                # env map used by light_lookup="exact"
+        self._lazy_light = None               # a lighting set lazily: env map, grid frames, projected (F,) bool
         # UV-space extras (Ma 2006 §3.3, §5), pixel shading only:
         self.uv: Tensor | None = None         # (N, 2) float32 vertex UVs (0 on shapes without a UV map)
         self.face_uv: Tensor | None = None    # (M,) bool: the face's shape has a UV map
@@ -314,17 +315,26 @@ class TripleProduct(Method):
             table_s[region] = time.perf_counter() - tc
         self.L_idx = self.L_val = None
         self._light_key = None
+        self._lazy_light = None
         self.stats = {"visibility_seconds": tb - ta, "brdf_table_seconds": table_s,
                       "precompute_seconds": time.perf_counter() - t0, "vertices": int(V.shape[0]),
                       "texels": int(self.V_idx.shape[0]) - self.n_vertex_rows}
 
     # -- lighting ------------------------------------------------------------------------------
-    def _set_lighting(self, envmap) -> None:
+    def _set_lighting(self, envmap, *, lazy: bool = False) -> None:
+        """Make the lighting grid (L_idx, L_val) that of ``envmap`` (module docstring). ``lazy``
+        (the compiled projection only): allocate the grid and project no frame yet — the caller
+        projects the frames it looks up with `fill_lighting` (a pixel frame on the bench touches
+        ~60 % of the 544 grid frames); anything else reading the grid calls `fill_lighting()`
+        first (`render`'s other paths, `lighting_at`, `fast_eval.shading_rows`)."""
         cfg = self.config
         key = (id(envmap.data), tuple(envmap.to_world.flatten().tolist()))
         if key == self._light_key:
+            if not lazy:
+                self.fill_lighting()
             return
         t0 = time.perf_counter()
+        self._lazy_light = None
         envmap = lt.prefiltered(envmap, self.geo, cfg["light_supersample"])  # no aliasing of a small sun
         if cfg["light_lookup"] == "exact":
             self._exact_env = envmap
@@ -339,6 +349,11 @@ class TripleProduct(Method):
                 Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
                                          progress=self.progress)                # (F, 3, K)
                 self.stats["lighting_path"] = "general"
+            elif lazy:                           # compiled, frames projected on demand (`fill_lighting`)
+                Fg = Rg.shape[0]
+                Lc, fine = torch.zeros(Fg, 3, self.K), torch.zeros(Fg, 3, self.K)
+                self.stats["lighting_path"] = "general" if lt.azimuth_of(envmap.to_world) is None else "azimuthal"
+                self._lazy_light = {"env": envmap, "R": Rg, "done": torch.zeros(Fg, dtype=torch.bool)}
             else:                                # compiled (`lighting.project_env`)
                 Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
                                            grid=self.grid, stats=self.stats)
@@ -348,6 +363,29 @@ class TripleProduct(Method):
         self._light_key = key
         self.stats["lighting_seconds"] = time.perf_counter() - t0
 
+    def fill_lighting(self, frames: Tensor | None = None) -> None:
+        """Project the grid frames ``frames`` (int64 indices; None: all) of a lazily set lighting
+        (`_set_lighting`) that are not projected yet into L_val and its fine-value table (the same
+        `lighting.project_env` blocks, so the same values as projecting the whole grid at once).
+        No-op when nothing is pending."""
+        lazy = getattr(self, "_lazy_light", None)
+        if lazy is None:
+            return
+        t0 = time.perf_counter()
+        done = lazy["done"]
+        want = torch.ones_like(done) if frames is None else torch.zeros_like(done).index_fill_(0, frames.reshape(-1), True)
+        f = torch.nonzero(want & ~done, as_tuple=False).squeeze(-1)
+        if f.numel():
+            coef, fine = lt.project_env(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
+                                        grid=self.grid, stats=self.stats, frames=f)
+            self.L_val[f] = coef
+            tab = fast_eval.fine_table(self, "L", self.L_idx, self.L_val, self.K)   # the seeded table
+            tab.view(-1, 3, self.K)[f] = fine.float()
+            done[f] = True
+        if bool(done.all()):
+            self._lazy_light = None
+        self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0
+
     def lighting_at(self, R: Tensor) -> Tensor:
         """Dense (B, 3, K) lighting coefficients in the local frames R (B, 3, 3) (current env map)."""
         cfg = self.config
@@ -356,6 +394,7 @@ class TripleProduct(Method):
             idx, val = truncate(Lc, self._n(), cfg["selection"], self.level)
             return blend_sparse(idx, val, torch.arange(R.shape[0], device=R.device)[:, None],
                                 torch.ones(R.shape[0], 1, device=R.device), self.K)
+        self.fill_lighting()
         rows, w = lt.lookup_weights(R, self.grid, cfg["light_lookup"])
         return blend_sparse(self.L_idx, self.L_val, rows, w, self.K)
 
@@ -595,7 +634,11 @@ class TripleProduct(Method):
             m = frame.materials.get(region, self.materials[region])
             if m != self.materials[region]:
                 self.edit_material(region, m)
-        self._set_lighting(frame.envmap)
+        # the fine-value path projects the grid frames it looks up (`fast_eval.shade_fine`)
+        lazy = self.config["evaluator"] in ("auto", "fine") and not self.blends and self.config["light_lookup"] != "exact"
+        self._set_lighting(frame.envmap, lazy=lazy)
+        if lazy and not fast_eval.fine_ok(self):
+            self.fill_lighting()
         chunk = max(1, RENDER_FLOATS // (3 * self.K))
         if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
             chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory

@@ -489,3 +489,36 @@ def test_grid_lookups_equal_the_eager_lookups(grid, mode):
         assert (pw - cw).abs().max() <= F32 and (plw - elw).abs().max() <= F32
         wrong = fast_eval.pixel_lookups(n, -wo, og, g)                   # ωo enters the ρ̃ look-up
         assert not torch.equal(wrong[0], er) and torch.equal(wrong[2], el)
+
+
+@pytest.mark.parametrize("shading", ["pixel", "vertex"])
+def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(shading):
+    """A lighting change on the fine-value path projects only the grid frames the frame looks up
+    with a non-zero weight (`TripleProduct.fill_lighting` from `fast_eval.shade_fine`); the image
+    equals the one rendered from the whole grid projected first, and completing the grid gives the
+    whole projection's coefficients and fine values exactly (the same `lighting.project_env` blocks).
+    An "L" sequence (tilted axis, general kernel) and an "E" one (probes turned about +Y)."""
+    scene = get_scene("sphere_plane", "test")
+    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
+               progress=False)
+    for kind in ("L", "E"):
+        frames = make_sequence(scene, kind, n_frames=3, seed=2)
+        gbs = [make_gbuffer(scene, f, 1) for f in frames]
+        lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
+        lazy_m.precompute(scene)
+        full_m.precompute(scene)
+        for frame, gb in zip(frames, gbs):
+            img = lazy_m.render(frame, gb)
+            done = lazy_m._lazy_light["done"] if lazy_m._lazy_light is not None else None
+            if shading == "pixel":  # the sphere's far side and the plane's one normal: not every frame
+                assert done is not None and 0 < int(done.sum()) < lazy_m.grid.size, kind
+            full_m._set_lighting(frame.envmap)                           # the whole grid, eagerly
+            assert full_m._lazy_light is None
+            want = full_m.render(frame, gb)
+            assert torch.equal(img, want), (shading, kind)
+            lazy_m.fill_lighting()
+            assert lazy_m._lazy_light is None
+            assert torch.equal(lazy_m.L_val, full_m.L_val)
+            assert torch.equal(fast_eval.fine_table(lazy_m, "L", lazy_m.L_idx, lazy_m.L_val, lazy_m.K),
+                               fast_eval.fine_table(full_m, "L", full_m.L_idx, full_m.L_val, full_m.K))
+            assert lazy_m.stats["lighting_path"] == full_m.stats["lighting_path"]
