@@ -18,7 +18,13 @@ once because its lighting is fixed per session, so here it counts in the first f
     (the reference evaluator, and truncated tables, whose "adaptive" selection must not see
     round-off differences), else `lighting.project_env` — the same projection compiled (per block of
     grid frames the samples' map footprints, then one 64-byte quad row of the map per sample), which
-    also returns the fine values the fast path reads.
+    also returns the fine values the fast path reads. On the fine-value path (evaluator "auto" /
+    "fine", no SBRDF) the frame that changes the lighting projects only the grid frames its points
+    look up with a non-zero weight (`fill_lighting`, called from `fast_eval.shade_fine`; a bench
+    pixel frame looks up 328 of the 544 on chess, 307 on creature; the image is the same bit for
+    bit); the next frame with the same lighting, and every other reader of the grid,
+    completes it first. `fast_eval.frame_cost` still counts the whole grid (the compulsory work
+    of a lighting change is unchanged; only the time).
 Render:
   * ``shading="vertex"``: B per vertex (ωo = direction to the camera at the vertex, in the vertex's
     frame), barycentrically interpolated to the G-buffer samples (Gouraud; Ma 2006 §3.3 first
