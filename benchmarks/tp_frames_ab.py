@@ -1,6 +1,7 @@
-"""Same-process A/B of TripleProduct frames: a baseline checkout's `methods/triple_product/lighting.py`
-and `fast_eval.py` (``--baseline``, e.g. a git worktree of main) against this tree's, on the same
-precomputed method (two copies), the same frames and G-buffers, alternating frame by frame; median
+"""Same-process A/B of TripleProduct frames: a baseline checkout's `methods/triple_product/lighting.py`,
+`fast_eval.py` and `method.py` (``--baseline``, e.g. a git worktree of main; the baseline copy of the
+method is an instance of the baseline's class, so its ``render`` runs too) against this tree's, on
+the same precomputed method (two copies), the same frames and G-buffers, alternating frame by frame; median
 process-CPU ms per frame (``--threads 1``; ``--wall`` for wall time), the ratio, max |new − old|
 relative to the image's maximum, and the roofline efficiency of the new frames with this run's
 machine limits (`benchmarks.common.machine_limits`).
@@ -31,17 +32,23 @@ def _load(root: str, name: str):
     return mod
 
 
+def _load_method(root: str, lt, fe):
+    """The baseline's `TripleProduct` class, its module rendering with the baseline's lighting /
+    fast_eval modules (the registry keeps this tree's class)."""
+    from methods import base as mb
+
+    reg = dict(mb._REGISTRY)
+    mm = _load(root, "method")
+    mb._REGISTRY.clear()
+    mb._REGISTRY.update(reg)
+    mm.lt, mm.fast_eval = lt, fe
+    return mm.TripleProduct
+
+
 @contextlib.contextmanager
 def _swapped(lt, fe):
-    """`methods.triple_product.method` rendering with the baseline's lighting / fast_eval modules."""
-    import methods.triple_product.method as mm
-
-    old = mm.lt, mm.fast_eval
-    mm.lt, mm.fast_eval = lt, fe
-    try:
-        yield
-    finally:
-        mm.lt, mm.fast_eval = old
+    """Kept for callers of the old interface: the baseline copy is rendered by its own class."""
+    yield
 
 
 def main(argv=None) -> dict:
@@ -64,6 +71,7 @@ def main(argv=None) -> dict:
     old_lt = _load(a.baseline, "lighting")
     old_fe = _load(a.baseline, "fast_eval")
     old_fe.lt = old_lt
+    old_cls = _load_method(a.baseline, old_lt, old_fe)
     scene = get_scene(a.scene, a.size)
     clock = time.perf_counter if a.wall else time.process_time
     B, P = measure.triad_bandwidth(), measure.matmul_peak()
@@ -72,6 +80,7 @@ def main(argv=None) -> dict:
     for shading in a.shading:
         m, _ = precomputed(TripleProduct, scene, {} if shading == "pixel" else {"shading": "vertex"})
         base = copy.copy(m)
+        base.__class__ = old_cls
         base.__dict__.pop("_perf_cache", None)
         base.stats = {}
         for kind in a.kinds:

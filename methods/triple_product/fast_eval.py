@@ -83,6 +83,7 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import torch
@@ -194,23 +195,29 @@ def _is_full(method, name: str, idx: Tensor) -> bool:
     return cache[key][1]
 
 
-def shading_rows(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-                 mix: Tensor | None = None) -> list[list[tuple]]:
+def shading_rows(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+                 mix: Tensor | None = None, *, lookups: tuple | None = None) -> list[list[tuple]]:
     """The look-ups of eq. 7's three factors at B points, before blending (cheap, O(B)).
 
-    Same arguments as `shading_lists`. Returns, for V, ρ̃ and L, a list of parts: ("blend",
+    Same arguments as `shading_lists`; ``lookups``: the (rows, w, lrows, lw) of `grid_lookups`
+    already at hand (`pixel_lookups`: from the normals), then R may be None. Returns, for V, ρ̃ and L, a list of parts: ("blend",
     idx_table, val_table, rows (B, k), w (B, k), full) or ("list", idx (B, m), val (B, C, m)) (the
     per-point lighting of ``light_lookup="exact"``). `lists_from_rows` blends any slice of points.
     """
-    B = R.shape[0]
-    if R.shape != (B, 3, 3) or wo_world.shape != (B, 3) or region.shape != (B,) or vrows.shape != vw.shape \
-            or vrows.shape[0] != B:
+    B = wo_world.shape[0]
+    if R is None and (lookups is None or method.config["light_lookup"] == "exact"):
+        raise ValueError("shading_rows needs the frames R (or the look-ups of a grid light_lookup)")
+    if (R is not None and R.shape != (B, 3, 3)) or wo_world.shape != (B, 3) or region.shape != (B,) \
+            or vrows.shape != vw.shape or vrows.shape[0] != B:
         raise ValueError("R (B, 3, 3), wo_world (B, 3), region (B,), vrows/vw (B, k) expected, got "
-                         f"{tuple(R.shape)}, {tuple(wo_world.shape)}, {tuple(region.shape)}, {tuple(vrows.shape)}")
+                         f"{None if R is None else tuple(R.shape)}, {tuple(wo_world.shape)}, {tuple(region.shape)}, {tuple(vrows.shape)}")
     cfg = method.config
+    if lookups is None and hasattr(method, "fill_lighting"):
+        method.fill_lighting()  # a lazily set grid (`TripleProduct._set_lighting`): every frame projected
     Vp = [("blend", method.V_idx, method.V_val, vrows, vw, _is_full(method, "V", method.V_idx))]
     grid_mode = None if cfg["light_lookup"] == "exact" else cfg["light_lookup"]
-    rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode)
+    rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode) if lookups is None \
+        else lookups
     bi, bv = _brdf_stack(method)
     brows = rows + region[:, None].long() * method.outgoing.size
     blends = getattr(method, "blends", None)
@@ -281,6 +288,82 @@ def local_frames(n: Tensor, tangent: str) -> Tensor:
     if n.ndim != 2 or n.shape[1] != 3:
         raise ValueError(f"normals must be (B, 3), got {tuple(n.shape)}")
     return map_rows(_local_frames_fused, [n], (tangent,), chunk=_rows_chunk(n.shape[0]))
+
+
+def _front_planes(n: Tensor, wo: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
+    """`_lookups` (mode "trilinear", grid with n_psi = 1) of the frames `lighting.local_frames`
+    (n, "grid") of unit normals n (b, 3) float32, at world ωo (b, 3) — the same arithmetic written
+    per component on 1-D (b,) planes: R is never formed, no (b, 3) intermediate exists. Inductor
+    vectorises a (b, 3) tensor's size-3 dimension (3 of 8 lanes, masked loads; one loop nest per
+    intermediate), which left the front end of a pixel frame at ~70 ms for 2^18 samples (local
+    frames + `_lookups`, chess bench, 1 thread); on planes it is one 8-lane loop (float32 trig)
+    and one 4-lane loop (float64 trig), ~20 ms (`benchmarks.tp_frames_ab` reports the frame).
+    Same planes as ``_lookups(local_frames(n, "grid"), wo, outgoing, grid, "trilinear")``: rows
+    equal, weights to float32 round-off (tests/methods/triple_product/test_tp_fast_eval.py)."""
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    # `lighting.local_frames` "grid": s = s0(θ, φ) made orthogonal to n, t = n × s (float32)
+    theta = torch.acos(ny.clamp(-1.0, 1.0))
+    phi = torch.remainder(torch.atan2(nz, nx), 2 * math.pi)
+    st, ct, sp, cp = torch.sin(theta), torch.cos(theta), torch.sin(phi), torch.cos(phi)
+    s0x, s0y, s0z = ct * cp, -st, ct * sp
+    d = s0x * nx + s0y * ny + s0z * nz
+    sx, sy, sz = s0x - d * nx, s0y - d * ny, s0z - d * nz
+    nrm = (sx * sx + sy * sy + sz * sz).sqrt().clamp_min(1e-12)
+    sx, sy, sz = sx / nrm, sy / nrm, sz / nrm
+    tx, ty, tz = ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx
+    wx, wy, wz = wo[:, 0], wo[:, 1], wo[:, 2]
+    lx = sx * wx + sy * wy + sz * wz                                   # ωo in the local frame (R ωo)
+    ly = tx * wx + ty * wy + tz * wz
+    lz = nx * wx + ny * wy + nz * wz
+    # `brdf_table.outgoing_terms` (float64)
+    x, y, z = lx.double(), ly.double(), lz.double()
+    r = (x * x + y * y + z * z).sqrt().clamp_min(1e-30)
+    th = torch.acos((z / r).clamp(0.0, 1.0))
+    ph = torch.remainder(torch.atan2(y, x), 2 * math.pi)
+    fi = (th / (0.5 * math.pi / outgoing.n_theta) - 0.5).clamp(0, outgoing.n_theta - 1)
+    fj = ph / (2 * math.pi / outgoing.n_phi)
+    i0 = fi.floor().long().clamp(0, max(outgoing.n_theta - 2, 0))
+    ai = (fi - i0).clamp(0, 1)
+    i1 = (i0 + 1).clamp(max=outgoing.n_theta - 1)
+    j0 = fj.floor().long()
+    aj = fj - j0
+    rows, w = [], []
+    for di, wi in ((0, 1 - ai), (1, ai)):
+        for dj, wj in ((0, 1 - aj), (1, aj)):
+            rows.append((i1 if di else i0) * outgoing.n_phi + lt.periodic_index(j0 + dj, outgoing.n_phi))
+            w.append((wi * wj).to(wo.dtype))
+    # `lighting.cell_terms` (float64 angles of n)
+    gth = torch.acos(ny.double().clamp(-1.0, 1.0))
+    gph = torch.remainder(torch.atan2(nz.double(), nx.double()), 2 * math.pi)
+    gi0, gai, gj0, gaj = lt._bilinear_cell(*lt._normal_coordinates(gth, gph, grid), grid)
+    lrows, lw = [], []
+    for di, wi in ((0, 1 - gai), (1, gai)):
+        for dj, wj in ((0, 1 - gaj), (1, gaj)):
+            lrows.append((gi0 + di) * grid.n_phi + lt.periodic_index(gj0 + dj, grid.n_phi))
+            lw.append((wi * wj).to(n.dtype))
+    return (*rows, *w, *lrows, *lw)
+
+
+_front_fused = fused(_front_planes, options=FRONT_OPTIONS)
+
+
+def front_ok(method) -> bool:
+    """`pixel_lookups` applies: tangent "grid", trilinear look-up on a grid with one tangent angle."""
+    return method.config["tangent"] == "grid" and method.config["light_lookup"] == "trilinear" and \
+        method.grid.n_psi == 1
+
+
+def pixel_lookups(normals: Tensor, wo_world: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
+    """(rows, w, lrows, lw) of `grid_lookups` (mode "trilinear", n_psi = 1) at the frames
+    `lighting.local_frames` (normals, "grid") — from the normals, without forming the frames
+    (`_front_planes`, compiled over static blocks)."""
+    if normals.ndim != 2 or normals.shape[1] != 3 or wo_world.shape != normals.shape:
+        raise ValueError(f"normals and wo must be (B, 3), got {tuple(normals.shape)}, {tuple(wo_world.shape)}")
+    if grid.n_psi != 1:
+        raise ValueError(f"pixel_lookups needs a grid with n_psi = 1, got {grid}")
+    planes = map_rows(_front_fused, [normals.float().contiguous(), wo_world.float().contiguous()], (outgoing, grid),
+                      chunk=_rows_chunk(normals.shape[0]))
+    return _unplane(planes, "trilinear", grid)
 
 
 def _unplane(planes: tuple[Tensor, ...], mode: str | None, grid) -> tuple:
@@ -600,8 +683,9 @@ def _merge_psi(rows: Tensor, w: Tensor, n_psi: int) -> tuple[Tensor, Tensor]:
     return rows[:, 0::2], w[:, 0::2] + w[:, 1::2]
 
 
-def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-               mix: Tensor | None = None, *, points: int | None = None, grouped: bool | None = None) -> Tensor:
+def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+               mix: Tensor | None = None, *, points: int | None = None, grouped: bool | None = None,
+               lookups: tuple | None = None) -> Tensor:
     """Eq. 7 for B points → (B, 3) when every table is full (`fine_ok`): the fine-value identity
     (module docstring, "dense") with the blends done on fine-value tables (`fine_table`):
 
@@ -611,8 +695,15 @@ def shade_fine(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tenso
     or — when the points share their rows (pixel shading: ≈ 11 G-buffer samples per distinct
     (visibility row, L rows, ρ̃ rows), `grouping_pays`) — the trilinear form of the same sum
     (`fine_grouped`). ``grouped``: force one of the two (None: `grouping_pays`).
-    Same arguments as `shade`."""
-    spec = shading_rows(method, R, wo_world, region, vrows, vw, mix)
+    Same arguments as `shade`; ``lookups`` as `shading_rows`.
+    A lazily set lighting grid (`TripleProduct._set_lighting`): only the grid frames the points
+    look up with a non-zero weight are projected (`TripleProduct.fill_lighting`; a weight-0 row is
+    read as 0·finite, and an unprojected row is 0: the same sums)."""
+    if getattr(method, "_lazy_light", None) is not None and method.config["light_lookup"] != "exact":
+        if lookups is None:
+            lookups = grid_lookups(R, wo_world, method.outgoing, method.grid, method.config["light_lookup"])
+        method.fill_lighting(lookups[2][lookups[3] != 0])
+    spec = shading_rows(method, R, wo_world, region, vrows, vw, mix, lookups=lookups)
     (vp,), rps, (lp,) = spec
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
     Le = level_of_size(Kp)
@@ -734,18 +825,31 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Ten
     Args: vrows (B, k_v), lrows (B, k_L), brows (B, k_ρ) int64 table rows (a look-up's rows are a
         function of its first one, module comment above).
     Returns: gv (G,), gl (G, k_L), gb (G, k_ρ) int64 rows of every group (sorted by v, then cells)
-        and inv (B, k_v) int64 group of every (point, visibility row)."""
+        and inv (B, k_v) int64 group of every (point, visibility row).
+
+    The keys are deduplicated in two steps, same result as one `torch.unique` of all B·k_v keys:
+    runs of equal keys along each visibility column (neighbouring G-buffer samples — the S² sub-
+    samples of a pixel are adjacent — mostly share a triangle and both cells: 0.23 run starts per
+    key on chess bench), then `torch.unique` of the run starts only. Chess bench V (786k keys,
+    1 thread, same process): 45 → ~20 ms per frame (the full sort was 33 ms of it)."""
     B, kv = vrows.shape
     nl = int(lrows[:, 0].max()) + 1 if B else 1
     nb = int(brows[:, 0].max()) + 1 if B else 1
     cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
-    key = vrows * (nl * nb) + cell[:, None]                               # (B, k_v)
-    uk, inv = torch.unique(key.reshape(-1), return_inverse=True)
+    key = torch.empty(kv, B, dtype=torch.int64, device=vrows.device)      # column-major keys
+    torch.mul(vrows.T, nl * nb, out=key)
+    key = key.add_(cell).view(-1)
+    new = torch.ones_like(key, dtype=torch.bool)
+    torch.ne(key[1:], key[:-1], out=new[1:])                              # run starts
+    start = torch.nonzero(new, as_tuple=False).squeeze(-1)
+    run = torch.cumsum(new, 0).sub_(1)                                    # run of every key
+    uk, inv_s = torch.unique(key[start], return_inverse=True)
     G = uk.numel()
     # a member point of every group (whichever write lands: all members have the group's rows)
-    rep = torch.empty(G, dtype=torch.int64, device=inv.device)
-    rep[inv] = torch.arange(B, device=inv.device).repeat_interleave(kv)
-    return uk // (nl * nb), lrows[rep], brows[rep], inv.view(B, kv)
+    rep = torch.empty(G, dtype=torch.int64, device=vrows.device)
+    rep[inv_s] = start % B if B else start
+    inv = inv_s[run.view(kv, B).T].contiguous()                           # (B, k_v)
+    return uk // (nl * nb), lrows[rep], brows[rep], inv
 
 
 def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:
@@ -881,6 +985,21 @@ def shade(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw
         s = slice(a, a + p)
         out[s] = evaluate(*lists_from_rows(spec, s, method.K), method.K, evaluator)
     return out
+
+
+def shade_pixels(method, normals: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
+                 mix: Tensor | None = None, *, evaluator: str = "auto") -> Tensor:
+    """`shade` at G-buffer samples given by their unit shading normals (B, 3) instead of their
+    frames: ``shade(method, local_frames(normals, tangent), ...)``. When the fine-value path runs
+    with the "grid" tangent and a trilinear look-up on a one-ψ grid (the default config), the
+    look-ups come straight from the normals (`pixel_lookups`) and the frames are never formed."""
+    if evaluator not in EVALUATORS:
+        raise ValueError(f"evaluator must be one of {EVALUATORS}, got {evaluator!r}")
+    if evaluator in ("auto", "fine") and fine_ok(method, mix) and front_ok(method):
+        look = pixel_lookups(normals, wo_world, method.outgoing, method.grid)
+        return shade_fine(method, None, wo_world, region, vrows, vw, mix, lookups=look)
+    R = local_frames(normals, method.config["tangent"])
+    return shade(method, R, wo_world, region, vrows, vw, mix, evaluator=evaluator)
 
 
 def use_fast_shading(method, evaluator: str = "auto"):

@@ -435,7 +435,8 @@ def _kernel(fn):
 
 
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
-                grid: FrameGrid | None = None, stats: dict | None = None) -> tuple[Tensor, Tensor]:
+                grid: FrameGrid | None = None, stats: dict | None = None,
+                frames: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """`project_lighting(envmap.radiance, R, geo, supersample)` at run time, per block of
     `env_block_frames` frames two compiled kernels (`methods.core.fused`): the samples' map
     footprints (`env_taps`), then the per-triangle means from the map's quad rows and their float32
@@ -445,7 +446,10 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         grid: the `FrameGrid` R was made from (``grid_frames(grid)``) or None — with it, a map turned
         about +Y only (`azimuth_of`) takes the shifted base coordinates (`env_taps_azimuthal`);
         stats: receives ``"lighting_path"``, "azimuthal" or "general" (for `fast_eval.frame_cost`).
-    Returns: coefficients (F, 3, K) float32 (= `project_lighting` to float32 round-off) and the fine
+        frames: (F',) int64 indices of the frames of R to project (None: all), in blocks of the
+            same size as the whole projection's (one compiled shape): a pixel frame projects only
+            the grid frames its samples look up (`TripleProduct.fill_lighting`).
+    Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
     if R.ndim != 3 or R.shape[1:] != (3, 3):
@@ -460,15 +464,16 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     if stats is not None:
         stats["lighting_path"] = "general" if gamma is None else "azimuthal"
     chunk = env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2])
+    sel = slice(None) if frames is None else frames.to(R.device).long()
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
         f = torch.arange(grid.size, device=R.device)
         j = f // grid.n_psi % grid.n_phi
         base = f // (grid.n_phi * grid.n_psi) * grid.n_psi + f % grid.n_psi
         shift = torch.remainder(j.double() / grid.n_phi - gamma / (2 * math.pi), 1.0)
-        rows, taps, args = (shift, base), _kernel(env_taps_azimuthal), (u0.to(R.device), v0.to(R.device), H, W)
+        rows, taps, args = (shift[sel], base[sel]), _kernel(env_taps_azimuthal), (u0.to(R.device), v0.to(R.device), H, W)
     else:
-        rows, taps, args = (R.float(),), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
+        rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
     means = _kernel(quad_means_coeffs)
 
     def block(*r):  # two compiled kernels per block of frames (a static shape each)

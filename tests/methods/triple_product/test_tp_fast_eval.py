@@ -439,6 +439,13 @@ def test_grouped_kernel_equals_per_point_kernel():
     vw, lw, bw = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
     gv, gl, gb, inv = fast_eval.group_rows(vrows, lrows, brows)
     assert gv.numel() < B  # the 3·B (point, vertex) pairs share groups
+    # the run-then-unique dedup = one `torch.unique` of every (point, vertex) key: same sorted groups
+    nl, nb = int(lrows[:, 0].max()) + 1, int(brows[:, 0].max()) + 1
+    keys = vrows * (nl * nb) + (lrows[:, 0] * nb + brows[:, 0])[:, None]
+    uk, uinv = torch.unique(keys.reshape(-1), return_inverse=True)
+    assert torch.equal(gv * (nl * nb) + gl[:, 0] * nb + gb[:, 0], uk) and torch.equal(inv, uinv.view(B, 3))
+    shuffled = fast_eval.group_rows(vrows.flip(0), lrows.flip(0), brows.flip(0))  # runs in another order
+    assert torch.equal(shuffled[0], gv) and torch.equal(shuffled[3], inv.flip(0))
     for i in range(3):
         assert torch.equal(gv[inv[:, i]], vrows[:, i])
         assert torch.equal(gl[inv[:, i]], lrows) and torch.equal(gb[inv[:, i]], brows)
@@ -470,3 +477,48 @@ def test_grid_lookups_equal_the_eager_lookups(grid, mode):
     assert torch.equal(rows, er) and torch.equal(lrows, el)
     assert (w - ew).abs().max() <= F32 and (lw - elw).abs().max() <= F32
     assert fast_eval.grid_lookups(R, wo, og, g, None)[2:] == (None, None)
+    if mode == "trilinear" and g.n_psi == 1:
+        # from the normals, no frames formed (`pixel_lookups`) = the compiled chain it replaces in
+        # pixel frames (`fast_eval.local_frames`, then `grid_lookups`): the frames' float32 trig is
+        # the same vectorised code there, so the ωo weights agree to float32 round-off (against the
+        # eager frames' libm trig they differ by up to ~4e-6 near the ωo grid's poles, as
+        # `fast_eval.local_frames` does)
+        crow, cw, clrows, clw = fast_eval.grid_lookups(fast_eval.local_frames(n, "grid"), wo, og, g, mode)
+        prow, pw, plrows, plw = fast_eval.pixel_lookups(n, wo, og, g)
+        assert torch.equal(prow, crow) and torch.equal(plrows, el) and torch.equal(clrows, el)
+        assert (pw - cw).abs().max() <= F32 and (plw - elw).abs().max() <= F32
+        wrong = fast_eval.pixel_lookups(n, -wo, og, g)                   # ωo enters the ρ̃ look-up
+        assert not torch.equal(wrong[0], er) and torch.equal(wrong[2], el)
+
+
+@pytest.mark.parametrize("shading", ["pixel", "vertex"])
+def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(shading):
+    """A lighting change on the fine-value path projects only the grid frames the frame looks up
+    with a non-zero weight (`TripleProduct.fill_lighting` from `fast_eval.shade_fine`); the image
+    equals the one rendered from the whole grid projected first, and completing the grid gives the
+    whole projection's coefficients and fine values exactly (the same `lighting.project_env` blocks).
+    An "L" sequence (tilted axis, general kernel) and an "E" one (probes turned about +Y)."""
+    scene = get_scene("sphere_plane", "test")
+    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
+               progress=False)
+    for kind in ("L", "E"):
+        frames = make_sequence(scene, kind, n_frames=3, seed=2)
+        gbs = [make_gbuffer(scene, f, 1) for f in frames]
+        lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
+        lazy_m.precompute(scene)
+        full_m.precompute(scene)
+        for frame, gb in zip(frames, gbs):
+            img = lazy_m.render(frame, gb)
+            done = lazy_m._lazy_light["done"] if lazy_m._lazy_light is not None else None
+            if shading == "pixel":  # the sphere's far side and the plane's one normal: not every frame
+                assert done is not None and 0 < int(done.sum()) < lazy_m.grid.size, kind
+            full_m._set_lighting(frame.envmap)                           # the whole grid, eagerly
+            assert full_m._lazy_light is None
+            want = full_m.render(frame, gb)
+            assert torch.equal(img, want), (shading, kind)
+            again = lazy_m.render(frame, gb)      # the next frame with this lighting completes the grid
+            assert lazy_m._lazy_light is None and torch.equal(again, want)
+            assert torch.equal(lazy_m.L_val, full_m.L_val)
+            assert torch.equal(fast_eval.fine_table(lazy_m, "L", lazy_m.L_idx, lazy_m.L_val, lazy_m.K),
+                               fast_eval.fine_table(full_m, "L", full_m.L_idx, full_m.L_val, full_m.K))
+            assert lazy_m.stats["lighting_path"] == full_m.stats["lighting_path"]
