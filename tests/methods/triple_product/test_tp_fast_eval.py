@@ -507,11 +507,21 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
         lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
         lazy_m.precompute(scene)
         full_m.precompute(scene)
-        for frame, gb in zip(frames, gbs):
+        for i, (frame, gb) in enumerate(zip(frames, gbs)):
             img = lazy_m.render(frame, gb)
             done = lazy_m._lazy_light["done"] if lazy_m._lazy_light is not None else None
-            if shading == "pixel":  # the sphere's far side and the plane's one normal: not every frame
+            if i == 0:              # the first lighting (the harness's warm-up frame): the whole grid
+                assert done is None and lazy_m.stats["projected_frames"] == lazy_m.grid.size
+            elif shading == "pixel":  # the sphere's far side and the plane's one normal: not every frame
                 assert done is not None and 0 < int(done.sum()) < lazy_m.grid.size, kind
+                # the compulsory count: the frames projected, not the whole grid
+                assert lazy_m.stats["projected_frames"] == int(done.sum())
+                P = gb.num_samples
+                part = lazy_m.frame_cost(kind, P)
+                lazy_m.stats["projected_frames"] = lazy_m.grid.size
+                whole = lazy_m.frame_cost(kind, P)
+                lazy_m.stats["projected_frames"] = int(done.sum())
+                assert part.flops < whole.flops and part.bytes < whole.bytes
             full_m._set_lighting(frame.envmap)                           # the whole grid, eagerly
             assert full_m._lazy_light is None
             want = full_m.render(frame, gb)
