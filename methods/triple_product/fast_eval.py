@@ -791,9 +791,11 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     p = FINE_BLOCK if points is None else int(points)
     head = rows[0].shape[0] // p * p if rows[0].shape[0] > p else 0
     tail = min(p, FINE_TAIL)  # the rest in small blocks: padding ≤ FINE_TAIL − 1 points
-    parts = [map_rows(_fine_block, [r[:head] for r in rows], (Vt, R3, L3), chunk=p)] if head else []
+    # both block sizes compiled in the warm-up frame (``core.fused.warm_blocks``): a later frame may
+    # need the one the first did not
+    parts = [map_rows(_fine_block, [r[:head] for r in rows], (Vt, R3, L3), chunk=p, warm=(tail,))] if head else []
     if head < rows[0].shape[0] or not head:
-        parts.append(map_rows(_fine_block, [r[head:] for r in rows], (Vt, R3, L3), chunk=tail))
+        parts.append(map_rows(_fine_block, [r[head:] for r in rows], (Vt, R3, L3), chunk=tail, warm=(p,)))
     return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
@@ -914,9 +916,10 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     if stats is not None:
         stats["groups"] = int(G)
     head = G // p * p if G > p else 0
-    parts = [map_rows(_group_block, [gv[:head], gl[:head], gb[:head]], (Vt, R3, L3), chunk=p)] if head else []
+    tail = min(p, GROUP_TAIL)  # both sizes compiled in the warm-up frame (chess L frame 1 re-traced the tail)
+    parts = [map_rows(_group_block, [gv[:head], gl[:head], gb[:head]], (Vt, R3, L3), chunk=p, warm=(tail,))] if head else []
     if head < G or not head:
-        parts.append(map_rows(_group_block, [gv[head:], gl[head:], gb[head:]], (Vt, R3, L3), chunk=min(p, GROUP_TAIL)))
+        parts.append(map_rows(_group_block, [gv[head:], gl[head:], gb[head:]], (Vt, R3, L3), chunk=tail, warm=(p,)))
     T = parts[0] if len(parts) == 1 else torch.cat(parts)
     torch._dynamo.maybe_mark_dynamic(T, 0)
     return map_rows(_group_blend, [inv, vw.to(dt), lw.to(dt), bw.to(dt)], (T,), chunk=GROUP_BLEND_POINTS)

@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 
 from methods.core.frames import coordinate_system
-from methods.core.fused import fused, map_rows
+from methods.core.fused import fused, map_rows, warm_blocks
 from methods.core.latlong import quad_lane_weights, quad_lanes, quad_taps, quad_texels
 from methods.core.spherical_haar import Geodesic, forward_butterfly
 
@@ -472,6 +472,10 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         base = f // (grid.n_phi * grid.n_psi) * grid.n_psi + f % grid.n_psi
         shift = torch.remainder(j.double() / grid.n_phi - gamma / (2 * math.pi), 1.0)
         rows, taps, args = (shift[sel], base[sel]), _kernel(env_taps_azimuthal), (u0.to(R.device), v0.to(R.device), H, W)
+        # the general kernel too, in the harness's warm-up frame (`core.fused.warming`): a sequence
+        # whose first lighting turns about +Y only ("L": the scene's own map, then rotations about a
+        # tilted axis) needs it first in a timed frame (chess L frame 1 compiled it: ~2x that frame)
+        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W), [chunk])
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
     means = _kernel(quad_means_coeffs)
