@@ -18,7 +18,7 @@ from tqdm.auto import tqdm
 
 from reports.cells import PARTS, STATUS_ERROR, Cell, CellResult, load_part, load_result, part_path, result_path
 from reports.executors import LocalExecutor
-from reports.measure_cell import merge_parts, run_cell, run_part
+from reports.measure_cell import merge_parts, run_cell, run_part, warm_up_compiles
 from scenes.io import atomic_write_json
 
 
@@ -52,6 +52,7 @@ def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=Non
     """
     cells = list(cells)
     out_dir = Path(out_dir)
+    warm_up_compiles()  # a bad PRTBENCH_WARM is one clear error before any cell runs
     ex = executor or LocalExecutor()
     split = bool(getattr(ex, "parallel", False))
     context = ex.describe() if hasattr(ex, "describe") else {"executor": type(ex).__name__}

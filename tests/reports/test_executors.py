@@ -298,6 +298,8 @@ def test_every_method_bit_identical_local_two_threads_and_processes_one_thread(t
     """Issue 17: one small cell per registered method (``testing.small_configs``), run in process
     with 2 torch / Dr.Jit threads and in a 2-worker process pool with 1 thread per worker: every
     error value (rmse, psnr, rel_mse, ssim, flip, ΔE, the sanity gate's) is the same bit for bit.
+    The in-process run warms its first frame as a real run does (``PRTBENCH_WARM=1``), the workers
+    do not: warming (compiling block sizes on dummy blocks) must change no value either.
     No precompute cache, so both executors precompute; the references are the shared cache's."""
     import torch
     import drjit as dr
@@ -313,12 +315,14 @@ def test_every_method_bit_identical_local_two_threads_and_processes_one_thread(t
     assert {c.method for c in cells} == project_methods()
     torch_before, dr_before = torch.get_num_threads(), dr.thread_count()
     monkeypatch.setenv(C.THREADS_ENV, "2")  # what a local run on a 2-core machine uses
+    monkeypatch.setenv(MC.WARM_ENV, "1")  # as a real run: the warm-up frame compiles the neighbour blocks
     try:
         local = R.run_cells(cells, tmp_path / "local", progress=False)
     finally:
         torch.set_num_threads(torch_before)
         dr.set_thread_count(dr_before)
         monkeypatch.delenv(C.THREADS_ENV)
+    monkeypatch.setenv(MC.WARM_ENV, "0")  # the workers do not: warming changes no value
     with X.ProcessesExecutor(2, threads=1) as ex:
         proc = R.run_cells(cells, tmp_path / "proc", executor=ex, progress=False)
     assert [r.status for r in local] == [r.status for r in proc] == ["ok"] * len(cells), \
@@ -344,3 +348,10 @@ def _scores(results):
     df = collect(results, meta)
     df = df[df["noise_floor"].notna()][["cell", "method", "frame", "metric", "value", "noise_floor"]]
     return df.sort_values(["cell", "frame", "metric"]).reset_index(drop=True)
+
+
+def test_bad_warm_setting_is_one_clear_error_before_any_cell(tmp_path, monkeypatch):
+    monkeypatch.setenv(MC.WARM_ENV, "yes")
+    with pytest.raises(ValueError, match="PRTBENCH_WARM must be 0 or 1"):
+        R.run_cells([], tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
