@@ -30,8 +30,13 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   the reference reads the maps with too) and `shade_block`: the face's three pair rows with the
   barycentrics, the four corners of R's cell in the stacked E^(k) (`env_rows`, on the lanes of
   the s_k columns), max(0, B) + u + Σ_k s_k E^(k)(R) and the box filter of the pixel's samples.
-  Each row is one contiguous 64-byte load; the rows live in L1/L2, so the loop is bound by its
-  per-sample scalar work (``benchmarks.ptt_profile --micro``). `shade_samples` is the eager form.
+  Each row is one contiguous 64-byte load, and the whole stage is one loop over the pixels
+  (`SHADE_OPTIONS`). Measured on the chess bench V frame (1 thread, CPU time, load 11): about a third
+  of `shade_block` is the env rows' cache misses (8.4 MB of rows, not L2-resident: every sample
+  reading one fixed cell instead ran 1.48x faster), the rest its per-sample scalar arithmetic and
+  row products. Visiting the pixels in 8×16 or 4×64 tiles instead of scanlines (index arithmetic
+  inside the kernel, same output bits) ran 0.96–0.97x: the env rows of one scanline are still cached
+  when the next one reads them. `shade_samples` is the eager form.
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
