@@ -130,7 +130,7 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     Q, S2 = gb.num_samples, gb.spp_side ** 2
     u, v = _fast.mirror_uv(gb.normal, gb.wo, env.to_world)
     erows = _fast.env_rows(env, width)
-    lanes = _fast._lane_masks(C, L, width, S2)
+    lanes = _fast._lane_masks(C, L, width)
     # the previous route (eager cells, ``embedding_bag``s), for comparison
     idx, w = _spec._uv_cells(u, v, env.H, env.W)
     bw = torch.stack([1.0 - gb.bary[:, 0] - gb.bary[:, 1], gb.bary[:, 0], gb.bary[:, 1]], -1)

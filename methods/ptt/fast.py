@@ -30,8 +30,13 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   the reference reads the maps with too) and `shade_block`: the face's three pair rows with the
   barycentrics, the four corners of R's cell in the stacked E^(k) (`env_rows`, on the lanes of
   the s_k columns), max(0, B) + u + Σ_k s_k E^(k)(R) and the box filter of the pixel's samples.
-  Each row is one contiguous 64-byte load; the rows live in L1/L2, so the loop is bound by its
-  per-sample scalar work (``benchmarks.ptt_profile --micro``). `shade_samples` is the eager form.
+  Each row is one contiguous 64-byte load, and the whole stage is one loop over the pixels
+  (`SHADE_OPTIONS`). Measured on the chess bench V frame (1 thread, CPU time, load 11): about a third
+  of `shade_block` is the env rows' cache misses (8.4 MB of rows, not L2-resident: every sample
+  reading one fixed cell instead ran 1.48x faster), the rest its per-sample scalar arithmetic and
+  row products. Visiting the pixels in 8×16 or 4×64 tiles instead of scanlines (index arithmetic
+  inside the kernel, same output bits) ran 0.96–0.97x: the env rows of one scanline are still cached
+  when the next one reads them. `shade_samples` is the eager form.
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
@@ -742,57 +747,82 @@ def padded(table: Tensor, width: int) -> Tensor:
 
 
 @functools.lru_cache(maxsize=16)
-def _lane_masks(C: int, L: int, width: int, S2: int) -> Tensor:
-    """(5, width·S2) float32 lane masks of `shade_block` for rows of C columns B (3) | s (3L) | u (3)?:
-    0 clamp-at-0 lanes (B), 1 added lanes (u), 2–4 the lanes of channel c = 0, 1, 2 of a
-    pixel's S2 rows side by side."""
+def _lane_masks(C: int, L: int, width: int) -> Tensor:
+    """(5, width) float32 lane masks of `shade_block` for rows of C columns B (3) | s (3L) | u (3)?:
+    0 clamp-at-0 lanes (B), 1 added lanes (u), 2–4 the lanes of channel c = 0, 1, 2."""
     lane = torch.arange(width)
     m = torch.zeros(5, width)
     m[0, :3] = 1.0
     m[1, 3 + 3 * L:C] = 1.0
     for c in range(3):
         m[2 + c] = ((lane < C) & (lane % 3 == c)).float()
-    return m.repeat(1, S2).contiguous()
+    return m.contiguous()
 
 
 def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: Tensor, table: Tensor,
                  env: Tensor, lanes: Tensor, H: int, W: int, S2: int) -> Tensor:
     """The per-sample stage of `shade_samples` + `box_filter` as one compiled loop over a block's
-    samples, after `mirror_uv` (for ``core.fused``): per sample the face's three pair rows
+    pixels, after `mirror_uv` (for ``core.fused``): per sample the face's three pair rows
     (table (n_pairs + 1, width), `table_width` lanes) with the Gouraud weights (1 − β1 − β2, β1, β2)
     and the four corners of its lat-long cell (``specular._uv_cells`` of (u, v), the same
     arithmetic) in the lane-aligned env rows (`env_rows`), each a contiguous row load (Inductor
     vectorises along the lanes; a per-column gather would cost one scalar load per value); then
     t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane — exactly max(0, B), s_k E^(k) and u —
-    and each channel's sum over the lanes of the pixel's S2 samples (the box filter) / S2.
-    face (n,), bary (n, 2), u, v (n,) with n a multiple of S2 (pixel-major) → (n / S2, 3)."""
-    p0, p1, p2 = face_pairs[face, 0], face_pairs[face, 1], face_pairs[face, 2]
-    b1, b2 = bary[:, 0], bary[:, 1]
-    b0 = 1.0 - b1 - b2
-    uu = u - 0.5 / W
-    x = (uu - torch.floor(uu)) * W
-    y = (v - torch.floor(v)) * (H - 1)
-    ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
-    iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
-    fx, fy = x - ix, y - iy
-    gx, gy = 1.0 - fx, 1.0 - fy
-    r = iy * (W + 1) + ix
-    a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
-    e = (env[r] * (gx * gy)[:, None] + env[r + 1] * (fx * gy)[:, None]
-         + env[r + (W + 1)] * (gx * fy)[:, None] + env[r + (W + 2)] * (fx * fy)[:, None])
+    summed over the pixel's S2 samples (unrolled: sub-sample j of pixel p is row p·S2 + j), and
+    each channel's sum over the lanes / S2 (the box filter).
+    face (n,), bary (n, 2), u, v (n,) with n a multiple of S2 (pixel-major); lanes (5, width)
+    (`_lane_masks`) → (n / S2, 3).
+
+    The sub-samples are unrolled (not a reduction over S2·width lanes of a (n / S2, S2·width) view)
+    and the kernel is compiled with `SHADE_OPTIONS`, so Inductor emits ONE loop over the pixels whose
+    row loads stay vector loads: before, it stored a and e as two (n, width) arrays (2 × 16 MB per
+    bench frame) and summed them in a third loop (`SHADE_OPTIONS` comment)."""
+    n = face.shape[0]
+    P = n // S2
     width = table.shape[1]
-    t = (a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]).view(-1, S2 * width)
-    out = torch.stack([(t * lanes[2 + c]).sum(-1) for c in range(3)], -1)
+    fv, b1v, b2v = face.view(P, S2), bary[:, 0].view(P, S2), bary[:, 1].view(P, S2)
+    uv_, vv = u.view(P, S2), v.view(P, S2)
+    t = None
+    for j in range(S2):
+        f = fv[:, j]
+        p0, p1, p2 = face_pairs[f, 0], face_pairs[f, 1], face_pairs[f, 2]
+        b1, b2 = b1v[:, j], b2v[:, j]
+        b0 = 1.0 - b1 - b2
+        uu = uv_[:, j] - 0.5 / W
+        x = (uu - torch.floor(uu)) * W
+        y = (vv[:, j] - torch.floor(vv[:, j])) * (H - 1)
+        ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
+        iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
+        fx, fy = x - ix, y - iy
+        gx, gy = 1.0 - fx, 1.0 - fy
+        r = iy * (W + 1) + ix
+        a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
+        e = (env[r] * (gx * gy)[:, None] + env[r + 1] * (fx * gy)[:, None]
+             + env[r + (W + 1)] * (gx * fy)[:, None] + env[r + (W + 2)] * (fx * fy)[:, None])
+        tj = a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]
+        t = tj if t is None else t + tj
+    out = torch.stack([(t * lanes[2 + c, :width]).sum(-1) for c in range(3)], -1)
     return out * (1.0 / S2)
 
 
-shade_block = fused(_shade_block)
+# Inductor settings of `shade_block`: its gathers read rows whose indices are in range by
+# construction (a face of the G-buffer or −1, which wraps to `miss_face_pairs`' zero face; pair rows
+# of ``face_pairs``; lat-long cells clamped into the table), so the per-load index checks are dropped
+# (alone: 1.005x); and with the default realize thresholds Inductor stores the Gouraud sum a and the
+# env sum e (each read three times) as (n, width) arrays and sums them in separate passes, where
+# these keep the whole stage in the one loop over the pixels (as ``triple_product.fast_eval``'s
+# KERNEL_OPTIONS). Chess bench V frame (262 144 samples, 1 thread, process CPU time, same process,
+# alternating, load 6–9): shade_block 10.6 -> 7.3 ms (1.45x), the same output bits; the previous
+# (n / S2, S2·width) reduction with these options made the row loads scalar gathers (0.42x).
+SHADE_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 1000,
+                 "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000}
+shade_block = fused(_shade_block, options=SHADE_OPTIONS)
 
 
-def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None, S2: int) -> tuple[Tensor, Tensor, Tensor]:
+def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None) -> tuple[Tensor, Tensor, Tensor]:
     C = table.shape[1] if C is None else C
     width = table_width(C)
-    return padded(table, width), env_rows(env, width), _lane_masks(C, L, width, S2).to(table.device)
+    return padded(table, width), env_rows(env, width), _lane_masks(C, L, width).to(table.device)
 
 
 def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
@@ -803,7 +833,7 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
     `vertex_view` may return it already `padded`)."""
     if env is None:
         return shade_samples(face_pairs, table[:, :3] if C is None else table[:, :C], face, bary, None, None, None, 0)
-    tab, erows, lanes = _fused_inputs(table, env, L, C, 1)
+    tab, erows, lanes = _fused_inputs(table, env, L, C)
 
     def block(face, bary, normal, wo):
         u, v = mirror_uv_block(normal, wo, env.to_world)
@@ -824,7 +854,7 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
     B = sample_block(q)
     if B % S2 or q % S2:
         return None
-    tab, erows, lanes = _fused_inputs(table, env, L, C, S2)
+    tab, erows, lanes = _fused_inputs(table, env, L, C)
     out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
     warm_blocks(_shade_pixels_block, [face, bary, normal, wo], (face_pairs, tab, erows, lanes, env, S2),
                 [b for b in warm_sizes(B) if b % S2 == 0])
