@@ -241,6 +241,28 @@ def test_apply_lighting_equals_its_einsum(C):
         assert lighting_major(L) is L
 
 
+@pytest.mark.parametrize("C", [1, 3])
+def test_compiled_lighting_rows_equal_the_einsum(C, monkeypatch):
+    """`apply_lighting`'s compiled path (`_light_rows`, the n² terms unrolled, taken for at least
+    `LIGHTING_UNROLL_MIN_ROWS` rows) = the einsum of the definition to float32 round-off, for grey
+    and RGB transfer and two row counts (one compiled kernel: the row count is dynamic); a kernel
+    with the channels or the coefficients mixed up differs at O(1)."""
+    from methods.sh_prt import method as shm
+
+    monkeypatch.setattr(shm, "LIGHTING_UNROLL_MIN_ROWS", 64)
+    g = torch.Generator().manual_seed(C)
+    l = torch.randn(25, 3, generator=g)
+    for N in (517, 1030):
+        X = torch.randn(N, 25, C, generator=g)
+        want = shm.apply_lighting_reference(X, l)
+        got = shm.apply_lighting(shm.lighting_major(X), l)
+        assert got.shape == (3, N)
+        assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+        eager = shm._light_rows.eager(shm.lighting_major(X).permute(2, 1, 0).contiguous(), l)
+        assert (eager - want).abs().max() <= 1e-5 * want.abs().max()
+        assert (shm.apply_lighting_reference(X, l.flip(0)) - want).abs().max() > 1e-2 * want.abs().max()
+
+
 # A face corner's l' against the per-vertex M l computed directly for every vertex: the same rays
 # and the same float32 quadrature, only the row bookkeeping differs → float32 round-off of
 # radiances up to ~0.5 (measured 2-4e-7 relative; before the fix of `SHPRT.precompute` the
