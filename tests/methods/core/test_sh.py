@@ -131,33 +131,6 @@ def test_project_latlong_exact_integrates_the_bilinear_interpolant():
     assert const[1:].abs().max() < ROUNDOFF
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, F64])
-def test_project_latlong_polar_rotated_equals_project_latlong(dtype):
-    """`project_latlong_polar` (the polar-frame coefficients, one GEMM for the column integrals)
-    rotated by Qᵀ, or by R Qᵀ for a map with ``to_world`` R, = `project_latlong` to float64
-    round-off; without the rotation (or with Q instead of Qᵀ) it differs at O(1)."""
-    from methods.core.sh_rotation import rotate_coeffs
-
-    g = torch.Generator().manual_seed(3)
-    img = torch.rand(9, 14, 3, generator=g, dtype=F64).to(dtype)
-    order = 5
-    Q = torch.tensor(sh.LATLONG_Q, dtype=F64)
-    cp = sh.project_latlong_polar(img, order)
-    assert cp.shape == (order * order, 3) and cp.dtype == F64
-    want = sh.project_latlong(img.to(F64), order)
-    assert (rotate_coeffs(cp, Q.T) - want).abs().max() <= 1e-13 * want.abs().max()
-    assert (rotate_coeffs(cp, Q) - want).abs().max() > 1e-3 * want.abs().max()
-    assert (cp - want).abs().max() > 1e-3 * want.abs().max()
-    R = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=F64))[0]
-    R = R * torch.sign(torch.det(R))
-
-    class Env:
-        data, to_world = img.to(F64), R
-
-    want = sh.project_latlong(Env(), order)
-    assert (rotate_coeffs(cp, R @ Q.T) - want).abs().max() <= 1e-13 * want.abs().max()
-
-
 def test_project_latlong_matches_envmap_radiance():
     """Cross-check of the lat-long convention against scenes.envmap.EnvMap.radiance (world frame)."""
     from scenes.envmap import EnvMap
