@@ -37,13 +37,20 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
     Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
-    ~120 eager ops took 1.48); M l is a compiled unrolled 25-term sum over the rows (`_light_rows`,
-    row count dynamic: one kernel; 1.3× the (3, n²) × (n², N) GEMM, 1 thread). An E frame projects
+    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is a compiled unrolled 25-term sum
+    over the rows (`_light_rows`, row count dynamic: one kernel; 1.3× the (3, n²) × (n², N) GEMM,
+    1 thread; RGB transfer keeps the GEMVs, against which the unrolled sum was 0.59×). An E frame projects
     the new map in its polar frame (`project_latlong_polar`: the column integrals as one GEMM)
     and rotates the coefficients ONCE, by to_world · Qᵀ (`sh.project_latlong` rotated them to the
     map's frame with the eager band recursion, ~1.2 ms, and `rotate_sampled` then to the world):
     projection + rotation 2.5 ms against 12 ms (1 thread, load ~11; ~4.8 ms unloaded before).
     Session 15, same process, 1 thread, load ~11: L frames 1.21×, E frames 1.25× (both changes).
+  * where a frame's time goes (session 15, creature bench, bounces 0, 1 thread, process CPU, median
+    of 7 frames, load ~8-9 on 2 cores): V 12.8 ms = pixels pass 4.2 + glossy pass 7.0 + 1.6 other
+    (Python between the compiled calls, guards, the glossy selection, scatter_add); L 16.1 ms = V's
+    passes + rotation 0.4 + t·l and M l 2.9 + 2.0 other (incl. the corner table e[F]); E 17.3 ms =
+    L's + projection 2.1. So the two view passes bound every kind; a V frame spends ~13 % outside
+    the compiled kernels.
   * session 15 (1 thread, creature, load ~11, process CPU): the glossy pass's y(R) stage alone
     (`sh_terms` to the (Qg, n²−1) buffer) ~6.3 ms of a ~8.5 ms pass, the reduction alone ~4.2 ms
     (the fused pass is less than the sum of the two); writing y(R) channel-major (n²−1, Qg) or
@@ -316,32 +323,36 @@ def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off."""
     Xp = lighting_major(X)
     Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
-    if Xp.shape[1] <= LIGHTING_UNROLL_MAX and Xp.shape[2] >= LIGHTING_UNROLL_MIN_ROWS and compile_enabled():
-        torch._dynamo.maybe_mark_dynamic(Xp, 2)                               # one kernel for every N
-        return _light_rows(Xp, l)
     if Xp.shape[0] == 1:
+        if Xp.shape[1] <= LIGHTING_UNROLL_MAX and Xp.shape[2] >= LIGHTING_UNROLL_MIN_ROWS and compile_enabled():
+            X1 = Xp[0]
+            torch._dynamo.maybe_mark_dynamic(X1, 1)                           # one kernel for every N
+            return _light_rows(X1, l)
         return l.T @ Xp[0]                                                    # (3, N)
     return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
 
 
-# `apply_lighting` through `_light_rows` for transfers of at most this many coefficients (order ≤ 6:
-# the unrolled sum's n²·3 terms compile in seconds) and at least this many rows (the creature's M,
-# Vg·n² = 242k rows; smaller products stay BLAS: a compiled call's guards cost ~0.1 ms).
+# `apply_lighting` through `_light_rows` for GREY transfers (C = 1: the perf cells' bounces 0) of at
+# most this many coefficients (order ≤ 6: the unrolled sum's n²·3 terms compile in seconds) and at
+# least this many rows (the creature's M, Vg·n² = 242k rows; smaller products stay BLAS: a compiled
+# call's guards cost ~0.1 ms). RGB transfer (C = 3, bounces ≥ 1) stays three BLAS GEMVs: the unrolled
+# sum over its three (n², N) planes was 0.59× (8.5 ms against 5.0, creature-sized random M, 1 thread).
 LIGHTING_UNROLL_MAX = 36
 LIGHTING_UNROLL_MIN_ROWS = 1 << 16
 
 
 def _light_rows_impl(X: Tensor, l: Tensor) -> Tensor:
-    """out[c, j] = Σ_i X[c or 0, i, j] l[i, c] for X (C, n², N) channel-major, C ∈ {1, 3}, l (n², 3) →
-    (3, N): the n² terms summed unrolled in order, vectorized over the N contiguous columns, so X is
-    streamed once and each output written once. Same process, creature M (24 MB, grey), 1 thread,
-    load ~7-10 on 2 cores: 3.4-3.6 ms against 4.4-4.5 ms for the (3, n²) × (n², N) BLAS GEMM (1.3×;
-    a plain streaming sum of X took 1.5 ms). Session 14 measured an unrolled sum at 1.2× but kept the
-    GEMM for its one compiled variant per transfer size; N is marked dynamic here (`apply_lighting`)."""
+    """out[c, j] = Σ_i X[i, j] l[i, c] for grey transfer rows X (n², N) (channel-major, N contiguous)
+    and l (n², 3) → (3, N): the n² terms summed unrolled in order, vectorized over the N columns, so
+    X is streamed once and each output written once. Same process, creature M (24 MB, grey), 1
+    thread, load ~7-10 on 2 cores: 3.4-3.6 ms against 4.4-4.5 ms for the (3, n²) × (n², N) BLAS GEMM
+    (1.3×; a plain streaming sum of X took 1.5 ms). Session 14 measured an unrolled sum at 1.2× but
+    kept the GEMM for its one compiled variant per transfer size; N is marked dynamic here
+    (`apply_lighting`)."""
     acc = [None, None, None]
-    for i in range(X.shape[1]):
+    for i in range(X.shape[0]):
         for c in range(3):
-            t = X[c if X.shape[0] == 3 else 0, i] * l[i, c]
+            t = X[i] * l[i, c]
             acc[c] = t if acc[c] is None else acc[c] + t
     return torch.stack(acc)
 
