@@ -13,7 +13,8 @@ limits measured in the run) and max |new − reference| / max |reference| (`rend
 
 ``--micro``: each stage of the new code alone on the last frame's real sizes (median of 7 after a
 warm-up, process CPU ms), with its achieved GB/s or GFLOP/s next to the machine's:
-  light  project (E frames: SH of the env map), rotate (L: the cached coefficients), t·l and M l
+  light  project (E frames: SH of the env map in its polar frame, `project_latlong_polar`; also
+         `sh.project_latlong`, which it replaced), rotate (L: the cached coefficients), t·l and M l
          (`apply_lighting`; bytes: t or M streamed once; also the einsum it replaced), the face-corner
          table e[F];
   view   the per-pixel diffuse pass (`_pixels`; bytes: the G-buffer inputs, region and the pixels
@@ -91,8 +92,10 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     m._light_stage(env)
     kd, ks, G, vcos = m._materials(frame)
     res: dict = {}
-    data = env.data.double()
-    res["light: project"] = {"ms": ms(lambda: _sh.project_latlong(data, m.order)), "texels": float(data.shape[0] * data.shape[1])}
+    data = env.data
+    res["light: project"] = {"ms": ms(lambda: shm.project_latlong_polar(data, m.order)),
+                             "texels": float(data.shape[0] * data.shape[1]),
+                             "sh.project_latlong ms": ms(lambda: _sh.project_latlong(data.double(), m.order))}
     res["light: rotate"] = {"ms": ms(lambda: m.lighting(env))}
     l = m._light
     ng, n2 = m.M.shape[0], m.M.shape[1]

@@ -8,8 +8,8 @@ Sloan 2002 §5) and, for vertices of glossy regions, the glossy transfer matrix 
 with the cosine H_N folded in).
 
 Run time (Sloan 2002 §7), per frame:
-  1. lighting: l = SH of the env map in its own frame (`sh.project_latlong`, exact for the bilinear
-     map), cached while the map's texels are unchanged; a rotated map (new ``to_world``) ROTATES
+  1. lighting: l = SH of the env map in its polar frame (`project_latlong_polar`, `sh.project_latlong`'s
+     exact projection of the bilinear map), cached while the map's texels are unchanged; a rotated map (new ``to_world``) ROTATES
      these coefficients (`rotate_sampled`, = `sh_rotation.rotate_coeffs`) instead of re-projecting (§7 rotates the
      lighting SH into the object's frame the same way). Then per vertex e_x = t_x · l (a dot product) and, for
      glossy vertices, l'_x = M_x l (a matrix–vector product); both cached until the lighting changes.
@@ -37,9 +37,25 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
     Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
-    ~120 eager ops took 1.48); M l is a GEMM at ~9 GB/s (a compiled unrolled 25-term sum was 1.2×,
-    not adopted: one compiled variant per transfer size); the E frame's projection
-    (`sh.project_latlong`, ~4 ms) is shared core code, left as it is.
+    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is a compiled unrolled 25-term sum
+    over the rows (`_light_rows`, row count dynamic: one kernel; 1.3× the (3, n²) × (n², N) GEMM,
+    1 thread; RGB transfer keeps the GEMVs, against which the unrolled sum was 0.59×). An E frame projects
+    the new map in its polar frame (`project_latlong_polar`: the column integrals as one GEMM)
+    and rotates the coefficients ONCE, by to_world · Qᵀ (`sh.project_latlong` rotated them to the
+    map's frame with the eager band recursion, ~1.2 ms, and `rotate_sampled` then to the world):
+    projection + rotation 2.5 ms against 12 ms (1 thread, load ~11; ~4.8 ms unloaded before).
+    Session 15, same process, 1 thread, load ~11: L frames 1.21×, E frames 1.25× (both changes).
+  * where a frame's time goes (session 15, creature bench, bounces 0, 1 thread, process CPU, median
+    of 7 frames, load ~8-9 on 2 cores): V 12.8 ms = pixels pass 4.2 + glossy pass 7.0 + 1.6 other
+    (Python between the compiled calls, guards, the glossy selection, scatter_add); L 16.1 ms = V's
+    passes + rotation 0.4 + t·l and M l 2.9 + 2.0 other (incl. the corner table e[F]); E 17.3 ms =
+    L's + projection 2.1. So the two view passes bound every kind; a V frame spends ~13 % outside
+    the compiled kernels.
+  * session 15 (1 thread, creature, load ~11, process CPU): the glossy pass's y(R) stage alone
+    (`sh_terms` to the (Qg, n²−1) buffer) ~6.3 ms of a ~8.5 ms pass, the reduction alone ~4.2 ms
+    (the fused pass is less than the sum of the two); writing y(R) channel-major (n²−1, Qg) or
+    computing it from scalar components (no (Q, 3) temporaries) made that stage ~1.4× faster
+    alone, but the whole pass so written was 0.87× (Inductor fused it differently): not adopted.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -72,7 +88,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
-from methods.core.fused import fused, map_rows
+from methods.core.fused import compile_enabled, fused, map_rows
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
@@ -96,8 +112,7 @@ GLOSSY_CHUNK = 1 << 14
 GLOSSY_TAIL_CHUNK = 1 << 12
 
 
-@fused
-def _pixels(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
+def _pixels_impl(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
             kd: Tensor, glf: Tensor) -> tuple[Tensor, ...]:
     """The box-filtered diffuse term ρ·e of the NON-glossy samples of n pixels (Sloan 2002 §7), one
     (n,) tensor per colour channel: per sample e Gouraud-interpolated from the face-corner table ef
@@ -123,6 +138,14 @@ def _pixels(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor,
             acc[c] = x if acc[c] is None else acc[c] + x
         glossy.append(gs)
     return torch.stack(acc, -1) * (1.0 / S2), torch.stack(glossy, -1)
+
+
+# `_pixels` without Inductor's bounds check of each gather (a TORCH_CHECK per index: face, region and
+# glf rows per sub-sample): the indices are in range by construction (``face`` and ``reg`` clamped at
+# 0, and < M and R for a G-buffer of this scene). Same process, creature bench, 1 thread, load ~10:
+# 3.99 ms against 4.27 ms (1.07×). Vectorizing it (`GLOSSY_OPTIONS`' tiling off) was 0.53×: its loads
+# are all strided (n, S², k) components and indirect rows, gathered lane by lane.
+_pixels = fused(_pixels_impl, options={"assert_indirect_indexing": False})
 
 
 # Inductor options of `_glossy_samples`: without the tiling heuristics the loop that builds y(R)
@@ -236,6 +259,47 @@ def rotate_sampled(c: Tensor, R: Tensor) -> Tensor:
     return _rotate_sampled(c, R, D, P)
 
 
+# Qᵀ: the lat-long map's polar frame → its own frame (`project_latlong_polar`).
+_LATLONG_QT = torch.tensor(_sh._LATLONG_Q, dtype=torch.float64).T
+
+
+@functools.lru_cache(maxsize=16)
+def _latlong_polar_factors(H: int, W: int, order: int, device) -> tuple[Tensor, Tensor, Tensor]:
+    """The map-independent factors of `project_latlong_polar` (float64, read-only): B (W, 2n) the
+    columns' φ'-integrals [cos | −sin](mφ'_x)·Δφ sinc²(mΔφ/2), k (n²,) the column of B that each flat
+    index i = (l, m) takes (|m| for m ≥ 0, n + |m| for m < 0) and T (H, n²) the rows' θ-weights."""
+    n = order
+    dph = 2.0 * math.pi / W
+    phi = (torch.arange(W, dtype=torch.float64, device=device) + 0.5) * dph
+    m = torch.arange(n, dtype=torch.float64, device=device)
+    half = 0.5 * m * dph
+    sinc2 = torch.where(m == 0, torch.ones_like(m), (torch.sin(half) / half.clamp_min(1e-300)) ** 2)
+    B = torch.cat([torch.cos(phi[:, None] * m[None, :]), -torch.sin(phi[:, None] * m[None, :])], 1) * (dph * sinc2.repeat(2))
+    k = torch.tensor([abs(mm) + (n if mm < 0 else 0) for l in range(n) for mm in range(-l, l + 1)], device=device)
+    return B, k, _sh._latlong_theta_weights(H, n, device)
+
+
+def project_latlong_polar(image: Tensor, order: int) -> Tensor:
+    """`sh.project_latlong`'s exact projection of the (H, W, C) map in the map's POLAR frame, before
+    its final rotation: ``sh.project_latlong(image, order)`` = ``rotate_coeffs(c, Qᵀ)`` and, for an
+    env map with ``to_world`` R, ``rotate_coeffs(c, R Qᵀ)`` (Q = ``sh._LATLONG_Q``; float64
+    round-off). `SHPRT.lighting` rotates the coefficients anyway (`rotate_sampled`), so one rotation
+    by the product replaces two. → (n², C) float64.
+
+    The same integrals as ``sh._project_latlong_exact`` (Fourier of the column hats, Gauss–Legendre
+    row weights) with the column sums as ONE float64 GEMM of the (H·C, W) channel-major texels
+    against the (W, 2n) cos/sin factors (`_latlong_polar_factors`, cached per size) instead of two
+    einsums over (H, W, C): creature bench map 256 × 512, 1 thread, same process: the einsums
+    2 × 1.17 ms, the whole of `sh.project_latlong` 4.8 ms (1.2 of it the band-recursion rotation).
+    Kept here, not in methods/core (a core edit changes every method's precompute-cache key);
+    zh_shadow's `project_latlong` with a ``to_world`` could use it the same way."""
+    H, W, C = image.shape
+    B, k, T = _latlong_polar_factors(int(H), int(W), int(order), image.device)
+    A = image.permute(0, 2, 1).to(torch.float64).reshape(H * C, W)               # (H·C, W), one copy
+    F = (A @ B).view(H, C, 2 * order).index_select(2, k)                          # (H, C, n²)
+    return torch.einsum("hi,hci->ic", T, F)
+
+
 def lighting_major(X: Tensor) -> Tensor:
     """X (rows..., n², C) with its channel and then its coefficient dimension outermost in memory
     (a view of a contiguous (C, n², rows...) tensor; ``X`` itself when it already is so): the layout
@@ -260,8 +324,40 @@ def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     Xp = lighting_major(X)
     Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
     if Xp.shape[0] == 1:
+        if Xp.shape[1] <= LIGHTING_UNROLL_MAX and Xp.shape[2] >= LIGHTING_UNROLL_MIN_ROWS and compile_enabled():
+            X1 = Xp[0]
+            torch._dynamo.maybe_mark_dynamic(X1, 1)                           # one kernel for every N
+            return _light_rows(X1, l)
         return l.T @ Xp[0]                                                    # (3, N)
     return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
+
+
+# `apply_lighting` through `_light_rows` for GREY transfers (C = 1: the perf cells' bounces 0) of at
+# most this many coefficients (order ≤ 6: the unrolled sum's n²·3 terms compile in seconds) and at
+# least this many rows (the creature's M, Vg·n² = 242k rows; smaller products stay BLAS: a compiled
+# call's guards cost ~0.1 ms). RGB transfer (C = 3, bounces ≥ 1) stays three BLAS GEMVs: the unrolled
+# sum over its three (n², N) planes was 0.59× (8.5 ms against 5.0, creature-sized random M, 1 thread).
+LIGHTING_UNROLL_MAX = 36
+LIGHTING_UNROLL_MIN_ROWS = 1 << 16
+
+
+def _light_rows_impl(X: Tensor, l: Tensor) -> Tensor:
+    """out[c, j] = Σ_i X[i, j] l[i, c] for grey transfer rows X (n², N) (channel-major, N contiguous)
+    and l (n², 3) → (3, N): the n² terms summed unrolled in order, vectorized over the N columns, so
+    X is streamed once and each output written once. Same process, creature M (24 MB, grey), 1
+    thread, load ~7-10 on 2 cores: 3.4-3.6 ms against 4.4-4.5 ms for the (3, n²) × (n², N) BLAS GEMM
+    (1.3×; a plain streaming sum of X took 1.5 ms). Session 14 measured an unrolled sum at 1.2× but
+    kept the GEMM for its one compiled variant per transfer size; N is marked dynamic here
+    (`apply_lighting`)."""
+    acc = [None, None, None]
+    for i in range(X.shape[0]):
+        for c in range(3):
+            t = X[i] * l[i, c]
+            acc[c] = t if acc[c] is None else acc[c] + t
+    return torch.stack(acc)
+
+
+_light_rows = fused(_light_rows_impl)
 
 
 def apply_lighting_reference(X: Tensor, l: Tensor) -> Tensor:
@@ -316,7 +412,7 @@ class SHPRT(Method):
 
     def _reset_cache(self) -> None:
         self._src = None        # (data tensor, version): the env-map texels l_local was projected from
-        self._l_local = None    # (n², 3) SH of the env map in its own frame
+        self._l_local = None    # (n², 3) float64 SH of the env map in its polar frame
         self._key = None        # (data, version, to_world) of the cached per-vertex stage
         self._light = None      # (n², 3) world-frame lighting l
         self._e = None          # (V, 3) t_x · l
@@ -404,14 +500,16 @@ class SHPRT(Method):
 
     # -- run time ---------------------------------------------------------------------------------
     def lighting(self, env) -> Tensor:
-        """World-frame SH l (n², 3) of ``env`` (Sloan 2002 §7): projected once per texel content,
-        rotated by ``env.to_world`` (module docstring)."""
+        """World-frame SH l (n², 3) of ``env`` (Sloan 2002 §7): projected once per texel content in
+        the map's polar frame (`project_latlong_polar`), then rotated by ``env.to_world`` @ Qᵀ in one
+        `rotate_sampled` (= `sh.project_latlong(env)`: its own two rotations, Qᵀ to the map's frame
+        and R to the world, composed; module docstring)."""
         data = env.data
         if self._src is None or self._src[0] is not data or self._src[1] != data._version:
-            self._l_local = _sh.project_latlong(data.double(), self.order)     # (n², 3) env frame
+            self._l_local = project_latlong_polar(data, self.order)         # (n², 3) polar frame
             self._src = (data, data._version)
             self.stats["project"] += 1
-        R = torch.as_tensor(env.to_world, dtype=torch.float64)
+        R = torch.as_tensor(env.to_world, dtype=torch.float64) @ _LATLONG_QT
         self.stats["rotate"] += 1
         return rotate_sampled(self._l_local, R).float()                         # f(Rᵀd): to world
 
