@@ -115,6 +115,14 @@ class _View:
     wins: Any = None
 
 
+def _face_mask(face: Tensor, M: int) -> Tensor:
+    """(M,) bool: which of the M faces occur in ``face`` (q,) int64, values in [0, M] (M: none, dropped).
+    A histogram (``torch.bincount``) rather than ``mask[face] = True``: the q ≈ 2.6·10⁵ bench samples
+    index ~6·10³ faces, and the indexed store with that many repeats took 2.4× the histogram (chess
+    bench G-buffer, 1 thread, process CPU time, load ~11: 1.2 vs 0.5 ms)."""
+    return torch.bincount(face, minlength=M + 1)[:M] > 0
+
+
 def _check_int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
     if v is None and none_ok:
         return
@@ -509,9 +517,8 @@ class InOut(Method):
         if bool(bad.any()):
             name = self.scene.regions[int(rows[3][bad][0])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-        fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
-        fmask[fsh] = True
-        faces = fmask[:M].nonzero(as_tuple=True)[0]
+        # the referenced-face mask as a histogram of the samples' faces (`_face_mask`)
+        faces = _face_mask(fsh, M).nonzero(as_tuple=True)[0]
         vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
         vmask[st.face_gl.index_select(1, faces).reshape(-1)] = True
         ref = vmask.nonzero(as_tuple=True)[0]                                 # ascending
@@ -583,9 +590,7 @@ class InOut(Method):
             bad = hit & (st.face_region.index_select(0, f) != gbuffer.region)
             name = self.scene.regions[int(gbuffer.region[bad][0])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-        fmask = torch.zeros(M + 1, dtype=torch.bool, device=dev)
-        fmask[torch.where(hit, f, M)] = True
-        faces = fmask[:M].nonzero(as_tuple=True)[0]
+        faces = _face_mask(torch.where(hit, f, M), M).nonzero(as_tuple=True)[0]
         vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
         vmask[st.face_gl.index_select(1, faces).reshape(-1).long()] = True
         ref = vmask.nonzero(as_tuple=True)[0]                                  # ascending concatenated ids
