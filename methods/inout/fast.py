@@ -75,8 +75,8 @@ from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, wa
 from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
-__all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+__all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -177,6 +177,19 @@ def sample_frame(n: Tensor, wo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     d = nx * a + ny * b
     u = A * d - c
     return a + sign * nx * u, sign * b + ny * u, d + nz * c
+
+
+def take_rows(t: Tensor, idx: Tensor) -> Tensor:
+    """``t.index_select(0, idx)`` (the same values) with the gather along ``t``'s layout: a column-major
+    (q, C) array — the bench G-buffer's ω_o and barycentrics are ((q, 3) with strides (1, q)) — is
+    gathered as its C contiguous columns. torch's row gather from a column-major array takes a slow
+    strided path: 2·10⁴ sorted rows of the chess bench ω_o in 1.1 ms against 0.09 ms from a
+    contiguous copy (1 thread, process CPU time, load ~11), and the copy itself costs 1.6–2 ms. The
+    result is row-major as ``index_select``'s (the compiled kernels downstream see the strides they
+    were compiled and warmed for)."""
+    if t.dim() == 2 and t.shape[1] > 1 and t.stride(0) == 1 and t.stride(1) >= t.shape[0] and idx.numel() > 1:
+        return t.T.index_select(1, idx).T.contiguous()
+    return t.index_select(0, idx)
 
 
 def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[int, int]]:
@@ -364,6 +377,18 @@ def _shaded_faces(normal: Tensor, wo: Tensor, face: Tensor, region: Tensor, live
 
 
 shaded_faces = fused(_shaded_faces)
+
+
+def _shaded_faces_cols(normal: Tensor, wx: Tensor, wy: Tensor, wz: Tensor, face: Tensor, region: Tensor, live: Tensor,
+                       face_region: Tensor, margin: float) -> tuple[Tensor, Tensor]:
+    """`_shaded_faces` with ω_o as its three columns (q,) each (the stack fuses away when compiled):
+    ``core.fused.map_rows`` makes its row arrays contiguous, and the bench G-buffer's ω_o is
+    column-major ((q, 3), strides (1, q)), so a (q, 3) ω_o row cost a transposing copy per frame
+    (1.8–3.9 ms on chess bench, 1 thread, load ~11) where its columns are contiguous already."""
+    return _shaded_faces(normal, torch.stack([wx, wy, wz], -1), face, region, live, face_region, margin)
+
+
+shaded_faces_cols = fused(_shaded_faces_cols)
 
 
 def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
@@ -566,7 +591,7 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
         miss[a:a + n] = mb[:n]
     k = miss.view(-1).nonzero(as_tuple=True)[0]
     if k.numel():                                      # entries outside their windows: the exact path
-        sub = [t.index_select(0, k) for t in (normal, wo, bary, face, live)]
+        sub = [take_rows(t, k) for t in (normal, wo, bary, face, live)]
         B = sample_block(k.numel())
         g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=B, warm=warm_sizes(B))
         bits = miss.view(-1).index_select(0, k)
