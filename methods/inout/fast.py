@@ -61,6 +61,19 @@ referenced-face mask as a compiled scatter: no gain; with the kernel vectorised:
 of each face's three windows (one 9-word look-up per sample instead of face → vertex → window):
 1.02× (noise); X read one node row (N, 3) per look-up, the 3 channels sharing its index: 0.93×.
 
+Split of a V frame (issue 15, 2026-12-03, 1 thread, process CPU time, load 11-13, frames 1-5 of a
+5-frame bench V orbit, c cached; chess / creature, ms): set-up 42 / 24 — the windows' products X
+(`window_rows`, W = 12 / 8) 20 / 9 (Inductor's K-term reduction at 10-15 GFLOP/s, one accumulator
+chain per node and channel), `window_entries` 3.7 / 3.8, c of the vertices the orbit newly sees
+(`InOut._ensure_c`) 3.7 / 1.9, `shaded_faces` 1.9 / 1.7, the rest eager glue (masks, anchors,
+concatenations of X); per-sample stage 28 / 23 — `shade_rows` 13 / 15, the exact path and its
+glue ~15 / ~8 (`_outliers` 5.1 / 1.7, `entry_inputs` 1.8 / 0.8, its gathers from the column-major
+G-buffer arrays 3 ms before `take_rows`). Tried for X and dropped: the table regrouped so that a window
+row is one contiguous vector load (unfold views, the K reduction outermost, layouts (3, K, R, R)
+and (R, 3, K, R)): 0.15-0.3× (Inductor vectorised along the window row but broadcast c per term
+and strode the table by K); without index checks: 1.0×. Tried and dropped for the per-vertex view:
+its per-sample region check and face index as one compiled pass: 3.5× slower than the eager ops.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
