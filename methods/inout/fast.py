@@ -61,6 +61,19 @@ referenced-face mask as a compiled scatter: no gain; with the kernel vectorised:
 of each face's three windows (one 9-word look-up per sample instead of face → vertex → window):
 1.02× (noise); X read one node row (N, 3) per look-up, the 3 channels sharing its index: 0.93×.
 
+Split of a V frame (issue 15, 2026-12-03, 1 thread, process CPU time, load 11-13, frames 1-5 of a
+5-frame bench V orbit, c cached; chess / creature, ms): set-up 42 / 24 — the windows' products X
+(`window_rows`, W = 12 / 8) 20 / 9 (Inductor's K-term reduction at 10-15 GFLOP/s, one accumulator
+chain per node and channel), `window_entries` 3.7 / 3.8, c of the vertices the orbit newly sees
+(`InOut._ensure_c`) 3.7 / 1.9, `shaded_faces` 1.9 / 1.7, the rest eager glue (masks, anchors,
+concatenations of X); per-sample stage 28 / 23 — `shade_rows` 13 / 15, the exact path and its
+glue ~15 / ~8 (`_outliers` 5.1 / 1.7, `entry_inputs` 1.8 / 0.8, its gathers from the column-major
+G-buffer arrays 3 ms before `take_rows`). Tried for X and dropped: the table regrouped so that a window
+row is one contiguous vector load (unfold views, the K reduction outermost, layouts (3, K, R, R)
+and (R, 3, K, R)): 0.15-0.3× (Inductor vectorised along the window row but broadcast c per term
+and strode the table by K); without index checks: 1.0×. Tried and dropped for the per-vertex view:
+its per-sample region check and face index as one compiled pass: 3.5× slower than the eager ops.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -75,8 +88,8 @@ from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, wa
 from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
-__all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+__all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
            "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
@@ -177,6 +190,19 @@ def sample_frame(n: Tensor, wo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     d = nx * a + ny * b
     u = A * d - c
     return a + sign * nx * u, sign * b + ny * u, d + nz * c
+
+
+def take_rows(t: Tensor, idx: Tensor) -> Tensor:
+    """``t.index_select(0, idx)`` (the same values) with the gather along ``t``'s layout: a column-major
+    (q, C) array — the bench G-buffer's ω_o and barycentrics are ((q, 3) with strides (1, q)) — is
+    gathered as its C contiguous columns. torch's row gather from a column-major array takes a slow
+    strided path: 2·10⁴ sorted rows of the chess bench ω_o in 1.1 ms against 0.09 ms from a
+    contiguous copy (1 thread, process CPU time, load ~11), and the copy itself costs 1.6–2 ms. The
+    result is row-major as ``index_select``'s (the compiled kernels downstream see the strides they
+    were compiled and warmed for)."""
+    if t.dim() == 2 and t.shape[1] > 1 and t.stride(0) == 1 and t.stride(1) >= t.shape[0] and idx.numel() > 1:
+        return t.T.index_select(1, idx).T.contiguous()
+    return t.index_select(0, idx)
 
 
 def light_runs(todo: Tensor, nv: int, block: int = LIGHT_BLOCK) -> list[tuple[int, int]]:
@@ -364,6 +390,18 @@ def _shaded_faces(normal: Tensor, wo: Tensor, face: Tensor, region: Tensor, live
 
 
 shaded_faces = fused(_shaded_faces)
+
+
+def _shaded_faces_cols(normal: Tensor, wx: Tensor, wy: Tensor, wz: Tensor, face: Tensor, region: Tensor, live: Tensor,
+                       face_region: Tensor, margin: float) -> tuple[Tensor, Tensor]:
+    """`_shaded_faces` with ω_o as its three columns (q,) each (the stack fuses away when compiled):
+    ``core.fused.map_rows`` makes its row arrays contiguous, and the bench G-buffer's ω_o is
+    column-major ((q, 3), strides (1, q)), so a (q, 3) ω_o row cost a transposing copy per frame
+    (1.8–3.9 ms on chess bench, 1 thread, load ~11) where its columns are contiguous already."""
+    return _shaded_faces(normal, torch.stack([wx, wy, wz], -1), face, region, live, face_region, margin)
+
+
+shaded_faces_cols = fused(_shaded_faces_cols)
 
 
 def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
@@ -566,7 +604,7 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
         miss[a:a + n] = mb[:n]
     k = miss.view(-1).nonzero(as_tuple=True)[0]
     if k.numel():                                      # entries outside their windows: the exact path
-        sub = [t.index_select(0, k) for t in (normal, wo, bary, face, live)]
+        sub = [take_rows(t, k) for t in (normal, wo, bary, face, live)]
         B = sample_block(k.numel())
         g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=B, warm=warm_sizes(B))
         bits = miss.view(-1).index_select(0, k)

@@ -191,6 +191,35 @@ def test_light_vertices_is_the_sparse_product_of_those_rows():
         fast.light_vertices(fr, L, torch.tensor([200]))                       # rows 600..602: past the matrix
 
 
+def test_take_rows_is_index_select():
+    """``fast.take_rows`` (the gather along the array's layout) returns ``index_select``'s values and
+    row-major layout for column-major (the bench G-buffer's ω_o, barycentrics), row-major, sliced and
+    1-D arrays, any index order, repeats and the empty index."""
+    g = torch.Generator().manual_seed(6)
+    q = 1000
+    base = torch.randn(3, q, generator=g)
+    arrays = [base.T, base.T.contiguous(), torch.randn(2, q, generator=g).T, base.T[:, :2], base.T[::2],
+              torch.randint(0, 50, (q,), generator=g), torch.rand(q, generator=g) > 0.5]
+    for t in arrays:
+        n = t.shape[0]
+        for idx in (torch.randperm(n, generator=g)[:300], torch.randint(0, n, (500,), generator=g).sort().values,
+                    torch.zeros(0, dtype=torch.long), torch.tensor([5]), torch.tensor([n - 1, 0, n - 1])):
+            a, b = fast.take_rows(t, idx), t.index_select(0, idx)
+            assert torch.equal(a, b) and a.stride() == b.stride() and a.dtype == b.dtype
+
+
+def test_face_mask_is_the_indexed_mask():
+    """`InOut`'s referenced-face mask (a histogram of the samples' faces, M = none) equals
+    ``mask[face] = True`` over the M faces."""
+    g = torch.Generator().manual_seed(7)
+    M = 37
+    for face in (torch.randint(0, M + 1, (5000,), generator=g), torch.full((10,), M), torch.zeros(0, dtype=torch.long),
+                 torch.tensor([0, M - 1, M, 3, 3])):
+        ref = torch.zeros(M + 1, dtype=torch.bool)
+        ref[face] = True
+        assert torch.equal(inout_method._face_mask(face, M), ref[:M])
+
+
 def test_shaded_faces_is_a_superset_of_the_horizon_test():
     """``fast.shaded_faces`` (the referenced-face pass) keeps every live sample the per-sample stage
     shades (z > 0 in its frame, eager `sample_frame` and the compiled `entry_inputs`), near-grazing
@@ -216,6 +245,10 @@ def test_shaded_faces_is_a_superset_of_the_horizon_test():
     back = live & ((n * wo).sum(-1) < -1e-3 * n.norm(dim=-1) * wo.norm(dim=-1))
     assert bool(back.any()) and bool((f[back] == 10).all())
     assert bool(bad[7]) == bool(live[7]) and int(bad.sum()) == int(live[7])
+    # ω_o as columns (`InOut._view_setup`'s call), from a column-major array as the bench G-buffer's
+    wo_cm = wo.T.contiguous().T
+    f2, bad2 = fast.shaded_faces_cols(n, *wo_cm.unbind(1), face, region, live, face_region, inout_method.SHADED_MARGIN)
+    assert torch.equal(f2, f) and torch.equal(bad2, bad)
 
 
 def test_shade_rows_indices_in_range_for_any_input(precomputed):
