@@ -308,6 +308,40 @@ def env_block_frames(F: int, samples_per_frame: int) -> int:
     return max(1, -(-F // blocks))
 
 
+# Smallest tail block of `env_blocks`. A pixel / vertex frame after a lighting change projects only
+# the grid frames it looks up (`TripleProduct.fill_lighting`: chess bench vertex L 347 of 544), and
+# one padded block of 68 for the last 7 of them computed 61 frames for nothing (15 % of that
+# frame's projection); tail blocks of 32 / 16 / 8 frames pad at most 7 (one compiled shape each,
+# compiled in the warm-up frame).
+ENV_TAIL_MIN = 8
+
+
+def env_tail_sizes(chunk: int) -> tuple[int, ...]:
+    """The tail block sizes of `env_blocks` for full blocks of ``chunk`` frames: the powers of two p
+    with ENV_TAIL_MIN <= p and 2p <= chunk, largest first (none for small blocks)."""
+    out, p = [], ENV_TAIL_MIN
+    while 2 * p <= chunk:
+        out.append(p)
+        p *= 2
+    return tuple(reversed(out))
+
+
+def env_blocks(F: int, chunk: int) -> list[int]:
+    """Block sizes (each padded when its frames run out) covering F frames: F // chunk full blocks,
+    then the rest either in one padded full block or in tail blocks (`env_tail_sizes`, the binary
+    digits of the rest rounded up to ENV_TAIL_MIN), whichever computes fewer frames (ties: one block)."""
+    full, r = divmod(int(F), chunk)
+    sizes = [chunk] * full
+    if r:
+        tails = env_tail_sizes(chunk)
+        r8 = -(-r // ENV_TAIL_MIN) * ENV_TAIL_MIN
+        if not tails or r8 >= chunk or r8 > sum(tails):
+            sizes.append(chunk)
+        else:
+            sizes += [p for p in tails if r8 & p]
+    return sizes
+
+
 def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
     """The sample directions and weights of `Geodesic.project`: c (n·4^s, 3) float32 unit centres of
     the 4^s sub-triangles of every fine triangle, wn (n, 4^s) float32 their solid angles divided by
@@ -447,8 +481,9 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         about +Y only (`azimuth_of`) takes the shifted base coordinates (`env_taps_azimuthal`);
         stats: receives ``"lighting_path"``, "azimuthal" or "general" (for `fast_eval.frame_cost`).
         frames: (F',) int64 indices of the frames of R to project (None: all), in blocks of the
-            same size as the whole projection's (one compiled shape): a pixel frame projects only
-            the grid frames its samples look up (`TripleProduct.fill_lighting`).
+            same size as the whole projection's and tail blocks (`env_blocks`; a compiled shape
+            each, the same values as any other blocking): a pixel frame projects only the grid
+            frames its samples look up (`TripleProduct.fill_lighting`).
     Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
@@ -475,7 +510,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         # the general kernel too, in the harness's warm-up frame (`core.fused.warming`): a sequence
         # whose first lighting turns about +Y only ("L": the scene's own map, then rotations about a
         # tilted axis) needs it first in a timed frame (chess L frame 1 compiled it: ~2x that frame)
-        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W), [chunk])
+        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W),
+                    [chunk, *env_tail_sizes(chunk)])
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
     means = _kernel(quad_means_coeffs)
@@ -483,5 +519,19 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     def block(*r):  # two compiled kernels per block of frames (a static shape each)
         return means(*taps(*r, *args), wT, Q, lanes)
 
-    coef, fine = map_rows(block, rows, chunk=chunk)                       # (F, 3, n) each
-    return coef, fine
+    # the tail block sizes too, in the warm-up frame (it projects the whole grid, often no tail)
+    warm_blocks(block, rows, (), env_tail_sizes(chunk))
+    q = int(rows[0].shape[0])
+    if q == 0:
+        return map_rows(block, rows, chunk=chunk)
+    sizes = env_blocks(q, chunk)
+    n_full = sizes.count(chunk)
+    parts, a = [], min(q, n_full * chunk)
+    if n_full:                                                            # full blocks, the last padded
+        parts.append(map_rows(block, [r[:a] for r in rows], chunk=chunk))  # when no tail block follows
+    for b in sizes[n_full:]:                                              # tail blocks
+        parts.append(map_rows(block, [r[a:a + b] for r in rows], chunk=b))
+        a = min(q, a + b)
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(torch.cat(x) for x in zip(*parts))                      # (F, 3, n) each
