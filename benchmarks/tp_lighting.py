@@ -55,7 +55,7 @@ def main(argv=None) -> dict:
     H, W = env.height, env.width
     Q, lanes = quad_texels(env.periodic_texels(planes=True), H, W), quad_lanes()
     T = env.to_world.float()
-    S, n = cp.shape[1], cp.shape[2]
+    n, S = cp.shape[1], cp.shape[2]
     samples = R.shape[0] * S * n
     chunk = lt.env_block_frames(R.shape[0], S * n)
     out = {"frames": R.shape[0], "samples": samples, "env": [H, W], "threads": a.threads, "block": chunk,

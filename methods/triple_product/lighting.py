@@ -308,6 +308,41 @@ def env_block_frames(F: int, samples_per_frame: int) -> int:
     return max(1, -(-F // blocks))
 
 
+# Smallest tail block of `env_blocks`. A pixel / vertex frame after a lighting change projects only
+# the grid frames it looks up (`TripleProduct.fill_lighting`: chess bench vertex L 347 of 544), and
+# one padded block of 68 for the last 7 of them computed 61 frames for nothing (15 % of that
+# frame's projection); tail blocks of 32 / 16 / 8 frames pad at most 7 (one compiled shape each,
+# compiled in the warm-up frame). Same-process A/B, 1 thread, load 8-10: chess vertex L 1.11x / 1.09x
+# (two runs), creature vertex L 1.03x, chess pixel L 1.02x (328 frames: 340 computed before).
+ENV_TAIL_MIN = 8
+
+
+def env_tail_sizes(chunk: int) -> tuple[int, ...]:
+    """The tail block sizes of `env_blocks` for full blocks of ``chunk`` frames: the powers of two p
+    with ENV_TAIL_MIN <= p and 2p <= chunk, largest first (none for small blocks)."""
+    out, p = [], ENV_TAIL_MIN
+    while 2 * p <= chunk:
+        out.append(p)
+        p *= 2
+    return tuple(reversed(out))
+
+
+def env_blocks(F: int, chunk: int) -> list[int]:
+    """Block sizes (each padded when its frames run out) covering F frames: F // chunk full blocks,
+    then the rest either in one padded full block or in tail blocks (`env_tail_sizes`, the binary
+    digits of the rest rounded up to ENV_TAIL_MIN), whichever computes fewer frames (ties: one block)."""
+    full, r = divmod(int(F), chunk)
+    sizes = [chunk] * full
+    if r:
+        tails = env_tail_sizes(chunk)
+        r8 = -(-r // ENV_TAIL_MIN) * ENV_TAIL_MIN
+        if not tails or r8 >= chunk or r8 > sum(tails):
+            sizes.append(chunk)
+        else:
+            sizes += [p for p in tails if r8 & p]
+    return sizes
+
+
 def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
     """The sample directions and weights of `Geodesic.project`: c (n·4^s, 3) float32 unit centres of
     the 4^s sub-triangles of every fine triangle, wn (n, 4^s) float32 their solid angles divided by
@@ -320,13 +355,17 @@ def _env_samples(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
 
 
 def _env_sample_planes(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]:
-    """`_env_samples` laid out for `env_taps`: cp (3, 4^s, n) coordinate planes (sub-sample k of
-    every fine triangle contiguous) and wT (4^s, n) (cached on ``geo``)."""
-    cache = geo.__dict__.setdefault("_env_sample_planes", {})
+    """`_env_samples` laid out for `env_taps`: cp (3, n, 4^s) coordinate planes (a fine triangle's
+    4^s sub-samples contiguous) and wT (n, 4^s) (cached on ``geo``). Triangle-major, so that
+    `quad_means` reads a triangle's footprints as three contiguous runs: sample-major (3, 4^s, n),
+    its 16 samples were 48 strided streams per triangle (1 thread, chess bench blocks of 68 frames:
+    `quad_means` 1.40x / 1.45x faster in two same-process runs at load 10, `env_taps` the same,
+    bit-identical results)."""
+    cache = geo.__dict__.setdefault("_env_sample_planes_nS", {})     # (n, S) layout: its own key
     if supersample not in cache:
         c, wn = _env_samples(geo, supersample)
         n, S = wn.shape
-        cache[supersample] = (c.view(n, S, 3).permute(2, 1, 0).contiguous(), wn.T.contiguous())
+        cache[supersample] = (c.view(n, S, 3).permute(2, 0, 1).contiguous(), wn.contiguous())
     return cache[supersample]
 
 
@@ -335,11 +374,11 @@ def env_taps(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int) -> tuple[Tensor, 
     of the env map seen in f frames at the projection's samples (Ma 2006 eq. 7's L^x(ω) = L(R_x^T ω)):
     directions (R_f T)^T c in the emitter frame (T = to_world, as `EnvMap.to_local`; the two
     rotations folded into one per frame), then `direction_to_uv` (atan2, acos).
-    R (f, 3, 3); cp (3, S, n) sample coordinate planes (`_env_sample_planes`); T (3, 3); H, W the
-    map's size. Every operand is a plane over the fine triangles: the compiled loop is vectorised
-    along them (atan2 / acos vectorised too)."""
+    R (f, 3, 3); cp (3, n, S) sample coordinate planes (`_env_sample_planes`); T (3, 3); H, W the
+    map's size; returns (f, n, S) each. Every operand is a plane over the samples: the compiled loop
+    is vectorised along them (atan2 / acos vectorised too)."""
     M = (R @ T)[:, :, :, None, None]                                       # (f, 3, 3, 1, 1)
-    cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, S, n)
+    cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, n, S)
     d = [cx * M[:, 0, k] + cy * M[:, 1, k] + cz * M[:, 2, k] for k in range(3)]  # emitter frame
     u = torch.atan2(d[0], -d[2]) * (0.5 / math.pi)
     v = torch.acos(d[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
@@ -355,13 +394,13 @@ def _tree_sum(xs: list[Tensor]) -> Tensor:
 
 
 def quad_means(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor) -> Tensor:
-    """Fine-triangle means of the map's bilinear radiance at footprints (idx, fx, fy) (f, S, n)
-    (`env_taps`): Σ_s wT[s] · bilinear(s) per frame, triangle and channel, from the quad rows Q
+    """Fine-triangle means of the map's bilinear radiance at footprints (idx, fx, fy) (f, n, S)
+    (`env_taps`): Σ_s wT[:, s] · bilinear(s) per frame, triangle and channel, from the quad rows Q
     (H·(W + 1), 16) (`methods.core.latlong.quad_texels`; lanes: `quad_lanes`). Vectorised along each row (one vector
     load per sample instead of 12 scalar ones); the S-term sum in a fixed pairwise order per
     output (one thread each: thread-count independent). Returns (f, 3, n)."""
-    terms = [Q[idx[:, s]] * (quad_lane_weights(fx[:, s], fy[:, s], lanes) * wT[s, :, None])  # (f, n, 16)
-             for s in range(idx.shape[1])]
+    terms = [Q[idx[:, :, s]] * (quad_lane_weights(fx[:, :, s], fy[:, :, s], lanes) * wT[:, s, None])  # (f, n, 16)
+             for s in range(idx.shape[2])]
     acc = _tree_sum(terms)
     return torch.stack([(acc[..., 4 * c] + acc[..., 4 * c + 1]) + (acc[..., 4 * c + 2] + acc[..., 4 * c + 3])
                         for c in range(3)], 1)
@@ -388,17 +427,17 @@ def azimuth_of(T: Tensor) -> float | None:
 
 
 def _azimuthal_samples(geo: Geodesic, supersample: int, grid: FrameGrid) -> tuple[Tensor, Tensor]:
-    """u0 float64, v0 float32, each (n_theta·n_psi, 4^s, n): the lat-long coordinates
+    """u0 float64, v0 float32, each (n_theta·n_psi, n, 4^s): the lat-long coordinates
     (``direction_to_uv``) of every sample of the base frames (θ_i, φ = 0, ψ_k) in the world (row
     i·n_psi + k), computed in float64 from the float32 sample planes of `_env_sample_planes` (cached
     on ``geo``). u0 stays float64 so that u0 + shift is rounded once: a float32 sum added up to an ulp
     of u, 1.2e-5 of the largest coefficient on the bunny's sharp test map (measured; 8e-6 in float64)."""
-    cache = geo.__dict__.setdefault("_azimuthal_samples", {})
+    cache = geo.__dict__.setdefault("_azimuthal_samples_nS", {})     # (B, n, S) layout: its own key
     key = (supersample, grid)
     if key not in cache:
         cp, _ = _env_sample_planes(geo, supersample)
         R0 = grid_frames(FrameGrid(grid.n_theta, 1, grid.n_psi))          # (B, 3, 3) float64
-        e = torch.einsum("csn,bci->ibsn", cp.double(), R0)                  # world R0^T c (3, B, S, n)
+        e = torch.einsum("cns,bci->ibns", cp.double(), R0)                  # world R0^T c (3, B, n, S)
         u0 = torch.atan2(e[0], -e[2]) * (0.5 / math.pi)
         v0 = torch.acos(e[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
         cache[key] = (u0.contiguous(), v0.float().contiguous())
@@ -409,8 +448,8 @@ def env_taps_azimuthal(shift: Tensor, base: Tensor, u0: Tensor, v0: Tensor, H: i
                        ) -> tuple[Tensor, Tensor, Tensor]:
     """`env_taps` of f grid frames for an emitter turned about +Y (comment above): u = u0 + shift,
     v = v0 of the frame's base row. shift (f,) float64 (φ_j − γ)/2π mod 1; base (f,) int64 base row;
-    u0 float64, v0 float32 (B, S, n) (`_azimuthal_samples`). Returns idx, fx, fy (f, S, n)."""
-    u = (u0[base] + shift[:, None, None]).float()                          # (f, S, n), rounded once
+    u0 float64, v0 float32 (B, n, S) (`_azimuthal_samples`). Returns idx, fx, fy (f, n, S)."""
+    u = (u0[base] + shift[:, None, None]).float()                          # (f, n, S), rounded once
     return quad_taps(u, v0[base], H, W)
 
 
@@ -447,8 +486,9 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         about +Y only (`azimuth_of`) takes the shifted base coordinates (`env_taps_azimuthal`);
         stats: receives ``"lighting_path"``, "azimuthal" or "general" (for `fast_eval.frame_cost`).
         frames: (F',) int64 indices of the frames of R to project (None: all), in blocks of the
-            same size as the whole projection's (one compiled shape): a pixel frame projects only
-            the grid frames its samples look up (`TripleProduct.fill_lighting`).
+            same size as the whole projection's and tail blocks (`env_blocks`; a compiled shape
+            each, the same values as any other blocking): a pixel frame projects only the grid
+            frames its samples look up (`TripleProduct.fill_lighting`).
     Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
@@ -475,7 +515,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         # the general kernel too, in the harness's warm-up frame (`core.fused.warming`): a sequence
         # whose first lighting turns about +Y only ("L": the scene's own map, then rotations about a
         # tilted axis) needs it first in a timed frame (chess L frame 1 compiled it: ~2x that frame)
-        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W), [chunk])
+        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W),
+                    [chunk, *env_tail_sizes(chunk)])
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
     means = _kernel(quad_means_coeffs)
@@ -483,5 +524,19 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     def block(*r):  # two compiled kernels per block of frames (a static shape each)
         return means(*taps(*r, *args), wT, Q, lanes)
 
-    coef, fine = map_rows(block, rows, chunk=chunk)                       # (F, 3, n) each
-    return coef, fine
+    # the tail block sizes too, in the warm-up frame (it projects the whole grid, often no tail)
+    warm_blocks(block, rows, (), env_tail_sizes(chunk))
+    q = int(rows[0].shape[0])
+    if q == 0:
+        return map_rows(block, rows, chunk=chunk)
+    sizes = env_blocks(q, chunk)
+    n_full = sizes.count(chunk)
+    parts, a = [], min(q, n_full * chunk)
+    if n_full:                                                            # full blocks, the last padded
+        parts.append(map_rows(block, [r[:a] for r in rows], chunk=chunk))  # when no tail block follows
+    for b in sizes[n_full:]:                                              # tail blocks
+        parts.append(map_rows(block, [r[a:a + b] for r in rows], chunk=b))
+        a = min(q, a + b)
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(torch.cat(x) for x in zip(*parts))                      # (F, 3, n) each

@@ -332,6 +332,32 @@ def test_project_env_does_not_depend_on_threads(monkeypatch):
     assert torch.equal(one[1], whole[1])
 
 
+def test_project_env_tail_blocks_equal_the_whole_projection(monkeypatch):
+    """A selection of frames (a lazy lighting change) runs in full blocks and tail blocks
+    (`lighting.env_blocks`: the last few frames in small padded blocks, not one padded full block):
+    each projected row equals the whole grid's projection of that frame bit for bit, on both paths
+    (general kernel, map turned about +Y)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.sequences import rotation_y
+
+    assert lt.env_tail_sizes(68) == (32, 16, 8) and lt.env_tail_sizes(15) == ()
+    assert lt.env_blocks(347, 68) == [68] * 5 + [8] and lt.env_blocks(328, 68) == [68] * 4 + [32, 16, 8]
+    assert lt.env_blocks(60, 68) == [68] and lt.env_blocks(5, 68) == [8] and lt.env_blocks(0, 68) == []
+    g = lt.FrameGrid(5, 7, 1)                                             # 35 frames
+    geo, R = Geodesic(1), lt.grid_frames(g)
+    monkeypatch.setattr(lt, "ENV_BLOCK_SAMPLES", 12 * 80 * 4)            # blocks of 12 frames
+    monkeypatch.setattr(lt, "ENV_TAIL_MIN", 2)                            # tails of 4 and 2 frames
+    assert lt.env_block_frames(35, 80 * 4) == 12 and lt.env_blocks(17, 12) == [12, 4, 2]
+    sel = torch.tensor([0, 1, 3, 4, 6, 7, 9, 12, 13, 16, 20, 21, 25, 27, 30, 33, 34])   # 17 frames
+    for env in (get_scene("bunny", "test").envmap.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]),
+                get_scene("bunny", "test").envmap.rotated(rotation_y(0.7))):
+        whole = lt.project_env(env, R, geo, supersample=1, grid=g)
+        part = lt.project_env(env, R, geo, supersample=1, grid=g, frames=sel)
+        assert part[0].shape == (17, 3, geo.n)
+        assert torch.equal(part[0], whole[0][sel]) and torch.equal(part[1], whole[1][sel])
+
+
 def test_prefiltered_reuses_the_box_filter_across_rotations_only():
     """`lighting.prefiltered` keeps the last box-filtered texels: a rotated copy of the same data gets
     them with its own rotation; a new map (new data) is filtered anew."""
