@@ -198,12 +198,6 @@ def _plane_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: 
     return out * (1.0 / S2)
 
 
-@fused
-def _count_on(mask: Tensor, region: Tensor, lut: Tensor) -> Tensor:
-    """Σ mask & lut[region]: the samples of ``mask`` whose region has lut set (one pass)."""
-    return (mask & lut[region]).sum()
-
-
 @register
 class ZHShadow(Method):
     """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
@@ -490,12 +484,12 @@ class ZHShadow(Method):
         resolve (3 ms) of the general path go, for ~1.5 ms of the fused pass."""
         dev, P = gbuffer.hit.device, gbuffer.num_samples
         nrm = gbuffer.normal
-        groups, mask, rest = rt.planar_groups(nrm.T) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
+        groups, mask, rest = rt.planar_groups(rt.rows(nrm)) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
         if len(groups) != 1 or mask is None:
             return None
         region = gbuffer.region
         spec = [t[3] is not None for t in tabs]
-        if any(spec) and int(_count_on(mask, region, torch.tensor(spec, device=dev))):
+        if any(spec) and int((mask & torch.tensor(spec, device=dev)[region]).sum()):
             return None   # a specular term on the plane: `runtime.shade` does it per point
         if self._faces is None or self._faces[0] is not geom:
             F = geom.F.to(dev)
@@ -527,7 +521,9 @@ class ZHShadow(Method):
         n = gbuffer.height * gbuffer.width
         img = _plane_pixels(gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), nrm.view(n, S2, 3),
                             gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
-        img.index_add_(0, rest // S2, rad.T, alpha=1.0 / S2)
+        pix = rest // S2
+        for c in range(3):   # per channel: 5x faster than one (Qr, 3) index_add_ (0.5 vs 2.5 ms at bench size)
+            img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
         counts = rt._plane_counts(groups, mask, region, geom.N.to(dev), vreg)
         counts["specular"] = cr["specular"]
         self._last_counts = {"P": P, "Q": P, **counts}
