@@ -266,7 +266,7 @@ class ZHShadow(Method):
         self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp, shading), v): last frame
         self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
         self._vtable: tuple | None = None        # ((pose, lighting, materials), v, `runtime.vertex_table` U, tables)
-        self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), (N, 3) plane term u)
+        self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
         self._faces: tuple | None = None         # (geometry, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
 
@@ -485,7 +485,7 @@ class ZHShadow(Method):
         dev, P = gbuffer.hit.device, gbuffer.num_samples
         nrm = gbuffer.normal
         groups, mask, rest = rt.planar_groups(rt.rows(nrm)) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
-        if len(groups) != 1 or mask is None:
+        if len(groups) != 1 or mask is None or rest.shape[0] == 0:
             return None
         region = gbuffer.region
         spec = [t[3] is not None for t in tabs]
@@ -497,10 +497,11 @@ class ZHShadow(Method):
         _, F32, fv = self._faces
         n0 = groups[0][0]
         ukey = (self._posed[0], self._light[0], tuple(tuple(m[0].tolist()) for m in mats), tuple(n0.tolist()))
-        if self._plane_u is None or self._plane_u[0] != ukey or self._plane_u[1] is not v0:
+        pu, Wd = self._plane_u, tabs[0][2]
+        if pu is None or pu[0] != ukey or pu[1] is not v0 or pu[2] is not Wd:   # (Wd: the cached table itself)
             kd_v = torch.stack([m[0] for m in mats]).to(dev, v.dtype).index_select(0, vreg)       # (N, 3)
-            self._plane_u = (ukey, v0, (v @ rt.diffuse_at(tabs[0][2], n0)) * kd_v)              # as `runtime.shade`
-        u = self._plane_u[2]
+            self._plane_u = pu = (ukey, v0, Wd, (v @ rt.diffuse_at(Wd, n0)) * kd_v)             # as `runtime.shade`
+        u = pu[3]
 
         def take(x: Tensor) -> Tensor:   # (C, Qr) rows of the samples ``rest`` of a (P, C) array
             if x.stride(0) == 1:         # column-major (bary, ωo): gather along its transpose's rows
@@ -512,9 +513,15 @@ class ZHShadow(Method):
         b = torch.stack([1.0 - bu - bv, bu, bv], -1)                                 # `runtime.barycentrics`
         clamp = self.config["clamp"]
         U = None if cosine else self._vertex_table(frame, v0, v, vreg, tabs, mats)
-        rad, cr = rt.shade(v, vi, b, take(nrm), take(gbuffer.wo), region.index_select(0, rest), vreg,
-                           geom.N.to(dev), tabs, planar=False, cosine=cosine,
-                           tables="point" if U is None else "vertex", U=U)
+        reg, mt = region.index_select(0, rest), tabs
+        if U is None and rest.shape[0]:
+            r0 = int(reg[0])
+            if bool((reg == r0).all()):   # the object is one region: `runtime.shade` shades its points in
+                mt = [tabs[r0]]           # order, without gathering them per region and scattering back
+                #                           (VB frame, bench creature: 1.1x; per-vertex tables keep every
+                #                           region's columns, so only the per-point GEMMs take this)
+        rad, cr = rt.shade(v, vi, b, take(nrm), take(gbuffer.wo), reg, vreg, geom.N.to(dev), mt, planar=False,
+                           cosine=cosine, tables="point" if U is None else "vertex", U=U)
         if clamp:   # per sample, before the resolve
             rad = rad.clamp_min(0.0)
         S2 = gbuffer.spp_side ** 2
