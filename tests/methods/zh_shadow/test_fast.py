@@ -332,6 +332,35 @@ def test_view_frames_keep_the_vertex_table(small_model):
     assert mc._vtable is None
 
 
+@pytest.mark.parametrize("name,path", (("creature", "planes"), ("sphere_plane", "planes"), ("alcove", "samples"),
+                                       ("character", "samples")))
+def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
+    """`ZHShadow._render_planes` (every sample a hit, one plane without a specular term: the plane
+    shaded straight from the G-buffer) is taken where it applies and nowhere else (alcove: two
+    planes; character: samples that miss), equals the reference and the general path (image to
+    round-off, the same point counts for `frame_cost`) on V and VB frames, with the clamp on and off.
+    A wrong plane term, front test, clamp or box filter breaks the image; a wrong count the counts."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model(name)
+    for kind, clamp in (("V", True), ("VB", True), ("V", False)):
+        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+        for fr in make_sequence(m.scene, kind, 2, seed=5):
+            gb = make_gbuffer(m.scene, fr, 2)
+            a = fast.render(fr, gb)
+            assert fast.last_path == path, (name, kind, fast.last_path)
+            with monkeypatch.context() as mp:
+                mp.setattr(Z, "_render_planes", lambda *args, **kw: None)
+                b = slow.render(fr, gb)
+            ref = fast._render_reference(fr, gb)
+            assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
+            ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+            pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
+            assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
+
+
 def test_product_tensor_and_features():
     """G[a, j, i] reproduces the product y_j y_i pointwise (it is exact: the product is band-limited
     to 2n−1), and the monomial features map onto the order-B SH exactly on the sphere."""

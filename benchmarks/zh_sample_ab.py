@@ -1,0 +1,66 @@
+"""Same-process A/B of ZHShadow frames against another checkout, without the bench-size reference
+render (`benchmarks.zh_pose_ab` checks every frame against `_render_reference`, which at bench size
+on the loaded 2-core machine took > 20 min for two kinds): the new image is compared with the
+baseline's instead (max |new − base| / max |base|), and the path the new code took is printed.
+
+    python -m benchmarks.zh_sample_ab --baseline /work/base [--config '{}'] [--kinds V VB VBL VL L E]
+        [--frames 11] [--scene creature] [--size bench]
+
+Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time, 1 thread.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import statistics
+import time
+
+import torch
+
+from benchmarks.common import precomputed, setup
+from benchmarks.zh_pose_ab import baseline_class
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--baseline", required=True)
+    ap.add_argument("--config", default="{}")
+    ap.add_argument("--kinds", nargs="+", default=["V", "VB", "VBL", "VL", "L", "E"])
+    ap.add_argument("--frames", type=int, default=11)
+    ap.add_argument("--scene", default="creature")
+    ap.add_argument("--size", default="bench")
+    ap.add_argument("--seed", type=int, default=1)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    from methods.zh_shadow.method import ZHShadow as New
+
+    Base = baseline_class(a.baseline)
+    scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
+    m, _ = precomputed(New, scene, json.loads(a.config))
+    out = {}
+    for kind in a.kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=a.seed)
+        new = m.with_render_config()
+        base = copy.copy(m.with_render_config())
+        base.__class__ = Base
+        t: dict = {"new": [], "base": []}
+        err = 0.0
+        for i, (f, g) in enumerate(zip(frames, gbs)):
+            imgs = {}
+            for w in (("new", "base") if i % 2 == 0 else ("base", "new")):
+                c = time.process_time()
+                imgs[w] = (new if w == "new" else base).render(f, g)
+                if i >= 2:
+                    t[w].append(time.process_time() - c)
+            err = max(err, float((imgs["new"] - imgs["base"]).abs().max() / imgs["base"].abs().max().clamp_min(1e-12)))
+        mb, mn = statistics.median(t["base"]), statistics.median(t["new"])
+        out[kind] = {"base_cpu_ms": 1e3 * mb, "new_cpu_ms": 1e3 * mn, "cpu_ratio": mb / mn, "rel_diff": err,
+                     "path": getattr(new, "last_path", "")}
+        print(f"{kind}: base {1e3 * mb:.1f} ms new {1e3 * mn:.1f} ms ratio {mb / mn:.2f} rel_diff {err:.2e} "
+              f"path {out[kind]['path']}", flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
