@@ -485,7 +485,8 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     n = math.isqrt(vT.shape[0])
     K = _conjugated(op_key, n).to(vT.dtype).to(vT.device)
     ang = _zyz_angles(nT, n)
-    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang)), ang)
+    blocks = _operator_blocks(op_key, n, False, vT.dtype, vT.device)
+    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang), blocks), ang)
 
 
 def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -543,11 +544,66 @@ def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
     return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw)
 
 
-def _zyz_product(K: Tensor, aT: Tensor) -> Tensor:
+def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
     """K @ a, (n², n²) @ (n², Q) — on one thread below 16 rows: MKL splits such thin products over
-    threads (methods.core.threads; `world_visibility`)."""
+    threads (methods.core.threads; `world_visibility`). ``blocks`` (`_operator_blocks` of K): the
+    product block by block, K's structural zeros skipped — y[rows_b] = K[rows_b, cols_b] a[cols_b],
+    a gathered and scattered by rows (4 blocks of 12–20 at order 8: 1,056 of K's 4,096 entries;
+    1.17 vs 3.3 ms for the dense product at 13.4 K points, 1 thread, load ~2 on 2 cores)."""
     with torch_threads(1) if K.shape[0] < 16 else contextlib.nullcontext():
-        return K @ aT
+        if blocks is None or len(blocks) == 1:
+            return K @ aT
+        out = torch.empty_like(aT)
+        for rows_b, cols_b, K_b in blocks:
+            out.index_copy_(0, rows_b, K_b @ aT.index_select(0, cols_b))
+        return out
+
+
+def _structure(op_key: tuple, order: int, lifted: bool) -> Tensor:
+    """(n², n²) bool: the entries of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) that are
+    not zero by structure — the boolean product of the non-zero patterns of X = M(R_x(90°)) (by band,
+    and within a band between the cos/sin and odd/even-m parts) and of M (between equal m:
+    `convolution.phong_operator` sets only those), so that an entry that is small but not zero is
+    never dropped and one that is zero up to round-off always is."""
+    xs = (_zyz_tables(order)[3].abs() > 1e-12).double()
+    ms = (phong_operator(op_key[1], order, dtype=torch.float64) != 0).double()
+    S = xs @ ms
+    return (S @ xs.T if not lifted else S) > 0
+
+
+@functools.lru_cache(maxsize=None)
+def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
+    """The dense blocks of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) of the zonal
+    operator named by ``op_key``: ((rows (r,) int64, cols (c,) int64, K[rows][:, cols] (r, c)), …)
+    — the connected components of the bipartite graph rows ↔ columns of `_structure`, so that
+    K = Σ_b the blocks scattered to their rows and columns (`_zyz_product`); one block when K is
+    not block-structured."""
+    n2 = order * order
+    S = _structure(op_key, order, lifted)
+    K = _lifted(op_key, order) if lifted else _conjugated(op_key, order)
+    parent = list(range(2 * n2))                       # union-find over rows 0..n²−1, columns n²..2n²−1
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for r, c in S.nonzero().tolist():
+        a, b = find(r), find(n2 + c)
+        if a != b:
+            parent[b] = a
+    roots: dict[int, tuple[list[int], list[int]]] = {}
+    for i in range(2 * n2):
+        rows_b, cols_b = roots.setdefault(find(i), ([], []))
+        (rows_b if i < n2 else cols_b).append(i % n2)
+    blocks = []
+    for rows_b, cols_b in roots.values():
+        if not rows_b:                                 # an all-zero column: no output depends on it
+            continue
+        r, c = torch.tensor(rows_b), torch.tensor(cols_b, dtype=torch.int64)
+        blocks.append((r.to(device), c.to(device), K[r][:, c].to(dtype).to(device).contiguous()))
+    return tuple(blocks)
 
 
 def _zyz_up(aT: Tensor, ang: tuple) -> Tensor:
@@ -580,7 +636,8 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
     """
     n = math.isqrt(vzT.shape[0])
     K = _lifted(("phong", 1.0), n).to(vzT.dtype).to(vzT.device)
-    return _zyz_up(_zyz_product(K, vzT.contiguous()), _zyz_angles(nT, n))
+    blocks = _operator_blocks(("phong", 1.0), n, True, vzT.dtype, vzT.device)
+    return _zyz_up(_zyz_product(K, vzT.contiguous(), blocks), _zyz_angles(nT, n))
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
