@@ -469,7 +469,9 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
         M(R_n) M M(R_n)ᵀ = R_z(φ) Xᵀ R_z(θ) · (X M Xᵀ) · R_z(−θ) X R_z(−φ),
 
     three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
-    the middle X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the
+    the middle X M Xᵀ one (n², n²) product, block by block (`_operator_blocks`: M couples
+    only equal m, X only one band's parts, so X M Xᵀ is 4 dense blocks, 1,056 of 4,096 entries at order 8)
+    — and four per-point z rotations (cos/sin of |m| times the
     angle on the ±m pairs), instead of building each point's SH rotation
     (`methods.core.sh_rotation`). Each half around the GEMM is one compiled pass over all Q points
     (`_zyz_half`: the z rotation `_rz`, X or Xᵀ by its non-zeros and the next z rotation,
@@ -627,7 +629,7 @@ def _lifted(op_key: tuple, order: int) -> Tensor:
 def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
     """`cosine_visibility` from the visibility in the ZYZ frame of each point's normal (vzT (n², Q):
     `world_visibility` with ``frame="zyz"``, v_zyz = M(R_n)ᵀ v): M(R_n) M¹ v_zyz — the second half
-    of `zonal_conjugate` alone, after one (n², n²) GEMM by X M¹ (`_lifted`): the lobes are taken to
+    of `zonal_conjugate` alone, after one (n², n²) product by X M¹ (`_lifted`, block by block as `zonal_conjugate`): the lobes are taken to
     that frame as 3-vectors before eq. 1, so the first half (two z rotations and X per point) is not
     needed. Same numbers as `cosine_visibility` of the world-space v to round-off.
 
