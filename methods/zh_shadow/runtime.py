@@ -551,7 +551,8 @@ def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
     threads (methods.core.threads; `world_visibility`). ``blocks`` (`_operator_blocks` of K): the
     product block by block, K's structural zeros skipped — y[rows_b] = K[rows_b, cols_b] a[cols_b],
     a gathered and scattered by rows (4 blocks of 12–20 at order 8: 1,056 of K's 4,096 entries;
-    1.17 vs 3.3 ms for the dense product at 13.4 K points, 1 thread, load ~2 on 2 cores)."""
+    1.17 vs 3.3 ms for the dense product at 13.4 K points, 1 thread, load ~2 on 2 cores; the
+    physical setting's P frame 1.23x process CPU, `benchmarks.zh_pose_ab`, load ~5-9)."""
     with torch_threads(1) if K.shape[0] < 16 else contextlib.nullcontext():
         if blocks is None or len(blocks) == 1:
             return K @ aT
