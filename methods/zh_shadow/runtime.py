@@ -469,7 +469,9 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
         M(R_n) M M(R_n)ᵀ = R_z(φ) Xᵀ R_z(θ) · (X M Xᵀ) · R_z(−θ) X R_z(−φ),
 
     three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
-    the middle X M Xᵀ one (n², n²) GEMM — and four per-point z rotations (cos/sin of |m| times the
+    the middle X M Xᵀ one (n², n²) product, block by block (`_operator_blocks`: M couples
+    only equal m, X only one band's parts, so X M Xᵀ is 4 dense blocks, 1,056 of 4,096 entries at order 8)
+    — and four per-point z rotations (cos/sin of |m| times the
     angle on the ±m pairs), instead of building each point's SH rotation
     (`methods.core.sh_rotation`). Each half around the GEMM is one compiled pass over all Q points
     (`_zyz_half`: the z rotation `_rz`, X or Xᵀ by its non-zeros and the next z rotation,
@@ -485,7 +487,8 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
     n = math.isqrt(vT.shape[0])
     K = _conjugated(op_key, n).to(vT.dtype).to(vT.device)
     ang = _zyz_angles(nT, n)
-    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang)), ang)
+    blocks = _operator_blocks(op_key, n, False, vT.dtype, vT.device)
+    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang), blocks), ang)
 
 
 def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -543,11 +546,67 @@ def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
     return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw)
 
 
-def _zyz_product(K: Tensor, aT: Tensor) -> Tensor:
+def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
     """K @ a, (n², n²) @ (n², Q) — on one thread below 16 rows: MKL splits such thin products over
-    threads (methods.core.threads; `world_visibility`)."""
+    threads (methods.core.threads; `world_visibility`). ``blocks`` (`_operator_blocks` of K): the
+    product block by block, K's structural zeros skipped — y[rows_b] = K[rows_b, cols_b] a[cols_b],
+    a gathered and scattered by rows (4 blocks of 12–20 at order 8: 1,056 of K's 4,096 entries;
+    1.17 vs 3.3 ms for the dense product at 13.4 K points, 1 thread, load ~2 on 2 cores; the
+    physical setting's P frame 1.23x process CPU, `benchmarks.zh_pose_ab`, load ~5-9)."""
     with torch_threads(1) if K.shape[0] < 16 else contextlib.nullcontext():
-        return K @ aT
+        if blocks is None or len(blocks) == 1:
+            return K @ aT
+        out = torch.empty_like(aT)
+        for rows_b, cols_b, K_b in blocks:
+            out.index_copy_(0, rows_b, K_b @ aT.index_select(0, cols_b))
+        return out
+
+
+def _structure(op_key: tuple, order: int, lifted: bool) -> Tensor:
+    """(n², n²) bool: the entries of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) that are
+    not zero by structure — the boolean product of the non-zero patterns of X = M(R_x(90°)) (by band,
+    and within a band between the cos/sin and odd/even-m parts) and of M (between equal m:
+    `convolution.phong_operator` sets only those), so that an entry that is small but not zero is
+    never dropped and one that is zero up to round-off always is."""
+    xs = (_zyz_tables(order)[3].abs() > 1e-12).double()
+    ms = (phong_operator(op_key[1], order, dtype=torch.float64) != 0).double()
+    S = xs @ ms
+    return (S @ xs.T if not lifted else S) > 0
+
+
+@functools.lru_cache(maxsize=None)
+def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
+    """The dense blocks of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) of the zonal
+    operator named by ``op_key``: ((rows (r,) int64, cols (c,) int64, K[rows][:, cols] (r, c)), …)
+    — the connected components of the bipartite graph rows ↔ columns of `_structure`, so that
+    K = Σ_b the blocks scattered to their rows and columns (`_zyz_product`); one block when K is
+    not block-structured."""
+    n2 = order * order
+    S = _structure(op_key, order, lifted)
+    K = _lifted(op_key, order) if lifted else _conjugated(op_key, order)
+    parent = list(range(2 * n2))                       # union-find over rows 0..n²−1, columns n²..2n²−1
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for r, c in S.nonzero().tolist():
+        a, b = find(r), find(n2 + c)
+        if a != b:
+            parent[b] = a
+    roots: dict[int, tuple[list[int], list[int]]] = {}
+    for i in range(2 * n2):
+        rows_b, cols_b = roots.setdefault(find(i), ([], []))
+        (rows_b if i < n2 else cols_b).append(i % n2)
+    blocks = []
+    for rows_b, cols_b in roots.values():
+        if not rows_b:                                 # an all-zero column: no output depends on it
+            continue
+        r, c = torch.tensor(rows_b), torch.tensor(cols_b, dtype=torch.int64)
+        blocks.append((r.to(device), c.to(device), K[r][:, c].to(dtype).to(device).contiguous()))
+    return tuple(blocks)
 
 
 def _zyz_up(aT: Tensor, ang: tuple) -> Tensor:
@@ -571,7 +630,7 @@ def _lifted(op_key: tuple, order: int) -> Tensor:
 def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
     """`cosine_visibility` from the visibility in the ZYZ frame of each point's normal (vzT (n², Q):
     `world_visibility` with ``frame="zyz"``, v_zyz = M(R_n)ᵀ v): M(R_n) M¹ v_zyz — the second half
-    of `zonal_conjugate` alone, after one (n², n²) GEMM by X M¹ (`_lifted`): the lobes are taken to
+    of `zonal_conjugate` alone, after one (n², n²) product by X M¹ (`_lifted`, block by block as `zonal_conjugate`): the lobes are taken to
     that frame as 3-vectors before eq. 1, so the first half (two z rotations and X per point) is not
     needed. Same numbers as `cosine_visibility` of the world-space v to round-off.
 
@@ -580,7 +639,8 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
     """
     n = math.isqrt(vzT.shape[0])
     K = _lifted(("phong", 1.0), n).to(vzT.dtype).to(vzT.device)
-    return _zyz_up(_zyz_product(K, vzT.contiguous()), _zyz_angles(nT, n))
+    blocks = _operator_blocks(("phong", 1.0), n, True, vzT.dtype, vzT.device)
+    return _zyz_up(_zyz_product(K, vzT.contiguous(), blocks), _zyz_angles(nT, n))
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
@@ -1131,8 +1191,17 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     pT, nT = p.T.contiguous(), nrm.T.contiguous()
     lam = tuple(band_norms(n).tolist())
     dim = 0 if point_minor else 1
-    parts = [_vertex_sh(pT[:, s:s + B].contiguous(), nT[:, s:s + B].contiguous(), lam, lobes, n, dim, frame == "zyz")
-             for s in range(0, Np, B)]
-    if point_minor:
-        return torch.cat(parts, 1)[:, :N].contiguous() if len(parts) > 1 or Np > N else parts[0]
-    return torch.cat(parts)[:N] if len(parts) > 1 else parts[0][:N]
+    if Np == B:
+        out = _vertex_sh(pT, nT, lam, lobes, n, dim, frame == "zyz")
+        return (out[:, :N].contiguous() if point_minor else out[:N]) if Np > N else out
+    # each block's result copied once into its place (a cat then the trim to N columns were two
+    # copies of the (n², N) result: 1.9x slower stage at 13.4 K vertices, order 8, 1 thread, load ~9)
+    out = torch.empty((n * n, N) if point_minor else (N, n * n), dtype=X.dtype, device=X.device)
+    for s in range(0, Np, B):
+        e = min(s + B, N)
+        blk = _vertex_sh(pT[:, s:s + B].contiguous(), nT[:, s:s + B].contiguous(), lam, lobes, n, dim, frame == "zyz")
+        if point_minor:
+            out[:, s:e] = blk[:, :e - s]
+        else:
+            out[s:e] = blk[:e - s]
+    return out
