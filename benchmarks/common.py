@@ -249,3 +249,22 @@ def load_file_module(path: str, name: str):
     sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
+
+
+class registry_kept:
+    """``with registry_kept(): ...`` — the method registry as it was before the block: loading another
+    checkout's method module (`load_file_module`) registers its class under this tree's name."""
+
+    def __enter__(self):
+        from methods import base
+
+        self._saved = dict(base._REGISTRY)
+        return self
+
+    def __exit__(self, *exc):
+        from methods import base
+
+        base._REGISTRY.clear()
+        base._REGISTRY.update(self._saved)
+        return False
+

@@ -35,12 +35,10 @@ def _load(root: str, name: str):
 def _load_method(root: str, lt, fe):
     """The baseline's `TripleProduct` class, its module rendering with the baseline's lighting /
     fast_eval modules (the registry keeps this tree's class)."""
-    from methods import base as mb
+    from benchmarks.common import registry_kept
 
-    reg = dict(mb._REGISTRY)
-    mm = _load(root, "method")
-    mb._REGISTRY.clear()
-    mb._REGISTRY.update(reg)
+    with registry_kept():
+        mm = _load(root, "method")
     mm.lt, mm.fast_eval = lt, fe
     return mm.TripleProduct
 

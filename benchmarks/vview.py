@@ -23,25 +23,20 @@ import os
 
 import torch
 
-from benchmarks.common import ab_frames, ab_options, load_file_module, ab_report, apply_ab_options, machine_limits, precomputed, setup
+from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, load_file_module, machine_limits,
+                               precomputed, registry_kept, setup)
 from reports import measure
 
 
 def baseline_class(method: str, root: str):
     """The method class of the checkout ``root`` (its own run-time modules, this tree's core)."""
-    from methods import base
-
-    saved = dict(base._REGISTRY)
-    try:
+    with registry_kept():
         if method == "sh_prt":
             return load_file_module(os.path.join(root, "methods/sh_prt/method.py"), "_vview_base_sh_prt").SHPRT
         fast = load_file_module(os.path.join(root, "methods/inout/fast.py"), "_vview_base_inout_fast")
         mod = load_file_module(os.path.join(root, "methods/inout/method.py"), "_vview_base_inout")
-        mod._fast = fast
-        return mod.InOut
-    finally:
-        base._REGISTRY.clear()
-        base._REGISTRY.update(saved)
+    mod._fast = fast
+    return mod.InOut
 
 
 def main(argv: list[str] | None = None) -> dict:

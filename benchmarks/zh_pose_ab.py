@@ -24,7 +24,8 @@ import time
 
 import torch
 
-from benchmarks.common import ab_frames, ab_options, load_file_module, ab_report, apply_ab_options, machine_limits, precomputed, setup
+from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, load_file_module, machine_limits,
+                               precomputed, registry_kept, setup)
 from reports import measure
 
 PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
@@ -32,17 +33,11 @@ PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
 
 def baseline_class(root: str):
     """ZHShadow of the checkout ``root`` (its runtime and method modules, this tree's core)."""
-    from methods import base
-
-    saved = dict(base._REGISTRY)
-    try:
+    with registry_kept():
         rt = load_file_module(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
         mod = load_file_module(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
-        mod.rt = rt
-        return mod.ZHShadow
-    finally:
-        base._REGISTRY.clear()
-        base._REGISTRY.update(saved)
+    mod.rt = rt
+    return mod.ZHShadow
 
 
 def _best(f, repeats: int = 5) -> float:
