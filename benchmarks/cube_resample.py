@@ -10,7 +10,7 @@ call, the two paths *alternating call by call in one process* (the machine is sh
 taken under the same load; the load average is printed; process CPU ms beside the wall ms: at
 one thread on a shared machine roughly what an unshared core would take), the map rotated anew before every
 call (an L frame: nothing keyed on the rotation is reused), and their largest relative texel
-difference. Also the compiled per-sample loop alone (one block of `fused.CHUNK` samples: ns per
+difference. Also the compiled per-sample loop alone (all 393k sub-samples of the N = 16 cube, per-texel sums included: ns per
 sample) — what bounds a call: 6·N²·s² = 393k sub-samples (s = max(s, `min_supersample`)), each a
 rotation, an atan2, an acos and 4 gathers × 3 channels.
 
@@ -66,21 +66,21 @@ def time_calls(env, N: int, s: int, repeats: int) -> dict:
 
 
 def time_block(env, repeats: int) -> float:
-    """ns per sub-sample of the compiled loop on one block of `fused.CHUNK` samples."""
+    """ns per sub-sample of the compiled loop (`cubemap._texel_sums`: look-ups and per-texel sums) on
+    the in-out cube (N = 16, s = 16: 393k sub-samples, one block)."""
     from methods.core import cubemap as cm
-    from methods.core.fused import CHUNK
 
-    d, w = cm._subsample_table(16, 16)
-    args = (d[0, :CHUNK].contiguous(), d[1, :CHUNK].contiguous(), d[2, :CHUNK].contiguous(),
-            w[:CHUNK].contiguous(), env.to_world.float(), env.periodic_texels(None, torch.float32, planes=True),
-            env.height, env.width)
-    cm._weighted_lookup_fused(*args)
+    N, s = 16, 16
+    d, w = cm._subsample_table(N, s)
+    args = (*(t.view(6 * N * N, s * s) for t in (d[0], d[1], d[2], w)), env.to_world.float(),
+            env.periodic_texels(None, torch.float32, planes=True), env.height, env.width)
+    cm._texel_sums_fused(*args)
     ts = []
     for _ in range(max(repeats, 7) * 3):
         t0 = time.perf_counter()
-        cm._weighted_lookup_fused(*args)
+        cm._texel_sums_fused(*args)
         ts.append(time.perf_counter() - t0)
-    return 1e9 * statistics.median(ts) / CHUNK
+    return 1e9 * statistics.median(ts) / (6 * N * N * s * s)
 
 
 def prefilter_errors(N: int = 16, s: int = 4) -> list[dict]:

@@ -371,7 +371,21 @@ def _weighted_lookup(dx: Tensor, dy: Tensor, dz: Tensor, w: Tensor, R: Tensor, e
     return r * w, g * w, b * w
 
 
-_weighted_lookup_fused = fused(_weighted_lookup)
+def _texel_sums(dx: Tensor, dy: Tensor, dz: Tensor, w: Tensor, R: Tensor, ext: Tensor,
+                H: int, W: int) -> Tensor:
+    """Texels (n rows of s² sub-samples: dx, dy, dz, w (n, s²)) → (n, 3) Σ_sub w · L: `_weighted_lookup`
+    and the per-texel sum in one compiled loop (each texel summed by one thread: the result does not
+    depend on the thread count), so no per-sub-sample value is stored and read back."""
+    r, g, b = _weighted_lookup(dx, dy, dz, w, R, ext, H, W)
+    return torch.stack([r.sum(-1), g.sum(-1), b.sum(-1)], -1)
+
+
+_texel_sums_fused = fused(_texel_sums)
+# Sub-samples per compiled block of `from_envmap` (whole texels: ``TEXEL_BLOCK // s²`` of them, at most
+# the 6N² of the cube): in-out's 16² cube at s = 16 is one block of 6·16²·16² = 393k sub-samples.
+# One block against blocks of 128 texels (32k sub-samples): 1.3× (per-block launch and the
+# reduction's start-up; ``benchmarks.cube_resample``).
+TEXEL_BLOCK = 1 << 19
 
 
 def from_envmap(envmap: Any, N: int, *, supersample: int = 4, dtype=torch.float32) -> Tensor:
@@ -379,12 +393,16 @@ def from_envmap(envmap: Any, N: int, *, supersample: int = 4, dtype=torch.float3
 
     The same sub-samples, weights and bilinear look-ups as that (slow, test-oracle) path, so the
     same texels to float32 round-off: the sub-sample directions and weights are cached per (N, s)
-    (`_subsample_table`), the rotation, look-up and weighting of each sub-sample run as one
-    compiled loop over static row blocks (`methods.core.fused.map_rows`; 45 eager passes over the
-    s²·6N² samples before), and the per-texel sum over the s² sub-samples is the oracle's own
-    ``sum(-2)``. Costs (``python -m benchmarks.cube_resample``) are per call, nothing is kept
-    between calls but the (N, s) table and the map's periodic texels (`EnvMap.periodic_texels`),
-    so a rotated map (every L frame) costs the same as an unchanged one.
+    (`_subsample_table`), the rotation, look-up and weighting of each sub-sample and the per-texel
+    sum over its s² sub-samples run as one compiled loop over blocks of whole texels
+    (`_texel_sums`, `TEXEL_BLOCK`; `methods.core.fused.map_rows`). Costs (``python -m
+    benchmarks.cube_resample``) are per call, nothing is kept between calls but the (N, s) table and
+    the map's periodic texels (`EnvMap.periodic_texels`), so a rotated map (every L frame) costs the
+    same as an unchanged one. Summing in the compiled loop instead of storing the s²·6N² weighted
+    values and summing them eagerly: 1.45-1.6× per call at N = 16, s = 16 (1 thread, process CPU
+    time, same process, load ~9: 10.0 → 6.4 ms); the loop is bound by its 12 scalar texel gathers
+    per sub-sample (the rotation, atan2 and acos alone: ~2.5 ms; the texels as 64-byte quad rows,
+    ``latlong.quad_texels``, one vector load per sub-sample: slower, 11 ms).
 
     Args:
         envmap: a ``scenes.envmap.EnvMap`` (lat-long texels ``data`` (H, W, 3), ``to_world``).
@@ -398,8 +416,11 @@ def from_envmap(envmap: Any, N: int, *, supersample: int = 4, dtype=torch.float3
     d, w = _subsample_table(N, s)
     R = envmap.to_world.to(torch.float32).contiguous()
     ext = envmap.periodic_texels(None, torch.float32, planes=True)  # (3, H·(W+1))
-    Lw = map_rows(_weighted_lookup_fused, [d[0], d[1], d[2], w], (R, ext, envmap.height, envmap.width))
-    return torch.stack([c.reshape(6, N, N, s * s).sum(-1) for c in Lw], -1).to(dtype)
+    S2 = s * s
+    rows = [t.view(6 * N * N, S2) for t in (d[0], d[1], d[2], w)]   # texel-major (face, row, col)
+    Lt = map_rows(_texel_sums_fused, rows, (R, ext, envmap.height, envmap.width),
+                  chunk=max(1, min(6 * N * N, TEXEL_BLOCK // S2)))
+    return Lt.reshape(6, N, N, 3).to(dtype)
 
 
 def pool_means(cube: Tensor) -> Tensor:

@@ -74,6 +74,16 @@ and (R, 3, K, R)): 0.15-0.3× (Inductor vectorised along the window row but broa
 and strode the table by K); without index checks: 1.0×. Tried and dropped for the per-vertex view:
 its per-sample region check and face index as one compiled pass: 3.5× slower than the eager ops.
 
+Session 16 (2026-12-04, same process against main, 1 thread, process CPU time, load 9-13): X's
+blocks are written into one array of all slots (`view_windows` ``out``) instead of concatenated per
+slot, then across slots (two copies of X, 7.4 MB on chess): `prepare` 1.03× (28.2 → 27.5 ms on
+chess bench), bit-identical. Where a V frame's time goes now (chess / creature, ms): `prepare` 27 /
+15 (X 20 / 8, `window_entries` 3 / 3), `shade_pixels` 24 / 18 (`shade_rows` 14 / 13, the exact
+path 5.5 / 2.5), `shaded_faces` 2.5 / 2.7. X computes W² = 144 nodes per vertex on chess where the
+bounding boxes of each vertex's own sample cells hold 2.9× fewer (~2.1·10⁵ of 6.1·10⁵ nodes) and
+the distinct (vertex, node) pairs the samples read 5× fewer (1.2·10⁵): per-vertex window sides
+(from the subsample's per-vertex extents) are the next step for X, not yet done.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -330,16 +340,29 @@ window_rows.eager = _window_rows  # type: ignore[attr-defined]
 WINDOW_BLOCK = 512
 
 
-def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int) -> Tensor:
+def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int,
+                 out: Tensor | None = None) -> Tensor:
     """X (m·W², 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node window (first column ax,
     first row ay, (m,) each; row-major in the window) of each vertex ``ref`` (m,) (local ids), node-major:
-    the compiled `window_rows` over static blocks of `WINDOW_BLOCK` vertices; c (Vr, 3, K)."""
+    the compiled `window_rows` over static blocks of `WINDOW_BLOCK` vertices (the last one padded by
+    repeating its last vertex, as ``core.fused.map_rows``), each block written into ``out``
+    (m·W², 3) when given (`prepare`'s X of all slots: no concatenation of the blocks, then of the
+    slots, each a copy of X); c (Vr, 3, K)."""
     m = ref.numel()
+    if out is None:
+        out = torch.empty(m * W * W, 3, dtype=c.dtype, device=ref.device)
     if m == 0:
-        return torch.zeros(0, 3, dtype=c.dtype, device=ref.device)
+        return out
     torch._dynamo.maybe_mark_dynamic(c, 0)              # the region's vertex count: one variant per K, W
-    X = map_rows(window_rows, [ax, ay, ref], (fr.sh_nc, c, fr.R, W), chunk=WINDOW_BLOCK)
-    return X.reshape(m * W * W, 3)
+    rows = [t.contiguous() for t in (ax, ay, ref)]      # one stride pattern for full and padded blocks
+    o4 = out.view(m, W, W, 3)
+    for a in range(0, m, WINDOW_BLOCK):
+        blk = [t[a:a + WINDOW_BLOCK] for t in rows]
+        n = blk[0].shape[0]
+        if n < WINDOW_BLOCK:
+            blk = [torch.cat([t, t[-1:].expand(WINDOW_BLOCK - n)]) for t in blk]
+        o4[a:a + n] = window_rows(*blk, fr.sh_nc, c, fr.R, W)[:n]
+    return out
 
 
 @dataclass
@@ -451,11 +474,12 @@ def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tup
     win = torch.zeros(n_all, 3, dtype=torch.int32, device=dev)
     win[ref] = wr
     b = [int(x) for x in torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()]
-    X = [view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], wr[b[s]:b[s + 1], 0], wr[b[s]:b[s + 1], 1], W)
-         for s, fr in enumerate(st.regions)]
-    if m == 0:
-        X.append(torch.zeros(W * W, 3, dtype=torch.float32, device=dev))
-    return Windows(W=W, win=win, X=torch.cat(X, 0))
+    X = torch.empty(m * W * W, 3, dtype=torch.float32, device=dev) if m else \
+        torch.zeros(W * W, 3, dtype=torch.float32, device=dev)     # at least W² rows (`_shade_rows`)
+    for s, fr in enumerate(st.regions):                            # each slot's windows written in place
+        view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], wr[b[s]:b[s + 1], 0], wr[b[s]:b[s + 1], 1], W,
+                     out=X[b[s] * W * W:b[s + 1] * W * W])
+    return Windows(W=W, win=win, X=X)
 
 
 # Static blocks of the compiled per-sample stage (`shade_pixels`): the frame's shaded sample count
