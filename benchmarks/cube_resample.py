@@ -4,6 +4,7 @@ against its oracle `cubemap.from_radiance` (same sub-samples, weights and look-u
     python -m benchmarks.cube_resample                   # ms per call, N = 16 / 32, 256 × 512 probe
     python -m benchmarks.cube_resample --threads 1
     python -m benchmarks.cube_resample --prefilter       # + the error a 2× box prefilter would add
+    python -m benchmarks.cube_resample --threads 1 --no-calls --base OTHER_CHECKOUT   # its from_envmap vs this one's
 
 Per (N, supersample): the median wall ms of ``--repeats`` calls of each path after one warm-up
 call, the two paths *alternating call by call in one process* (the machine is shared: the ratio is
@@ -63,6 +64,34 @@ def time_calls(env, N: int, s: int, repeats: int) -> dict:
             "oracle_ms": 1e3 * statistics.median(t_ref), "fast_ms": 1e3 * statistics.median(t_fast),
             "oracle_cpu_ms": 1e3 * statistics.median(c_ref), "fast_cpu_ms": 1e3 * statistics.median(c_fast),
             "max_rel_diff": rel}
+
+
+def time_base(env, base: str, N: int, s: int, repeats: int) -> dict:
+    """``from_envmap`` of the checkout at ``base`` (its ``methods/core/cubemap.py`` loaded beside this
+    one, `benchmarks.common.load_file_module`) against this checkout's, alternating call by call (the
+    first two calls untimed), the map rotated anew before every call: median wall / process-CPU ms
+    and the largest relative texel difference."""
+    import os as _os
+
+    from benchmarks.common import load_file_module
+    from methods.core import cubemap as cm
+
+    old = load_file_module(_os.path.join(base, "methods", "core", "cubemap.py"), "base_cubemap")
+    t = {"base": ([], []), "new": ([], [])}
+    rel = 0.0
+    for i, R in enumerate(_rotations(repeats + 2, seed=N * 100 + s)):
+        e = env.rotated(R)
+        out = {}
+        for k in (("base", "new") if i % 2 else ("new", "base")):
+            mod = old if k == "base" else cm
+            t0, c0 = time.perf_counter(), time.process_time()
+            out[k] = mod.from_envmap(e, N, supersample=s)
+            if i >= 2:
+                t[k][0].append(time.perf_counter() - t0)
+                t[k][1].append(time.process_time() - c0)
+        rel = max(rel, float(((out["base"] - out["new"]).abs() / out["base"].abs().clamp_min(1e-30)).max()))
+    r = {f"{k}_{w}_ms": 1e3 * statistics.median(v[j]) for k, v in t.items() for j, w in enumerate(("wall", "cpu"))}
+    return {"N": N, "s": s, **r, "max_rel_diff": rel}
 
 
 def time_block(env, repeats: int) -> float:
@@ -131,6 +160,7 @@ def main(argv=None) -> None:
     ap.add_argument("--size", default="bench")
     ap.add_argument("--kinds", nargs="+", default=["L", "E"])
     ap.add_argument("--no-calls", action="store_true", help="skip the per-call timings")
+    ap.add_argument("--base", default=None, help="also time from_envmap of this checkout against this one's")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     from scenes.envmap import probe
@@ -146,6 +176,12 @@ def main(argv=None) -> None:
     if not a.no_calls:
         print(f"compiled loop: {time_block(env, a.repeats):.2f} ns per sub-sample (one block, {a.threads} threads)")
         print(f"load after: {os.getloadavg()[0]:.2f}")
+    if a.base:
+        for N, s in ((16, 4), (32, 2)):
+            r = time_base(env, a.base, N, s, a.repeats)
+            print(f"N={N:3d} s={s} base {a.base}: CPU {r['base_cpu_ms']:.2f} -> {r['new_cpu_ms']:.2f} ms "
+                  f"({r['base_cpu_ms'] / r['new_cpu_ms']:.2f}x), wall {r['base_wall_ms']:.2f} -> {r['new_wall_ms']:.2f} ms "
+                  f"({r['base_wall_ms'] / r['new_wall_ms']:.2f}x), max rel diff {r['max_rel_diff']:.2e}")
     if a.frames:
         frames_ab(a.methods, a.scene, a.size, a.kinds, a.frames, {"ptt": {"light_res_1": 4}})
     if a.prefilter:
