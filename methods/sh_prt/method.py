@@ -27,7 +27,8 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
-    of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
+    of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
+    session 16: V 1.16×, 1 thread, load ~9); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
     (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
     The glossy pass is the larger part of a V frame: per channel one reduction over the 24
     non-constant coefficients of the interpolated l' against G y(R) (`_glossy_samples`; session 14:
@@ -112,26 +113,39 @@ GLOSSY_CHUNK = 1 << 14
 GLOSSY_TAIL_CHUNK = 1 << 12
 
 
-def _pixels_impl(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
-            kd: Tensor, glf: Tensor) -> tuple[Tensor, ...]:
+def _pixels_impl(face: Tensor, hit: Tensor, reg: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
+                 ) -> tuple[Tensor, ...]:
     """The box-filtered diffuse term ρ·e of the NON-glossy samples of n pixels (Sloan 2002 §7), one
     (n,) tensor per colour channel: per sample e Gouraud-interpolated from the face-corner table ef
     (M, 9) = e[F] (corner-major, `SHPRT._light_stage`), ρ = kd (R, 3) of its region, clamped at 0,
     zero where it misses, n·ωo ≤ 0 or its region is glossy (glf (R,) 1.0: `_glossy_samples` shades
-    those samples whole); face (n, S²) int64 (−1 on a miss), bary (n, S², 2), hit (n, S²) bool, normal,
-    wo (n, S², 3), reg (n, S²) int64. The S² sub-samples are summed unrolled (one thread per pixel)
-    and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the pixels (n, 3) and which of their
-    samples are hits of a glossy region (n, S²) bool, both stacked in the compiled kernel (the eager
-    stacks of the channels and flags were ~4 % of a V frame in `perf`)."""
+    those samples whole); face (n, S²) int64 (−1 on a miss), hit (n, S²) bool, reg (n, S²) int64, then
+    ``xs``: bary (2), normal (3) and wo (3) components, each array as ``layout`` says (`_pixel_rows`):
+    one (n, S², k) tensor (1) or k (n, S²) component tensors (k), then ef, kd, glf. The S² sub-samples
+    are summed unrolled (one thread per pixel) and scaled by 1/S², as `GBuffer.resolve`'s mean.
+    Returns the pixels (n, 3) and which of their samples are hits of a glossy region (n, S²) bool,
+    both stacked in the compiled kernel (the eager stacks of the channels and flags were ~4 % of a V
+    frame in `perf`)."""
+    arrays, i = [], 0
+    for k in layout:
+        arrays.append(xs[i:i + k])
+        i += k
+    ef, kd, glf = xs[i:]
+    B, Nn, O = arrays
+
+    def comp(a, s: int, j: int) -> Tensor:
+        return a[0][:, s, j] if len(a) == 1 else a[j][:, s]
+
     S2 = face.shape[1]
     acc = [None, None, None]
     glossy = []
     for s in range(S2):
         f, r = face[:, s].clamp_min(0), reg[:, s].clamp_min(0)
-        u, v = bary[:, s, 0], bary[:, s, 1]
+        u, v = comp(B, s, 0), comp(B, s, 1)
         w0 = 1.0 - u - v
         gs = hit[:, s] & (glf[r] != 0)
-        keep = ((normal[:, s] * wo[:, s]).sum(-1) > 0) & hit[:, s] & ~gs
+        ndo = comp(Nn, s, 0) * comp(O, s, 0) + comp(Nn, s, 1) * comp(O, s, 1) + comp(Nn, s, 2) * comp(O, s, 2)
+        keep = (ndo > 0) & hit[:, s] & ~gs
         for c in range(3):
             ev = ef[f, c] * w0 + ef[f, 3 + c] * u + ef[f, 6 + c] * v
             x = torch.where(keep, (kd[r, c] * ev).clamp_min(0.0), 0.0)
@@ -145,7 +159,23 @@ def _pixels_impl(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Te
 # 0, and < M and R for a G-buffer of this scene). Same process, creature bench, 1 thread, load ~10:
 # 3.99 ms against 4.27 ms (1.07×). Vectorizing it (`GLOSSY_OPTIONS`' tiling off) was 0.53×: its loads
 # are all strided (n, S², k) components and indirect rows, gathered lane by lane.
-_pixels = fused(_pixels_impl, options={"assert_indirect_indexing": False})
+@functools.lru_cache(maxsize=None)
+def _pixels_kernel(layout: tuple[int, int, int]):
+    """`_pixels_impl` for one ``layout`` of its vector arrays, compiled (`fused`) once per layout."""
+    def _pixels(*xs: Tensor) -> tuple[Tensor, ...]:
+        return _pixels_impl(*xs, layout=layout)
+
+    return fused(_pixels, options={"assert_indirect_indexing": False})
+
+
+def _pixel_rows(x: Tensor, n: int, S2: int) -> tuple[Tensor, ...]:
+    """A G-buffer array x (P, k) as `_pixels`' row tensors without a copy: k (n, S²) component views
+    when x is column-major (Mitsuba's structure-of-arrays ``bary`` and ``wo``: ``x.T`` contiguous), else
+    one (n, S², k) view. (`map_rows` makes its rows contiguous: the (n, S², k) view of a column-major
+    array was a transposing copy, ~1.5 ms of a creature V frame for bary and wo, 1 thread.)"""
+    if x.shape[1] > 1 and x.T.is_contiguous():
+        return tuple(x[:, j].view(n, S2) for j in range(x.shape[1]))
+    return (x.reshape(n, S2, x.shape[1]),)
 
 
 # Inductor options of `_glossy_samples`: without the tiling heuristics the loop that builds y(R)
@@ -607,9 +637,10 @@ class SHPRT(Method):
         torch._dynamo.maybe_mark_dynamic(self._lg3, 1)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3),
-                reg.view(n, S2))
-        out = map_rows(_pixels, rows, (self._ef, kd, glf), chunk=max(1, PIXEL_CHUNK // S2))
+        vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
+        rows = (face.view(n, S2), hit.view(n, S2), reg.view(n, S2), *(c for v in vecs for c in v))
+        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, kd, glf),
+                       chunk=max(1, PIXEL_CHUNK // S2))
         img = out[0]                                                              # (n, 3)
         g = out[1].view(-1).nonzero().squeeze(-1)                                 # glossy hits, ascending
         if g.numel():
