@@ -38,9 +38,8 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
     Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
-    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is a compiled unrolled 25-term sum
-    over the rows (`_light_rows`, row count dynamic: one kernel; 1.3× the (3, n²) × (n², N) GEMM,
-    1 thread; RGB transfer keeps the GEMVs, against which the unrolled sum was 0.59×). An E frame projects
+    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is the (3, n²) × (n², N) GEMM (session 15's
+    compiled unrolled sum measured 0.72-0.82× of it in session 16, `apply_lighting`). An E frame projects
     the new map in its polar frame (`project_latlong_polar`: the column integrals as one GEMM)
     and rotates the coefficients ONCE, by to_world · Qᵀ (`sh.project_latlong` rotated them to the
     map's frame with the eager band recursion, ~1.2 ms, and `rotate_sampled` then to the world):
@@ -89,7 +88,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
-from methods.core.fused import compile_enabled, fused, map_rows
+from methods.core.fused import fused, map_rows
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
@@ -350,44 +349,18 @@ def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     once: lᵀ X (C = 1, one GEMM with 3 output rows) or l_c X_c per channel. Measured on the
     creature's M (1 thread, same process): C = 1 2.9 ms vs 4.4-6.2 for 3 GEMVs over (N, n²) rows and
     9.8 for the (N, n²) × (n², 3) GEMM; C = 3 3.4-4.4 vs 4.3-4.8 and 17-25 for the einsum's batched
-    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off."""
+    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off.
+
+    Grey transfer (C = 1, the perf cells' bounces 0) is the BLAS GEMM again (session 16): session
+    15's compiled unrolled 25-term sum over the rows (1.3× the GEMM then) measured 0.72-0.82× of it
+    on this machine since (creature M, 242k rows, 1 thread, same process, alternating, load 9-14:
+    medians 2.15 / 1.81 / 2.21 ms GEMM against 2.62 / 2.54 / 3.01 ms; whole L and VL frames 1.03× and
+    1.06×)."""
     Xp = lighting_major(X)
     Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
     if Xp.shape[0] == 1:
-        if Xp.shape[1] <= LIGHTING_UNROLL_MAX and Xp.shape[2] >= LIGHTING_UNROLL_MIN_ROWS and compile_enabled():
-            X1 = Xp[0]
-            torch._dynamo.maybe_mark_dynamic(X1, 1)                           # one kernel for every N
-            return _light_rows(X1, l)
         return l.T @ Xp[0]                                                    # (3, N)
     return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
-
-
-# `apply_lighting` through `_light_rows` for GREY transfers (C = 1: the perf cells' bounces 0) of at
-# most this many coefficients (order ≤ 6: the unrolled sum's n²·3 terms compile in seconds) and at
-# least this many rows (the creature's M, Vg·n² = 242k rows; smaller products stay BLAS: a compiled
-# call's guards cost ~0.1 ms). RGB transfer (C = 3, bounces ≥ 1) stays three BLAS GEMVs: the unrolled
-# sum over its three (n², N) planes was 0.59× (8.5 ms against 5.0, creature-sized random M, 1 thread).
-LIGHTING_UNROLL_MAX = 36
-LIGHTING_UNROLL_MIN_ROWS = 1 << 16
-
-
-def _light_rows_impl(X: Tensor, l: Tensor) -> Tensor:
-    """out[c, j] = Σ_i X[i, j] l[i, c] for grey transfer rows X (n², N) (channel-major, N contiguous)
-    and l (n², 3) → (3, N): the n² terms summed unrolled in order, vectorized over the N columns, so
-    X is streamed once and each output written once. Same process, creature M (24 MB, grey), 1
-    thread, load ~7-10 on 2 cores: 3.4-3.6 ms against 4.4-4.5 ms for the (3, n²) × (n², N) BLAS GEMM
-    (1.3×; a plain streaming sum of X took 1.5 ms). Session 14 measured an unrolled sum at 1.2× but
-    kept the GEMM for its one compiled variant per transfer size; N is marked dynamic here
-    (`apply_lighting`)."""
-    acc = [None, None, None]
-    for i in range(X.shape[0]):
-        for c in range(3):
-            t = X[i] * l[i, c]
-            acc[c] = t if acc[c] is None else acc[c] + t
-    return torch.stack(acc)
-
-
-_light_rows = fused(_light_rows_impl)
 
 
 def apply_lighting_reference(X: Tensor, l: Tensor) -> Tensor:
