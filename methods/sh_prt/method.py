@@ -206,19 +206,26 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     buffer first). The fully pointwise form (the n² terms of y(R) in registers, 3·3·n² scalar
     gathers of l' per sample) was 0.7× and compiled for 75-97 s. The interpolation is linear, so
     Σ_i (Σ_k w_k l'_k,i) y_i = Σ_k w_k Σ_i l'_k,i y_i: the same sum in another order (float32
-    round-off against `render_reference`)."""
+    round-off against `render_reference`).
+
+    n, ωo and R as scalar components (session 16): the (Qg, 3) temporaries of the row-wise form
+    (norms, the reflection) compiled to scalar loops of 3-lane masked vectors; so written the pass
+    is 1.19-1.21× (creature bench, 1 thread, same process, alternating, load ~13; bit-identical
+    output). Session 15's measurement of a component form (0.87×) was of another kernel."""
     f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
     u, v = bary[g, 0], bary[g, 1]
     w0 = 1.0 - u - v
-    n, o = normal[g], wo[g]
-    front = (n * o).sum(-1) > 0
-    nn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    d = (nn * o).sum(-1, keepdim=True)
-    R = 2.0 * d * nn - o                                                        # reflect(ωo, n)
-    R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    nx, ny, nz = normal[g, 0], normal[g, 1], normal[g, 2]                     # scalar components: no
+    ox, oy, oz = wo[g, 0], wo[g, 1], wo[g, 2]                                   # (Qg, 3) temporaries
+    front = (nx * ox + ny * oy + nz * oz) > 0
+    nrm = (nx * nx + ny * ny + nz * nz).sqrt().clamp_min(1e-12)
+    nx, ny, nz = nx / nrm, ny / nrm, nz / nrm
+    d = nx * ox + ny * oy + nz * oz
+    Rx, Ry, Rz = 2.0 * d * nx - ox, 2.0 * d * ny - oy, 2.0 * d * nz - oz        # reflect(ωo, n)
+    rn = (Rx * Rx + Ry * Ry + Rz * Rz).sqrt().clamp_min(1e-12)
     order = math.isqrt(G.shape[1])
-    terms = _sh.sh_terms(R[:, 0], R[:, 1], R[:, 2], order)
-    sc = torch.where(vcos[r], d[:, 0].clamp_min(0.0), 1.0)                      # Blinn-Phong: × n·ωo
+    terms = _sh.sh_terms(Rx / rn, Ry / rn, Rz / rn, order)
+    sc = torch.where(vcos[r], d.clamp_min(0.0), 1.0)                            # Blinn-Phong: × n·ωo
     y0 = terms[0] * G[r, 0] * sc                                                # (Qg,) G_0 y_0
     a0, a1, a2 = fg[f, 0], fg[f, 1], fg[f, 2]
     W0, U, V = w0[:, None], u[:, None], v[:, None]
