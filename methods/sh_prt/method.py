@@ -56,6 +56,13 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     (the fused pass is less than the sum of the two); writing y(R) channel-major (n²−1, Qg) or
     computing it from scalar components (no (Q, 3) temporaries) made that stage ~1.4× faster
     alone, but the whole pass so written was 0.87× (Inductor fused it differently): not adopted.
+  * session 16 (same process, 1 thread, process CPU, load ~9-13; `python -m benchmarks.sh_prt
+    --baseline OTHER_CHECKOUT --micro`): the pixel pass without map_rows' transposing copies of bary
+    and wo (`_pixel_rows`), grey M l as the GEMM again (`apply_lighting`), the glossy pass with n, ωo
+    and R as scalar components (`_glossy_samples`; session 15's 0.87× was of another kernel; the
+    y(R) buffer and reduction as before): V 1.18×, L 1.26×, E 1.15×, VL 1.22×. Stages after it
+    (creature bench, load ~9): pixels 2.5 ms (9.5 ns per sample), glossy 5.1 ms (140 ns per glossy
+    sample), M l 1.4 ms (17.7 GB/s; a plain streaming sum of M 0.88 ms), projection 1.4 ms.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
