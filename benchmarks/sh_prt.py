@@ -109,9 +109,11 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["light: corner table"] = {"ms": ms(lambda: m._e.contiguous().index_select(0, m.F.view(-1)).view(-1, 9))}
     S2, n = gb.spp_side ** 2, gb.height * gb.width
     face, bary, hit, normal, wo, reg = gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region
-    rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3), reg.view(n, S2))
+    vecs = [shm._pixel_rows(x, n, S2) for x in (bary, normal, wo)]
+    rows = (face.view(n, S2), hit.view(n, S2), reg.view(n, S2), *(c for v in vecs for c in v))
     glf = m.glossy_regions.float()
-    run_pix = lambda: map_rows(shm._pixels, rows, (m._ef, kd, glf), chunk=max(1, shm.PIXEL_CHUNK // S2))  # noqa: E731
+    kernel = shm._pixels_kernel(tuple(len(v) for v in vecs))
+    run_pix = lambda: map_rows(kernel, rows, (m._ef, kd, glf), chunk=max(1, shm.PIXEL_CHUNK // S2))  # noqa: E731
     t_pix = ms(run_pix)
     P = gb.num_samples
     b_pix = P * (8 + 8 + 1 + 12 + 12 + 8) + n * 12 + m._ef.numel() * 4

@@ -27,7 +27,8 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
-    of e); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
+    of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
+    session 16: V 1.16×, 1 thread, load ~9); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
     (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
     The glossy pass is the larger part of a V frame: per channel one reduction over the 24
     non-constant coefficients of the interpolated l' against G y(R) (`_glossy_samples`; session 14:
@@ -37,9 +38,8 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
     Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
-    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is a compiled unrolled 25-term sum
-    over the rows (`_light_rows`, row count dynamic: one kernel; 1.3× the (3, n²) × (n², N) GEMM,
-    1 thread; RGB transfer keeps the GEMVs, against which the unrolled sum was 0.59×). An E frame projects
+    ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is the (3, n²) × (n², N) GEMM (session 15's
+    compiled unrolled sum measured 0.72-0.82× of it in session 16, `apply_lighting`). An E frame projects
     the new map in its polar frame (`project_latlong_polar`: the column integrals as one GEMM)
     and rotates the coefficients ONCE, by to_world · Qᵀ (`sh.project_latlong` rotated them to the
     map's frame with the eager band recursion, ~1.2 ms, and `rotate_sampled` then to the world):
@@ -56,6 +56,13 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     (the fused pass is less than the sum of the two); writing y(R) channel-major (n²−1, Qg) or
     computing it from scalar components (no (Q, 3) temporaries) made that stage ~1.4× faster
     alone, but the whole pass so written was 0.87× (Inductor fused it differently): not adopted.
+  * session 16 (same process, 1 thread, process CPU, load ~9-13; `python -m benchmarks.sh_prt
+    --baseline OTHER_CHECKOUT --micro`): the pixel pass without map_rows' transposing copies of bary
+    and wo (`_pixel_rows`), grey M l as the GEMM again (`apply_lighting`), the glossy pass with n, ωo
+    and R as scalar components (`_glossy_samples`; session 15's 0.87× was of another kernel; the
+    y(R) buffer and reduction as before): V 1.18×, L 1.26×, E 1.15×, VL 1.22×. Stages after it
+    (creature bench, load ~9): pixels 2.5 ms (9.5 ns per sample), glossy 5.1 ms (140 ns per glossy
+    sample), M l 1.4 ms (17.7 GB/s; a plain streaming sum of M 0.88 ms), projection 1.4 ms.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -88,7 +95,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.frames import reflect
-from methods.core.fused import compile_enabled, fused, map_rows
+from methods.core.fused import fused, map_rows
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
@@ -112,26 +119,39 @@ GLOSSY_CHUNK = 1 << 14
 GLOSSY_TAIL_CHUNK = 1 << 12
 
 
-def _pixels_impl(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor,
-            kd: Tensor, glf: Tensor) -> tuple[Tensor, ...]:
+def _pixels_impl(face: Tensor, hit: Tensor, reg: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
+                 ) -> tuple[Tensor, ...]:
     """The box-filtered diffuse term ρ·e of the NON-glossy samples of n pixels (Sloan 2002 §7), one
     (n,) tensor per colour channel: per sample e Gouraud-interpolated from the face-corner table ef
     (M, 9) = e[F] (corner-major, `SHPRT._light_stage`), ρ = kd (R, 3) of its region, clamped at 0,
     zero where it misses, n·ωo ≤ 0 or its region is glossy (glf (R,) 1.0: `_glossy_samples` shades
-    those samples whole); face (n, S²) int64 (−1 on a miss), bary (n, S², 2), hit (n, S²) bool, normal,
-    wo (n, S², 3), reg (n, S²) int64. The S² sub-samples are summed unrolled (one thread per pixel)
-    and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the pixels (n, 3) and which of their
-    samples are hits of a glossy region (n, S²) bool, both stacked in the compiled kernel (the eager
-    stacks of the channels and flags were ~4 % of a V frame in `perf`)."""
+    those samples whole); face (n, S²) int64 (−1 on a miss), hit (n, S²) bool, reg (n, S²) int64, then
+    ``xs``: bary (2), normal (3) and wo (3) components, each array as ``layout`` says (`_pixel_rows`):
+    one (n, S², k) tensor (1) or k (n, S²) component tensors (k), then ef, kd, glf. The S² sub-samples
+    are summed unrolled (one thread per pixel) and scaled by 1/S², as `GBuffer.resolve`'s mean.
+    Returns the pixels (n, 3) and which of their samples are hits of a glossy region (n, S²) bool,
+    both stacked in the compiled kernel (the eager stacks of the channels and flags were ~4 % of a V
+    frame in `perf`)."""
+    arrays, i = [], 0
+    for k in layout:
+        arrays.append(xs[i:i + k])
+        i += k
+    ef, kd, glf = xs[i:]
+    B, Nn, O = arrays
+
+    def comp(a, s: int, j: int) -> Tensor:
+        return a[0][:, s, j] if len(a) == 1 else a[j][:, s]
+
     S2 = face.shape[1]
     acc = [None, None, None]
     glossy = []
     for s in range(S2):
         f, r = face[:, s].clamp_min(0), reg[:, s].clamp_min(0)
-        u, v = bary[:, s, 0], bary[:, s, 1]
+        u, v = comp(B, s, 0), comp(B, s, 1)
         w0 = 1.0 - u - v
         gs = hit[:, s] & (glf[r] != 0)
-        keep = ((normal[:, s] * wo[:, s]).sum(-1) > 0) & hit[:, s] & ~gs
+        ndo = comp(Nn, s, 0) * comp(O, s, 0) + comp(Nn, s, 1) * comp(O, s, 1) + comp(Nn, s, 2) * comp(O, s, 2)
+        keep = (ndo > 0) & hit[:, s] & ~gs
         for c in range(3):
             ev = ef[f, c] * w0 + ef[f, 3 + c] * u + ef[f, 6 + c] * v
             x = torch.where(keep, (kd[r, c] * ev).clamp_min(0.0), 0.0)
@@ -145,7 +165,23 @@ def _pixels_impl(face: Tensor, bary: Tensor, hit: Tensor, normal: Tensor, wo: Te
 # 0, and < M and R for a G-buffer of this scene). Same process, creature bench, 1 thread, load ~10:
 # 3.99 ms against 4.27 ms (1.07×). Vectorizing it (`GLOSSY_OPTIONS`' tiling off) was 0.53×: its loads
 # are all strided (n, S², k) components and indirect rows, gathered lane by lane.
-_pixels = fused(_pixels_impl, options={"assert_indirect_indexing": False})
+@functools.lru_cache(maxsize=None)
+def _pixels_kernel(layout: tuple[int, int, int]):
+    """`_pixels_impl` for one ``layout`` of its vector arrays, compiled (`fused`) once per layout."""
+    def _pixels(*xs: Tensor) -> tuple[Tensor, ...]:
+        return _pixels_impl(*xs, layout=layout)
+
+    return fused(_pixels, options={"assert_indirect_indexing": False})
+
+
+def _pixel_rows(x: Tensor, n: int, S2: int) -> tuple[Tensor, ...]:
+    """A G-buffer array x (P, k) as `_pixels`' row tensors without a copy: k (n, S²) component views
+    when x is column-major (Mitsuba's structure-of-arrays ``bary`` and ``wo``: ``x.T`` contiguous), else
+    one (n, S², k) view. (`map_rows` makes its rows contiguous: the (n, S², k) view of a column-major
+    array was a transposing copy, ~1.5 ms of a creature V frame for bary and wo, 1 thread.)"""
+    if x.shape[1] > 1 and x.T.is_contiguous():
+        return tuple(x[:, j].view(n, S2) for j in range(x.shape[1]))
+    return (x.reshape(n, S2, x.shape[1]),)
 
 
 # Inductor options of `_glossy_samples`: without the tiling heuristics the loop that builds y(R)
@@ -177,19 +213,26 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     buffer first). The fully pointwise form (the n² terms of y(R) in registers, 3·3·n² scalar
     gathers of l' per sample) was 0.7× and compiled for 75-97 s. The interpolation is linear, so
     Σ_i (Σ_k w_k l'_k,i) y_i = Σ_k w_k Σ_i l'_k,i y_i: the same sum in another order (float32
-    round-off against `render_reference`)."""
+    round-off against `render_reference`).
+
+    n, ωo and R as scalar components (session 16): the (Qg, 3) temporaries of the row-wise form
+    (norms, the reflection) compiled to scalar loops of 3-lane masked vectors; so written the pass
+    is 1.19-1.21× (creature bench, 1 thread, same process, alternating, load ~13; bit-identical
+    output). Session 15's measurement of a component form (0.87×) was of another kernel."""
     f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
     u, v = bary[g, 0], bary[g, 1]
     w0 = 1.0 - u - v
-    n, o = normal[g], wo[g]
-    front = (n * o).sum(-1) > 0
-    nn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    d = (nn * o).sum(-1, keepdim=True)
-    R = 2.0 * d * nn - o                                                        # reflect(ωo, n)
-    R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    nx, ny, nz = normal[g, 0], normal[g, 1], normal[g, 2]                     # scalar components: no
+    ox, oy, oz = wo[g, 0], wo[g, 1], wo[g, 2]                                   # (Qg, 3) temporaries
+    front = (nx * ox + ny * oy + nz * oz) > 0
+    nrm = (nx * nx + ny * ny + nz * nz).sqrt().clamp_min(1e-12)
+    nx, ny, nz = nx / nrm, ny / nrm, nz / nrm
+    d = nx * ox + ny * oy + nz * oz
+    Rx, Ry, Rz = 2.0 * d * nx - ox, 2.0 * d * ny - oy, 2.0 * d * nz - oz        # reflect(ωo, n)
+    rn = (Rx * Rx + Ry * Ry + Rz * Rz).sqrt().clamp_min(1e-12)
     order = math.isqrt(G.shape[1])
-    terms = _sh.sh_terms(R[:, 0], R[:, 1], R[:, 2], order)
-    sc = torch.where(vcos[r], d[:, 0].clamp_min(0.0), 1.0)                      # Blinn-Phong: × n·ωo
+    terms = _sh.sh_terms(Rx / rn, Ry / rn, Rz / rn, order)
+    sc = torch.where(vcos[r], d.clamp_min(0.0), 1.0)                            # Blinn-Phong: × n·ωo
     y0 = terms[0] * G[r, 0] * sc                                                # (Qg,) G_0 y_0
     a0, a1, a2 = fg[f, 0], fg[f, 1], fg[f, 2]
     W0, U, V = w0[:, None], u[:, None], v[:, None]
@@ -320,44 +363,18 @@ def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     once: lᵀ X (C = 1, one GEMM with 3 output rows) or l_c X_c per channel. Measured on the
     creature's M (1 thread, same process): C = 1 2.9 ms vs 4.4-6.2 for 3 GEMVs over (N, n²) rows and
     9.8 for the (N, n²) × (n², 3) GEMM; C = 3 3.4-4.4 vs 4.3-4.8 and 17-25 for the einsum's batched
-    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off."""
+    product or a block-diagonal GEMM. Equals `apply_lighting_reference` to float32 round-off.
+
+    Grey transfer (C = 1, the perf cells' bounces 0) is the BLAS GEMM again (session 16): session
+    15's compiled unrolled 25-term sum over the rows (1.3× the GEMM then) measured 0.72-0.82× of it
+    on this machine since (creature M, 242k rows, 1 thread, same process, alternating, load 9-14:
+    medians 2.15 / 1.81 / 2.21 ms GEMM against 2.62 / 2.54 / 3.01 ms; whole L and VL frames 1.03× and
+    1.06×)."""
     Xp = lighting_major(X)
     Xp = Xp.permute(Xp.dim() - 1, Xp.dim() - 2, *range(Xp.dim() - 2)).reshape(X.shape[-1], X.shape[-2], -1)
     if Xp.shape[0] == 1:
-        if Xp.shape[1] <= LIGHTING_UNROLL_MAX and Xp.shape[2] >= LIGHTING_UNROLL_MIN_ROWS and compile_enabled():
-            X1 = Xp[0]
-            torch._dynamo.maybe_mark_dynamic(X1, 1)                           # one kernel for every N
-            return _light_rows(X1, l)
         return l.T @ Xp[0]                                                    # (3, N)
     return torch.stack([l[:, c] @ Xp[c] for c in range(3)])
-
-
-# `apply_lighting` through `_light_rows` for GREY transfers (C = 1: the perf cells' bounces 0) of at
-# most this many coefficients (order ≤ 6: the unrolled sum's n²·3 terms compile in seconds) and at
-# least this many rows (the creature's M, Vg·n² = 242k rows; smaller products stay BLAS: a compiled
-# call's guards cost ~0.1 ms). RGB transfer (C = 3, bounces ≥ 1) stays three BLAS GEMVs: the unrolled
-# sum over its three (n², N) planes was 0.59× (8.5 ms against 5.0, creature-sized random M, 1 thread).
-LIGHTING_UNROLL_MAX = 36
-LIGHTING_UNROLL_MIN_ROWS = 1 << 16
-
-
-def _light_rows_impl(X: Tensor, l: Tensor) -> Tensor:
-    """out[c, j] = Σ_i X[i, j] l[i, c] for grey transfer rows X (n², N) (channel-major, N contiguous)
-    and l (n², 3) → (3, N): the n² terms summed unrolled in order, vectorized over the N columns, so
-    X is streamed once and each output written once. Same process, creature M (24 MB, grey), 1
-    thread, load ~7-10 on 2 cores: 3.4-3.6 ms against 4.4-4.5 ms for the (3, n²) × (n², N) BLAS GEMM
-    (1.3×; a plain streaming sum of X took 1.5 ms). Session 14 measured an unrolled sum at 1.2× but
-    kept the GEMM for its one compiled variant per transfer size; N is marked dynamic here
-    (`apply_lighting`)."""
-    acc = [None, None, None]
-    for i in range(X.shape[0]):
-        for c in range(3):
-            t = X[i] * l[i, c]
-            acc[c] = t if acc[c] is None else acc[c] + t
-    return torch.stack(acc)
-
-
-_light_rows = fused(_light_rows_impl)
 
 
 def apply_lighting_reference(X: Tensor, l: Tensor) -> Tensor:
@@ -607,9 +624,10 @@ class SHPRT(Method):
         torch._dynamo.maybe_mark_dynamic(self._lg3, 1)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        rows = (face.view(n, S2), bary.view(n, S2, 2), hit.view(n, S2), normal.view(n, S2, 3), wo.view(n, S2, 3),
-                reg.view(n, S2))
-        out = map_rows(_pixels, rows, (self._ef, kd, glf), chunk=max(1, PIXEL_CHUNK // S2))
+        vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
+        rows = (face.view(n, S2), hit.view(n, S2), reg.view(n, S2), *(c for v in vecs for c in v))
+        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, kd, glf),
+                       chunk=max(1, PIXEL_CHUNK // S2))
         img = out[0]                                                              # (n, 3)
         g = out[1].view(-1).nonzero().squeeze(-1)                                 # glossy hits, ascending
         if g.numel():

@@ -271,29 +271,6 @@ def test_polar_projection_rotated_equals_project_latlong(dtype):
     assert (rotate_coeffs(cp, R @ Q.T) - want).abs().max() <= 1e-13 * want.abs().max()
 
 
-@pytest.mark.parametrize("C", [1, 3])
-def test_compiled_lighting_rows_equal_the_einsum(C, monkeypatch):
-    """`apply_lighting`'s compiled path (`_light_rows`, the n² terms unrolled, taken for grey
-    transfer of at least `LIGHTING_UNROLL_MIN_ROWS` rows; RGB stays BLAS) = the einsum of the
-    definition to float32 round-off, for two row counts (one compiled kernel: the row count is
-    dynamic); the lighting's coefficients in another order differ at O(1)."""
-    from methods.sh_prt import method as shm
-
-    monkeypatch.setattr(shm, "LIGHTING_UNROLL_MIN_ROWS", 64)
-    g = torch.Generator().manual_seed(C)
-    l = torch.randn(25, 3, generator=g)
-    for N in (517, 1030):
-        X = torch.randn(N, 25, C, generator=g)
-        want = shm.apply_lighting_reference(X, l)
-        got = shm.apply_lighting(shm.lighting_major(X), l)
-        assert got.shape == (3, N)
-        assert (got - want).abs().max() <= 1e-5 * want.abs().max()
-        if C == 1:
-            for fn in (shm._light_rows, shm._light_rows.eager):
-                assert (fn(X[..., 0].T.contiguous(), l) - want).abs().max() <= 1e-5 * want.abs().max()
-        assert (shm.apply_lighting_reference(X, l.flip(0)) - want).abs().max() > 1e-2 * want.abs().max()
-
-
 # A face corner's l' against the per-vertex M l computed directly for every vertex: the same rays
 # and the same float32 quadrature, only the row bookkeeping differs → float32 round-off of
 # radiances up to ~0.5 (measured 2-4e-7 relative; before the fix of `SHPRT.precompute` the
