@@ -515,7 +515,11 @@ class PTT(Method):
         if self.separate:  # Sun §4.1 E^(k) on the env map's grid, stacked for the per-sample look-ups
             Ek = _spec.on_env_grid(_spec.prefilter_env(envmap, self.env_filters, supersample=c["light_supersample"],
                                                        cubes=cubes), envmap)
-            Ek = (Ek, _fast.env_stack(Ek))
+            # the texels written straight onto the lanes the compiled sample stage reads (fast.env_stack)
+            L = len(Ek)
+            C = 3 + 3 * L + (3 if bounce and self.lobe_sh is not None else 0)  # as _fast_view_vertex's
+            vertex = FUSED_VIEW and c["shading"] == "vertex"
+            Ek = (Ek, _fast.env_stack(Ek, _fast.table_width(C) if vertex else 0))
         self._f_light, self._f_env, self._f_E = (E0, T1L, T2L, Ek), envmap, None
         self.stats["light"] += 1
 
