@@ -21,7 +21,8 @@ the eager estimator (`Oracle._shade` per region and batch of samples), is the te
 material-free ones (shading frame, env-map sampling, MIS weights, ray origins, radiance and the sum)
 over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
 (Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
-batch. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
+batch. When every region's BRDF compiles, the passes up to the shadow rays run as one kernel per region
+(`_pretrace_stage`), so their intermediate per-ray arrays are never stored. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
 from __future__ import annotations
 
