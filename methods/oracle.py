@@ -21,7 +21,8 @@ the eager estimator (`Oracle._shade` per region and batch of samples), is the te
 material-free ones (shading frame, env-map sampling, MIS weights, ray origins, radiance and the sum)
 over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
 (Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
-batch. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
+batch. When every region's BRDF compiles, the passes up to the shadow rays run as one kernel per region
+(`_pretrace_stage`), so their intermediate per-ray arrays are never stored. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
 from __future__ import annotations
 
@@ -49,6 +50,9 @@ RAY_EPS_REL = 1e-5
 # carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB;
 # 8 blocks of a bench frame (2^13 rows: 32, and ~0.1 s more of per-call overhead per frame).
 ROWS = 1 << 15
+# G-buffer samples per block of `_pretrace_stage` (the fused stages of one region): smaller, as each
+# region's last block is padded (3 regions on chess).
+PRETRACE_ROWS = 1 << 13
 
 
 def _power_heuristic(pdf_a: Tensor, pdf_b: Tensor) -> Tensor:
@@ -207,6 +211,38 @@ def _brdf_eval_stage(wi, wo_l, cls, P):
     return torch.where(up[..., None], f, torch.zeros_like(f))
 
 
+def _rows_into(fn, outs, rows, args, a: int, chunk: int) -> None:
+    """``fn(*row_blocks, *args)`` over blocks of exactly ``chunk`` rows of the ``rows`` tensors (the
+    last padded by repeating its last row, as `methods.core.fused.map_rows`: one static shape), each
+    block's results (a tuple) written into the rows ``a + …`` of ``outs`` (no concatenation)."""
+    q = int(rows[0].shape[0])
+    for s in range(0, q, chunk):
+        blk = [r[s:s + chunk].contiguous() for r in rows]
+        m = int(blk[0].shape[0])
+        if m < chunk:
+            blk = [torch.cat([x, x[-1:].expand(chunk - m, *x.shape[1:])]) for x in blk]
+        for out, x in zip(outs, fn(*blk, *args)):
+            out[a + s:a + s + m] = x[:m]
+
+
+def _pretrace_stage(n, wo, ng, p, u_l, u_b, cdf, p_flat, p2d, omega, R64, eps, cls, P, has_spec: bool,
+                    nl: int, nb: int):
+    """`_light_stage`, `_brdf_sample_stage`, `_weight_stage`, `_brdf_eval_stage` and `_ray_stage` of
+    rows of one region (a material that compiles, `_compiles`) in one kernel, so none of their
+    intermediate (Q, K, ·) arrays is stored: → contributions f·cos·w (Q, K, 3), live (Q, K), shadow-ray
+    origins and world directions (Q, K, 3). Placeholders where a strategy is off, as `Oracle._shade_fast`;
+    the stages' eager functions (``.eager``: traced into this one graph)."""
+    wo_l, ng, d_l, pdf_l, wi_ll = _light_stage.eager(n, wo, ng, u_l, cdf, p_flat, omega, R64, nl > 0)
+    res = _brdf_sample_stage.eager(wo_l, u_b, wi_ll, cls, P, has_spec, nl, nb)
+    pdf_bl = res[0] if nl else pdf_l
+    wi_b, pdf_b = res[-2:] if nb else (wi_ll, pdf_l)
+    d, wi, w = _weight_stage.eager(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl, nb)
+    f = _brdf_eval_stage.eager(wi, wo_l, cls, P)
+    contrib, live, o = _ray_stage.eager(f, wi, w, d, p, ng, eps)
+    return contrib, live, o, d
+
+
+_pretrace_stage = fused(_pretrace_stage)
 _brdf_sample_stage = fused(_brdf_sample_stage)
 _brdf_eval_stage = fused(_brdf_eval_stage)
 _light_stage = fused(_light_stage)
@@ -336,6 +372,15 @@ class Oracle(Method):
         → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
         cdf, p_flat, p2d, omega, R64 = tables
+        if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per region up to the shadow rays
+            Q, K = p.shape[0], NL + NB
+            contrib, o, d = (torch.empty(Q, K, 3) for _ in range(3))
+            live = torch.empty(Q, K, dtype=torch.bool)
+            for mat, a, b in mats:
+                _rows_into(_pretrace_stage, (contrib, live, o, d), [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b]],
+                           (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
+                            NL, NB), a, PRETRACE_ROWS)
+            return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
         wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
                                                      (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)
         Q = p.shape[0]
@@ -365,6 +410,13 @@ class Oracle(Method):
                 continue
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
         contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
+        return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
+
+    @staticmethod
+    def _trace_shade(vis, contrib, live, o, d, data, ext, R32):
+        """The live rays (contributions (Q, K, 3), live (Q, K), origins and world directions
+        (Q, K, 3)) traced in one batch and Σ contribution · radiance over the unblocked ones:
+        → ((Q, 3), live rays)."""
         rays = torch.nonzero(live.view(-1)).squeeze(-1)
         lit = live
         if rays.numel():
