@@ -374,8 +374,8 @@ class Oracle(Method):
         cdf, p_flat, p2d, omega, R64 = tables
         if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per region up to the shadow rays
             Q, K = p.shape[0], NL + NB
-            contrib, o, d = (torch.empty(Q, K, 3) for _ in range(3))
-            live = torch.empty(Q, K, dtype=torch.bool)
+            contrib, o, d = (torch.empty(Q, K, 3, device=p.device) for _ in range(3))
+            live = torch.empty(Q, K, dtype=torch.bool, device=p.device)
             for mat, a, b in mats:
                 _rows_into(_pretrace_stage, (contrib, live, o, d), [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b]],
                            (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
