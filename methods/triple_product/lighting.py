@@ -558,7 +558,7 @@ def _kernel(fn):
 
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None,
-                frames: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """`project_lighting(envmap.radiance, R, geo, supersample)` at run time, per block of
     `env_block_frames` frames two compiled kernels (`methods.core.fused`): the samples' map
     footprints (`env_taps`), then the per-triangle means from the map's quad rows and their float32
@@ -572,6 +572,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
             same size as the whole projection's and tail blocks (`env_blocks`; a compiled shape
             each, the same values as any other blocking): a pixel frame projects only the grid
             frames its samples look up (`TripleProduct.fill_lighting`).
+        out: (coefficients, fine values) tables (F, 3, K) float32 whose rows ``frames`` (all: None)
+            receive the result (each block copied into its rows; returned), or None: new tensors.
     Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
@@ -600,7 +602,12 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         coef, fine = _kernel(comb_coeffs)(_kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi))
         if frames is None:
             frames = torch.arange(grid.size, device=R.device)
-        rows = _comb_rows(grid, frames.to(R.device).long())
+        frames = frames.to(R.device).long()
+        rows = _comb_rows(grid, frames)
+        if out is not None:
+            for x, y in zip(out, (coef, fine)):
+                x.index_copy_(0, frames, y.index_select(0, rows))
+            return out
         return coef[rows], fine[rows]
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
@@ -625,15 +632,24 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     warm_blocks(block, rows, (), env_tail_sizes(chunk))
     q = int(rows[0].shape[0])
     if q == 0:
-        return map_rows(block, rows, chunk=chunk)
-    sizes = env_blocks(q, chunk)
-    n_full = sizes.count(chunk)
-    parts, a = [], min(q, n_full * chunk)
-    if n_full:                                                            # full blocks, the last padded
-        parts.append(map_rows(block, [r[:a] for r in rows], chunk=chunk))  # when no tail block follows
-    for b in sizes[n_full:]:                                              # tail blocks
-        parts.append(map_rows(block, [r[a:a + b] for r in rows], chunk=b))
-        a = min(q, a + b)
+        return map_rows(block, rows, chunk=chunk) if out is None else out
+    rows = [r.contiguous() for r in rows]
+    dst = None if out is None else (torch.arange(q, device=R.device) if frames is None else sel)
+    parts, a = [], 0
+    for b in env_blocks(q, chunk):             # full blocks, then tail blocks; the last one padded
+        n = min(b, q - a)
+        blk = [r[a:a + n] for r in rows]
+        if n < b:
+            blk = [torch.cat([x, x[-1:].expand(b - n, *x.shape[1:])]) for x in blk]
+        o = block(*blk)
+        if out is None:
+            parts.append(tuple(x[:n] for x in o))
+        else:                                  # straight into the caller's rows (no concatenation)
+            for x, y in zip(out, o):
+                x.index_copy_(0, dst[a:a + n], y[:n])
+        a += n
+    if out is not None:
+        return out
     if len(parts) == 1:
         return parts[0]
     return tuple(torch.cat(x) for x in zip(*parts))                      # (F, 3, n) each
