@@ -453,6 +453,86 @@ def env_taps_azimuthal(shift: Tensor, base: Tensor, u0: Tensor, v0: Tensor, H: i
     return quad_taps(u, v0[base], H, W)
 
 
+# -- the azimuthal projection on a comb table (E frames, the map's width a multiple of n_phi) ---------------
+#
+# With m = W / n_phi texel columns per grid step in φ, frame j of a base row sees every sample m·j
+# columns further than frame 0 does (u = u0 + j/n_phi − γ/2π, comment above): the same fractional
+# footprint (fx, fy) and rows, columns (ix + m·j) mod W. So the footprints are computed once per base
+# row (`comb_taps`, in float64 and rounded once) and the n_phi frames of a base row are summed
+# together, vectorised along j: per sample and channel 4 taps × n_phi frames read as contiguous runs
+# of a comb table CT[r, p, c, e, k] = texel(r, (p + e + m·k) mod W, c) (`comb_table`: row r, phase
+# p = ix mod m, side e = 0 / 1 for the tap at ix / ix + 1, k = ix div m + j < 2·n_phi) — no 16-lane
+# quad row per (frame, sample), no per-frame footprints.
+
+
+def comb_ok(grid: FrameGrid | None, W: int) -> bool:
+    """`comb_means` applies: a frame grid whose n_phi divides the map's width."""
+    return grid is not None and W % grid.n_phi == 0
+
+
+def comb_table(planes: Tensor, H: int, W: int, n_phi: int) -> Tensor:
+    """The comb table (flat, H·m·3·2·2n_phi floats, m = W / n_phi) of the channel planes (3, H·(W+1))
+    (``EnvMap.periodic_texels(planes=True)``): CT[r, p, c, e, k] = texel(r, (p + e + m·k) mod W, c)."""
+    m, J = W // n_phi, n_phi
+    tex = planes.view(3, H, W + 1)[:, :, :W]
+    dev = planes.device
+    cols = (torch.arange(m, device=dev)[:, None, None] + torch.arange(2, device=dev)[None, :, None]
+            + m * torch.arange(2 * J, device=dev)[None, None, :]) % W                  # (m, 2, 2J)
+    return tex[:, :, cols].permute(1, 2, 0, 3, 4).contiguous().reshape(-1)          # (H, m, 3, 2, 2J)
+
+
+def comb_taps(u0: Tensor, v0: Tensor, g: Tensor, wT: Tensor, H: int, W: int, n_phi: int) -> tuple[Tensor, Tensor]:
+    """Frame j = 0's footprints of every base-row sample (`quad_taps` of u = u0 − γ/2π, v = v0, the
+    u part in float64 and rounded once): o (B, n, S) int32 offset of the top-left tap's comb run in
+    `comb_table`, w4 (B, n, S, 2, 2) float32 the bilinear weights of its taps (dy, dx) times the
+    sample's wT (n, S). u0 float64, v0 float32 (B, n, S) (`_azimuthal_samples`); g float64 0-d: γ/2π
+    (frame 0's shift, as `env_taps_azimuthal` rounds u0 + shift once, then the same float32 steps)."""
+    m, J = W // n_phi, n_phi
+    u = torch.remainder(u0 - g, 1.0).float()                                # frame 0's u, rounded once
+    u = u - 0.5 / W                                                         # then `quad_taps`' float32 steps
+    x = (u - torch.floor(u)) * W
+    ix = x.to(torch.int32).clamp(0, W - 1)
+    fx = x - ix
+    ix = ix.double()
+    q = (ix / m).floor()                                                    # ix div m (exact: small ints)
+    p = ix - q * m
+    v = v0 - torch.floor(v0)
+    y = v * (H - 1)
+    iy = y.to(torch.int32).clamp(0, H - 2)
+    fy = y - iy
+    o = (iy * m + p.to(torch.int32)) * (3 * 2 * 2 * J) + q.to(torch.int32)
+    w = wT[None]
+    w4 = torch.stack([torch.stack([((1 - fx) * (1 - fy)) * w, (fx * (1 - fy)) * w], -1),
+                      torch.stack([((1 - fx) * fy) * w, (fx * fy) * w], -1)], -2)  # (B, n, S, dy, e)
+    return o, w4
+
+
+def comb_means(o: Tensor, w4: Tensor, CT: Tensor, J: int, m: int) -> Tensor:
+    """Fine-triangle means (`quad_means`) of all n_phi = J frames of B base rows from their frame-0
+    footprints (`comb_taps`: o (B, n, S) and the 4 taps' weights w4 (B, n, S, 2, 2), times the
+    sample's weight), the comb table CT of J frames and m columns per step: (B, n, 3, J), frame j in
+    the last dimension (vectorised along it: the table read through overlapping windows, so that
+    every tap is one contiguous run of J). Each output sums its S·4 terms in one sequential loop."""
+    es, cs = 2 * J, 4 * J                                                   # side, channel strides
+    rs = m * 3 * cs                                                         # row stride
+    win = CT.as_strided((CT.shape[0] - rs - es - J + 1, 3, 2, 2, J), (1, cs, rs, es, 1))
+    return (win[o] * w4[:, :, :, None, :, :, None]).sum((2, 4, 5))         # (B, n, 3, J)
+
+
+def comb_coeffs(fine: Tensor) -> tuple[Tensor, Tensor]:
+    """(B, n, 3, J) `comb_means` → coefficients and fine values (B·J, 3, n), row b·J + j."""
+    B, n, C, J = fine.shape
+    f = fine.permute(0, 3, 2, 1).reshape(B * J, C, n)
+    return forward_butterfly(f), f
+
+
+def _comb_rows(grid: FrameGrid, frames: Tensor) -> Tensor:
+    """Rows b·n_phi + j of `comb_coeffs` of grid frames f (base row b = i·n_psi + k, frame j)."""
+    j = frames // grid.n_psi % grid.n_phi
+    b = frames // (grid.n_phi * grid.n_psi) * grid.n_psi + frames % grid.n_psi
+    return b * grid.n_phi + j
+
+
 def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor
                       ) -> tuple[Tensor, Tensor]:
     """`quad_means` and their wavelet coefficients (`spherical_haar.forward_butterfly`), one compiled
@@ -460,6 +540,9 @@ def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor
     fine = quad_means(idx, fx, fy, wT, Q, lanes)
     return forward_butterfly(fine), fine
 
+
+# E frames on the comb table (`comb_means`) where it applies; False: the per-frame azimuthal kernel
+COMB = True
 
 # compiled with the index checks off: `quad_taps` clamps every index into the table
 _FUSE_OPTIONS = {"assert_indirect_indexing": False}
@@ -475,7 +558,7 @@ def _kernel(fn):
 
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None,
-                frames: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """`project_lighting(envmap.radiance, R, geo, supersample)` at run time, per block of
     `env_block_frames` frames two compiled kernels (`methods.core.fused`): the samples' map
     footprints (`env_taps`), then the per-triangle means from the map's quad rows and their float32
@@ -489,6 +572,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
             same size as the whole projection's and tail blocks (`env_blocks`; a compiled shape
             each, the same values as any other blocking): a pixel frame projects only the grid
             frames its samples look up (`TripleProduct.fill_lighting`).
+        out: (coefficients, fine values) tables (F, 3, K) float32 whose rows ``frames`` (all: None)
+            receive the result (each block copied into its rows; returned), or None: new tensors.
     Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
@@ -505,6 +590,25 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         stats["lighting_path"] = "general" if gamma is None else "azimuthal"
     chunk = env_block_frames(R.shape[0], cp.shape[1] * cp.shape[2])
     sel = slice(None) if frames is None else frames.to(R.device).long()
+    if gamma is not None and comb_ok(grid, W) and COMB:   # turned about +Y, n_phi | W: the comb table
+        u0, v0 = _azimuthal_samples(geo, supersample, grid)
+        u0, v0 = u0.to(R.device), v0.to(R.device)
+        planes = envmap.periodic_texels(R.device, torch.float32, planes=True)
+        CT = comb_table(planes, H, W, grid.n_phi)
+        g = torch.tensor(gamma / (2 * math.pi), dtype=torch.float64, device=R.device)
+        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W),
+                    [chunk, *env_tail_sizes(chunk)])     # the general kernel (comment below)
+        o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
+        coef, fine = _kernel(comb_coeffs)(_kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi))
+        if frames is None:
+            frames = torch.arange(grid.size, device=R.device)
+        frames = frames.to(R.device).long()
+        rows = _comb_rows(grid, frames)
+        if out is not None:
+            for x, y in zip(out, (coef, fine)):
+                x.index_copy_(0, frames, y.index_select(0, rows))
+            return out
+        return coef[rows], fine[rows]
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
         f = torch.arange(grid.size, device=R.device)
@@ -528,15 +632,24 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     warm_blocks(block, rows, (), env_tail_sizes(chunk))
     q = int(rows[0].shape[0])
     if q == 0:
-        return map_rows(block, rows, chunk=chunk)
-    sizes = env_blocks(q, chunk)
-    n_full = sizes.count(chunk)
-    parts, a = [], min(q, n_full * chunk)
-    if n_full:                                                            # full blocks, the last padded
-        parts.append(map_rows(block, [r[:a] for r in rows], chunk=chunk))  # when no tail block follows
-    for b in sizes[n_full:]:                                              # tail blocks
-        parts.append(map_rows(block, [r[a:a + b] for r in rows], chunk=b))
-        a = min(q, a + b)
+        return map_rows(block, rows, chunk=chunk) if out is None else out
+    rows = [r.contiguous() for r in rows]
+    dst = None if out is None else (torch.arange(q, device=R.device) if frames is None else sel)
+    parts, a = [], 0
+    for b in env_blocks(q, chunk):             # full blocks, then tail blocks; the last one padded
+        n = min(b, q - a)
+        blk = [r[a:a + n] for r in rows]
+        if n < b:
+            blk = [torch.cat([x, x[-1:].expand(b - n, *x.shape[1:])]) for x in blk]
+        o = block(*blk)
+        if out is None:
+            parts.append(tuple(x[:n] for x in o))
+        else:                                  # straight into the caller's rows (no concatenation)
+            for x, y in zip(out, o):
+                x.index_copy_(0, dst[a:a + n], y[:n])
+        a += n
+    if out is not None:
+        return out
     if len(parts) == 1:
         return parts[0]
     return tuple(torch.cat(x) for x in zip(*parts))                      # (F, 3, n) each

@@ -311,6 +311,33 @@ def test_project_env_azimuthal_equals_project_lighting(grid):
     assert st["lighting_path"] == "general"
 
 
+def test_project_env_comb_equals_the_per_frame_azimuthal_kernel(monkeypatch):
+    """E frames whose grid's n_phi divides the map's width go through the comb table
+    (`lighting.comb_means`: footprints once per base row, the n_phi frames of a row summed together)
+    = the per-frame azimuthal kernel (`lighting.env_taps_azimuthal` + `quad_means_coeffs`, ``COMB``
+    off) to the look-up's round-off (F32_LIGHT), for the whole grid; a selection of frames gives the
+    whole projection's rows bit for bit."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(5, 8, 1)
+    geo, R = Geodesic(2), lt.grid_frames(g)
+    sel = torch.tensor([0, 3, 4, 9, 17, 20, 31, 39])
+    for angle in (0.0, 0.7, -2.5):
+        env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(rotation_y(angle)), geo, 1)
+        assert lt.comb_ok(g, env.width)
+        monkeypatch.setattr(lt, "COMB", True)
+        coef, fine = lt.project_env(env, R, geo, supersample=1, grid=g)
+        part = lt.project_env(env, R, geo, supersample=1, grid=g, frames=sel)
+        assert torch.equal(part[0], coef[sel]) and torch.equal(part[1], fine[sel])
+        monkeypatch.setattr(lt, "COMB", False)
+        ref, ref_fine = lt.project_env(env, R, geo, supersample=1, grid=g)
+        assert (coef - ref).abs().max() <= F32_LIGHT * ref.abs().max(), angle
+        assert (fine - ref_fine).abs().max() <= F32_LIGHT * ref_fine.abs().max(), angle
+    assert not lt.comb_ok(lt.FrameGrid(5, 7, 1), env.width)
+
+
 def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
