@@ -4,8 +4,8 @@ run-time code (`benchmarks.zh_shadow --baseline` only A/Bs sample shading).
     python -m benchmarks.zh_pose_ab --baseline /work/base [--config '{"order":8,"shading":"vertex","specular":"cosine"}']
         [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile] [--stages-ab]
 
-The baseline's `methods/zh_shadow/runtime.py` and `method.py` are imported under other names (this
-tree's `methods.core` and `precompute`); both classes get one precomputation (from the harness
+The baseline's `methods/zh_shadow/runtime.py`, `method.py` and `methods/core/gouraud.py` are imported
+under other names (the rest of this tree's `methods.core`, and its `precompute`); both classes get one precomputation (from the harness
 cache; ``--precompute-code DIR`` keys it on DIR's code — a run-time-only change keeps the cached
 state valid) and render each kind's frames alternating which goes first, frames 0–1 untimed
 (`benchmarks.common.ab_frames`: medians of process CPU and wall time, their ratio, max
@@ -32,11 +32,14 @@ PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
 
 
 def baseline_class(root: str):
-    """ZHShadow of the checkout ``root`` (its runtime and method modules, this tree's core)."""
+    """ZHShadow of the checkout ``root`` (its runtime and method modules and its Gouraud resolve,
+    `methods.core.gouraud`; the rest of this tree's core)."""
     with registry_kept():
         rt = load_file_module(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
         mod = load_file_module(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
+        gouraud = load_file_module(os.path.join(root, "methods/core/gouraud.py"), "_zhp_base_gouraud")
     mod.rt = rt
+    mod.gouraud = gouraud
     return mod.ZHShadow
 
 
