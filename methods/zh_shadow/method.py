@@ -692,6 +692,9 @@ class ZHShadow(Method):
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs),
                 "vertex_table": 0 if self._vtable is None else tensor_bytes(self._vtable[2]),
+                # the plane path's per-vertex diffuse term u (`_render_planes`), kept while pose,
+                # lighting and the plane's BRDF are unchanged
+                "plane_term": 0 if self._plane_u is None else tensor_bytes(self._plane_u[3]),
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
                 + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
                    else tensor_bytes(self._vertex_transfer[2]))

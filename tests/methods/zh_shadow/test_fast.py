@@ -387,6 +387,10 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
             ca, cb = dict(fast._last_counts), dict(slow._last_counts)
             pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
             assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
+            # the plane path's kept term is reported as memory; the general path keeps none
+            u = fast._plane_u[3] if path == "planes" else None
+            assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
+            assert slow.memory()["plane_term"] == 0
 
 
 def test_product_tensor_and_features():
