@@ -65,7 +65,8 @@ def brdf_gram(space: BRDFSpace, grid: DiskGrid, *, weighting: str = "samples",
         if weighting == "solid_angle":
             X = X * torch.sqrt(om[s:s + block, None] * om[None, :])
         X = X.reshape(space.n_h, -1)
-        G += X @ X.T
+        with torch_threads(1):  # a long float64 reduction: MKL splits it over the threads on AVX-512
+            G += X @ X.T        # machines, and eigh's vectors in near-degenerate spaces follow the bits
     return G
 
 

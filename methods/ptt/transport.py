@@ -218,8 +218,9 @@ class LobeBasis:
             wt = (w[None, :] * d[None, :, 2] * w[:, None]).sqrt()  # (o, i)
             B = self.eval(wi, wo) * wt[..., None]  # (o, i, P)
             Bf = B.reshape(-1, self.n_P)
-            G = Bf.T @ Bf
-            g_d = _solve(G, Bf.T @ (wt.reshape(-1, 1) / math.pi))  # (P, 1)
+            with torch_threads(1):  # float64 products with a long reduction: MKL splits it over the
+                G = Bf.T @ Bf       # threads on AVX-512 machines (methods.core.threads); built once
+                g_d = _solve(G, Bf.T @ (wt.reshape(-1, 1) / math.pi))  # (P, 1)
             o, i = torch.triu_indices(d.shape[0], d.shape[0])  # the pairs o <= i
             Bw = B * wt[..., None]
             M = Bw[o, i] + torch.where((o != i)[:, None], Bw[i, o], torch.zeros_like(Bw[i, o]))  # (pairs, P)

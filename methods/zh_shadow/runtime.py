@@ -56,8 +56,8 @@ from torch import Tensor
 from methods.core.frames import _coordinate_components
 from methods.core.fused import fused
 from methods.core.sampling import gauss_legendre_sphere
-from methods.core.sh import sh_eval, sh_terms
 from methods.core.threads import torch_threads
+from methods.core.sh import sh_eval, sh_terms
 from methods.core.zh import band_norms, expand_bands, phong_factors
 from methods.zh_shadow.convolution import phong_operator
 from methods.zh_shadow.precompute import CHART_RMAX
@@ -1184,7 +1184,11 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     B = VERTEX_CHUNK
     Np = -(-N // B) * B
     p = torch.empty(Np, d, dtype=X.dtype, device=X.device)
-    torch.matmul(a[None], X.reshape(J1, N * d), out=p[:N].view(1, N * d))                 # [pose, 1] · X
+    # [pose, 1] · X on one thread: a one-row product, which MKL splits along its J1-long reduction
+    # over the threads on AVX-512 machines (the sums then depend on the thread count:
+    # methods.core.threads, tests/methods/test_threads.py); it reads X once and is bandwidth-bound
+    with torch_threads(1):
+        torch.matmul(a[None], X.reshape(J1, N * d), out=p[:N].view(1, N * d))
     nrm = torch.empty(Np, 3, dtype=X.dtype, device=X.device)
     nrm[:N] = normal
     p[N:], nrm[N:] = p[N - 1], nrm[N - 1]                                        # padding: repeat the last
