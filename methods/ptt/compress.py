@@ -101,8 +101,8 @@ def compress_ptt(T: Tensor, *, clusters: int, eigenvectors: int, light_dim: int,
         # CPCA on the vertices' coordinates in the global top-CLUSTER_FEATURES PCA basis (the
         # distances CPCA needs, at a fraction of the cost of 25 000-dimensional signals)
         X = T.reshape(V, D * L).double()
-        G = X @ X.T
-        with torch_threads(1):  # MKL's eigh rounds differently with other thread counts (methods.core.threads)
+        with torch_threads(1):  # MKL's eigh rounds differently with other thread counts, and on AVX-512
+            G = X @ X.T         # machines so does this Gram product's long reduction (methods.core.threads)
             w, U = torch.linalg.eigh(G)
         top = torch.argsort(w, descending=True)[:CLUSTER_FEATURES]
         feats = U[:, top] * w[top].clamp_min(0).sqrt()
@@ -116,7 +116,8 @@ def compress_ptt(T: Tensor, *, clusters: int, eigenvectors: int, light_dim: int,
         e, m = min(eigenvectors, v.numel()), min(light_dim, L)
         A = _leading(Xc.reshape(v.numel(), -1), e)                 # vertex factor (n_c, e)
         B = _leading(Xc.permute(2, 0, 1).reshape(L, -1), m)       # lighting factor (L, m)
-        G = torch.einsum("ndl,ne,lm->edm", Xc, A, B)              # core (e, D, m)
+        with torch_threads(1):                                    # (long reductions, as the Grams)
+            G = torch.einsum("ndl,ne,lm->edm", Xc, A, B)          # core (e, D, m)
         verts.append(v)
         As.append(A.to(T.dtype))
         Gs.append(G.to(T.dtype))
@@ -126,8 +127,8 @@ def compress_ptt(T: Tensor, *, clusters: int, eigenvectors: int, light_dim: int,
 
 def _leading(M: Tensor, r: int) -> Tensor:
     """Leading r left singular vectors of a wide matrix M (I, J) from its Gram matrix (I, I)."""
-    G = M @ M.T
-    with torch_threads(1):  # as in `compress_ptt`
+    with torch_threads(1):  # as in `compress_ptt` (the Gram product too)
+        G = M @ M.T
         w, U = torch.linalg.eigh(G)
     return U[:, torch.argsort(w, descending=True)[:r]]
 

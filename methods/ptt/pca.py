@@ -131,7 +131,8 @@ class BRDFBasis:
             wi, wo: (..., 3) broadcastable local directions. Returns: (..., n_P).
         """
         f = self.space.eval_samples(wi, wo)                               # (N_h, ...)
-        spec = torch.einsum("hp,h...->...p", self.M.to(f), f)
+        with torch_threads(1):  # the N_h-long reduction: MKL splits it over the threads on AVX-512
+            spec = torch.einsum("hp,h...->...p", self.M.to(f), f)   # machines (factor_basis's SVD follows)
         wi, wo = torch.broadcast_tensors(wi, wo)
         up = ((wi[..., 2] > 0) & (wo[..., 2] > 0)).to(f.dtype)
         return torch.cat([spec, (up / math.pi)[..., None]], dim=-1)
