@@ -211,20 +211,6 @@ def _brdf_eval_stage(wi, wo_l, cls, P):
     return torch.where(up[..., None], f, torch.zeros_like(f))
 
 
-def _rows_into(fn, outs, rows, args, a: int, chunk: int) -> None:
-    """``fn(*row_blocks, *args)`` over blocks of exactly ``chunk`` rows of the ``rows`` tensors (the
-    last padded by repeating its last row, as `methods.core.fused.map_rows`: one static shape), each
-    block's results (a tuple) written into the rows ``a + …`` of ``outs`` (no concatenation)."""
-    q = int(rows[0].shape[0])
-    for s in range(0, q, chunk):
-        blk = [r[s:s + chunk].contiguous() for r in rows]
-        m = int(blk[0].shape[0])
-        if m < chunk:
-            blk = [torch.cat([x, x[-1:].expand(chunk - m, *x.shape[1:])]) for x in blk]
-        for out, x in zip(outs, fn(*blk, *args)):
-            out[a + s:a + s + m] = x[:m]
-
-
 def _pretrace_stage(n, wo, ng, p, u_l, u_b, cdf, p_flat, p2d, omega, R64, eps, cls, P, has_spec: bool,
                     nl: int, nb: int):
     """`_light_stage`, `_brdf_sample_stage`, `_weight_stage`, `_brdf_eval_stage` and `_ray_stage` of
@@ -377,9 +363,9 @@ class Oracle(Method):
             contrib, o, d = (torch.empty(Q, K, 3, device=p.device) for _ in range(3))
             live = torch.empty(Q, K, dtype=torch.bool, device=p.device)
             for mat, a, b in mats:
-                _rows_into(_pretrace_stage, (contrib, live, o, d), [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b]],
-                           (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
-                            NL, NB), a, PRETRACE_ROWS)
+                map_rows(_pretrace_stage, [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b]],
+                         (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
+                          NL, NB), chunk=PRETRACE_ROWS, out=tuple(x[a:b] for x in (contrib, live, o, d)))
             return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
         wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
                                                      (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)

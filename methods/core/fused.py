@@ -118,14 +118,16 @@ def fused(fn: Callable, *, options: dict | None = None) -> Callable:
 
 
 def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk: int = CHUNK,
-             warm: Sequence[int] = ()):
+             warm: Sequence[int] = (), out=None):
     """``fn(*row_blocks, *args)`` over blocks of exactly ``chunk`` rows of the ``rows`` tensors
     (all with the same leading size Q), results (a tensor or a tuple of tensors with leading size
     equal to the block's) concatenated and trimmed to Q rows. The last block is padded by repeating
     the last row, so a compiled ``fn`` sees one shape (module docstring). Q = 0 calls ``fn`` once on
     the empty tensors (eagerly when ``fn`` is `fused`). ``warm``: other block sizes this call's
     kernels may meet in later frames (`neighbour_blocks`), compiled now when the harness is
-    `warming` (`warm_blocks`)."""
+    `warming` (`warm_blocks`). ``out``: a tensor (or a tuple matching ``fn``'s results) with Q
+    leading rows; each block's results are written into its rows instead of concatenated (no copy
+    of the whole result), and ``out`` is returned."""
     if not rows:
         raise ValueError("map_rows needs at least one row tensor")
     rows = [r.contiguous() for r in rows]  # one stride pattern for full and padded blocks (module docstring)
@@ -135,7 +137,7 @@ def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     if q == 0:
-        return getattr(fn, "eager", fn)(*rows, *args)
+        return out if out is not None else getattr(fn, "eager", fn)(*rows, *args)
     if warm:
         warm_blocks(fn, rows, args, [b for b in warm if b != chunk])
     outs = []
@@ -145,7 +147,15 @@ def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk
         if n < chunk:
             blk = [torch.cat([b, b[-1:].expand(chunk - n, *b.shape[1:])]) for b in blk]
         o = fn(*blk, *args)
-        outs.append(o[:n] if isinstance(o, Tensor) else tuple(x[:n] for x in o))
+        if out is None:
+            outs.append(o[:n] if isinstance(o, Tensor) else tuple(x[:n] for x in o))
+        elif isinstance(out, Tensor):
+            out[s:s + n] = o[:n]
+        else:
+            for dst, x in zip(out, o):
+                dst[s:s + n] = x[:n]
+    if out is not None:
+        return out
     if isinstance(outs[0], Tensor):
         return outs[0] if len(outs) == 1 else torch.cat(outs)
     return tuple(torch.cat(parts) if len(parts) > 1 else parts[0] for parts in zip(*outs))

@@ -354,14 +354,7 @@ def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor,
     if m == 0:
         return out
     torch._dynamo.maybe_mark_dynamic(c, 0)              # the region's vertex count: one variant per K, W
-    rows = [t.contiguous() for t in (ax, ay, ref)]      # one stride pattern for full and padded blocks
-    o4 = out.view(m, W, W, 3)
-    for a in range(0, m, WINDOW_BLOCK):
-        blk = [t[a:a + WINDOW_BLOCK] for t in rows]
-        n = blk[0].shape[0]
-        if n < WINDOW_BLOCK:
-            blk = [torch.cat([t, t[-1:].expand(WINDOW_BLOCK - n)]) for t in blk]
-        o4[a:a + n] = window_rows(*blk, fr.sh_nc, c, fr.R, W)[:n]
+    map_rows(window_rows, [ax, ay, ref], (fr.sh_nc, c, fr.R, W), chunk=WINDOW_BLOCK, out=out.view(m, W, W, 3))
     return out
 
 

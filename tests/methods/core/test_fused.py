@@ -163,3 +163,21 @@ def test_strided_rows_compile_one_variant_for_full_and_padded_blocks():
     got = map_rows(f, (win[:, 0], win[:, 1]), (col,), chunk=256)
     assert _graphs() - g0 == 1
     torch.testing.assert_close(got, col[win[:, 0]] + col[win[:, 1]])
+
+
+def test_map_rows_out_equals_the_concatenation():
+    """``map_rows(out=...)`` writes each block's results into the given rows (a tensor, or a tuple of
+    them) and returns them: the same values as the concatenated result, padded last block trimmed."""
+    from methods.core.fused import map_rows
+
+    x, y = torch.arange(10.0), torch.arange(10.0) * 3
+
+    def f(a, b):
+        return a + b, a * b
+
+    want = map_rows(f, [x, y], chunk=4)
+    out = (torch.full((10,), -1.0), torch.full((10,), -1.0))
+    got = map_rows(f, [x, y], chunk=4, out=out)
+    assert got is out and all(torch.equal(g, w) for g, w in zip(got, want))
+    one = torch.full((10,), -1.0)
+    assert map_rows(lambda a: a * 2, [x], chunk=3, out=one) is one and torch.equal(one, x * 2)
