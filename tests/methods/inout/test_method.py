@@ -130,4 +130,11 @@ def test_vertex_budget_beats_per_term_budget_at_equal_bytes(sphere_plane_direct)
 
     e_term, e_vertex = rel(imgs["term", 128]), rel(imgs["vertex", 128])
     assert e_vertex < 0.8 * e_term, (e_term, e_vertex)
-    assert not bool((imgs["vertex", 128][mask] < -1e-4).any())
+    # Fewer negative values, not none. Phong's singular values come in equal groups (one per SH
+    # band, Mahajan Fig. 2), so the SVD's basis inside a group is arbitrary and differs between
+    # machines (MKL's AVX2 vs AVX-512 paths); the kept Haar coefficients follow it. Measured: on an
+    # AVX-512 host "vertex" leaves 4 negative channel values of 3,264 (min -0.024), "term" 18
+    # (min -0.022); CI's hosts until 2026-12-04 had none for "vertex" (the assertion was "none").
+    # Neither budget guarantees a non-negative image: it is a truncated signed expansion.
+    n_neg = {b: int((imgs[b, 128][mask] < -1e-4).sum()) for b in ("term", "vertex")}
+    assert n_neg["vertex"] <= n_neg["term"] // 2, n_neg
