@@ -4,9 +4,10 @@ run-time code (`benchmarks.zh_shadow --baseline` only A/Bs sample shading).
     python -m benchmarks.zh_pose_ab --baseline /work/base [--config '{"order":8,"shading":"vertex","specular":"cosine"}']
         [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile] [--stages-ab]
 
-The baseline's `methods/zh_shadow/runtime.py`, `method.py` and `methods/core/gouraud.py` are imported
-under other names (the rest of this tree's `methods.core`, and its `precompute`); both classes get one precomputation (from the harness
-cache; ``--precompute-code DIR`` keys it on DIR's code — a run-time-only change keeps the cached
+The baseline's `methods/zh_shadow/runtime.py`, `method.py`, `methods/core/gouraud.py` and
+`scenes/scene.py`'s `Scene.geometry` (the skinning, `_BaseGeometry`) are imported under other names
+(the rest of this tree's `methods.core`, and its `precompute`); both classes get one
+precomputation (from the harness cache; ``--precompute-code DIR`` keys it on DIR's code — a run-time-only change keeps the cached
 state valid) and render each kind's frames alternating which goes first, frames 0–1 untimed
 (`benchmarks.common.ab_frames`: medians of process CPU and wall time, their ratio, max
 |new − reference| / max |reference| against `_render_reference`). ``--profile``: the new code's
@@ -41,6 +42,25 @@ def baseline_class(root: str):
     mod.rt = rt
     mod.gouraud = gouraud
     return mod.ZHShadow
+
+
+class _BaseGeometry:
+    """A scene whose ``geometry(pose)`` is the checkout ``root``'s `Scene.geometry` (its
+    ``scenes/scene.py``: the skinning a P frame pays; forward kinematics and the reference `skin`
+    are this tree's, unchanged), every other attribute the scene's own — the baseline's view of the
+    bench scene, so the A/B times the posing code of both checkouts."""
+
+    def __init__(self, scene, root: str):
+        with registry_kept():
+            mod = sys.modules.get("_zhp_base_scene") or load_file_module(os.path.join(root, "scenes/scene.py"),
+                                                                         "_zhp_base_scene")
+        self._scene, self._geometry = scene, mod.Scene.geometry
+
+    def geometry(self, pose=None):
+        return self._geometry(self._scene, pose)
+
+    def __getattr__(self, name):
+        return getattr(self._scene, name)
 
 
 def _best(f, repeats: int = 5) -> float:
@@ -167,6 +187,7 @@ def main(argv: list[str] | None = None) -> dict:
         new = m.with_render_config()
         base = copy.copy(new)
         base.__class__ = Base
+        base.scene = _BaseGeometry(scene, a.baseline)
         ref = m.with_render_config()
         kinds[kind] = ab_frames(new, base, ref._render_reference, frames, gbs, kind)
         if a.profile and kind == "P":

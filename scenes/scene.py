@@ -17,7 +17,7 @@ from scenes.frame import Frame
 from scenes.hashing import hash_envmap, hash_materials, hash_params, hash_tensor
 from scenes.envmap import EnvMap, check_lit
 from scenes.mesh import Mesh, check_extent
-from scenes.skeleton import check_weights, skin
+from scenes.skeleton import blend_skin, check_weights
 
 
 @dataclass
@@ -156,7 +156,8 @@ class Scene:
             if s.name not in self.skin_weights:
                 continue
             a, b = int(g.vertex_offset[i]), int(g.vertex_offset[i + 1])
-            V[a:b], N[a:b] = skin(g.V[a:b], g.N[a:b], self.skin_weights[s.name], T)
+            # the weights were validated when the scene was built (`check_weights`, __post_init__)
+            V[a:b], N[a:b] = blend_skin(g.V[a:b], g.N[a:b], self.skin_weights[s.name], T)
         return SceneGeometry(V, g.F, N, g.uv, g.vertex_region, g.face_region, g.face_offset, g.vertex_offset,
                              g.shape_names)
 

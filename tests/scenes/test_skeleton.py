@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from scenes.skeleton import (CREATURE_JOINTS, Skeleton, axis_angle_matrix, creature_animation, make_creature,
-                             skin)
+from scenes.skeleton import (BLEND_COMPILE_MIN, CREATURE_JOINTS, Skeleton, axis_angle_matrix, blend_skin,
+                             creature_animation, make_creature, skin)
 
 # float32 skinning of coordinates of order 1–2: a few ulp after two or three 4×4 products.
 F32_ATOL = 2e-5
@@ -135,6 +135,34 @@ def test_bad_weights_raise(creature):
     Wn[0, 0] = float("nan")
     with pytest.raises(ValueError):
         sk.pose_mesh(mesh, Wn, pose)
+
+
+@pytest.mark.parametrize("size", ["test", "bench"])
+def test_blend_skin_equals_skin(size):
+    """The fast path (`blend_skin`: unchecked, componentwise; compiled on the bench mesh, eager on the
+    test one) equals the reference `skin`, and `Scene.geometry` takes it (same posed arrays)."""
+    from scenes.library import get_scene
+
+    mesh, sk, W = make_creature(size)
+    assert (mesh.num_vertices >= BLEND_COMPILE_MIN) == (size == "bench")
+    for pose in creature_animation(3):
+        T = sk.forward_kinematics(pose)
+        V0, N0 = skin(mesh.V, mesh.N, W, T)
+        V1, N1 = blend_skin(mesh.V, mesh.N, W, T)
+        assert V1.dtype == V0.dtype and V1.shape == V0.shape and N1.shape == N0.shape
+        assert torch.allclose(V1, V0, atol=F32_ATOL, rtol=0) and torch.allclose(N1, N0, atol=F32_ATOL, rtol=0)
+    scene = get_scene("creature", size)
+    pose = creature_animation(3)[1]
+    g, r = scene.geometry(pose), scene.rest_geometry()
+    T = scene.skeleton.forward_kinematics(pose)
+    for i, name in enumerate(g.shape_names):
+        a, b = int(g.vertex_offset[i]), int(g.vertex_offset[i + 1])
+        if name in scene.skin_weights:
+            V0, N0 = skin(r.V[a:b], r.N[a:b], scene.skin_weights[name], T)
+        else:
+            V0, N0 = r.V[a:b], r.N[a:b]
+        assert torch.allclose(g.V[a:b], V0, atol=F32_ATOL, rtol=0)
+        assert torch.allclose(g.N[a:b], N0, atol=F32_ATOL, rtol=0)
 
 
 def test_bad_skeleton_raises():
