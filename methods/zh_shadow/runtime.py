@@ -469,7 +469,7 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
         M(R_n) M M(R_n)ᵀ = R_z(φ) Xᵀ R_z(θ) · (X M Xᵀ) · R_z(−θ) X R_z(−φ),
 
     three fixed products — X and Xᵀ by their non-zeros (`_conjugate_tables`: 4 per row at order 8),
-    the middle X M Xᵀ one (n², n²) product, block by block (`_operator_blocks`: M couples
+    the middle X M Xᵀ one (n², n²) product, block by block (`_operator_blocks`, `_blocked_product`: M couples
     only equal m, X only one band's parts, so X M Xᵀ is 4 dense blocks, 1,056 of 4,096 entries at order 8)
     — and four per-point z rotations (cos/sin of |m| times the
     angle on the ±m pairs), instead of building each point's SH rotation
@@ -485,10 +485,9 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
     """
     n = math.isqrt(vT.shape[0])
-    K = _conjugated(op_key, n).to(vT.dtype).to(vT.device)
     ang = _zyz_angles(nT, n)
-    blocks = _operator_blocks(op_key, n, False, vT.dtype, vT.device)
-    return _zyz_up(_zyz_product(K, _zyz_down(vT, ang), blocks), ang)
+    plan = _block_plan(op_key, n, False, vT.dtype, vT.device)
+    return _zyz_up(_blocked_product(plan, _zyz_down(vT, ang, plan[0])), ang, plan[1])
 
 
 def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -528,22 +527,28 @@ def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]
 
 @functools.partial(fused, options=_NO_ASSERT)
 def _zyz_half(aT: Tensor, C1: Tensor, S1: Tensor, C2: Tensor, S2: Tensor, perm: Tensor, absm: Tensor, sgn: Tensor,
-              idx: Tensor, w: Tensor) -> Tensor:
+              idx: Tensor, w: Tensor, src: Tensor | None = None, dst: Tensor | None = None) -> Tensor:
     """R_z(angle 2) A R_z(angle 1) a: `_rz` then `_gathered_rz` (A by its gathered terms) as one
     compiled function — Inductor makes it one pass, recomputing the first z rotation per gathered
     term instead of storing it (1.14x over the two compiled passes at 13.4 K points, 1 thread,
-    load ~6 on 2 cores; equal numbers)."""
-    return _gathered_rz.eager(_rz.eager(aT, C1, S1, perm, absm, sgn), idx, w, C2, S2, perm, absm, sgn)
+    load ~6 on 2 cores; equal numbers). ``src`` (n²,): a's rows are aT[src] (the rows of a blocked
+    product in block order, `_block_plan`); ``dst`` (n²,): the result's rows returned in that order
+    (the next product's column order) — both gathers folded into the pass's loads and stores."""
+    if src is not None:
+        aT = aT.index_select(0, src)
+    out = _gathered_rz.eager(_rz.eager(aT, C1, S1, perm, absm, sgn), idx, w, C2, S2, perm, absm, sgn)
+    return out if dst is None else out.index_select(0, dst)
 
 
-def _zyz_down(vT: Tensor, ang: tuple) -> Tensor:
-    """R_z(−θ) X R_z(−φ) v (n², Q): the first half of `zonal_conjugate` (X M(R_n)ᵀ v)."""
+def _zyz_down(vT: Tensor, ang: tuple, dst: Tensor | None = None) -> Tensor:
+    """R_z(−θ) X R_z(−φ) v (n², Q): the first half of `zonal_conjugate` (X M(R_n)ᵀ v); ``dst``: its
+    rows in that order (`_zyz_half`)."""
     n = len(ang[0])
     perm, absm, sgn, xi, xw, _, _ = _conjugate_tables(n, vT.dtype, vT.device)
     Cp, Sp, Ct, St = ang
     vT = vT.contiguous()
     torch._dynamo.maybe_mark_dynamic(vT, 1)
-    return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw)
+    return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw, None, dst)
 
 
 def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
@@ -552,7 +557,9 @@ def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
     product block by block, K's structural zeros skipped — y[rows_b] = K[rows_b, cols_b] a[cols_b],
     a gathered and scattered by rows (4 blocks of 12–20 at order 8: 1,056 of K's 4,096 entries;
     1.17 vs 3.3 ms for the dense product at 13.4 K points, 1 thread, load ~2 on 2 cores; the
-    physical setting's P frame 1.23x process CPU, `benchmarks.zh_pose_ab`, load ~5-9)."""
+    physical setting's P frame 1.23x process CPU, `benchmarks.zh_pose_ab`, load ~5-9). The run-time
+    paths take `_blocked_product` (the same block products without this function's row gathers and
+    scatters, folded into the neighbouring `_zyz_half` passes); this one is its reference in tests."""
     with torch_threads(1) if K.shape[0] < 16 else contextlib.nullcontext():
         if blocks is None or len(blocks) == 1:
             return K @ aT
@@ -609,13 +616,46 @@ def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype
     return tuple(blocks)
 
 
-def _zyz_up(aT: Tensor, ang: tuple) -> Tensor:
-    """R_z(φ) Xᵀ R_z(θ) a (n², Q): the second half of `zonal_conjugate` (M(R_n) Xᵀ a)."""
+def _zyz_up(aT: Tensor, ang: tuple, src: Tensor | None = None) -> Tensor:
+    """R_z(φ) Xᵀ R_z(θ) a (n², Q): the second half of `zonal_conjugate` (M(R_n) Xᵀ a); ``src``: a's
+    rows are aT[src] (`_zyz_half`)."""
     n = len(ang[0])
     perm, absm, sgn, _, _, ti, tw = _conjugate_tables(n, aT.dtype, aT.device)
     Cp, Sp, Ct, St = ang
     torch._dynamo.maybe_mark_dynamic(aT, 1)
-    return _zyz_half(aT, Ct, St, Cp, Sp, perm, absm, sgn, ti, tw)
+    return _zyz_half(aT, Ct, St, Cp, Sp, perm, absm, sgn, ti, tw, src)
+
+
+@functools.lru_cache(maxsize=None)
+def _block_plan(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
+    """`_operator_blocks` laid out for products on contiguous rows: cols (n²,) int64 the input rows
+    in block order (the blocks' columns concatenated: each row once, tests), src (n²,) int64 with
+    output row r at src[r] of the block-ordered result, and per block (r0, r1, c0, c1, K_b) its
+    spans in the two orders — so that `_blocked_product` needs no gather or scatter of rows (the
+    neighbouring `_zyz_half` passes do them in their loads and stores)."""
+    blocks = _operator_blocks(op_key, order, lifted, dtype, device)
+    rows = torch.cat([r for r, _, _ in blocks])
+    cols = torch.cat([c for _, c, _ in blocks])
+    src = torch.empty_like(rows)
+    src[rows] = torch.arange(rows.shape[0], device=rows.device)
+    spans, r0, c0 = [], 0, 0
+    for r, c, K_b in blocks:
+        spans.append((r0, r0 + r.shape[0], c0, c0 + c.shape[0], K_b))
+        r0, c0 = r0 + r.shape[0], c0 + c.shape[0]
+    return cols, src, tuple(spans)
+
+
+def _blocked_product(plan: tuple, aP: Tensor) -> Tensor:
+    """K a in block order (`_block_plan`): aP (n², Q) a's rows in the plan's column order, result
+    (n², Q) with row r of K a at plan's src[r] — each block one product of contiguous rows into
+    contiguous rows (the products of `_zyz_product` with blocks, without its row gathers and
+    scatters: the same numbers, bit for bit)."""
+    _, _, spans = plan
+    out = torch.empty(sum(r1 - r0 for r0, r1, _, _, _ in spans), aP.shape[1], dtype=aP.dtype, device=aP.device)
+    with torch_threads(1) if aP.shape[0] < 16 else contextlib.nullcontext():
+        for r0, r1, c0, c1, K_b in spans:
+            torch.mm(K_b, aP[c0:c1], out=out[r0:r1])
+    return out
 
 
 @functools.lru_cache(maxsize=None)
@@ -638,9 +678,8 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
         vzT: (n², Q) SH visibility in the frame (e1, e2, n) of `zyz_axes`; nT: (3, Q) unit normals.
     """
     n = math.isqrt(vzT.shape[0])
-    K = _lifted(("phong", 1.0), n).to(vzT.dtype).to(vzT.device)
-    blocks = _operator_blocks(("phong", 1.0), n, True, vzT.dtype, vzT.device)
-    return _zyz_up(_zyz_product(K, vzT.contiguous(), blocks), _zyz_angles(nT, n))
+    plan = _block_plan(("phong", 1.0), n, True, vzT.dtype, vzT.device)
+    return _zyz_up(_blocked_product(plan, vzT.index_select(0, plan[0])), _zyz_angles(nT, n), plan[1])
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
@@ -1157,6 +1196,13 @@ def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: 
     return torch.stack(out, dim)
 
 
+@functools.lru_cache(maxsize=None)
+def _band_norms(order: int) -> tuple[float, ...]:
+    """Λ_l (`methods.core.zh.band_norms`) as the Python floats `_vertex_sh` takes, once per order
+    (0.2 ms a call otherwise, every pose)."""
+    return tuple(band_norms(order).tolist())
+
+
 def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
                      frame: str = "world") -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
@@ -1196,7 +1242,7 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     # (a point-minor copy then a contiguous copy of each block's columns were two)
     pT = p.view(Np // B, B, d).transpose(1, 2).contiguous()
     nT = nrm.view(Np // B, B, 3).transpose(1, 2).contiguous()
-    lam = tuple(band_norms(n).tolist())
+    lam = _band_norms(n)
     dim = 0 if point_minor else 1
     if Np == B:
         out = _vertex_sh(pT[0], nT[0], lam, lobes, n, dim, frame == "zyz")

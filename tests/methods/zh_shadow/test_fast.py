@@ -262,6 +262,19 @@ def test_operator_blocks_equal_dense_product():
                 want = K @ a
                 got = rt._zyz_product(K, a, blocks)
                 assert (got - want).abs().max() <= 1e-14 * want.abs().max(), (order, alpha, lifted)
+                # the fast layout (`_block_plan`, `_blocked_product`: rows in block order, no
+                # gathers or scatters) holds the same numbers, float64 and float32 — bit for bit
+                # where K has several blocks (the same block products); one block is all of K
+                # with its rows and columns permuted (the sums in another order: round-off)
+                for dt, tol in ((torch.float64, 1e-14), (torch.float32, 1e-6)):
+                    cols, src, _ = plan = rt._block_plan(("phong", alpha), order, lifted, dt, torch.device("cpu"))
+                    ad = a.to(dt)
+                    fast = rt._blocked_product(plan, ad.index_select(0, cols)).index_select(0, src)
+                    blocks_dt = rt._operator_blocks(("phong", alpha), order, lifted, dt, torch.device("cpu"))
+                    slow = rt._zyz_product(K.to(dt), ad, blocks_dt)
+                    if len(blocks) > 1:
+                        assert torch.equal(fast, slow), (order, alpha, lifted, dt)
+                    assert (fast - slow).abs().max() <= tol * slow.abs().max(), (order, alpha, lifted, dt)
 
 
 def test_shade_terms_equal_reference_shade():
