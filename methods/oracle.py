@@ -22,7 +22,9 @@ material-free ones (shading frame, env-map sampling, MIS weights, ray origins, r
 over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
 (Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
 batch. When every region's BRDF compiles, the passes up to the shadow rays run as one kernel per region
-(`_pretrace_stage`), so their intermediate per-ray arrays are never stored. ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
+(`_pretrace_stage`), so their intermediate per-ray arrays are never stored. The light samples' env-map
+cells are searched before, in one pass over the frame, by a guide table (`_light_cells`,
+``methods.core.envguide``: exactly ``scenes.envmap.count_le``'s cells, ~1 load instead of 18). ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
 from __future__ import annotations
 
@@ -39,7 +41,8 @@ from methods.core.fused import fused, map_rows
 from methods.core.sampling import cosine_hemisphere_pdf, sample_cosine_hemisphere
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
-from scenes.envmap import bilinear_lookup, cell_pdf, sample_cells
+from methods.core.envguide import fix_unguided, guide_table, guided_count_le, sample_cells_at
+from scenes.envmap import bilinear_lookup, cell_pdf
 
 # Shadow-ray origin offset, as a fraction of the scene's bounding-box diagonal (Mitsuba offsets by
 # a relative epsilon too; any value well above float32 round-off of positions and well below
@@ -90,17 +93,26 @@ def _to_local(s: Tensor, t: Tensor, n: Tensor, v: Tensor) -> Tensor:
     return torch.stack([_dot(s, v), _dot(t, v), _dot(n, v)], -1)
 
 
-def _light_stage(n, wo, ng, u, cdf, p_flat, omega, R64, light: bool):
+def _guide_stage(u, cdf, guide):
+    """The env map's cell of each light sample, ``count_le(cdf, u₀)`` by the guide table
+    (`methods.core.envguide.guided_count_le`): → (k int32, ok); `Oracle._light_cells` searches the
+    rows not ok again."""
+    k, ok = guided_count_le(u[..., 0].double(), cdf, guide)
+    return k.to(torch.int32), ok
+
+
+def _light_stage(n, wo, ng, u, k, cdf, p_flat, omega, R64, light: bool):
     """The shading frame, ω_o in it, the geometric normal on the shading normal's side, and the
-    env-map samples (`scenes.envmap.sample_cells`) in world and local coordinates with their
-    densities — `Oracle._shade` up to the BRDF calls. Rows: G-buffer samples."""
+    env-map samples (`scenes.envmap.sample_cells`, its cells k given: `Oracle._light_cells`) in world
+    and local coordinates with their densities — `Oracle._shade` up to the BRDF calls. Rows:
+    G-buffer samples."""
     s, t = coordinate_system(n)
     wo_l = _to_local(s, t, n, wo)
     ng = torch.where((_dot(ng, n) < 0).unsqueeze(-1), -ng, ng)
     if not light:
         return wo_l, ng, u, u[..., 0], u
     H, W = omega.shape[0] + 1, p_flat.shape[0] // omega.shape[0]
-    d, pdf = sample_cells(u, cdf, p_flat, omega, R64, H, W, branchless=True)
+    d, pdf = sample_cells_at(k, u, cdf, p_flat, omega, R64, H, W)
     d, pdf = d.float(), pdf.float()
     return wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
 
@@ -211,14 +223,14 @@ def _brdf_eval_stage(wi, wo_l, cls, P):
     return torch.where(up[..., None], f, torch.zeros_like(f))
 
 
-def _pretrace_stage(n, wo, ng, p, u_l, u_b, cdf, p_flat, p2d, omega, R64, eps, cls, P, has_spec: bool,
+def _pretrace_stage(n, wo, ng, p, u_l, k_l, u_b, cdf, p_flat, p2d, omega, R64, eps, cls, P, has_spec: bool,
                     nl: int, nb: int):
     """`_light_stage`, `_brdf_sample_stage`, `_weight_stage`, `_brdf_eval_stage` and `_ray_stage` of
     rows of one region (a material that compiles, `_compiles`) in one kernel, so none of their
     intermediate (Q, K, ·) arrays is stored: → contributions f·cos·w (Q, K, 3), live (Q, K), shadow-ray
     origins and world directions (Q, K, 3). Placeholders where a strategy is off, as `Oracle._shade_fast`;
     the stages' eager functions (``.eager``: traced into this one graph)."""
-    wo_l, ng, d_l, pdf_l, wi_ll = _light_stage.eager(n, wo, ng, u_l, cdf, p_flat, omega, R64, nl > 0)
+    wo_l, ng, d_l, pdf_l, wi_ll = _light_stage.eager(n, wo, ng, u_l, k_l, cdf, p_flat, omega, R64, nl > 0)
     res = _brdf_sample_stage.eager(wo_l, u_b, wi_ll, cls, P, has_spec, nl, nb)
     pdf_bl = res[0] if nl else pdf_l
     wi_b, pdf_b = res[-2:] if nb else (wi_ll, pdf_l)
@@ -232,6 +244,7 @@ _pretrace_stage = fused(_pretrace_stage)
 _brdf_sample_stage = fused(_brdf_sample_stage)
 _brdf_eval_stage = fused(_brdf_eval_stage)
 _light_stage = fused(_light_stage)
+_guide_stage = fused(_guide_stage, options={"assert_indirect_indexing": False})
 _weight_stage = fused(_weight_stage)
 _ray_stage = fused(_ray_stage)
 _shade_stage = fused(_shade_stage)
@@ -338,6 +351,7 @@ class Oracle(Method):
         U_l = torch.cat(U_l) if NL and U_l else torch.zeros(order.numel(), 1, 2)
         U_b = torch.cat(U_b) if NB and U_b else torch.zeros(order.numel(), 1, 2)
         cdf, p, omega = env._tables()
+        K_l = self._light_cells(U_l, cdf) if NL else torch.zeros(U_l.shape[:2], dtype=torch.int32)
         tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
@@ -347,15 +361,28 @@ class Oracle(Method):
             mats = _segments(regions, a, a + sel.numel())
             o, live_n = self._shade_fast(mats, vis, eps_t, gbuffer.position[sel], gbuffer.normal[sel],
                                          gbuffer.wo[sel], geometric_normals(geom.V, geom.F, gbuffer.face[sel]),
-                                         U_l[a:a + chunk], U_b[a:a + chunk], tables, env.data, ext, R32)
+                                         U_l[a:a + chunk], K_l[a:a + chunk], U_b[a:a + chunk], tables, env.data,
+                                         ext, R32)
             out[sel] = o
             live_total += live_n
         self._record(gbuffer, geom, hit_idx, live_total, env)
         return gbuffer.resolve(out)
 
-    def _shade_fast(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
-        """`_shade` on samples of several regions (``mats``: (material, start, end) row ranges):
-        → ((Q, 3) estimates, live rays)."""
+    @staticmethod
+    def _light_cells(U_l: Tensor, cdf: Tensor) -> Tensor:
+        """The env-map cell (Q, NL) int32 of each light sample's uniforms U_l (Q, NL, 2): ``count_le(cdf,
+        u₀)`` (``scenes.envmap.sample_cells``' search) by the guide table in one compiled pass
+        (`_guide_stage`), the few samples it does not bracket searched again by ``count_le``."""
+        Q, NL = U_l.shape[:2]
+        k = torch.empty(Q, NL, dtype=torch.int32, device=U_l.device)
+        ok = torch.empty(Q, NL, dtype=torch.bool, device=U_l.device)
+        map_rows(_guide_stage, [U_l], (cdf, guide_table(cdf)), chunk=ROWS, out=(k, ok))
+        fix_unguided(k, ok, U_l.view(-1, 2)[:, 0], cdf)  # (Q·NL,) u₀, a strided view
+        return k
+
+    def _shade_fast(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
+        """`_shade` on samples of several regions (``mats``: (material, start, end) row ranges; K_l the
+        light samples' env-map cells, `_light_cells`): → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
         cdf, p_flat, p2d, omega, R64 = tables
         if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per region up to the shadow rays
@@ -363,11 +390,11 @@ class Oracle(Method):
             contrib, o, d = (torch.empty(Q, K, 3, device=p.device) for _ in range(3))
             live = torch.empty(Q, K, dtype=torch.bool, device=p.device)
             for mat, a, b in mats:
-                map_rows(_pretrace_stage, [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b]],
+                map_rows(_pretrace_stage, [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], K_l[a:b], U_b[a:b]],
                          (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
                           NL, NB), chunk=PRETRACE_ROWS, out=tuple(x[a:b] for x in (contrib, live, o, d)))
             return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
-        wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l],
+        wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l, K_l],
                                                      (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)
         Q = p.shape[0]
         pdf_bl = torch.empty(Q, NL) if NL else pdf_l
