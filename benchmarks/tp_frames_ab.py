@@ -7,7 +7,10 @@ relative to the image's maximum, and the roofline efficiency of the new frames w
 machine limits (`benchmarks.common.machine_limits`).
 
     python -m benchmarks.tp_frames_ab --baseline OTHER_CHECKOUT [--scene chess] [--shading vertex pixel]
-        [--kinds V L E] [--frames 8] [--threads 1] [--wall]
+        [--kinds V L E] [--frames 8] [--threads 1] [--wall] [--precompute-code OTHER_CHECKOUT]
+
+``--precompute-code DIR``: take the precomputation from the cache entry of the code in DIR (a branch
+that changes only run-time code has the same state; `benchmarks.common.apply_ab_options`).
 """
 from __future__ import annotations
 
@@ -57,6 +60,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--shading", nargs="+", default=["vertex", "pixel"])
     ap.add_argument("--wall", action="store_true")
     ap.add_argument("--baseline", required=True)
+    ap.add_argument("--precompute-code", default=None)
     ap.set_defaults(threads=1)
     a = ap.parse_args(argv)
 
@@ -66,7 +70,9 @@ def main(argv=None) -> dict:
     from reports import measure
     from scenes.library import get_scene
 
-    torch.set_num_threads(a.threads)
+    from benchmarks.common import apply_ab_options
+
+    apply_ab_options(a)                                 # threads; --precompute-code
     old_lt = _load(a.baseline, "lighting")
     old_fe = _load(a.baseline, "fast_eval")
     old_fe.lt = old_lt
@@ -92,10 +98,11 @@ def main(argv=None) -> dict:
                 img = m.render(frames[0], gbs[0])
             err = float((img - ref).abs().max() / ref.abs().max())
             t_old, t_new = [], []
-            for f, g in zip(frames[1:], gbs[1:]):
-                with _swapped(old_lt, old_fe):
-                    t = clock(); base.render(f, g); t_old.append(clock() - t)
-                t = clock(); m.render(f, g); t_new.append(clock() - t)
+            for f, g in zip(frames[1:], gbs[1:]):   # every timed frame's images compared too (the
+                with _swapped(old_lt, old_fe):        # warm-up frame's lighting often takes another path)
+                    t = clock(); ref = base.render(f, g); t_old.append(clock() - t)
+                t = clock(); img = m.render(f, g); t_new.append(clock() - t)
+                err = max(err, float((img - ref).abs().max() / ref.abs().max()))
             mo, mn = statistics.median(t_old), statistics.median(t_new)
             cost = m.frame_cost(kind, gbs[-1].num_samples)
             eff, bound = measure.roofline(cost.bytes, cost.flops, B, P, mn)

@@ -369,19 +369,65 @@ def _env_sample_planes(geo: Geodesic, supersample: int) -> tuple[Tensor, Tensor]
     return cache[supersample]
 
 
+# -- float32 atan2 / acos as polynomials (the footprint kernel's lat-long angles) -------------------
+#
+# Inductor vectorises torch.atan2 / torch.acos with Sleef's 1-ulp (double-float) routines: 2.1-2.7 ns
+# of the general footprint kernel's 3.75 ns per sample (session 16). Cephes' single-precision
+# minimax polynomials (atanf on |t| <= tan π/8 after one reduction, asinf on |x| <= 1/2 with the
+# half-angle identity above it) in plain float32 arithmetic — one division and one square root per
+# sample, no tables — are within 2.6e-7 rad of the float64 angle of the float32 input (ATen's
+# float32 atan2 / acos: 1.4e-7 / 1.9e-7; measured on 4·10^6 random unit directions, and tested),
+# i.e. u, v to a few ulp: the same round-off class as the vectorised library calls, which already
+# differ from ATen's by an ulp (tests' F32_LIGHT).
+
+
+def atan2_f32(y: Tensor, x: Tensor) -> Tensor:
+    """atan2(y, x) in (−π, π] by a polynomial (comment above): the octant reduction t = min/max of
+    |x|, |y| (t → (t − 1)/(t + 1) + π/4 above tan π/8, the same one division), Cephes' atanf
+    polynomial, then the quadrant. atan2(±0, x < 0) = +π (ATen: ±π; the same lat-long u mod 1);
+    atan2(0, 0) = 0."""
+    ax, ay = x.abs(), y.abs()
+    mn, mx = torch.minimum(ax, ay), torch.maximum(ax, ay)
+    c = mn > 0.41421356237309503 * mx                                       # t > tan(π/8)
+    num = torch.where(c, mn - mx, mn)
+    den = torch.where(c, mn + mx, mx)
+    t = num / torch.where(den > 0, den, 1.0)
+    z = t * t
+    p = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * t + t
+    r = torch.where(c, p + math.pi / 4, p)
+    r = torch.where(ay > ax, math.pi / 2 - r, r)
+    r = torch.where(x < 0, math.pi - r, r)
+    return torch.where(y < 0, -r, r)
+
+
+def acos_f32(y: Tensor) -> Tensor:
+    """acos(y) for y in [−1, 1] by a polynomial (comment above): Cephes' asinf polynomial on
+    |y| <= 1/2 (acos = π/2 − asin), 2·asin(√((1 − |y|)/2)) above; acos(−y) = π − acos(y)."""
+    a = y.abs()
+    big = a > 0.5
+    z = torch.where(big, 0.5 - 0.5 * a, a * a)
+    s = torch.where(big, z.sqrt(), a)
+    p = ((((4.2163199048e-2 * z + 2.4181311049e-2) * z + 4.5470025998e-2) * z + 7.4953002686e-2) * z
+         + 1.6666752422e-1) * z * s + s
+    r = torch.where(big, 2 * p, math.pi / 2 - p)
+    return torch.where(y < 0, math.pi - r, r)
+
+
 def env_taps(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
     """The bilinear footprints (`methods.core.latlong.quad_taps`: idx int32, fx, fy, each (f, S, n))
     of the env map seen in f frames at the projection's samples (Ma 2006 eq. 7's L^x(ω) = L(R_x^T ω)):
     directions (R_f T)^T c in the emitter frame (T = to_world, as `EnvMap.to_local`; the two
-    rotations folded into one per frame), then `direction_to_uv` (atan2, acos).
+    rotations folded into one per frame), then `direction_to_uv`'s atan2, acos as float32
+    polynomials (`atan2_f32`, `acos_f32`).
     R (f, 3, 3); cp (3, n, S) sample coordinate planes (`_env_sample_planes`); T (3, 3); H, W the
     map's size; returns (f, n, S) each. Every operand is a plane over the samples: the compiled loop
-    is vectorised along them (atan2 / acos vectorised too)."""
+    is vectorised along them. Compiled with `_TAPS_OPTIONS` (one loop: the directions stay in
+    registers)."""
     M = (R @ T)[:, :, :, None, None]                                       # (f, 3, 3, 1, 1)
     cx, cy, cz = cp[0][None], cp[1][None], cp[2][None]                     # (1, n, S)
     d = [cx * M[:, 0, k] + cy * M[:, 1, k] + cz * M[:, 2, k] for k in range(3)]  # emitter frame
-    u = torch.atan2(d[0], -d[2]) * (0.5 / math.pi)
-    v = torch.acos(d[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    u = atan2_f32(d[0], -d[2]) * (0.5 / math.pi)
+    v = acos_f32(d[1].clamp(-1.0, 1.0)) * (1.0 / math.pi)
     return quad_taps(u, v, H, W)
 
 
@@ -546,13 +592,21 @@ COMB = True
 
 # compiled with the index checks off: `quad_taps` clamps every index into the table
 _FUSE_OPTIONS = {"assert_indirect_indexing": False}
+# `env_taps`: a direction component read by more than 4 loads (6 here) and used more than once (the
+# polynomials read each several times) is stored by Inductor's default realize_reads_threshold (4) and
+# read back in a second loop — 24 bytes per sample more, and the polynomial kernel was then slower than
+# Sleef's (1 thread, chess bench block of 68 frames: 6.8-7.0 vs 5.4-5.9 ns per sample); kept in
+# registers: 2.8-3.0 vs 4.1-4.5 ns (same process). (A much larger threshold together with
+# realize_opcount_threshold made the lowering run for minutes.)
+_TAPS_OPTIONS = {**_FUSE_OPTIONS, "realize_reads_threshold": 16}
 _kernels: dict = {}
 
 
 def _kernel(fn):
-    """``fn`` through `methods.core.fused` (compiled on first use, `_FUSE_OPTIONS`)."""
+    """``fn`` through `methods.core.fused` (compiled on first use, `_FUSE_OPTIONS`; `env_taps`:
+    `_TAPS_OPTIONS`)."""
     if fn.__name__ not in _kernels:
-        _kernels[fn.__name__] = fused(fn, options=_FUSE_OPTIONS)
+        _kernels[fn.__name__] = fused(fn, options=_TAPS_OPTIONS if fn.__name__ == "env_taps" else _FUSE_OPTIONS)
     return _kernels[fn.__name__]
 
 

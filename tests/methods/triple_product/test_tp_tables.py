@@ -72,6 +72,28 @@ def test_local_frames_tangents():
         lt.local_frames(n, "bogus")
 
 
+def test_polynomial_atan2_acos_within_float32_round_off():
+    """`lighting.atan2_f32` / `acos_f32` (the general footprint kernel's angles): within 3e-7 rad of
+    the float64 angle of the float32 input on random unit directions, the axes and the octant /
+    half-angle switch points (ATen's float32 atan2 / acos: 1.4e-7 / 1.9e-7 there), and through the
+    compiled kernel (`methods.core.fused`) as eagerly."""
+    from methods.core.fused import fused
+
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(3, 200_000, generator=g, dtype=torch.float64)
+    d = (d / d.norm(dim=0)).float()
+    t8 = math.tan(math.pi / 8)
+    ys = torch.tensor([0.0, -0.0, 1.0, -1.0, 0.0, 1e-30, -1e-30, t8, -t8, 1.0, 1.0, 3.0, -2.0, 0.0])
+    xs = torch.tensor([1.0, 1.0, 0.0, 0.0, -1.0, -1.0, -1.0, 1.0, -1.0, t8, 1.0, -3.0, -2.0, 0.0])
+    y, x = torch.cat([d[0], ys]), torch.cat([d[2], xs])
+    ref = torch.atan2(y.double(), x.double())
+    ref = torch.where((y == 0) & (x < 0), math.pi, ref)     # atan2(-0, x < 0): +π here (the same u mod 1)
+    c = torch.cat([d[1], torch.linspace(-1.0, 1.0, 20001), torch.tensor([0.5, -0.5, 1.0, -1.0, 0.0])])
+    for f_atan2, f_acos in ((lt.atan2_f32, lt.acos_f32), (fused(lt.atan2_f32), fused(lt.acos_f32))):
+        assert (f_atan2(y, x).double() - ref).abs().max() <= 3e-7
+        assert (f_acos(c).double() - torch.acos(c.double())).abs().max() <= 3e-7
+
+
 def test_project_lighting_rotates_the_env_map():
     geo = Geodesic(2)
     g = lt.FrameGrid(3, 4, 2)
