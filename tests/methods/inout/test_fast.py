@@ -632,6 +632,33 @@ def _resample_cost(m) -> tuple[int, int]:
             6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4)
 
 
+def test_outlier_rows_clamps_every_index_and_is_the_eager_sum():
+    """`fast.outlier_rows` is compiled without index checks: its cells and vertices are clamped into
+    range inside (a direction with an infinite component gives an arbitrary cell), so the compiled
+    kernel equals the eager function on any integers, and `fast._outliers` (the count dynamic, fewer
+    than two entries padded) equals the 4-node sum of each entry."""
+    g = torch.Generator().manual_seed(5)
+    R, K, Vr = 16, 6, 30
+    sh_nc = torch.randn(R * R * 3, K, generator=g)
+    c = torch.randn(Vr, 3, K, generator=g)
+    fr = fast.FastRegion(col=torch.zeros(0, dtype=torch.int32), val=torch.zeros(0), crow=torch.zeros(1, dtype=torch.long),
+                         sh_lut=sh_nc.view(R * R, 3, K).transpose(1, 2).reshape(R * R, 3 * K), sh_nc=sh_nc, K=K, R=R)
+    n = 300
+    v = torch.randint(-5, Vr + 5, (n,), generator=g)
+    cell = torch.randint(-2**40, 2**40, (n,), generator=g)
+    wc = torch.rand(n, 4, generator=g)
+    assert torch.allclose(fast.outlier_rows(v, cell, wc, sh_nc, c, R), fast.outlier_rows.eager(v, cell, wc, sh_nc, c, R),
+                          rtol=RTOL, atol=1e-5)
+    for m in (0, 1, 2, 77):
+        vv = torch.randint(0, Vr, (m,), generator=g)
+        cc = torch.randint(0, R - 1, (m,), generator=g) * R + torch.randint(0, R - 1, (m,), generator=g)
+        w = wc[:m]
+        nodes = cc[:, None] + torch.tensor([0, 1, R, R + 1])
+        want = (sh_nc.view(R * R, 3, K)[nodes] * w[..., None, None] * c[vv][:, None]).sum((1, 3))
+        got = fast._outliers(fr, c, vv, cc, w)
+        assert got.shape == (m, 3) and torch.allclose(got, want, rtol=RTOL, atol=1e-5)
+
+
 def test_window_kernel_serves_every_window_set_without_recompiling(precomputed):
     """The windows change from frame to frame (`fast.prepare`: their number and sizes); the compiled
     `window_rows` takes its row counts as symbolic sizes, so a new set of windows does not re-trace it
