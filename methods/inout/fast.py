@@ -343,6 +343,8 @@ def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, wr: Tensor, out: Tensor
         return out
     cnt = (wr[:, 3] * wr[:, 4]).long()
     e0 = int(wr[0, 2])
+    if m == 1:       # the compiler specialises size 1: a second window row (never indexed) keeps one variant
+        wr, ref = torch.cat([wr, wr]), torch.cat([ref, ref])
     e = torch.arange(e0, e0 + int(cnt.sum()), device=ref.device)
     p = torch.repeat_interleave(torch.arange(m, device=ref.device), cnt)
     for t in (e, p, wr, ref, c):                          # the frame's counts: one compiled variant per K

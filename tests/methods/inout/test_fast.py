@@ -679,7 +679,7 @@ def test_window_kernel_serves_every_window_set_without_recompiling(precomputed):
     g = torch.Generator().manual_seed(3)
     cw = torch.randn(nv, 3, fr.sh_nc.shape[1], generator=g)
     graphs = []
-    for n, top in ((40, 4), (300, 9), (77, 16), (500, 2)):
+    for n, top in ((40, 4), (300, 9), (1, 16), (77, 16), (500, 2)):
         ref = torch.sort(torch.randperm(nv, generator=g)[:min(n, nv)]).values
         n = ref.numel()
         wu = torch.randint(2, top + 1, (n,), generator=g, dtype=torch.int32)
