@@ -90,7 +90,7 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
     pad = [[r[a:a + blk] for r in rows] for a in range(0, npx, blk)]
     pad = [[torch.cat([b, b[-1:].expand(blk - b.shape[0], *b.shape[1:])]) for b in bl] for bl in pad]
     st, w = view.st, view.wins
-    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, st.face_rows, w.win, w.X, st.R, w.W) for bl in pad])
+    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, st.face_rows, w.win, w.X, st.R) for bl in pad])
     out["shade_rows_samples"] = q
     out["shade_rows_bytes"] = sum(t.numel() * t.element_size() for t in args[:5]) + npx * 3 * 4
     out["shade_rows_gathers"] = q * (3 + 9 + 36)

@@ -23,17 +23,19 @@ the hemi-octahedral table (nodes n with weights w_n, ``transport.lut_cell``). Bo
 
     B = Σ_j β_j Σ_n w_n X(v_j, n),     X(v, n)_c = Σ_k sh_lut[n, (k, c)] c_{v,k,c},
 
-and X is what a frame forms (`prepare`), on a W × W window of table nodes per referenced vertex
-centred on the cell of the direction from the vertex to the camera in the vertex's own frame
-(`anchors`: the samples around a vertex see it from nearly that direction), with W chosen per
-frame on a subsample of the samples to minimise the work (`choose_window`, its histogram from the
-compiled `window_entries`). X of all windows is a compiled K-term reduction with the table rows
-gathered in place (`window_rows` through `view_windows`); each sample then reads 3 vertices × 4
-nodes of X. Sample–vertex entries whose cell leaves the window (where
+and X is what a frame forms (`prepare`), on a window of table nodes per referenced vertex: the box
+of the cells its entries hit among a subsample of the frame's samples (every `WINDOW_SUBSAMPLE`-th,
+compiled `window_cells`), widened by `WINDOW_PAD` cells and clipped to `MAX_WINDOW` nodes a side
+around the cell of the direction from the vertex to the camera in the vertex's own frame
+(`anchors`: the samples around a vertex see it from nearly that direction). X of all windows is a
+compiled K-term reduction with the table rows gathered in place (`window_rows` through
+`view_windows`); each sample then reads 3 vertices × 4 nodes of X. Sample–vertex entries whose cell
+leaves the window (a cell no subsampled sample of the vertex hit beyond the pad, where
 ``core.frames.coordinate_system`` flips the tangent, or a triangle spans many cells) are summed
 exactly from sh_lut and c (`_outliers`, compiled `outlier_rows`). The window decides only *where* a
-sum is formed, never its terms; each sample takes ω_o in its own shading frame, as the reference
-path does (`sample_frame`).
+sum is formed, never its terms: the estimator is eq. 4 at every sample whatever the windows are (a
+window changes the image by float32 round-off only), and each sample takes ω_o in its own shading
+frame, as the reference path does (`sample_frame`).
 
 The per-sample stage is one compiled pass (``methods.core.fused``) over static blocks of
 `sample_block` samples (`shade_pixels` → `shade_rows`): per sample its frame, table cell, face
@@ -84,6 +86,18 @@ bounding boxes of each vertex's own sample cells hold 2.9× fewer (~2.1·10⁵ o
 the distinct (vertex, node) pairs the samples read 5× fewer (1.2·10⁵): per-vertex window sides
 (from the subsample's per-vertex extents) are the next step for X, not yet done.
 
+Session 17 (2026-12-04, issue 14): per-vertex windows. Before, every referenced vertex had one
+W × W window centred on its anchor, W chosen per frame (W = 12 on chess bench: 6.2·10⁵ nodes,
+~2.1·10⁶ K-weighted entries outside); now each vertex's window is its own subsampled footprint
+(above): 2.2-2.9× fewer nodes of X (chess bench 2.6·10⁵), and as many or fewer entries on the exact
+path (chess 2.2-2.5·10⁴ against 2.6-2.9·10⁴ per frame). The node's row in its window is found in
+float32 inside the K-term loop (`_window_rows`). V frames, same process against main (1 thread,
+process CPU time, load 9-11, ``python -m benchmarks.inout --base MAIN --scene chess --threads 1
+--kinds V --frames 7``): chess 1.27×, creature 1.16×; `view_windows` 28 → 11 ms on chess.
+The exact path's kernel (`outlier_rows`) runs once over all entries with their count dynamic instead
+of in power-of-two static blocks (padded up to twice the work), without index checks (indices
+clamped): 1.27× on its own (chess bench V, per sample and per vertex, same process, bit-identical).
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -99,20 +113,26 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "choose_window", "view_windows", "prepare", "CHUNK", "MAX_WINDOW",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
-           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_entries",
-           "entry_inputs", "outlier_rows", "WINDOW_BLOCK"]
+           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_cells",
+           "entry_inputs", "outlier_rows"]
 
-# Largest side of the per-vertex node window (`choose_window`): vertices whose samples' cells span
-# more (the tangent flip of `coordinate_system`, big triangles) send the entries outside to the
-# exact path instead of growing every window.
+# Largest side of a vertex's node window (`prepare`): the window is clipped to the MAX_WINDOW ×
+# MAX_WINDOW nodes centred on the vertex's anchor; entries whose cells lie beyond (the tangent flip of
+# `coordinate_system`, big triangles) take the exact path instead of growing the window.
 MAX_WINDOW = 16
 # Samples per block of the former eager referenced-face pass of `InOut._view_setup` (now the compiled
 # `shaded_faces` over `sample_block` blocks); kept for callers that import it.
 CHUNK = 1 << 15
-# The window side is chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
+# The windows are chosen on every WINDOW_SUBSAMPLE-th sample's entries (`prepare`).
 WINDOW_SUBSAMPLE = 8
+# Cells added on every side of the box of cells a vertex's subsampled entries hit (`prepare`): the
+# other samples' cells lie around those. K-weighted nodes of X / K-weighted entries outside their
+# window, chess bench V frames 1-3 (the global window of side 12 before: 38.9 M / 2.08 M): pad 0
+# 11.5 M / 2.06 M, pad 1 17.8 M / 0.69 M, pad 2 26.0 M / 0.34 M, pad 3 35.9 M / 0.24 M; an entry on
+# the exact path costs ~24 nodes of X (`OUTLIER_COST`), so pads 1 and 2 tie and 1 keeps X smaller.
+WINDOW_PAD = 1
 # Work of one sample–vertex entry on the exact path (`_outliers`: a gathered c row, 4 nodes' dot
 # products, its own small sparse pattern) in units of one node of X in a window (3 dot products of
 # the frame's one sampled product), as the two kernels' times compare on a CPU (``benchmarks.inout``
@@ -288,73 +308,48 @@ def anchors(st: FastStatic, ref: Tensor, cam: Tensor) -> tuple[Tensor, Tensor]:
     return iu, iv
 
 
-def choose_window(hist: Tensor, k_total: float, max_window: int = MAX_WINDOW) -> int:
-    """Even window side W (2 ≤ W ≤ max_window) minimising the view stage's work: W² nodes of X per
-    referenced vertex (k_total = Σ K over them) plus ``OUTLIER_COST`` nodes per sample–vertex entry
-    its window misses. hist[d]: Σ K of the entries whose cell is d cells (Chebyshev) from their
-    vertex's anchor (last bin: d ≥ len − 1); a window of side W centred on the anchor holds the
-    entries with d ≤ W/2 − 1."""
-    Ws = torch.arange(2, max_window + 1, 2, device=hist.device)
-    tail = hist.flip(0).cumsum(0).flip(0)                      # tail[d] = Σ_{d' ≥ d} hist[d']
-    missed = tail[(Ws // 2).clamp(max=hist.numel() - 1)] * (Ws // 2 < hist.numel())
-    cost = k_total * Ws * Ws + OUTLIER_COST * missed
-    return int(Ws[int(torch.argmin(cost))])
+def _window_rows(e: Tensor, p: Tensor, wr: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int) -> Tensor:
+    """X (n, 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} at n rows of X (`prepare`), for ``core.fused``: row e (n,)
+    int64 of X is node e − offset of the window wr[p] (p (n,) int64; wr (m, 5) int32: first column,
+    first row, offset in X, columns wu, rows wv; row-major in the window) of vertex ref[p] (ref (m,)
+    local ids). The table rows are gathered inside the K-term reduction (nothing of size n·3K is
+    formed); sh_nc (R²·3, K) rows (node, colour), c (Vr, 3, K). The row of a node in its window,
+    ⌊l / wu⌋ (l < wu·wv ≤ MAX_WINDOW²), is taken in float32, exact with the half-cell offset: Inductor
+    recomputes the indices for every vector of the K-term loop, and an integer division there took
+    3.6× the time of the whole reduction (98 against 27 ns per node, chess-like operands, 1 thread).
+    Compiled without index checks: p < m, and the node lies in the table for
+    the windows `prepare` makes."""
+    w = Fnn.embedding(p, wr)                                                           # (n, 5)
+    loc = (e - w[:, 2]).to(torch.int32)
+    dy = ((loc.to(torch.float32) + 0.5) / w[:, 3].to(torch.float32)).floor().to(torch.int32)
+    node = (w[:, 1] + dy) * R + w[:, 0] + (loc - dy * w[:, 3])
+    K = sh_nc.shape[1]
+    v = Fnn.embedding(p, ref[:, None])[:, 0]
+    return (Fnn.embedding(node, sh_nc.view(-1, 3 * K)).view(-1, 3, K)
+            * Fnn.embedding(v, c.view(c.shape[0], 3 * K)).view(-1, 3, K)).sum(-1)
 
 
-def _window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, W: int) -> Tensor:
-    """X (m, W, W, 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node windows (first column ax,
-    first row ay, (m,) int32 each) of the vertices ``ref`` (m,) (local ids), for ``core.fused``: the
-    table rows gathered inside the K-term reduction (nothing of size m·W²·3K is formed); sh_nc
-    (R²·3, K) rows (node, colour), c (Vr, 3, K)."""
-    o = torch.arange(W, device=ax.device)
-    nodes = (ay.long()[:, None, None] + o[None, :, None]) * R + ax.long()[:, None, None] + o[None, None, :]
-    rows = nodes[..., None] * 3 + torch.arange(3, device=ax.device)                  # (m, W, W, 3)
-    return (sh_nc[rows] * c[ref.long()][:, None, None]).sum(-1)
+window_rows = fused(_window_rows, options={"assert_indirect_indexing": False})
 
 
-def _window_span(W: int, device) -> Tensor:
-    """An empty (W,) tensor whose length carries the window side W into a compiled kernel, marked
-    dynamic: W changes from frame to frame (`choose_window`), and an int argument would specialise
-    the kernel on its value — a re-trace (and, on a cold Inductor cache, a compilation of seconds)
-    inside a timed frame each time a view picks a new W. One symbolic-W kernel serves every W."""
-    span = torch.empty(W, dtype=torch.uint8, device=device)
-    torch._dynamo.maybe_mark_dynamic(span, 0)
-    return span
-
-
-def _window_rows_span(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, span: Tensor) -> Tensor:
-    return _window_rows(ax, ay, ref, sh_nc, c, R, span.shape[0])
-
-
-_window_rows_compiled = fused(_window_rows_span)
-
-
-def window_rows(ax: Tensor, ay: Tensor, ref: Tensor, sh_nc: Tensor, c: Tensor, R: int, W: int) -> Tensor:
-    """`_window_rows` compiled, W symbolic (`_window_span`)."""
-    return _window_rows_compiled(ax, ay, ref, sh_nc, c, R, _window_span(W, ax.device))
-
-
-window_rows.eager = _window_rows  # type: ignore[attr-defined]
-# Vertices per static block of `window_rows` (``core.fused.map_rows``: the padding of the last block is
-# at most this minus one rows; `_outliers` takes `sample_block` entries per block).
-WINDOW_BLOCK = 512
-
-
-def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor, W: int,
-                 out: Tensor | None = None) -> Tensor:
-    """X (m·W², 3) = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the W × W node window (first column ax,
-    first row ay, (m,) each; row-major in the window) of each vertex ``ref`` (m,) (local ids), node-major:
-    the compiled `window_rows` over static blocks of `WINDOW_BLOCK` vertices (the last one padded by
-    repeating its last vertex, as ``core.fused.map_rows``), each block written into ``out``
-    (m·W², 3) when given (`prepare`'s X of all slots: no concatenation of the blocks, then of the
-    slots, each a copy of X); c (Vr, 3, K)."""
+def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, wr: Tensor, out: Tensor) -> Tensor:
+    """X = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the window of each vertex ``ref`` (m,) (local ids of
+    one slot; wr (m, 5) int32 its window: first column, first row, offset in X, columns, rows),
+    written into its rows of ``out`` (X of all slots, (N, 3); this slot's windows are the rows from
+    wr[0, 2] to the last window's end): the compiled `window_rows` once over all of them (the row
+    count marked dynamic: windows of any sizes, one kernel per K); c (Vr, 3, K)."""
     m = ref.numel()
-    if out is None:
-        out = torch.empty(m * W * W, 3, dtype=c.dtype, device=ref.device)
     if m == 0:
         return out
-    torch._dynamo.maybe_mark_dynamic(c, 0)              # the region's vertex count: one variant per K, W
-    map_rows(window_rows, [ax, ay, ref], (fr.sh_nc, c, fr.R, W), chunk=WINDOW_BLOCK, out=out.view(m, W, W, 3))
+    cnt = (wr[:, 3] * wr[:, 4]).long()
+    e0 = int(wr[0, 2])
+    if m == 1:       # the compiler specialises size 1: a second window row (never indexed) keeps one variant
+        wr, ref = torch.cat([wr, wr]), torch.cat([ref, ref])
+    e = torch.arange(e0, e0 + int(cnt.sum()), device=ref.device)
+    p = torch.repeat_interleave(torch.arange(m, device=ref.device), cnt)
+    for t in (e, p, wr, ref, c):                          # the frame's counts: one compiled variant per K
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    out[e0:e0 + e.numel()] = window_rows(e, p, wr, ref, fr.sh_nc, c, fr.R)
     return out
 
 
@@ -362,10 +357,11 @@ def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, ax: Tensor, ay: Tensor,
 class Windows:
     """A frame's products X on the windows of its referenced vertices (`prepare`).
 
-    W: window side (even); win: (ΣVr, 3) int32 per concatenated vertex id the window's first
-    column, first row and the offset of its W² nodes in X (0 for unreferenced vertices);
-    X: (max(Σ m W², W²), 3) float32 node-major, the slots' windows one after the other (zero rows
-    added when no vertex is referenced: the compiled stage reads in-range rows for every sample).
+    W: the largest window side (reporting); win: (ΣVr, 5) int32 per concatenated vertex id its
+    window's first column, first row, the offset of its nodes in X, its columns wu and rows wv
+    (≥ 2 each; (0, 0, 0, 2, 2) for unreferenced vertices); X: (max(Σ wu·wv, 4), 3) float32
+    node-major, each window row-major, the slots' windows one after the other (zero rows added when
+    no vertex is referenced: the compiled stage reads in-range rows for every sample).
     """
 
     W: int
@@ -420,59 +416,69 @@ def _shaded_faces_cols(normal: Tensor, wx: Tensor, wy: Tensor, wz: Tensor, face:
 shaded_faces_cols = fused(_shaded_faces_cols)
 
 
-def _window_entries(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
-                    anchor: Tensor, Kv: Tensor, R: int, cap: int) -> tuple[Tensor, Tensor]:
+def _window_cells(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
+                  Kv: Tensor, R: int) -> tuple[Tensor, Tensor]:
     """Per sample–vertex entry of q samples (the `sample_inputs` arithmetic, for ``core.fused``): the
-    Chebyshev distance (q, 3) int64 of the sample's table cell from its vertex's anchor cell
-    (``anchor`` (ΣVr, 2) int32), capped at ``cap``, and the entry's weight in `choose_window`'s
-    histogram (q, 3) float64: the vertex's K where the entry is shaded (β_j ≠ 0, ω_o above the
-    horizon, live), else 0. face < 0 is clamped (a miss: not live)."""
+    entry's vertex (q, 3) int64 (concatenated id; ΣVr = Kv's length, one past the last, where the entry
+    is not shaded: β_j = 0, ω_o below the horizon, or not live) and the sample's table cell as (q, 4)
+    int32 (iu, iv, −iu, −iv): `prepare` takes their minimum per vertex, a box of cells. face < 0 is
+    clamped (a miss: not live)."""
     x, y, z = sample_frame(normal, wo)
     front = (z > 0) & live
     iu, iv, _, _ = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
-    g = face_rows[face.clamp_min(0)]                                            # (q, 3)
-    a = anchor[g]                                                               # (q, 3, 2)
-    d = torch.maximum((iu[:, None] - a[..., 0]).abs(), (iv[:, None] - a[..., 1]).abs()).clamp(max=cap)
+    g = face_rows[face.clamp_min(0)].long()                                     # (q, 3)
     u, v = bary[:, 0], bary[:, 1]
     fw = front.to(u.dtype)
     bw = torch.stack([(1.0 - u - v) * fw, u * fw, v * fw], -1)
-    return d.long(), Kv[g].double() * (bw != 0).double()
+    return torch.where(bw != 0, g, Kv.shape[0]), torch.stack([iu, iv, -iu, -iv], -1)
 
 
-window_entries = fused(_window_entries)
+window_cells = fused(_window_cells)
 
 
-def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple, scale: float,
-            max_window: int = MAX_WINDOW) -> Windows:
-    """The frame's `Windows`: anchors of the referenced vertices ``ref`` (m,) (concatenated ids,
-    ascending) towards the camera cam (3,), the window side from the entries of a subsample of the
-    frame's samples (``sub`` = their normal, wo, bary, face (< 0: a miss), live; each standing for
-    ``scale`` samples; `window_entries`), and X = the windows' products with the c of each slot
-    (cs[s] (Vr_s, 3, K_s), valid on ``ref``)."""
+def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple) -> Windows:
+    """The frame's `Windows`: a window of table nodes per referenced vertex ``ref`` (m,)
+    (concatenated ids, ascending), and X = the windows' products with the c of each slot (cs[s]
+    (Vr_s, 3, K_s), valid on ``ref``). A vertex's window is the box of the cells its entries among
+    a subsample of the frame's samples hit (``sub`` = their normal, wo, bary, face (< 0: a miss),
+    live; `window_cells`), widened by `WINDOW_PAD` cells on every side and clipped to the
+    `MAX_WINDOW`-sided window centred on its anchor (the cell of the direction to the camera cam
+    (3,), `anchors`); a vertex no subsampled entry hits gets its anchor cell."""
     R, dev, n_all, m = st.R, ref.device, st.voff[-1], ref.numel()
     au, av = anchors(st, ref, cam)
-    a_all = torch.zeros(n_all, 2, dtype=torch.int32, device=dev)
-    a_all[ref] = torch.stack([au, av], 1)
-    # window side: Chebyshev distance of the subsample's entries from their vertices' anchors
-    cap = max_window // 2
-    for t in (a_all, st.face_rows, st.K):
-        torch._dynamo.maybe_mark_dynamic(t, 0)
+    torch._dynamo.maybe_mark_dynamic(st.face_rows, 0)
+    torch._dynamo.maybe_mark_dynamic(st.K, 0)
     B = sample_block(sub[0].shape[0])
-    d, w = map_rows(window_entries, list(sub), (st.face_rows, a_all, st.K, R, cap), chunk=B, warm=warm_sizes(B))
-    hist = torch.bincount(d.reshape(-1), weights=w.reshape(-1), minlength=cap + 1) * scale
-    W = min(choose_window(hist, float(st.K[ref].sum()), max_window), R - R % 2)
-    h = W // 2 - 1
-    wr = torch.stack([(au - h).clamp_(0, R - W), (av - h).clamp_(0, R - W),
-                      torch.arange(0, m * W * W, W * W, dtype=torch.int32, device=dev)], 1)
-    win = torch.zeros(n_all, 3, dtype=torch.int32, device=dev)
+    vid, cell = map_rows(window_cells, list(sub), (st.face_rows, st.K, R), chunk=B, warm=warm_sizes(B))
+    big = torch.iinfo(torch.int32).max
+    box = torch.full((n_all + 1, 4), big, dtype=torch.int32, device=dev)   # row ΣVr: the unshaded entries
+    for j in range(3):
+        box.scatter_reduce_(0, vid[:, j:j + 1].expand(-1, 4), cell, "amin")
+    box = box.index_select(0, ref)
+    seen = box[:, 0] != big
+    lo_u, lo_v = box[:, 0], box[:, 1]
+    hi_u, hi_v = box[:, 2].neg(), box[:, 3].neg()
+    h, pad, cap = MAX_WINDOW // 2 - 1, WINDOW_PAD, MAX_WINDOW - 2         # cells [a − h, a − h + cap] at most
+    sides = []
+    for lo, hi, a in ((lo_u, hi_u, au), (lo_v, hi_v, av)):
+        lo = torch.maximum(torch.where(seen, lo, a) - pad, a - h).clamp_(min=0)
+        hi = torch.minimum(torch.where(seen, hi, a) + pad, a - h + cap).clamp_(max=R - 2)
+        empty = lo > hi                                 # every subsampled cell beyond the clip: the anchor's
+        sides.append((torch.where(empty, a, lo), torch.where(empty, a, hi)))
+    (u0, u1), (v0, v1) = sides
+    wu, wv = u1 - u0 + 2, v1 - v0 + 2
+    cnt = (wu * wv).long()
+    off = torch.cumsum(cnt, 0) - cnt
+    N = int(cnt.sum()) if m else 0
+    wr = torch.stack([u0, v0, off.to(torch.int32), wu, wv], 1).to(torch.int32)
+    win = torch.zeros(n_all, 5, dtype=torch.int32, device=dev)
+    win[:, 3:] = 2
     win[ref] = wr
     b = [int(x) for x in torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()]
-    X = torch.empty(m * W * W, 3, dtype=torch.float32, device=dev) if m else \
-        torch.zeros(W * W, 3, dtype=torch.float32, device=dev)     # at least W² rows (`_shade_rows`)
+    X = torch.empty(max(N, 4), 3, dtype=torch.float32, device=dev)           # at least 4 rows (`_shade_rows`)
     for s, fr in enumerate(st.regions):                            # each slot's windows written in place
-        view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], wr[b[s]:b[s + 1], 0], wr[b[s]:b[s + 1], 1], W,
-                     out=X[b[s] * W * W:b[s + 1] * W * W])
-    return Windows(W=W, win=win, X=X)
+        view_windows(fr, ref[b[s]:b[s + 1]] - st.voff[s], cs[s], wr[b[s]:b[s + 1]], X)
+    return Windows(W=int(torch.maximum(wu, wv).max()) if m else 2, win=win, X=X)
 
 
 # Static blocks of the compiled per-sample stage (`shade_pixels`): the frame's shaded sample count
@@ -496,13 +502,13 @@ def warm_sizes(block: int) -> tuple[int, ...]:
 
 
 def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
-                X: Tensor, R: int, W: int) -> tuple[Tensor, Tensor]:
+                X: Tensor, R: int) -> tuple[Tensor, Tensor]:
     """Eq. 4 (module docstring) at a block of n pixels × S sub-samples, every step of `sample_inputs`
     and `shade` in one pass for ``core.fused`` (no per-sample intermediate leaves the block):
     normal, wo (n, S, 3), bary (n, S, 2), face (n, S) int64 (< 0: a miss), live (n, S) bool;
-    face_gl (M, 3) int32 concatenated vertex ids of each face, win (ΣVr, 3) int32 each vertex's
-    window (first column, first row, offset in X; `Windows.win` transposed), X (N, 3) the windows'
-    products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
+    face_gl (M, 3) int32 concatenated vertex ids of each face, win (ΣVr, 5) int32 each vertex's
+    window (first column, first row, offset in X, columns wu, rows wv; `Windows.win`), X (N, 3) the
+    windows' products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
     entries inside their windows, and per sample the bits j of the entries (vertex j) that are
     shaded but outside their window (n, S) uint8: the caller adds those by the exact path.
 
@@ -511,10 +517,11 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     so each index must be in range by construction, for any input (NaN or infinite normals and
     directions included): the face is clamped into [0, M); a face's vertex ids are concatenated ids
     < ΣVr (``InOut._fast_static`` checks them); a window row holds its offset in X (0 for a vertex
-    no face of the frame references: X has at least W² rows, `prepare`); and the node offsets in the
-    window, dx and dy, are clamped into [0, W − 2] whatever iu, iv are (a NaN direction gives NaN
+    no face of the frame references, with a 2 × 2 window: X has at least 4 rows, `prepare`); and the
+    node offsets in the window, dx and dy, are clamped into [0, wu − 2] and [0, wv − 2] (wu, wv ≥ 2,
+    and offset + wu·wv ≤ X's rows) whatever iu, iv are (a NaN direction gives NaN
     cell coordinates in ``lut_cell_xyz``, an arbitrary integer after the cast), so the 12 nodes read
-    lie in the vertex's W × W window. Such a sample has ω_o not above its horizon (z > 0 is False
+    lie in the vertex's wu × wv window. Such a sample has ω_o not above its horizon (z > 0 is False
     for NaN), so its weights are 0 and it sets no miss bit. ``test_fast.py`` checks the compiled
     kernel against this function run eagerly (whose look-ups check their indices) on such inputs."""
     x, y, z = sample_frame(normal, wo)
@@ -530,12 +537,14 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     B = [None, None, None]                      # channels apart: a (.., 3) result would redo the indexing per channel
     miss = torch.zeros_like(face, dtype=torch.uint8)
     for j in range(3):                                                          # B = Σ_j Σ_n β_j w_n X(v_j, n)
-        wv = Fnn.embedding(g[..., j], win)                                      # (n, S, 3)
+        wv = Fnn.embedding(g[..., j], win)                                      # (n, S, 5)
         dx, dy = iu - wv[..., 0], iv - wv[..., 1]
-        inside = (torch.minimum(dx, dy) >= 0) & (torch.maximum(dx, dy) <= W - 2)
-        base = (wv[..., 2] + dy.clamp(0, W - 2) * W + dx.clamp(0, W - 2)) * 3  # first node
+        cu, cv = wv[..., 3] - 2, wv[..., 4] - 2                                 # last cell column, row
+        inside = (torch.minimum(dx, dy) >= 0) & (dx <= cu) & (dy <= cv)
+        row = 3 * wv[..., 3]
+        base = wv[..., 2] * 3 + torch.minimum(dy.clamp(min=0), cv) * row + torch.minimum(dx.clamp(min=0), cu) * 3
         wi = beta[j] * inside
-        for wn, off in zip(wc, (0, 3, 3 * W, 3 * W + 3)):
+        for wn, off in zip(wc, (0, 3, row, row + 3)):
             w = wi * wn
             for c in range(3):
                 t = Fnn.embedding(base + (off + c), Xf)[..., 0] * w
@@ -558,21 +567,7 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
 SHADE_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristics": False}
 
 
-def _shade_rows_span(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor,
-                     win: Tensor, X: Tensor, R: int, span: Tensor) -> tuple[Tensor, Tensor]:
-    return _shade_rows(normal, wo, bary, face, live, face_gl, win, X, R, span.shape[0])
-
-
-_shade_rows_compiled = fused(_shade_rows_span, options=SHADE_OPTIONS)
-
-
-def shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
-               X: Tensor, R: int, W: int) -> tuple[Tensor, Tensor]:
-    """`_shade_rows` compiled (`SHADE_OPTIONS`), W symbolic (`_window_span`)."""
-    return _shade_rows_compiled(normal, wo, bary, face, live, face_gl, win, X, R, _window_span(W, X.device))
-
-
-shade_rows.eager = _shade_rows  # type: ignore[attr-defined]
+shade_rows = fused(_shade_rows, options=SHADE_OPTIONS)
 
 
 def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
@@ -609,7 +604,7 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
     P = max(1, sample_block(q) // S2)
     for t in (wins.X, wins.win, st.face_rows):         # rows vary per frame / scene: one compiled variant
         torch._dynamo.maybe_mark_dynamic(t, 0)
-    args = (st.face_rows, wins.win, wins.X, st.R, wins.W)
+    args = (st.face_rows, wins.win, wins.X, st.R)
     warm_blocks(shade_rows, rows, args, [b // S2 for b in warm_sizes(P * S2) if b >= S2])
     for a in range(0, npx, P):
         blk = [t[a:a + P] for t in rows]
@@ -652,6 +647,11 @@ def _outlier_rows(v: Tensor, cell: Tensor, wc: Tensor, sh_nc: Tensor, c: Tensor,
     (the 4 nodes unrolled, the table rows gathered inside the K-term reduction). v, cell (n,) int64
     local vertex / first node; wc (n, 4) node weights; sh_nc (R²·3, K); c (Vr, 3, K) → (n, 3)."""
     ch = torch.arange(3, device=v.device)
+    # compiled without index checks (`outlier_rows`): every index clamped into range here, for any
+    # input (a direction with an infinite component has z > 0 but a NaN table cell, an arbitrary
+    # integer after the cast, and its entry misses its window)
+    cell = cell.clamp(0, R * R - R - 2)
+    v = v.clamp(0, c.shape[0] - 1)
     S = None
     for i, off in enumerate((0, 1, R, R + 1)):
         t = sh_nc[((cell + off) * 3)[:, None] + ch] * wc[:, i, None, None]         # (n, 3, K)
@@ -659,21 +659,27 @@ def _outlier_rows(v: Tensor, cell: Tensor, wc: Tensor, sh_nc: Tensor, c: Tensor,
     return (S * c[v]).sum(-1)
 
 
-outlier_rows = fused(_outlier_rows)
+# No index checks (the indices are clamped into range, `_outlier_rows`): with the entry count dynamic
+# (`_outliers`), 1.3-1.4× the static blocks with checks (chess bench V, 1 thread, same process).
+outlier_rows = fused(_outlier_rows, options={"assert_indirect_indexing": False})
 
 
 def _outliers(fr: FastRegion, c: Tensor, v: Tensor, cell: Tensor, wc: Tensor) -> Tensor:
     """Σ_n w_n X(v, n) for entries outside their vertex's window, each from its own 4 nodes: the
-    compiled `outlier_rows` over static blocks of `sample_block` entries. v, cell (n,) int64 local
-    vertex / first node; wc (n, 4) node weights (β_j folded in); c (Vr, 3, K) → (n, 3)."""
-    torch._dynamo.maybe_mark_dynamic(c, 0)
-    if v.numel() == 0:
-        # a region with no such entry in the warm-up frame may have some later (the creature's
-        # second region: none in V frame 0, 1024 in frame 2, a re-trace inside a timed frame):
-        # warm its variants on one valid entry (vertex 0, node 0, zero weights)
-        one = torch.zeros(1, dtype=torch.long, device=c.device)
-        warm_blocks(outlier_rows, [one, one, torch.zeros(1, 4, dtype=c.dtype, device=c.device)], (fr.sh_nc, c, fr.R),
-                    neighbour_blocks(MIN_SAMPLE_BLOCK, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK))
-        return torch.zeros(0, 3, dtype=c.dtype, device=c.device)
-    B = sample_block(v.numel())
-    return map_rows(outlier_rows, [v, cell, wc], (fr.sh_nc, c, fr.R), chunk=B, warm=warm_sizes(B))
+    compiled `outlier_rows` once over all of them, the entry count marked dynamic (static blocks of
+    `sample_block` entries, a power of two, padded up to twice the work: 2.4·10⁴ entries in blocks
+    of 16384 on chess bench; the per-vertex shading's 4.3·10³ vertices in one of 8192). Fewer than
+    two entries are padded to two (vertex 0, node 0, zero weights): the compiler specialises sizes
+    0 and 1, and a region with no such entry in the warm-up frame may have some later (the
+    creature's second region: none in V frame 0, 1024 in frame 2) — the padded call compiles its
+    variant in the warm-up frame. v, cell (n,) int64 local vertex / first node; wc (n, 4) node
+    weights (β_j folded in); c (Vr, 3, K) → (n, 3)."""
+    n = v.numel()
+    if n < 2:
+        z = torch.zeros(2 - n, dtype=v.dtype, device=v.device)
+        v, cell = torch.cat([v, z]), torch.cat([cell, z])
+        wc = torch.cat([wc, torch.zeros(2 - n, 4, dtype=wc.dtype, device=wc.device)])
+    rows = [v.contiguous(), cell.contiguous(), wc.contiguous()]
+    for t in (*rows, c):
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    return outlier_rows(*rows, fr.sh_nc, c, fr.R)[:n]

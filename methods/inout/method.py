@@ -490,7 +490,7 @@ class InOut(Method):
     def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
         """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
         the referenced vertices and their c_k (`_ensure_c`), and the windows' products X
-        (``fast.prepare``, the window side chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
+        (``fast.prepare``, each vertex's window chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
         self._relight(frame)
         st = self._fast_static()
         dev = gbuffer.hit.device
@@ -534,7 +534,7 @@ class InOut(Method):
             sub = (_fast.take_rows(gbuffer.normal, i), _fast.take_rows(gbuffer.wo, i), _fast.take_rows(gbuffer.bary, i),
                    gbuffer.face.index_select(0, i), torch.ones(i.numel(), dtype=torch.bool, device=dev))
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        view.wins = _fast.prepare(st, view.cs, ref, cam, sub, view.Q / max(sub[0].shape[0], 1))
+        view.wins = _fast.prepare(st, view.cs, ref, cam, sub)
         return view
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:

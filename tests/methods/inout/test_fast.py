@@ -276,7 +276,7 @@ def test_shade_rows_indices_in_range_for_any_input(precomputed):
     face[::7] = M + 100
     live = face >= 0
     bary = torch.rand(q, 2, generator=g) * 0.5
-    args = [t.unflatten(0, (n, S)) for t in (normal, wo, bary, face, live)] + [st.face_rows, w.win, w.X, st.R, w.W]
+    args = [t.unflatten(0, (n, S)) for t in (normal, wo, bary, face, live)] + [st.face_rows, w.win, w.X, st.R]
     got, got_miss = fast.shade_rows(*args)
     want, want_miss = fast.shade_rows.eager(*args)
     assert torch.equal(got_miss, want_miss)
@@ -321,17 +321,45 @@ def test_locality_order_is_a_morton_permutation():
         tp.locality_order(torch.zeros(4, 2))
 
 
-def test_choose_window_balances_windows_and_outliers():
-    """W² nodes per vertex against OUTLIER_COST per missed entry (hist: K-weighted entries by
-    distance from their anchor)."""
-    hist = torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64)      # every entry on its anchor cell
-    assert fast.choose_window(hist, 10.0, 16) == 2
-    far = torch.tensor([0.0, 0.0, 1e9], dtype=torch.float64)          # many entries 2+ cells away
-    assert fast.choose_window(far, 10.0, 16) == 6                     # the smallest window holding them
-    assert fast.choose_window(far, 10.0, 4) == 2                      # capped: W = 4 would miss them too
-    mid = torch.tensor([0.0, 100.0, 0.0], dtype=torch.float64)        # 1 cell away: W = 4 holds them
-    assert fast.choose_window(mid, 10.0, 16) == 4
-    assert fast.choose_window(mid, 1e9, 16) == 2                      # unless 16 nodes per vertex cost more
+def test_windows_hold_the_subsampled_cells_and_their_products(precomputed):
+    """`fast.prepare`: each referenced vertex's window holds every cell its subsampled entries hit
+    (widened by WINDOW_PAD, unless beyond MAX_WINDOW of its anchor), lies in the table, is at most
+    MAX_WINDOW nodes a side, the windows lie in X without overlap; X is the K-term sum at each node."""
+    m = precomputed("bunny")
+    fast_m, _ = _pair(m)
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 2)
+    view = fast_m._view_setup(frame, gb)
+    st, w = view.st, view.wins
+    R, k = st.R, fast.WINDOW_SUBSAMPLE
+    gl, bw, (iu, iv, _, _), _ = fast.sample_inputs(st, gb.normal[::k], gb.wo[::k], gb.bary[::k],
+                                                   gb.face[::k].clamp_min(0), gb.hit[::k])
+    ref = torch.unique(gl[bw != 0].long())
+    u0, v0, off, wu, wv = w.win.long().unbind(-1)
+    assert bool((wu >= 2).all() and (wv >= 2).all())
+    assert bool((wu[ref] <= fast.MAX_WINDOW).all() and (wv[ref] <= fast.MAX_WINDOW).all())
+    assert bool((u0 + wu <= R).all() and (v0 + wv <= R).all())
+    order = torch.argsort(off[ref])
+    ends = (off + wu * wv)[ref][order]
+    assert bool((off[ref][order][1:] >= ends[:-1]).all()) and int(ends[-1]) <= w.X.shape[0]   # disjoint, in X
+    au, av = fast.anchors(st, ref, torch.tensor(frame.camera.origin, dtype=torch.float32))
+    h = fast.MAX_WINDOW // 2 - 1
+    for j in range(3):
+        e = bw[j] != 0
+        v, cu, cv = gl[j][e].long(), iu[e].long(), iv[e].long()
+        pos = torch.searchsorted(ref, v)
+        near = ((cu - au.long()[pos]).abs() <= h) & ((cv - av.long()[pos]).abs() <= h)
+        inside = (cu >= u0[v]) & (cu <= u0[v] + wu[v] - 2) & (cv >= v0[v]) & (cv <= v0[v] + wv[v] - 2)
+        assert bool(inside[near].all())
+    # X at a few nodes of a few vertices of the first slot against the K-term sum
+    fr, c = st.regions[0], view.cs[0]
+    for vg in ref[ref < st.voff[1]][:: max(1, int((ref < st.voff[1]).sum()) // 7)].tolist():
+        for dy in range(int(wv[vg])):
+            for dx in range(int(wu[vg])):
+                node = (int(v0[vg]) + dy) * R + int(u0[vg]) + dx
+                want = (fr.sh_nc[node * 3:node * 3 + 3] * c[vg]).sum(-1)
+                got = w.X[int(off[vg]) + dy * int(wu[vg]) + dx]
+                assert torch.allclose(got, want, rtol=RTOL, atol=1e-6)
 
 
 # -- the cost model ------------------------------------------------------------------------------
@@ -604,10 +632,37 @@ def _resample_cost(m) -> tuple[int, int]:
             6 * N * N * s * s * 2 * 24 + 6 * N * N * 3 * 4)
 
 
-def test_window_kernels_serve_every_window_side_without_recompiling(precomputed):
-    """The window side W changes from frame to frame (`fast.choose_window`); the compiled
-    `shade_rows` and `window_rows` take it as a symbolic size (`fast._window_span`), so a new W
-    does not re-trace them inside a timed frame — and each W still gives the eager result."""
+def test_outlier_rows_clamps_every_index_and_is_the_eager_sum():
+    """`fast.outlier_rows` is compiled without index checks: its cells and vertices are clamped into
+    range inside (a direction with an infinite component gives an arbitrary cell), so the compiled
+    kernel equals the eager function on any integers, and `fast._outliers` (the count dynamic, fewer
+    than two entries padded) equals the 4-node sum of each entry."""
+    g = torch.Generator().manual_seed(5)
+    R, K, Vr = 16, 6, 30
+    sh_nc = torch.randn(R * R * 3, K, generator=g)
+    c = torch.randn(Vr, 3, K, generator=g)
+    fr = fast.FastRegion(col=torch.zeros(0, dtype=torch.int32), val=torch.zeros(0), crow=torch.zeros(1, dtype=torch.long),
+                         sh_lut=sh_nc.view(R * R, 3, K).transpose(1, 2).reshape(R * R, 3 * K), sh_nc=sh_nc, K=K, R=R)
+    n = 300
+    v = torch.randint(-5, Vr + 5, (n,), generator=g)
+    cell = torch.randint(-2**40, 2**40, (n,), generator=g)
+    wc = torch.rand(n, 4, generator=g)
+    assert torch.allclose(fast.outlier_rows(v, cell, wc, sh_nc, c, R), fast.outlier_rows.eager(v, cell, wc, sh_nc, c, R),
+                          rtol=RTOL, atol=1e-5)
+    for m in (0, 1, 2, 77):
+        vv = torch.randint(0, Vr, (m,), generator=g)
+        cc = torch.randint(0, R - 1, (m,), generator=g) * R + torch.randint(0, R - 1, (m,), generator=g)
+        w = wc[:m]
+        nodes = cc[:, None] + torch.tensor([0, 1, R, R + 1])
+        want = (sh_nc.view(R * R, 3, K)[nodes] * w[..., None, None] * c[vv][:, None]).sum((1, 3))
+        got = fast._outliers(fr, c, vv, cc, w)
+        assert got.shape == (m, 3) and torch.allclose(got, want, rtol=RTOL, atol=1e-5)
+
+
+def test_window_kernel_serves_every_window_set_without_recompiling(precomputed):
+    """The windows change from frame to frame (`fast.prepare`: their number and sizes); the compiled
+    `window_rows` takes its row counts as symbolic sizes, so a new set of windows does not re-trace it
+    inside a timed frame — and each set still gives the eager result."""
     from methods.core.fused import compile_enabled
 
     if not compile_enabled():
@@ -620,18 +675,32 @@ def test_window_kernels_serve_every_window_side_without_recompiling(precomputed)
     view = fast_m._view_setup(frame, make_gbuffer(m.scene, frame, 2))
     st = view.st
     fr = st.regions[0]
-    n = fast.MIN_SAMPLE_BLOCK
+    nv = int(st.voff[1])
     g = torch.Generator().manual_seed(3)
-    ref = torch.randint(0, int(st.voff[1]), (n,), generator=g)
+    cw = torch.randn(nv, 3, fr.sh_nc.shape[1], generator=g)
     graphs = []
-    for W in (4, 8, 6, 10):
-        ax = torch.randint(0, fr.R - W + 1, (n,), generator=g, dtype=torch.int32)
-        ay = torch.randint(0, fr.R - W + 1, (n,), generator=g, dtype=torch.int32)
-        cw = torch.randn(int(st.voff[1]), 3, fr.sh_nc.shape[1], generator=g)
-        got = fast.window_rows(ax, ay, ref, fr.sh_nc, cw, fr.R, W)
-        assert torch.allclose(got, fast.window_rows.eager(ax, ay, ref, fr.sh_nc, cw, fr.R, W), rtol=RTOL, atol=1e-6)
+    for n, top in ((40, 4), (300, 9), (1, 16), (77, 16), (500, 2)):
+        ref = torch.sort(torch.randperm(nv, generator=g)[:min(n, nv)]).values
+        n = ref.numel()
+        wu = torch.randint(2, top + 1, (n,), generator=g, dtype=torch.int32)
+        wv = torch.randint(2, top + 1, (n,), generator=g, dtype=torch.int32)
+        u0 = (torch.rand(n, generator=g) * (fr.R - wu + 1).float()).int()
+        v0 = (torch.rand(n, generator=g) * (fr.R - wv + 1).float()).int()
+        cnt = (wu * wv).long()
+        off = torch.cumsum(cnt, 0) - cnt + 5                    # the slot's windows need not start at row 0
+        wr = torch.stack([u0, v0, off.int(), wu, wv], 1)
+        X = torch.full((int(cnt.sum()) + 5, 3), float("nan"))
+        fast.view_windows(fr, ref, cw, wr, X)
+        e = torch.arange(5, X.shape[0])
+        p = torch.repeat_interleave(torch.arange(n), cnt)
+        want = fast.window_rows.eager(e, p, wr, ref, fr.sh_nc, cw, fr.R)
+        assert torch.allclose(X[5:], want, rtol=RTOL, atol=1e-6) and bool(X[:5].isnan().all())
+        loc = e - off[p]                                        # the node of each row, by integer division
+        node = (v0.long()[p] + loc // wu.long()[p]) * fr.R + u0.long()[p] + loc % wu.long()[p]
+        direct = (fr.sh_nc.view(-1, 3, fr.sh_nc.shape[1])[node] * cw[ref[p]]).sum(-1)
+        assert torch.allclose(want, direct, rtol=RTOL, atol=1e-6)
         graphs.append(counters["stats"]["unique_graphs"])
-    assert graphs[-1] == graphs[0], graphs          # W = 8, 6, 10 reuse the kernel compiled for W = 4
+    assert graphs[-1] == graphs[0], graphs          # the later window sets reuse the first's kernel
 
 
 def test_native_kernel_is_not_loaded_from_a_directory_others_can_write(tmp_path, monkeypatch):
