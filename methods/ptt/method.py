@@ -119,16 +119,6 @@ SEPARATE_DEFAULT = True
 # tables 12.8 ms vs 1.0 ms (so the perf run's chess VB frame, 2.5x the V frame, paid ~3 fits and
 # the tables at ~10x; the creature fits one material on 2 basis functions). One thread also makes
 # these results independent of the thread count by construction (``methods.core.threads``).
-#
-# PAIR_STAGE_THREADS: the per-(vertex, region) pair rows of the view stage (`fast.vertex_view`,
-# ~10⁴ rows: two compiled loops and two small bags) run on one torch thread too; the per-sample
-# stage after them (~2.6·10⁵ samples) keeps the caller's threads. Measured under the same load
-# (2 threads, load ~10 on 2 cores): vertex_view alone 46.9 ms CPU / 148 ms wall with 2 threads vs
-# 11.0 / 41 ms under torch_threads(1); whole frames, same process, alternating (process CPU, wall;
-# ``python -m benchmarks.ptt_ab --base MAIN --kinds V VB --frames 11 --threads 2``): chess V
-# 1.58x (1.62x), chess VB 2.61x (2.57x, with BRDF_STAGE_THREADS), creature V 1.51x (1.58x);
-# 1 thread unchanged (chess V 1.04x, VB 1.04x: noise). On an idle machine the pair stage (~2 ms at
-# 1 thread on the chess bench) gives up at most its 2-thread speed-up.
 
 
 def _check_int(name: str, v: Any, lo: int) -> int:
@@ -570,8 +560,7 @@ class PTT(Method):
             env = self._f_light[3][1]
         C = 3 + 3 * L + (3 if I1 is not None and self.separate else 0)  # columns B | s | u of the pair rows
         width = _fast.table_width(C) if FUSED_VIEW and env is not None else 0
-        with torch_threads(1):  # PAIR_STAGE_THREADS (module comment)
-            table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
+        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
         if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
