@@ -119,6 +119,9 @@ SEPARATE_DEFAULT = True
 # tables 12.8 ms vs 1.0 ms (so the perf run's chess VB frame, 2.5x the V frame, paid ~3 fits and
 # the tables at ~10x; the creature fits one material on 2 basis functions). One thread also makes
 # these results independent of the thread count by construction (``methods.core.threads``).
+# On an idle machine (load ~2) it is neutral: chess VB 2 threads 9.2 vs 9.2 ms wall, 1 thread 15.3 vs
+# 15.0 ms; creature VB 2 threads 7.9 vs 8.0 ms. The same for the view stage's pair rows
+# (`fast.vertex_view`) was 1.5-1.6x under load but 0.86x idle (chess V, 2 threads): not adopted.
 
 
 def _check_int(name: str, v: Any, lo: int) -> int:
