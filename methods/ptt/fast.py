@@ -72,7 +72,7 @@ from methods.core.sh_rotation import sh_rotation_matrix
 from methods.ptt import specular as _spec
 from methods.ptt.transport import table_coords
 
-__all__ = ["FastStatic", "build_static", "relayout_t2", "direct_incidence", "region_tables", "brdf_products",
+__all__ = ["FastStatic", "build_static", "relayout_t2", "direct_incidence", "view_table_rows", "region_tables", "brdf_products",
            "view_windows", "shade", "specular_lobes", "WINDOW"]
 
 # Side of the per-(vertex, region) texel window of the glossy term (`view_windows`; at most the
@@ -225,13 +225,30 @@ def lighting_products(T1: Tensor | None, T1c, CL1: Tensor | None, T2: Tensor | N
     return T1L, T2L
 
 
-def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None) -> tuple[Tensor, Tensor | None]:
+def view_table_rows(W_tab: Tensor, K: int) -> Tensor:
+    """The view tables W_tab (P·K, T, T) laid out (T²·K, P): row (texel, k) holds the P basis
+    functions' values, the left operand of `region_tables`' product (built once per precompute)."""
+    P = W_tab.shape[0] // K
+    T2 = W_tab.shape[-1] * W_tab.shape[-2]
+    return W_tab.reshape(P, K, T2).permute(2, 1, 0).reshape(T2 * K, P).contiguous()
+
+
+def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
+                  W_rows: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
     """Products of the BRDF coordinates H (R, P, 3) cached for the view stage:
     W_r (R·T², K·3) rows (r, texel) of Σ_p H(r, p, c) W(p, ·, k) (W_tab (P·K, T, T)), and
-    a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None."""
+    a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None.
+
+    W_r is one batched product W_rows (T²·K, P) @ H[r] (P, 3) per region (`view_table_rows`: the
+    tables stored texel-major once, so the product writes W_r's rows in place; None: built here).
+    Measured on the chess bench's tables (R = 3, P = 4, K = 16, T = 48; 1 thread, process CPU time,
+    same process, alternating, load ~9): 0.32 ms vs 0.80 ms for the einsum over the (P, K, T²)
+    layout (which permutes its (r, t, k, c) result into place), the same bits there."""
     R, P, _ = H.shape
     T2 = W_tab.shape[-1] * W_tab.shape[-2]
-    Wr = torch.einsum("rpc,pkt->rtkc", H, W_tab.reshape(P, K, T2)).reshape(R * T2, K * 3)
+    if W_rows is None:
+        W_rows = view_table_rows(W_tab, K)
+    Wr = torch.bmm(W_rows.expand(R, -1, -1), H).reshape(R * T2, K * 3)
     ar = None
     if lobe_a is not None:
         n, L = lobe_a.shape[1:]

@@ -74,6 +74,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
                           tensor_bytes, geometry_key, precompute_memo)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
+from methods.core.threads import torch_threads
 from references.visibility import make_visibility
 from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
@@ -107,6 +108,20 @@ SHADING_DEFAULT = "vertex"
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
 SEPARATE_DEFAULT = True
+
+
+# BRDF_STAGE_THREADS: a VB frame's BRDF stage — the run-time fit of each changed material
+# (`PTT.coords`: a few dozen eager ops on the 25 200 fit pairs and a 4×4 solve) and the region
+# tables (`fast.region_tables`: one (T²·K, P) × (P, 3) product per region) — runs on one torch
+# thread. Its ops are small, and with 2 threads on a loaded machine each one's OpenMP region spent
+# ~10x its work waiting: chess bench, 2 threads, load ~10 on 2 cores, process CPU time, same
+# process, alternating: one material's fit 14.1 ms vs 1.38 ms under torch_threads(1), the region
+# tables 12.8 ms vs 1.0 ms (so the perf run's chess VB frame, 2.5x the V frame, paid ~3 fits and
+# the tables at ~10x; the creature fits one material on 2 basis functions). One thread also makes
+# these results independent of the thread count by construction (``methods.core.threads``).
+# On an idle machine (load ~2) it is neutral: chess VB 2 threads 9.2 vs 9.2 ms wall, 1 thread 15.3 vs
+# 15.0 ms; creature VB 2 threads 7.9 vs 8.0 ms. The same for the view stage's pair rows
+# (`fast.vertex_view`) was 1.5-1.6x under load but 0.86x idle (chess V, 2 threads): not adopted.
 
 
 def _check_int(name: str, v: Any, lo: int) -> int:
@@ -421,7 +436,9 @@ class PTT(Method):
         for r in self.regions:
             m = materials[r]
             if m not in self._coords:
-                self._coords[m] = torch.as_tensor(self.basis.coords(m), dtype=torch.float32)
+                # one thread (BRDF_STAGE_THREADS): the fit's ops are small
+                with torch_threads(1):
+                    self._coords[m] = torch.as_tensor(self.basis.coords(m), dtype=torch.float32)
             rows.append(self._coords[m])
         return torch.stack(rows)
 
@@ -484,8 +501,13 @@ class PTT(Method):
         if light:
             self._fast_lighting(frame.envmap)
         if self._f_H is None or "brdf" in frame.changed or not torch.equal(H, self._f_H):
-            self._f_tabs = _fast.region_tables(H, self.factors.W_tab, self.factors.K,
-                                               self.lobe_table.a if self.separate else None)
+            W_tab = self.factors.W_tab
+            wr = getattr(self, "_f_wrows", None)  # (W_tab, its fast.view_table_rows), built once
+            if wr is None or wr[0] is not W_tab:
+                wr = self._f_wrows = (W_tab, _fast.view_table_rows(W_tab, self.factors.K))
+            with torch_threads(1):  # BRDF_STAGE_THREADS
+                self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K,
+                                                   self.lobe_table.a if self.separate else None, wr[1])
             self._f_H, self._f_E = H, None
         if self._f_E is None:  # Sun eq. 4 for (lighting, H)
             E0, T1L, T2L, _ = self._f_light
@@ -949,4 +971,6 @@ class PTT(Method):
         m["fast_frames_pairs"] = tensor_bytes(st.frames, st.pair_of, st.pair_v, st.pair_r)
         if st.sh_rot is not None:
             m["sh_rotation"] = tensor_bytes(st.sh_rot)
+        if getattr(self, "_f_wrows", None) is not None:  # the view tables texel-major (fast.view_table_rows)
+            m["fast_view_rows"] = tensor_bytes(self._f_wrows[1])
         return m
