@@ -1052,6 +1052,7 @@ def relight_cache(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, reg
     cache: dict = {"Q": Q, "vi": vi, "groups": [], "regions": [],
                    "counts": _plane_counts(groups, mask, region, vertex_normal, vertex_region)}
     counts = cache["counts"]
+    cache["mask"] = mask   # (the first group's, when it holds most points: `ZHShadow._relight_planes`)
     for n0, pos in groups:
         if pos is None:
             cache["groups"].append((n0, None, None, b * (mask & front)[:, None]))

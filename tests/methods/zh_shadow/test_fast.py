@@ -406,6 +406,30 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
             assert slow.memory()["plane_term"] == 0
 
 
+@pytest.mark.parametrize("name", ("creature", "sphere_plane"))
+def test_relight_plane_path_equals_general_relight(small_model, monkeypatch, name):
+    """`ZHShadow._relight_planes` (a lighting-only frame from the cached transfer, one plane shaded
+    straight from the G-buffer into the pixels) is taken from the second L / E frame on, and equals
+    `runtime.relight` + clamp + resolve (the general path) and the reference, clamp on and off."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model(name)
+    for kind, clamp in (("L", True), ("E", True), ("L", False)):
+        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+        for fr in make_sequence(m.scene, kind, 3, seed=6):
+            gb = make_gbuffer(m.scene, fr, 2)
+            a = fast.render(fr, gb)
+            assert fast.last_path == ("planes" if fr.index == 0 else "relight-planes"), (name, kind, fast.last_path)
+            with monkeypatch.context() as mp:
+                mp.setattr(Z, "_relight_planes", lambda *args, **kw: None)
+                b = slow.render(fr, gb)
+            ref = fast._render_reference(fr, gb)
+            assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
+            assert fast._last_counts["Q"] == slow._last_counts["Q"]
+
+
 def test_product_tensor_and_features():
     """G[a, j, i] reproduces the product y_j y_i pointwise (it is exact: the product is band-limited
     to 2n−1), and the monomial features map onto the order-B SH exactly on the sphere."""
