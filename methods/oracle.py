@@ -42,7 +42,7 @@ from methods.core.sampling import cosine_hemisphere_pdf, sample_cosine_hemispher
 from methods.core.visibility import Visibility
 from references.visibility import make_visibility
 from methods.core.envguide import fix_unguided, guide_table, guided_count_le, sample_cells_at
-from scenes.envmap import bilinear_lookup, cell_pdf
+from scenes.envmap import bilinear_lookup, cell_pdf, count_le
 
 # Shadow-ray origin offset, as a fraction of the scene's bounding-box diagonal (Mitsuba offsets by
 # a relative epsilon too; any value well above float32 round-off of positions and well below
@@ -377,7 +377,7 @@ class Oracle(Method):
         k = torch.empty(Q, NL, dtype=torch.int32, device=U_l.device)
         ok = torch.empty(Q, NL, dtype=torch.bool, device=U_l.device)
         map_rows(_guide_stage, [U_l], (cdf, guide_table(cdf)), chunk=ROWS, out=(k, ok))
-        fix_unguided(k, ok, U_l.view(-1, 2)[:, 0], cdf)  # (Q·NL,) u₀, a strided view
+        fix_unguided(k, ok, U_l.view(-1, 2)[:, 0], cdf, count_le)  # (Q·NL,) u₀, a strided view
         return k
 
     def _shade_fast(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):

@@ -10,6 +10,12 @@ others within a few cache lines). A bracket wider than 2^GUIDE_STEPS − 1 cells
 cells within 1/G of u: ≤ 1.3 % of u on the library maps), or an x outside [0, 1], is flagged and
 searched again by ``count_le`` itself (`fix_unguided`): the result is exactly ``count_le``'s for
 every x, so the samples stay bit-identical (``tests/methods/core/test_envguide.py``).
+
+This module is core math (layer 0) and imports nothing from ``scenes``: the table is built by
+``torch.searchsorted(cdf, edges, right=True)`` (``count_le``'s definition; the edges lie in [0, 1]),
+and `fix_unguided` takes the caller's search. `sample_cells_at` repeats ``scenes.envmap.sample_cells`` after its search; making
+``sample_cells`` call it would edit ``scenes/envmap.py``, whose bytes key every Mitsuba reference
+(``references/cache.py``), so it waits for the next deliberate re-render.
 """
 from __future__ import annotations
 
@@ -19,7 +25,6 @@ import weakref
 import torch
 from torch import Tensor
 
-from scenes.envmap import count_le
 
 # Bisection steps inside a guide bucket: brackets of up to 2^4 − 1 = 15 cells are searched in place.
 GUIDE_STEPS = 4
@@ -41,7 +46,7 @@ def guide_table(cdf: Tensor) -> Tensor:
         return hit[1]
     G = guide_buckets(cdf.shape[0])
     edges = torch.arange(G + 1, dtype=torch.float64, device=cdf.device) / G  # exact: G a power of 2
-    table = count_le(cdf, edges).to(torch.int32)
+    table = torch.searchsorted(cdf, edges, right=True).to(torch.int32)   # = count_le(cdf, edges)
     _TABLES[key] = (weakref.ref(cdf), table)
     weakref.finalize(cdf, _TABLES.pop, key, None)
     return table
@@ -66,13 +71,15 @@ def guided_count_le(x: Tensor, cdf: Tensor, guide: Tensor, steps: int = GUIDE_ST
     return k, inside & (hi - lo < (1 << steps))
 
 
-def fix_unguided(k: Tensor, ok: Tensor, x: Tensor, cdf: Tensor) -> int:
-    """Entries of k (contiguous) where not ``ok`` set to ``count_le(cdf, x.double())`` in place (x: the
-    same number of elements, any strides and float dtype: only the entries not ok are read and
+def fix_unguided(k: Tensor, ok: Tensor, x: Tensor, cdf: Tensor, search) -> int:
+    """Entries of k (contiguous) where not ``ok`` set to ``search(cdf, x.double())`` in place — the
+    caller's CDF search, ``scenes.envmap.count_le`` for the oracle (passed in: the core imports
+    nothing from ``scenes``), so that out-of-range and NaN x get exactly its answer (x: the same
+    number of elements, any strides and float dtype: only the entries not ok are read and
     converted); → how many."""
     bad = torch.nonzero(~ok.reshape(-1)).squeeze(-1)
     if bad.numel():
-        k.view(-1)[bad] = count_le(cdf, x.reshape(-1)[bad].double()).to(k.dtype)
+        k.view(-1)[bad] = search(cdf, x.reshape(-1)[bad].double()).to(k.dtype)
     return int(bad.numel())
 
 

@@ -55,7 +55,7 @@ def test_guided_search_equals_count_le(compiled, monkeypatch):
         assert frac > (0.5 if name == "ties" else 0.9), (name, frac)  # the guide does most of the work
         assert not ok[~((x >= 0) & (x <= 1))].any()  # out of range / NaN: searched again
         k32 = k.to(torch.int32)
-        fix_unguided(k32, ok, x, cdf)
+        fix_unguided(k32, ok, x, cdf, E.count_le)
         assert torch.equal(k32.long(), want), name
         # and searchsorted (count_le's own definition) on the in-range ones
         inr = (x >= 0) & (x <= 1)
