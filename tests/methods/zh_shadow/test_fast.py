@@ -381,29 +381,38 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
     planes; character: samples that miss), equals the reference and the general path (image to
     round-off, the same point counts for `frame_cost`) on V and VB frames, with the clamp on and off.
     A wrong plane term, front test, clamp or box filter breaks the image; a wrong count the counts."""
+    cases = (("V", True), ("VB", True), ("V", False))
+    for kind, fr, fast, slow in _fast_vs_general(small_model(name), monkeypatch, "_render_planes", cases, 2, 5):
+        assert fast.last_path == path, (name, kind, fast.last_path)
+        ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+        pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
+        assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
+        # the plane path's kept term is reported as memory; the general path keeps none
+        u = fast._plane_u[3] if path == "planes" else None
+        assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
+        assert slow.memory()["plane_term"] == 0
+
+
+def _fast_vs_general(m, monkeypatch, fast_path: str, cases, n_frames: int, seed: int):
+    """For each (kind, clamp) of ``cases`` and each frame of that sequence: render with ``m``'s
+    fast path and with the ZHShadow method ``fast_path`` disabled (the general path), check both
+    against each other and the reference to RENDER_TOL, and yield (kind, frame, fast, general)
+    for the caller's own checks (paths taken, counts)."""
     from methods.zh_shadow.method import ZHShadow as Z
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    m = small_model(name)
-    for kind, clamp in (("V", True), ("VB", True), ("V", False)):
+    for kind, clamp in cases:
         fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
-        for fr in make_sequence(m.scene, kind, 2, seed=5):
+        for fr in make_sequence(m.scene, kind, n_frames, seed=seed):
             gb = make_gbuffer(m.scene, fr, 2)
             a = fast.render(fr, gb)
-            assert fast.last_path == path, (name, kind, fast.last_path)
             with monkeypatch.context() as mp:
-                mp.setattr(Z, "_render_planes", lambda *args, **kw: None)
+                mp.setattr(Z, fast_path, lambda *args, **kw: None)
                 b = slow.render(fr, gb)
             ref = fast._render_reference(fr, gb)
             assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
-            ca, cb = dict(fast._last_counts), dict(slow._last_counts)
-            pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
-            assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
-            # the plane path's kept term is reported as memory; the general path keeps none
-            u = fast._plane_u[3] if path == "planes" else None
-            assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
-            assert slow.memory()["plane_term"] == 0
+            yield kind, fr, fast, slow
 
 
 @pytest.mark.parametrize("name", ("creature", "sphere_plane"))
@@ -411,23 +420,10 @@ def test_relight_plane_path_equals_general_relight(small_model, monkeypatch, nam
     """`ZHShadow._relight_planes` (a lighting-only frame from the cached transfer, one plane shaded
     straight from the G-buffer into the pixels) is taken from the second L / E frame on, and equals
     `runtime.relight` + clamp + resolve (the general path) and the reference, clamp on and off."""
-    from methods.zh_shadow.method import ZHShadow as Z
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
-    m = small_model(name)
-    for kind, clamp in (("L", True), ("E", True), ("L", False)):
-        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
-        for fr in make_sequence(m.scene, kind, 3, seed=6):
-            gb = make_gbuffer(m.scene, fr, 2)
-            a = fast.render(fr, gb)
-            assert fast.last_path == ("planes" if fr.index == 0 else "relight-planes"), (name, kind, fast.last_path)
-            with monkeypatch.context() as mp:
-                mp.setattr(Z, "_relight_planes", lambda *args, **kw: None)
-                b = slow.render(fr, gb)
-            ref = fast._render_reference(fr, gb)
-            assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
-            assert fast._last_counts["Q"] == slow._last_counts["Q"]
+    cases = (("L", True), ("E", True), ("L", False))
+    for kind, fr, fast, slow in _fast_vs_general(small_model(name), monkeypatch, "_relight_planes", cases, 3, 6):
+        assert fast.last_path == ("planes" if fr.index == 0 else "relight-planes"), (name, kind, fast.last_path)
+        assert fast._last_counts["Q"] == slow._last_counts["Q"]
 
 
 def test_product_tensor_and_features():
