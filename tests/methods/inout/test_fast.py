@@ -68,6 +68,16 @@ def _assert_sequence_equal(m: InOut, kind: str, spp_side: int = 1, n_frames: int
         assert err <= RTOL * scale, f"{m.scene.name} {kind} frame {frame.index}: {err} vs peak {scale}"
 
 
+def _bunny_view(precomputed):
+    """The test-size bunny's in-out model, its first V frame, that frame's G-buffer and the fast
+    path's view set-up of it (`InOut._view_setup`)."""
+    m = precomputed("bunny")
+    fast_m, _ = _pair(m)
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 2)
+    return m, frame, gb, fast_m._view_setup(frame, gb)
+
+
 @pytest.mark.parametrize("name", SCENES)
 def test_fast_path_equals_reference(precomputed, name):
     """Every library scene in-out accepts, V / L / E sequences rendered in order (so both paths'
@@ -256,11 +266,7 @@ def test_shade_rows_indices_in_range_for_any_input(precomputed):
     no G-buffer should hold — NaN, infinite and zero normals and directions, faces below −1 and past
     the last face — it equals the eager function, whose look-ups check every index (an index out of
     range raises there), and such samples add nothing and set no miss bit."""
-    m = precomputed("bunny")
-    fast_m, _ = _pair(m)
-    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
-    gb = make_gbuffer(m.scene, frame, 2)
-    view = fast_m._view_setup(frame, gb)
+    m, frame, gb, view = _bunny_view(precomputed)
     st, w = view.st, view.wins
     n, S = fast.MIN_SAMPLE_BLOCK // 4, 4
     q = n * S
@@ -325,11 +331,7 @@ def test_windows_hold_the_subsampled_cells_and_their_products(precomputed):
     """`fast.prepare`: each referenced vertex's window holds every cell its subsampled entries hit
     (widened by WINDOW_PAD, unless beyond MAX_WINDOW of its anchor), lies in the table, is at most
     MAX_WINDOW nodes a side, the windows lie in X without overlap; X is the K-term sum at each node."""
-    m = precomputed("bunny")
-    fast_m, _ = _pair(m)
-    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
-    gb = make_gbuffer(m.scene, frame, 2)
-    view = fast_m._view_setup(frame, gb)
+    m, frame, gb, view = _bunny_view(precomputed)
     st, w = view.st, view.wins
     R, k = st.R, fast.WINDOW_SUBSAMPLE
     gl, bw, (iu, iv, _, _), _ = fast.sample_inputs(st, gb.normal[::k], gb.wo[::k], gb.bary[::k],
