@@ -189,8 +189,13 @@ def _pixel_rows(x: Tensor, n: int, S2: int) -> tuple[Tensor, ...]:
 # the gather indices are in range by construction (``face`` ≥ 0 after the clamp and < M, ``fg`` holds
 # glossy rows for the faces of glossy regions, padded rows repeat a real one). Same process, creature
 # bench, 1 thread, load ~6 on 2 cores: 1.33× with both options against 1.22× without them (the
-# kernel otherwise as below).
-GLOSSY_OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False}
+# kernel otherwise as below). ``cpp.simdlen`` 256 (session 17): on an AVX-512 host Inductor
+# otherwise picks 16-float vectors, and the reduction over the n² − 1 = 24 coefficients runs as one
+# full and one masked half vector per corner row (and the y(R) loop 16 samples wide); with 8-float
+# vectors it is exactly three full ones. Same process, creature bench, 1 thread: the glossy pass
+# 3.75 ms against 4.2-4.4 ms (~1.15×); the per-row sums are only re-associated (float32 round-off).
+# A no-op where the widest vectors are 256-bit (CI's AVX2) and off the CPU.
+GLOSSY_OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False, "cpp.simdlen": 256}
 
 
 def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
