@@ -272,6 +272,7 @@ class PTT(Method):
         #                       (E^(k) maps, their fast.LatLongStack) | None)
         self._f_H = None      # (R, P, 3) coordinates of the cached region tables
         self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
+        self._f_wrows = None  # (W_tab, its fast.view_table_rows (T²·K, P)): kept while W_tab is
         self._f_E = None      # (E (V, K·3), I1 | None) for the cached (lighting, H): the one-bounce SH
         # radiance, (V, S, 3) local frame (shading="vertex") or (V, 3·S) world frame (shading="pixel")
         self._last_view = None  # (num_samples, G-buffer, camera origin (3,)) of the last render (cost_terms)
@@ -502,7 +503,7 @@ class PTT(Method):
             self._fast_lighting(frame.envmap)
         if self._f_H is None or "brdf" in frame.changed or not torch.equal(H, self._f_H):
             W_tab = self.factors.W_tab
-            wr = getattr(self, "_f_wrows", None)  # (W_tab, its fast.view_table_rows), built once
+            wr = self._f_wrows
             if wr is None or wr[0] is not W_tab:
                 wr = self._f_wrows = (W_tab, _fast.view_table_rows(W_tab, self.factors.K))
             with torch_threads(1):  # BRDF_STAGE_THREADS
@@ -971,6 +972,6 @@ class PTT(Method):
         m["fast_frames_pairs"] = tensor_bytes(st.frames, st.pair_of, st.pair_v, st.pair_r)
         if st.sh_rot is not None:
             m["sh_rotation"] = tensor_bytes(st.sh_rot)
-        if getattr(self, "_f_wrows", None) is not None:  # the view tables texel-major (fast.view_table_rows)
+        if self._f_wrows is not None:  # the view tables texel-major (fast.view_table_rows)
             m["fast_view_rows"] = tensor_bytes(self._f_wrows[1])
         return m
