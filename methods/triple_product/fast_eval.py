@@ -265,8 +265,13 @@ def _lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None) -> t
 # triangles (with the default realize thresholds two of `fine_block`'s three (b, K') products were
 # stored and summed in separate passes). Chess bench, 1 thread, same process: vertex V fine_kernel
 # 14.4 -> 12.4 ms CPU.
+# Products and sums contracted into fused multiply-adds (Inductor compiles with -ffp-contract=off by
+# default, to match eager torch bit for bit; these loops are multiply-then-accumulate, so they ran
+# two vector instructions where one does): chess bench pixel V, 1 thread, same process, `group_block`
+# 56 -> 41-47 ms (the sums change by float32 round-off, tests/methods/triple_product).
 KERNEL_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 1000,
-                  "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000}
+                  "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000,
+                  "cpp.enable_floating_point_contract_flag": "fast"}
 # Inductor's tiling heuristics leave these loops (loads of (b, 3) / (b, 3, 3) components, reductions
 # over the 3 components) scalar with scalar libm trig; without them the per-point front end of a pixel
 # frame ran ~1.5x faster (1 thread, 2^17 points, loaded machine).
@@ -842,27 +847,30 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Ten
         and inv (B, k_v) int64 group of every (point, visibility row).
 
     The keys are deduplicated in two steps, same result as one `torch.unique` of all B·k_v keys:
-    runs of equal keys along each visibility column (neighbouring G-buffer samples — the S² sub-
-    samples of a pixel are adjacent — mostly share a triangle and both cells: 0.23 run starts per
-    key on chess bench), then `torch.unique` of the run starts only. Chess bench V (786k keys,
-    1 thread, same process): 45 → ~20 ms per frame (the full sort was 33 ms of it)."""
+    runs of neighbouring points with the same visibility rows and both cells (G-buffer samples of
+    one triangle — the S² sub-samples of a pixel are adjacent — mostly share both cells), found
+    with one pass over the (B, k_v) rows; then `torch.unique` of the k_v keys of the run starts
+    only, every point taking its run's groups. Chess bench V (262k points, 3 rows each, 1 thread,
+    same process): 45 → ~20 ms per frame for runs per visibility column (the full sort was 33 ms
+    of it), then 37-42 → 26-27 ms for runs of whole points (B instead of B·k_v flags, run indices
+    and inverse gathers; the same groups, order and inverse)."""
     B, kv = vrows.shape
+    dev = vrows.device
     nl = int(lrows[:, 0].max()) + 1 if B else 1
     nb = int(brows[:, 0].max()) + 1 if B else 1
     cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
-    key = torch.empty(kv, B, dtype=torch.int64, device=vrows.device)      # column-major keys
-    torch.mul(vrows.T, nl * nb, out=key)
-    key = key.add_(cell).view(-1)
-    new = torch.ones_like(key, dtype=torch.bool)
-    torch.ne(key[1:], key[:-1], out=new[1:])                              # run starts
-    start = torch.nonzero(new, as_tuple=False).squeeze(-1)
-    run = torch.cumsum(new, 0).sub_(1)                                    # run of every key
-    uk, inv_s = torch.unique(key[start], return_inverse=True)
+    new = torch.ones(B, dtype=torch.bool, device=dev)                     # run starts
+    torch.ne(cell[1:], cell[:-1], out=new[1:])
+    new[1:] |= (vrows[1:] != vrows[:-1]).any(1)
+    start = torch.nonzero(new, as_tuple=False).squeeze(-1)               # (S,)
+    run = torch.cumsum(new, 0).sub_(1)                                    # (B,) run of every point
+    key = vrows[start].mul_(nl * nb).add_(cell[start, None])              # (S, k_v)
+    uk, inv_s = torch.unique(key.view(-1), return_inverse=True)
     G = uk.numel()
     # a member point of every group (whichever write lands: all members have the group's rows)
-    rep = torch.empty(G, dtype=torch.int64, device=vrows.device)
-    rep[inv_s] = start % B if B else start
-    inv = inv_s[run.view(kv, B).T].contiguous()                           # (B, k_v)
+    rep = torch.empty(G, dtype=torch.int64, device=dev)
+    rep[inv_s] = start.repeat_interleave(kv) if kv > 1 else start
+    inv = inv_s.view(-1, kv)[run]                                         # (B, k_v)
     return uk // (nl * nb), lrows[rep], brows[rep], inv
 
 
@@ -907,9 +915,9 @@ def group_blend(inv: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> T
 
 
 _group_block = fused(group_block, options=KERNEL_OPTIONS)
-_group_blend = fused(group_blend)
+_group_blend = fused(group_blend, options={"cpp.enable_floating_point_contract_flag": "fast"})
 # Groups per compiled block of `fine_grouped` (and its remainder blocks), points per blend block.
-GROUP_BLOCK = 1024
+GROUP_BLOCK = 2048
 GROUP_TAIL = 128
 GROUP_BLEND_POINTS = 1 << 14
 # Fewer points than this: the per-point kernel (no grouping overhead; tests' tiny frames use both).
