@@ -917,6 +917,8 @@ def group_blend(inv: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> T
 _group_block = fused(group_block, options=KERNEL_OPTIONS)
 _group_blend = fused(group_blend, options={"cpp.enable_floating_point_contract_flag": "fast"})
 # Groups per compiled block of `fine_grouped` (and its remainder blocks), points per blend block.
+# 2048 rather than 1024 groups per block: chess bench pixel V groups, 1 thread, micro-benchmark under
+# load, 46.7 -> 40.4 ms (fewer calls, each ~0.2 ms of Dynamo / wrapper overhead).
 GROUP_BLOCK = 2048
 GROUP_TAIL = 128
 GROUP_BLEND_POINTS = 1 << 14
