@@ -28,15 +28,18 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
-    session 16: V 1.16×, 1 thread, load ~9); Inductor leaves it scalar (~14 ns per sample) — and `_glossy_samples` on the glossy hits
+    session 16: V 1.16×, 1 thread, load ~9); Inductor leaves it scalar (~14 ns per sample; vectorized
+    over the samples, every sample's row loads gathered lane by lane, it was 0.46-0.48×, session 18)
+    — and `_glossy_samples` on the glossy hits
     (their index list from the first pass's flags), each sample's whole radiance, added to its pixel.
     The glossy pass is the larger part of a V frame: per channel one reduction over the 24
     non-constant coefficients of the interpolated l' against G y(R) (`_glossy_samples`; session 14:
-    1.33× the three dot products per channel it replaced), y(R) built vectorized over the samples
-    but stored with scattered stores into a (Qg, n²−1) buffer, ~130-165 ns per glossy sample under
-    load. A V frame makes 1 + 3 compiled calls (`_glossy_blocks`), each ~0.1-0.3 ms of Dynamo guards
-    and buffer allocation; `perf` of a V frame (session 14): the two kernels ~60 %, Python and
-    Dynamo ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
+    1.33× the three dot products per channel it replaced), y(R) evaluated inside that reduction
+    loop, per coefficient lane, from per-sample scalars (session 18; before, a (Qg, n²−1) buffer
+    written with scattered stores), ~110-130 ns per glossy sample under load. A V frame makes
+    1 + 3 compiled calls (`_glossy_blocks`), each ~0.1-0.3 ms of Dynamo guards and buffer allocation;
+    `perf` of a V frame (session 14): the two kernels ~60 %, Python and Dynamo ~20 %,
+    nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
     ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is the (3, n²) × (n², N) GEMM (session 15's
     compiled unrolled sum measured 0.72-0.82× of it in session 16, `apply_lighting`). An E frame projects
@@ -184,8 +187,8 @@ def _pixel_rows(x: Tensor, n: int, S2: int) -> tuple[Tensor, ...]:
     return (x.reshape(n, S2, x.shape[1]),)
 
 
-# Inductor options of `_glossy_samples`: without the tiling heuristics the loop that builds y(R)
-# (each sample's n²−1 terms stored at stride n²−1) is vectorized over the samples instead of scalar;
+# Inductor options of `_glossy_samples`: without the tiling heuristics the per-sample loops (before
+# session 18 the one that built the y(R) buffer) are vectorized over the samples instead of scalar;
 # the gather indices are in range by construction (``face`` ≥ 0 after the clamp and < M, ``fg`` holds
 # glossy rows for the faces of glossy regions, padded rows repeat a real one). Same process, creature
 # bench, 1 thread, load ~6 on 2 cores: 1.33× with both options against 1.22× without them (the
@@ -200,10 +203,11 @@ GLOSSY_OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexi
 
 def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
                          ef: Tensor, fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor,
-                         vcos: Tensor) -> Tensor:
+                         vcos: Tensor, A: Tensor, S: Tensor) -> tuple[Tensor, ...]:
     """The whole radiance of Qg glossy samples g (Qg,) int64 (rows of the G-buffer arrays face, bary,
     normal, wo, reg, as `_pixels`'): max(0, ρ·e + k_s Σ_i G_i y_i(R) (l')_i) (× n·ωo on Blinn-Phong,
-    `VIEW_COSINE_BRDFS`), zero where n·ωo ≤ 0 (Sloan 2002 §6-7) → (Qg, 3). e from the face-corner
+    `VIEW_COSINE_BRDFS`), zero where n·ωo ≤ 0 (Sloan 2002 §6-7) → (Qg, 3), first of the returned
+    tuple (the rest: per-sample scalars, see below; A, S: `_sh_factor_tables`). e from the face-corner
     table ef (M, 9); l' Gouraud-interpolated from the per-vertex M l in the channel-major layout lg3
     (3, Vg, n²) at the glossy rows fg (M, 3) = gpos[F] of the face's corners; kd, ks (R, 3), G (R, n²),
     vcos (R,) bool of the frame's materials (`SHPRT._materials`).
@@ -223,7 +227,26 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     n, ωo and R as scalar components (session 16): the (Qg, 3) temporaries of the row-wise form
     (norms, the reflection) compiled to scalar loops of 3-lane masked vectors; so written the pass
     is 1.19-1.21× (creature bench, 1 thread, same process, alternating, load ~13; bit-identical
-    output). Session 15's measurement of a component form (0.87×) was of another kernel."""
+    output). Session 15's measurement of a component form (0.87×) was of another kernel.
+
+    No y(R) buffer (session 18): y_i(R) = A_i(z) T_i(x, y) (`_sh_factor_tables`: a polynomial in z
+    times Re / Im (x + iy)^|m|) is written as a (Qg, n²−1) expression of per-sample scalars (z and
+    the 2(n−1) values Re / Im (x + iy)^k) and per-lane table rows, so Inductor evaluates it inside
+    the reduction loop (Horner in z, then the one-hot selection: ~13 vector FMAs per 8 coefficients
+    from L1-resident tables) instead of a first loop storing each sample's 24 terms at stride 24
+    (1.5 MB per block of 16384) that the reduction re-read. The per-sample scalars — z, the
+    Re / Im values, the three l' rows, the region, the face and the barycentrics — are extra
+    outputs, so that Inductor stores them contiguously in its first (vectorized) loop and the
+    reduction and the epilogue load them instead of re-deriving them from the gathers (written
+    without those outputs the pass was 0.91×: the reduction recomputed the normalisation, sqrt and
+    division included, per coefficient vector). `perf` of the pass (creature, 1 thread): the first
+    loop / the reduction / the epilogue 36 / 30 / 34 % before, 34 / 44 / 23 % after. Same process,
+    creature bench, 1 thread, load 7-11, process CPU: the glossy pass 1.07-1.16× (`_glossy_blocks`
+    alone, 31 alternating calls, five runs); whole V frames 1.04-1.05×, VL 1.03-1.06× (``python -m
+    benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code OTHER_CHECKOUT --kinds V VL
+    --frames 21 --threads 1``); equal to the buffer form to 1.2e-7 of the image's peak. The float32
+    tables reproduce `sh_terms` (float64) to 7e-8 of the largest term at order 5, 1.3e-6 at order 7
+    and 5e-6 at order 10 (the rounded monomial coefficients of the higher Legendre polynomials)."""
     f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
     u, v = bary[g, 0], bary[g, 1]
     w0 = 1.0 - u - v
@@ -236,15 +259,32 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     Rx, Ry, Rz = 2.0 * d * nx - ox, 2.0 * d * ny - oy, 2.0 * d * nz - oz        # reflect(ωo, n)
     rn = (Rx * Rx + Ry * Ry + Rz * Rz).sqrt().clamp_min(1e-12)
     order = math.isqrt(G.shape[1])
-    terms = _sh.sh_terms(Rx / rn, Ry / rn, Rz / rn, order)
+    x, y_, z = Rx / rn, Ry / rn, Rz / rn
     sc = torch.where(vcos[r], d.clamp_min(0.0), 1.0)                            # Blinn-Phong: × n·ωo
-    y0 = terms[0] * G[r, 0] * sc                                                # (Qg,) G_0 y_0
+    y0 = _Y00 * G[r, 0] * sc                                                    # (Qg,) G_0 y_0
     a0, a1, a2 = fg[f, 0], fg[f, 1], fg[f, 2]
     W0, U, V = w0[:, None], u[:, None], v[:, None]
     ec = ef[f]
     outs = []
+    tv: tuple[Tensor, ...] = ()
     if order > 1:
-        y = torch.stack(terms[1:], -1) * G[r, 1:] * sc[:, None]                # (Qg, n²−1) G_i y_i(R)
+        # y_i(R) = A_i(z) T_i(x, y) per coefficient lane (`_sh_factor_tables`): Horner in z, times the
+        # lane's Re / Im (x + iy)^|m| picked by the one-hot rows of S; never stored — Inductor
+        # evaluates the (Qg, n²−1) expression inside the reduction loop from per-sample scalars.
+        tl = []
+        cm, sm = x, y_
+        for k in range(1, order):
+            if k > 1:
+                cm, sm = x * cm - y_ * sm, x * sm + y_ * cm
+            tl += [cm, sm]
+        tv = (z, *tl)
+        P = A[order - 1]
+        for j in range(order - 2, -1, -1):
+            P = P * z[:, None] + A[j]
+        T = S[0]
+        for k in range(1, 2 * order - 1):
+            T = T + tv[k][:, None] * S[k]
+        y = P * T * (G[r, 1:] * sc[:, None])                                    # (Qg, n²−1) G_i y_i(R)
     for c in range(3):
         L = lg3[c]
         spec = (L[a0, 0] * w0 + L[a1, 0] * u + L[a2, 0] * v) * y0               # Σ_i y_i l'_i: i = 0
@@ -252,10 +292,53 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
             spec = ((L[a0, 1:] * W0 + L[a1, 1:] * U + L[a2, 1:] * V) * y).sum(-1) + spec
         e = ec[:, c] * w0 + ec[:, 3 + c] * u + ec[:, 6 + c] * v
         outs.append(torch.where(front, kd[r, c] * e + ks[r, c] * spec, 0.0).clamp_min(0.0))
-    return torch.stack(outs, -1)
+    # The per-sample scalars returned besides the radiance are outputs only so that Inductor stores
+    # them (contiguous, in its first loop over the samples, vectorized) and the reduction loop and
+    # the epilogue load them, instead of re-deriving them there from the gathers (`_glossy_samples`
+    # drops them).
+    return (torch.stack(outs, -1), *tv, a0, a1, a2, r, f, u, v)
 
 
-_glossy_samples = fused(_glossy_samples_impl, options=GLOSSY_OPTIONS)
+_glossy_kernel = fused(_glossy_samples_impl, options=GLOSSY_OPTIONS)
+_Y00 = 0.28209479177387814                                                      # y_0 = 1/√(4π)
+
+
+@functools.lru_cache(maxsize=None)
+def _sh_factor_tables(order: int, device) -> tuple[Tensor, Tensor]:
+    """y_i(d) = A_i(z) · T_i(x, y) for the coefficients i = l(l+1)+m ≥ 1 of `sh.sh_terms`: T_i the
+    real or imaginary part of (x + iy)^|m| (1 for m = 0; Re for m > 0, Im for m < 0), A_i a polynomial
+    in z of degree l − |m| (the normalised associated Legendre function over ρ^|m|). → A (n, n²−1) its
+    coefficients of z^j and S (2n−1, n²−1) the one-hot selection of T_i from [1, Re₁, Im₁, Re₂, ...],
+    float32. A is fitted in float64 to `sh_terms` at Chebyshev nodes in z (exact: the degree is
+    known; residual ~1e-15)."""
+    n = order
+    ids = [(l, m) for l in range(1, n) for m in range(-l, l + 1)]
+    A = torch.zeros(n, len(ids), dtype=torch.float64)
+    S = torch.zeros(2 * n - 1, len(ids), dtype=torch.float64)
+    K = 4 * n
+    zn = torch.cos((torch.arange(K, dtype=torch.float64) + 0.5) * math.pi / K)
+    phi = 0.3
+    rho = (1.0 - zn * zn).sqrt()
+    xs, ys = rho * math.cos(phi), rho * math.sin(phi)
+    terms = _sh.sh_terms(xs, ys, zn, n, fast=False)
+    for c, (l, m) in enumerate(ids):
+        k = abs(m)
+        S[0 if m == 0 else (2 * k - 1 if m > 0 else 2 * k), c] = 1.0
+        Tv = rho ** k * (math.cos(k * phi) if m >= 0 else math.sin(k * phi))
+        V = torch.stack([zn ** j for j in range(l - k + 1)], -1)                 # (K, l−|m|+1)
+        A[:l - k + 1, c] = torch.linalg.lstsq(V, terms[l * (l + 1) + m] / Tv).solution
+    return A.float().to(device), S.float().to(device)
+
+
+def _glossy_samples(g: Tensor, *args: Tensor) -> Tensor:
+    """`_glossy_samples_impl` compiled (`_glossy_kernel`), with its SH factor tables for the order
+    of ``G`` (args: face, bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos)."""
+    G = args[10]
+    return _glossy_kernel(g, *args, *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))[0]
+
+
+_glossy_samples.eager = lambda g, *args: _glossy_samples_impl(  # type: ignore[attr-defined]
+    g, *args, *_sh_factor_tables(math.isqrt(args[10].shape[1]), args[10].device))[0]
 
 
 def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:

@@ -377,13 +377,14 @@ def test_glossy_face_with_a_shared_non_glossy_corner(compiled, monkeypatch):
     assert (m.gpos[m.F[gl_faces]] >= 0).all()  # every corner of a glossy face has its row
 
 
-@pytest.mark.parametrize("order", [2, 5])
+@pytest.mark.parametrize("order", [2, 5, 7])
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "eager"])
 def test_glossy_samples_kernel_equals_its_definition(order, compiled, monkeypatch):
     """`_glossy_samples` (the glossy pass: l' interpolated inside one reduction per channel over the
     coefficients i ≥ 1, band 0 added outside) = max(0, ρ·e + k_s Σ_k w_k Σ_i l'_{a_k,i} G_i y_i(R))
     (× n·ωo for a Blinn-Phong region, 0 where n·ωo ≤ 0) written with `sh_eval` and an einsum, on
-    random tables: order 2 (one coefficient beyond band 0) and 5 (the bench's 24 + 1), a Phong and a
+    random tables: order 2 (one coefficient beyond band 0), 5 (the bench's 24 + 1) and 7 (past the
+    hard-coded polynomials of `sh.sh_terms`: y(R) from the kernel's factor tables), a Phong and a
     Blinn-Phong region, back-facing samples, unnormalised normals, and a sample count that is not a
     multiple of the kernel's block (padded last block)."""
     from methods.core import sh as _sh
