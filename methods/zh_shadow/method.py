@@ -368,7 +368,7 @@ class ZHShadow(Method):
         §4.3 #1 (lobes from the linear model), the local lobe axes taken to world space through the
         posed vertex frame, and eq. 1 (ZH → SH) once per vertex. With vertex shading and
         ``specular="cosine"`` the SH is in each vertex's ZYZ normal frame instead (`runtime.zyz_axes`:
-        all that path needs, `_render_vertex`)."""
+        all that path needs, `_render_vertex`), its coefficients in `runtime.zyz_rows` order."""
         scene, m = self.scene, self.model
         if scene.skeleton is None:
             pose_vec = torch.zeros(0)
@@ -381,7 +381,10 @@ class ZHShadow(Method):
             # vertex shading with the cosine: only w = M(R_n) M¹ M(R_n)ᵀ v is needed, so v is made in
             # the ZYZ frame of the normal, M(R_n)ᵀ v (`runtime.cosine_visibility_zyz`)
             frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
-            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex, frame=frame)
+            # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
+            rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
+            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex, frame=frame,
+                                    rows=rows)
             self._posed = (key, geom, v.T if vertex else v)                                  # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
 
@@ -625,7 +628,7 @@ class ZHShadow(Method):
         if vd is None or vd[0] is not v0:
             nT, vT = rt.rows(geom.N.to(dev).float()), v0.to(dev).T.contiguous()   # (no copy: `_pose_state`)
             # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
-            w = rt.cosine_visibility_zyz(vT, nT) if cosine else rt.cosine_visibility(vT, nT)
+            w = rt.cosine_visibility_zyz(vT, nT, ordered=True) if cosine else rt.cosine_visibility(vT, nT)
             self._vertex_diffuse = vd = (v0, nT, vT, w)
         _, nT, vT, w = vd                             # t_d = w / π: the 1/π goes on the lighting (3, n²)
         #                                               instead of a pass over w (0.28 ms of a P frame)
@@ -640,11 +643,11 @@ class ZHShadow(Method):
             self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
         _, _, ts, front, counts = vt
         light = light.to(dev)
-        kd = torch.stack([m[0] for m in mats]).to(dev).index_select(0, vreg).T      # (3, N)
+        kd = torch.stack([m[0] for m in mats], 1).to(dev).index_select(1, vreg)     # (3, N), contiguous
         with pc.torch_threads(1) if w.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
             rad = ((light.T * (1.0 / math.pi)) @ w).mul_(kd)
             if ts is not None:
-                ks = torch.stack([m[1] for m in mats]).to(dev).index_select(0, vreg).T
+                ks = torch.stack([m[1] for m in mats], 1).to(dev).index_select(1, vreg)
                 rad.addcmul_(light.T @ ts, ks)
         rad.mul_(front)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)

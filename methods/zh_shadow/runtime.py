@@ -459,7 +459,7 @@ def _gathered_perm(aT: Tensor, idx: Tensor, w: Tensor, perm: Tensor) -> Tensor:
     return out
 
 
-def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
+def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple, scale: float = 1.0) -> Tensor:
     """(n², Q) M(R_n) · M · M(R_n)ᵀ v per point: the world-space SH of the function whose
     coefficients in a frame with z = n are M times those of v — for a zonal (z-symmetric) operator
     M such as the hemispherical M^α (`convolution.phong_operator`), so the tangent of the frame
@@ -483,10 +483,12 @@ def zonal_conjugate(vT: Tensor, nT: Tensor, op_key: tuple) -> Tensor:
 
     Args:
         vT: (n², Q) world-space SH (point-minor); nT: (3, Q) unit normals; op_key: ("phong", α).
+        scale: a factor on the operator (folded into the middle product's blocks: no pass over
+            the result; `specular_transfer`'s (α+1)/(2π)).
     """
     n = math.isqrt(vT.shape[0])
     ang = _zyz_angles(nT, n)
-    plan = _block_plan(op_key, n, False, vT.dtype, vT.device)
+    plan = _block_plan(op_key, n, False, vT.dtype, vT.device, float(scale))
     return _zyz_up(_blocked_product(plan, _zyz_down(vT, ang, plan[0])), ang, plan[1])
 
 
@@ -627,13 +629,17 @@ def _zyz_up(aT: Tensor, ang: tuple, src: Tensor | None = None) -> Tensor:
 
 
 @functools.lru_cache(maxsize=None)
-def _block_plan(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
+def _block_plan(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device, scale: float = 1.0) -> tuple:
     """`_operator_blocks` laid out for products on contiguous rows: cols (n²,) int64 the input rows
     in block order (the blocks' columns concatenated: each row once, tests), src (n²,) int64 with
     output row r at src[r] of the block-ordered result, and per block (r0, r1, c0, c1, K_b) its
     spans in the two orders — so that `_blocked_product` needs no gather or scatter of rows (the
-    neighbouring `_zyz_half` passes do them in their loads and stores)."""
+    neighbouring `_zyz_half` passes do them in their loads and stores). ``scale``: the blocks
+    times that factor (scaled in float64, then cast)."""
     blocks = _operator_blocks(op_key, order, lifted, dtype, device)
+    if scale != 1.0:
+        b64 = _operator_blocks(op_key, order, lifted, torch.float64, device)
+        blocks = tuple((r, c, (K64 * scale).to(dtype)) for (r, c, _), (_, _, K64) in zip(blocks, b64))
     rows = torch.cat([r for r, _, _ in blocks])
     cols = torch.cat([c for _, c, _ in blocks])
     src = torch.empty_like(rows)
@@ -667,7 +673,14 @@ def _lifted(op_key: tuple, order: int) -> Tensor:
     return X @ phong_operator(op_key[1], order, dtype=torch.float64)
 
 
-def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
+def zyz_rows(order: int, device=None) -> Tensor:
+    """(n²,) int64: the order of the SH coefficients that `cosine_visibility_zyz`'s product reads
+    its input rows in (`_block_plan` of X M¹, its blocks' columns) — `world_visibility`'s ``rows``
+    for ``cosine_visibility_zyz(…, ordered=True)``."""
+    return _block_plan(("phong", 1.0), order, True, torch.float32, torch.device("cpu"))[0].to(device)
+
+
+def cosine_visibility_zyz(vzT: Tensor, nT: Tensor, *, ordered: bool = False) -> Tensor:
     """`cosine_visibility` from the visibility in the ZYZ frame of each point's normal (vzT (n², Q):
     `world_visibility` with ``frame="zyz"``, v_zyz = M(R_n)ᵀ v): M(R_n) M¹ v_zyz — the second half
     of `zonal_conjugate` alone, after one (n², n²) product by X M¹ (`_lifted`, block by block as `zonal_conjugate`): the lobes are taken to
@@ -676,10 +689,14 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor) -> Tensor:
 
     Args:
         vzT: (n², Q) SH visibility in the frame (e1, e2, n) of `zyz_axes`; nT: (3, Q) unit normals.
+        ordered: vzT's rows are already in the product's order (`zyz_rows`; `world_visibility`
+            made them so), not the SH order: no gather of the rows (a 3.4 MB copy per pose at
+            order 8 on the bench creature).
     """
     n = math.isqrt(vzT.shape[0])
     plan = _block_plan(("phong", 1.0), n, True, vzT.dtype, vzT.device)
-    return _zyz_up(_blocked_product(plan, vzT.index_select(0, plan[0])), _zyz_angles(nT, n), plan[1])
+    return _zyz_up(_blocked_product(plan, vzT if ordered else vzT.index_select(0, plan[0])), _zyz_angles(nT, n),
+                   plan[1])
 
 
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
@@ -716,27 +733,42 @@ def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
     if all(a is None for a in alphas):
         return None
     src = srcT
+    Q = vregion.shape[0]
     R = reflect_T(nT, woT)
-    ts = torch.zeros_like(srcT)
+    # per specular region: its columns as a range (a0, a1) or as positions; (α+1)/(2π) goes into
+    # the operator (`zonal_conjugate`'s scale: no pass over the result)
+    parts = []
     for r, a in enumerate(alphas):
         if a is None:
             continue
         p = (vregion == r).nonzero().squeeze(-1)
-        if p.shape[0] == vregion.shape[0]:
-            ts = zonal_conjugate(src, R, ("phong", float(a))).mul_((a + 1.0) / (2.0 * math.pi))
-        elif p.shape[0]:
+        if p.shape[0]:
             a0, a1 = int(p[0]), int(p[-1]) + 1
-            if a1 - a0 == p.shape[0]:
-                # the region's points are one range of columns (a mesh's vertices: the creature's
-                # 9,694 of 13,415), taken as slices (row copies) instead of the column gather and
-                # scatter (index_select / index_copy_ along dim 1; index_copy_ alone was the 6th
-                # largest op of a P frame's profile); with the compiled angle tables the stage went
-                # 1.37x faster (benchmarks.zh_pose_ab --stages-ab, 1 thread, load ~10 on 2 cores)
-                t = zonal_conjugate(src[:, a0:a1], R[:, a0:a1], ("phong", float(a)))
-                ts[:, a0:a1] = t.mul_((a + 1.0) / (2.0 * math.pi))
-            else:
-                t = zonal_conjugate(src.index_select(1, p), R.index_select(1, p), ("phong", float(a)))
-                ts.index_copy_(1, p, t.mul_((a + 1.0) / (2.0 * math.pi)))
+            parts.append((float(a), (a0, a1) if a1 - a0 == p.shape[0] else p))
+    if len(parts) == 1 and parts[0][1] == (0, Q):
+        a = parts[0][0]
+        return zonal_conjugate(src, R, ("phong", a), (a + 1.0) / (2.0 * math.pi))
+    ranges = sorted(span for _, span in parts if isinstance(span, tuple))
+    if len(ranges) == len(parts):   # every column written once or zero: only the gaps zeroed
+        ts = torch.empty_like(srcT)
+        for lo, hi in zip([0] + [e for _, e in ranges], [s for s, _ in ranges] + [Q]):
+            if hi > lo:
+                ts[:, lo:hi] = 0.0
+    else:
+        ts = torch.zeros_like(srcT)
+    for a, span in parts:
+        scale = (a + 1.0) / (2.0 * math.pi)
+        if isinstance(span, tuple):
+            # the region's points are one range of columns (a mesh's vertices: the creature's
+            # 9,694 of 13,415), taken as slices (row copies) instead of the column gather and
+            # scatter (index_select / index_copy_ along dim 1; index_copy_ alone was the 6th
+            # largest op of a P frame's profile); with the compiled angle tables the stage went
+            # 1.37x faster (benchmarks.zh_pose_ab --stages-ab, 1 thread, load ~10 on 2 cores)
+            a0, a1 = span
+            ts[:, a0:a1] = zonal_conjugate(src[:, a0:a1], R[:, a0:a1], ("phong", a), scale)
+        else:
+            ts.index_copy_(1, span, zonal_conjugate(src.index_select(1, span), R.index_select(1, span), ("phong", a),
+                                                    scale))
     return ts
 
 
@@ -1164,7 +1196,8 @@ def zyz_axes(nT: Tensor) -> tuple[list[Tensor], list[Tensor]]:
 
 
 @fused
-def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: int, zyz: bool = False) -> Tensor:
+def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: int, zyz: bool = False,
+               perm: tuple | None = None) -> Tensor:
     """(n², Q) (``dim`` 0) or (Q, n²) (``dim`` 1) world-space SH visibility of Q vertices from their lobe parameters pT (c·(2+n), Q)
     ([X, Y, k_0..k_{n−1}] per lobe, `precompute.lobes_to_params`) and unit normals nT (3, Q), in
     the point-minor layout (every op a vector over the points): the chart → local axis
@@ -1172,7 +1205,9 @@ def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: 
     y(axis) (`methods.core.sh.sh_eval`: a polynomial in the axis) scaled by Λ_l k_l (``lam`` the
     Λ_l) and summed over the lobes (eq. 1), unrolled; one compiled pass (`methods.core.fused`).
     ``zyz``: the SH in the ZYZ frame (e1, e2, n) of each normal (`zyz_axes`) instead of world space
-    — the world axis's coordinates along e1, e2, n, i.e. M(R_n)ᵀ v (`cosine_visibility_zyz`)."""
+    — the world axis's coordinates along e1, e2, n, i.e. M(R_n)ᵀ v (`cosine_visibility_zyz`).
+    ``perm`` (n² ints): result row i is coefficient perm[i] (the order the next product reads its
+    rows in, `world_visibility`'s ``rows``) — a free reordering of the stacked rows."""
     per = 2 + order
     s, t = _coordinate_components(nT[0], nT[1], nT[2])
     if zyz:
@@ -1194,6 +1229,8 @@ def _vertex_sh(pT: Tensor, nT: Tensor, lam: tuple, lobes: int, order: int, dim: 
         Yl = sh_terms(aw[0], aw[1], aw[2], order)                               # n² × (Q,)
         terms = [Yl[i] * (q[2 + l] * lam[l]) for l in range(order) for i in range(l * l, (l + 1) ** 2)]
         out = terms if out is None else [o + u for o, u in zip(out, terms)]
+    if perm is not None:
+        out = [out[i] for i in perm]
     return torch.stack(out, dim)
 
 
@@ -1205,7 +1242,7 @@ def _band_norms(order: int) -> tuple[float, ...]:
 
 
 def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
-                     frame: str = "world") -> Tensor:
+                     frame: str = "world", rows: Tensor | None = None) -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
     ``point_minor`` — : §4.3 step 1 (the linear model [pose, 1] · X, one matrix-vector product: the
     frame's compulsory read of X), then per vertex the lobe axes from their chart
@@ -1219,6 +1256,9 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
         X: (J+1, N, c·(2+n)) linear model; pose: (J,) joint angles; normal: (N, 3) unit posed normals.
         frame: "world", or "zyz": each vertex's SH in the ZYZ frame of its normal (`zyz_axes`),
             the input of `cosine_visibility_zyz`.
+        rows: (n²,) int64 or None: the coefficients in this order (result row / column i is
+            coefficient rows[i]) — `zyz_rows`, the order `cosine_visibility_zyz(ordered=True)`
+            reads them in, made by the compiled pass itself instead of a gather of the result.
     """
     if frame not in ("world", "zyz"):
         raise ValueError(f"frame must be 'world' or 'zyz', got {frame!r}")
@@ -1245,15 +1285,18 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     nT = nrm.view(Np // B, B, 3).transpose(1, 2).contiguous()
     lam = _band_norms(n)
     dim = 0 if point_minor else 1
+    perm = None if rows is None else tuple(int(i) for i in rows.tolist())
+    if perm is not None and sorted(perm) != list(range(n * n)):
+        raise ValueError(f"rows must be a permutation of the {n * n} coefficients")
     if Np == B:
-        out = _vertex_sh(pT[0], nT[0], lam, lobes, n, dim, frame == "zyz")
+        out = _vertex_sh(pT[0], nT[0], lam, lobes, n, dim, frame == "zyz", perm)
         return (out[:, :N].contiguous() if point_minor else out[:N]) if Np > N else out
     # each block's result copied once into its place (a cat then the trim to N columns were two
     # copies of the (n², N) result: 1.9x slower stage at 13.4 K vertices, order 8, 1 thread, load ~9)
     out = torch.empty((n * n, N) if point_minor else (N, n * n), dtype=X.dtype, device=X.device)
     for s in range(0, Np, B):
         e = min(s + B, N)
-        blk = _vertex_sh(pT[s // B], nT[s // B], lam, lobes, n, dim, frame == "zyz")
+        blk = _vertex_sh(pT[s // B], nT[s // B], lam, lobes, n, dim, frame == "zyz", perm)
         if point_minor:
             out[:, s:e] = blk[:, :e - s]
         else:

@@ -207,6 +207,19 @@ def test_specular_transfer_regions():
         want[:, vreg == r] = full[:, vreg == r]
     assert (got[:, vreg == 2] == 0).all()
     assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+    # every region a range (only the gaps zeroed), and one region holding every point (no copy)
+    vreg = torch.full((Q,), 2, dtype=torch.int64)
+    vreg[40:200], vreg[250:] = 0, 1
+    got = rt.specular_transfer(v, nT, woT, vreg, alphas)
+    want = torch.zeros_like(v)
+    for r, a in enumerate(alphas[:2]):
+        full = rt.zonal_conjugate(v, R, ("phong", a)) * ((a + 1.0) / (2.0 * math.pi))
+        want[:, vreg == r] = full[:, vreg == r]
+    assert (got[:, vreg == 2] == 0).all()
+    assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+    got = rt.specular_transfer(v, nT, woT, torch.zeros(Q, dtype=torch.int64), [12.0])
+    want = rt.zonal_conjugate(v, R, ("phong", 12.0)) * (13.0 / (2.0 * math.pi))
+    assert (got - want).abs().max() <= 1e-13 * want.abs().max()
 
 
 def test_cosine_visibility_zyz_equals_world():
@@ -232,8 +245,18 @@ def test_cosine_visibility_zyz_equals_world():
         got32 = rt.cosine_visibility_zyz(rt.world_visibility(X32, p32, n32, c, point_minor=True, frame="zyz"),
                                          nT.float()).double()
         assert (got32 - want32).abs().max() <= 2e-6 * want.abs().max(), order
+        # the rows made in the product's order by the compiled pass (`zyz_rows`, the vertex path):
+        # the same numbers as the gather of the SH-ordered rows, bit for bit
+        rows = rt.zyz_rows(order)
+        vz32 = rt.world_visibility(X32, p32, n32, c, point_minor=True, frame="zyz")
+        vo32 = rt.world_visibility(X32, p32, n32, c, point_minor=True, frame="zyz", rows=rows)
+        assert torch.equal(vo32, vz32.index_select(0, rows)), order
+        assert torch.equal(rt.cosine_visibility_zyz(vo32, nT.float(), ordered=True),
+                           rt.cosine_visibility_zyz(vz32, nT.float())), order
     with pytest.raises(ValueError):
         rt.world_visibility(X, pose, nrm, c, frame="local")
+    with pytest.raises(ValueError):
+        rt.world_visibility(X, pose, nrm, c, rows=torch.zeros(64, dtype=torch.int64))
 
 
 def test_operator_blocks_equal_dense_product():
