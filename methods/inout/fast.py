@@ -98,6 +98,17 @@ The exact path's kernel (`outlier_rows`) runs once over all entries with their c
 of in power-of-two static blocks (padded up to twice the work), without index checks (indices
 clamped): 1.27× on its own (chess bench V, per sample and per vertex, same process, bit-identical).
 
+Session 18 (2026-12-04, issue 14): the vertex shading's view pass (``InOut._vertex_view``) was
+eager glue, 4-5 ms of a 9-12 ms V frame (chess / creature bench, 1 thread): the hits' faces and
+the region check are one compiled pass (`hit_face_counts`: int32 faces, the check reduced to one
+flag in the kernel — a (q,) bool flag written per sample took 2.8× the pass), the referenced-face
+mask and the hit count one histogram of those faces; the referenced vertices' cells one compiled
+pass (`vertex_cells`) instead of ~20 eager ops. Same process against main (1 thread, process CPU
+time, load 6-9, ``python -m benchmarks.inout --base MAIN --scene S --threads 1 --kinds V --frames 9
+--config '{"shading":"vertex"}'``): V chess 1.13-1.17×, creature 1.03-1.22× (median per-frame ratio
+1.08×); images bit-identical on the bench frames. Tried for the per-sample X and dropped: the
+windows in the order of their first node (consecutive windows on nearby table rows): 0.98×.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -113,7 +124,7 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_cells",
            "entry_inputs", "outlier_rows"]
@@ -434,6 +445,60 @@ def _window_cells(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: 
 
 
 window_cells = fused(_window_cells)
+
+
+def _hit_faces(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, Tensor]:
+    """Per sample (for ``core.fused``, `hit_face_counts`): its face where it is a hit, else M = the
+    face count (q,) int32, and whether any hit's face lies in another region than the sample's ()
+    bool. face is clamped into [0, M) (a miss: not a hit), so the look-up needs no index check."""
+    f = face.clamp(0, face_region.shape[0] - 1)
+    bad = (face_region[f] != region) & hit
+    return torch.where(hit, f, face_region.shape[0]).to(torch.int32), bad.any()
+
+
+# No index checks (the face is clamped, `_hit_faces`). The region check as one reduced flag: with a
+# (q,) bool flag written per sample instead, the pass took 2.8× the time (chess bench, 1 thread).
+hit_faces = fused(_hit_faces, options={"assert_indirect_indexing": False})
+
+
+def _vertex_cells(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Per vertex of the vertex shading (for ``core.fused``, ``InOut._vertex_view``): ref (n,) int64
+    concatenated ids; pos (ΣVr, 3), frames (ΣVr, 3, 3) world → local rows; cam (3,). The direction
+    d = cam − pos to the camera in the vertex's frame (the hemi-octahedral cell needs no unit vector)
+    → whether it is above the horizon (n,) bool, the first node of its table cell (n,) int64 and the
+    4 bilinear node weights (n, 4) (``transport.lut_cell_xyz``)."""
+    d = cam - pos[ref]                                                          # (n, 3)
+    Fm = frames[ref]                                                            # (n, 3, 3)
+    x, y, z = ((Fm * d[:, None, :]).sum(-1)).unbind(-1)
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R)
+    gu, gv = 1 - fu, 1 - fv
+    return z > 0, iv * R + iu, torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1)
+
+
+vertex_cells = fused(_vertex_cells)
+
+
+def hit_face_counts(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, bool]:
+    """The histogram (M + 1,) int64 of the hits' faces of q samples (face, region (q,) int64, hit
+    (q,) bool; bin M: the misses) and whether a hit's face lies in another region than the sample's
+    (face_region (M,) int64): the compiled `hit_faces` over static blocks of `sample_block` samples
+    (the last padded by repeating its last sample), then one ``torch.bincount``."""
+    q, M = int(face.shape[0]), int(face_region.shape[0])
+    B = sample_block(q)
+    rows = [face.contiguous(), region.contiguous(), hit.contiguous()]
+    torch._dynamo.maybe_mark_dynamic(face_region, 0)             # the scene's face count: one variant
+    warm_blocks(hit_faces, rows, (face_region,), warm_sizes(B))
+    fh = torch.empty(q, dtype=torch.int32, device=face.device)
+    bad = []
+    for a in range(0, q, B):
+        blk = [r[a:a + B] for r in rows]
+        n = blk[0].shape[0]
+        if n < B:
+            blk = [torch.cat([t, t[-1:].expand(B - n)]) for t in blk]
+        f, b = hit_faces(*blk, face_region)
+        fh[a:a + n] = f[:n]
+        bad.append(b)
+    return torch.bincount(fh, minlength=M + 1), bool(torch.stack(bad).any()) if bad else False
 
 
 def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple) -> Windows:
