@@ -116,7 +116,7 @@ class _View:
 
 
 def _face_mask(face: Tensor, M: int) -> Tensor:
-    """(M,) bool: which of the M faces occur in ``face`` (q,) int64, values in [0, M] (M: none, dropped).
+    """(M,) bool: which of the M faces occur in ``face`` (q,) int32 or int64, values in [0, M] (M: none, dropped).
     A histogram (``torch.bincount``) rather than ``mask[face] = True``: the q ≈ 2.6·10⁵ bench samples
     index ~6·10³ faces, and the indexed store with that many repeats took 2.4× the histogram (chess
     bench G-buffer, 1 thread, process CPU time, load ~11: 1.2 vs 0.5 ms)."""
@@ -498,7 +498,7 @@ class InOut(Method):
         hit = gbuffer.hit
         M = st.face_region.numel()
         # every sample is shaded (misses with weight 0) unless many miss: then only the hits
-        sel = None if int(hit.sum()) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
+        sel = None if int(torch.count_nonzero(hit)) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
         view = _View(gbuffer=gbuffer, st=st, sel=sel, Q=P if sel is None else sel.numel())
         # referenced vertices: those of the faces of the shaded samples (the region check on every
         # hit), one compiled pass (``fast.shaded_faces``: its shaded test is a superset of the
