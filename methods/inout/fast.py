@@ -106,8 +106,18 @@ mask and the hit count one histogram of those faces; the referenced vertices' ce
 pass (`vertex_cells`) instead of ~20 eager ops. Same process against main (1 thread, process CPU
 time, load 6-9, ``python -m benchmarks.inout --base MAIN --scene S --threads 1 --kinds V --frames 9
 --config '{"shading":"vertex"}'``): V chess 1.13-1.17×, creature 1.03-1.22× (median per-frame ratio
-1.08×); images bit-identical on the bench frames. Tried for the per-sample X and dropped: the
-windows in the order of their first node (consecutive windows on nearby table rows): 0.98×.
+1.08×); images bit-identical on the bench frames. Per sample: X's products as two kernels
+(`window_nodes`, `window_products`: the indices once per row, not per vector of the K-term loop),
+the referenced faces as int32 (`shaded_faces`), `entry_inputs` and `window_cells` vectorised
+(`VECTOR_OPTIONS`): V chess 1.05× (median per-frame ratio 1.036), creature 1.05× (1.059), same
+process against main (``--frames 13``, no ``--config``), bit-identical. What bounds the per-sample V
+frame now (chess bench, 1 thread, ~45 ms under load 6-9): `shade_rows` 14 ms (53-58 ns per sample,
+the 48 scalar indirect loads), X 5.5 ms (29 ns per node at K = 88: ~1 KB of table rows per node
+gathered from beyond L2, ~36 GB/s), the exact path ~6 ms (24·10³ entries, `outlier_rows` ~130 ns
+each: 4 table rows + a c row). Tried and dropped: the windows in the order of their first node
+(consecutive windows on nearby table rows): 0.98×; `WINDOW_SUBSAMPLE` / `WINDOW_PAD` (4, 0), (4, 1),
+(8, 2), (16, 2), (2, 0) against (8, 1): 0.90-1.01×; the shaded-face pass with its region check
+reduced to one flag, or vectorised: 0.97×, 0.7×.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
