@@ -98,6 +98,27 @@ The exact path's kernel (`outlier_rows`) runs once over all entries with their c
 of in power-of-two static blocks (padded up to twice the work), without index checks (indices
 clamped): 1.27× on its own (chess bench V, per sample and per vertex, same process, bit-identical).
 
+Session 18 (2026-12-04, issue 14): the vertex shading's view pass (``InOut._vertex_view``) was
+eager glue, 4-5 ms of a 9-12 ms V frame (chess / creature bench, 1 thread): the hits' faces and
+the region check are one compiled pass (`hit_face_counts`: int32 faces, the check reduced to one
+flag in the kernel — a (q,) bool flag written per sample took 2.8× the pass), the referenced-face
+mask and the hit count one histogram of those faces; the referenced vertices' cells one compiled
+pass (`vertex_cells`) instead of ~20 eager ops. Same process against main (1 thread, process CPU
+time, load 6-9, ``python -m benchmarks.inout --base MAIN --scene S --threads 1 --kinds V --frames 9
+--config '{"shading":"vertex"}'``): V chess 1.13-1.17×, creature 1.03-1.22× (median per-frame ratio
+1.08×); images bit-identical on the bench frames. Per sample: X's products as two kernels
+(`window_nodes`, `window_products`: the indices once per row, not per vector of the K-term loop),
+the referenced faces as int32 (`shaded_faces`), `entry_inputs` and `window_cells` vectorised
+(`VECTOR_OPTIONS`): V chess 1.05× (median per-frame ratio 1.036), creature 1.05× (1.059), same
+process against main (``--frames 13``, no ``--config``), bit-identical. What bounds the per-sample V
+frame now (chess bench, 1 thread, ~45 ms under load 6-9): `shade_rows` 14 ms (53-58 ns per sample,
+the 48 scalar indirect loads), X 5.5 ms (29 ns per node at K = 88: ~1 KB of table rows per node
+gathered from beyond L2, ~36 GB/s), the exact path ~6 ms (24·10³ entries, `outlier_rows` ~130 ns
+each: 4 table rows + a c row). Tried and dropped: the windows in the order of their first node
+(consecutive windows on nearby table rows): 0.98×; `WINDOW_SUBSAMPLE` / `WINDOW_PAD` (4, 0), (4, 1),
+(8, 2), (16, 2), (2, 0) against (8, 1): 0.90-1.01×; the shaded-face pass with its region check
+reduced to one flag, or vectorised: 0.97×, 0.7×.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -113,9 +134,9 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
-           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_cells",
+           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_nodes", "window_products", "window_cells",
            "entry_inputs", "outlier_rows"]
 
 # Largest side of a vertex's node window (`prepare`): the window is clipped to the MAX_WINDOW ×
@@ -144,6 +165,11 @@ LIGHT_CHUNK_ROWS = 1 << 15
 # lighting change makes at most Vr / LIGHT_BLOCK products per region and computes at most
 # LIGHT_BLOCK − 1 unreferenced vertices per run.
 LIGHT_BLOCK = 16
+
+# Vectorised over samples (``core.fused``: Inductor's tiling heuristics leave these loops, whose
+# loads are strided components of (q, 3) rows and gathers, scalar): `entry_inputs` 1.7×, `window_cells`
+# 1.8× (chess bench V, 1 thread, process CPU time, same process), bit-identical.
+VECTOR_OPTIONS = {"cpp.enable_tiling_heuristics": False}
 
 
 @dataclass
@@ -332,6 +358,32 @@ def _window_rows(e: Tensor, p: Tensor, wr: Tensor, ref: Tensor, sh_nc: Tensor, c
 window_rows = fused(_window_rows, options={"assert_indirect_indexing": False})
 
 
+def _window_nodes(e: Tensor, p: Tensor, wr: Tensor, ref: Tensor, R: int) -> tuple[Tensor, Tensor]:
+    """`_window_rows`'s indices alone (for ``core.fused``): the table node (n,) int32 and the local
+    vertex (n,) int32 of each row e of X (the same arithmetic), for `window_products`."""
+    w = Fnn.embedding(p, wr)                                                           # (n, 5)
+    loc = (e - w[:, 2]).to(torch.int32)
+    dy = ((loc.to(torch.float32) + 0.5) / w[:, 3].to(torch.float32)).floor().to(torch.int32)
+    node = (w[:, 1] + dy) * R + w[:, 0] + (loc - dy * w[:, 3])
+    return node, Fnn.embedding(p, ref[:, None])[:, 0].to(torch.int32)
+
+
+def _window_products(node: Tensor, v: Tensor, sh_nc: Tensor, c: Tensor) -> Tensor:
+    """`_window_rows`'s K-term reduction (for ``core.fused``) at rows of given table node and local
+    vertex (n,) int32 each (`window_nodes`); sh_nc (R²·3, K), c (Vr, 3, K) → (n, 3)."""
+    K = sh_nc.shape[1]
+    return (Fnn.embedding(node, sh_nc.view(-1, 3 * K)).view(-1, 3, K)
+            * Fnn.embedding(v, c.view(c.shape[0], 3 * K)).view(-1, 3, K)).sum(-1)
+
+
+# `window_rows` as two kernels (what `view_windows` runs): the indices once per row, then the
+# reduction reads them instead of recomputing them for every vector of its K-term loop (Inductor
+# does; `_window_rows`): X 1.08× (chess bench, 1 thread, process CPU time), bit-identical. No index
+# checks: p < m, and the node lies in the table for the windows `prepare` makes.
+window_nodes = fused(_window_nodes, options={"assert_indirect_indexing": False})
+window_products = fused(_window_products, options={"assert_indirect_indexing": False})
+
+
 def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, wr: Tensor, out: Tensor) -> Tensor:
     """X = Σ_k σ_k h_{k,c}(node) c_{v,k,c} on the window of each vertex ``ref`` (m,) (local ids of
     one slot; wr (m, 5) int32 its window: first column, first row, offset in X, columns, rows),
@@ -349,7 +401,10 @@ def view_windows(fr: FastRegion, ref: Tensor, c: Tensor, wr: Tensor, out: Tensor
     p = torch.repeat_interleave(torch.arange(m, device=ref.device), cnt)
     for t in (e, p, wr, ref, c):                          # the frame's counts: one compiled variant per K
         torch._dynamo.maybe_mark_dynamic(t, 0)
-    out[e0:e0 + e.numel()] = window_rows(e, p, wr, ref, fr.sh_nc, c, fr.R)
+    node, v = window_nodes(e, p, wr, ref, fr.R)           # `window_rows` in two passes (`window_products`)
+    for t in (node, v):
+        torch._dynamo.maybe_mark_dynamic(t, 0)
+    out[e0:e0 + e.numel()] = window_products(node, v, fr.sh_nc, c)
     return out
 
 
@@ -392,13 +447,14 @@ def _shaded_faces(normal: Tensor, wo: Tensor, face: Tensor, region: Tensor, live
     """Per sample (for ``core.fused``, `InOut._view_setup`'s referenced-face pass): its face where it
     is live and *shaded* — n·ω_o > −margin |n| |ω_o|, a superset of the samples the per-sample stage
     finds above their horizon (z > 0 after normalising n, `sample_frame`, whose rounding moves z by
-    ~1e-7 |ω_o|) — else M = the face count (q,) int64, and whether a live sample's face lies in
+    ~1e-7 |ω_o|) — else M = the face count (q,) int32 (the referenced-face histogram,
+    ``InOut._face_mask``, counts int32 faces in 0.4 of the time of int64 ones, chess bench), and whether a live sample's face lies in
     another region than the sample's (q,) bool. face < 0 is clamped (a miss: not live)."""
     dot = (normal * wo).sum(-1)
     shaded = (dot > -margin * ((normal * normal).sum(-1) * (wo * wo).sum(-1)).sqrt()) & live
     f = face.clamp_min(0)
     bad = (face_region[f] != region) & live
-    return torch.where(shaded, f, face_region.shape[0]), bad
+    return torch.where(shaded, f, face_region.shape[0]).to(torch.int32), bad
 
 
 shaded_faces = fused(_shaded_faces)
@@ -433,7 +489,61 @@ def _window_cells(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: 
     return torch.where(bw != 0, g, Kv.shape[0]), torch.stack([iu, iv, -iu, -iv], -1)
 
 
-window_cells = fused(_window_cells)
+window_cells = fused(_window_cells, options=VECTOR_OPTIONS)                    # see `VECTOR_OPTIONS`
+
+
+def _hit_faces(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, Tensor]:
+    """Per sample (for ``core.fused``, `hit_face_counts`): its face where it is a hit, else M = the
+    face count (q,) int32, and whether any hit's face lies in another region than the sample's ()
+    bool. face is clamped into [0, M) (a miss: not a hit), so the look-up needs no index check."""
+    f = face.clamp(0, face_region.shape[0] - 1)
+    bad = (face_region[f] != region) & hit
+    return torch.where(hit, f, face_region.shape[0]).to(torch.int32), bad.any()
+
+
+# No index checks (the face is clamped, `_hit_faces`). The region check as one reduced flag: with a
+# (q,) bool flag written per sample instead, the pass took 2.8× the time (chess bench, 1 thread).
+hit_faces = fused(_hit_faces, options={"assert_indirect_indexing": False})
+
+
+def _vertex_cells(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Per vertex of the vertex shading (for ``core.fused``, ``InOut._vertex_view``): ref (n,) int64
+    concatenated ids; pos (ΣVr, 3), frames (ΣVr, 3, 3) world → local rows; cam (3,). The direction
+    d = cam − pos to the camera in the vertex's frame (the hemi-octahedral cell needs no unit vector)
+    → whether it is above the horizon (n,) bool, the first node of its table cell (n,) int64 and the
+    4 bilinear node weights (n, 4) (``transport.lut_cell_xyz``)."""
+    d = cam - pos[ref]                                                          # (n, 3)
+    Fm = frames[ref]                                                            # (n, 3, 3)
+    x, y, z = ((Fm * d[:, None, :]).sum(-1)).unbind(-1)
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R)
+    gu, gv = 1 - fu, 1 - fv
+    return z > 0, iv * R + iu, torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1)
+
+
+vertex_cells = fused(_vertex_cells)
+
+
+def hit_face_counts(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, bool]:
+    """The histogram (M + 1,) int64 of the hits' faces of q samples (face, region (q,) int64, hit
+    (q,) bool; bin M: the misses) and whether a hit's face lies in another region than the sample's
+    (face_region (M,) int64): the compiled `hit_faces` over static blocks of `sample_block` samples
+    (the last padded by repeating its last sample), then one ``torch.bincount``."""
+    q, M = int(face.shape[0]), int(face_region.shape[0])
+    B = sample_block(q)
+    rows = [face.contiguous(), region.contiguous(), hit.contiguous()]
+    torch._dynamo.maybe_mark_dynamic(face_region, 0)             # the scene's face count: one variant
+    warm_blocks(hit_faces, rows, (face_region,), warm_sizes(B))
+    fh = torch.empty(q, dtype=torch.int32, device=face.device)
+    bad = []
+    for a in range(0, q, B):
+        blk = [r[a:a + B] for r in rows]
+        n = blk[0].shape[0]
+        if n < B:
+            blk = [torch.cat([t, t[-1:].expand(B - n)]) for t in blk]
+        f, b = hit_faces(*blk, face_region)
+        fh[a:a + n] = f[:n]
+        bad.append(b)
+    return torch.bincount(fh, minlength=M + 1), bool(torch.stack(bad).any()) if bad else False
 
 
 def prepare(st: FastStatic, cs: list[Tensor], ref: Tensor, cam: Tensor, sub: tuple) -> Windows:
@@ -586,7 +696,7 @@ def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: 
             iv * R + iu)
 
 
-entry_inputs = fused(_entry_inputs)
+entry_inputs = fused(_entry_inputs, options=VECTOR_OPTIONS)
 
 
 def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor, wo: Tensor, bary: Tensor,

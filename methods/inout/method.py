@@ -116,7 +116,7 @@ class _View:
 
 
 def _face_mask(face: Tensor, M: int) -> Tensor:
-    """(M,) bool: which of the M faces occur in ``face`` (q,) int64, values in [0, M] (M: none, dropped).
+    """(M,) bool: which of the M faces occur in ``face`` (q,) int32 or int64, values in [0, M] (M: none, dropped).
     A histogram (``torch.bincount``) rather than ``mask[face] = True``: the q ≈ 2.6·10⁵ bench samples
     index ~6·10³ faces, and the indexed store with that many repeats took 2.4× the histogram (chess
     bench G-buffer, 1 thread, process CPU time, load ~11: 1.2 vs 0.5 ms)."""
@@ -498,7 +498,7 @@ class InOut(Method):
         hit = gbuffer.hit
         M = st.face_region.numel()
         # every sample is shaded (misses with weight 0) unless many miss: then only the hits
-        sel = None if int(hit.sum()) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
+        sel = None if int(torch.count_nonzero(hit)) >= DENSE_HIT_FRACTION * P else hit.nonzero(as_tuple=True)[0]
         view = _View(gbuffer=gbuffer, st=st, sel=sel, Q=P if sel is None else sel.numel())
         # referenced vertices: those of the faces of the shaded samples (the region check on every
         # hit), one compiled pass (``fast.shaded_faces``: its shaded test is a superset of the
@@ -586,29 +586,34 @@ class InOut(Method):
                 and torch.equal(vv["face"], gbuffer.face):
             return vv
         dev, hit, face = gbuffer.hit.device, gbuffer.hit, gbuffer.face
-        M, R = st.face_region.numel(), st.R
-        f = face.clamp_min(0)
-        if bool((hit & (st.face_region.index_select(0, f) != gbuffer.region)).any()):
-            bad = hit & (st.face_region.index_select(0, f) != gbuffer.region)
-            name = self.scene.regions[int(gbuffer.region[bad][0])]
+        M, R, P = st.face_region.numel(), st.R, gbuffer.num_samples
+        # the hits' faces and the region check in one compiled pass (``fast.hit_face_counts``), the
+        # referenced-face mask and the hit count from one histogram of those faces (bin M: the misses)
+        counts, bad = _fast.hit_face_counts(face, gbuffer.region, hit, st.face_region)
+        if bad:
+            f = face.clamp_min(0)
+            sel = hit & (st.face_region.index_select(0, f) != gbuffer.region)
+            name = self.scene.regions[int(gbuffer.region[sel][0])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-        faces = _face_mask(torch.where(hit, f, M), M).nonzero(as_tuple=True)[0]
+        faces = (counts[:M] > 0).nonzero(as_tuple=True)[0]
         vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
         vmask[st.face_gl.index_select(1, faces).reshape(-1).long()] = True
         ref = vmask.nonzero(as_tuple=True)[0]                                  # ascending concatenated ids
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        d = cam[None, :] - st.pos.index_select(0, ref)                         # towards the camera
-        x, y, z = torch.bmm(st.frames.index_select(0, ref), d.unsqueeze(-1)).squeeze(-1).unbind(-1)
-        front = z > 0                                                          # ρ = 0 below the horizon
-        iu, iv, fu, fv = tp.lut_cell_xyz(x, y, z, R)                           # scale-free: d need not be unit
-        gu, gv = 1 - fu, 1 - fv
-        wc = torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1)
+        # towards the camera, in each vertex's frame: ρ = 0 below the horizon; its cell and weights
+        # (one compiled pass over static blocks, ``fast.vertex_cells``)
+        for t in (st.pos, st.frames):
+            torch._dynamo.maybe_mark_dynamic(t, 0)                              # the scene's vertex count
+        B = _fast.sample_block(ref.numel())
+        front, first, wc = map_rows(_fast.vertex_cells, [ref], (st.pos, st.frames, cam, R), chunk=B,
+                                    warm=_fast.warm_sizes(B))
+        b = torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()  # ref ascending: slots are runs
         slots = []
         for s in range(len(self.regions)):
-            sel = ((ref >= st.voff[s]) & (ref < st.voff[s + 1]) & front).nonzero(as_tuple=True)[0]
-            slots.append((ref[sel] - st.voff[s], (iv * R + iu)[sel], wc[sel]))
+            sel = front[b[s]:b[s + 1]].nonzero(as_tuple=True)[0] + b[s]
+            slots.append((ref.index_select(0, sel) - st.voff[s], first.index_select(0, sel), wc.index_select(0, sel)))
         self._vview = {"key": key, "hit": hit.clone(), "face": face.clone(), "slots": slots,
-                       "faces": int(faces.numel()), "ref": int(ref.numel()), "hits": int(hit.sum())}
+                       "faces": int(faces.numel()), "ref": int(ref.numel()), "hits": P - int(counts[M])}
         return self._vview
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer) -> Tensor:

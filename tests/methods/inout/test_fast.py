@@ -230,6 +230,64 @@ def test_face_mask_is_the_indexed_mask():
         assert torch.equal(inout_method._face_mask(face, M), ref[:M])
 
 
+def test_hit_face_counts_is_the_histogram_of_the_hits_faces(monkeypatch):
+    """``fast.hit_face_counts`` (the vertex shading's referenced-face pass: compiled blocks, the last
+    padded) is the histogram of the hits' faces (bin M: the misses) and flags a hit on a face of
+    another region, whatever the block size."""
+    g = torch.Generator().manual_seed(5)
+    M = 23
+    face_region = torch.arange(M) % 3
+    for q in (1, 1000, 5000):
+        for block in (1024, 4096):
+            monkeypatch.setattr(fast, "MIN_SAMPLE_BLOCK", block)
+            monkeypatch.setattr(fast, "MAX_SAMPLE_BLOCK", block)
+            face = torch.randint(-1, M, (q,), generator=g)
+            hit = face >= 0
+            region = face_region[face.clamp_min(0)]
+            counts, bad = fast.hit_face_counts(face, region, hit, face_region)
+            want = torch.bincount(torch.where(hit, face, M), minlength=M + 1)
+            assert torch.equal(counts, want) and not bad
+            miss = (~hit).nonzero(as_tuple=True)[0]
+            if miss.numel():                                        # a miss's region is never checked
+                region[miss[0]] = (region[miss[0]] + 1) % 3
+                assert not fast.hit_face_counts(face, region, hit, face_region)[1]
+            k = int(hit.nonzero()[-1, 0])                            # the last hit: maybe in the padding
+            region[k] = (region[k] + 1) % 3
+            assert fast.hit_face_counts(face, region, hit, face_region)[1]
+
+
+def test_vertex_view_rejects_faces_of_another_region(precomputed):
+    """Shading "vertex": a hit whose region is not its face's raises, as the reference does."""
+    m = _vertex(precomputed("sphere_plane"))
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 1)
+    gb.region = gb.region.clone()
+    k = int(gb.hit.nonzero()[0, 0])
+    gb.region[k] = 1 - gb.region[k]
+    with pytest.raises(ValueError, match="another region"):
+        m.render(frame, gb)
+
+
+def test_vertex_cells_is_the_eager_frame_product(precomputed):
+    """``fast.vertex_cells`` (compiled) against the vertex view's former eager arithmetic: the
+    direction to the camera by a batched 3 × 3 product, then ``transport.lut_cell_xyz``."""
+    m = _vertex(precomputed("bunny"))
+    st = m._fast_static()
+    g = torch.Generator().manual_seed(6)
+    ref = torch.randperm(st.voff[-1], generator=g)[:300].sort().values
+    cam = torch.tensor([0.3, 2.0, -1.5])
+    front, first, wc = fast.vertex_cells(ref, st.pos, st.frames, cam, st.R)
+    d = cam[None, :] - st.pos.index_select(0, ref)
+    x, y, z = torch.bmm(st.frames.index_select(0, ref), d.unsqueeze(-1)).squeeze(-1).unbind(-1)
+    iu, iv, fu, fv = tp.lut_cell_xyz(x, y, z, st.R)
+    # the continuous node coordinates (cell + fraction): a sum in another order may move a
+    # coordinate on a cell edge to the neighbouring cell, at the same point
+    gu_, gv_ = (first % st.R).float() + wc[:, 1] + wc[:, 3], (first // st.R).float() + wc[:, 2] + wc[:, 3]
+    assert torch.allclose(gu_, iu + fu, rtol=0, atol=1e-4) and torch.allclose(gv_, iv + fv, rtol=0, atol=1e-4)
+    assert torch.allclose(wc.sum(-1), torch.ones(ref.numel()), rtol=0, atol=1e-5)
+    assert torch.equal(front[z.abs() > 1e-5], (z > 0)[z.abs() > 1e-5])
+
+
 def test_shaded_faces_is_a_superset_of_the_horizon_test():
     """``fast.shaded_faces`` (the referenced-face pass) keeps every live sample the per-sample stage
     shades (z > 0 in its frame, eager `sample_frame` and the compiled `entry_inputs`), near-grazing
