@@ -214,11 +214,14 @@ def warm_blocks(fn: Callable, rows: Sequence[Tensor], args: Sequence, sizes: Seq
     of the first row of each of ``rows`` (valid input: a real row, repeated — as `map_rows` pads),
     the results dropped; once per (``fn``, argument signature) in the process. ``fn``: a `fused`
     function or a function of one block that calls such kernels (keyed by its code, so a closure
-    made per call counts once). Returns the number of warm-up calls made (0 outside `warming`)."""
+    made per call counts once; the same code in another file does not). Returns the number of
+    warm-up calls made (0 outside `warming`)."""
     if not _warming or not sizes or not compile_enabled() or not rows or int(rows[0].shape[0]) == 0:
         return 0
     code = getattr(getattr(fn, "eager", fn), "__code__", None)
-    key = (code if code is not None else id(fn), tuple(_signature(r[:0]) for r in rows),
+    # (the file name too: code objects compare equal across files, so in a same-process A/B the
+    # baseline checkout's copy of a function would count as the new copy's warm-up — session 18)
+    key = ((code, code.co_filename) if code is not None else id(fn), tuple(_signature(r[:0]) for r in rows),
            tuple(_signature(a) for a in args), tuple(sizes))
     if key in _warmed:
         return 0

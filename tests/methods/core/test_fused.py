@@ -151,6 +151,24 @@ def test_warm_blocks_does_nothing_outside_warming_and_warms_once_per_signature(d
         assert warm_blocks(f, (vidx[:0], bw[:0]), (col,), (256,)) == 0         # nothing to repeat
 
 
+def test_warm_blocks_keys_the_same_code_in_another_file_apart():
+    """A same-process A/B loads the baseline checkout's copy of a module beside the new one: equal
+    code objects from two files (they compare equal: the file name is not part of code equality)
+    are two functions to warm, or the new copy compiles in its first timed frame."""
+    from methods.core.fused import warm_blocks, warming
+
+    src = "def block(x, s):\n    return x * s\n"
+    fa, fb = ({}, {})
+    exec(compile(src, "/checkout_a/kernels.py", "exec"), fa)
+    exec(compile(src, "/checkout_b/kernels.py", "exec"), fb)
+    assert fa["block"].__code__ == fb["block"].__code__          # what made them one key before
+    x = torch.rand(10, 3)
+    with warming():
+        assert warm_blocks(fa["block"], (x,), (2.0,), (16,)) == 1
+        assert warm_blocks(fb["block"], (x,), (2.0,), (16,)) == 1
+        assert warm_blocks(fb["block"], (x,), (2.0,), (16,)) == 0
+
+
 def test_strided_rows_compile_one_variant_for_full_and_padded_blocks():
     """Rows that are a column of a wider array (stride > 1) are made contiguous first: full blocks
     (views) and the padded last block (a copy) then share one compiled variant (in-out's window
