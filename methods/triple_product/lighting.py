@@ -610,6 +610,13 @@ def _kernel(fn):
     return _kernels[fn.__name__]
 
 
+def _general_block(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int, wT: Tensor, Q: Tensor, lanes: Tensor
+                   ) -> tuple[Tensor, Tensor]:
+    """One block of `project_env`'s general path (`env_taps`, then `quad_means_coeffs`): what its
+    comb path warms (`warm_blocks` keys on this function's code)."""
+    return _kernel(quad_means_coeffs)(*_kernel(env_taps)(R, cp, T, H, W), wT, Q, lanes)
+
+
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None,
                 frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
@@ -650,8 +657,12 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         planes = envmap.periodic_texels(R.device, torch.float32, planes=True)
         CT = comb_table(planes, H, W, grid.n_phi)
         g = torch.tensor(gamma / (2 * math.pi), dtype=torch.float64, device=R.device)
-        warm_blocks(_kernel(env_taps), [R.float()], (cp, envmap.to_world.float(), H, W),
-                    [chunk, *env_tail_sizes(chunk)])     # the general kernel (comment below)
+        # the general path's two kernels (comment below), the means too: no comb-path frame compiles
+        # them, so a sequence whose warm-up lighting turns about +Y (chess / creature "L": the
+        # scene's own map first) compiled `quad_means_coeffs` (full and tail blocks) in its first
+        # timed frame (1 thread, chess vertex L: 1.2-1.3 s instead of ~70 ms; TORCH_LOGS=recompiles)
+        warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, Q, lanes),
+                    [chunk, *env_tail_sizes(chunk)])
         o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
         coef, fine = _kernel(comb_coeffs)(_kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi))
         if frames is None:

@@ -401,6 +401,34 @@ def test_project_env_tail_blocks_equal_the_whole_projection(monkeypatch):
         assert torch.equal(part[0], whole[0][sel]) and torch.equal(part[1], whole[1][sel])
 
 
+def test_comb_warm_up_compiles_the_general_path(monkeypatch):
+    """A warm-up frame whose lighting turns about +Y (the comb path: chess / creature "L" start with
+    the scene's own map) compiles the general path's kernels too, full and tail blocks (`env_taps`
+    and `quad_means_coeffs`): a later lighting on a tilted axis compiles nothing in a timed frame."""
+    from torch._dynamo.utils import counters
+
+    from methods.core.fused import warming
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(3, 8, 1)                                             # 24 frames
+    geo, R = Geodesic(1), lt.grid_frames(g)
+    monkeypatch.setattr(lt, "ENV_BLOCK_SAMPLES", 8 * 80 * 16)            # blocks of 8 frames
+    monkeypatch.setattr(lt, "ENV_TAIL_MIN", 2)                            # tails of 4 and 2 frames
+    assert lt.env_block_frames(24, 80 * 16) == 8 and lt.env_blocks(5, 8) == [4, 2]
+    base = get_scene("bunny", "test").envmap
+    env = lt.prefiltered(base.rotated(rotation_y(0.7)), geo, 2)
+    assert lt.comb_ok(g, env.width)
+    with warming():
+        lt.project_env(env, R, geo, supersample=2, grid=g)
+    graphs = int(counters["stats"]["unique_graphs"])
+    tilted = lt.prefiltered(base.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]), geo, 2)
+    lt.project_env(tilted, R, geo, supersample=2, grid=g)                                  # 3 full blocks
+    lt.project_env(tilted, R, geo, supersample=2, grid=g, frames=torch.tensor([0, 5, 9, 13, 20]))  # 4 + 2
+    assert int(counters["stats"]["unique_graphs"]) == graphs
+
+
 def test_prefiltered_reuses_the_box_filter_across_rotations_only():
     """`lighting.prefiltered` keeps the last box-filtered texels: a rotated copy of the same data gets
     them with its own rotation; a new map (new data) is filtered anew."""
