@@ -21,8 +21,10 @@ the eager estimator (`Oracle._shade` per region and batch of samples), is the te
 material-free ones (shading frame, env-map sampling, MIS weights, ray origins, radiance and the sum)
 over all samples, the BRDF's sample / pdf / eval per region with its parameters as tensor inputs
 (Torrance-Sparrow, whose code needs Python floats, eagerly) — and traces the live shadow rays in one
-batch. When every region's BRDF compiles, the passes up to the shadow rays run as one kernel per region
-(`_pretrace_stage`), so their intermediate per-ray arrays are never stored. The light samples' env-map
+batch. When every region's BRDF compiles, the passes up to the shadow rays run as one compiled graph per
+block of a region's samples (`_pretrace_stage`), laid out samples innermost so that its loops run over
+full vectors of samples, and the radiance look-up per block on the env map's channel planes
+(`_shade_block_stage`). The light samples' env-map
 cells are searched before, in one pass over the frame, by a guide table (`_light_cells`,
 ``methods.core.envguide``: exactly ``scenes.envmap.count_le``'s cells, ~1 load instead of 18). ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
 """
@@ -37,6 +39,7 @@ from dataclasses import fields
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core.frames import coordinate_system
+from methods.core.latlong import planar_radiance
 from methods.core.fused import fused, map_rows
 from methods.core.sampling import cosine_hemisphere_pdf, sample_cosine_hemisphere
 from methods.core.visibility import Visibility
@@ -93,6 +96,12 @@ def _to_local(s: Tensor, t: Tensor, n: Tensor, v: Tensor) -> Tensor:
     return torch.stack([_dot(s, v), _dot(t, v), _dot(n, v)], -1)
 
 
+def _rays(x: Tensor, rax: int, n: int) -> Tensor:
+    """Per-sample x (Q, ...) broadcast to n rays on the ray axis ``rax`` (0: (n, Q, ...), rays first —
+    the compiled frame's layout, `_pretrace_stage`; 1: (Q, n, ...))."""
+    return x.unsqueeze(rax).expand(*x.shape[:rax], n, *x.shape[rax:])
+
+
 def _guide_stage(u, cdf, guide):
     """The env map's cell of each light sample, ``count_le(cdf, u₀)`` by the guide table
     (`methods.core.envguide.guided_count_le`): → (k int32, ok); `Oracle._light_cells` searches the
@@ -101,11 +110,11 @@ def _guide_stage(u, cdf, guide):
     return k.to(torch.int32), ok
 
 
-def _light_stage(n, wo, ng, u, k, cdf, p_flat, omega, R64, light: bool):
+def _light_stage(n, wo, ng, u, k, cdf, p_flat, omega, R64, light: bool, rax: int = 1):
     """The shading frame, ω_o in it, the geometric normal on the shading normal's side, and the
     env-map samples (`scenes.envmap.sample_cells`, its cells k given: `Oracle._light_cells`) in world
-    and local coordinates with their densities — `Oracle._shade` up to the BRDF calls. Rows:
-    G-buffer samples."""
+    and local coordinates with their densities — `Oracle._shade` up to the BRDF calls. Per-sample
+    arrays (Q, 3), per-ray arrays with the rays on axis ``rax`` (`_rays`)."""
     s, t = coordinate_system(n)
     wo_l = _to_local(s, t, n, wo)
     ng = torch.where((_dot(ng, n) < 0).unsqueeze(-1), -ng, ng)
@@ -114,37 +123,38 @@ def _light_stage(n, wo, ng, u, k, cdf, p_flat, omega, R64, light: bool):
     H, W = omega.shape[0] + 1, p_flat.shape[0] // omega.shape[0]
     d, pdf = sample_cells_at(k, u, cdf, p_flat, omega, R64, H, W)
     d, pdf = d.float(), pdf.float()
-    return wo_l, ng, d, pdf, _to_local(s[:, None], t[:, None], n[:, None], d)
+    return wo_l, ng, d, pdf, _to_local(s.unsqueeze(rax), t.unsqueeze(rax), n.unsqueeze(rax), d)
 
 
-def _weight_stage(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl: int, nb: int):
+def _weight_stage(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl: int, nb: int, rax: int = 1):
     """World directions of the BRDF samples, the env map's density there (`scenes.envmap.cell_pdf`)
     and every ray's MIS weight / pdf / count (power heuristic): → directions (Q, K, 3) world and
-    local, weights (Q, K), light samples first."""
+    local, weights (Q, K), light samples first (rays on axis ``rax``: (K, Q, ...) for 0)."""
     ds, wis, ws = [], [], []
-    s, t = coordinate_system(n)
+    s, t = (x.unsqueeze(rax) for x in coordinate_system(n))
     if nl:
         w = _power_heuristic(pdf_l, pdf_bl) / pdf_l.clamp_min(1e-30) / nl
         ws.append(torch.where(pdf_l > 0, w, torch.zeros_like(w)))
         ds.append(d_l)
         wis.append(wi_ll)
     if nb:
-        d = wi_b[..., :1] * s[:, None] + wi_b[..., 1:2] * t[:, None] + wi_b[..., 2:] * n[:, None]
+        d = wi_b[..., :1] * s + wi_b[..., 1:2] * t + wi_b[..., 2:] * n.unsqueeze(rax)
         pdf_lb = cell_pdf(d, p2d, omega, R64).float() if nl else torch.zeros_like(pdf_b)
         w = _power_heuristic(pdf_b, pdf_lb) / pdf_b.clamp_min(1e-30) / nb
         ws.append(torch.where(pdf_b > 0, w, torch.zeros_like(w)))
         ds.append(d)
         wis.append(wi_b)
-    return torch.cat(ds, 1), torch.cat(wis, 1), torch.cat(ws, 1)
+    return torch.cat(ds, rax), torch.cat(wis, rax), torch.cat(ws, rax)
 
 
-def _ray_stage(f, wi, w, d, p, ng, eps):
+def _ray_stage(f, wi, w, d, p, ng, eps, rax: int = 1):
     """Each ray's contribution f·cos·w (Q, K, 3), whether it is live (non-zero: traced) and its
     shadow-ray origin, offset along the geometric normal to the side of the ray."""
     contrib = f * (wi[..., 2].clamp_min(0.0) * w).unsqueeze(-1)
     live = contrib.amax(-1) > 0
-    side = torch.sign(_dot(ng[:, None], d)).unsqueeze(-1)
-    return contrib, live, p[:, None] + side * ng[:, None] * eps
+    ng, p = ng.unsqueeze(rax), p.unsqueeze(rax)
+    side = torch.sign(_dot(ng, d)).unsqueeze(-1)
+    return contrib, live, p + side * ng * eps
 
 
 def _shade_stage(contrib, lit, d, data, ext, R32):
@@ -196,14 +206,14 @@ def _mix_pdf(cls, P, has_spec: bool, wi: Tensor, wo: Tensor) -> Tensor:
     return p.to(wi.dtype)
 
 
-def _brdf_sample_stage(wo_l, u_b, wi_ll, cls, P, has_spec: bool, nl: int, nb: int):
+def _brdf_sample_stage(wo_l, u_b, wi_ll, cls, P, has_spec: bool, nl: int, nb: int, rax: int = 1):
     """The BRDF's density at the light samples and its own samples (``Material.pdf`` and
-    ``Material.sample`` on tensor parameters) for rows of one region."""
+    ``Material.sample`` on tensor parameters) for rows of one region (rays on axis ``rax``)."""
     out = []
     if nl:
-        out.append(_mix_pdf(cls, P, has_spec, wi_ll, wo_l.unsqueeze(1).expand(-1, nl, 3)))
+        out.append(_mix_pdf(cls, P, has_spec, wi_ll, _rays(wo_l, rax, nl)))
     if nb:
-        wo = wo_l.unsqueeze(1).expand(-1, nb, 3)
+        wo = _rays(wo_l, rax, nb)
         pd = 1.0 - P.ps
         u0, u1 = u_b[..., 0], u_b[..., 1]
         one_minus = 1.0 - torch.finfo(u_b.dtype).eps
@@ -215,9 +225,9 @@ def _brdf_sample_stage(wo_l, u_b, wi_ll, cls, P, has_spec: bool, nl: int, nb: in
     return tuple(out)
 
 
-def _brdf_eval_stage(wi, wo_l, cls, P):
-    """``Material.eval`` on tensor parameters for rows of one region: (Q, K, 3)."""
-    wo = wo_l.unsqueeze(1).expand_as(wi)
+def _brdf_eval_stage(wi, wo_l, cls, P, rax: int = 1):
+    """``Material.eval`` on tensor parameters for rows of one region: (Q, K, 3) (rays on axis ``rax``)."""
+    wo = wo_l.unsqueeze(rax).expand_as(wi)
     f = P.kd.to(wi.dtype) / math.pi + cls._spec_eval(P, wi, wo)
     up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
     return torch.where(up[..., None], f, torch.zeros_like(f))
@@ -225,22 +235,59 @@ def _brdf_eval_stage(wi, wo_l, cls, P):
 
 def _pretrace_stage(n, wo, ng, p, u_l, k_l, u_b, cdf, p_flat, p2d, omega, R64, eps, cls, P, has_spec: bool,
                     nl: int, nb: int):
-    """`_light_stage`, `_brdf_sample_stage`, `_weight_stage`, `_brdf_eval_stage` and `_ray_stage` of
-    rows of one region (a material that compiles, `_compiles`) in one kernel, so none of their
-    intermediate (Q, K, ·) arrays is stored: → contributions f·cos·w (Q, K, 3), live (Q, K), shadow-ray
-    origins and world directions (Q, K, 3). Placeholders where a strategy is off, as `Oracle._shade_fast`;
-    the stages' eager functions (``.eager``: traced into this one graph)."""
-    wo_l, ng, d_l, pdf_l, wi_ll = _light_stage.eager(n, wo, ng, u_l, k_l, cdf, p_flat, omega, R64, nl > 0)
-    res = _brdf_sample_stage.eager(wo_l, u_b, wi_ll, cls, P, has_spec, nl, nb)
+    """`_light_stage`, `_brdf_sample_stage`, `_weight_stage`, `_brdf_eval_stage` and `_ray_stage` of a
+    block of B samples of one region (a material that compiles, `_compiles`) in one compiled graph,
+    the samples innermost (`_soa_blocks`): n, wo, ng, p (3, B), u_l / u_b (NL / NB, 2, B), k_l (NL, B)
+    → contributions f·cos·w (K, B, 3), live (K, B), shadow-ray origins and world directions (K, B, 3)
+    (rays first: `_rays` with axis 0). Inductor's loops then run over the B samples in full vectors;
+    with the rays innermost ((Q, K, 3), session 17) they ran over the K = 4-8 rays of a sample (4-8 of
+    16 lanes). Compiled without Inductor's tiling heuristics, which left loops over the 3 components
+    (`OPTIONS`). Placeholders where a strategy is off, as `Oracle._shade_fast`; the stages' eager
+    functions (``.eager``: traced into this one graph)."""
+    n, wo, ng, p = n.t(), wo.t(), ng.t(), p.t()
+    u_l, u_b = u_l.transpose(1, 2), u_b.transpose(1, 2)
+    wo_l, ng, d_l, pdf_l, wi_ll = _light_stage.eager(n, wo, ng, u_l, k_l, cdf, p_flat, omega, R64, nl > 0, 0)
+    res = _brdf_sample_stage.eager(wo_l, u_b, wi_ll, cls, P, has_spec, nl, nb, 0)
     pdf_bl = res[0] if nl else pdf_l
     wi_b, pdf_b = res[-2:] if nb else (wi_ll, pdf_l)
-    d, wi, w = _weight_stage.eager(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl, nb)
-    f = _brdf_eval_stage.eager(wi, wo_l, cls, P)
-    contrib, live, o = _ray_stage.eager(f, wi, w, d, p, ng, eps)
+    d, wi, w = _weight_stage.eager(n, d_l, pdf_l, pdf_bl, wi_ll, wi_b, pdf_b, p2d, omega, R64, nl, nb, 0)
+    f = _brdf_eval_stage.eager(wi, wo_l, cls, P, 0)
+    contrib, live, o = _ray_stage.eager(f, wi, w, d, p, ng, eps, 0)
     return contrib, live, o, d
 
 
-_pretrace_stage = fused(_pretrace_stage)
+def _shade_block_stage(contrib, lit, d, planes, R32, H: int, W: int):
+    """`_shade_stage` of a block in `_pretrace_stage`'s layout (contributions and world directions
+    (K, B, 3), lit (K, B) → (B, 3)), the radiance per channel on the env map's channel planes
+    (``methods.core.latlong.planar_radiance``: op for op ``scenes.envmap.bilinear_lookup``), so the
+    loop runs over the B samples with vectorised atan2 / acos instead of over the 3 channels."""
+    lit_f = lit.float()
+    x = torch.where(lit, d[..., 0], torch.zeros_like(lit_f))  # the unlit: a fixed direction, +y
+    y = torch.where(lit, d[..., 1], torch.ones_like(lit_f))
+    z = torch.where(lit, d[..., 2], torch.zeros_like(lit_f))
+    xl, yl, zl = (x * R32[0, c] + y * R32[1, c] + z * R32[2, c] for c in range(3))  # EnvMap.to_local: d @ R
+    acc = []
+    for c, L in enumerate(planar_radiance(xl, yl, zl, planes, H, W)):
+        L = torch.where(lit, L, torch.zeros_like(L))
+        a = contrib[0, :, c] * L[0]
+        for k in range(1, contrib.shape[0]):  # unrolled, the order of `_shade_stage`
+            a = a + contrib[k, :, c] * L[k]
+        acc.append(a)
+    return torch.stack(acc, -1)
+
+
+def _soa_blocks(x: Tensor, B: int) -> Tensor:
+    """Per-sample rows x (nb·B, ...) → (nb, ..., B) contiguous: blocks of B samples, the samples
+    innermost (`_pretrace_stage`'s layout)."""
+    x = x.reshape(-1, B, *x.shape[1:])
+    return x.permute(0, *range(2, x.dim()), 1).contiguous()
+
+
+# `_pretrace_stage`'s Inductor options: no tiling heuristics (they chose loops over the 3 components
+# of its (K, B, 3) temporaries, scalar: 417 → 323 ms of a chess bench frame, 1 thread); its gathers
+# (env-map tables) are in range by construction (clamped cells).
+OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False}
+_pretrace_stage = fused(_pretrace_stage, options=OPTIONS)
 _brdf_sample_stage = fused(_brdf_sample_stage)
 _brdf_eval_stage = fused(_brdf_eval_stage)
 _light_stage = fused(_light_stage)
@@ -248,6 +295,7 @@ _guide_stage = fused(_guide_stage, options={"assert_indirect_indexing": False})
 _weight_stage = fused(_weight_stage)
 _ray_stage = fused(_ray_stage)
 _shade_stage = fused(_shade_stage)
+_shade_block_stage = fused(_shade_block_stage, options={"assert_indirect_indexing": False})
 
 
 @register
@@ -352,7 +400,7 @@ class Oracle(Method):
         U_b = torch.cat(U_b) if NB and U_b else torch.zeros(order.numel(), 1, 2)
         cdf, p, omega = env._tables()
         K_l = self._light_cells(U_l, cdf) if NL else torch.zeros(U_l.shape[:2], dtype=torch.int32)
-        tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64))
+        tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64), env.periodic_texels(planes=True))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
         live_total = 0
@@ -384,16 +432,9 @@ class Oracle(Method):
         """`_shade` on samples of several regions (``mats``: (material, start, end) row ranges; K_l the
         light samples' env-map cells, `_light_cells`): → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
-        cdf, p_flat, p2d, omega, R64 = tables
-        if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per region up to the shadow rays
-            Q, K = p.shape[0], NL + NB
-            contrib, o, d = (torch.empty(Q, K, 3, device=p.device) for _ in range(3))
-            live = torch.empty(Q, K, dtype=torch.bool, device=p.device)
-            for mat, a, b in mats:
-                map_rows(_pretrace_stage, [n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], K_l[a:b], U_b[a:b]],
-                         (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0,
-                          NL, NB), chunk=PRETRACE_ROWS, out=tuple(x[a:b] for x in (contrib, live, o, d)))
-            return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
+        cdf, p_flat, p2d, omega, R64 = tables[:5]
+        if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per block up to the shadow rays
+            return self._shade_blocks(mats, vis, eps, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32)
         wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l, K_l],
                                                      (cdf, p_flat, omega, R64, NL > 0), chunk=ROWS)
         Q = p.shape[0]
@@ -424,6 +465,55 @@ class Oracle(Method):
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
         contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
         return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
+
+    def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
+        """`_shade_fast` when every region's BRDF compiles: each region's samples in blocks of
+        ``PRETRACE_ROWS`` (the last one padded by repeating its last sample, whose rays are then
+        dropped) laid out samples innermost (`_soa_blocks`), one `_pretrace_stage` call per block, the
+        live rays traced in one batch, `_shade_block_stage` per block: → ((Q, 3) estimates, live rays).
+        ``tables``: the env map's sampling tables and its channel planes (``periodic_texels(planes=True)``)."""
+        NL, NB, B = self.n_light, self.n_brdf, PRETRACE_ROWS
+        cdf, p_flat, p2d, omega, R64 = tables[:5]
+        K, dev = NL + NB, p.device
+        H, W = data.shape[:2]
+        planes = tables[-1]
+        idx, nblk = [], []
+        for _, a, b in mats:  # rows of the padded blocks: each region's, its last row repeated
+            m = -(-(b - a) // B)
+            idx += [torch.arange(a, b, device=dev), torch.full((m * B - (b - a),), b - 1, device=dev)]
+            nblk.append(m)
+        idx = torch.cat(idx)
+        valid = torch.cat([torch.arange(m * B, device=dev) < b - a for (_, a, b), m in zip(mats, nblk)])
+        rows = [_soa_blocks(x.index_select(0, idx), B) for x in (n, wo, ng, p, U_l, K_l, U_b)]
+        T = len(valid) // B
+        contrib, o, d = (torch.empty(T, K, B, 3, device=dev) for _ in range(3))
+        live = torch.empty(T, K, B, dtype=torch.bool, device=dev)
+        i = 0
+        for (mat, _, _), m in zip(mats, nblk):
+            args = (cdf, p_flat, p2d, omega, R64, eps, type(mat), _TensorParams(mat), mat.spec_weight > 0, NL, NB)
+            for _ in range(m):
+                res = _pretrace_stage(*(x[i] for x in rows), *args)
+                for dst, x in zip((contrib, live, o, d), res):
+                    dst[i] = x
+                i += 1
+        live &= valid.view(T, 1, B)  # the padding's rays: not traced, not counted
+        lit, n_live = self._trace_soa(vis, live, o, d)
+        out = torch.empty(T, B, 3, device=dev)
+        for i in range(T):
+            out[i] = _shade_block_stage(contrib[i], lit[i], d[i], planes, R32, H, W)
+        return out.view(-1, 3)[valid], n_live
+
+    @staticmethod
+    def _trace_soa(vis, live, o, d):
+        """The live rays of blocks (live (T, K, B); origins and directions (T, K, B, 3)) traced in one
+        batch: → (lit = live and unblocked, number of live rays)."""
+        rays = torch.nonzero(live.view(-1)).squeeze(-1)
+        if not rays.numel():
+            return live, 0
+        blocked = torch.zeros(live.numel(), dtype=torch.bool, device=live.device)
+        blocked[rays] = torch.as_tensor(vis.occluded(o.view(-1, 3).index_select(0, rays),
+                                                     d.view(-1, 3).index_select(0, rays)), device=live.device)
+        return live & ~blocked.view(live.shape), int(rays.numel())
 
     @staticmethod
     def _trace_shade(vis, contrib, live, o, d, data, ext, R32):
