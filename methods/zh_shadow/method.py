@@ -198,6 +198,37 @@ def _plane_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: 
     return out * (1.0 / S2)
 
 
+@fused
+def _plane_front_faces(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor) -> Tensor:
+    """(n, S²) int32: each sample's face where it is on the plane (``mask``) and n·ωo > 0 — the test
+    of `_plane_pixels`, the same expression — else −1 (arguments as `_plane_pixels`)."""
+    S2 = face.shape[1]
+    cols = []
+    for s in range(S2):
+        dn = normal[:, s, 0] * wo[0, :, s] + normal[:, s, 1] * wo[1, :, s] + normal[:, s, 2] * wo[2, :, s]
+        cols.append(torch.where(mask[:, s] & (dn > 0), face[:, s], torch.full_like(face[:, s], -1)))
+    return torch.stack(cols, 1).to(torch.int32)
+
+
+@fused
+def _plane_face_pixels(face: Tensor, bary: Tensor, fv: Tensor, u: Tensor, clamp: bool) -> Tensor:
+    """`_plane_pixels` from `_plane_front_faces` (face (n, S²) int32, −1 where a sample is off the
+    plane or faces away): the same sums, reading 12 bytes per sample (face, barycentrics) instead of
+    the G-buffer's face, normal, ωo and the plane mask (41) — a lighting-only frame's plane pass."""
+    S2 = face.shape[1]
+    out = None
+    for s in range(S2):                       # unrolled: each pixel's sum is one thread's, in order
+        f = face[:, s]
+        fc = f.clamp_min(0)
+        bu, bv = bary[0, :, s, None], bary[1, :, s, None]
+        x = u[fv[0][fc]] * (1.0 - bu - bv) + u[fv[1][fc]] * bu + u[fv[2][fc]] * bv
+        x = torch.where((f >= 0)[:, None], x, torch.zeros((), dtype=x.dtype))
+        if clamp:
+            x = x.clamp_min(0.0)
+        out = x if out is None else out + x
+    return out * (1.0 / S2)
+
+
 @register
 class ZHShadow(Method):
     """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
@@ -415,13 +446,15 @@ class ZHShadow(Method):
         if self.config["shading"] == "vertex":
             return self._render_vertex(frame, gbuffer, geom, v0, light, mats, cosine)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
-        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
-                for kd, ks, al in mats]
+        spec = [bool((ks > 0).any()) for _, ks, _ in mats]
         vreg = geom.vertex_region.to(dev)
-        state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
+        state = (frame.camera, pose_key, tuple(al if sp else None for sp, (_, _, al) in zip(spec, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
         relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
                    and self._frame_state[0] == state and self._frame_state[1] is v0)
+        # the specular tables: not needed by a lighting-only frame (the cached transfer and Wd)
+        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if sp and not relight else None)
+                for sp, (kd, ks, al) in zip(spec, mats)]
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
         if not relight and bool(gbuffer.hit.all()):
             img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine)
@@ -489,13 +522,14 @@ class ZHShadow(Method):
         the plane's interpolation over every sample (4 ms), the front test, the scatter and the
         resolve (3 ms) of the general path go, for ~1.5 ms of the fused pass."""
         dev, P = gbuffer.hit.device, gbuffer.num_samples
-        nrm = gbuffer.normal
-        groups, mask, rest = rt.planar_groups(rt.rows(nrm)) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
+        nrm, region = gbuffer.normal, gbuffer.region
+        spec = [t[3] is not None for t in tabs]
+        on_spec: dict = {}   # the plane's samples in a region with a specular term, counted by the match
+        match = rt.plane_match(nrm.contiguous(), region, torch.tensor(spec, device=dev), on_spec)
+        groups, mask, rest = rt.planar_groups(nrm.T, match=match) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
         if len(groups) != 1 or mask is None or rest.shape[0] == 0:
             return None
-        region = gbuffer.region
-        spec = [t[3] is not None for t in tabs]
-        if any(spec) and int((mask & torch.tensor(spec, device=dev)[region]).sum()):
+        if any(spec) and int(on_spec[tuple(groups[0][0].tolist())]):
             return None   # a specular term on the plane: `runtime.shade` does it per point
         F32, fv = self._face_rows(geom, dev)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, groups[0][0])
@@ -573,17 +607,24 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         n = gbuffer.height * gbuffer.width
-        img = _plane_pixels(gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), gbuffer.normal.view(n, S2, 3),
-                            gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
+        kept = cache.get("plane_pass")
+        if kept is None:
+            # built by the first lighting-only frame, kept with the transfer (the G-buffer is the same
+            # while the camera is): the plane samples' faces with the plane mask and the front test
+            # folded in, and per object term its samples' pixels
+            faces = _plane_front_faces(gbuffer.face.view(n, S2), gbuffer.normal.view(n, S2, 3),
+                                       gbuffer.wo.T.view(3, n, S2), mask.view(n, S2))
+            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]])
+        faces, pixels = kept
+        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), fv, u, clamp)
         light = light.to(dev, v.dtype)
-        for (kd, ks, _), entries in zip(mats, cache["regions"]):
-            for p, td, ts in entries:                                # as `runtime.relight`
+        for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
+            for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
                 rad = (light * kd.to(dev, v.dtype)).T @ td
-                if ts is not None:
-                    rad = rad + (light * ks.to(dev, v.dtype)).T @ ts
+                if ts is not None:   # + t_s · (l ⊙ ks) accumulated by the product (no pass of its own)
+                    rad = torch.addmm(rad, (light * ks.to(dev, v.dtype)).T, ts)
                 if clamp:
-                    rad = rad.clamp_min(0.0)
-                pix = p // S2
+                    rad = rad.clamp_min_(0.0)
                 for c in range(3):
                     img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
         return img.view(gbuffer.height, gbuffer.width, 3)
