@@ -4,7 +4,7 @@ on the loaded 2-core machine took > 20 min for two kinds): the new image is comp
 baseline's instead (max |new − base| / max |base|), and the path the new code took is printed.
 
     python -m benchmarks.zh_sample_ab --baseline /work/base [--config '{}'] [--kinds V VB VBL VL L E]
-        [--frames 11] [--scene creature] [--size bench]
+        [--frames 11] [--scene creature] [--size bench] [--precompute-code /work/base]
 
 Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time, 1 thread.
 """
@@ -18,7 +18,7 @@ import time
 
 import torch
 
-from benchmarks.common import precomputed, setup
+from benchmarks.common import apply_ab_options, precomputed, setup
 from benchmarks.zh_pose_ab import baseline_class
 
 
@@ -31,8 +31,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--scene", default="creature")
     ap.add_argument("--size", default="bench")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--precompute-code", default=None,
+                    help="take the precomputation from the cache entry of the code in DIR (a run-time-only change)")
     a = ap.parse_args(argv)
-    torch.set_num_threads(1)
+    a.threads = 1
+    apply_ab_options(a)
     from methods.zh_shadow.method import ZHShadow as New
 
     Base = baseline_class(a.baseline)

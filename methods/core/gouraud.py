@@ -12,12 +12,14 @@ Mahajan 2008 "interactive at 17K vertices", Ma 2006 §3.3, Sun 2007's GPU path).
 """
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import Tensor
 
 from methods.core.fused import CHUNK, fused, map_rows
 
-__all__ = ["resolve", "resolve_reference"]
+__all__ = ["resolve", "resolve_matrix", "resolve_reference"]
 
 
 @fused
@@ -71,3 +73,28 @@ def resolve_reference(values: Tensor, fv: Tensor, face: Tensor, bary: Tensor, hi
     per_sample = (values.float()[idx] * w[..., None]).sum(1)
     x = torch.where(hit[:, None], per_sample, torch.zeros_like(per_sample))
     return x.view(height, width, spp_side * spp_side, -1).mean(2)
+
+
+def resolve_matrix(fv: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int, spp_side: int,
+                   num_values: int) -> Tensor:
+    """`resolve` as a sparse (height·width, num_values) CSR matrix S (float32): ``S @ values`` is
+    the (height·width, C) image of `resolve` (arguments as there) — each pixel's S²·3 barycentric
+    weights ÷ S², misses dropped, a vertex met by several of a pixel's samples summed once (3.4
+    entries per pixel on the bench creature instead of 12). For a caller that resolves new values
+    on the same G-buffer (a lighting-only frame: the camera and geometry unchanged): one sparse
+    product (0.86 vs 2.6 ms for `resolve` at 256² × 2², 1 thread), the same sums to float32
+    round-off (the merged weights are added first). Building it sorts the P·3 entries (~0.1 s)."""
+    S2 = spp_side * spp_side
+    n = height * width
+    if face.shape[0] != n * S2:
+        raise ValueError(f"G-buffer has {face.shape[0]} samples, expected {height}x{width}x{S2}")
+    keep = hit.nonzero().squeeze(-1)
+    u, v = bary.float().index_select(0, keep).unbind(-1)
+    w = torch.stack([1.0 - u - v, u, v], 1) * (1.0 / S2)                           # (H, 3)
+    vid = fv.T.long().index_select(0, face.index_select(0, keep))                 # (H, 3)
+    pix = (keep // S2)[:, None].expand(-1, 3)
+    S = torch.sparse_coo_tensor(torch.stack([pix.reshape(-1), vid.reshape(-1)]), w.reshape(-1), (n, num_values),
+                                check_invariants=False)   # (in range by construction)
+    with warnings.catch_warnings():   # "sparse CSR support is in beta": the product used is the plain one
+        warnings.simplefilter("ignore", UserWarning)
+        return S.coalesce().to_sparse_csr()

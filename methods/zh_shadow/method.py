@@ -92,7 +92,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
                           tensor_bytes)
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
-from methods.core.fused import fused
+from methods.core.fused import fused, warm_blocks
 from methods.core.sh import project_latlong
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
@@ -198,6 +198,47 @@ def _plane_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: 
     return out * (1.0 / S2)
 
 
+@fused
+def _plane_front_faces(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor) -> Tensor:
+    """(n, S²) int32: each sample's face where it is on the plane (``mask``) and n·ωo > 0 — the test
+    of `_plane_pixels`, the same expression — else −1 (arguments as `_plane_pixels`)."""
+    S2 = face.shape[1]
+    cols = []
+    for s in range(S2):
+        dn = normal[:, s, 0] * wo[0, :, s] + normal[:, s, 1] * wo[1, :, s] + normal[:, s, 2] * wo[2, :, s]
+        cols.append(torch.where(mask[:, s] & (dn > 0), face[:, s], torch.full_like(face[:, s], -1)))
+    return torch.stack(cols, 1).to(torch.int32)
+
+
+@fused
+def _plane_face_pixels(face: Tensor, bary: Tensor, fv: Tensor, u: Tensor, clamp: bool) -> Tensor:
+    """`_plane_pixels` from `_plane_front_faces` (face (n, S²) int32, −1 where a sample is off the
+    plane or faces away): the same sums, reading 12 bytes per sample (face, barycentrics) instead of
+    the G-buffer's face, normal, ωo and the plane mask (41) — a lighting-only frame's plane pass."""
+    S2 = face.shape[1]
+    out = None
+    for s in range(S2):                       # unrolled: each pixel's sum is one thread's, in order
+        f = face[:, s]
+        fc = f.clamp_min(0)
+        bu, bv = bary[0, :, s, None], bary[1, :, s, None]
+        x = u[fv[0][fc]] * (1.0 - bu - bv) + u[fv[1][fc]] * bu + u[fv[2][fc]] * bv
+        x = torch.where((f >= 0)[:, None], x, torch.zeros((), dtype=x.dtype))
+        if clamp:
+            x = x.clamp_min(0.0)
+        out = x if out is None else out + x
+    return out * (1.0 / S2)
+
+
+def _warm_relight_planes(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, bary: Tensor, fv: Tensor, u: Tensor,
+                         clamp: bool) -> None:
+    """`_plane_front_faces` and `_plane_face_pixels` on blocks of G-buffer rows (face, normal, ωo,
+    mask, barycentrics per pixel: (n, S², ·)) in the layouts `ZHShadow._relight_planes` passes them
+    (ωo and the barycentrics component-major, as the G-buffer stores them): `warm_blocks` compiles
+    them in the warm-up frame."""
+    faces = _plane_front_faces(face, normal, wo.permute(2, 0, 1).contiguous(), mask)
+    _plane_face_pixels(faces, bary.permute(2, 0, 1).contiguous(), fv, u, clamp)
+
+
 @register
 class ZHShadow(Method):
     """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
@@ -269,6 +310,8 @@ class ZHShadow(Method):
         self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
         self._faces: tuple | None = None         # (geometry, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
+        self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
+        #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -276,7 +319,7 @@ class ZHShadow(Method):
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
         self._vertex_diffuse = None
         self._relight = None
-        self._vtable = self._plane_u = self._faces = None
+        self._vtable = self._plane_u = self._faces = self._resolve_matrix = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -418,13 +461,15 @@ class ZHShadow(Method):
         if self.config["shading"] == "vertex":
             return self._render_vertex(frame, gbuffer, geom, v0, light, mats, cosine)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
-        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if bool((ks > 0).any()) else None)
-                for kd, ks, al in mats]
+        spec = [bool((ks > 0).any()) for _, ks, _ in mats]
         vreg = geom.vertex_region.to(dev)
-        state = (frame.camera, pose_key, tuple(al if t[3] is not None else None for t, (_, _, al) in zip(tabs, mats)),
+        state = (frame.camera, pose_key, tuple(al if sp else None for sp, (_, _, al) in zip(spec, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
         relight = (self.config["shading"] == "sample" and frame.changed <= {"light"} and self._frame_state is not None
                    and self._frame_state[0] == state and self._frame_state[1] is v0)
+        # the specular tables: not needed by a lighting-only frame (the cached transfer and Wd)
+        tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if sp and not relight else None)
+                for sp, (kd, ks, al) in zip(spec, mats)]
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
         if not relight and bool(gbuffer.hit.all()):
             img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine)
@@ -492,13 +537,14 @@ class ZHShadow(Method):
         the plane's interpolation over every sample (4 ms), the front test, the scatter and the
         resolve (3 ms) of the general path go, for ~1.5 ms of the fused pass."""
         dev, P = gbuffer.hit.device, gbuffer.num_samples
-        nrm = gbuffer.normal
-        groups, mask, rest = rt.planar_groups(rt.rows(nrm)) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
+        nrm, region = gbuffer.normal, gbuffer.region
+        spec = [t[3] is not None for t in tabs]
+        on_spec: dict = {}   # the plane's samples in a region with a specular term, counted by the match
+        match = rt.plane_match(nrm.contiguous(), region, torch.tensor(spec, device=dev), on_spec)
+        groups, mask, rest = rt.planar_groups(nrm.T, match=match) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
         if len(groups) != 1 or mask is None or rest.shape[0] == 0:
             return None
-        region = gbuffer.region
-        spec = [t[3] is not None for t in tabs]
-        if any(spec) and int((mask & torch.tensor(spec, device=dev)[region]).sum()):
+        if any(spec) and int(on_spec[tuple(groups[0][0].tolist())]):
             return None   # a specular term on the plane: `runtime.shade` does it per point
         F32, fv = self._face_rows(geom, dev)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, groups[0][0])
@@ -528,6 +574,10 @@ class ZHShadow(Method):
         n = gbuffer.height * gbuffer.width
         img = _plane_pixels(gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), nrm.view(n, S2, 3),
                             gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
+        # the kernels of `_relight_planes` (a later lighting-only frame) compiled now, in the harness's
+        # untimed warm-up frame (`methods.core.fused.warming`; nothing outside it)
+        warm_blocks(_warm_relight_planes, (gbuffer.face.view(n, S2), nrm.view(n, S2, 3), gbuffer.wo.view(n, S2, 3),
+                                           mask.view(n, S2), gbuffer.bary.view(n, S2, 2)), (fv, u, clamp), (n,))
         pix = rest // S2
         for c in range(3):   # per channel: 5x faster than one (Qr, 3) index_add_ (0.5 vs 2.5 ms at bench size)
             img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
@@ -576,17 +626,24 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         n = gbuffer.height * gbuffer.width
-        img = _plane_pixels(gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), gbuffer.normal.view(n, S2, 3),
-                            gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
+        kept = cache.get("plane_pass")
+        if kept is None:
+            # built by the first lighting-only frame, kept with the transfer (the G-buffer is the same
+            # while the camera is): the plane samples' faces with the plane mask and the front test
+            # folded in, and per object term its samples' pixels
+            faces = _plane_front_faces(gbuffer.face.view(n, S2), gbuffer.normal.view(n, S2, 3),
+                                       gbuffer.wo.T.view(3, n, S2), mask.view(n, S2))
+            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]])
+        faces, pixels = kept
+        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), fv, u, clamp)
         light = light.to(dev, v.dtype)
-        for (kd, ks, _), entries in zip(mats, cache["regions"]):
-            for p, td, ts in entries:                                # as `runtime.relight`
+        for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
+            for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
                 rad = (light * kd.to(dev, v.dtype)).T @ td
-                if ts is not None:
-                    rad = rad + (light * ks.to(dev, v.dtype)).T @ ts
+                if ts is not None:   # + t_s · (l ⊙ ks) accumulated by the product (no pass of its own)
+                    rad = torch.addmm(rad, (light * ks.to(dev, v.dtype)).T, ts)
                 if clamp:
-                    rad = rad.clamp_min(0.0)
-                pix = p // S2
+                    rad = rad.clamp_min_(0.0)
                 for c in range(3):
                     img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
         return img.view(gbuffer.height, gbuffer.width, 3)
@@ -653,6 +710,19 @@ class ZHShadow(Method):
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             rad.clamp_min_(0.0)
         self._last_counts = counts.with_fixed(P=gbuffer.num_samples, Q=int(geom.num_vertices))
+        # a G-buffer seen by the previous frame (the same camera and pose: a lighting- or material-
+        # only frame) is resolved by the sparse matrix of its interpolation + box filter, built by the
+        # first such frame and kept while camera and pose stay (`gouraud.resolve_matrix`: 3.4 entries
+        # per pixel on the bench creature instead of 12 gathered per sample)
+        gkey = (frame.camera, self._posed[0], gbuffer.num_samples, gbuffer.spp_side, gbuffer.height, gbuffer.width)
+        rm = self._resolve_matrix
+        if frame.changed <= {"light", "brdf"} and rm is not None and rm[0] == gkey and rm[1] is geom:
+            if rm[2] is None:
+                self._resolve_matrix = rm = (gkey, geom, gouraud.resolve_matrix(
+                    geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
+                    gbuffer.spp_side, int(geom.num_vertices)))
+            return (rm[2] @ rad.T).view(gbuffer.height, gbuffer.width, 3)
+        self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(rad.T.contiguous(), geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
@@ -746,6 +816,10 @@ class ZHShadow(Method):
                 "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs),
                 "vertex_table": 0 if self._vtable is None else tensor_bytes(self._vtable[2]),
+                "resolve_matrix": 0 if self._resolve_matrix is None or self._resolve_matrix[2] is None
+                else sum(tensor_bytes(t) for t in (self._resolve_matrix[2].crow_indices(),
+                                                   self._resolve_matrix[2].col_indices(),
+                                                   self._resolve_matrix[2].values())),
                 # the plane path's per-vertex diffuse term u (`_render_planes`), kept while pose,
                 # lighting and the plane's BRDF are unchanged
                 "plane_term": 0 if self._plane_u is None else tensor_bytes(self._plane_u[3]),

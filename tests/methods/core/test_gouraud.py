@@ -51,3 +51,17 @@ def test_resolve_checks_the_sample_count():
     values, F, gb = _case(5, 7, 2)
     with pytest.raises(ValueError):
         gouraud.resolve(values, F.T.contiguous(), gb.face, gb.bary, gb.hit, 5, 6, 2)
+
+
+@pytest.mark.parametrize("S", [1, 2, 3])
+def test_resolve_matrix_equals_resolve(S):
+    """`resolve_matrix` @ values is the image of `resolve` (to float32 round-off: a pixel's weights
+    of one vertex are summed first), misses and all, for new values on the same G-buffer."""
+    values, F, gb = _case(6, 5, S)
+    fv = F.T.contiguous().to(torch.int32)
+    M = gouraud.resolve_matrix(fv, gb.face, gb.bary, gb.hit, 6, 5, S, values.shape[0])
+    assert M.shape == (30, values.shape[0])
+    for seed in (1, 2):
+        vals = torch.rand(values.shape, generator=torch.Generator().manual_seed(seed)) - 0.3
+        want = gouraud.resolve_reference(vals, fv, gb.face, gb.bary, gb.hit, 6, 5, S)
+        assert ((M @ vals).view(6, 5, 3) - want).abs().max() <= 1e-6
