@@ -828,6 +828,15 @@ class ZHShadow(Method):
                    else tensor_bytes(self._vertex_transfer[2]))
                 + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))}
 
+    def _resolve_bytes(self, P: int) -> int:
+        """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P
+        samples (`frame_cost`): min(the G-buffer's hit, face and barycentrics, 20 bytes per sample;
+        the kept `gouraud.resolve_matrix` of that G-buffer, 8 bytes per non-zero + 4 per pixel)."""
+        rm = self._resolve_matrix
+        if rm is None or rm[2] is None or rm[0][2] != P:
+            return P * 20
+        return min(P * 20, int(rm[2].values().numel()) * 8 + int(rm[2].shape[0]) * 4)
+
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
@@ -853,8 +862,13 @@ class ZHShadow(Method):
           visibility in its smallest form (min(n², c(2+n) + 3) floats). Lighting-only frames ("L", "E") read instead the
           cached lighting-free transfer t = M^α v of the points off the planes, in world space
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
-          t, for a sample on a plane its face and barycentrics (16 bytes; "vertex": 20 bytes per
-          sample for the radiance), and the plane vertices' v (n² floats).
+          t, for a sample on a plane its face and two barycentrics (12 bytes: the third is
+          1 − u − v), and the plane vertices' v (n² floats); "vertex": the interpolation of the
+          radiance, 20 bytes per sample, or — once a lighting-only frame has kept the G-buffer's
+          interpolation + box-filter operator (`gouraud.resolve_matrix`), when smaller — that
+          operator, 8 bytes per non-zero (a float32 weight, an int32 vertex) + 4 per pixel (session 18:
+          the implementation reads it instead of the G-buffer, so the G-buffer's 20 bytes per sample
+          were no longer compulsory).
         * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·c(2+n)) and
           per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
           sum); with a lighting change one rotation of the SH lighting (6·Σ(2l+1)²) and for "E"
@@ -900,7 +914,7 @@ class ZHShadow(Method):
         b = P * 3 * 4 + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
         if lighting_only:
-            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (P * 20 if vertex else Qp * 16)
+            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
             b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
             b += (J1 * N * d + N * 3) * 4 if pose else N * min(n2, d + 3) * 4

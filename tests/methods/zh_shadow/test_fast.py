@@ -3,6 +3,7 @@ path (`ZHShadow._render_reference`, §4.3 step by step), its building blocks aga
 the cost model (`ZHShadow.frame_cost`) against a hand count."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -114,8 +115,6 @@ def test_transfer_cache_invalidation(small_model):
     from the previous frame's is shaded from scratch (the cache key), a real lighting-only frame
     after it rebuilds the cache, and a changed albedo (kd, ks: applied at shading time) is
     honoured by the cached transfer."""
-    import dataclasses
-
     from scenes.materials import Phong
     from scenes.sequences import make_sequence
 
@@ -512,7 +511,7 @@ def test_frame_cost_hand_count():
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
     pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
     assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
-    lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 16          # t_d, t_s; plane v, face + bary
+    lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 12          # t_d, t_s; plane v, face + u, v
     lo_f = Qs * 2 * 6 * 16 + Q * 12 + Qp * 18 + plane + 6 * 84                # t·l per term, kd/ks, plane, rotate l
     c = m.frame_cost("L", P)
     assert (c.bytes, c.flops) == (lo_b, lo_f)
@@ -528,6 +527,21 @@ def test_frame_cost_hand_count():
     Ns = N - Np                                                              # the sphere's vertices
     assert c.bytes == P * 20 + P * 12 + fixed + vis + N * 6 * 4
     assert c.flops == N * diff + Ns * spec + N * (5 + 12) + P * 18
+    # a lighting-only frame on the same G-buffer (2×2 samples a pixel): before the interpolation
+    # operator is kept, its 20 bytes per sample; after (the second such frame builds and reads it),
+    # 8 per (pixel, vertex) pair with a hit sample — counted here from the G-buffer — + 4 per pixel
+    gb2 = make_gbuffer(sc, fr, 2)
+    P2, S2 = gb2.num_samples, gb2.spp_side ** 2
+    mv.render(fr, gb2)
+    lo_v = mv.frame_cost("L", P2).bytes
+    light = dataclasses.replace(fr, changed=frozenset({"light"}))
+    for _ in range(2):
+        mv.render(light, gb2)
+    hit = gb2.hit.nonzero().squeeze(-1)
+    vid = g.F.long()[gb2.face[hit].long()]                                   # (hits, 3) vertices
+    op = torch.unique((hit // S2)[:, None] * N + vid).numel() * 8 + P2 // S2 * 4
+    assert op < P2 * 20                                                      # the operator is the smaller
+    assert mv.frame_cost("L", P2).bytes == lo_v - P2 * 20 + op
     assert math.isfinite(c.bytes) and c.flops > 0
 
 
