@@ -194,28 +194,22 @@ def test_specular_transfer_regions():
     woT = torch.randn(3, Q, generator=g, dtype=torch.float64)
     nT, woT = nT / nT.norm(dim=0), woT / woT.norm(dim=0)
     R = rt.reflect_T(nT, woT)
-    vreg = torch.full((Q,), 2, dtype=torch.int64)
-    vreg[40:200] = 0                                   # a range
-    vreg[200::3] = 1                                   # scattered
-    vreg[0:40:7] = 1
     alphas = [12.0, 3.0, None]
-    got = rt.specular_transfer(v, nT, woT, vreg, alphas)
-    want = torch.zeros_like(v)
-    for r, a in enumerate(alphas[:2]):
-        full = rt.zonal_conjugate(v, R, ("phong", a)) * ((a + 1.0) / (2.0 * math.pi))
-        want[:, vreg == r] = full[:, vreg == r]
-    assert (got[:, vreg == 2] == 0).all()
-    assert (got - want).abs().max() <= 1e-13 * want.abs().max()
-    # every region a range (only the gaps zeroed), and one region holding every point (no copy)
-    vreg = torch.full((Q,), 2, dtype=torch.int64)
-    vreg[40:200], vreg[250:] = 0, 1
-    got = rt.specular_transfer(v, nT, woT, vreg, alphas)
-    want = torch.zeros_like(v)
-    for r, a in enumerate(alphas[:2]):
-        full = rt.zonal_conjugate(v, R, ("phong", a)) * ((a + 1.0) / (2.0 * math.pi))
-        want[:, vreg == r] = full[:, vreg == r]
-    assert (got[:, vreg == 2] == 0).all()
-    assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+    scattered = torch.full((Q,), 2, dtype=torch.int64)
+    scattered[40:200] = 0                              # a range
+    scattered[200::3] = 1                              # scattered
+    scattered[0:40:7] = 1
+    ranges = torch.full((Q,), 2, dtype=torch.int64)    # every region a range: only the gaps zeroed
+    ranges[40:200], ranges[250:] = 0, 1
+    for vreg in (scattered, ranges):
+        got = rt.specular_transfer(v, nT, woT, vreg, alphas)
+        want = torch.zeros_like(v)
+        for r, a in enumerate(alphas[:2]):
+            full = rt.zonal_conjugate(v, R, ("phong", a)) * ((a + 1.0) / (2.0 * math.pi))
+            want[:, vreg == r] = full[:, vreg == r]
+        assert (got[:, vreg == 2] == 0).all()
+        assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+    # one region holding every point (no copy)
     got = rt.specular_transfer(v, nT, woT, torch.zeros(Q, dtype=torch.int64), [12.0])
     want = rt.zonal_conjugate(v, R, ("phong", 12.0)) * (13.0 / (2.0 * math.pi))
     assert (got - want).abs().max() <= 1e-13 * want.abs().max()
