@@ -93,7 +93,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.fused import fused, warm_blocks
-from methods.core.sh import project_latlong
+from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
@@ -366,7 +366,7 @@ class ZHShadow(Method):
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
-        world space (`project_latlong` with its ``to_world``: one rotation); a new ``to_world`` of
+        world space (`project_latlong_polar`, then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
         the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
         (`methods.core.sh_rotation`, float64; projected once, on the first such frame), then
         float32 as `project_latlong`."""
@@ -378,7 +378,9 @@ class ZHShadow(Method):
             if self._env_local is None or self._env_local[0] != dkey:   # a new map
                 self._env_local = (dkey, None)
                 self._env_bytes = int(data.numel() * data.element_size())
-                world = project_latlong(_MapView(data.double(), R), self.config["order"])
+                # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
+                # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
+                world = rotate_coeffs(project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
@@ -961,13 +963,6 @@ class _LazyCounts(dict):
 
     def _resolved(self) -> dict:
         return {k: self[k] for k in ("planar", "groups", "planar_specular", "specular", "plane_vertices")}
-
-
-class _MapView:
-    """An env map's texels and rotation, as `project_latlong` reads an EnvMap (.data, .to_world)."""
-
-    def __init__(self, data: Tensor, to_world: Tensor):
-        self.data, self.to_world = data, to_world
 
 
 class _PoseAdapter:

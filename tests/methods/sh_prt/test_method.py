@@ -247,8 +247,8 @@ def test_polar_projection_rotated_equals_project_latlong(dtype):
     rotated by Qᵀ, or by R Qᵀ for a map with ``to_world`` R, = `sh.project_latlong` to float64
     round-off; without the rotation (or with Q instead of Qᵀ) it differs at O(1)."""
     from methods.core import sh
+    from methods.core.sh import project_latlong_polar
     from methods.core.sh_rotation import rotate_coeffs
-    from methods.sh_prt.method import project_latlong_polar
 
     F64 = torch.float64
     g = torch.Generator().manual_seed(3)

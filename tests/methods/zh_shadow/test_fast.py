@@ -63,6 +63,23 @@ def _check_sequence(m, kind: str, n_frames: int = 2, seed: int = 3):
         assert m._relight is not None, "lighting-only frames did not use the transfer cache"
 
 
+@pytest.mark.parametrize("order", [4, 8])
+def test_lighting_equals_project_latlong(zh_scene, order):
+    """`ZHShadow._lighting` (a new map: `project_latlong_polar` then one rotation by R Qᵀ; the same
+    map rotated: its own-frame projection rotated by R) = `sh.project_latlong(env)` (the oracle
+    `_render_reference` uses) to float32 round-off, on E then L frames of the library scene."""
+    from methods.core.sh import project_latlong
+    from scenes.sequences import make_sequence
+
+    m, scene = ZHShadow(order=order), zh_scene("creature")    # `_lighting` needs no precompute
+    for kind in ("E", "L", "E"):
+        for fr in make_sequence(scene, kind, 3, seed=5):
+            got = m._lighting(fr.envmap)
+            want = project_latlong(fr.envmap, order).float()
+            assert got.shape == want.shape == (order * order, 3)
+            assert (got - want).abs().max() <= 1e-6 * want.abs().max(), kind
+
+
 @pytest.mark.parametrize("name", SCENES + ("chess",))
 def test_fast_equals_reference(small_model, name):
     """V, L and E frames (3 of each lighting kind: the cached transfer is built, then used) and P
