@@ -430,7 +430,7 @@ def test_sampled_rotation_equals_band_recursion(order, compiled, monkeypatch):
     Ivanic–Ruedenberg band recursion `sh_rotation.rotate_coeffs` to float64 round-off, for random
     proper rotations; a wrong convention (R instead of Rᵀ) differs at O(1)."""
     from methods.core.sh_rotation import rotate_coeffs
-    from methods.sh_prt.method import rotate_sampled
+    from methods.core.sh import rotate_sampled
 
     monkeypatch.setenv("PRTBENCH_COMPILE", "1" if compiled else "0")
     gen = torch.Generator().manual_seed(order)
