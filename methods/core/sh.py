@@ -405,8 +405,11 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
     Used by SH PRT's and zh_shadow's lighting (E frames: a new map)."""
     H, W, C = image.shape
     B, k, T = _latlong_polar_factors(int(H), int(W), int(order), image.device)
-    A = image.permute(0, 2, 1).to(torch.float64).reshape(H * C, W)               # (H·C, W), one copy
-    F = (A @ B).view(H, C, 2 * order).index_select(2, k)                          # (H, C, n²)
+    # (H·C, W) float64 channel-major texels in ONE strided copy-convert (`.to` of the permuted view
+    # kept its strides, so the reshape copied a second time: 256 × 512 × 3, 1 thread, 0.75 → 0.50 ms)
+    A = torch.empty(H, C, W, dtype=torch.float64, device=image.device)
+    A.copy_(image.permute(0, 2, 1))
+    F = (A.view(H * C, W) @ B).view(H, C, 2 * order).index_select(2, k)           # (H, C, n²)
     return torch.einsum("hi,hci->ic", T, F)
 
 
