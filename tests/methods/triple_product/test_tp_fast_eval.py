@@ -549,6 +549,8 @@ def test_grouped_kernel_equals_per_point_kernel():
     want = fast_eval.fine_kernel(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw)
     got = fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, points=64)
     assert (got - want).abs().max() <= F32 * want.abs().max()
+    # every group in one call (symbolic group count, the frames' path): the blocks' sums bit for bit
+    assert torch.equal(fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw), got)
 
 
 @pytest.mark.parametrize("grid,mode", [((17, 32, 1), "trilinear"), ((5, 8, 3), "trilinear"), ((5, 8, 1), "nearest")])
