@@ -16,7 +16,11 @@ Decisions (measured with ``benchmarks/fused.py``):
 * Shapes: the sample count of a frame varies; Inductor's kernels with a *symbolic* row count ran
   20-30× slower than with a static one (16 ms vs 0.55 ms for the resolve above), so `map_rows` calls
   the compiled function on blocks of exactly ``chunk`` rows (the last block padded by repeating its
-  last row, the padding dropped) — one static shape per function. Other dimensions (vertex or
+  last row, the padding dropped) — one static shape per function. This holds for memory-bound
+  kernels like that resolve; it is not a rule for every kernel: the triple product's per-pixel
+  look-ups and eq. 7 products (compute-bound, `methods/triple_product/fast_eval.py`, session 18) run
+  faster as one call with a symbolic row count (``maybe_mark_dynamic``) than as static blocks whose
+  results are copied and concatenated (1.08-1.12× per frame), so measure per kernel. Other dimensions (vertex or
   table counts) are NOT made symbolic by themselves with ``dynamic=False``: every new size
   recompiles (up to `RECOMPILE_LIMIT` variants per function; past it `fused` warns and runs that
   function eagerly). A caller whose tables take many sizes marks those dimensions with
