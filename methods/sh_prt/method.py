@@ -37,9 +37,10 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     1.33× the three dot products per channel it replaced), y(R) evaluated inside that reduction
     loop, per coefficient lane, from per-sample scalars (session 18; before, a (Qg, n²−1) buffer
     written with scattered stores), ~110-130 ns per glossy sample under load. A V frame makes
-    1 + 3 compiled calls (`_glossy_blocks`), each ~0.1-0.3 ms of Dynamo guards and buffer allocation;
-    `perf` of a V frame (session 14): the two kernels ~60 %, Python and Dynamo ~20 %,
-    nonzero, scatter_add and the block concatenation ~10 %.
+    1 + 1 compiled calls (session 19: the glossy pass one call with a symbolic sample count,
+    `_glossy_blocks`, where 2 + 1 static blocks were 3 calls, a padded tail and two concatenations);
+    `perf` of a V frame (session 14, with 1 + 3 calls): the two kernels ~60 %, Python and Dynamo
+    ~20 %, nonzero, scatter_add and the block concatenation ~10 %.
   * the lighting rotation is one compiled call (`rotate_sampled`, 0.44 ms where the band recursion's
     ~120 eager ops took 1.48); M l of grey transfer (bounces 0) is the (3, n²) × (n², N) GEMM (session 15's
     compiled unrolled sum measured 0.72-0.82× of it in session 16, `apply_lighting`). An E frame projects
@@ -111,16 +112,11 @@ MAX_BOUNCES = 2
 DEFAULT_ORDER = 5  # Sloan 2002: 25 coefficients, 25×25 matrices
 # G-buffer samples shaded per batch (bounds the (Q, 3, n², 3) interpolation temporaries).
 RENDER_CHUNK = 1 << 14
-# Static block sizes of the compiled passes (`methods.core.fused.map_rows`): samples per block of
-# `_pixels` and glossy samples per block of `_glossy_samples` (smaller: the last block is padded to
-# the full size, and a frame has some 10⁴ glossy samples). Few blocks: each call of a compiled
-# function costs ~0.1-0.3 ms of guard checks on this machine (17 calls were ~5 ms of a V frame; session
-# 14: one pixel block and 2 + 1 glossy blocks on the creature, 1.13× on V frames against 2 + 5).
+# Static block size of the pixel pass (`methods.core.fused.map_rows`): samples per block of `_pixels`
+# (one block on a 256² bench frame at 2×2 samples). Few blocks: each call of a compiled function
+# costs guard checks and buffer allocation (17 calls were ~5 ms of a V frame in session 14). The glossy
+# pass is one call with a symbolic row count (`_glossy_blocks`).
 PIXEL_CHUNK = 1 << 18
-GLOSSY_CHUNK = 1 << 14
-# The glossy samples left over after whole blocks of GLOSSY_CHUNK go through blocks of this size
-# (`_glossy_blocks`: a second compiled variant), so padding stays < GLOSSY_TAIL_CHUNK rows.
-GLOSSY_TAIL_CHUNK = 1 << 12
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, reg: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -343,17 +339,23 @@ _glossy_samples.eager = lambda g, *args: _glossy_samples_impl(  # type: ignore[a
 
 
 def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
-    """`_glossy_samples` over the glossy sample indices g: whole blocks of GLOSSY_CHUNK rows, then
-    the rest in blocks of GLOSSY_TAIL_CHUNK (`methods.core.fused.map_rows` pads only the last one).
-    The creature's ~36k glossy samples take 2 + 1 calls and 2 % padding, where blocks of 8192 took
-    5 calls and 13 % padding (each call ~0.1-0.3 ms of guards and buffer allocation)."""
-    big = g.numel() // GLOSSY_CHUNK * GLOSSY_CHUNK
-    if big == 0:
-        return map_rows(_glossy_samples, [g], args, chunk=GLOSSY_TAIL_CHUNK)
-    head = map_rows(_glossy_samples, [g[:big]], args, chunk=GLOSSY_CHUNK)
-    if big == g.numel():
-        return head
-    return torch.cat([head, map_rows(_glossy_samples, [g[big:]], args, chunk=GLOSSY_TAIL_CHUNK)])
+    """`_glossy_samples` over ALL the glossy sample indices g (Qg,) in ONE call, its row count
+    symbolic (``maybe_mark_dynamic``; Qg = 1 padded to 2 rows by repeating the index, as `map_rows`
+    pads: Dynamo specialises sizes 0 and 1, which would compile a variant in a timed frame). Session
+    19: the pass is compute-bound (~100 ns per glossy sample), so the static-block rule of
+    `methods.core.fused` (memory-bound kernels) does not pay here: the 2 + 1 static blocks of 16384
+    and 4096 rows before cost two more compiled calls (Dynamo guards, the ~30 output buffers of
+    each), the padded tail and two concatenations. Same process, creature bench, 1 thread, process
+    CPU: the glossy stage alone 5.10 -> 4.35 ms (1.17x), bit-identical output; V frames 1.09x, VL
+    1.07x (``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code OTHER_CHECKOUT
+    --kinds V VL --frames 21 --threads 1``, load 8-10)."""
+    q = int(g.numel())
+    if q == 0:
+        return _glossy_samples.eager(g, *args)
+    g = (g if q >= 2 else g.expand(2)).contiguous()
+    torch._dynamo.maybe_mark_dynamic(g, 0)
+    out = _glossy_samples(g, *args)
+    return out if q >= 2 else out[:q]
 
 
 def lighting_major(X: Tensor) -> Tensor:

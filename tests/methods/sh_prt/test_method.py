@@ -441,3 +441,34 @@ def test_sampled_rotation_equals_band_recursion(order, compiled, monkeypatch):
         want = rotate_coeffs(c, R)
         assert (rotate_sampled(c, R) - want).abs().max() <= 1e-12 * want.abs().max()
         assert (rotate_coeffs(c, R.T) - want).abs().max() > 1e-3 * want.abs().max()
+
+
+def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
+    """`_glossy_blocks` (session 19: the whole glossy pass in one compiled call with a symbolic
+    sample count; one sample padded to two) = `_glossy_samples` over static blocks (`map_rows`),
+    bit for bit, for 2500 samples, 1 sample and 2 samples, with no re-compilation after the first
+    two-or-more-sample call (the harness compiles it in its warm-up frame)."""
+    from torch._dynamo.utils import counters
+
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm
+
+    gen = torch.Generator().manual_seed(5)
+    order, P, M, Vg, R = 5, 3000, 40, 30, 3
+    face = torch.randint(0, M, (P,), generator=gen)
+    bary = torch.rand(P, 2, generator=gen) * 0.5
+    normal = torch.randn(P, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
+    reg = torch.randint(0, R, (P,), generator=gen)
+    args = (face, bary, normal, wo, reg, torch.rand(M, 9, generator=gen), torch.randint(0, Vg, (M, 3), generator=gen),
+            torch.randn(3, Vg, order * order, generator=gen), torch.rand(R, 3, generator=gen),
+            torch.rand(R, 3, generator=gen), torch.rand(R, order * order, generator=gen), torch.tensor([False, True, False]))
+    g = torch.randperm(P, generator=gen)[:2500].sort().values
+    want = map_rows(shm._glossy_samples, [g], args, chunk=1024)
+    assert torch.equal(shm._glossy_blocks(g, args), want)
+    graphs = counters["stats"]["unique_graphs"]
+    for sel in (g[:1], g[7:9], g[:1777]):
+        got = shm._glossy_blocks(sel, args)
+        assert got.shape == (sel.numel(), 3)
+        assert torch.equal(got, want[torch.searchsorted(g, sel)])
+    assert counters["stats"]["unique_graphs"] == graphs
