@@ -228,6 +228,14 @@ def _finite_float(x) -> float:
     return x
 
 
+def _loadavg() -> float | None:
+    """The machine's 1-minute load average (None where the OS has none)."""
+    try:
+        return float(os.getloadavg()[0])
+    except (OSError, AttributeError):
+        return None
+
+
 def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
     """Measure ``cell`` here. part ``"all"``: everything; ``"errors"``: only the image errors (and
     images); ``"timing"``: only times, memory, peak RSS and the convergence fit (``run_part``)."""
@@ -257,6 +265,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         method = method.to(cell.device)
     scored = set(cell.scored())
     times: list[float] = []
+    cpu_times: list[float] = []  # process CPU per frame, beside the wall times: tells a transient
+    load = [_loadavg()]          # (other work on the machine) from a cause inside the process
     errors: dict[str, list[tuple[float, float]]] = {}
     exposure = None
     last = None
@@ -267,13 +277,14 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         gb = be.make_gbuffer(scene, frame, cell.spp_side)
         if cell.device != "cpu":
             gb = gb.to(cell.device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         with warming(warm and i == 0):  # the untimed warm-up frame also compiles the block sizes later frames meet
             img = method.render(frame, gb)
         if img.device.type == "cuda":
             torch.cuda.synchronize(img.device)  # the frame is done when its image is
         dt = time.perf_counter() - t0
         times.append(dt)
+        cpu_times.append(time.process_time() - c0)
         if timed:
             rows.append(_row("render_time", dt, frame=i))
         if tuple(img.shape) != (gb.height, gb.width, 3):
@@ -328,7 +339,9 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         if cost is not None:
             rows.append(_row("flops_per_frame", cost.flops))
         rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
-        info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times})
+        load.append(_loadavg())
+        info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times,
+                     "frame_cpu_times": cpu_times, "loadavg_1min": load})
         # terms per material region, for methods that choose them per region (in-out's K)
         for region, st in (getattr(method, "stats", {}) or {}).get("regions", {}).items():
             if isinstance(st, dict) and isinstance(st.get("K"), (int, float)):

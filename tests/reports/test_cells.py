@@ -52,6 +52,9 @@ def test_run_cell_measures_everything(tmp_path):
     assert summ["memory_bytes"]["value"] == 1024  # 256 float32 coefficients
     assert summ["timed_frames"]["value"] == 3  # 4 frames, warm-up excluded
     assert len([row for row in r.rows if row["metric"] == "render_time"]) == 4
+    # process CPU per frame beside the wall times, and the load at the cell's start and end
+    assert len(r.info["frame_cpu_times"]) == len(r.info["frame_times"]) == 4
+    assert all(c >= 0 for c in r.info["frame_cpu_times"]) and len(r.info["loadavg_1min"]) == 2
     # RMSE vs the closed form; every score carries the reference's noise floor
     per_frame = [row for row in r.rows if row["metric"] == "rmse" and row["frame"] >= 0]
     frames = fakes.make_sequence(fakes.get_scene("fake_plane"), "V", 4, 0)
