@@ -119,6 +119,27 @@ each: 4 table rows + a c row). Tried and dropped: the windows in the order of th
 (8, 2), (16, 2), (2, 0) against (8, 1): 0.90-1.01×; the shaded-face pass with its region check
 reduced to one flag, or vectorised: 0.97×, 0.7×.
 
+Session 19 (2026-12-05, issue 14; same process against main, 1 thread, process CPU time, load 6-9,
+``python -m benchmarks.inout --base MAIN --scene S --threads 1 --kinds V --frames 13 --no-micro
+[--config '{"shading":"vertex"}']``; images bit-identical). Per sample: `shade_rows` reads one
+int64 word per face corner (`pack_windows`: the vertex's window packed) instead of the face's
+vertex id and 5 window words — 39 indirect loads per sample instead of 54, the kernel 1.11× (53.5
+→ 48 ns per sample, chess bench); the exact path's inputs per entry in one compiled call over the
+entries (`entry_rows`, gathering from the G-buffer arrays in place) instead of `take_rows`, the
+padded `entry_inputs` blocks and five eager gathers (3.3 → 1.4 ms on chess): V chess 1.08×,
+creature 1.04×. Per vertex: the vertices' cells in one dynamic-size call (`vertex_cells_of`): V
+chess and creature 1.06×. Where a per-sample V frame goes now (chess bench, 1 thread, ~40 ms):
+`shade_rows` 12, X (`view_windows`) 7.7, the exact path 6.5 (`_outliers` 3.8, `entry_rows` 1.4,
+the entry and region selection ~1.3), `_ensure_c` 2.5 (the orbit's newly seen vertices: ~35 per
+region and frame, ~180 KB of T̃ each, ~6 GB/s), `shaded_faces` 2.2; per vertex (~9 ms): the
+view pass 1.9 (`hit_face_counts` 1.1-1.3, `vertex_cells` 0.33), `_ensure_c` 2.6, the Gouraud
+resolve 2.2, `vertex_radiance` 0.8 with its table rows in cache, 1.6-1.8 in the frame (cold).
+Tried and dropped: X as (N, 4) float32 read as two int64 words per node (24 instead of 36 X loads,
+the channels split by shifts and bit casts): 0.93× the kernel; the vertex shading's vertices in the
+order of their table cells (`vertex_radiance` reading neighbouring rows one after the other): 0.8×
+(the Morton order of the vertices already keeps their cells close, and c then is read out of
+order); the 4 nodes of `vertex_radiance` as a weighted ``embedding_bag`` of table rows: 0.4×.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -134,7 +155,7 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "vertex_cells_of", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
            "shade_rows", "pack_windows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_nodes", "window_products", "window_cells",
            "entry_inputs", "entry_rows", "outlier_rows"]
@@ -522,6 +543,20 @@ def _vertex_cells(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int)
 
 
 vertex_cells = fused(_vertex_cells)
+
+
+def vertex_cells_of(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`vertex_cells` of the n referenced vertices ``ref`` in one compiled call, n marked dynamic
+    (``InOut._vertex_view``; static blocks of `sample_block` vertices, padded up to twice the work,
+    took 0.6 against 0.33 ms on chess bench, 1 thread); fewer than two are padded to two (the
+    compiler specialises sizes 0 and 1) and the padding dropped."""
+    n = int(ref.numel())
+    if n < 2:
+        ref = torch.cat([ref, torch.zeros(2 - n, dtype=ref.dtype, device=ref.device)])
+    ref = ref.contiguous()
+    torch._dynamo.maybe_mark_dynamic(ref, 0)
+    front, first, wc = vertex_cells(ref, pos, frames, cam, R)
+    return front[:n], first[:n], wc[:n]
 
 
 def hit_face_counts(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, bool]:
