@@ -83,17 +83,18 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
     out["X_nodes"] = int(view.wins.X.shape[0])
     # the dominant kernel alone: the compiled per-sample pass (`fast.shade_rows`) over the frame's
     # blocks, its streamed bytes (the G-buffer arrays it reads, the pixels it writes) and its
-    # indirect loads (per sample 3 vertex ids, 3 × 3 window words, 3 vertices × 4 nodes × 3 channels)
+    # indirect loads (per sample 3 packed window words, 3 vertices × 4 nodes × 3 channels)
     q, S = int(args[0].shape[0]), args[-1]
     npx, blk = q // S, max(1, fast.sample_block(q) // S)
     rows = [t.unflatten(0, (npx, S)) for t in args[:5]]
     pad = [[r[a:a + blk] for r in rows] for a in range(0, npx, blk)]
     pad = [[torch.cat([b, b[-1:].expand(blk - b.shape[0], *b.shape[1:])]) for b in bl] for bl in pad]
     st, w = view.st, view.wins
-    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, st.face_rows, w.win, w.X, st.R) for bl in pad])
+    fwin = fast.pack_windows(w.win, st.face_rows, st.R)
+    out["shade_rows_s"] = _time(lambda: [fast.shade_rows(*bl, fwin, w.X, st.R) for bl in pad])
     out["shade_rows_samples"] = q
     out["shade_rows_bytes"] = sum(t.numel() * t.element_size() for t in args[:5]) + npx * 3 * 4
-    out["shade_rows_gathers"] = q * (3 + 9 + 36)
+    out["shade_rows_gathers"] = q * (3 + 36)
     arrays = (gb.normal, gb.wo, gb.bary, gb.face, gb.region, gb.hit)
     out["gbuffer_bytes"] = sum(a.numel() * a.element_size() for a in arrays)
     out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])

@@ -119,6 +119,27 @@ each: 4 table rows + a c row). Tried and dropped: the windows in the order of th
 (8, 2), (16, 2), (2, 0) against (8, 1): 0.90-1.01×; the shaded-face pass with its region check
 reduced to one flag, or vectorised: 0.97×, 0.7×.
 
+Session 19 (2026-12-05, issue 14; same process against main, 1 thread, process CPU time, load 6-9,
+``python -m benchmarks.inout --base MAIN --scene S --threads 1 --kinds V --frames 13 --no-micro
+[--config '{"shading":"vertex"}']``; images bit-identical). Per sample: `shade_rows` reads one
+int64 word per face corner (`pack_windows`: the vertex's window packed) instead of the face's
+vertex id and 5 window words — 39 indirect loads per sample instead of 54, the kernel 1.11× (53.5
+→ 48 ns per sample, chess bench); the exact path's inputs per entry in one compiled call over the
+entries (`entry_rows`, gathering from the G-buffer arrays in place) instead of `take_rows`, the
+padded `entry_inputs` blocks and five eager gathers (3.3 → 1.4 ms on chess): V chess 1.08×,
+creature 1.04×. Per vertex: the vertices' cells in one dynamic-size call (`vertex_cells_of`): V
+chess and creature 1.06×. Where a per-sample V frame goes now (chess bench, 1 thread, ~40 ms):
+`shade_rows` 12, X (`view_windows`) 7.7, the exact path 6.5 (`_outliers` 3.8, `entry_rows` 1.4,
+the entry and region selection ~1.3), `_ensure_c` 2.5 (the orbit's newly seen vertices: ~35 per
+region and frame, ~180 KB of T̃ each, ~6 GB/s), `shaded_faces` 2.2; per vertex (~9 ms): the
+view pass 1.9 (`hit_face_counts` 1.1-1.3, `vertex_cells` 0.33), `_ensure_c` 2.6, the Gouraud
+resolve 2.2, `vertex_radiance` 0.8 with its table rows in cache, 1.6-1.8 in the frame (cold).
+Tried and dropped: X as (N, 4) float32 read as two int64 words per node (24 instead of 36 X loads,
+the channels split by shifts and bit casts): 0.93× the kernel; the vertex shading's vertices in the
+order of their table cells (`vertex_radiance` reading neighbouring rows one after the other): 0.8×
+(the Morton order of the vertices already keeps their cells close, and c then is read out of
+order); the 4 nodes of `vertex_radiance` as a weighted ``embedding_bag`` of table rows: 0.4×.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations
@@ -134,14 +155,15 @@ from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
 __all__ = ["FastRegion", "FastStatic", "Windows", "build_region", "sample_frame", "sample_inputs", "take_rows", "light_runs",
-           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
+           "light_rows", "light_rows_torch", "light_vertices", "native", "shaded_faces", "shaded_faces_cols", "hit_faces", "hit_face_counts", "vertex_cells", "vertex_cells_of", "anchors", "view_windows", "prepare", "CHUNK", "MAX_WINDOW", "WINDOW_PAD",
            "OUTLIER_COST", "WINDOW_SUBSAMPLE", "LIGHT_CHUNK_ROWS", "LIGHT_BLOCK", "vertex_radiance", "shade_pixels",
-           "shade_rows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_nodes", "window_products", "window_cells",
-           "entry_inputs", "outlier_rows"]
+           "shade_rows", "pack_windows", "sample_block", "MIN_SAMPLE_BLOCK", "MAX_SAMPLE_BLOCK", "window_rows", "window_nodes", "window_products", "window_cells",
+           "entry_inputs", "entry_rows", "outlier_rows"]
 
 # Largest side of a vertex's node window (`prepare`): the window is clipped to the MAX_WINDOW ×
 # MAX_WINDOW nodes centred on the vertex's anchor; entries whose cells lie beyond (the tangent flip of
-# `coordinate_system`, big triangles) take the exact path instead of growing the window.
+# `coordinate_system`, big triangles) take the exact path instead of growing the window. At most 17
+# (`pack_windows` keeps wu − 2 and wv − 2 in 4 bits each).
 MAX_WINDOW = 16
 # Samples per block of the former eager referenced-face pass of `InOut._view_setup` (now the compiled
 # `shaded_faces` over `sample_block` blocks); kept for callers that import it.
@@ -523,6 +545,20 @@ def _vertex_cells(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int)
 vertex_cells = fused(_vertex_cells)
 
 
+def vertex_cells_of(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`vertex_cells` of the n referenced vertices ``ref`` in one compiled call, n marked dynamic
+    (``InOut._vertex_view``; static blocks of `sample_block` vertices, padded up to twice the work,
+    took 0.6 against 0.33 ms on chess bench, 1 thread); fewer than two are padded to two (the
+    compiler specialises sizes 0 and 1) and the padding dropped."""
+    n = int(ref.numel())
+    if n < 2:
+        ref = torch.cat([ref, torch.zeros(2 - n, dtype=ref.dtype, device=ref.device)])
+    ref = ref.contiguous()
+    torch._dynamo.maybe_mark_dynamic(ref, 0)
+    front, first, wc = vertex_cells(ref, pos, frames, cam, R)
+    return front[:n], first[:n], wc[:n]
+
+
 def hit_face_counts(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, bool]:
     """The histogram (M + 1,) int64 of the hits' faces of q samples (face, region (q,) int64, hit
     (q,) bool; bin M: the misses) and whether a hit's face lies in another region than the sample's
@@ -611,23 +647,23 @@ def warm_sizes(block: int) -> tuple[int, ...]:
     return tuple(b for b in neighbour_blocks(block, MIN_SAMPLE_BLOCK, MAX_SAMPLE_BLOCK) if b != block)
 
 
-def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_gl: Tensor, win: Tensor,
-                X: Tensor, R: int) -> tuple[Tensor, Tensor]:
+def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, fwin: Tensor, X: Tensor,
+                R: int) -> tuple[Tensor, Tensor]:
     """Eq. 4 (module docstring) at a block of n pixels × S sub-samples, every step of `sample_inputs`
     and `shade` in one pass for ``core.fused`` (no per-sample intermediate leaves the block):
     normal, wo (n, S, 3), bary (n, S, 2), face (n, S) int64 (< 0: a miss), live (n, S) bool;
-    face_gl (M, 3) int32 concatenated vertex ids of each face, win (ΣVr, 5) int32 each vertex's
-    window (first column, first row, offset in X, columns wu, rows wv; `Windows.win`), X (N, 3) the
-    windows' products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
+    fwin (M, 3) int64 the window of each face's three vertices packed in one word each
+    (`pack_windows`: first column, first row, last cell column wu − 2 and row wv − 2, offset in X;
+    `Windows.win`), X (N, 3) the windows' products node-major (`Windows.X`). Returns the pixels' box-filtered radiance (n, 3) from the
     entries inside their windows, and per sample the bits j of the entries (vertex j) that are
     shaded but outside their window (n, S) uint8: the caller adds those by the exact path.
 
     Every gather is an ``embedding`` (a row look-up whose index Inductor does not wrap for negative
     values, unlike ``X[i]``) and `shade_rows` is compiled without index checks (`SHADE_OPTIONS`),
     so each index must be in range by construction, for any input (NaN or infinite normals and
-    directions included): the face is clamped into [0, M); a face's vertex ids are concatenated ids
-    < ΣVr (``InOut._fast_static`` checks them); a window row holds its offset in X (0 for a vertex
-    no face of the frame references, with a 2 × 2 window: X has at least 4 rows, `prepare`); and the
+    directions included): the face is clamped into [0, M); a face corner's word holds its vertex's
+    window (`pack_windows`, from `Windows.win`; offset 0 and a 2 × 2 window for a vertex no face of
+    the frame references: X has at least 4 rows, `prepare`); and the
     node offsets in the window, dx and dy, are clamped into [0, wu − 2] and [0, wv − 2] (wu, wv ≥ 2,
     and offset + wu·wv ≤ X's rows) whatever iu, iv are (a NaN direction gives NaN
     cell coordinates in ``lut_cell_xyz``, an arbitrary integer after the cast), so the 12 nodes read
@@ -637,7 +673,7 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     x, y, z = sample_frame(normal, wo)
     front = (z > 0) & live                                                      # ρ = 0 below the horizon
     iu, iv, fu, fv = lut_cell_xyz(x, y, z, R, index_dtype=torch.int32)
-    g = Fnn.embedding(face.clamp(0, face_gl.shape[0] - 1), face_gl)             # (n, S, 3)
+    g = Fnn.embedding(face.clamp(0, fwin.shape[0] - 1), fwin)                   # (n, S, 3) int64
     u, v = bary[..., 0], bary[..., 1]
     fw = front.to(u.dtype)
     beta = ((1.0 - u - v) * fw, u * fw, v * fw)
@@ -647,12 +683,12 @@ def _shade_rows(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Te
     B = [None, None, None]                      # channels apart: a (.., 3) result would redo the indexing per channel
     miss = torch.zeros_like(face, dtype=torch.uint8)
     for j in range(3):                                                          # B = Σ_j Σ_n β_j w_n X(v_j, n)
-        wv = Fnn.embedding(g[..., j], win)                                      # (n, S, 5)
-        dx, dy = iu - wv[..., 0], iv - wv[..., 1]
-        cu, cv = wv[..., 3] - 2, wv[..., 4] - 2                                 # last cell column, row
+        pw = g[..., j]
+        dx, dy = iu - (pw & 4095).to(torch.int32), iv - ((pw >> 12) & 4095).to(torch.int32)
+        cu, cv = ((pw >> 24) & 15).to(torch.int32), ((pw >> 28) & 15).to(torch.int32)  # last cell column, row
         inside = (torch.minimum(dx, dy) >= 0) & (dx <= cu) & (dy <= cv)
-        row = 3 * wv[..., 3]
-        base = wv[..., 2] * 3 + torch.minimum(dy.clamp(min=0), cv) * row + torch.minimum(dx.clamp(min=0), cu) * 3
+        row = 3 * (cu + 2)
+        base = (pw >> 32).to(torch.int32) * 3 + torch.minimum(dy.clamp(min=0), cv) * row + torch.minimum(dx.clamp(min=0), cu) * 3
         wi = beta[j] * inside
         for wn, off in zip(wc, (0, 3, row, row + 3)):
             w = wi * wn
@@ -680,6 +716,21 @@ SHADE_OPTIONS = {"assert_indirect_indexing": False, "cpp.enable_tiling_heuristic
 shade_rows = fused(_shade_rows, options=SHADE_OPTIONS)
 
 
+def pack_windows(win: Tensor, face_rows: Tensor, R: int) -> Tensor:
+    """Each face corner's window (`Windows.win` of its vertex) in one int64 word, (M, 3) for the M
+    faces of ``face_rows`` (M, 3) int32 concatenated vertex ids: bits 0-11 the first column u0,
+    12-23 the first row v0, 24-27 the last cell column wu − 2, 28-31 the last cell row wv − 2, 32-63
+    the offset in X. `_shade_rows` reads one word per corner instead of the face's vertex id and 5
+    words of its window: 39 indirect loads per sample instead of 54, the kernel 1.11× (chess bench V,
+    1 thread, process CPU time, same process; bit-identical). Needs u0, v0 < 4096 (R ≤ 4096 nodes a
+    side), wu, wv ≤ 17 (`MAX_WINDOW`) and offsets < 2³¹."""
+    if R > 4096:
+        raise ValueError(f"table of {R} nodes a side: at most 4096 fit the packed windows")
+    w = win.long()
+    p = w[:, 0] | (w[:, 1] << 12) | ((w[:, 3] - 2) << 24) | ((w[:, 4] - 2) << 28) | (w[:, 2] << 32)
+    return p.index_select(0, face_rows.reshape(-1).long()).view(-1, 3)
+
+
 def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: Tensor, face_rows: Tensor,
                   R: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """`sample_inputs` of q samples for the exact path, for ``core.fused``: vertex ids (q, 3) int64,
@@ -699,6 +750,32 @@ def _entry_inputs(normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, live: 
 entry_inputs = fused(_entry_inputs, options=VECTOR_OPTIONS)
 
 
+def _entry_rows(i: Tensor, j: Tensor, k: Tensor, normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor,
+                live: Tensor, face_rows: Tensor, R: int, S2: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The exact path's inputs per sample–vertex entry outside its window (for ``core.fused``;
+    `shade_pixels`): entry n is vertex j[n] of sample k[i[n]] of the q G-buffer samples (normal, wo
+    (q, 3), bary (q, 2) in any layout, face (q,) int64, live (q,) bool), its inputs gathered here
+    (`_entry_inputs`' arithmetic: the same values). Returns its concatenated vertex id (n,) int64,
+    the first node of its table cell (n,) int64, its 4 node weights times β_j / S2 (n, 4) and its
+    pixel (n,) int64. Compiled without index checks: i < k's rows, k < q, j < 3, the face clamped."""
+    s = Fnn.embedding(i, k[:, None])[:, 0]
+    x, y, z = sample_frame(Fnn.embedding(s, normal), Fnn.embedding(s, wo))
+    b = Fnn.embedding(s, bary)
+    f = Fnn.embedding(s, face[:, None])[:, 0]
+    front = (z > 0) & (Fnn.embedding(s, live.to(torch.int32)[:, None])[:, 0] != 0)
+    iu, iv, fu, fv = lut_cell_xyz(x, y, z, R)
+    u, v = b[:, 0], b[:, 1]
+    fw = front.to(u.dtype)
+    bw = torch.where(j == 0, (1.0 - u - v) * fw, torch.where(j == 1, u * fw, v * fw))
+    gu, gv = 1 - fu, 1 - fv
+    wc = torch.stack([gu * gv, fu * gv, gu * fv, fu * fv], -1)
+    vid = Fnn.embedding(f.clamp(0, face_rows.shape[0] - 1) * 3 + j, face_rows.view(-1, 1))[:, 0].long()
+    return vid, iv * R + iu, wc * (bw * (1.0 / S2))[:, None], s // S2
+
+
+entry_rows = fused(_entry_rows, options={"assert_indirect_indexing": False, **VECTOR_OPTIONS})
+
+
 def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor, wo: Tensor, bary: Tensor,
                  face: Tensor, live: Tensor, S2: int) -> Tensor:
     """Eq. 4 at q = n·S2 samples (pixel-major, S2 sub-samples per pixel; normal, wo (q, 3), bary
@@ -712,9 +789,10 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
     miss = torch.empty(npx, S2, dtype=torch.uint8, device=dev)
     rows = [t.unflatten(0, (npx, S2)) for t in (normal, wo, bary, face, live)]
     P = max(1, sample_block(q) // S2)
-    for t in (wins.X, wins.win, st.face_rows):         # rows vary per frame / scene: one compiled variant
+    fwin = pack_windows(wins.win, st.face_rows, st.R)
+    for t in (wins.X, fwin):                           # rows vary per frame / scene: one compiled variant
         torch._dynamo.maybe_mark_dynamic(t, 0)
-    args = (st.face_rows, wins.win, wins.X, st.R)
+    args = (fwin, wins.X, st.R)
     warm_blocks(shade_rows, rows, args, [b // S2 for b in warm_sizes(P * S2) if b >= S2])
     for a in range(0, npx, P):
         blk = [t[a:a + P] for t in rows]
@@ -726,16 +804,16 @@ def shade_pixels(st: FastStatic, cs: list[Tensor], wins: Windows, normal: Tensor
         miss[a:a + n] = mb[:n]
     k = miss.view(-1).nonzero(as_tuple=True)[0]
     if k.numel():                                      # entries outside their windows: the exact path
-        sub = [take_rows(t, k) for t in (normal, wo, bary, face, live)]
-        B = sample_block(k.numel())
-        g, bw, wc, cell = map_rows(entry_inputs, sub, (st.face_rows, st.R), chunk=B, warm=warm_sizes(B))
         bits = miss.view(-1).index_select(0, k)
         e = ((bits[:, None] >> torch.arange(3, device=dev, dtype=torch.uint8)) & 1).nonzero()
         i, j = e[:, 0], e[:, 1]
-        v = g[i, j]
-        wcm = wc.index_select(0, i) * (bw[i, j] * (1.0 / S2))[:, None]
-        first = cell.index_select(0, i)
-        px = k.index_select(0, i) // S2
+        ne = int(i.numel())
+        if ne < 2:   # the compiler specialises sizes 0 and 1: one variant for every count (as `_outliers`)
+            i, j = torch.cat([i, i[:1].expand(2 - ne)]), torch.cat([j, j[:1].expand(2 - ne)])
+        for t in (i, j, k, normal, wo, bary, face, live):
+            torch._dynamo.maybe_mark_dynamic(t, 0)
+        ent = entry_rows(i, j, k, normal, wo, bary, face, live, st.face_rows, st.R, S2)
+        v, first, wcm, px = (t[:ne] for t in ent)
         for s, fr in enumerate(st.regions):
             sel = ((v >= st.voff[s]) & (v < st.voff[s + 1])).nonzero(as_tuple=True)[0]
             o = _outliers(fr, cs[s], v[sel] - st.voff[s], first[sel], wcm[sel])  # empty: warms only

@@ -604,9 +604,7 @@ class InOut(Method):
         # (one compiled pass over static blocks, ``fast.vertex_cells``)
         for t in (st.pos, st.frames):
             torch._dynamo.maybe_mark_dynamic(t, 0)                              # the scene's vertex count
-        B = _fast.sample_block(ref.numel())
-        front, first, wc = map_rows(_fast.vertex_cells, [ref], (st.pos, st.frames, cam, R), chunk=B,
-                                    warm=_fast.warm_sizes(B))
+        front, first, wc = _fast.vertex_cells_of(ref, st.pos, st.frames, cam, R)
         b = torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()  # ref ascending: slots are runs
         slots = []
         for s in range(len(self.regions)):

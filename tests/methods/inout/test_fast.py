@@ -340,7 +340,7 @@ def test_shade_rows_indices_in_range_for_any_input(precomputed):
     face[::7] = M + 100
     live = face >= 0
     bary = torch.rand(q, 2, generator=g) * 0.5
-    args = [t.unflatten(0, (n, S)) for t in (normal, wo, bary, face, live)] + [st.face_rows, w.win, w.X, st.R]
+    args = [t.unflatten(0, (n, S)) for t in (normal, wo, bary, face, live)] + [fast.pack_windows(w.win, st.face_rows, st.R), w.X, st.R]
     got, got_miss = fast.shade_rows(*args)
     want, want_miss = fast.shade_rows.eager(*args)
     assert torch.equal(got_miss, want_miss)
@@ -350,6 +350,23 @@ def test_shade_rows_indices_in_range_for_any_input(precomputed):
     unshaded = ~torch.isfinite(normal).all(-1) | torch.isnan(wo).any(-1) | (normal == 0).all(-1)
     assert not bool(got_miss.reshape(-1)[unshaded].any())
     assert bool(unshaded.any()) and bool(got_miss.any())            # both kinds of sample are present
+
+
+def test_pack_windows_keeps_every_field(precomputed):
+    """`fast.pack_windows`: each face corner's word decodes to its vertex's window (first column,
+    first row, columns, rows, offset in X) — the fields `shade_rows` reads."""
+    m, frame, gb, view = _bunny_view(precomputed)
+    st, w = view.st, view.wins
+    p = fast.pack_windows(w.win, st.face_rows, st.R)
+    want = w.win.long()[st.face_rows.long()]                                    # (M, 3, 5)
+    got = torch.stack([p & 4095, (p >> 12) & 4095, p >> 32, ((p >> 24) & 15) + 2, ((p >> 28) & 15) + 2], -1)
+    assert torch.equal(got, want)
+    big = torch.tensor([[4095, 4094, 2**31 - 1, fast.MAX_WINDOW, fast.MAX_WINDOW]], dtype=torch.int32)
+    q = fast.pack_windows(big, torch.zeros(1, 3, dtype=torch.int32), 4096)
+    assert int(q[0, 0] >> 32) == 2**31 - 1 and int(q[0, 0] & 4095) == 4095 and int((q[0, 0] >> 12) & 4095) == 4094
+    assert int((q[0, 0] >> 24) & 15) + 2 == fast.MAX_WINDOW and int((q[0, 0] >> 28) & 15) + 2 == fast.MAX_WINDOW
+    with pytest.raises(ValueError):
+        fast.pack_windows(big, torch.zeros(1, 3, dtype=torch.int32), 4097)
 
 
 def test_sample_frame_is_frame_matrix():
