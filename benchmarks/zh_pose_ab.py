@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> dict:
         new = m.with_render_config()
         base = copy.copy(new)
         base.__class__ = Base
+        base.model = copy.copy(new.model)   # its own X attribute: the new code re-lays X out (`_pose_state`)
         base.scene = _BaseGeometry(scene, a.baseline)
         ref = m.with_render_config()
         kinds[kind] = ab_frames(new, base, ref._render_reference, frames, gbs, kind)

@@ -428,6 +428,8 @@ class ZHShadow(Method):
             frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
             # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
             rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
+            if not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
+                m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)
             v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex, frame=frame,
                                     rows=rows)
             self._posed = (key, geom, v.T if vertex else v)                                  # (N, n²)

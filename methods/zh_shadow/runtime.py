@@ -72,9 +72,12 @@ CHUNK = 1 << 13
 # Planar groups (`planar_groups`): a plane's diffuse term costs one (N, n²) @ (n², 3) product and a
 # gather per point; below this many points the feature GEMM is as cheap as the group's fixed cost.
 PLANAR_MIN_POINTS = 1024
-# Vertices per block of the compiled per-vertex kernels (`_vertex_sh`): one static shape.
-VERTEX_CHUNK = 1 << 11
 PLANAR_MAX_GROUPS = 16
+# Vertices from which `world_visibility` runs `_vertex_sh` compiled (one kernel, the vertex count
+# symbolic: a bench-size mesh compiles it in the harness's warm-up frame); fewer run it eagerly, so
+# tests meeting many orders and dtypes on small meshes pay no compilations (`scenes.skeleton`'s
+# BLEND_COMPILE_MIN; the compiled kernel is checked against the eager one in tests)
+VERTEX_COMPILE_MIN = 4096
 
 
 def _monos(deg: int) -> list[tuple[int, int, int]]:
@@ -1324,8 +1327,8 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     frame's compulsory read of X), then per vertex the lobe axes from their chart
     (`precompute.chart_to_axis`) taken to world space through the vertex frame (s, t, n)
     (`methods.core.frames.coordinate_system`, the frame the visibility was fitted in) and eq. 1
-    (y(s) by the SH polynomials, `methods.core.sh.sh_terms`), in one compiled pass over static
-    blocks of vertices (`_vertex_sh`). The same numbers as `ZHModel.lobes_at` + `frame_matrix` +
+    (y(s) by the SH polynomials, `methods.core.sh.sh_terms`), in one compiled pass over all the
+    vertices (`_vertex_sh`, the vertex count symbolic). The same numbers as `ZHModel.lobes_at` + `frame_matrix` +
     `zh_lobes_to_sh` (the reference path) to round-off.
 
     Args:
@@ -1344,37 +1347,34 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     a = torch.cat([pose.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype, device=X.device)])
     if a.shape[0] != J1:
         raise ValueError(f"pose has {a.shape[0] - 1} joints, the model {J1 - 1}")
-    B = VERTEX_CHUNK
-    Np = -(-N // B) * B
-    p = torch.empty(Np, d, dtype=X.dtype, device=X.device)
     # [pose, 1] · X on one thread: a one-row product, which MKL splits along its J1-long reduction
     # over the threads on AVX-512 machines (the sums then depend on the thread count:
-    # methods.core.threads, tests/methods/test_threads.py); it reads X once and is bandwidth-bound
+    # methods.core.threads, tests/methods/test_threads.py); it reads X once and is bandwidth-bound.
+    # With X laid out (J+1, d, N) in memory (`point_minor_model`) the product writes the point-minor
+    # pT (d, N) itself (0.61 ms at 13.4 K vertices, 1 thread, against 1.04 ms for the copy of X
+    # that ``reshape`` made from the least-squares layout plus 0.23 ms for a transposing copy)
     with torch_threads(1):
-        torch.matmul(a[None], X.reshape(J1, N * d), out=p[:N].view(1, N * d))
-    nrm = torch.empty(Np, 3, dtype=X.dtype, device=X.device)
-    nrm[:N] = normal
-    p[N:], nrm[N:] = p[N - 1], nrm[N - 1]                                        # padding: repeat the last
-    # block-major (Np/B, ·, B): each block's point-minor rows contiguous, one transposing copy
-    # (a point-minor copy then a contiguous copy of each block's columns were two)
-    pT = p.view(Np // B, B, d).transpose(1, 2).contiguous()
-    nT = nrm.view(Np // B, B, 3).transpose(1, 2).contiguous()
+        if X.transpose(1, 2).is_contiguous():
+            pT = (a[None] @ X.transpose(1, 2).reshape(J1, d * N)).view(d, N)
+        else:
+            pT = (a[None] @ X.reshape(J1, N * d)).view(N, d).T.contiguous()
+    nT = normal.T.contiguous()
     lam = _band_norms(n)
-    dim = 0 if point_minor else 1
     perm = None if rows is None else tuple(int(i) for i in rows.tolist())
     if perm is not None and sorted(perm) != list(range(n * n)):
         raise ValueError(f"rows must be a permutation of the {n * n} coefficients")
-    if Np == B:
-        out = _vertex_sh(pT[0], nT[0], lam, lobes, n, dim, frame == "zyz", perm)
-        return (out[:, :N].contiguous() if point_minor else out[:N]) if Np > N else out
-    # each block's result copied once into its place (a cat then the trim to N columns were two
-    # copies of the (n², N) result: 1.9x slower stage at 13.4 K vertices, order 8, 1 thread, load ~9)
-    out = torch.empty((n * n, N) if point_minor else (N, n * n), dtype=X.dtype, device=X.device)
-    for s in range(0, Np, B):
-        e = min(s + B, N)
-        blk = _vertex_sh(pT[s // B], nT[s // B], lam, lobes, n, dim, frame == "zyz", perm)
-        if point_minor:
-            out[:, s:e] = blk[:, :e - s]
-        else:
-            out[s:e] = blk[:e - s]
-    return out
+    # one compiled call over all N vertices, the vertex count marked dynamic (one kernel for every
+    # count, as `_zyz_half`): no padded static blocks, no per-block copies of the result into place
+    # (7 calls over blocks of 2,048 and their copies: 5.4 → 2.4 ms for the stage at 13.4 K vertices,
+    # order 8, 1 thread, load ~7 on 2 cores)
+    fn = _vertex_sh if N >= VERTEX_COMPILE_MIN else _vertex_sh.eager
+    torch._dynamo.maybe_mark_dynamic(pT, 1)
+    torch._dynamo.maybe_mark_dynamic(nT, 1)
+    return fn(pT, nT, lam, lobes, n, 0 if point_minor else 1, frame == "zyz", perm)
+
+
+def point_minor_model(X: Tensor) -> Tensor:
+    """X (J+1, N, d) with its memory laid out (J+1, d, N) — the same values, the layout
+    `world_visibility` reads without a copy (its product then writes the point-minor parameters
+    directly); X itself if it already is."""
+    return X if X.transpose(1, 2).is_contiguous() else X.transpose(1, 2).contiguous().transpose(1, 2)

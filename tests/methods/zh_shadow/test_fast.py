@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from unittest import mock
+
 import pytest
 import torch
 
@@ -267,6 +269,59 @@ def test_cosine_visibility_zyz_equals_world():
         rt.world_visibility(X, pose, nrm, c, frame="local")
     with pytest.raises(ValueError):
         rt.world_visibility(X, pose, nrm, c, rows=torch.zeros(64, dtype=torch.int64))
+
+
+def test_world_visibility_point_minor_model():
+    """`runtime.world_visibility` from X laid out (J+1, d, N) in memory (`point_minor_model`, the
+    layout `ZHShadow._pose_state` gives the model: the product then writes the point-minor
+    parameters itself) = from the least-squares layout (the transposed copy of its product), both
+    result layouts, float32 to round-off (`VIS_LAYOUT_TOL`); the model's values are unchanged."""
+    g = torch.Generator().manual_seed(4)
+    for order, N in ((4, 700), (8, 300)):
+        c = 2
+        X = torch.randn(c * (2 + order), N, 5, generator=g).permute(2, 1, 0) * 0.3   # (5, N, d), strides of lstsq
+        assert not X.transpose(1, 2).is_contiguous()
+        Xp = rt.point_minor_model(X)
+        assert Xp.transpose(1, 2).is_contiguous() and torch.equal(Xp, X) and rt.point_minor_model(Xp) is Xp
+        pose = torch.randn(4, generator=g)
+        nrm = torch.randn(N, 3, generator=g)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        for kw in ({}, {"point_minor": True}, {"point_minor": True, "frame": "zyz", "rows": rt.zyz_rows(order)}):
+            want = rt.world_visibility(X, pose, nrm, c, **kw)
+            got = rt.world_visibility(Xp, pose, nrm, c, **kw)
+            assert got.shape == want.shape
+            assert (got - want).abs().max() <= VIS_LAYOUT_TOL * want.abs().max(), (order, kw)
+
+
+@pytest.mark.parametrize("order, kw", [(4, {}), (8, {"point_minor": True, "frame": "zyz"})])
+def test_world_visibility_compiled_equals_eager(order, kw):
+    """`runtime.world_visibility` from `VERTEX_COMPILE_MIN` vertices (`_vertex_sh` compiled, one
+    kernel for every vertex count) = the eager `_vertex_sh` (below it), float32 to round-off
+    (`VIS_COMPILED_TOL`): the suites' two variants (paper: order 4, (N, n²); physical: order 8,
+    ZYZ frames, rows in `zyz_rows` order, (n², N)), at two vertex counts."""
+    g = torch.Generator().manual_seed(6)
+    c = 2
+    for N in (rt.VERTEX_COMPILE_MIN, rt.VERTEX_COMPILE_MIN + 777):
+        # (charts well inside the disk of radius 2: at its rim the axis's √(1 − r²/4) amplifies the
+        # product's round-off without bound — one of 4,096 random points at scale 0.3 moved by 1e-3)
+        X = rt.point_minor_model(torch.randn(5, N, c * (2 + order), generator=g) * 0.15)
+        pose = torch.randn(4, generator=g)
+        nrm = torch.randn(N, 3, generator=g)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        nrm[:2] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+        args = dict(kw, rows=rt.zyz_rows(order)) if kw else kw
+        got = rt.world_visibility(X, pose, nrm, c, **args)
+        with mock.patch.object(rt, "VERTEX_COMPILE_MIN", N + 1):
+            want = rt.world_visibility(X, pose, nrm, c, **args)
+        assert (got - want).abs().max() <= VIS_COMPILED_TOL * want.abs().max(), (order, N)
+
+
+# float32: Inductor's kernel contracts the SH polynomials' multiply-adds into FMAs
+VIS_COMPILED_TOL = 1e-6
+
+
+# float32: the product [pose, 1] · X summed in another blocking order by the two layouts
+VIS_LAYOUT_TOL = 1e-6
 
 
 def test_operator_blocks_equal_dense_product():
