@@ -234,9 +234,10 @@ def _term(vT: Tensor, dT: Tensor, W: Tensor, diffuse: bool) -> Tensor:
     return (T * vT[:, None]).sum(0)
 
 
-# Points per block of the per-vertex-table kernels (`sample_terms`): one static shape; a block's
-# features (K ≤ 80 floats per point at order 4) stay in the L2 cache (measured: 4096 fastest of
-# 1024–8192 on the bench creature).
+# Points per block of the per-vertex-table kernels of `sample_terms` with SH features (orders above
+# `MONOMIAL_MAX_ORDER`; the monomial features go in one call with a symbolic point count): one static
+# shape; a block's features stay in the L2 cache (measured: 4096 fastest of 1024–8192 on the bench
+# creature, session 17, when every order took blocks).
 SAMPLE_BLOCK = 1 << 12
 
 
@@ -382,18 +383,31 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
     ``specular``: U has specular columns): Σ_k b_k features(r)·U[vi_k] — equal to `_term`'s
     Σ_j v_j T_jc(r) summed over the terms, albedos applied (same math, summed in another order).
 
-    Blocks of exactly ``block`` points (the last padded by repeating its last point) so one
-    compiled kernel serves every frame; the table's vertex count is marked dynamic (one kernel for
-    every mesh).
+    Monomial features (order ≤ `MONOMIAL_MAX_ORDER`): every point in one compiled call
+    (`_sample_block`) with the point count and the table's vertex count symbolic
+    (``maybe_mark_dynamic``: one kernel for every frame and mesh) — the same loops and numbers as
+    static blocks, without a call (guards, wrapper, padding) per block: bench creature V frame,
+    36 K object samples, 1 thread, same process, load ~7-10: sample stage 1.06-1.09x (1.25x on random
+    points), bit-identical (as `methods.triple_product.fast_eval` since session 18). What bounds it is
+    the kernel itself (~150 ns per point: the point-major features are computed in scalar loops with
+    strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point). Above it (SH features): blocks of exactly
+    ``block`` points (the last padded by repeating its last point), one static shape.
 
     Args:
         U: (N, 3, K); vi, b: (Q, k) vertex ids / weights; nT, woT: (3, Q) unit normals / directions
         to the viewer; order: the SH order n of the visibility.
     """
     Q, n = nT.shape[1], order
-    out = torch.empty(Q, 3, dtype=U.dtype, device=U.device)
     torch._dynamo.maybe_mark_dynamic(U, 0)
-    vi, b = vi.long(), b.to(U.dtype).contiguous()   # (once, not per block)
+    vi, b = vi.long().contiguous(), b.to(U.dtype).contiguous()   # (once, not per block)
+    if n <= MONOMIAL_MAX_ORDER:
+        if Q == 0:
+            return torch.empty(3, 0, dtype=U.dtype, device=U.device)
+        nT, woT = nT.contiguous(), woT.contiguous()
+        for t, d in ((vi, 0), (b, 0), (nT, 1), (woT, 1)):
+            torch._dynamo.maybe_mark_dynamic(t, d)
+        return rows(_sample_block(U, vi, b, nT, woT, 2 * n - 2, diffuse, specular))
+    out = torch.empty(Q, 3, dtype=U.dtype, device=U.device)
     for a in range(0, Q, block):
         m = min(block, Q - a)
         if m == block:
@@ -402,12 +416,8 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
             idx = torch.arange(a, a + block, device=U.device).clamp_max_(Q - 1)
             vi_c, b_c = vi.index_select(0, idx), b.index_select(0, idx)
             n_c, wo_c = nT.index_select(1, idx), woT.index_select(1, idx)
-        if n <= MONOMIAL_MAX_ORDER:
-            r = _sample_block(U, vi_c, b_c, n_c.contiguous(), wo_c.contiguous(), 2 * n - 2, diffuse, specular)
-        else:
-            f = sample_features(n_c.contiguous(), wo_c.contiguous(), n, diffuse=diffuse, specular=specular)
-            r = _interpolated_dot(U, vi_c, b_c, f)
-        out[a:a + m] = r[:m]
+        f = sample_features(n_c.contiguous(), wo_c.contiguous(), n, diffuse=diffuse, specular=specular)
+        out[a:a + m] = _interpolated_dot(U, vi_c, b_c, f)[:m]
     return rows(out)
 
 
@@ -959,7 +969,7 @@ def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_norm
     least}, and zeros for "specular", "planar_specular" (filled by the caller)."""
     out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
     for _, pos in groups:
-        out["planar"] += int(mask.sum()) if pos is None else int(pos.shape[0])
+        out["planar"] += int(torch.count_nonzero(mask)) if pos is None else int(pos.shape[0])   # (3x mask.sum())
 
     def plane_vertices() -> int:
         nv, total = vertex_normal, 0
@@ -1220,7 +1230,10 @@ def relight_cache_bytes(cache: dict) -> int:
     ts = [cache["vi"]] + [x for g in cache["groups"] for x in g[1:] if x is not None]
     ts += [x for entries in cache["regions"] for e in entries for x in e if x is not None]
     if cache.get("plane_pass") is not None:   # (`ZHShadow._relight_planes`: plane faces, object pixels)
-        ts += [cache["plane_pass"][0]] + [x for pxs in cache["plane_pass"][1] for x in pxs]
+        pp = cache["plane_pass"]
+        ts += [pp[0]] + [x for pxs in pp[1] for x in pxs] + [x for x in pp[3:] if x is not None]
+        if pp[2] is not None:   # the plane pass's sparse matrix (`ZHShadow._relight_planes`)
+            ts += [pp[2].crow_indices(), pp[2].col_indices(), pp[2].values()]
     return sum(t.element_size() * t.nelement() for t in ts)
 
 

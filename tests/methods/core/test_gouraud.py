@@ -38,8 +38,13 @@ def test_resolve_equals_gbuffer_interpolate_and_resolve(S, compile_, monkeypatch
     assert bool((got[0, 0] == 0).all())                                  # a pixel of misses is black
 
 
-def test_resolve_many_blocks_and_table_sizes():
-    """More pixels than one block (padding of the last one) and another table size (no stale kernel)."""
+@pytest.mark.parametrize("block_max", [None, 1 << 12])
+def test_resolve_many_blocks_and_table_sizes(block_max, monkeypatch):
+    """One block for the image (its pixel count rounded up to a power of two: padding), more pixels
+    than one block (``RESOLVE_BLOCK_MAX`` lowered: several blocks, the last padded) and another table
+    size (no stale kernel)."""
+    if block_max is not None:
+        monkeypatch.setattr(gouraud, "RESOLVE_BLOCK_MAX", block_max)
     for N in (50, 77):
         values, F, gb = _case(200, 190, 1, N=N, seed=N)
         fv = F.T.contiguous().to(torch.int32)
