@@ -513,11 +513,12 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Funk–Hecke factors per SH coefficient, order). Components are handled as contiguous rows
     (``FastStatic.pair_pos`` / ``pair_frame``).
 
-    Three passes: the compiled per-pair directions and table cells (`pair_cells`), the two
-    weighted bags (the W_r table and the visibility tables stay ``embedding_bag``s) and the compiled
-    combination (`pair_rows`, its sums over K and the SH coefficients unrolled). Measured on the
+    Three passes: the compiled per-pair directions and table cells (`pair_cells`), the weighted bag
+    of the visibility tables (an ``embedding_bag``) and the compiled combination (`pair_rows`: the
+    W_r bag as four row loads, its sums over K and the SH coefficients unrolled). Measured on the
     chess bench (10 701 pairs, 1 thread, process CPU time, load 6–8): 1.4 ms vs 5.4–5.9 ms for the
-    same arithmetic as ~150 eager passes (each a launch over n elements plus its temporaries)."""
+    same arithmetic as ~150 eager passes (each a launch over n elements plus its temporaries); the
+    W_r bag moved into `pair_rows` (session 19, ptv): bag + `pair_rows` 1.12 ms -> 0.67 ms (load ~12)."""
     v, r = st.pair_v, st.pair_r
     n = v.numel()
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
@@ -525,15 +526,15 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Tv = lobes["Tv"] if lobes is not None else 2
     c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), r, v, T, Tv, nt, lobes is not None,
                    order)
-    Wi = Fnn.embedding_bag(c[0], Wr, per_sample_weights=c[1], mode="sum")  # (n, K·3)
     Ex = E if st.pair_is_vertex else rows(E, v)
+    masks = _channel_masks(K, str(Wr.device))
     if lobes is None:
-        return pair_rows(Wi, Ex, K, width=width)
+        return pair_rows(c[0], c[1], Wr, Ex, masks, K, width=width)
     Vc = Fnn.embedding_bag(c[5], lobes["vis"], per_sample_weights=c[6], mode="sum")  # (n, L); R_z = cos θo
     I1x = None
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
-    return pair_rows(Wi, Ex, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
+    return pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
                      c[8] if order else None, lobes["f"] if order else None, c[7], width)
 
 
@@ -577,18 +578,30 @@ def _corner_rows(i0: Tensor, tx: Tensor, ty: Tensor, T: int, w: Tensor) -> tuple
     return idx, torch.stack([a * (1.0 - ty), b * (1.0 - ty), a * ty, b * ty], -1)
 
 
-def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Tensor | None = None,
-               w0: Tensor | None = None, w1: Tensor | None = None, Vc: Tensor | None = None, step: int = 1,
-               I1x: Tensor | None = None, Y: Tensor | None = None, f: Tensor | None = None,
+@functools.lru_cache(maxsize=8)
+def _channel_masks(K: int, device: str) -> Tensor:
+    """(3, K·3) float32 masks of the lanes (k, c) of channel c = 0, 1, 2 (`_pair_rows`)."""
+    lane = torch.arange(3 * K)
+    return torch.stack([(lane % 3 == c).float() for c in range(3)]).contiguous().to(device)
+
+
+def _pair_rows(idx: Tensor, wt: Tensor, Wr: Tensor, Ex: Tensor, masks: Tensor, K: int, ar: Tensor | None = None,
+               r0: Tensor | None = None, w0: Tensor | None = None, w1: Tensor | None = None, Vc: Tensor | None = None,
+               step: int = 1, I1x: Tensor | None = None, Y: Tensor | None = None, f: Tensor | None = None,
                zc: Tensor | None = None, width: int = 0) -> Tensor:
-    """The rows (n + 1, C) of `vertex_view` from the bagged table rows Wi (n, K·3) and E_x (n, K·3),
-    for ``core.fused`` (sums unrolled): B = Σ_k Wi E_x; with lobes s = a_k V_c (a_k from the a_r rows
-    r0, r0 + step with weights w0, w1; Vc (n, L)) and with I1x (n, S, 3), Y (n, S), f (L, S):
-    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``."""
-    n = Wi.shape[0]
-    B = Wi[:, 0:3] * Ex[:, 0:3]
-    for k in range(1, K):
-        B = B + Wi[:, 3 * k:3 * k + 3] * Ex[:, 3 * k:3 * k + 3]
+    """The rows (n + 1, C) of `vertex_view` from the bilinear cells (idx, wt (n, 4): `_pair_cells`) in
+    the region tables Wr (R·T², K·3) and E_x (n, K·3), for ``core.fused`` (sums unrolled):
+    B = Σ_k Wi E_x with Wi = Σ_j wt_j Wr[idx_j] (four contiguous row loads, the bag of the eager
+    form) and the sum over k as one lane-wise product and three masked lane sums (``masks``:
+    `_channel_masks`); with lobes s = a_k V_c (a_k from the a_r rows r0, r0 + step with weights w0,
+    w1; Vc (n, L)) and with I1x (n, S, 3), Y (n, S), f (L, S):
+    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``. Compiled with
+    `SHADE_OPTIONS` (the gathered rows stay vector loads in the one loop over the pairs)."""
+    n = idx.shape[0]
+    Wi = (Wr[idx[:, 0]] * wt[:, 0:1] + Wr[idx[:, 1]] * wt[:, 1:2] + Wr[idx[:, 2]] * wt[:, 2:3]
+          + Wr[idx[:, 3]] * wt[:, 3:4])
+    P = Wi * Ex
+    B = torch.stack([(P * masks[c]).sum(-1) for c in range(3)], -1)
     cols = [B]
     if ar is not None:
         L = ar.shape[1] // 3
@@ -608,12 +621,11 @@ def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Ten
     C = sum(c.shape[1] for c in cols)
     if width > C:
         cols.append(B.new_zeros(n, width - C))
-    out = torch.cat(cols, 1)
-    return torch.cat([out, torch.zeros_like(out[:1])], 0)
+    # the zero last row padded onto every column block: one concatenation writes the rows in place
+    return torch.cat([Fnn.pad(c, (0, 0, 0, 1)) for c in cols], 1)
 
 
 pair_cells = fused(_pair_cells)
-pair_rows = fused(_pair_rows)
 
 
 @dataclass
@@ -884,6 +896,7 @@ def _shade_block(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
 SHADE_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 1000,
                  "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000}
 shade_block = fused(_shade_block, options=SHADE_OPTIONS)
+pair_rows = fused(_pair_rows, options=SHADE_OPTIONS)  # `vertex_view`'s combination (defined above)
 
 
 def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None) -> tuple[Tensor, Tensor, Tensor]:
