@@ -101,7 +101,8 @@ _probe_scalars = fused(_probe_scalars_fn)
 def micro(m: PTT, frame, gb, threads: int) -> None:
     """The kernels that bound the frames, alone on this frame's sizes, with their achieved GB/s next
     to the machine's triad bandwidth (``benchmarks.common.machine_limits``): the per-sample view stage
-    (`fast.shade_pixels_fused`) and its two compiled loops (`fast.mirror_uv`, `fast.shade_block`),
+    (`fast.shade_pixels_fused`) and its two compiled loops (`fast.mirror_cells_block`, `fast.shade_block`;
+    `fast.mirror_uv` alone for comparison),
     two probes that split `shade_block` into its row loads and its per-sample scalar arithmetic,
     the eager passes and bags of the previous route, the direct incidence product (CSR, and the
     ``embedding_bag`` it replaced), one cube resampling of the env map (``cubemap.from_envmap``)
@@ -129,6 +130,7 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
     Q, S2 = gb.num_samples, gb.spp_side ** 2
     u, v = _fast.mirror_uv(gb.normal, gb.wo, env.to_world)
+    rc, fxc, fyc = _fast.mirror_cells_block(gb.normal, gb.wo, env.to_world, env.H, env.W)
     erows = _fast.env_rows(env, width)
     lanes = _fast._lane_masks(C, L, width)
     # the previous route (eager cells, ``embedding_bag``s), for comparison
@@ -141,9 +143,11 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
         "samples: whole stage (shade_pixels_fused)": (lambda: _fast.shade_pixels_fused(
             st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, S2, C), Q * (8 + 8 + 12 + 12) + Q // S2 * 12),
         "samples: mirror_uv (compiled)": (lambda: _fast.mirror_uv(gb.normal, gb.wo, env.to_world), Q * (24 + 8)),
-        "samples: shade_block (compiled)": (lambda: _fast.shade_block(gb.face, gb.bary, u, v, st.face_pairs, table, erows,
-                                                                      lanes, env.H, env.W, S2),
-                                            Q * (8 + 8 + 8) + Q // S2 * 12),
+        "samples: mirror_cells (compiled)": (lambda: _fast.mirror_cells_block(gb.normal, gb.wo, env.to_world, env.H,
+                                                                               env.W), Q * (24 + 12)),
+        "samples: shade_block (compiled)": (lambda: _fast.shade_block(gb.face, gb.bary, rc, fxc, fyc, st.face_pairs,
+                                                                      table, erows, lanes, env.W, S2),
+                                            Q * (8 + 8 + 12) + Q // S2 * 12),
         "  probe: its 7 row loads only": (lambda: _probe_rows(gb.face, st.face_pairs, table, erows, idx[:, 0], env.W),
                                           Q * (8 + 8) + Q * 4),
         "  probe: the same 7 loads, every index 0 (L1)": (

@@ -25,18 +25,22 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   term B_x = Σ_k W_r(ωo_x, k) E_x(k) (one 4-row bag of the region table), the lobe factors
   s_x(k) = a_k(θo_x) V_c^(k)(x, R_x) (2-node interpolation, 4-row bag of the visibility tables) and
   the one-bounce lobe term u_x (SH at R_x, one GEMM with the Funk–Hecke factors);
-* per hit sample, two compiled loops per static block of samples: `mirror_uv` (the lat-long
-  coordinates of the mirror direction R about the interpolated shading normal — the one formula
-  the reference reads the maps with too) and `shade_block`: the face's three pair rows with the
-  barycentrics, the four corners of R's cell in the stacked E^(k) (`env_rows`, on the lanes of
-  the s_k columns), max(0, B) + u + Σ_k s_k E^(k)(R) and the box filter of the pixel's samples.
+* per hit sample, two compiled loops per static block of samples: `mirror_cells` (vectorised over
+  the samples: the lat-long coordinates of the mirror direction R about the interpolated shading
+  normal — `mirror_uv`, the one formula the reference reads the maps with too — and R's bilinear
+  cell, row and fractions) and `shade_block`: the face's three pair rows with the barycentrics,
+  the four corners of R's cell in the stacked E^(k) (`env_rows`, on the lanes of the s_k columns),
+  max(0, B) + u + Σ_k s_k E^(k)(R) and the box filter of the pixel's samples.
   Each row is one contiguous 64-byte load, and the whole stage is one loop over the pixels
   (`SHADE_OPTIONS`). Measured on the chess bench V frame (1 thread, CPU time, load 11): about a third
   of `shade_block` is the env rows' cache misses (8.4 MB of rows, not L2-resident: every sample
   reading one fixed cell instead ran 1.48x faster), the rest its per-sample scalar arithmetic and
   row products. Visiting the pixels in 8×16 or 4×64 tiles instead of scanlines (index arithmetic
   inside the kernel, same output bits) ran 0.96–0.97x: the env rows of one scanline are still cached
-  when the next one reads them. `shade_samples` is the eager form.
+  when the next one reads them. Session 19 (ptv): with every index fixed (all rows in L1) the kernel
+  still took 4.6 of 5.6 ms — scalar arithmetic bound, not miss bound; the cell arithmetic moved to
+  the sample-vectorised `mirror_cells` (same bits) made the V frame 1.16–1.21x (chess / creature
+  bench, 1 thread, CPU time, same process vs main). `shade_samples` is the eager form.
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
@@ -509,11 +513,12 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Funk–Hecke factors per SH coefficient, order). Components are handled as contiguous rows
     (``FastStatic.pair_pos`` / ``pair_frame``).
 
-    Three passes: the compiled per-pair directions and table cells (`pair_cells`), the two
-    weighted bags (the W_r table and the visibility tables stay ``embedding_bag``s) and the compiled
-    combination (`pair_rows`, its sums over K and the SH coefficients unrolled). Measured on the
+    Three passes: the compiled per-pair directions and table cells (`pair_cells`), the weighted bag
+    of the visibility tables (an ``embedding_bag``) and the compiled combination (`pair_rows`: the
+    W_r bag as four row loads, its sums over K and the SH coefficients unrolled). Measured on the
     chess bench (10 701 pairs, 1 thread, process CPU time, load 6–8): 1.4 ms vs 5.4–5.9 ms for the
-    same arithmetic as ~150 eager passes (each a launch over n elements plus its temporaries)."""
+    same arithmetic as ~150 eager passes (each a launch over n elements plus its temporaries); the
+    W_r bag moved into `pair_rows` (session 19, ptv): bag + `pair_rows` 1.12 ms -> 0.67 ms (load ~12)."""
     v, r = st.pair_v, st.pair_r
     n = v.numel()
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
@@ -521,15 +526,15 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Tv = lobes["Tv"] if lobes is not None else 2
     c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), r, v, T, Tv, nt, lobes is not None,
                    order)
-    Wi = Fnn.embedding_bag(c[0], Wr, per_sample_weights=c[1], mode="sum")  # (n, K·3)
     Ex = E if st.pair_is_vertex else rows(E, v)
+    masks = _channel_masks(K, str(Wr.device))
     if lobes is None:
-        return pair_rows(Wi, Ex, K, width=width)
+        return pair_rows(c[0], c[1], Wr, Ex, masks, K, width=width)
     Vc = Fnn.embedding_bag(c[5], lobes["vis"], per_sample_weights=c[6], mode="sum")  # (n, L); R_z = cos θo
     I1x = None
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
-    return pair_rows(Wi, Ex, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
+    return pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
                      c[8] if order else None, lobes["f"] if order else None, c[7], width)
 
 
@@ -573,18 +578,30 @@ def _corner_rows(i0: Tensor, tx: Tensor, ty: Tensor, T: int, w: Tensor) -> tuple
     return idx, torch.stack([a * (1.0 - ty), b * (1.0 - ty), a * ty, b * ty], -1)
 
 
-def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Tensor | None = None,
-               w0: Tensor | None = None, w1: Tensor | None = None, Vc: Tensor | None = None, step: int = 1,
-               I1x: Tensor | None = None, Y: Tensor | None = None, f: Tensor | None = None,
+@functools.lru_cache(maxsize=8)
+def _channel_masks(K: int, device: str) -> Tensor:
+    """(3, K·3) float32 masks of the lanes (k, c) of channel c = 0, 1, 2 (`_pair_rows`)."""
+    lane = torch.arange(3 * K)
+    return torch.stack([(lane % 3 == c).float() for c in range(3)]).contiguous().to(device)
+
+
+def _pair_rows(idx: Tensor, wt: Tensor, Wr: Tensor, Ex: Tensor, masks: Tensor, K: int, ar: Tensor | None = None,
+               r0: Tensor | None = None, w0: Tensor | None = None, w1: Tensor | None = None, Vc: Tensor | None = None,
+               step: int = 1, I1x: Tensor | None = None, Y: Tensor | None = None, f: Tensor | None = None,
                zc: Tensor | None = None, width: int = 0) -> Tensor:
-    """The rows (n + 1, C) of `vertex_view` from the bagged table rows Wi (n, K·3) and E_x (n, K·3),
-    for ``core.fused`` (sums unrolled): B = Σ_k Wi E_x; with lobes s = a_k V_c (a_k from the a_r rows
-    r0, r0 + step with weights w0, w1; Vc (n, L)) and with I1x (n, S, 3), Y (n, S), f (L, S):
-    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``."""
-    n = Wi.shape[0]
-    B = Wi[:, 0:3] * Ex[:, 0:3]
-    for k in range(1, K):
-        B = B + Wi[:, 3 * k:3 * k + 3] * Ex[:, 3 * k:3 * k + 3]
+    """The rows (n + 1, C) of `vertex_view` from the bilinear cells (idx, wt (n, 4): `_pair_cells`) in
+    the region tables Wr (R·T², K·3) and E_x (n, K·3), for ``core.fused`` (sums unrolled):
+    B = Σ_k Wi E_x with Wi = Σ_j wt_j Wr[idx_j] (four contiguous row loads, the bag of the eager
+    form) and the sum over k as one lane-wise product and three masked lane sums (``masks``:
+    `_channel_masks`); with lobes s = a_k V_c (a_k from the a_r rows r0, r0 + step with weights w0,
+    w1; Vc (n, L)) and with I1x (n, S, 3), Y (n, S), f (L, S):
+    u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``. Compiled with
+    `SHADE_OPTIONS` (the gathered rows stay vector loads in the one loop over the pairs)."""
+    n = idx.shape[0]
+    Wi = (Wr[idx[:, 0]] * wt[:, 0:1] + Wr[idx[:, 1]] * wt[:, 1:2] + Wr[idx[:, 2]] * wt[:, 2:3]
+          + Wr[idx[:, 3]] * wt[:, 3:4])
+    P = Wi * Ex
+    B = torch.stack([(P * masks[c]).sum(-1) for c in range(3)], -1)
     cols = [B]
     if ar is not None:
         L = ar.shape[1] // 3
@@ -604,12 +621,11 @@ def _pair_rows(Wi: Tensor, Ex: Tensor, K: int, ar: Tensor | None = None, r0: Ten
     C = sum(c.shape[1] for c in cols)
     if width > C:
         cols.append(B.new_zeros(n, width - C))
-    out = torch.cat(cols, 1)
-    return torch.cat([out, torch.zeros_like(out[:1])], 0)
+    # the zero last row padded onto every column block: one concatenation writes the rows in place
+    return torch.cat([Fnn.pad(c, (0, 0, 0, 1)) for c in cols], 1)
 
 
 pair_cells = fused(_pair_cells)
-pair_rows = fused(_pair_rows)
 
 
 @dataclass
@@ -694,9 +710,11 @@ mirror_uv_block = fused(_mirror_uv, options={"cpp.enable_tiling_heuristics": Fal
 def mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
     """Lat-long coordinates (u, v) (Q,) each, in a map of frame ``to_world`` (3, 3), of the mirror
     directions of ωo (Q, 3) about the shading normals (Q, 3) — THE formula of the per-sample map
-    look-ups: the fast path (`shade_block`, `shade_samples`) and the reference
-    (`PTT._shade_vertex`) both call this one compiled function on static blocks of `sample_block`
-    rows, so they read the maps at the same bits.
+    look-ups: the eager fast path (`shade_samples`) and the reference (`PTT._shade_vertex`) both
+    call this one compiled function on static blocks of `sample_block` rows, so they read the maps
+    at the same bits; the compiled sample stage reads the cells of the same (u, v) computed in one
+    loop with them (`_mirror_cells`; ``tests/methods/ptt/test_fast.py`` checks those cells equal
+    ``specular._uv_cells`` of this function's (u, v) bit for bit).
 
     Decision (2026-12-03, ptt-v4): a compiled acos / atan2 differs from the eager one in the last
     bit for ~20–30 % of the samples, and a last-bit change of (u, v) flips a bilinear cell where the
@@ -710,6 +728,30 @@ def mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Ten
     q = int(normal.shape[0])
     B = sample_block(q)
     return map_rows(mirror_uv_block, [normal, wo], (to_world.to(normal).contiguous(),), chunk=B, warm=warm_sizes(B))
+
+
+def _mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`_mirror_uv` then the lat-long cell of (u, v) on an H × W map (``specular._uv_cells``, the same
+    arithmetic) as one loop vectorised over the samples (for ``core.fused``): → the cell's first row
+    r (Q,) int32 in the periodic-extended texels (`EnvStack`: row iy·(W + 1) + ix) and its fractions
+    fx, fy (Q,) — what `shade_block` reads per sample instead of (u, v).
+
+    Decision (2026-12-05, ptv): the cell arithmetic (floor, scale, float → int conversions, clamps,
+    the row index) was scalar code inside `shade_block`'s loop (vectorised along the lanes of a row,
+    one sample at a time); here it runs 16 samples per instruction in the loop that already computes
+    (u, v), for 4 more bytes per sample (r, fx, fy against u, v). Chess bench V frame (262 144
+    samples, 1 thread, process CPU time, same process, alternating, load ~7): the sample stage 9.0 ms
+    -> 7.2 ms, the same output bits (the same IEEE operations on the same (u, v) bits)."""
+    u, v = _mirror_uv(normal, wo, to_world)
+    uu = u - 0.5 / W
+    x = (uu - torch.floor(uu)) * W
+    y = (v - torch.floor(v)) * (H - 1)
+    ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
+    iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
+    return (iy * (W + 1) + ix).to(torch.int32), x - ix, y - iy
+
+
+mirror_cells_block = fused(_mirror_cells, options={"cpp.enable_tiling_heuristics": False})
 
 
 def lookup_stack(st: EnvStack, u: Tensor, v: Tensor) -> Tensor:
@@ -801,19 +843,19 @@ def _lane_masks(C: int, L: int, width: int) -> Tensor:
     return m.contiguous()
 
 
-def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: Tensor, table: Tensor,
-                 env: Tensor, lanes: Tensor, H: int, W: int, S2: int) -> Tensor:
+def _shade_block(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, face_pairs: Tensor, table: Tensor,
+                 env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor:
     """The per-sample stage of `shade_samples` + `box_filter` as one compiled loop over a block's
-    pixels, after `mirror_uv` (for ``core.fused``): per sample the face's three pair rows
+    pixels, after `mirror_cells` (for ``core.fused``): per sample the face's three pair rows
     (table (n_pairs + 1, width), `table_width` lanes) with the Gouraud weights (1 − β1 − β2, β1, β2)
-    and the four corners of its lat-long cell (``specular._uv_cells`` of (u, v), the same
-    arithmetic) in the lane-aligned env rows (`env_rows`), each a contiguous row load (Inductor
+    and the four corners of its lat-long cell (first row r, fractions fx, fy: `_mirror_cells`) in the
+    lane-aligned env rows (`env_rows`, rows W + 1 wide), each a contiguous row load (Inductor
     vectorises along the lanes; a per-column gather would cost one scalar load per value); then
     t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane — exactly max(0, B), s_k E^(k) and u —
     summed over the pixel's S2 samples (unrolled: sub-sample j of pixel p is row p·S2 + j), and
     each channel's sum over the lanes / S2 (the box filter).
-    face (n,), bary (n, 2), u, v (n,) with n a multiple of S2 (pixel-major); lanes (5, width)
-    (`_lane_masks`) → (n / S2, 3).
+    face (n,), bary (n, 2), r (n,) int32, fx, fy (n,) with n a multiple of S2 (pixel-major);
+    lanes (5, width) (`_lane_masks`) → (n / S2, 3).
 
     The sub-samples are unrolled (not a reduction over S2·width lanes of a (n / S2, S2·width) view)
     and the kernel is compiled with `SHADE_OPTIONS`, so Inductor emits ONE loop over the pixels whose
@@ -823,24 +865,19 @@ def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: T
     P = n // S2
     width = table.shape[1]
     fv, b1v, b2v = face.view(P, S2), bary[:, 0].view(P, S2), bary[:, 1].view(P, S2)
-    uv_, vv = u.view(P, S2), v.view(P, S2)
+    rv, fxv, fyv = r.view(P, S2), fx.view(P, S2), fy.view(P, S2)
     t = None
     for j in range(S2):
         f = fv[:, j]
         p0, p1, p2 = face_pairs[f, 0], face_pairs[f, 1], face_pairs[f, 2]
         b1, b2 = b1v[:, j], b2v[:, j]
         b0 = 1.0 - b1 - b2
-        uu = uv_[:, j] - 0.5 / W
-        x = (uu - torch.floor(uu)) * W
-        y = (vv[:, j] - torch.floor(vv[:, j])) * (H - 1)
-        ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
-        iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
-        fx, fy = x - ix, y - iy
-        gx, gy = 1.0 - fx, 1.0 - fy
-        r = iy * (W + 1) + ix
+        fx_, fy_ = fxv[:, j], fyv[:, j]
+        gx, gy = 1.0 - fx_, 1.0 - fy_
+        rj = rv[:, j].to(torch.int64)
         a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
-        e = (env[r] * (gx * gy)[:, None] + env[r + 1] * (fx * gy)[:, None]
-             + env[r + (W + 1)] * (gx * fy)[:, None] + env[r + (W + 2)] * (fx * fy)[:, None])
+        e = (env[rj] * (gx * gy)[:, None] + env[rj + 1] * (fx_ * gy)[:, None]
+             + env[rj + (W + 1)] * (gx * fy_)[:, None] + env[rj + (W + 2)] * (fx_ * fy_)[:, None])
         tj = a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]
         t = tj if t is None else t + tj
     out = torch.stack([(t * lanes[2 + c, :width]).sum(-1) for c in range(3)], -1)
@@ -859,6 +896,7 @@ def _shade_block(face: Tensor, bary: Tensor, u: Tensor, v: Tensor, face_pairs: T
 SHADE_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 1000,
                  "realize_reads_threshold": 1000, "realize_acc_reads_threshold": 1000}
 shade_block = fused(_shade_block, options=SHADE_OPTIONS)
+pair_rows = fused(_pair_rows, options=SHADE_OPTIONS)  # `vertex_view`'s combination (defined above)
 
 
 def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -870,7 +908,7 @@ def _fused_inputs(table: Tensor, env: EnvStack, L: int, C: int | None) -> tuple[
 def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Tensor, normal: Tensor | None,
                         wo: Tensor | None, env: EnvStack | None, L: int, C: int | None = None) -> Tensor:
     """`shade_samples` of any number of hit samples as two compiled loops per static block of
-    `sample_block` samples (``core.fused.map_rows``): `mirror_uv` and `shade_block` (S2 = 1) → (Q, 3).
+    `sample_block` samples (``core.fused.map_rows``): `mirror_cells` and `shade_block` (S2 = 1) → (Q, 3).
     Equal to `shade_samples` to float32 round-off. C: the meaningful columns of ``table`` (None: all;
     `vertex_view` may return it already `padded`)."""
     if env is None:
@@ -878,8 +916,8 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
     tab, erows, lanes = _fused_inputs(table, env, L, C)
 
     def block(face, bary, normal, wo):
-        u, v = mirror_uv_block(normal, wo, env.to_world)
-        return shade_block(face, bary, u, v, face_pairs, tab, erows, lanes, env.H, env.W, 1)
+        r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
+        return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, 1)
 
     B = sample_block(face.shape[0])
     return map_rows(block, [face, bary, normal, wo], chunk=B, warm=warm_sizes(B))
@@ -889,7 +927,7 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
                        wo: Tensor, env: EnvStack, L: int, S2: int, C: int | None = None) -> Tensor | None:
     """`shade_samples_fused` and `box_filter` of a G-buffer whose every sample hit, pixel-major with
     S2 sub-samples per pixel, in two compiled loops per static block of `sample_block` samples
-    (`mirror_uv`, `shade_block`, which ends in the box filter: no per-sample radiance array, no
+    (`mirror_cells`, `shade_block`, which ends in the box filter: no per-sample radiance array, no
     separate resolve pass) → (Q / S2, 3). None when the blocks cannot hold whole pixels (the block
     not a multiple of S2); the caller then takes the two-pass route."""
     q = int(face.shape[0])
@@ -912,9 +950,9 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
 
 def _shade_pixels_block(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, tab: Tensor,
                         erows: Tensor, lanes: Tensor, env: EnvStack, S2: int) -> Tensor:
-    """One block of `shade_pixels_fused`: `mirror_uv` and `shade_block` (S2 sub-samples per pixel)."""
-    u, v = mirror_uv_block(normal, wo, env.to_world)
-    return shade_block(face, bary, u, v, face_pairs, tab, erows, lanes, env.H, env.W, S2)
+    """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel)."""
+    r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
+    return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

@@ -300,6 +300,28 @@ def test_mirror_uv_is_the_eager_formula_to_round_off():
     assert torch.equal(idx[far], idx_e[far])
 
 
+def test_mirror_cells_are_the_reference_cells():
+    """`fast.mirror_cells_block` (what the compiled sample stage reads: the lat-long cell of the mirror
+    direction, computed in the loop that computes it) gives exactly the cell of ``specular._uv_cells``
+    at the (u, v) of `fast.mirror_uv` (the reference path's look-up): the same first row and the
+    same corner weights, bit for bit, on several grids and rotations."""
+    from methods.ptt import fast as F
+    from methods.ptt import specular as spec
+
+    g = torch.Generator().manual_seed(7)
+    n = 20_000 + 5
+    normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    for H, W in ((256, 512), (32, 64), (33, 70)):
+        to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
+        u, v = F.mirror_uv(normal, wo, to_world)
+        idx, w = spec._uv_cells(u, v, H, W)
+        r, fx, fy = F.mirror_cells_block(normal, wo, to_world, H, W)
+        assert r.dtype == torch.int32 and torch.equal(r.long(), idx[:, 0])
+        gx, gy = 1.0 - fx, 1.0 - fy
+        assert torch.equal(torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1), w)
+
+
 def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     """A frame with misses after frames without (chess bench V frame 4 had one miss in 262 144
     samples and compiled two more graphs in a timed frame, 0.98 s against 0.05 s): misses (face −1)
