@@ -414,9 +414,12 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
 
 
 @functools.lru_cache(maxsize=None)
-def _rotation_samples(order: int) -> tuple[Tensor, Tensor]:
+def _rotation_samples(order: int, device: str = "cpu") -> tuple[Tensor, Tensor]:
     """D (K, 3) float64 unit directions (a Fibonacci sphere of K = 4n² points) and P (n², K) the
-    pseudo-inverse of their SH matrix Y(D) (K, n²) — full column rank, so P Y(D) = I (`rotate_sampled`)."""
+    pseudo-inverse of their SH matrix Y(D) (K, n²) — full column rank, so P Y(D) = I (`rotate_sampled`);
+    built on the CPU (the same numbers on every device), kept per device."""
+    if device != "cpu":
+        return tuple(t.to(device) for t in _rotation_samples(order))
     K = 4 * order * order
     k = torch.arange(K, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * k / K
@@ -444,7 +447,7 @@ def rotate_sampled(c: Tensor, R: Tensor) -> Tensor:
     rotates the lighting SH the same way; SH PRT's and zh_shadow's lighting). One compiled call (two small GEMMs and the n² polynomials)
     instead of the band recursion's ~120 eager ops on (2l+1)² blocks: order 5, 1 thread, same
     process: 0.44 ms against 1.48 ms (3.4×; equal to 7e-15), one per lighting frame."""
-    D, P = _rotation_samples(math.isqrt(c.shape[0]))
+    D, P = _rotation_samples(math.isqrt(c.shape[0]), str(c.device))
     return _rotate_sampled(c, R, D, P)
 
 

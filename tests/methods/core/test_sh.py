@@ -194,3 +194,17 @@ def test_bad_input_raises():
         sh.project_latlong(torch.zeros(1, 8, 3), 2)
     with pytest.raises(ValueError):
         sh.project_latlong(torch.zeros(4, 8, 3), 2, method="nearest")
+
+
+def test_rotate_sampled_follows_the_device_of_its_input(monkeypatch):
+    """`rotate_sampled` takes its fixed directions and pseudo-inverse to the device of c (they are
+    built on the CPU): on the meta device (shapes only, standing in for a GPU) it runs and returns
+    a tensor there instead of mixing devices; the CPU result is unchanged."""
+    from methods.core.sh import rotate_sampled
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    c = torch.randn(16, 3, dtype=torch.float64)
+    R = torch.eye(3, dtype=torch.float64)
+    out = rotate_sampled(c.to("meta"), R.to("meta"))
+    assert out.device.type == "meta" and out.shape == (16, 3)
+    assert (rotate_sampled(c, R) - c).abs().max() <= 1e-12 * c.abs().max()
