@@ -74,6 +74,17 @@ def geometric_normals(V: Tensor, F: Tensor, face: Tensor) -> Tensor:
     return ng / ng.norm(dim=-1, keepdim=True).clamp_min(1e-30)
 
 
+def _face_normals(V: Tensor, F: Tensor, face: Tensor, hit: Tensor):
+    """`geometric_normals` of the faces of G-buffer samples, as a function of sample indices ``sel``
+    (rows of ``face``): computed once per face of the mesh and gathered when the frame's hit
+    samples (``hit``) outnumber the faces (the same per-face arithmetic, so the same normals),
+    else per sample."""
+    if hit.numel() <= F.shape[0]:
+        return lambda sel: geometric_normals(V, F, face[sel])
+    ng = geometric_normals(V, F, torch.arange(F.shape[0], device=F.device))
+    return lambda sel: ng.index_select(0, face[sel])
+
+
 def _segments(regions: list, a: int, b: int) -> list:
     """(material, start, end) ranges, relative to a, of the rows [a, b) of samples laid out region
     after region (``regions``: (material, count) in that order)."""
@@ -285,8 +296,15 @@ def _soa_blocks(x: Tensor, B: int) -> Tensor:
 
 # `_pretrace_stage`'s Inductor options: no tiling heuristics (they chose loops over the 3 components
 # of its (K, B, 3) temporaries, scalar: 417 → 323 ms of a chess bench frame, 1 thread); its gathers
-# (env-map tables) are in range by construction (clamped cells).
-OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False}
+# (env-map tables) are in range by construction (clamped cells). 256-bit vectors (``cpp.simdlen``; the
+# default is the host's widest, 512 on AVX-512): its loops are full of strided loads and gathers
+# (the (K, B, 3) components), which 16-lane vectors assemble element by element through a temporary
+# buffer — ms per 8192-sample block, 1 thread, compiled alone on a chess frame's captured blocks:
+# Blinn-Phong 8.5 → 7.9, Cook-Torrance 9.6 → 7.6, Phong 9.3 → 8.6 (the same numbers, bit for bit).
+# Other hosts keep Inductor's default (None): an explicit 256 on a host without AVX2 would leave the
+# loops scalar.
+OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False,
+           "cpp.simdlen": 256 if torch.backends.cpu.get_cpu_capability() == "AVX512" else None}
 _pretrace_stage = fused(_pretrace_stage, options=OPTIONS)
 _brdf_sample_stage = fused(_brdf_sample_stage)
 _brdf_eval_stage = fused(_brdf_eval_stage)
@@ -348,9 +366,17 @@ class Oracle(Method):
         return geom, vis, eps, gen
 
     def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor, live: int, env) -> None:
-        faces = torch.unique(gbuffer.face[hit_idx])
+        """`frame_cost`'s counts of the frame: the faces hit and their distinct vertices, counted by
+        marking them in per-face / per-vertex flags (what ``torch.unique`` counted, without its sort:
+        33 ms of a 600 ms chess frame, 1 thread)."""
+        M, N = geom.F.shape[0], geom.V.shape[0]
+        hit_face = torch.zeros(M, dtype=torch.bool, device=geom.F.device)
+        hit_face[gbuffer.face[hit_idx]] = True
+        faces = torch.nonzero(hit_face).squeeze(-1)
+        hit_vert = torch.zeros(N, dtype=torch.bool, device=geom.F.device)
+        hit_vert[geom.F[faces].reshape(-1)] = True
         self._last = (gbuffer.num_samples, int(hit_idx.numel()), live, int(faces.numel()),
-                      int(torch.unique(geom.F[faces]).numel()), tuple(int(x) for x in env.data.shape[:2]))
+                      int(hit_vert.sum()), tuple(int(x) for x in env.data.shape[:2]))
 
     def render_reference(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """The eager estimator (`_shade` per region and chunk of samples): the test oracle of
@@ -403,12 +429,13 @@ class Oracle(Method):
         tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64), env.periodic_texels(planes=True))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
+        face_ng = _face_normals(geom.V, geom.F, gbuffer.face, order)
         live_total = 0
         for a in range(0, order.numel(), chunk):
             sel = order[a:a + chunk]
             mats = _segments(regions, a, a + sel.numel())
             o, live_n = self._shade_fast(mats, vis, eps_t, gbuffer.position[sel], gbuffer.normal[sel],
-                                         gbuffer.wo[sel], geometric_normals(geom.V, geom.F, gbuffer.face[sel]),
+                                         gbuffer.wo[sel], face_ng(sel),
                                          U_l[a:a + chunk], K_l[a:a + chunk], U_b[a:a + chunk], tables, env.data,
                                          ext, R32)
             out[sel] = o
