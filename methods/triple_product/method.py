@@ -366,22 +366,16 @@ class TripleProduct(Method):
                 # not the first lighting: the first frame (the harness's untimed warm-up) projects the
                 # whole grid, so a view sequence's next frame does not fill the rest inside a timed frame
                 Fg = Rg.shape[0]
-                # the shading reads the live-column table only (`fast_eval.live_triangles`, filled by
-                # `fill_lighting`), and these whole tables after `fill_lighting()` wrote every row:
-                # left unset (2 × 8.4 MB of zeros on the bench grid); else unprojected rows are
-                # read with weight 0 and must be 0
-                new = torch.empty if fast_eval.live_triangles(self) is not None else torch.zeros
-                Lc, fine = new(Fg, 3, self.K), new(Fg, 3, self.K)
+                Lc, fine = torch.zeros(Fg, 3, self.K), torch.zeros(Fg, 3, self.K)
                 self.stats["lighting_path"] = "general" if lt.azimuth_of(envmap.to_world) is None else "azimuthal"
-                self._lazy_light = {"env": envmap, "R": Rg, "done": torch.zeros(Fg, dtype=torch.bool),
-                                    "unset": new is torch.empty}
+                self._lazy_light = {"env": envmap, "R": Rg, "done": torch.zeros(Fg, dtype=torch.bool)}
                 self.stats["projected_frames"] = 0           # `fill_lighting` adds; `fast_eval.frame_cost` reads
             else:                                # compiled (`lighting.project_env`)
                 Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
                                            grid=self.grid, stats=self.stats)
 
             if self._lazy_light is not None and self.L_idx is not None and self.L_idx.shape == (Fg, self.K):
-                self.L_val = Lc   # a full table to fill (= `truncate` of it, without its 3 ms
+                self.L_val = Lc   # the zeros of a full table (= `truncate` of them, without its 3 ms
                 #                   gather copy); its index table unchanged (0..K−1 per row)
             else:
                 self.L_idx, self.L_val = truncate(Lc, self._n(), cfg["selection"], self.level)
@@ -407,8 +401,6 @@ class TripleProduct(Method):
             return
         t0 = time.perf_counter()
         done = lazy["done"]
-        if live is None and lazy.get("unset"):          # whole rows read: none left unset
-            frames = None
         want = torch.ones_like(done) if frames is None else torch.zeros_like(done).index_fill_(0, frames.reshape(-1), True)
         cache = self.__dict__.setdefault("_perf_cache", {})
         part = cache.get(("live", "L"))
