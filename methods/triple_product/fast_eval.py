@@ -681,9 +681,70 @@ def seed_fine_table(method, name: str, val: Tensor, fine: Tensor) -> None:
 
 
 def fine_bytes(method) -> int:
-    """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``)."""
+    """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``): the
+    whole tables and their live-triangle columns (`live_table`)."""
     cache = method.__dict__.get("_perf_cache", {})
-    return sum(v[2].element_size() * v[2].nelement() for k, v in cache.items() if k[0] == "fine")
+    return sum(v[2].element_size() * v[2].nelement() for k, v in cache.items() if k[0] in ("fine", "live"))
+
+
+# -- live triangles: the fine triangles eq. 7 does not multiply by an exact zero -----------------------
+#
+# In the fine-value sum Σ_t V̂(t) ρ̂_c(t) L̂_c(t) a triangle t where every visibility row is exactly 0
+# (below every vertex's horizon: `precompute.visibility_coeffs` counts those directions as blocked) or
+# every ρ̃ row is (max(0, cos θi) = 0 over the whole triangle, `brdf_table`) adds 0·finite = ±0 to
+# every point's sum, whatever the lighting: half of the local sphere (bench chess 640 of 1280, creature
+# 656). Those triangles' lighting needs no projection (`lighting.project_env` with ``tris``: the
+# samples of the live triangles only), and the sums run over the live columns of the three tables
+# (`live_table`): the same terms, in another association (float32 round-off; a lighting projected
+# lazily on the live triangles and one projected whole give the same image bit for bit, tested).
+
+
+def live_triangles(method, Kp: int | None = None) -> Tensor | None:
+    """(n',) int64 sorted fine triangles where some visibility row and some ρ̃ row are non-zero
+    (comment above), of the full fine-value tables at K' = ``Kp`` (default K); None when every
+    triangle is live, no fine path applies (`fine_ok`), K' < K (top-truncated tables) or an SBRDF
+    blend is set. Cached on the identities of the stored tables; builds the tables' live columns
+    (`live_table`) and drops their whole fine-value tables (only the live columns are read)."""
+    Kp = method.K if Kp is None else int(Kp)
+    if Kp != method.K or getattr(method, "blends", None) or not fine_ok(method):
+        return None
+    bi, bv = _brdf_stack(method)
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    hit = cache.get(("live_tris",))
+    if hit is not None and hit[0] is method.V_val and hit[1] is bv:
+        return hit[2]
+    Vt = fine_table(method, "V", method.V_idx, method.V_val, Kp)       # (N_V, K)
+    Rt = fine_table(method, "rho", bi, bv, Kp)                          # (N_ρ, 3K)
+    live_v = (Vt != 0).any(0)
+    live_r = (Rt.view(Rt.shape[0], 3, Kp) != 0).any(0).any(0)
+    live = torch.nonzero(live_v & live_r, as_tuple=False).squeeze(-1)
+    if live.numel() in (0, Kp):
+        live = None
+    cache[("live_tris",)] = (method.V_val, bv, live)
+    if live is not None:
+        cache[("live", "V")] = (method.V_val, live, Vt[:, live].contiguous())
+        cache[("live", "rho")] = (bv, live, Rt.view(-1, 3, Kp)[:, :, live].reshape(Rt.shape[0], -1).contiguous())
+        cache.pop(("fine", "V"), None)                                    # read through the live columns
+        cache.pop(("fine", "rho"), None)
+    return live
+
+
+def live_table(method, name: str, val: Tensor, live: Tensor) -> Tensor:
+    """The live columns (`live_triangles`) of the fine-value table ``name`` ("V": (N_V, n'), "rho":
+    (N_ρ, 3n'), "L": (F, 3n')) of the stored table ``val``. "L": the lighting grid's — of a lazily
+    set grid the table `TripleProduct.fill_lighting` fills (``live`` given there), else the live
+    columns of the whole grid's fine values (completed first)."""
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    hit = cache.get(("live", name))
+    if hit is not None and hit[0] is val and hit[1] is live:
+        return hit[2]
+    if name != "L":
+        raise RuntimeError(f"live table {name!r} not built for this table (call live_triangles first)")
+    method.fill_lighting()
+    full = fine_table(method, "L", method.L_idx, method.L_val, method.K)
+    tab = full.view(full.shape[0], 3, -1)[:, :, live].reshape(full.shape[0], -1).contiguous()
+    cache[("live", "L")] = (method.L_val, live, tab)
+    return tab
 
 
 def fine_ok(method, mix: Tensor | None = None) -> bool:
@@ -721,22 +782,32 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     Same arguments as `shade`; ``lookups`` as `shading_rows`.
     A lazily set lighting grid (`TripleProduct._set_lighting`): only the grid frames the points
     look up with a non-zero weight are projected (`TripleProduct.fill_lighting`; a weight-0 row is
-    read as 0·finite, and an unprojected row is 0: the same sums)."""
+    read as 0·finite, and an unprojected row is 0: the same sums).
+    The sums run over the live triangles only (`live_triangles`: where no table row is exactly 0
+    throughout), and a lazily set lighting is projected on those only."""
+    live = live_triangles(method)
     if getattr(method, "_lazy_light", None) is not None and method.config["light_lookup"] != "exact":
         if lookups is None:
             lookups = grid_lookups(R, wo_world, method.outgoing, method.grid, method.config["light_lookup"])
-        method.fill_lighting(lookups[2][lookups[3] != 0])
+        method.fill_lighting(lookups[2][lookups[3] != 0], live=live)
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix, lookups=lookups)
     (vp,), rps, (lp,) = spec
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
     Le = level_of_size(Kp)
-    Vt = fine_table(method, "V", vp[1], vp[2], Kp)                       # (N_V, K')
-    Lt = fine_table(method, "L", lp[1], lp[2], Kp)                       # (F, 3K')
     lrows, lw = _merge_psi(lp[3], lp[4], method.grid.n_psi)
-    if len(rps) == 1:
+    if live is not None and Kp == method.K and len(rps) == 1:   # the live columns only (comment above)
+        Vt = live_table(method, "V", vp[2], live)                        # (N_V, n')
+        Lt = live_table(method, "L", lp[2], live)                        # (F, 3n')
+        Rt = live_table(method, "rho", rps[0][2], live)                  # (R·n_o, 3n')
+        brows, bw = rps[0][3], rps[0][4]
+    elif len(rps) == 1:
+        Vt = fine_table(method, "V", vp[1], vp[2], Kp)                   # (N_V, K')
+        Lt = fine_table(method, "L", lp[1], lp[2], Kp)                   # (F, 3K')
         Rt = fine_table(method, "rho", rps[0][1], rps[0][2], Kp)          # (R·n_o, 3K')
         brows, bw = rps[0][3], rps[0][4]
     else:  # SBRDF: the two stacks side by side, rows of "b" offset (Ma 2006 §5, linear in ρ̃)
+        Vt = fine_table(method, "V", vp[1], vp[2], Kp)                   # (N_V, K')
+        Lt = fine_table(method, "L", lp[1], lp[2], Kp)                   # (F, 3K')
         Ra = fine_table(method, "rho", rps[0][1], rps[0][2], Kp)
         Rb = fine_table(method, "rho_b", rps[1][1], rps[1][2], Kp)
         cache = method.__dict__["_perf_cache"]

@@ -617,9 +617,42 @@ def _general_block(R: Tensor, cp: Tensor, T: Tensor, H: int, W: int, wT: Tensor,
     return _kernel(quad_means_coeffs)(*_kernel(env_taps)(R, cp, T, H, W), wT, Q, lanes)
 
 
+def _live_sample_planes(geo: Geodesic, supersample: int, tris: Tensor) -> tuple[Tensor, Tensor]:
+    """`_env_sample_planes` of the fine triangles ``tris`` (n',) only: cp (3, n', 4^s), wT (n', 4^s)
+    (cached on ``geo`` per index tensor, which the cache holds)."""
+    cache = geo.__dict__.setdefault("_live_sample_planes", {})
+    hit = cache.get(supersample)
+    if hit is None or hit[0] is not tris:
+        cp, wT = _env_sample_planes(geo, supersample)
+        t = tris.to(cp.device)
+        hit = cache[supersample] = (tris, cp[:, t].contiguous(), wT[t].contiguous())
+    return hit[1], hit[2]
+
+
+def warm_live(envmap, R: Tensor, geo: Geodesic, *, supersample: int, grid: FrameGrid, tris: Tensor) -> int:
+    """In the harness's warm-up frame (`methods.core.fused.warming`; elsewhere nothing): compile the
+    kernels of `project_env` with ``tris`` — the live-triangle projection later lighting changes run
+    (`TripleProduct.fill_lighting`) — on both paths (``envmap`` turned about +Y, the comb path, and
+    tilted, the general one), full and tail blocks. Returns the warm-up calls made (0 or 1)."""
+    return warm_blocks(_warm_live, [R[:1]], (envmap, R, geo, supersample, grid, tris), [1])
+
+
+def _warm_live(_row: Tensor, envmap, R: Tensor, geo: Geodesic, supersample: int, grid: FrameGrid,
+               tris: Tensor) -> None:
+    """`warm_live`'s call (one projection of the whole grid per path; results dropped)."""
+    from scenes.envmap import EnvMap
+
+    c, s = math.cos(0.5), math.sin(0.5)
+    about_y = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=envmap.to_world.dtype)
+    tilted = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=envmap.to_world.dtype) @ about_y
+    for T in (about_y, tilted):
+        project_env(EnvMap(envmap.data, T), R, geo, supersample=supersample, grid=grid, tris=tris)
+
+
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None,
-                frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None,
+                tris: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """`project_lighting(envmap.radiance, R, geo, supersample)` at run time, per block of
     `env_block_frames` frames two compiled kernels (`methods.core.fused`): the samples' map
     footprints (`env_taps`), then the per-triangle means from the map's quad rows and their float32
@@ -635,6 +668,12 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
             frames its samples look up (`TripleProduct.fill_lighting`).
         out: (coefficients, fine values) tables (F, 3, K) float32 whose rows ``frames`` (all: None)
             receive the result (each block copied into its rows; returned), or None: new tensors.
+        tris: (n',) int64 sorted fine triangles (`forward_butterfly`'s fine order) or None (all):
+            project only their samples — the fine values of those triangles, no coefficients (a
+            transform needs every triangle): returns (None, fine (F', 3, n')), and ``out`` is
+            (None, fine table (F, 3, n')). Each triangle's mean is the same arithmetic as in the
+            whole projection (the triangles the shading multiplies by an exact 0 need no samples:
+            `fast_eval.live_triangles`).
     Returns: coefficients (F, 3, K) float32 (F' rows with ``frames``) (= `project_lighting` to float32 round-off) and the fine
         values (F, 3, K) they transform (the fine-value table of the full grid: no inverse needed).
     """
@@ -643,6 +682,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     if grid is not None and R.shape[0] != grid.size:
         raise ValueError(f"R has {R.shape[0]} frames, the grid {grid.size}")
     cp, wT = _env_sample_planes(geo, supersample)
+    if tris is not None:
+        cp, wT = _live_sample_planes(geo, supersample, tris)
     H, W = envmap.height, envmap.width
     Q = quad_texels(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W)
     lanes = quad_lanes(R.device)
@@ -661,21 +702,33 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         # them, so a sequence whose warm-up lighting turns about +Y (chess / creature "L": the
         # scene's own map first) compiled `quad_means_coeffs` (full and tail blocks) in its first
         # timed frame (1 thread, chess vertex L: 1.2-1.3 s instead of ~70 ms; TORCH_LOGS=recompiles)
-        warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, Q, lanes),
-                    [chunk, *env_tail_sizes(chunk)])
+        if tris is None:
+            warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, Q, lanes),
+                        [chunk, *env_tail_sizes(chunk)])
+        else:                                  # the live triangles' samples only
+            t = tris.to(R.device)
+            u0, v0 = u0[:, t].contiguous(), v0[:, t].contiguous()
         o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
-        coef, fine = _kernel(comb_coeffs)(_kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi))
+        means = _kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi)
+        if tris is None:
+            coef, fine = _kernel(comb_coeffs)(means)
+        else:                                  # (B, n', 3, J) → (B·J, 3, n'), row b·J + j
+            coef, fine = None, means.permute(0, 3, 2, 1).reshape(-1, 3, means.shape[1])
         if frames is None:
             frames = torch.arange(grid.size, device=R.device)
         frames = frames.to(R.device).long()
         rows = _comb_rows(grid, frames)
         if out is not None:
             for x, y in zip(out, (coef, fine)):
-                x.index_copy_(0, frames, y.index_select(0, rows))
+                if x is not None:
+                    x.index_copy_(0, frames, y.index_select(0, rows))
             return out
-        return coef[rows], fine[rows]
+        return None if coef is None else coef[rows], fine[rows]
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
+        if tris is not None:                   # the live triangles' samples only
+            t = tris.to(u0.device)
+            u0, v0 = u0[:, t].contiguous(), v0[:, t].contiguous()
         f = torch.arange(grid.size, device=R.device)
         j = f // grid.n_psi % grid.n_phi
         base = f // (grid.n_phi * grid.n_psi) * grid.n_psi + f % grid.n_psi
@@ -688,10 +741,17 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                     [chunk, *env_tail_sizes(chunk)])
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
-    means = _kernel(quad_means_coeffs)
 
-    def block(*r):  # two compiled kernels per block of frames (a static shape each)
-        return means(*taps(*r, *args), wT, Q, lanes)
+    if tris is None:
+        means = _kernel(quad_means_coeffs)
+
+        def block(*r):  # two compiled kernels per block of frames (a static shape each)
+            return means(*taps(*r, *args), wT, Q, lanes)
+    else:
+        means = _kernel(quad_means)
+
+        def block(*r):  # the live triangles' fine values only (no transform)
+            return None, means(*taps(*r, *args), wT, Q, lanes)
 
     # the tail block sizes too, in the warm-up frame (it projects the whole grid, often no tail)
     warm_blocks(block, rows, (), env_tail_sizes(chunk))
@@ -708,13 +768,14 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
             blk = [torch.cat([x, x[-1:].expand(b - n, *x.shape[1:])]) for x in blk]
         o = block(*blk)
         if out is None:
-            parts.append(tuple(x[:n] for x in o))
+            parts.append(tuple(None if x is None else x[:n] for x in o))
         else:                                  # straight into the caller's rows (no concatenation)
             for x, y in zip(out, o):
-                x.index_copy_(0, dst[a:a + n], y[:n])
+                if x is not None:
+                    x.index_copy_(0, dst[a:a + n], y[:n])
         a += n
     if out is not None:
         return out
     if len(parts) == 1:
         return parts[0]
-    return tuple(torch.cat(x) for x in zip(*parts))                      # (F, 3, n) each
+    return tuple(None if x[0] is None else torch.cat(x) for x in zip(*parts))   # (F, 3, n) each

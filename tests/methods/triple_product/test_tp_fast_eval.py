@@ -244,8 +244,14 @@ def test_frame_cost_tiny_config(scene_frame, n):
         assert 0 < groups < 3 * nh
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
+    # (V and ρ̃ as their live columns only, `fast_eval.live_triangles`; the grid's fine values whole,
+    # as projected, and their live columns, what the sums read)
     nrows = pixel.V_idx.shape[0]
-    assert pixel.memory()["fine_values"] == ((nrows * K + R * n_o * 3 * K + F * 3 * K) * 4 if n is None else 0)
+    live = fast_eval.live_triangles(pixel) if n is None else None
+    nl = K if live is None else live.numel()
+    assert nl <= K
+    want_mem = (nrows * nl + R * n_o * 3 * nl + F * 3 * K + (0 if live is None else F * 3 * nl)) * 4
+    assert pixel.memory()["fine_values"] == (want_mem if n is None else 0)
     exact = TripleProduct(**{**dict(m.config), "light_lookup": "exact"}, progress=False)
     exact.precompute(scene)
     assert exact.frame_cost("V", P) is None
@@ -399,6 +405,71 @@ def test_project_env_tail_blocks_equal_the_whole_projection(monkeypatch):
         part = lt.project_env(env, R, geo, supersample=1, grid=g, frames=sel)
         assert part[0].shape == (17, 3, geo.n)
         assert torch.equal(part[0], whole[0][sel]) and torch.equal(part[1], whole[1][sel])
+
+
+def test_project_env_live_triangles_equal_the_whole_projection(monkeypatch):
+    """`lighting.project_env` with ``tris`` (the live triangles' samples only) gives the whole
+    projection's fine values of those triangles bit for bit, on every path (general kernel, the
+    per-frame azimuthal kernel, the comb table), whole grid and a selection in tail blocks, into new
+    tensors and into an ``out`` table; and `lighting.warm_live` in the warm-up frame compiles every
+    kernel a later live projection runs."""
+    from torch._dynamo.utils import counters
+
+    from methods.core.fused import warming
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(5, 8, 1)                                             # 40 frames
+    geo, R = Geodesic(1), lt.grid_frames(g)
+    monkeypatch.setattr(lt, "ENV_BLOCK_SAMPLES", 12 * 80 * 4)            # blocks of frames and tails
+    monkeypatch.setattr(lt, "ENV_TAIL_MIN", 2)
+    tris = torch.tensor([0, 2, 3, 7, 11, 12, 40, 41, 63, 79])
+    sel = torch.tensor([0, 1, 3, 4, 6, 7, 9, 12, 13, 16, 20, 21, 25, 27, 30, 33, 34, 39])
+    base = get_scene("bunny", "test").envmap
+    with warming():
+        lt.warm_live(lt.prefiltered(base, geo, 1), R, geo, supersample=1, grid=g, tris=tris)
+    graphs = int(counters["stats"]["unique_graphs"])
+    for comb in (True, False):
+        monkeypatch.setattr(lt, "COMB", comb)
+        for env in (base.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]), base.rotated(rotation_y(0.7))):
+            env = lt.prefiltered(env, geo, 1)
+            whole = lt.project_env(env, R, geo, supersample=1, grid=g)[1]
+            if comb:                                                      # compiled in the warm-up above
+                c0 = int(counters["stats"]["unique_graphs"])
+            coef, fine = lt.project_env(env, R, geo, supersample=1, grid=g, tris=tris)
+            assert coef is None and torch.equal(fine, whole[:, :, tris])
+            out = torch.zeros(g.size, 3, tris.numel())
+            lt.project_env(env, R, geo, supersample=1, grid=g, tris=tris, frames=sel, out=(None, out))
+            assert torch.equal(out[sel], whole[sel][:, :, tris])
+            assert int(out.abs().sum(-1).sum(-1).ne(0).sum()) == sel.numel()    # no other row written
+            if comb:
+                assert int(counters["stats"]["unique_graphs"]) == c0
+    assert int(counters["stats"]["unique_graphs"]) >= graphs
+
+
+def test_live_triangles_are_where_no_table_is_zero(scene_frame):
+    """`fast_eval.live_triangles`: the fine triangles where some visibility row and some ρ̃ row are
+    non-zero — every other triangle has an all-zero visibility or ρ̃ column (so its lighting is
+    multiplied by an exact 0); about the lower half of the local sphere on a library scene; the
+    live-column tables are those columns of the whole fine-value tables."""
+    scene, frame, gb = scene_frame
+    m = TripleProduct(level=2, frame_grid=(5, 8, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading="vertex",
+                      progress=False)
+    m.precompute(scene)
+    m.render(frame, gb)
+    live = fast_eval.live_triangles(m)
+    assert live is not None and 0 < live.numel() < m.K
+    Vt = fast_eval.fine_values(m.V_val.float()[:, None, :])[:, 0]           # (N_V, K)
+    bi, bv = fast_eval._brdf_stack(m)
+    Rt = fast_eval.fine_values(bv.float())                                # (N_ρ, 3, K)
+    dead = torch.ones(m.K, dtype=torch.bool)
+    dead[live] = False
+    assert bool(((Vt[:, dead] == 0).all(0) | (Rt[:, :, dead] == 0).all(0).all(0)).all())
+    assert bool(((Vt[:, live] != 0).any(0) & (Rt[:, :, live] != 0).any(0).any(0)).all())
+    assert abs(live.numel() / m.K - 0.5) < 0.15
+    assert torch.equal(fast_eval.live_table(m, "V", m.V_val, live), Vt[:, live])
+    assert torch.equal(fast_eval.live_table(m, "rho", bv, live).view(-1, 3, live.numel()), Rt[:, :, live])
 
 
 def test_comb_warm_up_compiles_the_general_path(monkeypatch):
@@ -608,7 +679,9 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
         full_m.precompute(scene)
         for i, (frame, gb) in enumerate(zip(frames, gbs)):
             img = lazy_m.render(frame, gb)
-            done = lazy_m._lazy_light["done"] if lazy_m._lazy_light is not None else None
+            # frames projected whole, or on the live triangles only (`fast_eval.live_triangles`)
+            lz = lazy_m._lazy_light
+            done = None if lz is None else lz["done"] | lz.get("live", torch.zeros_like(lz["done"]))
             if i == 0:              # the first lighting (the harness's warm-up frame): the whole grid
                 assert done is None and lazy_m.stats["projected_frames"] == lazy_m.grid.size
             elif shading == "pixel":  # the sphere's far side and the plane's one normal: not every frame
