@@ -74,6 +74,12 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
         20·4^l holding the kept prefix when tables are full, then no transform is needed since
         full rows can be kept as fine values at the same size; else K plus 7 inverse transforms,
         8(K − 20)/3 flops each).
+    Where the fine-value path runs and some fine triangles are dead (`live_triangles`: every
+    visibility row or every ρ̃ row exactly 0 there, so they add an exact 0 to eq. 7 whatever the
+    lighting; about half of the local sphere on the bench scenes), only the n' live ones count
+    (session 19: the implementation reads, sums and projects only those): n' values per stored V,
+    ρ̃ and grid row, K' = n' in (b) and the grouped form, n' per blend, and a re-projection of the
+    live triangles' samples only, without the transform (their fine values are what eq. 7 reads).
     A pixel frame summed by groups (`fine_grouped`) counts instead, when smaller, the grouped form
     (`grouped_flops`): per group and channel K'·(k_L + 2·k_L·k_ρ), per shaded sample and channel
     k_v·(2·k_L·k_ρ + k_L) + k_v − 1 (k_v = 3, k_ρ = 4, k_L as above).
@@ -1167,10 +1173,11 @@ def _mean_ancestors(method, name: str, idx: Tensor | None) -> float:
     return hit[1]
 
 
-def triple_flops(method) -> int:
+def triple_flops(method, live: int | None = None) -> int:
     """Minimum flops of eq. 7's triple sum at one shading point once its three functions are
     formed, n kept coefficients per function (module docstring "Frame cost"): min(sparse rule,
-    fine-value product)."""
+    fine-value product). ``live``: the live fine triangles (`live_triangles`) the fine-value
+    product sums over, when fewer than K'."""
     n, C = _kept(method), 3
     bi = _brdf_stack(method)[0] if method.tables else None
     av, ab = _mean_ancestors(method, "V", method.V_idx), _mean_ancestors(method, "rho", bi)
@@ -1178,6 +1185,8 @@ def triple_flops(method) -> int:
     full = all(x is not None and _is_full(method, nm, x) for nm, x in (("V", method.V_idx), ("rho", bi))) and \
         (method.config["selection"] == "top" or method._n() is None or method._n() >= method.K)
     Kp = _round_size(n) if full else method.K
+    if full and live is not None:
+        Kp = min(Kp, int(live))
     dense = 3 * C * Kp + (0 if full else 7 * 8 * (Kp - 20) // 3)
     return int(min(sparse, dense))
 
@@ -1188,42 +1197,50 @@ def blend_terms(k: int) -> int:
     return 2 * k - 1 if k > 1 else 0
 
 
-def blend_flops(method, k_v: int) -> int:
+def blend_flops(method, k_v: int, live: int | None = None) -> int:
     """Flops of forming V, ρ̃ and L at one point from k_v visibility rows (1 channel), 4 ρ̃ rows and
-    the grid look-up's distinct rows (3 channels each): (2k − 1)·n per blend of k rows and channel."""
+    the grid look-up's distinct rows (3 channels each): (2k − 1)·n per blend of k rows and channel
+    (n: the live fine triangles ``live`` when given, `live_triangles`)."""
     k_l = {"nearest": 1, "trilinear": 4 if method.grid.n_psi == 1 else 8}[method.config["light_lookup"]]
-    return _kept(method) * (blend_terms(k_v) + 3 * blend_terms(4) + 3 * blend_terms(k_l))
+    return (_kept(method) if live is None else int(live)) * (blend_terms(k_v) + 3 * blend_terms(4) + 3 * blend_terms(k_l))
 
 
-def grouped_flops(method, groups: int, shaded: int, k_v: int = 3) -> int:
+def grouped_flops(method, groups: int, shaded: int, k_v: int = 3, live: int | None = None) -> int:
     """Flops of eq. 7 by groups (`fine_grouped`, full tables, K' fine triangles): per group and
     channel, the k_L products V̂·L̂_j and the k_L·k_ρ sums of their products with ρ̂_k
     (K'·(k_L + 2·k_L·k_ρ)); per shaded sample and channel, the blend of its k_v groups' values,
     Σ_i w_i (Σ_j w_j (Σ_k w_k T_ijk)): k_v·(2·k_L·k_ρ + k_L) + k_v − 1. k_ρ = 4 ωo rows, k_L the
-    look-up's distinct grid rows (as `blend_flops`)."""
+    look-up's distinct grid rows (as `blend_flops`). ``live``: the live fine triangles
+    (`live_triangles`) instead of K'."""
     k_l = {"nearest": 1, "trilinear": 4 if method.grid.n_psi == 1 else 8}[method.config["light_lookup"]]
-    k_b, Kp = 4, _round_size(_kept(method))
+    k_b, Kp = 4, _round_size(_kept(method)) if live is None else int(live)
     return int(groups * 3 * Kp * (k_l + 2 * k_l * k_b) + shaded * 3 * (k_v * (2 * k_l * k_b + k_l) + k_v - 1))
 
 
-def relight_flops(method, envmap, *, azimuthal: bool = False, frames: int | None = None) -> int:
+def relight_flops(method, envmap, *, azimuthal: bool = False, frames: int | None = None,
+                  live: int | None = None) -> int:
     """Flops of re-projecting the lighting into the F grid frames (`lighting.project_lighting`):
     per sample direction (K·4^s per frame) a 3×3 rotation (15), a bilinear 4-tap RGB env look-up
     (24) and its solid-angle-weighted accumulation (6); per frame the RGB forward transform
     (8 adds per 4 children per level: 8(K − 20)/3 per channel). ``azimuthal``: the map turns about
     +Y only (`lighting.env_taps_azimuthal`): the rotation is one add to the base u (1 + 24 + 6).
-    ``frames``: the grid frames projected (default all; a lazily set grid projects the looked-up ones)."""
+    ``frames``: the grid frames projected (default all; a lazily set grid projects the looked-up ones).
+    ``live``: the live fine triangles (`live_triangles`): only their samples are projected, and their
+    fine values are what eq. 7 reads (no transform)."""
     K, s = method.K, method.config["light_supersample"]
     per_sample = 31 if azimuthal else 45
     F = method.grid.size if frames is None else int(frames)
+    if live is not None:
+        return int(F * per_sample * int(live) * 4 ** s)
     return int(F * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
 
 
-def relight_table_bytes(method) -> int:
+def relight_table_bytes(method, live: int | None = None) -> int:
     """Bytes of the base coordinates an azimuthal re-projection reads (`lighting._azimuthal_samples`:
-    float64 u0 and float32 v0 per sample of the n_theta·n_psi base frames)."""
+    float64 u0 and float32 v0 per sample of the n_theta·n_psi base frames; of the live fine
+    triangles' samples only when ``live`` is given)."""
     g = method.grid
-    return g.n_theta * g.n_psi * method.K * 4 ** method.config["light_supersample"] * (8 + 4)
+    return g.n_theta * g.n_psi * (method.K if live is None else int(live)) * 4 ** method.config["light_supersample"] * (8 + 4)
 
 
 def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
@@ -1253,6 +1270,11 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
         return None
     n = _kept(method)
     pixel = cfg["shading"] == "pixel"
+    # the live fine triangles (`live_triangles`: the others multiply eq. 7 by an exact 0), where the
+    # fine-value path is what runs: its tables, sums and re-projection span only those
+    live_t = live_triangles(method) if cfg["evaluator"] in ("auto", "fine") and fine_ok(method) else None
+    nl = None if live_t is None else int(live_t.numel())
+    nw = n if nl is None else nl                                         # values per stored row read
     rec = method.stats.get("last_frame") or {}
     if rec.get("samples") != num_samples:  # no frame of this size rendered yet: upper bounds
         rec = {"shaded": num_samples, "faces": min(int(method.F.shape[0]), num_samples),
@@ -1260,11 +1282,11 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
                "vertices": min(int(method.V.shape[0]), 3 * num_samples)}
     f4 = 4
     # run-time arrays read once
-    vis = rec["vis_rows"] * n * (f4 + _idx_bytes(method, "V", method.V_idx))
+    vis = rec["vis_rows"] * nw * (f4 + _idx_bytes(method, "V", method.V_idx))
     bi = _brdf_stack(method)[0]
     n_tab = len(method.tables) + len(getattr(method, "blends", {}) or {})
-    brdf = n_tab * method.outgoing.size * n * (3 * f4 + _idx_bytes(method, "rho", bi))
-    grid = method.grid.size * n * (3 * f4 + _idx_bytes(method, "L", method.L_idx))
+    brdf = n_tab * method.outgoing.size * nw * (3 * f4 + _idx_bytes(method, "rho", bi))
+    grid = method.grid.size * nw * (3 * f4 + _idx_bytes(method, "L", method.L_idx))
     mesh = rec["faces"] * 3 * method.F.element_size()                  # the faces' vertex indices
     if pixel:
         gbuf = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8)               # + region (int64)
@@ -1279,11 +1301,11 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
     nbytes = vis + brdf + grid + mesh + gbuf + extras + per_vertex + out
     # flops: per shading point, form the three functions and sum eq. 7
     if pixel:
-        flops = rec["shaded"] * (blend_flops(method, 3) + triple_flops(method))
+        flops = rec["shaded"] * (blend_flops(method, 3, nl) + triple_flops(method, nl))
         if rec.get("groups"):  # the trilinear form by groups ran (`fine_grouped`): its count if smaller
-            flops = min(flops, grouped_flops(method, rec["groups"], rec["shaded"]))
+            flops = min(flops, grouped_flops(method, rec["groups"], rec["shaded"], live=nl))
     else:
-        flops = rec["vertices"] * (blend_flops(method, 1) + triple_flops(method)) + rec["shaded"] * 3 * blend_terms(3)
+        flops = rec["vertices"] * (blend_flops(method, 1, nl) + triple_flops(method, nl)) + rec["shaded"] * 3 * blend_terms(3)
     if "L" in frame_kind or "E" in frame_kind:
         env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
         az = method.stats.get("lighting_path") == "azimuthal"            # what the last re-projection ran
@@ -1291,6 +1313,6 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
         # `TripleProduct.fill_lighting`; the frames it did not need are not compulsory work)
         Fp = min(int(method.stats.get("projected_frames", method.grid.size)), method.grid.size)
         written = grid * Fp // method.grid.size
-        nbytes += int(env.data.numel()) * f4 + written + (relight_table_bytes(method) if az else 0)  # texels read, grid written
-        flops += relight_flops(method, env, azimuthal=az, frames=Fp)
+        nbytes += int(env.data.numel()) * f4 + written + (relight_table_bytes(method, nl) if az else 0)  # texels read, grid written
+        flops += relight_flops(method, env, azimuthal=az, frames=Fp, live=nl)
     return FrameCost(int(nbytes), int(flops))

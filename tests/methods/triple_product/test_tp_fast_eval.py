@@ -153,14 +153,15 @@ def test_render_with_texture_sbrdf_bump_equals_reference(scene_frame, level, n):
             fast_eval.use_fast_shading(m, "fine").render(frame, gb)
 
 
-def _hand_triple(m, n, full):
+def _hand_triple(m, n, full, nl=80):
     """Eq. 7's per-point triple flops by hand (level 1: indices < 20 are level-0 scaling functions,
-    A = 0; the rest level-0 wavelets, A = 1 + 3·0 = 1)."""
+    A = 0; the rest level-0 wavelets, A = 1 + 3·0 = 1); the fine-value product over the nl live
+    fine triangles of full tables."""
     K = 80
     bi = torch.cat([i for i, _ in m.tables.values()])
     av, ab = float((m.V_idx >= 20).double().mean()), float((bi >= 20).double().mean())
     sparse = 3 * (n * (10 + 2 * av) + n * (3 + ab))
-    dense = 9 * K if full else 9 * K + 7 * 8 * (K - 20) // 3
+    dense = 9 * nl if full else 9 * K + 7 * 8 * (K - 20) // 3
     return int(min(sparse, dense))
 
 
@@ -181,17 +182,25 @@ def test_frame_cost_tiny_config(scene_frame, n):
     faces = torch.unique(gb.face[hit])
     verts = torch.unique(m.F[faces].reshape(-1))
     nf, nv, nh = faces.numel(), verts.numel(), int(hit.sum())
-    tables = R * n_o * nk * (3 * 4 + ib)       # RGB values (+ index) per ωo
-    grid = F * nk * (3 * 4 + ib)               # truncated lighting grid
+    m.render(frame, gb)
+    # full tables: the fine triangles where some visibility row and some ρ̃ row are non-zero (the
+    # others add an exact 0 to eq. 7: `fast_eval.live_triangles`, checked against the tables in
+    # test_live_triangles_are_where_no_table_is_zero) are all a frame reads, sums and projects
+    live = fast_eval.live_triangles(m) if n is None else None
+    nl = K if live is None else live.numel()
+    if n is None:
+        assert nl < K                          # this scene has dead triangles: the reduction is tested
+    nw = nk if n is not None else nl           # values per stored row read
+    tables = R * n_o * nw * (3 * 4 + ib)       # RGB values (+ index) per ωo
+    grid = F * nw * (3 * 4 + ib)               # truncated lighting grid
     mesh = nf * 3 * 8                          # vertex indices of the touched faces
     out = P * 3 * 4
-    triple = _hand_triple(m, nk, n is None)
+    triple = _hand_triple(m, nk, n is None, nl)
     # a blend of k rows: k multiplies + (k − 1) adds per value — ρ̃: 4 rows × RGB; L: 4 distinct
     # trilinear rows × RGB; V of a vertex is its own row (no flops)
-    blend_v = nk * (3 * (4 + 3) + 3 * (4 + 3))
-    m.render(frame, gb)
+    blend_v = nw * (3 * (4 + 3) + 3 * (4 + 3))
     got = m.frame_cost("V", P)
-    want_b = nv * nk * (4 + ib) + tables + grid + mesh + nv * (9 * 4 + 3 * 4 + 8) \
+    want_b = nv * nw * (4 + ib) + tables + grid + mesh + nv * (9 * 4 + 3 * 4 + 8) \
         + P * (GBUFFER_BYTES_PER_SAMPLE - 24) + out
     want_f = nv * (blend_v + triple) + nh * 3 * (3 + 2)  # Gouraud: 3 weights × RGB + 2 adds
     assert (got.bytes, got.flops) == (want_b, want_f)
@@ -209,8 +218,9 @@ def test_frame_cost_tiny_config(scene_frame, n):
     for env, per_sample in ((tilted, 45), (turned, 31 if n is None else 45)):  # truncated: the slow path
         m.render(dataclasses.replace(frame, envmap=env), gb)
         assert m.stats["lighting_path"] == ("azimuthal" if per_sample == 31 else "general")
-        relight_f = F * (per_sample * K * S + 3 * 8 * (K - 20) // 3)
-        table_b = 2 * K * S * (8 + 4) if per_sample == 31 else 0
+        # full tables: the live triangles' samples only, and no transform (their fine values are read)
+        relight_f = F * per_sample * nl * S if n is None else F * (per_sample * K * S + 3 * 8 * (K - 20) // 3)
+        table_b = 2 * (nl if n is None else K) * S * (8 + 4) if per_sample == 31 else 0
         for kind in ("L", "VL", "E", "VBL"):
             c = m.frame_cost(kind, P)
             assert (c.bytes, c.flops) == (want_b + H * W * 3 * 4 + grid + table_b, want_f + relight_f), kind
@@ -226,8 +236,8 @@ def test_frame_cost_tiny_config(scene_frame, n):
     idx, w = gb.vertex_weights(pixel.F)
     rows = torch.unique(idx[hit][w[hit] != 0])
     c = pixel.frame_cost("V", P)
-    want_b = rows.numel() * nk * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
-    want_f = nh * (nk * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
+    want_b = rows.numel() * nw * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
+    want_f = nh * (nw * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
     if n is None:  # full tables: summed by groups (fast_eval.fine_grouped) — its count is smaller
         from methods.triple_product import brdf_table as bt, lighting as lt
 
@@ -240,16 +250,14 @@ def test_frame_cost_tiny_config(scene_frame, n):
                               .reshape(-1, 3), dim=0).shape[0]
         # per group and channel: 4 products V̂·L̂_j and 16 sums of (·ρ̂_k), 2 flops each, per fine
         # triangle; per sample and channel: 3 vertices × (16 products and adds + 4 L weights) + 2 adds
-        want_f = min(want_f, groups * 3 * K * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
+        want_f = min(want_f, groups * 3 * nl * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
         assert 0 < groups < 3 * nh
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
     # (V and ρ̃ as their live columns only, `fast_eval.live_triangles`; the grid's fine values whole,
     # as projected, and their live columns, what the sums read)
     nrows = pixel.V_idx.shape[0]
-    live = fast_eval.live_triangles(pixel) if n is None else None
-    nl = K if live is None else live.numel()
-    assert nl <= K
+    assert (fast_eval.live_triangles(pixel) is None) == (live is None)
     want_mem = (nrows * nl + R * n_o * 3 * nl + F * 3 * K + (0 if live is None else F * 3 * nl)) * 4
     assert pixel.memory()["fine_values"] == (want_mem if n is None else 0)
     exact = TripleProduct(**{**dict(m.config), "light_lookup": "exact"}, progress=False)
