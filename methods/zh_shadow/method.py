@@ -918,18 +918,6 @@ class ZHShadow(Method):
             return P * 20
         return min(P * 20, int(rm[2].values().numel()) * 8 + int(rm[2].shape[0]) * 4)
 
-    def _plane_pass_bytes(self, P: int, Qp: int) -> int:
-        """Compulsory bytes of a lighting-only sample-shaded frame's plane pass on a G-buffer of P
-        samples, Qp of them on planes (`frame_cost`): min(each plane sample's face and two
-        barycentrics, 12 bytes; the kept plane operator S of that G-buffer, `_plane_operator`, 8 bytes
-        per non-zero + 4 per pixel — session 19: the implementation reads S instead of the samples)."""
-        cache = None if self._relight is None else self._relight[3]
-        kept = cache.get("plane_pass") if isinstance(cache, dict) else None
-        if kept is None or len(kept) < 3 or kept[2] is None or int(kept[0].numel()) != P:
-            return Qp * 12
-        S = kept[2]
-        return min(Qp * 12, int(S.values().numel()) * 8 + int(S.shape[0]) * 4)
-
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
@@ -956,8 +944,7 @@ class ZHShadow(Method):
           cached lighting-free transfer t = M^α v of the points off the planes, in world space
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
           t, for a sample on a plane its face and two barycentrics (12 bytes: the third is
-          1 − u − v) — or, once a lighting-only frame has kept the plane pass as a sparse operator
-          (`_plane_operator`), when smaller, that operator (8 bytes per non-zero + 4 per pixel) — and the plane vertices' v (n² floats); "vertex": the interpolation of the
+          1 − u − v), and the plane vertices' v (n² floats); "vertex": the interpolation of the
           radiance, 20 bytes per sample, or — once a lighting-only frame has kept the G-buffer's
           interpolation + box-filter operator (`gouraud.resolve_matrix`), when smaller — that
           operator, 8 bytes per non-zero (a float32 weight, an int32 vertex) + 4 per pixel (session 18:
@@ -1008,7 +995,7 @@ class ZHShadow(Method):
         b = P * 3 * 4 + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
         if lighting_only:
-            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else self._plane_pass_bytes(P, Qp))
+            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
             b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
             b += (J1 * N * d + N * 3) * 4 if pose else N * min(n2, d + 3) * 4
