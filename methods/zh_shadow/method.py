@@ -245,72 +245,6 @@ def _warm_relight_planes(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor,
     _plane_face_pixels(faces, bary.permute(2, 0, 1).contiguous(), fv, u, clamp)
 
 
-def _plane_operator(faces: Tensor, gbuffer: GBuffer, fv: Tensor, num_vertices: int) -> tuple:
-    """The plane pass of a lighting-only frame (`_plane_face_pixels`, faces from `_plane_front_faces`)
-    as a sparse matrix, kept with the transfer while the camera stays: S (n, N) CSR with S @ u the
-    pass without its clamp (`gouraud.resolve_matrix` of the plane samples: each pixel's barycentric
-    weights ÷ S², a vertex met by several samples merged), and per vertex the pixels whose samples
-    read it (vptr (N + 1,) int64 offsets into vpix) — the pixels where the clamp can act (a vertex
-    with a negative u channel; where a pixel's vertices all have u ≥ 0 the clamp changes nothing, its
-    weights being ≥ 0). (None, None, None) when a weight is negative (the clamp could then act
-    anywhere). Bench creature E frame, 1 thread: the pass 1.30 → 0.52 ms (S @ u, 183 K entries for
-    226 K plane samples) + the pixels of the vertices with a negative u."""
-    n, S2 = faces.shape
-    hit = (faces >= 0).view(-1)
-    S = gouraud.resolve_matrix(fv, faces.view(-1).long(), gbuffer.bary, hit, gbuffer.height, gbuffer.width,
-                               gbuffer.spp_side, num_vertices)
-    if S.values().numel() == 0 or float(S.values().min()) < 0:
-        return None, None, None
-    pix = torch.repeat_interleave(torch.arange(n, device=faces.device), S.crow_indices().diff())
-    col = S.col_indices()
-    order = torch.argsort(col, stable=True)
-    vptr = torch.zeros(num_vertices + 1, dtype=torch.int64, device=faces.device)
-    vptr[1:] = torch.cumsum(torch.bincount(col, minlength=num_vertices), 0)
-    return S, vptr, pix.index_select(0, order)
-
-
-def _plane_pass(kept: tuple, bary: Tensor, fv: Tensor, u: Tensor, clamp: bool) -> Tensor:
-    """(n, 3) `_plane_face_pixels`(faces, bary, fv, u, clamp) of a lighting-only frame from the kept
-    plane pass ``kept`` = (faces, object pixels, S, vptr, vpix) (`_plane_operator`): S @ u, then the
-    pixels read by a vertex with a negative u channel recomputed per sample (the clamp acts only
-    there); equal to round-off (the merged weights are summed first)."""
-    faces, _, S, vptr, vpix = kept
-    if S is None:
-        return _plane_face_pixels(faces, bary, fv, u, clamp)
-    img = S @ u
-    if clamp:
-        neg = (u < 0).any(1).nonzero().squeeze(-1)
-        if neg.shape[0]:
-            lo, hi = vptr.index_select(0, neg), vptr.index_select(0, neg + 1)
-            ln = hi - lo
-            tot = int(ln.sum())
-            if tot:   # the positions of those vertices' pixels in vpix, then the pixels once each
-                at = torch.repeat_interleave(lo - (torch.cumsum(ln, 0) - ln), ln) + torch.arange(tot, device=u.device)
-                px = torch.unique(vpix.index_select(0, at))
-                img.index_copy_(0, px, _face_pixels_flat(faces.index_select(0, px), bary.index_select(1, px),
-                                                         fv, u, clamp))
-    return img
-
-
-def _face_pixels_flat(face: Tensor, bary: Tensor, fv: Tensor, u: Tensor, clamp: bool) -> Tensor:
-    """`_plane_face_pixels` eagerly for a few pixels (the same terms, in the same order per sample),
-    every sample in one op per step instead of one per sub-sample (~10 ops instead of ~60: 0.1 vs
-    0.8 ms on ~150 pixels)."""
-    k, S2 = face.shape
-    f = face.reshape(-1)
-    fc = f.clamp_min(0).long()
-    bu, bv = bary[0].reshape(-1, 1), bary[1].reshape(-1, 1)
-    x = u[fv[0][fc]] * (1.0 - bu - bv) + u[fv[1][fc]] * bu + u[fv[2][fc]] * bv
-    x = torch.where((f >= 0)[:, None], x, torch.zeros((), dtype=x.dtype))
-    if clamp:
-        x = x.clamp_min(0.0)
-    x = x.view(k, S2, -1)
-    out = x[:, 0]
-    for s in range(1, S2):
-        out = out + x[:, s]
-    return out * (1.0 / S2)
-
-
 @register
 class ZHShadow(Method):
     """Linear-model ZH visibility + Phong convolution operator (Nowrouzezahrai et al. 2008).
@@ -690,9 +624,7 @@ class ZHShadow(Method):
         clamped and added into their pixels; None otherwise (then `runtime.relight`). Replaces the
         per-sample interpolation of the plane term over all P samples, its (P, 3) → (3, P) copy, the
         scatter of the others and the resolve: bench creature, 1 thread, same process, load ~11 on
-        2 cores: L 1.47x, E 1.35x process CPU (`benchmarks.zh_sample_ab`). Session 19: the plane pass
-        as a kept sparse matrix (`_plane_operator`, `_plane_pass`: S @ u, the clamp redone per sample
-        only on the pixels of vertices with a negative u): L 1.14-1.17x, E 1.02-1.06x (load ~10)."""
+        2 cores: L 1.47x, E 1.35x process CPU (`benchmarks.zh_sample_ab`)."""
         groups, mask = cache["groups"], cache.get("mask")
         if len(groups) != 1 or mask is None or groups[0][1] is not None:
             return None
@@ -709,14 +641,12 @@ class ZHShadow(Method):
         if kept is None:
             # built by the first lighting-only frame, kept with the transfer (the G-buffer is the same
             # while the camera is): the plane samples' faces with the plane mask and the front test
-            # folded in, per object term its samples' pixels, and the plane pass as a sparse matrix
-            # (`_plane_operator`)
+            # folded in, and per object term its samples' pixels
             faces = _plane_front_faces(gbuffer.face.view(n, S2), gbuffer.normal.view(n, S2, 3),
                                        gbuffer.wo.T.view(3, n, S2), mask.view(n, S2))
-            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]],
-                                          *_plane_operator(faces, gbuffer, fv, int(u.shape[0])))
-        faces, pixels = kept[:2]
-        img = _plane_pass(kept, gbuffer.bary.T.view(2, n, S2), fv, u, clamp)
+            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]])
+        faces, pixels = kept
+        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), fv, u, clamp)
         light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`

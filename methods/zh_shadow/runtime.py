@@ -1230,10 +1230,7 @@ def relight_cache_bytes(cache: dict) -> int:
     ts = [cache["vi"]] + [x for g in cache["groups"] for x in g[1:] if x is not None]
     ts += [x for entries in cache["regions"] for e in entries for x in e if x is not None]
     if cache.get("plane_pass") is not None:   # (`ZHShadow._relight_planes`: plane faces, object pixels)
-        pp = cache["plane_pass"]
-        ts += [pp[0]] + [x for pxs in pp[1] for x in pxs] + [x for x in pp[3:] if x is not None]
-        if pp[2] is not None:   # the plane pass's sparse matrix (`ZHShadow._relight_planes`)
-            ts += [pp[2].crow_indices(), pp[2].col_indices(), pp[2].values()]
+        ts += [cache["plane_pass"][0]] + [x for pxs in cache["plane_pass"][1] for x in pxs]
     return sum(t.element_size() * t.nelement() for t in ts)
 
 

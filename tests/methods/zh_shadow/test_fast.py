@@ -514,41 +514,6 @@ def test_relight_plane_path_equals_general_relight(small_model, monkeypatch, nam
         assert fast._last_counts["Q"] == slow._last_counts["Q"]
 
 
-@pytest.mark.parametrize("name", ("creature", "sphere_plane"))
-def test_plane_pass_operator_equals_pass(small_model, name):
-    """The kept plane pass of a lighting-only frame (`method._plane_pass`: the sparse S @ u of
-    `_plane_operator`, the pixels of vertices with a negative u channel recomputed per sample) =
-    `_plane_face_pixels` over every pixel, with the clamp on and off, for plane terms u with many
-    negative channels (the clamp acting on some samples, not on others) and with none."""
-    from methods.zh_shadow import method as M
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
-    m = small_model(name)
-    frames = make_sequence(m.scene, "L", 3, seed=6)
-    for fr in frames:
-        gb = make_gbuffer(m.scene, fr, 2)
-        m.render(fr, gb)
-    assert m.last_path == "relight-planes"
-    kept = m._relight[3]["plane_pass"]
-    assert kept[2] is not None, "the plane pass has no operator"
-    n, S2 = kept[0].shape
-    bary = gb.bary.T.view(2, n, S2)
-    fv = m._faces[2]
-    u0 = m._plane_u[3]
-    g = torch.Generator().manual_seed(0)
-    for shift in (0.0, 0.5, 2.0):           # none, some, most plane vertices with a negative channel
-        u = (u0.abs() - shift * u0.abs().max() * torch.rand(u0.shape, generator=g)).contiguous()
-        for clamp in (True, False):
-            want = M._plane_face_pixels.eager(kept[0], bary, fv, u, clamp)
-            got = M._plane_pass(kept, bary, fv, u, clamp)
-            assert want.abs().max() > 0.05
-            assert (got - want).abs().max().item() <= 1e-6 * want.abs().max().item() + 1e-7, (name, shift, clamp)
-            if clamp and shift == 2.0:   # the correction is needed: S @ u alone is not the clamped pass
-                assert (kept[2] @ u - want).abs().max().item() > 1e-3
-        assert bool((u < 0).any()) == (shift > 0)
-
-
 def test_product_tensor_and_features():
     """G[a, j, i] reproduces the product y_j y_i pointwise (it is exact: the product is band-limited
     to 2n−1), and the monomial features map onto the order-B SH exactly on the sphere."""
