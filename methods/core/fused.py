@@ -60,7 +60,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["CHUNK", "compile_enabled", "fused", "map_rows", "neighbour_blocks", "pow2_block", "warm_blocks", "warming"]
+__all__ = ["CHUNK", "call_rows", "compile_enabled", "fused", "map_rows", "neighbour_blocks", "pow2_block", "warm_blocks", "warming"]
 
 # Rows per block of `map_rows`: large enough that a block's launch overhead (~20 µs) is small against
 # its work, small enough that its temporaries stay in the L2 cache of one core.
@@ -163,6 +163,30 @@ def map_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = (), *, chunk
     if isinstance(outs[0], Tensor):
         return outs[0] if len(outs) == 1 else torch.cat(outs)
     return tuple(torch.cat(parts) if len(parts) > 1 else parts[0] for parts in zip(*outs))
+
+
+def call_rows(fn: Callable, rows: Sequence[Tensor], args: Sequence = ()):
+    """``fn(*rows, *args)`` in ONE call over all Q rows of the ``rows`` tensors (same leading size),
+    Q marked symbolic (``torch._dynamo.maybe_mark_dynamic``): one compiled variant serves every
+    count — for compute-bound kernels, where a call per static block of `map_rows` costs more than
+    the symbolic shape (module docstring, "Shapes"). Dynamo specialises sizes 0 and 1, which would
+    compile a variant in a timed frame: Q = 1 is padded to 2 rows by repeating the row, and the
+    results (a tensor or a tuple of tensors with Q leading rows) trimmed back; Q = 0 calls ``fn``
+    on the empty tensors, eagerly when ``fn`` is `fused` (as `map_rows`)."""
+    if not rows:
+        raise ValueError("call_rows needs at least one row tensor")
+    q = int(rows[0].shape[0])
+    if any(int(r.shape[0]) != q for r in rows):
+        raise ValueError(f"row tensors differ in length: {[tuple(r.shape) for r in rows]}")
+    if q == 0:
+        return getattr(fn, "eager", fn)(*rows, *args)
+    rows = [(r if q >= 2 else r.expand(2, *r.shape[1:])).contiguous() for r in rows]
+    for r in rows:
+        torch._dynamo.maybe_mark_dynamic(r, 0)
+    o = fn(*rows, *args)
+    if q >= 2:
+        return o
+    return o[:q] if isinstance(o, Tensor) else tuple(x[:q] for x in o)
 
 
 # -- block sizes that follow a per-frame count (module docstring) --------------------------------------

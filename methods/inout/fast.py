@@ -150,7 +150,7 @@ import torch
 import torch.nn.functional as Fnn
 from torch import Tensor
 
-from methods.core.fused import fused, map_rows, neighbour_blocks, pow2_block, warm_blocks
+from methods.core.fused import call_rows, fused, map_rows, neighbour_blocks, pow2_block, warm_blocks
 from methods.inout import csr
 from methods.inout.transport import lut_cell_xyz
 
@@ -548,15 +548,8 @@ vertex_cells = fused(_vertex_cells)
 def vertex_cells_of(ref: Tensor, pos: Tensor, frames: Tensor, cam: Tensor, R: int) -> tuple[Tensor, Tensor, Tensor]:
     """`vertex_cells` of the n referenced vertices ``ref`` in one compiled call, n marked dynamic
     (``InOut._vertex_view``; static blocks of `sample_block` vertices, padded up to twice the work,
-    took 0.6 against 0.33 ms on chess bench, 1 thread); fewer than two are padded to two (the
-    compiler specialises sizes 0 and 1) and the padding dropped."""
-    n = int(ref.numel())
-    if n < 2:
-        ref = torch.cat([ref, torch.zeros(2 - n, dtype=ref.dtype, device=ref.device)])
-    ref = ref.contiguous()
-    torch._dynamo.maybe_mark_dynamic(ref, 0)
-    front, first, wc = vertex_cells(ref, pos, frames, cam, R)
-    return front[:n], first[:n], wc[:n]
+    took 0.6 against 0.33 ms on chess bench, 1 thread; `methods.core.fused.call_rows`)."""
+    return call_rows(vertex_cells, [ref], (pos, frames, cam, R))
 
 
 def hit_face_counts(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor) -> tuple[Tensor, bool]:

@@ -100,7 +100,7 @@ from methods.core import sh as _sh
 from methods.core import zh as _zh
 from methods.core.sh import _LATLONG_QT, project_latlong_polar, rotate_sampled   # shared with zh_shadow
 from methods.core.frames import reflect
-from methods.core.fused import fused, map_rows
+from methods.core.fused import call_rows, fused, map_rows
 from references.visibility import make_visibility
 from methods.sh_prt import transfer as _tr
 
@@ -340,8 +340,7 @@ _glossy_samples.eager = lambda g, *args: _glossy_samples_impl(  # type: ignore[a
 
 def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
     """`_glossy_samples` over ALL the glossy sample indices g (Qg,) in ONE call, its row count
-    symbolic (``maybe_mark_dynamic``; Qg = 1 padded to 2 rows by repeating the index, as `map_rows`
-    pads: Dynamo specialises sizes 0 and 1, which would compile a variant in a timed frame). Session
+    symbolic (`methods.core.fused.call_rows`: Qg = 1 padded to 2 rows, Qg = 0 eager). Session
     19: the pass is compute-bound (~100 ns per glossy sample), so the static-block rule of
     `methods.core.fused` (memory-bound kernels) does not pay here: the 2 + 1 static blocks of 16384
     and 4096 rows before cost two more compiled calls (Dynamo guards, the ~30 output buffers of
@@ -349,13 +348,7 @@ def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
     CPU: the glossy stage alone 5.10 -> 4.35 ms (1.17x), bit-identical output; V frames 1.09x, VL
     1.07x (``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code OTHER_CHECKOUT
     --kinds V VL --frames 21 --threads 1``, load 8-10)."""
-    q = int(g.numel())
-    if q == 0:
-        return _glossy_samples.eager(g, *args)
-    g = (g if q >= 2 else g.expand(2)).contiguous()
-    torch._dynamo.maybe_mark_dynamic(g, 0)
-    out = _glossy_samples(g, *args)
-    return out if q >= 2 else out[:q]
+    return call_rows(_glossy_samples, [g], args)
 
 
 def lighting_major(X: Tensor) -> Tensor:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from methods.core.fused import fused, map_rows
+from methods.core.fused import call_rows, fused, map_rows
 from methods.core.threads import torch_threads
 
 
@@ -33,6 +33,29 @@ def test_map_rows_equals_one_call_at_any_length(data, q):
     want = _resolve(vidx[:q], bw[:q], col)
     assert got.shape == want.shape == (q, 3)
     torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+
+
+def test_call_rows_one_variant_for_every_count_and_eager_when_empty(data):
+    """`call_rows`: one call over all rows equals the eager function at 0, 1, 2 and many rows (one
+    row padded to two and trimmed; none run eagerly), tuple results trimmed too, and after the
+    first compiled call no count compiles another variant (the count is symbolic)."""
+    from torch._dynamo.utils import counters
+
+    vidx, bw, col = data
+    f = fused(_resolve)
+    for q in (1000, 0, 1, 2, 777):
+        got = call_rows(f, (vidx[:q], bw[:q]), (col,))
+        want = _resolve(vidx[:q], bw[:q], col)
+        assert got.shape == want.shape == (q, 3)
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+        if q == 1000:
+            frames = counters["stats"]["unique_graphs"]
+    assert counters["stats"]["unique_graphs"] == frames
+    a, b = call_rows(fused(_pair), (bw[:1],), (2.0,))
+    assert a.shape == (1, 3) and b.shape == (1, 1)
+    torch.testing.assert_close(a, bw[:1] * 2.0)
+    with pytest.raises(ValueError, match="differ in length"):
+        call_rows(_pair, (bw, bw[:10]), (2.0,))
 
 
 def test_map_rows_tuple_outputs_and_length_checks(data):
