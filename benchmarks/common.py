@@ -27,6 +27,26 @@ def setup(scene_name, size: str = "test", *, kind: str = "V", n_frames: int = 1,
     return st.scene, st.frames, st.gbuffers, st.references
 
 
+SETTLE_SECONDS = float(__import__("os").environ.get("PRTBENCH_SETTLE", "0.2"))
+
+
+def settle() -> None:
+    """Idle ``PRTBENCH_SETTLE`` seconds (default 0.2) before a timed frame of a same-process A/B.
+
+    The perf suite times each frame right after the harness made its G-buffer (Mitsuba) and after
+    idle time, not right after the previous frame: measured here (2026-12-05, ZH paper L, creature
+    bench, quiet machine) a frame after 0.2 s idle took 4.3 ms at 1 thread against 2.6 ms back to
+    back (3.5 ms after 20 ms idle, 2.9 after 5 ms) and 3.5 against 1.8 ms at 2 threads, and a frame
+    right after `make_gbuffer` 3.8 / 3.1 ms. Caches, TLBs and the OpenMP pool cool while the vCPU
+    idles, so a back-to-back A/B favours changes that keep more state warm (session 19's kept ZH
+    plane operator: 1.15x back to back, slower in the suite). Settling makes an A/B measure the
+    condition the suite measures. 0 restores back-to-back frames."""
+    if SETTLE_SECONDS > 0:
+        import time
+
+        time.sleep(SETTLE_SECONDS)
+
+
 def median_time(fn, repeats: int = 5) -> float:
     """Median wall seconds of ``repeats`` calls of ``fn`` after one warm-up call."""
     import statistics
@@ -195,6 +215,7 @@ def ab_frames(new, base, reference, frames, gbs, kind: str) -> dict:
     for i, (f, g) in enumerate(zip(frames, gbs)):
         for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
             mm = new if which == "new" else base
+            settle()
             t0, c0 = time.perf_counter(), time.process_time()
             img = mm.render(f, g)
             w, c = time.perf_counter() - t0, time.process_time() - c0

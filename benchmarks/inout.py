@@ -33,7 +33,7 @@ import time
 
 import torch
 
-from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, inout_regions, machine_limits, precomputed, setup, wall_cpu_time
+from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, inout_regions, machine_limits, precomputed, settle, setup, wall_cpu_time
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -161,6 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
             order = ("old", "new") if i % 2 == 0 else ("new", "old")
             imgs = {}
             for which in order:
+                settle()
                 t0, c0 = time.perf_counter(), time.process_time()
                 imgs[which] = old_render(f, g) if which == "old" else new.render(f, g)
                 (t_old if which == "old" else t_new).append(time.perf_counter() - t0)

@@ -30,7 +30,7 @@ import time
 
 import torch
 
-from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, machine_limits, precomputed, setup
+from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, machine_limits, precomputed, settle, setup
 from methods.ptt.method import PTT
 
 
@@ -103,6 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
             imgs = {}
             for which in (("old", "new") if i % 2 == 0 else ("new", "old")):
                 meth = old if which == "old" else new
+                settle()
                 t0, c0 = time.perf_counter(), time.process_time()
                 imgs[which] = meth.render(f, g)
                 t[which].append(time.perf_counter() - t0)

@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
     ap.set_defaults(threads=1)
     a = ap.parse_args(argv)
 
-    from benchmarks.common import precomputed, setup
+    from benchmarks.common import precomputed, settle, setup
     from methods.core.fused import warming
     from methods.triple_product import TripleProduct
     from reports import measure
@@ -100,8 +100,8 @@ def main(argv=None) -> dict:
             t_old, t_new = [], []
             for f, g in zip(frames[1:], gbs[1:]):   # every timed frame's images compared too (the
                 with _swapped(old_lt, old_fe):        # warm-up frame's lighting often takes another path)
-                    t = clock(); ref = base.render(f, g); t_old.append(clock() - t)
-                t = clock(); img = m.render(f, g); t_new.append(clock() - t)
+                    settle(); t = clock(); ref = base.render(f, g); t_old.append(clock() - t)
+                settle(); t = clock(); img = m.render(f, g); t_new.append(clock() - t)
                 err = max(err, float((img - ref).abs().max() / ref.abs().max()))
             mo, mn = statistics.median(t_old), statistics.median(t_new)
             cost = m.frame_cost(kind, gbs[-1].num_samples)

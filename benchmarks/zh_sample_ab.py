@@ -18,7 +18,7 @@ import time
 
 import torch
 
-from benchmarks.common import apply_ab_options, precomputed, setup
+from benchmarks.common import apply_ab_options, precomputed, settle, setup
 from benchmarks.zh_pose_ab import baseline_class
 
 
@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> dict:
         for i, (f, g) in enumerate(zip(frames, gbs)):
             imgs = {}
             for w in (("new", "base") if i % 2 == 0 else ("base", "new")):
+                settle()
                 c = time.process_time()
                 imgs[w] = (new if w == "new" else base).render(f, g)
                 if i >= 2:
