@@ -316,6 +316,7 @@ class ZHShadow(Method):
         self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
         self._faces: tuple | None = None         # (geometry, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
+        self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
 
@@ -705,21 +706,48 @@ class ZHShadow(Method):
             cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
             woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
-            ts = rt.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas)
+            # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
+            # columns in or of t_s out; consumed region by region below)
+            ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas)
             counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
                                                    geom.N.to(dev), vreg))
             self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
         _, _, ts, front, counts = vt
         light = light.to(dev)
-        kd = torch.stack([m[0] for m in mats], 1).to(dev).index_select(1, vreg)     # (3, N), contiguous
-        with pc.torch_threads(1) if w.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
-            rad = ((light.T * (1.0 / math.pi)) @ w).mul_(kd)
-            if ts is not None:
-                ks = torch.stack([m[1] for m in mats], 1).to(dev).index_select(1, vreg)
-                rad.addcmul_(light.T @ ts, ks)
-        rad.mul_(front)
-        if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
-            rad.clamp_min_(0.0)
+        N = int(w.shape[1])
+        spans = self._region_spans(vreg, len(mats))
+        tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
+        if spans is not None and all(isinstance(sp, tuple) for sp, _ in tsr.values()):
+            # every region one range of vertices (`Scene` concatenates one mesh per region): the
+            # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
+            # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers, no
+            # transposing copy; one thread as `runtime.zonal_conjugate` (thin products)
+            radT = torch.empty(N, 3, dtype=w.dtype, device=dev)
+            with pc.torch_threads(1):
+                for r, (kd, ks, _) in enumerate(mats):
+                    a0, a1 = spans[r]
+                    if a1 == a0:
+                        continue
+                    torch.mm(w[:, a0:a1].T, light * (kd.to(dev, light.dtype) * (1.0 / math.pi)), out=radT[a0:a1])
+                    if r in tsr:
+                        (b0, b1), t = tsr[r]
+                        radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
+            radT.mul_(front[:, None])
+            if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+                radT.clamp_min_(0.0)
+        else:
+            tsf = rt.specular_transfer(w if cosine else vT, nT, None, vreg, alphas, parts=ts) if ts is not None \
+                else None
+            kd = torch.stack([m[0] for m in mats], 1).to(dev).index_select(1, vreg)     # (3, N), contiguous
+            with pc.torch_threads(1) if w.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
+                rad = ((light.T * (1.0 / math.pi)) @ w).mul_(kd)
+                if tsf is not None:
+                    ks = torch.stack([m[1] for m in mats], 1).to(dev).index_select(1, vreg)
+                    rad.addcmul_(light.T @ tsf, ks)
+            rad.mul_(front)
+            if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+                rad.clamp_min_(0.0)
+            radT = rad.T.contiguous()
         self._last_counts = counts.with_fixed(P=gbuffer.num_samples, Q=int(geom.num_vertices))
         # a G-buffer seen by the previous frame (the same camera and pose: a lighting- or material-
         # only frame) is resolved by the sparse matrix of its interpolation + box filter, built by the
@@ -732,11 +760,28 @@ class ZHShadow(Method):
                 self._resolve_matrix = rm = (gkey, geom, gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
                     gbuffer.spp_side, int(geom.num_vertices)))
-            return (rm[2] @ rad.T).view(gbuffer.height, gbuffer.width, 3)
+            return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
-        return gouraud.resolve(rad.T.contiguous(), geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
+        return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
+
+    def _region_spans(self, vreg: Tensor, regions: int) -> list[tuple[int, int]] | None:
+        """Per region r < ``regions`` its vertices' range (a0, a1) (a1 = a0: none) when those ranges
+        tile [0, N) — `Scene` concatenates one mesh per region — else None; kept per vertex-region
+        tensor (the geometry's, the same object every pose)."""
+        sp = self._spans
+        if sp is None or sp[0] is not vreg or sp[1] != regions:
+            N, spans, ok = int(vreg.shape[0]), [], True
+            counts = torch.bincount(vreg.clamp_min(0), minlength=regions).tolist() if N else [0] * regions
+            a = 0
+            for r in range(regions):
+                spans.append((a, a + counts[r]))
+                a += counts[r]
+            ok = a == N and len(counts) == regions and (N == 0 or bool((vreg[1:] >= vreg[:-1]).all())) \
+                and (N == 0 or int(vreg.min()) >= 0)
+            self._spans = sp = (vreg, regions, spans if ok else None)
+        return sp[2]
 
     def _spec_regions(self, frame: Frame) -> list[bool]:
         """Per region: does its material have a specular term (ks > 0)?"""
@@ -836,7 +881,7 @@ class ZHShadow(Method):
                 "plane_term": 0 if self._plane_u is None else tensor_bytes(self._plane_u[3]),
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
                 + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
-                   else tensor_bytes(self._vertex_transfer[2]))
+                   else sum(tensor_bytes(t) for _, _, t in self._vertex_transfer[2]))
                 + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))}
 
     def _resolve_bytes(self, P: int) -> int:

@@ -606,7 +606,8 @@ def _zyz_down(vT: Tensor, ang: tuple, dst: Tensor | None = None) -> Tensor:
     n = len(ang[0])
     perm, absm, sgn, xi, xw, _, _ = _conjugate_tables(n, vT.dtype, vT.device)
     Cp, Sp, Ct, St = ang
-    vT = vT.contiguous()
+    if vT.stride(1) != 1:   # (a column range of a wider array, `specular_parts`: read in place)
+        vT = vT.contiguous()
     torch._dynamo.maybe_mark_dynamic(vT, 1)
     return _zyz_half(vT, Cp, Sp, Ct, St, perm, absm, -sgn, xi, xw, None, dst)
 
@@ -784,49 +785,56 @@ def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas:
     return w * (1.0 / math.pi), specular_transfer(w if cosine else vT, nT, woT, vregion, alphas)
 
 
-def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
-                      alphas: list[float | None]) -> Tensor | None:
-    """The t_s of `point_transfer` from the visibility it rotates (srcT (n², Q): v, or w for the
-    cosine variant) — apart, since only it depends on the view and the exponents."""
+def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
+                   alphas: list[float | None]) -> list[tuple[int, tuple[int, int] | Tensor, Tensor]] | None:
+    """The t_s of `specular_transfer` per region with a specular term, not assembled: [(region,
+    span, t_s (n², Q_r) of the span's columns)] — span (a0, a1) when the region's points are one
+    range of columns (a mesh's vertices: `Scene` concatenates one mesh per region; the creature's
+    9,694 of 13,415), else their positions (Q_r,) int64; the columns of no part are zero. None when
+    no region has a specular term. A range's columns are read as a strided view of srcT by the
+    compiled first half (`_zyz_down`) and R is made for them alone, so a caller that consumes the
+    parts region by region (`ZHShadow._render_vertex`) pays no copy of srcT's columns in and none
+    of the result out (2 × 2.5 MB and a 1 MB zero fill per P frame at order 8 on the creature)."""
     if all(a is None for a in alphas):
         return None
-    src = srcT
-    Q = vregion.shape[0]
-    R = reflect_T(nT, woT)
-    # per specular region: its columns as a range (a0, a1) or as positions; (α+1)/(2π) goes into
-    # the operator (`zonal_conjugate`'s scale: no pass over the result)
     parts = []
     for r, a in enumerate(alphas):
         if a is None:
             continue
         p = (vregion == r).nonzero().squeeze(-1)
-        if p.shape[0]:
-            a0, a1 = int(p[0]), int(p[-1]) + 1
-            parts.append((float(a), (a0, a1) if a1 - a0 == p.shape[0] else p))
-    if len(parts) == 1 and parts[0][1] == (0, Q):
-        a = parts[0][0]
-        return zonal_conjugate(src, R, ("phong", a), (a + 1.0) / (2.0 * math.pi))
-    ranges = sorted(span for _, span in parts if isinstance(span, tuple))
-    if len(ranges) == len(parts):   # every column written once or zero: only the gaps zeroed
-        ts = torch.empty_like(srcT)
-        for lo, hi in zip([0] + [e for _, e in ranges], [s for s, _ in ranges] + [Q]):
-            if hi > lo:
-                ts[:, lo:hi] = 0.0
-    else:
-        ts = torch.zeros_like(srcT)
-    for a, span in parts:
-        scale = (a + 1.0) / (2.0 * math.pi)
-        if isinstance(span, tuple):
-            # the region's points are one range of columns (a mesh's vertices: the creature's
-            # 9,694 of 13,415), taken as slices (row copies) instead of the column gather and
-            # scatter (index_select / index_copy_ along dim 1; index_copy_ alone was the 6th
-            # largest op of a P frame's profile); with the compiled angle tables the stage went
-            # 1.37x faster (benchmarks.zh_pose_ab --stages-ab, 1 thread, load ~10 on 2 cores)
-            a0, a1 = span
-            ts[:, a0:a1] = zonal_conjugate(src[:, a0:a1], R[:, a0:a1], ("phong", a), scale)
+        if not p.shape[0]:
+            continue
+        a0, a1 = int(p[0]), int(p[-1]) + 1
+        # (α+1)/(2π) goes into the operator (`zonal_conjugate`'s scale: no pass over the result)
+        scale, key = (float(a) + 1.0) / (2.0 * math.pi), ("phong", float(a))
+        if a1 - a0 == p.shape[0]:
+            parts.append((r, (a0, a1), zonal_conjugate(srcT[:, a0:a1], reflect_T(nT[:, a0:a1], woT[:, a0:a1]), key,
+                                                       scale)))
         else:
-            ts.index_copy_(1, span, zonal_conjugate(src.index_select(1, span), R.index_select(1, span), ("phong", a),
-                                                    scale))
+            parts.append((r, p, zonal_conjugate(srcT.index_select(1, p),
+                                                reflect_T(nT.index_select(1, p), woT.index_select(1, p)), key, scale)))
+    return parts
+
+
+def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor | None, vregion: Tensor,
+                      alphas: list[float | None], *, parts: list | None = None) -> Tensor | None:
+    """The t_s of `point_transfer` from the visibility it rotates (srcT (n², Q): v, or w for the
+    cosine variant) — apart, since only it depends on the view and the exponents: `specular_parts`
+    assembled into one (n², Q) array (zero in the columns of no specular region); ``parts``: those
+    already made (then nT and woT are not read)."""
+    if parts is None:
+        parts = specular_parts(srcT, nT, woT, vregion, alphas)
+    if parts is None:
+        return None
+    Q = srcT.shape[1]
+    if len(parts) == 1 and isinstance(parts[0][1], tuple) and parts[0][1] == (0, Q):
+        return parts[0][2]
+    ts = torch.zeros_like(srcT)
+    for _, span, t in parts:
+        if isinstance(span, tuple):
+            ts[:, span[0]:span[1]] = t
+        else:
+            ts.index_copy_(1, span, t)
     return ts
 
 

@@ -633,3 +633,25 @@ def test_frame_cost_vertex_planes(monkeypatch):
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9
     c = m.frame_cost("V", P)
     assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (N - Np) * diff + Ns * spec + N * (5 + 12) + P * 18
+
+
+def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
+    """Vertex shading's radiance made region range by region range (`ZHShadow._region_spans`, the
+    albedos folded into the lighting, t_s as `runtime.specular_parts`) = the general path (albedos
+    gathered per vertex, t_s assembled by `runtime.specular_transfer`), both = the reference on P
+    and L frames (cosine, order 8: the physical setting's path)."""
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow._region_spans = lambda vreg, regions: None
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    assert fast._region_spans(m.scene.geometry().vertex_region, len(m.scene.regions)) is not None
+    for f in make_sequence(m.scene, "P", 2, seed=3):
+        gb = make_gbuffer(m.scene, f, 2)
+        a, b = fast.render(f, gb), slow.render(f, gb)
+        assert (a - b).abs().max() <= 1e-5 * b.abs().max()
+    _check_sequence(slow, "P")
+    _check_sequence(slow, "L", n_frames=3)
