@@ -513,38 +513,49 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     Funk–Hecke factors per SH coefficient, order). Components are handled as contiguous rows
     (``FastStatic.pair_pos`` / ``pair_frame``).
 
-    Three passes: the compiled per-pair directions and table cells (`pair_cells`), the weighted bag
-    of the visibility tables (an ``embedding_bag``) and the compiled combination (`pair_rows`: the
-    W_r bag as four row loads, its sums over K and the SH coefficients unrolled). Measured on the
-    chess bench (10 701 pairs, 1 thread, process CPU time, load 6–8): 1.4 ms vs 5.4–5.9 ms for the
-    same arithmetic as ~150 eager passes (each a launch over n elements plus its temporaries); the
-    W_r bag moved into `pair_rows` (session 19, ptv): bag + `pair_rows` 1.12 ms -> 0.67 ms (load ~12)."""
+    Two compiled passes: the per-pair directions, table cells and the visibility look-up V_c
+    (`pair_cells`) and the combination (`pair_rows`: the W_r bag as four row loads, its sums over K
+    and the SH coefficients unrolled). Measured on the chess bench (10 701 pairs, 1 thread, process
+    CPU time, load 6–8): 1.4 ms vs 5.4–5.9 ms for the same arithmetic as ~150 eager passes (each a
+    launch over n elements plus its temporaries); the W_r bag moved into `pair_rows` (session 19,
+    ptv): bag + `pair_rows` 1.12 ms -> 0.67 ms (load ~12).
+
+    Decision (session 20, ptv): the weighted 4-row bag of the visibility tables (an eager
+    ``embedding_bag`` over the (V·Tv², L) rows, 44 MB on the chess bench, its rows cache-cold in a
+    suite frame) is gathered inside `pair_cells`, the loop that computes its cells, vectorised over
+    the pairs: no (n, 4) index / weight arrays and no third pass, and the loads of 16 pairs are in
+    flight together. `vertex_view` alone (1 thread, process CPU time, same process, alternating,
+    0.2 s idle before each call as the suite's frames; two runs, load 3–6): chess bench 3.64–3.68 ->
+    3.39–3.41 ms and 2.89 -> 2.61 ms, creature 3.82 -> 3.43 ms (back to back 1.30–1.82 -> 1.24–1.48). Moving the bag into `pair_rows` instead was slower (3.3 -> 4.2 ms
+    settled): that loop is vectorised along the 16 lanes of a row, so the L = 4 values of each
+    corner became per-lane scalar gathers with an integer division each."""
     v, r = st.pair_v, st.pair_r
     n = v.numel()
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
     nt = lobes["n_theta"] if lobes is not None else 1
     Tv = lobes["Tv"] if lobes is not None else 2
     c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), r, v, T, Tv, nt, lobes is not None,
-                   order)
+                   order, lobes["vis"] if lobes is not None else None)
     Ex = E if st.pair_is_vertex else rows(E, v)
     masks = _channel_masks(K, str(Wr.device))
     if lobes is None:
         return pair_rows(c[0], c[1], Wr, Ex, masks, K, width=width)
-    Vc = Fnn.embedding_bag(c[5], lobes["vis"], per_sample_weights=c[6], mode="sum")  # (n, L); R_z = cos θo
     I1x = None
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
-    return pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], Vc, 1 if nt > 1 else 0, I1x,
-                     c[8] if order else None, lobes["f"] if order else None, c[7], width)
+    return pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], c[5], 1 if nt > 1 else 0, I1x,
+                     c[7] if order else None, lobes["f"] if order else None, c[6], width)
 
 
 def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T: int, Tv: int, nt: int,
-                lobes: bool, order: int) -> tuple:
+                lobes: bool, order: int, vis: Tensor | None = None) -> tuple:
     """The gather-free per-pair arithmetic of `vertex_view`, for ``core.fused``: ωo_x in x's frame,
     the bilinear cell of its table coordinates in the region's W_r rows (idx, wt (n, 4); weight 0
-    below x's horizon); with lobes the θo nodes of a_k (row r0 (n,), weights w0, w1 (n,)), the cell of
-    R_x in x's visibility table (vidx, vwt (n, 4)), cos⁺θo (n,) and, order > 0, the SH basis at R_x
-    (n, order²). pos (3, n), frame (9, n) (``FastStatic.pair_pos`` / ``pair_frame``), cam (3,)."""
+    below x's horizon); with lobes the θo nodes of a_k (row r0 (n,), weights w0, w1 (n,)), the
+    visibility V_c^(k)(x, R_x) (n, L) — the bilinear cell of R_x in x's table of ``vis`` (V·Tv², L)
+    texel-major, its four rows weighted (the bag of the eager form) — cos⁺θo (n,) and, order > 0, the
+    SH basis at R_x (n, order²). pos (3, n), frame (9, n) (``FastStatic.pair_pos`` / ``pair_frame``),
+    cam (3,). Gather-free but for those four visibility rows."""
     dx, dy, dz = cam[0] - pos[0], cam[1] - pos[1], cam[2] - pos[2]
     inv = torch.rsqrt(dx * dx + dy * dy + dz * dz)
     x = (frame[0] * dx + frame[1] * dy + frame[2] * dz) * inv  # ωo_x in the frame (s, t, n)
@@ -565,7 +576,9 @@ def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T
     jx, ux = _cell(-cu, Tv)  # R_x = (−x, −y, z): table coordinates negated
     jy, uy = _cell(-cv, Tv)
     vidx, vwt = _corner_rows(v * (Tv * Tv) + jy * Tv + jx, ux, uy, Tv, up)
-    out = (idx, wt, r * nt + i0, (1 - t) * up, t * up, vidx, vwt, z.clamp_min(0.0))
+    Vc = (vis[vidx[:, 0]] * vwt[:, 0:1] + vis[vidx[:, 1]] * vwt[:, 1:2] + vis[vidx[:, 2]] * vwt[:, 2:3]
+          + vis[vidx[:, 3]] * vwt[:, 3:4])  # (n, L) V_c^(k)(x, R_x): the weighted 4-row bag, gathered here
+    out = (idx, wt, r * nt + i0, (1 - t) * up, t * up, Vc, z.clamp_min(0.0))
     if order:
         out = out + (_sh.sh_eval(torch.stack([-x, -y, z], -1), order),)
     return out
