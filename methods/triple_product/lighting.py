@@ -579,6 +579,15 @@ def _comb_rows(grid: FrameGrid, frames: Tensor) -> Tensor:
     return b * grid.n_phi + j
 
 
+def _comb_select(y: Tensor, rows: Tensor) -> Tensor:
+    """Rows ``rows`` (b·J + j, `_comb_rows`) of (B·J, 3, n) `comb_coeffs` output, or of a (B, J, 3, n)
+    view (the live triangles' means, permuted without a copy): (f, 3, n) contiguous."""
+    if y.ndim == 3:
+        return y.index_select(0, rows)
+    J = y.shape[1]
+    return y[rows // J, rows % J]
+
+
 def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor
                       ) -> tuple[Tensor, Tensor]:
     """`quad_means` and their wavelet coefficients (`spherical_haar.forward_butterfly`), one compiled
@@ -712,8 +721,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         means = _kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi)
         if tris is None:
             coef, fine = _kernel(comb_coeffs)(means)
-        else:                                  # (B, n', 3, J) → (B·J, 3, n'), row b·J + j
-            coef, fine = None, means.permute(0, 3, 2, 1).reshape(-1, 3, means.shape[1])
+        else:                                  # (B, n', 3, J) → a (B, J, 3, n') view, frame (b, j): the
+            coef, fine = None, means.permute(0, 3, 2, 1)   # rows gathered from it once (no copy of all B·J)
         if frames is None:
             frames = torch.arange(grid.size, device=R.device)
         frames = frames.to(R.device).long()
@@ -721,9 +730,9 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         if out is not None:
             for x, y in zip(out, (coef, fine)):
                 if x is not None:
-                    x.index_copy_(0, frames, y.index_select(0, rows))
+                    x.index_copy_(0, frames, _comb_select(y, rows))
             return out
-        return None if coef is None else coef[rows], fine[rows]
+        return None if coef is None else coef[rows], _comb_select(fine, rows)
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
         if tris is not None:                   # the live triangles' samples only
