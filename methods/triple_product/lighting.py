@@ -638,6 +638,26 @@ def _live_sample_planes(geo: Geodesic, supersample: int, tris: Tensor) -> tuple[
     return hit[1], hit[2]
 
 
+def _quad_rows(envmap, device) -> Tensor:
+    """`quad_texels` of the map's periodic texels (float32), kept for the last map data seen: an "L"
+    frame rotates the same (prefiltered) texels, whose quad rows do not depend on the rotation
+    (settled, 1 thread: ~0.5 ms of such a frame rebuilt them). Keyed on the data's storage, view and
+    version counter (an in-place edit of the texels bumps it), holding the data tensor (no reuse of
+    its address while cached). The comb path (E frames' live triangles) needs no quad rows."""
+    t = envmap.data
+    key = (t.untyped_storage().data_ptr(), t.storage_offset(), tuple(t.shape), tuple(t.stride()), t._version,
+           t.dtype, str(device))
+    hit = _QUAD_ROWS.get("last")
+    if hit is None or hit[0] != key:
+        Q = quad_texels(envmap.periodic_texels(device, torch.float32, planes=True), envmap.height, envmap.width)
+        hit = _QUAD_ROWS["last"] = (key, t, Q)
+    return hit[2]
+
+
+# "last" → (key, the data tensor, its quad rows) of `_quad_rows`' last map
+_QUAD_ROWS: dict = {}
+
+
 def warm_live(envmap, R: Tensor, geo: Geodesic, *, supersample: int, grid: FrameGrid, tris: Tensor) -> int:
     """In the harness's warm-up frame (`methods.core.fused.warming`; elsewhere nothing): compile the
     kernels of `project_env` with ``tris`` — the live-triangle projection later lighting changes run
@@ -694,7 +714,6 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     if tris is not None:
         cp, wT = _live_sample_planes(geo, supersample, tris)
     H, W = envmap.height, envmap.width
-    Q = quad_texels(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W)
     lanes = quad_lanes(R.device)
     gamma = None if grid is None else azimuth_of(envmap.to_world)
     if stats is not None:
@@ -712,7 +731,7 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         # scene's own map first) compiled `quad_means_coeffs` (full and tail blocks) in its first
         # timed frame (1 thread, chess vertex L: 1.2-1.3 s instead of ~70 ms; TORCH_LOGS=recompiles)
         if tris is None:
-            warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, Q, lanes),
+            warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, _quad_rows(envmap, R.device), lanes),
                         [chunk, *env_tail_sizes(chunk)])
         else:                                  # the live triangles' samples only
             t = tris.to(R.device)
@@ -751,6 +770,7 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
 
+    Q = _quad_rows(envmap, R.device)
     if tris is None:
         means = _kernel(quad_means_coeffs)
 
