@@ -579,6 +579,15 @@ def _comb_rows(grid: FrameGrid, frames: Tensor) -> Tensor:
     return b * grid.n_phi + j
 
 
+def _comb_select(y: Tensor, rows: Tensor) -> Tensor:
+    """Rows ``rows`` (b·J + j, `_comb_rows`) of (B·J, 3, n) `comb_coeffs` output, or of a (B, J, 3, n)
+    view (the live triangles' means, permuted without a copy): (f, 3, n) contiguous."""
+    if y.ndim == 3:
+        return y.index_select(0, rows)
+    J = y.shape[1]
+    return y[rows // J, rows % J]
+
+
 def quad_means_coeffs(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes: Tensor
                       ) -> tuple[Tensor, Tensor]:
     """`quad_means` and their wavelet coefficients (`spherical_haar.forward_butterfly`), one compiled
@@ -627,6 +636,26 @@ def _live_sample_planes(geo: Geodesic, supersample: int, tris: Tensor) -> tuple[
         t = tris.to(cp.device)
         hit = cache[supersample] = (tris, cp[:, t].contiguous(), wT[t].contiguous())
     return hit[1], hit[2]
+
+
+def _quad_rows(envmap, device) -> Tensor:
+    """`quad_texels` of the map's periodic texels (float32), kept for the last map data seen: an "L"
+    frame rotates the same (prefiltered) texels, whose quad rows do not depend on the rotation
+    (settled, 1 thread: ~0.5 ms of such a frame rebuilt them). Keyed on the data's storage, view and
+    version counter (an in-place edit of the texels bumps it), holding the data tensor (no reuse of
+    its address while cached). The comb path (E frames' live triangles) needs no quad rows."""
+    t = envmap.data
+    key = (t.untyped_storage().data_ptr(), t.storage_offset(), tuple(t.shape), tuple(t.stride()), t._version,
+           t.dtype, str(device))
+    hit = _QUAD_ROWS.get("last")
+    if hit is None or hit[0] != key:
+        Q = quad_texels(envmap.periodic_texels(device, torch.float32, planes=True), envmap.height, envmap.width)
+        hit = _QUAD_ROWS["last"] = (key, t, Q)
+    return hit[2]
+
+
+# "last" → (key, the data tensor, its quad rows) of `_quad_rows`' last map
+_QUAD_ROWS: dict = {}
 
 
 def warm_live(envmap, R: Tensor, geo: Geodesic, *, supersample: int, grid: FrameGrid, tris: Tensor) -> int:
@@ -685,7 +714,6 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     if tris is not None:
         cp, wT = _live_sample_planes(geo, supersample, tris)
     H, W = envmap.height, envmap.width
-    Q = quad_texels(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W)
     lanes = quad_lanes(R.device)
     gamma = None if grid is None else azimuth_of(envmap.to_world)
     if stats is not None:
@@ -703,7 +731,7 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         # scene's own map first) compiled `quad_means_coeffs` (full and tail blocks) in its first
         # timed frame (1 thread, chess vertex L: 1.2-1.3 s instead of ~70 ms; TORCH_LOGS=recompiles)
         if tris is None:
-            warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, Q, lanes),
+            warm_blocks(_general_block, [R.float()], (cp, envmap.to_world.float(), H, W, wT, _quad_rows(envmap, R.device), lanes),
                         [chunk, *env_tail_sizes(chunk)])
         else:                                  # the live triangles' samples only
             t = tris.to(R.device)
@@ -712,8 +740,8 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         means = _kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi)
         if tris is None:
             coef, fine = _kernel(comb_coeffs)(means)
-        else:                                  # (B, n', 3, J) → (B·J, 3, n'), row b·J + j
-            coef, fine = None, means.permute(0, 3, 2, 1).reshape(-1, 3, means.shape[1])
+        else:                                  # (B, n', 3, J) → a (B, J, 3, n') view, frame (b, j): the
+            coef, fine = None, means.permute(0, 3, 2, 1)   # rows gathered from it once (no copy of all B·J)
         if frames is None:
             frames = torch.arange(grid.size, device=R.device)
         frames = frames.to(R.device).long()
@@ -721,9 +749,9 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         if out is not None:
             for x, y in zip(out, (coef, fine)):
                 if x is not None:
-                    x.index_copy_(0, frames, y.index_select(0, rows))
+                    x.index_copy_(0, frames, _comb_select(y, rows))
             return out
-        return None if coef is None else coef[rows], fine[rows]
+        return None if coef is None else coef[rows], _comb_select(fine, rows)
     if gamma is not None:                      # turned about +Y: shifted base coordinates, no trig
         u0, v0 = _azimuthal_samples(geo, supersample, grid)
         if tris is not None:                   # the live triangles' samples only
@@ -742,6 +770,7 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
     else:
         rows, taps, args = (R.float()[sel],), _kernel(env_taps), (cp, envmap.to_world.float(), H, W)
 
+    Q = _quad_rows(envmap, R.device)
     if tris is None:
         means = _kernel(quad_means_coeffs)
 

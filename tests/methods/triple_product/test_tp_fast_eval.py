@@ -712,3 +712,28 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
             assert torch.equal(fast_eval.fine_table(lazy_m, "L", lazy_m.L_idx, lazy_m.L_val, lazy_m.K),
                                fast_eval.fine_table(full_m, "L", full_m.L_idx, full_m.L_val, full_m.K))
             assert lazy_m.stats["lighting_path"] == full_m.stats["lighting_path"]
+
+
+@pytest.mark.parametrize("shading", ["vertex", "pixel"])
+def test_lazy_lighting_recycles_the_replaced_tables_and_renders_the_same(shading):
+    """Consecutive lighting changes that never complete the grid (every frame a new lighting) reuse
+    the replaced lazy lighting's table memory (`TripleProduct._spare_tables`, the live-column table
+    in `fill_lighting`) instead of zero-filling new tables: its stale rows are finite and read only
+    with exact 0 weights, so every image equals the one rendered from the whole grid projected."""
+    scene = get_scene("sphere_plane", "test")
+    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
+               progress=False)
+    for kind in ("L", "E"):
+        frames = make_sequence(scene, kind, n_frames=5, seed=3)
+        gbs = [make_gbuffer(scene, f, 1) for f in frames]
+        lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
+        lazy_m.precompute(scene)
+        full_m.precompute(scene)
+        ptrs = []
+        for i, (frame, gb) in enumerate(zip(frames, gbs)):
+            img = lazy_m.render(frame, gb)
+            ptrs.append(lazy_m.L_val.data_ptr())
+            full_m._set_lighting(frame.envmap)                           # the whole grid, eagerly
+            want = full_m.render(frame, gb)
+            assert torch.equal(img, want), (shading, kind, i)
+        assert ptrs[2] == ptrs[3] == ptrs[4], (shading, kind)            # recycled from the second change on
