@@ -118,6 +118,15 @@ def _distinct(idx: Tensor, n: int) -> Tensor:
     return torch.nonzero(seen, as_tuple=False).squeeze(-1)
 
 
+def _hit_faces(gbuffer: GBuffer, n: int) -> Tensor:
+    """`_distinct` of the faces (n of them) the G-buffer's hit samples see, without gathering the
+    hit samples (misses marked in an (n + 1)-th slot; `index_fill_`): creature bench per-vertex
+    frame, 1 thread, 1.35 -> 0.85 ms with the hit indices it no longer needs."""
+    seen = torch.zeros(n + 1, dtype=torch.bool, device=gbuffer.face.device)
+    seen.index_fill_(0, gbuffer.face.masked_fill(~gbuffer.hit, n), True)
+    return torch.nonzero(seen[:n], as_tuple=False).squeeze(-1)
+
+
 def _int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
     if v is None and none_ok:
         return
@@ -694,11 +703,10 @@ class TripleProduct(Method):
         chunk = max(1, RENDER_FLOATS // (3 * self.K))
         if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
             chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
-        hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         if self.config["shading"] == "vertex":
-            faces = _distinct(gbuffer.face.index_select(0, hit), self.F.shape[0])
+            faces = _hit_faces(gbuffer, self.F.shape[0])
             used = _distinct(self.F[faces].reshape(-1), self.V.shape[0])
-            self._record_frame(gbuffer, hit, faces, used, used)
+            self._record_frame(gbuffer, int(gbuffer.hit.sum()), faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
             Bv = torch.zeros(self.V.shape[0], 3, device=self.V.device)
             for a in range(0, used.numel(), chunk):
@@ -710,6 +718,7 @@ class TripleProduct(Method):
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
+            hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
             vidx, vw = fast_eval.vertex_weights(gbuffer, self.F)        # = gbuffer.vertex_weights(self.F)
             normals = self.shading_normals(gbuffer)                     # bump maps applied
             mix = self.blend_weights(gbuffer)
@@ -734,16 +743,16 @@ class TripleProduct(Method):
                                                     rows, w, take(mix) if self.blends else None,
                                                     evaluator=self.config["evaluator"])
             rows = torch.nonzero(touched[:-1], as_tuple=False).squeeze(-1)
-            self._record_frame(gbuffer, hit, _distinct(gbuffer.face.index_select(0, hit), self.F.shape[0]), rows, None,
+            self._record_frame(gbuffer, hit.numel(), _hit_faces(gbuffer, self.F.shape[0]), rows, None,
                                self.stats.pop("frame_groups", 0))
         return gbuffer.resolve(out)
 
-    def _record_frame(self, gbuffer: GBuffer, hit: Tensor, faces: Tensor, vis_rows: Tensor,
+    def _record_frame(self, gbuffer: GBuffer, shaded: int, faces: Tensor, vis_rows: Tensor,
                       vertices: Tensor | None, groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
         visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
         was summed for (`fast_eval.fine_grouped`; 0: per point)."""
-        self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(hit.numel()),
+        self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(shaded),
                                     "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
                                     "vertices": 0 if vertices is None else int(vertices.numel()),
                                     "groups": int(groups)}
