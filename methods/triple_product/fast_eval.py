@@ -38,7 +38,7 @@ The lighting list (the longest, k_L·n entries) is never enumerated ("c"); V is 
   *fine-value tables* (`fine_table`: each stored row's fine values, computed once per table; fine
   values are linear, so blending them = the fine values of the blend) — the three blends and the
   product summed in one compiled loop per point and channel (`fine_block` through
-  `methods.core.fused`, static blocks of `FINE_BLOCK` points; the blends are never stored).
+  `methods.core.fused`, one call with a symbolic point count; the blends are never stored).
   Measured on chess (bench, 262144 samples, same process, load ~12 on 2 cores): 1.0-1.6 s against
   10.2 s for the previous eager form (three weighted `embedding_bag` blends and a batched product
   per 256 points).
@@ -95,7 +95,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from methods.core.fused import fused, map_rows
+from methods.core.fused import call_rows, fused, map_rows
 from methods.core.spherical_haar import coefficient_structure, level_of_size, n_triangles
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
@@ -404,13 +404,29 @@ def _unplane(planes: tuple[Tensor, ...], mode: str | None, grid) -> tuple:
     return rows, w, torch.stack(planes[8:8 + k], 1), torch.stack(planes[8 + k:], 1)
 
 
+def _lookups_stacked(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None) -> tuple:
+    """`_lookups` stacked in the compiled loop: (rows, w[, lrows, lw]), each (b, k)."""
+    rows, w, lrows, lw = _unplane(_lookups(R, wo_world, outgoing, grid, mode), mode, grid)
+    return (rows, w) if mode is None else (rows, w, lrows, lw)
+
+
+_lookups_stacked_fused = fused(_lookups_stacked, options=FRONT_OPTIONS)
+
+
 def grid_lookups(R: Tensor, wo_world: Tensor, outgoing, grid, mode: str | None):
     """The ωo look-up (rows, w (B, 4), `brdf_table.outgoing_weights` of ωo in the frames R (B, 3, 3))
     and, unless ``mode`` is None, the lighting-grid look-up (`lighting.lookup_weights` of R; its 4
-    distinct frames, `lighting.cell_weights`, for a trilinear look-up with n_psi = 1), compiled over
-    static blocks: (rows, w, lrows, lw), the last two None when ``mode`` is None."""
-    planes = map_rows(_lookups_fused, [R, wo_world], (outgoing, grid, mode), chunk=_rows_chunk(R.shape[0]))
-    return _unplane(planes, mode, grid)
+    distinct frames, `lighting.cell_weights`, for a trilinear look-up with n_psi = 1), compiled:
+    (rows, w, lrows, lw), the last two None when ``mode`` is None. One call with a symbolic point
+    count, the (b, k) results stacked inside it (`methods.core.fused.call_rows`; a compute-bound
+    loop, as `pixel_lookups`); it ran over static blocks of `LOOKUP_TAIL` / `LOOKUP_BLOCK` points,
+    the 16 planes concatenated over the blocks and stacked after (chess bench per-vertex V, 10701
+    vertices: three blocks of 4096, one padded): 1.8 -> 1.1 ms per frame, 1 thread, per-stage
+    timers; the same frame images bit for bit (`benchmarks.tp_frames_ab`)."""
+    if R.ndim != 3 or R.shape[1:] != (3, 3) or wo_world.shape != (R.shape[0], 3):
+        raise ValueError(f"R (B, 3, 3) and wo (B, 3) expected, got {tuple(R.shape)}, {tuple(wo_world.shape)}")
+    out = call_rows(_lookups_stacked_fused, [R, wo_world], (outgoing, grid, mode))
+    return out if mode is not None else (*out, None, None)
 
 
 def lists_from_rows(spec: list[list[tuple]], s: slice, K: int) -> tuple[SparseList, SparseList, SparseList]:
@@ -862,9 +878,8 @@ def fine_block(vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor, lrows: Tens
 
 
 _fine_block = fused(fine_block, options=KERNEL_OPTIONS)
-# Points per compiled block of `fine_kernel` (`methods.core.fused.map_rows`: one static shape).
-FINE_BLOCK = 8192
-# ... and of the remainder (a per-vertex frame shades ~10⁴ points: one 8192 block would pad 35 %).
+# Points per compiled block of `fine_kernel` when it is given ``points`` (tests): blocks of ``points``,
+# the remainder in blocks of at most FINE_TAIL (`methods.core.fused.map_rows`: one static shape each).
 FINE_TAIL = 1024
 
 
@@ -885,10 +900,18 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
                 lrows: Tensor, lw: Tensor, *, points: int | None = None) -> Tensor:
     """Σ_t V̂(t) ρ̂_c(t) L̂_c(t) for B points from fine-value tables (`shade_fine` without the A_L'
     factor): Vt (N_V, K'), Rt (N_ρ, 3K'), Lt (N_L, 3K'); rows/weights (B, k) per table. → (B, 3).
-    `fine_block` compiled (`methods.core.fused`) over static blocks of ``points`` (`FINE_BLOCK`)."""
+    `fine_block` compiled (`methods.core.fused`) in one call over all B points (a symbolic count),
+    or over static blocks of ``points`` when given (tests). It ran over static blocks of
+    8192 / `FINE_TAIL` points (chess bench per-vertex V, 10701 vertices: one block of 8192 and
+    three of 1024, the last padded, then concatenated): 6.0 -> 3.9-4.1 ms per frame, 1 thread,
+    the same sums bit for bit (per-stage timers, loaded machine)."""
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     rows = (vrows.long(), vw.to(dt), brows.long(), bw.to(dt), lrows.long(), lw.to(dt))
-    p = FINE_BLOCK if points is None else int(points)
+    if points is None:
+        # one call with a symbolic point count (`methods.core.fused.call_rows`; the loop is
+        # compute-bound): no padded tail blocks, no per-block call overhead, no concatenation
+        return call_rows(_fine_block, rows, (Vt, R3, L3))
+    p = int(points)
     head = rows[0].shape[0] // p * p if rows[0].shape[0] > p else 0
     tail = min(p, FINE_TAIL)  # the rest in small blocks: padding ≤ FINE_TAIL − 1 points
     # both block sizes compiled in the warm-up frame (``core.fused.warm_blocks``): a later frame may
@@ -921,11 +944,19 @@ def grouping_pays(vrows: Tensor, lrows: Tensor, brows: Tensor) -> bool:
     return vrows.shape[1] > 1 and vrows.shape[0] >= GROUP_MIN_POINTS and lrows.shape[1] * brows.shape[1] <= 64
 
 
-def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+# Cells per frame up to which `group_rows` renumbers the (L cell, ρ̃ cell) pairs densely (a table of
+# that many int32 counters): the keys then fit int32 (bench chess: 2187 distinct of 209 k cells), whose
+# sort runs ~1.6x faster than int64's.
+GROUP_CELL_TABLE = 1 << 22
+
+
+def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None = None,
+               n_b: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The distinct groups (v, L cell, ρ̃ cell) of B points and each point's group per visibility row.
 
     Args: vrows (B, k_v), lrows (B, k_L), brows (B, k_ρ) int64 table rows (a look-up's rows are a
-        function of its first one, module comment above).
+        function of its first one, module comment above); n_l, n_b: bounds of lrows[:, 0] and
+        brows[:, 0] (the L and ρ̃ table row counts; default: their maxima + 1, two more passes).
     Returns: gv (G,), gl (G, k_L), gb (G, k_ρ) int64 rows of every group (sorted by v, then cells)
         and inv (B, k_v) int64 group of every (point, visibility row).
 
@@ -936,25 +967,41 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor) -> tuple[Tensor, Ten
     only, every point taking its run's groups. Chess bench V (262k points, 3 rows each, 1 thread,
     same process): 45 → ~20 ms per frame for runs per visibility column (the full sort was 33 ms
     of it), then 37-42 → 26-27 ms for runs of whole points (B instead of B·k_v flags, run indices
-    and inverse gathers; the same groups, order and inverse)."""
+    and inverse gathers; the same groups, order and inverse). Then the gathers by `index_select`
+    (eager advanced indexing of a (B, 3) int64 array by a (B,) index: 4.2 ms, `index_select` 0.85)
+    and the run starts' cells renumbered in order (`GROUP_CELL_TABLE`) so that the keys sorted are
+    int32 when they fit: the same groups, order and inverse (tests/methods/triple_product)."""
     B, kv = vrows.shape
     dev = vrows.device
-    nl = int(lrows[:, 0].max()) + 1 if B else 1
-    nb = int(brows[:, 0].max()) + 1 if B else 1
+    if B == 0:
+        e = vrows.new_zeros(0)
+        return e, lrows[:0], brows[:0], vrows.new_zeros(0, kv)
+    nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
+    nb = int(brows[:, 0].max()) + 1 if n_b is None else int(n_b)
     cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
     new = torch.ones(B, dtype=torch.bool, device=dev)                     # run starts
     torch.ne(cell[1:], cell[:-1], out=new[1:])
     new[1:] |= (vrows[1:] != vrows[:-1]).any(1)
     start = torch.nonzero(new, as_tuple=False).squeeze(-1)               # (S,)
     run = torch.cumsum(new, 0).sub_(1)                                    # (B,) run of every point
-    key = vrows[start].mul_(nl * nb).add_(cell[start, None])              # (S, k_v)
+    cs = cell.index_select(0, start)                                      # (S,) cells of the runs
+    vs = vrows.index_select(0, start)                                     # (S, k_v)
+    nc = nl * nb                                                          # cell codes
+    if nc <= GROUP_CELL_TABLE:                                            # renumber the cells seen, in order
+        seen = torch.zeros(nc, dtype=torch.int32, device=dev)
+        seen[cs] = 1
+        code = torch.cumsum(seen, 0, dtype=torch.int32).sub_(1)
+        nc = int(code[-1]) + 1
+        cs = code.index_select(0, cs)
+    wide = (int(vs.max()) + 1) * nc >= 2 ** 31
+    key = vs.to(torch.int64 if wide else torch.int32).mul_(nc).add_(cs[:, None])  # (S, k_v)
     uk, inv_s = torch.unique(key.view(-1), return_inverse=True)
     G = uk.numel()
     # a member point of every group (whichever write lands: all members have the group's rows)
     rep = torch.empty(G, dtype=torch.int64, device=dev)
     rep[inv_s] = start.repeat_interleave(kv) if kv > 1 else start
-    inv = inv_s.view(-1, kv)[run]                                         # (B, k_v)
-    return uk // (nl * nb), lrows[rep], brows[rep], inv
+    inv = inv_s.view(-1, kv).index_select(0, run)                         # (B, k_v)
+    return (uk // nc).long(), lrows.index_select(0, rep), brows.index_select(0, rep), inv
 
 
 def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:
@@ -1016,7 +1063,7 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     One call instead of the blocks of GROUP_BLOCK: chess pixel V frame, 1 thread, same process,
     1.06x (L 1.02x), T bit for bit."""
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
-    gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long())
+    gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long(), n_l=L3.shape[0], n_b=R3.shape[0])
     p = GROUP_BLOCK if points is None else int(points)
     G = gv.shape[0]
     if stats is not None:
@@ -1048,6 +1095,19 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     for x in rows:
         torch._dynamo.maybe_mark_dynamic(x, 0)
     return _group_blend(*rows, T)
+
+
+def vertex_weights(gbuffer, F: Tensor) -> tuple[Tensor, Tensor]:
+    """``gbuffer.vertex_weights(F)`` (vertex rows (P, 3) and barycentric weights (P, 3) of every
+    sample, 0 on misses), bit for bit, without eager advanced indexing: ``F[face]`` by
+    `index_select` and the weights written in place (chess bench pixel frame, 1 thread: the
+    eager gather of (P, 3) int64 rows alone ~4 ms, `index_select` ~1 ms)."""
+    idx = F.index_select(0, gbuffer.face.clamp_min(0))
+    u, v = gbuffer.bary.unbind(-1)
+    w = torch.empty(u.shape[0], 3, dtype=(1.0 - u).dtype, device=u.device)
+    torch.sub(1.0 - u, v, out=w[:, 0])
+    w[:, 1], w[:, 2] = u, v
+    return idx, w.masked_fill_(~gbuffer.hit[:, None], 0.0)
 
 
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:

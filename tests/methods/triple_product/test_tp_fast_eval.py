@@ -620,6 +620,16 @@ def test_grouped_kernel_equals_per_point_kernel():
     keys = vrows * (nl * nb) + (lrows[:, 0] * nb + brows[:, 0])[:, None]
     uk, uinv = torch.unique(keys.reshape(-1), return_inverse=True)
     assert torch.equal(gv * (nl * nb) + gl[:, 0] * nb + gb[:, 0], uk) and torch.equal(inv, uinv.view(B, 3))
+    # the table bounds given (the frames' call), or cells renumbered with int64 keys (no dense
+    # table, `GROUP_CELL_TABLE`; or keys past int32): the same groups, order and inverse
+    for kw, table in (({"n_l": 24, "n_b": 12}, None), ({}, 0), ({"n_l": 1 << 20, "n_b": 1 << 20}, None)):
+        old = fast_eval.GROUP_CELL_TABLE
+        fast_eval.GROUP_CELL_TABLE = old if table is None else table
+        try:
+            other = fast_eval.group_rows(vrows, lrows, brows, **kw)
+        finally:
+            fast_eval.GROUP_CELL_TABLE = old
+        assert all(torch.equal(a, b) and a.dtype == b.dtype for a, b in zip(other, (gv, gl, gb, inv)))
     shuffled = fast_eval.group_rows(vrows.flip(0), lrows.flip(0), brows.flip(0))  # runs in another order
     assert torch.equal(shuffled[0], gv) and torch.equal(shuffled[3], inv.flip(0))
     for i in range(3):
