@@ -79,13 +79,18 @@ class GBuffer:
         return self.height * self.width * self.spp_side**2
 
     def vertex_weights(self, F: Tensor) -> tuple[Tensor, Tensor]:
-        """Vertex indices (P, 3) and barycentric weights (P, 3) of each sample (0 on misses)."""
-        f = self.face.clamp_min(0)
-        idx = F[f]
+        """Vertex indices (P, 3) and barycentric weights (P, 3) of each sample (0 on misses).
+
+        ``F[face]`` by `index_select` and the weights written in place: the eager advanced-indexing
+        gather of the (P, 3) int64 rows alone took ~4 ms on a bench G-buffer (262 144 samples, 1
+        thread), `index_select` ~1 ms (session 20); the same values bit for bit as
+        ``stack([1 − u − v, u, v])`` masked by ``where``."""
+        idx = F.index_select(0, self.face.clamp_min(0))
         u, v = self.bary.unbind(-1)
-        w = torch.stack([1.0 - u - v, u, v], dim=-1)
-        w = torch.where(self.hit[:, None], w, torch.zeros_like(w))
-        return idx, w
+        w = torch.empty(u.shape[0], 3, dtype=(1.0 - u).dtype, device=u.device)
+        torch.sub(1.0 - u, v, out=w[:, 0])
+        w[:, 1], w[:, 2] = u, v
+        return idx, w.masked_fill_(~self.hit[:, None], 0.0)
 
     def interpolate(self, values: Tensor, F: Tensor) -> Tensor:
         """Barycentric interpolation of per-vertex ``values`` (N, ...) → per-sample (P, ...)."""

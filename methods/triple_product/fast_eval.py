@@ -1097,19 +1097,6 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     return _group_blend(*rows, T)
 
 
-def vertex_weights(gbuffer, F: Tensor) -> tuple[Tensor, Tensor]:
-    """``gbuffer.vertex_weights(F)`` (vertex rows (P, 3) and barycentric weights (P, 3) of every
-    sample, 0 on misses), bit for bit, without eager advanced indexing: ``F[face]`` by
-    `index_select` and the weights written in place (chess bench pixel frame, 1 thread: the
-    eager gather of (P, 3) int64 rows alone ~4 ms, `index_select` ~1 ms)."""
-    idx = F.index_select(0, gbuffer.face.clamp_min(0))
-    u, v = gbuffer.bary.unbind(-1)
-    w = torch.empty(u.shape[0], 3, dtype=(1.0 - u).dtype, device=u.device)
-    torch.sub(1.0 - u, v, out=w[:, 0])
-    w[:, 1], w[:, 2] = u, v
-    return idx, w.masked_fill_(~gbuffer.hit[:, None], 0.0)
-
-
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:
     """The (H, W, 3) image of per-vertex colours Bv (N, 3) on ``gbuffer`` (Ma 2006 §3.3, per-vertex
     shading: each sample interpolates its triangle's vertex colours barycentrically, 0 on a miss, the

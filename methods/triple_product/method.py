@@ -741,7 +741,7 @@ class TripleProduct(Method):
         else:
             out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
             hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
-            vidx, vw = fast_eval.vertex_weights(gbuffer, self.F)        # = gbuffer.vertex_weights(self.F)
+            vidx, vw = gbuffer.vertex_weights(self.F)
             normals = self.shading_normals(gbuffer)                     # bump maps applied
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0

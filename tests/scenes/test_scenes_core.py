@@ -167,3 +167,27 @@ def test_gbuffer_resolve_channels_first():
         assert (got - want).abs().max() <= 1e-6
         with pytest.raises(ValueError, match="channel-major"):
             gb.resolve(rad, channels_first=True)
+
+
+def test_vertex_weights_equal_the_gathered_form():
+    """`GBuffer.vertex_weights` (`index_select` and in-place weights, session 20) = the plain form
+    ``F[face]``, ``where(hit, stack([1 − u − v, u, v]), 0)`` bit for bit, misses (face −1, any bary)
+    included; on a real bench-like G-buffer layout (P, 2) bary, random faces."""
+    from scenes.frame import GBuffer
+
+    g = torch.Generator().manual_seed(3)
+    H, W, S = 6, 5, 2
+    P = H * W * S * S
+    F = torch.randint(0, 40, (30, 3), generator=g)
+    for frac in (0.0, 0.4, 1.0):
+        hit = torch.rand(P, generator=g) >= frac
+        face = torch.where(hit, torch.randint(0, 30, (P,), generator=g), torch.full((P,), -1))
+        bary = torch.rand(P, 2, generator=g) * 0.5
+        bary[~hit] = float("nan") if frac == 0.4 else 0.0
+        gb = GBuffer(H, W, S, hit, face, bary, torch.zeros(P, 3), torch.zeros(P, 3), torch.zeros(P, 3),
+                     torch.zeros(P, dtype=torch.long), torch.ones(H, W, dtype=torch.bool))
+        idx, w = gb.vertex_weights(F)
+        u, v = bary.unbind(-1)
+        want_w = torch.where(hit[:, None], torch.stack([1.0 - u - v, u, v], -1), torch.zeros(P, 3))
+        assert torch.equal(idx, F[face.clamp_min(0)])
+        assert torch.equal(w, want_w)
