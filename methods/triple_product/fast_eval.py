@@ -50,7 +50,7 @@ The lighting list (the longest, k_L·n entries) is never enumerated ("c"); V is 
 
 Frame cost (the roofline model, `frame_cost` → `methods.base.FrameCost`): the minimum work of a
 frame, n = kept coefficients per function, counts of the last rendered frame of the same size
-(``method.stats["last_frame"]``: shaded samples, distinct faces, distinct visibility rows, shaded
+(``method.last_frame()``: shaded samples, distinct faces, distinct visibility rows, shaded
 vertices, groups of `fine_grouped`; before any render, upper bounds from the sample count):
   * bytes — every array read once: the visibility rows the G-buffer touches (n values + n indices;
     indices of a full table carry nothing and are not counted), every ρ̃ table (SBRDF "b" tables
@@ -1322,7 +1322,7 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
     live_t = live_triangles(method) if cfg["evaluator"] in ("auto", "fine") and fine_ok(method) else None
     nl = None if live_t is None else int(live_t.numel())
     nw = n if nl is None else nl                                         # values per stored row read
-    rec = method.stats.get("last_frame") or {}
+    rec = method.last_frame()
     if rec.get("samples") != num_samples:  # no frame of this size rendered yet: upper bounds
         rec = {"shaded": num_samples, "faces": min(int(method.F.shape[0]), num_samples),
                "vis_rows": min(int(method.V_idx.shape[0]), (4 if method.tex_rows is not None else 3) * num_samples),

@@ -127,6 +127,15 @@ def _hit_faces(gbuffer: GBuffer, n: int) -> Tensor:
     return torch.nonzero(seen[:n], as_tuple=False).squeeze(-1)
 
 
+def _touched_rows(marks: list[tuple[Tensor, Tensor]], n: int) -> Tensor:
+    """The distinct visibility rows (of n) read with a non-zero weight by the chunks' (rows, w)."""
+    dev = marks[0][0].device if marks else None
+    touched = torch.zeros(n + 1, dtype=torch.bool, device=dev)
+    for rows, w in marks:
+        touched[torch.where(w != 0, rows, n)] = True  # last slot: none
+    return torch.nonzero(touched[:-1], as_tuple=False).squeeze(-1)
+
+
 def _int(name: str, v: Any, lo: int, *, none_ok: bool = False) -> None:
     if v is None and none_ok:
         return
@@ -746,7 +755,7 @@ class TripleProduct(Method):
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
-            touched = torch.zeros(self.V_idx.shape[0] + 1, dtype=torch.bool, device=hit.device)
+            marks: list[tuple[Tensor, Tensor]] = []
             self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
             every = hit.numel() == gbuffer.num_samples  # every sample hit: slices, not gathers
             for a in range(0, hit.numel(), chunk):
@@ -756,7 +765,7 @@ class TripleProduct(Method):
                 rows, w = take(vidx), take(vw)
                 if textured:
                     rows, w = self._visibility_rows(hit[s] if every else s, gbuffer, take(uv), rows, w)
-                touched[torch.where(w != 0, rows, touched.shape[0] - 1)] = True  # last slot: none
+                marks.append((rows, w))  # the visibility rows read, for `frame_cost` (counted after the frame)
                 if self.config["evaluator"] == "reference":
                     out[s] = self._shade(lt.local_frames(take(normals), self.config["tangent"]), take(gbuffer.wo).float(),
                                          take(gbuffer.region), rows, w, take(mix) if self.blends else None)
@@ -764,20 +773,33 @@ class TripleProduct(Method):
                     out[s] = fast_eval.shade_pixels(self, take(normals), take(gbuffer.wo).float(), take(gbuffer.region),
                                                     rows, w, take(mix) if self.blends else None,
                                                     evaluator=self.config["evaluator"])
-            rows = torch.nonzero(touched[:-1], as_tuple=False).squeeze(-1)
-            self._record_frame(gbuffer, hit.numel(), _hit_faces(gbuffer, self.F.shape[0]), rows, None,
-                               self.stats.pop("frame_groups", 0))
+            # what the frame read is counted when `frame_cost` asks, not inside the timed frame (the
+            # distinct visibility rows and faces: ~5 ms of a chess bench per-pixel frame, 1 thread)
+            nv, nf = self.V_idx.shape[0], self.F.shape[0]
+            self._record_frame(gbuffer, hit.numel(), lambda: _hit_faces(gbuffer, nf),
+                               lambda: _touched_rows(marks, nv), None, self.stats.pop("frame_groups", 0))
         return gbuffer.resolve(out)
 
-    def _record_frame(self, gbuffer: GBuffer, shaded: int, faces: Tensor, vis_rows: Tensor,
-                      vertices: Tensor | None, groups: int = 0) -> None:
+    def _record_frame(self, gbuffer: GBuffer, shaded: int, faces, vis_rows, vertices: Tensor | None,
+                      groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
         visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
-        was summed for (`fast_eval.fine_grouped`; 0: per point)."""
+        was summed for (`fast_eval.fine_grouped`; 0: per point). ``faces`` / ``vis_rows``: tensors, or
+        callables making them, called by `last_frame` (after the frame: bookkeeping is not timed)."""
         self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(shaded),
-                                    "faces": int(faces.numel()), "vis_rows": int(vis_rows.numel()),
+                                    "faces": faces if callable(faces) else int(faces.numel()),
+                                    "vis_rows": vis_rows if callable(vis_rows) else int(vis_rows.numel()),
                                     "vertices": 0 if vertices is None else int(vertices.numel()),
                                     "groups": int(groups)}
+
+    def last_frame(self) -> dict:
+        """`_record_frame`'s record of the last rendered frame with its deferred counts made ({} before
+        any frame)."""
+        rec = self.stats.get("last_frame") or {}
+        for k in ("faces", "vis_rows"):
+            if callable(rec.get(k)):
+                rec[k] = int(rec[k]().numel())
+        return rec
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def frame_cost(self, frame_kind: str, num_samples: int):
