@@ -216,18 +216,28 @@ def _plane_front_faces(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor) -
     return torch.stack(cols, 1).to(torch.int32)
 
 
-@fused
-def _plane_face_pixels(face: Tensor, bary: Tensor, fv: Tensor, u: Tensor, clamp: bool) -> Tensor:
-    """`_plane_pixels` from `_plane_front_faces` (face (n, S²) int32, −1 where a sample is off the
-    plane or faces away): the same sums, reading 12 bytes per sample (face, barycentrics) instead of
-    the G-buffer's face, normal, ωo and the plane mask (41) — a lighting-only frame's plane pass."""
+# (no per-load bounds checks: the faces are clamped at 0 and index the plane's own face table)
+_NO_ASSERT = {"assert_indirect_indexing": False}
+
+
+@functools.partial(fused, options=_NO_ASSERT)
+def _plane_face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor:
+    """`_plane_pixels` from `_plane_front_faces` renumbered over the plane's faces (face (n, S²)
+    int32: the sample's face among the F_p the plane's samples hit, −1 where a sample is off the
+    plane or faces away) and their corner values of the plane term, uf (F_p, 9) = [u(corner 0),
+    u(corner 1), u(corner 2)] per face: the same sums, reading 12 bytes per sample (face,
+    barycentrics) instead of the G-buffer's face, normal, ωo and the plane mask (41) — a
+    lighting-only frame's plane pass — and one gather of a face's 9 contiguous values from a table
+    of a few tens of KB (F_p symbolic: one kernel for every plane) instead of the face's three vertex
+    ids and then their rows of the mesh's u (an L1-resident table, no dependent second gather:
+    session 20)."""
     S2 = face.shape[1]
     out = None
     for s in range(S2):                       # unrolled: each pixel's sum is one thread's, in order
         f = face[:, s]
         fc = f.clamp_min(0)
         bu, bv = bary[0, :, s, None], bary[1, :, s, None]
-        x = u[fv[0][fc]] * (1.0 - bu - bv) + u[fv[1][fc]] * bu + u[fv[2][fc]] * bv
+        x = uf[fc, 0:3] * (1.0 - bu - bv) + uf[fc, 3:6] * bu + uf[fc, 6:9] * bv
         x = torch.where((f >= 0)[:, None], x, torch.zeros((), dtype=x.dtype))
         if clamp:
             x = x.clamp_min(0.0)
@@ -239,10 +249,13 @@ def _warm_relight_planes(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor,
                          clamp: bool) -> None:
     """`_plane_front_faces` and `_plane_face_pixels` on blocks of G-buffer rows (face, normal, ωo,
     mask, barycentrics per pixel: (n, S², ·)) in the layouts `ZHShadow._relight_planes` passes them
-    (ωo and the barycentrics component-major, as the G-buffer stores them): `warm_blocks` compiles
-    them in the warm-up frame."""
+    (ωo and the barycentrics component-major, as the G-buffer stores them; the corner table of every
+    face of the mesh, fv (3, M) its corners, u (N, 3) per vertex): `warm_blocks` compiles them in the
+    warm-up frame."""
     faces = _plane_front_faces(face, normal, wo.permute(2, 0, 1).contiguous(), mask)
-    _plane_face_pixels(faces, bary.permute(2, 0, 1).contiguous(), fv, u, clamp)
+    uf = u.index_select(0, fv.T.reshape(-1)).view(-1, 9)
+    torch._dynamo.maybe_mark_dynamic(uf, 0)
+    _plane_face_pixels(faces, bary.permute(2, 0, 1).contiguous(), uf, clamp)
 
 
 @register
@@ -633,8 +646,6 @@ class ZHShadow(Method):
             return None   # a specular term on the plane, or no plane points: `runtime.relight`
         dev, P = gbuffer.hit.device, gbuffer.num_samples
         n0 = groups[0][0]
-        u = self._plane_term(v0, v, vreg, Wd, mats, n0)
-        _, fv = self._face_rows(geom, dev)
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         n = gbuffer.height * gbuffer.width
@@ -642,12 +653,24 @@ class ZHShadow(Method):
         if kept is None:
             # built by the first lighting-only frame, kept with the transfer (the G-buffer is the same
             # while the camera is): the plane samples' faces with the plane mask and the front test
-            # folded in, and per object term its samples' pixels
+            # folded in — renumbered over the faces the plane's samples hit, with those faces' vertex
+            # ids renumbered over their vertices (pv) — and per object term its samples' pixels
+            _, fv = self._face_rows(geom, dev)
             faces = _plane_front_faces(gbuffer.face.view(n, S2), gbuffer.normal.view(n, S2, 3),
                                        gbuffer.wo.T.view(3, n, S2), mask.view(n, S2))
-            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]])
-        faces, pixels = kept
-        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), fv, u, clamp)
+            on = faces >= 0
+            pf, local = torch.unique(faces[on], return_inverse=True)
+            faces = torch.full_like(faces, -1).masked_scatter_(on, local.to(torch.int32))
+            corners = fv.T.index_select(0, pf.long()).reshape(-1)   # (3·F_p,) the plane faces' corner vertices
+            cache["plane_pass"] = kept = (faces, [[p // S2 for p, _, _ in entries] for entries in cache["regions"]],
+                                          corners, vreg.index_select(0, corners))
+        faces, pixels, corners, creg = kept
+        # the plane term u = kd ⊙ v · T¹(n0) (`_plane_term`) at the plane faces' corners alone (3·F_p
+        # rows: 4,341 on the bench creature instead of the mesh's 13,415 vertices), as a face table
+        kd_c = torch.stack([m[0] for m in mats]).to(dev, v.dtype).index_select(0, creg)
+        uf = (v.index_select(0, corners) @ rt.diffuse_at(Wd, n0)).mul_(kd_c).view(-1, 9)
+        torch._dynamo.maybe_mark_dynamic(uf, 0)
+        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), uf, clamp)
         light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
