@@ -982,6 +982,11 @@ class ZHShadow(Method):
             Q = Qs = N if vertex else P
             Qp = Qps = Np = G = 0
         Qo = Q - Qp                                                # points off the planes
+        pp = self._relight[3].get("plane_pass") if self._relight is not None and not vertex else None
+        if kind in ("L", "E") and pp is not None and lc is not None and lc["P"] == P:
+            # a lighting-only frame's plane pass (`_relight_planes`, one plane) reads v at the corners
+            # of the plane faces its samples hit only: those distinct vertices, not all the plane's
+            Np = min(Np, int(torch.unique(pp[2]).numel()))
         regions = self.scene.regions
         n_spec_regions = sum(1 for r in regions if self.scene.materials[r].kind == "phong")
         nnz = int((self._op(1.0) != 0).sum())

@@ -1014,6 +1014,8 @@ def diffuse_at(Wd: Tensor, n0: Tensor, C: int = 3) -> Tensor:
     """(n², C) T¹(n0): the diffuse factor of every SH visibility coefficient at one normal n0 (3,)
     (the features of n0 kept per normal: `_normal_features`)."""
     n2 = Wd.shape[1] // C
+    # (the key: n0's values exactly — float32 → Python float is exact — converted once to Wd's dtype
+    # as before, so the features are bit for bit those of ``n0.to(Wd.dtype)``)
     return (Wd.T @ _normal_features(tuple(n0.tolist()), math.isqrt(n2), Wd.dtype, Wd.device)).view(n2, C)
 
 
@@ -1022,7 +1024,7 @@ def _normal_features(n0: tuple, order: int, dtype: torch.dtype, device) -> Tenso
     """(K, 1) diffuse `features` of one normal n0 (a plane's: the same every frame), made once — a
     lighting frame's plane term needed only the product by the new table (the features were ~15 eager
     ops of a single column, 0.3 ms of a settled L frame on the bench creature)."""
-    return features(torch.tensor(n0, dtype=torch.float32).reshape(3, 1).to(dtype=dtype, device=device), order, True)
+    return features(torch.tensor(n0, dtype=dtype, device=device).reshape(3, 1), order, True)
 
 
 def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Tensor, vertex_region: Tensor,

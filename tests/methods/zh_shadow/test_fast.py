@@ -584,6 +584,26 @@ def test_frame_cost_hand_count():
     c = m.frame_cost("E", P)
     proj = 2 * H * W * 3 * 7 + 2 * H * 16 * 3
     assert (c.bytes, c.flops) == (lo_b + H * W * 3 * 4, lo_f + proj)
+    # once a lighting-only frame took the plane pass (`_relight_planes`): it reads v at the corners of
+    # the plane faces its front-facing samples hit only — those distinct vertices instead of Np
+    gb2 = make_gbuffer(sc, fr, 2)
+    mp = m.with_render_config()
+    light = dataclasses.replace(fr, changed=frozenset({"light"}))
+    mp.render(fr, gb2)
+    for _ in range(2):
+        mp.render(light, gb2)
+    if bool(gb2.hit.all()):
+        assert mp.last_path == "relight-planes"
+        onp = gb2.hit & (gb2.normal == up).all(-1) & ((gb2.normal * gb2.wo).sum(-1) > 0)
+        Nc = torch.unique(g.F.long()[torch.unique(gb2.face[onp].long())]).numel()
+        assert 0 < Nc < Np
+        P2, Q2 = gb2.num_samples, int(gb2.hit.sum())
+        Qs2 = int((gb2.region[gb2.hit] == sc.regions.index("sphere")).sum())
+        Qp2 = int((gb2.hit & (gb2.normal == up).all(-1)).sum())
+        want_b = P2 * 12 + fixed + Qs2 * 2 * 16 * 4 + Nc * 16 * 4 + Qp2 * 12
+        want_f = Qs2 * 2 * 6 * 16 + Q2 * 12 + Qp2 * 18 + 12 * 84 + 6 * 44 + Nc * 6 * 16 + 6 * 84
+        c = mp.frame_cost("L", P2)
+        assert (c.bytes, c.flops) == (want_b, want_f)
     big = m.frame_cost("V", 4 * P)                                           # no render on that size: all covered
     assert big.flops == 4 * P * (diff + 5 + 12 + 6 * 16 + spec)
     mv = m.with_render_config(shading="vertex")
