@@ -679,6 +679,20 @@ def test_grid_lookups_equal_the_eager_lookups(grid, mode):
         assert not torch.equal(wrong[0], er) and torch.equal(wrong[2], el)
 
 
+def _lazy_and_full(shading: str, kind: str, *, n_frames: int, seed: int):
+    """A ``kind`` sequence on sphere_plane (test size) with its G-buffers, and two precomputed level-1
+    `TripleProduct`s of one configuration: (frames, gbuffers, the lazily lit one, the eagerly lit one)."""
+    scene = get_scene("sphere_plane", "test")
+    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
+               progress=False)
+    frames = make_sequence(scene, kind, n_frames=n_frames, seed=seed)
+    gbs = [make_gbuffer(scene, f, 1) for f in frames]
+    lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
+    lazy_m.precompute(scene)
+    full_m.precompute(scene)
+    return frames, gbs, lazy_m, full_m
+
+
 @pytest.mark.parametrize("shading", ["pixel", "vertex"])
 def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(shading):
     """A lighting change on the fine-value path projects only the grid frames the frame looks up
@@ -686,15 +700,8 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
     equals the one rendered from the whole grid projected first, and completing the grid gives the
     whole projection's coefficients and fine values exactly (the same `lighting.project_env` blocks).
     An "L" sequence (tilted axis, general kernel) and an "E" one (probes turned about +Y)."""
-    scene = get_scene("sphere_plane", "test")
-    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
-               progress=False)
     for kind in ("L", "E"):
-        frames = make_sequence(scene, kind, n_frames=3, seed=2)
-        gbs = [make_gbuffer(scene, f, 1) for f in frames]
-        lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
-        lazy_m.precompute(scene)
-        full_m.precompute(scene)
+        frames, gbs, lazy_m, full_m = _lazy_and_full(shading, kind, n_frames=3, seed=2)
         for i, (frame, gb) in enumerate(zip(frames, gbs)):
             img = lazy_m.render(frame, gb)
             # frames projected whole, or on the live triangles only (`fast_eval.live_triangles`)
@@ -730,15 +737,8 @@ def test_lazy_lighting_recycles_the_replaced_tables_and_renders_the_same(shading
     the replaced lazy lighting's table memory (`TripleProduct._spare_tables`, the live-column table
     in `fill_lighting`) instead of zero-filling new tables: its stale rows are finite and read only
     with exact 0 weights, so every image equals the one rendered from the whole grid projected."""
-    scene = get_scene("sphere_plane", "test")
-    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading,
-               progress=False)
     for kind in ("L", "E"):
-        frames = make_sequence(scene, kind, n_frames=5, seed=3)
-        gbs = [make_gbuffer(scene, f, 1) for f in frames]
-        lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
-        lazy_m.precompute(scene)
-        full_m.precompute(scene)
+        frames, gbs, lazy_m, full_m = _lazy_and_full(shading, kind, n_frames=5, seed=3)
         ptrs = []
         for i, (frame, gb) in enumerate(zip(frames, gbs)):
             img = lazy_m.render(frame, gb)
