@@ -630,6 +630,18 @@ def test_grouped_kernel_equals_per_point_kernel():
         finally:
             fast_eval.GROUP_CELL_TABLE = old
         assert all(torch.equal(a, b) and a.dtype == b.dtype for a, b in zip(other, (gv, gl, gb, inv)))
+    # the frames' form: the groups per run of points and each point's run (int32); expanded, `group_rows`
+    rgv, rgl, rgb, inv_s, run = fast_eval.group_runs(vrows, lrows, brows, n_l=24, n_b=12)
+    assert all(torch.equal(a, b) for a, b in zip((rgv, rgl, rgb), (gv, gl, gb)))
+    assert run.dtype == torch.int32 and inv_s.shape[0] == int(run.max()) + 1 < B
+    assert torch.equal(inv_s[run.long()], inv) and bool((run.diff() >= 0).all())
+    # a point differing from its neighbour in one visibility column only starts a new run
+    vr2 = vrows.clone()
+    vr2[5, 2] += 1
+    assert torch.equal(fast_eval.group_rows(vr2, lrows, brows)[0][fast_eval.group_rows(vr2, lrows, brows)[3][5, 2]], vr2[5, 2])
+    vw_, lw_, bw_ = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
+    T = torch.randn(gv.shape[0], 3 * 16, generator=gen)
+    assert torch.equal(fast_eval.group_blend_runs(run, inv_s, vw_, lw_, bw_, T), fast_eval.group_blend(inv, vw_, lw_, bw_, T))
     shuffled = fast_eval.group_rows(vrows.flip(0), lrows.flip(0), brows.flip(0))  # runs in another order
     assert torch.equal(shuffled[0], gv) and torch.equal(shuffled[3], inv.flip(0))
     for i in range(3):
