@@ -759,3 +759,39 @@ def test_lazy_lighting_recycles_the_replaced_tables_and_renders_the_same(shading
             want = full_m.render(frame, gb)
             assert torch.equal(img, want), (shading, kind, i)
         assert ptrs[2] == ptrs[3] == ptrs[4], (shading, kind)            # recycled from the second change on
+
+
+
+def test_pixel_render_equals_the_resolved_samples(scene_frame, monkeypatch):
+    """A per-pixel frame returns `GBuffer.resolve` of its per-sample radiance bit for bit, the radiance
+    scattered into a zero-filled (P, 3) array (the old form) — every sample hit in one batch (its
+    radiance is the frame's: no zero-filled copy, no mask), in several batches, and with misses (the
+    hit samples written into zeros, the resolve's mask skipped)."""
+    import methods.triple_product.method as tpm
+
+    scene, frame, _ = scene_frame
+    gb = make_gbuffer(scene, frame, 2)                                    # 2 × 2 samples per pixel
+    m = TripleProduct(level=2, n_coeffs=None, progress=False)
+    m.precompute(scene)
+    assert bool(gb.hit.all())
+    miss = torch.zeros_like(gb.hit)
+    miss[::5] = True                                                      # every fifth sample a miss
+    holed = dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face),
+                                region=torch.where(miss, -1, gb.region))
+    seen = []
+    real = fast_eval.shade_pixels
+
+    def spy(*a, **k):
+        r = real(*a, **k)
+        seen.append(r.clone())
+        return r
+
+    monkeypatch.setattr(fast_eval, "shade_pixels", spy)
+    for g, chunk in ((gb, tpm.FINE_RENDER_POINTS), (gb, 1000), (holed, tpm.FINE_RENDER_POINTS), (holed, 999)):
+        monkeypatch.setattr(tpm, "FINE_RENDER_POINTS", chunk)
+        seen.clear()
+        img = m.render(frame, g)
+        out = torch.zeros(g.num_samples, 3)
+        out[torch.nonzero(g.hit).squeeze(-1)] = torch.cat(seen)
+        assert len(seen) == -(-int(g.hit.sum()) // chunk)
+        assert torch.equal(img, g.resolve(out)), (g.num_samples, chunk)
