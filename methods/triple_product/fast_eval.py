@@ -960,6 +960,17 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
     Returns: gv (G,), gl (G, k_L), gb (G, k_ρ) int64 rows of every group (sorted by v, then cells)
         and inv (B, k_v) int64 group of every (point, visibility row).
 
+    `group_runs` with its per-run groups expanded to the points (``inv = inv_s[run]``): the frames'
+    path (`fine_grouped`) reads the (S, k_v) groups of the runs through each point's run instead."""
+    gv, gl, gb, inv_s, run = group_runs(vrows, lrows, brows, n_l=n_l, n_b=n_b)
+    return gv, gl, gb, inv_s.index_select(0, run.long())
+
+
+def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None = None,
+               n_b: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """`group_rows` with the groups given per run of points: (gv, gl, gb, inv_s (S, k_v) int64 the
+    groups of every run, run (B,) int32 the run of every point); ``inv_s[run]`` is `group_rows`' inv.
+
     The keys are deduplicated in two steps, same result as one `torch.unique` of all B·k_v keys:
     runs of neighbouring points with the same visibility rows and both cells (G-buffer samples of
     one triangle — the S² sub-samples of a pixel are adjacent — mostly share both cells), found
@@ -970,20 +981,28 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
     and inverse gathers; the same groups, order and inverse). Then the gathers by `index_select`
     (eager advanced indexing of a (B, 3) int64 array by a (B,) index: 4.2 ms, `index_select` 0.85)
     and the run starts' cells renumbered in order (`GROUP_CELL_TABLE`) so that the keys sorted are
-    int32 when they fit: the same groups, order and inverse (tests/methods/triple_product)."""
+    int32 when they fit: the same groups, order and inverse (tests/methods/triple_product).
+    The points' (B, k_v) int64 groups are no longer formed (a 6 MB gather written here and read back
+    by the blend on a bench frame: the blend gathers through the int32 run index instead), the cell
+    codes come from contiguous columns, the row changes are or-ed column by column and the run index
+    is an int32 scan: the same groups, order and inverse."""
     B, kv = vrows.shape
     dev = vrows.device
     if B == 0:
         e = vrows.new_zeros(0)
-        return e, lrows[:0], brows[:0], vrows.new_zeros(0, kv)
+        return e, lrows[:0], brows[:0], vrows.new_zeros(0, kv), torch.zeros(0, dtype=torch.int32, device=dev)
     nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
     nb = int(brows[:, 0].max()) + 1 if n_b is None else int(n_b)
-    cell = lrows[:, 0] * nb + brows[:, 0]                                 # (B,)
+    # (B,) cell codes lrows0·nb + brows0 from contiguous copies of the two columns (integer ops on
+    # the strided columns ran unvectorised: 1.5-2.1 ms against ~1.0 on a bench frame)
+    cell = lrows[:, 0].contiguous().mul_(nb).add_(brows[:, 0].contiguous())
     new = torch.ones(B, dtype=torch.bool, device=dev)                     # run starts
     torch.ne(cell[1:], cell[:-1], out=new[1:])
-    new[1:] |= (vrows[1:] != vrows[:-1]).any(1)
+    ne = vrows[1:] != vrows[:-1]                                          # (B − 1, k_v)
+    for i in range(kv):                                                   # or of the columns: `any(1)` 3x slower
+        new[1:] |= ne[:, i]
     start = torch.nonzero(new, as_tuple=False).squeeze(-1)               # (S,)
-    run = torch.cumsum(new, 0).sub_(1)                                    # (B,) run of every point
+    run = torch.cumsum(new, 0, dtype=torch.int32).sub_(1)                 # (B,) run of every point
     cs = cell.index_select(0, start)                                      # (S,) cells of the runs
     vs = vrows.index_select(0, start)                                     # (S, k_v)
     nc = nl * nb                                                          # cell codes
@@ -1000,8 +1019,7 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
     # a member point of every group (whichever write lands: all members have the group's rows)
     rep = torch.empty(G, dtype=torch.int64, device=dev)
     rep[inv_s] = start.repeat_interleave(kv) if kv > 1 else start
-    inv = inv_s.view(-1, kv).index_select(0, run)                         # (B, k_v)
-    return (uk // nc).long(), lrows.index_select(0, rep), brows.index_select(0, rep), inv
+    return (uk // nc).long(), lrows.index_select(0, rep), brows.index_select(0, rep), inv_s.view(-1, kv), run
 
 
 def group_block(gv: Tensor, gl: Tensor, gb: Tensor, Vt: Tensor, Rt: Tensor, Lt: Tensor) -> Tensor:
@@ -1044,8 +1062,15 @@ def group_blend(inv: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> T
     return torch.stack(out, -1)
 
 
+def group_blend_runs(run: Tensor, inv_s: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor) -> Tensor:
+    """`group_blend` with every point's groups read through its run (`group_runs`): run (b,) int32,
+    inv_s (S, k_v) the runs' groups — ``inv = inv_s[run]`` gathered inside the compiled loop, not
+    stored (the same sums bit for bit)."""
+    return group_blend(inv_s[run.long()], vw, lw, bw, T)
+
+
 _group_block = fused(group_block, options=KERNEL_OPTIONS)
-_group_blend = fused(group_blend, options={"cpp.enable_floating_point_contract_flag": "fast"})
+_group_blend = fused(group_blend_runs, options={"cpp.enable_floating_point_contract_flag": "fast"})
 # Groups per compiled block of `fine_grouped` when it is given ``points`` (tests; and its remainder blocks).
 # 2048 rather than 1024 groups per block: chess bench pixel V groups, 1 thread, micro-benchmark under
 # load, 46.7 -> 40.4 ms (fewer calls, each ~0.2 ms of Dynamo / wrapper overhead).
@@ -1063,7 +1088,7 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     One call instead of the blocks of GROUP_BLOCK: chess pixel V frame, 1 thread, same process,
     1.06x (L 1.02x), T bit for bit."""
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
-    gv, gl, gb, inv = group_rows(vrows.long(), lrows.long(), brows.long(), n_l=L3.shape[0], n_b=R3.shape[0])
+    gv, gl, gb, inv_s, run = group_runs(vrows.long(), lrows.long(), brows.long(), n_l=L3.shape[0], n_b=R3.shape[0])
     p = GROUP_BLOCK if points is None else int(points)
     G = gv.shape[0]
     if stats is not None:
@@ -1089,12 +1114,13 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     # GROUP_BLEND_POINTS and their concatenation): one compiled variant for every frame size;
     # synthetic chess-sized groups (2.5e5 points, 3 rows), 1 thread, same process: 10.0 -> 6.9 ms,
     # bit for bit
-    rows = [inv.contiguous(), vw.to(dt).contiguous(), lw.to(dt).contiguous(), bw.to(dt).contiguous()]
-    if rows[0].shape[0] <= 1:                        # sizes Dynamo would specialise
-        return group_blend(*rows, T)
-    for x in rows:
+    rows = [run, vw.to(dt).contiguous(), lw.to(dt).contiguous(), bw.to(dt).contiguous()]
+    inv_s = inv_s.contiguous()
+    if rows[0].shape[0] <= 1 or inv_s.shape[0] <= 1:  # sizes Dynamo would specialise
+        return group_blend_runs(rows[0], inv_s, *rows[1:], T)
+    for x in (*rows, inv_s):
         torch._dynamo.maybe_mark_dynamic(x, 0)
-    return _group_blend(*rows, T)
+    return _group_blend(rows[0], inv_s, *rows[1:], T)
 
 
 def gouraud_image(gbuffer, F: Tensor, Bv: Tensor) -> Tensor:

@@ -748,8 +748,11 @@ class TripleProduct(Method):
                 return fast_eval.gouraud_image(gbuffer, self.F, Bv)
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
-            out = torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
             hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
+            # every sample hit and one batch: the batch's radiance is the frame's (no zero-filled (P, 3)
+            # array written and the batch copied into it, no masking in the resolve)
+            whole = 0 < hit.numel() == gbuffer.num_samples <= chunk
+            out = None if whole else torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
             vidx, vw = gbuffer.vertex_weights(self.F)
             normals = self.shading_normals(gbuffer)                     # bump maps applied
             mix = self.blend_weights(gbuffer)
@@ -767,17 +770,24 @@ class TripleProduct(Method):
                     rows, w = self._visibility_rows(hit[s] if every else s, gbuffer, take(uv), rows, w)
                 marks.append((rows, w))  # the visibility rows read, for `frame_cost` (counted after the frame)
                 if self.config["evaluator"] == "reference":
-                    out[s] = self._shade(lt.local_frames(take(normals), self.config["tangent"]), take(gbuffer.wo).float(),
-                                         take(gbuffer.region), rows, w, take(mix) if self.blends else None)
+                    res = self._shade(lt.local_frames(take(normals), self.config["tangent"]), take(gbuffer.wo).float(),
+                                      take(gbuffer.region), rows, w, take(mix) if self.blends else None)
                 else:  # frames from the normals inside `fast_eval.shade_pixels`
-                    out[s] = fast_eval.shade_pixels(self, take(normals), take(gbuffer.wo).float(), take(gbuffer.region),
-                                                    rows, w, take(mix) if self.blends else None,
-                                                    evaluator=self.config["evaluator"])
+                    res = fast_eval.shade_pixels(self, take(normals), take(gbuffer.wo).float(), take(gbuffer.region),
+                                                 rows, w, take(mix) if self.blends else None,
+                                                 evaluator=self.config["evaluator"])
+                if whole:
+                    out = res
+                else:
+                    out[s] = res
             # what the frame read is counted when `frame_cost` asks, not inside the timed frame (the
             # distinct visibility rows and faces: ~5 ms of a chess bench per-pixel frame, 1 thread)
             nv, nf = self.V_idx.shape[0], self.F.shape[0]
             self._record_frame(gbuffer, hit.numel(), lambda: _hit_faces(gbuffer, nf),
                                lambda: _touched_rows(marks, nv), None, self.stats.pop("frame_groups", 0))
+            # `gbuffer.resolve` without its mask: a miss is already +0 in ``out`` (or there is none), so
+            # the same mean bit for bit
+            return out.float().reshape(gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2, 3).mean(2)
         return gbuffer.resolve(out)
 
     def _record_frame(self, gbuffer: GBuffer, shaded: int, faces, vis_rows, vertices: Tensor | None,

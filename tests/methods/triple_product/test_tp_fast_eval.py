@@ -630,6 +630,18 @@ def test_grouped_kernel_equals_per_point_kernel():
         finally:
             fast_eval.GROUP_CELL_TABLE = old
         assert all(torch.equal(a, b) and a.dtype == b.dtype for a, b in zip(other, (gv, gl, gb, inv)))
+    # the frames' form: the groups per run of points and each point's run (int32); expanded, `group_rows`
+    rgv, rgl, rgb, inv_s, run = fast_eval.group_runs(vrows, lrows, brows, n_l=24, n_b=12)
+    assert all(torch.equal(a, b) for a, b in zip((rgv, rgl, rgb), (gv, gl, gb)))
+    assert run.dtype == torch.int32 and inv_s.shape[0] == int(run.max()) + 1 < B
+    assert torch.equal(inv_s[run.long()], inv) and bool((run.diff() >= 0).all())
+    # a point differing from its neighbour in one visibility column only starts a new run
+    vr2 = vrows.clone()
+    vr2[5, 2] += 1
+    assert torch.equal(fast_eval.group_rows(vr2, lrows, brows)[0][fast_eval.group_rows(vr2, lrows, brows)[3][5, 2]], vr2[5, 2])
+    vw_, lw_, bw_ = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
+    T = torch.randn(gv.shape[0], 3 * 16, generator=gen)
+    assert torch.equal(fast_eval.group_blend_runs(run, inv_s, vw_, lw_, bw_, T), fast_eval.group_blend(inv, vw_, lw_, bw_, T))
     shuffled = fast_eval.group_rows(vrows.flip(0), lrows.flip(0), brows.flip(0))  # runs in another order
     assert torch.equal(shuffled[0], gv) and torch.equal(shuffled[3], inv.flip(0))
     for i in range(3):
@@ -747,3 +759,39 @@ def test_lazy_lighting_recycles_the_replaced_tables_and_renders_the_same(shading
             want = full_m.render(frame, gb)
             assert torch.equal(img, want), (shading, kind, i)
         assert ptrs[2] == ptrs[3] == ptrs[4], (shading, kind)            # recycled from the second change on
+
+
+
+def test_pixel_render_equals_the_resolved_samples(scene_frame, monkeypatch):
+    """A per-pixel frame returns `GBuffer.resolve` of its per-sample radiance bit for bit, the radiance
+    scattered into a zero-filled (P, 3) array (the old form) — every sample hit in one batch (its
+    radiance is the frame's: no zero-filled copy, no mask), in several batches, and with misses (the
+    hit samples written into zeros, the resolve's mask skipped)."""
+    import methods.triple_product.method as tpm
+
+    scene, frame, _ = scene_frame
+    gb = make_gbuffer(scene, frame, 2)                                    # 2 × 2 samples per pixel
+    m = TripleProduct(level=2, n_coeffs=None, progress=False)
+    m.precompute(scene)
+    assert bool(gb.hit.all())
+    miss = torch.zeros_like(gb.hit)
+    miss[::5] = True                                                      # every fifth sample a miss
+    holed = dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face),
+                                region=torch.where(miss, -1, gb.region))
+    seen = []
+    real = fast_eval.shade_pixels
+
+    def spy(*a, **k):
+        r = real(*a, **k)
+        seen.append(r.clone())
+        return r
+
+    monkeypatch.setattr(fast_eval, "shade_pixels", spy)
+    for g, chunk in ((gb, tpm.FINE_RENDER_POINTS), (gb, 1000), (holed, tpm.FINE_RENDER_POINTS), (holed, 999)):
+        monkeypatch.setattr(tpm, "FINE_RENDER_POINTS", chunk)
+        seen.clear()
+        img = m.render(frame, g)
+        out = torch.zeros(g.num_samples, 3)
+        out[torch.nonzero(g.hit).squeeze(-1)] = torch.cat(seen)
+        assert len(seen) == -(-int(g.hit.sum()) // chunk)
+        assert torch.equal(img, g.resolve(out)), (g.num_samples, chunk)
