@@ -296,9 +296,15 @@ def test_world_visibility_point_minor_model():
 @pytest.mark.parametrize("order, kw", [(4, {}), (8, {"point_minor": True, "frame": "zyz"})])
 def test_world_visibility_compiled_equals_eager(order, kw):
     """`runtime.world_visibility` from `VERTEX_COMPILE_MIN` vertices (`_vertex_sh` compiled, one
-    kernel for every vertex count) = the eager `_vertex_sh` (below it), float32 to round-off
-    (`VIS_COMPILED_TOL`): the suites' two variants (paper: order 4, (N, n²); physical: order 8,
-    ZYZ frames, rows in `zyz_rows` order, (n², N)), at two vertex counts."""
+    kernel for every vertex count) = the eager `_vertex_sh` (below it), float32 to round-off: the
+    suites' two variants (paper: order 4, (N, n²); physical: order 8, ZYZ frames, rows in
+    `zyz_rows` order, (n², N)), at two vertex counts.
+
+    Round-off is judged against the eager path in float64: the compiled float32 result must be as
+    accurate as the eager float32 one (within `VIS_COMPILED_FACTOR` of its error, max-norm). A
+    fixed bound between the two float32 results (1e-6 of the peak until session 21) is below their
+    own round-off at order 8 on a host without AVX-512: compiled − eager 1.15e-6 there, each
+    1.3–1.5e-6 from float64 (the FMAs Inductor contracts differ with the vector width)."""
     g = torch.Generator().manual_seed(6)
     c = 2
     for N in (rt.VERTEX_COMPILE_MIN, rt.VERTEX_COMPILE_MIN + 777):
@@ -313,11 +319,18 @@ def test_world_visibility_compiled_equals_eager(order, kw):
         got = rt.world_visibility(X, pose, nrm, c, **args)
         with mock.patch.object(rt, "VERTEX_COMPILE_MIN", N + 1):
             want = rt.world_visibility(X, pose, nrm, c, **args)
-        assert (got - want).abs().max() <= VIS_COMPILED_TOL * want.abs().max(), (order, N)
+            ref = rt.world_visibility(X.double(), pose.double(), nrm.double(), c, **args)
+        assert got.dtype == want.dtype == torch.float32 and got.shape == want.shape == ref.shape
+        err_got = float((got.double() - ref).abs().max())
+        err_want = float((want.double() - ref).abs().max())
+        floor = 8 * torch.finfo(torch.float32).eps * float(ref.abs().max())   # a few ulps of the peak
+        assert err_got <= VIS_COMPILED_FACTOR * max(err_want, floor), (order, N, err_got, err_want)
 
 
-# float32: Inductor's kernel contracts the SH polynomials' multiply-adds into FMAs
-VIS_COMPILED_TOL = 1e-6
+# The compiled float32 `_vertex_sh` is as accurate as the eager float32 one, against float64
+# (Inductor contracts the SH polynomials' multiply-adds into FMAs, so the two round differently;
+# measured on a host without AVX-512: ratios 0.87–1.0 at order 8, 0.96–1.0 at order 4)
+VIS_COMPILED_FACTOR = 2.0
 
 
 # float32: the product [pose, 1] · X summed in another blocking order by the two layouts
