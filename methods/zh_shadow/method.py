@@ -743,17 +743,23 @@ class ZHShadow(Method):
         if spans is not None and all(isinstance(sp, tuple) for sp, _ in tsr.values()):
             # every region one range of vertices (`Scene` concatenates one mesh per region): the
             # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
-            # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers, no
-            # transposing copy; one thread as `runtime.zonal_conjugate` (thin products)
+            # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
+            # thread as `runtime.zonal_conjugate` (thin products)
             radT = torch.empty(N, 3, dtype=w.dtype, device=dev)
             with pc.torch_threads(1):
                 for r, (kd, ks, _) in enumerate(mats):
                     a0, a1 = spans[r]
                     if a1 == a0:
                         continue
-                    torch.mm(w[:, a0:a1].T, light * (kd.to(dev, light.dtype) * (1.0 / math.pi)), out=radT[a0:a1])
-                    if r in tsr:
-                        (b0, b1), t = tsr[r]
+                    # (3, n) = (l ⊙ kd / π)ᵀ w[:, range], copied transposed into its rows of radT:
+                    # 4x faster than the (n, 3) product wᵀ (l ⊙ kd / π) on the strided wᵀ view,
+                    # which MKL ran at ~1 ms per 10 K vertices (bench creature P frame, 1 thread)
+                    rr = torch.mm((light * (kd.to(dev, light.dtype) * (1.0 / math.pi))).T, w[:, a0:a1])
+                    (b0, b1), t = tsr.get(r, ((a0, a0), None))
+                    if t is not None and (b0, b1) == (a0, a1):   # (a region's t_s spans its range)
+                        rr.addmm_((light * ks.to(dev, light.dtype)).T, t)
+                    radT[a0:a1].copy_(rr.T)
+                    if t is not None and (b0, b1) != (a0, a1):
                         radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
             radT.mul_(front[:, None])
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
