@@ -467,8 +467,18 @@ def test_view_frames_keep_the_vertex_table(small_model):
     assert m._vtable[2] is U, "the view-only frames rebuilt the vertex table"
     assert m.memory()["vertex_table"] == U.numel() * U.element_size()
     fr = make_sequence(m.scene, "VB", 2, seed=4)[1]            # new materials, changed ⊄ {"view"}
-    m.render(fr, make_gbuffer(m.scene, fr, 2))
+    with mock.patch("methods.zh_shadow.method.VERTEX_TABLE_POINTS", math.inf):   # few points per vertex
+        m.render(fr, make_gbuffer(m.scene, fr, 2))
     assert m._vtable[2] is U                                     # kept, but not used: its key differs
+    # a frame shading many samples per vertex off the planes builds its own table (not reused):
+    # VB and P frames, each equal to the reference
+    with mock.patch("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0):
+        _check_frames(m, [fr], "VB many")
+        assert m._vtable[2] is not U
+        for fp in make_sequence(m.scene, "P", 3, seed=5)[1:]:
+            U1 = m._vtable[2]
+            _check_frames(m, [fp], "P many")
+            assert m._vtable[2] is not U1 and m._vtable[0][0] == m._posed[0]
     mc = m.with_render_config(specular="cosine")
     _check_frames(mc, frames[:3], "V cosine")
     assert mc._vtable is None
