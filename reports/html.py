@@ -29,6 +29,7 @@ import pandas as pd
 
 from reports.cells import MEASURED
 from reports.palette import method_color
+from reports.regress import CONTENTION_MAX
 from scenes.io import atomic_write_text
 
 KIND_ORDER = ["V", "VB", "VBL", "P", "L", "E", "VL"]
@@ -146,6 +147,32 @@ def _method_label(method: str, config: str) -> str:
 # -- sections ---------------------------------------------------------------------------------
 
 
+def _fps_cell(g: pd.DataFrame | None) -> str:
+    """A summary-table fps cell, shaded when the cell was timed beside other work (``other_cpu_cores``
+    above ``regress.CONTENTION_MAX``)."""
+    if g is None:
+        return "<td>–</td>"
+    other = _val(g, "other_cpu_cores")[0]
+    text = fmt(_val(g, "fps")[0], ".1f")
+    if other is not None and other > CONTENTION_MAX:
+        return f"<td class=loaded title='other processes used {other:.2f} cores while timed'>{text}</td>"
+    return f"<td>{text}</td>"
+
+
+def contention_text(df: pd.DataFrame) -> str | None:
+    """The header's line on other work during the timed frames: median and max ``other_cpu_cores``
+    over the timed cells, and how many exceeded ``regress.CONTENTION_MAX`` (None when no cell has it)."""
+    r = df[(df["metric"] == "other_cpu_cores") & (df["frame"] == -1)]
+    v = r["value"].to_numpy(dtype=float)
+    ok = np.isfinite(v)
+    if not ok.any():
+        return None
+    over = int((v[ok] > CONTENTION_MAX).sum())
+    return (f"median {np.median(v[ok]):.2f}, max {v[ok].max():.2f} cores over {int(ok.sum())} timed cells; "
+            + (f"{over} above {CONTENTION_MAX:g} (shaded in the summary; their frame times are not compared "
+               "with the history)" if over else f"none above {CONTENTION_MAX:g}"))
+
+
 def summary_table(df: pd.DataFrame) -> str:
     ok = df[df["status"].isin(MEASURED)]
     if len(ok) == 0:
@@ -164,7 +191,7 @@ def summary_table(df: pd.DataFrame) -> str:
         mem = _val(first, "memory_bytes")[0]
         rss = [v for gg in cells.values() for v, _ in [_val(gg, "peak_rss_bytes")] if v is not None]
         pre = _val(first, "precompute_time")[0]
-        fps = "".join(f"<td>{fmt(_val(cells[k], 'fps')[0], '.1f') if k in cells else '–'}</td>" for k in kinds)
+        fps = "".join(_fps_cell(cells.get(k)) for k in kinds)
         roof = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_efficiency")] if v is not None]
         cb = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_compute_bound")] if v is not None]
         bound = "" if not cb else " (compute)" if np.mean(cb) > 0.5 else " (memory)"
@@ -177,7 +204,9 @@ def summary_table(df: pd.DataFrame) -> str:
             f"<td>{fmt(float(np.median(sp)) if sp else None, '.3g', '×')}</td></tr>")
     note = ("<p class=note>RMSE: mean over sequence kinds and scored frames, against the reference of the "
             "cell's bounce count; in brackets the reference noise floor (an RMSE below it is not resolved). "
-            "fps: 1 / median frame time, warm-up frame excluded. Roofline efficiency: max(bytes per frame ÷ triad "
+            "fps: 1 / median frame time, warm-up frame excluded; <span class=loaded>shaded</span>: other processes "
+            f"used more than {CONTENTION_MAX:g} cores while the cell's frames were timed (its time, roofline and "
+            "speedup are slower than the code). Roofline efficiency: max(bytes per frame ÷ triad "
             "bandwidth, flops per frame ÷ dense-matmul peak) ÷ frame time, both limits measured in this run; in "
             "brackets the bound that applies (the larger term). Equal-error speedup: Mitsuba time to reach the method's RMSE "
             "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time.</p>")
@@ -543,7 +572,7 @@ _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1400px}
 table{border-collapse:collapse;margin:.5em 0;font-size:13px}
 td,th{border:1px solid #ccc;padding:3px 6px;text-align:left;vertical-align:top}
-th{background:#f0f0f0}.ok{background:#e6f5e6}.na{background:#f3f3f3;color:#666}.err{background:#fbe0e0}.sus{background:#fff0c8}
+th{background:#f0f0f0}.ok{background:#e6f5e6}.na{background:#f3f3f3;color:#666}.err{background:#fbe0e0}.sus{background:#fff0c8}.loaded{background:#e8e0f5}
 tr.reg{background:#fbe0e0}tr.imp{background:#e6f5e6}.note{color:#666;font-size:12px}
 .tiles{display:flex;flex-wrap:wrap;gap:8px}figure{margin:0}figure img{width:200px;image-rendering:pixelated}
 img.plot{max-width:100%}figcaption{font-size:12px;text-align:center}code{background:#f4f4f4}
@@ -617,6 +646,9 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     wall = wall_time_text(meta)
     if wall:
         facts["wall time"] = wall + " (references and cells; not this report)"
+    busy = contention_text(df)
+    if busy:
+        facts["other CPU while timing"] = busy
     bw = run_rows[run_rows["metric"] == "triad_bandwidth"]
     if len(bw):
         facts["triad bandwidth"] = f"{float(bw.iloc[0]['value']) / 1e9:.2f} GB/s"

@@ -6,6 +6,7 @@ Pure functions; the harness (``reports/cells.py``) calls them.
 from __future__ import annotations
 
 import math
+import os
 import resource
 import sys
 import time
@@ -29,6 +30,44 @@ def frame_time_stats(times: list[float], *, warmup: int = 1) -> dict[str, float]
     s = t[warmup:] if len(t) > warmup else t
     q1, med, q3 = np.percentile(s, [25, 50, 75])
     return {"median": float(med), "iqr": float(q3 - q1), "n": int(len(s))}
+
+
+# Below this many seconds of wall time the jiffy counters (10 ms) make `other_cpu_cores` too coarse
+# to say anything: it is NaN then.
+CONTENTION_MIN_SECONDS = 0.5
+
+
+def cpu_snapshot() -> tuple[float, float, float] | None:
+    """(wall seconds, CPU seconds every core of the machine spent busy, CPU seconds of this process)
+    now — the counters `other_cpu_cores` differences. "Busy" is user + nice + system + irq + softirq +
+    steal of ``/proc/stat``'s ``cpu`` line: steal is time the hypervisor gave this VM's vCPUs to
+    someone else, contention as much as another process here. None where there is no /proc/stat."""
+    try:
+        with open("/proc/stat") as f:
+            parts = f.readline().split()
+    except OSError:
+        return None
+    if not parts or parts[0] != "cpu" or len(parts) < 9:
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(x) for x in parts[1:9])
+    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    ru = resource.getrusage(resource.RUSAGE_SELF)   # every thread of this process (Mitsuba's, OpenMP's)
+    return (time.perf_counter(), (user + nice + system + irq + softirq + steal) / hz, ru.ru_utime + ru.ru_stime)
+
+
+def other_cpu_cores(start: tuple | None, end: tuple | None) -> float:
+    """Cores' worth of CPU that everything but this process used, on average, between two
+    `cpu_snapshot` s (0 on a machine reserved for the run; 1 = another process kept one core busy the
+    whole time). Frame times measured beside such work are slower by an amount no within-run
+    statistic shows (every frame slows alike), so the harness records this for every timed cell
+    (``other_cpu_cores``) and the report and the regression check say where it was not ~0. NaN when
+    either snapshot is None or the interval is shorter than ``CONTENTION_MIN_SECONDS``."""
+    if start is None or end is None:
+        return float("nan")
+    wall = end[0] - start[0]
+    if not wall >= CONTENTION_MIN_SECONDS:
+        return float("nan")
+    return max(0.0, ((end[1] - start[1]) - (end[2] - start[2])) / wall)
 
 
 def peak_rss_bytes() -> int:

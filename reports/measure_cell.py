@@ -273,7 +273,10 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     strip: list[tuple] = []
     warm = warm_up_compiles()
     bar = tqdm(frames, desc=cell.key()[:48], leave=False, disable=None if progress else True, unit="frame")
+    contention = None  # CPU the rest of the machine used while the timed frames ran (measure.other_cpu_cores)
     for i, frame in enumerate(bar):
+        if i == min(1, len(frames) - 1):
+            contention = measure.cpu_snapshot()
         gb = be.make_gbuffer(scene, frame, cell.spp_side)
         if cell.device != "cpu":
             gb = gb.to(cell.device)
@@ -317,10 +320,11 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         if cell.kind == "E":  # every probe's image, for the report's strip (reports.html.probe_strip)
             strip.append((i, last[3], ref_img, mask))
 
+    other = measure.other_cpu_cores(contention, measure.cpu_snapshot())
     stats = measure.frame_time_stats(times, warmup=1)
     if timed:
         rows += [_row("render_time_median", stats["median"]), _row("render_time_iqr", stats["iqr"]),
-                 _row("timed_frames", stats["n"]),
+                 _row("timed_frames", stats["n"]), _row("other_cpu_cores", other),
                  _row("fps", 1.0 / stats["median"] if stats["median"] > 0 else float("inf"))]
     for k, vals in errors.items():
         v = np.array([a for a, _ in vals])

@@ -33,15 +33,19 @@ Rules (each value of a cell compared with the same cell's baseline):
   uniformly slower frames are. Changes of a fraction of a millisecond (timer and scheduler jitter)
   are ignored. Faster by the mirror rule. Frame times are compared only when both runs used the
   same number of threads on the same machine kind (CPU model and core count of the ``machine``
-  column; the host name may differ); otherwise the row says why they were not compared.
+  column; the host name may differ), and when neither run's cell was timed beside other work (the
+  rest of the machine used at most ``CONTENTION_MAX`` cores while its frames ran, the cell's
+  ``other_cpu_cores``); otherwise the row says why they were not compared.
 
   Decision (false alarms vs power; measured rates are pinned in tests/reports/test_regress.py for
   synthetic noise and were measured on repeated unchanged runs when the rule was introduced):
   ``TIME_REL`` sits between the run-to-run scatter of a machine reserved for the benchmark and the
   10 % slowdown the nightly must catch. Wall-clock frame times cannot separate a slower build from
   a machine that other jobs slowed down between the two runs — every frame of the run slows alike,
-  so no within-run statistic helps. Frame-time flags are trustworthy only on a reserved machine
-  (as the nightly's should be); on a shared machine most of them are load, not code.
+  so no within-run statistic helps. What the harness can see is the other work itself: the CPU the
+  rest of the machine used while a cell's frames were timed (``other_cpu_cores``, including the
+  hypervisor's steal time), and cells timed beside more than ``CONTENTION_MAX`` cores of it are not
+  compared. Rows from before it was recorded have none and compare as before.
 * Memory (``memory_bytes``) is deterministic: flagged above ``MEMORY_REL``.
 * A cell that finished in its baseline run and now fails is flagged, and so is one that was ``ok``
   and is now ``suspect`` (its images failed the sanity gate, ``reports/gate.py``); suspect cells'
@@ -70,6 +74,11 @@ ABS_FLOOR = {"rel_mse": 1e-6, "psnr": 0.05, "ssim": 1e-3, "flip": 1e-4, "delta_e
 TIME_REL = 0.06
 TIME_SPREAD_K = 2.0
 TIME_ABS_FLOOR = 2e-4
+# Frame times of a cell are not compared when, in either run, the rest of the machine used more than
+# this many cores on average while the cell's frames were timed (``other_cpu_cores``, from
+# ``/proc/stat``: `reports.measure.other_cpu_cores`). One other busy process adds ~1
+# (tests/reports/test_measure.py); a quarter core is 12 % of a 2-core machine.
+CONTENTION_MAX = 0.25
 # Memory of run-time arrays is deterministic; 1 % guards against metadata-sized differences.
 MEMORY_REL = 0.01
 
@@ -283,6 +292,10 @@ def _compare_times(ident: dict, g_old: pd.DataFrame, g_new: pd.DataFrame) -> lis
         why.append(f"threads {_first(g_old, 'threads')} vs {_first(g_new, 'threads')}")
     if _machine_kind(_first(g_old, "machine")) != _machine_kind(_first(g_new, "machine")):
         why.append("another machine kind")
+    for run, g in (("old", g_old), ("new", g_new)):
+        other = _summary(g, "other_cpu_cores")
+        if other is not None and other[0] > CONTENTION_MAX:  # NaN (unknown) compares
+            why.append(f"other processes used {other[0]:.2f} cores while the {run} run timed it")
     if why:
         return [{**row, "rel_change": _rel(row["old"], row["new"]), "threshold": float("nan"), "flag": "",
                  "test": f"not compared: {', '.join(why)}"}]

@@ -104,3 +104,30 @@ def test_relighting_table_and_probe_strip(tmp_path):
     assert "sequence E" in sec
     strip = sec.split("<table class=strip>", 1)[1].split("</table>", 1)[0]
     assert strip.count("<tr><th>frame ") == 3 and strip.count("data:image/png;base64,") == 6  # ref + fake per frame
+
+
+def test_cells_timed_beside_other_work_are_shaded_and_counted():
+    """The summary shades the fps of a cell whose frames were timed while the rest of the machine used
+    more than CONTENTION_MAX cores, and the header counts them; a quiet or unknown cell is plain."""
+    from reports import store
+    from reports.regress import CONTENTION_MAX
+
+    base = {"run_id": "r", "time": "t", "git_sha": "x", "versions": "{}", "machine": "m", "threads": 2,
+            "size": "test", "scene": "chess", "method": "fake", "config": "{}", "bounces": 0, "status": "ok",
+            "reason": "", "frame": -1}
+    rows = []
+    for kind, fps, other in (("V", 100.0, 0.01), ("L", 50.0, 1.3), ("E", 25.0, float("nan"))):
+        ident = {**base, "sequence": kind, "cell": f"chess-{kind}"}
+        rows += [{**ident, "metric": "fps", "value": fps, "unit": "1/s"},
+                 {**ident, "metric": "rmse", "value": 0.1, "unit": "radiance", "noise_floor": 0.01},
+                 {**ident, "metric": "other_cpu_cores", "value": other, "unit": "cores"}]
+    df = store.to_frame(rows)
+    table = H.summary_table(df)
+    assert re.search(r"<td class=loaded title='other processes used 1\.30 cores while timed'>50\.0</td>", table)
+    assert "<td>100.0</td>" in table and "<td>25.0</td>" in table
+    assert table.count("class=loaded title") == 1
+    text = H.contention_text(df)
+    assert text.startswith("median 0.66, max 1.30 cores over 2 timed cells; 1 above")
+    df = df[~((df.metric == "other_cpu_cores") & (df.sequence == "L"))]
+    assert H.contention_text(df).endswith(f"none above {CONTENTION_MAX:g}")
+    assert H.contention_text(df[df.metric != "other_cpu_cores"]) is None

@@ -58,3 +58,27 @@ def test_triad_bandwidth_is_a_plausible_rate():
     assert math.isfinite(bw) and 1e7 < bw < 1e13  # between 10 MB/s and 10 TB/s
     with pytest.raises(ValueError):
         measure.triad_bandwidth(0)
+
+
+def test_other_cpu_cores_closed_form_and_unknowns():
+    """(Δ machine busy − Δ own CPU) / Δ wall; NaN when unknown or too short to resolve 10 ms jiffies."""
+    assert measure.other_cpu_cores((0.0, 100.0, 5.0), (2.0, 103.0, 6.0)) == pytest.approx(1.0)
+    assert measure.other_cpu_cores((0.0, 100.0, 5.0), (2.0, 101.0, 6.0)) == 0.0   # jiffy rounding: never < 0
+    assert math.isnan(measure.other_cpu_cores(None, (2.0, 101.0, 6.0)))
+    assert math.isnan(measure.other_cpu_cores((0.0, 100.0, 5.0), None))
+    short = measure.CONTENTION_MIN_SECONDS / 2
+    assert math.isnan(measure.other_cpu_cores((0.0, 100.0, 5.0), (short, 101.0, 5.0)))
+
+
+@pytest.mark.skipif(measure.cpu_snapshot() is None, reason="no /proc/stat")
+def test_other_cpu_cores_sees_another_busy_process():
+    """A child process spinning for 1.5 s while this one waits: the rest of the machine used about one
+    core (more if other work runs too; a child is not this process's own CPU)."""
+    import subprocess
+    import sys
+
+    a = measure.cpu_snapshot()
+    subprocess.run([sys.executable, "-c", "import time\nt = time.perf_counter()\nwhile time.perf_counter() - t < 1.5: pass"],
+                   check=True)
+    b = measure.cpu_snapshot()
+    assert measure.other_cpu_cores(a, b) > 0.6

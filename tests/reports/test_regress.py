@@ -19,7 +19,7 @@ CELLS = [("sphere_plane", "a"), ("sphere_plane", "b"), ("chess", "a"), ("chess",
 
 
 def _run(run_id, day, rng, *, n_timed=2, slow=1.0, err=1.0, mem=1000.0, cells=CELLS, threads=2, machine=None,
-         frame_noise=FRAME_NOISE, run_noise=RUN_NOISE):
+         frame_noise=FRAME_NOISE, run_noise=RUN_NOISE, other_cpu=None):
     """One synthetic run: cell (chess, a) is ``slow`` × slower, (sphere_plane, b) has ``err`` × the RMSE."""
     rows = []
     base = {"run_id": run_id, "time": f"2026-01-{day:02d}T00:00:00+00:00", "git_sha": "x", "versions": "{}",
@@ -37,6 +37,8 @@ def _run(run_id, day, rng, *, n_timed=2, slow=1.0, err=1.0, mem=1000.0, cells=CE
                  {**ident, "frame": -1, "metric": "psnr", "value": 30.0 - 20 * np.log10(e), "unit": "dB",
                   "noise_floor": 0.004},
                  {**ident, "frame": -1, "metric": "memory_bytes", "value": mem, "unit": "B"}]
+        if other_cpu is not None:  # the CPU the rest of the machine used while the cell was timed
+            rows.append({**ident, "frame": -1, "metric": "other_cpu_cores", "value": other_cpu, "unit": "cores"})
     rows.append({**base, "scene": "", "size": "", "config": "", "status": "run", "frame": -1,
                  "metric": "triad_bandwidth", "value": 1e10, "cell": ""})
     return store.to_frame(rows)
@@ -120,6 +122,25 @@ def test_times_of_other_threads_or_machines_are_not_compared():
     # another host of the same machine kind is compared
     ch = regress.compare_runs(old, _run("r2", 2, rng, slow=2.0, machine="other-host | Some CPU | 2 cpu | Linux"))
     assert ("chess", "a", "render_time", "regression") in _flags(ch)
+
+
+def test_times_measured_beside_other_work_are_not_compared():
+    """A run whose cells were timed while other processes kept the machine busy (``other_cpu_cores``
+    above CONTENTION_MAX, in either run) does not flag its frame times — neither the slowdown the load
+    caused nor an improvement against a loaded baseline; errors are still compared. Below the bound,
+    or where a run predates the measurement (no row, or NaN), times compare as before."""
+    rng = np.random.default_rng(7)
+    quiet = _run("r1", 1, rng, other_cpu=0.02)
+    loaded = _run("r2", 2, rng, slow=2.0, err=1.05, other_cpu=1.1)
+    for old, new in ((quiet, loaded), (loaded, _run("r3", 3, rng, other_cpu=0.0))):
+        ch = regress.compare_runs(old, new)
+        t = ch[(ch.metric == "render_time") & (ch.scene == "chess") & (ch.method == "a")]
+        assert len(t) == 1 and t.iloc[0]["flag"] == "", t
+        assert t.iloc[0]["test"].startswith("not compared: other processes used 1.10 cores")
+    assert ("sphere_plane", "b", "rmse", "regression") in _flags(regress.compare_runs(quiet, loaded))
+    for other in (regress.CONTENTION_MAX * 0.9, float("nan"), None):
+        ch = regress.compare_runs(quiet, _run("r4", 4, rng, slow=2.0, other_cpu=other))
+        assert ("chess", "a", "render_time", "regression") in _flags(ch), other
 
 
 def test_improvement_and_small_error_change_within_tolerance():
