@@ -17,6 +17,7 @@ pixels every score is computed on. Results are cached by content hash (``referen
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -73,8 +74,35 @@ def noise_floor(half_a, half_b, mask) -> float:
     return rmse(half_a, half_b, m) / 2.0
 
 
-def render_halves(scene, frame, *, max_depth: int, spp: int, seed: int, progress: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Render the two halves with Mitsuba. Returns (half_a, half_b) (H, W, 3) float32 and seconds."""
+@contextlib.contextmanager
+def _jit_compile_seconds():
+    """Collects, into the yielded list, the seconds Dr.Jit's backend spent compiling kernels (LLVM,
+    ``backend_time`` of ``dr.kernel_history``: zero for a kernel found in its memory or disk cache)
+    inside the block; the kernel history is switched on for the block and left as it was."""
+    import drjit as dr
+
+    out: list[float] = []
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        yield out
+    finally:
+        hist = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+        out.append(sum(float(h.get("backend_time", 0.0) or 0.0) for h in hist) / 1e3)
+
+
+def render_halves(scene, frame, *, max_depth: int, spp: int, seed: int, progress: bool = False,
+                  times: dict | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Render the two halves with Mitsuba. Returns (half_a, half_b) (H, W, 3) float32 and seconds
+    (scene export and load, both renders, any kernel compilation).
+
+    times: filled with that total split — ``load_seconds`` (our scene exported and loaded: plugins,
+    emitter tables, BVH), ``compile_seconds`` (Dr.Jit compiling kernels it had not cached: new
+    literal parameters, e.g. a VB frame's materials, compile new kernels) and ``frame_seconds``, the
+    two renders without the compilation: what the equal-error speedup charges Mitsuba
+    (`reference_seconds`), as a method's frame time excludes its compilation and precomputation."""
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -82,11 +110,17 @@ def render_halves(scene, frame, *, max_depth: int, spp: int, seed: int, progress
 
     t0 = time.perf_counter()
     mi_scene = load(scene, frame, max_depth=max_depth, spp=spp // 2, seed=seed)
+    t1 = time.perf_counter()
     halves = []
-    for s in tqdm(half_seeds(seed), desc="reference halves", disable=not progress, leave=False):
-        img = mi.render(mi_scene, spp=spp // 2, seed=s)
-        halves.append(np.array(img, dtype=np.float32).reshape(frame.camera.height, frame.camera.width, -1)[..., :3])
-    return halves[0], halves[1], time.perf_counter() - t0
+    with _jit_compile_seconds() as compiled:
+        for s in tqdm(half_seeds(seed), desc="reference halves", disable=not progress, leave=False):
+            img = mi.render(mi_scene, spp=spp // 2, seed=s)
+            halves.append(np.array(img, dtype=np.float32).reshape(frame.camera.height, frame.camera.width, -1)[..., :3])
+    t2 = time.perf_counter()
+    if times is not None:
+        times.update(load_seconds=t1 - t0, compile_seconds=compiled[0],
+                     frame_seconds=max(t2 - t1 - compiled[0], 0.0))
+    return halves[0], halves[1], t2 - t0
 
 
 def _threads() -> int:
@@ -127,7 +161,8 @@ def render_reference(scene, frame, *, bounces: int | None, spp: int, seed: int =
             meta["from_cache"] = True
             return _make(arrays, meta)
 
-    a, b, seconds = render_halves(scene, frame, max_depth=max_depth, spp=spp, seed=seed, progress=progress)
+    split: dict = {}
+    a, b, seconds = render_halves(scene, frame, max_depth=max_depth, spp=spp, seed=seed, progress=progress, times=split)
     H, W = frame.camera.height, frame.camera.width
     if a.shape != (H, W, 3) or b.shape != (H, W, 3):
         raise RuntimeError(f"Mitsuba returned {a.shape}/{b.shape}, expected {(H, W, 3)}")
@@ -148,6 +183,7 @@ def render_reference(scene, frame, *, bounces: int | None, spp: int, seed: int =
         "scene_hash": fields["scene"],
         "frame_key": fields["frame"],
         "render_seconds": seconds,
+        **split,  # load_seconds, compile_seconds, frame_seconds (`render_halves`)
         "threads": _threads(),
         "spp_side": spp_side,
         "width": W,

@@ -97,12 +97,16 @@ def set_threads(n: int) -> None:
 
 
 def reference_seconds(ref) -> float | None:
-    """Render time recorded in a reference's meta, if the renderer records one."""
+    """Mitsuba's frame time of a reference, what the equal-error speedup charges it: its two renders
+    without the scene's export and load or Dr.Jit's kernel compilation (``frame_seconds`` of
+    `references.render.render_halves`; a method's frame time excludes its precomputation and
+    compilation likewise). None for a reference recorded before that split (its ``render_seconds``
+    include both: up to 0.75 s of compilation on a VB frame's new materials), so `timed_reference`
+    times a new render."""
     meta = getattr(ref, "meta", None) or {}
-    for k in ("render_seconds", "render_time", "seconds", "time"):
-        v = meta.get(k) if isinstance(meta, dict) else None
-        if isinstance(v, (int, float)) and v > 0:
-            return float(v)
+    v = meta.get("frame_seconds") if isinstance(meta, dict) else None
+    if isinstance(v, (int, float)) and v > 0:
+        return float(v)
     return None
 
 
@@ -118,7 +122,7 @@ def timed_reference(scene, frame, *, bounces: int, spp: int, seed: int, spp_side
     t0 = time.perf_counter()
     ref = render_reference(scene, frame, bounces=bounces, spp=spp, seed=seed, spp_side=spp_side, use_cache=False)
     wall = time.perf_counter() - t0
-    return ref, reference_seconds(ref) or wall  # the renderer's own timer excludes scene export
+    return ref, reference_seconds(ref) or wall  # the renderer's own split excludes export, load and compilation
 
 
 def make_exposure(ref, mask):

@@ -209,7 +209,10 @@ def summary_table(df: pd.DataFrame) -> str:
             "speedup are slower than the code). Roofline efficiency: max(bytes per frame ÷ triad "
             "bandwidth, flops per frame ÷ dense-matmul peak) ÷ frame time, both limits measured in this run; in "
             "brackets the bound that applies (the larger term). Equal-error speedup: Mitsuba time to reach the method's RMSE "
-            "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time.</p>")
+            "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time; Mitsuba's "
+            "time is its renders alone, without exporting and loading the scene or compiling kernels (as a method's frame "
+            "excludes its precomputation and compilation), so the speedup does not credit a method with Mitsuba's "
+            "set-up.</p>")
     return f"<table>{head}{''.join(body)}</table>{note}"
 
 

@@ -398,7 +398,7 @@ def calibrate(cell: Cell, out_dir: Path, be, scene, frame, *, fresh: bool = Fals
     if path.exists():
         d = json.loads(path.read_text())
         return measure.ConvergenceFit(**d["fit"]) if d.get("fit") else None
-    spp, floors, secs = [], [], []
+    spp, floors, secs, excluded = [], [], [], []
     for s in cell.eq_err_spp:
         kw = dict(bounces=cell.bounces, spp=int(s), seed=cell.seed, spp_side=cell.spp_side)
         ref, sec = _fresh_timed_reference(be, scene, frame, **kw) if fresh else be.timed_reference(scene, frame, **kw)
@@ -406,12 +406,15 @@ def calibrate(cell: Cell, out_dir: Path, be, scene, frame, *, fresh: bool = Fals
             atomic_write_json(path, {"spec": spec, "fit": None, "why": "renderer reports no time"})
             return None
         spp.append(s), floors.append(float(ref.noise_floor)), secs.append(sec)
+        meta = getattr(ref, "meta", None) or {}   # what the renderer's time leaves out (`reference_seconds`)
+        excluded.append({k: meta[k] for k in ("load_seconds", "compile_seconds") if k in meta})
     try:
         fit = measure.fit_convergence(spp, floors, secs)
     except ValueError as e:
         atomic_write_json(path, {"spec": spec, "fit": None, "why": str(e)})
         return None
-    atomic_write_json(path, {"spec": spec, "fit": fit.to_dict(), "spp": spp, "noise_floor": floors, "seconds": secs})
+    atomic_write_json(path, {"spec": spec, "fit": fit.to_dict(), "spp": spp, "noise_floor": floors, "seconds": secs,
+                             "excluded": excluded})
     return fit
 
 
