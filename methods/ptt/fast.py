@@ -230,11 +230,12 @@ def lighting_products(T1: Tensor | None, T1c, CL1: Tensor | None, T2: Tensor | N
 
 
 def view_table_rows(W_tab: Tensor, K: int) -> Tensor:
-    """The view tables W_tab (P·K, T, T) laid out (T²·K, P): row (texel, k) holds the P basis
-    functions' values, the left operand of `region_tables`' product (built once per precompute)."""
+    """The view tables W_tab (P·K, T, T) laid out (P, T², K·3): row (p, texel) holds W(p, k, texel)
+    on the lanes (k, c) of every channel c, the left operands of `region_tables`' products (built
+    once per precompute; 3× the tables)."""
     P = W_tab.shape[0] // K
     T2 = W_tab.shape[-1] * W_tab.shape[-2]
-    return W_tab.reshape(P, K, T2).permute(2, 1, 0).reshape(T2 * K, P).contiguous()
+    return W_tab.reshape(P, K, T2).permute(0, 2, 1)[..., None].expand(P, T2, K, 3).reshape(P, T2, K * 3).contiguous()
 
 
 def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
@@ -243,21 +244,31 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
     W_r (R·T², K·3) rows (r, texel) of Σ_p H(r, p, c) W(p, ·, k) (W_tab (P·K, T, T)), and
     a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None.
 
-    W_r is one batched product W_rows (T²·K, P) @ H[r] (P, 3) per region (`view_table_rows`: the
-    tables stored texel-major once, so the product writes W_r's rows in place; None: built here).
-    Measured on the chess bench's tables (R = 3, P = 4, K = 16, T = 48; 1 thread, process CPU time,
-    same process, alternating, load ~9): 0.32 ms vs 0.80 ms for the einsum over the (P, K, T²)
-    layout (which permutes its (r, t, k, c) result into place), the same bits there."""
+    W_r is Σ_p W_rows[p] · H(r, p, c) over all regions at once, p in order, one lane-wise product
+    and one add per p into W_r's layout (`view_table_rows`: the tables stored texel-major with each
+    value on the three channel lanes, built once; None: built here) — the sum MKL's batched
+    (T²·K, P) @ (P, 3) products formed, in the same order without FMA: the same bits (tested
+    against the explicit float32 sum). Decision (session 22, ptt22): those products ran at ~1–2
+    GFLOP/s (N = 3, K = P = 4: MKL's small-matrix path); chess bench (R = 3, P = 4, K = 16, T = 48;
+    1 thread, back to back / 10 ms idle before each): bmm 1.06–1.12 / 1.48–1.58 ms, these seven
+    passes 0.44–0.54 / 0.74–0.96 ms, the einsum of session 19 0.80 ms. ``addcmul_`` (0.37 ms) rounds
+    the product and the sum once (FMA): other bits, not taken."""
     R, P, _ = H.shape
-    T2 = W_tab.shape[-1] * W_tab.shape[-2]
     if W_rows is None:
         W_rows = view_table_rows(W_tab, K)
-    Wr = torch.bmm(W_rows.expand(R, -1, -1), H).reshape(R * T2, K * 3)
+    T2 = W_rows.shape[1]
+    Hl = H.permute(1, 0, 2)[:, :, None, None, :].expand(P, R, 1, K, 3).reshape(P, R, 1, K * 3)  # lane (k, c): H(r, p, c)
+    Wr = torch.mul(W_rows[0], Hl[0])  # (R, T², K·3)
+    if P > 1:
+        tmp = torch.empty_like(Wr)
+        for p in range(1, P):
+            torch.mul(W_rows[p], Hl[p], out=tmp)
+            Wr.add_(tmp)
     ar = None
     if lobe_a is not None:
         n, L = lobe_a.shape[1:]
         ar = torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * n, L * 3)
-    return Wr.contiguous(), ar
+    return Wr.view(R * T2, K * 3), ar
 
 
 def _channel_weights(w: Tensor) -> Tensor:

@@ -112,7 +112,7 @@ SEPARATE_DEFAULT = True
 
 # BRDF_STAGE_THREADS: a VB frame's BRDF stage — the run-time fit of each changed material
 # (`PTT.coords`: a few dozen eager ops on the 25 200 fit pairs and a 4×4 solve) and the region
-# tables (`fast.region_tables`: one (T²·K, P) × (P, 3) product per region) — runs on one torch
+# tables (`fast.region_tables`: Σ_p of lane-wise products over every region) — runs on one torch
 # thread. Its ops are small, and with 2 threads on a loaded machine each one's OpenMP region spent
 # ~10x its work waiting: chess bench, 2 threads, load ~10 on 2 cores, process CPU time, same
 # process, alternating: one material's fit 14.1 ms vs 1.38 ms under torch_threads(1), the region
@@ -272,7 +272,7 @@ class PTT(Method):
         #                       (E^(k) maps, their fast.LatLongStack) | None)
         self._f_H = None      # (R, P, 3) coordinates of the cached region tables
         self._f_tabs = None   # (W_r (R·T², K·3), a_r (R·n_θ, L·3) | None)
-        self._f_wrows = None  # (W_tab, its fast.view_table_rows (T²·K, P)): kept while W_tab is
+        self._f_wrows = None  # (W_tab, its fast.view_table_rows (P, T², K·3)): kept while W_tab is
         self._f_E = None      # (E (V, K·3), I1 | None) for the cached (lighting, H): the one-bounce SH
         # radiance, (V, S, 3) local frame (shading="vertex") or (V, 3·S) world frame (shading="pixel")
         self._last_view = None  # (num_samples, G-buffer, camera origin (3,)) of the last render (cost_terms)

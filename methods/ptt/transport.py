@@ -161,17 +161,17 @@ class LobeBasis:
         kd = torch.tensor(material.kd, dtype=torch.float64)
         lobe = _spec_lobe(material)
         if not self.diffuse and bool((kd != 0).any()):
-            return self._fit(material)
+            return self._fit(material, lobe)
         if lobe is not None:
             j = next((i for i, l in enumerate(self.lobes) if l == lobe), None)
             if j is None:
-                return self._fit(material)
+                return self._fit(material, lobe)
             H[int(self.diffuse) + j] = torch.tensor(material.ks_rgb, dtype=torch.float64)
         if self.diffuse:
             H[0] = kd
         return H
 
-    def _fit(self, material: Any) -> Tensor:
+    def _fit(self, material: Any, lobe: Any = False) -> Tensor:
         """Least squares over disk-grid pairs, weight cosθi dωi dωo (error in reflected radiance).
         Every material is kd/π + ks·lobe (``scenes.materials.Material.eval``) and the fit is
         linear, so H = g_d ⊗ kd + g_s ⊗ ks with g_d = G⁻¹Bᵀ(1/π) fitted once and g_s = G⁻¹Bᵀ lobe
@@ -192,13 +192,17 @@ class LobeBasis:
         same process against the material's ``eval`` + n×n scatter (1 thread, CPU time, median of 11
         frames of perturbed materials, loaded 2-core machine; ``python -m benchmarks.ptt_fit``): one
         frame's fits chess bench 9.7 → 1.9 ms (×5.2), creature 3.0 → 0.8 ms (×3.9); the
-        coordinates differ from the unfolded fit by float64 round-off (≤ 5e-14 relative)."""
+        coordinates differ from the unfolded fit by float64 round-off (≤ 5e-14 relative).
+
+        A f_u is `GridLobes.project` (session 22): the lobe evaluated once per distinct value of its
+        direction factor (2.5–3.5 K of the 25 200 pairs) against A's columns summed per value
+        (built in `prepare`); the coordinates equal A @ eval to float64 round-off."""
         grid, A, g_d = self.prepare()
         H = g_d * torch.tensor(material.kd, dtype=torch.float64)[None, :]
-        lobe = _spec_lobe(material)
+        if lobe is False:  # not passed by `coords`
+            lobe = _spec_lobe(material)
         if lobe is not None:
-            fu = grid.eval(lobe).double()  # unit ks, pairs o <= i
-            g_s = (A @ fu)[:, None]  # G⁻¹ M f_u (`prepare`)
+            g_s = grid.project(lobe, A)[:, None]  # G⁻¹ M f_u (`prepare`), f_u the unit-ks lobe on the pairs o <= i
             H = H + g_s * torch.tensor(material.ks_rgb, dtype=torch.float64)[None, :]
         return H
 
@@ -234,10 +238,11 @@ class LobeBasis:
             Bw = B * wt[..., None]
             M = Bw[o, i] + torch.where((o != i)[:, None], Bw[i, o], torch.zeros_like(Bw[i, o]))  # (pairs, P)
             grid = GridLobes(d[i], d[o])
-            for lobe in self.lobes:  # the direction-only factors of the basis's families (a changed
-                grid.eval(lobe)      # material keeps its family: scenes.sequences.perturb_material)
             with torch_threads(1):
                 A = _solve(G, M.T.contiguous()).contiguous()  # (P, pairs)
+            for lobe in self.lobes:  # the direction-only factors of the basis's families and A summed per
+                grid.project(lobe, A)  # factor value (a changed material keeps its family:
+                #                        scenes.sequences.perturb_material)
             fold = self._fold = (grid, A, g_d)
         return fold
 

@@ -59,6 +59,34 @@ def test_fast_path_equals_reference(name, shading):
                                        msg=lambda s: f"{name} {kind} frame {frame.index}: {s}")
 
 
+@pytest.mark.parametrize("R,P,K,T", [(3, 4, 16, 8), (2, 3, 4, 5), (1, 1, 2, 3)])
+def test_region_tables_are_the_products_summed_in_order(R, P, K, T):
+    """`fast.region_tables`' W_r (lane-wise products per p over `view_table_rows`) is, bit for bit,
+    the float32 sum Σ_p W(p, k, texel) H(r, p, c) taken in p order without FMA (what MKL's batched
+    (T²·K, P) @ (P, 3) products gave: the chess and creature bench tables were equal), and the exact
+    float64 product to float32 round-off; a_r is the einsum's."""
+    from methods.ptt import fast as _fast
+
+    g = torch.Generator().manual_seed(R * 100 + P)
+    W_tab = torch.randn(P * K, T, T, generator=g)
+    H = torch.rand(R, P, 3, generator=g)
+    H[0, -1] = 0.0  # a basis function a material does not use
+    lobe_a = torch.rand(P, 5, 2, generator=g)
+    Wr, ar = _fast.region_tables(H, W_tab, K, lobe_a)
+    assert Wr.shape == (R * T * T, K * 3) and Wr.is_contiguous()
+    W = W_tab.reshape(P, K, T, T)
+    want = None
+    for p in range(P):  # (r, y, x, k, c)
+        t = W[p][None, :, :, :, None].permute(0, 2, 3, 1, 4) * H[:, p][:, None, None, None, :]
+        want = t if want is None else want + t
+    assert torch.equal(Wr, want.reshape(R * T * T, K * 3))
+    exact = torch.einsum("pkyx,rpc->ryxkc", W.double(), H.double()).reshape(R * T * T, K * 3)
+    assert float((Wr.double() - exact).abs().max()) <= 4 * P * 6e-8 * float(exact.abs().max())
+    Wr2, _ = _fast.region_tables(H, W_tab, K, None, _fast.view_table_rows(W_tab, K))
+    assert torch.equal(Wr2, Wr)
+    assert torch.equal(ar, torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * 5, 2 * 3))
+
+
 def test_world_frame_sh_equals_local_evaluation():
     """The lobes' SH term is evaluated in the world frame: Σ_s I1w(s) Y_s(R) = Σ_s I1(s) Y_s(F R)
     for the rotation built per vertex (``fast.build_static``)."""

@@ -53,6 +53,33 @@ def test_grid_lobes_equal_the_materials_eval_bitwise(dtype):
             assert torch.equal(g.eval(lobe), want)  # the cached factors are not modified
 
 
+def test_grid_lobes_project_equals_the_product_with_eval():
+    """`GridLobes.project` (the lobe once per distinct direction factor, A's columns summed per
+    value) equals ``A @ eval(lobe)`` to float64 round-off: random parameters of every family on
+    random pairs (masked pairs and pairs below the horizon: ``up`` set), on the pairs repeated
+    (distinct values shared by many pairs) and on the fit grid's own pairs, for two operators A
+    (the per-family cache follows A); other families and weights fall back to the product."""
+    wi, wo = _pairs(2048, 4, torch.float64)
+    grids = [GridLobes(wi, wo), GridLobes(torch.cat([wi, wi.flip(0), wi]), torch.cat([wo, wo.flip(0), wo]))]
+    b = tp.LobeBasis([BlinnPhong(s=8.0)])
+    b._fit(BlinnPhong(s=9.0))
+    grids.append(b._fold[0])
+    assert grids[0].up is not None and grids[2].up is None
+    rng = np.random.default_rng(5)
+    g = torch.Generator().manual_seed(6)
+    for grid in grids:
+        n = grid.wi.shape[0]
+        for A in (torch.randn(4, n, generator=g, dtype=torch.float64), torch.rand(3, n, generator=g, dtype=torch.float64)):
+            for lobe in list(_lobes(rng)) + [tp._spec_lobe(TorranceSparrow(sigma=0.3)), BlinnPhong(kd=0.2, ks=0.5, s=20.0)]:
+                want = A @ grid.eval(lobe)
+                got = grid.project(lobe, A)
+                assert got.shape == want.shape and got.dtype == want.dtype
+                tol = 1e-13 * float((A.abs() @ grid.eval(lobe).abs()).max())
+                assert float((got - want).abs().max()) <= tol, (lobe, float((got - want).abs().max()), tol)
+    fam = grids[1]._groups("phong", A)[0]
+    assert fam.numel() < grids[1].wi.shape[0] // 2  # the repeated pairs share their factor values
+
+
 def test_grid_lobes_fall_back_for_other_families_and_weights():
     wi, wo = _pairs(512, 2, torch.float64)
     g = GridLobes(wi, wo)
