@@ -60,11 +60,16 @@ def base_basis(m: PTT, root: str):
 
 
 def as_class(m: PTT, cls, basis=None) -> PTT:
+    """A copy of ``m`` of class ``cls`` with empty run-time caches and no fast-path statics (``_fs``),
+    so ``cls``'s own `_fast_static` lays out the arrays its frames read: a layout change in one
+    version would otherwise hand the other version's storage to the copy (and, e.g., make it copy a
+    44 MB table every frame and look falsely slow; found by the ptt22 helper)."""
     out = copy.copy(m)
     out.__class__ = cls
     if basis is not None:
         out.basis = basis
     out._reset_cache()
+    out._fs = None
     return out
 
 
