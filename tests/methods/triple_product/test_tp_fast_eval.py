@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -366,6 +367,51 @@ def test_project_env_comb_equals_the_per_frame_azimuthal_kernel(monkeypatch):
         assert (coef - ref).abs().max() <= F32_LIGHT * ref.abs().max(), angle
         assert (fine - ref_fine).abs().max() <= F32_LIGHT * ref_fine.abs().max(), angle
     assert not lt.comb_ok(lt.FrameGrid(5, 7, 1), env.width)
+
+
+def _comb_taps_reference(u0, v0, g, wT, H: int, W: int, n_phi: int):
+    """`lighting.comb_taps` written out eagerly: frame 0's u = (u0 − γ/2π) mod 1 (torch.remainder in
+    float64, rounded once), its footprint by `latlong.quad_taps`, the comb offset of the top-left tap
+    and the 4 taps' bilinear weights times wT, each (dy, e) written on its own."""
+    from methods.core.latlong import quad_taps
+
+    m, J = W // n_phi, n_phi
+    u = torch.remainder(u0 - g, 1.0).float()
+    idx, fx, fy = quad_taps(u, v0, H, W)
+    ix, iy = idx % (W + 1), idx // (W + 1)
+    o = (iy * m + ix % m) * (3 * 2 * 2 * J) + ix // m
+    w4 = torch.empty(*u.shape, 2, 2)
+    for dy, wy in ((0, 1 - fy), (1, fy)):
+        for e, wx in ((0, 1 - fx), (1, fx)):
+            w4[..., dy, e] = (wx * wy) * wT[None]
+    return o, w4
+
+
+def test_comb_taps_equals_the_eager_footprints():
+    """The compiled `lighting.comb_taps` (u mod 1 as u − ⌊u⌋, the 4 weights in one stack) = the eager
+    footprints of `_comb_taps_reference` bit for bit: a live-triangle selection (B, n', S) of a
+    level-2 grid's base coordinates under four map turns, and coordinates at the edges (with γ/2π =
+    0.25: u0 − γ/2π exactly 0, 1, −1, 0.25, 1 ulp-ish below and above 0; u0 = ±0 under the turns)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+
+    grid, H, W = lt.FrameGrid(5, 8, 1), 16, 32
+    geo = Geodesic(2)
+    u0, v0 = lt._azimuthal_samples(geo, 1, grid)
+    _, wT = lt._env_sample_planes(geo, 1)
+    live = torch.arange(0, u0.shape[1], 3)                       # a live-triangle selection
+    cases = [(u0[:, live].contiguous(), v0[:, live].contiguous(), wT[live].contiguous())]
+    edge = torch.tensor([0.25, -0.0, 0.0, 1.25, -0.75, 0.25 - 2.0 ** -40, 0.25 + 2.0 ** -40, 0.5], dtype=torch.float64)
+    cases.append((edge.view(1, 2, 4).expand(3, 2, 4).contiguous(), torch.rand(3, 2, 4, generator=torch.Generator().manual_seed(1)),
+                  torch.rand(2, 4, generator=torch.Generator().manual_seed(2))))
+    kernel = lt._kernel(lt.comb_taps)
+    for u, v, w in cases:
+        for gamma in (0.25, 0.7, -2.5, 3.0):
+            g = torch.tensor(gamma / (2 * math.pi) if gamma != 0.25 else 0.25, dtype=torch.float64)
+            o, w4 = kernel(u, v, g, w, H, W, grid.n_phi)
+            ro, rw4 = _comb_taps_reference(u, v, g, w, H, W, grid.n_phi)
+            assert o.dtype == torch.int32 and torch.equal(o, ro.to(torch.int32)), gamma
+            assert w4.shape == rw4.shape and w4.stride() == rw4.stride() and torch.equal(w4, rw4), gamma
 
 
 def test_project_env_does_not_depend_on_threads(monkeypatch):
