@@ -563,11 +563,24 @@ def comb_means(o: Tensor, w4: Tensor, CT: Tensor, J: int, m: int) -> Tensor:
     footprints (`comb_taps`: o (B, n, S) and the 4 taps' weights w4 (B, n, S, 2, 2), times the
     sample's weight), the comb table CT of J frames and m columns per step: (B, n, 3, J), frame j in
     the last dimension (vectorised along it: the table read through overlapping windows, so that
-    every tap is one contiguous run of J). Each output sums its S·4 terms in one sequential loop."""
+    every tap is one contiguous run of J). Each output sums its S·4 terms in one sequential loop.
+
+    The J frames are summed as separate reductions of COMB_LANES frames each, which the compiled
+    loop fuses into one pass with an accumulator per part: one reduction over all J kept a single
+    vector accumulator per loop, whose 4·S dependent adds bounded it (1 thread, chess bench E, 17
+    base rows of the 640 live triangles, J = 32: 6.3 -> 3.5 ms). Each output's terms are added in
+    the same order as before: the same sums bit for bit."""
     es, cs = 2 * J, 4 * J                                                   # side, channel strides
     rs = m * 3 * cs                                                         # row stride
     win = CT.as_strided((CT.shape[0] - rs - es - J + 1, 3, 2, 2, J), (1, cs, rs, es, 1))
-    return (win[o] * w4[:, :, :, None, :, :, None]).sum((2, 4, 5))         # (B, n, 3, J)
+    taps, w = win[o], w4[:, :, :, None, :, :, None]
+    return torch.cat([(taps[..., a:a + COMB_LANES] * w).sum((2, 4, 5))    # (B, n, 3, J)
+                      for a in range(0, J, COMB_LANES)], -1)
+
+
+# frames per `comb_means` reduction: one float32 vector of an AVX2 host (the reductions of a block
+# run side by side in one loop, each with its own accumulator)
+COMB_LANES = 8
 
 
 def comb_coeffs(fine: Tensor) -> tuple[Tensor, Tensor]:

@@ -414,6 +414,37 @@ def test_comb_taps_equals_the_eager_footprints():
             assert w4.shape == rw4.shape and w4.stride() == rw4.stride() and torch.equal(w4, rw4), gamma
 
 
+def test_comb_means_equals_the_sequential_sums():
+    """The compiled `lighting.comb_means` (the J frames in reductions of COMB_LANES, side by side) =
+    each output's S·4 terms added one by one from 0 in (sample, dy, e) order, eagerly from the comb
+    table (`comb_table`), bit for bit: J = 32 (4 parts, as the bench grid), 8 and 12 (a short part)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(3)
+    geo = Geodesic(2)
+    _, wT = lt._env_sample_planes(geo, 1)
+    live = torch.arange(1, wT.shape[0], 4)
+    for n_phi, H, W in ((32, 8, 64), (8, 16, 32), (12, 6, 24)):
+        grid = lt.FrameGrid(3, n_phi, 1)
+        u0, v0 = lt._azimuthal_samples(geo, 1, grid)
+        u0, v0, w = u0[:, live].contiguous(), v0[:, live].contiguous(), wT[live].contiguous()
+        planes = torch.rand(3, H * (W + 1), generator=gen)
+        CT = lt.comb_table(planes, H, W, n_phi)
+        o, w4 = lt._kernel(lt.comb_taps)(u0, v0, torch.tensor(0.1, dtype=torch.float64), w, H, W, n_phi)
+        m, J = W // n_phi, n_phi
+        got = lt._kernel(lt.comb_means)(o, w4, CT, J, m)
+        j = torch.arange(J)
+        ref = torch.zeros(*o.shape[:2], 3, J)
+        for si in range(o.shape[2]):
+            for dy in range(2):
+                for e in range(2):
+                    for c in range(3):
+                        at = o[:, :, si, None].long() + c * 4 * J + dy * m * 12 * J + e * 2 * J + j
+                        ref[:, :, c] = ref[:, :, c] + CT[at] * w4[:, :, si, dy, e, None]
+        assert got.shape == ref.shape and torch.equal(got, ref), n_phi
+
+
 def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
