@@ -531,6 +531,16 @@ def test_project_env_live_triangles_equal_the_whole_projection(monkeypatch):
             if comb:
                 assert int(counters["stats"]["unique_graphs"]) == c0
     assert int(counters["stats"]["unique_graphs"]) >= graphs
+    # another index tensor of the same size, then the first again: the live samples cached on geo
+    # (`lighting._live_sample_planes`, `_live_azimuthal_samples`) follow the tensor given
+    other = torch.tensor([1, 4, 5, 6, 9, 30, 44, 55, 70, 78])
+    for comb in (True, False):
+        monkeypatch.setattr(lt, "COMB", comb)
+        for env in (base.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]), base.rotated(rotation_y(-1.1))):
+            env = lt.prefiltered(env, geo, 1)
+            whole = lt.project_env(env, R, geo, supersample=1, grid=g)[1]
+            for t in (other, tris, other.clone()):
+                assert torch.equal(lt.project_env(env, R, geo, supersample=1, grid=g, tris=t)[1], whole[:, :, t])
 
 
 def test_live_triangles_are_where_no_table_is_zero(scene_frame):
