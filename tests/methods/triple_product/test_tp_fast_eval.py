@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -368,6 +369,82 @@ def test_project_env_comb_equals_the_per_frame_azimuthal_kernel(monkeypatch):
     assert not lt.comb_ok(lt.FrameGrid(5, 7, 1), env.width)
 
 
+def _comb_taps_reference(u0, v0, g, wT, H: int, W: int, n_phi: int):
+    """`lighting.comb_taps` written out eagerly: frame 0's u = (u0 − γ/2π) mod 1 (torch.remainder in
+    float64, rounded once), its footprint by `latlong.quad_taps`, the comb offset of the top-left tap
+    and the 4 taps' bilinear weights times wT, each (dy, e) written on its own."""
+    from methods.core.latlong import quad_taps
+
+    m, J = W // n_phi, n_phi
+    u = torch.remainder(u0 - g, 1.0).float()
+    idx, fx, fy = quad_taps(u, v0, H, W)
+    ix, iy = idx % (W + 1), idx // (W + 1)
+    o = (iy * m + ix % m) * (3 * 2 * 2 * J) + ix // m
+    w4 = torch.empty(*u.shape, 2, 2)
+    for dy, wy in ((0, 1 - fy), (1, fy)):
+        for e, wx in ((0, 1 - fx), (1, fx)):
+            w4[..., dy, e] = (wx * wy) * wT[None]
+    return o, w4
+
+
+def test_comb_taps_equals_the_eager_footprints():
+    """The compiled `lighting.comb_taps` (u mod 1 as u − ⌊u⌋, the 4 weights in one stack) = the eager
+    footprints of `_comb_taps_reference` bit for bit: a live-triangle selection (B, n', S) of a
+    level-2 grid's base coordinates under four map turns, and coordinates at the edges (with γ/2π =
+    0.25: u0 − γ/2π exactly 0, 1, −1, 0.25, 1 ulp-ish below and above 0; u0 = ±0 under the turns)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+
+    grid, H, W = lt.FrameGrid(5, 8, 1), 16, 32
+    geo = Geodesic(2)
+    u0, v0 = lt._azimuthal_samples(geo, 1, grid)
+    _, wT = lt._env_sample_planes(geo, 1)
+    live = torch.arange(0, u0.shape[1], 3)                       # a live-triangle selection
+    cases = [(u0[:, live].contiguous(), v0[:, live].contiguous(), wT[live].contiguous())]
+    edge = torch.tensor([0.25, -0.0, 0.0, 1.25, -0.75, 0.25 - 2.0 ** -40, 0.25 + 2.0 ** -40, 0.5], dtype=torch.float64)
+    cases.append((edge.view(1, 2, 4).expand(3, 2, 4).contiguous(), torch.rand(3, 2, 4, generator=torch.Generator().manual_seed(1)),
+                  torch.rand(2, 4, generator=torch.Generator().manual_seed(2))))
+    kernel = lt._kernel(lt.comb_taps)
+    for u, v, w in cases:
+        for gamma in (0.25, 0.7, -2.5, 3.0):
+            g = torch.tensor(gamma / (2 * math.pi) if gamma != 0.25 else 0.25, dtype=torch.float64)
+            o, w4 = kernel(u, v, g, w, H, W, grid.n_phi)
+            ro, rw4 = _comb_taps_reference(u, v, g, w, H, W, grid.n_phi)
+            assert o.dtype == torch.int32 and torch.equal(o, ro.to(torch.int32)), gamma
+            assert w4.shape == rw4.shape and w4.stride() == rw4.stride() and torch.equal(w4, rw4), gamma
+
+
+def test_comb_means_equals_the_sequential_sums():
+    """The compiled `lighting.comb_means` (the J frames in reductions of COMB_LANES, side by side) =
+    each output's S·4 terms added one by one from 0 in (sample, dy, e) order, eagerly from the comb
+    table (`comb_table`), bit for bit: J = 32 (4 parts, as the bench grid), 8 and 12 (a short part)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(3)
+    geo = Geodesic(2)
+    _, wT = lt._env_sample_planes(geo, 1)
+    live = torch.arange(1, wT.shape[0], 4)
+    for n_phi, H, W in ((32, 8, 64), (8, 16, 32), (12, 6, 24)):
+        grid = lt.FrameGrid(3, n_phi, 1)
+        u0, v0 = lt._azimuthal_samples(geo, 1, grid)
+        u0, v0, w = u0[:, live].contiguous(), v0[:, live].contiguous(), wT[live].contiguous()
+        planes = torch.rand(3, H * (W + 1), generator=gen)
+        CT = lt.comb_table(planes, H, W, n_phi)
+        o, w4 = lt._kernel(lt.comb_taps)(u0, v0, torch.tensor(0.1, dtype=torch.float64), w, H, W, n_phi)
+        m, J = W // n_phi, n_phi
+        got = lt._kernel(lt.comb_means)(o, w4, CT, J, m)
+        j = torch.arange(J)
+        ref = torch.zeros(*o.shape[:2], 3, J)
+        for si in range(o.shape[2]):
+            for dy in range(2):
+                for e in range(2):
+                    for c in range(3):
+                        at = o[:, :, si, None].long() + c * 4 * J + dy * m * 12 * J + e * 2 * J + j
+                        ref[:, :, c] = ref[:, :, c] + CT[at] * w4[:, :, si, dy, e, None]
+        assert got.shape == ref.shape and torch.equal(got, ref), n_phi
+
+
 def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
@@ -454,6 +531,16 @@ def test_project_env_live_triangles_equal_the_whole_projection(monkeypatch):
             if comb:
                 assert int(counters["stats"]["unique_graphs"]) == c0
     assert int(counters["stats"]["unique_graphs"]) >= graphs
+    # another index tensor of the same size, then the first again: the live samples cached on geo
+    # (`lighting._live_sample_planes`, `_live_azimuthal_samples`) follow the tensor given
+    other = torch.tensor([1, 4, 5, 6, 9, 30, 44, 55, 70, 78])
+    for comb in (True, False):
+        monkeypatch.setattr(lt, "COMB", comb)
+        for env in (base.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]), base.rotated(rotation_y(-1.1))):
+            env = lt.prefiltered(env, geo, 1)
+            whole = lt.project_env(env, R, geo, supersample=1, grid=g)[1]
+            for t in (other, tris, other.clone()):
+                assert torch.equal(lt.project_env(env, R, geo, supersample=1, grid=g, tris=t)[1], whole[:, :, t])
 
 
 def test_live_triangles_are_where_no_table_is_zero(scene_frame):
