@@ -378,6 +378,48 @@ def test_operator_blocks_equal_dense_product():
                     assert (fast - slow).abs().max() <= tol * slow.abs().max(), (order, alpha, lifted, dt)
 
 
+def _block_plan_reference(op_key, order, lifted, dtype, scale=1.0):
+    """`runtime._block_plan` as it was made before it kept its layout per non-zero pattern (from
+    `_operator_blocks` of that dtype, or of float64 scaled then cast): its test oracle."""
+    dev = torch.device("cpu")
+    blocks = rt._operator_blocks(op_key, order, lifted, dtype, dev)
+    if scale != 1.0:
+        b64 = rt._operator_blocks(op_key, order, lifted, torch.float64, dev)
+        blocks = tuple((r, c, (K64 * scale).to(dtype)) for (r, c, _), (_, _, K64) in zip(blocks, b64))
+    rows = torch.cat([r for r, _, _ in blocks])
+    cols = torch.cat([c for _, c, _ in blocks])
+    src = torch.empty_like(rows)
+    src[rows] = torch.arange(rows.shape[0])
+    spans, r0, c0 = [], 0, 0
+    for r, c, K_b in blocks:
+        spans.append((r0, r0 + r.shape[0], c0, c0 + c.shape[0], K_b))
+        r0, c0 = r0 + r.shape[0], c0 + c.shape[0]
+    return cols, src, tuple(spans)
+
+
+def test_block_plan_equals_operator_blocks_plan():
+    """`runtime._block_plan` (the layout kept per M's non-zero pattern, `_plan_layout`; per exponent
+    M, K and one gather of the blocks' entries) = the plan made from `_operator_blocks` bit for bit
+    — cols, src, spans and every block — orders 2–9, exponents 1 (the cosine: a pattern of its own
+    at some orders), fresh non-integer ones (each a new exponent after the layout was kept, as a VB
+    frame meets it), lifted or not, float32 / float64, with and without a scale."""
+    g = torch.Generator().manual_seed(11)
+    for order in (2, 3, 4, 5, 8, 9):
+        alphas = [1.0, 12.0] + [float(1.0 + 80.0 * torch.rand((), generator=g, dtype=torch.float64)) for _ in range(3)]
+        for alpha in alphas:
+            for lifted in (False, True):
+                for dt in (torch.float32, torch.float64):
+                    for scale in (1.0, (alpha + 1.0) / (2.0 * math.pi)):
+                        got = rt._block_plan(("phong", alpha), order, lifted, dt, torch.device("cpu"), scale)
+                        want = _block_plan_reference(("phong", alpha), order, lifted, dt, scale)
+                        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+                        assert len(got[2]) == len(want[2]), (order, alpha, lifted)
+                        for a, b in zip(got[2], want[2]):
+                            assert a[:4] == b[:4], (order, alpha, lifted)
+                            assert a[4].dtype == dt and a[4].is_contiguous() and torch.equal(a[4], b[4]), \
+                                (order, alpha, lifted, dt, scale)
+
+
 def test_shade_terms_equal_reference_shade():
     """`runtime.shade_terms` = `method.shade` (per-point rotations, M^α) for random lobes, normals,
     views, lighting and exponents, orders 2–6 (monomial and SH features), float64."""
