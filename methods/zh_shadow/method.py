@@ -741,17 +741,22 @@ class ZHShadow(Method):
             woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
             woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
             # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
-            # columns in or of t_s out; consumed region by region below)
-            ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas)
+            # columns in or of t_s out; consumed region by region below), made for the front-facing
+            # vertices alone (the others' radiance is zero: ``front`` below; about half of the
+            # specular region's on the bench creature's views)
+            front = rt.dot_T(nT, woT) > 0
+            ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas, keep=front)
             counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
                                                    geom.N.to(dev), vreg))
-            self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
+            self._vertex_transfer = vt = (key, v0, ts, front, counts)
         _, _, ts, front, counts = vt
         light = light.to(dev)
         N = int(w.shape[1])
         spans = self._region_spans(vreg, len(mats))
         tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
-        if spans is not None and all(isinstance(sp, tuple) for sp, _ in tsr.values()):
+        if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
+                                                               and int(sp[-1]) < spans[r][1])
+                                     for r, (sp, _) in tsr.items()):
             # every region one range of vertices (`Scene` concatenates one mesh per region): the
             # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
             # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
@@ -766,11 +771,18 @@ class ZHShadow(Method):
                     # 4x faster than the (n, 3) product wᵀ (l ⊙ kd / π) on the strided wᵀ view,
                     # which MKL ran at ~1 ms per 10 K vertices (bench creature P frame, 1 thread)
                     rr = torch.mm((light * (kd.to(dev, light.dtype) * (1.0 / math.pi))).T, w[:, a0:a1])
-                    (b0, b1), t = tsr.get(r, ((a0, a0), None))
-                    if t is not None and (b0, b1) == (a0, a1):   # (a region's t_s spans its range)
+                    sp, t = tsr.get(r, ((a0, a0), None))
+                    if t is not None and not isinstance(sp, tuple):
+                        # t_s of the region's front-facing vertices (positions sp in its range): their
+                        # columns of rr plus (l ⊙ ks)ᵀ t_s — the sum addmm_ makes over a range
+                        rr.index_add_(1, sp - a0, torch.mm((light * ks.to(dev, light.dtype)).T, t))
+                        t = None
+                    elif t is not None and sp == (a0, a1):   # (a region's t_s spans its range)
                         rr.addmm_((light * ks.to(dev, light.dtype)).T, t)
+                        t = None
                     radT[a0:a1].copy_(rr.T)
-                    if t is not None and (b0, b1) != (a0, a1):
+                    if t is not None:
+                        b0, b1 = sp
                         radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
             radT.mul_(front[:, None])
             if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)

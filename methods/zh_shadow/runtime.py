@@ -834,7 +834,8 @@ def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas:
 
 
 def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
-                   alphas: list[float | None]) -> list[tuple[int, tuple[int, int] | Tensor, Tensor]] | None:
+                   alphas: list[float | None], keep: Tensor | None = None
+                   ) -> list[tuple[int, tuple[int, int] | Tensor, Tensor]] | None:
     """The t_s of `specular_transfer` per region with a specular term, not assembled: [(region,
     span, t_s (n², Q_r) of the span's columns)] — span (a0, a1) when the region's points are one
     range of columns (a mesh's vertices: `Scene` concatenates one mesh per region; the creature's
@@ -842,14 +843,20 @@ def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
     no region has a specular term. A range's columns are read as a strided view of srcT by the
     compiled first half (`_zyz_down`) and R is made for them alone, so a caller that consumes the
     parts region by region (`ZHShadow._render_vertex`) pays no copy of srcT's columns in and none
-    of the result out (2 × 2.5 MB and a 1 MB zero fill per P frame at order 8 on the creature)."""
+    of the result out (2 × 2.5 MB and a 1 MB zero fill per P frame at order 8 on the creature).
+
+    ``keep`` (Q,) bool: only those columns' t_s are needed (vertex shading: the front-facing
+    vertices, n·ωo > 0 — the others' radiance is zero); a part then holds the kept columns of its
+    region alone, by position (the other columns, as a part's, zero when assembled). The columns
+    are independent, so those made are the same numbers (to float32 round-off: the compiled passes'
+    vector and tail loops) — about half of them on the bench creature's views."""
     if all(a is None for a in alphas):
         return None
     parts = []
     for r, a in enumerate(alphas):
         if a is None:
             continue
-        p = (vregion == r).nonzero().squeeze(-1)
+        p = ((vregion == r) if keep is None else (vregion == r) & keep).nonzero().squeeze(-1)
         if not p.shape[0]:
             continue
         a0, a1 = int(p[0]), int(p[-1]) + 1

@@ -720,6 +720,68 @@ def test_frame_cost_vertex_planes(monkeypatch):
     assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (N - Np) * diff + Ns * spec + N * (5 + 12) + P * 18
 
 
+def test_specular_parts_keep_equals_kept_columns():
+    """`runtime.specular_parts` with ``keep`` (the front-facing vertices of vertex shading) = the
+    kept columns of the parts made without it (the columns are independent), by position, float32
+    to round-off; a region of no kept column and one with no specular term make no part."""
+    g = torch.Generator().manual_seed(5)
+    Q, n2 = 700, 64
+    vT = torch.randn(n2, Q, generator=g)
+    nT = torch.randn(3, Q, generator=g)
+    nT = nT / nT.norm(dim=0)
+    woT = torch.randn(3, Q, generator=g)
+    woT = woT / woT.norm(dim=0)
+    vreg = torch.cat([torch.zeros(300), torch.ones(250), torch.full((150,), 2.0)]).long()
+    vreg[::7] = 3                                                # a region that is not one range
+    keep = rt.dot_T(nT, woT) > 0
+    keep[300:550] = False                                        # region 1: nothing kept
+    alphas = [12.0, 30.0, None, 7.5]
+    full = {r: (sp, t) for r, sp, t in rt.specular_parts(vT, nT, woT, vreg, alphas)}
+    kept = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
+    assert sorted(r for r, _, _ in kept) == [0, 3]
+    for r, sp, t in kept:
+        want_pos = ((vreg == r) & keep).nonzero().squeeze(-1)
+        assert torch.equal(sp, want_pos) and t.shape == (n2, want_pos.shape[0])
+        fsp, ft = full[r]
+        fpos = torch.arange(fsp[0], fsp[1]) if isinstance(fsp, tuple) else fsp
+        want = ft[:, (fpos[:, None] == want_pos[None, :]).int().argmax(0)]
+        assert (t - want).abs().max() <= 1e-6 * want.abs().max(), r
+    # assembled, the columns not kept are zero
+    ts = rt.specular_transfer(vT, nT, None, vreg, alphas, parts=kept)
+    assert ts[:, ~keep].abs().max() == 0
+
+
+def test_vertex_shading_front_only_transfer_equals_full(zh_scene, monkeypatch):
+    """Vertex shading's t_s made for the front-facing vertices alone (`ZHShadow._render_vertex`,
+    ``specular_parts(keep=front)``, the spans path adding it by position) = t_s made for every
+    vertex of the specular regions, on V / VB / P frames and the L frames that reuse it (order 8,
+    cosine: the physical setting); and both = the reference."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, full = m.with_render_config(), m.with_render_config()
+    parts = rt.specular_parts
+
+    def every_column(*args, keep=None, **kw):
+        return parts(*args, **kw)
+
+    for kind in ("V", "VB", "P", "L"):
+        for f in make_sequence(m.scene, kind, 3, seed=4):
+            gb = make_gbuffer(m.scene, f, 2)
+            a = fast.render(f, gb)
+            ts = fast._vertex_transfer[2]
+            assert ts and all(not isinstance(sp, tuple) for _, sp, _ in ts)   # the positions path ran
+            front = fast._vertex_transfer[3]
+            assert sum(int(sp.shape[0]) for _, sp, _ in ts) < int(front.numel())
+            with monkeypatch.context() as mp:
+                mp.setattr(rt, "specular_parts", every_column)
+                b = full.render(f, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max(), kind
+    _check_sequence(fast.with_render_config(), "VB")
+
+
 def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
     """Vertex shading's radiance made region range by region range (`ZHShadow._region_spans`, the
     albedos folded into the lighting, t_s as `runtime.specular_parts`) = the general path (albedos
