@@ -771,15 +771,48 @@ def test_vertex_shading_front_only_transfer_equals_full(zh_scene, monkeypatch):
         for f in make_sequence(m.scene, kind, 3, seed=4):
             gb = make_gbuffer(m.scene, f, 2)
             a = fast.render(f, gb)
-            ts = fast._vertex_transfer[2]
-            assert ts and all(not isinstance(sp, tuple) for _, sp, _ in ts)   # the positions path ran
-            front = fast._vertex_transfer[3]
-            assert sum(int(sp.shape[0]) for _, sp, _ in ts) < int(front.numel())
+            if fast._vertex_transfer is not None:   # (None: a P frame's `_front_radiance`, tested below)
+                ts = fast._vertex_transfer[2]
+                assert ts and all(not isinstance(sp, tuple) for _, sp, _ in ts)   # the positions path ran
+                front = fast._vertex_transfer[3]
+                assert sum(int(sp.shape[0]) for _, sp, _ in ts) < int(front.numel())
             with monkeypatch.context() as mp:
                 mp.setattr(rt, "specular_parts", every_column)
                 b = full.render(f, gb)
             assert (a - b).abs().max() <= 1e-5 * b.abs().max(), kind
     _check_sequence(fast.with_render_config(), "VB")
+
+
+def test_pose_frame_front_only_radiance_equals_all_vertices(zh_scene):
+    """A P frame's radiance with w and t_s made for the front-facing vertices alone
+    (`ZHShadow._front_radiance`) = the path over all vertices (the same frame with "view" added to
+    ``changed``: that branch is then not taken) to float32 round-off, = the reference; a later frame
+    of the same pose under another camera makes every vertex's w again (cosine, order 8)."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, full = m.with_render_config(), m.with_render_config()
+    frames = make_sequence(m.scene, "P", 3, seed=5)
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(m.scene, f, 2)
+        a = fast.render(f, gb)
+        if i > 0:
+            assert fast._vertex_diffuse is None and fast._vertex_transfer is None   # the front-only branch ran
+        b = full.render(dataclasses.replace(f, changed=frozenset(f.changed | {"view"})), gb)
+        assert full._vertex_diffuse is not None
+        assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
+    # the last pose under another camera: every vertex's w again (nothing partial was kept)
+    g = dataclasses.replace(frames[-1], camera=m.scene.camera.orbited(0.3), changed=frozenset({"view"}))
+    gb = make_gbuffer(m.scene, g, 2)
+    a = fast.render(g, gb)
+    assert fast._vertex_diffuse is not None and int(fast._vertex_diffuse[3].shape[1]) == m.scene.geometry().num_vertices
+    want = fast._render_reference(g, gb)
+    assert (a - want).abs().max() <= 1e-5 * want.abs().max()
+    _check_sequence(fast.with_render_config(), "P", n_frames=3)
 
 
 def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
