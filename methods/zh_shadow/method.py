@@ -757,8 +757,7 @@ class ZHShadow(Method):
                 # specular region's on the bench creature's views)
                 front = rt.dot_T(nT, woT) > 0
                 ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas, keep=front)
-                counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
-                                                       geom.N.to(dev), vreg))
+                counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
                 self._vertex_transfer = vt = (key, v0, ts, front, counts)
             _, _, ts, front, counts = vt
             light = light.to(dev)
@@ -788,7 +787,7 @@ class ZHShadow(Method):
                 if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                     rad.clamp_min_(0.0)
                 radT = rad.T.contiguous()
-        self._last_counts = counts.with_fixed(P=gbuffer.num_samples, Q=int(geom.num_vertices))
+        self._last_counts = counts.with_fixed(P=gbuffer.num_samples)   # Q: the front-facing vertices
         # a G-buffer seen by the previous frame (the same camera and pose: a lighting- or material-
         # only frame) is resolved by the sparse matrix of its interpolation + box filter, built by the
         # first such frame and kept while camera and pose stay (`gouraud.resolve_matrix`: 3.4 entries
@@ -832,8 +831,8 @@ class ZHShadow(Method):
         radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
-        counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
-                                               geom.N.to(dev), vreg))
+        front = torch.zeros(int(vT.shape[1]), dtype=torch.bool, device=dev).index_fill_(0, idx, True)
+        counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
 
     @staticmethod
@@ -941,9 +940,9 @@ class ZHShadow(Method):
             if clamp:   # per vertex, before the interpolation (module docstring: negative radiance)
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
-            self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices),
-                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region,
-                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
+            front = (geom.N.float() * wo).sum(-1) > 0
+            lc = _front_counts(front, rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame), geom.N)
+            self._last_counts = {"P": gbuffer.num_samples, "Q": lc["Q"], **lc._resolved()}
         else:
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)
@@ -998,7 +997,9 @@ class ZHShadow(Method):
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
-        Points: the covered samples ("sample" shading) or the vertices ("vertex"), counted by the
+        Points: the covered samples ("sample" shading) or the front-facing vertices ("vertex": n·ωo >
+        0; a vertex facing away has radiance 0, so neither its visibility — with "P" its model
+        product, else its cached v — nor its terms are compulsory; `_front_counts`), counted by the
         last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
         specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
@@ -1059,6 +1060,7 @@ class ZHShadow(Method):
         else:
             Q = Qs = N if vertex else P
             Qp = Qps = Np = G = 0
+        Nv = Q if vertex else N     # vertices whose visibility a frame needs: "vertex", the front-facing
         Qo = Q - Qp                                                # points off the planes
         pp = self._relight[3].get("plane_pass") if self._relight is not None and not vertex else None
         if kind in ("L", "E") and pp is not None and lc is not None and lc["P"] == P:
@@ -1079,9 +1081,9 @@ class ZHShadow(Method):
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
             b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
-            b += (J1 * N * d + N * 3) * 4 if pose else N * min(n2, d + 3) * 4
+            b += (J1 * Nv * d + N * 3) * 4 if pose else Nv * min(n2, d + 3) * 4
         # -- flops
-        f = N * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
+        f = Nv * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
             f += 6 * rot
         if "E" in kind:
@@ -1102,6 +1104,18 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor
+                  ) -> "_LazyCounts":
+    """The point counts of a vertex-shaded frame for `ZHShadow.frame_cost`: the front-facing vertices
+    (``front``: n·ωo > 0) are its points — a vertex facing away has radiance exactly 0 (the shading's
+    front test), so no work on it is compulsory (session 22: the frames skip their specular transfer;
+    counted over all vertices, the count stayed while the work went, inflating the efficiency). Q
+    now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read."""
+    idx = front.nonzero().squeeze(-1)
+    return _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
+                                               vertex_normal, vreg), {"Q": int(idx.numel())})
 
 
 class _LazyCounts(dict):

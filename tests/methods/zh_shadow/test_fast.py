@@ -595,6 +595,12 @@ def test_product_tensor_and_features():
             assert (feats.T @ C - YB[:, rows]).abs().max() <= 1e-11, (order, diffuse)
 
 
+def _front_vertices(g, fr) -> torch.Tensor:
+    """(N,) the vertices facing the camera: n · (camera − x) > 0."""
+    cam = torch.as_tensor(fr.camera.origin, dtype=torch.float32)
+    return (g.N.float() * (cam - g.V.float())).sum(-1) > 0
+
+
 def test_frame_cost_hand_count():
     """Bytes and flops of every frame kind on a tiny static scene, counted by hand (order 4,
     2 lobes: Σ(2l+1)² = 84 rotation entries, 44 non-zeros of M^α, 16 SH coefficients). The plane's
@@ -671,13 +677,21 @@ def test_frame_cost_hand_count():
         assert (c.bytes, c.flops) == (want_b, want_f)
     big = m.frame_cost("V", 4 * P)                                           # no render on that size: all covered
     assert big.flops == 4 * P * (diff + 5 + 12 + 6 * 16 + spec)
-    mv = m.with_render_config(shading="vertex")
+    # vertex shading: the points are the front-facing vertices (a vertex facing away has radiance
+    # 0: none of its work is compulsory), counted here from the mesh and the camera
+    front = _front_vertices(g, fr)
+    Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
+    assert 0 < Nsf < N - Np and Nf == Nsf + Np                               # the sphere's far side is not
+    for shading in ("vertex", "vertex-reference"):
+        mv = m.with_render_config(shading="vertex")
+        (mv._render_reference if shading.endswith("reference") else mv.render)(fr, gb)
+        assert mv._last_counts["groups"] == 0          # 625 plane vertices < PLANAR_MIN_POINTS: no plane
+        c = mv.frame_cost("V", P)
+        assert c.bytes == P * 20 + P * 12 + fixed + Nf * 15 * 4 + N * 6 * 4, shading
+        assert c.flops == Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18, shading
+        c = mv.frame_cost("P", P)                                            # the model of those vertices
+        assert c.flops == Nf * (2 * J1 * 12 + 2 * (25 + 3 * 16)) + Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18
     mv.render(fr, gb)
-    assert mv._last_counts["groups"] == 0              # 625 plane vertices < PLANAR_MIN_POINTS: no plane
-    c = mv.frame_cost("V", P)
-    Ns = N - Np                                                              # the sphere's vertices
-    assert c.bytes == P * 20 + P * 12 + fixed + vis + N * 6 * 4
-    assert c.flops == N * diff + Ns * spec + N * (5 + 12) + P * 18
     # a lighting-only frame on the same G-buffer (2×2 samples a pixel): before the interpolation
     # operator is kept, its 20 bytes per sample; after (the second such frame builds and reads it),
     # 8 per (pixel, vertex) pair with a hit sample — counted here from the G-buffer — + 4 per pixel
@@ -712,12 +726,14 @@ def test_frame_cost_vertex_planes(monkeypatch):
     P, g = gb.num_samples, sc.geometry()
     N = g.num_vertices
     on = (g.N == torch.tensor([0.0, 1.0, 0.0])).all(-1)
-    Np, Ns = int(on.sum()), int((g.vertex_region == sc.regions.index("sphere")).sum())
-    assert Np == 626 and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
+    front = _front_vertices(g, fr)                                           # the points (test above)
+    Np = int(on.sum())
+    Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
+    assert Np == 626 and bool(front[on].all()) and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
     diff = 6 * 84 + 6 * 16 + 2 * 44
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9
     c = m.frame_cost("V", P)
-    assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (N - Np) * diff + Ns * spec + N * (5 + 12) + P * 18
+    assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (Nf - Np) * diff + Nsf * spec + Nf * (5 + 12) + P * 18
 
 
 def test_specular_parts_keep_equals_kept_columns():
