@@ -727,68 +727,67 @@ class ZHShadow(Method):
         vreg = geom.vertex_region.to(dev)
         alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
         key = (frame.camera, tuple(alphas))
-        vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
-        if vd is None or vd[0] is not v0:
-            nT, vT = rt.rows(geom.N.to(dev).float()), v0.to(dev).T.contiguous()   # (no copy: `_pose_state`)
-            # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
-            w = rt.cosine_visibility_zyz(vT, nT, ordered=True) if cosine else rt.cosine_visibility(vT, nT)
-            self._vertex_diffuse = vd = (v0, nT, vT, w)
-        _, nT, vT, w = vd                             # t_d = w / π: the 1/π goes on the lighting (3, n²)
-        #                                               instead of a pass over w (0.28 ms of a P frame)
-        vt = self._vertex_transfer
-        if vt is None or vt[0] != key or vt[1] is not v0:
-            cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-            woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-            woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
-            # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
-            # columns in or of t_s out; consumed region by region below)
-            ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas)
-            counts = _LazyCounts(functools.partial(rt.point_counts, nT, vreg, [a is not None for a in alphas],
-                                                   geom.N.to(dev), vreg))
-            self._vertex_transfer = vt = (key, v0, ts, rt.dot_T(nT, woT) > 0, counts)
-        _, _, ts, front, counts = vt
-        light = light.to(dev)
-        N = int(w.shape[1])
         spans = self._region_spans(vreg, len(mats))
-        tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
-        if spans is not None and all(isinstance(sp, tuple) for sp, _ in tsr.values()):
-            # every region one range of vertices (`Scene` concatenates one mesh per region): the
-            # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
-            # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
-            # thread as `runtime.zonal_conjugate` (thin products)
-            radT = torch.empty(N, 3, dtype=w.dtype, device=dev)
-            with pc.torch_threads(1):
-                for r, (kd, ks, _) in enumerate(mats):
-                    a0, a1 = spans[r]
-                    if a1 == a0:
-                        continue
-                    # (3, n) = (l ⊙ kd / π)ᵀ w[:, range], copied transposed into its rows of radT:
-                    # 4x faster than the (n, 3) product wᵀ (l ⊙ kd / π) on the strided wᵀ view,
-                    # which MKL ran at ~1 ms per 10 K vertices (bench creature P frame, 1 thread)
-                    rr = torch.mm((light * (kd.to(dev, light.dtype) * (1.0 / math.pi))).T, w[:, a0:a1])
-                    (b0, b1), t = tsr.get(r, ((a0, a0), None))
-                    if t is not None and (b0, b1) == (a0, a1):   # (a region's t_s spans its range)
-                        rr.addmm_((light * ks.to(dev, light.dtype)).T, t)
-                    radT[a0:a1].copy_(rr.T)
-                    if t is not None and (b0, b1) != (a0, a1):
-                        radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
-            radT.mul_(front[:, None])
-            if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
-                radT.clamp_min_(0.0)
-        else:
-            tsf = rt.specular_transfer(w if cosine else vT, nT, None, vreg, alphas, parts=ts) if ts is not None \
-                else None
-            kd = torch.stack([m[0] for m in mats], 1).to(dev).index_select(1, vreg)     # (3, N), contiguous
-            with pc.torch_threads(1) if w.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
-                rad = ((light.T * (1.0 / math.pi)) @ w).mul_(kd)
-                if tsf is not None:
-                    ks = torch.stack([m[1] for m in mats], 1).to(dev).index_select(1, vreg)
-                    rad.addcmul_(light.T @ tsf, ks)
-            rad.mul_(front)
-            if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
-                rad.clamp_min_(0.0)
-            radT = rad.T.contiguous()
-        self._last_counts = counts.with_fixed(P=gbuffer.num_samples, Q=int(geom.num_vertices))
+        vd = self._vertex_diffuse
+        radT = None
+        if cosine and spans is not None and (vd is None or vd[0] is not v0) and "pose" in frame.changed \
+                and "view" not in frame.changed:
+            # a new pose under the same camera (a P frame): w and t_s for the front-facing vertices
+            # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
+            # this pose under another camera other vertices' (it makes them all, as before)
+            radT, counts = self._front_radiance(frame, geom, v0, light.to(dev), mats, alphas, spans, vreg)
+            self._vertex_diffuse = self._vertex_transfer = None
+        if radT is None:
+            vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
+            if vd is None or vd[0] is not v0:
+                nT, vT = rt.rows(geom.N.to(dev).float()), v0.to(dev).T.contiguous()   # (no copy: `_pose_state`)
+                # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
+                w = rt.cosine_visibility_zyz(vT, nT, ordered=True) if cosine else rt.cosine_visibility(vT, nT)
+                self._vertex_diffuse = vd = (v0, nT, vT, w)
+            _, nT, vT, w = vd                             # t_d = w / π: the 1/π goes on the lighting (3, n²)
+            #                                               instead of a pass over w (0.28 ms of a P frame)
+            vt = self._vertex_transfer
+            if vt is None or vt[0] != key or vt[1] is not v0:
+                cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+                woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+                woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+                # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
+                # columns in or of t_s out; consumed region by region below), made for the front-facing
+                # vertices alone (the others' radiance is zero: ``front`` below; about half of the
+                # specular region's on the bench creature's views)
+                front = rt.dot_T(nT, woT) > 0
+                ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas, keep=front)
+                counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+                self._vertex_transfer = vt = (key, v0, ts, front, counts)
+            _, _, ts, front, counts = vt
+            light = light.to(dev)
+            N = int(w.shape[1])
+            tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
+            if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
+                                                                   and int(sp[-1]) < spans[r][1])
+                                         for r, (sp, _) in tsr.items()):
+                # every region one range of vertices (`Scene` concatenates one mesh per region): the
+                # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
+                # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
+                # thread as `runtime.zonal_conjugate` (thin products)
+                radT = self._radiance_ranges(light, mats, w, spans, tsr)
+                radT.mul_(front[:, None])
+                if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+                    radT.clamp_min_(0.0)
+            else:
+                tsf = rt.specular_transfer(w if cosine else vT, nT, None, vreg, alphas, parts=ts) if ts is not None \
+                    else None
+                kd = torch.stack([m[0] for m in mats], 1).to(dev).index_select(1, vreg)     # (3, N), contiguous
+                with pc.torch_threads(1) if w.shape[0] < 16 else contextlib.nullcontext():   # (as `runtime.zonal_conjugate`)
+                    rad = ((light.T * (1.0 / math.pi)) @ w).mul_(kd)
+                    if tsf is not None:
+                        ks = torch.stack([m[1] for m in mats], 1).to(dev).index_select(1, vreg)
+                        rad.addcmul_(light.T @ tsf, ks)
+                rad.mul_(front)
+                if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+                    rad.clamp_min_(0.0)
+                radT = rad.T.contiguous()
+        self._last_counts = counts.with_fixed(P=gbuffer.num_samples)   # Q: the front-facing vertices
         # a G-buffer seen by the previous frame (the same camera and pose: a lighting- or material-
         # only frame) is resolved by the sparse matrix of its interpolation + box filter, built by the
         # first such frame and kept while camera and pose stay (`gouraud.resolve_matrix`: 3.4 entries
@@ -805,6 +804,67 @@ class ZHShadow(Method):
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
+
+    def _front_radiance(self, frame: Frame, geom, v0: Tensor, light: Tensor, mats: list, alphas: list,
+                        spans: list, vreg: Tensor) -> tuple[Tensor, "_LazyCounts"]:
+        """`_render_vertex`'s (N, 3) radiance of a new pose (cosine, every region one range of
+        vertices) with w and t_s made for the front-facing vertices alone (n·ωo > 0; the others'
+        radiance is zero): their columns of v gathered (contiguous: each region's front vertices
+        are one range of them), w = `runtime.cosine_visibility_zyz` and `runtime.specular_parts`
+        on those, the radiance range by range (`_radiance_ranges`) scattered into zero rows — the
+        same numbers per vertex as the path over all vertices (to float32 round-off: the compiled
+        passes' vector and tail loops over another column count); 8.3 K of the bench creature's
+        13.4 K vertices."""
+        dev = v0.device
+        nT, vT = rt.rows(geom.N.to(dev).float()), v0.T                      # (vT: (n², N) contiguous)
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+        woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+        idx = (rt.dot_T(nT, woT) > 0).nonzero().squeeze(-1)
+        nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
+        wc = rt.cosine_visibility_zyz(vT.index_select(1, idx), nTc, ordered=True)
+        ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
+        bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
+        cspans = list(zip(bounds[:-1], bounds[1:]))                         # each region's front columns
+        tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
+        radT = torch.zeros(int(vT.shape[1]), 3, dtype=wc.dtype, device=dev)
+        radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
+        if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
+            radT.clamp_min_(0.0)
+        front = torch.zeros(int(vT.shape[1]), dtype=torch.bool, device=dev).index_fill_(0, idx, True)
+        counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+        return radT, counts
+
+    @staticmethod
+    def _radiance_ranges(light: Tensor, mats: list, w: Tensor, spans: list, tsr: dict) -> Tensor:
+        """(N, 3) per-vertex radiance, region range by region range (`_render_vertex`): w (n², N) the
+        cos-weighted visibility, spans per region its columns (a0, a1), tsr region → (span or
+        positions, t_s) its specular parts (`runtime.specular_parts`); not front-tested."""
+        dev = w.device
+        radT = torch.empty(int(w.shape[1]), 3, dtype=w.dtype, device=dev)
+        with pc.torch_threads(1):
+            for r, (kd, ks, _) in enumerate(mats):
+                a0, a1 = spans[r]
+                if a1 == a0:
+                    continue
+                # (3, n) = (l ⊙ kd / π)ᵀ w[:, range], copied transposed into its rows of radT:
+                # 4x faster than the (n, 3) product wᵀ (l ⊙ kd / π) on the strided wᵀ view,
+                # which MKL ran at ~1 ms per 10 K vertices (bench creature P frame, 1 thread)
+                rr = torch.mm((light * (kd.to(dev, light.dtype) * (1.0 / math.pi))).T, w[:, a0:a1])
+                sp, t = tsr.get(r, ((a0, a0), None))
+                if t is not None and not isinstance(sp, tuple):
+                    # t_s of the region's front-facing vertices (positions sp in its range): their
+                    # columns of rr plus (l ⊙ ks)ᵀ t_s — the sum addmm_ makes over a range
+                    rr.index_add_(1, sp - a0, torch.mm((light * ks.to(dev, light.dtype)).T, t))
+                    t = None
+                elif t is not None and sp == (a0, a1):   # (a region's t_s spans its range)
+                    rr.addmm_((light * ks.to(dev, light.dtype)).T, t)
+                    t = None
+                radT[a0:a1].copy_(rr.T)
+                if t is not None:
+                    b0, b1 = sp
+                    radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
+        return radT
 
     def _region_spans(self, vreg: Tensor, regions: int) -> list[tuple[int, int]] | None:
         """Per region r < ``regions`` its vertices' range (a0, a1) (a1 = a0: none) when those ranges
@@ -880,9 +940,9 @@ class ZHShadow(Method):
             if clamp:   # per vertex, before the interpolation (module docstring: negative radiance)
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
-            self._last_counts = {"P": gbuffer.num_samples, "Q": int(geom.num_vertices),
-                                 **rt.point_counts(rt.rows(geom.N.float()), geom.vertex_region,
-                                                   self._spec_regions(frame), geom.N, geom.vertex_region)}
+            front = (geom.N.float() * wo).sum(-1) > 0
+            lc = _front_counts(front, rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame), geom.N)
+            self._last_counts = {"P": gbuffer.num_samples, "Q": lc["Q"], **lc._resolved()}
         else:
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)
@@ -937,7 +997,9 @@ class ZHShadow(Method):
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
-        Points: the covered samples ("sample" shading) or the vertices ("vertex"), counted by the
+        Points: the covered samples ("sample" shading) or the front-facing vertices ("vertex": n·ωo >
+        0; a vertex facing away has radiance 0, so neither its visibility — with "P" its model
+        product, else its cached v — nor its terms are compulsory; `_front_counts`), counted by the
         last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
         specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
@@ -998,6 +1060,7 @@ class ZHShadow(Method):
         else:
             Q = Qs = N if vertex else P
             Qp = Qps = Np = G = 0
+        Nv = Q if vertex else N     # vertices whose visibility a frame needs: "vertex", the front-facing
         Qo = Q - Qp                                                # points off the planes
         pp = self._relight[3].get("plane_pass") if self._relight is not None and not vertex else None
         if kind in ("L", "E") and pp is not None and lc is not None and lc["P"] == P:
@@ -1018,9 +1081,9 @@ class ZHShadow(Method):
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
             b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
-            b += (J1 * N * d + N * 3) * 4 if pose else N * min(n2, d + 3) * 4
+            b += (J1 * Nv * d + N * 3) * 4 if pose else Nv * min(n2, d + 3) * 4
         # -- flops
-        f = N * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
+        f = Nv * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
             f += 6 * rot
         if "E" in kind:
@@ -1041,6 +1104,18 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor
+                  ) -> "_LazyCounts":
+    """The point counts of a vertex-shaded frame for `ZHShadow.frame_cost`: the front-facing vertices
+    (``front``: n·ωo > 0) are its points — a vertex facing away has radiance exactly 0 (the shading's
+    front test), so no work on it is compulsory (session 22: the frames skip their specular transfer;
+    counted over all vertices, the count stayed while the work went, inflating the efficiency). Q
+    now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read."""
+    idx = front.nonzero().squeeze(-1)
+    return _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
+                                               vertex_normal, vreg), {"Q": int(idx.numel())})
 
 
 class _LazyCounts(dict):

@@ -630,28 +630,29 @@ def _zyz_product(K: Tensor, aT: Tensor, blocks: tuple | None = None) -> Tensor:
         return out
 
 
-def _structure(op_key: tuple, order: int, lifted: bool) -> Tensor:
+def _structure(op_key: tuple, order: int, lifted: bool, M: Tensor | None = None) -> Tensor:
     """(n², n²) bool: the entries of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) that are
     not zero by structure — the boolean product of the non-zero patterns of X = M(R_x(90°)) (by band,
     and within a band between the cos/sin and odd/even-m parts) and of M (between equal m:
     `convolution.phong_operator` sets only those), so that an entry that is small but not zero is
-    never dropped and one that is zero up to round-off always is."""
+    never dropped and one that is zero up to round-off always is. ``M``: the float64 operator
+    already made (`_operator_blocks`)."""
     xs = (_zyz_tables(order)[3].abs() > 1e-12).double()
-    ms = (phong_operator(op_key[1], order, dtype=torch.float64) != 0).double()
+    if M is None:
+        M = phong_operator(op_key[1], order, dtype=torch.float64)
+    ms = (M != 0).double()
     S = xs @ ms
     return (S @ xs.T if not lifted else S) > 0
 
 
 @functools.lru_cache(maxsize=None)
-def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
-    """The dense blocks of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) of the zonal
-    operator named by ``op_key``: ((rows (r,) int64, cols (c,) int64, K[rows][:, cols] (r, c)), …)
-    — the connected components of the bipartite graph rows ↔ columns of `_structure`, so that
-    K = Σ_b the blocks scattered to their rows and columns (`_zyz_product`); one block when K is
-    not block-structured."""
-    n2 = order * order
-    S = _structure(op_key, order, lifted)
-    K = _lifted(op_key, order) if lifted else _conjugated(op_key, order)
+def _components(pattern: bytes, n2: int) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
+    """The connected components of the bipartite graph rows ↔ columns of an (n², n²) structure
+    (``pattern``: its bool array's bytes, row-major) as ((rows, cols), …), components without rows
+    left out — kept per pattern: every Phong exponent but a few special ones has the same one, so a
+    frame with a new exponent (VB / VBL) pays no union-find (~1 ms of Python per call, twice per
+    exponent before)."""
+    S = torch.frombuffer(bytearray(pattern), dtype=torch.bool).view(n2, n2)
     parent = list(range(2 * n2))                       # union-find over rows 0..n²−1, columns n²..2n²−1
 
     def find(i: int) -> int:
@@ -668,10 +669,24 @@ def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype
     for i in range(2 * n2):
         rows_b, cols_b = roots.setdefault(find(i), ([], []))
         (rows_b if i < n2 else cols_b).append(i % n2)
+    return tuple((tuple(r), tuple(c)) for r, c in roots.values() if r)   # (an all-zero column: no output)
+
+
+@functools.lru_cache(maxsize=None)
+def _operator_blocks(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device) -> tuple:
+    """The dense blocks of X M Xᵀ (`_conjugated`) or X M (`_lifted`, ``lifted``) of the zonal
+    operator named by ``op_key``: ((rows (r,) int64, cols (c,) int64, K[rows][:, cols] (r, c)), …)
+    — the connected components of the bipartite graph rows ↔ columns of `_structure` (`_components`),
+    so that K = Σ_b the blocks scattered to their rows and columns (`_zyz_product`); one block when K
+    is not block-structured. M is made once (K = X M Xᵀ or X M as `_conjugated` / `_lifted` compute
+    it: the same numbers)."""
+    n2 = order * order
+    M = phong_operator(op_key[1], order, dtype=torch.float64)
+    S = _structure(op_key, order, lifted, M)
+    X = _zyz_tables(order)[3]
+    K = X @ M if lifted else X @ M @ X.T
     blocks = []
-    for rows_b, cols_b in roots.values():
-        if not rows_b:                                 # an all-zero column: no output depends on it
-            continue
+    for rows_b, cols_b in _components(S.contiguous().numpy().tobytes(), n2):
         r, c = torch.tensor(rows_b), torch.tensor(cols_b, dtype=torch.int64)
         blocks.append((r.to(device), c.to(device), K[r][:, c].to(dtype).to(device).contiguous()))
     return tuple(blocks)
@@ -688,26 +703,59 @@ def _zyz_up(aT: Tensor, ang: tuple, src: Tensor | None = None) -> Tensor:
 
 
 @functools.lru_cache(maxsize=None)
+def _plan_layout(pattern: bytes, order: int, lifted: bool, device) -> tuple:
+    """The exponent-free part of `_block_plan` for M's non-zero pattern (``pattern``: the bytes of
+    the (n², n²) bool M != 0, row-major): cols, src (n²,) int64 on ``device``, per block (r0, r1, c0,
+    c1) its spans, and the flat positions (Σ_b r_b·c_b,) int64 of the blocks' entries in K (row-major,
+    block after block) — so a new exponent (every VB / VBL frame) costs M, K and one gather."""
+    n2 = order * order
+    ms = torch.frombuffer(bytearray(pattern), dtype=torch.bool).view(n2, n2)
+    xs = (_zyz_tables(order)[3].abs() > 1e-12).double()
+    S = xs @ ms.double()
+    S = (S @ xs.T if not lifted else S) > 0          # `_structure`
+    comps = _components(S.contiguous().numpy().tobytes(), n2)
+    rows = torch.tensor([i for r, _ in comps for i in r], dtype=torch.int64)
+    cols = torch.tensor([i for _, c in comps for i in c], dtype=torch.int64)
+    src = torch.empty_like(rows)
+    src[rows] = torch.arange(rows.shape[0])
+    spans, flat, r0, c0 = [], [], 0, 0
+    for r, c in comps:
+        rt_, ct = torch.tensor(r, dtype=torch.int64), torch.tensor(c, dtype=torch.int64)
+        flat.append((rt_[:, None] * n2 + ct[None, :]).flatten())
+        spans.append((r0, r0 + len(r), c0, c0 + len(c)))
+        r0, c0 = r0 + len(r), c0 + len(c)
+    return cols.to(device), src.to(device), tuple(spans), torch.cat(flat)
+
+
+@functools.lru_cache(maxsize=None)
 def _block_plan(op_key: tuple, order: int, lifted: bool, dtype: torch.dtype, device, scale: float = 1.0) -> tuple:
     """`_operator_blocks` laid out for products on contiguous rows: cols (n²,) int64 the input rows
     in block order (the blocks' columns concatenated: each row once, tests), src (n²,) int64 with
     output row r at src[r] of the block-ordered result, and per block (r0, r1, c0, c1, K_b) its
     spans in the two orders — so that `_blocked_product` needs no gather or scatter of rows (the
     neighbouring `_zyz_half` passes do them in their loads and stores). ``scale``: the blocks
-    times that factor (scaled in float64, then cast)."""
-    blocks = _operator_blocks(op_key, order, lifted, dtype, device)
+    times that factor (scaled in float64, then cast).
+
+    Made from M (one `convolution.phong_operator`), K = X M Xᵀ or X M (as `_conjugated` /
+    `_lifted`) and the layout of M's non-zero pattern (`_plan_layout`, kept: the same for every
+    exponent but a few special ones) — the same tensors as from `_operator_blocks` bit for bit
+    (tests), at ~0.4 ms per new exponent instead of ~2.4–6.7 (two `_operator_blocks` calls, each
+    two more `phong_operator` calls and a Python union-find: the VB / VBL frames' extra cost)."""
+    M = phong_operator(op_key[1], order, dtype=torch.float64)
+    cols, src, spans, flat = _plan_layout((M != 0).numpy().tobytes(), order, lifted, device)
+    X = _zyz_tables(order)[3]
+    K = X @ M if lifted else X @ M @ X.T
+    vals = K.view(-1).index_select(0, flat)
     if scale != 1.0:
-        b64 = _operator_blocks(op_key, order, lifted, torch.float64, device)
-        blocks = tuple((r, c, (K64 * scale).to(dtype)) for (r, c, _), (_, _, K64) in zip(blocks, b64))
-    rows = torch.cat([r for r, _, _ in blocks])
-    cols = torch.cat([c for _, c, _ in blocks])
-    src = torch.empty_like(rows)
-    src[rows] = torch.arange(rows.shape[0], device=rows.device)
-    spans, r0, c0 = [], 0, 0
-    for r, c, K_b in blocks:
-        spans.append((r0, r0 + r.shape[0], c0, c0 + c.shape[0], K_b))
-        r0, c0 = r0 + r.shape[0], c0 + c.shape[0]
-    return cols, src, tuple(spans)
+        vals = vals * scale
+    vals = vals.to(dtype)
+    out, a = [], 0
+    for r0, r1, c0, c1 in spans:
+        n = (r1 - r0) * (c1 - c0)
+        # (each block its own allocation, as `_operator_blocks`' blocks)
+        out.append((r0, r1, c0, c1, vals[a:a + n].view(r1 - r0, c1 - c0).to(device).clone()))
+        a += n
+    return cols, src, tuple(out)
 
 
 def _blocked_product(plan: tuple, aP: Tensor) -> Tensor:
@@ -786,7 +834,8 @@ def point_transfer(vT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor, alphas:
 
 
 def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
-                   alphas: list[float | None]) -> list[tuple[int, tuple[int, int] | Tensor, Tensor]] | None:
+                   alphas: list[float | None], keep: Tensor | None = None
+                   ) -> list[tuple[int, tuple[int, int] | Tensor, Tensor]] | None:
     """The t_s of `specular_transfer` per region with a specular term, not assembled: [(region,
     span, t_s (n², Q_r) of the span's columns)] — span (a0, a1) when the region's points are one
     range of columns (a mesh's vertices: `Scene` concatenates one mesh per region; the creature's
@@ -794,14 +843,20 @@ def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
     no region has a specular term. A range's columns are read as a strided view of srcT by the
     compiled first half (`_zyz_down`) and R is made for them alone, so a caller that consumes the
     parts region by region (`ZHShadow._render_vertex`) pays no copy of srcT's columns in and none
-    of the result out (2 × 2.5 MB and a 1 MB zero fill per P frame at order 8 on the creature)."""
+    of the result out (2 × 2.5 MB and a 1 MB zero fill per P frame at order 8 on the creature).
+
+    ``keep`` (Q,) bool: only those columns' t_s are needed (vertex shading: the front-facing
+    vertices, n·ωo > 0 — the others' radiance is zero); a part then holds the kept columns of its
+    region alone, by position (the other columns, as a part's, zero when assembled). The columns
+    are independent, so those made are the same numbers (to float32 round-off: the compiled passes'
+    vector and tail loops) — about half of them on the bench creature's views."""
     if all(a is None for a in alphas):
         return None
     parts = []
     for r, a in enumerate(alphas):
         if a is None:
             continue
-        p = (vregion == r).nonzero().squeeze(-1)
+        p = ((vregion == r) if keep is None else (vregion == r) & keep).nonzero().squeeze(-1)
         if not p.shape[0]:
             continue
         a0, a1 = int(p[0]), int(p[-1]) + 1

@@ -33,6 +33,50 @@ def test_higher_order_closed_form(alpha):
     assert (C - phong_operator_quadrature(alpha, 6)).abs().max().item() <= AGREE
 
 
+def _phong_operator_per_entry(alpha: float, order: int) -> torch.Tensor:
+    """`phong_operator` entry by entry (one dot product of the u-moments with B(α+1, k+1) each): the
+    oracle of its one-product form."""
+    import numpy as np
+
+    from methods.zh_shadow.convolution import _u_moments
+
+    n2, kmax = order * order, 4 * order
+    beta = np.empty(kmax)
+    beta[0] = 1.0 / (alpha + 1.0)
+    for k in range(1, kmax):
+        beta[k] = beta[k - 1] * k / (alpha + k + 1.0)
+    M = np.zeros((n2, n2))
+    for i, j, d in _u_moments(order):
+        if i <= j:
+            M[i, j] = M[j, i] = float(np.dot(d, beta[: d.shape[0]]))
+    return torch.as_tensor(M)
+
+
+@pytest.mark.parametrize("order", [1, 2, 4, 5, 8, 9])
+def test_phong_operator_equals_per_entry_sums(order):
+    """`phong_operator` (every entry's sum k by k over zero-padded coefficients, all entries at
+    once) = the per-entry dot products to float64 round-off of the sums' terms (Σ_k |d_k| B_k: at
+    high orders and small α the terms cancel), with the same non-zero pattern (the run-time block
+    plans are keyed on it)."""
+    import numpy as np
+
+    from methods.zh_shadow.convolution import _u_moments
+
+    n2 = order * order
+    for alpha in ALPHAS + [0.0, 0.37, 12.0, 57.3]:
+        got = phong_operator(alpha, order, dtype=torch.float64)
+        want = _phong_operator_per_entry(alpha, order)
+        beta = [1.0 / (alpha + 1.0)]
+        for k in range(1, 4 * order):
+            beta.append(beta[-1] * k / (alpha + k + 1.0))
+        scale = torch.zeros(n2, n2, dtype=torch.float64)
+        for i, j, d in _u_moments(order):
+            scale[i, j] = scale[j, i] = float(np.dot(np.abs(d), beta[: d.shape[0]]))
+        assert torch.equal(got != 0, want != 0), (order, alpha)
+        assert ((got - want).abs() <= 1e-14 * scale).all(), (order, alpha)
+        assert torch.equal(got, got.T)
+
+
 def test_sparsity_and_structure():
     M = phong_operator(12.0, 4, dtype=torch.float64)
     nz, uniq = sparsity(M)

@@ -378,6 +378,48 @@ def test_operator_blocks_equal_dense_product():
                     assert (fast - slow).abs().max() <= tol * slow.abs().max(), (order, alpha, lifted, dt)
 
 
+def _block_plan_reference(op_key, order, lifted, dtype, scale=1.0):
+    """`runtime._block_plan` as it was made before it kept its layout per non-zero pattern (from
+    `_operator_blocks` of that dtype, or of float64 scaled then cast): its test oracle."""
+    dev = torch.device("cpu")
+    blocks = rt._operator_blocks(op_key, order, lifted, dtype, dev)
+    if scale != 1.0:
+        b64 = rt._operator_blocks(op_key, order, lifted, torch.float64, dev)
+        blocks = tuple((r, c, (K64 * scale).to(dtype)) for (r, c, _), (_, _, K64) in zip(blocks, b64))
+    rows = torch.cat([r for r, _, _ in blocks])
+    cols = torch.cat([c for _, c, _ in blocks])
+    src = torch.empty_like(rows)
+    src[rows] = torch.arange(rows.shape[0])
+    spans, r0, c0 = [], 0, 0
+    for r, c, K_b in blocks:
+        spans.append((r0, r0 + r.shape[0], c0, c0 + c.shape[0], K_b))
+        r0, c0 = r0 + r.shape[0], c0 + c.shape[0]
+    return cols, src, tuple(spans)
+
+
+def test_block_plan_equals_operator_blocks_plan():
+    """`runtime._block_plan` (the layout kept per M's non-zero pattern, `_plan_layout`; per exponent
+    M, K and one gather of the blocks' entries) = the plan made from `_operator_blocks` bit for bit
+    — cols, src, spans and every block — orders 2–9, exponents 1 (the cosine: a pattern of its own
+    at some orders), fresh non-integer ones (each a new exponent after the layout was kept, as a VB
+    frame meets it), lifted or not, float32 / float64, with and without a scale."""
+    g = torch.Generator().manual_seed(11)
+    for order in (2, 3, 4, 5, 8, 9):
+        alphas = [1.0, 12.0] + [float(1.0 + 80.0 * torch.rand((), generator=g, dtype=torch.float64)) for _ in range(3)]
+        for alpha in alphas:
+            for lifted in (False, True):
+                for dt in (torch.float32, torch.float64):
+                    for scale in (1.0, (alpha + 1.0) / (2.0 * math.pi)):
+                        got = rt._block_plan(("phong", alpha), order, lifted, dt, torch.device("cpu"), scale)
+                        want = _block_plan_reference(("phong", alpha), order, lifted, dt, scale)
+                        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+                        assert len(got[2]) == len(want[2]), (order, alpha, lifted)
+                        for a, b in zip(got[2], want[2]):
+                            assert a[:4] == b[:4], (order, alpha, lifted)
+                            assert a[4].dtype == dt and a[4].is_contiguous() and torch.equal(a[4], b[4]), \
+                                (order, alpha, lifted, dt, scale)
+
+
 def test_shade_terms_equal_reference_shade():
     """`runtime.shade_terms` = `method.shade` (per-point rotations, M^α) for random lobes, normals,
     views, lighting and exponents, orders 2–6 (monomial and SH features), float64."""
@@ -553,6 +595,12 @@ def test_product_tensor_and_features():
             assert (feats.T @ C - YB[:, rows]).abs().max() <= 1e-11, (order, diffuse)
 
 
+def _front_vertices(g, fr) -> torch.Tensor:
+    """(N,) the vertices facing the camera: n · (camera − x) > 0."""
+    cam = torch.as_tensor(fr.camera.origin, dtype=torch.float32)
+    return (g.N.float() * (cam - g.V.float())).sum(-1) > 0
+
+
 def test_frame_cost_hand_count():
     """Bytes and flops of every frame kind on a tiny static scene, counted by hand (order 4,
     2 lobes: Σ(2l+1)² = 84 rotation entries, 44 non-zeros of M^α, 16 SH coefficients). The plane's
@@ -629,13 +677,21 @@ def test_frame_cost_hand_count():
         assert (c.bytes, c.flops) == (want_b, want_f)
     big = m.frame_cost("V", 4 * P)                                           # no render on that size: all covered
     assert big.flops == 4 * P * (diff + 5 + 12 + 6 * 16 + spec)
-    mv = m.with_render_config(shading="vertex")
+    # vertex shading: the points are the front-facing vertices (a vertex facing away has radiance
+    # 0: none of its work is compulsory), counted here from the mesh and the camera
+    front = _front_vertices(g, fr)
+    Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
+    assert 0 < Nsf < N - Np and Nf == Nsf + Np                               # the sphere's far side is not
+    for shading in ("vertex", "vertex-reference"):
+        mv = m.with_render_config(shading="vertex")
+        (mv._render_reference if shading.endswith("reference") else mv.render)(fr, gb)
+        assert mv._last_counts["groups"] == 0          # 625 plane vertices < PLANAR_MIN_POINTS: no plane
+        c = mv.frame_cost("V", P)
+        assert c.bytes == P * 20 + P * 12 + fixed + Nf * 15 * 4 + N * 6 * 4, shading
+        assert c.flops == Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18, shading
+        c = mv.frame_cost("P", P)                                            # the model of those vertices
+        assert c.flops == Nf * (2 * J1 * 12 + 2 * (25 + 3 * 16)) + Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18
     mv.render(fr, gb)
-    assert mv._last_counts["groups"] == 0              # 625 plane vertices < PLANAR_MIN_POINTS: no plane
-    c = mv.frame_cost("V", P)
-    Ns = N - Np                                                              # the sphere's vertices
-    assert c.bytes == P * 20 + P * 12 + fixed + vis + N * 6 * 4
-    assert c.flops == N * diff + Ns * spec + N * (5 + 12) + P * 18
     # a lighting-only frame on the same G-buffer (2×2 samples a pixel): before the interpolation
     # operator is kept, its 20 bytes per sample; after (the second such frame builds and reads it),
     # 8 per (pixel, vertex) pair with a hit sample — counted here from the G-buffer — + 4 per pixel
@@ -670,12 +726,109 @@ def test_frame_cost_vertex_planes(monkeypatch):
     P, g = gb.num_samples, sc.geometry()
     N = g.num_vertices
     on = (g.N == torch.tensor([0.0, 1.0, 0.0])).all(-1)
-    Np, Ns = int(on.sum()), int((g.vertex_region == sc.regions.index("sphere")).sum())
-    assert Np == 626 and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
+    front = _front_vertices(g, fr)                                           # the points (test above)
+    Np = int(on.sum())
+    Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
+    assert Np == 626 and bool(front[on].all()) and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
     diff = 6 * 84 + 6 * 16 + 2 * 44
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9
     c = m.frame_cost("V", P)
-    assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (N - Np) * diff + Ns * spec + N * (5 + 12) + P * 18
+    assert c.flops == 12 * 84 + 6 * 44 + Np * 6 * 16 + (Nf - Np) * diff + Nsf * spec + Nf * (5 + 12) + P * 18
+
+
+def test_specular_parts_keep_equals_kept_columns():
+    """`runtime.specular_parts` with ``keep`` (the front-facing vertices of vertex shading) = the
+    kept columns of the parts made without it (the columns are independent), by position, float32
+    to round-off; a region of no kept column and one with no specular term make no part."""
+    g = torch.Generator().manual_seed(5)
+    Q, n2 = 700, 64
+    vT = torch.randn(n2, Q, generator=g)
+    nT = torch.randn(3, Q, generator=g)
+    nT = nT / nT.norm(dim=0)
+    woT = torch.randn(3, Q, generator=g)
+    woT = woT / woT.norm(dim=0)
+    vreg = torch.cat([torch.zeros(300), torch.ones(250), torch.full((150,), 2.0)]).long()
+    vreg[::7] = 3                                                # a region that is not one range
+    keep = rt.dot_T(nT, woT) > 0
+    keep[300:550] = False                                        # region 1: nothing kept
+    alphas = [12.0, 30.0, None, 7.5]
+    full = {r: (sp, t) for r, sp, t in rt.specular_parts(vT, nT, woT, vreg, alphas)}
+    kept = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
+    assert sorted(r for r, _, _ in kept) == [0, 3]
+    for r, sp, t in kept:
+        want_pos = ((vreg == r) & keep).nonzero().squeeze(-1)
+        assert torch.equal(sp, want_pos) and t.shape == (n2, want_pos.shape[0])
+        fsp, ft = full[r]
+        fpos = torch.arange(fsp[0], fsp[1]) if isinstance(fsp, tuple) else fsp
+        want = ft[:, (fpos[:, None] == want_pos[None, :]).int().argmax(0)]
+        assert (t - want).abs().max() <= 1e-6 * want.abs().max(), r
+    # assembled, the columns not kept are zero
+    ts = rt.specular_transfer(vT, nT, None, vreg, alphas, parts=kept)
+    assert ts[:, ~keep].abs().max() == 0
+
+
+def test_vertex_shading_front_only_transfer_equals_full(zh_scene, monkeypatch):
+    """Vertex shading's t_s made for the front-facing vertices alone (`ZHShadow._render_vertex`,
+    ``specular_parts(keep=front)``, the spans path adding it by position) = t_s made for every
+    vertex of the specular regions, on V / VB / P frames and the L frames that reuse it (order 8,
+    cosine: the physical setting); and both = the reference."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, full = m.with_render_config(), m.with_render_config()
+    parts = rt.specular_parts
+
+    def every_column(*args, keep=None, **kw):
+        return parts(*args, **kw)
+
+    for kind in ("V", "VB", "P", "L"):
+        for f in make_sequence(m.scene, kind, 3, seed=4):
+            gb = make_gbuffer(m.scene, f, 2)
+            a = fast.render(f, gb)
+            if fast._vertex_transfer is not None:   # (None: a P frame's `_front_radiance`, tested below)
+                ts = fast._vertex_transfer[2]
+                assert ts and all(not isinstance(sp, tuple) for _, sp, _ in ts)   # the positions path ran
+                front = fast._vertex_transfer[3]
+                assert sum(int(sp.shape[0]) for _, sp, _ in ts) < int(front.numel())
+            with monkeypatch.context() as mp:
+                mp.setattr(rt, "specular_parts", every_column)
+                b = full.render(f, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max(), kind
+    _check_sequence(fast.with_render_config(), "VB")
+
+
+def test_pose_frame_front_only_radiance_equals_all_vertices(zh_scene):
+    """A P frame's radiance with w and t_s made for the front-facing vertices alone
+    (`ZHShadow._front_radiance`) = the path over all vertices (the same frame with "view" added to
+    ``changed``: that branch is then not taken) to float32 round-off, = the reference; a later frame
+    of the same pose under another camera makes every vertex's w again (cosine, order 8)."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, full = m.with_render_config(), m.with_render_config()
+    frames = make_sequence(m.scene, "P", 3, seed=5)
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(m.scene, f, 2)
+        a = fast.render(f, gb)
+        if i > 0:
+            assert fast._vertex_diffuse is None and fast._vertex_transfer is None   # the front-only branch ran
+        b = full.render(dataclasses.replace(f, changed=frozenset(f.changed | {"view"})), gb)
+        assert full._vertex_diffuse is not None
+        assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
+    # the last pose under another camera: every vertex's w again (nothing partial was kept)
+    g = dataclasses.replace(frames[-1], camera=m.scene.camera.orbited(0.3), changed=frozenset({"view"}))
+    gb = make_gbuffer(m.scene, g, 2)
+    a = fast.render(g, gb)
+    assert fast._vertex_diffuse is not None and int(fast._vertex_diffuse[3].shape[1]) == m.scene.geometry().num_vertices
+    want = fast._render_reference(g, gb)
+    assert (a - want).abs().max() <= 1e-5 * want.abs().max()
+    _check_sequence(fast.with_render_config(), "P", n_frames=3)
 
 
 def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
