@@ -737,6 +737,12 @@ class ZHShadow(Method):
             # this pose under another camera other vertices' (it makes them all, as before)
             radT, counts = self._front_radiance(frame, geom, v0, light.to(dev), mats, alphas, spans, vreg)
             self._vertex_diffuse = self._vertex_transfer = None
+        elif cosine and spans is not None:
+            # the harness's warm-up frame (a full change: the path below) also compiles the front-only
+            # path's kernels (their column count is the front vertices'), or the first P frame of a
+            # sequence compiled them while timed: perf run of ec5aced, creature P frame 1 310 ms
+            # against 12-16 (one Inductor graph in that frame)
+            warm_blocks(_warm_front, [v0[:1]], (self, frame, geom, v0, light.to(dev), mats, alphas, spans, vreg), [1])
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:
@@ -1104,6 +1110,11 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+def _warm_front(_row: Tensor, m: "ZHShadow", *args) -> None:
+    """`warm_blocks`' call of `ZHShadow._front_radiance` (results dropped)."""
+    m._front_radiance(*args)
 
 
 def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor

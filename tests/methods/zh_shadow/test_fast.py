@@ -831,6 +831,36 @@ def test_pose_frame_front_only_radiance_equals_all_vertices(zh_scene):
     _check_sequence(fast.with_render_config(), "P", n_frames=3)
 
 
+def test_warm_up_frame_compiles_the_front_only_pose_path(zh_scene, monkeypatch):
+    """The harness's warm-up frame (a full change, rendered inside `warming`) also compiles the
+    kernels of the front-only P path (`ZHShadow._front_radiance`): the P frames after it compile
+    nothing while timed (perf run of ec5aced: the first P frame compiled one Inductor graph, 310 ms
+    against 12-16). Dynamo's caches are reset first, so kernels compiled by other tests do not
+    hide a missing warm-up."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    from methods.core import fused as fz
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if not fz.compile_enabled():
+        pytest.skip("PRTBENCH_COMPILE=0: nothing compiles")
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    frames = make_sequence(m.scene, "P", 3, seed=5)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    monkeypatch.setattr(fz, "_warmed", set())
+    torch._dynamo.reset()
+    with fz.warming():
+        m.render(frames[0], gbs[0])
+    graphs = int(counters["stats"]["unique_graphs"])
+    for f, gb in zip(frames[1:], gbs[1:]):
+        m.render(f, gb)
+        assert m._vertex_diffuse is None                                       # the front-only path ran
+    assert int(counters["stats"]["unique_graphs"]) == graphs
+
+
 def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
     """Vertex shading's radiance made region range by region range (`ZHShadow._region_spans`, the
     albedos folded into the lighting, t_s as `runtime.specular_parts`) = the general path (albedos
