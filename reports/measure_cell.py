@@ -215,6 +215,21 @@ def warm_up_compiles() -> bool:
     return v == "1"
 
 
+def forget_warm_up_calls() -> None:
+    """Before a cell's warm-up frame: forget which warm-up calls earlier cells of this process made
+    (``methods.core.fused.warm_blocks`` makes each once per process), so that this cell makes its
+    own. `warm_blocks`' key is a call's signature as far as it can be read — an argument that is
+    neither a tensor nor hashable counts by its type — and misses shapes a kernel specialises on
+    inside such arguments. Measured (session 22, perf suite, in one process as the suite runs): the
+    triple product's creature L cell after the chess cells found its warm-up calls "made" already
+    and compiled 6 Inductor graphs in its first timed frame (1.8-2.3 s against 70 ms; the cell
+    alone compiled nothing there). Done here, not in `methods.core.fused`, whose source is part of
+    every precomputation's cache key."""
+    from methods.core import fused
+
+    fused._warmed.clear()
+
+
 def _row(metric: str, value, frame: int = -1, noise_floor: float = float("nan")) -> dict:
     v = float("nan") if value is None else float(value)
     return {"frame": frame, "metric": metric, "value": v, "unit": UNITS.get(metric, ""), "noise_floor": noise_floor}
@@ -272,6 +287,8 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
     last = None
     strip: list[tuple] = []
     warm = warm_up_compiles()
+    if warm:
+        forget_warm_up_calls()
     bar = tqdm(frames, desc=cell.key()[:48], leave=False, disable=None if progress else True, unit="frame")
     contention = None  # CPU the rest of the machine used while the timed frames ran (measure.other_cpu_cores)
     for i, frame in enumerate(bar):

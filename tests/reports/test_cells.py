@@ -283,3 +283,29 @@ def test_fresh_calibration_times_mitsuba_in_the_run_not_the_cache(tmp_path, monk
     from reports.suites import PERF
     perf = dataclasses.replace(PERF, scenes=("fake_plane",), configs=())
     assert all(c.fresh_calibration for c in plan_cells(perf, backend="testing.fakes", plugins=("testing.fakes",)))
+
+
+def test_each_cell_makes_its_own_warm_up_calls(tmp_path, monkeypatch):
+    """A cell's warm-up frame starts with no record of earlier cells' warm-up calls
+    (`measure_cell.forget_warm_up_calls`): `warm_blocks` makes each call once per process, keyed by a
+    signature that misses shapes inside untyped arguments, so a later cell found its calls "made" and
+    compiled in a timed frame (session 22, triple product creature L after chess)."""
+    import contextlib
+
+    from methods.core import fused
+
+    monkeypatch.setenv("PRTBENCH_WARM", "1")
+    fused._warmed.add("an earlier cell's call")
+    seen = []
+    real = MC.warming
+
+    @contextlib.contextmanager
+    def spy(on=True):
+        if on:
+            seen.append(set(fused._warmed))
+        with real(on):
+            yield
+
+    monkeypatch.setattr(MC, "warming", spy)
+    MC.run_cell(_cell(), tmp_path, progress=False)
+    assert seen == [set()]                                 # one warm-up frame, and it started afresh
