@@ -350,6 +350,30 @@ def test_mirror_cells_are_the_reference_cells():
         assert torch.equal(torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1), w)
 
 
+def test_mirror_cells_of_a_nan_direction_stay_in_the_table():
+    """A NaN shading normal (a degenerate G-buffer sample) gives a NaN mirror direction; its cell in
+    `fast.mirror_cells_block` is row 0, so `shade_block`'s four corner rows r, r + 1, r + W + 1, r + W + 2 stay inside the table (no
+    out-of-bounds read, its index checks are off) and the other samples' cells are unchanged."""
+    from methods.ptt import fast as F
+    from methods.ptt import specular as spec
+
+    g = torch.Generator().manual_seed(11)
+    n = 4096 + 7
+    normal = torch.randn(n, 3, generator=g)
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    bad = torch.zeros(n, dtype=torch.bool)
+    bad[3::101] = True
+    normal[bad] = float("nan")
+    to_world = torch.eye(3)
+    for H, W in ((256, 512), (33, 70)):
+        r, fx, fy = F.mirror_cells_block(normal, wo, to_world, H, W)
+        assert r.dtype == torch.int32
+        assert bool((r[bad] == 0).all())
+        assert int(r.min()) >= 0 and int(r.max()) + W + 2 < H * (W + 1)
+        idx, _ = spec._uv_cells(*F.mirror_uv(normal[~bad], wo[~bad], to_world), H, W)
+        assert torch.equal(r[~bad].long(), idx[:, 0])
+
+
 def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     """A frame with misses after frames without (chess bench V frame 4 had one miss in 262 144
     samples and compiled two more graphs in a timed frame, 0.98 s against 0.05 s): misses (face −1)
