@@ -277,6 +277,70 @@ def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
     assert F.shade_pixels_fused(face_pairs, table, face[:9], bary[:9], normal[:9], wo[:9], env, L, 9) is None
 
 
+
+def _shade_block_masked(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2):
+    """`fast._shade_block` as it was before session 23 (the oracle of the ``where`` / ``embedding``
+    form): t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane, rows read as ``table[idx]``."""
+    n = face.shape[0]
+    P = n // S2
+    width = table.shape[1]
+    fv, b1v, b2v = face.view(P, S2), bary[:, 0].view(P, S2), bary[:, 1].view(P, S2)
+    rv, fxv, fyv = r.view(P, S2), fx.view(P, S2), fy.view(P, S2)
+    t = None
+    for j in range(S2):
+        f = fv[:, j]
+        p0, p1, p2 = face_pairs[f, 0], face_pairs[f, 1], face_pairs[f, 2]
+        b1, b2 = b1v[:, j], b2v[:, j]
+        b0 = 1.0 - b1 - b2
+        fx_, fy_ = fxv[:, j], fyv[:, j]
+        gx, gy = 1.0 - fx_, 1.0 - fy_
+        rj = rv[:, j].to(torch.int64)
+        a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
+        e = (env[rj] * (gx * gy)[:, None] + env[rj + 1] * (fx_ * gy)[:, None]
+             + env[rj + (W + 1)] * (gx * fy_)[:, None] + env[rj + (W + 2)] * (fx_ * fy_)[:, None])
+        tj = a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]
+        t = tj if t is None else t + tj
+    out = torch.stack([(t * lanes[2 + c, :width]).sum(-1) for c in range(3)], -1)
+    return out * (1.0 / S2)
+
+
+@pytest.mark.parametrize("S2", [1, 4])
+def test_shade_block_equals_the_masked_lane_form_bit_for_bit(S2):
+    """`fast._shade_block` (lanes chosen with ``where``, rows read with ``embedding``) gives the same
+    bits as the masked-lane form it replaced (`_shade_block_masked`), eagerly: with and without the
+    one-bounce u column, negative Gouraud sums (the B clamp), misses (face −1, the zero face of
+    `fast.miss_face_pairs`) and env rows built by `fast.env_stack` (0 on the B and u lanes). The
+    compiled kernel is compared with the eager reference path by the tests above."""
+    from methods.ptt import fast as F
+
+    n = S2 * 3001
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, _ = _random_shading_inputs(n, 2)
+    face = torch.where(torch.rand(n, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    H, W = 16, 32
+    maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
+    for C in (3 + 3 * L, 6 + 3 * L):
+        width = F.table_width(C)
+        st = F.env_stack(maps, width)
+        erows = F.env_rows(st, width)
+        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+        table[-1] = 0.0
+        lanes = F._lane_masks(C, L, width)
+        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
+        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        new = F._shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        old = _shade_block_masked(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        assert torch.equal(new, old)
+        assert bool((new.abs() > 0).any())
+
+
+@dataclasses.dataclass
+class _FakeEnv:
+    """What `fast.env_stack` reads of an ``EnvMap``: data (H, W, 3) and to_world."""
+
+    data: torch.Tensor
+    to_world: torch.Tensor = dataclasses.field(default_factory=lambda: torch.eye(3))
+
 def _random_shading_inputs(n: int, seed: int):
     """Random inputs of `fast.shade_samples` for n samples: (generator, n_pairs, L, face_pairs, face,
     bary, normal, wo, env); 4 lobes, 300 vertex/region pairs, a 16 × 32 env stack."""
