@@ -258,12 +258,13 @@ def test_fused_sample_stage_equals_eager(n_samples, monkeypatch):
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
 
 
-@pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, (1 << 13) + 5)])
+@pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, 1 << 10), (4, (1 << 13) + 5)])
 def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
     """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `shade_block`)
     equals the eager `fast.shade_samples` + `fast.box_filter` to float32 round-off, including a last
-    block shorter than the others (blocks capped at 2¹² here); it declines (None) when a block cannot
-    hold whole pixels."""
+    block shorter than the others (blocks capped at 2¹² here) and a frame of exactly one full block
+    (2¹⁰ pixels × 4: the block's result returned as the image); it declines (None) when a block
+    cannot hold whole pixels."""
     from methods.ptt import fast as F
 
     monkeypatch.setattr(F, "MAX_SAMPLE_BLOCK", 1 << 12)
@@ -477,3 +478,22 @@ def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     odd = dataclasses.replace(holes, face=torch.where(miss, 0, full.face))
     torch.testing.assert_close(m.render(frames[2], odd), m._render_reference(frames[2], odd), rtol=1e-5,
                                atol=2e-6 * max(scale, 1.0))
+
+
+def test_all_true_is_tensor_all():
+    """`fast.all_true` (the byte minimum of a bool mask) equals ``bool(mask.all())``: all true, one
+    false anywhere (first, last, middle), all false, empty, and a strided view."""
+    from methods.ptt import fast as F
+
+    for n in (0, 1, 7, 262_144 + 3):
+        m = torch.ones(n, dtype=torch.bool)
+        assert F.all_true(m) is True
+        for i in {0, n // 2, n - 1} if n else ():
+            k = m.clone()
+            k[i] = False
+            assert F.all_true(k) is False and bool(k.all()) is False
+        assert F.all_true(torch.zeros(n, dtype=torch.bool)) is bool(torch.zeros(n, dtype=torch.bool).all())
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1000, 2, generator=g) > 0.001
+    for v in (x[:, 0], x[:, 1], x.reshape(-1)):
+        assert F.all_true(v) is bool(v.all())
