@@ -110,6 +110,7 @@ class FastStatic:
     pair_frame: Tensor | None = None
     pair_is_vertex: bool = False
     face_pairs_miss: Tensor | None = field(default=None, repr=False)  # `miss_face_pairs` (built on first use)
+    pair_rv32: tuple | None = field(default=None, repr=False)  # `pair_indices32` (built on first use)
 
     def tensors(self) -> list[Tensor]:
         return [t for t in (self.frames, self.pair_of, self.pair_v, self.pair_r, self.sh_rot, self.face_pairs,
@@ -167,6 +168,15 @@ def all_true(mask: Tensor) -> bool:
     if mask.dtype != torch.bool or not mask.is_contiguous():
         return bool(mask.all())
     return int(mask.view(torch.uint8).min()) != 0
+
+def pair_indices32(st: FastStatic) -> tuple[Tensor, Tensor]:
+    """``st.pair_r``, ``st.pair_v`` as int32 (built once per `FastStatic`): `pair_cells` computes its
+    table rows in the indices' type, and AVX2 converts float <-> int32 natively but emulates
+    float <-> int64, 64-bit products and min / max lane by lane (`_mirror_cells`)."""
+    if st.pair_rv32 is None:
+        st.pair_rv32 = (st.pair_r.to(torch.int32), st.pair_v.to(torch.int32))
+    return st.pair_rv32
+
 
 def relayout_t2(T2: Tensor) -> Tensor:
     """T² (V, L2, R, P, R, P) → the same values stored lighting-last, returned as a (V, L2, R, P, R, P)
@@ -485,19 +495,20 @@ def pair_view_dirs(st: FastStatic, V: Tensor, cam_origin: Tensor,
     return v, r, torch.bmm(rows(st.frames, v), d[:, :, None])[:, :, 0]
 
 
-def theta_nodes(cos_o: Tensor, nt: int) -> tuple[Tensor, Tensor]:
-    """Node i0 (int64) and fraction t of θo = acos(cos_o) on the n_θ lobe-table nodes, linear in θo and
-    clamped at the end nodes (``specular.lobe_weights``)."""
+def theta_nodes(cos_o: Tensor, nt: int, itype: torch.dtype = torch.int64) -> tuple[Tensor, Tensor]:
+    """Node i0 (int64, or ``itype``) and fraction t of θo = acos(cos_o) on the n_θ lobe-table nodes,
+    linear in θo and clamped at the end nodes (``specular.lobe_weights``)."""
     th = torch.acos(cos_o.clamp(-1.0, 1.0))
     x = (th * (nt / (math.pi / 2)) - 0.5).clamp(0.0, nt - 1.0)
-    i0 = x.floor().long().clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=torch.long)
+    i0 = x.floor().to(itype).clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=itype)
     return i0, x - i0.to(x.dtype)
 
 
-def _cell(c: Tensor, T: int) -> tuple[Tensor, Tensor]:
-    """One axis of `_bilinear`: table coordinate c (n,) in [−1, 1] → first texel (int64), fraction."""
+def _cell(c: Tensor, T: int, itype: torch.dtype = torch.int64) -> tuple[Tensor, Tensor]:
+    """One axis of `_bilinear`: table coordinate c (n,) in [−1, 1] → first texel (int64, or ``itype``),
+    fraction."""
     x = c.add(1.0).mul_(T / 2.0).sub_(0.5).clamp_(0.0, T - 1.0)
-    i = x.floor().long().clamp_(max=T - 2)
+    i = x.floor().to(itype).clamp_(max=T - 2)
     return i, x.sub_(i)
 
 
@@ -557,7 +568,10 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
     nt = lobes["n_theta"] if lobes is not None else 1
     Tv = lobes["Tv"] if lobes is not None else 2
-    c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), r, v, T, Tv, nt, lobes is not None,
+    # table rows in int32 unless a table could have 2³¹ rows (`pair_indices32`)
+    small = max(int(Wr.shape[0]), int(lobes["vis"].shape[0]) if lobes is not None else 0) < 2 ** 31 - Tv * Tv - T * T
+    ri, vi = pair_indices32(st) if small else (r, v)
+    c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, lobes is not None,
                    order, lobes["vis"] if lobes is not None else None)
     Ex = E if st.pair_is_vertex else rows(E, v)
     masks = _channel_masks(K, str(Wr.device))
@@ -590,17 +604,19 @@ def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T
     sc = torch.atan2(rho, z) * (2.0 / math.pi) / rho.clamp_min(1e-12)
     sc = torch.where(rho > 1e-12, sc, torch.full_like(sc, 2.0 / math.pi))
     cu, cv = x * sc, y * sc
-    ix, tx = _cell(cu, T)
-    iy, ty = _cell(cv, T)
+    it = r.dtype  # int32 (`vertex_view`): AVX2 converts float <-> int32 natively, not int64 (`_mirror_cells`)
+    ix, tx = _cell(cu, T, it)
+    iy, ty = _cell(cv, T, it)
     idx, wt = _corner_rows(r * (T * T) + iy * T + ix, tx, ty, T, up)
     if not lobes:
         return idx, wt
-    i0, t = theta_nodes(z, nt)  # a_k(θo): linear in θo over the nodes (specular.lobe_weights)
-    jx, ux = _cell(-cu, Tv)  # R_x = (−x, −y, z): table coordinates negated
-    jy, uy = _cell(-cv, Tv)
+    i0, t = theta_nodes(z, nt, it)  # a_k(θo): linear in θo over the nodes (specular.lobe_weights)
+    jx, ux = _cell(-cu, Tv, it)  # R_x = (−x, −y, z): table coordinates negated
+    jy, uy = _cell(-cv, Tv, it)
     vidx, vwt = _corner_rows(v * (Tv * Tv) + jy * Tv + jx, ux, uy, Tv, up)
-    Vc = (vis[vidx[:, 0]] * vwt[:, 0:1] + vis[vidx[:, 1]] * vwt[:, 1:2] + vis[vidx[:, 2]] * vwt[:, 2:3]
-          + vis[vidx[:, 3]] * vwt[:, 3:4])  # (n, L) V_c^(k)(x, R_x): the weighted 4-row bag, gathered here
+    # rows by ``embedding``: no negative-index wrap (the indices are >= 0; `_shade_block`)
+    Vc = (Fnn.embedding(vidx[:, 0], vis) * vwt[:, 0:1] + Fnn.embedding(vidx[:, 1], vis) * vwt[:, 1:2]
+          + Fnn.embedding(vidx[:, 2], vis) * vwt[:, 2:3] + Fnn.embedding(vidx[:, 3], vis) * vwt[:, 3:4])  # (n, L) V_c^(k)(x, R_x): the weighted 4-row bag, gathered here
     out = (idx, wt, r * nt + i0, (1 - t) * up, t * up, Vc, z.clamp_min(0.0))
     if order:
         out = out + (_sh.sh_eval(torch.stack([-x, -y, z], -1), order),)
@@ -634,14 +650,14 @@ def _pair_rows(idx: Tensor, wt: Tensor, Wr: Tensor, Ex: Tensor, masks: Tensor, K
     u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``. Compiled with
     `SHADE_OPTIONS` (the gathered rows stay vector loads in the one loop over the pairs)."""
     n = idx.shape[0]
-    Wi = (Wr[idx[:, 0]] * wt[:, 0:1] + Wr[idx[:, 1]] * wt[:, 1:2] + Wr[idx[:, 2]] * wt[:, 2:3]
-          + Wr[idx[:, 3]] * wt[:, 3:4])
+    Wi = (Fnn.embedding(idx[:, 0], Wr) * wt[:, 0:1] + Fnn.embedding(idx[:, 1], Wr) * wt[:, 1:2]
+          + Fnn.embedding(idx[:, 2], Wr) * wt[:, 2:3] + Fnn.embedding(idx[:, 3], Wr) * wt[:, 3:4])
     P = Wi * Ex
     B = torch.stack([(P * masks[c]).sum(-1) for c in range(3)], -1)
     cols = [B]
     if ar is not None:
         L = ar.shape[1] // 3
-        ak = ar[r0] * w0[:, None] + ar[r0 + step] * w1[:, None]  # (n, 3L)
+        ak = Fnn.embedding(r0, ar) * w0[:, None] + Fnn.embedding(r0 + step, ar) * w1[:, None]  # (n, 3L)
         cols.append((ak.view(n, L, 3) * Vc[:, :, None]).reshape(n, 3 * L))
         if I1x is not None:
             S = Y.shape[1]

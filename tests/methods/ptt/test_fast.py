@@ -497,3 +497,33 @@ def test_all_true_is_tensor_all():
     x = torch.rand(1000, 2, generator=g) > 0.001
     for v in (x[:, 0], x[:, 1], x.reshape(-1)):
         assert F.all_true(v) is bool(v.all())
+
+
+def test_pair_cells_int32_indices_are_the_int64_ones():
+    """`fast._pair_cells` computes its table rows in the type of the pair indices (`fast.vertex_view`
+    passes int32, `fast.pair_indices32`, when every table has fewer than 2³¹ rows): every output —
+    the W_r rows and weights, the θ nodes, the visibility bag, cos⁺θo, the SH basis — equals the
+    int64 computation's bit for bit (the rows as values), including directions below the horizon
+    and at the table borders."""
+    from methods.ptt import fast as F
+
+    g = torch.Generator().manual_seed(13)
+    n, R, nv, T, Tv, nt, L = 777, 3, 300, 12, 8, 5, 4
+    frames = torch.linalg.qr(torch.randn(n, 3, 3, generator=g))[0]
+    pos = (torch.randn(n, 3, generator=g) * 2.0).T.contiguous()
+    cam = torch.tensor([0.3, 4.0, -1.0])
+    r = torch.randint(0, R, (n,), generator=g)
+    v = torch.randint(0, nv, (n,), generator=g)
+    vis = torch.rand(nv * Tv * Tv, L, generator=g)
+    frame = frames.reshape(n, 9).T.contiguous()
+    for order in (0, 3):
+        a = F._pair_cells(pos, frame, cam, r, v, T, Tv, nt, True, order, vis)
+        b = F._pair_cells(pos, frame, cam, r.to(torch.int32), v.to(torch.int32), T, Tv, nt, True, order, vis)
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            if x.dtype == torch.int64:
+                assert y.dtype == torch.int32 and torch.equal(x, y.long())
+            else:
+                assert torch.equal(x, y)
+    z = a[6]
+    assert bool((z == 0).any()) and bool((z > 0).any())  # both sides of the horizon
