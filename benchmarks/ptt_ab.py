@@ -4,6 +4,7 @@ e.g. a git worktree of main) against this checkout's, on one precomputation and 
     python -m benchmarks.ptt_ab --base OTHER_CHECKOUT [--scene chess] [--size bench]
                                 [--config '{"light_res_1":4}'] [--bounces 0] [--frames 7]
                                 [--threads 1] [--kinds V VB VBL L E VL] [--no-limits]
+                                [--precompute-code CHECKOUT]
 
 Both packages are imported into this process (the base's ``methods.*`` modules under their own
 names, then set aside in ``sys.modules``), the precomputation is loaded once through the harness
@@ -81,6 +82,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-limits", action="store_true", help="skip the bandwidth / peak measurement")
     ap.add_argument("--own-precompute", action="store_true",
                     help="key the precompute cache on this checkout's code (default: on the base's, see below)")
+    ap.add_argument("--precompute-code", default=None,
+                    help="look the precomputation up under the code of the checkout at this path instead of "
+                         "--base's (e.g. --precompute-code /work/base when --base is a later snapshot whose "
+                         "precompute code is the same)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     Base = base_class(a.base)
@@ -90,7 +95,7 @@ def main(argv: list[str] | None = None) -> dict:
         # precompute alone, load the base's entry (the same arrays) instead
         from reports import precompute_cache
 
-        fp = base_fingerprint(a.base)
+        fp = base_fingerprint(a.precompute_code or a.base)
         precompute_cache._process_fingerprint = lambda module: fp
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1, spp_side=a.spp_side)
     m, _ = precomputed(PTT, scene, json.loads(a.config))

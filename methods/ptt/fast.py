@@ -110,6 +110,7 @@ class FastStatic:
     pair_frame: Tensor | None = None
     pair_is_vertex: bool = False
     face_pairs_miss: Tensor | None = field(default=None, repr=False)  # `miss_face_pairs` (built on first use)
+    pair_rv32: tuple | None = field(default=None, repr=False)  # `pair_indices32` (built on first use)
 
     def tensors(self) -> list[Tensor]:
         return [t for t in (self.frames, self.pair_of, self.pair_v, self.pair_r, self.sh_rot, self.face_pairs,
@@ -154,6 +155,27 @@ def miss_face_pairs(st: FastStatic) -> Tensor:
         zero = torch.full((1, 3), n, dtype=st.face_pairs.dtype, device=st.face_pairs.device)
         st.face_pairs_miss = torch.cat([st.face_pairs, zero]).contiguous()
     return st.face_pairs_miss
+
+
+
+def all_true(mask: Tensor) -> bool:
+    """``bool(mask.all())`` of a bool tensor, as the minimum of its bytes (a bool is stored as one
+    byte, 0 false): ``Tensor.all`` on a bool tensor is a slow reduction — the G-buffer's hit mask
+    of a bench frame (262 144 samples, 1 thread): 168 µs against 10 µs for the byte minimum, paid
+    by every view frame (session 23, ptt23). Tested against ``Tensor.all``."""
+    if mask.numel() == 0:
+        return True
+    if mask.dtype != torch.bool or not mask.is_contiguous():
+        return bool(mask.all())
+    return int(mask.view(torch.uint8).min()) != 0
+
+def pair_indices32(st: FastStatic) -> tuple[Tensor, Tensor]:
+    """``st.pair_r``, ``st.pair_v`` as int32 (built once per `FastStatic`): `pair_cells` computes its
+    table rows in the indices' type, and AVX2 converts float <-> int32 natively but emulates
+    float <-> int64, 64-bit products and min / max lane by lane (`_mirror_cells`)."""
+    if st.pair_rv32 is None:
+        st.pair_rv32 = (st.pair_r.to(torch.int32), st.pair_v.to(torch.int32))
+    return st.pair_rv32
 
 
 def relayout_t2(T2: Tensor) -> Tensor:
@@ -473,19 +495,20 @@ def pair_view_dirs(st: FastStatic, V: Tensor, cam_origin: Tensor,
     return v, r, torch.bmm(rows(st.frames, v), d[:, :, None])[:, :, 0]
 
 
-def theta_nodes(cos_o: Tensor, nt: int) -> tuple[Tensor, Tensor]:
-    """Node i0 (int64) and fraction t of θo = acos(cos_o) on the n_θ lobe-table nodes, linear in θo and
-    clamped at the end nodes (``specular.lobe_weights``)."""
+def theta_nodes(cos_o: Tensor, nt: int, itype: torch.dtype = torch.int64) -> tuple[Tensor, Tensor]:
+    """Node i0 (int64, or ``itype``) and fraction t of θo = acos(cos_o) on the n_θ lobe-table nodes,
+    linear in θo and clamped at the end nodes (``specular.lobe_weights``)."""
     th = torch.acos(cos_o.clamp(-1.0, 1.0))
     x = (th * (nt / (math.pi / 2)) - 0.5).clamp(0.0, nt - 1.0)
-    i0 = x.floor().long().clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=torch.long)
+    i0 = x.floor().to(itype).clamp(max=nt - 2) if nt > 1 else torch.zeros_like(x, dtype=itype)
     return i0, x - i0.to(x.dtype)
 
 
-def _cell(c: Tensor, T: int) -> tuple[Tensor, Tensor]:
-    """One axis of `_bilinear`: table coordinate c (n,) in [−1, 1] → first texel (int64), fraction."""
+def _cell(c: Tensor, T: int, itype: torch.dtype = torch.int64) -> tuple[Tensor, Tensor]:
+    """One axis of `_bilinear`: table coordinate c (n,) in [−1, 1] → first texel (int64, or ``itype``),
+    fraction."""
     x = c.add(1.0).mul_(T / 2.0).sub_(0.5).clamp_(0.0, T - 1.0)
-    i = x.floor().long().clamp_(max=T - 2)
+    i = x.floor().to(itype).clamp_(max=T - 2)
     return i, x.sub_(i)
 
 
@@ -545,7 +568,10 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
     nt = lobes["n_theta"] if lobes is not None else 1
     Tv = lobes["Tv"] if lobes is not None else 2
-    c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), r, v, T, Tv, nt, lobes is not None,
+    # table rows in int32 unless a table could have 2³¹ rows (`pair_indices32`)
+    small = max(int(Wr.shape[0]), int(lobes["vis"].shape[0]) if lobes is not None else 0) < 2 ** 31 - Tv * Tv - T * T
+    ri, vi = pair_indices32(st) if small else (r, v)
+    c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, lobes is not None,
                    order, lobes["vis"] if lobes is not None else None)
     Ex = E if st.pair_is_vertex else rows(E, v)
     masks = _channel_masks(K, str(Wr.device))
@@ -578,17 +604,19 @@ def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T
     sc = torch.atan2(rho, z) * (2.0 / math.pi) / rho.clamp_min(1e-12)
     sc = torch.where(rho > 1e-12, sc, torch.full_like(sc, 2.0 / math.pi))
     cu, cv = x * sc, y * sc
-    ix, tx = _cell(cu, T)
-    iy, ty = _cell(cv, T)
+    it = r.dtype  # int32 (`vertex_view`): AVX2 converts float <-> int32 natively, not int64 (`_mirror_cells`)
+    ix, tx = _cell(cu, T, it)
+    iy, ty = _cell(cv, T, it)
     idx, wt = _corner_rows(r * (T * T) + iy * T + ix, tx, ty, T, up)
     if not lobes:
         return idx, wt
-    i0, t = theta_nodes(z, nt)  # a_k(θo): linear in θo over the nodes (specular.lobe_weights)
-    jx, ux = _cell(-cu, Tv)  # R_x = (−x, −y, z): table coordinates negated
-    jy, uy = _cell(-cv, Tv)
+    i0, t = theta_nodes(z, nt, it)  # a_k(θo): linear in θo over the nodes (specular.lobe_weights)
+    jx, ux = _cell(-cu, Tv, it)  # R_x = (−x, −y, z): table coordinates negated
+    jy, uy = _cell(-cv, Tv, it)
     vidx, vwt = _corner_rows(v * (Tv * Tv) + jy * Tv + jx, ux, uy, Tv, up)
-    Vc = (vis[vidx[:, 0]] * vwt[:, 0:1] + vis[vidx[:, 1]] * vwt[:, 1:2] + vis[vidx[:, 2]] * vwt[:, 2:3]
-          + vis[vidx[:, 3]] * vwt[:, 3:4])  # (n, L) V_c^(k)(x, R_x): the weighted 4-row bag, gathered here
+    # rows by ``embedding``: no negative-index wrap (the indices are >= 0; `_shade_block`)
+    Vc = (Fnn.embedding(vidx[:, 0], vis) * vwt[:, 0:1] + Fnn.embedding(vidx[:, 1], vis) * vwt[:, 1:2]
+          + Fnn.embedding(vidx[:, 2], vis) * vwt[:, 2:3] + Fnn.embedding(vidx[:, 3], vis) * vwt[:, 3:4])  # (n, L) V_c^(k)(x, R_x): the weighted 4-row bag, gathered here
     out = (idx, wt, r * nt + i0, (1 - t) * up, t * up, Vc, z.clamp_min(0.0))
     if order:
         out = out + (_sh.sh_eval(torch.stack([-x, -y, z], -1), order),)
@@ -622,14 +650,14 @@ def _pair_rows(idx: Tensor, wt: Tensor, Wr: Tensor, Ex: Tensor, masks: Tensor, K
     u = cos⁺θo Σ_k a_k max(0, Σ_s f(k, s) Y_s I1_s); zero columns up to ``width``. Compiled with
     `SHADE_OPTIONS` (the gathered rows stay vector loads in the one loop over the pairs)."""
     n = idx.shape[0]
-    Wi = (Wr[idx[:, 0]] * wt[:, 0:1] + Wr[idx[:, 1]] * wt[:, 1:2] + Wr[idx[:, 2]] * wt[:, 2:3]
-          + Wr[idx[:, 3]] * wt[:, 3:4])
+    Wi = (Fnn.embedding(idx[:, 0], Wr) * wt[:, 0:1] + Fnn.embedding(idx[:, 1], Wr) * wt[:, 1:2]
+          + Fnn.embedding(idx[:, 2], Wr) * wt[:, 2:3] + Fnn.embedding(idx[:, 3], Wr) * wt[:, 3:4])
     P = Wi * Ex
     B = torch.stack([(P * masks[c]).sum(-1) for c in range(3)], -1)
     cols = [B]
     if ar is not None:
         L = ar.shape[1] // 3
-        ak = ar[r0] * w0[:, None] + ar[r0 + step] * w1[:, None]  # (n, 3L)
+        ak = Fnn.embedding(r0, ar) * w0[:, None] + Fnn.embedding(r0 + step, ar) * w1[:, None]  # (n, 3L)
         cols.append((ak.view(n, L, 3) * Vc[:, :, None]).reshape(n, 3 * L))
         if I1x is not None:
             S = Y.shape[1]
@@ -765,14 +793,21 @@ def _mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) 
     one sample at a time); here it runs 16 samples per instruction in the loop that already computes
     (u, v), for 4 more bytes per sample (r, fx, fy against u, v). Chess bench V frame (262 144
     samples, 1 thread, process CPU time, same process, alternating, load ~7): the sample stage 9.0 ms
-    -> 7.2 ms, the same output bits (the same IEEE operations on the same (u, v) bits)."""
+    -> 7.2 ms, the same output bits (the same IEEE operations on the same (u, v) bits).
+
+    Decision (session 23, ptt23): the cell indices are int32 throughout (they are < H·(W + 1) < 2³¹),
+    not int64 narrowed at the end: AVX2 has no float ↔ int64 conversion, no 64-bit multiply and no
+    64-bit min / max, so Inductor emulated each of those lane by lane; int32 has them all
+    (cvttps2dq, cvtdq2ps, pmulld, pminsd). The same values: x, y in [0, W] are truncated toward zero
+    in both; a NaN direction gets row 0 in both (tested). Chess bench (262 144 samples,
+    1 thread, process CPU time, back to back): 3.3–3.6 ms -> 2.5–2.7 ms, the same output bits."""
     u, v = _mirror_uv(normal, wo, to_world)
     uu = u - 0.5 / W
     x = (uu - torch.floor(uu)) * W
     y = (v - torch.floor(v)) * (H - 1)
-    ix = x.to(torch.int64).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
-    iy = y.to(torch.int64).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
-    return (iy * (W + 1) + ix).to(torch.int32), x - ix, y - iy
+    ix = x.to(torch.int32).clamp(0, W - 1)  # the lower bounds only matter for a NaN direction: a row
+    iy = y.to(torch.int32).clamp(0, H - 2)  # inside the table instead of an out-of-bounds read
+    return iy * (W + 1) + ix, x - ix, y - iy
 
 
 mirror_cells_block = fused(_mirror_cells, options={"cpp.enable_tiling_heuristics": False})
@@ -875,7 +910,8 @@ def _shade_block(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
     and the four corners of its lat-long cell (first row r, fractions fx, fy: `_mirror_cells`) in the
     lane-aligned env rows (`env_rows`, rows W + 1 wide), each a contiguous row load (Inductor
     vectorises along the lanes; a per-column gather would cost one scalar load per value); then
-    t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane — exactly max(0, B), s_k E^(k) and u —
+    t = max(0, a) on the B lanes, a on the u lanes, a·e on the others — exactly max(0, B), u and
+    s_k E^(k) —
     summed over the pixel's S2 samples (unrolled: sub-sample j of pixel p is row p·S2 + j), and
     each channel's sum over the lanes / S2 (the box filter).
     face (n,), bary (n, 2), r (n,) int32, fx, fy (n,) with n a multiple of S2 (pixel-major);
@@ -884,12 +920,25 @@ def _shade_block(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
     The sub-samples are unrolled (not a reduction over S2·width lanes of a (n / S2, S2·width) view)
     and the kernel is compiled with `SHADE_OPTIONS`, so Inductor emits ONE loop over the pixels whose
     row loads stay vector loads: before, it stored a and e as two (n, width) arrays (2 × 16 MB per
-    bench frame) and summed them in a third loop (`SHADE_OPTIONS` comment)."""
+    bench frame) and summed them in a third loop (`SHADE_OPTIONS` comment).
+
+    Decision (session 23, ptt23): (1) the pair and env rows are read with ``embedding`` rather than
+    ``table[idx]``: Inductor lowers both to the same row load, but wraps every ``[idx]`` index for
+    negative values (a compare and a select per row, 7 per sample) and ``embedding``'s not — those
+    indices are ≥ 0 by construction (the face index, which may be −1 for a miss, still wraps, as
+    `miss_face_pairs` needs). (2) The lanes are chosen with ``where`` instead of
+    t = max(0, a)·[B lanes] + a·e + a·[u lanes] (two products and two sums per lane and sample
+    fewer): the same values, as the env rows are 0 on the B and u lanes (`env_rows`), so the old
+    form's extra terms were ±0 (the two differ only where a is ±inf, which the old form made NaN);
+    tested bit for bit (eager) against the old form. Alone on the chess bench frame (1 thread,
+    process CPU time, alternating, 25 repeats, load ~3): 5.07 -> 4.41 ms (1.15x), the same output
+    bits."""
     n = face.shape[0]
     P = n // S2
     width = table.shape[1]
     fv, b1v, b2v = face.view(P, S2), bary[:, 0].view(P, S2), bary[:, 1].view(P, S2)
     rv, fxv, fyv = r.view(P, S2), fx.view(P, S2), fy.view(P, S2)
+    is_b, is_u = lanes[0, :width] > 0, lanes[1, :width] > 0
     t = None
     for j in range(S2):
         f = fv[:, j]
@@ -899,10 +948,12 @@ def _shade_block(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
         fx_, fy_ = fxv[:, j], fyv[:, j]
         gx, gy = 1.0 - fx_, 1.0 - fy_
         rj = rv[:, j].to(torch.int64)
-        a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
-        e = (env[rj] * (gx * gy)[:, None] + env[rj + 1] * (fx_ * gy)[:, None]
-             + env[rj + (W + 1)] * (gx * fy_)[:, None] + env[rj + (W + 2)] * (fx_ * fy_)[:, None])
-        tj = a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]
+        a = (Fnn.embedding(p0, table) * b0[:, None] + Fnn.embedding(p1, table) * b1[:, None]
+             + Fnn.embedding(p2, table) * b2[:, None])
+        e = (Fnn.embedding(rj, env) * (gx * gy)[:, None] + Fnn.embedding(rj + 1, env) * (fx_ * gy)[:, None]
+             + Fnn.embedding(rj + (W + 1), env) * (gx * fy_)[:, None]
+             + Fnn.embedding(rj + (W + 2), env) * (fx_ * fy_)[:, None])
+        tj = torch.where(is_b, a.clamp_min(0.0), torch.where(is_u, a, a * e))
         t = tj if t is None else t + tj
     out = torch.stack([(t * lanes[2 + c, :width]).sum(-1) for c in range(3)], -1)
     return out * (1.0 / S2)
@@ -959,9 +1010,12 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
     if B % S2 or q % S2:
         return None
     tab, erows, lanes = _fused_inputs(table, env, L, C)
-    out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
     warm_blocks(_shade_pixels_block, [face, bary, normal, wo], (face_pairs, tab, erows, lanes, env, S2),
                 [b for b in warm_sizes(B) if b % S2 == 0])
+    if q == B:  # one full block (a bench frame): its result is the image, not copied into another
+        # (65 536 × 3 floats: 75 µs per bench frame at 1 thread; session 23, ptt23)
+        return _shade_pixels_block(face, bary, normal, wo, face_pairs, tab, erows, lanes, env, S2)
+    out = torch.empty(q // S2, 3, dtype=table.dtype, device=table.device)
     for a in range(0, q, B):
         blk = [t[a:a + B] for t in (face, bary, normal, wo)]
         n = blk[0].shape[0]

@@ -580,12 +580,12 @@ class PTT(Method):
             # samples shaded and resolved per block (fast.shade_pixels_fused); a miss (face −1, the
             # G-buffer's contract, checked) reads the zero face of `fast.miss_face_pairs`: 0, as
             # GBuffer.resolve counts it
-            if env is not None and (bool(gb.hit.all()) or bool(((gb.face == -1) != gb.hit).all())):
+            if env is not None and (_fast.all_true(gb.hit) or bool(((gb.face == -1) != gb.hit).all())):
                 img = _fast.shade_pixels_fused(_fast.miss_face_pairs(st), table, gb.face, gb.bary, gb.normal, gb.wo,
                                                env, L, gb.spp_side ** 2, C)
                 if img is not None:
                     return img.view(gb.height, gb.width, 3)
-            if bool(gb.hit.all()):  # no gathers of the G-buffer
+            if _fast.all_true(gb.hit):  # no gathers of the G-buffer
                 S2 = gb.spp_side ** 2
                 out = _fast.shade_samples_fused(st.face_pairs, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, C)
                 return _fast.box_filter(out, gb.height, gb.width, S2)
@@ -595,7 +595,7 @@ class PTT(Method):
                                                  gb.normal[hit] if env is not None else None,
                                                  gb.wo[hit] if env is not None else None, env, L, C)
             return gb.resolve(out)
-        if bool(gb.hit.all()):  # no gathers of the G-buffer
+        if _fast.all_true(gb.hit):  # no gathers of the G-buffer
             out = torch.empty(gb.num_samples, 3, dtype=torch.float32, device=self.V.device)
             for a in range(0, gb.num_samples, B):
                 _fast.shade_samples(st.face_pairs, table, gb.face[a:a + B], gb.bary[a:a + B], gb.normal[a:a + B],

@@ -258,12 +258,13 @@ def test_fused_sample_stage_equals_eager(n_samples, monkeypatch):
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
 
 
-@pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, (1 << 13) + 5)])
+@pytest.mark.parametrize("S2,n_pixels", [(1, 1000), (4, 1 << 10), (4, (1 << 13) + 5)])
 def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
     """`fast.shade_pixels_fused` (samples shaded and box-filtered per static block, `shade_block`)
     equals the eager `fast.shade_samples` + `fast.box_filter` to float32 round-off, including a last
-    block shorter than the others (blocks capped at 2¹² here); it declines (None) when a block cannot
-    hold whole pixels."""
+    block shorter than the others (blocks capped at 2¹² here) and a frame of exactly one full block
+    (2¹⁰ pixels × 4: the block's result returned as the image); it declines (None) when a block
+    cannot hold whole pixels."""
     from methods.ptt import fast as F
 
     monkeypatch.setattr(F, "MAX_SAMPLE_BLOCK", 1 << 12)
@@ -276,6 +277,70 @@ def test_fused_pixel_stage_equals_eager(S2, n_pixels, monkeypatch):
         torch.testing.assert_close(out.view(n_pixels, 1, 3), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
     assert F.shade_pixels_fused(face_pairs, table, face[:9], bary[:9], normal[:9], wo[:9], env, L, 9) is None
 
+
+
+def _shade_block_masked(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2):
+    """`fast._shade_block` as it was before session 23 (the oracle of the ``where`` / ``embedding``
+    form): t = max(0, a)·[B lanes] + a·e + a·[u lanes] per lane, rows read as ``table[idx]``."""
+    n = face.shape[0]
+    P = n // S2
+    width = table.shape[1]
+    fv, b1v, b2v = face.view(P, S2), bary[:, 0].view(P, S2), bary[:, 1].view(P, S2)
+    rv, fxv, fyv = r.view(P, S2), fx.view(P, S2), fy.view(P, S2)
+    t = None
+    for j in range(S2):
+        f = fv[:, j]
+        p0, p1, p2 = face_pairs[f, 0], face_pairs[f, 1], face_pairs[f, 2]
+        b1, b2 = b1v[:, j], b2v[:, j]
+        b0 = 1.0 - b1 - b2
+        fx_, fy_ = fxv[:, j], fyv[:, j]
+        gx, gy = 1.0 - fx_, 1.0 - fy_
+        rj = rv[:, j].to(torch.int64)
+        a = table[p0] * b0[:, None] + table[p1] * b1[:, None] + table[p2] * b2[:, None]
+        e = (env[rj] * (gx * gy)[:, None] + env[rj + 1] * (fx_ * gy)[:, None]
+             + env[rj + (W + 1)] * (gx * fy_)[:, None] + env[rj + (W + 2)] * (fx_ * fy_)[:, None])
+        tj = a.clamp_min(0.0) * lanes[0, :width] + a * e + a * lanes[1, :width]
+        t = tj if t is None else t + tj
+    out = torch.stack([(t * lanes[2 + c, :width]).sum(-1) for c in range(3)], -1)
+    return out * (1.0 / S2)
+
+
+@pytest.mark.parametrize("S2", [1, 4])
+def test_shade_block_equals_the_masked_lane_form_bit_for_bit(S2):
+    """`fast._shade_block` (lanes chosen with ``where``, rows read with ``embedding``) gives the same
+    bits as the masked-lane form it replaced (`_shade_block_masked`), eagerly: with and without the
+    one-bounce u column, negative Gouraud sums (the B clamp), misses (face −1, the zero face of
+    `fast.miss_face_pairs`) and env rows built by `fast.env_stack` (0 on the B and u lanes). The
+    compiled kernel is compared with the eager reference path by the tests above."""
+    from methods.ptt import fast as F
+
+    n = S2 * 3001
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, _ = _random_shading_inputs(n, 2)
+    face = torch.where(torch.rand(n, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    H, W = 16, 32
+    maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
+    for C in (3 + 3 * L, 6 + 3 * L):
+        width = F.table_width(C)
+        st = F.env_stack(maps, width)
+        erows = F.env_rows(st, width)
+        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+        table[-1] = 0.0
+        lanes = F._lane_masks(C, L, width)
+        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
+        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        new = F._shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        old = _shade_block_masked(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        assert torch.equal(new, old)
+        assert bool((new.abs() > 0).any())
+
+
+@dataclasses.dataclass
+class _FakeEnv:
+    """What `fast.env_stack` reads of an ``EnvMap``: data (H, W, 3) and to_world."""
+
+    data: torch.Tensor
+    to_world: torch.Tensor = dataclasses.field(default_factory=lambda: torch.eye(3))
 
 def _random_shading_inputs(n: int, seed: int):
     """Random inputs of `fast.shade_samples` for n samples: (generator, n_pairs, L, face_pairs, face,
@@ -350,6 +415,30 @@ def test_mirror_cells_are_the_reference_cells():
         assert torch.equal(torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1), w)
 
 
+def test_mirror_cells_of_a_nan_direction_stay_in_the_table():
+    """A NaN shading normal (a degenerate G-buffer sample) gives a NaN mirror direction; its cell in
+    `fast.mirror_cells_block` is row 0, so `shade_block`'s four corner rows r, r + 1, r + W + 1, r + W + 2 stay inside the table (no
+    out-of-bounds read, its index checks are off) and the other samples' cells are unchanged."""
+    from methods.ptt import fast as F
+    from methods.ptt import specular as spec
+
+    g = torch.Generator().manual_seed(11)
+    n = 4096 + 7
+    normal = torch.randn(n, 3, generator=g)
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    bad = torch.zeros(n, dtype=torch.bool)
+    bad[3::101] = True
+    normal[bad] = float("nan")
+    to_world = torch.eye(3)
+    for H, W in ((256, 512), (33, 70)):
+        r, fx, fy = F.mirror_cells_block(normal, wo, to_world, H, W)
+        assert r.dtype == torch.int32
+        assert bool((r[bad] == 0).all())
+        assert int(r.min()) >= 0 and int(r.max()) + W + 2 < H * (W + 1)
+        idx, _ = spec._uv_cells(*F.mirror_uv(normal[~bad], wo[~bad], to_world), H, W)
+        assert torch.equal(r[~bad].long(), idx[:, 0])
+
+
 def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     """A frame with misses after frames without (chess bench V frame 4 had one miss in 262 144
     samples and compiled two more graphs in a timed frame, 0.98 s against 0.05 s): misses (face −1)
@@ -389,3 +478,52 @@ def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     odd = dataclasses.replace(holes, face=torch.where(miss, 0, full.face))
     torch.testing.assert_close(m.render(frames[2], odd), m._render_reference(frames[2], odd), rtol=1e-5,
                                atol=2e-6 * max(scale, 1.0))
+
+
+def test_all_true_is_tensor_all():
+    """`fast.all_true` (the byte minimum of a bool mask) equals ``bool(mask.all())``: all true, one
+    false anywhere (first, last, middle), all false, empty, and a strided view."""
+    from methods.ptt import fast as F
+
+    for n in (0, 1, 7, 262_144 + 3):
+        m = torch.ones(n, dtype=torch.bool)
+        assert F.all_true(m) is True
+        for i in {0, n // 2, n - 1} if n else ():
+            k = m.clone()
+            k[i] = False
+            assert F.all_true(k) is False and bool(k.all()) is False
+        assert F.all_true(torch.zeros(n, dtype=torch.bool)) is bool(torch.zeros(n, dtype=torch.bool).all())
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1000, 2, generator=g) > 0.001
+    for v in (x[:, 0], x[:, 1], x.reshape(-1)):
+        assert F.all_true(v) is bool(v.all())
+
+
+def test_pair_cells_int32_indices_are_the_int64_ones():
+    """`fast._pair_cells` computes its table rows in the type of the pair indices (`fast.vertex_view`
+    passes int32, `fast.pair_indices32`, when every table has fewer than 2³¹ rows): every output —
+    the W_r rows and weights, the θ nodes, the visibility bag, cos⁺θo, the SH basis — equals the
+    int64 computation's bit for bit (the rows as values), including directions below the horizon
+    and at the table borders."""
+    from methods.ptt import fast as F
+
+    g = torch.Generator().manual_seed(13)
+    n, R, nv, T, Tv, nt, L = 777, 3, 300, 12, 8, 5, 4
+    frames = torch.linalg.qr(torch.randn(n, 3, 3, generator=g))[0]
+    pos = (torch.randn(n, 3, generator=g) * 2.0).T.contiguous()
+    cam = torch.tensor([0.3, 4.0, -1.0])
+    r = torch.randint(0, R, (n,), generator=g)
+    v = torch.randint(0, nv, (n,), generator=g)
+    vis = torch.rand(nv * Tv * Tv, L, generator=g)
+    frame = frames.reshape(n, 9).T.contiguous()
+    for order in (0, 3):
+        a = F._pair_cells(pos, frame, cam, r, v, T, Tv, nt, True, order, vis)
+        b = F._pair_cells(pos, frame, cam, r.to(torch.int32), v.to(torch.int32), T, Tv, nt, True, order, vis)
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            if x.dtype == torch.int64:
+                assert y.dtype == torch.int32 and torch.equal(x, y.long())
+            else:
+                assert torch.equal(x, y)
+    z = a[6]
+    assert bool((z == 0).any()) and bool((z > 0).any())  # both sides of the horizon
