@@ -617,6 +617,29 @@ def test_prefiltered_reuses_the_box_filter_across_rotations_only():
     assert lt.prefiltered(small, geo, 2) is small
 
 
+def test_box_filter_equals_the_envmap_box_downsample_bit_for_bit():
+    """`lighting.box_filtered` (the prefilter an E frame runs on every new probe) gives the texels of
+    ``EnvMap.box_downsampled`` bit for bit on every captured probe and every library scene's map at
+    bench size, for k = 2, 4, 8, and `prefilter_factor` the k of ``prefiltered_for_spacing``."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap, named
+    from scenes.sequences import PROBES
+
+    maps = [named(p, height=256) for p in PROBES] + [get_scene(n, "bench").envmap for n in ("chess", "creature")]
+    maps.append(EnvMap(torch.rand(96, 192, 3, generator=torch.Generator().manual_seed(5)) ** 8 * 1e3))
+    for env in maps:
+        for k in (2, 4, 8):
+            if env.height % k or env.width % k or env.height // k < 3:
+                continue
+            assert torch.equal(lt.box_filtered(env.data, k), env.box_downsampled(k).data), (env.height, k)
+    for H, W in ((256, 512), (96, 192), (100, 200), (12, 24), (6, 10), (7, 14)):
+        for lvl, ss in ((1, 1), (2, 1), (3, 1), (3, 2), (3, 3)):
+            sp = lt.sample_spacing(Geodesic(lvl), ss)
+            env = EnvMap(torch.ones(H, W, 3))
+            assert lt.prefilter_factor(H, W, sp) == H // env.prefiltered_for_spacing(sp).height, (H, W, lvl, ss)
+
+
 @pytest.mark.parametrize("name", SCENES)
 def test_production_path_equals_reference_on_library(name):
     """The default evaluator ("auto": the compiled fine-value path `fast_eval.fine_block` for full
