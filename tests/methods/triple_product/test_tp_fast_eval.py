@@ -445,6 +445,26 @@ def test_comb_means_equals_the_sequential_sums():
         assert got.shape == ref.shape and torch.equal(got, ref), n_phi
 
 
+def test_comb_table_is_its_definition():
+    """`lighting.comb_table` (a strided view of the rows repeated, copied once) = its definition
+    CT[r, p, c, e, k] = texel(r, (p + e + m·k) mod W, c) element by element, from the channel
+    planes (3, H·(W + 1)) (their extra column never read): m = 4 (bench), 1 (W = n_phi), 3, 2."""
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(4)
+    for H, W, n_phi in ((64, 128, 32), (5, 8, 8), (6, 24, 8), (4, 24, 12)):
+        planes = torch.rand(3, H * (W + 1), generator=gen)
+        planes.view(3, H, W + 1)[:, :, W] = -1.0                          # the periodic column: never read
+        m, J = W // n_phi, n_phi
+        tex = planes.view(3, H, W + 1)
+        ref = torch.empty(H, m, 3, 2, 2 * J)
+        for p in range(m):
+            for e in range(2):
+                for k in range(2 * J):
+                    ref[:, p, :, e, k] = tex[:, :, (p + e + m * k) % W].T
+        assert torch.equal(lt.comb_table(planes, H, W, n_phi), ref.reshape(-1)), (H, W, n_phi)
+
+
 def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
