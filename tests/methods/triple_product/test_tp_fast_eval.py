@@ -635,6 +635,21 @@ def test_prefiltered_reuses_the_box_filter_across_rotations_only():
     assert torch.equal(c.data, other.prefiltered_for_spacing(sp).data) and torch.equal(c.to_world, other.to_world)
     small = EnvMap(torch.rand(16, 32, 3))                                # coarse enough already
     assert lt.prefiltered(small, geo, 2) is small
+    # the filtered map is made without EnvMap's checks: every attribute as the constructor's (also
+    # of a map whose sampling tables and periodic copies were made before it was filtered)
+    e3 = EnvMap(torch.rand(256, 512, 3, generator=torch.Generator().manual_seed(4)), rot.to_world)
+    e3.pdf(torch.tensor([[0.0, 1.0, 0.0]]))
+    e3.periodic_texels()
+    f3 = lt.prefiltered(e3, geo, 2)
+    for m, x in ((a, env), (c, other), (f3, e3)):
+        made = EnvMap(m.data, x.to_world)
+        assert vars(m).keys() == vars(made).keys()
+        for key, val in vars(made).items():
+            got = vars(m)[key]
+            assert (torch.equal(got, val) and got.dtype == val.dtype) if isinstance(val, torch.Tensor) else got == val, key
+    for m, x in ((a, env), (c, other), (f3, e3)):                        # each its own data's copies
+        assert torch.equal(m.periodic_texels(), EnvMap(m.data).periodic_texels())
+        assert torch.equal(x.periodic_texels(), EnvMap(x.data).periodic_texels())
 
 
 def test_box_filter_equals_the_envmap_box_downsample_bit_for_bit():
