@@ -120,10 +120,12 @@ def _distinct(idx: Tensor, n: int) -> Tensor:
 
 def _hit_faces(gbuffer: GBuffer, n: int) -> Tensor:
     """`_distinct` of the faces (n of them) the G-buffer's hit samples see, without gathering the
-    hit samples (misses marked in an (n + 1)-th slot; `index_fill_`): creature bench per-vertex
-    frame, 1 thread, 1.35 -> 0.85 ms with the hit indices it no longer needs."""
-    seen = torch.zeros(n + 1, dtype=torch.bool, device=gbuffer.face.device)
-    seen.index_fill_(0, gbuffer.face.masked_fill(~gbuffer.hit, n), True)
+    hit samples (misses counted in an (n + 1)-th slot): creature bench per-vertex frame, 1 thread,
+    1.35 -> 0.85 ms with the hit indices it no longer needs; the faces counted by `torch.bincount`
+    instead of marked by ``index_fill_`` (its per-index checks: ~3 ns per sample), and the misses
+    moved by ``where`` instead of ``masked_fill`` of an inverted mask: chess bench, 262 K samples,
+    1.2 -> 0.67 ms (the same faces)."""
+    seen = torch.bincount(torch.where(gbuffer.hit, gbuffer.face, n), minlength=n + 1)
     return torch.nonzero(seen[:n], as_tuple=False).squeeze(-1)
 
 

@@ -445,6 +445,26 @@ def test_comb_means_equals_the_sequential_sums():
         assert got.shape == ref.shape and torch.equal(got, ref), n_phi
 
 
+def test_comb_table_is_its_definition():
+    """`lighting.comb_table` (a strided view of the rows repeated, copied once) = its definition
+    CT[r, p, c, e, k] = texel(r, (p + e + m·k) mod W, c) element by element, from the channel
+    planes (3, H·(W + 1)) (their extra column never read): m = 4 (bench), 1 (W = n_phi), 3, 2."""
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(4)
+    for H, W, n_phi in ((64, 128, 32), (5, 8, 8), (6, 24, 8), (4, 24, 12)):
+        planes = torch.rand(3, H * (W + 1), generator=gen)
+        planes.view(3, H, W + 1)[:, :, W] = -1.0                          # the periodic column: never read
+        m, J = W // n_phi, n_phi
+        tex = planes.view(3, H, W + 1)
+        ref = torch.empty(H, m, 3, 2, 2 * J)
+        for p in range(m):
+            for e in range(2):
+                for k in range(2 * J):
+                    ref[:, p, :, e, k] = tex[:, :, (p + e + m * k) % W].T
+        assert torch.equal(lt.comb_table(planes, H, W, n_phi), ref.reshape(-1)), (H, W, n_phi)
+
+
 def test_project_env_does_not_depend_on_threads(monkeypatch):
     """`lighting.quad_means` sums each output's samples in one thread: 1 and 2 threads agree bit for
     bit (blocks of `lighting.env_block_frames` frames, the last one padded)."""
@@ -615,6 +635,44 @@ def test_prefiltered_reuses_the_box_filter_across_rotations_only():
     assert torch.equal(c.data, other.prefiltered_for_spacing(sp).data) and torch.equal(c.to_world, other.to_world)
     small = EnvMap(torch.rand(16, 32, 3))                                # coarse enough already
     assert lt.prefiltered(small, geo, 2) is small
+    # the filtered map is made without EnvMap's checks: every attribute as the constructor's (also
+    # of a map whose sampling tables and periodic copies were made before it was filtered)
+    e3 = EnvMap(torch.rand(256, 512, 3, generator=torch.Generator().manual_seed(4)), rot.to_world)
+    e3.pdf(torch.tensor([[0.0, 1.0, 0.0]]))
+    e3.periodic_texels()
+    f3 = lt.prefiltered(e3, geo, 2)
+    for m, x in ((a, env), (c, other), (f3, e3)):
+        made = EnvMap(m.data, x.to_world)
+        assert vars(m).keys() == vars(made).keys()
+        for key, val in vars(made).items():
+            got = vars(m)[key]
+            assert (torch.equal(got, val) and got.dtype == val.dtype) if isinstance(val, torch.Tensor) else got == val, key
+    for m, x in ((a, env), (c, other), (f3, e3)):                        # each its own data's copies
+        assert torch.equal(m.periodic_texels(), EnvMap(m.data).periodic_texels())
+        assert torch.equal(x.periodic_texels(), EnvMap(x.data).periodic_texels())
+
+
+def test_box_filter_equals_the_envmap_box_downsample_bit_for_bit():
+    """`lighting.box_filtered` (the prefilter an E frame runs on every new probe) gives the texels of
+    ``EnvMap.box_downsampled`` bit for bit on every captured probe and every library scene's map at
+    bench size, for k = 2, 4, 8, and `prefilter_factor` the k of ``prefiltered_for_spacing``."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap, named
+    from scenes.sequences import PROBES
+
+    maps = [named(p, height=256) for p in PROBES] + [get_scene(n, "bench").envmap for n in ("chess", "creature")]
+    maps.append(EnvMap(torch.rand(96, 192, 3, generator=torch.Generator().manual_seed(5)) ** 8 * 1e3))
+    for env in maps:
+        for k in (2, 4, 8):
+            if env.height % k or env.width % k or env.height // k < 3:
+                continue
+            assert torch.equal(lt.box_filtered(env.data, k), env.box_downsampled(k).data), (env.height, k)
+    for H, W in ((256, 512), (96, 192), (100, 200), (12, 24), (6, 10), (7, 14)):
+        for lvl, ss in ((1, 1), (2, 1), (3, 1), (3, 2), (3, 3)):
+            sp = lt.sample_spacing(Geodesic(lvl), ss)
+            env = EnvMap(torch.ones(H, W, 3))
+            assert lt.prefilter_factor(H, W, sp) == H // env.prefiltered_for_spacing(sp).height, (H, W, lvl, ss)
 
 
 @pytest.mark.parametrize("name", SCENES)

@@ -162,3 +162,25 @@ def test_ward_anisotropic_matches_oracle_overcast(setup):
     img, _ = _render(scene, frame, gb, shading="vertex", light_lookup="exact", tangent="duff")
     err = rmse(img, ref, gb.coverage)
     assert err ** 2 <= (FLOOR_SLACK * floor) ** 2 + (BIAS_REL * mean) ** 2, (err, floor, mean)
+
+
+def test_hit_faces_are_the_distinct_faces_of_the_hit_samples(setup):
+    """`method._hit_faces` (the faces a per-vertex frame shades) = the sorted distinct faces of the
+    hit samples, on sphere_plane's G-buffer (misses around the plane) and with planted misses whose
+    face index is out of range (-1, n) or a real face that no hit sample sees."""
+    from methods.triple_product.method import _hit_faces
+
+    gb = setup[2]
+    n = int(gb.face.max()) + 1
+    assert torch.equal(_hit_faces(gb, n), torch.unique(gb.face[gb.hit]))
+    g2 = dataclasses.replace(gb, face=gb.face.clone(), hit=gb.hit.clone())
+    idx = torch.nonzero(g2.hit).squeeze(-1)
+    lone = int(g2.face[idx[0]])
+    mask = g2.face == lone
+    g2.hit[mask] = False                                                  # a face only missed samples name
+    g2.face[idx[1::7]] = -1
+    g2.hit[idx[1::7]] = False
+    g2.face[idx[2::7]] = n + 5
+    g2.hit[idx[2::7]] = False
+    want = torch.unique(g2.face[g2.hit])
+    assert lone not in want.tolist() and torch.equal(_hit_faces(g2, n + 6), want)
