@@ -1406,7 +1406,7 @@ def _band_norms(order: int) -> tuple[float, ...]:
 
 
 def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
-                     frame: str = "world", rows: Tensor | None = None) -> Tensor:
+                     frame: str = "world", rows: Tensor | None = None, cols: Tensor | None = None) -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
     ``point_minor`` — : §4.3 step 1 (the linear model [pose, 1] · X, one matrix-vector product: the
     frame's compulsory read of X), then per vertex the lobe axes from their chart
@@ -1423,6 +1423,11 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
         rows: (n²,) int64 or None: the coefficients in this order (result row / column i is
             coefficient rows[i]) — `zyz_rows`, the order `cosine_visibility_zyz(ordered=True)`
             reads them in, made by the compiled pass itself instead of a gather of the result.
+        cols: (N',) int64 or None: those vertices alone (result column / row j is vertex cols[j]):
+            the product over every vertex (X streamed once), then its columns and the normals
+            gathered — c·(2+n) + 3 floats per vertex instead of the result's n² — and eq. 1 for
+            them alone (a P frame's front-facing vertices, `ZHShadow._front_radiance`). The same
+            numbers as those columns of the whole (each vertex's are its own).
     """
     if frame not in ("world", "zyz"):
         raise ValueError(f"frame must be 'world' or 'zyz', got {frame!r}")
@@ -1444,6 +1449,9 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
         else:
             pT = (a[None] @ X.reshape(J1, N * d)).view(N, d).T.contiguous()
     nT = normal.T.contiguous()
+    if cols is not None:
+        pT, nT = pT.index_select(1, cols), nT.index_select(1, cols)
+        N = int(cols.shape[0])
     lam = _band_norms(n)
     perm = None if rows is None else tuple(int(i) for i in rows.tolist())
     if perm is not None and sorted(perm) != list(range(n * n)):
