@@ -775,9 +775,7 @@ class ZHShadow(Method):
             #                                               instead of a pass over w (0.28 ms of a P frame)
             vt = self._vertex_transfer
             if vt is None or vt[0] != key or vt[1] is not v0:
-                cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-                woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-                woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+                woT = _view_directions(frame, geom, dev)
                 # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
                 # columns in or of t_s out; consumed region by region below), made for the front-facing
                 # vertices alone (the others' radiance is zero: ``front`` below; about half of the
@@ -847,9 +845,7 @@ class ZHShadow(Method):
         dev = geom.N.device
         nT = rt.rows(geom.N.to(dev).float())
         N = int(nT.shape[1])
-        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-        woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+        woT = _view_directions(frame, geom, dev)
         idx = (rt.dot_T(nT, woT) > 0).nonzero().squeeze(-1)
         nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
         if v0 is None:
@@ -866,8 +862,7 @@ class ZHShadow(Method):
         radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
-        front = torch.zeros(N, dtype=torch.bool, device=dev).index_fill_(0, idx, True)
-        counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+        counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
 
     @staticmethod
@@ -1146,14 +1141,21 @@ def _warm_front(_row: Tensor, m: "ZHShadow", *args) -> None:
     m._front_radiance(*args)
 
 
+def _view_directions(frame: Frame, geom, dev) -> Tensor:
+    """(3, N) unit directions from the posed vertices towards the camera (vertex shading)."""
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+    woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+    return woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+
+
 def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor
                   ) -> "_LazyCounts":
     """The point counts of a vertex-shaded frame for `ZHShadow.frame_cost`: the front-facing vertices
-    (``front``: n·ωo > 0) are its points — a vertex facing away has radiance exactly 0 (the shading's
+    (``front``: n·ωo > 0 (N,) bool, or their ids, ascending int64) are its points — a vertex facing away has radiance exactly 0 (the shading's
     front test), so no work on it is compulsory (session 22: the frames skip their specular transfer;
     counted over all vertices, the count stayed while the work went, inflating the efficiency). Q
     now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read."""
-    idx = front.nonzero().squeeze(-1)
+    idx = front if front.dtype != torch.bool else front.nonzero().squeeze(-1)
     return _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
                                                vertex_normal, vreg), {"Q": int(idx.numel())})
 
