@@ -433,13 +433,18 @@ class ZHShadow(Method):
                 out.append((kd, torch.zeros(3), 1.0))
         return out
 
-    def _pose_state(self, frame: Frame):
+    def _pose_state(self, frame: Frame, visibility: bool = True):
         """(pose vector, posed geometry, (N, n²) world-space SH visibility), cached per pose:
         §4.3 #1 (lobes from the linear model), the local lobe axes taken to world space through the
         posed vertex frame, and eq. 1 (ZH → SH) once per vertex. With vertex shading and
         ``specular="cosine"`` the SH is in each vertex's ZYZ normal frame instead (`runtime.zyz_axes`:
-        all that path needs, `_render_vertex`), its coefficients in `runtime.zyz_rows` order."""
-        scene, m = self.scene, self.model
+        all that path needs, `_render_vertex`), its coefficients in `runtime.zyz_rows` order.
+
+        ``visibility=False``: the posed geometry alone — the visibility (third item) None unless
+        already made for this pose; a P frame's front-only path (`_front_radiance`) makes the
+        front-facing vertices' own (`_visibility_args`), and the first later frame of the pose
+        that needs every vertex's makes it then."""
+        scene = self.scene
         if scene.skeleton is None:
             pose_vec = torch.zeros(0)
         else:
@@ -447,18 +452,27 @@ class ZHShadow(Method):
         key = tuple(pose_vec.tolist())
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
+            self._posed = (key, geom, None)
+        if visibility and self._posed[2] is None:
             vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
-            # vertex shading with the cosine: only w = M(R_n) M¹ M(R_n)ᵀ v is needed, so v is made in
-            # the ZYZ frame of the normal, M(R_n)ᵀ v (`runtime.cosine_visibility_zyz`)
-            frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
-            # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
-            rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
-            if not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
-                m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)
-            v = rt.world_visibility(m.X, pose_vec, geom.N.float(), m.lobes, point_minor=vertex, frame=frame,
-                                    rows=rows)
-            self._posed = (key, geom, v.T if vertex else v)                                  # (N, n²)
+            args, kw = self._visibility_args(pose_vec, self._posed[1])
+            v = rt.world_visibility(*args, **kw)
+            self._posed = (key, self._posed[1], v.T if vertex else v)                       # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
+
+    def _visibility_args(self, pose_vec: Tensor, geom, cols: Tensor | None = None) -> tuple[tuple, dict]:
+        """The arguments (positional, keyword) of `runtime.world_visibility` for this method's layout
+        at the pose (``cols``: those vertices only)."""
+        m = self.model
+        vertex = self.config["shading"] == "vertex"
+        # vertex shading with the cosine: only w = M(R_n) M¹ M(R_n)ᵀ v is needed, so v is made in
+        # the ZYZ frame of the normal, M(R_n)ᵀ v (`runtime.cosine_visibility_zyz`)
+        frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
+        # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
+        rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
+        if not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
+            m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)
+        return (m.X, pose_vec, geom.N.float(), m.lobes), dict(point_minor=vertex, frame=frame, rows=rows, cols=cols)
 
     def _table(self, light: Tensor, light_key, alpha: float, diffuse: bool) -> Tensor:
         if self._tables is None or self._tables[0] != light_key:
@@ -479,16 +493,19 @@ class ZHShadow(Method):
         if self.model is None or self.scene is None:
             raise RuntimeError("call precompute(scene) before render()")
         cosine = self.config["specular"] == "cosine"
-        _, geom, v0 = self._pose_state(frame)
+        vertex = self.config["shading"] == "vertex"
+        # (vertex shading: the visibility made in `_render_vertex`, a P frame's for its front-facing
+        # vertices alone)
+        pose_vec, geom, v0 = self._pose_state(frame, visibility=not vertex)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
         mats = self._region_materials(frame)
         dev = gbuffer.hit.device
-        v = v0.to(dev)
         P = gbuffer.num_samples
-        if self.config["shading"] == "vertex":
-            return self._render_vertex(frame, gbuffer, geom, v0, light, mats, cosine)
+        if vertex:
+            return self._render_vertex(frame, gbuffer, pose_vec, geom, v0, light, mats, cosine)
+        v = v0.to(dev)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
         spec = [bool((ks > 0).any()) for _, ks, _ in mats]
         vreg = geom.vertex_region.to(dev)
@@ -714,8 +731,8 @@ class ZHShadow(Method):
         self._vtable = (key, v0, U, [tuple(t) for t in tabs])   # the tables kept: their identity is the key
         return U
 
-    def _render_vertex(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, light: Tensor, mats: list,
-                       cosine: bool) -> Tensor:
+    def _render_vertex(self, frame: Frame, gbuffer: GBuffer, pose_vec: Tensor, geom, v0: Tensor | None,
+                       light: Tensor, mats: list, cosine: bool) -> Tensor:
         """Vertex shading (§4.3 on the GPU): per vertex the lighting-free transfer t_d, t_s
         (`runtime.point_transfer`, by frame rotations) — t_d cached per pose, t_s while the camera,
         pose (v) and exponents do not change, so a lighting-only frame is one (3, n²) @ (n², N) product
@@ -735,14 +752,18 @@ class ZHShadow(Method):
             # a new pose under the same camera (a P frame): w and t_s for the front-facing vertices
             # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
             # this pose under another camera other vertices' (it makes them all, as before)
-            radT, counts = self._front_radiance(frame, geom, v0, light.to(dev), mats, alphas, spans, vreg)
+            radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg)
             self._vertex_diffuse = self._vertex_transfer = None
-        elif cosine and spans is not None:
+        if radT is None and v0 is None:   # every vertex's visibility (`_pose_state`)
+            _, _, v0 = self._pose_state(frame)
+        if radT is None and cosine and spans is not None:
             # the harness's warm-up frame (a full change: the path below) also compiles the front-only
             # path's kernels (their column count is the front vertices'), or the first P frame of a
             # sequence compiled them while timed: perf run of ec5aced, creature P frame 1 310 ms
-            # against 12-16 (one Inductor graph in that frame)
-            warm_blocks(_warm_front, [v0[:1]], (self, frame, geom, v0, light.to(dev), mats, alphas, spans, vreg), [1])
+            # against 12-16 (one Inductor graph in that frame); its visibility made as a P frame's
+            # (v0 None: for the front-facing vertices alone)
+            warm_blocks(_warm_front, [v0[:1]], (self, frame, pose_vec, geom, None, light.to(dev), mats, alphas, spans,
+                                                vreg), [1])
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:
@@ -754,9 +775,7 @@ class ZHShadow(Method):
             #                                               instead of a pass over w (0.28 ms of a P frame)
             vt = self._vertex_transfer
             if vt is None or vt[0] != key or vt[1] is not v0:
-                cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-                woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-                woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+                woT = _view_directions(frame, geom, dev)
                 # t_s per specular region, not assembled (`runtime.specular_parts`: no copies of w's
                 # columns in or of t_s out; consumed region by region below), made for the front-facing
                 # vertices alone (the others' radiance is zero: ``front`` below; about half of the
@@ -811,8 +830,8 @@ class ZHShadow(Method):
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
 
-    def _front_radiance(self, frame: Frame, geom, v0: Tensor, light: Tensor, mats: list, alphas: list,
-                        spans: list, vreg: Tensor) -> tuple[Tensor, "_LazyCounts"]:
+    def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,
+                        alphas: list, spans: list, vreg: Tensor) -> tuple[Tensor, "_LazyCounts"]:
         """`_render_vertex`'s (N, 3) radiance of a new pose (cosine, every region one range of
         vertices) with w and t_s made for the front-facing vertices alone (n·ωo > 0; the others'
         radiance is zero): their columns of v gathered (contiguous: each region's front vertices
@@ -820,25 +839,30 @@ class ZHShadow(Method):
         on those, the radiance range by range (`_radiance_ranges`) scattered into zero rows — the
         same numbers per vertex as the path over all vertices (to float32 round-off: the compiled
         passes' vector and tail loops over another column count); 8.3 K of the bench creature's
-        13.4 K vertices."""
-        dev = v0.device
-        nT, vT = rt.rows(geom.N.to(dev).float()), v0.T                      # (vT: (n², N) contiguous)
-        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
-        woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+        13.4 K vertices. v0 (N, n²) the pose's visibility, or None: made for the front-facing
+        vertices alone (`runtime.world_visibility`'s ``cols``: eq. 1 for them, and no gather of
+        the n² rows of every vertex's; not kept)."""
+        dev = geom.N.device
+        nT = rt.rows(geom.N.to(dev).float())
+        N = int(nT.shape[1])
+        woT = _view_directions(frame, geom, dev)
         idx = (rt.dot_T(nT, woT) > 0).nonzero().squeeze(-1)
         nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
-        wc = rt.cosine_visibility_zyz(vT.index_select(1, idx), nTc, ordered=True)
+        if v0 is None:
+            args, kw = self._visibility_args(pose_vec, geom, idx)
+            vTc = rt.world_visibility(*args, **kw)
+        else:
+            vTc = v0.T.index_select(1, idx)                                  # (v0.T: (n², N) contiguous)
+        wc = rt.cosine_visibility_zyz(vTc, nTc, ordered=True)
         ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
         bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
         cspans = list(zip(bounds[:-1], bounds[1:]))                         # each region's front columns
         tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
-        radT = torch.zeros(int(vT.shape[1]), 3, dtype=wc.dtype, device=dev)
+        radT = torch.zeros(N, 3, dtype=wc.dtype, device=dev)
         radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
-        front = torch.zeros(int(vT.shape[1]), dtype=torch.bool, device=dev).index_fill_(0, idx, True)
-        counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+        counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
 
     @staticmethod
@@ -975,7 +999,7 @@ class ZHShadow(Method):
         return {"linear_model_X": tensor_bytes(self.model.X),
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
-                "pose_visibility_sh": 0 if self._posed is None else tensor_bytes(self._posed[2]),
+                "pose_visibility_sh": 0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs),
                 "vertex_table": 0 if self._vtable is None else tensor_bytes(self._vtable[2]),
                 "resolve_matrix": 0 if self._resolve_matrix is None or self._resolve_matrix[2] is None
@@ -1117,14 +1141,21 @@ def _warm_front(_row: Tensor, m: "ZHShadow", *args) -> None:
     m._front_radiance(*args)
 
 
+def _view_directions(frame: Frame, geom, dev) -> Tensor:
+    """(3, N) unit directions from the posed vertices towards the camera (vertex shading)."""
+    cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+    woT = cam[:, None] - rt.rows(geom.V.to(dev).float())
+    return woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+
+
 def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor
                   ) -> "_LazyCounts":
     """The point counts of a vertex-shaded frame for `ZHShadow.frame_cost`: the front-facing vertices
-    (``front``: n·ωo > 0) are its points — a vertex facing away has radiance exactly 0 (the shading's
+    (``front``: n·ωo > 0 (N,) bool, or their ids, ascending int64) are its points — a vertex facing away has radiance exactly 0 (the shading's
     front test), so no work on it is compulsory (session 22: the frames skip their specular transfer;
     counted over all vertices, the count stayed while the work went, inflating the efficiency). Q
     now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read."""
-    idx = front.nonzero().squeeze(-1)
+    idx = front if front.dtype != torch.bool else front.nonzero().squeeze(-1)
     return _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
                                                vertex_normal, vreg), {"Q": int(idx.numel())})
 

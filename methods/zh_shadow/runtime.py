@@ -474,15 +474,15 @@ def _conjugate_tables(order: int, dtype: torch.dtype, device) -> tuple:
     return (perm.to(device), absm.to(device), sgn.to(dtype).to(device)[:, None], *gathered(X), *gathered(X.T))
 
 
-def _angles(cT: Tensor, sT: Tensor, order: int) -> tuple[Tensor, Tensor]:
-    """cos(mφ), sin(mφ) (n, Q), m = 0..n−1, of the per-point angles with cos φ = cT, sin φ = sT (Q,)
-    (the Chebyshev recurrence of the angle sums)."""
+def _angle_rows(cT: Tensor, sT: Tensor, order: int) -> tuple[list[Tensor], list[Tensor]]:
+    """cos(mφ), sin(mφ) (n × (Q,) each), m = 0..n−1, of the per-point angles with cos φ = cT,
+    sin φ = sT (Q,) (the Chebyshev recurrence of the angle sums)."""
     cs, ss = [torch.ones_like(cT), cT], [torch.zeros_like(sT), sT]
     for _ in range(2, order):
         c, s = cs[-1], ss[-1]
         cs.append(c * cT - s * sT)
         ss.append(s * cT + c * sT)
-    return torch.stack(cs[:order]), torch.stack(ss[:order])
+    return cs[:order], ss[:order]
 
 
 # (gather indices in range by construction — `_conjugate_tables` — so no per-load bounds check:
@@ -493,7 +493,7 @@ _NO_ASSERT = {"assert_indirect_indexing": False}
 @functools.partial(fused, options=_NO_ASSERT)
 def _rz(aT: Tensor, C: Tensor, S: Tensor, perm: Tensor, absm: Tensor, sgn: Tensor) -> Tensor:
     """M(R_z(±angle)) a per point (a (n², Q)): a·cos(|m|φ) + a[(l, −m)]·sgn·sin(|m|φ) (C, S (n, Q)
-    the cos/sin of `_angles`, sgn (n², 1) carrying the sign of the rotation), one compiled pass."""
+    the cos/sin of `_angle_rows`, sgn (n², 1) carrying the sign of the rotation), one compiled pass."""
     return aT * C.index_select(0, absm) + aT.index_select(0, perm) * (S.index_select(0, absm) * sgn)
 
 
@@ -566,15 +566,17 @@ def _polar(nT: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 def _zyz_angle_tables(nT: Tensor, order: int) -> Tensor:
     """(4, n, Q) the tables of `_zyz_angles` stacked, one compiled pass (eager, `_polar` and the two
     Chebyshev recurrences were ~40 small ops: 0.88 ms per call at 13.4 K points, 0.31 ms
-    compiled, 1 thread)."""
+    compiled, 1 thread). One stack of the 4n rows: stacks of stacks made Inductor write each table
+    twice (its four (n, Q) stacks, then their copy into the result; 0.23 → 0.16 ms at 8.3 K
+    points, 1 thread, bit-identical)."""
     z, rho, cp, sp = _polar(nT)
-    Cp, Sp = _angles(cp, sp, order)
-    Ct, St = _angles(z, rho, order)
-    return torch.stack([Cp, Sp, Ct, St])
+    Cp, Sp = _angle_rows(cp, sp, order)
+    Ct, St = _angle_rows(z, rho, order)
+    return torch.stack(Cp + Sp + Ct + St).view(4, order, -1)
 
 
 def _zyz_angles(nT: Tensor, order: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """cos/sin (n, Q) of m·φ and m·θ (`_angles`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
+    """cos/sin (n, Q) of m·φ and m·θ (`_angle_rows`), n = (sin θ cos φ, sin θ sin φ, cos θ) the unit
     directions nT (3, Q) (φ = 0 on the pole: the operators conjugated are zonal), the point count
     marked dynamic (one compiled kernel for every count)."""
     nT = nT.contiguous()
@@ -1406,7 +1408,7 @@ def _band_norms(order: int) -> tuple[float, ...]:
 
 
 def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
-                     frame: str = "world", rows: Tensor | None = None) -> Tensor:
+                     frame: str = "world", rows: Tensor | None = None, cols: Tensor | None = None) -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
     ``point_minor`` — : §4.3 step 1 (the linear model [pose, 1] · X, one matrix-vector product: the
     frame's compulsory read of X), then per vertex the lobe axes from their chart
@@ -1423,6 +1425,11 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
         rows: (n²,) int64 or None: the coefficients in this order (result row / column i is
             coefficient rows[i]) — `zyz_rows`, the order `cosine_visibility_zyz(ordered=True)`
             reads them in, made by the compiled pass itself instead of a gather of the result.
+        cols: (N',) int64 or None: those vertices alone (result column / row j is vertex cols[j]):
+            the product over every vertex (X streamed once), then its columns and the normals
+            gathered — c·(2+n) + 3 floats per vertex instead of the result's n² — and eq. 1 for
+            them alone (a P frame's front-facing vertices, `ZHShadow._front_radiance`). The same
+            numbers as those columns of the whole (each vertex's are its own).
     """
     if frame not in ("world", "zyz"):
         raise ValueError(f"frame must be 'world' or 'zyz', got {frame!r}")
@@ -1444,6 +1451,9 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
         else:
             pT = (a[None] @ X.reshape(J1, N * d)).view(N, d).T.contiguous()
     nT = normal.T.contiguous()
+    if cols is not None:
+        pT, nT = pT.index_select(1, cols), nT.index_select(1, cols)
+        N = int(cols.shape[0])
     lam = _band_norms(n)
     perm = None if rows is None else tuple(int(i) for i in rows.tolist())
     if perm is not None and sorted(perm) != list(range(n * n)):

@@ -327,6 +327,26 @@ def test_world_visibility_compiled_equals_eager(order, kw):
         assert err_got <= VIS_COMPILED_FACTOR * max(err_want, floor), (order, N, err_got, err_want)
 
 
+def test_world_visibility_cols_equal_columns_of_all():
+    """`runtime.world_visibility` with ``cols`` (a P frame's front-facing vertices,
+    `ZHShadow._front_radiance`) = those columns (rows) of the visibility of every vertex, bit for bit
+    when both run eagerly (each vertex's numbers are its own: the product over every vertex, then a
+    gather), for both layouts and the ZYZ frame; a permuted, repeated selection too."""
+    g = torch.Generator().manual_seed(8)
+    for order, N in ((4, 700), (8, 300)):
+        c = 2
+        X = rt.point_minor_model(torch.randn(5, N, c * (2 + order), generator=g) * 0.15)
+        pose = torch.randn(4, generator=g)
+        nrm = torch.randn(N, 3, generator=g)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        cols = torch.cat([torch.randperm(N, generator=g)[:N // 3], torch.tensor([0, N - 1, 0])])
+        for kw in ({}, {"point_minor": True}, {"point_minor": True, "frame": "zyz", "rows": rt.zyz_rows(order)}):
+            full = rt.world_visibility(X, pose, nrm, c, **kw)
+            got = rt.world_visibility(X, pose, nrm, c, cols=cols, **kw)
+            want = full.index_select(1 if kw.get("point_minor") else 0, cols)
+            assert got.shape == want.shape and torch.equal(got, want), (order, kw)
+
+
 # The compiled float32 `_vertex_sh` is as accurate as the eager float32 one, against float64
 # (Inductor contracts the SH polynomials' multiply-adds into FMAs, so the two round differently;
 # measured on a host without AVX-512: ratios 0.87–1.0 at order 8, 0.96–1.0 at order 4)
@@ -818,6 +838,7 @@ def test_pose_frame_front_only_radiance_equals_all_vertices(zh_scene):
         a = fast.render(f, gb)
         if i > 0:
             assert fast._vertex_diffuse is None and fast._vertex_transfer is None   # the front-only branch ran
+            assert fast._posed[2] is None   # its visibility made for the front-facing vertices alone
         b = full.render(dataclasses.replace(f, changed=frozenset(f.changed | {"view"})), gb)
         assert full._vertex_diffuse is not None
         assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
