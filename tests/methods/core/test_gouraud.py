@@ -58,6 +58,23 @@ def test_resolve_checks_the_sample_count():
         gouraud.resolve(values, F.T.contiguous(), gb.face, gb.bary, gb.hit, 5, 6, 2)
 
 
+def test_resolve_checks_the_index_ranges():
+    """The compiled kernel's loads are unchecked (`gouraud._NO_ASSERT`): a G-buffer face past the
+    corner table, a corner row past the values, or a face below −1 is a ValueError, not a read out
+    of bounds."""
+    values, F, gb = _case(5, 7, 2)
+    fv = F.T.contiguous().to(torch.int32)
+    gouraud.resolve(values, fv, gb.face, gb.bary, gb.hit, 5, 7, 2)           # in range: fine
+    with pytest.raises(ValueError, match="another mesh"):
+        gouraud.resolve(values, fv[:, :10], gb.face, gb.bary, gb.hit, 5, 7, 2)  # faces up to 79, 10 in the table
+    with pytest.raises(ValueError, match="another mesh"):
+        gouraud.resolve(values[:3], fv, gb.face, gb.bary, gb.hit, 5, 7, 2)     # rows up to 49, 3 values
+    bad = gb.face.clone()
+    bad[-1] = -2
+    with pytest.raises(ValueError, match="another mesh"):
+        gouraud.resolve(values, fv, bad, gb.bary, gb.hit, 5, 7, 2)
+
+
 @pytest.mark.parametrize("S", [1, 2, 3])
 def test_resolve_matrix_equals_resolve(S):
     """`resolve_matrix` @ values is the image of `resolve` (to float32 round-off: a pixel's weights
