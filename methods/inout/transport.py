@@ -124,7 +124,7 @@ from torch import Tensor
 
 from methods.core import cubemap
 from methods.core.frames import frame_matrix
-from methods.core.threads import torch_threads
+from methods.core.stable import canonical_svd
 from methods.core.visibility import DEFAULT_OFFSET_EPS, offset_origins
 
 # The materials return 0 for z <= 0; look-up-table nodes on the horizon are evaluated this far
@@ -255,11 +255,12 @@ def factorize(material: Any, n: int, K: int | None, *, norm: str = "brdf",
     a, b = norm_weights(d, norm)
     N = d.shape[0]
     A = A * a.repeat(3)[:, None] * b[None, :]
-    # One LAPACK thread: the singular vectors of (near-)equal singular values depend on the
-    # reduction order, i.e. on the thread count; a fixed order makes every result of the method
-    # independent of the threads it runs with (issue 17: local vs process-pool runs must agree).
-    with torch_threads(1):
-        U, S, Vh = torch.linalg.svd(A, full_matrices=False)
+    # The singular vectors of (near-)equal singular values depend on the reduction order, i.e. on
+    # the thread count (issue 17: local vs process-pool runs must agree) and on the machine's
+    # instruction set (the same code read 1e-3 different RMSEs with torch's and MKL's vector kernels
+    # off); `canonical_svd` runs one LAPACK thread and fixes each cluster's basis from its space
+    # (methods.core.stable), so the per-term transport truncation sees the same factors everywhere.
+    U, S, Vh = canonical_svd(A)
     if not S[0] > 0:
         raise ValueError(f"the BRDF {material!r} is zero on the hemisphere grid")
     rank = int((S > RANK_RTOL * S[0]).sum())

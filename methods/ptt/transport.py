@@ -70,6 +70,7 @@ from methods.core import cubemap
 from methods.core import sh as _sh
 from methods.core.frames import to_local
 from methods.core.sampling import fibonacci_hemisphere
+from methods.core.stable import canonical_svd, keep_largest
 from methods.core.threads import torch_threads
 from methods.core.visibility import Visibility, vertex_visibility
 
@@ -407,10 +408,11 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
     a = (w.sqrt() * d[:, 2] ** cos_power).repeat(P)  # row weights √dωo cos^γ θo
     c = w.sqrt() * d[:, 2] ** cos_power              # column weights √dωi cos^γ θi
     A = a[:, None] * M * c[None, :]
-    # one LAPACK thread: the singular vectors of the equal singular-value pairs of isotropic lobes
-    # (cos mφ, sin mφ) depend on the thread count otherwise (methods.core.threads)
-    with torch_threads(1):
-        U, S, _ = torch.linalg.svd(A, full_matrices=False)
+    # the singular vectors of the equal singular-value pairs of isotropic lobes (cos mφ, sin mφ)
+    # are any basis of their pair's plane, chosen by round-off (thread count and the machine's
+    # instruction set); the per-k Haar truncation of the transport (n_L per k) depends on which:
+    # `canonical_svd` makes the vectors a function of the pair's plane (methods.core.stable)
+    U, S, _ = canonical_svd(A)
     K = min(n_wi, int((S > S[0] * 1e-10).sum()))
     U, S_k = U[:, :K], S[:K]
     captured = float((S_k.square().sum() / S.square().sum()).item())
@@ -430,8 +432,7 @@ def factor_basis(basis: BRDFBasis, *, n_wi: int = 16, grid: int = 24, table: int
     W_tab = torch.einsum("tip,i,ki->pkt", Bt, c * c, U_grid).reshape(P * K, T, T)
     if n_wo is not None and n_wo < P * K:  # Sun eq. 2: rank-n_ωo view mode (docstring)
         Wg = (U * S_k / a[:, None]).reshape(P, D, K).permute(1, 0, 2).reshape(D, P * K)  # W on the grid
-        with torch_threads(1):  # as above
-            _, _, Vh = torch.linalg.svd(Wg * (w.sqrt() * d[:, 2] ** cos_power)[:, None], full_matrices=False)
+        _, _, Vh = canonical_svd(Wg * (w.sqrt() * d[:, 2] ** cos_power)[:, None])  # as above
         Q = Vh[:n_wo].T  # (P·K, n_ωo): D(p, k, j)
         W_tab = (Q @ (Q.T @ W_tab.reshape(P * K, T * T))).reshape(P * K, T, T)
     return BasisFactors(U_tab.to(dtype), W_tab.to(dtype), S_k.to(dtype), captured, P)
@@ -592,7 +593,8 @@ def direct_transport(vis: Visibility, V: Tensor, normals: Tensor, factors: Basis
         Uc = factors.Ucos(loc)  # (c, T, K) U^{ωi}(ω_local, k)(ω·n_x)
         t = Uc * (vb.float() * omega)[..., None]  # ∫_texel T̃⁰ dω
         coef = cubemap.haar_forward(t.permute(0, 2, 1).reshape(b - a, K, 6, N, N)).reshape(b - a, K, -1)
-        i, v = cubemap.keep_largest(coef, n_keep, weights=wts)
+        # the n_L largest, ties (equal by symmetry) decided the same on every machine (methods.core.stable)
+        i, v = keep_largest(coef, n_keep, weights=wts)
         idx[a:b], val[a:b] = i, v
         if coarse:
             crs[a:b] = coef[..., bidx]
