@@ -140,28 +140,14 @@ def test_vertex_budget_beats_per_term_budget_at_equal_bytes(sphere_plane_direct)
     assert n_neg["vertex"] <= n_neg["term"] // 2, n_neg
 
 
-def test_factors_do_not_depend_on_lapacks_basis_of_equal_singular_values(monkeypatch):
+def test_factors_do_not_depend_on_lapacks_basis_of_equal_singular_values(request):
     """An isotropic BRDF's equal singular-value pairs come back from LAPACK in a basis its round-off
     picks (machine, threads); the per-term transport truncation depends on the individual factors,
     so `factorize` must return a function of the pairs' planes (`methods.core.stable`). LAPACK is made
     to return every cluster in a random other basis; g and h must not move."""
-    from methods.core import stable as csvd
-
     m = Phong(kd=0.1, ks=0.6, s=20.0)
     ref = tp.factorize(m, 16, 12)
-    real_svd = torch.linalg.svd
-    gen = torch.Generator().manual_seed(3)
-    sizes = []
-
-    def other_basis_svd(A, full_matrices=True, **kw):
-        U, S, Vh = real_svd(A, full_matrices=full_matrices, **kw)
-        for a, b in csvd.svd_clusters(S):
-            O = torch.linalg.qr(torch.randn(b - a, b - a, generator=gen, dtype=U.dtype))[0]
-            U[:, a:b], Vh[a:b] = U[:, a:b] @ O, O.T @ Vh[a:b]
-            sizes.append(b - a)
-        return U, S, Vh
-
-    monkeypatch.setattr(torch.linalg, "svd", other_basis_svd)
+    sizes = request.getfixturevalue("lapack_other_basis")  # from here on, LAPACK's other basis
     got = tp.factorize(m, 16, 12)
     assert max(sizes) >= 2
     for a, b in ((ref.g, got.g), (ref.h, got.h)):

@@ -200,29 +200,15 @@ def test_env_cube_shares_and_pools_the_resampling():
     assert torch.equal(tp.env_cube(env, 8, 2, other), want)
 
 
-def test_factors_do_not_depend_on_lapacks_basis_of_equal_singular_values(basis, monkeypatch):
+def test_factors_do_not_depend_on_lapacks_basis_of_equal_singular_values(basis, request):
     """An isotropic BRDF's SVD has equal pairs (cos mφ, sin mφ) whose vectors LAPACK returns in a
     basis its round-off picks (another machine's instruction set, another thread count), and the
     transport keeps the n_L largest Haar coefficients of each factor k separately: the factors must
     be a function of the pairs' planes (`methods.core.stable`). Here LAPACK is made to return every
     cluster in a random other basis with random signs; U^{ωi} and W must not move. (Before: PTT's
     bench creature read V RMSE 0.100 on one machine and 0.091 on another.)"""
-    from methods.core import stable as csvd
-
     ref = tp.factor_basis(basis, n_wi=8, grid=16, table=32, n_wo=6)
-    real_svd = torch.linalg.svd
-    g = torch.Generator().manual_seed(5)
-    rotated = []
-
-    def other_basis_svd(A, full_matrices=True, **kw):
-        U, S, Vh = real_svd(A, full_matrices=full_matrices, **kw)
-        for a, b in csvd.svd_clusters(S):
-            O = torch.linalg.qr(torch.randn(b - a, b - a, generator=g, dtype=U.dtype))[0]
-            U[:, a:b], Vh[a:b] = U[:, a:b] @ O, O.T @ Vh[a:b]
-            rotated.append(b - a)
-        return U, S, Vh
-
-    monkeypatch.setattr(torch.linalg, "svd", other_basis_svd)
+    rotated = request.getfixturevalue("lapack_other_basis")  # from here on, LAPACK's other basis
     got = tp.factor_basis(basis, n_wi=8, grid=16, table=32, n_wo=6)
     assert max(rotated) >= 2  # the basis has equal pairs inside the kept factors
     for a, b in ((ref.U_tab, got.U_tab), (ref.W_tab, got.W_tab)):
