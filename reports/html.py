@@ -173,6 +173,21 @@ def contention_text(df: pd.DataFrame) -> str | None:
                "with the history)" if over else f"none above {CONTENTION_MAX:g}"))
 
 
+def cell_limits_text(df: pd.DataFrame) -> str | None:
+    """The spread of the limits measured after each timed cell's frames (``host_triad_bandwidth``,
+    ``host_matmul_peak``): min, median, max over the cells, or None when no cell has them."""
+    parts = []
+    for metric, scale, unit in (("host_triad_bandwidth", 1e9, "GB/s"), ("host_matmul_peak", 1e9, "GFLOP/s")):
+        v = df[(df["metric"] == metric) & (df["frame"] == -1)]["value"].to_numpy(dtype=float)
+        v = v[np.isfinite(v)] / scale
+        if len(v):
+            parts.append(f"{v.min():.1f} / {np.median(v):.1f} / {v.max():.1f} {unit}")
+    if not parts:
+        return None
+    n = int(((df["metric"] == "host_triad_bandwidth") & (df["frame"] == -1)).sum())
+    return f"min / median / max over {n} cells: " + ", ".join(parts)
+
+
 def summary_table(df: pd.DataFrame) -> str:
     ok = df[df["status"].isin(MEASURED)]
     if len(ok) == 0:
@@ -659,11 +674,12 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
     if isinstance(peak, (int, float)) and math.isfinite(peak):
         facts["dense-matmul peak"] = f"{peak / 1e9:.1f} GFLOP/s"
     samples = meta.get("limit_samples") or []
-    if len(samples) > 1:
-        facts["machine limits"] = (f"best of {len(samples)} measurements (" + "; ".join(
+    host = cell_limits_text(df)
+    if len(samples) > 1 or host:
+        facts["machine limits"] = (f"best of {len(samples)} run measurements (" + "; ".join(
             f"{s.get('when') or '?'}: {s['triad_bandwidth'] / 1e9:.1f} GB/s, {s['matmul_peak'] / 1e9:.0f} GFLOP/s"
-            for s in samples) + "); the roofline uses the best, so a load that slowed one of them does not "
-                                  "inflate the efficiencies")
+            for s in samples) + ")" + (f" and one after each timed cell's frames ({host})" if host else "")
+            + "; the roofline uses the best, so a load that slowed one of them does not inflate the efficiencies")
     n_ok, n_na, n_err, n_sus = (int((df.drop_duplicates('cell')["status"] == s).sum())
                                 for s in ("ok", "na", "error", "suspect"))
     facts["cells"] = f"{n_ok} ok, {n_sus} suspect, {n_na} n/a, {n_err} failed"

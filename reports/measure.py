@@ -115,6 +115,16 @@ def matmul_peak(n: int = 1024, *, repeats: int = 5, dtype=torch.float32, device=
     return 2.0 * n**3 / max(best, 1e-12)
 
 
+TRIAD_ELEMENTS = 1 << 24  # 64 MiB per float32 array: far beyond the caches of this machine kind
+
+
+def machine_limits(bandwidth_elements: int = TRIAD_ELEMENTS) -> dict[str, float]:
+    """One measurement of both machine limits: ``triad_bandwidth`` (B/s) and ``matmul_peak``
+    (FLOP/s; a 1024² sgemm, 256² when ``bandwidth_elements`` is below `TRIAD_ELEMENTS`: tests)."""
+    return {"triad_bandwidth": triad_bandwidth(bandwidth_elements),
+            "matmul_peak": matmul_peak(256 if bandwidth_elements < TRIAD_ELEMENTS else 1024)}
+
+
 def roofline(cost_bytes: float | None, cost_flops: float | None, bandwidth: float, peak_flops: float,
              frame_time: float) -> tuple[float, str] | None:
     """(efficiency, bound): max(bytes / bandwidth, flops / peak) / frame time and which term is the

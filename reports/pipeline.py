@@ -34,7 +34,7 @@ from reports.html import wall_time_text
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
 
-TRIAD_ELEMENTS = 1 << 24  # 64 MiB per float32 array: far beyond the caches of this machine kind
+TRIAD_ELEMENTS = measure.TRIAD_ELEMENTS
 
 
 @dataclass
@@ -87,8 +87,7 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
 
 def measure_limits(bandwidth_elements: int = TRIAD_ELEMENTS, when: str = "") -> dict:
     """One measurement of both machine limits (triad bandwidth in B/s, dense-matmul peak in FLOP/s)."""
-    return {"when": when, "triad_bandwidth": measure.triad_bandwidth(bandwidth_elements),
-            "matmul_peak": measure.matmul_peak(256 if bandwidth_elements < TRIAD_ELEMENTS else 1024)}
+    return {"when": when, **measure.machine_limits(bandwidth_elements)}
 
 
 def with_limits(meta: dict, sample: dict) -> dict:
@@ -152,13 +151,42 @@ def read_run_json(out_dir: str | os.PathLike) -> dict | None:
     return _read_run_json(Path(out_dir) / "run.json")[0]
 
 
+def cell_limits(results: list[CellResult]) -> dict[str, list[float]]:
+    """The limits each measured cell found right after its timed frames (``host_triad_bandwidth``,
+    ``host_matmul_peak``: `reports.measure_cell.cell_limits`), finite values only, in cell order."""
+    out: dict[str, list[float]] = {"triad_bandwidth": [], "matmul_peak": []}
+    for r in results:
+        if r.status not in MEASURED:
+            continue
+        for row in r.rows:
+            k = {"host_triad_bandwidth": "triad_bandwidth", "host_matmul_peak": "matmul_peak"}.get(row["metric"])
+            if k is not None and row["frame"] == -1 and math.isfinite(float(row["value"])):
+                out[k].append(float(row["value"]))
+    return out
+
+
+def run_limits(results: list[CellResult], meta: dict) -> tuple[float, float]:
+    """(triad bandwidth, matmul peak) the run's roofline divides by: the best of the run's own
+    measurements (``meta``, `with_limits`) and the cells' (`cell_limits`). The best, not a typical
+    value: the roof is what the machine can do, and a reading taken while the host was slowed would
+    inflate every efficiency."""
+    per_cell = cell_limits(results)
+    bw = max([float(meta["triad_bandwidth"])] + per_cell["triad_bandwidth"],
+             key=lambda v: v if math.isfinite(v) else -math.inf)
+    pk = max([float(meta.get("matmul_peak", float("nan")))] + per_cell["matmul_peak"],
+             key=lambda v: v if math.isfinite(v) else -math.inf)
+    return bw, pk
+
+
 def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
     """Cell results + run facts → the run's long table (``store.COLUMNS``), with the roofline
-    efficiency computed from the run's bandwidth, and one ``status="run"`` row for the bandwidth."""
+    efficiency computed from the run's limits (`run_limits`), and one ``status="run"`` row for the
+    bandwidth."""
     base = {"run_id": meta["run_id"], "time": meta["time"], "git_sha": meta["git_sha"],
             "versions": json.dumps(meta["versions"], sort_keys=True), "machine": meta["machine"]}
+    bandwidth, peak = run_limits(results, meta)
     rows = [{**base, "threads": meta["threads"], "scene": "", "size": "", "sequence": "", "frame": -1, "method": "",
-             "config": "", "bounces": -1, "metric": "triad_bandwidth", "value": meta["triad_bandwidth"], "unit": "B/s",
+             "config": "", "bounces": -1, "metric": "triad_bandwidth", "value": bandwidth, "unit": "B/s",
              "noise_floor": float("nan"), "status": "run", "reason": "", "cell": ""}]
     for r in results:
         c = Cell.from_dict(r.cell)
@@ -172,8 +200,8 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
         vals = {row["metric"]: row["value"] for row in r.rows if row["frame"] == -1}
         rows += [{**ident, **row} for row in r.rows]
         # roofline: max(bytes / bandwidth, flops / peak) / frame time, and which bound applies
-        roof = measure.roofline(vals.get("bytes_per_frame"), vals.get("flops_per_frame"), meta["triad_bandwidth"],
-                                meta.get("matmul_peak", float("nan")), vals.get("render_time_median", float("nan")))
+        roof = measure.roofline(vals.get("bytes_per_frame"), vals.get("flops_per_frame"), bandwidth, peak,
+                                vals.get("render_time_median", float("nan")))
         if roof is not None:
             rows.append({**ident, "frame": -1, "metric": "roofline_efficiency", "value": roof[0], "unit": "1",
                          "noise_floor": float("nan")})
@@ -360,7 +388,9 @@ def finish_run(out_dir: Path, results: list[CellResult], meta: dict, *, history=
     if report:
         from reports.html import build_report
 
-        rep = build_report(df, out_dir / "report.html", run_dir=out_dir, meta={**meta, "provenance": prov},
+        bw, pk = run_limits(results, meta)  # what `collect` divided by
+        rep = build_report(df, out_dir / "report.html", run_dir=out_dir,
+                           meta={**meta, "triad_bandwidth": bw, "matmul_peak": pk, "provenance": prov},
                            changes=changes, prev_run=prev_id,
                            vertex_renders=vertex_renders)
     st = df.drop_duplicates("cell")

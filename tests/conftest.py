@@ -7,7 +7,9 @@ oversubscription (measured: a materials test file took 95 s with default threadi
 The harness's warm-up frame does not compile neighbouring block sizes in tests
 (``PRTBENCH_WARM=0``, ``reports.measure_cell.warm_up_compiles``): tests assert values, never
 timings, and those compilations only keep later *timed* frames from compiling. Tests of warming
-call ``methods.core.fused.warming`` themselves or set the variable back.
+call ``methods.core.fused.warming`` themselves or set the variable back. Nor does each timed cell
+measure the machine's limits (``PRTBENCH_CELL_LIMITS=0``, ``reports.measure_cell.cell_limits``:
+~0.2 s per cell); ``tests/reports/test_machine_limits.py`` turns it on.
 """
 import os
 
@@ -15,6 +17,7 @@ import pytest
 import torch
 
 os.environ.setdefault("PRTBENCH_WARM", "0")
+os.environ.setdefault("PRTBENCH_CELL_LIMITS", "0")
 
 torch.set_num_threads(1)
 

@@ -63,3 +63,63 @@ def test_roofline_rows_use_the_best_limits(tmp_path, limits):
     bw = df[df.metric == "triad_bandwidth"].value.iloc[0]
     assert bw == 30e9
     json.dumps(meta)  # run.json stays plain JSON
+
+
+def _cell_result(key_kind: str, host_bw: float | None, host_pk: float | None, status: str = "ok"):
+    cell = Cell(scene="s", size="test", kind=key_kind, method="m", config="{}", bounces=0)
+    rows = [{"frame": -1, "metric": "bytes_per_frame", "value": 3e7, "unit": "B", "noise_floor": float("nan")},
+            {"frame": -1, "metric": "flops_per_frame", "value": 1e6, "unit": "flop", "noise_floor": float("nan")},
+            {"frame": -1, "metric": "render_time_median", "value": 0.01, "unit": "s", "noise_floor": float("nan")}]
+    if host_bw is not None:
+        rows.append({"frame": -1, "metric": "host_triad_bandwidth", "value": host_bw, "unit": "B/s",
+                     "noise_floor": float("nan")})
+    if host_pk is not None:
+        rows.append({"frame": -1, "metric": "host_matmul_peak", "value": host_pk, "unit": "flop/s",
+                     "noise_floor": float("nan")})
+    return CellResult(key=cell.key(), cell=cell.to_dict(), status=status, rows=rows)
+
+
+def test_roof_is_the_best_of_run_and_cell_measurements(tmp_path, limits):
+    meta = pipeline.run_meta(tmp_path, "smoke", bandwidth_elements=1 << 10)  # 10 GB/s, 100 GFLOP/s
+    results = [_cell_result("V", 25e9, 40e9), _cell_result("L", float("nan"), 300e9),
+               _cell_result("E", 1e12, 1e15, status="error"),  # a failed cell's numbers are not used
+               _cell_result("VB", None, None)]  # a cell measured before per-cell limits existed
+    assert pipeline.run_limits(results, meta) == (25e9, 300e9)
+    df = pipeline.collect(results, meta)
+    assert df[df.metric == "triad_bandwidth"].value.iloc[0] == 25e9
+    eff = df[(df.metric == "roofline_efficiency") & (df.sequence == "VB")].value.iloc[0]
+    assert eff == pytest.approx(3e7 / 25e9 / 0.01)  # every cell divides by the run's best, not its own
+    # without any cell measurement the run's own measurements decide, as before
+    assert pipeline.run_limits([_cell_result("V", None, None)], meta) == (10e9, 100e9)
+
+
+def test_each_timed_cell_measures_the_limits(tmp_path, monkeypatch):
+    from reports import measure_cell as MC
+    from reports import cells as C
+
+    calls = []
+    monkeypatch.setattr(measure, "triad_bandwidth", lambda *a, **k: calls.append("bw") or 42e9)
+    monkeypatch.setattr(measure, "matmul_peak", lambda *a, **k: calls.append("pk") or 77e9)
+    cell = C.Cell(scene="fake_plane", size="test", kind="V", method="fake", n_frames=3, ref_spp=16, spp_side=1,
+                  backend="testing.fakes", plugins=("testing.fakes",))
+    monkeypatch.setenv("PRTBENCH_CELL_LIMITS", "1")
+    r = MC.run_cell(cell, tmp_path / "on", progress=False)
+    summ = {row["metric"]: row["value"] for row in r.rows if row["frame"] == -1}
+    assert (summ["host_triad_bandwidth"], summ["host_matmul_peak"]) == (42e9, 77e9) and calls == ["bw", "pk"]
+    monkeypatch.setenv("PRTBENCH_CELL_LIMITS", "0")  # the test session's setting
+    r = MC.run_cell(cell, tmp_path / "off", progress=False)
+    assert not any(row["metric"].startswith("host_") for row in r.rows) and calls == ["bw", "pk"]
+    monkeypatch.setenv("PRTBENCH_CELL_LIMITS", "yes")
+    with pytest.raises(ValueError, match="PRTBENCH_CELL_LIMITS"):
+        MC.cell_limits()
+
+
+def test_report_header_gives_the_cells_spread(tmp_path, limits):
+    from reports.html import cell_limits_text
+
+    meta = pipeline.run_meta(tmp_path, "smoke", bandwidth_elements=1 << 10)
+    df = pipeline.collect([_cell_result("V", 20e9, 40e9), _cell_result("L", 30e9, 50e9),
+                           _cell_result("E", 40e9, 60e9)], meta)
+    assert cell_limits_text(df) == ("min / median / max over 3 cells: 20.0 / 30.0 / 40.0 GB/s, "
+                                    "40.0 / 50.0 / 60.0 GFLOP/s")
+    assert cell_limits_text(pipeline.collect([_cell_result("V", None, None)], meta)) is None
