@@ -122,7 +122,7 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     out = run_pix()
     res["view: glossy select"] = {"ms": ms(lambda: out[1].view(-1).nonzero())}
     g = out[1].view(-1).nonzero().squeeze(-1)
-    args = (face, bary, normal, wo, reg, m._ef, m._fg, m._lg3, kd, ks, G, vcos)
+    args = (face, bary, normal, wo, reg, m._ef, m._fg, m._glossy_light(), kd, ks, G, vcos)
     t_g = ms(lambda: shm._glossy_blocks(g, args))
     f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
     res["view: glossy samples"] = {"ms": t_g, "samples": float(g.numel()), "ns/sample": 1e6 * t_g / max(1, g.numel()),

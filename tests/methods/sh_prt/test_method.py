@@ -472,3 +472,48 @@ def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
         assert got.shape == (sel.numel(), 3)
         assert torch.equal(got, want[torch.searchsorted(g, sel)])
     assert counters["stats"]["unique_graphs"] == graphs
+
+
+@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
+def test_lighting_only_frames_shade_from_the_relight_cache(scene_name):
+    """Lighting-only frames (``changed`` ⊆ {"light"}, same camera, materials and G-buffer size as
+    the previous render; L and E sequences) shade the glossy samples from the relight cache
+    (`SHPRT._relight_build`, built by the first such frame; M l and the glossy pass skipped) and
+    still equal `render_reference` (the per-chunk eager `_shade`) to float32 round-off, and a frame
+    whose camera or materials changed does not use it (even when its flags claim "light" only)."""
+    import dataclasses
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=4, bounces=0, rays=16)
+    m.precompute(scene)
+    assert m.glossy_regions.any()
+    ref = SHPRT.__new__(SHPRT)
+    ref.__dict__ = dict(m.__dict__)
+    ref._reset_cache()
+
+    def check(frame, gb):
+        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
+        assert (img - want).abs().max().item() <= 1e-5 * max(want.abs().max().item(), 1e-6)
+        return img
+
+    for kind in ("L", "E"):
+        m._reset_cache()
+        frames = make_sequence(scene, kind, n_frames=4, seed=2)
+        for f in frames:
+            check(f, make_gbuffer(scene, f, 1))
+        assert m.stats["relight_build"] == 1 and m.stats["relight"] == 2
+        assert m.stats["glossy_light"] == 1                    # M l on frame 0 only
+        assert m.memory()["relight_cache"] > 0
+    last = frames[-1]
+    # other materials or another camera under a "light"-only flag: not the cached samples
+    mats = {r: (dataclasses.replace(mt, ks=tuple(0.5 * k for k in mt.ks)) if hasattr(mt, "ks") else mt)
+            for r, mt in last.materials.items()}
+    other = make_sequence(scene, "V", n_frames=2, seed=3)[1]
+    for f in (dataclasses.replace(last, materials=mats), dataclasses.replace(last, camera=other.camera)):
+        f = dataclasses.replace(f, changed=frozenset({"light"}))
+        check(f, make_gbuffer(scene, f, 1))
+        assert m.stats["relight"] == 2 and m._relight is None
+    # a lighting-only frame after it builds again
+    f = dataclasses.replace(frames[1], camera=other.camera, changed=frozenset({"light"}))
+    check(f, make_gbuffer(scene, f, 1))
+    assert m.stats["relight_build"] == 2
