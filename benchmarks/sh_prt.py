@@ -120,8 +120,9 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
                                      "triad GB/s": B / 1e9}
     out = run_pix()
-    res["view: glossy select"] = {"ms": ms(lambda: out[1].view(-1).nonzero())}
-    g = out[1].view(-1).nonzero().squeeze(-1)
+    res["view: glossy select"] = {"ms": ms(lambda: shm._flat_nonzero(out[1].view(-1))),
+                                  "torch nonzero ms": ms(lambda: out[1].view(-1).nonzero())}
+    g = shm._flat_nonzero(out[1].view(-1))
     args = (face, bary, normal, wo, reg, m._ef, m._fg, m._glossy_light(), kd, ks, G, vcos)
     t_g = ms(lambda: shm._glossy_blocks(g, args))
     f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2

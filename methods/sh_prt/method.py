@@ -105,6 +105,7 @@ import functools
 import math
 import time
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -363,6 +364,16 @@ def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
     1.07x (``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code OTHER_CHECKOUT
     --kinds V VL --frames 21 --threads 1``, load 8-10)."""
     return call_rows(_glossy_samples, [g], args)
+
+
+def _flat_nonzero(x: Tensor) -> Tensor:
+    """``x.nonzero().squeeze(-1)`` of a contiguous 1-D bool tensor (int64, ascending). On the CPU
+    numpy's ``flatnonzero`` on a view of the same memory: the glossy flags of a creature bench
+    frame (262144, 14 % set), 1 thread, process CPU: 0.13 ms against 0.63 ms (and 16 ms of
+    process CPU at 2 threads under load: torch's parallel nonzero)."""
+    if x.device.type != "cpu":
+        return x.nonzero().squeeze(-1)
+    return torch.from_numpy(np.flatnonzero(x.numpy()))
 
 
 def _relight_add(img: Tensor, cache: dict, l: Tensor, S2: int) -> None:
@@ -689,7 +700,7 @@ class SHPRT(Method):
             if cache is not None:
                 _relight_add(img, cache, self._light, S2)
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-        g = out[1].view(-1).nonzero().squeeze(-1)                                 # glossy hits, ascending
+        g = _flat_nonzero(out[1].view(-1))                                        # glossy hits, ascending
         if relight:              # the first lighting-only frame: build the cache, shade from it
             cache = self._relight_build(g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2) if g.numel() else None
             self._relight = (state, cache)

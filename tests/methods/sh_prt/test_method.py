@@ -517,3 +517,15 @@ def test_lighting_only_frames_shade_from_the_relight_cache(scene_name):
     f = dataclasses.replace(frames[1], camera=other.camera, changed=frozenset({"light"}))
     check(f, make_gbuffer(scene, f, 1))
     assert m.stats["relight_build"] == 2
+
+
+def test_flat_nonzero_equals_torch_nonzero():
+    """`_flat_nonzero` (numpy's flatnonzero on the CPU: the glossy selection of a frame) = torch's
+    ``nonzero().squeeze(-1)``: the same int64 indices in ascending order, also none and all set."""
+    from methods.sh_prt.method import _flat_nonzero
+
+    g = torch.Generator().manual_seed(0)
+    for x in (torch.rand(100003, generator=g) < 0.14, torch.zeros(7, dtype=torch.bool),
+              torch.ones(9, dtype=torch.bool), torch.rand(4, 64, generator=g)[:, 0] < 0.5):
+        got, want = _flat_nonzero(x), x.nonzero().squeeze(-1)
+        assert got.dtype == torch.int64 and torch.equal(got, want)
