@@ -480,6 +480,7 @@ class SHPRT(Method):
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) rows of l' at each face's corners (gpos[F]; static)
+        self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
         self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
         self._relight = None    # (that state, the lighting-only frame cache: `_relight_build`)
         self._mat = None        # (device and the regions' materials, `_materials`' tensors)
@@ -587,12 +588,23 @@ class SHPRT(Method):
         l = self.lighting(env).to(self.t.device)
         self._light = l
         self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
-        self._e = apply_lighting(self.t, l).T                                     # (V, 3) t · l
+        e3 = apply_lighting(self.t, l).contiguous()                              # (3, V) t · l
+        self._e = e3.T                                                            # (V, 3) view
         self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
-        F = self.F.to(self._e.device).view(-1)
-        self._ef = self._e.contiguous().index_select(0, F).view(-1, 9)            # (M, 9) e at the corners
+        # (M, 9) e at the corners: ONE flat gather of the channel-major e (`_corner_index`), where a row
+        # gather of the (V, 3) copy took 0.50 ms against 0.21 (creature bench, 1 thread, bit-identical)
+        self._ef = e3.view(-1).index_select(0, self._corner_index(e3.device)).view(-1, 9)
         self._key = key
         self.stats["light"] += 1
+
+    def _corner_index(self, device) -> Tensor:
+        """(M·9,) int64 flat indices into the channel-major e (3, V) of each face's corners, corner-major
+        then channel: ``e.view(-1)[idx].view(M, 9)`` = ``e.T[F].view(M, 9)``; kept per device."""
+        if self._fidx is None or self._fidx.device != torch.device(device):
+            F = self.F.to(device)
+            V = int(self.t.shape[0])
+            self._fidx = (F[:, :, None] + V * torch.arange(3, device=device)).reshape(-1)
+        return self._fidx
 
     def _glossy_light(self) -> Tensor:
         """l' = M l (3, Vg, n²) of the current lighting (``self._lg`` its (Vg, n², 3) view), computed
