@@ -81,6 +81,16 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     E 15.46 → 8.09 ms (1.91×), V / VL unchanged (0.99×); max |new − reference| / peak 3.4e-7 / 4.0e-7.
     `frame_cost` still counts t, M and the glossy flops of such a frame as compulsory (it reads ~27
     MB less than counted: 24.2 MB of M and 2.9 MB of l' written and read, against 7.3 MB).
+  * where a frame's time goes (session 24, creature bench, 1 thread, process CPU, `--micro`, load ~5):
+    V 6.7 ms = pixels pass 2.2 + glossy pass 3.4 + ~1.0 outside the kernels (scatter_add of the
+    glossy samples ~0.5-0.8, Dynamo's guards of the two calls ~0.3, the selection 0.12 with numpy's
+    flatnonzero, `_flat_nonzero`, against 0.35-0.63 for torch's nonzero); a lighting frame adds
+    rotation 0.2-0.4, t·l 0.12, the corner table 0.2 (`_corner_index`, 0.3-0.5 as a row gather) and,
+    only when the view or materials changed (VL), M l 2.3 (10.5 GB/s; a plain read of M 0.87 ms);
+    E adds the projection 1.2 ms (a float32 variant of it measured no faster). Same process against
+    session 23's code (`python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code
+    OTHER_CHECKOUT --kinds V L E VL --frames 15 --threads 1`, load ~5): V 1.04×, L 2.40×, E 2.17×,
+    VL 1.02×.
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
