@@ -833,6 +833,15 @@ class SHPRT(Method):
         t and M, rotates the n² cached coefficients (Σ_l 2(2l+1)²·3 flops) and computes e and l'
         (2·3·V·n² + 2·3·Vg·n⁴ flops, written once); a new map ("E") additionally projects it
         (reads its H·W·3 texels, ≈ 2·3·H·W·n flops for the exact separable projection).
+
+        Lighting-only frames ("L", "E": the view and materials of the previous frame) with grey
+        transfer are shaded from the relight cache (`_relight_build`, built once by the first such
+        frame of a view, like ZH's): a glossy sample's radiance is linear in l, so such a frame reads
+        instead of M and l' each glossy sample's two cached n²-vectors (d, Σ_k w_k M_kᵀ q), its kd·ks
+        weights (6 floats) and its pixel (int64), and does per glossy sample the (3, n²) × (n², 2)
+        product (12 n²) and the kd / ks mix (9) instead of the glossy pass and M l; t and e as
+        above. Counting M there would credit the frame with 24 MB (creature bench) it has no need to
+        read (session 24).
         """
         if self.scene is None:
             return None
@@ -850,7 +859,11 @@ class SHPRT(Method):
         nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12) + tensor_bytes(self.F) + e_b + lg_b
         flops = num_samples * 21 + qg * (18 + 3 + 1 + 6) * n2
         light = "L" in frame_kind or "E" in frame_kind
-        if light:
+        if set(frame_kind) <= {"L", "E"} and int(self.t.shape[-1]) == 1:   # the relight cache
+            nbytes += tensor_bytes(self.t) + e_b - lg_b + qg * (2 * n2 * f4 + 6 * f4 + 8)
+            flops += (sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * nv * n2
+                      - qg * (18 + 3 + 1 + 6) * n2 + qg * (12 * n2 + 9))
+        elif light:
             nbytes += tensor_bytes(self.t, self.M) + e_b + lg_b
             flops += sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * (nv * n2 + ng * n2 * n2)
         if "E" in frame_kind:

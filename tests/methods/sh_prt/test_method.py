@@ -115,6 +115,16 @@ def test_with_bounces_sums_the_passes(alcove):
     v, l, e = (m1.frame_cost(k, gb.num_samples) for k in ("V", "L", "E"))
     assert v.bytes < l.bytes < e.bytes and v.flops < l.flops < e.flops
     assert l.bytes - v.bytes >= m1.t.numel() * 4 + m1.M.numel() * 4   # a lighting frame reads t and M
+    # (RGB transfer: no relight cache). With grey transfer a lighting-only frame is shaded from the
+    # relight cache: it reads t, the glossy samples' cached vectors, weights and pixels, not M or l'
+    g0 = m0.frame_cost("L", gb.num_samples)
+    n2, nv, ng = m0.order ** 2, m0.t.shape[0], m0.M.shape[0]
+    qg = int(round(float(m0.glossy_regions[gb.region[gb.hit].cpu()].float().mean()) * gb.num_samples)) \
+        if m0._last_gbuffer is not None else int(round(ng / nv * gb.num_samples))
+    v0 = m0.frame_cost("V", gb.num_samples)
+    assert g0.bytes - v0.bytes == m0.t.numel() * 4 + nv * 12 - ng * n2 * 12 + qg * (8 * n2 + 32)
+    vl0 = m0.frame_cost("VL", gb.num_samples)  # a view change too: no cache, M read
+    assert vl0.bytes - v0.bytes == m0.t.numel() * 4 + m0.M.numel() * 4 + nv * 12 + ng * n2 * 12
 
 
 def test_blinn_phong_lobe_is_the_mapped_phong_lobe():
