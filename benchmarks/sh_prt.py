@@ -106,7 +106,9 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
         nb = X.numel() * X.element_size()
         res[f"light: {name}·l"] = {"ms": t_new, "MB": nb / 1e6, "GB/s": nb / t_new / 1e6, "einsum ms": t_ref,
                                    "stream-read ms": ms(lambda: X.sum()), "triad GB/s": B / 1e9}
-    res["light: corner table"] = {"ms": ms(lambda: m._e.contiguous().index_select(0, m.F.view(-1)).view(-1, 9))}
+    e3 = m._e.T.contiguous()
+    res["light: corner table"] = {"ms": ms(lambda: e3.view(-1).index_select(0, m._corner_index(e3.device)).view(-1, 9)),
+                                  "row gather ms": ms(lambda: m._e.contiguous().index_select(0, m.F.view(-1)).view(-1, 9))}
     S2, n = gb.spp_side ** 2, gb.height * gb.width
     face, bary, hit, normal, wo, reg = gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region
     vecs = [shm._pixel_rows(x, n, S2) for x in (bary, normal, wo)]
@@ -120,9 +122,10 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
                                      "triad GB/s": B / 1e9}
     out = run_pix()
-    res["view: glossy select"] = {"ms": ms(lambda: out[1].view(-1).nonzero())}
-    g = out[1].view(-1).nonzero().squeeze(-1)
-    args = (face, bary, normal, wo, reg, m._ef, m._fg, m._lg3, kd, ks, G, vcos)
+    res["view: glossy select"] = {"ms": ms(lambda: shm._flat_nonzero(out[1].view(-1))),
+                                  "torch nonzero ms": ms(lambda: out[1].view(-1).nonzero())}
+    g = shm._flat_nonzero(out[1].view(-1))
+    args = (face, bary, normal, wo, reg, m._ef, m._fg, m._glossy_light(), kd, ks, G, vcos)
     t_g = ms(lambda: shm._glossy_blocks(g, args))
     f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
     res["view: glossy samples"] = {"ms": t_g, "samples": float(g.numel()), "ns/sample": 1e6 * t_g / max(1, g.numel()),

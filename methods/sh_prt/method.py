@@ -68,6 +68,30 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     (creature bench, load ~9): pixels 2.5 ms (9.5 ns per sample), glossy 5.1 ms (140 ns per glossy
     sample), M l 1.4 ms (17.7 GB/s; a plain streaming sum of M 0.88 ms), projection 1.4 ms.
 
+  * lighting-only frames (session 24; L and E sequences: ``frame.changed`` ⊆ {"light"} and the camera,
+    materials and G-buffer size of the previous render, grey transfer): with the view and the
+    materials fixed a glossy sample's radiance is linear in l, so the first such frame caches per
+    glossy sample its interpolated transfer vector d and its transferred lobe Σ_k w_k M_kᵀ q
+    (q = G y(R), `SHPRT._relight_build`, eager: 112 ms on the creature bench, 1 thread) and every later one
+    shades the glossy samples with one (3, n²) × (n², 2Qg) GEMM (`_relight_add`, 7.3 MB read)
+    instead of M l (24 MB) + the glossy selection + the glossy pass; M l is computed on demand
+    (`SHPRT._glossy_light`). The diffuse pass runs as before. Same process, creature bench, 1 thread,
+    process CPU (`python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code
+    OTHER_CHECKOUT --kinds V L E VL --frames 15 --threads 1`, load ~2-3): L 12.54 → 5.80 ms (2.16×),
+    E 15.46 → 8.09 ms (1.91×), V / VL unchanged (0.99×); max |new − reference| / peak 3.4e-7 / 4.0e-7.
+    `frame_cost` still counts t, M and the glossy flops of such a frame as compulsory (it reads ~27
+    MB less than counted: 24.2 MB of M and 2.9 MB of l' written and read, against 7.3 MB).
+  * where a frame's time goes (session 24, creature bench, 1 thread, process CPU, `--micro`, load ~5):
+    V 6.7 ms = pixels pass 2.2 + glossy pass 3.4 + ~1.0 outside the kernels (scatter_add of the
+    glossy samples ~0.5-0.8, Dynamo's guards of the two calls ~0.3, the selection 0.12 with numpy's
+    flatnonzero, `_flat_nonzero`, against 0.35-0.63 for torch's nonzero); a lighting frame adds
+    rotation 0.2-0.4, t·l 0.12, the corner table 0.2 (`_corner_index`, 0.3-0.5 as a row gather) and,
+    only when the view or materials changed (VL), M l 2.3 (10.5 GB/s; a plain read of M 0.87 ms);
+    E adds the projection 1.2 ms (a float32 variant of it measured no faster). Same process against
+    session 23's code (`python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code
+    OTHER_CHECKOUT --kinds V L E VL --frames 15 --threads 1`, load ~5): V 1.04×, L 2.40×, E 2.17×,
+    VL 1.02×.
+
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
   * Phong (normalised, about R; Mahajan 2008 eq. 5): G_l = F_l(s), exact Phong factors.
@@ -91,6 +115,7 @@ import functools
 import math
 import time
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -351,6 +376,26 @@ def _glossy_blocks(g: Tensor, args: tuple) -> Tensor:
     return call_rows(_glossy_samples, [g], args)
 
 
+def _flat_nonzero(x: Tensor) -> Tensor:
+    """``x.nonzero().squeeze(-1)`` of a contiguous 1-D bool tensor (int64, ascending). On the CPU
+    numpy's ``flatnonzero`` on a view of the same memory: the glossy flags of a creature bench
+    frame (262144, 14 % set), 1 thread, process CPU: 0.13 ms against 0.63 ms (and 16 ms of
+    process CPU at 2 threads under load: torch's parallel nonzero)."""
+    if x.device.type != "cpu":
+        return x.nonzero().squeeze(-1)
+    return torch.from_numpy(np.flatnonzero(x.numpy()))
+
+
+def _relight_add(img: Tensor, cache: dict, l: Tensor, S2: int) -> None:
+    """Add the glossy samples' radiance of a lighting-only frame to their pixels of img (n, 3) from
+    the relight cache (`SHPRT._relight_build`) and the lighting l (n², 3): ONE (3, n²) × (n², 2Qg)
+    GEMM, max(0, kd_c d·l_c + ks_c q·l_c) / S²."""
+    DG, Qg = cache["DG"], cache["kd"].shape[1]
+    o = l.T.contiguous() @ DG                                                   # (3, 2Qg)
+    vals = (cache["kd"] * o[:, :Qg] + cache["ks"] * o[:, Qg:]).clamp_min(0.0) * (1.0 / S2)
+    img.scatter_add_(0, cache["pix"], vals.T)
+
+
 def lighting_major(X: Tensor) -> Tensor:
     """X (rows..., n², C) with its channel and then its coefficient dimension outermost in memory
     (a view of a contiguous (C, n², rows...) tensor; ``X`` itself when it already is so): the layout
@@ -445,9 +490,13 @@ class SHPRT(Method):
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) rows of l' at each face's corners (gpos[F]; static)
+        self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
+        self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
+        self._relight = None    # (that state, the lighting-only frame cache: `_relight_build`)
         self._mat = None        # (device and the regions' materials, `_materials`' tensors)
         self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
-        self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0}
+        self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0, "glossy_light": 0, "relight_build": 0,
+                      "relight": 0}
 
     # -- precompute -------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -549,15 +598,35 @@ class SHPRT(Method):
         l = self.lighting(env).to(self.t.device)
         self._light = l
         self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
-        self._e = apply_lighting(self.t, l).T                                     # (V, 3) t · l
-        ng, n2 = self.M.shape[0], self.M.shape[1]
-        lg = apply_lighting(self.M.reshape(ng * n2, *self.M.shape[2:]), l)        # (3, Vg·n²) M l
-        self._lg3 = lg.view(3, ng, n2)                                            # (3, Vg, n²)
-        self._lg = self._lg3.permute(1, 2, 0)                                     # (Vg, n², 3) view
-        F = self.F.to(self._e.device).view(-1)
-        self._ef = self._e.contiguous().index_select(0, F).view(-1, 9)            # (M, 9) e at the corners
+        e3 = apply_lighting(self.t, l).contiguous()                              # (3, V) t · l
+        self._e = e3.T                                                            # (V, 3) view
+        self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
+        # (M, 9) e at the corners: ONE flat gather of the channel-major e (`_corner_index`), where a row
+        # gather of the (V, 3) copy took 0.50 ms against 0.21 (creature bench, 1 thread, bit-identical)
+        self._ef = e3.view(-1).index_select(0, self._corner_index(e3.device)).view(-1, 9)
         self._key = key
         self.stats["light"] += 1
+
+    def _corner_index(self, device) -> Tensor:
+        """(M·9,) int64 flat indices into the channel-major e (3, V) of each face's corners, corner-major
+        then channel: ``e.view(-1)[idx].view(M, 9)`` = ``e.T[F].view(M, 9)``; kept per device."""
+        if self._fidx is None or self._fidx.device != torch.device(device):
+            F = self.F.to(device)
+            V = int(self.t.shape[0])
+            self._fidx = (F[:, :, None] + V * torch.arange(3, device=device)).reshape(-1)
+        return self._fidx
+
+    def _glossy_light(self) -> Tensor:
+        """l' = M l (3, Vg, n²) of the current lighting (``self._lg`` its (Vg, n², 3) view), computed
+        when a frame first needs it: a lighting-only frame shaded from the relight cache
+        (`_relight_build`) never reads M."""
+        if self._lg3 is None:
+            ng, n2 = self.M.shape[0], self.M.shape[1]
+            lg = apply_lighting(self.M.reshape(ng * n2, *self.M.shape[2:]), self._light)   # (3, Vg·n²)
+            self._lg3 = lg.view(3, ng, n2)                                        # (3, Vg, n²)
+            self._lg = self._lg3.permute(1, 2, 0)                                 # (Vg, n², 3) view
+            self.stats["glossy_light"] += 1
+        return self._lg3
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool
@@ -604,7 +673,8 @@ class SHPRT(Method):
         self.stats["view"] += 1
         self._last_gbuffer = gbuffer          # `frame_cost` takes its glossy share (not a frame's work)
         if fast:
-            return self._render_fast(gbuffer, kd, ks, G, vcos)
+            return self._render_fast(frame, gbuffer, kd, ks, G, vcos)
+        self._glossy_light()
         dev = self.t.device
         hit = gbuffer.hit.nonzero().squeeze(-1)
         vidx, bw = gbuffer.vertex_weights(self.F.to(gbuffer.face.device))         # (P, 3) each
@@ -616,20 +686,29 @@ class SHPRT(Method):
                                    vcos).to(out.device)
         return gbuffer.resolve(out)
 
-    def _render_fast(self, gb: GBuffer, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
+    def _render_fast(self, frame: Frame, gb: GBuffer, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor) -> Tensor:
         """`render_reference`'s image to float32 round-off in two compiled passes: every pixel's
         box-filtered diffuse term of its non-glossy samples (`_pixels`, over static blocks of pixels;
         the per-sample radiance is never written), and the whole radiance of the glossy regions' hits
-        (`_glossy_samples`, over static blocks of their indices), added to their pixels × 1/S²."""
+        (`_glossy_samples`, one call over their indices), added to their pixels × 1/S².
+
+        A lighting-only frame (``frame.changed`` ⊆ {"light"}, the camera, materials and G-buffer
+        size of the previous fast render; grey transfer) shades the glossy samples from the relight
+        cache instead (`_relight_build`, built by the first such frame): the glossy pass, its
+        selection and M l are skipped."""
         dev = self.t.device
         S2 = gb.spp_side ** 2
         n = gb.height * gb.width
         if self._fg is None or self._fg.device != dev:
             self._fg = self.gpos.to(dev)[self.F.to(dev)]                           # (M, 3) rows of l'
+        state = (frame.camera, self._mat[0], gb.height, gb.width, gb.spp_side, gb.num_samples, str(dev))
+        relight = (frame.changed <= {"light"} and self._view_state == state and self.t.shape[-1] == 1)
+        self._view_state = state
+        if not relight:
+            self._relight = None
         glf = self.glossy_regions.to(dev).float()
         for x in (self._ef, self._fg, kd, ks, G, vcos, glf):  # per-scene sizes: one compiled kernel
             torch._dynamo.maybe_mark_dynamic(x, 0)
-        torch._dynamo.maybe_mark_dynamic(self._lg3, 1)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
         vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
@@ -637,15 +716,72 @@ class SHPRT(Method):
         out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, kd, glf),
                        chunk=max(1, PIXEL_CHUNK // S2))
         img = out[0]                                                              # (n, 3)
-        g = out[1].view(-1).nonzero().squeeze(-1)                                 # glossy hits, ascending
+        if relight and self._relight is not None and self._relight[0] == state:
+            cache = self._relight[1]
+            self.stats["relight"] += 1
+            if cache is not None:
+                _relight_add(img, cache, self._light, S2)
+            return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+        g = _flat_nonzero(out[1].view(-1))                                        # glossy hits, ascending
+        if relight:              # the first lighting-only frame: build the cache, shade from it
+            cache = self._relight_build(g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2) if g.numel() else None
+            self._relight = (state, cache)
+            self.stats["relight_build"] += 1
+            if cache is not None:
+                _relight_add(img, cache, self._light, S2)
+            return img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g.numel():
+            lg3 = self._glossy_light()
+            torch._dynamo.maybe_mark_dynamic(lg3, 1)
             for x in (face, bary, normal, wo, reg):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
-            args = (face, bary, normal, wo, reg, self._ef, self._fg, self._lg3, kd, ks, G, vcos)
+            args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             vals = _glossy_blocks(g, args) * (1.0 / S2)
             # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here)
             img.scatter_add_(0, (g // S2)[:, None].expand(-1, 3), vals)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+
+    def _relight_build(self, g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
+                       kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, S2: int) -> dict:
+        """The lighting-only frame cache of the glossy samples g (Qg,) (grey transfer, C = 1): with
+        the view and the materials fixed, a glossy sample's radiance is linear in the lighting l,
+        max(0, kd_c d·l_c + ks_c q·l_c) (Sloan 2002 §6-7 in another order: `_glossy`'s
+        Σ_i q_i (Σ_k w_k M_k l)_i = (Σ_k w_k M_kᵀ q) · l, e = Σ_k w_k t_k · l), with
+        q = G y(R) (× n·ωo on Blinn-Phong) the view's lobe row, d = Σ_k w_k t_k the interpolated
+        transfer vector and the transferred lobe Σ_k w_k M_kᵀ q. → {"DG": (n², 2Qg) [d | M_kᵀq
+        interpolated] columns, "kd", "ks": (3, Qg) (0 on back-facing samples: `_shade`'s mask),
+        "pix": (Qg, 3) the pixel of each sample}. Built once (eager, the M rows of every glossy
+        sample's three corners gathered); a frame then reads 2·n²·Qg floats (7.3 MB on the creature
+        bench) instead of M (24 MB) and runs no glossy pass (`_relight_add`)."""
+        n2 = self.order ** 2
+        f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
+        u, v = bary[g, 0], bary[g, 1]
+        w = torch.stack([1.0 - u - v, u, v], -1)                                   # (Qg, 3)
+        nrm, o = normal[g], wo[g]
+        front = (nrm * o).sum(-1) > 0
+        nn = nrm / nrm.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        R = reflect(o, nn)
+        R = R / R.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        c = (nn * o).sum(-1).clamp_min(0.0)
+        q = _sh.sh_eval(R, self.order) * G[r]                                       # (Qg, n²) G_l y_lm(R)
+        q = torch.where(vcos[r][:, None], q * c[:, None], q)                       # Blinn-Phong: × n·ωo
+        vi = self.F.to(f.device)[f]                                                 # (Qg, 3) vertex ids
+        ai = self._fg[f]                                                            # (Qg, 3) rows of M
+        T = self.t.permute(2, 1, 0)[0]                                              # (n², V) contiguous
+        Mv = self.M[..., 0]                                                         # (Vg, n²i, n²j) view
+        Qg = int(g.numel())
+        DG = torch.zeros(n2, 2 * Qg, device=f.device)
+        for k in range(3):
+            DG[:, :Qg] += T.index_select(1, vi[:, k]) * w[:, k]
+        step = max(1, (1 << 21) // (n2 * n2))
+        for a in range(0, Qg, step):
+            b = min(a + step, Qg)
+            for k in range(3):
+                Mk = Mv.index_select(0, ai[a:b, k])                                 # (B, n²i, n²j)
+                DG[:, Qg + a:Qg + b] += (torch.bmm(q[a:b, None, :], Mk)[:, 0] * w[a:b, k, None]).T
+        fm = front[:, None].float()
+        return {"DG": DG, "kd": (kd[r] * fm).T.contiguous(), "ks": (ks[r] * fm).T.contiguous(),
+                "pix": (g // S2)[:, None].expand(-1, 3)}
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
                G: Tensor, vcos: Tensor) -> Tensor:
@@ -680,6 +816,9 @@ class SHPRT(Method):
              "faces_vertex_map": tensor_bytes(self.F, self.gpos)}
         if self._e is not None:
             m["per_vertex_light"] = tensor_bytes(self._e, self._lg, self._light, self._l_local)
+        if self._relight is not None and self._relight[1] is not None:
+            c = self._relight[1]
+            m["relight_cache"] = tensor_bytes(c["DG"], c["kd"], c["ks"]) + c["pix"].shape[0] * 8
         return m
 
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
@@ -694,6 +833,15 @@ class SHPRT(Method):
         t and M, rotates the n² cached coefficients (Σ_l 2(2l+1)²·3 flops) and computes e and l'
         (2·3·V·n² + 2·3·Vg·n⁴ flops, written once); a new map ("E") additionally projects it
         (reads its H·W·3 texels, ≈ 2·3·H·W·n flops for the exact separable projection).
+
+        Lighting-only frames ("L", "E": the view and materials of the previous frame) with grey
+        transfer are shaded from the relight cache (`_relight_build`, built once by the first such
+        frame of a view, like ZH's): a glossy sample's radiance is linear in l, so such a frame reads
+        instead of M and l' each glossy sample's two cached n²-vectors (d, Σ_k w_k M_kᵀ q), its kd·ks
+        weights (6 floats) and its pixel (int64), and does per glossy sample the (3, n²) × (n², 2)
+        product (12 n²) and the kd / ks mix (9) instead of the glossy pass and M l; t and e as
+        above. Counting M there would credit the frame with 24 MB (creature bench) it has no need to
+        read (session 24).
         """
         if self.scene is None:
             return None
@@ -711,7 +859,11 @@ class SHPRT(Method):
         nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12) + tensor_bytes(self.F) + e_b + lg_b
         flops = num_samples * 21 + qg * (18 + 3 + 1 + 6) * n2
         light = "L" in frame_kind or "E" in frame_kind
-        if light:
+        if set(frame_kind) <= {"L", "E"} and int(self.t.shape[-1]) == 1:   # the relight cache
+            nbytes += tensor_bytes(self.t) + e_b - lg_b + qg * (2 * n2 * f4 + 6 * f4 + 8)
+            flops += (sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * nv * n2
+                      - qg * (18 + 3 + 1 + 6) * n2 + qg * (12 * n2 + 9))
+        elif light:
             nbytes += tensor_bytes(self.t, self.M) + e_b + lg_b
             flops += sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * (nv * n2 + ng * n2 * n2)
         if "E" in frame_kind:

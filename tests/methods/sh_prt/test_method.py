@@ -115,6 +115,16 @@ def test_with_bounces_sums_the_passes(alcove):
     v, l, e = (m1.frame_cost(k, gb.num_samples) for k in ("V", "L", "E"))
     assert v.bytes < l.bytes < e.bytes and v.flops < l.flops < e.flops
     assert l.bytes - v.bytes >= m1.t.numel() * 4 + m1.M.numel() * 4   # a lighting frame reads t and M
+    # (RGB transfer: no relight cache). With grey transfer a lighting-only frame is shaded from the
+    # relight cache: it reads t, the glossy samples' cached vectors, weights and pixels, not M or l'
+    g0 = m0.frame_cost("L", gb.num_samples)
+    n2, nv, ng = m0.order ** 2, m0.t.shape[0], m0.M.shape[0]
+    qg = int(round(float(m0.glossy_regions[gb.region[gb.hit].cpu()].float().mean()) * gb.num_samples)) \
+        if m0._last_gbuffer is not None else int(round(ng / nv * gb.num_samples))
+    v0 = m0.frame_cost("V", gb.num_samples)
+    assert g0.bytes - v0.bytes == m0.t.numel() * 4 + nv * 12 - ng * n2 * 12 + qg * (8 * n2 + 32)
+    vl0 = m0.frame_cost("VL", gb.num_samples)  # a view change too: no cache, M read
+    assert vl0.bytes - v0.bytes == m0.t.numel() * 4 + m0.M.numel() * 4 + nv * 12 + ng * n2 * 12
 
 
 def test_blinn_phong_lobe_is_the_mapped_phong_lobe():
@@ -472,3 +482,60 @@ def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
         assert got.shape == (sel.numel(), 3)
         assert torch.equal(got, want[torch.searchsorted(g, sel)])
     assert counters["stats"]["unique_graphs"] == graphs
+
+
+@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
+def test_lighting_only_frames_shade_from_the_relight_cache(scene_name):
+    """Lighting-only frames (``changed`` ⊆ {"light"}, same camera, materials and G-buffer size as
+    the previous render; L and E sequences) shade the glossy samples from the relight cache
+    (`SHPRT._relight_build`, built by the first such frame; M l and the glossy pass skipped) and
+    still equal `render_reference` (the per-chunk eager `_shade`) to float32 round-off, and a frame
+    whose camera or materials changed does not use it (even when its flags claim "light" only)."""
+    import dataclasses
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=4, bounces=0, rays=16)
+    m.precompute(scene)
+    assert m.glossy_regions.any()
+    ref = SHPRT.__new__(SHPRT)
+    ref.__dict__ = dict(m.__dict__)
+    ref._reset_cache()
+
+    def check(frame, gb):
+        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
+        assert (img - want).abs().max().item() <= 1e-5 * max(want.abs().max().item(), 1e-6)
+        return img
+
+    for kind in ("L", "E"):
+        m._reset_cache()
+        frames = make_sequence(scene, kind, n_frames=4, seed=2)
+        for f in frames:
+            check(f, make_gbuffer(scene, f, 1))
+        assert m.stats["relight_build"] == 1 and m.stats["relight"] == 2
+        assert m.stats["glossy_light"] == 1                    # M l on frame 0 only
+        assert m.memory()["relight_cache"] > 0
+    last = frames[-1]
+    # other materials or another camera under a "light"-only flag: not the cached samples
+    mats = {r: (dataclasses.replace(mt, ks=tuple(0.5 * k for k in mt.ks)) if hasattr(mt, "ks") else mt)
+            for r, mt in last.materials.items()}
+    other = make_sequence(scene, "V", n_frames=2, seed=3)[1]
+    for f in (dataclasses.replace(last, materials=mats), dataclasses.replace(last, camera=other.camera)):
+        f = dataclasses.replace(f, changed=frozenset({"light"}))
+        check(f, make_gbuffer(scene, f, 1))
+        assert m.stats["relight"] == 2 and m._relight is None
+    # a lighting-only frame after it builds again
+    f = dataclasses.replace(frames[1], camera=other.camera, changed=frozenset({"light"}))
+    check(f, make_gbuffer(scene, f, 1))
+    assert m.stats["relight_build"] == 2
+
+
+def test_flat_nonzero_equals_torch_nonzero():
+    """`_flat_nonzero` (numpy's flatnonzero on the CPU: the glossy selection of a frame) = torch's
+    ``nonzero().squeeze(-1)``: the same int64 indices in ascending order, also none and all set."""
+    from methods.sh_prt.method import _flat_nonzero
+
+    g = torch.Generator().manual_seed(0)
+    for x in (torch.rand(100003, generator=g) < 0.14, torch.zeros(7, dtype=torch.bool),
+              torch.ones(9, dtype=torch.bool), torch.rand(4, 64, generator=g)[:, 0] < 0.5):
+        got, want = _flat_nonzero(x), x.nonzero().squeeze(-1)
+        assert got.dtype == torch.int64 and torch.equal(got, want)
