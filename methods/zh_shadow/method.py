@@ -93,7 +93,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.fused import fused, warm_blocks
-from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar, rotate_sampled
+from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
@@ -393,8 +393,9 @@ class ZHShadow(Method):
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
         world space (`project_latlong_polar`, then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
         the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
-        (projected once, on the first such frame). Rotations by `sh.rotate_sampled` (one compiled
-        call, float64, = `sh_rotation.rotate_coeffs` to round-off), then float32 as `project_latlong`."""
+        (projected once, on the first such frame). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
+        float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
+        `project_latlong`."""
         data = torch.as_tensor(env.data)
         dkey = (id(env.data), data.data_ptr(), tuple(data.shape))
         key = (dkey, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
@@ -405,11 +406,11 @@ class ZHShadow(Method):
                 self._env_bytes = int(data.numel() * data.element_size())
                 # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
                 # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
-                world = rotate_sampled(project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
+                world = rt.rotate_lighting(project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
-                world = rotate_sampled(self._env_local[1], R)
+                world = rt.rotate_lighting(self._env_local[1], R)
             self._light = (key, world.to(data.dtype).float())
         return self._light[1]
 
@@ -666,7 +667,7 @@ class ZHShadow(Method):
             return None
         if any(td is None or p is None for entries in cache["regions"] for p, td, _ in entries):
             return None   # a specular term on the plane, or no plane points: `runtime.relight`
-        dev, P = gbuffer.hit.device, gbuffer.num_samples
+        dev = gbuffer.hit.device
         n0 = groups[0][0]
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
@@ -786,7 +787,6 @@ class ZHShadow(Method):
                 self._vertex_transfer = vt = (key, v0, ts, front, counts)
             _, _, ts, front, counts = vt
             light = light.to(dev)
-            N = int(w.shape[1])
             tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
             if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
