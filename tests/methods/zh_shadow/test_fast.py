@@ -946,3 +946,31 @@ def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
         assert (a - b).abs().max() <= 1e-5 * b.abs().max()
     _check_sequence(slow, "P")
     _check_sequence(slow, "L", n_frames=3)
+
+
+def test_resolve_matrix_int32_equals_int64(zh_scene):
+    """`method._int32_csr` (the kept resolve matrix of lighting-only vertex frames with int32
+    indices: the 8 bytes per non-zero `ZHShadow._resolve_bytes` counts) gives the same products as
+    `gouraud.resolve_matrix`'s int64 CSR, bit for bit; the matrix a vertex-shaded L sequence keeps
+    is the int32 one, and its frames equal the reference."""
+    from methods.core import gouraud
+    from methods.zh_shadow.method import _int32_csr
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    scene = zh_scene("creature")
+    f = make_sequence(scene, "L", 1, seed=2)[0]
+    gb, geom = make_gbuffer(scene, f, 2), scene.geometry()
+    S = gouraud.resolve_matrix(geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side,
+                               int(geom.num_vertices))
+    S32 = _int32_csr(S)
+    assert S32.crow_indices().dtype == S32.col_indices().dtype == torch.int32
+    assert torch.equal(S32.crow_indices().long(), S.crow_indices()) and torch.equal(S32.col_indices().long(),
+                                                                                     S.col_indices())
+    x = torch.randn(int(geom.num_vertices), 3, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(S32 @ x, S @ x)
+    assert _int32_csr(S32) is S32
+    m = ZHShadow(**SMALL, order=4, shading="vertex", specular="cosine")
+    m.precompute(scene)
+    _check_sequence(m, "L", n_frames=3)
+    assert m._resolve_matrix[2] is not None and m._resolve_matrix[2].col_indices().dtype == torch.int32
