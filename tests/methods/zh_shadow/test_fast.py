@@ -82,6 +82,50 @@ def test_lighting_equals_project_latlong(zh_scene, order):
             assert (got - want).abs().max() <= 1e-6 * want.abs().max(), kind
 
 
+@pytest.mark.parametrize("order", [2, 4, 5, 8])
+def test_rotate_lighting_equals_rotate_coeffs(order):
+    """`runtime.rotate_lighting` (ZYZ angles, three z rotations and two fixed products, numpy) =
+    `sh_rotation.rotate_coeffs` (the band recursion, the oracle) and `sh.rotate_sampled` (what
+    `ZHShadow._lighting` called before) to float64 round-off: random rotations, the ZYZ singular
+    ones (b = 0, b = π, sin b ~ 1e-9) and a rotation about each axis; rotations perturbed by ~3e-8
+    (the scenes' to_world are orthonormal to float32 round-off) to 2e-6 (each way rotates a
+    non-orthonormal R its own way); a matrix that is no rotation to `runtime.ROTATION_TOL` goes to
+    `rotate_sampled` unchanged."""
+    from methods.core.sh import rotate_sampled
+    from methods.core.sh_rotation import rotate_coeffs
+
+    def axis(i, t):
+        c, s = math.cos(t), math.sin(t)
+        j, k = [(1, 2), (2, 0), (0, 1)][i]
+        R = torch.eye(3, dtype=torch.float64)
+        R[j, j] = R[k, k] = c
+        R[k, j], R[j, k] = s, -s
+        return R
+
+    g = torch.Generator().manual_seed(order)
+    Rs = [torch.eye(3, dtype=torch.float64), torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64)),
+          torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)), axis(2, 0.7) @ axis(1, 1e-9) @ axis(2, 2.1),
+          axis(2, -2.5) @ axis(1, math.pi - 1e-9) @ axis(2, 0.4), axis(0, 1.1), axis(1, -0.6), axis(2, 2.9)]
+    for _ in range(12):
+        Q = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=g))[0]
+        Rs.append(Q if torch.linalg.det(Q) > 0 else -Q)
+    for R in Rs:
+        c = torch.randn(order * order, 3, dtype=torch.float64, generator=g)
+        got = rt.rotate_lighting(c, R)
+        assert got.dtype == torch.float64 and got.shape == c.shape
+        assert (got - rotate_coeffs(c, R)).abs().max() <= 1e-12 * c.abs().max()
+        assert (got - rotate_sampled(c, R)).abs().max() <= 1e-12 * c.abs().max()
+    for R in Rs[3:]:   # orthonormal to float32 round-off only (the scenes' composed to_world): agree to it
+        R = R + 3e-8 * torch.randn(3, 3, dtype=torch.float64, generator=g)
+        c = torch.randn(order * order, 3, dtype=torch.float64, generator=g)
+        got = rt.rotate_lighting(c, R)
+        assert (got - rotate_sampled(c, R)).abs().max() <= 2e-6 * c.abs().max()
+        assert (got - rotate_coeffs(c, R)).abs().max() <= 2e-6 * c.abs().max()
+    R = Rs[-1] * (1 + 1e-6)                                   # not orthonormal to 1e-7: the old path
+    c = torch.randn(order * order, 3, dtype=torch.float64, generator=g)
+    assert torch.equal(rt.rotate_lighting(c, R), rotate_sampled(c, R))
+
+
 @pytest.mark.parametrize("name", SCENES + ("chess",))
 def test_fast_equals_reference(small_model, name):
     """V, L and E frames (3 of each lighting kind: the cached transfer is built, then used) and P
@@ -902,3 +946,31 @@ def test_vertex_radiance_by_ranges_equals_gathered(zh_scene):
         assert (a - b).abs().max() <= 1e-5 * b.abs().max()
     _check_sequence(slow, "P")
     _check_sequence(slow, "L", n_frames=3)
+
+
+def test_resolve_matrix_int32_equals_int64(zh_scene):
+    """`method._int32_csr` (the kept resolve matrix of lighting-only vertex frames with int32
+    indices: the 8 bytes per non-zero `ZHShadow._resolve_bytes` counts) gives the same products as
+    `gouraud.resolve_matrix`'s int64 CSR, bit for bit; the matrix a vertex-shaded L sequence keeps
+    is the int32 one, and its frames equal the reference."""
+    from methods.core import gouraud
+    from methods.zh_shadow.method import _int32_csr
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    scene = zh_scene("creature")
+    f = make_sequence(scene, "L", 1, seed=2)[0]
+    gb, geom = make_gbuffer(scene, f, 2), scene.geometry()
+    S = gouraud.resolve_matrix(geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side,
+                               int(geom.num_vertices))
+    S32 = _int32_csr(S)
+    assert S32.crow_indices().dtype == S32.col_indices().dtype == torch.int32
+    assert torch.equal(S32.crow_indices().long(), S.crow_indices()) and torch.equal(S32.col_indices().long(),
+                                                                                     S.col_indices())
+    x = torch.randn(int(geom.num_vertices), 3, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(S32 @ x, S @ x)
+    assert _int32_csr(S32) is S32
+    m = ZHShadow(**SMALL, order=4, shading="vertex", specular="cosine")
+    m.precompute(scene)
+    _check_sequence(m, "L", n_frames=3)
+    assert m._resolve_matrix[2] is not None and m._resolve_matrix[2].col_indices().dtype == torch.int32
