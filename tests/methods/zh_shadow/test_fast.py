@@ -788,7 +788,6 @@ def test_frame_cost_vertex_planes(monkeypatch):
     gb = make_gbuffer(sc, fr, 1)
     m.render(fr, gb)
     P, g = gb.num_samples, sc.geometry()
-    N = g.num_vertices
     on = (g.N == torch.tensor([0.0, 1.0, 0.0])).all(-1)
     front = _front_vertices(g, fr)                                           # the points (test above)
     Np = int(on.sum())
