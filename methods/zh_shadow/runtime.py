@@ -1408,6 +1408,14 @@ def _band_norms(order: int) -> tuple[float, ...]:
     return tuple(band_norms(order).tolist())
 
 
+@fused
+def _pose_product(a: Tensor, Xf: Tensor) -> Tensor:
+    """Σ_j a_j Xf_j (M,) of a (J1,) and Xf (J1, M) (contiguous rows): [pose, 1] · X. Compiled, every
+    output's J1 terms are summed in the same order at any thread count, the outputs split over the
+    threads (eagerly, torch's dim-0 sum does the same, through a (J1, M) temporary)."""
+    return (a[:, None] * Xf).sum(0)
+
+
 def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, point_minor: bool = False,
                      frame: str = "world", rows: Tensor | None = None, cols: Tensor | None = None) -> Tensor:
     """(N, n²) world-space SH visibility of every vertex at one pose — (n², N) with
@@ -1440,17 +1448,18 @@ def world_visibility(X: Tensor, pose: Tensor, normal: Tensor, lobes: int, *, poi
     a = torch.cat([pose.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype, device=X.device)])
     if a.shape[0] != J1:
         raise ValueError(f"pose has {a.shape[0] - 1} joints, the model {J1 - 1}")
-    # [pose, 1] · X on one thread: a one-row product, which MKL splits along its J1-long reduction
-    # over the threads on AVX-512 machines (the sums then depend on the thread count:
-    # methods.core.threads, tests/methods/test_threads.py); it reads X once and is bandwidth-bound.
-    # With X laid out (J+1, d, N) in memory (`point_minor_model`) the product writes the point-minor
-    # pT (d, N) itself (0.61 ms at 13.4 K vertices, 1 thread, against 1.04 ms for the copy of X
-    # that ``reshape`` made from the least-squares layout plus 0.23 ms for a transposing copy)
-    with torch_threads(1):
-        if X.transpose(1, 2).is_contiguous():
-            pT = (a[None] @ X.transpose(1, 2).reshape(J1, d * N)).view(d, N)
-        else:
-            pT = (a[None] @ X.reshape(J1, N * d)).view(N, d).T.contiguous()
+    # [pose, 1] · X as a compiled reduction over the J1 rows (`_pose_product`): each output sums its
+    # J1 terms in one fixed order whatever the thread count (a one-row MKL product splits that
+    # reduction over the threads on AVX-512 machines: methods.core.threads), so it runs on every
+    # thread instead of switching torch to one — after such a switch the next parallel work paid
+    # for it: a bench creature P frame (order 8, per vertex) at 2 threads, quiet, 1.42-1.54x wall
+    # without the switch (session 24). It reads X once and is bandwidth-bound. With X laid out
+    # (J+1, d, N) in memory (`point_minor_model`) it writes the point-minor pT (d, N) itself.
+    point_major = not X.transpose(1, 2).is_contiguous()
+    Xf = X.reshape(J1, N * d) if point_major else X.transpose(1, 2).reshape(J1, d * N)
+    torch._dynamo.maybe_mark_dynamic(Xf, 1)              # one kernel for every model size
+    pT = _pose_product(a, Xf)
+    pT = pT.view(N, d).T.contiguous() if point_major else pT.view(d, N)
     nT = normal.T.contiguous()
     if cols is not None:
         pT, nT = pT.index_select(1, cols), nT.index_select(1, cols)

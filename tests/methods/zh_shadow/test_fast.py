@@ -973,3 +973,26 @@ def test_resolve_matrix_int32_equals_int64(zh_scene):
     m.precompute(scene)
     _check_sequence(m, "L", n_frames=3)
     assert m._resolve_matrix[2] is not None and m._resolve_matrix[2].col_indices().dtype == torch.int32
+
+
+def test_pose_product_is_the_model_product_at_any_thread_count():
+    """`runtime._pose_product` ([pose, 1] · X in `world_visibility`, compiled) equals the float64
+    product to float32 round-off and gives the same bits with 1 and 2 threads — it replaced a
+    one-row product run under `torch_threads(1)` (MKL splits such a product's reduction over the
+    threads on AVX-512 machines), on both layouts `world_visibility` passes."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import runtime as rt
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(11, generator=g)
+    for X in (torch.randn(11, 20, 3001, generator=g).transpose(1, 2),   # point-minor (J1, N, d) view
+              torch.randn(11, 3001, 20, generator=g)):                  # point-major
+        pm = X.transpose(1, 2).is_contiguous()
+        Xf = X.transpose(1, 2).reshape(11, -1) if pm else X.reshape(11, -1)
+        want = (a.double()[None] @ Xf.double())[0]
+        outs = []
+        for n in (1, 2):
+            with torch_threads(n):
+                outs.append(rt._pose_product(a, Xf))
+        assert torch.equal(outs[0], outs[1])
+        assert float((outs[0].double() - want).abs().max()) <= 1e-6 * float(want.abs().max())
