@@ -7,7 +7,10 @@ baseline's instead (max |new − base| / max |base|), and the path the new code 
         [--frames 11] [--scene creature] [--size bench] [--precompute-code /work/base] [--threads 1]
 
 Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time (and wall
-time), ``--threads`` torch threads (default 1; the perf suite runs 2).
+time), ``--threads`` torch threads (default 1; the perf suite runs 2). Use 1 thread for evidence:
+at 2 threads an A/A run (this checkout as its own baseline, creature bench order-8 P frames, quiet
+machine, session 24) read 1.03× and 1.70× wall — P frames came out either ~12 or ~20 ms on either
+side — so a 2-thread ratio says nothing about the code.
 """
 from __future__ import annotations
 
