@@ -2,9 +2,10 @@
 
     python -m benchmarks.tp_zeros [chess creature] [--size bench]
 
-`fast_eval.frame_cost` drops a fine triangle only when every reader multiplies it by an exact 0
-(`fast_eval.live_triangles`). The same rule at a finer granularity drops more; this prints, per
-scene (per-vertex shading, precomputation through the harness's cache):
+`fast_eval.frame_cost` drops a fine triangle where every reader multiplies it by an exact 0
+(`fast_eval.live_triangles`) and, since session 25, counts each point's own non-zero triangles and
+the (frame, triangle) pairs read (`fast_eval.nonzero_reads`). This prints how much that finer grain
+drops, per scene (per-vertex shading, precomputation through the harness's cache):
   * per vertex: the share of the live triangles where its visibility is non-zero (the per-vertex
     triple product over the others adds exact zeros);
   * per grid frame (of the frames some vertex looks up, all four look-up corners): the share of

@@ -80,6 +80,16 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
     (session 19: the implementation reads, sums and projects only those): n' values per stored V,
     ρ̃ and grid row, K' = n' in (b) and the grouped form, n' per blend, and a re-projection of the
     live triangles' samples only, without the transform (their fine values are what eq. 7 reads).
+    Finer still, at the grain of the zeros (`nonzero_reads`, issue 14's cost model, session 25): a
+    point whose blended visibility is exactly 0 on a live triangle (every row it blends with a
+    non-zero weight is 0 there; 38–48 % of the live triangles per vertex on the bench scenes) gets
+    an exact 0 from that triangle whatever ρ̃ and L, so its blends and its sum count only its own
+    non-zero triangles (K' = its count in (b)); a group counts its row's non-zero triangles; and a
+    re-projection counts only the (grid frame, live triangle) pairs some point looks up with a
+    non-zero weight and has non-zero visibility on (60–67 % of the looked-up frames' pairs), the
+    grid written likewise. Reading a row whole is still the least a frame reads (the zeros are
+    known only from the row), so bytes keep whole rows. Our implementation sums whole live rows:
+    the count is what an implementation skipping the zeros would do, not what ours does.
     A pixel frame summed by groups (`fine_grouped`) counts instead, when smaller, the grouped form
     (`grouped_flops`): per group and channel K'·(k_L + 2·k_L·k_ρ), per shaded sample and channel
     k_v·(2·k_L·k_ρ + k_L) + k_v − 1 (k_v = 3, k_ρ = 4, k_L as above).
@@ -817,7 +827,13 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
     Le = level_of_size(Kp)
     lrows, lw = _merge_psi(lp[3], lp[4], method.grid.n_psi)
+    read = None
     if live is not None and Kp == method.K and len(rps) == 1:   # the live columns only (comment above)
+        # the rows this call read, for `frame_cost` (references, no copy; counted after the frame)
+        reads = method.stats.get("frame_reads")
+        if reads is not None:
+            read = {"vrows": vp[3], "vw": vp[4], "lrows": lrows, "lw": lw}
+            reads.append(read)
         Vt = live_table(method, "V", vp[2], live)                        # (N_V, n')
         Lt = live_table(method, "L", lp[2], live)                        # (F, 3n')
         Rt = live_table(method, "rho", rps[0][2], live)                  # (R·n_o, 3n')
@@ -846,6 +862,8 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
         st = {}
         out = fine_grouped(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, stats=st)
         method.stats["frame_groups"] = method.stats.get("frame_groups", 0) + st["groups"]
+        if read is not None:
+            read["group_vis"] = st["group_vis"]
         return out.mul_(0.25 ** Le)
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points).mul_(0.25 ** Le)
 
@@ -1093,6 +1111,7 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     G = gv.shape[0]
     if stats is not None:
         stats["groups"] = int(G)
+        stats["group_vis"] = gv  # each group's visibility row (`frame_cost`: its non-zero triangles)
     if points is None and G <= 1:  # a size Dynamo would specialise (a compilation in a timed frame)
         T = group_block(gv, gl, gb, Vt, R3, L3)
     elif points is None:
@@ -1251,17 +1270,23 @@ def triple_flops(method, live: int | None = None) -> int:
     formed, n kept coefficients per function (module docstring "Frame cost"): min(sparse rule,
     fine-value product). ``live``: the live fine triangles (`live_triangles`) the fine-value
     product sums over, when fewer than K'."""
+    sparse, full, Kp = _triple_terms(method)
+    if full and live is not None:
+        Kp = min(Kp, int(live))
+    dense = 9 * Kp + (0 if full else 7 * 8 * (Kp - 20) // 3)
+    return int(min(sparse, dense))
+
+
+def _triple_terms(method) -> tuple[float, bool, int]:
+    """`triple_flops`' parts: the sparse rules' count, whether the tables are full, and K' (3 flops per
+    channel and fine triangle of K' in the fine-value product, plus 7 transforms when not full)."""
     n, C = _kept(method), 3
     bi = _brdf_stack(method)[0] if method.tables else None
     av, ab = _mean_ancestors(method, "V", method.V_idx), _mean_ancestors(method, "rho", bi)
     sparse = C * (n * (10 + 2 * av) + n * (3 + ab))
     full = all(x is not None and _is_full(method, nm, x) for nm, x in (("V", method.V_idx), ("rho", bi))) and \
         (method.config["selection"] == "top" or method._n() is None or method._n() >= method.K)
-    Kp = _round_size(n) if full else method.K
-    if full and live is not None:
-        Kp = min(Kp, int(live))
-    dense = 3 * C * Kp + (0 if full else 7 * 8 * (Kp - 20) // 3)
-    return int(min(sparse, dense))
+    return sparse, full, (_round_size(n) if full else method.K)
 
 
 def blend_terms(k: int) -> int:
@@ -1306,6 +1331,60 @@ def relight_flops(method, envmap, *, azimuthal: bool = False, frames: int | None
     if live is not None:
         return int(F * per_sample * int(live) * 4 ** s)
     return int(F * (per_sample * K * 4 ** s + 3 * 8 * (K - 20) // 3))
+
+
+# Points per chunk of `nonzero_reads` (a (chunk, n') bool mask and its int32 copy: ~3 MB at n' = 656).
+NONZERO_CHUNK = 4096
+
+
+def _sum_point_flops(method, k_v: int, nz: Tensor) -> int:
+    """Σ over points of `blend_flops`(k_v) + `triple_flops` with each point's own count ``nz`` (P,)
+    of fine triangles in place of the live ones (full tables: the live path)."""
+    sparse, full, Kp = _triple_terms(method)
+    if not full:
+        raise ValueError("per-point fine-triangle counts need full tables (the live-triangle path)")
+    z = nz.double()
+    tri = torch.minimum(torch.full_like(z, float(sparse)), 9.0 * z.clamp(max=Kp)).floor()  # int(min(...)) per point
+    return int(blend_flops(method, k_v, 1)) * int(nz.sum()) + int(tri.sum())
+
+
+def nonzero_reads(method, live: Tensor, reads: list, *, k_v: int, pairs: bool) -> dict:
+    """The frame's work at the grain of its zeros (module docstring, "Frame cost"): what the
+    fine-value path read (``reads``: per `shade_fine` call its points' visibility rows / weights, grid
+    rows / weights, and under grouping each group's visibility row), counted over the fine triangles
+    where the point's visibility is non-zero — a triangle where every visibility row a point blends
+    (with a non-zero weight) is exactly 0 adds an exact 0 to that point's eq. 7, whatever ρ̃ and L.
+
+    Returns ``point`` (Σ_p `blend_flops`(k_v) + `triple_flops` over the point's non-zero triangles),
+    ``group`` (Σ over groups of their row's non-zero triangles: the K' of `grouped_flops`; None when no
+    call grouped), and with ``pairs`` the number of (grid frame, live triangle) pairs some point looks
+    up with a non-zero weight and has non-zero visibility on (the lighting a re-projection must
+    produce; the rest is only ever multiplied by 0)."""
+    Vl = live_table(method, "V", method.V_val, live) != 0                 # (N_V, n')
+    need = torch.zeros(method.grid.size, Vl.shape[1], dtype=torch.int32) if pairs else None
+    point, group = 0, None
+    for r in reads:
+        # the points' distinct (visibility rows, grid rows) with a weight-0 row as −1 (many samples
+        # share them; each distinct one counted with its multiplicity)
+        kv = r["vrows"].shape[1]
+        key = torch.cat([torch.where(r["vw"] != 0, r["vrows"].long(), -1),
+                         torch.where(r["lw"] != 0, r["lrows"].long(), -1) if need is not None else
+                         r["vrows"].new_zeros(r["vrows"].shape[0], 0, dtype=torch.long)], 1)
+        key, mult = torch.unique(key, dim=0, return_counts=True)
+        for a in range(0, key.shape[0], NONZERO_CHUNK):
+            kc, mc = key[a:a + NONZERO_CHUNK], mult[a:a + NONZERO_CHUNK]
+            mask = torch.zeros(kc.shape[0], Vl.shape[1], dtype=torch.bool)
+            for j in range(kv):
+                mask |= Vl[kc[:, j].clamp_min(0)] & (kc[:, j:j + 1] >= 0)
+            point += _sum_point_flops(method, k_v, mask.sum(1).repeat_interleave(mc))
+            if need is not None:
+                mi = mask.to(torch.int32)
+                for k in range(kv, kc.shape[1]):
+                    sel = kc[:, k] >= 0
+                    need.index_add_(0, kc[sel, k], mi[sel])
+        if r.get("group_vis") is not None:
+            group = (group or 0) + int(Vl.sum(1)[r["group_vis"].long()].sum())
+    return {"point": point, "group": group, "pairs": None if need is None else int((need > 0).sum())}
 
 
 def relight_table_bytes(method, live: int | None = None) -> int:
@@ -1372,20 +1451,35 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
         per_vertex = rec["vertices"] * (9 * f4 + 3 * f4 + method.vertex_region.element_size())  # R, p, region
     out = num_samples * 3 * f4
     nbytes = vis + brdf + grid + mesh + gbuf + extras + per_vertex + out
+    relit = "L" in frame_kind or "E" in frame_kind
+    # the frame's reads at the grain of their zeros (`nonzero_reads`), where the fine-value path ran
+    # on the live triangles and recorded them; else the live-triangle grain
+    zr = nonzero_reads(method, live_t, rec["reads"], k_v=3 if pixel else 1, pairs=relit) \
+        if live_t is not None and rec.get("reads") else None
     # flops: per shading point, form the three functions and sum eq. 7
     if pixel:
-        flops = rec["shaded"] * (blend_flops(method, 3, nl) + triple_flops(method, nl))
+        flops = zr["point"] if zr else rec["shaded"] * (blend_flops(method, 3, nl) + triple_flops(method, nl))
         if rec.get("groups"):  # the trilinear form by groups ran (`fine_grouped`): its count if smaller
-            flops = min(flops, grouped_flops(method, rec["groups"], rec["shaded"], live=nl))
+            if zr and zr["group"] is not None:
+                grouped = grouped_flops(method, 1, 0, live=zr["group"]) + grouped_flops(method, 0, rec["shaded"], live=1)
+            else:
+                grouped = grouped_flops(method, rec["groups"], rec["shaded"], live=nl)
+            flops = min(flops, grouped)
     else:
-        flops = rec["vertices"] * (blend_flops(method, 1, nl) + triple_flops(method, nl)) + rec["shaded"] * 3 * blend_terms(3)
-    if "L" in frame_kind or "E" in frame_kind:
+        flops = (zr["point"] if zr else rec["vertices"] * (blend_flops(method, 1, nl) + triple_flops(method, nl))) \
+            + rec["shaded"] * 3 * blend_terms(3)
+    if relit:
         env = envmap if envmap is not None else (getattr(method, "_envmap", None) or method.scene.envmap)
         az = method.stats.get("lighting_path") == "azimuthal"            # what the last re-projection ran
         # the grid frames the change projected: all, or those the frame looked up (a lazily set grid,
         # `TripleProduct.fill_lighting`; the frames it did not need are not compulsory work)
         Fp = min(int(method.stats.get("projected_frames", method.grid.size)), method.grid.size)
-        written = grid * Fp // method.grid.size
+        if zr:  # only the (frame, live triangle) pairs some point reads with non-zero visibility
+            written = grid * zr["pairs"] // (method.grid.size * nw)
+            rf = relight_flops(method, env, azimuthal=az, frames=1, live=zr["pairs"])
+        else:
+            written = grid * Fp // method.grid.size
+            rf = relight_flops(method, env, azimuthal=az, frames=Fp, live=nl)
         nbytes += int(env.data.numel()) * f4 + written + (relight_table_bytes(method, nl) if az else 0)  # texels read, grid written
-        flops += relight_flops(method, env, azimuthal=az, frames=Fp, live=nl)
+        flops += rf
     return FrameCost(int(nbytes), int(flops))

@@ -728,6 +728,7 @@ class TripleProduct(Method):
             m = frame.materials.get(region, self.materials[region])
             if m != self.materials[region]:
                 self.edit_material(region, m)
+        self.stats["frame_reads"] = []  # the rows `fast_eval.shade_fine` reads (for `frame_cost`)
         # the fine-value path projects the grid frames it looks up (`fast_eval.shade_fine`)
         lazy = self.config["evaluator"] in ("auto", "fine") and not self.blends and self.config["light_lookup"] != "exact"
         self._set_lighting(frame.envmap, lazy=lazy)
@@ -796,13 +797,14 @@ class TripleProduct(Method):
                       groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
         visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
-        was summed for (`fast_eval.fine_grouped`; 0: per point). ``faces`` / ``vis_rows``: tensors, or
+        was summed for (`fast_eval.fine_grouped`; 0: per point), and the rows the fine-value path read
+        (``stats["frame_reads"]``, filled while the frame shades). ``faces`` / ``vis_rows``: tensors, or
         callables making them, called by `last_frame` (after the frame: bookkeeping is not timed)."""
         self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(shaded),
                                     "faces": faces if callable(faces) else int(faces.numel()),
                                     "vis_rows": vis_rows if callable(vis_rows) else int(vis_rows.numel()),
                                     "vertices": 0 if vertices is None else int(vertices.numel()),
-                                    "groups": int(groups)}
+                                    "groups": int(groups), "reads": self.stats.get("frame_reads")}
 
     def last_frame(self) -> dict:
         """`_record_frame`'s record of the last rendered frame with its deferred counts made ({} before

@@ -204,27 +204,49 @@ def test_frame_cost_tiny_config(scene_frame, n):
     want_b = nv * nw * (4 + ib) + tables + grid + mesh + nv * (9 * 4 + 3 * 4 + 8) \
         + P * (GBUFFER_BYTES_PER_SAMPLE - 24) + out
     want_f = nv * (blend_v + triple) + nh * 3 * (3 + 2)  # Gouraud: 3 weights × RGB + 2 adds
+    if n is None:
+        # at the grain of the zeros: a vertex sums (and blends ρ̃ and L) only over the live triangles
+        # where its own visibility is non-zero (the others add an exact 0 to its eq. 7)
+        Vfine = fast_eval.fine_values(m.V_val.float()[:, None, :])[:, 0][:, live] != 0      # (N_V, n')
+        nz = Vfine[verts].sum(1)
+        assert int(nz.sum()) < nv * nl                   # this scene has such zeros: the grain is tested
+        want_f = sum(int(z) * (3 * (4 + 3) + 3 * (4 + 3)) + _hand_triple(m, nk, True, int(z)) for z in nz) \
+            + nh * 3 * (3 + 2)
     assert (got.bytes, got.flops) == (want_b, want_f)
+    from methods.triple_product import lighting as lt
+
     H, W = frame.envmap.data.shape[:2]
     S = 4 ** m.config["light_supersample"]               # sub-samples per fine triangle (default 2: 16)
     # the re-projection: per sample a rotation (15), the bilinear RGB look-up (24), the weighted sum
     # (6); a map turned about +Y only (`lighting.env_taps_azimuthal`) adds a shift to the base u (1)
     # instead of rotating, and reads the base coordinates (float64 u0 + float32 v0 per sample of the
     # n_theta·n_psi = 2 base frames)
-    from methods.triple_product import lighting as lt
-
     tilted = frame.envmap.rotated([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]])
     turned = frame.envmap.rotated([[0.6, 0.0, 0.8], [0.0, 1.0, 0.0], [-0.8, 0.0, 0.6]])
     assert lt.azimuth_of(tilted.to_world) is None and lt.azimuth_of(turned.to_world) is not None
+    written = grid
+    if n is None:
+        # full tables: only the (grid frame, live triangle) pairs some vertex looks up (non-zero
+        # trilinear weight) and has non-zero visibility on are projected
+        rows, wts = lt.lookup_weights(m.R[verts], m.grid, "trilinear")[:2]
+        need = torch.zeros(F, nl, dtype=torch.bool)
+        for i in range(verts.numel()):
+            for r, wt in zip(rows[i].tolist(), wts[i].tolist()):
+                if wt != 0:
+                    need[r] |= Vfine[verts[i]]
+        pairs = int(need.sum())
+        assert 0 < pairs < F * nl
+        written = pairs * 3 * 4
     for env, per_sample in ((tilted, 45), (turned, 31 if n is None else 45)):  # truncated: the slow path
         m.render(dataclasses.replace(frame, envmap=env), gb)
         assert m.stats["lighting_path"] == ("azimuthal" if per_sample == 31 else "general")
-        # full tables: the live triangles' samples only, and no transform (their fine values are read)
-        relight_f = F * per_sample * nl * S if n is None else F * (per_sample * K * S + 3 * 8 * (K - 20) // 3)
+        # full tables: the live triangles' samples only — of the pairs read —, and no transform
+        # (their fine values are read)
+        relight_f = per_sample * pairs * S if n is None else F * (per_sample * K * S + 3 * 8 * (K - 20) // 3)
         table_b = 2 * (nl if n is None else K) * S * (8 + 4) if per_sample == 31 else 0
         for kind in ("L", "VL", "E", "VBL"):
             c = m.frame_cost(kind, P)
-            assert (c.bytes, c.flops) == (want_b + H * W * 3 * 4 + grid + table_b, want_f + relight_f), kind
+            assert (c.bytes, c.flops) == (want_b + H * W * 3 * 4 + written + table_b, want_f + relight_f), kind
     for bad in ("P", "X", ""):
         with pytest.raises(ValueError):
             m.frame_cost(bad, P)
@@ -240,18 +262,23 @@ def test_frame_cost_tiny_config(scene_frame, n):
     want_b = rows.numel() * nw * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
     want_f = nh * (nw * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
     if n is None:  # full tables: summed by groups (fast_eval.fine_grouped) — its count is smaller
-        from methods.triple_product import brdf_table as bt, lighting as lt
+        from methods.triple_product import brdf_table as bt
 
         s = torch.nonzero(hit).squeeze(-1)
         Rs = lt.local_frames(torch.nn.functional.normalize(gb.normal[s].float(), dim=-1), "grid")
         l0 = lt.lookup_weights(Rs, pixel.grid, "trilinear")[0][:, 0]     # a grid cell: its first row
         b0 = bt.outgoing_weights((Rs @ gb.wo[s].float()[..., None])[..., 0], pixel.outgoing)[0][:, 0] \
             + gb.region[s].long() * 2                                       # ωo cell in its region's table
-        groups = torch.unique(torch.stack([idx[s], l0[:, None].expand(-1, 3), b0[:, None].expand(-1, 3)], -1)
-                              .reshape(-1, 3), dim=0).shape[0]
+        uniq = torch.unique(torch.stack([idx[s], l0[:, None].expand(-1, 3), b0[:, None].expand(-1, 3)], -1)
+                            .reshape(-1, 3), dim=0)
+        groups = uniq.shape[0]
+        # at the grain of the zeros: a sample blends and sums over the live triangles where one of
+        # its vertex rows (weight ≠ 0) is non-zero; a group sums over its own row's non-zero ones
+        vs = (Vfine[idx[s]] & (w[s] != 0)[..., None]).any(1).sum(1)                       # (hits,)
+        want_f = sum(int(z) * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + _hand_triple(m, nk, True, int(z)) for z in vs)
         # per group and channel: 4 products V̂·L̂_j and 16 sums of (·ρ̂_k), 2 flops each, per fine
         # triangle; per sample and channel: 3 vertices × (16 products and adds + 4 L weights) + 2 adds
-        want_f = min(want_f, groups * 3 * nl * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
+        want_f = min(want_f, int(Vfine[uniq[:, 0]].sum()) * 3 * (4 + 2 * 16) + nh * 3 * (3 * (2 * 16 + 4) + 2))
         assert 0 < groups < 3 * nh
     assert (c.bytes, c.flops) == (want_b, want_f)
     # the fine-value tables of the full-table fast path are run-time arrays: memory() reports them
@@ -871,11 +898,14 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
                 # the compulsory count: the frames projected, not the whole grid
                 assert lazy_m.stats["projected_frames"] == int(done.sum())
                 P = gb.num_samples
-                part = lazy_m.frame_cost(kind, P)
+                part = lazy_m.frame_cost(kind, P)      # the grain of the zeros: the pairs read
+                rec = lazy_m.stats["last_frame"]
+                reads, rec["reads"] = rec["reads"], None
+                coarse = lazy_m.frame_cost(kind, P)    # the live grain: the projected frames whole
                 lazy_m.stats["projected_frames"] = lazy_m.grid.size
                 whole = lazy_m.frame_cost(kind, P)
-                lazy_m.stats["projected_frames"] = int(done.sum())
-                assert part.flops < whole.flops and part.bytes < whole.bytes
+                lazy_m.stats["projected_frames"], rec["reads"] = int(done.sum()), reads
+                assert part.flops <= coarse.flops < whole.flops and part.bytes <= coarse.bytes < whole.bytes
             full_m._set_lighting(frame.envmap)                           # the whole grid, eagerly
             assert full_m._lazy_light is None
             want = full_m.render(frame, gb)
