@@ -411,7 +411,7 @@ def test_glossy_samples_kernel_equals_its_definition(order, compiled, monkeypatc
     wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
     reg = torch.randint(0, R, (P,), generator=gen)
     ef = torch.rand(M, 9, generator=gen)
-    fg = torch.randint(0, Vg, (M, 3), generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
     lg3 = torch.randn(3, Vg, n2, generator=gen)
     kd, ks = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen)
     G = torch.rand(R, n2, generator=gen)
@@ -470,7 +470,8 @@ def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
     normal = torch.randn(P, 3, generator=gen)
     wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
     reg = torch.randint(0, R, (P,), generator=gen)
-    args = (face, bary, normal, wo, reg, torch.rand(M, 9, generator=gen), torch.randint(0, Vg, (M, 3), generator=gen),
+    args = (face, bary, normal, wo, reg, torch.rand(M, 9, generator=gen),
+            torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32),
             torch.randn(3, Vg, order * order, generator=gen), torch.rand(R, 3, generator=gen),
             torch.rand(R, 3, generator=gen), torch.rand(R, order * order, generator=gen), torch.tensor([False, True, False]))
     g = torch.randperm(P, generator=gen)[:2500].sort().values
