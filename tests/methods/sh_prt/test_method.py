@@ -230,6 +230,37 @@ def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
         assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
 
 
+@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
+def test_pixel_pass_face_rows_are_the_gbuffer_regions(scene_name):
+    """The pixel pass takes kd and the glossy flag from its face's row (`SHPRT._face_materials`,
+    session 25) instead of the G-buffer's region: at every hit the row equals kd and the glossy
+    flag of the sample's region (a G-buffer's region is its face's), and it follows the materials."""
+    import dataclasses
+
+    from methods.sh_prt.method import SHPRT
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=2, bounces=0, rays=4)
+    m.precompute(scene)
+    frame = make_sequence(scene, "V", n_frames=1, seed=1)[0]
+    frame = dataclasses.replace(frame, materials=dict(scene.materials))
+    gb = make_gbuffer(scene, frame, 1)
+    kd = m._materials(frame)[0]
+    fk = m._face_materials(kd)
+    f, r = gb.face[gb.hit], gb.region[gb.hit]
+    assert f.numel() > 0 and fk.shape == (m.F.shape[0], 4)
+    assert torch.equal(fk[f, :3], kd[r])
+    assert torch.equal(fk[f, 3], m.glossy_regions[r].float())
+    assert m._face_materials(kd) is fk                                        # kept while kd is
+    name = m.regions[int(r[0])]
+    mats = dict(frame.materials, **{name: dataclasses.replace(frame.materials[name], kd=(0.125, 0.25, 0.5))})
+    kd2 = m._materials(dataclasses.replace(frame, materials=mats))[0]
+    assert torch.equal(m._face_materials(kd2)[f, :3], kd2[r]) and not torch.equal(kd2, kd)
+
+
 @pytest.mark.parametrize("C", [1, 3])
 def test_apply_lighting_equals_its_einsum(C):
     """The lighting stage's t·l and M l (`apply_lighting`: products over transfer rows stored
