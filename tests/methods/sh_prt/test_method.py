@@ -210,7 +210,8 @@ def test_lighting_frame_equals_fresh_precompute(kind):
 @pytest.mark.parametrize("scene_name", ["alcove", "creature"])
 def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
     """`SHPRT.render` (the diffuse term in one compiled pass, the glossy term on the glossy samples)
-    = `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
+    = `render_reference` (the per-chunk eager `_shade`) to float32 round-off; at 1 and 2×2 samples
+    per pixel (the glossy samples' pixel by a shift: `_render_fast`)."""
     import dataclasses
 
     from methods.sh_prt.method import SHPRT
@@ -222,9 +223,9 @@ def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
     scene = get_scene(scene_name, "test")
     m = SHPRT(order=3, bounces=0, rays=16)
     m.precompute(scene)
-    for frame in make_sequence(scene, "VBL", n_frames=2, seed=1):
+    for i, frame in enumerate(make_sequence(scene, "VBL", n_frames=2, seed=1)):
         frame = dataclasses.replace(frame, materials=dict(scene.materials))
-        gb = make_gbuffer(scene, frame, 1)
+        gb = make_gbuffer(scene, frame, 1 + i)
         ref = m.render_reference(frame, gb)
         img = m.render(frame, gb)
         assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
