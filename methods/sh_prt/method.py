@@ -91,6 +91,16 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     session 23's code (`python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code
     OTHER_CHECKOUT --kinds V L E VL --frames 15 --threads 1`, load ~5): V 1.04×, L 2.40×, E 2.17×,
     VL 1.02×.
+  * session 25 (V frames): the glossy pass gathers with int32 face, region and l' row indices (``fg``
+    int32; the pass alone 1.12-1.18×), the pixel pass takes kd and the glossy flag from a per-face
+    row (`_face_materials`; no per-sample region load; 1.10-1.13×), the glossy samples' pixel by a
+    shift; all bit-identical. Same process against session 24's code (creature bench, 1 thread,
+    process CPU, load 4-6, 2-3 runs each): V 1.09-1.13×, VL 1.04-1.08×, L 0.97-1.06×, E 1.02-1.07×.
+    `--micro` after (load ~4): V 5.95 ms = pixels 2.01 (7.7 ns per sample) + glossy 3.05 (84 ns per
+    glossy sample) + ~0.9 outside the kernels. Tried and not kept: int32 g (1.00×), the glossy
+    samples' G-buffer rows gathered eagerly before the pass (0.85×), the radiance stored
+    channel-major (0.98×), the region by the face inside the glossy pass (1.01×); alternatives to
+    scatter_add_ (np.add.at 0.26×, a bincount per channel 0.87×, index_put_ accumulate 0.88×).
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
