@@ -17,8 +17,8 @@ warm-up, process CPU ms), with its achieved GB/s or GFLOP/s next to the machine'
          `sh.project_latlong`, which it replaced), rotate (L: the cached coefficients), t·l and M l
          (`apply_lighting`; bytes: t or M streamed once; also the einsum it replaced), the face-corner
          table e[F];
-  view   the per-pixel diffuse pass (`_pixels`; bytes: the G-buffer inputs, region and the pixels
-         written), the glossy selection (nonzero of the pass's flags), the glossy pass (`_glossy_samples`: ns
+  view   the per-pixel diffuse pass (`_pixels`; bytes: the G-buffer inputs it reads — face, hit,
+         bary, normal, wo; not the region — the face tables and the pixels written), the glossy selection (nonzero of the pass's flags), the glossy pass (`_glossy_samples`: ns
          per glossy sample and GFLOP/s of the counted (18 + 3 + 1 + 6)·n² flops per sample).
 """
 from __future__ import annotations
@@ -112,13 +112,13 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     S2, n = gb.spp_side ** 2, gb.height * gb.width
     face, bary, hit, normal, wo, reg = gb.face, gb.bary.float(), gb.hit, gb.normal.float(), gb.wo.float(), gb.region
     vecs = [shm._pixel_rows(x, n, S2) for x in (bary, normal, wo)]
-    rows = (face.view(n, S2), hit.view(n, S2), reg.view(n, S2), *(c for v in vecs for c in v))
-    glf = m.glossy_regions.float()
+    rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+    fk = m._face_materials(kd)
     kernel = shm._pixels_kernel(tuple(len(v) for v in vecs))
-    run_pix = lambda: map_rows(kernel, rows, (m._ef, kd, glf), chunk=max(1, shm.PIXEL_CHUNK // S2))  # noqa: E731
+    run_pix = lambda: map_rows(kernel, rows, (m._ef, fk), chunk=max(1, shm.PIXEL_CHUNK // S2))  # noqa: E731
     t_pix = ms(run_pix)
     P = gb.num_samples
-    b_pix = P * (8 + 8 + 1 + 12 + 12 + 8) + n * 12 + m._ef.numel() * 4
+    b_pix = P * (8 + 1 + 12 + 12 + 8) + n * 12 + (m._ef.numel() + fk.numel()) * 4
     res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
                                      "triad GB/s": B / 1e9}
     out = run_pix()

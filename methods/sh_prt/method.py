@@ -91,6 +91,16 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     session 23's code (`python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --precompute-code
     OTHER_CHECKOUT --kinds V L E VL --frames 15 --threads 1`, load ~5): V 1.04×, L 2.40×, E 2.17×,
     VL 1.02×.
+  * session 25 (V frames): the glossy pass gathers with int32 face, region and l' row indices (``fg``
+    int32; the pass alone 1.12-1.18×), the pixel pass takes kd and the glossy flag from a per-face
+    row (`_face_materials`; no per-sample region load; 1.10-1.13×), the glossy samples' pixel by a
+    shift; all bit-identical. Same process against session 24's code (creature bench, 1 thread,
+    process CPU, load 4-6, 2-3 runs each): V 1.09-1.13×, VL 1.04-1.08×, L 0.97-1.06×, E 1.02-1.07×.
+    `--micro` after (load ~4): V 5.95 ms = pixels 2.01 (7.7 ns per sample) + glossy 3.05 (84 ns per
+    glossy sample) + ~0.9 outside the kernels. Tried and not kept: int32 g (1.00×), the glossy
+    samples' G-buffer rows gathered eagerly before the pass (0.85×), the radiance stored
+    channel-major (0.98×), the region by the face inside the glossy pass (1.01×); alternatives to
+    scatter_add_ (np.add.at 0.26×, a bincount per channel 0.87×, index_put_ accumulate 0.88×).
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -144,24 +154,30 @@ RENDER_CHUNK = 1 << 14
 PIXEL_CHUNK = 1 << 18
 
 
-def _pixels_impl(face: Tensor, hit: Tensor, reg: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
+def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
                  ) -> tuple[Tensor, ...]:
     """The box-filtered diffuse term ρ·e of the NON-glossy samples of n pixels (Sloan 2002 §7), one
     (n,) tensor per colour channel: per sample e Gouraud-interpolated from the face-corner table ef
-    (M, 9) = e[F] (corner-major, `SHPRT._light_stage`), ρ = kd (R, 3) of its region, clamped at 0,
-    zero where it misses, n·ωo ≤ 0 or its region is glossy (glf (R,) 1.0: `_glossy_samples` shades
-    those samples whole); face (n, S²) int64 (−1 on a miss), hit (n, S²) bool, reg (n, S²) int64, then
-    ``xs``: bary (2), normal (3) and wo (3) components, each array as ``layout`` says (`_pixel_rows`):
-    one (n, S², k) tensor (1) or k (n, S²) component tensors (k), then ef, kd, glf. The S² sub-samples
-    are summed unrolled (one thread per pixel) and scaled by 1/S², as `GBuffer.resolve`'s mean.
-    Returns the pixels (n, 3) and which of their samples are hits of a glossy region (n, S²) bool,
-    both stacked in the compiled kernel (the eager stacks of the channels and flags were ~4 % of a V
-    frame in `perf`)."""
+    (M, 9) = e[F] (corner-major, `SHPRT._light_stage`), ρ = kd of its face's region, clamped at 0,
+    zero where it misses, n·ωo ≤ 0 or its region is glossy (`_glossy_samples` shades those samples
+    whole); face (n, S²) int64 (−1 on a miss), hit (n, S²) bool, then ``xs``: bary (2), normal (3)
+    and wo (3) components, each array as ``layout`` says (`_pixel_rows`): one (n, S², k) tensor (1)
+    or k (n, S²) component tensors (k), then ef and fk (M, 4): per face the kd of its region and 1.0
+    where the region is glossy (`SHPRT._face_materials`). The S² sub-samples are summed unrolled
+    (one thread per pixel) and scaled by 1/S², as `GBuffer.resolve`'s mean. Returns the pixels (n, 3)
+    and which of their samples are hits of a glossy region (n, S²) bool, both stacked in the compiled
+    kernel (the eager stacks of the channels and flags were ~4 % of a V frame in `perf`).
+
+    The region of a hit is its face's (`references.gbuffer`: region = face_region[face]), so the
+    pass takes kd and the glossy flag from the face's row of fk, next to its ef row, instead of
+    loading the G-buffer's region (int64) per sample and gathering kd (R, 3) and the glossy flags
+    by it (session 25): the same values in the same products (bit-identical), one load stream and
+    the region's clamp and wrap per sample fewer."""
     arrays, i = [], 0
     for k in layout:
         arrays.append(xs[i:i + k])
         i += k
-    ef, kd, glf = xs[i:]
+    ef, fk = xs[i:]
     B, Nn, O = arrays
 
     def comp(a, s: int, j: int) -> Tensor:
@@ -171,23 +187,23 @@ def _pixels_impl(face: Tensor, hit: Tensor, reg: Tensor, *xs: Tensor, layout: tu
     acc = [None, None, None]
     glossy = []
     for s in range(S2):
-        f, r = face[:, s].clamp_min(0), reg[:, s].clamp_min(0)
+        f = face[:, s].clamp_min(0)
         u, v = comp(B, s, 0), comp(B, s, 1)
         w0 = 1.0 - u - v
-        gs = hit[:, s] & (glf[r] != 0)
+        gs = hit[:, s] & (fk[f, 3] != 0)
         ndo = comp(Nn, s, 0) * comp(O, s, 0) + comp(Nn, s, 1) * comp(O, s, 1) + comp(Nn, s, 2) * comp(O, s, 2)
         keep = (ndo > 0) & hit[:, s] & ~gs
         for c in range(3):
             ev = ef[f, c] * w0 + ef[f, 3 + c] * u + ef[f, 6 + c] * v
-            x = torch.where(keep, (kd[r, c] * ev).clamp_min(0.0), 0.0)
+            x = torch.where(keep, (fk[f, c] * ev).clamp_min(0.0), 0.0)
             acc[c] = x if acc[c] is None else acc[c] + x
         glossy.append(gs)
     return torch.stack(acc, -1) * (1.0 / S2), torch.stack(glossy, -1)
 
 
-# `_pixels` without Inductor's bounds check of each gather (a TORCH_CHECK per index: face, region and
-# glf rows per sub-sample): the indices are in range by construction (``face`` and ``reg`` clamped at
-# 0, and < M and R for a G-buffer of this scene). Same process, creature bench, 1 thread, load ~10:
+# `_pixels` without Inductor's bounds check of each gather (a TORCH_CHECK per index: the face's rows
+# of ef and fk per sub-sample; before session 25 also the region's): the indices are in range by
+# construction (``face`` clamped at 0, and < M for a G-buffer of this scene). Same process, creature bench, 1 thread, load ~10:
 # 3.99 ms against 4.27 ms (1.07×). Vectorizing it (`GLOSSY_OPTIONS`' tiling off) was 0.53×: its loads
 # are all strided (n, S², k) components and indirect rows, gathered lane by lane.
 @functools.lru_cache(maxsize=None)
@@ -231,7 +247,7 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     `VIEW_COSINE_BRDFS`), zero where n·ωo ≤ 0 (Sloan 2002 §6-7) → (Qg, 3), first of the returned
     tuple (the rest: per-sample scalars, see below; A, S: `_sh_factor_tables`). e from the face-corner
     table ef (M, 9); l' Gouraud-interpolated from the per-vertex M l in the channel-major layout lg3
-    (3, Vg, n²) at the glossy rows fg (M, 3) = gpos[F] of the face's corners; kd, ks (R, 3), G (R, n²),
+    (3, Vg, n²) at the glossy rows fg (M, 3) int32 = gpos[F] of the face's corners; kd, ks (R, 3), G (R, n²),
     vcos (R,) bool of the frame's materials (`SHPRT._materials`).
 
     Per channel ONE reduction over the coefficients i ≥ 1 of (w₀ l'_a₀ + u l'_a₁ + v l'_a₂)_i ·
@@ -269,7 +285,12 @@ def _glossy_samples_impl(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, 
     --frames 21 --threads 1``); equal to the buffer form to 1.2e-7 of the image's peak. The float32
     tables reproduce `sh_terms` (float64) to 7e-8 of the largest term at order 5, 1.3e-6 at order 7
     and 5e-6 at order 10 (the rounded monomial coefficients of the higher Legendre polynomials)."""
-    f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
+    # int32 face, region and l' row indices (fg int32, `SHPRT._render_fast`; session 25): Inductor
+    # computes the gather addresses of the vectorized loops on 8-lane int32 vectors instead of two
+    # 4-lane int64 halves (compares, blends, stores), and the per-sample index outputs below are
+    # half the bytes. Same process, creature bench, 1 thread: the glossy pass 1.12-1.18x,
+    # bit-identical.
+    f, r = face[g].clamp_min(0).int(), reg[g].clamp_min(0).int()
     u, v = bary[g, 0], bary[g, 1]
     w0 = 1.0 - u - v
     nx, ny, nz = normal[g, 0], normal[g, 1], normal[g, 2]                     # scalar components: no
@@ -489,7 +510,8 @@ class SHPRT(Method):
         self._lg = None         # (Vg, n², 3) M_x l (a view of _lg3)
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
-        self._fg = None         # (M, 3) rows of l' at each face's corners (gpos[F]; static)
+        self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
+        self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
         self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
         self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
         self._relight = None    # (that state, the lighting-only frame cache: `_relight_build`)
@@ -700,20 +722,20 @@ class SHPRT(Method):
         S2 = gb.spp_side ** 2
         n = gb.height * gb.width
         if self._fg is None or self._fg.device != dev:
-            self._fg = self.gpos.to(dev)[self.F.to(dev)]                           # (M, 3) rows of l'
+            self._fg = self.gpos.to(dev)[self.F.to(dev)].int()                     # (M, 3) rows of l', int32
         state = (frame.camera, self._mat[0], gb.height, gb.width, gb.spp_side, gb.num_samples, str(dev))
         relight = (frame.changed <= {"light"} and self._view_state == state and self.t.shape[-1] == 1)
         self._view_state = state
         if not relight:
             self._relight = None
-        glf = self.glossy_regions.to(dev).float()
-        for x in (self._ef, self._fg, kd, ks, G, vcos, glf):  # per-scene sizes: one compiled kernel
+        fk = self._face_materials(kd)
+        for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
             torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
         vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
-        rows = (face.view(n, S2), hit.view(n, S2), reg.view(n, S2), *(c for v in vecs for c in v))
-        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, kd, glf),
+        rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
                        chunk=max(1, PIXEL_CHUNK // S2))
         img = out[0]                                                              # (n, 3)
         if relight and self._relight is not None and self._relight[0] == state:
@@ -737,9 +759,22 @@ class SHPRT(Method):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             vals = _glossy_blocks(g, args) * (1.0 / S2)
-            # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here)
-            img.scatter_add_(0, (g // S2)[:, None].expand(-1, 3), vals)
+            # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here). The pixel of a
+            # sample: a shift where S² is a power of two (torch's int64 floor division was 0.09 ms
+            # of a creature V frame against 0.02, 1 thread; the same non-negative indices).
+            pix = g >> (S2.bit_length() - 1) if S2 & (S2 - 1) == 0 else g // S2
+            img.scatter_add_(0, pix[:, None].expand(-1, 3), vals)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+
+    def _face_materials(self, kd: Tensor) -> Tensor:
+        """(M, 4) per face: kd (`_materials`' (R, 3)) of its region and 1.0 where the region is glossy,
+        the pixel pass's per-face material row (`_pixels_impl`); kept while ``kd`` is the same
+        tensor (`_materials` returns its cached one while the materials are equal)."""
+        if self._fk is None or self._fk[0] is not kd:
+            fr = torch.as_tensor(self.scene.rest_geometry().face_region).to(kd.device).long()
+            glf = self.glossy_regions.to(kd.device).float()
+            self._fk = (kd, torch.cat([kd, glf[:, None]], 1)[fr].contiguous())
+        return self._fk[1]
 
     def _relight_build(self, g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
                        kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, S2: int) -> dict:

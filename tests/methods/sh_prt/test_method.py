@@ -210,7 +210,8 @@ def test_lighting_frame_equals_fresh_precompute(kind):
 @pytest.mark.parametrize("scene_name", ["alcove", "creature"])
 def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
     """`SHPRT.render` (the diffuse term in one compiled pass, the glossy term on the glossy samples)
-    = `render_reference` (the per-chunk eager `_shade`) to float32 round-off."""
+    = `render_reference` (the per-chunk eager `_shade`) to float32 round-off; at 1 and 2×2 samples
+    per pixel (the glossy samples' pixel by a shift: `_render_fast`)."""
     import dataclasses
 
     from methods.sh_prt.method import SHPRT
@@ -222,12 +223,43 @@ def test_fast_render_equals_reference(scene_name, compiled, monkeypatch):
     scene = get_scene(scene_name, "test")
     m = SHPRT(order=3, bounces=0, rays=16)
     m.precompute(scene)
-    for frame in make_sequence(scene, "VBL", n_frames=2, seed=1):
+    for i, frame in enumerate(make_sequence(scene, "VBL", n_frames=2, seed=1)):
         frame = dataclasses.replace(frame, materials=dict(scene.materials))
-        gb = make_gbuffer(scene, frame, 1)
+        gb = make_gbuffer(scene, frame, 1 + i)
         ref = m.render_reference(frame, gb)
         img = m.render(frame, gb)
         assert (img - ref).abs().max().item() <= 1e-5 * max(ref.abs().max().item(), 1e-6)
+
+
+@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
+def test_pixel_pass_face_rows_are_the_gbuffer_regions(scene_name):
+    """The pixel pass takes kd and the glossy flag from its face's row (`SHPRT._face_materials`,
+    session 25) instead of the G-buffer's region: at every hit the row equals kd and the glossy
+    flag of the sample's region (a G-buffer's region is its face's), and it follows the materials."""
+    import dataclasses
+
+    from methods.sh_prt.method import SHPRT
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=2, bounces=0, rays=4)
+    m.precompute(scene)
+    frame = make_sequence(scene, "V", n_frames=1, seed=1)[0]
+    frame = dataclasses.replace(frame, materials=dict(scene.materials))
+    gb = make_gbuffer(scene, frame, 1)
+    kd = m._materials(frame)[0]
+    fk = m._face_materials(kd)
+    f, r = gb.face[gb.hit], gb.region[gb.hit]
+    assert f.numel() > 0 and fk.shape == (m.F.shape[0], 4)
+    assert torch.equal(fk[f, :3], kd[r])
+    assert torch.equal(fk[f, 3], m.glossy_regions[r].float())
+    assert m._face_materials(kd) is fk                                        # kept while kd is
+    name = m.regions[int(r[0])]
+    mats = dict(frame.materials, **{name: dataclasses.replace(frame.materials[name], kd=(0.125, 0.25, 0.5))})
+    kd2 = m._materials(dataclasses.replace(frame, materials=mats))[0]
+    assert torch.equal(m._face_materials(kd2)[f, :3], kd2[r]) and not torch.equal(kd2, kd)
 
 
 @pytest.mark.parametrize("C", [1, 3])
@@ -411,7 +443,7 @@ def test_glossy_samples_kernel_equals_its_definition(order, compiled, monkeypatc
     wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
     reg = torch.randint(0, R, (P,), generator=gen)
     ef = torch.rand(M, 9, generator=gen)
-    fg = torch.randint(0, Vg, (M, 3), generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
     lg3 = torch.randn(3, Vg, n2, generator=gen)
     kd, ks = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen)
     G = torch.rand(R, n2, generator=gen)
@@ -470,7 +502,8 @@ def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
     normal = torch.randn(P, 3, generator=gen)
     wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
     reg = torch.randint(0, R, (P,), generator=gen)
-    args = (face, bary, normal, wo, reg, torch.rand(M, 9, generator=gen), torch.randint(0, Vg, (M, 3), generator=gen),
+    args = (face, bary, normal, wo, reg, torch.rand(M, 9, generator=gen),
+            torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32),
             torch.randn(3, Vg, order * order, generator=gen), torch.rand(R, 3, generator=gen),
             torch.rand(R, 3, generator=gen), torch.rand(R, order * order, generator=gen), torch.tensor([False, True, False]))
     g = torch.randperm(P, generator=gen)[:2500].sort().values
