@@ -859,8 +859,11 @@ class SHPRT(Method):
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """Compulsory work of one frame (Sloan 2002 §7 run time; ``methods.base.FrameCost``).
 
-        Every frame: per sample the G-buffer inputs, its region id (int64) and the RGB output; the
-        faces and the per-vertex e = t·l (V, 3) and l' = M l (Vg, n², 3) read once; flops: the
+        Every frame: per sample the G-buffer inputs and the RGB output; the faces, the per-face
+        material rows (M, 4) float32 (kd and the glossy flag of the face's region: a hit's region is
+        its face's, so the per-sample region is not needed — session 25, `_face_materials`), the
+        region id (int64) of the glossy samples (the glossy pass's BRDF rows), and the per-vertex
+        e = t·l (V, 3) and l' = M l (Vg, n², 3) read once; flops: the
         barycentric mix of e (18) and ρ·e (3) per sample, and per glossy sample the mix of l'
         (18 n²), y(R) (≈ 3 n² for the polynomial/recurrence), G_l y(R) (n²) and its dot with l'
         (6 n²). The glossy share of the samples is that of the last render (before any render: the
@@ -891,11 +894,14 @@ class SHPRT(Method):
             share = ng / max(nv, 1)
         qg = int(round(share * num_samples))
         e_b, lg_b = nv * 3 * f4, ng * n2 * 3 * f4
-        nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 8 + 12) + tensor_bytes(self.F) + e_b + lg_b
+        nf = int(self.F.shape[0])
+        nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 12) + tensor_bytes(self.F) + nf * 4 * f4 + qg * 8 \
+            + e_b + lg_b
         flops = num_samples * 21 + qg * (18 + 3 + 1 + 6) * n2
         light = "L" in frame_kind or "E" in frame_kind
         if set(frame_kind) <= {"L", "E"} and int(self.t.shape[-1]) == 1:   # the relight cache
-            nbytes += tensor_bytes(self.t) + e_b - lg_b + qg * (2 * n2 * f4 + 6 * f4 + 8)
+            # (no glossy pass: neither l' nor the glossy samples' regions are read)
+            nbytes += tensor_bytes(self.t) + e_b - lg_b - qg * 8 + qg * (2 * n2 * f4 + 6 * f4 + 8)
             flops += (sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * nv * n2
                       - qg * (18 + 3 + 1 + 6) * n2 + qg * (12 * n2 + 9))
         elif light:

@@ -122,7 +122,14 @@ def test_with_bounces_sums_the_passes(alcove):
     qg = int(round(float(m0.glossy_regions[gb.region[gb.hit].cpu()].float().mean()) * gb.num_samples)) \
         if m0._last_gbuffer is not None else int(round(ng / nv * gb.num_samples))
     v0 = m0.frame_cost("V", gb.num_samples)
-    assert g0.bytes - v0.bytes == m0.t.numel() * 4 + nv * 12 - ng * n2 * 12 + qg * (8 * n2 + 32)
+    # a V frame: per sample the G-buffer inputs and the output, the faces, per face its material row
+    # (kd + glossy flag, 4 float32: a hit's region is its face's), the glossy samples' regions, e and l'
+    from methods.base import GBUFFER_BYTES_PER_SAMPLE
+
+    nf = m0.F.shape[0]
+    assert v0.bytes == gb.num_samples * (GBUFFER_BYTES_PER_SAMPLE + 12) + m0.F.numel() * m0.F.element_size() \
+        + nf * 16 + qg * 8 + nv * 12 + ng * n2 * 12
+    assert g0.bytes - v0.bytes == m0.t.numel() * 4 + nv * 12 - ng * n2 * 12 - qg * 8 + qg * (8 * n2 + 32)
     vl0 = m0.frame_cost("VL", gb.num_samples)  # a view change too: no cache, M read
     assert vl0.bytes - v0.bytes == m0.t.numel() * 4 + m0.M.numel() * 4 + nv * 12 + ng * n2 * 12
 
