@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from methods.core.spherical_haar import inverse, support_areas, triple_integral, triple_integral_sparse
+from methods.core.spherical_haar import inverse, support_areas, triple_integral_sparse
 from methods.triple_product import TripleProduct, fast_eval
 from references.gbuffer import make_gbuffer
 from scenes.library import SCENES, get_scene
