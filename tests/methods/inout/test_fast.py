@@ -104,20 +104,48 @@ def test_every_branch_equals_reference(precomputed, monkeypatch, patch):
         _assert_sequence_equal(m, kind, spp_side=2)
 
 
-def test_lighting_is_computed_only_where_seen(precomputed):
-    """A lighting change computes c_k for the vertices the view references (in whole blocks), not for
-    every vertex; a frame that then sees other vertices fills those in (the image stays exact)."""
-    m = precomputed("sphere_plane")
-    fast_m, _ = _pair(m)
-    frames = make_sequence(m.scene, "V", n_frames=3, seed=5)
-    fast_m.render(frames[0], make_gbuffer(m.scene, frames[0], 1))
+def _c_reference(m: InOut, L: torch.Tensor) -> dict[str, torch.Tensor]:
+    """c (Vr, 3, K) of every vertex of every region under L by the reference product
+    (`InOut._ensure_c_reference`: T̃ · L, torch's sparse product), in the fast path's layout."""
+    r = copy.copy(m)
+    r._reset_cache()
+    r.L = L
+    r._ensure_c_reference()
+    return {reg.name: r._c[reg.name].transpose(1, 2) for reg in m.regions}
+
+
+def _assert_c_rows_equal(m: InOut, want: dict[str, torch.Tensor]) -> None:
+    for name, v in m._cf_valid.items():
+        got, ref = m._cf[name][v], want[name][v]
+        assert float((got - ref).abs().max()) <= 1e-6 * max(float(ref.abs().max()), 1e-30), name
+
+
+@pytest.mark.parametrize("shading", ["sample", "vertex"])
+def test_lighting_is_computed_for_every_vertex_first_then_where_seen(precomputed, shading):
+    """The first lighting after the precompute computes c_k for every vertex of every region (a V
+    sequence's later frames then do no lighting work); a later lighting change computes c_k for the
+    vertices the view references (in whole blocks), not for every vertex, and a frame that then sees
+    other vertices fills those in. Every computed row equals the reference c = T̃ · L, the image
+    stays exact."""
+    m0 = precomputed("sphere_plane")
+    fast_m, _ = _pair(m0)
+    fast_m._config = {**m0._config, "shading": shading}
+    frames = make_sequence(m0.scene, "L", n_frames=3, seed=5)
+    fast_m.render(frames[0], make_gbuffer(m0.scene, frames[0], 1))
+    assert fast_m._cf_valid.keys() == {reg.name for reg in m0.regions}
+    assert all(bool(v.all()) for v in fast_m._cf_valid.values())     # every vertex under the first lighting
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    fast_m.render(frames[1], make_gbuffer(m0.scene, frames[1], 1))  # a lighting change: lazily
     valid = {name: v.clone() for name, v in fast_m._cf_valid.items()}
     assert any(not bool(v.all()) for v in valid.values())            # the far side was not computed
-    for frame in frames[1:]:
-        fast_m.render(frame, make_gbuffer(m.scene, frame, 1))
+    assert any(bool(v.any()) for v in valid.values())
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    for frame in make_sequence(m0.scene, "V", n_frames=3, seed=6)[1:]:  # other views, the same lighting
+        fast_m.render(frame, make_gbuffer(m0.scene, frame, 1))
     for name, v in fast_m._cf_valid.items():
         assert bool((v | ~valid[name]).all())                          # once valid, stays valid (no relight)
-    _assert_sequence_equal(m, "V", n_frames=3, seed=5)
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    _assert_sequence_equal(_vertex(m0) if shading == "vertex" else m0, "L", n_frames=3, seed=5)
 
 
 def _random_csr(rows: int, D: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
