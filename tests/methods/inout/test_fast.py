@@ -284,6 +284,50 @@ def test_hit_face_counts_is_the_histogram_of_the_hits_faces(monkeypatch):
             assert fast.hit_face_counts(face, region, hit, face_region)[1]
 
 
+def test_hit_face_mask_is_the_histogram_of_the_hits_faces():
+    """``csr.hit_face_mask`` (the native pass of the vertex view) against ``fast.hit_face_counts``
+    and the vertices of its faces: the vertex mask of the faces with a hit, their count, the miss
+    count and the region flag, with out-of-range faces on hits (clamped by both), misses of any face
+    and region, no sample; non-int64 / strided arrays are refused (None: the caller takes the
+    compiled pass)."""
+    from methods.inout import csr
+
+    if not csr.available():
+        pytest.skip("no native kernel")
+    g = torch.Generator().manual_seed(7)
+    M, nv = 23, 31
+    face_region = torch.arange(M) % 3
+    face_gl = torch.randint(0, nv, (3, M), generator=g, dtype=torch.int32)
+    for q in (0, 1, 1000, 70000):
+        face = torch.randint(-3, M + 3, (q,), generator=g)
+        hit = torch.rand(q, generator=g) < 0.8
+        region = face_region[face.clamp(0, M - 1)]
+        region[~hit] = torch.randint(0, 3, (int((~hit).sum()),), generator=g)  # never checked
+        for flip in (False, True):
+            if flip and q:
+                k = int(hit.nonzero()[-1, 0])
+                region[k] = (region[k] + 1) % 3
+            vmask, nfaces, misses, bad = csr.hit_face_mask(face, region, hit, face_region, face_gl, nv)
+            counts, want_bad = fast.hit_face_counts(face, region, hit, face_region)
+            faces = (counts[:M] > 0).nonzero(as_tuple=True)[0]
+            want = torch.zeros(nv, dtype=torch.bool)
+            want[face_gl[:, faces].reshape(-1).long()] = True
+            assert vmask.dtype == torch.bool and torch.equal(vmask, want) and nfaces == faces.numel()
+            assert misses == int(counts[M]) == int((~hit).sum()) and bad == want_bad == (flip and q > 0)
+    assert csr.hit_face_mask(face.int(), region, hit, face_region, face_gl, nv) is None
+    assert csr.hit_face_mask(face[::2], region[::2], hit[::2], face_region, face_gl, nv) is None
+    assert csr.hit_face_mask(face, region, hit, face_region, face_gl.long(), nv) is None
+
+
+def test_vertex_view_without_the_native_pass_equals_reference(precomputed, monkeypatch):
+    """The vertex view's fallback (the compiled pass and histogram, ``fast.hit_face_counts``) when
+    the native pass is not available: the same images as the reference."""
+    from methods.inout import csr
+
+    monkeypatch.setattr(csr, "hit_face_mask", lambda *a: None)
+    _assert_sequence_equal(_vertex(precomputed("sphere_plane")), "V", spp_side=2)
+
+
 def test_vertex_view_rejects_faces_of_another_region(precomputed):
     """Shading "vertex": a hit whose region is not its face's raises, as the reference does."""
     m = _vertex(precomputed("sphere_plane"))
