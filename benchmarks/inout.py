@@ -100,7 +100,13 @@ def micro(m: InOut, frame, gb) -> dict[str, float]:
     out["gbuffer_read_s"] = _time(lambda: [a.max() for a in arrays])
     reg = max(m.regions, key=lambda r: r.T.values().numel())
     fr = m._fast_static().regions[m.regions.index(reg)]
+    # the rows a later lighting change computes (the first one computes every vertex's c): the
+    # view's referenced vertices, by `InOut._view_setup` under that state
+    saved = (m._cf, m._cf_valid, m._lightings)
+    m._cf, m._cf_valid, m._lightings = {}, {}, 2
+    m._view_setup(frame, gb)
     ref = m._cf_valid[reg.name].nonzero(as_tuple=True)[0]
+    m._cf, m._cf_valid, m._lightings = saved
     nat = fast.native(fr, m.L)         # the native loop computes exactly ``ref``, torch's product whole blocks
     runs = fast.light_runs(ref, reg.verts.numel(), block=1 if nat else fast.LIGHT_BLOCK)
     rows = sum(v1 - v0 for v0, v1 in runs) * reg.K

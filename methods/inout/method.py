@@ -24,7 +24,9 @@ Render (dynamic lighting and view):
     area-weighted ones, Ng 2003 §5);
   * per vertex c_k = T̃_k · L = ∫ T_k L dω (eq. 4's dot product; one sparse-dense product);
     cached between frames whose ``changed`` does not contain "light" (c_k is view-independent, so
-    V-only frames skip it entirely);
+    V-only frames skip it entirely); the fast path computes it for every vertex under the first
+    lighting (the start-up lighting an application sets once), lazily for the referenced vertices
+    under later lighting changes (`InOut._ensure_c`);
   * per G-buffer sample: c_k interpolated barycentrically from the vertices, h_k evaluated at the
     sample's *own* ω_o in its own shading frame (better than evaluating eq. 4 per vertex and
     interpolating radiance, which would blur highlights across triangles), B = Σ_k σ_k h_k(ω_o) c_k
@@ -44,8 +46,8 @@ Render (dynamic lighting and view):
     (measured 2026-12-03 on V and E frames; the table is in the commit message that added this).
 
 `_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
-image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k only for the
-vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
+image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k, after the first
+lighting, only for the vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
 σ_k h_k table. `frame_cost` states the compulsory bytes and flops of each frame kind.
 
 Direct lighting only. Materials are the scene's (``frame.materials`` are not read: the BRDF is
@@ -70,6 +72,7 @@ from methods.core.fused import map_rows
 from methods.core.frames import frame_matrix
 from references.visibility import make_visibility
 from scenes.hashing import hash_materials
+from methods.inout import csr as _csr
 from methods.inout import fast as _fast
 from methods.inout import transport as tp
 
@@ -137,6 +140,9 @@ class InOut(Method):
     name = "inout"
     cache_precompute = True  # the cells of one scene/config share one stored precomputation
     render_config_keys = ("shading",)  # where eq. 4 is evaluated: run time only
+    # lightings set since the last `_reset_cache` (a class default: a state stored by older code has
+    # no such attribute); `_ensure_c` computes every vertex's c under the first one
+    _lightings: int = 0
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,
@@ -349,6 +355,7 @@ class InOut(Method):
         copy of a precomputed method caches of its own."""
         self.L = None
         self._c, self._cf, self._cf_valid = {}, {}, {}
+        self._lightings = 0
         self._last_view = None
         self._vview = None
 
@@ -359,6 +366,7 @@ class InOut(Method):
         self.L = self._lighting(frame.envmap).to(self.regions[0].T.device if self.regions else "cpu")
         self._env_shape = tuple(int(x) for x in frame.envmap.data.shape[:2])
         self._c, self._cf, self._cf_valid = {}, {}, {}  # c_k of the new lighting: none computed yet
+        self._lightings += 1
 
     def _region_samples(self, gbuffer: GBuffer):
         """(region, sample indices (Q,)) of the hit samples of every precomputed region."""
@@ -470,10 +478,20 @@ class InOut(Method):
 
     def _ensure_c(self, s: int, ref: Tensor) -> Tensor:
         """The fast path's c (Vr, 3, K) of slot ``s`` with the rows of its referenced vertices
-        ``ref`` (ascending local ids) valid: the missing ones computed now — exactly those by the
-        native loop (``fast.light_vertices``), else by whole blocks (`fast.light_runs`)."""
+        ``ref`` (ascending local ids) valid.
+
+        Under the first lighting since the precompute (`_reset_cache`) every vertex of every region
+        is computed at once, by whole blocks (`_ensure_c_all`): an application sets its start-up
+        lighting once, and a view-only sequence's frames then do no lighting work, as `frame_cost`
+        counts them (a V frame reads c, it does not compute it). Under a later lighting change only
+        the missing rows of ``ref`` are computed, lazily — exactly those by the native loop
+        (``fast.light_vertices``), else by whole blocks (`fast.light_runs`) — so an L / E / VL frame
+        computes no c its view does not reference."""
         reg, fr = self.regions[s], self._fast.regions[s]
         if reg.name not in self._cf:
+            if self._lightings == 1:
+                self._ensure_c_all()
+                return self._cf[reg.name]
             self._cf[reg.name] = torch.zeros(reg.verts.numel(), 3, reg.K, device=self.L.device)  # no stale memory in the state
             self._cf_valid[reg.name] = torch.zeros(reg.verts.numel(), dtype=torch.bool, device=self.L.device)
         c, valid = self._cf[reg.name], self._cf_valid[reg.name]
@@ -486,6 +504,17 @@ class InOut(Method):
             c[v0:v1] = _fast.light_rows(fr, self.L, v0, v1).transpose(1, 2)
             valid[v0:v1] = True
         return c
+
+    def _ensure_c_all(self) -> None:
+        """c (Vr, 3, K) of every vertex of every region not yet computed under the current lighting,
+        each region by one whole-block product (``fast.light_rows`` over all its rows)."""
+        st = self._fast_static()
+        for reg, fr in zip(self.regions, st.regions):
+            if reg.name in self._cf and bool(self._cf_valid[reg.name].all()):
+                continue
+            nv = int(reg.verts.numel())
+            self._cf[reg.name] = _fast.light_rows(fr, self.L, 0, nv).transpose(1, 2).contiguous()
+            self._cf_valid[reg.name] = torch.ones(nv, dtype=torch.bool, device=self.L.device)
 
     def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
         """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
@@ -587,17 +616,25 @@ class InOut(Method):
             return vv
         dev, hit, face = gbuffer.hit.device, gbuffer.hit, gbuffer.face
         M, R, P = st.face_region.numel(), st.R, gbuffer.num_samples
-        # the hits' faces and the region check in one compiled pass (``fast.hit_face_counts``), the
-        # referenced-face mask and the hit count from one histogram of those faces (bin M: the misses)
-        counts, bad = _fast.hit_face_counts(face, gbuffer.region, hit, st.face_region)
+        # the referenced vertices, the referenced-face count, the miss count and the region check: one
+        # pass of the native loop over the samples, one over the faces (``csr.hit_face_mask``; chess
+        # bench, 1 thread, after the suite's idle: 0.7 against 3.0 ms), else the compiled pass and
+        # one histogram of the hits' faces (bin M: the misses, ``fast.hit_face_counts``), the
+        # vertices of its faces marked
+        got = _csr.hit_face_mask(face, gbuffer.region, hit, st.face_region, st.face_gl, st.voff[-1])
+        if got is None:
+            counts, bad = _fast.hit_face_counts(face, gbuffer.region, hit, st.face_region)
+            faces = (counts[:M] > 0).nonzero(as_tuple=True)[0]
+            vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
+            vmask[st.face_gl.index_select(1, faces).reshape(-1).long()] = True
+            nfaces, misses = int(faces.numel()), int(counts[M])
+        else:
+            vmask, nfaces, misses, bad = got
         if bad:
             f = face.clamp_min(0)
             sel = hit & (st.face_region.index_select(0, f) != gbuffer.region)
             name = self.scene.regions[int(gbuffer.region[sel][0])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-        faces = (counts[:M] > 0).nonzero(as_tuple=True)[0]
-        vmask = torch.zeros(st.voff[-1], dtype=torch.bool, device=dev)
-        vmask[st.face_gl.index_select(1, faces).reshape(-1).long()] = True
         ref = vmask.nonzero(as_tuple=True)[0]                                  # ascending concatenated ids
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
         # towards the camera, in each vertex's frame: ρ = 0 below the horizon; its cell and weights
@@ -611,7 +648,7 @@ class InOut(Method):
             sel = front[b[s]:b[s + 1]].nonzero(as_tuple=True)[0] + b[s]
             slots.append((ref.index_select(0, sel) - st.voff[s], first.index_select(0, sel), wc.index_select(0, sel)))
         self._vview = {"key": key, "hit": hit.clone(), "face": face.clone(), "slots": slots,
-                       "faces": int(faces.numel()), "ref": int(ref.numel()), "hits": P - int(counts[M])}
+                       "faces": nfaces, "ref": int(ref.numel()), "hits": P - misses}
         return self._vview
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer) -> Tensor:

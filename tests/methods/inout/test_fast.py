@@ -104,20 +104,48 @@ def test_every_branch_equals_reference(precomputed, monkeypatch, patch):
         _assert_sequence_equal(m, kind, spp_side=2)
 
 
-def test_lighting_is_computed_only_where_seen(precomputed):
-    """A lighting change computes c_k for the vertices the view references (in whole blocks), not for
-    every vertex; a frame that then sees other vertices fills those in (the image stays exact)."""
-    m = precomputed("sphere_plane")
-    fast_m, _ = _pair(m)
-    frames = make_sequence(m.scene, "V", n_frames=3, seed=5)
-    fast_m.render(frames[0], make_gbuffer(m.scene, frames[0], 1))
+def _c_reference(m: InOut, L: torch.Tensor) -> dict[str, torch.Tensor]:
+    """c (Vr, 3, K) of every vertex of every region under L by the reference product
+    (`InOut._ensure_c_reference`: T̃ · L, torch's sparse product), in the fast path's layout."""
+    r = copy.copy(m)
+    r._reset_cache()
+    r.L = L
+    r._ensure_c_reference()
+    return {reg.name: r._c[reg.name].transpose(1, 2) for reg in m.regions}
+
+
+def _assert_c_rows_equal(m: InOut, want: dict[str, torch.Tensor]) -> None:
+    for name, v in m._cf_valid.items():
+        got, ref = m._cf[name][v], want[name][v]
+        assert float((got - ref).abs().max()) <= 1e-6 * max(float(ref.abs().max()), 1e-30), name
+
+
+@pytest.mark.parametrize("shading", ["sample", "vertex"])
+def test_lighting_is_computed_for_every_vertex_first_then_where_seen(precomputed, shading):
+    """The first lighting after the precompute computes c_k for every vertex of every region (a V
+    sequence's later frames then do no lighting work); a later lighting change computes c_k for the
+    vertices the view references (in whole blocks), not for every vertex, and a frame that then sees
+    other vertices fills those in. Every computed row equals the reference c = T̃ · L, the image
+    stays exact."""
+    m0 = precomputed("sphere_plane")
+    fast_m, _ = _pair(m0)
+    fast_m._config = {**m0._config, "shading": shading}
+    frames = make_sequence(m0.scene, "L", n_frames=3, seed=5)
+    fast_m.render(frames[0], make_gbuffer(m0.scene, frames[0], 1))
+    assert fast_m._cf_valid.keys() == {reg.name for reg in m0.regions}
+    assert all(bool(v.all()) for v in fast_m._cf_valid.values())     # every vertex under the first lighting
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    fast_m.render(frames[1], make_gbuffer(m0.scene, frames[1], 1))  # a lighting change: lazily
     valid = {name: v.clone() for name, v in fast_m._cf_valid.items()}
     assert any(not bool(v.all()) for v in valid.values())            # the far side was not computed
-    for frame in frames[1:]:
-        fast_m.render(frame, make_gbuffer(m.scene, frame, 1))
+    assert any(bool(v.any()) for v in valid.values())
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    for frame in make_sequence(m0.scene, "V", n_frames=3, seed=6)[1:]:  # other views, the same lighting
+        fast_m.render(frame, make_gbuffer(m0.scene, frame, 1))
     for name, v in fast_m._cf_valid.items():
         assert bool((v | ~valid[name]).all())                          # once valid, stays valid (no relight)
-    _assert_sequence_equal(m, "V", n_frames=3, seed=5)
+    _assert_c_rows_equal(fast_m, _c_reference(m0, fast_m.L))
+    _assert_sequence_equal(_vertex(m0) if shading == "vertex" else m0, "L", n_frames=3, seed=5)
 
 
 def _random_csr(rows: int, D: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -254,6 +282,50 @@ def test_hit_face_counts_is_the_histogram_of_the_hits_faces(monkeypatch):
             k = int(hit.nonzero()[-1, 0])                            # the last hit: maybe in the padding
             region[k] = (region[k] + 1) % 3
             assert fast.hit_face_counts(face, region, hit, face_region)[1]
+
+
+def test_hit_face_mask_is_the_histogram_of_the_hits_faces():
+    """``csr.hit_face_mask`` (the native pass of the vertex view) against ``fast.hit_face_counts``
+    and the vertices of its faces: the vertex mask of the faces with a hit, their count, the miss
+    count and the region flag, with out-of-range faces on hits (clamped by both), misses of any face
+    and region, no sample; non-int64 / strided arrays are refused (None: the caller takes the
+    compiled pass)."""
+    from methods.inout import csr
+
+    if not csr.available():
+        pytest.skip("no native kernel")
+    g = torch.Generator().manual_seed(7)
+    M, nv = 23, 31
+    face_region = torch.arange(M) % 3
+    face_gl = torch.randint(0, nv, (3, M), generator=g, dtype=torch.int32)
+    for q in (0, 1, 1000, 70000):
+        face = torch.randint(-3, M + 3, (q,), generator=g)
+        hit = torch.rand(q, generator=g) < 0.8
+        region = face_region[face.clamp(0, M - 1)]
+        region[~hit] = torch.randint(0, 3, (int((~hit).sum()),), generator=g)  # never checked
+        for flip in (False, True):
+            if flip and q:
+                k = int(hit.nonzero()[-1, 0])
+                region[k] = (region[k] + 1) % 3
+            vmask, nfaces, misses, bad = csr.hit_face_mask(face, region, hit, face_region, face_gl, nv)
+            counts, want_bad = fast.hit_face_counts(face, region, hit, face_region)
+            faces = (counts[:M] > 0).nonzero(as_tuple=True)[0]
+            want = torch.zeros(nv, dtype=torch.bool)
+            want[face_gl[:, faces].reshape(-1).long()] = True
+            assert vmask.dtype == torch.bool and torch.equal(vmask, want) and nfaces == faces.numel()
+            assert misses == int(counts[M]) == int((~hit).sum()) and bad == want_bad == (flip and q > 0)
+    assert csr.hit_face_mask(face.int(), region, hit, face_region, face_gl, nv) is None
+    assert csr.hit_face_mask(face[::2], region[::2], hit[::2], face_region, face_gl, nv) is None
+    assert csr.hit_face_mask(face, region, hit, face_region, face_gl.long(), nv) is None
+
+
+def test_vertex_view_without_the_native_pass_equals_reference(precomputed, monkeypatch):
+    """The vertex view's fallback (the compiled pass and histogram, ``fast.hit_face_counts``) when
+    the native pass is not available: the same images as the reference."""
+    from methods.inout import csr
+
+    monkeypatch.setattr(csr, "hit_face_mask", lambda *a: None)
+    _assert_sequence_equal(_vertex(precomputed("sphere_plane")), "V", spp_side=2)
 
 
 def test_vertex_view_rejects_faces_of_another_region(precomputed):
