@@ -378,6 +378,9 @@ class ZHShadow(Method):
     # Config keys that only the render reads: a precomputed model serves every value of them.
     RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
     render_config_keys = RENDER_KEYS  # the precompute cache shares one entry across them too
+    # A P frame's planes (`_front_radiance`, `_front_planes`): their diffuse term by one operator per
+    # plane instead of a w per vertex; False: every front vertex's w (the tests' oracle)
+    plane_operators = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -854,17 +857,49 @@ class ZHShadow(Method):
             vTc = rt.world_visibility(*args, **kw)
         else:
             vTc = v0.T.index_select(1, idx)                                  # (v0.T: (n², N) contiguous)
-        wc = rt.cosine_visibility_zyz(vTc, nTc, ordered=True)
-        ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
         bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
         cspans = list(zip(bounds[:-1], bounds[1:]))                         # each region's front columns
-        tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
-        radT = torch.zeros(N, 3, dtype=wc.dtype, device=dev)
-        radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
+        # planes (a diffuse region whose front vertices share one normal bitwise: the ground): their
+        # diffuse term is ((l ⊙ kd / π)ᵀ K(n0)) v, K(n0) = M(R_n0) M¹ the same for all of them
+        # (`runtime.plane_cosine_operator`), so w is made for the columns lo..hi of the other regions
+        # alone (a plane between two of those keeps its w: one range of columns)
+        planes = self._front_planes(nTc, cspans, alphas) if self.plane_operators else {}
+        rest = [sp for r, sp in enumerate(cspans) if r not in planes and sp[1] > sp[0]]
+        lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
+        planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
+        radT = torch.zeros(N, 3, dtype=vTc.dtype, device=dev)
+        if hi > lo:
+            wc = rt.cosine_visibility_zyz(vTc[:, lo:hi] if planes else vTc, nTc[:, lo:hi] if planes else nTc,
+                                          ordered=True)
+            if planes:
+                nTc, woTc, vregc = nTc[:, lo:hi], woTc[:, lo:hi], vregc[lo:hi]
+            ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
+            tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
+            sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
+            radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
+        for r, n0 in planes.items():
+            b0, b1 = cspans[r]
+            K = rt.plane_cosine_operator(n0, self.config["order"])
+            g = ((light * (mats[r][0].to(dev, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(vTc.dtype)
+            with pc.torch_threads(1):   # (as `_radiance_ranges`)
+                radT.index_copy_(0, idx[b0:b1], torch.mm(g, vTc[:, b0:b1]).T)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
         counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
+
+    def _front_planes(self, nT: Tensor, spans: list, alphas: list) -> dict:
+        """Region → its normal n0 (a tuple of floats) for each region with no specular term whose
+        columns ``spans[r]`` of nT (3, Q) — at least `runtime.PLANAR_MIN_POINTS` of them — all hold
+        the same normal bitwise (`_front_radiance`: a ground plane's front-facing vertices)."""
+        out = {}
+        for r, (b0, b1) in enumerate(spans):
+            if alphas[r] is not None or b1 - b0 < rt.PLANAR_MIN_POINTS:
+                continue
+            blk = nT[:, b0:b1]
+            if bool((blk == blk[:, :1]).all()):
+                out[r] = tuple(float(x) for x in blk[:, 0].tolist())
+        return out
 
     @staticmethod
     def _radiance_ranges(light: Tensor, mats: list, w: Tensor, spans: list, tsr: dict) -> Tensor:
