@@ -343,7 +343,7 @@ class ZHShadow(Method):
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
-        self._vertex_diffuse = None
+        self._vertex_diffuse = self._vertex_compact = None
         self._relight = None
         self._vtable = self._plane_u = self._faces = self._resolve_matrix = None
         cfg = self.config
@@ -381,6 +381,9 @@ class ZHShadow(Method):
     # A P frame's planes (`_front_radiance`, `_front_planes`): their diffuse term by one operator per
     # plane instead of a w per vertex; False: every front vertex's w (the tests' oracle)
     plane_operators = True
+    # Lighting-only vertex-shaded frames over the front-facing vertices' transfer and resolve-matrix
+    # columns alone (`_compact_transfer`); False: over every vertex (the tests' oracle)
+    compact_lighting = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -758,7 +761,7 @@ class ZHShadow(Method):
             # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
             # this pose under another camera other vertices' (it makes them all, as before)
             radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg)
-            self._vertex_diffuse = self._vertex_transfer = None
+            self._vertex_diffuse = self._vertex_transfer = self._vertex_compact = None
         if radT is None and v0 is None:   # every vertex's visibility (`_pose_state`)
             _, _, v0 = self._pose_state(frame)
         if radT is None and cosine and spans is not None:
@@ -789,9 +792,32 @@ class ZHShadow(Method):
                 ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas, keep=front)
                 counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
                 self._vertex_transfer = vt = (key, v0, ts, front, counts)
+                self._vertex_compact = None
             _, _, ts, front, counts = vt
             light = light.to(dev)
             tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
+            gkey = (frame.camera, self._posed[0], gbuffer.num_samples, gbuffer.spp_side, gbuffer.height, gbuffer.width)
+            rm = self._resolve_matrix
+            cs = None
+            if self.compact_lighting and spans is not None and frame.changed <= {"light", "brdf"} and rm is not None \
+                    and rm[0] == gkey and rm[1] is geom:
+                cs = self._compact_transfer(vt, w, spans)
+            if cs is not None:
+                # a lighting-only frame under a kept resolve matrix: the front-facing vertices' w and
+                # t_s gathered once into contiguous columns (`_compact_transfer`), their radiance
+                # range by range, and the resolve matrix's columns those vertices alone (the entries
+                # of vertices facing away multiplied a zero radiance) — no pass over the others
+                idx, wf, cspans, tsc = cs
+                radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
+                if self.config["clamp"]:
+                    radTc.clamp_min_(0.0)
+                self._last_counts = counts.with_fixed(P=gbuffer.num_samples)
+                if rm[2] is None or rm[3] is not idx:
+                    S = rm[2] if rm[2] is not None and rm[3] is None else gouraud.resolve_matrix(
+                        geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
+                        gbuffer.spp_side, int(geom.num_vertices))
+                    self._resolve_matrix = rm = (gkey, geom, _int32_csr(_csr_columns(S, idx)), idx)
+                return (rm[2] @ radTc).view(gbuffer.height, gbuffer.width, 3)
             if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
@@ -827,9 +853,10 @@ class ZHShadow(Method):
             if rm[2] is None:
                 self._resolve_matrix = rm = (gkey, geom, _int32_csr(gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
-                    gbuffer.spp_side, int(geom.num_vertices))))
-            return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
-        self._resolve_matrix = (gkey, geom, None)
+                    gbuffer.spp_side, int(geom.num_vertices))), None)
+            if rm[3] is None:   # (a matrix over the front-facing vertices alone: `_compact_transfer`)
+                return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
+        self._resolve_matrix = (gkey, geom, None, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
@@ -887,6 +914,30 @@ class ZHShadow(Method):
             radT.clamp_min_(0.0)
         counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
+
+    def _compact_transfer(self, vt: tuple, w: Tensor, spans: list) -> tuple | None:
+        """The lighting-free transfer of the front-facing vertices of the kept `_vertex_transfer`
+        ``vt`` in contiguous columns, kept with it: (idx (Nf,) their ids ascending, wf (n², Nf) their
+        columns of w, per region its range of those columns, region → (range, t_s) its specular part
+        — the part holds exactly the region's front-facing columns, `runtime.specular_parts`' keep),
+        or None when a part does not (then the path over every vertex)."""
+        cs = self._vertex_compact
+        if cs is not None and cs[0] is vt and cs[1] is w:
+            return cs[2]
+        _, _, ts, front, _ = vt
+        idx = front.nonzero().squeeze(-1)
+        bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=idx.device))
+        cspans = list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+        tsc = {}
+        for r, sp, t in ts or ():
+            b0, b1 = cspans[r]
+            if isinstance(sp, tuple) or sp.shape[0] != b1 - b0 or not torch.equal(sp, idx[b0:b1]):
+                self._vertex_compact = (vt, w, None)
+                return None
+            tsc[r] = ((b0, b1), t)
+        out = (idx, w.index_select(1, idx), cspans, tsc)
+        self._vertex_compact = (vt, w, out)
+        return out
 
     def _front_planes(self, nT: Tensor, spans: list, alphas: list) -> dict:
         """Region → its normal n0 (a tuple of floats) for each region with no specular term whose
@@ -1048,7 +1099,9 @@ class ZHShadow(Method):
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
                 + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
                    else sum(tensor_bytes(t) for _, _, t in self._vertex_transfer[2]))
-                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))}
+                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))
+                + (0 if self._vertex_compact is None or self._vertex_compact[2] is None
+                   else tensor_bytes(self._vertex_compact[2][1]))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P
@@ -1186,6 +1239,23 @@ def _int32_csr(S: Tensor) -> Tensor:
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(S.crow_indices().to(torch.int32), S.col_indices().to(torch.int32), S.values(),
                                        S.shape)
+
+
+def _csr_columns(S: Tensor, idx: Tensor) -> Tensor:
+    """The CSR matrix ``S`` (R, N) restricted to the columns ``idx`` (ascending), renumbered 0..len−1:
+    (R, len(idx)), each row's kept entries in their order (the same products with a vector that is
+    zero off ``idx``, the dropped terms being zeros)."""
+    crow, col, val = S.crow_indices().long(), S.col_indices().long(), S.values()
+    cmap = torch.full((int(S.shape[1]),), -1, dtype=torch.int64, device=col.device)
+    cmap[idx] = torch.arange(idx.shape[0], device=col.device)
+    nc = cmap[col]
+    keep = nc >= 0
+    rows = torch.repeat_interleave(torch.arange(int(S.shape[0]), device=col.device), crow.diff())
+    counts = torch.bincount(rows[keep], minlength=int(S.shape[0]))
+    crow2 = torch.cat([torch.zeros(1, dtype=torch.int64, device=col.device), counts.cumsum(0)])
+    with warnings.catch_warnings():   # (`_int32_csr`)
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow2, nc[keep], val[keep], (int(S.shape[0]), int(idx.shape[0])))
 
 
 def _warm_front(_row: Tensor, m: "ZHShadow", *args) -> None:
