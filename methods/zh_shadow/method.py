@@ -326,6 +326,8 @@ class ZHShadow(Method):
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w = π t_d) per pose: vertex shading
         self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
+        self._vertex_compact: tuple | None = None   # (that tuple, w, its front columns or None): `_compact_transfer`
+        self._vertex_rad_d: tuple | None = None     # (lighting, w, (N, 3) lᵀ w / π): `_diffuse_ranges`
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
@@ -343,7 +345,7 @@ class ZHShadow(Method):
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
-        self._vertex_diffuse = self._vertex_compact = None
+        self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._faces = self._resolve_matrix = None
         cfg = self.config
@@ -384,6 +386,9 @@ class ZHShadow(Method):
     # Lighting-only vertex-shaded frames over the front-facing vertices' transfer and resolve-matrix
     # columns alone (`_compact_transfer`); False: over every vertex (the tests' oracle)
     compact_lighting = True
+    # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
+    # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
+    diffuse_cache = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -761,7 +766,7 @@ class ZHShadow(Method):
             # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
             # this pose under another camera other vertices' (it makes them all, as before)
             radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg)
-            self._vertex_diffuse = self._vertex_transfer = self._vertex_compact = None
+            self._vertex_diffuse = self._vertex_transfer = self._vertex_compact = self._vertex_rad_d = None
         if radT is None and v0 is None:   # every vertex's visibility (`_pose_state`)
             _, _, v0 = self._pose_state(frame)
         if radT is None and cosine and spans is not None:
@@ -825,7 +830,16 @@ class ZHShadow(Method):
                 # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
                 # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
                 # thread as `runtime.zonal_conjugate` (thin products)
-                radT = self._radiance_ranges(light, mats, w, spans, tsr)
+                if self.diffuse_cache and "light" not in frame.changed:   # (new lighting: nothing to reuse)
+                    radT = self._diffuse_ranges(light, mats, w, spans)
+                    for r, (sp, t) in tsr.items():   # + (l ⊙ ks)ᵀ t_s at the part's columns
+                        s_ = torch.mm((light * mats[r][1].to(dev, light.dtype)).T, t).T
+                        if isinstance(sp, tuple):
+                            radT[sp[0]:sp[1]].add_(s_)
+                        else:
+                            radT.index_add_(0, sp, s_)
+                else:
+                    radT = self._radiance_ranges(light, mats, w, spans, tsr)
                 radT.mul_(front[:, None])
                 if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                     radT.clamp_min_(0.0)
@@ -914,6 +928,23 @@ class ZHShadow(Method):
             radT.clamp_min_(0.0)
         counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
+
+    def _diffuse_ranges(self, light: Tensor, mats: list, w: Tensor, spans: list) -> Tensor:
+        """(N, 3) diffuse radiance kd ⊙ (lᵀ w / π) of every vertex, region range by region range: the
+        albedo-free (lᵀ w / π) kept while the lighting tensor and w are the same — a view or BRDF
+        frame (V, VB) changes only the albedos, the specular term and the front-facing set, so it
+        scales the kept one per region instead of reading w again (equal to `_radiance_ranges`'
+        product of w with the albedo-weighted lighting to float32 round-off)."""
+        dc = self._vertex_rad_d
+        if dc is None or dc[0] is not light or dc[1] is not w:
+            one = torch.ones(3, dtype=light.dtype)
+            dc = self._vertex_rad_d = (light, w, self._radiance_ranges(light, [(one, None, None)] * len(mats), w,
+                                                                       spans, {}))
+        D0 = dc[2]
+        out = torch.empty_like(D0)
+        for (a0, a1), (kd, _, _) in zip(spans, mats):
+            torch.mul(D0[a0:a1], kd.to(D0.device, D0.dtype), out=out[a0:a1])
+        return out
 
     def _compact_transfer(self, vt: tuple, w: Tensor, spans: list) -> tuple | None:
         """The lighting-free transfer of the front-facing vertices of the kept `_vertex_transfer`
@@ -1101,7 +1132,8 @@ class ZHShadow(Method):
                    else sum(tensor_bytes(t) for _, _, t in self._vertex_transfer[2]))
                 + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))
                 + (0 if self._vertex_compact is None or self._vertex_compact[2] is None
-                   else tensor_bytes(self._vertex_compact[2][1]))}
+                   else tensor_bytes(self._vertex_compact[2][1]))
+                + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P

@@ -1098,6 +1098,35 @@ def test_lighting_frames_over_front_vertices_equal_every_vertex(zh_scene):
         assert (a - fast._render_reference(g, gb)).abs().max() <= RENDER_TOL
 
 
+def test_view_frames_reuse_the_diffuse_radiance(zh_scene):
+    """Vertex-shaded view / BRDF frames (V, VB) reuse the per-vertex albedo-free diffuse radiance
+    lᵀ w / π (`ZHShadow._diffuse_ranges`, kept while lighting and w stay), scale it by the albedos
+    and add the new specular term = the radiance made with the specular term every frame
+    (``diffuse_cache`` off) to float32 round-off, = the reference; a frame with new lighting (VL)
+    takes the path without it (nothing to reuse; order 8, cosine)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    for kind in ("V", "VB", "VL"):
+        fast, slow = m.with_render_config(), m.with_render_config()
+        slow.diffuse_cache = False
+        kept = []
+        for i, f in enumerate(make_sequence(m.scene, kind, 4, seed=7)):
+            gb = make_gbuffer(m.scene, f, 2)
+            a, b = fast.render(f, gb), slow.render(f, gb)
+            kept.append(None if fast._vertex_rad_d is None else fast._vertex_rad_d[2])
+            assert slow._vertex_rad_d is None
+            assert (a - b).abs().max() <= 1e-6 * b.abs().max(), (kind, i)
+            want = fast._render_reference(f, gb)
+            assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
+        # frame 0 (a full change) and every VL frame: new lighting, the radiance made as before
+        assert kept[0] is None and (all(x is kept[1] for x in kept[2:]) and kept[1] is not None if kind != "VL"
+                                    else all(x is None for x in kept)), (kind, kept)
+    assert m.with_render_config().memory()["relight_transfer"] == 0   # (before any frame)
+
+
 def test_pose_product_is_the_model_product_at_any_thread_count():
     """`runtime._pose_product` ([pose, 1] · X in `world_visibility`, compiled) equals the float64
     product to float32 round-off and gives the same bits with 1 and 2 threads — it replaced a
