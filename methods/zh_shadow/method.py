@@ -810,20 +810,14 @@ class ZHShadow(Method):
             if cs is not None:
                 # a lighting-only frame under a kept resolve matrix: the front-facing vertices' w and
                 # t_s gathered once into contiguous columns (`_compact_transfer`), their radiance
-                # range by range, and the resolve matrix's columns those vertices alone (the entries
-                # of vertices facing away multiplied a zero radiance) — no pass over the others
+                # range by range, scattered into zero rows (the others' radiance is zero) — no pass
+                # over the w of vertices facing away
                 idx, wf, cspans, tsc = cs
                 radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
                 if self.config["clamp"]:
                     radTc.clamp_min_(0.0)
-                self._last_counts = counts.with_fixed(P=gbuffer.num_samples)
-                if rm[2] is None or rm[3] is not idx:
-                    S = rm[2] if rm[2] is not None and rm[3] is None else gouraud.resolve_matrix(
-                        geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
-                        gbuffer.spp_side, int(geom.num_vertices))
-                    self._resolve_matrix = rm = (gkey, geom, _int32_csr(_csr_columns(S, idx)), idx)
-                return (rm[2] @ radTc).view(gbuffer.height, gbuffer.width, 3)
-            if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
+                radT = torch.zeros(int(front.shape[0]), 3, dtype=radTc.dtype, device=dev).index_copy_(0, idx, radTc)
+            elif spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
                 # every region one range of vertices (`Scene` concatenates one mesh per region): the
@@ -867,10 +861,9 @@ class ZHShadow(Method):
             if rm[2] is None:
                 self._resolve_matrix = rm = (gkey, geom, _int32_csr(gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
-                    gbuffer.spp_side, int(geom.num_vertices))), None)
-            if rm[3] is None:   # (a matrix over the front-facing vertices alone: `_compact_transfer`)
-                return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
-        self._resolve_matrix = (gkey, geom, None, None)
+                    gbuffer.spp_side, int(geom.num_vertices))))
+            return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
+        self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
@@ -1271,23 +1264,6 @@ def _int32_csr(S: Tensor) -> Tensor:
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(S.crow_indices().to(torch.int32), S.col_indices().to(torch.int32), S.values(),
                                        S.shape)
-
-
-def _csr_columns(S: Tensor, idx: Tensor) -> Tensor:
-    """The CSR matrix ``S`` (R, N) restricted to the columns ``idx`` (ascending), renumbered 0..len−1:
-    (R, len(idx)), each row's kept entries in their order (the same products with a vector that is
-    zero off ``idx``, the dropped terms being zeros)."""
-    crow, col, val = S.crow_indices().long(), S.col_indices().long(), S.values()
-    cmap = torch.full((int(S.shape[1]),), -1, dtype=torch.int64, device=col.device)
-    cmap[idx] = torch.arange(idx.shape[0], device=col.device)
-    nc = cmap[col]
-    keep = nc >= 0
-    rows = torch.repeat_interleave(torch.arange(int(S.shape[0]), device=col.device), crow.diff())
-    counts = torch.bincount(rows[keep], minlength=int(S.shape[0]))
-    crow2 = torch.cat([torch.zeros(1, dtype=torch.int64, device=col.device), counts.cumsum(0)])
-    with warnings.catch_warnings():   # (`_int32_csr`)
-        warnings.simplefilter("ignore", UserWarning)
-        return torch.sparse_csr_tensor(crow2, nc[keep], val[keep], (int(S.shape[0]), int(idx.shape[0])))
 
 
 def _warm_front(_row: Tensor, m: "ZHShadow", *args) -> None:

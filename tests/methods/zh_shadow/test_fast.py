@@ -1038,36 +1038,11 @@ def test_resolve_matrix_int32_equals_int64(zh_scene):
     assert m._resolve_matrix[2] is not None and m._resolve_matrix[2].col_indices().dtype == torch.int32
 
 
-def test_csr_columns_equals_full_product_on_kept_columns(zh_scene):
-    """`method._csr_columns` (the resolve matrix restricted to the front-facing vertices' columns)
-    times the values of those columns = the whole matrix times values that are zero on the other
-    columns, bit for bit (the dropped terms were zeros)."""
-    from methods.core import gouraud
-    from methods.zh_shadow.method import _csr_columns, _int32_csr
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
-    scene = zh_scene("creature")
-    f = make_sequence(scene, "L", 1, seed=2)[0]
-    gb, geom = make_gbuffer(scene, f, 2), scene.geometry()
-    N = int(geom.num_vertices)
-    S = gouraud.resolve_matrix(geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side, N)
-    idx = _front_vertices(geom, f).nonzero().squeeze(-1)
-    assert 0 < idx.numel() < N
-    Sc = _int32_csr(_csr_columns(S, idx))
-    assert Sc.shape == (S.shape[0], idx.numel()) and Sc.values().numel() < S.values().numel()
-    x = torch.randn(N, 3, generator=torch.Generator().manual_seed(4))
-    xz = torch.zeros_like(x)
-    xz[idx] = x[idx]
-    assert torch.equal(Sc @ x[idx], S @ xz)
-
-
 def test_lighting_frames_over_front_vertices_equal_every_vertex(zh_scene):
     """Vertex-shaded lighting-only frames under a kept resolve matrix shade the front-facing
-    vertices alone (`ZHShadow._compact_transfer`: their w and t_s columns gathered once, the resolve
-    matrix's columns those vertices, `_csr_columns`) = the path over every vertex (``compact_lighting``
-    off) to float32 round-off, = the reference, on L and E sequences (order 8, cosine), and a view
-    frame after them resolves the full way again."""
+    vertices alone (`ZHShadow._compact_transfer`: their w and t_s columns gathered once) = the path
+    over every vertex (``compact_lighting`` off) to float32 round-off, = the reference, on L and E
+    sequences (order 8, cosine), and a view frame after them drops what was gathered."""
     import dataclasses
 
     from references.gbuffer import make_gbuffer
@@ -1082,12 +1057,11 @@ def test_lighting_frames_over_front_vertices_equal_every_vertex(zh_scene):
         for i, f in enumerate(frames):
             gb = make_gbuffer(m.scene, f, 2)
             a, b = fast.render(f, gb), slow.render(f, gb)
-            if i > 0:
-                idx = fast._resolve_matrix[3]
+            if i > 0:   # the kept matrix's frames: the front-facing columns gathered once
+                idx, wf = fast._vertex_compact[2][:2]
                 N = m.scene.geometry().num_vertices
-                assert idx is not None and fast._resolve_matrix[2].shape[1] == idx.numel() < N
-                assert fast._vertex_compact[2][0] is idx
-                assert slow._resolve_matrix[3] is None and slow._resolve_matrix[2].shape[1] == N
+                assert 0 < idx.numel() < N and wf.shape[1] == idx.numel() and fast._resolve_matrix[2] is not None
+                assert slow._vertex_compact is None
             assert (a - b).abs().max() <= 1e-5 * b.abs().max(), (kind, i)
             want = fast._render_reference(f, gb)
             assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
