@@ -383,8 +383,8 @@ class ZHShadow(Method):
     # A P frame's planes (`_front_radiance`, `_front_planes`): their diffuse term by one operator per
     # plane instead of a w per vertex; False: every front vertex's w (the tests' oracle)
     plane_operators = True
-    # Lighting-only vertex-shaded frames over the front-facing vertices' transfer and resolve-matrix
-    # columns alone (`_compact_transfer`); False: over every vertex (the tests' oracle)
+    # Lighting-only vertex-shaded frames over the front-facing vertices' transfer alone
+    # (`_compact_transfer`); False: over every vertex (the tests' oracle)
     compact_lighting = True
     # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
     # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
