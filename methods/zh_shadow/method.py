@@ -826,12 +826,13 @@ class ZHShadow(Method):
                 # thread as `runtime.zonal_conjugate` (thin products)
                 if self.diffuse_cache and "light" not in frame.changed:   # (new lighting: nothing to reuse)
                     radT = self._diffuse_ranges(light, mats, w, spans)
-                    for r, (sp, t) in tsr.items():   # + (l ⊙ ks)ᵀ t_s at the part's columns
-                        s_ = torch.mm((light * mats[r][1].to(dev, light.dtype)).T, t).T
-                        if isinstance(sp, tuple):
-                            radT[sp[0]:sp[1]].add_(s_)
-                        else:
-                            radT.index_add_(0, sp, s_)
+                    with pc.torch_threads(1):   # (as `_radiance_ranges`: one thread's rounding)
+                        for r, (sp, t) in tsr.items():   # + (l ⊙ ks)ᵀ t_s at the part's columns
+                            s_ = torch.mm((light * mats[r][1].to(dev, light.dtype)).T, t).T
+                            if isinstance(sp, tuple):
+                                radT[sp[0]:sp[1]].add_(s_)
+                            else:
+                                radT.index_add_(0, sp, s_)
                 else:
                     radT = self._radiance_ranges(light, mats, w, spans, tsr)
                 radT.mul_(front[:, None])
@@ -909,13 +910,18 @@ class ZHShadow(Method):
                 nTc, woTc, vregc = nTc[:, lo:hi], woTc[:, lo:hi], vregc[lo:hi]
             ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
             tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
-            sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
-            radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
-        for r, n0 in planes.items():
-            b0, b1 = cspans[r]
-            K = rt.plane_cosine_operator(n0, self.config["order"])
-            g = ((light * (mats[r][0].to(dev, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(vTc.dtype)
-            with pc.torch_threads(1):   # (as `_radiance_ranges`)
+        else:
+            wc, tsr = None, {}
+        # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
+        # caller's threads costs the next parallel work, `runtime.world_visibility`)
+        with pc.torch_threads(1):
+            if hi > lo:
+                sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
+                radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
+            for r, n0 in planes.items():
+                b0, b1 = cspans[r]
+                K = rt.plane_cosine_operator(n0, self.config["order"])
+                g = ((light * (mats[r][0].to(dev, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(vTc.dtype)
                 radT.index_copy_(0, idx[b0:b1], torch.mm(g, vTc[:, b0:b1]).T)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
