@@ -326,6 +326,8 @@ class ZHShadow(Method):
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w = π t_d) per pose: vertex shading
         self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
+        self._vertex_compact: tuple | None = None   # (that tuple, w, its front columns or None): `_compact_transfer`
+        self._vertex_rad_d: tuple | None = None     # (lighting, w, (N, 3) lᵀ w / π): `_diffuse_ranges`
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
@@ -343,7 +345,7 @@ class ZHShadow(Method):
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
-        self._vertex_diffuse = None
+        self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._faces = self._resolve_matrix = None
         cfg = self.config
@@ -378,6 +380,15 @@ class ZHShadow(Method):
     # Config keys that only the render reads: a precomputed model serves every value of them.
     RENDER_KEYS = ("specular", "shading", "window", "window_width", "clamp")
     render_config_keys = RENDER_KEYS  # the precompute cache shares one entry across them too
+    # A P frame's planes (`_front_radiance`, `_front_planes`): their diffuse term by one operator per
+    # plane instead of a w per vertex; False: every front vertex's w (the tests' oracle)
+    plane_operators = True
+    # Lighting-only vertex-shaded frames over the front-facing vertices' transfer alone
+    # (`_compact_transfer`); False: over every vertex (the tests' oracle)
+    compact_lighting = True
+    # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
+    # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
+    diffuse_cache = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -755,7 +766,7 @@ class ZHShadow(Method):
             # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
             # this pose under another camera other vertices' (it makes them all, as before)
             radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg)
-            self._vertex_diffuse = self._vertex_transfer = None
+            self._vertex_diffuse = self._vertex_transfer = self._vertex_compact = self._vertex_rad_d = None
         if radT is None and v0 is None:   # every vertex's visibility (`_pose_state`)
             _, _, v0 = self._pose_state(frame)
         if radT is None and cosine and spans is not None:
@@ -786,17 +797,44 @@ class ZHShadow(Method):
                 ts = rt.specular_parts(w if cosine else vT, nT, woT, vreg, alphas, keep=front)
                 counts = _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
                 self._vertex_transfer = vt = (key, v0, ts, front, counts)
+                self._vertex_compact = None
             _, _, ts, front, counts = vt
             light = light.to(dev)
             tsr = {r: (span, t) for r, span, t in ts} if ts is not None else {}
-            if spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
+            gkey = (frame.camera, self._posed[0], gbuffer.num_samples, gbuffer.spp_side, gbuffer.height, gbuffer.width)
+            rm = self._resolve_matrix
+            cs = None
+            if self.compact_lighting and spans is not None and frame.changed <= {"light", "brdf"} and rm is not None \
+                    and rm[0] == gkey and rm[1] is geom:
+                cs = self._compact_transfer(vt, w, spans)
+            if cs is not None:
+                # a lighting-only frame under a kept resolve matrix: the front-facing vertices' w and
+                # t_s gathered once into contiguous columns (`_compact_transfer`), their radiance
+                # range by range, scattered into zero rows (the others' radiance is zero) — no pass
+                # over the w of vertices facing away
+                idx, wf, cspans, tsc = cs
+                radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
+                if self.config["clamp"]:
+                    radTc.clamp_min_(0.0)
+                radT = torch.zeros(int(front.shape[0]), 3, dtype=radTc.dtype, device=dev).index_copy_(0, idx, radTc)
+            elif spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
                 # every region one range of vertices (`Scene` concatenates one mesh per region): the
                 # (N, 3) radiance the resolve reads made range by range, the albedos folded into the
                 # lighting — kd ⊙ (lᵀ w / π) = ((l ⊙ kd) / π)ᵀ w — so no (3, N) albedo gathers; one
                 # thread as `runtime.zonal_conjugate` (thin products)
-                radT = self._radiance_ranges(light, mats, w, spans, tsr)
+                if self.diffuse_cache and "light" not in frame.changed:   # (new lighting: nothing to reuse)
+                    radT = self._diffuse_ranges(light, mats, w, spans)
+                    with pc.torch_threads(1):   # (as `_radiance_ranges`: one thread's rounding)
+                        for r, (sp, t) in tsr.items():   # + (l ⊙ ks)ᵀ t_s at the part's columns
+                            s_ = torch.mm((light * mats[r][1].to(dev, light.dtype)).T, t).T
+                            if isinstance(sp, tuple):
+                                radT[sp[0]:sp[1]].add_(s_)
+                            else:
+                                radT.index_add_(0, sp, s_)
+                else:
+                    radT = self._radiance_ranges(light, mats, w, spans, tsr)
                 radT.mul_(front[:, None])
                 if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
                     radT.clamp_min_(0.0)
@@ -854,17 +892,95 @@ class ZHShadow(Method):
             vTc = rt.world_visibility(*args, **kw)
         else:
             vTc = v0.T.index_select(1, idx)                                  # (v0.T: (n², N) contiguous)
-        wc = rt.cosine_visibility_zyz(vTc, nTc, ordered=True)
-        ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
         bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
         cspans = list(zip(bounds[:-1], bounds[1:]))                         # each region's front columns
-        tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
-        radT = torch.zeros(N, 3, dtype=wc.dtype, device=dev)
-        radT.index_copy_(0, idx, self._radiance_ranges(light, mats, wc, cspans, tsr))
+        # planes (a diffuse region whose front vertices share one normal bitwise: the ground): their
+        # diffuse term is ((l ⊙ kd / π)ᵀ K(n0)) v, K(n0) = M(R_n0) M¹ the same for all of them
+        # (`runtime.plane_cosine_operator`), so w is made for the columns lo..hi of the other regions
+        # alone (a plane between two of those keeps its w: one range of columns)
+        planes = self._front_planes(nTc, cspans, alphas) if self.plane_operators else {}
+        rest = [sp for r, sp in enumerate(cspans) if r not in planes and sp[1] > sp[0]]
+        lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
+        planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
+        radT = torch.zeros(N, 3, dtype=vTc.dtype, device=dev)
+        if hi > lo:
+            wc = rt.cosine_visibility_zyz(vTc[:, lo:hi] if planes else vTc, nTc[:, lo:hi] if planes else nTc,
+                                          ordered=True)
+            if planes:
+                nTc, woTc, vregc = nTc[:, lo:hi], woTc[:, lo:hi], vregc[lo:hi]
+            ts = rt.specular_parts(wc, nTc, woTc, vregc, alphas)
+            tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
+        else:
+            wc, tsr = None, {}
+        # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
+        # caller's threads costs the next parallel work, `runtime.world_visibility`)
+        with pc.torch_threads(1):
+            if hi > lo:
+                sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
+                radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
+            for r, n0 in planes.items():
+                b0, b1 = cspans[r]
+                K = rt.plane_cosine_operator(n0, self.config["order"])
+                g = ((light * (mats[r][0].to(dev, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(vTc.dtype)
+                radT.index_copy_(0, idx[b0:b1], torch.mm(g, vTc[:, b0:b1]).T)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
         counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
+
+    def _diffuse_ranges(self, light: Tensor, mats: list, w: Tensor, spans: list) -> Tensor:
+        """(N, 3) diffuse radiance kd ⊙ (lᵀ w / π) of every vertex, region range by region range: the
+        albedo-free (lᵀ w / π) kept while the lighting tensor and w are the same — a view or BRDF
+        frame (V, VB) changes only the albedos, the specular term and the front-facing set, so it
+        scales the kept one per region instead of reading w again (equal to `_radiance_ranges`'
+        product of w with the albedo-weighted lighting to float32 round-off)."""
+        dc = self._vertex_rad_d
+        if dc is None or dc[0] is not light or dc[1] is not w:
+            one = torch.ones(3, dtype=light.dtype)
+            dc = self._vertex_rad_d = (light, w, self._radiance_ranges(light, [(one, None, None)] * len(mats), w,
+                                                                       spans, {}))
+        D0 = dc[2]
+        out = torch.empty_like(D0)
+        for (a0, a1), (kd, _, _) in zip(spans, mats):
+            torch.mul(D0[a0:a1], kd.to(D0.device, D0.dtype), out=out[a0:a1])
+        return out
+
+    def _compact_transfer(self, vt: tuple, w: Tensor, spans: list) -> tuple | None:
+        """The lighting-free transfer of the front-facing vertices of the kept `_vertex_transfer`
+        ``vt`` in contiguous columns, kept with it: (idx (Nf,) their ids ascending, wf (n², Nf) their
+        columns of w, per region its range of those columns, region → (range, t_s) its specular part
+        — the part holds exactly the region's front-facing columns, `runtime.specular_parts`' keep),
+        or None when a part does not (then the path over every vertex)."""
+        cs = self._vertex_compact
+        if cs is not None and cs[0] is vt and cs[1] is w:
+            return cs[2]
+        _, _, ts, front, _ = vt
+        idx = front.nonzero().squeeze(-1)
+        bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=idx.device))
+        cspans = list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+        tsc = {}
+        for r, sp, t in ts or ():
+            b0, b1 = cspans[r]
+            if isinstance(sp, tuple) or sp.shape[0] != b1 - b0 or not torch.equal(sp, idx[b0:b1]):
+                self._vertex_compact = (vt, w, None)
+                return None
+            tsc[r] = ((b0, b1), t)
+        out = (idx, w.index_select(1, idx), cspans, tsc)
+        self._vertex_compact = (vt, w, out)
+        return out
+
+    def _front_planes(self, nT: Tensor, spans: list, alphas: list) -> dict:
+        """Region → its normal n0 (a tuple of floats) for each region with no specular term whose
+        columns ``spans[r]`` of nT (3, Q) — at least `runtime.PLANAR_MIN_POINTS` of them — all hold
+        the same normal bitwise (`_front_radiance`: a ground plane's front-facing vertices)."""
+        out = {}
+        for r, (b0, b1) in enumerate(spans):
+            if alphas[r] is not None or b1 - b0 < rt.PLANAR_MIN_POINTS:
+                continue
+            blk = nT[:, b0:b1]
+            if bool((blk == blk[:, :1]).all()):
+                out[r] = tuple(float(x) for x in blk[:, 0].tolist())
+        return out
 
     @staticmethod
     def _radiance_ranges(light: Tensor, mats: list, w: Tensor, spans: list, tsr: dict) -> Tensor:
@@ -1013,7 +1129,10 @@ class ZHShadow(Method):
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
                 + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
                    else sum(tensor_bytes(t) for _, _, t in self._vertex_transfer[2]))
-                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))}
+                + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))
+                + (0 if self._vertex_compact is None or self._vertex_compact[2] is None
+                   else tensor_bytes(self._vertex_compact[2][1]))
+                + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P

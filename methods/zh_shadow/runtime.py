@@ -809,6 +809,22 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor, *, ordered: bool = False) -> 
                    plan[1])
 
 
+@functools.lru_cache(maxsize=64)
+def plane_cosine_operator(n0: tuple[float, float, float], order: int) -> Tensor:
+    """(n², n²) float64 K with `cosine_visibility_zyz`(vzT, n0 for every point, ordered=True) = K @ vzT:
+    M(R_n0) M¹ with its columns in `zyz_rows` order — the same operator for every point sharing the
+    normal n0 (a plane's vertices, `ZHShadow._front_radiance`), so their diffuse term is one
+    (3, n²) row block ((l ⊙ kd / π)ᵀ K) times their visibility, without a w of their own. Made by
+    the same factors applied to the identity (eager, float64: no kernel compiled), kept per normal."""
+    n2 = order * order
+    nT = torch.tensor(n0, dtype=torch.float64)[:, None].expand(3, n2).contiguous()
+    plan = _block_plan(("phong", 1.0), order, True, torch.float64, torch.device("cpu"))
+    Cp, Sp, Ct, St = _zyz_angle_tables.eager(nT, order).unbind(0)
+    perm, absm, sgn, _, _, ti, tw = _conjugate_tables(order, torch.float64, torch.device("cpu"))
+    aP = _blocked_product(plan, torch.eye(n2, dtype=torch.float64))
+    return _zyz_half.eager(aP, Ct, St, Cp, Sp, perm, absm, sgn, ti, tw, plan[1])
+
+
 def cosine_visibility(vT: Tensor, nT: Tensor) -> Tensor:
     """(n², Q) world-space SH of V(ω)·max(0, n·ω) (order-n projection; `method.shade`'s
     ``specular="cosine"``: M¹ v in the frame of n, taken back to world space) for the points'

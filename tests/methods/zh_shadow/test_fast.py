@@ -895,6 +895,69 @@ def test_pose_frame_front_only_radiance_equals_all_vertices(zh_scene):
     _check_sequence(fast.with_render_config(), "P", n_frames=3)
 
 
+@pytest.mark.parametrize("n0", [(0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (0.48, -0.6, 0.64)])
+def test_plane_cosine_operator_equals_cosine_visibility(n0):
+    """`runtime.plane_cosine_operator` K(n0) (float64, the factors applied to the identity) times
+    visibility in the `zyz_rows` order = `cosine_visibility_zyz(…, ordered=True)` of every point
+    with the normal n0 (float32, compiled) to round-off, = `cosine_visibility` of the world-space v
+    (the conjugation M(R_n) M¹ M(R_n)ᵀ v), for a +y plane, the pole and a generic normal."""
+    from methods.core.sh_rotation import sh_rotation_matrix
+
+    order, Q = 8, 300
+    g = torch.Generator().manual_seed(11)
+    vz = torch.randn(order * order, Q, generator=g)
+    n = torch.tensor(n0)
+    nT = (n / n.norm())[:, None].expand(3, Q).contiguous()
+    K = rt.plane_cosine_operator(tuple(float(x) for x in nT[:, 0].tolist()), order)
+    assert K.dtype == torch.float64 and K.shape == (order * order, order * order)
+    rows = rt.zyz_rows(order)
+    want = rt.cosine_visibility_zyz(vz.index_select(0, rows), nT, ordered=True)
+    got = (K @ vz.index_select(0, rows).double()).float()
+    assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+    # the same as the world-space conjugation of v = M(R_n) v_zyz (R_n = (e1, e2, n), `zyz_axes`)
+    e1, e2 = rt.zyz_axes(nT[:, :1].double())
+    R = torch.stack([torch.cat(e1), torch.cat(e2), nT[:, 0].double()], 1)
+    v = sh_rotation_matrix(R, order).float() @ vz
+    assert (got - rt.cosine_visibility(v, nT)).abs().max() <= 1e-5 * want.abs().max()
+
+
+def test_pose_frame_plane_operator_equals_per_vertex_w(zh_scene, monkeypatch):
+    """A P frame whose ground's front-facing vertices share one normal (`ZHShadow._front_planes`,
+    plane threshold lowered to 64 vertices for the test-size creature) shades them by the plane's
+    operator (`runtime.plane_cosine_operator`: no w of their own) = the path making every front
+    vertex's w (``plane_operators`` off) to float32 round-off, = the reference (order 8, cosine)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, slow = m.with_render_config(), m.with_render_config()
+    slow.plane_operators = False
+    used, cv = [], rt.cosine_visibility_zyz
+
+    def counted(vzT, nT, **kw):
+        used.append(int(vzT.shape[1]))
+        return cv(vzT, nT, **kw)
+
+    monkeypatch.setattr(rt, "cosine_visibility_zyz", counted)
+    for i, f in enumerate(make_sequence(m.scene, "P", 3, seed=5)):
+        gb = make_gbuffer(m.scene, f, 2)
+        used.clear()
+        b = slow.render(f, gb)
+        wide = list(used)
+        used.clear()
+        a = fast.render(f, gb)
+        if i > 0:   # the front-only branch: w for fewer columns (not the plane's)
+            g = m.scene.geometry(torch.as_tensor(f.pose).float())
+            front = _front_vertices(g, f)
+            ground = g.vertex_region == m.scene.regions.index("ground")
+            assert len(used) == 1 and used[0] == wide[0] - int((front & ground).sum()), (used, wide)
+        assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
+        want = fast._render_reference(f, gb)
+        assert (a - want).abs().max() <= RENDER_TOL, i
+
+
 def test_warm_up_frame_compiles_the_front_only_pose_path(zh_scene, monkeypatch):
     """The harness's warm-up frame (a full change, rendered inside `warming`) also compiles the
     kernels of the front-only P path (`ZHShadow._front_radiance`): the P frames after it compile
@@ -973,6 +1036,69 @@ def test_resolve_matrix_int32_equals_int64(zh_scene):
     m.precompute(scene)
     _check_sequence(m, "L", n_frames=3)
     assert m._resolve_matrix[2] is not None and m._resolve_matrix[2].col_indices().dtype == torch.int32
+
+
+def test_lighting_frames_over_front_vertices_equal_every_vertex(zh_scene):
+    """Vertex-shaded lighting-only frames under a kept resolve matrix shade the front-facing
+    vertices alone (`ZHShadow._compact_transfer`: their w and t_s columns gathered once) = the path
+    over every vertex (``compact_lighting`` off) to float32 round-off, = the reference, on L and E
+    sequences (order 8, cosine), and a view frame after them drops what was gathered."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    for kind in ("L", "E"):
+        fast, slow = m.with_render_config(), m.with_render_config()
+        slow.compact_lighting = False
+        frames = make_sequence(m.scene, kind, 4, seed=6)
+        for i, f in enumerate(frames):
+            gb = make_gbuffer(m.scene, f, 2)
+            a, b = fast.render(f, gb), slow.render(f, gb)
+            if i > 0:   # the kept matrix's frames: the front-facing columns gathered once
+                idx, wf = fast._vertex_compact[2][:2]
+                N = m.scene.geometry().num_vertices
+                assert 0 < idx.numel() < N and wf.shape[1] == idx.numel() and fast._resolve_matrix[2] is not None
+                assert slow._vertex_compact is None
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max(), (kind, i)
+            want = fast._render_reference(f, gb)
+            assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
+        g = dataclasses.replace(frames[-1], camera=m.scene.camera.orbited(0.3), changed=frozenset({"view"}))
+        gb = make_gbuffer(m.scene, g, 2)
+        a = fast.render(g, gb)
+        assert fast._resolve_matrix[2] is None and fast._vertex_compact is None
+        assert (a - fast._render_reference(g, gb)).abs().max() <= RENDER_TOL
+
+
+def test_view_frames_reuse_the_diffuse_radiance(zh_scene):
+    """Vertex-shaded view / BRDF frames (V, VB) reuse the per-vertex albedo-free diffuse radiance
+    lᵀ w / π (`ZHShadow._diffuse_ranges`, kept while lighting and w stay), scale it by the albedos
+    and add the new specular term = the radiance made with the specular term every frame
+    (``diffuse_cache`` off) to float32 round-off, = the reference; a frame with new lighting (VL)
+    takes the path without it (nothing to reuse; order 8, cosine)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    for kind in ("V", "VB", "VL"):
+        fast, slow = m.with_render_config(), m.with_render_config()
+        slow.diffuse_cache = False
+        kept = []
+        for i, f in enumerate(make_sequence(m.scene, kind, 4, seed=7)):
+            gb = make_gbuffer(m.scene, f, 2)
+            a, b = fast.render(f, gb), slow.render(f, gb)
+            kept.append(None if fast._vertex_rad_d is None else fast._vertex_rad_d[2])
+            assert slow._vertex_rad_d is None
+            assert (a - b).abs().max() <= 1e-6 * b.abs().max(), (kind, i)
+            want = fast._render_reference(f, gb)
+            assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
+        # frame 0 (a full change) and every VL frame: new lighting, the radiance made as before
+        assert kept[0] is None and (all(x is kept[1] for x in kept[2:]) and kept[1] is not None if kind != "VL"
+                                    else all(x is None for x in kept)), (kind, kept)
+    assert m.with_render_config().memory()["relight_transfer"] == 0   # (before any frame)
 
 
 def test_pose_product_is_the_model_product_at_any_thread_count():
