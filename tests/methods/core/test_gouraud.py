@@ -73,6 +73,17 @@ def test_resolve_checks_the_index_ranges():
     bad[-1] = -2
     with pytest.raises(ValueError, match="another mesh"):
         gouraud.resolve(values, fv, bad, gb.bary, gb.hit, 5, 7, 2)
+    # a transposed view (ZH passes F.T; its range is read over the contiguous F): checked the same
+    Fv = F.T
+    assert not Fv.is_contiguous()
+    assert torch.equal(gouraud.resolve(values, Fv, gb.face, gb.bary, gb.hit, 5, 7, 2),
+                       gouraud.resolve(values, fv, gb.face, gb.bary, gb.hit, 5, 7, 2))
+    with pytest.raises(ValueError, match="another mesh"):
+        gouraud.resolve(values[:3], Fv, gb.face, gb.bary, gb.hit, 5, 7, 2)
+    neg = F.clone()
+    neg[4, 1] = -1
+    with pytest.raises(ValueError, match="another mesh"):
+        gouraud.resolve(values, neg.T, gb.face, gb.bary, gb.hit, 5, 7, 2)
 
 
 @pytest.mark.parametrize("S", [1, 2, 3])
