@@ -98,8 +98,12 @@ RESOLVE3(resolve3_i32, int32_t)
 """
 _I64, _P = ctypes.c_int64, ctypes.c_void_p
 _SIG = [_P, _P, _P, _P, _P, _I64, _I64, _P, _I64, _I64, _I64, _P]
-# Pixels per thread below which one thread resolves the whole image (a hand-off costs ~20-50 µs).
-_NATIVE_MIN_PIXELS = 1 << 13
+# Pixels per thread of the native loop's split (`native.run_ranges`). One thread resolves every image
+# this size or smaller, so all of the suite's: split over 2 threads of a pool on this loaded 2-core
+# machine (load ~6), a chess bench resolve right after a parallel torch op took a median 8.7 ms
+# (the hand-off waits for a core held by the OpenMP workers) against 1.66 ms on one thread and 1.86
+# for the compiled kernel's OpenMP split (session 26, /tmp/res2.py in the note). Tests lower it.
+_NATIVE_MIN_PIXELS = 1 << 20
 
 
 def _native() -> "ctypes.CDLL | None":
@@ -108,8 +112,9 @@ def _native() -> "ctypes.CDLL | None":
 
 def _resolve_native(values: Tensor, fv: Tensor, face: Tensor, bu: Tensor, bv: Tensor, hit: Tensor, n: int,
                     S2: int) -> Tensor | None:
-    """`_pixels` over all n pixels by the native loop, split over ``torch.get_num_threads()``
-    contiguous ranges of pixels (each pixel's sum by one thread: the same bits at any thread count),
+    """`_pixels` over all n pixels by the native loop (one thread up to `_NATIVE_MIN_PIXELS` pixels,
+    else split over ``torch.get_num_threads()`` contiguous ranges of pixels; each pixel's sum by one
+    thread: the same bits at any thread count),
     or None when the loop is not built or the arrays are not CPU tensors of its types (face int64 and
     hit bool contiguous, u / v float32, fv (3, M) int32 / int64 of any strides, values (N, 3)
     float32)."""
