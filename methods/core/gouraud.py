@@ -102,7 +102,7 @@ _SIG = [_P, _P, _P, _P, _P, _I64, _I64, _P, _I64, _I64, _I64, _P]
 # this size or smaller, so all of the suite's: split over 2 threads of a pool on this loaded 2-core
 # machine (load ~6), a chess bench resolve right after a parallel torch op took a median 8.7 ms
 # (the hand-off waits for a core held by the OpenMP workers) against 1.66 ms on one thread and 1.86
-# for the compiled kernel's OpenMP split (session 26, /tmp/res2.py in the note). Tests lower it.
+# for the compiled kernel's OpenMP split (session 26; `python -m benchmarks.gouraud_resolve`). Tests lower it.
 _NATIVE_MIN_PIXELS = 1 << 20
 
 
