@@ -4,20 +4,24 @@ barycentrics and box-filtered into pixels, in one pass over the samples (issue 1
 The reference is two ``scenes.frame.GBuffer`` calls, ``resolve(interpolate(values, F))``: gather the
 three vertex rows of each sample's face, weight them by (1 − u − v, u, v), zero the misses, average
 each pixel's S² sub-samples. `resolve` computes the same sums per pixel (unrolled: three vertices,
-S² sub-samples) as one compiled kernel over static blocks of pixels (``methods.core.fused``), so the
-per-sample radiance is never written to memory; it equals the reference to float32 round-off.
+S² sub-samples) in one pass over the pixels — on the CPU a C loop (`methods.core.native`), else one
+compiled kernel over a static block of pixels (``methods.core.fused``), the same sums in the same
+order —, so the per-sample radiance is never written to memory; it equals the reference to float32
+round-off.
 
 Used by the methods that shade per vertex and interpolate the radiance (the paper's run time of
 Mahajan 2008 "interactive at 17K vertices", Ma 2006 §3.3, Sun 2007's GPU path).
 """
 from __future__ import annotations
 
+import ctypes
 import functools
 import warnings
 
 import torch
 from torch import Tensor
 
+from methods.core import native
 from methods.core.fused import fused, map_rows, pow2_block
 
 __all__ = ["resolve", "resolve_matrix", "resolve_reference"]
@@ -53,15 +57,97 @@ def _pixels(face: Tensor, bu: Tensor, bv: Tensor, hit: Tensor, fv: Tensor, value
     return out * (1.0 / S2)
 
 
+# -- the native loop (CPU): `_pixels`' sums as a C loop over the pixels -------------------------------
+#
+# The same sums in the same order as `_pixels` (per pixel, its sub-samples in order, each one's three
+# corners as ((V0 (1 − u − v) + V1 u) + V2 v), a miss adding nothing; the sum times 1 / S²), without
+# the compiled kernel's guards and per-call wrapper, and with scalar loads where Inductor emits
+# per-lane gathers: bench chess, 256² × 2², 1 thread, process CPU, the kernel alone (values random):
+# 1.35 → 0.79 ms back to back, 2.0 → 1.3 ms after 0.2 s idle, bit-identical (session 26,
+# /work/scratch/res_bench.py). Unchecked loads: `resolve` checks the ranges first, as for `_pixels`.
+_SOURCE = r"""
+#include <stdint.h>
+/* Pixels i0 <= i < i1: out[i, c] = (1 / S2) * sum over s < S2 with hit[p] (p = i * S2 + s) of
+   (V[fv[0, f], c] (1 - u - v) + V[fv[1, f], c] u) + V[fv[2, f], c] v, f = max(face[p], 0), u = bu[p],
+   v = bv[p]; fv (3, M) with strides (sj, sf); V (N, 3) and out (n, 3) contiguous. The layouts of u, v
+   and V are fixed (runtime strides for them made the loop 1.6x slower); fv's are not. */
+#define RESOLVE3(NAME, IT)                                                                             \
+void NAME(const int64_t* face, const float* bu, const float* bv, const uint8_t* hit, const IT* fv,    \
+          int64_t sj, int64_t sf, const float* val, int64_t S2, int64_t i0, int64_t i1, float* out) { \
+    const float inv = 1.0f / (float)S2;                                                               \
+    for (int64_t i = i0; i < i1; ++i) {                                                                \
+        float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;                                                         \
+        for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {                                              \
+            if (!hit[p]) continue;                                                                     \
+            const int64_t f = face[p] < 0 ? 0 : face[p];                                               \
+            const float u = bu[p], v = bv[p], w = 1.0f - u - v;                                        \
+            const float* x = val + 3 * (int64_t)fv[f * sf];                                            \
+            const float* y = val + 3 * (int64_t)fv[sj + f * sf];                                       \
+            const float* z = val + 3 * (int64_t)fv[2 * sj + f * sf];                                   \
+            a0 += (x[0] * w + y[0] * u) + z[0] * v;                                                    \
+            a1 += (x[1] * w + y[1] * u) + z[1] * v;                                                    \
+            a2 += (x[2] * w + y[2] * u) + z[2] * v;                                                    \
+        }                                                                                              \
+        out[3 * i] = a0 * inv;                                                                         \
+        out[3 * i + 1] = a1 * inv;                                                                     \
+        out[3 * i + 2] = a2 * inv;                                                                     \
+    }                                                                                                  \
+}
+RESOLVE3(resolve3_i64, int64_t)
+RESOLVE3(resolve3_i32, int32_t)
+"""
+_I64, _P = ctypes.c_int64, ctypes.c_void_p
+_SIG = [_P, _P, _P, _P, _P, _I64, _I64, _P, _I64, _I64, _I64, _P]
+# Pixels per thread of the native loop's split (`native.run_ranges`). One thread resolves every image
+# this size or smaller, so all of the suite's: split over 2 threads of a pool on this loaded 2-core
+# machine (load ~6), a chess bench resolve right after a parallel torch op took a median 8.7 ms
+# (the hand-off waits for a core held by the OpenMP workers) against 1.66 ms on one thread and 1.86
+# for the compiled kernel's OpenMP split (session 26; `python -m benchmarks.gouraud_resolve`). Tests lower it.
+_NATIVE_MIN_PIXELS = 1 << 20
+
+
+def _native() -> "ctypes.CDLL | None":
+    return native.load("gouraud", _SOURCE, {"resolve3_i64": _SIG, "resolve3_i32": _SIG})
+
+
+def _resolve_native(values: Tensor, fv: Tensor, face: Tensor, bu: Tensor, bv: Tensor, hit: Tensor, n: int,
+                    S2: int) -> Tensor | None:
+    """`_pixels` over all n pixels by the native loop (one thread up to `_NATIVE_MIN_PIXELS` pixels,
+    else split over ``torch.get_num_threads()`` contiguous ranges of pixels; each pixel's sum by one
+    thread: the same bits at any thread count),
+    or None when the loop is not built or the arrays are not CPU tensors of its types (face int64 and
+    hit bool contiguous, u / v float32, fv (3, M) int32 / int64 of any strides, values (N, 3)
+    float32)."""
+    lib = _native()
+    if (lib is None or values.ndim != 2 or values.shape[1] != 3 or values.dtype != torch.float32
+            or face.dtype != torch.int64 or hit.dtype != torch.bool or bu.dtype != torch.float32
+            or fv.dtype not in (torch.int32, torch.int64) or fv.ndim != 2 or fv.shape[0] != 3
+            or not (face.is_contiguous() and hit.is_contiguous())
+            or any(t.device.type != "cpu" for t in (values, fv, face, bu, bv, hit))):
+        return None
+    # the loop's fixed layouts (its C source): no copy for the G-buffer's column-major barycentrics,
+    # a (N, 3) copy of a transposed values table (N·12 bytes)
+    values, bu, bv = values.contiguous(), bu.contiguous(), bv.contiguous()
+    out = torch.empty(n, 3, dtype=torch.float32)
+    fn = lib.resolve3_i64 if fv.dtype == torch.int64 else lib.resolve3_i32
+    args = (face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), fv.data_ptr(), fv.stride(0),
+            fv.stride(1), values.data_ptr(), S2)
+    op = out.data_ptr()
+    native.run_ranges(lambda i0, i1: fn(*args, i0, i1, op), n, torch.get_num_threads(), _NATIVE_MIN_PIXELS)
+    return out
+
+
 def resolve(values: Tensor, fv: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
-            spp_side: int) -> Tensor:
+            spp_side: int, *, native_resolve: bool = True) -> Tensor:
     """The (height, width, C) image of per-vertex radiance ``values`` (N, C) Gouraud-interpolated to
     the samples (face (P,) int64, −1 on a miss; bary (P, 2) float32 (u, v); hit (P,) bool; P =
     height·width·spp_side², pixel-major as ``GBuffer``) and box-filtered; fv (3, M) int the rows of
     ``values`` at each face's three corners (a face's corner may map to a per-region copy of a vertex).
     Misses count as 0. Equals `resolve_reference` to float32 round-off. The kernel's loads are not
     bounds-checked (`_NO_ASSERT`); the ranges (every face in [−1, M), every entry of fv in [0, N))
-    are checked once per call: ValueError otherwise."""
+    are checked once per call: ValueError otherwise. On the CPU the sums are made by a C loop
+    (`_resolve_native`, the same bits as the compiled kernel) when it is built; ``native_resolve``
+    False (tests: the oracle) or no C compiler runs the compiled kernel."""
     S2 = spp_side * spp_side
     n = height * width
     if face.shape[0] != n * S2:
@@ -86,6 +172,9 @@ def resolve(values: Tensor, fv: Tensor, face: Tensor, bary: Tensor, hit: Tensor,
     # the (n, S², 2) row-major copy `map_rows` made of it cost 1/5 of the stage (bench creature,
     # 256² × 2², 1 thread, load ~9: 3.70 → 2.98 and 2.77 → 2.23 ms, bit-identical; issue 14)
     bu, bv = bary.float().unbind(-1)
+    img = _resolve_native(values, fv, face, bu, bv, hit, n, S2) if native_resolve else None
+    if img is not None:
+        return img.view(height, width, -1)
     rows = (face.view(n, S2), bu.view(n, S2), bv.view(n, S2), hit.view(n, S2))
     # the frame's pixels in one static block (its pixel count rounded up to a power of two, at most
     # `RESOLVE_BLOCK_MAX`): the count is the image's, the same every frame of a sequence, so one

@@ -21,33 +21,23 @@ threads each take a contiguous range of rows of about equal coefficient counts (
 GIL during the call), so results are bit for bit the same at 1 and 2 threads
 (``tests/methods/test_threads.py``).
 
-The library is compiled once per source text and compiler into a per-user cache directory (atomic
-rename, so concurrent processes are safe; loaded only from a directory this user owns and nobody
-else can write) with the C compiler ``$CC`` or ``cc``; without one, or with
-``PRTBENCH_COMPILE=0`` (``methods.core.fused``'s off switch), `available` is False and callers use
-the torch product. The same library holds a second loop, `hit_face_mask` (the vertex shading's
-referenced faces: one pass over a frame's samples, 3.4× the compiled pass and histogram it replaces
-when those are unavailable). The CSR loop reads without bounds checks: `check_csr` validates the arrays once
-(column indices in [0, D), row pointers non-decreasing and within the arrays), when
-``fast.build_region`` builds a region.
+The library is built and loaded by `methods.core.native.load` (once per source text and compiler,
+from a private per-user directory; without a C compiler, or with ``PRTBENCH_COMPILE=0``,
+`available` is False and callers use the torch product). The same library holds a second loop,
+`hit_face_mask` (the vertex shading's referenced faces: one pass over a frame's samples, 3.4× the
+compiled pass and histogram it replaces when those are unavailable). The CSR loop reads without
+bounds checks: `check_csr` validates the arrays once (column indices in [0, D), row pointers
+non-decreasing and within the arrays), when ``fast.build_region`` builds a region.
 """
 from __future__ import annotations
 
 import ctypes
-import functools
-import hashlib
-import os
-import shutil
-import subprocess
-import sys
-import tempfile
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor
 
-from methods.core.fused import compile_enabled
+from methods.core import native
 
 __all__ = ["available", "check_csr", "csr_blocks4", "csr_dense4", "hit_face_mask"]
 
@@ -114,66 +104,18 @@ void hit_face_mask(const int64_t* face, const int64_t* region, const uint8_t* hi
     out[2] = faces;
 }
 """
-_FLAGS = ("-O3", "-shared", "-fPIC", "-fno-math-errno")
 # Rows below which one thread does the product (a thread's hand-off costs more than its share).
 _MIN_ROWS_PER_THREAD = 1 << 12
 
-
-@functools.lru_cache(maxsize=None)
-def _library(cc: str | None):
-    """The compiled kernel (ctypes function) or None (no compiler, or the build failed: warns once)."""
-    if cc is None:
-        return None
-    key = hashlib.sha256("\0".join((_SOURCE, cc, *_FLAGS, sys.platform)).encode()).hexdigest()[:20]
-    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
-    path = os.path.join(root, f"inout_csr_{key}.so")
-    try:
-        os.makedirs(root, mode=0o700, exist_ok=True)
-        if not _private_dir(root):
-            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
-        if not os.path.exists(path):
-            with tempfile.TemporaryDirectory(dir=root) as tmp:
-                src, so = os.path.join(tmp, "csr.c"), os.path.join(tmp, "csr.so")
-                with open(src, "w") as f:
-                    f.write(_SOURCE)
-                subprocess.run([cc, *_FLAGS, src, "-o", so], check=True, capture_output=True)
-                os.replace(so, path)                           # atomic: a concurrent build finds a whole file
-        lib = ctypes.CDLL(path)
-        fn, hf = lib.csr_blocks4, lib.hit_face_mask
-    except (OSError, subprocess.CalledProcessError) as e:
-        warnings.warn(f"inout: the native CSR kernel did not build ({e}); using torch's sparse product")
-        return None
-    fn.restype = hf.restype = None
-    fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
-                   ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
-    hf.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p,
-                   ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
-                   ctypes.c_void_p]
-    fn.hit_face_mask = hf
-    return fn
-
-
-def _private_dir(root: str) -> bool:
-    """Whether ``root`` is a real directory owned by this user that nobody else can write: the loaded
-    library comes from there, so a file planted by another user must not be (as Inductor's own
-    per-user cache in the temp directory)."""
-    st = os.lstat(root)
-    import stat
-
-    uid = os.getuid() if hasattr(os, "getuid") else st.st_uid
-    return stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not (st.st_mode & 0o022)
-
-
-@functools.lru_cache(maxsize=None)
-def _compiler() -> str | None:
-    """The C compiler's path (looked up once per process: a PATH search costs ~0.25 ms, against
-    ~0.1 ms for the product of a run of 16 vertices)."""
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    return shutil.which(cc) if cc else None
+_I64, _P = ctypes.c_int64, ctypes.c_void_p
+_SIGNATURES = {"csr_blocks4": [_P, _P, _I64, _I64, _P, _P, _P, _P],
+               "hit_face_mask": [_P, _P, _P, _I64, _P, _I64, _P, _I64, _P, _P, _P]}
 
 
 def _kernel():
-    return _library(_compiler()) if compile_enabled() else None
+    """The compiled library (`methods.core.native.load`: built once per source and compiler, loaded
+    only from a private directory) or None (the callers use the torch paths)."""
+    return native.load("inout_csr", _SOURCE, _SIGNATURES)
 
 
 def available() -> bool:
@@ -229,7 +171,7 @@ def csr_blocks4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, first: Tenso
     nt = max(1, min(torch.get_num_threads(), n * K // _MIN_ROWS_PER_THREAD))
     cp, fp, colp, valp, Lp, op = (t.data_ptr() for t in (crow, first, col, val, L4, out))
     if nt == 1:
-        fn(cp, fp, n, K, colp, valp, Lp, op)
+        fn.csr_blocks4(cp, fp, n, K, colp, valp, Lp, op)
         return out
     # nt ranges of blocks of about equal coefficient counts
     cum = (crow.index_select(0, first + K) - crow.index_select(0, first)).cumsum(0)
@@ -238,7 +180,7 @@ def csr_blocks4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, first: Tenso
     if _pool is None or _pool_size < nt:
         _pool, _pool_size = ThreadPoolExecutor(max_workers=nt, thread_name_prefix="inout-csr"), nt
     jobs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-    list(_pool.map(lambda ab: fn(cp, fp + 8 * ab[0], ab[1] - ab[0], K, colp, valp, Lp, op + 16 * K * ab[0]), jobs))
+    list(_pool.map(lambda ab: fn.csr_blocks4(cp, fp + 8 * ab[0], ab[1] - ab[0], K, colp, valp, Lp, op + 16 * K * ab[0]), jobs))
     return out
 
 

@@ -266,7 +266,6 @@ class InOut(Method):
     def precompute(self, scene) -> None:
         cfg = self.config
         N = cfg["cube_res"]
-        D = 6 * N * N
         geom = scene.geometry()
         V = torch.as_tensor(geom.V).float().cpu()
         F = torch.as_tensor(geom.F).long().cpu()

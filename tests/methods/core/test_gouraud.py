@@ -98,3 +98,72 @@ def test_resolve_matrix_equals_resolve(S):
         vals = torch.rand(values.shape, generator=torch.Generator().manual_seed(seed)) - 0.3
         want = gouraud.resolve_reference(vals, fv, gb.face, gb.bary, gb.hit, 6, 5, S)
         assert ((M @ vals).view(6, 5, 3) - want).abs().max() <= 1e-6
+
+
+def _native_or_skip():
+    from methods.core import native
+
+    if native.compiler() is None or gouraud._native() is None:
+        pytest.skip("no C compiler: the compiled kernel is the only path")
+
+
+@pytest.mark.parametrize("S", [1, 2, 3])
+def test_native_loop_equals_the_compiled_kernel_bit_for_bit(S, monkeypatch):
+    """The C loop (`gouraud._resolve_native`) makes `_pixels`' sums in `_pixels`' order: the same
+    bits as the compiled kernel for int32 / int64 corner tables, contiguous and transposed (ZH passes
+    F.T), a transposed values table, row-major barycentrics, and split over 1, 2 or 3 threads (each
+    pixel summed by one thread). It runs: a call that would not use it returns None."""
+    _native_or_skip()
+    monkeypatch.setattr(gouraud, "_NATIVE_MIN_PIXELS", 16)               # a 200×190 image splits
+    values, F, gb = _case(200, 190, S, N=77, M=120, seed=S)
+    want = gouraud.resolve(values, F.T.contiguous(), gb.face, gb.bary, gb.hit, 200, 190, S, native_resolve=False)
+    ref = gouraud.resolve_reference(values, F.T.contiguous(), gb.face, gb.bary, gb.hit, 200, 190, S)
+    assert (want - ref).abs().max() <= 1e-6
+    n = 200 * 190
+    bu, bv = gb.bary.float().unbind(-1)
+    assert gouraud._resolve_native(values, F.T, gb.face, bu, bv, gb.hit, n, S) is not None
+    threads = torch.get_num_threads()
+    try:
+        for nt in (1, 2, 3):
+            torch.set_num_threads(nt)
+            for fv in (F.T, F.T.contiguous(), F.T.contiguous().to(torch.int32), F.to(torch.int32).T):
+                for vals in (values, values.T.contiguous().T):
+                    for bary in (gb.bary, gb.bary.T.contiguous().T):
+                        got = gouraud.resolve(vals, fv, gb.face, bary, gb.hit, 200, 190, S)
+                        assert torch.equal(got, want), (nt, fv.dtype, fv.stride(), vals.stride(), bary.stride())
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_native_loop_falls_back_off_the_cpu_types(monkeypatch):
+    """Arrays the C loop does not take (float64 values, 4 channels) go through the compiled kernel
+    (`_resolve_native` returns None), with the same image as the reference; ``PRTBENCH_COMPILE=0``
+    switches the loop off with the compiler."""
+    _native_or_skip()
+    values, F, gb = _case(6, 5, 2)
+    bu, bv = gb.bary.float().unbind(-1)
+    for vals in (values.double(), torch.cat([values, values[:, :1]], 1)):
+        assert gouraud._resolve_native(vals, F.T, gb.face, bu, bv, gb.hit, 30, 4) is None
+        want = gouraud.resolve_reference(vals.float(), F.T, gb.face, gb.bary, gb.hit, 6, 5, 2)
+        assert (gouraud.resolve(vals, F.T, gb.face, gb.bary, gb.hit, 6, 5, 2) - want).abs().max() <= 1e-6
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    assert gouraud._resolve_native(values, F.T, gb.face, bu, bv, gb.hit, 30, 4) is None
+
+
+@pytest.mark.parametrize("name", ["sphere_plane", "chess", "alcove", "shadow_detail", "creature", "bunny",
+                                  "dragon", "character"])
+def test_native_loop_equals_the_compiled_kernel_on_library_scenes(name):
+    """Every library scene at test size, the G-buffer of its default frame (Mitsuba), random
+    per-vertex radiance: the C loop's image equals the compiled kernel's bit for bit."""
+    _native_or_skip()
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    sc = get_scene(name, "test")
+    fr = sc.default_frame()
+    gb = make_gbuffer(sc, fr, S=2)
+    F = sc.geometry().F
+    vals = torch.rand(int(F.max()) + 1, 3, generator=torch.Generator().manual_seed(3))
+    args = (vals, F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
+    assert bool(gb.hit.any())
+    assert torch.equal(gouraud.resolve(*args), gouraud.resolve(*args, native_resolve=False))

@@ -858,20 +858,21 @@ def test_native_kernel_is_not_loaded_from_a_directory_others_can_write(tmp_path,
     import os
     import tempfile
 
+    from methods.core import native
     from methods.inout import csr
 
-    if csr._compiler() is None:
+    if native.compiler() is None:
         pytest.skip("no C compiler")
     monkeypatch.setattr(tempfile, "gettempdir", lambda: str(tmp_path))
     root = tmp_path / f"prtbench-native-{os.getuid()}"
     root.mkdir()
     root.chmod(0o777)
-    csr._library.cache_clear()
+    native.cache_clear()
     try:
         with pytest.warns(UserWarning, match="not a directory only this user can write"):
-            assert csr._library(csr._compiler()) is None
+            assert csr._kernel() is None
         root.chmod(0o700)
-        csr._library.cache_clear()
-        assert csr._library(csr._compiler()) is not None
+        native.cache_clear()
+        assert csr._kernel() is not None
     finally:
-        csr._library.cache_clear()
+        native.cache_clear()
