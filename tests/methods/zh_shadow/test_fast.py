@@ -610,6 +610,53 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
         assert slow.memory()["plane_term"] == 0
 
 
+def _knock_out(gb, every: int = 97, offset: int = 5):
+    """A copy of the G-buffer ``gb`` whose samples offset, offset + every, … miss (as a miss is stored:
+    face / region −1, normal, position and barycentrics 0, coverage off): on the plane and on the
+    object alike."""
+    miss = torch.zeros_like(gb.hit)
+    miss[offset::every] = True
+    S = gb.spp_side
+    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
+    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
+                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
+                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
+                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
+
+
+@pytest.mark.parametrize("kind", ("V", "VB"))
+def test_plane_path_with_misses_equals_general_path(small_model, monkeypatch, kind):
+    """A G-buffer with samples that miss (the bench creature's VB / VL views miss one sample in
+    some frames) still takes `ZHShadow._render_planes`: the misses are 0, neither plane nor object
+    samples, the image equals the general path's and the reference to round-off, with the same
+    point counts (Q: the hits), clamp on and off. A miss counted as an object or a plane sample,
+    or not zero, breaks the image or the counts."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    for clamp in (True, False):
+        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+        for fr in make_sequence(m.scene, kind, 3, seed=7):
+            gb0 = make_gbuffer(m.scene, fr, 2)
+            gb = _knock_out(gb0, 97 + fr.index, 5 + fr.index)
+            assert bool(gb0.hit.all()) and not bool(gb.hit.all())
+            a = fast.render(fr, gb)
+            assert fast.last_path == "planes", (kind, fr.index, fast.last_path)
+            with monkeypatch.context() as mp:
+                mp.setattr(Z, "_render_planes", lambda *args, **kw: None)
+                b = slow.render(fr, gb)
+            assert slow.last_path == "samples"
+            ca, cb = dict(fast._last_counts), dict(slow._last_counts)   # (before the reference sets its own)
+            ref = m.with_render_config(clamp=clamp)._render_reference(fr, gb)
+            assert ref.abs().max() > 0.05
+            assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
+            pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
+            assert ca == cb and ca["Q"] == int(gb.hit.sum())
+            assert (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
+
+
 def _fast_vs_general(m, monkeypatch, fast_path: str, cases, n_frames: int, seed: int):
     """For each (kind, clamp) of ``cases`` and each frame of that sequence: render with ``m``'s
     fast path and with the ZHShadow method ``fast_path`` disabled (the general path), check both
