@@ -577,14 +577,19 @@ def test_view_frames_keep_the_vertex_table(small_model):
         m.render(fr, make_gbuffer(m.scene, fr, 2))
     assert m._vtable[2] is U                                     # kept, but not used: its key differs
     # a frame shading many samples per vertex off the planes builds its own table (not reused):
-    # VB and P frames, each equal to the reference
+    # VB and P frames, each equal to the reference — on the plane path, of the vertices its samples
+    # reference alone and not kept (`test_referenced_vertex_table_equals_full_table`); with that
+    # off, of every vertex, kept
     with mock.patch("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0):
         _check_frames(m, [fr], "VB many")
-        assert m._vtable[2] is not U
-        for fp in make_sequence(m.scene, "P", 3, seed=5)[1:]:
-            U1 = m._vtable[2]
-            _check_frames(m, [fp], "P many")
-            assert m._vtable[2] is not U1 and m._vtable[0][0] == m._posed[0]
+        assert m.last_path == "planes" and m._vtable[2] is U
+        with mock.patch.object(type(m), "referenced_table", False):
+            _check_frames(m, [fr], "VB many")
+            assert m._vtable[2] is not U
+            for fp in make_sequence(m.scene, "P", 3, seed=5)[1:]:
+                U1 = m._vtable[2]
+                _check_frames(m, [fp], "P many")
+                assert m._vtable[2] is not U1 and m._vtable[0][0] == m._posed[0]
     mc = m.with_render_config(specular="cosine")
     _check_frames(mc, frames[:3], "V cosine")
     assert mc._vtable is None
@@ -608,6 +613,49 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
         u = fast._plane_u[3] if path == "planes" else None
         assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
         assert slow.memory()["plane_term"] == 0
+
+
+def test_referenced_vertices():
+    """`runtime.referenced_vertices`: the referenced ids ascending, and vi renumbered over them."""
+    g = torch.Generator().manual_seed(0)
+    vi = torch.randint(0, 50, (40, 3), generator=g, dtype=torch.int64) * 3 + 1   # ids 1, 4, …: gaps
+    for dt in (torch.int32, torch.int64):
+        idx, vr = rt.referenced_vertices(vi.to(dt), 200)
+        assert torch.equal(idx, torch.unique(vi)) and vr.dtype == dt and vr.shape == vi.shape
+        assert torch.equal(idx[vr.long()], vi)
+
+
+@pytest.mark.parametrize("kind", ("VB", "VL", "P"))
+def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kind):
+    """A frame that is not view-only and shades many samples per vertex off the planes (VB, VL and P
+    frames at bench size; here forced) builds its table for the vertices its object samples reference
+    alone (`ZHShadow._vertex_table`'s ``vi``): the image equals, bit for bit, the one from the table of
+    every vertex (``referenced_table`` off, the oracle) — the same rows, renumbered — and the
+    reference to round-off; the kept view table is left as it was. A wrong renumbering, or a
+    table missing a referenced vertex, breaks the image."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    monkeypatch.setattr("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0)
+    m = small_model("creature")
+    fast, full = m.with_render_config(), m.with_render_config()
+    full.referenced_table = False
+    calls = []
+    orig = rt.referenced_vertices
+    monkeypatch.setattr(rt, "referenced_vertices", lambda vi, N: calls.append(N) or orig(vi, N))
+    for fr in make_sequence(m.scene, kind, 3, seed=8):
+        gb = make_gbuffer(m.scene, fr, 2)
+        kept = fast._vtable
+        n0 = len(calls)
+        a = fast.render(fr, gb)
+        b = full.render(fr, gb)
+        assert fast.last_path == full.last_path == "planes"
+        if fr.index > 0:
+            assert len(calls) == n0 + 1 and fast._vtable is kept   # its own table, not kept
+        assert torch.equal(a, b), (kind, fr.index, (a - b).abs().max().item())
+        ref = m.with_render_config()._render_reference(fr, gb)
+        assert (a - ref).abs().max().item() <= RENDER_TOL
 
 
 def _knock_out(gb, every: int = 97, offset: int = 5):
