@@ -610,8 +610,8 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
         pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
         assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
         # the plane path's kept term is reported as memory; the general path keeps none
-        u = fast._plane_u[3] if path == "planes" else None
-        assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
+        us = [fast._plane_u[3], fast._plane_u0[3]] if path == "planes" else []
+        assert fast.memory()["plane_term"] == sum(u.numel() * u.element_size() for u in us)
         assert slow.memory()["plane_term"] == 0
 
 
@@ -656,6 +656,26 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
         assert torch.equal(a, b), (kind, fr.index, (a - b).abs().max().item())
         ref = m.with_render_config()._render_reference(fr, gb)
         assert (a - ref).abs().max().item() <= RENDER_TOL
+
+
+def test_plane_term_keeps_the_albedo_free_part(small_model):
+    """`ZHShadow._plane_term` over a VB sequence (new albedos every frame, same pose and lighting):
+    u = kd ⊙ (v · T¹(n0)) equals, bit for bit, the product with the albedos gathered per vertex
+    (the old expression), and its albedo-free part is made once and kept."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    u0 = None
+    for fr in make_sequence(m.scene, "VB", 3, seed=9):
+        m.render(fr, make_gbuffer(m.scene, fr, 2))
+        assert m.last_path == "planes"
+        geom, v = m._posed[1], m._posed[2]
+        Wd, n0 = m._plane_u[2], torch.tensor(m._plane_u[0][3])
+        kd_v = torch.stack([k for k, _, _ in m._region_materials(fr)]).index_select(0, geom.vertex_region)
+        assert torch.equal(m._plane_u[3], (v @ rt.diffuse_at(Wd, n0)) * kd_v)
+        assert u0 is None or m._plane_u0[3] is u0
+        u0 = m._plane_u0[3]
 
 
 def _knock_out(gb, every: int = 97, offset: int = 5):
