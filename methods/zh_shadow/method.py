@@ -335,6 +335,7 @@ class ZHShadow(Method):
         self._relight: tuple | None = None       # (that state, v, covered samples, `runtime.relight_cache`)
         self._vtable: tuple | None = None        # ((pose, lighting, materials), v, `runtime.vertex_table` U, tables)
         self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
+        self._plane_u0: tuple | None = None      # ((pose, lighting, plane normal), v, Wd, (N, 3) u without kd)
         self._faces: tuple | None = None         # (geometry, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
@@ -347,7 +348,7 @@ class ZHShadow(Method):
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
-        self._vtable = self._plane_u = self._faces = self._resolve_matrix = None
+        self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -531,8 +532,8 @@ class ZHShadow(Method):
                 for sp, (kd, ks, al) in zip(spec, mats)]
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
         all_hit = _all(gbuffer.hit)
-        if not relight and all_hit:
-            img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine)
+        if not relight:
+            img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine, all_hit)
             if img is not None:
                 self._relight = None
                 return img
@@ -581,11 +582,15 @@ class ZHShadow(Method):
         return gbuffer.resolve(out, channels_first=True)
 
     def _render_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
-                       mats: list, cosine: bool) -> Tensor | None:
-        """`render` of a frame whose samples all hit and whose planar groups (`runtime.planar_groups`)
-        are one plane holding most samples with no specular term on it (every library scene's
-        ground under the bench views), or None (then `render`'s general path): the same terms as
-        `runtime.shade` on the same points, without its per-sample copies of the G-buffer.
+                       mats: list, cosine: bool, all_hit: bool = True) -> Tensor | None:
+        """`render` of a frame whose planar groups (`runtime.planar_groups`) are one plane holding
+        most samples with no specular term on it (every library scene's ground under the bench
+        views), or None (then `render`'s general path): the same terms as `runtime.shade` on the
+        same points, without its per-sample copies of the G-buffer. Samples that miss (``all_hit``
+        False) are neither on the plane nor among the others: radiance 0, as the general path's
+        scatter into zeros (the bench creature's VB / VL views miss 1 of 262,144 samples in some
+        frames — a ray between two ground faces — which sent those frames down the general path:
+        suite seed 0, VB frames 1 and 4, VL frame 3, 20 ms against 12 in perf run s25).
 
         The plane's samples never leave the G-buffer: one compiled pass (`_plane_pixels`) gathers
         their face's corner values of the per-vertex diffuse term u = kd ⊙ v · T¹(n0) (kept while
@@ -602,7 +607,13 @@ class ZHShadow(Method):
         on_spec: dict = {}   # the plane's samples in a region with a specular term, counted by the match
         match = rt.plane_match(nrm.contiguous(), region, torch.tensor(spec, device=dev), on_spec)
         groups, mask, rest = rt.planar_groups(nrm.T, match=match) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
-        if len(groups) != 1 or mask is None or rest.shape[0] == 0:
+        if len(groups) != 1 or mask is None:
+            return None
+        if not all_hit:   # (a miss's normal is 0, never the plane's: the mask is the hits' already)
+            hit = gbuffer.hit
+            mask = mask & hit
+            rest = rest[hit.index_select(0, rest)]
+        if rest.shape[0] == 0:
             return None
         if any(spec) and int(on_spec[tuple(groups[0][0].tolist())]):
             return None   # a specular term on the plane: `runtime.shade` does it per point
@@ -618,7 +629,9 @@ class ZHShadow(Method):
         bu, bv = take(gbuffer.bary).unbind(0)
         b = torch.stack([1.0 - bu - bv, bu, bv], -1)                                 # `runtime.barycentrics`
         clamp = self.config["clamp"]
-        U = None if cosine else self._vertex_table(frame, v0, v, vreg, tabs, mats, points=int(rest.shape[0]))
+        U = None if cosine else self._vertex_table(frame, v0, v, vreg, tabs, mats, points=int(rest.shape[0]), vi=vi)
+        if isinstance(U, tuple):   # this frame's own table, of the vertices ``vi`` references alone
+            U, vi = U
         reg, mt = region.index_select(0, rest), tabs
         if U is None and rest.shape[0]:
             r0 = int(reg[0])
@@ -643,7 +656,7 @@ class ZHShadow(Method):
             img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
         counts = rt._plane_counts(groups, mask, region, geom.N.to(dev), vreg)
         counts["specular"] = cr["specular"]
-        self._last_counts = {"P": P, "Q": P, **counts}
+        self._last_counts = {"P": P, "Q": P if all_hit else int(mask.sum()) + int(rest.shape[0]), **counts}
         self.last_path = "planes"
         return img.view(gbuffer.height, gbuffer.width, 3)
 
@@ -653,8 +666,24 @@ class ZHShadow(Method):
         ukey = (self._posed[0], self._light[0], tuple(tuple(m[0].tolist()) for m in mats), tuple(n0.tolist()))
         pu = self._plane_u
         if pu is None or pu[0] != ukey or pu[1] is not v0 or pu[2] is not Wd:   # (Wd: the cached table itself)
-            kd_v = torch.stack([m[0] for m in mats]).to(v.device, v.dtype).index_select(0, vreg)   # (N, 3)
-            self._plane_u = pu = (ukey, v0, Wd, (v @ rt.diffuse_at(Wd, n0)) * kd_v)
+            # the albedo-free v · T¹(n0) kept while pose, lighting and plane stay (a material frame, VB:
+            # the albedos alone change, 0.6 → ~0.05 ms of the bench creature's frame), then kd per
+            # vertex — region range by region range when each region is one (`_region_spans`: no (N, 3)
+            # gather of the albedos); the same products bit for bit
+            ukey0 = ukey[:2] + ukey[3:]
+            p0 = self._plane_u0
+            if p0 is None or p0[0] != ukey0 or p0[1] is not v0 or p0[2] is not Wd:
+                self._plane_u0 = p0 = (ukey0, v0, Wd, v @ rt.diffuse_at(Wd, n0))
+            u0 = p0[3]
+            spans = self._region_spans(vreg, len(mats))
+            if spans is None:
+                kd_v = torch.stack([m[0] for m in mats]).to(v.device, v.dtype).index_select(0, vreg)   # (N, 3)
+                u = u0 * kd_v
+            else:
+                u = torch.empty_like(u0)
+                for (a0, a1), m in zip(spans, mats):
+                    torch.mul(u0[a0:a1], m[0].to(v.device, v.dtype), out=u[a0:a1])
+            self._plane_u = pu = (ukey, v0, Wd, u)
         return pu[3]
 
     def _face_rows(self, geom, dev) -> tuple[Tensor, Tensor]:
@@ -718,8 +747,13 @@ class ZHShadow(Method):
                     img[:, c].index_add_(0, pix, rad[c], alpha=1.0 / S2)
         return img.view(gbuffer.height, gbuffer.width, 3)
 
+    # A frame that builds a table it does not keep (a pose, lighting or material change) builds it
+    # for the vertices its points reference alone (`_vertex_table`'s ``vi``); False: for every
+    # vertex (the tests' oracle)
+    referenced_table = True
+
     def _vertex_table(self, frame: Frame, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list, mats: list,
-                      points: int | None = None) -> Tensor | None:
+                      points: int | None = None, vi: Tensor | None = None) -> Tensor | tuple | None:
         """The per-vertex table U of `runtime.vertex_table` for this frame's pose, lighting and
         materials, or None (shade through the per-point feature GEMMs). Kept while those do not
         change; built by a view-only frame (``changed`` ⊆ {"view"}), when the next frames are likely
@@ -728,7 +762,16 @@ class ZHShadow(Method):
         count: U costs N·2·n²·3K flops, and shading from it saves 3/4 of the per-point flops
         (`runtime.vertex_table`) — measured on the bench creature's P frame (paper setting, 37 K
         off-plane samples, 13.4 K vertices, 1 thread): U 3.5 ms + the compiled per-sample pass 6.0
-        ms against 13.9 ms of the per-point GEMMs."""
+        ms against 13.9 ms of the per-point GEMMs.
+
+        ``vi`` (Q, 3) int32, the vertex ids of the points this frame shades from the table (the plane
+        path's object samples): a table built by a frame that is not view-only — and so not reused:
+        the next frame changes pose, lighting, materials or the view again, and a view-only frame
+        builds and keeps its own — is built for the vertices ``vi`` references alone
+        (`runtime.referenced_vertices`) and returned as (U of those rows, ``vi`` renumbered over
+        them): the same rows bit for bit (each row its own product). Bench creature VB frame: 3.6 K
+        of the 13.4 K vertices (the object's visible side), U 4.4 → 1.7 ms + ~0.6 ms to find and
+        renumber them."""
         key = (self._posed[0], self._light[0],
                tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al), t[3] is not None)
                      for (kd, ks, al), t in zip(mats, tabs)))
@@ -740,6 +783,9 @@ class ZHShadow(Method):
         if not frame.changed <= {"view"} and vt is not None and not many:
             return None   # the first frame builds it too: its kernels compile there, not in the first timed
             #               view frame (session 13's perf run: the paper setting's V frame 1 at 808 ms vs 68)
+        if not frame.changed <= {"view"} and vt is not None and vi is not None and self.referenced_table:
+            idx, vi_r = rt.referenced_vertices(vi, int(v.shape[0]))
+            return rt.vertex_table(v.index_select(0, idx), vreg.index_select(0, idx), tabs), vi_r
         U = rt.vertex_table(v, vreg, tabs)
         self._vtable = (key, v0, U, [tuple(t) for t in tabs])   # the tables kept: their identity is the key
         return U
@@ -1125,7 +1171,8 @@ class ZHShadow(Method):
                                                    self._resolve_matrix[2].values())),
                 # the plane path's per-vertex diffuse term u (`_render_planes`), kept while pose,
                 # lighting and the plane's BRDF are unchanged
-                "plane_term": 0 if self._plane_u is None else tensor_bytes(self._plane_u[3]),
+                "plane_term": (0 if self._plane_u is None else tensor_bytes(self._plane_u[3]))
+                + (0 if self._plane_u0 is None else tensor_bytes(self._plane_u0[3])),
                 "relight_transfer": (0 if self._relight is None else rt.relight_cache_bytes(self._relight[3]))
                 + (0 if self._vertex_transfer is None or self._vertex_transfer[2] is None
                    else sum(tensor_bytes(t) for _, _, t in self._vertex_transfer[2]))

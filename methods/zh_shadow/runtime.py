@@ -306,6 +306,17 @@ def vertex_table(v: Tensor, vertex_region: Tensor, mats: list[tuple[Tensor, Tens
     return U
 
 
+def referenced_vertices(vi: Tensor, N: int) -> tuple[Tensor, Tensor]:
+    """The vertices (of N) that the vertex ids vi (Q, k) int32 / int64 reference, ascending (M,)
+    int64, and vi renumbered over them (same shape and dtype): row vi[q, j] of a per-vertex table
+    is row vi_r[q, j] of its rows ``idx`` (`ZHShadow._vertex_table`: a table of those rows alone)."""
+    flat = vi.reshape(-1)
+    idx = (torch.bincount(flat, minlength=N) > 0).nonzero().squeeze(-1)
+    lut = torch.empty(N, dtype=vi.dtype, device=vi.device)
+    lut.index_copy_(0, idx, torch.arange(idx.shape[0], dtype=vi.dtype, device=vi.device))
+    return idx, lut.index_select(0, flat).view(vi.shape)
+
+
 def _monomial_rows(d: tuple[Tensor, Tensor, Tensor], degrees: tuple[int, ...]) -> list[Tensor]:
     """The monomials of each degree in ``degrees`` of the direction rows d = (x, y, z) (each (C,)),
     as a list of rows in `_monos` order: the recurrence of `_monomial_levels` (the same products),

@@ -577,14 +577,19 @@ def test_view_frames_keep_the_vertex_table(small_model):
         m.render(fr, make_gbuffer(m.scene, fr, 2))
     assert m._vtable[2] is U                                     # kept, but not used: its key differs
     # a frame shading many samples per vertex off the planes builds its own table (not reused):
-    # VB and P frames, each equal to the reference
+    # VB and P frames, each equal to the reference — on the plane path, of the vertices its samples
+    # reference alone and not kept (`test_referenced_vertex_table_equals_full_table`); with that
+    # off, of every vertex, kept
     with mock.patch("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0):
         _check_frames(m, [fr], "VB many")
-        assert m._vtable[2] is not U
-        for fp in make_sequence(m.scene, "P", 3, seed=5)[1:]:
-            U1 = m._vtable[2]
-            _check_frames(m, [fp], "P many")
-            assert m._vtable[2] is not U1 and m._vtable[0][0] == m._posed[0]
+        assert m.last_path == "planes" and m._vtable[2] is U
+        with mock.patch.object(type(m), "referenced_table", False):
+            _check_frames(m, [fr], "VB many")
+            assert m._vtable[2] is not U
+            for fp in make_sequence(m.scene, "P", 3, seed=5)[1:]:
+                U1 = m._vtable[2]
+                _check_frames(m, [fp], "P many")
+                assert m._vtable[2] is not U1 and m._vtable[0][0] == m._posed[0]
     mc = m.with_render_config(specular="cosine")
     _check_frames(mc, frames[:3], "V cosine")
     assert mc._vtable is None
@@ -605,9 +610,119 @@ def test_plane_path_equals_general_path(small_model, monkeypatch, name, path):
         pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
         assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
         # the plane path's kept term is reported as memory; the general path keeps none
-        u = fast._plane_u[3] if path == "planes" else None
-        assert fast.memory()["plane_term"] == (0 if u is None else u.numel() * u.element_size())
+        us = [fast._plane_u[3], fast._plane_u0[3]] if path == "planes" else []
+        assert fast.memory()["plane_term"] == sum(u.numel() * u.element_size() for u in us)
         assert slow.memory()["plane_term"] == 0
+
+
+def test_referenced_vertices():
+    """`runtime.referenced_vertices`: the referenced ids ascending, and vi renumbered over them."""
+    g = torch.Generator().manual_seed(0)
+    vi = torch.randint(0, 50, (40, 3), generator=g, dtype=torch.int64) * 3 + 1   # ids 1, 4, …: gaps
+    for dt in (torch.int32, torch.int64):
+        idx, vr = rt.referenced_vertices(vi.to(dt), 200)
+        assert torch.equal(idx, torch.unique(vi)) and vr.dtype == dt and vr.shape == vi.shape
+        assert torch.equal(idx[vr.long()], vi)
+
+
+@pytest.mark.parametrize("kind", ("VB", "VL", "P"))
+def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kind):
+    """A frame that is not view-only and shades many samples per vertex off the planes (VB, VL and P
+    frames at bench size; here forced) builds its table for the vertices its object samples reference
+    alone (`ZHShadow._vertex_table`'s ``vi``): the image equals, bit for bit, the one from the table of
+    every vertex (``referenced_table`` off, the oracle) — the same rows, renumbered — and the
+    reference to round-off; the kept view table is left as it was. A wrong renumbering, or a
+    table missing a referenced vertex, breaks the image."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    monkeypatch.setattr("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0)
+    m = small_model("creature")
+    fast, full = m.with_render_config(), m.with_render_config()
+    full.referenced_table = False
+    calls = []
+    orig = rt.referenced_vertices
+    monkeypatch.setattr(rt, "referenced_vertices", lambda vi, N: calls.append(N) or orig(vi, N))
+    for fr in make_sequence(m.scene, kind, 3, seed=8):
+        gb = make_gbuffer(m.scene, fr, 2)
+        kept = fast._vtable
+        n0 = len(calls)
+        a = fast.render(fr, gb)
+        b = full.render(fr, gb)
+        assert fast.last_path == full.last_path == "planes"
+        if fr.index > 0:
+            assert len(calls) == n0 + 1 and fast._vtable is kept   # its own table, not kept
+        assert torch.equal(a, b), (kind, fr.index, (a - b).abs().max().item())
+        ref = m.with_render_config()._render_reference(fr, gb)
+        assert (a - ref).abs().max().item() <= RENDER_TOL
+
+
+def test_plane_term_keeps_the_albedo_free_part(small_model):
+    """`ZHShadow._plane_term` over a VB sequence (new albedos every frame, same pose and lighting):
+    u = kd ⊙ (v · T¹(n0)) equals, bit for bit, the product with the albedos gathered per vertex
+    (the old expression), and its albedo-free part is made once and kept."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    u0 = None
+    for fr in make_sequence(m.scene, "VB", 3, seed=9):
+        m.render(fr, make_gbuffer(m.scene, fr, 2))
+        assert m.last_path == "planes"
+        geom, v = m._posed[1], m._posed[2]
+        Wd, n0 = m._plane_u[2], torch.tensor(m._plane_u[0][3])
+        kd_v = torch.stack([k for k, _, _ in m._region_materials(fr)]).index_select(0, geom.vertex_region)
+        assert torch.equal(m._plane_u[3], (v @ rt.diffuse_at(Wd, n0)) * kd_v)
+        assert u0 is None or m._plane_u0[3] is u0
+        u0 = m._plane_u0[3]
+
+
+def _knock_out(gb, every: int = 97, offset: int = 5):
+    """A copy of the G-buffer ``gb`` whose samples offset, offset + every, … miss (as a miss is stored:
+    face / region −1, normal, position and barycentrics 0, coverage off): on the plane and on the
+    object alike."""
+    miss = torch.zeros_like(gb.hit)
+    miss[offset::every] = True
+    S = gb.spp_side
+    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
+    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
+                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
+                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
+                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
+
+
+@pytest.mark.parametrize("kind", ("V", "VB"))
+def test_plane_path_with_misses_equals_general_path(small_model, monkeypatch, kind):
+    """A G-buffer with samples that miss (the bench creature's VB / VL views miss one sample in
+    some frames) still takes `ZHShadow._render_planes`: the misses are 0, neither plane nor object
+    samples, the image equals the general path's and the reference to round-off, with the same
+    point counts (Q: the hits), clamp on and off. A miss counted as an object or a plane sample,
+    or not zero, breaks the image or the counts."""
+    from methods.zh_shadow.method import ZHShadow as Z
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    for clamp in (True, False):
+        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+        for fr in make_sequence(m.scene, kind, 3, seed=7):
+            gb0 = make_gbuffer(m.scene, fr, 2)
+            gb = _knock_out(gb0, 97 + fr.index, 5 + fr.index)
+            assert bool(gb0.hit.all()) and not bool(gb.hit.all())
+            a = fast.render(fr, gb)
+            assert fast.last_path == "planes", (kind, fr.index, fast.last_path)
+            with monkeypatch.context() as mp:
+                mp.setattr(Z, "_render_planes", lambda *args, **kw: None)
+                b = slow.render(fr, gb)
+            assert slow.last_path == "samples"
+            ca, cb = dict(fast._last_counts), dict(slow._last_counts)   # (before the reference sets its own)
+            ref = m.with_render_config(clamp=clamp)._render_reference(fr, gb)
+            assert ref.abs().max() > 0.05
+            assert (a - b).abs().max().item() <= RENDER_TOL and (a - ref).abs().max().item() <= RENDER_TOL
+            pa, pb = ca.pop("plane_vertices"), cb.pop("plane_vertices")
+            assert ca == cb and ca["Q"] == int(gb.hit.sum())
+            assert (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
 
 
 def _fast_vs_general(m, monkeypatch, fast_path: str, cases, n_frames: int, seed: int):
