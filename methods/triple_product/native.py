@@ -261,16 +261,20 @@ MIN_ITEMS_PER_THREAD = 256
 
 
 def _split(fn, b: int, call) -> None:
-    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b)."""
+    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b): the first on the
+    calling thread, the others on pool threads (one hand-off fewer)."""
     nt = max(1, min(torch.get_num_threads(), b // MIN_ITEMS_PER_THREAD))
     if nt == 1:
         call(0, b)
         return
     global _pool, _pool_size
-    if _pool is None or _pool_size < nt:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt, thread_name_prefix="tp-native"), nt
+    if _pool is None or _pool_size < nt - 1:
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt - 1, thread_name_prefix="tp-native"), nt - 1
     cuts = [b * k // nt for k in range(nt + 1)]
-    list(_pool.map(lambda k: call(cuts[k], cuts[k + 1]), range(nt)))
+    jobs = [_pool.submit(call, cuts[k], cuts[k + 1]) for k in range(1, nt)]
+    call(cuts[0], cuts[1])
+    for j in jobs:
+        j.result()
 
 
 def _check_tables(V: Tensor, R: Tensor, L: Tensor, ch) -> int:
