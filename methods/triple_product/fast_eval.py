@@ -868,7 +868,7 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     # A_L' of the evaluation level (equal-area measure)
     if grouped is None:
         grouped = grouping_pays(vp[3], lrows, brows)
-    ch = vis_chunks(method, Vt) if points is None else None
+    ch = vis_chunks(method, Vt, (vp[2], live)) if points is None else None
     if grouped:  # the frame's group count goes to `frame_cost` (``method.stats["frame_groups"]``)
         st = {}
         out = fine_grouped(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, stats=st, chunks=ch)
@@ -879,16 +879,25 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch).mul_(0.25 ** Le)
 
 
-def vis_chunks(method, Vt: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+def vis_chunks(method, Vt: Tensor, source: tuple | None = None) -> tuple[Tensor, Tensor, Tensor] | None:
     """The chunk lists (`native.chunks`) of the visibility fine-value table ``Vt`` the frame reads,
     built once per table (at the first frame: the warm-up frame) and cached on its identity; None
-    when the native loops are not available (`native.available`)."""
+    when the native loops are not available (`native.available`). ``source``: (stored visibility
+    values, live triangles or None) ``Vt`` was made from — a table rebuilt from the same values and
+    the same live triangles (`live_triangles` after a material edit that left them live) keeps its
+    lists (the same columns: the same zeros)."""
     if not native.available() or Vt.dtype != torch.float32 or Vt.device.type != "cpu":
         return None
     cache = method.__dict__.setdefault("_perf_cache", {})
     hit = cache.get(("chunks",))
+    if hit is not None and hit[0] is not Vt and source is not None and hit[2] is not None \
+            and hit[2][0] is source[0] and hit[0].shape == Vt.shape \
+            and ((hit[2][1] is None and source[1] is None) or
+                 (hit[2][1] is not None and source[1] is not None and torch.equal(hit[2][1], source[1]))):
+        hit = cache[("chunks",)] = (Vt, hit[1], source)
     if hit is None or hit[0] is not Vt:
-        hit = cache[("chunks",)] = (Vt, native.chunks(Vt))  # holds Vt: no id reuse while cached
+        # holds Vt and its source: no id reuse while cached
+        hit = cache[("chunks",)] = (Vt, native.chunks(Vt), source)
     return hit[1]
 
 

@@ -127,3 +127,45 @@ def test_groups_equal_group_block(n):
     ref = fast_eval.fine_kernel(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw)
     out = fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, chunks=ch)
     assert (out - ref).abs().max() <= F32 * ref.abs().max()
+
+
+@pytest.mark.parametrize("shading", ["vertex", "pixel"])
+def test_render_with_native_equals_the_compiled_kernels(shading, monkeypatch):
+    """A render whose eq. 7 sums run the native loop (full tables: the live-triangle path) = the same
+    render with it off (``PRTBENCH_TP_NATIVE=0``: `fast_eval.fine_block` / `group_block`) to float32
+    round-off; a material edit that leaves the live triangles as they were keeps the chunk lists (a
+    rebuilt visibility table of the same columns), and the edited frame matches too."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("sphere_plane", "test")
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(scene, frame, 1)
+    m = TripleProduct(level=2, n_coeffs=None, shading=shading, frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    img = m.render(frame, gb)
+    ch = m._perf_cache.get(("chunks",))
+    assert ch is not None and fast_eval.live_triangles(m) is not None    # the native loop ran
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    ref = off.render(frame, gb)
+    assert off.__dict__.get("_perf_cache", {}).get(("chunks",)) is None
+    assert (img - ref).abs().max() <= F32 * ref.abs().max()
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "1")
+    edited = dataclasses.replace(frame, materials={**frame.materials, "sphere": Phong(kd=0.3, ks=0.4, s=20.0)})
+    live = fast_eval.live_triangles(m)
+    img2 = m.render(edited, gb)
+    ch2 = m._perf_cache[("chunks",)]
+    assert torch.equal(fast_eval.live_triangles(m), live)                   # the same live columns
+    assert ch2[1] is ch[1] and ch2[0] is not ch[0]
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
+    ref2 = off.render(edited, gb)
+    assert (img2 - ref2).abs().max() <= F32 * ref2.abs().max() and (img2 - img).abs().max() > 0
