@@ -8,6 +8,9 @@ the (frame, triangle) pairs read (`fast_eval.nonzero_reads`). This prints how mu
 drops, per scene (per-vertex shading, precomputation through the harness's cache):
   * per vertex: the share of the live triangles where its visibility is non-zero (the per-vertex
     triple product over the others adds exact zeros);
+  * per vertex: the share of the live triangles the native loop sums (`triple_product.native`: the
+    8-column chunks covering the row's non-zeros, `fast_eval.vis_chunks`) and the share of the
+    row's zeros it skips (when the native loop is available);
   * per grid frame (of the frames some vertex looks up, all four look-up corners): the share of
     the (frame, live triangle) pairs where some vertex reading that frame has non-zero visibility
     (the others' projected lighting is only ever multiplied by 0) — session 24's helper measured
@@ -47,9 +50,18 @@ def main(argv: list[str] | None = None) -> dict:
                      "frames": int(m.grid.size), "pairs_read": float((need[looked] > 0).float().mean()),
                      "vertex_nonzero": float(vis.float().mean())}
         r = out[name]
+        ch = fe.vis_chunks(m, fe.live_table(m, "V", m.V_val, live))
+        if ch is not None:
+            ptr, _, tail = ch
+            n = live.numel()
+            summed = float((8 * (ptr[1:n_v + 1] - ptr[:n_v]) + (n - tail[:n_v].long())).double().sum()) / (n_v * n)
+            r["vertex_summed"] = summed
+            r["zeros_skipped"] = (1 - summed) / max(1 - r["vertex_nonzero"], 1e-30)
         print(f"{name}: {r['live']} of {r['K']} triangles live; {r['looked_up_frames']} of {r['frames']} grid "
               f"frames looked up; pairs read {100 * r['pairs_read']:.1f} %; per-vertex non-zero visibility "
-              f"{100 * r['vertex_nonzero']:.1f} % of the live triangles")
+              f"{100 * r['vertex_nonzero']:.1f} % of the live triangles"
+              + (f"; the native loop sums {100 * r['vertex_summed']:.1f} % of them ({100 * r['zeros_skipped']:.1f} % "
+                 f"of the zeros skipped)" if "vertex_summed" in r else ""))
     return out
 
 

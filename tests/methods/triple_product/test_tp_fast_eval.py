@@ -287,6 +287,11 @@ def test_frame_cost_tiny_config(scene_frame, n):
     nrows = pixel.V_idx.shape[0]
     assert (fast_eval.live_triangles(pixel) is None) == (live is None)
     want_mem = (nrows * nl + R * n_o * 3 * nl + F * 3 * K + (0 if live is None else F * 3 * nl)) * 4
+    # and the visibility table's chunk lists of the native loop (`fast_eval.vis_chunks`): row pointers
+    # (int64), chunk starts and tails (int32)
+    ch = pixel.__dict__.get("_perf_cache", {}).get(("chunks",))
+    if ch is not None:
+        want_mem += (nrows + 1) * 8 + int(ch[1][0][-1]) * 4 + nrows * 4
     assert pixel.memory()["fine_values"] == (want_mem if n is None else 0)
     exact = TripleProduct(**{**dict(m.config), "light_lookup": "exact"}, progress=False)
     exact.precompute(scene)

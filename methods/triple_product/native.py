@@ -1,0 +1,344 @@
+"""Eq. 7's fine-value sums skipping the zeros of the visibility row: a small C loop (compiled on
+first use with ``cc``, called through ctypes) for the two sums `fast_eval` runs with one visibility
+row per item — a per-vertex frame's points (`fast_eval.fine_block` with k_v = 1) and a pixel frame's
+groups (`fast_eval.group_block`) — with those compiled torch kernels as the fallback and test oracle.
+
+Why: a point's blended visibility is exactly 0 on 38–48 % of its live fine triangles (bench scenes,
+``python -m benchmarks.tp_zeros``); those terms add an exact 0 to eq. 7 whatever ρ̃ and L, and
+`fast_eval.frame_cost` does not count them (`fast_eval.nonzero_reads`). An Inductor loop cannot run
+over per-point variable ranges, so the compiled kernels sum whole live rows. Here every visibility
+row gets, once per table (`chunks`: one pass over the table, built at load, not cached in the
+precomputation), the starts of 8-column *chunks* covering its non-zero columns — greedily, the first
+non-zero column not yet covered starts a chunk, so chunks do not overlap and need not be aligned (the
+zeros of a row are coherent in direction and the live columns are in the fine values' quadtree
+order: on chess bench per-vertex V the shaded vertices' chunks cover 65 % of their live columns,
+their non-zeros are 56 %: 80 % of the zeros skipped; aligned 8-blocks would cover 69 %) — and the
+columns from the last non-zero one that does not fit a whole chunk (< 8) are summed one by one.
+Each chunk is one 8-lane vector of every row read (AVX2 + FMA when the CPU has them).
+
+The sums are the compiled kernels' terms minus exact zeros, in another order (float32 round-off;
+tests/methods/triple_product/test_tp_native.py). Each item is summed by one thread in one order, so
+the results do not depend on the thread count (items are split in contiguous ranges over
+``torch.get_num_threads()`` threads; ctypes releases the GIL).
+
+The library is compiled once per source text, compiler and flags into the per-user cache directory
+of `methods.inout.csr` (same checks: a directory only this user can write, atomic rename); without a
+compiler, with ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``, `available` is False and
+`fast_eval` runs the compiled torch kernels. The loop reads without bounds checks: the callers
+check every row index once per call (`_rows_ok`).
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from torch import Tensor
+
+from methods.core.fused import compile_enabled
+
+__all__ = ["available", "chunks", "points", "groups", "W"]
+
+W = 8  # columns per chunk (one 8-lane vector)
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+typedef float v8 __attribute__((vector_size(32)));
+
+static inline v8 ld(const float* p) { v8 r; memcpy(&r, p, sizeof r); return r; }
+static inline float hsum(v8 a) {
+    return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
+}
+
+/* Per row r of V (N, n): the starts of 8-column chunks covering its non-zero columns (greedy: the
+   first non-zero column not yet covered starts a chunk while c + 8 <= n), and tail[r], the first
+   non-zero column not covered (n when none). starts == NULL: count[r] = the row's chunks only. */
+void tp_chunks(const float* V, int64_t N, int64_t n, int64_t* count, const int64_t* ptr,
+               int32_t* starts, int32_t* tail) {
+    for (int64_t r = 0; r < N; ++r) {
+        const float* v = V + r * n;
+        int64_t c = 0, k = 0, t = n;
+        while (c < n) {
+            if (v[c] == 0.0f) { ++c; continue; }
+            if (c + 8 > n) { t = c; break; }
+            if (starts) starts[ptr[r] + k] = (int32_t)c;
+            ++k;
+            c += 8;
+        }
+        if (count) count[r] = k;
+        if (tail) tail[r] = (int32_t)t;
+    }
+}
+
+/* fast_eval.fine_block with one visibility row per point and 4 rho / 4 L rows:
+   out[i, c] = sum_t (vw_i V[v_i, t]) (sum_k bw_ik R[b_ik, c, t]) (sum_j lw_ij L[l_ij, c, t])
+   over the chunks of row v_i and its tail. R (N_R, 3, n), L (N_L, 3, n). */
+void tp_points(int64_t b, int64_t n, const float* V, const int64_t* vrow, const float* vw,
+               const float* R, const int64_t* brow, const float* bw,
+               const float* L, const int64_t* lrow, const float* lw,
+               const int64_t* ptr, const int32_t* starts, const int32_t* tail, float* out) {
+    for (int64_t i = 0; i < b; ++i) {
+        const int64_t v = vrow[i];
+        const float w = vw[i];
+        const float* Vr = V + v * n;
+        const float *R0 = R + brow[4 * i] * 3 * n, *R1 = R + brow[4 * i + 1] * 3 * n,
+                    *R2 = R + brow[4 * i + 2] * 3 * n, *R3 = R + brow[4 * i + 3] * 3 * n;
+        const float *L0 = L + lrow[4 * i] * 3 * n, *L1 = L + lrow[4 * i + 1] * 3 * n,
+                    *L2 = L + lrow[4 * i + 2] * 3 * n, *L3 = L + lrow[4 * i + 3] * 3 * n;
+        const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3];
+        const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3];
+        for (int c = 0; c < 3; ++c) {   /* one channel at a time: 9 rows streamed, not 25 */
+            const float *Rc0 = R0 + c * n, *Rc1 = R1 + c * n, *Rc2 = R2 + c * n, *Rc3 = R3 + c * n;
+            const float *Lc0 = L0 + c * n, *Lc1 = L1 + c * n, *Lc2 = L2 + c * n, *Lc3 = L3 + c * n;
+            v8 a = {0}, a2 = {0};   /* two accumulators: chunk pairs, no chain of dependent adds */
+            int64_t e = ptr[v];
+            const int64_t e1 = ptr[v + 1];
+            for (; e + 2 <= e1; e += 2) {
+                const int64_t o = starts[e], q = starts[e + 1];
+                const v8 r = b0 * ld(Rc0 + o) + b1 * ld(Rc1 + o) + b2 * ld(Rc2 + o) + b3 * ld(Rc3 + o);
+                const v8 l = l0 * ld(Lc0 + o) + l1 * ld(Lc1 + o) + l2 * ld(Lc2 + o) + l3 * ld(Lc3 + o);
+                const v8 r2 = b0 * ld(Rc0 + q) + b1 * ld(Rc1 + q) + b2 * ld(Rc2 + q) + b3 * ld(Rc3 + q);
+                const v8 l2_ = l0 * ld(Lc0 + q) + l1 * ld(Lc1 + q) + l2 * ld(Lc2 + q) + l3 * ld(Lc3 + q);
+                a += (w * ld(Vr + o)) * r * l;
+                a2 += (w * ld(Vr + q)) * r2 * l2_;
+            }
+            if (e < e1) {
+                const int64_t o = starts[e];
+                const v8 r = b0 * ld(Rc0 + o) + b1 * ld(Rc1 + o) + b2 * ld(Rc2 + o) + b3 * ld(Rc3 + o);
+                const v8 l = l0 * ld(Lc0 + o) + l1 * ld(Lc1 + o) + l2 * ld(Lc2 + o) + l3 * ld(Lc3 + o);
+                a += (w * ld(Vr + o)) * r * l;
+            }
+            float s = hsum(a + a2);
+            for (int64_t t = tail[v]; t < n; ++t) {
+                const int64_t o = c * n + t;
+                const float r = b0 * R0[o] + b1 * R1[o] + b2 * R2[o] + b3 * R3[o];
+                const float l = l0 * L0[o] + l1 * L1[o] + l2 * L2[o] + l3 * L3[o];
+                s += (w * Vr[t]) * r * l;
+            }
+            out[3 * i + c] = s;
+        }
+    }
+}
+
+/* fast_eval.group_block with 4 L and 4 rho rows per group:
+   out[i, (c * 4 + j) * 4 + k] = sum_t (V[g_i, t] L[l_ij, c, t]) R[b_ik, c, t]
+   over the chunks of row g_i and its tail; two L rows (8 sums) per pass over the chunks. */
+void tp_groups(int64_t g, int64_t n, const float* V, const int64_t* vrow, const float* R,
+               const int64_t* brow, const float* L, const int64_t* lrow, const int64_t* ptr,
+               const int32_t* starts, const int32_t* tail, float* out) {
+    for (int64_t i = 0; i < g; ++i) {
+        const int64_t v = vrow[i];
+        const float* Vr = V + v * n;
+        const int64_t e0 = ptr[v], e1 = ptr[v + 1], t0 = tail[v];
+        for (int c = 0; c < 3; ++c) {
+            const float *R0 = R + (brow[4 * i] * 3 + c) * n, *R1 = R + (brow[4 * i + 1] * 3 + c) * n,
+                        *R2 = R + (brow[4 * i + 2] * 3 + c) * n, *R3 = R + (brow[4 * i + 3] * 3 + c) * n;
+            for (int j = 0; j < 4; j += 2) {
+                const float *La = L + (lrow[4 * i + j] * 3 + c) * n, *Lb = L + (lrow[4 * i + j + 1] * 3 + c) * n;
+                v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0}, c0 = {0}, c1 = {0}, c2 = {0}, c3 = {0};
+                for (int64_t e = e0; e < e1; ++e) {
+                    const int64_t s = starts[e];
+                    const v8 x = ld(Vr + s);
+                    const v8 ua = x * ld(La + s), ub = x * ld(Lb + s);
+                    const v8 r0 = ld(R0 + s), r1 = ld(R1 + s), r2 = ld(R2 + s), r3 = ld(R3 + s);
+                    a0 += ua * r0; a1 += ua * r1; a2 += ua * r2; a3 += ua * r3;
+                    c0 += ub * r0; c1 += ub * r1; c2 += ub * r2; c3 += ub * r3;
+                }
+                float sa[4] = {hsum(a0), hsum(a1), hsum(a2), hsum(a3)};
+                float sb[4] = {hsum(c0), hsum(c1), hsum(c2), hsum(c3)};
+                for (int64_t t = t0; t < n; ++t) {
+                    const float ua = Vr[t] * La[t], ub = Vr[t] * Lb[t];
+                    sa[0] += ua * R0[t]; sa[1] += ua * R1[t]; sa[2] += ua * R2[t]; sa[3] += ua * R3[t];
+                    sb[0] += ub * R0[t]; sb[1] += ub * R1[t]; sb[2] += ub * R2[t]; sb[3] += ub * R3[t];
+                }
+                float* o = out + 48 * i + (c * 4 + j) * 4;
+                for (int k = 0; k < 4; ++k) { o[k] = sa[k]; o[4 + k] = sb[k]; }
+            }
+        }
+    }
+}
+"""
+
+
+def _flags() -> tuple[str, ...]:
+    """-O3 with fused multiply-adds; AVX2 + FMA when torch found the CPU to have them (the library is
+    built on the machine that runs it; the flags are part of its cache key)."""
+    cap = ""
+    try:
+        cap = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # pragma: no cover - older torch
+        pass
+    isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
+    return ("-O3", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=fast", *isa)
+
+
+@functools.lru_cache(maxsize=None)
+def _library(cc: str | None):
+    """The compiled library (ctypes CDLL with its three functions typed) or None (no compiler, or
+    the build failed: warns once)."""
+    if cc is None:
+        return None
+    from methods.inout.csr import _private_dir
+
+    flags = _flags()
+    key = hashlib.sha256("\0".join((_SOURCE, cc, *flags, sys.platform)).encode()).hexdigest()[:20]
+    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
+    path = os.path.join(root, f"tp_zeros_{key}.so")
+    try:
+        os.makedirs(root, mode=0o700, exist_ok=True)
+        if not _private_dir(root):
+            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
+        if not os.path.exists(path):
+            with tempfile.TemporaryDirectory(dir=root) as tmp:
+                src, so = os.path.join(tmp, "tp.c"), os.path.join(tmp, "tp.so")
+                with open(src, "w") as f:
+                    f.write(_SOURCE)
+                subprocess.run([cc, *flags, src, "-o", so], check=True, capture_output=True)
+                os.replace(so, path)                           # atomic: a concurrent build finds a whole file
+        lib = ctypes.CDLL(path)
+    except (OSError, subprocess.CalledProcessError) as e:
+        warnings.warn(f"triple_product: the native zero-skipping kernel did not build ({e}); using the compiled torch kernels")
+        return None
+    p, i = ctypes.c_void_p, ctypes.c_int64
+    lib.tp_chunks.argtypes = [p, i, i, p, p, p, p]
+    lib.tp_points.argtypes = [i, i, p, p, p, p, p, p, p, p, p, p, p, p, p]
+    lib.tp_groups.argtypes = [i, i, p, p, p, p, p, p, p, p, p, p]
+    for f in (lib.tp_chunks, lib.tp_points, lib.tp_groups):
+        f.restype = None
+    return lib
+
+
+def _lib():
+    if not compile_enabled() or os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
+        return None
+    from methods.inout.csr import _compiler
+
+    return _library(_compiler())
+
+
+def available() -> bool:
+    """True when the native loops run (else `fast_eval` uses the compiled torch kernels)."""
+    return _lib() is not None
+
+
+def chunks(V: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The chunk lists of a visibility fine-value table V (N, n) float32 (module docstring): row
+    pointers (N + 1,) int64, chunk starts (ptr[-1],) int32 and tails (N,) int32. Two passes over V
+    (chess bench, 10701 × 640: a few ms, once per table)."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    V = V.contiguous()
+    if V.dtype != torch.float32 or V.ndim != 2 or V.device.type != "cpu":
+        raise ValueError(f"V must be (N, n) float32 on the CPU, got {tuple(V.shape)} {V.dtype}")
+    N, n = V.shape
+    count = torch.empty(N, dtype=torch.int64)
+    lib.tp_chunks(V.data_ptr(), N, n, count.data_ptr(), None, None, None)
+    ptr = torch.zeros(N + 1, dtype=torch.int64)
+    torch.cumsum(count, 0, out=ptr[1:])
+    starts = torch.empty(int(ptr[-1]), dtype=torch.int32)
+    tail = torch.empty(N, dtype=torch.int32)
+    lib.tp_chunks(V.data_ptr(), N, n, None, ptr.data_ptr(), starts.data_ptr(), tail.data_ptr())
+    return ptr, starts, tail
+
+
+def _rows_ok(rows: Tensor, N: int) -> bool:
+    return rows.numel() == 0 or (int(rows.min()) >= 0 and int(rows.max()) < N)
+
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+# Items below which one thread does the sums (a hand-off costs more than the share).
+MIN_ITEMS_PER_THREAD = 256
+
+
+def _split(fn, b: int, call) -> None:
+    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b): the first on the
+    calling thread, the others on pool threads (one hand-off fewer)."""
+    nt = max(1, min(torch.get_num_threads(), b // MIN_ITEMS_PER_THREAD))
+    if nt == 1:
+        call(0, b)
+        return
+    global _pool, _pool_size
+    if _pool is None or _pool_size < nt - 1:
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt - 1, thread_name_prefix="tp-native"), nt - 1
+    cuts = [b * k // nt for k in range(nt + 1)]
+    jobs = [_pool.submit(call, cuts[k], cuts[k + 1]) for k in range(1, nt)]
+    call(cuts[0], cuts[1])
+    for j in jobs:
+        j.result()
+
+
+def _check_tables(V: Tensor, R: Tensor, L: Tensor, ch) -> int:
+    n = V.shape[1]
+    for t in (V, R, L):
+        if t.dtype != torch.float32 or t.ndim != 2 or not t.is_contiguous() or t.device.type != "cpu":
+            raise ValueError("tables must be contiguous float32 (N, ·) CPU tensors")
+    if R.shape[1] != 3 * n or L.shape[1] != 3 * n:
+        raise ValueError(f"tables must be (N, n), (N, 3n), (N, 3n), got {tuple(V.shape)}, {tuple(R.shape)}, {tuple(L.shape)}")
+    ptr, starts, tail = ch
+    if ptr.numel() != V.shape[0] + 1 or tail.numel() != V.shape[0]:
+        raise ValueError("chunk lists of another table")
+    return n
+
+
+def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+           lrows: Tensor, lw: Tensor, ch) -> Tensor:
+    """`fast_eval.fine_block` of b points with one visibility row each (vrow (b,), vw (b,)), 4 ρ̃ rows
+    (brows, bw (b, 4)) and 4 grid rows (lrows, lw (b, 4)), over the chunks ``ch`` (`chunks` of V)
+    of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32. → (b, 3)."""
+    lib = _lib()
+    n = _check_tables(V, R, L, ch)
+    b = vrow.shape[0]
+    vrow, brows, lrows = (x.to(torch.int64).contiguous() for x in (vrow, brows, lrows))
+    vw, bw, lw = (x.to(torch.float32).contiguous() for x in (vw, bw, lw))
+    if vrow.shape != (b,) or vw.shape != (b,) or brows.shape != (b, 4) or bw.shape != (b, 4) \
+            or lrows.shape != (b, 4) or lw.shape != (b, 4):
+        raise ValueError("vrow, vw (b,) and brows, bw, lrows, lw (b, 4) expected")
+    if not (_rows_ok(vrow, V.shape[0]) and _rows_ok(brows, R.shape[0]) and _rows_ok(lrows, L.shape[0])):
+        raise IndexError("a row index outside its table")
+    out = torch.empty(b, 3, dtype=torch.float32)
+    if b == 0:
+        return out
+    ptr, starts, tail = ch
+    tabs = (V.data_ptr(), R.data_ptr(), L.data_ptr(), ptr.data_ptr(), starts.data_ptr(), tail.data_ptr())
+
+    def call(a, e):
+        lib.tp_points(e - a, n, tabs[0], vrow.data_ptr() + 8 * a, vw.data_ptr() + 4 * a,
+                      tabs[1], brows.data_ptr() + 32 * a, bw.data_ptr() + 16 * a,
+                      tabs[2], lrows.data_ptr() + 32 * a, lw.data_ptr() + 16 * a,
+                      *tabs[3:], out.data_ptr() + 12 * a)
+    _split(lib, b, call)
+    return out
+
+
+def groups(V: Tensor, R: Tensor, L: Tensor, gv: Tensor, gl: Tensor, gb: Tensor, ch) -> Tensor:
+    """`fast_eval.group_block` of g groups (gv (g,), gl (g, 4) grid rows, gb (g, 4) ρ̃ rows) over the
+    chunks ``ch`` of each group's visibility row: (g, 48), index (c, j, k)."""
+    lib = _lib()
+    n = _check_tables(V, R, L, ch)
+    g = gv.shape[0]
+    gv, gl, gb = (x.to(torch.int64).contiguous() for x in (gv, gl, gb))
+    if gv.shape != (g,) or gl.shape != (g, 4) or gb.shape != (g, 4):
+        raise ValueError("gv (g,), gl and gb (g, 4) expected")
+    if not (_rows_ok(gv, V.shape[0]) and _rows_ok(gb, R.shape[0]) and _rows_ok(gl, L.shape[0])):
+        raise IndexError("a row index outside its table")
+    out = torch.empty(g, 48, dtype=torch.float32)
+    if g == 0:
+        return out
+    ptr, starts, tail = ch
+
+    def call(a, e):
+        lib.tp_groups(e - a, n, V.data_ptr(), gv.data_ptr() + 8 * a, R.data_ptr(), gb.data_ptr() + 32 * a,
+                      L.data_ptr(), gl.data_ptr() + 32 * a, ptr.data_ptr(), starts.data_ptr(), tail.data_ptr(),
+                      out.data_ptr() + 192 * a)
+    _split(lib, g, call)
+    return out

@@ -1,0 +1,171 @@
+"""The native zero-skipping loops (`methods.triple_product.native`) against the compiled torch
+kernels they stand in for (`fast_eval.fine_block`, `fast_eval.group_block`, eager here: the oracle).
+
+Visibility rows with every zero pattern the chunk lists handle: a row all zero, a row with no zero,
+non-zeros only in the last (< 8) columns (the scalar tail), a single non-zero at column 0, runs of
+zeros shorter and longer than a chunk, random rows; a row length that is not a multiple of 8."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from methods.triple_product import fast_eval, native
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler (the torch kernels run)")
+
+# float32: the same products without the exact zeros, summed in another order; relative to the
+# largest |value| of the batch (as test_tp_fast_eval.F32)
+F32 = 2e-6
+
+
+def _vis(n: int, gen: torch.Generator) -> torch.Tensor:
+    """(12, n) visibility fine values with the zero patterns of the module docstring."""
+    V = torch.rand(12, n, generator=gen) + 0.1
+    V[0] = 0                                             # all zero
+    # V[1]: no zero
+    V[2, : n - 3] = 0                                    # non-zeros in the tail only
+    V[3, 1:] = 0                                         # one non-zero, at column 0
+    V[4, 3:6] = 0                                        # a zero run shorter than a chunk
+    V[4, 20:37] = 0                                      # and longer than two
+    V[5, ::2] = 0                                        # alternating
+    V[6, : n // 2] = 0                                   # a half
+    V[7, n // 2:] = 0
+    V[8, -1] = 0                                         # the last column only
+    V[9:] *= torch.rand(3, n, generator=gen) < 0.5       # random
+    V[11, n - 9: n - 1] = 0                              # a chunk's width of zeros before the last column
+    return V
+
+
+def _tables(n: int, gen: torch.Generator):
+    return _vis(n, gen), torch.randn(7, 3 * n, generator=gen), torch.randn(9, 3 * n, generator=gen)
+
+
+@pytest.mark.parametrize("n", [45, 64, 7])
+def test_chunks_cover_every_non_zero_once(n):
+    """Every non-zero column of a row lies in exactly one of its chunks or at/after its tail; chunks
+    are whole (inside the row) and start on a non-zero column; the tail starts on a non-zero column
+    within the last 7 (or is n)."""
+    gen = torch.Generator().manual_seed(1)
+    V = _vis(n, gen)
+    ptr, starts, tail = native.chunks(V)
+    assert ptr.shape == (V.shape[0] + 1,) and int(ptr[-1]) == starts.numel()
+    for r in range(V.shape[0]):
+        cover = torch.zeros(n, dtype=torch.int64)
+        for s in starts[ptr[r]:ptr[r + 1]].tolist():
+            assert 0 <= s <= n - native.W and V[r, s] != 0
+            cover[s:s + native.W] += 1
+        t = int(tail[r])
+        assert t == n or (V[r, t] != 0 and t > n - native.W and cover[t] == 0)
+        cover[t:] += 1
+        nz = V[r] != 0
+        assert bool((cover[nz] == 1).all()) and bool((cover <= 1).all()), r
+    assert int(ptr[1] - ptr[0]) == 0 and int(tail[0]) == n                 # the all-zero row: nothing
+    assert int(ptr[2] - ptr[1]) == n // native.W                             # the full row: whole chunks
+
+
+@pytest.mark.parametrize("n", [45, 64])
+def test_points_equal_fine_block(n):
+    """`native.points` = `fast_eval.fine_block` (one visibility row per point, 4 ρ̃ and 4 grid rows)
+    to float32 round-off; the all-zero row gives exactly 0."""
+    gen = torch.Generator().manual_seed(2)
+    Vt, Rt, Lt = _tables(n, gen)
+    B = 60
+    vrows = torch.arange(B) % Vt.shape[0]
+    vw = torch.rand(B, generator=gen) + 0.5
+    brows, lrows = torch.randint(0, 7, (B, 4), generator=gen), torch.randint(0, 9, (B, 4), generator=gen)
+    bw, lw = torch.rand(B, 4, generator=gen), torch.rand(B, 4, generator=gen)
+    want = fast_eval.fine_block(vrows[:, None], vw[:, None], brows, bw, lrows, lw, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    ch = native.chunks(Vt)
+    got = native.points(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, ch)
+    assert got.shape == (B, 3)
+    assert (got - want).abs().max() <= F32 * want.abs().max()
+    assert bool((got[vrows == 0] == 0).all())
+    # per row: no row's sum is lost in the batch's largest value
+    for r in range(Vt.shape[0]):
+        sel = vrows == r
+        assert (got[sel] - want[sel]).abs().max() <= F32 * max(float(want[sel].abs().max()), 1e-30) + 1e-30, r
+    # the frames' entry point: `fast_eval.fine_kernel` with the chunk lists (several threads too)
+    args = (Vt, Rt, Lt, vrows[:, None], vw[:, None], brows, bw, lrows, lw)
+    assert torch.equal(fast_eval.fine_kernel(*args, chunks=ch), got)
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 8
+    torch.set_num_threads(2)
+    try:
+        assert torch.equal(native.points(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, ch), got)  # same order per point
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
+    with pytest.raises(IndexError):
+        native.points(Vt, Rt, Lt, vrows + Vt.shape[0], vw, brows, bw, lrows, lw, ch)
+
+
+@pytest.mark.parametrize("n", [45, 64])
+def test_groups_equal_group_block(n):
+    """`native.groups` = `fast_eval.group_block` (one visibility row per group) to float32 round-off,
+    and `fast_eval.fine_grouped` with the chunk lists = `fast_eval.fine_kernel`."""
+    gen = torch.Generator().manual_seed(3)
+    Vt, Rt, Lt = _tables(n, gen)
+    G = 36
+    gv = torch.arange(G) % Vt.shape[0]
+    gb, gl = torch.randint(0, 7, (G, 4), generator=gen), torch.randint(0, 9, (G, 4), generator=gen)
+    want = fast_eval.group_block(gv, gl, gb, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    ch = native.chunks(Vt)
+    got = native.groups(Vt, Rt, Lt, gv, gl, gb, ch)
+    assert got.shape == want.shape == (G, 48)
+    assert (got - want).abs().max() <= F32 * want.abs().max()
+    assert bool((got[gv == 0] == 0).all())
+    for r in range(Vt.shape[0]):
+        sel = gv == r
+        assert (got[sel] - want[sel]).abs().max() <= F32 * max(float(want[sel].abs().max()), 1e-30) + 1e-30, r
+    # pixel-frame form: points with 3 visibility rows each, summed by groups
+    B = 400
+    vrows = torch.randint(0, Vt.shape[0], (B // 8 + 1, 3), generator=gen).repeat_interleave(8, 0)[:B]
+    l0 = torch.randint(0, 5, (B // 8 + 1,), generator=gen).repeat_interleave(8)[:B]
+    b0 = torch.randint(0, 3, (B // 8 + 1,), generator=gen).repeat_interleave(8)[:B]
+    lrows, brows = torch.stack([l0, l0 + 1, l0 + 3, l0 + 4], 1), torch.stack([b0, b0 + 1, b0 + 2, b0 + 3], 1)
+    vw, lw, bw = (torch.rand(B, k, generator=gen) for k in (3, 4, 4))
+    ref = fast_eval.fine_kernel(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw)
+    out = fast_eval.fine_grouped(Vt, Rt, Lt, vrows, vw, brows, bw, lrows, lw, chunks=ch)
+    assert (out - ref).abs().max() <= F32 * ref.abs().max()
+
+
+@pytest.mark.parametrize("shading", ["vertex", "pixel"])
+def test_render_with_native_equals_the_compiled_kernels(shading, monkeypatch):
+    """A render whose eq. 7 sums run the native loop (full tables: the live-triangle path) = the same
+    render with it off (``PRTBENCH_TP_NATIVE=0``: `fast_eval.fine_block` / `group_block`) to float32
+    round-off; a material edit that leaves the live triangles as they were keeps the chunk lists (a
+    rebuilt visibility table of the same columns), and the edited frame matches too."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("sphere_plane", "test")
+    frame = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(scene, frame, 1)
+    m = TripleProduct(level=2, n_coeffs=None, shading=shading, frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    img = m.render(frame, gb)
+    ch = m._perf_cache.get(("chunks",))
+    assert ch is not None and fast_eval.live_triangles(m) is not None    # the native loop ran
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    ref = off.render(frame, gb)
+    assert off.__dict__.get("_perf_cache", {}).get(("chunks",)) is None
+    assert (img - ref).abs().max() <= F32 * ref.abs().max()
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "1")
+    edited = dataclasses.replace(frame, materials={**frame.materials, "sphere": Phong(kd=0.3, ks=0.4, s=20.0)})
+    live = fast_eval.live_triangles(m)
+    img2 = m.render(edited, gb)
+    ch2 = m._perf_cache[("chunks",)]
+    assert torch.equal(fast_eval.live_triangles(m), live)                   # the same live columns
+    assert ch2[1] is ch[1] and ch2[0] is not ch[0]
+    monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
+    ref2 = off.render(edited, gb)
+    assert (img2 - ref2).abs().max() <= F32 * ref2.abs().max() and (img2 - img).abs().max() > 0
