@@ -11,8 +11,8 @@ fails (with one warning), and the caller then runs the torch path.
 A library is compiled once per source text, compiler and flags into a per-user cache directory in
 the temp folder (atomic rename, so concurrent processes are safe) and loaded only from a directory
 this user owns and nobody else can write: a file planted there by another user is never loaded (as
-Inductor's own per-user cache). Built at the x86-64 baseline (no ``-march=native``): the library
-must run on any host that shares the temp folder, and the loops here are bound by their loads.
+Inductor's own per-user cache). Built at the x86-64 baseline by default (`FLAGS`); a library may add
+ISA flags for the host that runs it (``extra_flags``, part of its cache key).
 """
 from __future__ import annotations
 
@@ -51,8 +51,8 @@ def compiler() -> str | None:
 
 
 @functools.lru_cache(maxsize=None)
-def _build(name: str, source: str, cc: str, signatures: tuple) -> ctypes.CDLL | None:
-    key = hashlib.sha256("\0".join((source, cc, *FLAGS, sys.platform)).encode()).hexdigest()[:20]
+def _build(name: str, source: str, cc: str, signatures: tuple, flags: tuple) -> ctypes.CDLL | None:
+    key = hashlib.sha256("\0".join((source, cc, *flags, sys.platform)).encode()).hexdigest()[:20]
     root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
     path = os.path.join(root, f"{name}_{key}.so")
     try:
@@ -64,7 +64,7 @@ def _build(name: str, source: str, cc: str, signatures: tuple) -> ctypes.CDLL | 
                 src, so = os.path.join(tmp, f"{name}.c"), os.path.join(tmp, f"{name}.so")
                 with open(src, "w") as f:
                     f.write(source)
-                subprocess.run([cc, *FLAGS, src, "-o", so], check=True, capture_output=True)
+                subprocess.run([cc, *flags, src, "-o", so], check=True, capture_output=True)
                 os.replace(so, path)                           # atomic: a concurrent build finds a whole file
         lib = ctypes.CDLL(path)
         for fn, argtypes in signatures:
@@ -76,16 +76,18 @@ def _build(name: str, source: str, cc: str, signatures: tuple) -> ctypes.CDLL | 
         return None
 
 
-def load(name: str, source: str, signatures: dict[str, list]) -> ctypes.CDLL | None:
-    """The library of C ``source`` (compiled once per source and compiler, module docstring) with
-    each function of ``signatures`` given its ctypes argument types (and no return value), or None:
-    no compiler, ``PRTBENCH_COMPILE=0``, or the build failed (warned once per process)."""
+def load(name: str, source: str, signatures: dict[str, list], extra_flags: tuple[str, ...] = ()) -> ctypes.CDLL | None:
+    """The library of C ``source`` (compiled once per source, compiler and flags, module docstring)
+    with each function of ``signatures`` given its ctypes argument types (and no return value), or
+    None: no compiler, ``PRTBENCH_COMPILE=0``, or the build failed (warned once per process).
+    ``extra_flags`` follow `FLAGS` (e.g. ISA flags of the host that runs the library; they are part
+    of its cache key)."""
     if not compile_enabled():
         return None
     cc = compiler()
     if cc is None:
         return None
-    return _build(name, source, cc, tuple((fn, tuple(a)) for fn, a in signatures.items()))
+    return _build(name, source, cc, tuple((fn, tuple(a)) for fn, a in signatures.items()), (*FLAGS, *extra_flags))
 
 
 def cache_clear() -> None:

@@ -21,9 +21,9 @@ tests/methods/triple_product/test_tp_native.py). Each item is summed by one thre
 the results do not depend on the thread count (items are split in contiguous ranges over
 ``torch.get_num_threads()`` threads; ctypes releases the GIL).
 
-The library is compiled once per source text, compiler and flags into the per-user cache directory
-of `methods.inout.csr` (same checks: a directory only this user can write, atomic rename); without a
-compiler, with ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``, `available` is False and
+The library is built and loaded by `methods.core.native.load` (once per source text, compiler and
+flags, from a private per-user directory); without a compiler, with ``PRTBENCH_COMPILE=0`` or
+``PRTBENCH_TP_NATIVE=0``, `available` is False and
 `fast_eval` runs the compiled torch kernels. The loop reads without bounds checks: the callers
 check every row index once per call (`_rows_ok`).
 """
@@ -31,18 +31,12 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import os
-import subprocess
-import sys
-import tempfile
-import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor
 
-from methods.core.fused import compile_enabled
+from methods.core import native
 
 __all__ = ["available", "chunks", "points", "groups", "W"]
 
@@ -168,60 +162,31 @@ void tp_groups(int64_t g, int64_t n, const float* V, const int64_t* vrow, const 
 """
 
 
+@functools.lru_cache(maxsize=None)
 def _flags() -> tuple[str, ...]:
-    """-O3 with fused multiply-adds; AVX2 + FMA when torch found the CPU to have them (the library is
-    built on the machine that runs it; the flags are part of its cache key)."""
+    """Fused multiply-adds; AVX2 + FMA when torch found the CPU to have them (the library is built
+    on the machine that runs it; the flags are part of its cache key)."""
     cap = ""
     try:
         cap = torch.backends.cpu.get_cpu_capability()
     except Exception:  # pragma: no cover - older torch
         pass
     isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-    return ("-O3", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=fast", *isa)
+    return ("-ffp-contract=fast", *isa)
 
 
-@functools.lru_cache(maxsize=None)
-def _library(cc: str | None):
-    """The compiled library (ctypes CDLL with its three functions typed) or None (no compiler, or
-    the build failed: warns once)."""
-    if cc is None:
-        return None
-    from methods.inout.csr import _private_dir
-
-    flags = _flags()
-    key = hashlib.sha256("\0".join((_SOURCE, cc, *flags, sys.platform)).encode()).hexdigest()[:20]
-    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
-    path = os.path.join(root, f"tp_zeros_{key}.so")
-    try:
-        os.makedirs(root, mode=0o700, exist_ok=True)
-        if not _private_dir(root):
-            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
-        if not os.path.exists(path):
-            with tempfile.TemporaryDirectory(dir=root) as tmp:
-                src, so = os.path.join(tmp, "tp.c"), os.path.join(tmp, "tp.so")
-                with open(src, "w") as f:
-                    f.write(_SOURCE)
-                subprocess.run([cc, *flags, src, "-o", so], check=True, capture_output=True)
-                os.replace(so, path)                           # atomic: a concurrent build finds a whole file
-        lib = ctypes.CDLL(path)
-    except (OSError, subprocess.CalledProcessError) as e:
-        warnings.warn(f"triple_product: the native zero-skipping kernel did not build ({e}); using the compiled torch kernels")
-        return None
-    p, i = ctypes.c_void_p, ctypes.c_int64
-    lib.tp_chunks.argtypes = [p, i, i, p, p, p, p]
-    lib.tp_points.argtypes = [i, i, p, p, p, p, p, p, p, p, p, p, p, p, p]
-    lib.tp_groups.argtypes = [i, i, p, p, p, p, p, p, p, p, p, p]
-    for f in (lib.tp_chunks, lib.tp_points, lib.tp_groups):
-        f.restype = None
-    return lib
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
+               "tp_points": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
+               "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]}
 
 
 def _lib():
-    if not compile_enabled() or os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
+    """The library (`methods.core.native.load`) or None: no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
+    if os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
         return None
-    from methods.inout.csr import _compiler
-
-    return _library(_compiler())
+    return native.load("tp_zeros", _SOURCE, _SIGNATURES, extra_flags=_flags())
 
 
 def available() -> bool:
@@ -254,27 +219,14 @@ def _rows_ok(rows: Tensor, N: int) -> bool:
     return rows.numel() == 0 or (int(rows.min()) >= 0 and int(rows.max()) < N)
 
 
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
 # Items below which one thread does the sums (a hand-off costs more than the share).
 MIN_ITEMS_PER_THREAD = 256
 
 
 def _split(fn, b: int, call) -> None:
-    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b): the first on the
-    calling thread, the others on pool threads (one hand-off fewer)."""
-    nt = max(1, min(torch.get_num_threads(), b // MIN_ITEMS_PER_THREAD))
-    if nt == 1:
-        call(0, b)
-        return
-    global _pool, _pool_size
-    if _pool is None or _pool_size < nt - 1:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt - 1, thread_name_prefix="tp-native"), nt - 1
-    cuts = [b * k // nt for k in range(nt + 1)]
-    jobs = [_pool.submit(call, cuts[k], cuts[k + 1]) for k in range(1, nt)]
-    call(cuts[0], cuts[1])
-    for j in jobs:
-        j.result()
+    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b) (`native.run_ranges`:
+    the first on the calling thread, the others on pool threads)."""
+    native.run_ranges(call, b, torch.get_num_threads(), MIN_ITEMS_PER_THREAD)
 
 
 def _check_tables(V: Tensor, R: Tensor, L: Tensor, ch) -> int:
