@@ -992,7 +992,7 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
 
     def block(face, bary, normal, wo):
         r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
-        return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, 1)
+        return shade_cells(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, 1)
 
     B = sample_block(face.shape[0])
     return map_rows(block, [face, bary, normal, wo], chunk=B, warm=warm_sizes(B))
@@ -1030,7 +1030,28 @@ def _shade_pixels_block(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, 
                         erows: Tensor, lanes: Tensor, env: EnvStack, S2: int) -> Tensor:
     """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel)."""
     r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
-    return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
+    return shade_cells(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
+
+
+def shade_cells(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, face_pairs: Tensor, table: Tensor,
+                env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor:
+    """`shade_block` by the native loop (``methods.ptt.native``: the same bits, tested) when it is
+    available and the arguments suit it, else the compiled `shade_block`.
+
+    Decision (session 26, ptt26): the native loop does `shade_block`'s arithmetic with 8-lane vector
+    row operations and scalar per-sample weights, and prefetches the env rows of the cells 16 samples
+    ahead (``native`` docstring)."""
+    if USE_NATIVE:
+        from methods.ptt import native
+
+        out = native.shade_pixels(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2)
+        if out is not None:
+            return out
+    return shade_block(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2)
+
+
+# Whether `shade_cells` may take the native loop (tests switch it off to reach the compiled kernel).
+USE_NATIVE = True
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

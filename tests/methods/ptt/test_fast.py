@@ -527,3 +527,74 @@ def test_pair_cells_int32_indices_are_the_int64_ones():
                 assert torch.equal(x, y)
     z = a[6]
     assert bool((z == 0).any()) and bool((z > 0).any())  # both sides of the horizon
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("S2", [1, 4])
+def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, threads, monkeypatch):
+    """``native.shade_pixels`` (the C loop `fast.shade_cells` takes) gives the same bits as the
+    compiled `fast.shade_block` (and the eager `fast._shade_block` to round-off): widths 16, 32 and
+    48 (the specialised and the generic loop), negative Gouraud sums, the u column, misses (face −1
+    the zero face of `fast.miss_face_pairs`; a face past the table reads it too), the barycentrics as
+    the G-buffer stores them (columns of a (2, n) array) and row-major, and the pixel range split
+    over two threads; it declines (None) arguments it does not read."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    n = S2 * 3001
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, _ = _random_shading_inputs(n, 3)
+    face = torch.where(torch.rand(n, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    H, W = 16, 32
+    for L, extra in ((4, 0), (4, 3), (9, 3), (14, 0)):
+        maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
+        C = 3 + 3 * L + extra
+        width = F.table_width(C)
+        erows = F.env_rows(F.env_stack(maps, width), width)
+        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+        table[-1] = 0.0
+        lanes = F._lane_masks(C, L, width)
+        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
+        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        with torch.inference_mode():
+            torch.set_num_threads(threads)
+            try:
+                want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+                for b in (bary, bary.T.contiguous().T):
+                    got = N.shade_pixels(face, b, r, fx, fy, fpm, table, erows, lanes, W, S2)
+                    assert torch.equal(got, want), (width, float((got - want).abs().max()))
+            finally:
+                torch.set_num_threads(1)
+        past = face.clone()
+        past[face == -1] = fpm.shape[0] + 5
+        assert torch.equal(N.shade_pixels(past, bary, r, fx, fy, fpm, table, erows, lanes, W, S2), want)
+        eager = F._shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        torch.testing.assert_close(want, eager, rtol=1e-5, atol=1e-5 * float(eager.abs().max()))
+        assert bool((want.abs() > 0).any())
+    assert N.shade_pixels(face[:5], bary[:5], r[:5], fx[:5], fy[:5], fpm, table, erows, lanes, W, 2) is None
+    assert N.shade_pixels(face.int(), bary, r, fx, fy, fpm, table, erows, lanes, W, S2) is None
+    assert N.shade_pixels(face, bary, r.long(), fx, fy, fpm, table, erows, lanes, W, S2) is None
+
+
+def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
+    """`fast.shade_pixels_fused` gives the same image with the native loop (`fast.USE_NATIVE`) as
+    with the compiled `shade_block` alone."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.available():
+        pytest.skip("no C compiler")
+    S2, n_pixels = 4, 1 << 10
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pixels, 4)
+    table = torch.randn(n_pairs + 1, 3 + 3 * L, generator=g)
+    calls = []
+    real = N.shade_pixels
+    monkeypatch.setattr(N, "shade_pixels", lambda *a: calls.append(1) or real(*a))
+    new = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
+    assert calls
+    monkeypatch.setattr(F, "USE_NATIVE", False)
+    old = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
+    assert torch.equal(new, old)
