@@ -991,8 +991,7 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
     tab, erows, lanes = _fused_inputs(table, env, L, C)
 
     def block(face, bary, normal, wo):
-        r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
-        return shade_cells(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, 1)
+        return _shade_pixels_block(face, bary, normal, wo, face_pairs, tab, erows, lanes, env, 1)
 
     B = sample_block(face.shape[0])
     return map_rows(block, [face, bary, normal, wo], chunk=B, warm=warm_sizes(B))
@@ -1028,7 +1027,14 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
 
 def _shade_pixels_block(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, tab: Tensor,
                         erows: Tensor, lanes: Tensor, env: EnvStack, S2: int) -> Tensor:
-    """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel)."""
+    """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel);
+    one native pass when ``native.shade_mirror`` runs here (the same bits, `shade_cells`)."""
+    if USE_NATIVE:
+        from methods.ptt import native
+
+        out = native.shade_mirror(normal, wo, env.to_world, env.H, face, bary, face_pairs, tab, erows, lanes, env.W, S2)
+        if out is not None:
+            return out
     r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
     return shade_cells(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
 

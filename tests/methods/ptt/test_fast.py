@@ -580,8 +580,9 @@ def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, threads, 
 
 
 def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
-    """`fast.shade_pixels_fused` gives the same image with the native loop (`fast.USE_NATIVE`) as
-    with the compiled `shade_block` alone."""
+    """`fast.shade_pixels_fused` gives the same image with the native loops (`fast.USE_NATIVE`: the
+    one-pass ``native.shade_mirror``, or without the native cells ``native.shade_pixels`` after the
+    compiled cells) as with the compiled `mirror_cells_block` + `shade_block` alone."""
     from methods.ptt import fast as F
     from methods.ptt import native as N
 
@@ -591,10 +592,65 @@ def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
     g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pixels, 4)
     table = torch.randn(n_pairs + 1, 3 + 3 * L, generator=g)
     calls = []
-    real = N.shade_pixels
-    monkeypatch.setattr(N, "shade_pixels", lambda *a: calls.append(1) or real(*a))
-    new = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
-    assert calls
+    for name in ("shade_pixels", "shade_mirror"):
+        monkeypatch.setattr(N, name, lambda *a, real=getattr(N, name), name=name: calls.append(name) or real(*a))
+    images = [F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)]
+    assert calls[0] == ("shade_mirror" if N.cells_available() else "shade_pixels")
+    monkeypatch.setattr(N, "cells_available", lambda: False)
+    images.append(F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2))
+    assert calls[-1] == "shade_pixels"
     monkeypatch.setattr(F, "USE_NATIVE", False)
     old = F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)
-    assert torch.equal(new, old)
+    assert all(torch.equal(new, old) for new in images)
+
+
+def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
+    """``native.mirror_cells`` (Inductor's AVX2 operations one for one, the same Sleef acos / atan2)
+    gives the bits of the compiled `fast.mirror_cells_block` — first row, fx, fy — on several grids
+    and rotations, with the normals row-major and the view directions as the G-buffer stores them
+    (columns of a (3, n) array) or row-major; a NaN normal gives row 0 in both. And
+    ``native.shade_mirror`` (the cells and the shading in one pass, pixels split over two threads)
+    gives the image of `fast.mirror_cells_block` + `fast.shade_block`, bit for bit."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.cells_available():
+        pytest.skip("no AVX2 build of the native cells")
+    g = torch.Generator().manual_seed(13)
+    n = 20_000
+    normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))
+    normal[::997] = torch.tensor([0.0, 1.0, 0.0])  # mirror directions on the map's axis / seam
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    wo[::997] = torch.tensor([0.0, 1.0, 0.0])
+    normal[5] = float("nan")
+    ok = torch.arange(n) != 5
+    for H, W in ((256, 512), (32, 64), (33, 70)):
+        to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
+        for w in (wo, wo.T.contiguous().T):
+            want = F.mirror_cells_block(normal, w, to_world, H, W)
+            got = N.mirror_cells(normal, w, to_world, H, W)
+            assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
+            assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
+    assert N.mirror_cells(normal[:12], wo[:12], to_world, H, W) is None  # not a multiple of 8
+
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    S2, n_pix = 4, 4098
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pix, 5)
+    face = torch.where(torch.rand(S2 * n_pix, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    C = 3 + 3 * L
+    width = F.table_width(C)
+    maps = [_FakeEnv(torch.rand(env.H, env.W, 3, generator=g) * 4.0, env.to_world) for _ in range(L)]
+    erows = F.env_rows(F.env_stack(maps, width), width)
+    table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+    table[-1] = 0.0
+    lanes = F._lane_masks(C, L, width)
+    r, fx, fy = F.mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
+    want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, env.W, S2)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        try:
+            got = N.shade_mirror(normal, wo, env.to_world, env.H, face, bary, fpm, table, erows, lanes, env.W, S2)
+        finally:
+            torch.set_num_threads(1)
+        assert torch.equal(got, want)
