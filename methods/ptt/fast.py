@@ -280,12 +280,18 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
         W_rows = view_table_rows(W_tab, K)
     T2 = W_rows.shape[1]
     Hl = H.permute(1, 0, 2)[:, :, None, None, :].expand(P, R, 1, K, 3).reshape(P, R, 1, K * 3)  # lane (k, c): H(r, p, c)
-    Wr = torch.mul(W_rows[0], Hl[0])  # (R, T², K·3)
-    if P > 1:
-        tmp = torch.empty_like(Wr)
-        for p in range(1, P):
-            torch.mul(W_rows[p], Hl[p], out=tmp)
-            Wr.add_(tmp)
+    Wr = None
+    if USE_NATIVE:  # the same products and sums in one pass (``native.region_rows``)
+        from methods.ptt import native
+
+        Wr = native.region_rows(W_rows, Hl)
+    if Wr is None:
+        Wr = torch.mul(W_rows[0], Hl[0])  # (R, T², K·3)
+        if P > 1:
+            tmp = torch.empty_like(Wr)
+            for p in range(1, P):
+                torch.mul(W_rows[p], Hl[p], out=tmp)
+                Wr.add_(tmp)
     ar = None
     if lobe_a is not None:
         n, L = lobe_a.shape[1:]

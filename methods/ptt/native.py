@@ -148,6 +148,26 @@ void shade_pixels(const int64_t* face, const float* b1p, const float* b2p, int64
         body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, out);
 }
 
+/* fast.region_tables' W_r: out[r, t, l] = sum over p in order of W_rows[p, t, l] * Hl[p, r, l] (each
+   product rounded, then the sum: the eager passes' operations), W_rows (P, T2, KC), Hl (P, R, KC),
+   out (R, T2, KC). */
+void region_rows(const float* Wrows, const float* Hl, int64_t P, int64_t R, int64_t T2, int64_t KC, float* out) {
+    for (int64_t r = 0; r < R; ++r)
+        for (int64_t t = 0; t < T2; ++t) {
+            float* o = out + (r * T2 + t) * KC;
+            const float* w = Wrows + t * KC;
+            const float* h = Hl + r * KC;
+            for (int64_t l = 0; l < KC; ++l)
+                o[l] = w[l] * h[l];
+            for (int64_t p = 1; p < P; ++p) {
+                const float* wp = w + p * T2 * KC;
+                const float* hp = h + p * R * KC;
+                for (int64_t l = 0; l < KC; ++l)
+                    o[l] = o[l] + wp[l] * hp[l];
+            }
+        }
+}
+
 /* fast._mirror_cells on AVX2, 8 samples per step, with Inductor's vector operations one for one (its
    generated kernel for the compiled function: the same products, sums, divisions, the maximum /
    minimum that propagate NaN, truncating conversions) and the same Sleef acos / atan2 (passed in: the
@@ -281,6 +301,9 @@ def _library(cc: str | None):
     fn.restype = None
     P, I = ctypes.c_void_p, ctypes.c_int64
     fn.argtypes = [P, P, P, I, P, P, P, I, I, I, P, I, P, P, P, I, I, I, I, P]
+    fn.region_rows = lib.region_rows
+    fn.region_rows.restype = None
+    fn.region_rows.argtypes = [P, P, I, I, I, I, P]
     fn.cells_ok = bool(lib.native_cells_ok())
     if fn.cells_ok:
         fn.mirror_cells, fn.shade_mirror = lib.mirror_cells, lib.shade_mirror
@@ -446,3 +469,20 @@ def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Ten
     _split(lambda a, b: fn.shade_mirror(*head, a, b, *rest), P, 8)
     return out
 
+
+def region_rows(W_rows: Tensor, Hl: Tensor) -> Tensor | None:
+    """``fast.region_tables``' W_r (R, T², KC) = Σ_p W_rows[p] · Hl[p] (W_rows (P, T², KC), Hl (P, R, KC)
+    or (P, R, 1, KC)), the products and sums in the eager passes' order in one pass: the same bits.
+    None when the loop is not available or the arguments are not float32 CPU tensors."""
+    fn = _kernel()
+    if fn is None or W_rows.dtype != torch.float32 or Hl.dtype != torch.float32 or W_rows.ndim != 3:
+        return None
+    P, T2, KC = W_rows.shape
+    Hl = Hl.reshape(Hl.shape[0], -1, Hl.shape[-1])
+    if Hl.shape[0] != P or Hl.shape[2] != KC or W_rows.device.type != "cpu" or Hl.device.type != "cpu":
+        return None
+    R = int(Hl.shape[1])
+    W_rows, Hl = W_rows.contiguous(), Hl.contiguous()
+    out = torch.empty(R, T2, KC, dtype=torch.float32)
+    fn.region_rows(W_rows.data_ptr(), Hl.data_ptr(), P, R, T2, KC, out.data_ptr())
+    return out

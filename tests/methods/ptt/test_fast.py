@@ -59,13 +59,23 @@ def test_fast_path_equals_reference(name, shading):
                                        msg=lambda s: f"{name} {kind} frame {frame.index}: {s}")
 
 
+@pytest.mark.parametrize("native", [True, False])
 @pytest.mark.parametrize("R,P,K,T", [(3, 4, 16, 8), (2, 3, 4, 5), (1, 1, 2, 3)])
-def test_region_tables_are_the_products_summed_in_order(R, P, K, T):
-    """`fast.region_tables`' W_r (lane-wise products per p over `view_table_rows`) is, bit for bit,
+def test_region_tables_are_the_products_summed_in_order(R, P, K, T, native, monkeypatch):
+    """`fast.region_tables`' W_r (lane-wise products per p over `view_table_rows`; the native loop
+    ``native.region_rows`` or the eager passes) is, bit for bit,
     the float32 sum Σ_p W(p, k, texel) H(r, p, c) taken in p order without FMA (what MKL's batched
     (T²·K, P) @ (P, 3) products gave: the chess and creature bench tables were equal), and the exact
     float64 product to float32 round-off; a_r is the einsum's."""
     from methods.ptt import fast as _fast
+    from methods.ptt import native as _native
+
+    if native and not _native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(_fast, "USE_NATIVE", native)
+    if native:
+        assert _native.region_rows(_fast.view_table_rows(torch.zeros(P * K, T, T), K), torch.zeros(P, R, 1, K * 3)) \
+            is not None
 
     g = torch.Generator().manual_seed(R * 100 + P)
     W_tab = torch.randn(P * K, T, T, generator=g)
