@@ -158,6 +158,11 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
         "samples: shade_block (native)": (lambda: _native.shade_pixels(gb.face, gb.bary, rc, fxc, fyc, st.face_pairs,
                                                                       table, erows, lanes, env.W, S2),
                                           Q * (8 + 8 + 12) + Q // S2 * 12),
+        "samples: cells + shade_block (native.shade_mirror)": (
+            lambda: _native.shade_mirror(gb.normal, gb.wo, env.to_world, env.H, gb.face, gb.bary, st.face_pairs, table,
+                                         erows, lanes, env.W, S2), Q * (8 + 8 + 24 + 12) + Q // S2 * 12),
+        "samples: mirror_cells (native)": (lambda: _native.mirror_cells(gb.normal, gb.wo, env.to_world, env.H, env.W),
+                                           Q * (24 + 12)),
         "  probe: its 7 row loads only": (lambda: _probe_rows(gb.face, st.face_pairs, table, erows, idx[:, 0], env.W),
                                           Q * (8 + 8) + Q * 4),
         "  probe: the same 7 loads, every index 0 (L1)": (

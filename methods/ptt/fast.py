@@ -41,6 +41,11 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   still took 4.6 of 5.6 ms — scalar arithmetic bound, not miss bound; the cell arithmetic moved to
   the sample-vectorised `mirror_cells` (same bits) made the V frame 1.16–1.21x (chess / creature
   bench, 1 thread, CPU time, same process vs main). `shade_samples` is the eager form.
+  Session 26 (ptt26): both loops run natively where they can be bit-identical (``methods.ptt.native``:
+  `shade_block` as a C loop with prefetched env rows, the cells with Inductor's AVX2 operations and the
+  same Sleef acos / atan2, one pass per thread; `USE_NATIVE`); the compiled loops stay the fallback
+  and the tests' oracle. V frames 1.24x (chess bench, 11.9 -> 9.6 ms) and 1.17x (creature, 12.2 ->
+  10.4 ms), VB 1.25x / 1.19x (1 thread, process CPU, same process vs main, images bit-identical).
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
@@ -1062,7 +1067,8 @@ def shade_cells(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, f
     return shade_block(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2)
 
 
-# Whether `shade_cells` may take the native loop (tests switch it off to reach the compiled kernel).
+# Whether the sample stage (`shade_cells`, `_shade_pixels_block`) and `region_tables` may take the
+# native loops of ``methods.ptt.native`` (tests switch it off to reach the compiled / eager code).
 USE_NATIVE = True
 
 
