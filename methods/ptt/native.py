@@ -40,6 +40,7 @@ import ctypes
 import functools
 import hashlib
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -281,8 +282,6 @@ def _library(cc: str | None):
     root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
     path = os.path.join(root, f"ptt_shade_{key}.so")
     try:
-        from methods.inout.csr import _private_dir
-
         os.makedirs(root, mode=0o700, exist_ok=True)
         if not _private_dir(root):
             raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
@@ -313,11 +312,27 @@ def _library(cc: str | None):
     return fn
 
 
+def _private_dir(root: str) -> bool:
+    """Whether ``root`` is a real directory owned by this user that nobody else can write (the loaded
+    library comes from there; as ``methods.inout.csr``'s, not imported from it: that would put the
+    in-out package into this method's precompute key, ``reports.store.code_closure_fingerprint``)."""
+    import stat
+
+    st = os.lstat(root)
+    uid = os.getuid() if hasattr(os, "getuid") else st.st_uid
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not (st.st_mode & 0o022)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiler() -> str | None:
+    """The C compiler's path, looked up once per process."""
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    return shutil.which(cc) if cc else None
+
+
 def _kernel():
     if not compile_enabled():
         return None
-    from methods.inout.csr import _compiler
-
     return _library(_compiler())
 
 
