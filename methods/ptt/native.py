@@ -13,8 +13,13 @@ weights scalars, the lanes chosen per row block once (B, u and the lobe lanes ar
 the env rows of the sample ``PREFETCH`` samples ahead are prefetched (their cells are known: `r` is
 an input) — the env rows are cache-cold (8.4 MB on the chess bench), the pair rows mostly L2-resident.
 
-Each pixel is one thread's, whatever ``torch.get_num_threads()`` (contiguous pixel ranges per thread,
-ctypes releases the GIL), so the bits do not depend on the thread count. Compiled with
+Each pixel is one thread's, whatever ``torch.get_num_threads()`` (contiguous pixel ranges per thread),
+so the bits do not depend on the thread count. The threads are OpenMP's (``-fopenmp``: the library
+binds to the libgomp torch loaded, so it runs on the same team as Inductor's kernels, whose workers
+spin between them). Session 26: a Python thread pool instead (as ``methods.inout.csr``) read 0.88–0.90x
+against main on the chess bench V frame at 2 threads (same process, wall; the pool thread competing
+with Inductor's spinning worker for the second core), the OpenMP team 1.57x (V) / 1.63x (VB), creature
+1.13x / 1.82x — 2-thread same-process A/Bs are not evidence on this VM, a sanity check only. Compiled with
 ``-ffp-contract=off`` (as Inductor's kernels): every product and sum is rounded as in the compiled
 kernel; the lane sums of the box filter follow AVX2's ``vec_reduce_all`` tree.
 
@@ -45,7 +50,6 @@ import subprocess
 import sys
 import tempfile
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor
@@ -147,6 +151,18 @@ void shade_pixels(const int64_t* face, const float* b1p, const float* b2p, int64
         body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, out);
     else
         body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, out);
+}
+
+/* shade_pixels over all P pixels on nt threads of OpenMP's team (the one torch's and Inductor's
+   kernels use: the library shares their libgomp), thread k the pixels [P k / nt, P (k + 1) / nt). */
+void shade_pixels_par(const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r,
+                      const float* fx, const float* fy, int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs,
+                      int64_t M, const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                      int64_t prefetch, int64_t n, float* out) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k)
+        shade_pixels(face, b1p, b2p, bs, r, fx, fy, P * k / nt, P * (k + 1) / nt, S2, face_pairs, M, table, env,
+                     lanes, width, W, prefetch, n, out);
 }
 
 /* fast.region_tables' W_r: out[r, t, l] = sum over p in order of W_rows[p, t, l] * Hl[p, r, l] (each
@@ -264,11 +280,27 @@ void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
                      lanes, width, W, prefetch, m, out + 3 * a);
     }
 }
+/* shade_mirror over all P pixels on nt threads of OpenMP's team (shade_pixels_par), the ranges cut at
+   multiples of 8 pixels (whole runs of 8 samples). */
+void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                      const float* mm, int64_t H, const void* vacos, const void* vatan2,
+                      const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
+                      int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs, int64_t M,
+                      const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                      int64_t prefetch, float* out) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = k ? P * k / nt / 8 * 8 : 0, b = k + 1 < nt ? P * (k + 1) / nt / 8 * 8 : P;
+        if (b > a)
+            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
+                         table, env, lanes, width, W, prefetch, out);
+    }
+}
 #else
 int native_cells_ok(void) { return 0; }
 #endif
 """
-_FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=off")
+_FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=off", "-fopenmp")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
 
@@ -300,6 +332,9 @@ def _library(cc: str | None):
     fn.restype = None
     P, I = ctypes.c_void_p, ctypes.c_int64
     fn.argtypes = [P, P, P, I, P, P, P, I, I, I, P, I, P, P, P, I, I, I, I, P]
+    fn.par = lib.shade_pixels_par
+    fn.par.restype = None
+    fn.par.argtypes = fn.argtypes
     fn.region_rows = lib.region_rows
     fn.region_rows.restype = None
     fn.region_rows.argtypes = [P, P, I, I, I, I, P]
@@ -309,6 +344,9 @@ def _library(cc: str | None):
         fn.mirror_cells.restype = fn.shade_mirror.restype = None
         fn.mirror_cells.argtypes = [P, I, I, P, I, I, P, I, I, P, P, I, I, P, P, P]
         fn.shade_mirror.argtypes = [P, I, I, P, I, I, P, I, P, P, P, P, P, I, I, I, I, P, I, P, P, P, I, I, I, P]
+        fn.shade_mirror_par = lib.shade_mirror_par
+        fn.shade_mirror_par.restype = None
+        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
     return fn
 
 
@@ -341,8 +379,6 @@ def available() -> bool:
     return _kernel() is not None
 
 
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
 
 
 def _check(face: Tensor, bary: Tensor, face_pairs: Tensor, table: Tensor, env: Tensor, lanes: Tensor, S2: int,
@@ -365,21 +401,9 @@ def _check(face: Tensor, bary: Tensor, face_pairs: Tensor, table: Tensor, env: T
     return face, b1, b2, face_pairs, table, env, lanes[:, :width].contiguous(), width
 
 
-def _split(call, P: int, align: int = 1) -> None:
-    """call(p0, p1) over the pixels [0, P): one range per thread of ``torch.get_num_threads()`` (range
-    starts multiples of ``align``), the last on this thread."""
-    nt = max(1, min(torch.get_num_threads(), P // _MIN_PIXELS_PER_THREAD))
-    if nt == 1:
-        call(0, P)
-        return
-    global _pool, _pool_size
-    if _pool is None or _pool_size < nt - 1:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt - 1, thread_name_prefix="ptt-shade"), nt - 1
-    cuts = [0, *[(P * k // nt) // align * align for k in range(1, nt)], P]
-    jobs = [_pool.submit(call, a, b) for a, b in zip(cuts[:-2], cuts[1:-1])]
-    call(cuts[-2], cuts[-1])
-    for j in jobs:
-        j.result()
+def _threads(P: int) -> int:
+    """Threads of the pass over P pixels: ``torch.get_num_threads()``, fewer for small frames."""
+    return max(1, min(torch.get_num_threads(), P // _MIN_PIXELS_PER_THREAD))
 
 
 def shade_pixels(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, face_pairs: Tensor, table: Tensor,
@@ -407,8 +431,11 @@ def shade_pixels(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
     args = (face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0), r.data_ptr(), fx.data_ptr(), fy.data_ptr())
     rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
             width, int(W), PREFETCH, n, out.data_ptr())
-    if P:
-        _split(lambda a, b: fn(*args, a, b, *rest), P)
+    nt = _threads(P)
+    if nt > 1:
+        fn.par(*args, P, nt, *rest)
+    elif P:
+        fn(*args, 0, P, *rest)
     return out
 
 
@@ -481,7 +508,11 @@ def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Ten
     head = (*d, m.data_ptr(), int(H), ac, at, face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0))
     rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
             width, int(W), PREFETCH, out.data_ptr())
-    _split(lambda a, b: fn.shade_mirror(*head, a, b, *rest), P, 8)
+    nt = _threads(P)
+    if nt > 1:
+        fn.shade_mirror_par(*head, P, nt, *rest)
+    elif P:
+        fn.shade_mirror(*head, 0, P, *rest)
     return out
 
 
