@@ -18,6 +18,8 @@ import json
 import statistics
 import time
 
+import os
+
 import torch
 
 from benchmarks.common import frame_args, precomputed, setup
@@ -109,6 +111,8 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     and the resampling of the prefiltered maps onto the env grid (``specular.on_env_grid``)."""
     import torch.nn.functional as Fnn
 
+    from methods.ptt import native as _native
+
     from benchmarks.common import machine_limits, wall_cpu_time
     from methods.core import cubemap
     from reports import measure
@@ -138,6 +142,9 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
     bw = torch.stack([1.0 - gb.bary[:, 0] - gb.bary[:, 1], gb.bary[:, 0], gb.bary[:, 1]], -1)
     zf, zr = torch.zeros_like(gb.face), torch.zeros_like(idx[:, 0])
     f4 = 4
+    if os.environ.get("PTT_DUMP_SHADE"):
+        torch.save(dict(face=gb.face, bary=gb.bary, r=rc, fx=fxc, fy=fyc, face_pairs=st.face_pairs, table=table,
+                        env=erows, lanes=lanes, W=env.W, S2=S2), os.environ["PTT_DUMP_SHADE"])
     # bytes each kernel must move at least: its inputs once and its output
     kern = {
         "samples: whole stage (shade_pixels_fused)": (lambda: _fast.shade_pixels_fused(
@@ -148,6 +155,14 @@ def micro(m: PTT, frame, gb, threads: int) -> None:
         "samples: shade_block (compiled)": (lambda: _fast.shade_block(gb.face, gb.bary, rc, fxc, fyc, st.face_pairs,
                                                                       table, erows, lanes, env.W, S2),
                                             Q * (8 + 8 + 12) + Q // S2 * 12),
+        "samples: shade_block (native)": (lambda: _native.shade_pixels(gb.face, gb.bary, rc, fxc, fyc, st.face_pairs,
+                                                                      table, erows, lanes, env.W, S2),
+                                          Q * (8 + 8 + 12) + Q // S2 * 12),
+        "samples: cells + shade_block (native.shade_mirror)": (
+            lambda: _native.shade_mirror(gb.normal, gb.wo, env.to_world, env.H, gb.face, gb.bary, st.face_pairs, table,
+                                         erows, lanes, env.W, S2), Q * (8 + 8 + 24 + 12) + Q // S2 * 12),
+        "samples: mirror_cells (native)": (lambda: _native.mirror_cells(gb.normal, gb.wo, env.to_world, env.H, env.W),
+                                           Q * (24 + 12)),
         "  probe: its 7 row loads only": (lambda: _probe_rows(gb.face, st.face_pairs, table, erows, idx[:, 0], env.W),
                                           Q * (8 + 8) + Q * 4),
         "  probe: the same 7 loads, every index 0 (L1)": (

@@ -41,6 +41,11 @@ View stage, shading="vertex" (Sun's run time: exit radiance per vertex, interpol
   still took 4.6 of 5.6 ms — scalar arithmetic bound, not miss bound; the cell arithmetic moved to
   the sample-vectorised `mirror_cells` (same bits) made the V frame 1.16–1.21x (chess / creature
   bench, 1 thread, CPU time, same process vs main). `shade_samples` is the eager form.
+  Session 26 (ptt26): both loops run natively where they can be bit-identical (``methods.ptt.native``:
+  `shade_block` as a C loop with prefetched env rows, the cells with Inductor's AVX2 operations and the
+  same Sleef acos / atan2, one pass per thread; `USE_NATIVE`); the compiled loops stay the fallback
+  and the tests' oracle. V frames 1.24x (chess bench, 11.9 -> 9.6 ms) and 1.17x (creature, 12.2 ->
+  10.4 ms), VB 1.25x / 1.19x (1 thread, process CPU, same process vs main, images bit-identical).
 
 View stage, shading="pixel" (every frame), per hit sample and vertex v of its triangle:
 * glossy term B_v = Σ_k W_r(ωo in v's frame, k) E_v(k): bilinear in the table, so it is
@@ -280,12 +285,18 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
         W_rows = view_table_rows(W_tab, K)
     T2 = W_rows.shape[1]
     Hl = H.permute(1, 0, 2)[:, :, None, None, :].expand(P, R, 1, K, 3).reshape(P, R, 1, K * 3)  # lane (k, c): H(r, p, c)
-    Wr = torch.mul(W_rows[0], Hl[0])  # (R, T², K·3)
-    if P > 1:
-        tmp = torch.empty_like(Wr)
-        for p in range(1, P):
-            torch.mul(W_rows[p], Hl[p], out=tmp)
-            Wr.add_(tmp)
+    Wr = None
+    if USE_NATIVE:  # the same products and sums in one pass (``native.region_rows``)
+        from methods.ptt import native
+
+        Wr = native.region_rows(W_rows, Hl)
+    if Wr is None:
+        Wr = torch.mul(W_rows[0], Hl[0])  # (R, T², K·3)
+        if P > 1:
+            tmp = torch.empty_like(Wr)
+            for p in range(1, P):
+                torch.mul(W_rows[p], Hl[p], out=tmp)
+                Wr.add_(tmp)
     ar = None
     if lobe_a is not None:
         n, L = lobe_a.shape[1:]
@@ -991,8 +1002,7 @@ def shade_samples_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: T
     tab, erows, lanes = _fused_inputs(table, env, L, C)
 
     def block(face, bary, normal, wo):
-        r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
-        return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, 1)
+        return _shade_pixels_block(face, bary, normal, wo, face_pairs, tab, erows, lanes, env, 1)
 
     B = sample_block(face.shape[0])
     return map_rows(block, [face, bary, normal, wo], chunk=B, warm=warm_sizes(B))
@@ -1028,9 +1038,38 @@ def shade_pixels_fused(face_pairs: Tensor, table: Tensor, face: Tensor, bary: Te
 
 def _shade_pixels_block(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, face_pairs: Tensor, tab: Tensor,
                         erows: Tensor, lanes: Tensor, env: EnvStack, S2: int) -> Tensor:
-    """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel)."""
+    """One block of `shade_pixels_fused`: `mirror_cells` and `shade_block` (S2 sub-samples per pixel);
+    one native pass when ``native.shade_mirror`` runs here (the same bits, `shade_cells`)."""
+    if USE_NATIVE:
+        from methods.ptt import native
+
+        out = native.shade_mirror(normal, wo, env.to_world, env.H, face, bary, face_pairs, tab, erows, lanes, env.W, S2)
+        if out is not None:
+            return out
     r, fx, fy = mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
-    return shade_block(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
+    return shade_cells(face, bary, r, fx, fy, face_pairs, tab, erows, lanes, env.W, S2)
+
+
+def shade_cells(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, face_pairs: Tensor, table: Tensor,
+                env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor:
+    """`shade_block` by the native loop (``methods.ptt.native``: the same bits, tested) when it is
+    available and the arguments suit it, else the compiled `shade_block`.
+
+    Decision (session 26, ptt26): the native loop does `shade_block`'s arithmetic with 8-lane vector
+    row operations and scalar per-sample weights, and prefetches the env rows of the cells 16 samples
+    ahead (``native`` docstring)."""
+    if USE_NATIVE:
+        from methods.ptt import native
+
+        out = native.shade_pixels(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2)
+        if out is not None:
+            return out
+    return shade_block(face, bary, r, fx, fy, face_pairs, table, env, lanes, W, S2)
+
+
+# Whether the sample stage (`shade_cells`, `_shade_pixels_block`) and `region_tables` may take the
+# native loops of ``methods.ptt.native`` (tests switch it off to reach the compiled / eager code).
+USE_NATIVE = True
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

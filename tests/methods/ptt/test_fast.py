@@ -59,13 +59,23 @@ def test_fast_path_equals_reference(name, shading):
                                        msg=lambda s: f"{name} {kind} frame {frame.index}: {s}")
 
 
+@pytest.mark.parametrize("native", [True, False])
 @pytest.mark.parametrize("R,P,K,T", [(3, 4, 16, 8), (2, 3, 4, 5), (1, 1, 2, 3)])
-def test_region_tables_are_the_products_summed_in_order(R, P, K, T):
-    """`fast.region_tables`' W_r (lane-wise products per p over `view_table_rows`) is, bit for bit,
+def test_region_tables_are_the_products_summed_in_order(R, P, K, T, native, monkeypatch):
+    """`fast.region_tables`' W_r (lane-wise products per p over `view_table_rows`; the native loop
+    ``native.region_rows`` or the eager passes) is, bit for bit,
     the float32 sum Σ_p W(p, k, texel) H(r, p, c) taken in p order without FMA (what MKL's batched
     (T²·K, P) @ (P, 3) products gave: the chess and creature bench tables were equal), and the exact
     float64 product to float32 round-off; a_r is the einsum's."""
     from methods.ptt import fast as _fast
+    from methods.ptt import native as _native
+
+    if native and not _native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(_fast, "USE_NATIVE", native)
+    if native:
+        assert _native.region_rows(_fast.view_table_rows(torch.zeros(P * K, T, T), K), torch.zeros(P, R, 1, K * 3)) \
+            is not None
 
     g = torch.Generator().manual_seed(R * 100 + P)
     W_tab = torch.randn(P * K, T, T, generator=g)
@@ -527,3 +537,133 @@ def test_pair_cells_int32_indices_are_the_int64_ones():
                 assert torch.equal(x, y)
     z = a[6]
     assert bool((z == 0).any()) and bool((z > 0).any())  # both sides of the horizon
+
+
+@pytest.mark.parametrize("S2", [1, 4])
+def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, monkeypatch):
+    """``native.shade_pixels`` (the C loop `fast.shade_cells` takes) gives the same bits as the
+    compiled `fast.shade_block` on the rows of the perf suite's configuration (width 16: 4 lobes, no
+    u column) at 1 and 2 threads (the pixel range split), and the eager `fast._shade_block` to
+    round-off on widths 32 and 48 (the u column; the generic loop); with negative Gouraud sums,
+    misses (face −1, the zero face of `fast.miss_face_pairs`; a face past the table reads it too) and
+    the barycentrics as the G-buffer stores them (columns of a (2, n) array) and row-major; it
+    declines (None) arguments it does not read. One compiled variant per S2 (CI compiles it cold;
+    S2 = 4 shares its shapes with `test_native_mirror_cells_are_the_compiled_cells_bit_for_bit`)."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    n = S2 * (4098 if S2 == 4 else 3001)
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, _ = _random_shading_inputs(n, 3)
+    face = torch.where(torch.rand(n, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    H, W = 16, 32
+    for L, extra in ((4, 0), (4, 3), (14, 0)):
+        maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
+        C = 3 + 3 * L + extra
+        width = F.table_width(C)
+        erows = F.env_rows(F.env_stack(maps, width), width)
+        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+        table[-1] = 0.0
+        lanes = F._lane_masks(C, L, width)
+        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
+        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        got = N.shade_pixels(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        if width == 16:
+            want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                try:
+                    for b in (bary, bary.T.contiguous().T):
+                        out = N.shade_pixels(face, b, r, fx, fy, fpm, table, erows, lanes, W, S2)
+                        assert torch.equal(out, want), (threads, float((out - want).abs().max()))
+                finally:
+                    torch.set_num_threads(1)
+        past = face.clone()
+        past[face == -1] = fpm.shape[0] + 5
+        assert torch.equal(N.shade_pixels(past, bary, r, fx, fy, fpm, table, erows, lanes, W, S2), got)
+        eager = F._shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
+        torch.testing.assert_close(got, eager, rtol=1e-5, atol=1e-5 * float(eager.abs().max()))
+        assert bool((got.abs() > 0).any())
+    assert N.shade_pixels(face[:5], bary[:5], r[:5], fx[:5], fy[:5], fpm, table, erows, lanes, W, 2) is None
+    assert N.shade_pixels(face.int(), bary, r, fx, fy, fpm, table, erows, lanes, W, S2) is None
+    assert N.shade_pixels(face, bary, r.long(), fx, fy, fpm, table, erows, lanes, W, S2) is None
+
+
+def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
+    """`fast.shade_pixels_fused` takes the native loops (`fast.USE_NATIVE`): the one-pass
+    ``native.shade_mirror``, or without the native cells ``native.shade_pixels`` after the compiled
+    cells — the same image bit for bit (each route is compared with the compiled kernels by the tests
+    around this one), and the eager `fast.shade_samples` + `fast.box_filter` to round-off."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.available():
+        pytest.skip("no C compiler")
+    S2, n_pixels = 4, 1 << 10
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pixels, 4)
+    table = torch.randn(n_pairs + 1, 3 + 3 * L, generator=g)
+    calls = []
+    for name in ("shade_pixels", "shade_mirror"):
+        monkeypatch.setattr(N, name, lambda *a, real=getattr(N, name), name=name: calls.append(name) or real(*a))
+    images = [F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2)]
+    assert calls[0] == ("shade_mirror" if N.cells_available() else "shade_pixels")
+    monkeypatch.setattr(N, "cells_available", lambda: False)
+    images.append(F.shade_pixels_fused(face_pairs, table, face, bary, normal, wo, env, L, S2))
+    assert calls[-1] == "shade_pixels"
+    assert torch.equal(images[0], images[1])
+    ref = F.box_filter(F.shade_samples(face_pairs, table, face, bary, normal, wo, env, L), n_pixels, 1, S2)
+    torch.testing.assert_close(images[0].view(n_pixels, 1, 3), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+
+
+def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
+    """``native.mirror_cells`` (Inductor's AVX2 operations one for one, the same Sleef acos / atan2)
+    gives the bits of the compiled `fast.mirror_cells_block` — first row, fx, fy — on two grids and
+    rotations, with the normals row-major and the view directions as the G-buffer stores them
+    (columns of a (3, n) array) or row-major; a NaN normal gives row 0 in both. And
+    ``native.shade_mirror`` (the cells and the shading in one pass, pixels split over two threads)
+    gives the image of `fast.mirror_cells_block` + `fast.shade_block`, bit for bit."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.cells_available():
+        pytest.skip("no AVX2 build of the native cells")
+    g = torch.Generator().manual_seed(13)
+    n = 20_000
+    normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))
+    normal[::997] = torch.tensor([0.0, 1.0, 0.0])  # mirror directions on the map's axis / seam
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    wo[::997] = torch.tensor([0.0, 1.0, 0.0])
+    normal[5] = float("nan")
+    ok = torch.arange(n) != 5
+    for (H, W), w in (((256, 512), wo.T.contiguous().T), ((33, 70), wo)):  # the G-buffer's wo layout; row-major
+        to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
+        want = F.mirror_cells_block(normal, w, to_world, H, W)
+        got = N.mirror_cells(normal, w, to_world, H, W)
+        assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
+        assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
+    assert N.mirror_cells(normal[:12], wo[:12], to_world, H, W) is None  # not a multiple of 8
+
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    S2, n_pix = 4, 4098
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pix, 5)
+    face = torch.where(torch.rand(S2 * n_pix, generator=g) < 0.05, -1, face)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    C = 3 + 3 * L
+    width = F.table_width(C)
+    maps = [_FakeEnv(torch.rand(env.H, env.W, 3, generator=g) * 4.0, env.to_world) for _ in range(L)]
+    erows = F.env_rows(F.env_stack(maps, width), width)
+    table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+    table[-1] = 0.0
+    lanes = F._lane_masks(C, L, width)
+    r, fx, fy = F.mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
+    want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, env.W, S2)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        try:
+            got = N.shade_mirror(normal, wo, env.to_world, env.H, face, bary, fpm, table, erows, lanes, env.W, S2)
+        finally:
+            torch.set_num_threads(1)
+        assert torch.equal(got, want)

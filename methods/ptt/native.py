@@ -1,0 +1,534 @@
+"""The per-sample view stage of shading="vertex" (``fast.shade_block``: the face's three pair rows
+with the Gouraud weights, the four env rows of the mirror direction's cell, max(0, B) + u + Σ_k s_k
+E^(k)(R) and the box filter) as a small C loop compiled on first use and called through ctypes —
+the same arithmetic, lane by lane in the same order, as the compiled ``fast.shade_block``, which
+stays the fallback and the test oracle.
+
+Why: Inductor's loop over the pixels is vectorised along the 16 lanes of a row, one sample at a time,
+and spends ~190 instructions per sample (session 24's count) on what is 7 row loads, 7 lane-wise
+products and sums and ~15 scalar weights: index arithmetic in int64 with every intermediate spilled,
+a lane-mask ``where`` per row, and the four channel sums of each pixel as masked reductions. Here the
+rows are 8-lane GCC vector operations (``-march=native``: AVX2 on this machine), the per-sample
+weights scalars, the lanes chosen per row block once (B, u and the lobe lanes are fixed columns), and
+the env rows of the sample ``PREFETCH`` samples ahead are prefetched (their cells are known: `r` is
+an input) — the env rows are cache-cold (8.4 MB on the chess bench), the pair rows mostly L2-resident.
+
+Each pixel is one thread's, whatever ``torch.get_num_threads()`` (contiguous pixel ranges per thread),
+so the bits do not depend on the thread count. The threads are OpenMP's (``-fopenmp``: the library
+binds to the libgomp torch loaded, so it runs on the same team as Inductor's kernels, whose workers
+spin between them). Session 26: a Python thread pool instead (as ``methods.inout.csr``) read 0.88–0.90x
+against main on the chess bench V frame at 2 threads (same process, wall; the pool thread competing
+with Inductor's spinning worker for the second core), the OpenMP team 1.57x (V) / 1.63x (VB), creature
+1.13x / 1.82x — 2-thread same-process A/Bs are not evidence on this VM, a sanity check only. Compiled with
+``-ffp-contract=off`` (as Inductor's kernels): every product and sum is rounded as in the compiled
+kernel; the lane sums of the box filter follow AVX2's ``vec_reduce_all`` tree.
+
+The mirror direction's cell (``fast._mirror_cells``) runs in the same pass where it can be exact
+(`shade_mirror`, `cells_available`): AVX2 intrinsics one for one with Inductor's generated kernel for
+the compiled function (the same products, sums, divisions, NaN-propagating maximum / minimum and
+truncating conversions, in its order) and the same Sleef acos / atan2 on 8 floats, called through
+their addresses in libtorch_cpu (what ATen's ``Vectorized<float>`` calls in Inductor's AVX2 kernels) —
+so the cells and fractions are the compiled kernel's bits (tested), which the reference path's
+look-ups read too (``fast.mirror_uv``). Used only where Inductor vectorises for AVX2; elsewhere the
+compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. Measured on the chess
+bench: the cells alone 2.5 ms native vs 2.6 ms compiled (the Sleef calls are ~1.3 ms of it); the gain
+is the compiled call, its (r, fx, fy) arrays and their second pass (V 1.02–1.05x).
+
+The library is built like ``methods.inout.csr``'s (per-user private cache directory, keyed by the
+source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
+``PRTBENCH_COMPILE=0``, `available` is False and the caller uses ``fast.shade_block``. Building it
+takes ~2 s of ``cc`` (CPU time) once per machine and source (what CI pays, once).
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import warnings
+
+import torch
+from torch import Tensor
+
+from methods.core.fused import compile_enabled
+
+__all__ = ["available", "cells_available", "mirror_cells", "shade_mirror", "shade_pixels"]
+
+# Samples ahead whose env rows are prefetched.
+PREFETCH = 16
+
+_SOURCE = r"""
+#include <stdint.h>
+typedef float v8 __attribute__((vector_size(32)));
+typedef int32_t v8i __attribute__((vector_size(32)));
+
+static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
+/* m ? x : y lane by lane (m: all ones or zero per lane) */
+static inline v8 sel(v8i m, v8 x, v8 y) { return (v8)(((v8i)x & m) | ((v8i)y & ~m)); }
+
+/* fast._shade_block on the pixels [p0, p1): S2 samples per pixel (sample j of pixel p is row p*S2 + j).
+   face (n,) int64 (an index outside [0, M) reads face M - 1, the zero face of fast.miss_face_pairs:
+   -1 wraps there as in torch); the barycentrics b1 = b1p[i * bs], b2 = b2p[i * bs]; r (n,) int32 the
+   first env row of the cell, fx, fy (n,) its fractions; face_pairs (M, 3) int64; table (., width),
+   env (., width) rows (width a multiple of 8, at most 64); lanes (5, width) (fast._lane_masks);
+   out (P, 3). The env rows of sample i + prefetch are prefetched. Specialised (inlined) for the
+   widths 16 and 32 and S2 = 4, so the lane loops unroll. */
+static inline __attribute__((always_inline)) void body(
+        const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r, const float* fx,
+        const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
+        const float* table, const float* env, const float* lanes, const int64_t width, int64_t W,
+        int64_t prefetch, int64_t n, float* out) {
+    const int64_t nb = width / 8;
+    const float inv = 1.0f / (float)S2;
+    const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
+    v8i isb[8], isu[8];
+    v8 mc[3][8];
+    for (int64_t b = 0; b < nb; ++b) {
+        isb[b] = ld(lanes + 8 * b) > zero;
+        isu[b] = ld(lanes + width + 8 * b) > zero;
+        for (int c = 0; c < 3; ++c)
+            mc[c][b] = ld(lanes + (2 + c) * width + 8 * b);
+    }
+    const int64_t rowb = (W + 1) * width;
+    for (int64_t p = p0; p < p1; ++p) {
+        v8 t[8];
+        for (int64_t j = 0; j < S2; ++j) {
+            const int64_t i = p * S2 + j;
+            if (i + prefetch < n) {
+                const float* q = env + (int64_t)r[i + prefetch] * width;
+                __builtin_prefetch(q);
+                __builtin_prefetch(q + width);
+                __builtin_prefetch(q + rowb);
+                __builtin_prefetch(q + rowb + width);
+            }
+            int64_t f = face[i];
+            if ((uint64_t)f >= (uint64_t)M)
+                f = M - 1;
+            const float* a0 = table + face_pairs[3 * f] * width;
+            const float* a1 = table + face_pairs[3 * f + 1] * width;
+            const float* a2 = table + face_pairs[3 * f + 2] * width;
+            const float b1 = b1p[i * bs], b2 = b2p[i * bs];
+            const float b0 = (1.0f - b1) - b2;
+            const float x = fx[i], y = fy[i];
+            const float gx = 1.0f - x, gy = 1.0f - y;
+            const float w0 = gx * gy, w1 = x * gy, w2 = gx * y, w3 = x * y;
+            const float* e0 = env + (int64_t)r[i] * width;
+            const float* e2 = e0 + rowb;
+            for (int64_t b = 0; b < nb; ++b) {
+                const int64_t o = 8 * b;
+                const v8 a = (ld(a0 + o) * b0 + ld(a1 + o) * b1) + ld(a2 + o) * b2;
+                const v8 e = ((ld(e0 + o) * w0 + ld(e0 + width + o) * w1) + ld(e2 + o) * w2) + ld(e2 + width + o) * w3;
+                /* max(0, a) as Inductor's maximum (NaN propagates), a, a * e */
+                const v8 cl = sel((a > zero) | (a != a), a, zero);
+                const v8 tj = sel(isb[b], cl, sel(isu[b], a, a * e));
+                t[b] = j ? t[b] + tj : tj;
+            }
+        }
+        for (int c = 0; c < 3; ++c) {
+            v8 acc = zero;
+            for (int64_t b = 0; b < nb; ++b)
+                acc = acc + t[b] * mc[c][b];
+            /* vec_reduce_all (AVX2): halves, then lanes two apart, then neighbours */
+            const float s0 = acc[0] + acc[4], s1 = acc[1] + acc[5], s2 = acc[2] + acc[6], s3 = acc[3] + acc[7];
+            out[3 * p + c] = ((s0 + s2) + (s1 + s3)) * inv;
+        }
+    }
+}
+
+void shade_pixels(const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r,
+                  const float* fx, const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs,
+                  int64_t M, const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                  int64_t prefetch, int64_t n, float* out) {
+    if (width == 16 && S2 == 4)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+    else if (width == 16)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+    else if (width == 32)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, out);
+    else
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, out);
+}
+
+/* shade_pixels over all P pixels on nt threads of OpenMP's team (the one torch's and Inductor's
+   kernels use: the library shares their libgomp), thread k the pixels [P k / nt, P (k + 1) / nt). */
+void shade_pixels_par(const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r,
+                      const float* fx, const float* fy, int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs,
+                      int64_t M, const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                      int64_t prefetch, int64_t n, float* out) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k)
+        shade_pixels(face, b1p, b2p, bs, r, fx, fy, P * k / nt, P * (k + 1) / nt, S2, face_pairs, M, table, env,
+                     lanes, width, W, prefetch, n, out);
+}
+
+/* fast.region_tables' W_r: out[r, t, l] = sum over p in order of W_rows[p, t, l] * Hl[p, r, l] (each
+   product rounded, then the sum: the eager passes' operations), W_rows (P, T2, KC), Hl (P, R, KC),
+   out (R, T2, KC). */
+void region_rows(const float* Wrows, const float* Hl, int64_t P, int64_t R, int64_t T2, int64_t KC, float* out) {
+    for (int64_t r = 0; r < R; ++r)
+        for (int64_t t = 0; t < T2; ++t) {
+            float* o = out + (r * T2 + t) * KC;
+            const float* w = Wrows + t * KC;
+            const float* h = Hl + r * KC;
+            for (int64_t l = 0; l < KC; ++l)
+                o[l] = w[l] * h[l];
+            for (int64_t p = 1; p < P; ++p) {
+                const float* wp = w + p * T2 * KC;
+                const float* hp = h + p * R * KC;
+                for (int64_t l = 0; l < KC; ++l)
+                    o[l] = o[l] + wp[l] * hp[l];
+            }
+        }
+}
+
+/* fast._mirror_cells on AVX2, 8 samples per step, with Inductor's vector operations one for one (its
+   generated kernel for the compiled function: the same products, sums, divisions, the maximum /
+   minimum that propagate NaN, truncating conversions) and the same Sleef acos / atan2 (passed in: the
+   functions ATen's Vectorized<float> calls, resolved from libtorch_cpu), so the cells and fractions
+   are the compiled kernel's bits. native_cells_ok() is 0 when not built for AVX2. */
+#if defined(__AVX2__)
+#include <immintrin.h>
+typedef __m256 (*vf1)(__m256);
+typedef __m256 (*vf2)(__m256, __m256);
+int native_cells_ok(void) { return 1; }
+static inline __m256 vmax(__m256 a, __m256 b) {
+    return _mm256_or_ps(_mm256_max_ps(a, b), _mm256_cmp_ps(a, b, _CMP_UNORD_Q));
+}
+static inline __m256 vmin(__m256 a, __m256 b) {
+    return _mm256_or_ps(_mm256_min_ps(a, b), _mm256_cmp_ps(a, b, _CMP_UNORD_Q));
+}
+static inline __m256 lds(const float* p, int64_t s) {
+    if (s == 1)
+        return _mm256_loadu_ps(p);
+    float t[8];
+    for (int k = 0; k < 8; ++k)
+        t[k] = p[k * s];
+    return _mm256_loadu_ps(t);
+}
+/* samples [i0, i0 + m) (m a multiple of 8): normal component c of sample i at nrm[i * ns + c * nc],
+   wo's at wo[i * ws + c * wc]; m (3, 3) to_world row-major; out r, fx, fy from index 0. */
+static void cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                  const float* mm, int64_t H, int64_t W, vf1 vacos, vf2 vatan2, int64_t i0, int64_t m,
+                  int32_t* r, float* fx, float* fy) {
+    const __m256 eps = _mm256_set1_ps(1e-24f), two = _mm256_set1_ps(2.0f), one = _mm256_set1_ps(1.0f);
+    const __m256 mone = _mm256_set1_ps(-1.0f), negz = _mm256_set1_ps(-0.f);
+    const __m256 cpi = _mm256_set1_ps((float)0.3183098861837907), c2pi = _mm256_set1_ps((float)0.15915494309189535);
+    const __m256 coff = _mm256_set1_ps((float)(0.5 / (double)W));
+    const __m256 hm1 = _mm256_set1_ps((float)(H - 1)), wf = _mm256_set1_ps((float)W);
+    const __m256i zi = _mm256_set1_epi32(0), hm2 = _mm256_set1_epi32((int32_t)(H - 2));
+    const __m256i wm1 = _mm256_set1_epi32((int32_t)(W - 1)), wp1 = _mm256_set1_epi32((int32_t)(W + 1));
+    __m256 M[9];
+    for (int k = 0; k < 9; ++k)
+        M[k] = _mm256_set1_ps(mm[k]);
+    for (int64_t o = 0; o < m; o += 8) {
+        const int64_t i = i0 + o;
+        const __m256 nx = lds(nrm + i * ns, ns), ny = lds(nrm + i * ns + nc, ns), nz = lds(nrm + i * ns + 2 * nc, ns);
+        const __m256 wx = lds(wo + i * ws, ws), wy = lds(wo + i * ws + wc, ws), wz = lds(wo + i * ws + 2 * wc, ws);
+        const __m256 dot = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx, wx), _mm256_mul_ps(ny, wy)), _mm256_mul_ps(nz, wz));
+        const __m256 nn = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx, nx), _mm256_mul_ps(ny, ny)), _mm256_mul_ps(nz, nz));
+        const __m256 s = _mm256_mul_ps(_mm256_div_ps(dot, vmax(nn, eps)), two);
+        const __m256 rx = _mm256_sub_ps(_mm256_mul_ps(s, nx), wx);
+        const __m256 ry = _mm256_sub_ps(_mm256_mul_ps(s, ny), wy);
+        const __m256 rz = _mm256_sub_ps(_mm256_mul_ps(s, nz), wz);
+        const __m256 l2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(rx, rx), _mm256_mul_ps(ry, ry)), _mm256_mul_ps(rz, rz));
+        const __m256 inv = _mm256_div_ps(one, _mm256_sqrt_ps(vmax(l2, eps)));
+        const __m256 ax = _mm256_mul_ps(rx, inv), ay = _mm256_mul_ps(ry, inv), az = _mm256_mul_ps(rz, inv);
+        const __m256 ly = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, M[1]), _mm256_mul_ps(ay, M[4])), _mm256_mul_ps(az, M[7]));
+        const __m256 v = _mm256_mul_ps(vacos(vmin(vmax(ly, mone), one)), cpi);
+        const __m256 lx = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, M[0]), _mm256_mul_ps(ay, M[3])), _mm256_mul_ps(az, M[6]));
+        const __m256 lz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, M[2]), _mm256_mul_ps(ay, M[5])), _mm256_mul_ps(az, M[8]));
+        const __m256 ua = vatan2(lx, _mm256_xor_ps(negz, lz));
+        const __m256 y = _mm256_mul_ps(_mm256_sub_ps(v, _mm256_floor_ps(v)), hm1);
+        const __m256i iy = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(y), zi), hm2);
+        const __m256 uu = _mm256_sub_ps(_mm256_mul_ps(ua, c2pi), coff);
+        const __m256 x = _mm256_mul_ps(_mm256_sub_ps(uu, _mm256_floor_ps(uu)), wf);
+        const __m256i ix = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(x), zi), wm1);
+        _mm256_storeu_si256((__m256i*)(r + o), _mm256_add_epi32(_mm256_mullo_epi32(iy, wp1), ix));
+        _mm256_storeu_ps(fx + o, _mm256_sub_ps(x, _mm256_cvtepi32_ps(ix)));
+        _mm256_storeu_ps(fy + o, _mm256_sub_ps(y, _mm256_cvtepi32_ps(iy)));
+    }
+}
+
+/* fast._mirror_cells of samples [i0, i1) (multiples of 8) into r, fx, fy (indexed from i0). */
+void mirror_cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                  const float* mm, int64_t H, int64_t W, const void* vacos, const void* vatan2, int64_t i0,
+                  int64_t i1, int32_t* r, float* fx, float* fy) {
+    cells(nrm, ns, nc, wo, ws, wc, mm, H, W, (vf1)vacos, (vf2)vatan2, i0, i1 - i0, r + i0, fx + i0, fy + i0);
+}
+
+/* mirror_cells then shade_pixels, per run of CELL_RUN samples (whole pixels: CELL_RUN a multiple of
+   8 and of S2 — the caller checks), the cells of a run in stack buffers; pixels [p0, p1). */
+#define CELL_RUN 512
+void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                  const float* mm, int64_t H, const void* vacos, const void* vatan2,
+                  const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
+                  int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
+                  const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                  int64_t prefetch, float* out) {
+    int32_t r[CELL_RUN];
+    float fx[CELL_RUN], fy[CELL_RUN];
+    const int64_t ppr = CELL_RUN / S2;
+    for (int64_t a = p0; a < p1; a += ppr) {
+        const int64_t b = a + ppr < p1 ? a + ppr : p1;
+        const int64_t i0 = a * S2, m = (b - a) * S2;
+        cells(nrm, ns, nc, wo, ws, wc, mm, H, W, (vf1)vacos, (vf2)vatan2, i0, (m + 7) / 8 * 8, r, fx, fy);
+        shade_pixels(face + i0, b1p + i0 * bs, b2p + i0 * bs, bs, r, fx, fy, 0, b - a, S2, face_pairs, M, table, env,
+                     lanes, width, W, prefetch, m, out + 3 * a);
+    }
+}
+/* shade_mirror over all P pixels on nt threads of OpenMP's team (shade_pixels_par), the ranges cut at
+   multiples of 8 pixels (whole runs of 8 samples). */
+void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                      const float* mm, int64_t H, const void* vacos, const void* vatan2,
+                      const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
+                      int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs, int64_t M,
+                      const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
+                      int64_t prefetch, float* out) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = k ? P * k / nt / 8 * 8 : 0, b = k + 1 < nt ? P * (k + 1) / nt / 8 * 8 : P;
+        if (b > a)
+            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
+                         table, env, lanes, width, W, prefetch, out);
+    }
+}
+#else
+int native_cells_ok(void) { return 0; }
+#endif
+"""
+_FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=off", "-fopenmp")
+# Pixels below which one thread does the pass.
+_MIN_PIXELS_PER_THREAD = 1 << 12
+
+
+@functools.lru_cache(maxsize=None)
+def _library(cc: str | None):
+    """The compiled kernel (ctypes function) or None (no compiler, or the build failed: warns once)."""
+    if cc is None:
+        return None
+    key = hashlib.sha256("\0".join((_SOURCE, cc, *_FLAGS, sys.platform)).encode()).hexdigest()[:20]
+    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
+    path = os.path.join(root, f"ptt_shade_{key}.so")
+    try:
+        os.makedirs(root, mode=0o700, exist_ok=True)
+        if not _private_dir(root):
+            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
+        if not os.path.exists(path):
+            with tempfile.TemporaryDirectory(dir=root) as tmp:
+                src, so = os.path.join(tmp, "shade.c"), os.path.join(tmp, "shade.so")
+                with open(src, "w") as f:
+                    f.write(_SOURCE)
+                subprocess.run([cc, *_FLAGS, src, "-o", so], check=True, capture_output=True)
+                os.replace(so, path)  # atomic: a concurrent build finds a whole file
+        lib = ctypes.CDLL(path)
+        fn = lib.shade_pixels
+    except (OSError, subprocess.CalledProcessError) as e:
+        warnings.warn(f"ptt: the native shading loop did not build ({e}); using the compiled shade_block")
+        return None
+    fn.restype = None
+    P, I = ctypes.c_void_p, ctypes.c_int64
+    fn.argtypes = [P, P, P, I, P, P, P, I, I, I, P, I, P, P, P, I, I, I, I, P]
+    fn.par = lib.shade_pixels_par
+    fn.par.restype = None
+    fn.par.argtypes = fn.argtypes
+    fn.region_rows = lib.region_rows
+    fn.region_rows.restype = None
+    fn.region_rows.argtypes = [P, P, I, I, I, I, P]
+    fn.cells_ok = bool(lib.native_cells_ok())
+    if fn.cells_ok:
+        fn.mirror_cells, fn.shade_mirror = lib.mirror_cells, lib.shade_mirror
+        fn.mirror_cells.restype = fn.shade_mirror.restype = None
+        fn.mirror_cells.argtypes = [P, I, I, P, I, I, P, I, I, P, P, I, I, P, P, P]
+        fn.shade_mirror.argtypes = [P, I, I, P, I, I, P, I, P, P, P, P, P, I, I, I, I, P, I, P, P, P, I, I, I, P]
+        fn.shade_mirror_par = lib.shade_mirror_par
+        fn.shade_mirror_par.restype = None
+        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
+    return fn
+
+
+def _private_dir(root: str) -> bool:
+    """Whether ``root`` is a real directory owned by this user that nobody else can write (the loaded
+    library comes from there; as ``methods.inout.csr``'s, not imported from it: that would put the
+    in-out package into this method's precompute key, ``reports.store.code_closure_fingerprint``)."""
+    import stat
+
+    st = os.lstat(root)
+    uid = os.getuid() if hasattr(os, "getuid") else st.st_uid
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not (st.st_mode & 0o022)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiler() -> str | None:
+    """The C compiler's path, looked up once per process."""
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    return shutil.which(cc) if cc else None
+
+
+def _kernel():
+    if not compile_enabled():
+        return None
+    return _library(_compiler())
+
+
+def available() -> bool:
+    """True when `shade_pixels` runs the native loop."""
+    return _kernel() is not None
+
+
+
+
+def _check(face: Tensor, bary: Tensor, face_pairs: Tensor, table: Tensor, env: Tensor, lanes: Tensor, S2: int,
+           n: int) -> tuple | None:
+    """The arguments `shade_pixels` / `shade_mirror` read, contiguous where they must be (the
+    barycentrics read in place as two columns), or None when they do not suit the loop."""
+    width = int(table.shape[1])
+    ok = (face.dtype == torch.int64 and face_pairs.dtype == torch.int64 and face.shape == (n,)
+          and bary.dtype == table.dtype == env.dtype == lanes.dtype == torch.float32
+          and width % 8 == 0 and 0 < width <= 64 and env.shape[1] == width and lanes.shape[1] >= width
+          and bary.shape == (n, 2) and face_pairs.ndim == 2 and face_pairs.shape[1] == 3 and S2 > 0 and n % S2 == 0
+          and all(t.device.type == "cpu" for t in (face, bary, face_pairs, table, env, lanes)))
+    if not ok:
+        return None
+    face, face_pairs, table, env = (t.contiguous() for t in (face, face_pairs, table, env))
+    b1, b2 = bary[:, 0], bary[:, 1]  # read in place: the G-buffer's are columns of a (2, n) array
+    if b1.stride(0) != b2.stride(0):
+        bary = bary.contiguous()
+        b1, b2 = bary[:, 0], bary[:, 1]
+    return face, b1, b2, face_pairs, table, env, lanes[:, :width].contiguous(), width
+
+
+def _threads(P: int) -> int:
+    """Threads of the pass over P pixels: ``torch.get_num_threads()``, fewer for small frames."""
+    return max(1, min(torch.get_num_threads(), P // _MIN_PIXELS_PER_THREAD))
+
+
+def shade_pixels(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, face_pairs: Tensor, table: Tensor,
+                 env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor | None:
+    """``fast._shade_block`` (same arguments, same result to float32 round-off) by the native loop,
+    or None when it is not available or the arguments are not what it reads (CPU, dtypes, shapes:
+    face (n,) int64, bary (n, 2), r (n,) int32, fx, fy (n,) float32; face_pairs (M, 3) int64; table,
+    env (·, width) float32 with width a multiple of 8 and at most 64; lanes (5, ≥ width); n a
+    multiple of S2). The indices are those ``fast.shade_block`` reads unchecked too: face in [−1, M)
+    (others read the zero face M − 1), face_pairs rows of ``table``, r + W + 2 a row of ``env``."""
+    fn = _kernel()
+    if fn is None:
+        return None
+    n = int(face.shape[0])
+    if not (r.dtype == torch.int32 and fx.dtype == fy.dtype == torch.float32 and r.shape == fx.shape == fy.shape == (n,)
+            and all(t.device.type == "cpu" for t in (r, fx, fy))):
+        return None
+    chk = _check(face, bary, face_pairs, table, env, lanes, S2, n)
+    if chk is None:
+        return None
+    face, b1, b2, face_pairs, table, env, lanes, width = chk
+    r, fx, fy = r.contiguous(), fx.contiguous(), fy.contiguous()
+    P = n // S2
+    out = torch.empty(P, 3, dtype=torch.float32)
+    args = (face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0), r.data_ptr(), fx.data_ptr(), fy.data_ptr())
+    rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
+            width, int(W), PREFETCH, n, out.data_ptr())
+    nt = _threads(P)
+    if nt > 1:
+        fn.par(*args, P, nt, *rest)
+    elif P:
+        fn(*args, 0, P, *rest)
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _sleef() -> tuple[int, int] | None:
+    """Addresses of the Sleef acos / atan2 on 8 floats that Inductor's AVX2 kernels call (ATen's
+    ``Vectorized<float>::acos`` / ``atan2``), from libtorch_cpu; None unless Inductor vectorises for
+    AVX2 here (on another ISA its kernels call other Sleef variants: the native cells are not used)."""
+    try:
+        from torch._inductor.cpu_vec_isa import pick_vec_isa
+
+        if str(pick_vec_isa()) != "avx2":
+            return None
+        lib = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
+        return (ctypes.cast(lib.Sleef_acosf8_u10, ctypes.c_void_p).value,
+                ctypes.cast(lib.Sleef_atan2f8_u10, ctypes.c_void_p).value)
+    except (OSError, AttributeError, ImportError):
+        return None
+
+
+def cells_available() -> bool:
+    """True when `mirror_cells` / `shade_mirror` run natively (the AVX2 build and Inductor's AVX2 Sleef)."""
+    fn = _kernel()
+    return fn is not None and fn.cells_ok and _sleef() is not None
+
+
+def _dirs(normal: Tensor, wo: Tensor, n: int) -> tuple | None:
+    """(pointer, sample stride, component stride) of normal and wo (n, 3) float32 CPU, or None."""
+    out = []
+    for t in (normal, wo):
+        if t.dtype != torch.float32 or t.device.type != "cpu" or t.shape != (n, 3):
+            return None
+        out += [t.data_ptr(), t.stride(0), t.stride(1)]
+    return tuple(out)
+
+
+def mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor] | None:
+    """``fast.mirror_cells_block`` (r, fx, fy) by the native AVX2 loop, the same bits; None when not
+    `cells_available` or the sample count is not a multiple of 8."""
+    n = int(normal.shape[0])
+    d = _dirs(normal, wo, n)
+    if not cells_available() or d is None or n % 8:
+        return None
+    fn, (ac, at) = _kernel(), _sleef()
+    m = to_world.to(torch.float32).contiguous()
+    r = torch.empty(n, dtype=torch.int32)
+    fx, fy = torch.empty(n), torch.empty(n)
+    fn.mirror_cells(*d, m.data_ptr(), int(H), int(W), ac, at, 0, n, r.data_ptr(), fx.data_ptr(), fy.data_ptr())
+    return r, fx, fy
+
+
+def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Tensor, bary: Tensor,
+                 face_pairs: Tensor, table: Tensor, env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor | None:
+    """``fast._shade_pixels_block`` (`mirror_cells`, then `shade_pixels` on the cells) in one native
+    pass per thread, the cells of 512 samples at a time in stack buffers; the same bits. None when not
+    `cells_available`, or the arguments do not suit it (`shade_pixels`; also n a multiple of 8 and
+    S2 dividing 512)."""
+    n = int(face.shape[0])
+    d = _dirs(normal, wo, n)
+    if d is None or n % 8 or 512 % max(S2, 1) or not cells_available():
+        return None
+    chk = _check(face, bary, face_pairs, table, env, lanes, S2, n)
+    if chk is None:
+        return None
+    face, b1, b2, face_pairs, table, env, lanes, width = chk
+    fn, (ac, at) = _kernel(), _sleef()
+    m = to_world.to(torch.float32).contiguous()
+    P = n // S2
+    out = torch.empty(P, 3, dtype=torch.float32)
+    head = (*d, m.data_ptr(), int(H), ac, at, face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0))
+    rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
+            width, int(W), PREFETCH, out.data_ptr())
+    nt = _threads(P)
+    if nt > 1:
+        fn.shade_mirror_par(*head, P, nt, *rest)
+    elif P:
+        fn.shade_mirror(*head, 0, P, *rest)
+    return out
+
+
+def region_rows(W_rows: Tensor, Hl: Tensor) -> Tensor | None:
+    """``fast.region_tables``' W_r (R, T², KC) = Σ_p W_rows[p] · Hl[p] (W_rows (P, T², KC), Hl (P, R, KC)
+    or (P, R, 1, KC)), the products and sums in the eager passes' order in one pass: the same bits.
+    None when the loop is not available or the arguments are not float32 CPU tensors."""
+    fn = _kernel()
+    if fn is None or W_rows.dtype != torch.float32 or Hl.dtype != torch.float32 or W_rows.ndim != 3:
+        return None
+    P, T2, KC = W_rows.shape
+    Hl = Hl.reshape(Hl.shape[0], -1, Hl.shape[-1])
+    if Hl.shape[0] != P or Hl.shape[2] != KC or W_rows.device.type != "cpu" or Hl.device.type != "cpu":
+        return None
+    R = int(Hl.shape[1])
+    W_rows, Hl = W_rows.contiguous(), Hl.contiguous()
+    out = torch.empty(R, T2, KC, dtype=torch.float32)
+    fn.region_rows(W_rows.data_ptr(), Hl.data_ptr(), P, R, T2, KC, out.data_ptr())
+    return out
