@@ -34,8 +34,8 @@ compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. M
 bench: the cells alone 2.5 ms native vs 2.6 ms compiled (the Sleef calls are ~1.3 ms of it); the gain
 is the compiled call, its (r, fx, fy) arrays and their second pass (V 1.02–1.05x).
 
-The library is built like ``methods.inout.csr``'s (per-user private cache directory, keyed by the
-source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
+The library is built and loaded by `methods.core.native.load` (per-user private cache directory, keyed
+by the source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
 ``PRTBENCH_COMPILE=0``, `available` is False and the caller uses ``fast.shade_block``. Building it
 takes ~2 s of ``cc`` (CPU time) once per machine and source (what CI pays, once).
 """
@@ -43,18 +43,12 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import os
-import shutil
-import subprocess
-import sys
-import tempfile
-import warnings
 
 import torch
 from torch import Tensor
 
-from methods.core.fused import compile_enabled
+from methods.core import native
 
 __all__ = ["available", "cells_available", "mirror_cells", "shade_mirror", "shade_pixels"]
 
@@ -300,78 +294,50 @@ void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo,
 int native_cells_ok(void) { return 0; }
 #endif
 """
-_FLAGS = ("-O3", "-march=native", "-shared", "-fPIC", "-fno-math-errno", "-ffp-contract=off", "-fopenmp")
+def _cpu_tag() -> str:
+    """The CPU capability torch found (a define of the build, so part of the library's cache key:
+    ``-march=native`` builds for the host, and two hosts sharing a temp folder must not share it)."""
+    try:
+        return str(torch.backends.cpu.get_cpu_capability())
+    except Exception:  # pragma: no cover - older torch
+        return "unknown"
+
+
+# On top of `methods.core.native.FLAGS`: the host's ISA, no contraction into fused multiply-adds (as
+# Inductor's kernels: the same roundings), OpenMP (the library binds to the libgomp torch loaded).
+_EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{_cpu_tag()}")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SHADE = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P]
+_SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P]}
 
 
 @functools.lru_cache(maxsize=None)
-def _library(cc: str | None):
-    """The compiled kernel (ctypes function) or None (no compiler, or the build failed: warns once)."""
-    if cc is None:
-        return None
-    key = hashlib.sha256("\0".join((_SOURCE, cc, *_FLAGS, sys.platform)).encode()).hexdigest()[:20]
-    root = os.path.join(tempfile.gettempdir(), f"prtbench-native-{os.getuid() if hasattr(os, 'getuid') else 0}")
-    path = os.path.join(root, f"ptt_shade_{key}.so")
-    try:
-        os.makedirs(root, mode=0o700, exist_ok=True)
-        if not _private_dir(root):
-            raise OSError(f"{root} is not a directory only this user can write; not loading code from it")
-        if not os.path.exists(path):
-            with tempfile.TemporaryDirectory(dir=root) as tmp:
-                src, so = os.path.join(tmp, "shade.c"), os.path.join(tmp, "shade.so")
-                with open(src, "w") as f:
-                    f.write(_SOURCE)
-                subprocess.run([cc, *_FLAGS, src, "-o", so], check=True, capture_output=True)
-                os.replace(so, path)  # atomic: a concurrent build finds a whole file
-        lib = ctypes.CDLL(path)
-        fn = lib.shade_pixels
-    except (OSError, subprocess.CalledProcessError) as e:
-        warnings.warn(f"ptt: the native shading loop did not build ({e}); using the compiled shade_block")
-        return None
-    fn.restype = None
-    P, I = ctypes.c_void_p, ctypes.c_int64
-    fn.argtypes = [P, P, P, I, P, P, P, I, I, I, P, I, P, P, P, I, I, I, I, P]
-    fn.par = lib.shade_pixels_par
-    fn.par.restype = None
-    fn.par.argtypes = fn.argtypes
-    fn.region_rows = lib.region_rows
-    fn.region_rows.restype = None
-    fn.region_rows.argtypes = [P, P, I, I, I, I, P]
+def _functions(lib: ctypes.CDLL):
+    """``shade_pixels`` with the library's other loops as attributes (``par``, ``region_rows``, and
+    where the AVX2 build has them — ``cells_ok`` — ``mirror_cells``, ``shade_mirror``,
+    ``shade_mirror_par``)."""
+    fn = lib.shade_pixels
+    fn.par, fn.region_rows = lib.shade_pixels_par, lib.region_rows
     fn.cells_ok = bool(lib.native_cells_ok())
     if fn.cells_ok:
         fn.mirror_cells, fn.shade_mirror = lib.mirror_cells, lib.shade_mirror
         fn.mirror_cells.restype = fn.shade_mirror.restype = None
-        fn.mirror_cells.argtypes = [P, I, I, P, I, I, P, I, I, P, P, I, I, P, P, P]
-        fn.shade_mirror.argtypes = [P, I, I, P, I, I, P, I, P, P, P, P, P, I, I, I, I, P, I, P, P, P, I, I, I, P]
+        fn.mirror_cells.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, _I, _P, _P, _P]
+        fn.shade_mirror.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, _P,
+                                    _P, _P, _I, _I, _I, _P]
         fn.shade_mirror_par = lib.shade_mirror_par
         fn.shade_mirror_par.restype = None
         fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
     return fn
 
 
-def _private_dir(root: str) -> bool:
-    """Whether ``root`` is a real directory owned by this user that nobody else can write (the loaded
-    library comes from there; as ``methods.inout.csr``'s, not imported from it: that would put the
-    in-out package into this method's precompute key, ``reports.store.code_closure_fingerprint``)."""
-    import stat
-
-    st = os.lstat(root)
-    uid = os.getuid() if hasattr(os, "getuid") else st.st_uid
-    return stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not (st.st_mode & 0o022)
-
-
-@functools.lru_cache(maxsize=None)
-def _compiler() -> str | None:
-    """The C compiler's path, looked up once per process."""
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    return shutil.which(cc) if cc else None
-
-
 def _kernel():
-    if not compile_enabled():
-        return None
-    return _library(_compiler())
+    """The compiled loops (`_functions`) or None: no compiler, the build failed, ``PRTBENCH_COMPILE=0``
+    (`methods.core.native.load`)."""
+    lib = native.load("ptt_shade", _SOURCE, _SIGNATURES, extra_flags=_EXTRA_FLAGS)
+    return None if lib is None else _functions(lib)
 
 
 def available() -> bool:
