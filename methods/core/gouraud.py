@@ -95,26 +95,38 @@ void NAME(const int64_t* face, const float* bu, const float* bv, const uint8_t* 
 }
 RESOLVE3(resolve3_i64, int64_t)
 RESOLVE3(resolve3_i32, int32_t)
+/* The same over pixels [0, n) on nt threads of OpenMP's team (the libgomp torch loaded: the threads
+   Inductor's kernels use), thread k the pixels [n k / nt, n (k + 1) / nt): each pixel one thread's. */
+#define RESOLVE3_PAR(NAME, SERIAL, IT)                                                                 \
+void NAME(const int64_t* face, const float* bu, const float* bv, const uint8_t* hit, const IT* fv,    \
+          int64_t sj, int64_t sf, const float* val, int64_t S2, int64_t n, int64_t nt, float* out) {  \
+    _Pragma("omp parallel for num_threads(nt) schedule(static, 1)")                                   \
+    for (int64_t k = 0; k < nt; ++k)                                                                   \
+        SERIAL(face, bu, bv, hit, fv, sj, sf, val, S2, n * k / nt, n * (k + 1) / nt, out);            \
+}
+RESOLVE3_PAR(resolve3_i64_par, resolve3_i64, int64_t)
+RESOLVE3_PAR(resolve3_i32_par, resolve3_i32, int32_t)
 """
 _I64, _P = ctypes.c_int64, ctypes.c_void_p
 _SIG = [_P, _P, _P, _P, _P, _I64, _I64, _P, _I64, _I64, _I64, _P]
-# Pixels per thread of the native loop's split (`native.run_ranges`). One thread resolves every image
-# this size or smaller, so all of the suite's: split over 2 threads of a pool on this loaded 2-core
-# machine (load ~6), a chess bench resolve right after a parallel torch op took a median 8.7 ms
-# (the hand-off waits for a core held by the OpenMP workers) against 1.66 ms on one thread and 1.86
-# for the compiled kernel's OpenMP split (session 26; `python -m benchmarks.gouraud_resolve`). Tests lower it.
-_NATIVE_MIN_PIXELS = 1 << 20
+# Pixels per thread below which one thread resolves the image. More go to OpenMP's team (the libgomp
+# torch loaded, `_SOURCE`): chess bench 256² × 2², 2 threads, quiet machine, 10 ms idle and a parallel
+# torch op before each call (`python -m benchmarks.gouraud_resolve`): compiled kernel 1.33 ms, native
+# on one thread 1.41, native on the team 0.93 (session 26); a Python thread pool instead (its
+# hand-off waits for a core the OpenMP workers spin on) read 1.63 quiet and 8.7 ms at load ~6.
+_NATIVE_MIN_PIXELS = 1 << 13
 
 
 def _native() -> "ctypes.CDLL | None":
-    return native.load("gouraud", _SOURCE, {"resolve3_i64": _SIG, "resolve3_i32": _SIG})
+    return native.load("gouraud", _SOURCE, {"resolve3_i64": _SIG, "resolve3_i32": _SIG, "resolve3_i64_par": _SIG,
+                                            "resolve3_i32_par": _SIG}, extra_flags=("-fopenmp",))
 
 
 def _resolve_native(values: Tensor, fv: Tensor, face: Tensor, bu: Tensor, bv: Tensor, hit: Tensor, n: int,
                     S2: int) -> Tensor | None:
-    """`_pixels` over all n pixels by the native loop (one thread up to `_NATIVE_MIN_PIXELS` pixels,
-    else split over ``torch.get_num_threads()`` contiguous ranges of pixels; each pixel's sum by one
-    thread: the same bits at any thread count),
+    """`_pixels` over all n pixels by the native loop (on ``torch.get_num_threads()`` threads of
+    OpenMP's team, at least `_NATIVE_MIN_PIXELS` pixels each, in contiguous ranges; each pixel's sum by
+    one thread: the same bits at any thread count),
     or None when the loop is not built or the arrays are not CPU tensors of its types (face int64 and
     hit bool contiguous, u / v float32, fv (3, M) int32 / int64 of any strides, values (N, 3)
     float32)."""
@@ -133,7 +145,12 @@ def _resolve_native(values: Tensor, fv: Tensor, face: Tensor, bu: Tensor, bv: Te
     args = (face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), fv.data_ptr(), fv.stride(0),
             fv.stride(1), values.data_ptr(), S2)
     op = out.data_ptr()
-    native.run_ranges(lambda i0, i1: fn(*args, i0, i1, op), n, torch.get_num_threads(), _NATIVE_MIN_PIXELS)
+    nt = max(1, min(torch.get_num_threads(), n // _NATIVE_MIN_PIXELS))
+    if nt == 1:
+        fn(*args, 0, n, op)
+    else:
+        par = lib.resolve3_i64_par if fv.dtype == torch.int64 else lib.resolve3_i32_par
+        par(*args, n, nt, op)
     return out
 
 
