@@ -19,7 +19,7 @@ Each chunk is one 8-lane vector of every row read (AVX2 + FMA when the CPU has t
 The sums are the compiled kernels' terms minus exact zeros, in another order (float32 round-off;
 tests/methods/triple_product/test_tp_native.py). Each item is summed by one thread in one order, so
 the results do not depend on the thread count (items are split in contiguous ranges over
-``torch.get_num_threads()`` threads; ctypes releases the GIL).
+``torch.get_num_threads()`` threads of OpenMP's team, the libgomp torch loaded).
 
 The library is built and loaded by `methods.core.native.load` (once per source text, compiler and
 flags, from a private per-user directory); without a compiler, with ``PRTBENCH_COMPILE=0`` or
@@ -159,6 +159,28 @@ void tp_groups(int64_t g, int64_t n, const float* V, const int64_t* vrow, const 
         }
     }
 }
+/* tp_points / tp_groups over [0, b) items on nt threads of OpenMP's team (the libgomp torch loaded:
+   the threads Inductor's kernels use), thread k the items [b k / nt, b (k + 1) / nt). */
+void tp_points_par(int64_t b, int64_t n, const float* V, const int64_t* vrow, const float* vw,
+                   const float* R, const int64_t* brow, const float* bw,
+                   const float* L, const int64_t* lrow, const float* lw,
+                   const int64_t* ptr, const int32_t* starts, const int32_t* tail, float* out, int64_t nt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = b * k / nt, e = b * (k + 1) / nt;
+        tp_points(e - a, n, V, vrow + a, vw + a, R, brow + 4 * a, bw + 4 * a, L, lrow + 4 * a, lw + 4 * a,
+                  ptr, starts, tail, out + 3 * a);
+    }
+}
+void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, const float* R,
+                   const int64_t* brow, const float* L, const int64_t* lrow, const int64_t* ptr,
+                   const int32_t* starts, const int32_t* tail, float* out, int64_t nt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = g * k / nt, e = g * (k + 1) / nt;
+        tp_groups(e - a, n, V, vrow + a, R, brow + 4 * a, L, lrow + 4 * a, ptr, starts, tail, out + 48 * a);
+    }
+}
 """
 
 
@@ -172,13 +194,15 @@ def _flags() -> tuple[str, ...]:
     except Exception:  # pragma: no cover - older torch
         pass
     isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-    return ("-ffp-contract=fast", *isa)
+    return ("-ffp-contract=fast", "-fopenmp", *isa)
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
-               "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]}
+               "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
+               "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
+               "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]}
 
 
 def _lib():
@@ -223,10 +247,11 @@ def _rows_ok(rows: Tensor, N: int) -> bool:
 MIN_ITEMS_PER_THREAD = 256
 
 
-def _split(fn, b: int, call) -> None:
-    """call(a, e) over ``torch.get_num_threads()`` contiguous ranges of [0, b) (`native.run_ranges`:
-    the first on the calling thread, the others on pool threads)."""
-    native.run_ranges(call, b, torch.get_num_threads(), MIN_ITEMS_PER_THREAD)
+def _threads(b: int) -> int:
+    """Threads of a pass over b items: ``torch.get_num_threads()``, fewer for small passes. More than
+    one runs the ``_par`` loop on OpenMP's team: a Python thread pool's hand-off waits for a core the
+    OpenMP workers spin on (`methods.core.gouraud`'s measurement: 1.63 against 0.93 ms)."""
+    return max(1, min(torch.get_num_threads(), b // MIN_ITEMS_PER_THREAD))
 
 
 def _check_tables(V: Tensor, R: Tensor, L: Tensor, ch) -> int:
@@ -263,12 +288,10 @@ def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Ten
     ptr, starts, tail = ch
     tabs = (V.data_ptr(), R.data_ptr(), L.data_ptr(), ptr.data_ptr(), starts.data_ptr(), tail.data_ptr())
 
-    def call(a, e):
-        lib.tp_points(e - a, n, tabs[0], vrow.data_ptr() + 8 * a, vw.data_ptr() + 4 * a,
-                      tabs[1], brows.data_ptr() + 32 * a, bw.data_ptr() + 16 * a,
-                      tabs[2], lrows.data_ptr() + 32 * a, lw.data_ptr() + 16 * a,
-                      *tabs[3:], out.data_ptr() + 12 * a)
-    _split(lib, b, call)
+    args = (b, n, tabs[0], vrow.data_ptr(), vw.data_ptr(), tabs[1], brows.data_ptr(), bw.data_ptr(),
+            tabs[2], lrows.data_ptr(), lw.data_ptr(), *tabs[3:], out.data_ptr())
+    nt = _threads(b)
+    lib.tp_points(*args) if nt == 1 else lib.tp_points_par(*args, nt)
     return out
 
 
@@ -288,9 +311,8 @@ def groups(V: Tensor, R: Tensor, L: Tensor, gv: Tensor, gl: Tensor, gb: Tensor, 
         return out
     ptr, starts, tail = ch
 
-    def call(a, e):
-        lib.tp_groups(e - a, n, V.data_ptr(), gv.data_ptr() + 8 * a, R.data_ptr(), gb.data_ptr() + 32 * a,
-                      L.data_ptr(), gl.data_ptr() + 32 * a, ptr.data_ptr(), starts.data_ptr(), tail.data_ptr(),
-                      out.data_ptr() + 192 * a)
-    _split(lib, g, call)
+    args = (g, n, V.data_ptr(), gv.data_ptr(), R.data_ptr(), gb.data_ptr(), L.data_ptr(), gl.data_ptr(),
+            ptr.data_ptr(), starts.data_ptr(), tail.data_ptr(), out.data_ptr())
+    nt = _threads(g)
+    lib.tp_groups(*args) if nt == 1 else lib.tp_groups_par(*args, nt)
     return out

@@ -117,6 +117,16 @@ def test_groups_equal_group_block(n):
     for r in range(Vt.shape[0]):
         sel = gv == r
         assert (got[sel] - want[sel]).abs().max() <= F32 * max(float(want[sel].abs().max()), 1e-30) + 1e-30, r
+    # split over 2 and 3 threads of OpenMP's team (`tp_groups_par`): each group one thread's, the same bits
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 4
+    try:
+        for nt in (2, 3):
+            torch.set_num_threads(nt)
+            assert torch.equal(native.groups(Vt, Rt, Lt, gv, gl, gb, ch), got), nt
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
     # pixel-frame form: points with 3 visibility rows each, summed by groups
     B = 400
     vrows = torch.randint(0, Vt.shape[0], (B // 8 + 1, 3), generator=gen).repeat_interleave(8, 0)[:B]
