@@ -26,11 +26,10 @@ import subprocess
 import sys
 import tempfile
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 from methods.core.fused import compile_enabled
 
-__all__ = ["FLAGS", "cache_clear", "compiler", "load", "run_ranges"]
+__all__ = ["FLAGS", "cache_clear", "compiler", "load"]
 
 FLAGS = ("-O3", "-shared", "-fPIC", "-fno-math-errno")
 
@@ -94,25 +93,3 @@ def cache_clear() -> None:
     """Forget the built libraries of this process (tests: a later `load` builds or loads again)."""
     _build.cache_clear()
 
-
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
-
-
-def run_ranges(fn, n: int, threads: int, min_per_thread: int) -> None:
-    """``fn(i0, i1)`` over ``threads`` contiguous ranges of [0, n) (fewer when a range would be
-    shorter than ``min_per_thread``): the first on this thread, the others on a shared pool (ctypes
-    releases the GIL during a call). A loop that writes each output row from one range only, in a
-    fixed order, gives the same bits at any thread count."""
-    nt = max(1, min(int(threads), n // max(1, int(min_per_thread))))
-    if nt == 1:
-        fn(0, n)
-        return
-    global _pool, _pool_size
-    if _pool is None or _pool_size < nt - 1:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt - 1, thread_name_prefix="prtbench-native"), nt - 1
-    cuts = [n * k // nt for k in range(nt + 1)]
-    futs = [_pool.submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:])]
-    fn(cuts[0], cuts[1])
-    for f in futs:
-        f.result()
