@@ -74,10 +74,11 @@ static void lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const 
 /* The glossy rows a frame's glossy samples g read: mark the rows fg[face[g[s]]] (three per sample;
    all >= 0 on a glossy face) in ``mark`` (Vg bytes, zero on entry), then list the marked rows not
    yet ``valid`` (if given) in ascending order into ``rows``, their count into ``count``. */
-void sh_need_rows(const int64_t *g, int64_t Qg, const int64_t *face, const int32_t *fg, int64_t Vg,
+void sh_need_rows(const int64_t *g, int64_t Qg, const int64_t *face, int64_t Mf, const int32_t *fg, int64_t Vg,
                   uint8_t *mark, const uint8_t *valid, int64_t *rows, int64_t *count) {
     for (int64_t s = 0; s < Qg; ++s) {
-        const int32_t *r = fg + 3 * face[g[s]];
+        const int64_t f = face[g[s]];                      /* < M by the G-buffer's contract; */
+        const int32_t *r = fg + 3 * (f < 0 ? 0 : (f >= Mf ? Mf - 1 : f));   /* clamped, never read out */
         mark[r[0]] = 1; mark[r[1]] = 1; mark[r[2]] = 1;
     }
     int64_t n = 0;
@@ -99,7 +100,7 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
-               "sh_need_rows": [_P, _I, _P, _P, _I, _P, _P, _P, _P]}
+               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
 
@@ -190,6 +191,6 @@ def need_rows(g: Tensor, face: Tensor, fg: Tensor, Vg: int, valid: Tensor | None
     out = torch.empty(Vg, dtype=torch.int64)
     n = torch.zeros(1, dtype=torch.int64)
     v = valid.contiguous().view(torch.uint8) if valid is not None else None
-    lib.sh_need_rows(g.data_ptr(), int(g.numel()), face.data_ptr(), fg.data_ptr(), Vg, mark.data_ptr(),
+    lib.sh_need_rows(g.data_ptr(), int(g.numel()), face.data_ptr(), int(fg.shape[0]), fg.data_ptr(), Vg, mark.data_ptr(),
                      v.data_ptr() if v is not None else None, out.data_ptr(), n.data_ptr())
     return out[:int(n)]
