@@ -621,8 +621,8 @@ def test_native_glossy_rows_equal_the_full_product(C, order, monkeypatch):
         native.rows(Xm, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
 
 
-@pytest.mark.parametrize("scene_name", ["alcove", "creature"])
-def test_lighting_change_computes_only_the_referenced_glossy_rows(scene_name):
+@pytest.mark.parametrize("scene_name, bounces", [("alcove", 0), ("creature", 0), ("alcove", 1)])
+def test_lighting_change_computes_only_the_referenced_glossy_rows(scene_name, bounces):
     """A frame whose lighting changed computes l' = M l only at the glossy vertices of its glossy
     samples' faces (`SHPRT._glossy_light`, session 27) and still equals `render_reference`; a later
     frame under the same lighting whose view sees other vertices completes the table (every row
@@ -632,8 +632,9 @@ def test_lighting_change_computes_only_the_referenced_glossy_rows(scene_name):
     from methods.sh_prt.method import apply_lighting
 
     scene = get_scene(scene_name, "test")
-    m = SHPRT(order=4, bounces=0, rays=16)
+    m = SHPRT(order=4, bounces=bounces, rays=16)              # bounces 1: RGB transfer (C = 3)
     m.precompute(scene)
+    assert m.M.shape[-1] == (3 if bounces else 1)
     ref = SHPRT.__new__(SHPRT)
     ref.__dict__ = dict(m.__dict__)
     ref._reset_cache()
