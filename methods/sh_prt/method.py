@@ -792,12 +792,9 @@ class SHPRT(Method):
             for x in (face, bary, normal, wo, reg):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
-            vals = _glossy_blocks(g, args) * (1.0 / S2)
-            # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here). The pixel of a
-            # sample: a shift where S² is a power of two (torch's int64 floor division was 0.09 ms
-            # of a creature V frame against 0.02, 1 thread; the same non-negative indices).
-            pix = g >> (S2.bit_length() - 1) if S2 & (S2 - 1) == 0 else g // S2
-            img.scatter_add_(0, pix[:, None].expand(-1, 3), vals)
+            # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
+            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
+            _native.add_pixels(img, g, _glossy_blocks(g, args), S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:

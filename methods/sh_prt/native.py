@@ -1,4 +1,6 @@
-"""l' = M l for some glossy vertices only (Sloan 2002 §7), as a C loop (`methods.core.native`).
+"""SH PRT's native loops (`methods.core.native`): l' = M l for some glossy vertices only (Sloan 2002
+§7), the list of those vertices, and the glossy samples' radiance added to their pixels
+(`add_pixels`, bit-identical to its scatter_add_ oracle).
 
 A frame whose lighting changed needs l' = M_x l at the vertices its glossy samples' faces touch
 alone (creature bench: ~1/3 of the glossy vertices), not at all of them (`SHPRT._glossy_light`).
@@ -87,6 +89,16 @@ void sh_need_rows(const int64_t *g, int64_t Qg, const int64_t *face, int64_t Mf,
     *count = n;
 }
 
+/* img[g[q] / S2, c] += vals[q, c] * inv for q ascending (one thread: each pixel's sum in the order of
+   its samples, as scatter_add_ at one thread). g[q] / S2 < n by the caller's check. */
+void sh_add_pixels(const int64_t *g, int64_t Q, int64_t S2, const float *vals, float inv, float *img) {
+    for (int64_t q = 0; q < Q; ++q) {
+        float *o = img + 3 * (g[q] / S2);
+        const float *v = vals + 3 * q;
+        o[0] += v[0] * inv; o[1] += v[1] * inv; o[2] += v[2] * inv;
+    }
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -100,6 +112,7 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
+               "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
@@ -111,14 +124,15 @@ def _lib():
 
 
 def _flags() -> tuple[str, ...]:
-    """OpenMP; AVX2 + FMA when torch found the CPU to have them (the library is built on the machine
-    that runs it, and the flags are part of its cache key; as `methods.triple_product.native`)."""
+    """OpenMP; AVX2 when torch found the CPU to have it (the library is built on the machine that
+    runs it, and the flags are part of its cache key; as `methods.triple_product.native`). No
+    contraction into fused multiply-adds: `add_pixels` must round as its oracle's multiply, then add."""
     cap = ""
     try:
         cap = torch.backends.cpu.get_cpu_capability()
     except Exception:  # pragma: no cover - older torch
         pass
-    return ("-fopenmp", "-ffp-contract=fast", *(("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()))
+    return ("-fopenmp", "-ffp-contract=off", *(("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()))
 
 
 def available() -> bool:
@@ -194,3 +208,28 @@ def need_rows(g: Tensor, face: Tensor, fg: Tensor, Vg: int, valid: Tensor | None
     lib.sh_need_rows(g.data_ptr(), int(g.numel()), face.data_ptr(), int(fg.shape[0]), fg.data_ptr(), Vg, mark.data_ptr(),
                      v.data_ptr() if v is not None else None, out.data_ptr(), n.data_ptr())
     return out[:int(n)]
+
+
+def add_pixels_torch(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
+    """img (n, 3) += the glossy samples' radiance vals (Qg, 3) × 1/S² at their pixels g // S²
+    (scatter_add_; the pixel by a shift where S² is a power of two: the same non-negative indices).
+    The oracle of `add_pixels`."""
+    vals = vals * (1.0 / S2)
+    pix = g >> (S2.bit_length() - 1) if S2 & (S2 - 1) == 0 else g // S2
+    img.scatter_add_(0, pix[:, None].expand(-1, 3), vals)
+
+
+def add_pixels(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
+    """`add_pixels_torch` as one C pass (CPU, float32, contiguous, g int64 ascending — each pixel's
+    samples added in their order, as scatter_add_ at one thread), else by it."""
+    lib = _lib()
+    if (lib is None or img.device.type != "cpu" or img.dtype != torch.float32 or vals.dtype != torch.float32
+            or g.dtype != torch.int64 or not (img.is_contiguous() and vals.is_contiguous() and g.is_contiguous())
+            or img.ndim != 2 or img.shape[1] != 3 or vals.shape != (g.numel(), 3)):
+        add_pixels_torch(img, g, vals, S2)
+        return
+    if g.numel() == 0:
+        return
+    if int(g[0]) < 0 or int(g[-1]) >= img.shape[0] * S2:
+        raise IndexError("a sample outside the image")
+    lib.sh_add_pixels(g.data_ptr(), int(g.numel()), int(S2), vals.data_ptr(), 1.0 / S2, img.data_ptr())

@@ -678,3 +678,22 @@ def test_native_need_rows_equal_the_torch_rows():
         want = native.need_rows_torch(samples, face, fg, Vg, v)
         got = native.need_rows(samples, face, fg, Vg, v)
         assert 0 < want.numel() < Vg and torch.equal(got, want)
+
+
+@pytest.mark.parametrize("S2", [1, 4, 9])
+def test_native_add_pixels_is_the_scatter_add(S2):
+    """`native.add_pixels` (one C pass) adds the glossy samples' radiance × 1/S² to their pixels bit
+    for bit as its oracle `native.add_pixels_torch` (scatter_add_), repeats of a pixel included."""
+    from methods.sh_prt import native
+
+    gen = torch.Generator().manual_seed(S2)
+    n = 500
+    g = torch.randperm(n * S2, generator=gen)[: n * S2 // 2].sort().values
+    vals = torch.rand(g.numel(), 3, generator=gen)
+    img0 = torch.rand(n, 3, generator=gen)
+    want, got = img0.clone(), img0.clone()
+    native.add_pixels_torch(want, g, vals, S2)
+    native.add_pixels(got, g, vals, S2)
+    assert not torch.equal(want, img0) and torch.equal(got, want)
+    with pytest.raises(IndexError):
+        native.add_pixels(img0.clone(), torch.tensor([n * S2]), vals[:1], S2)
