@@ -17,9 +17,10 @@ kernel cannot express it (a reduction over data-dependent row extents); ``embedd
 per-sample weights was 1.7× slower than MKL (``fast`` docstring).
 
 Each output row is summed by one thread in one order, whatever the thread count: ``torch.get_num_threads()``
-threads each take a contiguous range of rows of about equal coefficient counts (ctypes releases the
-GIL during the call), so results are bit for bit the same at 1 and 2 threads
-(``tests/methods/test_threads.py``).
+threads each take a contiguous range of rows of about equal coefficient counts, on OpenMP's team (the
+libgomp torch loaded; session 27 — a Python thread pool before, whose hand-off waits for a core the
+OpenMP workers spin on: `methods.core.gouraud`'s measurement), so results are bit for bit the same at
+1 and 2 threads (``tests/methods/test_threads.py``).
 
 The library is built and loaded by `methods.core.native.load` (once per source text and compiler,
 from a private per-user directory; without a C compiler, or with ``PRTBENCH_COMPILE=0``,
@@ -32,8 +33,6 @@ non-decreasing and within the arrays), when ``fast.build_region`` builds a regio
 from __future__ import annotations
 
 import ctypes
-from concurrent.futures import ThreadPoolExecutor
-
 import torch
 from torch import Tensor
 
@@ -68,6 +67,19 @@ void csr_blocks4(const int64_t* crow, const int64_t* first, int64_t n, int64_t K
             *o++ = (s0 + s1) + (s2 + s3);
         }
     }
+}
+
+/* csr_blocks4 over nt contiguous ranges of blocks on OpenMP's team (the libgomp torch loaded):
+   range k is blocks cuts[k] <= i < cuts[k + 1]. */
+void csr_blocks4_par(const int64_t* crow, const int64_t* first, int64_t n, int64_t K, const int32_t* col,
+                     const float* val, const float* L4, float* out, const int64_t* cuts, int64_t nt) {
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = cuts[k], b = cuts[k + 1];
+        if (b > a)
+            csr_blocks4(crow, first + a, b - a, K, col, val, L4, out + 4 * K * a);
+    }
+    (void)n;
 }
 
 /* The faces the hits of n samples lie on and their vertices (shading "vertex"'s view, `hit_face_mask`):
@@ -109,13 +121,14 @@ _MIN_ROWS_PER_THREAD = 1 << 12
 
 _I64, _P = ctypes.c_int64, ctypes.c_void_p
 _SIGNATURES = {"csr_blocks4": [_P, _P, _I64, _I64, _P, _P, _P, _P],
+               "csr_blocks4_par": [_P, _P, _I64, _I64, _P, _P, _P, _P, _P, _I64],
                "hit_face_mask": [_P, _P, _P, _I64, _P, _I64, _P, _I64, _P, _P, _P]}
 
 
 def _kernel():
     """The compiled library (`methods.core.native.load`: built once per source and compiler, loaded
     only from a private directory) or None (the callers use the torch paths)."""
-    return native.load("inout_csr", _SOURCE, _SIGNATURES)
+    return native.load("inout_csr", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp",))
 
 
 def available() -> bool:
@@ -137,10 +150,6 @@ def check_csr(crow: Tensor, col: Tensor, val: Tensor, D: int) -> bool:
     if bool((crow[1:] < crow[:-1]).any()):
         return False
     return nnz == 0 or (int(col.min()) >= 0 and int(col.max()) < D)
-
-
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
 
 
 def csr_dense4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, r0: int, r1: int) -> Tensor:
@@ -175,12 +184,10 @@ def csr_blocks4(crow: Tensor, col: Tensor, val: Tensor, L4: Tensor, first: Tenso
         return out
     # nt ranges of blocks of about equal coefficient counts
     cum = (crow.index_select(0, first + K) - crow.index_select(0, first)).cumsum(0)
-    cuts = [0, *torch.searchsorted(cum, torch.linspace(0, float(cum[-1]), nt + 1)[1:-1]).tolist(), n]
-    global _pool, _pool_size
-    if _pool is None or _pool_size < nt:
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=nt, thread_name_prefix="inout-csr"), nt
-    jobs = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-    list(_pool.map(lambda ab: fn.csr_blocks4(cp, fp + 8 * ab[0], ab[1] - ab[0], K, colp, valp, Lp, op + 16 * K * ab[0]), jobs))
+    cuts = torch.cat([torch.zeros(1, dtype=torch.int64),
+                      torch.searchsorted(cum, torch.linspace(0, float(cum[-1]), nt + 1)[1:-1]).clamp_max(n),
+                      torch.full((1,), n, dtype=torch.int64)])
+    fn.csr_blocks4_par(cp, fp, n, K, colp, valp, Lp, op, cuts.data_ptr(), nt)
     return out
 
 

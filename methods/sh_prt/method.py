@@ -137,6 +137,7 @@ from methods.core.sh import _LATLONG_QT, project_latlong_polar, rotate_sampled  
 from methods.core.frames import reflect
 from methods.core.fused import call_rows, fused, map_rows
 from references.visibility import make_visibility
+from methods.sh_prt import native as _native
 from methods.sh_prt import transfer as _tr
 
 SUPPORTED_BRDFS = frozenset({"lambert", "phong", "blinnphong"})
@@ -509,6 +510,8 @@ class SHPRT(Method):
         self._e = None          # (V, 3) t_x · l
         self._lg = None         # (Vg, n², 3) M_x l (a view of _lg3)
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
+        self._lg_valid = None   # (Vg,) bool: the rows of _lg3 set, while some are not (`_glossy_light`)
+        self._lg_fresh = True   # the lighting changed since the last render (`_glossy_light`)
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
@@ -623,6 +626,7 @@ class SHPRT(Method):
         e3 = apply_lighting(self.t, l).contiguous()                              # (3, V) t · l
         self._e = e3.T                                                            # (V, 3) view
         self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
+        self._lg_valid, self._lg_fresh = None, True
         # (M, 9) e at the corners: ONE flat gather of the channel-major e (`_corner_index`), where a row
         # gather of the (V, 3) copy took 0.50 ms against 0.21 (creature bench, 1 thread, bit-identical)
         self._ef = e3.view(-1).index_select(0, self._corner_index(e3.device)).view(-1, 9)
@@ -638,16 +642,43 @@ class SHPRT(Method):
             self._fidx = (F[:, :, None] + V * torch.arange(3, device=device)).reshape(-1)
         return self._fidx
 
-    def _glossy_light(self) -> Tensor:
+    def _glossy_light(self, g: Tensor | None = None, face: Tensor | None = None) -> Tensor:
         """l' = M l (3, Vg, n²) of the current lighting (``self._lg`` its (Vg, n², 3) view), computed
         when a frame first needs it: a lighting-only frame shaded from the relight cache
-        (`_relight_build`) never reads M."""
-        if self._lg3 is None:
-            ng, n2 = self.M.shape[0], self.M.shape[1]
+        (`_relight_build`) never reads M.
+
+        The frame whose lighting changed (``self._lg_fresh``) and that passes its glossy samples g
+        (their G-buffer faces ``face``) gets l' at the glossy vertices of those samples' faces only,
+        the rows its image reads (`native.rows`: creature bench, ~1/3 of M; session 27): the other
+        rows stay unset (``self._lg_valid``). A later frame under the same lighting completes the
+        table once, all remaining rows, so a view sequence pays for M l once. Every row written
+        equals the full product (`apply_lighting`, still the path when all rows are computed at
+        once) to float32 round-off."""
+        ng, n2 = self.M.shape[0], self.M.shape[1]
+        if self._lg3 is not None and self._lg_valid is None:
+            return self._lg3                                                      # every row set
+        if g is None or face is None or not self._lg_fresh:
+            rows = None if self._lg3 is None else (~self._lg_valid).nonzero().squeeze(-1)
+        else:
+            rows = _native.need_rows(g, face, self._fg, ng, self._lg_valid if self._lg3 is not None else None)
+        if rows is None:
             lg = apply_lighting(self.M.reshape(ng * n2, *self.M.shape[2:]), self._light)   # (3, Vg·n²)
             self._lg3 = lg.view(3, ng, n2)                                        # (3, Vg, n²)
             self._lg = self._lg3.permute(1, 2, 0)                                 # (Vg, n², 3) view
             self.stats["glossy_light"] += 1
+            return self._lg3
+        if self._lg3 is None:
+            self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
+            self._lg = self._lg3.permute(1, 2, 0)
+            self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
+        if rows.numel():
+            Xm = lighting_major(self.M)
+            Xm = Xm.permute(3, 2, 0, 1).reshape(Xm.shape[3], n2, ng * n2)           # (C, n²_j, Vg·n²_i) memory
+            _native.rows(Xm, self._light, rows, self._lg3)
+            self._lg_valid[rows] = True
+            self.stats["glossy_light"] += 1
+        if bool(self._lg_valid.all()):
+            self._lg_valid = None
         return self._lg3
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -695,8 +726,11 @@ class SHPRT(Method):
         self.stats["view"] += 1
         self._last_gbuffer = gbuffer          # `frame_cost` takes its glossy share (not a frame's work)
         if fast:
-            return self._render_fast(frame, gbuffer, kd, ks, G, vcos)
+            img = self._render_fast(frame, gbuffer, kd, ks, G, vcos)
+            self._lg_fresh = False
+            return img
         self._glossy_light()
+        self._lg_fresh = False
         dev = self.t.device
         hit = gbuffer.hit.nonzero().squeeze(-1)
         vidx, bw = gbuffer.vertex_weights(self.F.to(gbuffer.face.device))         # (P, 3) each
@@ -753,17 +787,14 @@ class SHPRT(Method):
                 _relight_add(img, cache, self._light, S2)
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g.numel():
-            lg3 = self._glossy_light()
+            lg3 = self._glossy_light(g, face)
             torch._dynamo.maybe_mark_dynamic(lg3, 1)
             for x in (face, bary, normal, wo, reg):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
-            vals = _glossy_blocks(g, args) * (1.0 / S2)
-            # (scatter_add_: index_add_ on the CPU adds row by row, ~10x slower here). The pixel of a
-            # sample: a shift where S² is a power of two (torch's int64 floor division was 0.09 ms
-            # of a creature V frame against 0.02, 1 thread; the same non-negative indices).
-            pix = g >> (S2.bit_length() - 1) if S2 & (S2 - 1) == 0 else g // S2
-            img.scatter_add_(0, pix[:, None].expand(-1, 3), vals)
+            # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
+            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
+            _native.add_pixels(img, g, _glossy_blocks(g, args), S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:
@@ -856,6 +887,20 @@ class SHPRT(Method):
             m["relight_cache"] = tensor_bytes(c["DG"], c["kd"], c["ks"]) + c["pix"].shape[0] * 8
         return m
 
+    def _referenced(self, gb: GBuffer) -> tuple[int, int]:
+        """(Vr, Vgr) of a G-buffer (`frame_cost`): the vertices of the faces its hit samples lie on,
+        and the glossy vertices (rows of M) of the faces its glossy samples lie on."""
+        hit = gb.hit.cpu()
+        fh = gb.face.cpu()[hit].long()
+        F = self.F.cpu()
+        ref = torch.zeros(int(self.t.shape[0]), dtype=torch.bool)
+        ref[F[fh].reshape(-1)] = True
+        glossy = self.glossy_regions[gb.region.cpu()[hit].long()]
+        rows = self.gpos[F[fh[glossy]].reshape(-1)]
+        gref = torch.zeros(int(self.M.shape[0]), dtype=torch.bool)
+        gref[rows[rows >= 0]] = True
+        return int(ref.sum()), int(gref.sum())
+
     def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
         """Compulsory work of one frame (Sloan 2002 §7 run time; ``methods.base.FrameCost``).
 
@@ -863,13 +908,17 @@ class SHPRT(Method):
         material rows (M, 4) float32 (kd and the glossy flag of the face's region: a hit's region is
         its face's, so the per-sample region is not needed — session 25, `_face_materials`), the
         region id (int64) of the glossy samples (the glossy pass's BRDF rows), and the per-vertex
-        e = t·l (V, 3) and l' = M l (Vg, n², 3) read once; flops: the
+        e = t·l (Vr, 3) and l' = M l (Vgr, n², 3) read once — Vr the vertices of the faces the hit
+        samples lie on, Vgr the glossy vertices of the faces the glossy samples lie on (`_referenced`:
+        a vertex no sample interpolates from is read by nothing the image shows; as in-out and the
+        triple product count; session 27, before it all V vertices and Vg glossy ones); flops: the
         barycentric mix of e (18) and ρ·e (3) per sample, and per glossy sample the mix of l'
         (18 n²), y(R) (≈ 3 n² for the polynomial/recurrence), G_l y(R) (n²) and its dot with l'
         (6 n²). The glossy share of the samples is that of the last render (before any render: the
         glossy share of the vertices). A lighting change ("L" in the kind: rotated map) also reads
-        t and M, rotates the n² cached coefficients (Σ_l 2(2l+1)²·3 flops) and computes e and l'
-        (2·3·V·n² + 2·3·Vg·n⁴ flops, written once); a new map ("E") additionally projects it
+        t and M of those vertices (Vr and Vgr rows), rotates the n² cached coefficients
+        (Σ_l 2(2l+1)²·3 flops) and computes their e and l' (2·3·Vr·n² + 2·3·Vgr·n⁴ flops, written
+        once); a new map ("E") additionally projects it
         (reads its H·W·3 texels, ≈ 2·3·H·W·n flops for the exact separable projection).
 
         Lighting-only frames ("L", "E": the view and materials of the previous frame) with grey
@@ -890,9 +939,12 @@ class SHPRT(Method):
         gb = self._last_gbuffer
         if gb is not None and bool(gb.hit.any()):
             share = float(self.glossy_regions[gb.region[gb.hit].cpu()].float().mean())
+            nv, ng = self._referenced(gb)
         else:
             share = ng / max(nv, 1)
         qg = int(round(share * num_samples))
+        t_b = tensor_bytes(self.t) * nv // max(int(self.t.shape[0]), 1)           # t of the Vr vertices
+        M_b = tensor_bytes(self.M) * ng // max(int(self.M.shape[0]), 1)           # M of the Vgr vertices
         e_b, lg_b = nv * 3 * f4, ng * n2 * 3 * f4
         nf = int(self.F.shape[0])
         nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 12) + tensor_bytes(self.F) + nf * 4 * f4 + qg * 8 \
@@ -901,11 +953,11 @@ class SHPRT(Method):
         light = "L" in frame_kind or "E" in frame_kind
         if set(frame_kind) <= {"L", "E"} and int(self.t.shape[-1]) == 1:   # the relight cache
             # (no glossy pass: neither l' nor the glossy samples' regions are read)
-            nbytes += tensor_bytes(self.t) + e_b - lg_b - qg * 8 + qg * (2 * n2 * f4 + 6 * f4 + 8)
+            nbytes += t_b + e_b - lg_b - qg * 8 + qg * (2 * n2 * f4 + 6 * f4 + 8)
             flops += (sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * nv * n2
                       - qg * (18 + 3 + 1 + 6) * n2 + qg * (12 * n2 + 9))
         elif light:
-            nbytes += tensor_bytes(self.t, self.M) + e_b + lg_b
+            nbytes += t_b + M_b + e_b + lg_b
             flops += sum(2 * (2 * l + 1) ** 2 * 3 for l in range(self.order)) + 2 * 3 * (nv * n2 + ng * n2 * n2)
         if "E" in frame_kind:
             H, W = int(self.scene.envmap.data.shape[0]), int(self.scene.envmap.data.shape[1])

@@ -161,7 +161,7 @@ def _random_csr(rows: int, D: int, seed: int) -> tuple[torch.Tensor, torch.Tenso
     return crow, torch.randint(0, D, (nnz,), generator=g, dtype=torch.int32), torch.randn(nnz, generator=g)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("threads", [1, 2, 3])
 def test_native_csr_product_is_the_sparse_product(monkeypatch, threads):
     """``csr.csr_dense4`` (the native c = T̃ · L loop) on any row range equals torch's CSR × dense
     product to float32 round-off, bit for bit the same at 1 and 2 threads (each row one thread's
@@ -185,6 +185,14 @@ def test_native_csr_product_is_the_sparse_product(monkeypatch, threads):
             one = csr.csr_dense4(crow, col, val, L4, r0, r1)
         assert got.shape == (r1 - r0, 4) and torch.equal(got, one)
         assert float((got.double() - want[r0:r1]).abs().sum(1).max()) <= 1e-6 * peak if r1 > r0 else True
+    # many blocks of K rows (`light_vertices`' call): split over the threads' ranges, the same bits
+    first = torch.randint(0, 1000 - 5, (300,), generator=torch.Generator().manual_seed(4))
+    with torch_threads(threads):
+        got = csr.csr_blocks4(crow, col, val, L4, first, 5)
+    with torch_threads(1):
+        one = csr.csr_blocks4(crow, col, val, L4, first, 5)
+    rows = (first[:, None] + torch.arange(5)).reshape(-1)
+    assert torch.equal(got, one) and float((got.double() - want[rows]).abs().max()) <= 1e-6 * peak
     # light_rows of a region (K = 5 terms per vertex) takes the native loop and equals the torch path
     fr = fast.FastRegion(col=col, val=val, crow=crow, sh_lut=torch.zeros(4, 15), sh_nc=torch.zeros(12, 5), K=5,
                          R=2, native=True)

@@ -112,15 +112,23 @@ def test_with_bounces_sums_the_passes(alcove):
     with pytest.raises(ValueError, match="bounces"):
         m.with_bounces(2)
     assert m.memory()["transfer_matrices"] > 0
+    # Per-vertex terms count only the vertices the samples reference (session 27): e at the corners
+    # of the hit faces (nv of them), l' and M at the glossy corners of the glossy samples' faces (ng)
+    F, fh = m.F, gb.face[gb.hit].long()
+    nv = int(torch.unique(F[fh]).numel())
+    gl = m.glossy_regions[gb.region[gb.hit].long()]
+    rows = torch.unique(m.gpos[F[fh[gl]]])
+    ng = int((rows >= 0).sum())
+    assert 0 < nv < m.t.shape[0] and 0 < ng < m.M.shape[0]         # the view leaves vertices unseen
+    n2 = m.order ** 2
     v, l, e = (m1.frame_cost(k, gb.num_samples) for k in ("V", "L", "E"))
     assert v.bytes < l.bytes < e.bytes and v.flops < l.flops < e.flops
-    assert l.bytes - v.bytes >= m1.t.numel() * 4 + m1.M.numel() * 4   # a lighting frame reads t and M
-    # (RGB transfer: no relight cache). With grey transfer a lighting-only frame is shaded from the
-    # relight cache: it reads t, the glossy samples' cached vectors, weights and pixels, not M or l'
+    # a lighting frame reads t and M of those vertices (RGB transfer: no relight cache)
+    assert l.bytes - v.bytes == nv * n2 * 3 * 4 + ng * n2 * n2 * 3 * 4 + nv * 12 + ng * n2 * 12
+    # With grey transfer a lighting-only frame is shaded from the relight cache: it reads t, the
+    # glossy samples' cached vectors, weights and pixels, not M or l'
     g0 = m0.frame_cost("L", gb.num_samples)
-    n2, nv, ng = m0.order ** 2, m0.t.shape[0], m0.M.shape[0]
-    qg = int(round(float(m0.glossy_regions[gb.region[gb.hit].cpu()].float().mean()) * gb.num_samples)) \
-        if m0._last_gbuffer is not None else int(round(ng / nv * gb.num_samples))
+    qg = int(round(float(m0.glossy_regions[gb.region[gb.hit].cpu()].float().mean()) * gb.num_samples))
     v0 = m0.frame_cost("V", gb.num_samples)
     # a V frame: per sample the G-buffer inputs and the output, the faces, per face its material row
     # (kd + glossy flag, 4 float32: a hit's region is its face's), the glossy samples' regions, e and l'
@@ -129,9 +137,11 @@ def test_with_bounces_sums_the_passes(alcove):
     nf = m0.F.shape[0]
     assert v0.bytes == gb.num_samples * (GBUFFER_BYTES_PER_SAMPLE + 12) + m0.F.numel() * m0.F.element_size() \
         + nf * 16 + qg * 8 + nv * 12 + ng * n2 * 12
-    assert g0.bytes - v0.bytes == m0.t.numel() * 4 + nv * 12 - ng * n2 * 12 - qg * 8 + qg * (8 * n2 + 32)
+    assert g0.bytes - v0.bytes == nv * n2 * 4 + nv * 12 - ng * n2 * 12 - qg * 8 + qg * (8 * n2 + 32)
     vl0 = m0.frame_cost("VL", gb.num_samples)  # a view change too: no cache, M read
-    assert vl0.bytes - v0.bytes == m0.t.numel() * 4 + m0.M.numel() * 4 + nv * 12 + ng * n2 * 12
+    assert vl0.bytes - v0.bytes == nv * n2 * 4 + ng * n2 * n2 * 4 + nv * 12 + ng * n2 * 12
+    rot = sum(2 * (2 * k + 1) ** 2 * 3 for k in range(m0.order))
+    assert vl0.flops - v0.flops == rot + 2 * 3 * (nv * n2 + ng * n2 * n2)
 
 
 def test_blinn_phong_lobe_is_the_mapped_phong_lobe():
@@ -579,3 +589,111 @@ def test_flat_nonzero_equals_torch_nonzero():
               torch.ones(9, dtype=torch.bool), torch.rand(4, 64, generator=g)[:, 0] < 0.5):
         got, want = _flat_nonzero(x), x.nonzero().squeeze(-1)
         assert got.dtype == torch.int64 and torch.equal(got, want)
+
+
+@pytest.mark.parametrize("C", [1, 3])
+@pytest.mark.parametrize("order", [3, 5, 8])
+def test_native_glossy_rows_equal_the_full_product(C, order, monkeypatch):
+    """`native.rows` (the C loop) and `native.rows_torch` (its oracle) write l' = M l at the listed
+    glossy vertices only, equal to `apply_lighting` over every row to float32 round-off, and leave
+    the other rows untouched; at 1 and 2 threads (OpenMP's split)."""
+    from methods.sh_prt import native
+    from methods.sh_prt.method import apply_lighting, lighting_major
+
+    g = torch.Generator().manual_seed(order * 10 + C)
+    n2, Vg = order * order, 700
+    M = lighting_major(torch.randn(Vg, n2, n2, C, generator=g))
+    l = torch.randn(n2, 3, generator=g)
+    full = apply_lighting(M.reshape(Vg * n2, n2, C), l).view(3, Vg, n2)
+    Xm = M.permute(3, 2, 0, 1).reshape(C, n2, Vg * n2)
+    rows = torch.randperm(Vg, generator=g)[:611].sort().values
+    others = torch.ones(Vg, dtype=torch.bool)
+    others[rows] = False
+    fns = [native.rows_torch] + ([native.rows] if native.available() else [])
+    for fn in fns:
+        for threads in (1, 2):
+            monkeypatch.setattr(torch, "get_num_threads", lambda t=threads: t)
+            out = torch.full((3, Vg, n2), 7.0)
+            fn(Xm, l, rows, out)
+            assert (out[:, rows] - full[:, rows]).abs().max() <= 1e-5 * full.abs().max()
+            assert bool((out[:, others] == 7.0).all())
+    with pytest.raises(IndexError):
+        native.rows(Xm, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
+
+
+@pytest.mark.parametrize("scene_name, bounces", [("alcove", 0), ("creature", 0), ("alcove", 1)])
+def test_lighting_change_computes_only_the_referenced_glossy_rows(scene_name, bounces):
+    """A frame whose lighting changed computes l' = M l only at the glossy vertices of its glossy
+    samples' faces (`SHPRT._glossy_light`, session 27) and still equals `render_reference`; a later
+    frame under the same lighting whose view sees other vertices completes the table (every row
+    then equal to the full product), and its image is right too."""
+    import dataclasses
+
+    from methods.sh_prt.method import apply_lighting
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=4, bounces=bounces, rays=16)              # bounces 1: RGB transfer (C = 3)
+    m.precompute(scene)
+    assert m.M.shape[-1] == (3 if bounces else 1)
+    ref = SHPRT.__new__(SHPRT)
+    ref.__dict__ = dict(m.__dict__)
+    ref._reset_cache()
+
+    def check(frame, gb):
+        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
+        assert (img - want).abs().max().item() <= 1e-5 * max(want.abs().max().item(), 1e-6)
+        assert want.abs().max() > 0
+
+    frames = make_sequence(scene, "VL", n_frames=3, seed=4)
+    for f in frames:
+        gb = make_gbuffer(scene, f, 1)
+        check(f, gb)
+        F, fh = m.F, gb.face[gb.hit].long()
+        gl = m.glossy_regions[gb.region[gb.hit].long()]
+        want_rows = torch.unique(m.gpos[F[fh[gl]]])
+        assert m._lg_valid is not None                                   # a subset, not every row
+        assert torch.equal(m._lg_valid.nonzero().squeeze(-1), want_rows[want_rows >= 0])
+    # the same lighting, another view: the rest of the rows, once
+    other = make_sequence(scene, "V", n_frames=3, seed=9)[2]
+    f = dataclasses.replace(other, envmap=frames[-1].envmap, changed=frozenset({"view"}))
+    check(f, make_gbuffer(scene, f, 1))
+    assert m._lg_valid is None
+    ng, n2 = m.M.shape[0], m.M.shape[1]
+    full = apply_lighting(m.M.reshape(ng * n2, *m.M.shape[2:]), m._light).view(3, ng, n2)
+    assert (m._lg3 - full).abs().max() <= 1e-5 * full.abs().max()
+
+
+def test_native_need_rows_equal_the_torch_rows():
+    """`native.need_rows` (one C pass) lists the same glossy rows as `native.need_rows_torch`: the
+    corner rows of the glossy samples' faces, ascending, without the ones already ``valid``."""
+    from methods.sh_prt import native
+
+    g = torch.Generator().manual_seed(3)
+    M, Vg, P = 500, 300, 4000
+    fg = torch.randint(0, Vg, (M, 3), generator=g, dtype=torch.int32)
+    face = torch.randint(-1, M, (P,), generator=g)
+    samples = (face >= 0).nonzero().squeeze(-1)[::3].contiguous()
+    valid = torch.rand(Vg, generator=g) < 0.4
+    for v in (None, valid):
+        want = native.need_rows_torch(samples, face, fg, Vg, v)
+        got = native.need_rows(samples, face, fg, Vg, v)
+        assert 0 < want.numel() < Vg and torch.equal(got, want)
+
+
+@pytest.mark.parametrize("S2", [1, 4, 9])
+def test_native_add_pixels_is_the_scatter_add(S2):
+    """`native.add_pixels` (one C pass) adds the glossy samples' radiance × 1/S² to their pixels bit
+    for bit as its oracle `native.add_pixels_torch` (scatter_add_), repeats of a pixel included."""
+    from methods.sh_prt import native
+
+    gen = torch.Generator().manual_seed(S2)
+    n = 500
+    g = torch.randperm(n * S2, generator=gen)[: n * S2 // 2].sort().values
+    vals = torch.rand(g.numel(), 3, generator=gen)
+    img0 = torch.rand(n, 3, generator=gen)
+    want, got = img0.clone(), img0.clone()
+    native.add_pixels_torch(want, g, vals, S2)
+    native.add_pixels(got, g, vals, S2)
+    assert not torch.equal(want, img0) and torch.equal(got, want)
+    with pytest.raises(IndexError):
+        native.add_pixels(img0.clone(), torch.tensor([n * S2]), vals[:1], S2)

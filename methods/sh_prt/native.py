@@ -1,0 +1,235 @@
+"""SH PRT's native loops (`methods.core.native`): l' = M l for some glossy vertices only (Sloan 2002
+§7), the list of those vertices, and the glossy samples' radiance added to their pixels
+(`add_pixels`, bit-identical to its scatter_add_ oracle).
+
+A frame whose lighting changed needs l' = M_x l at the vertices its glossy samples' faces touch
+alone (creature bench: ~1/3 of the glossy vertices), not at all of them (`SHPRT._glossy_light`).
+M is stored lighting-major ((C, n², Vg·n²) in memory, `method.lighting_major`), so one vertex's
+matrix is n² runs of n² floats, one per lighting coefficient j; the loop reads those runs of the
+listed vertices only and writes their l' rows of the channel-major (3, Vg, n²) table:
+
+    out[c, r, i] = Σ_j l[j, c] · M[c', j, r·n² + i]        (c' = c for RGB transfer, 0 for grey)
+
+with the sum over j in ascending order. `rows_torch` is the same product by a torch gather and
+`apply_lighting`'s GEMM, the fallback (no compiler, ``PRTBENCH_COMPILE=0``) and the test oracle;
+both equal `apply_lighting` over all rows to float32 round-off (the GEMM sums in its own order).
+At 2+ threads the rows are split over OpenMP's team (the libgomp torch loaded): a Python thread
+pool's hand-off waits for a core the OpenMP workers spin on (`methods.core.gouraud`).
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+
+#define RUN 16
+typedef float v8 __attribute__((vector_size(32), aligned(4)));
+
+/* The rows in runs of consecutive vertices (at most RUN; ``rows`` ascending, as `nonzero` gives
+   them): a run of k vertices is one stretch of k·n² floats in each of M's n² lighting rows and
+   in each channel of the output. Per 8 floats of the stretch the sums over j (ascending) stay in
+   registers and each value of M is read once (grey transfer: for the three channels). */
+static void lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
+                    const int64_t *rows, int64_t R, int64_t Vg, float *out) {
+    int64_t q = 0;
+    while (q < R) {
+        int64_t k = 1;
+        while (q + k < R && k < RUN && rows[q + k] == rows[q] + k) ++k;
+        const int64_t w = k * n2, base = rows[q] * n2, w8 = w & ~(int64_t)7;
+        for (int64_t c = 0; c < (C == 1 ? 1 : 3); ++c) {
+            const float *Xc = X + c * n2 * ncols + base;
+            float *o0 = out + (C == 1 ? 0 : c) * Vg * n2 + base;
+            int64_t t = 0;
+            for (; t < w8; t += 8) {
+                v8 a0 = {0}, a1 = {0}, a2 = {0};
+                for (int64_t j = 0; j < n2; ++j) {
+                    const v8 v = *(const v8 *)(Xc + j * ncols + t);
+                    if (C == 1) { a0 += l[j * 3] * v; a1 += l[j * 3 + 1] * v; a2 += l[j * 3 + 2] * v; }
+                    else a0 += l[j * 3 + c] * v;
+                }
+                *(v8 *)(o0 + t) = a0;
+                if (C == 1) { *(v8 *)(o0 + Vg * n2 + t) = a1; *(v8 *)(o0 + 2 * Vg * n2 + t) = a2; }
+            }
+            for (; t < w; ++t) {
+                float s0 = 0, s1 = 0, s2 = 0;
+                for (int64_t j = 0; j < n2; ++j) {
+                    const float v = Xc[j * ncols + t];
+                    if (C == 1) { s0 += l[j * 3] * v; s1 += l[j * 3 + 1] * v; s2 += l[j * 3 + 2] * v; }
+                    else s0 += l[j * 3 + c] * v;
+                }
+                o0[t] = s0;
+                if (C == 1) { o0[Vg * n2 + t] = s1; o0[2 * Vg * n2 + t] = s2; }
+            }
+        }
+        q += k;
+    }
+}
+
+/* The glossy rows a frame's glossy samples g read: mark the rows fg[face[g[s]]] (three per sample;
+   all >= 0 on a glossy face) in ``mark`` (Vg bytes, zero on entry), then list the marked rows not
+   yet ``valid`` (if given) in ascending order into ``rows``, their count into ``count``. */
+void sh_need_rows(const int64_t *g, int64_t Qg, const int64_t *face, int64_t Mf, const int32_t *fg, int64_t Vg,
+                  uint8_t *mark, const uint8_t *valid, int64_t *rows, int64_t *count) {
+    for (int64_t s = 0; s < Qg; ++s) {
+        const int64_t f = face[g[s]];                      /* < M by the G-buffer's contract; */
+        const int32_t *r = fg + 3 * (f < 0 ? 0 : (f >= Mf ? Mf - 1 : f));   /* clamped, never read out */
+        mark[r[0]] = 1; mark[r[1]] = 1; mark[r[2]] = 1;
+    }
+    int64_t n = 0;
+    for (int64_t r = 0; r < Vg; ++r)
+        if (mark[r] && !(valid && valid[r])) rows[n++] = r;
+    *count = n;
+}
+
+/* img[g[q] / S2, c] += vals[q, c] * inv for q ascending (one thread: each pixel's sum in the order of
+   its samples, as scatter_add_ at one thread). g[q] / S2 < n by the caller's check. */
+void sh_add_pixels(const int64_t *g, int64_t Q, int64_t S2, const float *vals, float inv, float *img) {
+    for (int64_t q = 0; q < Q; ++q) {
+        float *o = img + 3 * (g[q] / S2);
+        const float *v = vals + 3 * q;
+        o[0] += v[0] * inv; o[1] += v[1] * inv; o[2] += v[2] * inv;
+    }
+}
+
+void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
+                const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
+    if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = R * k / nt, e = R * (k + 1) / nt;
+        lg_rows(C, n2, ncols, X, l, rows + a, e - a, Vg, out);
+    }
+}
+"""
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
+               "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
+               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P]}
+MAX_N2 = 64                     # acc's size: orders up to 8
+MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
+
+
+@functools.lru_cache(maxsize=None)
+def _lib():
+    return native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
+
+
+def _flags() -> tuple[str, ...]:
+    """OpenMP; AVX2 when torch found the CPU to have it (the library is built on the machine that
+    runs it, and the flags are part of its cache key; as `methods.triple_product.native`). No
+    contraction into fused multiply-adds: `add_pixels` must round as its oracle's multiply, then add."""
+    cap = ""
+    try:
+        cap = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # pragma: no cover - older torch
+        pass
+    return ("-fopenmp", "-ffp-contract=off", *(("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()))
+
+
+def available() -> bool:
+    """True when the C loop runs (else `rows` takes `rows_torch`)."""
+    return _lib() is not None
+
+
+def _check(Xm: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> tuple[int, int, int, int]:
+    C, n2, ncols = Xm.shape
+    Vg = ncols // max(n2, 1)
+    if C not in (1, 3) or Vg * n2 != ncols or l.shape != (n2, 3) or out.shape != (3, Vg, n2):
+        raise ValueError(f"M (C, n², Vg·n²), l (n², 3), out (3, Vg, n²) expected, got {tuple(Xm.shape)}, "
+                         f"{tuple(l.shape)}, {tuple(out.shape)}")
+    if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= Vg):
+        raise IndexError("a glossy row outside M")
+    return C, n2, ncols, Vg
+
+
+def rows_torch(Xm: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> None:
+    """out[:, rows, :] = (M l)[:, rows, :] by a gather of the rows' columns and `apply_lighting`'s
+    contraction (lᵀ X for grey transfer, l_c X_c per channel): the oracle of `rows`."""
+    C, n2, ncols, Vg = _check(Xm, l, rows, out)
+    cols = (rows.long()[:, None] * n2 + torch.arange(n2, device=rows.device)).reshape(-1)
+    sub = Xm.index_select(2, cols)                                              # (C, n², R·n²)
+    lg = l.T @ sub[0] if C == 1 else torch.stack([l[:, c] @ sub[c] for c in range(3)])
+    out[:, rows.long(), :] = lg.view(3, -1, n2)
+
+
+def rows(Xm: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> None:
+    """out[:, rows, :] = (M l)[:, rows, :] for M in its lighting-major memory Xm (C, n², Vg·n²)
+    float32 (contiguous), l (n², 3) and out (3, Vg, n²) float32 contiguous; the C loop when it is
+    available (CPU, n² ≤ `MAX_N2`), else `rows_torch`."""
+    lib = _lib()
+    C, n2, ncols, Vg = _check(Xm, l, rows, out)
+    ok = (lib is not None and Xm.device.type == "cpu" and n2 <= MAX_N2 and Xm.dtype == torch.float32
+          and out.dtype == torch.float32 and Xm.is_contiguous() and out.is_contiguous())
+    if not ok:
+        rows_torch(Xm, l, rows, out)
+        return
+    r = rows.to(torch.int64).contiguous()
+    lc = l.to(torch.float32).contiguous()
+    R = int(r.numel())
+    if R == 0:
+        return
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
+    lib.sh_lg_rows(C, n2, ncols, Xm.data_ptr(), lc.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
+
+
+def need_rows_torch(g: Tensor, face: Tensor, fg: Tensor, Vg: int, valid: Tensor | None) -> Tensor:
+    """The rows of l' that the glossy samples g (int64, of the G-buffer's ``face``) read: the
+    (ascending, int64) rows fg[face[g]] (fg (M, 3) int32: each face's corner rows) not yet ``valid``
+    ((Vg,) bool or None: none are). The oracle of `need_rows`."""
+    need = torch.zeros(Vg, dtype=torch.bool, device=fg.device)
+    need[fg.index_select(0, face.index_select(0, g)).view(-1).long()] = True
+    if valid is not None:
+        need &= ~valid
+    return need.nonzero().squeeze(-1)
+
+
+def need_rows(g: Tensor, face: Tensor, fg: Tensor, Vg: int, valid: Tensor | None) -> Tensor:
+    """`need_rows_torch` in one C pass (CPU, int64 g and face, int32 fg), else by it."""
+    lib = _lib()
+    if (lib is None or g.device.type != "cpu" or g.dtype != torch.int64 or face.dtype != torch.int64
+            or fg.dtype != torch.int32 or fg.ndim != 2 or fg.shape[1] != 3):
+        return need_rows_torch(g, face, fg, Vg, valid)
+    g, face, fg = g.contiguous(), face.contiguous(), fg.contiguous()
+    if g.numel() and (int(g.min()) < 0 or int(g.max()) >= face.numel()):
+        raise IndexError("a sample outside the G-buffer")
+    mark = torch.zeros(Vg, dtype=torch.uint8)
+    out = torch.empty(Vg, dtype=torch.int64)
+    n = torch.zeros(1, dtype=torch.int64)
+    v = valid.contiguous().view(torch.uint8) if valid is not None else None
+    lib.sh_need_rows(g.data_ptr(), int(g.numel()), face.data_ptr(), int(fg.shape[0]), fg.data_ptr(), Vg, mark.data_ptr(),
+                     v.data_ptr() if v is not None else None, out.data_ptr(), n.data_ptr())
+    return out[:int(n)]
+
+
+def add_pixels_torch(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
+    """img (n, 3) += the glossy samples' radiance vals (Qg, 3) × 1/S² at their pixels g // S²
+    (scatter_add_; the pixel by a shift where S² is a power of two: the same non-negative indices).
+    The oracle of `add_pixels`."""
+    vals = vals * (1.0 / S2)
+    pix = g >> (S2.bit_length() - 1) if S2 & (S2 - 1) == 0 else g // S2
+    img.scatter_add_(0, pix[:, None].expand(-1, 3), vals)
+
+
+def add_pixels(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
+    """`add_pixels_torch` as one C pass (CPU, float32, contiguous, g int64 ascending — each pixel's
+    samples added in their order, as scatter_add_ at one thread), else by it."""
+    lib = _lib()
+    if (lib is None or img.device.type != "cpu" or img.dtype != torch.float32 or vals.dtype != torch.float32
+            or g.dtype != torch.int64 or not (img.is_contiguous() and vals.is_contiguous() and g.is_contiguous())
+            or img.ndim != 2 or img.shape[1] != 3 or vals.shape != (g.numel(), 3)):
+        add_pixels_torch(img, g, vals, S2)
+        return
+    if g.numel() == 0:
+        return
+    if int(g[0]) < 0 or int(g[-1]) >= img.shape[0] * S2:
+        raise IndexError("a sample outside the image")
+    lib.sh_add_pixels(g.data_ptr(), int(g.numel()), int(S2), vals.data_ptr(), 1.0 / S2, img.data_ptr())
