@@ -116,6 +116,7 @@ from methods.core.spherical_haar import coefficient_structure, level_of_size, n_
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import native
+from methods.triple_product import native_light
 from methods.triple_product.precompute import truncate
 
 EVALUATORS = ("auto", "fine", "dense", "sparse", "reference")
@@ -828,10 +829,13 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     The sums run over the live triangles only (`live_triangles`: where no table row is exactly 0
     throughout), and a lazily set lighting is projected on those only."""
     live = live_triangles(method)
+    vis_bits(method, live)                    # built in the first frame (a later lighting change reads them)
     if getattr(method, "_lazy_light", None) is not None and method.config["light_lookup"] != "exact":
         if lookups is None:
             lookups = grid_lookups(R, wo_world, method.outgoing, method.grid, method.config["light_lookup"])
-        method.fill_lighting(lookups[2][lookups[3] != 0], live=live)
+        need = read_pairs(method, live, vrows, vw, lookups[2], lookups[3])
+        # the looked-up frames (a boolean gather of every look-up: ~5 ms of a pixel frame) only without the pairs
+        method.fill_lighting(None if need is not None else lookups[2][lookups[3] != 0], live=live, need=need)
     spec = shading_rows(method, R, wo_world, region, vrows, vw, mix, lookups=lookups)
     (vp,), rps, (lp,) = spec
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
@@ -877,6 +881,34 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
             read["group_vis"] = st["group_vis"]
         return out.mul_(0.25 ** Le)
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch).mul_(0.25 ** Le)
+
+
+def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor) -> Tensor | None:
+    """(F, n') bool: the (grid frame, live triangle) pairs that points with visibility rows / weights
+    (vrows, vw) and grid look-ups (lrows, lw) read with a non-zero weight and a non-zero visibility
+    (`native_light.need`; what `frame_cost` counts as a re-projection's compulsory pairs,
+    `nonzero_reads`) — the pairs a lazily set lighting projects (`TripleProduct.fill_lighting`); None
+    (whole live rows) when the lighting is not pending, no live triangles apply or the pair
+    projection does not (`lighting.pairs_ok`). The visibility table's bit sets are built once per
+    table (`native_light.vis_bits`)."""
+    lazy = getattr(method, "_lazy_light", None)
+    if live is None or lazy is None or not lt.pairs_ok(lazy["env"]):
+        return None
+    return native_light.need(vis_bits(method, live), vrows, vw, lrows, lw, method.grid.size, live.numel())
+
+
+def vis_bits(method, live: Tensor | None) -> Tensor | None:
+    """`native_light.vis_bits` of the live visibility table (cached on its identity; built in the
+    first frame — the harness's warm-up — by `shade_fine`), or None: no live triangles or no native
+    pair projection."""
+    if live is None or not native_light.available():
+        return None
+    Vt = live_table(method, "V", method.V_val, live)
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    hit = cache.get(("vis_bits",))
+    if hit is None or hit[0] is not Vt:
+        hit = cache[("vis_bits",)] = (Vt, native_light.vis_bits(Vt))       # holds Vt: no id reuse
+    return hit[1]
 
 
 def vis_chunks(method, Vt: Tensor, source: tuple | None = None) -> tuple[Tensor, Tensor, Tensor] | None:

@@ -768,6 +768,28 @@ def _warm_live(_row: Tensor, envmap, R: Tensor, geo: Geodesic, supersample: int,
         project_env(EnvMap(envmap.data, T), R, geo, supersample=supersample, grid=grid, tris=tris)
 
 
+def pairs_ok(envmap) -> bool:
+    """`project_pairs` applies: the native loop is available and the map is not turned about +Y only
+    (that lighting takes the azimuthal / comb paths, whose values the loop does not reproduce)."""
+    from methods.triple_product import native_light
+
+    return azimuth_of(envmap.to_world) is None and native_light.available()
+
+
+def project_pairs(envmap, R: Tensor, geo: Geodesic, *, supersample: int, tris: Tensor, pairs: Tensor,
+                  out: Tensor) -> Tensor:
+    """`project_env`'s general path with ``tris`` for the (frame, live triangle) pairs ``pairs`` (P,)
+    int64 (frame·n' + column of ``tris``) only, into ``out`` (F, 3, n') float32 (returned; the other
+    entries untouched): the same fine values bit for bit (`native_light`: the compiled kernels'
+    float32 operations in C). Needs `pairs_ok` (envmap)."""
+    from methods.triple_product import native_light
+
+    cp, wT = _live_sample_planes(geo, supersample, tris)
+    T = envmap.to_world.float()
+    M = torch.mm(R.float().reshape(-1, 3), T).view(-1, 3, 3)       # `env_taps`' R @ T (an extern mm there)
+    return native_light.project(pairs, M, cp, wT, envmap.height, envmap.width, _quad_rows(envmap, R.device), out)
+
+
 def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
                 grid: FrameGrid | None = None, stats: dict | None = None,
                 frames: Tensor | None = None, out: tuple[Tensor, Tensor] | None = None,

@@ -30,6 +30,11 @@ once because its lighting is fixed per session, so here it counts in the first f
     sphere; elsewhere eq. 7 multiplies the lighting by an exact 0), and eq. 7 is summed over the
     live columns of the three fine-value tables: bench chess, 1 thread, same process, vertex L /
     E / VL 1.71 / 1.53 / 1.66x, pixel 1.30 / 1.25 / 1.29x (`benchmarks.tp_frames_ab`).
+    A lighting not turned about +Y projects only the (grid frame, live triangle) pairs the frame's
+    points read with a non-zero weight and a non-zero visibility (`fast_eval.read_pairs`, what
+    `frame_cost` counts; chess bench vertex L 157,505 of the 222,080 its 347 frames' live rows
+    hold) by a C loop with the compiled projection's float32 operations (`native_light`, the same
+    values bit for bit): vertex L / VL 1.30-1.35x, pixel 1.09-1.17x.
 Render:
   * ``shading="vertex"``: B per vertex (ωo = direction to the camera at the vertex, in the vertex's
     frame), barycentrically interpolated to the G-buffer samples (Gouraud; Ma 2006 §3.3 first
@@ -390,6 +395,7 @@ class TripleProduct(Method):
                 self.stats["lighting_path"] = "general" if lt.azimuth_of(envmap.to_world) is None else "azimuthal"
                 self._lazy_light = {"env": envmap, "R": Rg, "done": torch.zeros(Fg, dtype=torch.bool)}
                 self.stats["projected_frames"] = 0           # `fill_lighting` adds; `fast_eval.frame_cost` reads
+                self.stats["projected_pairs"] = 0            # (`fill_lighting` with the read pairs)
             else:                                # compiled (`lighting.project_env`)
                 Lc, fine = lt.project_env(envmap, Rg, self.geo, supersample=cfg["light_supersample"],
                                            grid=self.grid, stats=self.stats)
@@ -426,13 +432,18 @@ class TripleProduct(Method):
             return val.view(shape), hit[2].view(shape)
         return torch.zeros(shape), torch.zeros(shape)
 
-    def fill_lighting(self, frames: Tensor | None = None, *, live: Tensor | None = None) -> None:
+    def fill_lighting(self, frames: Tensor | None = None, *, live: Tensor | None = None,
+                      need: Tensor | None = None) -> None:
         """Project the grid frames ``frames`` (int64 indices; None: all) of a lazily set lighting
         (`_set_lighting`) that are not projected yet into L_val and its fine-value table (the same
         `lighting.project_env` blocks, so the same values as projecting the whole grid at once).
         ``live`` (`fast_eval.live_triangles`): only the fine values of those triangles, into the
         grid's live-column table (`fast_eval.live_table`; what `fast_eval.shade_fine` reads) — the
-        frame is not complete until a call without ``live`` projects it whole.
+        frame is not complete until a call without ``live`` projects it whole. With ``live``,
+        ``need`` (F, n') bool (`fast_eval.read_pairs`, or None): only those (frame, live triangle)
+        pairs, by `lighting.project_pairs` (the same values; ``frames`` is then not used) — the
+        pairs eq. 7 reads with a non-zero visibility and weight; the others keep finite values that
+        are read only with an exact 0 (`_spare_tables`).
         No-op when nothing is pending."""
         lazy = getattr(self, "_lazy_light", None)
         if lazy is None:
@@ -457,12 +468,29 @@ class TripleProduct(Method):
                     tab[d] = full[d][:, :, live]
                 part = cache[("live", "L")] = (self.L_val, live, tab.view(done.shape[0], -1))
                 lazy["live"] = done.clone()
+                lazy["pairs"] = None
+            if need is not None:                         # the read pairs only (`lighting.project_pairs`)
+                pd = lazy.get("pairs")
+                if pd is None:                           # pairs projected: those of the frames whole
+                    pd = lazy["pairs"] = lazy["live"][:, None].expand(-1, live.numel()).clone()
+                todo = need & ~pd
+                pairs = torch.nonzero(todo.view(-1), as_tuple=False).squeeze(-1)
+                if pairs.numel():
+                    lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
+                                     tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
+                    pd |= todo
+                    self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + int(todo.any(1).sum())
+                    self.stats["projected_pairs"] = self.stats.get("projected_pairs", 0) + int(pairs.numel())
+                self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0
+                return
             f = torch.nonzero(want & ~lazy["live"], as_tuple=False).squeeze(-1)
             if f.numel():
                 lt.project_env(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
                                grid=self.grid, stats=self.stats, frames=f, tris=live,
                                out=(None, part[2].view(done.shape[0], 3, -1)))
                 lazy["live"][f] = True
+                if lazy.get("pairs") is not None:
+                    lazy["pairs"][f] = True
                 self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + int(f.numel())
             self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0
             return

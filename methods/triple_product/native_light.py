@@ -1,0 +1,351 @@
+"""A lighting change projected on the (grid frame, live triangle) pairs eq. 7 reads with a non-zero
+visibility: a small C loop (built with ``cc`` through `methods.core.native.load`, called through
+ctypes), the compiled general projection (`lighting.project_env` with ``tris``: `env_taps`, then
+`quad_means`) as its fallback and test oracle.
+
+Why: after a lighting change a frame projects every live fine triangle of every grid frame it looks
+up (`TripleProduct.fill_lighting`; chess bench vertex L: 347 frames × 640 triangles), but a point's
+eq. 7 multiplies its looked-up frames' lighting by its blended visibility, which is exactly 0 on a
+third or more of the live triangles (`native` module docstring). A (frame, triangle) pair no point
+reads with a non-zero visibility and a non-zero weight is only ever multiplied by 0; it is not
+compulsory (`fast_eval.frame_cost` counts only the read pairs: `nonzero_reads`' "pairs", 157,505 of
+222,080 on chess vertex L). An Inductor loop runs over dense (frames, triangles) blocks, so the pairs
+are projected here, one pair (4^s samples) at a time:
+
+* `need`: the pairs the points read — per point the OR of its visibility rows' non-zero bit sets
+  (`vis_bits`, one bit per live triangle, built once per table) over the grid rows it looks up with a
+  non-zero weight (a point whose rows and non-zero flags equal the previous point's is skipped);
+* `project`: each pair's samples with the general kernel's float32 operations one for one (the
+  rotation folded with the emitter's as ``R @ T`` by the same `torch.mm`, `lighting.atan2_f32` /
+  `acos_f32`, `latlong.quad_taps`, the quad rows × `quad_lane_weights` × the sample weight, summed in
+  `lighting._tree_sum`'s order, then the 4 lanes of each channel), built with ``-ffp-contract=off`` as
+  Inductor builds its kernels: the same fine values bit for bit (tested).
+
+Pairs not needed keep the finite values of the table's previous lighting (`TripleProduct._spare_tables`)
+or zeros, and are read only with an exact 0 (visibility or weight): the image is the same bit for bit
+(tested). Pairs are split in contiguous ranges over ``torch.get_num_threads()`` threads of OpenMP's
+team (each pair's sums in one thread: the values do not depend on the thread count).
+Without a compiler, with ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``, `available` is False and
+the frame projects whole live rows with the compiled kernels as before.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import os
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+
+__all__ = ["available", "vis_bits", "need", "project"]
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <math.h>
+
+/* One projection sample's footprint: lighting.env_taps (direction m^T c in the emitter frame,
+   atan2_f32 / acos_f32) then latlong.quad_taps, the compiled kernel's float32 operations one for
+   one (m = R T, row-major). */
+static inline void tap(float cx, float cy, float cz, const float* m, float H1, float Wf, float hw,
+                       int32_t H2, int32_t W1, int32_t Wp, int32_t* restrict idx, float* restrict fx,
+                       float* restrict fy) {
+    const float d0 = (cx * m[0] + cy * m[3]) + cz * m[6];
+    const float d1 = (cx * m[1] + cy * m[4]) + cz * m[7];
+    const float d2 = (cx * m[2] + cy * m[5]) + cz * m[8];
+    float yv = d1 > -1.0f ? d1 : -1.0f;                       /* clamp(-1, 1) */
+    yv = yv < 1.0f ? yv : 1.0f;
+    const float a = fabsf(yv);
+    const int big = a > 0.5f;
+    const float z = big ? 0.5f - a * 0.5f : a * a;
+    const float sq = sqrtf(z);
+    const float s = big ? sq : a;
+    const float q = ((((z * (float)0.042163199048 + (float)0.024181311049) * z + (float)0.045470025998) * z
+                      + (float)0.074953002686) * z + (float)0.16666752422) * z;
+    const float p = q * s + s;
+    float r = big ? p * 2.0f : (float)1.5707963267948966 - p;
+    r = yv < 0.0f ? (float)3.141592653589793 - r : r;
+    float v = r * (float)0.3183098861837907;
+    const float xx = -d2;                                     /* atan2_f32(d0, -d2) */
+    const float ax = fabsf(xx), ay = fabsf(d0);
+    const float mn = ax < ay ? ax : ay;
+    const float mx = ax > ay ? ax : ay;
+    const int c = mn > mx * (float)0.41421356237309503;
+    const float num = c ? mn - mx : mn;
+    const float den0 = c ? mn + mx : mx;
+    const float den = den0 > 0.0f ? den0 : 1.0f;
+    const float t = num / den;
+    const float tz = t * t;
+    const float pq = ((((tz * (float)0.0805374449538 - (float)0.138776856032) * tz + (float)0.199777106478) * tz
+                       - (float)0.333329491539) * tz) * t + t;
+    float ra = c ? pq + (float)0.7853981633974483 : pq;
+    ra = ay > ax ? (float)1.5707963267948966 - ra : ra;
+    ra = xx < 0.0f ? (float)3.141592653589793 - ra : ra;
+    ra = d0 < 0.0f ? -ra : ra;
+    float u = ra * (float)0.15915494309189535;
+    u = u - hw;                                               /* quad_taps */
+    u = u - floorf(u);
+    v = v - floorf(v);
+    const float x = u * Wf, y = v * H1;
+    int32_t ix = (int32_t)x, iy = (int32_t)y;
+    ix = ix > 0 ? ix : 0;
+    ix = ix < W1 ? ix : W1;
+    iy = iy > 0 ? iy : 0;
+    iy = iy < H2 ? iy : H2;
+    *idx = iy * Wp + ix;
+    *fx = x - (float)ix;
+    *fy = y - (float)iy;
+}
+
+#define MAXS 64
+typedef float v8 __attribute__((vector_size(32)));
+typedef float v4 __attribute__((vector_size(16)));
+static inline v8 ld8(const float* p) { v8 r; memcpy(&r, p, sizeof r); return r; }
+static inline v4 ld4(const float* p) { v4 r; memcpy(&r, p, sizeof r); return r; }
+
+/* one pair's fine values (3, strided by n) of live triangle tr in the frame of m: the S samples'
+   footprints and their 4 taps' weights (latlong.quad_lane_weights times wT: lane 4c + t's
+   (l0 + l1 fx) (l2 + l3 fy) is (1 - fx or fx) (1 - fy or fy) exactly, its lane constants being 0, 1
+   and -1), the quad rows' 12 texel lanes times them (lanes 12-15 hold zeros no output reads), summed
+   over the samples in lighting._tree_sum's order, then each channel's 4 lanes as quad_means does */
+static inline void pair_means(const float* m, int64_t tr, int64_t n, int64_t S, const float* cp, const float* wT,
+                              float H1, float Wf, float hw, int32_t H2, int32_t W1, int32_t Wp,
+                              const float* Q, float* o) {
+    int32_t idx[MAXS];
+    float fx[MAXS], fy[MAXS], wt[MAXS][4];
+    v8 t8[MAXS];
+    v4 t4[MAXS];
+    const float *px = cp + tr * S, *py = cp + (n + tr) * S, *pz = cp + (2 * n + tr) * S;
+    const float* w = wT + tr * S;
+    for (int64_t s = 0; s < S; ++s)
+        tap(px[s], py[s], pz[s], m, H1, Wf, hw, H2, W1, Wp, idx + s, fx + s, fy + s);
+    for (int64_t s = 0; s < S; ++s) {
+        const float gx = 1.0f - fx[s], gy = 1.0f - fy[s];
+        wt[s][0] = (gx * gy) * w[s];
+        wt[s][1] = (fx[s] * gy) * w[s];
+        wt[s][2] = (gx * fy[s]) * w[s];
+        wt[s][3] = (fx[s] * fy[s]) * w[s];
+    }
+    for (int64_t s = 0; s < S; ++s) {
+        const float* qr = Q + 16 * (int64_t)idx[s];
+        const v4 q = ld4(wt[s]);
+        const v8 q8 = {q[0], q[1], q[2], q[3], q[0], q[1], q[2], q[3]};
+        t8[s] = ld8(qr) * q8;
+        t4[s] = ld4(qr + 8) * q;
+    }
+    int64_t k = S;                                            /* lighting._tree_sum's pairs */
+    while (k > 1) {
+        const int64_t h = k / 2;
+        for (int64_t i = 0; i < h; ++i) {
+            t8[i] = t8[2 * i] + t8[2 * i + 1];
+            t4[i] = t4[2 * i] + t4[2 * i + 1];
+        }
+        if (k & 1) {
+            t8[h] = t8[k - 1];
+            t4[h] = t4[k - 1];
+        }
+        k -= h;
+    }
+    const v8 a = t8[0];
+    const v4 b = t4[0];
+    o[0] = (a[0] + a[1]) + (a[2] + a[3]);
+    o[n] = (a[4] + a[5]) + (a[6] + a[7]);
+    o[2 * n] = (b[0] + b[1]) + (b[2] + b[3]);
+}
+
+/* out[f, c, t] (F, 3, n) for the pairs f * n + t: the mean of the map's bilinear radiance over the
+   S samples of live triangle t seen in frame f (lighting.quad_means). M (F, 9) = R T; cp (3, n, S)
+   the live triangles' sample planes, wT (n, S) their weights; Q the quad rows (H (W + 1), 16).
+   S = 16 (supersample 2, the method's default) is a constant of
+   its own loop (unrolled). */
+void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
+                const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
+    const float H1 = (float)(H - 1), Wf = (float)W, hw = (float)(0.5 / (double)W);
+    const int32_t H2 = (int32_t)(H - 2), W1 = (int32_t)(W - 1), Wp = (int32_t)(W + 1);
+    if (S == 16) {
+        for (int64_t e = 0; e < np; ++e) {
+            const int64_t f = pairs[e] / n, tr = pairs[e] % n;
+            pair_means(M + 9 * f, tr, n, 16, cp, wT, H1, Wf, hw, H2, W1, Wp, Q, out + f * 3 * n + tr);
+        }
+        return;
+    }
+    for (int64_t e = 0; e < np; ++e) {
+        const int64_t f = pairs[e] / n, tr = pairs[e] % n;
+        pair_means(M + 9 * f, tr, n, S, cp, wT, H1, Wf, hw, H2, W1, Wp, Q, out + f * 3 * n + tr);
+    }
+}
+
+/* tp_project over np pairs on nt threads of OpenMP's team (thread k the pairs [np k / nt, np (k + 1) / nt)). */
+void tp_project_par(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
+                    const float* wT, int64_t H, int64_t W, const float* Q, float* out, int64_t nt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = np * k / nt, e = np * (k + 1) / nt;
+        tp_project(e - a, pairs + a, n, S, M, cp, wT, H, W, Q, out);
+    }
+}
+
+/* need (F, n) bytes: 1 where some point looks up grid row f with a non-zero weight and one of its
+   visibility rows with a non-zero weight is non-zero at live triangle t, i.e. the OR of the bit sets
+   Vb[v] (N_V, nw) (bit t % 64 of word t / 64) over the (v, f) pairs of the points' non-zero weights.
+   A point with the same rows and non-zero flags as the previous one adds nothing and is skipped (a
+   set of the distinct (v, f) pairs seen instead cost more than it saved: 2^16 open-addressing slots,
+   chess bench pixel L, 11 against 7 ms). status[0]: 0, or -1 when a row index read with a non-zero
+   weight is outside its table (need then undefined), -2 out of memory. */
+void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
+             const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
+             int64_t* status) {
+    uint64_t* bits = (uint64_t*)calloc((size_t)(F * nw + nw), sizeof(uint64_t));
+    int64_t bad = 0;
+    if (!bits) { status[0] = -2; return; }
+    uint64_t* acc = bits + F * nw;
+    for (int64_t b = 0; b < B && !bad; ++b) {
+        const int64_t *v = vrows + b * kv, *l = lrows + b * kl;
+        const float *x = vw + b * kv, *y = lw + b * kl;
+        if (b > 0) {
+            int same = 1;
+            for (int64_t j = 0; j < kv && same; ++j)
+                same = v[j] == v[j - kv] && (x[j] != 0.0f) == (x[j - kv] != 0.0f);
+            for (int64_t j = 0; j < kl && same; ++j)
+                same = l[j] == l[j - kl] && (y[j] != 0.0f) == (y[j - kl] != 0.0f);
+            if (same) continue;
+        }
+        memset(acc, 0, (size_t)nw * sizeof(uint64_t));
+        for (int64_t j = 0; j < kv; ++j)
+            if (x[j] != 0.0f) {
+                if (v[j] < 0 || v[j] >= NV) { bad = 1; break; }
+                const uint64_t* r = Vb + v[j] * nw;
+                for (int64_t w = 0; w < nw; ++w) acc[w] |= r[w];
+            }
+        for (int64_t j = 0; j < kl && !bad; ++j)
+            if (y[j] != 0.0f) {
+                if (l[j] < 0 || l[j] >= F) { bad = 1; break; }
+                uint64_t* o = bits + l[j] * nw;
+                for (int64_t w = 0; w < nw; ++w) o[w] |= acc[w];
+            }
+    }
+    if (!bad)
+        for (int64_t f = 0; f < F; ++f)
+            for (int64_t t = 0; t < n; ++t)
+                need[f * n + t] = (uint8_t)((bits[f * nw + t / 64] >> (t % 64)) & 1u);
+    free(bits);
+    status[0] = bad ? -1 : 0;
+}
+"""
+
+
+@functools.lru_cache(maxsize=None)
+def _flags() -> tuple[str, ...]:
+    """Inductor's floating-point flags for its CPU kernels (no contraction: the compiled projection's
+    values bit for bit; no trapping math: floorf and the float → int conversions vectorise), OpenMP,
+    and AVX2 + FMA when torch found the CPU to have them (as `native._flags`)."""
+    cap = ""
+    try:
+        cap = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # pragma: no cover - older torch
+        pass
+    isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
+    return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *isa)
+
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
+               "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P]}
+
+MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
+
+
+def _lib():
+    """The library (`methods.core.native.load`) or None: no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
+    if os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
+        return None
+    return native.load("tp_light_pairs", _SOURCE, _SIGNATURES, extra_flags=_flags())
+
+
+def available() -> bool:
+    """True when the pair projection runs (else the frame projects whole live rows, compiled)."""
+    return _lib() is not None
+
+
+def vis_bits(Vt: Tensor) -> Tensor:
+    """(N, ⌈n/64⌉) int64 bit sets of the non-zero columns of a visibility table Vt (N, n): bit t % 64
+    of word t // 64 (once per table)."""
+    N, n = Vt.shape
+    nw = -(-n // 64)
+    nz = torch.zeros(N, nw * 64, dtype=torch.int64)
+    nz[:, :n] = (Vt != 0).to(torch.int64)
+    sh = torch.arange(64, dtype=torch.int64)
+    return (nz.view(N, nw, 64) << sh).sum(-1)        # distinct bits: the sum is their OR (wraps to int64)
+
+
+# Pairs below which one thread projects (a hand-off costs more than the share).
+MIN_PAIRS_PER_THREAD = 256
+
+
+def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int) -> Tensor:
+    """(F, n) bool: the (grid row, live triangle) pairs that points with visibility rows / weights
+    (vrows, vw (B, k_v)) and grid rows / weights (lrows, lw (B, k_L)) read with a non-zero visibility
+    and a non-zero weight; ``bits`` = `vis_bits` of their visibility table."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    if vrows.ndim == 1:
+        vrows, vw = vrows[:, None], vw[:, None]
+    B, kv = vrows.shape
+    kl = lrows.shape[1]
+    if vw.shape != (B, kv) or lrows.shape != (B, kl) or lw.shape != (B, kl) or bits.ndim != 2 \
+            or bits.shape[1] != -(-n // 64) or bits.dtype != torch.int64:
+        raise ValueError("vrows, vw (B, k_v), lrows, lw (B, k_L) and bits (N_V, ceil(n / 64)) int64 expected")
+    vrows, lrows = (x.to(torch.int64).contiguous() for x in (vrows, lrows))
+    vw, lw = (x.to(torch.float32).contiguous() for x in (vw, lw))
+    bits = bits.contiguous()
+    out = torch.empty(F, n, dtype=torch.uint8)
+    st = torch.zeros(1, dtype=torch.int64)
+    lib.tp_need(B, kv, vrows.data_ptr(), vw.data_ptr(), kl, lrows.data_ptr(), lw.data_ptr(), bits.shape[1],
+                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr())
+    r = int(st[0])
+    if r == -1:
+        raise IndexError("a row index outside its table (read with a non-zero weight)")
+    if r != 0:
+        raise MemoryError("tp_need could not allocate its tables")
+    return out.view(torch.bool)
+
+
+def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q: Tensor, out: Tensor) -> Tensor:
+    """Project the pairs f·n + t (``pairs`` (P,) int64) into ``out`` (F, 3, n) float32 (returned): the
+    fine value of live triangle t in frame f, as `lighting.quad_means` of `lighting.env_taps` with the
+    frames' folded rotations M (F, 3, 3) = R @ T float32, the live triangles' sample planes cp (3, n, S)
+    and weights wT (n, S) (`lighting._live_sample_planes`) and the map's quad rows Q (H·(W + 1), 16)
+    (`latlong.quad_texels`; `latlong.quad_lane_weights`' lane constants are 0, 1, −1, so its weights are
+    (1 − fx or fx)(1 − fy or fy) exactly, as the loop forms them)."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    F, C, n = out.shape
+    S = cp.shape[2]
+    if C != 3 or cp.shape[:2] != (3, n) or wT.shape != (n, S) or M.shape != (F, 3, 3) or Q.shape[1] != 16 \
+            or S > MAX_SAMPLES:
+        raise ValueError(f"out (F, 3, n), M (F, 3, 3), cp (3, n, S <= {MAX_SAMPLES}), wT (n, S), Q (·, 16) expected")
+    for t in (M, cp, wT, Q, out):
+        if t.dtype != torch.float32 or t.device.type != "cpu":
+            raise ValueError("float32 CPU tensors expected")
+    if not out.is_contiguous():
+        raise ValueError("out must be contiguous")
+    if Q.shape[0] < H * (W + 1):
+        raise ValueError("quad rows of another map")
+    pairs = pairs.to(torch.int64).contiguous()
+    P = pairs.numel()
+    if P == 0:
+        return out
+    if int(pairs.min()) < 0 or int(pairs.max()) >= F * n:
+        raise IndexError("a pair outside the table")
+    M, cp, wT, Q = (x.contiguous() for x in (M, cp, wT, Q))
+    args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
+    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt)
+    return out

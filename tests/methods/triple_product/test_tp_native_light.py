@@ -1,0 +1,125 @@
+"""The native pair projection (`methods.triple_product.native_light`) against the compiled general
+projection it stands in for (`lighting.project_env` with ``tris``: the oracle), and its pair sets
+against the count's (`fast_eval.nonzero_reads`)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from methods.triple_product import fast_eval, native_light
+
+pytestmark = pytest.mark.skipif(not native_light.available(), reason="no C compiler (the compiled kernels run)")
+
+
+@pytest.mark.parametrize("supersample", [0, 1, 2])
+def test_project_pairs_equals_the_compiled_projection(supersample):
+    """`lighting.project_pairs` writes the compiled live-triangle projection's fine values bit for bit
+    (4^s = 1, 4, 16 samples per triangle; the quad rows' lane weights formed from fx, fy directly),
+    into the listed (frame, triangle) entries only, the same bits on 1, 2 and 3 threads; it needs a
+    map that is not turned about +Y only (`lighting.pairs_ok`)."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(5, 8, 1)                                             # 40 frames
+    geo, R = Geodesic(1), lt.grid_frames(g)
+    tris = torch.tensor([0, 2, 3, 7, 11, 12, 40, 41, 63, 79])
+    base = get_scene("bunny", "test").envmap
+    gen = torch.Generator().manual_seed(5)
+    for rot in ([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]], [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]):
+        env = lt.prefiltered(base.rotated(rot), geo, supersample)
+        assert lt.pairs_ok(env)
+        whole = lt.project_env(env, R, geo, supersample=supersample, grid=g, tris=tris)[1]   # (F, 3, n')
+        sel = torch.rand(g.size, tris.numel(), generator=gen) < 0.4
+        pairs = torch.nonzero(sel.view(-1)).squeeze(-1)
+        fill = torch.full((g.size, 3, tris.numel()), 7.0)
+        with torch_threads(1):
+            one = lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=pairs, out=fill.clone())
+        m = sel[:, None, :].expand(-1, 3, -1)
+        assert torch.equal(one[m], whole[m]) and bool((one[~m] == 7.0).all())
+        old = native_light.MIN_PAIRS_PER_THREAD
+        native_light.MIN_PAIRS_PER_THREAD = 4
+        try:
+            for nt in (2, 3):
+                with torch_threads(nt):
+                    got = lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=pairs, out=fill.clone())
+                assert torch.equal(got, one), nt
+        finally:
+            native_light.MIN_PAIRS_PER_THREAD = old
+        every = torch.arange(g.size * tris.numel())
+        assert torch.equal(lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=every,
+                                            out=torch.zeros_like(whole)), whole)
+    assert not lt.pairs_ok(base.rotated(rotation_y(0.7)))               # the azimuthal / comb paths
+    with pytest.raises(IndexError):
+        native_light.project(torch.tensor([g.size * tris.numel()]), torch.zeros(g.size, 3, 3),
+                             torch.zeros(3, tris.numel(), 4), torch.zeros(tris.numel(), 4), 8, 16,
+                             torch.zeros(8 * 17, 16), torch.zeros(g.size, 3, tris.numel()))
+
+
+@pytest.mark.parametrize("n", [45, 64, 130])
+def test_need_is_the_read_pairs(n):
+    """`native_light.need` = the (grid row, column) pairs some point reads with a non-zero grid
+    weight and a non-zero visibility (a visibility row with a zero weight does not count), computed
+    directly; points repeated back to back (skipped by the loop) and rows that are all zero."""
+    gen = torch.Generator().manual_seed(6)
+    N, F, B = 11, 13, 300
+    V = torch.rand(N, n, generator=gen) * (torch.rand(N, n, generator=gen) < 0.3)
+    V[0] = 0
+    V[1, -1] = 0.5                                                          # the last bit of a word
+    for kv, kl in ((1, 4), (3, 4), (3, 8)):
+        vrows = torch.randint(0, N, (B, kv), generator=gen)
+        lrows = torch.randint(0, F, (B, kl), generator=gen)
+        vw = torch.rand(B, kv, generator=gen) * (torch.rand(B, kv, generator=gen) < 0.8)
+        lw = torch.rand(B, kl, generator=gen) * (torch.rand(B, kl, generator=gen) < 0.7)
+        rep = torch.arange(B) // 3                                            # each point three times in a row
+        vrows, lrows, vw, lw = vrows[rep], lrows[rep], vw[rep], lw[rep]
+        # the first of each three with more zero weights: its repeats read more (not skipped)
+        lw[0::3] = lw[0::3] * (torch.rand(lw[0::3].shape, generator=gen) < 0.5)
+        vw[0::3] = vw[0::3] * (torch.rand(vw[0::3].shape, generator=gen) < 0.5)
+        want = torch.zeros(F, n, dtype=torch.bool)
+        for p in range(B):
+            vis = torch.zeros(n, dtype=torch.bool)
+            for j in range(kv):
+                if vw[p, j] != 0:
+                    vis |= V[vrows[p, j]] != 0
+            for j in range(kl):
+                if lw[p, j] != 0:
+                    want[lrows[p, j]] |= vis
+        got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
+        assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl)
+    with pytest.raises(IndexError):
+        native_light.need(native_light.vis_bits(V), vrows, vw, lrows + F, lw, F, n)
+
+
+@pytest.mark.parametrize("shading", ["vertex", "pixel"])
+def test_lazy_lighting_projects_the_read_pairs_that_the_count_counts(shading):
+    """A lighting change ("L": tilted axis) on the fine-value path projects the (frame, live triangle)
+    pairs its points read (`fast_eval.read_pairs`): exactly the pairs `frame_cost` counts
+    (`fast_eval.nonzero_reads`), and the image equals the one from the whole grid projected first."""
+    from methods.triple_product import TripleProduct
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    scene = get_scene("sphere_plane", "test")
+    cfg = dict(level=1, frame_grid=(9, 16, 1), brdf_dirs=(4, 4), brdf_supersample=1, shading=shading, progress=False)
+    frames = make_sequence(scene, "L", n_frames=3, seed=2)
+    lazy_m, full_m = TripleProduct(**cfg), TripleProduct(**cfg)
+    lazy_m.precompute(scene)
+    full_m.precompute(scene)
+    for i, frame in enumerate(frames):
+        gb = make_gbuffer(scene, frame, 1)
+        img = lazy_m.render(frame, gb)
+        full_m._set_lighting(frame.envmap)
+        assert torch.equal(img, full_m.render(frame, gb)), i
+        if i == 0:
+            continue
+        lz = lazy_m._lazy_light
+        live = fast_eval.live_triangles(lazy_m)
+        assert lz is not None and lz["pairs"] is not None and live is not None
+        rec = lazy_m.last_frame()
+        count = fast_eval.nonzero_reads(lazy_m, live, rec["reads"], k_v=3 if shading == "pixel" else 1, pairs=True)
+        assert lazy_m.stats["projected_pairs"] == int(lz["pairs"].sum()) == count["pairs"] > 0
+        assert count["pairs"] < int(lz["pairs"].any(1).sum()) * live.numel()       # fewer than the frames' rows
