@@ -705,6 +705,20 @@ def test_referenced_pairs_are_the_pairs_of_the_hit_faces(native, monkeypatch):
             s2, f2 = F.referenced_pairs(st, f)
             monkeypatch.setattr(F, "USE_NATIVE", True)
             assert torch.equal(sel, s2) and torch.equal(fpc, f2)
+    if native:  # the samples split over 2 and 3 threads (each marking its own copy): the same integers
+        big = torch.randint(-1, M, (1 << 17,), generator=g)
+        big[: 1 << 16] = torch.randint(0, M // 4, (1 << 16,), generator=g)  # faces only the first half reads
+        monkeypatch.setattr(F, "USE_NATIVE", False)
+        want = F.referenced_pairs(st, big)
+        monkeypatch.setattr(F, "USE_NATIVE", True)
+        n_threads = torch.get_num_threads()
+        try:
+            for t in (1, 2, 3):
+                torch.set_num_threads(t)
+                got = F.referenced_pairs(st, big)
+                assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]), t
+        finally:
+            torch.set_num_threads(n_threads)
 
 
 def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeypatch):
