@@ -163,6 +163,32 @@ def miss_face_pairs(st: FastStatic) -> Tensor:
 
 
 
+def referenced_pairs(st: FastStatic, face: Tensor) -> tuple[Tensor, Tensor]:
+    """The pairs a frame's samples read (the corners' pairs of the faces in ``face`` (n,), a G-buffer's
+    faces; −1 and other entries outside [0, M), misses, read none) and the faces' corners remapped
+    onto them: sel (m,) the pairs in ascending order, fpc (M + 1, 3) the position in sel of each face
+    corner's pair (m for a pair not in sel) with a last face of three m — `miss_face_pairs` for the
+    table of `vertex_view(..., pairs=sel)`, whose zero row is m. The native loop
+    (``native.referenced_pairs``: one pass over the samples) or the same integers in torch."""
+    n_pairs = int(st.pair_v.numel())
+    if USE_NATIVE:
+        from methods.ptt import native as _native
+
+        out = _native.referenced_pairs(face, st.face_pairs, n_pairs)
+        if out is not None:
+            return out
+    M = int(st.face_pairs.shape[0])
+    fm = torch.zeros(M, dtype=torch.bool, device=face.device)
+    fm[face[(face >= 0) & (face < M)]] = True
+    pm = torch.zeros(n_pairs, dtype=torch.bool, device=face.device)
+    pm[st.face_pairs[fm].reshape(-1)] = True
+    sel = torch.nonzero(pm).squeeze(-1)
+    m = int(sel.numel())
+    pos = torch.full((n_pairs + 1,), m, dtype=torch.int64, device=face.device)
+    pos[sel] = torch.arange(m, device=face.device)
+    return sel, pos[miss_face_pairs(st)]
+
+
 def all_true(mask: Tensor) -> bool:
     """``bool(mask.all())`` of a bool tensor, as the minimum of its bytes (a bool is stored as one
     byte, 0 false): ``Tensor.all`` on a bool tensor is a slow reduction — the G-buffer's hit mask
@@ -539,7 +565,7 @@ def _bilinear_rows(base: Tensor, ix: Tensor, iy: Tensor, tx: Tensor, ty: Tensor,
 
 
 def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
-                lobes: dict | None = None, width: int = 0) -> Tensor:
+                lobes: dict | None = None, width: int = 0, pairs: Tensor | None = None) -> Tensor:
     """Per (vertex, region) pair, at the vertex's own view direction ωo_x = (cam − x)/|cam − x|:
     the rows (n_pairs + 1, C) that the samples interpolate (the last row is 0, for padding). The
     reference is `PTT._vertex_terms`.
@@ -552,6 +578,11 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
 
     width > C: the rows padded with zero columns to that width (`table_width`, what the compiled
     sample stage reads).
+
+    pairs (m,) int64: the rows of these pairs only (m + 1 rows, the zero row last; `referenced_pairs`
+    gives the pairs a frame's samples read and the faces remapped onto them), by the same compiled
+    loops with the pair columns gathered inside (`pair_cells_of`) and the pair count symbolic (one
+    compiled variant for every m): row i equals row pairs[i] of the full table bit for bit (tested).
 
     Wr (R·T², K·3), E (V, K·3) row-major; lobes: dict(ar (R·n_θ, L·3), n_theta, vis (V·Tv², L)
     texel-major, Tv, I1 (V, S, 3) local-frame one-bounce SH radiance or None, f (L, S) the lobes'
@@ -582,17 +613,35 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     # table rows in int32 unless a table could have 2³¹ rows (`pair_indices32`)
     small = max(int(Wr.shape[0]), int(lobes["vis"].shape[0]) if lobes is not None else 0) < 2 ** 31 - Tv * Tv - T * T
     ri, vi = pair_indices32(st) if small else (r, v)
-    c = pair_cells(st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, lobes is not None,
-                   order, lobes["vis"] if lobes is not None else None)
+    pos, frm = st.pair_pos, st.pair_frame
     Ex = E if st.pair_is_vertex else rows(E, v)
-    masks = _channel_masks(K, str(Wr.device))
-    if lobes is None:
-        return pair_rows(c[0], c[1], Wr, Ex, masks, K, width=width)
     I1x = None
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
-    return pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], c[5], 1 if nt > 1 else 0, I1x,
-                     c[7] if order else None, lobes["f"] if order else None, c[6], width)
+    vis = lobes["vis"] if lobes is not None else None
+    if pairs is not None:  # the rows of these pairs only (`referenced_pairs`), their count symbolic
+        m = int(pairs.numel())
+        if m < 2:  # Dynamo specialises sizes 0 and 1 (``core.fused.call_rows``)
+            pairs = torch.cat([pairs, pairs.new_zeros(2 - m)])
+        torch._dynamo.maybe_mark_dynamic(pairs, 0)
+        c = pair_cells_of(pairs, pos, frm, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, lobes is not None,
+                          order, vis)
+        Ex = Ex.index_select(0, pairs)
+        if I1x is not None:
+            I1x = I1x.index_select(0, pairs)
+        for t in (*c, Ex) + ((I1x,) if I1x is not None else ()):  # `pair_rows`' rows symbolic too
+            torch._dynamo.maybe_mark_dynamic(t, 0)
+    else:
+        c = pair_cells(pos, frm, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, lobes is not None, order, vis)
+    masks = _channel_masks(K, str(Wr.device))
+    if lobes is None:
+        out = pair_rows(c[0], c[1], Wr, Ex, masks, K, width=width)
+    else:
+        out = pair_rows(c[0], c[1], Wr, Ex, masks, K, lobes["ar"], c[2], c[3], c[4], c[5], 1 if nt > 1 else 0, I1x,
+                        c[7] if order else None, lobes["f"] if order else None, c[6], width)
+    if pairs is not None and m < 2:  # the padding dropped: m rows and the zero row
+        out = torch.cat([out[:m], out[-1:]])
+    return out
 
 
 def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T: int, Tv: int, nt: int,
@@ -632,6 +681,13 @@ def _pair_cells(pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T
     if order:
         out = out + (_sh.sh_eval(torch.stack([-x, -y, z], -1), order),)
     return out
+
+
+def _pair_cells_of(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r: Tensor, v: Tensor, T: int, Tv: int,
+                   nt: int, lobes: bool, order: int, vis: Tensor | None = None) -> tuple:
+    """`_pair_cells` of the pairs ``pairs`` (m,) only: their columns of pos, frame and entries of r, v
+    gathered in the same loop."""
+    return _pair_cells(pos[:, pairs], frame[:, pairs], cam, r[pairs], v[pairs], T, Tv, nt, lobes, order, vis)
 
 
 def _corner_rows(i0: Tensor, tx: Tensor, ty: Tensor, T: int, w: Tensor) -> tuple[Tensor, Tensor]:
@@ -689,6 +745,7 @@ def _pair_rows(idx: Tensor, wt: Tensor, Wr: Tensor, Ex: Tensor, masks: Tensor, K
 
 
 pair_cells = fused(_pair_cells)
+pair_cells_of = fused(_pair_cells_of)
 
 
 @dataclass
@@ -1070,6 +1127,16 @@ def shade_cells(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, f
 # Whether the sample stage (`shade_cells`, `_shade_pixels_block`) and `region_tables` may take the
 # native loops of ``methods.ptt.native`` (tests switch it off to reach the compiled / eager code).
 USE_NATIVE = True
+
+
+def native_shading() -> bool:
+    """True when the sample stage runs the native loop (`USE_NATIVE` and ``native.available()``),
+    which reads a table of any row count without compiling a variant for it."""
+    if not USE_NATIVE:
+        return False
+    from methods.ptt import native
+
+    return native.available()
 
 
 def box_filter(per_sample: Tensor, H: int, W: int, S2: int) -> Tensor:

@@ -105,6 +105,14 @@ PAPER = dict(cube_res=64, n_L=96, n_wi=8, n_wo=8, light_res_1=8, light_res_2=2, 
 SHADINGS = ("vertex", "pixel")
 SHADING_DEFAULT = "vertex"
 
+# REFERENCED_PAIRS: a shading="vertex" frame whose samples the native loop shades computes the rows
+# of `fast.vertex_view` for the (vertex, region) pairs of the faces its samples lie on only
+# (`fast.referenced_pairs`, ~40 % of the pairs on the chess bench, ~31 % on the creature; what
+# `cost_terms` counts), and the sample stage reads them through the faces' corners remapped onto
+# that compact table. The same bits as the full table (tested). Off: every pair's row (the path
+# without the native loop, whose compiled sample stage would recompile for every table size).
+REFERENCED_PAIRS = True
+
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
 SEPARATE_DEFAULT = True
@@ -573,14 +581,22 @@ class PTT(Method):
             env = self._f_light[3][1]
         C = 3 + 3 * L + (3 if I1 is not None and self.separate else 0)  # columns B | s | u of the pair rows
         width = _fast.table_width(C) if FUSED_VIEW and env is not None else 0
-        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
         gb, B = gbuffer, _fast.SAMPLE_CHUNK
         self._last_view = (gb.num_samples, gb, cam)
+        pixels = FUSED_VIEW and env is not None and (_fast.all_true(gb.hit) or bool(((gb.face == -1) != gb.hit).all()))
+        if pixels and REFERENCED_PAIRS and _fast.native_shading():
+            # the rows of the pairs the samples read only (REFERENCED_PAIRS), the faces remapped onto them
+            sel, fpc = _fast.referenced_pairs(st, gb.face)
+            table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=sel)
+            img = _fast.shade_pixels_fused(fpc, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, gb.spp_side ** 2, C)
+            if img is not None:
+                return img.view(gb.height, gb.width, 3)
+        table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width)
         if FUSED_VIEW:  # compiled blocks of samples (fast.shade_samples_fused)
             # samples shaded and resolved per block (fast.shade_pixels_fused); a miss (face −1, the
             # G-buffer's contract, checked) reads the zero face of `fast.miss_face_pairs`: 0, as
             # GBuffer.resolve counts it
-            if env is not None and (_fast.all_true(gb.hit) or bool(((gb.face == -1) != gb.hit).all())):
+            if pixels:
                 img = _fast.shade_pixels_fused(_fast.miss_face_pairs(st), table, gb.face, gb.bary, gb.normal, gb.wo,
                                                env, L, gb.spp_side ** 2, C)
                 if img is not None:

@@ -179,6 +179,52 @@ void region_rows(const float* Wrows, const float* Hl, int64_t P, int64_t R, int6
         }
 }
 
+/* fast.referenced_pairs: the (vertex, region) pairs of the faces the samples lie on. face (n,) int64
+   (entries outside [0, M) — misses — skipped), face_pairs (M, 3); fmark (M + 1) and pos (np + 1)
+   scratch; out sel (np) the pairs in ascending order (returns their count
+   m) and fpc (M + 1, 3) the position in sel of each face corner's pair (m for a pair not in sel; row
+   M, the miss face, m: the zero row of the compact table). The samples are split over nt threads of
+   OpenMP's team, each marking its own nt-th of fmark (nt (M + 1) bytes), then merged. */
+int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
+                         int64_t nt, uint8_t* fmark, int64_t* pos, int64_t* sel, int64_t* fpc) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        uint8_t* fm = fmark + k * (M + 1);
+        for (int64_t f = 0; f <= M; ++f)
+            fm[f] = 0;
+        for (int64_t i = n * k / nt; i < n * (k + 1) / nt; ++i) {  /* no branch: a miss marks the spare entry M */
+            const uint64_t f = (uint64_t)face[i];
+            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
+        }
+    }
+    for (int64_t k = 1; k < nt; ++k)
+        for (int64_t f = 0; f < M; ++f)
+            fmark[f] |= fmark[k * (M + 1) + f];
+    for (int64_t p = 0; p <= np; ++p)
+        pos[p] = 0;
+    for (int64_t f = 0; f < M; ++f)
+        if (fmark[f]) {
+            pos[face_pairs[3 * f]] = 1;
+            pos[face_pairs[3 * f + 1]] = 1;
+            pos[face_pairs[3 * f + 2]] = 1;
+        }
+    int64_t m = 0;
+    for (int64_t p = 0; p < np; ++p)
+        if (pos[p]) {
+            sel[m] = p;
+            pos[p] = m++;
+        } else
+            pos[p] = -1;
+    for (int64_t p = 0; p < np; ++p)
+        if (pos[p] < 0)
+            pos[p] = m;
+    pos[np] = m;
+    for (int64_t k = 0; k < 3 * M; ++k)
+        fpc[k] = pos[face_pairs[k]];
+    fpc[3 * M] = fpc[3 * M + 1] = fpc[3 * M + 2] = m;
+    return m;
+}
+
 /* fast._mirror_cells on AVX2, 8 samples per step, with Inductor's vector operations one for one (its
    generated kernel for the compiled function: the same products, sums, divisions, the maximum /
    minimum that propagate NaN, truncating conversions) and the same Sleef acos / atan2 (passed in: the
@@ -308,9 +354,12 @@ def _cpu_tag() -> str:
 _EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{_cpu_tag()}")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
+# Samples below which one thread marks the referenced faces (`referenced_pairs`).
+_MIN_SAMPLES_PER_THREAD = 1 << 15
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SHADE = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P]
-_SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P]}
+_SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P],
+               "referenced_pairs": [_P, _I, _P, _I, _I, _I, _P, _P, _P, _P]}
 
 
 @functools.lru_cache(maxsize=None)
@@ -320,6 +369,8 @@ def _functions(lib: ctypes.CDLL):
     ``shade_mirror_par``)."""
     fn = lib.shade_pixels
     fn.par, fn.region_rows = lib.shade_pixels_par, lib.region_rows
+    fn.referenced_pairs = lib.referenced_pairs
+    fn.referenced_pairs.restype = ctypes.c_int64
     fn.cells_ok = bool(lib.native_cells_ok())
     if fn.cells_ok:
         fn.mirror_cells, fn.shade_mirror = lib.mirror_cells, lib.shade_mirror
@@ -498,3 +549,26 @@ def region_rows(W_rows: Tensor, Hl: Tensor) -> Tensor | None:
     out = torch.empty(R, T2, KC, dtype=torch.float32)
     fn.region_rows(W_rows.data_ptr(), Hl.data_ptr(), P, R, T2, KC, out.data_ptr())
     return out
+
+
+def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Tensor, Tensor] | None:
+    """``fast.referenced_pairs`` (sel, fpc) by the native loop (the same integers at any thread count:
+    the samples split over ``torch.get_num_threads()`` threads of OpenMP's team for large n, each
+    marking its own copy of the face marks); None when the loop
+    is not available or the arguments are not int64 CPU tensors (face (n,), face_pairs (M, 3) with
+    entries in [0, n_pairs))."""
+    fn = _kernel()
+    if fn is None or face.dtype != torch.int64 or face_pairs.dtype != torch.int64 or face.ndim != 1:
+        return None
+    if face.device.type != "cpu" or face_pairs.device.type != "cpu" or face_pairs.ndim != 2 or face_pairs.shape[1] != 3:
+        return None
+    face, face_pairs = face.contiguous(), face_pairs.contiguous()
+    M, n = int(face_pairs.shape[0]), int(face.shape[0])
+    nt = max(1, min(torch.get_num_threads(), n // _MIN_SAMPLES_PER_THREAD))
+    fmark = torch.empty(nt * (M + 1), dtype=torch.uint8)
+    pos = torch.empty(n_pairs + 1, dtype=torch.int64)
+    sel = torch.empty(n_pairs, dtype=torch.int64)
+    fpc = torch.empty(M + 1, 3, dtype=torch.int64)
+    m = fn.referenced_pairs(face.data_ptr(), n, face_pairs.data_ptr(), M, int(n_pairs), nt, fmark.data_ptr(),
+                            pos.data_ptr(), sel.data_ptr(), fpc.data_ptr())
+    return sel[:m], fpc

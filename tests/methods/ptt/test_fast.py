@@ -667,3 +667,110 @@ def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
         finally:
             torch.set_num_threads(1)
         assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_referenced_pairs_are_the_pairs_of_the_hit_faces(native, monkeypatch):
+    """`fast.referenced_pairs` (the native loop, or its torch twin): sel is the sorted set of the
+    corners' pairs of the faces the samples lie on (misses, face −1, read none), and fpc maps every
+    face corner onto its pair's position in sel — so a sample's three rows of the compact table are
+    its rows of the full one — with the miss face (last row) and pairs no sample reads at m, the
+    compact table's zero row. Both implementations give the same integers; also with every sample a
+    miss, and with one face only."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if native and not N.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(F, "USE_NATIVE", native)
+    g = torch.Generator().manual_seed(21)
+    n_pairs, M, n = 500, 700, 4096
+    st = F.FastStatic(torch.zeros(1), torch.zeros(1), torch.zeros(n_pairs, dtype=torch.int64), torch.zeros(1), None,
+                      torch.randint(0, n_pairs, (M, 3), generator=g))
+    face = torch.randint(0, M // 3, (n,), generator=g)  # a third of the faces: some pairs unread
+    face[::7] = -1
+    for f in (face, torch.full((n,), -1), torch.full((n,), 5)):
+        sel, fpc = F.referenced_pairs(st, f)
+        hit = f[f >= 0]
+        want = torch.unique(st.face_pairs[hit]) if hit.numel() else torch.zeros(0, dtype=torch.int64)
+        assert torch.equal(sel, want)
+        m = int(sel.numel())
+        assert fpc.shape == (M + 1, 3) and fpc.dtype == torch.int64
+        assert torch.equal(fpc[-1], torch.full((3,), m))
+        assert torch.equal(sel[fpc[hit]], st.face_pairs[hit])  # every read corner: its own pair's position
+        unread = ~torch.isin(st.face_pairs, sel)
+        assert bool((fpc[:-1][unread] == m).all())
+        if native:
+            monkeypatch.setattr(F, "USE_NATIVE", False)
+            s2, f2 = F.referenced_pairs(st, f)
+            monkeypatch.setattr(F, "USE_NATIVE", True)
+            assert torch.equal(sel, s2) and torch.equal(fpc, f2)
+    if native:  # the samples split over 2 and 3 threads (each marking its own copy): the same integers
+        big = torch.randint(-1, M, (1 << 17,), generator=g)
+        big[: 1 << 16] = torch.randint(0, M // 4, (1 << 16,), generator=g)  # faces only the first half reads
+        monkeypatch.setattr(F, "USE_NATIVE", False)
+        want = F.referenced_pairs(st, big)
+        monkeypatch.setattr(F, "USE_NATIVE", True)
+        n_threads = torch.get_num_threads()
+        try:
+            for t in (1, 2, 3):
+                torch.set_num_threads(t)
+                got = F.referenced_pairs(st, big)
+                assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]), t
+        finally:
+            torch.set_num_threads(n_threads)
+
+
+def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeypatch):
+    """`fast.vertex_view(..., pairs=sel)` (the compiled per-pair loops on the pairs ``sel`` only, their
+    count symbolic) gives, bit for bit, the rows of those pairs in the full table, and the zero row
+    last (also for 0 and 1 pairs, padded inside); and a frame rendered through the referenced pairs
+    (`method.REFERENCED_PAIRS`, the faces remapped onto the compact table) is the frame rendered from
+    the full table, bit for bit — with and without the one-bounce column, with misses."""
+    from methods.ptt import fast as F
+    from methods.ptt import method as PM
+
+    if not F.native_shading():
+        pytest.skip("no native sample stage")
+    scene = get_scene("chess", "test")
+    calls = []
+    real = F.referenced_pairs
+    monkeypatch.setattr(F, "referenced_pairs", lambda *a: calls.append(1) or real(*a))
+    for bounces in (0, 1):
+        m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=bounces)
+        m.precompute(scene)
+        frames = [_small(f) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
+        for i, f in enumerate(frames):
+            gb = make_gbuffer(scene, f, 2)
+            if i == 2:  # misses, as the G-buffer writes them
+                miss = torch.zeros_like(gb.hit)
+                miss[3::41] = True
+                gb = dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face))
+            monkeypatch.setattr(PM, "REFERENCED_PAIRS", True)
+            n_calls = len(calls)
+            a = m.render(f, gb)
+            assert len(calls) == n_calls + 1, "the referenced-pairs route was not taken"
+            monkeypatch.setattr(PM, "REFERENCED_PAIRS", False)
+            b = m.render(f, gb)
+            assert torch.equal(a, b), f"bounces {bounces} frame {i}: {(a - b).abs().max()}"
+        # the rows themselves, of the last frame's pairs and of 0 / 1 / 2 pairs
+        st = m._fast_static()
+        E, I1 = m._f_E
+        Wr, ar = m._f_tabs
+        L = len(m.config["lobe_degrees"])
+        from methods.core.zh import expand_bands
+
+        lobes = dict(ar=ar, n_theta=m.lobe_table.theta.shape[0], Tv=m.lobe_vis.shape[-1],
+                     vis=m.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L), I1=I1,
+                     f=None if I1 is None else expand_bands(m.lobe_sh), order=m.config["sh_order"])
+        C = 3 + 3 * L + (3 if I1 is not None else 0)
+        width = F.table_width(C)
+        T, K = m.factors.W_tab.shape[-1], m.factors.K
+        cam = torch.as_tensor(frames[-1].camera.origin, dtype=torch.float32)
+        full = F.vertex_view(st, cam, Wr, E, T, K, lobes, width)
+        sel, _ = F.referenced_pairs(st, gb.face)
+        assert 2 <= sel.numel() < st.pair_v.numel()
+        for s in (sel, sel[:0], sel[5:6], sel[-2:]):
+            sub = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=s)
+            assert sub.shape == (s.numel() + 1, full.shape[1])
+            assert torch.equal(sub[:-1], full[s]) and not bool(sub[-1].any())
