@@ -1059,17 +1059,19 @@ def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_norm
     """{"planar": points on the planes, "groups": planes, "plane_vertices": a zero-argument
     function (evaluated on demand, by `ZHShadow.frame_cost`) counting the vertices whose normal
     is a plane's and whose region has points on that plane — the per-vertex pass a plane needs at
-    least}, and zeros for "specular", "planar_specular" (filled by the caller)."""
+    least; given ``keep`` (N,) bool, those among the kept vertices alone (the frame's referenced
+    ones)}, and zeros for "specular", "planar_specular" (filled by the caller)."""
     out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
     for _, pos in groups:
         out["planar"] += int(torch.count_nonzero(mask)) if pos is None else int(pos.shape[0])   # (3x mask.sum())
 
-    def plane_vertices() -> int:
+    def plane_vertices(keep: Tensor | None = None) -> int:
         nv, total = vertex_normal, 0
         for n0, pos in groups:
             regs = torch.unique(region[mask] if pos is None else region[pos])
             on = (nv[:, 0] == n0[0]) & (nv[:, 1] == n0[1]) & (nv[:, 2] == n0[2])
-            total += int((on & torch.isin(vertex_region, regs)).sum())
+            on = on & torch.isin(vertex_region, regs)
+            total += int((on if keep is None else on & keep).sum())
         return total
 
     out["plane_vertices"] = plane_vertices
