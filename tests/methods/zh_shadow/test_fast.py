@@ -1137,8 +1137,9 @@ def test_pose_frame_plane_operator_equals_per_vertex_w(zh_scene, monkeypatch):
         a = fast.render(f, gb)
         if i > 0:   # the front-only branch: w for fewer columns (not the plane's)
             g = m.scene.geometry(torch.as_tensor(f.pose).float())
-            front = _front_vertices(g, f)
+            front = _front_vertices(g, f) & _referenced(g, gb)                # (`referenced_work`)
             ground = g.vertex_region == m.scene.regions.index("ground")
+            assert wide[0] == int(front.sum())
             assert len(used) == 1 and used[0] == wide[0] - int((front & ground).sum()), (used, wide)
         assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
         want = fast._render_reference(f, gb)
@@ -1309,3 +1310,69 @@ def test_pose_product_is_the_model_product_at_any_thread_count():
                 outs.append(rt._pose_product(a, Xf))
         assert torch.equal(outs[0], outs[1])
         assert float((outs[0].double() - want).abs().max()) <= 1e-6 * float(want.abs().max())
+
+
+def test_referenced_mask_native_equals_torch():
+    """`native.referenced_mask` (the C loop) = `referenced_mask_torch` = the corners of the hit
+    samples' faces counted here, on a G-buffer with misses (face −1) and on one whose missed
+    samples keep a stale face id (the hit mask, not the id, decides)."""
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    sc = get_scene("sphere_plane", "test")
+    fr = sc.default_frame()
+    g = sc.geometry()
+    full = make_gbuffer(sc, fr, 2)
+    half = _left_half_misses(full)
+    stale = dataclasses.replace(half, face=full.face)                        # misses with real face ids
+    for gb in (full, half, stale):
+        want = _referenced(g, gb) if gb is not stale else _referenced(g, half)
+        a = zn.referenced_mask(g.F, gb.face, gb.hit, g.num_vertices)
+        b = zn.referenced_mask_torch(g.F, gb.face, gb.hit, g.num_vertices)
+        assert torch.equal(a, want) and torch.equal(b, want)
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+
+    assert zn._kernel() is not None or not native.compiler() or not compile_enabled()   # (the loop ran)
+
+
+def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
+    """Vertex shading with a P frame's w, t_s and radiance, and a lighting frame's compact transfer,
+    made for the front-facing vertices the hit samples reference alone (``referenced_work``) = made
+    for every front-facing vertex (the oracle, ``referenced_work = False``) and = the reference, to
+    float32 round-off, on V / VB / VL / P / L sequences (order 8, cosine) — and lighting frames
+    under one camera, then a view change that brings vertices no earlier sample referenced into
+    view under the kept pose, then lighting frames there (the kept compact transfer must not be
+    reused for them)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, slow = m.with_render_config(), m.with_render_config()
+    slow.referenced_work = False
+    for kind in ("V", "VB", "VL", "P", "L"):
+        for f in make_sequence(m.scene, kind, 3, seed=6):
+            gb = make_gbuffer(m.scene, f, 2)
+            a, b = fast.render(f, gb), slow.render(f, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max(), (kind, f.index)
+            if kind == "L" and f.index == 2:   # (the second lighting frame: the compact transfer)
+                assert 0 < fast._vertex_compact[2][0].numel() < slow._vertex_compact[2][0].numel()
+    f0 = make_sequence(m.scene, "V", 1, seed=6)[0]
+    seen = None
+    for cam in (m.scene.camera, m.scene.camera.orbited(2.5)):
+        f = dataclasses.replace(f0, camera=cam, changed=frozenset({"view"}))
+        gb = make_gbuffer(m.scene, f, 2)
+        fast.render(f, gb), slow.render(f, gb)
+        light = dataclasses.replace(f, changed=frozenset({"light"}))
+        for _ in range(2):                                                 # (the second: the compact path)
+            a, b = fast.render(light, gb), slow.render(light, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max()
+        cols = torch.zeros(m.scene.geometry().num_vertices, dtype=torch.bool)
+        cols[fast._vertex_compact[2][0]] = True
+        if seen is not None:
+            assert int((cols & ~seen).sum()) > 0                           # vertices new to the compact set
+        seen = cols
+    want = fast._render_reference(light, gb)
+    assert (a - want).abs().max() <= 1e-5 * want.abs().max()
