@@ -1079,11 +1079,13 @@ def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_norm
 
 
 def point_counts(nT: Tensor, region: Tensor, spec_regions: list[bool], vertex_normal: Tensor,
-                 vertex_region: Tensor) -> dict:
-    """The counts `shade` reports, without shading: planes (`planar_groups`, `_plane_counts`) and
-    the points with a specular term (region in ``spec_regions``), on planes or not."""
+                 vertex_region: Tensor, min_points: int | None = None) -> dict:
+    """The counts `shade` reports, without shading: planes (`planar_groups` of at least ``min_points``
+    points, default `PLANAR_MIN_POINTS`; `_plane_counts`) and the points with a specular term
+    (region in ``spec_regions``), on planes or not."""
     Q = nT.shape[1]
-    groups, mask, _ = planar_groups(nT) if Q >= PLANAR_MIN_POINTS else ([], None, None)
+    mp = PLANAR_MIN_POINTS if min_points is None else min_points
+    groups, mask, _ = planar_groups(nT, min_points=mp) if Q >= mp else ([], None, None)
     counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
     spec = torch.tensor(spec_regions, dtype=torch.bool, device=region.device)[region.clamp_min(0)]
     counts["specular"] = int(spec.sum())
