@@ -98,6 +98,7 @@ from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
+from methods.zh_shadow import native as zn
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -259,6 +260,10 @@ def _warm_relight_planes(face: Tensor, normal: Tensor, wo: Tensor, mask: Tensor,
     _plane_face_pixels(faces, bary.permute(2, 0, 1).contiguous(), uf, clamp)
 
 
+# `ZHShadow._front_planes`' floor over the front-facing vertices the samples reference (a P frame's
+# ground: its diffuse term by one (3, n²) @ (n², n) product instead of their w and its product)
+FRONT_PLANE_MIN_POINTS = 256
+
 # A frame that shades at least this many samples off the planes per vertex builds the per-vertex
 # table even when it will not be reused (`ZHShadow._vertex_table`: break-even measured ~1.4).
 VERTEX_TABLE_POINTS = 1.5
@@ -329,6 +334,7 @@ class ZHShadow(Method):
         self._vertex_compact: tuple | None = None   # (that tuple, w, its front columns or None): `_compact_transfer`
         self._vertex_rad_d: tuple | None = None     # (lighting, w, (N, 3) lᵀ w / π): `_diffuse_ranges`
         self._tables: tuple[Any, dict] | None = None      # (lighting key, {("d", 1) | ("s", α): W})
+        self._last_vertices: tuple | None = None   # (P, referenced-vertex mask function): `_credit_referenced`
         self._last_counts: dict | None = None   # the last render's point counts ({"P": G-buffer samples,
         #                                 "Q": shaded points, and `runtime.shade`'s}), for `frame_cost`
         self._frame_state: tuple | None = None   # ((camera, pose, exponents, P, spp, shading), v): last frame
@@ -387,6 +393,12 @@ class ZHShadow(Method):
     # Lighting-only vertex-shaded frames over the front-facing vertices' transfer alone
     # (`_compact_transfer`); False: over every vertex (the tests' oracle)
     compact_lighting = True
+    # Vertex-shaded P frames (`_front_radiance`) and lighting-only frames (`_compact_transfer`) work
+    # on the front-facing vertices the hit samples reference alone (the resolve reads no other);
+    # False: on every front-facing vertex (the tests' oracle). View frames keep their t_s over every
+    # front-facing vertex: finding the referenced ones (~0.3-0.45 ms, 1 thread) cost what the smaller
+    # t_s saved (bench creature, order 8: V 0.94x, VB 0.98x, VBL 0.97x, session 27)
+    referenced_work = True
     # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
     # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
     diffuse_cache = True
@@ -498,6 +510,26 @@ class ZHShadow(Method):
         return tabs[tkey]
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
+        """`_render` (the fast path), then the vertices its count credits (`_credit_referenced`)."""
+        img = self._render(frame, gbuffer)
+        self._credit_referenced(gbuffer)
+        return img
+
+    def _credit_referenced(self, gbuffer: GBuffer) -> None:
+        """Restrict the last render's per-vertex counts (`frame_cost`) to the vertices the G-buffer's
+        hit samples reference (the corners of the faces they lie on; a vertex no hit sample's face
+        touches is read by nothing the image shows): kept as ``self._last_vertices`` = (P, a
+        zero-argument function giving that (N,) bool mask, found on first call); with vertex shading
+        the points become the front-facing AND referenced vertices (`_front_counts`' ``referenced``).
+        Nothing is computed in the frame: only `frame_cost` reads them."""
+        geom = self._posed[1] if self._posed is not None else self.scene.geometry()
+        ref = _referenced_mask(geom.F, gbuffer, int(geom.num_vertices))
+        self._last_vertices = (gbuffer.num_samples, ref)
+        lc = self._last_counts
+        if self.config["shading"] == "vertex" and isinstance(lc, _LazyCounts) and lc.front_args is not None:
+            self._last_counts = _front_counts(*lc.front_args, referenced=ref).with_fixed(P=gbuffer.num_samples)
+
+    def _render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """§4.3 for every covered sample (or vertex), batched (`methods.zh_shadow.runtime`); equal to
         `_render_reference` to float32 round-off. Cached between frames: the per-pose visibility
         (keyed on the pose), the lighting SH and its tables (the env map and its rotation), and —
@@ -798,11 +830,16 @@ class ZHShadow(Method):
         per term —
         the radiance kd ⊙ (l·t_d) + ks ⊙ (l·t_s) per vertex (0 where n·ωo ≤ 0, clamped if
         configured), interpolated per sample and box-filtered by the shared compiled Gouraud resolve
-        (`methods.core.gouraud.resolve`)."""
+        (`methods.core.gouraud.resolve`). With ``referenced_work`` a P frame's v, w, t_s and radiance
+        (`_front_radiance`) and a lighting frame's compact transfer (`_compact_transfer`) only for
+        the front-facing vertices the hit samples reference (`native.referenced_mask`): the resolve
+        reads no other vertex, whose radiance is then 0."""
         dev = gbuffer.hit.device
         vreg = geom.vertex_region.to(dev)
         alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
         key = (frame.camera, tuple(alphas))
+        ref = (lambda: zn.referenced_mask(geom.F, gbuffer.face, gbuffer.hit, int(geom.num_vertices))) \
+            if self.referenced_work else None
         spans = self._region_spans(vreg, len(mats))
         vd = self._vertex_diffuse
         radT = None
@@ -811,7 +848,8 @@ class ZHShadow(Method):
             # a new pose under the same camera (a P frame): w and t_s for the front-facing vertices
             # alone (`_front_radiance`); not kept — the next pose needs new ones, and a frame of
             # this pose under another camera other vertices' (it makes them all, as before)
-            radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg)
+            radT, counts = self._front_radiance(frame, pose_vec, geom, v0, light.to(dev), mats, alphas, spans, vreg,
+                                                ref=None if ref is None else ref())
             self._vertex_diffuse = self._vertex_transfer = self._vertex_compact = self._vertex_rad_d = None
         if radT is None and v0 is None:   # every vertex's visibility (`_pose_state`)
             _, _, v0 = self._pose_state(frame)
@@ -852,7 +890,9 @@ class ZHShadow(Method):
             cs = None
             if self.compact_lighting and spans is not None and frame.changed <= {"light", "brdf"} and rm is not None \
                     and rm[0] == gkey and rm[1] is geom:
-                cs = self._compact_transfer(vt, w, spans)
+                cs = self._compact_transfer(vt, w, spans, ref)
+            elif not frame.changed <= {"light", "brdf"}:
+                self._vertex_compact = None   # (its columns are the kept G-buffer's referenced vertices)
             if cs is not None:
                 # a lighting-only frame under a kept resolve matrix: the front-facing vertices' w and
                 # t_s gathered once into contiguous columns (`_compact_transfer`), their radiance
@@ -916,7 +956,8 @@ class ZHShadow(Method):
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
 
     def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,
-                        alphas: list, spans: list, vreg: Tensor) -> tuple[Tensor, "_LazyCounts"]:
+                        alphas: list, spans: list, vreg: Tensor, ref: Tensor | None = None
+                        ) -> tuple[Tensor, "_LazyCounts"]:
         """`_render_vertex`'s (N, 3) radiance of a new pose (cosine, every region one range of
         vertices) with w and t_s made for the front-facing vertices alone (n·ωo > 0; the others'
         radiance is zero): their columns of v gathered (contiguous: each region's front vertices
@@ -926,12 +967,17 @@ class ZHShadow(Method):
         passes' vector and tail loops over another column count); 8.3 K of the bench creature's
         13.4 K vertices. v0 (N, n²) the pose's visibility, or None: made for the front-facing
         vertices alone (`runtime.world_visibility`'s ``cols``: eq. 1 for them, and no gather of
-        the n² rows of every vertex's; not kept)."""
+        the n² rows of every vertex's; not kept). ``ref`` (N,) bool or None: the vertices the hit
+        samples reference (`native.referenced_mask`) — then only the front-facing ones among them
+        (the resolve reads no other; their rows of the radiance are the same numbers, the others 0)."""
         dev = geom.N.device
         nT = rt.rows(geom.N.to(dev).float())
         N = int(nT.shape[1])
         woT = _view_directions(frame, geom, dev)
-        idx = (rt.dot_T(nT, woT) > 0).nonzero().squeeze(-1)
+        front = rt.dot_T(nT, woT) > 0
+        if ref is not None:
+            front &= ref.to(dev)
+        idx = front.nonzero().squeeze(-1)
         nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
         if v0 is None:
             args, kw = self._visibility_args(pose_vec, geom, idx)
@@ -944,7 +990,10 @@ class ZHShadow(Method):
         # diffuse term is ((l ⊙ kd / π)ᵀ K(n0)) v, K(n0) = M(R_n0) M¹ the same for all of them
         # (`runtime.plane_cosine_operator`), so w is made for the columns lo..hi of the other regions
         # alone (a plane between two of those keeps its w: one range of columns)
-        planes = self._front_planes(nTc, cspans, alphas) if self.plane_operators else {}
+        # (over the referenced vertices a ground keeps fewer columns — 826 of its 3,721 front-facing
+        # ones on a bench creature P frame — still one product cheaper than their w: a lower floor)
+        planes = self._front_planes(nTc, cspans, alphas, rt.PLANAR_MIN_POINTS if ref is None else
+                                    min(rt.PLANAR_MIN_POINTS, FRONT_PLANE_MIN_POINTS)) if self.plane_operators else {}
         rest = [sp for r, sp in enumerate(cspans) if r not in planes and sp[1] > sp[0]]
         lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
         planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
@@ -991,12 +1040,15 @@ class ZHShadow(Method):
             torch.mul(D0[a0:a1], kd.to(D0.device, D0.dtype), out=out[a0:a1])
         return out
 
-    def _compact_transfer(self, vt: tuple, w: Tensor, spans: list) -> tuple | None:
+    def _compact_transfer(self, vt: tuple, w: Tensor, spans: list, ref=None) -> tuple | None:
         """The lighting-free transfer of the front-facing vertices of the kept `_vertex_transfer`
         ``vt`` in contiguous columns, kept with it: (idx (Nf,) their ids ascending, wf (n², Nf) their
         columns of w, per region its range of those columns, region → (range, t_s) its specular part
         — the part holds exactly the region's front-facing columns, `runtime.specular_parts`' keep),
-        or None when a part does not (then the path over every vertex)."""
+        or None when a part does not (then the path over every vertex). ``ref``: None, or a
+        zero-argument function giving the (N,) bool mask of the vertices the kept G-buffer's hit
+        samples reference — then of the front-facing vertices among those alone (the resolve reads
+        no other; `_render_vertex` drops the kept one on any frame that is not lighting / material-only)."""
         cs = self._vertex_compact
         if cs is not None and cs[0] is vt and cs[1] is w:
             return cs[2]
@@ -1011,17 +1063,26 @@ class ZHShadow(Method):
                 self._vertex_compact = (vt, w, None)
                 return None
             tsc[r] = ((b0, b1), t)
+        if ref is not None:   # the referenced ones among them: their columns of each part
+            sel = ref().to(idx.device).index_select(0, idx)
+            idx = idx[sel]
+            pos = torch.cat([sel.new_zeros(1, dtype=torch.int64), torch.cumsum(sel, 0)])
+            cb = pos.index_select(0, bounds).tolist()   # (how many of the first b front columns are kept)
+            tsc = {r: ((cb[r], cb[r + 1]), t[:, sel[b0:b1]]) for r, ((b0, b1), t) in tsc.items()}
+            cspans = list(zip(cb[:-1], cb[1:]))
         out = (idx, w.index_select(1, idx), cspans, tsc)
         self._vertex_compact = (vt, w, out)
         return out
 
-    def _front_planes(self, nT: Tensor, spans: list, alphas: list) -> dict:
+    def _front_planes(self, nT: Tensor, spans: list, alphas: list, min_points: int | None = None) -> dict:
         """Region → its normal n0 (a tuple of floats) for each region with no specular term whose
-        columns ``spans[r]`` of nT (3, Q) — at least `runtime.PLANAR_MIN_POINTS` of them — all hold
-        the same normal bitwise (`_front_radiance`: a ground plane's front-facing vertices)."""
+        columns ``spans[r]`` of nT (3, Q) — at least ``min_points`` (default
+        `runtime.PLANAR_MIN_POINTS`) of them — all hold the same normal bitwise (`_front_radiance`:
+        a ground plane's front-facing vertices)."""
         out = {}
+        min_points = rt.PLANAR_MIN_POINTS if min_points is None else min_points
         for r, (b0, b1) in enumerate(spans):
-            if alphas[r] is not None or b1 - b0 < rt.PLANAR_MIN_POINTS:
+            if alphas[r] is not None or b1 - b0 < min_points:
                 continue
             blk = nT[:, b0:b1]
             if bool((blk == blk[:, :1]).all()):
@@ -1134,8 +1195,11 @@ class ZHShadow(Method):
                 rad = rad.clamp_min(0.0)
             out = gbuffer.interpolate(rad, geom.F)
             front = (geom.N.float() * wo).sum(-1) > 0
-            lc = _front_counts(front, rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame), geom.N)
+            ref = _referenced_mask(geom.F, gbuffer, int(geom.num_vertices))
+            lc = _front_counts(front, rt.rows(geom.N.float()), geom.vertex_region, self._spec_regions(frame), geom.N,
+                               referenced=ref)
             self._last_counts = {"P": gbuffer.num_samples, "Q": lc["Q"], **lc._resolved()}
+            self._last_vertices = (gbuffer.num_samples, ref)
         else:
             idx, w = gbuffer.vertex_weights(geom.F)                            # (P, 3) each
             hits = gbuffer.hit.nonzero().squeeze(-1)
@@ -1153,6 +1217,7 @@ class ZHShadow(Method):
             self._last_counts = {"P": gbuffer.num_samples, "Q": int(hits.numel()),
                                  **rt.point_counts(rt.rows(gbuffer.normal[hits]), gbuffer.region[hits],
                                                    self._spec_regions(frame), geom.N, geom.vertex_region)}
+            self._last_vertices = (gbuffer.num_samples, _referenced_mask(geom.F, gbuffer, int(geom.num_vertices)))
         return gbuffer.resolve(out)
 
     def memory(self) -> dict[str, int]:
@@ -1194,14 +1259,20 @@ class ZHShadow(Method):
         """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
-        Points: the covered samples ("sample" shading) or the front-facing vertices ("vertex": n·ωo >
-        0; a vertex facing away has radiance 0, so neither its visibility — with "P" its model
-        product, else its cached v — nor its terms are compulsory; `_front_counts`), counted by the
-        last render on a G-buffer of ``num_samples`` samples (else: every sample covered and
-        specular, none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
+        Vertices: only the referenced ones — the corners of the faces the last render's hit samples
+        lie on (`_credit_referenced`; N_r of them) — count: a vertex no hit sample's face touches is
+        read by nothing the image shows, so neither its visibility (with "P" its model product and
+        posed normal, else its cached v), nor its position and normal, nor its terms are compulsory.
+        Points: the covered samples ("sample" shading) or the front-facing AND referenced vertices
+        ("vertex": n·ωo > 0; a vertex facing away has radiance 0, so neither its visibility nor its
+        terms are compulsory; `_front_counts`), counted by the last render on a G-buffer of
+        ``num_samples`` samples (else: every vertex referenced, every sample covered and specular,
+        none on a plane): Q points, Q_s of them with a specular term, Q_p on planes
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
-        specular (a plane of fewer than `runtime.PLANAR_MIN_POINTS` points is not looked for: its
-        points count as the others). A point on a plane needs no frame of its own for its diffuse
+        specular (a plane of fewer than `runtime.PLANAR_MIN_POINTS` points — "vertex": of fewer
+        than `FRONT_PLANE_MIN_POINTS` credited vertices, what `_front_radiance` puts on its plane
+        operator — is not looked for: its points count as the others; N_p: the plane vertices among the credited ones — referenced,
+        and for "vertex" front-facing). A point on a plane needs no frame of its own for its diffuse
         term: the lighting is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and
         M¹, 6·nnz), each plane vertex dots its v with that (6n²) and a sample interpolates the
         result (18) — fewer flops than the per-point rotations counted for the other points. Per
@@ -1212,9 +1283,11 @@ class ZHShadow(Method):
           SH lighting — and for "E" the new env map (H·W·3 float32). Frames that are not
           lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
           region; "vertex": hit, face and barycentrics — 20 bytes — to interpolate the radiance,
-          and the vertex positions and normals, N·6 float32) and per vertex, with "P", the linear
-          model X ((J+1)·N·c(2+n) float32: 6c at order 4) and the posed normals, else the cached
-          visibility in its smallest form (min(n², c(2+n) + 3) floats). Lighting-only frames ("L", "E") read instead the
+          and the referenced vertices' positions and normals for the front test, N_r·6 float32) and
+          per vertex whose visibility is needed (N_v: "sample" the referenced N_r, "vertex" the
+          points Q), with "P", its columns of the linear model X ((J+1)·N_v·c(2+n) float32: 6c at
+          order 4) and its posed normal (3), else its cached visibility in its smallest form
+          (min(n², c(2+n) + 3) floats). Lighting-only frames ("L", "E") read instead the
           cached lighting-free transfer t = M^α v of the points off the planes, in world space
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
           t, for a sample on a plane its face and two barycentrics (12 bytes: the third is
@@ -1224,7 +1297,7 @@ class ZHShadow(Method):
           operator, 8 bytes per non-zero (a float32 weight, an int32 vertex) + 4 per pixel (session 18:
           the implementation reads it instead of the G-buffer, so the G-buffer's 20 bytes per sample
           were no longer compulsory).
-        * flops (a multiply-add is 2): with "P", per vertex the model [pose, 1]·X (2(J+1)·c(2+n)) and
+        * flops (a multiply-add is 2): with "P", per vertex of the N_v the model [pose, 1]·X (2(J+1)·c(2+n)) and
           per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
           sum); with a lighting change one rotation of the SH lighting (6·Σ(2l+1)²) and for "E"
           its projection (separable: 2·H·W·3·(2n−1) + 2·H·n²·3); the planes (above: per plane,
@@ -1250,14 +1323,25 @@ class ZHShadow(Method):
         d = c * (2 + n)                                          # lobe parameters per vertex (X's width)
         P = int(num_samples)
         vertex = cfg["shading"] == "vertex"
-        lc = self._last_counts
+        lc, lv = self._last_counts, self._last_vertices
+        Nr = N                      # vertices whose data a frame reads: the referenced ones
         if lc is not None and lc["P"] == P:
             Q, Qs, Qp, Qps, G = (lc[k] for k in ("Q", "specular", "planar", "planar_specular", "groups"))
-            Np = lc["plane_vertices"]() if callable(lc["plane_vertices"]) else lc["plane_vertices"]
+            keep = None             # the vertices credited: referenced (and, "vertex", front-facing)
+            if lv is not None and lv[0] == P:
+                keep = lv[1]()
+                Nr = int(keep.sum())
+                if vertex:
+                    try:
+                        keep = lc["vertices"]
+                    except KeyError:   # (counts made without the referenced set: front-facing alone)
+                        keep = None
+            pv = lc["plane_vertices"]
+            Np = (pv() if keep is None else pv(keep)) if callable(pv) else pv
         else:
             Q = Qs = N if vertex else P
             Qp = Qps = Np = G = 0
-        Nv = Q if vertex else N     # vertices whose visibility a frame needs: "vertex", the front-facing
+        Nv = Q if vertex else Nr    # vertices whose visibility a frame needs: "vertex", the front-facing
         Qo = Q - Qp                                                # points off the planes
         pp = self._relight[3].get("plane_pass") if self._relight is not None and not vertex else None
         if kind in ("L", "E") and pp is not None and lc is not None and lc["P"] == P:
@@ -1277,8 +1361,8 @@ class ZHShadow(Method):
         if lighting_only:
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
-            b += P * 20 + N * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
-            b += (J1 * Nv * d + N * 3) * 4 if pose else Nv * min(n2, d + 3) * 4
+            b += P * 20 + Nr * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
+            b += (J1 * Nv * d + Nv * 3) * 4 if pose else Nv * min(n2, d + 3) * 4
         # -- flops
         f = Nv * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
         if light_ch:
@@ -1331,25 +1415,71 @@ def _view_directions(frame: Frame, geom, dev) -> Tensor:
     return woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
 
 
-def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor
-                  ) -> "_LazyCounts":
+def _front_counts(front: Tensor, nT: Tensor, vreg: Tensor, spec_regions: list[bool], vertex_normal: Tensor,
+                  referenced=None) -> "_LazyCounts":
     """The point counts of a vertex-shaded frame for `ZHShadow.frame_cost`: the front-facing vertices
     (``front``: n·ωo > 0 (N,) bool, or their ids, ascending int64) are its points — a vertex facing away has radiance exactly 0 (the shading's
     front test), so no work on it is compulsory (session 22: the frames skip their specular transfer;
     counted over all vertices, the count stayed while the work went, inflating the efficiency). Q
-    now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read."""
-    idx = front if front.dtype != torch.bool else front.nonzero().squeeze(-1)
-    return _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
-                                               vertex_normal, vreg), {"Q": int(idx.numel())})
+    now, the rest (`runtime.point_counts` of those vertices: planes, specular) on first read.
+
+    ``referenced``: None, or a zero-argument function giving the (N,) bool mask of the vertices the
+    frame's hit samples reference (`_referenced_mask`): the points are then the front-facing AND
+    referenced vertices (a vertex no hit sample's face touches is read by nothing the image shows),
+    every count — Q and "vertices", that (N,) mask, too — found on first read."""
+    args = (front, nT, vreg, spec_regions, vertex_normal)
+    if referenced is None:
+        idx = front if front.dtype != torch.bool else front.nonzero().squeeze(-1)
+        out = _LazyCounts(lambda: rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
+                                                  vertex_normal, vreg), {"Q": int(idx.numel())})
+    else:
+        def count() -> dict:
+            keep = referenced().clone()
+            if front.dtype == torch.bool:
+                keep &= front
+            else:
+                fm = torch.zeros_like(keep)
+                fm[front] = True
+                keep &= fm
+            idx = keep.nonzero().squeeze(-1)
+            # planes of >= FRONT_PLANE_MIN_POINTS referenced vertices: what `_front_radiance` shades
+            # by the plane operator (a count at 1024 credited the bench creature's 826 referenced
+            # ground vertices with per-vertex rotations: order-8 P 56.1 against 52.2 MFLOP)
+            return {"Q": int(idx.numel()), "vertices": keep,
+                    **rt.point_counts(nT.index_select(1, idx), vreg.index_select(0, idx), spec_regions,
+                                      vertex_normal, vreg,
+                                      min_points=min(rt.PLANAR_MIN_POINTS, FRONT_PLANE_MIN_POINTS))}
+        out = _LazyCounts(count, has_vertices=True)
+    out.front_args = args
+    return out
+
+
+def _referenced_mask(F: Tensor, gbuffer: GBuffer, N: int):
+    """A zero-argument function giving the (N,) bool mask of the vertices the hit samples of
+    ``gbuffer`` reference (the corners of the faces they lie on, F (M, 3) the faces), computed on
+    its first call (`frame_cost` only: nothing in the frame)."""
+    face, hit = gbuffer.face, gbuffer.hit
+    memo: list = []
+
+    def mask() -> Tensor:
+        if not memo:
+            m = torch.zeros(N, dtype=torch.bool, device=face.device)
+            f = torch.unique(face[hit])
+            m[F.to(face.device).long().index_select(0, f.long()).reshape(-1)] = True
+            memo.append(m)
+        return memo[0]
+    return mask
 
 
 class _LazyCounts(dict):
     """The point counts of a vertex-shaded frame (`runtime.point_counts`: its planar groups), found
     on first read — only `ZHShadow.frame_cost` reads them, the frame itself does not need them."""
 
-    def __init__(self, count, fixed: dict | None = None):
+    def __init__(self, count, fixed: dict | None = None, has_vertices: bool = False):
         super().__init__(fixed or {})
         self._count = count
+        self._has_vertices = has_vertices      # the count gives "vertices" (the credited vertices' mask)
+        self.front_args = None                 # `_front_counts`' arguments (`ZHShadow._credit_referenced`)
 
     def __missing__(self, key):
         self.update({k: v for k, v in self._count().items() if k not in self})
@@ -1358,10 +1488,13 @@ class _LazyCounts(dict):
 
     def with_fixed(self, **fixed) -> "_LazyCounts":
         """A copy with ``fixed`` entries set, sharing the count (computed at most once per copy)."""
-        return _LazyCounts(self._resolved, {**{k: v for k, v in self.items()}, **fixed})
+        out = _LazyCounts(self._resolved, {**{k: v for k, v in self.items()}, **fixed}, self._has_vertices)
+        out.front_args = self.front_args
+        return out
 
     def _resolved(self) -> dict:
-        return {k: self[k] for k in ("planar", "groups", "planar_specular", "specular", "plane_vertices")}
+        return {k: self[k] for k in ("Q", "planar", "groups", "planar_specular", "specular", "plane_vertices",
+                                     "vertices") if k != "vertices" or self._has_vertices}
 
 
 class _PoseAdapter:

@@ -1059,17 +1059,19 @@ def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_norm
     """{"planar": points on the planes, "groups": planes, "plane_vertices": a zero-argument
     function (evaluated on demand, by `ZHShadow.frame_cost`) counting the vertices whose normal
     is a plane's and whose region has points on that plane — the per-vertex pass a plane needs at
-    least}, and zeros for "specular", "planar_specular" (filled by the caller)."""
+    least; given ``keep`` (N,) bool, those among the kept vertices alone (the frame's referenced
+    ones)}, and zeros for "specular", "planar_specular" (filled by the caller)."""
     out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
     for _, pos in groups:
         out["planar"] += int(torch.count_nonzero(mask)) if pos is None else int(pos.shape[0])   # (3x mask.sum())
 
-    def plane_vertices() -> int:
+    def plane_vertices(keep: Tensor | None = None) -> int:
         nv, total = vertex_normal, 0
         for n0, pos in groups:
             regs = torch.unique(region[mask] if pos is None else region[pos])
             on = (nv[:, 0] == n0[0]) & (nv[:, 1] == n0[1]) & (nv[:, 2] == n0[2])
-            total += int((on & torch.isin(vertex_region, regs)).sum())
+            on = on & torch.isin(vertex_region, regs)
+            total += int((on if keep is None else on & keep).sum())
         return total
 
     out["plane_vertices"] = plane_vertices
@@ -1077,11 +1079,13 @@ def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_norm
 
 
 def point_counts(nT: Tensor, region: Tensor, spec_regions: list[bool], vertex_normal: Tensor,
-                 vertex_region: Tensor) -> dict:
-    """The counts `shade` reports, without shading: planes (`planar_groups`, `_plane_counts`) and
-    the points with a specular term (region in ``spec_regions``), on planes or not."""
+                 vertex_region: Tensor, min_points: int | None = None) -> dict:
+    """The counts `shade` reports, without shading: planes (`planar_groups` of at least ``min_points``
+    points, default `PLANAR_MIN_POINTS`; `_plane_counts`) and the points with a specular term
+    (region in ``spec_regions``), on planes or not."""
     Q = nT.shape[1]
-    groups, mask, _ = planar_groups(nT) if Q >= PLANAR_MIN_POINTS else ([], None, None)
+    mp = PLANAR_MIN_POINTS if min_points is None else min_points
+    groups, mask, _ = planar_groups(nT, min_points=mp) if Q >= mp else ([], None, None)
     counts = _plane_counts(groups, mask, region, vertex_normal, vertex_region)
     spec = torch.tensor(spec_regions, dtype=torch.bool, device=region.device)[region.clamp_min(0)]
     counts["specular"] = int(spec.sum())

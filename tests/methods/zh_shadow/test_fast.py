@@ -780,11 +780,19 @@ def _front_vertices(g, fr) -> torch.Tensor:
     return (g.N.float() * (cam - g.V.float())).sum(-1) > 0
 
 
+def _referenced(g, gb) -> torch.Tensor:
+    """(N,) the vertices the hit samples of ``gb`` reference: the corners of the faces they lie on."""
+    ref = torch.zeros(g.num_vertices, dtype=torch.bool)
+    ref[g.F.long()[gb.face[gb.hit].long()].reshape(-1)] = True
+    return ref
+
+
 def test_frame_cost_hand_count():
     """Bytes and flops of every frame kind on a tiny static scene, counted by hand (order 4,
     2 lobes: Σ(2l+1)² = 84 rotation entries, 44 non-zeros of M^α, 16 SH coefficients). The plane's
     samples (Lambert, all with the normal +y) are counted here from the G-buffer and the mesh,
-    independently of `runtime.planar_groups`."""
+    independently of `runtime.planar_groups`; the per-vertex terms over the vertices the hit samples
+    reference (`_referenced`), with vertex shading the front-facing ones among them."""
     from references.gbuffer import make_gbuffer
     from scenes.library import get_scene
 
@@ -801,14 +809,17 @@ def test_frame_cost_hand_count():
     Q = int(gb.hit.sum())                                                    # covered samples
     Qs = int((gb.region[gb.hit] == sc.regions.index("sphere")).sum())        # the Phong sphere
     Qp = int((gb.hit & (gb.normal == up).all(-1)).sum())                     # on the plane (Lambert)
-    Np = int(((g.N == up).all(-1) & (g.vertex_region == sc.regions.index("plane"))).sum())  # the plane's vertices
-    assert Qp == Q - Qs and Qp >= 1024 and Np == int((g.vertex_region == sc.regions.index("plane")).sum()) > 0
+    ref = _referenced(g, gb)
+    Nr = int(ref.sum())                                                      # referenced vertices
+    Np = int(((g.N == up).all(-1) & (g.vertex_region == sc.regions.index("plane")) & ref).sum())  # plane's, referenced
+    assert Qp == Q - Qs and Qp >= 1024 and 0 < Np <= int((g.vertex_region == sc.regions.index("plane")).sum())
+    assert Nr < N                                                            # the sphere's far side is not seen
     J1 = 1                                                                   # static: the bias row
     H, W = sc.envmap.data.shape[:2]
     plane = 12 * 84 + 6 * 44 + Np * 6 * 16                                  # l to the plane's frame; v·T per vertex
     gbuf = P * (GBUFFER_BYTES_PER_SAMPLE + 8) + P * 12                     # + region, + output
     fixed = nF * 3 * 8 + 2 * 7 * 4 + 2 * 44 * 4 + 16 * 3 * 4                # F, BRDFs, M¹ + M^s, lighting
-    vis = N * 15 * 4                                                         # min(16, 6·2 + 3) floats
+    vis = Nr * 15 * 4                                                        # min(16, 6·2 + 3) floats
     diff = 6 * 84 + 6 * 16 + 2 * 44                                           # rotate l, dot, M¹ v
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9                              # + rotate v, R
     per = Qs * (diff + spec + 6 * 16) + Q * (5 + 12) + Qp * 18 + plane        # + interpolation of v / of v·T
@@ -825,8 +836,8 @@ def test_frame_cost_hand_count():
     c = mc.frame_cost("V", P)
     assert (c.bytes, c.flops) == (gbuf + fixed + vis, per + Qs * 2 * 44)
     c = m.frame_cost("P", P)                                                 # the model instead of the cache
-    pose = N * (2 * J1 * 12 + 2 * (25 + 3 * 16))
-    assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * N * 12 + N * 3) * 4, per + pose)
+    pose = Nr * (2 * J1 * 12 + 2 * (25 + 3 * 16))
+    assert (c.bytes, c.flops) == (gbuf + fixed + (J1 * Nr * 12 + Nr * 3) * 4, per + pose)
     lo_b = P * 12 + fixed + Qs * 2 * 16 * 4 + Np * 16 * 4 + Qp * 12          # t_d, t_s; plane v, face + u, v
     lo_f = Qs * 2 * 6 * 16 + Q * 12 + Qp * 18 + plane + 6 * 84                # t·l per term, kd/ks, plane, rotate l
     c = m.frame_cost("L", P)
@@ -846,7 +857,8 @@ def test_frame_cost_hand_count():
         assert mp.last_path == "relight-planes"
         onp = gb2.hit & (gb2.normal == up).all(-1) & ((gb2.normal * gb2.wo).sum(-1) > 0)
         Nc = torch.unique(g.F.long()[torch.unique(gb2.face[onp].long())]).numel()
-        assert 0 < Nc < Np
+        Np2 = int(((g.N == up).all(-1) & (g.vertex_region == sc.regions.index("plane")) & _referenced(g, gb2)).sum())
+        assert 0 < Nc <= Np2
         P2, Q2 = gb2.num_samples, int(gb2.hit.sum())
         Qs2 = int((gb2.region[gb2.hit] == sc.regions.index("sphere")).sum())
         Qp2 = int((gb2.hit & (gb2.normal == up).all(-1)).sum())
@@ -858,15 +870,15 @@ def test_frame_cost_hand_count():
     assert big.flops == 4 * P * (diff + 5 + 12 + 6 * 16 + spec)
     # vertex shading: the points are the front-facing vertices (a vertex facing away has radiance
     # 0: none of its work is compulsory), counted here from the mesh and the camera
-    front = _front_vertices(g, fr)
+    front = _front_vertices(g, fr) & ref                                     # front-facing AND referenced
     Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
-    assert 0 < Nsf < N - Np and Nf == Nsf + Np                               # the sphere's far side is not
+    assert 0 < Nsf < N - Np and Nf == Nsf + Np and Nf < int(_front_vertices(g, fr).sum())
     for shading in ("vertex", "vertex-reference"):
         mv = m.with_render_config(shading="vertex")
         (mv._render_reference if shading.endswith("reference") else mv.render)(fr, gb)
         assert mv._last_counts["groups"] == 0          # 625 plane vertices < PLANAR_MIN_POINTS: no plane
         c = mv.frame_cost("V", P)
-        assert c.bytes == P * 20 + P * 12 + fixed + Nf * 15 * 4 + N * 6 * 4, shading
+        assert c.bytes == P * 20 + P * 12 + fixed + Nf * 15 * 4 + Nr * 6 * 4, shading
         assert c.flops == Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18, shading
         c = mv.frame_cost("P", P)                                            # the model of those vertices
         assert c.flops == Nf * (2 * J1 * 12 + 2 * (25 + 3 * 16)) + Nf * diff + Nsf * spec + Nf * (5 + 12) + P * 18
@@ -889,6 +901,65 @@ def test_frame_cost_hand_count():
     assert math.isfinite(c.bytes) and c.flops > 0
 
 
+def _left_half_misses(gb):
+    """A copy of ``gb`` whose samples in the left half of the image miss (stored as `_knock_out`'s)."""
+    S2 = gb.spp_side ** 2
+    x = torch.arange(gb.width).view(1, gb.width, 1).expand(gb.height, gb.width, S2).reshape(-1)
+    return dataclasses.replace(gb, **_misses(gb, x < gb.width // 2))
+
+
+def _misses(gb, miss):
+    """The G-buffer fields of ``gb`` with the samples ``miss`` (P,) bool stored as misses."""
+    S = gb.spp_side
+    return dict(hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1), region=gb.region.masked_fill(miss, -1),
+                bary=gb.bary.masked_fill(miss[:, None], 0.0), normal=gb.normal.masked_fill(miss[:, None], 0.0),
+                position=gb.position.masked_fill(miss[:, None], 0.0),
+                coverage=gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1))
+
+
+def test_frame_cost_counts_referenced_vertices_only():
+    """A G-buffer whose left half misses references about half the mesh: the per-vertex terms of
+    the count — a P frame's model product, posed normals and eq. 1 against a V frame's cached
+    visibility ("sample"); the points and the positions and normals read ("vertex") — cover exactly
+    the vertices its hit samples' faces touch (fewer than the full G-buffer's, counted here from
+    the faces), for the fast path and the reference alike. A count over an unreferenced vertex
+    (every vertex, or the front-facing ones) fails."""
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    sc = get_scene("sphere_plane", "test")
+    m = ZHShadow(**SMALL)
+    m.precompute(sc)
+    fr = sc.default_frame()
+    full = make_gbuffer(sc, fr, 1)
+    gb = _left_half_misses(full)
+    g = sc.geometry()
+    ref, ref_full = _referenced(g, gb), _referenced(g, full)
+    Nr = int(ref.sum())
+    assert 0 < Nr < int(ref_full.sum()) < g.num_vertices and bool((ref <= ref_full).all())
+    P, J1 = gb.num_samples, 1
+    for path in ("render", "_render_reference"):
+        mm = m.with_render_config()
+        getattr(mm, path)(fr, gb)
+        cP, cV = mm.frame_cost("P", P), mm.frame_cost("V", P)
+        assert cP.bytes - cV.bytes == (J1 * Nr * 12 + Nr * 3) * 4 - Nr * 15 * 4, path
+        assert cP.flops - cV.flops == Nr * (2 * J1 * 12 + 2 * (25 + 3 * 16)), path
+    front = _front_vertices(g, fr)
+    Nf = int((front & ref).sum())
+    assert 0 < Nf < int((front & ref_full).sum())
+    for path in ("render", "_render_reference"):
+        mv = m.with_render_config(shading="vertex")
+        getattr(mv, path)(fr, gb)
+        assert mv._last_counts["Q"] == Nf, path
+        cP, cV = mv.frame_cost("P", P), mv.frame_cost("V", P)
+        assert cP.flops - cV.flops == Nf * (2 * J1 * 12 + 2 * (25 + 3 * 16)), path
+        assert cP.bytes - cV.bytes == (J1 * Nf * 12 + Nf * 3) * 4 - Nf * 15 * 4, path
+        mv.render(fr, full)                                                  # the full G-buffer: more
+        cF = mv.frame_cost("V", P)
+        Nrf, Nff = int(ref_full.sum()), int((front & ref_full).sum())
+        assert cF.bytes - cV.bytes == (Nff - Nf) * 15 * 4 + (Nrf - Nr) * 6 * 4, path
+
+
 def test_frame_cost_vertex_planes(monkeypatch):
     """Vertex shading with planes (threshold lowered to 64 points): the plane's 625 vertices and the
     sphere's pole (its normal is exactly +y too) form one plane over both regions; counted by hand."""
@@ -904,10 +975,11 @@ def test_frame_cost_vertex_planes(monkeypatch):
     m.render(fr, gb)
     P, g = gb.num_samples, sc.geometry()
     on = (g.N == torch.tensor([0.0, 1.0, 0.0])).all(-1)
-    front = _front_vertices(g, fr)                                           # the points (test above)
-    Np = int(on.sum())
+    front = _front_vertices(g, fr) & _referenced(g, gb)                      # the points (test above)
+    assert int(on.sum()) == 626 and bool(_front_vertices(g, fr)[on].all())
+    Np = int((on & front).sum())                                             # the plane's, referenced
     Nf, Nsf = int(front.sum()), int((front & (g.vertex_region == sc.regions.index("sphere"))).sum())
-    assert Np == 626 and bool(front[on].all()) and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
+    assert 64 <= Np < 626 and m._last_counts["groups"] == 1 and m._last_counts["planar"] == Np
     diff = 6 * 84 + 6 * 16 + 2 * 44
     spec = 6 * 84 + 6 * 16 + 2 * 84 + 2 * 44 + 9
     c = m.frame_cost("V", P)
@@ -1065,8 +1137,9 @@ def test_pose_frame_plane_operator_equals_per_vertex_w(zh_scene, monkeypatch):
         a = fast.render(f, gb)
         if i > 0:   # the front-only branch: w for fewer columns (not the plane's)
             g = m.scene.geometry(torch.as_tensor(f.pose).float())
-            front = _front_vertices(g, f)
+            front = _front_vertices(g, f) & _referenced(g, gb)                # (`referenced_work`)
             ground = g.vertex_region == m.scene.regions.index("ground")
+            assert wide[0] == int(front.sum())
             assert len(used) == 1 and used[0] == wide[0] - int((front & ground).sum()), (used, wide)
         assert (a - b).abs().max() <= 1e-5 * b.abs().max(), i
         want = fast._render_reference(f, gb)
@@ -1237,3 +1310,69 @@ def test_pose_product_is_the_model_product_at_any_thread_count():
                 outs.append(rt._pose_product(a, Xf))
         assert torch.equal(outs[0], outs[1])
         assert float((outs[0].double() - want).abs().max()) <= 1e-6 * float(want.abs().max())
+
+
+def test_referenced_mask_native_equals_torch():
+    """`native.referenced_mask` (the C loop) = `referenced_mask_torch` = the corners of the hit
+    samples' faces counted here, on a G-buffer with misses (face −1) and on one whose missed
+    samples keep a stale face id (the hit mask, not the id, decides)."""
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+
+    sc = get_scene("sphere_plane", "test")
+    fr = sc.default_frame()
+    g = sc.geometry()
+    full = make_gbuffer(sc, fr, 2)
+    half = _left_half_misses(full)
+    stale = dataclasses.replace(half, face=full.face)                        # misses with real face ids
+    for gb in (full, half, stale):
+        want = _referenced(g, gb) if gb is not stale else _referenced(g, half)
+        a = zn.referenced_mask(g.F, gb.face, gb.hit, g.num_vertices)
+        b = zn.referenced_mask_torch(g.F, gb.face, gb.hit, g.num_vertices)
+        assert torch.equal(a, want) and torch.equal(b, want)
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+
+    assert zn._kernel() is not None or not native.compiler() or not compile_enabled()   # (the loop ran)
+
+
+def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
+    """Vertex shading with a P frame's w, t_s and radiance, and a lighting frame's compact transfer,
+    made for the front-facing vertices the hit samples reference alone (``referenced_work``) = made
+    for every front-facing vertex (the oracle, ``referenced_work = False``) and = the reference, to
+    float32 round-off, on V / VB / VL / P / L sequences (order 8, cosine) — and lighting frames
+    under one camera, then a view change that brings vertices no earlier sample referenced into
+    view under the kept pose, then lighting frames there (the kept compact transfer must not be
+    reused for them)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, slow = m.with_render_config(), m.with_render_config()
+    slow.referenced_work = False
+    for kind in ("V", "VB", "VL", "P", "L"):
+        for f in make_sequence(m.scene, kind, 3, seed=6):
+            gb = make_gbuffer(m.scene, f, 2)
+            a, b = fast.render(f, gb), slow.render(f, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max(), (kind, f.index)
+            if kind == "L" and f.index == 2:   # (the second lighting frame: the compact transfer)
+                assert 0 < fast._vertex_compact[2][0].numel() < slow._vertex_compact[2][0].numel()
+    f0 = make_sequence(m.scene, "V", 1, seed=6)[0]
+    seen = None
+    for cam in (m.scene.camera, m.scene.camera.orbited(2.5)):
+        f = dataclasses.replace(f0, camera=cam, changed=frozenset({"view"}))
+        gb = make_gbuffer(m.scene, f, 2)
+        fast.render(f, gb), slow.render(f, gb)
+        light = dataclasses.replace(f, changed=frozenset({"light"}))
+        for _ in range(2):                                                 # (the second: the compact path)
+            a, b = fast.render(light, gb), slow.render(light, gb)
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max()
+        cols = torch.zeros(m.scene.geometry().num_vertices, dtype=torch.bool)
+        cols[fast._vertex_compact[2][0]] = True
+        if seen is not None:
+            assert int((cols & ~seen).sum()) > 0                           # vertices new to the compact set
+        seen = cols
+    want = fast._render_reference(light, gb)
+    assert (a - want).abs().max() <= 1e-5 * want.abs().max()
