@@ -534,6 +534,21 @@ def test_glossy_blocks_one_call_any_count_equals_the_kernel_per_sample():
     assert counters["stats"]["unique_graphs"] == graphs
 
 
+def _checker(m: SHPRT):
+    """check(frame, gb): ``m.render`` equals `render_reference` of a copy sharing m's precomputation
+    (its own caches) to float32 round-off, on a non-black image; returns the render."""
+    ref = SHPRT.__new__(SHPRT)
+    ref.__dict__ = dict(m.__dict__)
+    ref._reset_cache()
+
+    def check(frame, gb):
+        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
+        assert want.abs().max() > 0
+        assert (img - want).abs().max().item() <= 1e-5 * want.abs().max().item()
+        return img
+    return check
+
+
 @pytest.mark.parametrize("scene_name", ["alcove", "creature"])
 def test_lighting_only_frames_shade_from_the_relight_cache(scene_name):
     """Lighting-only frames (``changed`` ⊆ {"light"}, same camera, materials and G-buffer size as
@@ -547,14 +562,7 @@ def test_lighting_only_frames_shade_from_the_relight_cache(scene_name):
     m = SHPRT(order=4, bounces=0, rays=16)
     m.precompute(scene)
     assert m.glossy_regions.any()
-    ref = SHPRT.__new__(SHPRT)
-    ref.__dict__ = dict(m.__dict__)
-    ref._reset_cache()
-
-    def check(frame, gb):
-        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
-        assert (img - want).abs().max().item() <= 1e-5 * max(want.abs().max().item(), 1e-6)
-        return img
+    check = _checker(m)
 
     for kind in ("L", "E"):
         m._reset_cache()
@@ -635,14 +643,7 @@ def test_lighting_change_computes_only_the_referenced_glossy_rows(scene_name, bo
     m = SHPRT(order=4, bounces=bounces, rays=16)              # bounces 1: RGB transfer (C = 3)
     m.precompute(scene)
     assert m.M.shape[-1] == (3 if bounces else 1)
-    ref = SHPRT.__new__(SHPRT)
-    ref.__dict__ = dict(m.__dict__)
-    ref._reset_cache()
-
-    def check(frame, gb):
-        img, want = m.render(frame, gb), ref.render_reference(frame, gb)
-        assert (img - want).abs().max().item() <= 1e-5 * max(want.abs().max().item(), 1e-6)
-        assert want.abs().max() > 0
+    check = _checker(m)
 
     frames = make_sequence(scene, "VL", n_frames=3, seed=4)
     for f in frames:
