@@ -1271,8 +1271,8 @@ class ZHShadow(Method):
         (`runtime.planar_groups`: bitwise-equal normals, G planes, N_p vertices) of which Q_ps
         specular (a plane of fewer than `runtime.PLANAR_MIN_POINTS` points — "vertex": of fewer
         than `FRONT_PLANE_MIN_POINTS` credited vertices, what `_front_radiance` puts on its plane
-        operator — is not looked for: its points count as the others; N_p: the plane vertices among the credited ones — referenced,
-        and for "vertex" front-facing). A point on a plane needs no frame of its own for its diffuse
+        operator — is not looked for: its points count as the others; N_p: the plane vertices among
+        the credited ones — referenced, and for "vertex" front-facing). A point on a plane needs no frame of its own for its diffuse
         term: the lighting is taken to the plane's frame once (there and back, 12·Σ(2l+1)², and
         M¹, 6·nnz), each plane vertex dots its v with that (6n²) and a sample interpolates the
         result (18) — fewer flops than the per-point rotations counted for the other points. Per
@@ -1286,7 +1286,8 @@ class ZHShadow(Method):
           and the referenced vertices' positions and normals for the front test, N_r·6 float32) and
           per vertex whose visibility is needed (N_v: "sample" the referenced N_r, "vertex" the
           points Q), with "P", its columns of the linear model X ((J+1)·N_v·c(2+n) float32: 6c at
-          order 4) and its posed normal (3), else its cached visibility in its smallest form
+          order 4) and its posed normal (3; "vertex": among the N_r·6 above, not counted twice),
+          else its cached visibility in its smallest form
           (min(n², c(2+n) + 3) floats). Lighting-only frames ("L", "E") read instead the
           cached lighting-free transfer t = M^α v of the points off the planes, in world space
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
@@ -1362,7 +1363,9 @@ class ZHShadow(Method):
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
             b += P * 20 + Nr * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
-            b += (J1 * Nv * d + Nv * 3) * 4 if pose else Nv * min(n2, d + 3) * 4
+            # "P": X's columns and the posed normals — for "vertex" those normals are among the N_r·6
+            # positions and normals already counted above (read once: not counted again)
+            b += (J1 * Nv * d + (0 if vertex else Nv * 3)) * 4 if pose else Nv * min(n2, d + 3) * 4
         # -- flops
         f = Nv * (2 * J1 * d + c * (25 + 3 * n2)) if pose else 0
         if light_ch:

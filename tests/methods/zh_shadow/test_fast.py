@@ -953,7 +953,7 @@ def test_frame_cost_counts_referenced_vertices_only():
         assert mv._last_counts["Q"] == Nf, path
         cP, cV = mv.frame_cost("P", P), mv.frame_cost("V", P)
         assert cP.flops - cV.flops == Nf * (2 * J1 * 12 + 2 * (25 + 3 * 16)), path
-        assert cP.bytes - cV.bytes == (J1 * Nf * 12 + Nf * 3) * 4 - Nf * 15 * 4, path
+        assert cP.bytes - cV.bytes == J1 * Nf * 12 * 4 - Nf * 15 * 4, path     # posed normals: in N_r·6
         mv.render(fr, full)                                                  # the full G-buffer: more
         cF = mv.frame_cost("V", P)
         Nrf, Nff = int(ref_full.sum()), int((front & ref_full).sum())
