@@ -185,16 +185,20 @@ void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, co
 
 
 @functools.lru_cache(maxsize=None)
-def _flags() -> tuple[str, ...]:
-    """Fused multiply-adds; AVX2 + FMA when torch found the CPU to have them (the library is built
-    on the machine that runs it; the flags are part of its cache key)."""
+def isa_flags() -> tuple[str, ...]:
+    """AVX2 + FMA when torch found the CPU to have them, else none (the libraries are built on the
+    machine that runs them; the flags are part of their cache keys)."""
     cap = ""
     try:
         cap = torch.backends.cpu.get_cpu_capability()
     except Exception:  # pragma: no cover - older torch
         pass
-    isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-    return ("-ffp-contract=fast", "-fopenmp", *isa)
+    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
+
+
+def _flags() -> tuple[str, ...]:
+    """Fused multiply-adds, OpenMP and `isa_flags`."""
+    return ("-ffp-contract=fast", "-fopenmp", *isa_flags())
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -205,10 +209,16 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]}
 
 
+def switched_on() -> bool:
+    """False when ``PRTBENCH_TP_NATIVE`` is 0 / false / no / off: the triple product's native loops
+    (this module's and `native_light`'s) are then not used."""
+    return os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() not in ("0", "false", "no", "off")
+
+
 def _lib():
     """The library (`methods.core.native.load`) or None: no compiler, the build failed,
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
-    if os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
+    if not switched_on():
         return None
     return native.load("tp_zeros", _SOURCE, _SIGNATURES, extra_flags=_flags())
 

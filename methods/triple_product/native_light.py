@@ -32,12 +32,12 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
 
 import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.triple_product import native as tp_native
 
 __all__ = ["available", "vis_bits", "need", "project"]
 
@@ -241,14 +241,8 @@ void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64
 def _flags() -> tuple[str, ...]:
     """Inductor's floating-point flags for its CPU kernels (no contraction: the compiled projection's
     values bit for bit; no trapping math: floorf and the float → int conversions vectorise), OpenMP,
-    and AVX2 + FMA when torch found the CPU to have them (as `native._flags`)."""
-    cap = ""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        pass
-    isa = ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-    return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *isa)
+    and AVX2 + FMA when torch found the CPU to have them (`native.isa_flags`)."""
+    return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *tp_native.isa_flags())
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -262,7 +256,7 @@ MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersam
 def _lib():
     """The library (`methods.core.native.load`) or None: no compiler, the build failed,
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
-    if os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() in ("0", "false", "no", "off"):
+    if not tp_native.switched_on():
         return None
     return native.load("tp_light_pairs", _SOURCE, _SIGNATURES, extra_flags=_flags())
 
