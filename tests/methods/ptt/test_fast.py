@@ -331,14 +331,7 @@ def test_shade_block_equals_the_masked_lane_form_bit_for_bit(S2):
     H, W = 16, 32
     maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
     for C in (3 + 3 * L, 6 + 3 * L):
-        width = F.table_width(C)
-        st = F.env_stack(maps, width)
-        erows = F.env_rows(st, width)
-        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
-        table[-1] = 0.0
-        lanes = F._lane_masks(C, L, width)
-        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
-        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        width, erows, table, lanes, r, fx, fy = _shade_tables(g, maps, C, L, n_pairs, H, W, n)
         new = F._shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
         old = _shade_block_masked(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
         assert torch.equal(new, old)
@@ -351,6 +344,22 @@ class _FakeEnv:
 
     data: torch.Tensor
     to_world: torch.Tensor = dataclasses.field(default_factory=lambda: torch.eye(3))
+
+def _shade_tables(g, maps: list, C: int, L: int, n_pairs: int, H: int, W: int, n: int) -> tuple:
+    """A shading stage's tables for C columns and L env maps (``fast.env_stack`` rows, a random pair
+    table whose last row — the miss face's — is 0, the lane masks) and n random env cells:
+    (width, erows, table, lanes, r, fx, fy)."""
+    from methods.ptt import fast as F
+
+    width = F.table_width(C)
+    erows = F.env_rows(F.env_stack(maps, width), width)
+    table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+    table[-1] = 0.0
+    lanes = F._lane_masks(C, L, width)
+    r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
+    fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+    return width, erows, table, lanes, r, fx, fy
+
 
 def _random_shading_inputs(n: int, seed: int):
     """Random inputs of `fast.shade_samples` for n samples: (generator, n_pairs, L, face_pairs, face,
@@ -562,14 +571,7 @@ def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, monkeypat
     H, W = 16, 32
     for L, extra in ((4, 0), (4, 3), (14, 0)):
         maps = [_FakeEnv(torch.rand(H, W, 3, generator=g) * 4.0) for _ in range(L)]
-        C = 3 + 3 * L + extra
-        width = F.table_width(C)
-        erows = F.env_rows(F.env_stack(maps, width), width)
-        table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
-        table[-1] = 0.0
-        lanes = F._lane_masks(C, L, width)
-        r = torch.randint(0, (H - 1) * (W + 1) - 1, (n,), generator=g, dtype=torch.int32)
-        fx, fy = torch.rand(n, generator=g), torch.rand(n, generator=g)
+        width, erows, table, lanes, r, fx, fy = _shade_tables(g, maps, 3 + 3 * L + extra, L, n_pairs, H, W, n)
         got = N.shade_pixels(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
         if width == 16:
             want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, W, S2)
