@@ -25,6 +25,10 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
     block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
     creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
+  * session 28: the pixel pass below runs as one C loop where a compiler is (`native.pixels`,
+    bit-identical to `_pixels_impl` and its compiled kernel; ~6-7 ns per sample against ~8-9, 1 thread)
+    that also lists the glossy samples (no flags tensor, no `_flat_nonzero`); the compiled `_pixels`
+    is its fallback and oracle.
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
@@ -153,6 +157,9 @@ RENDER_CHUNK = 1 << 14
 # costs guard checks and buffer allocation (17 calls were ~5 ms of a V frame in session 14). The glossy
 # pass is one call with a symbolic row count (`_glossy_blocks`).
 PIXEL_CHUNK = 1 << 18
+# The pixel pass as `native.pixels` (one C loop that also lists the glossy samples) where it runs;
+# False: always the compiled `_pixels` (its oracle, with `_flat_nonzero` of its flags).
+NATIVE_PIXELS = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -767,18 +774,23 @@ class SHPRT(Method):
             torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
-        rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
-        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
-                       chunk=max(1, PIXEL_CHUNK // S2))
-        img = out[0]                                                              # (n, 3)
+        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
+        if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
+            vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
+            rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+            out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
+                           chunk=max(1, PIXEL_CHUNK // S2))
+            img, g = out[0], None                                                 # (n, 3)
+        else:
+            img, g = px
         if relight and self._relight is not None and self._relight[0] == state:
             cache = self._relight[1]
             self.stats["relight"] += 1
             if cache is not None:
                 _relight_add(img, cache, self._light, S2)
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-        g = _flat_nonzero(out[1].view(-1))                                        # glossy hits, ascending
+        if g is None:
+            g = _flat_nonzero(out[1].view(-1))                                    # glossy hits, ascending
         if relight:              # the first lighting-only frame: build the cache, shade from it
             cache = self._relight_build(g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2) if g.numel() else None
             self._relight = (state, cache)

@@ -99,6 +99,70 @@ void sh_add_pixels(const int64_t *g, int64_t Q, int64_t S2, const float *vals, f
     }
 }
 
+/* The pixel pass (`method._pixels_impl`, its oracle): per pixel p of [p0, p1) and sub-sample s,
+   sample q = p·S2 + s, f = face[q] clamped to [0, Mf), (u, v) its barycentrics, w0 = 1 − u − v;
+   glossy = hit[q] && fk[f, 3] != 0 (listed in ``gl``, ascending); kept = hit[q] && n·ωo > 0 && !glossy;
+   per channel img[p, c] = (Σ_s kept ? max(0, fk[f, c] · (ef[f, c] w0 + ef[f, 3+c] u + ef[f, 6+c] v)) : 0)
+   · inv, the sums in the oracle's order (no contraction: -ffp-contract=off). Arrays with element
+   strides (row, column): bary, normal, wo. Returns the count of listed glossy samples. */
+static int64_t px_range(int64_t p0, int64_t p1, int64_t S2, const int64_t *face, const uint8_t *hit,
+                        const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                        const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+                        float inv, float *img, int64_t *gl) {
+    int64_t ng = 0;
+    for (int64_t p = p0; p < p1; ++p) {
+        float a0 = 0.f, a1 = 0.f, a2 = 0.f;
+        for (int64_t s = 0; s < S2; ++s) {
+            const int64_t q = p * S2 + s;
+            int64_t f = face[q];
+            f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            const float *E = ef + 9 * f, *K = fk + 4 * f;
+            const int h = hit[q] != 0;
+            const int gs = h & (K[3] != 0.f);
+            gl[ng] = q; ng += gs;                          /* branch-free append */
+            const float ndo = N[q * nr] * O[q * orr] + N[q * nr + nc] * O[q * orr + oc]
+                              + N[q * nr + 2 * nc] * O[q * orr + 2 * oc];
+            const int keep = (ndo > 0.f) & h & !gs;
+            const float u = B[q * br], v = B[q * br + bc];
+            const float w0 = 1.0f - u - v;
+            float x0 = K[0] * (E[0] * w0 + E[3] * u + E[6] * v);
+            float x1 = K[1] * (E[1] * w0 + E[4] * u + E[7] * v);
+            float x2 = K[2] * (E[2] * w0 + E[5] * u + E[8] * v);
+            x0 = x0 < 0.f ? 0.f : x0;                       /* clamp_min (NaN kept) */
+            x1 = x1 < 0.f ? 0.f : x1;
+            x2 = x2 < 0.f ? 0.f : x2;
+            x0 = keep ? x0 : 0.f; x1 = keep ? x1 : 0.f; x2 = keep ? x2 : 0.f;
+            if (s == 0) { a0 = x0; a1 = x1; a2 = x2; }
+            else { a0 += x0; a1 += x1; a2 += x2; }
+        }
+        img[3 * p] = a0 * inv; img[3 * p + 1] = a1 * inv; img[3 * p + 2] = a2 * inv;
+    }
+    return ng;
+}
+
+void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
+               const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+               const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+               float inv, float *img, int64_t *gl, int64_t *count, int64_t nt) {
+    if (nt <= 1) {
+        *count = px_range(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl);
+        return;
+    }
+    int64_t cnt[64];
+    if (nt > 64) nt = 64;
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = n * k / nt, e = n * (k + 1) / nt;
+        cnt[k] = px_range(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2);
+    }
+    int64_t tot = cnt[0];
+    for (int64_t k = 1; k < nt; ++k) {                 /* each range's list after the previous ones */
+        memmove(gl + tot, gl + (n * k / nt) * S2, (size_t)cnt[k] * sizeof(int64_t));
+        tot += cnt[k];
+    }
+    *count = tot;
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -113,7 +177,9 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
-               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P]}
+               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
+               "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
+                             _P, _P, _I]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
 
@@ -233,3 +299,48 @@ def add_pixels(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
     if int(g[0]) < 0 or int(g[-1]) >= img.shape[0] * S2:
         raise IndexError("a sample outside the image")
     lib.sh_add_pixels(g.data_ptr(), int(g.numel()), int(S2), vals.data_ptr(), 1.0 / S2, img.data_ptr())
+
+
+MIN_PIXELS_PER_THREAD = 4096    # pixels below which one thread runs the pixel pass
+
+
+def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
+           S2: int) -> tuple[Tensor, Tensor] | None:
+    """`method._pixels_impl`'s pass as one C loop that also lists the glossy samples: (img (n, 3),
+    g (Qg,) int64 ascending, the samples ``hit & fk[face, 3] != 0``) for the G-buffer arrays face
+    (P,) int64, hit (P,) bool, bary (P, 2), normal and wo (P, 3) float32 (any strides), P = n·S2,
+    the face-corner table ef (M, 9) and the face rows fk (M, 4) float32; None where the C loop does
+    not run (no compiler, not the CPU, other dtypes): the caller takes the compiled pass."""
+    lib = _lib()
+    if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
+            or any(x.dtype != torch.float32 or x.dim() != 2 for x in (bary, normal, wo, ef, fk))
+            or bary.shape[1] != 2 or normal.shape[1] != 3 or wo.shape[1] != 3 or ef.shape[1] != 9
+            or fk.shape != (ef.shape[0], 4) or ef.shape[0] == 0):
+        return None
+    P = int(face.numel())
+    if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo)):
+        raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
+    face, hit = face.contiguous(), hit.contiguous()
+    ef, fk = ef.contiguous(), fk.contiguous()
+    n = P // S2
+    img = torch.empty(n, 3)
+    gl = _gl_buffer(P)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
+                  normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
+                  ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
+                  cnt.data_ptr(), nt)
+    return img, gl[:int(cnt)].clone()
+
+
+_GL: list = [torch.empty(0, dtype=torch.int64)]
+
+
+def _gl_buffer(P: int) -> Tensor:
+    """The glossy list's buffer of `pixels` (P int64: every sample may be glossy), kept between
+    frames (a fresh 2 MB buffer's pages were faulted in each frame). `pixels` returns a copy of its
+    listed part."""
+    if _GL[0].numel() < P:
+        _GL[0] = torch.empty(P, dtype=torch.int64)
+    return _GL[0]

@@ -698,3 +698,43 @@ def test_native_add_pixels_is_the_scatter_add(S2):
     assert not torch.equal(want, img0) and torch.equal(got, want)
     with pytest.raises(IndexError):
         native.add_pixels(img0.clone(), torch.tensor([n * S2]), vals[:1], S2)
+
+
+@pytest.mark.parametrize("S2", [1, 4, 9])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_pixel_pass_equals_the_compiled_pass(S2, threads):
+    """`native.pixels` (the pixel pass as one C loop that also lists the glossy samples) gives bit for
+    bit the image of `_pixels_impl` (eager, and compiled by `_pixels_kernel`) and the ascending list
+    of its glossy flags, for the G-buffer's layouts (column-major bary and wo, row-major normal) and
+    others, with misses (face −1), back-facing samples, negative diffuse values (clamped), glossy
+    faces and more pixels than one thread's share (2 threads: the per-thread lists joined)."""
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(S2 + 10 * threads)
+    n, M = 3 * native.MIN_PIXELS_PER_THREAD + 17, 300
+    P = n * S2
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = torch.rand(2, P, generator=gen).T * 0.5                               # column-major (Mitsuba)
+    normal = torch.randn(P, 3, generator=gen)                                     # row-major
+    wo = torch.randn(3, P, generator=gen).T                                       # column-major
+    ef = torch.randn(M, 9, generator=gen)                                         # some e < 0: clamped
+    fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.3).float()], 1)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for layout in ((bary, normal, wo), (bary.contiguous(), normal.T.contiguous().T, wo.contiguous())):
+            vecs = [shm._pixel_rows(x, n, S2) for x in layout]
+            rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+            lay = tuple(len(v) for v in vecs)
+            want = shm._pixels_impl(*[r.contiguous() for r in rows], ef, fk, layout=lay)
+            comp = map_rows(shm._pixels_kernel(lay), rows, (ef, fk), chunk=max(1, shm.PIXEL_CHUNK // S2))
+            img, g = native.pixels(face, hit, *layout, ef, fk, S2)
+            wg = want[1].reshape(-1).nonzero().squeeze(-1)
+            assert 0 < g.numel() < P and torch.equal(g, wg)
+            assert (want[0] > 0).any() and torch.equal(img, want[0]) and torch.equal(img, comp[0])
+    finally:
+        torch.set_num_threads(old)
