@@ -200,6 +200,36 @@ void sh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J
         proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
 }
 
+/* A lighting-only frame's glossy samples (`method._relight_add`) from the packed relight cache
+   (`relight_pack`): per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)] floats;
+   o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
+   img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the block's samples s < Q, ascending. */
+void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, const int64_t *pix, float inv,
+                    float *img) {
+    const int64_t bs = (2 * n2 + 6) * 8;
+    for (int64_t q0 = 0; q0 < Q; q0 += 8) {
+        const float *bk = blk + (q0 / 8) * bs;
+        v8 d0 = {0}, d1 = {0}, d2 = {0}, g0 = {0}, g1 = {0}, g2 = {0};
+        for (int64_t i = 0; i < n2; ++i) {
+            const v8 d = *(const v8 *)(bk + 8 * i), g = *(const v8 *)(bk + 8 * (n2 + i));
+            const float l0 = l[3 * i], l1 = l[3 * i + 1], l2 = l[3 * i + 2];
+            d0 += l0 * d; d1 += l1 * d; d2 += l2 * d;
+            g0 += l0 * g; g1 += l1 * g; g2 += l2 * g;
+        }
+        const float *k = bk + 16 * n2;
+        const v8 r0 = *(const v8 *)(k) * d0 + *(const v8 *)(k + 24) * g0;
+        const v8 r1 = *(const v8 *)(k + 8) * d1 + *(const v8 *)(k + 32) * g1;
+        const v8 r2 = *(const v8 *)(k + 16) * d2 + *(const v8 *)(k + 40) * g2;
+        const int64_t nb = Q - q0 < 8 ? Q - q0 : 8;
+        for (int64_t b = 0; b < nb; ++b) {
+            float *o = img + 3 * pix[q0 + b];
+            o[0] += (r0[b] < 0.f ? 0.f : r0[b]) * inv;
+            o[1] += (r1[b] < 0.f ? 0.f : r1[b]) * inv;
+            o[2] += (r2[b] < 0.f ? 0.f : r2[b]) * inv;
+        }
+    }
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -216,6 +246,7 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
                "sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I],
+               "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I]}
 MAX_N2 = 64                     # acc's size: orders up to 8
@@ -418,3 +449,44 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
     part = torch.zeros(nt, n2, 3, dtype=torch.float64)
     lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
     return part[0] if nt == 1 else part.sum(0)
+
+
+def relight_pack(DG: Tensor, kd: Tensor, ks: Tensor) -> Tensor:
+    """The relight cache's columns (`method.SHPRT._relight_build`: DG (n², 2Q) [d | q], kd and ks
+    (3, Q)) in the sample-blocked layout of `relight_add`: per block of 8 samples (the last padded
+    with zeros) [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)], one contiguous run (2n² + 6)·8
+    floats → (⌈Q/8⌉, (2n² + 6)·8) float32. (The column-major DG read 2n² streams 2Q floats apart at
+    once, beyond the prefetchers: 5.7 GB/s.)"""
+    n2, Q = int(DG.shape[0]), int(kd.shape[1])
+    Qb = -(-Q // 8)
+    X = torch.zeros(2 * n2 + 6, Qb * 8, dtype=torch.float32, device=DG.device)
+    X[:n2, :Q], X[n2:2 * n2, :Q] = DG[:, :Q], DG[:, Q:]
+    X[2 * n2:2 * n2 + 3, :Q], X[2 * n2 + 3:, :Q] = kd, ks
+    return X.view(2 * n2 + 6, Qb, 8).permute(1, 0, 2).contiguous().view(Qb, -1)
+
+
+def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`relight_pack`'s inverse: (DG (n², 2Q), kd (3, Q), ks (3, Q)) (copies)."""
+    X = blk.view(blk.shape[0], 2 * n2 + 6, 8).permute(1, 0, 2).reshape(2 * n2 + 6, -1)[:, :Q]
+    return (torch.cat([X[:n2], X[n2:2 * n2]], 1), X[2 * n2:2 * n2 + 3].contiguous(), X[2 * n2 + 3:].contiguous())
+
+
+def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bool:
+    """img (n, 3) += max(0, kd · lᵀd + ks · lᵀq) / S² at the pixels pix (Q,) int64 (ascending) of the
+    packed relight cache blk (`relight_pack`) by one C pass (`method._relight_add` on the unpacked
+    cache is its oracle: the same products and sums, i ascending); False (nothing done) where it
+    does not run."""
+    lib = _lib()
+    Q = int(pix.numel())
+    n2 = int(l.shape[0])
+    if (lib is None or img.device.type != "cpu" or any(x.dtype != torch.float32 for x in (img, blk, l))
+            or pix.dtype != torch.int64 or not (img.is_contiguous() and blk.is_contiguous() and pix.is_contiguous())
+            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim != 2 or img.shape[1] != 3):
+        return False
+    if Q == 0:
+        return True
+    if int(pix[0]) < 0 or int(pix[-1]) >= img.shape[0]:
+        raise IndexError("a sample outside the image")
+    lc = l.contiguous()
+    lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr())
+    return True

@@ -763,3 +763,30 @@ def test_native_projection_equals_project_latlong_polar(order, threads):
     finally:
         torch.set_num_threads(old)
 
+
+@pytest.mark.parametrize("Q", [1, 8, 1001])
+def test_native_relight_add_equals_the_gemm(Q):
+    """`native.relight_add` on the packed relight cache (`native.relight_pack`, per 8 samples) adds
+    to the pixels what `_relight_add`'s GEMM and scatter_add_ add on the unpacked one (to float32
+    round-off; the same sums), repeated pixels and a padded last block included, and
+    `relight_unpack` inverts the packing."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(Q)
+    n2, S2, n = 25, 4, 400
+    DG = torch.randn(n2, 2 * Q, generator=gen)
+    kd, ks = torch.rand(3, Q, generator=gen), torch.rand(3, Q, generator=gen)
+    pix = torch.randint(0, n, (Q,), generator=gen).sort().values
+    l = torch.randn(n2, 3, generator=gen)
+    cache = {"DG": DG, "kd": kd, "ks": ks, "pix": pix[:, None].expand(-1, 3)}
+    packed = shm._relight_packed(cache)
+    back = native.relight_unpack(packed["blk"], Q, n2)
+    assert all(torch.equal(a, b) for a, b in zip(back, (DG, kd, ks)))
+    img0 = torch.rand(n, 3, generator=gen)
+    want, got = img0.clone(), img0.clone()
+    shm._relight_add(want, cache, l, S2)
+    assert native.relight_add(got, packed["blk"], l, packed["p"], S2)
+    assert not torch.equal(want, img0)
+    assert (got - want).abs().max() <= 1e-6 * (want - img0).abs().max()
