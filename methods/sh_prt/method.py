@@ -164,6 +164,9 @@ NATIVE_PIXELS = True
 # `native.relight_add` (one C pass) where it runs; False: the unpacked cache, `_relight_add`'s GEMM
 # and scatter_add_ (its oracle).
 NATIVE_RELIGHT = True
+# A lighting change's referenced rows of l' = M l from the vertex-major first pass when it is M
+# (`SHPRT._vertex_major_M`, `native.rows_vertex_major`); False: from the lighting-major M (`native.rows`).
+NATIVE_VM_ROWS = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -705,14 +708,31 @@ class SHPRT(Method):
             self._lg = self._lg3.permute(1, 2, 0)
             self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
         if rows.numel():
-            Xm = lighting_major(self.M)
-            Xm = Xm.permute(3, 2, 0, 1).reshape(Xm.shape[3], n2, ng * n2)           # (C, n²_j, Vg·n²_i) memory
-            _native.rows(Xm, self._light, rows, self._lg3)
+            Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
+            if Mv is None or not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
+                Xm = lighting_major(self.M)
+                Xm = Xm.permute(3, 2, 0, 1).reshape(Xm.shape[3], n2, ng * n2)       # (C, n²_j, Vg·n²_i) memory
+                _native.rows(Xm, self._light, rows, self._lg3)
             self._lg_valid[rows] = True
             self.stats["glossy_light"] += 1
         if bool(self._lg_valid.all()):
             self._lg_valid = None
         return self._lg3
+
+    def _vertex_major_M(self) -> Tensor | None:
+        """M as (Vg, n², n²) with each row's matrix one contiguous block, when the precomputation
+        already holds it so: grey transfer rendered without bounces, whose M is the lighting-major
+        copy (`_assemble`) of the vertex-major first pass ``M_parts[0]`` (Vg, n², n², 1) — the same
+        values, no copy made; else None. `native.rows_vertex_major` reads a listed row's l' = M_x l
+        from it as one 2.5 KB block (order 5) instead of n² runs spread over the lighting-major M
+        (session 28: the referenced rows of a creature VL frame, 3608 of 9694, 1 thread, process CPU,
+        alternating: 1.5-1.75 against 1.85-3.0 ms back to back, 1.9-2.0 against 2.5-3.2 ms after
+        0.2 s idle)."""
+        X = self.M_parts[0] if self.bounces == 0 and getattr(self, "M_parts", None) else None
+        if (X is None or X.shape != self.M.shape or X.shape[-1] != 1 or X.dtype != torch.float32
+                or X.device != self.M.device or not X.is_contiguous()):
+            return None
+        return X[..., 0]
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool

@@ -230,6 +230,47 @@ void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, con
     }
 }
 
+/* l' = M l at the listed rows from a VERTEX-major grey M (Vg, n², n²) (row r's matrix one
+   contiguous n²·n² block; `rows_vertex_major`): out[c, r, i] = Σ_j M[r, i, j] l[j, c], the sum over j
+   as 8-float partial vectors (j in blocks of 8), their lanes pairwise, then the tail j ≥ 8⌊n²/8⌋;
+   n² ≤ 64. */
+static void vm_rows(int64_t n2, const float *__restrict M, const float *__restrict lt, const int64_t *rows,
+                    int64_t R, int64_t Vg, float *__restrict out) {
+    const int64_t n8 = n2 & ~(int64_t)7, nb = n8 / 8;           /* nb <= 8: n² <= 64 */
+    v8 L[3][8];
+    for (int64_t c = 0; c < 3; ++c)
+        for (int64_t b = 0; b < nb; ++b) L[c][b] = *(const v8 *)(lt + c * n2 + 8 * b);
+    for (int64_t q = 0; q < R; ++q) {
+        const int64_t r = rows[q];
+        const float *Mr = M + r * n2 * n2;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *row = Mr + i * n2;
+            v8 a0 = {0}, a1 = {0}, a2 = {0};
+            for (int64_t b = 0; b < nb; ++b) {
+                const v8 x = *(const v8 *)(row + 8 * b);
+                a0 += x * L[0][b]; a1 += x * L[1][b]; a2 += x * L[2][b];
+            }
+            float s0 = ((a0[0] + a0[4]) + (a0[1] + a0[5])) + ((a0[2] + a0[6]) + (a0[3] + a0[7]));
+            float s1 = ((a1[0] + a1[4]) + (a1[1] + a1[5])) + ((a1[2] + a1[6]) + (a1[3] + a1[7]));
+            float s2 = ((a2[0] + a2[4]) + (a2[1] + a2[5])) + ((a2[2] + a2[6]) + (a2[3] + a2[7]));
+            for (int64_t j = n8; j < n2; ++j) {
+                s0 += row[j] * lt[j]; s1 += row[j] * lt[n2 + j]; s2 += row[j] * lt[2 * n2 + j];
+            }
+            out[r * n2 + i] = s0; out[(Vg + r) * n2 + i] = s1; out[(2 * Vg + r) * n2 + i] = s2;
+        }
+    }
+}
+
+void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
+                float *out, int64_t nt) {
+    if (nt <= 1) { vm_rows(n2, M, lt, rows, R, Vg, out); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = R * k / nt, e = R * (k + 1) / nt;
+        vm_rows(n2, M, lt, rows + a, e - a, Vg, out);
+    }
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -245,6 +286,7 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
+               "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
@@ -489,4 +531,30 @@ def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bo
         raise IndexError("a sample outside the image")
     lc = l.contiguous()
     lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr())
+    return True
+
+
+def rows_vertex_major(Mv: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> bool:
+    """out[:, rows, :] = (M l)[:, rows, :] from a grey M in VERTEX-major memory Mv (Vg, n², n²)
+    float32 contiguous (each row's n²×n² matrix one contiguous block: a listed row is one 2.5 KB
+    read at order 5, where the lighting-major M of `rows` spreads it over n² runs Vg·n² floats apart),
+    l (n², 3), out (3, Vg, n²) float32 contiguous, by one C loop (the same sums as `rows_torch`, its
+    oracle, in another order: float32 round-off); False (nothing done) where it does not run."""
+    lib = _lib()
+    if (lib is None or Mv.device.type != "cpu" or Mv.dtype != torch.float32 or out.dtype != torch.float32
+            or Mv.dim() != 3 or not Mv.is_contiguous() or not out.is_contiguous() or Mv.shape[1] > MAX_N2):
+        return False
+    Vg, n2 = int(Mv.shape[0]), int(Mv.shape[1])
+    if Mv.shape[2] != n2 or l.shape != (n2, 3) or out.shape != (3, Vg, n2):
+        raise ValueError(f"M (Vg, n², n²), l (n², 3), out (3, Vg, n²) expected, got {tuple(Mv.shape)}, "
+                         f"{tuple(l.shape)}, {tuple(out.shape)}")
+    r = rows.to(torch.int64).contiguous()
+    R = int(r.numel())
+    if R == 0:
+        return True
+    if int(r.min()) < 0 or int(r.max()) >= Vg:
+        raise IndexError("a glossy row outside M")
+    lt = l.to(torch.float32).T.contiguous()                                    # (3, n²)
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
+    lib.sh_vm_rows(n2, Mv.data_ptr(), lt.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
     return True

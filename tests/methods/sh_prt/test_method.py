@@ -790,3 +790,42 @@ def test_native_relight_add_equals_the_gemm(Q):
     assert native.relight_add(got, packed["blk"], l, packed["p"], S2)
     assert not torch.equal(want, img0)
     assert (got - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+
+
+@pytest.mark.parametrize("order", [3, 5, 8])
+def test_native_vertex_major_rows_equal_the_full_product(order, monkeypatch):
+    """`native.rows_vertex_major` (l' = M l at the listed rows from the vertex-major (Vg, n², n²) M)
+    writes those rows equal to `apply_lighting` over every row to float32 round-off and leaves the
+    others untouched, at 1 and 2 threads; and `SHPRT._vertex_major_M` is M's vertex-major first pass
+    exactly when M is (bounces 0), None otherwise."""
+    from methods.sh_prt import native
+    from methods.sh_prt.method import apply_lighting, lighting_major
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(order)
+    n2, Vg = order * order, 700
+    Mv = torch.randn(Vg, n2, n2, generator=g)
+    l = torch.randn(n2, 3, generator=g)
+    full = apply_lighting(lighting_major(Mv[..., None]).reshape(Vg * n2, n2, 1), l).view(3, Vg, n2)
+    rows = torch.randperm(Vg, generator=g)[:611].sort().values
+    others = torch.ones(Vg, dtype=torch.bool)
+    others[rows] = False
+    for threads in (1, 2):
+        monkeypatch.setattr(torch, "get_num_threads", lambda t=threads: t)
+        out = torch.full((3, Vg, n2), 7.0)
+        assert native.rows_vertex_major(Mv, l, rows, out)
+        assert (out[:, rows] - full[:, rows]).abs().max() <= 1e-5 * full.abs().max()
+        assert bool((out[:, others] == 7.0).all())
+    with pytest.raises(IndexError):
+        native.rows_vertex_major(Mv, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
+
+
+def test_vertex_major_M_is_M_without_bounces(alcove):
+    """`SHPRT._vertex_major_M`: the (Vg, n², n²) vertex-major values of M when it is the first pass
+    alone (bounces 0, grey transfer), None when M sums bounces."""
+    _, m, _, _ = alcove
+    assert m.bounces == 1 and m._vertex_major_M() is None
+    m0 = m.with_bounces(0)
+    Mv = m0._vertex_major_M()
+    assert Mv is not None and Mv.is_contiguous() and torch.equal(Mv, m0.M[..., 0])
