@@ -29,6 +29,14 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     bit-identical to `_pixels_impl` and its compiled kernel; ~6-7 ns per sample against ~8-9, 1 thread)
     that also lists the glossy samples (no flags tensor, no `_flat_nonzero`); the compiled `_pixels`
     is its fallback and oracle.
+  * session 28: the glossy pass below runs as one AVX2 C loop where it can (`native.glossy`: odd
+    orders <= 7, where n² − 1 is whole 8-float vectors): per block of 8 glossy samples their scalars
+    and y(R) (Horner over `_sh_factor_tables`) vectorized ACROSS the samples, an 8 × 8 transpose to
+    per-sample rows, then per sample and channel the one reduction of the compiled kernel (session 27's
+    scalar-per-sample C attempt was 0.89× of it: its y(R) lanes went through scalar stores). Creature
+    bench, 1 thread, process CPU, alternating: 1.98 against 3.38 ms back to back, 2.55 against 4.54
+    after 0.2 s idle (35.7 K glossy samples); equal to the compiled kernel bit for bit on that frame
+    (float32 round-off in general). The compiled `_glossy_samples` is its fallback and oracle.
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
@@ -164,6 +172,9 @@ NATIVE_PIXELS = True
 # `native.relight_add` (one C pass) where it runs; False: the unpacked cache, `_relight_add`'s GEMM
 # and scatter_add_ (its oracle).
 NATIVE_RELIGHT = True
+# The glossy samples' radiance by `native.glossy` (one AVX2 C loop, odd orders <= 7) where it runs;
+# False: the compiled `_glossy_samples` (its oracle).
+NATIVE_GLOSSY = True
 # A lighting change's referenced rows of l' = M l from the vertex-major first pass when it is M
 # (`SHPRT._vertex_major_M`, `native.rows_vertex_major`); False: from the lighting-major M (`native.rows`).
 NATIVE_VM_ROWS = True
@@ -852,7 +863,8 @@ class SHPRT(Method):
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
             # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
-            _native.add_pixels(img, g, _glossy_blocks(g, args), S2)
+            vals = _native.glossy(g, *args, *_sh_factor_tables(math.isqrt(G.shape[1]), G.device)) if NATIVE_GLOSSY else None
+            _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import math
 
 import torch
 from torch import Tensor
@@ -271,6 +272,157 @@ void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows
     }
 }
 
+/* The glossy samples' whole radiance (`method._glossy_samples_impl`, its oracle: Sloan 2002 §6-7)
+   for odd orders n (n² − 1 a multiple of 8), AVX2. Per block of 8 samples g[q]: their scalars across
+   the 8 lanes (n̂ = n/|n|, d = n̂·ωo, R = 2 d n̂ − ωo normalised to (x, y, z), sc = n·ωo⁺ on
+   Blinn-Phong else 1, the powers Re / Im (x + iy)^k), y_i(R) = A_i(z) T_i for i ≥ 1 (Horner in z
+   over the tables of `_sh_factor_tables`, T_i = 1 or the power sel[i] picks) into a (n² − 1, 8)
+   block, transposed 8 × 8 to per-sample rows; then per sample and channel
+   spec = Σ_{i≥1} (w0 L[a0, i] + u L[a1, i] + v L[a2, i]) y_i G_i sc + (the same at i = 0) Y00 G_0 sc,
+   e from the corner table, out = n·ωo > 0 ? max(0, kd e + ks spec) : 0. */
+#ifdef __AVX2__
+#include <immintrin.h>
+static inline void tr8(__m256 *r) {
+    __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    __m256 s0 = _mm256_shuffle_ps(t0, t2, 0x44), s1 = _mm256_shuffle_ps(t0, t2, 0xEE);
+    __m256 s2 = _mm256_shuffle_ps(t1, t3, 0x44), s3 = _mm256_shuffle_ps(t1, t3, 0xEE);
+    __m256 s4 = _mm256_shuffle_ps(t4, t6, 0x44), s5 = _mm256_shuffle_ps(t4, t6, 0xEE);
+    __m256 s6 = _mm256_shuffle_ps(t5, t7, 0x44), s7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+    r[0] = _mm256_permute2f128_ps(s0, s4, 0x20); r[1] = _mm256_permute2f128_ps(s1, s5, 0x20);
+    r[2] = _mm256_permute2f128_ps(s2, s6, 0x20); r[3] = _mm256_permute2f128_ps(s3, s7, 0x20);
+    r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
+    r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
+}
+static inline float hsum8(__m256 a) {
+    __m128 l = _mm256_castps256_ps128(a), h = _mm256_extractf128_ps(a, 1);
+    l = _mm_add_ps(l, h);
+    l = _mm_add_ps(l, _mm_movehl_ps(l, l));
+    l = _mm_add_ss(l, _mm_shuffle_ps(l, l, 1));
+    return _mm_cvtss_f32(l);
+}
+#define GMAXB 8     /* (n² − 1) / 8 <= 8: orders <= 7 */
+static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+                     const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc,
+                     const float *N, int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc,
+                     const float *ef, const int32_t *fg, const float *lg, int64_t lsc, int64_t lsr,
+                     const float *kd, const float *ks, const float *G, const uint8_t *vcos,
+                     const float *A, const int32_t *sel, float *out) {
+    const int64_t n2 = n * n, m = n2 - 1, nb = m / 8;
+    const float Y00 = 0.28209479177387814f;
+    float fu[8], fv[8], fnx[8], fny[8], fnz[8], fox[8], foy[8], foz[8], fvc[8];
+    int64_t fi[8], ri[8];
+    float X[8], Yv[8], Z[8], SC[8], FR[8];
+    __m256 yb[GMAXB][8];
+    for (int64_t b0 = q0; b0 < q1; b0 += 8) {
+        const int64_t nb8 = q1 - b0 < 8 ? q1 - b0 : 8;
+        for (int64_t b = 0; b < 8; ++b) {
+            const int64_t s = g[b0 + (b < nb8 ? b : nb8 - 1)];
+            int64_t f = face[s]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            int64_t r = reg[s]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+            fi[b] = f; ri[b] = r;
+            fu[b] = B[s * br]; fv[b] = B[s * br + bc];
+            fnx[b] = N[s * nr]; fny[b] = N[s * nr + nc]; fnz[b] = N[s * nr + 2 * nc];
+            fox[b] = O[s * orr]; foy[b] = O[s * orr + oc]; foz[b] = O[s * orr + 2 * oc];
+            fvc[b] = vcos[r] ? 1.0f : 0.0f;
+        }
+        {
+            const __m256 nx0 = _mm256_loadu_ps(fnx), ny0 = _mm256_loadu_ps(fny), nz0 = _mm256_loadu_ps(fnz);
+            const __m256 ox = _mm256_loadu_ps(fox), oy = _mm256_loadu_ps(foy), oz = _mm256_loadu_ps(foz);
+            const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), tiny = _mm256_set1_ps(1e-12f);
+            const __m256 two = _mm256_set1_ps(2.0f);
+            __m256 dot0 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx0, ox), _mm256_mul_ps(ny0, oy)), _mm256_mul_ps(nz0, oz));
+            _mm256_storeu_ps(FR, _mm256_and_ps(_mm256_cmp_ps(dot0, zero, _CMP_GT_OQ), one));
+            __m256 nn = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx0, nx0), _mm256_mul_ps(ny0, ny0)), _mm256_mul_ps(nz0, nz0));
+            nn = _mm256_max_ps(_mm256_sqrt_ps(nn), tiny);
+            const __m256 nx = _mm256_div_ps(nx0, nn), ny = _mm256_div_ps(ny0, nn), nz = _mm256_div_ps(nz0, nn);
+            const __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx, ox), _mm256_mul_ps(ny, oy)), _mm256_mul_ps(nz, oz));
+            const __m256 d2 = _mm256_mul_ps(two, d);
+            const __m256 Rx = _mm256_sub_ps(_mm256_mul_ps(d2, nx), ox), Ry = _mm256_sub_ps(_mm256_mul_ps(d2, ny), oy);
+            const __m256 Rz = _mm256_sub_ps(_mm256_mul_ps(d2, nz), oz);
+            __m256 rn = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(Rx, Rx), _mm256_mul_ps(Ry, Ry)), _mm256_mul_ps(Rz, Rz));
+            rn = _mm256_max_ps(_mm256_sqrt_ps(rn), tiny);
+            const __m256 x = _mm256_div_ps(Rx, rn), y = _mm256_div_ps(Ry, rn), z = _mm256_div_ps(Rz, rn);
+            _mm256_storeu_ps(X, x); _mm256_storeu_ps(Yv, y); _mm256_storeu_ps(Z, z);
+            const __m256 vc = _mm256_cmp_ps(_mm256_loadu_ps(fvc), zero, _CMP_NEQ_OQ);
+            _mm256_storeu_ps(SC, _mm256_blendv_ps(one, _mm256_max_ps(d, zero), vc));
+            __m256 T[16];                                    /* 1, Re_1, Im_1, Re_2, ... */
+            T[0] = one;
+            __m256 cm = x, sm = y;
+            for (int64_t k = 1; k < n; ++k) {
+                if (k > 1) {
+                    const __m256 c2 = _mm256_sub_ps(_mm256_mul_ps(x, cm), _mm256_mul_ps(y, sm));
+                    sm = _mm256_add_ps(_mm256_mul_ps(x, sm), _mm256_mul_ps(y, cm));
+                    cm = c2;
+                }
+                T[2 * k - 1] = cm; T[2 * k] = sm;
+            }
+            for (int64_t i = 0; i < m; ++i) {
+                __m256 P = _mm256_set1_ps(A[(n - 1) * m + i]);
+                for (int64_t j = n - 2; j >= 0; --j) P = _mm256_add_ps(_mm256_mul_ps(P, z), _mm256_set1_ps(A[j * m + i]));
+                yb[i / 8][i % 8] = _mm256_mul_ps(P, T[sel[i]]);
+            }
+            for (int64_t k = 0; k < nb; ++k) tr8(yb[k]);          /* yb[k][b]: lanes 8k.. of sample b */
+        }
+        for (int64_t b = 0; b < nb8; ++b) {
+            float *o = out + 3 * (b0 + b);
+            if (FR[b] == 0.0f) { o[0] = o[1] = o[2] = 0.0f; continue; }
+            const int64_t f = fi[b], r = ri[b];
+            const float u = fu[b], v = fv[b], w0 = 1.0f - u - v, sc = SC[b];
+            const float *Gr = G + r * n2;
+            const __m256 scv = _mm256_set1_ps(sc);
+            __m256 q[GMAXB];
+            for (int64_t k = 0; k < nb; ++k)
+                q[k] = _mm256_mul_ps(yb[k][b], _mm256_mul_ps(_mm256_loadu_ps(Gr + 1 + 8 * k), scv));
+            const float y0 = Y00 * Gr[0] * sc;
+            const int32_t *fr = fg + 3 * f;
+            const float *ec = ef + 9 * f;
+            const __m256 W = _mm256_set1_ps(w0), U = _mm256_set1_ps(u), V = _mm256_set1_ps(v);
+            for (int64_t c = 0; c < 3; ++c) {
+                const float *L0 = lg + c * lsc + fr[0] * lsr, *L1 = lg + c * lsc + fr[1] * lsr,
+                            *L2 = lg + c * lsc + fr[2] * lsr;
+                __m256 acc = _mm256_setzero_ps();
+                for (int64_t k = 0; k < nb; ++k) {
+                    const __m256 li = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_loadu_ps(L0 + 1 + 8 * k), W),
+                                                                  _mm256_mul_ps(_mm256_loadu_ps(L1 + 1 + 8 * k), U)),
+                                                    _mm256_mul_ps(_mm256_loadu_ps(L2 + 1 + 8 * k), V));
+                    acc = _mm256_add_ps(acc, _mm256_mul_ps(li, q[k]));
+                }
+                const float spec = hsum8(acc) + (L0[0] * w0 + L1[0] * u + L2[0] * v) * y0;
+                const float e = ec[c] * w0 + ec[3 + c] * u + ec[6 + c] * v;
+                const float val = kd[r * 3 + c] * e + ks[r * 3 + c] * spec;
+                o[c] = val < 0.0f ? 0.0f : val;
+            }
+        }
+    }
+}
+#endif
+
+void sh_glossy(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf, const int64_t *reg, int64_t Rn,
+               const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+               const float *O, int64_t orr, int64_t oc, const float *ef, const int32_t *fg, const float *lg,
+               int64_t lsc, int64_t lsr, const float *kd, const float *ks, const float *G, const uint8_t *vcos,
+               const float *A, const int32_t *sel, float *out, int64_t nt, int64_t *ok) {
+#ifdef __AVX2__
+    *ok = 1;
+    if (nt <= 1) {
+        gl_range(0, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                 vcos, A, sel, out);
+        return;
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = Q * k / nt, e = Q * (k + 1) / nt;
+        gl_range(a, e, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                 vcos, A, sel, out);
+    }
+#else
+    *ok = 0;
+#endif
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -286,6 +438,8 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
+               "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
+                             _P, _P, _P, _P, _P, _P, _P, _I, _P],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
@@ -558,3 +712,38 @@ def rows_vertex_major(Mv: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> bool:
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
     lib.sh_vm_rows(n2, Mv.data_ptr(), lt.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
     return True
+
+
+MIN_GLOSSY_PER_THREAD = 512     # glossy samples below which one thread shades them
+
+
+def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor, fg: Tensor,
+           lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor, S: Tensor) -> Tensor | None:
+    """`method._glossy_samples_impl`'s radiance (Qg, 3) of the glossy samples g by one AVX2 C loop
+    (module source: `sh_glossy`; the same arithmetic in another order, float32 round-off), or None
+    where it does not run (no library or AVX2, not the CPU, other dtypes, an even order or one
+    above 7): the caller then runs the compiled kernel. Arguments as that function's."""
+    lib = _lib()
+    n = math.isqrt(int(G.shape[1]))
+    if (lib is None or n % 2 == 0 or n > 7 or n * n != G.shape[1] or g.device.type != "cpu"
+            or g.dtype != torch.int64 or face.dtype != torch.int64 or reg.dtype != torch.int64
+            or fg.dtype != torch.int32 or lg3.dim() != 3 or lg3.stride(2) != 1
+            or any(x.dtype != torch.float32 for x in (bary, normal, wo, ef, lg3, kd, ks, G, A))):
+        return None
+    Q = int(g.numel())
+    out = torch.empty(Q, 3, dtype=torch.float32)
+    if Q == 0:
+        return out
+    if int(g.min()) < 0 or int(g.max()) >= face.numel():
+        raise IndexError("a glossy sample outside the G-buffer")
+    g, face, reg, fg, ef, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, fg, ef, kd, ks, G, A))
+    v8 = vcos.to(torch.uint8).contiguous()
+    sel = S.argmax(0).to(torch.int32).contiguous()
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_GLOSSY_PER_THREAD))
+    ok = torch.zeros(1, dtype=torch.int64)
+    lib.sh_glossy(Q, n, g.data_ptr(), face.data_ptr(), int(ef.shape[0]), reg.data_ptr(), int(kd.shape[0]),
+                  bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0), normal.stride(1),
+                  wo.data_ptr(), wo.stride(0), wo.stride(1), ef.data_ptr(), fg.data_ptr(), lg3.data_ptr(),
+                  lg3.stride(0), lg3.stride(1), kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(),
+                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr())
+    return out if int(ok) else None

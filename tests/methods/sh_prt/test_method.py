@@ -829,3 +829,47 @@ def test_vertex_major_M_is_M_without_bounces(alcove):
     m0 = m.with_bounces(0)
     Mv = m0._vertex_major_M()
     assert Mv is not None and Mv.is_contiguous() and torch.equal(Mv, m0.M[..., 0])
+
+
+@pytest.mark.parametrize("order", [3, 5, 7])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_glossy_equals_the_kernel(order, threads):
+    """`native.glossy` (the glossy samples' radiance in one AVX2 C loop, 8 samples per block) equals
+    `_glossy_samples_impl` (eager: the compiled kernel's definition, its oracle) to float32 round-off
+    on random tables: a Phong and a Blinn-Phong region, back-facing samples, unnormalised normals,
+    a count that leaves a partial last block, l' in another memory layout, 1 and 2 threads; and it
+    declines (None) the even orders it does not handle."""
+    from methods.sh_prt import method as shm, native
+
+    if native.glossy is None or not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(order + 100 * threads)
+    n2, P, M, Vg, R = order * order, 3000, 40, 30, 3
+    face = torch.randint(0, M, (P,), generator=gen)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T                                # column-major
+    normal = torch.randn(P, 3, generator=gen) * 1.7
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T    # column-major
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.rand(M, 9, generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+    kd, ks = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen)
+    G = torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    g = torch.randperm(P, generator=gen)[:2501].sort().values
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        lg = torch.randn(3, Vg, n2, generator=gen)
+        for lg3 in (lg, lg.permute(1, 0, 2).contiguous().permute(1, 0, 2)):
+            args = (face, bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos)
+            want = shm._glossy_samples_impl(g, *args, *AS)[0]
+            got = native.glossy(g, *args, *AS)
+            assert got is not None and got.shape == (g.numel(), 3)
+            assert (want > 0).float().mean() > 0.2 and (want == 0).float().mean() > 0.2
+            assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+    finally:
+        torch.set_num_threads(old)
+    G4 = torch.rand(R, 16, generator=gen)
+    assert native.glossy(g, face, bary, normal, wo, reg, ef, fg, torch.randn(3, Vg, 16), kd, ks, G4, vcos,
+                         *shm._sh_factor_tables(4, torch.device("cpu"))) is None
