@@ -557,6 +557,7 @@ class SHPRT(Method):
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._lg_valid = None   # (Vg,) bool: the rows of _lg3 set, while some are not (`_glossy_light`)
         self._lg_fresh = True   # the lighting changed since the last render (`_glossy_light`)
+        self._lg_spare = None   # the last lighting's (3, Vg, n²) table, reused by the next partial one
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
@@ -672,6 +673,8 @@ class SHPRT(Method):
         self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
         e3 = apply_lighting(self.t, l).contiguous()                              # (3, V) t · l
         self._e = e3.T                                                            # (V, 3) view
+        if self._lg3 is not None:                          # its memory, for the next partial table
+            self._lg_spare = self._lg3
         self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
         self._lg_valid, self._lg_fresh = None, True
         # (M, 9) e at the corners: ONE flat gather of the channel-major e (`_corner_index`), where a row
@@ -715,7 +718,15 @@ class SHPRT(Method):
             self.stats["glossy_light"] += 1
             return self._lg3
         if self._lg3 is None:
-            self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
+            # the previous lighting's table when there is one (session 28): its rows not computed
+            # below are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
+            # and are computed before anything else reads them, so they need no zeroing; a fresh
+            # 2.9 MB zeroed table cost 0.3-0.5 ms of a creature VL frame (page faults, 1 thread)
+            spare, self._lg_spare = getattr(self, "_lg_spare", None), None
+            if spare is not None and spare.shape == (3, ng, n2) and spare.device == self.M.device:
+                self._lg3 = spare
+            else:
+                self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
             self._lg = self._lg3.permute(1, 2, 0)
             self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
         if rows.numel():
