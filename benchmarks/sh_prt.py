@@ -17,6 +17,8 @@ warm-up, process CPU ms), with its achieved GB/s or GFLOP/s next to the machine'
          `sh.project_latlong`, which it replaced), rotate (L: the cached coefficients), t·l and M l
          (`apply_lighting`; bytes: t or M streamed once; also the einsum it replaced), the face-corner
          table e[F];
+  (session 28: also the native C loops that run where a compiler is — ``native ms`` of the projection,
+  the pixel pass with its glossy list, the glossy pass — next to the compiled / torch stages above)
   view   the per-pixel diffuse pass (`_pixels`; bytes: the G-buffer inputs it reads — face, hit,
          bary, normal, wo; not the region — the face tables and the pixels written), the glossy selection (nonzero of the pass's flags), the glossy pass (`_glossy_samples`: ns
          per glossy sample and GFLOP/s of the counted (18 + 3 + 1 + 6)·n² flops per sample).
@@ -96,6 +98,7 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["light: project"] = {"ms": ms(lambda: shm.project_latlong_polar(data, m.order)),
                              "texels": float(data.shape[0] * data.shape[1]),
                              "sh.project_latlong ms": ms(lambda: _sh.project_latlong(data.double(), m.order))}
+    res["light: project"]["native ms"] = ms(lambda: shm._native.project_latlong_polar(data, m.order))
     res["light: rotate"] = {"ms": ms(lambda: m.lighting(env))}
     l = m._light
     ng, n2 = m.M.shape[0], m.M.shape[1]
@@ -121,6 +124,8 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     b_pix = P * (8 + 1 + 12 + 12 + 8) + n * 12 + (m._ef.numel() + fk.numel()) * 4
     res["view: pixels (diffuse)"] = {"ms": t_pix, "ns/sample": 1e6 * t_pix / P, "GB/s": b_pix / t_pix / 1e6,
                                      "triad GB/s": B / 1e9}
+    res["view: pixels (diffuse)"]["native ms (+ glossy list)"] = ms(
+        lambda: shm._native.pixels(face, hit, bary, normal, wo, m._ef, fk, S2))
     out = run_pix()
     res["view: glossy select"] = {"ms": ms(lambda: shm._flat_nonzero(out[1].view(-1))),
                                   "torch nonzero ms": ms(lambda: out[1].view(-1).nonzero())}
@@ -130,6 +135,10 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     f_g = int(g.numel()) * (18 + 3 + 1 + 6) * n2
     res["view: glossy samples"] = {"ms": t_g, "samples": float(g.numel()), "ns/sample": 1e6 * t_g / max(1, g.numel()),
                                    "GFLOP/s": f_g / t_g / 1e6, "sgemm GFLOP/s": Pk / 1e9}
+    AS = shm._sh_factor_tables(m.order, G.device)
+    if shm._native.glossy(g, *args, *AS) is not None:
+        t_n = ms(lambda: shm._native.glossy(g, *args, *AS))
+        res["view: glossy samples"].update({"native ms": t_n, "native ns/sample": 1e6 * t_n / max(1, g.numel())})
     res["frame V (render)"] = {"ms": ms(lambda: m.render(frame, gb))}
     return res
 

@@ -25,6 +25,18 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
     block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
     creature) at ~12-14 GB/s against ~27 GB/s for a plain streaming sum (1 thread).
+  * session 28: the pixel pass below runs as one C loop where a compiler is (`native.pixels`,
+    bit-identical to `_pixels_impl` and its compiled kernel; ~6-7 ns per sample against ~8-9, 1 thread)
+    that also lists the glossy samples (no flags tensor, no `_flat_nonzero`); the compiled `_pixels`
+    is its fallback and oracle.
+  * session 28: the glossy pass below runs as one AVX2 C loop where it can (`native.glossy`: odd
+    orders <= 7, where n² − 1 is whole 8-float vectors): per block of 8 glossy samples their scalars
+    and y(R) (Horner over `_sh_factor_tables`) vectorized ACROSS the samples, an 8 × 8 transpose to
+    per-sample rows, then per sample and channel the one reduction of the compiled kernel (session 27's
+    scalar-per-sample C attempt was 0.89× of it: its y(R) lanes went through scalar stores). Creature
+    bench, 1 thread, process CPU, alternating: 1.98 against 3.38 ms back to back, 2.55 against 4.54
+    after 0.2 s idle (35.7 K glossy samples); equal to the compiled kernel bit for bit on that frame
+    (float32 round-off in general). The compiled `_glossy_samples` is its fallback and oracle.
   * a view costs two compiled passes: `_pixels` — every pixel's box-filtered ρ·e of its non-glossy
     samples, from the face-corner table e[F] (one 36-byte row per sample instead of F then 3 rows
     of e), reading the column-major bary and wo as component rows (`_pixel_rows`: no transposing copy;
@@ -153,6 +165,19 @@ RENDER_CHUNK = 1 << 14
 # costs guard checks and buffer allocation (17 calls were ~5 ms of a V frame in session 14). The glossy
 # pass is one call with a symbolic row count (`_glossy_blocks`).
 PIXEL_CHUNK = 1 << 18
+# The pixel pass as `native.pixels` (one C loop that also lists the glossy samples) where it runs;
+# False: always the compiled `_pixels` (its oracle, with `_flat_nonzero` of its flags).
+NATIVE_PIXELS = True
+# A lighting-only frame's glossy samples from the relight cache packed per 8 samples, by
+# `native.relight_add` (one C pass) where it runs; False: the unpacked cache, `_relight_add`'s GEMM
+# and scatter_add_ (its oracle).
+NATIVE_RELIGHT = True
+# The glossy samples' radiance by `native.glossy` (one AVX2 C loop, odd orders <= 7) where it runs;
+# False: the compiled `_glossy_samples` (its oracle).
+NATIVE_GLOSSY = True
+# A lighting change's referenced rows of l' = M l from the vertex-major first pass when it is M
+# (`SHPRT._vertex_major_M`, `native.rows_vertex_major`); False: from the lighting-major M (`native.rows`).
+NATIVE_VM_ROWS = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -411,11 +436,31 @@ def _flat_nonzero(x: Tensor) -> Tensor:
 def _relight_add(img: Tensor, cache: dict, l: Tensor, S2: int) -> None:
     """Add the glossy samples' radiance of a lighting-only frame to their pixels of img (n, 3) from
     the relight cache (`SHPRT._relight_build`) and the lighting l (n², 3): ONE (3, n²) × (n², 2Qg)
-    GEMM, max(0, kd_c d·l_c + ks_c q·l_c) / S²."""
+    GEMM, max(0, kd_c d·l_c + ks_c q·l_c) / S². A packed cache (`_relight_packed`, session 28) is
+    shaded by `native.relight_add` in one C pass over one contiguous stream (creature bench, 1
+    thread, process CPU: 1.11 against 1.63 ms back to back, 1.42 against 2.35 after 0.2 s idle;
+    bit-identical here: the GEMM sums i in order too); this GEMM on the unpacked cache is its oracle."""
+    if "blk" in cache:                  # packed (`_relight_build`): one C pass, `native.relight_add`
+        if _native.relight_add(img, cache["blk"], l, cache["p"], S2):
+            return
+        cache = _relight_unpacked(cache)
     DG, Qg = cache["DG"], cache["kd"].shape[1]
     o = l.T.contiguous() @ DG                                                   # (3, 2Qg)
     vals = (cache["kd"] * o[:, :Qg] + cache["ks"] * o[:, Qg:]).clamp_min(0.0) * (1.0 / S2)
     img.scatter_add_(0, cache["pix"], vals.T)
+
+
+def _relight_packed(cache: dict) -> dict:
+    """The relight cache (`SHPRT._relight_build`) for `native.relight_add`: DG, kd and ks packed per
+    block of 8 samples (`native.relight_pack`: one contiguous stream), the pixels as (Qg,) int64."""
+    return {"blk": _native.relight_pack(cache["DG"], cache["kd"], cache["ks"]),
+            "p": cache["pix"][:, 0].contiguous(), "Qg": int(cache["kd"].shape[1]), "n2": int(cache["DG"].shape[0])}
+
+
+def _relight_unpacked(cache: dict) -> dict:
+    """`_relight_packed`'s inverse (the fallback where the C pass does not run)."""
+    DG, kd, ks = _native.relight_unpack(cache["blk"], cache["Qg"], cache["n2"])
+    return {"DG": DG, "kd": kd, "ks": ks, "pix": cache["p"][:, None].expand(-1, 3)}
 
 
 def lighting_major(X: Tensor) -> Tensor:
@@ -512,6 +557,7 @@ class SHPRT(Method):
         self._lg3 = None        # (3, Vg, n²) M_x l channel-major (`_glossy_samples`)
         self._lg_valid = None   # (Vg,) bool: the rows of _lg3 set, while some are not (`_glossy_light`)
         self._lg_fresh = True   # the lighting changed since the last render (`_glossy_light`)
+        self._lg_spare = None   # the last lighting's (3, Vg, n²) table, reused by the next partial one
         self._ef = None         # (M, 9) e at each face's three corners (`_pixels`)
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
@@ -600,12 +646,14 @@ class SHPRT(Method):
     # -- run time ---------------------------------------------------------------------------------
     def lighting(self, env) -> Tensor:
         """World-frame SH l (n², 3) of ``env`` (Sloan 2002 §7): projected once per texel content in
-        the map's polar frame (`project_latlong_polar`), then rotated by ``env.to_world`` @ Qᵀ in one
+        the map's polar frame (`project_latlong_polar`; by `native.project_latlong_polar`'s C pass
+        over the float32 texels where it runs, session 28: 0.6 against 1.3 ms, creature bench map, 1
+        thread, float64 round-off), then rotated by ``env.to_world`` @ Qᵀ in one
         `rotate_sampled` (= `sh.project_latlong(env)`: its own two rotations, Qᵀ to the map's frame
         and R to the world, composed; module docstring)."""
         data = env.data
         if self._src is None or self._src[0] is not data or self._src[1] != data._version:
-            self._l_local = project_latlong_polar(data, self.order)         # (n², 3) polar frame
+            self._l_local = _native.project_latlong_polar(data, self.order)  # (n², 3) polar frame
             self._src = (data, data._version)
             self.stats["project"] += 1
         R = torch.as_tensor(env.to_world, dtype=torch.float64) @ _LATLONG_QT
@@ -625,6 +673,8 @@ class SHPRT(Method):
         self.t, self.M = lighting_major(self.t), lighting_major(self.M)     # (no copy when built so)
         e3 = apply_lighting(self.t, l).contiguous()                              # (3, V) t · l
         self._e = e3.T                                                            # (V, 3) view
+        if self._lg3 is not None:                          # its memory, for the next partial table
+            self._lg_spare = self._lg3
         self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
         self._lg_valid, self._lg_fresh = None, True
         # (M, 9) e at the corners: ONE flat gather of the channel-major e (`_corner_index`), where a row
@@ -668,18 +718,43 @@ class SHPRT(Method):
             self.stats["glossy_light"] += 1
             return self._lg3
         if self._lg3 is None:
-            self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
+            # the previous lighting's table when there is one (session 28): its rows not computed
+            # below are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
+            # and are computed before anything else reads them, so they need no zeroing; a fresh
+            # 2.9 MB zeroed table cost 0.3-0.5 ms of a creature VL frame (page faults, 1 thread)
+            spare, self._lg_spare = getattr(self, "_lg_spare", None), None
+            if spare is not None and spare.shape == (3, ng, n2) and spare.device == self.M.device:
+                self._lg3 = spare
+            else:
+                self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
             self._lg = self._lg3.permute(1, 2, 0)
             self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
         if rows.numel():
-            Xm = lighting_major(self.M)
-            Xm = Xm.permute(3, 2, 0, 1).reshape(Xm.shape[3], n2, ng * n2)           # (C, n²_j, Vg·n²_i) memory
-            _native.rows(Xm, self._light, rows, self._lg3)
+            Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
+            if Mv is None or not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
+                Xm = lighting_major(self.M)
+                Xm = Xm.permute(3, 2, 0, 1).reshape(Xm.shape[3], n2, ng * n2)       # (C, n²_j, Vg·n²_i) memory
+                _native.rows(Xm, self._light, rows, self._lg3)
             self._lg_valid[rows] = True
             self.stats["glossy_light"] += 1
         if bool(self._lg_valid.all()):
             self._lg_valid = None
         return self._lg3
+
+    def _vertex_major_M(self) -> Tensor | None:
+        """M as (Vg, n², n²) with each row's matrix one contiguous block, when the precomputation
+        already holds it so: grey transfer rendered without bounces, whose M is the lighting-major
+        copy (`_assemble`) of the vertex-major first pass ``M_parts[0]`` (Vg, n², n², 1) — the same
+        values, no copy made; else None. `native.rows_vertex_major` reads a listed row's l' = M_x l
+        from it as one 2.5 KB block (order 5) instead of n² runs spread over the lighting-major M
+        (session 28: the referenced rows of a creature VL frame, 3608 of 9694, 1 thread, process CPU,
+        alternating: 1.5-1.75 against 1.85-3.0 ms back to back, 1.9-2.0 against 2.5-3.2 ms after
+        0.2 s idle)."""
+        X = self.M_parts[0] if self.bounces == 0 and getattr(self, "M_parts", None) else None
+        if (X is None or X.shape != self.M.shape or X.shape[-1] != 1 or X.dtype != torch.float32
+                or X.device != self.M.device or not X.is_contiguous()):
+            return None
+        return X[..., 0]
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool
@@ -767,18 +842,23 @@ class SHPRT(Method):
             torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
-        rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
-        out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
-                       chunk=max(1, PIXEL_CHUNK // S2))
-        img = out[0]                                                              # (n, 3)
+        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
+        if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
+            vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
+            rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+            out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
+                           chunk=max(1, PIXEL_CHUNK // S2))
+            img, g = out[0], None                                                 # (n, 3)
+        else:
+            img, g = px
         if relight and self._relight is not None and self._relight[0] == state:
             cache = self._relight[1]
             self.stats["relight"] += 1
             if cache is not None:
                 _relight_add(img, cache, self._light, S2)
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-        g = _flat_nonzero(out[1].view(-1))                                        # glossy hits, ascending
+        if g is None:
+            g = _flat_nonzero(out[1].view(-1))                                    # glossy hits, ascending
         if relight:              # the first lighting-only frame: build the cache, shade from it
             cache = self._relight_build(g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2) if g.numel() else None
             self._relight = (state, cache)
@@ -794,7 +874,8 @@ class SHPRT(Method):
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
             # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
-            _native.add_pixels(img, g, _glossy_blocks(g, args), S2)
+            vals = _native.glossy(g, *args, *_sh_factor_tables(math.isqrt(G.shape[1]), G.device)) if NATIVE_GLOSSY else None
+            _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:
@@ -846,8 +927,9 @@ class SHPRT(Method):
                 Mk = Mv.index_select(0, ai[a:b, k])                                 # (B, n²i, n²j)
                 DG[:, Qg + a:Qg + b] += (torch.bmm(q[a:b, None, :], Mk)[:, 0] * w[a:b, k, None]).T
         fm = front[:, None].float()
-        return {"DG": DG, "kd": (kd[r] * fm).T.contiguous(), "ks": (ks[r] * fm).T.contiguous(),
-                "pix": (g // S2)[:, None].expand(-1, 3)}
+        cache = {"DG": DG, "kd": (kd[r] * fm).T.contiguous(), "ks": (ks[r] * fm).T.contiguous(),
+                 "pix": (g // S2)[:, None].expand(-1, 3)}
+        return _relight_packed(cache) if NATIVE_RELIGHT and _native.available() and f.device.type == "cpu" else cache
 
     def _shade(self, vi: Tensor, w: Tensor, n: Tensor, wo: Tensor, reg: Tensor, kd: Tensor, ks: Tensor,
                G: Tensor, vcos: Tensor) -> Tensor:
@@ -884,7 +966,8 @@ class SHPRT(Method):
             m["per_vertex_light"] = tensor_bytes(self._e, self._lg, self._light, self._l_local)
         if self._relight is not None and self._relight[1] is not None:
             c = self._relight[1]
-            m["relight_cache"] = tensor_bytes(c["DG"], c["kd"], c["ks"]) + c["pix"].shape[0] * 8
+            m["relight_cache"] = (tensor_bytes(c["blk"], c["p"]) if "blk" in c
+                                  else tensor_bytes(c["DG"], c["kd"], c["ks"]) + c["pix"].shape[0] * 8)
         return m
 
     def _referenced(self, gb: GBuffer) -> tuple[int, int]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import math
 
 import torch
 from torch import Tensor
@@ -99,6 +100,329 @@ void sh_add_pixels(const int64_t *g, int64_t Q, int64_t S2, const float *vals, f
     }
 }
 
+/* The pixel pass (`method._pixels_impl`, its oracle): per pixel p of [p0, p1) and sub-sample s,
+   sample q = p·S2 + s, f = face[q] clamped to [0, Mf), (u, v) its barycentrics, w0 = 1 − u − v;
+   glossy = hit[q] && fk[f, 3] != 0 (listed in ``gl``, ascending); kept = hit[q] && n·ωo > 0 && !glossy;
+   per channel img[p, c] = (Σ_s kept ? max(0, fk[f, c] · (ef[f, c] w0 + ef[f, 3+c] u + ef[f, 6+c] v)) : 0)
+   · inv, the sums in the oracle's order (no contraction: -ffp-contract=off). Arrays with element
+   strides (row, column): bary, normal, wo. Returns the count of listed glossy samples. */
+static int64_t px_range(int64_t p0, int64_t p1, int64_t S2, const int64_t *face, const uint8_t *hit,
+                        const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                        const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+                        float inv, float *img, int64_t *gl) {
+    int64_t ng = 0;
+    for (int64_t p = p0; p < p1; ++p) {
+        float a0 = 0.f, a1 = 0.f, a2 = 0.f;
+        for (int64_t s = 0; s < S2; ++s) {
+            const int64_t q = p * S2 + s;
+            int64_t f = face[q];
+            f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            const float *E = ef + 9 * f, *K = fk + 4 * f;
+            const int h = hit[q] != 0;
+            const int gs = h & (K[3] != 0.f);
+            gl[ng] = q; ng += gs;                          /* branch-free append */
+            const float ndo = N[q * nr] * O[q * orr] + N[q * nr + nc] * O[q * orr + oc]
+                              + N[q * nr + 2 * nc] * O[q * orr + 2 * oc];
+            const int keep = (ndo > 0.f) & h & !gs;
+            const float u = B[q * br], v = B[q * br + bc];
+            const float w0 = 1.0f - u - v;
+            float x0 = K[0] * (E[0] * w0 + E[3] * u + E[6] * v);
+            float x1 = K[1] * (E[1] * w0 + E[4] * u + E[7] * v);
+            float x2 = K[2] * (E[2] * w0 + E[5] * u + E[8] * v);
+            x0 = x0 < 0.f ? 0.f : x0;                       /* clamp_min (NaN kept) */
+            x1 = x1 < 0.f ? 0.f : x1;
+            x2 = x2 < 0.f ? 0.f : x2;
+            x0 = keep ? x0 : 0.f; x1 = keep ? x1 : 0.f; x2 = keep ? x2 : 0.f;
+            if (s == 0) { a0 = x0; a1 = x1; a2 = x2; }
+            else { a0 += x0; a1 += x1; a2 += x2; }
+        }
+        img[3 * p] = a0 * inv; img[3 * p + 1] = a1 * inv; img[3 * p + 2] = a2 * inv;
+    }
+    return ng;
+}
+
+void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
+               const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+               const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+               float inv, float *img, int64_t *gl, int64_t *count, int64_t nt) {
+    if (nt <= 1) {
+        *count = px_range(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl);
+        return;
+    }
+    int64_t cnt[64];
+    if (nt > 64) nt = 64;
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = n * k / nt, e = n * (k + 1) / nt;
+        cnt[k] = px_range(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2);
+    }
+    int64_t tot = cnt[0];
+    for (int64_t k = 1; k < nt; ++k) {                 /* each range's list after the previous ones */
+        memmove(gl + tot, gl + (n * k / nt) * S2, (size_t)cnt[k] * sizeof(int64_t));
+        tot += cnt[k];
+    }
+    *count = tot;
+}
+
+/* `sh.project_latlong_polar` of rows [h0, h1) of the (H, W, 3) float32 map X into out (n², 3)
+   float64: per row the column sums F[c][j] = Σ_w X[h, w, c] B[w, j] over the 2n factors (B (W, J)
+   float64, J = 2n padded to a multiple of 4 with zeros), then out[i, c] += T[h, i] F[c][k[i]]. */
+typedef double d4 __attribute__((vector_size(32), aligned(8)));
+#define MAXJ 24
+static void proj_rows(int64_t h0, int64_t h1, int64_t W, const float *X, const double *B, int64_t J,
+                      const int64_t *k, const double *T, int64_t n2, double *out) {
+    const int64_t nv = J / 4;
+    for (int64_t h = h0; h < h1; ++h) {
+        d4 a[3][MAXJ / 4];
+        for (int64_t c = 0; c < 3; ++c)
+            for (int64_t v = 0; v < nv; ++v) a[c][v] = (d4){0, 0, 0, 0};
+        const float *row = X + h * W * 3;
+        for (int64_t w = 0; w < W; ++w) {
+            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];
+            const d4 *b = (const d4 *)(B + w * J);
+            for (int64_t v = 0; v < nv; ++v) {
+                a[0][v] += x0 * b[v]; a[1][v] += x1 * b[v]; a[2][v] += x2 * b[v];
+            }
+        }
+        const double *t = T + h * n2;
+        for (int64_t i = 0; i < n2; ++i) {
+            const int64_t j = k[i];
+            for (int64_t c = 0; c < 3; ++c) out[3 * i + c] += t[i] * a[c][j / 4][j % 4];
+        }
+    }
+}
+
+void sh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J, const int64_t *k,
+                const double *T, int64_t n2, double *part, int64_t nt) {
+    /* part (nt, n², 3) zeroed by the caller: thread t's rows [H t / nt, H (t+1) / nt) */
+    if (nt <= 1) { proj_rows(0, H, W, X, B, J, k, T, n2, part); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t t = 0; t < nt; ++t)
+        proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
+}
+
+/* A lighting-only frame's glossy samples (`method._relight_add`) from the packed relight cache
+   (`relight_pack`): per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)] floats;
+   o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
+   img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the block's samples s < Q, ascending. */
+void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, const int64_t *pix, float inv,
+                    float *img) {
+    const int64_t bs = (2 * n2 + 6) * 8;
+    for (int64_t q0 = 0; q0 < Q; q0 += 8) {
+        const float *bk = blk + (q0 / 8) * bs;
+        v8 d0 = {0}, d1 = {0}, d2 = {0}, g0 = {0}, g1 = {0}, g2 = {0};
+        for (int64_t i = 0; i < n2; ++i) {
+            const v8 d = *(const v8 *)(bk + 8 * i), g = *(const v8 *)(bk + 8 * (n2 + i));
+            const float l0 = l[3 * i], l1 = l[3 * i + 1], l2 = l[3 * i + 2];
+            d0 += l0 * d; d1 += l1 * d; d2 += l2 * d;
+            g0 += l0 * g; g1 += l1 * g; g2 += l2 * g;
+        }
+        const float *k = bk + 16 * n2;
+        const v8 r0 = *(const v8 *)(k) * d0 + *(const v8 *)(k + 24) * g0;
+        const v8 r1 = *(const v8 *)(k + 8) * d1 + *(const v8 *)(k + 32) * g1;
+        const v8 r2 = *(const v8 *)(k + 16) * d2 + *(const v8 *)(k + 40) * g2;
+        const int64_t nb = Q - q0 < 8 ? Q - q0 : 8;
+        for (int64_t b = 0; b < nb; ++b) {
+            float *o = img + 3 * pix[q0 + b];
+            o[0] += (r0[b] < 0.f ? 0.f : r0[b]) * inv;
+            o[1] += (r1[b] < 0.f ? 0.f : r1[b]) * inv;
+            o[2] += (r2[b] < 0.f ? 0.f : r2[b]) * inv;
+        }
+    }
+}
+
+/* l' = M l at the listed rows from a VERTEX-major grey M (Vg, n², n²) (row r's matrix one
+   contiguous n²·n² block; `rows_vertex_major`): out[c, r, i] = Σ_j M[r, i, j] l[j, c], the sum over j
+   as 8-float partial vectors (j in blocks of 8), their lanes pairwise, then the tail j ≥ 8⌊n²/8⌋;
+   n² ≤ 64. */
+static void vm_rows(int64_t n2, const float *__restrict M, const float *__restrict lt, const int64_t *rows,
+                    int64_t R, int64_t Vg, float *__restrict out) {
+    const int64_t n8 = n2 & ~(int64_t)7, nb = n8 / 8;           /* nb <= 8: n² <= 64 */
+    v8 L[3][8];
+    for (int64_t c = 0; c < 3; ++c)
+        for (int64_t b = 0; b < nb; ++b) L[c][b] = *(const v8 *)(lt + c * n2 + 8 * b);
+    for (int64_t q = 0; q < R; ++q) {
+        const int64_t r = rows[q];
+        const float *Mr = M + r * n2 * n2;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *row = Mr + i * n2;
+            v8 a0 = {0}, a1 = {0}, a2 = {0};
+            for (int64_t b = 0; b < nb; ++b) {
+                const v8 x = *(const v8 *)(row + 8 * b);
+                a0 += x * L[0][b]; a1 += x * L[1][b]; a2 += x * L[2][b];
+            }
+            float s0 = ((a0[0] + a0[4]) + (a0[1] + a0[5])) + ((a0[2] + a0[6]) + (a0[3] + a0[7]));
+            float s1 = ((a1[0] + a1[4]) + (a1[1] + a1[5])) + ((a1[2] + a1[6]) + (a1[3] + a1[7]));
+            float s2 = ((a2[0] + a2[4]) + (a2[1] + a2[5])) + ((a2[2] + a2[6]) + (a2[3] + a2[7]));
+            for (int64_t j = n8; j < n2; ++j) {
+                s0 += row[j] * lt[j]; s1 += row[j] * lt[n2 + j]; s2 += row[j] * lt[2 * n2 + j];
+            }
+            out[r * n2 + i] = s0; out[(Vg + r) * n2 + i] = s1; out[(2 * Vg + r) * n2 + i] = s2;
+        }
+    }
+}
+
+void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
+                float *out, int64_t nt) {
+    if (nt <= 1) { vm_rows(n2, M, lt, rows, R, Vg, out); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = R * k / nt, e = R * (k + 1) / nt;
+        vm_rows(n2, M, lt, rows + a, e - a, Vg, out);
+    }
+}
+
+/* The glossy samples' whole radiance (`method._glossy_samples_impl`, its oracle: Sloan 2002 §6-7)
+   for odd orders n (n² − 1 a multiple of 8), AVX2. Per block of 8 samples g[q]: their scalars across
+   the 8 lanes (n̂ = n/|n|, d = n̂·ωo, R = 2 d n̂ − ωo normalised to (x, y, z), sc = n·ωo⁺ on
+   Blinn-Phong else 1, the powers Re / Im (x + iy)^k), y_i(R) = A_i(z) T_i for i ≥ 1 (Horner in z
+   over the tables of `_sh_factor_tables`, T_i = 1 or the power sel[i] picks) into a (n² − 1, 8)
+   block, transposed 8 × 8 to per-sample rows; then per sample and channel
+   spec = Σ_{i≥1} (w0 L[a0, i] + u L[a1, i] + v L[a2, i]) y_i G_i sc + (the same at i = 0) Y00 G_0 sc,
+   e from the corner table, out = n·ωo > 0 ? max(0, kd e + ks spec) : 0. */
+#ifdef __AVX2__
+#include <immintrin.h>
+static inline void tr8(__m256 *r) {
+    __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    __m256 s0 = _mm256_shuffle_ps(t0, t2, 0x44), s1 = _mm256_shuffle_ps(t0, t2, 0xEE);
+    __m256 s2 = _mm256_shuffle_ps(t1, t3, 0x44), s3 = _mm256_shuffle_ps(t1, t3, 0xEE);
+    __m256 s4 = _mm256_shuffle_ps(t4, t6, 0x44), s5 = _mm256_shuffle_ps(t4, t6, 0xEE);
+    __m256 s6 = _mm256_shuffle_ps(t5, t7, 0x44), s7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+    r[0] = _mm256_permute2f128_ps(s0, s4, 0x20); r[1] = _mm256_permute2f128_ps(s1, s5, 0x20);
+    r[2] = _mm256_permute2f128_ps(s2, s6, 0x20); r[3] = _mm256_permute2f128_ps(s3, s7, 0x20);
+    r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
+    r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
+}
+static inline float hsum8(__m256 a) {
+    __m128 l = _mm256_castps256_ps128(a), h = _mm256_extractf128_ps(a, 1);
+    l = _mm_add_ps(l, h);
+    l = _mm_add_ps(l, _mm_movehl_ps(l, l));
+    l = _mm_add_ss(l, _mm_shuffle_ps(l, l, 1));
+    return _mm_cvtss_f32(l);
+}
+#define GMAXB 8     /* (n² − 1) / 8 <= 8: orders <= 7 */
+static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+                     const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc,
+                     const float *N, int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc,
+                     const float *ef, const int32_t *fg, const float *lg, int64_t lsc, int64_t lsr,
+                     const float *kd, const float *ks, const float *G, const uint8_t *vcos,
+                     const float *A, const int32_t *sel, float *out) {
+    const int64_t n2 = n * n, m = n2 - 1, nb = m / 8;
+    const float Y00 = 0.28209479177387814f;
+    float fu[8], fv[8], fnx[8], fny[8], fnz[8], fox[8], foy[8], foz[8], fvc[8];
+    int64_t fi[8], ri[8];
+    float X[8], Yv[8], Z[8], SC[8], FR[8];
+    __m256 yb[GMAXB][8];
+    for (int64_t b0 = q0; b0 < q1; b0 += 8) {
+        const int64_t nb8 = q1 - b0 < 8 ? q1 - b0 : 8;
+        for (int64_t b = 0; b < 8; ++b) {
+            const int64_t s = g[b0 + (b < nb8 ? b : nb8 - 1)];
+            int64_t f = face[s]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            int64_t r = reg[s]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+            fi[b] = f; ri[b] = r;
+            fu[b] = B[s * br]; fv[b] = B[s * br + bc];
+            fnx[b] = N[s * nr]; fny[b] = N[s * nr + nc]; fnz[b] = N[s * nr + 2 * nc];
+            fox[b] = O[s * orr]; foy[b] = O[s * orr + oc]; foz[b] = O[s * orr + 2 * oc];
+            fvc[b] = vcos[r] ? 1.0f : 0.0f;
+        }
+        {
+            const __m256 nx0 = _mm256_loadu_ps(fnx), ny0 = _mm256_loadu_ps(fny), nz0 = _mm256_loadu_ps(fnz);
+            const __m256 ox = _mm256_loadu_ps(fox), oy = _mm256_loadu_ps(foy), oz = _mm256_loadu_ps(foz);
+            const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), tiny = _mm256_set1_ps(1e-12f);
+            const __m256 two = _mm256_set1_ps(2.0f);
+            __m256 dot0 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx0, ox), _mm256_mul_ps(ny0, oy)), _mm256_mul_ps(nz0, oz));
+            _mm256_storeu_ps(FR, _mm256_and_ps(_mm256_cmp_ps(dot0, zero, _CMP_GT_OQ), one));
+            __m256 nn = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx0, nx0), _mm256_mul_ps(ny0, ny0)), _mm256_mul_ps(nz0, nz0));
+            nn = _mm256_max_ps(_mm256_sqrt_ps(nn), tiny);
+            const __m256 nx = _mm256_div_ps(nx0, nn), ny = _mm256_div_ps(ny0, nn), nz = _mm256_div_ps(nz0, nn);
+            const __m256 d = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx, ox), _mm256_mul_ps(ny, oy)), _mm256_mul_ps(nz, oz));
+            const __m256 d2 = _mm256_mul_ps(two, d);
+            const __m256 Rx = _mm256_sub_ps(_mm256_mul_ps(d2, nx), ox), Ry = _mm256_sub_ps(_mm256_mul_ps(d2, ny), oy);
+            const __m256 Rz = _mm256_sub_ps(_mm256_mul_ps(d2, nz), oz);
+            __m256 rn = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(Rx, Rx), _mm256_mul_ps(Ry, Ry)), _mm256_mul_ps(Rz, Rz));
+            rn = _mm256_max_ps(_mm256_sqrt_ps(rn), tiny);
+            const __m256 x = _mm256_div_ps(Rx, rn), y = _mm256_div_ps(Ry, rn), z = _mm256_div_ps(Rz, rn);
+            _mm256_storeu_ps(X, x); _mm256_storeu_ps(Yv, y); _mm256_storeu_ps(Z, z);
+            const __m256 vc = _mm256_cmp_ps(_mm256_loadu_ps(fvc), zero, _CMP_NEQ_OQ);
+            _mm256_storeu_ps(SC, _mm256_blendv_ps(one, _mm256_max_ps(d, zero), vc));
+            __m256 T[16];                                    /* 1, Re_1, Im_1, Re_2, ... */
+            T[0] = one;
+            __m256 cm = x, sm = y;
+            for (int64_t k = 1; k < n; ++k) {
+                if (k > 1) {
+                    const __m256 c2 = _mm256_sub_ps(_mm256_mul_ps(x, cm), _mm256_mul_ps(y, sm));
+                    sm = _mm256_add_ps(_mm256_mul_ps(x, sm), _mm256_mul_ps(y, cm));
+                    cm = c2;
+                }
+                T[2 * k - 1] = cm; T[2 * k] = sm;
+            }
+            for (int64_t i = 0; i < m; ++i) {
+                __m256 P = _mm256_set1_ps(A[(n - 1) * m + i]);
+                for (int64_t j = n - 2; j >= 0; --j) P = _mm256_add_ps(_mm256_mul_ps(P, z), _mm256_set1_ps(A[j * m + i]));
+                yb[i / 8][i % 8] = _mm256_mul_ps(P, T[sel[i]]);
+            }
+            for (int64_t k = 0; k < nb; ++k) tr8(yb[k]);          /* yb[k][b]: lanes 8k.. of sample b */
+        }
+        for (int64_t b = 0; b < nb8; ++b) {
+            float *o = out + 3 * (b0 + b);
+            if (FR[b] == 0.0f) { o[0] = o[1] = o[2] = 0.0f; continue; }
+            const int64_t f = fi[b], r = ri[b];
+            const float u = fu[b], v = fv[b], w0 = 1.0f - u - v, sc = SC[b];
+            const float *Gr = G + r * n2;
+            const __m256 scv = _mm256_set1_ps(sc);
+            __m256 q[GMAXB];
+            for (int64_t k = 0; k < nb; ++k)
+                q[k] = _mm256_mul_ps(yb[k][b], _mm256_mul_ps(_mm256_loadu_ps(Gr + 1 + 8 * k), scv));
+            const float y0 = Y00 * Gr[0] * sc;
+            const int32_t *fr = fg + 3 * f;
+            const float *ec = ef + 9 * f;
+            const __m256 W = _mm256_set1_ps(w0), U = _mm256_set1_ps(u), V = _mm256_set1_ps(v);
+            for (int64_t c = 0; c < 3; ++c) {
+                const float *L0 = lg + c * lsc + fr[0] * lsr, *L1 = lg + c * lsc + fr[1] * lsr,
+                            *L2 = lg + c * lsc + fr[2] * lsr;
+                __m256 acc = _mm256_setzero_ps();
+                for (int64_t k = 0; k < nb; ++k) {
+                    const __m256 li = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_loadu_ps(L0 + 1 + 8 * k), W),
+                                                                  _mm256_mul_ps(_mm256_loadu_ps(L1 + 1 + 8 * k), U)),
+                                                    _mm256_mul_ps(_mm256_loadu_ps(L2 + 1 + 8 * k), V));
+                    acc = _mm256_add_ps(acc, _mm256_mul_ps(li, q[k]));
+                }
+                const float spec = hsum8(acc) + (L0[0] * w0 + L1[0] * u + L2[0] * v) * y0;
+                const float e = ec[c] * w0 + ec[3 + c] * u + ec[6 + c] * v;
+                const float val = kd[r * 3 + c] * e + ks[r * 3 + c] * spec;
+                o[c] = val < 0.0f ? 0.0f : val;
+            }
+        }
+    }
+}
+#endif
+
+void sh_glossy(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf, const int64_t *reg, int64_t Rn,
+               const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+               const float *O, int64_t orr, int64_t oc, const float *ef, const int32_t *fg, const float *lg,
+               int64_t lsc, int64_t lsr, const float *kd, const float *ks, const float *G, const uint8_t *vcos,
+               const float *A, const int32_t *sel, float *out, int64_t nt, int64_t *ok) {
+#ifdef __AVX2__
+    *ok = 1;
+    if (nt <= 1) {
+        gl_range(0, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                 vcos, A, sel, out);
+        return;
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k) {
+        const int64_t a = Q * k / nt, e = Q * (k + 1) / nt;
+        gl_range(a, e, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                 vcos, A, sel, out);
+    }
+#else
+    *ok = 0;
+#endif
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -113,7 +437,14 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
-               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P]}
+               "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
+               "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
+                             _P, _P, _P, _P, _P, _P, _P, _I, _P],
+               "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
+               "sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I],
+               "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
+               "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
+                             _P, _P, _I]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
 
@@ -233,3 +564,186 @@ def add_pixels(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
     if int(g[0]) < 0 or int(g[-1]) >= img.shape[0] * S2:
         raise IndexError("a sample outside the image")
     lib.sh_add_pixels(g.data_ptr(), int(g.numel()), int(S2), vals.data_ptr(), 1.0 / S2, img.data_ptr())
+
+
+MIN_PIXELS_PER_THREAD = 4096    # pixels below which one thread runs the pixel pass
+
+
+def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
+           S2: int) -> tuple[Tensor, Tensor] | None:
+    """`method._pixels_impl`'s pass as one C loop that also lists the glossy samples: (img (n, 3),
+    g (Qg,) int64 ascending, the samples ``hit & fk[face, 3] != 0``) for the G-buffer arrays face
+    (P,) int64, hit (P,) bool, bary (P, 2), normal and wo (P, 3) float32 (any strides), P = n·S2,
+    the face-corner table ef (M, 9) and the face rows fk (M, 4) float32; None where the C loop does
+    not run (no compiler, not the CPU, other dtypes): the caller takes the compiled pass."""
+    lib = _lib()
+    if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
+            or any(x.dtype != torch.float32 or x.dim() != 2 for x in (bary, normal, wo, ef, fk))
+            or bary.shape[1] != 2 or normal.shape[1] != 3 or wo.shape[1] != 3 or ef.shape[1] != 9
+            or fk.shape != (ef.shape[0], 4) or ef.shape[0] == 0):
+        return None
+    P = int(face.numel())
+    if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo)):
+        raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
+    face, hit = face.contiguous(), hit.contiguous()
+    ef, fk = ef.contiguous(), fk.contiguous()
+    n = P // S2
+    img = torch.empty(n, 3)
+    gl = _gl_buffer(P)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
+                  normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
+                  ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
+                  cnt.data_ptr(), nt)
+    return img, gl[:int(cnt)].clone()
+
+
+_GL: list = [torch.empty(0, dtype=torch.int64)]
+
+
+def _gl_buffer(P: int) -> Tensor:
+    """The glossy list's buffer of `pixels` (P int64: every sample may be glossy), kept between
+    frames (a fresh 2 MB buffer's pages were faulted in each frame). `pixels` returns a copy of its
+    listed part."""
+    if _GL[0].numel() < P:
+        _GL[0] = torch.empty(P, dtype=torch.int64)
+    return _GL[0]
+
+
+MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects
+
+
+@functools.lru_cache(maxsize=8)
+def _project_factors(H: int, W: int, order: int) -> tuple[Tensor, Tensor, Tensor, int]:
+    """`sh._latlong_polar_factors` (B (W, 2n), k, T) with B's columns padded with zeros to a multiple
+    of 4 (whole 4-double vectors in `sh_project`) → (B (W, J), k, T, J), contiguous, CPU."""
+    from methods.core.sh import _latlong_polar_factors
+
+    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
+    J = -(-B.shape[1] // 4) * 4
+    Bp = torch.zeros(W, J, dtype=torch.float64)
+    Bp[:, :B.shape[1]] = B
+    return Bp, k.to(torch.int64).contiguous(), T.contiguous(), J
+
+
+def project_latlong_polar(image: Tensor, order: int) -> Tensor:
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by one C pass over the
+    float32 (H, W, 3) texels (float64 sums: the same integrals in another order, float64 round-off;
+    no float64 copy of the map), or by that function (its oracle) where the loop does not run."""
+    from methods.core.sh import project_latlong_polar as oracle
+
+    lib = _lib()
+    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
+            or image.shape[2] != 3 or 2 * order > 24):
+        return oracle(image, order)
+    H, W, _ = image.shape
+    B, k, T, J = _project_factors(int(H), int(W), int(order))
+    X = image.contiguous()
+    n2 = order * order
+    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
+    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
+    lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
+    return part[0] if nt == 1 else part.sum(0)
+
+
+def relight_pack(DG: Tensor, kd: Tensor, ks: Tensor) -> Tensor:
+    """The relight cache's columns (`method.SHPRT._relight_build`: DG (n², 2Q) [d | q], kd and ks
+    (3, Q)) in the sample-blocked layout of `relight_add`: per block of 8 samples (the last padded
+    with zeros) [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)], one contiguous run (2n² + 6)·8
+    floats → (⌈Q/8⌉, (2n² + 6)·8) float32. (The column-major DG read 2n² streams 2Q floats apart at
+    once, beyond the prefetchers: 5.7 GB/s.)"""
+    n2, Q = int(DG.shape[0]), int(kd.shape[1])
+    Qb = -(-Q // 8)
+    X = torch.zeros(2 * n2 + 6, Qb * 8, dtype=torch.float32, device=DG.device)
+    X[:n2, :Q], X[n2:2 * n2, :Q] = DG[:, :Q], DG[:, Q:]
+    X[2 * n2:2 * n2 + 3, :Q], X[2 * n2 + 3:, :Q] = kd, ks
+    return X.view(2 * n2 + 6, Qb, 8).permute(1, 0, 2).contiguous().view(Qb, -1)
+
+
+def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`relight_pack`'s inverse: (DG (n², 2Q), kd (3, Q), ks (3, Q)) (copies)."""
+    X = blk.view(blk.shape[0], 2 * n2 + 6, 8).permute(1, 0, 2).reshape(2 * n2 + 6, -1)[:, :Q]
+    return (torch.cat([X[:n2], X[n2:2 * n2]], 1), X[2 * n2:2 * n2 + 3].contiguous(), X[2 * n2 + 3:].contiguous())
+
+
+def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bool:
+    """img (n, 3) += max(0, kd · lᵀd + ks · lᵀq) / S² at the pixels pix (Q,) int64 (ascending) of the
+    packed relight cache blk (`relight_pack`) by one C pass (`method._relight_add` on the unpacked
+    cache is its oracle: the same products and sums, i ascending); False (nothing done) where it
+    does not run."""
+    lib = _lib()
+    Q = int(pix.numel())
+    n2 = int(l.shape[0])
+    if (lib is None or img.device.type != "cpu" or any(x.dtype != torch.float32 for x in (img, blk, l))
+            or pix.dtype != torch.int64 or not (img.is_contiguous() and blk.is_contiguous() and pix.is_contiguous())
+            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim != 2 or img.shape[1] != 3):
+        return False
+    if Q == 0:
+        return True
+    if int(pix[0]) < 0 or int(pix[-1]) >= img.shape[0]:
+        raise IndexError("a sample outside the image")
+    lc = l.contiguous()
+    lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr())
+    return True
+
+
+def rows_vertex_major(Mv: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> bool:
+    """out[:, rows, :] = (M l)[:, rows, :] from a grey M in VERTEX-major memory Mv (Vg, n², n²)
+    float32 contiguous (each row's n²×n² matrix one contiguous block: a listed row is one 2.5 KB
+    read at order 5, where the lighting-major M of `rows` spreads it over n² runs Vg·n² floats apart),
+    l (n², 3), out (3, Vg, n²) float32 contiguous, by one C loop (the same sums as `rows_torch`, its
+    oracle, in another order: float32 round-off); False (nothing done) where it does not run."""
+    lib = _lib()
+    if (lib is None or Mv.device.type != "cpu" or Mv.dtype != torch.float32 or out.dtype != torch.float32
+            or Mv.dim() != 3 or not Mv.is_contiguous() or not out.is_contiguous() or Mv.shape[1] > MAX_N2):
+        return False
+    Vg, n2 = int(Mv.shape[0]), int(Mv.shape[1])
+    if Mv.shape[2] != n2 or l.shape != (n2, 3) or out.shape != (3, Vg, n2):
+        raise ValueError(f"M (Vg, n², n²), l (n², 3), out (3, Vg, n²) expected, got {tuple(Mv.shape)}, "
+                         f"{tuple(l.shape)}, {tuple(out.shape)}")
+    r = rows.to(torch.int64).contiguous()
+    R = int(r.numel())
+    if R == 0:
+        return True
+    if int(r.min()) < 0 or int(r.max()) >= Vg:
+        raise IndexError("a glossy row outside M")
+    lt = l.to(torch.float32).T.contiguous()                                    # (3, n²)
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
+    lib.sh_vm_rows(n2, Mv.data_ptr(), lt.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
+    return True
+
+
+MIN_GLOSSY_PER_THREAD = 512     # glossy samples below which one thread shades them
+
+
+def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor, fg: Tensor,
+           lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor, S: Tensor) -> Tensor | None:
+    """`method._glossy_samples_impl`'s radiance (Qg, 3) of the glossy samples g by one AVX2 C loop
+    (module source: `sh_glossy`; the same arithmetic in another order, float32 round-off), or None
+    where it does not run (no library or AVX2, not the CPU, other dtypes, an even order or one
+    above 7): the caller then runs the compiled kernel. Arguments as that function's."""
+    lib = _lib()
+    n = math.isqrt(int(G.shape[1]))
+    if (lib is None or n % 2 == 0 or n > 7 or n * n != G.shape[1] or g.device.type != "cpu"
+            or g.dtype != torch.int64 or face.dtype != torch.int64 or reg.dtype != torch.int64
+            or fg.dtype != torch.int32 or lg3.dim() != 3 or lg3.stride(2) != 1
+            or any(x.dtype != torch.float32 for x in (bary, normal, wo, ef, lg3, kd, ks, G, A))):
+        return None
+    Q = int(g.numel())
+    out = torch.empty(Q, 3, dtype=torch.float32)
+    if Q == 0:
+        return out
+    if int(g.min()) < 0 or int(g.max()) >= face.numel():
+        raise IndexError("a glossy sample outside the G-buffer")
+    g, face, reg, fg, ef, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, fg, ef, kd, ks, G, A))
+    v8 = vcos.to(torch.uint8).contiguous()
+    sel = S.argmax(0).to(torch.int32).contiguous()
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_GLOSSY_PER_THREAD))
+    ok = torch.zeros(1, dtype=torch.int64)
+    lib.sh_glossy(Q, n, g.data_ptr(), face.data_ptr(), int(ef.shape[0]), reg.data_ptr(), int(kd.shape[0]),
+                  bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0), normal.stride(1),
+                  wo.data_ptr(), wo.stride(0), wo.stride(1), ef.data_ptr(), fg.data_ptr(), lg3.data_ptr(),
+                  lg3.stride(0), lg3.stride(1), kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(),
+                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr())
+    return out if int(ok) else None

@@ -698,3 +698,178 @@ def test_native_add_pixels_is_the_scatter_add(S2):
     assert not torch.equal(want, img0) and torch.equal(got, want)
     with pytest.raises(IndexError):
         native.add_pixels(img0.clone(), torch.tensor([n * S2]), vals[:1], S2)
+
+
+@pytest.mark.parametrize("S2", [1, 4, 9])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_pixel_pass_equals_the_compiled_pass(S2, threads):
+    """`native.pixels` (the pixel pass as one C loop that also lists the glossy samples) gives bit for
+    bit the image of `_pixels_impl` (eager, and compiled by `_pixels_kernel`) and the ascending list
+    of its glossy flags, for the G-buffer's layouts (column-major bary and wo, row-major normal) and
+    others, with misses (face −1), back-facing samples, negative diffuse values (clamped), glossy
+    faces and more pixels than one thread's share (2 threads: the per-thread lists joined)."""
+    from methods.core.fused import map_rows
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(S2 + 10 * threads)
+    n, M = 3 * native.MIN_PIXELS_PER_THREAD + 17, 300
+    P = n * S2
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = torch.rand(2, P, generator=gen).T * 0.5                               # column-major (Mitsuba)
+    normal = torch.randn(P, 3, generator=gen)                                     # row-major
+    wo = torch.randn(3, P, generator=gen).T                                       # column-major
+    ef = torch.randn(M, 9, generator=gen)                                         # some e < 0: clamped
+    fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.3).float()], 1)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for layout in ((bary, normal, wo), (bary.contiguous(), normal.T.contiguous().T, wo.contiguous())):
+            vecs = [shm._pixel_rows(x, n, S2) for x in layout]
+            rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
+            lay = tuple(len(v) for v in vecs)
+            want = shm._pixels_impl(*[r.contiguous() for r in rows], ef, fk, layout=lay)
+            comp = map_rows(shm._pixels_kernel(lay), rows, (ef, fk), chunk=max(1, shm.PIXEL_CHUNK // S2))
+            img, g = native.pixels(face, hit, *layout, ef, fk, S2)
+            wg = want[1].reshape(-1).nonzero().squeeze(-1)
+            assert 0 < g.numel() < P and torch.equal(g, wg)
+            assert (want[0] > 0).any() and torch.equal(img, want[0]) and torch.equal(img, comp[0])
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("order", [3, 5, 8])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_projection_equals_project_latlong_polar(order, threads):
+    """`native.project_latlong_polar` (one C pass over the float32 texels, float64 sums) equals
+    `methods.core.sh.project_latlong_polar` (its oracle: the float64 GEMM) to float64 round-off, on
+    maps of several sizes (odd ones: rows split over 2 threads unevenly)."""
+    from methods.core.sh import project_latlong_polar
+    from methods.sh_prt import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(order)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for H, W in ((32, 64), (131, 250), (256, 512)):
+            img = torch.rand(H, W, 3, generator=gen) * torch.rand(1, W, 3, generator=gen) * 5
+            got, want = native.project_latlong_polar(img, order), project_latlong_polar(img, order)
+            assert got.dtype == torch.float64 and got.shape == want.shape == (order * order, 3)
+            assert (got - want).abs().max() <= 1e-13 * want.abs().max()
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("Q", [1, 8, 1001])
+def test_native_relight_add_equals_the_gemm(Q):
+    """`native.relight_add` on the packed relight cache (`native.relight_pack`, per 8 samples) adds
+    to the pixels what `_relight_add`'s GEMM and scatter_add_ add on the unpacked one (to float32
+    round-off; the same sums), repeated pixels and a padded last block included, and
+    `relight_unpack` inverts the packing."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(Q)
+    n2, S2, n = 25, 4, 400
+    DG = torch.randn(n2, 2 * Q, generator=gen)
+    kd, ks = torch.rand(3, Q, generator=gen), torch.rand(3, Q, generator=gen)
+    pix = torch.randint(0, n, (Q,), generator=gen).sort().values
+    l = torch.randn(n2, 3, generator=gen)
+    cache = {"DG": DG, "kd": kd, "ks": ks, "pix": pix[:, None].expand(-1, 3)}
+    packed = shm._relight_packed(cache)
+    back = native.relight_unpack(packed["blk"], Q, n2)
+    assert all(torch.equal(a, b) for a, b in zip(back, (DG, kd, ks)))
+    img0 = torch.rand(n, 3, generator=gen)
+    want, got = img0.clone(), img0.clone()
+    shm._relight_add(want, cache, l, S2)
+    assert native.relight_add(got, packed["blk"], l, packed["p"], S2)
+    assert not torch.equal(want, img0)
+    assert (got - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+
+
+@pytest.mark.parametrize("order", [3, 5, 8])
+def test_native_vertex_major_rows_equal_the_full_product(order, monkeypatch):
+    """`native.rows_vertex_major` (l' = M l at the listed rows from the vertex-major (Vg, n², n²) M)
+    writes those rows equal to `apply_lighting` over every row to float32 round-off and leaves the
+    others untouched, at 1 and 2 threads; and `SHPRT._vertex_major_M` is M's vertex-major first pass
+    exactly when M is (bounces 0), None otherwise."""
+    from methods.sh_prt import native
+    from methods.sh_prt.method import apply_lighting, lighting_major
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(order)
+    n2, Vg = order * order, 700
+    Mv = torch.randn(Vg, n2, n2, generator=g)
+    l = torch.randn(n2, 3, generator=g)
+    full = apply_lighting(lighting_major(Mv[..., None]).reshape(Vg * n2, n2, 1), l).view(3, Vg, n2)
+    rows = torch.randperm(Vg, generator=g)[:611].sort().values
+    others = torch.ones(Vg, dtype=torch.bool)
+    others[rows] = False
+    for threads in (1, 2):
+        monkeypatch.setattr(torch, "get_num_threads", lambda t=threads: t)
+        out = torch.full((3, Vg, n2), 7.0)
+        assert native.rows_vertex_major(Mv, l, rows, out)
+        assert (out[:, rows] - full[:, rows]).abs().max() <= 1e-5 * full.abs().max()
+        assert bool((out[:, others] == 7.0).all())
+    with pytest.raises(IndexError):
+        native.rows_vertex_major(Mv, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
+
+
+def test_vertex_major_M_is_M_without_bounces(alcove):
+    """`SHPRT._vertex_major_M`: the (Vg, n², n²) vertex-major values of M when it is the first pass
+    alone (bounces 0, grey transfer), None when M sums bounces."""
+    _, m, _, _ = alcove
+    assert m.bounces == 1 and m._vertex_major_M() is None
+    m0 = m.with_bounces(0)
+    Mv = m0._vertex_major_M()
+    assert Mv is not None and Mv.is_contiguous() and torch.equal(Mv, m0.M[..., 0])
+
+
+@pytest.mark.parametrize("order", [3, 5, 7])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_glossy_equals_the_kernel(order, threads):
+    """`native.glossy` (the glossy samples' radiance in one AVX2 C loop, 8 samples per block) equals
+    `_glossy_samples_impl` (eager: the compiled kernel's definition, its oracle) to float32 round-off
+    on random tables: a Phong and a Blinn-Phong region, back-facing samples, unnormalised normals,
+    a count that leaves a partial last block, l' in another memory layout, 1 and 2 threads; and it
+    declines (None) the even orders it does not handle."""
+    from methods.sh_prt import method as shm, native
+
+    if native.glossy is None or not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(order + 100 * threads)
+    n2, P, M, Vg, R = order * order, 3000, 40, 30, 3
+    face = torch.randint(0, M, (P,), generator=gen)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T                                # column-major
+    normal = torch.randn(P, 3, generator=gen) * 1.7
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T    # column-major
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.rand(M, 9, generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+    kd, ks = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen)
+    G = torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    g = torch.randperm(P, generator=gen)[:2501].sort().values
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        lg = torch.randn(3, Vg, n2, generator=gen)
+        for lg3 in (lg, lg.permute(1, 0, 2).contiguous().permute(1, 0, 2)):
+            args = (face, bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos)
+            want = shm._glossy_samples_impl(g, *args, *AS)[0]
+            got = native.glossy(g, *args, *AS)
+            assert got is not None and got.shape == (g.numel(), 3)
+            assert (want > 0).float().mean() > 0.2 and (want == 0).float().mean() > 0.2
+            assert (got - want).abs().max() <= 1e-5 * want.abs().max()
+    finally:
+        torch.set_num_threads(old)
+    G4 = torch.rand(R, 16, generator=gen)
+    assert native.glossy(g, face, bary, normal, wo, reg, ef, fg, torch.randn(3, Vg, 16), kd, ks, G4, vcos,
+                         *shm._sh_factor_tables(4, torch.device("cpu"))) is None
