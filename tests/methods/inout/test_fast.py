@@ -769,7 +769,8 @@ def test_vertex_reference_is_per_sample_at_the_vertices(precomputed):
 
 def test_vertex_view_is_kept_across_lighting_changes(precomputed):
     """L / E frames: the view's referenced vertices and cells are reused (only c_k and B_v recomputed);
-    a new camera, or the same camera with another G-buffer, recomputes them."""
+    a new camera, another sample count, a hit fewer, or a hit moved to a face none of whose vertices
+    was referenced (the same hit count) recomputes them — and the images stay the reference's."""
     m = _vertex(precomputed("sphere_plane"))
     frames = make_sequence(m.scene, "L", n_frames=3, seed=1)
     gb = make_gbuffer(m.scene, frames[0], 1)
@@ -787,6 +788,19 @@ def test_vertex_view_is_kept_across_lighting_changes(precomputed):
     gb2.hit = gb2.face >= 0
     m.render(frames[2], gb2)
     assert m._vview is not vv and m._vview["hits"] == int(gb2.hit.sum())
+    vv = m._vview
+    # one hit moved to a face of its region with no referenced vertex: same camera, same hit count
+    st = m._fast_static()
+    k = int(gb2.hit.nonzero()[0, 0])
+    unref = ~vv["vmask"][st.face_gl.long()].any(0) & (st.face_region == gb2.region[k])
+    gb3 = copy.copy(gb2)
+    gb3.face = gb2.face.clone()
+    gb3.face[k] = int(unref.nonzero()[0, 0])
+    m.render(frames[2], gb3)
+    assert m._vview is not vv and m._vview["ref"] == vv["ref"] + 3 and m._vview["hits"] == vv["hits"]
+    _, ref_m = _pair(m)
+    want = ref_m._render_reference(frames[2], gb3)
+    assert float((m.render(frames[2], gb3) - want).abs().max()) <= RTOL * float(want.abs().max())
     for f in make_sequence(m.scene, "V", n_frames=2, seed=2):
         m.render(f, make_gbuffer(m.scene, f, 1))
     assert m._vview["key"][1] == tuple(float(x) for x in f.camera.origin)
