@@ -296,12 +296,22 @@ def test_hit_face_mask_is_the_histogram_of_the_hits_faces():
     """``csr.hit_face_mask`` (the native pass of the vertex view) against ``fast.hit_face_counts``
     and the vertices of its faces: the vertex mask of the faces with a hit, their count, the miss
     count and the region flag, with out-of-range faces on hits (clamped by both), misses of any face
-    and region, no sample; non-int64 / strided arrays are refused (None: the caller takes the
-    compiled pass)."""
+    and region, no sample, at 1 and 2 threads (70000 samples split over OpenMP's team); non-int64 /
+    strided arrays are refused (None: the caller takes the compiled pass)."""
     from methods.inout import csr
 
     if not csr.available():
         pytest.skip("no native kernel")
+    threads = torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            _check_hit_face_mask(csr)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _check_hit_face_mask(csr) -> None:
     g = torch.Generator().manual_seed(7)
     M, nv = 23, 31
     face_region = torch.arange(M) % 3
