@@ -216,7 +216,7 @@ class InOut(Method):
         self._c: dict[str, Tensor] = {}        # region → (Vr, K, 3) c_k = T̃_k · L (reference path)
         self._cf: dict[str, Tensor] = {}       # region → (Vr, 3, K) the same for the fast path, filled lazily:
         self._cf_valid: dict[str, Tensor] = {}  # region → (Vr,) bool, which rows of _cf are computed
-        self._cf_full: set[str] = set()         # the regions whose rows of _cf are all computed
+        self._cf_full: dict[str, Tensor] = {}   # region → its _cf_valid tensor when every row was computed at once
         self._fast = None                      # the fast path's static arrays (`_fast_static`), built on first use
         self._last_view = None                 # (P, what `frame_cost` counts) of the last fast render
         self._env_shape = None                 # (H, W) of the env map of the current lighting
@@ -355,7 +355,7 @@ class InOut(Method):
         """Forget the lighting and every per-vertex c_k (the next frame recomputes them): gives a
         copy of a precomputed method caches of its own."""
         self.L = None
-        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, set()
+        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, {}
         self._lightings = 0
         self._last_view = None
         self._vview = None
@@ -366,7 +366,7 @@ class InOut(Method):
             return
         self.L = self._lighting(frame.envmap).to(self.regions[0].T.device if self.regions else "cpu")
         self._env_shape = tuple(int(x) for x in frame.envmap.data.shape[:2])
-        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, set()  # c_k of the new lighting: none computed yet
+        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, {}  # c_k of the new lighting: none computed yet
         self._lightings += 1
 
     def _region_samples(self, gbuffer: GBuffer):
@@ -489,7 +489,8 @@ class InOut(Method):
         (``fast.light_vertices``), else by whole blocks (`fast.light_runs`) — so an L / E / VL frame
         computes no c its view does not reference."""
         reg, fr = self.regions[s], self._fast.regions[s]
-        if reg.name in self._cf_full:                      # every row valid: no per-frame check (~0.07 ms a region)
+        full = self._cf_full.get(reg.name)
+        if full is not None and full is self._cf_valid.get(reg.name):  # every row valid: no check (~0.07 ms a region)
             return self._cf[reg.name]
         if reg.name not in self._cf:
             if self._lightings == 1:
@@ -518,7 +519,7 @@ class InOut(Method):
             nv = int(reg.verts.numel())
             self._cf[reg.name] = _fast.light_rows(fr, self.L, 0, nv).transpose(1, 2).contiguous()
             self._cf_valid[reg.name] = torch.ones(nv, dtype=torch.bool, device=self.L.device)
-            self._cf_full.add(reg.name)
+            self._cf_full[reg.name] = self._cf_valid[reg.name]
 
     def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
         """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
