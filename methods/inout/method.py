@@ -670,8 +670,9 @@ class InOut(Method):
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """Shading "vertex", the fast path (`_render_vertex_reference` to float32 round-off): c_k of
         the referenced vertices above their horizon (`_ensure_c`, lazily as the per-sample path),
-        B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (``fast.vertex_radiance``, one
-        sampled product per region), then the Gouraud resolve (``core.gouraud.resolve``)."""
+        B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (a C loop per region,
+        ``native.vertex_radiance``; else ``fast.vertex_radiance``, one compiled sampled product per
+        region), then the Gouraud resolve (``core.gouraud.resolve``)."""
         self._relight(frame)
         st = self._fast_static()
         vv = self._vertex_view(frame, gbuffer)
