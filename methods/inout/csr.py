@@ -86,29 +86,37 @@ void csr_blocks4_par(const int64_t* crow, const int64_t* first, int64_t n, int64
    per sample i with hit[i], f = face[i] clamped into [0, M), mask[f] = 1 and bad |= face_region[f] !=
    region[i]; per sample without, one miss. Then per face f with mask[f], vmask[face_gl[j * M + f]] = 1
    for j < 3 (face_gl (3, M); an id outside [0, nv) is skipped: ``fast.FastStatic``'s are all inside).
-   mask (M,) and vmask (nv,) zeroed by the caller. out[0] = misses, out[1] = bad (0 / 1), out[2] = the faces marked. */
+   mask (M,) and vmask (nv,) zeroed by the caller. out[0] = misses, out[1] = bad (0 / 1), out[2] = the faces marked.
+   Both passes split their range over nt threads of OpenMP's team: the marks are relaxed atomic stores
+   of 1 (two threads may mark one face or vertex) and the counts are sums, so every output is the same
+   at any thread count. */
 void hit_face_mask(const int64_t* face, const int64_t* region, const uint8_t* hit, int64_t n,
                    const int64_t* face_region, int64_t M, const int32_t* face_gl, int64_t nv,
-                   uint8_t* mask, uint8_t* vmask, int64_t* out) {
+                   uint8_t* mask, uint8_t* vmask, int64_t* out, int64_t nt) {
     int64_t misses = 0, bad = 0, faces = 0;
-    for (int64_t i = 0; i < n; ++i) {
-        if (!hit[i]) {
-            ++misses;
-            continue;
+    #pragma omp parallel num_threads(nt) if (nt > 1)
+    {
+        #pragma omp for schedule(static) reduction(+:misses) reduction(|:bad)
+        for (int64_t i = 0; i < n; ++i) {
+            if (!hit[i]) {
+                ++misses;
+                continue;
+            }
+            int64_t f = face[i];
+            f = f < 0 ? 0 : (f >= M ? M - 1 : f);
+            __atomic_store_n(mask + f, (uint8_t)1, __ATOMIC_RELAXED);
+            bad |= face_region[f] != region[i];
         }
-        int64_t f = face[i];
-        f = f < 0 ? 0 : (f >= M ? M - 1 : f);
-        mask[f] = 1;
-        bad |= face_region[f] != region[i];
-    }
-    for (int64_t f = 0; f < M; ++f) {
-        if (!mask[f])
-            continue;
-        ++faces;
-        for (int64_t j = 0; j < 3; ++j) {
-            const int64_t v = face_gl[j * M + f];
-            if (v >= 0 && v < nv)
-                vmask[v] = 1;
+        #pragma omp for schedule(static) reduction(+:faces)
+        for (int64_t f = 0; f < M; ++f) {
+            if (!mask[f])
+                continue;
+            ++faces;
+            for (int64_t j = 0; j < 3; ++j) {
+                const int64_t v = face_gl[j * M + f];
+                if (v >= 0 && v < nv)
+                    __atomic_store_n(vmask + v, (uint8_t)1, __ATOMIC_RELAXED);
+            }
         }
     }
     out[0] = misses;
@@ -118,11 +126,13 @@ void hit_face_mask(const int64_t* face, const int64_t* region, const uint8_t* hi
 """
 # Rows below which one thread does the product (a thread's hand-off costs more than its share).
 _MIN_ROWS_PER_THREAD = 1 << 12
+# Samples below which one thread finds the referenced faces (`hit_face_mask`).
+_MIN_SAMPLES_PER_THREAD = 1 << 15
 
 _I64, _P = ctypes.c_int64, ctypes.c_void_p
 _SIGNATURES = {"csr_blocks4": [_P, _P, _I64, _I64, _P, _P, _P, _P],
                "csr_blocks4_par": [_P, _P, _I64, _I64, _P, _P, _P, _P, _P, _I64],
-               "hit_face_mask": [_P, _P, _P, _I64, _P, _I64, _P, _I64, _P, _P, _P]}
+               "hit_face_mask": [_P, _P, _P, _I64, _P, _I64, _P, _I64, _P, _P, _P, _I64]}
 
 
 def _kernel():
@@ -202,9 +212,10 @@ def hit_face_mask(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor
     is not available or the arrays are not (q,) int64 / bool, (M,) int64, (3, M) int32 contiguous CPU
     tensors (the caller uses the compiled pass).
 
-    One thread whatever ``torch.get_num_threads()``: the pass takes 0.74–0.79 ms on chess bench
-    (2.6·10⁵ samples, after the suite's 0.2 s idle, process CPU); split over 2 threads of this
-    module's pool it took 9 ms on this loaded 2-core machine (the hand-off waits for a core)."""
+    At 2+ threads (``torch.get_num_threads()``) both passes split over OpenMP's team, each thread a
+    range of samples, then of faces; the outputs are the same at any thread count. One thread: 0.62–0.79
+    ms on chess bench (2.6·10⁵ samples, after the suite's 0.2 s idle, process CPU). (A split over a
+    Python thread pool took 9 ms on this loaded 2-core machine: its hand-off waits for a core.)"""
     fn = _kernel()
     if fn is None:
         return None
@@ -218,7 +229,8 @@ def hit_face_mask(face: Tensor, region: Tensor, hit: Tensor, face_region: Tensor
     mask = torch.zeros(M, dtype=torch.bool)
     vmask = torch.zeros(nv, dtype=torch.bool)
     out = torch.zeros(3, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), q // _MIN_SAMPLES_PER_THREAD))
     fn.hit_face_mask(face.data_ptr(), region.data_ptr(), hit.data_ptr(), q, face_region.data_ptr(), M,
-                     face_gl.data_ptr(), nv, mask.data_ptr(), vmask.data_ptr(), out.data_ptr())
+                     face_gl.data_ptr(), nv, mask.data_ptr(), vmask.data_ptr(), out.data_ptr(), nt)
     misses, bad, faces = out.tolist()
     return vmask, int(faces), int(misses), bool(bad)

@@ -139,6 +139,9 @@ the channels split by shifts and bit casts): 0.93× the kernel; the vertex shadi
 order of their table cells (`vertex_radiance` reading neighbouring rows one after the other): 0.8×
 (the Morton order of the vertices already keeps their cells close, and c then is read out of
 order); the 4 nodes of `vertex_radiance` as a weighted ``embedding_bag`` of table rows: 0.4×.
+Session 28: the vertex shading's cells and eq. 4 run as C loops (``methods.inout.native``; V chess
+1.48×, creature 1.70× at 1 thread); `vertex_cells` and `vertex_radiance` here are their fallback and
+test oracle.
 
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """

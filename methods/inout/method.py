@@ -74,6 +74,7 @@ from references.visibility import make_visibility
 from scenes.hashing import hash_materials
 from methods.inout import csr as _csr
 from methods.inout import fast as _fast
+from methods.inout import native as _native
 from methods.inout import transport as tp
 
 # Families with a closed-form K rule of the paper (analysis.k_rule: eq. 13 and §4).
@@ -215,6 +216,7 @@ class InOut(Method):
         self._c: dict[str, Tensor] = {}        # region → (Vr, K, 3) c_k = T̃_k · L (reference path)
         self._cf: dict[str, Tensor] = {}       # region → (Vr, 3, K) the same for the fast path, filled lazily:
         self._cf_valid: dict[str, Tensor] = {}  # region → (Vr,) bool, which rows of _cf are computed
+        self._cf_full: dict[str, Tensor] = {}   # region → its _cf_valid tensor when every row was computed at once
         self._fast = None                      # the fast path's static arrays (`_fast_static`), built on first use
         self._last_view = None                 # (P, what `frame_cost` counts) of the last fast render
         self._env_shape = None                 # (H, W) of the env map of the current lighting
@@ -353,7 +355,7 @@ class InOut(Method):
         """Forget the lighting and every per-vertex c_k (the next frame recomputes them): gives a
         copy of a precomputed method caches of its own."""
         self.L = None
-        self._c, self._cf, self._cf_valid = {}, {}, {}
+        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, {}
         self._lightings = 0
         self._last_view = None
         self._vview = None
@@ -364,7 +366,7 @@ class InOut(Method):
             return
         self.L = self._lighting(frame.envmap).to(self.regions[0].T.device if self.regions else "cpu")
         self._env_shape = tuple(int(x) for x in frame.envmap.data.shape[:2])
-        self._c, self._cf, self._cf_valid = {}, {}, {}  # c_k of the new lighting: none computed yet
+        self._c, self._cf, self._cf_valid, self._cf_full = {}, {}, {}, {}  # c_k of the new lighting: none computed yet
         self._lightings += 1
 
     def _region_samples(self, gbuffer: GBuffer):
@@ -487,6 +489,9 @@ class InOut(Method):
         (``fast.light_vertices``), else by whole blocks (`fast.light_runs`) — so an L / E / VL frame
         computes no c its view does not reference."""
         reg, fr = self.regions[s], self._fast.regions[s]
+        full = self._cf_full.get(reg.name)
+        if full is not None and full is self._cf_valid.get(reg.name):  # every row valid: no check (~0.07 ms a region)
+            return self._cf[reg.name]
         if reg.name not in self._cf:
             if self._lightings == 1:
                 self._ensure_c_all()
@@ -514,6 +519,7 @@ class InOut(Method):
             nv = int(reg.verts.numel())
             self._cf[reg.name] = _fast.light_rows(fr, self.L, 0, nv).transpose(1, 2).contiguous()
             self._cf_valid[reg.name] = torch.ones(nv, dtype=torch.bool, device=self.L.device)
+            self._cf_full[reg.name] = self._cf_valid[reg.name]
 
     def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
         """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
@@ -604,15 +610,15 @@ class InOut(Method):
     def _vertex_view(self, frame: Frame, gbuffer: GBuffer) -> dict[str, Any]:
         """Shading "vertex": what the view decides — the referenced vertices (those of the faces
         the hit samples lie on) and, for those above their horizon as seen from the camera, the
-        table cell of ω_o in the vertex's frame and its bilinear weights, per slot. Cached while the
-        camera position and the G-buffer's hits and faces are unchanged (a lighting change keeps
-        it: L and E frames recompute only c_k and B_v)."""
+        table cell of ω_o in the vertex's frame and its bilinear weights, per slot. The slots are a
+        function of the camera position and the referenced vertices alone, so they are kept while
+        both are unchanged (a lighting change keeps them: L and E frames recompute only c_k and
+        B_v): every frame finds its referenced vertices (one pass over the samples, which also
+        checks the regions), and compares them with the kept ones — not the G-buffer's faces and
+        hits, whose copies and comparison cost a view frame 0.35 ms and a lighting frame ~1 ms
+        (chess bench, 1 thread, after the suite's idle; session 28)."""
         st = self._fast_static()
         key = (gbuffer.num_samples, tuple(float(x) for x in frame.camera.origin))
-        vv = self._vview
-        if vv is not None and vv["key"] == key and torch.equal(vv["hit"], gbuffer.hit) \
-                and torch.equal(vv["face"], gbuffer.face):
-            return vv
         dev, hit, face = gbuffer.hit.device, gbuffer.hit, gbuffer.face
         M, R, P = st.face_region.numel(), st.R, gbuffer.num_samples
         # the referenced vertices, the referenced-face count, the miss count and the region check: one
@@ -634,35 +640,49 @@ class InOut(Method):
             sel = hit & (st.face_region.index_select(0, f) != gbuffer.region)
             name = self.scene.regions[int(gbuffer.region[sel][0])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
-        ref = vmask.nonzero(as_tuple=True)[0]                                  # ascending concatenated ids
+        vv = self._vview
+        if vv is not None and vv["key"] == key and vv["hits"] == P - misses and torch.equal(vv["vmask"], vmask):
+            vv["faces"] = nfaces
+            return vv
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        # towards the camera, in each vertex's frame: ρ = 0 below the horizon; its cell and weights
-        # (one compiled pass over static blocks, ``fast.vertex_cells``)
-        for t in (st.pos, st.frames):
-            torch._dynamo.maybe_mark_dynamic(t, 0)                              # the scene's vertex count
-        front, first, wc = _fast.vertex_cells_of(ref, st.pos, st.frames, cam, R)
-        b = torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()  # ref ascending: slots are runs
-        slots = []
-        for s in range(len(self.regions)):
-            sel = front[b[s]:b[s + 1]].nonzero(as_tuple=True)[0] + b[s]
-            slots.append((ref.index_select(0, sel) - st.voff[s], first.index_select(0, sel), wc.index_select(0, sel)))
-        self._vview = {"key": key, "hit": hit.clone(), "face": face.clone(), "slots": slots,
-                       "faces": nfaces, "ref": int(ref.numel()), "hits": P - misses}
+        # towards the camera, in each vertex's frame: ρ = 0 below the horizon; its cell and weights,
+        # per slot (region) — one pass of the native loop over the marked vertices (``native.vertex_cells``;
+        # chess bench, 1 thread: the compiled pass and the slots' index arithmetic took ~1 ms), else
+        # the compiled pass over the referenced ids (``fast.vertex_cells``) and the slots cut from it
+        got = _native.vertex_cells(vmask, st.voff, st.pos, st.frames, cam, R)
+        if got is not None:
+            slots, nref = got
+        else:
+            ref = vmask.nonzero(as_tuple=True)[0]                              # ascending concatenated ids
+            for t in (st.pos, st.frames):
+                torch._dynamo.maybe_mark_dynamic(t, 0)                          # the scene's vertex count
+            front, first, wc = _fast.vertex_cells_of(ref, st.pos, st.frames, cam, R)
+            b = torch.searchsorted(ref, torch.tensor(st.voff, device=dev)).tolist()  # ref ascending: slots are runs
+            slots = []
+            for s in range(len(self.regions)):
+                sel = front[b[s]:b[s + 1]].nonzero(as_tuple=True)[0] + b[s]
+                slots.append((ref.index_select(0, sel) - st.voff[s], first.index_select(0, sel),
+                              wc.index_select(0, sel)))
+            nref = int(ref.numel())
+        self._vview = {"key": key, "vmask": vmask, "slots": slots, "faces": nfaces, "ref": nref, "hits": P - misses}
         return self._vview
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """Shading "vertex", the fast path (`_render_vertex_reference` to float32 round-off): c_k of
         the referenced vertices above their horizon (`_ensure_c`, lazily as the per-sample path),
-        B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (``fast.vertex_radiance``, one
-        sampled product per region), then the Gouraud resolve (``core.gouraud.resolve``)."""
+        B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (a C loop per region,
+        ``native.vertex_radiance``; else ``fast.vertex_radiance``, one compiled sampled product per
+        region), then the Gouraud resolve (``core.gouraud.resolve``)."""
         self._relight(frame)
         st = self._fast_static()
         vv = self._vertex_view(frame, gbuffer)
         Bv = torch.zeros(st.voff[-1], 3, dtype=torch.float32, device=gbuffer.hit.device)
         for s, (loc, first, wc) in enumerate(vv["slots"]):
             if loc.numel():
-                c = self._ensure_c(s, loc)
-                Bv[st.voff[s] + loc] = _fast.vertex_radiance(st.regions[s], c, loc, first, wc)
+                c, fr = self._ensure_c(s, loc), st.regions[s]
+                # the native loop writes the rows itself (``native.vertex_radiance``), else the compiled pass
+                if not _native.vertex_radiance(fr.sh_nc, fr.R, c, loc, first, wc, Bv, st.voff[s]):
+                    Bv[st.voff[s] + loc] = _fast.vertex_radiance(fr, c, loc, first, wc)
         self._last_view = (gbuffer.num_samples, {"vertex": vv})
         return gouraud.resolve(Bv, st.face_gl, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
                                gbuffer.width, gbuffer.spp_side)

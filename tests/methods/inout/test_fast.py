@@ -296,12 +296,22 @@ def test_hit_face_mask_is_the_histogram_of_the_hits_faces():
     """``csr.hit_face_mask`` (the native pass of the vertex view) against ``fast.hit_face_counts``
     and the vertices of its faces: the vertex mask of the faces with a hit, their count, the miss
     count and the region flag, with out-of-range faces on hits (clamped by both), misses of any face
-    and region, no sample; non-int64 / strided arrays are refused (None: the caller takes the
-    compiled pass)."""
+    and region, no sample, at 1 and 2 threads (70000 samples split over OpenMP's team); non-int64 /
+    strided arrays are refused (None: the caller takes the compiled pass)."""
     from methods.inout import csr
 
     if not csr.available():
         pytest.skip("no native kernel")
+    threads = torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            _check_hit_face_mask(csr)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _check_hit_face_mask(csr) -> None:
     g = torch.Generator().manual_seed(7)
     M, nv = 23, 31
     face_region = torch.arange(M) % 3
@@ -612,6 +622,108 @@ def test_memory_counts_the_fast_arrays(tiny):
         assert mem[f"{reg.name}/sh_table_fast"] == tensor_bytes(st.regions[m.regions.index(reg)].sh_nc)
 
 
+
+def _compiled_vertex_slots(st, vmask: torch.Tensor, cam: torch.Tensor):
+    """The vertex view's slots by the compiled pass (`InOut._vertex_view`'s fallback): the referenced
+    ids, ``fast.vertex_cells_of``, then per region the vertices above their horizon."""
+    ref = vmask.nonzero(as_tuple=True)[0]
+    front, first, wc = fast.vertex_cells_of(ref, st.pos, st.frames, cam, st.R)
+    b = torch.searchsorted(ref, torch.tensor(st.voff)).tolist()
+    slots = []
+    for s in range(len(st.voff) - 1):
+        sel = front[b[s]:b[s + 1]].nonzero(as_tuple=True)[0] + b[s]
+        slots.append((ref[sel] - st.voff[s], first[sel], wc[sel]))
+    return slots, int(ref.numel())
+
+
+@pytest.mark.parametrize("name", ["chess", "bunny", "creature"])
+def test_native_vertex_cells_equal_the_compiled_pass(precomputed, name):
+    """``native.vertex_cells`` (one C pass over the marked vertices, per region compacted) against the
+    compiled pass and the slots cut from it: the same vertices above their horizon, cells and weights
+    bit for bit (the same float32 operations in the same order), the same marked count — random masks
+    and cameras on every side of the scene, every region."""
+    from methods.inout import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    m = _vertex(precomputed(name))
+    st = m._fast_static()
+    g = torch.Generator().manual_seed(5)
+    shaded = torch.zeros(len(m.regions), dtype=torch.int64)
+    for _ in range(6):
+        vmask = torch.rand(st.voff[-1], generator=g) < 0.4
+        cam = torch.randn(3, generator=g) * 3.0
+        got, nref = native.vertex_cells(vmask, st.voff, st.pos, st.frames, cam, st.R)
+        want, want_ref = _compiled_vertex_slots(st, vmask, cam)
+        assert nref == want_ref == int(vmask.sum())
+        assert len(got) == len(want) == len(m.regions)
+        for s, ((l1, f1, w1), (l2, f2, w2)) in enumerate(zip(got, want)):
+            shaded[s] += l2.numel()
+            assert torch.equal(l1, l2) and torch.equal(f1, f2) and torch.equal(w1, w2)
+    assert bool((shaded > 0).all())                       # every region had vertices to compare
+    # not contiguous CPU float32 / bool: None (the caller runs the compiled pass)
+    assert native.vertex_cells(vmask.int(), st.voff, st.pos, st.frames, cam, st.R) is None
+    assert native.vertex_cells(vmask, st.voff, st.pos.double(), st.frames, cam, st.R) is None
+
+
+@pytest.mark.parametrize("K", [5, 8, 13, 88])
+def test_native_vertex_radiance_equals_the_compiled_pass(K):
+    """``native.vertex_radiance`` (eq. 4 at vertices, a C loop) against ``fast.vertex_radiance`` (the
+    compiled pass, its oracle): random tables with K below, at and above the loop's 8 lanes, cells up
+    to the table's last one, written to rows off + v of a larger output (the other rows untouched);
+    float32 round-off (the K-sum in another order), and bit for bit the same at 1 and 2 threads."""
+    from methods.inout import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(K)
+    R, Vr, n, off = 16, 3000, 1500, 7
+    sh_nc = torch.randn(R * R * 3, K, generator=g)
+    c = torch.randn(Vr, 3, K, generator=g)
+    v = torch.randperm(Vr, generator=g)[:n].sort().values
+    cell = torch.randint(0, R * R - R - 1, (n,), generator=g)
+    cell[:3] = torch.tensor([0, R * R - R - 2, R - 2])
+    wc = torch.rand(n, 4, generator=g)
+    fr = fast.FastRegion(col=torch.zeros(0, dtype=torch.int32), val=torch.zeros(0), crow=torch.zeros(1, dtype=torch.int64),
+                         sh_lut=torch.zeros(R * R, 3 * K), sh_nc=sh_nc, K=K, R=R)
+    want = fast.vertex_radiance(fr, c, v, cell, wc)
+    outs = []
+    threads = torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            out = torch.full((off + Vr + 5, 3), -7.0)
+            assert native.vertex_radiance(sh_nc, R, c, v, cell, wc, out, off)
+            outs.append(out)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(outs[0], outs[1])
+    got = outs[0][off + v]
+    assert float((got - want).abs().max()) <= 1e-5 * float(want.abs().max())
+    rest = torch.ones(off + Vr + 5, dtype=torch.bool)
+    rest[off + v] = False
+    assert bool((outs[0][rest] == -7.0).all())
+    # arrays it does not take: False, nothing written
+    out = torch.zeros(off + Vr, 3)
+    assert not native.vertex_radiance(sh_nc.double(), R, c, v, cell, wc, out, off)
+    assert not native.vertex_radiance(sh_nc, R, c, v.int(), cell, wc, out, off)
+    assert bool((out == 0).all())
+    with pytest.raises(ValueError, match="do not fit"):
+        native.vertex_radiance(sh_nc, R, c, v, cell, wc, torch.zeros(Vr, 3), off)
+
+
+def test_vertex_fast_path_without_the_native_loops_equals_reference(precomputed, monkeypatch):
+    """Shading "vertex" when the native loops are not available (no compiler, PRTBENCH_COMPILE=0):
+    the compiled passes (``fast.vertex_cells``, ``fast.vertex_radiance``) give the reference's images
+    on the three-region chess scene, V then L."""
+    from methods.inout import native
+
+    monkeypatch.setattr(native, "_lib", lambda: None)
+    m = _vertex(precomputed("chess"))
+    _assert_sequence_equal(m, "V", spp_side=2)
+    _assert_sequence_equal(m, "L")
+
+
 # -- shading "vertex" (eq. 4 per vertex, Gouraud to the samples) -----------------------------------
 
 
@@ -667,7 +779,8 @@ def test_vertex_reference_is_per_sample_at_the_vertices(precomputed):
 
 def test_vertex_view_is_kept_across_lighting_changes(precomputed):
     """L / E frames: the view's referenced vertices and cells are reused (only c_k and B_v recomputed);
-    a new camera, or the same camera with another G-buffer, recomputes them."""
+    a new camera, another sample count, a hit fewer, or a hit moved to a face none of whose vertices
+    was referenced (the same hit count) recomputes them — and the images stay the reference's."""
     m = _vertex(precomputed("sphere_plane"))
     frames = make_sequence(m.scene, "L", n_frames=3, seed=1)
     gb = make_gbuffer(m.scene, frames[0], 1)
@@ -685,6 +798,19 @@ def test_vertex_view_is_kept_across_lighting_changes(precomputed):
     gb2.hit = gb2.face >= 0
     m.render(frames[2], gb2)
     assert m._vview is not vv and m._vview["hits"] == int(gb2.hit.sum())
+    vv = m._vview
+    # one hit moved to a face of its region with no referenced vertex: same camera, same hit count
+    st = m._fast_static()
+    k = int(gb2.hit.nonzero()[0, 0])
+    unref = ~vv["vmask"][st.face_gl.long()].any(0) & (st.face_region == gb2.region[k])
+    gb3 = copy.copy(gb2)
+    gb3.face = gb2.face.clone()
+    gb3.face[k] = int(unref.nonzero()[0, 0])
+    m.render(frames[2], gb3)
+    assert m._vview is not vv and m._vview["ref"] == vv["ref"] + 3 and m._vview["hits"] == vv["hits"]
+    _, ref_m = _pair(m)
+    want = ref_m._render_reference(frames[2], gb3)
+    assert float((m.render(frames[2], gb3) - want).abs().max()) <= RTOL * float(want.abs().max())
     for f in make_sequence(m.scene, "V", n_frames=2, seed=2):
         m.render(f, make_gbuffer(m.scene, f, 1))
     assert m._vview["key"][1] == tuple(float(x) for x in f.camera.origin)
