@@ -60,6 +60,7 @@ from methods.core.sampling import gauss_legendre_sphere
 from methods.core.threads import torch_threads
 from methods.core.sh import sh_eval, sh_terms
 from methods.core.zh import band_norms, expand_bands, phong_factors
+from methods.zh_shadow import native as zn
 from methods.zh_shadow.convolution import phong_operator
 from methods.zh_shadow.precompute import CHART_RMAX
 
@@ -402,7 +403,10 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
     36 K object samples, 1 thread, same process, load ~7-10: sample stage 1.06-1.09x (1.25x on random
     points), bit-identical (as `methods.triple_product.fast_eval` since session 18). What bounds it is
     the kernel itself (~150 ns per point: the point-major features are computed in scalar loops with
-    strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point). Above it (SH features): blocks of exactly
+    strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point) — so where
+    `native.sample_terms` applies (float32, order 4 with both terms or order 5 diffuse alone, Inductor
+    on AVX2) its C loop computes the same bits in one pass per point (session 28: paper setting, bench
+    creature, 1 thread, same process: P 1.23x, V 1.13x, VB 1.23x, VL / VBL 1.17x). Above it (SH features): blocks of exactly
     ``block`` points (the last padded by repeating its last point), one static shape.
 
     Args:
@@ -416,6 +420,9 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
         if Q == 0:
             return torch.empty(3, 0, dtype=U.dtype, device=U.device)
         nT, woT = nT.contiguous(), woT.contiguous()
+        out = zn.sample_terms(U, vi, b, nT, woT, 2 * n - 2, diffuse, specular)   # the C loop: the same bits
+        if out is not None:
+            return out
         for t, d in ((vi, 0), (b, 0), (nT, 1), (woT, 1)):
             torch._dynamo.maybe_mark_dynamic(t, d)
         return rows(_sample_block(U, vi, b, nT, woT, 2 * n - 2, diffuse, specular))

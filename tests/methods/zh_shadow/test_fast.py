@@ -1376,3 +1376,53 @@ def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
         seen = cols
     want = fast._render_reference(light, gb)
     assert (a - want).abs().max() <= 1e-5 * want.abs().max()
+
+
+@pytest.mark.parametrize("order,diffuse,specular", ((4, True, True), (5, True, False)))
+def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypatch):
+    """`native.sample_terms` (the C loop) = the compiled `runtime._sample_block` bit for bit (the same
+    products, sums and AVX2 reduction tree) and = its eager function to float32 round-off, at 1 and 2
+    threads, on random points (some with ωo = n: R = n, some grazing); through `runtime.sample_terms`
+    too. None (the compiled kernel then runs) for a vertex id outside U's rows, a variant it lacks,
+    float64, and with ``PRTBENCH_ZH_NATIVE=0``."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(order)
+    D = 2 * order - 2
+    K = ((D + 1) * (D + 2) // 2 + 3 if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
+    N, Q = 97, 5003
+    U = torch.randn(N, 3, K, generator=g)
+    vi = torch.randint(0, N, (Q, 3), generator=g)
+    b = torch.rand(Q, 3, generator=g)
+    b = b / b.sum(1, keepdim=True)
+    nT = torch.randn(3, Q, generator=g)
+    nT = nT / nT.norm(dim=0)
+    woT = torch.randn(3, Q, generator=g)
+    woT[:, :50] = nT[:, :50]                                                  # R = n
+    woT[:, 50:100] = torch.stack([nT[1, 50:100], -nT[0, 50:100], torch.zeros(50)])   # n·ωo = 0
+    woT = woT / woT.norm(dim=0)
+    got = zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular)
+    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor not on AVX2: nothing native to check
+        assert zn._terms_lib() is None
+        pytest.skip("the native sample terms are not available here")
+    with torch_threads(2):
+        assert torch.equal(zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular), got)
+    eager = rt.rows(rt._sample_block.eager(U, vi, b, nT, woT, D, diffuse, specular))
+    assert float((got - eager).abs().max()) <= 1e-5 * float(eager.abs().max())
+    U_, vi_, b_, n_, wo_ = U.clone(), vi.clone(), b.clone(), nT.clone(), woT.clone()
+    torch._dynamo.maybe_mark_dynamic(U_, 0)
+    for t, d in ((vi_, 0), (b_, 0), (n_, 1), (wo_, 1)):
+        torch._dynamo.maybe_mark_dynamic(t, d)
+    compiled = rt.rows(rt._sample_block(U_, vi_, b_, n_, wo_, D, diffuse, specular))
+    assert torch.equal(got, compiled)
+    assert torch.equal(rt.sample_terms(U, vi.to(torch.int32), b, nT, woT, order, diffuse=diffuse, specular=specular),
+                       got)
+    bad = vi.clone()
+    bad[Q // 2, 1] = N
+    assert zn.sample_terms(U, bad, b, nT, woT, D, diffuse, specular) is None
+    assert zn.sample_terms(U.double(), vi, b.double(), nT.double(), woT.double(), D, diffuse, specular) is None
+    assert zn.sample_terms(U[..., :K - 8].contiguous(), vi, b, nT, woT, D, diffuse, not specular) is None
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular) is None
+    assert torch.equal(rt.sample_terms(U, vi, b, nT, woT, order, diffuse=diffuse, specular=specular), got)
