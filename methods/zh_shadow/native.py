@@ -267,3 +267,152 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: i
     fn.sample_terms(U.data_ptr(), N, vi.data_ptr(), b.data_ptr(), nT.data_ptr(), woT.data_ptr(), Q,
                     TERMS_VARIANTS.index(key), torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else out
+
+
+# --- a plane frame's split of the G-buffer (`ZHShadow._render_planes`) ---------------------------------
+#
+# The plane path splits the samples into the plane's (a mask over the G-buffer, box-filtered in place by
+# `method._plane_pixels`) and the others (the object), whose face corners, barycentrics, normals and ωo it
+# gathers for `runtime.shade`. In torch that was the compiled match over the P normals, ``nonzero`` of
+# its complement, then one ``index_select`` per G-buffer array (and a bool gather, a stack, a (Q, 3) →
+# (3, Q) copy): ~8 passes over P or Q elements. Here two passes: `plane_mask` (the match and its two
+# counts) and `object_rows` (the complement's positions and rows, written where `runtime.shade` reads
+# them). Pure copies and the barycentric weight (1 − u) − v: the same values bit for bit.
+_SPLIT_SOURCE = r"""
+#include <stdint.h>
+
+/* mask[p] = normal[p] == n0 (float compares of the three components, as `runtime._plane_match`),
+   p in [0, P), on nt threads of OpenMP's team (thread k the samples [P k / nt, P (k + 1) / nt));
+   cnt[3 k] the matches of thread k, cnt[3 k + 1] those whose region has a specular term (spec (R,)),
+   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,). */
+void plane_mask(const float* normal, const float* n0, const int64_t* region, const uint8_t* spec, int64_t R,
+                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const float a = n0[0], b = n0[1], c = n0[2];
+        int64_t ne = 0, ns = 0, bad = 0;
+        for (int64_t p = P * k / nt; p < P * (k + 1) / nt; ++p) {
+            const float* n = normal + 3 * p;
+            const uint8_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
+            mask[p] = e;
+            ne += e;
+            const int64_t r = region[p];
+            const int ok = (uint64_t)r < (uint64_t)R;
+            bad += !ok;
+            ns += e & (ok ? spec[r] : 0);
+        }
+        cnt[3 * k] = ne;
+        cnt[3 * k + 1] = ns;
+        cnt[3 * k + 2] = bad;
+    }
+}
+
+/* The samples p with mask[p] == 0, ascending (Q of them; thread k's range of `plane_mask` starts at
+   position start[k] of the output): rest[j] = p, vi[3 j + i] = F[3 face[p] + i], b[3 j ..] =
+   ((1 - u) - v, u, v) with u = bary[p bs0], v = bary[p bs0 + bs1], nT[i Q + j] = normal[3 p + i],
+   woT[i Q + j] = wo[p ws0 + i ws1], reg[j] = region[p]. bad[k]: thread k's faces outside [0, M). */
+void object_rows(const uint8_t* mask, int64_t P, int64_t nt, const int64_t* start, int64_t Q,
+                 const int64_t* face, const int32_t* F, int64_t M, const float* bary, int64_t bs0, int64_t bs1,
+                 const float* normal, const float* wo, int64_t ws0, int64_t ws1, const int64_t* region,
+                 int64_t* rest, int32_t* vi, float* b, float* nT, float* woT, int64_t* reg, int64_t* bad) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        int64_t j = start[k], nb = 0;
+        for (int64_t p = P * k / nt; p < P * (k + 1) / nt; ++p) {
+            if (mask[p])
+                continue;
+            int64_t f = face[p];
+            if ((uint64_t)f >= (uint64_t)M) {
+                ++nb;
+                f = 0;
+            }
+            rest[j] = p;
+            vi[3 * j] = F[3 * f];
+            vi[3 * j + 1] = F[3 * f + 1];
+            vi[3 * j + 2] = F[3 * f + 2];
+            const float u = bary[p * bs0], v = bary[p * bs0 + bs1];
+            b[3 * j] = (1.0f - u) - v;
+            b[3 * j + 1] = u;
+            b[3 * j + 2] = v;
+            nT[j] = normal[3 * p];
+            nT[Q + j] = normal[3 * p + 1];
+            nT[2 * Q + j] = normal[3 * p + 2];
+            woT[j] = wo[p * ws0];
+            woT[Q + j] = wo[p * ws0 + ws1];
+            woT[2 * Q + j] = wo[p * ws0 + 2 * ws1];
+            reg[j] = region[p];
+            ++j;
+        }
+        bad[k] = nb;
+    }
+}
+"""
+_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
+                     "object_rows": [_P, _I, _I, _P, _I, _P, _P, _I, _P, _I, _I, _P, _P, _I, _I, _P,
+                                     _P, _P, _P, _P, _P, _P, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _split_lib():
+    return native.load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def split_available() -> bool:
+    """True when `plane_mask` / `object_rows` run natively (else `ZHShadow._render_planes`' torch path)."""
+    return terms_switched_on() and _split_lib() is not None
+
+
+def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tuple[Tensor, int, int, list[int]] | None:
+    """(mask (P,) bool: ``normal`` (P, 3) row-major equals n0 (3,), as `runtime._plane_match`; its count;
+    the count of those whose region has a specular term (``spec`` (R,) bool); the per-thread counts of
+    the matches, for `object_rows`) by the C loop, or None (not available, not float32 / int64 / CPU
+    contiguous arrays, a region outside [0, R)): the caller's torch path then."""
+    fn = _split_lib() if terms_switched_on() else None
+    P = int(normal.shape[0])
+    if fn is None or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
+            or region.dtype != torch.int64 or region.shape != (P,) or not region.is_contiguous() \
+            or normal.device.type != "cpu" or region.device.type != "cpu":
+        return None
+    n0 = n0.to(torch.float32).contiguous()
+    sp = spec.to(torch.uint8).contiguous()
+    nt = max(1, torch.get_num_threads())
+    mask = torch.empty(P, dtype=torch.bool)
+    cnt = torch.zeros(nt, 3, dtype=torch.int64)
+    fn.plane_mask(normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
+                  mask.data_ptr(), cnt.data_ptr())
+    c = cnt.tolist()
+    if any(r[2] for r in c):
+        return None
+    return mask, sum(r[0] for r in c), sum(r[1] for r in c), [r[0] for r in c]
+
+
+def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, bary: Tensor, normal: Tensor,
+                wo: Tensor, region: Tensor) -> tuple[Tensor, ...] | None:
+    """The samples off ``mask`` (from `plane_mask`, ``per_thread`` its per-thread match counts, at the
+    same thread count) and their rows, as `ZHShadow._render_planes`' torch gathers make them: (rest (Q,)
+    int64 ascending, vi (Q, 3) int32 = F32[face[rest]], b (Q, 3) = `runtime.barycentrics`(bary[rest]),
+    nT, woT (3, Q) = normal[rest]ᵀ, wo[rest]ᵀ, reg (Q,) = region[rest]); None when a face is outside F32's
+    rows or an array does not suit the loop (bary, wo (P, 2) / (P, 3) float32 views of any strides)."""
+    fn = _split_lib()
+    P, nt = int(mask.shape[0]), len(per_thread)
+    if fn is None or nt != max(1, torch.get_num_threads()) or face.dtype != torch.int64 or not face.is_contiguous() \
+            or F32.dtype != torch.int32 or not F32.is_contiguous() or F32.dim() != 2 or F32.shape[1] != 3 \
+            or bary.dtype != torch.float32 or bary.shape != (P, 2) or wo.dtype != torch.float32 or wo.shape != (P, 3):
+        return None
+    sizes = [(P * (k + 1)) // nt - (P * k) // nt - per_thread[k] for k in range(nt)]
+    start = torch.tensor([sum(sizes[:k]) for k in range(nt)], dtype=torch.int64)
+    Q = sum(sizes)
+    rest = torch.empty(Q, dtype=torch.int64)
+    vi = torch.empty(Q, 3, dtype=torch.int32)
+    b = torch.empty(Q, 3, dtype=torch.float32)
+    nT = torch.empty(3, Q, dtype=torch.float32)
+    woT = torch.empty(3, Q, dtype=torch.float32)
+    reg = torch.empty(Q, dtype=torch.int64)
+    bad = torch.zeros(nt, dtype=torch.int64)
+    fn.object_rows(mask.data_ptr(), P, nt, start.data_ptr(), Q, face.data_ptr(), F32.data_ptr(), int(F32.shape[0]),
+                   bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), wo.data_ptr(), wo.stride(0),
+                   wo.stride(1), region.data_ptr(), rest.data_ptr(), vi.data_ptr(), b.data_ptr(), nT.data_ptr(),
+                   woT.data_ptr(), reg.data_ptr(), bad.data_ptr())
+    if int(bad.sum()):
+        return None
+    return rest, vi, b, nT, woT, reg

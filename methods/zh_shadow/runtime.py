@@ -1007,22 +1007,10 @@ def planar_groups(nT: Tensor, *, min_points: int | None = None, max_groups: int 
     mask = rest = None
     cur = nT
     while len(groups) < max_groups and cur.shape[1] >= min_points:
-        m = cur.shape[1]
-        sub = cur[:, ::16].contiguous()   # (screened every candidate: contiguous rows)
-        for c in range(8):
-            n0 = cur[:, c * m // 8].clone()
-            if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
-                continue                                                   # under half the size, screened
-            if match is not None and cur is nT:
-                eq, cnt = match(n0)
-                cnt = int(cnt)
-            else:
-                eq = (cur[0] == n0[0]) & (cur[1] == n0[1]) & (cur[2] == n0[2])
-                cnt = int(eq.sum())
-            if cnt >= min_points:
-                break
-        else:
+        found = first_plane(cur, min_points, match if cur is nT else None)
+        if found is None:
             break
+        n0, eq, cnt = found
         keep = ~eq
         if rest is None:
             if 2 * cnt > Q:
@@ -1038,6 +1026,28 @@ def planar_groups(nT: Tensor, *, min_points: int | None = None, max_groups: int 
             groups.append((n0, rest[eq]))
             rest, cur = rest[keep], cur[:, keep]
     return groups, mask, rest
+
+
+def first_plane(cur: Tensor, min_points: int, match=None) -> tuple[Tensor, Tensor, int] | None:
+    """One step of `planar_groups`' search over the normals cur (3, m): (n0 (3,), (m,) bool ``cur ==
+    n0`` column-wise, its count) for the first candidate — the normals of 8 evenly spaced points,
+    screened on every 16th point — shared by at least ``min_points`` points, or None. ``match``: as
+    `planar_groups`' (n0 → (that mask, its count))."""
+    m = cur.shape[1]
+    sub = cur[:, ::16].contiguous()   # (screened every candidate: contiguous rows)
+    for c in range(8):
+        n0 = cur[:, c * m // 8].clone()
+        if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
+            continue                                                   # under half the size, screened
+        if match is not None:
+            eq, cnt = match(n0)
+            cnt = int(cnt)
+        else:
+            eq = (cur[0] == n0[0]) & (cur[1] == n0[1]) & (cur[2] == n0[2])
+            cnt = int(eq.sum())
+        if cnt >= min_points:
+            return n0, eq, cnt
+    return None
 
 
 @fused
