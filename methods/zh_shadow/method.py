@@ -342,7 +342,7 @@ class ZHShadow(Method):
         self._vtable: tuple | None = None        # ((pose, lighting, materials), v, `runtime.vertex_table` U, tables)
         self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
         self._plane_u0: tuple | None = None      # ((pose, lighting, plane normal), v, Wd, (N, 3) u without kd)
-        self._faces: tuple | None = None         # (geometry, F int32, Fᵀ (3, M) int64): `_render_planes`
+        self._faces: tuple | None = None         # (F, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
@@ -636,42 +636,49 @@ class ZHShadow(Method):
         dev, P = gbuffer.hit.device, gbuffer.num_samples
         nrm, region = gbuffer.normal, gbuffer.region
         spec = [t[3] is not None for t in tabs]
-        on_spec: dict = {}   # the plane's samples in a region with a specular term, counted by the match
-        match = rt.plane_match(nrm.contiguous(), region, torch.tensor(spec, device=dev), on_spec)
-        groups, mask, rest = rt.planar_groups(nrm.T, match=match) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
-        if len(groups) != 1 or mask is None:
-            return None
-        if not all_hit:   # (a miss's normal is 0, never the plane's: the mask is the hits' already)
-            hit = gbuffer.hit
-            mask = mask & hit
-            rest = rest[hit.index_select(0, rest)]
-        if rest.shape[0] == 0:
-            return None
-        if any(spec) and int(on_spec[tuple(groups[0][0].tolist())]):
-            return None   # a specular term on the plane: `runtime.shade` does it per point
         F32, fv = self._face_rows(geom, dev)
+        split = self._native_split(gbuffer, spec, F32) if all_hit and self.native_split else None
+        if split is False:
+            return None
+        if split is not None:   # the same plane, mask and object rows as the torch path below, bit for bit
+            groups, mask, rest, vi, b, nT, woT, reg = split
+        else:
+            on_spec: dict = {}   # the plane's samples in a region with a specular term, counted by the match
+            match = rt.plane_match(nrm.contiguous(), region, torch.tensor(spec, device=dev), on_spec)
+            groups, mask, rest = rt.planar_groups(nrm.T, match=match) if P >= rt.PLANAR_MIN_POINTS else ([], None, None)
+            if len(groups) != 1 or mask is None:
+                return None
+            if not all_hit:   # (a miss's normal is 0, never the plane's: the mask is the hits' already)
+                hit = gbuffer.hit
+                mask = mask & hit
+                rest = rest[hit.index_select(0, rest)]
+            if rest.shape[0] == 0:
+                return None
+            if any(spec) and int(on_spec[tuple(groups[0][0].tolist())]):
+                return None   # a specular term on the plane: `runtime.shade` does it per point
+
+            def take(x: Tensor) -> Tensor:   # (C, Qr) rows of the samples ``rest`` of a (P, C) array
+                if x.stride(0) == 1:         # column-major (bary, ωo): gather along its transpose's rows
+                    return x.T.index_select(1, rest)
+                return rt.rows(x.index_select(0, rest))
+
+            vi = F32.index_select(0, gbuffer.face.index_select(0, rest))                  # (Qr, 3)
+            bu, bv = take(gbuffer.bary).unbind(0)
+            b = torch.stack([1.0 - bu - bv, bu, bv], -1)                                 # `runtime.barycentrics`
+            nT, woT, reg = take(nrm), take(gbuffer.wo), region.index_select(0, rest)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, groups[0][0])
-
-        def take(x: Tensor) -> Tensor:   # (C, Qr) rows of the samples ``rest`` of a (P, C) array
-            if x.stride(0) == 1:         # column-major (bary, ωo): gather along its transpose's rows
-                return x.T.index_select(1, rest)
-            return rt.rows(x.index_select(0, rest))
-
-        vi = F32.index_select(0, gbuffer.face.index_select(0, rest))                  # (Qr, 3)
-        bu, bv = take(gbuffer.bary).unbind(0)
-        b = torch.stack([1.0 - bu - bv, bu, bv], -1)                                 # `runtime.barycentrics`
         clamp = self.config["clamp"]
         U = None if cosine else self._vertex_table(frame, v0, v, vreg, tabs, mats, points=int(rest.shape[0]), vi=vi)
         if isinstance(U, tuple):   # this frame's own table, of the vertices ``vi`` references alone
             U, vi = U
-        reg, mt = region.index_select(0, rest), tabs
+        mt = tabs
         if U is None and rest.shape[0]:
             r0 = int(reg[0])
             if bool((reg == r0).all()):   # the object is one region: `runtime.shade` shades its points in
                 mt = [tabs[r0]]           # order, without gathering them per region and scattering back
                 #                           (VB frame, bench creature: 1.1x; per-vertex tables keep every
                 #                           region's columns, so only the per-point GEMMs take this)
-        rad, cr = rt.shade(v, vi, b, take(nrm), take(gbuffer.wo), reg, vreg, geom.N.to(dev), mt, planar=False,
+        rad, cr = rt.shade(v, vi, b, nT, woT, reg, vreg, geom.N.to(dev), mt, planar=False,
                            cosine=cosine, tables="point" if U is None else "vertex", U=U)
         if clamp:   # per sample, before the resolve
             rad = rad.clamp_min(0.0)
@@ -691,6 +698,51 @@ class ZHShadow(Method):
         self._last_counts = {"P": P, "Q": P if all_hit else int(mask.sum()) + int(rest.shape[0]), **counts}
         self.last_path = "planes"
         return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # `_render_planes` splits an all-hit G-buffer into the plane's samples and the object's rows by the
+    # native passes (`native.plane_mask`, `native.object_rows`) where they run; False: by the torch
+    # path (the tests' oracle)
+    native_split = True
+
+    def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
+        """`_render_planes`' plane search and split of an all-hit G-buffer by the native passes: False
+        where the torch path finds no single plane holding most samples with none of its samples in a
+        region with a specular term and some samples off it (`_render_planes` returns None then), None
+        where the native passes do not apply (the torch path runs), else (groups [(n0, None)], mask (P,)
+        bool, rest (Q,), vi (Q, 3) int32, b (Q, 3), nT, woT (3, Q), reg (Q,)) — what the torch path
+        computes, bit for bit: the same candidate search (`runtime.first_plane`), float compares and
+        copies. Bench creature P frame, 1 thread: the match, ``nonzero`` and seven gathers (~8 passes
+        over P or Q elements) become two passes."""
+        P, nrm, region = gbuffer.num_samples, gbuffer.normal, gbuffer.region
+        if P < rt.PLANAR_MIN_POINTS or not zn.split_available() or not nrm.is_contiguous() \
+                or nrm.device.type != "cpu":
+            return None
+        spec_t = torch.tensor(spec)
+        found: list = []
+
+        def match(n0: Tensor) -> tuple[Tensor, int]:
+            r = zn.plane_mask(nrm, n0, region, spec_t)
+            if r is None:   # (a region outside the materials: the compiled match, as the torch path)
+                eq, cnt, ns = rt._plane_match(nrm, n0, region, spec_t)
+                r = (eq, int(cnt), int(ns), None)
+            found[:] = [r]
+            return r[0], r[1]
+
+        first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match)
+        if first is None or 2 * first[2] <= P:
+            return False          # no plane, or one without most samples (`planar_groups`: no mask)
+        mask, cnt, ns, per_thread = found[0]
+        if per_thread is None:
+            return None
+        if any(spec) and ns:
+            return False          # a specular term on the plane
+        rows = zn.object_rows(mask, per_thread, gbuffer.face, F32, gbuffer.bary, nrm, gbuffer.wo, region)
+        if rows is None:
+            return None
+        rest, vi, b, nT, woT, reg = rows
+        if rest.shape[0] == 0 or (rest.shape[0] >= rt.PLANAR_MIN_POINTS and rt.planar_groups(nT)[0]):
+            return False          # no object samples, or a second plane among them (`planar_groups`)
+        return [(first[0], None)], mask, rest, vi, b, nT, woT, reg
 
     def _plane_term(self, v0: Tensor, v: Tensor, vreg: Tensor, Wd: Tensor, mats: list, n0: Tensor) -> Tensor:
         """(N, 3) per-vertex plane diffuse term u = kd ⊙ v · T¹(n0) (as `runtime.shade`), kept while
@@ -719,10 +771,12 @@ class ZHShadow(Method):
         return pu[3]
 
     def _face_rows(self, geom, dev) -> tuple[Tensor, Tensor]:
-        """(F int32 (M, 3), Fᵀ int64 (3, M)) of the posed geometry, kept with it."""
-        if self._faces is None or self._faces[0] is not geom:
+        """(F int32 (M, 3), Fᵀ int64 (3, M)) of the posed geometry's face table, kept with that table:
+        every pose of a skinned scene shares its rest geometry's F (`Scene.geometry`), so a P frame
+        no longer converts and transposes it (bench creature: 26,560 faces, ~0.45 ms at 1 thread)."""
+        if self._faces is None or self._faces[0] is not geom.F or self._faces[1].device != torch.device(dev):
             F = geom.F.to(dev)
-            self._faces = (geom, F.to(torch.int32), F.T.contiguous())
+            self._faces = (geom.F, F.to(torch.int32), F.T.contiguous())
         return self._faces[1], self._faces[2]
 
     def _relight_planes(self, gbuffer: GBuffer, geom, cache: dict, v0: Tensor, v: Tensor, Wd: Tensor, light: Tensor,

@@ -1,5 +1,8 @@
-"""The vertices a G-buffer's hit samples reference, by a short C loop (`methods.core.native`), with
-its torch path (`referenced_mask_torch`: the fallback and the test oracle).
+"""Two short C loops (`methods.core.native`), each beside its torch path (the fallback and the test
+oracle): the vertices a G-buffer's hit samples reference (`referenced_mask`), and the per-sample
+stage of the per-vertex-table shading (`sample_terms`).
+
+The referenced vertices.
 
 A vertex-shaded frame needs the radiance of the vertices the resolve reads alone: the corners of the
 faces its hit samples lie on (`ZHShadow._render_vertex`). Marking them is a scatter over the P
@@ -11,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 
 import torch
 from torch import Tensor
@@ -74,3 +78,341 @@ def referenced_mask(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tensor:
     fn(face.data_ptr(), hit.data_ptr(), int(face.shape[0]), F.data_ptr(), int(F.shape[0]), fm.data_ptr(),
        vm.data_ptr())
     return vm
+
+
+# --- the per-sample stage of `runtime.sample_terms` --------------------------------------------------
+#
+# `runtime._sample_block` (Inductor, one call over the Q points with Q symbolic) computes each point's
+# K features — monomials of n and of R = reflect(ωo, n) — into a (Q, K) buffer in ~30 separate scalar
+# loops with stride-K stores (each feature row its own pass over the points), then the interpolated
+# dot Σ_f ((U[v0]·b0 + U[v1]·b1) + U[v2]·b2)[c, f] · feature[f] as 8-lane vectors with AVX2's
+# ``vec_reduce_all`` tree. Here one pass per point: the features into a stack array (the same
+# products: each monomial one product of the same two values, as `runtime._monomial_rows`' tree),
+# then the same lane-wise products, sums and tree — compiled with ``-ffp-contract=off`` (as Inductor's
+# kernels: nothing fused into an FMA), so the terms are the compiled kernel's bits (tested). Only for
+# float32 and K a multiple of 8 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
+# masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree); otherwise
+# `runtime._sample_block` runs. Each point is one thread's (OpenMP's team, as `methods.ptt.native`), so
+# the bits do not depend on the thread count. Bench creature, paper setting, 37 K object samples of a
+# P frame, 1 thread: ~3.2 ms (features ~0.7, the interpolated dot ~2.5: ~150 cycles a point, the
+# 3 · 10 eight-lane (U0·b0 + U1·b1 + U2·b2)·f steps at two vector operations a cycle) against ~6–8.5 ms.
+def _monomial_code(names: tuple[str, str, str], degrees: tuple[int, ...], tag: str) -> tuple[list[str], list[str]]:
+    """C statements computing the monomials of the variables ``names`` = (x, y, z) of each degree in
+    ``degrees`` (each >= 1) by `runtime._monomial_rows`' recurrence — level k from level k − 1: x ·
+    (each of it), then y · (its last k), then z · (its last one); one product per monomial, of the same
+    two values — and their names in `runtime._monos` order, degree by degree."""
+    levels = {1: list(names)}
+    prev, code = levels[1], []
+    for k in range(2, max(degrees) + 1):
+        p = len(prev)
+        cur = [f"{tag}{k}_{i}" for i in range(p + k + 1)]
+        ops = [(t, names[0]) for t in prev] + [(t, names[1]) for t in prev[p - k:]] + [(prev[-1], names[2])]
+        code += [f"const float {c} = {u} * {w};" for c, (u, w) in zip(cur, ops)]
+        levels[k] = prev = cur
+    return code, [t for k in degrees for t in levels[k]]
+
+
+def _terms_variant(D: int, dif: bool, spec: bool) -> str:
+    """The C function ``terms_<D>_<dif>_<spec>`` of `_TERMS_SOURCE`: the features of one point as
+    straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot."""
+    code, feats = [], []
+    if dif:
+        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
+        code, feats = code + c, feats + f
+    if spec:
+        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
+        code = code + ["const float wx = woT[q], wy = woT[Q + q], wz = woT[2 * Q + q];",
+                       "const float dn = (nx * wx + ny * wy) + nz * wz;",
+                       "const float t2 = dn * 2.0f;",
+                       "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+                       "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
+                       "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);   /* at::vec::maximum: NaN propagates */",
+                       "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
+        feats += f
+    K = len(feats)
+    assert K % 8 == 0
+    body = "\n            ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
+    return f"""
+static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const int64_t* vi, const float* b,
+        const float* nT, const float* woT, int64_t Q, int64_t q0, int64_t q1, float* out) {{
+    int64_t bad = 0;
+    for (int64_t q = q0; q < q1; ++q) {{
+        float f[{K}] __attribute__((aligned(32)));
+        {{
+            const float nx = nT[q], ny = nT[Q + q], nz = nT[2 * Q + q];
+            {body}
+        }}
+        const int64_t i0 = vi[3 * q], i1 = vi[3 * q + 1], i2 = vi[3 * q + 2];
+        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {{
+            ++bad;
+            continue;
+        }}
+        const float b0 = b[3 * q], b1 = b[3 * q + 1], b2 = b[3 * q + 2];
+        const float* u0 = U + i0 * {3 * K};
+        const float* u1 = U + i1 * {3 * K};
+        const float* u2 = U + i2 * {3 * K};
+        v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += 8) {{
+            const v8 fj = ld(f + j);
+            for (int c = 0; c < 3; ++c) {{
+                const int o = c * {K} + j;
+                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+            }}
+        }}
+        for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all (AVX2): halves, lanes two apart, neighbours; + 0 */
+            const v8 a = acc[c];
+            const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
+            out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));
+        }}
+    }}
+    return bad;
+}}
+"""
+
+
+# the (D, diffuse, specular) the C loop has (K a multiple of 8): order 4 with both terms (K = 80),
+# order 5 diffuse alone (K = 48)
+TERMS_VARIANTS = ((6, True, True), (8, True, False))
+
+_TERMS_SOURCE = r"""
+#include <stdint.h>
+typedef float v8 __attribute__((vector_size(32)));
+static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
+""" + "".join(_terms_variant(*v) for v in TERMS_VARIANTS) + r"""
+typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*, const float*, const float*,
+                            int64_t, int64_t, int64_t, float*);
+
+/* U (N, 3, K) float32, vi (Q, 3) int64, b (Q, 3), nT / woT (3, Q), out (3, Q); variant an index of
+   TERMS_VARIANTS. Every point on nt threads of OpenMP's team (thread k the points [Q k / nt,
+   Q (k + 1) / nt)); bad[0] the count of points with a vertex id outside [0, N) (left unwritten). */
+void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, const float* nT, const float* woT,
+                  int64_t Q, int64_t variant, int64_t nt, float* out, int64_t* bad) {
+    static const terms_fn fns[] = {""" + ", ".join(f"terms_{D}_{int(d)}_{int(sp)}" for D, d, sp in TERMS_VARIANTS) + r"""};
+    const terms_fn fn = fns[variant];
+    int64_t nb = 0;
+    if (nt <= 1) {
+        nb = fn(U, N, vi, b, nT, woT, Q, 0, Q, out);
+    } else {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb)
+        for (int64_t k = 0; k < nt; ++k)
+            nb += fn(U, N, vi, b, nT, woT, Q, Q * k / nt, Q * (k + 1) / nt, out);
+    }
+    bad[0] = nb;
+}
+"""
+_TERMS_SIGNATURES = {"sample_terms": [_P, _I, _P, _P, _P, _P, _I, _I, _I, _P, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _isa_flags() -> tuple[str, ...]:
+    """AVX2 + FMA when torch found the CPU to have them (the library is built on the machine that runs
+    it; with ``-ffp-contract=off`` no product is fused, so the flags change the speed, not the bits)."""
+    try:
+        cap = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # pragma: no cover - older torch
+        cap = ""
+    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
+
+
+def terms_switched_on() -> bool:
+    """False when ``PRTBENCH_ZH_NATIVE`` is 0 / false / no / off: `sample_terms` then returns None
+    (the compiled `runtime._sample_block` runs; A/Bs and tests)."""
+    return os.environ.get("PRTBENCH_ZH_NATIVE", "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+@functools.lru_cache(maxsize=None)
+def _inductor_avx2() -> bool:
+    """Whether Inductor vectorises for AVX2 here (8 lanes: the reduction tree the C loop reproduces)."""
+    try:
+        from torch._inductor.cpu_vec_isa import pick_vec_isa
+
+        return str(pick_vec_isa()) == "avx2"
+    except Exception:  # pragma: no cover - another torch
+        return False
+
+
+def _terms_lib():
+    """The library (`methods.core.native.load`, cached there) or None: no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0``, or Inductor does not vectorise for AVX2 here (its kernel's bits would differ)."""
+    if not _inductor_avx2():
+        return None
+    return native.load("zh_sample_terms", _TERMS_SOURCE, _TERMS_SIGNATURES,
+                       extra_flags=("-ffp-contract=off", "-fopenmp", *_isa_flags()))
+
+
+def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: int, diffuse: bool,
+                 specular: bool) -> Tensor | None:
+    """(3, Q) = `runtime.rows`(`runtime._sample_block`(U, vi, b, nT, woT, D, diffuse, specular)) by the C
+    loop — the same bits — or None where it does not apply (no library, switched off, not float32 /
+    CPU, K not a multiple of 8, three vertices per point, a vertex id outside U's rows): the caller
+    then runs `runtime._sample_block`. U (N, 3, K); vi (Q, 3) int64, b (Q, 3), nT, woT (3, Q), all
+    contiguous."""
+    key = (D, bool(diffuse), bool(specular))
+    if not terms_switched_on() or key not in TERMS_VARIANTS or U.dim() != 3 or U.dtype != torch.float32 \
+            or U.device.type != "cpu":
+        return None
+    N, C, K = U.shape
+    Q = int(nT.shape[1])
+    Kf = (((D + 1) * (D + 2) // 2 + 3) if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
+    if C != 3 or K != Kf or vi.shape != (Q, 3) or vi.dtype != torch.int64 or b.shape != (Q, 3) \
+            or nT.shape != (3, Q) or woT.shape != (3, Q) \
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (b, nT, woT)):
+        return None
+    fn = _terms_lib()
+    if fn is None:
+        return None
+    U, vi, b, nT, woT = (t.contiguous() for t in (U, vi, b, nT, woT))
+    out = torch.empty(3, Q, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    fn.sample_terms(U.data_ptr(), N, vi.data_ptr(), b.data_ptr(), nT.data_ptr(), woT.data_ptr(), Q,
+                    TERMS_VARIANTS.index(key), torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
+    return None if int(bad[0]) else out
+
+
+# --- a plane frame's split of the G-buffer (`ZHShadow._render_planes`) ---------------------------------
+#
+# The plane path splits the samples into the plane's (a mask over the G-buffer, box-filtered in place by
+# `method._plane_pixels`) and the others (the object), whose face corners, barycentrics, normals and ωo it
+# gathers for `runtime.shade`. In torch that was the compiled match over the P normals, ``nonzero`` of
+# its complement, then one ``index_select`` per G-buffer array (and a bool gather, a stack, a (Q, 3) →
+# (3, Q) copy): ~8 passes over P or Q elements. Here two passes: `plane_mask` (the match and its two
+# counts) and `object_rows` (the complement's positions and rows, written where `runtime.shade` reads
+# them). Pure copies and the barycentric weight (1 − u) − v: the same values bit for bit.
+_SPLIT_SOURCE = r"""
+#include <stdint.h>
+
+/* mask[p] = normal[p] == n0 (float compares of the three components, as `runtime._plane_match`),
+   p in [0, P), on nt threads of OpenMP's team (thread k the samples [P k / nt, P (k + 1) / nt));
+   cnt[3 k] the matches of thread k, cnt[3 k + 1] those whose region has a specular term (spec (R,)),
+   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,). */
+void plane_mask(const float* normal, const float* n0, const int64_t* region, const uint8_t* spec, int64_t R,
+                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const float a = n0[0], b = n0[1], c = n0[2];
+        int64_t ne = 0, ns = 0, bad = 0;
+        for (int64_t p = P * k / nt; p < P * (k + 1) / nt; ++p) {
+            const float* n = normal + 3 * p;
+            const uint8_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
+            mask[p] = e;
+            ne += e;
+            const int64_t r = region[p];
+            const int ok = (uint64_t)r < (uint64_t)R;
+            bad += !ok;
+            ns += e & (ok ? spec[r] : 0);
+        }
+        cnt[3 * k] = ne;
+        cnt[3 * k + 1] = ns;
+        cnt[3 * k + 2] = bad;
+    }
+}
+
+/* The samples p with mask[p] == 0, ascending (Q of them; thread k's range of `plane_mask` starts at
+   position start[k] of the output): rest[j] = p, vi[3 j + i] = F[3 face[p] + i], b[3 j ..] =
+   ((1 - u) - v, u, v) with u = bary[p bs0], v = bary[p bs0 + bs1], nT[i Q + j] = normal[3 p + i],
+   woT[i Q + j] = wo[p ws0 + i ws1], reg[j] = region[p]. bad[k]: thread k's faces outside [0, M). */
+void object_rows(const uint8_t* mask, int64_t P, int64_t nt, const int64_t* start, int64_t Q,
+                 const int64_t* face, const int32_t* F, int64_t M, const float* bary, int64_t bs0, int64_t bs1,
+                 const float* normal, const float* wo, int64_t ws0, int64_t ws1, const int64_t* region,
+                 int64_t* rest, int32_t* vi, float* b, float* nT, float* woT, int64_t* reg, int64_t* bad) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        int64_t j = start[k], nb = 0;
+        for (int64_t p = P * k / nt; p < P * (k + 1) / nt; ++p) {
+            if (mask[p])
+                continue;
+            int64_t f = face[p];
+            if ((uint64_t)f >= (uint64_t)M) {
+                ++nb;
+                f = 0;
+            }
+            rest[j] = p;
+            vi[3 * j] = F[3 * f];
+            vi[3 * j + 1] = F[3 * f + 1];
+            vi[3 * j + 2] = F[3 * f + 2];
+            const float u = bary[p * bs0], v = bary[p * bs0 + bs1];
+            b[3 * j] = (1.0f - u) - v;
+            b[3 * j + 1] = u;
+            b[3 * j + 2] = v;
+            nT[j] = normal[3 * p];
+            nT[Q + j] = normal[3 * p + 1];
+            nT[2 * Q + j] = normal[3 * p + 2];
+            woT[j] = wo[p * ws0];
+            woT[Q + j] = wo[p * ws0 + ws1];
+            woT[2 * Q + j] = wo[p * ws0 + 2 * ws1];
+            reg[j] = region[p];
+            ++j;
+        }
+        bad[k] = nb;
+    }
+}
+"""
+_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
+                     "object_rows": [_P, _I, _I, _P, _I, _P, _P, _I, _P, _I, _I, _P, _P, _I, _I, _P,
+                                     _P, _P, _P, _P, _P, _P, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _split_lib():
+    return native.load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def split_available() -> bool:
+    """True when `plane_mask` / `object_rows` run natively (else `ZHShadow._render_planes`' torch path)."""
+    return terms_switched_on() and _split_lib() is not None
+
+
+def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tuple[Tensor, int, int, list[int]] | None:
+    """(mask (P,) bool: ``normal`` (P, 3) row-major equals n0 (3,), as `runtime._plane_match`; its count;
+    the count of those whose region has a specular term (``spec`` (R,) bool); the per-thread counts of
+    the matches, for `object_rows`) by the C loop, or None (not available, not float32 / int64 / CPU
+    contiguous arrays, a region outside [0, R)): the caller's torch path then."""
+    fn = _split_lib() if terms_switched_on() else None
+    P = int(normal.shape[0])
+    if fn is None or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
+            or region.dtype != torch.int64 or region.shape != (P,) or not region.is_contiguous() \
+            or normal.device.type != "cpu" or region.device.type != "cpu":
+        return None
+    n0 = n0.to(torch.float32).contiguous()
+    sp = spec.to(torch.uint8).contiguous()
+    nt = max(1, torch.get_num_threads())
+    mask = torch.empty(P, dtype=torch.bool)
+    cnt = torch.zeros(nt, 3, dtype=torch.int64)
+    fn.plane_mask(normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
+                  mask.data_ptr(), cnt.data_ptr())
+    c = cnt.tolist()
+    if any(r[2] for r in c):
+        return None
+    return mask, sum(r[0] for r in c), sum(r[1] for r in c), [r[0] for r in c]
+
+
+def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, bary: Tensor, normal: Tensor,
+                wo: Tensor, region: Tensor) -> tuple[Tensor, ...] | None:
+    """The samples off ``mask`` (from `plane_mask`, ``per_thread`` its per-thread match counts, at the
+    same thread count) and their rows, as `ZHShadow._render_planes`' torch gathers make them: (rest (Q,)
+    int64 ascending, vi (Q, 3) int32 = F32[face[rest]], b (Q, 3) = `runtime.barycentrics`(bary[rest]),
+    nT, woT (3, Q) = normal[rest]ᵀ, wo[rest]ᵀ, reg (Q,) = region[rest]); None when a face is outside F32's
+    rows or an array does not suit the loop (bary, wo (P, 2) / (P, 3) float32 views of any strides)."""
+    fn = _split_lib()
+    P, nt = int(mask.shape[0]), len(per_thread)
+    if fn is None or nt != max(1, torch.get_num_threads()) or face.dtype != torch.int64 or not face.is_contiguous() \
+            or F32.dtype != torch.int32 or not F32.is_contiguous() or F32.dim() != 2 or F32.shape[1] != 3 \
+            or bary.dtype != torch.float32 or bary.shape != (P, 2) or wo.dtype != torch.float32 or wo.shape != (P, 3):
+        return None
+    sizes = [(P * (k + 1)) // nt - (P * k) // nt - per_thread[k] for k in range(nt)]
+    start = torch.tensor([sum(sizes[:k]) for k in range(nt)], dtype=torch.int64)
+    Q = sum(sizes)
+    rest = torch.empty(Q, dtype=torch.int64)
+    vi = torch.empty(Q, 3, dtype=torch.int32)
+    b = torch.empty(Q, 3, dtype=torch.float32)
+    nT = torch.empty(3, Q, dtype=torch.float32)
+    woT = torch.empty(3, Q, dtype=torch.float32)
+    reg = torch.empty(Q, dtype=torch.int64)
+    bad = torch.zeros(nt, dtype=torch.int64)
+    fn.object_rows(mask.data_ptr(), P, nt, start.data_ptr(), Q, face.data_ptr(), F32.data_ptr(), int(F32.shape[0]),
+                   bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), wo.data_ptr(), wo.stride(0),
+                   wo.stride(1), region.data_ptr(), rest.data_ptr(), vi.data_ptr(), b.data_ptr(), nT.data_ptr(),
+                   woT.data_ptr(), reg.data_ptr(), bad.data_ptr())
+    if int(bad.sum()):
+        return None
+    return rest, vi, b, nT, woT, reg

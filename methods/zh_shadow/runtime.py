@@ -60,6 +60,7 @@ from methods.core.sampling import gauss_legendre_sphere
 from methods.core.threads import torch_threads
 from methods.core.sh import sh_eval, sh_terms
 from methods.core.zh import band_norms, expand_bands, phong_factors
+from methods.zh_shadow import native as zn
 from methods.zh_shadow.convolution import phong_operator
 from methods.zh_shadow.precompute import CHART_RMAX
 
@@ -402,7 +403,10 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
     36 K object samples, 1 thread, same process, load ~7-10: sample stage 1.06-1.09x (1.25x on random
     points), bit-identical (as `methods.triple_product.fast_eval` since session 18). What bounds it is
     the kernel itself (~150 ns per point: the point-major features are computed in scalar loops with
-    strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point). Above it (SH features): blocks of exactly
+    strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point) — so where
+    `native.sample_terms` applies (float32, order 4 with both terms or order 5 diffuse alone, Inductor
+    on AVX2) its C loop computes the same bits in one pass per point (session 28: paper setting, bench
+    creature, 1 thread, same process: P 1.23x, V 1.13x, VB 1.23x, VL / VBL 1.17x). Above it (SH features): blocks of exactly
     ``block`` points (the last padded by repeating its last point), one static shape.
 
     Args:
@@ -416,6 +420,9 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
         if Q == 0:
             return torch.empty(3, 0, dtype=U.dtype, device=U.device)
         nT, woT = nT.contiguous(), woT.contiguous()
+        out = zn.sample_terms(U, vi, b, nT, woT, 2 * n - 2, diffuse, specular)   # the C loop: the same bits
+        if out is not None:
+            return out
         for t, d in ((vi, 0), (b, 0), (nT, 1), (woT, 1)):
             torch._dynamo.maybe_mark_dynamic(t, d)
         return rows(_sample_block(U, vi, b, nT, woT, 2 * n - 2, diffuse, specular))
@@ -1000,22 +1007,10 @@ def planar_groups(nT: Tensor, *, min_points: int | None = None, max_groups: int 
     mask = rest = None
     cur = nT
     while len(groups) < max_groups and cur.shape[1] >= min_points:
-        m = cur.shape[1]
-        sub = cur[:, ::16].contiguous()   # (screened every candidate: contiguous rows)
-        for c in range(8):
-            n0 = cur[:, c * m // 8].clone()
-            if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
-                continue                                                   # under half the size, screened
-            if match is not None and cur is nT:
-                eq, cnt = match(n0)
-                cnt = int(cnt)
-            else:
-                eq = (cur[0] == n0[0]) & (cur[1] == n0[1]) & (cur[2] == n0[2])
-                cnt = int(eq.sum())
-            if cnt >= min_points:
-                break
-        else:
+        found = first_plane(cur, min_points, match if cur is nT else None)
+        if found is None:
             break
+        n0, eq, cnt = found
         keep = ~eq
         if rest is None:
             if 2 * cnt > Q:
@@ -1031,6 +1026,28 @@ def planar_groups(nT: Tensor, *, min_points: int | None = None, max_groups: int 
             groups.append((n0, rest[eq]))
             rest, cur = rest[keep], cur[:, keep]
     return groups, mask, rest
+
+
+def first_plane(cur: Tensor, min_points: int, match=None) -> tuple[Tensor, Tensor, int] | None:
+    """One step of `planar_groups`' search over the normals cur (3, m): (n0 (3,), (m,) bool ``cur ==
+    n0`` column-wise, its count) for the first candidate — the normals of 8 evenly spaced points,
+    screened on every 16th point — shared by at least ``min_points`` points, or None. ``match``: as
+    `planar_groups`' (n0 → (that mask, its count))."""
+    m = cur.shape[1]
+    sub = cur[:, ::16].contiguous()   # (screened every candidate: contiguous rows)
+    for c in range(8):
+        n0 = cur[:, c * m // 8].clone()
+        if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
+            continue                                                   # under half the size, screened
+        if match is not None:
+            eq, cnt = match(n0)
+            cnt = int(cnt)
+        else:
+            eq = (cur[0] == n0[0]) & (cur[1] == n0[1]) & (cur[2] == n0[2])
+            cnt = int(eq.sum())
+        if cnt >= min_points:
+            return n0, eq, cnt
+    return None
 
 
 @fused

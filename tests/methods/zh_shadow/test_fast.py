@@ -1376,3 +1376,110 @@ def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
         seen = cols
     want = fast._render_reference(light, gb)
     assert (a - want).abs().max() <= 1e-5 * want.abs().max()
+
+
+@pytest.mark.parametrize("order,diffuse,specular", ((4, True, True), (5, True, False)))
+def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypatch):
+    """`native.sample_terms` (the C loop) = the compiled `runtime._sample_block` bit for bit (the same
+    products, sums and AVX2 reduction tree) and = its eager function to float32 round-off, at 1 and 2
+    threads, on random points (some with ωo = n: R = n, some grazing); through `runtime.sample_terms`
+    too. None (the compiled kernel then runs) for a vertex id outside U's rows, a variant it lacks,
+    float64, and with ``PRTBENCH_ZH_NATIVE=0``."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(order)
+    D = 2 * order - 2
+    K = ((D + 1) * (D + 2) // 2 + 3 if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
+    N, Q = 97, 5003
+    U = torch.randn(N, 3, K, generator=g)
+    vi = torch.randint(0, N, (Q, 3), generator=g)
+    b = torch.rand(Q, 3, generator=g)
+    b = b / b.sum(1, keepdim=True)
+    nT = torch.randn(3, Q, generator=g)
+    nT = nT / nT.norm(dim=0)
+    woT = torch.randn(3, Q, generator=g)
+    woT[:, :50] = nT[:, :50]                                                  # R = n
+    woT[:, 50:100] = torch.stack([nT[1, 50:100], -nT[0, 50:100], torch.zeros(50)])   # n·ωo = 0
+    woT = woT / woT.norm(dim=0)
+    got = zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular)
+    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor not on AVX2: nothing native to check
+        assert zn._terms_lib() is None
+        pytest.skip("the native sample terms are not available here")
+    with torch_threads(2):
+        assert torch.equal(zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular), got)
+    eager = rt.rows(rt._sample_block.eager(U, vi, b, nT, woT, D, diffuse, specular))
+    assert float((got - eager).abs().max()) <= 1e-5 * float(eager.abs().max())
+    U_, vi_, b_, n_, wo_ = U.clone(), vi.clone(), b.clone(), nT.clone(), woT.clone()
+    torch._dynamo.maybe_mark_dynamic(U_, 0)
+    for t, d in ((vi_, 0), (b_, 0), (n_, 1), (wo_, 1)):
+        torch._dynamo.maybe_mark_dynamic(t, d)
+    compiled = rt.rows(rt._sample_block(U_, vi_, b_, n_, wo_, D, diffuse, specular))
+    assert torch.equal(got, compiled)
+    assert torch.equal(rt.sample_terms(U, vi.to(torch.int32), b, nT, woT, order, diffuse=diffuse, specular=specular),
+                       got)
+    bad = vi.clone()
+    bad[Q // 2, 1] = N
+    assert zn.sample_terms(U, bad, b, nT, woT, D, diffuse, specular) is None
+    assert zn.sample_terms(U.double(), vi, b.double(), nT.double(), woT.double(), D, diffuse, specular) is None
+    assert zn.sample_terms(U[..., :K - 8].contiguous(), vi, b, nT, woT, D, diffuse, not specular) is None
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular) is None
+    assert torch.equal(rt.sample_terms(U, vi, b, nT, woT, order, diffuse=diffuse, specular=specular), got)
+
+
+def test_native_split_equals_torch_split(small_model):
+    """`ZHShadow._native_split` (`native.plane_mask`, `native.object_rows`) = the torch path's plane
+    search and gathers bit for bit: the plane, its mask and the object samples' positions, vertex ids,
+    barycentric weights, normals, ωo and regions, at 1 and 2 threads; images of V / VB / P frames equal
+    with it on and off (the oracle: ``native_split = False``); False where the torch path finds no
+    single plane (alcove: two planes) or one with a specular term — and not used when a sample misses."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    if not zn.split_available():
+        pytest.skip("the native split is not available here")
+    fr = make_sequence(m.scene, "V", 1, seed=2)[0]
+    gb = make_gbuffer(m.scene, fr, 2)
+    geom = m.scene.geometry()
+    F32 = geom.F.to(torch.int32)
+    assert m.scene.regions == ["creature", "ground"]
+    assert m._native_split(gb, [False, True], F32) is False   # a specular term on the plane (the ground)
+    for spec in ([False, False], [True, False]):
+        for nt in (1, 2):
+            with torch_threads(nt):
+                got = m._native_split(gb, spec, F32)
+            groups, mask, rest, vi, b, nT, woT, reg = got
+            n0 = groups[0][0]
+            nrm = gb.normal
+            eq = (nrm[:, 0] == n0[0]) & (nrm[:, 1] == n0[1]) & (nrm[:, 2] == n0[2])
+            want_rest = (~eq).nonzero().squeeze(-1)
+            assert int(eq.sum()) * 2 > gb.num_samples and torch.equal(mask, eq) and torch.equal(rest, want_rest)
+            bu, bv = gb.bary.index_select(0, rest).unbind(-1)
+            assert torch.equal(vi, F32.index_select(0, gb.face.index_select(0, rest)))
+            assert torch.equal(b, torch.stack([1.0 - bu - bv, bu, bv], -1))
+            assert torch.equal(nT, rt.rows(nrm.index_select(0, rest))) and torch.equal(reg, gb.region[rest])
+            assert torch.equal(woT, gb.wo.T.index_select(1, rest))
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_split = False
+    for kind in ("V", "VB", "P"):
+        for f in make_sequence(m.scene, kind, 2, seed=4):
+            g = make_gbuffer(m.scene, f, 2)
+            a, c = fast.render(f, g), slow.render(f, g)
+            assert fast.last_path == slow.last_path == "planes", (kind, fast.last_path)
+            assert torch.equal(a, c), kind
+            ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+            assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
+    half = _left_half_misses(gb)
+    calls = []
+    with mock.patch.object(type(fast), "_native_split", lambda self, *a: calls.append(1)):
+        fast.render(fr, half)
+    assert not calls
+    al = small_model("alcove")
+    fa = make_sequence(al.scene, "V", 1, seed=2)[0]
+    assert al._native_split(make_gbuffer(al.scene, fa, 2), [False] * len(al.scene.regions),
+                            al.scene.geometry().F.to(torch.int32)) is False
