@@ -640,12 +640,16 @@ def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
     wo[::997] = torch.tensor([0.0, 1.0, 0.0])
     normal[5] = float("nan")
     ok = torch.arange(n) != 5
+    # the normals row-major (the G-buffer's: the deinterleaving loads, ``aos3``), as columns of a (3, n)
+    # array and with a row stride of 4 (the one-float-at-a-time loads)
+    layouts = (normal, normal.T.contiguous().T, torch.cat([normal, torch.zeros(n, 1)], 1)[:, :3])
     for (H, W), w in (((256, 512), wo.T.contiguous().T), ((33, 70), wo)):  # the G-buffer's wo layout; row-major
         to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
         want = F.mirror_cells_block(normal, w, to_world, H, W)
-        got = N.mirror_cells(normal, w, to_world, H, W)
-        assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
-        assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
+        for nrm in layouts:
+            got = N.mirror_cells(nrm, w, to_world, H, W)
+            assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
+            assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
     assert N.mirror_cells(normal[:12], wo[:12], to_world, H, W) is None  # not a multiple of 8
 
     monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
