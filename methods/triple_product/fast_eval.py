@@ -116,6 +116,7 @@ from methods.core.spherical_haar import coefficient_structure, level_of_size, n_
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import native
+from methods.triple_product import native_group
 from methods.triple_product import native_light
 from methods.triple_product.precompute import truncate
 
@@ -1057,7 +1058,7 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
 
 
 def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None = None,
-               n_b: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+               n_b: int | None = None, native_ok: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """`group_rows` with the groups given per run of points: (gv, gl, gb, inv_s (S, k_v) int64 the
     groups of every run, run (B,) int32 the run of every point); ``inv_s[run]`` is `group_rows`' inv.
 
@@ -1075,14 +1076,21 @@ def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
     The points' (B, k_v) int64 groups are no longer formed (a 6 MB gather written here and read back
     by the blend on a bench frame: the blend gathers through the int32 run index instead), the cell
     codes come from contiguous columns, the row changes are or-ed column by column and the run index
-    is an int32 scan: the same groups, order and inverse."""
+    is an int32 scan: the same groups, order and inverse.
+    ``native_ok`` (default): the C loop of `native_group` when it applies (int64 CPU rows; its oracle
+    is this torch path, ``native_ok=False``): the same groups, order, inverse and runs; chess pixel V
+    frame, 1 thread, same process: see `native_group`."""
     B, kv = vrows.shape
     dev = vrows.device
     if B == 0:
         e = vrows.new_zeros(0)
         return e, lrows[:0], brows[:0], vrows.new_zeros(0, kv), torch.zeros(0, dtype=torch.int32, device=dev)
-    nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
     nb = int(brows[:, 0].max()) + 1 if n_b is None else int(n_b)
+    if native_ok and dev.type == "cpu" and vrows.dtype == lrows.dtype == brows.dtype == torch.int64:
+        out = native_group.group_runs(vrows, lrows, brows, nb)
+        if out is not None:
+            return out
+    nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
     # (B,) cell codes lrows0·nb + brows0 from contiguous copies of the two columns (integer ops on
     # the strided columns ran unvectorised: 1.5-2.1 ms against ~1.0 on a bench frame)
     cell = lrows[:, 0].contiguous().mul_(nb).add_(brows[:, 0].contiguous())

@@ -1,0 +1,204 @@
+"""`fast_eval.group_runs` as a small C loop (built with ``cc`` through `methods.core.native.load`,
+called through ctypes): the runs of a pixel frame's points and the distinct groups (visibility row,
+L cell, ρ̃ cell) of the runs, with the torch path (`fast_eval.group_runs`) as its fallback and test
+oracle — the same groups, order, inverse and runs, integers only (tests/methods/triple_product/
+test_tp_native_group.py).
+
+Why: the torch path is ~15 eager passes (row compares, nonzero, cumsum, gathers, the cell renumbering)
+and a `torch.unique` sort of the runs' S·k_v keys (chess bench pixel V: 262 k points, 72 k runs,
+216 k keys, 24 k groups; ~14 ms of a ~100 ms frame, 1 thread). Here: one pass over the points finds
+the runs; the runs' keys are bucketed by visibility row (a counting sort: rows are < N_V) and each
+bucket sorted by (cell, key index) — the keys' order is (row, cell), which is the torch path's
+sorted key order (its cell renumbering is monotone) — and one scan numbers the groups and fills the
+inverse.
+
+The library is built by `methods.core.native.load`; without a compiler, with ``PRTBENCH_COMPILE=0`` or
+``PRTBENCH_TP_NATIVE=0`` (`native.switched_on`), `available` is False and `fast_eval` runs the torch path.
+"""
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+from methods.triple_product import native as tp_native
+
+__all__ = ["available", "group_runs"]
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <stdlib.h>
+
+/* Runs of B points: a run starts where the cell lrows[b, 0] * nb + brows[b, 0] or any of the k_v
+   visibility rows differs from the previous point's. run[b] (int32): the run of point b; start[s]:
+   the first point of run s; cell[s]: its cell. info[0] = S, info[1] = the largest visibility row of
+   the run starts, info[2] = the smallest. */
+void tp_runs(int64_t B, int64_t kv, const int64_t* vrows, const int64_t* lrows, int64_t kl,
+             const int64_t* brows, int64_t kb, int64_t nb, int32_t* run, int64_t* start, int64_t* cell,
+             int64_t* info) {
+    int64_t S = 0, vmax = 0, vmin = 0, prev = 0;
+    for (int64_t b = 0; b < B; ++b) {
+        const int64_t c = lrows[b * kl] * nb + brows[b * kb];
+        const int64_t* v = vrows + b * kv;
+        int fresh = b == 0 || c != prev;
+        for (int64_t i = 0; i < kv && !fresh; ++i) fresh = v[i] != v[i - kv];
+        if (fresh) {
+            for (int64_t i = 0; i < kv; ++i) {
+                if (S == 0 && i == 0) { vmax = vmin = v[0]; }
+                if (v[i] > vmax) vmax = v[i];
+                if (v[i] < vmin) vmin = v[i];
+            }
+            start[S] = b;
+            cell[S] = c;
+            ++S;
+        }
+        run[b] = (int32_t)(S - 1);
+        prev = c;
+    }
+    info[0] = S; info[1] = vmax; info[2] = vmin;
+}
+
+static void radix32(uint64_t* x, uint64_t* y, int64_t n, uint64_t top) {
+    /* x (n,) sorted by its high 32 bits (< top + 1), stably (LSD, 11 bits a pass); y: work */
+    for (int sh = 32; sh < 64 && (top >> (sh - 32)) != 0; sh += 11) {
+        int64_t cnt[2048] = {0};
+        for (int64_t p = 0; p < n; ++p) ++cnt[(x[p] >> sh) & 2047];
+        int64_t o = 0;
+        for (int k = 0; k < 2048; ++k) { const int64_t c = cnt[k]; cnt[k] = o; o += c; }
+        for (int64_t p = 0; p < n; ++p) y[cnt[(x[p] >> sh) & 2047]++] = x[p];
+        for (int64_t p = 0; p < n; ++p) x[p] = y[p];
+    }
+}
+
+/* The distinct (row, cell) keys of the S runs' k_v keys (key e = s k_v + i: row vrows[start[s], i]
+   in [0, nv), cell cell[s] in [0, nc), nv nc <= 2^32), in (row, cell) order: the keys are numbered
+   in order of appearance through a hash table (open addressing, grown at half full), then the
+   distinct codes row nc + cell sorted (radix) and renumbered. gv[g] the row, gl[g] / gb[g] the L /
+   rho rows of a point of the group (the start of its first key's run), inv[e] the group of key e;
+   info[0] = G, or -1 when a work table could not be allocated. gv, gl, gb: room for S k_v groups. */
+void tp_group_keys(int64_t S, int64_t kv, const int64_t* vrows, const int64_t* start, const int64_t* cell,
+                   int64_t nv, int64_t nc, const int64_t* lrows, int64_t kl, const int64_t* brows, int64_t kb,
+                   int64_t* gv, int64_t* gl, int64_t* gb, int64_t* inv, int64_t* info) {
+    const int64_t E = S * kv;
+    int bits = 10;
+    while (((int64_t)1 << bits) < E / 4) ++bits;
+    int64_t cap = (int64_t)1 << bits, G = 0;
+    uint64_t* hk = (uint64_t*)malloc(sizeof(uint64_t) * cap);
+    int32_t* hv = (int32_t*)malloc(sizeof(int32_t) * cap);
+    uint64_t* gk = (uint64_t*)malloc(sizeof(uint64_t) * (E + 1));   /* (code << 32 | first key) per group */
+    uint64_t* w = (uint64_t*)malloc(sizeof(uint64_t) * (E + 1));
+    if (!hk || !hv || !gk || !w) goto fail;
+    for (int64_t h = 0; h < cap; ++h) hk[h] = ~(uint64_t)0;
+    uint64_t mk[8];                                             /* the previous run's keys and groups */
+    int64_t mg[8], nm = 0;
+    for (int64_t s = 0; s < S; ++s) {
+        const int64_t* v = vrows + start[s] * kv;
+        for (int64_t i = 0; i < kv; ++i) {
+            const uint64_t k = (uint64_t)(v[i] * nc + cell[s]);
+            int64_t m = 0;
+            while (m < nm && mk[m] != k) ++m;
+            if (m < nm) { inv[s * kv + i] = mg[m]; continue; }
+            uint64_t h = (k * 0x9E3779B97F4A7C15ull) >> (64 - bits);
+            while (hk[h] != k && hk[h] != ~(uint64_t)0) h = (h + 1) & (uint64_t)(cap - 1);
+            if (hk[h] == ~(uint64_t)0) {
+                hk[h] = k; hv[h] = (int32_t)G;
+                gk[G] = (k << 32) | (uint64_t)(s * kv + i);
+                ++G;
+                if (2 * G > cap) {                              /* grow: re-insert the groups */
+                    free(hk); free(hv);
+                    ++bits; cap <<= 1;
+                    hk = (uint64_t*)malloc(sizeof(uint64_t) * cap);
+                    hv = (int32_t*)malloc(sizeof(int32_t) * cap);
+                    if (!hk || !hv) goto fail;
+                    for (int64_t q = 0; q < cap; ++q) hk[q] = ~(uint64_t)0;
+                    for (int64_t g = 0; g < G; ++g) {
+                        const uint64_t kg = gk[g] >> 32;
+                        uint64_t q = (kg * 0x9E3779B97F4A7C15ull) >> (64 - bits);
+                        while (hk[q] != ~(uint64_t)0) q = (q + 1) & (uint64_t)(cap - 1);
+                        hk[q] = kg; hv[q] = (int32_t)g;
+                    }
+                    inv[s * kv + i] = G - 1;
+                    continue;
+                }
+            }
+            inv[s * kv + i] = hv[h];
+        }
+        nm = kv <= 8 ? kv : 0;
+        for (int64_t i = 0; i < nm; ++i) { mk[i] = (uint64_t)(v[i] * nc + cell[s]); mg[i] = inv[s * kv + i]; }
+    }
+    /* order: the groups' codes sorted (distinct: the first-key half only breaks no ties) */
+    for (int64_t g = 0; g < G; ++g) w[g] = gk[g];
+    radix32(w, gk, G, (uint64_t)(nv * nc - 1));
+    int32_t* rank = hv;                                         /* reuse: G <= cap / 2 */
+    for (int64_t r = 0; r < G; ++r) {
+        const uint64_t k = w[r] >> 32;
+        const int64_t e = (int64_t)(w[r] & 0xffffffffu), b = start[e / kv];
+        gv[r] = (int64_t)(k / (uint64_t)nc);
+        for (int64_t j = 0; j < kl; ++j) gl[r * kl + j] = lrows[b * kl + j];
+        for (int64_t j = 0; j < kb; ++j) gb[r * kb + j] = brows[b * kb + j];
+        rank[(int64_t)(inv[e])] = (int32_t)r;                  /* inv[e] is the first key's group */
+    }
+    for (int64_t e = 0; e < E; ++e) inv[e] = rank[inv[e]];
+    free(hk); free(hv); free(gk); free(w);
+    info[0] = G;
+    return;
+fail:
+    free(hk); free(hv); free(gk); free(w);
+    info[0] = -1;
+}
+"""
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"tp_runs": [_I, _I, _P, _P, _I, _P, _I, _I, _P, _P, _P, _P],
+               "tp_group_keys": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P]}
+
+
+def _lib():
+    """The library (`methods.core.native.load`) or None: no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
+    if not tp_native.switched_on():
+        return None
+    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=tp_native.isa_flags())
+
+
+def available() -> bool:
+    """True when the native grouping runs (else `fast_eval.group_runs` runs its torch path)."""
+    return _lib() is not None
+
+
+def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, nb: int) -> tuple[Tensor, ...] | None:
+    """`fast_eval.group_runs` (gv, gl, gb, inv_s, run) of vrows (B, k_v), lrows (B, k_L), brows (B, k_ρ)
+    int64 with brows[:, 0] < nb, B ≥ 1; None when the loop does not apply (no library, a negative
+    visibility row, cells that do not fit 32 bits): the caller runs the torch path."""
+    lib = _lib()
+    if lib is None:
+        return None
+    B, kv = vrows.shape
+    kl, kb = lrows.shape[1], brows.shape[1]
+    if B == 0 or lrows.shape[0] != B or brows.shape[0] != B:
+        return None
+    vrows, lrows, brows = (x.to(torch.int64).contiguous() for x in (vrows, lrows, brows))
+    run = torch.empty(B, dtype=torch.int32)
+    start = torch.empty(B, dtype=torch.int64)
+    cell = torch.empty(B, dtype=torch.int64)
+    info = torch.zeros(3, dtype=torch.int64)
+    lib.tp_runs(B, kv, vrows.data_ptr(), lrows.data_ptr(), kl, brows.data_ptr(), kb, int(nb), run.data_ptr(),
+                start.data_ptr(), cell.data_ptr(), info.data_ptr())
+    S, vmax, vmin = (int(x) for x in info.tolist())
+    cs = cell[:S]
+    nc = int(cs.max()) + 1
+    if vmin < 0 or int(cs.min()) < 0 or (vmax + 1) * nc > 2 ** 32 or S * kv >= 2 ** 32:
+        return None
+    E = S * kv
+    gv = torch.empty(E, dtype=torch.int64)
+    gl = torch.empty(E, kl, dtype=torch.int64)
+    gb = torch.empty(E, kb, dtype=torch.int64)
+    inv = torch.empty(S, kv, dtype=torch.int64)
+    lib.tp_group_keys(S, kv, vrows.data_ptr(), start.data_ptr(), cs.data_ptr(), vmax + 1, nc, lrows.data_ptr(), kl,
+                      brows.data_ptr(), kb, gv.data_ptr(), gl.data_ptr(), gb.data_ptr(), inv.data_ptr(), info.data_ptr())
+    G = int(info[0])
+    if G < 0:
+        raise MemoryError("tp_group_keys could not allocate its tables")
+    return gv[:G], gl[:G], gb[:G], inv, run
