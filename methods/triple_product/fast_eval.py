@@ -1205,7 +1205,9 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     many groups), `group_blend` per point. ``stats``: receives ``"groups"``, the number of groups.
     One call instead of the blocks of GROUP_BLOCK: chess pixel V frame, 1 thread, same process,
     1.06x (L 1.02x), T bit for bit. ``chunks`` (`vis_chunks` of Vt) and 4 ρ̃ and 4 grid rows: T by
-    the native loop over each group's non-zero chunks (`native.groups`), to float32 round-off."""
+    the native loop over each group's non-zero chunks (`native.groups`), to float32 round-off, and
+    the blend by `native_group.blend` (to float32 round-off; the compiled `group_blend_runs` is its
+    oracle and fallback)."""
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     gv, gl, gb, inv_s, run = group_runs(vrows.long(), lrows.long(), brows.long(), n_l=L3.shape[0], n_b=R3.shape[0])
     p = GROUP_BLOCK if points is None else int(points)
@@ -1215,6 +1217,10 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
         stats["group_vis"] = gv  # each group's visibility row (`frame_cost`: its non-zero triangles)
     if chunks is not None and points is None and gl.shape[1] == 4 and gb.shape[1] == 4 and dt == torch.float32:
         T = native.groups(Vt, Rt, Lt, gv, gl, gb, chunks)  # each group's non-zero chunks (`native`)
+        # and the blend by the C loop of `native_group` (to float32 round-off; None: compiled below)
+        out = native_group.blend(run, inv_s, vw.float(), lw.float(), bw.float(), T)
+        if out is not None:
+            return out
     elif points is None and G <= 1:  # a size Dynamo would specialise (a compilation in a timed frame)
         T = group_block(gv, gl, gb, Vt, R3, L3)
     elif points is None:

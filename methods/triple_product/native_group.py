@@ -148,11 +148,53 @@ fail:
     free(hk); free(hv); free(gk); free(w);
     info[0] = -1;
 }
+
+typedef float v8 __attribute__((vector_size(32)));
+static inline v8 ld(const float* p) { v8 r; __builtin_memcpy(&r, p, sizeof r); return r; }
+static inline float hsum(v8 a) {
+    return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
+}
+
+/* fast_eval.group_blend_runs with 4 L and 4 rho rows, times scale: for points [p0, p1)
+   out[p, c] = scale sum_i vw[p, i] sum_j lw[p, j] sum_k bw[p, k] T[inv[run[p], i], (c 4 + j) 4 + k],
+   the 16 (j, k) terms of a channel as two 8-lane products with the weights lw_j bw_k. */
+void tp_blend(int64_t p0, int64_t p1, int64_t kv, const int32_t* run, const int64_t* inv, const float* vw,
+              const float* lw, const float* bw, const float* T, float scale, float* out) {
+    for (int64_t p = p0; p < p1; ++p) {
+        const int64_t* g = inv + (int64_t)run[p] * kv;
+        const float* l = lw + 4 * p;
+        const float* b = bw + 4 * p;
+        const v8 B4 = {b[0], b[1], b[2], b[3], b[0], b[1], b[2], b[3]};
+        const v8 La = {l[0], l[0], l[0], l[0], l[1], l[1], l[1], l[1]};
+        const v8 Lb = {l[2], l[2], l[2], l[2], l[3], l[3], l[3], l[3]};
+        const v8 W0 = La * B4, W1 = Lb * B4;
+        v8 a0 = {0}, a1 = {0}, a2 = {0};
+        for (int64_t i = 0; i < kv; ++i) {
+            const float* t = T + 48 * g[i];
+            const float w = vw[p * kv + i];
+            a0 += w * (ld(t) * W0 + ld(t + 8) * W1);
+            a1 += w * (ld(t + 16) * W0 + ld(t + 24) * W1);
+            a2 += w * (ld(t + 32) * W0 + ld(t + 40) * W1);
+        }
+        out[3 * p] = hsum(a0) * scale;
+        out[3 * p + 1] = hsum(a1) * scale;
+        out[3 * p + 2] = hsum(a2) * scale;
+    }
+}
+/* tp_blend over [0, B) on nt threads of OpenMP's team (contiguous ranges) */
+void tp_blend_par(int64_t B, int64_t kv, const int32_t* run, const int64_t* inv, const float* vw,
+                  const float* lw, const float* bw, const float* T, float scale, float* out, int64_t nt) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k)
+        tp_blend(B * k / nt, B * (k + 1) / nt, kv, run, inv, vw, lw, bw, T, scale, out);
+}
 """
 
-_P, _I = ctypes.c_void_p, ctypes.c_int64
+_P, _I, _F = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 _SIGNATURES = {"tp_runs": [_I, _I, _P, _P, _I, _P, _I, _I, _P, _P, _P, _P],
-               "tp_group_keys": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P]}
+               "tp_group_keys": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P],
+               "tp_blend": [_I, _I, _I, _P, _P, _P, _P, _P, _P, _F, _P],
+               "tp_blend_par": [_I, _I, _P, _P, _P, _P, _P, _P, _F, _P, _I]}
 
 
 def _lib():
@@ -160,7 +202,7 @@ def _lib():
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
     if not tp_native.switched_on():
         return None
-    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=tp_native.isa_flags())
+    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=("-ffp-contract=fast", "-fopenmp", *tp_native.isa_flags()))
 
 
 def available() -> bool:
@@ -202,3 +244,35 @@ def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, nb: int) -> tuple[Te
     if G < 0:
         raise MemoryError("tp_group_keys could not allocate its tables")
     return gv[:G], gl[:G], gb[:G], inv, run
+
+
+# Points below which one thread blends (a hand-off costs more than the share).
+MIN_POINTS_PER_THREAD = 4096
+
+
+def blend(run: Tensor, inv_s: Tensor, vw: Tensor, lw: Tensor, bw: Tensor, T: Tensor, scale: float = 1.0) -> Tensor | None:
+    """`fast_eval.group_blend_runs` (run (B,) int32, inv_s (S, k_v) int64, vw (B, k_v), lw / bw (B, 4)
+    float32, T (G, 48) float32) times ``scale`` → (B, 3) float32, to float32 round-off (the 16 (j, k)
+    terms of a channel summed as two 8-lane products with the weights lw_j·bw_k, not k then j); None
+    when the loop does not apply (no library, other shapes or dtypes)."""
+    lib = _lib()
+    if lib is None:
+        return None
+    B, kv = vw.shape
+    S = inv_s.shape[0]
+    if run.shape != (B,) or run.dtype != torch.int32 or inv_s.ndim != 2 or inv_s.shape[1] != kv \
+            or inv_s.dtype != torch.int64 or lw.shape != (B, 4) or bw.shape != (B, 4) or T.ndim != 2 \
+            or T.shape[1] != 48 or any(x.dtype != torch.float32 for x in (vw, lw, bw, T)):
+        return None
+    out = torch.empty(B, 3, dtype=torch.float32)
+    if B == 0:
+        return out
+    run, inv_s, vw, lw, bw, T = (x.contiguous() for x in (run, inv_s, vw, lw, bw, T))
+    # the loop reads without bounds checks: every run names a row of inv_s, every group a row of T
+    if int(run.min()) < 0 or int(run.max()) >= S or S and (int(inv_s.min()) < 0 or int(inv_s.max()) >= T.shape[0]):
+        raise IndexError("a run or group outside its table")
+    args = (kv, run.data_ptr(), inv_s.data_ptr(), vw.data_ptr(), lw.data_ptr(), bw.data_ptr(), T.data_ptr(),
+            float(scale), out.data_ptr())
+    nt = max(1, min(torch.get_num_threads(), B // MIN_POINTS_PER_THREAD))
+    lib.tp_blend(0, B, *args) if nt == 1 else lib.tp_blend_par(B, *args, nt)
+    return out

@@ -81,3 +81,35 @@ def test_native_groups_edges():
     neg = vrows.clone()
     neg[3, 1] = -1
     assert native_group.group_runs(neg, lrows, brows, 8) is None
+
+
+@pytest.mark.parametrize("kv", [3, 4, 1])
+def test_native_blend_equals_compiled_blend(kv):
+    """`native_group.blend` = `fast_eval.group_blend_runs` (eager here: the oracle) to float32
+    round-off, for groups of `group_runs`; runs longer than one point; ``scale`` multiplies."""
+    gen = torch.Generator().manual_seed(20 + kv)
+    B = 5000
+    vrows, lrows, brows = _points(B, kv, gen)
+    gv, gl, gb, inv_s, run = fast_eval.group_runs(vrows, lrows, brows)
+    T = torch.randn(gv.shape[0], 48, generator=gen)
+    vw, lw, bw = (torch.rand(B, k, generator=gen) for k in (kv, 4, 4))
+    want = fast_eval.group_blend_runs(run, inv_s, vw, lw, bw, T)
+    got = native_group.blend(run, inv_s, vw, lw, bw, T)
+    assert got.shape == (B, 3) and got.dtype == torch.float32
+    assert (got - want).abs().max() <= 2e-6 * want.abs().max()
+    half = native_group.blend(run, inv_s, vw, lw, bw, T, 0.25)
+    assert torch.equal(half, got * 0.25)
+    # on two threads (OpenMP's team; the same per-point sums)
+    old, least = torch.get_num_threads(), native_group.MIN_POINTS_PER_THREAD
+    torch.set_num_threads(2)
+    native_group.MIN_POINTS_PER_THREAD = 16
+    try:
+        assert torch.equal(native_group.blend(run, inv_s, vw, lw, bw, T), got)
+    finally:
+        torch.set_num_threads(old)
+        native_group.MIN_POINTS_PER_THREAD = least
+    # declined (the compiled blend runs): other row counts, dtypes
+    assert native_group.blend(run, inv_s, vw, lw[:, :3], bw[:, :3], T[:, :27]) is None
+    assert native_group.blend(run, inv_s, vw.double(), lw, bw, T) is None
+    with pytest.raises(IndexError):
+        native_group.blend(run, inv_s, vw, lw, bw, T[:-1])
