@@ -324,7 +324,7 @@ def local_frames(n: Tensor, tangent: str) -> Tensor:
 
 def _front_planes(n: Tensor, wo: Tensor, outgoing, grid, region: Tensor | None = None) -> tuple[Tensor, ...]:
     """`_lookups` (mode "trilinear", grid with n_psi = 1) of the frames `lighting.local_frames`
-    (n, "grid") of unit normals n (b, 3) float32, at world ωo (b, 3) — the same arithmetic written
+    (n, "grid") of unit normals n (b, 3) float32, at world ωo given as planes (3, b) — the same arithmetic written
     per component on 1-D (b,) planes: R is never formed, no (b, 3) intermediate exists. Inductor
     vectorises a (b, 3) tensor's size-3 dimension (3 of 8 lanes, masked loads; one loop nest per
     intermediate), which left the front end of a pixel frame at ~70 ms for 2^18 samples (local
@@ -348,7 +348,7 @@ def _front_planes(n: Tensor, wo: Tensor, outgoing, grid, region: Tensor | None =
     nrm = (sx * sx + sy * sy + sz * sz).sqrt().clamp_min(1e-12)
     sx, sy, sz = sx / nrm, sy / nrm, sz / nrm
     tx, ty, tz = ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx
-    wx, wy, wz = wo[:, 0], wo[:, 1], wo[:, 2]
+    wx, wy, wz = wo[0], wo[1], wo[2]
     lx = sx * wx + sy * wy + sz * wz                                   # ωo in the local frame (R ωo)
     ly = tx * wx + ty * wy + tz * wz
     lz = nx * wx + ny * wy + nz * wz
@@ -420,7 +420,9 @@ def pixel_lookups(normals: Tensor, wo_world: Tensor, outgoing, grid, region: Ten
         raise ValueError(f"normals and wo must be (B, 3), got {tuple(normals.shape)}, {tuple(wo_world.shape)}")
     if grid.n_psi != 1:
         raise ValueError(f"pixel_lookups needs a grid with n_psi = 1, got {grid}")
-    n, wo = normals.float().contiguous(), wo_world.float().contiguous()
+    # ωo as (3, B) planes: the G-buffer stores it so (`make_gbuffer`: strides (1, P)), then no copy,
+    # and the loop loads each component contiguously (it copied the (B, 3) rows: ~2 ms a bench frame)
+    n, wo = normals.float().contiguous(), wo_world.float().t().contiguous()
     xs = [n, wo]
     if region is not None:
         if region.shape != (n.shape[0],):
@@ -429,7 +431,7 @@ def pixel_lookups(normals: Tensor, wo_world: Tensor, outgoing, grid, region: Ten
     if n.shape[0] <= 1:                               # sizes Dynamo would specialise
         return _front_stacked(*xs[:2], outgoing, grid, *xs[2:])
     for x in xs:                                      # one compiled variant for every frame size
-        torch._dynamo.maybe_mark_dynamic(x, 0)
+        torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1 if x is wo else 0)
     return _front_stacked_fused(*xs[:2], outgoing, grid, *xs[2:])
 
 
