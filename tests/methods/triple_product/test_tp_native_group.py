@@ -113,3 +113,40 @@ def test_native_blend_equals_compiled_blend(kv):
     assert native_group.blend(run, inv_s, vw.double(), lw, bw, T) is None
     with pytest.raises(IndexError):
         native_group.blend(run, inv_s, vw, lw, bw, T[:-1])
+
+
+@pytest.mark.parametrize("ss", [1, 2, 3, 4, 9])
+def test_pixel_mean_equals_torch_mean(ss):
+    """`native_group.pixel_mean` = torch's mean over each pixel's samples, bit for bit (9: torch's
+    mean, past `MEAN_MAX_SAMPLES`)."""
+    gen = torch.Generator().manual_seed(ss)
+    H, W = 13, 17
+    x = torch.rand(H * W * ss, 3, generator=gen) * torch.rand(H * W * ss, 1, generator=gen) * 50
+    want = x.reshape(H, W, ss, 3).mean(2)
+    got = native_group.pixel_mean(x, H, W, ss)
+    assert got.shape == want.shape and torch.equal(got, want)
+
+
+def test_vertex_weights_equal_the_gbuffers():
+    """`native_group.vertex_weights` = `GBuffer.vertex_weights`, bit for bit: misses (face −1), both
+    barycentric layouts (the G-buffer's planes and rows); a face past the mesh raises."""
+    from scenes.frame import GBuffer
+
+    gen = torch.Generator().manual_seed(2)
+    H, W, ss = 9, 11, 2
+    P = H * W * ss * ss
+    F = torch.randint(0, 50, (30, 3), generator=gen)
+    hit = torch.rand(P, generator=gen) < 0.7
+    face = torch.where(hit, torch.randint(0, 30, (P,), generator=gen), torch.full((P,), -1))
+    bary = torch.rand(P, 2, generator=gen) * 0.5
+    z = torch.zeros(P, 3)
+    for b in (bary.t().contiguous().t(), bary.contiguous()):
+        g = GBuffer(H, W, ss, hit=hit, face=face, bary=b, position=z, normal=z, wo=z,
+                    region=torch.where(hit, 0, -1), coverage=torch.ones(H, W))
+        want = g.vertex_weights(F)
+        got = native_group.vertex_weights(g, F)
+        for x, y in zip(got, want):
+            assert x.dtype == y.dtype and x.shape == y.shape and torch.equal(x, y)
+    g.face[3] = 30
+    with pytest.raises(IndexError):
+        native_group.vertex_weights(g, F)
