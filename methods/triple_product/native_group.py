@@ -1,19 +1,23 @@
-"""`fast_eval.group_runs` as a small C loop (built with ``cc`` through `methods.core.native.load`,
-called through ctypes): the runs of a pixel frame's points and the distinct groups (visibility row,
-L cell, ρ̃ cell) of the runs, with the torch path (`fast_eval.group_runs`) as its fallback and test
-oracle — the same groups, order, inverse and runs, integers only (tests/methods/triple_product/
-test_tp_native_group.py).
+"""A pixel frame's grouping and per-sample passes as small C loops (built with ``cc`` through
+`methods.core.native.load`, called through ctypes), each with a torch path as its fallback and test
+oracle (tests/methods/triple_product/test_tp_native_group.py):
 
-Why: the torch path is ~15 eager passes (row compares, nonzero, cumsum, gathers, the cell renumbering)
-and a `torch.unique` sort of the runs' S·k_v keys (chess bench pixel V: 262 k points, 72 k runs,
-216 k keys, 24 k groups; ~14 ms of a ~100 ms frame, 1 thread). Here: one pass over the points finds
-the runs; the runs' keys are bucketed by visibility row (a counting sort: rows are < N_V) and each
-bucket sorted by (cell, key index) — the keys' order is (row, cell), which is the torch path's
-sorted key order (its cell renumbering is monotone) — and one scan numbers the groups and fills the
-inverse.
+- `group_runs` = `fast_eval.group_runs` (its torch path, ``native_ok=False``): the runs of the points
+  and the distinct groups (visibility row, L cell, ρ̃ cell) of the runs — the same groups, order,
+  inverse and runs (integers). The torch path is ~15 eager passes and a `torch.unique` sort of the
+  runs' S·k_v keys (chess bench pixel V: 262 k points, 72 k runs, 216 k keys, 24 k groups). Here one
+  pass over the points finds the runs; the runs' keys row·n_c + cell are numbered in order of
+  appearance through a hash table (the previous run's keys checked first: neighbouring runs share
+  most rows), and the distinct codes radix-sorted — the torch path's sorted key order (its cell
+  renumbering is monotone).
+- `blend` = `fast_eval.group_blend_runs` with 4 L and 4 ρ̃ rows (the compiled blend is its oracle),
+  to float32 round-off: a channel's 16 (L, ρ̃) terms as two 8-lane products with the weights
+  lw_j·bw_k; OpenMP's team at 2 threads.
+- `pixel_mean` = torch's mean over a pixel's samples (≤ `MEAN_MAX_SAMPLES`) and `vertex_weights` =
+  `GBuffer.vertex_weights`, bit for bit, one pass each.
 
-The library is built by `methods.core.native.load`; without a compiler, with ``PRTBENCH_COMPILE=0`` or
-``PRTBENCH_TP_NATIVE=0`` (`native.switched_on`), `available` is False and `fast_eval` runs the torch path.
+Without a compiler, with ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0`` (`native.switched_on`),
+`available` is False and the callers run the torch paths.
 """
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "group_runs"]
+__all__ = ["available", "blend", "group_runs", "pixel_mean", "vertex_weights"]
 
 _SOURCE = r"""
 #include <stdint.h>
