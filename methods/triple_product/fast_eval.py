@@ -116,6 +116,7 @@ from methods.core.spherical_haar import coefficient_structure, level_of_size, n_
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import native
+from methods.triple_product import native_group
 from methods.triple_product import native_light
 from methods.triple_product.precompute import truncate
 
@@ -241,9 +242,11 @@ def shading_rows(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vro
     Vp = [("blend", method.V_idx, method.V_val, vrows, vw, _is_full(method, "V", method.V_idx))]
     grid_mode = None if cfg["light_lookup"] == "exact" else cfg["light_lookup"]
     rows, w, lrows, lw = grid_lookups(R, wo_world, method.outgoing, method.grid, grid_mode) if lookups is None \
-        else lookups
+        else lookups[:4]
     bi, bv = _brdf_stack(method)
-    brows = rows + region[:, None].long() * method.outgoing.size
+    # `pixel_lookups` with the regions (`shade_pixels`: lookups[4] True): its rows are already brows
+    brows = rows if lookups is not None and len(lookups) > 4 and lookups[4] else \
+        rows + region[:, None].long() * method.outgoing.size
     blends = getattr(method, "blends", None)
     if mix is not None and blends:
         if mix.shape != (B,):
@@ -319,16 +322,21 @@ def local_frames(n: Tensor, tangent: str) -> Tensor:
     return map_rows(_local_frames_fused, [n], (tangent,), chunk=_rows_chunk(n.shape[0]))
 
 
-def _front_planes(n: Tensor, wo: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
+def _front_planes(n: Tensor, wo: Tensor, outgoing, grid, region: Tensor | None = None) -> tuple[Tensor, ...]:
     """`_lookups` (mode "trilinear", grid with n_psi = 1) of the frames `lighting.local_frames`
-    (n, "grid") of unit normals n (b, 3) float32, at world ωo (b, 3) — the same arithmetic written
+    (n, "grid") of unit normals n (b, 3) float32, at world ωo given as planes (3, b) — the same arithmetic written
     per component on 1-D (b,) planes: R is never formed, no (b, 3) intermediate exists. Inductor
     vectorises a (b, 3) tensor's size-3 dimension (3 of 8 lanes, masked loads; one loop nest per
     intermediate), which left the front end of a pixel frame at ~70 ms for 2^18 samples (local
     frames + `_lookups`, chess bench, 1 thread); on planes it is one 8-lane loop (float32 trig)
     and one 4-lane loop (float64 trig), ~20 ms (`benchmarks.tp_frames_ab` reports the frame).
     Same planes as ``_lookups(local_frames(n, "grid"), wo, outgoing, grid, "trilinear")``: rows
-    equal, weights to float32 round-off (tests/methods/triple_product/test_tp_fast_eval.py)."""
+    equal, weights to float32 round-off (tests/methods/triple_product/test_tp_fast_eval.py).
+    ``region`` (b,) int64 given: the ωo rows come offset to the point's region's ρ̃ stack,
+    rows + region·outgoing.size (`shading_rows`' brows, formed here instead of three (b, 4) int64
+    passes after). The cell indices are int32 inside the loop (8 lanes, not two 4-lane int64 halves),
+    widened to int64 rows at the end: the same integers (they are < n_θ·n_φ; a non-finite angle's
+    index is negative either way and `lighting.periodic_index` / the θ clamps map it alike)."""
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
     # `lighting.local_frames` "grid": s = s0(θ, φ) made orthogonal to n, t = n × s (float32)
     theta = torch.acos(ny.clamp(-1.0, 1.0))
@@ -340,7 +348,7 @@ def _front_planes(n: Tensor, wo: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
     nrm = (sx * sx + sy * sy + sz * sz).sqrt().clamp_min(1e-12)
     sx, sy, sz = sx / nrm, sy / nrm, sz / nrm
     tx, ty, tz = ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx
-    wx, wy, wz = wo[:, 0], wo[:, 1], wo[:, 2]
+    wx, wy, wz = wo[0], wo[1], wo[2]
     lx = sx * wx + sy * wy + sz * wz                                   # ωo in the local frame (R ωo)
     ly = tx * wx + ty * wy + tz * wz
     lz = nx * wx + ny * wy + nz * wz
@@ -351,36 +359,41 @@ def _front_planes(n: Tensor, wo: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
     ph = torch.remainder(torch.atan2(y, x), 2 * math.pi)
     fi = (th / (0.5 * math.pi / outgoing.n_theta) - 0.5).clamp(0, outgoing.n_theta - 1)
     fj = ph / (2 * math.pi / outgoing.n_phi)
-    i0 = fi.floor().long().clamp(0, max(outgoing.n_theta - 2, 0))
+    i0 = fi.floor().to(torch.int32).clamp(0, max(outgoing.n_theta - 2, 0))
     ai = (fi - i0).clamp(0, 1)
     i1 = (i0 + 1).clamp(max=outgoing.n_theta - 1)
-    j0 = fj.floor().long()
+    j0 = fj.floor().to(torch.int32)
     aj = fj - j0
     rows, w = [], []
     for di, wi in ((0, 1 - ai), (1, ai)):
         for dj, wj in ((0, 1 - aj), (1, aj)):
-            rows.append((i1 if di else i0) * outgoing.n_phi + lt.periodic_index(j0 + dj, outgoing.n_phi))
+            r = ((i1 if di else i0) * outgoing.n_phi + lt.periodic_index(j0 + dj, outgoing.n_phi)).long()
+            rows.append(r if region is None else r + region * outgoing.size)
             w.append((wi * wj).to(wo.dtype))
-    # `lighting.cell_terms` (float64 angles of n)
+    # `lighting.cell_terms` (float64 angles of n; `lighting._bilinear_cell` with int32 indices)
     gth = torch.acos(ny.double().clamp(-1.0, 1.0))
     gph = torch.remainder(torch.atan2(nz.double(), nx.double()), 2 * math.pi)
-    gi0, gai, gj0, gaj = lt._bilinear_cell(*lt._normal_coordinates(gth, gph, grid), grid)
+    gfi, gfj = lt._normal_coordinates(gth, gph, grid)
+    gi0 = gfi.floor().to(torch.int32).clamp(0, grid.n_theta - 2)
+    gai = (gfi - gi0).clamp(0, 1)
+    gj0 = gfj.floor().to(torch.int32)
+    gaj = gfj - gj0
     lrows, lw = [], []
     for di, wi in ((0, 1 - gai), (1, gai)):
         for dj, wj in ((0, 1 - gaj), (1, gaj)):
-            lrows.append((gi0 + di) * grid.n_phi + lt.periodic_index(gj0 + dj, grid.n_phi))
+            lrows.append(((gi0 + di) * grid.n_phi + lt.periodic_index(gj0 + dj, grid.n_phi)).long())
             lw.append((wi * wj).to(n.dtype))
     return (*rows, *w, *lrows, *lw)
 
 
 
-def _front_stacked(n: Tensor, wo: Tensor, outgoing, grid) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _front_stacked(n: Tensor, wo: Tensor, outgoing, grid, region: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """`_front_planes` stacked in the compiled loop: (rows, w, lrows, lw), each (b, 4) — the layout
     `pixel_lookups` returns, written by `map_rows(out=...)` straight into the frame's arrays. The
     planes were concatenated over the blocks and then stacked (`_unplane`): two more passes over
     16 planes of 2^18 samples (1 thread, same process, chess-bench-sized random normals: 44-46 vs
     30-33 ms for the look-ups, bit-identical)."""
-    p = _front_planes(n, wo, outgoing, grid)
+    p = _front_planes(n, wo, outgoing, grid, region)
     return tuple(torch.stack(p[4 * i:4 * i + 4], 1) for i in range(4))
 
 
@@ -393,24 +406,33 @@ def front_ok(method) -> bool:
         method.grid.n_psi == 1
 
 
-def pixel_lookups(normals: Tensor, wo_world: Tensor, outgoing, grid) -> tuple[Tensor, ...]:
+def pixel_lookups(normals: Tensor, wo_world: Tensor, outgoing, grid, region: Tensor | None = None) -> tuple[Tensor, ...]:
     """(rows, w, lrows, lw) of `grid_lookups` (mode "trilinear", n_psi = 1) at the frames
     `lighting.local_frames` (normals, "grid") — from the normals, without forming the frames
     (`_front_planes`, compiled once with a symbolic point count and called on the whole frame).
     It ran over static blocks (`map_rows(out=...)`), each block's 4 (b, 4) results copied into
     the frame's arrays: ~6 of ~22 ms for 2^18 samples. This loop is compute-bound (trig), so the
     symbolic count costs nothing measurable: 2^18 random normals, 1 thread, same process,
-    25.6 -> 18.2 ms, the same values bit for bit (one compilation serves every frame size)."""
+    25.6 -> 18.2 ms, the same values bit for bit (one compilation serves every frame size).
+    ``region`` (B,) given (the frames' call, `shade_pixels`): rows are offset to each point's ρ̃ stack
+    (`_front_planes`), ``rows + region[:, None] * outgoing.size``, as `shading_rows` forms them."""
     if normals.ndim != 2 or normals.shape[1] != 3 or wo_world.shape != normals.shape:
         raise ValueError(f"normals and wo must be (B, 3), got {tuple(normals.shape)}, {tuple(wo_world.shape)}")
     if grid.n_psi != 1:
         raise ValueError(f"pixel_lookups needs a grid with n_psi = 1, got {grid}")
-    n, wo = normals.float().contiguous(), wo_world.float().contiguous()
+    # ωo as (3, B) planes: the G-buffer stores it so (`make_gbuffer`: strides (1, P)), then no copy,
+    # and the loop loads each component contiguously (it copied the (B, 3) rows: ~2 ms a bench frame)
+    n, wo = normals.float().contiguous(), wo_world.float().t().contiguous()
+    xs = [n, wo]
+    if region is not None:
+        if region.shape != (n.shape[0],):
+            raise ValueError(f"region must be ({n.shape[0]},), got {tuple(region.shape)}")
+        xs.append(region.long().contiguous())
     if n.shape[0] <= 1:                               # sizes Dynamo would specialise
-        return _front_stacked(n, wo, outgoing, grid)
-    for x in (n, wo):                                 # one compiled variant for every frame size
-        torch._dynamo.maybe_mark_dynamic(x, 0)
-    return _front_stacked_fused(n, wo, outgoing, grid)
+        return _front_stacked(*xs[:2], outgoing, grid, *xs[2:])
+    for x in xs:                                      # one compiled variant for every frame size
+        torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1 if x is wo else 0)
+    return _front_stacked_fused(*xs[:2], outgoing, grid, *xs[2:])
 
 
 def _unplane(planes: tuple[Tensor, ...], mode: str | None, grid) -> tuple:
@@ -1057,7 +1079,7 @@ def group_rows(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
 
 
 def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None = None,
-               n_b: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+               n_b: int | None = None, native_ok: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """`group_rows` with the groups given per run of points: (gv, gl, gb, inv_s (S, k_v) int64 the
     groups of every run, run (B,) int32 the run of every point); ``inv_s[run]`` is `group_rows`' inv.
 
@@ -1075,14 +1097,21 @@ def group_runs(vrows: Tensor, lrows: Tensor, brows: Tensor, *, n_l: int | None =
     The points' (B, k_v) int64 groups are no longer formed (a 6 MB gather written here and read back
     by the blend on a bench frame: the blend gathers through the int32 run index instead), the cell
     codes come from contiguous columns, the row changes are or-ed column by column and the run index
-    is an int32 scan: the same groups, order and inverse."""
+    is an int32 scan: the same groups, order and inverse.
+    ``native_ok`` (default): the C loop of `native_group` when it applies (int64 CPU rows; its oracle
+    is this torch path, ``native_ok=False``): the same groups, order, inverse and runs; chess pixel V
+    frame, 1 thread, same process: see `native_group`."""
     B, kv = vrows.shape
     dev = vrows.device
     if B == 0:
         e = vrows.new_zeros(0)
         return e, lrows[:0], brows[:0], vrows.new_zeros(0, kv), torch.zeros(0, dtype=torch.int32, device=dev)
-    nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
     nb = int(brows[:, 0].max()) + 1 if n_b is None else int(n_b)
+    if native_ok and dev.type == "cpu" and vrows.dtype == lrows.dtype == brows.dtype == torch.int64:
+        out = native_group.group_runs(vrows, lrows, brows, nb)
+        if out is not None:
+            return out
+    nl = int(lrows[:, 0].max()) + 1 if n_l is None else int(n_l)
     # (B,) cell codes lrows0·nb + brows0 from contiguous copies of the two columns (integer ops on
     # the strided columns ran unvectorised: 1.5-2.1 ms against ~1.0 on a bench frame)
     cell = lrows[:, 0].contiguous().mul_(nb).add_(brows[:, 0].contiguous())
@@ -1178,7 +1207,9 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
     many groups), `group_blend` per point. ``stats``: receives ``"groups"``, the number of groups.
     One call instead of the blocks of GROUP_BLOCK: chess pixel V frame, 1 thread, same process,
     1.06x (L 1.02x), T bit for bit. ``chunks`` (`vis_chunks` of Vt) and 4 ρ̃ and 4 grid rows: T by
-    the native loop over each group's non-zero chunks (`native.groups`), to float32 round-off."""
+    the native loop over each group's non-zero chunks (`native.groups`), to float32 round-off, and
+    the blend by `native_group.blend` (to float32 round-off; the compiled `group_blend_runs` is its
+    oracle and fallback)."""
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     gv, gl, gb, inv_s, run = group_runs(vrows.long(), lrows.long(), brows.long(), n_l=L3.shape[0], n_b=R3.shape[0])
     p = GROUP_BLOCK if points is None else int(points)
@@ -1188,6 +1219,10 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
         stats["group_vis"] = gv  # each group's visibility row (`frame_cost`: its non-zero triangles)
     if chunks is not None and points is None and gl.shape[1] == 4 and gb.shape[1] == 4 and dt == torch.float32:
         T = native.groups(Vt, Rt, Lt, gv, gl, gb, chunks)  # each group's non-zero chunks (`native`)
+        # and the blend by the C loop of `native_group` (to float32 round-off; None: compiled below)
+        out = native_group.blend(run, inv_s, vw.float(), lw.float(), bw.float(), T)
+        if out is not None:
+            return out
     elif points is None and G <= 1:  # a size Dynamo would specialise (a compilation in a timed frame)
         T = group_block(gv, gl, gb, Vt, R3, L3)
     elif points is None:
@@ -1292,7 +1327,7 @@ def shade_pixels(method, normals: Tensor, wo_world: Tensor, region: Tensor, vrow
     if evaluator not in EVALUATORS:
         raise ValueError(f"evaluator must be one of {EVALUATORS}, got {evaluator!r}")
     if evaluator in ("auto", "fine") and fine_ok(method, mix) and front_ok(method):
-        look = pixel_lookups(normals, wo_world, method.outgoing, method.grid)
+        look = (*pixel_lookups(normals, wo_world, method.outgoing, method.grid, region), True)
         return shade_fine(method, None, wo_world, region, vrows, vw, mix, lookups=look)
     R = local_frames(normals, method.config["tangent"])
     return shade(method, R, wo_world, region, vrows, vw, mix, evaluator=evaluator)

@@ -96,6 +96,7 @@ from references.visibility import make_visibility
 from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import fast_eval
+from methods.triple_product import native_group
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
@@ -784,7 +785,7 @@ class TripleProduct(Method):
             # array written and the batch copied into it, no masking in the resolve)
             whole = 0 < hit.numel() == gbuffer.num_samples <= chunk
             out = None if whole else torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
-            vidx, vw = gbuffer.vertex_weights(self.F)
+            vidx, vw = native_group.vertex_weights(gbuffer, self.F)     # = gbuffer.vertex_weights, one pass
             normals = self.shading_normals(gbuffer)                     # bump maps applied
             mix = self.blend_weights(gbuffer)
             textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
@@ -818,7 +819,8 @@ class TripleProduct(Method):
                                lambda: _touched_rows(marks, nv), None, self.stats.pop("frame_groups", 0))
             # `gbuffer.resolve` without its mask: a miss is already +0 in ``out`` (or there is none), so
             # the same mean bit for bit
-            return out.float().reshape(gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2, 3).mean(2)
+            # (`native_group.pixel_mean`: that mean in one pass, bit for bit)
+            return native_group.pixel_mean(out.float(), gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2)
         return gbuffer.resolve(out)
 
     def _record_frame(self, gbuffer: GBuffer, shaded: int, faces, vis_rows, vertices: Tensor | None,

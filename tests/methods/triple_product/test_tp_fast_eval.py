@@ -866,6 +866,12 @@ def test_grid_lookups_equal_the_eager_lookups(grid, mode):
         assert (pw - cw).abs().max() <= F32 and (plw - elw).abs().max() <= F32
         wrong = fast_eval.pixel_lookups(n, -wo, og, g)                   # ωo enters the ρ̃ look-up
         assert not torch.equal(wrong[0], er) and torch.equal(wrong[2], el)
+        # with the regions (the frames' call): the ωo rows offset to each region's ρ̃ stack, as
+        # `shading_rows` offsets them; the rest the same values bit for bit
+        region = torch.randint(0, 5, (n.shape[0],), generator=gen)
+        brow, bw, blrows, blw = fast_eval.pixel_lookups(n, wo, og, g, region)
+        assert brow.dtype == torch.int64 and torch.equal(brow, prow + region[:, None] * og.size)
+        assert torch.equal(bw, pw) and torch.equal(blrows, plrows) and torch.equal(blw, plw)
 
 
 def _lazy_and_full(shading: str, kind: str, *, n_frames: int, seed: int):
