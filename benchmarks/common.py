@@ -7,6 +7,8 @@ A thin wrapper of `references.setup.frame_setup` (the same helper the paper stud
 """
 from __future__ import annotations
 
+import contextlib
+
 from typing import Sequence
 
 from references.setup import frame_setup
@@ -129,29 +131,56 @@ def roofline_columns(kinds: dict, labels: Sequence[str], B: float, Pk: float) ->
                                                                      r[f"{w}_median_s"])
 
 
+# root → the ``methods.*`` modules of the checkout at root imported so far (`checkout_class`,
+# `checkout_modules`)
+_CHECKOUT_MODULES: dict[str, dict] = {}
+
+
+def _methods_modules() -> dict:
+    import sys
+
+    return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
+
+
+@contextlib.contextmanager
+def checkout_modules(root: str):
+    """Within the block, ``import methods...`` gives the modules of the checkout at ``root`` (those
+    `checkout_class` imported, and any imported in such a block, from ``root``'s files); this
+    checkout's are restored after it. Run a base class's frames inside it: a module that imports
+    another lazily, inside a function, at call time, otherwise finds THIS checkout's module in
+    ``sys.modules`` (found in session 28: `benchmarks.ptt_ab`'s base frames ran this checkout's
+    ``methods/ptt/native.py``, so a change of it read as ~1.00x). Swapping costs ~0.1 ms; keep it
+    outside the timed region."""
+    import sys
+
+    mine = _methods_modules()
+    for k in mine:
+        del sys.modules[k]
+    sys.modules.update(_CHECKOUT_MODULES.setdefault(root, {}))
+    sys.path.insert(0, root)
+    try:
+        yield
+    finally:
+        sys.path.remove(root)
+        theirs = _methods_modules()
+        _CHECKOUT_MODULES[root] = theirs
+        for k in theirs:
+            del sys.modules[k]
+        sys.modules.update(mine)
+
+
 def checkout_class(root: str, module: str, name: str):
     """Class ``name`` of module ``module`` (e.g. ``"methods.ptt.method"``, ``"PTT"``) as the checkout at
     ``root`` has it, imported beside this checkout's (its ``methods`` package under the same names,
-    then this checkout's modules restored): the 'before' of a same-process A/B."""
+    then this checkout's modules restored): the 'before' of a same-process A/B. Its module-level
+    imports are the checkout's; render its frames inside `checkout_modules` so that its lazy
+    (call-time) imports are too."""
     import importlib
-    import sys
-
-    def ours():
-        return {k: v for k, v in sys.modules.items() if k == "methods" or k.startswith("methods.")}
 
     mine = getattr(importlib.import_module(module), name)
-    saved = ours()
-    for k in saved:
-        del sys.modules[k]
-    sys.path.insert(0, root)
-    try:
+    with checkout_modules(root):
         importlib.import_module(module)  # the checkout's modules
-        mods = ours()
-    finally:
-        sys.path.remove(root)
-        for k in ours():
-            del sys.modules[k]
-        sys.modules.update(saved)
+        mods = _methods_modules()
     cls = getattr(mods[module], name)
     if cls is mine or not mods[module].__file__.startswith(root):
         raise RuntimeError(f"could not import the base {name} from {root}")

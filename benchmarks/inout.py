@@ -26,6 +26,7 @@ one streaming read of the same bytes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import statistics
@@ -33,7 +34,7 @@ import time
 
 import torch
 
-from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, inout_regions, machine_limits, precomputed, settle, setup, wall_cpu_time
+from benchmarks.common import checkout_class, checkout_fingerprint, checkout_modules, frame_args, inout_regions, machine_limits, precomputed, settle, setup, wall_cpu_time
 from methods.inout import fast
 from methods.inout.method import InOut
 from reports import measure
@@ -167,11 +168,13 @@ def main(argv: list[str] | None = None) -> dict:
             order = ("old", "new") if i % 2 == 0 else ("new", "old")
             imgs = {}
             for which in order:
-                settle()
-                t0, c0 = time.perf_counter(), time.process_time()
-                imgs[which] = old_render(f, g) if which == "old" else new.render(f, g)
-                (t_old if which == "old" else t_new).append(time.perf_counter() - t0)
-                (c_old if which == "old" else c_new).append(time.process_time() - c0)
+                # a base checkout's frames with its modules also for lazy imports (`checkout_modules`)
+                with checkout_modules(a.base) if which == "old" and Base is not None else contextlib.nullcontext():
+                    settle()
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    imgs[which] = old_render(f, g) if which == "old" else new.render(f, g)
+                    (t_old if which == "old" else t_new).append(time.perf_counter() - t0)
+                    (c_old if which == "old" else c_new).append(time.process_time() - c0)
             diff = max(diff, float((imgs["old"] - imgs["new"]).abs().max()))
             scale = max(scale, float(imgs["old"].abs().max()))
         cost = new.frame_cost(kind, gbs[-1].num_samples)

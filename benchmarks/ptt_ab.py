@@ -32,7 +32,7 @@ import time
 
 import torch
 
-from benchmarks.common import checkout_class, checkout_fingerprint, frame_args, machine_limits, precomputed, settle, setup
+from benchmarks.common import checkout_class, checkout_fingerprint, checkout_modules, frame_args, machine_limits, precomputed, settle, setup
 from methods.ptt.method import PTT
 
 
@@ -59,55 +59,6 @@ def base_basis(m: PTT, root: str):
     b.__class__ = checkout_class(root, "methods.ptt.transport", "LobeBasis")
     b._gram = b._fold = None
     return b
-
-
-def base_native(root: str):
-    """``methods/ptt/native.py`` of the checkout at ``root`` as a module of its own (None when it has
-    none), for `natives`."""
-    import importlib.util
-    import os
-
-    path = os.path.join(root, "methods", "ptt", "native.py")
-    if not os.path.exists(path):
-        return None
-    spec = importlib.util.spec_from_file_location("_ptt_ab_base_native", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@contextlib.contextmanager
-def natives(mod):
-    """Within the block, ``from methods.ptt import native`` — the lazy imports inside
-    ``methods.ptt.fast``'s functions, which run at call time — gives ``mod`` (None: unchanged).
-
-    Why (found by the ptt28 helper): `base_class` imports the base's modules beside this checkout's,
-    but the base's ``fast`` imports ``native`` lazily, when a frame runs, and then finds THIS
-    checkout's ``methods.ptt`` package in ``sys.modules``: the base's frames ran this checkout's
-    native loops (the sample stage, `referenced_pairs`, the region rows), so a change of
-    ``methods/ptt/native.py`` read as ~1.00x here (session 28: 0.90–1.03x frame ratios while the
-    stage alone read 1.07–1.11x). The base's frames now run inside ``natives(base_native(root))``."""
-    if mod is None:
-        yield
-        return
-    import sys
-
-    import methods.ptt as pkg
-
-    had = "native" in pkg.__dict__
-    saved_attr, saved_mod = pkg.__dict__.get("native"), sys.modules.get("methods.ptt.native")
-    pkg.native, sys.modules["methods.ptt.native"] = mod, mod
-    try:
-        yield
-    finally:
-        if had:
-            pkg.native = saved_attr
-        else:
-            del pkg.native
-        if saved_mod is not None:
-            sys.modules["methods.ptt.native"] = saved_mod
-        else:
-            sys.modules.pop("methods.ptt.native", None)
 
 
 def as_class(m: PTT, cls, basis=None) -> PTT:
@@ -139,9 +90,6 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     Base = base_class(a.base)
-    import methods.ptt.native  # noqa: F401  (this checkout's, imported before the base's is swapped in)
-
-    base_nat = base_native(a.base)
     if not a.own_precompute:
         # the precompute cache keys on the code the method runs (reports.precompute_cache), so every
         # run-time edit would recompute the bench precomputation (minutes); when the edits leave the
@@ -166,7 +114,9 @@ def main(argv: list[str] | None = None) -> dict:
             imgs = {}
             for which in (("old", "new") if i % 2 == 0 else ("new", "old")):
                 meth = old if which == "old" else new
-                with natives(base_nat if which == "old" else None):
+                # the base's frames with the base's modules also for its lazy imports (`checkout_modules`:
+                # its fast.py imports native at call time; without the swap it ran this checkout's)
+                with checkout_modules(a.base) if which == "old" else contextlib.nullcontext():
                     settle()
                     t0, c0 = time.perf_counter(), time.process_time()
                     imgs[which] = meth.render(f, g)
