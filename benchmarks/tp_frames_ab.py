@@ -1,6 +1,7 @@
-"""Same-process A/B of TripleProduct frames: a baseline checkout's `methods/triple_product/lighting.py`,
-`fast_eval.py` and `method.py` (``--baseline``, e.g. a git worktree of main; the baseline copy of the
-method is an instance of the baseline's class, so its ``render`` runs too) against this tree's, on
+"""Same-process A/B of TripleProduct frames: a baseline checkout's `methods` package (``--baseline``,
+e.g. a git worktree of main; `benchmarks.common.checkout_class`, the baseline copy of the method an
+instance of the baseline's class, its frames rendered inside `benchmarks.common.checkout_modules` so
+that every module it imports, lazily too, is the baseline's: native loops included) against this tree's, on
 the same precomputed method (two copies), the same frames and G-buffers, alternating frame by frame; median
 process-CPU ms per frame (``--threads 1``; ``--wall`` for wall time), the ratio, max |new − old|
 relative to the image's maximum, and the roofline efficiency of the new frames with this run's
@@ -15,41 +16,12 @@ that changes only run-time code has the same state; `benchmarks.common.apply_ab_
 from __future__ import annotations
 
 import argparse
-import contextlib
 import copy
-import importlib.util
 import json
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
-
-
-def _load(root: str, name: str):
-    spec = importlib.util.spec_from_file_location(f"_baseline_tp_{name}", Path(root) / f"methods/triple_product/{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _load_method(root: str, lt, fe):
-    """The baseline's `TripleProduct` class, its module rendering with the baseline's lighting /
-    fast_eval modules (the registry keeps this tree's class)."""
-    from benchmarks.common import registry_kept
-
-    with registry_kept():
-        mm = _load(root, "method")
-    mm.lt, mm.fast_eval = lt, fe
-    return mm.TripleProduct
-
-
-@contextlib.contextmanager
-def _swapped(lt, fe):
-    """Kept for callers of the old interface: the baseline copy is rendered by its own class."""
-    yield
 
 
 def main(argv=None) -> dict:
@@ -73,10 +45,11 @@ def main(argv=None) -> dict:
     from benchmarks.common import apply_ab_options
 
     apply_ab_options(a)                                 # threads; --precompute-code
-    old_lt = _load(a.baseline, "lighting")
-    old_fe = _load(a.baseline, "fast_eval")
-    old_fe.lt = old_lt
-    old_cls = _load_method(a.baseline, old_lt, old_fe)
+    from benchmarks.common import checkout_class, checkout_modules
+
+    old_cls = checkout_class(a.baseline, "methods.triple_product.method", "TripleProduct")
+    with checkout_modules(a.baseline):
+        from methods.core.fused import warming as base_warming   # the baseline's own compile state
     scene = get_scene(a.scene, a.size)
     clock = time.perf_counter if a.wall else time.process_time
     B, P = measure.triad_bandwidth(), measure.matmul_peak()
@@ -90,7 +63,7 @@ def main(argv=None) -> dict:
         base.stats = {}
         for kind in a.kinds:
             _, frames, gbs, _ = setup(scene, kind=kind, n_frames=a.frames, seed=0, spp_side=a.spp_side)
-            with _swapped(old_lt, old_fe), warming():   # warm-up (compiles, builds tables), as the harness's
+            with checkout_modules(a.baseline), base_warming():   # warm-up (compiles, builds tables), as the harness's
                 base._light_key = None
                 ref = base.render(frames[0], gbs[0])
             m._light_key = None
@@ -99,7 +72,7 @@ def main(argv=None) -> dict:
             err = float((img - ref).abs().max() / ref.abs().max())
             t_old, t_new = [], []
             for f, g in zip(frames[1:], gbs[1:]):   # every timed frame's images compared too (the
-                with _swapped(old_lt, old_fe):        # warm-up frame's lighting often takes another path)
+                with checkout_modules(a.baseline):    # warm-up frame's lighting often takes another path)
                     settle(); t = clock(); ref = base.render(f, g); t_old.append(clock() - t)
                 settle(); t = clock(); img = m.render(f, g); t_new.append(clock() - t)
                 err = max(err, float((img - ref).abs().max() / ref.abs().max()))
