@@ -21,8 +21,6 @@ import json
 import statistics
 import time
 
-import torch
-
 
 def main(argv=None) -> dict:
     from benchmarks.common import frame_args

@@ -145,7 +145,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
                           tensor_bytes)
 from methods.core import sh as _sh
 from methods.core import zh as _zh
-from methods.core.sh import _LATLONG_QT, project_latlong_polar, rotate_sampled   # shared with zh_shadow
+from methods.core.sh import _LATLONG_QT, rotate_sampled   # shared with zh_shadow
 from methods.core.frames import reflect
 from methods.core.fused import call_rows, fused, map_rows
 from references.visibility import make_visibility
