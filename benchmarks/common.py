@@ -229,11 +229,13 @@ def ab_report(out: dict, kinds: dict, B: float, Pk: float, title: str, *, show_m
         print(f"micro {k:22}: " + ", ".join(f"{x} {y:.3g}" for x, y in v.items()))
 
 
-def ab_frames(new, base, reference, frames, gbs, kind: str) -> dict:
+def ab_frames(new, base, reference, frames, gbs, kind: str, *, base_root: str | None = None) -> dict:
     """Same-process A/B of one sequence: ``new`` and ``base`` (two method objects sharing one
     precomputation) render every frame, alternating which goes first (the same machine load for
     both); frames 0 and 1 warm up. ``reference(frame, gbuffer)`` is the slow path each new image is
-    checked against. → {"base"/"new": median {"wall_ms", "cpu_ms"}, bytes, flops (the new object's
+    checked against. ``base_root``: the checkout ``base``'s class came from (`checkout_class`); its
+    frames render inside `checkout_modules` (entered before the clock starts), so its lazy imports are
+    that checkout's too. → {"base"/"new": median {"wall_ms", "cpu_ms"}, bytes, flops (the new object's
     ``frame_cost(kind, …)``), rel_err (largest |new − reference| / max |reference|), cpu_ratio,
     wall_ratio} — a row of `ab_report`."""
     import statistics
@@ -244,10 +246,11 @@ def ab_frames(new, base, reference, frames, gbs, kind: str) -> dict:
     for i, (f, g) in enumerate(zip(frames, gbs)):
         for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
             mm = new if which == "new" else base
-            settle()
-            t0, c0 = time.perf_counter(), time.process_time()
-            img = mm.render(f, g)
-            w, c = time.perf_counter() - t0, time.process_time() - c0
+            with checkout_modules(base_root) if which == "base" and base_root else contextlib.nullcontext():
+                settle()
+                t0, c0 = time.perf_counter(), time.process_time()
+                img = mm.render(f, g)
+                w, c = time.perf_counter() - t0, time.process_time() - c0
             if i >= 2:
                 t[which][0].append(w)
                 t[which][1].append(c)

@@ -4,8 +4,9 @@
     python -m benchmarks.oracle_ab --baseline /work/base [--scene chess] [--kinds V L]
         [--config '{"light_samples":4,"brdf_samples":4}'] [--frames 7] [--threads 1] [--check-frames 1]
 
-The baseline's `methods/oracle.py` is imported under another name (this tree's `methods.core` and
-``scenes``); both classes render each kind's frames, alternating which goes first, frames 0-1
+The baseline's `Oracle` is imported with its whole ``methods`` package
+(`benchmarks.common.checkout_class`; its precompute and frames run inside `checkout_modules`, its
+warm-up frame inside its own ``warming``); both classes render each kind's frames, alternating which goes first, frames 0-1
 untimed (frame 0 inside ``methods.core.fused.warming``, as the harness's warm-up frame); medians of
 process CPU and wall time and their ratio (`benchmarks.common.ab_frames`), and max |new − reference|
 / max |reference| against this tree's eager `Oracle.render_reference` on the first ``--check-frames``
@@ -17,17 +18,17 @@ import argparse
 import json
 import os
 
-from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, load_file_module, machine_limits,
-                               registry_kept, setup)
+from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, checkout_class, checkout_modules,
+                               machine_limits, setup)
 from reports import measure
 
 CONFIG = '{"light_samples":4,"brdf_samples":4}'
 
 
 def baseline_class(root: str):
-    """`Oracle` of the checkout ``root`` (its ``methods/oracle.py``; this tree's core and scenes)."""
-    with registry_kept():
-        return load_file_module(os.path.join(root, "methods/oracle.py"), "_orc_base_oracle").Oracle
+    """`Oracle` of the checkout ``root`` with its whole ``methods`` package (until session 29 only its
+    ``methods/oracle.py``, by path, with this tree's core)."""
+    return checkout_class(root, "methods.oracle", "Oracle")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -49,10 +50,14 @@ def main(argv: list[str] | None = None) -> dict:
         scene, frames, gbs, _ = setup(a.scene, a.size, kind=kind, n_frames=a.frames)
         new, base = New(**cfg), Base(**cfg)
         new.precompute(scene)
-        base.precompute(scene)
         with warming():
             new.render(frames[0], gbs[0])
-            base.render(frames[0], gbs[0])
+        with checkout_modules(a.baseline):
+            from methods.core.fused import warming as base_warming
+
+            base.precompute(scene)
+            with base_warming():
+                base.render(frames[0], gbs[0])
         checked, last, render = [0], {}, new.render
 
         def keep(f, g, render=render, last=last):
@@ -65,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
 
         new.render = keep  # the instance's: the image `ab_frames` checks is the one just timed
 
-        kinds[kind] = ab_frames(new, base, reference, frames, gbs, kind)
+        kinds[kind] = ab_frames(new, base, reference, frames, gbs, kind, base_root=a.baseline)
     B, Pk = machine_limits(out, bw, peak)
     ab_report(out, kinds, max(B, 1.0), max(Pk, 1.0), f"oracle {a.scene} ({a.size}) {cfg}, {a.threads} threads")
     return out

@@ -5,8 +5,8 @@
 
 Precomputes once (`benchmarks.common.precomputed`; ``--precompute-code DIR``: take the harness cache
 entry of the code in DIR — a change of run-time code only leaves the precomputed state the same),
-gives the state to this tree's `SHPRT` and to the baseline's (its ``methods/sh_prt/method.py``
-imported under another name, `benchmarks.vview.baseline_class`), renders each kind's frames
+gives the state to this tree's `SHPRT` and to the baseline's (imported with its whole ``methods``
+package, `benchmarks.vview.baseline_class`; its frames render inside `checkout_modules`), renders each kind's frames
 alternating which goes first, frames 0–1 untimed, and prints per kind the medians of process CPU
 and wall time, their ratio, the roofline efficiency of the new code (its ``frame_cost``, the machine
 limits measured in the run) and max |new − reference| / max |reference| (`render_reference`).
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
         base = copy.copy(new)
         base.__class__ = Base
         ref = copy.copy(new)
-        r = ab_frames(new, base, ref.render_reference, frames, gbs, kind)
+        r = ab_frames(new, base, ref.render_reference, frames, gbs, kind, base_root=a.baseline)
         kinds[kind] = r
         last = {"m": new, "frame": frames[-1], "gb": gbs[-1], "frames": frames}
     B, Pk = machine_limits(out, bw, peak)

@@ -7,9 +7,10 @@
              --precompute-code DIR (take the precomputation from the harness cache entry of the code
              in DIR: this branch changes only run-time code, so the cached state is the same)
 
-Loads one precomputation, gives it to the method class of this tree and to the baseline's (the
-baseline's method module, and for in-out its ``fast`` module, imported from ``--baseline`` under
-other names), renders each kind's frames alternating which goes first, frame 0–1 untimed. Prints
+Loads one precomputation, gives it to the method class of this tree and to the baseline's (its whole
+``methods`` package, `benchmarks.common.checkout_class`; the baseline's frames render inside
+`checkout_modules`, so its lazy imports are the baseline's too), renders each kind's frames
+alternating which goes first, frame 0–1 untimed. Prints
 per kind the medians (process CPU and wall), their ratio, the roofline efficiency of the new code
 with its ``frame_cost`` and the machine limits measured in the run, and max |new − reference| /
 max |reference| (``render_reference``/``_render_reference``, this tree's oracle).
@@ -21,22 +22,20 @@ import copy
 import json
 import os
 
-import torch
 
-from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, load_file_module, machine_limits,
-                               precomputed, registry_kept, setup)
+from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, checkout_class, machine_limits,
+                               precomputed, setup)
 from reports import measure
 
 
 def baseline_class(method: str, root: str):
-    """The method class of the checkout ``root`` (its own run-time modules, this tree's core)."""
-    with registry_kept():
-        if method == "sh_prt":
-            return load_file_module(os.path.join(root, "methods/sh_prt/method.py"), "_vview_base_sh_prt").SHPRT
-        fast = load_file_module(os.path.join(root, "methods/inout/fast.py"), "_vview_base_inout_fast")
-        mod = load_file_module(os.path.join(root, "methods/inout/method.py"), "_vview_base_inout")
-    mod._fast = fast
-    return mod.InOut
+    """The method class of the checkout ``root``, imported with its whole ``methods`` package
+    (`benchmarks.common.checkout_class`; until session 29 only its method module, and in-out's
+    ``fast``, were loaded by path, so every other module — native loops, core — was this tree's and a
+    change there read ~1.0x). Render its frames with ``ab_frames(..., base_root=root)``."""
+    if method == "sh_prt":
+        return checkout_class(root, "methods.sh_prt.method", "SHPRT")
+    return checkout_class(root, "methods.inout.method", "InOut")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -67,7 +66,8 @@ def main(argv: list[str] | None = None) -> dict:
         base = copy.copy(new)
         base.__class__ = Base
         ref = copy.copy(new)
-        r = ab_frames(new, base, ref.render_reference if a.method == "sh_prt" else ref._render_reference, frames, gbs, kind)
+        r = ab_frames(new, base, ref.render_reference if a.method == "sh_prt" else ref._render_reference, frames, gbs, kind,
+                      base_root=a.baseline)
         kinds[kind] = r
     B, Pk = machine_limits(out, bw, peak)
     if a.micro and a.method == "sh_prt":
