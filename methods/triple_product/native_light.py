@@ -156,15 +156,153 @@ static inline void pair_means(const float* m, int64_t tr, int64_t n, int64_t S, 
     o[2 * n] = (b[0] + b[1]) + (b[2] + b[3]);
 }
 
+#if defined(__AVX2__)
+#include <immintrin.h>
+
+/* tap for 8 samples (AVX2, written out: GCC's vectorised tap evaluated the acos polynomial twice and
+   the atan one three times, once per if-converted branch): the same float32 operations one for one,
+   each select a blend of both sides with the scalar compare's semantics (_mm256_max_ps(x, y) is
+   x > y ? x : y, _mm256_min_ps(x, y) x < y ? x : y, ordered non-signalling compares: NaN false) */
+static inline void tap8(__m256 cx, __m256 cy, __m256 cz, const float* m, __m256 H1, __m256 Wf, __m256 hw,
+                        __m256i H2, __m256i W1, __m256i Wp, __m256i* idx, __m256* fx, __m256* fy) {
+#define SET(x) _mm256_set1_ps((float)(x))
+#define MUL _mm256_mul_ps
+#define ADD _mm256_add_ps
+#define SUB _mm256_sub_ps
+#define SEL(c, a, b) _mm256_blendv_ps((b), (a), (c))          /* c ? a : b */
+    const __m256 sign = SET(-0.0f), one = SET(1.0f), zero = _mm256_setzero_ps();
+    const __m256 d0 = ADD(ADD(MUL(cx, SET(m[0])), MUL(cy, SET(m[3]))), MUL(cz, SET(m[6])));
+    const __m256 d1 = ADD(ADD(MUL(cx, SET(m[1])), MUL(cy, SET(m[4]))), MUL(cz, SET(m[7])));
+    const __m256 d2 = ADD(ADD(MUL(cx, SET(m[2])), MUL(cy, SET(m[5]))), MUL(cz, SET(m[8])));
+    __m256 yv = _mm256_max_ps(d1, SET(-1.0f));
+    yv = _mm256_min_ps(yv, one);
+    const __m256 a = _mm256_andnot_ps(sign, yv);
+    const __m256 big = _mm256_cmp_ps(a, SET(0.5f), _CMP_GT_OQ);
+    const __m256 z = SEL(big, SUB(SET(0.5f), MUL(a, SET(0.5f))), MUL(a, a));
+    const __m256 sq = _mm256_sqrt_ps(z);
+    const __m256 s = SEL(big, sq, a);
+    const __m256 q = MUL(ADD(MUL(ADD(MUL(ADD(MUL(ADD(MUL(z, SET(0.042163199048)), SET(0.024181311049)), z),
+                                             SET(0.045470025998)), z), SET(0.074953002686)), z), SET(0.16666752422)), z);
+    const __m256 p = ADD(MUL(q, s), s);
+    __m256 r = SEL(big, MUL(p, SET(2.0f)), SUB(SET(1.5707963267948966), p));
+    r = SEL(_mm256_cmp_ps(yv, zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), r), r);
+    __m256 v = MUL(r, SET(0.3183098861837907));
+    const __m256 xx = _mm256_xor_ps(d2, sign);
+    const __m256 ax = _mm256_andnot_ps(sign, xx), ay = _mm256_andnot_ps(sign, d0);
+    const __m256 mn = _mm256_min_ps(ax, ay);
+    const __m256 mx = _mm256_max_ps(ax, ay);
+    const __m256 c = _mm256_cmp_ps(mn, MUL(mx, SET(0.41421356237309503)), _CMP_GT_OQ);
+    const __m256 num = SEL(c, SUB(mn, mx), mn);
+    const __m256 den0 = SEL(c, ADD(mn, mx), mx);
+    const __m256 den = SEL(_mm256_cmp_ps(den0, zero, _CMP_GT_OQ), den0, one);
+    const __m256 t = _mm256_div_ps(num, den);
+    const __m256 tz = MUL(t, t);
+    const __m256 pq = ADD(MUL(MUL(SUB(MUL(ADD(MUL(SUB(MUL(tz, SET(0.0805374449538)), SET(0.138776856032)), tz),
+                                               SET(0.199777106478)), tz), SET(0.333329491539)), tz), t), t);
+    __m256 ra = SEL(c, ADD(pq, SET(0.7853981633974483)), pq);
+    ra = SEL(_mm256_cmp_ps(ay, ax, _CMP_GT_OQ), SUB(SET(1.5707963267948966), ra), ra);
+    ra = SEL(_mm256_cmp_ps(xx, zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), ra), ra);
+    ra = SEL(_mm256_cmp_ps(d0, zero, _CMP_LT_OQ), _mm256_xor_ps(ra, sign), ra);
+    __m256 u = MUL(ra, SET(0.15915494309189535));
+    u = SUB(u, hw);
+    u = SUB(u, _mm256_floor_ps(u));
+    v = SUB(v, _mm256_floor_ps(v));
+    const __m256 x = MUL(u, Wf), y = MUL(v, H1);
+    __m256i ix = _mm256_cvttps_epi32(x), iy = _mm256_cvttps_epi32(y);
+    ix = _mm256_min_epi32(_mm256_max_epi32(ix, _mm256_setzero_si256()), W1);
+    iy = _mm256_min_epi32(_mm256_max_epi32(iy, _mm256_setzero_si256()), H2);
+    *idx = _mm256_add_epi32(_mm256_mullo_epi32(iy, Wp), ix);
+    *fx = SUB(x, _mm256_cvtepi32_ps(ix));
+    *fy = SUB(y, _mm256_cvtepi32_ps(iy));
+}
+
+/* pair_means for S = 16 (AVX2), the same operations in registers: the two halves' taps (tap8), their
+   weights 4 × 8 transposed to {w of sample s, w of sample s + 8} (s < 8), each sample's quad
+   weights broadcast to both halves for its 12 texel lanes, the tree of _tree_sum in registers */
+static inline void pair_means16(const float* m, int64_t tr, int64_t n, const float* cp, const float* wT,
+                                __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
+                                const float* Q, float* o) {
+    const float *px = cp + tr * 16, *py = cp + (n + tr) * 16, *pz = cp + (2 * n + tr) * 16;
+    const float* w = wT + tr * 16;
+    __m256i iA, iB;
+    __m256 fxA, fyA, fxB, fyB;
+    tap8(_mm256_loadu_ps(px), _mm256_loadu_ps(py), _mm256_loadu_ps(pz), m, H1, Wf, hw, H2, W1, Wp, &iA, &fxA, &fyA);
+    tap8(_mm256_loadu_ps(px + 8), _mm256_loadu_ps(py + 8), _mm256_loadu_ps(pz + 8), m, H1, Wf, hw, H2, W1, Wp,
+         &iB, &fxB, &fyB);
+    const __m256 one = SET(1.0f), wA = _mm256_loadu_ps(w), wB = _mm256_loadu_ps(w + 8);
+    const __m256 gxA = SUB(one, fxA), gyA = SUB(one, fyA), gxB = SUB(one, fxB), gyB = SUB(one, fyB);
+    const __m256 W0A = MUL(MUL(gxA, gyA), wA), W1A = MUL(MUL(fxA, gyA), wA), W2A = MUL(MUL(gxA, fyA), wA),
+                 W3A = MUL(MUL(fxA, fyA), wA);
+    const __m256 W0B = MUL(MUL(gxB, gyB), wB), W1B = MUL(MUL(fxB, gyB), wB), W2B = MUL(MUL(gxB, fyB), wB),
+                 W3B = MUL(MUL(fxB, fyB), wB);
+    /* {W0..3 of sample s, W0..3 of sample s + 8} for s = 0..7 */
+    __m256 ws[8];
+    {
+        const __m256 X0 = _mm256_permute2f128_ps(W0A, W0B, 0x20), X1 = _mm256_permute2f128_ps(W1A, W1B, 0x20),
+                     X2 = _mm256_permute2f128_ps(W2A, W2B, 0x20), X3 = _mm256_permute2f128_ps(W3A, W3B, 0x20);
+        const __m256 Y0 = _mm256_permute2f128_ps(W0A, W0B, 0x31), Y1 = _mm256_permute2f128_ps(W1A, W1B, 0x31),
+                     Y2 = _mm256_permute2f128_ps(W2A, W2B, 0x31), Y3 = _mm256_permute2f128_ps(W3A, W3B, 0x31);
+        __m256 t0 = _mm256_unpacklo_ps(X0, X1), t1 = _mm256_unpackhi_ps(X0, X1);
+        __m256 t2 = _mm256_unpacklo_ps(X2, X3), t3 = _mm256_unpackhi_ps(X2, X3);
+        ws[0] = _mm256_shuffle_ps(t0, t2, 0x44); ws[1] = _mm256_shuffle_ps(t0, t2, 0xEE);
+        ws[2] = _mm256_shuffle_ps(t1, t3, 0x44); ws[3] = _mm256_shuffle_ps(t1, t3, 0xEE);
+        t0 = _mm256_unpacklo_ps(Y0, Y1); t1 = _mm256_unpackhi_ps(Y0, Y1);
+        t2 = _mm256_unpacklo_ps(Y2, Y3); t3 = _mm256_unpackhi_ps(Y2, Y3);
+        ws[4] = _mm256_shuffle_ps(t0, t2, 0x44); ws[5] = _mm256_shuffle_ps(t0, t2, 0xEE);
+        ws[6] = _mm256_shuffle_ps(t1, t3, 0x44); ws[7] = _mm256_shuffle_ps(t1, t3, 0xEE);
+    }
+    int32_t ii[16];
+    _mm256_storeu_si256((__m256i*)ii, iA);
+    _mm256_storeu_si256((__m256i*)(ii + 8), iB);
+#define QR(s) (Q + 16 * (int64_t)ii[s])
+#define WQ(s) ((s) < 8 ? _mm256_permute2f128_ps(ws[(s) & 7], ws[(s) & 7], 0x00) \
+                       : _mm256_permute2f128_ps(ws[(s) & 7], ws[(s) & 7], 0x11))
+#define P8(s) MUL(_mm256_loadu_ps(QR(s)), WQ(s))
+#define P4(s) _mm_mul_ps(_mm_loadu_ps(QR(s) + 8), _mm256_castps256_ps128(WQ(s)))
+#define T4(P, s) ((P(s) + P(s + 1)) + (P(s + 2) + P(s + 3)))
+#define T16(P) ((T4(P, 0) + T4(P, 4)) + (T4(P, 8) + T4(P, 12)))
+    const v8 A = (v8)T16(P8);
+    const v4 B = (v4)T16(P4);
+#undef QR
+#undef WQ
+#undef P8
+#undef P4
+#undef T4
+#undef T16
+#undef SET
+#undef MUL
+#undef ADD
+#undef SUB
+#undef SEL
+    o[0] = (A[0] + A[1]) + (A[2] + A[3]);
+    o[n] = (A[4] + A[5]) + (A[6] + A[7]);
+    o[2 * n] = (B[0] + B[1]) + (B[2] + B[3]);
+}
+#define HAVE_PAIR16 1
+#endif
+
 /* out[f, c, t] (F, 3, n) for the pairs f * n + t: the mean of the map's bilinear radiance over the
    S samples of live triangle t seen in frame f (lighting.quad_means). M (F, 9) = R T; cp (3, n, S)
    the live triangles' sample planes, wT (n, S) their weights; Q the quad rows (H (W + 1), 16).
-   S = 16 (supersample 2, the method's default) is a constant of
-   its own loop (unrolled). */
+   S = 16 (supersample 2, the method's default) takes pair_means16 when built with AVX2 (the frame of
+   consecutive pairs kept: no division per pair), else pair_means with S a constant (unrolled). */
 void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
                 const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
     const float H1 = (float)(H - 1), Wf = (float)W, hw = (float)(0.5 / (double)W);
     const int32_t H2 = (int32_t)(H - 2), W1 = (int32_t)(W - 1), Wp = (int32_t)(W + 1);
+#ifdef HAVE_PAIR16
+    if (S == 16) {
+        const __m256 H1v = _mm256_set1_ps(H1), Wfv = _mm256_set1_ps(Wf), hwv = _mm256_set1_ps(hw);
+        const __m256i H2v = _mm256_set1_epi32(H2), W1v = _mm256_set1_epi32(W1), Wpv = _mm256_set1_epi32(Wp);
+        int64_t f = -1, lo = 0;                                  /* pairs[e] in [lo, lo + n): frame f */
+        for (int64_t e = 0; e < np; ++e) {
+            if (f < 0 || pairs[e] < lo || pairs[e] - lo >= n) { f = pairs[e] / n; lo = f * n; }
+            const int64_t tr = pairs[e] - lo;
+            pair_means16(M + 9 * f, tr, n, cp, wT, H1v, Wfv, hwv, H2v, W1v, Wpv, Q, out + f * 3 * n + tr);
+        }
+        return;
+    }
+#else
     if (S == 16) {
         for (int64_t e = 0; e < np; ++e) {
             const int64_t f = pairs[e] / n, tr = pairs[e] % n;
@@ -172,6 +310,7 @@ void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const fl
         }
         return;
     }
+#endif
     for (int64_t e = 0; e < np; ++e) {
         const int64_t f = pairs[e] / n, tr = pairs[e] % n;
         pair_means(M + 9 * f, tr, n, S, cp, wT, H1, Wf, hw, H2, W1, Wp, Q, out + f * 3 * n + tr);

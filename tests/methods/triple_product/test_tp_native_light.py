@@ -51,11 +51,48 @@ def test_project_pairs_equals_the_compiled_projection(supersample):
         every = torch.arange(g.size * tris.numel())
         assert torch.equal(lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=every,
                                             out=torch.zeros_like(whole)), whole)
+        mixed = every[torch.randperm(every.numel(), generator=gen)]      # out of order: frames revisited
+        with torch_threads(1):
+            assert torch.equal(lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=mixed,
+                                                out=torch.zeros_like(whole)), whole)
     assert not lt.pairs_ok(base.rotated(rotation_y(0.7)))               # the azimuthal / comb paths
     with pytest.raises(IndexError):
         native_light.project(torch.tensor([g.size * tris.numel()]), torch.zeros(g.size, 3, 3),
                              torch.zeros(3, tris.numel(), 4), torch.zeros(tris.numel(), 4), 8, 16,
                              torch.zeros(8 * 17, 16), torch.zeros(g.size, 3, tris.numel()))
+
+
+def test_project_pairs_builds_agree():
+    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) writes the
+    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pair_means16`), for
+    supersample 2 on a tilted map: both the compiled projection's values."""
+    from methods.core import native
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+
+    g = lt.FrameGrid(9, 16, 1)
+    geo, R = Geodesic(2), lt.grid_frames(g)
+    tris = torch.arange(0, 320, 3)
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]) \
+        @ torch.tensor([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
+    env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(tilt.tolist()), geo, 2)
+    whole = lt.project_env(env, R, geo, supersample=2, grid=g, tris=tris)[1]
+    pairs = torch.arange(g.size * tris.numel())
+    plain = native.load("tp_light_pairs_plain", native_light._SOURCE, native_light._SIGNATURES,
+                        extra_flags=("-ffp-contract=off", "-fno-trapping-math", "-fopenmp"))
+    if plain is None:
+        pytest.skip("the library did not build without ISA flags")
+    with torch_threads(1):
+        host = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+        keep = native_light._lib
+        native_light._lib = lambda: plain
+        try:
+            got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+        finally:
+            native_light._lib = keep
+    assert torch.equal(host, whole) and torch.equal(got, whole)
 
 
 @pytest.mark.parametrize("n", [45, 64, 130])
