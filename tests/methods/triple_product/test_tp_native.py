@@ -43,8 +43,8 @@ def _tables(n: int, gen: torch.Generator):
 @pytest.mark.parametrize("n", [45, 64, 7])
 def test_chunks_cover_every_non_zero_once(n):
     """Every non-zero column of a row lies in exactly one of its chunks or at/after its tail; chunks
-    are whole (inside the row) and start on a non-zero column; the tail starts on a non-zero column
-    within the last 7 (or is n)."""
+    are whole (inside the row), 8-aligned and hold a non-zero column; the tail starts on a non-zero
+    column after the last whole aligned block (or is n)."""
     gen = torch.Generator().manual_seed(1)
     V = _vis(n, gen)
     ptr, starts, tail = native.chunks(V)
@@ -52,10 +52,10 @@ def test_chunks_cover_every_non_zero_once(n):
     for r in range(V.shape[0]):
         cover = torch.zeros(n, dtype=torch.int64)
         for s in starts[ptr[r]:ptr[r + 1]].tolist():
-            assert 0 <= s <= n - native.W and V[r, s] != 0
+            assert 0 <= s <= n - native.W and s % native.W == 0 and bool((V[r, s:s + native.W] != 0).any())
             cover[s:s + native.W] += 1
         t = int(tail[r])
-        assert t == n or (V[r, t] != 0 and t > n - native.W and cover[t] == 0)
+        assert t == n or (V[r, t] != 0 and t >= n // native.W * native.W and cover[t] == 0)
         cover[t:] += 1
         nz = V[r] != 0
         assert bool((cover[nz] == 1).all()) and bool((cover <= 1).all()), r
