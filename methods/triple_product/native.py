@@ -85,12 +85,18 @@ void tp_points(int64_t b, int64_t n, const float* V, const int64_t* vrow, const 
         const int64_t v = vrow[i];
         const float w = vw[i];
         const float* Vr = V + v * n;
-        const float *R0 = R + brow[4 * i] * 3 * n, *R1 = R + brow[4 * i + 1] * 3 * n,
-                    *R2 = R + brow[4 * i + 2] * 3 * n, *R3 = R + brow[4 * i + 3] * 3 * n;
-        const float *L0 = L + lrow[4 * i] * 3 * n, *L1 = L + lrow[4 * i + 1] * 3 * n,
-                    *L2 = L + lrow[4 * i + 2] * 3 * n, *L3 = L + lrow[4 * i + 3] * 3 * n;
         const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3];
         const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3];
+        /* a row with weight 0 adds exact zeros (finite tables): read the first weighted row in its
+           place (already in L1), not a row of its own (a third of the grid weights are 0) */
+        const int64_t kb = b0 != 0.0f ? 0 : b1 != 0.0f ? 1 : b2 != 0.0f ? 2 : 3;
+        const int64_t kl = l0 != 0.0f ? 0 : l1 != 0.0f ? 1 : l2 != 0.0f ? 2 : 3;
+        const int64_t* bi = brow + 4 * i;
+        const int64_t* li = lrow + 4 * i;
+        const float *R0 = R + bi[b0 != 0.0f ? 0 : kb] * 3 * n, *R1 = R + bi[b1 != 0.0f ? 1 : kb] * 3 * n,
+                    *R2 = R + bi[b2 != 0.0f ? 2 : kb] * 3 * n, *R3 = R + bi[b3 != 0.0f ? 3 : kb] * 3 * n;
+        const float *L0 = L + li[l0 != 0.0f ? 0 : kl] * 3 * n, *L1 = L + li[l1 != 0.0f ? 1 : kl] * 3 * n,
+                    *L2 = L + li[l2 != 0.0f ? 2 : kl] * 3 * n, *L3 = L + li[l3 != 0.0f ? 3 : kl] * 3 * n;
         for (int c = 0; c < 3; ++c) {   /* one channel at a time: 9 rows streamed, not 25 */
             const float *Rc0 = R0 + c * n, *Rc1 = R1 + c * n, *Rc2 = R2 + c * n, *Rc3 = R3 + c * n;
             const float *Lc0 = L0 + c * n, *Lc1 = L1 + c * n, *Lc2 = L2 + c * n, *Lc3 = L3 + c * n;
@@ -283,7 +289,8 @@ def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Ten
            lrows: Tensor, lw: Tensor, ch) -> Tensor:
     """`fast_eval.fine_block` of b points with one visibility row each (vrow (b,), vw (b,)), 4 ρ̃ rows
     (brows, bw (b, 4)) and 4 grid rows (lrows, lw (b, 4)), over the chunks ``ch`` (`chunks` of V)
-    of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32. → (b, 3)."""
+    of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32 (finite: a row with weight 0
+    is not read, the point's first weighted row is read in its place, times 0). → (b, 3)."""
     lib = _lib()
     n = _check_tables(V, R, L, ch)
     b = vrow.shape[0]

@@ -95,6 +95,17 @@ def test_points_equal_fine_block(n):
     finally:
         native.MIN_ITEMS_PER_THREAD = old
         torch.set_num_threads(t)
+    # weights 0 (a third of a frame's grid weights; some points all 0): the loop reads the point's
+    # first weighted row in place of such a row, the same sums
+    bz = bw * (torch.rand(B, 4, generator=gen) < 0.6)
+    lz = lw * (torch.rand(B, 4, generator=gen) < 0.6)
+    bz[:3], lz[3:6] = 0, 0
+    lz[6:9, 0] = 0
+    want = fast_eval.fine_block(vrows[:, None], vw[:, None], brows, bz, lrows, lz, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    got = native.points(Vt, Rt, Lt, vrows, vw, brows, bz, lrows, lz, ch)
+    for r in range(B):
+        assert (got[r] - want[r]).abs().max() <= F32 * max(float(want[r].abs().max()), 1e-30) + 1e-30, r
+    assert bool((got[:6] == 0).all())
     with pytest.raises(IndexError):
         native.points(Vt, Rt, Lt, vrows + Vt.shape[0], vw, brows, bw, lrows, lw, ch)
 
