@@ -159,83 +159,85 @@ static inline void pair_means(const float* m, int64_t tr, int64_t n, int64_t S, 
 #if defined(__AVX2__)
 #include <immintrin.h>
 
-/* tap for 8 samples (AVX2, written out: GCC's vectorised tap evaluated the acos polynomial twice and
-   the atan one three times, once per if-converted branch): the same float32 operations one for one,
-   each select a blend of both sides with the scalar compare's semantics (_mm256_max_ps(x, y) is
-   x > y ? x : y, _mm256_min_ps(x, y) x < y ? x : y, ordered non-signalling compares: NaN false) */
-static inline void tap8(__m256 cx, __m256 cy, __m256 cz, const float* m, __m256 H1, __m256 Wf, __m256 hw,
-                        __m256i H2, __m256i W1, __m256i Wp, __m256i* idx, __m256* fx, __m256* fy) {
 #define SET(x) _mm256_set1_ps((float)(x))
 #define MUL _mm256_mul_ps
 #define ADD _mm256_add_ps
 #define SUB _mm256_sub_ps
-#define SEL(c, a, b) _mm256_blendv_ps((b), (a), (c))          /* c ? a : b */
+#define SEL(c, a, b) _mm256_blendv_ps((b), (a), (c))           /* c ? a : b */
+#define K4 for (int k = 0; k < 4; ++k)
+
+/* tap for 4 × 8 samples (AVX2; vector k in the frame of mk[k]), written out: GCC's vectorised tap
+   evaluated the acos polynomial twice and the atan one three times (once per if-converted branch).
+   The same float32 operations one for one, each select a blend of both sides with the scalar
+   compare's semantics (_mm256_max_ps(x, y) is x > y ? x : y, _mm256_min_ps(x, y) x < y ? x : y,
+   ordered non-signalling compares: NaN false). Statement by statement over the 4 vectors: four
+   independent chains in flight (one pair's two at a time measured 1.13x slower, eight spilled). */
+static inline void tap4x8(const __m256* cx, const __m256* cy, const __m256* cz, const float* const* mk,
+                          __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
+                          __m256i* idx, __m256* fx, __m256* fy) {
     const __m256 sign = SET(-0.0f), one = SET(1.0f), zero = _mm256_setzero_ps();
-    const __m256 d0 = ADD(ADD(MUL(cx, SET(m[0])), MUL(cy, SET(m[3]))), MUL(cz, SET(m[6])));
-    const __m256 d1 = ADD(ADD(MUL(cx, SET(m[1])), MUL(cy, SET(m[4]))), MUL(cz, SET(m[7])));
-    const __m256 d2 = ADD(ADD(MUL(cx, SET(m[2])), MUL(cy, SET(m[5]))), MUL(cz, SET(m[8])));
-    __m256 yv = _mm256_max_ps(d1, SET(-1.0f));
-    yv = _mm256_min_ps(yv, one);
-    const __m256 a = _mm256_andnot_ps(sign, yv);
-    const __m256 big = _mm256_cmp_ps(a, SET(0.5f), _CMP_GT_OQ);
-    const __m256 z = SEL(big, SUB(SET(0.5f), MUL(a, SET(0.5f))), MUL(a, a));
-    const __m256 sq = _mm256_sqrt_ps(z);
-    const __m256 s = SEL(big, sq, a);
-    const __m256 q = MUL(ADD(MUL(ADD(MUL(ADD(MUL(ADD(MUL(z, SET(0.042163199048)), SET(0.024181311049)), z),
-                                             SET(0.045470025998)), z), SET(0.074953002686)), z), SET(0.16666752422)), z);
-    const __m256 p = ADD(MUL(q, s), s);
-    __m256 r = SEL(big, MUL(p, SET(2.0f)), SUB(SET(1.5707963267948966), p));
-    r = SEL(_mm256_cmp_ps(yv, zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), r), r);
-    __m256 v = MUL(r, SET(0.3183098861837907));
-    const __m256 xx = _mm256_xor_ps(d2, sign);
-    const __m256 ax = _mm256_andnot_ps(sign, xx), ay = _mm256_andnot_ps(sign, d0);
-    const __m256 mn = _mm256_min_ps(ax, ay);
-    const __m256 mx = _mm256_max_ps(ax, ay);
-    const __m256 c = _mm256_cmp_ps(mn, MUL(mx, SET(0.41421356237309503)), _CMP_GT_OQ);
-    const __m256 num = SEL(c, SUB(mn, mx), mn);
-    const __m256 den0 = SEL(c, ADD(mn, mx), mx);
-    const __m256 den = SEL(_mm256_cmp_ps(den0, zero, _CMP_GT_OQ), den0, one);
-    const __m256 t = _mm256_div_ps(num, den);
-    const __m256 tz = MUL(t, t);
-    const __m256 pq = ADD(MUL(MUL(SUB(MUL(ADD(MUL(SUB(MUL(tz, SET(0.0805374449538)), SET(0.138776856032)), tz),
-                                               SET(0.199777106478)), tz), SET(0.333329491539)), tz), t), t);
-    __m256 ra = SEL(c, ADD(pq, SET(0.7853981633974483)), pq);
-    ra = SEL(_mm256_cmp_ps(ay, ax, _CMP_GT_OQ), SUB(SET(1.5707963267948966), ra), ra);
-    ra = SEL(_mm256_cmp_ps(xx, zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), ra), ra);
-    ra = SEL(_mm256_cmp_ps(d0, zero, _CMP_LT_OQ), _mm256_xor_ps(ra, sign), ra);
-    __m256 u = MUL(ra, SET(0.15915494309189535));
-    u = SUB(u, hw);
-    u = SUB(u, _mm256_floor_ps(u));
-    v = SUB(v, _mm256_floor_ps(v));
-    const __m256 x = MUL(u, Wf), y = MUL(v, H1);
-    __m256i ix = _mm256_cvttps_epi32(x), iy = _mm256_cvttps_epi32(y);
-    ix = _mm256_min_epi32(_mm256_max_epi32(ix, _mm256_setzero_si256()), W1);
-    iy = _mm256_min_epi32(_mm256_max_epi32(iy, _mm256_setzero_si256()), H2);
-    *idx = _mm256_add_epi32(_mm256_mullo_epi32(iy, Wp), ix);
-    *fx = SUB(x, _mm256_cvtepi32_ps(ix));
-    *fy = SUB(y, _mm256_cvtepi32_ps(iy));
+    __m256 d0[4], d1[4], d2[4], yv[4], a[4], big[4], z[4], s[4], q[4], p[4], r[4], v[4];
+    __m256 xx[4], ax[4], ay[4], mn[4], mx[4], c[4], num[4], den[4], t[4], tz[4], pq[4], ra[4], u[4], x[4], y[4];
+    __m256i ix[4], iy[4];
+    K4 d0[k] = ADD(ADD(MUL(cx[k], SET(mk[k][0])), MUL(cy[k], SET(mk[k][3]))), MUL(cz[k], SET(mk[k][6])));
+    K4 d1[k] = ADD(ADD(MUL(cx[k], SET(mk[k][1])), MUL(cy[k], SET(mk[k][4]))), MUL(cz[k], SET(mk[k][7])));
+    K4 d2[k] = ADD(ADD(MUL(cx[k], SET(mk[k][2])), MUL(cy[k], SET(mk[k][5]))), MUL(cz[k], SET(mk[k][8])));
+    /* acos_f32 of clamp(d1, -1, 1) / pi */
+    K4 yv[k] = _mm256_min_ps(_mm256_max_ps(d1[k], SET(-1.0f)), one);
+    K4 a[k] = _mm256_andnot_ps(sign, yv[k]);
+    K4 big[k] = _mm256_cmp_ps(a[k], SET(0.5f), _CMP_GT_OQ);
+    K4 z[k] = SEL(big[k], SUB(SET(0.5f), MUL(a[k], SET(0.5f))), MUL(a[k], a[k]));
+    K4 s[k] = SEL(big[k], _mm256_sqrt_ps(z[k]), a[k]);
+    K4 q[k] = MUL(ADD(MUL(ADD(MUL(ADD(MUL(ADD(MUL(z[k], SET(0.042163199048)), SET(0.024181311049)), z[k]),
+                                        SET(0.045470025998)), z[k]), SET(0.074953002686)), z[k]),
+                      SET(0.16666752422)), z[k]);
+    K4 p[k] = ADD(MUL(q[k], s[k]), s[k]);
+    K4 r[k] = SEL(big[k], MUL(p[k], SET(2.0f)), SUB(SET(1.5707963267948966), p[k]));
+    K4 r[k] = SEL(_mm256_cmp_ps(yv[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), r[k]), r[k]);
+    K4 v[k] = MUL(r[k], SET(0.3183098861837907));
+    /* atan2_f32(d0, -d2) / 2 pi */
+    K4 xx[k] = _mm256_xor_ps(d2[k], sign);
+    K4 ax[k] = _mm256_andnot_ps(sign, xx[k]);
+    K4 ay[k] = _mm256_andnot_ps(sign, d0[k]);
+    K4 mn[k] = _mm256_min_ps(ax[k], ay[k]);
+    K4 mx[k] = _mm256_max_ps(ax[k], ay[k]);
+    K4 c[k] = _mm256_cmp_ps(mn[k], MUL(mx[k], SET(0.41421356237309503)), _CMP_GT_OQ);
+    K4 num[k] = SEL(c[k], SUB(mn[k], mx[k]), mn[k]);
+    K4 den[k] = SEL(c[k], ADD(mn[k], mx[k]), mx[k]);
+    K4 den[k] = SEL(_mm256_cmp_ps(den[k], zero, _CMP_GT_OQ), den[k], one);
+    K4 t[k] = _mm256_div_ps(num[k], den[k]);
+    K4 tz[k] = MUL(t[k], t[k]);
+    K4 pq[k] = ADD(MUL(MUL(SUB(MUL(ADD(MUL(SUB(MUL(tz[k], SET(0.0805374449538)), SET(0.138776856032)), tz[k]),
+                                         SET(0.199777106478)), tz[k]), SET(0.333329491539)), tz[k]), t[k]), t[k]);
+    K4 ra[k] = SEL(c[k], ADD(pq[k], SET(0.7853981633974483)), pq[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(ay[k], ax[k], _CMP_GT_OQ), SUB(SET(1.5707963267948966), ra[k]), ra[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(xx[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), ra[k]), ra[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(d0[k], zero, _CMP_LT_OQ), _mm256_xor_ps(ra[k], sign), ra[k]);
+    K4 u[k] = SUB(MUL(ra[k], SET(0.15915494309189535)), hw);
+    /* quad_taps */
+    K4 u[k] = SUB(u[k], _mm256_floor_ps(u[k]));
+    K4 v[k] = SUB(v[k], _mm256_floor_ps(v[k]));
+    K4 x[k] = MUL(u[k], Wf);
+    K4 y[k] = MUL(v[k], H1);
+    K4 ix[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(x[k]), _mm256_setzero_si256()), W1);
+    K4 iy[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(y[k]), _mm256_setzero_si256()), H2);
+    K4 idx[k] = _mm256_add_epi32(_mm256_mullo_epi32(iy[k], Wp), ix[k]);
+    K4 fx[k] = SUB(x[k], _mm256_cvtepi32_ps(ix[k]));
+    K4 fy[k] = SUB(y[k], _mm256_cvtepi32_ps(iy[k]));
 }
 
-/* pair_means for S = 16 (AVX2), the same operations in registers: the two halves' taps (tap8), their
-   weights 4 × 8 transposed to {w of sample s, w of sample s + 8} (s < 8), each sample's quad
-   weights broadcast to both halves for its 12 texel lanes, the tree of _tree_sum in registers */
-static inline void pair_means16(const float* m, int64_t tr, int64_t n, const float* cp, const float* wT,
-                                __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
-                                const float* Q, float* o) {
-    const float *px = cp + tr * 16, *py = cp + (n + tr) * 16, *pz = cp + (2 * n + tr) * 16;
-    const float* w = wT + tr * 16;
-    __m256i iA, iB;
-    __m256 fxA, fyA, fxB, fyB;
-    tap8(_mm256_loadu_ps(px), _mm256_loadu_ps(py), _mm256_loadu_ps(pz), m, H1, Wf, hw, H2, W1, Wp, &iA, &fxA, &fyA);
-    tap8(_mm256_loadu_ps(px + 8), _mm256_loadu_ps(py + 8), _mm256_loadu_ps(pz + 8), m, H1, Wf, hw, H2, W1, Wp,
-         &iB, &fxB, &fyB);
+/* pair_means' sums for S = 16 from its taps (samples 0-7: iA, fxA, fyA; 8-15: iB, fxB, fyB), the
+   same operations in registers: the weights 4 × 8 transposed to {w of sample s, w of sample s + 8}
+   (s < 8), each sample's quad weights broadcast to both halves for its 12 texel lanes, the tree of
+   _tree_sum in registers */
+static inline void sums16(__m256i iA, __m256i iB, __m256 fxA, __m256 fyA, __m256 fxB, __m256 fyB,
+                          const float* w, int64_t n, const float* Q, float* o) {
     const __m256 one = SET(1.0f), wA = _mm256_loadu_ps(w), wB = _mm256_loadu_ps(w + 8);
     const __m256 gxA = SUB(one, fxA), gyA = SUB(one, fyA), gxB = SUB(one, fxB), gyB = SUB(one, fyB);
     const __m256 W0A = MUL(MUL(gxA, gyA), wA), W1A = MUL(MUL(fxA, gyA), wA), W2A = MUL(MUL(gxA, fyA), wA),
                  W3A = MUL(MUL(fxA, fyA), wA);
     const __m256 W0B = MUL(MUL(gxB, gyB), wB), W1B = MUL(MUL(fxB, gyB), wB), W2B = MUL(MUL(gxB, fyB), wB),
                  W3B = MUL(MUL(fxB, fyB), wB);
-    /* {W0..3 of sample s, W0..3 of sample s + 8} for s = 0..7 */
     __m256 ws[8];
     {
         const __m256 X0 = _mm256_permute2f128_ps(W0A, W0B, 0x20), X1 = _mm256_permute2f128_ps(W1A, W1B, 0x20),
@@ -269,23 +271,43 @@ static inline void pair_means16(const float* m, int64_t tr, int64_t n, const flo
 #undef P4
 #undef T4
 #undef T16
+    o[0] = (A[0] + A[1]) + (A[2] + A[3]);
+    o[n] = (A[4] + A[5]) + (A[6] + A[7]);
+    o[2 * n] = (B[0] + B[1]) + (B[2] + B[3]);
+}
+
+/* two pairs of S = 16 samples (live triangles t0 in the frame m0, t1 in m1; the same pair twice for
+   an odd count's last): their four sample vectors through tap4x8, then each pair's sums16 */
+static inline void pairs16x2(const float* m0, const float* m1, int64_t t0, int64_t t1, int64_t n, const float* cp,
+                             const float* wT, __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
+                             const float* Q, float* o0, float* o1) {
+    const float *x0 = cp + t0 * 16, *y0 = cp + (n + t0) * 16, *z0 = cp + (2 * n + t0) * 16;
+    const float *x1 = cp + t1 * 16, *y1 = cp + (n + t1) * 16, *z1 = cp + (2 * n + t1) * 16;
+    const __m256 cx[4] = {_mm256_loadu_ps(x0), _mm256_loadu_ps(x0 + 8), _mm256_loadu_ps(x1), _mm256_loadu_ps(x1 + 8)};
+    const __m256 cy[4] = {_mm256_loadu_ps(y0), _mm256_loadu_ps(y0 + 8), _mm256_loadu_ps(y1), _mm256_loadu_ps(y1 + 8)};
+    const __m256 cz[4] = {_mm256_loadu_ps(z0), _mm256_loadu_ps(z0 + 8), _mm256_loadu_ps(z1), _mm256_loadu_ps(z1 + 8)};
+    const float* mk[4] = {m0, m0, m1, m1};
+    __m256i ii[4];
+    __m256 fx[4], fy[4];
+    tap4x8(cx, cy, cz, mk, H1, Wf, hw, H2, W1, Wp, ii, fx, fy);
+    sums16(ii[0], ii[1], fx[0], fy[0], fx[1], fy[1], wT + t0 * 16, n, Q, o0);
+    sums16(ii[2], ii[3], fx[2], fy[2], fx[3], fy[3], wT + t1 * 16, n, Q, o1);
+}
 #undef SET
 #undef MUL
 #undef ADD
 #undef SUB
 #undef SEL
-    o[0] = (A[0] + A[1]) + (A[2] + A[3]);
-    o[n] = (A[4] + A[5]) + (A[6] + A[7]);
-    o[2 * n] = (B[0] + B[1]) + (B[2] + B[3]);
-}
+#undef K4
 #define HAVE_PAIR16 1
 #endif
 
 /* out[f, c, t] (F, 3, n) for the pairs f * n + t: the mean of the map's bilinear radiance over the
    S samples of live triangle t seen in frame f (lighting.quad_means). M (F, 9) = R T; cp (3, n, S)
    the live triangles' sample planes, wT (n, S) their weights; Q the quad rows (H (W + 1), 16).
-   S = 16 (supersample 2, the method's default) takes pair_means16 when built with AVX2 (the frame of
-   consecutive pairs kept: no division per pair), else pair_means with S a constant (unrolled). */
+   S = 16 (supersample 2, the method's default) takes pairs16x2, two pairs at a time, when built with
+   AVX2 (the frame of consecutive pairs kept: no division per pair), else pair_means with S a
+   constant (unrolled). */
 void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
                 const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
     const float H1 = (float)(H - 1), Wf = (float)W, hw = (float)(0.5 / (double)W);
@@ -295,10 +317,14 @@ void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const fl
         const __m256 H1v = _mm256_set1_ps(H1), Wfv = _mm256_set1_ps(Wf), hwv = _mm256_set1_ps(hw);
         const __m256i H2v = _mm256_set1_epi32(H2), W1v = _mm256_set1_epi32(W1), Wpv = _mm256_set1_epi32(Wp);
         int64_t f = -1, lo = 0;                                  /* pairs[e] in [lo, lo + n): frame f */
-        for (int64_t e = 0; e < np; ++e) {
+        for (int64_t e = 0; e < np; e += 2) {
+            const int64_t e1 = e + 1 < np ? e + 1 : e;
             if (f < 0 || pairs[e] < lo || pairs[e] - lo >= n) { f = pairs[e] / n; lo = f * n; }
-            const int64_t tr = pairs[e] - lo;
-            pair_means16(M + 9 * f, tr, n, cp, wT, H1v, Wfv, hwv, H2v, W1v, Wpv, Q, out + f * 3 * n + tr);
+            const int64_t f0 = f, t0 = pairs[e] - lo;
+            if (pairs[e1] < lo || pairs[e1] - lo >= n) { f = pairs[e1] / n; lo = f * n; }
+            const int64_t t1 = pairs[e1] - lo;
+            pairs16x2(M + 9 * f0, M + 9 * f, t0, t1, n, cp, wT, H1v, Wfv, hwv, H2v, W1v, Wpv, Q,
+                      out + f0 * 3 * n + t0, out + f * 3 * n + t1);
         }
         return;
     }

@@ -64,8 +64,9 @@ def test_project_pairs_equals_the_compiled_projection(supersample):
 
 def test_project_pairs_builds_agree():
     """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) writes the
-    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pair_means16`), for
-    supersample 2 on a tilted map: both the compiled projection's values."""
+    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pairs16x2`, two at a
+    time), for supersample 2 on a tilted map: both the compiled projection's values; an odd count of
+    pairs (the last one alone) too."""
     from methods.core import native
     from methods.core.spherical_haar import Geodesic
     from methods.core.threads import torch_threads
@@ -93,6 +94,13 @@ def test_project_pairs_builds_agree():
         finally:
             native_light._lib = keep
     assert torch.equal(host, whole) and torch.equal(got, whole)
+    odd = pairs[1::2][:-1]                                              # an odd count (the last pair alone)
+    assert odd.numel() % 2 == 1
+    with torch_threads(1):
+        one = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=odd, out=torch.zeros_like(whole))
+    m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, odd, True)
+    m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
+    assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all())
 
 
 @pytest.mark.parametrize("n", [45, 64, 130])
