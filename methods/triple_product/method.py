@@ -97,6 +97,7 @@ from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import fast_eval
 from methods.triple_product import native_group
+from methods.triple_product import native_light
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
@@ -474,13 +475,15 @@ class TripleProduct(Method):
                 pd = lazy.get("pairs")
                 if pd is None:                           # pairs projected: those of the frames whole
                     pd = lazy["pairs"] = lazy["live"][:, None].expand(-1, live.numel()).clone()
-                todo = need & ~pd
-                pairs = torch.nonzero(todo.view(-1), as_tuple=False).squeeze(-1)
+                pairs, nf = native_light.take(need, pd)    # need & ~pd, into pd (one pass)
                 if pairs.numel():
-                    lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
-                                     tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
-                    pd |= todo
-                    self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + int(todo.any(1).sum())
+                    try:
+                        lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
+                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
+                    except BaseException:
+                        pd.view(-1)[pairs] = False           # not projected
+                        raise
+                    self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + nf
                     self.stats["projected_pairs"] = self.stats.get("projected_pairs", 0) + int(pairs.numel())
                 self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0
                 return

@@ -39,7 +39,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "project"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -399,6 +399,26 @@ void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64
     free(bits);
     status[0] = bad ? -1 : 0;
 }
+
+/* The pairs of need (N bytes) not in done, in index order: counts[0] = their number when pairs is
+   NULL; else pairs[0 .. counts[0]) = them, done[i] = 1 for each, and counts[1] = the rows of n that
+   hold one (a frame with a pair to project). */
+void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* pairs, int64_t* counts) {
+    int64_t k = 0;
+    if (!pairs) {
+        for (int64_t i = 0; i < N; ++i) k += need[i] & (done[i] ^ 1);
+        counts[0] = k;
+        return;
+    }
+    int64_t rows = 0;
+    for (int64_t a = 0; a < N; a += n) {
+        const int64_t e = a + n < N ? a + n : N, k0 = k;
+        for (int64_t i = a; i < e; ++i)
+            if (need[i] & (done[i] ^ 1)) { pairs[k++] = i; done[i] = 1; }
+        rows += k > k0;
+    }
+    counts[1] = rows;
+}
 """
 
 
@@ -413,7 +433,8 @@ def _flags() -> tuple[str, ...]:
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P]}
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
+               "tp_take": [_I, _I, _P, _P, _P, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
@@ -473,6 +494,29 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     if r != 0:
         raise MemoryError("tp_need could not allocate its tables")
     return out.view(torch.bool)
+
+
+def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
+    """The (frame, triangle) pairs of ``need`` (F, n) bool not yet in ``done`` (F, n) bool, which
+    receives them: (their flat indices f·n + t (P,) int64 in order, the number of frames f holding one)
+    — ``torch.nonzero(need & ~done)``, ``done |= that``, ``that.any(1).sum()`` in one pass (those
+    torch operations without the library; its test oracle)."""
+    if need.shape != done.shape or need.ndim != 2 or need.dtype != torch.bool or done.dtype != torch.bool:
+        raise ValueError("need and done (F, n) bool expected")
+    lib = _lib()
+    if lib is None or not (need.is_contiguous() and done.is_contiguous()):
+        todo = need & ~done
+        done |= todo
+        return torch.nonzero(todo.view(-1), as_tuple=False).squeeze(-1), int(todo.any(1).sum())
+    N, n = need.numel(), need.shape[1]
+    counts = torch.zeros(2, dtype=torch.int64)
+    a, b = need.view(torch.uint8), done.view(torch.uint8)
+    lib.tp_take(N, max(n, 1), a.data_ptr(), b.data_ptr(), None, counts.data_ptr())
+    pairs = torch.empty(int(counts[0]), dtype=torch.int64)
+    if pairs.numel() == 0:
+        return pairs, 0
+    lib.tp_take(N, n, a.data_ptr(), b.data_ptr(), pairs.data_ptr(), counts.data_ptr())
+    return pairs, int(counts[1])
 
 
 def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q: Tensor, out: Tensor) -> Tensor:

@@ -103,6 +103,25 @@ def test_project_pairs_builds_agree():
     assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all())
 
 
+@pytest.mark.parametrize("n", [1, 45, 640])
+def test_take_is_the_new_pairs(n):
+    """`native_light.take` = ``nonzero(need & ~done)`` (flat, in order), ``done |= that`` and the
+    frames holding one, as the torch operations it replaces (its fallback); nothing new: empty."""
+    gen = torch.Generator().manual_seed(9)
+    F = 37
+    need = torch.rand(F, n, generator=gen) < 0.4
+    done = torch.rand(F, n, generator=gen) < 0.3
+    need[5], done[6] = False, True                                          # frames with nothing new
+    todo = need & ~done
+    want = torch.nonzero(todo.view(-1)).squeeze(-1)
+    d = done.clone()
+    pairs, nf = native_light.take(need, d)
+    assert pairs.dtype == torch.int64 and torch.equal(pairs, want) and nf == int(todo.any(1).sum())
+    assert torch.equal(d, done | need)
+    pairs, nf = native_light.take(need, d)
+    assert pairs.numel() == 0 and nf == 0 and torch.equal(d, done | need)
+
+
 @pytest.mark.parametrize("n", [45, 64, 130])
 def test_need_is_the_read_pairs(n):
     """`native_light.need` = the (grid row, column) pairs some point reads with a non-zero grid
