@@ -39,7 +39,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "chunks", "points", "groups", "W"]
+__all__ = ["available", "chunks", "points", "groups", "hit_faces", "W"]
 
 W = 8  # columns per chunk (one 8-lane vector)
 
@@ -189,6 +189,32 @@ void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, co
         tp_groups(e - a, n, V, vrow + a, R, brow + 4 * a, L, lrow + 4 * a, ptr, starts, tail, out + 48 * a);
     }
 }
+
+/* A per-vertex frame's bookkeeping of what it reads: fseen[f] = 1 for the faces f (of nf) that the
+   P samples with hit[i] see (face[i]), vseen[v] = 1 for their vertices (F (nf, 3), nv of them);
+   counts[0] = the hit samples, counts[1] = -1 when a hit sample's face or a seen face's vertex is
+   outside its table (the marks then undefined), else 0. */
+void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf, const int64_t* F, int64_t nv,
+                  uint8_t* fseen, uint8_t* vseen, int64_t* counts) {
+    int64_t h = 0, bad = 0;
+    for (int64_t i = 0; i < P; ++i) {
+        if (!hit[i]) continue;
+        const int64_t f = face[i];
+        ++h;
+        if ((uint64_t)f >= (uint64_t)nf) { bad = 1; continue; }
+        fseen[f] = 1;
+    }
+    for (int64_t f = 0; f < nf && !bad; ++f) {
+        if (!fseen[f]) continue;
+        for (int k = 0; k < 3; ++k) {
+            const int64_t v = F[3 * f + k];
+            if ((uint64_t)v >= (uint64_t)nv) { bad = 1; break; }
+            vseen[v] = 1;
+        }
+    }
+    counts[0] = h;
+    counts[1] = bad ? -1 : 0;
+}
 """
 
 
@@ -214,7 +240,8 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
-               "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]}
+               "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
+               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P]}
 
 
 def switched_on() -> bool:
@@ -335,3 +362,27 @@ def groups(V: Tensor, R: Tensor, L: Tensor, gv: Tensor, gl: Tensor, gb: Tensor, 
     nt = _threads(g)
     lib.tp_groups(*args) if nt == 1 else lib.tp_groups_par(*args, nt)
     return out
+
+
+def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Tensor, int] | None:
+    """(the distinct faces the samples with ``hit`` (P,) bool see (``face`` (P,) int64, rows of F),
+    the distinct vertices of those faces (F (nf, 3) int64, nv vertices), both sorted int64, the
+    number of hit samples) in one pass over the samples — what a per-vertex frame shades and records
+    (`TripleProduct.render`: `_hit_faces`, `_distinct` of their vertices and ``hit.sum()``, its
+    torch path and test oracle) — or None without the library or for other dtypes / layouts."""
+    lib = _lib()
+    if lib is None or hit.dtype != torch.bool or face.dtype != torch.int64 or F.dtype != torch.int64 \
+            or hit.device.type != "cpu" or face.device.type != "cpu" or F.device.type != "cpu" \
+            or hit.shape != face.shape or hit.ndim != 1 or F.ndim != 2 or F.shape[1] != 3 \
+            or not (hit.is_contiguous() and face.is_contiguous() and F.is_contiguous()):
+        return None
+    nf = F.shape[0]
+    fseen = torch.zeros(nf, dtype=torch.uint8)
+    vseen = torch.zeros(nv, dtype=torch.uint8)
+    counts = torch.zeros(2, dtype=torch.int64)
+    lib.tp_hit_faces(hit.numel(), hit.data_ptr(), face.data_ptr(), nf, F.data_ptr(), nv, fseen.data_ptr(),
+                     vseen.data_ptr(), counts.data_ptr())
+    if int(counts[1]) != 0:
+        raise IndexError("a hit sample's face or a face's vertex outside its table")
+    return (torch.nonzero(fseen, as_tuple=False).squeeze(-1), torch.nonzero(vseen, as_tuple=False).squeeze(-1),
+            int(counts[0]))

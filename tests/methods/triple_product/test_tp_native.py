@@ -190,3 +190,33 @@ def test_render_with_native_equals_the_compiled_kernels(shading, monkeypatch):
     monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
     ref2 = off.render(edited, gb)
     assert (img2 - ref2).abs().max() <= F32 * ref2.abs().max() and (img2 - img).abs().max() > 0
+
+
+def test_hit_faces_equal_the_torch_bookkeeping():
+    """`native.hit_faces` = the per-vertex frame's torch bookkeeping it replaces (`method._hit_faces`,
+    `method._distinct` of those faces' vertices, ``hit.sum()``): misses (face −1) skipped, faces seen
+    many times once; an index outside its table raises."""
+    from methods.triple_product.method import _distinct, _hit_faces
+    from types import SimpleNamespace
+
+    gen = torch.Generator().manual_seed(4)
+    nv, nf, P = 300, 500, 20000
+    F = torch.randint(0, nv, (nf, 3), generator=gen)
+    hit = torch.rand(P, generator=gen) < 0.7
+    face = torch.where(hit, torch.randint(0, nf // 3, (P,), generator=gen) * 2, torch.full((P,), -1))
+    got = native.hit_faces(hit, face, F, nv)
+    if got is None:
+        pytest.skip("no native loops")
+    faces = _hit_faces(SimpleNamespace(hit=hit, face=face), nf)
+    assert torch.equal(got[0], faces) and torch.equal(got[1], _distinct(F[faces].reshape(-1), nv))
+    assert got[2] == int(hit.sum())
+    none = native.hit_faces(torch.zeros(P, dtype=torch.bool), face, F, nv)
+    assert none[0].numel() == 0 and none[1].numel() == 0 and none[2] == 0
+    bad = face.clone()
+    bad[torch.nonzero(hit)[0]] = nf
+    with pytest.raises(IndexError):
+        native.hit_faces(hit, bad, F, nv)
+    F2 = F.clone()
+    F2[faces[0], 2] = nv                                                    # a seen face's vertex
+    with pytest.raises(IndexError):
+        native.hit_faces(hit, face, F2, nv)
