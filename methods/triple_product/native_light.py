@@ -39,7 +39,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "take", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "project"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -419,6 +419,23 @@ void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* 
     }
     counts[1] = rows;
 }
+
+/* The comb path's live-triangle means (B, n, 3, J) contiguous, row b J + j of frame dst[b J + j]
+   (< 0: not wanted), copied into out (F, 3, n): out[dst, c, t] = means[b, t, c, j], each wanted
+   frame's rows written in order (its means read with stride 3 J: a base row's 3 n J means stay in
+   L2 over its J frames). */
+void tp_comb_scatter(int64_t B, int64_t n, int64_t J, const float* means, const int64_t* dst, float* out) {
+    for (int64_t b = 0; b < B; ++b)
+        for (int64_t j = 0; j < J; ++j) {
+            const int64_t r = dst[b * J + j];
+            if (r < 0) continue;
+            for (int64_t c = 0; c < 3; ++c) {
+                const float* m = means + (b * n * 3 + c) * J + j;
+                float* o = out + (r * 3 + c) * n;
+                for (int64_t t = 0; t < n; ++t) o[t] = m[t * 3 * J];
+            }
+        }
+}
 """
 
 
@@ -434,7 +451,8 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
                "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
-               "tp_take": [_I, _I, _P, _P, _P, _P]}
+               "tp_take": [_I, _I, _P, _P, _P, _P],
+               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
@@ -517,6 +535,30 @@ def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
         return pairs, 0
     lib.tp_take(N, n, a.data_ptr(), b.data_ptr(), pairs.data_ptr(), counts.data_ptr())
     return pairs, int(counts[1])
+
+
+def comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bool:
+    """``out[frames] = means`` rows ``rows`` for the comb path's live-triangle means (B, n', 3, J)
+    (row b·J + j: `lighting._comb_rows`, frame (b, j)) into ``out`` (F, 3, n'): one pass over the
+    means instead of gathering (f, 3, n') from their permuted view and copying it in
+    (``out.index_copy_(0, frames, lighting._comb_select(...))``, the fallback and test oracle). The
+    same values. False (nothing written) without the library or for other layouts."""
+    lib = _lib()
+    if lib is None or means.ndim != 4 or out.ndim != 3 or means.dtype != torch.float32 or out.dtype != torch.float32 \
+            or not (means.is_contiguous() and out.is_contiguous()) or means.device.type != "cpu" \
+            or out.device.type != "cpu" or means.shape[2] != 3 or out.shape[1:] != (3, means.shape[1]) \
+            or rows.shape != frames.shape or rows.ndim != 1:
+        return False
+    B, n, _, J = means.shape
+    if rows.numel() == 0:
+        return True
+    rows, frames = rows.to(torch.int64), frames.to(torch.int64)
+    if int(rows.min()) < 0 or int(rows.max()) >= B * J or int(frames.min()) < 0 or int(frames.max()) >= out.shape[0]:
+        raise IndexError("a comb row or frame outside its table")
+    dst = torch.full((B * J,), -1, dtype=torch.int64)
+    dst[rows] = frames
+    lib.tp_comb_scatter(B, n, J, means.data_ptr(), dst.data_ptr(), out.data_ptr())
+    return True
 
 
 def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q: Tensor, out: Tensor) -> Tensor:

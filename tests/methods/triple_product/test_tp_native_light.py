@@ -122,6 +122,28 @@ def test_take_is_the_new_pairs(n):
     assert pairs.numel() == 0 and nf == 0 and torch.equal(d, done | need)
 
 
+def test_comb_scatter_is_the_gather_and_copy():
+    """`native_light.comb_scatter` writes the rows the comb path's gather and copy wrote
+    (``out.index_copy_(0, frames, lighting._comb_select(means.permute(0, 3, 2, 1), rows))``), the same
+    values, leaves the other frames' rows alone, and refuses (False) a non-contiguous table."""
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(11)
+    g = lt.FrameGrid(5, 8, 2)
+    B, J, n = g.n_theta * g.n_psi, g.n_phi, 37                           # base rows b = i·n_psi + k, frames j
+    means = torch.randn(B, n, 3, J, generator=gen)
+    frames = torch.randperm(g.size, generator=gen)[: g.size // 2 + 3]
+    rows = lt._comb_rows(g, frames)
+    want = torch.full((g.size, 3, n), 7.0)
+    want.index_copy_(0, frames, lt._comb_select(means.permute(0, 3, 2, 1), rows))
+    got = torch.full((g.size, 3, n), 7.0)
+    assert native_light.comb_scatter(means, rows, frames, got)
+    assert torch.equal(got, want)
+    assert not native_light.comb_scatter(means, rows, frames, torch.zeros(g.size, n, 3).transpose(1, 2))
+    with pytest.raises(IndexError):
+        native_light.comb_scatter(means, rows + B * J, frames, got)
+
+
 @pytest.mark.parametrize("n", [45, 64, 130])
 def test_need_is_the_read_pairs(n):
     """`native_light.need` = the (grid row, column) pairs some point reads with a non-zero grid
