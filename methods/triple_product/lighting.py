@@ -652,6 +652,14 @@ def _comb_rows(grid: FrameGrid, frames: Tensor) -> Tensor:
     return b * grid.n_phi + j
 
 
+def _native_comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bool:
+    """`native_light.comb_scatter` (the live triangles' means into their frames' rows of ``out`` in one
+    pass; False: not available, then the caller gathers with `_comb_select`)."""
+    from methods.triple_product import native_light
+
+    return native_light.comb_scatter(means, rows, frames, out)
+
+
 def _comb_select(y: Tensor, rows: Tensor) -> Tensor:
     """Rows ``rows`` (b·J + j, `_comb_rows`) of (B·J, 3, n) `comb_coeffs` output, or of a (B, J, 3, n)
     view (the live triangles' means, permuted without a copy): (f, 3, n) contiguous."""
@@ -859,7 +867,7 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         rows = _comb_rows(grid, frames)
         if out is not None:
             for x, y in zip(out, (coef, fine)):
-                if x is not None:
+                if x is not None and not (y.ndim == 4 and _native_comb_scatter(means, rows, frames, x)):
                     x.index_copy_(0, frames, _comb_select(y, rows))
             return out
         return None if coef is None else coef[rows], _comb_select(fine, rows)

@@ -97,6 +97,8 @@ from methods.triple_product import brdf_table as bt
 from methods.triple_product import lighting as lt
 from methods.triple_product import fast_eval
 from methods.triple_product import native_group
+from methods.triple_product import native_light
+from methods.triple_product import native as tp_native
 from methods.triple_product import textures as tx
 from methods.triple_product.precompute import SELECTIONS, blend_sparse, texel_points, truncate, visibility_coeffs
 
@@ -474,13 +476,15 @@ class TripleProduct(Method):
                 pd = lazy.get("pairs")
                 if pd is None:                           # pairs projected: those of the frames whole
                     pd = lazy["pairs"] = lazy["live"][:, None].expand(-1, live.numel()).clone()
-                todo = need & ~pd
-                pairs = torch.nonzero(todo.view(-1), as_tuple=False).squeeze(-1)
+                pairs, nf = native_light.take(need, pd)    # need & ~pd, into pd (one pass)
                 if pairs.numel():
-                    lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
-                                     tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
-                    pd |= todo
-                    self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + int(todo.any(1).sum())
+                    try:
+                        lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
+                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
+                    except BaseException:
+                        pd.view(-1)[pairs] = False           # not projected
+                        raise
+                    self.stats["projected_frames"] = self.stats.get("projected_frames", 0) + nf
                     self.stats["projected_pairs"] = self.stats.get("projected_pairs", 0) + int(pairs.numel())
                 self.stats["lighting_seconds"] = self.stats.get("lighting_seconds", 0.0) + time.perf_counter() - t0
                 return
@@ -767,9 +771,12 @@ class TripleProduct(Method):
         if self.config["evaluator"] != "reference" and fast_eval.fine_ok(self):
             chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
         if self.config["shading"] == "vertex":
-            faces = _hit_faces(gbuffer, self.F.shape[0])
-            used = _distinct(self.F[faces].reshape(-1), self.V.shape[0])
-            self._record_frame(gbuffer, int(gbuffer.hit.sum()), faces, used, used)
+            seen = tp_native.hit_faces(gbuffer.hit, gbuffer.face, self.F, self.V.shape[0])   # one C pass
+            if seen is None:
+                faces = _hit_faces(gbuffer, self.F.shape[0])
+                seen = (faces, _distinct(self.F[faces].reshape(-1), self.V.shape[0]), int(gbuffer.hit.sum()))
+            faces, used, n_hit = seen
+            self._record_frame(gbuffer, n_hit, faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
             Bv = torch.zeros(self.V.shape[0], 3, device=self.V.device)
             for a in range(0, used.numel(), chunk):

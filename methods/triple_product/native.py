@@ -8,12 +8,13 @@ Why: a point's blended visibility is exactly 0 on 38–48 % of its live fine tri
 `fast_eval.frame_cost` does not count them (`fast_eval.nonzero_reads`). An Inductor loop cannot run
 over per-point variable ranges, so the compiled kernels sum whole live rows. Here every visibility
 row gets, once per table (`chunks`: one pass over the table, built at load, not cached in the
-precomputation), the starts of 8-column *chunks* covering its non-zero columns — greedily, the first
-non-zero column not yet covered starts a chunk, so chunks do not overlap and need not be aligned (the
+precomputation), the starts of the 8-aligned 8-column *chunks* holding its non-zero columns (the
 zeros of a row are coherent in direction and the live columns are in the fine values' quadtree
-order: on chess bench per-vertex V the shaded vertices' chunks cover 65 % of their live columns,
-their non-zeros are 56 %: 80 % of the zeros skipped; aligned 8-blocks would cover 69 %) — and the
-columns from the last non-zero one that does not fit a whole chunk (< 8) are summed one by one.
+order: on chess bench per-vertex V the shaded vertices' aligned chunks cover 69 % of their live
+columns, their non-zeros are 56 %; chunks starting on any non-zero column cover 65 %, but ~7 in 16 of
+their vector loads straddle two cache lines: aligned, the per-vertex sums ran 1.04x faster
+(session 29) and per pixel no slower) — and the columns after the last whole aligned block
+(< 8, when 8 does not divide the row) are summed one by one.
 Each chunk is one 8-lane vector of every row read (AVX2 + FMA when the CPU has them).
 
 The sums are the compiled kernels' terms minus exact zeros, in another order (float32 round-off;
@@ -38,7 +39,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "chunks", "points", "groups", "W"]
+__all__ = ["available", "chunks", "points", "groups", "hit_faces", "W"]
 
 W = 8  # columns per chunk (one 8-lane vector)
 
@@ -52,9 +53,9 @@ static inline float hsum(v8 a) {
     return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
 }
 
-/* Per row r of V (N, n): the starts of 8-column chunks covering its non-zero columns (greedy: the
-   first non-zero column not yet covered starts a chunk while c + 8 <= n), and tail[r], the first
-   non-zero column not covered (n when none). starts == NULL: count[r] = the row's chunks only. */
+/* Per row r of V (N, n): the starts of the 8-aligned 8-column chunks holding its non-zero columns
+   (while a + 8 <= n), and tail[r], the first non-zero column not covered (n when none).
+   starts == NULL: count[r] = the row's chunks only. */
 void tp_chunks(const float* V, int64_t N, int64_t n, int64_t* count, const int64_t* ptr,
                int32_t* starts, int32_t* tail) {
     for (int64_t r = 0; r < N; ++r) {
@@ -62,10 +63,11 @@ void tp_chunks(const float* V, int64_t N, int64_t n, int64_t* count, const int64
         int64_t c = 0, k = 0, t = n;
         while (c < n) {
             if (v[c] == 0.0f) { ++c; continue; }
-            if (c + 8 > n) { t = c; break; }
-            if (starts) starts[ptr[r] + k] = (int32_t)c;
+            const int64_t a = c & ~(int64_t)7;                /* the 8-aligned block holding c */
+            if (a + 8 > n) { t = c; break; }
+            if (starts) starts[ptr[r] + k] = (int32_t)a;
             ++k;
-            c += 8;
+            c = a + 8;
         }
         if (count) count[r] = k;
         if (tail) tail[r] = (int32_t)t;
@@ -83,12 +85,18 @@ void tp_points(int64_t b, int64_t n, const float* V, const int64_t* vrow, const 
         const int64_t v = vrow[i];
         const float w = vw[i];
         const float* Vr = V + v * n;
-        const float *R0 = R + brow[4 * i] * 3 * n, *R1 = R + brow[4 * i + 1] * 3 * n,
-                    *R2 = R + brow[4 * i + 2] * 3 * n, *R3 = R + brow[4 * i + 3] * 3 * n;
-        const float *L0 = L + lrow[4 * i] * 3 * n, *L1 = L + lrow[4 * i + 1] * 3 * n,
-                    *L2 = L + lrow[4 * i + 2] * 3 * n, *L3 = L + lrow[4 * i + 3] * 3 * n;
         const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3];
         const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3];
+        /* a row with weight 0 adds exact zeros (finite tables): read the first weighted row in its
+           place (already in L1), not a row of its own (a third of the grid weights are 0) */
+        const int64_t kb = b0 != 0.0f ? 0 : b1 != 0.0f ? 1 : b2 != 0.0f ? 2 : 3;
+        const int64_t kl = l0 != 0.0f ? 0 : l1 != 0.0f ? 1 : l2 != 0.0f ? 2 : 3;
+        const int64_t* bi = brow + 4 * i;
+        const int64_t* li = lrow + 4 * i;
+        const float *R0 = R + bi[b0 != 0.0f ? 0 : kb] * 3 * n, *R1 = R + bi[b1 != 0.0f ? 1 : kb] * 3 * n,
+                    *R2 = R + bi[b2 != 0.0f ? 2 : kb] * 3 * n, *R3 = R + bi[b3 != 0.0f ? 3 : kb] * 3 * n;
+        const float *L0 = L + li[l0 != 0.0f ? 0 : kl] * 3 * n, *L1 = L + li[l1 != 0.0f ? 1 : kl] * 3 * n,
+                    *L2 = L + li[l2 != 0.0f ? 2 : kl] * 3 * n, *L3 = L + li[l3 != 0.0f ? 3 : kl] * 3 * n;
         for (int c = 0; c < 3; ++c) {   /* one channel at a time: 9 rows streamed, not 25 */
             const float *Rc0 = R0 + c * n, *Rc1 = R1 + c * n, *Rc2 = R2 + c * n, *Rc3 = R3 + c * n;
             const float *Lc0 = L0 + c * n, *Lc1 = L1 + c * n, *Lc2 = L2 + c * n, *Lc3 = L3 + c * n;
@@ -181,6 +189,32 @@ void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, co
         tp_groups(e - a, n, V, vrow + a, R, brow + 4 * a, L, lrow + 4 * a, ptr, starts, tail, out + 48 * a);
     }
 }
+
+/* A per-vertex frame's bookkeeping of what it reads: fseen[f] = 1 for the faces f (of nf) that the
+   P samples with hit[i] see (face[i]), vseen[v] = 1 for their vertices (F (nf, 3), nv of them);
+   counts[0] = the hit samples, counts[1] = -1 when a hit sample's face or a seen face's vertex is
+   outside its table (the marks then undefined), else 0. */
+void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf, const int64_t* F, int64_t nv,
+                  uint8_t* fseen, uint8_t* vseen, int64_t* counts) {
+    int64_t h = 0, bad = 0;
+    for (int64_t i = 0; i < P; ++i) {
+        if (!hit[i]) continue;
+        const int64_t f = face[i];
+        ++h;
+        if ((uint64_t)f >= (uint64_t)nf) { bad = 1; continue; }
+        fseen[f] = 1;
+    }
+    for (int64_t f = 0; f < nf && !bad; ++f) {
+        if (!fseen[f]) continue;
+        for (int k = 0; k < 3; ++k) {
+            const int64_t v = F[3 * f + k];
+            if ((uint64_t)v >= (uint64_t)nv) { bad = 1; break; }
+            vseen[v] = 1;
+        }
+    }
+    counts[0] = h;
+    counts[1] = bad ? -1 : 0;
+}
 """
 
 
@@ -206,7 +240,8 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
-               "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]}
+               "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
+               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P]}
 
 
 def switched_on() -> bool:
@@ -281,7 +316,8 @@ def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Ten
            lrows: Tensor, lw: Tensor, ch) -> Tensor:
     """`fast_eval.fine_block` of b points with one visibility row each (vrow (b,), vw (b,)), 4 ρ̃ rows
     (brows, bw (b, 4)) and 4 grid rows (lrows, lw (b, 4)), over the chunks ``ch`` (`chunks` of V)
-    of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32. → (b, 3)."""
+    of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32 (finite: a row with weight 0
+    is not read, the point's first weighted row is read in its place, times 0). → (b, 3)."""
     lib = _lib()
     n = _check_tables(V, R, L, ch)
     b = vrow.shape[0]
@@ -326,3 +362,27 @@ def groups(V: Tensor, R: Tensor, L: Tensor, gv: Tensor, gl: Tensor, gb: Tensor, 
     nt = _threads(g)
     lib.tp_groups(*args) if nt == 1 else lib.tp_groups_par(*args, nt)
     return out
+
+
+def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Tensor, int] | None:
+    """(the distinct faces the samples with ``hit`` (P,) bool see (``face`` (P,) int64, rows of F),
+    the distinct vertices of those faces (F (nf, 3) int64, nv vertices), both sorted int64, the
+    number of hit samples) in one pass over the samples — what a per-vertex frame shades and records
+    (`TripleProduct.render`: `_hit_faces`, `_distinct` of their vertices and ``hit.sum()``, its
+    torch path and test oracle) — or None without the library or for other dtypes / layouts."""
+    lib = _lib()
+    if lib is None or hit.dtype != torch.bool or face.dtype != torch.int64 or F.dtype != torch.int64 \
+            or hit.device.type != "cpu" or face.device.type != "cpu" or F.device.type != "cpu" \
+            or hit.shape != face.shape or hit.ndim != 1 or F.ndim != 2 or F.shape[1] != 3 \
+            or not (hit.is_contiguous() and face.is_contiguous() and F.is_contiguous()):
+        return None
+    nf = F.shape[0]
+    fseen = torch.zeros(nf, dtype=torch.uint8)
+    vseen = torch.zeros(nv, dtype=torch.uint8)
+    counts = torch.zeros(2, dtype=torch.int64)
+    lib.tp_hit_faces(hit.numel(), hit.data_ptr(), face.data_ptr(), nf, F.data_ptr(), nv, fseen.data_ptr(),
+                     vseen.data_ptr(), counts.data_ptr())
+    if int(counts[1]) != 0:
+        raise IndexError("a hit sample's face or a face's vertex outside its table")
+    return (torch.nonzero(fseen, as_tuple=False).squeeze(-1), torch.nonzero(vseen, as_tuple=False).squeeze(-1),
+            int(counts[0]))

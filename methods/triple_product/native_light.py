@@ -39,7 +39,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "project"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -156,15 +156,179 @@ static inline void pair_means(const float* m, int64_t tr, int64_t n, int64_t S, 
     o[2 * n] = (b[0] + b[1]) + (b[2] + b[3]);
 }
 
+#if defined(__AVX2__)
+#include <immintrin.h>
+
+#define SET(x) _mm256_set1_ps((float)(x))
+#define MUL _mm256_mul_ps
+#define ADD _mm256_add_ps
+#define SUB _mm256_sub_ps
+#define SEL(c, a, b) _mm256_blendv_ps((b), (a), (c))           /* c ? a : b */
+#define K4 for (int k = 0; k < 4; ++k)
+
+/* tap for 4 × 8 samples (AVX2; vector k in the frame of mk[k]), written out: GCC's vectorised tap
+   evaluated the acos polynomial twice and the atan one three times (once per if-converted branch).
+   The same float32 operations one for one, each select a blend of both sides with the scalar
+   compare's semantics (_mm256_max_ps(x, y) is x > y ? x : y, _mm256_min_ps(x, y) x < y ? x : y,
+   ordered non-signalling compares: NaN false). Statement by statement over the 4 vectors: four
+   independent chains in flight (one pair's two at a time measured 1.13x slower, eight spilled). */
+static inline void tap4x8(const __m256* cx, const __m256* cy, const __m256* cz, const float* const* mk,
+                          __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
+                          __m256i* idx, __m256* fx, __m256* fy) {
+    const __m256 sign = SET(-0.0f), one = SET(1.0f), zero = _mm256_setzero_ps();
+    __m256 d0[4], d1[4], d2[4], yv[4], a[4], big[4], z[4], s[4], q[4], p[4], r[4], v[4];
+    __m256 xx[4], ax[4], ay[4], mn[4], mx[4], c[4], num[4], den[4], t[4], tz[4], pq[4], ra[4], u[4], x[4], y[4];
+    __m256i ix[4], iy[4];
+    K4 d0[k] = ADD(ADD(MUL(cx[k], SET(mk[k][0])), MUL(cy[k], SET(mk[k][3]))), MUL(cz[k], SET(mk[k][6])));
+    K4 d1[k] = ADD(ADD(MUL(cx[k], SET(mk[k][1])), MUL(cy[k], SET(mk[k][4]))), MUL(cz[k], SET(mk[k][7])));
+    K4 d2[k] = ADD(ADD(MUL(cx[k], SET(mk[k][2])), MUL(cy[k], SET(mk[k][5]))), MUL(cz[k], SET(mk[k][8])));
+    /* acos_f32 of clamp(d1, -1, 1) / pi */
+    K4 yv[k] = _mm256_min_ps(_mm256_max_ps(d1[k], SET(-1.0f)), one);
+    K4 a[k] = _mm256_andnot_ps(sign, yv[k]);
+    K4 big[k] = _mm256_cmp_ps(a[k], SET(0.5f), _CMP_GT_OQ);
+    K4 z[k] = SEL(big[k], SUB(SET(0.5f), MUL(a[k], SET(0.5f))), MUL(a[k], a[k]));
+    K4 s[k] = SEL(big[k], _mm256_sqrt_ps(z[k]), a[k]);
+    K4 q[k] = MUL(ADD(MUL(ADD(MUL(ADD(MUL(ADD(MUL(z[k], SET(0.042163199048)), SET(0.024181311049)), z[k]),
+                                        SET(0.045470025998)), z[k]), SET(0.074953002686)), z[k]),
+                      SET(0.16666752422)), z[k]);
+    K4 p[k] = ADD(MUL(q[k], s[k]), s[k]);
+    K4 r[k] = SEL(big[k], MUL(p[k], SET(2.0f)), SUB(SET(1.5707963267948966), p[k]));
+    K4 r[k] = SEL(_mm256_cmp_ps(yv[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), r[k]), r[k]);
+    K4 v[k] = MUL(r[k], SET(0.3183098861837907));
+    /* atan2_f32(d0, -d2) / 2 pi */
+    K4 xx[k] = _mm256_xor_ps(d2[k], sign);
+    K4 ax[k] = _mm256_andnot_ps(sign, xx[k]);
+    K4 ay[k] = _mm256_andnot_ps(sign, d0[k]);
+    K4 mn[k] = _mm256_min_ps(ax[k], ay[k]);
+    K4 mx[k] = _mm256_max_ps(ax[k], ay[k]);
+    K4 c[k] = _mm256_cmp_ps(mn[k], MUL(mx[k], SET(0.41421356237309503)), _CMP_GT_OQ);
+    K4 num[k] = SEL(c[k], SUB(mn[k], mx[k]), mn[k]);
+    K4 den[k] = SEL(c[k], ADD(mn[k], mx[k]), mx[k]);
+    K4 den[k] = SEL(_mm256_cmp_ps(den[k], zero, _CMP_GT_OQ), den[k], one);
+    K4 t[k] = _mm256_div_ps(num[k], den[k]);
+    K4 tz[k] = MUL(t[k], t[k]);
+    K4 pq[k] = ADD(MUL(MUL(SUB(MUL(ADD(MUL(SUB(MUL(tz[k], SET(0.0805374449538)), SET(0.138776856032)), tz[k]),
+                                         SET(0.199777106478)), tz[k]), SET(0.333329491539)), tz[k]), t[k]), t[k]);
+    K4 ra[k] = SEL(c[k], ADD(pq[k], SET(0.7853981633974483)), pq[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(ay[k], ax[k], _CMP_GT_OQ), SUB(SET(1.5707963267948966), ra[k]), ra[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(xx[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), ra[k]), ra[k]);
+    K4 ra[k] = SEL(_mm256_cmp_ps(d0[k], zero, _CMP_LT_OQ), _mm256_xor_ps(ra[k], sign), ra[k]);
+    K4 u[k] = SUB(MUL(ra[k], SET(0.15915494309189535)), hw);
+    /* quad_taps */
+    K4 u[k] = SUB(u[k], _mm256_floor_ps(u[k]));
+    K4 v[k] = SUB(v[k], _mm256_floor_ps(v[k]));
+    K4 x[k] = MUL(u[k], Wf);
+    K4 y[k] = MUL(v[k], H1);
+    K4 ix[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(x[k]), _mm256_setzero_si256()), W1);
+    K4 iy[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(y[k]), _mm256_setzero_si256()), H2);
+    K4 idx[k] = _mm256_add_epi32(_mm256_mullo_epi32(iy[k], Wp), ix[k]);
+    K4 fx[k] = SUB(x[k], _mm256_cvtepi32_ps(ix[k]));
+    K4 fy[k] = SUB(y[k], _mm256_cvtepi32_ps(iy[k]));
+}
+
+/* pair_means' sums for S = 16 from its taps (samples 0-7: iA, fxA, fyA; 8-15: iB, fxB, fyB), the
+   same operations in registers: the weights 4 × 8 transposed to {w of sample s, w of sample s + 8}
+   (s < 8), each sample's quad weights broadcast to both halves for its 12 texel lanes, the tree of
+   _tree_sum in registers */
+static inline void sums16(__m256i iA, __m256i iB, __m256 fxA, __m256 fyA, __m256 fxB, __m256 fyB,
+                          const float* w, int64_t n, const float* Q, float* o) {
+    const __m256 one = SET(1.0f), wA = _mm256_loadu_ps(w), wB = _mm256_loadu_ps(w + 8);
+    const __m256 gxA = SUB(one, fxA), gyA = SUB(one, fyA), gxB = SUB(one, fxB), gyB = SUB(one, fyB);
+    const __m256 W0A = MUL(MUL(gxA, gyA), wA), W1A = MUL(MUL(fxA, gyA), wA), W2A = MUL(MUL(gxA, fyA), wA),
+                 W3A = MUL(MUL(fxA, fyA), wA);
+    const __m256 W0B = MUL(MUL(gxB, gyB), wB), W1B = MUL(MUL(fxB, gyB), wB), W2B = MUL(MUL(gxB, fyB), wB),
+                 W3B = MUL(MUL(fxB, fyB), wB);
+    __m256 ws[8];
+    {
+        const __m256 X0 = _mm256_permute2f128_ps(W0A, W0B, 0x20), X1 = _mm256_permute2f128_ps(W1A, W1B, 0x20),
+                     X2 = _mm256_permute2f128_ps(W2A, W2B, 0x20), X3 = _mm256_permute2f128_ps(W3A, W3B, 0x20);
+        const __m256 Y0 = _mm256_permute2f128_ps(W0A, W0B, 0x31), Y1 = _mm256_permute2f128_ps(W1A, W1B, 0x31),
+                     Y2 = _mm256_permute2f128_ps(W2A, W2B, 0x31), Y3 = _mm256_permute2f128_ps(W3A, W3B, 0x31);
+        __m256 t0 = _mm256_unpacklo_ps(X0, X1), t1 = _mm256_unpackhi_ps(X0, X1);
+        __m256 t2 = _mm256_unpacklo_ps(X2, X3), t3 = _mm256_unpackhi_ps(X2, X3);
+        ws[0] = _mm256_shuffle_ps(t0, t2, 0x44); ws[1] = _mm256_shuffle_ps(t0, t2, 0xEE);
+        ws[2] = _mm256_shuffle_ps(t1, t3, 0x44); ws[3] = _mm256_shuffle_ps(t1, t3, 0xEE);
+        t0 = _mm256_unpacklo_ps(Y0, Y1); t1 = _mm256_unpackhi_ps(Y0, Y1);
+        t2 = _mm256_unpacklo_ps(Y2, Y3); t3 = _mm256_unpackhi_ps(Y2, Y3);
+        ws[4] = _mm256_shuffle_ps(t0, t2, 0x44); ws[5] = _mm256_shuffle_ps(t0, t2, 0xEE);
+        ws[6] = _mm256_shuffle_ps(t1, t3, 0x44); ws[7] = _mm256_shuffle_ps(t1, t3, 0xEE);
+    }
+    int32_t ii[16];
+    _mm256_storeu_si256((__m256i*)ii, iA);
+    _mm256_storeu_si256((__m256i*)(ii + 8), iB);
+#define QR(s) (Q + 16 * (int64_t)ii[s])
+#define WQ(s) ((s) < 8 ? _mm256_permute2f128_ps(ws[(s) & 7], ws[(s) & 7], 0x00) \
+                       : _mm256_permute2f128_ps(ws[(s) & 7], ws[(s) & 7], 0x11))
+#define P8(s) MUL(_mm256_loadu_ps(QR(s)), WQ(s))
+#define P4(s) _mm_mul_ps(_mm_loadu_ps(QR(s) + 8), _mm256_castps256_ps128(WQ(s)))
+#define T4(P, s) ((P(s) + P(s + 1)) + (P(s + 2) + P(s + 3)))
+#define T16(P) ((T4(P, 0) + T4(P, 4)) + (T4(P, 8) + T4(P, 12)))
+    const v8 A = (v8)T16(P8);
+    const v4 B = (v4)T16(P4);
+#undef QR
+#undef WQ
+#undef P8
+#undef P4
+#undef T4
+#undef T16
+    o[0] = (A[0] + A[1]) + (A[2] + A[3]);
+    o[n] = (A[4] + A[5]) + (A[6] + A[7]);
+    o[2 * n] = (B[0] + B[1]) + (B[2] + B[3]);
+}
+
+/* two pairs of S = 16 samples (live triangles t0 in the frame m0, t1 in m1; the same pair twice for
+   an odd count's last): their four sample vectors through tap4x8, then each pair's sums16 */
+static inline void pairs16x2(const float* m0, const float* m1, int64_t t0, int64_t t1, int64_t n, const float* cp,
+                             const float* wT, __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
+                             const float* Q, float* o0, float* o1) {
+    const float *x0 = cp + t0 * 16, *y0 = cp + (n + t0) * 16, *z0 = cp + (2 * n + t0) * 16;
+    const float *x1 = cp + t1 * 16, *y1 = cp + (n + t1) * 16, *z1 = cp + (2 * n + t1) * 16;
+    const __m256 cx[4] = {_mm256_loadu_ps(x0), _mm256_loadu_ps(x0 + 8), _mm256_loadu_ps(x1), _mm256_loadu_ps(x1 + 8)};
+    const __m256 cy[4] = {_mm256_loadu_ps(y0), _mm256_loadu_ps(y0 + 8), _mm256_loadu_ps(y1), _mm256_loadu_ps(y1 + 8)};
+    const __m256 cz[4] = {_mm256_loadu_ps(z0), _mm256_loadu_ps(z0 + 8), _mm256_loadu_ps(z1), _mm256_loadu_ps(z1 + 8)};
+    const float* mk[4] = {m0, m0, m1, m1};
+    __m256i ii[4];
+    __m256 fx[4], fy[4];
+    tap4x8(cx, cy, cz, mk, H1, Wf, hw, H2, W1, Wp, ii, fx, fy);
+    sums16(ii[0], ii[1], fx[0], fy[0], fx[1], fy[1], wT + t0 * 16, n, Q, o0);
+    sums16(ii[2], ii[3], fx[2], fy[2], fx[3], fy[3], wT + t1 * 16, n, Q, o1);
+}
+#undef SET
+#undef MUL
+#undef ADD
+#undef SUB
+#undef SEL
+#undef K4
+#define HAVE_PAIR16 1
+#endif
+
 /* out[f, c, t] (F, 3, n) for the pairs f * n + t: the mean of the map's bilinear radiance over the
    S samples of live triangle t seen in frame f (lighting.quad_means). M (F, 9) = R T; cp (3, n, S)
    the live triangles' sample planes, wT (n, S) their weights; Q the quad rows (H (W + 1), 16).
-   S = 16 (supersample 2, the method's default) is a constant of
-   its own loop (unrolled). */
+   S = 16 (supersample 2, the method's default) takes pairs16x2, two pairs at a time, when built with
+   AVX2 (the frame of consecutive pairs kept: no division per pair), else pair_means with S a
+   constant (unrolled). */
 void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
                 const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
     const float H1 = (float)(H - 1), Wf = (float)W, hw = (float)(0.5 / (double)W);
     const int32_t H2 = (int32_t)(H - 2), W1 = (int32_t)(W - 1), Wp = (int32_t)(W + 1);
+#ifdef HAVE_PAIR16
+    if (S == 16) {
+        const __m256 H1v = _mm256_set1_ps(H1), Wfv = _mm256_set1_ps(Wf), hwv = _mm256_set1_ps(hw);
+        const __m256i H2v = _mm256_set1_epi32(H2), W1v = _mm256_set1_epi32(W1), Wpv = _mm256_set1_epi32(Wp);
+        int64_t f = -1, lo = 0;                                  /* pairs[e] in [lo, lo + n): frame f */
+        for (int64_t e = 0; e < np; e += 2) {
+            const int64_t e1 = e + 1 < np ? e + 1 : e;
+            if (f < 0 || pairs[e] < lo || pairs[e] - lo >= n) { f = pairs[e] / n; lo = f * n; }
+            const int64_t f0 = f, t0 = pairs[e] - lo;
+            if (pairs[e1] < lo || pairs[e1] - lo >= n) { f = pairs[e1] / n; lo = f * n; }
+            const int64_t t1 = pairs[e1] - lo;
+            pairs16x2(M + 9 * f0, M + 9 * f, t0, t1, n, cp, wT, H1v, Wfv, hwv, H2v, W1v, Wpv, Q,
+                      out + f0 * 3 * n + t0, out + f * 3 * n + t1);
+        }
+        return;
+    }
+#else
     if (S == 16) {
         for (int64_t e = 0; e < np; ++e) {
             const int64_t f = pairs[e] / n, tr = pairs[e] % n;
@@ -172,6 +336,7 @@ void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const fl
         }
         return;
     }
+#endif
     for (int64_t e = 0; e < np; ++e) {
         const int64_t f = pairs[e] / n, tr = pairs[e] % n;
         pair_means(M + 9 * f, tr, n, S, cp, wT, H1, Wf, hw, H2, W1, Wp, Q, out + f * 3 * n + tr);
@@ -234,6 +399,43 @@ void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64
     free(bits);
     status[0] = bad ? -1 : 0;
 }
+
+/* The pairs of need (N bytes) not in done, in index order: counts[0] = their number when pairs is
+   NULL; else pairs[0 .. counts[0]) = them, done[i] = 1 for each, and counts[1] = the rows of n that
+   hold one (a frame with a pair to project). */
+void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* pairs, int64_t* counts) {
+    int64_t k = 0;
+    if (!pairs) {
+        for (int64_t i = 0; i < N; ++i) k += need[i] & (done[i] ^ 1);
+        counts[0] = k;
+        return;
+    }
+    int64_t rows = 0;
+    for (int64_t a = 0; a < N; a += n) {
+        const int64_t e = a + n < N ? a + n : N, k0 = k;
+        for (int64_t i = a; i < e; ++i)
+            if (need[i] & (done[i] ^ 1)) { pairs[k++] = i; done[i] = 1; }
+        rows += k > k0;
+    }
+    counts[1] = rows;
+}
+
+/* The comb path's live-triangle means (B, n, 3, J) contiguous, row b J + j of frame dst[b J + j]
+   (< 0: not wanted), copied into out (F, 3, n): out[dst, c, t] = means[b, t, c, j], each wanted
+   frame's rows written in order (its means read with stride 3 J: a base row's 3 n J means stay in
+   L2 over its J frames). */
+void tp_comb_scatter(int64_t B, int64_t n, int64_t J, const float* means, const int64_t* dst, float* out) {
+    for (int64_t b = 0; b < B; ++b)
+        for (int64_t j = 0; j < J; ++j) {
+            const int64_t r = dst[b * J + j];
+            if (r < 0) continue;
+            for (int64_t c = 0; c < 3; ++c) {
+                const float* m = means + (b * n * 3 + c) * J + j;
+                float* o = out + (r * 3 + c) * n;
+                for (int64_t t = 0; t < n; ++t) o[t] = m[t * 3 * J];
+            }
+        }
+}
 """
 
 
@@ -248,7 +450,9 @@ def _flags() -> tuple[str, ...]:
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P]}
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
+               "tp_take": [_I, _I, _P, _P, _P, _P],
+               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
@@ -308,6 +512,53 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     if r != 0:
         raise MemoryError("tp_need could not allocate its tables")
     return out.view(torch.bool)
+
+
+def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
+    """The (frame, triangle) pairs of ``need`` (F, n) bool not yet in ``done`` (F, n) bool, which
+    receives them: (their flat indices f·n + t (P,) int64 in order, the number of frames f holding one)
+    — ``torch.nonzero(need & ~done)``, ``done |= that``, ``that.any(1).sum()`` in one pass (those
+    torch operations without the library; its test oracle)."""
+    if need.shape != done.shape or need.ndim != 2 or need.dtype != torch.bool or done.dtype != torch.bool:
+        raise ValueError("need and done (F, n) bool expected")
+    lib = _lib()
+    if lib is None or not (need.is_contiguous() and done.is_contiguous()):
+        todo = need & ~done
+        done |= todo
+        return torch.nonzero(todo.view(-1), as_tuple=False).squeeze(-1), int(todo.any(1).sum())
+    N, n = need.numel(), need.shape[1]
+    counts = torch.zeros(2, dtype=torch.int64)
+    a, b = need.view(torch.uint8), done.view(torch.uint8)
+    lib.tp_take(N, max(n, 1), a.data_ptr(), b.data_ptr(), None, counts.data_ptr())
+    pairs = torch.empty(int(counts[0]), dtype=torch.int64)
+    if pairs.numel() == 0:
+        return pairs, 0
+    lib.tp_take(N, n, a.data_ptr(), b.data_ptr(), pairs.data_ptr(), counts.data_ptr())
+    return pairs, int(counts[1])
+
+
+def comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bool:
+    """``out[frames] = means`` rows ``rows`` for the comb path's live-triangle means (B, n', 3, J)
+    (row b·J + j: `lighting._comb_rows`, frame (b, j)) into ``out`` (F, 3, n'): one pass over the
+    means instead of gathering (f, 3, n') from their permuted view and copying it in
+    (``out.index_copy_(0, frames, lighting._comb_select(...))``, the fallback and test oracle). The
+    same values. False (nothing written) without the library or for other layouts."""
+    lib = _lib()
+    if lib is None or means.ndim != 4 or out.ndim != 3 or means.dtype != torch.float32 or out.dtype != torch.float32 \
+            or not (means.is_contiguous() and out.is_contiguous()) or means.device.type != "cpu" \
+            or out.device.type != "cpu" or means.shape[2] != 3 or out.shape[1:] != (3, means.shape[1]) \
+            or rows.shape != frames.shape or rows.ndim != 1:
+        return False
+    B, n, _, J = means.shape
+    if rows.numel() == 0:
+        return True
+    rows, frames = rows.to(torch.int64), frames.to(torch.int64)
+    if int(rows.min()) < 0 or int(rows.max()) >= B * J or int(frames.min()) < 0 or int(frames.max()) >= out.shape[0]:
+        raise IndexError("a comb row or frame outside its table")
+    dst = torch.full((B * J,), -1, dtype=torch.int64)
+    dst[rows] = frames
+    lib.tp_comb_scatter(B, n, J, means.data_ptr(), dst.data_ptr(), out.data_ptr())
+    return True
 
 
 def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q: Tensor, out: Tensor) -> Tensor:

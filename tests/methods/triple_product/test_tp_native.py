@@ -43,8 +43,8 @@ def _tables(n: int, gen: torch.Generator):
 @pytest.mark.parametrize("n", [45, 64, 7])
 def test_chunks_cover_every_non_zero_once(n):
     """Every non-zero column of a row lies in exactly one of its chunks or at/after its tail; chunks
-    are whole (inside the row) and start on a non-zero column; the tail starts on a non-zero column
-    within the last 7 (or is n)."""
+    are whole (inside the row), 8-aligned and hold a non-zero column; the tail starts on a non-zero
+    column after the last whole aligned block (or is n)."""
     gen = torch.Generator().manual_seed(1)
     V = _vis(n, gen)
     ptr, starts, tail = native.chunks(V)
@@ -52,10 +52,10 @@ def test_chunks_cover_every_non_zero_once(n):
     for r in range(V.shape[0]):
         cover = torch.zeros(n, dtype=torch.int64)
         for s in starts[ptr[r]:ptr[r + 1]].tolist():
-            assert 0 <= s <= n - native.W and V[r, s] != 0
+            assert 0 <= s <= n - native.W and s % native.W == 0 and bool((V[r, s:s + native.W] != 0).any())
             cover[s:s + native.W] += 1
         t = int(tail[r])
-        assert t == n or (V[r, t] != 0 and t > n - native.W and cover[t] == 0)
+        assert t == n or (V[r, t] != 0 and t >= n // native.W * native.W and cover[t] == 0)
         cover[t:] += 1
         nz = V[r] != 0
         assert bool((cover[nz] == 1).all()) and bool((cover <= 1).all()), r
@@ -95,6 +95,17 @@ def test_points_equal_fine_block(n):
     finally:
         native.MIN_ITEMS_PER_THREAD = old
         torch.set_num_threads(t)
+    # weights 0 (a third of a frame's grid weights; some points all 0): the loop reads the point's
+    # first weighted row in place of such a row, the same sums
+    bz = bw * (torch.rand(B, 4, generator=gen) < 0.6)
+    lz = lw * (torch.rand(B, 4, generator=gen) < 0.6)
+    bz[:3], lz[3:6] = 0, 0
+    lz[6:9, 0] = 0
+    want = fast_eval.fine_block(vrows[:, None], vw[:, None], brows, bz, lrows, lz, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    got = native.points(Vt, Rt, Lt, vrows, vw, brows, bz, lrows, lz, ch)
+    for r in range(B):
+        assert (got[r] - want[r]).abs().max() <= F32 * max(float(want[r].abs().max()), 1e-30) + 1e-30, r
+    assert bool((got[:6] == 0).all())
     with pytest.raises(IndexError):
         native.points(Vt, Rt, Lt, vrows + Vt.shape[0], vw, brows, bw, lrows, lw, ch)
 
@@ -179,3 +190,33 @@ def test_render_with_native_equals_the_compiled_kernels(shading, monkeypatch):
     monkeypatch.setenv("PRTBENCH_TP_NATIVE", "0")
     ref2 = off.render(edited, gb)
     assert (img2 - ref2).abs().max() <= F32 * ref2.abs().max() and (img2 - img).abs().max() > 0
+
+
+def test_hit_faces_equal_the_torch_bookkeeping():
+    """`native.hit_faces` = the per-vertex frame's torch bookkeeping it replaces (`method._hit_faces`,
+    `method._distinct` of those faces' vertices, ``hit.sum()``): misses (face −1) skipped, faces seen
+    many times once; an index outside its table raises."""
+    from methods.triple_product.method import _distinct, _hit_faces
+    from types import SimpleNamespace
+
+    gen = torch.Generator().manual_seed(4)
+    nv, nf, P = 300, 500, 20000
+    F = torch.randint(0, nv, (nf, 3), generator=gen)
+    hit = torch.rand(P, generator=gen) < 0.7
+    face = torch.where(hit, torch.randint(0, nf // 3, (P,), generator=gen) * 2, torch.full((P,), -1))
+    got = native.hit_faces(hit, face, F, nv)
+    if got is None:
+        pytest.skip("no native loops")
+    faces = _hit_faces(SimpleNamespace(hit=hit, face=face), nf)
+    assert torch.equal(got[0], faces) and torch.equal(got[1], _distinct(F[faces].reshape(-1), nv))
+    assert got[2] == int(hit.sum())
+    none = native.hit_faces(torch.zeros(P, dtype=torch.bool), face, F, nv)
+    assert none[0].numel() == 0 and none[1].numel() == 0 and none[2] == 0
+    bad = face.clone()
+    bad[torch.nonzero(hit)[0]] = nf
+    with pytest.raises(IndexError):
+        native.hit_faces(hit, bad, F, nv)
+    F2 = F.clone()
+    F2[faces[0], 2] = nv                                                    # a seen face's vertex
+    with pytest.raises(IndexError):
+        native.hit_faces(hit, face, F2, nv)

@@ -51,11 +51,97 @@ def test_project_pairs_equals_the_compiled_projection(supersample):
         every = torch.arange(g.size * tris.numel())
         assert torch.equal(lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=every,
                                             out=torch.zeros_like(whole)), whole)
+        mixed = every[torch.randperm(every.numel(), generator=gen)]      # out of order: frames revisited
+        with torch_threads(1):
+            assert torch.equal(lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=mixed,
+                                                out=torch.zeros_like(whole)), whole)
     assert not lt.pairs_ok(base.rotated(rotation_y(0.7)))               # the azimuthal / comb paths
     with pytest.raises(IndexError):
         native_light.project(torch.tensor([g.size * tris.numel()]), torch.zeros(g.size, 3, 3),
                              torch.zeros(3, tris.numel(), 4), torch.zeros(tris.numel(), 4), 8, 16,
                              torch.zeros(8 * 17, 16), torch.zeros(g.size, 3, tris.numel()))
+
+
+def test_project_pairs_builds_agree():
+    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) writes the
+    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pairs16x2`, two at a
+    time), for supersample 2 on a tilted map: both the compiled projection's values; an odd count of
+    pairs (the last one alone) too."""
+    from methods.core import native
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+
+    g = lt.FrameGrid(9, 16, 1)
+    geo, R = Geodesic(2), lt.grid_frames(g)
+    tris = torch.arange(0, 320, 3)
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]) \
+        @ torch.tensor([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
+    env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(tilt.tolist()), geo, 2)
+    whole = lt.project_env(env, R, geo, supersample=2, grid=g, tris=tris)[1]
+    pairs = torch.arange(g.size * tris.numel())
+    plain = native.load("tp_light_pairs_plain", native_light._SOURCE, native_light._SIGNATURES,
+                        extra_flags=("-ffp-contract=off", "-fno-trapping-math", "-fopenmp"))
+    if plain is None:
+        pytest.skip("the library did not build without ISA flags")
+    with torch_threads(1):
+        host = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+        keep = native_light._lib
+        native_light._lib = lambda: plain
+        try:
+            got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+        finally:
+            native_light._lib = keep
+    assert torch.equal(host, whole) and torch.equal(got, whole)
+    odd = pairs[1::2][:-1]                                              # an odd count (the last pair alone)
+    assert odd.numel() % 2 == 1
+    with torch_threads(1):
+        one = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=odd, out=torch.zeros_like(whole))
+    m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, odd, True)
+    m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
+    assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all())
+
+
+@pytest.mark.parametrize("n", [1, 45, 640])
+def test_take_is_the_new_pairs(n):
+    """`native_light.take` = ``nonzero(need & ~done)`` (flat, in order), ``done |= that`` and the
+    frames holding one, as the torch operations it replaces (its fallback); nothing new: empty."""
+    gen = torch.Generator().manual_seed(9)
+    F = 37
+    need = torch.rand(F, n, generator=gen) < 0.4
+    done = torch.rand(F, n, generator=gen) < 0.3
+    need[5], done[6] = False, True                                          # frames with nothing new
+    todo = need & ~done
+    want = torch.nonzero(todo.view(-1)).squeeze(-1)
+    d = done.clone()
+    pairs, nf = native_light.take(need, d)
+    assert pairs.dtype == torch.int64 and torch.equal(pairs, want) and nf == int(todo.any(1).sum())
+    assert torch.equal(d, done | need)
+    pairs, nf = native_light.take(need, d)
+    assert pairs.numel() == 0 and nf == 0 and torch.equal(d, done | need)
+
+
+def test_comb_scatter_is_the_gather_and_copy():
+    """`native_light.comb_scatter` writes the rows the comb path's gather and copy wrote
+    (``out.index_copy_(0, frames, lighting._comb_select(means.permute(0, 3, 2, 1), rows))``), the same
+    values, leaves the other frames' rows alone, and refuses (False) a non-contiguous table."""
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(11)
+    g = lt.FrameGrid(5, 8, 2)
+    B, J, n = g.n_theta * g.n_psi, g.n_phi, 37                           # base rows b = i·n_psi + k, frames j
+    means = torch.randn(B, n, 3, J, generator=gen)
+    frames = torch.randperm(g.size, generator=gen)[: g.size // 2 + 3]
+    rows = lt._comb_rows(g, frames)
+    want = torch.full((g.size, 3, n), 7.0)
+    want.index_copy_(0, frames, lt._comb_select(means.permute(0, 3, 2, 1), rows))
+    got = torch.full((g.size, 3, n), 7.0)
+    assert native_light.comb_scatter(means, rows, frames, got)
+    assert torch.equal(got, want)
+    assert not native_light.comb_scatter(means, rows, frames, torch.zeros(g.size, n, 3).transpose(1, 2))
+    with pytest.raises(IndexError):
+        native_light.comb_scatter(means, rows + B * J, frames, got)
 
 
 @pytest.mark.parametrize("n", [45, 64, 130])
