@@ -48,7 +48,9 @@ Render (dynamic lighting and view):
 `_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
 image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k, after the first
 lighting, only for the vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
-σ_k h_k table. `frame_cost` states the compulsory bytes and flops of each frame kind.
+σ_k h_k table — per sample as one C loop over the samples when it builds (``methods.inout.native_sample``,
+`_render_native`: the products formed at the (vertex, node) pairs the samples read, while they are
+shaded), else by the compiled passes of ``fast`` (its fallback and test oracle). `frame_cost` states the compulsory bytes and flops of each frame kind.
 
 Direct lighting only. Materials are the scene's (``frame.materials`` are not read: the BRDF is
 baked into T_k; sequences that change BRDFs are outside ``capabilities``). Isotropic families only
@@ -755,6 +757,9 @@ class InOut(Method):
         # fast path (`fast.FastStatic`): per face its concatenated vertex ids (3 int32) and region
         # (int64); per vertex position (3 float32), frame (9 float32) and K (int64)
         m["fast_static"] = int(self.F.shape[0]) * (3 * 4 + 8) + nv * (12 * 4 + 8) if self.F is not None else 0
+        # the per-sample C loop's memo of X (``native_sample.memo``: per vertex W² rows and stamps),
+        # allocated at its first frame
+        m["sample_memo"] = tensor_bytes(*self._xmemo) if self._xmemo is not None else 0
         N = self.config["cube_res"]
         m["L"] = tensor_bytes(self.L) if self.L is not None else 4 * 6 * N * N * 3
         return m
