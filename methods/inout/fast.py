@@ -143,6 +143,11 @@ Session 28: the vertex shading's cells and eq. 4 run as C loops (``methods.inout
 1.48×, creature 1.70× at 1 thread); `vertex_cells` and `vertex_radiance` here are their fallback and
 test oracle.
 
+Session 29: when its C loop builds, the per-sample view frame runs ``methods.inout.native_sample``
+instead of `prepare` and `shade_pixels` (``InOut._render_native``: no set-up pass, X formed at the
+(vertex, node) pairs the samples read, in a memo window per vertex; V chess 1.80×, creature 1.90×
+at 1 thread); `prepare` and `shade_pixels` stay as its fallback and test oracle.
+
 Plain torch on the device of the precomputed arrays; no per-sample Python loops.
 """
 from __future__ import annotations

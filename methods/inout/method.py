@@ -48,7 +48,9 @@ Render (dynamic lighting and view):
 `_render_reference` does exactly this, step by step (the test oracle); `render` computes the same
 image to float32 round-off with the sums regrouped (``methods.inout.fast``): c_k, after the first
 lighting, only for the vertices the samples reference, and eq. 4 reassociated through per-vertex products with the
-σ_k h_k table. `frame_cost` states the compulsory bytes and flops of each frame kind.
+σ_k h_k table — per sample as one C loop over the samples when it builds (``methods.inout.native_sample``,
+`_render_native`: the products formed at the (vertex, node) pairs the samples read, while they are
+shaded), else by the compiled passes of ``fast`` (its fallback and test oracle). `frame_cost` states the compulsory bytes and flops of each frame kind.
 
 Direct lighting only. Materials are the scene's (``frame.materials`` are not read: the BRDF is
 baked into T_k; sequences that change BRDFs are outside ``capabilities``). Isotropic families only
@@ -75,6 +77,7 @@ from scenes.hashing import hash_materials
 from methods.inout import csr as _csr
 from methods.inout import fast as _fast
 from methods.inout import native as _native
+from methods.inout import native_sample as _nsample
 from methods.inout import transport as tp
 
 # Families with a closed-form K rule of the paper (analysis.k_rule: eq. 13 and §4).
@@ -117,6 +120,7 @@ class _View:
     Q: int
     cs: list = None
     wins: Any = None
+    ref: Any = None
 
 
 def _face_mask(face: Tensor, M: int) -> Tensor:
@@ -221,6 +225,8 @@ class InOut(Method):
         self._last_view = None                 # (P, what `frame_cost` counts) of the last fast render
         self._env_shape = None                 # (H, W) of the env map of the current lighting
         self._vview = None                     # shading "vertex": the view's referenced vertices (`_vertex_view`)
+        self._xmemo = None                     # shading "sample", the C loop: its memo of X (`native_sample.memo`)
+        self._xstamp = 0                       # frames shaded on that memo
 
     # -- precompute ---------------------------------------------------------------------------
     def _terms_for(self, region: str, material) -> int | None:
@@ -359,6 +365,7 @@ class InOut(Method):
         self._lightings = 0
         self._last_view = None
         self._vview = None
+        self._xmemo, self._xstamp = None, 0
 
     def _relight(self, frame: Frame) -> None:
         """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
@@ -521,10 +528,9 @@ class InOut(Method):
             self._cf_valid[reg.name] = torch.ones(nv, dtype=torch.bool, device=self.L.device)
             self._cf_full[reg.name] = self._cf_valid[reg.name]
 
-    def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
-        """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
-        the referenced vertices and their c_k (`_ensure_c`), and the windows' products X
-        (``fast.prepare``, each vertex's window chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
+    def _view_refs(self, frame: Frame, gbuffer: GBuffer) -> "_View":
+        """The first part of `_view_setup`: which samples are shaded, the referenced vertices
+        (``ref``, ascending concatenated ids) and their c_k (`_ensure_c`)."""
         self._relight(frame)
         st = self._fast_static()
         dev = gbuffer.hit.device
@@ -560,6 +566,15 @@ class InOut(Method):
         ref = vmask.nonzero(as_tuple=True)[0]                                 # ascending
         view.cs = [self._ensure_c(s, ref[(ref >= st.voff[s]) & (ref < st.voff[s + 1])] - st.voff[s])
                    for s in range(len(self.regions))]
+        view.ref = ref
+        return view
+
+    def _view_setup(self, frame: Frame, gbuffer: GBuffer) -> "_View":
+        """The per-frame part of the fast path before the per-sample stage: which samples are shaded,
+        the referenced vertices and their c_k (`_view_refs`), and the windows' products X
+        (``fast.prepare``, each vertex's window chosen on every ``fast.WINDOW_SUBSAMPLE``-th sample)."""
+        view = self._view_refs(frame, gbuffer)
+        st, sel, ref, hit, dev = view.st, view.sel, view.ref, gbuffer.hit, gbuffer.hit.device
         k = _fast.WINDOW_SUBSAMPLE
         if sel is None:                       # strided views: the G-buffer's arrays need not be row-major
             sub = (gbuffer.normal[::k], gbuffer.wo[::k], gbuffer.bary[::k], gbuffer.face[::k], hit[::k])
@@ -579,6 +594,9 @@ class InOut(Method):
             raise RuntimeError("call precompute(scene) before render()")
         if self.config["shading"] == "vertex":
             return self._render_vertex(frame, gbuffer)
+        img = self._render_native(frame, gbuffer)
+        if img is not None:
+            return img
         view = self._view_setup(frame, gbuffer)
         g, st, sel = gbuffer, view.st, view.sel
         P, S2 = g.num_samples, g.spp_side ** 2
@@ -590,6 +608,41 @@ class InOut(Method):
                                    torch.ones(sel.numel(), dtype=torch.bool, device=sel.device), 1)
             img = torch.zeros(P, 3, dtype=B.dtype, device=B.device).index_copy_(0, sel, B).view(-1, S2, 3).mean(1)
         self._last_view = (P, {"gbuffer": g, "sel": sel, "window": view.wins.W})
+        return img.view(g.height, g.width, 3)
+
+    def _render_native(self, frame: Frame, gbuffer: GBuffer) -> Tensor | None:
+        """The per-sample fast path as one C loop over the samples (``native_sample.shade``: X formed
+        at the (vertex, node) pairs the samples read, while they are shaded; the compiled set-up and
+        stage of `render` are its fallback and test oracle), or None when the loop is not available.
+        c_k: under the first lighting every vertex's at once (`_ensure_c_all`), so a view frame runs
+        no pass before the loop; under a later one the referenced vertices' (`_view_refs`)."""
+        if not _nsample.available():
+            return None
+        self._relight(frame)
+        st = self._fast_static()
+        if self._lightings == 1:
+            self._ensure_c_all()
+        if all(self._cf_full.get(r.name) is not None and self._cf_full[r.name] is self._cf_valid.get(r.name)
+               for r in self.regions):
+            cs = [self._cf[r.name] for r in self.regions]
+        else:
+            cs = self._view_refs(frame, gbuffer).cs
+        g = gbuffer
+        W, nv = min(_nsample.WINDOW, st.R), st.voff[-1]
+        if (self._xmemo is None or self._xmemo[0].shape[0] != nv or self._xmemo[2].shape[0] != nv * W * W
+                or self._xstamp >= 2 ** 31 - 1):
+            self._xmemo, self._xstamp = _nsample.memo(nv, W), 0
+        self._xstamp += 1
+        cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
+        got = _nsample.shade(st, cs, g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, cam,
+                             self._xmemo, self._xstamp, W)
+        if got is None:
+            return None
+        img, (_, _, bad) = got
+        if bad >= 0:
+            name = self.scene.regions[int(g.region[bad])]
+            raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
+        self._last_view = (g.num_samples, {"gbuffer": g, "sel": None, "window": W})
         return img.view(g.height, g.width, 3)
 
     def _view_counts(self, last: dict) -> dict:
@@ -704,6 +757,9 @@ class InOut(Method):
         # fast path (`fast.FastStatic`): per face its concatenated vertex ids (3 int32) and region
         # (int64); per vertex position (3 float32), frame (9 float32) and K (int64)
         m["fast_static"] = int(self.F.shape[0]) * (3 * 4 + 8) + nv * (12 * 4 + 8) if self.F is not None else 0
+        # the per-sample C loop's memo of X (``native_sample.memo``: per vertex W² rows and stamps),
+        # allocated at its first frame
+        m["sample_memo"] = tensor_bytes(*self._xmemo) if self._xmemo is not None else 0
         N = self.config["cube_res"]
         m["L"] = tensor_bytes(self.L) if self.L is not None else 4 * 6 * N * N * 3
         return m

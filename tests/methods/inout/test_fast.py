@@ -15,6 +15,7 @@ import torch
 from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost, tensor_bytes
 from methods.core.frames import frame_matrix
 from methods.inout import fast
+from methods.inout import native_sample
 from methods.inout import method as inout_method
 from methods.inout import transport as tp
 from methods.inout.method import InOut
@@ -99,6 +100,9 @@ def test_every_branch_equals_reference(precomputed, monkeypatch, patch):
     path), blocks smaller than a scanline."""
     for key, value in patch.items():
         monkeypatch.setattr(inout_method if key == "DENSE_HIT_FRACTION" else fast, key, value)
+    # the compiled path these branches belong to (``native_sample``'s C loop is tested in
+    # test_native_sample.py, against this path)
+    monkeypatch.setattr(native_sample, "available", lambda: False)
     m = precomputed("bunny")
     for kind in ("V", "L"):
         _assert_sequence_equal(m, kind, spp_side=2)

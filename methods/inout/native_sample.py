@@ -1,0 +1,434 @@
+"""In-out's per-sample view frame as one C loop (Mahajan 2008 eq. 4 at every G-buffer sample, box
+filtered): `shade` replaces ``fast.prepare`` (the windows and their products X) and
+``fast.shade_pixels`` (the compiled per-sample stage, then the exact path of the entries outside
+their windows) when the C loop is available; those stay as the fallback (no C compiler,
+``PRTBENCH_COMPILE=0``, arrays of other types) and as the test oracle.
+
+The same sums regrouped the same way (``fast`` docstring): B = Σ_j β_j Σ_n w_n X(v_j, n),
+X(v, n)_c = Σ_k σ_k h_{k,c}(n) c_{v,k,c}. What differs is where X comes from. The compiled path
+forms X on a window per referenced vertex before the samples (the box of the cells a subsample of
+the samples hits: a compiled pass over the subsample, a scatter, the windows' offsets, one K-term
+reduction per window node) and reads it per sample; here X is a memo filled while the samples are
+shaded: each vertex has a W × W window of table nodes (W = `WINDOW`) around its anchor (the cell
+of the direction from the vertex to the camera in its frame, ``fast.anchors``: the samples around a
+vertex see it from nearly that direction), set at the first sample that reads the vertex in the
+frame, and a node's X is computed at the first sample that reads it. So X is formed at exactly the
+(vertex, node) pairs the frame's samples read (chess bench: ~0.8·10⁵ at W = 8, where the windows held
+~2.6·10⁵ nodes), and no pass over the samples precedes the shading. An entry whose cell leaves its
+vertex's window is summed exactly from the table and c (Σ_n w_n σ_k h_k(n), then the K-term dot
+product with c), in the sample's own sum, not in a later pass. The image equals the compiled path's
+to float32 round-off (other summation orders; the tests compare them).
+
+Deterministic at any thread count: the window of a vertex is a function of the camera alone, and a
+memo row's value of the (vertex, node) pair alone, so whichever thread fills a row writes the same
+bits (its stamp is stored after its values with release order, read with acquire order); the
+samples are split over OpenMP's team in contiguous ranges of pixels, each pixel summed by one thread
+in one order. The memo (per concatenated vertex id, its W² rows of 4 floats: X's 3 channels and the
+frame's stamp in the 4th, one 16-byte load) is kept between frames (zeroed once), so nothing is
+allocated per frame; a frame counts itself in the stamps, so the previous frame's rows are stale.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+
+__all__ = ["WINDOW", "available", "shade"]
+
+# Nodes per side of a vertex's memo window (its W² rows of X, 16 B each, and their stamps): entries
+# whose cell leaves it take the exact sum. W = 8 against 16 (same process, 1 thread, process CPU, V):
+# chess 1.01-1.12×, creature 1.09×, the memo 4× smaller (chess bench 55 → 14 MB, creature 69 → 17 MB);
+# chess bench ~8·10⁴ memo rows filled and ~5·10⁴ entries summed exactly per frame (W = 16: 1.1·10⁵,
+# 1.7·10⁴).
+WINDOW = 8
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <math.h>
+#include <string.h>
+#ifdef __AVX2__
+#include <immintrin.h>
+#endif
+
+typedef float v8 __attribute__((vector_size(32)));
+
+/* lut_cell_xyz (methods.inout.transport): the cell (iu, iv) and fractions (fu, fv) of a local
+   direction (x, y, z), float32 in torch's order of operations. */
+static inline void cell_of(float x, float y, float z, int64_t R, int64_t *iu, int64_t *iv, float *fu, float *fv) {
+    const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
+    float s = (fabsf(x) + fabsf(y)) + (z > 0.0f ? z : 0.0f);
+    s = s < 1e-30f ? 1e-30f : s;
+    const float px = x / s, py = y / s;
+    float u = ((px + py) + 1.0f) * h, v = ((px - py) + 1.0f) * h;
+    u = u < 0.0f ? 0.0f : (u > top ? top : u);
+    v = v < 0.0f ? 0.0f : (v > top ? top : v);
+    float fiu = floorf(u), fiv = floorf(v);
+    fiu = fiu > top2 ? top2 : fiu;
+    fiv = fiv > top2 ? top2 : fiv;
+    if (!(fiu >= 0.0f)) fiu = 0.0f;   /* NaN: any in-range cell (the caller skips such a sample) */
+    if (!(fiv >= 0.0f)) fiv = 0.0f;
+    *iu = (int64_t)fiu; *iv = (int64_t)fiv;
+    *fu = u - fiu; *fv = v - fiv;
+}
+
+/* sum_k a[k] b[k], 8 lanes combined pairwise, then the tail */
+static inline float dot(const float *a, const float *b, int64_t K) {
+    v8 s = {0, 0, 0, 0, 0, 0, 0, 0};
+    int64_t k = 0;
+    for (; k + 8 <= K; k += 8) {
+        v8 x, y;
+        memcpy(&x, a + k, 32);
+        memcpy(&y, b + k, 32);
+        s += x * y;
+    }
+    float acc = ((s[0] + s[1]) + (s[2] + s[3])) + ((s[4] + s[5]) + (s[6] + s[7]));
+    for (; k < K; ++k)
+        acc += a[k] * b[k];
+    return acc;
+}
+
+/* sum_k (((s0 w0 + s1 w1) + s2 w2) + s3 w3)[k] cv[k] (the exact path, fast._outlier_rows's sum) */
+static inline float dot4(const float *s0, const float *s1, const float *s2, const float *s3, float w0, float w1,
+                         float w2, float w3, const float *cv, int64_t K) {
+    v8 a8 = {0, 0, 0, 0, 0, 0, 0, 0};
+    int64_t k = 0;
+    for (; k + 8 <= K; k += 8) {
+        v8 x0, x1, x2, x3, cc;
+        memcpy(&x0, s0 + k, 32); memcpy(&x1, s1 + k, 32); memcpy(&x2, s2 + k, 32); memcpy(&x3, s3 + k, 32);
+        memcpy(&cc, cv + k, 32);
+        v8 S = x0 * w0;
+        S = S + x1 * w1;
+        S = S + x2 * w2;
+        S = S + x3 * w3;
+        a8 += S * cc;
+    }
+    float acc = ((a8[0] + a8[1]) + (a8[2] + a8[3])) + ((a8[4] + a8[5]) + (a8[6] + a8[7]));
+    for (; k < K; ++k) {
+        float S = s0[k] * w0;
+        S = S + s1[k] * w1;
+        S = S + s2[k] * w2;
+        S = S + s3[k] * w3;
+        acc += S * cv[k];
+    }
+    return acc;
+}
+
+typedef float v4 __attribute__((vector_size(16)));
+
+typedef struct {
+    const float *nrm; int64_t n0, n1;       /* normal (q, 3): element strides */
+    const float *wo; int64_t w0, w1;        /* wo (q, 3) */
+    const float *bary; int64_t b0, b1;      /* bary (q, 2) */
+    const int64_t *face; const int64_t *region; const uint8_t *live;   /* (q,) contiguous */
+    const int32_t *face_rows; const int64_t *face_region; int64_t M;   /* (M, 3), (M,) */
+    const int64_t *voff; int64_t S;         /* slot offsets (S + 1) */
+    const int64_t *shp, *cp, *Ks;           /* per slot: table (R^2 3, K) and c (Vr, 3, K) pointers, K */
+    const float *pos, *frames, *cam;        /* per vertex (nv, 3), (nv, 9); (3,) */
+    int64_t R, W, S2, stamp;
+    int32_t *vrec;                          /* per vertex (nv, 4): stamp, u0, v0, slot */
+    float *memo;                            /* per vertex W^2 rows of 4 floats: X (3) and 0 */
+    int32_t *mstamp;                        /* per memo row: the frame that filled it */
+} Args;
+
+/* the vertex's window (its anchor cell's, W x W nodes within the table) and slot, set once a frame */
+static inline const int32_t *vertex_window(const Args *A, int64_t g) {
+    int32_t *r = A->vrec + 4 * g;
+    if (__atomic_load_n(r, __ATOMIC_ACQUIRE) == (int32_t)A->stamp)
+        return r;
+    int64_t s = 0;
+    while (s + 1 < A->S && g >= A->voff[s + 1]) ++s;
+    /* fast.anchors: d = cam - pos, normalised, into the vertex's frame, its cell */
+    float d0 = A->cam[0] - A->pos[3 * g], d1 = A->cam[1] - A->pos[3 * g + 1], d2 = A->cam[2] - A->pos[3 * g + 2];
+    float nn = sqrtf((d0 * d0 + d1 * d1) + d2 * d2);
+    nn = nn < 1e-12f ? 1e-12f : nn;
+    d0 /= nn; d1 /= nn; d2 /= nn;
+    const float *F = A->frames + 9 * g;
+    const float x = (F[0] * d0 + F[1] * d1) + F[2] * d2, y = (F[3] * d0 + F[4] * d1) + F[5] * d2;
+    const float z = (F[6] * d0 + F[7] * d1) + F[8] * d2;
+    int64_t au, av; float fu, fv;
+    cell_of(x, y, z, A->R, &au, &av, &fu, &fv);
+    const int64_t h = A->W / 2 - 1, hi = A->R - A->W;
+    int64_t u0 = au - h, v0 = av - h;
+    u0 = u0 < 0 ? 0 : (u0 > hi ? hi : u0);
+    v0 = v0 < 0 ? 0 : (v0 > hi ? hi : v0);
+    r[1] = (int32_t)u0; r[2] = (int32_t)v0; r[3] = (int32_t)s;
+    __atomic_store_n(r, (int32_t)A->stamp, __ATOMIC_RELEASE);
+    return r;
+}
+
+/* X(v, node) of memo row `row` (vertex g of slot s, table node `node`) unless this frame filled it */
+static inline void memo_fill(const Args *A, int64_t g, int64_t s, int64_t row, int64_t node, int64_t *made) {
+    if (__atomic_load_n(A->mstamp + row, __ATOMIC_ACQUIRE) == (int32_t)A->stamp)
+        return;
+    const int64_t K = A->Ks[s];
+    const float *sh = (const float *)(intptr_t)A->shp[s] + node * 3 * K;
+    const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
+    float *m = A->memo + 4 * row;
+    m[0] = dot(sh, cv, K);
+    m[1] = dot(sh + K, cv + K, K);
+    m[2] = dot(sh + 2 * K, cv + 2 * K, K);
+    m[3] = 0.0f;
+    __atomic_store_n(A->mstamp + row, (int32_t)A->stamp, __ATOMIC_RELEASE);
+    ++*made;
+}
+
+
+/* fast.sample_frame then lut_cell_xyz at n samples given as columns: omega_o in the sample's frame
+   (its z) and its table cell (iu, iv) and fractions (fu, fv), float32 in torch's order of operations.
+   With AVX2, 8 samples at a time (the inputs padded to a multiple of 8; the same IEEE operations, so
+   the same values as the scalar loop but for NaN inputs, whose samples are not shaded: z > 0 fails). */
+static void frame_cells(const float *nx_, const float *ny_, const float *nz_, const float *a_, const float *b_,
+                        const float *c_, int64_t n, float h, float top, float top2, int32_t *iu_, int32_t *iv_,
+                        float *fu_, float *fv_, float *z_) {
+    int64_t i = 0;
+#ifdef __AVX2__
+    const __m256 one = _mm256_set1_ps(1.0f), m1 = _mm256_set1_ps(-1.0f), zero = _mm256_setzero_ps();
+    const __m256 e12 = _mm256_set1_ps(1e-12f), e30 = _mm256_set1_ps(1e-30f), sgn = _mm256_set1_ps(-0.0f);
+    const __m256 H = _mm256_set1_ps(h), T = _mm256_set1_ps(top), T2 = _mm256_set1_ps(top2);
+    for (; i < n; i += 8) {
+        __m256 nx = _mm256_loadu_ps(nx_ + i), ny = _mm256_loadu_ps(ny_ + i), nz = _mm256_loadu_ps(nz_ + i);
+        const __m256 a = _mm256_loadu_ps(a_ + i), b = _mm256_loadu_ps(b_ + i), c = _mm256_loadu_ps(c_ + i);
+        __m256 inv = _mm256_sqrt_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(nx, nx), _mm256_mul_ps(ny, ny)),
+                                                  _mm256_mul_ps(nz, nz)));
+        inv = _mm256_div_ps(one, _mm256_max_ps(inv, e12));
+        nx = _mm256_mul_ps(nx, inv); ny = _mm256_mul_ps(ny, inv); nz = _mm256_mul_ps(nz, inv);
+        const __m256 sign = _mm256_blendv_ps(m1, one, _mm256_cmp_ps(nz, zero, _CMP_GE_OQ));
+        const __m256 Am = _mm256_xor_ps(_mm256_div_ps(one, _mm256_add_ps(sign, nz)), sgn);
+        const __m256 d = _mm256_add_ps(_mm256_mul_ps(nx, a), _mm256_mul_ps(ny, b));
+        const __m256 u = _mm256_sub_ps(_mm256_mul_ps(Am, d), c);
+        const __m256 x = _mm256_add_ps(a, _mm256_mul_ps(_mm256_mul_ps(sign, nx), u));
+        const __m256 y = _mm256_add_ps(_mm256_mul_ps(sign, b), _mm256_mul_ps(ny, u));
+        const __m256 z = _mm256_add_ps(d, _mm256_mul_ps(nz, c));
+        __m256 s = _mm256_add_ps(_mm256_add_ps(_mm256_andnot_ps(sgn, x), _mm256_andnot_ps(sgn, y)), _mm256_max_ps(z, zero));
+        s = _mm256_max_ps(s, e30);
+        const __m256 px = _mm256_div_ps(x, s), py = _mm256_div_ps(y, s);
+        __m256 uu = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(px, py), one), H);
+        __m256 vv = _mm256_mul_ps(_mm256_add_ps(_mm256_sub_ps(px, py), one), H);
+        uu = _mm256_min_ps(_mm256_max_ps(uu, zero), T);
+        vv = _mm256_min_ps(_mm256_max_ps(vv, zero), T);
+        const __m256 fiu = _mm256_min_ps(_mm256_floor_ps(uu), T2), fiv = _mm256_min_ps(_mm256_floor_ps(vv), T2);
+        _mm256_storeu_si256((__m256i *)(iu_ + i), _mm256_cvttps_epi32(fiu));
+        _mm256_storeu_si256((__m256i *)(iv_ + i), _mm256_cvttps_epi32(fiv));
+        _mm256_storeu_ps(fu_ + i, _mm256_sub_ps(uu, fiu));
+        _mm256_storeu_ps(fv_ + i, _mm256_sub_ps(vv, fiv));
+        _mm256_storeu_ps(z_ + i, z);
+    }
+#endif
+    for (; i < n; ++i) {
+        float nx = nx_[i], ny = ny_[i], nz = nz_[i];
+        const float a = a_[i], b = b_[i], c = c_[i];
+        float inv = sqrtf((nx * nx + ny * ny) + nz * nz);
+        inv = 1.0f / (inv < 1e-12f ? 1e-12f : inv);
+        nx *= inv; ny *= inv; nz *= inv;
+        const float sign = nz >= 0.0f ? 1.0f : -1.0f;
+        const float Am = -(1.0f / (sign + nz));
+        const float d = nx * a + ny * b;
+        const float u = Am * d - c;
+        const float x = a + sign * nx * u, y = sign * b + ny * u, z = d + nz * c;
+        int64_t iu, iv;
+        cell_of(x, y, z, (int64_t)top + 1, &iu, &iv, fu_ + i, fv_ + i);
+        iu_[i] = (int32_t)iu; iv_[i] = (int32_t)iv;
+        z_[i] = z;
+    }
+}
+
+#define BLK 64   /* pixels per block of the per-sample inputs */
+
+static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *stats) {
+    const int64_t R = A->R, W = A->W, S2 = A->S2, WW = W * W, cmax = R * R - R - 2;
+    const int32_t cur = (int32_t)A->stamp;
+    const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
+    int64_t made = 0, exact = 0, bad = -1;
+    float nx_[BLK * 8 + 8], ny_[BLK * 8 + 8], nz_[BLK * 8 + 8], a_[BLK * 8 + 8], b_[BLK * 8 + 8], c_[BLK * 8 + 8];
+    float bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 8], fv_[BLK * 8 + 8], z_[BLK * 8 + 8];
+    int32_t iu_[BLK * 8 + 8], iv_[BLK * 8 + 8];
+    memset(nx_, 0, sizeof nx_); memset(ny_, 0, sizeof ny_); memset(nz_, 0, sizeof nz_);
+    memset(a_, 0, sizeof a_); memset(b_, 0, sizeof b_); memset(c_, 0, sizeof c_);
+    for (int64_t pb = p0; pb < p1; pb += BLK) {
+        const int64_t pe = pb + BLK < p1 ? pb + BLK : p1, q0 = pb * S2, n = (pe - pb) * S2;
+        if (n > BLK * 8) {   /* S2 > 8: one pixel at a time would need larger buffers; never on the bench */
+            continue;
+        }
+        for (int64_t i = 0; i < n; ++i) {      /* the G-buffer's rows, as columns */
+            const int64_t q = q0 + i;
+            nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
+            a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
+            bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
+        }
+        frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_);
+        for (int64_t p = pb; p < pe; ++p) {
+            v4 o = {0, 0, 0, 0};
+            for (int64_t t = 0; t < S2; ++t) {
+                const int64_t i = (p - pb) * S2 + t, q = q0 + i;
+                if (!A->live[q] || !(z_[i] > 0.0f))
+                    continue;                       /* rho = 0 below the horizon */
+                int64_t f = A->face[q];
+                f = f < 0 ? 0 : (f >= A->M ? A->M - 1 : f);
+                if (A->face_region[f] != A->region[q] && bad < 0)
+                    bad = q;
+                const int64_t iu = iu_[i], iv = iv_[i];
+                const float fu = fu_[i], fv = fv_[i], gu = 1.0f - fu, gv = 1.0f - fv;
+                const float w0 = gu * gv, w1 = fu * gv, w2 = gu * fv, w3 = fu * fv;
+                const float bu = bu_[i], bv = bv_[i];
+                const float beta[3] = {(1.0f - bu) - bv, bu, bv};
+                v4 B = {0, 0, 0, 0};
+                for (int j = 0; j < 3; ++j) {
+                    if (beta[j] == 0.0f)
+                        continue;
+                    const int64_t g = A->face_rows[3 * f + j];
+                    const int32_t *r = vertex_window(A, g);
+                    const int64_t s = r[3], dx = iu - r[1], dy = iv - r[2];
+                    if (dx >= 0 && dy >= 0 && dx <= W - 2 && dy <= W - 2) {
+                        const int64_t row = g * WW + dy * W + dx;
+                        const int32_t *st = A->mstamp + row;
+                        if (__builtin_expect(st[0] != cur || st[1] != cur || st[W] != cur || st[W + 1] != cur, 0)) {
+                            const int64_t node = iv * R + iu;
+                            memo_fill(A, g, s, row, node, &made);
+                            memo_fill(A, g, s, row + 1, node + 1, &made);
+                            memo_fill(A, g, s, row + W, node + R, &made);
+                            memo_fill(A, g, s, row + W + 1, node + R + 1, &made);
+                        }
+                        __atomic_thread_fence(__ATOMIC_ACQUIRE);
+                        v4 x0, x1, x2, x3;
+                        const float *m = A->memo + 4 * row;
+                        memcpy(&x0, m, 16); memcpy(&x1, m + 4, 16); memcpy(&x2, m + 4 * W, 16); memcpy(&x3, m + 4 * W + 4, 16);
+                        B += ((x0 * w0 + x1 * w1) + (x2 * w2 + x3 * w3)) * beta[j];
+                    } else {                                /* outside the window: the exact sum */
+                        const int64_t K = A->Ks[s];
+                        int64_t ce = iv * R + iu;
+                        ce = ce < 0 ? 0 : (ce > cmax ? cmax : ce);
+                        const float *sh = (const float *)(intptr_t)A->shp[s];
+                        const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
+                        v4 e = {0, 0, 0, 0};
+                        for (int64_t ch = 0; ch < 3; ++ch)
+                            e[ch] = dot4(sh + (ce * 3 + ch) * K, sh + ((ce + 1) * 3 + ch) * K, sh + ((ce + R) * 3 + ch) * K,
+                                         sh + ((ce + R + 1) * 3 + ch) * K, w0, w1, w2, w3, cv + ch * K, K);
+                        B += e * beta[j];
+                        ++exact;
+                    }
+                }
+                o += B;
+            }
+            const float is = 1.0f / (float)S2;
+            out[3 * p] = o[0] * is; out[3 * p + 1] = o[1] * is; out[3 * p + 2] = o[2] * is;
+        }
+    }
+    stats[0] = made; stats[1] = exact; stats[2] = bad;
+}
+
+/* Eq. 4 at the npx * S2 samples (pixel-major, S2 <= 8), box-filtered into out (npx, 3). stats (nt, 3):
+   per thread the memo rows computed, the entries summed exactly, the first sample whose face lies in
+   another region than the sample's (-1: none). */
+void shade(const Args *A, int64_t npx, float *out, int64_t *stats, int64_t nt) {
+    if (nt <= 1) {
+        shade_range(A, 0, npx, out, stats);
+        return;
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t t = 0; t < nt; ++t)
+        shade_range(A, npx * t / nt, npx * (t + 1) / nt, out, stats + 3 * t);
+}
+"""
+
+
+class _Args(ctypes.Structure):
+    _fields_ = [("nrm", ctypes.c_void_p), ("n0", ctypes.c_int64), ("n1", ctypes.c_int64),
+                ("wo", ctypes.c_void_p), ("w0", ctypes.c_int64), ("w1", ctypes.c_int64),
+                ("bary", ctypes.c_void_p), ("b0", ctypes.c_int64), ("b1", ctypes.c_int64),
+                ("face", ctypes.c_void_p), ("region", ctypes.c_void_p), ("live", ctypes.c_void_p),
+                ("face_rows", ctypes.c_void_p), ("face_region", ctypes.c_void_p), ("M", ctypes.c_int64),
+                ("voff", ctypes.c_void_p), ("S", ctypes.c_int64),
+                ("shp", ctypes.c_void_p), ("cp", ctypes.c_void_p), ("Ks", ctypes.c_void_p),
+                ("pos", ctypes.c_void_p), ("frames", ctypes.c_void_p), ("cam", ctypes.c_void_p),
+                ("R", ctypes.c_int64), ("W", ctypes.c_int64), ("S2", ctypes.c_int64), ("stamp", ctypes.c_int64),
+                ("vrec", ctypes.c_void_p), ("memo", ctypes.c_void_p), ("mstamp", ctypes.c_void_p)]
+
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"shade": [_P, _I, _P, _P, _I]}
+# Pixels below which one thread shades the frame (a hand-off costs more than its share).
+MIN_PER_THREAD = 1024
+
+
+@functools.lru_cache(maxsize=None)
+def _isa_flags() -> tuple[str, ...]:
+    """AVX2 + FMA when torch found the CPU to have them (the library is built on the machine that
+    runs it; the flags are part of its cache key)."""
+    cap = ""
+    try:
+        cap = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # pragma: no cover - older torch
+        pass
+    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
+
+
+@functools.lru_cache(maxsize=None)
+def _lib():
+    return native.load("inout_sample", _SOURCE, _SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+
+
+def available() -> bool:
+    """True when the C loop runs (else the caller takes ``fast.prepare`` and ``fast.shade_pixels``)."""
+    return _lib() is not None
+
+
+def memo(nv: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
+    """A zeroed memo for ``nv`` concatenated vertices: (vrec (nv, 4) int32, rows (nv·W², 4) float32,
+    their stamps (nv·W²,) int32)."""
+    return (torch.zeros(nv, 4, dtype=torch.int32), torch.zeros(nv * W * W, 4, dtype=torch.float32),
+            torch.zeros(nv * W * W, dtype=torch.int32))
+
+
+def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, region: Tensor,
+          live: Tensor, S2: int, cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, W: int):
+    """Eq. 4 at q = n·S2 G-buffer samples (pixel-major; normal, wo (q, 3) and bary (q, 2) float32 in
+    any strides, face, region (q,) int64, live (q,) bool), box-filtered → ``(out (n, 3), stats)``;
+    ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) the c of slot s (valid at every vertex a
+    shaded entry reads), cam (3,), ``mem`` a `memo` of ``st``'s vertices, ``stamp`` > 0 this frame's
+    number (distinct from every earlier frame's on this memo). stats: memo rows computed, entries
+    summed exactly, the first sample whose face lies in another region than its own (-1: none).
+    None when the loop is not available or the arrays are not CPU tensors of those types."""
+    lib = _lib()
+    vrec, rows, mst = mem
+    nv = st.voff[-1]
+    q = int(face.shape[0])
+    ts = (normal, wo, bary, face, region, live, st.face_rows, st.face_region, st.pos, st.frames, cam, vrec, rows, mst,
+          *cs, *(fr.sh_nc for fr in st.regions))
+    if (lib is None or any(t.device.type != "cpu" for t in ts) or normal.dtype != torch.float32
+            or wo.dtype != torch.float32 or bary.dtype != torch.float32 or face.dtype != torch.int64
+            or region.dtype != torch.int64 or live.dtype != torch.bool or cam.dtype != torch.float32
+            or not all(t.is_contiguous() for t in (face, region, live, st.face_rows, st.face_region, st.pos,
+                                                   st.frames, cam, vrec, rows, mst, *cs))
+            or not all(c.dtype == torch.float32 and c.dim() == 3 and c.shape[1] == 3 for c in cs)
+            or not all(fr.sh_nc.is_contiguous() and fr.sh_nc.dtype == torch.float32 for fr in st.regions)
+            or st.face_rows.dtype != torch.int32 or st.face_region.dtype != torch.int64
+            or vrec.shape != (nv, 4) or rows.shape != (nv * W * W, 4) or mst.shape != (nv * W * W,) or st.R < W or W < 2
+            or q % S2 or not 1 <= S2 <= 8 or len(cs) != len(st.regions) or not 0 < stamp < 2 ** 31):
+        return None
+    for s, (c, fr) in enumerate(zip(cs, st.regions)):
+        if c.shape[0] != st.voff[s + 1] - st.voff[s] or c.shape[2] != fr.K or fr.sh_nc.shape != (st.R * st.R * 3, fr.K):
+            return None
+    npx = q // S2
+    out = torch.empty(npx, 3, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), npx // MIN_PER_THREAD))
+    stats = torch.zeros(nt, 3, dtype=torch.int64)
+    S = len(st.regions)
+    shp = torch.tensor([fr.sh_nc.data_ptr() for fr in st.regions] or [0], dtype=torch.int64)
+    cp = torch.tensor([c.data_ptr() for c in cs] or [0], dtype=torch.int64)
+    Ks = torch.tensor([fr.K for fr in st.regions] or [1], dtype=torch.int64)
+    voff = torch.tensor(st.voff, dtype=torch.int64)
+    a = _Args(normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
+              bary.data_ptr(), bary.stride(0), bary.stride(1), face.data_ptr(), region.data_ptr(), live.data_ptr(),
+              st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
+              voff.data_ptr(), S, shp.data_ptr(), cp.data_ptr(), Ks.data_ptr(),
+              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp,
+              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr())
+    lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
+    made, exact = int(stats[:, 0].sum()), int(stats[:, 1].sum())
+    bad = [int(b) for b in stats[:, 2].tolist() if b >= 0]
+    return out, (made, exact, min(bad) if bad else -1)

@@ -1,0 +1,111 @@
+"""In-out's per-sample C loop (``methods.inout.native_sample``, `InOut._render_native`) against the
+compiled path it replaces (``fast.prepare`` + ``fast.shade_pixels``, kept as its fallback and test
+oracle) and the reference path: the same image to float32 round-off, whatever the memo window (W = 2:
+nearly every entry summed exactly; W = the table: none), over V / L / E sequences (c of every vertex,
+then lazily of the referenced ones), bit for bit the same at 1 and 2 threads."""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from methods.inout import native_sample
+from methods.inout.method import InOut
+from references.gbuffer import make_gbuffer
+from scenes.library import get_scene
+from scenes.sequences import make_sequence
+
+TINY = dict(brdf_res=8, cube_res=4, n_coeffs=16, lut_res=16, light_supersample=2, terms=6)
+RTOL = 1e-5   # as test_fast.py: the same terms summed in another order, float32
+
+pytestmark = pytest.mark.skipif(not native_sample.available(), reason="no C compiler (the compiled path runs)")
+
+
+@pytest.fixture(scope="module")
+def precomputed():
+    built = {}
+
+    def get(name: str) -> InOut:
+        if name not in built:
+            m = InOut(**{**TINY, **({"terms": None} if name == "sphere_plane" else {})})
+            m.precompute(get_scene(name, "test"))
+            built[name] = m
+        return built[name]
+
+    return get
+
+
+def _copy(m: InOut) -> InOut:
+    c = copy.copy(m)
+    c._reset_cache()
+    return c
+
+
+@pytest.mark.parametrize("W", [2, 4, 16])
+@pytest.mark.parametrize("name", ["bunny", "chess", "creature", "sphere_plane"])
+def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, W):
+    """Every frame of V, L and E sequences: the C loop's image equals the compiled path's (and the
+    reference's) to float32 round-off; with W = 2 entries take the exact sum, with W ≥ 4 the memo."""
+    m = precomputed(name)
+    monkeypatch.setattr(native_sample, "WINDOW", W)
+    calls = []
+    shade = native_sample.shade
+
+    def spy(*a, **k):
+        got = shade(*a, **k)
+        calls.append(got[1])
+        return got
+
+    monkeypatch.setattr(native_sample, "shade", spy)
+    for kind in ("V", "L", "E"):
+        new, old, ref = _copy(m), _copy(m), _copy(m)
+        old._render_native = lambda f, g: None
+        for frame in make_sequence(m.scene, kind, n_frames=3, seed=5):
+            gb = make_gbuffer(m.scene, frame, 2)
+            got, want, exact = new.render(frame, gb), old.render(frame, gb), ref._render_reference(frame, gb)
+            scale = float(exact.abs().max())
+            assert scale > 0
+            assert float((got - want).abs().max()) <= RTOL * scale, f"{name} {kind} frame {frame.index} W {W}"
+            assert float((got - exact).abs().max()) <= RTOL * scale, f"{name} {kind} frame {frame.index} W {W}"
+    made, summed = sum(c[0] for c in calls), sum(c[1] for c in calls)
+    assert len(calls) == 9 and made > 0
+    if W == 2:
+        assert summed > 0          # the exact sums ran
+    if W >= 16:
+        assert summed == 0         # the window is the whole table (R = 16)
+
+
+def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeypatch):
+    """The frame split over two threads (pixels per thread lowered to 1) gives the single thread's
+    image and memo bit for bit: each memo row's value is its (vertex, node) pair's alone."""
+    monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
+    monkeypatch.setattr(native_sample, "WINDOW", 4)
+    m = precomputed("creature")
+    frames = make_sequence(m.scene, "V", n_frames=3, seed=2) + make_sequence(m.scene, "L", n_frames=2, seed=2)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    n = torch.get_num_threads()
+    runs = []
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            a = _copy(m)
+            runs.append(([a.render(f, g) for f, g in zip(frames, gbs)], [x.clone() for x in a._xmemo]))
+    finally:
+        torch.set_num_threads(n)
+    for x, y in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1]):
+        assert torch.equal(x, y)
+
+
+def test_native_sample_rejects_faces_of_another_region(precomputed):
+    """A hit sample whose face lies in another region than the sample's: the C loop reports it and
+    `render` raises, as the compiled path's referenced-face pass does."""
+    m = _copy(precomputed("bunny"))
+    frame = make_sequence(m.scene, "V", n_frames=1, seed=0)[0]
+    gb = make_gbuffer(m.scene, frame, 1)
+    m.render(frame, gb)                                              # c of every vertex: no pass before the loop
+    k = int(gb.hit.nonzero()[0])
+    gb.region = gb.region.clone()
+    gb.region[k] = (int(gb.region[k]) + 1) % len(m.scene.regions)
+    with pytest.raises(ValueError, match="another region"):
+        m.render(frame, gb)
