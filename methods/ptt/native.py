@@ -39,6 +39,12 @@ the live vectors spilled around it and the next vector's divisions and square ro
 same operations per lane. Probes on the chess bench sample stage (1 thread, settled): without the Sleef
 calls it ran 1.45x faster, without the cells at all 2.1x, with every env row cached 1.09x.
 
+Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
+width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
+elsewhere; later blocks a e; the values the general selects pick): the sample stage 1.04–1.05x, the
+same bits (``python -m benchmarks.ptt_sample_ab --base OTHER --precompute-code OTHER [--scene
+creature]``, chess 1.051 / 1.036, creature 1.054).
+
 ``vertex_rows`` (session 29, ptt29): ``fast.vertex_view``'s rows of a frame's referenced pairs (with
 lobes, without the SH column) in one pass, the compiled ``pair_cells_of`` + ``pair_rows`` bit for bit
 (the same Sleef calls, 8 pairs at a time; `cells_available`), the compiled passes its fallback and
@@ -85,7 +91,7 @@ static inline __attribute__((always_inline)) void body(
         const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r, const float* fx,
         const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
         const float* table, const float* env, const float* lanes, const int64_t width, int64_t W,
-        int64_t prefetch, int64_t n, float* out) {
+        int64_t prefetch, int64_t n, const int plain, float* out) {
     const int64_t nb = width / 8;
     const float inv = 1.0f / (float)S2;
     const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
@@ -127,8 +133,13 @@ static inline __attribute__((always_inline)) void body(
                 const v8 a = (ld(a0 + o) * b0 + ld(a1 + o) * b1) + ld(a2 + o) * b2;
                 const v8 e = ((ld(e0 + o) * w0 + ld(e0 + width + o) * w1) + ld(e2 + o) * w2) + ld(e2 + width + o) * w3;
                 /* max(0, a) as Inductor's maximum (NaN propagates), a, a * e */
-                const v8 cl = sel((a > zero) | (a != a), a, zero);
-                const v8 tj = sel(isb[b], cl, sel(isu[b], a, a * e));
+                v8 tj;
+                if (!plain)
+                    tj = sel(isb[b], sel((a > zero) | (a != a), a, zero), sel(isu[b], a, a * e));
+                else if (b == 0)  /* plain: no u lanes, the B lanes in block 0 */
+                    tj = sel(isb[0], sel((a > zero) | (a != a), a, zero), a * e);
+                else
+                    tj = a * e;
                 t[b] = j ? t[b] + tj : tj;
             }
         }
@@ -147,14 +158,22 @@ void shade_pixels(const int64_t* face, const float* b1p, const float* b2p, int64
                   const float* fx, const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs,
                   int64_t M, const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
                   int64_t prefetch, int64_t n, float* out) {
-    if (width == 16 && S2 == 4)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+    /* plain: no u lanes and the B lanes within the first 8 (the perf suite's rows: B | s, width 16), so
+       a block's select of max(0, a) / a / a e is known per block (the same values: the selects it skips
+       pick a e) */
+    int plain = 1;
+    for (int64_t l = 0; l < width; ++l)
+        plain &= lanes[width + l] == 0.0f && (l < 8 || lanes[l] == 0.0f);
+    if (width == 16 && S2 == 4 && plain)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 1, out);
+    else if (width == 16 && S2 == 4)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 0, out);
     else if (width == 16)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 0, out);
     else if (width == 32)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, 0, out);
     else
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, 0, out);
 }
 
 /* shade_pixels over all P pixels on nt threads of OpenMP's team (the one torch's and Inductor's

@@ -552,7 +552,7 @@ def test_pair_cells_int32_indices_are_the_int64_ones():
 def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, monkeypatch):
     """``native.shade_pixels`` (the C loop `fast.shade_cells` takes) gives the same bits as the
     compiled `fast.shade_block` on the rows of the perf suite's configuration (width 16: 4 lobes, no
-    u column) at 1 and 2 threads (the pixel range split), and the eager `fast._shade_block` to
+    u column — the loop's body with fixed lane selects) at 1 and 2 threads (the pixel range split), and the eager `fast._shade_block` to
     round-off on widths 32 and 48 (the u column; the generic loop); with negative Gouraud sums,
     misses (face −1, the zero face of `fast.miss_face_pairs`; a face past the table reads it too) and
     the barycentrics as the G-buffer stores them (columns of a (2, n) array) and row-major; it
