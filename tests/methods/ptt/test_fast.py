@@ -789,7 +789,6 @@ def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(monkeypatch):
     (``native.vertex_rows`` switched off) for the referenced pairs of a frame and for 1, 2, 7, 33 and
     every pair, from cameras around the scene and close to it (pairs below their vertex's horizon), at
     1 and 2 threads, padded to the sample stage's width or not; `fast.vertex_view` takes it."""
-    from methods.core.zh import expand_bands
     from methods.ptt import fast as F
     from methods.ptt import native as N
 
