@@ -604,7 +604,16 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     0.2 s idle before each call as the suite's frames; two runs, load 3–6): chess bench 3.64–3.68 ->
     3.39–3.41 ms and 2.89 -> 2.61 ms, creature 3.82 -> 3.43 ms (back to back 1.30–1.82 -> 1.24–1.48). Moving the bag into `pair_rows` instead was slower (3.3 -> 4.2 ms
     settled): that loop is vectorised along the 16 lanes of a row, so the L = 4 values of each
-    corner became per-lane scalar gathers with an integer division each."""
+    corner became per-lane scalar gathers with an integer division each.
+
+    Decision (session 29, ptt29): with ``pairs`` (a shading="vertex" frame's referenced pairs), lobes
+    and no SH column (order 0: the perf suite's bounces 0), one native pass (``native.vertex_rows``,
+    `cells_available`) computes the rows: the compiled passes' products and sums in their order, the
+    same Sleef atan2 / acos on 8 pairs at a time, B's lane sums as their reduction — the same bits
+    (tested against the compiled passes) — without the two compiled calls (their guards, the
+    symbolic-size launches, the (m, 4) index / weight arrays between them, the index_select of E),
+    and with each pair's visibility, W_r and E rows prefetched a block of 32 pairs ahead. Chess bench
+    V frames' calls (4 311 pairs, 1 thread, process CPU, 0.2 s settle, alternating): 1.91 -> 0.97 ms."""
     v, r = st.pair_v, st.pair_r
     n = v.numel()
     order = lobes["order"] if lobes is not None and lobes["I1"] is not None else 0
@@ -619,6 +628,13 @@ def vertex_view(st: FastStatic, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: in
     if order:
         I1x = lobes["I1"] if st.pair_is_vertex else rows(lobes["I1"], v)
     vis = lobes["vis"] if lobes is not None else None
+    if pairs is not None and USE_NATIVE and lobes is not None and not order and small:
+        from methods.ptt import native as _native  # the same rows in one C pass (`native.vertex_rows`)
+
+        out = _native.vertex_rows(pairs, pos, frm, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv, nt, Wr, E, K,
+                                  lobes["ar"], vis, max(width, 3 + lobes["ar"].shape[1]))
+        if out is not None:
+            return out
     if pairs is not None:  # the rows of these pairs only (`referenced_pairs`), their count symbolic
         m = int(pairs.numel())
         if m < 2:  # Dynamo specialises sizes 0 and 1 (``core.fused.call_rows``)

@@ -39,6 +39,17 @@ the live vectors spilled around it and the next vector's divisions and square ro
 same operations per lane. Probes on the chess bench sample stage (1 thread, settled): without the Sleef
 calls it ran 1.45x faster, without the cells at all 2.1x, with every env row cached 1.09x.
 
+Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
+width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
+elsewhere; later blocks a e; the values the general selects pick): the sample stage 1.04–1.05x, the
+same bits (``python -m benchmarks.ptt_sample_ab --base OTHER --precompute-code OTHER [--scene
+creature]``, chess 1.051 / 1.036, creature 1.054).
+
+``vertex_rows`` (session 29, ptt29): ``fast.vertex_view``'s rows of a frame's referenced pairs (with
+lobes, without the SH column) in one pass, the compiled ``pair_cells_of`` + ``pair_rows`` bit for bit
+(the same Sleef calls, 8 pairs at a time; `cells_available`), the compiled passes its fallback and
+test oracle.
+
 The library is built and loaded by `methods.core.native.load` (per-user private cache directory, keyed
 by the source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
 ``PRTBENCH_COMPILE=0``, `available` is False and the caller uses ``fast.shade_block``. Building it
@@ -55,7 +66,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "cells_available", "mirror_cells", "shade_mirror", "shade_pixels"]
+__all__ = ["available", "cells_available", "mirror_cells", "shade_mirror", "shade_pixels", "vertex_rows"]
 
 # Samples ahead whose env rows are prefetched.
 PREFETCH = 16
@@ -80,7 +91,7 @@ static inline __attribute__((always_inline)) void body(
         const int64_t* face, const float* b1p, const float* b2p, int64_t bs, const int32_t* r, const float* fx,
         const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
         const float* table, const float* env, const float* lanes, const int64_t width, int64_t W,
-        int64_t prefetch, int64_t n, float* out) {
+        int64_t prefetch, int64_t n, const int plain, float* out) {
     const int64_t nb = width / 8;
     const float inv = 1.0f / (float)S2;
     const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
@@ -122,8 +133,13 @@ static inline __attribute__((always_inline)) void body(
                 const v8 a = (ld(a0 + o) * b0 + ld(a1 + o) * b1) + ld(a2 + o) * b2;
                 const v8 e = ((ld(e0 + o) * w0 + ld(e0 + width + o) * w1) + ld(e2 + o) * w2) + ld(e2 + width + o) * w3;
                 /* max(0, a) as Inductor's maximum (NaN propagates), a, a * e */
-                const v8 cl = sel((a > zero) | (a != a), a, zero);
-                const v8 tj = sel(isb[b], cl, sel(isu[b], a, a * e));
+                v8 tj;
+                if (!plain)
+                    tj = sel(isb[b], sel((a > zero) | (a != a), a, zero), sel(isu[b], a, a * e));
+                else if (b == 0)  /* plain: no u lanes, the B lanes in block 0 */
+                    tj = sel(isb[0], sel((a > zero) | (a != a), a, zero), a * e);
+                else
+                    tj = a * e;
                 t[b] = j ? t[b] + tj : tj;
             }
         }
@@ -142,14 +158,22 @@ void shade_pixels(const int64_t* face, const float* b1p, const float* b2p, int64
                   const float* fx, const float* fy, int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs,
                   int64_t M, const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
                   int64_t prefetch, int64_t n, float* out) {
-    if (width == 16 && S2 == 4)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+    /* plain: no u lanes and the B lanes within the first 8 (the perf suite's rows: B | s, width 16), so
+       a block's select of max(0, a) / a / a e is known per block (the same values: the selects it skips
+       pick a e) */
+    int plain = 1;
+    for (int64_t l = 0; l < width; ++l)
+        plain &= lanes[width + l] == 0.0f && (l < 8 || lanes[l] == 0.0f);
+    if (width == 16 && S2 == 4 && plain)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 1, out);
+    else if (width == 16 && S2 == 4)
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, 4, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 0, out);
     else if (width == 16)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 16, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 16, W, prefetch, n, 0, out);
     else if (width == 32)
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, 32, W, prefetch, n, 0, out);
     else
-        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, out);
+        body(face, b1p, b2p, bs, r, fx, fy, p0, p1, S2, face_pairs, M, table, env, lanes, width, W, prefetch, n, 0, out);
 }
 
 /* shade_pixels over all P pixels on nt threads of OpenMP's team (the one torch's and Inductor's
@@ -380,6 +404,162 @@ void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo,
                          table, env, lanes, width, W, prefetch, out);
     }
 }
+
+/* fast._cell: first texel and fraction of table coordinate c on a T-wide table, as the compiled pass
+   (clamp into [0, T - 1], floor, at most T - 2; a NaN c gives texel 0). */
+static inline int32_t tcell(float c, int64_t T, float* frac) {
+    float x = (c + 1.0f) * (float)((double)T / 2.0) - 0.5f;
+    x = x > 0.0f ? x : 0.0f;
+    x = x < (float)(T - 1) ? x : (float)(T - 1);
+    int32_t i = (int32_t)__builtin_floorf(x);
+    i = i < (int32_t)(T - 2) ? i : (int32_t)(T - 2);
+    i = i > 0 ? i : 0;
+    *frac = x - (float)i;
+    return i;
+}
+
+/* fast.vertex_view(..., pairs=sel) with lobes and without the SH column (order 0) in one pass over
+   the pairs: row i of out (m + 1, width) is pair sel[i]'s [B (3) | s (3L) | 0 ...], row m is 0.
+   pos (3, np), frame (9, np) component rows (FastStatic.pair_pos / pair_frame); cam (3,); pr, pv (np,)
+   the pair's region and vertex; Wr (R T^2, 3K), E (V, 3K) row-major, ar (R nt, 3L), vis (V Tv^2, L)
+   texel-major. The formulas of fast._pair_cells + fast._pair_rows with their products and sums in
+   their order (-ffp-contract=off), the same Sleef atan2 / acos on 8 pairs at a time as the compiled
+   pass's vector loop (passed in, as for `cells`), B's lane sums as its reduction (8 lanes, then
+   vec_reduce_all). Per block of VROWS_BLOCK pairs: the directions, then their Sleef calls, then every
+   pair's cells, weights and row offsets with its rows prefetched (the visibility rows are cache-cold:
+   4 per pair in a large table), then the rows. Pairs split over nth threads of OpenMP's team (each row
+   one thread's: the same bits at any nth). */
+#define VROWS_BLOCK 32
+static inline __attribute__((always_inline)) void vview_body(
+        const int64_t* sel, int64_t i0, int64_t i1, const float* pos, const float* frame, int64_t np,
+        const float* cam, const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt,
+        const float* Wr, const float* E, const int64_t K, const float* ar, const int64_t L, const float* vis,
+        int64_t width, vf1 vacos, vf2 vatan2, float* out) {
+    const int64_t KC = 3 * K, LC = 3 * L, step = nt > 1 ? 1 : 0;
+    const float c2pi = (float)(2.0 / 3.141592653589793), fnt = (float)((double)nt / (3.141592653589793 / 2.0));
+    float X[VROWS_BLOCK], Y[VROWS_BLOCK], Z[VROWS_BLOCK], RH[VROWS_BLOCK], AT[VROWS_BLOCK], AC[VROWS_BLOCK];
+    int64_t og[VROWS_BLOCK], oe[VROWS_BLOCK], oa[VROWS_BLOCK], oh[VROWS_BLOCK];
+    float wg[VROWS_BLOCK][4], wa[VROWS_BLOCK][2], wh[VROWS_BLOCK][4];
+    const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
+    v8 mk[3][3];  /* mk[b][c]: lanes of channel c in the 8-lane block o = 8 b (mod 24) of a row */
+    for (int b = 0; b < 3; ++b)
+        for (int c = 0; c < 3; ++c)
+            for (int l = 0; l < 8; ++l)
+                mk[b][c][l] = (8 * b + l) % 3 == c ? 1.0f : 0.0f;
+    for (int64_t ib = i0; ib < i1; ib += VROWS_BLOCK) {
+        const int64_t nb = i1 - ib < VROWS_BLOCK ? i1 - ib : VROWS_BLOCK;
+        for (int64_t j = 0; j < VROWS_BLOCK; ++j) {
+            const int64_t q = sel[ib + (j < nb ? j : nb - 1)];
+            const float dx = cam[0] - pos[q], dy = cam[1] - pos[np + q], dz = cam[2] - pos[2 * np + q];
+            const float inv = 1.0f / __builtin_sqrtf((dx * dx + dy * dy) + dz * dz);
+            X[j] = ((frame[q] * dx + frame[np + q] * dy) + frame[2 * np + q] * dz) * inv;
+            Y[j] = ((frame[3 * np + q] * dx + frame[4 * np + q] * dy) + frame[5 * np + q] * dz) * inv;
+            Z[j] = ((frame[6 * np + q] * dx + frame[7 * np + q] * dy) + frame[8 * np + q] * dz) * inv;
+            RH[j] = __builtin_sqrtf(X[j] * X[j] + Y[j] * Y[j]);
+        }
+        for (int64_t j = 0; j < nb; j += 8) {
+            const __m256 z = _mm256_loadu_ps(Z + j);
+            _mm256_storeu_ps(AT + j, vatan2(_mm256_loadu_ps(RH + j), z));
+            _mm256_storeu_ps(AC + j, vacos(vmin(vmax(z, _mm256_set1_ps(-1.0f)), _mm256_set1_ps(1.0f))));
+        }
+        for (int64_t j = 0; j < nb; ++j) {
+            const int64_t q = sel[ib + j];
+            const float x = X[j], y = Y[j], z = Z[j], rho = RH[j];
+            const float up = z > 0.0f ? 1.0f : 0.0f;
+            const float sc = rho > 1e-12f ? AT[j] * c2pi / (rho > 1e-12f ? rho : 1e-12f) : c2pi;
+            const float cu = x * sc, cv = y * sc;
+            float tx, ty, ux, uy;
+            const int32_t ix = tcell(cu, T, &tx), iy = tcell(cv, T, &ty);
+            const int32_t jx = tcell(-cu, Tv, &ux), jy = tcell(-cv, Tv, &uy);
+            const int64_t r = pr[q], v = pv[q];
+            /* W_r's bilinear cell, weight 0 below the horizon */
+            const float a = (1.0f - tx) * up, b = tx * up;
+            wg[j][0] = a * (1.0f - ty), wg[j][1] = b * (1.0f - ty), wg[j][2] = a * ty, wg[j][3] = b * ty;
+            og[j] = (r * T * T + (int64_t)iy * T + ix) * KC;
+            oe[j] = v * KC;
+            /* a_k(theta_o): linear in theta_o over the nt nodes (fast.theta_nodes) */
+            float xt = AC[j] * fnt - 0.5f;
+            xt = xt > 0.0f ? xt : 0.0f;
+            xt = xt < (float)(nt - 1) ? xt : (float)(nt - 1);
+            int32_t n0 = nt > 1 ? (int32_t)__builtin_floorf(xt) : 0;
+            n0 = n0 < (int32_t)(nt - 2) ? n0 : (int32_t)(nt - 2);
+            n0 = n0 > 0 ? n0 : 0;
+            const float t = xt - (float)n0;
+            wa[j][0] = (1.0f - t) * up, wa[j][1] = t * up;
+            oa[j] = (r * nt + n0) * LC;
+            /* V_c^(k)(x, R_x): the bilinear cell of R_x = (-x, -y, z) in the vertex's table */
+            const float va = (1.0f - ux) * up, vb = ux * up;
+            wh[j][0] = va * (1.0f - uy), wh[j][1] = vb * (1.0f - uy), wh[j][2] = va * uy, wh[j][3] = vb * uy;
+            oh[j] = (v * Tv * Tv + (int64_t)jy * Tv + jx) * L;
+            __builtin_prefetch(vis + oh[j]);
+            __builtin_prefetch(vis + oh[j] + 2 * L - 1);
+            __builtin_prefetch(vis + oh[j] + Tv * L);
+            __builtin_prefetch(vis + oh[j] + Tv * L + 2 * L - 1);
+            for (int64_t o = 0; o < KC; o += 16) {
+                __builtin_prefetch(E + oe[j] + o);
+                __builtin_prefetch(Wr + og[j] + o);
+                __builtin_prefetch(Wr + og[j] + KC + o);
+                __builtin_prefetch(Wr + og[j] + T * KC + o);
+                __builtin_prefetch(Wr + og[j] + (T + 1) * KC + o);
+            }
+        }
+        for (int64_t j = 0; j < nb; ++j) {
+            const float* g0 = Wr + og[j];
+            const float* g2 = g0 + T * KC;
+            const float* e = E + oe[j];
+            const float w0 = wg[j][0], w1 = wg[j][1], w2 = wg[j][2], w3 = wg[j][3];
+            /* B channel c: the sum over the 8-lane blocks of the row of P * mask_c, then vec_reduce_all (KC a
+               multiple of 8: the caller checks) */
+            float B[3];
+            v8 acc[3] = {zero, zero, zero};
+            for (int64_t o = 0; o < KC; o += 8) {
+                const v8 p = (((ld(g0 + o) * w0 + ld(g0 + KC + o) * w1) + ld(g2 + o) * w2) + ld(g2 + KC + o) * w3)
+                             * ld(e + o);
+                for (int c = 0; c < 3; ++c)
+                    acc[c] = acc[c] + p * mk[(o / 8) % 3][c];
+            }
+            for (int c = 0; c < 3; ++c) {
+                const v8 u = acc[c];
+                const float s0 = u[0] + u[4], s1 = u[1] + u[5], s2 = u[2] + u[6], s3 = u[3] + u[7];
+                B[c] = (s0 + s2) + (s1 + s3);
+            }
+            const float* a0 = ar + oa[j];
+            const float* a1 = a0 + step * LC;
+            const float aw0 = wa[j][0], aw1 = wa[j][1];
+            const float* h0 = vis + oh[j];
+            const float* h2 = h0 + Tv * L;
+            float* o = out + (ib + j) * width;
+            o[0] = B[0];
+            o[1] = B[1];
+            o[2] = B[2];
+            for (int64_t k = 0; k < L; ++k) {
+                const float vc = ((h0[k] * wh[j][0] + h0[L + k] * wh[j][1]) + h2[k] * wh[j][2]) + h2[L + k] * wh[j][3];
+                for (int c = 0; c < 3; ++c)
+                    o[3 + 3 * k + c] = (a0[3 * k + c] * aw0 + a1[3 * k + c] * aw1) * vc;
+            }
+            for (int64_t l = 3 + LC; l < width; ++l)
+                o[l] = 0.0f;
+        }
+    }
+}
+
+void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
+                 const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
+                 const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
+                 const void* vacos, const void* vatan2, int64_t nth, float* out) {
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+    for (int64_t k = 0; k < nth; ++k) {
+        const int64_t i0 = m * k / nth, i1 = m * (k + 1) / nth;
+        if (K == 16 && L == 4)
+            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, (vf1)vacos,
+                       (vf2)vatan2, out);
+        else
+            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, (vf1)vacos,
+                       (vf2)vatan2, out);
+    }
+    for (int64_t l = 0; l < width; ++l)
+        out[m * width + l] = 0.0f;
+}
 #else
 int native_cells_ok(void) { return 0; }
 #endif
@@ -425,6 +605,10 @@ def _functions(lib: ctypes.CDLL):
         fn.shade_mirror_par = lib.shade_mirror_par
         fn.shade_mirror_par.restype = None
         fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
+        fn.vertex_rows = lib.vertex_rows
+        fn.vertex_rows.restype = None
+        fn.vertex_rows.argtypes = [_P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _P,
+                                   _I, _P]
     return fn
 
 
@@ -616,3 +800,38 @@ def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Te
     m = fn.referenced_pairs(face.data_ptr(), n, face_pairs.data_ptr(), M, int(n_pairs), nt, fmark.data_ptr(),
                             pos.data_ptr(), sel.data_ptr(), fpc.data_ptr())
     return sel[:m], fpc
+
+
+# Pairs below which one thread computes `vertex_rows`.
+_MIN_PAIRS_PER_THREAD = 1 << 11
+
+
+def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Tensor, v32: Tensor, T: int, Tv: int,
+                nt: int, Wr: Tensor, E: Tensor, K: int, ar: Tensor, vis: Tensor, width: int) -> Tensor | None:
+    """``fast.vertex_view(..., pairs=pairs)``'s rows (m + 1, width) with lobes and without the SH
+    column (order 0), by the native loop (`cells_available`: the Sleef atan2 / acos of the compiled
+    pass); None when it is not available or the arguments are not what it reads (CPU float32 / int32 /
+    int64 as ``FastStatic``'s, E (V, 3K) and Wr (·, 3K) row-major with 3K a multiple of 8 — the lane
+    blocks of the compiled pass's reduction that B's sums follow —, ar (·, 3L), vis (·, L), width ≥
+    3 + 3L). The indices are those the compiled passes read unchecked too."""
+    if not cells_available():
+        return None
+    L = int(vis.shape[1]) if vis.ndim == 2 else -1
+    ok = (pairs.dtype == torch.int64 and pairs.ndim == 1 and pairs.numel() > 0 and r32.dtype == v32.dtype == torch.int32
+          and all(t.dtype == torch.float32 for t in (pos, frame, cam, Wr, E, ar, vis))
+          and pos.ndim == 2 and pos.shape[0] == 3 and frame.shape == (9, pos.shape[1]) and cam.numel() == 3
+          and Wr.ndim == 2 and Wr.shape[1] == 3 * K and E.ndim == 2 and E.shape[1] == 3 * K and (3 * K) % 8 == 0
+          and ar.ndim == 2 and ar.shape[1] == 3 * L and width >= 3 + 3 * L
+          and all(t.device.type == "cpu" for t in (pairs, pos, frame, cam, r32, v32, Wr, E, ar, vis)))
+    if not ok:
+        return None
+    fn, (ac, at) = _kernel(), _sleef()
+    pairs, pos, frame, cam, r32, v32, Wr, E, ar, vis = (t.contiguous() for t in (pairs, pos, frame, cam, r32, v32, Wr,
+                                                                                   E, ar, vis))
+    m = int(pairs.numel())
+    out = torch.empty(m + 1, width, dtype=torch.float32)
+    nth = max(1, min(torch.get_num_threads(), m // _MIN_PAIRS_PER_THREAD))
+    fn.vertex_rows(pairs.data_ptr(), m, pos.data_ptr(), frame.data_ptr(), int(pos.shape[1]), cam.data_ptr(),
+                   r32.data_ptr(), v32.data_ptr(), int(T), int(Tv), int(nt), Wr.data_ptr(), E.data_ptr(), int(K),
+                   ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, nth, out.data_ptr())
+    return out

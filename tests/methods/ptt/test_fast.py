@@ -552,7 +552,7 @@ def test_pair_cells_int32_indices_are_the_int64_ones():
 def test_native_shade_loop_is_the_compiled_shade_block_bit_for_bit(S2, monkeypatch):
     """``native.shade_pixels`` (the C loop `fast.shade_cells` takes) gives the same bits as the
     compiled `fast.shade_block` on the rows of the perf suite's configuration (width 16: 4 lobes, no
-    u column) at 1 and 2 threads (the pixel range split), and the eager `fast._shade_block` to
+    u column — the loop's body with fixed lane selects) at 1 and 2 threads (the pixel range split), and the eager `fast._shade_block` to
     round-off on widths 32 and 48 (the u column; the generic loop); with negative Gouraud sums,
     misses (face −1, the zero face of `fast.miss_face_pairs`; a face past the table reads it too) and
     the barycentrics as the G-buffer stores them (columns of a (2, n) array) and row-major; it
@@ -780,3 +780,61 @@ def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeyp
             sub = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=s)
             assert sub.shape == (s.numel() + 1, full.shape[1])
             assert torch.equal(sub[:-1], full[s]) and not bool(sub[-1].any())
+
+
+def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(monkeypatch):
+    """``native.vertex_rows`` (`fast.vertex_view(..., pairs=sel)` with lobes and no SH column as one C
+    pass: the compiled passes' products and sums in their order, the same Sleef atan2 / acos, B's lane
+    sums as their reduction) gives the bits of the compiled `fast.pair_cells_of` + `fast.pair_rows`
+    (``native.vertex_rows`` switched off) for the referenced pairs of a frame and for 1, 2, 7, 33 and
+    every pair, from cameras around the scene and close to it (pairs below their vertex's horizon), at
+    1 and 2 threads, padded to the sample stage's width or not; `fast.vertex_view` takes it."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.cells_available():
+        pytest.skip("no AVX2 build of the native loops")
+    monkeypatch.setattr(N, "_MIN_PAIRS_PER_THREAD", 8)
+    scene = get_scene("chess", "test")
+    m = PTT(**{**TINY, **VARIANTS["chess"], "n_wi": 8}, bounces=0)  # K = 8: 24-lane rows (the native loop reads 8-lane blocks)
+    m.precompute(scene)
+    frames = [_small(f) for f in make_sequence(scene, "V", n_frames=2, seed=5)]
+    gb = make_gbuffer(scene, frames[0], 2)
+    m.render(frames[0], gb)
+    st = m._fast_static()
+    E, I1 = m._f_E
+    assert I1 is None
+    Wr, ar = m._f_tabs
+    L = len(m.config["lobe_degrees"])
+    lobes = dict(ar=ar, n_theta=m.lobe_table.theta.shape[0], Tv=m.lobe_vis.shape[-1],
+                 vis=m.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L), I1=None, f=None, order=m.config["sh_order"])
+    T, K = m.factors.W_tab.shape[-1], m.factors.K
+    assert (3 * K) % 8 == 0
+    sel, _ = F.referenced_pairs(st, gb.face)
+    n = st.pair_v.numel()
+    every = torch.arange(n)
+    calls = []
+    real = N.vertex_rows
+    monkeypatch.setattr(N, "vertex_rows", lambda *a: calls.append(1) or real(*a))
+    g = torch.Generator().manual_seed(3)
+    centre = m.V.mean(0)
+    cams = [torch.as_tensor(f.camera.origin, dtype=torch.float32) for f in frames]
+    cams += [centre + torch.randn(3, generator=g) * s for s in (0.05, 0.3, 3.0)]
+    for cam in cams:
+        for pairs in (sel, every, every[7:8], every[-2:], every[3:10], torch.randperm(n, generator=g)[:33].sort()[0]):
+            for width in (0, F.table_width(3 + 3 * L)):
+                got = []
+                for threads in (1, 2):
+                    torch.set_num_threads(threads)
+                    try:
+                        k = len(calls)
+                        got.append(F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=pairs))
+                        assert len(calls) == k + 1
+                    finally:
+                        torch.set_num_threads(1)
+                monkeypatch.setattr(N, "vertex_rows", lambda *a: None)
+                want = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=pairs)
+                monkeypatch.setattr(N, "vertex_rows", lambda *a: calls.append(1) or real(*a))
+                for out in got:
+                    assert out.shape == want.shape and torch.equal(out, want), float((out - want).abs().max())
+    assert bool((got[0][:, :3] != 0).any()) and bool((got[0][:, 3:] != 0).any())
