@@ -94,7 +94,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.fused import fused, warm_blocks
-from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar
+from methods.core.sh import _LATLONG_QT, project_latlong
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
@@ -416,7 +416,8 @@ class ZHShadow(Method):
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
-        world space (`project_latlong_polar`, then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
+        world space (`native.project_latlong_polar`: one C pass, `sh.project_latlong_polar` its
+        fallback and oracle; then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
         the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
         (projected once, on the first such frame). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
@@ -431,7 +432,7 @@ class ZHShadow(Method):
                 self._env_bytes = int(data.numel() * data.element_size())
                 # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
                 # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
-                world = rt.rotate_lighting(project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
+                world = rt.rotate_lighting(zn.project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))

@@ -1483,3 +1483,32 @@ def test_native_split_equals_torch_split(small_model):
     fa = make_sequence(al.scene, "V", 1, seed=2)[0]
     assert al._native_split(make_gbuffer(al.scene, fa, 2), [False] * len(al.scene.regions),
                             al.scene.geometry().F.to(torch.int32)) is False
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
+    """`native.project_latlong_polar` (one C pass over the float32 texels, `ZHShadow._lighting`'s new
+    map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
+    round-off on random maps (odd sizes, a non-contiguous view, 1 and 2 threads); the switch off
+    (``PRTBENCH_ZH_NATIVE=0``) and a float64 map give the oracle itself."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.core.sh import project_latlong_polar as oracle
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(order)
+    for H, W in ((64, 128), (37, 75), (256, 512)):
+        img = torch.rand(H, W, 3, generator=g) * 4.0
+        views = (img, torch.rand(W, H, 3, generator=g).transpose(0, 1))     # (a strided view too)
+        for x in views:
+            want = oracle(x, order)
+            for nt in (1, 2):
+                with mock.patch.object(torch, "get_num_threads", lambda: nt):
+                    got = zn.project_latlong_polar(x, order)
+                assert got.dtype == torch.float64 and got.shape == (order * order, 3)
+                assert float((got - want).abs().max()) <= 1e-13 * float(want.abs().max()), (H, W, nt)
+    assert zn._project_lib() is not None or not native.compiler() or not compile_enabled()   # (the loop ran)
+    x = torch.rand(16, 32, 3, generator=g)
+    assert torch.equal(zn.project_latlong_polar(x.double(), order), oracle(x.double(), order))
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert torch.equal(zn.project_latlong_polar(x, order), oracle(x, order))
