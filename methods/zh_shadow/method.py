@@ -347,6 +347,7 @@ class ZHShadow(Method):
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
+        self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -355,6 +356,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
+        self._resolve_packed = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -402,6 +404,9 @@ class ZHShadow(Method):
     # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
     # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
     diffuse_cache = True
+    # Lighting-only vertex-shaded frames resolve by the kept matrix packed for a C loop (`native.csr_pack`,
+    # `native.csr_product`: torch's CSR product's bits); False: torch's CSR product (the tests' oracle)
+    native_resolve = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -1004,7 +1009,12 @@ class ZHShadow(Method):
                 self._resolve_matrix = rm = (gkey, geom, _int32_csr(gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
                     gbuffer.spp_side, int(geom.num_vertices))))
-            return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
+            # (by the packed matrix's C loop where it runs: torch's CSR product's bits, `native.csr_pack`)
+            rp = self._resolve_packed
+            if rp is None or rp[0] is not rm[2]:
+                self._resolve_packed = rp = (rm[2], zn.csr_pack(rm[2]) if self.native_resolve else None)
+            out = zn.csr_product(rp[1], radT) if rp[1] is not None else None
+            return (rm[2] @ radT if out is None else out).view(gbuffer.height, gbuffer.width, 3)
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,

@@ -1512,3 +1512,57 @@ def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
     assert torch.equal(zn.project_latlong_polar(x.double(), order), oracle(x.double(), order))
     monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
     assert torch.equal(zn.project_latlong_polar(x, order), oracle(x, order))
+
+
+def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
+    """`native.csr_product` of `native.csr_pack` (the kept resolve matrix as a 4-wide table + a CSR
+    tail, one C pass) = torch's CSR product bit for bit: the creature's resolve matrix (int32 and int64
+    indices) and a random CSR with empty rows and rows of up to 12 entries, at 1 and 2 threads; a
+    vertex-shaded L sequence renders the same images with ``native_resolve`` off (torch's product)."""
+    from methods.core import gouraud, native
+    from methods.core.fused import compile_enabled
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import _int32_csr
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    scene = zh_scene("creature")
+    f = make_sequence(scene, "L", 1, seed=2)[0]
+    gb, geom = make_gbuffer(scene, f, 2), scene.geometry()
+    N = int(geom.num_vertices)
+    S = gouraud.resolve_matrix(geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side, N)
+    g = torch.Generator().manual_seed(4)
+    R, Nr = 300, 50
+    ln = torch.randint(0, 13, (R,), generator=g)
+    ln[::7] = 0
+    crow = torch.zeros(R + 1, dtype=torch.int64)
+    crow[1:] = ln.cumsum(0)
+    nnz = int(crow[-1])
+    rnd = torch.sparse_csr_tensor(crow, torch.randint(0, Nr, (nnz,), generator=g), torch.randn(nnz, generator=g),
+                                  (R, Nr))
+    for M in (S, _int32_csr(S), rnd):
+        pk = zn.csr_pack(M)
+        if pk is None:
+            assert zn._csr_lib() is None or not zn.terms_switched_on()
+            pytest.skip("the native resolve is not available here")
+        x = torch.randn(int(M.shape[1]), 3, generator=g)
+        for nt in (1, 2):
+            with mock.patch.object(zn, "MIN_ROWS_PER_CSR_THREAD", 16), mock.patch.object(torch, "get_num_threads",
+                                                                                        lambda: nt):
+                got = zn.csr_product(pk, x)
+            assert torch.equal(got, M @ x), nt
+    assert zn._csr_lib() is not None or not native.compiler() or not compile_enabled()
+    assert zn.csr_product(zn.csr_pack(rnd), torch.randn(Nr + 1, 3)) is None          # (a wrong size: the oracle)
+    bad = torch.sparse_csr_tensor(crow, torch.full((nnz,), Nr), torch.ones(nnz), (R, Nr + 1))
+    assert zn.csr_pack(torch.sparse_csr_tensor(crow, torch.full((nnz,), Nr), torch.ones(nnz), (R, Nr))) is None
+    assert zn.csr_pack(bad) is not None
+    m = ZHShadow(**SMALL, order=4, shading="vertex", specular="cosine")
+    m.precompute(scene)
+    slow = m.with_render_config()
+    slow.native_resolve = False
+    fast = m.with_render_config()
+    for fr in make_sequence(scene, "L", 4, seed=3):
+        gbf = make_gbuffer(scene, fr, 2)
+        assert torch.equal(fast.render(fr, gbf), slow.render(fr, gbf))
+    assert fast._resolve_packed is not None and fast._resolve_packed[1] is not None
+    assert slow._resolve_packed[1] is None
