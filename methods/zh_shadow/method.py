@@ -709,6 +709,9 @@ class ZHShadow(Method):
     # native passes (`native.plane_mask`, `native.object_rows`) where they run; False: by the torch
     # path (the tests' oracle)
     native_split = True
+    # A lighting-only frame's plane pass (`_relight_planes`) by the C loop (`native.face_pixels`: the
+    # compiled `_plane_face_pixels`' bits) where it runs; False: the compiled pass (the tests' oracle)
+    native_plane_pass = True
 
     def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
         """`_render_planes`' plane search and split of an all-hit G-buffer by the native passes: False
@@ -825,8 +828,12 @@ class ZHShadow(Method):
         # rows: 4,341 on the bench creature instead of the mesh's 13,415 vertices), as a face table
         kd_c = torch.stack([m[0] for m in mats]).to(dev, v.dtype).index_select(0, creg)
         uf = (v.index_select(0, corners) @ rt.diffuse_at(Wd, n0)).mul_(kd_c).view(-1, 9)
-        torch._dynamo.maybe_mark_dynamic(uf, 0)
-        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), uf, clamp)
+        bary = gbuffer.bary.T.view(2, n, S2)
+        # (one C pass where it runs: the compiled pass's bits, `native.face_pixels`)
+        img = zn.face_pixels(faces, bary, uf, clamp) if self.native_plane_pass else None
+        if img is None:
+            torch._dynamo.maybe_mark_dynamic(uf, 0)
+            img = _plane_face_pixels(faces, bary, uf, clamp)
         light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`

@@ -636,3 +636,91 @@ def csr_product(packed: tuple, x: Tensor) -> Tensor | None:
     _csr_lib().zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
                            trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out
+
+
+# --- a lighting-only frame's plane pass (`ZHShadow._relight_planes`) ------------------------------------
+#
+# `method._plane_face_pixels` (Inductor) box-filters the plane's samples into their pixels from the
+# plane faces' corner table: ~1–2 ms of a ~3 ms paper-setting L frame at 1 thread on the bench creature
+# (262,144 samples), plus its compiled call's guards. Here one C pass over the pixels, the kernel's
+# expressions in its order (no FMA: `-ffp-contract=off`, as Inductor), so the same bits (tested).
+_FACE_PIXELS_SOURCE = r"""
+#include <stdint.h>
+
+typedef float v4 __attribute__((vector_size(16)));
+typedef int32_t i4 __attribute__((vector_size(16)));
+
+/* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples s of pixel p (s ascending, from x_0), x_s = 0 where
+   face[p, s] < 0, else max(uf[f, c] ((1 − u) − v) + uf[f, 4 + c] u + uf[f, 8 + c] v, 0) (the max if clamp)
+   with u = bary[(p S2 + s) bs1], v = bary[bs0 + (p S2 + s) bs1] — the three channels as the lanes 0–2 of
+   one 4-float vector (uf (F, 12): each corner's three values and a zero); pixels split over nt threads;
+   bad[0] counts faces ≥ F (taken as 0). face (n, S2) int32 contiguous, out (n, 3). */
+static inline v4 face_sample(const int32_t *face, const float *bary, int64_t bs0, int64_t bs1, const float *uf,
+                             int64_t F, int64_t clamp, int64_t q, int64_t *nb) {
+    const v4 zero = {0.f, 0.f, 0.f, 0.f};
+    int64_t f = face[q];
+    const int32_t on = f >= 0;                       /* branch-free: off the plane reads face 0, masked */
+    if (f >= F) { ++*nb; f = 0; }
+    f = on ? f : 0;
+    const float u = bary[q * bs1], v = bary[bs0 + q * bs1];
+    const float w = (1.0f - u) - v;
+    const v4 *t = (const v4 *)(uf + 12 * f);
+    v4 x = (t[0] * w + t[1] * u) + t[2] * v;
+    if (clamp) x = (v4)((i4)x & ~(x < zero));      /* max(x, 0): 0 where x < 0 */
+    return (v4)((i4)x & -(i4){on, on, on, on});      /* 0 off the plane */
+}
+
+void zh_face_pixels(int64_t n, int64_t S2, const int32_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                    const float *uf, int64_t F, int64_t clamp, float inv, float *out, int64_t nt, int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
+    for (int64_t p = 0; p < n; ++p) {
+        v4 o;
+        if (S2 == 4) {
+            const int64_t q = 4 * p;
+            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, &nb);
+        } else {
+            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, &nb);
+            for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, &nb);
+        }
+        o = o * inv;
+        out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
+    }
+    bad[0] = nb;
+}
+"""
+_FACE_PIXELS_SIGNATURES = {"zh_face_pixels": [_I, _I, _P, _P, _I, _I, _P, _I, _I, ctypes.c_float, _P, _I, _P]}
+MIN_PIXELS_PER_THREAD = 8192        # pixels below which one thread runs the plane pass
+
+
+@functools.lru_cache(maxsize=None)
+def _face_pixels_lib():
+    return native.load("zh_face_pixels", _FACE_PIXELS_SOURCE, _FACE_PIXELS_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+
+
+def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor | None:
+    """`method._plane_face_pixels(face, bary, uf, clamp)` (n, 3) by the C loop — the same bits — or None
+    where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / int32 / CPU, a face
+    outside uf's rows): the caller then runs the compiled pass. face (n, S²) int32 (−1: no plane
+    sample), bary (2, n, S²) (u, v) with any strides of the form (bs0, S² bs1, bs1), uf (F_p, 9)."""
+    lib = _face_pixels_lib() if terms_switched_on() else None
+    if (lib is None or face.dtype != torch.int32 or face.dim() != 2 or bary.dtype != torch.float32
+            or uf.dtype != torch.float32 or uf.dim() != 2 or uf.shape[1] != 9 or uf.shape[0] == 0
+            or any(t.device.type != "cpu" for t in (face, bary, uf))):
+        return None
+    n, S2 = int(face.shape[0]), int(face.shape[1])
+    if bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2):
+        return None
+    face = face.contiguous()
+    u12 = torch.zeros(int(uf.shape[0]), 3, 4, dtype=torch.float32)   # (each corner's 3 values + a zero lane)
+    u12[:, :, :3] = uf.view(-1, 3, 3)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.zh_face_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
+                       int(uf.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
+    return None if int(bad[0]) else out

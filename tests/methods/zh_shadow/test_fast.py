@@ -1566,3 +1566,47 @@ def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
         assert torch.equal(fast.render(fr, gbf), slow.render(fr, gbf))
     assert fast._resolve_packed is not None and fast._resolve_packed[1] is not None
     assert slow._resolve_packed[1] is None
+
+
+def test_face_pixels_native_equals_compiled(small_model):
+    """`native.face_pixels` (the C loop) = `method._plane_face_pixels` (the compiled pass, its oracle)
+    bit for bit: random face tables and faces (−1 = no plane sample) with clamp on and off, at 1 and
+    2 threads, the component-major barycentrics the G-buffer stores; None for a face outside the table;
+    L / E sequences of the creature render the same images with ``native_plane_pass`` off."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import _plane_face_pixels
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    g = torch.Generator().manual_seed(6)
+    n, S2, Fp = 20000, 4, 700
+    face = torch.randint(-1, Fp, (n, S2), generator=g, dtype=torch.int64).to(torch.int32)
+    face[:50] = -1
+    bary = torch.rand(n * S2, 2, generator=g).T.contiguous().T          # (P, 2) column-major, as the G-buffer
+    bT = bary.T.view(2, n, S2)
+    uf = torch.randn(Fp, 9, generator=g)
+    for clamp in (True, False):
+        want = _plane_face_pixels(face, bT, uf, clamp)
+        for nt in (1, 2):
+            with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 64), mock.patch.object(torch, "get_num_threads",
+                                                                                      lambda: nt):
+                got = zn.face_pixels(face, bT, uf, clamp)
+            if got is None:
+                assert zn._face_pixels_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native plane pass is not available here")
+            assert torch.equal(got, want), (clamp, nt)
+    assert zn._face_pixels_lib() is not None or not native.compiler() or not compile_enabled()
+    assert zn.face_pixels(face, bT, uf[:Fp - 1].contiguous(), True) is None          # a face outside the table
+    m = small_model("creature")
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_plane_pass = False
+    for kind in ("L", "E"):
+        for fr in make_sequence(m.scene, kind, 4, seed=4):
+            gb = make_gbuffer(m.scene, fr, 2)
+            a, b = fast.render(fr, gb), slow.render(fr, gb)
+            assert fast.last_path == slow.last_path
+            assert torch.equal(a, b), (kind, fr.index)
+        assert fast.last_path == "relight-planes", kind
