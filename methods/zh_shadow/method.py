@@ -710,7 +710,9 @@ class ZHShadow(Method):
     # path (the tests' oracle)
     native_split = True
     # A lighting-only frame's plane pass (`_relight_planes`) by the C loop (`native.face_pixels`: the
-    # compiled `_plane_face_pixels`' bits) where it runs; False: the compiled pass (the tests' oracle)
+    # compiled `_plane_face_pixels`' bits) and its object samples by another (`native.relight_add`: float32
+    # round-off against the GEMMs) where they run; False: the compiled pass, the GEMMs and ``index_add_``
+    # (the tests' oracle)
     native_plane_pass = True
 
     def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
@@ -837,6 +839,10 @@ class ZHShadow(Method):
         light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
+                if self.native_plane_pass and zn.relight_add(     # (one C pass where it runs: float32 round-off)
+                        img, td, ts, light * kd.to(dev, v.dtype), None if ts is None else light * ks.to(dev, v.dtype),
+                        pix, clamp, 1.0 / S2):
+                    continue
                 rad = (light * kd.to(dev, v.dtype)).T @ td
                 if ts is not None:   # + t_s · (l ⊙ ks) accumulated by the product (no pass of its own)
                     rad = torch.addmm(rad, (light * ks.to(dev, v.dtype)).T, ts)

@@ -724,3 +724,119 @@ def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor |
     lib.zh_face_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
                        int(uf.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else out
+
+
+# --- a lighting-only frame's object samples (`ZHShadow._relight_planes`) ----------------------------------
+#
+# Per region the cached transfer of the samples off the plane, td and ts (n², Q) (`runtime.relight_cache`),
+# was shaded by two small GEMMs — (l ⊙ kd)ᵀ td + (l ⊙ ks)ᵀ ts, (3, n²) @ (n², Q) — a clamp, and three
+# ``index_add_`` into the pixels (one per channel): ~1.5–2 ms of a ~3 ms paper-setting L frame on the bench
+# creature (37 K object samples, 1 thread), for ~4.7 MB of transfer read. Here one C pass over the samples,
+# 512 at a time (each of the 2n² rows' 512 values one contiguous run of 8-float vectors), the sums over i
+# ascending (the GEMM's order is the BLAS's: float32 round-off against it), then clamp and the samples'
+# pixels in order.
+_RELIGHT_SOURCE = r"""
+#include <stdint.h>
+
+typedef float v8 __attribute__((vector_size(32), aligned(4)));
+
+/* img[pix[q], c] += max(Σ_i ld[i, c] td[i, q] + Σ_i ls[i, c] ts[i, q], 0) · inv (the max if clamp; no ts
+   term when ts is NULL), q ascending; td, ts (n2, Q) row-major, ld, ls (n2, 3); bad[0] counts pixels
+   outside [0, npix) (skipped). */
+void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, const float *ld, const float *ls,
+                    const int64_t *pix, int64_t clamp, float inv, float *img, int64_t npix, int64_t *bad) {
+    int64_t nb = 0;
+    int64_t q0 = 0;
+    /* CH samples at a time: each row's CH values read as one contiguous run (a per-sample pass over the
+       2 n2 rows Q floats apart read 32 streams at once: slower than the GEMMs from a cold cache) */
+    enum { CH = 512, NB = CH / 8 };
+    v8 d[3][NB], sp[3][NB];
+    for (; q0 + CH <= Q; q0 += CH) {
+        for (int64_t c = 0; c < 3; ++c)
+            for (int64_t j = 0; j < NB; ++j) { d[c][j] = (v8){0}; sp[c][j] = (v8){0}; }
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *x = td + i * Q + q0;
+            const float l0 = ld[3 * i], l1 = ld[3 * i + 1], l2 = ld[3 * i + 2];
+            for (int64_t j = 0; j < NB; ++j) {
+                const v8 xv = *(const v8 *)(x + 8 * j);
+                d[0][j] += l0 * xv; d[1][j] += l1 * xv; d[2][j] += l2 * xv;
+            }
+        }
+        if (ts) {
+            for (int64_t i = 0; i < n2; ++i) {
+                const float *x = ts + i * Q + q0;
+                const float l0 = ls[3 * i], l1 = ls[3 * i + 1], l2 = ls[3 * i + 2];
+                for (int64_t j = 0; j < NB; ++j) {
+                    const v8 xv = *(const v8 *)(x + 8 * j);
+                    sp[0][j] += l0 * xv; sp[1][j] += l1 * xv; sp[2][j] += l2 * xv;
+                }
+            }
+            for (int64_t c = 0; c < 3; ++c)
+                for (int64_t j = 0; j < NB; ++j) d[c][j] += sp[c][j];
+        }
+        for (int64_t j = 0; j < NB; ++j)
+            for (int64_t b = 0; b < 8; ++b) {
+                const int64_t p = pix[q0 + 8 * j + b];
+                if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
+                float r0 = d[0][j][b], r1 = d[1][j][b], r2 = d[2][j][b];
+                if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
+                float *o = img + 3 * p;
+                o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
+            }
+    }
+    for (int64_t q = q0; q < Q; ++q) {
+        float r0 = 0.f, r1 = 0.f, r2 = 0.f;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float x = td[i * Q + q];
+            r0 += ld[3 * i] * x; r1 += ld[3 * i + 1] * x; r2 += ld[3 * i + 2] * x;
+        }
+        if (ts) {
+            float s0 = 0.f, s1 = 0.f, s2 = 0.f;
+            for (int64_t i = 0; i < n2; ++i) {
+                const float x = ts[i * Q + q];
+                s0 += ls[3 * i] * x; s1 += ls[3 * i + 1] * x; s2 += ls[3 * i + 2] * x;
+            }
+            r0 += s0; r1 += s1; r2 += s2;
+        }
+        const int64_t p = pix[q];
+        if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
+        if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
+        float *o = img + 3 * p;
+        o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
+    }
+    bad[0] = nb;
+}
+"""
+_RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _I, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _relight_lib():
+    return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
+                       extra_flags=("-ffp-contract=off", *_isa_flags()))
+
+
+def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tensor | None, pix: Tensor, clamp: bool,
+                inv: float) -> bool:
+    """img (n, 3) += max(ldᵀ td + lsᵀ ts, 0) · inv at the pixels pix (Q,) int64 (``ZHShadow._relight_planes``'
+    GEMMs, clamp and ``index_add_``; float32 round-off against the GEMMs) by one C pass; False (nothing
+    done) where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / CPU contiguous
+    arrays of these shapes, a pixel outside img: its row is skipped, the caller redoes the frame's terms
+    by torch — it is only checked here). td, ts (n², Q); ld, ls (n², 3) = l ⊙ kd, l ⊙ ks."""
+    lib = _relight_lib() if terms_switched_on() else None
+    if lib is None or td.dim() != 2:
+        return False
+    n2, Q = int(td.shape[0]), int(td.shape[1])
+    arrs = (img, td, ld) + ((ts, ls) if ts is not None else ())
+    if (any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() for t in arrs)
+            or pix.dtype != torch.int64 or pix.shape != (Q,) or not pix.is_contiguous() or pix.device.type != "cpu"
+            or img.dim() != 2 or img.shape[1] != 3 or ld.shape != (n2, 3)
+            or (ts is not None and (ts.shape != (n2, Q) or ls is None or ls.shape != (n2, 3)))):
+        return False
+    if Q and (int(pix.min()) < 0 or int(pix.max()) >= int(img.shape[0])):
+        return False
+    bad = torch.zeros(1, dtype=torch.int64)
+    lib.zh_relight_add(Q, n2, td.data_ptr(), 0 if ts is None else ts.data_ptr(), ld.data_ptr(),
+                       0 if ts is None else ls.data_ptr(), pix.data_ptr(), int(bool(clamp)), float(inv),
+                       img.data_ptr(), int(img.shape[0]), bad.data_ptr())
+    return True

@@ -1572,7 +1572,8 @@ def test_face_pixels_native_equals_compiled(small_model):
     """`native.face_pixels` (the C loop) = `method._plane_face_pixels` (the compiled pass, its oracle)
     bit for bit: random face tables and faces (−1 = no plane sample) with clamp on and off, at 1 and
     2 threads, the component-major barycentrics the G-buffer stores; None for a face outside the table;
-    L / E sequences of the creature render the same images with ``native_plane_pass`` off."""
+    L / E sequences of the creature render the same images (to float32 round-off: `native.relight_add`)
+    with ``native_plane_pass`` off."""
     from methods.core import native
     from methods.core.fused import compile_enabled
     from methods.zh_shadow import native as zn
@@ -1608,5 +1609,43 @@ def test_face_pixels_native_equals_compiled(small_model):
             gb = make_gbuffer(m.scene, fr, 2)
             a, b = fast.render(fr, gb), slow.render(fr, gb)
             assert fast.last_path == slow.last_path
-            assert torch.equal(a, b), (kind, fr.index)
+            # (the object samples' terms by `native.relight_add`: float32 round-off against the GEMMs)
+            assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (kind, fr.index)
         assert fast.last_path == "relight-planes", kind
+
+
+def test_relight_add_native_equals_gemms(monkeypatch):
+    """`native.relight_add` (one C pass over the object samples of a lighting-only plane frame) = the
+    torch path it replaces — (l ⊙ kd)ᵀ td + (l ⊙ ks)ᵀ ts, the clamp and ``index_add_`` per channel ÷ S² —
+    to float32 round-off: with and without ts, clamp on and off, Q not a multiple of 8, repeated pixels;
+    False (img untouched) for a pixel outside the image, a wrong shape or the switch off."""
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(8)
+    n2, Q, npix = 16, 1003, 400
+    td, ts = torch.randn(n2, Q, generator=g), torch.randn(n2, Q, generator=g)
+    ld, ls = torch.randn(n2, 3, generator=g), torch.randn(n2, 3, generator=g)
+    pix = torch.sort(torch.randint(0, npix, (Q,), generator=g)).values
+    img0 = torch.rand(npix, 3, generator=g)
+    for with_ts in (True, False):
+        for clamp in (True, False):
+            img = img0.clone()
+            if not zn.relight_add(img, td, ts if with_ts else None, ld, ls if with_ts else None, pix, clamp, 0.25):
+                assert zn._relight_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native relight is not available here")
+            rad = ld.T @ td
+            if with_ts:
+                rad = torch.addmm(rad, ls.T, ts)
+            if clamp:
+                rad = rad.clamp_min(0.0)
+            want = img0.clone()
+            for c in range(3):
+                want[:, c].index_add_(0, pix, rad[c], alpha=0.25)
+            assert float((img - want).abs().max()) <= 1e-5 * float(want.abs().max()), (with_ts, clamp)
+    img = img0.clone()
+    bad = pix.clone()
+    bad[-1] = npix
+    assert not zn.relight_add(img, td, ts, ld, ls, bad, True, 0.25) and torch.equal(img, img0)
+    assert not zn.relight_add(img, td, ts[:, :-1].contiguous(), ld, ls, pix, True, 0.25) and torch.equal(img, img0)
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert not zn.relight_add(img, td, ts, ld, ls, pix, True, 0.25) and torch.equal(img, img0)
