@@ -739,7 +739,8 @@ class ZHShadow(Method):
             found[:] = [r]
             return r[0], r[1]
 
-        first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match)
+        # (the candidates screened by one C pass: `native.screen_counts`, the torch screening's counts)
+        first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match, screen=zn.screen_counts(nrm.T))
         if first is None or 2 * first[2] <= P:
             return False          # no plane, or one without most samples (`planar_groups`: no mask)
         mask, cnt, ns, per_thread = found[0]
@@ -751,8 +752,13 @@ class ZHShadow(Method):
         if rows is None:
             return None
         rest, vi, b, nT, woT, reg = rows
-        if rest.shape[0] == 0 or (rest.shape[0] >= rt.PLANAR_MIN_POINTS and rt.planar_groups(nT)[0]):
-            return False          # no object samples, or a second plane among them (`planar_groups`)
+        if rest.shape[0] == 0:
+            return False          # no object samples
+        if rest.shape[0] >= rt.PLANAR_MIN_POINTS:
+            sc = zn.screen_counts(nT)
+            # a second plane among them (`planar_groups`; every candidate screened out: none, as it finds)
+            if (sc is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in sc)) and rt.planar_groups(nT)[0]:
+                return False
         return [(first[0], None)], mask, rest, vi, b, nT, woT, reg
 
     def _plane_term(self, v0: Tensor, v: Tensor, vreg: Tensor, Wd: Tensor, mats: list, n0: Tensor) -> Tensor:

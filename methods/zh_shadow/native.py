@@ -840,3 +840,46 @@ def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tens
                        0 if ts is None else ls.data_ptr(), pix.data_ptr(), int(bool(clamp)), float(inv),
                        img.data_ptr(), int(img.shape[0]), bad.data_ptr())
     return True
+
+
+# --- `runtime.first_plane`'s candidate screening ------------------------------------------------------------
+#
+# `runtime.first_plane` screens 8 candidate normals on every 16th point (a strided copy, then per candidate
+# three compares, two ands, a sum and its ``int``: ~60 small ops, ~0.3 ms at 1 thread whatever the size)
+# — run twice by a plane frame's split (`ZHShadow._native_split`: over the G-buffer, then over the
+# object's samples for a second plane). Here the 8 screened counts in one C pass (the same float compares).
+_SCREEN_SOURCE = r"""
+#include <stdint.h>
+
+/* cnt[c] = #{j = 0, 16, 32, … < m : x[j s1] == x[k s1], y … , z …} for the candidates k = c m / 8, c < 8
+   (x, y, z = base, base + s0, base + 2 s0: the three components; strides in floats). */
+void zh_screen(const float *base, int64_t s0, int64_t s1, int64_t m, int64_t *cnt) {
+    for (int64_t c = 0; c < 8; ++c) {
+        const int64_t k = c * m / 8;
+        const float a = base[k * s1], b = base[s0 + k * s1], d = base[2 * s0 + k * s1];
+        int64_t n = 0;
+        for (int64_t j = 0; j < m; j += 16)
+            n += (base[j * s1] == a) & (base[s0 + j * s1] == b) & (base[2 * s0 + j * s1] == d);
+        cnt[c] = n;
+    }
+}
+"""
+_SCREEN_SIGNATURES = {"zh_screen": [_P, _I, _I, _I, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _screen_lib():
+    return native.load("zh_screen", _SCREEN_SOURCE, _SCREEN_SIGNATURES)
+
+
+def screen_counts(cur: Tensor) -> list[int] | None:
+    """`runtime.first_plane`'s 8 screened counts of the normals cur (3, m) (any strides, float32, CPU):
+    for candidate c (the normal of point c·m // 8) the points j = 0, 16, 32, … equal to it componentwise —
+    or None where the C pass does not run (the caller screens by torch)."""
+    lib = _screen_lib() if terms_switched_on() else None
+    if lib is None or cur.dtype != torch.float32 or cur.device.type != "cpu" or cur.dim() != 2 or cur.shape[0] != 3 \
+            or cur.shape[1] == 0:
+        return None
+    cnt = torch.zeros(8, dtype=torch.int64)
+    lib.zh_screen(cur.data_ptr(), cur.stride(0), cur.stride(1), int(cur.shape[1]), cnt.data_ptr())
+    return cnt.tolist()

@@ -1649,3 +1649,34 @@ def test_relight_add_native_equals_gemms(monkeypatch):
     assert not zn.relight_add(img, td, ts[:, :-1].contiguous(), ld, ls, pix, True, 0.25) and torch.equal(img, img0)
     monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
     assert not zn.relight_add(img, td, ts, ld, ls, pix, True, 0.25) and torch.equal(img, img0)
+
+
+def test_screen_counts_native_equals_torch_screening():
+    """`native.screen_counts` (one C pass) = `runtime.first_plane`'s torch screening (every 16th point
+    against each of the 8 candidates, componentwise float equality) on normals with planes of several
+    sizes, −0.0 against 0.0 and NaNs, as (3, m) contiguous rows and as the transpose of (m, 3); and
+    `first_plane` with those counts = without them."""
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(9)
+    m = 5003
+    n = torch.randn(m, 3, generator=g)
+    n[100:2500] = torch.tensor([0.0, 1.0, 0.0])
+    n[3000:3400] = torch.tensor([0.0, -0.0, 1.0])
+    n[3400:3500] = torch.tensor([0.0, 0.0, 1.0])
+    n[4000:4100, 1] = float("nan")
+    for cur in (n.T, n.T.contiguous(), n[:1000].T, n[4000:4100].T):
+        got = zn.screen_counts(cur)
+        if got is None:
+            assert zn._screen_lib() is None or not zn.terms_switched_on()
+            pytest.skip("the native screening is not available here")
+        k = cur.shape[1]
+        sub = cur[:, ::16]
+        want = [int(((sub[0] == cur[0, c * k // 8]) & (sub[1] == cur[1, c * k // 8]) & (sub[2] == cur[2, c * k // 8]))
+                    .sum()) for c in range(8)]
+        assert got == want
+        for mp in (16, 64, 1024):
+            a, b = rt.first_plane(cur, mp), rt.first_plane(cur, mp, screen=got)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
