@@ -348,6 +348,7 @@ class ZHShadow(Method):
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
+        self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -356,7 +357,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
-        self._resolve_packed = None
+        self._resolve_packed = self._resolve_compact = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -921,7 +922,7 @@ class ZHShadow(Method):
             if self.referenced_work else None
         spans = self._region_spans(vreg, len(mats))
         vd = self._vertex_diffuse
-        radT = None
+        radT = compact = None
         if cosine and spans is not None and (vd is None or vd[0] is not v0) and "pose" in frame.changed \
                 and "view" not in frame.changed:
             # a new pose under the same camera (a P frame): w and t_s for the front-facing vertices
@@ -981,7 +982,7 @@ class ZHShadow(Method):
                 radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
                 if self.config["clamp"]:
                     radTc.clamp_min_(0.0)
-                radT = torch.zeros(int(front.shape[0]), 3, dtype=radTc.dtype, device=dev).index_copy_(0, idx, radTc)
+                compact = (idx, radTc)   # (scattered into zero rows below, or read by the compact resolve)
             elif spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
@@ -1032,8 +1033,24 @@ class ZHShadow(Method):
             rp = self._resolve_packed
             if rp is None or rp[0] is not rm[2]:
                 self._resolve_packed = rp = (rm[2], zn.csr_pack(rm[2]) if self.native_resolve else None)
-            out = zn.csr_product(rp[1], radT) if rp[1] is not None else None
+            out = None
+            if compact is not None and rp[1] is not None:
+                # the compact radiance read straight (`native.csr_compact`: the columns renumbered over
+                # its rows, the other vertices' onto a zero row — the same products), no (N, 3) zeros
+                idx, radTc = compact
+                rc = self._resolve_compact
+                if rc is None or rc[0] is not rm[2] or rc[1] is not idx:
+                    self._resolve_compact = rc = (rm[2], idx, zn.csr_compact(rp[1], idx))
+                out = zn.csr_product(rc[2], torch.cat([radTc, radTc.new_zeros(1, 3)]))
+            if out is None and compact is not None:
+                radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
+                                   device=dev).index_copy_(0, compact[0], compact[1])
+            if out is None and rp[1] is not None:
+                out = zn.csr_product(rp[1], radT)
             return (rm[2] @ radT if out is None else out).view(gbuffer.height, gbuffer.width, 3)
+        if compact is not None:   # (not reached: the compact path runs under a kept resolve matrix)
+            radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
+                               device=dev).index_copy_(0, compact[0], compact[1])
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,

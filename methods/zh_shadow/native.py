@@ -623,6 +623,20 @@ def csr_pack(S: Tensor) -> tuple | None:
     return None if int(bad[0]) else (R, N, col4, val4, trow, tcrow, tcol, tval)
 
 
+def csr_compact(packed: tuple, idx: Tensor) -> tuple:
+    """`csr_pack`'s ``packed`` with its columns renumbered over the rows ``idx`` (Nc,) int64 (distinct
+    vertex ids) of a compact x (Nc + 1, 3) whose last row is zero: column j → its position in idx, or Nc
+    where j is not in idx — so ``csr_product(csr_compact(packed, idx), cat([xc, 0]))`` = ``csr_product(
+    packed, x)`` for x zero off idx and x[idx] = xc, bit for bit (the same products, a zero row read
+    where x's row was zero)."""
+    R, N, col4, val4, trow, tcrow, tcol, tval = packed
+    Nc = int(idx.numel())
+    pos = torch.full((N,), Nc, dtype=torch.int32)
+    pos.index_copy_(0, idx.to(torch.int64), torch.arange(Nc, dtype=torch.int32))
+    return (R, Nc + 1, pos.index_select(0, col4.view(-1).long()).view(R, 4), val4, trow, tcrow,
+            pos.index_select(0, tcol.long()), tval)
+
+
 def csr_product(packed: tuple, x: Tensor) -> Tensor | None:
     """``S @ x`` (R, 3) float32 for S packed by `csr_pack` and x (N, 3) float32 by the C loop — torch's
     CSR product's bits (each row's sums over its entries in order from 0; a zero sum may differ in its

@@ -1517,8 +1517,9 @@ def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
 def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
     """`native.csr_product` of `native.csr_pack` (the kept resolve matrix as a 4-wide table + a CSR
     tail, one C pass) = torch's CSR product bit for bit: the creature's resolve matrix (int32 and int64
-    indices) and a random CSR with empty rows and rows of up to 12 entries, at 1 and 2 threads; a
-    vertex-shaded L sequence renders the same images with ``native_resolve`` off (torch's product)."""
+    indices) and a random CSR with empty rows and rows of up to 12 entries, at 1 and 2 threads, and with
+    its columns renumbered over a compact x (`native.csr_compact`); a vertex-shaded L sequence renders
+    the same images with ``native_resolve`` off (torch's product of the scattered radiance)."""
     from methods.core import gouraud, native
     from methods.core.fused import compile_enabled
     from methods.zh_shadow import native as zn
@@ -1551,6 +1552,10 @@ def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
                                                                                         lambda: nt):
                 got = zn.csr_product(pk, x)
             assert torch.equal(got, M @ x), nt
+        idx = torch.randperm(int(M.shape[1]), generator=g)[: int(M.shape[1]) // 3].sort().values
+        xz = torch.zeros_like(x).index_copy_(0, idx, x[idx])                  # zero off idx
+        xc = torch.cat([x[idx], x.new_zeros(1, 3)])
+        assert torch.equal(zn.csr_product(zn.csr_compact(pk, idx), xc), M @ xz)
     assert zn._csr_lib() is not None or not native.compiler() or not compile_enabled()
     assert zn.csr_product(zn.csr_pack(rnd), torch.randn(Nr + 1, 3)) is None          # (a wrong size: the oracle)
     bad = torch.sparse_csr_tensor(crow, torch.full((nnz,), Nr), torch.ones(nnz), (R, Nr + 1))
@@ -1565,6 +1570,7 @@ def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
         gbf = make_gbuffer(scene, fr, 2)
         assert torch.equal(fast.render(fr, gbf), slow.render(fr, gbf))
     assert fast._resolve_packed is not None and fast._resolve_packed[1] is not None
+    assert fast._resolve_compact is not None          # (the compact radiance read by the resolve)
     assert slow._resolve_packed[1] is None
 
 
