@@ -757,15 +757,16 @@ typedef float v8 __attribute__((vector_size(32), aligned(4)));
 /* img[pix[q], c] += max(Σ_i ld[i, c] td[i, q] + Σ_i ls[i, c] ts[i, q], 0) · inv (the max if clamp; no ts
    term when ts is NULL), q ascending; td, ts (n2, Q) row-major, ld, ls (n2, 3); bad[0] counts pixels
    outside [0, npix) (skipped). */
-void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, const float *ld, const float *ls,
-                    const int64_t *pix, int64_t clamp, float inv, float *img, int64_t npix, int64_t *bad) {
+static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, const float *td, const float *ts,
+                             const float *ld, const float *ls, const int64_t *pix, int64_t clamp, float inv,
+                             float *img, int64_t npix) {
     int64_t nb = 0;
-    int64_t q0 = 0;
+    int64_t q0 = qa;
     /* CH samples at a time: each row's CH values read as one contiguous run (a per-sample pass over the
        2 n2 rows Q floats apart read 32 streams at once: slower than the GEMMs from a cold cache) */
     enum { CH = 512, NB = CH / 8 };
     v8 d[3][NB], sp[3][NB];
-    for (; q0 + CH <= Q; q0 += CH) {
+    for (; q0 + CH <= qb; q0 += CH) {
         for (int64_t c = 0; c < 3; ++c)
             for (int64_t j = 0; j < NB; ++j) { d[c][j] = (v8){0}; sp[c][j] = (v8){0}; }
         for (int64_t i = 0; i < n2; ++i) {
@@ -798,7 +799,7 @@ void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, con
                 o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
             }
     }
-    for (int64_t q = q0; q < Q; ++q) {
+    for (int64_t q = q0; q < qb; ++q) {
         float r0 = 0.f, r1 = 0.f, r2 = 0.f;
         for (int64_t i = 0; i < n2; ++i) {
             const float x = td[i * Q + q];
@@ -818,22 +819,36 @@ void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, con
         float *o = img + 3 * p;
         o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
     }
+    return nb;
+}
+
+/* the samples [start[t], start[t + 1]) on thread t of nt (the caller splits between pixels: each pixel's
+   samples are one thread's, added in order) */
+void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, const float *ld, const float *ls,
+                    const int64_t *pix, int64_t clamp, float inv, float *img, int64_t npix, const int64_t *start,
+                    int64_t nt, int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb) if(nt > 1)
+    for (int64_t t = 0; t < nt; ++t)
+        nb += relight_range(start[t], start[t + 1], Q, n2, td, ts, ld, ls, pix, clamp, inv, img, npix);
     bad[0] = nb;
 }
 """
-_RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _I, _P]}
+_RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _I, _P, _I, _P]}
+MIN_SAMPLES_PER_RELIGHT_THREAD = 8192   # object samples below which one thread shades them
 
 
 @functools.lru_cache(maxsize=None)
 def _relight_lib():
     return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
-                       extra_flags=("-ffp-contract=off", *_isa_flags()))
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
 
 
 def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tensor | None, pix: Tensor, clamp: bool,
                 inv: float) -> bool:
-    """img (n, 3) += max(ldᵀ td + lsᵀ ts, 0) · inv at the pixels pix (Q,) int64 (``ZHShadow._relight_planes``'
-    GEMMs, clamp and ``index_add_``; float32 round-off against the GEMMs) by one C pass; False (nothing
+    """img (n, 3) += max(ldᵀ td + lsᵀ ts, 0) · inv at the pixels pix (Q,) int64 ascending (``ZHShadow._relight_planes``'
+    GEMMs, clamp and ``index_add_``; float32 round-off against the GEMMs) by one C pass (split over OpenMP's
+    team between pixels: the same bits at any thread count); False (nothing
     done) where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / CPU contiguous
     arrays of these shapes, a pixel outside img: its row is skipped, the caller redoes the frame's terms
     by torch — it is only checked here). td, ts (n², Q); ld, ls (n², 3) = l ⊙ kd, l ⊙ ks."""
@@ -850,9 +865,18 @@ def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tens
     if Q and (int(pix.min()) < 0 or int(pix.max()) >= int(img.shape[0])):
         return False
     bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_SAMPLES_PER_RELIGHT_THREAD))
+    cuts = [0]
+    for t in range(1, nt):   # thread t from Q t / nt on, moved past the samples of the pixel there
+        c = max(Q * t // nt, cuts[-1])
+        while 0 < c < Q and int(pix[c]) == int(pix[c - 1]):
+            c += 1
+        cuts.append(c)
+    cuts.append(Q)
+    start = torch.tensor(cuts, dtype=torch.int64)
     lib.zh_relight_add(Q, n2, td.data_ptr(), 0 if ts is None else ts.data_ptr(), ld.data_ptr(),
                        0 if ts is None else ls.data_ptr(), pix.data_ptr(), int(bool(clamp)), float(inv),
-                       img.data_ptr(), int(img.shape[0]), bad.data_ptr())
+                       img.data_ptr(), int(img.shape[0]), start.data_ptr(), nt, bad.data_ptr())
     return True
 
 

@@ -1623,7 +1623,8 @@ def test_face_pixels_native_equals_compiled(small_model):
 def test_relight_add_native_equals_gemms(monkeypatch):
     """`native.relight_add` (one C pass over the object samples of a lighting-only plane frame) = the
     torch path it replaces — (l ⊙ kd)ᵀ td + (l ⊙ ks)ᵀ ts, the clamp and ``index_add_`` per channel ÷ S² —
-    to float32 round-off: with and without ts, clamp on and off, Q not a multiple of 8, repeated pixels;
+    to float32 round-off: with and without ts, clamp on and off, Q not a multiple of 8, repeated pixels,
+    the same bits on 1, 2 and 3 threads;
     False (img untouched) for a pixel outside the image, a wrong shape or the switch off."""
     from methods.zh_shadow import native as zn
 
@@ -1639,6 +1640,13 @@ def test_relight_add_native_equals_gemms(monkeypatch):
             if not zn.relight_add(img, td, ts if with_ts else None, ld, ls if with_ts else None, pix, clamp, 0.25):
                 assert zn._relight_lib() is None or not zn.terms_switched_on()
                 pytest.skip("the native relight is not available here")
+            for nt in (2, 3):   # split between pixels over the team: the same bits
+                img2 = img0.clone()
+                with mock.patch.object(zn, "MIN_SAMPLES_PER_RELIGHT_THREAD", 64), \
+                        mock.patch.object(torch, "get_num_threads", lambda: nt):
+                    assert zn.relight_add(img2, td, ts if with_ts else None, ld, ls if with_ts else None, pix, clamp,
+                                          0.25)
+                assert torch.equal(img2, img), nt
             rad = ld.T @ td
             if with_ts:
                 rad = torch.addmm(rad, ls.T, ts)
