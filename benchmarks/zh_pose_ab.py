@@ -4,9 +4,10 @@ run-time code (`benchmarks.zh_shadow --baseline` only A/Bs sample shading).
     python -m benchmarks.zh_pose_ab --baseline /work/base [--config '{"order":8,"shading":"vertex","specular":"cosine"}']
         [--kinds P] [--frames 9] [--threads 1] [--precompute-code /work/base] [--profile] [--stages-ab]
 
-The baseline's `methods/zh_shadow/runtime.py`, `method.py`, `methods/core/gouraud.py` and
-`scenes/scene.py`'s `Scene.geometry` (the skinning, `_BaseGeometry`) are imported under other names
-(the rest of this tree's `methods.core`, and its `precompute`); both classes get one
+The baseline is its whole ``methods`` package (`benchmarks.common.checkout_class`; its frames
+rendered inside `benchmarks.common.checkout_modules`, so its lazy imports — `native`, `gouraud` —
+are the baseline's too), and `scenes/scene.py`'s `Scene.geometry` (the skinning, `_BaseGeometry`)
+imported under another name; both classes get one
 precomputation (from the harness cache; ``--precompute-code DIR`` keys it on DIR's code — a run-time-only change keeps the cached
 state valid) and render each kind's frames alternating which goes first, frames 0–1 untimed
 (`benchmarks.common.ab_frames`: medians of process CPU and wall time, their ratio, max
@@ -17,6 +18,7 @@ stages (`stages`); ``--stages-ab``: the conjugation stages alone, old against ne
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import os
@@ -25,23 +27,53 @@ import time
 
 import torch
 
-from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, load_file_module, machine_limits,
-                               precomputed, registry_kept, setup)
+from benchmarks.common import (ab_options, ab_report, apply_ab_options, checkout_class, checkout_modules,
+                               load_file_module, machine_limits, precomputed, registry_kept, settle, setup)
 from reports import measure
 
 PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
 
 
 def baseline_class(root: str):
-    """ZHShadow of the checkout ``root`` (its runtime and method modules and its Gouraud resolve,
-    `methods.core.gouraud`; the rest of this tree's core)."""
-    with registry_kept():
-        rt = load_file_module(os.path.join(root, "methods/zh_shadow/runtime.py"), "_zhp_base_runtime")
-        mod = load_file_module(os.path.join(root, "methods/zh_shadow/method.py"), "_zhp_base_method")
-        gouraud = load_file_module(os.path.join(root, "methods/core/gouraud.py"), "_zhp_base_gouraud")
-    mod.rt = rt
-    mod.gouraud = gouraud
-    return mod.ZHShadow
+    """ZHShadow of the checkout ``root``: its whole ``methods`` package (`benchmarks.common.checkout_class`;
+    until session 29 its runtime, method and `methods.core.gouraud` were loaded by path and the base
+    ran THIS tree's `native.py`, precompute and the rest of core, so a change there read ~1.0x).
+    Render its frames inside ``checkout_modules(root)`` (`base_modules`)."""
+    return checkout_class(root, "methods.zh_shadow.method", "ZHShadow")
+
+
+def base_modules(root: str, which: str):
+    """``checkout_modules(root)`` for the baseline's frames (``which == "base"``), else a no-op."""
+    return checkout_modules(root) if which == "base" else contextlib.nullcontext()
+
+
+def ab_frames(new, base, root: str, reference, frames, gbs, kind: str) -> dict:
+    """`benchmarks.common.ab_frames` with the baseline's frames rendered inside ``checkout_modules(root)``
+    (the module swap outside the timed region): ``new`` and ``base`` render every frame, alternating
+    which goes first; frames 0 and 1 warm up; each new image is checked against ``reference``."""
+    import statistics
+
+    t = {"new": ([], []), "base": ([], [])}
+    err = 0.0
+    for i, (f, g) in enumerate(zip(frames, gbs)):
+        for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
+            mm = new if which == "new" else base
+            with base_modules(root, which):
+                settle()
+                t0, c0 = time.perf_counter(), time.process_time()
+                img = mm.render(f, g)
+                w, c = time.perf_counter() - t0, time.process_time() - c0
+            if i >= 2:
+                t[which][0].append(w)
+                t[which][1].append(c)
+            if which == "new":
+                rimg = reference(f, g)
+                err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
+    r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
+    cost = new.frame_cost(kind, gbs[-1].num_samples)
+    r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
+             cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
+    return r
 
 
 class _BaseGeometry:
@@ -116,16 +148,17 @@ def stages(m, frame, gb, repeats: int = 5) -> dict:
     return {k: 1e3 * v for k, v in out.items()}
 
 
-def stages_ab(m, frame, repeats: int = 15) -> dict:
+def stages_ab(m, frame, root: str, repeats: int = 15) -> dict:
     """The conjugation stages of one P frame of ``m`` (vertex shading), the baseline's runtime
-    (`baseline_class` loads it as ``_zhp_base_runtime``) against this tree's, alternating call by
+    (the checkout ``root``'s, `baseline_class`) against this tree's, alternating call by
     call: median process-CPU ms of w (`cosine_visibility_zyz` or `cosine_visibility`) and of
     `specular_transfer`, and their ratios."""
     import statistics
 
+    from benchmarks.common import _CHECKOUT_MODULES
     from methods.zh_shadow import runtime as rt
 
-    old = sys.modules["_zhp_base_runtime"]
+    old = _CHECKOUT_MODULES[root]["methods.zh_shadow.runtime"]
     cosine = m.config["specular"] == "cosine"
     pose = torch.as_tensor(frame.pose).float() if frame.pose is not None else None
     geom = m.scene.geometry(pose)
@@ -142,13 +175,15 @@ def stages_ab(m, frame, repeats: int = 15) -> dict:
                      ("specular_transfer", lambda r: r.specular_transfer(w if cosine else vT, nT, woT, vreg, alphas))):
         w = rt.cosine_visibility_zyz(vT, nT) if cosine else rt.cosine_visibility(vT, nT)
         t = {"base": [], "new": []}
-        for r in (old, rt):
-            fn(r)
+        for k, r in (("base", old), ("new", rt)):
+            with base_modules(root, k):
+                fn(r)
         for i in range(repeats):
             for k, r in ((("base", old), ("new", rt)) if i % 2 == 0 else (("new", rt), ("base", old))):
-                c = time.process_time()
-                fn(r)
-                t[k].append(time.process_time() - c)
+                with base_modules(root, k):
+                    c = time.process_time()
+                    fn(r)
+                    t[k].append(time.process_time() - c)
         mb, mn = statistics.median(t["base"]), statistics.median(t["new"])
         out[name] = {"base_ms": 1e3 * mb, "new_ms": 1e3 * mn, "ratio": mb / mn}
     return out
@@ -190,12 +225,12 @@ def main(argv: list[str] | None = None) -> dict:
         base.model = copy.copy(new.model)   # its own X attribute: the new code re-lays X out (`_pose_state`)
         base.scene = _BaseGeometry(scene, a.baseline)
         ref = m.with_render_config()
-        kinds[kind] = ab_frames(new, base, ref._render_reference, frames, gbs, kind)
+        kinds[kind] = ab_frames(new, base, a.baseline, ref._render_reference, frames, gbs, kind)
         if a.profile and kind == "P":
             out["stages_ms"] = stages(m.with_render_config(), frames[-1], gbs[-1])
             print(profile(m.with_render_config(), frames, gbs))
         if a.stages_ab and kind == "P":
-            out["stages_ab"] = stages_ab(m.with_render_config(), frames[-1])
+            out["stages_ab"] = stages_ab(m.with_render_config(), frames[-1], a.baseline)
             print(json.dumps(out["stages_ab"]), flush=True)
     B, Pk = machine_limits(out, bw, peak)
     ab_report(out, kinds, B, Pk, f"zh_shadow {a.config} {a.scene} {a.size}, {a.threads} thread(s)")

@@ -17,7 +17,7 @@ import json
 import torch
 
 from benchmarks.common import apply_ab_options, precomputed, setup
-from benchmarks.zh_pose_ab import PHYSICAL, baseline_class
+from benchmarks.zh_pose_ab import PHYSICAL, base_modules, baseline_class
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -48,10 +48,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
             err = 0.0
             with torch.no_grad():
                 for f, g in zip(frames, gbs):
-                    x, y = new.render(f, g), base.render(f, g)
+                    x = new.render(f, g)
+                    with base_modules(a.baseline, "base"):
+                        y = base.render(f, g)
                     err = max(err, float((x - y).abs().max() / y.abs().max().clamp_min(1e-12)))
             P = gbs[-1].num_samples
-            cn, cb = new.frame_cost(kind, P), base.frame_cost(kind, P)
+            cn = new.frame_cost(kind, P)
+            with base_modules(a.baseline, "base"):
+                cb = base.frame_cost(kind, P)
             r = {"config": cfg, "kind": kind, "old_bytes": cb.bytes, "new_bytes": cn.bytes, "old_flops": cb.flops,
                  "new_flops": cn.flops, "rel_diff": err}
             rows.append(r)

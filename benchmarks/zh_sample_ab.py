@@ -6,7 +6,8 @@ baseline's instead (max |new − base| / max |base|), and the path the new code 
     python -m benchmarks.zh_sample_ab --baseline /work/base [--config '{}'] [--kinds V VB VBL VL L E]
         [--frames 11] [--scene creature] [--size bench] [--precompute-code /work/base] [--threads 1] [--repeat 1]
 
-Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time (and wall
+The baseline is the checkout's whole ``methods`` package (`benchmarks.zh_pose_ab.baseline_class`), its
+frames rendered inside `benchmarks.common.checkout_modules`. Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time (and wall
 time), ``--threads`` torch threads (default 1; the perf suite runs 2). Use 1 thread for evidence:
 at 2 threads an A/A run (this checkout as its own baseline, creature bench order-8 P frames, quiet
 machine, session 24) read 1.03× and 1.70× wall — P frames came out either ~12 or ~20 ms on either
@@ -21,7 +22,7 @@ import statistics
 import time
 
 from benchmarks.common import apply_ab_options, precomputed, settle, setup
-from benchmarks.zh_pose_ab import baseline_class
+from benchmarks.zh_pose_ab import base_modules, baseline_class
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -58,13 +59,22 @@ def main(argv: list[str] | None = None) -> dict:
         for i, (f, g) in enumerate(zip(frames * a.repeat, gbs * a.repeat)):
             imgs = {}
             for w in (("new", "base") if i % 2 == 0 else ("base", "new")):
-                settle()
-                c, c0 = time.process_time(), time.perf_counter()
-                imgs[w] = (new if w == "new" else base).render(f, g)
+                with base_modules(a.baseline, w):   # the baseline's lazy imports its own (swap untimed)
+                    settle()
+                    c, c0 = time.process_time(), time.perf_counter()
+                    imgs[w] = (new if w == "new" else base).render(f, g)
+                    dc, dw = time.process_time() - c, time.perf_counter() - c0
                 if i >= 2 and (i < len(frames) or f.index > 0):
-                    t[w].append(time.process_time() - c)
-                    tw[w].append(time.perf_counter() - c0)
+                    t[w].append(dc)
+                    tw[w].append(dw)
             err = max(err, float((imgs["new"] - imgs["base"]).abs().max() / imgs["base"].abs().max().clamp_min(1e-12)))
+        if kind == a.kinds[0]:   # which files the baseline's frames ran (its lazy imports included)
+            with base_modules(a.baseline, "base"):
+                import sys
+
+                print("base frames ran: " + ", ".join(sys.modules[n].__file__ for n in
+                      ("methods.zh_shadow.method", "methods.zh_shadow.runtime", "methods.zh_shadow.native",
+                       "methods.core.gouraud", "methods.core.native") if n in sys.modules), flush=True)
         mb, mn = statistics.median(t["base"]), statistics.median(t["new"])
         wb, wn = statistics.median(tw["base"]), statistics.median(tw["new"])
         out[kind] = {"base_cpu_ms": 1e3 * mb, "new_cpu_ms": 1e3 * mn, "cpu_ratio": mb / mn, "rel_diff": err,

@@ -94,7 +94,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCo
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.fused import fused, warm_blocks
-from methods.core.sh import _LATLONG_QT, project_latlong, project_latlong_polar
+from methods.core.sh import _LATLONG_QT, project_latlong
 from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
@@ -347,6 +347,8 @@ class ZHShadow(Method):
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
+        self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
+        self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -355,6 +357,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
+        self._resolve_packed = self._resolve_compact = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -402,6 +405,9 @@ class ZHShadow(Method):
     # View / BRDF vertex-shaded frames reuse the per-vertex albedo-free diffuse radiance (`_diffuse_ranges`);
     # False: made every frame with the specular term (`_radiance_ranges`; the tests' oracle)
     diffuse_cache = True
+    # Lighting-only vertex-shaded frames resolve by the kept matrix packed for a C loop (`native.csr_pack`,
+    # `native.csr_product`: torch's CSR product's bits); False: torch's CSR product (the tests' oracle)
+    native_resolve = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -416,7 +422,8 @@ class ZHShadow(Method):
     # -- render -------------------------------------------------------------------------------
     def _lighting(self, env) -> Tensor:
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
-        world space (`project_latlong_polar`, then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
+        world space (`native.project_latlong_polar`: one C pass, `sh.project_latlong_polar` its
+        fallback and oracle; then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
         the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
         (projected once, on the first such frame). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
@@ -431,7 +438,7 @@ class ZHShadow(Method):
                 self._env_bytes = int(data.numel() * data.element_size())
                 # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
                 # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
-                world = rt.rotate_lighting(project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
+                world = rt.rotate_lighting(zn.project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
@@ -703,6 +710,11 @@ class ZHShadow(Method):
     # native passes (`native.plane_mask`, `native.object_rows`) where they run; False: by the torch
     # path (the tests' oracle)
     native_split = True
+    # A lighting-only frame's plane pass (`_relight_planes`) by the C loop (`native.face_pixels`: the
+    # compiled `_plane_face_pixels`' bits) and its object samples by another (`native.relight_add`: float32
+    # round-off against the GEMMs) where they run; False: the compiled pass, the GEMMs and ``index_add_``
+    # (the tests' oracle)
+    native_plane_pass = True
 
     def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
         """`_render_planes`' plane search and split of an all-hit G-buffer by the native passes: False
@@ -728,7 +740,8 @@ class ZHShadow(Method):
             found[:] = [r]
             return r[0], r[1]
 
-        first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match)
+        # (the candidates screened by one C pass: `native.screen_counts`, the torch screening's counts)
+        first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match, screen=zn.screen_counts(nrm.T))
         if first is None or 2 * first[2] <= P:
             return False          # no plane, or one without most samples (`planar_groups`: no mask)
         mask, cnt, ns, per_thread = found[0]
@@ -740,8 +753,13 @@ class ZHShadow(Method):
         if rows is None:
             return None
         rest, vi, b, nT, woT, reg = rows
-        if rest.shape[0] == 0 or (rest.shape[0] >= rt.PLANAR_MIN_POINTS and rt.planar_groups(nT)[0]):
-            return False          # no object samples, or a second plane among them (`planar_groups`)
+        if rest.shape[0] == 0:
+            return False          # no object samples
+        if rest.shape[0] >= rt.PLANAR_MIN_POINTS:
+            sc = zn.screen_counts(nT)
+            # a second plane among them (`planar_groups`; every candidate screened out: none, as it finds)
+            if (sc is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in sc)) and rt.planar_groups(nT)[0]:
+                return False
         return [(first[0], None)], mask, rest, vi, b, nT, woT, reg
 
     def _plane_term(self, v0: Tensor, v: Tensor, vreg: Tensor, Wd: Tensor, mats: list, n0: Tensor) -> Tensor:
@@ -819,11 +837,19 @@ class ZHShadow(Method):
         # rows: 4,341 on the bench creature instead of the mesh's 13,415 vertices), as a face table
         kd_c = torch.stack([m[0] for m in mats]).to(dev, v.dtype).index_select(0, creg)
         uf = (v.index_select(0, corners) @ rt.diffuse_at(Wd, n0)).mul_(kd_c).view(-1, 9)
-        torch._dynamo.maybe_mark_dynamic(uf, 0)
-        img = _plane_face_pixels(faces, gbuffer.bary.T.view(2, n, S2), uf, clamp)
+        bary = gbuffer.bary.T.view(2, n, S2)
+        # (one C pass where it runs: the compiled pass's bits, `native.face_pixels`)
+        img = zn.face_pixels(faces, bary, uf, clamp) if self.native_plane_pass else None
+        if img is None:
+            torch._dynamo.maybe_mark_dynamic(uf, 0)
+            img = _plane_face_pixels(faces, bary, uf, clamp)
         light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
+                if self.native_plane_pass and zn.relight_add(     # (one C pass where it runs: float32 round-off)
+                        img, td, ts, light * kd.to(dev, v.dtype), None if ts is None else light * ks.to(dev, v.dtype),
+                        pix, clamp, 1.0 / S2):
+                    continue
                 rad = (light * kd.to(dev, v.dtype)).T @ td
                 if ts is not None:   # + t_s · (l ⊙ ks) accumulated by the product (no pass of its own)
                     rad = torch.addmm(rad, (light * ks.to(dev, v.dtype)).T, ts)
@@ -896,7 +922,7 @@ class ZHShadow(Method):
             if self.referenced_work else None
         spans = self._region_spans(vreg, len(mats))
         vd = self._vertex_diffuse
-        radT = None
+        radT = compact = None
         if cosine and spans is not None and (vd is None or vd[0] is not v0) and "pose" in frame.changed \
                 and "view" not in frame.changed:
             # a new pose under the same camera (a P frame): w and t_s for the front-facing vertices
@@ -956,7 +982,7 @@ class ZHShadow(Method):
                 radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
                 if self.config["clamp"]:
                     radTc.clamp_min_(0.0)
-                radT = torch.zeros(int(front.shape[0]), 3, dtype=radTc.dtype, device=dev).index_copy_(0, idx, radTc)
+                compact = (idx, radTc)   # (scattered into zero rows below, or read by the compact resolve)
             elif spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
@@ -1003,7 +1029,28 @@ class ZHShadow(Method):
                 self._resolve_matrix = rm = (gkey, geom, _int32_csr(gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
                     gbuffer.spp_side, int(geom.num_vertices))))
-            return (rm[2] @ radT).view(gbuffer.height, gbuffer.width, 3)
+            # (by the packed matrix's C loop where it runs: torch's CSR product's bits, `native.csr_pack`)
+            rp = self._resolve_packed
+            if rp is None or rp[0] is not rm[2]:
+                self._resolve_packed = rp = (rm[2], zn.csr_pack(rm[2]) if self.native_resolve else None)
+            out = None
+            if compact is not None and rp[1] is not None:
+                # the compact radiance read straight (`native.csr_compact`: the columns renumbered over
+                # its rows, the other vertices' onto a zero row — the same products), no (N, 3) zeros
+                idx, radTc = compact
+                rc = self._resolve_compact
+                if rc is None or rc[0] is not rm[2] or rc[1] is not idx:
+                    self._resolve_compact = rc = (rm[2], idx, zn.csr_compact(rp[1], idx))
+                out = zn.csr_product(rc[2], torch.cat([radTc, radTc.new_zeros(1, 3)]))
+            if out is None and compact is not None:
+                radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
+                                   device=dev).index_copy_(0, compact[0], compact[1])
+            if out is None and rp[1] is not None:
+                out = zn.csr_product(rp[1], radT)
+            return (rm[2] @ radT if out is None else out).view(gbuffer.height, gbuffer.width, 3)
+        if compact is not None:   # (not reached: the compact path runs under a kept resolve matrix)
+            radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
+                               device=dev).index_copy_(0, compact[0], compact[1])
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,

@@ -416,3 +416,508 @@ def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, 
     if int(bad.sum()):
         return None
     return rest, vi, b, nT, woT, reg
+
+
+# --- a new env map's SH (`ZHShadow._lighting`, E frames) -----------------------------------------------
+#
+# `methods.core.sh.project_latlong_polar` copies the (H, W, 3) float32 map to float64 channel-major
+# (0.5 ms at 256 × 512), multiplies it by the (W, 2n) cos/sin factors (one GEMM) and weights the rows
+# (an index_select and an einsum): ~2.4 ms at 1 thread on the bench map, about half of an E frame. Here
+# one C pass over the float32 texels, float64 sums: per row the column sums against the same factors
+# (padded to whole 4-double vectors), then the row weights — the same integrals in another order
+# (float64 round-off; SH PRT's `methods.sh_prt.native.project_latlong_polar` is the same loop, copied
+# rather than imported so that a change there does not re-key this method's precomputation).
+_PROJECT_SOURCE = r"""
+#include <stdint.h>
+
+typedef double d4 __attribute__((vector_size(32), aligned(8)));
+#define MAXJ 24
+static void proj_rows(int64_t h0, int64_t h1, int64_t W, const float *X, const double *B, int64_t J,
+                      const int64_t *k, const double *T, int64_t n2, double *out) {
+    const int64_t nv = J / 4;
+    for (int64_t h = h0; h < h1; ++h) {
+        d4 a[3][MAXJ / 4];
+        for (int64_t c = 0; c < 3; ++c)
+            for (int64_t v = 0; v < nv; ++v) a[c][v] = (d4){0, 0, 0, 0};
+        const float *row = X + h * W * 3;
+        for (int64_t w = 0; w < W; ++w) {
+            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];
+            const d4 *b = (const d4 *)(B + w * J);
+            for (int64_t v = 0; v < nv; ++v) {
+                a[0][v] += x0 * b[v]; a[1][v] += x1 * b[v]; a[2][v] += x2 * b[v];
+            }
+        }
+        const double *t = T + h * n2;
+        for (int64_t i = 0; i < n2; ++i) {
+            const int64_t j = k[i];
+            for (int64_t c = 0; c < 3; ++c) out[3 * i + c] += t[i] * a[c][j / 4][j % 4];
+        }
+    }
+}
+
+/* part (nt, n², 3) zeroed by the caller: thread t's map rows [H t / nt, H (t+1) / nt) */
+void zh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J, const int64_t *k,
+                const double *T, int64_t n2, double *part, int64_t nt) {
+    if (nt <= 1) { proj_rows(0, H, W, X, B, J, k, T, n2, part); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t t = 0; t < nt; ++t)
+        proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
+}
+"""
+_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I]}
+MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects
+
+
+@functools.lru_cache(maxsize=None)
+def _project_lib():
+    return native.load("zh_project", _PROJECT_SOURCE, _PROJECT_SIGNATURES, extra_flags=("-fopenmp", *_isa_flags()))
+
+
+@functools.lru_cache(maxsize=8)
+def _project_factors(H: int, W: int, order: int) -> tuple[Tensor, Tensor, Tensor, int]:
+    """`sh._latlong_polar_factors` (B (W, 2n), k, T) with B's columns padded with zeros to a multiple
+    of 4 (whole 4-double vectors in `zh_project`) → (B (W, J), k, T, J), contiguous, CPU."""
+    from methods.core.sh import _latlong_polar_factors
+
+    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
+    J = -(-B.shape[1] // 4) * 4
+    Bp = torch.zeros(W, J, dtype=torch.float64)
+    Bp[:, :B.shape[1]] = B
+    return Bp, k.to(torch.int64).contiguous(), T.to(torch.float64).contiguous(), J
+
+
+def project_latlong_polar(image: Tensor, order: int) -> Tensor:
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by one C pass over the
+    float32 (H, W, 3) texels (float64 sums in another order: float64 round-off), or by that function
+    (the oracle) where the loop does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 CPU
+    (H, W, 3) map, order > 12)."""
+    from methods.core.sh import project_latlong_polar as oracle
+
+    lib = _project_lib() if terms_switched_on() else None
+    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
+            or image.shape[2] != 3 or 2 * order > 24):
+        return oracle(image, order)
+    H, W, _ = image.shape
+    B, k, T, J = _project_factors(int(H), int(W), int(order))
+    X = image.contiguous()
+    n2 = order * order
+    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
+    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
+    lib.zh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
+    return part[0] if nt == 1 else part.sum(0)
+
+
+# --- a lighting-only vertex-shaded frame's resolve (`ZHShadow._render_vertex`) ----------------------------
+#
+# The kept resolve matrix S (`gouraud.resolve_matrix`: per pixel the interpolation weights of its samples'
+# face corners, ÷ S²; int32 CSR, `method._int32_csr`) times the (N, 3) vertex radiance. torch's CSR
+# product took ~0.6 ms back to back at 1 thread on the bench creature's 65,536 rows and 222 K non-zeros
+# (a plain C loop over the CSR rows the same: the rows' lengths — 3 for 71 % of them, 4 for 24 %, up to
+# 11 — mispredict every row's loop exit). Here S is packed once, when the matrix is built (`csr_pack`):
+# each row's first four entries in a fixed-width (R, 4) table (a shorter row padded with weight 0 at
+# column 0), the rest of the longer rows (~5 %) as a CSR tail; the product is one branch-free pass over
+# the table and one over the tail, each row's sums in the CSR order (the padding adds a zero: the same
+# bits, up to the sign of a zero sum), split over OpenMP's team by rows.
+_CSR_SOURCE = r"""
+#include <stdint.h>
+
+/* out[r, c] = (((0 + w0 x[c0, c]) + w1 x[c1, c]) + w2 x[c2, c]) + w3 x[c3, c] over row r's four table
+   entries (col4, val4 (R, 4)), rows split over nt threads; then for each tail row trow[t] its entries
+   [tcrow[t], tcrow[t+1]) added in order. Columns are checked by the packing (`csr_pack`). */
+void zh_ell_rows(int64_t R, const int32_t *col4, const float *val4, const float *x, float *out, int64_t nt,
+                 int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
+#pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+#pragma omp for schedule(static)
+        for (int64_t r = 0; r < R; ++r) {
+            const int32_t *c = col4 + 4 * r;
+            const float *w = val4 + 4 * r;
+            const float *v0 = x + 3 * (int64_t)c[0], *v1 = x + 3 * (int64_t)c[1];
+            const float *v2 = x + 3 * (int64_t)c[2], *v3 = x + 3 * (int64_t)c[3];
+            float a0 = 0.f, a1 = 0.f, a2 = 0.f;
+            a0 += w[0] * v0[0]; a1 += w[0] * v0[1]; a2 += w[0] * v0[2];
+            a0 += w[1] * v1[0]; a1 += w[1] * v1[1]; a2 += w[1] * v1[2];
+            a0 += w[2] * v2[0]; a1 += w[2] * v2[1]; a2 += w[2] * v2[2];
+            a0 += w[3] * v3[0]; a1 += w[3] * v3[1]; a2 += w[3] * v3[2];
+            out[3 * r] = a0; out[3 * r + 1] = a1; out[3 * r + 2] = a2;
+        }
+#pragma omp for schedule(static)
+        for (int64_t t = 0; t < T; ++t) {
+            float *o = out + 3 * (int64_t)trow[t];
+            float a0 = o[0], a1 = o[1], a2 = o[2];
+            for (int32_t e = tcrow[t]; e < tcrow[t + 1]; ++e) {
+                const float w = tval[e];
+                const float *v = x + 3 * (int64_t)tcol[e];
+                a0 += w * v[0]; a1 += w * v[1]; a2 += w * v[2];
+            }
+            o[0] = a0; o[1] = a1; o[2] = a2;
+        }
+    }
+}
+
+/* `csr_pack`: row r's first four entries (crow, col int64, val) into col4 / val4 (R, 4) (a shorter row
+   padded with column 0, weight 0), the rest of tail row t (trow (T,), rows longer than 4) into tcol / tval
+   from tcrow[t]; bad[0] = the columns outside [0, N). */
+void zh_ell_pack(int64_t R, const int64_t *crow, const int64_t *col, const float *val, int64_t N, int32_t *col4,
+                 float *val4, int64_t T, const int32_t *trow, const int32_t *tcrow, int32_t *tcol, float *tval,
+                 int64_t *bad) {
+    int64_t nb = 0;
+    for (int64_t r = 0; r < R; ++r) {
+        const int64_t e0 = crow[r], n = crow[r + 1] - e0;
+        for (int64_t i = 0; i < 4; ++i) {
+            int64_t c = i < n ? col[e0 + i] : 0;
+            if ((uint64_t)c >= (uint64_t)N) { ++nb; c = 0; }
+            col4[4 * r + i] = (int32_t)c;
+            val4[4 * r + i] = i < n ? val[e0 + i] : 0.f;
+        }
+    }
+    for (int64_t t = 0; t < T; ++t) {
+        const int64_t r = trow[t];
+        for (int64_t e = crow[r] + 4, o = tcrow[t]; e < crow[r + 1]; ++e, ++o) {
+            int64_t c = col[e];
+            if ((uint64_t)c >= (uint64_t)N) { ++nb; c = 0; }
+            tcol[o] = (int32_t)c;
+            tval[o] = val[e];
+        }
+    }
+    bad[0] = nb;
+}
+"""
+_CSR_SIGNATURES = {"zh_ell_rows": [_I, _P, _P, _P, _P, _I, _I, _P, _P, _P, _P],
+                   "zh_ell_pack": [_I, _P, _P, _P, _I, _P, _P, _I, _P, _P, _P, _P, _P]}
+MIN_ROWS_PER_CSR_THREAD = 8192      # resolve rows below which one thread runs the product
+
+
+@functools.lru_cache(maxsize=None)
+def _csr_lib():
+    return native.load("zh_ell_rows", _CSR_SOURCE, _CSR_SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+
+
+def csr_pack(S: Tensor) -> tuple | None:
+    """The CSR matrix S (R, N) (int32 or int64 indices, float32 values, CPU) packed for `csr_product`:
+    (R, N, col4 (R, 4) int32, val4 (R, 4) float32 — each row's first four entries, padded with (column
+    0, weight 0) —, trow (T,) int32 the rows longer than 4, tcrow (T + 1,) int32, tcol, tval their
+    remaining entries in order), or None (no C loop here, switched off, another layout / dtype /
+    device, a column outside [0, N), N = 0, over 2³¹ entries)."""
+    if not terms_switched_on() or _csr_lib() is None or S.layout != torch.sparse_csr or S.device.type != "cpu" \
+            or S.values().dtype != torch.float32 or S.dim() != 2:
+        return None
+    R, N = int(S.shape[0]), int(S.shape[1])
+    crow, col, val = S.crow_indices().long(), S.col_indices().long().contiguous(), S.values().contiguous()
+    nnz = int(col.numel())
+    if N == 0 or nnz >= 2 ** 31 - 1 or R >= 2 ** 31 - 1:
+        return None
+    ln = crow[1:] - crow[:-1]
+    trow = (ln > 4).nonzero().squeeze(-1)
+    tcrow = torch.zeros(int(trow.numel()) + 1, dtype=torch.int64)
+    torch.cumsum(ln.index_select(0, trow) - 4, 0, out=tcrow[1:])
+    T, nt_ = int(trow.numel()), int(tcrow[-1])
+    col4 = torch.empty(R, 4, dtype=torch.int32)
+    val4 = torch.empty(R, 4, dtype=torch.float32)
+    trow, tcrow = trow.to(torch.int32), tcrow.to(torch.int32)
+    tcol = torch.empty(nt_, dtype=torch.int32)
+    tval = torch.empty(nt_, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    _csr_lib().zh_ell_pack(R, crow.data_ptr(), col.data_ptr(), val.data_ptr(), N, col4.data_ptr(), val4.data_ptr(), T,
+                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr(), bad.data_ptr())
+    return None if int(bad[0]) else (R, N, col4, val4, trow, tcrow, tcol, tval)
+
+
+def csr_compact(packed: tuple, idx: Tensor) -> tuple:
+    """`csr_pack`'s ``packed`` with its columns renumbered over the rows ``idx`` (Nc,) int64 (distinct
+    vertex ids) of a compact x (Nc + 1, 3) whose last row is zero: column j → its position in idx, or Nc
+    where j is not in idx — so ``csr_product(csr_compact(packed, idx), cat([xc, 0]))`` = ``csr_product(
+    packed, x)`` for x zero off idx and x[idx] = xc, bit for bit (the same products, a zero row read
+    where x's row was zero)."""
+    R, N, col4, val4, trow, tcrow, tcol, tval = packed
+    Nc = int(idx.numel())
+    pos = torch.full((N,), Nc, dtype=torch.int32)
+    pos.index_copy_(0, idx.to(torch.int64), torch.arange(Nc, dtype=torch.int32))
+    return (R, Nc + 1, pos.index_select(0, col4.view(-1).long()).view(R, 4), val4, trow, tcrow,
+            pos.index_select(0, tcol.long()), tval)
+
+
+def csr_product(packed: tuple, x: Tensor) -> Tensor | None:
+    """``S @ x`` (R, 3) float32 for S packed by `csr_pack` and x (N, 3) float32 by the C loop — torch's
+    CSR product's bits (each row's sums over its entries in order from 0; a zero sum may differ in its
+    sign) — or None (not float32 / CPU / (N, 3)): the caller then takes torch's product (the oracle)."""
+    R, N, col4, val4, trow, tcrow, tcol, tval = packed
+    if x.device.type != "cpu" or x.dtype != torch.float32 or x.shape != (N, 3):
+        return None
+    x = x.contiguous()
+    out = torch.empty(R, 3, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
+    _csr_lib().zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
+                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+    return out
+
+
+# --- a lighting-only frame's plane pass (`ZHShadow._relight_planes`) ------------------------------------
+#
+# `method._plane_face_pixels` (Inductor) box-filters the plane's samples into their pixels from the
+# plane faces' corner table: ~1–2 ms of a ~3 ms paper-setting L frame at 1 thread on the bench creature
+# (262,144 samples), plus its compiled call's guards. Here one C pass over the pixels, the kernel's
+# expressions in its order (no FMA: `-ffp-contract=off`, as Inductor), so the same bits (tested).
+_FACE_PIXELS_SOURCE = r"""
+#include <stdint.h>
+
+typedef float v4 __attribute__((vector_size(16)));
+typedef int32_t i4 __attribute__((vector_size(16)));
+
+/* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples s of pixel p (s ascending, from x_0), x_s = 0 where
+   face[p, s] < 0, else max(uf[f, c] ((1 − u) − v) + uf[f, 4 + c] u + uf[f, 8 + c] v, 0) (the max if clamp)
+   with u = bary[(p S2 + s) bs1], v = bary[bs0 + (p S2 + s) bs1] — the three channels as the lanes 0–2 of
+   one 4-float vector (uf (F, 12): each corner's three values and a zero); pixels split over nt threads;
+   bad[0] counts faces ≥ F (taken as 0). face (n, S2) int32 contiguous, out (n, 3). */
+static inline v4 face_sample(const int32_t *face, const float *bary, int64_t bs0, int64_t bs1, const float *uf,
+                             int64_t F, int64_t clamp, int64_t q, int64_t *nb) {
+    const v4 zero = {0.f, 0.f, 0.f, 0.f};
+    int64_t f = face[q];
+    const int32_t on = f >= 0;                       /* branch-free: off the plane reads face 0, masked */
+    if (f >= F) { ++*nb; f = 0; }
+    f = on ? f : 0;
+    const float u = bary[q * bs1], v = bary[bs0 + q * bs1];
+    const float w = (1.0f - u) - v;
+    const v4 *t = (const v4 *)(uf + 12 * f);
+    v4 x = (t[0] * w + t[1] * u) + t[2] * v;
+    if (clamp) x = (v4)((i4)x & ~(x < zero));      /* max(x, 0): 0 where x < 0 */
+    return (v4)((i4)x & -(i4){on, on, on, on});      /* 0 off the plane */
+}
+
+void zh_face_pixels(int64_t n, int64_t S2, const int32_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                    const float *uf, int64_t F, int64_t clamp, float inv, float *out, int64_t nt, int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
+    for (int64_t p = 0; p < n; ++p) {
+        v4 o;
+        if (S2 == 4) {
+            const int64_t q = 4 * p;
+            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, &nb);
+            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, &nb);
+        } else {
+            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, &nb);
+            for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, &nb);
+        }
+        o = o * inv;
+        out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
+    }
+    bad[0] = nb;
+}
+"""
+_FACE_PIXELS_SIGNATURES = {"zh_face_pixels": [_I, _I, _P, _P, _I, _I, _P, _I, _I, ctypes.c_float, _P, _I, _P]}
+MIN_PIXELS_PER_THREAD = 8192        # pixels below which one thread runs the plane pass
+
+
+@functools.lru_cache(maxsize=None)
+def _face_pixels_lib():
+    return native.load("zh_face_pixels", _FACE_PIXELS_SOURCE, _FACE_PIXELS_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+
+
+def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor | None:
+    """`method._plane_face_pixels(face, bary, uf, clamp)` (n, 3) by the C loop — the same bits — or None
+    where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / int32 / CPU, a face
+    outside uf's rows): the caller then runs the compiled pass. face (n, S²) int32 (−1: no plane
+    sample), bary (2, n, S²) (u, v) with any strides of the form (bs0, S² bs1, bs1), uf (F_p, 9)."""
+    lib = _face_pixels_lib() if terms_switched_on() else None
+    if (lib is None or face.dtype != torch.int32 or face.dim() != 2 or bary.dtype != torch.float32
+            or uf.dtype != torch.float32 or uf.dim() != 2 or uf.shape[1] != 9 or uf.shape[0] == 0
+            or any(t.device.type != "cpu" for t in (face, bary, uf))):
+        return None
+    n, S2 = int(face.shape[0]), int(face.shape[1])
+    if bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2):
+        return None
+    face = face.contiguous()
+    u12 = torch.zeros(int(uf.shape[0]), 3, 4, dtype=torch.float32)   # (each corner's 3 values + a zero lane)
+    u12[:, :, :3] = uf.view(-1, 3, 3)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.zh_face_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
+                       int(uf.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
+    return None if int(bad[0]) else out
+
+
+# --- a lighting-only frame's object samples (`ZHShadow._relight_planes`) ----------------------------------
+#
+# Per region the cached transfer of the samples off the plane, td and ts (n², Q) (`runtime.relight_cache`),
+# was shaded by two small GEMMs — (l ⊙ kd)ᵀ td + (l ⊙ ks)ᵀ ts, (3, n²) @ (n², Q) — a clamp, and three
+# ``index_add_`` into the pixels (one per channel): ~1.5–2 ms of a ~3 ms paper-setting L frame on the bench
+# creature (37 K object samples, 1 thread), for ~4.7 MB of transfer read. Here one C pass over the samples,
+# 512 at a time (each of the 2n² rows' 512 values one contiguous run of 8-float vectors), the sums over i
+# ascending (the GEMM's order is the BLAS's: float32 round-off against it), then clamp and the samples'
+# pixels in order.
+_RELIGHT_SOURCE = r"""
+#include <stdint.h>
+
+typedef float v8 __attribute__((vector_size(32), aligned(4)));
+
+/* img[pix[q], c] += max(Σ_i ld[i, c] td[i, q] + Σ_i ls[i, c] ts[i, q], 0) · inv (the max if clamp; no ts
+   term when ts is NULL), q ascending; td, ts (n2, Q) row-major, ld, ls (n2, 3); bad[0] counts pixels
+   outside [0, npix) (skipped). */
+static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, const float *td, const float *ts,
+                             const float *ld, const float *ls, const int64_t *pix, int64_t clamp, float inv,
+                             float *img, int64_t npix) {
+    int64_t nb = 0;
+    int64_t q0 = qa;
+    /* CH samples at a time: each row's CH values read as one contiguous run (a per-sample pass over the
+       2 n2 rows Q floats apart read 32 streams at once: slower than the GEMMs from a cold cache) */
+    enum { CH = 512, NB = CH / 8 };
+    v8 d[3][NB], sp[3][NB];
+    for (; q0 + CH <= qb; q0 += CH) {
+        for (int64_t c = 0; c < 3; ++c)
+            for (int64_t j = 0; j < NB; ++j) { d[c][j] = (v8){0}; sp[c][j] = (v8){0}; }
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *x = td + i * Q + q0;
+            const float l0 = ld[3 * i], l1 = ld[3 * i + 1], l2 = ld[3 * i + 2];
+            for (int64_t j = 0; j < NB; ++j) {
+                const v8 xv = *(const v8 *)(x + 8 * j);
+                d[0][j] += l0 * xv; d[1][j] += l1 * xv; d[2][j] += l2 * xv;
+            }
+        }
+        if (ts) {
+            for (int64_t i = 0; i < n2; ++i) {
+                const float *x = ts + i * Q + q0;
+                const float l0 = ls[3 * i], l1 = ls[3 * i + 1], l2 = ls[3 * i + 2];
+                for (int64_t j = 0; j < NB; ++j) {
+                    const v8 xv = *(const v8 *)(x + 8 * j);
+                    sp[0][j] += l0 * xv; sp[1][j] += l1 * xv; sp[2][j] += l2 * xv;
+                }
+            }
+            for (int64_t c = 0; c < 3; ++c)
+                for (int64_t j = 0; j < NB; ++j) d[c][j] += sp[c][j];
+        }
+        for (int64_t j = 0; j < NB; ++j)
+            for (int64_t b = 0; b < 8; ++b) {
+                const int64_t p = pix[q0 + 8 * j + b];
+                if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
+                float r0 = d[0][j][b], r1 = d[1][j][b], r2 = d[2][j][b];
+                if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
+                float *o = img + 3 * p;
+                o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
+            }
+    }
+    for (int64_t q = q0; q < qb; ++q) {
+        float r0 = 0.f, r1 = 0.f, r2 = 0.f;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float x = td[i * Q + q];
+            r0 += ld[3 * i] * x; r1 += ld[3 * i + 1] * x; r2 += ld[3 * i + 2] * x;
+        }
+        if (ts) {
+            float s0 = 0.f, s1 = 0.f, s2 = 0.f;
+            for (int64_t i = 0; i < n2; ++i) {
+                const float x = ts[i * Q + q];
+                s0 += ls[3 * i] * x; s1 += ls[3 * i + 1] * x; s2 += ls[3 * i + 2] * x;
+            }
+            r0 += s0; r1 += s1; r2 += s2;
+        }
+        const int64_t p = pix[q];
+        if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
+        if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
+        float *o = img + 3 * p;
+        o[0] += r0 * inv; o[1] += r1 * inv; o[2] += r2 * inv;
+    }
+    return nb;
+}
+
+/* the samples [start[t], start[t + 1]) on thread t of nt (the caller splits between pixels: each pixel's
+   samples are one thread's, added in order) */
+void zh_relight_add(int64_t Q, int64_t n2, const float *td, const float *ts, const float *ld, const float *ls,
+                    const int64_t *pix, int64_t clamp, float inv, float *img, int64_t npix, const int64_t *start,
+                    int64_t nt, int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb) if(nt > 1)
+    for (int64_t t = 0; t < nt; ++t)
+        nb += relight_range(start[t], start[t + 1], Q, n2, td, ts, ld, ls, pix, clamp, inv, img, npix);
+    bad[0] = nb;
+}
+"""
+_RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _I, _P, _I, _P]}
+MIN_SAMPLES_PER_RELIGHT_THREAD = 8192   # object samples below which one thread shades them
+
+
+@functools.lru_cache(maxsize=None)
+def _relight_lib():
+    return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+
+
+def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tensor | None, pix: Tensor, clamp: bool,
+                inv: float) -> bool:
+    """img (n, 3) += max(ldᵀ td + lsᵀ ts, 0) · inv at the pixels pix (Q,) int64 ascending (``ZHShadow._relight_planes``'
+    GEMMs, clamp and ``index_add_``; float32 round-off against the GEMMs) by one C pass (split over OpenMP's
+    team between pixels: the same bits at any thread count); False (nothing
+    done) where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / CPU contiguous
+    arrays of these shapes, a pixel outside img: its row is skipped, the caller redoes the frame's terms
+    by torch — it is only checked here). td, ts (n², Q); ld, ls (n², 3) = l ⊙ kd, l ⊙ ks."""
+    lib = _relight_lib() if terms_switched_on() else None
+    if lib is None or td.dim() != 2:
+        return False
+    n2, Q = int(td.shape[0]), int(td.shape[1])
+    arrs = (img, td, ld) + ((ts, ls) if ts is not None else ())
+    if (any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() for t in arrs)
+            or pix.dtype != torch.int64 or pix.shape != (Q,) or not pix.is_contiguous() or pix.device.type != "cpu"
+            or img.dim() != 2 or img.shape[1] != 3 or ld.shape != (n2, 3)
+            or (ts is not None and (ts.shape != (n2, Q) or ls is None or ls.shape != (n2, 3)))):
+        return False
+    if Q and (int(pix.min()) < 0 or int(pix.max()) >= int(img.shape[0])):
+        return False
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_SAMPLES_PER_RELIGHT_THREAD))
+    cuts = [0]
+    for t in range(1, nt):   # thread t from Q t / nt on, moved past the samples of the pixel there
+        c = max(Q * t // nt, cuts[-1])
+        while 0 < c < Q and int(pix[c]) == int(pix[c - 1]):
+            c += 1
+        cuts.append(c)
+    cuts.append(Q)
+    start = torch.tensor(cuts, dtype=torch.int64)
+    lib.zh_relight_add(Q, n2, td.data_ptr(), 0 if ts is None else ts.data_ptr(), ld.data_ptr(),
+                       0 if ts is None else ls.data_ptr(), pix.data_ptr(), int(bool(clamp)), float(inv),
+                       img.data_ptr(), int(img.shape[0]), start.data_ptr(), nt, bad.data_ptr())
+    return True
+
+
+# --- `runtime.first_plane`'s candidate screening ------------------------------------------------------------
+#
+# `runtime.first_plane` screens 8 candidate normals on every 16th point (a strided copy, then per candidate
+# three compares, two ands, a sum and its ``int``: ~60 small ops, ~0.3 ms at 1 thread whatever the size)
+# — run twice by a plane frame's split (`ZHShadow._native_split`: over the G-buffer, then over the
+# object's samples for a second plane). Here the 8 screened counts in one C pass (the same float compares).
+_SCREEN_SOURCE = r"""
+#include <stdint.h>
+
+/* cnt[c] = #{j = 0, 16, 32, … < m : x[j s1] == x[k s1], y … , z …} for the candidates k = c m / 8, c < 8
+   (x, y, z = base, base + s0, base + 2 s0: the three components; strides in floats). */
+void zh_screen(const float *base, int64_t s0, int64_t s1, int64_t m, int64_t *cnt) {
+    for (int64_t c = 0; c < 8; ++c) {
+        const int64_t k = c * m / 8;
+        const float a = base[k * s1], b = base[s0 + k * s1], d = base[2 * s0 + k * s1];
+        int64_t n = 0;
+        for (int64_t j = 0; j < m; j += 16)
+            n += (base[j * s1] == a) & (base[s0 + j * s1] == b) & (base[2 * s0 + j * s1] == d);
+        cnt[c] = n;
+    }
+}
+"""
+_SCREEN_SIGNATURES = {"zh_screen": [_P, _I, _I, _I, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _screen_lib():
+    return native.load("zh_screen", _SCREEN_SOURCE, _SCREEN_SIGNATURES)
+
+
+def screen_counts(cur: Tensor) -> list[int] | None:
+    """`runtime.first_plane`'s 8 screened counts of the normals cur (3, m) (any strides, float32, CPU):
+    for candidate c (the normal of point c·m // 8) the points j = 0, 16, 32, … equal to it componentwise —
+    or None where the C pass does not run (the caller screens by torch)."""
+    lib = _screen_lib() if terms_switched_on() else None
+    if lib is None or cur.dtype != torch.float32 or cur.device.type != "cpu" or cur.dim() != 2 or cur.shape[0] != 3 \
+            or cur.shape[1] == 0:
+        return None
+    cnt = torch.zeros(8, dtype=torch.int64)
+    lib.zh_screen(cur.data_ptr(), cur.stride(0), cur.stride(1), int(cur.shape[1]), cnt.data_ptr())
+    return cnt.tolist()

@@ -1028,17 +1028,24 @@ def planar_groups(nT: Tensor, *, min_points: int | None = None, max_groups: int 
     return groups, mask, rest
 
 
-def first_plane(cur: Tensor, min_points: int, match=None) -> tuple[Tensor, Tensor, int] | None:
+def first_plane(cur: Tensor, min_points: int, match=None, screen: list[int] | None = None
+                ) -> tuple[Tensor, Tensor, int] | None:
     """One step of `planar_groups`' search over the normals cur (3, m): (n0 (3,), (m,) bool ``cur ==
     n0`` column-wise, its count) for the first candidate — the normals of 8 evenly spaced points,
     screened on every 16th point — shared by at least ``min_points`` points, or None. ``match``: as
-    `planar_groups`' (n0 → (that mask, its count))."""
+    `planar_groups`' (n0 → (that mask, its count)); ``screen``: the 8 screened counts, already made
+    (`native.screen_counts`: the same counts)."""
     m = cur.shape[1]
-    sub = cur[:, ::16].contiguous()   # (screened every candidate: contiguous rows)
+    sub = cur[:, ::16].contiguous() if screen is None else None   # (screened every candidate: contiguous rows)
     for c in range(8):
-        n0 = cur[:, c * m // 8].clone()
-        if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
-            continue                                                   # under half the size, screened
+        if screen is not None:
+            if screen[c] * 32 < min_points:
+                continue
+            n0 = cur[:, c * m // 8].clone()
+        else:
+            n0 = cur[:, c * m // 8].clone()
+            if int(((sub[0] == n0[0]) & (sub[1] == n0[1]) & (sub[2] == n0[2])).sum()) * 32 < min_points:
+                continue                                               # under half the size, screened
         if match is not None:
             eq, cnt = match(n0)
             cnt = int(cnt)

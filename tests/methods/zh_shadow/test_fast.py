@@ -1483,3 +1483,214 @@ def test_native_split_equals_torch_split(small_model):
     fa = make_sequence(al.scene, "V", 1, seed=2)[0]
     assert al._native_split(make_gbuffer(al.scene, fa, 2), [False] * len(al.scene.regions),
                             al.scene.geometry().F.to(torch.int32)) is False
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
+    """`native.project_latlong_polar` (one C pass over the float32 texels, `ZHShadow._lighting`'s new
+    map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
+    round-off on random maps (odd sizes, a non-contiguous view, 1 and 2 threads); the switch off
+    (``PRTBENCH_ZH_NATIVE=0``) and a float64 map give the oracle itself."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.core.sh import project_latlong_polar as oracle
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(order)
+    for H, W in ((64, 128), (37, 75), (256, 512)):
+        img = torch.rand(H, W, 3, generator=g) * 4.0
+        views = (img, torch.rand(W, H, 3, generator=g).transpose(0, 1))     # (a strided view too)
+        for x in views:
+            want = oracle(x, order)
+            for nt in (1, 2):
+                with mock.patch.object(torch, "get_num_threads", lambda: nt):
+                    got = zn.project_latlong_polar(x, order)
+                assert got.dtype == torch.float64 and got.shape == (order * order, 3)
+                assert float((got - want).abs().max()) <= 1e-13 * float(want.abs().max()), (H, W, nt)
+    assert zn._project_lib() is not None or not native.compiler() or not compile_enabled()   # (the loop ran)
+    x = torch.rand(16, 32, 3, generator=g)
+    assert torch.equal(zn.project_latlong_polar(x.double(), order), oracle(x.double(), order))
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert torch.equal(zn.project_latlong_polar(x, order), oracle(x, order))
+
+
+def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
+    """`native.csr_product` of `native.csr_pack` (the kept resolve matrix as a 4-wide table + a CSR
+    tail, one C pass) = torch's CSR product bit for bit: the creature's resolve matrix (int32 and int64
+    indices) and a random CSR with empty rows and rows of up to 12 entries, at 1 and 2 threads, and with
+    its columns renumbered over a compact x (`native.csr_compact`); a vertex-shaded L sequence renders
+    the same images with ``native_resolve`` off (torch's product of the scattered radiance)."""
+    from methods.core import gouraud, native
+    from methods.core.fused import compile_enabled
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import _int32_csr
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    scene = zh_scene("creature")
+    f = make_sequence(scene, "L", 1, seed=2)[0]
+    gb, geom = make_gbuffer(scene, f, 2), scene.geometry()
+    N = int(geom.num_vertices)
+    S = gouraud.resolve_matrix(geom.F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side, N)
+    g = torch.Generator().manual_seed(4)
+    R, Nr = 300, 50
+    ln = torch.randint(0, 13, (R,), generator=g)
+    ln[::7] = 0
+    crow = torch.zeros(R + 1, dtype=torch.int64)
+    crow[1:] = ln.cumsum(0)
+    nnz = int(crow[-1])
+    rnd = torch.sparse_csr_tensor(crow, torch.randint(0, Nr, (nnz,), generator=g), torch.randn(nnz, generator=g),
+                                  (R, Nr))
+    for M in (S, _int32_csr(S), rnd):
+        pk = zn.csr_pack(M)
+        if pk is None:
+            assert zn._csr_lib() is None or not zn.terms_switched_on()
+            pytest.skip("the native resolve is not available here")
+        x = torch.randn(int(M.shape[1]), 3, generator=g)
+        for nt in (1, 2):
+            with mock.patch.object(zn, "MIN_ROWS_PER_CSR_THREAD", 16), mock.patch.object(torch, "get_num_threads",
+                                                                                        lambda: nt):
+                got = zn.csr_product(pk, x)
+            assert torch.equal(got, M @ x), nt
+        idx = torch.randperm(int(M.shape[1]), generator=g)[: int(M.shape[1]) // 3].sort().values
+        xz = torch.zeros_like(x).index_copy_(0, idx, x[idx])                  # zero off idx
+        xc = torch.cat([x[idx], x.new_zeros(1, 3)])
+        assert torch.equal(zn.csr_product(zn.csr_compact(pk, idx), xc), M @ xz)
+    assert zn._csr_lib() is not None or not native.compiler() or not compile_enabled()
+    assert zn.csr_product(zn.csr_pack(rnd), torch.randn(Nr + 1, 3)) is None          # (a wrong size: the oracle)
+    bad = torch.sparse_csr_tensor(crow, torch.full((nnz,), Nr), torch.ones(nnz), (R, Nr + 1))
+    assert zn.csr_pack(torch.sparse_csr_tensor(crow, torch.full((nnz,), Nr), torch.ones(nnz), (R, Nr))) is None
+    assert zn.csr_pack(bad) is not None
+    m = ZHShadow(**SMALL, order=4, shading="vertex", specular="cosine")
+    m.precompute(scene)
+    slow = m.with_render_config()
+    slow.native_resolve = False
+    fast = m.with_render_config()
+    for fr in make_sequence(scene, "L", 4, seed=3):
+        gbf = make_gbuffer(scene, fr, 2)
+        assert torch.equal(fast.render(fr, gbf), slow.render(fr, gbf))
+    assert fast._resolve_packed is not None and fast._resolve_packed[1] is not None
+    assert fast._resolve_compact is not None          # (the compact radiance read by the resolve)
+    assert slow._resolve_packed[1] is None
+
+
+def test_face_pixels_native_equals_compiled(small_model):
+    """`native.face_pixels` (the C loop) = `method._plane_face_pixels` (the compiled pass, its oracle)
+    bit for bit: random face tables and faces (−1 = no plane sample) with clamp on and off, at 1 and
+    2 threads, the component-major barycentrics the G-buffer stores; None for a face outside the table;
+    L / E sequences of the creature render the same images (to float32 round-off: `native.relight_add`)
+    with ``native_plane_pass`` off."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import _plane_face_pixels
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    g = torch.Generator().manual_seed(6)
+    n, S2, Fp = 20000, 4, 700
+    face = torch.randint(-1, Fp, (n, S2), generator=g, dtype=torch.int64).to(torch.int32)
+    face[:50] = -1
+    bary = torch.rand(n * S2, 2, generator=g).T.contiguous().T          # (P, 2) column-major, as the G-buffer
+    bT = bary.T.view(2, n, S2)
+    uf = torch.randn(Fp, 9, generator=g)
+    for clamp in (True, False):
+        want = _plane_face_pixels(face, bT, uf, clamp)
+        for nt in (1, 2):
+            with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 64), mock.patch.object(torch, "get_num_threads",
+                                                                                      lambda: nt):
+                got = zn.face_pixels(face, bT, uf, clamp)
+            if got is None:
+                assert zn._face_pixels_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native plane pass is not available here")
+            assert torch.equal(got, want), (clamp, nt)
+    assert zn._face_pixels_lib() is not None or not native.compiler() or not compile_enabled()
+    assert zn.face_pixels(face, bT, uf[:Fp - 1].contiguous(), True) is None          # a face outside the table
+    m = small_model("creature")
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_plane_pass = False
+    for kind in ("L", "E"):
+        for fr in make_sequence(m.scene, kind, 4, seed=4):
+            gb = make_gbuffer(m.scene, fr, 2)
+            a, b = fast.render(fr, gb), slow.render(fr, gb)
+            assert fast.last_path == slow.last_path
+            # (the object samples' terms by `native.relight_add`: float32 round-off against the GEMMs)
+            assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (kind, fr.index)
+        assert fast.last_path == "relight-planes", kind
+
+
+def test_relight_add_native_equals_gemms(monkeypatch):
+    """`native.relight_add` (one C pass over the object samples of a lighting-only plane frame) = the
+    torch path it replaces — (l ⊙ kd)ᵀ td + (l ⊙ ks)ᵀ ts, the clamp and ``index_add_`` per channel ÷ S² —
+    to float32 round-off: with and without ts, clamp on and off, Q not a multiple of 8, repeated pixels,
+    the same bits on 1, 2 and 3 threads;
+    False (img untouched) for a pixel outside the image, a wrong shape or the switch off."""
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(8)
+    n2, Q, npix = 16, 1003, 400
+    td, ts = torch.randn(n2, Q, generator=g), torch.randn(n2, Q, generator=g)
+    ld, ls = torch.randn(n2, 3, generator=g), torch.randn(n2, 3, generator=g)
+    pix = torch.sort(torch.randint(0, npix, (Q,), generator=g)).values
+    img0 = torch.rand(npix, 3, generator=g)
+    for with_ts in (True, False):
+        for clamp in (True, False):
+            img = img0.clone()
+            if not zn.relight_add(img, td, ts if with_ts else None, ld, ls if with_ts else None, pix, clamp, 0.25):
+                assert zn._relight_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native relight is not available here")
+            for nt in (2, 3):   # split between pixels over the team: the same bits
+                img2 = img0.clone()
+                with mock.patch.object(zn, "MIN_SAMPLES_PER_RELIGHT_THREAD", 64), \
+                        mock.patch.object(torch, "get_num_threads", lambda: nt):
+                    assert zn.relight_add(img2, td, ts if with_ts else None, ld, ls if with_ts else None, pix, clamp,
+                                          0.25)
+                assert torch.equal(img2, img), nt
+            rad = ld.T @ td
+            if with_ts:
+                rad = torch.addmm(rad, ls.T, ts)
+            if clamp:
+                rad = rad.clamp_min(0.0)
+            want = img0.clone()
+            for c in range(3):
+                want[:, c].index_add_(0, pix, rad[c], alpha=0.25)
+            assert float((img - want).abs().max()) <= 1e-5 * float(want.abs().max()), (with_ts, clamp)
+    img = img0.clone()
+    bad = pix.clone()
+    bad[-1] = npix
+    assert not zn.relight_add(img, td, ts, ld, ls, bad, True, 0.25) and torch.equal(img, img0)
+    assert not zn.relight_add(img, td, ts[:, :-1].contiguous(), ld, ls, pix, True, 0.25) and torch.equal(img, img0)
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert not zn.relight_add(img, td, ts, ld, ls, pix, True, 0.25) and torch.equal(img, img0)
+
+
+def test_screen_counts_native_equals_torch_screening():
+    """`native.screen_counts` (one C pass) = `runtime.first_plane`'s torch screening (every 16th point
+    against each of the 8 candidates, componentwise float equality) on normals with planes of several
+    sizes, −0.0 against 0.0 and NaNs, as (3, m) contiguous rows and as the transpose of (m, 3); and
+    `first_plane` with those counts = without them."""
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(9)
+    m = 5003
+    n = torch.randn(m, 3, generator=g)
+    n[100:2500] = torch.tensor([0.0, 1.0, 0.0])
+    n[3000:3400] = torch.tensor([0.0, -0.0, 1.0])
+    n[3400:3500] = torch.tensor([0.0, 0.0, 1.0])
+    n[4000:4100, 1] = float("nan")
+    for cur in (n.T, n.T.contiguous(), n[:1000].T, n[4000:4100].T):
+        got = zn.screen_counts(cur)
+        if got is None:
+            assert zn._screen_lib() is None or not zn.terms_switched_on()
+            pytest.skip("the native screening is not available here")
+        k = cur.shape[1]
+        sub = cur[:, ::16]
+        want = [int(((sub[0] == cur[0, c * k // 8]) & (sub[1] == cur[1, c * k // 8]) & (sub[2] == cur[2, c * k // 8]))
+                    .sum()) for c in range(8)]
+        assert got == want
+        for mp in (16, 64, 1024):
+            a, b = rt.first_plane(cur, mp), rt.first_plane(cur, mp, screen=got)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
