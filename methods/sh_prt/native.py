@@ -456,14 +456,9 @@ def _lib():
 
 def _flags() -> tuple[str, ...]:
     """OpenMP; AVX2 when torch found the CPU to have it (the library is built on the machine that
-    runs it, and the flags are part of its cache key; as `methods.triple_product.native`). No
+    runs it, and the flags are part of its cache key; `methods.core.native.isa_flags`). No
     contraction into fused multiply-adds: `add_pixels` must round as its oracle's multiply, then add."""
-    cap = ""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        pass
-    return ("-fopenmp", "-ffp-contract=off", *(("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()))
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
 
 
 def available() -> bool:

@@ -203,17 +203,6 @@ void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, 
 _TERMS_SIGNATURES = {"sample_terms": [_P, _I, _P, _P, _P, _P, _I, _I, _I, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
-def _isa_flags() -> tuple[str, ...]:
-    """AVX2 + FMA when torch found the CPU to have them (the library is built on the machine that runs
-    it; with ``-ffp-contract=off`` no product is fused, so the flags change the speed, not the bits)."""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        cap = ""
-    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-
-
 def terms_switched_on() -> bool:
     """False when ``PRTBENCH_ZH_NATIVE`` is 0 / false / no / off: `sample_terms` then returns None
     (the compiled `runtime._sample_block` runs; A/Bs and tests)."""
@@ -237,7 +226,7 @@ def _terms_lib():
     if not _inductor_avx2():
         return None
     return native.load("zh_sample_terms", _TERMS_SOURCE, _TERMS_SIGNATURES,
-                       extra_flags=("-ffp-contract=off", "-fopenmp", *_isa_flags()))
+                       extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
 
 
 def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: int, diffuse: bool,
