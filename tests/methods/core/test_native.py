@@ -1,6 +1,8 @@
 """`methods.core.native`'s host-ISA flags: one lookup shared by every library built for the host."""
 from __future__ import annotations
 
+import pathlib
+
 import pytest
 import torch
 
@@ -42,3 +44,11 @@ def test_every_host_built_library_takes_the_shared_flags():
     for flags in (tp_native._flags(), native_light._flags(), sh_native._flags()):
         assert flags[len(flags) - len(isa):] == isa
     assert f"-DPRTBENCH_CPU_{native.cpu_capability()}" in ptt_native._EXTRA_FLAGS
+
+
+def test_the_capability_is_looked_up_in_one_place():
+    """No method module asks torch for the CPU capability itself (three copies of the lookup grew
+    in sessions 27-29): `cpu_capability` / `isa_flags` are the one place."""
+    root = pathlib.Path(native.__file__).parents[1]
+    askers = sorted(str(p.relative_to(root)) for p in root.rglob("*.py") if "get_cpu_capability" in p.read_text())
+    assert askers == ["core/native.py"]
