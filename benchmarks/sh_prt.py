@@ -98,7 +98,7 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     res["light: project"] = {"ms": ms(lambda: shm.project_latlong_polar(data, m.order)),
                              "texels": float(data.shape[0] * data.shape[1]),
                              "sh.project_latlong ms": ms(lambda: _sh.project_latlong(data.double(), m.order))}
-    res["light: project"]["native ms"] = ms(lambda: shm._native.project_latlong_polar(data, m.order))
+    res["light: project"]["native ms"] = ms(lambda: shm.sh_native.project_latlong_polar(data, m.order))
     res["light: rotate"] = {"ms": ms(lambda: m.lighting(env))}
     l = m._light
     ng, n2 = m.M.shape[0], m.M.shape[1]

@@ -38,6 +38,7 @@ from dataclasses import fields
 
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
+from methods.core import native
 from methods.core.frames import coordinate_system
 from methods.core.latlong import planar_radiance
 from methods.core.fused import fused, map_rows
@@ -304,7 +305,7 @@ def _soa_blocks(x: Tensor, B: int) -> Tensor:
 # Other hosts keep Inductor's default (None): an explicit 256 on a host without AVX2 would leave the
 # loops scalar.
 OPTIONS = {"cpp.enable_tiling_heuristics": False, "assert_indirect_indexing": False,
-           "cpp.simdlen": 256 if torch.backends.cpu.get_cpu_capability() == "AVX512" else None}
+           "cpp.simdlen": 256 if native.cpu_capability() == "AVX512" else None}
 _pretrace_stage = fused(_pretrace_stage, options=OPTIONS)
 _brdf_sample_stage = fused(_brdf_sample_stage)
 _brdf_eval_stage = fused(_brdf_eval_stage)

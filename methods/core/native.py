@@ -29,9 +29,29 @@ import warnings
 
 from methods.core.fused import compile_enabled
 
-__all__ = ["FLAGS", "cache_clear", "compiler", "load"]
+__all__ = ["FLAGS", "cache_clear", "compiler", "cpu_capability", "isa_flags", "load"]
 
 FLAGS = ("-O3", "-shared", "-fPIC", "-fno-math-errno")
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_capability() -> str:
+    """The CPU capability torch found ("DEFAULT", "AVX2", "AVX512", ...; "unknown" on a torch without
+    the query). A library built for the host (``-march=native``) puts it in a define, so that its
+    cache key differs between hosts that share a temp folder."""
+    import torch
+
+    try:
+        return str(torch.backends.cpu.get_cpu_capability())
+    except Exception:  # pragma: no cover - older torch
+        return "unknown"
+
+
+def isa_flags() -> tuple[str, ...]:
+    """``-mavx2 -mfma`` when torch found the CPU to have AVX2 (or AVX-512), else none: the ISA flags
+    of a library built on the machine that runs it (part of its cache key through `load`'s flags).
+    Whether products may be fused into multiply-adds is each library's own ``-ffp-contract``."""
+    return ("-mavx2", "-mfma") if cpu_capability() in ("AVX2", "AVX512") else ()
 
 
 def _private_dir(root: str) -> bool:

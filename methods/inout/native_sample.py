@@ -355,21 +355,9 @@ MIN_PER_THREAD = 1024
 
 
 @functools.lru_cache(maxsize=None)
-def _isa_flags() -> tuple[str, ...]:
-    """AVX2 + FMA when torch found the CPU to have them (the library is built on the machine that
-    runs it; the flags are part of its cache key)."""
-    cap = ""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        pass
-    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-
-
-@functools.lru_cache(maxsize=None)
 def _lib():
     return native.load("inout_sample", _SOURCE, _SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
 
 def available() -> bool:

@@ -564,18 +564,10 @@ void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* f
 int native_cells_ok(void) { return 0; }
 #endif
 """
-def _cpu_tag() -> str:
-    """The CPU capability torch found (a define of the build, so part of the library's cache key:
-    ``-march=native`` builds for the host, and two hosts sharing a temp folder must not share it)."""
-    try:
-        return str(torch.backends.cpu.get_cpu_capability())
-    except Exception:  # pragma: no cover - older torch
-        return "unknown"
-
-
-# On top of `methods.core.native.FLAGS`: the host's ISA, no contraction into fused multiply-adds (as
+# On top of `methods.core.native.FLAGS`: the host's ISA (its capability a define of the build, so part
+# of the library's cache key: two hosts sharing a temp folder must not share it), no contraction into fused multiply-adds (as
 # Inductor's kernels: the same roundings), OpenMP (the library binds to the libgomp torch loaded).
-_EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{_cpu_tag()}")
+_EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{native.cpu_capability()}")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
 # Samples below which one thread marks the referenced faces (`referenced_pairs`).

@@ -144,6 +144,7 @@ from torch import Tensor
 from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
                           tensor_bytes)
 from methods.core import sh as _sh
+from methods.core import sh_native
 from methods.core import zh as _zh
 from methods.core.sh import _LATLONG_QT, rotate_sampled   # shared with zh_shadow
 from methods.core.frames import reflect
@@ -646,14 +647,14 @@ class SHPRT(Method):
     # -- run time ---------------------------------------------------------------------------------
     def lighting(self, env) -> Tensor:
         """World-frame SH l (n², 3) of ``env`` (Sloan 2002 §7): projected once per texel content in
-        the map's polar frame (`project_latlong_polar`; by `native.project_latlong_polar`'s C pass
+        the map's polar frame (`project_latlong_polar`; by `methods.core.sh_native.project_latlong_polar`'s C pass
         over the float32 texels where it runs, session 28: 0.6 against 1.3 ms, creature bench map, 1
         thread, float64 round-off), then rotated by ``env.to_world`` @ Qᵀ in one
         `rotate_sampled` (= `sh.project_latlong(env)`: its own two rotations, Qᵀ to the map's frame
         and R to the world, composed; module docstring)."""
         data = env.data
         if self._src is None or self._src[0] is not data or self._src[1] != data._version:
-            self._l_local = _native.project_latlong_polar(data, self.order)  # (n², 3) polar frame
+            self._l_local = sh_native.project_latlong_polar(data, self.order)  # (n², 3) polar frame
             self._src = (data, data._version)
             self.stats["project"] += 1
         R = torch.as_tensor(env.to_world, dtype=torch.float64) @ _LATLONG_QT

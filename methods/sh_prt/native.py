@@ -164,43 +164,6 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
     *count = tot;
 }
 
-/* `sh.project_latlong_polar` of rows [h0, h1) of the (H, W, 3) float32 map X into out (n², 3)
-   float64: per row the column sums F[c][j] = Σ_w X[h, w, c] B[w, j] over the 2n factors (B (W, J)
-   float64, J = 2n padded to a multiple of 4 with zeros), then out[i, c] += T[h, i] F[c][k[i]]. */
-typedef double d4 __attribute__((vector_size(32), aligned(8)));
-#define MAXJ 24
-static void proj_rows(int64_t h0, int64_t h1, int64_t W, const float *X, const double *B, int64_t J,
-                      const int64_t *k, const double *T, int64_t n2, double *out) {
-    const int64_t nv = J / 4;
-    for (int64_t h = h0; h < h1; ++h) {
-        d4 a[3][MAXJ / 4];
-        for (int64_t c = 0; c < 3; ++c)
-            for (int64_t v = 0; v < nv; ++v) a[c][v] = (d4){0, 0, 0, 0};
-        const float *row = X + h * W * 3;
-        for (int64_t w = 0; w < W; ++w) {
-            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];
-            const d4 *b = (const d4 *)(B + w * J);
-            for (int64_t v = 0; v < nv; ++v) {
-                a[0][v] += x0 * b[v]; a[1][v] += x1 * b[v]; a[2][v] += x2 * b[v];
-            }
-        }
-        const double *t = T + h * n2;
-        for (int64_t i = 0; i < n2; ++i) {
-            const int64_t j = k[i];
-            for (int64_t c = 0; c < 3; ++c) out[3 * i + c] += t[i] * a[c][j / 4][j % 4];
-        }
-    }
-}
-
-void sh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J, const int64_t *k,
-                const double *T, int64_t n2, double *part, int64_t nt) {
-    /* part (nt, n², 3) zeroed by the caller: thread t's rows [H t / nt, H (t+1) / nt) */
-    if (nt <= 1) { proj_rows(0, H, W, X, B, J, k, T, n2, part); return; }
-    #pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t t = 0; t < nt; ++t)
-        proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
-}
-
 /* A lighting-only frame's glossy samples (`method._relight_add`) from the packed relight cache
    (`relight_pack`): per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)] floats;
    o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
@@ -441,7 +404,6 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
-               "sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I]}
@@ -456,14 +418,9 @@ def _lib():
 
 def _flags() -> tuple[str, ...]:
     """OpenMP; AVX2 when torch found the CPU to have it (the library is built on the machine that
-    runs it, and the flags are part of its cache key; as `methods.triple_product.native`). No
+    runs it, and the flags are part of its cache key; `methods.core.native.isa_flags`). No
     contraction into fused multiply-adds: `add_pixels` must round as its oracle's multiply, then add."""
-    cap = ""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        pass
-    return ("-fopenmp", "-ffp-contract=off", *(("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()))
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
 
 
 def available() -> bool:
@@ -609,42 +566,6 @@ def _gl_buffer(P: int) -> Tensor:
     if _GL[0].numel() < P:
         _GL[0] = torch.empty(P, dtype=torch.int64)
     return _GL[0]
-
-
-MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects
-
-
-@functools.lru_cache(maxsize=8)
-def _project_factors(H: int, W: int, order: int) -> tuple[Tensor, Tensor, Tensor, int]:
-    """`sh._latlong_polar_factors` (B (W, 2n), k, T) with B's columns padded with zeros to a multiple
-    of 4 (whole 4-double vectors in `sh_project`) → (B (W, J), k, T, J), contiguous, CPU."""
-    from methods.core.sh import _latlong_polar_factors
-
-    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
-    J = -(-B.shape[1] // 4) * 4
-    Bp = torch.zeros(W, J, dtype=torch.float64)
-    Bp[:, :B.shape[1]] = B
-    return Bp, k.to(torch.int64).contiguous(), T.contiguous(), J
-
-
-def project_latlong_polar(image: Tensor, order: int) -> Tensor:
-    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by one C pass over the
-    float32 (H, W, 3) texels (float64 sums: the same integrals in another order, float64 round-off;
-    no float64 copy of the map), or by that function (its oracle) where the loop does not run."""
-    from methods.core.sh import project_latlong_polar as oracle
-
-    lib = _lib()
-    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
-            or image.shape[2] != 3 or 2 * order > 24):
-        return oracle(image, order)
-    H, W, _ = image.shape
-    B, k, T, J = _project_factors(int(H), int(W), int(order))
-    X = image.contiguous()
-    n2 = order * order
-    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
-    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
-    lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
-    return part[0] if nt == 1 else part.sum(0)
 
 
 def relight_pack(DG: Tensor, kd: Tensor, ks: Tensor) -> Tensor:

@@ -31,7 +31,6 @@ check every row index once per call (`_rows_ok`).
 from __future__ import annotations
 
 import ctypes
-import functools
 import os
 
 import torch
@@ -218,21 +217,9 @@ void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf
 """
 
 
-@functools.lru_cache(maxsize=None)
-def isa_flags() -> tuple[str, ...]:
-    """AVX2 + FMA when torch found the CPU to have them, else none (the libraries are built on the
-    machine that runs them; the flags are part of their cache keys)."""
-    cap = ""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        pass
-    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-
-
 def _flags() -> tuple[str, ...]:
-    """Fused multiply-adds, OpenMP and `isa_flags`."""
-    return ("-ffp-contract=fast", "-fopenmp", *isa_flags())
+    """Fused multiply-adds, OpenMP and the host's ISA (`methods.core.native.isa_flags`)."""
+    return ("-ffp-contract=fast", "-fopenmp", *native.isa_flags())
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64

@@ -240,7 +240,7 @@ def _lib():
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
     if not tp_native.switched_on():
         return None
-    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=("-ffp-contract=fast", "-fopenmp", *tp_native.isa_flags()))
+    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=("-ffp-contract=fast", "-fopenmp", *native.isa_flags()))
 
 
 def available() -> bool:

@@ -443,8 +443,8 @@ void tp_comb_scatter(int64_t B, int64_t n, int64_t J, const float* means, const 
 def _flags() -> tuple[str, ...]:
     """Inductor's floating-point flags for its CPU kernels (no contraction: the compiled projection's
     values bit for bit; no trapping math: floorf and the float → int conversions vectorise), OpenMP,
-    and AVX2 + FMA when torch found the CPU to have them (`native.isa_flags`)."""
-    return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *tp_native.isa_flags())
+    and AVX2 + FMA when torch found the CPU to have them (`methods.core.native.isa_flags`)."""
+    return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *native.isa_flags())
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64

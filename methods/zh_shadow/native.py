@@ -19,7 +19,7 @@ import os
 import torch
 from torch import Tensor
 
-from methods.core import native
+from methods.core import native, sh_native
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -203,17 +203,6 @@ void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, 
 _TERMS_SIGNATURES = {"sample_terms": [_P, _I, _P, _P, _P, _P, _I, _I, _I, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
-def _isa_flags() -> tuple[str, ...]:
-    """AVX2 + FMA when torch found the CPU to have them (the library is built on the machine that runs
-    it; with ``-ffp-contract=off`` no product is fused, so the flags change the speed, not the bits)."""
-    try:
-        cap = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # pragma: no cover - older torch
-        cap = ""
-    return ("-mavx2", "-mfma") if cap in ("AVX2", "AVX512") else ()
-
-
 def terms_switched_on() -> bool:
     """False when ``PRTBENCH_ZH_NATIVE`` is 0 / false / no / off: `sample_terms` then returns None
     (the compiled `runtime._sample_block` runs; A/Bs and tests)."""
@@ -237,7 +226,7 @@ def _terms_lib():
     if not _inductor_avx2():
         return None
     return native.load("zh_sample_terms", _TERMS_SOURCE, _TERMS_SIGNATURES,
-                       extra_flags=("-ffp-contract=off", "-fopenmp", *_isa_flags()))
+                       extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
 
 
 def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: int, diffuse: bool,
@@ -422,89 +411,20 @@ def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, 
 #
 # `methods.core.sh.project_latlong_polar` copies the (H, W, 3) float32 map to float64 channel-major
 # (0.5 ms at 256 × 512), multiplies it by the (W, 2n) cos/sin factors (one GEMM) and weights the rows
-# (an index_select and an einsum): ~2.4 ms at 1 thread on the bench map, about half of an E frame. Here
-# one C pass over the float32 texels, float64 sums: per row the column sums against the same factors
-# (padded to whole 4-double vectors), then the row weights — the same integrals in another order
-# (float64 round-off; SH PRT's `methods.sh_prt.native.project_latlong_polar` is the same loop, copied
-# rather than imported so that a change there does not re-key this method's precomputation).
-_PROJECT_SOURCE = r"""
-#include <stdint.h>
-
-typedef double d4 __attribute__((vector_size(32), aligned(8)));
-#define MAXJ 24
-static void proj_rows(int64_t h0, int64_t h1, int64_t W, const float *X, const double *B, int64_t J,
-                      const int64_t *k, const double *T, int64_t n2, double *out) {
-    const int64_t nv = J / 4;
-    for (int64_t h = h0; h < h1; ++h) {
-        d4 a[3][MAXJ / 4];
-        for (int64_t c = 0; c < 3; ++c)
-            for (int64_t v = 0; v < nv; ++v) a[c][v] = (d4){0, 0, 0, 0};
-        const float *row = X + h * W * 3;
-        for (int64_t w = 0; w < W; ++w) {
-            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];
-            const d4 *b = (const d4 *)(B + w * J);
-            for (int64_t v = 0; v < nv; ++v) {
-                a[0][v] += x0 * b[v]; a[1][v] += x1 * b[v]; a[2][v] += x2 * b[v];
-            }
-        }
-        const double *t = T + h * n2;
-        for (int64_t i = 0; i < n2; ++i) {
-            const int64_t j = k[i];
-            for (int64_t c = 0; c < 3; ++c) out[3 * i + c] += t[i] * a[c][j / 4][j % 4];
-        }
-    }
-}
-
-/* part (nt, n², 3) zeroed by the caller: thread t's map rows [H t / nt, H (t+1) / nt) */
-void zh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J, const int64_t *k,
-                const double *T, int64_t n2, double *part, int64_t nt) {
-    if (nt <= 1) { proj_rows(0, H, W, X, B, J, k, T, n2, part); return; }
-    #pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t t = 0; t < nt; ++t)
-        proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
-}
-"""
-_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I]}
-MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects
-
-
-@functools.lru_cache(maxsize=None)
-def _project_lib():
-    return native.load("zh_project", _PROJECT_SOURCE, _PROJECT_SIGNATURES, extra_flags=("-fopenmp", *_isa_flags()))
-
-
-@functools.lru_cache(maxsize=8)
-def _project_factors(H: int, W: int, order: int) -> tuple[Tensor, Tensor, Tensor, int]:
-    """`sh._latlong_polar_factors` (B (W, 2n), k, T) with B's columns padded with zeros to a multiple
-    of 4 (whole 4-double vectors in `zh_project`) → (B (W, J), k, T, J), contiguous, CPU."""
-    from methods.core.sh import _latlong_polar_factors
-
-    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
-    J = -(-B.shape[1] // 4) * 4
-    Bp = torch.zeros(W, J, dtype=torch.float64)
-    Bp[:, :B.shape[1]] = B
-    return Bp, k.to(torch.int64).contiguous(), T.to(torch.float64).contiguous(), J
+# (an index_select and an einsum): ~2.4 ms at 1 thread on the bench map, about half of an E frame.
+# `methods.core.sh_native.project_latlong_polar` (shared with SH PRT) does it in one C pass over the
+# float32 texels, float64 sums (float64 round-off).
 
 
 def project_latlong_polar(image: Tensor, order: int) -> Tensor:
-    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by one C pass over the
-    float32 (H, W, 3) texels (float64 sums in another order: float64 round-off), or by that function
-    (the oracle) where the loop does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 CPU
-    (H, W, 3) map, order > 12)."""
-    from methods.core.sh import project_latlong_polar as oracle
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by
+    `methods.core.sh_native`'s C pass, or by that function (the oracle) with ``PRTBENCH_ZH_NATIVE=0``
+    (and wherever the pass does not run: no compiler, not a float32 CPU (H, W, 3) map, order > 12)."""
+    if not terms_switched_on():
+        from methods.core.sh import project_latlong_polar as oracle
 
-    lib = _project_lib() if terms_switched_on() else None
-    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
-            or image.shape[2] != 3 or 2 * order > 24):
         return oracle(image, order)
-    H, W, _ = image.shape
-    B, k, T, J = _project_factors(int(H), int(W), int(order))
-    X = image.contiguous()
-    n2 = order * order
-    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
-    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
-    lib.zh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
-    return part[0] if nt == 1 else part.sum(0)
+    return sh_native.project_latlong_polar(image, order)
 
 
 # --- a lighting-only vertex-shaded frame's resolve (`ZHShadow._render_vertex`) ----------------------------
@@ -713,7 +633,7 @@ MIN_PIXELS_PER_THREAD = 8192        # pixels below which one thread runs the pla
 @functools.lru_cache(maxsize=None)
 def _face_pixels_lib():
     return native.load("zh_face_pixels", _FACE_PIXELS_SOURCE, _FACE_PIXELS_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
 
 def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor | None:
@@ -841,7 +761,7 @@ MIN_SAMPLES_PER_RELIGHT_THREAD = 8192   # object samples below which one thread 
 @functools.lru_cache(maxsize=None)
 def _relight_lib():
     return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *_isa_flags()))
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
 
 def relight_add(img: Tensor, td: Tensor, ts: Tensor | None, ld: Tensor, ls: Tensor | None, pix: Tensor, clamp: bool,

@@ -740,30 +740,6 @@ def test_native_pixel_pass_equals_the_compiled_pass(S2, threads):
         torch.set_num_threads(old)
 
 
-@pytest.mark.parametrize("order", [3, 5, 8])
-@pytest.mark.parametrize("threads", [1, 2])
-def test_native_projection_equals_project_latlong_polar(order, threads):
-    """`native.project_latlong_polar` (one C pass over the float32 texels, float64 sums) equals
-    `methods.core.sh.project_latlong_polar` (its oracle: the float64 GEMM) to float64 round-off, on
-    maps of several sizes (odd ones: rows split over 2 threads unevenly)."""
-    from methods.core.sh import project_latlong_polar
-    from methods.sh_prt import native
-
-    if not native.available():
-        pytest.skip("no C compiler")
-    gen = torch.Generator().manual_seed(order)
-    old = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        for H, W in ((32, 64), (131, 250), (256, 512)):
-            img = torch.rand(H, W, 3, generator=gen) * torch.rand(1, W, 3, generator=gen) * 5
-            got, want = native.project_latlong_polar(img, order), project_latlong_polar(img, order)
-            assert got.dtype == torch.float64 and got.shape == want.shape == (order * order, 3)
-            assert (got - want).abs().max() <= 1e-13 * want.abs().max()
-    finally:
-        torch.set_num_threads(old)
-
-
 @pytest.mark.parametrize("Q", [1, 8, 1001])
 def test_native_relight_add_equals_the_gemm(Q):
     """`native.relight_add` on the packed relight cache (`native.relight_pack`, per 8 samples) adds

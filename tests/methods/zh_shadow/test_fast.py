@@ -633,7 +633,6 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
     every vertex (``referenced_table`` off, the oracle) — the same rows, renumbered — and the
     reference to round-off; the kept view table is left as it was. A wrong renumbering, or a
     table missing a referenced vertex, breaks the image."""
-    from methods.zh_shadow.method import ZHShadow as Z
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
@@ -1487,11 +1486,11 @@ def test_native_split_equals_torch_split(small_model):
 
 @pytest.mark.parametrize("order", [4, 8])
 def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
-    """`native.project_latlong_polar` (one C pass over the float32 texels, `ZHShadow._lighting`'s new
-    map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
+    """`native.project_latlong_polar` (`methods.core.sh_native`'s C pass over the float32 texels,
+    `ZHShadow._lighting`'s new map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
     round-off on random maps (odd sizes, a non-contiguous view, 1 and 2 threads); the switch off
     (``PRTBENCH_ZH_NATIVE=0``) and a float64 map give the oracle itself."""
-    from methods.core import native
+    from methods.core import native, sh_native
     from methods.core.fused import compile_enabled
     from methods.core.sh import project_latlong_polar as oracle
     from methods.zh_shadow import native as zn
@@ -1507,7 +1506,7 @@ def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
                     got = zn.project_latlong_polar(x, order)
                 assert got.dtype == torch.float64 and got.shape == (order * order, 3)
                 assert float((got - want).abs().max()) <= 1e-13 * float(want.abs().max()), (H, W, nt)
-    assert zn._project_lib() is not None or not native.compiler() or not compile_enabled()   # (the loop ran)
+    assert sh_native.available() or not native.compiler() or not compile_enabled()   # (the loop ran)
     x = torch.rand(16, 32, 3, generator=g)
     assert torch.equal(zn.project_latlong_polar(x.double(), order), oracle(x.double(), order))
     monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
