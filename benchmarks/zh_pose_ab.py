@@ -27,8 +27,8 @@ import time
 
 import torch
 
-from benchmarks.common import (ab_options, ab_report, apply_ab_options, checkout_class, checkout_modules,
-                               load_file_module, machine_limits, precomputed, registry_kept, settle, setup)
+from benchmarks.common import (ab_frames, ab_options, ab_report, apply_ab_options, checkout_class, checkout_modules,
+                               load_file_module, machine_limits, precomputed, registry_kept, setup)
 from reports import measure
 
 PHYSICAL = '{"order":8,"shading":"vertex","specular":"cosine"}'
@@ -45,35 +45,6 @@ def baseline_class(root: str):
 def base_modules(root: str, which: str):
     """``checkout_modules(root)`` for the baseline's frames (``which == "base"``), else a no-op."""
     return checkout_modules(root) if which == "base" else contextlib.nullcontext()
-
-
-def ab_frames(new, base, root: str, reference, frames, gbs, kind: str) -> dict:
-    """`benchmarks.common.ab_frames` with the baseline's frames rendered inside ``checkout_modules(root)``
-    (the module swap outside the timed region): ``new`` and ``base`` render every frame, alternating
-    which goes first; frames 0 and 1 warm up; each new image is checked against ``reference``."""
-    import statistics
-
-    t = {"new": ([], []), "base": ([], [])}
-    err = 0.0
-    for i, (f, g) in enumerate(zip(frames, gbs)):
-        for which in (("new", "base") if i % 2 == 0 else ("base", "new")):
-            mm = new if which == "new" else base
-            with base_modules(root, which):
-                settle()
-                t0, c0 = time.perf_counter(), time.process_time()
-                img = mm.render(f, g)
-                w, c = time.perf_counter() - t0, time.process_time() - c0
-            if i >= 2:
-                t[which][0].append(w)
-                t[which][1].append(c)
-            if which == "new":
-                rimg = reference(f, g)
-                err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
-    r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
-    cost = new.frame_cost(kind, gbs[-1].num_samples)
-    r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
-             cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
-    return r
 
 
 class _BaseGeometry:
@@ -225,7 +196,7 @@ def main(argv: list[str] | None = None) -> dict:
         base.model = copy.copy(new.model)   # its own X attribute: the new code re-lays X out (`_pose_state`)
         base.scene = _BaseGeometry(scene, a.baseline)
         ref = m.with_render_config()
-        kinds[kind] = ab_frames(new, base, a.baseline, ref._render_reference, frames, gbs, kind)
+        kinds[kind] = ab_frames(new, base, ref._render_reference, frames, gbs, kind, base_root=a.baseline)
         if a.profile and kind == "P":
             out["stages_ms"] = stages(m.with_render_config(), frames[-1], gbs[-1])
             print(profile(m.with_render_config(), frames, gbs))
