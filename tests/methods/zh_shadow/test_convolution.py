@@ -34,8 +34,10 @@ def test_higher_order_closed_form(alpha):
 
 
 def _phong_operator_per_entry(alpha: float, order: int) -> torch.Tensor:
-    """`phong_operator` entry by entry (one dot product of the u-moments with B(α+1, k+1) each): the
-    oracle of its one-product form."""
+    """`phong_operator` entry by entry (one sum of the u-moments times B(α+1, k+1) each, in k order,
+    in plain float64 arithmetic): the oracle of its one-product form. Not ``np.dot``: its summation
+    order is the BLAS kernel's and differs between hosts (an AVX-512 host left −6.0e-16 where the k-order
+    sum cancels to 0 exactly, at order 5, α = 0), and the non-zero pattern is compared exactly."""
     import numpy as np
 
     from methods.zh_shadow.convolution import _u_moments
@@ -48,7 +50,10 @@ def _phong_operator_per_entry(alpha: float, order: int) -> torch.Tensor:
     M = np.zeros((n2, n2))
     for i, j, d in _u_moments(order):
         if i <= j:
-            M[i, j] = M[j, i] = float(np.dot(d, beta[: d.shape[0]]))
+            acc = float(d[0]) * float(beta[0])
+            for k in range(1, d.shape[0]):
+                acc = acc + float(d[k]) * float(beta[k])
+            M[i, j] = M[j, i] = acc
     return torch.as_tensor(M)
 
 
