@@ -370,8 +370,10 @@ _SIGNATURES = {"shade": [_P, _I, _P, _P, _I]}
 # Pixels below which one thread shades the frame (a hand-off costs more than its share).
 MIN_PER_THREAD = 1024
 # Pixels per chunk of the dynamic schedule at 2+ threads (16 blocks of 64; the chess bench has 64 chunks).
-# Against the static halves (same process, process CPU and wall, 2 threads, loaded machine; chunks of
-# 512 / 1024 / 2048 pixels, wall): chess 1.14 / 1.12-1.23 / 1.08-1.32x, creature 1.04 / 1.27x.
+# The static halves it replaces: on the chess bench the second half's thread took 1.02-1.16x (median
+# ~1.07x) the CPU time of the mean of the two (8 frames), the frame waiting for it. The C loop alone,
+# old and new alternating in one process at 2 threads on a loaded machine: chess wall 1.12-1.23x (CPU
+# 1.05-1.17x), creature wall 1.04x (CPU 1.06x); chunks of 512 / 2048 pixels read 1.14x / 1.08-1.32x.
 CHUNK = 1024
 
 
