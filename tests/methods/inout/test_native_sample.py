@@ -97,6 +97,50 @@ def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeyp
         assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize("chunk", [1, 64, 100])
+def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, chunk):
+    """Two threads taking the pixels in many small chunks (the dynamic schedule; 100: chunks that end
+    inside a block of 64 pixels) give the single thread's image and memo bit for bit, and report the
+    same first sample of a face in another region."""
+    monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
+    monkeypatch.setattr(native_sample, "WINDOW", 4)
+    monkeypatch.setattr(native_sample, "CHUNK", chunk)
+    m = precomputed("chess")
+    frames = make_sequence(m.scene, "V", n_frames=2, seed=3) + make_sequence(m.scene, "L", n_frames=2, seed=3)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    assert gbs[0].num_samples // 4 > 4 * max(chunk, 64)      # several chunks per thread
+    n = torch.get_num_threads()
+    runs, bads = [], []
+    shade = native_sample.shade
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            a = _copy(m)
+            runs.append(([a.render(f, g) for f, g in zip(frames, gbs)], [x.clone() for x in a._xmemo]))
+            gb = copy.copy(gbs[0])
+            gb.region = gb.region.clone()
+            hits = gb.hit.nonzero()[:, 0]
+            ks = hits[torch.tensor([hits.numel() // 3, hits.numel() // 2, hits.numel() - 1])]
+            gb.region[ks] = (gb.region[ks] + 1) % len(m.scene.regions)
+            got = []
+
+            def spy(*x, **k):
+                r = shade(*x, **k)
+                got.append(r[1])
+                return r
+
+            monkeypatch.setattr(native_sample, "shade", spy)
+            with pytest.raises(ValueError, match="another region"):
+                _copy(m).render(frames[0], gb)     # the first lighting: c of every vertex, no pass before the loop
+            monkeypatch.setattr(native_sample, "shade", shade)
+            bads.append(got[0][2])
+    finally:
+        torch.set_num_threads(n)
+    for x, y in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1]):
+        assert torch.equal(x, y)
+    assert bads[0] == bads[1] == int(ks.min())
+
+
 def test_native_sample_rejects_faces_of_another_region(precomputed):
     """A hit sample whose face lies in another region than the sample's: the C loop reports it and
     `render` raises, as the compiled path's referenced-face pass does."""
