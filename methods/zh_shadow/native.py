@@ -90,8 +90,11 @@ def referenced_mask(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tensor:
 # products: each monomial one product of the same two values, as `runtime._monomial_rows`' tree),
 # then the same lane-wise products, sums and tree — compiled with ``-ffp-contract=off`` (as Inductor's
 # kernels: nothing fused into an FMA), so the terms are the compiled kernel's bits (tested). Only for
-# float32 and K a multiple of 8 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
-# masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree); otherwise
+# float32 and K a multiple of 16 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
+# masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree) or AVX-512
+# (16 lanes and at::vec's AVX-512 tree — 256-, 128-, 64-, 32-bit shuffles —, as GCC vectors of 16 floats
+# built with the AVX2 flags: the lanes' arithmetic is the same bits at any register width; session 30:
+# the bench machine's Inductor picks AVX-512, so the loop had not run there); otherwise
 # `runtime._sample_block` runs. Each point is one thread's (OpenMP's team, as `methods.ptt.native`), so
 # the bits do not depend on the thread count. Bench creature, paper setting, 37 K object samples of a
 # P frame, 1 thread: ~3.2 ms (features ~0.7, the interpolated dot ~2.5: ~150 cycles a point, the
@@ -112,9 +115,11 @@ def _monomial_code(names: tuple[str, str, str], degrees: tuple[int, ...], tag: s
     return code, [t for k in degrees for t in levels[k]]
 
 
-def _terms_variant(D: int, dif: bool, spec: bool) -> str:
-    """The C function ``terms_<D>_<dif>_<spec>`` of `_TERMS_SOURCE`: the features of one point as
-    straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot."""
+def _terms_variant(D: int, dif: bool, spec: bool, lanes: int = 8) -> str:
+    """The C function ``terms_<D>_<dif>_<spec>_<lanes>`` of `_TERMS_SOURCE`: the features of one point
+    as straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot in
+    vectors of ``lanes`` floats (8: Inductor's AVX2 kernel, 16: its AVX-512 one) and that ISA's
+    ``vec_reduce_all`` tree."""
     code, feats = [], []
     if dif:
         c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
@@ -130,14 +135,23 @@ def _terms_variant(D: int, dif: bool, spec: bool) -> str:
                        "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
         feats += f
     K = len(feats)
-    assert K % 8 == 0
+    assert K % lanes == 0 and lanes in (8, 16)
     body = "\n            ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
+    if lanes == 8:   # AVX2's vec_reduce_all: halves, lanes two apart, neighbours; + 0
+        tree = """const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
+            out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));"""
+    else:            # AVX-512's (at::vec VecReduceAllSIMD): 256-bit, 128-bit, 64-bit, 32-bit shuffles; + 0
+        tree = """float w[8], x[4];
+            for (int i = 0; i < 8; ++i) w[i] = a[i] + a[i + 8];
+            for (int i = 0; i < 4; ++i) x[i] = w[i] + w[i + 4];
+            out[c * Q + q] = 0.0f + ((x[0] + x[2]) + (x[1] + x[3]));"""
+    vt, ld = ("v8", "ld") if lanes == 8 else ("v16", "ld16")
     return f"""
-static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const int64_t* vi, const float* b,
+static int64_t terms_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* U, int64_t N, const int64_t* vi, const float* b,
         const float* nT, const float* woT, int64_t Q, int64_t q0, int64_t q1, float* out) {{
     int64_t bad = 0;
     for (int64_t q = q0; q < q1; ++q) {{
-        float f[{K}] __attribute__((aligned(32)));
+        float f[{K}] __attribute__((aligned(64)));
         {{
             const float nx = nT[q], ny = nT[Q + q], nz = nT[2 * Q + q];
             {body}
@@ -151,18 +165,17 @@ static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const
         const float* u0 = U + i0 * {3 * K};
         const float* u1 = U + i1 * {3 * K};
         const float* u2 = U + i2 * {3 * K};
-        v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
-        for (int j = 0; j < {K}; j += 8) {{
-            const v8 fj = ld(f + j);
+        {vt} acc[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += {lanes}) {{
+            const {vt} fj = {ld}(f + j);
             for (int c = 0; c < 3; ++c) {{
                 const int o = c * {K} + j;
-                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+                acc[c] = acc[c] + (({ld}(u0 + o) * b0 + {ld}(u1 + o) * b1) + {ld}(u2 + o) * b2) * fj;
             }}
         }}
-        for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all (AVX2): halves, lanes two apart, neighbours; + 0 */
-            const v8 a = acc[c];
-            const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
-            out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));
+        for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all of the ISA */
+            const {vt} a = acc[c];
+            {tree}
         }}
     }}
     return bad;
@@ -170,15 +183,20 @@ static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const
 """
 
 
-# the (D, diffuse, specular) the C loop has (K a multiple of 8): order 4 with both terms (K = 80),
+# the (D, diffuse, specular) the C loop has (K a multiple of 16): order 4 with both terms (K = 80),
 # order 5 diffuse alone (K = 48)
 TERMS_VARIANTS = ((6, True, True), (8, True, False))
+# the vector widths (floats) of Inductor's kernels the C loop reproduces: AVX2 (8), AVX-512 (16); the
+# C function of variant i at width TERMS_LANES[j] is number j · len(TERMS_VARIANTS) + i
+TERMS_LANES = (8, 16)
 
 _TERMS_SOURCE = r"""
 #include <stdint.h>
 typedef float v8 __attribute__((vector_size(32)));
+typedef float v16 __attribute__((vector_size(64)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
-""" + "".join(_terms_variant(*v) for v in TERMS_VARIANTS) + r"""
+static inline v16 ld16(const float* p) { v16 v; __builtin_memcpy(&v, p, 64); return v; }
+""" + "".join(_terms_variant(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) + r"""
 typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*, const float*, const float*,
                             int64_t, int64_t, int64_t, float*);
 
@@ -187,7 +205,8 @@ typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*,
    Q (k + 1) / nt)); bad[0] the count of points with a vertex id outside [0, N) (left unwritten). */
 void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, const float* nT, const float* woT,
                   int64_t Q, int64_t variant, int64_t nt, float* out, int64_t* bad) {
-    static const terms_fn fns[] = {""" + ", ".join(f"terms_{D}_{int(d)}_{int(sp)}" for D, d, sp in TERMS_VARIANTS) + r"""};
+    static const terms_fn fns[] = {""" + ", ".join(f"terms_{D}_{int(d)}_{int(sp)}_{w}" for w in TERMS_LANES
+                                                    for D, d, sp in TERMS_VARIANTS) + r"""};
     const terms_fn fn = fns[variant];
     int64_t nb = 0;
     if (nt <= 1) {
@@ -210,20 +229,28 @@ def terms_switched_on() -> bool:
 
 
 @functools.lru_cache(maxsize=None)
-def _inductor_avx2() -> bool:
-    """Whether Inductor vectorises for AVX2 here (8 lanes: the reduction tree the C loop reproduces)."""
+def _inductor_lanes() -> int | None:
+    """The float lanes of Inductor's CPU vectors here — 8 (AVX2) or 16 (AVX-512): the width and
+    reduction tree the C loop reproduces — or None (another ISA: its kernel's bits would differ)."""
     try:
         from torch._inductor.cpu_vec_isa import pick_vec_isa
 
-        return str(pick_vec_isa()) == "avx2"
+        isa = str(pick_vec_isa()).split()   # ("avx512 avx512_vnni": a VNNI machine's AVX-512, same vectors)
+        return {"avx2": 8, "avx512": 16}.get(isa[0]) if isa else None
     except Exception:  # pragma: no cover - another torch
-        return False
+        return None
+
+
+def _inductor_avx2() -> bool:
+    """Whether Inductor vectorises for AVX2 here (8 lanes)."""
+    return _inductor_lanes() == 8
 
 
 def _terms_lib():
     """The library (`methods.core.native.load`, cached there) or None: no compiler, the build failed,
-    ``PRTBENCH_COMPILE=0``, or Inductor does not vectorise for AVX2 here (its kernel's bits would differ)."""
-    if not _inductor_avx2():
+    ``PRTBENCH_COMPILE=0``, or Inductor vectorises for neither AVX2 nor AVX-512 here (its kernel's
+    bits would differ)."""
+    if _inductor_lanes() not in TERMS_LANES:
         return None
     return native.load("zh_sample_terms", _TERMS_SOURCE, _TERMS_SIGNATURES,
                        extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
@@ -254,7 +281,8 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: i
     out = torch.empty(3, Q, dtype=torch.float32)
     bad = torch.zeros(1, dtype=torch.int64)
     fn.sample_terms(U.data_ptr(), N, vi.data_ptr(), b.data_ptr(), nT.data_ptr(), woT.data_ptr(), Q,
-                    TERMS_VARIANTS.index(key), torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
+                    TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key),
+                    torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else out
 
 

@@ -1380,7 +1380,7 @@ def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
 @pytest.mark.parametrize("order,diffuse,specular", ((4, True, True), (5, True, False)))
 def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypatch):
     """`native.sample_terms` (the C loop) = the compiled `runtime._sample_block` bit for bit (the same
-    products, sums and AVX2 reduction tree) and = its eager function to float32 round-off, at 1 and 2
+    products, sums and the AVX2 or AVX-512 reduction tree of Inductor's vectors here) and = its eager function to float32 round-off, at 1 and 2
     threads, on random points (some with ωo = n: R = n, some grazing); through `runtime.sample_terms`
     too. None (the compiled kernel then runs) for a vertex id outside U's rows, a variant it lacks,
     float64, and with ``PRTBENCH_ZH_NATIVE=0``."""
@@ -1402,7 +1402,7 @@ def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypat
     woT[:, 50:100] = torch.stack([nT[1, 50:100], -nT[0, 50:100], torch.zeros(50)])   # n·ωo = 0
     woT = woT / woT.norm(dim=0)
     got = zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular)
-    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor not on AVX2: nothing native to check
+    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor on neither AVX2 nor AVX-512: nothing to check
         assert zn._terms_lib() is None
         pytest.skip("the native sample terms are not available here")
     with torch_threads(2):
