@@ -688,6 +688,105 @@ def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor |
     return None if int(bad[0]) else out
 
 
+# --- a P / V frame's plane pass (`method._plane_pixels`) ------------------------------------------------
+#
+# The plane samples of a frame that is not lighting-only (a new camera or pose: no kept plane faces) go
+# straight from the G-buffer into the pixels by the compiled `method._plane_pixels` (~2.3 ms of a ~10 ms
+# paper-setting V frame on the bench creature at 1 thread, session 30's profile). Here the same per-sample
+# expressions in one C loop over the pixels: the n·ωo test as ((nx ωx + ny ωy) + nz ωz) > 0 and the plane
+# mask, the face's three corner vertices, (u0 ((1 − bu) − bv) + u1 bu) + u2 bv per channel, 0 off the plane
+# or facing away, the clamp, the samples summed in order from the first and scaled by 1 / S² — pure
+# elementwise float32 (``-ffp-contract=off``), so the compiled pass's bits (tested); a sample off the plane
+# reads nothing else. Each pixel one thread's: the bits do not depend on the thread count.
+_PLANE_PIXELS_SOURCE = r"""
+#include <stdint.h>
+
+/* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples q = p S2 + s of pixel p (s ascending, from x_0);
+   x_s = 0 unless mask[q] and (n[q, 0] wo[q] + n[q, 1] wo[ws0 + q]) + n[q, 2] wo[2 ws0 + q] > 0, else
+   (u[i0, c] ((1 − bu) − bv) + u[i1, c] bu) + u[i2, c] bv (max(·, 0) if clamp) with i_k = fv[k M + face[q]],
+   bu = bary[q bs1], bv = bary[bs0 + q bs1]; pixels split over nt threads; bad[0] counts plane samples
+   whose face is outside [0, M) or whose corner is outside [0, N) (their x taken as 0). */
+void zh_plane_pixels(int64_t n, int64_t S2, const int64_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                     const float *nrm, const float *wo, int64_t ws0, const uint8_t *mask, const int64_t *fv,
+                     int64_t M, const float *u, int64_t N, int64_t clamp, float inv, float *out, int64_t nt,
+                     int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
+    for (int64_t p = 0; p < n; ++p) {
+        float o0 = 0.f, o1 = 0.f, o2 = 0.f;
+        for (int64_t s = 0; s < S2; ++s) {
+            const int64_t q = p * S2 + s;
+            float x0 = 0.f, x1 = 0.f, x2 = 0.f;
+            const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+            if (mask[q] && dn > 0.f) {
+                const int64_t f = face[q];
+                if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
+                const int64_t i0 = fv[f], i1 = fv[M + f], i2 = fv[2 * M + f];
+                if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                    ++nb;
+                    goto add;
+                }
+                const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+                const float w = (1.0f - bu) - bv;
+                const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+                x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+                x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+                x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+                if (clamp) {   /* clamp_min(0): NaN stays NaN */
+                    x0 = x0 < 0.f ? 0.f : x0;
+                    x1 = x1 < 0.f ? 0.f : x1;
+                    x2 = x2 < 0.f ? 0.f : x2;
+                }
+            }
+        add:
+            if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
+            else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+        }
+        out[3 * p] = o0 * inv; out[3 * p + 1] = o1 * inv; out[3 * p + 2] = o2 * inv;
+    }
+    bad[0] = nb;
+}
+"""
+_PLANE_PIXELS_SIGNATURES = {"zh_plane_pixels": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I,
+                                                ctypes.c_float, _P, _I, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _plane_pixels_lib():
+    return native.load("zh_plane_pixels", _PLANE_PIXELS_SOURCE, _PLANE_PIXELS_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+
+
+def plane_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, fv: Tensor, u: Tensor,
+                 clamp: bool) -> Tensor | None:
+    """`method._plane_pixels(face, bary, normal, wo, mask, fv, u, clamp)` (n, 3) by the C loop — the same
+    bits — or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / int64 /
+    CPU, other layouts, a plane sample's face or corner out of range): the caller then runs the compiled
+    pass. face (n, S²) int64 contiguous, bary (2, n, S²) with strides (bs0, S² bs1, bs1), normal (n, S², 3)
+    contiguous, wo (3, n, S²) with strides (ws0, S², 1), mask (n, S²) bool contiguous, fv (3, M) int64
+    contiguous, u (N, 3) float32."""
+    lib = _plane_pixels_lib() if terms_switched_on() else None
+    if lib is None or face.dim() != 2:
+        return None
+    n, S2 = int(face.shape[0]), int(face.shape[1])
+    if (face.dtype != torch.int64 or fv.dtype != torch.int64 or mask.dtype != torch.bool
+            or any(t.dtype != torch.float32 for t in (bary, normal, wo, u))
+            or any(t.device.type != "cpu" for t in (face, bary, normal, wo, mask, fv, u))
+            or bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2)
+            or normal.shape != (n, S2, 3) or not normal.is_contiguous()
+            or wo.shape != (3, n, S2) or wo.stride(1) != S2 or wo.stride(2) != 1
+            or mask.shape != (n, S2) or fv.dim() != 2 or fv.shape[0] != 3 or u.dim() != 2 or u.shape[1] != 3):
+        return None
+    face, mask, fv, u = face.contiguous(), mask.contiguous(), fv.contiguous(), u.contiguous()
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.zh_plane_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), normal.data_ptr(),
+                        wo.data_ptr(), wo.stride(0), mask.data_ptr(), fv.data_ptr(), int(fv.shape[1]), u.data_ptr(),
+                        int(u.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
+    return None if int(bad[0]) else out
+
+
 # --- a lighting-only frame's object samples (`ZHShadow._relight_planes`) ----------------------------------
 #
 # Per region the cached transfer of the samples off the plane, td and ts (n², Q) (`runtime.relight_cache`),
