@@ -1250,6 +1250,10 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                 out[c].index_copy_(0, rest, rad[c])
     for r, (kd, ks, _, Ws) in enumerate(mats):
         kd, ks = kd.to(dev, dt), ks.to(dev, dt)
+        if per_vertex and not groups:   # (shaded above: the region's points only counted, not gathered)
+            if Ws is not None:
+                counts["specular"] += Q if single else int((region == r).sum())
+            continue
         if not groups and single:
             p = None                                                               # every point, in order
         else:
