@@ -92,8 +92,8 @@ def referenced_mask(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tensor:
 # kernels: nothing fused into an FMA), so the terms are the compiled kernel's bits (tested). Only for
 # float32 and K a multiple of 16 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
 # masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree) or AVX-512
-# (16 lanes and at::vec's AVX-512 tree — 256-, 128-, 64-, 32-bit shuffles —, as GCC vectors of 16 floats
-# built with the AVX2 flags: the lanes' arithmetic is the same bits at any register width; session 30:
+# (16 lanes and at::vec's AVX-512 tree — 256-, 128-, 64-, 32-bit shuffles —, each 16-lane vector as two
+# 8-float halves under the AVX2 flags: the lanes' arithmetic is the same bits at any width; session 30:
 # the bench machine's Inductor picks AVX-512, so the loop had not run there); otherwise
 # `runtime._sample_block` runs. Each point is one thread's (OpenMP's team, as `methods.ptt.native`), so
 # the bits do not depend on the thread count. Bench creature, paper setting, 37 K object samples of a
@@ -141,11 +141,29 @@ def _terms_variant(D: int, dif: bool, spec: bool, lanes: int = 8) -> str:
         tree = """const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
             out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));"""
     else:            # AVX-512's (at::vec VecReduceAllSIMD): 256-bit, 128-bit, 64-bit, 32-bit shuffles; + 0
-        tree = """float w[8], x[4];
-            for (int i = 0; i < 8; ++i) w[i] = a[i] + a[i + 8];
-            for (int i = 0; i < 4; ++i) x[i] = w[i] + w[i + 4];
-            out[c * Q + q] = 0.0f + ((x[0] + x[2]) + (x[1] + x[3]));"""
-    vt, ld = ("v8", "ld") if lanes == 8 else ("v16", "ld16")
+        tree = """const v8 w = a + ah[c];   /* the 16 lanes as two 8-lane halves: w[i] = a[i] + a[i + 8] */
+            const float x0 = w[0] + w[4], x1 = w[1] + w[5], x2 = w[2] + w[6], x3 = w[3] + w[7];
+            out[c * Q + q] = 0.0f + ((x0 + x2) + (x1 + x3));"""
+    if lanes == 8:
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += 8) {{
+            const v8 fj = ld(f + j);
+            for (int c = 0; c < 3; ++c) {{
+                const int o = c * {K} + j;
+                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+            }}
+        }}"""
+    else:   # 16 lanes as two 8-float halves (acc: lanes 0–7, ah: lanes 8–15): the same lane arithmetic in
+        #     AVX2 registers (GCC's 64-byte generic vectors under the AVX2 flags ran 1.3x slower than Inductor)
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}}, ah[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += 16) {{
+            const v8 fj = ld(f + j), fh = ld(f + j + 8);
+            for (int c = 0; c < 3; ++c) {{
+                const int o = c * {K} + j;
+                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+                ah[c] = ah[c] + ((ld(u0 + o + 8) * b0 + ld(u1 + o + 8) * b1) + ld(u2 + o + 8) * b2) * fh;
+            }}
+        }}"""
     return f"""
 static int64_t terms_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* U, int64_t N, const int64_t* vi, const float* b,
         const float* nT, const float* woT, int64_t Q, int64_t q0, int64_t q1, float* out) {{
@@ -165,16 +183,9 @@ static int64_t terms_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* U, int64_t 
         const float* u0 = U + i0 * {3 * K};
         const float* u1 = U + i1 * {3 * K};
         const float* u2 = U + i2 * {3 * K};
-        {vt} acc[3] = {{{{0}}, {{0}}, {{0}}}};
-        for (int j = 0; j < {K}; j += {lanes}) {{
-            const {vt} fj = {ld}(f + j);
-            for (int c = 0; c < 3; ++c) {{
-                const int o = c * {K} + j;
-                acc[c] = acc[c] + (({ld}(u0 + o) * b0 + {ld}(u1 + o) * b1) + {ld}(u2 + o) * b2) * fj;
-            }}
-        }}
+        {dot}
         for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all of the ISA */
-            const {vt} a = acc[c];
+            const v8 a = acc[c];
             {tree}
         }}
     }}
@@ -193,9 +204,7 @@ TERMS_LANES = (8, 16)
 _TERMS_SOURCE = r"""
 #include <stdint.h>
 typedef float v8 __attribute__((vector_size(32)));
-typedef float v16 __attribute__((vector_size(64)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
-static inline v16 ld16(const float* p) { v16 v; __builtin_memcpy(&v, p, 64); return v; }
 """ + "".join(_terms_variant(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) + r"""
 typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*, const float*, const float*,
                             int64_t, int64_t, int64_t, float*);
