@@ -691,8 +691,12 @@ class ZHShadow(Method):
             rad = rad.clamp_min(0.0)
         S2 = gbuffer.spp_side ** 2
         n = gbuffer.height * gbuffer.width
-        img = _plane_pixels(gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), nrm.view(n, S2, 3),
-                            gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
+        pargs = (gbuffer.face.view(n, S2), gbuffer.bary.T.view(2, n, S2), nrm.view(n, S2, 3),
+                 gbuffer.wo.T.view(3, n, S2), mask.view(n, S2), fv, u, clamp)
+        # (one C pass where it runs: the compiled pass's bits, `native.plane_pixels`)
+        img = zn.plane_pixels(*pargs) if self.native_plane_pixels else None
+        if img is None:
+            img = _plane_pixels(*pargs)
         # the kernels of `_relight_planes` (a later lighting-only frame) compiled now, in the harness's
         # untimed warm-up frame (`methods.core.fused.warming`; nothing outside it)
         warm_blocks(_warm_relight_planes, (gbuffer.face.view(n, S2), nrm.view(n, S2, 3), gbuffer.wo.view(n, S2, 3),
@@ -715,6 +719,9 @@ class ZHShadow(Method):
     # round-off against the GEMMs) where they run; False: the compiled pass, the GEMMs and ``index_add_``
     # (the tests' oracle)
     native_plane_pass = True
+    # A P / V frame's plane pass (`_render_planes`) by the C loop (`native.plane_pixels`: the compiled
+    # `_plane_pixels`' bits) where it runs; False: the compiled pass (the tests' oracle)
+    native_plane_pixels = True
 
     def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
         """`_render_planes`' plane search and split of an all-hit G-buffer by the native passes: False

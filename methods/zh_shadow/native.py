@@ -90,8 +90,11 @@ def referenced_mask(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tensor:
 # products: each monomial one product of the same two values, as `runtime._monomial_rows`' tree),
 # then the same lane-wise products, sums and tree — compiled with ``-ffp-contract=off`` (as Inductor's
 # kernels: nothing fused into an FMA), so the terms are the compiled kernel's bits (tested). Only for
-# float32 and K a multiple of 8 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
-# masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree); otherwise
+# float32 and K a multiple of 16 (the order-4 diffuse + specular table: K = 31 + 49 = 80; Inductor's
+# masked tail is not reproduced) and where Inductor vectorises for AVX2 (8 lanes: its tree) or AVX-512
+# (16 lanes and at::vec's AVX-512 tree — 256-, 128-, 64-, 32-bit shuffles —, each 16-lane vector as two
+# 8-float halves under the AVX2 flags: the lanes' arithmetic is the same bits at any width; session 30:
+# the bench machine's Inductor picks AVX-512, so the loop had not run there); otherwise
 # `runtime._sample_block` runs. Each point is one thread's (OpenMP's team, as `methods.ptt.native`), so
 # the bits do not depend on the thread count. Bench creature, paper setting, 37 K object samples of a
 # P frame, 1 thread: ~3.2 ms (features ~0.7, the interpolated dot ~2.5: ~150 cycles a point, the
@@ -112,9 +115,11 @@ def _monomial_code(names: tuple[str, str, str], degrees: tuple[int, ...], tag: s
     return code, [t for k in degrees for t in levels[k]]
 
 
-def _terms_variant(D: int, dif: bool, spec: bool) -> str:
-    """The C function ``terms_<D>_<dif>_<spec>`` of `_TERMS_SOURCE`: the features of one point as
-    straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot."""
+def _terms_variant(D: int, dif: bool, spec: bool, lanes: int = 8) -> str:
+    """The C function ``terms_<D>_<dif>_<spec>_<lanes>`` of `_TERMS_SOURCE`: the features of one point
+    as straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot in
+    vectors of ``lanes`` floats (8: Inductor's AVX2 kernel, 16: its AVX-512 one) and that ISA's
+    ``vec_reduce_all`` tree."""
     code, feats = [], []
     if dif:
         c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
@@ -130,14 +135,41 @@ def _terms_variant(D: int, dif: bool, spec: bool) -> str:
                        "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
         feats += f
     K = len(feats)
-    assert K % 8 == 0
+    assert K % lanes == 0 and lanes in (8, 16)
     body = "\n            ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
+    if lanes == 8:   # AVX2's vec_reduce_all: halves, lanes two apart, neighbours; + 0
+        tree = """const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
+            out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));"""
+    else:            # AVX-512's (at::vec VecReduceAllSIMD): 256-bit, 128-bit, 64-bit, 32-bit shuffles; + 0
+        tree = """const v8 w = a + ah[c];   /* the 16 lanes as two 8-lane halves: w[i] = a[i] + a[i + 8] */
+            const float x0 = w[0] + w[4], x1 = w[1] + w[5], x2 = w[2] + w[6], x3 = w[3] + w[7];
+            out[c * Q + q] = 0.0f + ((x0 + x2) + (x1 + x3));"""
+    if lanes == 8:
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += 8) {{
+            const v8 fj = ld(f + j);
+            for (int c = 0; c < 3; ++c) {{
+                const int o = c * {K} + j;
+                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+            }}
+        }}"""
+    else:   # 16 lanes as two 8-float halves (acc: lanes 0–7, ah: lanes 8–15): the same lane arithmetic in
+        #     AVX2 registers (GCC's 64-byte generic vectors under the AVX2 flags ran 1.3x slower than Inductor)
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}}, ah[3] = {{{{0}}, {{0}}, {{0}}}};
+        for (int j = 0; j < {K}; j += 16) {{
+            const v8 fj = ld(f + j), fh = ld(f + j + 8);
+            for (int c = 0; c < 3; ++c) {{
+                const int o = c * {K} + j;
+                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+                ah[c] = ah[c] + ((ld(u0 + o + 8) * b0 + ld(u1 + o + 8) * b1) + ld(u2 + o + 8) * b2) * fh;
+            }}
+        }}"""
     return f"""
-static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const int64_t* vi, const float* b,
+static int64_t terms_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* U, int64_t N, const int64_t* vi, const float* b,
         const float* nT, const float* woT, int64_t Q, int64_t q0, int64_t q1, float* out) {{
     int64_t bad = 0;
     for (int64_t q = q0; q < q1; ++q) {{
-        float f[{K}] __attribute__((aligned(32)));
+        float f[{K}] __attribute__((aligned(64)));
         {{
             const float nx = nT[q], ny = nT[Q + q], nz = nT[2 * Q + q];
             {body}
@@ -151,18 +183,10 @@ static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const
         const float* u0 = U + i0 * {3 * K};
         const float* u1 = U + i1 * {3 * K};
         const float* u2 = U + i2 * {3 * K};
-        v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
-        for (int j = 0; j < {K}; j += 8) {{
-            const v8 fj = ld(f + j);
-            for (int c = 0; c < 3; ++c) {{
-                const int o = c * {K} + j;
-                acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
-            }}
-        }}
-        for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all (AVX2): halves, lanes two apart, neighbours; + 0 */
+        {dot}
+        for (int c = 0; c < 3; ++c) {{   /* vec_reduce_all of the ISA */
             const v8 a = acc[c];
-            const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
-            out[c * Q + q] = 0.0f + ((s0 + s2) + (s1 + s3));
+            {tree}
         }}
     }}
     return bad;
@@ -170,15 +194,18 @@ static int64_t terms_{D}_{int(dif)}_{int(spec)}(const float* U, int64_t N, const
 """
 
 
-# the (D, diffuse, specular) the C loop has (K a multiple of 8): order 4 with both terms (K = 80),
+# the (D, diffuse, specular) the C loop has (K a multiple of 16): order 4 with both terms (K = 80),
 # order 5 diffuse alone (K = 48)
 TERMS_VARIANTS = ((6, True, True), (8, True, False))
+# the vector widths (floats) of Inductor's kernels the C loop reproduces: AVX2 (8), AVX-512 (16); the
+# C function of variant i at width TERMS_LANES[j] is number j · len(TERMS_VARIANTS) + i
+TERMS_LANES = (8, 16)
 
 _TERMS_SOURCE = r"""
 #include <stdint.h>
 typedef float v8 __attribute__((vector_size(32)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
-""" + "".join(_terms_variant(*v) for v in TERMS_VARIANTS) + r"""
+""" + "".join(_terms_variant(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) + r"""
 typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*, const float*, const float*,
                             int64_t, int64_t, int64_t, float*);
 
@@ -187,7 +214,8 @@ typedef int64_t (*terms_fn)(const float*, int64_t, const int64_t*, const float*,
    Q (k + 1) / nt)); bad[0] the count of points with a vertex id outside [0, N) (left unwritten). */
 void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, const float* nT, const float* woT,
                   int64_t Q, int64_t variant, int64_t nt, float* out, int64_t* bad) {
-    static const terms_fn fns[] = {""" + ", ".join(f"terms_{D}_{int(d)}_{int(sp)}" for D, d, sp in TERMS_VARIANTS) + r"""};
+    static const terms_fn fns[] = {""" + ", ".join(f"terms_{D}_{int(d)}_{int(sp)}_{w}" for w in TERMS_LANES
+                                                    for D, d, sp in TERMS_VARIANTS) + r"""};
     const terms_fn fn = fns[variant];
     int64_t nb = 0;
     if (nt <= 1) {
@@ -210,20 +238,28 @@ def terms_switched_on() -> bool:
 
 
 @functools.lru_cache(maxsize=None)
-def _inductor_avx2() -> bool:
-    """Whether Inductor vectorises for AVX2 here (8 lanes: the reduction tree the C loop reproduces)."""
+def _inductor_lanes() -> int | None:
+    """The float lanes of Inductor's CPU vectors here — 8 (AVX2) or 16 (AVX-512): the width and
+    reduction tree the C loop reproduces — or None (another ISA: its kernel's bits would differ)."""
     try:
         from torch._inductor.cpu_vec_isa import pick_vec_isa
 
-        return str(pick_vec_isa()) == "avx2"
+        isa = str(pick_vec_isa()).split()   # ("avx512 avx512_vnni": a VNNI machine's AVX-512, same vectors)
+        return {"avx2": 8, "avx512": 16}.get(isa[0]) if isa else None
     except Exception:  # pragma: no cover - another torch
-        return False
+        return None
+
+
+def _inductor_avx2() -> bool:
+    """Whether Inductor vectorises for AVX2 here (8 lanes)."""
+    return _inductor_lanes() == 8
 
 
 def _terms_lib():
     """The library (`methods.core.native.load`, cached there) or None: no compiler, the build failed,
-    ``PRTBENCH_COMPILE=0``, or Inductor does not vectorise for AVX2 here (its kernel's bits would differ)."""
-    if not _inductor_avx2():
+    ``PRTBENCH_COMPILE=0``, or Inductor vectorises for neither AVX2 nor AVX-512 here (its kernel's
+    bits would differ)."""
+    if _inductor_lanes() not in TERMS_LANES:
         return None
     return native.load("zh_sample_terms", _TERMS_SOURCE, _TERMS_SIGNATURES,
                        extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
@@ -254,7 +290,8 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, D: i
     out = torch.empty(3, Q, dtype=torch.float32)
     bad = torch.zeros(1, dtype=torch.int64)
     fn.sample_terms(U.data_ptr(), N, vi.data_ptr(), b.data_ptr(), nT.data_ptr(), woT.data_ptr(), Q,
-                    TERMS_VARIANTS.index(key), torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
+                    TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key),
+                    torch.get_num_threads(), out.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else out
 
 
@@ -657,6 +694,105 @@ def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor |
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     lib.zh_face_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
                        int(uf.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
+    return None if int(bad[0]) else out
+
+
+# --- a P / V frame's plane pass (`method._plane_pixels`) ------------------------------------------------
+#
+# The plane samples of a frame that is not lighting-only (a new camera or pose: no kept plane faces) go
+# straight from the G-buffer into the pixels by the compiled `method._plane_pixels` (~2.3 ms of a ~10 ms
+# paper-setting V frame on the bench creature at 1 thread, session 30's profile). Here the same per-sample
+# expressions in one C loop over the pixels: the n·ωo test as ((nx ωx + ny ωy) + nz ωz) > 0 and the plane
+# mask, the face's three corner vertices, (u0 ((1 − bu) − bv) + u1 bu) + u2 bv per channel, 0 off the plane
+# or facing away, the clamp, the samples summed in order from the first and scaled by 1 / S² — pure
+# elementwise float32 (``-ffp-contract=off``), so the compiled pass's bits (tested); a sample off the plane
+# reads nothing else. Each pixel one thread's: the bits do not depend on the thread count.
+_PLANE_PIXELS_SOURCE = r"""
+#include <stdint.h>
+
+/* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples q = p S2 + s of pixel p (s ascending, from x_0);
+   x_s = 0 unless mask[q] and (n[q, 0] wo[q] + n[q, 1] wo[ws0 + q]) + n[q, 2] wo[2 ws0 + q] > 0, else
+   (u[i0, c] ((1 − bu) − bv) + u[i1, c] bu) + u[i2, c] bv (max(·, 0) if clamp) with i_k = fv[k M + face[q]],
+   bu = bary[q bs1], bv = bary[bs0 + q bs1]; pixels split over nt threads; bad[0] counts plane samples
+   whose face is outside [0, M) or whose corner is outside [0, N) (their x taken as 0). */
+void zh_plane_pixels(int64_t n, int64_t S2, const int64_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                     const float *nrm, const float *wo, int64_t ws0, const uint8_t *mask, const int64_t *fv,
+                     int64_t M, const float *u, int64_t N, int64_t clamp, float inv, float *out, int64_t nt,
+                     int64_t *bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
+    for (int64_t p = 0; p < n; ++p) {
+        float o0 = 0.f, o1 = 0.f, o2 = 0.f;
+        for (int64_t s = 0; s < S2; ++s) {
+            const int64_t q = p * S2 + s;
+            float x0 = 0.f, x1 = 0.f, x2 = 0.f;
+            const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+            if (mask[q] && dn > 0.f) {
+                const int64_t f = face[q];
+                if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
+                const int64_t i0 = fv[f], i1 = fv[M + f], i2 = fv[2 * M + f];
+                if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                    ++nb;
+                    goto add;
+                }
+                const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+                const float w = (1.0f - bu) - bv;
+                const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+                x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+                x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+                x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+                if (clamp) {   /* clamp_min(0): NaN stays NaN */
+                    x0 = x0 < 0.f ? 0.f : x0;
+                    x1 = x1 < 0.f ? 0.f : x1;
+                    x2 = x2 < 0.f ? 0.f : x2;
+                }
+            }
+        add:
+            if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
+            else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+        }
+        out[3 * p] = o0 * inv; out[3 * p + 1] = o1 * inv; out[3 * p + 2] = o2 * inv;
+    }
+    bad[0] = nb;
+}
+"""
+_PLANE_PIXELS_SIGNATURES = {"zh_plane_pixels": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I,
+                                                ctypes.c_float, _P, _I, _P]}
+
+
+@functools.lru_cache(maxsize=None)
+def _plane_pixels_lib():
+    return native.load("zh_plane_pixels", _PLANE_PIXELS_SOURCE, _PLANE_PIXELS_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+
+
+def plane_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, fv: Tensor, u: Tensor,
+                 clamp: bool) -> Tensor | None:
+    """`method._plane_pixels(face, bary, normal, wo, mask, fv, u, clamp)` (n, 3) by the C loop — the same
+    bits — or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32 / int64 /
+    CPU, other layouts, a plane sample's face or corner out of range): the caller then runs the compiled
+    pass. face (n, S²) int64 contiguous, bary (2, n, S²) with strides (bs0, S² bs1, bs1), normal (n, S², 3)
+    contiguous, wo (3, n, S²) with strides (ws0, S², 1), mask (n, S²) bool contiguous, fv (3, M) int64
+    contiguous, u (N, 3) float32."""
+    lib = _plane_pixels_lib() if terms_switched_on() else None
+    if lib is None or face.dim() != 2:
+        return None
+    n, S2 = int(face.shape[0]), int(face.shape[1])
+    if (face.dtype != torch.int64 or fv.dtype != torch.int64 or mask.dtype != torch.bool
+            or any(t.dtype != torch.float32 for t in (bary, normal, wo, u))
+            or any(t.device.type != "cpu" for t in (face, bary, normal, wo, mask, fv, u))
+            or bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2)
+            or normal.shape != (n, S2, 3) or not normal.is_contiguous()
+            or wo.shape != (3, n, S2) or wo.stride(1) != S2 or wo.stride(2) != 1
+            or mask.shape != (n, S2) or fv.dim() != 2 or fv.shape[0] != 3 or u.dim() != 2 or u.shape[1] != 3):
+        return None
+    face, mask, fv, u = face.contiguous(), mask.contiguous(), fv.contiguous(), u.contiguous()
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.zh_plane_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), normal.data_ptr(),
+                        wo.data_ptr(), wo.stride(0), mask.data_ptr(), fv.data_ptr(), int(fv.shape[1]), u.data_ptr(),
+                        int(u.shape[0]), int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else out
 
 

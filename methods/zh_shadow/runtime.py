@@ -405,7 +405,7 @@ def sample_terms(U: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, orde
     the kernel itself (~150 ns per point: the point-major features are computed in scalar loops with
     strided stores, ~half the time; the interpolated dot gathers 3 × 960 bytes of U per point) — so where
     `native.sample_terms` applies (float32, order 4 with both terms or order 5 diffuse alone, Inductor
-    on AVX2) its C loop computes the same bits in one pass per point (session 28: paper setting, bench
+    on AVX2 or AVX-512) its C loop computes the same bits in one pass per point (session 28: paper setting, bench
     creature, 1 thread, same process: P 1.23x, V 1.13x, VB 1.23x, VL / VBL 1.17x). Above it (SH features): blocks of exactly
     ``block`` points (the last padded by repeating its last point), one static shape.
 
@@ -1250,6 +1250,10 @@ def shade(v: Tensor, vi: Tensor, b: Tensor, nT: Tensor, woT: Tensor, region: Ten
                 out[c].index_copy_(0, rest, rad[c])
     for r, (kd, ks, _, Ws) in enumerate(mats):
         kd, ks = kd.to(dev, dt), ks.to(dev, dt)
+        if per_vertex and not groups:   # (shaded above: the region's points only counted, not gathered)
+            if Ws is not None:
+                counts["specular"] += Q if single else int((region == r).sum())
+            continue
         if not groups and single:
             p = None                                                               # every point, in order
         else:

@@ -1380,7 +1380,7 @@ def test_vertex_referenced_work_equals_every_front_vertex(zh_scene):
 @pytest.mark.parametrize("order,diffuse,specular", ((4, True, True), (5, True, False)))
 def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypatch):
     """`native.sample_terms` (the C loop) = the compiled `runtime._sample_block` bit for bit (the same
-    products, sums and AVX2 reduction tree) and = its eager function to float32 round-off, at 1 and 2
+    products, sums and the AVX2 or AVX-512 reduction tree of Inductor's vectors here) and = its eager function to float32 round-off, at 1 and 2
     threads, on random points (some with ωo = n: R = n, some grazing); through `runtime.sample_terms`
     too. None (the compiled kernel then runs) for a vertex id outside U's rows, a variant it lacks,
     float64, and with ``PRTBENCH_ZH_NATIVE=0``."""
@@ -1402,7 +1402,7 @@ def test_sample_terms_native_equals_compiled(order, diffuse, specular, monkeypat
     woT[:, 50:100] = torch.stack([nT[1, 50:100], -nT[0, 50:100], torch.zeros(50)])   # n·ωo = 0
     woT = woT / woT.norm(dim=0)
     got = zn.sample_terms(U, vi, b, nT, woT, D, diffuse, specular)
-    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor not on AVX2: nothing native to check
+    if got is None:   # no compiler, PRTBENCH_COMPILE=0, or Inductor on neither AVX2 nor AVX-512: nothing to check
         assert zn._terms_lib() is None
         pytest.skip("the native sample terms are not available here")
     with torch_threads(2):
@@ -1617,6 +1617,62 @@ def test_face_pixels_native_equals_compiled(small_model):
             # (the object samples' terms by `native.relight_add`: float32 round-off against the GEMMs)
             assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (kind, fr.index)
         assert fast.last_path == "relight-planes", kind
+
+
+def test_plane_pixels_native_equals_compiled(small_model):
+    """`native.plane_pixels` (the C loop of a P / V frame's plane pass) = `method._plane_pixels` (the
+    compiled pass, its oracle) bit for bit: random faces, corners, normals (some facing away, some with
+    n·ωo = 0 exactly), plane masks and per-vertex terms (some negative: the clamp) with clamp on and off,
+    at 1 and 2 threads, in the layouts `_render_planes` passes (the G-buffer's component-major
+    barycentrics and ωo); None for a plane sample's face outside the table or a corner outside u; P / V /
+    VB frames of the creature render the same images with ``native_plane_pixels`` off."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import _plane_pixels
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    g = torch.Generator().manual_seed(7)
+    n, S2, M, N = 20000, 4, 900, 500
+    P = n * S2
+    face = torch.randint(0, M, (n, S2), generator=g, dtype=torch.int64)
+    bary = torch.rand(P, 2, generator=g).T.contiguous().T                # (P, 2) column-major, as the G-buffer
+    nrm = torch.nn.functional.normalize(torch.randn(P, 3, generator=g), dim=1)
+    wo = torch.nn.functional.normalize(torch.randn(P, 3, generator=g), dim=1)
+    wo[:300] = torch.stack([nrm[:300, 1], -nrm[:300, 0], torch.zeros(300)], 1)   # n·ωo = 0 (or round-off)
+    wo = wo.T.contiguous().T                                                   # column-major, as the G-buffer
+    mask = torch.rand(P, generator=g) < 0.8
+    fv = torch.randint(0, N, (3, M), generator=g, dtype=torch.int64)
+    u = torch.randn(N, 3, generator=g)
+    args = (face, bary.T.view(2, n, S2), nrm.view(n, S2, 3), wo.T.view(3, n, S2), mask.view(n, S2), fv, u)
+    for clamp in (True, False):
+        want = _plane_pixels(*args, clamp)
+        for nt in (1, 2):
+            with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 64), mock.patch.object(torch, "get_num_threads",
+                                                                                      lambda: nt):
+                got = zn.plane_pixels(*args, clamp)
+            if got is None:
+                assert zn._plane_pixels_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native plane pass is not available here")
+            assert torch.equal(got, want), (clamp, nt)
+    assert zn._plane_pixels_lib() is not None or not native.compiler() or not compile_enabled()
+    on = int((mask & ((nrm * wo).sum(1) > 0.1)).nonzero()[0])               # a plane sample facing the viewer
+    bad = face.clone()
+    bad.view(-1)[on] = M
+    assert zn.plane_pixels(bad, *args[1:], True) is None                      # a face outside the table
+    assert zn.plane_pixels(*args[:6], u[:N - 1].contiguous(), True) is None    # a corner outside u
+    m = small_model("creature")
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_plane_pixels = False
+    for kind in ("P", "V", "VB"):
+        for fr in make_sequence(m.scene, kind, 4, seed=5):
+            gb = make_gbuffer(m.scene, fr, 2)
+            a, b = fast.render(fr, gb), slow.render(fr, gb)
+            assert fast.last_path == slow.last_path
+            assert torch.equal(a, b), (kind, fr.index)
+        assert fast.last_path == "planes", kind
 
 
 def test_relight_add_native_equals_gemms(monkeypatch):
