@@ -39,6 +39,7 @@ from dataclasses import fields
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core import native
+from methods import oracle_native
 from methods.core.frames import coordinate_system
 from methods.core.latlong import planar_radiance
 from methods.core.fused import fused, map_rows
@@ -461,6 +462,9 @@ class Oracle(Method):
         light samples' env-map cells, `_light_cells`): → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
         cdf, p_flat, p2d, omega, R64 = tables[:5]
+        if (all(oracle_native.supports(mat) for mat, _, _ in mats) and oracle_native.available()
+                and all(x.dtype == torch.float32 for x in (p, n, wo, ng, U_l, U_b)) and K_l.dtype == torch.int32):
+            return self._shade_native(mats, vis, eps, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32)
         if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per block up to the shadow rays
             return self._shade_blocks(mats, vis, eps, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32)
         wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l, K_l],
@@ -493,6 +497,25 @@ class Oracle(Method):
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
         contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
         return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
+
+    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
+        """`_shade_fast` by the C loops of ``methods.oracle_native`` (every region's BRDF has a C body):
+        each region's rays (`oracle_native.pretrace`), the live ones traced in one batch
+        (`_trace_soa`), the radiance look-up and sum (`oracle_native.shade`): → ((Q, 3) estimates,
+        live rays)."""
+        NL, NB = self.n_light, self.n_brdf
+        K, Q = NL + NB, p.shape[0]
+        cdf, p_flat, _, omega, R64 = tables[:5]
+        H, W = data.shape[:2]
+        tab = tuple(x.contiguous() for x in (cdf, p_flat, omega, R64))
+        p, n, wo, ng, U_l, K_l, U_b = (x.contiguous() for x in (p, n, wo, ng, U_l, K_l, U_b))
+        contrib, o, d = (torch.empty(K, Q, 3) for _ in range(3))  # rays slot-major
+        live = torch.empty(K, Q, dtype=torch.bool)
+        for mat, a, b in mats:
+            oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], K_l[a:b], U_b[a:b], NL, NB, tab,
+                                   H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[:, a:b], d[:, a:b]))
+        lit, n_live = self._trace_soa(vis, live, o, d)
+        return oracle_native.shade(contrib, lit, d, ext.contiguous(), R32.contiguous(), H, W), n_live
 
     def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
         """`_shade_fast` when every region's BRDF compiles: each region's samples in blocks of
