@@ -32,8 +32,11 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.envguide import GUIDE_STEPS, guide_table
 
-__all__ = ["KINDS", "available", "pretrace", "shade"]
+__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace"]
+
+assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
 
 # BRDF families with a C body (``scenes.materials`` kinds) → their code in the C source.
 KINDS = {"lambert": 0, "phong": 1, "blinnphong": 2, "cooktorrance": 3, "ward": 4}
@@ -48,12 +51,14 @@ _SOURCE = r"""
 #include <math.h>
 #undef __FAST_MATH__
 #include <stdint.h>
+#include <string.h>
 
 typedef struct {
     const float *n, *wo, *ng, *p;          /* (Q, 3) */
-    const float *ul; const int32_t *kl;    /* (Q, NL, 2), (Q, NL) */
+    const float *ul;                       /* (Q, NL, 2) */
     const float *ub;                       /* (Q, NB, 2) */
     const double *cdf0, *pflat, *omega, *ztab, *R;  /* (C + 1,) 0 then the cdf, (C,), (H-1,), (H,), (3, 3) */
+    const int32_t *guide; int64_t G;       /* methods.core.envguide.guide_table of the cdf, (G + 1,) */
     int64_t Q, NL, NB, C, H, W, QS;       /* QS: rows between ray slots of the outputs */
     float eps;
     int32_t kind, has_spec;
@@ -67,6 +72,26 @@ typedef struct {
 #define TINY 1e-12f
 
 static inline __attribute__((always_inline)) float clamp0(float x) { return x < 0.0f ? 0.0f : x; }
+
+/* c ? v : +0, by a bit mask: GCC otherwise moves later comparisons of the result into the select,
+   as byte selects that its vectoriser does not take (Lambert's loop stayed scalar) */
+static inline __attribute__((always_inline)) float fsel(int c, float v) {
+    uint32_t u;
+    memcpy(&u, &v, 4);
+    u &= -(uint32_t)(c != 0);
+    memcpy(&v, &u, 4);
+    return v;
+}
+
+/* c ? x : y by bit masks (see fsel) */
+static inline __attribute__((always_inline)) float fblend(int c, float x, float y) {
+    uint32_t a, b, m = -(uint32_t)(c != 0);
+    memcpy(&a, &x, 4);
+    memcpy(&b, &y, 4);
+    a = (a & m) | (b & ~m);
+    memcpy(&x, &a, 4);
+    return x;
+}
 
 /* scenes.materials.power_cosine_pdf: (s+1)/(2pi) max(0, c)^s (c > 0) */
 static inline __attribute__((always_inline)) float pcos_pdf(float c, float norm, float s) {
@@ -168,7 +193,7 @@ static inline __attribute__((always_inline)) void mat_eval(const Mat *M, int kin
     int up = (wi[2] > 0.0f) & (wo[2] > 0.0f);
     for (int c = 0; c < 3; c++) {
         float v = kind == 0 ? M->kd_pi[c] : M->kd_pi[c] + M->ks[c] * lobe;
-        f[c] = up ? v : 0.0f;
+        f[c] = fsel(up, v);
     }
 }
 
@@ -190,8 +215,8 @@ static inline __attribute__((always_inline)) void reflect_about(const float *wo,
 /* Material.sample's direction (its pdf: mat_pdf) */
 static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int kind, const float *wo, float u0, float u1, float *wi) {
     const float om = 1.0f - 1.1920928955078125e-07f;
-    float a = u0 / M->pd_clamped;
-    a = a < 0.0f ? 0.0f : (a > om ? om : a);
+    float a = u0 / M->pd_clamped;  /* clamp(0, om), by bit masks (see fsel) */
+    a = fblend(a < 0.0f, 0.0f, fblend(a > om, om, a));
     from_cos_phi(sqrtf(clamp0(1.0f - a)), u1, wi);
     if (kind == 0) return;
     float us = (u0 - M->pd) / M->ps;
@@ -257,8 +282,10 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
         int64_t r = j * QS + i;                                                                   \
         float c0 = f[0] * cw, c1 = f[1] * cw, c2 = f[2] * cw;                                     \
         contrib_[3 * r] = c0; contrib_[3 * r + 1] = c1; contrib_[3 * r + 2] = c2;                 \
-        int nan = (c0 != c0) | (c1 != c1) | (c2 != c2);                                           \
-        live_[r] = (uint8_t)(!nan & ((c0 > 0.0f) | (c1 > 0.0f) | (c2 > 0.0f)));                  \
+        /* amax > 0 (NaN: not live), through a float select (a byte select does not vectorise) */ \
+        float pos = ((c0 > 0.0f) | (c1 > 0.0f) | (c2 > 0.0f)) ? 1.0f : 0.0f;                      \
+        float nan = ((c0 != c0) | (c1 != c1) | (c2 != c2)) ? 0.0f : 1.0f;                         \
+        live_[r] = (uint8_t)(int32_t)(pos * nan);                                                 \
         float sd = g0 * dw[0] + g1 * dw[1] + g2 * dw[2];                                          \
         float side = (float)(sd > 0.0f) - (float)(sd < 0.0f);                                     \
         o_[3 * r] = p_[3 * i] + side * g0 * eps;                                                  \
@@ -277,7 +304,6 @@ static inline __attribute__((always_inline)) void block(const PArgs *A, const Ma
     const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS;
     const float *__restrict n_ = A->n, *__restrict wo_ = A->wo, *__restrict ng_ = A->ng, *__restrict p_ = A->p;
     const float *__restrict ul_ = A->ul, *__restrict ub_ = A->ub;
-    const int32_t *__restrict kl_ = A->kl;
     const double *__restrict cdf0_ = A->cdf0, *__restrict pflat_ = A->pflat, *__restrict omega_ = A->omega;
     const double *__restrict ztab_ = A->ztab;
     float *__restrict contrib_ = A->contrib, *__restrict o_ = A->o, *__restrict d_ = A->d;
@@ -288,9 +314,50 @@ static inline __attribute__((always_inline)) void block(const PArgs *A, const Ma
     const float fnl = (float)NL, fnb = (float)NB;
     float bu0[MAXB], bu1[MAXB];
     int32_t bk[MAXB];
+    int64_t bk64[MAXB], bok[MAXB];
+    double bx[MAXB];
+    const int32_t *__restrict guide_ = A->guide;
+    const int64_t G = A->G;
+    int64_t top = 1;  /* count_le's first step: the largest power of 2 <= C */
+    while (2 * top <= C) top *= 2;
     for (int64_t j = 0; j < NL; j++) {
-        for (int64_t i = i0; i < i1; i++) {  /* the slot's uniforms and cells, contiguous */
-            bu0[i - i0] = ul_[2 * (i * NL + j)]; bu1[i - i0] = ul_[2 * (i * NL + j) + 1]; bk[i - i0] = kl_[i * NL + j];
+        for (int64_t i = i0; i < i1; i++) {  /* the slot's uniforms, contiguous */
+            bu0[i - i0] = ul_[2 * (i * NL + j)]; bu1[i - i0] = ul_[2 * (i * NL + j) + 1];
+            bx[i - i0] = (double)bu0[i - i0];
+        }
+        /* the cells: count_le(cdf, u0) by the guide table (methods.core.envguide.guided_count_le, GUIDE_STEPS
+           = 4 bisection steps in the bucket), the u0 it does not bracket by count_le itself (fix_unguided) */
+#pragma GCC ivdep
+        for (int64_t ii = 0; ii < i1 - i0; ii++) {
+            double x = bx[ii];  /* double and int64 only: 4-lane gathers */
+            int64_t inside = (x >= 0.0) & (x <= 1.0);
+            double xs = inside ? x : 0.0;
+            int64_t b = (int32_t)floor(xs * (double)G);  /* G a power of 2: exact; via int32 (AVX2) */
+            b = b < 0 ? 0 : (b > G - 1 ? G - 1 : b);
+            int64_t lo = guide_[b], hi = guide_[b + 1], k = lo;  /* int64: 4-lane double gathers */
+#define GSTEP(step)                                                                               \
+            {                                                                                     \
+                int64_t jj = k + (step - 1);                                                      \
+                jj = jj > C - 1 ? C - 1 : jj;                                                     \
+                double cj = cdf0_[jj + 1];                                                        \
+                k = ((k + step <= hi) & (cj <= xs)) ? k + step : k;                               \
+            }
+            GSTEP(8) GSTEP(4) GSTEP(2) GSTEP(1)
+#undef GSTEP
+            bk64[ii] = k;
+            bok[ii] = inside & (hi - lo < 16);
+        }
+        for (int64_t ii = 0; ii < i1 - i0; ii++) {
+            bk[ii] = (int32_t)bk64[ii];
+            if (bok[ii]) continue;
+            double x = (double)bu0[ii];  /* scenes.envmap.count_le */
+            int64_t k = 0;
+            for (int64_t step = top; step; step >>= 1) {
+                int64_t jj = k + (step - 1);
+                jj = jj > C - 1 ? C - 1 : jj;
+                if (k + step <= C && cdf0_[jj + 1] <= x) k += step;
+            }
+            bk[ii] = (int32_t)k;
         }
 #pragma GCC ivdep
         for (int64_t i = i0; i < i1; i++) {
@@ -436,6 +503,28 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
     }
 }
 
+/* The live rays' origins and directions (rows of live (n,) nonzero, in order) into oc, dc: count[0]. */
+void compact(const uint8_t *live, const float *o, const float *d, int64_t n, float *oc, float *dc, int64_t *count) {
+    int64_t m = 0;
+    for (int64_t r = 0; r < n; r++) {
+        if (!live[r]) continue;
+        oc[3 * m] = o[3 * r]; oc[3 * m + 1] = o[3 * r + 1]; oc[3 * m + 2] = o[3 * r + 2];
+        dc[3 * m] = d[3 * r]; dc[3 * m + 1] = d[3 * r + 1]; dc[3 * m + 2] = d[3 * r + 2];
+        m++;
+    }
+    count[0] = m;
+}
+
+/* lit = live and not blocked (blocked: per live ray, in compact's order) */
+void lit_rays(const uint8_t *live, const uint8_t *blocked, int64_t n, uint8_t *lit) {
+    int64_t m = 0;
+    for (int64_t r = 0; r < n; r++) {
+        uint8_t l = live[r] != 0;
+        lit[r] = l ? (uint8_t)(blocked[m] == 0) : 0;
+        m += l;
+    }
+}
+
 void shade(const float *contrib, const uint8_t *lit, const float *d, const float *ext, const float *R,
            int64_t Q, int64_t K, int64_t H, int64_t W, float *out, int64_t block_rows, int32_t nt) {
     int64_t nb = (Q + block_rows - 1) / block_rows;
@@ -450,9 +539,9 @@ void shade(const float *contrib, const uint8_t *lit, const float *d, const float
 
 class _PArgs(ctypes.Structure):
     _fields_ = [("n", ctypes.c_void_p), ("wo", ctypes.c_void_p), ("ng", ctypes.c_void_p), ("p", ctypes.c_void_p),
-                ("ul", ctypes.c_void_p), ("kl", ctypes.c_void_p), ("ub", ctypes.c_void_p),
+                ("ul", ctypes.c_void_p), ("ub", ctypes.c_void_p),
                 ("cdf0", ctypes.c_void_p), ("pflat", ctypes.c_void_p), ("omega", ctypes.c_void_p),
-                ("ztab", ctypes.c_void_p), ("R", ctypes.c_void_p),
+                ("ztab", ctypes.c_void_p), ("R", ctypes.c_void_p), ("guide", ctypes.c_void_p), ("G", ctypes.c_int64),
                 ("Q", ctypes.c_int64), ("NL", ctypes.c_int64), ("NB", ctypes.c_int64), ("C", ctypes.c_int64),
                 ("H", ctypes.c_int64), ("W", ctypes.c_int64), ("QS", ctypes.c_int64), ("eps", ctypes.c_float),
                 ("kind", ctypes.c_int32), ("has_spec", ctypes.c_int32),
@@ -464,7 +553,8 @@ class _PArgs(ctypes.Structure):
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32],
+_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _P, _P, _P],
+               "lit_rays": [_P, _P, _I, _P],
                "shade": [_P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
 
 
@@ -512,13 +602,14 @@ def _ptr(t: Tensor) -> int:
     return t.data_ptr()
 
 
-def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, K_l: Tensor, U_b: Tensor, NL: int,
-             NB: int, tables: tuple, H: int, W: int, eps: float, out: tuple[Tensor, Tensor, Tensor, Tensor]) -> None:
+def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b: Tensor, NL: int, NB: int,
+             tables: tuple, H: int, W: int, eps: float, out: tuple[Tensor, Tensor, Tensor, Tensor]) -> None:
     """The rays of Q samples of one region (material ``mat``, `supports`) into ``out`` = (contributions
-    f·cos·w (Q, K, 3), live (Q, K) bool, shadow-ray origins (Q, K, 3), world directions (Q, K, 3)),
-    K = NL + NB, light samples first. n, wo, ng, p: (Q, 3) float32 contiguous; U_l (Q, NL, 2) float32,
-    K_l (Q, NL) int32 (the cells, ``Oracle._light_cells``), U_b (Q, NB, 2) float32 (ignored when NL
-    resp. NB is 0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous."""
+    f·cos·w, live (bool), shadow-ray origins, world directions), row slices [:, a:b] of (K, QS, 3) resp.
+    (K, QS) contiguous arrays (rays slot-major), K = NL + NB, light samples first. n, wo, ng, p: (Q, 3)
+    float32 contiguous; U_l (Q, NL, 2), U_b (Q, NB, 2) float32 contiguous (ignored when NL resp. NB is
+    0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous. The light
+    samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table)."""
     lib = _lib()
     Q = int(n.shape[0])
     if Q == 0:
@@ -526,9 +617,10 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, K_l
     cdf, p_flat, omega, R = tables
     a = _PArgs()
     a.n, a.wo, a.ng, a.p = _ptr(n), _ptr(wo), _ptr(ng), _ptr(p)
-    a.ul, a.kl, a.ub = _ptr(U_l), _ptr(K_l), _ptr(U_b)
-    zt = _ztab(H)
+    a.ul, a.ub = _ptr(U_l), _ptr(U_b)
+    zt, guide = _ztab(H), guide_table(cdf)
     a.cdf0, a.pflat, a.omega, a.ztab, a.R = _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(omega), _ptr(zt), _ptr(R)
+    a.guide, a.G = _ptr(guide), int(guide.shape[0]) - 1
     a.Q, a.NL, a.NB, a.C, a.H, a.W = Q, NL, NB, int(cdf.shape[0]), H, W
     a.eps = float(eps)
     a.kind, a.has_spec = KINDS[mat.kind], int(mat.spec_weight > 0)
@@ -544,6 +636,25 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, K_l
     a.QS = int(live.stride(0))
     a.contrib, a.live, a.o, a.d = _ptr(contrib), _ptr(live), _ptr(o), _ptr(d)
     lib.pretrace(ctypes.byref(a), BLOCK, _threads(Q))  # BLOCK <= MAXB
+
+
+def trace(vis, live: Tensor, o: Tensor, d: Tensor) -> tuple[Tensor, int]:
+    """The live rays (live (...) bool, origins and directions (..., 3) float32, contiguous) gathered in
+    order (C) and traced in one batch (``vis.occluded``): → (lit = live and unblocked, live rays)."""
+    lib = _lib()
+    n = live.numel()
+    oc, dc = torch.empty(n, 3), torch.empty(n, 3)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    lib.compact(_ptr(live), _ptr(o), _ptr(d), n, _ptr(oc), _ptr(dc), _ptr(cnt))
+    m = int(cnt[0])
+    if not m:
+        return torch.zeros_like(live), 0
+    blocked = torch.as_tensor(vis.occluded(oc[:m], dc[:m])).to(torch.bool).contiguous()
+    if blocked.shape != (m,):
+        raise ValueError(f"occluded returned {tuple(blocked.shape)} for {m} rays")
+    lit = torch.empty_like(live)
+    lib.lit_rays(_ptr(live), _ptr(blocked), n, _ptr(lit))
+    return lit, m
 
 
 def shade(contrib: Tensor, lit: Tensor, d: Tensor, ext: Tensor, R32: Tensor, H: int, W: int) -> Tensor:
