@@ -1,26 +1,38 @@
 """The oracle's per-ray work as C loops (issue 14): `pretrace` replaces the compiled pre-trace graph
-(``methods.oracle._pretrace_stage``: the shading frame, env-map sampling on the light sample's cell
-found by the guide table, the BRDF's sample / pdf / eval, the MIS weights, each ray's contribution,
-whether it is live and its shadow-ray origin) and `shade` the radiance look-up and the sum over a
-sample's rays (``methods.oracle._shade_block_stage``), for the library's BRDF families that the
-compiled path runs with tensor parameters (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward). The
+(``methods.oracle._pretrace_stage``) and the env-map cell search before it (``Oracle._light_cells``):
+the shading frame, each light sample's cell (``methods.core.envguide``'s guide table and 4 bisection
+steps, ``scenes.envmap.count_le`` for the u₀ it does not bracket: the same cells), env-map sampling
+in that cell, the BRDF's sample / pdf / eval, the MIS weights, each ray's contribution, whether it is
+live and its shadow-ray origin; `trace` gathers the live rays in order and traces them in one batch
+(``Oracle._trace_soa``'s nonzero / index_select / scatter); `shade` looks up the radiance and sums a
+sample's rays (``methods.oracle._shade_block_stage``). For the library's BRDF families that the
+compiled path runs with tensor parameters (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward): the
 same operations in the same order as the eager estimator (``Oracle._shade``, ``scenes.materials``,
 ``scenes.envmap``: float32 where it is float32, float64 where it is float64), from the SAME random
-numbers; the compiled path stays beside it as the fallback (no C compiler, ``PRTBENCH_COMPILE=0``,
-another BRDF family) and both are compared with the eager estimator by ``tests/methods/test_oracle.py``.
+numbers. The compiled path stays beside it as the fallback (no C compiler, ``PRTBENCH_COMPILE=0``,
+another BRDF family in the frame, e.g. Torrance-Sparrow or a non-library material) and both are
+compared with the eager estimator by ``tests/methods/test_oracle.py``.
 
-Layout: one loop per ray slot j (light samples first, then BRDF samples, as the eager estimator's
-ray axis) over the samples of a block, vectorised over the samples with ``#pragma omp simd``; the
-transcendentals (sin, cos, pow, exp, log1p, atan2, acos) then come from glibc's vector math library
-(libmvec, declared SIMD by ``math.h`` under ``__FAST_MATH__``, which is defined here for that header
-only: the code is compiled without ``-ffast-math``, with ``-ffp-contract=off``, so every product and
-sum rounds as torch's). Their results may differ from torch's (Sleef or libm) by an ulp or so — the
-same class of difference as the compiled path's Sleef against the eager path's libm — hence the image
-equals the reference's to float32 round-off, and a ray whose direction moves by an ulp may in
-principle land in a neighbouring env-map cell or flip its shadow test (measured: none on the test
-scenes, ``tests/methods/test_oracle.py``). Blocks of samples are split over OpenMP's team (each ray
-computed by one thread: results do not depend on the thread count). The per-sample frame (s, t, n),
-ω_o in it and the geometric normal's side are recomputed per ray (a few flops) instead of stored.
+Layout: the rays slot-major ((K, Q): light samples first, then BRDF samples, as the eager
+estimator's ray axis), one loop per ray slot over the samples of a block of `BLOCK`, vectorised by
+GCC over the samples (8 float32 lanes with AVX2). The transcendentals (sin, cos, pow, exp, log1p,
+atan2, acos) then come from glibc's vector math library (libmvec, declared SIMD by ``math.h`` under
+``__FAST_MATH__``, which is defined for that header only: the code is compiled without
+``-ffast-math``, with ``-ffp-contract=off``, so every product and sum rounds as torch's;
+``-fno-trapping-math`` only lets GCC vectorise floor). Their results may differ from torch's (Sleef
+or libm) by an ulp or so — the same class of difference as the compiled path's Sleef against the
+eager path's libm — hence the image equals the reference's to float32 round-off, and a ray whose
+direction moves by an ulp may land in a neighbouring env-map cell or flip its shadow test: the
+compiled path and this one flip the same ray of chess bench V frame 2 (max |Δ| / max 2.9e-2 on one
+pixel, both paths), none on the test scenes. What kept GCC's vectoriser off, and is avoided here:
+sin and cos of one argument merged into sincos (a complex result: `NOSINCOS`), byte-wide selects
+(Lambert's loop; `fsel`, `fblend`), int64 ↔ double conversions and integer division (AVX-512 only /
+none: int32 and float paths), strided loads of a runtime stride (the slot's uniforms are copied to
+contiguous buffers first). The guide-table search stays scalar: AVX2 gathers (intrinsics or
+``-mtune-ctrl=use_gather``) measured slower on this host (light rays 63 vs 59 ms, chess bench).
+Blocks of samples are split over OpenMP's team (each ray computed by one thread: results do not
+depend on the thread count). The per-sample frame (s, t, n), ω_o in it and the geometric normal's
+side are recomputed per ray (a few flops) instead of stored.
 """
 from __future__ import annotations
 
