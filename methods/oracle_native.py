@@ -518,11 +518,10 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
 /* The live rays' origins and directions (rows of live (n,) nonzero, in order) into oc, dc: count[0]. */
 void compact(const uint8_t *live, const float *o, const float *d, int64_t n, float *oc, float *dc, int64_t *count) {
     int64_t m = 0;
-    for (int64_t r = 0; r < n; r++) {
-        if (!live[r]) continue;
+    for (int64_t r = 0; r < n; r++) {  /* branchless: every ray written at m (<= r < n), kept if live */
         oc[3 * m] = o[3 * r]; oc[3 * m + 1] = o[3 * r + 1]; oc[3 * m + 2] = o[3 * r + 2];
         dc[3 * m] = d[3 * r]; dc[3 * m + 1] = d[3 * r + 1]; dc[3 * m + 2] = d[3 * r + 2];
-        m++;
+        m += live[r] != 0;
     }
     count[0] = m;
 }
