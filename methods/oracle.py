@@ -27,6 +27,13 @@ full vectors of samples, and the radiance look-up per block on the env map's cha
 (`_shade_block_stage`). The light samples' env-map
 cells are searched before, in one pass over the frame, by a guide table (`_light_cells`,
 ``methods.core.envguide``: exactly ``scenes.envmap.count_le``'s cells, ~1 load instead of 18). ``benchmarks/oracle.py`` times both and the shadow-ray test alone.
+
+When every region's BRDF has a C body (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward) and the C
+compiler is there, `Oracle._shade_native` runs all of it but the shadow-ray test as C loops instead
+(``methods.oracle_native``: the cell search, the per-ray work, the live rays' gather, the radiance
+sum; the same operations from the same random numbers; 1.8× the compiled path's frame, chess and
+creature bench, 1 thread); the compiled path above is its fallback and, with the eager estimator, its
+test oracle.
 """
 from __future__ import annotations
 
@@ -39,6 +46,7 @@ from dataclasses import fields
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core import native
+from methods import oracle_native
 from methods.core.frames import coordinate_system
 from methods.core.latlong import planar_radiance
 from methods.core.fused import fused, map_rows
@@ -426,7 +434,10 @@ class Oracle(Method):
         U_l = torch.cat(U_l) if NL and U_l else torch.zeros(order.numel(), 1, 2)
         U_b = torch.cat(U_b) if NB and U_b else torch.zeros(order.numel(), 1, 2)
         cdf, p, omega = env._tables()
-        K_l = self._light_cells(U_l, cdf) if NL else torch.zeros(U_l.shape[:2], dtype=torch.int32)
+        if self._native(regions, gbuffer, U_l, U_b):  # the C loops search the cells themselves
+            K_l = None
+        else:
+            K_l = self._light_cells(U_l, cdf) if NL else torch.zeros(U_l.shape[:2], dtype=torch.int32)
         tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64), env.periodic_texels(planes=True))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
@@ -437,7 +448,8 @@ class Oracle(Method):
             mats = _segments(regions, a, a + sel.numel())
             o, live_n = self._shade_fast(mats, vis, eps_t, gbuffer.position[sel], gbuffer.normal[sel],
                                          gbuffer.wo[sel], face_ng(sel),
-                                         U_l[a:a + chunk], K_l[a:a + chunk], U_b[a:a + chunk], tables, env.data,
+                                         U_l[a:a + chunk], None if K_l is None else K_l[a:a + chunk], U_b[a:a + chunk],
+                                         tables, env.data,
                                          ext, R32)
             out[sel] = o
             live_total += live_n
@@ -461,6 +473,8 @@ class Oracle(Method):
         light samples' env-map cells, `_light_cells`): → ((Q, 3) estimates, live rays)."""
         NL, NB = self.n_light, self.n_brdf
         cdf, p_flat, p2d, omega, R64 = tables[:5]
+        if K_l is None:  # `_native`: the C loops
+            return self._shade_native(mats, vis, eps, p, n, wo, ng, U_l, U_b, tables, data, ext, R32)
         if all(_compiles(mat) for mat, _, _ in mats):  # one kernel per block up to the shadow rays
             return self._shade_blocks(mats, vis, eps, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32)
         wo_l, ng, d_l, pdf_l, wi_ll = map_rows(_light_stage, [n, wo, ng, U_l, K_l],
@@ -493,6 +507,33 @@ class Oracle(Method):
             f[a:b] = mat.eval(wi[a:b], wo_l[a:b].unsqueeze(1).expand_as(wi[a:b]))
         contrib, live, o = map_rows(_ray_stage, [f, wi, w, d, p, ng], (eps,), chunk=ROWS)
         return self._trace_shade(vis, contrib, live, o, d, data, ext, R32)
+
+    @staticmethod
+    def _native(regions: list, gbuffer: GBuffer, U_l: Tensor, U_b: Tensor) -> bool:
+        """Whether a frame runs the C loops (``methods.oracle_native``): they are built, every region's
+        BRDF has a C body, the G-buffer and the random numbers are float32 CPU tensors."""
+        ts = (gbuffer.position, gbuffer.normal, gbuffer.wo, U_l, U_b)
+        return (all(oracle_native.supports(mat) for mat, _ in regions) and oracle_native.available()
+                and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in ts))
+
+    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
+        """`_shade_fast` by the C loops of ``methods.oracle_native`` (every region's BRDF has a C body):
+        each region's rays (`oracle_native.pretrace`), the live ones traced in one batch
+        (`_trace_soa`), the radiance look-up and sum (`oracle_native.shade`): → ((Q, 3) estimates,
+        live rays)."""
+        NL, NB = self.n_light, self.n_brdf
+        K, Q = NL + NB, p.shape[0]
+        cdf, p_flat, _, omega, R64 = tables[:5]
+        H, W = data.shape[:2]
+        tab = tuple(x.contiguous() for x in (cdf, p_flat, omega, R64))
+        p, n, wo, ng, U_l, U_b = (x.contiguous() for x in (p, n, wo, ng, U_l, U_b))
+        contrib, o, d = (torch.empty(K, Q, 3) for _ in range(3))  # rays slot-major
+        live = torch.empty(K, Q, dtype=torch.bool)
+        for mat, a, b in mats:
+            oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b], NL, NB, tab,
+                                   H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[:, a:b], d[:, a:b]))
+        lit, n_live = oracle_native.trace(vis, live, o, d)
+        return oracle_native.shade(contrib, lit, d, ext.contiguous(), R32.contiguous(), H, W), n_live
 
     def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
         """`_shade_fast` when every region's BRDF compiles: each region's samples in blocks of

@@ -212,3 +212,68 @@ def test_oracle_fast_equals_reference(scene_name, kind, compiled, monkeypatch):
         assert img.shape == ref.shape
         err = (img - ref).abs().max().item()
         assert err <= 1e-4 * ref.abs().max().item(), (cfg, err)
+
+
+# -- the C loops (methods.oracle_native) ---------------------------------------------------------
+
+
+def _native_materials(name):
+    from scenes.materials import BlinnPhong, CookTorrance, Lambert, Phong, Ward
+
+    return {
+        "ward+lambert": [Ward(kd=(0.3, 0.2, 0.1), ks=(0.4, 0.4, 0.4), ax=0.15, ay=0.3), Lambert(kd=(0.5, 0.4, 0.3))],
+        "ct+blinn": [CookTorrance(kd=(0.1, 0.2, 0.3), ks=(0.5, 0.5, 0.5), m=0.2, F0=0.3),
+                     BlinnPhong(kd=(0.4, 0.3, 0.2), ks=(0.3, 0.3, 0.3), s=25.0)],
+        # no diffuse part (the specular lobe sampled alone), no specular part (a Phong with ks = 0)
+        "spec-only+no-spec": [Phong(kd=0.0, ks=(0.6, 0.5, 0.4), s=15.0), Phong(kd=(0.5, 0.5, 0.5), ks=0.0, s=15.0)],
+    }[name]
+
+
+@pytest.mark.parametrize("mats", ["library", "ward+lambert", "ct+blinn", "spec-only+no-spec"])
+def test_oracle_native_equals_reference_and_compiled(mats, monkeypatch):
+    """The C loops (`methods.oracle_native`: every region's BRDF with a C body) = the eager estimator
+    (`render_reference`), and on the library's chess materials the compiled path too (the C loops
+    switched off): the same rays traced (live counts) and the image to float32 round-off (the
+    tolerance of `test_oracle_fast_equals_reference`), for every BRDF family with a C body,
+    specular-only and diffuse-only mixtures, both MIS strategies, each alone, and ray batches smaller
+    than a region. Checks that the C path ran."""
+    import methods.oracle_native as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    scene = get_scene("chess" if mats == "library" else "sphere_plane", "test")
+    frame = make_sequence(scene, "VBL", n_frames=2, seed=0)[1]
+    if mats != "library":
+        ms = _native_materials(mats)
+        frame = dataclasses.replace(frame, materials={r: ms[i % len(ms)] for i, r in enumerate(frame.materials)})
+    gb = make_gbuffer(scene, frame, 1)
+    calls = [0]
+    real = on.pretrace
+
+    def counting(*a, **k):
+        calls[0] += 1
+        return real(*a, **k)
+
+    for cfg in (dict(light_samples=3, brdf_samples=2, max_rays_per_batch=1 << 12),
+                dict(light_samples=0, brdf_samples=2), dict(light_samples=2, brdf_samples=0)):
+        o = get_method("oracle")(**cfg, seed=7)
+        o.precompute(scene)
+        ref = o.render_reference(frame, gb)
+        last = o._last
+        monkeypatch.setattr(on, "pretrace", counting)
+        calls[0] = 0
+        img = o.render(frame, gb)
+        assert calls[0] > 0, "the C loops did not run"
+        assert o._last == last, cfg
+        scale = ref.abs().max().item()
+        assert scale > 0
+        assert (img - ref).abs().max().item() <= 1e-4 * scale, cfg
+        if mats == "library":  # the compiled path (compilations: one material set is enough)
+            monkeypatch.setattr(on, "supports", lambda m: False)
+            calls[0] = 0
+            comp = o.render(frame, gb)
+            assert calls[0] == 0 and o._last == last, cfg
+            assert (img - comp).abs().max().item() <= 1e-4 * scale, cfg
+        monkeypatch.undo()
+        monkeypatch.setenv("PRTBENCH_COMPILE", "1")

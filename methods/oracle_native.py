@@ -1,0 +1,680 @@
+"""The oracle's per-ray work as C loops (issue 14): `pretrace` replaces the compiled pre-trace graph
+(``methods.oracle._pretrace_stage``) and the env-map cell search before it (``Oracle._light_cells``):
+the shading frame, each light sample's cell (``methods.core.envguide``'s guide table and 4 bisection
+steps, ``scenes.envmap.count_le`` for the u₀ it does not bracket: the same cells), env-map sampling
+in that cell, the BRDF's sample / pdf / eval, the MIS weights, each ray's contribution, whether it is
+live and its shadow-ray origin; `trace` gathers the live rays in order and traces them in one batch
+(``Oracle._trace_soa``'s nonzero / index_select / scatter); `shade` looks up the radiance and sums a
+sample's rays (``methods.oracle._shade_block_stage``). For the library's BRDF families that the
+compiled path runs with tensor parameters (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward): the
+same operations in the same order as the eager estimator (``Oracle._shade``, ``scenes.materials``,
+``scenes.envmap``: float32 where it is float32, float64 where it is float64), from the SAME random
+numbers. The compiled path stays beside it as the fallback (no C compiler, ``PRTBENCH_COMPILE=0``,
+another BRDF family in the frame, e.g. Torrance-Sparrow or a non-library material) and both are
+compared with the eager estimator by ``tests/methods/test_oracle.py``.
+
+Layout: the rays slot-major ((K, Q): light samples first, then BRDF samples, as the eager
+estimator's ray axis), one loop per ray slot over the samples of a block of `BLOCK`, vectorised by
+GCC over the samples (8 float32 lanes with AVX2). The transcendentals (sin, cos, pow, exp, log1p,
+atan2, acos) then come from glibc's vector math library (libmvec, declared SIMD by ``math.h`` under
+``__FAST_MATH__``, which is defined for that header only: the code is compiled without
+``-ffast-math``, with ``-ffp-contract=off``, so every product and sum rounds as torch's;
+``-fno-trapping-math`` only lets GCC vectorise floor). Their results may differ from torch's (Sleef
+or libm) by an ulp or so — the same class of difference as the compiled path's Sleef against the
+eager path's libm — hence the image equals the reference's to float32 round-off, and a ray whose
+direction moves by an ulp may land in a neighbouring env-map cell or flip its shadow test: the
+compiled path and this one flip the same ray of chess bench V frame 2 (max |Δ| / max 2.9e-2 on one
+pixel, both paths), none on the test scenes. What kept GCC's vectoriser off, and is avoided here:
+sin and cos of one argument merged into sincos (a complex result: `NOSINCOS`), byte-wide selects
+(Lambert's loop; `fsel`, `fblend`), int64 ↔ double conversions and integer division (AVX-512 only /
+none: int32 and float paths), strided loads of a runtime stride (the slot's uniforms are copied to
+contiguous buffers first). The guide-table search stays scalar: AVX2 gathers (intrinsics or
+``-mtune-ctrl=use_gather``) measured slower on this host (light rays 63 vs 59 ms, chess bench).
+Blocks of samples are split over OpenMP's team (each ray computed by one thread: results do not
+depend on the thread count). The per-sample frame (s, t, n), ω_o in it and the geometric normal's
+side are recomputed per ray (a few flops) instead of stored.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+from methods.core.envguide import GUIDE_STEPS, guide_table
+
+__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace"]
+
+assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
+
+# BRDF families with a C body (``scenes.materials`` kinds) → their code in the C source.
+KINDS = {"lambert": 0, "phong": 1, "blinnphong": 2, "cooktorrance": 3, "ward": 4}
+
+# Samples per block of the OpenMP split (each block runs every ray slot over its samples).
+BLOCK = 512
+# Samples below which one thread runs a call (a hand-off costs more than its share).
+MIN_PER_THREAD = 4096
+
+_SOURCE = r"""
+#define __FAST_MATH__ 1
+#include <math.h>
+#undef __FAST_MATH__
+#include <stdint.h>
+#include <string.h>
+
+typedef struct {
+    const float *n, *wo, *ng, *p;          /* (Q, 3) */
+    const float *ul;                       /* (Q, NL, 2) */
+    const float *ub;                       /* (Q, NB, 2) */
+    const double *cdf0, *pflat, *omega, *ztab, *R;  /* (C + 1,) 0 then the cdf, (C,), (H-1,), (H,), (3, 3) */
+    const int32_t *guide; int64_t G;       /* methods.core.envguide.guide_table of the cdf, (G + 1,) */
+    int64_t Q, NL, NB, C, H, W, QS;       /* QS: rows between ray slots of the outputs */
+    float eps;
+    int32_t kind, has_spec;
+    double kd[3], ks[3], ps, s, m, F0, ax, ay;
+    float *contrib, *o, *d;                /* (K, QS, 3), rows from this call's first sample */
+    uint8_t *live;                         /* (K, QS) */
+} PArgs;
+
+#define PI_F ((float)M_PI)
+#define MAXB 512  /* samples per block at most (BLOCK) */
+#define TINY 1e-12f
+
+static inline __attribute__((always_inline)) float clamp0(float x) { return x < 0.0f ? 0.0f : x; }
+
+/* c ? v : +0, by a bit mask: GCC otherwise moves later comparisons of the result into the select,
+   as byte selects that its vectoriser does not take (Lambert's loop stayed scalar) */
+static inline __attribute__((always_inline)) float fsel(int c, float v) {
+    uint32_t u;
+    memcpy(&u, &v, 4);
+    u &= -(uint32_t)(c != 0);
+    memcpy(&v, &u, 4);
+    return v;
+}
+
+/* c ? x : y by bit masks (see fsel) */
+static inline __attribute__((always_inline)) float fblend(int c, float x, float y) {
+    uint32_t a, b, m = -(uint32_t)(c != 0);
+    memcpy(&a, &x, 4);
+    memcpy(&b, &y, 4);
+    a = (a & m) | (b & ~m);
+    memcpy(&x, &a, 4);
+    return x;
+}
+
+/* scenes.materials.power_cosine_pdf: (s+1)/(2pi) max(0, c)^s (c > 0) */
+static inline __attribute__((always_inline)) float pcos_pdf(float c, float norm, float s) {
+    return norm * powf(clamp0(c), s) * (float)(c > 0.0f);
+}
+
+/* half_vector: h flipped into the upper hemisphere, valid (|wi + wo| > 1e-6) */
+static inline __attribute__((always_inline)) void half_vec(const float *wi, const float *wo, float *h, float *valid) {
+    float hx = wi[0] + wo[0], hy = wi[1] + wo[1], hz = wi[2] + wo[2];
+    float nr = sqrtf(hx * hx + hy * hy + hz * hz);
+    *valid = (float)(nr > 1e-6f);
+    float nc = nr < TINY ? TINY : nr;
+    hx = hx / nc; hy = hy / nc; hz = hz / nc;
+    if (hz < 0.0f) { hx = -hx; hy = -hy; hz = -hz; }
+    h[0] = hx; h[1] = hy; h[2] = hz;
+}
+
+/* half_to_wi_pdf */
+static inline __attribute__((always_inline)) float h2wi(float ph, const float *wo, const float *h, float valid) {
+    float woh = fabsf(wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2]);
+    float out = ph / (4.0f * (woh < TINY ? TINY : woh));
+    return ((valid != 0.0f) & (woh > 0.0f)) ? out : 0.0f;
+}
+
+/* beckmann_D */
+static inline __attribute__((always_inline)) float beckD(float cos_t, float mm, float pimm) {
+    float c = cos_t < TINY ? TINY : cos_t;
+    float c2 = c * c;
+    float tan2 = clamp0(1.0f - c2) / c2;
+    float dd = expf(-tan2 / mm) / (pimm * c2 * c2);
+    return cos_t > 0.0f ? dd : 0.0f;
+}
+
+typedef struct {  /* a material's constants, float32 as the tensors' ops round them */
+    int kind, has_spec;
+    float kd_pi[3], ks[3], ps, pd, pd_clamped, s, pnorm_phong, bnorm, inv_s1, mm, pimm, neg_mm,
+          F0, omF0, ax, ay, piaxay, pi4axay;
+} Mat;
+
+/* Material.pdf on local wi, wo */
+static inline __attribute__((always_inline)) float mat_pdf(const Mat *M, int kind, const float *wi, const float *wo) {
+    float p = M->pd * (clamp0(wi[2]) / PI_F);
+    float sp = 0.0f;
+    if (kind == 1) {  /* Phong */
+        float Rx = -wo[0], Ry = -wo[1], Rz = wo[2];
+        float nr = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
+        float c = (Rx * wi[0] + Ry * wi[1] + Rz * wi[2]) / (nr < TINY ? TINY : nr);
+        sp = pcos_pdf(c, M->pnorm_phong, M->s);
+    } else if (kind == 2 || kind == 3 || kind == 4) {
+        float h[3], valid;
+        half_vec(wi, wo, h, &valid);
+        float ph;
+        if (kind == 2) ph = pcos_pdf(h[2], M->pnorm_phong, M->s);
+        else if (kind == 3) ph = beckD(h[2], M->mm, M->pimm) * h[2];
+        else {
+            float hz = h[2] < TINY ? TINY : h[2];
+            float a = h[0] / M->ax, b = h[1] / M->ay;
+            float e = (a * a + b * b) / (hz * hz);
+            float pw = expf(-e) / (M->piaxay * (hz * hz * hz));
+            ph = h[2] > 0.0f ? pw : 0.0f;
+        }
+        sp = h2wi(ph, wo, h, valid);
+    }
+    return (kind != 0 && M->has_spec) ? p + M->ps * sp : p;  /* a select: the lobe is computed anyway */
+}
+
+/* Material.eval (no cosine) */
+static inline __attribute__((always_inline)) void mat_eval(const Mat *M, int kind, const float *wi, const float *wo, float *f) {
+    float lobe = 0.0f;
+    if (kind == 1) {
+        float c = -wo[0] * wi[0] + -wo[1] * wi[1] + wo[2] * wi[2];
+        lobe = pcos_pdf(c, M->pnorm_phong, M->s);
+    } else if (kind == 2) {
+        float h[3], valid;
+        half_vec(wi, wo, h, &valid);
+        lobe = M->bnorm * powf(clamp0(h[2]), M->s) * valid;
+    } else if (kind == 3) {
+        float h[3], valid;
+        half_vec(wi, wo, h, &valid);
+        float nh = h[2], ni = wi[2], no = wo[2];
+        float oh = wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2];
+        oh = oh < TINY ? TINY : oh;
+        float g1 = 2.0f * nh * no / oh, g2 = 2.0f * nh * ni / oh;
+        float G = g1 < g2 ? g1 : g2;
+        G = 1.0f < G ? 1.0f : G;
+        float x = clamp0(1.0f - oh);
+        float F = M->F0 + M->omF0 * (x * x * x * x * x);
+        float den = 4.0f * ni * no;
+        lobe = beckD(nh, M->mm, M->pimm) * F * (G / (den < TINY ? TINY : den) * valid);
+    } else if (kind == 4) {
+        float hx = wi[0] + wo[0], hy = wi[1] + wo[1], hz = wi[2] + wo[2];
+        hz = hz < TINY ? TINY : hz;
+        float a = hx / M->ax, b = hy / M->ay;
+        float e = (a * a + b * b) / (hz * hz);
+        float c = wi[2] * wo[2];
+        c = sqrtf(c < TINY ? TINY : c);
+        lobe = expf(-e) / (M->pi4axay * c);
+    }
+    int up = (wi[2] > 0.0f) & (wo[2] > 0.0f);
+    for (int c = 0; c < 3; c++) {
+        float v = kind == 0 ? M->kd_pi[c] : M->kd_pi[c] + M->ks[c] * lobe;
+        f[c] = fsel(up, v);
+    }
+}
+
+/* cos(phi + 0) = cos(phi) bit for bit (phi >= 0 here); the + 0 keeps GCC from merging the sin and cos
+   calls into one sincos (a complex result that the vectoriser does not take) */
+#define NOSINCOS(x) ((x) + 0.0f)
+
+static inline __attribute__((always_inline)) void from_cos_phi(float z, float u1, float *w) {
+    float phi = (float)(2.0 * M_PI) * u1;
+    float r = sqrtf(clamp0(1.0f - z * z));
+    w[0] = r * cosf(NOSINCOS(phi)); w[1] = r * sinf(phi); w[2] = z;
+}
+
+static inline __attribute__((always_inline)) void reflect_about(const float *wo, const float *h, float *wi) {
+    float k = 2.0f * (wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2]);
+    for (int c = 0; c < 3; c++) wi[c] = k * h[c] - wo[c];
+}
+
+/* Material.sample's direction (its pdf: mat_pdf) */
+static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int kind, const float *wo, float u0, float u1, float *wi) {
+    const float om = 1.0f - 1.1920928955078125e-07f;
+    float a = u0 / M->pd_clamped;  /* clamp(0, om), by bit masks (see fsel) */
+    a = fblend(a < 0.0f, 0.0f, fblend(a > om, om, a));
+    from_cos_phi(sqrtf(clamp0(1.0f - a)), u1, wi);
+    if (kind == 0) return;
+    float us = (u0 - M->pd) / M->ps;
+    us = us < 0.0f ? 0.0f : (us > om ? om : us);
+    float w[3];
+    const float cl = (float)(1.0 - 1e-7);
+    if (kind == 1) {
+        float Rx = -wo[0], Ry = -wo[1], Rz = wo[2];
+        float nr = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
+        nr = nr < TINY ? TINY : nr;
+        Rx = Rx / nr; Ry = Ry / nr; Rz = Rz / nr;
+        float sg = Rz >= 0.0f ? 1.0f : -1.0f;
+        float aa = -1.0f / (sg + Rz);
+        float bb = Rx * Ry * aa;
+        float sx = 1.0f + sg * Rx * Rx * aa, sy = sg * bb, sz = -sg * Rx;
+        float tx = bb, ty = sg + Ry * Ry * aa, tz = -Ry;
+        float l[3];
+        from_cos_phi(powf(clamp0(1.0f - us), M->inv_s1), u1, l);
+        w[0] = l[0] * sx + l[1] * tx + l[2] * Rx;
+        w[1] = l[0] * sy + l[1] * ty + l[2] * Ry;
+        w[2] = l[0] * sz + l[1] * tz + l[2] * Rz;
+    } else {
+        float h[3];
+        if (kind == 2) {
+            from_cos_phi(powf(clamp0(1.0f - us), M->inv_s1), u1, h);
+        } else if (kind == 3) {
+            float tan2 = M->neg_mm * log1pf(-(us > cl ? cl : us));
+            from_cos_phi(1.0f / sqrtf(1.0f + tan2), u1, h);
+        } else {
+            float r = sqrtf(-log1pf(-(us > cl ? cl : us)));
+            float phi = (float)(2.0 * M_PI) * u1;
+            float sx = M->ax * r * cosf(NOSINCOS(phi)), sy = M->ay * r * sinf(phi);
+            float nr = sqrtf(sx * sx + sy * sy + 1.0f);
+            h[0] = sx / nr; h[1] = sy / nr; h[2] = 1.0f / nr;
+        }
+        reflect_about(wo, h, w);
+    }
+    int spec = M->has_spec & (u0 >= M->pd);  /* a select: the lobe's sample is computed anyway */
+    for (int c = 0; c < 3; c++) wi[c] = spec ? w[c] : wi[c];
+}
+
+/* The per-sample frame (methods.core.frames.coordinate_system), w_o in it, ng on n's side. */
+#define SAMPLE_SETUP                                                                              \
+    float nx = n_[3 * i], ny = n_[3 * i + 1], nz = n_[3 * i + 2];                                 \
+    float wv0 = wo_[3 * i], wv1 = wo_[3 * i + 1], wv2 = wo_[3 * i + 2];                           \
+    float sg = nz >= 0.0f ? 1.0f : -1.0f;                                                         \
+    float aa = -1.0f / (sg + nz);                                                                 \
+    float bb = nx * ny * aa;                                                                      \
+    float s0 = 1.0f + sg * nx * nx * aa, s1 = sg * bb, s2 = -sg * nx;                             \
+    float t0 = bb, t1 = sg + ny * ny * aa, t2 = -ny;                                              \
+    float wol[3] = {s0 * wv0 + s1 * wv1 + s2 * wv2, t0 * wv0 + t1 * wv1 + t2 * wv2,               \
+                    nx * wv0 + ny * wv1 + nz * wv2};                                              \
+    float g0 = ng_[3 * i], g1 = ng_[3 * i + 1], g2 = ng_[3 * i + 2];                              \
+    float gs = (g0 * nx + g1 * ny + g2 * nz < 0.0f) ? -1.0f : 1.0f;                               \
+    g0 = gs * g0; g1 = gs * g1; g2 = gs * g2;
+
+/* f cos w, live, shadow-ray origin and direction of ray (j, i): slot-major rows j * QS + i */
+#define RAY_OUT                                                                                   \
+    {                                                                                             \
+        float f[3];                                                                               \
+        mat_eval(&M, kind, wi, wol, f);                                                           \
+        float cw = clamp0(wi[2]) * w;                                                             \
+        int64_t r = j * QS + i;                                                                   \
+        float c0 = f[0] * cw, c1 = f[1] * cw, c2 = f[2] * cw;                                     \
+        contrib_[3 * r] = c0; contrib_[3 * r + 1] = c1; contrib_[3 * r + 2] = c2;                 \
+        /* amax > 0 (NaN: not live), through a float select (a byte select does not vectorise) */ \
+        float pos = ((c0 > 0.0f) | (c1 > 0.0f) | (c2 > 0.0f)) ? 1.0f : 0.0f;                      \
+        float nan = ((c0 != c0) | (c1 != c1) | (c2 != c2)) ? 0.0f : 1.0f;                         \
+        live_[r] = (uint8_t)(int32_t)(pos * nan);                                                 \
+        float sd = g0 * dw[0] + g1 * dw[1] + g2 * dw[2];                                          \
+        float side = (float)(sd > 0.0f) - (float)(sd < 0.0f);                                     \
+        o_[3 * r] = p_[3 * i] + side * g0 * eps;                                                  \
+        o_[3 * r + 1] = p_[3 * i + 1] + side * g1 * eps;                                          \
+        o_[3 * r + 2] = p_[3 * i + 2] + side * g2 * eps;                                          \
+        d_[3 * r] = dw[0]; d_[3 * r + 1] = dw[1]; d_[3 * r + 2] = dw[2];                          \
+    }
+
+static inline __attribute__((always_inline)) float power_h(float a, float b) {
+    float a2 = a * a, b2 = b * b;
+    return a2 > 0.0f ? a2 / (a2 + b2) : 0.0f;
+}
+
+static inline __attribute__((always_inline)) void block(const PArgs *A, const Mat *Mp, const int kind, int64_t i0, int64_t i1) {
+    const Mat M = *Mp;
+    const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS;
+    const float *__restrict n_ = A->n, *__restrict wo_ = A->wo, *__restrict ng_ = A->ng, *__restrict p_ = A->p;
+    const float *__restrict ul_ = A->ul, *__restrict ub_ = A->ub;
+    const double *__restrict cdf0_ = A->cdf0, *__restrict pflat_ = A->pflat, *__restrict omega_ = A->omega;
+    const double *__restrict ztab_ = A->ztab;
+    float *__restrict contrib_ = A->contrib, *__restrict o_ = A->o, *__restrict d_ = A->d;
+    uint8_t *__restrict live_ = A->live;
+    const float eps = A->eps;
+    double R[9];
+    for (int c = 0; c < 9; c++) R[c] = A->R[c];
+    const float fnl = (float)NL, fnb = (float)NB;
+    float bu0[MAXB], bu1[MAXB];
+    int32_t bk[MAXB];
+    int64_t bk64[MAXB], bok[MAXB];
+    double bx[MAXB];
+    const int32_t *__restrict guide_ = A->guide;
+    const int64_t G = A->G;
+    int64_t top = 1;  /* count_le's first step: the largest power of 2 <= C */
+    while (2 * top <= C) top *= 2;
+    for (int64_t j = 0; j < NL; j++) {
+        for (int64_t i = i0; i < i1; i++) {  /* the slot's uniforms, contiguous */
+            bu0[i - i0] = ul_[2 * (i * NL + j)]; bu1[i - i0] = ul_[2 * (i * NL + j) + 1];
+            bx[i - i0] = (double)bu0[i - i0];
+        }
+        /* the cells: count_le(cdf, u0) by the guide table (methods.core.envguide.guided_count_le, GUIDE_STEPS
+           = 4 bisection steps in the bucket), the u0 it does not bracket by count_le itself (fix_unguided) */
+#pragma GCC ivdep
+        for (int64_t ii = 0; ii < i1 - i0; ii++) {
+            double x = bx[ii];  /* double and int64 only: 4-lane gathers */
+            int64_t inside = (x >= 0.0) & (x <= 1.0);
+            double xs = inside ? x : 0.0;
+            int64_t b = (int32_t)floor(xs * (double)G);  /* G a power of 2: exact; via int32 (AVX2) */
+            b = b < 0 ? 0 : (b > G - 1 ? G - 1 : b);
+            int64_t lo = guide_[b], hi = guide_[b + 1], k = lo;  /* int64: 4-lane double gathers */
+#define GSTEP(step)                                                                               \
+            {                                                                                     \
+                int64_t jj = k + (step - 1);                                                      \
+                jj = jj > C - 1 ? C - 1 : jj;                                                     \
+                double cj = cdf0_[jj + 1];                                                        \
+                k = ((k + step <= hi) & (cj <= xs)) ? k + step : k;                               \
+            }
+            GSTEP(8) GSTEP(4) GSTEP(2) GSTEP(1)
+#undef GSTEP
+            bk64[ii] = k;
+            bok[ii] = inside & (hi - lo < 16);
+        }
+        for (int64_t ii = 0; ii < i1 - i0; ii++) {
+            bk[ii] = (int32_t)bk64[ii];
+            if (bok[ii]) continue;
+            double x = (double)bu0[ii];  /* scenes.envmap.count_le */
+            int64_t k = 0;
+            for (int64_t step = top; step; step >>= 1) {
+                int64_t jj = k + (step - 1);
+                jj = jj > C - 1 ? C - 1 : jj;
+                if (k + step <= C && cdf0_[jj + 1] <= x) k += step;
+            }
+            bk[ii] = (int32_t)k;
+        }
+#pragma GCC ivdep
+        for (int64_t i = i0; i < i1; i++) {
+            SAMPLE_SETUP
+            /* scenes.envmap.sample_cells after its search (methods.core.envguide.sample_cells_at), float64 */
+            double u0 = (double)bu0[i - i0], u1 = (double)bu1[i - i0];
+            int32_t k = bk[i - i0];
+            k = k > C - 1 ? (int32_t)(C - 1) : k;
+            double lo = cdf0_[k];  /* cdf[k - 1], 0 for k = 0 (cdf0: the cdf after a 0) */
+            double pk = pflat_[k];
+            double r = (u0 - lo) / (pk < 1e-300 ? 1e-300 : pk);
+            r = r < 0.0 ? 0.0 : (r > 1.0 ? 1.0 : r);
+            /* k // W, k % W in int32 (vector) arithmetic: the double quotient's floor, corrected */
+            int32_t iy = (int32_t)(float)((double)k / (double)W);  /* via float: AVX2 converts 8 lanes */
+            iy = iy * (int32_t)W > k ? iy - 1 : iy;
+            iy = (iy + 1) * (int32_t)W <= k ? iy + 1 : iy;
+            int32_t ix = k - iy * (int32_t)W;
+            double phi = 2 * M_PI * ((double)ix + 0.5 + r) / (double)W;
+            double zt = ztab_[iy], zb = ztab_[iy + 1];
+            double zc = zt - u1 * (zt - zb);
+            double st = 1 - zc * zc;
+            st = sqrt(st < 0.0 ? 0.0 : st);
+            double l0 = sin(phi) * st, l1 = zc, l2 = -cos(phi + 0.0) * st;  /* + 0: NOSINCOS */
+            float pdf_l = (float)(pk / omega_[iy]);
+            float dw[3];
+            dw[0] = (float)(l0 * R[0] + l1 * R[1] + l2 * R[2]);
+            dw[1] = (float)(l0 * R[3] + l1 * R[4] + l2 * R[5]);
+            dw[2] = (float)(l0 * R[6] + l1 * R[7] + l2 * R[8]);
+            float wi[3] = {s0 * dw[0] + s1 * dw[1] + s2 * dw[2], t0 * dw[0] + t1 * dw[1] + t2 * dw[2],
+                           nx * dw[0] + ny * dw[1] + nz * dw[2]};
+            float pdf_b = mat_pdf(&M, kind, wi, wol);
+            float w = power_h(pdf_l, pdf_b) / (pdf_l < 1e-30f ? 1e-30f : pdf_l) / fnl;
+            w = pdf_l > 0.0f ? w : 0.0f;
+            RAY_OUT
+        }
+    }
+    for (int64_t jb = 0; jb < NB; jb++) {
+        const int64_t j = NL + jb;
+        for (int64_t i = i0; i < i1; i++) {
+            bu0[i - i0] = ub_[2 * (i * NB + jb)]; bu1[i - i0] = ub_[2 * (i * NB + jb) + 1];
+        }
+#pragma GCC ivdep
+        for (int64_t i = i0; i < i1; i++) {
+            SAMPLE_SETUP
+            float wi[3];
+            mat_sample(&M, kind, wol, bu0[i - i0], bu1[i - i0], wi);
+            float pdf_b = mat_pdf(&M, kind, wi, wol);
+            float dw[3] = {wi[0] * s0 + wi[1] * t0 + wi[2] * nx, wi[0] * s1 + wi[1] * t1 + wi[2] * ny,
+                           wi[0] * s2 + wi[1] * t2 + wi[2] * nz};
+            /* scenes.envmap.cell_pdf, float64 (0 without light samples: a select) */
+            double e0 = dw[0], e1 = dw[1], e2 = dw[2];
+            double x = e0 * R[0] + e1 * R[3] + e2 * R[6];
+            double y = e0 * R[1] + e1 * R[4] + e2 * R[7];
+            double z = e0 * R[2] + e1 * R[5] + e2 * R[8];
+            double u = atan2(x, -z) * (0.5 / M_PI);
+            double v = acos(y < -1.0 ? -1.0 : (y > 1.0 ? 1.0 : y)) * (1.0 / M_PI);
+            /* u in [-1/2, 1/2]: floor(u W - 1/2) in [-W/2 - 1, W/2 - 1]; torch.remainder by W */
+            int32_t cx = (int32_t)(float)floor(u * (double)W - 0.5);  /* an integer: exact in float */
+            cx = cx < 0 ? cx + (int32_t)W : cx;
+            cx = cx >= W ? cx - (int32_t)W : cx;
+            int32_t cy = (int32_t)(float)floor(v * (double)(H - 1));
+            cy = cy < 0 ? 0 : (cy > H - 2 ? (int32_t)(H - 2) : cy);
+            float pc = (float)(pflat_[cy * (int32_t)W + cx] / omega_[cy]);
+            float pdf_l = NL ? pc : 0.0f;
+            float w = power_h(pdf_b, pdf_l) / (pdf_b < 1e-30f ? 1e-30f : pdf_b) / fnb;
+            w = pdf_b > 0.0f ? w : 0.0f;
+            RAY_OUT
+        }
+    }
+}
+
+void pretrace(const PArgs *A, int64_t block_rows, int32_t nt) {
+    Mat M;
+    M.kind = A->kind; M.has_spec = A->has_spec;
+    for (int c = 0; c < 3; c++) { M.kd_pi[c] = (float)A->kd[c] / PI_F; M.ks[c] = (float)A->ks[c]; }
+    M.ps = (float)A->ps; M.pd = (float)(1.0 - A->ps); M.pd_clamped = (float)(1.0 - A->ps < 1e-12 ? 1e-12 : 1.0 - A->ps);
+    M.s = (float)A->s;
+    M.pnorm_phong = (float)((A->s + 1.0) / (2.0 * M_PI));
+    M.bnorm = (float)((A->s + 2.0) / (8.0 * M_PI));
+    M.inv_s1 = (float)(1.0 / (A->s + 1.0));
+    M.mm = (float)(A->m * A->m); M.pimm = (float)(M_PI * A->m * A->m); M.neg_mm = (float)(-(A->m * A->m));
+    M.F0 = (float)A->F0; M.omF0 = (float)(1.0 - A->F0);
+    M.ax = (float)A->ax; M.ay = (float)A->ay;
+    M.piaxay = (float)(M_PI * A->ax * A->ay); M.pi4axay = (float)(4.0 * M_PI * A->ax * A->ay);
+    int64_t nb = (A->Q + block_rows - 1) / block_rows;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t b = 0; b < nb; b++) {
+        int64_t i0 = b * block_rows, i1 = i0 + block_rows < A->Q ? i0 + block_rows : A->Q;
+        switch (M.kind) {
+        case 0: block(A, &M, 0, i0, i1); break;
+        case 1: block(A, &M, 1, i0, i1); break;
+        case 2: block(A, &M, 2, i0, i1); break;
+        case 3: block(A, &M, 3, i0, i1); break;
+        default: block(A, &M, 4, i0, i1); break;
+        }
+    }
+}
+
+/* Sum over a sample's K rays of contribution * radiance where lit (methods.oracle._shade_stage:
+   scenes.envmap.bilinear_lookup of d @ R in float32, the unlit a fixed direction +y counted 0);
+   rays slot-major (K, Q). */
+static void shade_rows(const float *__restrict contrib, const uint8_t *__restrict lit, const float *__restrict d,
+                       const float *__restrict ext, const float *__restrict Rp, int64_t Q, int64_t K, int64_t H,
+                       int64_t W, float *__restrict out, int64_t i0, int64_t i1) {
+    const float hw = (float)(0.5 / W), fW = (float)W, fH1 = (float)(H - 1);
+    const float i2pi = (float)(0.5 / M_PI), ipi = (float)(1.0 / M_PI);
+    float R[9];
+    for (int c = 0; c < 9; c++) R[c] = Rp[c];
+    for (int64_t i = i0; i < i1; i++) { out[3 * i] = 0.0f; out[3 * i + 1] = 0.0f; out[3 * i + 2] = 0.0f; }
+    for (int64_t k = 0; k < K; k++) {
+#pragma GCC ivdep
+        for (int64_t i = i0; i < i1; i++) {
+            int64_t r = k * Q + i;
+            int l = lit[r] != 0;
+            float dx = d[3 * r], dy = d[3 * r + 1], dz = d[3 * r + 2];
+            float x = l ? dx : 0.0f, y = l ? dy : 1.0f, z = l ? dz : 0.0f;
+            float xl = x * R[0] + y * R[3] + z * R[6];
+            float yl = x * R[1] + y * R[4] + z * R[7];
+            float zl = x * R[2] + y * R[5] + z * R[8];
+            float u = atan2f(xl, -zl) * i2pi;
+            float v = acosf(yl < -1.0f ? -1.0f : (yl > 1.0f ? 1.0f : yl)) * ipi;
+            u = u - hw;
+            u = u - floorf(u);
+            v = v - floorf(v);
+            float fx = u * fW, fy = v * fH1;
+            int32_t ix = (int32_t)fx, iy = (int32_t)fy;
+            ix = ix > W - 1 ? (int32_t)(W - 1) : ix;
+            iy = iy > H - 2 ? (int32_t)(H - 2) : iy;
+            int32_t idx = iy * (int32_t)(W + 1) + ix;
+            fx = fx - (float)ix; fy = fy - (float)iy;
+            float w0x = 1.0f - fx, w0y = 1.0f - fy;
+#define TAP(c)                                                                                    \
+            {                                                                                     \
+                float v0 = w0x * ext[3 * idx + c] + fx * ext[3 * (idx + 1) + c];                 \
+                float v1 = w0x * ext[3 * (idx + W + 1) + c] + fx * ext[3 * (idx + W + 2) + c];   \
+                float L = w0y * v0 + fy * v1;                                                     \
+                L = l ? L : 0.0f;                                                                 \
+                out[3 * i + c] = out[3 * i + c] + contrib[3 * r + c] * L;                         \
+            }
+            TAP(0) TAP(1) TAP(2)
+#undef TAP
+        }
+    }
+}
+
+/* The live rays' origins and directions (rows of live (n,) nonzero, in order) into oc, dc: count[0]. */
+void compact(const uint8_t *live, const float *o, const float *d, int64_t n, float *oc, float *dc, int64_t *count) {
+    int64_t m = 0;
+    for (int64_t r = 0; r < n; r++) {  /* branchless: every ray written at m (<= r < n), kept if live */
+        oc[3 * m] = o[3 * r]; oc[3 * m + 1] = o[3 * r + 1]; oc[3 * m + 2] = o[3 * r + 2];
+        dc[3 * m] = d[3 * r]; dc[3 * m + 1] = d[3 * r + 1]; dc[3 * m + 2] = d[3 * r + 2];
+        m += live[r] != 0;
+    }
+    count[0] = m;
+}
+
+/* lit = live and not blocked (blocked: per live ray, in compact's order) */
+void lit_rays(const uint8_t *live, const uint8_t *blocked, int64_t n, uint8_t *lit) {
+    int64_t m = 0;
+    for (int64_t r = 0; r < n; r++) {
+        uint8_t l = live[r] != 0;
+        lit[r] = l ? (uint8_t)(blocked[m] == 0) : 0;
+        m += l;
+    }
+}
+
+void shade(const float *contrib, const uint8_t *lit, const float *d, const float *ext, const float *R,
+           int64_t Q, int64_t K, int64_t H, int64_t W, float *out, int64_t block_rows, int32_t nt) {
+    int64_t nb = (Q + block_rows - 1) / block_rows;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t b = 0; b < nb; b++) {
+        int64_t i0 = b * block_rows, i1 = i0 + block_rows < Q ? i0 + block_rows : Q;
+        shade_rows(contrib, lit, d, ext, R, Q, K, H, W, out, i0, i1);
+    }
+}
+"""
+
+
+class _PArgs(ctypes.Structure):
+    _fields_ = [("n", ctypes.c_void_p), ("wo", ctypes.c_void_p), ("ng", ctypes.c_void_p), ("p", ctypes.c_void_p),
+                ("ul", ctypes.c_void_p), ("ub", ctypes.c_void_p),
+                ("cdf0", ctypes.c_void_p), ("pflat", ctypes.c_void_p), ("omega", ctypes.c_void_p),
+                ("ztab", ctypes.c_void_p), ("R", ctypes.c_void_p), ("guide", ctypes.c_void_p), ("G", ctypes.c_int64),
+                ("Q", ctypes.c_int64), ("NL", ctypes.c_int64), ("NB", ctypes.c_int64), ("C", ctypes.c_int64),
+                ("H", ctypes.c_int64), ("W", ctypes.c_int64), ("QS", ctypes.c_int64), ("eps", ctypes.c_float),
+                ("kind", ctypes.c_int32), ("has_spec", ctypes.c_int32),
+                ("kd", ctypes.c_double * 3), ("ks", ctypes.c_double * 3), ("ps", ctypes.c_double),
+                ("s", ctypes.c_double), ("m", ctypes.c_double), ("F0", ctypes.c_double),
+                ("ax", ctypes.c_double), ("ay", ctypes.c_double),
+                ("contrib", ctypes.c_void_p), ("o", ctypes.c_void_p), ("d", ctypes.c_void_p),
+                ("live", ctypes.c_void_p)]
+
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _P, _P, _P],
+               "lit_rays": [_P, _P, _I, _P],
+               "shade": [_P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
+
+
+@functools.lru_cache(maxsize=None)
+def _lib():
+    # libmvec: the vector variants of the math functions (module docstring); linked explicitly
+    return native.load("oracle_rays", _SOURCE, _SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", "-fno-trapping-math", *native.isa_flags(),
+                                    "-Wl,--no-as-needed", "-lmvec", "-lm"))
+
+
+def available() -> bool:
+    """True when the C loops run (else the caller takes the compiled path)."""
+    return _lib() is not None
+
+
+def supports(mat) -> bool:
+    """Whether ``mat`` (a library material, ``scenes.materials``) has a C body (`KINDS`)."""
+    return type(mat).__module__ == "scenes.materials" and getattr(mat, "kind", None) in KINDS
+
+
+def _threads(q: int) -> int:
+    return max(1, min(torch.get_num_threads(), q // MIN_PER_THREAD))
+
+
+@functools.lru_cache(maxsize=8)
+def _ztab(H: int) -> Tensor:
+    """cos(π·iy/(H − 1)) for iy = 0 … H − 1, as ``scenes.envmap.sample_cells`` computes z_top / z_bot
+    (the same float64 expression, so the same values)."""
+    iy = torch.arange(H, dtype=torch.int64)
+    return torch.cos(math.pi * iy.double() / (H - 1))
+
+
+_CDF0: list = [None, None]  # (the cdf, its `_cdf0`) of the last call (an env map's tables are reused)
+
+
+def _cdf0(cdf: Tensor) -> Tensor:
+    """(C + 1,) float64: 0, then ``cdf`` — cdf0[k] is the probability below cell k (``sample_cells``' lo)."""
+    if _CDF0[0] is not cdf:
+        _CDF0[:] = [cdf, torch.cat([cdf.new_zeros(1), cdf])]
+    return _CDF0[1]
+
+
+def _ptr(t: Tensor) -> int:
+    return t.data_ptr()
+
+
+def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b: Tensor, NL: int, NB: int,
+             tables: tuple, H: int, W: int, eps: float, out: tuple[Tensor, Tensor, Tensor, Tensor]) -> None:
+    """The rays of Q samples of one region (material ``mat``, `supports`) into ``out`` = (contributions
+    f·cos·w, live (bool), shadow-ray origins, world directions), row slices [:, a:b] of (K, QS, 3) resp.
+    (K, QS) contiguous arrays (rays slot-major), K = NL + NB, light samples first. n, wo, ng, p: (Q, 3)
+    float32 contiguous; U_l (Q, NL, 2), U_b (Q, NB, 2) float32 contiguous (ignored when NL resp. NB is
+    0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous. The light
+    samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table)."""
+    lib = _lib()
+    Q = int(n.shape[0])
+    if Q == 0:
+        return
+    cdf, p_flat, omega, R = tables
+    a = _PArgs()
+    a.n, a.wo, a.ng, a.p = _ptr(n), _ptr(wo), _ptr(ng), _ptr(p)
+    a.ul, a.ub = _ptr(U_l), _ptr(U_b)
+    zt, guide = _ztab(H), guide_table(cdf)
+    a.cdf0, a.pflat, a.omega, a.ztab, a.R = _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(omega), _ptr(zt), _ptr(R)
+    a.guide, a.G = _ptr(guide), int(guide.shape[0]) - 1
+    a.Q, a.NL, a.NB, a.C, a.H, a.W = Q, NL, NB, int(cdf.shape[0]), H, W
+    a.eps = float(eps)
+    a.kind, a.has_spec = KINDS[mat.kind], int(mat.spec_weight > 0)
+    a.kd[:] = [float(x) for x in mat.kd]
+    a.ks[:] = [float(x) for x in mat.ks_rgb]
+    a.ps = float(mat.spec_weight)
+    for f in ("s", "m", "F0", "ax", "ay"):
+        setattr(a, f, float(getattr(mat, f, 1.0)))
+    contrib, live, o, d = out
+    if not (live.stride(0) == contrib.stride(0) // 3 == o.stride(0) // 3 == d.stride(0) // 3
+            and all(x.stride()[1:] == (3, 1) for x in (contrib, o, d)) and live.stride(1) == 1):
+        raise ValueError("pretrace: outputs must be row slices of (K, QS, 3) / (K, QS) contiguous arrays")
+    a.QS = int(live.stride(0))
+    a.contrib, a.live, a.o, a.d = _ptr(contrib), _ptr(live), _ptr(o), _ptr(d)
+    lib.pretrace(ctypes.byref(a), BLOCK, _threads(Q))  # BLOCK <= MAXB
+
+
+def trace(vis, live: Tensor, o: Tensor, d: Tensor) -> tuple[Tensor, int]:
+    """The live rays (live (...) bool, origins and directions (..., 3) float32, contiguous) gathered in
+    order (C) and traced in one batch (``vis.occluded``): → (lit = live and unblocked, live rays)."""
+    lib = _lib()
+    n = live.numel()
+    oc, dc = torch.empty(n, 3), torch.empty(n, 3)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    lib.compact(_ptr(live), _ptr(o), _ptr(d), n, _ptr(oc), _ptr(dc), _ptr(cnt))
+    m = int(cnt[0])
+    if not m:
+        return torch.zeros_like(live), 0
+    blocked = torch.as_tensor(vis.occluded(oc[:m], dc[:m])).to(torch.bool).contiguous()
+    if blocked.shape != (m,):
+        raise ValueError(f"occluded returned {tuple(blocked.shape)} for {m} rays")
+    lit = torch.empty_like(live)
+    lib.lit_rays(_ptr(live), _ptr(blocked), n, _ptr(lit))
+    return lit, m
+
+
+def shade(contrib: Tensor, lit: Tensor, d: Tensor, ext: Tensor, R32: Tensor, H: int, W: int) -> Tensor:
+    """Σ_k contribution · radiance over the lit rays (``methods.oracle._shade_stage``): contributions
+    and world directions (Q, K, 3) float32, lit (Q, K) bool, all contiguous; ext the periodic-extended
+    texels (H·(W + 1), 3), R32 (3, 3) float32 → (Q, 3)."""
+    K, Q = int(contrib.shape[0]), int(contrib.shape[1])
+    out = torch.empty(Q, 3, dtype=torch.float32)
+    if Q:
+        _lib().shade(_ptr(contrib), _ptr(lit), _ptr(d), _ptr(ext), _ptr(R32), Q, K, H, W, _ptr(out), BLOCK,
+                     _threads(Q))
+    return out
