@@ -1,4 +1,5 @@
-"""Same-process A/B of oracle frames (`Oracle.render`) against another checkout's `methods/oracle.py`
+"""Same-process A/B of oracle frames (`Oracle.render`) against another checkout's oracle (`methods/oracle.py`,
+`methods/oracle/` since session 30)
 (issue 14; `benchmarks.oracle` compares the two paths of one checkout).
 
     python -m benchmarks.oracle_ab --baseline /work/base [--scene chess] [--kinds V L]

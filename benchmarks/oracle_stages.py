@@ -8,7 +8,7 @@ Each stage function is wrapped (its own time, nested calls included in their cal
 env-map cell search (`_light_cells` / `_guide_stage`), the geometric normals, the sample blocks'
 layout (`_soa_blocks`), the pre-trace graph (`_pretrace_stage`), the shadow rays (``occluded``, the
 tracer alone) and their gathers (`_trace_soa`), the radiance look-up (`_shade_block_stage`), the
-resolve; on the C loops' path (``methods.oracle_native``) their cell search + per-ray work
+resolve; on the C loops' path (``methods.oracle.native_rays``) their cell search + per-ray work
 (``native.pretrace``), live-ray gather + trace (``native.trace``, the tracer in it) and radiance sum
 (``native.shade``). The rest of a frame (random numbers, index arithmetic, copies) is the frame minus them.
 """
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> dict:
     for name in ("_light_cells", "_trace_soa"):
         setattr(O.Oracle, name, staticmethod(timed(O.Oracle.__dict__[name].__func__, name)))
     base.GBuffer.resolve = timed(base.GBuffer.resolve, "resolve")
-    import methods.oracle_native as N  # the C loops' path (`Oracle._shade_native`)
+    import methods.oracle.native_rays as N  # the C loops' path (`Oracle._shade_native`)
 
     for name in ("pretrace", "trace", "shade"):
         setattr(N, name, timed(getattr(N, name), f"native.{name}"))

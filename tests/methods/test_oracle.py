@@ -214,7 +214,7 @@ def test_oracle_fast_equals_reference(scene_name, kind, compiled, monkeypatch):
         assert err <= 1e-4 * ref.abs().max().item(), (cfg, err)
 
 
-# -- the C loops (methods.oracle_native) ---------------------------------------------------------
+# -- the C loops (methods.oracle.native_rays) ---------------------------------------------------------
 
 
 def _native_materials(name):
@@ -231,13 +231,13 @@ def _native_materials(name):
 
 @pytest.mark.parametrize("mats", ["library", "ward+lambert", "ct+blinn", "spec-only+no-spec"])
 def test_oracle_native_equals_reference_and_compiled(mats, monkeypatch):
-    """The C loops (`methods.oracle_native`: every region's BRDF with a C body) = the eager estimator
+    """The C loops (`methods.oracle.native_rays`: every region's BRDF with a C body) = the eager estimator
     (`render_reference`), and on the library's chess materials the compiled path too (the C loops
     switched off): the same rays traced (live counts) and the image to float32 round-off (the
     tolerance of `test_oracle_fast_equals_reference`), for every BRDF family with a C body,
     specular-only and diffuse-only mixtures, both MIS strategies, each alone, and ray batches smaller
     than a region. Checks that the C path ran."""
-    import methods.oracle_native as on
+    import methods.oracle.native_rays as on
 
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
     if not on.available():

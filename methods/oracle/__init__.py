@@ -30,7 +30,7 @@ cells are searched before, in one pass over the frame, by a guide table (`_light
 
 When every region's BRDF has a C body (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward) and the C
 compiler is there, `Oracle._shade_native` runs all of it but the shadow-ray test as C loops instead
-(``methods.oracle_native``: the cell search, the per-ray work, the live rays' gather, the radiance
+(``methods.oracle.native_rays``: the cell search, the per-ray work, the live rays' gather, the radiance
 sum; the same operations from the same random numbers; 1.8× the compiled path's frame, chess and
 creature bench, 1 thread); the compiled path above is its fallback and, with the eager estimator, its
 test oracle.
@@ -46,7 +46,7 @@ from dataclasses import fields
 from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
 from scenes.sequences import KINDS
 from methods.core import native
-from methods import oracle_native
+from methods.oracle import native_rays as oracle_native
 from methods.core.frames import coordinate_system
 from methods.core.latlong import planar_radiance
 from methods.core.fused import fused, map_rows
@@ -510,14 +510,14 @@ class Oracle(Method):
 
     @staticmethod
     def _native(regions: list, gbuffer: GBuffer, U_l: Tensor, U_b: Tensor) -> bool:
-        """Whether a frame runs the C loops (``methods.oracle_native``): they are built, every region's
+        """Whether a frame runs the C loops (``methods.oracle.native_rays``): they are built, every region's
         BRDF has a C body, the G-buffer and the random numbers are float32 CPU tensors."""
         ts = (gbuffer.position, gbuffer.normal, gbuffer.wo, U_l, U_b)
         return (all(oracle_native.supports(mat) for mat, _ in regions) and oracle_native.available()
                 and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in ts))
 
     def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
-        """`_shade_fast` by the C loops of ``methods.oracle_native`` (every region's BRDF has a C body):
+        """`_shade_fast` by the C loops of ``methods.oracle.native_rays`` (every region's BRDF has a C body):
         each region's rays (`oracle_native.pretrace`), the live ones traced in one batch
         (`_trace_soa`), the radiance look-up and sum (`oracle_native.shade`): → ((Q, 3) estimates,
         live rays)."""
