@@ -63,10 +63,11 @@ def test_project_pairs_equals_the_compiled_projection(supersample):
 
 
 def test_project_pairs_builds_agree():
-    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) writes the
-    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pairs16x2`, two at a
-    time), for supersample 2 on a tilted map: both the compiled projection's values; an odd count of
-    pairs (the last one alone) too."""
+    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) and the one
+    built with AVX2 only (the 16-sample pairs take `pairs16x2`, two at a time) write the same bits as
+    the one the frames use (on an AVX-512 host `zproject16`, four pairs in 16-lane vectors), for
+    supersample 2 on a tilted map: all the compiled projection's values; pair counts that are not a
+    multiple of two or four (the last pairs repeated) too."""
     from methods.core import native
     from methods.core.spherical_haar import Geodesic
     from methods.core.threads import torch_threads
@@ -85,22 +86,30 @@ def test_project_pairs_builds_agree():
                         extra_flags=("-ffp-contract=off", "-fno-trapping-math", "-fopenmp"))
     if plain is None:
         pytest.skip("the library did not build without ISA flags")
-    with torch_threads(1):
-        host = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
-        keep = native_light._lib
-        native_light._lib = lambda: plain
+    builds = {"plain": plain}
+    if native.isa_flags():
+        builds["avx2"] = native.load("tp_light_pairs_avx2", native_light._SOURCE, native_light._SIGNATURES,
+                                     extra_flags=native_light._flags())
+    keep = native_light._lib
+
+    def run(lib, sel):
+        native_light._lib = (lambda: lib) if lib is not None else keep
         try:
-            got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+            with torch_threads(1):
+                return lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=sel, out=torch.zeros_like(whole))
         finally:
             native_light._lib = keep
-    assert torch.equal(host, whole) and torch.equal(got, whole)
-    odd = pairs[1::2][:-1]                                              # an odd count (the last pair alone)
-    assert odd.numel() % 2 == 1
-    with torch_threads(1):
-        one = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=odd, out=torch.zeros_like(whole))
-    m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, odd, True)
-    m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
-    assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all())
+
+    assert torch.equal(run(None, pairs), whole)
+    for name, lib in builds.items():
+        assert lib is not None and torch.equal(run(lib, pairs), whole), name
+    for cut in (1, 2, 3):                                  # counts 1, 2, 3 past a multiple of four
+        sel = pairs[1::2][:(pairs.numel() // 8) * 4 + cut]
+        m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, sel, True)
+        m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
+        for lib in (None, *builds.values()):
+            one = run(lib, sel)
+            assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all()), cut
 
 
 @pytest.mark.parametrize("n", [1, 45, 640])
