@@ -480,7 +480,7 @@ class TripleProduct(Method):
                 if pairs.numel():
                     try:
                         lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
-                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
+                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1), grid=self.grid)
                     except BaseException:
                         pd.view(-1)[pairs] = False           # not projected
                         raise

@@ -39,7 +39,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "project"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -564,6 +564,101 @@ void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* 
     counts[1] = rows;
 }
 
+/* E frames: a map turned about +Y only (lighting.comb_means, the comb table CT of J = n_phi frames,
+   m = W / J columns per frame step) for the listed pairs f * n + t only. Grid frame f is base row
+   b = i n_psi + k and comb frame j (f = (i J + j) n_psi + k, lighting._comb_rows); its mean of live
+   triangle t is comb_means' sum: over the S samples s, then the taps (dy, e), of
+   CT[o[b, t, s] + j + c cs + dy rs + e es] w4[b, t, s, dy, e] (cs = 4 J, es = 2 J, rs = 3 m cs),
+   added in that order to 0 one by one, as the compiled reduction does on one thread: the same bits.
+   Per (b, t) holding a listed pair, each 8-frame group of j holding one is summed 8 frames per
+   vector, two groups at a time (six independent sums); frames of J past the last whole group one
+   by one. Every frame of a summed group is written (its true value). Items (b, t) are split in
+   contiguous ranges over nt threads. status[0]: 0, -2 out of memory, -1 J > 64. */
+typedef float cv8 __attribute__((vector_size(32)));
+static inline cv8 cld8(const float* p) { cv8 r; memcpy(&r, p, sizeof r); return r; }
+
+static inline void comb_two(const int32_t* ot, const float* wt, int64_t S, const float* CT, int64_t j0, int64_t j1,
+                            int64_t cs, int64_t es, int64_t rs, cv8* r0, cv8* r1) {
+    cv8 a0 = {0}, a1 = {0}, a2 = {0}, b0 = {0}, b1 = {0}, b2 = {0};
+    for (int64_t s = 0; s < S; ++s) {
+        const float* base = CT + ot[s];
+        for (int dy = 0; dy < 2; ++dy)
+            for (int e = 0; e < 2; ++e) {
+                const float w = wt[4 * s + 2 * dy + e];
+                const float* p = base + dy * rs + e * es;
+                a0 += cld8(p + j0) * w; a1 += cld8(p + j0 + cs) * w; a2 += cld8(p + j0 + 2 * cs) * w;
+                b0 += cld8(p + j1) * w; b1 += cld8(p + j1 + cs) * w; b2 += cld8(p + j1 + 2 * cs) * w;
+            }
+    }
+    r0[0] = a0; r0[1] = a1; r0[2] = a2;
+    r1[0] = b0; r1[1] = b1; r1[2] = b2;
+}
+
+static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint64_t* mask, int64_t n, int64_t S,
+                       int64_t n_psi, int64_t J, const int32_t* o, const float* w4, const float* CT, int64_t m,
+                       float* out) {
+    const int64_t cs = 4 * J, es = 2 * J, rs = 3 * m * cs, G = J / 8;
+    for (int64_t q = i0; q < i1; ++q) {
+        const int64_t it = items[q], b = it / n, t = it % n, i = b / n_psi, k = b % n_psi;
+        const uint64_t mk = mask[it];
+        const int32_t* ot = o + it * S;
+        const float* wt = w4 + it * S * 4;
+        int64_t gs[8], ng = 0;
+        for (int64_t g = 0; g < G; ++g)
+            if ((mk >> (8 * g)) & 0xffu) gs[ng++] = g;
+        for (int64_t a = 0; a < ng; a += 2) {
+            const int64_t g0 = gs[a], g1 = a + 1 < ng ? gs[a + 1] : gs[a];
+            cv8 r0[3], r1[3];
+            comb_two(ot, wt, S, CT, 8 * g0, 8 * g1, cs, es, rs, r0, r1);
+            for (int64_t l = 0; l < 8; ++l) {
+                const int64_t f0 = ((i * J + 8 * g0 + l) * n_psi + k) * 3 * n + t;
+                const int64_t f1 = ((i * J + 8 * g1 + l) * n_psi + k) * 3 * n + t;
+                for (int c = 0; c < 3; ++c) { out[f0 + c * n] = r0[c][l]; out[f1 + c * n] = r1[c][l]; }
+            }
+        }
+        for (int64_t j = 8 * G; j < J; ++j) {                   /* frames past the last whole group */
+            if (!((mk >> j) & 1u)) continue;
+            float acc[3] = {0.0f, 0.0f, 0.0f};
+            for (int64_t s = 0; s < S; ++s)
+                for (int dy = 0; dy < 2; ++dy)
+                    for (int e = 0; e < 2; ++e) {
+                        const float w = wt[4 * s + 2 * dy + e];
+                        const float* p = CT + ot[s] + j + dy * rs + e * es;
+                        for (int c = 0; c < 3; ++c) acc[c] += p[c * cs] * w;
+                    }
+            const int64_t f = ((i * J + j) * n_psi + k) * 3 * n + t;
+            for (int c = 0; c < 3; ++c) out[f + c * n] = acc[c];
+        }
+    }
+}
+
+void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
+                   int64_t* status) {
+    if (J > 64) { status[0] = -1; return; }
+    uint64_t* mask = (uint64_t*)calloc((size_t)(B * n), sizeof(uint64_t));
+    int64_t* items = (int64_t*)malloc((size_t)(B * n + 1) * sizeof(int64_t));
+    if (!mask || !items) { free(mask); free(items); status[0] = -2; return; }
+    for (int64_t e = 0; e < np; ++e) {
+        const int64_t f = pairs[e] / n, t = pairs[e] % n;
+        const int64_t k = f % n_psi, j = f / n_psi % J, i = f / (J * n_psi);
+        mask[(i * n_psi + k) * n + t] |= (uint64_t)1 << j;
+    }
+    int64_t ni = 0;
+    for (int64_t it = 0; it < B * n; ++it)
+        if (mask[it]) items[ni++] = it;
+    if (nt <= 1 || ni < 2 * nt) {
+        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+    } else {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+        for (int64_t q = 0; q < nt; ++q)
+            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+    }
+    free(mask);
+    free(items);
+    status[0] = 0;
+}
+
 /* The comb path's live-triangle means (B, n, 3, J) contiguous, row b J + j of frame dst[b J + j]
    (< 0: not wanted), copied into out (F, 3, n): out[dst, c, t] = means[b, t, c, j], each wanted
    frame's rows written in order (its means read with stride 3 J: a base row's 3 n J means stay in
@@ -606,7 +701,8 @@ _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
                "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
                "tp_take": [_I, _I, _P, _P, _P, _P],
-               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P]}
+               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
+               "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
@@ -763,4 +859,42 @@ def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q:
     args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
     nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
     lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt)
+    return out
+
+
+def comb_pairs(pairs: Tensor, o: Tensor, w4: Tensor, CT: Tensor, n_psi: int, J: int, m: int, out: Tensor) -> Tensor:
+    """The comb path's fine values (`lighting.comb_means` of a map turned about +Y only) of the pairs
+    f·n + t (``pairs`` (P,) int64) only, into ``out`` (F, 3, n) float32 (returned): o (B, n, S) int32
+    and w4 (B, n, S, 2, 2) float32 from `lighting.comb_taps` of the live triangles, CT the comb table
+    (`lighting.comb_table`), J = n_phi frames per base row, m = W / J. The compiled reduction's sums on
+    one thread bit for bit; every frame of an 8-frame group holding a listed pair is written (with its
+    value), other entries untouched. Base rows b = i·n_psi + k, grid frame f = (i·J + j)·n_psi + k
+    (`lighting._comb_rows`). Raises RuntimeError without the library."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    F, C, n = out.shape
+    if o.ndim != 3 or o.shape[1] != n or w4.shape != (*o.shape, 2, 2) or C != 3 or o.dtype != torch.int32 \
+            or w4.dtype != torch.float32 or CT.dtype != torch.float32 or out.dtype != torch.float32 \
+            or not out.is_contiguous() or J > 64 or F != o.shape[0] * J or F % n_psi or o.shape[0] % n_psi:
+        raise ValueError("o (B, n, S) int32, w4 (B, n, S, 2, 2) float32, out (B·J, 3, n) float32 contiguous, J <= 64 expected")
+    for t in (o, w4, CT, out):
+        if t.device.type != "cpu":
+            raise ValueError("CPU tensors expected")
+    pairs = pairs.to(torch.int64).contiguous()
+    P = pairs.numel()
+    if P == 0:
+        return out
+    if int(pairs.min()) < 0 or int(pairs.max()) >= F * n:
+        raise IndexError("a pair outside the table")
+    B, _, S = o.shape
+    o, w4, CT = o.contiguous(), w4.contiguous(), CT.contiguous()
+    if int(o.min()) < 0 or int(o.max()) + 3 * m * 4 * J + 2 * J + 2 * 4 * J + J - 1 >= CT.numel():   # rs + es + 2 cs + J - 1
+        raise IndexError("a comb offset outside the table")
+    st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    lib.tp_comb_pairs(P, pairs.data_ptr(), n, S, n_psi, J, B, o.data_ptr(), w4.data_ptr(), CT.data_ptr(), m,
+                      out.data_ptr(), nt, st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_comb_pairs could not allocate its tables")
     return out

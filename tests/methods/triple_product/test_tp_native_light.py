@@ -112,6 +112,56 @@ def test_project_pairs_builds_agree():
             assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all()), cut
 
 
+@pytest.mark.parametrize("grid", [(5, 8, 1), (5, 8, 2), (4, 4, 1), (3, 16, 3), (5, 32, 1)])
+def test_comb_pairs_equal_the_comb_path(grid):
+    """For a map turned about +Y only (`lighting.comb_pairs_ok`), `lighting.project_pairs` writes the
+    comb path's fine values (`project_env` with ``tris``: `comb_taps`, `comb_means` — on one thread,
+    whose reduction adds each output's terms in one sequence) bit for bit into the listed pairs, and
+    into the other frames of their 8-frame groups (J = n_phi frames per base row: whole groups, and J
+    = 4 frames one by one), nothing else; the same bits on 1, 2 and 3 threads; n_psi > 1 (base rows
+    i·n_psi + k) too."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(*grid)
+    lev = 2 if g.n_phi >= 16 else 1
+    geo, R = Geodesic(lev), lt.grid_frames(g)
+    tris = torch.arange(0, 20 * 4 ** lev, 3)
+    env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(rotation_y(0.7)), geo, 2)
+    assert lt.comb_pairs_ok(env, g) and not lt.pairs_ok(env)
+    with torch_threads(1):
+        whole = lt.project_env(env, R, geo, supersample=2, grid=g, tris=tris)[1]
+    gen = torch.Generator().manual_seed(3)
+    sel = torch.rand(g.size, tris.numel(), generator=gen) < 0.05
+    pairs = torch.nonzero(sel.view(-1)).squeeze(-1)
+    J, F, n = g.n_phi, g.size, tris.numel()
+    f = torch.arange(F)
+    b = f // (J * g.n_psi) * g.n_psi + f % g.n_psi                               # base row i·n_psi + k
+    key = (b * 8 + f // g.n_psi % J // 8)[:, None] * n + torch.arange(n)          # (base row, group of j, t)
+    hit = torch.zeros_like(sel)
+    hit.view(-1)[torch.isin(key.view(-1), key.view(-1)[pairs])] = True
+    if J % 8:
+        hit = sel                                                                # frames one by one
+    m = sel[:, None, :].expand(-1, 3, -1)
+    h = hit[:, None, :].expand(-1, 3, -1)
+    old = native_light.MIN_PAIRS_PER_THREAD
+    native_light.MIN_PAIRS_PER_THREAD = 4
+    try:
+        for nt in (1, 2, 3):
+            with torch_threads(nt):
+                got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs,
+                                       out=torch.full((F, 3, n), 7.0), grid=g)
+            assert torch.equal(got[m], whole[m]), nt
+            assert torch.equal(got[h], whole[h]) and bool((got[~h] == 7.0).all()), nt
+    finally:
+        native_light.MIN_PAIRS_PER_THREAD = old
+    with pytest.raises(ValueError):                                              # the general loop's map only
+        lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros(F, 3, n))
+
+
 @pytest.mark.parametrize("n", [1, 45, 640])
 def test_take_is_the_new_pairs(n):
     """`native_light.take` = ``nonzero(need & ~done)`` (flat, in order), ``done |= that`` and the
