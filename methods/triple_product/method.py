@@ -379,7 +379,11 @@ class TripleProduct(Method):
             self._exact_env = envmap
             self.L_idx = self.L_val = None
         else:
-            Rg = lt.grid_frames(self.grid)
+            cache = self.__dict__.setdefault("_perf_cache", {})
+            hit = cache.get(("grid_frames",))
+            if hit is None or hit[0] != self.grid:    # the grid's frames (read only), once per grid: not
+                hit = cache[("grid_frames",)] = (self.grid, lt.grid_frames(self.grid))   # per lighting change
+            Rg = hit[1]
             Fg = Rg.shape[0]
             self.stats["projected_frames"] = int(Rg.shape[0])   # the whole grid unless set lazily below
             fine = None

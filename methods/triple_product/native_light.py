@@ -500,41 +500,64 @@ void tp_project_par(int64_t np, const int64_t* pairs, int64_t n, int64_t S, cons
 /* need (F, n) bytes: 1 where some point looks up grid row f with a non-zero weight and one of its
    visibility rows with a non-zero weight is non-zero at live triangle t, i.e. the OR of the bit sets
    Vb[v] (N_V, nw) (bit t % 64 of word t / 64) over the (v, f) pairs of the points' non-zero weights.
-   A point with the same rows and non-zero flags as the previous one adds nothing and is skipped (a
-   set of the distinct (v, f) pairs seen instead cost more than it saved: 2^16 open-addressing slots,
-   chess bench pixel L, 11 against 7 ms). status[0]: 0, or -1 when a row index read with a non-zero
-   weight is outside its table (need then undefined), -2 out of memory. */
-void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
-             const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
-             int64_t* status) {
-    uint64_t* bits = (uint64_t*)calloc((size_t)(F * nw + nw), sizeof(uint64_t));
-    int64_t bad = 0;
-    if (!bits) { status[0] = -2; return; }
-    uint64_t* acc = bits + F * nw;
-    for (int64_t b = 0; b < B && !bad; ++b) {
+   A point whose visibility rows and non-zero flags equal the previous point's reuses its OR (acc),
+   and then skips each grid row the previous point ORed it into already (a point with the same rows
+   and flags adds nothing: skipped whole, as before; a set of the distinct (v, f) pairs seen instead
+   cost more than it saved: 2^16 open-addressing slots, chess bench pixel L, 11 against 7 ms). The
+   points are split in nt contiguous ranges over OpenMP's team, each range ORed into its own bit
+   table (the first point of a range computes its OR), the tables then ORed together (the same
+   bits whatever nt). status[0]: 0, or -1 when a row index read with a non-zero weight is outside its
+   table (need then undefined), -2 out of memory. */
+static int need_range(int64_t b0, int64_t b1, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl,
+                      const int64_t* lrows, const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F,
+                      uint64_t* bits, uint64_t* acc) {
+    for (int64_t b = b0; b < b1; ++b) {
         const int64_t *v = vrows + b * kv, *l = lrows + b * kl;
         const float *x = vw + b * kv, *y = lw + b * kl;
-        if (b > 0) {
-            int same = 1;
-            for (int64_t j = 0; j < kv && same; ++j)
-                same = v[j] == v[j - kv] && (x[j] != 0.0f) == (x[j - kv] != 0.0f);
-            for (int64_t j = 0; j < kl && same; ++j)
-                same = l[j] == l[j - kl] && (y[j] != 0.0f) == (y[j - kl] != 0.0f);
-            if (same) continue;
+        int samev = b > b0;                                      /* acc holds point b - 1's OR */
+        for (int64_t j = 0; j < kv && samev; ++j)
+            samev = v[j] == v[j - kv] && (x[j] != 0.0f) == (x[j - kv] != 0.0f);
+        if (!samev) {
+            memset(acc, 0, (size_t)nw * sizeof(uint64_t));
+            for (int64_t j = 0; j < kv; ++j)
+                if (x[j] != 0.0f) {
+                    if (v[j] < 0 || v[j] >= NV) return 1;
+                    const uint64_t* r = Vb + v[j] * nw;
+                    for (int64_t w = 0; w < nw; ++w) acc[w] |= r[w];
+                }
         }
-        memset(acc, 0, (size_t)nw * sizeof(uint64_t));
-        for (int64_t j = 0; j < kv; ++j)
-            if (x[j] != 0.0f) {
-                if (v[j] < 0 || v[j] >= NV) { bad = 1; break; }
-                const uint64_t* r = Vb + v[j] * nw;
-                for (int64_t w = 0; w < nw; ++w) acc[w] |= r[w];
-            }
-        for (int64_t j = 0; j < kl && !bad; ++j)
+        for (int64_t j = 0; j < kl; ++j)
             if (y[j] != 0.0f) {
-                if (l[j] < 0 || l[j] >= F) { bad = 1; break; }
+                if (l[j] < 0 || l[j] >= F) return 1;
+                if (samev) {                                     /* ORed by point b - 1 already? */
+                    int seen = 0;
+                    for (int64_t i = 0; i < kl && !seen; ++i) seen = l[i - kl] == l[j] && y[i - kl] != 0.0f;
+                    if (seen) continue;
+                }
                 uint64_t* o = bits + l[j] * nw;
                 for (int64_t w = 0; w < nw; ++w) o[w] |= acc[w];
             }
+    }
+    return 0;
+}
+
+void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
+             const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
+             int64_t* status, int64_t nt) {
+    if (nt < 1) nt = 1;
+    const int64_t per = F * nw + nw;                             /* a range's bit table and its acc */
+    uint64_t* bits = (uint64_t*)calloc((size_t)(nt * per), sizeof(uint64_t));
+    int64_t bad = 0;
+    if (!bits) { status[0] = -2; return; }
+    if (nt == 1) {
+        bad = need_range(0, B, kv, vrows, vw, kl, lrows, lw, nw, Vb, NV, F, bits, bits + F * nw);
+    } else {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:bad)
+        for (int64_t q = 0; q < nt; ++q)
+            bad |= need_range(B * q / nt, B * (q + 1) / nt, kv, vrows, vw, kl, lrows, lw, nw, Vb, NV, F,
+                              bits + q * per, bits + q * per + F * nw);
+        for (int64_t q = 1; q < nt && !bad; ++q)
+            for (int64_t i = 0; i < F * nw; ++i) bits[i] |= bits[q * per + i];
     }
     if (!bad)
         for (int64_t f = 0; f < F; ++f)
@@ -699,7 +722,7 @@ def _wide_flags() -> tuple[str, ...] | None:
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I],
                "tp_take": [_I, _I, _P, _P, _P, _P],
                "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
                "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
@@ -751,6 +774,10 @@ def vis_bits(Vt: Tensor) -> Tensor:
 MIN_PAIRS_PER_THREAD = 256
 
 
+# Points below which one thread finds the read pairs (`need`; each range ORs into its own table).
+MIN_POINTS_PER_THREAD = 8192
+
+
 def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int) -> Tensor:
     """(F, n) bool: the (grid row, live triangle) pairs that points with visibility rows / weights
     (vrows, vw (B, k_v)) and grid rows / weights (lrows, lw (B, k_L)) read with a non-zero visibility
@@ -770,8 +797,9 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     bits = bits.contiguous()
     out = torch.empty(F, n, dtype=torch.uint8)
     st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), B // MIN_POINTS_PER_THREAD))
     lib.tp_need(B, kv, vrows.data_ptr(), vw.data_ptr(), kl, lrows.data_ptr(), lw.data_ptr(), bits.shape[1],
-                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr())
+                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr(), nt)
     r = int(st[0])
     if r == -1:
         raise IndexError("a row index outside its table (read with a non-zero weight)")

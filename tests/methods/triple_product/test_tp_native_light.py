@@ -207,19 +207,27 @@ def test_comb_scatter_is_the_gather_and_copy():
 def test_need_is_the_read_pairs(n):
     """`native_light.need` = the (grid row, column) pairs some point reads with a non-zero grid
     weight and a non-zero visibility (a visibility row with a zero weight does not count), computed
-    directly; points repeated back to back (skipped by the loop) and rows that are all zero."""
+    directly; points repeated back to back (skipped by the loop), points repeating only the previous
+    one's visibility rows (its OR reused, the grid rows it shares with the previous point skipped),
+    rows that are all zero; the points split over 1, 2 and 3 threads (the same pairs)."""
+    from methods.core.threads import torch_threads
+
     gen = torch.Generator().manual_seed(6)
     N, F, B = 11, 13, 300
     V = torch.rand(N, n, generator=gen) * (torch.rand(N, n, generator=gen) < 0.3)
     V[0] = 0
     V[1, -1] = 0.5                                                          # the last bit of a word
-    for kv, kl in ((1, 4), (3, 4), (3, 8)):
+    for kv, kl, vis_only in ((1, 4, False), (3, 4, False), (3, 8, False), (3, 4, True), (1, 2, True)):
         vrows = torch.randint(0, N, (B, kv), generator=gen)
         lrows = torch.randint(0, F, (B, kl), generator=gen)
         vw = torch.rand(B, kv, generator=gen) * (torch.rand(B, kv, generator=gen) < 0.8)
         lw = torch.rand(B, kl, generator=gen) * (torch.rand(B, kl, generator=gen) < 0.7)
         rep = torch.arange(B) // 3                                            # each point three times in a row
-        vrows, lrows, vw, lw = vrows[rep], lrows[rep], vw[rep], lw[rep]
+        if vis_only:                                                         # the visibility rows only, grid
+            vrows, vw = vrows[rep], vw[rep]                                  # rows partly the previous point's
+            lrows = torch.where(torch.rand(B, kl, generator=gen) < 0.5, lrows, lrows[rep])
+        else:
+            vrows, lrows, vw, lw = vrows[rep], lrows[rep], vw[rep], lw[rep]
         # the first of each three with more zero weights: its repeats read more (not skipped)
         lw[0::3] = lw[0::3] * (torch.rand(lw[0::3].shape, generator=gen) < 0.5)
         vw[0::3] = vw[0::3] * (torch.rand(vw[0::3].shape, generator=gen) < 0.5)
@@ -232,8 +240,15 @@ def test_need_is_the_read_pairs(n):
             for j in range(kl):
                 if lw[p, j] != 0:
                     want[lrows[p, j]] |= vis
-        got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
-        assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl)
+        old = native_light.MIN_POINTS_PER_THREAD
+        native_light.MIN_POINTS_PER_THREAD = 16
+        try:
+            for nt in (1, 2, 3):
+                with torch_threads(nt):
+                    got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
+                assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl, vis_only, nt)
+        finally:
+            native_light.MIN_POINTS_PER_THREAD = old
     with pytest.raises(IndexError):
         native_light.need(native_light.vis_bits(V), vrows, vw, lrows + F, lw, F, n)
 
