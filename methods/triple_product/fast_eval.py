@@ -911,10 +911,10 @@ def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Te
     (`native_light.need`; what `frame_cost` counts as a re-projection's compulsory pairs,
     `nonzero_reads`) — the pairs a lazily set lighting projects (`TripleProduct.fill_lighting`); None
     (whole live rows) when the lighting is not pending, no live triangles apply or the pair
-    projection does not (`lighting.pairs_ok`). The visibility table's bit sets are built once per
+    projection does not (`lighting.pairs_ok`, `lighting.comb_pairs_ok`). The visibility table's bit sets are built once per
     table (`native_light.vis_bits`)."""
     lazy = getattr(method, "_lazy_light", None)
-    if live is None or lazy is None or not lt.pairs_ok(lazy["env"]):
+    if live is None or lazy is None or not (lt.pairs_ok(lazy["env"]) or lt.comb_pairs_ok(lazy["env"], method.grid)):
         return None
     return native_light.need(vis_bits(method, live), vrows, vw, lrows, lw, method.grid.size, live.numel())
 

@@ -519,10 +519,10 @@ def quad_means(idx: Tensor, fx: Tensor, fy: Tensor, wT: Tensor, Q: Tensor, lanes
 def azimuth_of(T: Tensor) -> float | None:
     """γ when the emitter rotation T (3, 3) turns about +Y only (T = Q_γ, exact zeros and one in its
     Y row and column, as `scenes.sequences` "E" frames' ``rotation_y`` of an upright probe), else None."""
-    t = T.double().cpu()
-    if t[1, 1] != 1.0 or t[0, 1] != 0.0 or t[2, 1] != 0.0 or t[1, 0] != 0.0 or t[1, 2] != 0.0:
+    t = T.detach().double().cpu().tolist()      # one conversion (element-wise tensor compares: ~10x the time)
+    if t[1][1] != 1.0 or t[0][1] != 0.0 or t[2][1] != 0.0 or t[1][0] != 0.0 or t[1][2] != 0.0:
         return None
-    return math.atan2(float(t[2, 0]), float(t[0, 0]))
+    return math.atan2(t[2][0], t[0][0])
 
 
 def _azimuthal_samples(geo: Geodesic, supersample: int, grid: FrameGrid) -> tuple[Tensor, Tensor]:
@@ -784,14 +784,38 @@ def pairs_ok(envmap) -> bool:
     return azimuth_of(envmap.to_world) is None and native_light.available()
 
 
+def comb_pairs_ok(envmap, grid: FrameGrid | None) -> bool:
+    """`project_pairs` applies to a map turned about +Y only: `project_env` takes the comb path there
+    (`comb_ok`, `COMB`) and the native loop is available (`native_light.comb_pairs`)."""
+    from methods.triple_product import native_light
+
+    return azimuth_of(envmap.to_world) is not None and COMB and comb_ok(grid, envmap.width) \
+        and native_light.available()
+
+
 def project_pairs(envmap, R: Tensor, geo: Geodesic, *, supersample: int, tris: Tensor, pairs: Tensor,
-                  out: Tensor) -> Tensor:
+                  out: Tensor, grid: FrameGrid | None = None) -> Tensor:
     """`project_env`'s general path with ``tris`` for the (frame, live triangle) pairs ``pairs`` (P,)
     int64 (frame·n' + column of ``tris``) only, into ``out`` (F, 3, n') float32 (returned; the other
     entries untouched): the same fine values bit for bit (`native_light`: the compiled kernels'
-    float32 operations in C). Needs `pairs_ok` (envmap)."""
+    float32 operations in C). Needs `pairs_ok` (envmap) — or, for a map turned about +Y only,
+    `comb_pairs_ok` (envmap, grid): then `project_env`'s comb path with ``tris`` (`comb_taps` of every
+    base row, compiled, then `native_light.comb_pairs`: `comb_means`' sums on one thread bit for bit,
+    for the 8-frame groups holding a listed pair only; other entries of those groups are written with
+    their values too)."""
     from methods.triple_product import native_light
 
+    gamma = azimuth_of(envmap.to_world)
+    if gamma is not None and COMB and comb_ok(grid, envmap.width):      # `comb_pairs_ok`
+        H, W = envmap.height, envmap.width
+        _, wT = _live_sample_planes(geo, supersample, tris)
+        u0, v0 = _live_azimuthal_samples(geo, supersample, grid, tris, R.device)
+        CT = comb_table(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W, grid.n_phi)
+        g = torch.tensor(gamma / (2 * math.pi), dtype=torch.float64, device=R.device)
+        o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
+        return native_light.comb_pairs(pairs, o, w4, CT, grid.n_psi, grid.n_phi, W // grid.n_phi, out)
+    if gamma is not None:
+        raise ValueError("a map turned about +Y only: project_pairs needs comb_pairs_ok (envmap, grid)")
     cp, wT = _live_sample_planes(geo, supersample, tris)
     T = envmap.to_world.float()
     M = torch.mm(R.float().reshape(-1, 3), T).view(-1, 3, 3)       # `env_taps`' R @ T (an extern mm there)

@@ -379,7 +379,11 @@ class TripleProduct(Method):
             self._exact_env = envmap
             self.L_idx = self.L_val = None
         else:
-            Rg = lt.grid_frames(self.grid)
+            cache = self.__dict__.setdefault("_perf_cache", {})
+            hit = cache.get(("grid_frames",))
+            if hit is None or hit[0] != self.grid:    # the grid's frames (read only), once per grid: not
+                hit = cache[("grid_frames",)] = (self.grid, lt.grid_frames(self.grid))   # per lighting change
+            Rg = hit[1]
             Fg = Rg.shape[0]
             self.stats["projected_frames"] = int(Rg.shape[0])   # the whole grid unless set lazily below
             fine = None
@@ -480,7 +484,7 @@ class TripleProduct(Method):
                 if pairs.numel():
                     try:
                         lt.project_pairs(lazy["env"], lazy["R"], self.geo, supersample=self.config["light_supersample"],
-                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1))
+                                         tris=live, pairs=pairs, out=part[2].view(done.shape[0], 3, -1), grid=self.grid)
                     except BaseException:
                         pd.view(-1)[pairs] = False           # not projected
                         raise

@@ -14,12 +14,19 @@ are projected here, one pair (4^s samples) at a time:
 
 * `need`: the pairs the points read — per point the OR of its visibility rows' non-zero bit sets
   (`vis_bits`, one bit per live triangle, built once per table) over the grid rows it looks up with a
-  non-zero weight (a point whose rows and non-zero flags equal the previous point's is skipped);
+  non-zero weight (a point whose rows and non-zero flags equal the previous point's is skipped; one
+  with the previous point's visibility rows reuses its OR), the points split over the threads;
 * `project`: each pair's samples with the general kernel's float32 operations one for one (the
   rotation folded with the emitter's as ``R @ T`` by the same `torch.mm`, `lighting.atan2_f32` /
   `acos_f32`, `latlong.quad_taps`, the quad rows × `quad_lane_weights` × the sample weight, summed in
   `lighting._tree_sum`'s order, then the 4 lanes of each channel), built with ``-ffp-contract=off`` as
-  Inductor builds its kernels: the same fine values bit for bit (tested).
+  Inductor builds its kernels: the same fine values bit for bit (tested). On a CPU with AVX-512
+  (`_wide_flags`) the 16-sample pairs run four at a time in 16-lane vectors (`zproject16`: the AVX2
+  loop waited on its taps' latency; 1.4x faster alone, the same bits);
+* `comb_pairs`: a map turned about +Y only (E frames, `lighting.comb_pairs_ok`): the comb path's
+  sums (`lighting.comb_means`, whose compiled loop summed every frame of the grid and, per output,
+  entered a parallel region) for the 8-frame groups holding a read pair only, the one-thread sums bit
+  for bit.
 
 Pairs not needed keep the finite values of the table's previous lighting (`TripleProduct._spare_tables`)
 or zeros, and are read only with an exact 0 (visibility or weight): the image is the same bit for bit
@@ -39,7 +46,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "project"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -302,17 +309,161 @@ static inline void pairs16x2(const float* m0, const float* m1, int64_t t0, int64
 #define HAVE_PAIR16 1
 #endif
 
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+#include <immintrin.h>
+/* With AVX-512 (`_flags`: when torch found the CPU to have it) the 16-sample pairs take zproject16:
+   one pair's 16 samples in one 16-lane vector, four pairs (four independent chains) at once, in 32
+   vector registers — the AVX2 loop's four 8-lane chains spent most of their time waiting on the taps'
+   latency (chess bench L pairs, 1 thread: 1.4x faster). The same float32 operations one for one as
+   tap4x8 / sums16: the same bits (tested against the compiled projection and the other builds). */
+#define ZS(x) _mm512_set1_ps((float)(x))
+#define ZMUL _mm512_mul_ps
+#define ZADD _mm512_add_ps
+#define ZSUB _mm512_sub_ps
+#define ZSEL(c, a, b) _mm512_mask_blend_ps((c), (b), (a))      /* c ? a : b */
+#define ZLT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_LT_OQ)
+#define ZGT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_GT_OQ)
+#define KZ for (int k = 0; k < NZ; ++k)
+#define NZ 4                                                   /* pairs at once */
+
+/* tap4x8 with one pair's 16 samples in a 16-lane vector, NZ pairs at once (pair k in the frame of
+   mk[k]): the same float32 operations one for one (AVX-512 min / max / compares / blends with the
+   scalar code's semantics, as tap4x8's) */
+static inline void ztap(const __m512* cx, const __m512* cy, const __m512* cz, const float* const* mk,
+                        __m512 H1, __m512 Wf, __m512 hw, __m512i H2, __m512i W1, __m512i Wp,
+                        __m512i* idx, __m512* fx, __m512* fy) {
+    const __m512 sign = ZS(-0.0f), one = ZS(1.0f), zero = _mm512_setzero_ps();
+    __m512 d0[NZ], d1[NZ], d2[NZ], yv[NZ], a[NZ], z[NZ], s[NZ], q[NZ], p[NZ], r[NZ], v[NZ];
+    __m512 xx[NZ], ax[NZ], ay[NZ], mn[NZ], mx[NZ], num[NZ], den[NZ], t[NZ], tz[NZ], pq[NZ], ra[NZ], u[NZ], x[NZ], y[NZ];
+    __mmask16 big[NZ], c[NZ];
+    __m512i ix[NZ], iy[NZ];
+    KZ d0[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][0])), ZMUL(cy[k], ZS(mk[k][3]))), ZMUL(cz[k], ZS(mk[k][6])));
+    KZ d1[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][1])), ZMUL(cy[k], ZS(mk[k][4]))), ZMUL(cz[k], ZS(mk[k][7])));
+    KZ d2[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][2])), ZMUL(cy[k], ZS(mk[k][5]))), ZMUL(cz[k], ZS(mk[k][8])));
+    KZ yv[k] = _mm512_min_ps(_mm512_max_ps(d1[k], ZS(-1.0f)), one);
+    KZ a[k] = _mm512_andnot_ps(sign, yv[k]);
+    KZ big[k] = ZGT(a[k], ZS(0.5f));
+    KZ z[k] = ZSEL(big[k], ZSUB(ZS(0.5f), ZMUL(a[k], ZS(0.5f))), ZMUL(a[k], a[k]));
+    KZ s[k] = ZSEL(big[k], _mm512_sqrt_ps(z[k]), a[k]);
+    KZ q[k] = ZMUL(ZADD(ZMUL(ZADD(ZMUL(ZADD(ZMUL(ZADD(ZMUL(z[k], ZS(0.042163199048)), ZS(0.024181311049)), z[k]),
+                                         ZS(0.045470025998)), z[k]), ZS(0.074953002686)), z[k]),
+                       ZS(0.16666752422)), z[k]);
+    KZ p[k] = ZADD(ZMUL(q[k], s[k]), s[k]);
+    KZ r[k] = ZSEL(big[k], ZMUL(p[k], ZS(2.0f)), ZSUB(ZS(1.5707963267948966), p[k]));
+    KZ r[k] = ZSEL(ZLT(yv[k], zero), ZSUB(ZS(3.141592653589793), r[k]), r[k]);
+    KZ v[k] = ZMUL(r[k], ZS(0.3183098861837907));
+    KZ xx[k] = _mm512_xor_ps(d2[k], sign);
+    KZ ax[k] = _mm512_andnot_ps(sign, xx[k]);
+    KZ ay[k] = _mm512_andnot_ps(sign, d0[k]);
+    KZ mn[k] = _mm512_min_ps(ax[k], ay[k]);
+    KZ mx[k] = _mm512_max_ps(ax[k], ay[k]);
+    KZ c[k] = ZGT(mn[k], ZMUL(mx[k], ZS(0.41421356237309503)));
+    KZ num[k] = ZSEL(c[k], ZSUB(mn[k], mx[k]), mn[k]);
+    KZ den[k] = ZSEL(c[k], ZADD(mn[k], mx[k]), mx[k]);
+    KZ den[k] = ZSEL(ZGT(den[k], zero), den[k], one);
+    KZ t[k] = _mm512_div_ps(num[k], den[k]);
+    KZ tz[k] = ZMUL(t[k], t[k]);
+    KZ pq[k] = ZADD(ZMUL(ZMUL(ZSUB(ZMUL(ZADD(ZMUL(ZSUB(ZMUL(tz[k], ZS(0.0805374449538)), ZS(0.138776856032)), tz[k]),
+                                          ZS(0.199777106478)), tz[k]), ZS(0.333329491539)), tz[k]), t[k]), t[k]);
+    KZ ra[k] = ZSEL(c[k], ZADD(pq[k], ZS(0.7853981633974483)), pq[k]);
+    KZ ra[k] = ZSEL(ZGT(ay[k], ax[k]), ZSUB(ZS(1.5707963267948966), ra[k]), ra[k]);
+    KZ ra[k] = ZSEL(ZLT(xx[k], zero), ZSUB(ZS(3.141592653589793), ra[k]), ra[k]);
+    KZ ra[k] = ZSEL(ZLT(d0[k], zero), _mm512_xor_ps(ra[k], sign), ra[k]);
+    KZ u[k] = ZSUB(ZMUL(ra[k], ZS(0.15915494309189535)), hw);
+    KZ u[k] = ZSUB(u[k], _mm512_roundscale_ps(u[k], _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+    KZ v[k] = ZSUB(v[k], _mm512_roundscale_ps(v[k], _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+    KZ x[k] = ZMUL(u[k], Wf);
+    KZ y[k] = ZMUL(v[k], H1);
+    KZ ix[k] = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(x[k]), _mm512_setzero_si512()), W1);
+    KZ iy[k] = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(y[k]), _mm512_setzero_si512()), H2);
+    KZ idx[k] = _mm512_add_epi32(_mm512_mullo_epi32(iy[k], Wp), ix[k]);
+    KZ fx[k] = ZSUB(x[k], _mm512_cvtepi32_ps(ix[k]));
+    KZ fy[k] = ZSUB(y[k], _mm512_cvtepi32_ps(iy[k]));
+}
+
+/* pair_means' sums for one pair (S = 16) from its 16-lane taps: the weights transposed to one
+   {w0 w1 w2 w3} per 128-bit lane (lane k of X[j]: sample 4 k + j), each sample's weights broadcast
+   to the quad row's four 4-lane groups (channel c at lanes 4 c + t; lanes 12-15 zeros), the products
+   summed in _tree_sum's order, then each channel's 4 lanes: sums16's values bit for bit */
+static inline void zsums(__m512i ii, __m512 fx, __m512 fy, const float* w, int64_t n, const float* Q, float* o) {
+    const __m512 one = ZS(1.0f), wv = _mm512_loadu_ps(w);
+    const __m512 gx = ZSUB(one, fx), gy = ZSUB(one, fy);
+    const __m512 W0 = ZMUL(ZMUL(gx, gy), wv), W1 = ZMUL(ZMUL(fx, gy), wv), W2 = ZMUL(ZMUL(gx, fy), wv),
+                 W3 = ZMUL(ZMUL(fx, fy), wv);
+    const __m512 t0 = _mm512_unpacklo_ps(W0, W1), t1 = _mm512_unpackhi_ps(W0, W1);
+    const __m512 t2 = _mm512_unpacklo_ps(W2, W3), t3 = _mm512_unpackhi_ps(W2, W3);
+    __m512 X[4];
+    X[0] = _mm512_shuffle_ps(t0, t2, 0x44); X[1] = _mm512_shuffle_ps(t0, t2, 0xEE);
+    X[2] = _mm512_shuffle_ps(t1, t3, 0x44); X[3] = _mm512_shuffle_ps(t1, t3, 0xEE);
+    int32_t is[16];
+    _mm512_storeu_si512((void*)is, ii);
+#define ZQ(s) _mm512_mul_ps(_mm512_loadu_ps(Q + 16 * (int64_t)is[s]), \
+                            _mm512_shuffle_f32x4(X[(s) & 3], X[(s) & 3], ((s) >> 2) * 0x55))
+#define ZT4(s) ZADD(ZADD(ZQ(s), ZQ(s + 1)), ZADD(ZQ(s + 2), ZQ(s + 3)))
+    const __m512 A = ZADD(ZADD(ZT4(0), ZT4(4)), ZADD(ZT4(8), ZT4(12)));
+#undef ZQ
+#undef ZT4
+    float a[16];
+    _mm512_storeu_ps(a, A);
+    o[0] = (a[0] + a[1]) + (a[2] + a[3]);
+    o[n] = (a[4] + a[5]) + (a[6] + a[7]);
+    o[2 * n] = (a[8] + a[9]) + (a[10] + a[11]);
+}
+
+/* tp_project's S = 16 loop, NZ pairs at a time (the last pairs repeated for a count not a multiple) */
+static void zproject16(int64_t np, const int64_t* pairs, int64_t n, const float* M, const float* cp,
+                       const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
+    const __m512 H1 = _mm512_set1_ps((float)(H - 1)), Wf = _mm512_set1_ps((float)W), hw = _mm512_set1_ps((float)(0.5 / (double)W));
+    const __m512i H2 = _mm512_set1_epi32((int32_t)(H - 2)), W1 = _mm512_set1_epi32((int32_t)(W - 1)),
+                  Wp = _mm512_set1_epi32((int32_t)(W + 1));
+    int64_t f = -1, lo = 0;                                      /* pairs[e] in [lo, lo + n): frame f */
+    for (int64_t e = 0; e < np; e += NZ) {
+        const float* mk[NZ];
+        int64_t tk[NZ];
+        float* ok[NZ];
+        __m512 cx[NZ], cy[NZ], cz[NZ], fx[NZ], fy[NZ];
+        __m512i ii[NZ];
+        for (int k = 0; k < NZ; ++k) {
+            const int64_t pe = pairs[e + k < np ? e + k : np - 1];
+            if (f < 0 || pe < lo || pe - lo >= n) { f = pe / n; lo = f * n; }
+            tk[k] = pe - lo;
+            mk[k] = M + 9 * f;
+            ok[k] = out + f * 3 * n + tk[k];
+            cx[k] = _mm512_loadu_ps(cp + tk[k] * 16);
+            cy[k] = _mm512_loadu_ps(cp + (n + tk[k]) * 16);
+            cz[k] = _mm512_loadu_ps(cp + (2 * n + tk[k]) * 16);
+        }
+        ztap(cx, cy, cz, mk, H1, Wf, hw, H2, W1, Wp, ii, fx, fy);
+        for (int k = 0; k < NZ; ++k) zsums(ii[k], fx[k], fy[k], wT + tk[k] * 16, n, Q, ok[k]);
+    }
+}
+#undef ZS
+#undef ZMUL
+#undef ZADD
+#undef ZSUB
+#undef ZSEL
+#undef ZLT
+#undef ZGT
+#undef KZ
+#define HAVE_PAIR16Z 1
+#endif
+
 /* out[f, c, t] (F, 3, n) for the pairs f * n + t: the mean of the map's bilinear radiance over the
    S samples of live triangle t seen in frame f (lighting.quad_means). M (F, 9) = R T; cp (3, n, S)
    the live triangles' sample planes, wT (n, S) their weights; Q the quad rows (H (W + 1), 16).
-   S = 16 (supersample 2, the method's default) takes pairs16x2, two pairs at a time, when built with
-   AVX2 (the frame of consecutive pairs kept: no division per pair), else pair_means with S a
-   constant (unrolled). */
+   S = 16 (supersample 2, the method's default) takes zproject16, four pairs at a time, when built
+   with AVX-512, else pairs16x2, two pairs at a time, when built with AVX2 (the frame of consecutive
+   pairs kept: no division per pair), else pair_means with S a constant (unrolled): the same bits. */
 void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
                 const float* wT, int64_t H, int64_t W, const float* Q, float* out) {
     const float H1 = (float)(H - 1), Wf = (float)W, hw = (float)(0.5 / (double)W);
     const int32_t H2 = (int32_t)(H - 2), W1 = (int32_t)(W - 1), Wp = (int32_t)(W + 1);
-#ifdef HAVE_PAIR16
+#ifdef HAVE_PAIR16Z
+    if (S == 16) {
+        zproject16(np, pairs, n, M, cp, wT, H, W, Q, out);
+        return;
+    }
+#elif defined(HAVE_PAIR16)
     if (S == 16) {
         const __m256 H1v = _mm256_set1_ps(H1), Wfv = _mm256_set1_ps(Wf), hwv = _mm256_set1_ps(hw);
         const __m256i H2v = _mm256_set1_epi32(H2), W1v = _mm256_set1_epi32(W1), Wpv = _mm256_set1_epi32(Wp);
@@ -356,41 +507,64 @@ void tp_project_par(int64_t np, const int64_t* pairs, int64_t n, int64_t S, cons
 /* need (F, n) bytes: 1 where some point looks up grid row f with a non-zero weight and one of its
    visibility rows with a non-zero weight is non-zero at live triangle t, i.e. the OR of the bit sets
    Vb[v] (N_V, nw) (bit t % 64 of word t / 64) over the (v, f) pairs of the points' non-zero weights.
-   A point with the same rows and non-zero flags as the previous one adds nothing and is skipped (a
-   set of the distinct (v, f) pairs seen instead cost more than it saved: 2^16 open-addressing slots,
-   chess bench pixel L, 11 against 7 ms). status[0]: 0, or -1 when a row index read with a non-zero
-   weight is outside its table (need then undefined), -2 out of memory. */
-void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
-             const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
-             int64_t* status) {
-    uint64_t* bits = (uint64_t*)calloc((size_t)(F * nw + nw), sizeof(uint64_t));
-    int64_t bad = 0;
-    if (!bits) { status[0] = -2; return; }
-    uint64_t* acc = bits + F * nw;
-    for (int64_t b = 0; b < B && !bad; ++b) {
+   A point whose visibility rows and non-zero flags equal the previous point's reuses its OR (acc),
+   and then skips each grid row the previous point ORed it into already (a point with the same rows
+   and flags adds nothing: skipped whole, as before; a set of the distinct (v, f) pairs seen instead
+   cost more than it saved: 2^16 open-addressing slots, chess bench pixel L, 11 against 7 ms). The
+   points are split in nt contiguous ranges over OpenMP's team, each range ORed into its own bit
+   table (the first point of a range computes its OR), the tables then ORed together (the same
+   bits whatever nt). status[0]: 0, or -1 when a row index read with a non-zero weight is outside its
+   table (need then undefined), -2 out of memory. */
+static int need_range(int64_t b0, int64_t b1, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl,
+                      const int64_t* lrows, const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F,
+                      uint64_t* bits, uint64_t* acc) {
+    for (int64_t b = b0; b < b1; ++b) {
         const int64_t *v = vrows + b * kv, *l = lrows + b * kl;
         const float *x = vw + b * kv, *y = lw + b * kl;
-        if (b > 0) {
-            int same = 1;
-            for (int64_t j = 0; j < kv && same; ++j)
-                same = v[j] == v[j - kv] && (x[j] != 0.0f) == (x[j - kv] != 0.0f);
-            for (int64_t j = 0; j < kl && same; ++j)
-                same = l[j] == l[j - kl] && (y[j] != 0.0f) == (y[j - kl] != 0.0f);
-            if (same) continue;
+        int samev = b > b0;                                      /* acc holds point b - 1's OR */
+        for (int64_t j = 0; j < kv && samev; ++j)
+            samev = v[j] == v[j - kv] && (x[j] != 0.0f) == (x[j - kv] != 0.0f);
+        if (!samev) {
+            memset(acc, 0, (size_t)nw * sizeof(uint64_t));
+            for (int64_t j = 0; j < kv; ++j)
+                if (x[j] != 0.0f) {
+                    if (v[j] < 0 || v[j] >= NV) return 1;
+                    const uint64_t* r = Vb + v[j] * nw;
+                    for (int64_t w = 0; w < nw; ++w) acc[w] |= r[w];
+                }
         }
-        memset(acc, 0, (size_t)nw * sizeof(uint64_t));
-        for (int64_t j = 0; j < kv; ++j)
-            if (x[j] != 0.0f) {
-                if (v[j] < 0 || v[j] >= NV) { bad = 1; break; }
-                const uint64_t* r = Vb + v[j] * nw;
-                for (int64_t w = 0; w < nw; ++w) acc[w] |= r[w];
-            }
-        for (int64_t j = 0; j < kl && !bad; ++j)
+        for (int64_t j = 0; j < kl; ++j)
             if (y[j] != 0.0f) {
-                if (l[j] < 0 || l[j] >= F) { bad = 1; break; }
+                if (l[j] < 0 || l[j] >= F) return 1;
+                if (samev) {                                     /* ORed by point b - 1 already? */
+                    int seen = 0;
+                    for (int64_t i = 0; i < kl && !seen; ++i) seen = l[i - kl] == l[j] && y[i - kl] != 0.0f;
+                    if (seen) continue;
+                }
                 uint64_t* o = bits + l[j] * nw;
                 for (int64_t w = 0; w < nw; ++w) o[w] |= acc[w];
             }
+    }
+    return 0;
+}
+
+void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
+             const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
+             int64_t* status, int64_t nt) {
+    if (nt < 1) nt = 1;
+    const int64_t per = F * nw + nw;                             /* a range's bit table and its acc */
+    uint64_t* bits = (uint64_t*)calloc((size_t)(nt * per), sizeof(uint64_t));
+    int64_t bad = 0;
+    if (!bits) { status[0] = -2; return; }
+    if (nt == 1) {
+        bad = need_range(0, B, kv, vrows, vw, kl, lrows, lw, nw, Vb, NV, F, bits, bits + F * nw);
+    } else {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:bad)
+        for (int64_t q = 0; q < nt; ++q)
+            bad |= need_range(B * q / nt, B * (q + 1) / nt, kv, vrows, vw, kl, lrows, lw, nw, Vb, NV, F,
+                              bits + q * per, bits + q * per + F * nw);
+        for (int64_t q = 1; q < nt && !bad; ++q)
+            for (int64_t i = 0; i < F * nw; ++i) bits[i] |= bits[q * per + i];
     }
     if (!bad)
         for (int64_t f = 0; f < F; ++f)
@@ -420,6 +594,108 @@ void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* 
     counts[1] = rows;
 }
 
+/* E frames: a map turned about +Y only (lighting.comb_means, the comb table CT of J = n_phi frames,
+   m = W / J columns per frame step) for the listed pairs f * n + t only. Grid frame f is base row
+   b = i n_psi + k and comb frame j (f = (i J + j) n_psi + k, lighting._comb_rows); its mean of live
+   triangle t is comb_means' sum: over the S samples s, then the taps (dy, e), of
+   CT[o[b, t, s] + j + c cs + dy rs + e es] w4[b, t, s, dy, e] (cs = 4 J, es = 2 J, rs = 3 m cs),
+   added in that order to 0 one by one, as the compiled reduction does on one thread: the same bits.
+   Per (b, t) holding a listed pair, each 8-frame group of j holding one is summed 8 frames per
+   vector, two groups at a time (six independent sums); frames of J past the last whole group one
+   by one. Every frame of a summed group is written (its true value). Items (b, t) are split in
+   contiguous ranges over nt threads. status[0]: 0, -2 out of memory, -1 J > 64. */
+typedef float cv8 __attribute__((vector_size(32)));
+static inline cv8 cld8(const float* p) { cv8 r; memcpy(&r, p, sizeof r); return r; }
+
+static inline void comb_two(const int32_t* ot, const float* wt, int64_t S, const float* CT, int64_t j0, int64_t j1,
+                            int64_t cs, int64_t es, int64_t rs, cv8* r0, cv8* r1) {
+    cv8 a0 = {0}, a1 = {0}, a2 = {0}, b0 = {0}, b1 = {0}, b2 = {0};
+    for (int64_t s = 0; s < S; ++s) {
+        const float* base = CT + ot[s];
+        for (int dy = 0; dy < 2; ++dy)
+            for (int e = 0; e < 2; ++e) {
+                const float w = wt[4 * s + 2 * dy + e];
+                const float* p = base + dy * rs + e * es;
+                a0 += cld8(p + j0) * w; a1 += cld8(p + j0 + cs) * w; a2 += cld8(p + j0 + 2 * cs) * w;
+                b0 += cld8(p + j1) * w; b1 += cld8(p + j1 + cs) * w; b2 += cld8(p + j1 + 2 * cs) * w;
+            }
+    }
+    r0[0] = a0; r0[1] = a1; r0[2] = a2;
+    r1[0] = b0; r1[1] = b1; r1[2] = b2;
+}
+
+static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint64_t* mask, int64_t n, int64_t S,
+                       int64_t n_psi, int64_t J, const int32_t* o, const float* w4, const float* CT, int64_t m,
+                       float* out) {
+    const int64_t cs = 4 * J, es = 2 * J, rs = 3 * m * cs, G = J / 8;
+    for (int64_t q = i0; q < i1; ++q) {
+        const int64_t it = items[q], b = it / n, t = it % n, i = b / n_psi, k = b % n_psi;
+        const uint64_t mk = mask[it];
+        const int32_t* ot = o + it * S;
+        const float* wt = w4 + it * S * 4;
+        int64_t gs[8], ng = 0;
+        for (int64_t g = 0; g < G; ++g)
+            if ((mk >> (8 * g)) & 0xffu) gs[ng++] = g;
+        for (int64_t a = 0; a < ng; a += 2) {
+            const int64_t g0 = gs[a], g1 = a + 1 < ng ? gs[a + 1] : gs[a];
+            cv8 r0[3], r1[3];
+            comb_two(ot, wt, S, CT, 8 * g0, 8 * g1, cs, es, rs, r0, r1);
+            for (int64_t l = 0; l < 8; ++l) {
+                const int64_t f0 = ((i * J + 8 * g0 + l) * n_psi + k) * 3 * n + t;
+                const int64_t f1 = ((i * J + 8 * g1 + l) * n_psi + k) * 3 * n + t;
+                for (int c = 0; c < 3; ++c) { out[f0 + c * n] = r0[c][l]; out[f1 + c * n] = r1[c][l]; }
+            }
+        }
+        for (int64_t j = 8 * G; j < J; ++j) {                   /* frames past the last whole group */
+            if (!((mk >> j) & 1u)) continue;
+            float acc[3] = {0.0f, 0.0f, 0.0f};
+            for (int64_t s = 0; s < S; ++s)
+                for (int dy = 0; dy < 2; ++dy)
+                    for (int e = 0; e < 2; ++e) {
+                        const float w = wt[4 * s + 2 * dy + e];
+                        const float* p = CT + ot[s] + j + dy * rs + e * es;
+                        for (int c = 0; c < 3; ++c) acc[c] += p[c * cs] * w;
+                    }
+            const int64_t f = ((i * J + j) * n_psi + k) * 3 * n + t;
+            for (int c = 0; c < 3; ++c) out[f + c * n] = acc[c];
+        }
+    }
+}
+
+void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
+                   int64_t* status) {
+    if (J > 64) { status[0] = -1; return; }
+    uint64_t* mask = (uint64_t*)calloc((size_t)(B * n), sizeof(uint64_t));
+    int64_t* items = (int64_t*)malloc((size_t)(B * n + 1) * sizeof(int64_t));
+    if (!mask || !items) { free(mask); free(items); status[0] = -2; return; }
+    int64_t f = -1, lo = 0, row = 0;                             /* pairs[e] in [lo, lo + n): frame f */
+    uint64_t bit = 0;
+    for (int64_t e = 0; e < np; ++e) {
+        if (f < 0 || pairs[e] < lo || pairs[e] - lo >= n) {     /* divisions once per frame */
+            f = pairs[e] / n;
+            lo = f * n;
+            const int64_t k = f % n_psi, j = f / n_psi % J, i = f / (J * n_psi);
+            row = (i * n_psi + k) * n;
+            bit = (uint64_t)1 << j;
+        }
+        mask[row + pairs[e] - lo] |= bit;
+    }
+    int64_t ni = 0;
+    for (int64_t it = 0; it < B * n; ++it)
+        if (mask[it]) items[ni++] = it;
+    if (nt <= 1 || ni < 2 * nt) {
+        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+    } else {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+        for (int64_t q = 0; q < nt; ++q)
+            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+    }
+    free(mask);
+    free(items);
+    status[0] = 0;
+}
+
 /* The comb path's live-triangle means (B, n, 3, J) contiguous, row b J + j of frame dst[b J + j]
    (< 0: not wanted), copied into out (F, 3, n): out[dst, c, t] = means[b, t, c, j], each wanted
    frame's rows written in order (its means read with stride 3 J: a base row's 3 n J means stay in
@@ -447,22 +723,49 @@ def _flags() -> tuple[str, ...]:
     return ("-ffp-contract=off", "-fno-trapping-math", "-fopenmp", *native.isa_flags())
 
 
+# AVX-512 (foundation, DQ for its float logic, VL / BW for the 32 registers in the 8-lane code too)
+AVX512_FLAGS = ("-mavx512f", "-mavx512dq", "-mavx512vl", "-mavx512bw")
+
+
+def _wide_flags() -> tuple[str, ...] | None:
+    """`_flags` plus `AVX512_FLAGS` when torch found the CPU to have AVX-512 (`native.cpu_capability`),
+    else None (the 16-sample pairs' zproject16 loop; the same bits as the AVX2 build)."""
+    return (*_flags(), *AVX512_FLAGS) if native.cpu_capability() == "AVX512" else None
+
+
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P],
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I],
                "tp_take": [_I, _I, _P, _P, _P, _P],
-               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P]}
+               "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
+               "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
 
 def _lib():
-    """The library (`methods.core.native.load`) or None: no compiler, the build failed,
+    """The library (`methods.core.native.load`; built with `_wide_flags` when the CPU has AVX-512,
+    else — or when that build fails — with `_flags`) or None: no compiler, the build failed,
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
     if not tp_native.switched_on():
         return None
+    wide = _wide_flags()
+    if wide is not None:
+        lib = _quiet_load("tp_light_pairs_z", wide)
+        if lib is not None:
+            return lib
     return native.load("tp_light_pairs", _SOURCE, _SIGNATURES, extra_flags=_flags())
+
+
+def _quiet_load(name: str, flags: tuple[str, ...]):
+    """`native.load` of this source with ``flags`` without its build-failure warning (a compiler
+    without AVX-512 support: the AVX2 build serves, the same bits)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return native.load(name, _SOURCE, _SIGNATURES, extra_flags=flags)
 
 
 def available() -> bool:
@@ -485,6 +788,10 @@ def vis_bits(Vt: Tensor) -> Tensor:
 MIN_PAIRS_PER_THREAD = 256
 
 
+# Points below which one thread finds the read pairs (`need`; each range ORs into its own table).
+MIN_POINTS_PER_THREAD = 8192
+
+
 def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int) -> Tensor:
     """(F, n) bool: the (grid row, live triangle) pairs that points with visibility rows / weights
     (vrows, vw (B, k_v)) and grid rows / weights (lrows, lw (B, k_L)) read with a non-zero visibility
@@ -504,8 +811,9 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     bits = bits.contiguous()
     out = torch.empty(F, n, dtype=torch.uint8)
     st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), B // MIN_POINTS_PER_THREAD))
     lib.tp_need(B, kv, vrows.data_ptr(), vw.data_ptr(), kl, lrows.data_ptr(), lw.data_ptr(), bits.shape[1],
-                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr())
+                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr(), nt)
     r = int(st[0])
     if r == -1:
         raise IndexError("a row index outside its table (read with a non-zero weight)")
@@ -593,4 +901,42 @@ def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q:
     args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
     nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
     lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt)
+    return out
+
+
+def comb_pairs(pairs: Tensor, o: Tensor, w4: Tensor, CT: Tensor, n_psi: int, J: int, m: int, out: Tensor) -> Tensor:
+    """The comb path's fine values (`lighting.comb_means` of a map turned about +Y only) of the pairs
+    f·n + t (``pairs`` (P,) int64) only, into ``out`` (F, 3, n) float32 (returned): o (B, n, S) int32
+    and w4 (B, n, S, 2, 2) float32 from `lighting.comb_taps` of the live triangles, CT the comb table
+    (`lighting.comb_table`), J = n_phi frames per base row, m = W / J. The compiled reduction's sums on
+    one thread bit for bit; every frame of an 8-frame group holding a listed pair is written (with its
+    value), other entries untouched. Base rows b = i·n_psi + k, grid frame f = (i·J + j)·n_psi + k
+    (`lighting._comb_rows`). Raises RuntimeError without the library."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    F, C, n = out.shape
+    if o.ndim != 3 or o.shape[1] != n or w4.shape != (*o.shape, 2, 2) or C != 3 or o.dtype != torch.int32 \
+            or w4.dtype != torch.float32 or CT.dtype != torch.float32 or out.dtype != torch.float32 \
+            or not out.is_contiguous() or J > 64 or F != o.shape[0] * J or F % n_psi or o.shape[0] % n_psi:
+        raise ValueError("o (B, n, S) int32, w4 (B, n, S, 2, 2) float32, out (B·J, 3, n) float32 contiguous, J <= 64 expected")
+    for t in (o, w4, CT, out):
+        if t.device.type != "cpu":
+            raise ValueError("CPU tensors expected")
+    pairs = pairs.to(torch.int64).contiguous()
+    P = pairs.numel()
+    if P == 0:
+        return out
+    if int(pairs.min()) < 0 or int(pairs.max()) >= F * n:
+        raise IndexError("a pair outside the table")
+    B, _, S = o.shape
+    o, w4, CT = o.contiguous(), w4.contiguous(), CT.contiguous()
+    if int(o.min()) < 0 or int(o.max()) + 3 * m * 4 * J + 2 * J + 2 * 4 * J + J - 1 >= CT.numel():   # rs + es + 2 cs + J - 1
+        raise IndexError("a comb offset outside the table")
+    st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    lib.tp_comb_pairs(P, pairs.data_ptr(), n, S, n_psi, J, B, o.data_ptr(), w4.data_ptr(), CT.data_ptr(), m,
+                      out.data_ptr(), nt, st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_comb_pairs could not allocate its tables")
     return out

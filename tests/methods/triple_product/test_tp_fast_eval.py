@@ -902,8 +902,8 @@ def test_lazy_lighting_projects_the_looked_up_frames_only_and_renders_the_same(s
             # frames projected whole, or on the live triangles only (`fast_eval.live_triangles`)
             lz = lazy_m._lazy_light
             done = None if lz is None else lz["done"] | lz.get("live", torch.zeros_like(lz["done"]))
-            if lz is not None and lz.get("pairs") is not None:   # the read pairs only (`lighting.project_pairs`)
-                assert kind == "L" and lazy_m.stats["projected_pairs"] == int(lz["pairs"].sum())
+            if lz is not None and lz.get("pairs") is not None:   # the read pairs only (`lighting.project_pairs`;
+                assert lazy_m.stats["projected_pairs"] == int(lz["pairs"].sum())   # E: `comb_pairs_ok`)
                 done = done | lz["pairs"].any(1)
             if i == 0:              # the first lighting (the harness's warm-up frame): the whole grid
                 assert done is None and lazy_m.stats["projected_frames"] == lazy_m.grid.size

@@ -63,10 +63,11 @@ def test_project_pairs_equals_the_compiled_projection(supersample):
 
 
 def test_project_pairs_builds_agree():
-    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) writes the
-    same bits as the one the frames use (with AVX2 the 16-sample pairs take `pairs16x2`, two at a
-    time), for supersample 2 on a tilted map: both the compiled projection's values; an odd count of
-    pairs (the last one alone) too."""
+    """The library built without the host's ISA flags (no AVX2: `pair_means` for every S) and the one
+    built with AVX2 only (the 16-sample pairs take `pairs16x2`, two at a time) write the same bits as
+    the one the frames use (on an AVX-512 host `zproject16`, four pairs in 16-lane vectors), for
+    supersample 2 on a tilted map: all the compiled projection's values; pair counts that are not a
+    multiple of two or four (the last pairs repeated) too."""
     from methods.core import native
     from methods.core.spherical_haar import Geodesic
     from methods.core.threads import torch_threads
@@ -85,22 +86,80 @@ def test_project_pairs_builds_agree():
                         extra_flags=("-ffp-contract=off", "-fno-trapping-math", "-fopenmp"))
     if plain is None:
         pytest.skip("the library did not build without ISA flags")
-    with torch_threads(1):
-        host = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
-        keep = native_light._lib
-        native_light._lib = lambda: plain
+    builds = {"plain": plain}
+    if native.isa_flags():
+        builds["avx2"] = native.load("tp_light_pairs_avx2", native_light._SOURCE, native_light._SIGNATURES,
+                                     extra_flags=native_light._flags())
+    keep = native_light._lib
+
+    def run(lib, sel):
+        native_light._lib = (lambda: lib) if lib is not None else keep
         try:
-            got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros_like(whole))
+            with torch_threads(1):
+                return lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=sel, out=torch.zeros_like(whole))
         finally:
             native_light._lib = keep
-    assert torch.equal(host, whole) and torch.equal(got, whole)
-    odd = pairs[1::2][:-1]                                              # an odd count (the last pair alone)
-    assert odd.numel() % 2 == 1
+
+    assert torch.equal(run(None, pairs), whole)
+    for name, lib in builds.items():
+        assert lib is not None and torch.equal(run(lib, pairs), whole), name
+    for cut in (1, 2, 3):                                  # counts 1, 2, 3 past a multiple of four
+        sel = pairs[1::2][:(pairs.numel() // 8) * 4 + cut]
+        m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, sel, True)
+        m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
+        for lib in (None, *builds.values()):
+            one = run(lib, sel)
+            assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all()), cut
+
+
+@pytest.mark.parametrize("grid", [(5, 8, 1), (5, 8, 2), (4, 4, 1), (3, 16, 3), (5, 32, 1)])
+def test_comb_pairs_equal_the_comb_path(grid):
+    """For a map turned about +Y only (`lighting.comb_pairs_ok`), `lighting.project_pairs` writes the
+    comb path's fine values (`project_env` with ``tris``: `comb_taps`, `comb_means` — on one thread,
+    whose reduction adds each output's terms in one sequence) bit for bit into the listed pairs, and
+    into the other frames of their 8-frame groups (J = n_phi frames per base row: whole groups, and J
+    = 4 frames one by one), nothing else; the same bits on 1, 2 and 3 threads; n_psi > 1 (base rows
+    i·n_psi + k) too."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+    from scenes.sequences import rotation_y
+
+    g = lt.FrameGrid(*grid)
+    lev = 2 if g.n_phi >= 16 else 1
+    geo, R = Geodesic(lev), lt.grid_frames(g)
+    tris = torch.arange(0, 20 * 4 ** lev, 3)
+    env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(rotation_y(0.7)), geo, 2)
+    assert lt.comb_pairs_ok(env, g) and not lt.pairs_ok(env)
     with torch_threads(1):
-        one = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=odd, out=torch.zeros_like(whole))
-    m = torch.zeros(whole.shape[0] * whole.shape[2], dtype=torch.bool).index_fill_(0, odd, True)
-    m = m.view(whole.shape[0], 1, -1).expand(-1, 3, -1)
-    assert torch.equal(one[m], whole[m]) and bool((one[~m] == 0).all())
+        whole = lt.project_env(env, R, geo, supersample=2, grid=g, tris=tris)[1]
+    gen = torch.Generator().manual_seed(3)
+    sel = torch.rand(g.size, tris.numel(), generator=gen) < 0.05
+    pairs = torch.nonzero(sel.view(-1)).squeeze(-1)
+    J, F, n = g.n_phi, g.size, tris.numel()
+    f = torch.arange(F)
+    b = f // (J * g.n_psi) * g.n_psi + f % g.n_psi                               # base row i·n_psi + k
+    key = (b * 8 + f // g.n_psi % J // 8)[:, None] * n + torch.arange(n)          # (base row, group of j, t)
+    hit = torch.zeros_like(sel)
+    hit.view(-1)[torch.isin(key.view(-1), key.view(-1)[pairs])] = True
+    if J % 8:
+        hit = sel                                                                # frames one by one
+    m = sel[:, None, :].expand(-1, 3, -1)
+    h = hit[:, None, :].expand(-1, 3, -1)
+    old = native_light.MIN_PAIRS_PER_THREAD
+    native_light.MIN_PAIRS_PER_THREAD = 4
+    try:
+        for nt in (1, 2, 3):
+            with torch_threads(nt):
+                got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs,
+                                       out=torch.full((F, 3, n), 7.0), grid=g)
+            assert torch.equal(got[m], whole[m]), nt
+            assert torch.equal(got[h], whole[h]) and bool((got[~h] == 7.0).all()), nt
+    finally:
+        native_light.MIN_PAIRS_PER_THREAD = old
+    with pytest.raises(ValueError):                                              # the general loop's map only
+        lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros(F, 3, n))
 
 
 @pytest.mark.parametrize("n", [1, 45, 640])
@@ -148,19 +207,27 @@ def test_comb_scatter_is_the_gather_and_copy():
 def test_need_is_the_read_pairs(n):
     """`native_light.need` = the (grid row, column) pairs some point reads with a non-zero grid
     weight and a non-zero visibility (a visibility row with a zero weight does not count), computed
-    directly; points repeated back to back (skipped by the loop) and rows that are all zero."""
+    directly; points repeated back to back (skipped by the loop), points repeating only the previous
+    one's visibility rows (its OR reused, the grid rows it shares with the previous point skipped),
+    rows that are all zero; the points split over 1, 2 and 3 threads (the same pairs)."""
+    from methods.core.threads import torch_threads
+
     gen = torch.Generator().manual_seed(6)
     N, F, B = 11, 13, 300
     V = torch.rand(N, n, generator=gen) * (torch.rand(N, n, generator=gen) < 0.3)
     V[0] = 0
     V[1, -1] = 0.5                                                          # the last bit of a word
-    for kv, kl in ((1, 4), (3, 4), (3, 8)):
+    for kv, kl, vis_only in ((1, 4, False), (3, 4, False), (3, 8, False), (3, 4, True), (1, 2, True)):
         vrows = torch.randint(0, N, (B, kv), generator=gen)
         lrows = torch.randint(0, F, (B, kl), generator=gen)
         vw = torch.rand(B, kv, generator=gen) * (torch.rand(B, kv, generator=gen) < 0.8)
         lw = torch.rand(B, kl, generator=gen) * (torch.rand(B, kl, generator=gen) < 0.7)
         rep = torch.arange(B) // 3                                            # each point three times in a row
-        vrows, lrows, vw, lw = vrows[rep], lrows[rep], vw[rep], lw[rep]
+        if vis_only:                                                         # the visibility rows only, grid
+            vrows, vw = vrows[rep], vw[rep]                                  # rows partly the previous point's
+            lrows = torch.where(torch.rand(B, kl, generator=gen) < 0.5, lrows, lrows[rep])
+        else:
+            vrows, lrows, vw, lw = vrows[rep], lrows[rep], vw[rep], lw[rep]
         # the first of each three with more zero weights: its repeats read more (not skipped)
         lw[0::3] = lw[0::3] * (torch.rand(lw[0::3].shape, generator=gen) < 0.5)
         vw[0::3] = vw[0::3] * (torch.rand(vw[0::3].shape, generator=gen) < 0.5)
@@ -173,8 +240,15 @@ def test_need_is_the_read_pairs(n):
             for j in range(kl):
                 if lw[p, j] != 0:
                     want[lrows[p, j]] |= vis
-        got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
-        assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl)
+        old = native_light.MIN_POINTS_PER_THREAD
+        native_light.MIN_POINTS_PER_THREAD = 16
+        try:
+            for nt in (1, 2, 3):
+                with torch_threads(nt):
+                    got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
+                assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl, vis_only, nt)
+        finally:
+            native_light.MIN_POINTS_PER_THREAD = old
     with pytest.raises(IndexError):
         native_light.need(native_light.vis_bits(V), vrows, vw, lrows + F, lw, F, n)
 
