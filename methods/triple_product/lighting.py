@@ -50,6 +50,7 @@ from methods.core.frames import coordinate_system
 from methods.core.fused import fused, map_rows, warm_blocks
 from methods.core.latlong import quad_lane_weights, quad_lanes, quad_taps, quad_texels
 from methods.core.spherical_haar import Geodesic, forward_butterfly
+from methods.core.threads import torch_threads
 
 TANGENTS = ("grid", "duff")
 LOOKUPS = ("nearest", "trilinear", "exact")
@@ -880,7 +881,13 @@ def project_env(envmap, R: Tensor, geo: Geodesic, *, supersample: int = 1,
         else:                                  # the live triangles' samples only
             u0, v0 = _live_azimuthal_samples(geo, supersample, grid, tris, R.device)
         o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
-        means = _kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi)
+        # on one thread: the compiled loop's sums are split over the team where Inductor vectorises
+        # for AVX-512 (an AMD EPYC host, session 30: comb means 3.8e-5 apart between 1 and 2 threads,
+        # `test_bit_identical_with_one_and_two_threads[triple_product]`), and `native_light.comb_pairs`
+        # reproduces the one-thread sums; this full-grid pass runs when a lighting is set, not per
+        # E frame (those take the read pairs)
+        with torch_threads(1):
+            means = _kernel(comb_means)(o, w4, CT, grid.n_phi, W // grid.n_phi)
         if tris is None:
             coef, fine = _kernel(comb_coeffs)(means)
         else:                                  # (B, n', 3, J) → a (B, J, 3, n') view, frame (b, j): the
