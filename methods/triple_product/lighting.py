@@ -628,7 +628,10 @@ def comb_means(o: Tensor, w4: Tensor, CT: Tensor, J: int, m: int) -> Tensor:
     the same order as before: the same sums bit for bit."""
     es, cs = 2 * J, 4 * J                                                   # side, channel strides
     rs = m * 3 * cs                                                         # row stride
-    win = CT.as_strided((CT.shape[0] - rs - es - J + 1, 3, 2, 2, J), (1, cs, rs, es, 1))
+    # top-left offsets o: the window's last element (channel 2, dy = dx = 1, frame J - 1) lies
+    # 2·cs + rs + es + J − 1 past o, so o < N − (2·cs + rs + es + J − 1) (the eager view is bounds-checked:
+    # without the 2·cs it reached past the table and PRTBENCH_COMPILE=0 raised in every comb frame)
+    win = CT.as_strided((CT.shape[0] - 2 * cs - rs - es - J + 1, 3, 2, 2, J), (1, cs, rs, es, 1))
     taps, w = win[o], w4[:, :, :, None, :, :, None]
     return torch.cat([(taps[..., a:a + COMB_LANES] * w).sum((2, 4, 5))    # (B, n, 3, J)
                       for a in range(0, J, COMB_LANES)], -1)

@@ -475,6 +475,10 @@ def test_comb_means_equals_the_sequential_sums():
                         at = o[:, :, si, None].long() + c * 4 * J + dy * m * 12 * J + e * 2 * J + j
                         ref[:, :, c] = ref[:, :, c] + CT[at] * w4[:, :, si, dy, e, None]
         assert got.shape == ref.shape and torch.equal(got, ref), n_phi
+        # the eager function (PRTBENCH_COMPILE=0's path; its window view is bounds-checked, and
+        # until session 30 reached 2 channel strides past the table): the same sums to round-off
+        eager = lt.comb_means(o, w4, CT, J, m)
+        assert eager.shape == ref.shape and torch.allclose(eager, ref, rtol=1e-5, atol=1e-6), n_phi
 
 
 def test_comb_table_is_its_definition():
