@@ -24,7 +24,6 @@ bound by its table reads, AVX2 measured the same (1.61 against 1.48× of the com
 from __future__ import annotations
 
 import ctypes
-import functools
 
 import torch
 from torch import Tensor
@@ -161,8 +160,9 @@ _SIGNATURES = {"vertex_cells": [_P, _I, _P, _I, _P, _P, _P, _I, _P, _P, _P, _P, 
 MIN_PER_THREAD = 512
 
 
-@functools.lru_cache(maxsize=None)
 def _lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
+    # None met while compilation was off (a test's monkeypatch) is not kept for the process
     return native.load("inout_vertex", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
 
 

@@ -31,7 +31,6 @@ counts itself in the stamps, so the previous frame's rows are stale.
 from __future__ import annotations
 
 import ctypes
-import functools
 
 import torch
 from torch import Tensor
@@ -377,8 +376,9 @@ MIN_PER_THREAD = 1024
 CHUNK = 1024
 
 
-@functools.lru_cache(maxsize=None)
 def _lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
+    # None met while compilation was off (a test's monkeypatch) is not kept for the process
     return native.load("inout_sample", _SOURCE, _SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 

@@ -569,8 +569,9 @@ _SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I,
                "shade": [_P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
 
 
-@functools.lru_cache(maxsize=None)
 def _lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
+    # None met while compilation was off (a test's monkeypatch) is not kept for the process
     # libmvec: the vector variants of the math functions (module docstring); linked explicitly
     return native.load("oracle_rays", _SOURCE, _SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", "-fno-trapping-math", *native.isa_flags(),

@@ -19,7 +19,6 @@ pool's hand-off waits for a core the OpenMP workers spin on (`methods.core.goura
 from __future__ import annotations
 
 import ctypes
-import functools
 import math
 
 import torch
@@ -411,8 +410,9 @@ MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
 
 
-@functools.lru_cache(maxsize=None)
 def _lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
+    # None met while compilation was off (a test's monkeypatch) is not kept for the process
     return native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
 
 
