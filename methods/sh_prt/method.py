@@ -169,6 +169,9 @@ PIXEL_CHUNK = 1 << 18
 # The pixel pass as `native.pixels` (one C loop that also lists the glossy samples) where it runs;
 # False: always the compiled `_pixels` (its oracle, with `_flat_nonzero` of its flags).
 NATIVE_PIXELS = True
+# The native glossy pass adds its radiance to the pixels itself (`native.glossy` with ``img``) instead
+# of a serial `native.add_pixels` pass after it; the same image bit for bit.
+GLOSSY_ADDS = True
 # A lighting-only frame's glossy samples from the relight cache packed per 8 samples, by
 # `native.relight_add` (one C pass) where it runs; False: the unpacked cache, `_relight_add`'s GEMM
 # and scatter_add_ (its oracle).
@@ -874,9 +877,14 @@ class SHPRT(Method):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
-            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
-            vals = _native.glossy(g, *args, *_sh_factor_tables(math.isqrt(G.shape[1]), G.device)) if NATIVE_GLOSSY else None
-            _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
+            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27),
+            # or (session 31, `GLOSSY_ADDS`) by the native glossy pass itself as it shades them, the
+            # same sums bit for bit, its threads split at pixel boundaries (no serial pass after it)
+            AS = _sh_factor_tables(math.isqrt(G.shape[1]), G.device)
+            into = img if GLOSSY_ADDS else None
+            vals = _native.glossy(g, *args, *AS, img=into, S2=S2) if NATIVE_GLOSSY else None
+            if vals is None or into is None:
+                _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:
