@@ -27,6 +27,19 @@ schedule: the image's cost is uneven), each pixel summed by one thread in one or
 concatenated vertex id, its W² rows of 4 floats: X's 3 channels and a 0, one 16-byte load; and a
 stamp per row) is kept between frames (zeroed once), so nothing is allocated per frame; a frame
 counts itself in the stamps, so the previous frame's rows are stale.
+
+Session 31 (`FAST`): each G-buffer array is read along its own layout (the bench's column-major ω_o
+and barycentrics as runs, its row-major normals split; the same values), and the memo's and the
+exact path's K-term dot products are fused multiply-adds, 16 lanes wide on AVX-512 hosts (`dotf`,
+`dot4f`; float32 round-off). Same process against session 30's code, 1 thread, process CPU, V
+frames: chess 1.01-1.08×, creature 1.02-1.11× (load 4-6; ``python -m benchmarks.inout --base B
+--scene chess|creature --kinds V L --frames 15 --threads 1 --no-micro``). What bounds the loop now
+(perf, chess bench, 1 thread): the memo look-ups ~30 % (their stamp and row loads), the memo fills
+~25 % and the exact path ~20 % (table rows of 3K floats, K ≤ 88, from a 4.3 MB table: ~8·10⁴ fills
+and ~5·10⁴ exact entries a frame), the per-sample set-up ~15 %. Tried and dropped (same process,
+alternating, bit-identical): the block's dependent loads in three passes with software prefetches
+(face → vertex records → memo rows and stamps): 0.88-0.93×; the row's stamp kept in its 4th float
+(one cache line fewer per look-up): 0.99-1.04×.
 """
 from __future__ import annotations
 

@@ -29,6 +29,16 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     bit-identical to `_pixels_impl` and its compiled kernel; ~6-7 ns per sample against ~8-9, 1 thread)
     that also lists the glossy samples (no flags tensor, no `_flat_nonzero`); the compiled `_pixels`
     is its fallback and oracle.
+  * session 31 (same process against session 30's code, creature bench, 1 thread, process CPU, load
+    4-6, `python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V L E VL --threads 1
+    --frames 15`: V 1.13-1.17×, L 1.15×, E 1.11×, VL 0.97-1.06×): the native pixel pass takes 8 samples (two
+    pixels) per AVX2 step at S² = 4 (`native.VECTOR_PIXELS`: face rows loaded whole and transposed,
+    row-major normals split by shuffles; bit-identical; 1.23× the pass: AVX2 gathers of the rows were
+    0.58×), the glossy pass fuses its multiply-adds (`native.FUSED_GLOSSY`, float32 round-off;
+    1.05-1.08× the pass) and adds its radiance to the pixels itself (`GLOSSY_ADDS`: no serial
+    `add_pixels` pass, ~0.3 ms; bit-identical). Tried and dropped: the pixel pass's strides as
+    constants or its face rows prefetched (no gain), the glossy pass's l' rows prefetched a block
+    ahead (0.92×).
   * session 28: the glossy pass below runs as one AVX2 C loop where it can (`native.glossy`: odd
     orders <= 7, where n² − 1 is whole 8-float vectors): per block of 8 glossy samples their scalars
     and y(R) (Horner over `_sh_factor_tables`) vectorized ACROSS the samples, an 8 × 8 transpose to
