@@ -95,7 +95,7 @@ def micro(m, frames, gb, B: float, Pk: float) -> dict:
     kd, ks, G, vcos = m._materials(frame)
     res: dict = {}
     data = env.data
-    res["light: project"] = {"ms": ms(lambda: shm.project_latlong_polar(data, m.order)),
+    res["light: project"] = {"ms": ms(lambda: _sh.project_latlong_polar(data, m.order)),
                              "texels": float(data.shape[0] * data.shape[1]),
                              "sh.project_latlong ms": ms(lambda: _sh.project_latlong(data.double(), m.order))}
     res["light: project"]["native ms"] = ms(lambda: shm.sh_native.project_latlong_polar(data, m.order))

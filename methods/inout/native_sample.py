@@ -27,6 +27,19 @@ schedule: the image's cost is uneven), each pixel summed by one thread in one or
 concatenated vertex id, its W² rows of 4 floats: X's 3 channels and a 0, one 16-byte load; and a
 stamp per row) is kept between frames (zeroed once), so nothing is allocated per frame; a frame
 counts itself in the stamps, so the previous frame's rows are stale.
+
+Session 31 (`FAST`): each G-buffer array is read along its own layout (the bench's column-major ω_o
+and barycentrics as runs, its row-major normals split; the same values), and the memo's and the
+exact path's K-term dot products are fused multiply-adds, 16 lanes wide on AVX-512 hosts (`dotf`,
+`dot4f`; float32 round-off). Same process against session 30's code, 1 thread, process CPU, V
+frames: chess 1.01-1.08×, creature 1.02-1.11× (load 4-6; ``python -m benchmarks.inout --base B
+--scene chess|creature --kinds V L --frames 15 --threads 1 --no-micro``). What bounds the loop now
+(perf, chess bench, 1 thread): the memo look-ups ~30 % (their stamp and row loads), the memo fills
+~25 % and the exact path ~20 % (table rows of 3K floats, K ≤ 88, from a 4.3 MB table: ~8·10⁴ fills
+and ~5·10⁴ exact entries a frame), the per-sample set-up ~15 %. Tried and dropped (same process,
+alternating, bit-identical): the block's dependent loads in three passes with software prefetches
+(face → vertex records → memo rows and stamps): 0.88-0.93×; the row's stamp kept in its 4th float
+(one cache line fewer per look-up): 0.99-1.04×.
 """
 from __future__ import annotations
 
@@ -51,7 +64,7 @@ _SOURCE = r"""
 #include <math.h>
 #include <string.h>
 #include <omp.h>
-#ifdef __AVX2__
+#if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 
@@ -118,6 +131,81 @@ static inline float dot4(const float *s0, const float *s1, const float *s2, cons
     return acc;
 }
 
+/* With FMA (and AVX-512 where the library is built for it): sum_k a[k] b[k] by fused multiply-adds in
+   two accumulators of whole vectors, the tail masked (AVX-512) or scalar, combined by a fixed tree;
+   and the exact path's sum as the four nodes' dot products with c weighted: sum_n w_n (s_n . c), the
+   same terms as `dot4` in another order (float32 round-off), four multiply-adds per term instead of
+   nine operations. Both are functions of their operands alone (no thread or schedule in them). */
+#if defined(__AVX512F__)
+static inline float hsum16(__m512 a) { return _mm512_reduce_add_ps(a); }
+static inline float dotf(const float *a, const float *b, int64_t K) {
+    __m512 s0 = _mm512_setzero_ps(), s1 = _mm512_setzero_ps();
+    int64_t k = 0;
+    for (; k + 32 <= K; k += 32) {
+        s0 = _mm512_fmadd_ps(_mm512_loadu_ps(a + k), _mm512_loadu_ps(b + k), s0);
+        s1 = _mm512_fmadd_ps(_mm512_loadu_ps(a + k + 16), _mm512_loadu_ps(b + k + 16), s1);
+    }
+    for (; k < K; k += 16) {
+        const __mmask16 mk = K - k >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << (K - k)) - 1u);
+        s0 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, a + k), _mm512_maskz_loadu_ps(mk, b + k), s0);
+    }
+    return hsum16(_mm512_add_ps(s0, s1));
+}
+static inline float dot4f(const float *s0, const float *s1, const float *s2, const float *s3, float w0, float w1,
+                          float w2, float w3, const float *cv, int64_t K) {
+    __m512 a0 = _mm512_setzero_ps(), a1 = _mm512_setzero_ps(), a2 = _mm512_setzero_ps(), a3 = _mm512_setzero_ps();
+    for (int64_t k = 0; k < K; k += 16) {
+        const __mmask16 mk = K - k >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << (K - k)) - 1u);
+        const __m512 c = _mm512_maskz_loadu_ps(mk, cv + k);
+        a0 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, s0 + k), c, a0);
+        a1 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, s1 + k), c, a1);
+        a2 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, s2 + k), c, a2);
+        a3 = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, s3 + k), c, a3);
+    }
+    return ((w0 * hsum16(a0) + w1 * hsum16(a1)) + w2 * hsum16(a2)) + w3 * hsum16(a3);
+}
+#define HAVE_DOTF 1
+#elif defined(__FMA__) && defined(__AVX2__)
+static inline float hsum8(__m256 a) {
+    __m128 x = _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
+    x = _mm_add_ps(x, _mm_movehl_ps(x, x));
+    x = _mm_add_ss(x, _mm_movehdup_ps(x));
+    return _mm_cvtss_f32(x);
+}
+static inline float dotf(const float *a, const float *b, int64_t K) {
+    __m256 s0 = _mm256_setzero_ps(), s1 = _mm256_setzero_ps();
+    int64_t k = 0;
+    for (; k + 16 <= K; k += 16) {
+        s0 = _mm256_fmadd_ps(_mm256_loadu_ps(a + k), _mm256_loadu_ps(b + k), s0);
+        s1 = _mm256_fmadd_ps(_mm256_loadu_ps(a + k + 8), _mm256_loadu_ps(b + k + 8), s1);
+    }
+    for (; k + 8 <= K; k += 8)
+        s0 = _mm256_fmadd_ps(_mm256_loadu_ps(a + k), _mm256_loadu_ps(b + k), s0);
+    float acc = hsum8(_mm256_add_ps(s0, s1));
+    for (; k < K; ++k)
+        acc = fmaf(a[k], b[k], acc);
+    return acc;
+}
+static inline float dot4f(const float *s0, const float *s1, const float *s2, const float *s3, float w0, float w1,
+                          float w2, float w3, const float *cv, int64_t K) {
+    __m256 a0 = _mm256_setzero_ps(), a1 = _mm256_setzero_ps(), a2 = _mm256_setzero_ps(), a3 = _mm256_setzero_ps();
+    int64_t k = 0;
+    for (; k + 8 <= K; k += 8) {
+        const __m256 c = _mm256_loadu_ps(cv + k);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(s0 + k), c, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(s1 + k), c, a1);
+        a2 = _mm256_fmadd_ps(_mm256_loadu_ps(s2 + k), c, a2);
+        a3 = _mm256_fmadd_ps(_mm256_loadu_ps(s3 + k), c, a3);
+    }
+    float d0 = hsum8(a0), d1 = hsum8(a1), d2 = hsum8(a2), d3 = hsum8(a3);
+    for (; k < K; ++k) {
+        d0 = fmaf(s0[k], cv[k], d0); d1 = fmaf(s1[k], cv[k], d1); d2 = fmaf(s2[k], cv[k], d2); d3 = fmaf(s3[k], cv[k], d3);
+    }
+    return ((w0 * d0 + w1 * d1) + w2 * d2) + w3 * d3;
+}
+#define HAVE_DOTF 1
+#endif
+
 typedef float v4 __attribute__((vector_size(16)));
 
 typedef struct {
@@ -130,6 +218,7 @@ typedef struct {
     const int64_t *shp, *cp, *Ks;           /* per slot: table (R^2 3, K) and c (Vr, 3, K) pointers, K */
     const float *pos, *frames, *cam;        /* per vertex (nv, 3), (nv, 9); (3,) */
     int64_t R, W, S2, stamp, chunk;         /* chunk: pixels per chunk of the dynamic schedule (nt > 1) */
+    int64_t fast;                           /* bits: 1 the G-buffer read along its layout, 2 `dotf` / `dot4f` */
     int32_t *vrec;                          /* per vertex (nv, 4): stamp, u0, v0, slot */
     float *memo;                            /* per vertex W^2 rows of 4 floats: X (3) and 0 */
     int32_t *mstamp;                        /* per memo row: the frame that filled it */
@@ -169,9 +258,18 @@ static inline void memo_fill(const Args *A, int64_t g, int64_t s, int64_t row, i
     const float *sh = (const float *)(intptr_t)A->shp[s] + node * 3 * K;
     const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
     float *m = A->memo + 4 * row;
-    m[0] = dot(sh, cv, K);
-    m[1] = dot(sh + K, cv + K, K);
-    m[2] = dot(sh + 2 * K, cv + 2 * K, K);
+#ifdef HAVE_DOTF
+    if (A->fast & 2) {
+        m[0] = dotf(sh, cv, K);
+        m[1] = dotf(sh + K, cv + K, K);
+        m[2] = dotf(sh + 2 * K, cv + 2 * K, K);
+    } else
+#endif
+    {
+        m[0] = dot(sh, cv, K);
+        m[1] = dot(sh + K, cv + K, K);
+        m[2] = dot(sh + 2 * K, cv + 2 * K, K);
+    }
     m[3] = 0.0f;
     __atomic_store_n(A->mstamp + row, (int32_t)A->stamp, __ATOMIC_RELEASE);
     ++*made;
@@ -254,11 +352,44 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
         if (n > BLK * 8) {   /* S2 > 8: one pixel at a time would need larger buffers; never on the bench */
             continue;
         }
-        for (int64_t i = 0; i < n; ++i) {      /* the G-buffer's rows, as columns */
-            const int64_t q = q0 + i;
-            nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
-            a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
-            bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
+        if (A->fast & 1) {   /* the same values, each array read along its own layout */
+            const size_t nb = (size_t)n * sizeof(float);
+            if (A->n0 == 3 && A->n1 == 1) {                  /* row-major (q, 3) */
+                const float *src = A->nrm + 3 * q0;
+                for (int64_t i = 0; i < n; ++i) {
+                    nx_[i] = src[3 * i]; ny_[i] = src[3 * i + 1]; nz_[i] = src[3 * i + 2];
+                }
+            } else if (A->n0 == 1) {                         /* column-major: three runs */
+                memcpy(nx_, A->nrm + q0, nb); memcpy(ny_, A->nrm + q0 + A->n1, nb); memcpy(nz_, A->nrm + q0 + 2 * A->n1, nb);
+            } else {
+                for (int64_t i = 0; i < n; ++i) {
+                    const int64_t q = q0 + i;
+                    nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
+                }
+            }
+            if (A->w0 == 1) {
+                memcpy(a_, A->wo + q0, nb); memcpy(b_, A->wo + q0 + A->w1, nb); memcpy(c_, A->wo + q0 + 2 * A->w1, nb);
+            } else {
+                for (int64_t i = 0; i < n; ++i) {
+                    const int64_t q = q0 + i;
+                    a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
+                }
+            }
+            if (A->b0 == 1) {
+                memcpy(bu_, A->bary + q0, nb); memcpy(bv_, A->bary + q0 + A->b1, nb);
+            } else {
+                for (int64_t i = 0; i < n; ++i) {
+                    const int64_t q = q0 + i;
+                    bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
+                }
+            }
+        } else {
+            for (int64_t i = 0; i < n; ++i) {      /* the G-buffer's rows, as columns */
+                const int64_t q = q0 + i;
+                nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
+                a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
+                bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
+            }
         }
         frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_);
         for (int64_t p = pb; p < pe; ++p) {
@@ -305,6 +436,13 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                         const float *sh = (const float *)(intptr_t)A->shp[s];
                         const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
                         v4 e = {0, 0, 0, 0};
+#ifdef HAVE_DOTF
+                        if (A->fast & 2) {
+                            for (int64_t ch = 0; ch < 3; ++ch)
+                                e[ch] = dot4f(sh + (ce * 3 + ch) * K, sh + ((ce + 1) * 3 + ch) * K, sh + ((ce + R) * 3 + ch) * K,
+                                              sh + ((ce + R + 1) * 3 + ch) * K, w0, w1, w2, w3, cv + ch * K, K);
+                        } else
+#endif
                         for (int64_t ch = 0; ch < 3; ++ch)
                             e[ch] = dot4(sh + (ce * 3 + ch) * K, sh + ((ce + 1) * 3 + ch) * K, sh + ((ce + R) * 3 + ch) * K,
                                          sh + ((ce + R + 1) * 3 + ch) * K, w0, w1, w2, w3, cv + ch * K, K);
@@ -360,7 +498,7 @@ class _Args(ctypes.Structure):
                 ("shp", ctypes.c_void_p), ("cp", ctypes.c_void_p), ("Ks", ctypes.c_void_p),
                 ("pos", ctypes.c_void_p), ("frames", ctypes.c_void_p), ("cam", ctypes.c_void_p),
                 ("R", ctypes.c_int64), ("W", ctypes.c_int64), ("S2", ctypes.c_int64), ("stamp", ctypes.c_int64),
-                ("chunk", ctypes.c_int64),
+                ("chunk", ctypes.c_int64), ("fast", ctypes.c_int64),
                 ("vrec", ctypes.c_void_p), ("memo", ctypes.c_void_p), ("mstamp", ctypes.c_void_p)]
 
 
@@ -374,13 +512,29 @@ MIN_PER_THREAD = 1024
 # old and new alternating in one process at 2 threads on a loaded machine: chess wall 1.12-1.23x (CPU
 # 1.05-1.17x), creature wall 1.04x (CPU 1.06x); chunks of 512 / 2048 pixels read 1.14x / 1.08-1.32x.
 CHUNK = 1024
+# What the loop does beyond session 29's (bits; 0: that loop, the same values bit for bit — the test
+# oracle of the others): 1 each G-buffer array read along its own layout (column runs copied, row-major
+# (q, 3) rows split; the same values), 2 the dot products by fused multiply-adds, 16 lanes wide on an
+# AVX-512 build (`dotf`, `dot4f`: other roundings, float32 round-off). Chess bench V, 1 thread, process
+# CPU, same process alternating: 3 against 0 1.08x (the table rows' and memo's misses bound the rest).
+FAST = 3
 
 
 def _lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
     # None met while compilation was off (a test's monkeypatch) is not kept for the process
-    return native.load("inout_sample", _SOURCE, _SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+    return native.load("inout_sample", _SOURCE, _SIGNATURES, extra_flags=_flags())
+
+
+# AVX-512 where torch found the CPU to have it (the dot products 16 lanes wide, `dotf`, `dot4f`)
+AVX512_FLAGS = ("-mavx512f", "-mavx512dq", "-mavx512vl", "-mavx512bw")
+
+
+def _flags() -> tuple[str, ...]:
+    isa = native.isa_flags()
+    if native.cpu_capability() == "AVX512":
+        isa = (*isa, *AVX512_FLAGS)
+    return ("-fopenmp", "-ffp-contract=off", *isa)
 
 
 def available() -> bool:
@@ -437,7 +591,7 @@ def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: 
               bary.data_ptr(), bary.stride(0), bary.stride(1), face.data_ptr(), region.data_ptr(), live.data_ptr(),
               st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
               voff.data_ptr(), S, shp.data_ptr(), cp.data_ptr(), Ks.data_ptr(),
-              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp, CHUNK,
+              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp, CHUNK, int(FAST),
               vrec.data_ptr(), rows.data_ptr(), mst.data_ptr())
     lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
     made, exact = int(stats[:, 0].sum()), int(stats[:, 1].sum())

@@ -29,6 +29,16 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     bit-identical to `_pixels_impl` and its compiled kernel; ~6-7 ns per sample against ~8-9, 1 thread)
     that also lists the glossy samples (no flags tensor, no `_flat_nonzero`); the compiled `_pixels`
     is its fallback and oracle.
+  * session 31 (same process against session 30's code, creature bench, 1 thread, process CPU, load
+    4-6, `python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V L E VL --threads 1
+    --frames 15`: V 1.13-1.17×, L 1.15×, E 1.11×, VL 0.97-1.06×): the native pixel pass takes 8 samples (two
+    pixels) per AVX2 step at S² = 4 (`native.VECTOR_PIXELS`: face rows loaded whole and transposed,
+    row-major normals split by shuffles; bit-identical; 1.23× the pass: AVX2 gathers of the rows were
+    0.58×), the glossy pass fuses its multiply-adds (`native.FUSED_GLOSSY`, float32 round-off;
+    1.05-1.08× the pass) and adds its radiance to the pixels itself (`GLOSSY_ADDS`: no serial
+    `add_pixels` pass, ~0.3 ms; bit-identical). Tried and dropped: the pixel pass's strides as
+    constants or its face rows prefetched (no gain), the glossy pass's l' rows prefetched a block
+    ahead (0.92×).
   * session 28: the glossy pass below runs as one AVX2 C loop where it can (`native.glossy`: odd
     orders <= 7, where n² − 1 is whole 8-float vectors): per block of 8 glossy samples their scalars
     and y(R) (Horner over `_sh_factor_tables`) vectorized ACROSS the samples, an 8 × 8 transpose to
@@ -169,6 +179,9 @@ PIXEL_CHUNK = 1 << 18
 # The pixel pass as `native.pixels` (one C loop that also lists the glossy samples) where it runs;
 # False: always the compiled `_pixels` (its oracle, with `_flat_nonzero` of its flags).
 NATIVE_PIXELS = True
+# The native glossy pass adds its radiance to the pixels itself (`native.glossy` with ``img``) instead
+# of a serial `native.add_pixels` pass after it; the same image bit for bit.
+GLOSSY_ADDS = True
 # A lighting-only frame's glossy samples from the relight cache packed per 8 samples, by
 # `native.relight_add` (one C pass) where it runs; False: the unpacked cache, `_relight_add`'s GEMM
 # and scatter_add_ (its oracle).
@@ -874,9 +887,14 @@ class SHPRT(Method):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
-            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27)
-            vals = _native.glossy(g, *args, *_sh_factor_tables(math.isqrt(G.shape[1]), G.device)) if NATIVE_GLOSSY else None
-            _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
+            # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27),
+            # or (session 31, `GLOSSY_ADDS`) by the native glossy pass itself as it shades them, the
+            # same sums bit for bit, its threads split at pixel boundaries (no serial pass after it)
+            AS = _sh_factor_tables(math.isqrt(G.shape[1]), G.device)
+            into = img if GLOSSY_ADDS else None
+            vals = _native.glossy(g, *args, *AS, img=into, S2=S2) if NATIVE_GLOSSY else None
+            if vals is None or into is None:
+                _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:

@@ -140,12 +140,141 @@ static int64_t px_range(int64_t p0, int64_t p1, int64_t S2, const int64_t *face,
     return ng;
 }
 
+#ifdef __AVX2__
+#include <immintrin.h>
+/* `px_range` at S2 = 4, eight samples (two pixels) per step in AVX2 lanes: the face rows gathered, every
+   operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
+   samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
+   same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
+static inline void px_tr8(__m256 *r) {
+    __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    __m256 s0 = _mm256_shuffle_ps(t0, t2, 0x44), s1 = _mm256_shuffle_ps(t0, t2, 0xEE);
+    __m256 s2 = _mm256_shuffle_ps(t1, t3, 0x44), s3 = _mm256_shuffle_ps(t1, t3, 0xEE);
+    __m256 s4 = _mm256_shuffle_ps(t4, t6, 0x44), s5 = _mm256_shuffle_ps(t4, t6, 0xEE);
+    __m256 s6 = _mm256_shuffle_ps(t5, t7, 0x44), s7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+    r[0] = _mm256_permute2f128_ps(s0, s4, 0x20); r[1] = _mm256_permute2f128_ps(s1, s5, 0x20);
+    r[2] = _mm256_permute2f128_ps(s2, s6, 0x20); r[3] = _mm256_permute2f128_ps(s3, s7, 0x20);
+    r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
+    r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
+}
+static inline __m256 px_ld(const float *p, int64_t stride, __m256i lane) {
+    if (stride == 1)
+        return _mm256_loadu_ps(p);
+    return _mm256_i32gather_ps(p, _mm256_mullo_epi32(lane, _mm256_set1_epi32((int32_t)stride)), 4);
+}
+static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint8_t *hit,
+                         const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                         const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+                         float inv, float *img, int64_t *gl) {
+    int64_t ng = 0;
+    const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7), lo = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
+    const __m256i zero64 = _mm256_setzero_si256(), top64 = _mm256_set1_epi64x(Mf - 1);
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+    float xs[3][8];
+    for (int64_t p = p0; p < p1; p += 2) {
+        const int64_t q = p * 4;
+        __m256i fa = _mm256_loadu_si256((const __m256i *)(face + q)), fb = _mm256_loadu_si256((const __m256i *)(face + q + 4));
+        fa = _mm256_blendv_epi8(fa, zero64, _mm256_cmpgt_epi64(zero64, fa));
+        fb = _mm256_blendv_epi8(fb, zero64, _mm256_cmpgt_epi64(zero64, fb));
+        fa = _mm256_blendv_epi8(fa, top64, _mm256_cmpgt_epi64(fa, top64));
+        fb = _mm256_blendv_epi8(fb, top64, _mm256_cmpgt_epi64(fb, top64));
+        const __m256i f = _mm256_permute2x128_si256(_mm256_permutevar8x32_epi32(fa, lo),
+                                                    _mm256_permutevar8x32_epi32(fb, lo), 0x20);   /* (8,) int32 */
+        int32_t fi[8];
+        _mm256_storeu_si256((__m256i *)fi, f);
+        __m256 E[8], K[4];
+        for (int b = 0; b < 8; ++b)                         /* the rows, transposed below: E[k] lane b = ef[f_b, k] */
+            E[b] = _mm256_loadu_ps(ef + 9 * (int64_t)fi[b]);
+        px_tr8(E);
+        const __m256 E8 = _mm256_setr_ps(ef[9 * (int64_t)fi[0] + 8], ef[9 * (int64_t)fi[1] + 8], ef[9 * (int64_t)fi[2] + 8],
+                                         ef[9 * (int64_t)fi[3] + 8], ef[9 * (int64_t)fi[4] + 8], ef[9 * (int64_t)fi[5] + 8],
+                                         ef[9 * (int64_t)fi[6] + 8], ef[9 * (int64_t)fi[7] + 8]);
+        for (int b = 0; b < 4; ++b)
+            K[b] = _mm256_set_m128(_mm_loadu_ps(fk + 4 * (int64_t)fi[b + 4]), _mm_loadu_ps(fk + 4 * (int64_t)fi[b]));
+        {
+            const __m256 t0 = _mm256_unpacklo_ps(K[0], K[1]), t1 = _mm256_unpackhi_ps(K[0], K[1]);
+            const __m256 t2 = _mm256_unpacklo_ps(K[2], K[3]), t3 = _mm256_unpackhi_ps(K[2], K[3]);
+            K[0] = _mm256_shuffle_ps(t0, t2, 0x44); K[1] = _mm256_shuffle_ps(t0, t2, 0xEE);
+            K[2] = _mm256_shuffle_ps(t1, t3, 0x44); K[3] = _mm256_shuffle_ps(t1, t3, 0xEE);
+        }
+        const __m256i hv = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)(hit + q)));
+        const __m256 h = _mm256_castsi256_ps(_mm256_cmpgt_epi32(hv, _mm256_setzero_si256()));
+        const __m256 K3 = K[3];
+        const __m256 gs = _mm256_and_ps(h, _mm256_cmp_ps(K3, zero, _CMP_NEQ_UQ));
+        int gm = _mm256_movemask_ps(gs);
+        while (gm) {                                        /* ascending sample order */
+            const int b = __builtin_ctz(gm);
+            gl[ng++] = q + b;
+            gm &= gm - 1;
+        }
+        __m256 N0, N1, N2;
+        if (nr == 3 && nc == 1) {                           /* row-major (q, 3): 24 floats split into x, y, z */
+            const float *np = N + 3 * q;
+            const __m256 m03 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(np)), _mm_loadu_ps(np + 12), 1);
+            const __m256 m14 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(np + 4)), _mm_loadu_ps(np + 16), 1);
+            const __m256 m25 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(np + 8)), _mm_loadu_ps(np + 20), 1);
+            const __m256 xy = _mm256_shuffle_ps(m14, m25, _MM_SHUFFLE(2, 1, 3, 2));
+            const __m256 yz = _mm256_shuffle_ps(m03, m14, _MM_SHUFFLE(1, 0, 2, 1));
+            N0 = _mm256_shuffle_ps(m03, xy, _MM_SHUFFLE(2, 0, 3, 0));
+            N1 = _mm256_shuffle_ps(yz, xy, _MM_SHUFFLE(3, 1, 2, 0));
+            N2 = _mm256_shuffle_ps(yz, m25, _MM_SHUFFLE(3, 0, 3, 1));
+        } else {
+            N0 = px_ld(N + q * nr, nr, lane); N1 = px_ld(N + q * nr + nc, nr, lane); N2 = px_ld(N + q * nr + 2 * nc, nr, lane);
+        }
+        const __m256 O0 = px_ld(O + q * orr, orr, lane), O1 = px_ld(O + q * orr + oc, orr, lane),
+                     O2 = px_ld(O + q * orr + 2 * oc, orr, lane);
+        const __m256 ndo = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(N0, O0), _mm256_mul_ps(N1, O1)), _mm256_mul_ps(N2, O2));
+        const __m256 keep = _mm256_andnot_ps(gs, _mm256_and_ps(_mm256_cmp_ps(ndo, zero, _CMP_GT_OQ), h));
+        const __m256 u = px_ld(B + q * br, br, lane), v = px_ld(B + q * br + bc, br, lane);
+        const __m256 w0 = _mm256_sub_ps(_mm256_sub_ps(one, u), v);
+        for (int c = 0; c < 3; ++c) {
+            const __m256 Kc = K[c], Ea = E[c], Eb = E[3 + c], Ec = c == 2 ? E8 : E[6 + c];
+            __m256 x = _mm256_mul_ps(Kc, _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(Ea, w0), _mm256_mul_ps(Eb, u)),
+                                                       _mm256_mul_ps(Ec, v)));
+            x = _mm256_blendv_ps(x, zero, _mm256_cmp_ps(x, zero, _CMP_LT_OQ));   /* clamp_min (NaN kept) */
+            x = _mm256_and_ps(x, keep);
+            _mm256_storeu_ps(xs[c], x);
+        }
+        for (int k = 0; k < 2; ++k)
+            for (int c = 0; c < 3; ++c) {
+                float a = xs[c][4 * k];
+                a += xs[c][4 * k + 1];
+                a += xs[c][4 * k + 2];
+                a += xs[c][4 * k + 3];
+                img[3 * (p + k) + c] = a * inv;
+            }
+    }
+    return ng;
+}
+#endif
+
+/* `px_range`, by `px_range8` where it applies (fast, AVX2, S2 = 4, strides whose gather indices fit
+   int32), the odd last pixel by the scalar loop. */
+static int64_t px_any(int64_t p0, int64_t p1, int64_t S2, const int64_t *face, const uint8_t *hit,
+                      const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                      const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+                      float inv, float *img, int64_t *gl, int64_t fast) {
+#ifdef __AVX2__
+    if (fast && S2 == 4 && Mf < ((int64_t)1 << 27) && br > 0 && br < (1 << 27) && nr > 0 && nr < (1 << 27)
+            && orr > 0 && orr < (1 << 27)) {
+        const int64_t pm = p0 + ((p1 - p0) & ~(int64_t)1);
+        const int64_t ng = px_range8(p0, pm, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl);
+        return ng + px_range(pm, p1, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + ng);
+    }
+#endif
+    (void)fast;
+    return px_range(p0, p1, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl);
+}
+
 void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
                const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
                const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
-               float inv, float *img, int64_t *gl, int64_t *count, int64_t nt) {
+               float inv, float *img, int64_t *gl, int64_t *count, int64_t nt, int64_t fast) {
     if (nt <= 1) {
-        *count = px_range(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl);
+        *count = px_any(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
         return;
     }
     int64_t cnt[64];
@@ -153,7 +282,7 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
     #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t k = 0; k < nt; ++k) {
         const int64_t a = n * k / nt, e = n * (k + 1) / nt;
-        cnt[k] = px_range(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2);
+        cnt[k] = px_any(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2, fast);
     }
     int64_t tot = cnt[0];
     for (int64_t k = 1; k < nt; ++k) {                 /* each range's list after the previous ones */
@@ -266,12 +395,19 @@ static inline float hsum8(__m256 a) {
     return _mm_cvtss_f32(l);
 }
 #define GMAXB 8     /* (n² − 1) / 8 <= 8: orders <= 7 */
-static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+#ifdef __FMA__
+#define MADD(a, b, c) (fused ? _mm256_fmadd_ps(a, b, c) : _mm256_add_ps(_mm256_mul_ps(a, b), c))
+#else
+#define MADD(a, b, c) _mm256_add_ps(_mm256_mul_ps(a, b), c)
+#endif
+static inline __attribute__((always_inline)) void gl_body(
+                     int64_t q0, int64_t q1, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
                      const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc,
                      const float *N, int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc,
                      const float *ef, const int32_t *fg, const float *lg, int64_t lsc, int64_t lsr,
                      const float *kd, const float *ks, const float *G, const uint8_t *vcos,
-                     const float *A, const int32_t *sel, float *out) {
+                     const float *A, const int32_t *sel, float *out, float *img, int64_t S2, float inv,
+                     const int fused) {
     const int64_t n2 = n * n, m = n2 - 1, nb = m / 8;
     const float Y00 = 0.28209479177387814f;
     float fu[8], fv[8], fnx[8], fny[8], fnz[8], fox[8], foy[8], foz[8], fvc[8];
@@ -323,14 +459,19 @@ static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const 
             }
             for (int64_t i = 0; i < m; ++i) {
                 __m256 P = _mm256_set1_ps(A[(n - 1) * m + i]);
-                for (int64_t j = n - 2; j >= 0; --j) P = _mm256_add_ps(_mm256_mul_ps(P, z), _mm256_set1_ps(A[j * m + i]));
+                for (int64_t j = n - 2; j >= 0; --j) P = MADD(P, z, _mm256_set1_ps(A[j * m + i]));
                 yb[i / 8][i % 8] = _mm256_mul_ps(P, T[sel[i]]);
             }
             for (int64_t k = 0; k < nb; ++k) tr8(yb[k]);          /* yb[k][b]: lanes 8k.. of sample b */
         }
         for (int64_t b = 0; b < nb8; ++b) {
             float *o = out + 3 * (b0 + b);
-            if (FR[b] == 0.0f) { o[0] = o[1] = o[2] = 0.0f; continue; }
+            float *po = img ? img + 3 * (g[b0 + b] / S2) : 0;   /* `sh_add_pixels`' sum, sample by sample */
+            if (FR[b] == 0.0f) {
+                o[0] = o[1] = o[2] = 0.0f;
+                if (po) { po[0] += o[0] * inv; po[1] += o[1] * inv; po[2] += o[2] * inv; }
+                continue;
+            }
             const int64_t f = fi[b], r = ri[b];
             const float u = fu[b], v = fv[b], w0 = 1.0f - u - v, sc = SC[b];
             const float *Gr = G + r * n2;
@@ -347,18 +488,47 @@ static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const 
                             *L2 = lg + c * lsc + fr[2] * lsr;
                 __m256 acc = _mm256_setzero_ps();
                 for (int64_t k = 0; k < nb; ++k) {
-                    const __m256 li = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_loadu_ps(L0 + 1 + 8 * k), W),
-                                                                  _mm256_mul_ps(_mm256_loadu_ps(L1 + 1 + 8 * k), U)),
-                                                    _mm256_mul_ps(_mm256_loadu_ps(L2 + 1 + 8 * k), V));
-                    acc = _mm256_add_ps(acc, _mm256_mul_ps(li, q[k]));
+                    __m256 li;
+                    if (fused)      /* ((L0 w0) + L1 u) + L2 v, each add fused with its product */
+                        li = MADD(_mm256_loadu_ps(L2 + 1 + 8 * k), V,
+                                  MADD(_mm256_loadu_ps(L1 + 1 + 8 * k), U, _mm256_mul_ps(_mm256_loadu_ps(L0 + 1 + 8 * k), W)));
+                    else
+                        li = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_loadu_ps(L0 + 1 + 8 * k), W),
+                                                         _mm256_mul_ps(_mm256_loadu_ps(L1 + 1 + 8 * k), U)),
+                                           _mm256_mul_ps(_mm256_loadu_ps(L2 + 1 + 8 * k), V));
+                    acc = fused ? MADD(li, q[k], acc) : _mm256_add_ps(acc, _mm256_mul_ps(li, q[k]));
                 }
                 const float spec = hsum8(acc) + (L0[0] * w0 + L1[0] * u + L2[0] * v) * y0;
                 const float e = ec[c] * w0 + ec[3 + c] * u + ec[6 + c] * v;
                 const float val = kd[r * 3 + c] * e + ks[r * 3 + c] * spec;
                 o[c] = val < 0.0f ? 0.0f : val;
             }
+            if (po) { po[0] += o[0] * inv; po[1] += o[1] * inv; po[2] += o[2] * inv; }
         }
     }
+}
+#undef MADD
+
+/* `gl_body` as session 28 wrote it (fused = 0: the compiled kernel's products and sums in its order) or,
+   on FMA builds (fused = 1), with Horner's steps for y(R) and the reduction's multiply-adds fused
+   (l' interpolated as fma(L2, v, fma(L1, u, L0 w0)), acc = fma(l', q, acc)): 52 instead of 88 vector
+   operations per glossy sample at order 5, other roundings (float32 round-off). */
+static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+                     const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc,
+                     const float *N, int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc,
+                     const float *ef, const int32_t *fg, const float *lg, int64_t lsc, int64_t lsr,
+                     const float *kd, const float *ks, const float *G, const uint8_t *vcos,
+                     const float *A, const int32_t *sel, float *out, float *img, int64_t S2, float inv,
+                     int64_t fused) {
+#ifdef __FMA__
+    if (fused) {
+        gl_body(q0, q1, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                vcos, A, sel, out, img, S2, inv, 1);
+        return;
+    }
+#endif
+    gl_body(q0, q1, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+            vcos, A, sel, out, img, S2, inv, 0);
 }
 #endif
 
@@ -366,19 +536,27 @@ void sh_glossy(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int6
                const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
                const float *O, int64_t orr, int64_t oc, const float *ef, const int32_t *fg, const float *lg,
                int64_t lsc, int64_t lsr, const float *kd, const float *ks, const float *G, const uint8_t *vcos,
-               const float *A, const int32_t *sel, float *out, int64_t nt, int64_t *ok) {
+               const float *A, const int32_t *sel, float *out, int64_t nt, int64_t *ok, int64_t fused,
+               float *img, int64_t S2, float inv) {
 #ifdef __AVX2__
     *ok = 1;
     if (nt <= 1) {
         gl_range(0, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
-                 vcos, A, sel, out);
+                 vcos, A, sel, out, img, S2, inv, fused);
         return;
     }
+    /* img != NULL: the ranges start at a pixel's first listed sample (g ascending), so each pixel's samples
+       are added by one thread in their order, as `sh_add_pixels` adds them */
     #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t k = 0; k < nt; ++k) {
-        const int64_t a = Q * k / nt, e = Q * (k + 1) / nt;
-        gl_range(a, e, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
-                 vcos, A, sel, out);
+        int64_t a = Q * k / nt, e = Q * (k + 1) / nt;
+        if (img) {
+            while (a > 0 && a < Q && g[a] / S2 == g[a - 1] / S2) ++a;
+            while (e > 0 && e < Q && g[e] / S2 == g[e - 1] / S2) ++e;
+        }
+        if (a < e)
+            gl_range(a, e, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                     vcos, A, sel, out, img, S2, inv, fused);
     }
 #else
     *ok = 0;
@@ -401,13 +579,17 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
-                             _P, _P, _P, _P, _P, _P, _P, _I, _P],
+                             _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
-                             _P, _P, _I]}
+                             _P, _P, _I, _I]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
+# The glossy pass with its multiply-adds fused where the build has FMA (`gl_range`; float32 round-off
+# from the unfused loop, which False restores). Creature bench V frame's glossy samples, 1 thread,
+# process CPU, same process alternating: 1.08x the pass.
+FUSED_GLOSSY = True
 
 
 def _lib():
@@ -524,6 +706,9 @@ def add_pixels(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:
 
 
 MIN_PIXELS_PER_THREAD = 4096    # pixels below which one thread runs the pixel pass
+# The pixel pass 8 samples per step in AVX2 lanes at 2 × 2 samples per pixel (`px_range8`: the same
+# image and glossy list bit for bit as the scalar `px_range`, which False restores).
+VECTOR_PIXELS = True
 
 
 def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
@@ -552,7 +737,7 @@ def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, 
     lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
                   normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                   ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
-                  cnt.data_ptr(), nt)
+                  cnt.data_ptr(), nt, int(bool(VECTOR_PIXELS)))
     return img, gl[:int(cnt)].clone()
 
 
@@ -639,11 +824,14 @@ MIN_GLOSSY_PER_THREAD = 512     # glossy samples below which one thread shades t
 
 
 def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, ef: Tensor, fg: Tensor,
-           lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor, S: Tensor) -> Tensor | None:
+           lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor, S: Tensor,
+           img: Tensor | None = None, S2: int = 1) -> Tensor | None:
     """`method._glossy_samples_impl`'s radiance (Qg, 3) of the glossy samples g by one AVX2 C loop
     (module source: `sh_glossy`; the same arithmetic in another order, float32 round-off), or None
     where it does not run (no library or AVX2, not the CPU, other dtypes, an even order or one
-    above 7): the caller then runs the compiled kernel. Arguments as that function's."""
+    above 7): the caller then runs the compiled kernel. Arguments as that function's. With ``img``
+    (n, 3) float32 contiguous (g ascending, g // S2 < n): the radiance is also added to its pixels as
+    `add_pixels` adds it, bit for bit, in the same pass (img untouched when None is returned)."""
     lib = _lib()
     n = math.isqrt(int(G.shape[1]))
     if (lib is None or n % 2 == 0 or n > 7 or n * n != G.shape[1] or g.device.type != "cpu"
@@ -652,11 +840,16 @@ def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, re
             or any(x.dtype != torch.float32 for x in (bary, normal, wo, ef, lg3, kd, ks, G, A))):
         return None
     Q = int(g.numel())
+    if img is not None and (img.device.type != "cpu" or img.dtype != torch.float32 or not img.is_contiguous()
+                            or img.ndim != 2 or img.shape[1] != 3):
+        return None
     out = torch.empty(Q, 3, dtype=torch.float32)
     if Q == 0:
         return out
     if int(g.min()) < 0 or int(g.max()) >= face.numel():
         raise IndexError("a glossy sample outside the G-buffer")
+    if img is not None and int(g.max()) >= img.shape[0] * S2:
+        raise IndexError("a sample outside the image")
     g, face, reg, fg, ef, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, fg, ef, kd, ks, G, A))
     v8 = vcos.to(torch.uint8).contiguous()
     sel = S.argmax(0).to(torch.int32).contiguous()
@@ -666,5 +859,6 @@ def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, re
                   bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0), normal.stride(1),
                   wo.data_ptr(), wo.stride(0), wo.stride(1), ef.data_ptr(), fg.data_ptr(), lg3.data_ptr(),
                   lg3.stride(0), lg3.stride(1), kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(),
-                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr())
+                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr(), int(bool(FUSED_GLOSSY)),
+                  None if img is None else img.data_ptr(), int(S2), 1.0 / S2)
     return out if int(ok) else None

@@ -76,6 +76,45 @@ def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, 
         assert summed == 0         # the window is the whole table (R = 16)
 
 
+@pytest.mark.parametrize("fast", [1, 2, 3])
+@pytest.mark.parametrize("name", ["chess", "creature"])
+def test_native_sample_variants_equal_session_29s_loop(precomputed, monkeypatch, name, fast):
+    """The loop's variants (`native_sample.FAST`) against session 29's loop (FAST = 0), the compiled
+    path and the reference, over a V and an L sequence with the G-buffer's layouts (column-major ω_o
+    and barycentrics, row-major normals) and row-major copies: bit 1 (each array read along its own
+    layout) the same image bit for bit; bit 2 (the dot products fused, 16 lanes on AVX-512 builds)
+    the same to float32 round-off, with W = 2 (nearly every entry on the exact path) and W = 4."""
+    m = precomputed(name)
+    for W in (2, 4):
+        monkeypatch.setattr(native_sample, "WINDOW", W)
+        for kind in ("V", "L"):
+            new, old, comp, ref = _copy(m), _copy(m), _copy(m), _copy(m)
+            comp._render_native = lambda f, g: None
+            for frame in make_sequence(m.scene, kind, n_frames=2, seed=7):
+                gb = make_gbuffer(m.scene, frame, 2)
+                for g in (gb, _row_major(gb)):
+                    monkeypatch.setattr(native_sample, "FAST", fast)
+                    got = new.render(frame, g)
+                    monkeypatch.setattr(native_sample, "FAST", 0)
+                    want = old.render(frame, g)
+                    exact, cimg = ref._render_reference(frame, g), comp.render(frame, g)
+                    scale = float(exact.abs().max())
+                    assert scale > 0
+                    if fast & 2:
+                        assert float((got - want).abs().max()) <= RTOL * scale, f"{name} {kind} W {W}"
+                    else:
+                        assert torch.equal(got, want), f"{name} {kind} W {W}"
+                    assert float((got - cimg).abs().max()) <= RTOL * scale
+                    assert float((got - exact).abs().max()) <= RTOL * scale
+
+
+def _row_major(gb):
+    """A copy of the G-buffer with every (q, C) array row-major (the loop's other layout)."""
+    g = copy.copy(gb)
+    g.normal, g.wo, g.bary = g.normal.contiguous(), g.wo.contiguous(), g.bary.contiguous()
+    return g
+
+
 def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeypatch):
     """The frame split over two threads (pixels per thread lowered to 1) gives the single thread's
     image and memo bit for bit: each memo row's value is its (vertex, node) pair's alone."""

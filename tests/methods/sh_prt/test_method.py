@@ -700,19 +700,23 @@ def test_native_add_pixels_is_the_scatter_add(S2):
         native.add_pixels(img0.clone(), torch.tensor([n * S2]), vals[:1], S2)
 
 
+@pytest.mark.parametrize("vector", [False, True])
 @pytest.mark.parametrize("S2", [1, 4, 9])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_native_pixel_pass_equals_the_compiled_pass(S2, threads):
+def test_native_pixel_pass_equals_the_compiled_pass(S2, threads, vector, monkeypatch):
     """`native.pixels` (the pixel pass as one C loop that also lists the glossy samples) gives bit for
     bit the image of `_pixels_impl` (eager, and compiled by `_pixels_kernel`) and the ascending list
     of its glossy flags, for the G-buffer's layouts (column-major bary and wo, row-major normal) and
     others, with misses (face −1), back-facing samples, negative diffuse values (clamped), glossy
-    faces and more pixels than one thread's share (2 threads: the per-thread lists joined)."""
+    faces and more pixels than one thread's share (2 threads: the per-thread lists joined); the
+    scalar loop and (``vector``, S2 = 4 on AVX2 builds) its 8-lane form, whose odd last pixel the
+    scalar loop takes (an odd pixel count per thread)."""
     from methods.core.fused import map_rows
     from methods.sh_prt import method as shm, native
 
     if not native.available():
         pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "VECTOR_PIXELS", vector)
     gen = torch.Generator().manual_seed(S2 + 10 * threads)
     n, M = 3 * native.MIN_PIXELS_PER_THREAD + 17, 300
     P = n * S2
@@ -738,6 +742,49 @@ def test_native_pixel_pass_equals_the_compiled_pass(S2, threads):
             assert (want[0] > 0).any() and torch.equal(img, want[0]) and torch.equal(img, comp[0])
     finally:
         torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("S2", [1, 4])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_glossy_adding_to_the_pixels_equals_add_pixels(S2, threads, monkeypatch):
+    """`native.glossy` with ``img`` (session 31: the glossy pass adds its radiance to the pixels as it
+    shades, its threads' ranges moved to pixel boundaries) leaves the image `native.add_pixels_torch`
+    (scatter_add_) makes from its radiance, bit for bit, and returns the same radiance: pixels with
+    several glossy samples, a thread boundary inside a pixel's samples (2 threads, MIN_GLOSSY_PER_THREAD
+    lowered), back-facing samples (radiance 0)."""
+    from methods.sh_prt import method as shm, native
+
+    if native.glossy is None or not native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "MIN_GLOSSY_PER_THREAD", 8)
+    gen = torch.Generator().manual_seed(31 + S2 + 10 * threads)
+    order, n = 5, 700
+    n2, P, M, Vg, R = order * order, n * S2, 40, 30, 3
+    face = torch.randint(0, M, (P,), generator=gen)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T
+    normal = torch.randn(P, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.rand(M, 9, generator=gen)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+    kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    g = torch.randperm(P, generator=gen)[:P * 2 // 3].sort().values
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+    args = (face, bary, normal, wo, reg, ef, fg, torch.randn(3, Vg, n2, generator=gen), kd, ks, G, vcos)
+    img0 = torch.rand(n, 3, generator=gen)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        vals = native.glossy(g, *args, *AS)
+        got = img0.clone()
+        vals2 = native.glossy(g, *args, *AS, img=got, S2=S2)
+    finally:
+        torch.set_num_threads(old)
+    want = img0.clone()
+    native.add_pixels_torch(want, g, vals, S2)
+    assert (vals == 0).any() and (vals > 0).any() and torch.equal(vals2, vals)
+    assert not torch.equal(want, img0) and torch.equal(got, want)
 
 
 @pytest.mark.parametrize("Q", [1, 8, 1001])
@@ -807,18 +854,21 @@ def test_vertex_major_M_is_M_without_bounces(alcove):
     assert Mv is not None and Mv.is_contiguous() and torch.equal(Mv, m0.M[..., 0])
 
 
+@pytest.mark.parametrize("fused", [False, True])
 @pytest.mark.parametrize("order", [3, 5, 7])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_native_glossy_equals_the_kernel(order, threads):
+def test_native_glossy_equals_the_kernel(order, threads, fused, monkeypatch):
     """`native.glossy` (the glossy samples' radiance in one AVX2 C loop, 8 samples per block) equals
     `_glossy_samples_impl` (eager: the compiled kernel's definition, its oracle) to float32 round-off
     on random tables: a Phong and a Blinn-Phong region, back-facing samples, unnormalised normals,
-    a count that leaves a partial last block, l' in another memory layout, 1 and 2 threads; and it
-    declines (None) the even orders it does not handle."""
+    a count that leaves a partial last block, l' in another memory layout, 1 and 2 threads, its
+    multiply-adds unfused and (``fused``, FMA builds) fused; and it declines (None) the even orders
+    it does not handle."""
     from methods.sh_prt import method as shm, native
 
     if native.glossy is None or not native.available():
         pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "FUSED_GLOSSY", fused)
     gen = torch.Generator().manual_seed(order + 100 * threads)
     n2, P, M, Vg, R = order * order, 3000, 40, 30, 3
     face = torch.randint(0, M, (P,), generator=gen)
