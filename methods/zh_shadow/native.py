@@ -47,8 +47,8 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"referenced_vertices": [_P, _P, _I, _P, _I, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _kernel():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     lib = native.load("zh_referenced", _SOURCE, _SIGNATURES)
     return None if lib is None else lib.referenced_vertices
 
@@ -378,8 +378,8 @@ _SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
                                      _P, _P, _P, _P, _P, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _split_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
 
 
@@ -545,8 +545,8 @@ _CSR_SIGNATURES = {"zh_ell_rows": [_I, _P, _P, _P, _P, _I, _I, _P, _P, _P, _P],
 MIN_ROWS_PER_CSR_THREAD = 8192      # resolve rows below which one thread runs the product
 
 
-@functools.lru_cache(maxsize=None)
 def _csr_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_ell_rows", _CSR_SOURCE, _CSR_SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
 
 
@@ -556,7 +556,8 @@ def csr_pack(S: Tensor) -> tuple | None:
     0, weight 0) —, trow (T,) int32 the rows longer than 4, tcrow (T + 1,) int32, tcol, tval their
     remaining entries in order), or None (no C loop here, switched off, another layout / dtype /
     device, a column outside [0, N), N = 0, over 2³¹ entries)."""
-    if not terms_switched_on() or _csr_lib() is None or S.layout != torch.sparse_csr or S.device.type != "cpu" \
+    lib = _csr_lib() if terms_switched_on() else None
+    if lib is None or S.layout != torch.sparse_csr or S.device.type != "cpu" \
             or S.values().dtype != torch.float32 or S.dim() != 2:
         return None
     R, N = int(S.shape[0]), int(S.shape[1])
@@ -575,8 +576,8 @@ def csr_pack(S: Tensor) -> tuple | None:
     tcol = torch.empty(nt_, dtype=torch.int32)
     tval = torch.empty(nt_, dtype=torch.float32)
     bad = torch.zeros(1, dtype=torch.int64)
-    _csr_lib().zh_ell_pack(R, crow.data_ptr(), col.data_ptr(), val.data_ptr(), N, col4.data_ptr(), val4.data_ptr(), T,
-                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr(), bad.data_ptr())
+    lib.zh_ell_pack(R, crow.data_ptr(), col.data_ptr(), val.data_ptr(), N, col4.data_ptr(), val4.data_ptr(), T,
+                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else (R, N, col4, val4, trow, tcrow, tcol, tval)
 
 
@@ -601,11 +602,14 @@ def csr_product(packed: tuple, x: Tensor) -> Tensor | None:
     R, N, col4, val4, trow, tcrow, tcol, tval = packed
     if x.device.type != "cpu" or x.dtype != torch.float32 or x.shape != (N, 3):
         return None
+    lib = _csr_lib()
+    if lib is None:   # compilation switched off since the pack
+        return None
     x = x.contiguous()
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
-    _csr_lib().zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
-                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+    lib.zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
+                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out
 
 
@@ -667,8 +671,8 @@ _FACE_PIXELS_SIGNATURES = {"zh_face_pixels": [_I, _I, _P, _P, _I, _I, _P, _I, _I
 MIN_PIXELS_PER_THREAD = 8192        # pixels below which one thread runs the plane pass
 
 
-@functools.lru_cache(maxsize=None)
 def _face_pixels_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_face_pixels", _FACE_PIXELS_SOURCE, _FACE_PIXELS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -760,8 +764,8 @@ _PLANE_PIXELS_SIGNATURES = {"zh_plane_pixels": [_I, _I, _P, _P, _I, _I, _P, _P, 
                                                 ctypes.c_float, _P, _I, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _plane_pixels_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_plane_pixels", _PLANE_PIXELS_SOURCE, _PLANE_PIXELS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -894,8 +898,8 @@ _RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes
 MIN_SAMPLES_PER_RELIGHT_THREAD = 8192   # object samples below which one thread shades them
 
 
-@functools.lru_cache(maxsize=None)
 def _relight_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -961,8 +965,8 @@ void zh_screen(const float *base, int64_t s0, int64_t s1, int64_t m, int64_t *cn
 _SCREEN_SIGNATURES = {"zh_screen": [_P, _I, _I, _I, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _screen_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_screen", _SCREEN_SOURCE, _SCREEN_SIGNATURES)
 
 
