@@ -814,6 +814,33 @@ _RELIGHT_SOURCE = r"""
 
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
 
+enum { CH = 512, NB = CH / 8 };
+
+/* acc[c][j] = Σ_i l[i, c] x[i Q + 8 j + b] (lane b), i ascending: one table's sums over the CH samples from x
+   on (each of its n2 rows' CH values one contiguous run) */
+static inline void accumulate_block(v8 acc[3][NB], const float *x, const float *l, int64_t n2, int64_t Q) {
+    for (int64_t c = 0; c < 3; ++c)
+        for (int64_t j = 0; j < NB; ++j) acc[c][j] = (v8){0};
+    for (int64_t i = 0; i < n2; ++i) {
+        const float *xi = x + i * Q;
+        const float l0 = l[3 * i], l1 = l[3 * i + 1], l2 = l[3 * i + 2];
+        for (int64_t j = 0; j < NB; ++j) {
+            const v8 xv = *(const v8 *)(xi + 8 * j);
+            acc[0][j] += l0 * xv; acc[1][j] += l1 * xv; acc[2][j] += l2 * xv;
+        }
+    }
+}
+
+/* the same sums for the one sample at x (the tail of a range shorter than CH) */
+static inline void accumulate_one(float r[3], const float *x, const float *l, int64_t n2, int64_t Q) {
+    float r0 = 0.f, r1 = 0.f, r2 = 0.f;
+    for (int64_t i = 0; i < n2; ++i) {
+        const float xi = x[i * Q];
+        r0 += l[3 * i] * xi; r1 += l[3 * i + 1] * xi; r2 += l[3 * i + 2] * xi;
+    }
+    r[0] = r0; r[1] = r1; r[2] = r2;
+}
+
 /* img[pix[q], c] += max(Σ_i ld[i, c] td[i, q] + Σ_i ls[i, c] ts[i, q], 0) · inv (the max if clamp; no ts
    term when ts is NULL), q ascending; td, ts (n2, Q) row-major, ld, ls (n2, 3); bad[0] counts pixels
    outside [0, npix) (skipped). */
@@ -824,28 +851,11 @@ static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, cons
     int64_t q0 = qa;
     /* CH samples at a time: each row's CH values read as one contiguous run (a per-sample pass over the
        2 n2 rows Q floats apart read 32 streams at once: slower than the GEMMs from a cold cache) */
-    enum { CH = 512, NB = CH / 8 };
     v8 d[3][NB], sp[3][NB];
     for (; q0 + CH <= qb; q0 += CH) {
-        for (int64_t c = 0; c < 3; ++c)
-            for (int64_t j = 0; j < NB; ++j) { d[c][j] = (v8){0}; sp[c][j] = (v8){0}; }
-        for (int64_t i = 0; i < n2; ++i) {
-            const float *x = td + i * Q + q0;
-            const float l0 = ld[3 * i], l1 = ld[3 * i + 1], l2 = ld[3 * i + 2];
-            for (int64_t j = 0; j < NB; ++j) {
-                const v8 xv = *(const v8 *)(x + 8 * j);
-                d[0][j] += l0 * xv; d[1][j] += l1 * xv; d[2][j] += l2 * xv;
-            }
-        }
+        accumulate_block(d, td + q0, ld, n2, Q);
         if (ts) {
-            for (int64_t i = 0; i < n2; ++i) {
-                const float *x = ts + i * Q + q0;
-                const float l0 = ls[3 * i], l1 = ls[3 * i + 1], l2 = ls[3 * i + 2];
-                for (int64_t j = 0; j < NB; ++j) {
-                    const v8 xv = *(const v8 *)(x + 8 * j);
-                    sp[0][j] += l0 * xv; sp[1][j] += l1 * xv; sp[2][j] += l2 * xv;
-                }
-            }
+            accumulate_block(sp, ts + q0, ls, n2, Q);
             for (int64_t c = 0; c < 3; ++c)
                 for (int64_t j = 0; j < NB; ++j) d[c][j] += sp[c][j];
         }
@@ -860,19 +870,13 @@ static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, cons
             }
     }
     for (int64_t q = q0; q < qb; ++q) {
-        float r0 = 0.f, r1 = 0.f, r2 = 0.f;
-        for (int64_t i = 0; i < n2; ++i) {
-            const float x = td[i * Q + q];
-            r0 += ld[3 * i] * x; r1 += ld[3 * i + 1] * x; r2 += ld[3 * i + 2] * x;
-        }
+        float r[3], s[3];
+        accumulate_one(r, td + q, ld, n2, Q);
         if (ts) {
-            float s0 = 0.f, s1 = 0.f, s2 = 0.f;
-            for (int64_t i = 0; i < n2; ++i) {
-                const float x = ts[i * Q + q];
-                s0 += ls[3 * i] * x; s1 += ls[3 * i + 1] * x; s2 += ls[3 * i + 2] * x;
-            }
-            r0 += s0; r1 += s1; r2 += s2;
+            accumulate_one(s, ts + q, ls, n2, Q);
+            r[0] += s[0]; r[1] += s[1]; r[2] += s[2];
         }
+        float r0 = r[0], r1 = r[1], r2 = r[2];
         const int64_t p = pix[q];
         if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
         if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
