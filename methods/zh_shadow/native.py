@@ -453,15 +453,164 @@ def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, 
 # float32 texels, float64 sums (float64 round-off).
 
 
+# Here (session 31) ZH's own pass halves that loop's multiplies: the columns' azimuths φ_w = (w + ½)Δφ
+# and φ_{w + W/2} = φ_w + π give cos / sin(m φ) the factor (−1)^m between the two halves of a row, so per
+# pair of texels (w, w + W/2) the even-m factors take x_w + x_{w+W/2} and the odd-m ones x_w − x_{w+W/2}:
+# W/2 columns of factors, each half as wide (the even-m and odd-m columns of `sh._latlong_polar_factors`'
+# B, each padded to whole 4-double vectors), the sums as fused multiply-adds. The same integrals to
+# float64 round-off (B's second half is the first's times ±1 up to the round-off of cos / sin there);
+# odd widths and orders above 12 take `methods.core.sh_native`'s pass.
+_PROJECT_SOURCE = r"""
+#include <stdint.h>
+
+/* rows [h0, h1) of the (H, W, 3) float32 map X (W even, half = W / 2): per channel c the column sums
+   E[c][j] = sum_{w < half} (X[h, w, c] + X[h, w + half, c]) Bf[w, j] over the NV vectors of the even-m
+   columns, O[c][j] = sum (X[h, w, c] - X[h, w + half, c]) Bf[w, VL NV + j] over the NV of the odd-m ones
+   (Bf (half, 2 VL NV) float64, VL doubles a vector, each group zero-padded to NV vectors), then
+   out[i, c] += T[h, i] G[c][k[i]] (G = E then O). One function per (VL, NV): the accumulators in registers
+   (a loop over a run-time count kept them in memory); VL 8 where built with AVX-512 (half the
+   instructions when a group fills the vectors). */
+#define PROJ_ROWS(NAME, VL, NV)                                                                             \
+typedef double NAME##_v __attribute__((vector_size(8 * VL), aligned(8)));                                  \
+static void NAME(int64_t h0, int64_t h1, int64_t W, const float *X, const double *Bf, const int64_t *k,      \
+                 const double *T, int64_t n2, double *out) {                                               \
+    const int64_t half = W / 2;                                                                            \
+    for (int64_t h = h0; h < h1; ++h) {                                                                    \
+        NAME##_v a[3][2 * NV];                                                                             \
+        for (int c = 0; c < 3; ++c)                                                                        \
+            for (int v = 0; v < 2 * NV; ++v) a[c][v] = (NAME##_v){0};                                      \
+        const float *row = X + h * W * 3, *row2 = row + half * 3;                                          \
+        for (int64_t w = 0; w < half; ++w) {                                                               \
+            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];                        \
+            const double y0 = row2[3 * w], y1 = row2[3 * w + 1], y2 = row2[3 * w + 2];                     \
+            const double s0 = x0 + y0, s1 = x1 + y1, s2 = x2 + y2;                                         \
+            const double d0 = x0 - y0, d1 = x1 - y1, d2 = x2 - y2;                                         \
+            const NAME##_v *b = (const NAME##_v *)(Bf + w * 2 * VL * NV);                                  \
+            for (int v = 0; v < NV; ++v) {                                                                 \
+                a[0][v] += s0 * b[v]; a[1][v] += s1 * b[v]; a[2][v] += s2 * b[v];                          \
+            }                                                                                              \
+            for (int v = NV; v < 2 * NV; ++v) {                                                            \
+                a[0][v] += d0 * b[v]; a[1][v] += d1 * b[v]; a[2][v] += d2 * b[v];                          \
+            }                                                                                              \
+        }                                                                                                  \
+        double g[3][2 * VL * NV];                                                                          \
+        for (int c = 0; c < 3; ++c)                                                                        \
+            for (int v = 0; v < 2 * NV; ++v)                                                               \
+                for (int l = 0; l < VL; ++l) g[c][VL * v + l] = a[c][v][l];                                \
+        const double *t = T + h * n2;                                                                      \
+        for (int64_t i = 0; i < n2; ++i) {                                                                 \
+            const int64_t j = k[i];                                                                        \
+            for (int c = 0; c < 3; ++c) out[3 * i + c] += t[i] * g[c][j];                                  \
+        }                                                                                                  \
+    }                                                                                                      \
+}
+
+PROJ_ROWS(proj_rows4_1, 4, 1)
+PROJ_ROWS(proj_rows4_2, 4, 2)
+PROJ_ROWS(proj_rows4_3, 4, 3)
+#ifdef __AVX512F__
+PROJ_ROWS(proj_rows8_1, 8, 1)
+PROJ_ROWS(proj_rows8_2, 8, 2)
+#endif
+
+/* lanes[0] = 8 when the 8-double rows were built (AVX-512), else 4 */
+void zh_project_lanes(int64_t *lanes) {
+#ifdef __AVX512F__
+    lanes[0] = 8;
+#else
+    lanes[0] = 4;
+#endif
+}
+
+/* part (nt, n2, 3) zeroed by the caller: thread t's rows [H t / nt, H (t + 1) / nt); (vl, nv) Bf's layout
+   (4: nv 1-3, 8: nv 1-2; the caller keeps to those) */
+void zh_project(int64_t H, int64_t W, const float *X, const double *Bf, int64_t vl, int64_t nv, const int64_t *k,
+                const double *T, int64_t n2, double *part, int64_t nt) {
+    void (*rows)(int64_t, int64_t, int64_t, const float *, const double *, const int64_t *, const double *,
+                 int64_t, double *) = nv == 1 ? proj_rows4_1 : nv == 2 ? proj_rows4_2 : proj_rows4_3;
+#ifdef __AVX512F__
+    if (vl == 8) rows = nv == 1 ? proj_rows8_1 : proj_rows8_2;
+#endif
+    if (nt <= 1) { rows(0, H, W, X, Bf, k, T, n2, part); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t t = 0; t < nt; ++t)
+        rows(H * t / nt, H * (t + 1) / nt, W, X, Bf, k, T, n2, part + t * n2 * 3);
+}
+"""
+_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _I], "zh_project_lanes": [_P]}
+MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects (as `sh_native`)
+
+
+def _project_lib():
+    # not cached here (`native.load` caches the build); multiply-adds fused (float64 round-off)
+    return native.load("zh_project", _PROJECT_SOURCE, _PROJECT_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
+
+
+def _avx512_flags() -> tuple[str, ...]:
+    """``-mavx512f`` where torch found AVX-512 (the pass then takes 8-double vectors)."""
+    return ("-mavx512f",) if native.cpu_capability() == "AVX512" else ()
+
+
+def _project_lanes(lib) -> int:
+    out = torch.zeros(1, dtype=torch.int64)
+    lib.zh_project_lanes(out.data_ptr())
+    return int(out[0])
+
+
+@functools.lru_cache(maxsize=8)
+def _folded_factors(H: int, W: int, order: int, lanes: int, nv: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`sh._latlong_polar_factors` (B (W, 2n), k, T) for `_PROJECT_SOURCE`: B's first W / 2 rows with
+    its columns regrouped — those of even m (cos and sin) then those of odd m, each group padded with
+    zero columns to ``nv`` vectors of ``lanes`` doubles — as Bf (W / 2, 2 lanes nv) contiguous, k mapped
+    to the regrouped columns, T."""
+    from methods.core.sh import _latlong_polar_factors
+
+    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
+    Bf = torch.zeros(W // 2, 2 * lanes * nv, dtype=torch.float64)
+    pos = {}
+    for parity in (0, 1):
+        for a, j in enumerate(j for j in range(2 * order) if (j % order) % 2 == parity):
+            Bf[:, parity * lanes * nv + a] = B[:W // 2, j]
+            pos[j] = parity * lanes * nv + a
+    k2 = torch.tensor([pos[int(j)] for j in k.tolist()], dtype=torch.int64)
+    return Bf.contiguous(), k2, T.contiguous()
+
+
+def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's C pass over the
+    float32 texels with the half-period fold (above; float64 round-off), or None where it does not run
+    (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 (H, W, 3) CPU map, W odd, order > 12)."""
+    lib = _project_lib() if terms_switched_on() else None
+    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
+            or image.shape[2] != 3 or image.shape[1] % 2 or image.shape[1] < 2 or order < 1 or 2 * order > 24):
+        return None
+    H, W, _ = image.shape
+    per = -(-order // 2) * 2            # columns of the larger parity group (even m: cos and sin)
+    # 8-double vectors where built and a group fills one (order >= 7), else 4
+    vl = 8 if _project_lanes(lib) == 8 and per >= 8 else 4
+    nv = -(-per // vl)
+    Bf, k, T = _folded_factors(int(H), int(W), int(order), vl, nv)
+    X = image.contiguous()
+    n2 = order * order
+    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
+    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
+    lib.zh_project(int(H), int(W), X.data_ptr(), Bf.data_ptr(), vl, nv, k.data_ptr(), T.data_ptr(), n2,
+                   part.data_ptr(), nt)
+    return part[0] if nt == 1 else part.sum(0)
+
+
 def project_latlong_polar(image: Tensor, order: int) -> Tensor:
-    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by
-    `methods.core.sh_native`'s C pass, or by that function (the oracle) with ``PRTBENCH_ZH_NATIVE=0``
-    (and wherever the pass does not run: no compiler, not a float32 CPU (H, W, 3) map, order > 12)."""
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's folded C pass
+    (`project_latlong_polar_folded`), else `methods.core.sh_native`'s C pass, or by that function (the
+    oracle) with ``PRTBENCH_ZH_NATIVE=0`` (and wherever neither pass runs: no compiler, not a float32 CPU
+    (H, W, 3) map, order > 12)."""
     if not terms_switched_on():
         from methods.core.sh import project_latlong_polar as oracle
 
         return oracle(image, order)
-    return sh_native.project_latlong_polar(image, order)
+    out = project_latlong_polar_folded(image, order)
+    return sh_native.project_latlong_polar(image, order) if out is None else out
 
 
 # --- a lighting-only vertex-shaded frame's resolve (`ZHShadow._render_vertex`) ----------------------------
