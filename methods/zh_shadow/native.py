@@ -522,23 +522,30 @@ void zh_project_lanes(int64_t *lanes) {
 #endif
 }
 
-/* part (nt, n2, 3) zeroed by the caller: thread t's rows [H t / nt, H (t + 1) / nt); (vl, nv) Bf's layout
-   (4: nv 1-3, 8: nv 1-2; the caller keeps to those) */
+/* out (n2, 3) = the sum over the np parts p (in order) of part[p] (np, n2, 3), zeroed by the caller: part
+   p's rows [H p / np, H (p + 1) / np) — np fixed by the caller whatever the thread count, the parts shared
+   by nt threads: the same bits at any thread count; (vl, nv) Bf's layout (4: nv 1-3, 8: nv 1-2; the caller
+   keeps to those) */
 void zh_project(int64_t H, int64_t W, const float *X, const double *Bf, int64_t vl, int64_t nv, const int64_t *k,
-                const double *T, int64_t n2, double *part, int64_t nt) {
+                const double *T, int64_t n2, double *part, int64_t np, int64_t nt, double *out) {
     void (*rows)(int64_t, int64_t, int64_t, const float *, const double *, const int64_t *, const double *,
                  int64_t, double *) = nv == 1 ? proj_rows4_1 : nv == 2 ? proj_rows4_2 : proj_rows4_3;
 #ifdef __AVX512F__
     if (vl == 8) rows = nv == 1 ? proj_rows8_1 : proj_rows8_2;
 #endif
-    if (nt <= 1) { rows(0, H, W, X, Bf, k, T, n2, part); return; }
-    #pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t t = 0; t < nt; ++t)
-        rows(H * t / nt, H * (t + 1) / nt, W, X, Bf, k, T, n2, part + t * n2 * 3);
+    #pragma omp parallel for num_threads(nt) schedule(static) if(nt > 1)
+    for (int64_t p = 0; p < np; ++p)
+        rows(H * p / np, H * (p + 1) / np, W, X, Bf, k, T, n2, part + p * n2 * 3);
+    for (int64_t i = 0; i < n2 * 3; ++i) {
+        double s = part[i];
+        for (int64_t p = 1; p < np; ++p) s += part[p * n2 * 3 + i];
+        out[i] = s;
+    }
 }
 """
-_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _I], "zh_project_lanes": [_P]}
-MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects (as `sh_native`)
+_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _I, _I, _P], "zh_project_lanes": [_P]}
+ROWS_PER_PROJECT_PART = 64    # map rows a part (`zh_project`: each part one thread's)
+MAX_PROJECT_PARTS = 4         # (the parts are fixed by the map's size, not by the thread count)
 
 
 def _project_lib():
@@ -579,7 +586,8 @@ def _folded_factors(H: int, W: int, order: int, lanes: int, nv: int) -> tuple[Te
 
 def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
     """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's C pass over the
-    float32 texels with the half-period fold (above; float64 round-off), or None where it does not run
+    float32 texels with the half-period fold (above; float64 round-off; the same bits at any thread
+    count: `sh_native`'s pass split the rows by the thread count), or None where it does not run
     (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 (H, W, 3) CPU map, W odd, order > 12)."""
     lib = _project_lib() if terms_switched_on() else None
     if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
@@ -593,11 +601,14 @@ def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
     Bf, k, T = _folded_factors(int(H), int(W), int(order), vl, nv)
     X = image.contiguous()
     n2 = order * order
-    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
-    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
+    # the row parts fixed by the map's size (their sums in order: the same bits at any thread count)
+    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
+    nt = max(1, min(torch.get_num_threads(), np_))
+    part = torch.zeros(np_, n2, 3, dtype=torch.float64)
+    out = torch.empty(n2, 3, dtype=torch.float64)
     lib.zh_project(int(H), int(W), X.data_ptr(), Bf.data_ptr(), vl, nv, k.data_ptr(), T.data_ptr(), n2,
-                   part.data_ptr(), nt)
-    return part[0] if nt == 1 else part.sum(0)
+                   part.data_ptr(), np_, nt, out.data_ptr())
+    return out
 
 
 def project_latlong_polar(image: Tensor, order: int) -> Tensor:

@@ -1489,8 +1489,8 @@ def test_project_latlong_polar_folded_equals_torch(order):
     """`native.project_latlong_polar_folded` (ZH's C pass: the texel pairs half a turn apart summed
     for the even-m and differenced for the odd-m factors, fused multiply-adds; 4- and, on AVX-512, 8-double
     vectors) = `sh.project_latlong_polar` (the oracle) to float64 round-off on random maps (even widths,
-    the bench map's 256 × 512, a non-contiguous view, 1 and 2 threads) — and the pass ran (not None)
-    where a compiler is; an odd width is left to `methods.core.sh_native` (None)."""
+    the bench map's 256 × 512, a non-contiguous view, 1–3 threads: the same bits at each) — and the pass
+    ran (not None) where a compiler is; an odd width is left to `methods.core.sh_native` (None)."""
     from methods.core import native
     from methods.core.fused import compile_enabled
     from methods.core.sh import project_latlong_polar as oracle
@@ -1503,7 +1503,8 @@ def test_project_latlong_polar_folded_equals_torch(order):
         views = (img, torch.rand(W, H, 3, generator=g).transpose(0, 1))     # (a strided view too)
         for x in views:
             want = oracle(x, order)
-            for nt in (1, 2):
+            first = None
+            for nt in (1, 2, 3):
                 with mock.patch.object(torch, "get_num_threads", lambda: nt):
                     got = zn.project_latlong_polar_folded(x, order)
                 if not runs:
@@ -1511,6 +1512,8 @@ def test_project_latlong_polar_folded_equals_torch(order):
                     continue
                 assert got is not None and got.dtype == torch.float64 and got.shape == (order * order, 3)
                 assert float((got - want).abs().max()) <= 1e-13 * float(want.abs().max()), (H, W, nt)
+                first = got if first is None else first
+                assert torch.equal(got, first), (H, W, nt)   # the same bits at any thread count
     assert zn.project_latlong_polar_folded(torch.rand(8, 15, 3, generator=g), order) is None   # (odd width)
 
 
