@@ -47,8 +47,8 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"referenced_vertices": [_P, _P, _I, _P, _I, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _kernel():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     lib = native.load("zh_referenced", _SOURCE, _SIGNATURES)
     return None if lib is None else lib.referenced_vertices
 
@@ -378,8 +378,8 @@ _SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
                                      _P, _P, _P, _P, _P, _P, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _split_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
 
 
@@ -453,15 +453,175 @@ def object_rows(mask: Tensor, per_thread: list[int], face: Tensor, F32: Tensor, 
 # float32 texels, float64 sums (float64 round-off).
 
 
+# Here (session 31) ZH's own pass halves that loop's multiplies: the columns' azimuths φ_w = (w + ½)Δφ
+# and φ_{w + W/2} = φ_w + π give cos / sin(m φ) the factor (−1)^m between the two halves of a row, so per
+# pair of texels (w, w + W/2) the even-m factors take x_w + x_{w+W/2} and the odd-m ones x_w − x_{w+W/2}:
+# W/2 columns of factors, each half as wide (the even-m and odd-m columns of `sh._latlong_polar_factors`'
+# B, each padded to whole 4-double vectors), the sums as fused multiply-adds. The same integrals to
+# float64 round-off (B's second half is the first's times ±1 up to the round-off of cos / sin there);
+# odd widths and orders above 12 take `methods.core.sh_native`'s pass.
+_PROJECT_SOURCE = r"""
+#include <stdint.h>
+
+/* rows [h0, h1) of the (H, W, 3) float32 map X (W even, half = W / 2): per channel c the column sums
+   E[c][j] = sum_{w < half} (X[h, w, c] + X[h, w + half, c]) Bf[w, j] over the NV vectors of the even-m
+   columns, O[c][j] = sum (X[h, w, c] - X[h, w + half, c]) Bf[w, VL NV + j] over the NV of the odd-m ones
+   (Bf (half, 2 VL NV) float64, VL doubles a vector, each group zero-padded to NV vectors), then
+   out[i, c] += T[h, i] G[c][k[i]] (G = E then O). One function per (VL, NV): the accumulators in registers
+   (a loop over a run-time count kept them in memory); VL 8 where built with AVX-512 (half the
+   instructions when a group fills the vectors). */
+#define PROJ_ROWS(NAME, VL, NV)                                                                             \
+typedef double NAME##_v __attribute__((vector_size(8 * VL), aligned(8)));                                  \
+static void NAME(int64_t h0, int64_t h1, int64_t W, const float *X, const double *Bf, const int64_t *k,      \
+                 const double *T, int64_t n2, double *out) {                                               \
+    const int64_t half = W / 2;                                                                            \
+    for (int64_t h = h0; h < h1; ++h) {                                                                    \
+        NAME##_v a[3][2 * NV];                                                                             \
+        for (int c = 0; c < 3; ++c)                                                                        \
+            for (int v = 0; v < 2 * NV; ++v) a[c][v] = (NAME##_v){0};                                      \
+        const float *row = X + h * W * 3, *row2 = row + half * 3;                                          \
+        for (int64_t w = 0; w < half; ++w) {                                                               \
+            const double x0 = row[3 * w], x1 = row[3 * w + 1], x2 = row[3 * w + 2];                        \
+            const double y0 = row2[3 * w], y1 = row2[3 * w + 1], y2 = row2[3 * w + 2];                     \
+            const double s0 = x0 + y0, s1 = x1 + y1, s2 = x2 + y2;                                         \
+            const double d0 = x0 - y0, d1 = x1 - y1, d2 = x2 - y2;                                         \
+            const NAME##_v *b = (const NAME##_v *)(Bf + w * 2 * VL * NV);                                  \
+            for (int v = 0; v < NV; ++v) {                                                                 \
+                a[0][v] += s0 * b[v]; a[1][v] += s1 * b[v]; a[2][v] += s2 * b[v];                          \
+            }                                                                                              \
+            for (int v = NV; v < 2 * NV; ++v) {                                                            \
+                a[0][v] += d0 * b[v]; a[1][v] += d1 * b[v]; a[2][v] += d2 * b[v];                          \
+            }                                                                                              \
+        }                                                                                                  \
+        double g[3][2 * VL * NV];                                                                          \
+        for (int c = 0; c < 3; ++c)                                                                        \
+            for (int v = 0; v < 2 * NV; ++v)                                                               \
+                for (int l = 0; l < VL; ++l) g[c][VL * v + l] = a[c][v][l];                                \
+        const double *t = T + h * n2;                                                                      \
+        for (int64_t i = 0; i < n2; ++i) {                                                                 \
+            const int64_t j = k[i];                                                                        \
+            for (int c = 0; c < 3; ++c) out[3 * i + c] += t[i] * g[c][j];                                  \
+        }                                                                                                  \
+    }                                                                                                      \
+}
+
+PROJ_ROWS(proj_rows4_1, 4, 1)
+PROJ_ROWS(proj_rows4_2, 4, 2)
+PROJ_ROWS(proj_rows4_3, 4, 3)
+#ifdef __AVX512F__
+PROJ_ROWS(proj_rows8_1, 8, 1)
+PROJ_ROWS(proj_rows8_2, 8, 2)
+#endif
+
+/* lanes[0] = 8 when the 8-double rows were built (AVX-512), else 4 */
+void zh_project_lanes(int64_t *lanes) {
+#ifdef __AVX512F__
+    lanes[0] = 8;
+#else
+    lanes[0] = 4;
+#endif
+}
+
+/* out (n2, 3) = the sum over the np parts p (in order) of part[p] (np, n2, 3), zeroed by the caller: part
+   p's rows [H p / np, H (p + 1) / np) — np fixed by the caller whatever the thread count, the parts shared
+   by nt threads: the same bits at any thread count; (vl, nv) Bf's layout (4: nv 1-3, 8: nv 1-2; the caller
+   keeps to those) */
+void zh_project(int64_t H, int64_t W, const float *X, const double *Bf, int64_t vl, int64_t nv, const int64_t *k,
+                const double *T, int64_t n2, double *part, int64_t np, int64_t nt, double *out) {
+    void (*rows)(int64_t, int64_t, int64_t, const float *, const double *, const int64_t *, const double *,
+                 int64_t, double *) = nv == 1 ? proj_rows4_1 : nv == 2 ? proj_rows4_2 : proj_rows4_3;
+#ifdef __AVX512F__
+    if (vl == 8) rows = nv == 1 ? proj_rows8_1 : proj_rows8_2;
+#endif
+    #pragma omp parallel for num_threads(nt) schedule(static) if(nt > 1)
+    for (int64_t p = 0; p < np; ++p)
+        rows(H * p / np, H * (p + 1) / np, W, X, Bf, k, T, n2, part + p * n2 * 3);
+    for (int64_t i = 0; i < n2 * 3; ++i) {
+        double s = part[i];
+        for (int64_t p = 1; p < np; ++p) s += part[p * n2 * 3 + i];
+        out[i] = s;
+    }
+}
+"""
+_PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _I, _I, _P], "zh_project_lanes": [_P]}
+ROWS_PER_PROJECT_PART = 64    # map rows a part (`zh_project`: each part one thread's)
+MAX_PROJECT_PARTS = 4         # (the parts are fixed by the map's size, not by the thread count)
+
+
+def _project_lib():
+    # not cached here (`native.load` caches the build); multiply-adds fused (float64 round-off)
+    return native.load("zh_project", _PROJECT_SOURCE, _PROJECT_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
+
+
+def _avx512_flags() -> tuple[str, ...]:
+    """``-mavx512f`` where torch found AVX-512 (the pass then takes 8-double vectors)."""
+    return ("-mavx512f",) if native.cpu_capability() == "AVX512" else ()
+
+
+def _project_lanes(lib) -> int:
+    out = torch.zeros(1, dtype=torch.int64)
+    lib.zh_project_lanes(out.data_ptr())
+    return int(out[0])
+
+
+@functools.lru_cache(maxsize=8)
+def _folded_factors(H: int, W: int, order: int, lanes: int, nv: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`sh._latlong_polar_factors` (B (W, 2n), k, T) for `_PROJECT_SOURCE`: B's first W / 2 rows with
+    its columns regrouped — those of even m (cos and sin) then those of odd m, each group padded with
+    zero columns to ``nv`` vectors of ``lanes`` doubles — as Bf (W / 2, 2 lanes nv) contiguous, k mapped
+    to the regrouped columns, T."""
+    from methods.core.sh import _latlong_polar_factors
+
+    B, k, T = _latlong_polar_factors(H, W, order, torch.device("cpu"))
+    Bf = torch.zeros(W // 2, 2 * lanes * nv, dtype=torch.float64)
+    pos = {}
+    for parity in (0, 1):
+        for a, j in enumerate(j for j in range(2 * order) if (j % order) % 2 == parity):
+            Bf[:, parity * lanes * nv + a] = B[:W // 2, j]
+            pos[j] = parity * lanes * nv + a
+    k2 = torch.tensor([pos[int(j)] for j in k.tolist()], dtype=torch.int64)
+    return Bf.contiguous(), k2, T.contiguous()
+
+
+def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's C pass over the
+    float32 texels with the half-period fold (above; float64 round-off; the same bits at any thread
+    count: `sh_native`'s pass split the rows by the thread count), or None where it does not run
+    (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 (H, W, 3) CPU map, W odd, order > 12)."""
+    lib = _project_lib() if terms_switched_on() else None
+    if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
+            or image.shape[2] != 3 or image.shape[1] % 2 or image.shape[1] < 2 or order < 1 or 2 * order > 24):
+        return None
+    H, W, _ = image.shape
+    per = -(-order // 2) * 2            # columns of the larger parity group (even m: cos and sin)
+    # 8-double vectors where built and a group fills one (order >= 7), else 4
+    vl = 8 if _project_lanes(lib) == 8 and per >= 8 else 4
+    nv = -(-per // vl)
+    Bf, k, T = _folded_factors(int(H), int(W), int(order), vl, nv)
+    X = image.contiguous()
+    n2 = order * order
+    # the row parts fixed by the map's size (their sums in order: the same bits at any thread count)
+    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
+    nt = max(1, min(torch.get_num_threads(), np_))
+    part = torch.zeros(np_, n2, 3, dtype=torch.float64)
+    out = torch.empty(n2, 3, dtype=torch.float64)
+    lib.zh_project(int(H), int(W), X.data_ptr(), Bf.data_ptr(), vl, nv, k.data_ptr(), T.data_ptr(), n2,
+                   part.data_ptr(), np_, nt, out.data_ptr())
+    return out
+
+
 def project_latlong_polar(image: Tensor, order: int) -> Tensor:
-    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by
-    `methods.core.sh_native`'s C pass, or by that function (the oracle) with ``PRTBENCH_ZH_NATIVE=0``
-    (and wherever the pass does not run: no compiler, not a float32 CPU (H, W, 3) map, order > 12)."""
+    """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's folded C pass
+    (`project_latlong_polar_folded`), else `methods.core.sh_native`'s C pass, or by that function (the
+    oracle) with ``PRTBENCH_ZH_NATIVE=0`` (and wherever neither pass runs: no compiler, not a float32 CPU
+    (H, W, 3) map, order > 12)."""
     if not terms_switched_on():
         from methods.core.sh import project_latlong_polar as oracle
 
         return oracle(image, order)
-    return sh_native.project_latlong_polar(image, order)
+    out = project_latlong_polar_folded(image, order)
+    return sh_native.project_latlong_polar(image, order) if out is None else out
 
 
 # --- a lighting-only vertex-shaded frame's resolve (`ZHShadow._render_vertex`) ----------------------------
@@ -545,8 +705,8 @@ _CSR_SIGNATURES = {"zh_ell_rows": [_I, _P, _P, _P, _P, _I, _I, _P, _P, _P, _P],
 MIN_ROWS_PER_CSR_THREAD = 8192      # resolve rows below which one thread runs the product
 
 
-@functools.lru_cache(maxsize=None)
 def _csr_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_ell_rows", _CSR_SOURCE, _CSR_SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
 
 
@@ -556,7 +716,8 @@ def csr_pack(S: Tensor) -> tuple | None:
     0, weight 0) —, trow (T,) int32 the rows longer than 4, tcrow (T + 1,) int32, tcol, tval their
     remaining entries in order), or None (no C loop here, switched off, another layout / dtype /
     device, a column outside [0, N), N = 0, over 2³¹ entries)."""
-    if not terms_switched_on() or _csr_lib() is None or S.layout != torch.sparse_csr or S.device.type != "cpu" \
+    lib = _csr_lib() if terms_switched_on() else None
+    if lib is None or S.layout != torch.sparse_csr or S.device.type != "cpu" \
             or S.values().dtype != torch.float32 or S.dim() != 2:
         return None
     R, N = int(S.shape[0]), int(S.shape[1])
@@ -575,8 +736,8 @@ def csr_pack(S: Tensor) -> tuple | None:
     tcol = torch.empty(nt_, dtype=torch.int32)
     tval = torch.empty(nt_, dtype=torch.float32)
     bad = torch.zeros(1, dtype=torch.int64)
-    _csr_lib().zh_ell_pack(R, crow.data_ptr(), col.data_ptr(), val.data_ptr(), N, col4.data_ptr(), val4.data_ptr(), T,
-                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr(), bad.data_ptr())
+    lib.zh_ell_pack(R, crow.data_ptr(), col.data_ptr(), val.data_ptr(), N, col4.data_ptr(), val4.data_ptr(), T,
+                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else (R, N, col4, val4, trow, tcrow, tcol, tval)
 
 
@@ -601,11 +762,14 @@ def csr_product(packed: tuple, x: Tensor) -> Tensor | None:
     R, N, col4, val4, trow, tcrow, tcol, tval = packed
     if x.device.type != "cpu" or x.dtype != torch.float32 or x.shape != (N, 3):
         return None
+    lib = _csr_lib()
+    if lib is None:   # compilation switched off since the pack
+        return None
     x = x.contiguous()
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
-    _csr_lib().zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
-                           trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+    lib.zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
+                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out
 
 
@@ -667,8 +831,8 @@ _FACE_PIXELS_SIGNATURES = {"zh_face_pixels": [_I, _I, _P, _P, _I, _I, _P, _I, _I
 MIN_PIXELS_PER_THREAD = 8192        # pixels below which one thread runs the plane pass
 
 
-@functools.lru_cache(maxsize=None)
 def _face_pixels_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_face_pixels", _FACE_PIXELS_SOURCE, _FACE_PIXELS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -760,8 +924,8 @@ _PLANE_PIXELS_SIGNATURES = {"zh_plane_pixels": [_I, _I, _P, _P, _I, _I, _P, _P, 
                                                 ctypes.c_float, _P, _I, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _plane_pixels_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_plane_pixels", _PLANE_PIXELS_SOURCE, _PLANE_PIXELS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -810,6 +974,33 @@ _RELIGHT_SOURCE = r"""
 
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
 
+enum { CH = 512, NB = CH / 8 };
+
+/* acc[c][j] = Σ_i l[i, c] x[i Q + 8 j + b] (lane b), i ascending: one table's sums over the CH samples from x
+   on (each of its n2 rows' CH values one contiguous run) */
+static inline void accumulate_block(v8 acc[3][NB], const float *x, const float *l, int64_t n2, int64_t Q) {
+    for (int64_t c = 0; c < 3; ++c)
+        for (int64_t j = 0; j < NB; ++j) acc[c][j] = (v8){0};
+    for (int64_t i = 0; i < n2; ++i) {
+        const float *xi = x + i * Q;
+        const float l0 = l[3 * i], l1 = l[3 * i + 1], l2 = l[3 * i + 2];
+        for (int64_t j = 0; j < NB; ++j) {
+            const v8 xv = *(const v8 *)(xi + 8 * j);
+            acc[0][j] += l0 * xv; acc[1][j] += l1 * xv; acc[2][j] += l2 * xv;
+        }
+    }
+}
+
+/* the same sums for the one sample at x (the tail of a range shorter than CH) */
+static inline void accumulate_one(float r[3], const float *x, const float *l, int64_t n2, int64_t Q) {
+    float r0 = 0.f, r1 = 0.f, r2 = 0.f;
+    for (int64_t i = 0; i < n2; ++i) {
+        const float xi = x[i * Q];
+        r0 += l[3 * i] * xi; r1 += l[3 * i + 1] * xi; r2 += l[3 * i + 2] * xi;
+    }
+    r[0] = r0; r[1] = r1; r[2] = r2;
+}
+
 /* img[pix[q], c] += max(Σ_i ld[i, c] td[i, q] + Σ_i ls[i, c] ts[i, q], 0) · inv (the max if clamp; no ts
    term when ts is NULL), q ascending; td, ts (n2, Q) row-major, ld, ls (n2, 3); bad[0] counts pixels
    outside [0, npix) (skipped). */
@@ -820,28 +1011,11 @@ static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, cons
     int64_t q0 = qa;
     /* CH samples at a time: each row's CH values read as one contiguous run (a per-sample pass over the
        2 n2 rows Q floats apart read 32 streams at once: slower than the GEMMs from a cold cache) */
-    enum { CH = 512, NB = CH / 8 };
     v8 d[3][NB], sp[3][NB];
     for (; q0 + CH <= qb; q0 += CH) {
-        for (int64_t c = 0; c < 3; ++c)
-            for (int64_t j = 0; j < NB; ++j) { d[c][j] = (v8){0}; sp[c][j] = (v8){0}; }
-        for (int64_t i = 0; i < n2; ++i) {
-            const float *x = td + i * Q + q0;
-            const float l0 = ld[3 * i], l1 = ld[3 * i + 1], l2 = ld[3 * i + 2];
-            for (int64_t j = 0; j < NB; ++j) {
-                const v8 xv = *(const v8 *)(x + 8 * j);
-                d[0][j] += l0 * xv; d[1][j] += l1 * xv; d[2][j] += l2 * xv;
-            }
-        }
+        accumulate_block(d, td + q0, ld, n2, Q);
         if (ts) {
-            for (int64_t i = 0; i < n2; ++i) {
-                const float *x = ts + i * Q + q0;
-                const float l0 = ls[3 * i], l1 = ls[3 * i + 1], l2 = ls[3 * i + 2];
-                for (int64_t j = 0; j < NB; ++j) {
-                    const v8 xv = *(const v8 *)(x + 8 * j);
-                    sp[0][j] += l0 * xv; sp[1][j] += l1 * xv; sp[2][j] += l2 * xv;
-                }
-            }
+            accumulate_block(sp, ts + q0, ls, n2, Q);
             for (int64_t c = 0; c < 3; ++c)
                 for (int64_t j = 0; j < NB; ++j) d[c][j] += sp[c][j];
         }
@@ -856,19 +1030,13 @@ static int64_t relight_range(int64_t qa, int64_t qb, int64_t Q, int64_t n2, cons
             }
     }
     for (int64_t q = q0; q < qb; ++q) {
-        float r0 = 0.f, r1 = 0.f, r2 = 0.f;
-        for (int64_t i = 0; i < n2; ++i) {
-            const float x = td[i * Q + q];
-            r0 += ld[3 * i] * x; r1 += ld[3 * i + 1] * x; r2 += ld[3 * i + 2] * x;
-        }
+        float r[3], s[3];
+        accumulate_one(r, td + q, ld, n2, Q);
         if (ts) {
-            float s0 = 0.f, s1 = 0.f, s2 = 0.f;
-            for (int64_t i = 0; i < n2; ++i) {
-                const float x = ts[i * Q + q];
-                s0 += ls[3 * i] * x; s1 += ls[3 * i + 1] * x; s2 += ls[3 * i + 2] * x;
-            }
-            r0 += s0; r1 += s1; r2 += s2;
+            accumulate_one(s, ts + q, ls, n2, Q);
+            r[0] += s[0]; r[1] += s[1]; r[2] += s[2];
         }
+        float r0 = r[0], r1 = r[1], r2 = r[2];
         const int64_t p = pix[q];
         if ((uint64_t)p >= (uint64_t)npix) { ++nb; continue; }
         if (clamp) { r0 = r0 < 0.f ? 0.f : r0; r1 = r1 < 0.f ? 0.f : r1; r2 = r2 < 0.f ? 0.f : r2; }
@@ -894,8 +1062,8 @@ _RELIGHT_SIGNATURES = {"zh_relight_add": [_I, _I, _P, _P, _P, _P, _P, _I, ctypes
 MIN_SAMPLES_PER_RELIGHT_THREAD = 8192   # object samples below which one thread shades them
 
 
-@functools.lru_cache(maxsize=None)
 def _relight_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_relight_add", _RELIGHT_SOURCE, _RELIGHT_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -961,8 +1129,8 @@ void zh_screen(const float *base, int64_t s0, int64_t s1, int64_t m, int64_t *cn
 _SCREEN_SIGNATURES = {"zh_screen": [_P, _I, _I, _I, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _screen_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
     return native.load("zh_screen", _SCREEN_SOURCE, _SCREEN_SIGNATURES)
 
 

@@ -1484,10 +1484,43 @@ def test_native_split_equals_torch_split(small_model):
                             al.scene.geometry().F.to(torch.int32)) is False
 
 
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 8, 12])
+def test_project_latlong_polar_folded_equals_torch(order):
+    """`native.project_latlong_polar_folded` (ZH's C pass: the texel pairs half a turn apart summed
+    for the even-m and differenced for the odd-m factors, fused multiply-adds; 4- and, on AVX-512, 8-double
+    vectors) = `sh.project_latlong_polar` (the oracle) to float64 round-off on random maps (even widths,
+    the bench map's 256 × 512, a non-contiguous view, 1–3 threads: the same bits at each) — and the pass
+    ran (not None) where a compiler is; an odd width is left to `methods.core.sh_native` (None)."""
+    from methods.core import native
+    from methods.core.fused import compile_enabled
+    from methods.core.sh import project_latlong_polar as oracle
+    from methods.zh_shadow import native as zn
+
+    runs = native.compiler() is not None and compile_enabled() and zn.terms_switched_on()
+    g = torch.Generator().manual_seed(100 + order)
+    for H, W in ((64, 128), (37, 76), (256, 512), (3, 2)):
+        img = torch.rand(H, W, 3, generator=g) * 4.0 - 1.0
+        views = (img, torch.rand(W, H, 3, generator=g).transpose(0, 1))     # (a strided view too)
+        for x in views:
+            want = oracle(x, order)
+            first = None
+            for nt in (1, 2, 3):
+                with mock.patch.object(torch, "get_num_threads", lambda: nt):
+                    got = zn.project_latlong_polar_folded(x, order)
+                if not runs:
+                    assert got is None
+                    continue
+                assert got is not None and got.dtype == torch.float64 and got.shape == (order * order, 3)
+                assert float((got - want).abs().max()) <= 1e-13 * float(want.abs().max()), (H, W, nt)
+                first = got if first is None else first
+                assert torch.equal(got, first), (H, W, nt)   # the same bits at any thread count
+    assert zn.project_latlong_polar_folded(torch.rand(8, 15, 3, generator=g), order) is None   # (odd width)
+
+
 @pytest.mark.parametrize("order", [4, 8])
 def test_project_latlong_polar_native_equals_torch(order, monkeypatch):
-    """`native.project_latlong_polar` (`methods.core.sh_native`'s C pass over the float32 texels,
-    `ZHShadow._lighting`'s new map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
+    """`native.project_latlong_polar` (ZH's folded C pass over the float32 texels, `methods.core.sh_native`'s
+    for odd widths; `ZHShadow._lighting`'s new map) = `sh.project_latlong_polar` (the oracle: a float64 copy, a GEMM and an einsum) to float64
     round-off on random maps (odd sizes, a non-contiguous view, 1 and 2 threads); the switch off
     (``PRTBENCH_ZH_NATIVE=0``) and a float64 map give the oracle itself."""
     from methods.core import native, sh_native
