@@ -29,8 +29,8 @@ the compiled function (the same products, sums, divisions, NaN-propagating maxim
 truncating conversions, in its order) and the same Sleef acos / atan2 on 8 floats, called through
 their addresses in libtorch_cpu (what ATen's ``Vectorized<float>`` calls in Inductor's AVX2 kernels) —
 so the cells and fractions are the compiled kernel's bits (tested), which the reference path's
-look-ups read too (``fast.mirror_uv``). Used only where Inductor vectorises for AVX2; elsewhere the
-compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. Measured on the chess
+look-ups read too (``fast.mirror_uv``). Used only where Inductor vectorises for AVX2 or AVX-512 (below);
+elsewhere the compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. Measured on the chess
 bench: the cells alone 2.5 ms native vs 2.6 ms compiled (the Sleef calls are ~1.3 ms of it); the gain
 is the compiled call, its (r, fx, fy) arrays and their second pass (V 1.02–1.05x). Session 28 (ptt28):
 the cells of 64 vectors are computed in three sweeps — the directions, then their acos calls back to
@@ -38,6 +38,23 @@ back, then their atan2 calls and the cells — instead of one vector at a time (
 the live vectors spilled around it and the next vector's divisions and square root waited for it); the
 same operations per lane. Probes on the chess bench sample stage (1 thread, settled): without the Sleef
 calls it ran 1.45x faster, without the cells at all 2.1x, with every env row cached 1.09x.
+
+Session 31 (ptt31): on a host where Inductor vectorises for AVX-512 (``pick_vec_isa()`` "avx512 ...",
+e.g. this EPYC) its kernel of ``fast._mirror_cells`` is the same operations on 16 lanes (ATen's vec512:
+rsqrt as 1 / sqrt, maximum / minimum OR-ing an all-ones NaN mask, floor, truncating conversions) and
+calls ``Sleef_acosf16_u10`` / ``Sleef_atan2f16_u10`` (the symbols its .so imports; libtorch_cpu's
+AVX-512F builds). ``cells16`` is that kernel's twin — a last vector of 8 samples as the kernel's masked
+tail: lanes 8..15 repeat the last sample and are not stored — and `_sleef` hands it the f16 functions
+(`_SLEEF`: Inductor's ISA picks the variant; the AVX2 one stays for AVX2 hosts). `vertex_rows` calls the
+same f16 functions on 16 pairs and sums B's lanes as the AVX-512 reduction (a 16-lane accumulator: the
+8-lane blocks alternate between its halves, which its ``vec_reduce_all`` adds first; for 3K = 24 and 48
+that equals the AVX2 order because the channel masks leave one nonzero term per lane, for 3K = 72 it does
+not — tested with K = 24). Before, these loops were off here (``cells_available()`` False) and the
+compiled cells ran. Same process, 1 thread, CPU time, 15 frames (``python -m benchmarks.ptt_ab --base
+e0546d6 --precompute-code e0546d6 --kinds V VB``): chess bench V 1.19x, VB 1.18x; creature V 1.13x,
+VB 1.19x; images bit-identical. Tried and dropped: a 16-lane body of `shade_pixels` for width 16 (the
+same bits; sample stage 0.98–1.03x, noise), the next run's cells computed a run ahead with its env rows
+prefetched into L2 (1.007x).
 
 Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
 width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
