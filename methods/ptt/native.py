@@ -29,8 +29,8 @@ the compiled function (the same products, sums, divisions, NaN-propagating maxim
 truncating conversions, in its order) and the same Sleef acos / atan2 on 8 floats, called through
 their addresses in libtorch_cpu (what ATen's ``Vectorized<float>`` calls in Inductor's AVX2 kernels) —
 so the cells and fractions are the compiled kernel's bits (tested), which the reference path's
-look-ups read too (``fast.mirror_uv``). Used only where Inductor vectorises for AVX2; elsewhere the
-compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. Measured on the chess
+look-ups read too (``fast.mirror_uv``). Used only where Inductor vectorises for AVX2 or AVX-512 (below);
+elsewhere the compiled ``fast.mirror_cells_block`` runs and `shade_pixels` shades its cells. Measured on the chess
 bench: the cells alone 2.5 ms native vs 2.6 ms compiled (the Sleef calls are ~1.3 ms of it); the gain
 is the compiled call, its (r, fx, fy) arrays and their second pass (V 1.02–1.05x). Session 28 (ptt28):
 the cells of 64 vectors are computed in three sweeps — the directions, then their acos calls back to
@@ -38,6 +38,23 @@ back, then their atan2 calls and the cells — instead of one vector at a time (
 the live vectors spilled around it and the next vector's divisions and square root waited for it); the
 same operations per lane. Probes on the chess bench sample stage (1 thread, settled): without the Sleef
 calls it ran 1.45x faster, without the cells at all 2.1x, with every env row cached 1.09x.
+
+Session 31 (ptt31): on a host where Inductor vectorises for AVX-512 (``pick_vec_isa()`` "avx512 ...",
+e.g. this EPYC) its kernel of ``fast._mirror_cells`` is the same operations on 16 lanes (ATen's vec512:
+rsqrt as 1 / sqrt, maximum / minimum OR-ing an all-ones NaN mask, floor, truncating conversions) and
+calls ``Sleef_acosf16_u10`` / ``Sleef_atan2f16_u10`` (the symbols its .so imports; libtorch_cpu's
+AVX-512F builds). ``cells16`` is that kernel's twin — a last vector of 8 samples as the kernel's masked
+tail: lanes 8..15 repeat the last sample and are not stored — and `_sleef` hands it the f16 functions
+(`_SLEEF`: Inductor's ISA picks the variant; the AVX2 one stays for AVX2 hosts). `vertex_rows` calls the
+same f16 functions on 16 pairs and sums B's lanes as the AVX-512 reduction (a 16-lane accumulator: the
+8-lane blocks alternate between its halves, which its ``vec_reduce_all`` adds first; for 3K = 24 and 48
+that equals the AVX2 order because the channel masks leave one nonzero term per lane, for 3K = 72 it does
+not — tested with K = 24). Before, these loops were off here (``cells_available()`` False) and the
+compiled cells ran. Same process, 1 thread, CPU time, 15 frames (``python -m benchmarks.ptt_ab --base
+e0546d6 --precompute-code e0546d6 --kinds V VB``): chess bench V 1.19x, VB 1.18x; creature V 1.13x,
+VB 1.19x; images bit-identical. Tried and dropped: a 16-lane body of `shade_pixels` for width 16 (the
+same bits; sample stage 0.98–1.03x, noise), the next run's cells computed a run ahead with its env rows
+prefetched into L2 (1.007x).
 
 Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
 width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
@@ -263,7 +280,12 @@ int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pai
 #include <immintrin.h>
 typedef __m256 (*vf1)(__m256);
 typedef __m256 (*vf2)(__m256, __m256);
+/* bit 0: the AVX2 cells (8 lanes, Sleef's f8 functions); bit 1: also the AVX-512 ones (16 lanes, f16) */
+#if defined(__AVX512F__)
+int native_cells_ok(void) { return 3; }
+#else
 int native_cells_ok(void) { return 1; }
+#endif
 static inline __m256 vmax(__m256 a, __m256 b) {
     return _mm256_or_ps(_mm256_max_ps(a, b), _mm256_cmp_ps(a, b, _CMP_UNORD_Q));
 }
@@ -295,9 +317,9 @@ static inline void aos3(const float* p, __m256* x, __m256* y, __m256* z) {
 }
 /* samples [i0, i0 + m) (m a multiple of 8): normal component c of sample i at nrm[i * ns + c * nc],
    wo's at wo[i * ws + c * wc]; m (3, 3) to_world row-major; out r, fx, fy from index 0. */
-static void cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
-                  const float* mm, int64_t H, int64_t W, vf1 vacos, vf2 vatan2, int64_t i0, int64_t m,
-                  int32_t* r, float* fx, float* fy) {
+static void cells8(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                   const float* mm, int64_t H, int64_t W, vf1 vacos, vf2 vatan2, int64_t i0, int64_t m,
+                   int32_t* r, float* fx, float* fy) {
     const __m256 eps = _mm256_set1_ps(1e-24f), two = _mm256_set1_ps(2.0f), one = _mm256_set1_ps(1.0f);
     const __m256 mone = _mm256_set1_ps(-1.0f), negz = _mm256_set1_ps(-0.f);
     const __m256 cpi = _mm256_set1_ps((float)0.3183098861837907), c2pi = _mm256_set1_ps((float)0.15915494309189535);
@@ -361,18 +383,140 @@ static void cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
     }
 }
 
+#if defined(__AVX512F__)
+/* The AVX-512 twin of cells8 for hosts where Inductor vectorises for AVX-512 (16 lanes): its generated
+   kernel of fast._mirror_cells is the same operations on __m512 (ATen's vec512: _mm512 products, sums,
+   divisions, rsqrt as 1 / sqrt, the maximum / minimum that OR in an all-ones NaN mask, floor as
+   roundscale, truncating conversions, int32 min / max / mullo) and Sleef_acosf16_u10 /
+   Sleef_atan2f16_u10 (passed in, from libtorch_cpu: the symbols its kernel links to). m a multiple of
+   8: a last vector of 8 samples reads its lanes 8..15 from the last sample and stores only 8 (each
+   lane's result depends on its own inputs only). */
+typedef __m512 (*wf1)(__m512);
+typedef __m512 (*wf2)(__m512, __m512);
+static inline __m512 wmax(__m512 a, __m512 b) {
+    const __mmask16 u = _mm512_cmp_ps_mask(a, b, _CMP_UNORD_Q);
+    return _mm512_or_ps(_mm512_max_ps(a, b), _mm512_castsi512_ps(_mm512_mask_set1_epi32(_mm512_setzero_si512(), u, -1)));
+}
+static inline __m512 wmin(__m512 a, __m512 b) {
+    const __mmask16 u = _mm512_cmp_ps_mask(a, b, _CMP_UNORD_Q);
+    return _mm512_or_ps(_mm512_min_ps(a, b), _mm512_castsi512_ps(_mm512_mask_set1_epi32(_mm512_setzero_si512(), u, -1)));
+}
+/* 16 floats p[k s] (k < cnt; lanes k >= cnt repeat lane cnt - 1) */
+static inline __m512 lds16(const float* p, int64_t s, int64_t cnt) {
+    if (s == 1 && cnt == 16)
+        return _mm512_loadu_ps(p);
+    float t[16];
+    for (int k = 0; k < 16; ++k)
+        t[k] = p[(k < cnt ? k : cnt - 1) * s];
+    return _mm512_loadu_ps(t);
+}
+/* x, y, z of 16 (x, y, z) triples stored one after another (48 floats at p): two two-source permutes
+   per component (component c of triple k is float 3k + c: from the first 32 floats, then the rest from
+   the third register) */
+static inline void aos3_16(const float* p, __m512* x, __m512* y, __m512* z) {
+    const __m512 m0 = _mm512_loadu_ps(p), m1 = _mm512_loadu_ps(p + 16), m2 = _mm512_loadu_ps(p + 32);
+    /* a: float 3k + c < 32 from (m0, m1); b: keeps those lanes (index k) and takes the others from m2
+       (index 16 + 3k + c - 32) */
+    const __m512i ax = _mm512_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 0, 0, 0, 0, 0);
+    const __m512i bx = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29);
+    const __m512i ay = _mm512_setr_epi32(1, 4, 7, 10, 13, 16, 19, 22, 25, 28, 31, 0, 0, 0, 0, 0);
+    const __m512i by = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30);
+    const __m512i az = _mm512_setr_epi32(2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0);
+    const __m512i bz = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31);
+    *x = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, ax, m1), bx, m2);
+    *y = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, ay, m1), by, m2);
+    *z = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, az, m1), bz, m2);
+}
+static void cells16(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                    const float* mm, int64_t H, int64_t W, wf1 vacos, wf2 vatan2, int64_t i0, int64_t m,
+                    int32_t* r, float* fx, float* fy) {
+    const __m512 eps = _mm512_set1_ps(1e-24f), two = _mm512_set1_ps(2.0f), one = _mm512_set1_ps(1.0f);
+    const __m512 mone = _mm512_set1_ps(-1.0f), negz = _mm512_set1_ps(-0.f);
+    const __m512 cpi = _mm512_set1_ps((float)0.3183098861837907), c2pi = _mm512_set1_ps((float)0.15915494309189535);
+    const __m512 coff = _mm512_set1_ps((float)(0.5 / (double)W));
+    const __m512 hm1 = _mm512_set1_ps((float)(H - 1)), wf = _mm512_set1_ps((float)W);
+    const __m512i zi = _mm512_set1_epi32(0), hm2 = _mm512_set1_epi32((int32_t)(H - 2));
+    const __m512i wm1 = _mm512_set1_epi32((int32_t)(W - 1)), wp1 = _mm512_set1_epi32((int32_t)(W + 1));
+    __m512 M[9];
+    for (int k = 0; k < 9; ++k)
+        M[k] = _mm512_set1_ps(mm[k]);
+    /* per block of up to 32 vectors (512 samples): directions, acos calls, atan2 calls, cells (cells8) */
+    __m512 A[32], X[32], Z[32];
+    for (int64_t o0 = 0; o0 < m; o0 += 512) {
+        const int64_t len = m - o0 < 512 ? m - o0 : 512, nv = (len + 15) / 16;
+        for (int64_t k = 0; k < nv; ++k) {
+            const int64_t i = i0 + o0 + 16 * k, cnt = len - 16 * k < 16 ? len - 16 * k : 16;
+            __m512 nx, ny, nz;
+            if (ns == 3 && nc == 1 && cnt == 16)  /* the G-buffer's normals: (n, 3) row-major */
+                aos3_16(nrm + 3 * i, &nx, &ny, &nz);
+            else {
+                nx = lds16(nrm + i * ns, ns, cnt);
+                ny = lds16(nrm + i * ns + nc, ns, cnt);
+                nz = lds16(nrm + i * ns + 2 * nc, ns, cnt);
+            }
+            const __m512 wx = lds16(wo + i * ws, ws, cnt), wy = lds16(wo + i * ws + wc, ws, cnt);
+            const __m512 wz = lds16(wo + i * ws + 2 * wc, ws, cnt);
+            const __m512 dot = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(nx, wx), _mm512_mul_ps(ny, wy)), _mm512_mul_ps(nz, wz));
+            const __m512 nn = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(nx, nx), _mm512_mul_ps(ny, ny)), _mm512_mul_ps(nz, nz));
+            const __m512 s = _mm512_mul_ps(_mm512_div_ps(dot, wmax(nn, eps)), two);
+            const __m512 rx = _mm512_sub_ps(_mm512_mul_ps(s, nx), wx);
+            const __m512 ry = _mm512_sub_ps(_mm512_mul_ps(s, ny), wy);
+            const __m512 rz = _mm512_sub_ps(_mm512_mul_ps(s, nz), wz);
+            const __m512 l2 = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(rx, rx), _mm512_mul_ps(ry, ry)), _mm512_mul_ps(rz, rz));
+            const __m512 inv = _mm512_div_ps(one, _mm512_sqrt_ps(wmax(l2, eps)));
+            const __m512 ax = _mm512_mul_ps(rx, inv), ay = _mm512_mul_ps(ry, inv), az = _mm512_mul_ps(rz, inv);
+            const __m512 ly = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ax, M[1]), _mm512_mul_ps(ay, M[4])), _mm512_mul_ps(az, M[7]));
+            A[k] = wmin(wmax(ly, mone), one);
+            X[k] = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ax, M[0]), _mm512_mul_ps(ay, M[3])), _mm512_mul_ps(az, M[6]));
+            Z[k] = _mm512_xor_ps(negz, _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ax, M[2]), _mm512_mul_ps(ay, M[5])), _mm512_mul_ps(az, M[8])));
+        }
+        for (int64_t k = 0; k < nv; ++k)
+            A[k] = vacos(A[k]);
+        for (int64_t k = 0; k < nv; ++k)
+            X[k] = vatan2(X[k], Z[k]);
+        for (int64_t k = 0; k < nv; ++k) {
+            const int64_t o = o0 + 16 * k, cnt = len - 16 * k < 16 ? len - 16 * k : 16;
+            const __mmask16 st = (__mmask16)((1u << cnt) - 1u);
+            const __m512 v = _mm512_mul_ps(A[k], cpi);
+            const __m512 y = _mm512_mul_ps(_mm512_sub_ps(v, _mm512_floor_ps(v)), hm1);
+            const __m512i iy = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(y), zi), hm2);
+            const __m512 uu = _mm512_sub_ps(_mm512_mul_ps(X[k], c2pi), coff);
+            const __m512 x = _mm512_mul_ps(_mm512_sub_ps(uu, _mm512_floor_ps(uu)), wf);
+            const __m512i ix = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(x), zi), wm1);
+            _mm512_mask_storeu_epi32(r + o, st, _mm512_add_epi32(_mm512_mullo_epi32(iy, wp1), ix));
+            _mm512_mask_storeu_ps(fx + o, st, _mm512_sub_ps(x, _mm512_cvtepi32_ps(ix)));
+            _mm512_mask_storeu_ps(fy + o, st, _mm512_sub_ps(y, _mm512_cvtepi32_ps(iy)));
+        }
+    }
+}
+#endif
+
+/* cells16 with the Sleef f16 functions when w16 (and built for AVX-512), else cells8 with the f8 ones. */
+static void cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
+                  const float* mm, int64_t H, int64_t W, const void* vacos, const void* vatan2, int64_t w16,
+                  int64_t i0, int64_t m, int32_t* r, float* fx, float* fy) {
+#if defined(__AVX512F__)
+    if (w16) {
+        cells16(nrm, ns, nc, wo, ws, wc, mm, H, W, (wf1)vacos, (wf2)vatan2, i0, m, r, fx, fy);
+        return;
+    }
+#endif
+    (void)w16;
+    cells8(nrm, ns, nc, wo, ws, wc, mm, H, W, (vf1)vacos, (vf2)vatan2, i0, m, r, fx, fy);
+}
+
 /* fast._mirror_cells of samples [i0, i1) (multiples of 8) into r, fx, fy (indexed from i0). */
 void mirror_cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
-                  const float* mm, int64_t H, int64_t W, const void* vacos, const void* vatan2, int64_t i0,
-                  int64_t i1, int32_t* r, float* fx, float* fy) {
-    cells(nrm, ns, nc, wo, ws, wc, mm, H, W, (vf1)vacos, (vf2)vatan2, i0, i1 - i0, r + i0, fx + i0, fy + i0);
+                  const float* mm, int64_t H, int64_t W, const void* vacos, const void* vatan2, int64_t w16,
+                  int64_t i0, int64_t i1, int32_t* r, float* fx, float* fy) {
+    cells(nrm, ns, nc, wo, ws, wc, mm, H, W, vacos, vatan2, w16, i0, i1 - i0, r + i0, fx + i0, fy + i0);
 }
 
 /* mirror_cells then shade_pixels, per run of CELL_RUN samples (whole pixels: CELL_RUN a multiple of
    8 and of S2 — the caller checks), the cells of a run in stack buffers; pixels [p0, p1). */
 #define CELL_RUN 512
 void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
-                  const float* mm, int64_t H, const void* vacos, const void* vatan2,
+                  const float* mm, int64_t H, const void* vacos, const void* vatan2, int64_t w16,
                   const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
                   int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
                   const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
@@ -383,7 +527,7 @@ void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
     for (int64_t a = p0; a < p1; a += ppr) {
         const int64_t b = a + ppr < p1 ? a + ppr : p1;
         const int64_t i0 = a * S2, m = (b - a) * S2;
-        cells(nrm, ns, nc, wo, ws, wc, mm, H, W, (vf1)vacos, (vf2)vatan2, i0, (m + 7) / 8 * 8, r, fx, fy);
+        cells(nrm, ns, nc, wo, ws, wc, mm, H, W, vacos, vatan2, w16, i0, (m + 7) / 8 * 8, r, fx, fy);
         shade_pixels(face + i0, b1p + i0 * bs, b2p + i0 * bs, bs, r, fx, fy, 0, b - a, S2, face_pairs, M, table, env,
                      lanes, width, W, prefetch, m, out + 3 * a);
     }
@@ -391,7 +535,7 @@ void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
 /* shade_mirror over all P pixels on nt threads of OpenMP's team (shade_pixels_par), the ranges cut at
    multiples of 8 pixels (whole runs of 8 samples). */
 void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
-                      const float* mm, int64_t H, const void* vacos, const void* vatan2,
+                      const float* mm, int64_t H, const void* vacos, const void* vatan2, int64_t w16,
                       const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
                       int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs, int64_t M,
                       const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
@@ -400,7 +544,7 @@ void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo,
     for (int64_t k = 0; k < nt; ++k) {
         const int64_t a = k ? P * k / nt / 8 * 8 : 0, b = k + 1 < nt ? P * (k + 1) / nt / 8 * 8 : P;
         if (b > a)
-            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
+            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, w16, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
                          table, env, lanes, width, W, prefetch, out);
     }
 }
@@ -434,7 +578,7 @@ static inline __attribute__((always_inline)) void vview_body(
         const int64_t* sel, int64_t i0, int64_t i1, const float* pos, const float* frame, int64_t np,
         const float* cam, const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt,
         const float* Wr, const float* E, const int64_t K, const float* ar, const int64_t L, const float* vis,
-        int64_t width, vf1 vacos, vf2 vatan2, float* out) {
+        int64_t width, const void* vacos, const void* vatan2, const int w16, float* out) {
     const int64_t KC = 3 * K, LC = 3 * L, step = nt > 1 ? 1 : 0;
     const float c2pi = (float)(2.0 / 3.141592653589793), fnt = (float)((double)nt / (3.141592653589793 / 2.0));
     float X[VROWS_BLOCK], Y[VROWS_BLOCK], Z[VROWS_BLOCK], RH[VROWS_BLOCK], AT[VROWS_BLOCK], AC[VROWS_BLOCK];
@@ -457,10 +601,19 @@ static inline __attribute__((always_inline)) void vview_body(
             Z[j] = ((frame[6 * np + q] * dx + frame[7 * np + q] * dy) + frame[8 * np + q] * dz) * inv;
             RH[j] = __builtin_sqrtf(X[j] * X[j] + Y[j] * Y[j]);
         }
+#if defined(__AVX512F__)
+        if (w16)  /* Inductor's AVX-512 pass: 16 pairs per Sleef f16 call (VROWS_BLOCK a multiple of 16) */
+            for (int64_t j = 0; j < nb; j += 16) {
+                const __m512 z = _mm512_loadu_ps(Z + j);
+                _mm512_storeu_ps(AT + j, ((wf2)vatan2)(_mm512_loadu_ps(RH + j), z));
+                _mm512_storeu_ps(AC + j, ((wf1)vacos)(wmin(wmax(z, _mm512_set1_ps(-1.0f)), _mm512_set1_ps(1.0f))));
+            }
+        else
+#endif
         for (int64_t j = 0; j < nb; j += 8) {
             const __m256 z = _mm256_loadu_ps(Z + j);
-            _mm256_storeu_ps(AT + j, vatan2(_mm256_loadu_ps(RH + j), z));
-            _mm256_storeu_ps(AC + j, vacos(vmin(vmax(z, _mm256_set1_ps(-1.0f)), _mm256_set1_ps(1.0f))));
+            _mm256_storeu_ps(AT + j, ((vf2)vatan2)(_mm256_loadu_ps(RH + j), z));
+            _mm256_storeu_ps(AC + j, ((vf1)vacos)(vmin(vmax(z, _mm256_set1_ps(-1.0f)), _mm256_set1_ps(1.0f))));
         }
         for (int64_t j = 0; j < nb; ++j) {
             const int64_t q = sel[ib + j];
@@ -509,17 +662,24 @@ static inline __attribute__((always_inline)) void vview_body(
             const float* e = E + oe[j];
             const float w0 = wg[j][0], w1 = wg[j][1], w2 = wg[j][2], w3 = wg[j][3];
             /* B channel c: the sum over the 8-lane blocks of the row of P * mask_c, then vec_reduce_all (KC a
-               multiple of 8: the caller checks) */
+               multiple of 8: the caller checks). AVX-512 (w16): Inductor's 16-lane accumulator — blocks
+               o = 0, 16, ... into its low half acc, o = 8, 24, ... into its high half ach (a last block of 8
+               adds to the low half only: sum_masked_reduce) — then its vec_reduce_all, whose first step
+               adds the halves lane by lane and whose later steps are AVX2's on those 8 sums */
             float B[3];
-            v8 acc[3] = {zero, zero, zero};
+            v8 acc[3] = {zero, zero, zero}, ach[3] = {zero, zero, zero};
             for (int64_t o = 0; o < KC; o += 8) {
                 const v8 p = (((ld(g0 + o) * w0 + ld(g0 + KC + o) * w1) + ld(g2 + o) * w2) + ld(g2 + KC + o) * w3)
                              * ld(e + o);
-                for (int c = 0; c < 3; ++c)
-                    acc[c] = acc[c] + p * mk[(o / 8) % 3][c];
+                for (int c = 0; c < 3; ++c) {
+                    if (w16 && (o / 8) % 2)
+                        ach[c] = ach[c] + p * mk[(o / 8) % 3][c];
+                    else
+                        acc[c] = acc[c] + p * mk[(o / 8) % 3][c];
+                }
             }
             for (int c = 0; c < 3; ++c) {
-                const v8 u = acc[c];
+                const v8 u = w16 ? acc[c] + ach[c] : acc[c];
                 const float s0 = u[0] + u[4], s1 = u[1] + u[5], s2 = u[2] + u[6], s3 = u[3] + u[7];
                 B[c] = (s0 + s2) + (s1 + s3);
             }
@@ -546,16 +706,19 @@ static inline __attribute__((always_inline)) void vview_body(
 void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
                  const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
                  const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
-                 const void* vacos, const void* vatan2, int64_t nth, float* out) {
+                 const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
 #pragma omp parallel for num_threads(nth) schedule(static, 1)
     for (int64_t k = 0; k < nth; ++k) {
         const int64_t i0 = m * k / nth, i1 = m * (k + 1) / nth;
-        if (K == 16 && L == 4)
-            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, (vf1)vacos,
-                       (vf2)vatan2, out);
+        if (K == 16 && L == 4 && w16)
+            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, vacos,
+                       vatan2, 1, out);
+        else if (K == 16 && L == 4)
+            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, vacos,
+                       vatan2, 0, out);
         else
-            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, (vf1)vacos,
-                       (vf2)vatan2, out);
+            vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, vacos,
+                       vatan2, (int)w16, out);
     }
     for (int64_t l = 0; l < width; ++l)
         out[m * width + l] = 0.0f;
@@ -587,20 +750,21 @@ def _functions(lib: ctypes.CDLL):
     fn.par, fn.region_rows = lib.shade_pixels_par, lib.region_rows
     fn.referenced_pairs = lib.referenced_pairs
     fn.referenced_pairs.restype = ctypes.c_int64
-    fn.cells_ok = bool(lib.native_cells_ok())
+    fn.cells_isa = int(lib.native_cells_ok())  # bit 0: the AVX2 cells; bit 1: the AVX-512 ones
+    fn.cells_ok = bool(fn.cells_isa)
     if fn.cells_ok:
         fn.mirror_cells, fn.shade_mirror = lib.mirror_cells, lib.shade_mirror
         fn.mirror_cells.restype = fn.shade_mirror.restype = None
-        fn.mirror_cells.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, _I, _P, _P, _P]
-        fn.shade_mirror.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, _P,
-                                    _P, _P, _I, _I, _I, _P]
+        fn.mirror_cells.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, _I, _I, _P, _P, _P]
+        fn.shade_mirror.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P, _I,
+                                    _P, _P, _P, _I, _I, _I, _P]
         fn.shade_mirror_par = lib.shade_mirror_par
         fn.shade_mirror_par.restype = None
         fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
         fn.vertex_rows = lib.vertex_rows
         fn.vertex_rows.restype = None
         fn.vertex_rows.argtypes = [_P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _P,
-                                   _I, _P]
+                                   _I, _I, _P]
     return fn
 
 
@@ -676,27 +840,45 @@ def shade_pixels(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, 
     return out
 
 
-@functools.lru_cache(maxsize=None)
-def _sleef() -> tuple[int, int] | None:
-    """Addresses of the Sleef acos / atan2 on 8 floats that Inductor's AVX2 kernels call (ATen's
-    ``Vectorized<float>::acos`` / ``atan2``), from libtorch_cpu; None unless Inductor vectorises for
-    AVX2 here (on another ISA its kernels call other Sleef variants: the native cells are not used)."""
+# Inductor's vector ISA → (lanes flag of the native cells, the Sleef acos / atan2 its kernels call:
+# ATen's ``Vectorized<float>::acos`` / ``atan2`` of that ISA).
+_SLEEF = {"avx2": (0, "Sleef_acosf8_u10", "Sleef_atan2f8_u10"), "avx512": (1, "Sleef_acosf16_u10", "Sleef_atan2f16_u10")}
+
+
+def _vec_isa() -> str:
+    """The vector ISA Inductor's CPU kernels are compiled for here ("avx2", "avx512", ...; its first word:
+    ``pick_vec_isa()`` reads e.g. "avx512 avx512_vnni"), "" when unknown."""
     try:
         from torch._inductor.cpu_vec_isa import pick_vec_isa
 
-        if str(pick_vec_isa()) != "avx2":
-            return None
+        return str(pick_vec_isa()).split(" ")[0]
+    except (ImportError, AttributeError):
+        return ""
+
+
+@functools.lru_cache(maxsize=None)
+def _sleef() -> tuple[int, int, int] | None:
+    """(acos, atan2, w16): the addresses of the Sleef acos / atan2 that Inductor's kernels call here —
+    on 8 floats where it vectorises for AVX2 (w16 0), on 16 where for AVX-512 (w16 1: ``Sleef_*f16_u10``,
+    what its kernels link to) —, from libtorch_cpu; None on any other ISA (its kernels call other Sleef
+    variants: the native cells are not used). Not `native.load`'s result: caching it is safe."""
+    isa = _SLEEF.get(_vec_isa())
+    if isa is None:
+        return None
+    try:
         lib = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
-        return (ctypes.cast(lib.Sleef_acosf8_u10, ctypes.c_void_p).value,
-                ctypes.cast(lib.Sleef_atan2f8_u10, ctypes.c_void_p).value)
-    except (OSError, AttributeError, ImportError):
+        return (ctypes.cast(getattr(lib, isa[1]), ctypes.c_void_p).value,
+                ctypes.cast(getattr(lib, isa[2]), ctypes.c_void_p).value, isa[0])
+    except (OSError, AttributeError):
         return None
 
 
 def cells_available() -> bool:
-    """True when `mirror_cells` / `shade_mirror` run natively (the AVX2 build and Inductor's AVX2 Sleef)."""
+    """True when `mirror_cells` / `shade_mirror` / `vertex_rows` run natively: the library has the cells
+    of the ISA Inductor vectorises for (AVX2: 8 lanes; AVX-512: 16) and its Sleef functions resolved."""
     fn = _kernel()
-    return fn is not None and fn.cells_ok and _sleef() is not None
+    sl = _sleef()
+    return fn is not None and sl is not None and bool(fn.cells_isa & (2 if sl[2] else 1))
 
 
 def _dirs(normal: Tensor, wo: Tensor, n: int) -> tuple | None:
@@ -716,11 +898,11 @@ def mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) -
     d = _dirs(normal, wo, n)
     if not cells_available() or d is None or n % 8:
         return None
-    fn, (ac, at) = _kernel(), _sleef()
+    fn, (ac, at, w16) = _kernel(), _sleef()
     m = to_world.to(torch.float32).contiguous()
     r = torch.empty(n, dtype=torch.int32)
     fx, fy = torch.empty(n), torch.empty(n)
-    fn.mirror_cells(*d, m.data_ptr(), int(H), int(W), ac, at, 0, n, r.data_ptr(), fx.data_ptr(), fy.data_ptr())
+    fn.mirror_cells(*d, m.data_ptr(), int(H), int(W), ac, at, w16, 0, n, r.data_ptr(), fx.data_ptr(), fy.data_ptr())
     return r, fx, fy
 
 
@@ -738,11 +920,11 @@ def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Ten
     if chk is None:
         return None
     face, b1, b2, face_pairs, table, env, lanes, width = chk
-    fn, (ac, at) = _kernel(), _sleef()
+    fn, (ac, at, w16) = _kernel(), _sleef()
     m = to_world.to(torch.float32).contiguous()
     P = n // S2
     out = torch.empty(P, 3, dtype=torch.float32)
-    head = (*d, m.data_ptr(), int(H), ac, at, face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0))
+    head = (*d, m.data_ptr(), int(H), ac, at, w16, face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0))
     rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
             width, int(W), PREFETCH, out.data_ptr())
     nt = _threads(P)
@@ -817,7 +999,7 @@ def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Ten
           and all(t.device.type == "cpu" for t in (pairs, pos, frame, cam, r32, v32, Wr, E, ar, vis)))
     if not ok:
         return None
-    fn, (ac, at) = _kernel(), _sleef()
+    fn, (ac, at, w16) = _kernel(), _sleef()
     pairs, pos, frame, cam, r32, v32, Wr, E, ar, vis = (t.contiguous() for t in (pairs, pos, frame, cam, r32, v32, Wr,
                                                                                    E, ar, vis))
     m = int(pairs.numel())
@@ -825,5 +1007,5 @@ def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Ten
     nth = max(1, min(torch.get_num_threads(), m // _MIN_PAIRS_PER_THREAD))
     fn.vertex_rows(pairs.data_ptr(), m, pos.data_ptr(), frame.data_ptr(), int(pos.shape[1]), cam.data_ptr(),
                    r32.data_ptr(), v32.data_ptr(), int(T), int(Tv), int(nt), Wr.data_ptr(), E.data_ptr(), int(K),
-                   ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, nth, out.data_ptr())
+                   ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, w16, nth, out.data_ptr())
     return out

@@ -629,19 +629,21 @@ def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
 
 
 def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
-    """``native.mirror_cells`` (Inductor's AVX2 operations one for one, the same Sleef acos / atan2)
-    gives the bits of the compiled `fast.mirror_cells_block` — first row, fx, fy — on two grids and
-    rotations, with the normals row-major and the view directions as the G-buffer stores them
-    (columns of a (3, n) array) or row-major; a NaN normal gives row 0 in both. And
+    """``native.mirror_cells`` (Inductor's vector operations one for one for the ISA it vectorises for
+    here — AVX2, 8 lanes, or AVX-512, 16 —, the same Sleef acos / atan2) gives the bits of the compiled
+    `fast.mirror_cells_block` — first row, fx, fy — on two grids and rotations, with the normals
+    row-major and the view directions as the G-buffer stores them (columns of a (3, n) array) or
+    row-major, n a multiple of 8 but not of 16 (AVX-512: a last vector of 8 samples, as the compiled
+    kernel's tail); a NaN normal gives row 0 in both. And
     ``native.shade_mirror`` (the cells and the shading in one pass, pixels split over two threads)
     gives the image of `fast.mirror_cells_block` + `fast.shade_block`, bit for bit."""
     from methods.ptt import fast as F
     from methods.ptt import native as N
 
     if not N.cells_available():
-        pytest.skip("no AVX2 build of the native cells")
+        pytest.skip("no native cells for the ISA Inductor vectorises for here")
     g = torch.Generator().manual_seed(13)
-    n = 20_000
+    n = 20_008
     normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))
     normal[::997] = torch.tensor([0.0, 1.0, 0.0])  # mirror directions on the map's axis / seam
     wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
@@ -790,21 +792,24 @@ def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeyp
             assert torch.equal(sub[:-1], full[s]) and not bool(sub[-1].any())
 
 
-def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(monkeypatch):
+@pytest.mark.parametrize("n_wi", [8, 24])
+def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch):
     """``native.vertex_rows`` (`fast.vertex_view(..., pairs=sel)` with lobes and no SH column as one C
     pass: the compiled passes' products and sums in their order, the same Sleef atan2 / acos, B's lane
     sums as their reduction) gives the bits of the compiled `fast.pair_cells_of` + `fast.pair_rows`
     (``native.vertex_rows`` switched off) for the referenced pairs of a frame and for 1, 2, 7, 33 and
     every pair, from cameras around the scene and close to it (pairs below their vertex's horizon), at
-    1 and 2 threads, padded to the sample stage's width or not; `fast.vertex_view` takes it."""
+    1 and 2 threads, padded to the sample stage's width or not; `fast.vertex_view` takes it. K = 8 and
+    24 (24- and 72-lane rows: on AVX-512 the compiled reduction's 16-lane accumulator, with a masked
+    last block of 8, sums a channel's lanes in another order than AVX2's 8-lane one for K = 24)."""
     from methods.ptt import fast as F
     from methods.ptt import native as N
 
     if not N.cells_available():
-        pytest.skip("no AVX2 build of the native loops")
+        pytest.skip("no native cells for the ISA Inductor vectorises for here")
     monkeypatch.setattr(N, "_MIN_PAIRS_PER_THREAD", 8)
     scene = get_scene("chess", "test")
-    m = PTT(**{**TINY, **VARIANTS["chess"], "n_wi": 8}, bounces=0)  # K = 8: 24-lane rows (the native loop reads 8-lane blocks)
+    m = PTT(**{**TINY, **VARIANTS["chess"], "n_wi": n_wi}, bounces=0)  # 3K-lane rows (the native loop reads 8-lane blocks)
     m.precompute(scene)
     frames = [_small(f) for f in make_sequence(scene, "V", n_frames=2, seed=5)]
     gb = make_gbuffer(scene, frames[0], 2)
