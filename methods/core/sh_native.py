@@ -4,9 +4,12 @@ lighting projection of the methods that project a map per frame (SH PRT's and ZH
 `project_latlong_polar` is `methods.core.sh.project_latlong_polar` (the coefficients in the map's
 polar frame: per row the column integrals against the 2n azimuthal factors, then the rows weighted
 by the polar factors) over the float32 texels with float64 sums, no float64 copy of the map; that
-function (one float64 GEMM) is its fallback and test oracle (float64 round-off). Rows are split over
-OpenMP's team (the libgomp torch loaded) from `MIN_ROWS_PER_PROJECT_THREAD` rows a thread. Written
-for SH PRT in session 28; shared with ZH since session 29.
+function (one float64 GEMM) is its fallback and test oracle (float64 round-off). The map's rows are
+cut into parts fixed by its size (`ROWS_PER_PROJECT_PART` rows a part, at most `MAX_PROJECT_PARTS`),
+the parts shared by OpenMP's team (the libgomp torch loaded) and summed in order: the same bits at
+any thread count (session 31; before, the rows were split by the thread count and the float64 sums
+differed between 1 and 2 threads by ~9e-16 on a 256×512 map). Written for SH PRT in session 28;
+shared with ZH since session 29.
 """
 from __future__ import annotations
 
@@ -51,23 +54,29 @@ static void proj_rows(int64_t h0, int64_t h1, int64_t W, const float *X, const d
 }
 
 void sh_project(int64_t H, int64_t W, const float *X, const double *B, int64_t J, const int64_t *k,
-                const double *T, int64_t n2, double *part, int64_t nt) {
-    /* part (nt, n², 3) zeroed by the caller: thread t's rows [H t / nt, H (t+1) / nt) */
-    if (nt <= 1) { proj_rows(0, H, W, X, B, J, k, T, n2, part); return; }
-    #pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t t = 0; t < nt; ++t)
-        proj_rows(H * t / nt, H * (t + 1) / nt, W, X, B, J, k, T, n2, part + t * n2 * 3);
+                const double *T, int64_t n2, double *part, int64_t np, int64_t nt, double *out) {
+    /* part (np, n², 3) zeroed by the caller: part p's rows [H p / np, H (p+1) / np), np fixed by the
+       caller whatever the thread count; out (n², 3) = the parts summed in order p = 0, 1, ... */
+    #pragma omp parallel for num_threads(nt) schedule(static) if(nt > 1)
+    for (int64_t p = 0; p < np; ++p)
+        proj_rows(H * p / np, H * (p + 1) / np, W, X, B, J, k, T, n2, part + p * n2 * 3);
+    for (int64_t i = 0; i < n2 * 3; ++i) {
+        double s = part[i];
+        for (int64_t p = 1; p < np; ++p) s += part[p * n2 * 3 + i];
+        out[i] = s;
+    }
 }
 
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {"sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I]}
+_SIGNATURES = {"sh_project": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _P]}
 
 
-@functools.lru_cache(maxsize=None)
 def _lib():
-    # no contraction into fused multiply-adds (the bits of session 28's SH PRT library); the host's ISA
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
+    # None met while compilation was off (a test's monkeypatch) is not kept for the process.
+    # No contraction into fused multiply-adds (the bits of session 28's SH PRT library); the host's ISA
     return native.load("sh_project", _SOURCE, _SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
@@ -77,7 +86,8 @@ def available() -> bool:
     return _lib() is not None
 
 
-MIN_ROWS_PER_PROJECT_THREAD = 64    # map rows below which one thread projects
+ROWS_PER_PROJECT_PART = 64    # map rows a part (each part one thread's)
+MAX_PROJECT_PARTS = 4         # (the parts are fixed by the map's size, not by the thread count)
 
 
 @functools.lru_cache(maxsize=8)
@@ -108,7 +118,10 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
     B, k, T, J = _project_factors(int(H), int(W), int(order))
     X = image.contiguous()
     n2 = order * order
-    nt = max(1, min(torch.get_num_threads(), int(H) // MIN_ROWS_PER_PROJECT_THREAD))
-    part = torch.zeros(nt, n2, 3, dtype=torch.float64)
-    lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(), nt)
-    return part[0] if nt == 1 else part.sum(0)
+    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
+    nt = max(1, min(torch.get_num_threads(), np_))
+    part = torch.zeros(np_, n2, 3, dtype=torch.float64)
+    out = torch.empty(n2, 3, dtype=torch.float64)
+    lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(),
+                   np_, nt, out.data_ptr())
+    return out

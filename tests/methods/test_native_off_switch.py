@@ -8,7 +8,9 @@ def test_a_library_asked_for_while_compilation_was_off_loads_when_it_is_back_on(
     from methods.sh_prt import native as S
     from methods.inout import native as I, native_sample as IS
     from methods.oracle import native_rays as O
+    from methods.core import sh_native as C   # SH PRT's and ZH's projection of a new map (session 31)
     monkeypatch.setenv("PRTBENCH_COMPILE", "0")
-    assert S._lib() is None and I._lib() is None and IS._lib() is None and O._lib() is None
+    assert S._lib() is None and I._lib() is None and IS._lib() is None and O._lib() is None and C._lib() is None
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
-    assert S._lib() is not None and I._lib() is not None and IS._lib() is not None and O._lib() is not None
+    assert (S._lib() is not None and I._lib() is not None and IS._lib() is not None and O._lib() is not None
+            and C._lib() is not None)
