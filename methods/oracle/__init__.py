@@ -366,16 +366,17 @@ class Oracle(Method):
         return {f"work:{k}": v.numel() * v.element_size() for k, v in self._scratch.items()}
 
     def _work(self, name: str, shape: tuple, dtype=torch.float32) -> Tensor:
-        """A work array of this shape and dtype: the previous frame's if it had the same (as that frame left
-        it; its pages are mapped already, where a fresh large array is page-faulted in on first touch and
-        returned to the system when freed), else new, zeros (the padding between component planes,
-        never written, then holds no stale bytes)."""
-        shape = tuple(int(x) for x in shape)
+        """A work array of this shape and dtype, contiguous: the leading elements of the one kept under
+        ``name`` when it is large enough (as the last frame left them; its pages are mapped already,
+        where a fresh large array is page-faulted in on first touch and returned to the system when
+        freed — and a frame's sizes follow its hit samples, which move with the view), else of a new
+        one, zeros, 1/8 larger (a slowly growing hit count does not allocate every frame)."""
+        n = math.prod(int(x) for x in shape)
         t = self._scratch.get(name)
-        if t is None or tuple(t.shape) != shape or t.dtype != dtype:
+        if t is None or t.numel() < n or t.dtype != dtype:
             self._scratch.pop(name, None)
-            t = self._scratch[name] = torch.zeros(shape, dtype=dtype)
-        return t
+            t = self._scratch[name] = torch.zeros(n + n // 8, dtype=dtype)
+        return t[:n].view(*shape)
 
     def _visibility(self, geom, pose: Tensor | None) -> Visibility:
         key = "rest" if pose is None else repr(pose.detach().cpu().tolist())
