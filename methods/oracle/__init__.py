@@ -450,15 +450,15 @@ class Oracle(Method):
         Q = order.numel()
         U_l = self._work("U_l", (Q, NL, 2)) if NL else torch.zeros(Q, 1, 2)
         U_b = self._work("U_b", (Q, NB, 2)) if NB else torch.zeros(Q, 1, 2)
-        row = 0
+        draws, row = [], 0
         for _, q_r in regions:
             for c0 in range(0, q_r, chunk):
                 q = min(chunk, q_r - c0)
-                if NL:
-                    torch.rand(q, NL, 2, generator=gen, out=U_l[row:row + q])
-                if NB:
-                    torch.rand(q, NB, 2, generator=gen, out=U_b[row:row + q])
+                draws += ([U_l[row:row + q]] if NL else []) + ([U_b[row:row + q]] if NB else [])
                 row += q
+        if not oracle_native.uniform(gen, draws):  # the C generator: torch.rand's numbers, faster
+            for x in draws:
+                torch.rand(x.shape, generator=gen, out=x)
         cdf, p, omega = env._tables()
         if self._native(regions, gbuffer, U_l, U_b):  # the C loops search the cells themselves
             K_l = None

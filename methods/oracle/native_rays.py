@@ -52,7 +52,7 @@ from methods.core import native
 from methods.core.envguide import GUIDE_STEPS, guide_table
 from references.visibility import MitsubaVisibility
 
-__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace"]
+__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace", "uniform"]
 
 assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
 
@@ -557,6 +557,45 @@ void shade(const float *contrib, const uint8_t *live, const uint8_t *blocked, co
         shade_rows(contrib, live, blocked, d, ext, R, Q, K, H, W, PS, out, i0, i1);
     }
 }
+
+/* torch's CPU generator (at::mt19937) from its state (st: the 624 words; ln: its left_, next_): n
+   uniform floats in [0, 1) exactly as torch.rand draws them ((word & (2^24 - 1)) * 2^-24), the state
+   advanced as torch advances it. The twist's loops vectorise (their reads run ahead of their writes
+   or 227 words behind them), the tempering too. */
+#define MT_N 624
+#define MT_M 397
+static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
+    return (((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u);
+}
+
+void mt_uniform(uint32_t *__restrict st, int64_t *ln, float *__restrict out, int64_t n) {
+    int64_t left = ln[0], nx = ln[1], i = 0;
+    while (i < n) {
+        if (left == 1) {  /* the draw that finds left_ at 1: next_state(), then word 0 */
+            uint32_t nw[MT_N];
+#pragma GCC ivdep
+            for (int j = 0; j < MT_N - MT_M; j++) nw[j] = st[j + MT_M] ^ mt_twist(st[j], st[j + 1]);
+            for (int j = MT_N - MT_M; j < MT_N - 1; j++) nw[j] = nw[j + MT_M - MT_N] ^ mt_twist(st[j], st[j + 1]);
+            nw[MT_N - 1] = nw[MT_M - 1] ^ mt_twist(st[MT_N - 1], nw[0]);
+            memcpy(st, nw, sizeof nw);
+            left = MT_N + 1;
+            nx = 0;
+        }
+        int64_t m = left - 1 < n - i ? left - 1 : n - i;
+        const uint32_t *w = st + nx;
+        float *o = out + i;
+        for (int64_t k = 0; k < m; k++) {
+            uint32_t y = w[k];
+            y ^= (y >> 11);
+            y ^= (y << 7) & 0x9d2c5680u;
+            y ^= (y << 15) & 0xefc60000u;
+            y ^= (y >> 18);
+            o[k] = (float)(int32_t)(y & 0xffffffu) * 5.9604644775390625e-08f;
+        }
+        i += m; left -= m; nx += m;
+    }
+    ln[0] = left; ln[1] = nx;
+}
 """
 
 
@@ -579,7 +618,7 @@ class _PArgs(ctypes.Structure):
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _MITSUBA_OCCLUDED = MitsubaVisibility.occluded
 _SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _I, _P, _P, _P],
-               "expand_blocked": [_P, _P, _I, _P],
+               "expand_blocked": [_P, _P, _I, _P], "mt_uniform": [_P, _P, _P, _I],
                "shade": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
 
 
@@ -737,3 +776,57 @@ def shade(contrib: Tensor, live: Tensor, blocked: Tensor, d: Tensor, ext: Tensor
         _lib().shade(_ptr(contrib), _ptr(live), _ptr(blocked), _ptr(d), _ptr(ext), _ptr(R32), Q, K, H, W,
                      int(d.stride(0)), _ptr(out), BLOCK, _threads(Q))
     return out
+
+
+# torch's CPU generator state (``torch.Generator.get_state``, at::CPUGeneratorImplState): the legacy POD's
+# initial seed (uint64), left_ (int32), seeded (int32), next_ (uint64), the 624 words (as uint64), ...
+_STATE_BYTES, _LEFT, _NEXT, _WORDS = 5056, 8, 16, 24
+_MT_CHECKED: list = []  # [True / False] once checked in this process (with the C loops built)
+
+
+def _draw(gen: torch.Generator, outs: list) -> None:
+    """Each of ``outs`` (float32 contiguous CPU tensors) filled in turn by the C generator `mt_uniform`
+    from ``gen``'s state, which is then advanced (set) as the draws advanced it."""
+    s = gen.get_state()
+    a = s.numpy()
+    ln = torch.tensor([int(a[_LEFT:_LEFT + 4].view("<i4")[0]), int(a[_NEXT:_NEXT + 8].view("<u8")[0])],
+                      dtype=torch.int64)
+    st = torch.from_numpy(a[_WORDS:_WORDS + 8 * 624].view("<u8").astype("<u4"))
+    lib = _lib()
+    for x in outs:
+        lib.mt_uniform(_ptr(st), _ptr(ln), _ptr(x), x.numel())
+    a[_WORDS:_WORDS + 8 * 624].view("<u8")[:] = st.numpy()
+    a[_LEFT:_LEFT + 4].view("<i4")[0] = int(ln[0])
+    a[_NEXT:_NEXT + 8].view("<u8")[0] = int(ln[1])
+    gen.set_state(s)
+
+
+def _mt_ok() -> bool:
+    """Whether `_draw` reproduces ``torch.rand`` on this torch (its generator's state layout), checked
+    once per process on 3 000 numbers across two twists: the numbers and the state after them."""
+    if not _MT_CHECKED:
+        ok = False
+        g = torch.Generator().manual_seed(20261206)
+        if g.get_state().numel() == _STATE_BYTES:
+            torch.rand(5, generator=g)
+            h = torch.Generator()
+            h.set_state(g.get_state())
+            outs = [torch.empty(7), torch.empty(1300), torch.empty(1693)]
+            _draw(g, outs)
+            want = torch.rand(3000, generator=h)
+            ok = torch.equal(torch.cat(outs), want) and torch.equal(g.get_state(), h.get_state())
+        _MT_CHECKED.append(ok)
+    return _MT_CHECKED[0]
+
+
+def uniform(gen: torch.Generator, outs: list) -> bool:
+    """``torch.rand(x.shape, generator=gen, out=x)`` for each x of ``outs`` in turn (float32 contiguous CPU
+    tensors), by the C generator (~4 ns a number in torch's serial kernel, a fraction of it here): the
+    same numbers, ``gen`` left in the same state. False (nothing drawn) where it does not run: no C
+    loops, a generator other than the CPU one, or a torch whose generator state it does not know."""
+    if _lib() is None or gen.device.type != "cpu" or not _mt_ok():
+        return False
+    if not all(x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous() for x in outs):
+        return False
+    _draw(gen, outs)
+    return True

@@ -340,3 +340,25 @@ def test_oracle_work_arrays_reused_across_frames():
     b = get_method("oracle")(**cfg)
     b.precompute(scene)
     assert torch.equal(again, b.render(frames[0], gbs[0]))
+
+
+def test_oracle_c_generator_equals_torch_rand(monkeypatch):
+    """`native_rays.uniform` (the C generator, from and back to the torch generator's state) = ``torch.rand``
+    into the same arrays in turn: the same numbers bit for bit, across twists of the state (624 words)
+    and from a state part-way through one, and the generator left in the same state (later torch draws
+    equal)."""
+    import methods.oracle.native_rays as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    for seed, skip, shapes in ((0, 0, [(5, 4, 2), (700, 3, 2), (1, 1, 2)]), (17, 611, [(1000, 4, 2), (20000,)]),
+                               (3, 623, [(1,), (624,), (625,), (3, 2)])):
+        g, h = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+        torch.rand(skip, generator=g), torch.rand(skip, generator=h)
+        outs = [torch.empty(s) for s in shapes]
+        assert on.uniform(g, outs)
+        for x, s in zip(outs, shapes):
+            assert torch.equal(x, torch.rand(s, generator=h)), (seed, s)
+        assert torch.equal(g.get_state(), h.get_state())
+        assert torch.equal(torch.rand(50, generator=g), torch.rand(50, generator=h))
