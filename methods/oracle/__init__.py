@@ -442,7 +442,8 @@ class Oracle(Method):
         out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         chunk = self._chunk()
-        order = [hit_idx[gbuffer.region[hit_idx] == r] for r in range(len(self.scene.regions))]
+        # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
+        order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(len(self.scene.regions))]
         regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
         order = torch.cat(order) if order else hit_idx
         # the reference's draws, per region and chunk, straight into the frame's (Q, NL / NB, 2) arrays
@@ -490,7 +491,14 @@ class Oracle(Method):
             if x.device.type != "cpu":
                 out.append(x[sel])
                 continue
-            out.append(torch.index_select(x, 0, sel, out=self._work(name, (sel.numel(), *x.shape[1:]), x.dtype)))
+            w = self._work(name, (sel.numel(), *x.shape[1:]), x.dtype)
+            if x.is_contiguous():
+                out.append(torch.index_select(x, 0, sel, out=w))
+            elif x.dim() == 2 and x.t().is_contiguous():  # channel planes (ω_o's (3, P) transposed): 12 → 1.7 ms
+                w.t().copy_(x.t().index_select(1, sel))
+                out.append(w)
+            else:
+                out.append(w.copy_(x[sel]))
         return tuple(out)
 
     @staticmethod
