@@ -33,7 +33,12 @@ compiler is there, `Oracle._shade_native` runs all of it but the shadow-ray test
 (``methods.oracle.native_rays``: the cell search, the per-ray work, the live rays' gather, the radiance
 sum; the same operations from the same random numbers; 1.8× the compiled path's frame, chess and
 creature bench, 1 thread); the compiled path above is its fallback and, with the eager estimator, its
-test oracle.
+test oracle. Its shadow rays go to Mitsuba's ``ray_test`` as written (component planes, the live ones
+by the active mask: no gather, no copy), and a frame's large arrays (rays, random numbers, the
+G-buffer's gathered rows) are work arrays kept for the next frame (`Oracle._work`: a fresh 100 MB
+costs ~30 000 page faults per chess bench frame; ``memory()`` reports them), and the random numbers
+come from a C copy of torch's generator (``native_rays.uniform``: the same numbers). Session 31:
+1.1–1.3× the session-30 frame, process CPU at 1 thread, the images bit for bit the same.
 """
 from __future__ import annotations
 
@@ -349,13 +354,31 @@ class Oracle(Method):
         self._vis: tuple[str, Visibility] | None = None  # (pose key, embree scene of that pose)
         # (P, hit samples, live rays, faces hit, their vertices, env map (H, W)) of the last render (frame_cost)
         self._last: tuple | None = None
+        # per-frame work arrays by name, reused by the next frame of the same sizes (`_work`): fresh
+        # ones cost their first touch, ~30 000 page faults (~120 MB) per chess bench frame
+        self._scratch: dict[str, Tensor] = {}
 
     # -- interface ----------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
 
     def memory(self) -> dict[str, int]:
-        return {}  # nothing is kept between frames but the embree scene of the current pose
+        """Nothing precomputed; kept between frames: the tracer's scene of the current pose (not counted)
+        and the last frame's work arrays (`_work`, reused by the next frame)."""
+        return {f"work:{k}": v.numel() * v.element_size() for k, v in self._scratch.items()}
+
+    def _work(self, name: str, shape: tuple, dtype=torch.float32) -> Tensor:
+        """A work array of this shape and dtype, contiguous: the leading elements of the one kept under
+        ``name`` when it is large enough (as the last frame left them; its pages are mapped already,
+        where a fresh large array is page-faulted in on first touch and returned to the system when
+        freed — and a frame's sizes follow its hit samples, which move with the view), else of a new
+        one, zeros, 1/8 larger (a slowly growing hit count does not allocate every frame)."""
+        n = math.prod(int(x) for x in shape)
+        t = self._scratch.get(name)
+        if t is None or t.numel() < n or t.dtype != dtype:
+            self._scratch.pop(name, None)
+            t = self._scratch[name] = torch.zeros(n + n // 8, dtype=dtype)
+        return t[:n].view(*shape)
 
     def _visibility(self, geom, pose: Tensor | None) -> Visibility:
         key = "rest" if pose is None else repr(pose.detach().cpu().tolist())
@@ -421,18 +444,24 @@ class Oracle(Method):
         out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         chunk = self._chunk()
-        order, regions, U_l, U_b = [], [], [], []
-        for r, region in enumerate(self.scene.regions):
-            idx = hit_idx[gbuffer.region[hit_idx] == r]
-            for c0 in range(0, idx.numel(), chunk):  # the reference's draws: per region and chunk
-                q = min(chunk, idx.numel() - c0)
-                U_l.append(torch.rand(q, NL, 2, generator=gen) if NL else None)
-                U_b.append(torch.rand(q, NB, 2, generator=gen) if NB else None)
-            order.append(idx)
-            regions.append((frame.materials[region], idx.numel()))
+        # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
+        order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(len(self.scene.regions))]
+        regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
         order = torch.cat(order) if order else hit_idx
-        U_l = torch.cat(U_l) if NL and U_l else torch.zeros(order.numel(), 1, 2)
-        U_b = torch.cat(U_b) if NB and U_b else torch.zeros(order.numel(), 1, 2)
+        # the reference's draws, per region and chunk, straight into the frame's (Q, NL / NB, 2) arrays
+        # (a work array: `_work`; the same numbers as drawn apart and concatenated)
+        Q = order.numel()
+        U_l = self._work("U_l", (Q, NL, 2)) if NL else torch.zeros(Q, 1, 2)
+        U_b = self._work("U_b", (Q, NB, 2)) if NB else torch.zeros(Q, 1, 2)
+        draws, row = [], 0
+        for _, q_r in regions:
+            for c0 in range(0, q_r, chunk):
+                q = min(chunk, q_r - c0)
+                draws += ([U_l[row:row + q]] if NL else []) + ([U_b[row:row + q]] if NB else [])
+                row += q
+        if not oracle_native.uniform(gen, draws):  # the C generator: torch.rand's numbers, faster
+            for x in draws:
+                torch.rand(x.shape, generator=gen, out=x)
         cdf, p, omega = env._tables()
         if self._native(regions, gbuffer, U_l, U_b):  # the C loops search the cells themselves
             K_l = None
@@ -446,15 +475,33 @@ class Oracle(Method):
         for a in range(0, order.numel(), chunk):
             sel = order[a:a + chunk]
             mats = _segments(regions, a, a + sel.numel())
-            o, live_n = self._shade_fast(mats, vis, eps_t, gbuffer.position[sel], gbuffer.normal[sel],
-                                         gbuffer.wo[sel], face_ng(sel),
+            o, live_n = self._shade_fast(mats, vis, eps_t, *self._gather(gbuffer, sel), face_ng(sel),
                                          U_l[a:a + chunk], None if K_l is None else K_l[a:a + chunk], U_b[a:a + chunk],
                                          tables, env.data,
                                          ext, R32)
-            out[sel] = o
+            out.index_copy_(0, sel, o)
             live_total += live_n
         self._record(gbuffer, geom, hit_idx, live_total, env)
         return gbuffer.resolve(out)
+
+    def _gather(self, gbuffer: GBuffer, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The G-buffer's positions, normals and ω_o of the samples ``sel``, ``index_select``ed into work
+        arrays (`_work`; CPU) — the values of ``position[sel]`` etc."""
+        out = []
+        for name in ("position", "normal", "wo"):
+            x = getattr(gbuffer, name)
+            if x.device.type != "cpu":
+                out.append(x[sel])
+                continue
+            w = self._work(name, (sel.numel(), *x.shape[1:]), x.dtype)
+            if x.is_contiguous():
+                out.append(torch.index_select(x, 0, sel, out=w))
+            elif x.dim() == 2 and x.t().is_contiguous():  # channel planes (ω_o's (3, P) transposed): 12 → 1.7 ms
+                w.t().copy_(x.t().index_select(1, sel))
+                out.append(w)
+            else:
+                out.append(w.copy_(x[sel]))
+        return tuple(out)
 
     @staticmethod
     def _light_cells(U_l: Tensor, cdf: Tensor) -> Tensor:
@@ -527,13 +574,16 @@ class Oracle(Method):
         H, W = data.shape[:2]
         tab = tuple(x.contiguous() for x in (cdf, p_flat, omega, R64))
         p, n, wo, ng, U_l, U_b = (x.contiguous() for x in (p, n, wo, ng, U_l, U_b))
-        contrib, o, d = (torch.empty(K, Q, 3) for _ in range(3))  # rays slot-major
-        live = torch.empty(K, Q, dtype=torch.bool)
+        # rays slot-major; origins and directions as component planes, the shadow-ray tracer's input
+        contrib = self._work("contrib", (K, Q, 3))
+        o, d = (oracle_native.plane_views(self._work(x, (3 * oracle_native.plane_stride(K * Q),)), K, Q)
+                for x in ("origins", "directions"))
+        live, blocked = (self._work(x, (K, Q), torch.bool) for x in ("live", "blocked"))
         for mat, a, b in mats:
             oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b], NL, NB, tab,
-                                   H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[:, a:b], d[:, a:b]))
-        lit, n_live = oracle_native.trace(vis, live, o, d)
-        return oracle_native.shade(contrib, lit, d, ext.contiguous(), R32.contiguous(), H, W), n_live
+                                   H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[..., a:b], d[..., a:b]))
+        n_live = oracle_native.trace(vis, live, o, d, blocked)
+        return oracle_native.shade(contrib, live, blocked, d, ext.contiguous(), R32.contiguous(), H, W), n_live
 
     def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
         """`_shade_fast` when every region's BRDF compiles: each region's samples in blocks of

@@ -3,9 +3,17 @@
 the shading frame, each light sample's cell (``methods.core.envguide``'s guide table and 4 bisection
 steps, ``scenes.envmap.count_le`` for the u₀ it does not bracket: the same cells), env-map sampling
 in that cell, the BRDF's sample / pdf / eval, the MIS weights, each ray's contribution, whether it is
-live and its shadow-ray origin; `trace` gathers the live rays in order and traces them in one batch
-(``Oracle._trace_soa``'s nonzero / index_select / scatter); `shade` looks up the radiance and sums a
-sample's rays (``methods.oracle._shade_block_stage``). For the library's BRDF families that the
+live and its shadow-ray origin; `trace` hands the rays to Mitsuba's ``scene.ray_test`` as they are —
+origins and directions written as component planes (`plane_views`) that Dr.Jit maps without a copy,
+``live`` as the active mask, so the live rays are traced and no others (session 31: the C gather of
+the live rays, their copy into Dr.Jit and the scatter of the answers back went, ~30 ms of a 370 ms
+chess bench frame at 1 thread) — or, on another tracer, gathers the live rays in order and traces them
+in one ``occluded`` batch (``Oracle._trace_soa``'s nonzero / index_select / scatter); `shade` looks up
+the radiance and sums a sample's rays over those live and not blocked
+(``methods.oracle._shade_block_stage``). `uniform` draws the frame's random numbers as ``torch.rand``
+does, bit for bit, by a C copy of torch's CPU generator (Mersenne Twister) run from and back to the
+generator's state (session 31: torch's serial kernel took ~4 ns a number, 18 ms of a chess bench
+frame's 16 × 262 144). For the library's BRDF families that the
 compiled path runs with tensor parameters (Lambert, Phong, Blinn-Phong, Cook-Torrance, Ward): the
 same operations in the same order as the eager estimator (``Oracle._shade``, ``scenes.materials``,
 ``scenes.envmap``: float32 where it is float32, float64 where it is float64), from the SAME random
@@ -45,8 +53,9 @@ from torch import Tensor
 
 from methods.core import native
 from methods.core.envguide import GUIDE_STEPS, guide_table
+from references.visibility import MitsubaVisibility
 
-__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace"]
+__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace", "uniform"]
 
 assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
 
@@ -71,11 +80,12 @@ typedef struct {
     const float *ub;                       /* (Q, NB, 2) */
     const double *cdf0, *pflat, *omega, *ztab, *R;  /* (C + 1,) 0 then the cdf, (C,), (H-1,), (H,), (3, 3) */
     const int32_t *guide; int64_t G;       /* methods.core.envguide.guide_table of the cdf, (G + 1,) */
-    int64_t Q, NL, NB, C, H, W, QS;       /* QS: rows between ray slots of the outputs */
+    int64_t Q, NL, NB, C, H, W, QS, PS;   /* QS: rows between ray slots of the outputs, PS: between planes */
     float eps;
     int32_t kind, has_spec;
     double kd[3], ks[3], ps, s, m, F0, ax, ay;
-    float *contrib, *o, *d;                /* (K, QS, 3), rows from this call's first sample */
+    float *contrib;                        /* (K, QS, 3), rows from this call's first sample */
+    float *o, *d;                          /* (3, K, QS) component planes PS apart, rows likewise */
     uint8_t *live;                         /* (K, QS) */
 } PArgs;
 
@@ -285,7 +295,8 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
     float gs = (g0 * nx + g1 * ny + g2 * nz < 0.0f) ? -1.0f : 1.0f;                               \
     g0 = gs * g0; g1 = gs * g1; g2 = gs * g2;
 
-/* f cos w, live, shadow-ray origin and direction of ray (j, i): slot-major rows j * QS + i */
+/* f cos w, live, shadow-ray origin and direction of ray (j, i): slot-major rows j * QS + i of the
+   component planes (PS apart) */
 #define RAY_OUT                                                                                   \
     {                                                                                             \
         float f[3];                                                                               \
@@ -300,10 +311,10 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
         live_[r] = (uint8_t)(int32_t)(pos * nan);                                                 \
         float sd = g0 * dw[0] + g1 * dw[1] + g2 * dw[2];                                          \
         float side = (float)(sd > 0.0f) - (float)(sd < 0.0f);                                     \
-        o_[3 * r] = p_[3 * i] + side * g0 * eps;                                                  \
-        o_[3 * r + 1] = p_[3 * i + 1] + side * g1 * eps;                                          \
-        o_[3 * r + 2] = p_[3 * i + 2] + side * g2 * eps;                                          \
-        d_[3 * r] = dw[0]; d_[3 * r + 1] = dw[1]; d_[3 * r + 2] = dw[2];                          \
+        o_[r] = p_[3 * i] + side * g0 * eps;                                                      \
+        o_[PS + r] = p_[3 * i + 1] + side * g1 * eps;                                             \
+        o_[2 * PS + r] = p_[3 * i + 2] + side * g2 * eps;                                         \
+        d_[r] = dw[0]; d_[PS + r] = dw[1]; d_[2 * PS + r] = dw[2];                                \
     }
 
 static inline __attribute__((always_inline)) float power_h(float a, float b) {
@@ -313,7 +324,7 @@ static inline __attribute__((always_inline)) float power_h(float a, float b) {
 
 static inline __attribute__((always_inline)) void block(const PArgs *A, const Mat *Mp, const int kind, int64_t i0, int64_t i1) {
     const Mat M = *Mp;
-    const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS;
+    const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS, PS = A->PS;
     const float *__restrict n_ = A->n, *__restrict wo_ = A->wo, *__restrict ng_ = A->ng, *__restrict p_ = A->p;
     const float *__restrict ul_ = A->ul, *__restrict ub_ = A->ub;
     const double *__restrict cdf0_ = A->cdf0, *__restrict pflat_ = A->pflat, *__restrict omega_ = A->omega;
@@ -468,12 +479,13 @@ void pretrace(const PArgs *A, int64_t block_rows, int32_t nt) {
     }
 }
 
-/* Sum over a sample's K rays of contribution * radiance where lit (methods.oracle._shade_stage:
-   scenes.envmap.bilinear_lookup of d @ R in float32, the unlit a fixed direction +y counted 0);
-   rays slot-major (K, Q). */
-static void shade_rows(const float *__restrict contrib, const uint8_t *__restrict lit, const float *__restrict d,
-                       const float *__restrict ext, const float *__restrict Rp, int64_t Q, int64_t K, int64_t H,
-                       int64_t W, float *__restrict out, int64_t i0, int64_t i1) {
+/* Sum over a sample's K rays of contribution * radiance where lit = live and not blocked
+   (methods.oracle._shade_stage: scenes.envmap.bilinear_lookup of d @ R in float32, the unlit a fixed
+   direction +y counted 0); contributions (K, Q, 3), directions (3, K, Q) component planes PS apart. */
+static void shade_rows(const float *__restrict contrib, const uint8_t *__restrict live,
+                       const uint8_t *__restrict blocked, const float *__restrict d, const float *__restrict ext,
+                       const float *__restrict Rp, int64_t Q, int64_t K, int64_t H, int64_t W,
+                       int64_t PS, float *__restrict out, int64_t i0, int64_t i1) {
     const float hw = (float)(0.5 / W), fW = (float)W, fH1 = (float)(H - 1);
     const float i2pi = (float)(0.5 / M_PI), ipi = (float)(1.0 / M_PI);
     float R[9];
@@ -483,8 +495,8 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
 #pragma GCC ivdep
         for (int64_t i = i0; i < i1; i++) {
             int64_t r = k * Q + i;
-            int l = lit[r] != 0;
-            float dx = d[3 * r], dy = d[3 * r + 1], dz = d[3 * r + 2];
+            int l = (live[r] != 0) & (blocked[r] == 0);
+            float dx = d[r], dy = d[PS + r], dz = d[2 * PS + r];
             float x = l ? dx : 0.0f, y = l ? dy : 1.0f, z = l ? dz : 0.0f;
             float xl = x * R[0] + y * R[3] + z * R[6];
             float yl = x * R[1] + y * R[4] + z * R[7];
@@ -515,35 +527,77 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
     }
 }
 
-/* The live rays' origins and directions (rows of live (n,) nonzero, in order) into oc, dc: count[0]. */
-void compact(const uint8_t *live, const float *o, const float *d, int64_t n, float *oc, float *dc, int64_t *count) {
+/* The live rays (live (n,) nonzero, in order) of the component planes o, d (PS apart) into the
+   (m, 3) rows oc, dc: count[0] = m (the fallback tracer's input, `trace`). */
+void compact(const uint8_t *live, const float *o, const float *d, int64_t n, int64_t PS, float *oc, float *dc,
+             int64_t *count) {
     int64_t m = 0;
     for (int64_t r = 0; r < n; r++) {  /* branchless: every ray written at m (<= r < n), kept if live */
-        oc[3 * m] = o[3 * r]; oc[3 * m + 1] = o[3 * r + 1]; oc[3 * m + 2] = o[3 * r + 2];
-        dc[3 * m] = d[3 * r]; dc[3 * m + 1] = d[3 * r + 1]; dc[3 * m + 2] = d[3 * r + 2];
+        oc[3 * m] = o[r]; oc[3 * m + 1] = o[PS + r]; oc[3 * m + 2] = o[2 * PS + r];
+        dc[3 * m] = d[r]; dc[3 * m + 1] = d[PS + r]; dc[3 * m + 2] = d[2 * PS + r];
         m += live[r] != 0;
     }
     count[0] = m;
 }
 
-/* lit = live and not blocked (blocked: per live ray, in compact's order) */
-void lit_rays(const uint8_t *live, const uint8_t *blocked, int64_t n, uint8_t *lit) {
+/* blocked of every ray (0 where not live) from blocked per live ray, in compact's order */
+void expand_blocked(const uint8_t *live, const uint8_t *blocked_live, int64_t n, uint8_t *blocked) {
     int64_t m = 0;
     for (int64_t r = 0; r < n; r++) {
         uint8_t l = live[r] != 0;
-        lit[r] = l ? (uint8_t)(blocked[m] == 0) : 0;
+        blocked[r] = l ? (uint8_t)(blocked_live[m] != 0) : 0;
         m += l;
     }
 }
 
-void shade(const float *contrib, const uint8_t *lit, const float *d, const float *ext, const float *R,
-           int64_t Q, int64_t K, int64_t H, int64_t W, float *out, int64_t block_rows, int32_t nt) {
+void shade(const float *contrib, const uint8_t *live, const uint8_t *blocked, const float *d, const float *ext,
+           const float *R, int64_t Q, int64_t K, int64_t H, int64_t W, int64_t PS, float *out, int64_t block_rows,
+           int32_t nt) {
     int64_t nb = (Q + block_rows - 1) / block_rows;
 #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t b = 0; b < nb; b++) {
         int64_t i0 = b * block_rows, i1 = i0 + block_rows < Q ? i0 + block_rows : Q;
-        shade_rows(contrib, lit, d, ext, R, Q, K, H, W, out, i0, i1);
+        shade_rows(contrib, live, blocked, d, ext, R, Q, K, H, W, PS, out, i0, i1);
     }
+}
+
+/* torch's CPU generator (at::mt19937) from its state (st: the 624 words; ln: its left_, next_): n
+   uniform floats in [0, 1) exactly as torch.rand draws them ((word & (2^24 - 1)) * 2^-24), the state
+   advanced as torch advances it. The twist's loops vectorise (their reads run ahead of their writes
+   or 227 words behind them), the tempering too. */
+#define MT_N 624
+#define MT_M 397
+static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
+    return (((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u);
+}
+
+void mt_uniform(uint32_t *__restrict st, int64_t *ln, float *__restrict out, int64_t n) {
+    int64_t left = ln[0], nx = ln[1], i = 0;
+    while (i < n) {
+        if (left == 1) {  /* the draw that finds left_ at 1: next_state(), then word 0 */
+            uint32_t nw[MT_N];
+#pragma GCC ivdep
+            for (int j = 0; j < MT_N - MT_M; j++) nw[j] = st[j + MT_M] ^ mt_twist(st[j], st[j + 1]);
+            for (int j = MT_N - MT_M; j < MT_N - 1; j++) nw[j] = nw[j + MT_M - MT_N] ^ mt_twist(st[j], st[j + 1]);
+            nw[MT_N - 1] = nw[MT_M - 1] ^ mt_twist(st[MT_N - 1], nw[0]);
+            memcpy(st, nw, sizeof nw);
+            left = MT_N + 1;
+            nx = 0;
+        }
+        int64_t m = left - 1 < n - i ? left - 1 : n - i;
+        const uint32_t *w = st + nx;
+        float *o = out + i;
+        for (int64_t k = 0; k < m; k++) {
+            uint32_t y = w[k];
+            y ^= (y >> 11);
+            y ^= (y << 7) & 0x9d2c5680u;
+            y ^= (y << 15) & 0xefc60000u;
+            y ^= (y >> 18);
+            o[k] = (float)(int32_t)(y & 0xffffffu) * 5.9604644775390625e-08f;
+        }
+        i += m; left -= m; nx += m;
+    }
+    ln[0] = left; ln[1] = nx;
 }
 """
 
@@ -554,7 +608,8 @@ class _PArgs(ctypes.Structure):
                 ("cdf0", ctypes.c_void_p), ("pflat", ctypes.c_void_p), ("omega", ctypes.c_void_p),
                 ("ztab", ctypes.c_void_p), ("R", ctypes.c_void_p), ("guide", ctypes.c_void_p), ("G", ctypes.c_int64),
                 ("Q", ctypes.c_int64), ("NL", ctypes.c_int64), ("NB", ctypes.c_int64), ("C", ctypes.c_int64),
-                ("H", ctypes.c_int64), ("W", ctypes.c_int64), ("QS", ctypes.c_int64), ("eps", ctypes.c_float),
+                ("H", ctypes.c_int64), ("W", ctypes.c_int64), ("QS", ctypes.c_int64), ("PS", ctypes.c_int64),
+                ("eps", ctypes.c_float),
                 ("kind", ctypes.c_int32), ("has_spec", ctypes.c_int32),
                 ("kd", ctypes.c_double * 3), ("ks", ctypes.c_double * 3), ("ps", ctypes.c_double),
                 ("s", ctypes.c_double), ("m", ctypes.c_double), ("F0", ctypes.c_double),
@@ -564,9 +619,10 @@ class _PArgs(ctypes.Structure):
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _P, _P, _P],
-               "lit_rays": [_P, _P, _I, _P],
-               "shade": [_P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
+_MITSUBA_OCCLUDED = MitsubaVisibility.occluded
+_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _I, _P, _P, _P],
+               "expand_blocked": [_P, _P, _I, _P], "mt_uniform": [_P, _P, _P, _I],
+               "shade": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
 
 
 def _lib():
@@ -618,7 +674,8 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b
              tables: tuple, H: int, W: int, eps: float, out: tuple[Tensor, Tensor, Tensor, Tensor]) -> None:
     """The rays of Q samples of one region (material ``mat``, `supports`) into ``out`` = (contributions
     f·cos·w, live (bool), shadow-ray origins, world directions), row slices [:, a:b] of (K, QS, 3) resp.
-    (K, QS) contiguous arrays (rays slot-major), K = NL + NB, light samples first. n, wo, ng, p: (Q, 3)
+    (K, QS) contiguous arrays, origins and directions [..., a:b] of (3, K, QS) component planes
+    (`plane_views`: each plane contiguous, the tracer's input as it is) (rays slot-major), K = NL + NB, light samples first. n, wo, ng, p: (Q, 3)
     float32 contiguous; U_l (Q, NL, 2), U_b (Q, NB, 2) float32 contiguous (ignored when NL resp. NB is
     0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous. The light
     samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table)."""
@@ -642,40 +699,137 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b
     for f in ("s", "m", "F0", "ax", "ay"):
         setattr(a, f, float(getattr(mat, f, 1.0)))
     contrib, live, o, d = out
-    if not (live.stride(0) == contrib.stride(0) // 3 == o.stride(0) // 3 == d.stride(0) // 3
-            and all(x.stride()[1:] == (3, 1) for x in (contrib, o, d)) and live.stride(1) == 1):
-        raise ValueError("pretrace: outputs must be row slices of (K, QS, 3) / (K, QS) contiguous arrays")
-    a.QS = int(live.stride(0))
+    if not (all(x.dim() == 3 and x.shape[0] == 3 and x.stride()[1:] == live.stride() for x in (o, d))
+            and live.stride(1) == 1 and o.stride(0) == d.stride(0) >= live.numel()
+            and contrib.stride() == (3 * live.stride(0), 3, 1)):
+        raise ValueError("pretrace: outputs must be row slices of (K, QS, 3) / (K, QS) contiguous arrays and of "
+                         "(3, K, QS) component planes (each contiguous, the same plane stride)")
+    a.QS, a.PS = int(live.stride(0)), int(o.stride(0))
     a.contrib, a.live, a.o, a.d = _ptr(contrib), _ptr(live), _ptr(o), _ptr(d)
     lib.pretrace(ctypes.byref(a), BLOCK, _threads(Q))  # BLOCK <= MAXB
 
 
-def trace(vis, live: Tensor, o: Tensor, d: Tensor) -> tuple[Tensor, int]:
-    """The live rays (live (...) bool, origins and directions (..., 3) float32, contiguous) gathered in
-    order (C) and traced in one batch (``vis.occluded``): → (lit = live and unblocked, live rays)."""
+def plane_views(buf: Tensor, K: int, Q: int) -> Tensor:
+    """(3, K, Q) component planes on a flat float32 ``buf`` of at least `plane_numel` (K·Q) elements,
+    each plane contiguous, planes `plane_stride` apart (not a multiple of 4 KiB: planes a power of 2
+    apart — creature's 8 × 2¹⁸ rays — would map a ray's three components to one cache set)."""
+    PS = plane_stride(K * Q)
+    return buf[:3 * PS].view(3, PS)[:, :K * Q].view(3, K, Q)
+
+
+def plane_stride(n: int) -> int:
+    """Elements between the component planes of n rays (`plane_views`): n rounded up to 16 (64-byte
+    rows) plus 17 × 16 (an odd number of cache lines)."""
+    return -(-n // 16) * 16 + 17 * 16
+
+
+def _direct(vis) -> bool:
+    """Whether ``vis`` is Mitsuba's tracer (``references.visibility.MitsubaVisibility``) with its own
+    ``occluded`` (not replaced on the class or the instance, e.g. by a benchmark timing or capturing
+    it): `trace` then hands it the rays without gathering them."""
+    return (type(vis) is MitsubaVisibility and type(vis).occluded is _MITSUBA_OCCLUDED
+            and "occluded" not in vars(vis))
+
+
+def trace(vis, live: Tensor, o: Tensor, d: Tensor, blocked: Tensor) -> int:
+    """Shadow rays of live (K, Q) bool, origins and world directions (3, K, Q) float32 component planes
+    (each contiguous; `plane_views`): whether each live ray is blocked into ``blocked`` ((K, Q) bool contiguous; False where
+    not live) → the number of live rays. On Mitsuba's tracer (`_direct`) the planes are handed to
+    ``scene.ray_test`` as they are (Dr.Jit maps the arrays, no copy) with ``live`` as its active mask,
+    in chunks of the tracer's ``chunk_rays``: the rays that are not live are not traced, and Mitsuba's
+    answer for a ray depends on that ray only (``references.visibility``), so it is the answer of
+    ``occluded`` on the live rays alone. Else (embreex, an instrumented tracer) the live rays are
+    gathered in order (C) and traced in one ``vis.occluded`` call."""
     lib = _lib()
     n = live.numel()
+    m = int(torch.count_nonzero(live))
+    if not m:
+        blocked.zero_()
+        return 0
+    if _direct(vis):
+        import mitsuba as mi
+
+        lv, bo = live.view(-1).numpy(), blocked.view(-1).numpy()
+        op = [o[c].reshape(-1).numpy() for c in range(3)]
+        dp = [d[c].reshape(-1).numpy() for c in range(3)]
+        for a in range(0, n, vis.chunk_rays):
+            b = min(n, a + vis.chunk_rays)
+            ray = mi.Ray3f(mi.Point3f(*(mi.Float(x[a:b]) for x in op)), mi.Vector3f(*(mi.Float(x[a:b]) for x in dp)))
+            bo[a:b] = vis._scene.ray_test(ray, mi.Bool(lv[a:b])).numpy()
+        return m
     oc, dc = torch.empty(n, 3), torch.empty(n, 3)
     cnt = torch.zeros(1, dtype=torch.int64)
-    lib.compact(_ptr(live), _ptr(o), _ptr(d), n, _ptr(oc), _ptr(dc), _ptr(cnt))
-    m = int(cnt[0])
-    if not m:
-        return torch.zeros_like(live), 0
-    blocked = torch.as_tensor(vis.occluded(oc[:m], dc[:m])).to(torch.bool).contiguous()
-    if blocked.shape != (m,):
-        raise ValueError(f"occluded returned {tuple(blocked.shape)} for {m} rays")
-    lit = torch.empty_like(live)
-    lib.lit_rays(_ptr(live), _ptr(blocked), n, _ptr(lit))
-    return lit, m
+    lib.compact(_ptr(live), _ptr(o), _ptr(d), n, int(o.stride(0)), _ptr(oc), _ptr(dc), _ptr(cnt))
+    assert int(cnt[0]) == m
+    bl = torch.as_tensor(vis.occluded(oc[:m], dc[:m])).to(torch.bool).contiguous()
+    if bl.shape != (m,):
+        raise ValueError(f"occluded returned {tuple(bl.shape)} for {m} rays")
+    lib.expand_blocked(_ptr(live), _ptr(bl), n, _ptr(blocked))
+    return m
 
 
-def shade(contrib: Tensor, lit: Tensor, d: Tensor, ext: Tensor, R32: Tensor, H: int, W: int) -> Tensor:
-    """Σ_k contribution · radiance over the lit rays (``methods.oracle._shade_stage``): contributions
-    and world directions (Q, K, 3) float32, lit (Q, K) bool, all contiguous; ext the periodic-extended
-    texels (H·(W + 1), 3), R32 (3, 3) float32 → (Q, 3)."""
-    K, Q = int(contrib.shape[0]), int(contrib.shape[1])
+def shade(contrib: Tensor, live: Tensor, blocked: Tensor, d: Tensor, ext: Tensor, R32: Tensor, H: int,
+          W: int) -> Tensor:
+    """Σ_k contribution · radiance over the lit rays, live and not blocked (``methods.oracle._shade_stage``):
+    contributions (K, Q, 3) float32 contiguous, world directions (3, K, Q) float32 component planes (each
+    contiguous), live and blocked (K, Q) bool contiguous; ext the periodic-extended texels (H·(W + 1), 3), R32 (3, 3) float32 → (Q, 3)."""
+    K, Q = int(live.shape[0]), int(live.shape[1])
     out = torch.empty(Q, 3, dtype=torch.float32)
     if Q:
-        _lib().shade(_ptr(contrib), _ptr(lit), _ptr(d), _ptr(ext), _ptr(R32), Q, K, H, W, _ptr(out), BLOCK,
-                     _threads(Q))
+        _lib().shade(_ptr(contrib), _ptr(live), _ptr(blocked), _ptr(d), _ptr(ext), _ptr(R32), Q, K, H, W,
+                     int(d.stride(0)), _ptr(out), BLOCK, _threads(Q))
     return out
+
+
+# torch's CPU generator state (``torch.Generator.get_state``, at::CPUGeneratorImplState): the legacy POD's
+# initial seed (uint64), left_ (int32), seeded (int32), next_ (uint64), the 624 words (as uint64), ...
+_STATE_BYTES, _LEFT, _NEXT, _WORDS = 5056, 8, 16, 24
+_MT_CHECKED: list = []  # [True / False] once checked in this process (with the C loops built)
+
+
+def _draw(gen: torch.Generator, outs: list) -> None:
+    """Each of ``outs`` (float32 contiguous CPU tensors) filled in turn by the C generator `mt_uniform`
+    from ``gen``'s state, which is then advanced (set) as the draws advanced it."""
+    s = gen.get_state()
+    a = s.numpy()
+    ln = torch.tensor([int(a[_LEFT:_LEFT + 4].view("<i4")[0]), int(a[_NEXT:_NEXT + 8].view("<u8")[0])],
+                      dtype=torch.int64)
+    st = torch.from_numpy(a[_WORDS:_WORDS + 8 * 624].view("<u8").astype("<u4"))
+    lib = _lib()
+    for x in outs:
+        lib.mt_uniform(_ptr(st), _ptr(ln), _ptr(x), x.numel())
+    a[_WORDS:_WORDS + 8 * 624].view("<u8")[:] = st.numpy()
+    a[_LEFT:_LEFT + 4].view("<i4")[0] = int(ln[0])
+    a[_NEXT:_NEXT + 8].view("<u8")[0] = int(ln[1])
+    gen.set_state(s)
+
+
+def _mt_ok() -> bool:
+    """Whether `_draw` reproduces ``torch.rand`` on this torch (its generator's state layout), checked
+    once per process on 3 000 numbers across two twists: the numbers and the state after them."""
+    if not _MT_CHECKED:
+        ok = False
+        g = torch.Generator().manual_seed(20261206)
+        if g.get_state().numel() == _STATE_BYTES:
+            torch.rand(5, generator=g)
+            h = torch.Generator()
+            h.set_state(g.get_state())
+            outs = [torch.empty(7), torch.empty(1300), torch.empty(1693)]
+            _draw(g, outs)
+            want = torch.rand(3000, generator=h)
+            ok = torch.equal(torch.cat(outs), want) and torch.equal(g.get_state(), h.get_state())
+        _MT_CHECKED.append(ok)
+    return _MT_CHECKED[0]
+
+
+def uniform(gen: torch.Generator, outs: list) -> bool:
+    """``torch.rand(x.shape, generator=gen, out=x)`` for each x of ``outs`` in turn (float32 contiguous CPU
+    tensors), by the C generator (~4 ns a number in torch's serial kernel, a fraction of it here): the
+    same numbers, ``gen`` left in the same state. False (nothing drawn) where it does not run: no C
+    loops, a generator other than the CPU one, or a torch whose generator state it does not know."""
+    if _lib() is None or gen.device.type != "cpu" or not _mt_ok():
+        return False
+    if not all(x.dtype == torch.float32 and x.device.type == "cpu" and x.is_contiguous() for x in outs):
+        return False
+    _draw(gen, outs)
+    return True

@@ -277,3 +277,88 @@ def test_oracle_native_equals_reference_and_compiled(mats, monkeypatch):
             assert (img - comp).abs().max().item() <= 1e-4 * scale, cfg
         monkeypatch.undo()
         monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+
+
+def test_oracle_native_trace_direct_equals_gathered(monkeypatch):
+    """`native_rays.trace` on Mitsuba's tracer hands the component planes to ``ray_test`` with ``live`` as
+    its active mask (chunks of the tracer's ``chunk_rays``, here small so that a frame takes several):
+    the same blocked flags, live ray for live ray, as the live rays gathered and traced by ``occluded``
+    (the fallback, forced by an instance-level ``occluded``), and the same image and live count."""
+    import methods.oracle.native_rays as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    scene = get_scene("chess", "test")
+    frame = make_sequence(scene, "VBL", n_frames=2, seed=0)[1]
+    gb = make_gbuffer(scene, frame, 1)
+    o = get_method("oracle")(light_samples=3, brdf_samples=2, seed=11)
+    o.precompute(scene)
+    o.render(frame, gb)  # builds the tracer
+    vis = o._vis[1]
+    if not on._direct(vis):
+        pytest.skip(f"the tracer is {vis.backend}: no direct hand-off to Mitsuba")
+    monkeypatch.setattr(vis, "chunk_rays", 1000)
+    seen, real = [], on.trace
+
+    def keep(vis_, live, org, dirs, blocked):
+        m = real(vis_, live, org, dirs, blocked)
+        seen.append((on._direct(vis_), live.clone(), org.clone(), dirs.clone(), blocked.clone(), m))
+        return m
+
+    monkeypatch.setattr(on, "trace", keep)
+    img = o.render(frame, gb)
+    last = o._last
+    real_occluded = vis.occluded
+    monkeypatch.setattr(vis, "occluded", lambda *a, **k: real_occluded(*a, **k))  # the gathering fallback
+    img2 = o.render(frame, gb)
+    assert [s[0] for s in seen] == [True, False]
+    (_, live, org, dirs, b1, m1), (_, live2, org2, dirs2, b2, m2) = seen
+    assert torch.equal(live, live2) and torch.equal(org, org2) and torch.equal(dirs, dirs2)
+    assert m1 == m2 == int(live.sum()) > live.numel() // 2
+    assert int(live.sum()) > 3 * vis.chunk_rays
+    assert torch.equal(b1 & live, b2) and bool(b2.any()) and bool((live & ~b2).any())
+    assert torch.equal(img, img2) and o._last == last
+
+
+def test_oracle_work_arrays_reused_across_frames():
+    """The work arrays (`Oracle._work`) kept between frames change no image: a frame rendered after
+    frames of another G-buffer size equals the same frame rendered by a fresh oracle (three regions,
+    batches smaller than a region); ``memory()`` reports them."""
+    scene = get_scene("chess", "test")
+    frames = make_sequence(scene, "VBL", n_frames=3, seed=0)
+    gbs = [make_gbuffer(scene, frames[0], 1), make_gbuffer(scene, frames[1], 2), make_gbuffer(scene, frames[2], 1)]
+    cfg = dict(light_samples=3, brdf_samples=2, seed=2, max_rays_per_batch=1 << 12)
+    a = get_method("oracle")(**cfg)
+    a.precompute(scene)
+    for f, g in zip(frames, gbs):
+        a.render(f, g)
+    assert sum(a.memory().values()) > 0
+    kept = {k: v.data_ptr() for k, v in a._scratch.items()}
+    again = a.render(frames[0], gbs[0])  # the size of the last frame's G-buffer: its arrays reused
+    assert {k: v.data_ptr() for k, v in a._scratch.items()} == kept
+    b = get_method("oracle")(**cfg)
+    b.precompute(scene)
+    assert torch.equal(again, b.render(frames[0], gbs[0]))
+
+
+def test_oracle_c_generator_equals_torch_rand(monkeypatch):
+    """`native_rays.uniform` (the C generator, from and back to the torch generator's state) = ``torch.rand``
+    into the same arrays in turn: the same numbers bit for bit, across twists of the state (624 words)
+    and from a state part-way through one, and the generator left in the same state (later torch draws
+    equal)."""
+    import methods.oracle.native_rays as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    for seed, skip, shapes in ((0, 0, [(5, 4, 2), (700, 3, 2), (1, 1, 2)]), (17, 611, [(1000, 4, 2), (20000,)]),
+                               (3, 623, [(1,), (624,), (625,), (3, 2)])):
+        g, h = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+        torch.rand(skip, generator=g), torch.rand(skip, generator=h)
+        outs = [torch.empty(s) for s in shapes]
+        assert on.uniform(g, outs)
+        for x, s in zip(outs, shapes):
+            assert torch.equal(x, torch.rand(s, generator=h)), (seed, s)
+        assert torch.equal(g.get_state(), h.get_state())
+        assert torch.equal(torch.rand(50, generator=g), torch.rand(50, generator=h))
