@@ -48,6 +48,101 @@ from methods.triple_product import native as tp_native
 
 __all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "project"]
 
+_TAP_BODY = r"""
+/* TAP_BODY: `tap` for NV vectors of samples at once (vector k in the frame of mk[k]), written out over
+   the ISA's macros (VF / VI / VM float, int32 and mask vectors, V* / I* their operations; defined
+   before each copy, undefined after it) — one body, compiled as tap4x8 (AVX2, 4 × 8 samples) and as
+   ztap (AVX-512, NZ pairs of 16 samples): GCC's vectorised tap evaluated the acos polynomial twice
+   and the atan one three times (once per if-converted branch). The same float32 operations one for
+   one as `tap`, each select a blend of both sides with the scalar compare's semantics (max(x, y) is
+   x > y ? x : y, min(x, y) x < y ? x : y, ordered non-signalling compares: NaN false). Statement by
+   statement over the NV vectors: NV independent chains in flight (AVX2: one pair's two at a time
+   measured 1.13x slower, eight spilled; AVX-512: four 16-lane chains in 32 registers). */
+static inline void TAP_FN(const VF* cx, const VF* cy, const VF* cz, const float* const* mk,
+                          VF H1, VF Wf, VF hw, VI H2, VI W1, VI Wp, VI* idx, VF* fx, VF* fy) {
+    const VF sign = VSET(-0.0f), one = VSET(1.0f), zero = VZERO();
+    VF d0[NV], d1[NV], d2[NV], yv[NV], a[NV], z[NV], s[NV], q[NV], p[NV], r[NV], v[NV];
+    VF xx[NV], ax[NV], ay[NV], mn[NV], mx[NV], num[NV], den[NV], t[NV], tz[NV], pq[NV], ra[NV], u[NV], x[NV], y[NV];
+    VM big[NV], c[NV];
+    VI ix[NV], iy[NV];
+#define KV for (int k = 0; k < NV; ++k)
+    KV d0[k] = VADD(VADD(VMUL(cx[k], VSET(mk[k][0])), VMUL(cy[k], VSET(mk[k][3]))), VMUL(cz[k], VSET(mk[k][6])));
+    KV d1[k] = VADD(VADD(VMUL(cx[k], VSET(mk[k][1])), VMUL(cy[k], VSET(mk[k][4]))), VMUL(cz[k], VSET(mk[k][7])));
+    KV d2[k] = VADD(VADD(VMUL(cx[k], VSET(mk[k][2])), VMUL(cy[k], VSET(mk[k][5]))), VMUL(cz[k], VSET(mk[k][8])));
+    /* acos_f32 of clamp(d1, -1, 1) / pi */
+    KV yv[k] = VMIN(VMAX(d1[k], VSET(-1.0f)), one);
+    KV a[k] = VANDN(sign, yv[k]);
+    KV big[k] = VGT(a[k], VSET(0.5f));
+    KV z[k] = VSEL(big[k], VSUB(VSET(0.5f), VMUL(a[k], VSET(0.5f))), VMUL(a[k], a[k]));
+    KV s[k] = VSEL(big[k], VSQRT(z[k]), a[k]);
+    KV q[k] = VMUL(VADD(VMUL(VADD(VMUL(VADD(VMUL(VADD(VMUL(z[k], VSET(0.042163199048)), VSET(0.024181311049)), z[k]),
+                                         VSET(0.045470025998)), z[k]), VSET(0.074953002686)), z[k]),
+                       VSET(0.16666752422)), z[k]);
+    KV p[k] = VADD(VMUL(q[k], s[k]), s[k]);
+    KV r[k] = VSEL(big[k], VMUL(p[k], VSET(2.0f)), VSUB(VSET(1.5707963267948966), p[k]));
+    KV r[k] = VSEL(VLT(yv[k], zero), VSUB(VSET(3.141592653589793), r[k]), r[k]);
+    KV v[k] = VMUL(r[k], VSET(0.3183098861837907));
+    /* atan2_f32(d0, -d2) / 2 pi */
+    KV xx[k] = VXOR(d2[k], sign);
+    KV ax[k] = VANDN(sign, xx[k]);
+    KV ay[k] = VANDN(sign, d0[k]);
+    KV mn[k] = VMIN(ax[k], ay[k]);
+    KV mx[k] = VMAX(ax[k], ay[k]);
+    KV c[k] = VGT(mn[k], VMUL(mx[k], VSET(0.41421356237309503)));
+    KV num[k] = VSEL(c[k], VSUB(mn[k], mx[k]), mn[k]);
+    KV den[k] = VSEL(c[k], VADD(mn[k], mx[k]), mx[k]);
+    KV den[k] = VSEL(VGT(den[k], zero), den[k], one);
+    KV t[k] = VDIV(num[k], den[k]);
+    KV tz[k] = VMUL(t[k], t[k]);
+    KV pq[k] = VADD(VMUL(VMUL(VSUB(VMUL(VADD(VMUL(VSUB(VMUL(tz[k], VSET(0.0805374449538)), VSET(0.138776856032)), tz[k]),
+                                          VSET(0.199777106478)), tz[k]), VSET(0.333329491539)), tz[k]), t[k]), t[k]);
+    KV ra[k] = VSEL(c[k], VADD(pq[k], VSET(0.7853981633974483)), pq[k]);
+    KV ra[k] = VSEL(VGT(ay[k], ax[k]), VSUB(VSET(1.5707963267948966), ra[k]), ra[k]);
+    KV ra[k] = VSEL(VLT(xx[k], zero), VSUB(VSET(3.141592653589793), ra[k]), ra[k]);
+    KV ra[k] = VSEL(VLT(d0[k], zero), VXOR(ra[k], sign), ra[k]);
+    KV u[k] = VSUB(VMUL(ra[k], VSET(0.15915494309189535)), hw);
+    /* quad_taps */
+    KV u[k] = VSUB(u[k], VFLOOR(u[k]));
+    KV v[k] = VSUB(v[k], VFLOOR(v[k]));
+    KV x[k] = VMUL(u[k], Wf);
+    KV y[k] = VMUL(v[k], H1);
+    KV ix[k] = IMIN(IMAX(ITRUNC(x[k]), IZERO()), W1);
+    KV iy[k] = IMIN(IMAX(ITRUNC(y[k]), IZERO()), H2);
+    KV idx[k] = IADD(IMUL(iy[k], Wp), ix[k]);
+    KV fx[k] = VSUB(x[k], IFLOAT(ix[k]));
+    KV fy[k] = VSUB(y[k], IFLOAT(iy[k]));
+#undef KV
+}
+#undef VF
+#undef VI
+#undef VM
+#undef NV
+#undef TAP_FN
+#undef VSET
+#undef VMUL
+#undef VADD
+#undef VSUB
+#undef VDIV
+#undef VSQRT
+#undef VMIN
+#undef VMAX
+#undef VANDN
+#undef VXOR
+#undef VFLOOR
+#undef VZERO
+#undef VSEL
+#undef VLT
+#undef VGT
+#undef IZERO
+#undef IMIN
+#undef IMAX
+#undef IMUL
+#undef IADD
+#undef ITRUNC
+#undef IFLOAT
+"""
+
+
 _SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
@@ -168,70 +263,37 @@ static inline void pair_means(const float* m, int64_t tr, int64_t n, int64_t S, 
 
 #define SET(x) _mm256_set1_ps((float)(x))
 #define MUL _mm256_mul_ps
-#define ADD _mm256_add_ps
 #define SUB _mm256_sub_ps
-#define SEL(c, a, b) _mm256_blendv_ps((b), (a), (c))           /* c ? a : b */
-#define K4 for (int k = 0; k < 4; ++k)
 
-/* tap for 4 × 8 samples (AVX2; vector k in the frame of mk[k]), written out: GCC's vectorised tap
-   evaluated the acos polynomial twice and the atan one three times (once per if-converted branch).
-   The same float32 operations one for one, each select a blend of both sides with the scalar
-   compare's semantics (_mm256_max_ps(x, y) is x > y ? x : y, _mm256_min_ps(x, y) x < y ? x : y,
-   ordered non-signalling compares: NaN false). Statement by statement over the 4 vectors: four
-   independent chains in flight (one pair's two at a time measured 1.13x slower, eight spilled). */
-static inline void tap4x8(const __m256* cx, const __m256* cy, const __m256* cz, const float* const* mk,
-                          __m256 H1, __m256 Wf, __m256 hw, __m256i H2, __m256i W1, __m256i Wp,
-                          __m256i* idx, __m256* fx, __m256* fy) {
-    const __m256 sign = SET(-0.0f), one = SET(1.0f), zero = _mm256_setzero_ps();
-    __m256 d0[4], d1[4], d2[4], yv[4], a[4], big[4], z[4], s[4], q[4], p[4], r[4], v[4];
-    __m256 xx[4], ax[4], ay[4], mn[4], mx[4], c[4], num[4], den[4], t[4], tz[4], pq[4], ra[4], u[4], x[4], y[4];
-    __m256i ix[4], iy[4];
-    K4 d0[k] = ADD(ADD(MUL(cx[k], SET(mk[k][0])), MUL(cy[k], SET(mk[k][3]))), MUL(cz[k], SET(mk[k][6])));
-    K4 d1[k] = ADD(ADD(MUL(cx[k], SET(mk[k][1])), MUL(cy[k], SET(mk[k][4]))), MUL(cz[k], SET(mk[k][7])));
-    K4 d2[k] = ADD(ADD(MUL(cx[k], SET(mk[k][2])), MUL(cy[k], SET(mk[k][5]))), MUL(cz[k], SET(mk[k][8])));
-    /* acos_f32 of clamp(d1, -1, 1) / pi */
-    K4 yv[k] = _mm256_min_ps(_mm256_max_ps(d1[k], SET(-1.0f)), one);
-    K4 a[k] = _mm256_andnot_ps(sign, yv[k]);
-    K4 big[k] = _mm256_cmp_ps(a[k], SET(0.5f), _CMP_GT_OQ);
-    K4 z[k] = SEL(big[k], SUB(SET(0.5f), MUL(a[k], SET(0.5f))), MUL(a[k], a[k]));
-    K4 s[k] = SEL(big[k], _mm256_sqrt_ps(z[k]), a[k]);
-    K4 q[k] = MUL(ADD(MUL(ADD(MUL(ADD(MUL(ADD(MUL(z[k], SET(0.042163199048)), SET(0.024181311049)), z[k]),
-                                        SET(0.045470025998)), z[k]), SET(0.074953002686)), z[k]),
-                      SET(0.16666752422)), z[k]);
-    K4 p[k] = ADD(MUL(q[k], s[k]), s[k]);
-    K4 r[k] = SEL(big[k], MUL(p[k], SET(2.0f)), SUB(SET(1.5707963267948966), p[k]));
-    K4 r[k] = SEL(_mm256_cmp_ps(yv[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), r[k]), r[k]);
-    K4 v[k] = MUL(r[k], SET(0.3183098861837907));
-    /* atan2_f32(d0, -d2) / 2 pi */
-    K4 xx[k] = _mm256_xor_ps(d2[k], sign);
-    K4 ax[k] = _mm256_andnot_ps(sign, xx[k]);
-    K4 ay[k] = _mm256_andnot_ps(sign, d0[k]);
-    K4 mn[k] = _mm256_min_ps(ax[k], ay[k]);
-    K4 mx[k] = _mm256_max_ps(ax[k], ay[k]);
-    K4 c[k] = _mm256_cmp_ps(mn[k], MUL(mx[k], SET(0.41421356237309503)), _CMP_GT_OQ);
-    K4 num[k] = SEL(c[k], SUB(mn[k], mx[k]), mn[k]);
-    K4 den[k] = SEL(c[k], ADD(mn[k], mx[k]), mx[k]);
-    K4 den[k] = SEL(_mm256_cmp_ps(den[k], zero, _CMP_GT_OQ), den[k], one);
-    K4 t[k] = _mm256_div_ps(num[k], den[k]);
-    K4 tz[k] = MUL(t[k], t[k]);
-    K4 pq[k] = ADD(MUL(MUL(SUB(MUL(ADD(MUL(SUB(MUL(tz[k], SET(0.0805374449538)), SET(0.138776856032)), tz[k]),
-                                         SET(0.199777106478)), tz[k]), SET(0.333329491539)), tz[k]), t[k]), t[k]);
-    K4 ra[k] = SEL(c[k], ADD(pq[k], SET(0.7853981633974483)), pq[k]);
-    K4 ra[k] = SEL(_mm256_cmp_ps(ay[k], ax[k], _CMP_GT_OQ), SUB(SET(1.5707963267948966), ra[k]), ra[k]);
-    K4 ra[k] = SEL(_mm256_cmp_ps(xx[k], zero, _CMP_LT_OQ), SUB(SET(3.141592653589793), ra[k]), ra[k]);
-    K4 ra[k] = SEL(_mm256_cmp_ps(d0[k], zero, _CMP_LT_OQ), _mm256_xor_ps(ra[k], sign), ra[k]);
-    K4 u[k] = SUB(MUL(ra[k], SET(0.15915494309189535)), hw);
-    /* quad_taps */
-    K4 u[k] = SUB(u[k], _mm256_floor_ps(u[k]));
-    K4 v[k] = SUB(v[k], _mm256_floor_ps(v[k]));
-    K4 x[k] = MUL(u[k], Wf);
-    K4 y[k] = MUL(v[k], H1);
-    K4 ix[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(x[k]), _mm256_setzero_si256()), W1);
-    K4 iy[k] = _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(y[k]), _mm256_setzero_si256()), H2);
-    K4 idx[k] = _mm256_add_epi32(_mm256_mullo_epi32(iy[k], Wp), ix[k]);
-    K4 fx[k] = SUB(x[k], _mm256_cvtepi32_ps(ix[k]));
-    K4 fy[k] = SUB(y[k], _mm256_cvtepi32_ps(iy[k]));
-}
+/* tap for 4 × 8 samples (AVX2; vector k in the frame of mk[k]): TAP_BODY (below) over these macros */
+#define VF __m256
+#define VI __m256i
+#define VM __m256                                              /* a compare's result: a lane mask */
+#define NV 4
+#define TAP_FN tap4x8
+#define VSET(x) _mm256_set1_ps((float)(x))
+#define VMUL _mm256_mul_ps
+#define VADD _mm256_add_ps
+#define VSUB _mm256_sub_ps
+#define VDIV _mm256_div_ps
+#define VSQRT _mm256_sqrt_ps
+#define VMIN _mm256_min_ps
+#define VMAX _mm256_max_ps
+#define VANDN _mm256_andnot_ps
+#define VXOR _mm256_xor_ps
+#define VFLOOR(x) _mm256_floor_ps(x)
+#define VZERO _mm256_setzero_ps
+#define VSEL(c, a, b) _mm256_blendv_ps((b), (a), (c))          /* c ? a : b */
+#define VLT(a, b) _mm256_cmp_ps((a), (b), _CMP_LT_OQ)
+#define VGT(a, b) _mm256_cmp_ps((a), (b), _CMP_GT_OQ)
+#define IZERO _mm256_setzero_si256
+#define IMIN _mm256_min_epi32
+#define IMAX _mm256_max_epi32
+#define IMUL _mm256_mullo_epi32
+#define IADD _mm256_add_epi32
+#define ITRUNC _mm256_cvttps_epi32
+#define IFLOAT _mm256_cvtepi32_ps
+@TAP_BODY@
 
 /* pair_means' sums for S = 16 from its taps (samples 0-7: iA, fxA, fyA; 8-15: iB, fxB, fyB), the
    same operations in registers: the weights 4 × 8 transposed to {w of sample s, w of sample s + 8}
@@ -302,10 +364,7 @@ static inline void pairs16x2(const float* m0, const float* m1, int64_t t0, int64
 }
 #undef SET
 #undef MUL
-#undef ADD
 #undef SUB
-#undef SEL
-#undef K4
 #define HAVE_PAIR16 1
 #endif
 
@@ -320,66 +379,39 @@ static inline void pairs16x2(const float* m0, const float* m1, int64_t t0, int64
 #define ZMUL _mm512_mul_ps
 #define ZADD _mm512_add_ps
 #define ZSUB _mm512_sub_ps
-#define ZSEL(c, a, b) _mm512_mask_blend_ps((c), (b), (a))      /* c ? a : b */
-#define ZLT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_LT_OQ)
-#define ZGT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_GT_OQ)
-#define KZ for (int k = 0; k < NZ; ++k)
 #define NZ 4                                                   /* pairs at once */
 
 /* tap4x8 with one pair's 16 samples in a 16-lane vector, NZ pairs at once (pair k in the frame of
-   mk[k]): the same float32 operations one for one (AVX-512 min / max / compares / blends with the
-   scalar code's semantics, as tap4x8's) */
-static inline void ztap(const __m512* cx, const __m512* cy, const __m512* cz, const float* const* mk,
-                        __m512 H1, __m512 Wf, __m512 hw, __m512i H2, __m512i W1, __m512i Wp,
-                        __m512i* idx, __m512* fx, __m512* fy) {
-    const __m512 sign = ZS(-0.0f), one = ZS(1.0f), zero = _mm512_setzero_ps();
-    __m512 d0[NZ], d1[NZ], d2[NZ], yv[NZ], a[NZ], z[NZ], s[NZ], q[NZ], p[NZ], r[NZ], v[NZ];
-    __m512 xx[NZ], ax[NZ], ay[NZ], mn[NZ], mx[NZ], num[NZ], den[NZ], t[NZ], tz[NZ], pq[NZ], ra[NZ], u[NZ], x[NZ], y[NZ];
-    __mmask16 big[NZ], c[NZ];
-    __m512i ix[NZ], iy[NZ];
-    KZ d0[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][0])), ZMUL(cy[k], ZS(mk[k][3]))), ZMUL(cz[k], ZS(mk[k][6])));
-    KZ d1[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][1])), ZMUL(cy[k], ZS(mk[k][4]))), ZMUL(cz[k], ZS(mk[k][7])));
-    KZ d2[k] = ZADD(ZADD(ZMUL(cx[k], ZS(mk[k][2])), ZMUL(cy[k], ZS(mk[k][5]))), ZMUL(cz[k], ZS(mk[k][8])));
-    KZ yv[k] = _mm512_min_ps(_mm512_max_ps(d1[k], ZS(-1.0f)), one);
-    KZ a[k] = _mm512_andnot_ps(sign, yv[k]);
-    KZ big[k] = ZGT(a[k], ZS(0.5f));
-    KZ z[k] = ZSEL(big[k], ZSUB(ZS(0.5f), ZMUL(a[k], ZS(0.5f))), ZMUL(a[k], a[k]));
-    KZ s[k] = ZSEL(big[k], _mm512_sqrt_ps(z[k]), a[k]);
-    KZ q[k] = ZMUL(ZADD(ZMUL(ZADD(ZMUL(ZADD(ZMUL(ZADD(ZMUL(z[k], ZS(0.042163199048)), ZS(0.024181311049)), z[k]),
-                                         ZS(0.045470025998)), z[k]), ZS(0.074953002686)), z[k]),
-                       ZS(0.16666752422)), z[k]);
-    KZ p[k] = ZADD(ZMUL(q[k], s[k]), s[k]);
-    KZ r[k] = ZSEL(big[k], ZMUL(p[k], ZS(2.0f)), ZSUB(ZS(1.5707963267948966), p[k]));
-    KZ r[k] = ZSEL(ZLT(yv[k], zero), ZSUB(ZS(3.141592653589793), r[k]), r[k]);
-    KZ v[k] = ZMUL(r[k], ZS(0.3183098861837907));
-    KZ xx[k] = _mm512_xor_ps(d2[k], sign);
-    KZ ax[k] = _mm512_andnot_ps(sign, xx[k]);
-    KZ ay[k] = _mm512_andnot_ps(sign, d0[k]);
-    KZ mn[k] = _mm512_min_ps(ax[k], ay[k]);
-    KZ mx[k] = _mm512_max_ps(ax[k], ay[k]);
-    KZ c[k] = ZGT(mn[k], ZMUL(mx[k], ZS(0.41421356237309503)));
-    KZ num[k] = ZSEL(c[k], ZSUB(mn[k], mx[k]), mn[k]);
-    KZ den[k] = ZSEL(c[k], ZADD(mn[k], mx[k]), mx[k]);
-    KZ den[k] = ZSEL(ZGT(den[k], zero), den[k], one);
-    KZ t[k] = _mm512_div_ps(num[k], den[k]);
-    KZ tz[k] = ZMUL(t[k], t[k]);
-    KZ pq[k] = ZADD(ZMUL(ZMUL(ZSUB(ZMUL(ZADD(ZMUL(ZSUB(ZMUL(tz[k], ZS(0.0805374449538)), ZS(0.138776856032)), tz[k]),
-                                          ZS(0.199777106478)), tz[k]), ZS(0.333329491539)), tz[k]), t[k]), t[k]);
-    KZ ra[k] = ZSEL(c[k], ZADD(pq[k], ZS(0.7853981633974483)), pq[k]);
-    KZ ra[k] = ZSEL(ZGT(ay[k], ax[k]), ZSUB(ZS(1.5707963267948966), ra[k]), ra[k]);
-    KZ ra[k] = ZSEL(ZLT(xx[k], zero), ZSUB(ZS(3.141592653589793), ra[k]), ra[k]);
-    KZ ra[k] = ZSEL(ZLT(d0[k], zero), _mm512_xor_ps(ra[k], sign), ra[k]);
-    KZ u[k] = ZSUB(ZMUL(ra[k], ZS(0.15915494309189535)), hw);
-    KZ u[k] = ZSUB(u[k], _mm512_roundscale_ps(u[k], _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
-    KZ v[k] = ZSUB(v[k], _mm512_roundscale_ps(v[k], _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
-    KZ x[k] = ZMUL(u[k], Wf);
-    KZ y[k] = ZMUL(v[k], H1);
-    KZ ix[k] = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(x[k]), _mm512_setzero_si512()), W1);
-    KZ iy[k] = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(y[k]), _mm512_setzero_si512()), H2);
-    KZ idx[k] = _mm512_add_epi32(_mm512_mullo_epi32(iy[k], Wp), ix[k]);
-    KZ fx[k] = ZSUB(x[k], _mm512_cvtepi32_ps(ix[k]));
-    KZ fy[k] = ZSUB(y[k], _mm512_cvtepi32_ps(iy[k]));
-}
+   mk[k]): TAP_BODY (below) over these macros — AVX-512 min / max / compares / blends with the scalar
+   code's semantics, as tap4x8's */
+#define VF __m512
+#define VI __m512i
+#define VM __mmask16                                           /* a compare's result: a lane mask */
+#define NV NZ
+#define TAP_FN ztap
+#define VSET(x) _mm512_set1_ps((float)(x))
+#define VMUL _mm512_mul_ps
+#define VADD _mm512_add_ps
+#define VSUB _mm512_sub_ps
+#define VDIV _mm512_div_ps
+#define VSQRT _mm512_sqrt_ps
+#define VMIN _mm512_min_ps
+#define VMAX _mm512_max_ps
+#define VANDN _mm512_andnot_ps
+#define VXOR _mm512_xor_ps
+#define VFLOOR(x) _mm512_roundscale_ps((x), _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC)
+#define VZERO _mm512_setzero_ps
+#define VSEL(c, a, b) _mm512_mask_blend_ps((c), (b), (a))      /* c ? a : b */
+#define VLT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_LT_OQ)
+#define VGT(a, b) _mm512_cmp_ps_mask((a), (b), _CMP_GT_OQ)
+#define IZERO _mm512_setzero_si512
+#define IMIN _mm512_min_epi32
+#define IMAX _mm512_max_epi32
+#define IMUL _mm512_mullo_epi32
+#define IADD _mm512_add_epi32
+#define ITRUNC _mm512_cvttps_epi32
+#define IFLOAT _mm512_cvtepi32_ps
+@TAP_BODY@
 
 /* pair_means' sums for one pair (S = 16) from its 16-lane taps: the weights transposed to one
    {w0 w1 w2 w3} per 128-bit lane (lane k of X[j]: sample 4 k + j), each sample's weights broadcast
@@ -441,10 +473,6 @@ static void zproject16(int64_t np, const int64_t* pairs, int64_t n, const float*
 #undef ZMUL
 #undef ZADD
 #undef ZSUB
-#undef ZSEL
-#undef ZLT
-#undef ZGT
-#undef KZ
 #define HAVE_PAIR16Z 1
 #endif
 
@@ -713,6 +741,7 @@ void tp_comb_scatter(int64_t B, int64_t n, int64_t J, const float* means, const 
         }
 }
 """
+_SOURCE = _SOURCE.replace("@TAP_BODY@", _TAP_BODY.strip("\n"))  # the one tap body, twice
 
 
 @functools.lru_cache(maxsize=None)

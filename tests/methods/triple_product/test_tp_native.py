@@ -111,6 +111,29 @@ def test_points_equal_fine_block(n):
 
 
 @pytest.mark.parametrize("n", [45, 64])
+def test_groups_four_rows_agree(n):
+    """`tp_groups` (on a CPU with AVX-512: all four L rows per pass over the chunks, `chunk_sums4`)
+    writes the bits of `tp_groups2` (two L rows per pass, the loop it replaces): the same products
+    in the same order per sum; with tails (n not a multiple of 8) and groups repeating a row."""
+    lib = native._lib()
+    gen = torch.Generator().manual_seed(4)
+    Vt, Rt, Lt = _tables(n, gen)
+    ptr, starts, tail = native.chunks(Vt)
+    G = 48
+    gv = torch.arange(G) % Vt.shape[0]
+    gb, gl = torch.randint(0, 7, (G, 4), generator=gen), torch.randint(0, 9, (G, 4), generator=gen)
+    gl[:5, 1] = gl[:5, 0]
+    out = {}
+    for name in ("tp_groups", "tp_groups2"):
+        o = torch.full((G, 48), float("nan"))
+        getattr(lib, name)(G, n, Vt.data_ptr(), gv.data_ptr(), Rt.data_ptr(), gb.data_ptr(), Lt.data_ptr(),
+                           gl.data_ptr(), ptr.data_ptr(), starts.data_ptr(), tail.data_ptr(), o.data_ptr())
+        out[name] = o
+    assert torch.equal(out["tp_groups"], out["tp_groups2"])
+    assert torch.equal(native.groups(Vt, Rt, Lt, gv, gl, gb, (ptr, starts, tail)), out["tp_groups2"])
+
+
+@pytest.mark.parametrize("n", [45, 64])
 def test_groups_equal_group_block(n):
     """`native.groups` = `fast_eval.group_block` (one visibility row per group) to float32 round-off,
     and `fast_eval.fine_grouped` with the chunk lists = `fast_eval.fine_kernel`."""
