@@ -90,6 +90,14 @@ ROWS_PER_PROJECT_PART = 64    # map rows a part (each part one thread's)
 MAX_PROJECT_PARTS = 4         # (the parts are fixed by the map's size, not by the thread count)
 
 
+def row_parts(H: int) -> tuple[int, int]:
+    """(parts, threads) of a projection of an H-row map: the parts fixed by H alone (their sums in order
+    give the same bits at any thread count), shared by at most torch's thread count. Also ZH's folded
+    pass (`methods.zh_shadow.native.project_latlong_polar_folded`)."""
+    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
+    return np_, max(1, min(torch.get_num_threads(), np_))
+
+
 @functools.lru_cache(maxsize=8)
 def _project_factors(H: int, W: int, order: int) -> tuple[Tensor, Tensor, Tensor, int]:
     """`sh._latlong_polar_factors` (B (W, 2n), k, T) with B's columns padded with zeros to a multiple
@@ -118,8 +126,7 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
     B, k, T, J = _project_factors(int(H), int(W), int(order))
     X = image.contiguous()
     n2 = order * order
-    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
-    nt = max(1, min(torch.get_num_threads(), np_))
+    np_, nt = row_parts(int(H))
     part = torch.zeros(np_, n2, 3, dtype=torch.float64)
     out = torch.empty(n2, 3, dtype=torch.float64)
     lib.sh_project(int(H), int(W), X.data_ptr(), B.data_ptr(), J, k.data_ptr(), T.data_ptr(), n2, part.data_ptr(),

@@ -142,11 +142,8 @@ static int64_t px_range(int64_t p0, int64_t p1, int64_t S2, const int64_t *face,
 
 #ifdef __AVX2__
 #include <immintrin.h>
-/* `px_range` at S2 = 4, eight samples (two pixels) per step in AVX2 lanes: the face rows gathered, every
-   operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
-   samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
-   same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
-static inline void px_tr8(__m256 *r) {
+/* 8 × 8 transpose of eight AVX2 rows in place (the pixel pass below and the glossy pass). */
+static inline void tr8(__m256 *r) {
     __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
     __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
     __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
@@ -160,6 +157,10 @@ static inline void px_tr8(__m256 *r) {
     r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
     r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
 }
+/* `px_range` at S2 = 4, eight samples (two pixels) per step in AVX2 lanes: the face rows gathered, every
+   operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
+   samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
+   same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
 static inline __m256 px_ld(const float *p, int64_t stride, __m256i lane) {
     if (stride == 1)
         return _mm256_loadu_ps(p);
@@ -188,7 +189,7 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
         __m256 E[8], K[4];
         for (int b = 0; b < 8; ++b)                         /* the rows, transposed below: E[k] lane b = ef[f_b, k] */
             E[b] = _mm256_loadu_ps(ef + 9 * (int64_t)fi[b]);
-        px_tr8(E);
+        tr8(E);
         const __m256 E8 = _mm256_setr_ps(ef[9 * (int64_t)fi[0] + 8], ef[9 * (int64_t)fi[1] + 8], ef[9 * (int64_t)fi[2] + 8],
                                          ef[9 * (int64_t)fi[3] + 8], ef[9 * (int64_t)fi[4] + 8], ef[9 * (int64_t)fi[5] + 8],
                                          ef[9 * (int64_t)fi[6] + 8], ef[9 * (int64_t)fi[7] + 8]);
@@ -373,20 +374,6 @@ void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows
    e from the corner table, out = n·ωo > 0 ? max(0, kd e + ks spec) : 0. */
 #ifdef __AVX2__
 #include <immintrin.h>
-static inline void tr8(__m256 *r) {
-    __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
-    __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
-    __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
-    __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
-    __m256 s0 = _mm256_shuffle_ps(t0, t2, 0x44), s1 = _mm256_shuffle_ps(t0, t2, 0xEE);
-    __m256 s2 = _mm256_shuffle_ps(t1, t3, 0x44), s3 = _mm256_shuffle_ps(t1, t3, 0xEE);
-    __m256 s4 = _mm256_shuffle_ps(t4, t6, 0x44), s5 = _mm256_shuffle_ps(t4, t6, 0xEE);
-    __m256 s6 = _mm256_shuffle_ps(t5, t7, 0x44), s7 = _mm256_shuffle_ps(t5, t7, 0xEE);
-    r[0] = _mm256_permute2f128_ps(s0, s4, 0x20); r[1] = _mm256_permute2f128_ps(s1, s5, 0x20);
-    r[2] = _mm256_permute2f128_ps(s2, s6, 0x20); r[3] = _mm256_permute2f128_ps(s3, s7, 0x20);
-    r[4] = _mm256_permute2f128_ps(s0, s4, 0x31); r[5] = _mm256_permute2f128_ps(s1, s5, 0x31);
-    r[6] = _mm256_permute2f128_ps(s2, s6, 0x31); r[7] = _mm256_permute2f128_ps(s3, s7, 0x31);
-}
 static inline float hsum8(__m256 a) {
     __m128 l = _mm256_castps256_ps128(a), h = _mm256_extractf128_ps(a, 1);
     l = _mm_add_ps(l, h);

@@ -544,8 +544,6 @@ void zh_project(int64_t H, int64_t W, const float *X, const double *Bf, int64_t 
 }
 """
 _PROJECT_SIGNATURES = {"zh_project": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _I, _I, _P], "zh_project_lanes": [_P]}
-ROWS_PER_PROJECT_PART = 64    # map rows a part (`zh_project`: each part one thread's)
-MAX_PROJECT_PARTS = 4         # (the parts are fixed by the map's size, not by the thread count)
 
 
 def _project_lib():
@@ -587,7 +585,7 @@ def _folded_factors(H: int, W: int, order: int, lanes: int, nv: int) -> tuple[Te
 def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
     """`methods.core.sh.project_latlong_polar(image, order)` (n², 3) float64 by ZH's C pass over the
     float32 texels with the half-period fold (above; float64 round-off; the same bits at any thread
-    count: `sh_native`'s pass split the rows by the thread count), or None where it does not run
+    count: the parts of `sh_native.row_parts`, as `sh_native`'s pass since session 31), or None where it does not run
     (no compiler, ``PRTBENCH_ZH_NATIVE=0``, not a float32 (H, W, 3) CPU map, W odd, order > 12)."""
     lib = _project_lib() if terms_switched_on() else None
     if (lib is None or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 3
@@ -602,8 +600,7 @@ def project_latlong_polar_folded(image: Tensor, order: int) -> Tensor | None:
     X = image.contiguous()
     n2 = order * order
     # the row parts fixed by the map's size (their sums in order: the same bits at any thread count)
-    np_ = max(1, min(MAX_PROJECT_PARTS, int(H) // ROWS_PER_PROJECT_PART))
-    nt = max(1, min(torch.get_num_threads(), np_))
+    np_, nt = sh_native.row_parts(int(H))
     part = torch.zeros(np_, n2, 3, dtype=torch.float64)
     out = torch.empty(n2, 3, dtype=torch.float64)
     lib.zh_project(int(H), int(W), X.data_ptr(), Bf.data_ptr(), vl, nv, k.data_ptr(), T.data_ptr(), n2,
