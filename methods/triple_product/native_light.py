@@ -898,6 +898,14 @@ def comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bo
     return True
 
 
+def _checked_pairs(pairs: Tensor, size: int) -> Tensor:
+    """``pairs`` as contiguous int64, every one inside a table of ``size`` entries (else IndexError)."""
+    pairs = pairs.to(torch.int64).contiguous()
+    if pairs.numel() and (int(pairs.min()) < 0 or int(pairs.max()) >= size):
+        raise IndexError("a pair outside the table")
+    return pairs
+
+
 def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q: Tensor, out: Tensor) -> Tensor:
     """Project the pairs f·n + t (``pairs`` (P,) int64) into ``out`` (F, 3, n) float32 (returned): the
     fine value of live triangle t in frame f, as `lighting.quad_means` of `lighting.env_taps` with the
@@ -920,12 +928,10 @@ def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q:
         raise ValueError("out must be contiguous")
     if Q.shape[0] < H * (W + 1):
         raise ValueError("quad rows of another map")
-    pairs = pairs.to(torch.int64).contiguous()
+    pairs = _checked_pairs(pairs, F * n)
     P = pairs.numel()
     if P == 0:
         return out
-    if int(pairs.min()) < 0 or int(pairs.max()) >= F * n:
-        raise IndexError("a pair outside the table")
     M, cp, wT, Q = (x.contiguous() for x in (M, cp, wT, Q))
     args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
     nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
@@ -952,12 +958,10 @@ def comb_pairs(pairs: Tensor, o: Tensor, w4: Tensor, CT: Tensor, n_psi: int, J: 
     for t in (o, w4, CT, out):
         if t.device.type != "cpu":
             raise ValueError("CPU tensors expected")
-    pairs = pairs.to(torch.int64).contiguous()
+    pairs = _checked_pairs(pairs, F * n)
     P = pairs.numel()
     if P == 0:
         return out
-    if int(pairs.min()) < 0 or int(pairs.max()) >= F * n:
-        raise IndexError("a pair outside the table")
     B, _, S = o.shape
     o, w4, CT = o.contiguous(), w4.contiguous(), CT.contiguous()
     if int(o.min()) < 0 or int(o.max()) + 3 * m * 4 * J + 2 * J + 2 * 4 * J + J - 1 >= CT.numel():   # rs + es + 2 cs + J - 1
