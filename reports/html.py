@@ -219,7 +219,10 @@ def summary_table(df: pd.DataFrame) -> str:
             f"<td>{fmt(float(np.median(sp)) if sp else None, '.3g', '×')}</td></tr>")
     note = ("<p class=note>RMSE: mean over sequence kinds and scored frames, against the reference of the "
             "cell's bounce count; in brackets the reference noise floor (an RMSE below it is not resolved). "
-            "fps: 1 / median frame time, warm-up frame excluded; <span class=loaded>shaded</span>: other processes "
+            "fps: 1 / median frame time, warm-up frame excluded; each timed frame renders right after the harness "
+            "rasterised its G-buffer (Mitsuba), so it starts with caches and the thread pool cooled, as in a "
+            "deferred renderer (back to back, with the G-buffers made ahead, short frames read faster: "
+            "<code>benchmarks.frame_protocol</code>); <span class=loaded>shaded</span>: other processes "
             f"used more than {CONTENTION_MAX:g} cores while the cell's frames were timed (its time, roofline and "
             "speedup are slower than the code). Roofline efficiency: max(bytes per frame ÷ triad "
             "bandwidth, flops per frame ÷ dense-matmul peak) ÷ frame time, both limits measured in this run; in "
