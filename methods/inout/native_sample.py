@@ -640,9 +640,11 @@ CHUNK = 1024
 # CPU, same process alternating: 3 against 0 1.08x (the table rows' and memo's misses bound the rest).
 # 4 (FMA builds) the memo's fills and the entries outside the window by `cell_x` (a pair's X the same
 # bits on every path; other roundings than bit 2's per-row sums), 8 (with 4) the last shaded sample's
-# vertices, windows and, in the same cell, X reused (the same bits as 4 alone). Chess bench V, 1
-# thread, process CPU: 15 against 3 1.16x (same process, alternating, after 0.2 s idle), 1.19x in a
-# standalone driver of the loop over a dumped frame.
+# vertices, windows and, in the same cell, X reused (the same bits as 4 alone). V frames, 1 thread,
+# process CPU, against bc5fbe4 (``python -m benchmarks.inout --base B --scene chess|creature --kinds V
+# --frames 15 --threads 1 --no-micro``, host at load 5-10): chess 1.05-1.16x, creature 1.23x; the loop
+# alone (15 against 3, same process, alternating, after 0.2 s idle) chess 1.16x, and 1.17-1.19x in a
+# standalone C driver of the loop over a dumped chess frame (caches flushed or not alike).
 FAST = 15
 
 
