@@ -40,6 +40,21 @@ and ~5·10⁴ exact entries a frame), the per-sample set-up ~15 %. Tried and dro
 alternating, bit-identical): the block's dependent loads in three passes with software prefetches
 (face → vertex records → memo rows and stamps): 0.88-0.93×; the row's stamp kept in its 4th float
 (one cache line fewer per look-up): 0.99-1.04×.
+
+Session 32 (`FAST` bits 4 and 8, FMA builds): a memo fill computes its cell's four rows at once
+(`cell_x`: the 12 dot products, 4 nodes × 3 channels, in one loop, each into its own accumulator,
+then a fixed reduction tree), and an entry outside its vertex's window computes the same four
+values by the same function, so a (vertex, node) pair's X has the same bits on every path — memo
+row, exact entry, whichever thread or cell — and the image the same bits whatever the window; and a
+sample on the same face as the last shaded one (~78 % on the chess bench) takes its vertices and
+windows from it, in the same cell (~64 %) its 12 X values too (no look-up, no exact sum). The
+image equals session 29's loop to float32 round-off (≤ 1.8e-7 of the peak, chess bench). Where the
+V frame's time goes (a standalone C driver over a dumped chess bench frame, 1 thread, the caches
+flushed or not alike): not the arithmetic — per-row fills by `cell_x`'s arithmetic (half the rows),
+a 1024-entry cache of the exact entries (38.9 → 22.6·10³ computed) and huge pages for the memo,
+table and c each read ~1.0× — but the per-entry chain of dependent loads (face → vertex record →
+stamps → memo rows) and the first touches of the table and c rows; skipping whole entries is what
+pays.
 """
 from __future__ import annotations
 
@@ -50,7 +65,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["WINDOW", "available", "shade"]
+__all__ = ["WINDOW", "available", "cells_available", "shade"]
 
 # Nodes per side of a vertex's memo window (its W² rows of X, 16 B each, and their stamps): entries
 # whose cell leaves it take the exact sum. W = 8 against 16 (same process, 1 thread, process CPU, V):
@@ -69,6 +84,7 @@ _SOURCE = r"""
 #endif
 
 typedef float v8 __attribute__((vector_size(32)));
+typedef float v4 __attribute__((vector_size(16)));
 
 /* lut_cell_xyz (methods.inout.transport): the cell (iu, iv) and fractions (fu, fv) of a local
    direction (x, y, z), float32 in torch's order of operations. */
@@ -164,6 +180,32 @@ static inline float dot4f(const float *s0, const float *s1, const float *s2, con
     }
     return ((w0 * hsum16(a0) + w1 * hsum16(a1)) + w2 * hsum16(a2)) + w3 * hsum16(a3);
 }
+/* X(v, n) at a cell's four nodes n0, n0 + 1, n0 + R, n0 + R + 1 (table rows t, t + 3K, t + R3K,
+   t + R3K + 3K; bit 4 of `fast`): the 12 dot products (4 nodes x 3 channels) with c in one pass, each
+   by fused multiply-adds into its own accumulator, 16 lanes a step (the tail masked), then summed by
+   `hsum16`'s fixed tree: each value a function of its (vertex, node) pair alone, whichever cell,
+   thread or path (memo fill or an entry outside the window) computes it. One loop for the 12 sums:
+   the per-row fills' 6 loops a row and their branches cost more than the arithmetic. */
+static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x) {
+    const float *r0 = t, *r1 = t + 3 * K, *r2 = t + R3K, *r3 = t + R3K + 3 * K;
+    __m512 a[4][3];
+    for (int n = 0; n < 4; ++n)
+        for (int ch = 0; ch < 3; ++ch)
+            a[n][ch] = _mm512_setzero_ps();
+    for (int64_t k = 0; k < K; k += 16) {
+        const __mmask16 mk = K - k >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << (K - k)) - 1u);
+        for (int ch = 0; ch < 3; ++ch) {
+            const int64_t o = ch * K + k;
+            const __m512 c = _mm512_maskz_loadu_ps(mk, cv + o);
+            a[0][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r0 + o), c, a[0][ch]);
+            a[1][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r1 + o), c, a[1][ch]);
+            a[2][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r2 + o), c, a[2][ch]);
+            a[3][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r3 + o), c, a[3][ch]);
+        }
+    }
+    for (int n = 0; n < 4; ++n)
+        x[n] = (v4){hsum16(a[n][0]), hsum16(a[n][1]), hsum16(a[n][2]), 0.0f};
+}
 #define HAVE_DOTF 1
 #elif defined(__FMA__) && defined(__AVX2__)
 static inline float hsum8(__m256 a) {
@@ -203,10 +245,30 @@ static inline float dot4f(const float *s0, const float *s1, const float *s2, con
     }
     return ((w0 * d0 + w1 * d1) + w2 * d2) + w3 * d3;
 }
+/* cell_x (the AVX-512 build's docstring), 8 lanes a step, the tail by masked loads */
+static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x) {
+    const float *r0 = t, *r1 = t + 3 * K, *r2 = t + R3K, *r3 = t + R3K + 3 * K;
+    static const int32_t lanes[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+    __m256 a[4][3];
+    for (int n = 0; n < 4; ++n)
+        for (int ch = 0; ch < 3; ++ch)
+            a[n][ch] = _mm256_setzero_ps();
+    for (int64_t k = 0; k < K; k += 8) {
+        const __m256i mk = _mm256_loadu_si256((const __m256i *)(lanes + 8 - (K - k >= 8 ? 8 : K - k)));
+        for (int ch = 0; ch < 3; ++ch) {
+            const int64_t o = ch * K + k;
+            const __m256 c = _mm256_maskload_ps(cv + o, mk);
+            a[0][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r0 + o, mk), c, a[0][ch]);
+            a[1][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r1 + o, mk), c, a[1][ch]);
+            a[2][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r2 + o, mk), c, a[2][ch]);
+            a[3][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r3 + o, mk), c, a[3][ch]);
+        }
+    }
+    for (int n = 0; n < 4; ++n)
+        x[n] = (v4){hsum8(a[n][0]), hsum8(a[n][1]), hsum8(a[n][2]), 0.0f};
+}
 #define HAVE_DOTF 1
 #endif
-
-typedef float v4 __attribute__((vector_size(16)));
 
 typedef struct {
     const float *nrm; int64_t n0, n1;       /* normal (q, 3): element strides */
@@ -335,6 +397,25 @@ static void frame_cells(const float *nx_, const float *ny_, const float *nz_, co
     }
 }
 
+/* rows q0 .. q0 + n of a (q, nc) float32 array with element strides (s0, s1) as nc columns `cols`,
+   read along its layout: column-major as nc runs, row-major rows split, other strides element by
+   element (the same values whichever) */
+static inline void columns(const float *a, int64_t s0, int64_t s1, int nc, int64_t q0, int64_t n, float **cols) {
+    if (s0 == 1) {
+        for (int c = 0; c < nc; ++c)
+            memcpy(cols[c], a + q0 + c * s1, (size_t)n * sizeof(float));
+    } else if (s1 == 1 && s0 == nc) {
+        const float *src = a + nc * q0;
+        for (int64_t i = 0; i < n; ++i)
+            for (int c = 0; c < nc; ++c)
+                cols[c][i] = src[nc * i + c];
+    } else {
+        for (int64_t i = 0; i < n; ++i)
+            for (int c = 0; c < nc; ++c)
+                cols[c][i] = a[(q0 + i) * s0 + c * s1];
+    }
+}
+
 #define BLK 64   /* pixels per block of the per-sample inputs */
 
 static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *stats) {
@@ -342,6 +423,10 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
     const int32_t cur = (int32_t)A->stamp;
     const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
     int64_t made = 0, exact = 0, bad = -1;
+    v4 px[3][4];                            /* bits 4 | 8: the last shaded sample's X per vertex of its face */
+    int64_t pf = -1, piu = -1, piv = -1, pg[3] = {0, 0, 0};
+    const int32_t *pr[3] = {0, 0, 0};
+    int have = 0, wins = 0;
     float nx_[BLK * 8 + 8], ny_[BLK * 8 + 8], nz_[BLK * 8 + 8], a_[BLK * 8 + 8], b_[BLK * 8 + 8], c_[BLK * 8 + 8];
     float bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 8], fv_[BLK * 8 + 8], z_[BLK * 8 + 8];
     int32_t iu_[BLK * 8 + 8], iv_[BLK * 8 + 8];
@@ -353,36 +438,10 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
             continue;
         }
         if (A->fast & 1) {   /* the same values, each array read along its own layout */
-            const size_t nb = (size_t)n * sizeof(float);
-            if (A->n0 == 3 && A->n1 == 1) {                  /* row-major (q, 3) */
-                const float *src = A->nrm + 3 * q0;
-                for (int64_t i = 0; i < n; ++i) {
-                    nx_[i] = src[3 * i]; ny_[i] = src[3 * i + 1]; nz_[i] = src[3 * i + 2];
-                }
-            } else if (A->n0 == 1) {                         /* column-major: three runs */
-                memcpy(nx_, A->nrm + q0, nb); memcpy(ny_, A->nrm + q0 + A->n1, nb); memcpy(nz_, A->nrm + q0 + 2 * A->n1, nb);
-            } else {
-                for (int64_t i = 0; i < n; ++i) {
-                    const int64_t q = q0 + i;
-                    nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
-                }
-            }
-            if (A->w0 == 1) {
-                memcpy(a_, A->wo + q0, nb); memcpy(b_, A->wo + q0 + A->w1, nb); memcpy(c_, A->wo + q0 + 2 * A->w1, nb);
-            } else {
-                for (int64_t i = 0; i < n; ++i) {
-                    const int64_t q = q0 + i;
-                    a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
-                }
-            }
-            if (A->b0 == 1) {
-                memcpy(bu_, A->bary + q0, nb); memcpy(bv_, A->bary + q0 + A->b1, nb);
-            } else {
-                for (int64_t i = 0; i < n; ++i) {
-                    const int64_t q = q0 + i;
-                    bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
-                }
-            }
+            float *nc[3] = {nx_, ny_, nz_}, *wc[3] = {a_, b_, c_}, *bc[2] = {bu_, bv_};
+            columns(A->nrm, A->n0, A->n1, 3, q0, n, nc);
+            columns(A->wo, A->w0, A->w1, 3, q0, n, wc);
+            columns(A->bary, A->b0, A->b1, 2, q0, n, bc);
         } else {
             for (int64_t i = 0; i < n; ++i) {      /* the G-buffer's rows, as columns */
                 const int64_t q = q0 + i;
@@ -408,6 +467,58 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                 const float bu = bu_[i], bv = bv_[i];
                 const float beta[3] = {(1.0f - bu) - bv, bu, bv};
                 v4 B = {0, 0, 0, 0};
+#ifdef HAVE_DOTF
+                if (A->fast & 4) {                          /* the cell's four X by `cell_x` */
+                    if (!(A->fast & 8) || f != pf) {      /* bit 8: else the last sample's vertices, windows and, */
+                        pf = f; have = 0; wins = 0;       /* in the same cell, X */
+                        pg[0] = A->face_rows[3 * f]; pg[1] = A->face_rows[3 * f + 1]; pg[2] = A->face_rows[3 * f + 2];
+                    } else if (iu != piu || iv != piv) {
+                        have = 0;
+                    }
+                    piu = iu; piv = iv;
+                    for (int j = 0; j < 3; ++j) {
+                        if (beta[j] == 0.0f)
+                            continue;
+                        v4 *x = px[j];
+                        if (!(have >> j & 1)) {
+                            have |= 1 << j;
+                            const int64_t g = pg[j];
+                            if (!(wins >> j & 1)) {
+                                pr[j] = vertex_window(A, g);
+                                wins |= 1 << j;
+                            }
+                            const int32_t *r = pr[j];
+                            const int64_t s = r[3], dx = iu - r[1], dy = iv - r[2];
+                            const int64_t K = A->Ks[s], node = iv * R + iu;
+                            const float *t = (const float *)(intptr_t)A->shp[s] + node * 3 * K;
+                            const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
+                            if (dx >= 0 && dy >= 0 && dx <= W - 2 && dy <= W - 2) {
+                                const int64_t row = g * WW + dy * W + dx;
+                                int32_t *st = A->mstamp + row;
+                                float *m = A->memo + 4 * row;
+                                if (__builtin_expect(__atomic_load_n(st, __ATOMIC_ACQUIRE) != cur || __atomic_load_n(st + 1, __ATOMIC_ACQUIRE) != cur
+                                                     || __atomic_load_n(st + W, __ATOMIC_ACQUIRE) != cur
+                                                     || __atomic_load_n(st + W + 1, __ATOMIC_ACQUIRE) != cur, 0)) {
+                                    /* all four rows (the same bits as any row already filled), from the registers */
+                                    cell_x(t, R * 3 * K, cv, K, x);
+                                    memcpy(m, &x[0], 16); memcpy(m + 4, &x[1], 16); memcpy(m + 4 * W, &x[2], 16); memcpy(m + 4 * W + 4, &x[3], 16);
+                                    __atomic_store_n(st, cur, __ATOMIC_RELEASE); __atomic_store_n(st + 1, cur, __ATOMIC_RELEASE);
+                                    __atomic_store_n(st + W, cur, __ATOMIC_RELEASE); __atomic_store_n(st + W + 1, cur, __ATOMIC_RELEASE);
+                                    made += 4;
+                                } else {
+                                    memcpy(&x[0], m, 16); memcpy(&x[1], m + 4, 16); memcpy(&x[2], m + 4 * W, 16); memcpy(&x[3], m + 4 * W + 4, 16);
+                                }
+                            } else {                        /* outside the window: the same four values, not kept */
+                                cell_x(t, R * 3 * K, cv, K, x);
+                                ++exact;
+                            }
+                        }
+                        B += ((x[0] * w0 + x[1] * w1) + (x[2] * w2 + x[3] * w3)) * beta[j];
+                    }
+                    o += B;
+                    continue;
+                }
+#endif
                 for (int j = 0; j < 3; ++j) {
                     if (beta[j] == 0.0f)
                         continue;
@@ -459,6 +570,16 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
     stats[0] = made; stats[1] = exact; stats[2] = bad;
 }
 
+/* o[0] = 1 when bits 4 and 8 of `fast` run (`cell_x`: an FMA build), else 0 (they fall back to the
+   per-row loop of bits 1 and 2) */
+void have_cells(int64_t *o) {
+#ifdef HAVE_DOTF
+    o[0] = 1;
+#else
+    o[0] = 0;
+#endif
+}
+
 /* Eq. 4 at the npx * S2 samples (pixel-major, S2 <= 8), box-filtered into out (npx, 3). stats (nt, 3):
    per thread the memo rows computed, the entries summed exactly, the first sample whose face lies in
    another region than the sample's (-1: none). With nt > 1 the pixels go to the team in chunks of
@@ -503,7 +624,7 @@ class _Args(ctypes.Structure):
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {"shade": [_P, _I, _P, _P, _I]}
+_SIGNATURES = {"shade": [_P, _I, _P, _P, _I], "have_cells": [_P]}
 # Pixels below which one thread shades the frame (a hand-off costs more than its share).
 MIN_PER_THREAD = 1024
 # Pixels per chunk of the dynamic schedule at 2+ threads (16 blocks of 64; the chess bench has 64 chunks).
@@ -517,7 +638,14 @@ CHUNK = 1024
 # (q, 3) rows split; the same values), 2 the dot products by fused multiply-adds, 16 lanes wide on an
 # AVX-512 build (`dotf`, `dot4f`: other roundings, float32 round-off). Chess bench V, 1 thread, process
 # CPU, same process alternating: 3 against 0 1.08x (the table rows' and memo's misses bound the rest).
-FAST = 3
+# 4 (FMA builds) the memo's fills and the entries outside the window by `cell_x` (a pair's X the same
+# bits on every path; other roundings than bit 2's per-row sums), 8 (with 4) the last shaded sample's
+# vertices, windows and, in the same cell, X reused (the same bits as 4 alone). V frames, 1 thread,
+# process CPU, against bc5fbe4 (``python -m benchmarks.inout --base B --scene chess|creature --kinds V
+# --frames 15 --threads 1 --no-micro``, host at load 5-10): chess 1.05-1.16x, creature 1.23x; the loop
+# alone (15 against 3, same process, alternating, after 0.2 s idle) chess 1.16x, and 1.17-1.19x in a
+# standalone C driver of the loop over a dumped chess frame (caches flushed or not alike).
+FAST = 15
 
 
 def _lib():
@@ -540,6 +668,17 @@ def _flags() -> tuple[str, ...]:
 def available() -> bool:
     """True when the C loop runs (else the caller takes ``fast.prepare`` and ``fast.shade_pixels``)."""
     return _lib() is not None
+
+
+def cells_available() -> bool:
+    """True when the loop's bits 4 and 8 run (`FAST`: the C loop built with FMA), else they fall back
+    to the per-row memo and the exact path's weighted sums (bits 1 and 2)."""
+    lib = _lib()
+    if lib is None:
+        return False
+    o = torch.zeros(1, dtype=torch.int64)
+    lib.have_cells(o.data_ptr())
+    return bool(o[0])
 
 
 def memo(nv: int, W: int) -> tuple[Tensor, Tensor, Tensor]:

@@ -76,14 +76,15 @@ def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, 
         assert summed == 0         # the window is the whole table (R = 16)
 
 
-@pytest.mark.parametrize("fast", [1, 2, 3])
+@pytest.mark.parametrize("fast", [1, 2, 3, 7, 15])
 @pytest.mark.parametrize("name", ["chess", "creature"])
 def test_native_sample_variants_equal_session_29s_loop(precomputed, monkeypatch, name, fast):
     """The loop's variants (`native_sample.FAST`) against session 29's loop (FAST = 0), the compiled
     path and the reference, over a V and an L sequence with the G-buffer's layouts (column-major ω_o
     and barycentrics, row-major normals) and row-major copies: bit 1 (each array read along its own
     layout) the same image bit for bit; bit 2 (the dot products fused, 16 lanes on AVX-512 builds)
-    the same to float32 round-off, with W = 2 (nearly every entry on the exact path) and W = 4."""
+    and bits 4 and 8 (`cell_x`, the last sample's X reused) the same to float32 round-off, with W = 2
+    (nearly every entry on the exact path) and W = 4."""
     m = precomputed(name)
     for W in (2, 4):
         monkeypatch.setattr(native_sample, "WINDOW", W)
@@ -106,6 +107,51 @@ def test_native_sample_variants_equal_session_29s_loop(precomputed, monkeypatch,
                         assert torch.equal(got, want), f"{name} {kind} W {W}"
                     assert float((got - cimg).abs().max()) <= RTOL * scale
                     assert float((got - exact).abs().max()) <= RTOL * scale
+
+
+@pytest.mark.parametrize("name", ["chess", "creature", "sphere_plane"])
+def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeypatch, name):
+    """Bit 4 (`cell_x`: a memo row and an entry outside its vertex's window by one function of the
+    (vertex, node) pair) and bit 8 (the last shaded sample's vertices and X reused on the same face
+    and cell): the image is the same bits whatever the window (W = 2: nearly every entry outside it;
+    W = 16, the whole table: none) and with or without the reuse (which ran: fewer entries computed
+    outside the window), over a V and an L sequence, and equals session 29's loop (FAST = 0) and the
+    reference to float32 round-off."""
+    if not native_sample.cells_available():
+        pytest.skip("no FMA build: bits 4 and 8 fall back to the per-row loop")
+    m = precomputed(name)
+    shade = native_sample.shade
+    for kind in ("V", "L"):
+        frames = make_sequence(m.scene, kind, n_frames=2, seed=11)
+        gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+        imgs, exact = {}, {}
+        for fast in (7, 15, 0):
+            for W in ((2, 4, 16) if fast else (4,)):
+                monkeypatch.setattr(native_sample, "FAST", fast)
+                monkeypatch.setattr(native_sample, "WINDOW", W)
+                calls = []
+
+                def spy(*a, **k):
+                    got = shade(*a, **k)
+                    calls.append(got[1][1])
+                    return got
+
+                monkeypatch.setattr(native_sample, "shade", spy)
+                a = _copy(m)
+                imgs[fast, W] = [a.render(f, g) for f, g in zip(frames, gbs)]
+                exact[fast, W] = sum(calls)
+                monkeypatch.setattr(native_sample, "shade", shade)
+        ref = _copy(m)
+        want = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
+        for key, got in imgs.items():
+            for i, (x, y, r) in enumerate(zip(got, imgs[15, 4], want)):
+                scale = float(r.abs().max())
+                assert scale > 0
+                assert float((x - r).abs().max()) <= RTOL * scale, f"{name} {kind} {key} frame {i}"
+                if key[0]:
+                    assert torch.equal(x, y), f"{name} {kind} {key} frame {i}"
+        assert exact[15, 16] == exact[7, 16] == 0
+        assert 0 < exact[15, 2] < exact[7, 2]
 
 
 def _row_major(gb):
