@@ -26,7 +26,13 @@ are projected here, one pair (4^s samples) at a time:
 * `comb_pairs`: a map turned about +Y only (E frames, `lighting.comb_pairs_ok`): the comb path's
   sums (`lighting.comb_means`, whose compiled loop summed every frame of the grid and, per output,
   entered a parallel region) for the 8-frame groups holding a read pair only, the one-thread sums bit
-  for bit.
+  for bit; `comb_pairs_uv` (what `lighting.project_pairs` runs, session 32) makes each listed item's
+  taps in the loop with `lighting.comb_taps`' float64 / float32 / int32 operations (the same bits)
+  instead of running that compiled pass over every base row and live triangle first (creature bench
+  E: 6,242 of 11,152 items listed; the pass was ~0.9 ms of a ~12 ms frame at 1 thread);
+* `box`: the E frame's prefilter of a new probe (`lighting.box_filtered`: float64 row then column
+  sums in the torch passes' order, the same texels bit for bit) in one pass (~0.4 -> 0.1 ms).
+  Creature / chess bench vertex E with both, 1 thread, same process: 1.08x / 1.06x.
 
 Pairs not needed keep the finite values of the table's previous lighting (`TripleProduct._spare_tables`)
 or zeros, and are read only with an exact 0 (visibility or weight): the image is the same bit for bit
@@ -46,7 +52,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "comb_pairs_uv", "project", "box"]
 
 _TAP_BODY = r"""
 /* TAP_BODY: `tap` for NV vectors of samples at once (vector k in the frame of mk[k]), written out over
@@ -652,15 +658,56 @@ static inline void comb_two(const int32_t* ot, const float* wt, int64_t S, const
     r1[0] = b0; r1[1] = b1; r1[2] = b2;
 }
 
+/* The taps of lighting.comb_taps for one item's S samples (u0 float64, v0 float32, the samples'
+   weights wT float32, g = gamma / 2 pi float64; map H x W, m = W / J): ot[s] and wt[4 s + 2 dy + e] —
+   the compiled kernel's float64 / float32 / int32 operations one for one (no contraction in this
+   library): the same offsets and weights bit for bit. */
+typedef struct { const double* u0; const float* v0; const float* wT; double g; int64_t H, W; } comb_uv;
+
+static inline void comb_item_taps(const comb_uv* uv, int64_t it, int64_t t, int64_t S, int64_t J, int64_t m,
+                                  int32_t* ot, float* wt) {
+    const double* u0 = uv->u0 + it * S;
+    const float* v0 = uv->v0 + it * S;
+    const float* wT = uv->wT + t * S;
+    const int32_t W = (int32_t)uv->W, H = (int32_t)uv->H, mi = (int32_t)m, st = (int32_t)(12 * J);
+    const float half = (float)(0.5 / (double)uv->W), Wf = (float)uv->W, Hf = (float)(uv->H - 1);
+    for (int64_t s = 0; s < S; ++s) {
+        const double ud = u0[s] - uv->g;
+        float u = (float)(ud - floor(ud));
+        u = u - half;
+        const float x = (u - floorf(u)) * Wf;
+        int32_t ix = (int32_t)x;
+        ix = ix < 0 ? 0 : ix > W - 1 ? W - 1 : ix;
+        const float fx = x - (float)ix;
+        const double ixd = (double)ix;
+        const double qd = floor(ixd / (double)m);
+        const double pd = ixd - qd * (double)m;
+        const float v = v0[s] - floorf(v0[s]);
+        const float y = v * Hf;
+        int32_t iy = (int32_t)y;
+        iy = iy < 0 ? 0 : iy > H - 2 ? H - 2 : iy;
+        const float fy = y - (float)iy;
+        ot[s] = (iy * mi + (int32_t)pd) * st + (int32_t)qd;
+        const float w = wT[s];
+        wt[4 * s] = ((1.0f - fx) * (1.0f - fy)) * w;
+        wt[4 * s + 1] = (fx * (1.0f - fy)) * w;
+        wt[4 * s + 2] = ((1.0f - fx) * fy) * w;
+        wt[4 * s + 3] = (fx * fy) * w;
+    }
+}
+
 static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint64_t* mask, int64_t n, int64_t S,
                        int64_t n_psi, int64_t J, const int32_t* o, const float* w4, const float* CT, int64_t m,
-                       float* out) {
+                       float* out, const comb_uv* uv) {
     const int64_t cs = 4 * J, es = 2 * J, rs = 3 * m * cs, G = J / 8;
+    int32_t obuf[64];
+    float wbuf[256];
     for (int64_t q = i0; q < i1; ++q) {
         const int64_t it = items[q], b = it / n, t = it % n, i = b / n_psi, k = b % n_psi;
         const uint64_t mk = mask[it];
-        const int32_t* ot = o + it * S;
-        const float* wt = w4 + it * S * 4;
+        const int32_t* ot = uv ? obuf : o + it * S;
+        const float* wt = uv ? wbuf : w4 + it * S * 4;
+        if (uv) comb_item_taps(uv, it, t, S, J, m, obuf, wbuf);
         int64_t gs[8], ng = 0;
         for (int64_t g = 0; g < G; ++g)
             if ((mk >> (8 * g)) & 0xffu) gs[ng++] = g;
@@ -690,9 +737,9 @@ static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint6
     }
 }
 
-void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
-                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
-                   int64_t* status) {
+static void comb_pairs_body(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J,
+                            int64_t B, const int32_t* o, const float* w4, const float* CT, int64_t m, float* out,
+                            int64_t nt, int64_t* status, const comb_uv* uv) {
     if (J > 64) { status[0] = -1; return; }
     uint64_t* mask = (uint64_t*)calloc((size_t)(B * n), sizeof(uint64_t));
     int64_t* items = (int64_t*)malloc((size_t)(B * n + 1) * sizeof(int64_t));
@@ -713,14 +760,62 @@ void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64
     for (int64_t it = 0; it < B * n; ++it)
         if (mask[it]) items[ni++] = it;
     if (nt <= 1 || ni < 2 * nt) {
-        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out, uv);
     } else {
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
         for (int64_t q = 0; q < nt; ++q)
-            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out, uv);
     }
     free(mask);
     free(items);
+    status[0] = 0;
+}
+
+void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
+                   int64_t* status) {
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, o, w4, CT, m, out, nt, status, NULL);
+}
+
+/* tp_comb_pairs with each listed item's taps made in the loop from its samples' base coordinates
+   (comb_item_taps: lighting.comb_taps' values bit for bit) instead of read from comb_taps' arrays
+   of every base row and live triangle: an E frame's items are about half of them, and the (B, n, S)
+   offsets and (B, n, S, 4) weights are neither written nor read back. S <= 64. */
+void tp_comb_pairs_uv(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                      const double* u0, const float* v0, const float* wT, double g, int64_t H, int64_t W,
+                      const float* CT, int64_t m, float* out, int64_t nt, int64_t* status) {
+    if (S > 64) { status[0] = -3; return; }
+    const comb_uv uv = {u0, v0, wT, g, H, W};
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, NULL, NULL, CT, m, out, nt, status, &uv);
+}
+
+/* lighting.box_filtered of texels d (H, W, C) float32 (k >= 2 dividing H and W) into out (H/k, W/k, C):
+   per output, its k rows of each column summed in float64 in row order (d[k I] + d[k I + 1] + ...),
+   then those k column sums in column order, times 1 / k^2, rounded to float32 once — the torch
+   loop's operations in its order, the same bits (no contraction in this library). One output row
+   of column sums (W C doubles) at a time. status[0]: 0, -2 out of memory. */
+void tp_box(int64_t H, int64_t W, int64_t C, int64_t k, const float* d, float* out, int64_t* status) {
+    const int64_t n = W * C, Wo = W / k;
+    const double inv = 1.0 / (double)(k * k);
+    double* a = (double*)malloc((size_t)n * sizeof(double));
+    if (!a) { status[0] = -2; return; }
+    for (int64_t I = 0; I < H / k; ++I) {
+        const float* r = d + I * k * n;
+        for (int64_t x = 0; x < n; ++x) a[x] = (double)r[x];
+        for (int64_t i = 1; i < k; ++i) {
+            const float* ri = r + i * n;
+            for (int64_t x = 0; x < n; ++x) a[x] += (double)ri[x];
+        }
+        float* o = out + I * Wo * C;
+        for (int64_t J = 0; J < Wo; ++J)
+            for (int64_t c = 0; c < C; ++c) {
+                const double* aj = a + J * k * C + c;
+                double b = aj[0] + aj[C];
+                for (int64_t j = 2; j < k; ++j) b += aj[j * C];
+                o[J * C + c] = (float)(b * inv);
+            }
+    }
+    free(a);
     status[0] = 0;
 }
 
@@ -767,6 +862,8 @@ _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
                "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I],
                "tp_take": [_I, _I, _P, _P, _P, _P],
+               "tp_comb_pairs_uv": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, ctypes.c_double, _I, _I, _P, _I, _P, _I, _P],
+               "tp_box": [_I, _I, _I, _I, _P, _P, _P],
                "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
                "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
 
@@ -896,6 +993,65 @@ def comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bo
     dst[rows] = frames
     lib.tp_comb_scatter(B, n, J, means.data_ptr(), dst.data_ptr(), out.data_ptr())
     return True
+
+
+def comb_pairs_uv(pairs: Tensor, u0: Tensor, v0: Tensor, g: float, wT: Tensor, H: int, W: int, CT: Tensor,
+                  n_psi: int, J: int, out: Tensor) -> Tensor:
+    """`comb_pairs` of ``lighting.comb_taps(u0, v0, g, wT, H, W, J)`` with the taps made in the loop for
+    the listed pairs' items only (``tp_comb_pairs_uv``; the same fine values bit for bit, the same
+    entries written): u0 (B, n, S) float64 and v0 (B, n, S) float32 the live triangles' base
+    coordinates (`lighting._live_azimuthal_samples`), g = γ/2π, wT (n, S) float32 their samples'
+    weights, CT the comb table of the H × W map (`lighting.comb_table`), J = n_phi (J | W). Raises
+    RuntimeError without the library."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    F, C, n = out.shape
+    if u0.ndim != 3 or u0.shape[1] != n or v0.shape != u0.shape or wT.shape != (n, u0.shape[2]) \
+            or u0.dtype != torch.float64 or v0.dtype != torch.float32 or wT.dtype != torch.float32 \
+            or CT.dtype != torch.float32 or out.dtype != torch.float32 or C != 3 or not out.is_contiguous() \
+            or J > 64 or W % J or F != u0.shape[0] * J or F % n_psi or u0.shape[0] % n_psi \
+            or u0.shape[2] > MAX_SAMPLES or H < 2:
+        raise ValueError("u0 (B, n, S <= 64) float64, v0 (B, n, S) float32, wT (n, S) float32, "
+                         "out (B·J, 3, n) float32 contiguous, J <= 64 dividing W expected")
+    for t in (u0, v0, wT, CT, out):
+        if t.device.type != "cpu":
+            raise ValueError("CPU tensors expected")
+    m = W // J
+    if CT.numel() != H * m * 3 * 2 * 2 * J:
+        raise ValueError("the comb table of another map")
+    pairs = _checked_pairs(pairs, F * n)
+    P = pairs.numel()
+    if P == 0:
+        return out
+    B, _, S = u0.shape
+    u0, v0, wT, CT = u0.contiguous(), v0.contiguous(), wT.contiguous(), CT.contiguous()
+    st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    lib.tp_comb_pairs_uv(P, pairs.data_ptr(), n, S, n_psi, J, B, u0.data_ptr(), v0.data_ptr(), wT.data_ptr(),
+                         float(g), H, W, CT.data_ptr(), m, out.data_ptr(), nt, st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_comb_pairs_uv could not allocate its tables")
+    return out
+
+
+def box(data: Tensor, k: int) -> Tensor | None:
+    """`lighting.box_filtered` (data (H, W, C) float32, k >= 2 dividing H and W) by one C pass (``tp_box``:
+    its float64 sums in its order, the same texels bit for bit; ~4x less time than its torch passes),
+    or None without the library or for other layouts / dtypes (the torch path runs then)."""
+    lib = _lib()
+    if lib is None or data.dtype != torch.float32 or data.ndim != 3 or data.device.type != "cpu" \
+            or not data.is_contiguous() or k < 2:
+        return None
+    H, W, C = data.shape
+    if H % k or W % k:
+        raise ValueError(f"k = {k} must divide the map's {H} x {W} texels")
+    out = torch.empty(H // k, W // k, C, dtype=torch.float32)
+    st = torch.zeros(1, dtype=torch.int64)
+    lib.tp_box(H, W, C, k, data.data_ptr(), out.data_ptr(), st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_box could not allocate its row")
+    return out
 
 
 def _checked_pairs(pairs: Tensor, size: int) -> Tensor:
