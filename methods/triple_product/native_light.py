@@ -584,7 +584,7 @@ static int need_range(int64_t b0, int64_t b1, int64_t kv, const int64_t* vrows, 
 
 void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
              const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
-             int64_t* status, int64_t nt) {
+             int64_t* status, int64_t nt, uint64_t* bits_out) {
     if (nt < 1) nt = 1;
     const int64_t per = F * nw + nw;                             /* a range's bit table and its acc */
     uint64_t* bits = (uint64_t*)calloc((size_t)(nt * per), sizeof(uint64_t));
@@ -600,7 +600,9 @@ void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64
         for (int64_t q = 1; q < nt && !bad; ++q)
             for (int64_t i = 0; i < F * nw; ++i) bits[i] |= bits[q * per + i];
     }
-    if (!bad)
+    if (!bad && bits_out)                                        /* the bit table itself (tp_take_bits) */
+        memcpy(bits_out, bits, (size_t)(F * nw) * sizeof(uint64_t));
+    if (!bad && need)
         for (int64_t f = 0; f < F; ++f)
             for (int64_t t = 0; t < n; ++t)
                 need[f * n + t] = (uint8_t)((bits[f * nw + t / 64] >> (t % 64)) & 1u);
@@ -625,6 +627,32 @@ void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* 
             if (need[i] & (done[i] ^ 1)) { pairs[k++] = i; done[i] = 1; }
         rows += k > k0;
     }
+    counts[1] = rows;
+}
+
+/* tp_take of need given as tp_need's bit table (F rows of nw words, bit t % 64 of word t / 64 for
+   column t < n): its set bits visited in order (f, then t) instead of the F n need bytes scanned —
+   the same pairs, done and counts. */
+void tp_take_bits(int64_t F, int64_t n, int64_t nw, const uint64_t* bits, uint8_t* done, int64_t* pairs,
+                  int64_t* counts) {
+    int64_t k = 0, rows = 0;
+    const uint64_t last = n % 64 ? (((uint64_t)1 << (n % 64)) - 1u) : ~(uint64_t)0;
+    for (int64_t f = 0; f < F; ++f) {
+        const int64_t k0 = k;
+        for (int64_t w = 0; w < nw; ++w) {
+            uint64_t x = bits[f * nw + w];
+            if (w == nw - 1) x &= last;
+            while (x) {
+                const int64_t i = f * n + w * 64 + __builtin_ctzll(x);
+                x &= x - 1;
+                if (done[i]) continue;
+                if (pairs) { pairs[k] = i; done[i] = 1; }
+                ++k;
+            }
+        }
+        rows += k > k0;
+    }
+    counts[0] = k;
     counts[1] = rows;
 }
 
@@ -860,7 +888,8 @@ def _wide_flags() -> tuple[str, ...] | None:
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I],
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I, _P],
+               "tp_take_bits": [_I, _I, _I, _P, _P, _P, _P],
                "tp_take": [_I, _I, _P, _P, _P, _P],
                "tp_comb_pairs_uv": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, ctypes.c_double, _I, _I, _P, _I, _P, _I, _P],
                "tp_box": [_I, _I, _I, _I, _P, _P, _P],
@@ -918,10 +947,29 @@ MIN_PAIRS_PER_THREAD = 256
 MIN_POINTS_PER_THREAD = 8192
 
 
-def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int) -> Tensor:
+class NeedBits:
+    """`need`'s pairs as its bit table: ``bits`` (F, ⌈n/64⌉) int64, bit t % 64 of word t / 64 set where
+    the (grid row, live triangle t) pair is read; `take` visits its set bits. ``shape`` (F, n)."""
+
+    __slots__ = ("bits", "shape")
+
+    def __init__(self, bits: Tensor, n: int) -> None:
+        self.bits, self.shape = bits, (bits.shape[0], n)
+
+    def dense(self) -> Tensor:
+        """The (F, n) bool of `need` (tests)."""
+        F, n = self.shape
+        sh = torch.arange(64, dtype=torch.int64)
+        return ((self.bits[:, :, None] >> sh) & 1).view(F, -1)[:, :n].bool()
+
+
+def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int, *,
+         as_bits: bool = False) -> Tensor | NeedBits:
     """(F, n) bool: the (grid row, live triangle) pairs that points with visibility rows / weights
     (vrows, vw (B, k_v)) and grid rows / weights (lrows, lw (B, k_L)) read with a non-zero visibility
-    and a non-zero weight; ``bits`` = `vis_bits` of their visibility table."""
+    and a non-zero weight; ``bits`` = `vis_bits` of their visibility table. ``as_bits``: the same pairs
+    as a `NeedBits` (no F·n bytes written; `take` reads its set bits: what `fast_eval.read_pairs`
+    hands `TripleProduct.fill_lighting`)."""
     lib = _lib()
     if lib is None:
         raise RuntimeError("the native kernel is not available")
@@ -935,24 +983,28 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     vrows, lrows = (x.to(torch.int64).contiguous() for x in (vrows, lrows))
     vw, lw = (x.to(torch.float32).contiguous() for x in (vw, lw))
     bits = bits.contiguous()
-    out = torch.empty(F, n, dtype=torch.uint8)
+    out = None if as_bits else torch.empty(F, n, dtype=torch.uint8)
+    tab = torch.empty(F, bits.shape[1], dtype=torch.int64) if as_bits else None
     st = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), B // MIN_POINTS_PER_THREAD))
     lib.tp_need(B, kv, vrows.data_ptr(), vw.data_ptr(), kl, lrows.data_ptr(), lw.data_ptr(), bits.shape[1],
-                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr(), nt)
+                bits.data_ptr(), bits.shape[0], F, n, None if as_bits else out.data_ptr(), st.data_ptr(), nt,
+                tab.data_ptr() if as_bits else None)
     r = int(st[0])
     if r == -1:
         raise IndexError("a row index outside its table (read with a non-zero weight)")
     if r != 0:
         raise MemoryError("tp_need could not allocate its tables")
-    return out.view(torch.bool)
+    return NeedBits(tab, n) if as_bits else out.view(torch.bool)
 
 
-def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
+def take(need: Tensor | NeedBits, done: Tensor) -> tuple[Tensor, int]:
     """The (frame, triangle) pairs of ``need`` (F, n) bool not yet in ``done`` (F, n) bool, which
     receives them: (their flat indices f·n + t (P,) int64 in order, the number of frames f holding one)
     — ``torch.nonzero(need & ~done)``, ``done |= that``, ``that.any(1).sum()`` in one pass (those
     torch operations without the library; its test oracle)."""
+    if isinstance(need, NeedBits):
+        return _take_bits(need, done)
     if need.shape != done.shape or need.ndim != 2 or need.dtype != torch.bool or done.dtype != torch.bool:
         raise ValueError("need and done (F, n) bool expected")
     lib = _lib()
@@ -968,6 +1020,28 @@ def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
     if pairs.numel() == 0:
         return pairs, 0
     lib.tp_take(N, n, a.data_ptr(), b.data_ptr(), pairs.data_ptr(), counts.data_ptr())
+    return pairs, int(counts[1])
+
+
+def _take_bits(need: NeedBits, done: Tensor) -> tuple[Tensor, int]:
+    """`take` of a `NeedBits` (``tp_take_bits``: its set bits in order; the same pairs, done and frame
+    count as `take` of ``need.dense()``), or of ``need.dense()`` without the library."""
+    F, n = need.shape
+    if done.shape != (F, n) or done.dtype != torch.bool:
+        raise ValueError("done (F, n) bool expected")
+    lib = _lib()
+    if lib is None or not done.is_contiguous() or not need.bits.is_contiguous() or F == 0 or n == 0:
+        return take(need.dense(), done)
+    nw = need.bits.shape[1]
+    if nw != -(-n // 64) or need.bits.dtype != torch.int64:
+        raise ValueError("a bit table of another shape")
+    counts = torch.zeros(2, dtype=torch.int64)
+    d = done.view(torch.uint8)
+    lib.tp_take_bits(F, n, nw, need.bits.data_ptr(), d.data_ptr(), None, counts.data_ptr())
+    pairs = torch.empty(int(counts[0]), dtype=torch.int64)
+    if pairs.numel() == 0:
+        return pairs, 0
+    lib.tp_take_bits(F, n, nw, need.bits.data_ptr(), d.data_ptr(), pairs.data_ptr(), counts.data_ptr())
     return pairs, int(counts[1])
 
 

@@ -246,6 +246,29 @@ def test_take_is_the_new_pairs(n):
     assert pairs.numel() == 0 and nf == 0 and torch.equal(d, done | need)
 
 
+@pytest.mark.parametrize("n", [1, 45, 64, 130, 640])
+def test_take_of_the_bit_table_is_take_of_the_bools(n):
+    """`native_light.take` of `need`'s bit table (`native_light.NeedBits`, what `fast_eval.read_pairs`
+    returns) gives `take` of the (F, n) bools: the same pairs in the same order, the same done and frame
+    count — with bits set past column n in the last word (not pairs), frames with nothing new, and a
+    second take (nothing new: empty)."""
+    gen = torch.Generator().manual_seed(12)
+    F, nw = 37, -(-n // 64)
+    words = torch.randint(-2 ** 62, 2 ** 62, (F, nw), generator=gen) * torch.randint(1, 3, (F, nw), generator=gen)
+    words[5] = 0                                                             # a frame with nothing
+    bits = native_light.NeedBits(words, n)
+    need = bits.dense()
+    assert need.shape == (F, n) and bool(need.any())
+    done = torch.rand(F, n, generator=gen) < 0.3
+    done[7] = need[7]                                                        # a frame with nothing new
+    d1, d2 = done.clone(), done.clone()
+    p1, f1 = native_light.take(need, d1)
+    p2, f2 = native_light.take(bits, d2)
+    assert torch.equal(p1, p2) and f1 == f2 and torch.equal(d1, d2)
+    p2, f2 = native_light.take(bits, d2)
+    assert p2.numel() == 0 and f2 == 0 and torch.equal(d1, d2)
+
+
 def test_comb_scatter_is_the_gather_and_copy():
     """`native_light.comb_scatter` writes the rows the comb path's gather and copy wrote
     (``out.index_copy_(0, frames, lighting._comb_select(means.permute(0, 3, 2, 1), rows))``), the same
@@ -311,7 +334,9 @@ def test_need_is_the_read_pairs(n):
             for nt in (1, 2, 3):
                 with torch_threads(nt):
                     got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
+                    bits = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n, as_bits=True)
                 assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl, vis_only, nt)
+                assert isinstance(bits, native_light.NeedBits) and torch.equal(bits.dense(), want), (kv, kl, nt)
         finally:
             native_light.MIN_POINTS_PER_THREAD = old
     with pytest.raises(IndexError):
