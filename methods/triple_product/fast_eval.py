@@ -905,8 +905,9 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch).mul_(0.25 ** Le)
 
 
-def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor) -> Tensor | None:
-    """(F, n') bool: the (grid frame, live triangle) pairs that points with visibility rows / weights
+def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor):
+    """(F, n') bool — as `native_light.NeedBits` (its bit table) when ``NEED_BITS`` — : the (grid frame,
+    live triangle) pairs that points with visibility rows / weights
     (vrows, vw) and grid look-ups (lrows, lw) read with a non-zero weight and a non-zero visibility
     (`native_light.need`; what `frame_cost` counts as a re-projection's compulsory pairs,
     `nonzero_reads`) — the pairs a lazily set lighting projects (`TripleProduct.fill_lighting`); None
@@ -916,7 +917,14 @@ def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Te
     lazy = getattr(method, "_lazy_light", None)
     if live is None or lazy is None or not (lt.pairs_ok(lazy["env"]) or lt.comb_pairs_ok(lazy["env"], method.grid)):
         return None
-    return native_light.need(vis_bits(method, live), vrows, vw, lrows, lw, method.grid.size, live.numel())
+    return native_light.need(vis_bits(method, live), vrows, vw, lrows, lw, method.grid.size, live.numel(),
+                             as_bits=NEED_BITS)
+
+
+# `read_pairs` hands `TripleProduct.fill_lighting` the read pairs as `native_light.need`'s bit table
+# (`native_light.NeedBits`: `native_light.take` visits its set bits) instead of an (F, n') bool array
+# written and scanned twice (the same pairs). False: the bool array (the test oracle).
+NEED_BITS = True
 
 
 def vis_bits(method, live: Tensor | None) -> Tensor | None:

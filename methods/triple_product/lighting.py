@@ -292,13 +292,21 @@ def prefilter_factor(H: int, W: int, spacing: float) -> int:
     return k
 
 
-def box_filtered(data: Tensor, k: int) -> Tensor:
+def box_filtered(data: Tensor, k: int, *, native: bool = True) -> Tensor:
     """``EnvMap.box_downsampled(k).data`` (k ≥ 2) of texels data (H, W, 3) float32: each k × k block's mean
     in float64, rounded to float32 once. Summed as k row slabs, then k column slabs, each a
     contiguous pass (the reference's ``mean((1, 3))`` over a strided 5-d view: 3.2 ms for a 256 × 512
     probe at k = 4, this 0.35-0.45 ms, 1 thread). A block's k² float32 texels sum exactly in float64
     whenever they span less than 2^(29 − 2·log2 k) in magnitude, so then any order gives the same
-    sum and the same float32 texel bit for bit (every bench probe and scene map: tested)."""
+    sum and the same float32 texel bit for bit (every bench probe and scene map: tested).
+    `native_light.box` runs these operations in this order in one C pass when it is built (the same
+    texels bit for bit whatever the data; ``native=False``: this torch path, its test oracle)."""
+    if native:
+        from methods.triple_product import native_light
+
+        out = native_light.box(data, k)
+        if out is not None:
+            return out
     H, W, C = data.shape
     d = data.reshape(H // k, k, W * C)
     a = d[:, 0].double()
@@ -797,6 +805,13 @@ def comb_pairs_ok(envmap, grid: FrameGrid | None) -> bool:
         and native_light.available()
 
 
+# `project_pairs`' comb path makes each listed item's taps inside `native_light.comb_pairs_uv` (the
+# same offsets and weights as the compiled `comb_taps`, bit for bit) instead of running `comb_taps` over
+# every base row and live triangle first (creature bench vertex E: 11,152 items, 6,242 listed; the
+# compiled pass ~0.9 ms of a ~12 ms frame, 1 thread). False: the compiled taps (the test oracle).
+COMB_TAPS_NATIVE = True
+
+
 def project_pairs(envmap, R: Tensor, geo: Geodesic, *, supersample: int, tris: Tensor, pairs: Tensor,
                   out: Tensor, grid: FrameGrid | None = None) -> Tensor:
     """`project_env`'s general path with ``tris`` for the (frame, live triangle) pairs ``pairs`` (P,)
@@ -815,6 +830,9 @@ def project_pairs(envmap, R: Tensor, geo: Geodesic, *, supersample: int, tris: T
         _, wT = _live_sample_planes(geo, supersample, tris)
         u0, v0 = _live_azimuthal_samples(geo, supersample, grid, tris, R.device)
         CT = comb_table(envmap.periodic_texels(R.device, torch.float32, planes=True), H, W, grid.n_phi)
+        if COMB_TAPS_NATIVE and u0.shape[2] <= native_light.MAX_SAMPLES:   # the listed items' taps in the loop
+            return native_light.comb_pairs_uv(pairs, u0, v0, gamma / (2 * math.pi), wT, H, W, CT, grid.n_psi,
+                                              grid.n_phi, out)
         g = torch.tensor(gamma / (2 * math.pi), dtype=torch.float64, device=R.device)
         o, w4 = _kernel(comb_taps)(u0, v0, g, wT, H, W, grid.n_phi)
         return native_light.comb_pairs(pairs, o, w4, CT, grid.n_psi, grid.n_phi, W // grid.n_phi, out)

@@ -447,7 +447,7 @@ class TripleProduct(Method):
         ``live`` (`fast_eval.live_triangles`): only the fine values of those triangles, into the
         grid's live-column table (`fast_eval.live_table`; what `fast_eval.shade_fine` reads) — the
         frame is not complete until a call without ``live`` projects it whole. With ``live``,
-        ``need`` (F, n') bool (`fast_eval.read_pairs`, or None): only those (frame, live triangle)
+        ``need`` (F, n') bool or its `native_light.NeedBits` (`fast_eval.read_pairs`, or None): only those (frame, live triangle)
         pairs, by `lighting.project_pairs` (the same values; ``frames`` is then not used) — the
         pairs eq. 7 reads with a non-zero visibility and weight; the others keep finite values that
         are read only with an exact 0 (`_spare_tables`).

@@ -26,7 +26,13 @@ are projected here, one pair (4^s samples) at a time:
 * `comb_pairs`: a map turned about +Y only (E frames, `lighting.comb_pairs_ok`): the comb path's
   sums (`lighting.comb_means`, whose compiled loop summed every frame of the grid and, per output,
   entered a parallel region) for the 8-frame groups holding a read pair only, the one-thread sums bit
-  for bit.
+  for bit; `comb_pairs_uv` (what `lighting.project_pairs` runs, session 32) makes each listed item's
+  taps in the loop with `lighting.comb_taps`' float64 / float32 / int32 operations (the same bits)
+  instead of running that compiled pass over every base row and live triangle first (creature bench
+  E: 6,242 of 11,152 items listed; the pass was ~0.9 ms of a ~12 ms frame at 1 thread);
+* `box`: the E frame's prefilter of a new probe (`lighting.box_filtered`: float64 row then column
+  sums in the torch passes' order, the same texels bit for bit) in one pass (~0.4 -> 0.1 ms).
+  Creature / chess bench vertex E with both, 1 thread, same process: 1.08x / 1.06x.
 
 Pairs not needed keep the finite values of the table's previous lighting (`TripleProduct._spare_tables`)
 or zeros, and are read only with an exact 0 (visibility or weight): the image is the same bit for bit
@@ -46,7 +52,7 @@ from torch import Tensor
 from methods.core import native
 from methods.triple_product import native as tp_native
 
-__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "project"]
+__all__ = ["available", "vis_bits", "need", "take", "comb_scatter", "comb_pairs", "comb_pairs_uv", "project", "box"]
 
 _TAP_BODY = r"""
 /* TAP_BODY: `tap` for NV vectors of samples at once (vector k in the frame of mk[k]), written out over
@@ -578,7 +584,7 @@ static int need_range(int64_t b0, int64_t b1, int64_t kv, const int64_t* vrows, 
 
 void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64_t kl, const int64_t* lrows,
              const float* lw, int64_t nw, const uint64_t* Vb, int64_t NV, int64_t F, int64_t n, uint8_t* need,
-             int64_t* status, int64_t nt) {
+             int64_t* status, int64_t nt, uint64_t* bits_out) {
     if (nt < 1) nt = 1;
     const int64_t per = F * nw + nw;                             /* a range's bit table and its acc */
     uint64_t* bits = (uint64_t*)calloc((size_t)(nt * per), sizeof(uint64_t));
@@ -594,7 +600,9 @@ void tp_need(int64_t B, int64_t kv, const int64_t* vrows, const float* vw, int64
         for (int64_t q = 1; q < nt && !bad; ++q)
             for (int64_t i = 0; i < F * nw; ++i) bits[i] |= bits[q * per + i];
     }
-    if (!bad)
+    if (!bad && bits_out)                                        /* the bit table itself (tp_take_bits) */
+        memcpy(bits_out, bits, (size_t)(F * nw) * sizeof(uint64_t));
+    if (!bad && need)
         for (int64_t f = 0; f < F; ++f)
             for (int64_t t = 0; t < n; ++t)
                 need[f * n + t] = (uint8_t)((bits[f * nw + t / 64] >> (t % 64)) & 1u);
@@ -619,6 +627,32 @@ void tp_take(int64_t N, int64_t n, const uint8_t* need, uint8_t* done, int64_t* 
             if (need[i] & (done[i] ^ 1)) { pairs[k++] = i; done[i] = 1; }
         rows += k > k0;
     }
+    counts[1] = rows;
+}
+
+/* tp_take of need given as tp_need's bit table (F rows of nw words, bit t % 64 of word t / 64 for
+   column t < n): its set bits visited in order (f, then t) instead of the F n need bytes scanned —
+   the same pairs, done and counts. */
+void tp_take_bits(int64_t F, int64_t n, int64_t nw, const uint64_t* bits, uint8_t* done, int64_t* pairs,
+                  int64_t* counts) {
+    int64_t k = 0, rows = 0;
+    const uint64_t last = n % 64 ? (((uint64_t)1 << (n % 64)) - 1u) : ~(uint64_t)0;
+    for (int64_t f = 0; f < F; ++f) {
+        const int64_t k0 = k;
+        for (int64_t w = 0; w < nw; ++w) {
+            uint64_t x = bits[f * nw + w];
+            if (w == nw - 1) x &= last;
+            while (x) {
+                const int64_t i = f * n + w * 64 + __builtin_ctzll(x);
+                x &= x - 1;
+                if (done[i]) continue;
+                if (pairs) { pairs[k] = i; done[i] = 1; }
+                ++k;
+            }
+        }
+        rows += k > k0;
+    }
+    counts[0] = k;
     counts[1] = rows;
 }
 
@@ -652,15 +686,56 @@ static inline void comb_two(const int32_t* ot, const float* wt, int64_t S, const
     r1[0] = b0; r1[1] = b1; r1[2] = b2;
 }
 
+/* The taps of lighting.comb_taps for one item's S samples (u0 float64, v0 float32, the samples'
+   weights wT float32, g = gamma / 2 pi float64; map H x W, m = W / J): ot[s] and wt[4 s + 2 dy + e] —
+   the compiled kernel's float64 / float32 / int32 operations one for one (no contraction in this
+   library): the same offsets and weights bit for bit. */
+typedef struct { const double* u0; const float* v0; const float* wT; double g; int64_t H, W; } comb_uv;
+
+static inline void comb_item_taps(const comb_uv* uv, int64_t it, int64_t t, int64_t S, int64_t J, int64_t m,
+                                  int32_t* ot, float* wt) {
+    const double* u0 = uv->u0 + it * S;
+    const float* v0 = uv->v0 + it * S;
+    const float* wT = uv->wT + t * S;
+    const int32_t W = (int32_t)uv->W, H = (int32_t)uv->H, mi = (int32_t)m, st = (int32_t)(12 * J);
+    const float half = (float)(0.5 / (double)uv->W), Wf = (float)uv->W, Hf = (float)(uv->H - 1);
+    for (int64_t s = 0; s < S; ++s) {
+        const double ud = u0[s] - uv->g;
+        float u = (float)(ud - floor(ud));
+        u = u - half;
+        const float x = (u - floorf(u)) * Wf;
+        int32_t ix = (int32_t)x;
+        ix = ix < 0 ? 0 : ix > W - 1 ? W - 1 : ix;
+        const float fx = x - (float)ix;
+        const double ixd = (double)ix;
+        const double qd = floor(ixd / (double)m);
+        const double pd = ixd - qd * (double)m;
+        const float v = v0[s] - floorf(v0[s]);
+        const float y = v * Hf;
+        int32_t iy = (int32_t)y;
+        iy = iy < 0 ? 0 : iy > H - 2 ? H - 2 : iy;
+        const float fy = y - (float)iy;
+        ot[s] = (iy * mi + (int32_t)pd) * st + (int32_t)qd;
+        const float w = wT[s];
+        wt[4 * s] = ((1.0f - fx) * (1.0f - fy)) * w;
+        wt[4 * s + 1] = (fx * (1.0f - fy)) * w;
+        wt[4 * s + 2] = ((1.0f - fx) * fy) * w;
+        wt[4 * s + 3] = (fx * fy) * w;
+    }
+}
+
 static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint64_t* mask, int64_t n, int64_t S,
                        int64_t n_psi, int64_t J, const int32_t* o, const float* w4, const float* CT, int64_t m,
-                       float* out) {
+                       float* out, const comb_uv* uv) {
     const int64_t cs = 4 * J, es = 2 * J, rs = 3 * m * cs, G = J / 8;
+    int32_t obuf[64];
+    float wbuf[256];
     for (int64_t q = i0; q < i1; ++q) {
         const int64_t it = items[q], b = it / n, t = it % n, i = b / n_psi, k = b % n_psi;
         const uint64_t mk = mask[it];
-        const int32_t* ot = o + it * S;
-        const float* wt = w4 + it * S * 4;
+        const int32_t* ot = uv ? obuf : o + it * S;
+        const float* wt = uv ? wbuf : w4 + it * S * 4;
+        if (uv) comb_item_taps(uv, it, t, S, J, m, obuf, wbuf);
         int64_t gs[8], ng = 0;
         for (int64_t g = 0; g < G; ++g)
             if ((mk >> (8 * g)) & 0xffu) gs[ng++] = g;
@@ -690,9 +765,9 @@ static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint6
     }
 }
 
-void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
-                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
-                   int64_t* status) {
+static void comb_pairs_body(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J,
+                            int64_t B, const int32_t* o, const float* w4, const float* CT, int64_t m, float* out,
+                            int64_t nt, int64_t* status, const comb_uv* uv) {
     if (J > 64) { status[0] = -1; return; }
     uint64_t* mask = (uint64_t*)calloc((size_t)(B * n), sizeof(uint64_t));
     int64_t* items = (int64_t*)malloc((size_t)(B * n + 1) * sizeof(int64_t));
@@ -713,14 +788,62 @@ void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64
     for (int64_t it = 0; it < B * n; ++it)
         if (mask[it]) items[ni++] = it;
     if (nt <= 1 || ni < 2 * nt) {
-        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+        comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out, uv);
     } else {
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
         for (int64_t q = 0; q < nt; ++q)
-            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out);
+            comb_items(ni * q / nt, ni * (q + 1) / nt, items, mask, n, S, n_psi, J, o, w4, CT, m, out, uv);
     }
     free(mask);
     free(items);
+    status[0] = 0;
+}
+
+void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                   const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
+                   int64_t* status) {
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, o, w4, CT, m, out, nt, status, NULL);
+}
+
+/* tp_comb_pairs with each listed item's taps made in the loop from its samples' base coordinates
+   (comb_item_taps: lighting.comb_taps' values bit for bit) instead of read from comb_taps' arrays
+   of every base row and live triangle: an E frame's items are about half of them, and the (B, n, S)
+   offsets and (B, n, S, 4) weights are neither written nor read back. S <= 64. */
+void tp_comb_pairs_uv(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
+                      const double* u0, const float* v0, const float* wT, double g, int64_t H, int64_t W,
+                      const float* CT, int64_t m, float* out, int64_t nt, int64_t* status) {
+    if (S > 64) { status[0] = -3; return; }
+    const comb_uv uv = {u0, v0, wT, g, H, W};
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, NULL, NULL, CT, m, out, nt, status, &uv);
+}
+
+/* lighting.box_filtered of texels d (H, W, C) float32 (k >= 2 dividing H and W) into out (H/k, W/k, C):
+   per output, its k rows of each column summed in float64 in row order (d[k I] + d[k I + 1] + ...),
+   then those k column sums in column order, times 1 / k^2, rounded to float32 once — the torch
+   loop's operations in its order, the same bits (no contraction in this library). One output row
+   of column sums (W C doubles) at a time. status[0]: 0, -2 out of memory. */
+void tp_box(int64_t H, int64_t W, int64_t C, int64_t k, const float* d, float* out, int64_t* status) {
+    const int64_t n = W * C, Wo = W / k;
+    const double inv = 1.0 / (double)(k * k);
+    double* a = (double*)malloc((size_t)n * sizeof(double));
+    if (!a) { status[0] = -2; return; }
+    for (int64_t I = 0; I < H / k; ++I) {
+        const float* r = d + I * k * n;
+        for (int64_t x = 0; x < n; ++x) a[x] = (double)r[x];
+        for (int64_t i = 1; i < k; ++i) {
+            const float* ri = r + i * n;
+            for (int64_t x = 0; x < n; ++x) a[x] += (double)ri[x];
+        }
+        float* o = out + I * Wo * C;
+        for (int64_t J = 0; J < Wo; ++J)
+            for (int64_t c = 0; c < C; ++c) {
+                const double* aj = a + J * k * C + c;
+                double b = aj[0] + aj[C];
+                for (int64_t j = 2; j < k; ++j) b += aj[j * C];
+                o[J * C + c] = (float)(b * inv);
+            }
+    }
+    free(a);
     status[0] = 0;
 }
 
@@ -765,8 +888,11 @@ def _wide_flags() -> tuple[str, ...] | None:
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
                "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
-               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I],
+               "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I, _P],
+               "tp_take_bits": [_I, _I, _I, _P, _P, _P, _P],
                "tp_take": [_I, _I, _P, _P, _P, _P],
+               "tp_comb_pairs_uv": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, ctypes.c_double, _I, _I, _P, _I, _P, _I, _P],
+               "tp_box": [_I, _I, _I, _I, _P, _P, _P],
                "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
                "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
 
@@ -821,10 +947,29 @@ MIN_PAIRS_PER_THREAD = 256
 MIN_POINTS_PER_THREAD = 8192
 
 
-def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int) -> Tensor:
+class NeedBits:
+    """`need`'s pairs as its bit table: ``bits`` (F, ⌈n/64⌉) int64, bit t % 64 of word t / 64 set where
+    the (grid row, live triangle t) pair is read; `take` visits its set bits. ``shape`` (F, n)."""
+
+    __slots__ = ("bits", "shape")
+
+    def __init__(self, bits: Tensor, n: int) -> None:
+        self.bits, self.shape = bits, (bits.shape[0], n)
+
+    def dense(self) -> Tensor:
+        """The (F, n) bool of `need` (tests)."""
+        F, n = self.shape
+        sh = torch.arange(64, dtype=torch.int64)
+        return ((self.bits[:, :, None] >> sh) & 1).view(F, -1)[:, :n].bool()
+
+
+def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: int, n: int, *,
+         as_bits: bool = False) -> Tensor | NeedBits:
     """(F, n) bool: the (grid row, live triangle) pairs that points with visibility rows / weights
     (vrows, vw (B, k_v)) and grid rows / weights (lrows, lw (B, k_L)) read with a non-zero visibility
-    and a non-zero weight; ``bits`` = `vis_bits` of their visibility table."""
+    and a non-zero weight; ``bits`` = `vis_bits` of their visibility table. ``as_bits``: the same pairs
+    as a `NeedBits` (no F·n bytes written; `take` reads its set bits: what `fast_eval.read_pairs`
+    hands `TripleProduct.fill_lighting`)."""
     lib = _lib()
     if lib is None:
         raise RuntimeError("the native kernel is not available")
@@ -838,24 +983,28 @@ def need(bits: Tensor, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor, F: 
     vrows, lrows = (x.to(torch.int64).contiguous() for x in (vrows, lrows))
     vw, lw = (x.to(torch.float32).contiguous() for x in (vw, lw))
     bits = bits.contiguous()
-    out = torch.empty(F, n, dtype=torch.uint8)
+    out = None if as_bits else torch.empty(F, n, dtype=torch.uint8)
+    tab = torch.empty(F, bits.shape[1], dtype=torch.int64) if as_bits else None
     st = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), B // MIN_POINTS_PER_THREAD))
     lib.tp_need(B, kv, vrows.data_ptr(), vw.data_ptr(), kl, lrows.data_ptr(), lw.data_ptr(), bits.shape[1],
-                bits.data_ptr(), bits.shape[0], F, n, out.data_ptr(), st.data_ptr(), nt)
+                bits.data_ptr(), bits.shape[0], F, n, None if as_bits else out.data_ptr(), st.data_ptr(), nt,
+                tab.data_ptr() if as_bits else None)
     r = int(st[0])
     if r == -1:
         raise IndexError("a row index outside its table (read with a non-zero weight)")
     if r != 0:
         raise MemoryError("tp_need could not allocate its tables")
-    return out.view(torch.bool)
+    return NeedBits(tab, n) if as_bits else out.view(torch.bool)
 
 
-def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
+def take(need: Tensor | NeedBits, done: Tensor) -> tuple[Tensor, int]:
     """The (frame, triangle) pairs of ``need`` (F, n) bool not yet in ``done`` (F, n) bool, which
     receives them: (their flat indices f·n + t (P,) int64 in order, the number of frames f holding one)
     — ``torch.nonzero(need & ~done)``, ``done |= that``, ``that.any(1).sum()`` in one pass (those
     torch operations without the library; its test oracle)."""
+    if isinstance(need, NeedBits):
+        return _take_bits(need, done)
     if need.shape != done.shape or need.ndim != 2 or need.dtype != torch.bool or done.dtype != torch.bool:
         raise ValueError("need and done (F, n) bool expected")
     lib = _lib()
@@ -871,6 +1020,28 @@ def take(need: Tensor, done: Tensor) -> tuple[Tensor, int]:
     if pairs.numel() == 0:
         return pairs, 0
     lib.tp_take(N, n, a.data_ptr(), b.data_ptr(), pairs.data_ptr(), counts.data_ptr())
+    return pairs, int(counts[1])
+
+
+def _take_bits(need: NeedBits, done: Tensor) -> tuple[Tensor, int]:
+    """`take` of a `NeedBits` (``tp_take_bits``: its set bits in order; the same pairs, done and frame
+    count as `take` of ``need.dense()``), or of ``need.dense()`` without the library."""
+    F, n = need.shape
+    if done.shape != (F, n) or done.dtype != torch.bool:
+        raise ValueError("done (F, n) bool expected")
+    lib = _lib()
+    if lib is None or not done.is_contiguous() or not need.bits.is_contiguous() or F == 0 or n == 0:
+        return take(need.dense(), done)
+    nw = need.bits.shape[1]
+    if nw != -(-n // 64) or need.bits.dtype != torch.int64:
+        raise ValueError("a bit table of another shape")
+    counts = torch.zeros(2, dtype=torch.int64)
+    d = done.view(torch.uint8)
+    lib.tp_take_bits(F, n, nw, need.bits.data_ptr(), d.data_ptr(), None, counts.data_ptr())
+    pairs = torch.empty(int(counts[0]), dtype=torch.int64)
+    if pairs.numel() == 0:
+        return pairs, 0
+    lib.tp_take_bits(F, n, nw, need.bits.data_ptr(), d.data_ptr(), pairs.data_ptr(), counts.data_ptr())
     return pairs, int(counts[1])
 
 
@@ -896,6 +1067,65 @@ def comb_scatter(means: Tensor, rows: Tensor, frames: Tensor, out: Tensor) -> bo
     dst[rows] = frames
     lib.tp_comb_scatter(B, n, J, means.data_ptr(), dst.data_ptr(), out.data_ptr())
     return True
+
+
+def comb_pairs_uv(pairs: Tensor, u0: Tensor, v0: Tensor, g: float, wT: Tensor, H: int, W: int, CT: Tensor,
+                  n_psi: int, J: int, out: Tensor) -> Tensor:
+    """`comb_pairs` of ``lighting.comb_taps(u0, v0, g, wT, H, W, J)`` with the taps made in the loop for
+    the listed pairs' items only (``tp_comb_pairs_uv``; the same fine values bit for bit, the same
+    entries written): u0 (B, n, S) float64 and v0 (B, n, S) float32 the live triangles' base
+    coordinates (`lighting._live_azimuthal_samples`), g = γ/2π, wT (n, S) float32 their samples'
+    weights, CT the comb table of the H × W map (`lighting.comb_table`), J = n_phi (J | W). Raises
+    RuntimeError without the library."""
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("the native kernel is not available")
+    F, C, n = out.shape
+    if u0.ndim != 3 or u0.shape[1] != n or v0.shape != u0.shape or wT.shape != (n, u0.shape[2]) \
+            or u0.dtype != torch.float64 or v0.dtype != torch.float32 or wT.dtype != torch.float32 \
+            or CT.dtype != torch.float32 or out.dtype != torch.float32 or C != 3 or not out.is_contiguous() \
+            or J > 64 or W % J or F != u0.shape[0] * J or F % n_psi or u0.shape[0] % n_psi \
+            or u0.shape[2] > MAX_SAMPLES or H < 2:
+        raise ValueError("u0 (B, n, S <= 64) float64, v0 (B, n, S) float32, wT (n, S) float32, "
+                         "out (B·J, 3, n) float32 contiguous, J <= 64 dividing W expected")
+    for t in (u0, v0, wT, CT, out):
+        if t.device.type != "cpu":
+            raise ValueError("CPU tensors expected")
+    m = W // J
+    if CT.numel() != H * m * 3 * 2 * 2 * J:
+        raise ValueError("the comb table of another map")
+    pairs = _checked_pairs(pairs, F * n)
+    P = pairs.numel()
+    if P == 0:
+        return out
+    B, _, S = u0.shape
+    u0, v0, wT, CT = u0.contiguous(), v0.contiguous(), wT.contiguous(), CT.contiguous()
+    st = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    lib.tp_comb_pairs_uv(P, pairs.data_ptr(), n, S, n_psi, J, B, u0.data_ptr(), v0.data_ptr(), wT.data_ptr(),
+                         float(g), H, W, CT.data_ptr(), m, out.data_ptr(), nt, st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_comb_pairs_uv could not allocate its tables")
+    return out
+
+
+def box(data: Tensor, k: int) -> Tensor | None:
+    """`lighting.box_filtered` (data (H, W, C) float32, k >= 2 dividing H and W) by one C pass (``tp_box``:
+    its float64 sums in its order, the same texels bit for bit; ~4x less time than its torch passes),
+    or None without the library or for other layouts / dtypes (the torch path runs then)."""
+    lib = _lib()
+    if lib is None or data.dtype != torch.float32 or data.ndim != 3 or data.device.type != "cpu" \
+            or not data.is_contiguous() or k < 2:
+        return None
+    H, W, C = data.shape
+    if H % k or W % k:
+        raise ValueError(f"k = {k} must divide the map's {H} x {W} texels")
+    out = torch.empty(H // k, W // k, C, dtype=torch.float32)
+    st = torch.zeros(1, dtype=torch.int64)
+    lib.tp_box(H, W, C, k, data.data_ptr(), out.data_ptr(), st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError("tp_box could not allocate its row")
+    return out
 
 
 def _checked_pairs(pairs: Tensor, size: int) -> Tensor:

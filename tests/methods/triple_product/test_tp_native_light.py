@@ -162,6 +162,71 @@ def test_comb_pairs_equal_the_comb_path(grid):
         lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs, out=torch.zeros(F, 3, n))
 
 
+@pytest.mark.parametrize("H, W, grid, gamma", [(64, 128, (17, 32, 1), 0.7), (24, 96, (5, 32, 1), 2.1),
+                                                (20, 160, (5, 32, 2), 5.9), (16, 64, (4, 16, 1), 1.3),
+                                                (12, 40, (3, 8, 3), 0.2), (10, 36, (3, 4, 1), 4.4)])
+def test_comb_pairs_with_taps_in_the_loop_equal_the_compiled_taps(H, W, grid, gamma):
+    """`lighting.project_pairs`' comb path with each listed item's taps made in the C loop
+    (`native_light.comb_pairs_uv`, ``COMB_TAPS_NATIVE``) writes the same entries with the same bits as
+    `native_light.comb_pairs` of the compiled `lighting.comb_taps` over every item (its oracle) — maps
+    whose width is not a power of two (the shift 0.5 / W rounded to float32), n_psi > 1, J = 4 (frames
+    one by one), HDR texels — on 1 and 2 threads."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap
+    from scenes.sequences import rotation_y
+
+    gen = torch.Generator().manual_seed(H + W)
+    g = lt.FrameGrid(*grid)
+    geo, R = Geodesic(2), lt.grid_frames(g)
+    env = EnvMap(torch.rand(H, W, 3, generator=gen) ** 6 * 50).rotated(rotation_y(gamma))
+    assert lt.comb_pairs_ok(env, g)
+    tris = torch.arange(1, 320, 3)
+    F, n = g.size, tris.numel()
+    pairs = torch.nonzero((torch.rand(F, n, generator=gen) < 0.3).view(-1)).squeeze(-1)
+    old, oldm = lt.COMB_TAPS_NATIVE, native_light.MIN_PAIRS_PER_THREAD
+    native_light.MIN_PAIRS_PER_THREAD = 4
+    try:
+        for nt in (1, 2):
+            outs = []
+            for fused in (False, True):
+                lt.COMB_TAPS_NATIVE = fused
+                with torch_threads(nt):
+                    outs.append(lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs,
+                                                 out=torch.full((F, 3, n), 7.0), grid=g))
+            assert torch.equal(outs[0], outs[1]), nt
+            assert bool((outs[1] != 7.0).any())
+    finally:
+        lt.COMB_TAPS_NATIVE, native_light.MIN_PAIRS_PER_THREAD = old, oldm
+
+
+def test_native_box_filter_equals_the_torch_passes():
+    """`native_light.box` (what `lighting.box_filtered` runs when built) gives the torch passes' texels bit
+    for bit — rows summed in float64 first, then columns, in order — also where the order matters (texels
+    spanning ~2^40: a different order rounds differently); other layouts fall back (None)."""
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(11)
+    x = torch.rand(48, 96, 3, generator=gen) ** 8 * 1e3
+    x[::5, ::3] *= 1e12                                                   # a block's terms ~2^40 apart
+    # 4 x 4 blocks whose float32 mean rounds by the order: an exact float32 midpoint 1 + 2^-24 and two
+    # 2^-53 terms, lost one by one (each a float64 tie, to even) but not when added to each other first
+    e, h = 2.0 ** -53, 2.0 ** -24
+    x[0:4, 0:4] = 0
+    x[0, 0], x[1, 0], x[0, 1], x[0, 2] = 1.0, h, e, e                     # the column sums' order
+    x[4:8, 4:8] = 0
+    x[4, 4], x[5, 4], x[6, 4], x[7, 4] = e, e, 1.0, h                     # the rows' order within a column
+    want = lt.box_filtered(x, 4, native=False)
+    assert float(want[0, 0, 0]) == 1 / 16 and float(want[1, 1, 0]) > 1 / 16         # the order, seen
+    for k in (2, 4, 8, 3):
+        if 48 % k or 96 % k:
+            continue
+        assert torch.equal(native_light.box(x, k), lt.box_filtered(x, k, native=False)), k
+        assert torch.equal(lt.box_filtered(x, k), lt.box_filtered(x, k, native=False)), k
+    assert native_light.box(x.double(), 2) is None and native_light.box(x.transpose(0, 1), 2) is None
+
+
 @pytest.mark.parametrize("n", [1, 45, 640])
 def test_take_is_the_new_pairs(n):
     """`native_light.take` = ``nonzero(need & ~done)`` (flat, in order), ``done |= that`` and the
@@ -179,6 +244,29 @@ def test_take_is_the_new_pairs(n):
     assert torch.equal(d, done | need)
     pairs, nf = native_light.take(need, d)
     assert pairs.numel() == 0 and nf == 0 and torch.equal(d, done | need)
+
+
+@pytest.mark.parametrize("n", [1, 45, 64, 130, 640])
+def test_take_of_the_bit_table_is_take_of_the_bools(n):
+    """`native_light.take` of `need`'s bit table (`native_light.NeedBits`, what `fast_eval.read_pairs`
+    returns) gives `take` of the (F, n) bools: the same pairs in the same order, the same done and frame
+    count — with bits set past column n in the last word (not pairs), frames with nothing new, and a
+    second take (nothing new: empty)."""
+    gen = torch.Generator().manual_seed(12)
+    F, nw = 37, -(-n // 64)
+    words = torch.randint(-2 ** 62, 2 ** 62, (F, nw), generator=gen) * torch.randint(1, 3, (F, nw), generator=gen)
+    words[5] = 0                                                             # a frame with nothing
+    bits = native_light.NeedBits(words, n)
+    need = bits.dense()
+    assert need.shape == (F, n) and bool(need.any())
+    done = torch.rand(F, n, generator=gen) < 0.3
+    done[7] = need[7]                                                        # a frame with nothing new
+    d1, d2 = done.clone(), done.clone()
+    p1, f1 = native_light.take(need, d1)
+    p2, f2 = native_light.take(bits, d2)
+    assert torch.equal(p1, p2) and f1 == f2 and torch.equal(d1, d2)
+    p2, f2 = native_light.take(bits, d2)
+    assert p2.numel() == 0 and f2 == 0 and torch.equal(d1, d2)
 
 
 def test_comb_scatter_is_the_gather_and_copy():
@@ -246,7 +334,9 @@ def test_need_is_the_read_pairs(n):
             for nt in (1, 2, 3):
                 with torch_threads(nt):
                     got = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n)
+                    bits = native_light.need(native_light.vis_bits(V), vrows, vw, lrows, lw, F, n, as_bits=True)
                 assert got.dtype == torch.bool and torch.equal(got, want), (kv, kl, vis_only, nt)
+                assert isinstance(bits, native_light.NeedBits) and torch.equal(bits.dense(), want), (kv, kl, nt)
         finally:
             native_light.MIN_POINTS_PER_THREAD = old
     with pytest.raises(IndexError):
