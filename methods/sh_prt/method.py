@@ -192,6 +192,9 @@ NATIVE_GLOSSY = True
 # A lighting change's referenced rows of l' = M l from the vertex-major first pass when it is M
 # (`SHPRT._vertex_major_M`, `native.rows_vertex_major`); False: from the lighting-major M (`native.rows`).
 NATIVE_VM_ROWS = True
+# A view frame with a complete l' table in one C pass (`native.view`: the pixel pass and the glossy
+# pass per chunk of pixels, one OpenMP region; bit-identical to the two passes); False: the two passes.
+NATIVE_VIEW = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -856,6 +859,17 @@ class SHPRT(Method):
             torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
+        if (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight and self._lg3 is not None
+                and (self._lg_valid is None or not self._lg_fresh)):
+            # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
+            # as `_glossy_light` completes it in the two passes below) in ONE C pass — the pixel pass
+            # and the glossy samples added to their pixels chunk by chunk (`native.view`): the same
+            # image bit for bit, one OpenMP region, the glossy samples' G-buffer rows read while cached
+            lg3 = self._glossy_light()
+            img = _native.view(face, hit, bary, normal, wo, self._ef, fk, S2, reg, self._fg, lg3, kd, ks, G, vcos,
+                               *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
+            if img is not None:
+                return img.view(gb.height, gb.width, 3).to(gb.hit.device)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
