@@ -855,12 +855,14 @@ class SHPRT(Method):
         if not relight:
             self._relight = None
         fk = self._face_materials(kd)
-        for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
-            torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        if (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight and self._lg3 is not None
-                and (self._lg_valid is None or not self._lg_fresh)):
+        one_pass = (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight
+                    and self._lg3 is not None and (self._lg_valid is None or not self._lg_fresh))
+        if not one_pass:  # (the compiled kernels' marks: not needed by the C pass)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
+                torch._dynamo.maybe_mark_dynamic(x, 0)
+        if one_pass:
             # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
             # as `_glossy_light` completes it in the two passes below) in ONE C pass — the pixel pass
             # and the glossy samples added to their pixels chunk by chunk (`native.view`): the same
@@ -870,6 +872,8 @@ class SHPRT(Method):
                                *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
             if img is not None:
                 return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
+                torch._dynamo.maybe_mark_dynamic(x, 0)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]

@@ -890,6 +890,19 @@ def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, re
     return out if int(ok) else None
 
 
+_VT: list = [None]
+
+
+def _view_tables(vcos: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+    """(vcos as uint8, S's one-hot rows as int32 indices) of `view`, kept while vcos and S are the same
+    tensors at the same versions (`SHPRT._materials` and `_sh_factor_tables` return their cached ones)."""
+    c = _VT[0]
+    if c is None or c[0] is not vcos or c[1] is not S or c[2] != (vcos._version, S._version):
+        c = _VT[0] = (vcos, S, (vcos._version, S._version), vcos.to(torch.uint8).contiguous(),
+                      S.argmax(0).to(torch.int32).contiguous())
+    return c[3], c[4]
+
+
 # Pixels per chunk of `view` (its pixel pass and glossy pass per chunk; at most 1024 samples).
 VIEW_CHUNK = 256
 
@@ -917,8 +930,7 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
     face, hit, reg = face.contiguous(), hit.contiguous(), reg.contiguous()
     ef, fk, fg, kd, ks, G, A = (x.contiguous() for x in (ef, fk, fg, kd, ks, G, A))
-    v8 = vcos.to(torch.uint8).contiguous()
-    sel = S.argmax(0).to(torch.int32).contiguous()
+    v8, sel = _view_tables(vcos, S)
     npx = P // S2
     img = torch.empty(npx, 3)
     ok = torch.zeros(1, dtype=torch.int64)
