@@ -21,6 +21,15 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 32 (pp32): a view frame whose l' table is complete (every V frame of a view sequence after
+    its second) runs as ONE C pass (`native.view`, `NATIVE_VIEW`): per chunk of 256 pixels the pixel
+    pass, then that chunk's glossy samples shaded and added to its pixels while their G-buffer rows are
+    in cache; chunks handed out dynamically over one OpenMP region (the glossy samples are not spread
+    evenly over the image). The same image bit for bit as the two passes (each pixel written, then its
+    glossy samples added in order, by one thread), no glossy list or radiance array. Creature bench V,
+    same process against bc5fbe4, 1 thread, process CPU (load 5-12): 1.11-1.23×
+    (``python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V --threads 1 --frames 15``);
+    VL / L / E 0.98-1.05× (unchanged paths).
   * t and M are stored channel-major (`channel_major`), so e and l' are one streaming
     matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
     block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
