@@ -56,6 +56,12 @@ VB 1.19x; images bit-identical. Tried and dropped: a 16-lane body of `shade_pixe
 same bits; sample stage 0.98–1.03x, noise), the next run's cells computed a run ahead with its env rows
 prefetched into L2 (1.007x).
 
+Session 32 (pp32): at 2+ threads `shade_mirror` hands out chunks of `MIRROR_CHUNK` pixels and
+`vertex_rows` chunks of `ROWS_CHUNK` pairs dynamically instead of one contiguous range per thread: the
+two halves of a chess bench V frame are not the same work (sample stage, 1 thread, process CPU: 2.26
+against 2.48 ms; its quarters 0.8-1.6 ms), so the static split waited for the slower half. Each pixel
+and row is still one thread's: the same bits at any thread count (tested).
+
 Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
 width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
 elsewhere; later blocks a e; the values the general selects pick): the sample stage 1.04–1.05x, the
