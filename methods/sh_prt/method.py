@@ -21,6 +21,15 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 32 (pp32): a view frame whose l' table is complete (every V frame of a view sequence after
+    its second) runs as ONE C pass (`native.view`, `NATIVE_VIEW`): per chunk of 256 pixels the pixel
+    pass, then that chunk's glossy samples shaded and added to its pixels while their G-buffer rows are
+    in cache; chunks handed out dynamically over one OpenMP region (the glossy samples are not spread
+    evenly over the image). The same image bit for bit as the two passes (each pixel written, then its
+    glossy samples added in order, by one thread), no glossy list or radiance array. Creature bench V,
+    same process against bc5fbe4, 1 thread, process CPU (load 5-12): 1.11-1.23×
+    (``python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V --threads 1 --frames 15``);
+    VL / L / E 0.98-1.05× (unchanged paths).
   * t and M are stored channel-major (`channel_major`), so e and l' are one streaming
     matrix-vector product per channel (`apply_lighting`); the einsum's batched product and a
     block-diagonal GEMM with 3 output columns were 3-4× slower. The GEMV reads M (72.7 MB on the
@@ -192,6 +201,9 @@ NATIVE_GLOSSY = True
 # A lighting change's referenced rows of l' = M l from the vertex-major first pass when it is M
 # (`SHPRT._vertex_major_M`, `native.rows_vertex_major`); False: from the lighting-major M (`native.rows`).
 NATIVE_VM_ROWS = True
+# A view frame with a complete l' table in one C pass (`native.view`: the pixel pass and the glossy
+# pass per chunk of pixels, one OpenMP region; bit-identical to the two passes); False: the two passes.
+NATIVE_VIEW = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -852,10 +864,25 @@ class SHPRT(Method):
         if not relight:
             self._relight = None
         fk = self._face_materials(kd)
-        for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
-            torch._dynamo.maybe_mark_dynamic(x, 0)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
+        one_pass = (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight
+                    and self._lg3 is not None and (self._lg_valid is None or not self._lg_fresh))
+        if not one_pass:  # (the compiled kernels' marks: not needed by the C pass)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
+                torch._dynamo.maybe_mark_dynamic(x, 0)
+        if one_pass:
+            # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
+            # as `_glossy_light` completes it in the two passes below) in ONE C pass — the pixel pass
+            # and the glossy samples added to their pixels chunk by chunk (`native.view`): the same
+            # image bit for bit, one OpenMP region, the glossy samples' G-buffer rows read while cached
+            lg3 = self._glossy_light()
+            img = _native.view(face, hit, bary, normal, wo, self._ef, fk, S2, reg, self._fg, lg3, kd, ks, G, vcos,
+                               *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
+            if img is not None:
+                return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
+                torch._dynamo.maybe_mark_dynamic(x, 0)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]

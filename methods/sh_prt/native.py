@@ -550,6 +550,43 @@ void sh_glossy(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int6
 #endif
 }
 
+/* A view frame in one pass (session 32, `view`): the pixel pass (`sh_pixels`) and the glossy pass adding
+   into the pixels (`sh_glossy` with img), per chunk of ``chunk`` pixels (even) — the chunk's pixels by
+   `px_any`, its glossy samples listed in a chunk-local buffer, then shaded by `gl_range` and added to the
+   chunk's pixels while its G-buffer rows are still in cache. Each pixel's value is written and then its
+   glossy samples added in ascending order by one thread, as the two passes do: the same image bit for
+   bit, whatever the thread count (chunks handed out dynamically: the glossy samples are not spread
+   evenly over the image). One OpenMP region per frame instead of two, no glossy list or radiance array
+   returned. ``ok`` = 0 (nothing written) without AVX2. */
+#define VIEW_CHUNK_SAMPLES 1024
+void sh_view(int64_t npx, int64_t S2, const int64_t *face, const uint8_t *hit,
+             const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+             const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
+             float inv, float *img, int64_t fast, int64_t n, const int64_t *reg, int64_t Rn,
+             const int32_t *fg, const float *lg, int64_t lsc, int64_t lsr, const float *kd, const float *ks,
+             const float *G, const uint8_t *vcos, const float *A, const int32_t *sel, int64_t fused,
+             int64_t chunk, int64_t nt, int64_t *ok) {
+#ifdef __AVX2__
+    *ok = 1;
+    if (chunk < 2) chunk = 2;
+    chunk &= ~(int64_t)1;
+    if (chunk * S2 > VIEW_CHUNK_SAMPLES) chunk = VIEW_CHUNK_SAMPLES / S2 > 0 ? VIEW_CHUNK_SAMPLES / S2 : 1;
+    const int64_t nch = (npx + chunk - 1) / chunk;
+    #pragma omp parallel for num_threads(nt > 0 ? nt : 1) schedule(dynamic, 2) if (nt > 1)
+    for (int64_t k = 0; k < nch; ++k) {
+        int64_t gl[VIEW_CHUNK_SAMPLES];
+        float out[3 * VIEW_CHUNK_SAMPLES];
+        const int64_t p0 = k * chunk, p1 = p0 + chunk < npx ? p0 + chunk : npx;
+        const int64_t ng = px_any(p0, p1, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
+        if (ng)
+            gl_range(0, ng, n, gl, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks,
+                     G, vcos, A, sel, out, img, S2, inv, fused);
+    }
+#else
+    *ok = 0;
+#endif
+}
+
 void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const float *l,
                 const int64_t *rows, int64_t R, int64_t Vg, float *out, int64_t nt) {
     if (nt <= 1) { lg_rows(C, n2, ncols, X, l, rows, R, Vg, out); return; }
@@ -570,7 +607,9 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
-                             _P, _P, _I, _I]}
+                             _P, _P, _I, _I],
+               "sh_view": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P, _I,
+                           _I, _P, _I, _P, _P, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _I, _P]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
 # The glossy pass with its multiply-adds fused where the build has FMA (`gl_range`; float32 round-off
@@ -849,3 +888,57 @@ def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, re
                   A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr(), int(bool(FUSED_GLOSSY)),
                   None if img is None else img.data_ptr(), int(S2), 1.0 / S2)
     return out if int(ok) else None
+
+
+_VT: list = [None]
+
+
+def _view_tables(vcos: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+    """(vcos as uint8, S's one-hot rows as int32 indices) of `view`, kept while vcos and S are the same
+    tensors at the same versions (`SHPRT._materials` and `_sh_factor_tables` return their cached ones)."""
+    c = _VT[0]
+    if c is None or c[0] is not vcos or c[1] is not S or c[2] != (vcos._version, S._version):
+        c = _VT[0] = (vcos, S, (vcos._version, S._version), vcos.to(torch.uint8).contiguous(),
+                      S.argmax(0).to(torch.int32).contiguous())
+    return c[3], c[4]
+
+
+# Pixels per chunk of `view` (its pixel pass and glossy pass per chunk; at most 1024 samples).
+VIEW_CHUNK = 256
+
+
+def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor, S2: int,
+         reg: Tensor, fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor,
+         S: Tensor) -> Tensor | None:
+    """A view frame's image (n, 3) in one C pass (session 32): `pixels` and then `glossy` adding into the
+    pixels (``img``), per chunk of `VIEW_CHUNK` pixels — the same image bit for bit (the same loops, each
+    pixel's value written, then its glossy samples added in ascending order, by one thread). For a frame
+    whose l' table (``lg3`` (3, Vg, n²)) is complete: no glossy list is returned. None where either loop
+    would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s."""
+    lib = _lib()
+    n = math.isqrt(int(G.shape[1]))
+    if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
+            or any(x.dtype != torch.float32 or x.dim() != 2 for x in (bary, normal, wo, ef, fk))
+            or bary.shape[1] != 2 or normal.shape[1] != 3 or wo.shape[1] != 3 or ef.shape[1] != 9
+            or fk.shape != (ef.shape[0], 4) or ef.shape[0] == 0 or not 1 <= S2 <= 256
+            or n % 2 == 0 or n > 7 or n * n != G.shape[1] or reg.dtype != torch.int64
+            or fg.dtype != torch.int32 or lg3.dim() != 3 or lg3.stride(2) != 1
+            or any(x.dtype != torch.float32 for x in (lg3, kd, ks, G, A))):
+        return None
+    P = int(face.numel())
+    if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo, reg)):
+        raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
+    face, hit, reg = face.contiguous(), hit.contiguous(), reg.contiguous()
+    ef, fk, fg, kd, ks, G, A = (x.contiguous() for x in (ef, fk, fg, kd, ks, G, A))
+    v8, sel = _view_tables(vcos, S)
+    npx = P // S2
+    img = torch.empty(npx, 3)
+    ok = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), npx // MIN_PIXELS_PER_THREAD))
+    lib.sh_view(npx, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
+                normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
+                ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), int(bool(VECTOR_PIXELS)),
+                n, reg.data_ptr(), int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1),
+                kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
+                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ok.data_ptr())
+    return img if int(ok) else None

@@ -851,3 +851,81 @@ def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch)
                 for out in got:
                     assert out.shape == want.shape and torch.equal(out, want), float((out - want).abs().max())
     assert bool((got[0][:, :3] != 0).any()) and bool((got[0][:, 3:] != 0).any())
+
+
+@pytest.mark.parametrize("chunk", [8, 1000, 1 << 20])
+def test_native_shade_mirror_dynamic_chunks_are_the_one_range_per_thread_image(chunk, monkeypatch):
+    """``native.shade_mirror`` at 2 threads with its pixels handed out in chunks of ``MIRROR_CHUNK``
+    (session 32: dynamic, a multiple of 8 pixels; a last partial chunk; one chunk for all) gives the
+    image of the contiguous range per thread (``MIRROR_CHUNK`` 0) and of 1 thread, bit for bit."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.cells_available():
+        pytest.skip("no native cells for the ISA Inductor vectorises for here")
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    S2, n_pix = 4, 4098
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pix, 32)
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    C = 3 + 3 * L
+    width = F.table_width(C)
+    maps = [_FakeEnv(torch.rand(env.H, env.W, 3, generator=g) * 4.0, env.to_world) for _ in range(L)]
+    erows = F.env_rows(F.env_stack(maps, width), width)
+    table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+    table[-1] = 0.0
+    lanes = F._lane_masks(C, L, width)
+    args = (normal, wo, env.to_world, env.H, face, bary, fpm, table, erows, lanes, env.W, S2)
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = N.shade_mirror(*args)
+        torch.set_num_threads(2)
+        monkeypatch.setattr(N, "MIRROR_CHUNK", 0)
+        ranges = N.shade_mirror(*args)
+        monkeypatch.setattr(N, "MIRROR_CHUNK", chunk)
+        got = N.shade_mirror(*args)
+    finally:
+        torch.set_num_threads(old)
+    assert (one != 0).any() and torch.equal(ranges, one) and torch.equal(got, one)
+
+
+@pytest.mark.parametrize("chunk", [5, 64, 1 << 20])
+def test_native_vertex_rows_dynamic_chunks_are_the_one_range_per_thread_rows(chunk, monkeypatch):
+    """``native.vertex_rows`` at 2 threads with its pairs handed out in chunks of ``ROWS_CHUNK`` (session
+    32: dynamic; chunks not a multiple of its 32-pair blocks, a last partial one, one for all) gives the
+    rows of the contiguous range per thread (``ROWS_CHUNK`` 0) and of 1 thread, bit for bit."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.cells_available():
+        pytest.skip("no native cells for the ISA Inductor vectorises for here")
+    monkeypatch.setattr(N, "_MIN_PAIRS_PER_THREAD", 8)
+    scene = get_scene("chess", "test")
+    m = PTT(**{**TINY, **VARIANTS["chess"], "n_wi": 8}, bounces=0)
+    m.precompute(scene)
+    frames = [_small(f) for f in make_sequence(scene, "V", n_frames=2, seed=5)]
+    gb = make_gbuffer(scene, frames[0], 2)
+    m.render(frames[0], gb)
+    st = m._fast_static()
+    E, _ = m._f_E
+    Wr, ar = m._f_tabs
+    L = len(m.config["lobe_degrees"])
+    lobes = dict(ar=ar, n_theta=m.lobe_table.theta.shape[0], Tv=m.lobe_vis.shape[-1],
+                 vis=m.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L), I1=None, f=None, order=m.config["sh_order"])
+    T, K = m.factors.W_tab.shape[-1], m.factors.K
+    cam = torch.as_tensor(frames[1].camera.origin, dtype=torch.float32)
+    pairs = torch.arange(st.pair_v.numel())
+    width = F.table_width(3 + 3 * L)
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=pairs)
+        torch.set_num_threads(2)
+        monkeypatch.setattr(N, "ROWS_CHUNK", 0)
+        ranges = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=pairs)
+        monkeypatch.setattr(N, "ROWS_CHUNK", chunk)
+        got = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=pairs)
+    finally:
+        torch.set_num_threads(old)
+    assert pairs.numel() > 2 * 8 and (one[:, :3] != 0).any()
+    assert torch.equal(ranges, one) and torch.equal(got, one)

@@ -787,6 +787,89 @@ def test_native_glossy_adding_to_the_pixels_equals_add_pixels(S2, threads, monke
     assert not torch.equal(want, img0) and torch.equal(got, want)
 
 
+@pytest.mark.parametrize("S2", [1, 4, 9])
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("chunk", [2, 7, 256])
+def test_native_view_equals_the_two_passes(S2, threads, chunk, monkeypatch):
+    """`native.view` (session 32: a view frame's pixel pass and glossy pass in one C pass, per chunk of
+    pixels) gives bit for bit the image of `native.pixels` then `native.glossy` adding into its pixels —
+    at 1 and 2 threads, chunk sizes odd (rounded to even), small and large, a last partial chunk, an odd
+    pixel count (the scalar tail of the 8-lane pixel pass), misses, back-facing and glossy samples."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "VIEW_CHUNK", chunk)
+    monkeypatch.setattr(native, "MIN_PIXELS_PER_THREAD", 64)
+    gen = torch.Generator().manual_seed(32 + S2 + 10 * threads + chunk)
+    order, n = 5, 1001
+    n2, P, M, Vg, R = order * order, n * S2, 60, 50, 3
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T                              # column-major (Mitsuba)
+    normal = torch.randn(P, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.randn(M, 9, generator=gen)
+    fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.4).float()], 1)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+    kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    lg3 = torch.randn(3, Vg, n2, generator=gen)
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        got = native.view(face, hit, bary, normal, wo, ef, fk, S2, reg, fg, lg3, kd, ks, G, vcos, *AS)
+        want, g = native.pixels(face, hit, bary, normal, wo, ef, fk, S2)
+        before = want.clone()
+        vals = native.glossy(g, face, bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos, *AS, img=want, S2=S2)
+    finally:
+        torch.set_num_threads(old)
+    if got is None:
+        assert vals is None
+        pytest.skip("no AVX2")
+    assert g.numel() > 100 and (vals > 0).any() and not torch.equal(want, before)
+    assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_view_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
+    """A view sequence rendered with `NATIVE_VIEW` (session 32: from its second frame, once l' is
+    complete, `native.view`) gives the images of the two passes bit for bit, and takes that path."""
+    import copy
+
+    from methods.sh_prt import method as shm, native
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene("creature", "test")
+    m = shm.SHPRT(order=5, bounces=0, rays=16)
+    m.precompute(scene)
+    calls = []
+    real = native.view
+    monkeypatch.setattr(native, "view", lambda *a: calls.append(1) or real(*a))
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        a, b = copy.copy(m), copy.copy(m)
+        a._reset_cache()
+        b._reset_cache()
+        for frame in make_sequence(scene, "V", n_frames=4, seed=2):
+            gb = make_gbuffer(scene, frame, 2)
+            monkeypatch.setattr(shm, "NATIVE_VIEW", True)
+            x = a.render(frame, gb)
+            monkeypatch.setattr(shm, "NATIVE_VIEW", False)
+            y = b.render(frame, gb)
+            assert torch.equal(x, y)
+    finally:
+        torch.set_num_threads(old)
+    assert len(calls) >= 2
+
+
 @pytest.mark.parametrize("Q", [1, 8, 1001])
 def test_native_relight_add_equals_the_gemm(Q):
     """`native.relight_add` on the packed relight cache (`native.relight_pack`, per 8 samples) adds
