@@ -310,9 +310,11 @@ _SPLIT_SOURCE = r"""
 /* mask[p] = normal[p] == n0 (float compares of the three components, as `runtime._plane_match`),
    p in [0, P), on nt threads of OpenMP's team (thread k the samples [P k / nt, P (k + 1) / nt));
    cnt[3 k] the matches of thread k, cnt[3 k + 1] those whose region has a specular term (spec (R,)),
-   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,). */
+   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,).
+   hit (P,) or NULL (every sample hits): a miss's region is not read, and a miss that matches counts
+   as outside (the caller's torch path then). */
 void plane_mask(const float* normal, const float* n0, const int64_t* region, const uint8_t* spec, int64_t R,
-                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt) {
+                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt, const uint8_t* hit) {
 #pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
     for (int64_t k = 0; k < nt; ++k) {
         const float a = n0[0], b = n0[1], c = n0[2];
@@ -323,8 +325,8 @@ void plane_mask(const float* normal, const float* n0, const int64_t* region, con
             mask[p] = e;
             ne += e;
             const int64_t r = region[p];
-            const int ok = (uint64_t)r < (uint64_t)R;
-            bad += !ok;
+            const int ok = (uint64_t)r < (uint64_t)R, h = hit ? hit[p] : 1;
+            bad += (!ok & h) | (e & !h);
             ns += e & (ok ? spec[r] : 0);
         }
         cnt[3 * k] = ne;
@@ -373,7 +375,7 @@ void object_rows(const uint8_t* mask, int64_t P, int64_t nt, const int64_t* star
     }
 }
 """
-_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
+_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P, _P],
                      "object_rows": [_P, _I, _I, _P, _I, _P, _P, _I, _P, _I, _I, _P, _P, _I, _I, _P,
                                      _P, _P, _P, _P, _P, _P, _P]}
 
@@ -388,11 +390,13 @@ def split_available() -> bool:
     return terms_switched_on() and _split_lib() is not None
 
 
-def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tuple[Tensor, int, int, list[int]] | None:
+def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor, hit: Tensor | None = None
+               ) -> tuple[Tensor, int, int, list[int]] | None:
     """(mask (P,) bool: ``normal`` (P, 3) row-major equals n0 (3,), as `runtime._plane_match`; its count;
     the count of those whose region has a specular term (``spec`` (R,) bool); the per-thread counts of
     the matches, for `object_rows`) by the C loop, or None (not available, not float32 / int64 / CPU
-    contiguous arrays, a region outside [0, R)): the caller's torch path then."""
+    contiguous arrays, a region outside [0, R)): the caller's torch path then. ``hit`` (P,) bool: the
+    misses' regions are not read (a miss that matches: None)."""
     fn = _split_lib() if terms_switched_on() else None
     P = int(normal.shape[0])
     if fn is None or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
@@ -404,8 +408,11 @@ def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tupl
     nt = max(1, torch.get_num_threads())
     mask = torch.empty(P, dtype=torch.bool)
     cnt = torch.zeros(nt, 3, dtype=torch.int64)
+    if hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous()
+                            or hit.device.type != "cpu"):
+        return None
     fn.plane_mask(normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
-                  mask.data_ptr(), cnt.data_ptr())
+                  mask.data_ptr(), cnt.data_ptr(), 0 if hit is None else hit.data_ptr())
     c = cnt.tolist()
     if any(r[2] for r in c):
         return None

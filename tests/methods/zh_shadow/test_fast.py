@@ -1432,7 +1432,8 @@ def test_native_split_equals_torch_split(small_model):
     search and gathers bit for bit: the plane, its mask and the object samples' positions, vertex ids,
     barycentric weights, normals, ωo and regions, at 1 and 2 threads; images of V / VB / P frames equal
     with it on and off (the oracle: ``native_split = False``); False where the torch path finds no
-    single plane (alcove: two planes) or one with a specular term — and not used when a sample misses."""
+    single plane (alcove: two planes) or one with a specular term — and not used when more than
+    `SPLIT_MAX_MISSES` samples miss."""
     from methods.core.threads import torch_threads
     from methods.zh_shadow import native as zn
     from references.gbuffer import make_gbuffer
@@ -1891,3 +1892,57 @@ def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
         assert calls and all(calls)
         assert torch.equal(got[1], got[2])
         assert (got[1] - want).abs().max() <= 2e-6 * want.abs().max(), (order, a0)
+
+
+def test_native_split_with_few_misses_equals_torch_split(small_model):
+    """A G-buffer where a few samples miss (up to `SPLIT_MAX_MISSES`: the bench views miss 0-1) is split
+    by the native passes too (`ZHShadow._native_split` with ``misses``: the misses neither on the plane
+    nor among the object's rows), the same rows bit for bit as the torch path's and the same images
+    and counts on V / VB / P frames (the oracle: ``native_split = False``), at 1 and 2 threads; more
+    misses than that: the torch path."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import method as zm
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    if not zn.split_available():
+        pytest.skip("the native split is not available here")
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_split = False
+    results = []
+    split = type(fast)._native_split
+
+    def spy(self, *a):
+        out = split(self, *a)
+        results.append(out)
+        return out
+
+    for kind in ("V", "VB", "P"):
+        for f in make_sequence(m.scene, kind, 2, seed=4):
+            g = make_gbuffer(m.scene, f, 2)
+            on_plane = g.normal[:, 2] == g.normal[:, 2].mode().values   # (the ground's samples, about)
+            pos = torch.cat([on_plane.nonzero().squeeze(-1)[[3, 1000, -5]], (~on_plane & g.hit).nonzero().squeeze(-1)[[0, 7, -1]]])
+            miss = torch.zeros(g.num_samples, dtype=torch.bool)
+            miss[pos] = True
+            gm = dataclasses.replace(g, **_misses(g, miss))
+            assert int((~gm.hit).sum()) == 6 <= zm.SPLIT_MAX_MISSES
+            for nt in (1, 2):
+                results.clear()
+                with torch_threads(nt), mock.patch.object(type(fast), "_native_split", spy):
+                    a = fast.render(f, gm)
+                with torch_threads(nt):
+                    c = slow.render(f, gm)
+                assert len(results) == 1 and isinstance(results[0], tuple), (kind, nt)   # the native split ran
+                assert fast.last_path == slow.last_path == "planes", (kind, fast.last_path)
+                assert torch.equal(a, c), (kind, nt)
+                ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+                assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
+    many = torch.zeros(g.num_samples, dtype=torch.bool)
+    many[:zm.SPLIT_MAX_MISSES + 1] = True
+    results.clear()
+    with mock.patch.object(type(fast), "_native_split", spy):
+        fast.render(f, dataclasses.replace(g, **_misses(g, many)))
+    assert not results
