@@ -267,6 +267,9 @@ FRONT_PLANE_MIN_POINTS = 256
 # A frame that shades at least this many samples off the planes per vertex builds the per-vertex
 # table even when it will not be reused (`ZHShadow._vertex_table`: break-even measured ~1.4).
 VERTEX_TABLE_POINTS = 1.5
+# `ZHShadow._render_planes` splits a G-buffer by the native passes (`_native_split`) when at most this
+# many samples miss (the bench views miss 0-1); more: the torch path
+SPLIT_MAX_MISSES = 64
 
 
 @register
@@ -644,7 +647,9 @@ class ZHShadow(Method):
         nrm, region = gbuffer.normal, gbuffer.region
         spec = [t[3] is not None for t in tabs]
         F32, fv = self._face_rows(geom, dev)
-        split = self._native_split(gbuffer, spec, F32) if all_hit and self.native_split else None
+        misses = None if all_hit else (~gbuffer.hit).nonzero().squeeze(-1)
+        split = self._native_split(gbuffer, spec, F32, misses) \
+            if self.native_split and (misses is None or misses.shape[0] <= SPLIT_MAX_MISSES) else None
         if split is False:
             return None
         if split is not None:   # the same plane, mask and object rows as the torch path below, bit for bit
@@ -723,7 +728,7 @@ class ZHShadow(Method):
     # `_plane_pixels`' bits) where it runs; False: the compiled pass (the tests' oracle)
     native_plane_pixels = True
 
-    def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor):
+    def _native_split(self, gbuffer: GBuffer, spec: list[bool], F32: Tensor, misses: Tensor | None = None):
         """`_render_planes`' plane search and split of an all-hit G-buffer by the native passes: False
         where the torch path finds no single plane holding most samples with none of its samples in a
         region with a specular term and some samples off it (`_render_planes` returns None then), None
@@ -731,7 +736,15 @@ class ZHShadow(Method):
         bool, rest (Q,), vi (Q, 3) int32, b (Q, 3), nT, woT (3, Q), reg (Q,)) — what the torch path
         computes, bit for bit: the same candidate search (`runtime.first_plane`), float compares and
         copies. Bench creature P frame, 1 thread: the match, ``nonzero`` and seven gathers (~8 passes
-        over P or Q elements) become two passes."""
+        over P or Q elements) become two passes.
+
+        ``misses`` (k,) int64: the samples that miss (at most `SPLIT_MAX_MISSES`; None: every sample
+        hits) — as the torch path, neither on the plane (a miss's normal is 0: the match never takes
+        it; the mask is and-ed with the hits all the same) nor among the object's rows (the row pass
+        takes them as the plane's and skips them: their face −1 is no row). Before (session 32) such
+        a frame took the torch path: the bench creature's V / VB / VL views miss 1 of 262,144 samples
+        in some frames (perf suite seed 0: V frame 2, VB 1 and 4, VL 3), and the first of them in a
+        process compiled `runtime._plane_match` inside a timed frame (paper V frame 2: 61-75 ms)."""
         P, nrm, region = gbuffer.num_samples, gbuffer.normal, gbuffer.region
         if P < rt.PLANAR_MIN_POINTS or not zn.split_available() or not nrm.is_contiguous() \
                 or nrm.device.type != "cpu":
@@ -740,7 +753,7 @@ class ZHShadow(Method):
         found: list = []
 
         def match(n0: Tensor) -> tuple[Tensor, int]:
-            r = zn.plane_mask(nrm, n0, region, spec_t)
+            r = zn.plane_mask(nrm, n0, region, spec_t, None if misses is None else gbuffer.hit)
             if r is None:   # (a region outside the materials: the compiled match, as the torch path)
                 eq, cnt, ns = rt._plane_match(nrm, n0, region, spec_t)
                 r = (eq, int(cnt), int(ns), None)
@@ -756,16 +769,27 @@ class ZHShadow(Method):
             return None
         if any(spec) and ns:
             return False          # a specular term on the plane
-        rows = zn.object_rows(mask, per_thread, gbuffer.face, F32, gbuffer.bary, nrm, gbuffer.wo, region)
+        skip = mask
+        if misses is not None and misses.shape[0]:
+            mask = mask & gbuffer.hit
+            # the row pass skips the masked samples: the misses too, each counted in its thread's range
+            # (thread k of nt: samples [P k / nt, P (k + 1) / nt), `native.object_rows`)
+            skip = mask.clone()
+            skip[misses] = True
+            nt = len(per_thread)
+            per_thread = [int(skip[(P * k) // nt:(P * (k + 1)) // nt].sum()) for k in range(nt)]
+        rows = zn.object_rows(skip, per_thread, gbuffer.face, F32, gbuffer.bary, nrm, gbuffer.wo, region)
         if rows is None:
             return None
         rest, vi, b, nT, woT, reg = rows
         if rest.shape[0] == 0:
             return False          # no object samples
-        if rest.shape[0] >= rt.PLANAR_MIN_POINTS:
-            sc = zn.screen_counts(nT)
+        # (with misses the torch path searches the samples off the plane, misses among them: so here)
+        cur = nT if skip is mask else rt.rows(nrm.index_select(0, (~found[0][0]).nonzero().squeeze(-1)))
+        if cur.shape[1] >= rt.PLANAR_MIN_POINTS:
+            sc = zn.screen_counts(cur)
             # a second plane among them (`planar_groups`; every candidate screened out: none, as it finds)
-            if (sc is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in sc)) and rt.planar_groups(nT)[0]:
+            if (sc is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in sc)) and rt.planar_groups(cur)[0]:
                 return False
         return [(first[0], None)], mask, rest, vi, b, nT, woT, reg
 

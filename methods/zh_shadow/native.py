@@ -310,9 +310,11 @@ _SPLIT_SOURCE = r"""
 /* mask[p] = normal[p] == n0 (float compares of the three components, as `runtime._plane_match`),
    p in [0, P), on nt threads of OpenMP's team (thread k the samples [P k / nt, P (k + 1) / nt));
    cnt[3 k] the matches of thread k, cnt[3 k + 1] those whose region has a specular term (spec (R,)),
-   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,). */
+   cnt[3 k + 2] the samples whose region is outside [0, R). normal (P, 3) row-major; region (P,).
+   hit (P,) or NULL (every sample hits): a miss's region is not read, and a miss that matches counts
+   as outside (the caller's torch path then). */
 void plane_mask(const float* normal, const float* n0, const int64_t* region, const uint8_t* spec, int64_t R,
-                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt) {
+                int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt, const uint8_t* hit) {
 #pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
     for (int64_t k = 0; k < nt; ++k) {
         const float a = n0[0], b = n0[1], c = n0[2];
@@ -323,8 +325,8 @@ void plane_mask(const float* normal, const float* n0, const int64_t* region, con
             mask[p] = e;
             ne += e;
             const int64_t r = region[p];
-            const int ok = (uint64_t)r < (uint64_t)R;
-            bad += !ok;
+            const int ok = (uint64_t)r < (uint64_t)R, h = hit ? hit[p] : 1;
+            bad += (!ok & h) | (e & !h);
             ns += e & (ok ? spec[r] : 0);
         }
         cnt[3 * k] = ne;
@@ -373,7 +375,7 @@ void object_rows(const uint8_t* mask, int64_t P, int64_t nt, const int64_t* star
     }
 }
 """
-_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P],
+_SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P, _P],
                      "object_rows": [_P, _I, _I, _P, _I, _P, _P, _I, _P, _I, _I, _P, _P, _I, _I, _P,
                                      _P, _P, _P, _P, _P, _P, _P]}
 
@@ -388,11 +390,13 @@ def split_available() -> bool:
     return terms_switched_on() and _split_lib() is not None
 
 
-def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tuple[Tensor, int, int, list[int]] | None:
+def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor, hit: Tensor | None = None
+               ) -> tuple[Tensor, int, int, list[int]] | None:
     """(mask (P,) bool: ``normal`` (P, 3) row-major equals n0 (3,), as `runtime._plane_match`; its count;
     the count of those whose region has a specular term (``spec`` (R,) bool); the per-thread counts of
     the matches, for `object_rows`) by the C loop, or None (not available, not float32 / int64 / CPU
-    contiguous arrays, a region outside [0, R)): the caller's torch path then."""
+    contiguous arrays, a region outside [0, R)): the caller's torch path then. ``hit`` (P,) bool: the
+    misses' regions are not read (a miss that matches: None)."""
     fn = _split_lib() if terms_switched_on() else None
     P = int(normal.shape[0])
     if fn is None or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
@@ -404,8 +408,11 @@ def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor) -> tupl
     nt = max(1, torch.get_num_threads())
     mask = torch.empty(P, dtype=torch.bool)
     cnt = torch.zeros(nt, 3, dtype=torch.int64)
+    if hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous()
+                            or hit.device.type != "cpu"):
+        return None
     fn.plane_mask(normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
-                  mask.data_ptr(), cnt.data_ptr())
+                  mask.data_ptr(), cnt.data_ptr(), 0 if hit is None else hit.data_ptr())
     c = cnt.tolist()
     if any(r[2] for r in c):
         return None
@@ -1142,3 +1149,236 @@ def screen_counts(cur: Tensor) -> list[int] | None:
     cnt = torch.zeros(8, dtype=torch.int64)
     lib.zh_screen(cur.data_ptr(), cur.stride(0), cur.stride(1), int(cur.shape[1]), cnt.data_ptr())
     return cnt.tolist()
+
+
+# --- `runtime.zonal_conjugate` of the specular term as one C pass -------------------------------------------
+#
+# A vertex-shaded view frame's t_s (`runtime.specular_parts`) was the reflection directions (`reflect_T`,
+# ~8 small ops over index-selected copies of n and ωo), the compiled angle tables (`_zyz_angle_tables`),
+# the first compiled half (`_zyz_down`), the block products (`_blocked_product`: one GEMM per block) and
+# the second compiled half (`_zyz_up`): ~5 separate passes over (n², Q) arrays and ~10 dispatches,
+# 3.5 of a ~7 ms order-8 V frame (bench creature, 1 thread, process CPU). Here the same maths for
+# 16 points at a time, each point's rows held in L1 from the column gather to the store: R, its polar
+# angles and their cos / sin rows, R_z(−φ), X, R_z(−θ), the blocks of X M Xᵀ, R_z(θ), Xᵀ, R_z(φ).
+# The same operations as the compiled passes on every row (the z rotations as a·C + a[perm]·(S·sgn),
+# X's gathered terms in order, zero-padded terms included); the block products' sums in row order with
+# multiply-adds fused: float32 round-off against the GEMMs (tests). Each point is one thread's: the same
+# bits at any thread count.
+_CONJ_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+#include <math.h>
+
+#define L 16
+#define MAXN 8
+#define MAXN2 (MAXN * MAXN)
+typedef float vf __attribute__((vector_size(4 * L)));
+
+static inline vf vsqrt(vf x) { vf r; for (int l = 0; l < L; ++l) r[l] = sqrtf(x[l]); return r; }
+
+/* z rotation of the rows a (n2) into o: o[r] = a[r] C[|m|] + a[perm r] (S[|m|] sg[r]). */
+static inline void rz(int64_t n2, const vf *a, const vf *C, const vf *S, const int64_t *perm, const int64_t *absm,
+                      const float *sg, vf *o) {
+    for (int64_t r = 0; r < n2; ++r)
+        o[r] = a[r] * C[absm[r]] + a[perm[r]] * (S[absm[r]] * sg[r]);
+}
+
+/* o[r] = sum_j t[idx[r, j]] w[r, j], j = 0..k-1 in order (X or its transpose by its gathered terms). */
+static inline void gx(int64_t n2, int64_t k, const vf *t, const int64_t *idx, const float *w, vf *o) {
+    for (int64_t r = 0; r < n2; ++r) {
+        vf s = t[idx[r * k]] * w[r * k];
+        for (int64_t j = 1; j < k; ++j) s = s + t[idx[r * k + j]] * w[r * k + j];
+        o[r] = s;
+    }
+}
+
+/* Angle rows cos(m a), sin(m a), m < n, of cos a = c, sin a = s (the Chebyshev recurrence of `_angle_rows`). */
+static inline void angles(int64_t n, vf c, vf s, vf *C, vf *S) {
+    const vf one = (vf){0} + 1.0f, zero = (vf){0};
+    C[0] = one; S[0] = zero;
+    if (n > 1) { C[1] = c; S[1] = s; }
+    for (int64_t m = 2; m < n; ++m) {
+        C[m] = C[m - 1] * c - S[m - 1] * s;
+        S[m] = S[m - 1] * c + C[m - 1] * s;
+    }
+}
+
+/* out (n2, Q) row-major: for point q < Q (column col[q] = idx ? idx[q] : off + q of src (n2 rows, row
+   stride ld) and of nT, woT (3 rows, row stride ldn)) the conjugation M(R_R) M M(R_R)^T of its column,
+   R = reflect(wo, n) normalised. sgn: the + signs (the first half takes -sgn); xi, xw / ti, tw (n2, k):
+   X / X^T by gathered terms; nb blocks with spans (r0, r1, c0, c1) and values Kv concatenated (each
+   (r1-r0, c1-c0) row-major); cols: the first half's rows in block order; srow: row r of the product at
+   srow[r]. nt threads, each point one thread's. lifted: the columns are already in the first half's
+   output frame (`runtime.cosine_visibility_zyz`: the blocks of X M read them in place, cols their row
+   order), the angles those of nT itself (woT not read): the second half alone. */
+void zh_conj(int64_t lifted, int64_t n, int64_t Q, const float *src, int64_t ld, const int64_t *idx, int64_t off,
+             const float *nT, const float *woT, int64_t ldn,
+             const int64_t *perm, const int64_t *absm, const float *sgn,
+             int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
+             int64_t nb, const int64_t *spans, const float *Kv, const int64_t *cols, const int64_t *srow,
+             float *out, int64_t nt) {
+    const int64_t n2 = n * n, nblk = (Q + L - 1) / L;
+    float nsg[MAXN2];
+    for (int64_t r = 0; r < n2; ++r) nsg[r] = -sgn[r];
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t bk = 0; bk < nblk; ++bk) {
+        vf a[MAXN2], t[MAXN2], u[MAXN2], Cp[MAXN], Sp[MAXN], Ct[MAXN], St[MAXN];
+        int64_t c[L];
+        const int64_t q0 = bk * L, m = Q - q0 < L ? Q - q0 : L;
+        for (int64_t l = 0; l < L; ++l) {
+            const int64_t q = q0 + (l < m ? l : m - 1);       /* the tail's spare lanes repeat the last point */
+            c[l] = idx ? idx[q] : off + q;
+        }
+        vf n0, n1, n2v, R0, R1, R2, z, cp, sp;
+        for (int64_t l = 0; l < L; ++l) {
+            n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]];
+        }
+        if (lifted) {
+            R0 = n0; R1 = n1; R2 = n2v;
+        } else {
+            vf w0, w1, w2, nr;
+            for (int64_t l = 0; l < L; ++l) {
+                w0[l] = woT[c[l]]; w1[l] = woT[ldn + c[l]]; w2[l] = woT[2 * ldn + c[l]];
+            }
+            /* `reflect_T`: R = -wo + 2 (wo . n) n, over its norm clamped at 1e-12 */
+            const vf d2 = ((w0 * n0 + w1 * n1) + w2 * n2v) * 2.0f;
+            R0 = -w0 + d2 * n0; R1 = -w1 + d2 * n1; R2 = -w2 + d2 * n2v;
+            const vf nn = vsqrt((R0 * R0 + R1 * R1) + R2 * R2);
+            for (int l = 0; l < L; ++l) nr[l] = nn[l] > 1e-12f ? nn[l] : 1e-12f;
+            R0 = R0 / nr; R1 = R1 / nr; R2 = R2 / nr;
+        }
+        /* `_polar`: cos / sin of theta and phi (phi = 0 on the pole) */
+        const vf rho = vsqrt(R0 * R0 + R1 * R1);
+        for (int l = 0; l < L; ++l) {
+            z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
+            const int ok = rho[l] > 1e-20f;
+            const float safe = ok ? rho[l] : 1.0f;
+            cp[l] = ok ? R0[l] / safe : 1.0f;
+            sp[l] = ok ? R1[l] / safe : 0.0f;
+        }
+        angles(n, cp, sp, Cp, Sp);
+        angles(n, z, rho, Ct, St);
+        for (int64_t r = 0; r < n2; ++r) {
+            const float *row = src + r * ld;
+            for (int64_t l = 0; l < L; ++l) a[r][l] = row[c[l]];
+        }
+        if (lifted) {
+            memcpy(t, a, n2 * sizeof(vf));
+        } else {   /* first half: R_z(-theta) X R_z(-phi) a */
+            rz(n2, a, Cp, Sp, perm, absm, nsg, t);
+            gx(n2, k, t, xi, xw, u);
+            rz(n2, u, Ct, St, perm, absm, nsg, t);
+        }
+        /* the blocks of X M X^T: u[r0 + i] = sum_j K[i, j] t[cols[c0 + j]] (rows in block order) */
+        const float *K = Kv;
+        for (int64_t b = 0; b < nb; ++b) {
+            const int64_t r0 = spans[4 * b], r1 = spans[4 * b + 1], c0 = spans[4 * b + 2], c1 = spans[4 * b + 3];
+            const int64_t w = c1 - c0;
+            for (int64_t i = r0; i < r1; ++i, K += w) {
+                vf s = t[cols[c0]] * K[0];
+                for (int64_t j = 1; j < w; ++j) s = s + t[cols[c0 + j]] * K[j];
+                u[i] = s;
+            }
+        }
+        for (int64_t r = 0; r < n2; ++r) a[r] = u[srow[r]];
+        /* second half: R_z(phi) X^T R_z(theta) */
+        rz(n2, a, Ct, St, perm, absm, sgn, t);
+        gx(n2, k, t, ti, tw, u);
+        rz(n2, u, Cp, Sp, perm, absm, sgn, t);
+        if (m == L) {
+            for (int64_t r = 0; r < n2; ++r) memcpy(out + r * Q + q0, &t[r], sizeof(vf));
+        } else {
+            for (int64_t r = 0; r < n2; ++r)
+                for (int64_t l = 0; l < m; ++l) out[r * Q + q0 + l] = t[r][l];
+        }
+    }
+}
+"""
+_CONJ_SIGNATURES = {"zh_conj": [_I, _I, _I, _P, _I, _P, _I, _P, _P, _I, _P, _P, _P, _I, _P, _P, _P, _P, _I, _P, _P,
+                                _P, _P, _P, _I]}
+CONJ_MAX_ORDER = 8
+
+
+def _conj_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh_conj", _CONJ_SOURCE, _CONJ_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
+
+
+def specular_conjugate(srcT: Tensor, nT: Tensor, woT: Tensor | None, cols: Tensor | tuple[int, int], tables: tuple,
+                       plan: tuple, *, lifted: bool = False) -> Tensor | None:
+    """(n², Q) float32: `runtime.zonal_conjugate`(srcT[:, cols], `runtime.reflect_T`(nT[:, cols], woT[:, cols]),
+    …) of the columns ``cols`` — (Q,) int64 positions, or a range (a0, a1) — of srcT (n², N), nT, woT (3, N),
+    by one C pass (above; float32 round-off against the compiled passes and GEMMs, the same bits at any
+    thread count), or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, order above
+    `CONJ_MAX_ORDER`, not float32 CPU arrays with unit column stride). ``tables``: `runtime._conjugate_tables`
+    (float32, CPU); ``plan``: `runtime._block_plan` of the operator (scale folded in).
+
+    ``lifted``: `runtime.cosine_visibility_zyz`(srcT[:, cols], nT[:, cols], ordered=True) instead — srcT's
+    rows in the lifted plan's column order (`runtime.zyz_rows`), the second half alone about nT (woT
+    not read; None allowed)."""
+    lib = _conj_lib() if terms_switched_on() else None
+    if lifted:
+        woT = nT
+    if lib is None or woT is None or srcT.dim() != 2 or nT.dim() != 2 or woT.dim() != 2:
+        return None
+    n2 = int(srcT.shape[0])
+    n = int(round(n2 ** 0.5))
+    if n * n != n2 or n > CONJ_MAX_ORDER or nT.shape[0] != 3 or woT.shape != nT.shape \
+            or nT.shape[1] != srcT.shape[1]:
+        return None
+    arrs = (srcT, nT, woT)
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.stride(1) != 1 for t in arrs) \
+            or nT.stride(0) != woT.stride(0):
+        return None
+    N = int(srcT.shape[1])
+    if isinstance(cols, tuple):
+        a0, a1 = int(cols[0]), int(cols[1])
+        if not 0 <= a0 <= a1 <= N:
+            return None
+        Q, idx, off = a1 - a0, None, a0
+    else:
+        if cols.dtype != torch.int64 or cols.dim() != 1 or not cols.is_contiguous() or cols.device.type != "cpu":
+            return None
+        Q, idx, off = int(cols.shape[0]), cols, 0
+        if Q and (int(cols.min()) < 0 or int(cols.max()) >= N):
+            return None
+    out = torch.empty(n2, Q, dtype=torch.float32)
+    if Q == 0:
+        return out
+    perm, absm, sgn, xi, xw, ti, tw = tables
+    flat = _flat_plan(plan)
+    spans, Kv, pcols, psrc = flat
+    if lifted:   # (the rows already in the product's order: read in place)
+        pcols = _identity_rows(n2)
+    k = int(xi.shape[1])
+    lib.zh_conj(int(bool(lifted)), n, Q, srcT.data_ptr(), srcT.stride(0), 0 if idx is None else idx.data_ptr(), off,
+                nT.data_ptr(), woT.data_ptr(), nT.stride(0), perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(),
+                k, xi.data_ptr(), xw.data_ptr(), ti.data_ptr(), tw.data_ptr(), len(plan[2]), spans.data_ptr(),
+                Kv.data_ptr(), pcols.data_ptr(), psrc.data_ptr(), out.data_ptr(), max(1, torch.get_num_threads()))
+    return out
+
+
+_FLAT: dict = {}
+
+
+def _flat_plan(plan: tuple) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`runtime._block_plan`'s (cols, src, blocks) as the C pass reads them: spans (nb, 4) int64, the blocks'
+    values concatenated (float32), cols and src int64 contiguous — kept per plan (plans are kept per
+    operator by `runtime._block_plan`'s cache; keyed on its identity, the plan held so it stays alive)."""
+    hit = _FLAT.get(id(plan))
+    if hit is not None and hit[0] is plan:
+        return hit[1]
+    cols, src, blocks = plan
+    spans = torch.tensor([[r0, r1, c0, c1] for r0, r1, c0, c1, _ in blocks], dtype=torch.int64).contiguous()
+    Kv = torch.cat([K.reshape(-1) for *_, K in blocks]).to(torch.float32).contiguous()
+    flat = (spans, Kv, cols.to(torch.int64).contiguous(), src.to(torch.int64).contiguous())
+    if len(_FLAT) > 64:
+        _FLAT.clear()
+    _FLAT[id(plan)] = (plan, flat)
+    return flat
+
+
+@functools.lru_cache(maxsize=None)
+def _identity_rows(n2: int) -> Tensor:
+    return torch.arange(n2, dtype=torch.int64)

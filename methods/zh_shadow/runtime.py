@@ -823,6 +823,13 @@ def cosine_visibility_zyz(vzT: Tensor, nT: Tensor, *, ordered: bool = False) -> 
     """
     n = math.isqrt(vzT.shape[0])
     plan = _block_plan(("phong", 1.0), n, True, vzT.dtype, vzT.device)
+    if native_conjugate and vzT.dtype == torch.float32 and vzT.device.type == "cpu" \
+            and n <= zn.CONJ_MAX_ORDER and vzT.dim() == 2 and nT.dim() == 2:
+        # (one C pass: the blocks of X M¹ and the second half per point; float32 round-off)
+        w = zn.specular_conjugate(vzT if ordered else vzT.index_select(0, plan[0]), nT, None,
+                                  (0, int(vzT.shape[1])), _conjugate_tables(n, vzT.dtype, vzT.device), plan, lifted=True)
+        if w is not None:
+            return w
     return _zyz_up(_blocked_product(plan, vzT if ordered else vzT.index_select(0, plan[0])), _zyz_angles(nT, n),
                    plan[1])
 
@@ -899,13 +906,37 @@ def specular_parts(srcT: Tensor, nT: Tensor, woT: Tensor, vregion: Tensor,
         a0, a1 = int(p[0]), int(p[-1]) + 1
         # (α+1)/(2π) goes into the operator (`zonal_conjugate`'s scale: no pass over the result)
         scale, key = (float(a) + 1.0) / (2.0 * math.pi), ("phong", float(a))
-        if a1 - a0 == p.shape[0]:
+        span = (a0, a1) if a1 - a0 == p.shape[0] else p
+        t = _native_conjugate(srcT, nT, woT, span, key, scale) if native_conjugate else None
+        if t is not None:   # (one C pass: R, the angles, both halves and the blocks; float32 round-off)
+            parts.append((r, span, t))
+        elif a1 - a0 == p.shape[0]:
             parts.append((r, (a0, a1), zonal_conjugate(srcT[:, a0:a1], reflect_T(nT[:, a0:a1], woT[:, a0:a1]), key,
                                                        scale)))
         else:
             parts.append((r, p, zonal_conjugate(srcT.index_select(1, p),
                                                 reflect_T(nT.index_select(1, p), woT.index_select(1, p)), key, scale)))
     return parts
+
+
+# `specular_parts` conjugates each part by `native.specular_conjugate` (one C pass per part), and
+# `cosine_visibility_zyz` (``ordered``) takes its second half by the same pass (``lifted``), where it
+# runs; False: by `reflect_T` + `zonal_conjugate` / `_zyz_up` (the compiled passes and GEMMs: the
+# tests' oracle)
+native_conjugate = True
+
+
+def _native_conjugate(srcT: Tensor, nT: Tensor, woT: Tensor, span, key: tuple, scale: float) -> Tensor | None:
+    """`zonal_conjugate`(srcT[:, span], `reflect_T`(nT[:, span], woT[:, span]), key, scale) by
+    `native.specular_conjugate`, or None where it does not run (float32 CPU arrays of rows with unit
+    stride, order ≤ `native.CONJ_MAX_ORDER`)."""
+    if srcT.dtype != torch.float32 or srcT.device.type != "cpu" or srcT.dim() != 2:
+        return None
+    n = math.isqrt(srcT.shape[0])
+    if n * n != srcT.shape[0] or n > zn.CONJ_MAX_ORDER or nT.stride(0) != woT.stride(0):
+        return None
+    plan = _block_plan(key, n, False, srcT.dtype, srcT.device, float(scale))
+    return zn.specular_conjugate(srcT, nT, woT, span, _conjugate_tables(n, srcT.dtype, srcT.device), plan)
 
 
 def specular_transfer(srcT: Tensor, nT: Tensor, woT: Tensor | None, vregion: Tensor,

@@ -1432,7 +1432,8 @@ def test_native_split_equals_torch_split(small_model):
     search and gathers bit for bit: the plane, its mask and the object samples' positions, vertex ids,
     barycentric weights, normals, ωo and regions, at 1 and 2 threads; images of V / VB / P frames equal
     with it on and off (the oracle: ``native_split = False``); False where the torch path finds no
-    single plane (alcove: two planes) or one with a specular term — and not used when a sample misses."""
+    single plane (alcove: two planes) or one with a specular term — and not used when more than
+    `SPLIT_MAX_MISSES` samples miss."""
     from methods.core.threads import torch_threads
     from methods.zh_shadow import native as zn
     from references.gbuffer import make_gbuffer
@@ -1782,3 +1783,166 @@ def test_screen_counts_native_equals_torch_screening():
             assert (a is None) == (b is None)
             if a is not None:
                 assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
+
+
+@pytest.mark.parametrize("order", [2, 4, 8])
+def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
+    """`runtime.specular_parts` by the C pass (`native.specular_conjugate`: R, the angles, both halves
+    and the blocks per point) = by `reflect_T` + `zonal_conjugate` (the compiled passes and GEMMs), to
+    float32 round-off, on parts that are a range of columns and parts by position, with and without
+    ``keep``, points at both poles of R and exponents whose plans differ; the same bits at 1 and 2
+    threads; and both within float32 round-off of the float64 conjugation."""
+    from methods.core import native as core_native
+    from methods.zh_shadow import native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(11)
+    Q, n2 = 701, order * order
+    vT = torch.randn(n2, Q, generator=g)
+    nT = torch.randn(3, Q, generator=g)
+    woT = torch.randn(3, Q, generator=g)
+    nT[:, 5], woT[:, 5] = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, 1.0])     # R on the pole
+    nT[:, 6], woT[:, 6] = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])    # and below it
+    nT, woT = nT / nT.norm(dim=0), woT / woT.norm(dim=0)
+    vreg = torch.cat([torch.zeros(300), torch.ones(250), torch.full((151,), 2.0)]).long()
+    vreg[0:300:7] = 3                                            # a region that is not one range
+    alphas = [12.0, 30.0, None, 7.5]
+    calls = []
+    conj = zn.specular_conjugate
+
+    def counted(*a, **kw):
+        out = conj(*a, **kw)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    for keep in (None, rt.dot_T(nT, woT) > 0):
+        monkeypatch.setattr(rt, "native_conjugate", False)
+        want = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
+        monkeypatch.setattr(rt, "native_conjugate", True)
+        got = {}
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got[threads] = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
+        assert calls and all(calls)                               # the C pass ran
+        kinds = set()
+        for (r, sp, t), (r1, sp1, t1), (r2, sp2, t2) in zip(got[1], got[2], want):
+            assert r == r1 == r2
+            kinds.add(type(sp))
+            if isinstance(sp, tuple):
+                assert sp == sp1 == sp2
+                cols = torch.arange(sp[0], sp[1])
+            else:
+                assert torch.equal(sp, sp1) and torch.equal(sp, sp2)
+                cols = sp
+            assert torch.equal(t, t1)                              # the same bits at any thread count
+            assert (t - t2).abs().max() <= 2e-6 * t2.abs().max(), (order, r)
+            a = alphas[r]
+            R = rt.reflect_T(nT[:, cols].double(), woT[:, cols].double())
+            ref = rt.zonal_conjugate(vT[:, cols].double(), R, ("phong", a), (a + 1.0) / (2.0 * math.pi))
+            scale = ref.abs().max()
+            assert (t.double() - ref).abs().max() <= 2e-6 * scale, (order, r)
+            assert (t2.double() - ref).abs().max() <= 2e-6 * scale, (order, r)
+        assert kinds == ({tuple, torch.Tensor} if keep is None else {torch.Tensor})
+
+
+def torch_threads_(n: int):
+    from methods.core.threads import torch_threads
+
+    return torch_threads(n)
+
+
+@pytest.mark.parametrize("order", [2, 4, 8])
+def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
+    """`runtime.cosine_visibility_zyz` by the C pass (`native.specular_conjugate`,
+    ``lifted``: the blocks of X M¹ and the second half per point) = by `_blocked_product` + `_zyz_up`
+    (the compiled pass and GEMMs), to float32 round-off, on every column and on a column range of a
+    wider array (`ZHShadow._front_radiance`'s view), normals on both poles; the same bits at 1 and 2
+    threads."""
+    from methods.core import native as core_native
+    from methods.zh_shadow import native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(12)
+    Q, n2 = 517, order * order
+    vzT = torch.randn(n2, Q, generator=g)
+    nT = torch.randn(3, Q, generator=g)
+    nT[:, 3], nT[:, 4] = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])
+    nT = nT / nT.norm(dim=0)
+    calls = []
+    conj = zn.specular_conjugate
+
+    def counted(*a, **kw):
+        out = conj(*a, **kw)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    for a0, a1 in ((0, Q), (100, 333)):
+        v, n_ = vzT[:, a0:a1], nT[:, a0:a1]
+        monkeypatch.setattr(rt, "native_conjugate", False)
+        want = rt.cosine_visibility_zyz(v, n_, ordered=True)
+        monkeypatch.setattr(rt, "native_conjugate", True)
+        got = {}
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got[threads] = rt.cosine_visibility_zyz(v, n_, ordered=True)
+        assert calls and all(calls)
+        assert torch.equal(got[1], got[2])
+        assert (got[1] - want).abs().max() <= 2e-6 * want.abs().max(), (order, a0)
+
+
+def test_native_split_with_few_misses_equals_torch_split(small_model):
+    """A G-buffer where a few samples miss (up to `SPLIT_MAX_MISSES`: the bench views miss 0-1) is split
+    by the native passes too (`ZHShadow._native_split` with ``misses``: the misses neither on the plane
+    nor among the object's rows), the same rows bit for bit as the torch path's and the same images
+    and counts on V / VB / P frames (the oracle: ``native_split = False``), at 1 and 2 threads; more
+    misses than that: the torch path."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import method as zm
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    m = small_model("creature")
+    if not zn.split_available():
+        pytest.skip("the native split is not available here")
+    fast = m.with_render_config()
+    slow = m.with_render_config()
+    slow.native_split = False
+    results = []
+    split = type(fast)._native_split
+
+    def spy(self, *a):
+        out = split(self, *a)
+        results.append(out)
+        return out
+
+    for kind in ("V", "VB", "P"):
+        for f in make_sequence(m.scene, kind, 2, seed=4):
+            g = make_gbuffer(m.scene, f, 2)
+            on_plane = g.normal[:, 2] == g.normal[:, 2].mode().values   # (the ground's samples, about)
+            pos = torch.cat([on_plane.nonzero().squeeze(-1)[[3, 1000, -5]], (~on_plane & g.hit).nonzero().squeeze(-1)[[0, 7, -1]]])
+            miss = torch.zeros(g.num_samples, dtype=torch.bool)
+            miss[pos] = True
+            gm = dataclasses.replace(g, **_misses(g, miss))
+            assert int((~gm.hit).sum()) == 6 <= zm.SPLIT_MAX_MISSES
+            for nt in (1, 2):
+                results.clear()
+                with torch_threads(nt), mock.patch.object(type(fast), "_native_split", spy):
+                    a = fast.render(f, gm)
+                with torch_threads(nt):
+                    c = slow.render(f, gm)
+                assert len(results) == 1 and isinstance(results[0], tuple), (kind, nt)   # the native split ran
+                assert fast.last_path == slow.last_path == "planes", (kind, fast.last_path)
+                assert torch.equal(a, c), (kind, nt)
+                ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+                assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
+    many = torch.zeros(g.num_samples, dtype=torch.bool)
+    many[:zm.SPLIT_MAX_MISSES + 1] = True
+    results.clear()
+    with mock.patch.object(type(fast), "_native_split", spy):
+        fast.render(f, dataclasses.replace(g, **_misses(g, many)))
+    assert not results

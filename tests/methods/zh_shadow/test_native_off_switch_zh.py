@@ -6,7 +6,7 @@ from methods.core import native as core_native
 from methods.zh_shadow import native as Z
 
 _GETTERS = ("_kernel", "_split_lib", "_csr_lib", "_face_pixels_lib", "_plane_pixels_lib", "_relight_lib",
-            "_screen_lib", "_terms_lib", "_project_lib")
+            "_screen_lib", "_terms_lib", "_project_lib", "_conj_lib")
 
 
 def test_zh_libraries_asked_for_while_compilation_was_off_load_when_it_is_back_on(monkeypatch):
