@@ -503,7 +503,11 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
     float R[9];
     for (int c = 0; c < 9; c++) R[c] = Rp[c];
     for (int64_t i = i0; i < i1; i++) { out[3 * i] = 0.0f; out[3 * i + 1] = 0.0f; out[3 * i + 2] = 0.0f; }
+    int32_t bidx[MAXB];
+    float bfx[MAXB], bfy[MAXB], bl[MAXB];
     for (int64_t k = 0; k < K; k++) {
+        /* two passes over the block (i1 - i0 <= MAXB): the texel coordinates, their rows prefetched,
+           then the taps (the env map's texels, 1.5 MB, no longer waited for one ray after another) */
 #pragma GCC ivdep
         for (int64_t i = i0; i < i1; i++) {
             int64_t r = k * Q + i;
@@ -523,7 +527,23 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
             ix = ix > W - 1 ? (int32_t)(W - 1) : ix;
             iy = iy > H - 2 ? (int32_t)(H - 2) : iy;
             int32_t idx = iy * (int32_t)(W + 1) + ix;
-            fx = fx - (float)ix; fy = fy - (float)iy;
+            bidx[i - i0] = idx;
+            bfx[i - i0] = fx - (float)ix; bfy[i - i0] = fy - (float)iy;
+            bl[i - i0] = (float)l;
+        }
+        for (int64_t i = i0; i < i1; i++) {
+            const float *t = ext + 3 * (int64_t)bidx[i - i0];
+            __builtin_prefetch(t);
+            __builtin_prefetch(t + 5);
+            __builtin_prefetch(t + 3 * (W + 1));
+            __builtin_prefetch(t + 3 * (W + 1) + 5);
+        }
+#pragma GCC ivdep
+        for (int64_t i = i0; i < i1; i++) {
+            int64_t r = k * Q + i;
+            int l = bl[i - i0] != 0.0f;
+            int32_t idx = bidx[i - i0];
+            float fx = bfx[i - i0], fy = bfy[i - i0];
             float w0x = 1.0f - fx, w0y = 1.0f - fy;
 #define TAP(c)                                                                                    \
             {                                                                                     \
