@@ -38,6 +38,15 @@ sin and cos of one argument merged into sincos (a complex result: `NOSINCOS`), b
 none: int32 and float paths), strided loads of a runtime stride (the slot's uniforms are copied to
 contiguous buffers first). The guide-table search stays scalar: AVX2 gathers (intrinsics or
 ``-mtune-ctrl=use_gather``) measured slower on this host (light rays 63 vs 59 ms, chess bench).
+Session 32: the search and the radiance look-up wait on memory (a light sample's bucket is a random
+entry of a 0.5 MB guide table, its cdf and p_flat entries and a look-up's texels random lines of 1 MB
+tables), so both run in passes over a block — the guide entries first, the lines they point to
+prefetched, then the steps (`search_cells`; `light_cells` runs it alone, for its test); the texel
+coordinates first, their rows prefetched, then the taps (`shade_rows`) —: the same operations on the
+same values, the misses of a block overlapped instead of met one sample after another (creature bench
+V, 1 thread, a captured frame: `pretrace` 1.3×, `shade` 1.3×). Tried and dropped (no gain measured):
+a branchless search, a 2^15-bucket guide with 7 steps (0.8×), the BRDF rays' cell densities in a
+second pass, a float32 per-cell density table, blocks of 256.
 Blocks of samples are split over OpenMP's team (each ray computed by one thread: results do not
 depend on the thread count). The per-sample frame (s, t, n), ω_o in it and the geometric normal's
 side are recomputed per ray (a few flops) instead of stored.
@@ -55,7 +64,7 @@ from methods.core import native
 from methods.core.envguide import GUIDE_STEPS, guide_table
 from references.visibility import MitsubaVisibility
 
-__all__ = ["KINDS", "available", "pretrace", "shade", "supports", "trace", "uniform"]
+__all__ = ["KINDS", "available", "light_cells", "pretrace", "shade", "supports", "trace", "uniform"]
 
 assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
 
@@ -322,6 +331,61 @@ static inline __attribute__((always_inline)) float power_h(float a, float b) {
     return a2 > 0.0f ? a2 / (a2 + b2) : 0.0f;
 }
 
+/* The env-map cells k[0:n] (n <= MAXB) of u0[0:n] (x: the same as double; overwritten): count_le(cdf, u0) by
+   the guide table (methods.core.envguide.guided_count_le, GUIDE_STEPS = 4 bisection steps in the bucket),
+   the u0 it does not bracket by count_le itself (fix_unguided). cdf0: 0 then the cdf (C + 1,); guide:
+   (G + 1,). In two passes: the buckets' guide entries (independent loads, the cdf's and p_flat's lines there
+   prefetched), then the steps (their loads mostly on those lines): one sample's search no longer waits
+   on the last one's misses (guide table 0.5 MB, cdf 1 MB). */
+static inline __attribute__((always_inline)) void search_cells(const float *bu0, double *bx, int64_t n,
+        const double *__restrict cdf0_, const double *__restrict pflat_, const int32_t *__restrict guide_, int64_t G,
+        int64_t C, int32_t *bk) {
+    int64_t bk64[MAXB], bok[MAXB], bhi[MAXB];
+    int64_t top = 1;  /* count_le's first step: the largest power of 2 <= C */
+    while (2 * top <= C) top *= 2;
+    for (int64_t ii = 0; ii < n; ii++) {
+        double x = bx[ii];
+        int64_t inside = (x >= 0.0) & (x <= 1.0);
+        double xs = inside ? x : 0.0;
+        int64_t b = (int32_t)floor(xs * (double)G);  /* G a power of 2: exact; via int32 (AVX2) */
+        b = b < 0 ? 0 : (b > G - 1 ? G - 1 : b);
+        int64_t lo = guide_[b], hi = guide_[b + 1];
+        __builtin_prefetch(cdf0_ + lo);
+        __builtin_prefetch(cdf0_ + lo + 8);
+        __builtin_prefetch(pflat_ + lo);
+        bk64[ii] = lo;
+        bok[ii] = inside & (hi - lo < 16);
+        bhi[ii] = hi;
+        bx[ii] = xs;
+    }
+    for (int64_t ii = 0; ii < n; ii++) {
+        double xs = bx[ii];
+        int64_t k = bk64[ii], hi = bhi[ii];
+#define GSTEP(step)                                                                               \
+        {                                                                                     \
+            int64_t jj = k + (step - 1);                                                      \
+            jj = jj > C - 1 ? C - 1 : jj;                                                     \
+            double cj = cdf0_[jj + 1];                                                        \
+            k = ((k + step <= hi) & (cj <= xs)) ? k + step : k;                               \
+        }
+        GSTEP(8) GSTEP(4) GSTEP(2) GSTEP(1)
+#undef GSTEP
+        bk64[ii] = k;
+    }
+    for (int64_t ii = 0; ii < n; ii++) {
+        bk[ii] = (int32_t)bk64[ii];
+        if (bok[ii]) continue;
+        double x = (double)bu0[ii];  /* scenes.envmap.count_le */
+        int64_t k = 0;
+        for (int64_t step = top; step; step >>= 1) {
+            int64_t jj = k + (step - 1);
+            jj = jj > C - 1 ? C - 1 : jj;
+            if (k + step <= C && cdf0_[jj + 1] <= x) k += step;
+        }
+        bk[ii] = (int32_t)k;
+    }
+}
+
 static inline __attribute__((always_inline)) void block(const PArgs *A, const Mat *Mp, const int kind, int64_t i0, int64_t i1) {
     const Mat M = *Mp;
     const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS, PS = A->PS;
@@ -344,56 +408,12 @@ static inline __attribute__((always_inline)) void block(const PArgs *A, const Ma
     int64_t top = 1;  /* count_le's first step: the largest power of 2 <= C */
     while (2 * top <= C) top *= 2;
     for (int64_t j = 0; j < NL; j++) {
+        const int64_t n = i1 - i0;
         for (int64_t i = i0; i < i1; i++) {  /* the slot's uniforms, contiguous */
             bu0[i - i0] = ul_[2 * (i * NL + j)]; bu1[i - i0] = ul_[2 * (i * NL + j) + 1];
             bx[i - i0] = (double)bu0[i - i0];
         }
-        /* the cells: count_le(cdf, u0) by the guide table (methods.core.envguide.guided_count_le, GUIDE_STEPS
-           = 4 bisection steps in the bucket), the u0 it does not bracket by count_le itself (fix_unguided).
-           In two passes over the block: the buckets' guide entries (independent loads, the cdf's and
-           p_flat's lines there prefetched), then the steps (their loads mostly on those lines): one
-           sample's search no longer waits on the last one's misses (guide table 0.5 MB, cdf 1 MB). */
-        for (int64_t ii = 0; ii < i1 - i0; ii++) {
-            double x = bx[ii];
-            int64_t inside = (x >= 0.0) & (x <= 1.0);
-            double xs = inside ? x : 0.0;
-            int64_t b = (int32_t)floor(xs * (double)G);  /* G a power of 2: exact; via int32 (AVX2) */
-            b = b < 0 ? 0 : (b > G - 1 ? G - 1 : b);
-            int64_t lo = guide_[b], hi = guide_[b + 1];
-            __builtin_prefetch(cdf0_ + lo);
-            __builtin_prefetch(cdf0_ + lo + 8);
-            __builtin_prefetch(pflat_ + lo);
-            bk64[ii] = lo;
-            bok[ii] = inside & (hi - lo < 16);
-            bhi[ii] = hi;
-            bx[ii] = xs;
-        }
-        for (int64_t ii = 0; ii < i1 - i0; ii++) {
-            double xs = bx[ii];
-            int64_t k = bk64[ii], hi = bhi[ii];
-#define GSTEP(step)                                                                               \
-            {                                                                                     \
-                int64_t jj = k + (step - 1);                                                      \
-                jj = jj > C - 1 ? C - 1 : jj;                                                     \
-                double cj = cdf0_[jj + 1];                                                        \
-                k = ((k + step <= hi) & (cj <= xs)) ? k + step : k;                               \
-            }
-            GSTEP(8) GSTEP(4) GSTEP(2) GSTEP(1)
-#undef GSTEP
-            bk64[ii] = k;
-        }
-        for (int64_t ii = 0; ii < i1 - i0; ii++) {
-            bk[ii] = (int32_t)bk64[ii];
-            if (bok[ii]) continue;
-            double x = (double)bu0[ii];  /* scenes.envmap.count_le */
-            int64_t k = 0;
-            for (int64_t step = top; step; step >>= 1) {
-                int64_t jj = k + (step - 1);
-                jj = jj > C - 1 ? C - 1 : jj;
-                if (k + step <= C && cdf0_[jj + 1] <= x) k += step;
-            }
-            bk[ii] = (int32_t)k;
-        }
+        search_cells(bu0, bx, n, cdf0_, pflat_, guide_, G, C, bk);
 #pragma GCC ivdep
         for (int64_t i = i0; i < i1; i++) {
             SAMPLE_SETUP
@@ -461,6 +481,17 @@ static inline __attribute__((always_inline)) void block(const PArgs *A, const Ma
             w = pdf_b > 0.0f ? w : 0.0f;
             RAY_OUT
         }
+    }
+}
+
+/* search_cells on n uniforms u0 (the light samples' cells alone: `light_cells`, a test's entry) */
+void light_cells(const float *u0, int64_t n, const double *cdf0, const double *pflat, const int32_t *guide, int64_t G,
+                 int64_t C, int32_t *k) {
+    double bx[MAXB];
+    for (int64_t a = 0; a < n; a += MAXB) {
+        int64_t m = n - a < MAXB ? n - a : MAXB;
+        for (int64_t i = 0; i < m; i++) bx[i] = (double)u0[a + i];
+        search_cells(u0 + a, bx, m, cdf0, pflat, guide, G, C, k + a);
     }
 }
 
@@ -652,7 +683,7 @@ class _PArgs(ctypes.Structure):
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _MITSUBA_OCCLUDED = MitsubaVisibility.occluded
-_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "compact": [_P, _P, _P, _I, _I, _P, _P, _P],
+_SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "light_cells": [_P, _I, _P, _P, _P, _I, _I, _P], "compact": [_P, _P, _P, _I, _I, _P, _P, _P],
                "expand_blocked": [_P, _P, _I, _P], "mt_uniform": [_P, _P, _P, _I],
                "shade": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
 
@@ -739,6 +770,18 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b
     a.QS, a.PS = int(live.stride(0)), int(o.stride(0))
     a.contrib, a.live, a.o, a.d = _ptr(contrib), _ptr(live), _ptr(o), _ptr(d)
     lib.pretrace(ctypes.byref(a), BLOCK, _threads(Q))  # BLOCK <= MAXB
+
+
+def light_cells(u0: Tensor, cdf: Tensor, p_flat: Tensor) -> Tensor:
+    """The env-map cells (n,) int32 that `pretrace` samples for the light uniforms u₀ (n,) float32 — its
+    search alone (``scenes.envmap.count_le(cdf, u₀)`` by the guide table; the test's entry); cdf and
+    p_flat (C,) float64 (``EnvMap._tables``)."""
+    u0, p_flat = u0.contiguous(), p_flat.contiguous()
+    guide = guide_table(cdf)
+    k = torch.empty(u0.shape[0], dtype=torch.int32)
+    _lib().light_cells(_ptr(u0), int(u0.shape[0]), _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(guide), int(guide.shape[0]) - 1,
+                       int(cdf.shape[0]), _ptr(k))
+    return k
 
 
 def plane_views(buf: Tensor, K: int, Q: int) -> Tensor:
