@@ -393,3 +393,32 @@ def test_oracle_native_light_cells_equal_count_le(env_name, monkeypatch):
     k = on.light_cells(u, cdf, p.reshape(-1))
     want = count_le(cdf, u.double())
     assert torch.equal(k.long(), want), int((k.long() != want).sum())
+
+
+def test_oracle_native_integer_powers(monkeypatch):
+    """The C loops' powers of integer exponents (`native_rays.int_pow`, the Phong / Blinn-Phong lobes' for
+    s in [0, 127], in place of powf) = x^e correctly rounded to float32 (float64 ``torch.pow`` of the
+    float32 x, rounded; exact to ~2^-46 for these x and e, far below float32's half ulp) for every e in
+    [0, 127] on cosines over [0, 1] (dense near 1, where the lobes live), and powf's values at
+    ±0, 1, NaN, inf: the same values but for one in 10^5 at most, and none more than an ulp away."""
+    import methods.oracle.native_rays as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    g = torch.Generator().manual_seed(11)
+    x = torch.cat([torch.rand(20_000, generator=g), 1 - torch.rand(20_000, generator=g) ** 4,
+                   torch.linspace(0, 1, 4097)]).float()
+    off, total = 0, 0
+    for e in range(128):
+        got = on.int_pow(x, e)
+        want = torch.pow(x.double(), e).float()
+        ulp = (got.view(torch.int32).long() - want.view(torch.int32).long()).abs()
+        assert int(ulp.max()) <= 1, (e, int(ulp.max()))
+        off += int((ulp > 0).sum())
+        total += x.numel()
+        sp = torch.tensor([0.0, -0.0, 1.0, float("nan"), float("inf")])
+        assert torch.equal(on.int_pow(sp, e).isnan(), torch.pow(sp, e).isnan())
+        ok = ~torch.pow(sp, e).isnan()
+        assert torch.equal(on.int_pow(sp, e)[ok], torch.pow(sp, e)[ok]), e
+    assert off <= total * 1e-5, (off, total)
