@@ -362,3 +362,63 @@ def test_oracle_c_generator_equals_torch_rand(monkeypatch):
             assert torch.equal(x, torch.rand(s, generator=h)), (seed, s)
         assert torch.equal(g.get_state(), h.get_state())
         assert torch.equal(torch.rand(50, generator=g), torch.rand(50, generator=h))
+
+
+@pytest.mark.parametrize("env_name", ["sky_sun", "studio", "window", "bench"])
+def test_oracle_native_light_cells_equal_count_le(env_name, monkeypatch):
+    """The C loops' env-map cell search (`native_rays.light_cells`: the guide table's buckets in one pass,
+    their prefetched bisection steps in the next, count_le for the buckets wider than 15 cells) = the
+    eager search ``scenes.envmap.count_le`` on the float32 u₀ the oracle draws, at the adversarial ones
+    too: next to every cdf entry (both float32 neighbours), on and next to every bucket edge b / G, 0,
+    the largest float below 1, 1, and outside [0, 1]; on maps whose buckets span 0 to hundreds of cells."""
+    import methods.oracle.native_rays as on
+    from methods.core.envguide import guide_table
+    from scenes.envmap import count_le
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    env = procedural("sky_sun" if env_name == "bench" else env_name, height=256 if env_name == "bench" else 64)
+    cdf, p, _ = env._tables()
+    guide = guide_table(cdf)
+    widths = guide[1:] - guide[:-1]
+    assert int(widths.max()) >= 16 and bool(((widths >= 8) & (widths < 16)).any())  # both searches run
+    G = guide.shape[0] - 1
+    near = cdf.float()
+    edges = torch.arange(G + 1, dtype=torch.float32) / G
+    u = torch.cat([near, torch.nextafter(near, torch.zeros(1)), torch.nextafter(near, torch.ones(1)),
+                   edges, torch.nextafter(edges, torch.zeros(1)), torch.nextafter(edges, torch.ones(1)),
+                   torch.rand(50_000, generator=torch.Generator().manual_seed(3)),
+                   torch.tensor([0.0, 1.0 - 2.0 ** -24, 1.0, -0.5, 1.5])])
+    k = on.light_cells(u, cdf, p.reshape(-1))
+    want = count_le(cdf, u.double())
+    assert torch.equal(k.long(), want), int((k.long() != want).sum())
+
+
+def test_oracle_native_integer_powers(monkeypatch):
+    """The C loops' powers of integer exponents (`native_rays.int_pow`, the Phong / Blinn-Phong lobes' for
+    s in [0, 127], in place of powf) = x^e correctly rounded to float32 (float64 ``torch.pow`` of the
+    float32 x, rounded; exact to ~2^-46 for these x and e, far below float32's half ulp) for every e in
+    [0, 127] on cosines over [0, 1] (dense near 1, where the lobes live), and powf's values at
+    ±0, 1, NaN, inf: the same values but for one in 10^5 at most, and none more than an ulp away."""
+    import methods.oracle.native_rays as on
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    g = torch.Generator().manual_seed(11)
+    x = torch.cat([torch.rand(20_000, generator=g), 1 - torch.rand(20_000, generator=g) ** 4,
+                   torch.linspace(0, 1, 4097)]).float()
+    off, total = 0, 0
+    for e in range(128):
+        got = on.int_pow(x, e)
+        want = torch.pow(x.double(), e).float()
+        ulp = (got.view(torch.int32).long() - want.view(torch.int32).long()).abs()
+        assert int(ulp.max()) <= 1, (e, int(ulp.max()))
+        off += int((ulp > 0).sum())
+        total += x.numel()
+        sp = torch.tensor([0.0, -0.0, 1.0, float("nan"), float("inf")])
+        assert torch.equal(on.int_pow(sp, e).isnan(), torch.pow(sp, e).isnan())
+        ok = ~torch.pow(sp, e).isnan()
+        assert torch.equal(on.int_pow(sp, e)[ok], torch.pow(sp, e)[ok]), e
+    assert off <= total * 1e-5, (off, total)
