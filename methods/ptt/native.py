@@ -56,12 +56,6 @@ VB 1.19x; images bit-identical. Tried and dropped: a 16-lane body of `shade_pixe
 same bits; sample stage 0.98–1.03x, noise), the next run's cells computed a run ahead with its env rows
 prefetched into L2 (1.007x).
 
-Session 32 (pp32): at 2+ threads `shade_mirror` hands out chunks of `MIRROR_CHUNK` pixels and
-`vertex_rows` chunks of `ROWS_CHUNK` pairs dynamically instead of one contiguous range per thread: the
-two halves of a chess bench V frame are not the same work (sample stage, 1 thread, process CPU: 2.26
-against 2.48 ms; its quarters 0.8-1.6 ms), so the static split waited for the slower half. Each pixel
-and row is still one thread's: the same bits at any thread count (tested).
-
 Session 29 (ptt29): rows without u lanes whose B lanes lie in the first 8 (the perf suite's: B | s,
 width 16) take a body whose per-block lane selects are fixed (block 0: max(0, a) on the B lanes, a e
 elsewhere; later blocks a e; the values the general selects pick): the sample stage 1.04–1.05x, the
@@ -545,20 +539,7 @@ void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo,
                       const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
                       int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs, int64_t M,
                       const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
-                      int64_t prefetch, float* out, int64_t dyn) {
-    if (dyn > 0) {
-        /* session 32: chunks of ``dyn`` pixels (a multiple of 8) handed out as the threads finish: a V frame's
-           halves are not the same work (chess bench V, 1 thread: 2.26 against 2.48 ms; its quarters
-           0.8-1.6 ms). Each pixel is still one thread's: the same bits at any thread count. */
-        const int64_t nch = (P + dyn - 1) / dyn;
-#pragma omp parallel for num_threads(nt) schedule(dynamic, 1)
-        for (int64_t k = 0; k < nch; ++k) {
-            const int64_t a = k * dyn, b = a + dyn < P ? a + dyn : P;
-            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, w16, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
-                         table, env, lanes, width, W, prefetch, out);
-        }
-        return;
-    }
+                      int64_t prefetch, float* out) {
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
     for (int64_t k = 0; k < nt; ++k) {
         const int64_t a = k ? P * k / nt / 8 * 8 : 0, b = k + 1 < nt ? P * (k + 1) / nt / 8 * 8 : P;
@@ -725,13 +706,10 @@ static inline __attribute__((always_inline)) void vview_body(
 void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
                  const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
                  const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
-                 const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out, int64_t dyn) {
-    /* dyn > 0 (session 32): chunks of dyn pairs handed out as the threads finish, else one range per thread;
-       each row is one thread's either way (the same bits) */
-    const int64_t nch = dyn > 0 ? (m + dyn - 1) / dyn : nth;
-#pragma omp parallel for num_threads(nth) schedule(dynamic, 1)
-    for (int64_t k = 0; k < nch; ++k) {
-        const int64_t i0 = dyn > 0 ? k * dyn : m * k / nth, i1 = dyn > 0 ? (i0 + dyn < m ? i0 + dyn : m) : m * (k + 1) / nth;
+                 const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+    for (int64_t k = 0; k < nth; ++k) {
+        const int64_t i0 = m * k / nth, i1 = m * (k + 1) / nth;
         if (K == 16 && L == 4 && w16)
             vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, vacos,
                        vatan2, 1, out);
@@ -755,9 +733,6 @@ int native_cells_ok(void) { return 0; }
 _EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{native.cpu_capability()}")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
-# `shade_mirror` at 2+ threads: chunks of this many pixels (rounded down to a multiple of 8) handed out
-# dynamically (session 32); 0: the pixels cut into one contiguous range per thread (before).
-MIRROR_CHUNK = 1024
 # Samples below which one thread marks the referenced faces (`referenced_pairs`).
 _MIN_SAMPLES_PER_THREAD = 1 << 15
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -785,11 +760,11 @@ def _functions(lib: ctypes.CDLL):
                                     _P, _P, _P, _I, _I, _I, _P]
         fn.shade_mirror_par = lib.shade_mirror_par
         fn.shade_mirror_par.restype = None
-        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes + [_I]
+        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
         fn.vertex_rows = lib.vertex_rows
         fn.vertex_rows.restype = None
         fn.vertex_rows.argtypes = [_P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _P,
-                                   _I, _I, _P, _I]
+                                   _I, _I, _P]
     return fn
 
 
@@ -954,7 +929,7 @@ def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Ten
             width, int(W), PREFETCH, out.data_ptr())
     nt = _threads(P)
     if nt > 1:
-        fn.shade_mirror_par(*head, P, nt, *rest, max(0, int(MIRROR_CHUNK)) // 8 * 8)
+        fn.shade_mirror_par(*head, P, nt, *rest)
     elif P:
         fn.shade_mirror(*head, 0, P, *rest)
     return out
@@ -1003,9 +978,6 @@ def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Te
 
 # Pairs below which one thread computes `vertex_rows`.
 _MIN_PAIRS_PER_THREAD = 1 << 11
-# `vertex_rows` at 2+ threads: chunks of this many pairs handed out dynamically (session 32); 0: one
-# contiguous range per thread (before).
-ROWS_CHUNK = 512
 
 
 def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Tensor, v32: Tensor, T: int, Tv: int,
@@ -1035,6 +1007,5 @@ def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Ten
     nth = max(1, min(torch.get_num_threads(), m // _MIN_PAIRS_PER_THREAD))
     fn.vertex_rows(pairs.data_ptr(), m, pos.data_ptr(), frame.data_ptr(), int(pos.shape[1]), cam.data_ptr(),
                    r32.data_ptr(), v32.data_ptr(), int(T), int(Tv), int(nt), Wr.data_ptr(), E.data_ptr(), int(K),
-                   ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, w16, nth, out.data_ptr(),
-                   max(0, int(ROWS_CHUNK)) if nth > 1 else 0)
+                   ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, w16, nth, out.data_ptr())
     return out
