@@ -1785,6 +1785,23 @@ def test_screen_counts_native_equals_torch_screening():
                 assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
 
 
+def _count_conjugate_calls(monkeypatch) -> list[bool]:
+    """Wrap `native.specular_conjugate` so a test sees whether each call ran the C pass (True) or
+    declined (None -> False)."""
+    import methods.zh_shadow.native as zn
+
+    calls: list[bool] = []
+    conj = zn.specular_conjugate
+
+    def counted(*a, **kw):
+        out = conj(*a, **kw)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    return calls
+
+
 @pytest.mark.parametrize("order", [2, 4, 8])
 def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
     """`runtime.specular_parts` by the C pass (`native.specular_conjugate`: R, the angles, both halves
@@ -1793,7 +1810,6 @@ def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
     ``keep``, points at both poles of R and exponents whose plans differ; the same bits at 1 and 2
     threads; and both within float32 round-off of the float64 conjugation."""
     from methods.core import native as core_native
-    from methods.zh_shadow import native as zn
 
     if core_native.compiler() is None:   # pragma: no cover - no C compiler here
         pytest.skip("no C compiler")
@@ -1808,15 +1824,7 @@ def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
     vreg = torch.cat([torch.zeros(300), torch.ones(250), torch.full((151,), 2.0)]).long()
     vreg[0:300:7] = 3                                            # a region that is not one range
     alphas = [12.0, 30.0, None, 7.5]
-    calls = []
-    conj = zn.specular_conjugate
-
-    def counted(*a, **kw):
-        out = conj(*a, **kw)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    calls = _count_conjugate_calls(monkeypatch)
     for keep in (None, rt.dot_T(nT, woT) > 0):
         monkeypatch.setattr(rt, "native_conjugate", False)
         want = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
@@ -1861,7 +1869,6 @@ def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
     wider array (`ZHShadow._front_radiance`'s view), normals on both poles; the same bits at 1 and 2
     threads."""
     from methods.core import native as core_native
-    from methods.zh_shadow import native as zn
 
     if core_native.compiler() is None:   # pragma: no cover - no C compiler here
         pytest.skip("no C compiler")
@@ -1871,15 +1878,7 @@ def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
     nT = torch.randn(3, Q, generator=g)
     nT[:, 3], nT[:, 4] = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])
     nT = nT / nT.norm(dim=0)
-    calls = []
-    conj = zn.specular_conjugate
-
-    def counted(*a, **kw):
-        out = conj(*a, **kw)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    calls = _count_conjugate_calls(monkeypatch)
     for a0, a1 in ((0, Q), (100, 333)):
         v, n_ = vzT[:, a0:a1], nT[:, a0:a1]
         monkeypatch.setattr(rt, "native_conjugate", False)
