@@ -64,6 +64,9 @@ def _parser() -> argparse.ArgumentParser:
     iso = r.add_mutually_exclusive_group()
     iso.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                      help="run every cell in a spawned child process (its own peak RSS)")
+    iso.add_argument("--isolate-method", dest="isolate", action="store_const", const="method",
+                     help="run each method configuration's cells in a spawned process of their own (the perf "
+                          "suite's default: no cell is timed after another method's cells)")
     iso.add_argument("--no-isolate", dest="isolate", action="store_false", help="run cells in this process")
     r.add_argument("--fresh", action="store_true", help="start a new run in --out instead of resuming the one there")
     r.add_argument("--no-vertex-renders", action="store_true", help="skip the pyvista per-vertex error renders")

@@ -85,7 +85,10 @@ class Cell:
     while other jobs shared the machine: a perf run on 2026-12-03 got Mitsuba 7–20× slower than in
     the run before from cached entries rendered at load 15–20, and so equal-error speedups 10–20×
     too high). Part of the key only when set.
-    threads: torch / Dr.Jit threads (None = leave the defaults). isolate: run in a spawned child.
+    threads: torch / Dr.Jit threads (None = leave the defaults). isolate: ``False`` run in the
+    executor's process, ``True`` in a spawned child of its own (its peak RSS is the cell's),
+    ``"method"`` in one spawned process per method configuration (``MethodProcessExecutor``; with
+    the local executor).
     na: the n/a reason from the capability matrix (None = in scope); the cell is then not run.
     score_full_gi: also score every scored frame against the full-GI reference (metric
     ``rmse_full_gi``; Sun 2007 Fig. 11: a method that renders k bounces is also judged by how far it
@@ -110,7 +113,7 @@ class Cell:
     eq_err_spp: tuple[int, ...] = ()
     fresh_calibration: bool = False
     threads: int | None = None
-    isolate: bool = False
+    isolate: bool | str = False
     save_images: bool = True
     na: str | None = None
     score_full_gi: bool = False
@@ -130,6 +133,8 @@ class Cell:
         if any(not 0 <= f < self.n_frames for f in self.score_frames):
             raise ValueError(f"score_frames {self.score_frames} outside 0..{self.n_frames - 1}")
         canonical_config(self.config)
+        if self.isolate not in (False, True, "method"):
+            raise ValueError(f"isolate must be False, True or 'method', got {self.isolate!r}")
 
     def key(self) -> str:
         """Readable, unique, filesystem-safe id (``isolate`` does not change what is measured)."""

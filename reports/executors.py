@@ -99,6 +99,70 @@ class LocalExecutor(BenchExecutor):
         return f
 
 
+METHOD_PROCESS_ENV = "PRTBENCH_METHOD_PROCESS"  # set inside a MethodProcessExecutor's child
+
+
+def _init_method_process() -> None:
+    os.environ[METHOD_PROCESS_ENV] = "1"
+
+
+class MethodProcessExecutor(BenchExecutor):
+    """Each method configuration's cells in one spawned process of their own, one process at a time
+    (cells with ``isolate="method"``, the perf suite's setting; ``reports.pipeline.run_suite`` uses
+    it in place of the local executor).
+
+    Why (issue 14, sessions 32-33): run in one process, a cell's frame times depended on the cells
+    other methods had run before it — ZH's order-8 L frames read 2.5-2.8 ms in two full perf runs
+    and 1.2-1.4 ms alone or in a third full run, with the cause not found (candidates: native
+    libraries' OpenMP teams, the oracle's work arrays and Mitsuba scenes, allocator state). A
+    process per method configuration measures each method after only its own cells, for ~6 s of
+    imports per configuration instead of per cell (``isolate=True``). ``group_of`` tells the runner
+    how to order its queue (one process per configuration, not per scene); the previous process
+    exits (``shutdown(wait=True)``) before the next one starts, so two never share the cores. A
+    process that died is replaced by a fresh one for the retry (``BrokenProcessPool``)."""
+
+    name = "method-processes"
+
+    def __init__(self) -> None:
+        self._pool: cf.ProcessPoolExecutor | None = None
+        self._group: tuple[str, str] | None = None
+        self.processes = 0  # how many processes this executor started (tests)
+
+    @staticmethod
+    def group_of(cell) -> tuple[str, str]:
+        return (cell.method, cell.config)
+
+    def _start(self, group: tuple[str, str]) -> None:
+        self._close()
+        self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"),
+                                            initializer=_init_method_process)
+        self._group = group
+        self.processes += 1
+
+    def _close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def submit(self, fn, /, *args, **kwargs) -> cf.Future:
+        group = self.group_of(args[0])  # run_cell / run_part: the cell comes first
+        if self._pool is None or group != self._group:
+            self._start(group)
+        try:
+            return self._pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            self._start(group)
+            return self._pool.submit(fn, *args, **kwargs)
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in (getattr(self._pool, "_processes", None) or {}).values() if p.is_alive()]
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+            self._pool = None
+
+
 class ProcessesExecutor(BenchExecutor):
     """A spawn-based process pool of ``workers`` processes, ``cores // workers`` threads each.
 

@@ -8,7 +8,8 @@ a time per machine), joined by ``merge_parts`` into the same result.
 Measuring (DESIGN.md "Measuring"): precompute time; per-frame render time (``perf_counter``, first
 frame = warm-up excluded from median/IQR, rendered inside ``methods.core.fused.warming``; all frames
 stored); ``Method.memory()``; peak RSS of the
-cell's process (``ru_maxrss``) — the cell's own when ``isolate`` runs it in a spawned child;
+cell's process (``ru_maxrss``) — the cell's own when ``isolate=True`` runs it in a spawned child
+(with ``isolate="method"``, the process of its method configuration's cells);
 ``bytes_per_frame``; error metrics against the reference of the cell's bounce count on the
 ``score_frames``; the equal-error speedup (``reports.measure.fit_convergence``).
 """
@@ -52,7 +53,7 @@ def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True,
         return old
     if cell.na is not None:
         res = CellResult(cell.key(), cell.to_dict(), STATUS_NA, reason=cell.na)
-    elif cell.isolate:
+    elif cell.isolate is True:
         try:
             res = _run_isolated(cell, out_dir, progress)
         except Exception as e:  # the child died (BrokenProcessPool, OOM kill, …)
@@ -60,6 +61,8 @@ def run_cell(cell: Cell, out_dir: str | os.PathLike, *, progress: bool = True,
                              info={"traceback": traceback.format_exc()})
     else:
         res = execute_cell(cell, out_dir, progress=progress)
+        if cell.isolate == "method":
+            res.info["isolate"] = _method_isolation()
     if cell.na is None:
         res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}})
     atomic_write_json(result_path(out_dir, cell), res.to_dict())
@@ -78,6 +81,15 @@ def _run_isolated(cell: Cell, out_dir: Path, progress: bool, part: str = "all") 
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as ex:
         return ex.submit(execute_cell, cell, out_dir, progress=progress, part=part).result()
+
+
+def _method_isolation() -> str:
+    """What ``isolate="method"`` did for a cell run in this process (``info["isolate"]``)."""
+    from reports.executors import METHOD_PROCESS_ENV
+
+    if os.environ.get(METHOD_PROCESS_ENV) == "1":
+        return "method: this method configuration's process"
+    return "method: not applied (this executor runs cells in its own processes)"
 
 
 def task_threads(cell: Cell) -> int | None:
@@ -147,7 +159,7 @@ def run_part(cell: Cell, part: str, out_dir: str | os.PathLike, *, progress: boo
     if part not in PARTS:
         raise ValueError(f"unknown cell part {part!r}")
     t_start = time.time()
-    if cell.isolate and part == "timing":
+    if cell.isolate is True and part == "timing":
         try:
             res = _run_isolated(cell, out_dir, progress, part=part)
         except Exception as e:
@@ -156,6 +168,8 @@ def run_part(cell: Cell, part: str, out_dir: str | os.PathLike, *, progress: boo
     else:
         res = execute_cell(replace(cell, isolate=False), out_dir, progress=progress, part=part)
         res.cell = cell.to_dict()
+        if cell.isolate == "method":
+            res.info["isolate"] = _method_isolation()
     res.info.update({**(context or {}), **{k: v for k, v in where().items() if k not in res.info}, "part": part,
                      "wall": [t_start, time.time()]})
     atomic_write_json(part_path(out_dir, cell, part), res.to_dict())
@@ -382,7 +396,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
             rows.append(_row("bytes_per_frame", bpf))
         if cost is not None:
             rows.append(_row("flops_per_frame", cost.flops))
-        rows.append(_row("peak_rss_bytes" if cell.isolate else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
+        rows.append(_row("peak_rss_bytes" if cell.isolate is True else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
         load.append(_loadavg())
         info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times,
                      "frame_cpu_times": cpu_times, "loadavg_1min": load})

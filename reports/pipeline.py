@@ -30,6 +30,7 @@ import torch
 
 from reports import measure, regress, store
 from reports.cells import MEASURED, Cell, CellResult, load_result, move_aside
+from reports.executors import LocalExecutor, MethodProcessExecutor
 from reports.html import wall_time_text
 from reports.runner import run_cells
 from reports.suites import Suite, plan_cells, reference_jobs
@@ -295,7 +296,7 @@ def _merge_plans(earlier: list[Cell], cells: list[Cell]) -> tuple[list[Cell], li
 
 def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=None, executor=None,
               history: str | os.PathLike | None = store.DEFAULT_HISTORY, backend: str = "reports.backend",
-              plugins: tuple[str, ...] = (), isolate: bool | None = None, progress: bool = True,
+              plugins: tuple[str, ...] = (), isolate: bool | str | None = None, progress: bool = True,
               report: bool = True, vertex_renders: bool = True, bandwidth_elements: int | None = None,
               device: str = "cpu") -> RunOutput:
     """Run ``suite`` into ``out_dir``: resume the run there, adding this selection's cells to it;
@@ -315,7 +316,15 @@ def run_suite(suite: Suite, out_dir: str | os.PathLike, *, methods=None, scenes=
     started = datetime.now(timezone.utc).isoformat(timespec="seconds")
     t0 = time.perf_counter()
     meta = run_meta(out_dir, label, bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)
-    results = run_cells(cells, out_dir, executor=executor, progress=progress)
+    own = None
+    if (executor is None or type(executor) is LocalExecutor) and any(c.isolate == "method" and c.na is None
+                                                                      for c in cells):
+        executor = own = MethodProcessExecutor()  # one process per method configuration (the perf suite)
+    try:
+        results = run_cells(cells, out_dir, executor=executor, progress=progress)
+    finally:
+        if own is not None:
+            own.shutdown()
     meta = record_invocation(out_dir, meta, started=started, seconds=time.perf_counter() - t0,
                              cells=sum(c.na is None for c in cells),
                              bandwidth_elements=bandwidth_elements or TRIAD_ELEMENTS)

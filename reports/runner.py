@@ -77,6 +77,12 @@ def run_cells(cells: Iterable[Cell], out_dir: str | os.PathLike, *, executor=Non
                     queue.append((j, p))
             if len(parts[j]) == len(PARTS):  # both parts were done; the merge was not
                 results[j] = _finish_merge(cells[j], parts.pop(j), out_dir)
+    group_of = getattr(ex, "group_of", None)
+    if group_of is not None:  # e.g. one process per method configuration: its cells one after another
+        first: dict = {}
+        for j, _ in queue:
+            first.setdefault(group_of(cells[j]), len(first))
+        queue.sort(key=lambda t: first[group_of(cells[t[0]])])  # stable: the plan's order within a group
     bar = tqdm(total=len(cells), initial=len(results), desc="run", unit="cell", disable=None if progress else True)
     t_start = time.perf_counter()
     pending: dict[Any, tuple[int, str]] = {}

@@ -53,7 +53,7 @@ class Suite:
     configs: tuple[tuple[str, str], ...] = ()
     eq_err_spp: tuple[int, ...] = ()
     fresh_calibration: bool = False  # `Cell.fresh_calibration`: Mitsuba's equal-error renders timed in the run
-    isolate: bool = True
+    isolate: bool | str = True
     threads: int | None = None
     seed: int = 0
 
@@ -112,10 +112,14 @@ NIGHTLY = Suite(name="nightly", size="bench", scenes=("sphere_plane", "chess", "
 # perf: what the run-time numbers (frame times, roofline efficiency, equal-error speedup) come from —
 # every method on two bench-size scenes (chess: static, three BRDF families; creature: articulated),
 # every frame kind a method claims, 1 warm-up + 4 timed frames, one scored frame per sequence (the
-# equal-error speedup needs its error), precomputations shared through the precompute cache.
+# equal-error speedup needs its error), precomputations shared through the precompute cache. Each
+# method configuration's cells run in a spawned process of their own (isolate="method",
+# reports.executors.MethodProcessExecutor): in one process a cell's frame times depended on the
+# other methods' cells run before it (session 32: ZH order-8 L 2.5-2.8 ms in two full runs, 1.2-1.4
+# alone); ~6 s of imports per configuration.
 PERF = Suite(name="perf", size="bench", scenes=("chess", "creature"), kinds=("V", "VB", "VBL", "L", "E", "VL"),
              dynamic_kinds=("P",), n_frames=5, score_frames=(4,), ref_spp=128, eq_err_spp=(32, 128),
-             fresh_calibration=True, isolate=False, configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
+             fresh_calibration=True, isolate="method", configs=(("oracle", '{"brdf_samples":4,"light_samples":4}'), ("ptt", '{"light_res_1":4}'),
                                      # in-out twice: eq. 4 per G-buffer sample (default) and per vertex,
                                      # Gouraud-interpolated (the paper's run time, Mahajan 2008 §6)
                                      ("inout", "{}"), ("inout", '{"shading":"vertex"}'),
@@ -142,7 +146,7 @@ def _configs_for(suite: Suite, method: str) -> list[str]:
 
 def plan_cells(suite: Suite, *, methods: list[str] | None = None, scenes: list[str] | None = None,
                backend: str = "reports.backend", plugins: tuple[str, ...] = (),
-               isolate: bool | None = None, device: str = "cpu") -> list[Cell]:
+               isolate: bool | str | None = None, device: str = "cpu") -> list[Cell]:
     """Every cell of ``suite`` (in-scope and n/a), optionally restricted to ``methods``/``scenes``.
 
     ``scenes`` may contain ``"file:<path>"`` entries (TOML scene files).

@@ -9,6 +9,7 @@ import signal
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 from concurrent.futures.process import BrokenProcessPool
 
 import pandas as pd
@@ -193,6 +194,55 @@ def test_processes_executor_same_errors_and_killed_worker(tmp_path):
     assert not th.is_alive() and [r.status for r in box["r"]] == ["ok"] * 4
     after = _mtimes(out / "cells")
     assert all(after[k] == v for k, v in before.items())  # finished cells were not redone
+
+
+def test_method_processes_one_process_per_configuration(tmp_path):
+    """isolate="method" (the perf suite): each method configuration's cells run in one spawned
+    process of their own, after one another, whatever the plan's order (interleaved here, as the
+    perf suite's scene-major plan is); results in the plan's order; the same errors as in-process."""
+    a, b = (C.canonical_config({"bias": x}) for x in (0.05, 0.2))
+    cells = [_cell(config=c, seed=s, eq_err_spp=(), isolate="method") for s in (0, 1) for c in (a, b)]
+    cells.append(_cell(kind="VBL", na="BRDFs fixed at precompute", isolate="method"))
+    local = R.run_cells([replace(c, isolate=False) for c in cells], tmp_path / "local", progress=False)
+    ex = X.MethodProcessExecutor()
+    try:
+        res = R.run_cells(cells, tmp_path / "m", executor=ex, progress=False)
+    finally:
+        ex.shutdown()
+    assert [r.status for r in res] == ["ok"] * 4 + ["na"]
+    assert [r.key for r in res] == [c.key() for c in cells]
+    pids = [r.info["pid"] for r in res[:4]]
+    assert pids[0] == pids[2] and pids[1] == pids[3] and pids[0] != pids[1] and os.getpid() not in pids
+    assert ex.processes == 2  # grouped: not one process per alternation of the plan
+    assert {r.info["isolate"] for r in res[:4]} == {"method: this method configuration's process"}
+    assert {r.info["executor"] for r in res[:4]} == {"method-processes"}
+    pd.testing.assert_frame_equal(_error_table(res), _error_table(local))
+    with pytest.raises(ValueError, match="isolate must be"):
+        _cell(isolate="cell")
+
+
+def test_run_suite_uses_method_processes_for_isolate_method(tmp_path):
+    """`run --isolate-method` (the perf suite's default) replaces the local executor by one process
+    per method configuration; a run of the same cells with `--no-isolate` stays in this process."""
+    import run_bench
+    from reports import pipeline
+
+    pipeline.TRIAD_ELEMENTS, triad = 1 << 16, pipeline.TRIAD_ELEMENTS
+    try:
+        for flag, out in (("--isolate-method", "m"), ("--no-isolate", "in")):
+            code = run_bench.main(["run", "--suite", "smoke", "--backend", "testing.fakes", "--plugin", "testing.fakes",
+                                   "--scenes", "fake_plane", "--methods", "fake", "--out", str(tmp_path / out),
+                                   "--no-history", flag, "--no-vertex-renders", "--quiet"])
+            assert code == 0
+    finally:
+        pipeline.TRIAD_ELEMENTS = triad
+    prov = {o: json.loads((tmp_path / o / "provenance.json").read_text()) for o in ("m", "in")}
+    assert prov["m"] and {p["executor"] for p in prov["m"]} == {"method-processes"}
+    assert prov["in"] and {p["executor"] for p in prov["in"]} == {"local"}
+    info = {o: [json.loads(f.read_text())["info"] for f in _files(tmp_path / o / "cells")] for o in ("m", "in")}
+    pids = {o: {i["pid"] for i in info[o] if "pid" in i} for o in info}
+    assert len(pids["m"]) == 1 and os.getpid() not in pids["m"]  # one configuration: one child
+    assert pids["in"] == {os.getpid()}
 
 
 def _wait_for_finished(out, th, timeout=60.0):
