@@ -287,15 +287,17 @@ void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf
    and weights, then the 4 grid rows and weights of the normal R[v][2] — the compiled arithmetic step
    by step (no contraction), so the same rows and weights to an ulp of float64 (float32 round-off
    after the cast). ot, op: the ωo grid's n_theta, n_phi; gt, gp: the frame grid's. glr, glw (N, 4) or
-   NULL: the grid rows and weights of every vertex's normal, made by this loop before (copied). */
+   NULL: the grid rows and weights of every vertex's normal, made by this loop before (copied). The
+   vertices split over nt threads of OpenMP's team (each vertex's values one thread's: the same bits). */
 __attribute__((optimize("-ffp-contract=off")))
 void tp_vertex_lookups(int64_t b, const int64_t* used, const float* P, const float* Rf, const int64_t* region,
                        const float* cam, int64_t ot, int64_t op, int64_t gt, int64_t gp, const int64_t* glr,
-                       const float* glw, int64_t* brows, float* bw, int64_t* lrows, float* lw) {
+                       const float* glw, int64_t* brows, float* bw, int64_t* lrows, float* lw, int64_t nt) {
     const double PI = 3.141592653589793, TWO_PI = 6.283185307179586;
     const double sto = 0.5 * PI / (double)ot, spo = TWO_PI / (double)op;
     const double stg = PI / (double)(gt - 1), spg = TWO_PI / (double)gp;
     const int64_t oi_max = ot - 2 > 0 ? ot - 2 : 0;
+#pragma omp parallel for num_threads(nt) schedule(static) if (nt > 1)
     for (int64_t k = 0; k < b; ++k) {
         const int64_t v = used[k];
         const float* p = P + 3 * v;
@@ -380,7 +382,7 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
                "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
                "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
-               "tp_vertex_lookups": [_I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P]}
+               "tp_vertex_lookups": [_I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]}
 
 
 def switched_on() -> bool:
@@ -539,7 +541,7 @@ def vertex_lookups(used: Tensor, P: Tensor, R: Tensor, region: Tensor, cam: Tens
                               outgoing.n_theta, outgoing.n_phi, grid.n_theta, grid.n_phi,
                               None if cells is None else cells[0].data_ptr(), None if cells is None else cells[1].data_ptr(),
                               brows.data_ptr(),
-                              bw.data_ptr(), lrows.data_ptr(), lw.data_ptr())
+                              bw.data_ptr(), lrows.data_ptr(), lw.data_ptr(), _threads(b))
     return brows, bw, lrows, lw
 
 

@@ -251,7 +251,7 @@ def test_vertex_lookups_equal_grid_lookups(ogrid, fgrid):
     ωo rows offset by region · outgoing.size (as `fast_eval.shading_rows` makes them), bit for bit:
     random normals and points, normals at the poles (±Y) and on the φ seam (+X), ωo along the normal
     (θ = 0) and below the horizon (clamped), vertices in any order; the normals' cells given
-    (``cells``) the same; a grid with two tangent angles → None."""
+    (``cells``) the same, and at 2 and 3 threads; a grid with two tangent angles → None."""
     from methods.triple_product import brdf_table as bt
     from methods.triple_product import lighting as lt
 
@@ -282,6 +282,16 @@ def test_vertex_lookups_equal_grid_lookups(ogrid, fgrid):
     again = native.vertex_lookups(used, P, R, region, cam, og, grid, cells=(every[2], every[3]))
     for g, x in zip(again, got):
         assert torch.equal(g, x)
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 8
+    try:
+        for nt in (2, 3):                             # split over OpenMP's team: the same bits
+            torch.set_num_threads(nt)
+            for g, x in zip(native.vertex_lookups(used, P, R, region, cam, og, grid), got):
+                assert torch.equal(g, x), nt
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
     assert native.vertex_lookups(used, P, R, region, cam, og, lt.FrameGrid(fgrid[0], fgrid[1], 2)) is None
     with pytest.raises(IndexError):
         native.vertex_lookups(used + N, P, R, region, cam, og, grid)
