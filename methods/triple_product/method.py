@@ -110,6 +110,10 @@ RENDER_FLOATS = 1 << 22
 # its look-ups are O(B) per batch): a whole bench frame (256² × 4 samples) in one batch, so its
 # grouped sums (`fast_eval.fine_grouped`) are shared by every sample of the frame.
 FINE_RENDER_POINTS = 1 << 18
+# Per-vertex frames take their look-ups from `native.vertex_lookups` (one C pass over the used vertices;
+# the same rows and weights as the compiled `fast_eval.grid_lookups` on the bench scenes). False: the
+# torch path (the test oracle).
+VERTEX_LOOKUPS = True
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
@@ -783,6 +787,12 @@ class TripleProduct(Method):
             self._record_frame(gbuffer, n_hit, faces, used, used)
             cam = torch.tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
             Bv = torch.zeros(self.V.shape[0], 3, device=self.V.device)
+            look = self._vertex_lookups(used, cam, chunk)
+            if look is not None:   # the look-ups from the vertex arrays in one C pass (`_vertex_lookups`)
+                B = used.numel()
+                Bv[used] = fast_eval.shade_fine(self, None, cam.expand(B, 3), self.vertex_region[used], used[:, None],
+                                                torch.ones(B, 1, device=used.device), lookups=(*look, True))
+                used = used[:0]
             for a in range(0, used.numel(), chunk):
                 v = used[a:a + chunk]
                 wo = torch.nn.functional.normalize(cam - self.V[v], dim=-1)
@@ -833,6 +843,29 @@ class TripleProduct(Method):
             # (`native_group.pixel_mean`: that mean in one pass, bit for bit)
             return native_group.pixel_mean(out.float(), gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2)
         return gbuffer.resolve(out)
+
+    def _vertex_lookups(self, used: Tensor, cam: Tensor, chunk: int):
+        """A per-vertex frame's look-ups of the vertices ``used`` by `native.vertex_lookups` (ωo rows with the
+        regions' offsets, their weights, grid rows and weights: `fast_eval.grid_lookups` of R[used] and
+        normalize(cam − V[used]), the same values) — instead of gathering R, V and the regions, forming ωo and
+        calling the compiled look-ups through their wrapper (~0.4 ms of its ~0.7 ms on chess bench vertex V,
+        1 thread); the grid cells of the vertex normals (static frames) made once for every vertex and
+        copied — or None where that path does not apply (`VERTEX_LOOKUPS` off, not the fine-value
+        path, a look-up other than trilinear, more than one batch; the torch path then runs)."""
+        cfg = self.config
+        if not VERTEX_LOOKUPS or cfg["evaluator"] not in ("auto", "fine") or cfg["light_lookup"] != "trilinear" \
+                or used.numel() == 0 or used.numel() > chunk or not fast_eval.fine_ok(self):
+            return None
+        cache = self.__dict__.setdefault("_perf_cache", {})
+        hit = cache.get(("vertex_cells",))
+        if hit is None or hit[0] is not self.R or hit[1] != self.grid:   # the normals' grid cells: the frames
+            every = torch.arange(self.V.shape[0], device=used.device)   # are static (made at the first frame)
+            look = tp_native.vertex_lookups(every, self.V, self.R, self.vertex_region, cam, self.outgoing, self.grid)
+            if look is None:
+                return None
+            hit = cache[("vertex_cells",)] = (self.R, self.grid, (look[2], look[3]))
+        return tp_native.vertex_lookups(used, self.V, self.R, self.vertex_region, cam, self.outgoing, self.grid,
+                                        cells=hit[2])
 
     def _record_frame(self, gbuffer: GBuffer, shaded: int, faces, vis_rows, vertices: Tensor | None,
                       groups: int = 0) -> None:

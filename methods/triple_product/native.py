@@ -38,11 +38,12 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "chunks", "points", "groups", "hit_faces", "W"]
+__all__ = ["available", "chunks", "points", "groups", "hit_faces", "vertex_lookups", "W"]
 
 W = 8  # columns per chunk (one 8-lane vector)
 
 _SOURCE = r"""
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 typedef float v8 __attribute__((vector_size(32)));
@@ -277,6 +278,94 @@ void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf
     counts[0] = h;
     counts[1] = bad ? -1 : 0;
 }
+
+/* A per-vertex frame's look-ups (`fast_eval.grid_lookups` of the frames R and the directions to the
+   camera, trilinear on a grid with one tangent angle: `brdf_table.outgoing_terms`, then
+   `lighting.cell_terms`) for the b vertices used[k] in one pass: wo = normalize(cam - P[v]) (float32,
+   as the render's torch ops), its local coordinates R[v] wo (float32), θ, φ of those in float64 (libm
+   acos / atan2: within an ulp of the compiled kernel's), the ωo cell's 4 rows + region[v] * ot * op
+   and weights, then the 4 grid rows and weights of the normal R[v][2] — the compiled arithmetic step
+   by step (no contraction), so the same rows and weights to an ulp of float64 (float32 round-off
+   after the cast). ot, op: the ωo grid's n_theta, n_phi; gt, gp: the frame grid's. glr, glw (N, 4) or
+   NULL: the grid rows and weights of every vertex's normal, made by this loop before (copied). The
+   vertices split over nt threads of OpenMP's team (each vertex's values one thread's: the same bits). */
+__attribute__((optimize("-ffp-contract=off")))
+void tp_vertex_lookups(int64_t b, const int64_t* used, const float* P, const float* Rf, const int64_t* region,
+                       const float* cam, int64_t ot, int64_t op, int64_t gt, int64_t gp, const int64_t* glr,
+                       const float* glw, int64_t* brows, float* bw, int64_t* lrows, float* lw, int64_t nt) {
+    const double PI = 3.141592653589793, TWO_PI = 6.283185307179586;
+    const double sto = 0.5 * PI / (double)ot, spo = TWO_PI / (double)op;
+    const double stg = PI / (double)(gt - 1), spg = TWO_PI / (double)gp;
+    const int64_t oi_max = ot - 2 > 0 ? ot - 2 : 0;
+#pragma omp parallel for num_threads(nt) schedule(static) if (nt > 1)
+    for (int64_t k = 0; k < b; ++k) {
+        const int64_t v = used[k];
+        const float* p = P + 3 * v;
+        const float* R = Rf + 9 * v;
+        const float dx = cam[0] - p[0], dy = cam[1] - p[1], dz = cam[2] - p[2];
+        float nrm = sqrtf(fmaf(dz, dz, fmaf(dy, dy, dx * dx)));      /* torch.linalg.vector_norm's float32 sum */
+        nrm = nrm > 1e-12f ? nrm : 1e-12f;
+        const float wx = dx / nrm, wy = dy / nrm, wz = dz / nrm;
+        const double x = (double)(R[0] * wx + R[1] * wy + R[2] * wz);
+        const double y = (double)(R[3] * wx + R[4] * wy + R[5] * wz);
+        const double z = (double)(R[6] * wx + R[7] * wy + R[8] * wz);
+        double nn = sqrt(x * x + y * y + z * z);
+        nn = nn > 1e-30 ? nn : 1e-30;
+        double c = z / nn;
+        c = c < 0.0 ? 0.0 : c > 1.0 ? 1.0 : c;
+        const double th = acos(c);
+        double ph = atan2(y, x);
+        ph = ph - TWO_PI * floor(ph / TWO_PI);
+        double fi = th / sto - 0.5;
+        fi = fi < 0.0 ? 0.0 : fi > (double)(ot - 1) ? (double)(ot - 1) : fi;
+        const double fj = ph / spo;
+        int64_t i0 = (int64_t)floor(fi);
+        i0 = i0 < 0 ? 0 : i0 > oi_max ? oi_max : i0;
+        double ai = fi - (double)i0;
+        ai = ai < 0.0 ? 0.0 : ai > 1.0 ? 1.0 : ai;
+        const int64_t i1 = i0 + 1 < ot - 1 ? i0 + 1 : ot - 1;
+        const int64_t j0 = (int64_t)floor(fj);
+        const double aj = fj - (double)j0;
+        const int64_t off = region[v] * ot * op;
+        for (int dj = 0; dj < 2; ++dj) {
+            int64_t j = j0 + dj;
+            j = j >= op ? j - op : j;
+            j = j >= op ? j - op : j < 0 ? 0 : j;
+            const double wj = dj ? aj : 1.0 - aj;
+            brows[4 * k + dj] = i0 * op + j + off;
+            brows[4 * k + 2 + dj] = i1 * op + j + off;
+            bw[4 * k + dj] = (float)((1.0 - ai) * wj);
+            bw[4 * k + 2 + dj] = (float)(ai * wj);
+        }
+        if (glr) {                      /* the normals' cells given (N, 4): static frames, made once */
+            for (int q = 0; q < 4; ++q) { lrows[4 * k + q] = glr[4 * v + q]; lw[4 * k + q] = glw[4 * v + q]; }
+            continue;
+        }
+        /* the grid cell of the normal (row 2 of R): θ from +Y, φ from +X towards +Z */
+        double ny = (double)R[7];
+        ny = ny < -1.0 ? -1.0 : ny > 1.0 ? 1.0 : ny;
+        const double gth = acos(ny);
+        double gph = atan2((double)R[8], (double)R[6]);
+        gph = gph - TWO_PI * floor(gph / TWO_PI);
+        double gi = gth / stg;
+        gi = gi < 0.0 ? 0.0 : gi > (double)(gt - 1) ? (double)(gt - 1) : gi;
+        const double gj = gph / spg;
+        int64_t g0 = (int64_t)floor(gi);
+        g0 = g0 < 0 ? 0 : g0 > gt - 2 ? gt - 2 : g0;
+        double bi = gi - (double)g0;
+        bi = bi < 0.0 ? 0.0 : bi > 1.0 ? 1.0 : bi;
+        const int64_t h0 = (int64_t)floor(gj);
+        const double bj = gj - (double)h0;
+        for (int di = 0; di < 2; ++di)
+            for (int dj = 0; dj < 2; ++dj) {
+                int64_t j = h0 + dj;
+                j = j >= gp ? j - gp : j;
+                j = j >= gp ? j - gp : j < 0 ? 0 : j;
+                lrows[4 * k + 2 * di + dj] = (g0 + di) * gp + j;
+                lw[4 * k + 2 * di + dj] = (float)((di ? bi : 1.0 - bi) * (dj ? bj : 1.0 - bj));
+            }
+    }
+}
 """
 
 
@@ -292,7 +381,8 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_groups2": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
                "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
-               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P]}
+               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
+               "tp_vertex_lookups": [_I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]}
 
 
 def switched_on() -> bool:
@@ -413,6 +503,46 @@ def groups(V: Tensor, R: Tensor, L: Tensor, gv: Tensor, gl: Tensor, gb: Tensor, 
     nt = _threads(g)
     lib.tp_groups(*args) if nt == 1 else lib.tp_groups_par(*args, nt)
     return out
+
+
+def vertex_lookups(used: Tensor, P: Tensor, R: Tensor, region: Tensor, cam: Tensor, outgoing, grid,
+                   cells: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """A per-vertex frame's look-ups of the vertices ``used`` (b,) int64 in one C pass: (brows, bw,
+    lrows, lw), (b, 4) each — the ωo rows of `fast_eval.grid_lookups` (R[used], normalize(cam −
+    P[used]), ``outgoing``, ``grid``, "trilinear") offset by region[used] · outgoing.size (as
+    `fast_eval.shading_rows` makes them), its weights, and the grid rows / weights of the normals
+    R[used][:, 2] (`lighting.cell_terms`) — the rows those give and their weights to float32
+    round-off (float64 libm trig in place of the compiled kernel's: an ulp of float64 before the
+    cast to float32). P (N, 3), R (N, 3, 3) float32, region (N,) int64, cam (3,) float32; ``cells``:
+    (lrows, lw) (N, 4) of every vertex (this function's of all vertices: the frames are static), copied
+    instead of made (two float64 trig calls a vertex fewer). None
+    without the library, for a grid with more than one tangent angle or other dtypes / layouts
+    (`fast_eval.grid_lookups` serves)."""
+    lib = _lib()
+    if lib is None or grid.n_psi != 1 or grid.n_theta < 2 or P.dtype != torch.float32 \
+            or R.dtype != torch.float32 or region.dtype != torch.int64 or used.dtype != torch.int64 \
+            or P.ndim != 2 or P.shape[1] != 3 or R.shape != (P.shape[0], 3, 3) or region.shape != (P.shape[0],) \
+            or cam.shape != (3,) or used.ndim != 1 or not (P.is_contiguous() and R.is_contiguous()
+                                                           and region.is_contiguous() and used.is_contiguous()) \
+            or any(t.device.type != "cpu" for t in (used, P, R, region, cam)):
+        return None
+    if cells is not None and (cells[0].shape != (P.shape[0], 4) or cells[1].shape != (P.shape[0], 4)
+                              or cells[0].dtype != torch.int64 or cells[1].dtype != torch.float32
+                              or not (cells[0].is_contiguous() and cells[1].is_contiguous())):
+        raise ValueError("cells (N, 4) int64 and float32 contiguous expected")
+    b = used.numel()
+    if b and (int(used.min()) < 0 or int(used.max()) >= P.shape[0]):
+        raise IndexError("a vertex outside the mesh")
+    cam = cam.to(torch.float32).contiguous()
+    brows, lrows = torch.empty(b, 4, dtype=torch.int64), torch.empty(b, 4, dtype=torch.int64)
+    bw, lw = torch.empty(b, 4, dtype=torch.float32), torch.empty(b, 4, dtype=torch.float32)
+    if b:
+        lib.tp_vertex_lookups(b, used.data_ptr(), P.data_ptr(), R.data_ptr(), region.data_ptr(), cam.data_ptr(),
+                              outgoing.n_theta, outgoing.n_phi, grid.n_theta, grid.n_phi,
+                              None if cells is None else cells[0].data_ptr(), None if cells is None else cells[1].data_ptr(),
+                              brows.data_ptr(),
+                              bw.data_ptr(), lrows.data_ptr(), lw.data_ptr(), _threads(b))
+    return brows, bw, lrows, lw
 
 
 def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Tensor, int] | None:

@@ -243,3 +243,85 @@ def test_hit_faces_equal_the_torch_bookkeeping():
     F2[faces[0], 2] = nv                                                    # a seen face's vertex
     with pytest.raises(IndexError):
         native.hit_faces(hit, face, F2, nv)
+
+
+@pytest.mark.parametrize("ogrid, fgrid", [((8, 16), (17, 32, 1)), ((1, 3), (2, 5, 1)), ((4, 4), (5, 8, 1))])
+def test_vertex_lookups_equal_grid_lookups(ogrid, fgrid):
+    """`native.vertex_lookups` = `fast_eval.grid_lookups` of R[used] and normalize(cam − P[used]) with the
+    ωo rows offset by region · outgoing.size (as `fast_eval.shading_rows` makes them), bit for bit:
+    random normals and points, normals at the poles (±Y) and on the φ seam (+X), ωo along the normal
+    (θ = 0) and below the horizon (clamped), vertices in any order; the normals' cells given
+    (``cells``) the same, and at 2 and 3 threads; a grid with two tangent angles → None."""
+    from methods.triple_product import brdf_table as bt
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(6)
+    N = 6000
+    n = torch.nn.functional.normalize(torch.randn(N, 3, generator=gen), dim=-1)
+    n[:8] = torch.tensor([0.0, 1.0, 0.0])
+    n[8:16] = torch.tensor([0.0, -1.0, 0.0])
+    n[16:24] = torch.tensor([1.0, 0.0, 0.0])
+    n[24:32] = torch.nn.functional.normalize(torch.tensor([1.0, 0.3, -1e-8]), dim=0)
+    R = lt.local_frames(n, "grid").float().contiguous()
+    cam = torch.tensor([0.3, 2.0, 4.0])
+    P = torch.randn(N, 3, generator=gen)
+    P[32:40] = cam - 2.0 * n[32:40]                   # ωo = n: θ = 0
+    P[40:48] = cam + 1.5 * n[40:48]                   # ωo = −n: below the horizon
+    region = torch.randint(0, 3, (N,), generator=gen)
+    used = torch.randperm(N, generator=gen)[: N - 500]
+    og, grid = bt.OutgoingGrid(*ogrid), lt.FrameGrid(*fgrid)
+    got = native.vertex_lookups(used, P, R, region, cam, og, grid)
+    if got is None:
+        pytest.skip("no native loops")
+    wo = torch.nn.functional.normalize(cam - P[used], dim=-1)
+    rows, w, lrows, lw = fast_eval.grid_lookups(R[used], wo, og, grid, "trilinear")
+    want = (rows + region[used][:, None] * og.size, w, lrows, lw)
+    for g, x in zip(got, want):
+        assert g.dtype == x.dtype and torch.equal(g, x)
+    every = native.vertex_lookups(torch.arange(N), P, R, region, cam, og, grid)
+    again = native.vertex_lookups(used, P, R, region, cam, og, grid, cells=(every[2], every[3]))
+    for g, x in zip(again, got):
+        assert torch.equal(g, x)
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 8
+    try:
+        for nt in (2, 3):                             # split over OpenMP's team: the same bits
+            torch.set_num_threads(nt)
+            for g, x in zip(native.vertex_lookups(used, P, R, region, cam, og, grid), got):
+                assert torch.equal(g, x), nt
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
+    assert native.vertex_lookups(used, P, R, region, cam, og, lt.FrameGrid(fgrid[0], fgrid[1], 2)) is None
+    with pytest.raises(IndexError):
+        native.vertex_lookups(used + N, P, R, region, cam, og, grid)
+
+
+def test_render_vertex_lookups_native_equals_torch(monkeypatch):
+    """A per-vertex render whose look-ups come from `native.vertex_lookups` (`TripleProduct._vertex_lookups`)
+    = the same render with them from `fast_eval.grid_lookups` (``VERTEX_LOOKUPS`` off), bit for bit, over a
+    view change and a lighting change (the cells of the normals made once, reused)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+    from methods.triple_product import method as tp_method
+
+    scene = get_scene("sphere_plane", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    for kind in ("V", "L"):
+        frames = make_sequence(scene, kind, n_frames=3, seed=1)
+        gbs = [make_gbuffer(scene, f, 1) for f in frames]
+        monkeypatch.setattr(tp_method, "VERTEX_LOOKUPS", True)
+        on = [m.render(f, g) for f, g in zip(frames, gbs)]
+        assert m._perf_cache.get(("vertex_cells",)) is not None          # the native look-ups ran
+        monkeypatch.setattr(tp_method, "VERTEX_LOOKUPS", False)
+        off = m.with_evaluator("auto")
+        off.__dict__.pop("_perf_cache", None)
+        off._light_key = None
+        ref = [off.render(f, g) for f, g in zip(frames, gbs)]
+        for a, b in zip(on, ref):
+            assert torch.equal(a, b), kind
