@@ -1465,15 +1465,81 @@ static void pt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* u0, const float* 
 """
 
 
+
+def _features8(D: int, dif: bool, spec: bool) -> str:
+    """C function ``ft_<D>_<dif>_<spec>``: the features of 8 points at once (each variable an 8-float vector:
+    `_point_terms`' statements on vectors, elementwise the same IEEE operations — products, the reflection,
+    the square root and the divisions — so each point's features are the same bits), stored transposed:
+    f[p K + k] the feature k of point p."""
+    code, feats = [], []
+    if dif:
+        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
+        code, feats = code + c, feats + f
+    if spec:
+        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
+        code = code + ["const v8 dn = (nx * wx + ny * wy) + nz * wz;",
+                       "const v8 t2 = dn * 2.0f;",
+                       "const v8 r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+                       "v8 nr = __builtin_ia32_sqrtps256((r0 * r0 + r1 * r1) + r2 * r2);",
+                       "{ const v8i keep = (nr != nr) | (nr > 1e-12f);   /* NaN stays, else max(nr, 1e-12) */",
+                       "  nr = (v8)(((v8i)nr & keep) | ((v8i)tiny & ~keep)); }",
+                       "const v8 rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
+        feats += f
+    K = len(feats)
+    code = [ln.replace("const float ", "const v8 ") for ln in code]
+    body = "\n    ".join(code + [f"F[{i}] = {t};" for i, t in enumerate(feats)])
+    return f"""
+static void ft_{D}_{int(dif)}_{int(spec)}(v8 nx, v8 ny, v8 nz, v8 wx, v8 wy, v8 wz, float* f) {{
+    v8 F[{K}];
+    const v8 tiny = {{1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f}};
+    (void)tiny; (void)wx; (void)wy; (void)wz;
+    {body}
+    for (int k = 0; k < {K}; k += 8) {{   /* 8 x 8 blocks transposed by shuffles */
+        const v8 t0 = __builtin_ia32_unpcklps256(F[k], F[k + 1]), t1 = __builtin_ia32_unpckhps256(F[k], F[k + 1]);
+        const v8 t2 = __builtin_ia32_unpcklps256(F[k + 2], F[k + 3]), t3 = __builtin_ia32_unpckhps256(F[k + 2], F[k + 3]);
+        const v8 t4 = __builtin_ia32_unpcklps256(F[k + 4], F[k + 5]), t5 = __builtin_ia32_unpckhps256(F[k + 4], F[k + 5]);
+        const v8 t6 = __builtin_ia32_unpcklps256(F[k + 6], F[k + 7]), t7 = __builtin_ia32_unpckhps256(F[k + 6], F[k + 7]);
+        const v8 s0 = __builtin_ia32_shufps256(t0, t2, 0x44), s1 = __builtin_ia32_shufps256(t0, t2, 0xEE);
+        const v8 s2 = __builtin_ia32_shufps256(t1, t3, 0x44), s3 = __builtin_ia32_shufps256(t1, t3, 0xEE);
+        const v8 s4 = __builtin_ia32_shufps256(t4, t6, 0x44), s5 = __builtin_ia32_shufps256(t4, t6, 0xEE);
+        const v8 s6 = __builtin_ia32_shufps256(t5, t7, 0x44), s7 = __builtin_ia32_shufps256(t5, t7, 0xEE);
+        st(f + 0 * {K} + k, __builtin_ia32_vperm2f128_ps256(s0, s4, 0x20));
+        st(f + 1 * {K} + k, __builtin_ia32_vperm2f128_ps256(s1, s5, 0x20));
+        st(f + 2 * {K} + k, __builtin_ia32_vperm2f128_ps256(s2, s6, 0x20));
+        st(f + 3 * {K} + k, __builtin_ia32_vperm2f128_ps256(s3, s7, 0x20));
+        st(f + 4 * {K} + k, __builtin_ia32_vperm2f128_ps256(s0, s4, 0x31));
+        st(f + 5 * {K} + k, __builtin_ia32_vperm2f128_ps256(s1, s5, 0x31));
+        st(f + 6 * {K} + k, __builtin_ia32_vperm2f128_ps256(s2, s6, 0x31));
+        st(f + 7 * {K} + k, __builtin_ia32_vperm2f128_ps256(s3, s7, 0x31));
+    }}
+}}
+"""
+
+
+def _dot_terms(D: int, dif: bool, spec: bool, lanes: int) -> str:
+    """C function ``dt_<D>_<dif>_<spec>_<lanes>``: `_point_terms`' interpolated dot and reduction from a
+    point's features f (K,)."""
+    src = _point_terms(D, dif, spec, lanes)
+    a, b = src.index("    float f["), src.index("    (void)wx; (void)wy; (void)wz;")
+    src = src[:a] + src[b + len("    (void)wx; (void)wy; (void)wz;"):]
+    return src.replace(f"static void pt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* u0",
+                       f"static void dt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* f, const float* u0") \
+        .replace("float b2, float nx, float ny, float nz, float wx, float wy, float wz, float* out)",
+                 "float b2, float* out)")
+
 _FUSED_SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
 #include <math.h>
 typedef float v8 __attribute__((vector_size(32)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
-""" + "".join(_point_terms(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) + r"""
-typedef void (*pt_fn)(const float*, const float*, const float*, float, float, float, float, float, float, float,
-                      float, float, float*);
+typedef int32_t v8i __attribute__((vector_size(32)));
+static inline void st(float* p, v8 v) { __builtin_memcpy(p, &v, 32); }
+""" + "".join(_dot_terms(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) \
+    + "".join(_features8(*v) for v in TERMS_VARIANTS) + r"""
+typedef void (*dt_fn)(const float*, const float*, const float*, const float*, float, float, float, float*);
+typedef void (*ft_fn)(v8, v8, v8, v8, v8, v8, float*);
+#define ZH33P_CHUNK 64
 
 /* Per pixel p < n (S2 samples q = p S2 + s): out[p] = (the plane samples' sum, as zh_plane_pixels) · inv, then
    + t_q · inv for each object sample q (mask[q] == 0 and hit: hit NULL = every sample) in order, t_q its terms
@@ -1486,52 +1552,69 @@ void zh33p_fused(int64_t n, int64_t S2, const int64_t *face, const float *bary, 
                  const int32_t *F, int64_t M, const float *u, int64_t N, const float *U, int64_t NU, int64_t K,
                  const int32_t *lut, const int64_t *region, const uint8_t *sreg, int64_t R, int64_t variant,
                  int64_t clamp, float inv, float *out, int64_t nt, int64_t *stat) {
-    static const pt_fn fns[] = {""" + ", ".join(f"pt_{D}_{int(d)}_{int(sp)}_{w}" for w in TERMS_LANES
+    static const dt_fn dts[] = {""" + ", ".join(f"dt_{D}_{int(d)}_{int(sp)}_{w}" for w in TERMS_LANES
                                                 for D, d, sp in TERMS_VARIANTS) + r"""};
-    const pt_fn fn = fns[variant];
+    static const ft_fn fts[] = {""" + ", ".join(f"ft_{D}_{int(d)}_{int(sp)}" for w in TERMS_LANES
+                                                for D, d, sp in TERMS_VARIANTS) + r"""};
+    const dt_fn dt = dts[variant];
+    const ft_fn ft = fts[variant];
+    const int64_t nch = (n + ZH33P_CHUNK - 1) / ZH33P_CHUNK;
     int64_t nb = 0, ns = 0;
-#pragma omp parallel for num_threads(nt) schedule(static, 64) reduction(+:nb, ns) if(nt > 1)
-    for (int64_t p = 0; p < n; ++p) {
-        float o0 = 0.f, o1 = 0.f, o2 = 0.f;
-        int obj = 0;
-        for (int64_t s = 0; s < S2; ++s) {
-            const int64_t q = p * S2 + s;
-            float x0 = 0.f, x1 = 0.f, x2 = 0.f;
-            const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
-            if (mask[q]) {
-                if (dn > 0.f) {
-                    const int64_t f = face[q];
-                    if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
-                    const int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
-                    if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
-                        ++nb;
-                        goto add;
-                    }
-                    const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                    const float w = (1.0f - bu) - bv;
-                    const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
-                    x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
-                    x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
-                    x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
-                    if (clamp) {
-                        x0 = x0 < 0.f ? 0.f : x0;
-                        x1 = x1 < 0.f ? 0.f : x1;
-                        x2 = x2 < 0.f ? 0.f : x2;
-                    }
-                }
-            } else if (!hit || hit[q]) {
-                obj = 1;
-            }
-        add:
-            if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
-            else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
-        }
-        o0 = o0 * inv; o1 = o1 * inv; o2 = o2 * inv;
-        if (obj) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb, ns) if(nt > 1)
+    for (int64_t ch = 0; ch < nch; ++ch) {
+        const int64_t p0 = ch * ZH33P_CHUNK, p1 = p0 + ZH33P_CHUNK < n ? p0 + ZH33P_CHUNK : n;
+        float r[3 * ZH33P_CHUNK];
+        int64_t oq[ZH33P_CHUNK * 16];   /* the chunk's object samples, in order (S2 <= 16) */
+        int64_t no = 0;
+        for (int64_t p = p0; p < p1; ++p) {
+            float o0 = 0.f, o1 = 0.f, o2 = 0.f;
             for (int64_t s = 0; s < S2; ++s) {
                 const int64_t q = p * S2 + s;
-                if (mask[q] || (hit && !hit[q]))
-                    continue;
+                float x0 = 0.f, x1 = 0.f, x2 = 0.f;
+                const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+                if (mask[q]) {
+                    if (dn > 0.f) {
+                        const int64_t f = face[q];
+                        if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
+                        const int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+                        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                            ++nb;
+                            goto add;
+                        }
+                        const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+                        const float w = (1.0f - bu) - bv;
+                        const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+                        x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+                        x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+                        x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+                        if (clamp) {
+                            x0 = x0 < 0.f ? 0.f : x0;
+                            x1 = x1 < 0.f ? 0.f : x1;
+                            x2 = x2 < 0.f ? 0.f : x2;
+                        }
+                    }
+                } else if (!hit || hit[q]) {
+                    oq[no++] = q;
+                }
+            add:
+                if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
+                else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+            }
+            const int64_t k = 3 * (p - p0);
+            r[k] = o0 * inv; r[k + 1] = o1 * inv; r[k + 2] = o2 * inv;
+        }
+        for (int64_t g = 0; g < no; g += 8) {   /* the object samples 8 at a time (the last batch padded) */
+            const int64_t m = no - g < 8 ? no - g : 8;
+            float fx[8], fy[8], fz[8], gx[8], gy[8], gz[8];
+            for (int i = 0; i < 8; ++i) {
+                const int64_t q = oq[g + (i < m ? i : m - 1)];
+                fx[i] = nrm[3 * q]; fy[i] = nrm[3 * q + 1]; fz[i] = nrm[3 * q + 2];
+                gx[i] = wo[q]; gy[i] = wo[ws0 + q]; gz[i] = wo[2 * ws0 + q];
+            }
+            float fb[8 * 80] __attribute__((aligned(64)));
+            ft(ld(fx), ld(fy), ld(fz), ld(gx), ld(gy), ld(gz), fb);
+            for (int i = 0; i < m; ++i) {
+                const int64_t q = oq[g + i];
                 const int64_t f = face[q], rg = region[q];
                 if ((uint64_t)f >= (uint64_t)M || (uint64_t)rg >= (uint64_t)R) { ++nb; continue; }
                 int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
@@ -1547,24 +1630,25 @@ void zh33p_fused(int64_t n, int64_t S2, const int64_t *face, const float *bary, 
                     continue;
                 }
                 const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                const float nx = nrm[3 * q], ny = nrm[3 * q + 1], nz = nrm[3 * q + 2];
-                const float wx = wo[q], wy = wo[ws0 + q], wz = wo[2 * ws0 + q];
                 float t[3];
-                fn(U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, nx, ny, nz, wx, wy, wz, t);
-                const float fr = (__builtin_fmaf(nz, wz, __builtin_fmaf(ny, wy, nx * wx)) > 0.f) ? 1.0f : 0.0f;
+                dt(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);
+                const float fr = (__builtin_fmaf(fz[i], gz[i], __builtin_fmaf(fy[i], gy[i], fx[i] * gx[i])) > 0.f)
+                                 ? 1.0f : 0.0f;
                 for (int c = 0; c < 3; ++c) {
                     float x = t[c] * fr;
                     if (clamp)
                         x = x < 0.f ? 0.f : x;
                     t[c] = x;
                 }
-                o0 = o0 + t[0] * inv;
-                o1 = o1 + t[1] * inv;
-                o2 = o2 + t[2] * inv;
+                const int64_t k = 3 * (q / S2 - p0);
+                r[k] = r[k] + t[0] * inv;
+                r[k + 1] = r[k + 1] + t[1] * inv;
+                r[k + 2] = r[k + 2] + t[2] * inv;
                 ns += sreg[rg];
             }
         }
-        out[3 * p] = o0; out[3 * p + 1] = o1; out[3 * p + 2] = o2;
+        for (int64_t i = 0; i < 3 * (p1 - p0); ++i)
+            out[3 * p0 + i] = r[i];
     }
     stat[0] = nb;
     stat[1] = ns;
@@ -1602,7 +1686,12 @@ int64_t zh33p_rest_screen(const uint8_t *mask, const float *nrm, int64_t P, int6
     int next = 0;
     int64_t j = 0;
     for (int64_t p = 0; p < P; ++p) {
-        if (mask[p]) continue;
+        if (mask[p]) {
+            uint64_t w;   /* (skip 8 plane samples at a time: most are) */
+            while (p + 9 <= P && (__builtin_memcpy(&w, mask + p + 1, 8), w == 0x0101010101010101ULL))
+                p += 8;
+            continue;
+        }
         const float *x = nrm + 3 * p;
         if ((j & 15) == 0 && (j >> 4) < ns) {
             sub[3 * (j >> 4)] = x[0]; sub[3 * (j >> 4) + 1] = x[1]; sub[3 * (j >> 4) + 2] = x[2];
@@ -1631,7 +1720,13 @@ int64_t zh33p_referenced_lut(const uint8_t *mask, const uint8_t *hit, const int6
                              int64_t P, int64_t N, int32_t *lut, int64_t *idx) {
     for (int64_t i = 0; i < N; ++i) lut[i] = 0;
     for (int64_t p = 0; p < P; ++p) {
-        if (mask[p] || (hit && !hit[p])) continue;
+        if (mask[p]) {
+            uint64_t w;   /* (skip 8 plane samples at a time: most are) */
+            while (p + 9 <= P && (__builtin_memcpy(&w, mask + p + 1, 8), w == 0x0101010101010101ULL))
+                p += 8;
+            continue;
+        }
+        if (hit && !hit[p]) continue;
         const int64_t f = face[p];
         if ((uint64_t)f >= (uint64_t)M) return -1;
         for (int k = 0; k < 3; ++k) {
@@ -1736,7 +1831,7 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     if lib is None or key not in TERMS_VARIANTS:
         return None
     P = int(face.shape[0])
-    if S2 <= 0 or P % S2 or face.dtype != torch.int64 or face.shape != (P,) or not face.is_contiguous() \
+    if S2 <= 0 or S2 > 16 or P % S2 or face.dtype != torch.int64 or face.shape != (P,) or not face.is_contiguous() \
             or mask.dtype != torch.bool or mask.shape != (P,) or not mask.is_contiguous() \
             or (hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous())) \
             or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
