@@ -347,6 +347,7 @@ class ZHShadow(Method):
         self._plane_u0: tuple | None = None      # ((pose, lighting, plane normal), v, Wd, (N, 3) u without kd)
         self._faces: tuple | None = None         # (F, F int32, Fᵀ (3, M) int64): `_render_planes`
         self.last_path = ""                      # which sample path the last frame took (tests)
+        self.last_fused = False                  # whether its plane path ran as one pass (`_fused_planes`)
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
         self._resolve_matrix: tuple | None = None  # ((camera, pose, G-buffer size), geometry, CSR or None):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
@@ -648,6 +649,11 @@ class ZHShadow(Method):
         spec = [t[3] is not None for t in tabs]
         F32, fv = self._face_rows(geom, dev)
         misses = None if all_hit else (~gbuffer.hit).nonzero().squeeze(-1)
+        if self.fused_planes and self.native_split and self.native_plane_pixels and not cosine \
+                and (misses is None or misses.shape[0] <= SPLIT_MAX_MISSES):
+            img = self._fused_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, spec, F32, fv, misses)
+            if img is not None:
+                return img
         split = self._native_split(gbuffer, spec, F32, misses) \
             if self.native_split and (misses is None or misses.shape[0] <= SPLIT_MAX_MISSES) else None
         if split is False:
@@ -713,6 +719,90 @@ class ZHShadow(Method):
         counts["specular"] = cr["specular"]
         self._last_counts = {"P": P, "Q": P if all_hit else int(mask.sum()) + int(rest.shape[0]), **counts}
         self.last_path = "planes"
+        self.last_fused = False
+        return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # `_render_planes`' sample stage as one C pass over the G-buffer (`_fused_planes`, `native.fused_pixels`)
+    # where it runs (and `native_split`, `native_plane_pixels` are on); False: the split, `runtime.shade` and
+    # the plane pass (the tests' oracle)
+    fused_planes = True
+
+    def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
+                      mats: list, spec: list[bool], F32: Tensor, fv: Tensor, misses: Tensor | None) -> Tensor | None:
+        """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
+        over the G-buffer (`native.fused_pixels`: the plane samples' pixels, the object samples' terms, their
+        front test and clamp and their sum into the pixels, bit for bit the separate passes' image), or None
+        where anything differs from that case — then `_render_planes` goes on as before and decides (its
+        torch or native split, the point GEMMs, the general path). The same plane search (`runtime.first_plane`
+        over `native.plane_mask`, its screen by `native.screen8`), the same tests on its counts, the second
+        plane's screen over the object samples (`native.rest_screen`: their normals read through the mask,
+        not gathered), the same per-vertex table (a frame that does not keep it builds the rows its object
+        samples reference: `native.referenced_lut`). Replaces `object_rows` (the object samples' rows
+        gathered), `sample_terms` over them, the front test, the clamp, `plane_pixels` and three
+        ``index_add_``: five parallel regions and ~7 passes over P- or Q-long arrays become one."""
+        P, nrm, region, hit = gbuffer.num_samples, gbuffer.normal, gbuffer.region, gbuffer.hit
+        n = self.model.order
+        D = 2 * n - 2
+        has_spec = any(spec)
+        if n > rt.MONOMIAL_MAX_ORDER or P < rt.PLANAR_MIN_POINTS or not zn.fused_available(D, True, has_spec) \
+                or not zn.split_available() or not nrm.is_contiguous() or nrm.device.type != "cpu":
+            return None
+        spec_t = torch.tensor(spec)
+        found: list = []
+
+        def match(n0: Tensor) -> tuple[Tensor, int]:
+            r = zn.plane_mask(nrm, n0, region, spec_t, None if misses is None else hit)
+            if r is None:
+                raise LookupError   # (the torch match: `_render_planes` goes on)
+            found[:] = [r]
+            return r[0], r[1]
+
+        sc = zn.screen8(nrm.T)
+        if sc is None:
+            return None
+        try:
+            first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match, screen=sc)
+        except LookupError:
+            return None
+        if first is None or 2 * first[2] <= P:
+            return None
+        mask, cnt, ns, _ = found[0]
+        if has_spec and ns:
+            return None
+        m = P - cnt                           # the samples off the plane (the misses among them)
+        nmiss = 0 if misses is None else int(misses.shape[0])
+        if m - nmiss <= 0:
+            return None
+        if m >= rt.PLANAR_MIN_POINTS:         # a second plane among them: `_native_split`'s test, screened
+            rs = zn.rest_screen(mask, nrm, m)
+            if rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs):
+                return None
+        hit_arg = None if misses is None else hit
+        u = self._plane_term(v0, v, vreg, tabs[0][2], mats, first[0])
+        N = int(v.shape[0])
+        U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
+                               refs=lambda: zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N))
+        if U is None:
+            return None
+        lut = None
+        if isinstance(U, tuple):   # this frame's own table, of the referenced vertices alone: lut their ranks
+            U, lut = U
+        clamp = self.config["clamp"]
+        S2 = gbuffer.spp_side ** 2
+        res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
+                              spec, D, True, has_spec, clamp, S2)
+        if res is None:
+            return None
+        img, nspec = res
+        n_ = gbuffer.height * gbuffer.width
+        warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3), gbuffer.wo.view(n_, S2, 3),
+                                           mask.view(n_, S2), gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
+        groups = [(first[0], None)]
+        counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg)
+        counts["specular"] = nspec
+        self._last_counts = {"P": P, "Q": P - nmiss, **counts}
+        self.last_path = "planes"
+        self.last_fused = True
         return img.view(gbuffer.height, gbuffer.width, 3)
 
     # `_render_planes` splits an all-hit G-buffer into the plane's samples and the object's rows by the
@@ -896,7 +986,7 @@ class ZHShadow(Method):
     referenced_table = True
 
     def _vertex_table(self, frame: Frame, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list, mats: list,
-                      points: int | None = None, vi: Tensor | None = None) -> Tensor | tuple | None:
+                      points: int | None = None, vi: Tensor | None = None, refs=None) -> Tensor | tuple | None:
         """The per-vertex table U of `runtime.vertex_table` for this frame's pose, lighting and
         materials, or None (shade through the per-point feature GEMMs). Kept while those do not
         change; built by a view-only frame (``changed`` ⊆ {"view"}), when the next frames are likely
@@ -914,7 +1004,9 @@ class ZHShadow(Method):
         (`runtime.referenced_vertices`) and returned as (U of those rows, ``vi`` renumbered over
         them): the same rows bit for bit (each row its own product). Bench creature VB frame: 3.6 K
         of the 13.4 K vertices (the object's visible side), U 4.4 → 1.7 ms + ~0.6 ms to find and
-        renumber them."""
+        renumber them. ``refs`` (in place of ``vi``): a zero-argument function giving (those vertices,
+        a lut (N,) of their ranks: the renumbered id of vertex i is lut[i]) or None (then no table:
+        None), called only when that table is built (`_fused_planes`: `native.referenced_lut`)."""
         key = (self._posed[0], self._light[0],
                tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al), t[3] is not None)
                      for (kd, ks, al), t in zip(mats, tabs)))
@@ -926,8 +1018,12 @@ class ZHShadow(Method):
         if not frame.changed <= {"view"} and vt is not None and not many:
             return None   # the first frame builds it too: its kernels compile there, not in the first timed
             #               view frame (session 13's perf run: the paper setting's V frame 1 at 808 ms vs 68)
-        if not frame.changed <= {"view"} and vt is not None and vi is not None and self.referenced_table:
-            idx, vi_r = rt.referenced_vertices(vi, int(v.shape[0]))
+        if not frame.changed <= {"view"} and vt is not None and (vi is not None or refs is not None) \
+                and self.referenced_table:
+            found = rt.referenced_vertices(vi, int(v.shape[0])) if vi is not None else refs()
+            if found is None:
+                return None
+            idx, vi_r = found
             return rt.vertex_table(v.index_select(0, idx), vreg.index_select(0, idx), tabs), vi_r
         U = rt.vertex_table(v, vreg, tabs)
         self._vtable = (key, v0, U, [tuple(t) for t in tabs])   # the tables kept: their identity is the key

@@ -1382,3 +1382,486 @@ def _flat_plan(plan: tuple) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 @functools.lru_cache(maxsize=None)
 def _identity_rows(n2: int) -> Tensor:
     return torch.arange(n2, dtype=torch.int64)
+
+
+# === zh33p ==================================================================================================
+#
+# A plane frame's whole sample stage in one pass over the G-buffer (`ZHShadow._fused_planes`, session 33).
+# `ZHShadow._render_planes` ran, after the plane search (`plane_mask`), `object_rows` (the object samples'
+# rows gathered into new arrays), `sample_terms` over those rows, the front test (`runtime.dot_T`), the clamp,
+# `plane_pixels` over every sample and three ``index_add_`` of the object samples into their pixels: five
+# parallel regions and ~7 passes over P- or Q-long arrays (bench creature, paper setting, V frame, 1 thread:
+# ~3.5 of ~5.3 ms). Here each pixel is one thread's from the G-buffer to the image: its plane samples as
+# `zh_plane_pixels` (the same expressions), then its object samples in order, each shaded as `sample_terms`
+# shades a row (the same straight-line features and lane arithmetic: `_point_terms`), times the front test
+# (n·ωo as `runtime.dot_T`: two fused multiply-adds), clamped, added into the pixel as ``index_add_`` adds
+# (self + src · alpha). The same bits as the separate passes (tested), at any thread count. Also here: the
+# first plane search's 8-candidate screen in one pass (`screen8`: `screen_counts`' counts, one strided read
+# instead of eight), the second plane's screen over the object samples straight from the mask
+# (`rest_screen`: `screen_counts` of their rows), and the vertices those samples reference
+# (`referenced_lut`: `runtime.referenced_vertices` of their face corners) without gathering their rows.
+
+
+def _point_terms(D: int, dif: bool, spec: bool, lanes: int) -> str:
+    """C function ``pt_<D>_<dif>_<spec>_<lanes>``: one point's three terms, as `_terms_variant`'s loop body
+    computes a row's (the same statements: `_monomial_code`, the reflection, the dot and its reduction
+    tree), from the point's values instead of (3, Q) rows; o[c] the terms."""
+    code, feats = [], []
+    if dif:
+        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
+        code, feats = code + c, feats + f
+    if spec:
+        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
+        code = code + ["const float dn = (nx * wx + ny * wy) + nz * wz;",
+                       "const float t2 = dn * 2.0f;",
+                       "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+                       "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
+                       "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);",
+                       "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
+        feats += f
+    K = len(feats)
+    assert K % lanes == 0 and lanes in (8, 16)
+    body = "\n        ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
+    if lanes == 8:
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}};
+    for (int j = 0; j < {K}; j += 8) {{
+        const v8 fj = ld(f + j);
+        for (int c = 0; c < 3; ++c) {{
+            const int o = c * {K} + j;
+            acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+        }}
+    }}
+    for (int c = 0; c < 3; ++c) {{
+        const v8 a = acc[c];
+        const float s0 = a[0] + a[4], s1 = a[1] + a[5], s2 = a[2] + a[6], s3 = a[3] + a[7];
+        out[c] = 0.0f + ((s0 + s2) + (s1 + s3));
+    }}"""
+    else:
+        dot = f"""v8 acc[3] = {{{{0}}, {{0}}, {{0}}}}, ah[3] = {{{{0}}, {{0}}, {{0}}}};
+    for (int j = 0; j < {K}; j += 16) {{
+        const v8 fj = ld(f + j), fh = ld(f + j + 8);
+        for (int c = 0; c < 3; ++c) {{
+            const int o = c * {K} + j;
+            acc[c] = acc[c] + ((ld(u0 + o) * b0 + ld(u1 + o) * b1) + ld(u2 + o) * b2) * fj;
+            ah[c] = ah[c] + ((ld(u0 + o + 8) * b0 + ld(u1 + o + 8) * b1) + ld(u2 + o + 8) * b2) * fh;
+        }}
+    }}
+    for (int c = 0; c < 3; ++c) {{
+        const v8 a = acc[c];
+        const v8 w = a + ah[c];
+        const float x0 = w[0] + w[4], x1 = w[1] + w[5], x2 = w[2] + w[6], x3 = w[3] + w[7];
+        out[c] = 0.0f + ((x0 + x2) + (x1 + x3));
+    }}"""
+    return f"""
+static void pt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* u0, const float* u1, const float* u2, float b0, float b1,
+        float b2, float nx, float ny, float nz, float wx, float wy, float wz, float* out) {{
+    float f[{K}] __attribute__((aligned(64)));
+    {{
+        {body}
+    }}
+    (void)wx; (void)wy; (void)wz;
+    {dot}
+}}
+"""
+
+
+
+def _features8(D: int, dif: bool, spec: bool) -> str:
+    """C function ``ft_<D>_<dif>_<spec>``: the features of 8 points at once (each variable an 8-float vector:
+    `_point_terms`' statements on vectors, elementwise the same IEEE operations — products, the reflection,
+    the square root and the divisions — so each point's features are the same bits), stored transposed:
+    f[p K + k] the feature k of point p."""
+    code, feats = [], []
+    if dif:
+        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
+        code, feats = code + c, feats + f
+    if spec:
+        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
+        code = code + ["const v8 dn = (nx * wx + ny * wy) + nz * wz;",
+                       "const v8 t2 = dn * 2.0f;",
+                       "const v8 r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+                       "v8 nr = __builtin_ia32_sqrtps256((r0 * r0 + r1 * r1) + r2 * r2);",
+                       "{ const v8i keep = (nr != nr) | (nr > 1e-12f);   /* NaN stays, else max(nr, 1e-12) */",
+                       "  nr = (v8)(((v8i)nr & keep) | ((v8i)tiny & ~keep)); }",
+                       "const v8 rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
+        feats += f
+    K = len(feats)
+    code = [ln.replace("const float ", "const v8 ") for ln in code]
+    body = "\n    ".join(code + [f"F[{i}] = {t};" for i, t in enumerate(feats)])
+    return f"""
+static void ft_{D}_{int(dif)}_{int(spec)}(v8 nx, v8 ny, v8 nz, v8 wx, v8 wy, v8 wz, float* f) {{
+    v8 F[{K}];
+    const v8 tiny = {{1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f, 1e-12f}};
+    (void)tiny; (void)wx; (void)wy; (void)wz;
+    {body}
+    for (int k = 0; k < {K}; k += 8) {{   /* 8 x 8 blocks transposed by shuffles */
+        const v8 t0 = __builtin_ia32_unpcklps256(F[k], F[k + 1]), t1 = __builtin_ia32_unpckhps256(F[k], F[k + 1]);
+        const v8 t2 = __builtin_ia32_unpcklps256(F[k + 2], F[k + 3]), t3 = __builtin_ia32_unpckhps256(F[k + 2], F[k + 3]);
+        const v8 t4 = __builtin_ia32_unpcklps256(F[k + 4], F[k + 5]), t5 = __builtin_ia32_unpckhps256(F[k + 4], F[k + 5]);
+        const v8 t6 = __builtin_ia32_unpcklps256(F[k + 6], F[k + 7]), t7 = __builtin_ia32_unpckhps256(F[k + 6], F[k + 7]);
+        const v8 s0 = __builtin_ia32_shufps256(t0, t2, 0x44), s1 = __builtin_ia32_shufps256(t0, t2, 0xEE);
+        const v8 s2 = __builtin_ia32_shufps256(t1, t3, 0x44), s3 = __builtin_ia32_shufps256(t1, t3, 0xEE);
+        const v8 s4 = __builtin_ia32_shufps256(t4, t6, 0x44), s5 = __builtin_ia32_shufps256(t4, t6, 0xEE);
+        const v8 s6 = __builtin_ia32_shufps256(t5, t7, 0x44), s7 = __builtin_ia32_shufps256(t5, t7, 0xEE);
+        st(f + 0 * {K} + k, __builtin_ia32_vperm2f128_ps256(s0, s4, 0x20));
+        st(f + 1 * {K} + k, __builtin_ia32_vperm2f128_ps256(s1, s5, 0x20));
+        st(f + 2 * {K} + k, __builtin_ia32_vperm2f128_ps256(s2, s6, 0x20));
+        st(f + 3 * {K} + k, __builtin_ia32_vperm2f128_ps256(s3, s7, 0x20));
+        st(f + 4 * {K} + k, __builtin_ia32_vperm2f128_ps256(s0, s4, 0x31));
+        st(f + 5 * {K} + k, __builtin_ia32_vperm2f128_ps256(s1, s5, 0x31));
+        st(f + 6 * {K} + k, __builtin_ia32_vperm2f128_ps256(s2, s6, 0x31));
+        st(f + 7 * {K} + k, __builtin_ia32_vperm2f128_ps256(s3, s7, 0x31));
+    }}
+}}
+"""
+
+
+def _dot_terms(D: int, dif: bool, spec: bool, lanes: int) -> str:
+    """C function ``dt_<D>_<dif>_<spec>_<lanes>``: `_point_terms`' interpolated dot and reduction from a
+    point's features f (K,)."""
+    src = _point_terms(D, dif, spec, lanes)
+    a, b = src.index("    float f["), src.index("    (void)wx; (void)wy; (void)wz;")
+    src = src[:a] + src[b + len("    (void)wx; (void)wy; (void)wz;"):]
+    return src.replace(f"static void pt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* u0",
+                       f"static void dt_{D}_{int(dif)}_{int(spec)}_{lanes}(const float* f, const float* u0") \
+        .replace("float b2, float nx, float ny, float nz, float wx, float wy, float wz, float* out)",
+                 "float b2, float* out)")
+
+_FUSED_SOURCE = r"""
+#include <stdint.h>
+#include <stdlib.h>
+#include <math.h>
+typedef float v8 __attribute__((vector_size(32)));
+static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
+typedef int32_t v8i __attribute__((vector_size(32)));
+static inline void st(float* p, v8 v) { __builtin_memcpy(p, &v, 32); }
+""" + "".join(_dot_terms(*v, lanes=w) for w in TERMS_LANES for v in TERMS_VARIANTS) \
+    + "".join(_features8(*v) for v in TERMS_VARIANTS) + r"""
+typedef void (*dt_fn)(const float*, const float*, const float*, const float*, float, float, float, float*);
+typedef void (*ft_fn)(v8, v8, v8, v8, v8, v8, float*);
+#define ZH33P_CHUNK 64
+
+/* Per pixel p < n (S2 samples q = p S2 + s): out[p] = (the plane samples' sum, as zh_plane_pixels) · inv, then
+   + t_q · inv for each object sample q (mask[q] == 0 and hit: hit NULL = every sample) in order, t_q its terms
+   (`sample_terms`' variant ``variant``, U (NU, 3, K) rows lut[F[face]] or F[face] when lut is NULL, b = ((1 − u)
+   − v, u, v)) times (n·ωo > 0, as runtime.dot_T), max(·, 0) if clamp. Plane corners from u (N, 3) by the same
+   face table F (M, 3) int32. stat[0]: samples with a face or vertex out of range, or an object sample's region
+   outside [0, R) (nothing trusted then); stat[1]: object samples whose region has sreg[region] set. */
+void zh33p_fused(int64_t n, int64_t S2, const int64_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                 const float *nrm, const float *wo, int64_t ws0, const uint8_t *mask, const uint8_t *hit,
+                 const int32_t *F, int64_t M, const float *u, int64_t N, const float *U, int64_t NU, int64_t K,
+                 const int32_t *lut, const int64_t *region, const uint8_t *sreg, int64_t R, int64_t variant,
+                 int64_t clamp, float inv, float *out, int64_t nt, int64_t *stat) {
+    static const dt_fn dts[] = {""" + ", ".join(f"dt_{D}_{int(d)}_{int(sp)}_{w}" for w in TERMS_LANES
+                                                for D, d, sp in TERMS_VARIANTS) + r"""};
+    static const ft_fn fts[] = {""" + ", ".join(f"ft_{D}_{int(d)}_{int(sp)}" for w in TERMS_LANES
+                                                for D, d, sp in TERMS_VARIANTS) + r"""};
+    const dt_fn dt = dts[variant];
+    const ft_fn ft = fts[variant];
+    const int64_t nch = (n + ZH33P_CHUNK - 1) / ZH33P_CHUNK;
+    int64_t nb = 0, ns = 0;
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb, ns) if(nt > 1)
+    for (int64_t ch = 0; ch < nch; ++ch) {
+        const int64_t p0 = ch * ZH33P_CHUNK, p1 = p0 + ZH33P_CHUNK < n ? p0 + ZH33P_CHUNK : n;
+        float r[3 * ZH33P_CHUNK];
+        int64_t oq[ZH33P_CHUNK * 16];   /* the chunk's object samples, in order (S2 <= 16) */
+        int64_t no = 0;
+        for (int64_t p = p0; p < p1; ++p) {
+            float o0 = 0.f, o1 = 0.f, o2 = 0.f;
+            for (int64_t s = 0; s < S2; ++s) {
+                const int64_t q = p * S2 + s;
+                float x0 = 0.f, x1 = 0.f, x2 = 0.f;
+                const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+                if (mask[q]) {
+                    if (dn > 0.f) {
+                        const int64_t f = face[q];
+                        if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
+                        const int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+                        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                            ++nb;
+                            goto add;
+                        }
+                        const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+                        const float w = (1.0f - bu) - bv;
+                        const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+                        x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+                        x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+                        x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+                        if (clamp) {
+                            x0 = x0 < 0.f ? 0.f : x0;
+                            x1 = x1 < 0.f ? 0.f : x1;
+                            x2 = x2 < 0.f ? 0.f : x2;
+                        }
+                    }
+                } else if (!hit || hit[q]) {
+                    oq[no++] = q;
+                }
+            add:
+                if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
+                else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+            }
+            const int64_t k = 3 * (p - p0);
+            r[k] = o0 * inv; r[k + 1] = o1 * inv; r[k + 2] = o2 * inv;
+        }
+        for (int64_t g = 0; g < no; g += 8) {   /* the object samples 8 at a time (the last batch padded) */
+            const int64_t m = no - g < 8 ? no - g : 8;
+            float fx[8], fy[8], fz[8], gx[8], gy[8], gz[8];
+            for (int i = 0; i < 8; ++i) {
+                const int64_t q = oq[g + (i < m ? i : m - 1)];
+                fx[i] = nrm[3 * q]; fy[i] = nrm[3 * q + 1]; fz[i] = nrm[3 * q + 2];
+                gx[i] = wo[q]; gy[i] = wo[ws0 + q]; gz[i] = wo[2 * ws0 + q];
+            }
+            float fb[8 * 80] __attribute__((aligned(64)));
+            ft(ld(fx), ld(fy), ld(fz), ld(gx), ld(gy), ld(gz), fb);
+            for (int i = 0; i < m; ++i) {
+                const int64_t q = oq[g + i];
+                const int64_t f = face[q], rg = region[q];
+                if ((uint64_t)f >= (uint64_t)M || (uint64_t)rg >= (uint64_t)R) { ++nb; continue; }
+                int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+                if (lut) {
+                    if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                        ++nb;
+                        continue;
+                    }
+                    i0 = lut[i0]; i1 = lut[i1]; i2 = lut[i2];
+                }
+                if ((uint64_t)i0 >= (uint64_t)NU || (uint64_t)i1 >= (uint64_t)NU || (uint64_t)i2 >= (uint64_t)NU) {
+                    ++nb;
+                    continue;
+                }
+                const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+                float t[3];
+                dt(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);
+                const float fr = (__builtin_fmaf(fz[i], gz[i], __builtin_fmaf(fy[i], gy[i], fx[i] * gx[i])) > 0.f)
+                                 ? 1.0f : 0.0f;
+                for (int c = 0; c < 3; ++c) {
+                    float x = t[c] * fr;
+                    if (clamp)
+                        x = x < 0.f ? 0.f : x;
+                    t[c] = x;
+                }
+                const int64_t k = 3 * (q / S2 - p0);
+                r[k] = r[k] + t[0] * inv;
+                r[k + 1] = r[k + 1] + t[1] * inv;
+                r[k + 2] = r[k + 2] + t[2] * inv;
+                ns += sreg[rg];
+            }
+        }
+        for (int64_t i = 0; i < 3 * (p1 - p0); ++i)
+            out[3 * p0 + i] = r[i];
+    }
+    stat[0] = nb;
+    stat[1] = ns;
+}
+
+/* `zh_screen`'s counts for the normals (rows x, y, z = base, base + s0, base + 2 s0; stride s1) in one pass:
+   cnt[c] = #{j = 0, 16, … < m : normal j == normal c m / 8}. */
+void zh33p_screen8(const float *base, int64_t s0, int64_t s1, int64_t m, int64_t *cnt) {
+    float a[8], b[8], d[8];
+    int64_t n[8];
+    for (int c = 0; c < 8; ++c) {
+        const int64_t k = c * m / 8;
+        a[c] = base[k * s1]; b[c] = base[s0 + k * s1]; d[c] = base[2 * s0 + k * s1];
+        n[c] = 0;
+    }
+    for (int64_t j = 0; j < m; j += 16) {
+        const float x = base[j * s1], y = base[s0 + j * s1], z = base[2 * s0 + j * s1];
+        for (int c = 0; c < 8; ++c)
+            n[c] += (x == a[c]) & (y == b[c]) & (z == d[c]);
+    }
+    for (int c = 0; c < 8; ++c)
+        cnt[c] = n[c];
+}
+
+/* The same counts for the normals (P, 3) row-major of the samples p with mask[p] == 0 (m of them), in order
+   (`zh_screen` of their (3, m) rows). Returns -1 when the mask does not hold m zeros or memory runs out. */
+int64_t zh33p_rest_screen(const uint8_t *mask, const float *nrm, int64_t P, int64_t m, int64_t *cnt) {
+    if (m <= 0) return -1;
+    const int64_t ns = (m + 15) / 16;
+    float *sub = (float *)malloc(sizeof(float) * 3 * (size_t)ns);
+    if (!sub) return -1;
+    float cand[24];
+    int64_t rank[8];
+    for (int c = 0; c < 8; ++c) rank[c] = c * m / 8;
+    int next = 0;
+    int64_t j = 0;
+    for (int64_t p = 0; p < P; ++p) {
+        if (mask[p]) {
+            uint64_t w;   /* (skip 8 plane samples at a time: most are) */
+            while (p + 9 <= P && (__builtin_memcpy(&w, mask + p + 1, 8), w == 0x0101010101010101ULL))
+                p += 8;
+            continue;
+        }
+        const float *x = nrm + 3 * p;
+        if ((j & 15) == 0 && (j >> 4) < ns) {
+            sub[3 * (j >> 4)] = x[0]; sub[3 * (j >> 4) + 1] = x[1]; sub[3 * (j >> 4) + 2] = x[2];
+        }
+        while (next < 8 && rank[next] == j) {
+            cand[3 * next] = x[0]; cand[3 * next + 1] = x[1]; cand[3 * next + 2] = x[2];
+            ++next;
+        }
+        ++j;
+    }
+    if (j != m || next != 8) { free(sub); return -1; }
+    for (int c = 0; c < 8; ++c) {
+        int64_t k = 0;
+        for (int64_t i = 0; i < ns; ++i)
+            k += (sub[3 * i] == cand[3 * c]) & (sub[3 * i + 1] == cand[3 * c + 1]) & (sub[3 * i + 2] == cand[3 * c + 2]);
+        cnt[c] = k;
+    }
+    free(sub);
+    return 0;
+}
+
+/* lut[i] (N,) = the rank of vertex i among the corners F[face[p]] of the samples with mask[p] == 0 and hit
+   (ascending vertex ids), -1 for the others; idx[r] the vertex of rank r. Returns their count, or -1 when a
+   face or a corner is out of range. */
+int64_t zh33p_referenced_lut(const uint8_t *mask, const uint8_t *hit, const int64_t *face, const int32_t *F, int64_t M,
+                             int64_t P, int64_t N, int32_t *lut, int64_t *idx) {
+    for (int64_t i = 0; i < N; ++i) lut[i] = 0;
+    for (int64_t p = 0; p < P; ++p) {
+        if (mask[p]) {
+            uint64_t w;   /* (skip 8 plane samples at a time: most are) */
+            while (p + 9 <= P && (__builtin_memcpy(&w, mask + p + 1, 8), w == 0x0101010101010101ULL))
+                p += 8;
+            continue;
+        }
+        if (hit && !hit[p]) continue;
+        const int64_t f = face[p];
+        if ((uint64_t)f >= (uint64_t)M) return -1;
+        for (int k = 0; k < 3; ++k) {
+            const int64_t i = F[3 * f + k];
+            if ((uint64_t)i >= (uint64_t)N) return -1;
+            lut[i] = 1;
+        }
+    }
+    int64_t r = 0;
+    for (int64_t i = 0; i < N; ++i) {
+        if (lut[i]) { idx[r] = i; lut[i] = (int32_t)r; ++r; }
+        else lut[i] = -1;
+    }
+    return r;
+}
+"""
+_FUSED_SIGNATURES = {
+    "zh33p_fused": [_I, _I, _P, _P, _I, _I, _P, _P, _I, _P, _P, _P, _I, _P, _I, _P, _I, _I, _P, _P, _P, _I, _I, _I,
+                    ctypes.c_float, _P, _I, _P],
+    "zh33p_screen8": [_P, _I, _I, _I, _P],
+    "zh33p_rest_screen": [_P, _P, _I, _I, _P],
+    "zh33p_referenced_lut": [_P, _P, _P, _P, _I, _I, _I, _P, _P]}
+_FUSED_RESTYPES = {"zh33p_rest_screen": ctypes.c_int64, "zh33p_referenced_lut": ctypes.c_int64}
+
+
+def _fused_lib():
+    """The library or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``, or Inductor vectorises
+    for neither AVX2 nor AVX-512: `sample_terms`' lane arithmetic would not be its kernel's). Not cached here:
+    `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)."""
+    if not terms_switched_on() or _inductor_lanes() not in TERMS_LANES:
+        return None
+    lib = native.load("zh33p_fused", _FUSED_SOURCE, _FUSED_SIGNATURES,
+                      extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
+    if lib is not None:
+        for name, rt_ in _FUSED_RESTYPES.items():
+            getattr(lib, name).restype = rt_
+    return lib
+
+
+def fused_available(D: int, diffuse: bool, specular: bool) -> bool:
+    """Whether `fused_pixels` runs for the features (D, diffuse, specular) (a `TERMS_VARIANTS` entry)."""
+    return (D, bool(diffuse), bool(specular)) in TERMS_VARIANTS and _fused_lib() is not None
+
+
+def screen8(cur: Tensor) -> list[int] | None:
+    """`screen_counts`(cur) in one pass over the screened points (the same counts), or None (no library)."""
+    lib = _fused_lib()
+    if lib is None or cur.dtype != torch.float32 or cur.device.type != "cpu" or cur.dim() != 2 or cur.shape[0] != 3 \
+            or cur.shape[1] == 0:
+        return None
+    cnt = torch.zeros(8, dtype=torch.int64)
+    lib.zh33p_screen8(cur.data_ptr(), cur.stride(0), cur.stride(1), int(cur.shape[1]), cnt.data_ptr())
+    return cnt.tolist()
+
+
+def rest_screen(mask: Tensor, normal: Tensor, m: int) -> list[int] | None:
+    """`screen_counts` of the (3, m) rows of the normals (P, 3) of the samples off ``mask`` (P,) bool (m of
+    them), without gathering them; None where the C pass does not run."""
+    lib = _fused_lib()
+    P = int(mask.shape[0])
+    if lib is None or m <= 0 or mask.dtype != torch.bool or not mask.is_contiguous() or normal.dtype != torch.float32 \
+            or normal.shape != (P, 3) or not normal.is_contiguous():
+        return None
+    cnt = torch.zeros(8, dtype=torch.int64)
+    if lib.zh33p_rest_screen(mask.data_ptr(), normal.data_ptr(), P, int(m), cnt.data_ptr()) != 0:
+        return None
+    return cnt.tolist()
+
+
+def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, N: int) -> tuple[Tensor, Tensor] | None:
+    """(idx (M,) int64 ascending, lut (N,) int32: a vertex's rank in idx, −1 off it) of the vertices the
+    samples off ``mask`` (and hit) reference through their faces — `runtime.referenced_vertices` of their
+    rows' vertex ids, lut[vi] its renumbered ids — or None (no library, a face or corner out of range)."""
+    lib = _fused_lib()
+    P = int(mask.shape[0])
+    if lib is None or mask.dtype != torch.bool or not mask.is_contiguous() or face.dtype != torch.int64 \
+            or face.shape != (P,) or not face.is_contiguous() or F32.dtype != torch.int32 or not F32.is_contiguous() \
+            or (hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous())):
+        return None
+    lut = torch.empty(N, dtype=torch.int32)
+    idx = torch.empty(N, dtype=torch.int64)
+    r = lib.zh33p_referenced_lut(mask.data_ptr(), 0 if hit is None else hit.data_ptr(), face.data_ptr(),
+                                 F32.data_ptr(), int(F32.shape[0]), P, int(N), lut.data_ptr(), idx.data_ptr())
+    if r < 0:
+        return None
+    return idx[:r], lut
+
+
+def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
+                 F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
+                 D: int, diffuse: bool, specular: bool, clamp: bool, S2: int) -> tuple[Tensor, int] | None:
+    """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
+    (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
+    `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
+    image — or None where it does not run (no library, a variant `sample_terms` lacks, other dtypes or
+    layouts, a face, vertex or region out of range). face (P,) int64, bary (P, 2) float32 of any strides, wo
+    (P, 3) float32 column-major (the G-buffer's layout), normal (P, 3) contiguous, mask / hit (P,) bool, F32
+    (M, 3) int32, u (N, 3), U (NU, 3, K) float32 (rows lut[vertex] when lut (N,) int32 is given), region (P,)
+    int64."""
+    lib = _fused_lib()
+    key = (D, bool(diffuse), bool(specular))
+    if lib is None or key not in TERMS_VARIANTS:
+        return None
+    P = int(face.shape[0])
+    if S2 <= 0 or S2 > 16 or P % S2 or face.dtype != torch.int64 or face.shape != (P,) or not face.is_contiguous() \
+            or mask.dtype != torch.bool or mask.shape != (P,) or not mask.is_contiguous() \
+            or (hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous())) \
+            or normal.dtype != torch.float32 or normal.shape != (P, 3) or not normal.is_contiguous() \
+            or bary.dtype != torch.float32 or bary.shape != (P, 2) \
+            or wo.dtype != torch.float32 or wo.shape != (P, 3) or wo.stride(0) != 1 \
+            or F32.dtype != torch.int32 or F32.dim() != 2 or F32.shape[1] != 3 or not F32.is_contiguous() \
+            or u.dtype != torch.float32 or u.dim() != 2 or u.shape[1] != 3 \
+            or U.dtype != torch.float32 or U.dim() != 3 or U.shape[1] != 3 \
+            or region.dtype != torch.int64 or region.shape != (P,) or not region.is_contiguous() \
+            or (lut is not None and (lut.dtype != torch.int32 or not lut.is_contiguous())) \
+            or any(t.device.type != "cpu" for t in (face, bary, normal, wo, mask, F32, u, U, region)):
+        return None
+    K = (((D + 1) * (D + 2) // 2 + 3) if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
+    if U.shape[2] != K:
+        return None
+    u, U = u.contiguous(), U.contiguous()
+    N = int(u.shape[0])
+    if lut is not None and lut.shape != (N,):
+        return None
+    n = P // S2
+    sreg = torch.tensor([bool(s) for s in spec_regions], dtype=torch.uint8)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    stat = torch.zeros(2, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    variant = TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key)
+    lib.zh33p_fused(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
+                    wo.data_ptr(), wo.stride(1), mask.data_ptr(), 0 if hit is None else hit.data_ptr(),
+                    F32.data_ptr(), int(F32.shape[0]), u.data_ptr(), N, U.data_ptr(), int(U.shape[0]), K,
+                    0 if lut is None else lut.data_ptr(), region.data_ptr(), sreg.data_ptr(), int(sreg.shape[0]),
+                    variant, int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, stat.data_ptr())
+    if int(stat[0]):
+        return None
+    return out, int(stat[1])

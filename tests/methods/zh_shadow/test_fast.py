@@ -643,6 +643,9 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
     calls = []
     orig = rt.referenced_vertices
     monkeypatch.setattr(rt, "referenced_vertices", lambda vi, N: calls.append(N) or orig(vi, N))
+    from methods.zh_shadow import native as zn
+    orig_lut = zn.referenced_lut   # (the fused pass's: the same vertices, found through the mask)
+    monkeypatch.setattr(zn, "referenced_lut", lambda *a: calls.append(a[-1]) or orig_lut(*a))
     for fr in make_sequence(m.scene, kind, 3, seed=8):
         gb = make_gbuffer(m.scene, fr, 2)
         kept = fast._vtable
@@ -1909,6 +1912,7 @@ def test_native_split_with_few_misses_equals_torch_split(small_model):
     if not zn.split_available():
         pytest.skip("the native split is not available here")
     fast = m.with_render_config()
+    fast.fused_planes = False   # (`_native_split` itself: the fused pass has its own test with misses)
     slow = m.with_render_config()
     slow.native_split = False
     results = []
@@ -1945,3 +1949,76 @@ def test_native_split_with_few_misses_equals_torch_split(small_model):
     with mock.patch.object(type(fast), "_native_split", spy):
         fast.render(f, dataclasses.replace(g, **_misses(g, many)))
     assert not results
+
+
+@pytest.mark.parametrize("kind", ("V", "VB", "VL", "P"))
+def test_fused_planes_equal_separate_passes(small_model, monkeypatch, kind):
+    """`ZHShadow._fused_planes` (the plane frame's sample stage as one C pass, `native.fused_pixels`) is
+    taken on the creature's plane frames and equals, bit for bit, the separate passes (``fused_planes``
+    off: `native.object_rows`, `sample_terms`, the front test, the clamp, `plane_pixels`, ``index_add_``),
+    with the same counts for `frame_cost` — with the kept table and with a frame's own table of the
+    referenced vertices (`native.referenced_lut`), clamp on and off, with misses, at 1 and 2 threads (the
+    pixels split between them) — and the reference to round-off. A wrong front test, clamp, order of the
+    sums, renumbering or miss handling breaks the image."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if not zn.fused_available(6, True, True):
+        pytest.skip("the fused pass is not available here")
+    monkeypatch.setattr(zn, "MIN_PIXELS_PER_THREAD", 1)   # (test size: 4,096 pixels, one thread otherwise)
+    m = small_model("creature")
+    for table_points in (0.0, 1e9):   # every non-view frame builds its own referenced table / none does
+        monkeypatch.setattr("methods.zh_shadow.method.VERTEX_TABLE_POINTS", table_points)
+        for clamp, misses, nt in ((True, False, 1), (False, False, 2), (True, True, 2)):
+            fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+            slow.fused_planes = False
+            for fr in make_sequence(m.scene, kind, 3, seed=11):
+                gb = make_gbuffer(m.scene, fr, 2)
+                if misses:
+                    gb = _knock_out(gb, 397 + fr.index, 3 + fr.index)
+                    assert 0 < int((~gb.hit).sum()) <= 64
+                with torch_threads(nt):
+                    a = fast.render(fr, gb)
+                    b = slow.render(fr, gb)
+                assert fast.last_path == slow.last_path == "planes" and not slow.last_fused
+                # (no table kept or built: the point GEMMs, not fused — a non-view frame without tables)
+                assert fast.last_fused == (kind == "V" or fr.index == 0 or table_points == 0.0), (kind, fr.index)
+                assert torch.equal(a, b), (kind, clamp, misses, nt, fr.index, (a - b).abs().max().item())
+                ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+                assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
+                if fr.index == 1 and nt == 1:
+                    ref = m.with_render_config(clamp=clamp)._render_reference(fr, gb)
+                    assert (a - ref).abs().max().item() <= RENDER_TOL
+
+
+def test_fused_planes_helpers_equal_torch():
+    """The fused path's helpers = what they replace: `native.screen8` = `native.screen_counts` (strided and
+    contiguous rows), `native.rest_screen` = `screen_counts` of the gathered rows off a mask, and
+    `native.referenced_lut` = `runtime.referenced_vertices` of the rows' face corners (hits only)."""
+    from methods.zh_shadow import native as zn
+
+    if zn._fused_lib() is None:
+        pytest.skip("the fused pass is not available here")
+    g = torch.Generator().manual_seed(3)
+    nrm = torch.randn(5000, 3, generator=g)
+    nrm[::3] = nrm[7]
+    nrm[1::5] = nrm[11]
+    for cur in (nrm.T, nrm.T.contiguous(), nrm[:37].T):
+        assert zn.screen8(cur) == zn.screen_counts(cur)
+    mask = torch.rand(5000, generator=g) < 0.6
+    m = int((~mask).sum())
+    assert zn.rest_screen(mask, nrm, m) == zn.screen_counts(rt.rows(nrm[~mask]))
+    assert zn.rest_screen(mask, nrm, m + 1) is None
+    F32 = torch.randint(0, 300, (200, 3), generator=g, dtype=torch.int32) * 2
+    face = torch.randint(0, 200, (5000,), generator=g)
+    hit = torch.rand(5000, generator=g) < 0.9
+    for h in (None, hit):
+        keep = ~mask if h is None else ~mask & h
+        idx, lut = zn.referenced_lut(mask, h, face, F32, 700)
+        want_idx, want_vi = rt.referenced_vertices(F32.index_select(0, face[keep]), 700)
+        assert torch.equal(idx, want_idx) and lut.dtype == torch.int32
+        assert torch.equal(lut.long()[F32.index_select(0, face[keep]).long()], want_vi.long())
+        assert bool((lut[torch.isin(torch.arange(700), idx, invert=True)] == -1).all())
+    assert zn.referenced_lut(mask, None, face, F32, 500) is None   # a corner outside [0, N)
