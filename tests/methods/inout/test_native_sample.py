@@ -118,7 +118,9 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
     outside the window), over a V and an L sequence, and equals session 29's loop (FAST = 0) and the
     reference to float32 round-off. Bit 16 (each thread's cache of (face, cell) entries) the same bits
     again, with fewer entries summed exactly, and with a 2-entry cache (nearly every look-up evicts); the
-    L sequence's frames meet the same keys under another lighting (an entry of an earlier call is stale)."""
+    L sequence's frames meet the same keys under another lighting (an entry of an earlier call is stale).
+    Bit 32 (`x4_sums`: `cell_x`'s 12 sums at once, on AVX-512 builds) the same bits again, with and
+    without bit 16."""
     if not native_sample.cells_available():
         pytest.skip("no FMA build: bits 4 and 8 fall back to the per-row loop")
     m = precomputed(name)
@@ -127,7 +129,7 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
         frames = make_sequence(m.scene, kind, n_frames=2, seed=11)
         gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
         imgs, exact = {}, {}
-        for fast, ylog in ((7, 10), (15, 10), (31, 10), (31, 1), (0, 10)):
+        for fast, ylog in ((7, 10), (15, 10), (31, 10), (31, 1), (47, 10), (63, 10), (0, 10)):
             for W in ((2, 4, 16) if fast else (4,)):
                 monkeypatch.setattr(native_sample, "FAST", fast)
                 monkeypatch.setattr(native_sample, "WINDOW", W)
