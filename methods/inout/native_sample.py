@@ -55,6 +55,22 @@ a 1024-entry cache of the exact entries (38.9 → 22.6·10³ computed) and huge 
 table and c each read ~1.0× — but the per-entry chain of dependent loads (face → vertex record →
 stamps → memo rows) and the first touches of the table and c rows; skipping whole entries is what
 pays.
+
+Session 33 (`FAST` bits 16 and 32): each thread keeps a 1024-entry cache of (face, cell) entries (the
+face's 3 vertices' X at the cell's 4 nodes), looked up when a sample's (face, cell) differs from the
+last one's, before the vertex records and the memo (chess bench: ~94·10³ look-ups meet ~37·10³ keys,
+the same (face, cell) an image row later; entries summed exactly 43 → 30·10³, near the frame's
+~67·10³ distinct (vertex, cell) pairs); and `cell_x` reduces its 12 sums at once (`x4_sums`, AVX-512:
+the pairs of ``_mm512_reduce_add_ps``, the same bits). The image is the same bits as bits 4 | 8 (and
+as session 32's loop). Where a chess bench V frame's loop time goes now (1 thread, each call right
+after its frame's G-buffer was rasterised, ablations in one process): the G-buffer reads, the
+samples' cells and the per-sample checks ~23 %, B's 36 multiply-adds per sample ~15 %, the look-ups
+(cache entries, vertex records, memo stamps and rows) ~29 %, `cell_x` (70·10³ calls: its table and
+c rows streamed from L2 / L3, ~5.3 KB a call at K = 88) ~34 %. Tried and dropped (same process,
+alternating, the same bits): the memo rows' validity as a mask in the vertex record (no stamp array)
+0.98-1.0×; with it, only the missing rows of a cell computed (memo rows 1.6 → 0.85·10⁵) 0.97-1.04×;
+W = 16 with both 0.96×; 2048 / 512 cache entries 1.02× / 0.97× against 1024; looking 8 samples
+ahead to prefetch a missing key's stamps and memo rows 0.87-0.99×.
 """
 from __future__ import annotations
 
