@@ -55,6 +55,22 @@ a 1024-entry cache of the exact entries (38.9 → 22.6·10³ computed) and huge 
 table and c each read ~1.0× — but the per-entry chain of dependent loads (face → vertex record →
 stamps → memo rows) and the first touches of the table and c rows; skipping whole entries is what
 pays.
+
+Session 33 (`FAST` bits 16 and 32): each thread keeps a 1024-entry cache of (face, cell) entries (the
+face's 3 vertices' X at the cell's 4 nodes), looked up when a sample's (face, cell) differs from the
+last one's, before the vertex records and the memo (chess bench: ~94·10³ look-ups meet ~37·10³ keys,
+the same (face, cell) an image row later; entries summed exactly 43 → 30·10³, near the frame's
+~67·10³ distinct (vertex, cell) pairs); and `cell_x` reduces its 12 sums at once (`x4_sums`, AVX-512:
+the pairs of ``_mm512_reduce_add_ps``, the same bits). The image is the same bits as bits 4 | 8 (and
+as session 32's loop). Where a chess bench V frame's loop time goes now (1 thread, each call right
+after its frame's G-buffer was rasterised, ablations in one process): the G-buffer reads, the
+samples' cells and the per-sample checks ~23 %, B's 36 multiply-adds per sample ~15 %, the look-ups
+(cache entries, vertex records, memo stamps and rows) ~29 %, `cell_x` (70·10³ calls: its table and
+c rows streamed from L2 / L3, ~5.3 KB a call at K = 88) ~34 %. Tried and dropped (same process,
+alternating, the same bits): the memo rows' validity as a mask in the vertex record (no stamp array)
+0.98-1.0×; with it, only the missing rows of a cell computed (memo rows 1.6 → 0.85·10⁵) 0.97-1.04×;
+W = 16 with both 0.96×; 2048 / 512 cache entries 1.02× / 0.97× against 1024; looking 8 samples
+ahead to prefetch a missing key's stamps and memo rows 0.87-0.99×.
 """
 from __future__ import annotations
 
@@ -78,6 +94,7 @@ _SOURCE = r"""
 #include <stdint.h>
 #include <math.h>
 #include <string.h>
+#include <stdlib.h>
 #include <omp.h>
 #if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
@@ -180,32 +197,16 @@ static inline float dot4f(const float *s0, const float *s1, const float *s2, con
     }
     return ((w0 * hsum16(a0) + w1 * hsum16(a1)) + w2 * hsum16(a2)) + w3 * hsum16(a3);
 }
-/* X(v, n) at a cell's four nodes n0, n0 + 1, n0 + R, n0 + R + 1 (table rows t, t + 3K, t + R3K,
-   t + R3K + 3K; bit 4 of `fast`): the 12 dot products (4 nodes x 3 channels) with c in one pass, each
-   by fused multiply-adds into its own accumulator, 16 lanes a step (the tail masked), then summed by
-   `hsum16`'s fixed tree: each value a function of its (vertex, node) pair alone, whichever cell,
-   thread or path (memo fill or an entry outside the window) computes it. One loop for the 12 sums:
-   the per-row fills' 6 loops a row and their branches cost more than the arithmetic. */
-static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x) {
-    const float *r0 = t, *r1 = t + 3 * K, *r2 = t + R3K, *r3 = t + R3K + 3 * K;
-    __m512 a[4][3];
-    for (int n = 0; n < 4; ++n)
-        for (int ch = 0; ch < 3; ++ch)
-            a[n][ch] = _mm512_setzero_ps();
-    for (int64_t k = 0; k < K; k += 16) {
-        const __mmask16 mk = K - k >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << (K - k)) - 1u);
-        for (int ch = 0; ch < 3; ++ch) {
-            const int64_t o = ch * K + k;
-            const __m512 c = _mm512_maskz_loadu_ps(mk, cv + o);
-            a[0][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r0 + o), c, a[0][ch]);
-            a[1][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r1 + o), c, a[1][ch]);
-            a[2][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r2 + o), c, a[2][ch]);
-            a[3][ch] = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(mk, r3 + o), c, a[3][ch]);
-        }
-    }
-    for (int n = 0; n < 4; ++n)
-        x[n] = (v4){hsum16(a[n][0]), hsum16(a[n][1]), hsum16(a[n][2]), 0.0f};
-}
+/* the vector primitives of `cell_x` (one body for both builds, below): 16 lanes, the tail
+   by a load mask */
+typedef __m512 vecf;
+typedef __mmask16 vecm;
+#define VL 16
+#define VZERO() _mm512_setzero_ps()
+#define VMASK(n) ((n) >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << (n)) - 1u))
+#define VLOAD(mk, p) _mm512_maskz_loadu_ps(mk, p)
+#define VFMA(a, b, c) _mm512_fmadd_ps(a, b, c)
+#define VSUM(a) hsum16(a)
 #define HAVE_DOTF 1
 #elif defined(__FMA__) && defined(__AVX2__)
 static inline float hsum8(__m256 a) {
@@ -245,29 +246,83 @@ static inline float dot4f(const float *s0, const float *s1, const float *s2, con
     }
     return ((w0 * d0 + w1 * d1) + w2 * d2) + w3 * d3;
 }
-/* cell_x (the AVX-512 build's docstring), 8 lanes a step, the tail by masked loads */
-static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x) {
+/* the vector primitives of `cell_x`: 8 lanes, the tail by masked loads */
+typedef __m256 vecf;
+typedef __m256i vecm;
+static const int32_t vlanes[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+#define VL 8
+#define VZERO() _mm256_setzero_ps()
+#define VMASK(n) _mm256_loadu_si256((const __m256i *)(vlanes + 8 - ((n) >= 8 ? 8 : (n))))
+#define VLOAD(mk, p) _mm256_maskload_ps(p, mk)
+#define VFMA(a, b, c) _mm256_fmadd_ps(a, b, c)
+#define VSUM(a) hsum8(a)
+#define HAVE_DOTF 1
+#endif
+
+#ifdef HAVE_DOTF
+#ifdef __AVX512F__
+/* bit 32 (AVX-512 builds): `cell_x`'s 12 sums as `hsum16` forms each (lanes i + 8 paired, then i + 4,
+   i + 2, i + 1: _mm512_reduce_add_ps), the same pairs at every level, but 16 vectors at once (the 12
+   and 4 zeros) by transposing shuffles: ~36 instructions for the 12 instead of ~8 each. So the same
+   bits as `hsum16`'s; vector v = 4 ch + n reduced into lane 4 n + ch, so the result is x[0..3] (X of
+   the 4 nodes, 3 channels and a 0) as one store. */
+static inline void x4_sums(__m512 a[4][3], v4 *x) {
+    const __m512 z0 = _mm512_setzero_ps();
+    __m512 v[16], u[8], w[4], y[2];
+    for (int n = 0; n < 4; ++n) {
+        for (int ch = 0; ch < 3; ++ch)
+            v[4 * ch + n] = a[n][ch];
+        v[12 + n] = z0;
+    }
+    for (int p = 0; p < 6; ++p)      /* lanes i, i + 8 (256-bit halves): u[p] = (v[2p]'s 8 | v[2p + 1]'s 8) */
+        u[p] = _mm512_add_ps(_mm512_shuffle_f32x4(v[2 * p], v[2 * p + 1], 0x44), _mm512_shuffle_f32x4(v[2 * p], v[2 * p + 1], 0xEE));
+    u[6] = z0; u[7] = z0;
+    for (int r = 0; r < 3; ++r)      /* lanes i, i + 4 (quarters): w[r]'s quarter k = v[4r + k]'s 4 */
+        w[r] = _mm512_add_ps(_mm512_shuffle_f32x4(u[2 * r], u[2 * r + 1], 0x88), _mm512_shuffle_f32x4(u[2 * r], u[2 * r + 1], 0xDD));
+    w[3] = z0;
+    for (int q = 0; q < 2; ++q)      /* lanes i, i + 2 within a quarter */
+        y[q] = _mm512_add_ps(_mm512_shuffle_ps(w[2 * q], w[2 * q + 1], 0x44), _mm512_shuffle_ps(w[2 * q], w[2 * q + 1], 0xEE));
+    /* lanes 0, 1: quarter k = the sums of v[k], v[4 + k], v[8 + k], v[12 + k] */
+    const __m512 s = _mm512_add_ps(_mm512_shuffle_ps(y[0], y[1], 0x88), _mm512_shuffle_ps(y[0], y[1], 0xDD));
+    _mm512_storeu_ps((float *)x, s);
+}
+#endif
+
+/* X(v, n) at a cell's four nodes n0, n0 + 1, n0 + R, n0 + R + 1 (table rows t, t + 3K, t + R3K,
+   t + R3K + 3K; bit 4 of `fast`): the 12 dot products (4 nodes x 3 channels) with c in one pass, each
+   by fused multiply-adds into its own accumulator, VL lanes a step (the tail masked), then summed by
+   `VSUM`'s fixed tree: each value a function of its (vertex, node) pair alone, whichever cell,
+   thread or path (memo fill or an entry outside the window) computes it. One loop for the 12 sums:
+   the per-row fills' 6 loops a row and their branches cost more than the arithmetic. */
+static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x, int tree) {
     const float *r0 = t, *r1 = t + 3 * K, *r2 = t + R3K, *r3 = t + R3K + 3 * K;
-    static const int32_t lanes[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
-    __m256 a[4][3];
+    vecf a[4][3];
     for (int n = 0; n < 4; ++n)
         for (int ch = 0; ch < 3; ++ch)
-            a[n][ch] = _mm256_setzero_ps();
-    for (int64_t k = 0; k < K; k += 8) {
-        const __m256i mk = _mm256_loadu_si256((const __m256i *)(lanes + 8 - (K - k >= 8 ? 8 : K - k)));
+            a[n][ch] = VZERO();
+    for (int64_t k = 0; k < K; k += VL) {
+        const vecm mk = VMASK(K - k);
         for (int ch = 0; ch < 3; ++ch) {
             const int64_t o = ch * K + k;
-            const __m256 c = _mm256_maskload_ps(cv + o, mk);
-            a[0][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r0 + o, mk), c, a[0][ch]);
-            a[1][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r1 + o, mk), c, a[1][ch]);
-            a[2][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r2 + o, mk), c, a[2][ch]);
-            a[3][ch] = _mm256_fmadd_ps(_mm256_maskload_ps(r3 + o, mk), c, a[3][ch]);
+            const vecf c = VLOAD(mk, cv + o);
+            a[0][ch] = VFMA(VLOAD(mk, r0 + o), c, a[0][ch]);
+            a[1][ch] = VFMA(VLOAD(mk, r1 + o), c, a[1][ch]);
+            a[2][ch] = VFMA(VLOAD(mk, r2 + o), c, a[2][ch]);
+            a[3][ch] = VFMA(VLOAD(mk, r3 + o), c, a[3][ch]);
         }
     }
+#ifdef __AVX512F__
+    if (tree) {
+        x4_sums(a, x);
+        return;
+    }
+#else
+    (void)tree;
+#endif
     for (int n = 0; n < 4; ++n)
-        x[n] = (v4){hsum8(a[n][0]), hsum8(a[n][1]), hsum8(a[n][2]), 0.0f};
+        x[n] = (v4){VSUM(a[n][0]), VSUM(a[n][1]), VSUM(a[n][2]), 0.0f};
 }
-#define HAVE_DOTF 1
+
 #endif
 
 typedef struct {
@@ -284,6 +339,7 @@ typedef struct {
     int32_t *vrec;                          /* per vertex (nv, 4): stamp, u0, v0, slot */
     float *memo;                            /* per vertex W^2 rows of 4 floats: X (3) and 0 */
     int32_t *mstamp;                        /* per memo row: the frame that filled it */
+    int64_t ylog;                           /* bit 16: log2 of the entries of each thread's (face, cell) cache */
 } Args;
 
 /* the vertex's window (its anchor cell's, W x W nodes within the table) and slot, set once a frame */
@@ -418,15 +474,47 @@ static inline void columns(const float *a, int64_t s0, int64_t s1, int nc, int64
 
 #define BLK 64   /* pixels per block of the per-sample inputs */
 
-static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *stats) {
+/* bit 16 (with 4 and 8): per thread a direct-mapped cache of 2^ylog (face, cell) entries, each its
+   X(v_j, n) at the face's 3 vertices and the cell's 4 nodes (the ones computed: `have`), tagged by the
+   key and the `shade` call (`gen`: a process-wide count, so no entry outlives its call). A sample whose
+   (face, cell) differs from the last one's looks it up before the vertex records and the memo: on the
+   chess bench ~94·10³ such samples a frame meet ~37·10³ distinct keys in a 1024-entry cache (the same
+   (face, cell) one image row later). An entry's values are its pairs' X, the same bits on every path
+   (`cell_x`), so the image is the same bits with or without it and at any thread count; the memo's rows
+   computed are those of the frame's (vertex, cell) pairs with a weight, whichever path reaches them. */
+typedef struct {
+    int64_t key; uint64_t gen; int32_t have, pad[3];
+    v4 x[3][4];
+} yent;
+
+static __thread yent *ytls;
+static __thread int64_t ytls_log;
+static uint64_t ygen_all;
+
+static yent *ycache(int64_t lg) {
+    if (ytls == 0 || ytls_log != lg) {
+        free(ytls);
+        ytls = (yent *)aligned_alloc(64, sizeof(yent) << lg);
+        if (ytls == 0)
+            return 0;
+        memset(ytls, 0, sizeof(yent) << lg);     /* gen 0: no call's */
+        ytls_log = lg;
+    }
+    return ytls;
+}
+
+static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *stats, uint64_t ygen) {
+    yent *yc = (A->fast & 28) == 28 && A->ylog > 0 ? ycache(A->ylog) : 0;
     const int64_t R = A->R, W = A->W, S2 = A->S2, WW = W * W, cmax = R * R - R - 2;
     const int32_t cur = (int32_t)A->stamp;
     const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
     int64_t made = 0, exact = 0, bad = -1;
-    v4 px[3][4];                            /* bits 4 | 8: the last shaded sample's X per vertex of its face */
+    v4 pxl[3][4];                           /* bits 4 | 8: the last shaded sample's X per vertex of its face */
+    v4 (*px)[4] = pxl;                      /* (bit 16: its entry of the thread's cache) */
+    int32_t havel = 0, *hv = &havel;        /* the vertices of px computed */
     int64_t pf = -1, piu = -1, piv = -1, pg[3] = {0, 0, 0};
     const int32_t *pr[3] = {0, 0, 0};
-    int have = 0, wins = 0;
+    int wins = 0;
     float nx_[BLK * 8 + 8], ny_[BLK * 8 + 8], nz_[BLK * 8 + 8], a_[BLK * 8 + 8], b_[BLK * 8 + 8], c_[BLK * 8 + 8];
     float bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 8], fv_[BLK * 8 + 8], z_[BLK * 8 + 8];
     int32_t iu_[BLK * 8 + 8], iv_[BLK * 8 + 8];
@@ -469,13 +557,27 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                 v4 B = {0, 0, 0, 0};
 #ifdef HAVE_DOTF
                 if (A->fast & 4) {                          /* the cell's four X by `cell_x` */
+                    int moved = 1;
                     if (!(A->fast & 8) || f != pf) {      /* bit 8: else the last sample's vertices, windows and, */
-                        pf = f; have = 0; wins = 0;       /* in the same cell, X */
+                        pf = f; wins = 0;                 /* in the same cell, X */
                         pg[0] = A->face_rows[3 * f]; pg[1] = A->face_rows[3 * f + 1]; pg[2] = A->face_rows[3 * f + 2];
-                    } else if (iu != piu || iv != piv) {
-                        have = 0;
+                    } else {
+                        moved = iu != piu || iv != piv;
                     }
                     piu = iu; piv = iv;
+                    if (moved) {
+                        if (yc) {                         /* bit 16: the (face, cell)'s entry of this thread's cache */
+                            const int64_t key = f * R * R + iv * R + iu;
+                            yent *e = yc + (int64_t)(((uint64_t)key * 0x9E3779B97F4A7C15ull) >> (64 - A->ylog));
+                            if (e->gen != ygen || e->key != key) {
+                                e->gen = ygen; e->key = key; e->have = 0;
+                            }
+                            px = e->x; hv = &e->have;
+                        } else {
+                            *hv = 0;
+                        }
+                    }
+                    int32_t have = *hv;
                     for (int j = 0; j < 3; ++j) {
                         if (beta[j] == 0.0f)
                             continue;
@@ -500,7 +602,7 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                                                      || __atomic_load_n(st + W, __ATOMIC_ACQUIRE) != cur
                                                      || __atomic_load_n(st + W + 1, __ATOMIC_ACQUIRE) != cur, 0)) {
                                     /* all four rows (the same bits as any row already filled), from the registers */
-                                    cell_x(t, R * 3 * K, cv, K, x);
+                                    cell_x(t, R * 3 * K, cv, K, x, (int)(A->fast >> 5 & 1));
                                     memcpy(m, &x[0], 16); memcpy(m + 4, &x[1], 16); memcpy(m + 4 * W, &x[2], 16); memcpy(m + 4 * W + 4, &x[3], 16);
                                     __atomic_store_n(st, cur, __ATOMIC_RELEASE); __atomic_store_n(st + 1, cur, __ATOMIC_RELEASE);
                                     __atomic_store_n(st + W, cur, __ATOMIC_RELEASE); __atomic_store_n(st + W + 1, cur, __ATOMIC_RELEASE);
@@ -509,12 +611,13 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                                     memcpy(&x[0], m, 16); memcpy(&x[1], m + 4, 16); memcpy(&x[2], m + 4 * W, 16); memcpy(&x[3], m + 4 * W + 4, 16);
                                 }
                             } else {                        /* outside the window: the same four values, not kept */
-                                cell_x(t, R * 3 * K, cv, K, x);
+                                cell_x(t, R * 3 * K, cv, K, x, (int)(A->fast >> 5 & 1));
                                 ++exact;
                             }
                         }
                         B += ((x[0] * w0 + x[1] * w1) + (x[2] * w2 + x[3] * w3)) * beta[j];
                     }
+                    *hv = have;
                     o += B;
                     continue;
                 }
@@ -588,18 +691,19 @@ void have_cells(int64_t *o) {
    and a memo row's value is its (vertex, node) pair's whichever thread fills it, so the image and the
    memo are the same bits whatever the schedule. */
 void shade(const Args *A, int64_t npx, float *out, int64_t *stats, int64_t nt) {
+    const uint64_t ygen = __atomic_add_fetch(&ygen_all, 1, __ATOMIC_RELAXED);
     for (int64_t t = 0; t < nt; ++t) {
         stats[3 * t] = 0; stats[3 * t + 1] = 0; stats[3 * t + 2] = -1;
     }
     if (nt <= 1 || A->chunk < 1) {
-        shade_range(A, 0, npx, out, stats);
+        shade_range(A, 0, npx, out, stats, ygen);
         return;
     }
     const int64_t C = A->chunk, nch = (npx + C - 1) / C;
     #pragma omp parallel for num_threads(nt) schedule(dynamic, 1)
     for (int64_t c = 0; c < nch; ++c) {
         int64_t got[3];
-        shade_range(A, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, out, got);
+        shade_range(A, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, out, got, ygen);
         int64_t *st = stats + 3 * omp_get_thread_num();
         st[0] += got[0]; st[1] += got[1];
         if (got[2] >= 0 && (st[2] < 0 || got[2] < st[2]))
@@ -620,7 +724,8 @@ class _Args(ctypes.Structure):
                 ("pos", ctypes.c_void_p), ("frames", ctypes.c_void_p), ("cam", ctypes.c_void_p),
                 ("R", ctypes.c_int64), ("W", ctypes.c_int64), ("S2", ctypes.c_int64), ("stamp", ctypes.c_int64),
                 ("chunk", ctypes.c_int64), ("fast", ctypes.c_int64),
-                ("vrec", ctypes.c_void_p), ("memo", ctypes.c_void_p), ("mstamp", ctypes.c_void_p)]
+                ("vrec", ctypes.c_void_p), ("memo", ctypes.c_void_p), ("mstamp", ctypes.c_void_p),
+                ("ylog", ctypes.c_int64)]
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -645,7 +750,13 @@ CHUNK = 1024
 # --frames 15 --threads 1 --no-micro``, host at load 5-10): chess 1.05-1.16x, creature 1.23x; the loop
 # alone (15 against 3, same process, alternating, after 0.2 s idle) chess 1.16x, and 1.17-1.19x in a
 # standalone C driver of the loop over a dumped chess frame (caches flushed or not alike).
-FAST = 15
+# 16 (with 4 and 8) each thread's cache of (face, cell) entries (`YCACHE_LOG`; the same bits as 4 | 8).
+# 32 (AVX-512 builds, with 4) `cell_x`'s 12 sums reduced at once by transposing shuffles (`x4_sums`: the
+# same pairs as `hsum16`, the same bits). Loop alone, 1 thread, process CPU, each call after the frame's
+# G-buffer was rasterised, 21 frames alternating, 63 against 15: chess 1.12x, creature 1.10x.
+FAST = 63
+# log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
+YCACHE_LOG = 10
 
 
 def _lib():
@@ -731,7 +842,7 @@ def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: 
               st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
               voff.data_ptr(), S, shp.data_ptr(), cp.data_ptr(), Ks.data_ptr(),
               st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp, CHUNK, int(FAST),
-              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr())
+              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG)
     lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
     made, exact = int(stats[:, 0].sum()), int(stats[:, 1].sum())
     bad = [int(b) for b in stats[:, 2].tolist() if b >= 0]

@@ -116,7 +116,11 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
     and cell): the image is the same bits whatever the window (W = 2: nearly every entry outside it;
     W = 16, the whole table: none) and with or without the reuse (which ran: fewer entries computed
     outside the window), over a V and an L sequence, and equals session 29's loop (FAST = 0) and the
-    reference to float32 round-off."""
+    reference to float32 round-off. Bit 16 (each thread's cache of (face, cell) entries) the same bits
+    again, with fewer entries summed exactly, and with a 2-entry cache (nearly every look-up evicts); the
+    L sequence's frames meet the same keys under another lighting (an entry of an earlier call is stale).
+    Bit 32 (`x4_sums`: `cell_x`'s 12 sums at once, on AVX-512 builds) the same bits again, with and
+    without bit 16."""
     if not native_sample.cells_available():
         pytest.skip("no FMA build: bits 4 and 8 fall back to the per-row loop")
     m = precomputed(name)
@@ -125,10 +129,11 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
         frames = make_sequence(m.scene, kind, n_frames=2, seed=11)
         gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
         imgs, exact = {}, {}
-        for fast in (7, 15, 0):
+        for fast, ylog in ((7, 10), (15, 10), (31, 10), (31, 1), (47, 10), (63, 10), (0, 10)):
             for W in ((2, 4, 16) if fast else (4,)):
                 monkeypatch.setattr(native_sample, "FAST", fast)
                 monkeypatch.setattr(native_sample, "WINDOW", W)
+                monkeypatch.setattr(native_sample, "YCACHE_LOG", ylog)
                 calls = []
 
                 def spy(*a, **k):
@@ -138,20 +143,20 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
 
                 monkeypatch.setattr(native_sample, "shade", spy)
                 a = _copy(m)
-                imgs[fast, W] = [a.render(f, g) for f, g in zip(frames, gbs)]
-                exact[fast, W] = sum(calls)
+                imgs[fast, W, ylog] = [a.render(f, g) for f, g in zip(frames, gbs)]
+                exact[fast, W, ylog] = sum(calls)
                 monkeypatch.setattr(native_sample, "shade", shade)
         ref = _copy(m)
         want = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
         for key, got in imgs.items():
-            for i, (x, y, r) in enumerate(zip(got, imgs[15, 4], want)):
+            for i, (x, y, r) in enumerate(zip(got, imgs[15, 4, 10], want)):
                 scale = float(r.abs().max())
                 assert scale > 0
                 assert float((x - r).abs().max()) <= RTOL * scale, f"{name} {kind} {key} frame {i}"
                 if key[0]:
                     assert torch.equal(x, y), f"{name} {kind} {key} frame {i}"
-        assert exact[15, 16] == exact[7, 16] == 0
-        assert 0 < exact[15, 2] < exact[7, 2]
+        assert exact[15, 16, 10] == exact[7, 16, 10] == exact[31, 16, 10] == 0
+        assert 0 < exact[31, 2, 10] < exact[15, 2, 10] < exact[7, 2, 10]
 
 
 def _row_major(gb):
