@@ -477,3 +477,34 @@ def test_oracle_native_avx512_build_equals_avx2(mats, monkeypatch):
             assert not x.isnan().any()
             assert (x - y).abs().max().item() <= 1e-5 * y.abs().max().item(), mat.kind
 
+
+def test_oracle_pose_written_into_the_tracer_equals_a_new_tracer():
+    """A posed frame after another pose (P) writes the new vertex positions into the last tracer's Mitsuba
+    scene (`methods.oracle._repose`, session 33) instead of building a new one: the same tracer object
+    frame after frame, and every frame's image and counts bit for bit those of an oracle that builds
+    the tracer of that pose afresh (the same rays hit the same triangles); the rest pose again after
+    poses too."""
+    from references.visibility import resolve_backend
+
+    if resolve_backend() != "mitsuba":
+        pytest.skip("the tracer is embreex: a new one per pose")
+    scene = get_scene("creature", "test")
+    frames = make_sequence(scene, "P", n_frames=4, seed=0)
+    frames = frames + [dataclasses.replace(frames[0], pose=None, index=7)]
+    assert len({repr(f.pose) for f in frames}) == len(frames)
+    cfg = dict(light_samples=2, brdf_samples=2, seed=3)
+    a = get_method("oracle")(**cfg)
+    a.precompute(scene)
+    tracers = []
+    for f in frames:
+        gb = make_gbuffer(scene, f, 1)
+        img = a.render(f, gb)
+        tracers.append(a._vis[1])
+        b = get_method("oracle")(**cfg)
+        b.precompute(scene)
+        want = b.render(f, gb)
+        assert b._vis[1] is not a._vis[1]
+        assert torch.equal(img, want), f.index
+        assert a._last == b._last, f.index
+        assert bool((a._vis[1].V == b._vis[1].V).all()) and a._vis[1].scale == b._vis[1].scale
+    assert all(t is tracers[0] for t in tracers)
