@@ -367,13 +367,22 @@ static inline __attribute__((always_inline)) float power_h(float a, float b) {
    the u0 it does not bracket by count_le itself (fix_unguided). cdf0: 0 then the cdf (C + 1,); guide:
    (G + 1,). In two passes: the buckets' guide entries (independent loads, the cdf's and p_flat's lines there
    prefetched), then the steps (their loads mostly on those lines): one sample's search no longer waits
-   on the last one's misses (guide table 0.5 MB, cdf 1 MB). */
+   on the last one's misses (guide table 0.5 MB, cdf 1 MB). Session 33: a pass before them prefetches the
+   guide entries themselves (the same buckets' lines; pretrace 1.02-1.10x, creature / chess bench V and VB
+   frame 1, 1 thread, the same bits). */
 static inline __attribute__((always_inline)) void search_cells(const float *bu0, double *bx, int64_t n,
         const double *__restrict cdf0_, const double *__restrict pflat_, const int32_t *__restrict guide_, int64_t G,
         int64_t C, int32_t *bk) {
     int64_t bk64[MAXB], bok[MAXB], bhi[MAXB];
     int64_t top = 1;  /* count_le's first step: the largest power of 2 <= C */
     while (2 * top <= C) top *= 2;
+    for (int64_t ii = 0; ii < n; ii++) {
+        double x = bx[ii];
+        double xs = ((x >= 0.0) & (x <= 1.0)) ? x : 0.0;
+        int64_t b = (int32_t)floor(xs * (double)G);
+        b = b < 0 ? 0 : (b > G - 1 ? G - 1 : b);
+        __builtin_prefetch(guide_ + b);
+    }
     for (int64_t ii = 0; ii < n; ii++) {
         double x = bx[ii];
         int64_t inside = (x >= 0.0) & (x <= 1.0);
@@ -734,6 +743,28 @@ def _lib():
                                     "-Wl,--no-as-needed", "-lmvec", "-lm"))
 
 
+# `pretrace`'s library on an AVX-512 host (``native.cpu_capability()``): the same source built for 512-bit
+# vectors (GCC then takes libmvec's 16-lane float / 8-lane double variants of sin, cos, atan2, acos, powf, ...
+# where the AVX2 build takes its 8 / 4-lane ones). Session 33, creature bench V frame 1, 1 thread, captured
+# arguments (`benchmarks.oracle_native_ab`): pretrace 1.19-1.23x (AVX-512 at 256-bit width: 1.19x); `shade`
+# measured 0.88x at 512 bits and stays in the AVX2 build (`_lib`). Another vector width of the same
+# functions: results an ulp or so apart where libmvec's variants are (float32 round-off of the same
+# operations, as the AVX2 build against torch's Sleef); the test compares the two builds.
+AVX512_FLAGS = ("-mavx512f", "-mavx512dq", "-mavx512vl", "-mavx512bw", "-mprefer-vector-width=512")
+
+
+def _ray_lib():
+    """The library `pretrace` (and its parts' test entries `light_cells`, `int_pow`) run: the AVX-512 build
+    on an AVX-512 host (`AVX512_FLAGS`), else — or when that build fails — `_lib`'s; None as `_lib`."""
+    if native.cpu_capability() == "AVX512":
+        lib = native.load("oracle_rays512", _SOURCE, _SIGNATURES,
+                          extra_flags=("-fopenmp", "-ffp-contract=off", "-fno-trapping-math", *native.isa_flags(),
+                                       *AVX512_FLAGS, "-Wl,--no-as-needed", "-lmvec", "-lm"))
+        if lib is not None:
+            return lib
+    return _lib()
+
+
 def available() -> bool:
     """True when the C loops run (else the caller takes the compiled path)."""
     return _lib() is not None
@@ -779,7 +810,7 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b
     float32 contiguous; U_l (Q, NL, 2), U_b (Q, NB, 2) float32 contiguous (ignored when NL resp. NB is
     0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous. The light
     samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table)."""
-    lib = _lib()
+    lib = _ray_lib()
     Q = int(n.shape[0])
     if Q == 0:
         return
@@ -816,7 +847,7 @@ def light_cells(u0: Tensor, cdf: Tensor, p_flat: Tensor) -> Tensor:
     u0, p_flat = u0.contiguous(), p_flat.contiguous()
     guide = guide_table(cdf)
     k = torch.empty(u0.shape[0], dtype=torch.int32)
-    _lib().light_cells(_ptr(u0), int(u0.shape[0]), _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(guide), int(guide.shape[0]) - 1,
+    _ray_lib().light_cells(_ptr(u0), int(u0.shape[0]), _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(guide), int(guide.shape[0]) - 1,
                        int(cdf.shape[0]), _ptr(k))
     return k
 
@@ -828,7 +859,7 @@ def int_pow(x: Tensor, e: int) -> Tensor:
         raise ValueError(f"e must be in [0, 127], got {e}")
     x = x.contiguous()
     out = torch.empty_like(x)
-    _lib().int_pow(_ptr(x), int(x.numel()), int(e), _ptr(out))
+    _ray_lib().int_pow(_ptr(x), int(x.numel()), int(e), _ptr(out))
     return out
 
 

@@ -422,3 +422,89 @@ def test_oracle_native_integer_powers(monkeypatch):
         ok = ~torch.pow(sp, e).isnan()
         assert torch.equal(on.int_pow(sp, e)[ok], torch.pow(sp, e)[ok]), e
     assert off <= total * 1e-5, (off, total)
+
+
+@pytest.mark.parametrize("mats", ["library", "ward+lambert", "ct+blinn", "spec-only+no-spec"])
+def test_oracle_native_avx512_build_equals_avx2(mats, monkeypatch):
+    """On an AVX-512 host `pretrace` runs the AVX-512 build of the C loops (`native_rays._ray_lib`, session
+    33) = the AVX2 build (`native_rays._lib`, the build the other C-loop tests compared with the eager
+    estimator until then) on the same arguments, every ray: the same live rays, contributions, origins and
+    directions to float32 round-off of the same operations (libmvec's vector variants of another width: a
+    few ulps, through the lobes' powers); on every BRDF family with a C body, a VB frame's materials
+    (non-integer Phong exponents: powf) and both MIS strategies."""
+    import methods.oracle.native_rays as on
+    from methods.core import native
+
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    if not on.available():
+        pytest.skip("no C compiler: the C loops do not run")
+    if native.cpu_capability() != "AVX512":
+        pytest.skip("not an AVX-512 host: pretrace runs the AVX2 build")
+    fast, ref = on._ray_lib(), on._lib()
+    assert fast is not None and fast is not ref
+    scene = get_scene("chess" if mats == "library" else "sphere_plane", "test")
+    frame = make_sequence(scene, "VB", n_frames=2, seed=0)[1]
+    if mats != "library":
+        ms = _native_materials(mats)
+        frame = dataclasses.replace(frame, materials={r: ms[i % len(ms)] for i, r in enumerate(frame.materials)})
+    gb = make_gbuffer(scene, frame, 2)
+    calls, real = [], on.pretrace
+
+    def keep(mat, *a):
+        calls.append((mat, a))
+        return real(mat, *a)
+
+    monkeypatch.setattr(on, "pretrace", keep)
+    o = get_method("oracle")(light_samples=3, brdf_samples=2, seed=13)
+    o.precompute(scene)
+    o.render(frame, gb)
+    monkeypatch.undo()
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    assert calls and len({m.kind for m, _ in calls}) == len({m.kind for m in frame.materials.values()})
+    for mat, a in calls:
+        outs = {}
+        for name, lib in (("fast", fast), ("ref", ref)):
+            out = tuple(torch.full_like(x, float("nan")) if x.is_floating_point() else torch.zeros_like(x)
+                        for x in a[-1])
+            monkeypatch.setattr(on, "_ray_lib", lambda lib=lib: lib)
+            on.pretrace(mat, *a[:-1], out)
+            outs[name] = out
+        monkeypatch.undo()
+        (c1, l1, o1, d1), (c2, l2, o2, d2) = outs["fast"], outs["ref"]
+        assert torch.equal(l1, l2), mat.kind
+        assert int(l1.sum()) > 0
+        for x, y in ((c1, c2), (o1, o2), (d1, d2)):
+            assert not x.isnan().any()
+            assert (x - y).abs().max().item() <= 1e-5 * y.abs().max().item(), mat.kind
+
+
+def test_oracle_pose_written_into_the_tracer_equals_a_new_tracer():
+    """A posed frame after another pose (P) writes the new vertex positions into the last tracer's Mitsuba
+    scene (`methods.oracle._repose`, session 33) instead of building a new one: the same tracer object
+    frame after frame, and every frame's image and counts bit for bit those of an oracle that builds
+    the tracer of that pose afresh (the same rays hit the same triangles); the rest pose again after
+    poses too."""
+    from references.visibility import resolve_backend
+
+    if resolve_backend() != "mitsuba":
+        pytest.skip("the tracer is embreex: a new one per pose")
+    scene = get_scene("creature", "test")
+    frames = make_sequence(scene, "P", n_frames=4, seed=0)
+    frames = frames + [dataclasses.replace(frames[0], pose=None, index=7)]
+    assert len({repr(f.pose) for f in frames}) == len(frames)
+    cfg = dict(light_samples=2, brdf_samples=2, seed=3)
+    a = get_method("oracle")(**cfg)
+    a.precompute(scene)
+    tracers = []
+    for f in frames:
+        gb = make_gbuffer(scene, f, 1)
+        img = a.render(f, gb)
+        tracers.append(a._vis[1])
+        b = get_method("oracle")(**cfg)
+        b.precompute(scene)
+        want = b.render(f, gb)
+        assert b._vis[1] is not a._vis[1]
+        assert torch.equal(img, want), f.index
+        assert a._last == b._last, f.index
+        assert bool((a._vis[1].V == b._vis[1].V).all()) and a._vis[1].scale == b._vis[1].scale
+    assert all(t is tracers[0] for t in tracers)
