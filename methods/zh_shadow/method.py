@@ -352,6 +352,7 @@ class ZHShadow(Method):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
+        self._view_args: tuple | None = None     # (lighting, materials, spans), `native.view_setup`: `_view_radiance`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -360,7 +361,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
-        self._resolve_packed = self._resolve_compact = None
+        self._resolve_packed = self._resolve_compact = self._view_args = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -411,6 +412,9 @@ class ZHShadow(Method):
     # Lighting-only vertex-shaded frames resolve by the kept matrix packed for a C loop (`native.csr_pack`,
     # `native.csr_product`: torch's CSR product's bits); False: torch's CSR product (the tests' oracle)
     native_resolve = True
+    # View frames of a kept pose (V, VB, VL, VBL; cosine) make the per-vertex radiance in one C pass
+    # (`_view_radiance`, `native.view_radiance`); False: the torch path (the tests' oracle)
+    view_pass = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -979,7 +983,14 @@ class ZHShadow(Method):
                 # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
                 w = rt.cosine_visibility_zyz(vT, nT, ordered=True) if cosine else rt.cosine_visibility(vT, nT)
                 self._vertex_diffuse = vd = (v0, nT, vT, w)
-            _, nT, vT, w = vd                             # t_d = w / π: the 1/π goes on the lighting (3, n²)
+            # a view frame of a kept pose (V, VB, VL, VBL): the radiance by one C pass (`_view_radiance`)
+            fused = self._view_radiance(frame, geom, light.to(dev), mats, alphas, spans, vd[3], vd[1]) \
+                if cosine and "view" in frame.changed and "pose" not in frame.changed else None
+            if fused is not None:
+                radT, counts = fused
+                self._vertex_transfer = self._vertex_compact = None   # (t_s not made: a later frame makes it)
+        if radT is None:
+            _, nT, vT, w = self._vertex_diffuse           # t_d = w / π: the 1/π goes on the lighting (3, n²)
             #                                               instead of a pass over w (0.28 ms of a P frame)
             vt = self._vertex_transfer
             if vt is None or vt[0] != key or vt[1] is not v0:
@@ -1086,6 +1097,38 @@ class ZHShadow(Method):
         # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
         return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
                                gbuffer.height, gbuffer.width, gbuffer.spp_side)
+
+    def _view_radiance(self, frame: Frame, geom, light: Tensor, mats: list, alphas: list, spans: list | None,
+                       w: Tensor, nT: Tensor) -> tuple[Tensor, "_LazyCounts"] | None:
+        """A view frame's (N, 3) radiance and counts (cosine, a kept pose: w of every vertex made) by one
+        C pass (`native.view_radiance`: ωo, the front test, kd ⊙ (lᵀ w) / π and ks ⊙ (lᵀ t_s) of the
+        front-facing vertices with t_s made in registers, 0 elsewhere, the clamp), or None where it does
+        not run (``view_pass`` off, no compiler, regions not ranges, not the CPU): then the torch path
+        below it in `_render_vertex` (its oracle). Equal to it to float32 round-off; the same front-
+        facing set (the test computed as torch computes it), so the same counts. t_s is not kept: a
+        following lighting-only frame of this camera makes it (`_vertex_transfer`)."""
+        if not self.view_pass or spans is None or w.device.type != "cpu":
+            return None
+        n = self.config["order"]
+        dev = w.device
+        # the lighting's rows, the albedos and the plans, kept while lighting and materials stay (a V frame's)
+        key = (light, tuple((tuple(kd.tolist()), tuple(ks.tolist()), a) for (kd, ks, _), a in zip(mats, alphas)),
+               tuple(spans))
+        va = self._view_args
+        if va is None or va[0][0] is not light or va[0][1:] != key[1:]:
+            plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, w.dtype, dev,
+                                                           (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
+            kd = torch.tensor([k[0] for k in key[1]], dtype=light.dtype)
+            ks = torch.tensor([k[1] for k in key[1]], dtype=light.dtype)
+            self._view_args = va = (key, zn.view_setup(spans, light, kd, ks, plans,
+                                                       rt._conjugate_tables(n, w.dtype, dev)))
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        out = zn.view_radiance(va[1], geom.V.to(dev).float().contiguous(), nT, w, cam, bool(self.config["clamp"]))
+        if out is None:
+            return None
+        radT, front = out
+        vreg = geom.vertex_region.to(dev)
+        return radT, _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
 
     def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,
                         alphas: list, spans: list, vreg: Tensor, ref: Tensor | None = None

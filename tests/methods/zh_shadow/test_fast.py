@@ -1027,6 +1027,7 @@ def test_vertex_shading_front_only_transfer_equals_full(zh_scene, monkeypatch):
     m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(zh_scene("creature"))
     fast, full = m.with_render_config(), m.with_render_config()
+    fast.view_pass = full.view_pass = False   # (the torch path's t_s: `test_view_pass_equals_torch_path`)
     parts = rt.specular_parts
 
     def every_column(*args, keep=None, **kw):
@@ -1273,6 +1274,7 @@ def test_view_frames_reuse_the_diffuse_radiance(zh_scene):
     for kind in ("V", "VB", "VL"):
         fast, slow = m.with_render_config(), m.with_render_config()
         slow.diffuse_cache = False
+        fast.view_pass = slow.view_pass = False   # (the torch path's cache: the C pass keeps none)
         kept = []
         for i, f in enumerate(make_sequence(m.scene, kind, 4, seed=7)):
             gb = make_gbuffer(m.scene, f, 2)
@@ -1945,3 +1947,122 @@ def test_native_split_with_few_misses_equals_torch_split(small_model):
     with mock.patch.object(type(fast), "_native_split", spy):
         fast.render(f, dataclasses.replace(g, **_misses(g, many)))
     assert not results
+
+
+def _torch_view_radiance(pos, nT, w, cam, vreg, mats, light, clamp):
+    """The torch path's per-vertex radiance of a view frame (`ZHShadow._render_vertex` with ``view_pass``
+    off): `_view_directions`, the front test `runtime.dot_T` > 0, kd ⊙ (lᵀ w) / π, + ks ⊙ (lᵀ t_s) by
+    `runtime.specular_parts` (keep = front), masked, clamped."""
+    woT = cam[:, None] - rt.rows(pos)
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    front = rt.dot_T(nT, woT) > 0
+    kd = torch.stack([k for k, _, _ in mats], 1).index_select(1, vreg)
+    ks = torch.stack([k for _, k, _ in mats], 1).index_select(1, vreg)
+    rad = ((light.T * (1.0 / math.pi)) @ w) * kd
+    tsf = rt.specular_transfer(w, nT, woT, vreg, [a for _, _, a in mats],
+                               parts=rt.specular_parts(w, nT, woT, vreg, [a for _, _, a in mats], keep=front))
+    if tsf is not None:
+        rad = rad + (light.T @ tsf) * ks
+    rad = rad * front
+    return (rad.clamp_min(0.0) if clamp else rad).T.contiguous(), front
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_view_radiance_native_equals_torch(order, monkeypatch):
+    """`native.view_radiance` (one C pass: ωo, the front test, the diffuse and specular radiance with t_s
+    in registers) = the torch path (`_torch_view_radiance`) to float32 round-off, the front-facing set
+    bit for bit — normals built within ~1e-8 of perpendicular to ωo included, where an unfused or a
+    differently rounded n·ωo flips the test —, on regions that are ranges of 16 consecutive front
+    vertices, of scattered ones (the permute and the gather loads), a vertex count off the 16-lane
+    blocks, R on both poles, two exponents and a diffuse region; clamped and not; the same bits at 1
+    and 2 threads."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(21)
+    N, n2 = 1203, order * order
+    pos = torch.randn(N, 3, generator=g)
+    cam = torch.tensor([0.4, 2.5, 3.0])
+    wo = cam - pos
+    wo = wo / wo.norm(dim=1, keepdim=True)
+    nrm = torch.randn(N, 3, generator=g)
+    nrm = nrm / nrm.norm(dim=1, keepdim=True)
+    nrm[:300] = wo[:300] * torch.sign(torch.randn(300, 1, generator=g))   # region 0: runs of front ones
+    tang = torch.linalg.cross(wo[600:900], torch.randn(300, 3, generator=g), dim=1)
+    nrm[600:900] = tang / tang.norm(dim=1, keepdim=True) + 1e-8 * torch.randn(300, 3, generator=g)   # grazing
+    nrm[700] = torch.tensor([0.0, 0.0, 1.0])
+    nT = rt.rows(nrm / nrm.norm(dim=1, keepdim=True))
+    w = torch.randn(n2, N, generator=g)
+    light = torch.randn(n2, 3, generator=g)
+    vreg = torch.cat([torch.zeros(300), torch.ones(300), torch.full((400,), 2.0), torch.full((203,), 3.0)]).long()
+    spans = [(0, 300), (300, 600), (600, 1000), (1000, 1203)]
+    kd = [torch.rand(3, generator=g) for _ in spans]
+    ks = [torch.rand(3, generator=g) for _ in spans]
+    alphas = [12.0, None, 30.0, 1.0]
+    mats = [(kd[r], ks[r] if alphas[r] is not None else torch.zeros(3), alphas[r]) for r in range(4)]
+    plans = [None if a is None else rt._block_plan(("phong", a), order, False, torch.float32, "cpu",
+                                                   (a + 1.0) / (2.0 * math.pi)) for a in alphas]
+    setup = zn.view_setup(spans, light, torch.stack(kd), torch.stack([k for _, k, _ in mats]), plans,
+                          rt._conjugate_tables(order, torch.float32, "cpu"))
+    for clamp in (False, True):
+        want, wfront = _torch_view_radiance(pos, nT, w, cam, vreg, mats, light, clamp)
+        got = {}
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got[threads] = zn.view_radiance(setup, pos, nT, w, cam, clamp)
+        assert got[1] is not None
+        rad, front = got[1]
+        assert torch.equal(rad, got[2][0]) and torch.equal(front, got[2][1])   # the same bits at any thread count
+        assert torch.equal(front, wfront)                                     # the same front-facing set
+        assert 0 < int(front[600:900].sum()) < 300
+        assert (rad - want).abs().max() <= 2e-6 * want.abs().max(), (order, clamp)
+        assert bool((rad[~front] == 0).all())
+        if clamp:
+            assert bool((rad >= 0).all())
+        else:
+            assert bool((rad < 0).any())
+
+
+def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
+    """Vertex-shaded view frames of a kept pose (V, VB, VL, VBL; order 8, cosine) by one C pass
+    (`ZHShadow._view_radiance`, `native.view_radiance`) = the torch path (``view_pass`` off) to float32
+    round-off, with the same counts (the same front-facing set), the same bits at 1 and 2 threads, and
+    = the reference; a frame 0 (a full change) and a lighting-only frame take the torch path (the t_s a
+    following lighting frame reuses is made there)."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    calls: list[bool] = []
+    vr = zn.view_radiance
+
+    def counted(*a, **kw):
+        out = vr(*a, **kw)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(zn, "view_radiance", counted)
+    for kind in ("V", "VB", "VL", "VBL", "L"):
+        fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+        slow.view_pass = False
+        for i, f in enumerate(make_sequence(m.scene, kind, 3, seed=8)):
+            gb = make_gbuffer(m.scene, f, 2)
+            c0 = len(calls)
+            a = fast.render(f, gb)
+            assert calls[c0:] == ([True] if i > 0 and kind != "L" else []), (kind, i)
+            with torch_threads_(2):
+                a2 = fast2.render(f, gb)
+            b = slow.render(f, gb)
+            assert torch.equal(a, a2), (kind, i)
+            assert (a - b).abs().max() <= 2e-6 * b.abs().max(), (kind, i)
+            assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), (kind, i)
+            want = fast._render_reference(f, gb)
+            assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
+
