@@ -415,6 +415,9 @@ class ZHShadow(Method):
     # View frames of a kept pose (V, VB, VL, VBL; cosine) make the per-vertex radiance in one C pass
     # (`_view_radiance`, `native.view_radiance`); False: the torch path (the tests' oracle)
     view_pass = True
+    # Vertex-shaded frames resolve a new G-buffer by zh_shadow's C loop with the range check in it
+    # (`native.resolve`: `gouraud.resolve`'s sums, bit for bit); False: `gouraud.resolve` (the tests' oracle)
+    own_resolve = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -1094,9 +1097,13 @@ class ZHShadow(Method):
             radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
                                device=dev).index_copy_(0, compact[0], compact[1])
         self._resolve_matrix = (gkey, geom, None)
-        # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
-        return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
-                               gbuffer.height, gbuffer.width, gbuffer.spp_side)
+        # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
+        # else in the shared Gouraud resolve's pass (its oracle)
+        img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                         gbuffer.width, gbuffer.spp_side) if self.own_resolve else None
+        return img if img is not None else gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary,
+                                                           gbuffer.hit, gbuffer.height, gbuffer.width,
+                                                           gbuffer.spp_side)
 
     def _view_radiance(self, frame: Frame, geom, light: Tensor, mats: list, alphas: list, spans: list | None,
                        w: Tensor, nT: Tensor) -> tuple[Tensor, "_LazyCounts"] | None:

@@ -1707,3 +1707,95 @@ def view_radiance(setup: tuple | None, pos: Tensor, nT: Tensor, w: Tensor, cam: 
                    out.data_ptr(), max(1, torch.get_num_threads()))
     return out, front
 
+
+# `gouraud.resolve` for the vertex-shaded frames (zh33v): the same C loop (the same sums in the same order:
+# the same bits), its range check made in the loop on the entries each sample reads — a hit sample's face
+# in [0, M) (a miss reads nothing), its three corners in [0, N) — instead of two `aminmax` passes over the
+# G-buffer's faces and the corner table before it, and without the wrapper's steps for the compiled
+# fallback (dynamic-shape marks, the views for its blocks): ~0.1-0.2 ms of each vertex-shaded frame at 1
+# thread. A bad entry stops the loop before its loads (no read out of bounds) and raises as
+# `gouraud.resolve` does; `gouraud.resolve` stays the fallback (and the oracle: tests).
+_RESOLVE_SOURCE = r"""
+#include <stdint.h>
+/* Pixels i0 <= i < i1 of `gouraud`'s resolve3: out[i, c] = (1 / S2) sum over hit sub-samples p of
+   (V[F[f, 0], c] (1 - u - v) + V[F[f, 1], c] u) + V[F[f, 2], c] v, F (M, 3) int64 rows, V (N, 3).
+   Returns 0, or 1 at the first sample whose face or corner is out of range (nothing read from it). */
+static int64_t resolve_range(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit,
+                             const int64_t *F, int64_t M, const float *val, int64_t N, int64_t S2, int64_t i0,
+                             int64_t i1, float *out) {
+    const float inv = 1.0f / (float)S2;
+    for (int64_t i = i0; i < i1; ++i) {
+        float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
+        for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+            if (!hit[p]) continue;
+            const int64_t f = face[p];
+            if ((uint64_t)f >= (uint64_t)M) return 1;
+            const int64_t j0 = F[3 * f], j1 = F[3 * f + 1], j2 = F[3 * f + 2];
+            if (((uint64_t)j0 >= (uint64_t)N) | ((uint64_t)j1 >= (uint64_t)N) | ((uint64_t)j2 >= (uint64_t)N)) return 1;
+            const float u = bu[p], v = bv[p], w = 1.0f - u - v;
+            const float *x = val + 3 * j0, *y = val + 3 * j1, *z = val + 3 * j2;
+            a0 += (x[0] * w + y[0] * u) + z[0] * v;
+            a1 += (x[1] * w + y[1] * u) + z[1] * v;
+            a2 += (x[2] * w + y[2] * u) + z[2] * v;
+        }
+        out[3 * i] = a0 * inv;
+        out[3 * i + 1] = a1 * inv;
+        out[3 * i + 2] = a2 * inv;
+    }
+    return 0;
+}
+/* Over pixels [0, n) on nt threads, thread k the pixels [n k / nt, n (k + 1) / nt); bad[0] set to 1 when
+   any range found an entry out of range. */
+void zh33v_resolve(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit, const int64_t *F,
+                   int64_t M, const float *val, int64_t N, int64_t S2, int64_t n, int64_t nt, float *out,
+                   int64_t *bad) {
+    int64_t b = 0;
+    if (nt <= 1) {
+        b = resolve_range(face, bu, bv, hit, F, M, val, N, S2, 0, n, out);
+    } else {
+        #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
+        for (int64_t k = 0; k < nt; ++k)
+            b |= resolve_range(face, bu, bv, hit, F, M, val, N, S2, n * k / nt, n * (k + 1) / nt, out);
+    }
+    bad[0] = b;
+}
+"""
+_RESOLVE_SIGNATURES = {"zh33v_resolve": [_P, _P, _P, _P, _P, _I, _P, _I, _I, _I, _I, _P, _P]}
+# pixels per thread below which one thread resolves the image (`gouraud._NATIVE_MIN_PIXELS`)
+MIN_RESOLVE_PIXELS_PER_THREAD = 1 << 13
+
+
+def _resolve_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
+    # no ISA flags and no multiply-adds fused: `gouraud`'s loop's build (-O3, the same sums' bits)
+    return native.load("zh33v_resolve", _RESOLVE_SOURCE, _RESOLVE_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def resolve(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
+            spp_side: int) -> Tensor | None:
+    """`gouraud.resolve`(values, F.T, face, bary, hit, height, width, spp_side) by one C loop with the
+    range check in it (above; the same bits), or None where it does not run (no compiler,
+    ``PRTBENCH_ZH_NATIVE=0``, not CPU tensors of the loop's types: values (N, 3) float32, F (M, 3) int64
+    contiguous, face (P,) int64, hit (P,) bool, bary (P, 2) float32). ValueError on a face or corner out
+    of range, as `gouraud.resolve`."""
+    lib = _resolve_lib() if terms_switched_on() else None
+    S2 = spp_side * spp_side
+    n = height * width
+    if lib is None or values.dim() != 2 or values.shape[1] != 3 or values.dtype != torch.float32 \
+            or F.dtype != torch.int64 or F.dim() != 2 or F.shape[1] != 3 or not F.is_contiguous() \
+            or face.dtype != torch.int64 or hit.dtype != torch.bool or bary.dtype != torch.float32 \
+            or bary.dim() != 2 or bary.shape[1] != 2 or not (face.is_contiguous() and hit.is_contiguous()) \
+            or face.shape[0] != n * S2 or hit.shape[0] != n * S2 \
+            or any(t.device.type != "cpu" for t in (values, F, face, bary, hit)):
+        return None
+    values = values.contiguous()
+    bu, bv = bary[:, 0].contiguous(), bary[:, 1].contiguous()   # (views of the G-buffer's column-major bary)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_RESOLVE_PIXELS_PER_THREAD))
+    lib.zh33v_resolve(face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), F.data_ptr(), int(F.shape[0]),
+                      values.data_ptr(), int(values.shape[0]), S2, n, nt, out.data_ptr(), bad.data_ptr())
+    if int(bad[0]):
+        raise ValueError(f"G-buffer faces or corner rows out of range of {int(F.shape[0])} faces and "
+                         f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
+    return out.view(height, width, 3)

@@ -2051,7 +2051,7 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
     monkeypatch.setattr(zn, "view_radiance", counted)
     for kind in ("V", "VB", "VL", "VBL", "L"):
         fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
-        slow.view_pass = False
+        slow.view_pass = slow.own_resolve = False
         for i, f in enumerate(make_sequence(m.scene, kind, 3, seed=8)):
             gb = make_gbuffer(m.scene, f, 2)
             c0 = len(calls)
@@ -2066,3 +2066,38 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
             want = fast._render_reference(f, gb)
             assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
 
+
+def test_resolve_native_equals_gouraud_resolve():
+    """`native.resolve` (zh_shadow's C loop, the range check in it) = `gouraud.resolve` bit for bit — misses,
+    faces whose corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a
+    read corner out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
+    from methods.core import gouraud
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(31)
+    N, M = 900, 1500
+    F = torch.randint(0, N, (M + 1, 3), generator=g)[:M]   # (a row M after it: a missed check reads valid ids)
+    F[7] = torch.tensor([5, 5, 9])
+    values = torch.randn(N, 3, generator=g)
+    for H, W in ((128, 130), (40, 24)):
+        P = H * W * 4
+        face = torch.randint(0, M, (P,), generator=g)
+        hit = torch.rand(P, generator=g) > 0.1
+        face[~hit] = -1
+        bary = torch.rand(2, P, generator=g).T * 0.5                     # column-major, as the G-buffer's
+        want = gouraud.resolve(values, F.T, face, bary, hit, H, W, 2)
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got = zn.resolve(values, F, face, bary, hit, H, W, 2)
+            assert got is not None and torch.equal(got, want), (H, threads)
+        bad = face.clone()
+        bad[int(hit.nonzero()[-1])] = M                                  # a hit sample's face out of range
+        with pytest.raises(ValueError):
+            zn.resolve(values, F, bad, bary, hit, H, W, 2)
+        Fb = F.clone()
+        Fb[int(face[int(hit.nonzero()[3])]), 1] = N                       # a read corner out of range
+        with pytest.raises(ValueError):
+            zn.resolve(values, Fb, face, bary, hit, H, W, 2)
