@@ -352,7 +352,7 @@ class ZHShadow(Method):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
-        self._view_args: tuple | None = None     # (lighting, materials, spans), `native.view_setup`: `_view_radiance`
+        self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -1116,26 +1116,29 @@ class ZHShadow(Method):
         following lighting-only frame of this camera makes it (`_vertex_transfer`)."""
         if not self.view_pass or spans is None or w.device.type != "cpu":
             return None
-        n = self.config["order"]
         dev = w.device
-        # the lighting's rows, the albedos and the plans, kept while lighting and materials stay (a V frame's)
-        key = (light, tuple((tuple(kd.tolist()), tuple(ks.tolist()), a) for (kd, ks, _), a in zip(mats, alphas)),
-               tuple(spans))
-        va = self._view_args
-        if va is None or va[0][0] is not light or va[0][1:] != key[1:]:
-            plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, w.dtype, dev,
-                                                           (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
-            kd = torch.tensor([k[0] for k in key[1]], dtype=light.dtype)
-            ks = torch.tensor([k[1] for k in key[1]], dtype=light.dtype)
-            self._view_args = va = (key, zn.view_setup(spans, light, kd, ks, plans,
-                                                       rt._conjugate_tables(n, w.dtype, dev)))
         cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
-        out = zn.view_radiance(va[1], geom.V.to(dev).float().contiguous(), nT, w, cam, bool(self.config["clamp"]))
+        out = zn.view_radiance(self._pass_setup(light, mats, alphas, w.dtype), spans,
+                               geom.V.to(dev).float().contiguous(), nT, w, cam, bool(self.config["clamp"]))
         if out is None:
             return None
         radT, front = out
         vreg = geom.vertex_region.to(dev)
         return radT, _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+
+    def _pass_setup(self, light: Tensor, mats: list, alphas: list, dtype) -> tuple | None:
+        """`native.view_setup` of the lighting, the albedos and the regions' plans (the C passes of
+        `_view_radiance` and `_front_radiance`), kept while lighting and materials stay."""
+        key = (light, tuple((tuple(kd.tolist()), tuple(ks.tolist()), a) for (kd, ks, _), a in zip(mats, alphas)))
+        va = self._view_args
+        if va is None or va[0][0] is not light or va[0][1:] != key[1:]:
+            n, dev = self.config["order"], light.device
+            plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, dtype, dev,
+                                                           (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
+            kd = torch.tensor([k[0] for k in key[1]], dtype=light.dtype)
+            ks = torch.tensor([k[1] for k in key[1]], dtype=light.dtype)
+            self._view_args = va = (key, zn.view_setup(light, kd, ks, plans, rt._conjugate_tables(n, dtype, dev)))
+        return va[1]
 
     def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,
                         alphas: list, spans: list, vreg: Tensor, ref: Tensor | None = None
@@ -1180,7 +1183,14 @@ class ZHShadow(Method):
         lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
         planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
         radT = torch.zeros(N, 3, dtype=vTc.dtype, device=dev)
-        if hi > lo:
+        fused = hi > lo and self.view_pass and dev.type == "cpu" and zn.pose_radiance(
+            self._pass_setup(light, mats, alphas, vTc.dtype),
+            rt._block_plan(("phong", 1.0), self.config["order"], True, vTc.dtype, dev),
+            [(0, 0) if r in planes else sp for r, sp in enumerate(cspans)], vTc, nTc.contiguous(), woTc.contiguous(),
+            idx, radT, bool(self.config["clamp"]))
+        # (fused: w, t_s and the radiance of the columns lo..hi by one C pass, `native.pose_radiance`, the
+        # rows written into radT — clamped there; else the passes below, its oracle)
+        if hi > lo and not fused:
             wc = rt.cosine_visibility_zyz(vTc[:, lo:hi] if planes else vTc, nTc[:, lo:hi] if planes else nTc,
                                           ordered=True)
             if planes:
@@ -1192,7 +1202,7 @@ class ZHShadow(Method):
         # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
         # caller's threads costs the next parallel work, `runtime.world_visibility`)
         with pc.torch_threads(1):
-            if hi > lo:
+            if hi > lo and not fused:
                 sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
                 radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
             for r, n0 in planes.items():

@@ -1469,15 +1469,54 @@ static inline void angles(int64_t n, vf c, vf s, vf *C, vf *S) {
 
 /* One block: the m <= L vertices c[0..m) (spare lanes repeat the last) of region r; spec: with the
    conjugation by the region's plan (nb blocks spans / Kv, cols, srow). out rows (N, 3). */
-static void block(int64_t n, int spec, const int64_t *c, int64_t m, const float *w, int64_t ldw,
-                  const float *nT, const float *woT, int64_t ldn, const float *lT, const float *co,
-                  const int64_t *perm, const int64_t *absm, const float *sgn, const float *nsg,
+/* The polar angles' rows of the unit vectors (R0, R1, R2) (`_polar`: phi = 0 on the pole). */
+static inline void polar_rows(int64_t n, vf R0, vf R1, vf R2, vf *Cp, vf *Sp, vf *Ct, vf *St) {
+    vf z, cp, sp;
+    const vf rho = vsqrt(R0 * R0 + R1 * R1);
+    for (int l = 0; l < L; ++l) {
+        z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
+        const int ok = rho[l] > 1e-20f;
+        const float safe = ok ? rho[l] : 1.0f;
+        cp[l] = ok ? R0[l] / safe : 1.0f;
+        sp[l] = ok ? R1[l] / safe : 0.0f;
+    }
+    angles(n, cp, sp, Cp, Sp);
+    angles(n, z, rho, Ct, St);
+}
+
+/* lp: a lifted plan (nb, spans, Kv, srow; its columns in place) when w's columns hold the visibility in
+   the ZYZ normal frames (`runtime.cosine_visibility_zyz`, ``ordered``: a P frame's), then w itself is
+   made first (the blocks of X M^1 and the second half about n, as `specular_conjugate`'s lifted pass);
+   o: the out rows of the lanes (NULL: c). */
+static void block(int64_t n, int spec, const int64_t *c, const int64_t *o, int64_t m, const float *w,
+                  int64_t ldw, int64_t Nw, const float *nT, const float *woT, int64_t ldn, const float *lT,
+                  const float *co, const int64_t *perm, const int64_t *absm, const float *sgn, const float *nsg,
                   int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
                   int64_t nb, const int64_t *spans, const float *Kv, const int64_t *cols, const int64_t *srow,
-                  int64_t clamp, float *out) {
+                  const int64_t *lp, int64_t clamp, float *out) {
     const int64_t n2 = n * n;
     vf a[MAXN2], t[MAXN2], u[MAXN2], Cp[MAXN], Sp[MAXN], Ct[MAXN], St[MAXN];
-    gather_cols(n2, w, ldw, ldn, c, a);
+    gather_cols(n2, w, ldw, Nw, c, a);
+    if (lp) {   /* w = M(R_n) M^1 of the lifted columns: the blocks in place, then the second half */
+        vf n0, n1, n2v;
+        for (int64_t l = 0; l < L; ++l) { n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]]; }
+        polar_rows(n, n0, n1, n2v, Cp, Sp, Ct, St);
+        const int64_t lnb = lp[0], *lsp = (const int64_t *)(intptr_t)lp[1], *lsr = (const int64_t *)(intptr_t)lp[3];
+        const float *K = (const float *)(intptr_t)lp[2];
+        for (int64_t b = 0; b < lnb; ++b) {
+            const int64_t r0 = lsp[4 * b], r1 = lsp[4 * b + 1], c0 = lsp[4 * b + 2], c1 = lsp[4 * b + 3];
+            const int64_t wd = c1 - c0;
+            for (int64_t i = r0; i < r1; ++i, K += wd) {
+                vf s = a[c0] * K[0];
+                for (int64_t j = 1; j < wd; ++j) s = s + a[c0 + j] * K[j];
+                u[i] = s;
+            }
+        }
+        for (int64_t r = 0; r < n2; ++r) t[r] = u[lsr[r]];
+        rz(n2, t, Ct, St, perm, absm, sgn, u);
+        gx(n2, k, u, ti, tw, t);
+        rz(n2, t, Cp, Sp, perm, absm, sgn, a);
+    }
     /* (l . w) kd / pi: co[0..3) = kd / pi (the order of `ZHShadow._diffuse_ranges`: the sum, then the albedo) */
     vf d0 = a[0] * lT[0], d1 = a[0] * lT[n2], d2 = a[0] * lT[2 * n2];
     for (int64_t r = 1; r < n2; ++r) {
@@ -1485,7 +1524,7 @@ static void block(int64_t n, int spec, const int64_t *c, int64_t m, const float 
     }
     d0 = d0 * co[0]; d1 = d1 * co[1]; d2 = d2 * co[2];
     if (spec) {
-        vf n0, n1, n2v, w0, w1, w2, R0, R1, R2, nr, z, cp, sp;
+        vf n0, n1, n2v, w0, w1, w2, R0, R1, R2, nr;
         for (int64_t l = 0; l < L; ++l) {
             n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]];
             w0[l] = woT[c[l]]; w1[l] = woT[ldn + c[l]]; w2[l] = woT[2 * ldn + c[l]];
@@ -1495,16 +1534,7 @@ static void block(int64_t n, int spec, const int64_t *c, int64_t m, const float 
         const vf nn = vsqrt((R0 * R0 + R1 * R1) + R2 * R2);
         for (int l = 0; l < L; ++l) nr[l] = nn[l] > 1e-12f ? nn[l] : 1e-12f;
         R0 = R0 / nr; R1 = R1 / nr; R2 = R2 / nr;
-        const vf rho = vsqrt(R0 * R0 + R1 * R1);
-        for (int l = 0; l < L; ++l) {
-            z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
-            const int ok = rho[l] > 1e-20f;
-            const float safe = ok ? rho[l] : 1.0f;
-            cp[l] = ok ? R0[l] / safe : 1.0f;
-            sp[l] = ok ? R1[l] / safe : 0.0f;
-        }
-        angles(n, cp, sp, Cp, Sp);
-        angles(n, z, rho, Ct, St);
+        polar_rows(n, R0, R1, R2, Cp, Sp, Ct, St);
         rz(n2, a, Cp, Sp, perm, absm, nsg, t);
         gx(n2, k, t, xi, xw, u);
         rz(n2, u, Ct, St, perm, absm, nsg, t);
@@ -1532,8 +1562,8 @@ static void block(int64_t n, int spec, const int64_t *c, int64_t m, const float 
     for (int64_t l = 0; l < m; ++l) {
         float x0 = d0[l], x1 = d1[l], x2 = d2[l];
         if (clamp) { x0 = x0 > 0.0f ? x0 : 0.0f; x1 = x1 > 0.0f ? x1 : 0.0f; x2 = x2 > 0.0f ? x2 : 0.0f; }
-        float *o = out + 3 * c[l];
-        o[0] = x0; o[1] = x1; o[2] = x2;
+        float *y = out + 3 * (o ? o[c[l]] : c[l]);
+        y[0] = x0; y[1] = x1; y[2] = x2;
     }
 }
 
@@ -1624,14 +1654,49 @@ void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const
             int64_t c[L];
             for (int64_t l = 0; l < L; ++l) c[l] = list[f + (l < m ? l : m - 1)];
             const int64_t *p = pl + 5 * r;
-            block(n, (int)spec[r], c, m, w, ldw, nT, woT, ldn, lT, co + 6 * r, perm, absm, sgn,
+            block(n, (int)spec[r], c, NULL, m, w, ldw, N, nT, woT, ldn, lT, co + 6 * r, perm, absm, sgn,
                   nsg, k, xi, xw, ti, tw, p[0], (const int64_t *)(intptr_t)p[1], (const float *)(intptr_t)p[2],
-                  (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], clamp, out);
+                  (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], NULL, clamp, out);
         }
     }
 }
+
+/* A P frame's front-facing (and referenced) vertices, compacted: Q columns of vz (n2, Q, row stride ldz:
+   `world_visibility`'s rows in the ZYZ normal frames, the lifted plan's order), nTc, woTc (3, Q contiguous)
+   their normals and view directions, idx (Q,) their vertex ids; region r the columns [rsp[2r], rsp[2r+1])
+   (empty: not made here), lT, co, spec, pl as `zh33v_view`'s, lp (4) the lifted plan. out (N, 3): the
+   rows idx[j] written (the caller zeroed the others). blk scratch (Q / L + nreg + 1, 3). */
+void zh33v_pose(int64_t n, int64_t Q, const float *vz, int64_t ldz, const float *nTc, const float *woTc,
+                const int64_t *idx, int64_t nreg, const int64_t *rsp, const float *lT, const float *co,
+                const int64_t *spec, const int64_t *pl, const int64_t *lp,
+                const int64_t *perm, const int64_t *absm, const float *sgn,
+                int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
+                int64_t clamp, int64_t *blk, float *out, int64_t nt) {
+    const int64_t n2 = n * n;
+    float nsg[MAXN2];
+    for (int64_t r = 0; r < n2; ++r) nsg[r] = -sgn[r];
+    int64_t nblk = 0;
+    for (int64_t r = 0; r < nreg; ++r)
+        for (int64_t b = rsp[2 * r]; b < rsp[2 * r + 1]; b += L) {
+            blk[3 * nblk] = r; blk[3 * nblk + 1] = b; blk[3 * nblk + 2] = rsp[2 * r + 1] - b < L ? rsp[2 * r + 1] - b : L;
+            ++nblk;
+        }
+    #pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t b = 0; b < nblk; ++b) {
+        const int64_t r = blk[3 * b], f = blk[3 * b + 1], m = blk[3 * b + 2];
+        int64_t c[L];
+        for (int64_t l = 0; l < L; ++l) c[l] = f + (l < m ? l : m - 1);
+        const int64_t *p = pl + 5 * r;
+        block(n, (int)spec[r], c, idx, m, vz, ldz, Q, nTc, woTc, Q, lT, co + 6 * r, perm, absm, sgn,
+              nsg, k, xi, xw, ti, tw, p[0], (const int64_t *)(intptr_t)p[1], (const float *)(intptr_t)p[2],
+              (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], lp, clamp, out);
+    }
+}
 """
-_VIEW_SIGNATURES = {"zh33v_sq": [_I, _P, _P, _P], "zh33v_view": [_I, _I, _P, _P, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P,
+_VIEW_SIGNATURES = {"zh33v_sq": [_I, _P, _P, _P],
+                    "zh33v_pose": [_I, _I, _P, _I, _P, _P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P,
+                                   _P, _I, _P, _P, _I],
+                    "zh33v_view": [_I, _I, _P, _P, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P,
                                    _P, _P, _I, _P, _P, _P, _P, _P, _I]}
 
 
@@ -1641,21 +1706,16 @@ def _view_lib():
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
 
 
-def view_setup(spans: list, light: Tensor, kd: Tensor, ks: Tensor, plans: list, tables: tuple) -> tuple | None:
-    """The lighting-, material- and plan-dependent arguments of `view_radiance` (kept by the caller while
-    those stay), or None where the pass does not take them: spans per region (a0, a1) tiling [0, N); light
-    (n², 3) float32 the lighting; kd, ks (R, 3) float32 per region its albedos (kd without the 1 / π); plans
-    per region `runtime._block_plan` of its Phong operator (scale folded in) or None (no specular term);
-    tables `runtime._conjugate_tables` (float32, CPU)."""
-    R = len(spans)
+def view_setup(light: Tensor, kd: Tensor, ks: Tensor, plans: list, tables: tuple) -> tuple | None:
+    """The lighting-, material- and plan-dependent arguments of `view_radiance` / `pose_radiance` (kept by
+    the caller while those stay), or None where the pass does not take them: light (n², 3) float32 the
+    lighting; kd, ks (R, 3) float32 per region its albedos (kd without the 1 / π); plans per region
+    `runtime._block_plan` of its Phong operator (scale folded in) or None (no specular term); tables
+    `runtime._conjugate_tables` (float32, CPU)."""
+    R = len(plans)
     if light.dim() != 2 or light.shape[1] != 3 or tuple(kd.shape) != (R, 3) or tuple(ks.shape) != (R, 3) \
-            or len(plans) != R or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (light, kd, ks)):
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (light, kd, ks)):
         return None
-    a = 0
-    for a0, a1 in spans:
-        if a0 != a or a1 < a0:
-            return None
-        a = a1
     keep, pl = [], []
     for p in plans:
         if p is None:
@@ -1664,26 +1724,42 @@ def view_setup(spans: list, light: Tensor, kd: Tensor, ks: Tensor, plans: list, 
         spans_b, Kv, pcols, psrc = _flat_plan(p)
         keep.append((p, spans_b, Kv, pcols, psrc))
         pl += [len(p[2]), spans_b.data_ptr(), Kv.data_ptr(), pcols.data_ptr(), psrc.data_ptr()]
-    rsp = torch.tensor([x for sp in spans for x in sp], dtype=torch.int64)
     spec = torch.tensor([p is not None for p in plans], dtype=torch.int64)
     co = torch.cat([kd * (1.0 / math.pi), ks], 1).contiguous()       # (as `ZHShadow._diffuse_ranges`' kd, 1 / π)
-    return (a, R, rsp, light.T.contiguous(), co, spec, torch.tensor(pl, dtype=torch.int64), tables, keep)
+    # the plans' addresses as a ctypes array, not a tensor: a method's kept tensors are its state, the same
+    # numbers at any thread count (tests/methods/test_threads.py), and addresses differ per process
+    return (R, light.T.contiguous(), co, spec, (ctypes.c_int64 * len(pl))(*pl), tables, keep)
 
 
-def view_radiance(setup: tuple | None, pos: Tensor, nT: Tensor, w: Tensor, cam: Tensor,
+def _region_rows(spans: list, R: int, N: int, tile: bool) -> Tensor | None:
+    """(2R,) int64 of the regions' column ranges, or None: not R ranges in [0, N) (``tile``: tiling it)."""
+    if len(spans) != R:
+        return None
+    a = 0
+    for a0, a1 in spans:
+        if a1 < a0 or a0 < 0 or a1 > N or (tile and a0 != a):
+            return None
+        a = a1
+    if tile and a != N:
+        return None
+    return torch.tensor([x for sp in spans for x in sp], dtype=torch.int64)
+
+
+def view_radiance(setup: tuple | None, spans: list, pos: Tensor, nT: Tensor, w: Tensor, cam: Tensor,
                   clamp: bool) -> tuple[Tensor, Tensor] | None:
     """((N, 3) radiance, (N,) bool front-facing) of a view frame's vertices by one C pass (above), or None
     where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, order above `CONJ_MAX_ORDER`, not float32
-    CPU arrays of unit column stride, no ``setup``). setup: `view_setup`; pos (N, 3) posed positions, nT
-    (3, N) unit normals contiguous, w (n², N) the cosine-weighted visibility (world SH), cam (3,) the
-    camera origin."""
+    CPU arrays of unit column stride, no ``setup``, regions not ranges tiling [0, N)). setup: `view_setup`;
+    spans per region (a0, a1); pos (N, 3) posed positions, nT (3, N) unit normals contiguous, w (n², N) the
+    cosine-weighted visibility (world SH), cam (3,) the camera origin."""
     lib = _view_lib() if terms_switched_on() else None
     if lib is None or setup is None or w.dim() != 2 or nT.dim() != 2 or pos.dim() != 2:
         return None
-    N, R, rsp, lT, co, spec, plt, tables, _ = setup
-    n2 = int(w.shape[0])
+    R, lT, co, spec, plt, tables, _ = setup
+    n2, N = int(w.shape[0]), int(w.shape[1])
     n = int(round(n2 ** 0.5))
-    if n * n != n2 or n > CONJ_MAX_ORDER or tuple(w.shape) != (n2, N) or tuple(nT.shape) != (3, N) \
+    rsp = _region_rows(spans, R, N, True)
+    if rsp is None or n * n != n2 or n > CONJ_MAX_ORDER or tuple(nT.shape) != (3, N) \
             or tuple(pos.shape) != (N, 3) or int(lT.shape[1]) != n2 or cam.numel() != 3:
         return None
     if any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (pos, nT, w, cam)) or not nT.is_contiguous() \
@@ -1700,13 +1776,51 @@ def view_radiance(setup: tuple | None, pos: Tensor, nT: Tensor, w: Tensor, cam: 
     lst = torch.empty(N, dtype=torch.int64)
     blk = torch.empty(N // 16 + 2 * R + 1, 3, dtype=torch.int64)
     out = torch.empty(N, 3, dtype=torch.float32)
-    lib.zh33v_view(n, N, pos.data_ptr(), norm.data_ptr(), nT.data_ptr(), nT.stride(0), w.data_ptr(), w.stride(0), cam.data_ptr(), R,
-                   rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), plt.data_ptr(), perm.data_ptr(),
-                   absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(), ti.data_ptr(),
-                   tw.data_ptr(), int(bool(clamp)), woT.data_ptr(), front.data_ptr(), lst.data_ptr(), blk.data_ptr(),
-                   out.data_ptr(), max(1, torch.get_num_threads()))
+    lib.zh33v_view(n, N, pos.data_ptr(), norm.data_ptr(), nT.data_ptr(), nT.stride(0), w.data_ptr(), w.stride(0),
+                   cam.data_ptr(), R, rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt),
+                   perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(),
+                   ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), woT.data_ptr(), front.data_ptr(), lst.data_ptr(),
+                   blk.data_ptr(), out.data_ptr(), max(1, torch.get_num_threads()))
     return out, front
 
+
+def pose_radiance(setup: tuple | None, lifted: tuple, spans: list, vz: Tensor, nTc: Tensor, woTc: Tensor,
+                  idx: Tensor, out: Tensor, clamp: bool) -> bool:
+    """A P frame's radiance of its front-facing vertices (`ZHShadow._front_radiance`) by one C pass: per
+    column j of vz (n², Q) — the visibility in the ZYZ normal frames, rows in the lifted plan's order
+    (`runtime.world_visibility`, ``frame="zyz"``) — w = `runtime.cosine_visibility_zyz` (``ordered``), then
+    kd ⊙ (lᵀ w) / π and for a specular region + ks ⊙ (lᵀ t_s), t_s = `specular_conjugate` of w about
+    R = reflect(ωo, n), clamped if asked, written to row idx[j] of out (N, 3); w and t_s never written.
+    spans per region its columns (a0, a1) (empty: not made here, e.g. a plane's); nTc, woTc (3, Q)
+    contiguous; lifted `runtime._block_plan`(("phong", 1.0), n, True, …). False (out untouched) where it
+    does not run (as `view_radiance`)."""
+    lib = _view_lib() if terms_switched_on() else None
+    if lib is None or setup is None or vz.dim() != 2:
+        return False
+    R, lT, co, spec, plt, tables, _ = setup
+    n2, Q = int(vz.shape[0]), int(vz.shape[1])
+    n = int(round(n2 ** 0.5))
+    rsp = _region_rows(spans, R, Q, False)
+    if rsp is None or n * n != n2 or n > CONJ_MAX_ORDER or tuple(nTc.shape) != (3, Q) \
+            or tuple(woTc.shape) != (3, Q) or tuple(idx.shape) != (Q,) or int(lT.shape[1]) != n2 \
+            or out.dim() != 2 or out.shape[1] != 3:
+        return False
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (vz, nTc, woTc, out)) \
+            or idx.dtype != torch.int64 or not (nTc.is_contiguous() and woTc.is_contiguous() and idx.is_contiguous()
+                                                and out.is_contiguous()) or vz.stride(1) != 1:
+        return False
+    if Q and (int(idx.min()) < 0 or int(idx.max()) >= out.shape[0]):
+        return False
+    perm, absm, sgn, xi, xw, ti, tw = tables
+    lspans, lKv, _, lsrc = _flat_plan(lifted)
+    lp = torch.tensor([len(lifted[2]), lspans.data_ptr(), lKv.data_ptr(), lsrc.data_ptr()], dtype=torch.int64)
+    blk = torch.empty(Q // 16 + 2 * R + 1, 3, dtype=torch.int64)
+    lib.zh33v_pose(n, Q, vz.data_ptr(), vz.stride(0), nTc.data_ptr(), woTc.data_ptr(), idx.data_ptr(), R,
+                   rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt), lp.data_ptr(),
+                   perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(),
+                   ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), blk.data_ptr(), out.data_ptr(),
+                   max(1, torch.get_num_threads()))
+    return True
 
 # `gouraud.resolve` for the vertex-shaded frames (zh33v): the same C loop (the same sums in the same order:
 # the same bits), its range check made in the loop on the entries each sample reads — a hit sample's face

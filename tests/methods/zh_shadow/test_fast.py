@@ -2004,14 +2004,14 @@ def test_view_radiance_native_equals_torch(order, monkeypatch):
     mats = [(kd[r], ks[r] if alphas[r] is not None else torch.zeros(3), alphas[r]) for r in range(4)]
     plans = [None if a is None else rt._block_plan(("phong", a), order, False, torch.float32, "cpu",
                                                    (a + 1.0) / (2.0 * math.pi)) for a in alphas]
-    setup = zn.view_setup(spans, light, torch.stack(kd), torch.stack([k for _, k, _ in mats]), plans,
+    setup = zn.view_setup(light, torch.stack(kd), torch.stack([k for _, k, _ in mats]), plans,
                           rt._conjugate_tables(order, torch.float32, "cpu"))
     for clamp in (False, True):
         want, wfront = _torch_view_radiance(pos, nT, w, cam, vreg, mats, light, clamp)
         got = {}
         for threads in (1, 2):
             with torch_threads_(threads):
-                got[threads] = zn.view_radiance(setup, pos, nT, w, cam, clamp)
+                got[threads] = zn.view_radiance(setup, spans, pos, nT, w, cam, clamp)
         assert got[1] is not None
         rad, front = got[1]
         assert torch.equal(rad, got[2][0]) and torch.equal(front, got[2][1])   # the same bits at any thread count
@@ -2101,3 +2101,49 @@ def test_resolve_native_equals_gouraud_resolve():
         Fb[int(face[int(hit.nonzero()[3])]), 1] = N                       # a read corner out of range
         with pytest.raises(ValueError):
             zn.resolve(values, Fb, face, bary, hit, H, W, 2)
+
+
+@pytest.mark.parametrize("planes", [True, False])
+def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
+    """A P frame's front-facing radiance (`ZHShadow._front_radiance`) by one C pass (`native.pose_radiance`:
+    w from the ZYZ-frame visibility, the diffuse term, t_s and the specular term per vertex, none of them
+    written) = the torch path (``view_pass`` off: `cosine_visibility_zyz`, `specular_parts`,
+    `_radiance_ranges`) to float32 round-off, with the same counts, the same bits at 1 and 2 threads, and =
+    the reference; with the ground by its plane operator (beside the pass) and without (a diffuse region in
+    the pass)."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    calls: list[bool] = []
+    pr = zn.pose_radiance
+
+    def counted(*a, **kw):
+        out = pr(*a, **kw)
+        calls.append(out)
+        return out
+
+    monkeypatch.setattr(zn, "pose_radiance", counted)
+    fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+    slow.view_pass = slow.own_resolve = False
+    for x in (fast, fast2, slow):
+        x.plane_operators = planes
+    for i, f in enumerate(make_sequence(m.scene, "P", 3, seed=9)):
+        gb = make_gbuffer(m.scene, f, 2)
+        c0 = len(calls)
+        a = fast.render(f, gb)
+        if i > 0:
+            assert calls[c0:] == [True], i
+        with torch_threads_(2):
+            a2 = fast2.render(f, gb)
+        b = slow.render(f, gb)
+        assert torch.equal(a, a2), i
+        assert (a - b).abs().max() <= 2e-6 * b.abs().max(), i
+        assert fast.frame_cost("P", gb.num_samples) == slow.frame_cost("P", gb.num_samples), i
+        want = fast._render_reference(f, gb)
+        assert (a - want).abs().max() <= RENDER_TOL, i
