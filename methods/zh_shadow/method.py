@@ -330,7 +330,7 @@ class ZHShadow(Method):
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
         self._env_bytes = 0                             # bytes of the last projected env map
         self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
-        #                                                 frame, float64, or None until a rotation needs it)
+        #                 polar frame (``rotated_lighting``) or own frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w = π t_d) per pose: vertex shading
         self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
@@ -418,6 +418,9 @@ class ZHShadow(Method):
     # Vertex-shaded frames resolve a new G-buffer by zh_shadow's C loop with the range check in it
     # (`native.resolve`: `gouraud.resolve`'s sums, bit for bit); False: `gouraud.resolve` (the tests' oracle)
     own_resolve = True
+    # A rotated map's lighting: its kept polar-frame projection rotated by to_world Qᵀ (`_lighting`);
+    # False: its own-frame projection, made on the first rotation (the tests' oracle)
+    rotated_lighting = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -434,8 +437,10 @@ class ZHShadow(Method):
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
         world space (`native.project_latlong_polar`: one C pass, `sh.project_latlong_polar` its
         fallback and oracle; then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
-        the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
-        (projected once, on the first such frame). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
+        the same map (L/VL/VBL frames rotate it) rotates that kept polar-frame projection by the new
+        ``to_world`` Qᵀ (``rotated_lighting``; off: its projection in the map's own frame, projected
+        once in float64 on the first such frame — 5-9 ms inside the first timed VL / VBL / L frame of
+        a sequence, bench creature, 1 thread). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
         `project_latlong`."""
         data = torch.as_tensor(env.data)
@@ -447,8 +452,14 @@ class ZHShadow(Method):
                 self._env_local = (dkey, None)
                 self._env_bytes = int(data.numel() * data.element_size())
                 # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
-                # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
-                world = rt.rotate_lighting(zn.project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
+                # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`); the polar-frame
+                # projection kept (`rotated_lighting`)
+                polar = zn.project_latlong_polar(data, self.config["order"])
+                if self.rotated_lighting:
+                    self._env_local = (dkey, polar)
+                world = rt.rotate_lighting(polar, R @ _LATLONG_QT)
+            elif self.rotated_lighting and self._env_local[1] is not None:
+                world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))

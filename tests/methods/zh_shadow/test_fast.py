@@ -68,18 +68,24 @@ def _check_sequence(m, kind: str, n_frames: int = 2, seed: int = 3):
 @pytest.mark.parametrize("order", [4, 8])
 def test_lighting_equals_project_latlong(zh_scene, order):
     """`ZHShadow._lighting` (a new map: `project_latlong_polar` then one rotation by R Qᵀ; the same
-    map rotated: its own-frame projection rotated by R) = `sh.project_latlong(env)` (the oracle
+    map rotated: that kept projection rotated by the new R Qᵀ, no projection — or with ``rotated_lighting``
+    off its own-frame projection, made once, rotated by R) = `sh.project_latlong(env)` (the oracle
     `_render_reference` uses) to float32 round-off, on E then L frames of the library scene."""
     from methods.core.sh import project_latlong
     from scenes.sequences import make_sequence
 
-    m, scene = ZHShadow(order=order), zh_scene("creature")    # `_lighting` needs no precompute
-    for kind in ("E", "L", "E"):
-        for fr in make_sequence(scene, kind, 3, seed=5):
-            got = m._lighting(fr.envmap)
-            want = project_latlong(fr.envmap, order).float()
-            assert got.shape == want.shape == (order * order, 3)
-            assert (got - want).abs().max() <= 1e-6 * want.abs().max(), kind
+    scene = zh_scene("creature")
+    for rotated in (True, False):   # a rotated map: its kept polar-frame projection rotated by R Qᵀ, or the oracle's
+        m = ZHShadow(order=order)                                 # `_lighting` needs no precompute
+        m.rotated_lighting = rotated
+        for kind in ("E", "L", "E"):
+            for fr in make_sequence(scene, kind, 3, seed=5):
+                with mock.patch("methods.zh_shadow.method.project_latlong", wraps=project_latlong) as pl:
+                    got = m._lighting(fr.envmap)
+                assert pl.called == (not rotated and kind == "L" and fr.index == 1), (rotated, kind, fr.index)
+                want = project_latlong(fr.envmap, order).float()
+                assert got.shape == want.shape == (order * order, 3)
+                assert (got - want).abs().max() <= 1e-6 * want.abs().max(), (kind, rotated)
 
 
 @pytest.mark.parametrize("order", [2, 4, 5, 8])
