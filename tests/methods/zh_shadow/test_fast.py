@@ -1127,6 +1127,8 @@ def test_pose_frame_plane_operator_equals_per_vertex_w(zh_scene, monkeypatch):
     m.precompute(zh_scene("creature"))
     fast, slow = m.with_render_config(), m.with_render_config()
     slow.plane_operators = False
+    fast.view_pass = slow.view_pass = False   # (w by `cosine_visibility_zyz`: the torch path; the C pass's planes:
+    #                                           `test_pose_pass_equals_torch_path`)
     used, cv = [], rt.cosine_visibility_zyz
 
     def counted(vzT, nT, **kw):
@@ -2124,6 +2126,11 @@ def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
 
     if core_native.compiler() is None:   # pragma: no cover - no C compiler here
         pytest.skip("no C compiler")
+    if planes:   # (the test-size ground's front vertices as a plane: `test_pose_frame_plane_operator_equals_per_vertex_w`)
+        monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
+    ops = []
+    pco = rt.plane_cosine_operator
+    monkeypatch.setattr(rt, "plane_cosine_operator", lambda *a: ops.append(a) or pco(*a))
     m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(zh_scene("creature"))
     calls: list[bool] = []
@@ -2153,3 +2160,4 @@ def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
         assert fast.frame_cost("P", gb.num_samples) == slow.frame_cost("P", gb.num_samples), i
         want = fast._render_reference(f, gb)
         assert (a - want).abs().max() <= RENDER_TOL, i
+    assert bool(ops) == planes   # (the plane operator beside the pass, or none)
