@@ -1593,11 +1593,11 @@ void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const
     for (int64_t r = 0; r < n2; ++r) nsg[r] = -sgn[r];
     int64_t nblk = 0;
     const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
-    #pragma omp parallel num_threads(nt)
+    /* serial (cheap: ~13 K vertices' tests and one scan), so that the team meets once, at the end of the
+       blocks (a barrier per phase cost a time slice each on a loaded host) */
     {
         /* `_view_directions` (norm: torch's square root of `zh33v_sq`'s sums) and `runtime.dot_T`
            (fma(n2, w2, fma(n1, w1, n0 w0)) > 0) */
-        #pragma omp for schedule(static)
         for (int64_t g = 0; g < (N + L - 1) / L; ++g) {
             const int64_t q0 = g * L;
             if (q0 + L <= N) {   /* 16 vertices as vectors: the same operations lane by lane */
@@ -1635,7 +1635,6 @@ void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const
                 if (!(d > 0.0f)) { out[3 * q] = 0.0f; out[3 * q + 1] = 0.0f; out[3 * q + 2] = 0.0f; }
             }
         }
-        #pragma omp single
         {   /* the front-facing vertices per region, in blocks of at most L (region, first, count) */
             int64_t m = 0;
             for (int64_t r = 0; r < nreg; ++r) {
@@ -1648,7 +1647,8 @@ void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const
                 }
             }
         }
-        #pragma omp for schedule(static, 1)
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static, 1)
         for (int64_t b = 0; b < nblk; ++b) {
             const int64_t r = blk[3 * b], f = blk[3 * b + 1], m = blk[3 * b + 2];
             int64_t c[L];
@@ -1658,7 +1658,6 @@ void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const
                   nsg, k, xi, xw, ti, tw, p[0], (const int64_t *)(intptr_t)p[1], (const float *)(intptr_t)p[2],
                   (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], NULL, clamp, out);
         }
-    }
 }
 
 /* A P frame's front-facing (and referenced) vertices, compacted: Q columns of vz (n2, Q, row stride ldz:
