@@ -330,7 +330,7 @@ class ZHShadow(Method):
         self._light: tuple[Any, Tensor] | None = None  # (env key, (n², 3) world SH)
         self._env_bytes = 0                             # bytes of the last projected env map
         self._env_local: tuple[Any, Tensor | None] | None = None  # (env data key, (n², 3) SH in the map's
-        #                                                 frame, float64, or None until a rotation needs it)
+        #                 polar frame (``rotated_lighting``) or own frame, float64, or None until a rotation needs it)
         self._posed: tuple[Any, Any, Tensor] | None = None  # (pose key, geometry, (N, n²) world SH visibility)
         self._vertex_diffuse: tuple | None = None   # (v, n, v rows, w = π t_d) per pose: vertex shading
         self._vertex_transfer: tuple | None = None  # ((camera, exponents), v, t_s, front, counts): vertex shading
@@ -353,6 +353,7 @@ class ZHShadow(Method):
         #                                 vertex shading, `gouraud.resolve_matrix` of the kept G-buffer
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
+        self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -361,7 +362,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
-        self._resolve_packed = self._resolve_compact = None
+        self._resolve_packed = self._resolve_compact = self._view_args = None
         cfg = self.config
         t0 = time.perf_counter()
         if scene.skeleton is None:   # static scene: one "pose", the model is the bias row alone
@@ -412,6 +413,15 @@ class ZHShadow(Method):
     # Lighting-only vertex-shaded frames resolve by the kept matrix packed for a C loop (`native.csr_pack`,
     # `native.csr_product`: torch's CSR product's bits); False: torch's CSR product (the tests' oracle)
     native_resolve = True
+    # View frames of a kept pose (V, VB, VL, VBL; cosine) make the per-vertex radiance in one C pass
+    # (`_view_radiance`, `native.view_radiance`); False: the torch path (the tests' oracle)
+    view_pass = True
+    # Vertex-shaded frames resolve a new G-buffer by zh_shadow's C loop with the range check in it
+    # (`native.resolve`: `gouraud.resolve`'s sums, bit for bit); False: `gouraud.resolve` (the tests' oracle)
+    own_resolve = True
+    # A rotated map's lighting: its kept polar-frame projection rotated by to_world Qᵀ (`_lighting`);
+    # False: its own-frame projection, made on the first rotation (the tests' oracle)
+    rotated_lighting = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -428,8 +438,10 @@ class ZHShadow(Method):
         """(n², 3) float32 world-space SH of ``env`` (cached). A new map is projected straight to
         world space (`native.project_latlong_polar`: one C pass, `sh.project_latlong_polar` its
         fallback and oracle; then one rotation by ``to_world`` Qᵀ); a new ``to_world`` of
-        the same map (L/VL/VBL frames rotate it) rotates its projection in the map's own frame
-        (projected once, on the first such frame). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
+        the same map (L/VL/VBL frames rotate it) rotates that kept polar-frame projection by the new
+        ``to_world`` Qᵀ (``rotated_lighting``; off: its projection in the map's own frame, projected
+        once in float64 on the first such frame — 5-9 ms inside the first timed VL / VBL / L frame of
+        a sequence, bench creature, 1 thread). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
         `project_latlong`."""
         data = torch.as_tensor(env.data)
@@ -441,8 +453,14 @@ class ZHShadow(Method):
                 self._env_local = (dkey, None)
                 self._env_bytes = int(data.numel() * data.element_size())
                 # `project_latlong(env)`'s quadrature: the polar-frame integrals (one GEMM), then
-                # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`)
-                world = rt.rotate_lighting(zn.project_latlong_polar(data, self.config["order"]), R @ _LATLONG_QT)
+                # one rotation by R Qᵀ (`test_lighting_equals_project_latlong`); the polar-frame
+                # projection kept (`rotated_lighting`)
+                polar = zn.project_latlong_polar(data, self.config["order"])
+                if self.rotated_lighting:
+                    self._env_local = (dkey, polar)
+                world = rt.rotate_lighting(polar, R @ _LATLONG_QT)
+            elif self.rotated_lighting and self._env_local[1] is not None:
+                world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT)
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
@@ -1075,7 +1093,14 @@ class ZHShadow(Method):
                 # (cosine: v0 is in the ZYZ normal frames, `_pose_state`; half of the conjugation)
                 w = rt.cosine_visibility_zyz(vT, nT, ordered=True) if cosine else rt.cosine_visibility(vT, nT)
                 self._vertex_diffuse = vd = (v0, nT, vT, w)
-            _, nT, vT, w = vd                             # t_d = w / π: the 1/π goes on the lighting (3, n²)
+            # a view frame of a kept pose (V, VB, VL, VBL): the radiance by one C pass (`_view_radiance`)
+            fused = self._view_radiance(frame, geom, light.to(dev), mats, alphas, spans, vd[3], vd[1]) \
+                if cosine and "view" in frame.changed and "pose" not in frame.changed else None
+            if fused is not None:
+                radT, counts = fused
+                self._vertex_transfer = self._vertex_compact = None   # (t_s not made: a later frame makes it)
+        if radT is None:
+            _, nT, vT, w = self._vertex_diffuse           # t_d = w / π: the 1/π goes on the lighting (3, n²)
             #                                               instead of a pass over w (0.28 ms of a P frame)
             vt = self._vertex_transfer
             if vt is None or vt[0] != key or vt[1] is not v0:
@@ -1179,9 +1204,48 @@ class ZHShadow(Method):
             radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
                                device=dev).index_copy_(0, compact[0], compact[1])
         self._resolve_matrix = (gkey, geom, None)
-        # interpolated per sample and box-filtered in one compiled pass (the shared Gouraud resolve)
-        return gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit,
-                               gbuffer.height, gbuffer.width, gbuffer.spp_side)
+        # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
+        # else in the shared Gouraud resolve's pass (its oracle)
+        img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                         gbuffer.width, gbuffer.spp_side) if self.own_resolve else None
+        return img if img is not None else gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary,
+                                                           gbuffer.hit, gbuffer.height, gbuffer.width,
+                                                           gbuffer.spp_side)
+
+    def _view_radiance(self, frame: Frame, geom, light: Tensor, mats: list, alphas: list, spans: list | None,
+                       w: Tensor, nT: Tensor) -> tuple[Tensor, "_LazyCounts"] | None:
+        """A view frame's (N, 3) radiance and counts (cosine, a kept pose: w of every vertex made) by one
+        C pass (`native.view_radiance`: ωo, the front test, kd ⊙ (lᵀ w) / π and ks ⊙ (lᵀ t_s) of the
+        front-facing vertices with t_s made in registers, 0 elsewhere, the clamp), or None where it does
+        not run (``view_pass`` off, no compiler, regions not ranges, not the CPU): then the torch path
+        below it in `_render_vertex` (its oracle). Equal to it to float32 round-off; the same front-
+        facing set (the test computed as torch computes it), so the same counts. t_s is not kept: a
+        following lighting-only frame of this camera makes it (`_vertex_transfer`)."""
+        if not self.view_pass or spans is None or w.device.type != "cpu":
+            return None
+        dev = w.device
+        cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=dev)
+        out = zn.view_radiance(self._pass_setup(light, mats, alphas, w.dtype), spans,
+                               geom.V.to(dev).float().contiguous(), nT, w, cam, bool(self.config["clamp"]))
+        if out is None:
+            return None
+        radT, front = out
+        vreg = geom.vertex_region.to(dev)
+        return radT, _front_counts(front, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
+
+    def _pass_setup(self, light: Tensor, mats: list, alphas: list, dtype) -> tuple | None:
+        """`native.view_setup` of the lighting, the albedos and the regions' plans (the C passes of
+        `_view_radiance` and `_front_radiance`), kept while lighting and materials stay."""
+        key = (light, tuple((tuple(kd.tolist()), tuple(ks.tolist()), a) for (kd, ks, _), a in zip(mats, alphas)))
+        va = self._view_args
+        if va is None or va[0][0] is not light or va[0][1:] != key[1:]:
+            n, dev = self.config["order"], light.device
+            plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, dtype, dev,
+                                                           (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
+            kd = torch.tensor([k[0] for k in key[1]], dtype=light.dtype)
+            ks = torch.tensor([k[1] for k in key[1]], dtype=light.dtype)
+            self._view_args = va = (key, zn.view_setup(light, kd, ks, plans, rt._conjugate_tables(n, dtype, dev)))
+        return va[1]
 
     def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,
                         alphas: list, spans: list, vreg: Tensor, ref: Tensor | None = None
@@ -1226,7 +1290,14 @@ class ZHShadow(Method):
         lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
         planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
         radT = torch.zeros(N, 3, dtype=vTc.dtype, device=dev)
-        if hi > lo:
+        fused = hi > lo and self.view_pass and dev.type == "cpu" and zn.pose_radiance(
+            self._pass_setup(light, mats, alphas, vTc.dtype),
+            rt._block_plan(("phong", 1.0), self.config["order"], True, vTc.dtype, dev),
+            [(0, 0) if r in planes else sp for r, sp in enumerate(cspans)], vTc, nTc.contiguous(), woTc.contiguous(),
+            idx, radT, bool(self.config["clamp"]))
+        # (fused: w, t_s and the radiance of the columns lo..hi by one C pass, `native.pose_radiance`, the
+        # rows written into radT — clamped there; else the passes below, its oracle)
+        if hi > lo and not fused:
             wc = rt.cosine_visibility_zyz(vTc[:, lo:hi] if planes else vTc, nTc[:, lo:hi] if planes else nTc,
                                           ordered=True)
             if planes:
@@ -1238,7 +1309,7 @@ class ZHShadow(Method):
         # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
         # caller's threads costs the next parallel work, `runtime.world_visibility`)
         with pc.torch_threads(1):
-            if hi > lo:
+            if hi > lo and not fused:
                 sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
                 radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
             for r, n0 in planes.items():

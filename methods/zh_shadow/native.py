@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import math
 import os
 
 import torch
@@ -1865,3 +1866,532 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     if int(stat[0]):
         return None
     return out, int(stat[1])
+
+
+# -- zh33v ------------------------------------------------------------------------------------------
+# A view frame's per-vertex radiance in one C pass (`view_radiance`, `ZHShadow._render_vertex`): the
+# order-8 cosine V / VB / VL / VBL frames ran `_view_directions`, the front test, `runtime.specular_parts`
+# (`specular_conjugate` per specular region, its index and plan set-up), the diffuse product and the
+# specular products, the front mask and the clamp as ~25 dispatches and Python steps around the C pass
+# (~1.5 ms of a ~3.5 ms frame at 1 thread). Here: per vertex ωo = (cam − x) / |cam − x| and n·ωo as
+# torch computes them (`_view_directions`, `runtime.dot_T`: the products rounded, the dot's two
+# multiply-adds fused — the same bits, so the same front-facing set), then for the front-facing vertices
+# of each region kd ⊙ (lᵀ w) / π, and of a specular region + ks ⊙ (lᵀ t_s) with t_s the conjugation of
+# `specular_conjugate` (R, the angles, both halves, the blocks; the same code) — t_s never written —,
+# clamped at 0 if asked; the other vertices 0. The sums over the n² rows in row order with multiply-
+# adds fused: float32 round-off against the torch path's products (tests). Each vertex is one lane of
+# one thread's block: the same bits at any thread count.
+_VIEW_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+#include <math.h>
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
+
+#define L 16
+#define MAXN 8
+#define MAXN2 (MAXN * MAXN)
+typedef float vf __attribute__((vector_size(4 * L)));
+
+static inline vf vsqrt(vf x) { vf r; for (int l = 0; l < L; ++l) r[l] = sqrtf(x[l]); return r; }
+/* a value the compiler may not fuse into a later add (torch rounds the product first) */
+static inline float rounded(float x) { __asm__("" : "+x"(x)); return x; }
+static inline vf vrounded(vf x) { __asm__("" : "+v"(x)); return x; }
+
+/* a[r] = the columns c[0..L) of the n2 rows (stride ldw) of w: one load where they are consecutive,
+   two and a lane permute where they lie within 32 columns (the front-facing vertices of a mesh
+   region: a median span of 27 on the bench creature), else a gather */
+static inline void gather_cols(int64_t n2, const float *w, int64_t ldw, int64_t N, const int64_t *c, vf *a) {
+    const int64_t c0 = c[0], span = c[L - 1] - c0;
+    if (span == L - 1) {
+        for (int64_t r = 0; r < n2; ++r) memcpy(&a[r], w + r * ldw + c0, sizeof(vf));
+        return;
+    }
+#ifdef __AVX512F__
+    if (span < 2 * L && c0 + 2 * L <= N) {
+        int32_t rel[L];
+        for (int l = 0; l < L; ++l) rel[l] = (int32_t)(c[l] - c0);
+        const __m512i ix = _mm512_loadu_si512(rel);
+        for (int64_t r = 0; r < n2; ++r) {
+            const float *row = w + r * ldw + c0;
+            a[r] = (vf)_mm512_permutex2var_ps(_mm512_loadu_ps(row), ix, _mm512_loadu_ps(row + L));
+        }
+        return;
+    }
+#endif
+    for (int64_t r = 0; r < n2; ++r) {
+        const float *row = w + r * ldw;
+        for (int64_t l = 0; l < L; ++l) a[r][l] = row[c[l]];
+    }
+}
+
+static inline void rz(int64_t n2, const vf *a, const vf *C, const vf *S, const int64_t *perm, const int64_t *absm,
+                      const float *sg, vf *o) {
+    for (int64_t r = 0; r < n2; ++r)
+        o[r] = a[r] * C[absm[r]] + a[perm[r]] * (S[absm[r]] * sg[r]);
+}
+
+static inline void gx(int64_t n2, int64_t k, const vf *t, const int64_t *idx, const float *w, vf *o) {
+    for (int64_t r = 0; r < n2; ++r) {
+        vf s = t[idx[r * k]] * w[r * k];
+        for (int64_t j = 1; j < k; ++j) s = s + t[idx[r * k + j]] * w[r * k + j];
+        o[r] = s;
+    }
+}
+
+static inline void angles(int64_t n, vf c, vf s, vf *C, vf *S) {
+    const vf one = (vf){0} + 1.0f, zero = (vf){0};
+    C[0] = one; S[0] = zero;
+    if (n > 1) { C[1] = c; S[1] = s; }
+    for (int64_t m = 2; m < n; ++m) {
+        C[m] = C[m - 1] * c - S[m - 1] * s;
+        S[m] = S[m - 1] * c + C[m - 1] * s;
+    }
+}
+
+/* One block: the m <= L vertices c[0..m) (spare lanes repeat the last) of region r; spec: with the
+   conjugation by the region's plan (nb blocks spans / Kv, cols, srow). out rows (N, 3). */
+/* The polar angles' rows of the unit vectors (R0, R1, R2) (`_polar`: phi = 0 on the pole). */
+static inline void polar_rows(int64_t n, vf R0, vf R1, vf R2, vf *Cp, vf *Sp, vf *Ct, vf *St) {
+    vf z, cp, sp;
+    const vf rho = vsqrt(R0 * R0 + R1 * R1);
+    for (int l = 0; l < L; ++l) {
+        z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
+        const int ok = rho[l] > 1e-20f;
+        const float safe = ok ? rho[l] : 1.0f;
+        cp[l] = ok ? R0[l] / safe : 1.0f;
+        sp[l] = ok ? R1[l] / safe : 0.0f;
+    }
+    angles(n, cp, sp, Cp, Sp);
+    angles(n, z, rho, Ct, St);
+}
+
+/* lp: a lifted plan (nb, spans, Kv, srow; its columns in place) when w's columns hold the visibility in
+   the ZYZ normal frames (`runtime.cosine_visibility_zyz`, ``ordered``: a P frame's), then w itself is
+   made first (the blocks of X M^1 and the second half about n, as `specular_conjugate`'s lifted pass);
+   o: the out rows of the lanes (NULL: c). */
+static void block(int64_t n, int spec, const int64_t *c, const int64_t *o, int64_t m, const float *w,
+                  int64_t ldw, int64_t Nw, const float *nT, const float *woT, int64_t ldn, const float *lT,
+                  const float *co, const int64_t *perm, const int64_t *absm, const float *sgn, const float *nsg,
+                  int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
+                  int64_t nb, const int64_t *spans, const float *Kv, const int64_t *cols, const int64_t *srow,
+                  const int64_t *lp, int64_t clamp, float *out) {
+    const int64_t n2 = n * n;
+    vf a[MAXN2], t[MAXN2], u[MAXN2], Cp[MAXN], Sp[MAXN], Ct[MAXN], St[MAXN];
+    gather_cols(n2, w, ldw, Nw, c, a);
+    if (lp) {   /* w = M(R_n) M^1 of the lifted columns: the blocks in place, then the second half */
+        vf n0, n1, n2v;
+        for (int64_t l = 0; l < L; ++l) { n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]]; }
+        polar_rows(n, n0, n1, n2v, Cp, Sp, Ct, St);
+        const int64_t lnb = lp[0], *lsp = (const int64_t *)(intptr_t)lp[1], *lsr = (const int64_t *)(intptr_t)lp[3];
+        const float *K = (const float *)(intptr_t)lp[2];
+        for (int64_t b = 0; b < lnb; ++b) {
+            const int64_t r0 = lsp[4 * b], r1 = lsp[4 * b + 1], c0 = lsp[4 * b + 2], c1 = lsp[4 * b + 3];
+            const int64_t wd = c1 - c0;
+            for (int64_t i = r0; i < r1; ++i, K += wd) {
+                vf s = a[c0] * K[0];
+                for (int64_t j = 1; j < wd; ++j) s = s + a[c0 + j] * K[j];
+                u[i] = s;
+            }
+        }
+        for (int64_t r = 0; r < n2; ++r) t[r] = u[lsr[r]];
+        rz(n2, t, Ct, St, perm, absm, sgn, u);
+        gx(n2, k, u, ti, tw, t);
+        rz(n2, t, Cp, Sp, perm, absm, sgn, a);
+    }
+    /* (l . w) kd / pi: co[0..3) = kd / pi (the order of `ZHShadow._diffuse_ranges`: the sum, then the albedo) */
+    vf d0 = a[0] * lT[0], d1 = a[0] * lT[n2], d2 = a[0] * lT[2 * n2];
+    for (int64_t r = 1; r < n2; ++r) {
+        d0 = d0 + a[r] * lT[r]; d1 = d1 + a[r] * lT[n2 + r]; d2 = d2 + a[r] * lT[2 * n2 + r];
+    }
+    d0 = d0 * co[0]; d1 = d1 * co[1]; d2 = d2 * co[2];
+    if (spec) {
+        vf n0, n1, n2v, w0, w1, w2, R0, R1, R2, nr;
+        for (int64_t l = 0; l < L; ++l) {
+            n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]];
+            w0[l] = woT[c[l]]; w1[l] = woT[ldn + c[l]]; w2[l] = woT[2 * ldn + c[l]];
+        }
+        const vf dd = ((w0 * n0 + w1 * n1) + w2 * n2v) * 2.0f;
+        R0 = -w0 + dd * n0; R1 = -w1 + dd * n1; R2 = -w2 + dd * n2v;
+        const vf nn = vsqrt((R0 * R0 + R1 * R1) + R2 * R2);
+        for (int l = 0; l < L; ++l) nr[l] = nn[l] > 1e-12f ? nn[l] : 1e-12f;
+        R0 = R0 / nr; R1 = R1 / nr; R2 = R2 / nr;
+        polar_rows(n, R0, R1, R2, Cp, Sp, Ct, St);
+        rz(n2, a, Cp, Sp, perm, absm, nsg, t);
+        gx(n2, k, t, xi, xw, u);
+        rz(n2, u, Ct, St, perm, absm, nsg, t);
+        const float *K = Kv;
+        for (int64_t b = 0; b < nb; ++b) {
+            const int64_t r0 = spans[4 * b], r1 = spans[4 * b + 1], c0 = spans[4 * b + 2], c1 = spans[4 * b + 3];
+            const int64_t wd = c1 - c0;
+            for (int64_t i = r0; i < r1; ++i, K += wd) {
+                vf s = t[cols[c0]] * K[0];
+                for (int64_t j = 1; j < wd; ++j) s = s + t[cols[c0 + j]] * K[j];
+                u[i] = s;
+            }
+        }
+        for (int64_t r = 0; r < n2; ++r) a[r] = u[srow[r]];
+        rz(n2, a, Ct, St, perm, absm, sgn, t);
+        gx(n2, k, t, ti, tw, u);
+        rz(n2, u, Cp, Sp, perm, absm, sgn, t);
+        /* + (l . t_s) ks: co[3..6) = ks */
+        vf s0 = t[0] * lT[0], s1 = t[0] * lT[n2], s2 = t[0] * lT[2 * n2];
+        for (int64_t r = 1; r < n2; ++r) {
+            s0 = s0 + t[r] * lT[r]; s1 = s1 + t[r] * lT[n2 + r]; s2 = s2 + t[r] * lT[2 * n2 + r];
+        }
+        d0 = d0 + s0 * co[3]; d1 = d1 + s1 * co[4]; d2 = d2 + s2 * co[5];
+    }
+    for (int64_t l = 0; l < m; ++l) {
+        float x0 = d0[l], x1 = d1[l], x2 = d2[l];
+        if (clamp) { x0 = x0 > 0.0f ? x0 : 0.0f; x1 = x1 > 0.0f ? x1 : 0.0f; x2 = x2 > 0.0f ? x2 : 0.0f; }
+        float *y = out + 3 * (o ? o[c[l]] : c[l]);
+        y[0] = x0; y[1] = x1; y[2] = x2;
+    }
+}
+
+/* s[q] = |cam - pos[q]|^2 as `_view_directions` sums it: ((x0 x0 + x1 x1) + x2 x2), products rounded */
+void zh33v_sq(int64_t N, const float *pos, const float *cam, float *s) {
+    const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
+    for (int64_t q = 0; q < N; ++q) {
+        const float x0 = c0 - pos[3 * q], x1 = c1 - pos[3 * q + 1], x2 = c2 - pos[3 * q + 2];
+        s[q] = (rounded(x0 * x0) + rounded(x1 * x1)) + rounded(x2 * x2);
+    }
+}
+
+/* Vertices [0, N): pos (N, 3) rows, norm (N,) |cam - pos| (torch's square root: not IEEE's here), nT (3, N) rows of stride ldn, w (n2, N) rows of stride ldw; nreg
+   regions, region r the vertices [rsp[2r], rsp[2r+1]), lT (3, n2) the lighting, co (nreg, 6) kd / pi and ks,
+   spec[r] 1 for a specular term by the plan at the addresses pl[5r..5r+5) (nb, spans, Kv, cols, srow).
+   Out: woT (3, N) scratch, front (N,) the test n . wo > 0, list (N,) and blk (N / L + 2 nreg, 3)
+   scratch, out (N, 3) the radiance (0 off the front). nt threads. */
+void zh33v_view(int64_t n, int64_t N, const float *pos, const float *norm, const float *nT, int64_t ldn,
+                const float *w, int64_t ldw,
+                const float *cam, int64_t nreg, const int64_t *rsp, const float *lT, const float *co,
+                const int64_t *spec, const int64_t *pl,
+                const int64_t *perm, const int64_t *absm, const float *sgn,
+                int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
+                int64_t clamp, float *woT, uint8_t *front, int64_t *list, int64_t *blk, float *out, int64_t nt) {
+    const int64_t n2 = n * n;
+    float nsg[MAXN2];
+    for (int64_t r = 0; r < n2; ++r) nsg[r] = -sgn[r];
+    int64_t nblk = 0;
+    const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
+    /* serial (cheap: ~13 K vertices' tests and one scan), so that the team meets once, at the end of the
+       blocks (a barrier per phase cost a time slice each on a loaded host) */
+    {
+        /* `_view_directions` (norm: torch's square root of `zh33v_sq`'s sums) and `runtime.dot_T`
+           (fma(n2, w2, fma(n1, w1, n0 w0)) > 0) */
+        for (int64_t g = 0; g < (N + L - 1) / L; ++g) {
+            const int64_t q0 = g * L;
+            if (q0 + L <= N) {   /* 16 vertices as vectors: the same operations lane by lane */
+                vf x0, x1, x2, m0, m1, m2, d;
+                for (int l = 0; l < L; ++l) {
+                    x0[l] = pos[3 * (q0 + l)]; x1[l] = pos[3 * (q0 + l) + 1]; x2[l] = pos[3 * (q0 + l) + 2];
+                }
+                x0 = c0 - x0; x1 = c1 - x1; x2 = c2 - x2;
+                vf nn;
+                memcpy(&nn, norm + q0, sizeof(vf));
+                for (int l = 0; l < L; ++l) nn[l] = nn[l] < 1e-12f ? 1e-12f : nn[l];
+                x0 = x0 / nn; x1 = x1 / nn; x2 = x2 / nn;
+                memcpy(woT + q0, &x0, sizeof(vf)); memcpy(woT + ldn + q0, &x1, sizeof(vf));
+                memcpy(woT + 2 * ldn + q0, &x2, sizeof(vf));
+                memcpy(&m0, nT + q0, sizeof(vf)); memcpy(&m1, nT + ldn + q0, sizeof(vf));
+                memcpy(&m2, nT + 2 * ldn + q0, sizeof(vf));
+                d = vrounded(m0 * x0);
+                for (int l = 0; l < L; ++l) d[l] = fmaf(m1[l], x1[l], d[l]);
+                for (int l = 0; l < L; ++l) d[l] = fmaf(m2[l], x2[l], d[l]);
+                for (int l = 0; l < L; ++l) {
+                    const int64_t q = q0 + l;
+                    front[q] = d[l] > 0.0f;
+                    if (!(d[l] > 0.0f)) { out[3 * q] = 0.0f; out[3 * q + 1] = 0.0f; out[3 * q + 2] = 0.0f; }
+                }
+                continue;
+            }
+            for (int64_t q = q0; q < N; ++q) {
+                const float x0 = c0 - pos[3 * q], x1 = c1 - pos[3 * q + 1], x2 = c2 - pos[3 * q + 2];
+                float nn = norm[q];
+                nn = nn < 1e-12f ? 1e-12f : nn;
+                const float w0 = x0 / nn, w1 = x1 / nn, w2 = x2 / nn;
+                woT[q] = w0; woT[ldn + q] = w1; woT[2 * ldn + q] = w2;
+                const float d = fmaf(nT[2 * ldn + q], w2, fmaf(nT[ldn + q], w1, rounded(nT[q] * w0)));
+                front[q] = d > 0.0f;
+                if (!(d > 0.0f)) { out[3 * q] = 0.0f; out[3 * q + 1] = 0.0f; out[3 * q + 2] = 0.0f; }
+            }
+        }
+        {   /* the front-facing vertices per region, in blocks of at most L (region, first, count) */
+            int64_t m = 0;
+            for (int64_t r = 0; r < nreg; ++r) {
+                const int64_t m0 = m;
+                for (int64_t q = rsp[2 * r]; q < rsp[2 * r + 1]; ++q)
+                    if (front[q]) list[m++] = q;
+                for (int64_t b = m0; b < m; b += L) {
+                    blk[3 * nblk] = r; blk[3 * nblk + 1] = b; blk[3 * nblk + 2] = m - b < L ? m - b : L;
+                    ++nblk;
+                }
+            }
+        }
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static, 1)
+        for (int64_t b = 0; b < nblk; ++b) {
+            const int64_t r = blk[3 * b], f = blk[3 * b + 1], m = blk[3 * b + 2];
+            int64_t c[L];
+            for (int64_t l = 0; l < L; ++l) c[l] = list[f + (l < m ? l : m - 1)];
+            const int64_t *p = pl + 5 * r;
+            block(n, (int)spec[r], c, NULL, m, w, ldw, N, nT, woT, ldn, lT, co + 6 * r, perm, absm, sgn,
+                  nsg, k, xi, xw, ti, tw, p[0], (const int64_t *)(intptr_t)p[1], (const float *)(intptr_t)p[2],
+                  (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], NULL, clamp, out);
+        }
+}
+
+/* A P frame's front-facing (and referenced) vertices, compacted: Q columns of vz (n2, Q, row stride ldz:
+   `world_visibility`'s rows in the ZYZ normal frames, the lifted plan's order), nTc, woTc (3, Q contiguous)
+   their normals and view directions, idx (Q,) their vertex ids; region r the columns [rsp[2r], rsp[2r+1])
+   (empty: not made here), lT, co, spec, pl as `zh33v_view`'s, lp (4) the lifted plan. out (N, 3): the
+   rows idx[j] written (the caller zeroed the others). blk scratch (Q / L + nreg + 1, 3). */
+void zh33v_pose(int64_t n, int64_t Q, const float *vz, int64_t ldz, const float *nTc, const float *woTc,
+                const int64_t *idx, int64_t nreg, const int64_t *rsp, const float *lT, const float *co,
+                const int64_t *spec, const int64_t *pl, const int64_t *lp,
+                const int64_t *perm, const int64_t *absm, const float *sgn,
+                int64_t k, const int64_t *xi, const float *xw, const int64_t *ti, const float *tw,
+                int64_t clamp, int64_t *blk, float *out, int64_t nt) {
+    const int64_t n2 = n * n;
+    float nsg[MAXN2];
+    for (int64_t r = 0; r < n2; ++r) nsg[r] = -sgn[r];
+    int64_t nblk = 0;
+    for (int64_t r = 0; r < nreg; ++r)
+        for (int64_t b = rsp[2 * r]; b < rsp[2 * r + 1]; b += L) {
+            blk[3 * nblk] = r; blk[3 * nblk + 1] = b; blk[3 * nblk + 2] = rsp[2 * r + 1] - b < L ? rsp[2 * r + 1] - b : L;
+            ++nblk;
+        }
+    #pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t b = 0; b < nblk; ++b) {
+        const int64_t r = blk[3 * b], f = blk[3 * b + 1], m = blk[3 * b + 2];
+        int64_t c[L];
+        for (int64_t l = 0; l < L; ++l) c[l] = f + (l < m ? l : m - 1);
+        const int64_t *p = pl + 5 * r;
+        block(n, (int)spec[r], c, idx, m, vz, ldz, Q, nTc, woTc, Q, lT, co + 6 * r, perm, absm, sgn,
+              nsg, k, xi, xw, ti, tw, p[0], (const int64_t *)(intptr_t)p[1], (const float *)(intptr_t)p[2],
+              (const int64_t *)(intptr_t)p[3], (const int64_t *)(intptr_t)p[4], lp, clamp, out);
+    }
+}
+"""
+_VIEW_SIGNATURES = {"zh33v_sq": [_I, _P, _P, _P],
+                    "zh33v_pose": [_I, _I, _P, _I, _P, _P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P,
+                                   _P, _I, _P, _P, _I],
+                    "zh33v_view": [_I, _I, _P, _P, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P,
+                                   _P, _P, _I, _P, _P, _P, _P, _P, _I]}
+
+
+def _view_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh33v_view", _VIEW_SOURCE, _VIEW_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
+
+
+def view_setup(light: Tensor, kd: Tensor, ks: Tensor, plans: list, tables: tuple) -> tuple | None:
+    """The lighting-, material- and plan-dependent arguments of `view_radiance` / `pose_radiance` (kept by
+    the caller while those stay), or None where the pass does not take them: light (n², 3) float32 the
+    lighting; kd, ks (R, 3) float32 per region its albedos (kd without the 1 / π); plans per region
+    `runtime._block_plan` of its Phong operator (scale folded in) or None (no specular term); tables
+    `runtime._conjugate_tables` (float32, CPU)."""
+    R = len(plans)
+    if light.dim() != 2 or light.shape[1] != 3 or tuple(kd.shape) != (R, 3) or tuple(ks.shape) != (R, 3) \
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (light, kd, ks)):
+        return None
+    keep, pl = [], []
+    for p in plans:
+        if p is None:
+            pl += [0, 0, 0, 0, 0]
+            continue
+        spans_b, Kv, pcols, psrc = _flat_plan(p)
+        keep.append((p, spans_b, Kv, pcols, psrc))
+        pl += [len(p[2]), spans_b.data_ptr(), Kv.data_ptr(), pcols.data_ptr(), psrc.data_ptr()]
+    spec = torch.tensor([p is not None for p in plans], dtype=torch.int64)
+    co = torch.cat([kd * (1.0 / math.pi), ks], 1).contiguous()       # (as `ZHShadow._diffuse_ranges`' kd, 1 / π)
+    # the plans' addresses as a ctypes array, not a tensor: a method's kept tensors are its state, the same
+    # numbers at any thread count (tests/methods/test_threads.py), and addresses differ per process
+    return (R, light.T.contiguous(), co, spec, (ctypes.c_int64 * len(pl))(*pl), tables, keep)
+
+
+def _region_rows(spans: list, R: int, N: int, tile: bool) -> Tensor | None:
+    """(2R,) int64 of the regions' column ranges, or None: not R ranges in [0, N) (``tile``: tiling it)."""
+    if len(spans) != R:
+        return None
+    a = 0
+    for a0, a1 in spans:
+        if a1 < a0 or a0 < 0 or a1 > N or (tile and a0 != a):
+            return None
+        a = a1
+    if tile and a != N:
+        return None
+    return torch.tensor([x for sp in spans for x in sp], dtype=torch.int64)
+
+
+def view_radiance(setup: tuple | None, spans: list, pos: Tensor, nT: Tensor, w: Tensor, cam: Tensor,
+                  clamp: bool) -> tuple[Tensor, Tensor] | None:
+    """((N, 3) radiance, (N,) bool front-facing) of a view frame's vertices by one C pass (above), or None
+    where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, order above `CONJ_MAX_ORDER`, not float32
+    CPU arrays of unit column stride, no ``setup``, regions not ranges tiling [0, N)). setup: `view_setup`;
+    spans per region (a0, a1); pos (N, 3) posed positions, nT (3, N) unit normals contiguous, w (n², N) the
+    cosine-weighted visibility (world SH), cam (3,) the camera origin."""
+    lib = _view_lib() if terms_switched_on() else None
+    if lib is None or setup is None or w.dim() != 2 or nT.dim() != 2 or pos.dim() != 2:
+        return None
+    R, lT, co, spec, plt, tables, _ = setup
+    n2, N = int(w.shape[0]), int(w.shape[1])
+    n = int(round(n2 ** 0.5))
+    rsp = _region_rows(spans, R, N, True)
+    if rsp is None or n * n != n2 or n > CONJ_MAX_ORDER or tuple(nT.shape) != (3, N) \
+            or tuple(pos.shape) != (N, 3) or int(lT.shape[1]) != n2 or cam.numel() != 3:
+        return None
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (pos, nT, w, cam)) or not nT.is_contiguous() \
+            or w.stride(1) != 1 or not (pos.is_contiguous() and cam.is_contiguous()):
+        return None
+    perm, absm, sgn, xi, xw, ti, tw = tables
+    # |cam − x|: the sums in C, the square root by torch (`_view_directions`' bits: torch's float32 sqrt
+    # is not the correctly rounded one on this host — MKL's — and the front test must be torch's)
+    sq = torch.empty(N, dtype=torch.float32)
+    lib.zh33v_sq(N, pos.data_ptr(), cam.data_ptr(), sq.data_ptr())
+    norm = sq.sqrt_()
+    woT = torch.empty(3, N, dtype=torch.float32)
+    front = torch.empty(N, dtype=torch.bool)
+    lst = torch.empty(N, dtype=torch.int64)
+    blk = torch.empty(N // 16 + 2 * R + 1, 3, dtype=torch.int64)
+    out = torch.empty(N, 3, dtype=torch.float32)
+    lib.zh33v_view(n, N, pos.data_ptr(), norm.data_ptr(), nT.data_ptr(), nT.stride(0), w.data_ptr(), w.stride(0),
+                   cam.data_ptr(), R, rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt),
+                   perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(),
+                   ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), woT.data_ptr(), front.data_ptr(), lst.data_ptr(),
+                   blk.data_ptr(), out.data_ptr(), max(1, torch.get_num_threads()))
+    return out, front
+
+
+def pose_radiance(setup: tuple | None, lifted: tuple, spans: list, vz: Tensor, nTc: Tensor, woTc: Tensor,
+                  idx: Tensor, out: Tensor, clamp: bool) -> bool:
+    """A P frame's radiance of its front-facing vertices (`ZHShadow._front_radiance`) by one C pass: per
+    column j of vz (n², Q) — the visibility in the ZYZ normal frames, rows in the lifted plan's order
+    (`runtime.world_visibility`, ``frame="zyz"``) — w = `runtime.cosine_visibility_zyz` (``ordered``), then
+    kd ⊙ (lᵀ w) / π and for a specular region + ks ⊙ (lᵀ t_s), t_s = `specular_conjugate` of w about
+    R = reflect(ωo, n), clamped if asked, written to row idx[j] of out (N, 3); w and t_s never written.
+    spans per region its columns (a0, a1) (empty: not made here, e.g. a plane's); nTc, woTc (3, Q)
+    contiguous; lifted `runtime._block_plan`(("phong", 1.0), n, True, …). False (out untouched) where it
+    does not run (as `view_radiance`)."""
+    lib = _view_lib() if terms_switched_on() else None
+    if lib is None or setup is None or vz.dim() != 2:
+        return False
+    R, lT, co, spec, plt, tables, _ = setup
+    n2, Q = int(vz.shape[0]), int(vz.shape[1])
+    n = int(round(n2 ** 0.5))
+    rsp = _region_rows(spans, R, Q, False)
+    if rsp is None or n * n != n2 or n > CONJ_MAX_ORDER or tuple(nTc.shape) != (3, Q) \
+            or tuple(woTc.shape) != (3, Q) or tuple(idx.shape) != (Q,) or int(lT.shape[1]) != n2 \
+            or out.dim() != 2 or out.shape[1] != 3:
+        return False
+    if any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (vz, nTc, woTc, out)) \
+            or idx.dtype != torch.int64 or not (nTc.is_contiguous() and woTc.is_contiguous() and idx.is_contiguous()
+                                                and out.is_contiguous()) or vz.stride(1) != 1:
+        return False
+    if Q and (int(idx.min()) < 0 or int(idx.max()) >= out.shape[0]):
+        return False
+    perm, absm, sgn, xi, xw, ti, tw = tables
+    lspans, lKv, _, lsrc = _flat_plan(lifted)
+    lp = torch.tensor([len(lifted[2]), lspans.data_ptr(), lKv.data_ptr(), lsrc.data_ptr()], dtype=torch.int64)
+    blk = torch.empty(Q // 16 + 2 * R + 1, 3, dtype=torch.int64)
+    lib.zh33v_pose(n, Q, vz.data_ptr(), vz.stride(0), nTc.data_ptr(), woTc.data_ptr(), idx.data_ptr(), R,
+                   rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt), lp.data_ptr(),
+                   perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(),
+                   ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), blk.data_ptr(), out.data_ptr(),
+                   max(1, torch.get_num_threads()))
+    return True
+
+# `gouraud.resolve` for the vertex-shaded frames (zh33v): the same C loop (the same sums in the same order:
+# the same bits), its range check made in the loop on the entries each sample reads — a hit sample's face
+# in [0, M) (a miss reads nothing), its three corners in [0, N) — instead of two `aminmax` passes over the
+# G-buffer's faces and the corner table before it, and without the wrapper's steps for the compiled
+# fallback (dynamic-shape marks, the views for its blocks): ~0.1-0.2 ms of each vertex-shaded frame at 1
+# thread. A bad entry stops the loop before its loads (no read out of bounds) and raises as
+# `gouraud.resolve` does; `gouraud.resolve` stays the fallback (and the oracle: tests).
+_RESOLVE_SOURCE = r"""
+#include <stdint.h>
+/* Pixels i0 <= i < i1 of `gouraud`'s resolve3: out[i, c] = (1 / S2) sum over hit sub-samples p of
+   (V[F[f, 0], c] (1 - u - v) + V[F[f, 1], c] u) + V[F[f, 2], c] v, F (M, 3) int64 rows, V (N, 3).
+   Returns 0, or 1 at the first sample whose face or corner is out of range (nothing read from it). */
+static int64_t resolve_range(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit,
+                             const int64_t *F, int64_t M, const float *val, int64_t N, int64_t S2, int64_t i0,
+                             int64_t i1, float *out) {
+    const float inv = 1.0f / (float)S2;
+    for (int64_t i = i0; i < i1; ++i) {
+        float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
+        for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+            if (!hit[p]) continue;
+            const int64_t f = face[p];
+            if ((uint64_t)f >= (uint64_t)M) return 1;
+            const int64_t j0 = F[3 * f], j1 = F[3 * f + 1], j2 = F[3 * f + 2];
+            if (((uint64_t)j0 >= (uint64_t)N) | ((uint64_t)j1 >= (uint64_t)N) | ((uint64_t)j2 >= (uint64_t)N)) return 1;
+            const float u = bu[p], v = bv[p], w = 1.0f - u - v;
+            const float *x = val + 3 * j0, *y = val + 3 * j1, *z = val + 3 * j2;
+            a0 += (x[0] * w + y[0] * u) + z[0] * v;
+            a1 += (x[1] * w + y[1] * u) + z[1] * v;
+            a2 += (x[2] * w + y[2] * u) + z[2] * v;
+        }
+        out[3 * i] = a0 * inv;
+        out[3 * i + 1] = a1 * inv;
+        out[3 * i + 2] = a2 * inv;
+    }
+    return 0;
+}
+/* Over pixels [0, n) on nt threads, thread k the pixels [n k / nt, n (k + 1) / nt); bad[0] set to 1 when
+   any range found an entry out of range. */
+void zh33v_resolve(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit, const int64_t *F,
+                   int64_t M, const float *val, int64_t N, int64_t S2, int64_t n, int64_t nt, float *out,
+                   int64_t *bad) {
+    int64_t b = 0;
+    if (nt <= 1) {
+        b = resolve_range(face, bu, bv, hit, F, M, val, N, S2, 0, n, out);
+    } else {
+        #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
+        for (int64_t k = 0; k < nt; ++k)
+            b |= resolve_range(face, bu, bv, hit, F, M, val, N, S2, n * k / nt, n * (k + 1) / nt, out);
+    }
+    bad[0] = b;
+}
+"""
+_RESOLVE_SIGNATURES = {"zh33v_resolve": [_P, _P, _P, _P, _P, _I, _P, _I, _I, _I, _I, _P, _P]}
+# pixels per thread below which one thread resolves the image (`gouraud._NATIVE_MIN_PIXELS`)
+MIN_RESOLVE_PIXELS_PER_THREAD = 1 << 13
+
+
+def _resolve_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
+    # no ISA flags and no multiply-adds fused: `gouraud`'s loop's build (-O3, the same sums' bits)
+    return native.load("zh33v_resolve", _RESOLVE_SOURCE, _RESOLVE_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def resolve(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
+            spp_side: int) -> Tensor | None:
+    """`gouraud.resolve`(values, F.T, face, bary, hit, height, width, spp_side) by one C loop with the
+    range check in it (above; the same bits), or None where it does not run (no compiler,
+    ``PRTBENCH_ZH_NATIVE=0``, not CPU tensors of the loop's types: values (N, 3) float32, F (M, 3) int64
+    contiguous, face (P,) int64, hit (P,) bool, bary (P, 2) float32). ValueError on a face or corner out
+    of range, as `gouraud.resolve`."""
+    lib = _resolve_lib() if terms_switched_on() else None
+    S2 = spp_side * spp_side
+    n = height * width
+    if lib is None or values.dim() != 2 or values.shape[1] != 3 or values.dtype != torch.float32 \
+            or F.dtype != torch.int64 or F.dim() != 2 or F.shape[1] != 3 or not F.is_contiguous() \
+            or face.dtype != torch.int64 or hit.dtype != torch.bool or bary.dtype != torch.float32 \
+            or bary.dim() != 2 or bary.shape[1] != 2 or not (face.is_contiguous() and hit.is_contiguous()) \
+            or face.shape[0] != n * S2 or hit.shape[0] != n * S2 \
+            or any(t.device.type != "cpu" for t in (values, F, face, bary, hit)):
+        return None
+    values = values.contiguous()
+    bu, bv = bary[:, 0].contiguous(), bary[:, 1].contiguous()   # (views of the G-buffer's column-major bary)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_RESOLVE_PIXELS_PER_THREAD))
+    lib.zh33v_resolve(face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), F.data_ptr(), int(F.shape[0]),
+                      values.data_ptr(), int(values.shape[0]), S2, n, nt, out.data_ptr(), bad.data_ptr())
+    if int(bad[0]):
+        raise ValueError(f"G-buffer faces or corner rows out of range of {int(F.shape[0])} faces and "
+                         f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
+    return out.view(height, width, 3)

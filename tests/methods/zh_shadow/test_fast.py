@@ -68,18 +68,24 @@ def _check_sequence(m, kind: str, n_frames: int = 2, seed: int = 3):
 @pytest.mark.parametrize("order", [4, 8])
 def test_lighting_equals_project_latlong(zh_scene, order):
     """`ZHShadow._lighting` (a new map: `project_latlong_polar` then one rotation by R Qᵀ; the same
-    map rotated: its own-frame projection rotated by R) = `sh.project_latlong(env)` (the oracle
+    map rotated: that kept projection rotated by the new R Qᵀ, no projection — or with ``rotated_lighting``
+    off its own-frame projection, made once, rotated by R) = `sh.project_latlong(env)` (the oracle
     `_render_reference` uses) to float32 round-off, on E then L frames of the library scene."""
     from methods.core.sh import project_latlong
     from scenes.sequences import make_sequence
 
-    m, scene = ZHShadow(order=order), zh_scene("creature")    # `_lighting` needs no precompute
-    for kind in ("E", "L", "E"):
-        for fr in make_sequence(scene, kind, 3, seed=5):
-            got = m._lighting(fr.envmap)
-            want = project_latlong(fr.envmap, order).float()
-            assert got.shape == want.shape == (order * order, 3)
-            assert (got - want).abs().max() <= 1e-6 * want.abs().max(), kind
+    scene = zh_scene("creature")
+    for rotated in (True, False):   # a rotated map: its kept polar-frame projection rotated by R Qᵀ, or the oracle's
+        m = ZHShadow(order=order)                                 # `_lighting` needs no precompute
+        m.rotated_lighting = rotated
+        for kind in ("E", "L", "E"):
+            for fr in make_sequence(scene, kind, 3, seed=5):
+                with mock.patch("methods.zh_shadow.method.project_latlong", wraps=project_latlong) as pl:
+                    got = m._lighting(fr.envmap)
+                assert pl.called == (not rotated and kind == "L" and fr.index == 1), (rotated, kind, fr.index)
+                want = project_latlong(fr.envmap, order).float()
+                assert got.shape == want.shape == (order * order, 3)
+                assert (got - want).abs().max() <= 1e-6 * want.abs().max(), (kind, rotated)
 
 
 @pytest.mark.parametrize("order", [2, 4, 5, 8])
@@ -1030,6 +1036,7 @@ def test_vertex_shading_front_only_transfer_equals_full(zh_scene, monkeypatch):
     m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(zh_scene("creature"))
     fast, full = m.with_render_config(), m.with_render_config()
+    fast.view_pass = full.view_pass = False   # (the torch path's t_s: `test_view_pass_equals_torch_path`)
     parts = rt.specular_parts
 
     def every_column(*args, keep=None, **kw):
@@ -1123,6 +1130,8 @@ def test_pose_frame_plane_operator_equals_per_vertex_w(zh_scene, monkeypatch):
     m.precompute(zh_scene("creature"))
     fast, slow = m.with_render_config(), m.with_render_config()
     slow.plane_operators = False
+    fast.view_pass = slow.view_pass = False   # (w by `cosine_visibility_zyz`: the torch path; the C pass's planes:
+    #                                           `test_pose_pass_equals_torch_path`)
     used, cv = [], rt.cosine_visibility_zyz
 
     def counted(vzT, nT, **kw):
@@ -1276,6 +1285,7 @@ def test_view_frames_reuse_the_diffuse_radiance(zh_scene):
     for kind in ("V", "VB", "VL"):
         fast, slow = m.with_render_config(), m.with_render_config()
         slow.diffuse_cache = False
+        fast.view_pass = slow.view_pass = False   # (the torch path's cache: the C pass keeps none)
         kept = []
         for i, f in enumerate(make_sequence(m.scene, kind, 4, seed=7)):
             gb = make_gbuffer(m.scene, f, 2)
@@ -2022,3 +2032,209 @@ def test_fused_planes_helpers_equal_torch():
         assert torch.equal(lut.long()[F32.index_select(0, face[keep]).long()], want_vi.long())
         assert bool((lut[torch.isin(torch.arange(700), idx, invert=True)] == -1).all())
     assert zn.referenced_lut(mask, None, face, F32, 500) is None   # a corner outside [0, N)
+
+
+def _torch_view_radiance(pos, nT, w, cam, vreg, mats, light, clamp):
+    """The torch path's per-vertex radiance of a view frame (`ZHShadow._render_vertex` with ``view_pass``
+    off): `_view_directions`, the front test `runtime.dot_T` > 0, kd ⊙ (lᵀ w) / π, + ks ⊙ (lᵀ t_s) by
+    `runtime.specular_parts` (keep = front), masked, clamped."""
+    woT = cam[:, None] - rt.rows(pos)
+    woT = woT / (woT * woT).sum(0, keepdim=True).sqrt().clamp_min(1e-12)
+    front = rt.dot_T(nT, woT) > 0
+    kd = torch.stack([k for k, _, _ in mats], 1).index_select(1, vreg)
+    ks = torch.stack([k for _, k, _ in mats], 1).index_select(1, vreg)
+    rad = ((light.T * (1.0 / math.pi)) @ w) * kd
+    tsf = rt.specular_transfer(w, nT, woT, vreg, [a for _, _, a in mats],
+                               parts=rt.specular_parts(w, nT, woT, vreg, [a for _, _, a in mats], keep=front))
+    if tsf is not None:
+        rad = rad + (light.T @ tsf) * ks
+    rad = rad * front
+    return (rad.clamp_min(0.0) if clamp else rad).T.contiguous(), front
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_view_radiance_native_equals_torch(order, monkeypatch):
+    """`native.view_radiance` (one C pass: ωo, the front test, the diffuse and specular radiance with t_s
+    in registers) = the torch path (`_torch_view_radiance`) to float32 round-off, the front-facing set
+    bit for bit — normals built within ~1e-8 of perpendicular to ωo included, where an unfused or a
+    differently rounded n·ωo flips the test —, on regions that are ranges of 16 consecutive front
+    vertices, of scattered ones (the permute and the gather loads), a vertex count off the 16-lane
+    blocks, R on both poles, two exponents and a diffuse region; clamped and not; the same bits at 1
+    and 2 threads."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(21)
+    N, n2 = 1203, order * order
+    pos = torch.randn(N, 3, generator=g)
+    cam = torch.tensor([0.4, 2.5, 3.0])
+    wo = cam - pos
+    wo = wo / wo.norm(dim=1, keepdim=True)
+    nrm = torch.randn(N, 3, generator=g)
+    nrm = nrm / nrm.norm(dim=1, keepdim=True)
+    nrm[:300] = wo[:300] * torch.sign(torch.randn(300, 1, generator=g))   # region 0: runs of front ones
+    tang = torch.linalg.cross(wo[600:900], torch.randn(300, 3, generator=g), dim=1)
+    nrm[600:900] = tang / tang.norm(dim=1, keepdim=True) + 1e-8 * torch.randn(300, 3, generator=g)   # grazing
+    nrm[700] = torch.tensor([0.0, 0.0, 1.0])
+    nT = rt.rows(nrm / nrm.norm(dim=1, keepdim=True))
+    w = torch.randn(n2, N, generator=g)
+    light = torch.randn(n2, 3, generator=g)
+    vreg = torch.cat([torch.zeros(300), torch.ones(300), torch.full((400,), 2.0), torch.full((203,), 3.0)]).long()
+    spans = [(0, 300), (300, 600), (600, 1000), (1000, 1203)]
+    kd = [torch.rand(3, generator=g) for _ in spans]
+    ks = [torch.rand(3, generator=g) for _ in spans]
+    alphas = [12.0, None, 30.0, 1.0]
+    mats = [(kd[r], ks[r] if alphas[r] is not None else torch.zeros(3), alphas[r]) for r in range(4)]
+    plans = [None if a is None else rt._block_plan(("phong", a), order, False, torch.float32, "cpu",
+                                                   (a + 1.0) / (2.0 * math.pi)) for a in alphas]
+    setup = zn.view_setup(light, torch.stack(kd), torch.stack([k for _, k, _ in mats]), plans,
+                          rt._conjugate_tables(order, torch.float32, "cpu"))
+    for clamp in (False, True):
+        want, wfront = _torch_view_radiance(pos, nT, w, cam, vreg, mats, light, clamp)
+        got = {}
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got[threads] = zn.view_radiance(setup, spans, pos, nT, w, cam, clamp)
+        assert got[1] is not None
+        rad, front = got[1]
+        assert torch.equal(rad, got[2][0]) and torch.equal(front, got[2][1])   # the same bits at any thread count
+        assert torch.equal(front, wfront)                                     # the same front-facing set
+        assert 0 < int(front[600:900].sum()) < 300
+        assert (rad - want).abs().max() <= 2e-6 * want.abs().max(), (order, clamp)
+        assert bool((rad[~front] == 0).all())
+        if clamp:
+            assert bool((rad >= 0).all())
+        else:
+            assert bool((rad < 0).any())
+
+
+def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
+    """Vertex-shaded view frames of a kept pose (V, VB, VL, VBL; order 8, cosine) by one C pass
+    (`ZHShadow._view_radiance`, `native.view_radiance`) = the torch path (``view_pass`` off) to float32
+    round-off, with the same counts (the same front-facing set), the same bits at 1 and 2 threads, and
+    = the reference; a frame 0 (a full change) and a lighting-only frame take the torch path (the t_s a
+    following lighting frame reuses is made there)."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    calls: list[bool] = []
+    vr = zn.view_radiance
+
+    def counted(*a, **kw):
+        out = vr(*a, **kw)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(zn, "view_radiance", counted)
+    for kind in ("V", "VB", "VL", "VBL", "L"):
+        fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+        slow.view_pass = slow.own_resolve = False
+        for i, f in enumerate(make_sequence(m.scene, kind, 3, seed=8)):
+            gb = make_gbuffer(m.scene, f, 2)
+            c0 = len(calls)
+            a = fast.render(f, gb)
+            assert calls[c0:] == ([True] if i > 0 and kind != "L" else []), (kind, i)
+            with torch_threads_(2):
+                a2 = fast2.render(f, gb)
+            b = slow.render(f, gb)
+            assert torch.equal(a, a2), (kind, i)
+            assert (a - b).abs().max() <= 2e-6 * b.abs().max(), (kind, i)
+            assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), (kind, i)
+            want = fast._render_reference(f, gb)
+            assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
+
+
+def test_resolve_native_equals_gouraud_resolve():
+    """`native.resolve` (zh_shadow's C loop, the range check in it) = `gouraud.resolve` bit for bit — misses,
+    faces whose corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a
+    read corner out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
+    from methods.core import gouraud
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(31)
+    N, M = 900, 1500
+    F = torch.randint(0, N, (M + 1, 3), generator=g)[:M]   # (a row M after it: a missed check reads valid ids)
+    F[7] = torch.tensor([5, 5, 9])
+    values = torch.randn(N, 3, generator=g)
+    for H, W in ((128, 130), (40, 24)):
+        P = H * W * 4
+        face = torch.randint(0, M, (P,), generator=g)
+        hit = torch.rand(P, generator=g) > 0.1
+        face[~hit] = -1
+        bary = torch.rand(2, P, generator=g).T * 0.5                     # column-major, as the G-buffer's
+        want = gouraud.resolve(values, F.T, face, bary, hit, H, W, 2)
+        for threads in (1, 2):
+            with torch_threads_(threads):
+                got = zn.resolve(values, F, face, bary, hit, H, W, 2)
+            assert got is not None and torch.equal(got, want), (H, threads)
+        bad = face.clone()
+        bad[int(hit.nonzero()[-1])] = M                                  # a hit sample's face out of range
+        with pytest.raises(ValueError):
+            zn.resolve(values, F, bad, bary, hit, H, W, 2)
+        Fb = F.clone()
+        Fb[int(face[int(hit.nonzero()[3])]), 1] = N                       # a read corner out of range
+        with pytest.raises(ValueError):
+            zn.resolve(values, Fb, face, bary, hit, H, W, 2)
+
+
+@pytest.mark.parametrize("planes", [True, False])
+def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
+    """A P frame's front-facing radiance (`ZHShadow._front_radiance`) by one C pass (`native.pose_radiance`:
+    w from the ZYZ-frame visibility, the diffuse term, t_s and the specular term per vertex, none of them
+    written) = the torch path (``view_pass`` off: `cosine_visibility_zyz`, `specular_parts`,
+    `_radiance_ranges`) to float32 round-off, with the same counts, the same bits at 1 and 2 threads, and =
+    the reference; with the ground by its plane operator (beside the pass) and without (a diffuse region in
+    the pass)."""
+    from methods.core import native as core_native
+    import methods.zh_shadow.native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+    if planes:   # (the test-size ground's front vertices as a plane: `test_pose_frame_plane_operator_equals_per_vertex_w`)
+        monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
+    ops = []
+    pco = rt.plane_cosine_operator
+    monkeypatch.setattr(rt, "plane_cosine_operator", lambda *a: ops.append(a) or pco(*a))
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    calls: list[bool] = []
+    pr = zn.pose_radiance
+
+    def counted(*a, **kw):
+        out = pr(*a, **kw)
+        calls.append(out)
+        return out
+
+    monkeypatch.setattr(zn, "pose_radiance", counted)
+    fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+    slow.view_pass = slow.own_resolve = False
+    for x in (fast, fast2, slow):
+        x.plane_operators = planes
+    for i, f in enumerate(make_sequence(m.scene, "P", 3, seed=9)):
+        gb = make_gbuffer(m.scene, f, 2)
+        c0 = len(calls)
+        a = fast.render(f, gb)
+        if i > 0:
+            assert calls[c0:] == [True], i
+        with torch_threads_(2):
+            a2 = fast2.render(f, gb)
+        b = slow.render(f, gb)
+        assert torch.equal(a, a2), i
+        assert (a - b).abs().max() <= 2e-6 * b.abs().max(), i
+        assert fast.frame_cost("P", gb.num_samples) == slow.frame_cost("P", gb.num_samples), i
+        want = fast._render_reference(f, gb)
+        assert (a - want).abs().max() <= RENDER_TOL, i
+    assert bool(ops) == planes   # (the plane operator beside the pass, or none)
