@@ -217,6 +217,17 @@ def test_oracle_fast_equals_reference(scene_name, kind, compiled, monkeypatch):
 # -- the C loops (methods.oracle.native_rays) ---------------------------------------------------------
 
 
+def _materials_frame(mats, kind):
+    """(scene, frame 1 of a ``kind`` sequence): chess's library materials, or sphere_plane with the
+    regions given ``_native_materials(mats)`` in turn."""
+    scene = get_scene("chess" if mats == "library" else "sphere_plane", "test")
+    frame = make_sequence(scene, kind, n_frames=2, seed=0)[1]
+    if mats != "library":
+        ms = _native_materials(mats)
+        frame = dataclasses.replace(frame, materials={r: ms[i % len(ms)] for i, r in enumerate(frame.materials)})
+    return scene, frame
+
+
 def _native_materials(name):
     from scenes.materials import BlinnPhong, CookTorrance, Lambert, Phong, Ward
 
@@ -242,11 +253,7 @@ def test_oracle_native_equals_reference_and_compiled(mats, monkeypatch):
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
     if not on.available():
         pytest.skip("no C compiler: the C loops do not run")
-    scene = get_scene("chess" if mats == "library" else "sphere_plane", "test")
-    frame = make_sequence(scene, "VBL", n_frames=2, seed=0)[1]
-    if mats != "library":
-        ms = _native_materials(mats)
-        frame = dataclasses.replace(frame, materials={r: ms[i % len(ms)] for i, r in enumerate(frame.materials)})
+    scene, frame = _materials_frame(mats, "VBL")
     gb = make_gbuffer(scene, frame, 1)
     calls = [0]
     real = on.pretrace
@@ -442,11 +449,7 @@ def test_oracle_native_avx512_build_equals_avx2(mats, monkeypatch):
         pytest.skip("not an AVX-512 host: pretrace runs the AVX2 build")
     fast, ref = on._ray_lib(), on._lib()
     assert fast is not None and fast is not ref
-    scene = get_scene("chess" if mats == "library" else "sphere_plane", "test")
-    frame = make_sequence(scene, "VB", n_frames=2, seed=0)[1]
-    if mats != "library":
-        ms = _native_materials(mats)
-        frame = dataclasses.replace(frame, materials={r: ms[i % len(ms)] for i, r in enumerate(frame.materials)})
+    scene, frame = _materials_frame(mats, "VB")
     gb = make_gbuffer(scene, frame, 2)
     calls, real = [], on.pretrace
 

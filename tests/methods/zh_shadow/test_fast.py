@@ -1798,20 +1798,20 @@ def test_screen_counts_native_equals_torch_screening():
                 assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
 
 
-def _count_conjugate_calls(monkeypatch) -> list[bool]:
-    """Wrap `native.specular_conjugate` so a test sees whether each call ran the C pass (True) or
-    declined (None -> False)."""
+def _count_native_calls(monkeypatch, name: str = "specular_conjugate") -> list[bool]:
+    """Wrap `native.<name>` (a C pass that returns None when it declines) so a test sees whether
+    each call ran the C pass (True) or declined (False)."""
     import methods.zh_shadow.native as zn
 
     calls: list[bool] = []
-    conj = zn.specular_conjugate
+    real = getattr(zn, name)
 
     def counted(*a, **kw):
-        out = conj(*a, **kw)
+        out = real(*a, **kw)
         calls.append(out is not None)
         return out
 
-    monkeypatch.setattr(zn, "specular_conjugate", counted)
+    monkeypatch.setattr(zn, name, counted)
     return calls
 
 
@@ -1837,7 +1837,7 @@ def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
     vreg = torch.cat([torch.zeros(300), torch.ones(250), torch.full((151,), 2.0)]).long()
     vreg[0:300:7] = 3                                            # a region that is not one range
     alphas = [12.0, 30.0, None, 7.5]
-    calls = _count_conjugate_calls(monkeypatch)
+    calls = _count_native_calls(monkeypatch)
     for keep in (None, rt.dot_T(nT, woT) > 0):
         monkeypatch.setattr(rt, "native_conjugate", False)
         want = rt.specular_parts(vT, nT, woT, vreg, alphas, keep=keep)
@@ -1891,7 +1891,7 @@ def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
     nT = torch.randn(3, Q, generator=g)
     nT[:, 3], nT[:, 4] = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])
     nT = nT / nT.norm(dim=0)
-    calls = _count_conjugate_calls(monkeypatch)
+    calls = _count_native_calls(monkeypatch)
     for a0, a1 in ((0, Q), (100, 333)):
         v, n_ = vzT[:, a0:a1], nT[:, a0:a1]
         monkeypatch.setattr(rt, "native_conjugate", False)
@@ -2117,7 +2117,6 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
     = the reference; a frame 0 (a full change) and a lighting-only frame take the torch path (the t_s a
     following lighting frame reuses is made there)."""
     from methods.core import native as core_native
-    import methods.zh_shadow.native as zn
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
@@ -2125,15 +2124,7 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
         pytest.skip("no C compiler")
     m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(zh_scene("creature"))
-    calls: list[bool] = []
-    vr = zn.view_radiance
-
-    def counted(*a, **kw):
-        out = vr(*a, **kw)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(zn, "view_radiance", counted)
+    calls = _count_native_calls(monkeypatch, "view_radiance")
     for kind in ("V", "VB", "VL", "VBL", "L"):
         fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
         slow.view_pass = slow.own_resolve = False
