@@ -1798,6 +1798,14 @@ def test_screen_counts_native_equals_torch_screening():
                 assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] == b[2]
 
 
+def _skip_without_c_compiler() -> None:
+    """Skip a test of a C pass on a machine without a C compiler (the passes cannot build there)."""
+    from methods.core import native as core_native
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+
+
 def _count_native_calls(monkeypatch, name: str = "specular_conjugate") -> list[bool]:
     """Wrap `native.<name>` (a C pass that returns None when it declines) so a test sees whether
     each call ran the C pass (True) or declined (False)."""
@@ -1822,10 +1830,8 @@ def test_specular_conjugate_native_equals_compiled(order, monkeypatch):
     float32 round-off, on parts that are a range of columns and parts by position, with and without
     ``keep``, points at both poles of R and exponents whose plans differ; the same bits at 1 and 2
     threads; and both within float32 round-off of the float64 conjugation."""
-    from methods.core import native as core_native
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     g = torch.Generator().manual_seed(11)
     Q, n2 = 701, order * order
     vT = torch.randn(n2, Q, generator=g)
@@ -1881,10 +1887,8 @@ def test_cosine_visibility_zyz_native_equals_compiled(order, monkeypatch):
     (the compiled pass and GEMMs), to float32 round-off, on every column and on a column range of a
     wider array (`ZHShadow._front_radiance`'s view), normals on both poles; the same bits at 1 and 2
     threads."""
-    from methods.core import native as core_native
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     g = torch.Generator().manual_seed(12)
     Q, n2 = 517, order * order
     vzT = torch.randn(n2, Q, generator=g)
@@ -2061,11 +2065,9 @@ def test_view_radiance_native_equals_torch(order, monkeypatch):
     vertices, of scattered ones (the permute and the gather loads), a vertex count off the 16-lane
     blocks, R on both poles, two exponents and a diffuse region; clamped and not; the same bits at 1
     and 2 threads."""
-    from methods.core import native as core_native
     import methods.zh_shadow.native as zn
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     g = torch.Generator().manual_seed(21)
     N, n2 = 1203, order * order
     pos = torch.randn(N, 3, generator=g)
@@ -2116,12 +2118,10 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
     round-off, with the same counts (the same front-facing set), the same bits at 1 and 2 threads, and
     = the reference; a frame 0 (a full change) and a lighting-only frame take the torch path (the t_s a
     following lighting frame reuses is made there)."""
-    from methods.core import native as core_native
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(zh_scene("creature"))
     calls = _count_native_calls(monkeypatch, "view_radiance")
@@ -2148,11 +2148,9 @@ def test_resolve_native_equals_gouraud_resolve():
     faces whose corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a
     read corner out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
     from methods.core import gouraud
-    from methods.core import native as core_native
     import methods.zh_shadow.native as zn
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     g = torch.Generator().manual_seed(31)
     N, M = 900, 1500
     F = torch.randint(0, N, (M + 1, 3), generator=g)[:M]   # (a row M after it: a missed check reads valid ids)
@@ -2187,13 +2185,11 @@ def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
     `_radiance_ranges`) to float32 round-off, with the same counts, the same bits at 1 and 2 threads, and =
     the reference; with the ground by its plane operator (beside the pass) and without (a diffuse region in
     the pass)."""
-    from methods.core import native as core_native
     import methods.zh_shadow.native as zn
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
-        pytest.skip("no C compiler")
+    _skip_without_c_compiler()
     if planes:   # (the test-size ground's front vertices as a plane: `test_pose_frame_plane_operator_equals_per_vertex_w`)
         monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
     ops = []
