@@ -417,7 +417,7 @@ def provenance_table(prov: list[dict] | None) -> str:
     if not prov:
         return "<p>Not recorded.</p>"
     cols = ["method", "scene", "sequence", "bounces", "part", "executor", "workers", "threads", "host", "worker",
-            "status"]
+            "code", "status"]
     head = "<tr>" + "".join(f"<th>{c}</th>" for c in cols) + "</tr>"
     body = "".join("<tr>" + "".join(f"<td>{esc(_blabel(p[c]) if c == 'bounces' else p.get(c, ''))}</td>"
                                     for c in cols) + "</tr>" for p in prov)

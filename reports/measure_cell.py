@@ -388,6 +388,9 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
 
     info: dict[str, Any] = {"threads": threads, "pid": os.getpid()}
     if timed:
+        # the method's code key (its import closure, as the precompute cache keys it): two runs'
+        # cells of one method compare as "unchanged code" when it is equal (benchmarks.perf_speedup)
+        info["code"] = precompute_cache._process_fingerprint(type(method).__module__)
         mem = method.memory()
         rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
         cost = method.frame_cost(cell.kind, gb.num_samples)  # the roofline numerators

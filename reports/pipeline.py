@@ -229,7 +229,8 @@ def provenance(results: list[CellResult]) -> list[dict]:
         for part, i in parts.items():
             out.append({**base, "part": part, "executor": i.get("executor", "?"), "workers": i.get("workers", "?"),
                         "scheduler": i.get("scheduler", ""), "host": i.get("host", ""),
-                        "worker": i.get("worker", ""), "threads": i.get("threads", "?")})
+                        "worker": i.get("worker", ""), "threads": i.get("threads", "?"),
+                        "code": i.get("code", r.info.get("code", ""))})
     return out
 RUN_DIRS = ("cells", "images", "calib")
 

@@ -239,6 +239,10 @@ def test_run_suite_uses_method_processes_for_isolate_method(tmp_path):
     prov = {o: json.loads((tmp_path / o / "provenance.json").read_text()) for o in ("m", "in")}
     assert prov["m"] and {p["executor"] for p in prov["m"]} == {"method-processes"}
     assert prov["in"] and {p["executor"] for p in prov["in"]} == {"local"}
+    # each timed cell records its method's code key (benchmarks.perf_speedup's "unchanged" test):
+    # one code, one key, whichever process ran the cell
+    codes = {o: {p["code"] for p in prov[o] if p["status"] != "na"} for o in prov}
+    assert codes["m"] == codes["in"] and len(codes["m"]) == 1 and "" not in codes["m"]
     info = {o: [json.loads(f.read_text())["info"] for f in _files(tmp_path / o / "cells")] for o in ("m", "in")}
     pids = {o: {i["pid"] for i in info[o] if "pid" in i} for o in info}
     assert len(pids["m"]) == 1 and os.getpid() not in pids["m"]  # one configuration: one child
