@@ -21,6 +21,19 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 34 (pp34): `native.rows_vertex_major`'s loop computes 8 outputs per channel at a time, their
+    lane sums as one 8 × 8 transpose-and-add (the same additions in the same order: bit-identical,
+    tested). Creature bench VL 1.03-1.07× CPU (1 thread, 15 frames, load 5-11), V 1.01× (path unchanged).
+    Why a V sequence's first timed frame is slow in the perf suite (3.7-9 ms against 2.4-3 ms for the
+    others, in every run since session 30): frame 0 (the lighting change) computes l' only at its
+    referenced glossy rows (session 27; 3 318 of 9 694), and frame 1 completes the table (the other
+    6 376 rows: ~16 MB of M, 1.8 ms at 1 thread with cold caches) although it reads 211 rows not set —
+    lazy work of the lighting change, not counted by `frame_cost` for V. Tried and dropped: computing,
+    in the one-pass view, only the rows each frame reads that are not set (claimed per row with an
+    atomic flag, computed by `vm_rows` before the chunk's glossy pass; bit-identical): frame 1 ~4.1
+    against 5.3 ms at 1 thread, but every later frame then pays for its ~150-250 newly seen rows and
+    the per-sample row checks (+0.25-0.4 ms; V 0.93× back to back, same process), so the suite's
+    median would only gain when a second timed frame is slow as well.
   * session 32 (pp32): a view frame whose l' table is complete (every V frame of a view sequence after
     its second) runs as ONE C pass (`native.view`, `NATIVE_VIEW`): per chunk of 256 pixels the pixel
     pass, then that chunk's glossy samples shaded and added to its pixels while their G-buffer rows are

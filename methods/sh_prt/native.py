@@ -327,6 +327,23 @@ void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, con
    contiguous n²·n² block; `rows_vertex_major`): out[c, r, i] = Σ_j M[r, i, j] l[j, c], the sum over j
    as 8-float partial vectors (j in blocks of 8), their lanes pairwise, then the tail j ≥ 8⌊n²/8⌋;
    n² ≤ 64. */
+#ifdef __AVX2__
+#include <immintrin.h>
+/* The lane sums s_k = ((a_k[0] + a_k[4]) + (a_k[1] + a_k[5])) + ((a_k[2] + a_k[6]) + (a_k[3] + a_k[7])) of
+   8 vectors as one vector (s_0 .. s_7), each addition the scalar one's (hadd adds neighbours: x0 + x1 is
+   a_k[0] + a_k[4] plus a_k[1] + a_k[5]; an IEEE sum does not depend on its operands' order). */
+static inline v8 hsum8x8(const v8 *a) {
+    __m256 x[4];
+    for (int k = 0; k < 4; ++k) {         /* [a_2k lo + hi | a_2k+1 lo + hi]: (x0, x1, x2, x3) of each */
+        const __m256 u = (__m256)a[2 * k], w = (__m256)a[2 * k + 1];
+        x[k] = _mm256_add_ps(_mm256_permute2f128_ps(u, w, 0x20), _mm256_permute2f128_ps(u, w, 0x31));
+    }
+    const __m256 h0 = _mm256_hadd_ps(x[0], x[1]);    /* (y0, y1) of a_0, a_2 | of a_1, a_3 */
+    const __m256 h1 = _mm256_hadd_ps(x[2], x[3]);    /* (y0, y1) of a_4, a_6 | of a_5, a_7 */
+    const __m256 s = _mm256_hadd_ps(h0, h1);         /* s_0 s_2 s_4 s_6 | s_1 s_3 s_5 s_7 */
+    return (v8)_mm256_permutevar8x32_ps(s, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));
+}
+#endif
 static void vm_rows(int64_t n2, const float *__restrict M, const float *__restrict lt, const int64_t *rows,
                     int64_t R, int64_t Vg, float *__restrict out) {
     const int64_t n8 = n2 & ~(int64_t)7, nb = n8 / 8;           /* nb <= 8: n² <= 64 */
@@ -336,7 +353,32 @@ static void vm_rows(int64_t n2, const float *__restrict M, const float *__restri
     for (int64_t q = 0; q < R; ++q) {
         const int64_t r = rows[q];
         const float *Mr = M + r * n2 * n2;
-        for (int64_t i = 0; i < n2; ++i) {
+        int64_t i0 = 0;
+#ifdef __AVX2__
+        /* session 34: 8 outputs i at a time per channel, their lane sums as one 8 × 8 transpose-and-add
+           (`hsum8x8`: the same additions in the same order as the scalar sums below) and the tail
+           j >= n8 across the 8 lanes: the same bits, a third of the instructions */
+        for (; i0 + 8 <= n2; i0 += 8)
+            for (int64_t c = 0; c < 3; ++c) {
+                v8 a[8];
+                for (int k = 0; k < 8; ++k) {
+                    const float *row = Mr + (i0 + k) * n2;
+                    v8 acc = {0};
+                    for (int64_t b = 0; b < nb; ++b)
+                        acc += *(const v8 *)(row + 8 * b) * L[c][b];
+                    a[k] = acc;
+                }
+                v8 sv = hsum8x8(a);
+                for (int64_t j = n8; j < n2; ++j) {
+                    const float *col = Mr + i0 * n2 + j;
+                    const v8 x = {col[0], col[n2], col[2 * n2], col[3 * n2], col[4 * n2], col[5 * n2], col[6 * n2],
+                                  col[7 * n2]};
+                    sv = sv + x * lt[c * n2 + j];
+                }
+                __builtin_memcpy(out + (c * Vg + r) * n2 + i0, &sv, 32);
+            }
+#endif
+        for (int64_t i = i0; i < n2; ++i) {
             const float *row = Mr + i * n2;
             v8 a0 = {0}, a1 = {0}, a2 = {0};
             for (int64_t b = 0; b < nb; ++b) {

@@ -982,3 +982,45 @@ def test_native_glossy_equals_the_kernel(order, threads, fused, monkeypatch):
     G4 = torch.rand(R, 16, generator=gen)
     assert native.glossy(g, face, bary, normal, wo, reg, ef, fg, torch.randn(3, Vg, 16), kd, ks, G4, vcos,
                          *shm._sh_factor_tables(4, torch.device("cpu"))) is None
+
+
+def _vm_rows_scalar_order(Mv: torch.Tensor, l: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """l' = M l at ``rows`` (R, 3, n²) with the scalar sums of ``native.vm_rows`` in torch (each float32
+    product and sum rounded as the C loop rounds it): per output the 8-lane partial vectors over the
+    j blocks of 8, their lanes ((a0 + a4) + (a1 + a5)) + ((a2 + a6) + (a3 + a7)), then the tail j >= n8."""
+    n2 = Mv.shape[1]
+    n8 = n2 & ~7
+    X = Mv[rows]                                                        # (R, n², n²): [q, i, j]
+    lt = l.T.contiguous()                                               # (3, n²)
+    out = []
+    for c in range(3):
+        a = torch.zeros(X.shape[0], n2, 8)
+        for b in range(n8 // 8):
+            a = a + X[:, :, 8 * b:8 * b + 8] * lt[c, 8 * b:8 * b + 8]
+        s = ((a[..., 0] + a[..., 4]) + (a[..., 1] + a[..., 5])) + ((a[..., 2] + a[..., 6]) + (a[..., 3] + a[..., 7]))
+        for j in range(n8, n2):
+            s = s + X[:, :, j] * lt[c, j]
+        out.append(s)
+    return torch.stack(out, 1)
+
+
+@pytest.mark.parametrize("order", [3, 5, 8])
+def test_native_vertex_major_rows_keep_the_scalar_sums(order, monkeypatch):
+    """`native.rows_vertex_major` computes 8 outputs at a time with their lane sums as one transpose-and-add
+    (session 34, ``hsum8x8``): the same bits as the scalar sums it had (`_vm_rows_scalar_order`), at 1
+    and 2 threads, for n² with and without a tail of outputs (9, 25) and of inputs (64: none)."""
+    from methods.sh_prt import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(100 + order)
+    n2, Vg = order * order, 700
+    Mv = torch.randn(Vg, n2, n2, generator=g)
+    l = torch.randn(n2, 3, generator=g)
+    rows = torch.randperm(Vg, generator=g)[:611].sort().values
+    want = _vm_rows_scalar_order(Mv, l, rows)
+    for threads in (1, 2):
+        monkeypatch.setattr(torch, "get_num_threads", lambda t=threads: t)
+        out = torch.full((3, Vg, n2), 7.0)
+        assert native.rows_vertex_major(Mv, l, rows, out)
+        assert torch.equal(out[:, rows].permute(1, 0, 2), want)
