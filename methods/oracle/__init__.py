@@ -67,8 +67,8 @@ from scenes.envmap import bilinear_lookup, cell_pdf, count_le
 # geometric detail gives the same image).
 RAY_EPS_REL = 1e-5
 
-# Posed frames on the C loops' path trace their shadow rays with the oracle's own tracer
-# (``methods.oracle.embree_rays``: a refitted BVH per pose instead of Mitsuba's full build); False: Mitsuba's.
+# Frames on the C loops' path trace their shadow rays with the oracle's own tracer (``methods.oracle.embree_rays``:
+# a refitted BVH per pose instead of Mitsuba's full build, the live rays as one stream); False: Mitsuba's.
 OWN_TRACER = True
 
 # G-buffer samples per block of the compiled stages (`methods.core.fused.map_rows`): each sample
@@ -390,8 +390,8 @@ class Oracle(Method):
         self.max_rays = max_rays_per_batch
         self.scene = None
         self._vis: tuple[str, Visibility] | None = None  # (pose key, embree scene of that pose)
-        # (pose key, the oracle's own tracer of that pose: `methods.oracle.embree_rays`) of posed frames on
-        # the C loops' path; False once it could not be built (Mitsuba's tracer then)
+        # (pose key, the oracle's own tracer of that pose: `methods.oracle.embree_rays`) of the frames on the
+        # C loops' path; False once it could not be built (Mitsuba's tracer then)
         self._own: tuple[str, EmbreeTracer] | bool | None = None
         # (P, hit samples, live rays, faces hit, their vertices, env map (H, W)) of the last render (frame_cost)
         self._last: tuple | None = None
@@ -405,7 +405,7 @@ class Oracle(Method):
 
     def memory(self) -> dict[str, int]:
         """Nothing precomputed; kept between frames: the tracer's scene of the current pose (Mitsuba's, or the
-        oracle's own for a posed frame: its BVH and a copy of the vertices; not counted)
+        oracle's own on the C loops' path: its BVH and a copy of the vertices; not counted)
         and the last frame's work arrays (`_work`, reused by the next frame)."""
         return {f"work:{k}": v.numel() * v.element_size() for k, v in self._scratch.items()}
 
@@ -427,12 +427,12 @@ class Oracle(Method):
         return "rest" if pose is None else repr(pose.detach().cpu().tolist())
 
     def _own_tracer(self, geom, pose: Tensor | None) -> EmbreeTracer | None:
-        """The oracle's own tracer (``methods.oracle.embree_rays``) of a posed frame on the C loops' path: the
-        last one when the pose is the same, else the last one with this pose's vertices written into it
-        (a refit of its BVH instead of `_repose`'s full build), else a new one; None — Mitsuba's tracer
-        (`_visibility`) then — for an unposed frame, when ``PRTBENCH_VISIBILITY`` does not choose
-        Mitsuba (whose answers it gives), or when it cannot be built."""
-        if pose is None or self._own is False or not OWN_TRACER or resolve_backend() != "mitsuba":
+        """The oracle's own tracer (``methods.oracle.embree_rays``) of a frame on the C loops' path: the last
+        one when the pose is the same, else the last one with this pose's vertices written into it (a
+        refit of its BVH instead of `_repose`'s full build), else a new one; None — Mitsuba's tracer
+        (`_visibility`) then — when `OWN_TRACER` is off, ``PRTBENCH_VISIBILITY`` does not choose Mitsuba
+        (whose answers it gives), or it cannot be built."""
+        if self._own is False or not OWN_TRACER or resolve_backend() != "mitsuba":
             return None
         key = self._pose_key(pose)
         if self._own is None or self._own[0] != key:
@@ -657,7 +657,7 @@ class Oracle(Method):
         for mat, a, b in mats:
             oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b], NL, NB, tab,
                                    H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[..., a:b], d[..., a:b]))
-        if isinstance(vis, EmbreeTracer):  # the oracle's own tracer of a posed mesh (`_own_tracer`)
+        if isinstance(vis, EmbreeTracer):  # the oracle's own tracer (`_own_tracer`)
             n_live = vis.trace(live, o, d, blocked, oracle_native._threads(K * Q))
         else:
             n_live = oracle_native.trace(vis, live, o, d, blocked)

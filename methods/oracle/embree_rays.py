@@ -1,23 +1,25 @@
-"""The oracle's own shadow-ray tracer for posed meshes (issue 14, session 34): an Embree scene of the
-oracle's, built on the Embree library Mitsuba ships (``mitsuba/libembree3.so``, its API called through
-ctypes) with a *dynamic* build for a deforming mesh, and its rays traced by a C loop calling
-``rtcOccluded16`` on the (3, K, Q) component planes of `methods.oracle.native_rays` (no Dr.Jit arrays).
+"""The oracle's own shadow-ray tracer (issue 14, session 34): an Embree scene of the oracle's, built on
+the Embree library Mitsuba ships (``mitsuba/libembree3.so``, its API called through ctypes) with a
+*dynamic* build for a deforming mesh, and its rays traced by a C loop handing the live rays of the (3, K, Q)
+component planes of `methods.oracle.native_rays` to Embree's stream entry point ``rtcOccluded1M``.
 
-Why: Mitsuba builds its scene's BVH at ``RTC_BUILD_QUALITY_HIGH`` (``Scene::accel_init_cpu``) and offers no
-way to change it, so writing a new pose into its scene (``methods.oracle._repose``) costs a full
-high-quality build (~11 ms CPU of a creature bench pose, 26 560 triangles, 1 thread). Here the scene is
-built once at ``RTC_BUILD_QUALITY_LOW`` with ``RTC_SCENE_FLAG_DYNAMIC`` and the mesh's own BVH at
-`QUALITY` (a refit, ``RTC_BUILD_QUALITY_REFIT``: a new pose refits the bounds of the first pose's tree,
-~0.3 ms) — a faster build for a slower traversal, chosen on whole frames (`QUALITY`'s comment).
+Why: (1) Mitsuba builds its scene's BVH at ``RTC_BUILD_QUALITY_HIGH`` (``Scene::accel_init_cpu``) and offers
+no way to change it, so writing a new pose into its scene (``methods.oracle._repose``) costs a full
+build (~11 ms CPU of a creature bench pose, 26 560 triangles, 1 thread). Here the scene is built once at
+``RTC_BUILD_QUALITY_LOW`` with ``RTC_SCENE_FLAG_DYNAMIC`` (Embree's two-level build) and the mesh's own BVH
+at `QUALITY` (``RTC_BUILD_QUALITY_REFIT``: the first pose's SAH tree, whose bounds a new pose refits,
+~1.2 ms). (2) Mitsuba's ``ray_test`` traces 16-ray packets of consecutive rays (Dr.Jit's width), the rays
+that are not live masked off; a stream of the live rays alone lets Embree form its own packets
+(`_SOURCE`): creature bench, 1 thread, captured rays traced alternately, P 72 ms against Mitsuba's 85
+(its tracer of each pose, HIGH), V 66 against 75.
 
 The same answers: the scene takes Mitsuba's flag ``RTC_SCENE_FLAG_ROBUST`` (``MitsubaVisibility``'s
 ``robust=True``: watertight triangle tests, conservative box tests), so whether a ray is blocked
-depends on the triangles only, not on the tree built over them; the rays are Mitsuba's ``ray_test``'s
-(tnear 0, tfar the largest float, time, mask, id and flags 0, packets of 16 consecutive rays of the
-planes with the rays not live masked off, blocked where Embree set tfar to −∞: ``tfar != FLT_MAX``),
-given to the same library's same entry point (Dr.Jit calls ``rtcOccluded16`` on an AVX-512 host).
-``tests/methods/test_oracle_embree.py`` compares the blocked masks with Mitsuba's tracer, bit for bit, on
-posed frames of the creature and the images of whole sequences.
+depends on that ray and the triangles only — not on the tree built over them, nor on the rays traced
+with it; the rays are Mitsuba's ``ray_test``'s (tnear 0, tfar the largest float, time, mask, id and flags
+0), blocked where Embree set tfar to −∞ (``tfar != FLT_MAX``), in the same library.
+``tests/methods/test_oracle_embree.py`` compares the blocked flags with Mitsuba's tracer, bit for bit, on
+posed and rest-pose frames, and the images of whole sequences.
 
 `EmbreeTracer.create` returns None — the caller then takes Mitsuba's tracer — when the C loops are not
 built (no compiler, ``PRTBENCH_COMPILE=0``), the library or one of its entry points is not found, or
@@ -49,63 +51,53 @@ _SOURCE = r"""
 #include <stdint.h>
 #include <float.h>
 #include <string.h>
+#include <stdlib.h>
 
 typedef struct { uint32_t flags; void *filter; uint32_t inst_id[1]; } Context;  /* RTCIntersectContext */
-typedef struct __attribute__((aligned(64))) {                                  /* RTCRay16 */
-    float org_x[16], org_y[16], org_z[16], tnear[16];
-    float dir_x[16], dir_y[16], dir_z[16], time[16];
-    float tfar[16];
-    uint32_t mask[16], id[16], flags[16];
-} Ray16;
-typedef void (*occluded16_fn)(const int *valid, void *scene, Context *ctx, Ray16 *ray);
+typedef struct __attribute__((aligned(16))) {                                  /* RTCRay */
+    float org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time, tfar;
+    uint32_t mask, id, flags;
+} Ray;
+typedef void (*occluded1m_fn)(void *scene, Context *ctx, Ray *ray, unsigned M, size_t stride);
+
+#define CHUNK 4096  /* rays per stream (a 4096-ray chunk of the planes, its live rays) */
 
 /* blocked[i] = live[i] && the ray (o, d)[i] hits a triangle at t in (0, FLT_MAX), for i < n; o, d (3, n)
-   component planes PS apart; packets of 16 consecutive rays (Mitsuba's ray_test on a 16-wide host:
-   the same rays, masks and fields), each traced by one thread (no reduction: any team size gives the
-   same answers). */
+   component planes PS apart. The live rays of each chunk of CHUNK rays go to rtcOccluded1M as one stream of
+   Mitsuba's ray_test's rays (tnear 0, tfar the largest float; time, mask, id, flags 0; an incoherent
+   context), blocked where Embree set tfar to -inf; each chunk traced by one thread (any team size
+   gives the same answers). */
 void occluded(void *fn, void *scene, const uint8_t *live, const float *o, const float *d, int64_t PS,
               int64_t n, uint8_t *blocked, int32_t nt)
 {
-    occluded16_fn occ = (occluded16_fn) fn;
-    int64_t np = (n + 15) / 16;
-#pragma omp parallel for num_threads(nt) schedule(dynamic, 64)
-    for (int64_t p = 0; p < np; ++p) {
-        Ray16 r;
-        Context ctx = {0, 0, {0xFFFFFFFFu}};
-        int valid[16], any = 0;
-        int64_t i0 = p * 16;
-        if (i0 + 16 <= n) {  /* a full packet: the planes' 16 consecutive values */
-            for (int k = 0; k < 16; ++k) {
-                valid[k] = -(int) (live[i0 + k] != 0);
-                any |= live[i0 + k];
+    occluded1m_fn occ = (occluded1m_fn) fn;
+    int64_t nc = (n + CHUNK - 1) / CHUNK;
+#pragma omp parallel num_threads(nt)
+    {
+        Ray *r = (Ray *) aligned_alloc(64, sizeof(Ray) * CHUNK);
+        int32_t *idx = (int32_t *) malloc(sizeof(int32_t) * CHUNK);
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t c = 0; c < nc; ++c) {
+            Context ctx = {0, 0, {0xFFFFFFFFu}};
+            int64_t a = c * CHUNK, b = a + CHUNK < n ? a + CHUNK : n;
+            int m = 0;
+            for (int64_t i = a; i < b; ++i) {
+                blocked[i] = 0;
+                if (!live[i])
+                    continue;
+                Ray x = {o[i], o[PS + i], o[2 * PS + i], 0.f, d[i], d[PS + i], d[2 * PS + i], 0.f, FLT_MAX, 0, 0, 0};
+                idx[m] = (int32_t) (i - a);
+                r[m++] = x;
             }
-            if (!any) {
-                memset(blocked + i0, 0, 16);
-                continue;
-            }
-            memcpy(r.org_x, o + i0, 64); memcpy(r.org_y, o + PS + i0, 64); memcpy(r.org_z, o + 2 * PS + i0, 64);
-            memcpy(r.dir_x, d + i0, 64); memcpy(r.dir_y, d + PS + i0, 64); memcpy(r.dir_z, d + 2 * PS + i0, 64);
-        } else {  /* the last one: lanes past n off, given the packet's first ray */
-            for (int k = 0; k < 16; ++k) {
-                int64_t i = i0 + k;
-                int v = i < n && live[i];
-                valid[k] = v ? -1 : 0;
-                any |= v;
-                int64_t j = i < n ? i : i0;
-                r.org_x[k] = o[j]; r.org_y[k] = o[PS + j]; r.org_z[k] = o[2 * PS + j];
-                r.dir_x[k] = d[j]; r.dir_y[k] = d[PS + j]; r.dir_z[k] = d[2 * PS + j];
-            }
+            if (m)
+                occ(scene, &ctx, r, (unsigned) m, sizeof(Ray));
+            for (int j = 0; j < m; ++j)
+                blocked[a + idx[j]] = r[j].tfar != FLT_MAX;
         }
-        for (int k = 0; k < 16; ++k) {
-            r.tnear[k] = 0.f; r.time[k] = 0.f; r.tfar[k] = FLT_MAX; r.mask[k] = 0; r.id[k] = 0; r.flags[k] = 0;
-        }
-        if (any)
-            occ(valid, scene, &ctx, &r);
-        for (int k = 0; k < 16 && i0 + k < n; ++k)
-            blocked[i0 + k] = valid[k] && r.tfar[k] != FLT_MAX;
+        free(r);
+        free(idx);
     }
 }
-
 """
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"occluded": [_P, _P, _P, _P, _P, _I, _I, _P, ctypes.c_int32]}
@@ -130,7 +122,7 @@ _API = {
     "rtcCommitScene": (None, [_P], "PNS_10RTCSceneTyE"),
     "rtcReleaseScene": (None, [_P], "PNS_10RTCSceneTyE"),
 }
-_STATE: dict = {}  # "api": {name: function} or None, "device": the Embree device, "occluded16": its address
+_STATE: dict = {}  # "api": {name: function} or None, "device": the Embree device, "occluded1m": its address
 
 
 def _lib():
@@ -141,7 +133,7 @@ def _lib():
 
 def _api():
     """Embree's entry points in Mitsuba's ``libembree3.so`` (``{name: ctypes function}``, with the device and
-    ``rtcOccluded16``'s address in `_STATE`), or None: not found."""
+    ``rtcOccluded1M``'s address in `_STATE`), or None: not found."""
     if "api" in _STATE:
         return _STATE["api"]
     _STATE["api"] = None
@@ -150,7 +142,7 @@ def _api():
 
         lib = ctypes.CDLL(os.path.join(os.path.dirname(mitsuba.__file__), "libembree3.so"))
         api = {}
-        for name, (res, args, sig) in {**_API, "rtcOccluded16": (None, [], "PKiPNS_10RTCSceneTyEPNS_19RTCIntersectContextEPNS_8RTCRay16E")}.items():
+        for name, (res, args, sig) in {**_API, "rtcOccluded1M": (None, [], "PNS_10RTCSceneTyEPNS_19RTCIntersectContextEPNS_6RTCRayEjm")}.items():
             mangled = f"_ZN7mitsuba{len(name)}{name}E{sig}"
             fn = getattr(lib, name) if hasattr(lib, name) else getattr(lib, mangled)
             fn.restype, fn.argtypes = res, args
@@ -160,7 +152,7 @@ def _api():
     dev = api["rtcNewDevice"](b"threads=1")
     if not dev or api["rtcGetDeviceError"](dev):
         return None
-    _STATE.update(api=api, device=dev, occluded16=ctypes.cast(api["rtcOccluded16"], ctypes.c_void_p).value)
+    _STATE.update(api=api, device=dev, occluded1m=ctypes.cast(api["rtcOccluded1M"], ctypes.c_void_p).value)
     return api
 
 
@@ -228,7 +220,7 @@ class EmbreeTracer:
             blocked.zero_()
             return 0
         assert o.stride(0) == d.stride(0) and live.is_contiguous() and blocked.is_contiguous()
-        self._lib.occluded(_STATE["occluded16"], self._scene, live.data_ptr(), o.data_ptr(), d.data_ptr(),
+        self._lib.occluded(_STATE["occluded1m"], self._scene, live.data_ptr(), o.data_ptr(), d.data_ptr(),
                            int(o.stride(0)), n, blocked.data_ptr(), int(threads))
         return m
 

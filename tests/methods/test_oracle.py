@@ -99,6 +99,7 @@ def _counting_visibility(monkeypatch):
 
     traced = [0]
     real = oracle_mod.make_visibility
+    monkeypatch.setattr(oracle_mod, "OWN_TRACER", False)  # Mitsuba's tracer, not the oracle's own (session 34)
 
     class Counting:
         def __init__(self, vis):
@@ -291,9 +292,11 @@ def test_oracle_native_trace_direct_equals_gathered(monkeypatch):
     its active mask (chunks of the tracer's ``chunk_rays``, here small so that a frame takes several):
     the same blocked flags, live ray for live ray, as the live rays gathered and traced by ``occluded``
     (the fallback, forced by an instance-level ``occluded``), and the same image and live count."""
+    import methods.oracle as oracle_mod
     import methods.oracle.native_rays as on
 
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    monkeypatch.setattr(oracle_mod, "OWN_TRACER", False)  # Mitsuba's tracer, not the oracle's own (session 34)
     if not on.available():
         pytest.skip("no C compiler: the C loops do not run")
     scene = get_scene("chess", "test")

@@ -1,6 +1,6 @@
-"""The oracle's own tracer of posed meshes (``methods.oracle.embree_rays``, session 34) gives Mitsuba's
-tracer's answers: the same blocked flag for every shadow ray of posed frames (a refitted BVH pose after
-pose), and the same images and counts as the oracle on Mitsuba's tracer (`OWN_TRACER` off: `_repose`)."""
+"""The oracle's own tracer (``methods.oracle.embree_rays``, session 34) gives Mitsuba's tracer's answers: the
+same blocked flag for every shadow ray of posed frames (a refitted BVH pose after pose) and of the rest
+pose, and the same images and counts as the oracle on Mitsuba's tracer (`OWN_TRACER` off: `_repose`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -27,15 +27,17 @@ def _require(monkeypatch):
 
 
 def _posed_frames(n=4):
+    """Posed creature frames, then the rest pose again."""
     scene = get_scene("creature", "test")
     frames = make_sequence(scene, "P", n_frames=n, seed=0)
     assert len({repr(f.pose) for f in frames}) == len(frames)
-    return scene, frames
+    return scene, frames + [dataclasses.replace(frames[0], pose=None, index=9)]
 
 
 def test_own_tracer_blocked_equals_mitsuba(monkeypatch):
-    """Every shadow ray of posed frames (the same tracer reposed frame after frame: its BVH refitted):
-    blocked by the own tracer exactly where Mitsuba's tracer of that pose (a new one) says so."""
+    """Every shadow ray of posed frames and the rest pose (the same tracer reposed frame after frame: its
+    BVH refitted): blocked by the own tracer exactly where Mitsuba's tracer of that pose (a new one) says
+    so."""
     import methods.oracle as O
     import methods.oracle.native_rays as on
 
@@ -66,14 +68,14 @@ def test_own_tracer_blocked_equals_mitsuba(monkeypatch):
 
 def test_posed_frames_equal_mitsuba_tracer_path(monkeypatch):
     """Posed frames (and the rest pose after them) on the own tracer: bit for bit the images and counts
-    of the oracle on Mitsuba's tracer (`OWN_TRACER` off), frame after frame; no Mitsuba scene is built
-    for the posed frames; when the own tracer cannot be built, Mitsuba's runs (the same images)."""
+    of the oracle on Mitsuba's tracer (`OWN_TRACER` off), frame after frame; no Mitsuba scene is built;
+    when the own tracer cannot be built, Mitsuba's runs (the same images). And a rigid scene's frames
+    (chess, VBL)."""
     import methods.oracle as O
     import methods.oracle.embree_rays as E
 
     _require(monkeypatch)
     scene, frames = _posed_frames()
-    frames = frames + [dataclasses.replace(frames[0], pose=None, index=9)]
     cfg = dict(light_samples=2, brdf_samples=3, seed=2)
     a, b = get_method("oracle")(**cfg), get_method("oracle")(**cfg)
     a.precompute(scene)
@@ -81,14 +83,25 @@ def test_posed_frames_equal_mitsuba_tracer_path(monkeypatch):
     for f in frames:
         gb = make_gbuffer(scene, f, 1)
         img = a.render(f, gb)
-        if f.pose is not None:
-            assert isinstance(a._own[1], E.EmbreeTracer) and a._vis is None
+        assert isinstance(a._own[1], E.EmbreeTracer) and a._vis is None
         monkeypatch.setattr(O, "OWN_TRACER", False)
         want = b.render(f, gb)
         monkeypatch.setattr(O, "OWN_TRACER", True)
         assert b._own is None
         assert torch.equal(img, want), f.index
         assert a._last == b._last, f.index
+    chess = get_scene("chess", "test")
+    a2, b2 = get_method("oracle")(**cfg), get_method("oracle")(**cfg)
+    a2.precompute(chess)
+    b2.precompute(chess)
+    monkeypatch.setattr(O, "OWN_TRACER", False)
+    for f in make_sequence(chess, "VBL", n_frames=2, seed=0):
+        gb = make_gbuffer(chess, f, 1)
+        want = b2.render(f, gb)
+        monkeypatch.setattr(O, "OWN_TRACER", True)
+        assert torch.equal(a2.render(f, gb), want) and a2._last == b2._last and a2._vis is None
+        monkeypatch.setattr(O, "OWN_TRACER", False)
+    monkeypatch.setattr(O, "OWN_TRACER", True)
     monkeypatch.setattr(E.EmbreeTracer, "create", classmethod(lambda cls, V, F: None))
     c = get_method("oracle")(**cfg)
     c.precompute(scene)
