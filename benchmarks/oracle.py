@@ -32,8 +32,14 @@ def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
     Mitsuba's ``ray_test`` alone (rays already in Dr.Jit arrays; embreex: ``occluded`` only)."""
     import numpy as np
 
+    import methods.oracle as O
+
     rays = {}
-    m.render(frame, gb)
+    own, O.OWN_TRACER = O.OWN_TRACER, False  # Mitsuba's tracer (the oracle's own: `benchmarks.oracle_stages`)
+    try:
+        m.render(frame, gb)
+    finally:
+        O.OWN_TRACER = own
     vis = m._vis[1]
     real = vis.occluded
 
@@ -42,10 +48,12 @@ def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
         return real(o, d)
 
     vis.occluded = grab
+    O.OWN_TRACER = False
     try:
         m.render(frame, gb)
     finally:
         vis.occluded = real
+        O.OWN_TRACER = own
     o, d = rays["o"], rays["d"]
     out = {"rays": int(o.shape[0]), "backend": vis.backend, "occluded_s": wall_cpu_time(lambda: vis.occluded(o, d), repeats)}
     if vis.backend == "mitsuba":

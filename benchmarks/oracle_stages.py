@@ -11,7 +11,8 @@ tracer alone) and their gathers (`_trace_soa`), the radiance look-up (`_shade_bl
 resolve; on the C loops' path (``methods.oracle.native_rays``) their cell search + per-ray work
 (``native.pretrace``), the trace (``native.trace``: Mitsuba's ``ray_test`` on the rays as they are,
 or with ``--time-occluded`` the live rays gathered for the tracer's ``occluded``, timed alone) and
-radiance sum (``native.shade``). The rest of a frame (random numbers, index arithmetic, copies) is the frame minus them.
+radiance sum (``native.shade``); on the oracle's own tracer (``methods.oracle.embree_rays``, session 34)
+its trace (``own.trace``) and a new pose's refit (``own.repose``). The rest of a frame (random numbers, index arithmetic, copies) is the frame minus them.
 """
 from __future__ import annotations
 
@@ -66,6 +67,12 @@ def main(argv: list[str] | None = None) -> dict:
 
     for name in ("pretrace", "trace", "shade"):
         setattr(N, name, timed(getattr(N, name), f"native.{name}"))
+    import methods.oracle.embree_rays as E  # the oracle's own tracer (session 34)
+
+    for name in ("trace", "repose"):
+        setattr(E.EmbreeTracer, name, timed(getattr(E.EmbreeTracer, name), f"own.{name}"))
+    if a.time_occluded:  # Mitsuba's tracer's ``occluded``: the oracle's own tracer off
+        O.OWN_TRACER = False
     with warming():
         m.render(frames[0], gbs[0])
     m.render(frames[1], gbs[1])

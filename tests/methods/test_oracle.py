@@ -99,6 +99,7 @@ def _counting_visibility(monkeypatch):
 
     traced = [0]
     real = oracle_mod.make_visibility
+    monkeypatch.setattr(oracle_mod, "OWN_TRACER", False)  # Mitsuba's tracer, not the oracle's own (session 34)
 
     class Counting:
         def __init__(self, vis):
@@ -291,9 +292,11 @@ def test_oracle_native_trace_direct_equals_gathered(monkeypatch):
     its active mask (chunks of the tracer's ``chunk_rays``, here small so that a frame takes several):
     the same blocked flags, live ray for live ray, as the live rays gathered and traced by ``occluded``
     (the fallback, forced by an instance-level ``occluded``), and the same image and live count."""
+    import methods.oracle as oracle_mod
     import methods.oracle.native_rays as on
 
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    monkeypatch.setattr(oracle_mod, "OWN_TRACER", False)  # Mitsuba's tracer, not the oracle's own (session 34)
     if not on.available():
         pytest.skip("no C compiler: the C loops do not run")
     scene = get_scene("chess", "test")
@@ -481,13 +484,17 @@ def test_oracle_native_avx512_build_equals_avx2(mats, monkeypatch):
             assert (x - y).abs().max().item() <= 1e-5 * y.abs().max().item(), mat.kind
 
 
-def test_oracle_pose_written_into_the_tracer_equals_a_new_tracer():
+def test_oracle_pose_written_into_the_tracer_equals_a_new_tracer(monkeypatch):
     """A posed frame after another pose (P) writes the new vertex positions into the last tracer's Mitsuba
     scene (`methods.oracle._repose`, session 33) instead of building a new one: the same tracer object
     frame after frame, and every frame's image and counts bit for bit those of an oracle that builds
     the tracer of that pose afresh (the same rays hit the same triangles); the rest pose again after
-    poses too."""
+    poses too. With the oracle's own tracer of posed frames off (`OWN_TRACER`, session 34: Mitsuba's
+    tracer is its fallback; ``tests/methods/test_oracle_embree.py``)."""
+    import methods.oracle as oracle_mod
     from references.visibility import resolve_backend
+
+    monkeypatch.setattr(oracle_mod, "OWN_TRACER", False)
 
     if resolve_backend() != "mitsuba":
         pytest.skip("the tracer is embreex: a new one per pose")
