@@ -1154,18 +1154,10 @@ def screen_counts(cur: Tensor) -> list[int] | None:
 
 # --- `runtime.zonal_conjugate` of the specular term as one C pass -------------------------------------------
 #
-# A vertex-shaded view frame's t_s (`runtime.specular_parts`) was the reflection directions (`reflect_T`,
-# ~8 small ops over index-selected copies of n and ωo), the compiled angle tables (`_zyz_angle_tables`),
-# the first compiled half (`_zyz_down`), the block products (`_blocked_product`: one GEMM per block) and
-# the second compiled half (`_zyz_up`): ~5 separate passes over (n², Q) arrays and ~10 dispatches,
-# 3.5 of a ~7 ms order-8 V frame (bench creature, 1 thread, process CPU). Here the same maths for
-# 16 points at a time, each point's rows held in L1 from the column gather to the store: R, its polar
-# angles and their cos / sin rows, R_z(−φ), X, R_z(−θ), the blocks of X M Xᵀ, R_z(θ), Xᵀ, R_z(φ).
-# The same operations as the compiled passes on every row (the z rotations as a·C + a[perm]·(S·sgn),
-# X's gathered terms in order, zero-padded terms included); the block products' sums in row order with
-# multiply-adds fused: float32 round-off against the GEMMs (tests). Each point is one thread's: the same
-# bits at any thread count.
-_CONJ_SOURCE = r"""
+# The conjugation helpers shared by the order-8 C sources (`_CONJ_SOURCE`, `_VIEW_SOURCE`; zh34v: one
+# string both translation units start with, instead of two copies): 16-lane float vectors, the z
+# rotation, X by its gathered terms, the angle rows and the polar angles' rows.
+_CONJ_HELPERS = r"""
 #include <stdint.h>
 #include <string.h>
 #include <math.h>
@@ -1204,6 +1196,34 @@ static inline void angles(int64_t n, vf c, vf s, vf *C, vf *S) {
     }
 }
 
+/* The polar angles' rows of the unit vectors (R0, R1, R2) (`_polar`: phi = 0 on the pole). */
+static inline void polar_rows(int64_t n, vf R0, vf R1, vf R2, vf *Cp, vf *Sp, vf *Ct, vf *St) {
+    vf z, cp, sp;
+    const vf rho = vsqrt(R0 * R0 + R1 * R1);
+    for (int l = 0; l < L; ++l) {
+        z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
+        const int ok = rho[l] > 1e-20f;
+        const float safe = ok ? rho[l] : 1.0f;
+        cp[l] = ok ? R0[l] / safe : 1.0f;
+        sp[l] = ok ? R1[l] / safe : 0.0f;
+    }
+    angles(n, cp, sp, Cp, Sp);
+    angles(n, z, rho, Ct, St);
+}
+"""
+
+# A vertex-shaded view frame's t_s (`runtime.specular_parts`) was the reflection directions (`reflect_T`,
+# ~8 small ops over index-selected copies of n and ωo), the compiled angle tables (`_zyz_angle_tables`),
+# the first compiled half (`_zyz_down`), the block products (`_blocked_product`: one GEMM per block) and
+# the second compiled half (`_zyz_up`): ~5 separate passes over (n², Q) arrays and ~10 dispatches,
+# 3.5 of a ~7 ms order-8 V frame (bench creature, 1 thread, process CPU). Here the same maths for
+# 16 points at a time, each point's rows held in L1 from the column gather to the store: R, its polar
+# angles and their cos / sin rows, R_z(−φ), X, R_z(−θ), the blocks of X M Xᵀ, R_z(θ), Xᵀ, R_z(φ).
+# The same operations as the compiled passes on every row (the z rotations as a·C + a[perm]·(S·sgn),
+# X's gathered terms in order, zero-padded terms included); the block products' sums in row order with
+# multiply-adds fused: float32 round-off against the GEMMs (tests). Each point is one thread's: the same
+# bits at any thread count.
+_CONJ_SOURCE = _CONJ_HELPERS + r"""
 /* out (n2, Q) row-major: for point q < Q (column col[q] = idx ? idx[q] : off + q of src (n2 rows, row
    stride ld) and of nT, woT (3 rows, row stride ldn)) the conjugation M(R_R) M M(R_R)^T of its column,
    R = reflect(wo, n) normalised. sgn: the + signs (the first half takes -sgn); xi, xw / ti, tw (n2, k):
@@ -1230,7 +1250,7 @@ void zh_conj(int64_t lifted, int64_t n, int64_t Q, const float *src, int64_t ld,
             const int64_t q = q0 + (l < m ? l : m - 1);       /* the tail's spare lanes repeat the last point */
             c[l] = idx ? idx[q] : off + q;
         }
-        vf n0, n1, n2v, R0, R1, R2, z, cp, sp;
+        vf n0, n1, n2v, R0, R1, R2;
         for (int64_t l = 0; l < L; ++l) {
             n0[l] = nT[c[l]]; n1[l] = nT[ldn + c[l]]; n2v[l] = nT[2 * ldn + c[l]];
         }
@@ -1249,16 +1269,7 @@ void zh_conj(int64_t lifted, int64_t n, int64_t Q, const float *src, int64_t ld,
             R0 = R0 / nr; R1 = R1 / nr; R2 = R2 / nr;
         }
         /* `_polar`: cos / sin of theta and phi (phi = 0 on the pole) */
-        const vf rho = vsqrt(R0 * R0 + R1 * R1);
-        for (int l = 0; l < L; ++l) {
-            z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
-            const int ok = rho[l] > 1e-20f;
-            const float safe = ok ? rho[l] : 1.0f;
-            cp[l] = ok ? R0[l] / safe : 1.0f;
-            sp[l] = ok ? R1[l] / safe : 0.0f;
-        }
-        angles(n, cp, sp, Cp, Sp);
-        angles(n, z, rho, Ct, St);
+        polar_rows(n, R0, R1, R2, Cp, Sp, Ct, St);
         for (int64_t r = 0; r < n2; ++r) {
             const float *row = src + r * ld;
             for (int64_t l = 0; l < L; ++l) a[r][l] = row[c[l]];
@@ -1881,20 +1892,11 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
 # clamped at 0 if asked; the other vertices 0. The sums over the n² rows in row order with multiply-
 # adds fused: float32 round-off against the torch path's products (tests). Each vertex is one lane of
 # one thread's block: the same bits at any thread count.
-_VIEW_SOURCE = r"""
-#include <stdint.h>
-#include <string.h>
-#include <math.h>
+_VIEW_SOURCE = _CONJ_HELPERS + r"""
 #ifdef __AVX512F__
 #include <immintrin.h>
 #endif
 
-#define L 16
-#define MAXN 8
-#define MAXN2 (MAXN * MAXN)
-typedef float vf __attribute__((vector_size(4 * L)));
-
-static inline vf vsqrt(vf x) { vf r; for (int l = 0; l < L; ++l) r[l] = sqrtf(x[l]); return r; }
 /* a value the compiler may not fuse into a later add (torch rounds the product first) */
 static inline float rounded(float x) { __asm__("" : "+x"(x)); return x; }
 static inline vf vrounded(vf x) { __asm__("" : "+v"(x)); return x; }
@@ -1926,47 +1928,8 @@ static inline void gather_cols(int64_t n2, const float *w, int64_t ldw, int64_t 
     }
 }
 
-static inline void rz(int64_t n2, const vf *a, const vf *C, const vf *S, const int64_t *perm, const int64_t *absm,
-                      const float *sg, vf *o) {
-    for (int64_t r = 0; r < n2; ++r)
-        o[r] = a[r] * C[absm[r]] + a[perm[r]] * (S[absm[r]] * sg[r]);
-}
-
-static inline void gx(int64_t n2, int64_t k, const vf *t, const int64_t *idx, const float *w, vf *o) {
-    for (int64_t r = 0; r < n2; ++r) {
-        vf s = t[idx[r * k]] * w[r * k];
-        for (int64_t j = 1; j < k; ++j) s = s + t[idx[r * k + j]] * w[r * k + j];
-        o[r] = s;
-    }
-}
-
-static inline void angles(int64_t n, vf c, vf s, vf *C, vf *S) {
-    const vf one = (vf){0} + 1.0f, zero = (vf){0};
-    C[0] = one; S[0] = zero;
-    if (n > 1) { C[1] = c; S[1] = s; }
-    for (int64_t m = 2; m < n; ++m) {
-        C[m] = C[m - 1] * c - S[m - 1] * s;
-        S[m] = S[m - 1] * c + C[m - 1] * s;
-    }
-}
-
 /* One block: the m <= L vertices c[0..m) (spare lanes repeat the last) of region r; spec: with the
    conjugation by the region's plan (nb blocks spans / Kv, cols, srow). out rows (N, 3). */
-/* The polar angles' rows of the unit vectors (R0, R1, R2) (`_polar`: phi = 0 on the pole). */
-static inline void polar_rows(int64_t n, vf R0, vf R1, vf R2, vf *Cp, vf *Sp, vf *Ct, vf *St) {
-    vf z, cp, sp;
-    const vf rho = vsqrt(R0 * R0 + R1 * R1);
-    for (int l = 0; l < L; ++l) {
-        z[l] = R2[l] < -1.0f ? -1.0f : (R2[l] > 1.0f ? 1.0f : R2[l]);
-        const int ok = rho[l] > 1e-20f;
-        const float safe = ok ? rho[l] : 1.0f;
-        cp[l] = ok ? R0[l] / safe : 1.0f;
-        sp[l] = ok ? R1[l] / safe : 0.0f;
-    }
-    angles(n, cp, sp, Cp, Sp);
-    angles(n, z, rho, Ct, St);
-}
-
 /* lp: a lifted plan (nb, spans, Kv, srow; its columns in place) when w's columns hold the visibility in
    the ZYZ normal frames (`runtime.cosine_visibility_zyz`, ``ordered``: a P frame's), then w itself is
    made first (the blocks of X M^1 and the second half about n, as `specular_conjugate`'s lifted pass);
