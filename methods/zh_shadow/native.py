@@ -1213,7 +1213,8 @@ static inline void polar_rows(int64_t n, vf R0, vf R1, vf R2, vf *Cp, vf *Sp, vf
 /* The blocks of a plan's product: u[i] = sum_j K[i - r0, j] t[ci[j]], ci[j] = cols ? cols[c0 + j] : c0 + j, for
    the nb blocks (r0, r1, c0, c1) of spans, their values K concatenated (each (r1 - r0, c1 - c0) row-major).
    Each row's sum in j order with multiply-adds fused (the same operations as one row at a time), BROWS
-   rows at a time: independent chains in flight instead of one dependent chain of c1 - c0 per row. */
+   rows at a time: independent chains in flight instead of one dependent chain of c1 - c0 per row
+   (-DBROWS=1: one row at a time, the loop before session 34: tests). */
 #ifndef BROWS
 #define BROWS 4
 #endif
@@ -1225,6 +1226,7 @@ static inline void block_products(int64_t nb, const int64_t *spans, const float 
         const int64_t wd = c1 - c0;
         for (int64_t j = 0; j < wd; ++j) ci[j] = cols ? cols[c0 + j] : c0 + j;
         int64_t i = r0;
+#if BROWS > 1
         for (; i + BROWS <= r1; i += BROWS, K += BROWS * wd) {
             vf s[BROWS];
             const vf x = t[ci[0]];
@@ -1235,6 +1237,7 @@ static inline void block_products(int64_t nb, const int64_t *spans, const float 
             }
             for (int q = 0; q < BROWS; ++q) u[i + q] = s[q];
         }
+#endif
         for (; i < r1; ++i, K += wd) {
             vf s = t[ci[0]] * K[0];
             for (int64_t j = 1; j < wd; ++j) s = s + t[ci[j]] * K[j];
