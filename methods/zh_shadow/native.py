@@ -2165,19 +2165,26 @@ def view_setup(light: Tensor, kd: Tensor, ks: Tensor, plans: list, tables: tuple
     lighting; kd, ks (R, 3) float32 per region its albedos (kd without the 1 / π); plans per region
     `runtime._block_plan` of its Phong operator (scale folded in) or None (no specular term); tables
     `runtime._conjugate_tables` (float32, CPU)."""
-    R = len(plans)
+    return view_setup_flat(light, kd, ks, [None if p is None else _flat_plan(p) for p in plans], tables, plans)
+
+
+def view_setup_flat(light: Tensor, kd: Tensor, ks: Tensor, flats: list, tables: tuple, keep: object = None
+                    ) -> tuple | None:
+    """`view_setup` of the plans already as the C passes read them (`_flat_plan`'s or `phong_flat_plan`'s
+    (spans, Kv, cols, src), or None); ``keep``: an object the setup holds alive beside them."""
+    R = len(flats)
     if light.dim() != 2 or light.shape[1] != 3 or tuple(kd.shape) != (R, 3) or tuple(ks.shape) != (R, 3) \
             or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (light, kd, ks)):
         return None
-    keep, pl = [], []
-    for p in plans:
-        if p is None:
+    pl = []
+    for f in flats:
+        if f is None:
             pl += [0, 0, 0, 0, 0]
             continue
-        spans_b, Kv, pcols, psrc = _flat_plan(p)
-        keep.append((p, spans_b, Kv, pcols, psrc))
-        pl += [len(p[2]), spans_b.data_ptr(), Kv.data_ptr(), pcols.data_ptr(), psrc.data_ptr()]
-    spec = torch.tensor([p is not None for p in plans], dtype=torch.int64)
+        spans_b, Kv, pcols, psrc = f
+        pl += [int(spans_b.shape[0]), spans_b.data_ptr(), Kv.data_ptr(), pcols.data_ptr(), psrc.data_ptr()]
+    keep = (keep, flats)
+    spec = torch.tensor([f is not None for f in flats], dtype=torch.int64)
     co = torch.cat([kd * (1.0 / math.pi), ks], 1).contiguous()       # (as `ZHShadow._diffuse_ranges`' kd, 1 / π)
     # the plans' addresses as a ctypes array, not a tensor: a method's kept tensors are its state, the same
     # numbers at any thread count (tests/methods/test_threads.py), and addresses differ per process
@@ -2366,3 +2373,72 @@ def resolve(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, 
         raise ValueError(f"G-buffer faces or corner rows out of range of {int(F.shape[0])} faces and "
                          f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
     return out.view(height, width, 3)
+
+
+# --- zh34v: a B frame's plans of the C passes without the per-exponent torch passes ---------------------
+#
+# A VB / VBL frame meets a new Phong exponent per specular region, and `ZHShadow._pass_setup` made its plan
+# by `runtime._block_plan` (M by `convolution.phong_operator`, K = X M Xᵀ by two float64 GEMMs, the gather
+# of the blocks' entries, a copy per block) and `_flat_plan` (their concatenation): ~40 torch and numpy
+# steps, 0.13 ms per exponent back to back but ~0.35 ms right after a rasteriser evicted the caches (the
+# suite's protocol). M's entries are Σ_k d_k B(α+1, k+1) over the exponent-free moments d (`_u_table`),
+# so the blocks' entries of K are linear in the beta row: Kv = G β with G = (X ⊗ X)[flat] · D, made once
+# per order and non-zero pattern. Kv equals `_flat_plan`'s to float64 round-off before the float32 cast
+# (tests); the rest of the plan (spans, cols, src) is `_plan_layout`'s.
+_PHONG_G: dict = {}
+
+
+def _phong_beta(a: float, k: int):
+    import numpy as np
+
+    beta = np.empty(k)
+    beta[0] = 1.0 / (a + 1.0)
+    for i in range(1, k):                  # (as `phong_operator`'s)
+        beta[i] = beta[i - 1] * i / (a + i + 1.0)
+    return beta
+
+
+def phong_flat_plan(alpha: float, order: int, scale: float = 1.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`_flat_plan`(`runtime._block_plan`(("phong", alpha), order, False, float32, "cpu", scale)) — spans,
+    Kv, cols, src as the C passes read them — by one product with the exponent's beta row (above), kept
+    per exponent (a plan per exponent, as `_block_plan`'s cache)."""
+    import numpy as np
+    from methods.zh_shadow import convolution as cv
+    from methods.zh_shadow import runtime as rt
+
+    key = (float(alpha), int(order), float(scale))
+    hit = _PHONG_G.get(key)
+    if hit is not None:
+        return hit
+    a = cv._check(alpha, order)
+    n2 = order * order
+    I, J, D = cv._u_table(order)
+    beta = _phong_beta(a, D.shape[1])
+    acc = D @ beta                                      # M's entries (i <= j), as `phong_operator` sums them
+    nz = acc != 0
+    lkey = (int(order), nz.tobytes())
+    lay = _PHONG_G.get(lkey)
+    if lay is None:
+        pattern = np.zeros((n2, n2), dtype=bool)
+        pattern[I[nz], J[nz]] = pattern[J[nz], I[nz]] = True
+        cols, src, spans, flat = rt._plan_layout(pattern.tobytes(), order, False, "cpu")
+        X = rt._zyz_tables(order)[3].numpy()
+        f = flat.numpy()
+        ra, rb = f // n2, f % n2                      # K[ra, rb] = Σ_(i,j) X[ra, i] M[i, j] X[rb, j]
+        A = X[ra][:, I] * X[rb][:, J]
+        off = I != J                                  # (M symmetric: its (j, i) entry too)
+        A[:, off] += X[ra][:, J[off]] * X[rb][:, I[off]]
+        A[:, ~nz] = 0.0
+        G = A @ D
+        lay = (torch.tensor([list(s) for s in spans], dtype=torch.int64).contiguous(), G,
+               cols.to(torch.int64).contiguous(), src.to(torch.int64).contiguous())
+        _PHONG_G[lkey] = lay
+    spans, G, cols, src = lay
+    Kv = G @ beta
+    if scale != 1.0:
+        Kv = Kv * scale
+    out = (spans, torch.from_numpy(Kv).to(torch.float32), cols, src)
+    if len(_PHONG_G) > 256:
+        _PHONG_G.clear()
+    _PHONG_G[key] = out
+    return out

@@ -2290,3 +2290,44 @@ def test_block_products_rows_at_a_time_equal_one_row_at_a_time(order, monkeypatc
     assert len(got) == len(want)
     for i, (a, b) in enumerate(zip(got, want)):
         assert a is not None and torch.equal(a, b), (order, i)
+
+
+@pytest.mark.parametrize("order", [2, 4, 8])
+def test_phong_flat_plan_equals_block_plan(order):
+    """`native.phong_flat_plan` (a new exponent's plan as one product with its beta row: the VB / VBL
+    frames' `_pass_setup`) = `native._flat_plan`(`runtime._block_plan`(...)) — spans, cols and src bit for
+    bit, the blocks' values to float32 round-off (float64 round-off before the cast; bit for bit on most
+    exponents) — on exponents 0 to 5000 including the integers whose M or K has extra zeros; and
+    `view_radiance` of a setup by it (`native.view_setup_flat`) = by `view_setup` to float32 round-off."""
+    import methods.zh_shadow.native as zn
+
+    _skip_without_c_compiler()
+    for a in (0.0, 0.5, 1.0, 2.0, 3.0, 7.5, 12.0, 30.0, 64.0, 200.0, 1000.0, 5000.0):
+        s = (a + 1.0) / (2.0 * math.pi)
+        want = zn._flat_plan(rt._block_plan(("phong", a), order, False, torch.float32, "cpu", s))
+        got = zn.phong_flat_plan(a, order, s)
+        for i in (0, 2, 3):
+            assert torch.equal(got[i], want[i]), (order, a, i)
+        assert got[1].dtype == torch.float32 and got[1].shape == want[1].shape
+        assert (got[1] - want[1]).abs().max() <= 1e-7 * want[1].abs().max(), (order, a)
+        assert zn.phong_flat_plan(a, order, s) is got                        # (kept per exponent)
+    g = torch.Generator().manual_seed(43)
+    N, n2 = 500, order * order
+    pos = torch.randn(N, 3, generator=g)
+    nrm = torch.randn(N, 3, generator=g)
+    nT = rt.rows(nrm / nrm.norm(dim=1, keepdim=True))
+    w = torch.randn(n2, N, generator=g)
+    light = torch.randn(n2, 3, generator=g)
+    cam = torch.tensor([0.4, 2.5, 3.0])
+    kd, ks = torch.rand(2, 3, generator=g), torch.rand(2, 3, generator=g)
+    alphas = [17.0, 1.0]
+    scale = [(a + 1.0) / (2.0 * math.pi) for a in alphas]
+    tables = rt._conjugate_tables(order, torch.float32, "cpu")
+    plans = [rt._block_plan(("phong", a), order, False, torch.float32, "cpu", s) for a, s in zip(alphas, scale)]
+    want = zn.view_radiance(zn.view_setup(light, kd, ks, plans, tables), [(0, 250), (250, N)], pos, nT, w, cam,
+                            False)
+    flats = [zn.phong_flat_plan(a, order, s) for a, s in zip(alphas, scale)]
+    got = zn.view_radiance(zn.view_setup_flat(light, kd, ks, flats, tables), [(0, 250), (250, N)], pos, nT, w,
+                           cam, False)
+    assert torch.equal(got[1], want[1])
+    assert (got[0] - want[0]).abs().max() <= 2e-6 * want[0].abs().max()
