@@ -419,6 +419,9 @@ class ZHShadow(Method):
     # Vertex-shaded frames resolve a new G-buffer by zh_shadow's C loop with the range check in it
     # (`native.resolve`: `gouraud.resolve`'s sums, bit for bit); False: `gouraud.resolve` (the tests' oracle)
     own_resolve = True
+    # The C passes' plans of a new Phong exponent (VB / VBL frames) as one product with its beta row
+    # (`native.phong_flat_plan`, zh34v); False: `runtime._block_plan` + `native.view_setup` (the tests' oracle)
+    flat_plans = True
     # A rotated map's lighting: its kept polar-frame projection rotated by to_world Qᵀ (`_lighting`);
     # False: its own-frame projection, made on the first rotation (the tests' oracle)
     rotated_lighting = True
@@ -1240,11 +1243,17 @@ class ZHShadow(Method):
         va = self._view_args
         if va is None or va[0][0] is not light or va[0][1:] != key[1:]:
             n, dev = self.config["order"], light.device
-            plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, dtype, dev,
-                                                           (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
             kd = torch.tensor([k[0] for k in key[1]], dtype=light.dtype)
             ks = torch.tensor([k[1] for k in key[1]], dtype=light.dtype)
-            self._view_args = va = (key, zn.view_setup(light, kd, ks, plans, rt._conjugate_tables(n, dtype, dev)))
+            tables = rt._conjugate_tables(n, dtype, dev)
+            if self.flat_plans and dtype == torch.float32 and dev.type == "cpu":
+                flats = [None if a is None else zn.phong_flat_plan(float(a), n, (float(a) + 1.0) / (2.0 * math.pi))
+                         for a in alphas]
+                self._view_args = va = (key, zn.view_setup_flat(light, kd, ks, flats, tables))
+            else:
+                plans = [None if a is None else rt._block_plan(("phong", float(a)), n, False, dtype, dev,
+                                                               (float(a) + 1.0) / (2.0 * math.pi)) for a in alphas]
+                self._view_args = va = (key, zn.view_setup(light, kd, ks, plans, tables))
         return va[1]
 
     def _front_radiance(self, frame: Frame, pose_vec: Tensor, geom, v0: Tensor | None, light: Tensor, mats: list,

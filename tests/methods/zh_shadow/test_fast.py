@@ -2225,3 +2225,109 @@ def test_pose_pass_equals_torch_path(zh_scene, monkeypatch, planes):
         want = fast._render_reference(f, gb)
         assert (a - want).abs().max() <= RENDER_TOL, i
     assert bool(ops) == planes   # (the plane operator beside the pass, or none)
+
+
+@pytest.mark.parametrize("order", [2, 4, 8])
+def test_block_products_rows_at_a_time_equal_one_row_at_a_time(order, monkeypatch):
+    """The plans' block products several rows at a time (`native._CONJ_HELPERS`' ``block_products``,
+    ``BROWS`` = 4: independent multiply-add chains) = one row at a time (``-DBROWS=1``, the loop before
+    session 34) bit for bit, in all three passes that take them: `specular_conjugate` (``lifted`` and
+    not: a region that is a range, one by position, ``keep``), `view_radiance` and `pose_radiance`
+    (its lifted plan in place) — the same sums in the same order per row; blocks whose row count is not
+    a multiple of 4 (orders 2 and 4) take the one-row tail."""
+    import methods.zh_shadow.native as zn
+    from methods.core import native as core_native
+
+    _skip_without_c_compiler()
+
+    def rows1(name, source, sigs):
+        return lambda: core_native.load(name + "_rows1", source, sigs, extra_flags=(
+            "-fopenmp", "-ffp-contract=fast", *core_native.isa_flags(), *zn._avx512_flags(), "-DBROWS=1"))
+
+    libs = {"_conj_lib": rows1("zh_conj", zn._CONJ_SOURCE, zn._CONJ_SIGNATURES),
+            "_view_lib": rows1("zh33v_view", zn._VIEW_SOURCE, zn._VIEW_SIGNATURES)}
+    assert all(f() is not None for f in libs.values())
+    g = torch.Generator().manual_seed(41)
+    N, n2 = 803, order * order
+    pos = torch.randn(N, 3, generator=g)
+    cam = torch.tensor([0.4, 2.5, 3.0])
+    nrm = torch.randn(N, 3, generator=g)
+    nT = rt.rows(nrm / nrm.norm(dim=1, keepdim=True))
+    woT = cam[:, None] - rt.rows(pos)
+    woT = woT / woT.norm(dim=0, keepdim=True)
+    w = torch.randn(n2, N, generator=g)
+    light = torch.randn(n2, 3, generator=g)
+    vreg = torch.cat([torch.zeros(300), torch.ones(300), torch.full((203,), 2.0)]).long()
+    vreg[0:300:7] = 3                                            # (specular_parts: a region by position)
+    spans = [(0, 300), (300, 600), (600, 803)]
+    alphas = [12.0, 30.0, 7.5]
+    kd = torch.rand(3, 3, generator=g)
+    ks = torch.rand(3, 3, generator=g)
+    plans = [rt._block_plan(("phong", a), order, False, torch.float32, "cpu", (a + 1.0) / (2.0 * math.pi))
+             for a in alphas]
+    lifted = rt._block_plan(("phong", 1.0), order, True, torch.float32, "cpu")
+    tables = rt._conjugate_tables(order, torch.float32, "cpu")
+    setup = zn.view_setup(light, kd, ks, plans, tables)
+
+    def outputs() -> list:
+        out = [t for keep in (None, rt.dot_T(nT, woT) > 0)
+               for _, _, t in rt.specular_parts(w, nT, woT, vreg, alphas + [20.0], keep=keep)]
+        out.append(zn.specular_conjugate(w, nT, None, (0, N), tables, lifted, lifted=True))
+        out += list(zn.view_radiance(setup, spans, pos, nT, w, cam, False))
+        idx = torch.arange(0, N, 2)
+        rad = torch.zeros(N, 3)
+        assert zn.pose_radiance(setup, lifted, [(0, 150), (150, 300), (300, idx.shape[0])], w[:, idx].contiguous(),
+                                nT[:, idx].contiguous(), woT[:, idx].contiguous(), idx, rad, False)
+        return out + [rad]
+
+    monkeypatch.setattr(rt, "native_conjugate", True)
+    calls = _count_native_calls(monkeypatch)
+    want = outputs()
+    assert calls and all(calls)                                  # (the C pass ran)
+    for name, f in libs.items():
+        monkeypatch.setattr(zn, name, f)
+    got = outputs()
+    assert len(got) == len(want)
+    for i, (a, b) in enumerate(zip(got, want)):
+        assert a is not None and torch.equal(a, b), (order, i)
+
+
+@pytest.mark.parametrize("order", [2, 4, 8])
+def test_phong_flat_plan_equals_block_plan(order):
+    """`native.phong_flat_plan` (a new exponent's plan as one product with its beta row: the VB / VBL
+    frames' `_pass_setup`) = `native._flat_plan`(`runtime._block_plan`(...)) — spans, cols and src bit for
+    bit, the blocks' values to float32 round-off (float64 round-off before the cast; bit for bit on most
+    exponents) — on exponents 0 to 5000 including the integers whose M or K has extra zeros; and
+    `view_radiance` of a setup by it (`native.view_setup_flat`) = by `view_setup` to float32 round-off."""
+    import methods.zh_shadow.native as zn
+
+    _skip_without_c_compiler()
+    for a in (0.0, 0.5, 1.0, 2.0, 3.0, 7.5, 12.0, 30.0, 64.0, 200.0, 1000.0, 5000.0):
+        s = (a + 1.0) / (2.0 * math.pi)
+        want = zn._flat_plan(rt._block_plan(("phong", a), order, False, torch.float32, "cpu", s))
+        got = zn.phong_flat_plan(a, order, s)
+        for i in (0, 2, 3):
+            assert torch.equal(got[i], want[i]), (order, a, i)
+        assert got[1].dtype == torch.float32 and got[1].shape == want[1].shape
+        assert (got[1] - want[1]).abs().max() <= 1e-7 * want[1].abs().max(), (order, a)
+        assert zn.phong_flat_plan(a, order, s) is got                        # (kept per exponent)
+    g = torch.Generator().manual_seed(43)
+    N, n2 = 500, order * order
+    pos = torch.randn(N, 3, generator=g)
+    nrm = torch.randn(N, 3, generator=g)
+    nT = rt.rows(nrm / nrm.norm(dim=1, keepdim=True))
+    w = torch.randn(n2, N, generator=g)
+    light = torch.randn(n2, 3, generator=g)
+    cam = torch.tensor([0.4, 2.5, 3.0])
+    kd, ks = torch.rand(2, 3, generator=g), torch.rand(2, 3, generator=g)
+    alphas = [17.0, 1.0]
+    scale = [(a + 1.0) / (2.0 * math.pi) for a in alphas]
+    tables = rt._conjugate_tables(order, torch.float32, "cpu")
+    plans = [rt._block_plan(("phong", a), order, False, torch.float32, "cpu", s) for a, s in zip(alphas, scale)]
+    want = zn.view_radiance(zn.view_setup(light, kd, ks, plans, tables), [(0, 250), (250, N)], pos, nT, w, cam,
+                            False)
+    flats = [zn.phong_flat_plan(a, order, s) for a, s in zip(alphas, scale)]
+    got = zn.view_radiance(zn.view_setup_flat(light, kd, ks, flats, tables), [(0, 250), (250, N)], pos, nT, w,
+                           cam, False)
+    assert torch.equal(got[1], want[1])
+    assert (got[0] - want[0]).abs().max() <= 2e-6 * want[0].abs().max()
