@@ -325,3 +325,45 @@ def test_render_vertex_lookups_native_equals_torch(monkeypatch):
         ref = [off.render(f, g) for f, g in zip(frames, gbs)]
         for a, b in zip(on, ref):
             assert torch.equal(a, b), kind
+
+
+def test_checked_resolve_equals_gouraud_resolve(monkeypatch):
+    """A per-vertex frame's Gouraud resolve without `gouraud.resolve`'s range passes (`fast_eval.gouraud_image`
+    with ``checked``: `native.hit_faces` checked them) = `gouraud.resolve` bit for bit on a G-buffer
+    with misses; a whole per-vertex render with it = with ``CHECKED_RESOLVE`` off, bit for bit."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+    from methods.core import gouraud
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("sphere_plane", "test")
+    frames = make_sequence(scene, "V", n_frames=2, seed=3)
+    gbs = [make_gbuffer(scene, f, 2) for f in frames]
+    miss = torch.rand(gbs[1].hit.shape, generator=torch.Generator().manual_seed(6)) < 0.2
+    gbs[1] = dataclasses.replace(gbs[1], hit=gbs[1].hit & ~miss, face=torch.where(miss, -1, gbs[1].face))
+    assert not bool(gbs[1].hit.all())                                    # misses (planted) in a frame
+    geo = scene.geometry()
+    F = geo.F
+    nv = geo.V.shape[0]
+    Bv = torch.rand(nv, 3, generator=torch.Generator().manual_seed(5)) + 0.1
+    for gb in gbs:
+        want = gouraud.resolve(Bv, F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
+        got = fast_eval.gouraud_image(gb, F, Bv, checked=True)
+        assert torch.equal(got, want)
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    calls = []
+    real = gouraud.resolve
+    monkeypatch.setattr(gouraud, "resolve", lambda *a, **k: calls.append(1) or real(*a, **k))
+    on = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert not calls                                                     # the checked path ran
+    monkeypatch.setattr(fast_eval, "CHECKED_RESOLVE", False)
+    off = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert len(calls) == 2
+    for a, b in zip(on, off):
+        assert torch.equal(a, b)
