@@ -1266,7 +1266,13 @@ def fine_grouped(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, 
 CHECKED_RESOLVE = True
 
 
-def gouraud_image(gbuffer, F: Tensor, Bv: Tensor, *, checked: bool = False) -> Tensor:
+# ... and by the triple product's own copy of that loop with the seen faces' colours in a face table
+# (`native.resolve`, the same bits) when the caller hands `native.hit_faces`' face list. False: the
+# shared loop (the test oracle).
+FACE_TABLE_RESOLVE = True
+
+
+def gouraud_image(gbuffer, F: Tensor, Bv: Tensor, *, checked: bool = False, faces: Tensor | None = None) -> Tensor:
     """The (H, W, 3) image of per-vertex colours Bv (N, 3) on ``gbuffer`` (Ma 2006 §3.3, per-vertex
     shading: each sample interpolates its triangle's vertex colours barycentrically, 0 on a miss, the
     pixel is their mean) — the shared compiled Gouraud resolve, `methods.core.gouraud.resolve`
@@ -1278,9 +1284,16 @@ def gouraud_image(gbuffer, F: Tensor, Bv: Tensor, *, checked: bool = False) -> T
     the loop reads no face of a missed sample and no other face's corners) — so its C loop
     (`gouraud._resolve_native`, the same call and so the same bits) runs without `resolve`'s two
     `torch.aminmax` passes over the faces and the corner table (~0.3 ms of a bench frame at 1 thread,
-    a parallel region at 2). Any other case, or no C loop: `gouraud.resolve`."""
+    a parallel region at 2). ``faces`` (with ``checked``): `native.hit_faces`' face list of these arrays —
+    `native.resolve` (that loop reading each seen face's 9 colours from a face table made first; the
+    same bits). Any other case, or no C loop: `gouraud.resolve`."""
     from methods.core import gouraud
 
+    if checked and faces is not None and FACE_TABLE_RESOLVE and Bv.shape[0] > 0:
+        img = native.resolve(Bv, F, faces, gbuffer.hit, gbuffer.face, gbuffer.bary, gbuffer.height, gbuffer.width,
+                             gbuffer.spp_side)
+        if img is not None:
+            return img
     if checked and CHECKED_RESOLVE and Bv.shape[0] > 0:
         fv = F.T
         S2 = gbuffer.spp_side * gbuffer.spp_side

@@ -799,7 +799,7 @@ class TripleProduct(Method):
                 wo = torch.nn.functional.normalize(cam - self.V[v], dim=-1)
                 Bv[v] = self._shade(self.R[v], wo, self.vertex_region[v], v[:, None], torch.ones(v.numel(), 1, device=v.device))
             if self.config["evaluator"] != "reference":                  # Gouraud (Ma 2006 §3.3), fused
-                return fast_eval.gouraud_image(gbuffer, self.F, Bv, checked=checked)
+                return fast_eval.gouraud_image(gbuffer, self.F, Bv, checked=checked, faces=faces if checked else None)
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)

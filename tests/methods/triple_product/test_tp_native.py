@@ -350,20 +350,37 @@ def test_checked_resolve_equals_gouraud_resolve(monkeypatch):
     F = geo.F
     nv = geo.V.shape[0]
     Bv = torch.rand(nv, 3, generator=torch.Generator().manual_seed(5)) + 0.1
-    for gb in gbs:
-        want = gouraud.resolve(Bv, F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
-        got = fast_eval.gouraud_image(gb, F, Bv, checked=True)
-        assert torch.equal(got, want)
+    old, t = native.MIN_PIXELS_PER_THREAD, torch.get_num_threads()
+    try:
+        for gb in gbs:
+            want = gouraud.resolve(Bv, F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
+            assert torch.equal(fast_eval.gouraud_image(gb, F, Bv, checked=True), want)
+            faces = native.hit_faces(gb.hit, gb.face, F, nv)[0]
+            for nt, per in ((1, old), (2, 64), (3, 64)):           # the face table and the pixels on 1-3 threads
+                torch.set_num_threads(nt)
+                native.MIN_PIXELS_PER_THREAD = per
+                assert torch.equal(native.resolve(Bv, F, faces, gb.hit, gb.face, gb.bary, gb.height, gb.width,
+                                                  gb.spp_side), want), nt
+                assert torch.equal(fast_eval.gouraud_image(gb, F, Bv, checked=True, faces=faces), want), nt
+    finally:
+        native.MIN_PIXELS_PER_THREAD = old
+        torch.set_num_threads(t)
     m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
                       brdf_supersample=1, progress=False)
     m.precompute(scene)
     calls = []
     real = gouraud.resolve
     monkeypatch.setattr(gouraud, "resolve", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tab = []
+    real_tab = native.resolve
+    monkeypatch.setattr(native, "resolve", lambda *a, **k: tab.append(1) or real_tab(*a, **k))
     on = [m.render(f, g) for f, g in zip(frames, gbs)]
-    assert not calls                                                     # the checked path ran
+    assert not calls and len(tab) == 2                                   # the face-table loop ran
+    monkeypatch.setattr(fast_eval, "FACE_TABLE_RESOLVE", False)
+    mid = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert not calls and len(tab) == 2                                   # the shared loop, unchecked
     monkeypatch.setattr(fast_eval, "CHECKED_RESOLVE", False)
     off = [m.render(f, g) for f, g in zip(frames, gbs)]
     assert len(calls) == 2
-    for a, b in zip(on, off):
-        assert torch.equal(a, b)
+    for a, b, c in zip(on, mid, off):
+        assert torch.equal(a, c) and torch.equal(b, c)
