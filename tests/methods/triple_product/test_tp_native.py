@@ -233,6 +233,13 @@ def test_hit_faces_equal_the_torch_bookkeeping():
     faces = _hit_faces(SimpleNamespace(hit=hit, face=face), nf)
     assert torch.equal(got[0], faces) and torch.equal(got[1], _distinct(F[faces].reshape(-1), nv))
     assert got[2] == int(hit.sum())
+    old = native.HIT_LISTS
+    native.HIT_LISTS = not old                                               # the lists by torch.nonzero (or by C)
+    try:
+        other = native.hit_faces(hit, face, F, nv)
+    finally:
+        native.HIT_LISTS = old
+    assert torch.equal(other[0], got[0]) and torch.equal(other[1], got[1]) and other[2] == got[2]
     none = native.hit_faces(torch.zeros(P, dtype=torch.bool), face, F, nv)
     assert none[0].numel() == 0 and none[1].numel() == 0 and none[2] == 0
     bad = face.clone()
