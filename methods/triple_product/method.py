@@ -780,6 +780,7 @@ class TripleProduct(Method):
             chunk = FINE_RENDER_POINTS  # `fast_eval.shade_fine` bounds its own memory
         if self.config["shading"] == "vertex":
             seen = tp_native.hit_faces(gbuffer.hit, gbuffer.face, self.F, self.V.shape[0])   # one C pass
+            checked = seen is not None   # it checked the hit samples' faces and their vertices (raises otherwise)
             if seen is None:
                 faces = _hit_faces(gbuffer, self.F.shape[0])
                 seen = (faces, _distinct(self.F[faces].reshape(-1), self.V.shape[0]), int(gbuffer.hit.sum()))
@@ -798,7 +799,7 @@ class TripleProduct(Method):
                 wo = torch.nn.functional.normalize(cam - self.V[v], dim=-1)
                 Bv[v] = self._shade(self.R[v], wo, self.vertex_region[v], v[:, None], torch.ones(v.numel(), 1, device=v.device))
             if self.config["evaluator"] != "reference":                  # Gouraud (Ma 2006 §3.3), fused
-                return fast_eval.gouraud_image(gbuffer, self.F, Bv)
+                return fast_eval.gouraud_image(gbuffer, self.F, Bv, checked=checked, faces=faces if checked else None)
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
             hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "chunks", "points", "groups", "hit_faces", "vertex_lookups", "W"]
+__all__ = ["available", "chunks", "points", "groups", "hit_faces", "resolve", "vertex_lookups", "W"]
 
 W = 8  # columns per chunk (one 8-lane vector)
 
@@ -279,6 +279,65 @@ void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf
     counts[1] = bad ? -1 : 0;
 }
 
+/* tp_hit_faces with the lists made here: seen (nf + nv bytes, zeroed by the caller) the two marks,
+   lists (nf + nv) int64: the seen faces in order at lists[0 ..), the seen vertices in order at
+   lists[nf ..); counts[2], counts[3] their numbers (what torch.nonzero of the marks gives). */
+void tp_hit_lists(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf, const int64_t* F, int64_t nv,
+                  uint8_t* seen, int64_t* lists, int64_t* counts) {
+    tp_hit_faces(P, hit, face, nf, F, nv, seen, seen + nf, counts);
+    if (counts[1] != 0) return;
+    int64_t k = 0;
+    for (int64_t f = 0; f < nf; ++f)
+        if (seen[f]) lists[k++] = f;
+    counts[2] = k;
+    k = 0;
+    for (int64_t v = 0; v < nv; ++v)
+        if (seen[nf + v]) lists[nf + k++] = v;
+    counts[3] = k;
+}
+
+/* A per-vertex frame's Gouraud resolve (methods/core/gouraud.py's resolve3 loop, the same sums in the
+   same order with the same float32 operations, no contraction: the same bits) with the seen faces'
+   corner colours gathered first into a face table T (nf, 9) (T[9 f + 3 c + ch] = val[3 F[3 f + c] + ch],
+   the nfs faces of faces[], `hit_faces`' list), so a sample reads its face's 9 colours from one row
+   instead of F's row and then three vertex rows (a chain of two dependent loads fewer). Pixels
+   [0, n): out[i, ch] = (1 / S2) sum over its hit samples p, in order, of (x w + y u) + z v, w = 1 - u - v.
+   Every hit sample's face must be one of faces[] (hit_faces' list of the same arrays: unchecked here).
+   Faces, then pixels, split over nt threads of OpenMP's team (each pixel one thread's: the same bits). */
+__attribute__((optimize("-ffp-contract=off")))
+void tp_resolve(int64_t n, int64_t S2, const uint8_t* hit, const int64_t* face, const float* bu, const float* bv,
+                const int64_t* F, const float* val, const int64_t* faces, int64_t nfs, float* T, float* out,
+                int64_t nt) {
+    const float inv = 1.0f / (float)S2;
+#pragma omp parallel num_threads(nt) if (nt > 1)
+    {
+#pragma omp for schedule(static)
+        for (int64_t k = 0; k < nfs; ++k) {
+            const int64_t f = faces[k];
+            float* t = T + 9 * f;
+            for (int c = 0; c < 3; ++c) {
+                const float* x = val + 3 * F[3 * f + c];
+                t[3 * c] = x[0]; t[3 * c + 1] = x[1]; t[3 * c + 2] = x[2];
+            }
+        }
+#pragma omp for schedule(static)
+        for (int64_t i = 0; i < n; ++i) {
+            float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
+            for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+                if (!hit[p]) continue;
+                const float u = bu[p], v = bv[p], w = 1.0f - u - v;
+                const float* x = T + 9 * face[p];
+                a0 += (x[0] * w + x[3] * u) + x[6] * v;
+                a1 += (x[1] * w + x[4] * u) + x[7] * v;
+                a2 += (x[2] * w + x[5] * u) + x[8] * v;
+            }
+            out[3 * i] = a0 * inv;
+            out[3 * i + 1] = a1 * inv;
+            out[3 * i + 2] = a2 * inv;
+        }
+    }
+}
+
 /* A per-vertex frame's look-ups (`fast_eval.grid_lookups` of the frames R and the directions to the
    camera, trilinear on a grid with one tangent angle: `brdf_table.outgoing_terms`, then
    `lighting.cell_terms`) for the b vertices used[k] in one pass: wo = normalize(cam - P[v]) (float32,
@@ -382,6 +441,8 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
                "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
                "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
+               "tp_hit_lists": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
+               "tp_resolve": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
                "tp_vertex_lookups": [_I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]}
 
 
@@ -545,6 +606,39 @@ def vertex_lookups(used: Tensor, P: Tensor, R: Tensor, region: Tensor, cam: Tens
     return brows, bw, lrows, lw
 
 
+# Pixels per thread below which one thread resolves (as `methods.core.gouraud`'s loop).
+MIN_PIXELS_PER_THREAD = 1 << 13
+
+
+def resolve(values: Tensor, F: Tensor, faces: Tensor, hit: Tensor, face: Tensor, bary: Tensor, height: int,
+            width: int, spp_side: int) -> Tensor | None:
+    """The (height, width, 3) Gouraud image of per-vertex colours ``values`` (N, 3) float32 on a G-buffer
+    (hit (P,) bool, face (P,) int64, bary (P, 2) float32 (u, v), P = height·width·spp_side², pixel-major)
+    — `methods.core.gouraud.resolve` (``values``, F.T, ...) bit for bit, its loop with the seen faces'
+    colours gathered into a face table first (``tp_resolve``) — or None without the library or for
+    other dtypes / layouts (`gouraud.resolve` serves). ``faces``: `hit_faces`' distinct faces of these
+    very ``hit`` / ``face`` with ``F`` (N ≥ every vertex of them), which checked the ranges the loop
+    reads unchecked; no other caller may pass them."""
+    lib = _lib()
+    S2 = spp_side * spp_side
+    n = height * width
+    if lib is None or values.dtype != torch.float32 or values.ndim != 2 or values.shape[1] != 3 \
+            or F.dtype != torch.int64 or F.ndim != 2 or F.shape[1] != 3 or faces.dtype != torch.int64 \
+            or hit.dtype != torch.bool or face.dtype != torch.int64 or bary.dtype != torch.float32 \
+            or bary.shape != (face.shape[0], 2) or hit.shape != face.shape or face.shape[0] != n * S2 \
+            or not (values.is_contiguous() and F.is_contiguous() and faces.is_contiguous()
+                    and hit.is_contiguous() and face.is_contiguous()) \
+            or any(t.device.type != "cpu" for t in (values, F, faces, hit, face, bary)):
+        return None
+    bu, bv = (x.contiguous() for x in bary.unbind(-1))     # views of the G-buffer's column-major bary
+    T = torch.empty(F.shape[0], 9, dtype=torch.float32)
+    out = torch.empty(height, width, 3, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.tp_resolve(n, S2, hit.data_ptr(), face.data_ptr(), bu.data_ptr(), bv.data_ptr(), F.data_ptr(),
+                   values.data_ptr(), faces.data_ptr(), faces.numel(), T.data_ptr(), out.data_ptr(), nt)
+    return out
+
+
 def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Tensor, int] | None:
     """(the distinct faces the samples with ``hit`` (P,) bool see (``face`` (P,) int64, rows of F),
     the distinct vertices of those faces (F (nf, 3) int64, nv vertices), both sorted int64, the
@@ -558,6 +652,16 @@ def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Te
             or not (hit.is_contiguous() and face.is_contiguous() and F.is_contiguous()):
         return None
     nf = F.shape[0]
+    if HIT_LISTS:   # the two lists made by the C loop too (`tp_hit_lists`): no torch.nonzero passes (~0.2 ms)
+        seen = torch.zeros(nf + nv, dtype=torch.uint8)
+        lists = torch.empty(nf + nv, dtype=torch.int64)
+        counts = torch.zeros(4, dtype=torch.int64)
+        lib.tp_hit_lists(hit.numel(), hit.data_ptr(), face.data_ptr(), nf, F.data_ptr(), nv, seen.data_ptr(),
+                         lists.data_ptr(), counts.data_ptr())
+        h, bad, kf, kv = counts.tolist()
+        if bad != 0:
+            raise IndexError("a hit sample's face or a face's vertex outside its table")
+        return lists[:kf], lists[nf:nf + kv], h
     fseen = torch.zeros(nf, dtype=torch.uint8)
     vseen = torch.zeros(nv, dtype=torch.uint8)
     counts = torch.zeros(2, dtype=torch.int64)
@@ -567,3 +671,8 @@ def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Te
         raise IndexError("a hit sample's face or a face's vertex outside its table")
     return (torch.nonzero(fseen, as_tuple=False).squeeze(-1), torch.nonzero(vseen, as_tuple=False).squeeze(-1),
             int(counts[0]))
+
+
+# `hit_faces` takes the face and vertex lists from the C loop (``tp_hit_lists``); False: torch.nonzero of
+# its marks (the test oracle).
+HIT_LISTS = True

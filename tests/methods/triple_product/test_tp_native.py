@@ -233,6 +233,13 @@ def test_hit_faces_equal_the_torch_bookkeeping():
     faces = _hit_faces(SimpleNamespace(hit=hit, face=face), nf)
     assert torch.equal(got[0], faces) and torch.equal(got[1], _distinct(F[faces].reshape(-1), nv))
     assert got[2] == int(hit.sum())
+    old = native.HIT_LISTS
+    native.HIT_LISTS = not old                                               # the lists by torch.nonzero (or by C)
+    try:
+        other = native.hit_faces(hit, face, F, nv)
+    finally:
+        native.HIT_LISTS = old
+    assert torch.equal(other[0], got[0]) and torch.equal(other[1], got[1]) and other[2] == got[2]
     none = native.hit_faces(torch.zeros(P, dtype=torch.bool), face, F, nv)
     assert none[0].numel() == 0 and none[1].numel() == 0 and none[2] == 0
     bad = face.clone()
@@ -325,3 +332,62 @@ def test_render_vertex_lookups_native_equals_torch(monkeypatch):
         ref = [off.render(f, g) for f, g in zip(frames, gbs)]
         for a, b in zip(on, ref):
             assert torch.equal(a, b), kind
+
+
+def test_checked_resolve_equals_gouraud_resolve(monkeypatch):
+    """A per-vertex frame's Gouraud resolve without `gouraud.resolve`'s range passes (`fast_eval.gouraud_image`
+    with ``checked``: `native.hit_faces` checked them) = `gouraud.resolve` bit for bit on a G-buffer
+    with misses; a whole per-vertex render with it = with ``CHECKED_RESOLVE`` off, bit for bit."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+    from methods.core import gouraud
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("sphere_plane", "test")
+    frames = make_sequence(scene, "V", n_frames=2, seed=3)
+    gbs = [make_gbuffer(scene, f, 2) for f in frames]
+    miss = torch.rand(gbs[1].hit.shape, generator=torch.Generator().manual_seed(6)) < 0.2
+    gbs[1] = dataclasses.replace(gbs[1], hit=gbs[1].hit & ~miss, face=torch.where(miss, -1, gbs[1].face))
+    assert not bool(gbs[1].hit.all())                                    # misses (planted) in a frame
+    geo = scene.geometry()
+    F = geo.F
+    nv = geo.V.shape[0]
+    Bv = torch.rand(nv, 3, generator=torch.Generator().manual_seed(5)) + 0.1
+    old, t = native.MIN_PIXELS_PER_THREAD, torch.get_num_threads()
+    try:
+        for gb in gbs:
+            want = gouraud.resolve(Bv, F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
+            assert torch.equal(fast_eval.gouraud_image(gb, F, Bv, checked=True), want)
+            faces = native.hit_faces(gb.hit, gb.face, F, nv)[0]
+            for nt, per in ((1, old), (2, 64), (3, 64)):           # the face table and the pixels on 1-3 threads
+                torch.set_num_threads(nt)
+                native.MIN_PIXELS_PER_THREAD = per
+                assert torch.equal(native.resolve(Bv, F, faces, gb.hit, gb.face, gb.bary, gb.height, gb.width,
+                                                  gb.spp_side), want), nt
+                assert torch.equal(fast_eval.gouraud_image(gb, F, Bv, checked=True, faces=faces), want), nt
+    finally:
+        native.MIN_PIXELS_PER_THREAD = old
+        torch.set_num_threads(t)
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    calls = []
+    real = gouraud.resolve
+    monkeypatch.setattr(gouraud, "resolve", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tab = []
+    real_tab = native.resolve
+    monkeypatch.setattr(native, "resolve", lambda *a, **k: tab.append(1) or real_tab(*a, **k))
+    on = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert not calls and len(tab) == 2                                   # the face-table loop ran
+    monkeypatch.setattr(fast_eval, "FACE_TABLE_RESOLVE", False)
+    mid = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert not calls and len(tab) == 2                                   # the shared loop, unchecked
+    monkeypatch.setattr(fast_eval, "CHECKED_RESOLVE", False)
+    off = [m.render(f, g) for f, g in zip(frames, gbs)]
+    assert len(calls) == 2
+    for a, b, c in zip(on, mid, off):
+        assert torch.equal(a, c) and torch.equal(b, c)
