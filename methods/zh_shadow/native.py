@@ -2468,11 +2468,13 @@ def _vtable_lib():
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
 
 
-def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None) -> Tensor | None:
+def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None
+                 ) -> Tensor | None:
     """(NU, C) float32: row i = v[idx[i]] @ W[vreg[idx[i]]] (idx None: every row of v, NU = N; W (R, n², C)
     float32 the per-region tables; R == 1: W[0] for every row; a region outside [0, R): a zero row) by
     `zh34p_vtable` — float32 round-off of the products — or None where it does not run (no compiler,
-    ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N))."""
+    ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N)).
+    ``out`` (NU, C) float32 contiguous: written there (and returned)."""
     lib = _vtable_lib() if terms_switched_on() else None
     if lib is None or v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
             or W.shape[1] != v.shape[1] or vreg.dtype != torch.int64 or vreg.shape != (v.shape[0],) \
@@ -2485,7 +2487,10 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None) 
     N, n2 = int(v.shape[0]), int(v.shape[1])
     R, C = int(W.shape[0]), int(W.shape[2])
     NU = N if idx is None else int(idx.shape[0])
-    U = torch.empty(NU, C, dtype=torch.float32)
+    if out is not None and (out.shape != (NU, C) or out.dtype != torch.float32 or not out.is_contiguous()
+                            or out.device.type != "cpu"):
+        return None
+    U = torch.empty(NU, C, dtype=torch.float32) if out is None else out
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
     lib.zh34p_vtable(NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(),
