@@ -1083,8 +1083,10 @@ class ZHShadow(Method):
         else:             # (a frame's own table, not kept: rows of a buffer kept for the next such frame)
             C = int(rs[3].shape[2])
             buf = self._table_rows
-            if buf is None or buf.shape[1] != C or buf.shape[0] < idx.shape[0]:
-                buf = self._table_rows = torch.empty(int(v.shape[0]), C, dtype=v.dtype)
+            if buf is None or buf.shape[1] != C or buf.shape[0] < idx.shape[0]:   # (a quarter more rows: the
+                #                                                                  next frames' counts vary)
+                rows = min(int(v.shape[0]), int(idx.shape[0]) + int(idx.shape[0]) // 4 + 64)
+                buf = self._table_rows = torch.empty(max(rows, int(idx.shape[0])), C, dtype=v.dtype)
             U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]])
         return None if U is None else U.view(-1, 3, rs[2])
 
