@@ -346,6 +346,8 @@ class ZHShadow(Method):
         self._plane_u: tuple | None = None       # ((pose, lighting, kd, plane normal), v, Wd, (N, 3) plane term u)
         self._plane_u0: tuple | None = None      # ((pose, lighting, plane normal), v, Wd, (N, 3) u without kd)
         self._faces: tuple | None = None         # (F, F int32, Fᵀ (3, M) int64): `_render_planes`
+        self._region_stack: tuple | None = None  # (n², tables, K, (R, n², 3K) per-region tables): `_native_table`
+        self._table_rows: Tensor | None = None   # (N, 3K) rows of a frame's own table (`_native_table`)
         self.last_path = ""                      # which sample path the last frame took (tests)
         self.last_fused = False                  # whether its plane path ran as one pass (`_fused_planes`)
         self._spans: tuple | None = None         # (vertex regions, count, their ranges or None): `_region_spans`
@@ -362,6 +364,7 @@ class ZHShadow(Method):
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
+        self._region_stack = self._table_rows = None
         self._resolve_packed = self._resolve_compact = self._view_args = None
         cfg = self.config
         t0 = time.perf_counter()
@@ -1045,10 +1048,50 @@ class ZHShadow(Method):
             if found is None:
                 return None
             idx, vi_r = found
-            return rt.vertex_table(v.index_select(0, idx), vreg.index_select(0, idx), tabs), vi_r
-        U = rt.vertex_table(v, vreg, tabs)
+            U = self._native_table(v, vreg, tabs, idx)
+            if U is None:
+                U = rt.vertex_table(v.index_select(0, idx), vreg.index_select(0, idx), tabs)
+            return U, vi_r
+        U = self._native_table(v, vreg, tabs)
+        if U is None:
+            U = rt.vertex_table(v, vreg, tabs)
         self._vtable = (key, v0, U, [tuple(t) for t in tabs])   # the tables kept: their identity is the key
         return U
+
+    # `_vertex_table`'s products by one C pass over the rows (`native.vertex_table`: the referenced rows
+    # read through their ids; float32 round-off against the GEMMs) where it runs; False: `runtime.vertex_table`
+    # (the tests' oracle)
+    native_table = True
+
+    def _native_table(self, v: Tensor, vreg: Tensor, tabs: list, idx: Tensor | None = None) -> Tensor | None:
+        """`runtime.vertex_table`(v[idx], vreg[idx], tabs) (idx None: every row) by `native.vertex_table`
+        — its per-region tables (`runtime.region_tables`), the rows v[idx] read in place — or None (not
+        on, or the C pass does not run: the caller's GEMMs then)."""
+        if not self.native_table or v.dtype != torch.float32 or v.device.type != "cpu":
+            return None
+        rs = self._region_stack
+        n2 = int(v.shape[1])
+        if rs is None or rs[0] != n2 or len(rs[1]) != len(tabs) or not all(
+                a[2] is b[2] and a[3] is b[3] and torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+                for a, b in zip(rs[1], tabs)):
+            # (kept while the tables — the cached W tensors themselves — and the albedos stay: a P frame's;
+            # ~0.3 ms of small products at 1 thread)
+            Kd = tabs[0][2].shape[0]
+            Ks = next((t[3].shape[0] for t in tabs if t[3] is not None), 0)
+            W = torch.empty(len(tabs), n2, 3 * (Kd + Ks), dtype=v.dtype)
+            K, _ = rt.region_tables(tabs, n2, v.device, v.dtype, out=W)
+            self._region_stack = rs = (n2, [tuple(t) for t in tabs], K, W)
+        if idx is None:   # (a table kept between frames: its own tensor)
+            U = zn.vertex_table(v, vreg, rs[3])
+        else:             # (a frame's own table, not kept: rows of a buffer kept for the next such frame)
+            C = int(rs[3].shape[2])
+            buf = self._table_rows
+            if buf is None or buf.shape[1] != C or buf.shape[0] < idx.shape[0]:   # (a quarter more rows: the
+                #                                                                  next frames' counts vary)
+                rows = min(int(v.shape[0]), int(idx.shape[0]) + int(idx.shape[0]) // 4 + 64)
+                buf = self._table_rows = torch.empty(max(rows, int(idx.shape[0])), C, dtype=v.dtype)
+            U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]])
+        return None if U is None else U.view(-1, 3, rs[2])
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer, pose_vec: Tensor, geom, v0: Tensor | None,
                        light: Tensor, mats: list, cosine: bool) -> Tensor:
@@ -1536,8 +1579,10 @@ class ZHShadow(Method):
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
                 "pose_visibility_sh": 0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]),
-                "shade_tables": sum(tensor_bytes(t) for t in tabs),
-                "vertex_table": 0 if self._vtable is None else tensor_bytes(self._vtable[2]),
+                "shade_tables": sum(tensor_bytes(t) for t in tabs)
+                + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3])),
+                "vertex_table": (0 if self._vtable is None else tensor_bytes(self._vtable[2]))
+                + (0 if self._table_rows is None else tensor_bytes(self._table_rows)),
                 "resolve_matrix": 0 if self._resolve_matrix is None or self._resolve_matrix[2] is None
                 else sum(tensor_bytes(t) for t in (self._resolve_matrix[2].crow_indices(),
                                                    self._resolve_matrix[2].col_indices(),

@@ -2442,3 +2442,104 @@ def phong_flat_plan(alpha: float, order: int, scale: float = 1.0) -> tuple[Tenso
         _PHONG_G.clear()
     _PHONG_G[key] = out
     return out
+
+
+# -- zh34p ------------------------------------------------------------------------------------------
+# A per-vertex table (`runtime.vertex_table`) — U[i] = v[row_i] @ W_{region(row_i)}, (n², 3K) per region
+# — by one C pass over the rows (`vertex_table`): the rows a frame's points reference taken straight from
+# v through their ids (no gather of v and of the regions first), each row's n² products summed in order
+# in multiply-adds, 8 columns a vector, the region's table in the L1 cache. The same products as the
+# GEMMs' to float32 round-off (their sum order and fusing differ). Bench creature, paper setting, 1
+# thread: the 3.6 K referenced rows of a VL / P frame (n² = 16, 3K = 240) took ~1.1 ms of sgemm (K = 16
+# is short: the GEMM streams its packed panels for 3.8 K multiply-adds a row) and the gathers ~0.2 ms.
+# Also the plane term's v · T¹(n0) (`ZHShadow._plane_term`: (N, 16) @ (16, 3), ~0.36 ms of sgemm).
+_VTABLE_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+typedef float v8 __attribute__((vector_size(32)));
+static inline v8 ld8(const float* p) { v8 v; memcpy(&v, p, 32); return v; }
+static inline void st8(float* p, v8 v) { memcpy(p, &v, 32); }
+
+/* U[i, :] (NU, C) = sum_j v[row, j] W[r, j, :] (j ascending) with row = idx[i] (idx NULL: i), r = vreg[row]
+   (R == 1: r = 0 for every row), zeros where r is outside [0, R); W (R, n2, C), v (N, n2) row-major.
+   bad[0]: rows outside [0, N) (their U rows left unwritten). Rows split over nt threads: each row one
+   thread's, the same bits at any thread count. */
+/* out[c] for the columns c >= c0 of the row x of one region's table w (n2, C) */
+static inline void vrow(const float* x, const float* w, int64_t n2, int64_t C, float* out, int64_t c0) {
+    for (; c0 + 64 <= C; c0 += 64) {
+        v8 a[8];
+        for (int k = 0; k < 8; ++k) a[k] = x[0] * ld8(w + c0 + 8 * k);
+        for (int64_t j = 1; j < n2; ++j)
+            for (int k = 0; k < 8; ++k) a[k] = a[k] + x[j] * ld8(w + j * C + c0 + 8 * k);
+        for (int k = 0; k < 8; ++k) st8(out + c0 + 8 * k, a[k]);
+    }
+    for (; c0 + 8 <= C; c0 += 8) {
+        v8 a = x[0] * ld8(w + c0);
+        for (int64_t j = 1; j < n2; ++j) a = a + x[j] * ld8(w + j * C + c0);
+        st8(out + c0, a);
+    }
+    for (; c0 < C; ++c0) {
+        float a = x[0] * w[c0];
+        for (int64_t j = 1; j < n2; ++j) a = a + x[j] * w[j * C + c0];
+        out[c0] = a;
+    }
+}
+
+/* U[i, :] (NU, C) = sum_j v[row, j] W[r, j, :] (j ascending) with row = idx[i] (idx NULL: i), r = vreg[row]
+   (R == 1: r = 0 for every row), zeros where r is outside [0, R); W (R, n2, C), v (N, n2) row-major.
+   bad[0]: rows outside [0, N) (their U rows left unwritten). Rows split over nt threads: each row one
+   thread's, the same bits at any thread count. */
+void zh34p_vtable(int64_t NU, const int64_t* idx, const float* v, int64_t N, int64_t n2, const int64_t* vreg,
+                  int64_t R, const float* W, int64_t C, float* U, int64_t nt, int64_t* bad) {
+    int64_t nb = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
+    for (int64_t i = 0; i < NU; ++i) {
+        const int64_t row = idx ? idx[i] : i;
+        float* out = U + i * C;
+        if ((uint64_t)row >= (uint64_t)N) { ++nb; continue; }
+        const int64_t r = R == 1 ? 0 : vreg[row];
+        if ((uint64_t)r >= (uint64_t)R) { memset(out, 0, sizeof(float) * (size_t)C); continue; }
+        vrow(v + row * n2, W + r * n2 * C, n2, C, out, 0);
+    }
+    bad[0] = nb;
+}
+"""
+_VTABLE_SIGNATURES = {"zh34p_vtable": [_I, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _P]}
+MIN_ROWS_PER_VTABLE_THREAD = 1024   # table rows below which one thread builds them
+
+
+def _vtable_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
+    # multiply-adds fused (float32 round-off against the GEMMs)
+    return native.load("zh34p_vtable", _VTABLE_SOURCE, _VTABLE_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
+
+
+def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None
+                 ) -> Tensor | None:
+    """(NU, C) float32: row i = v[idx[i]] @ W[vreg[idx[i]]] (idx None: every row of v, NU = N; W (R, n², C)
+    float32 the per-region tables; R == 1: W[0] for every row; a region outside [0, R): a zero row) by
+    `zh34p_vtable` — float32 round-off of the products — or None where it does not run (no compiler,
+    ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N)).
+    ``out`` (NU, C) float32 contiguous: written there (and returned)."""
+    lib = _vtable_lib() if terms_switched_on() else None
+    if lib is None or v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
+            or W.shape[1] != v.shape[1] or vreg.dtype != torch.int64 or vreg.shape != (v.shape[0],) \
+            or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1)) \
+            or any(t.device.type != "cpu" for t in (v, vreg, W)) or (idx is not None and idx.device.type != "cpu"):
+        return None
+    v, vreg, W = v.contiguous(), vreg.contiguous(), W.contiguous()
+    if idx is not None:
+        idx = idx.contiguous()
+    N, n2 = int(v.shape[0]), int(v.shape[1])
+    R, C = int(W.shape[0]), int(W.shape[2])
+    NU = N if idx is None else int(idx.shape[0])
+    if out is not None and (out.shape != (NU, C) or out.dtype != torch.float32 or not out.is_contiguous()
+                            or out.device.type != "cpu"):
+        return None
+    U = torch.empty(NU, C, dtype=torch.float32) if out is None else out
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
+    lib.zh34p_vtable(NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(),
+                     C, U.data_ptr(), nt, bad.data_ptr())
+    return None if int(bad[0]) else U

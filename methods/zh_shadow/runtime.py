@@ -269,27 +269,12 @@ def vertex_table(v: Tensor, vertex_region: Tensor, mats: list[tuple[Tensor, Tens
     """
     N, n2 = v.shape
     dev, dt = v.device, v.dtype
-    spec = any(m[3] is not None for m in mats)
-    Wd = mats[0][2]
-    Kd = Wd.shape[0] if diffuse else 0
-    Ks = next(m[3].shape[0] for m in mats if m[3] is not None) if spec else 0
-    K = Kd + Ks
-    if K == 0:
-        raise ValueError("vertex_table: no columns (diffuse=False and no specular term)")
+    K, tables = region_tables(mats, n2, dev, dt, diffuse=diffuse)
     # uninitialised when every row is written below (each vertex's region has its product)
     covered = len(mats) == 1 or int(((vertex_region >= 0) & (vertex_region < len(mats))).sum()) == N
     U = (torch.empty if covered else torch.zeros)(N, 3, K, dtype=dt, device=dev)
-
-    def fold(W: Tensor, k: Tensor) -> Tensor:   # (K_, n², 3) ⊙ albedo → (n², 3·K_) with column c·K_ + f
-        Wk = W.view(W.shape[0], n2, 3) * k.to(dev, dt)
-        return Wk.permute(1, 2, 0).reshape(n2, 3 * W.shape[0])
-
     single = len(mats) == 1
-    for r, (kd, ks, _, Ws) in enumerate(mats):
-        parts = ([fold(Wd, kd).view(n2, 3, Kd)] if diffuse else []) + \
-                ([fold(Ws, ks).view(n2, 3, Ks)] if Ws is not None else
-                 [torch.zeros(n2, 3, Ks, dtype=dt, device=dev)] if spec else [])
-        Wr = torch.cat(parts, 2).reshape(n2, 3 * K)
+    for r, Wr in enumerate(tables):
         if single:
             torch.matmul(v, Wr, out=U.view(N, 3 * K))
         else:
@@ -305,6 +290,45 @@ def vertex_table(v: Tensor, vertex_region: Tensor, mats: list[tuple[Tensor, Tens
             else:
                 U.index_copy_(0, ids, (v.index_select(0, ids) @ Wr).view(-1, 3, K))
     return U
+
+
+def region_tables(mats: list[tuple[Tensor, Tensor, Tensor, Tensor | None]], n2: int, dev, dt, *,
+                  diffuse: bool = True, out: Tensor | None = None) -> tuple[int, list[Tensor]]:
+    """(K, [Wr (n², 3K) per region]) of `vertex_table`: region r's rows are v @ Wr, column c·K + k the
+    albedo-folded coefficient of feature k for channel c ([diffuse; specular] features; zero specular
+    columns for a region without a specular term when another has one). ``out`` (R, n², 3K): written
+    there (each product into its columns, the same values), Wr its rows."""
+    spec = any(m[3] is not None for m in mats)
+    Wd = mats[0][2]
+    Kd = Wd.shape[0] if diffuse else 0
+    Ks = next(m[3].shape[0] for m in mats if m[3] is not None) if spec else 0
+    K = Kd + Ks
+    if K == 0:
+        raise ValueError("vertex_table: no columns (diffuse=False and no specular term)")
+    if out is not None:
+        if out.shape != (len(mats), n2, 3 * K) or out.dtype != dt or not out.is_contiguous():
+            raise ValueError("region_tables: out must be a contiguous (R, n², 3K) tensor")
+        o4 = out.view(len(mats), n2, 3, K)
+        for r, (kd, ks, _, Ws) in enumerate(mats):   # (K_, n², 3) ⊙ albedo, permuted into its columns
+            if diffuse:
+                torch.mul(Wd.view(Kd, n2, 3).permute(1, 2, 0), kd.to(dev, dt).view(3, 1), out=o4[r, :, :, :Kd])
+            if Ws is not None:
+                torch.mul(Ws.view(Ks, n2, 3).permute(1, 2, 0), ks.to(dev, dt).view(3, 1), out=o4[r, :, :, Kd:])
+            elif spec:
+                o4[r, :, :, Kd:].zero_()
+        return K, list(out.unbind(0))
+
+    def fold(W: Tensor, k: Tensor) -> Tensor:   # (K_, n², 3) ⊙ albedo → (n², 3·K_) with column c·K_ + f
+        Wk = W.view(W.shape[0], n2, 3) * k.to(dev, dt)
+        return Wk.permute(1, 2, 0).reshape(n2, 3 * W.shape[0])
+
+    tables = []
+    for kd, ks, _, Ws in mats:
+        parts = ([fold(Wd, kd).view(n2, 3, Kd)] if diffuse else []) + \
+                ([fold(Ws, ks).view(n2, 3, Ks)] if Ws is not None else
+                 [torch.zeros(n2, 3, Ks, dtype=dt, device=dev)] if spec else [])
+        tables.append(torch.cat(parts, 2).reshape(n2, 3 * K))
+    return K, tables
 
 
 def referenced_vertices(vi: Tensor, N: int) -> tuple[Tensor, Tensor]:

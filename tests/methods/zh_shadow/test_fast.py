@@ -2331,3 +2331,83 @@ def test_phong_flat_plan_equals_block_plan(order):
                            cam, False)
     assert torch.equal(got[1], want[1])
     assert (got[0] - want[0]).abs().max() <= 2e-6 * want[0].abs().max()
+
+
+def test_native_vertex_table_equals_gemms():
+    """`native.vertex_table` (zh34p: a per-vertex table's rows by one C pass) = `runtime.vertex_table`'s GEMMs
+    to float32 round-off: every row, a frame's referenced rows read through their ids (in any order, repeated),
+    three regions whose vertices are not ranges, a region without a specular term (zero specular columns),
+    vertices outside every region (zero rows), a single region (its table for every row, whatever the
+    region ids); the same bits at 1 and 2 threads; None for an id outside the rows."""
+    import methods.zh_shadow.native as zn
+    from methods.core.threads import torch_threads
+
+    _skip_without_c_compiler()
+    g = torch.Generator().manual_seed(34)
+    N, n2 = 3001, 16
+    v = torch.randn(N, n2, generator=g)
+    vreg = torch.randint(0, 3, (N,), generator=g)
+    vreg[::97] = 3                                     # outside the three regions: zero rows
+    light = torch.randn(n2, 3, generator=g)
+    Wd = rt.table(light, 1.0, diffuse=True)
+    Ws = rt.table(light, 12.0, diffuse=False)
+    mats = [(torch.rand(3, generator=g), torch.rand(3, generator=g), Wd, Ws),
+            (torch.rand(3, generator=g), torch.zeros(3), Wd, None),
+            (torch.rand(3, generator=g), torch.rand(3, generator=g), Wd, Ws)]
+    m = ZHShadow(**SMALL)
+    idx = torch.randint(0, N, (1777,), generator=g)
+    for tabs, reg in ((mats, vreg), (mats[:1], vreg), ([mats[1]], vreg)):
+        for rows in (None, idx, idx.sort().values):
+            want = rt.vertex_table(v if rows is None else v[rows], reg if rows is None else reg[rows], tabs)
+            got = {}
+            for nt in (1, 2):
+                with torch_threads(nt), mock.patch.object(zn, "MIN_ROWS_PER_VTABLE_THREAD", 1):
+                    got[nt] = m._native_table(v, reg, tabs, rows)
+                    got[nt] = None if got[nt] is None else got[nt].clone()   # (a frame's rows: a kept buffer)
+            assert got[1] is not None and got[1].shape == want.shape
+            assert torch.equal(got[1], got[2])
+            assert (got[1] - want).abs().max().item() <= 1e-6 * want.abs().max().item()
+            if len(tabs) > 1:
+                assert bool((got[1][(reg if rows is None else reg[rows]) == 3] == 0).all())
+    # the kept per-region tables (`_region_stack`) follow the albedos of the same W tensors
+    m._native_table(v, vreg, mats)
+    for kd_or_ks in (0, 1):
+        other = [tuple(t * 0.5 if j == kd_or_ks else t for j, t in enumerate(mt[:2])) + mt[2:] for mt in mats]
+        want = rt.vertex_table(v, vreg, other)
+        assert (m._native_table(v, vreg, other) - want).abs().max().item() <= 1e-6 * want.abs().max().item()
+    # the per-region tables written in place = the folded products, bit for bit
+    K, plain = rt.region_tables(mats, n2, "cpu", torch.float32)
+    into = torch.full((3, n2, 3 * K), float("nan"))
+    assert rt.region_tables(mats, n2, "cpu", torch.float32, out=into)[0] == K
+    assert torch.equal(into, torch.stack(plain))
+    assert zn.vertex_table(v, vreg, torch.stack(plain), torch.tensor([0, N])) is None
+
+
+@pytest.mark.parametrize("kind", ("VB", "P"))
+def test_native_vertex_table_frames(small_model, monkeypatch, kind):
+    """The plane frames with the native table (`ZHShadow._native_table`: the kept table of a view frame, a
+    frame's own table of its referenced rows) equal those with `runtime.vertex_table` (``native_table`` off)
+    to float32 round-off, down the same path, with the same counts, at 1 and 2 threads; the per-region
+    tables kept while the tables and albedos stay (a P frame's) are rebuilt when the albedos change (VB)."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _skip_without_c_compiler()
+    monkeypatch.setattr(zn, "MIN_ROWS_PER_VTABLE_THREAD", 1)
+    monkeypatch.setattr("methods.zh_shadow.method.VERTEX_TABLE_POINTS", 0.0)   # every frame builds a table
+    m = small_model("creature")
+    for nt in (1, 2):
+        fast, slow = m.with_render_config(), m.with_render_config()
+        slow.native_table = False
+        for fr in make_sequence(m.scene, kind, 3, seed=5):
+            gb = make_gbuffer(m.scene, fr, 2)
+            with torch_threads(nt):
+                a = fast.render(fr, gb)
+                b = slow.render(fr, gb)
+            assert fast.last_path == slow.last_path == "planes" and fast.last_fused == slow.last_fused
+            assert (a - b).abs().max().item() <= 1e-6 * b.abs().max().item(), (kind, nt, fr.index)
+            ca, cb = dict(fast._last_counts), dict(slow._last_counts)
+            assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
+            assert fast._region_stack is not None and slow._region_stack is None
