@@ -116,25 +116,36 @@ def _monomial_code(names: tuple[str, str, str], degrees: tuple[int, ...], tag: s
     return code, [t for k in degrees for t in levels[k]]
 
 
-def _terms_variant(D: int, dif: bool, spec: bool, lanes: int = 8) -> str:
-    """The C function ``terms_<D>_<dif>_<spec>_<lanes>`` of `_TERMS_SOURCE`: the features of one point
-    as straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot in
-    vectors of ``lanes`` floats (8: Inductor's AVX2 kernel, 16: its AVX-512 one) and that ISA's
-    ``vec_reduce_all`` tree."""
+def _feature_code(D: int, dif: bool, spec: bool) -> tuple[list[str], list[str]]:
+    """C statements computing one point's features from its normal (nx, ny, nz) and, with ``spec``,
+    its ω_o (wx, wy, wz, defined by the caller) — the diffuse monomials of n (degrees D and 1), the
+    reflection r = 2 (n·ω_o) n − ω_o normalised as Inductor's kernel does (its maximum: NaN propagates),
+    the specular monomials of r (degrees D and D − 1) — and the features' names in `runtime`'s order.
+    Shared by `_terms_variant` (rows) and `_point_terms` (one point)."""
     code, feats = [], []
     if dif:
         c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
         code, feats = code + c, feats + f
     if spec:
         c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
-        code = code + ["const float wx = woT[q], wy = woT[Q + q], wz = woT[2 * Q + q];",
-                       "const float dn = (nx * wx + ny * wy) + nz * wz;",
+        code = code + ["const float dn = (nx * wx + ny * wy) + nz * wz;",
                        "const float t2 = dn * 2.0f;",
                        "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
                        "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
                        "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);   /* at::vec::maximum: NaN propagates */",
                        "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
         feats += f
+    return code, feats
+
+
+def _terms_variant(D: int, dif: bool, spec: bool, lanes: int = 8) -> str:
+    """The C function ``terms_<D>_<dif>_<spec>_<lanes>`` of `_TERMS_SOURCE`: the features of one point
+    as straight-line code (`_monomial_code`), stored to a stack array, then the interpolated dot in
+    vectors of ``lanes`` floats (8: Inductor's AVX2 kernel, 16: its AVX-512 one) and that ISA's
+    ``vec_reduce_all`` tree."""
+    code, feats = _feature_code(D, dif, spec)
+    if spec:
+        code = ["const float wx = woT[q], wy = woT[Q + q], wz = woT[2 * Q + q];"] + code
     K = len(feats)
     assert K % lanes == 0 and lanes in (8, 16)
     body = "\n            ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
@@ -1444,19 +1455,7 @@ def _point_terms(D: int, dif: bool, spec: bool, lanes: int) -> str:
     """C function ``pt_<D>_<dif>_<spec>_<lanes>``: one point's three terms, as `_terms_variant`'s loop body
     computes a row's (the same statements: `_monomial_code`, the reflection, the dot and its reduction
     tree), from the point's values instead of (3, Q) rows; o[c] the terms."""
-    code, feats = [], []
-    if dif:
-        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
-        code, feats = code + c, feats + f
-    if spec:
-        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
-        code = code + ["const float dn = (nx * wx + ny * wy) + nz * wz;",
-                       "const float t2 = dn * 2.0f;",
-                       "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
-                       "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
-                       "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);",
-                       "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
-        feats += f
+    code, feats = _feature_code(D, dif, spec)
     K = len(feats)
     assert K % lanes == 0 and lanes in (8, 16)
     body = "\n        ".join(code + [f"f[{i}] = {t};" for i, t in enumerate(feats)])
