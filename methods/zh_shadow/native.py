@@ -116,7 +116,24 @@ def _monomial_code(names: tuple[str, str, str], degrees: tuple[int, ...], tag: s
     return code, [t for k in degrees for t in levels[k]]
 
 
-def _feature_code(D: int, dif: bool, spec: bool) -> tuple[list[str], list[str]]:
+# The reflection r = 2 (n·ω_o) n − ω_o, normalised as Inductor's kernel does (its maximum: NaN propagates),
+# as scalar statements (`_terms_variant`, `_point_terms`) and on 8-float vectors (`_features8`).
+_REFLECT = ("const float dn = (nx * wx + ny * wy) + nz * wz;",
+            "const float t2 = dn * 2.0f;",
+            "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+            "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
+            "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);   /* at::vec::maximum: NaN propagates */",
+            "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;")
+_REFLECT8 = ("const v8 dn = (nx * wx + ny * wy) + nz * wz;",
+             "const v8 t2 = dn * 2.0f;",
+             "const v8 r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
+             "v8 nr = __builtin_ia32_sqrtps256((r0 * r0 + r1 * r1) + r2 * r2);",
+             "{ const v8i keep = (nr != nr) | (nr > 1e-12f);   /* NaN stays, else max(nr, 1e-12) */",
+             "  nr = (v8)(((v8i)nr & keep) | ((v8i)tiny & ~keep)); }",
+             "const v8 rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;")
+
+
+def _feature_code(D: int, dif: bool, spec: bool, reflect: tuple[str, ...] = _REFLECT) -> tuple[list[str], list[str]]:
     """C statements computing one point's features from its normal (nx, ny, nz) and, with ``spec``,
     its ω_o (wx, wy, wz, defined by the caller) — the diffuse monomials of n (degrees D and 1), the
     reflection r = 2 (n·ω_o) n − ω_o normalised as Inductor's kernel does (its maximum: NaN propagates),
@@ -128,12 +145,7 @@ def _feature_code(D: int, dif: bool, spec: bool) -> tuple[list[str], list[str]]:
         code, feats = code + c, feats + f
     if spec:
         c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
-        code = code + ["const float dn = (nx * wx + ny * wy) + nz * wz;",
-                       "const float t2 = dn * 2.0f;",
-                       "const float r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
-                       "float nr = __builtin_sqrtf((r0 * r0 + r1 * r1) + r2 * r2);",
-                       "nr = (nr != nr) ? nr : (nr > 1e-12f ? nr : 1e-12f);   /* at::vec::maximum: NaN propagates */",
-                       "const float rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
+        code = code + list(reflect) + c
         feats += f
     return code, feats
 
@@ -1508,20 +1520,7 @@ def _features8(D: int, dif: bool, spec: bool) -> str:
     `_point_terms`' statements on vectors, elementwise the same IEEE operations — products, the reflection,
     the square root and the divisions — so each point's features are the same bits), stored transposed:
     f[p K + k] the feature k of point p."""
-    code, feats = [], []
-    if dif:
-        c, f = _monomial_code(("nx", "ny", "nz"), (D, 1), "a")
-        code, feats = code + c, feats + f
-    if spec:
-        c, f = _monomial_code(("rx", "ry", "rz"), (D, D - 1), "s")
-        code = code + ["const v8 dn = (nx * wx + ny * wy) + nz * wz;",
-                       "const v8 t2 = dn * 2.0f;",
-                       "const v8 r0 = t2 * nx - wx, r1 = t2 * ny - wy, r2 = t2 * nz - wz;",
-                       "v8 nr = __builtin_ia32_sqrtps256((r0 * r0 + r1 * r1) + r2 * r2);",
-                       "{ const v8i keep = (nr != nr) | (nr > 1e-12f);   /* NaN stays, else max(nr, 1e-12) */",
-                       "  nr = (v8)(((v8i)nr & keep) | ((v8i)tiny & ~keep)); }",
-                       "const v8 rx = r0 / nr, ry = r1 / nr, rz = r2 / nr;"] + c
-        feats += f
+    code, feats = _feature_code(D, dif, spec, _REFLECT8)
     K = len(feats)
     code = [ln.replace("const float ", "const v8 ") for ln in code]
     body = "\n    ".join(code + [f"F[{i}] = {t};" for i, t in enumerate(feats)])
