@@ -920,16 +920,21 @@ class PTT(Method):
                 Fl["view_lobes"] = 2 * Q * (27 + 2 * Lb * 3 + 4 * Lb * 3 + 3 * 4 * Lb + 2 * Lb * 3 + Lb * 3)
                 if sh:
                     Fl["view_lobes_sh"] = 2 * Q * (3 * S * 3 + S * 3 + Lb * order * 3)
-        # -- BRDF stage (H or lighting changed): caches it rebuilds count as their full write
-        if brdf or light:
+        # -- BRDF stage (H or lighting changed): caches it rebuilds count as their full write.
+        # Without bounce terms E = E⁰ (Sun eq. 4 with U^{I1} = U^{I2} = 0): a lighting change writes
+        # it once (the lighting stage's E⁰, nothing added, no second read), and a BRDF change leaves it
+        # as it was (a VB frame reads E's referenced rows, as V does; `render` keeps them).
+        bounce_terms = self.T1 is not None or self.T1c is not None or self.T2 is not None
+        if light or (brdf and bounce_terms):
             rows["E"] = nv * K * 3 * f4
             if sh:
                 rows["I1" if vertex else "I1w"] = nv * S * 3 * f4
             if sh and not vertex:
                 B["sh_rotation"] = nv * sum((2 * b + 1) ** 2 for b in range(order)) * f4
                 Fl["brdf_sh_rotation"] = 2 * nv * sum((2 * b + 1) ** 2 for b in range(order)) * 3
-            B["E0"] = nv * K * 3 * f4
-            Fl["brdf_E"] = 2 * nv * K * 3
+            if bounce_terms:
+                B["E0"] = nv * K * 3 * f4
+                Fl["brdf_E"] = 2 * nv * K * 3
             if self.T1 is not None or self.T1c is not None:
                 B["T1L"] = nv * R * P * S * 3 * f4
                 B["C"] = tensor_bytes(self.C)

@@ -223,6 +223,26 @@ def test_frame_cost_is_the_hand_count(tiny):
     assert vbl["lobe_maps"] == n_filt * H * W * 12
 
 
+def test_frame_cost_without_bounces_counts_e_once(tiny):
+    """bounces = 0 (the perf suite's direct cells): E = E⁰, so a BRDF change neither reads E⁰ nor
+    rewrites E — a VB frame reads what V reads plus the per-region tables it rebuilds — and a
+    lighting change writes E once (no E⁰ read on top, no E = E⁰ + … additions). Session 35: the count
+    had E⁰ plus a full E write in VB (3.3 MB of chess VB's 24.4 MB)."""
+    m0, frame, gb = tiny
+    m = m0.with_bounces(0)
+    m.render(frame, gb)
+    P_all, nv, K = gb.num_samples, m.V.shape[0], m.factors.K
+    v, vb, ll = (m.cost_terms(k, P_all) for k in ("V", "VB", "L"))
+    assert "E0" not in vb[0] and "E0" not in ll[0] and "brdf_E" not in vb[1] and "brdf_E" not in ll[1]
+    assert vb[0]["E"] == v[0]["E"] < nv * K * 12  # the referenced rows only
+    extra = {k: b for k, b in vb[0].items() if k not in v[0] or v[0][k] != b}
+    assert set(extra) == {"W_tables", "lobe_weights"} | ({"sh_rotation"} if "sh_rotation" in vb[0] else set())
+    assert ll[0]["E"] == nv * K * 12
+    # with bounces the BRDF stage does rebuild E from E⁰ (Sun eq. 4)
+    vb2 = m0.cost_terms("VB", P_all)
+    assert vb2[0]["E0"] == vb2[0]["E"] == nv * K * 12 and vb2[1]["brdf_E"] == 2 * nv * K * 3
+
+
 def test_frame_cost_bytes_bounded_by_the_arrays_read(tiny):
     """No padding: a frame's bytes never exceed G-buffer + output + every run-time array and cache."""
     m, frame, gb = tiny
