@@ -77,6 +77,21 @@ RAY_EPS_REL = 1e-5
 # a refitted BVH per pose instead of Mitsuba's full build, the live rays as one stream); False: Mitsuba's.
 OWN_TRACER = True
 
+# Frames on the C loops' path read the G-buffer rows in the C loops and write the estimates into a channel-major
+# radiance (`Oracle._render_direct`, or35); False: the rows gathered by torch and scattered by ``index_copy_``.
+DIRECT = True
+# The frame's sample order and `frame_cost`'s counts by one C pass (``oracle_native.frame_rows``, or35); False: by
+# torch (``nonzero`` per region, `Oracle._record`'s flags).
+FRAME_ROWS = True
+
+
+def _direct_ok(gbuffer) -> bool:
+    """Whether `Oracle._render_direct` takes this G-buffer's arrays as they are (``oracle_native.Rows``)."""
+    return (gbuffer.position.is_contiguous() and gbuffer.normal.is_contiguous() and gbuffer.face.is_contiguous()
+            and gbuffer.face.dtype == torch.int64 and gbuffer.wo.dim() == 2
+            and all(x.dtype == torch.float32 and x.device.type == "cpu" for x in (gbuffer.position, gbuffer.normal, gbuffer.wo)))
+
+
 # G-buffer samples per block of the compiled stages (`methods.core.fused.map_rows`): each sample
 # carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB;
 # 8 blocks of a bench frame (2^13 rows: 32, and ~0.1 s more of per-call overhead per frame).
@@ -474,10 +489,15 @@ class Oracle(Method):
         gen = torch.Generator().manual_seed(int(self.seed) * 1_000_003 + int(frame.index))
         return geom, vis, eps, gen
 
-    def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor, live: int, env) -> None:
+    def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor | tuple, live: int, env) -> None:
         """`frame_cost`'s counts of the frame: the faces hit and their distinct vertices, counted by
         marking them in per-face / per-vertex flags (what ``torch.unique`` counted, without its sort:
-        33 ms of a 600 ms chess frame, 1 thread)."""
+        33 ms of a 600 ms chess frame, 1 thread); ``hit_idx`` a tuple: (hit samples, faces, vertices) as
+        ``oracle_native.frame_rows`` counted them."""
+        if isinstance(hit_idx, tuple):  # (hit samples, faces, vertices) counted by `oracle_native.frame_rows`
+            self._last = (gbuffer.num_samples, hit_idx[0], live, hit_idx[1], hit_idx[2],
+                          tuple(int(x) for x in env.data.shape[:2]))
+            return
         M, N = geom.F.shape[0], geom.V.shape[0]
         hit_face = torch.zeros(M, dtype=torch.bool, device=geom.F.device)
         hit_face[gbuffer.face[hit_idx]] = True
@@ -518,13 +538,21 @@ class Oracle(Method):
         parameters) stay eager per region."""
         geom, _, eps, gen = self._frame_setup(frame, tracer=False)
         env, NL, NB = frame.envmap, self.n_light, self.n_brdf
-        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
-        hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         chunk = self._chunk()
-        # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
-        order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(len(self.scene.regions))]
-        regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
-        order = torch.cat(order) if order else hit_idx
+        R = len(self.scene.regions)
+        # the samples and frame_cost's counts by one C pass (`oracle_native.frame_rows`), else by torch below
+        fr = oracle_native.frame_rows(gbuffer.hit, gbuffer.region, gbuffer.face, R, geom.F, geom.V.shape[0],
+                                      self._work) if FRAME_ROWS and R else None
+        if fr is not None:
+            order, counts, hits, n_faces, n_verts = fr
+            regions = [(frame.materials[region], c) for region, c in zip(self.scene.regions, counts)]
+            hit_idx = (hits, n_faces, n_verts)  # `_record`'s counts, counted
+        else:
+            hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
+            # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
+            order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(R)]
+            regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
+            order = torch.cat(order) if order else hit_idx
         # the reference's draws, per region and chunk, straight into the frame's (Q, NL / NB, 2) arrays
         # (a work array: `_work`; the same numbers as drawn apart and concatenated)
         Q = order.numel()
@@ -551,6 +579,10 @@ class Oracle(Method):
         tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64), env.periodic_texels(planes=True))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
+        if K_l is None and DIRECT and _direct_ok(gbuffer):  # the C loops read the G-buffer rows themselves
+            return self._render_direct(gbuffer, geom, order, regions, hit_idx, chunk, vis, eps_t, U_l, U_b, tables,
+                                       env, ext, R32)
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         face_ng = _face_normals(geom.V, geom.F, gbuffer.face, order)
         live_total = 0
         for a in range(0, order.numel(), chunk):
@@ -564,6 +596,29 @@ class Oracle(Method):
             live_total += live_n
         self._record(gbuffer, geom, hit_idx, live_total, env)
         return gbuffer.resolve(out)
+
+    def _render_direct(self, gbuffer: GBuffer, geom, order: Tensor, regions: list, hit_idx: Tensor, chunk: int, vis,
+                       eps_t: Tensor, U_l: Tensor, U_b: Tensor, tables: tuple, env, ext: Tensor, R32: Tensor) -> Tensor:
+        """`render`'s C-loop frame without its torch gathers and scatter (or35): `_shade_native` on the
+        G-buffer's own arrays (``oracle_native.Rows``: each block's positions, normals, ω_o and geometric normals
+        read by the C loops from the samples' rows, the values `_gather` and `_face_normals` give) and the
+        estimates written by ``oracle_native.shade`` straight into the frame's channel-major radiance (a work
+        array, zero at misses), resolved by ``GBuffer.resolve(channels_first=True)`` — the same image, bit for
+        bit, as `_gather` / ``index_copy_`` / ``resolve`` (``tests/methods/test_oracle.py``)."""
+        planes = self._work("radiance", (3, gbuffer.num_samples)).zero_()
+        if order.numel() <= geom.F.shape[0]:  # `_face_normals`' choice: per sample, else per face gathered
+            ng, face = geometric_normals(geom.V, geom.F, gbuffer.face[order]), None
+        else:
+            ng, face = geometric_normals(geom.V, geom.F, torch.arange(geom.F.shape[0], device=geom.F.device)), gbuffer.face
+        rows = oracle_native.Rows(order, gbuffer.position, gbuffer.normal, gbuffer.wo, ng.contiguous(), face)
+        live_total = 0
+        for a in range(0, order.numel(), chunk):
+            b = min(a + chunk, order.numel())
+            mats = _segments(regions, a, b)
+            live_total += self._shade_native(mats, vis, eps_t, rows[a:b], None, None, None, U_l[a:b], U_b[a:b],
+                                             tables, env.data, ext, R32, into=planes)
+        self._record(gbuffer, geom, hit_idx, live_total, env)
+        return gbuffer.resolve(planes, channels_first=True)
 
     def _gather(self, gbuffer: GBuffer, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The G-buffer's positions, normals and ω_o of the samples ``sel``, ``index_select``ed into work
@@ -644,29 +699,38 @@ class Oracle(Method):
         return (all(oracle_native.supports(mat) for mat, _ in regions) and oracle_native.available()
                 and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in ts))
 
-    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
+    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32, into=None):
         """`_shade_fast` by the C loops of ``methods.oracle.native_rays`` (every region's BRDF has a C body):
         each region's rays (`oracle_native.pretrace`), the live ones traced in one batch
         (`_trace_soa`), the radiance look-up and sum (`oracle_native.shade`): → ((Q, 3) estimates,
-        live rays)."""
+        live rays). ``p`` an ``oracle_native.Rows`` (n, wo, ng None) and ``into`` a (3, P) channel-major
+        radiance: the rows read from the G-buffer by the C loops and the estimates written into ``into``
+        at the samples' rows (`_render_direct`) → live rays."""
         NL, NB = self.n_light, self.n_brdf
-        K, Q = NL + NB, p.shape[0]
+        rows = p if isinstance(p, oracle_native.Rows) else None
+        K, Q = NL + NB, (rows.idx if rows is not None else p).shape[0]
         cdf, p_flat, _, omega, R64 = tables[:5]
         H, W = data.shape[:2]
         tab = tuple(x.contiguous() for x in (cdf, p_flat, omega, R64))
-        p, n, wo, ng, U_l, U_b = (x.contiguous() for x in (p, n, wo, ng, U_l, U_b))
+        U_l, U_b = U_l.contiguous(), U_b.contiguous()
+        if rows is None:
+            p, n, wo, ng = (x.contiguous() for x in (p, n, wo, ng))
         # rays slot-major; origins and directions as component planes, the shadow-ray tracer's input
         contrib = self._work("contrib", (K, Q, 3))
         o, d = (oracle_native.plane_views(self._work(x, (3 * oracle_native.plane_stride(K * Q),)), K, Q)
                 for x in ("origins", "directions"))
         live, blocked = (self._work(x, (K, Q), torch.bool) for x in ("live", "blocked"))
         for mat, a, b in mats:
-            oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b], NL, NB, tab,
+            src = (rows[a:b], None, None, None) if rows is not None else (n[a:b], wo[a:b], ng[a:b], p[a:b])
+            oracle_native.pretrace(mat, *src, U_l[a:b], U_b[a:b], NL, NB, tab,
                                    H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[..., a:b], d[..., a:b]))
         if isinstance(vis, EmbreeTracer):  # the oracle's own tracer (`_own_tracer`)
             n_live = vis.trace(live, o, d, blocked, oracle_native._threads(K * Q))
         else:
             n_live = oracle_native.trace(vis, live, o, d, blocked)
+        if rows is not None:
+            oracle_native.shade(contrib, live, blocked, d, ext.contiguous(), R32.contiguous(), H, W, into=(rows.idx, into))
+            return n_live
         return oracle_native.shade(contrib, live, blocked, d, ext.contiguous(), R32.contiguous(), H, W), n_live
 
     def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):
