@@ -94,3 +94,39 @@ def test_frame_rows_equal_torch():
     hit_vert = torch.zeros(N, dtype=torch.bool)
     hit_vert[F[torch.nonzero(hit_face).squeeze(-1)].reshape(-1)] = True
     assert (hits, faces, verts) == (hit_idx.numel(), int(hit_face.sum()), int(hit_vert.sum()))
+
+
+@pytest.mark.parametrize("name,kind", [("chess", "VBL"), ("creature", "P")])
+def test_face_normals_kept_across_frames_equal_computed(name, kind, monkeypatch):
+    """`Oracle._face_table` keeps the per-face geometric normals of the last frame's mesh: a sequence rendered
+    by one oracle (static geometry: the table computed once, then kept; a posed sequence: computed for each
+    new pose) gives the images of the torch path (``DIRECT``, ``FRAME_ROWS`` and ``FACE_CACHE`` off), frame
+    after frame; two sub-samples a side, so the per-face table is taken."""
+    import methods.oracle as O
+
+    _native(monkeypatch)
+    scene = get_scene(name, "test")
+    frames = make_sequence(scene, kind, n_frames=4, seed=1)
+    cfg = dict(light_samples=2, brdf_samples=2, seed=3)
+    a = get_method("oracle")(**cfg)
+    a.precompute(scene)
+    computed, real = [0], O.geometric_normals
+
+    def counting(V, F, face):
+        computed[0] += 1
+        return real(V, F, face)
+
+    for f in frames:
+        gb = make_gbuffer(scene, f, 2)
+        monkeypatch.setattr(O, "geometric_normals", counting)
+        img = a.render(f, gb)
+        monkeypatch.setattr(O, "geometric_normals", real)
+        for flag in ("DIRECT", "FRAME_ROWS", "FACE_CACHE"):
+            monkeypatch.setattr(O, flag, False)
+        b = get_method("oracle")(**cfg)
+        b.precompute(scene)
+        want = b.render(f, gb)
+        for flag in ("DIRECT", "FRAME_ROWS", "FACE_CACHE"):
+            monkeypatch.setattr(O, flag, True)
+        assert torch.equal(img, want) and a._last == b._last, f.index
+    assert computed[0] == (1 if kind == "VBL" else len(frames))
