@@ -45,6 +45,22 @@ Session 34: the C loops' shadow rays go to the oracle's own Embree scene (``meth
 of `_repose`'s ~11 ms full build) and the live rays are handed to Embree as streams (no dead packet
 lanes) — the same blocked flags as Mitsuba's tracer, ray for ray; creature bench P 1.15×, V 1.09×, chess
 V 1.15×, L 1.18× process CPU at 1 thread.
+
+Session 35 (or35): the torch work between the C loops went — the C loops read each block's G-buffer rows
+themselves (``native_rays.Rows``: positions, normals, ω_o, the geometric normal by face) instead of torch's
+gathers, ``native_rays.shade`` writes the estimates straight into the frame's channel-major radiance (resolved
+by ``GBuffer.resolve(channels_first=True)``) instead of ``index_copy_``, the sample order and `frame_cost`'s
+counts come from one C pass (``native_rays.frame_rows``) instead of a ``nonzero`` per region and `_record`'s
+flags, and a frame of the same mesh keeps the per-face geometric normals (`Oracle._face_table`): images and
+counts bit for bit those of the torch path, which stays beside them (`DIRECT`, `FRAME_ROWS`, `FACE_CACHE`
+off; ``tests/methods/test_oracle_direct.py``). Creature bench V / P 1.09× process CPU at 1 thread
+(``benchmarks.oracle_ab``); ``benchmarks.oracle_flags_ab`` 1.07–1.08× at 1 thread, 1.10–1.5× at 2 on a loaded
+host (the torch ops' parallel regions wait on a descheduled thread). Tried and dropped (captured rays, 1
+thread): Embree's coherent stream flag (0.38×), rtcOccluded1 per ray (0.50×), 16 / 8-ray packets in order (0.77
+/ 0.72×), the live rays sorted by direction (0.86–0.92×) or by origin Morton code (0.97×) before the stream,
+larger / smaller streams, a one-level HIGH-quality static scene, other Embree ISAs / frequency levels (0.82–1.01×).
+Without ``RTC_SCENE_FLAG_ROBUST`` the stream traverses 1.24× faster but its answers are not Mitsuba's: 1
+blocked flag of 57 M live rays flipped (chess bench V frame 1; chess V / L / E, creature V / P / E, 5 frames each): kept robust.
 """
 from __future__ import annotations
 
