@@ -45,6 +45,22 @@ Session 34: the C loops' shadow rays go to the oracle's own Embree scene (``meth
 of `_repose`'s ~11 ms full build) and the live rays are handed to Embree as streams (no dead packet
 lanes) — the same blocked flags as Mitsuba's tracer, ray for ray; creature bench P 1.15×, V 1.09×, chess
 V 1.15×, L 1.18× process CPU at 1 thread.
+
+Session 35 (or35): the torch work between the C loops went — the C loops read each block's G-buffer rows
+themselves (``native_rays.Rows``: positions, normals, ω_o, the geometric normal by face) instead of torch's
+gathers, ``native_rays.shade`` writes the estimates straight into the frame's channel-major radiance (resolved
+by ``GBuffer.resolve(channels_first=True)``) instead of ``index_copy_``, the sample order and `frame_cost`'s
+counts come from one C pass (``native_rays.frame_rows``) instead of a ``nonzero`` per region and `_record`'s
+flags, and a frame of the same mesh keeps the per-face geometric normals (`Oracle._face_table`): images and
+counts bit for bit those of the torch path, which stays beside them (`DIRECT`, `FRAME_ROWS`, `FACE_CACHE`
+off; ``tests/methods/test_oracle_direct.py``). Creature bench V / P 1.09× process CPU at 1 thread
+(``benchmarks.oracle_ab``); ``benchmarks.oracle_flags_ab`` 1.07–1.08× at 1 thread, 1.10–1.5× at 2 on a loaded
+host (the torch ops' parallel regions wait on a descheduled thread). Tried and dropped (captured rays, 1
+thread): Embree's coherent stream flag (0.38×), rtcOccluded1 per ray (0.50×), 16 / 8-ray packets in order (0.77
+/ 0.72×), the live rays sorted by direction (0.86–0.92×) or by origin Morton code (0.97×) before the stream,
+larger / smaller streams, a one-level HIGH-quality static scene, other Embree ISAs / frequency levels (0.82–1.01×).
+Without ``RTC_SCENE_FLAG_ROBUST`` the stream traverses 1.24× faster but its answers are not Mitsuba's: 1
+blocked flag of 57 M live rays flipped (chess bench V frame 1; chess V / L / E, creature V / P / E, 5 frames each): kept robust.
 """
 from __future__ import annotations
 
@@ -76,6 +92,24 @@ RAY_EPS_REL = 1e-5
 # Frames on the C loops' path trace their shadow rays with the oracle's own tracer (``methods.oracle.embree_rays``:
 # a refitted BVH per pose instead of Mitsuba's full build, the live rays as one stream); False: Mitsuba's.
 OWN_TRACER = True
+
+# Frames on the C loops' path read the G-buffer rows in the C loops and write the estimates into a channel-major
+# radiance (`Oracle._render_direct`, or35); False: the rows gathered by torch and scattered by ``index_copy_``.
+DIRECT = True
+# `Oracle._render_direct` keeps the per-face geometric normals of the last frame's mesh for a frame of the same mesh
+# (`Oracle._face_table`, or35); False: computed every frame.
+FACE_CACHE = True
+# The frame's sample order and `frame_cost`'s counts by one C pass (``oracle_native.frame_rows``, or35); False: by
+# torch (``nonzero`` per region, `Oracle._record`'s flags).
+FRAME_ROWS = True
+
+
+def _direct_ok(gbuffer) -> bool:
+    """Whether `Oracle._render_direct` takes this G-buffer's arrays as they are (``oracle_native.Rows``)."""
+    return (gbuffer.position.is_contiguous() and gbuffer.normal.is_contiguous() and gbuffer.face.is_contiguous()
+            and gbuffer.face.dtype == torch.int64 and gbuffer.wo.dim() == 2
+            and all(x.dtype == torch.float32 and x.device.type == "cpu" for x in (gbuffer.position, gbuffer.normal, gbuffer.wo)))
+
 
 # G-buffer samples per block of the compiled stages (`methods.core.fused.map_rows`): each sample
 # carries light_samples + brdf_samples rays, so a block's (rows, rays, 3) temporaries stay a few MB;
@@ -404,6 +438,9 @@ class Oracle(Method):
         # per-frame work arrays by name, reused by the next frame of the same sizes (`_work`): fresh
         # ones cost their first touch, ~30 000 page faults (~120 MB) per chess bench frame
         self._scratch: dict[str, Tensor] = {}
+        # the mesh whose per-face normals ``_scratch["face_normals"]`` holds (`_face_table`) and its tensors
+        self._face_key: tuple | None = None
+        self._face_refs: tuple = ()
 
     # -- interface ----------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -474,10 +511,15 @@ class Oracle(Method):
         gen = torch.Generator().manual_seed(int(self.seed) * 1_000_003 + int(frame.index))
         return geom, vis, eps, gen
 
-    def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor, live: int, env) -> None:
+    def _record(self, gbuffer: GBuffer, geom, hit_idx: Tensor | tuple, live: int, env) -> None:
         """`frame_cost`'s counts of the frame: the faces hit and their distinct vertices, counted by
         marking them in per-face / per-vertex flags (what ``torch.unique`` counted, without its sort:
-        33 ms of a 600 ms chess frame, 1 thread)."""
+        33 ms of a 600 ms chess frame, 1 thread); ``hit_idx`` a tuple: (hit samples, faces, vertices) as
+        ``oracle_native.frame_rows`` counted them."""
+        if isinstance(hit_idx, tuple):  # (hit samples, faces, vertices) counted by `oracle_native.frame_rows`
+            self._last = (gbuffer.num_samples, hit_idx[0], live, hit_idx[1], hit_idx[2],
+                          tuple(int(x) for x in env.data.shape[:2]))
+            return
         M, N = geom.F.shape[0], geom.V.shape[0]
         hit_face = torch.zeros(M, dtype=torch.bool, device=geom.F.device)
         hit_face[gbuffer.face[hit_idx]] = True
@@ -518,13 +560,21 @@ class Oracle(Method):
         parameters) stay eager per region."""
         geom, _, eps, gen = self._frame_setup(frame, tracer=False)
         env, NL, NB = frame.envmap, self.n_light, self.n_brdf
-        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
-        hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
         chunk = self._chunk()
-        # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
-        order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(len(self.scene.regions))]
-        regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
-        order = torch.cat(order) if order else hit_idx
+        R = len(self.scene.regions)
+        # the samples and frame_cost's counts by one C pass (`oracle_native.frame_rows`), else by torch below
+        fr = oracle_native.frame_rows(gbuffer.hit, gbuffer.region, gbuffer.face, R, geom.F, geom.V.shape[0],
+                                      self._work) if FRAME_ROWS and R else None
+        if fr is not None:
+            order, counts, hits, n_faces, n_verts = fr
+            regions = [(frame.materials[region], c) for region, c in zip(self.scene.regions, counts)]
+            hit_idx = (hits, n_faces, n_verts)  # `_record`'s counts, counted
+        else:
+            hit_idx = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
+            # each region's hit samples, ascending (= hit_idx[region[hit_idx] == r], without its gathers)
+            order = [torch.nonzero((gbuffer.region == r) & gbuffer.hit).squeeze(-1) for r in range(R)]
+            regions = [(frame.materials[region], idx.numel()) for region, idx in zip(self.scene.regions, order)]
+            order = torch.cat(order) if order else hit_idx
         # the reference's draws, per region and chunk, straight into the frame's (Q, NL / NB, 2) arrays
         # (a work array: `_work`; the same numbers as drawn apart and concatenated)
         Q = order.numel()
@@ -551,6 +601,10 @@ class Oracle(Method):
         tables = (cdf, p.reshape(-1), p, omega, env.to_world.to(torch.float64), env.periodic_texels(planes=True))
         ext, R32 = env.periodic_texels(), env.to_world.to(torch.float32)
         eps_t = torch.tensor(eps, dtype=torch.float32)
+        if K_l is None and DIRECT and _direct_ok(gbuffer):  # the C loops read the G-buffer rows themselves
+            return self._render_direct(gbuffer, geom, order, regions, hit_idx, chunk, vis, eps_t, U_l, U_b, tables,
+                                       env, ext, R32)
+        out = torch.zeros(gbuffer.num_samples, 3, dtype=torch.float32)
         face_ng = _face_normals(geom.V, geom.F, gbuffer.face, order)
         live_total = 0
         for a in range(0, order.numel(), chunk):
@@ -564,6 +618,44 @@ class Oracle(Method):
             live_total += live_n
         self._record(gbuffer, geom, hit_idx, live_total, env)
         return gbuffer.resolve(out)
+
+    def _render_direct(self, gbuffer: GBuffer, geom, order: Tensor, regions: list, hit_idx: Tensor, chunk: int, vis,
+                       eps_t: Tensor, U_l: Tensor, U_b: Tensor, tables: tuple, env, ext: Tensor, R32: Tensor) -> Tensor:
+        """`render`'s C-loop frame without its torch gathers and scatter (or35): `_shade_native` on the
+        G-buffer's own arrays (``oracle_native.Rows``: each block's positions, normals, ω_o and geometric normals
+        read by the C loops from the samples' rows, the values `_gather` and `_face_normals` give) and the
+        estimates written by ``oracle_native.shade`` straight into the frame's channel-major radiance (a work
+        array, zero at misses), resolved by ``GBuffer.resolve(channels_first=True)`` — the same image, bit for
+        bit, as `_gather` / ``index_copy_`` / ``resolve`` (``tests/methods/test_oracle.py``)."""
+        planes = self._work("radiance", (3, gbuffer.num_samples)).zero_()
+        if order.numel() <= geom.F.shape[0]:  # `_face_normals`' choice: per sample, else per face gathered
+            ng, face = geometric_normals(geom.V, geom.F, gbuffer.face[order]), None
+        else:
+            ng, face = self._face_table(geom), gbuffer.face
+        rows = oracle_native.Rows(order, gbuffer.position, gbuffer.normal, gbuffer.wo, ng.contiguous(), face)
+        live_total = 0
+        for a in range(0, order.numel(), chunk):
+            b = min(a + chunk, order.numel())
+            mats = _segments(regions, a, b)
+            live_total += self._shade_native(mats, vis, eps_t, rows[a:b], None, None, None, U_l[a:b], U_b[a:b],
+                                             tables, env.data, ext, R32, into=planes)
+        self._record(gbuffer, geom, hit_idx, live_total, env)
+        return gbuffer.resolve(planes, channels_first=True)
+
+    def _face_table(self, geom) -> Tensor:
+        """`geometric_normals` of every face of the frame's mesh (F, 3), as `_face_normals` computes them: kept
+        from the last frame (a work array, ``memory()``) while the mesh is the same tensors, unmodified (the
+        scene's geometry of the same pose: a static scene's V / L / E / VB frames; ``_version`` counts in-place
+        writes), else computed again (a new pose) — the same values either way (or35: ~1.7 ms CPU a
+        creature bench frame)."""
+        key = (id(geom.V), geom.V._version, id(geom.F), geom.F._version, tuple(geom.V.shape), tuple(geom.F.shape))
+        t = self._scratch.get("face_normals")
+        if t is None or self._face_key != key or t.shape != (geom.F.shape[0], 3) or not FACE_CACHE:
+            ng = geometric_normals(geom.V, geom.F, torch.arange(geom.F.shape[0], device=geom.F.device))
+            self._scratch["face_normals"] = t = ng.contiguous()
+            self._face_key = key if FACE_CACHE else None
+            self._face_refs = (geom.V, geom.F)  # the keyed tensors stay alive: their ids are not reused
+        return t
 
     def _gather(self, gbuffer: GBuffer, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The G-buffer's positions, normals and ω_o of the samples ``sel``, ``index_select``ed into work
@@ -644,29 +736,38 @@ class Oracle(Method):
         return (all(oracle_native.supports(mat) for mat, _ in regions) and oracle_native.available()
                 and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in ts))
 
-    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32):
+    def _shade_native(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, U_b, tables, data, ext, R32, into=None):
         """`_shade_fast` by the C loops of ``methods.oracle.native_rays`` (every region's BRDF has a C body):
         each region's rays (`oracle_native.pretrace`), the live ones traced in one batch
         (`_trace_soa`), the radiance look-up and sum (`oracle_native.shade`): → ((Q, 3) estimates,
-        live rays)."""
+        live rays). ``p`` an ``oracle_native.Rows`` (n, wo, ng None) and ``into`` a (3, P) channel-major
+        radiance: the rows read from the G-buffer by the C loops and the estimates written into ``into``
+        at the samples' rows (`_render_direct`) → live rays."""
         NL, NB = self.n_light, self.n_brdf
-        K, Q = NL + NB, p.shape[0]
+        rows = p if isinstance(p, oracle_native.Rows) else None
+        K, Q = NL + NB, (rows.idx if rows is not None else p).shape[0]
         cdf, p_flat, _, omega, R64 = tables[:5]
         H, W = data.shape[:2]
         tab = tuple(x.contiguous() for x in (cdf, p_flat, omega, R64))
-        p, n, wo, ng, U_l, U_b = (x.contiguous() for x in (p, n, wo, ng, U_l, U_b))
+        U_l, U_b = U_l.contiguous(), U_b.contiguous()
+        if rows is None:
+            p, n, wo, ng = (x.contiguous() for x in (p, n, wo, ng))
         # rays slot-major; origins and directions as component planes, the shadow-ray tracer's input
         contrib = self._work("contrib", (K, Q, 3))
         o, d = (oracle_native.plane_views(self._work(x, (3 * oracle_native.plane_stride(K * Q),)), K, Q)
                 for x in ("origins", "directions"))
         live, blocked = (self._work(x, (K, Q), torch.bool) for x in ("live", "blocked"))
         for mat, a, b in mats:
-            oracle_native.pretrace(mat, n[a:b], wo[a:b], ng[a:b], p[a:b], U_l[a:b], U_b[a:b], NL, NB, tab,
+            src = (rows[a:b], None, None, None) if rows is not None else (n[a:b], wo[a:b], ng[a:b], p[a:b])
+            oracle_native.pretrace(mat, *src, U_l[a:b], U_b[a:b], NL, NB, tab,
                                    H, W, float(eps), (contrib[:, a:b], live[:, a:b], o[..., a:b], d[..., a:b]))
         if isinstance(vis, EmbreeTracer):  # the oracle's own tracer (`_own_tracer`)
             n_live = vis.trace(live, o, d, blocked, oracle_native._threads(K * Q))
         else:
             n_live = oracle_native.trace(vis, live, o, d, blocked)
+        if rows is not None:
+            oracle_native.shade(contrib, live, blocked, d, ext.contiguous(), R32.contiguous(), H, W, into=(rows.idx, into))
+            return n_live
         return oracle_native.shade(contrib, live, blocked, d, ext.contiguous(), R32.contiguous(), H, W), n_live
 
     def _shade_blocks(self, mats, vis, eps: Tensor, p, n, wo, ng, U_l, K_l, U_b, tables, data, ext, R32):

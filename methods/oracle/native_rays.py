@@ -69,7 +69,7 @@ from methods.core import native
 from methods.core.envguide import GUIDE_STEPS, guide_table
 from references.visibility import MitsubaVisibility
 
-__all__ = ["KINDS", "available", "int_pow", "light_cells", "pretrace", "shade", "supports", "trace", "uniform"]
+__all__ = ["KINDS", "Rows", "available", "frame_rows", "int_pow", "light_cells", "pretrace", "shade", "supports", "trace", "uniform"]
 
 assert GUIDE_STEPS == 4, "the C search takes methods.core.envguide's 4 bisection steps"
 
@@ -101,6 +101,14 @@ typedef struct {
     float *contrib;                        /* (K, QS, 3), rows from this call's first sample */
     float *o, *d;                          /* (3, K, QS) component planes PS apart, rows likewise */
     uint8_t *live;                         /* (K, QS) */
+    /* gather mode (idx non-NULL): the call's samples are the G-buffer rows idx[0:Q] (int64), read here per
+       block instead of from gathered (Q, 3) rows n, wo, ng, p: positions gp and normals gn (P, 3) rows,
+       w_o gw at gw[c * gws0 + s * gws1], the geometric normal ngt[3 * gf[s]] (gf non-NULL: a per-face
+       table) or ngt[3 * i] (gf NULL: the call's own rows) */
+    const int64_t *idx;
+    const float *gp, *gn, *gw, *ngt;
+    int64_t gws0, gws1;
+    const int64_t *gf;
 } PArgs;
 
 #define PI_F ((float)M_PI)
@@ -322,8 +330,9 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
 
 /* The per-sample frame (methods.core.frames.coordinate_system), w_o in it, ng on n's side. */
 #define SAMPLE_SETUP                                                                              \
-    float nx = n_[3 * i], ny = n_[3 * i + 1], nz = n_[3 * i + 2];                                 \
-    float wv0 = wo_[3 * i], wv1 = wo_[3 * i + 1], wv2 = wo_[3 * i + 2];                           \
+    const int64_t ir = i - ib;  /* the sample's row in n_, wo_, ng_, p_ */                      \
+    float nx = n_[3 * ir], ny = n_[3 * ir + 1], nz = n_[3 * ir + 2];                              \
+    float wv0 = wo_[3 * ir], wv1 = wo_[3 * ir + 1], wv2 = wo_[3 * ir + 2];                        \
     float sg = nz >= 0.0f ? 1.0f : -1.0f;                                                         \
     float aa = -1.0f / (sg + nz);                                                                 \
     float bb = nx * ny * aa;                                                                      \
@@ -331,7 +340,7 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
     float t0 = bb, t1 = sg + ny * ny * aa, t2 = -ny;                                              \
     float wol[3] = {s0 * wv0 + s1 * wv1 + s2 * wv2, t0 * wv0 + t1 * wv1 + t2 * wv2,               \
                     nx * wv0 + ny * wv1 + nz * wv2};                                              \
-    float g0 = ng_[3 * i], g1 = ng_[3 * i + 1], g2 = ng_[3 * i + 2];                              \
+    float g0 = ng_[3 * ir], g1 = ng_[3 * ir + 1], g2 = ng_[3 * ir + 2];                           \
     float gs = (g0 * nx + g1 * ny + g2 * nz < 0.0f) ? -1.0f : 1.0f;                               \
     g0 = gs * g0; g1 = gs * g1; g2 = gs * g2;
 
@@ -351,9 +360,9 @@ static inline __attribute__((always_inline)) void mat_sample(const Mat *M, int k
         live_[r] = (uint8_t)(int32_t)(pos * nan);                                                 \
         float sd = g0 * dw[0] + g1 * dw[1] + g2 * dw[2];                                          \
         float side = (float)(sd > 0.0f) - (float)(sd < 0.0f);                                     \
-        o_[r] = p_[3 * i] + side * g0 * eps;                                                      \
-        o_[PS + r] = p_[3 * i + 1] + side * g1 * eps;                                             \
-        o_[2 * PS + r] = p_[3 * i + 2] + side * g2 * eps;                                         \
+        o_[r] = p_[3 * ir] + side * g0 * eps;                                                     \
+        o_[PS + r] = p_[3 * ir + 1] + side * g1 * eps;                                            \
+        o_[2 * PS + r] = p_[3 * ir + 2] + side * g2 * eps;                                        \
         d_[r] = dw[0]; d_[PS + r] = dw[1]; d_[2 * PS + r] = dw[2];                                \
     }
 
@@ -426,10 +435,35 @@ static inline __attribute__((always_inline)) void search_cells(const float *bu0,
     }
 }
 
+/* gather mode (PArgs.idx): the rows n, wo, ng, p of the samples i0 .. i1 - 1 of the call, copied from the
+   G-buffer's arrays into g (4 x (3, MAXB) rows: n, wo, ng, p) — the values the gathered rows hold */
+static void gather_rows(const PArgs *A, int64_t i0, int64_t i1, float *g) {
+    const int64_t *idx = A->idx, *gf = A->gf;
+    const float *gp = A->gp, *gn = A->gn, *gw = A->gw, *ngt = A->ngt;
+    const int64_t s0 = A->gws0, s1 = A->gws1;
+    float *bn = g, *bw = g + 3 * MAXB, *bg = g + 6 * MAXB, *bp = g + 9 * MAXB;
+    for (int64_t i = i0; i < i1; i++) {
+        const int64_t s = idx[i], r = 3 * (i - i0);
+        const int64_t f = gf ? gf[s] : i;
+        for (int c = 0; c < 3; c++) {
+            bn[r + c] = gn[3 * s + c];
+            bw[r + c] = gw[c * s0 + s * s1];
+            bg[r + c] = ngt[3 * f + c];
+            bp[r + c] = gp[3 * s + c];
+        }
+    }
+}
+
 static inline __attribute__((always_inline)) void block(const PArgs *A, const Mat *Mp, const int kind, int64_t i0, int64_t i1) {
     const Mat M = *Mp;
     const int64_t NL = A->NL, NB = A->NB, C = A->C, H = A->H, W = A->W, QS = A->QS, PS = A->PS;
-    const float *__restrict n_ = A->n, *__restrict wo_ = A->wo, *__restrict ng_ = A->ng, *__restrict p_ = A->p;
+    float grows[12 * MAXB];
+    const int gathered = A->idx != 0;
+    if (gathered)
+        gather_rows(A, i0, i1, grows);
+    const int64_t ib = gathered ? i0 : 0;  /* row of sample i: i - ib */
+    const float *__restrict n_ = gathered ? grows : A->n, *__restrict wo_ = gathered ? grows + 3 * MAXB : A->wo;
+    const float *__restrict ng_ = gathered ? grows + 6 * MAXB : A->ng, *__restrict p_ = gathered ? grows + 9 * MAXB : A->p;
     const float *__restrict ul_ = A->ul, *__restrict ub_ = A->ub;
     const double *__restrict cdf0_ = A->cdf0, *__restrict pflat_ = A->pflat, *__restrict omega_ = A->omega;
     const double *__restrict ztab_ = A->ztab;
@@ -574,12 +608,12 @@ void pretrace(const PArgs *A, int64_t block_rows, int32_t nt) {
 static void shade_rows(const float *__restrict contrib, const uint8_t *__restrict live,
                        const uint8_t *__restrict blocked, const float *__restrict d, const float *__restrict ext,
                        const float *__restrict Rp, int64_t Q, int64_t K, int64_t H, int64_t W,
-                       int64_t PS, float *__restrict out, int64_t i0, int64_t i1) {
+                       int64_t PS, float *__restrict out, int64_t i0, int64_t i1, int64_t ob) {
     const float hw = (float)(0.5 / W), fW = (float)W, fH1 = (float)(H - 1);
     const float i2pi = (float)(0.5 / M_PI), ipi = (float)(1.0 / M_PI);
     float R[9];
     for (int c = 0; c < 9; c++) R[c] = Rp[c];
-    for (int64_t i = i0; i < i1; i++) { out[3 * i] = 0.0f; out[3 * i + 1] = 0.0f; out[3 * i + 2] = 0.0f; }
+    for (int64_t i = i0; i < i1; i++) { out[3 * (i - ob)] = 0.0f; out[3 * (i - ob) + 1] = 0.0f; out[3 * (i - ob) + 2] = 0.0f; }
     int32_t bidx[MAXB];
     float bfx[MAXB], bfy[MAXB], bl[MAXB];
     for (int64_t k = 0; k < K; k++) {
@@ -628,7 +662,7 @@ static void shade_rows(const float *__restrict contrib, const uint8_t *__restric
                 float v1 = w0x * ext[3 * (idx + W + 1) + c] + fx * ext[3 * (idx + W + 2) + c];   \
                 float L = w0y * v0 + fy * v1;                                                     \
                 L = l ? L : 0.0f;                                                                 \
-                out[3 * i + c] = out[3 * i + c] + contrib[3 * r + c] * L;                         \
+                out[3 * (i - ob) + c] = out[3 * (i - ob) + c] + contrib[3 * r + c] * L;           \
             }
             TAP(0) TAP(1) TAP(2)
 #undef TAP
@@ -659,15 +693,65 @@ void expand_blocked(const uint8_t *live, const uint8_t *blocked_live, int64_t n,
     }
 }
 
+/* out: (Q, 3) rows; or, idx non-NULL, sample i's sum written to out[c * OP + idx[i]] (channel planes OP apart:
+   the G-buffer's (3, P) channel-major radiance, `shade`'s scatter) */
 void shade(const float *contrib, const uint8_t *live, const uint8_t *blocked, const float *d, const float *ext,
            const float *R, int64_t Q, int64_t K, int64_t H, int64_t W, int64_t PS, float *out, int64_t block_rows,
-           int32_t nt) {
+           int32_t nt, const int64_t *idx, int64_t OP) {
     int64_t nb = (Q + block_rows - 1) / block_rows;
 #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t b = 0; b < nb; b++) {
         int64_t i0 = b * block_rows, i1 = i0 + block_rows < Q ? i0 + block_rows : Q;
-        shade_rows(contrib, live, blocked, d, ext, R, Q, K, H, W, PS, out, i0, i1);
+        if (!idx) {
+            shade_rows(contrib, live, blocked, d, ext, R, Q, K, H, W, PS, out, i0, i1, 0);
+            continue;
+        }
+        float acc[3 * MAXB];
+        shade_rows(contrib, live, blocked, d, ext, R, Q, K, H, W, PS, acc, i0, i1, i0);
+        for (int64_t i = i0; i < i1; i++)
+            for (int c = 0; c < 3; c++)
+                out[c * OP + idx[i]] = acc[3 * (i - i0) + c];
     }
+}
+
+/* A frame's samples and frame_cost's counts in one pass (`frame_rows`): order (P,) the hit samples whose
+   region r is in [0, R), region after region, ascending within a region (torch.nonzero((region == r) & hit)
+   for r = 0 .. R-1, concatenated); counts (R,) of each; stats = (hit samples, faces hit — face[s] of the hit
+   samples, a negative index from the end as torch indexes —, their distinct vertices). fflag (M,), vflag (N,):
+   scratch. */
+void frame_rows(const uint8_t *hit, const int64_t *region, const int64_t *face, int64_t P, int64_t R,
+                int64_t *order, int64_t *counts, const int64_t *F, int64_t M, int64_t N, uint8_t *fflag,
+                uint8_t *vflag, int64_t *stats) {
+    int64_t hits = 0, faces = 0, verts = 0;
+    memset(fflag, 0, (size_t)M);
+    memset(vflag, 0, (size_t)N);
+    for (int64_t r = 0; r < R; r++) counts[r] = 0;
+    for (int64_t s = 0; s < P; s++) {
+        if (!hit[s]) continue;
+        hits++;
+        int64_t f = face[s];
+        f = f < 0 ? f + M : f;
+        if (f >= 0 && f < M) fflag[f] = 1;
+        int64_t r = region[s];
+        if (r >= 0 && r < R) counts[r]++;
+    }
+    int64_t off[R > 0 ? R : 1], acc = 0;
+    for (int64_t r = 0; r < R; r++) { off[r] = acc; acc += counts[r]; }
+    for (int64_t s = 0; s < P; s++) {
+        int64_t r = region[s];
+        if (hit[s] && r >= 0 && r < R) order[off[r]++] = s;
+    }
+    for (int64_t f = 0; f < M; f++) {
+        if (!fflag[f]) continue;
+        faces++;
+        for (int c = 0; c < 3; c++) {
+            int64_t v = F[3 * f + c];
+            v = v < 0 ? v + N : v;
+            if (v >= 0 && v < N) vflag[v] = 1;
+        }
+    }
+    for (int64_t v = 0; v < N; v++) verts += vflag[v];
+    stats[0] = hits; stats[1] = faces; stats[2] = verts;
 }
 
 /* torch's CPU generator (at::mt19937) from its state (st: the 624 words; ln: its left_, next_): n
@@ -724,14 +808,17 @@ class _PArgs(ctypes.Structure):
                 ("s", ctypes.c_double), ("m", ctypes.c_double), ("F0", ctypes.c_double),
                 ("ax", ctypes.c_double), ("ay", ctypes.c_double),
                 ("contrib", ctypes.c_void_p), ("o", ctypes.c_void_p), ("d", ctypes.c_void_p),
-                ("live", ctypes.c_void_p)]
+                ("live", ctypes.c_void_p),
+                ("idx", ctypes.c_void_p), ("gp", ctypes.c_void_p), ("gn", ctypes.c_void_p), ("gw", ctypes.c_void_p),
+                ("ngt", ctypes.c_void_p), ("gws0", ctypes.c_int64), ("gws1", ctypes.c_int64), ("gf", ctypes.c_void_p)]
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _MITSUBA_OCCLUDED = MitsubaVisibility.occluded
 _SIGNATURES = {"pretrace": [_P, _I, ctypes.c_int32], "light_cells": [_P, _I, _P, _P, _P, _I, _I, _P], "int_pow": [_P, _I, ctypes.c_int32, _P], "compact": [_P, _P, _P, _I, _I, _P, _P, _P],
                "expand_blocked": [_P, _P, _I, _P], "mt_uniform": [_P, _P, _P, _I],
-               "shade": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _I, ctypes.c_int32]}
+               "frame_rows": [_P, _P, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _P],
+               "shade": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _I, ctypes.c_int32, _P, _I]}
 
 
 def _lib():
@@ -801,7 +888,34 @@ def _ptr(t: Tensor) -> int:
     return t.data_ptr()
 
 
-def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b: Tensor, NL: int, NB: int,
+class Rows:
+    """The G-buffer rows of a call's samples, read by the C loops themselves (`pretrace`'s gather mode, or35):
+    ``idx`` (Q,) int64 contiguous, the samples' G-buffer rows; ``position``, ``normal`` (P, 3) float32
+    contiguous; ``wo`` (P, 3) float32, any strides (ω_o's (3, P) channel planes transposed, say); ``ng`` the
+    geometric normals, (F, 3) float32 contiguous per face with ``face`` (P,) int64 contiguous, or (Q, 3) rows
+    of the call's samples with ``face`` None. `pretrace` then reads each block's rows into a block buffer —
+    the values ``position[idx]`` etc. (``Oracle._gather``) hold — instead of rows gathered by torch before."""
+
+    def __init__(self, idx: Tensor, position: Tensor, normal: Tensor, wo: Tensor, ng: Tensor, face: Tensor | None):
+        ok = (idx.dtype == torch.int64 and idx.dim() == 1 and idx.is_contiguous()
+              and all(x.dtype == torch.float32 and x.dim() == 2 and x.shape[1] == 3 for x in (position, normal, wo, ng))
+              and position.is_contiguous() and normal.is_contiguous() and ng.is_contiguous()
+              and position.shape == normal.shape == wo.shape
+              and (face is None and ng.shape[0] == idx.shape[0]
+                   or face is not None and face.dtype == torch.int64 and face.is_contiguous()
+                   and face.shape == position.shape[:1]))
+        if not ok:
+            raise ValueError("Rows: idx (Q,) int64, position / normal (P, 3) float32 contiguous, wo (P, 3) float32, "
+                             "ng (F, 3) with face (P,) int64 or (Q, 3) rows with face None")
+        self.idx, self.position, self.normal, self.wo, self.ng, self.face = idx, position, normal, wo, ng, face
+
+    def __getitem__(self, sl: slice) -> "Rows":
+        """The rows of the samples ``idx[sl]`` (a step-1 slice)."""
+        ng = self.ng if self.face is not None else self.ng[sl]
+        return Rows(self.idx[sl], self.position, self.normal, self.wo, ng, self.face)
+
+
+def pretrace(mat, n: Tensor | Rows, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b: Tensor, NL: int, NB: int,
              tables: tuple, H: int, W: int, eps: float, out: tuple[Tensor, Tensor, Tensor, Tensor]) -> None:
     """The rays of Q samples of one region (material ``mat``, `supports`) into ``out`` = (contributions
     f·cos·w, live (bool), shadow-ray origins, world directions), row slices [:, a:b] of (K, QS, 3) resp.
@@ -809,14 +923,22 @@ def pretrace(mat, n: Tensor, wo: Tensor, ng: Tensor, p: Tensor, U_l: Tensor, U_b
     (`plane_views`: each plane contiguous, the tracer's input as it is) (rays slot-major), K = NL + NB, light samples first. n, wo, ng, p: (Q, 3)
     float32 contiguous; U_l (Q, NL, 2), U_b (Q, NB, 2) float32 contiguous (ignored when NL resp. NB is
     0); tables = (cdf (C,), p_flat (C,), omega (H − 1,), R (3, 3)) float64 contiguous. The light
-    samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table)."""
+    samples' env-map cells are searched here (``Oracle._light_cells``' result, by the same guide table).
+    ``n`` a `Rows` (``wo``, ``ng``, ``p`` then ignored): the samples' rows read from the G-buffer by the C loops
+    (gather mode), the same outputs."""
     lib = _ray_lib()
-    Q = int(n.shape[0])
+    rows = n if isinstance(n, Rows) else None
+    Q = int(rows.idx.shape[0] if rows is not None else n.shape[0])
     if Q == 0:
         return
     cdf, p_flat, omega, R = tables
     a = _PArgs()
-    a.n, a.wo, a.ng, a.p = _ptr(n), _ptr(wo), _ptr(ng), _ptr(p)
+    if rows is None:
+        a.n, a.wo, a.ng, a.p = _ptr(n), _ptr(wo), _ptr(ng), _ptr(p)
+    else:
+        a.idx, a.gp, a.gn, a.gw, a.ngt = (_ptr(x) for x in (rows.idx, rows.position, rows.normal, rows.wo, rows.ng))
+        a.gws0, a.gws1 = int(rows.wo.stride(1)), int(rows.wo.stride(0))
+        a.gf = _ptr(rows.face) if rows.face is not None else None
     a.ul, a.ub = _ptr(U_l), _ptr(U_b)
     zt, guide = _ztab(H), guide_table(cdf)
     a.cdf0, a.pflat, a.omega, a.ztab, a.R = _ptr(_cdf0(cdf)), _ptr(p_flat), _ptr(omega), _ptr(zt), _ptr(R)
@@ -923,16 +1045,51 @@ def trace(vis, live: Tensor, o: Tensor, d: Tensor, blocked: Tensor) -> int:
 
 
 def shade(contrib: Tensor, live: Tensor, blocked: Tensor, d: Tensor, ext: Tensor, R32: Tensor, H: int,
-          W: int) -> Tensor:
+          W: int, into: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Σ_k contribution · radiance over the lit rays, live and not blocked (``methods.oracle._shade_stage``):
     contributions (K, Q, 3) float32 contiguous, world directions (3, K, Q) float32 component planes (each
-    contiguous), live and blocked (K, Q) bool contiguous; ext the periodic-extended texels (H·(W + 1), 3), R32 (3, 3) float32 → (Q, 3)."""
+    contiguous), live and blocked (K, Q) bool contiguous; ext the periodic-extended texels (H·(W + 1), 3), R32 (3, 3) float32 → (Q, 3).
+    ``into`` = (idx (Q,) int64 contiguous, planes (3, P) float32 contiguous): sample i's sum written to
+    ``planes[:, idx[i]]`` instead (the G-buffer's channel-major radiance, `GBuffer.resolve(channels_first=True)`'s
+    input; the same values as ``planes[:, idx] = shade(...).T``), → planes."""
     K, Q = int(live.shape[0]), int(live.shape[1])
-    out = torch.empty(Q, 3, dtype=torch.float32)
+    if into is None:
+        out, idx, OP = torch.empty(Q, 3, dtype=torch.float32), None, 0
+    else:
+        idx, out = into
+        if not (idx.dtype == torch.int64 and idx.shape == (Q,) and idx.is_contiguous() and out.dim() == 2
+                and out.shape[0] == 3 and out.dtype == torch.float32 and out.is_contiguous()):
+            raise ValueError("shade: into = (idx (Q,) int64, planes (3, P) float32), contiguous")
+        OP = int(out.shape[1])
     if Q:
         _lib().shade(_ptr(contrib), _ptr(live), _ptr(blocked), _ptr(d), _ptr(ext), _ptr(R32), Q, K, H, W,
-                     int(d.stride(0)), _ptr(out), BLOCK, _threads(Q))
+                     int(d.stride(0)), _ptr(out), BLOCK, _threads(Q), None if idx is None else _ptr(idx), OP)
     return out
+
+
+def frame_rows(hit: Tensor, region: Tensor, face: Tensor, R: int, F: Tensor, N: int, scratch) -> tuple | None:
+    """A frame's samples, as ``Oracle.render`` orders them, and `frame_cost`'s counts, by one C pass (or35): →
+    (order (Q,) int64: the hit samples of regions 0 … R − 1, region after region, ascending — ``torch.cat`` of
+    ``torch.nonzero((region == r) & hit)`` —, [samples per region], hit samples, faces hit (``face`` of the hit
+    samples), their distinct vertices (rows of ``F`` (M, 3))) — ``Oracle._record``'s counts, the same
+    integers. hit (P,) bool, region and face (P,) int64, F int64, contiguous CPU; ``scratch(name, shape,
+    dtype)`` gives work arrays. None where it does not run (no C loops, other dtypes / devices)."""
+    lib = _lib()
+    ts = (hit, region, face, F)
+    if (lib is None or not all(t.device.type == "cpu" and t.is_contiguous() for t in ts) or hit.dtype != torch.bool
+            or region.dtype != torch.int64 or face.dtype != torch.int64 or F.dtype != torch.int64
+            or F.dim() != 2 or F.shape[1] != 3 or not hit.shape == region.shape == face.shape or hit.dim() != 1):
+        return None
+    P, M = int(hit.shape[0]), int(F.shape[0])
+    order = scratch("order", (P,), torch.int64)
+    counts = torch.zeros(max(R, 1), dtype=torch.int64)
+    stats = torch.zeros(3, dtype=torch.int64)
+    lib.frame_rows(_ptr(hit), _ptr(region), _ptr(face), P, int(R), _ptr(order), _ptr(counts), _ptr(F), M, int(N),
+                   _ptr(scratch("face_flags", (max(M, 1),), torch.uint8)),
+                   _ptr(scratch("vertex_flags", (max(int(N), 1),), torch.uint8)), _ptr(stats))
+    c = [int(x) for x in counts[:R].tolist()]
+    hits, faces, verts = (int(x) for x in stats.tolist())
+    return order[:sum(c)], c, hits, faces, verts
 
 
 # torch's CPU generator state (``torch.Generator.get_state``, at::CPUGeneratorImplState): the legacy POD's
