@@ -21,6 +21,24 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 35 (pp35): a lighting change's frame (VL: new lighting and view every frame) runs the one C
+    pass of the V frames too (`NATIVE_VIEW_ROWS`): the rows of l' its glossy samples read listed from the
+    G-buffer's faces first (`native.view_rows`: every hit sample's face marked, then the glossy faces'
+    rows — the list `native.need_rows` made from the pixel pass's glossy list), computed by
+    `native.rows_vertex_major` as before, then `native.view` — where the pixel pass, the list, the rows
+    and the glossy pass ran one after the other (bit-identical images). And the lighting's rotation by one
+    C call (`native.rotate`, `NATIVE_ROTATE`: `rotate_sampled`'s samples and pseudo-inverse, float64
+    round-off; 0.35-0.4 ms of Dynamo dispatch → ~0.05-0.09 ms). Creature bench, same process against
+    70c7405, 1 thread, process CPU, load 7-9 (``python -m benchmarks.sh_prt --baseline B
+    --precompute-code B --kinds VL V L E --threads 1 --frames 15``): VL 1.09×, L 1.13×, E 1.09×, V 1.02×
+    (unchanged path); max |new − reference| / peak as before (2.6e-7 VL); the images equal the base's bit
+    for bit on those frames. Each alone (flag on/off, same process, VL, 1 thread): the one pass 1.048×,
+    the rotation 1.054×. A VL frame at 1 thread after (~5.0 ms): light stage ~0.45-0.6 (t·l 0.16, the
+    corner table 0.15, the rotation 0.09), `view_rows` 0.33 (2 MB of int64 faces read), the rows ~1.0
+    (3 445 of 9 694 rows of M, 8.4 MB from memory), the one pass ~3.0. Tried and dropped: the rows
+    computed inside the pass (session 34's patch, each chunk's rows claimed and computed before its
+    glossy samples) 0.965× (rows in first-use order instead of ascending); a software prefetch of the
+    next rows' blocks in `vm_rows` (1-6 rows ahead) 0.85-0.91× of the loop with cold caches.
   * session 34 (pp34): `native.rows_vertex_major`'s loop computes 8 outputs per channel at a time, their
     lane sums as one 8 × 8 transpose-and-add (the same additions in the same order: bit-identical,
     tested). Creature bench VL 1.03-1.07× CPU (1 thread, 15 frames, load 5-11), V 1.01× (path unchanged).
