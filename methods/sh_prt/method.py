@@ -21,6 +21,24 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 35 (pp35): a lighting change's frame (VL: new lighting and view every frame) runs the one C
+    pass of the V frames too (`NATIVE_VIEW_ROWS`): the rows of l' its glossy samples read listed from the
+    G-buffer's faces first (`native.view_rows`: every hit sample's face marked, then the glossy faces'
+    rows — the list `native.need_rows` made from the pixel pass's glossy list), computed by
+    `native.rows_vertex_major` as before, then `native.view` — where the pixel pass, the list, the rows
+    and the glossy pass ran one after the other (bit-identical images). And the lighting's rotation by one
+    C call (`native.rotate`, `NATIVE_ROTATE`: `rotate_sampled`'s samples and pseudo-inverse, float64
+    round-off; 0.35-0.4 ms of Dynamo dispatch → ~0.05-0.09 ms). Creature bench, same process against
+    70c7405, 1 thread, process CPU, load 7-9 (``python -m benchmarks.sh_prt --baseline B
+    --precompute-code B --kinds VL V L E --threads 1 --frames 15``): VL 1.09×, L 1.13×, E 1.09×, V 1.02×
+    (unchanged path); max |new − reference| / peak as before (2.6e-7 VL); the images equal the base's bit
+    for bit on those frames. Each alone (flag on/off, same process, VL, 1 thread): the one pass 1.048×,
+    the rotation 1.054×. A VL frame at 1 thread after (~5.0 ms): light stage ~0.45-0.6 (t·l 0.16, the
+    corner table 0.15, the rotation 0.09), `view_rows` 0.33 (2 MB of int64 faces read), the rows ~1.0
+    (3 445 of 9 694 rows of M, 8.4 MB from memory), the one pass ~3.0. Tried and dropped: the rows
+    computed inside the pass (session 34's patch, each chunk's rows claimed and computed before its
+    glossy samples) 0.965× (rows in first-use order instead of ascending); a software prefetch of the
+    next rows' blocks in `vm_rows` (1-6 rows ahead) 0.85-0.91× of the loop with cold caches.
   * session 34 (pp34): `native.rows_vertex_major`'s loop computes 8 outputs per channel at a time, their
     lane sums as one 8 × 8 transpose-and-add (the same additions in the same order: bit-identical,
     tested). Creature bench VL 1.03-1.07× CPU (1 thread, 15 frames, load 5-11), V 1.01× (path unchanged).
@@ -217,6 +235,21 @@ NATIVE_VM_ROWS = True
 # A view frame with a complete l' table in one C pass (`native.view`: the pixel pass and the glossy
 # pass per chunk of pixels, one OpenMP region; bit-identical to the two passes); False: the two passes.
 NATIVE_VIEW = True
+# Session 35 (pp35): the frame of a lighting change (a VL frame: ``_lg_fresh``, no row of l' set yet) in
+# the one pass too: the rows of l' its glossy samples read listed from the G-buffer's faces first
+# (`native.view_rows`: the faces the hit samples lie on, marked, then the glossy ones' rows — the list
+# `native.need_rows` makes from the pixel pass's glossy samples), computed (`native.rows_vertex_major`,
+# as before), then `native.view` — instead of the pixel pass, the glossy list's rows and the glossy pass
+# one after the other. The same rows, the same sums, the same image bit for bit. Computing the rows inside
+# the pass instead (session 34's dropped patch, each chunk's rows claimed and computed before its glossy
+# samples) was slower: 0.965x (creature bench VL, 1 thread, process CPU; the rows in first-use order, not
+# ascending). False: the two passes for such a frame.
+NATIVE_VIEW_ROWS = True
+# Session 35 (pp35): the lighting's rotation (`SHPRT.lighting`, every L / E / VL frame) by one C call
+# (`native.rotate`: `rotate_sampled`'s samples, pseudo-inverse and basis, ~10 K float64 flops) instead of
+# the compiled call (~0.35-0.4 ms of a creature bench VL frame at 1 thread, most of it Dynamo's dispatch):
+# the same coefficients to float64 round-off; False: `rotate_sampled`.
+NATIVE_ROTATE = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -697,7 +730,9 @@ class SHPRT(Method):
             self.stats["project"] += 1
         R = torch.as_tensor(env.to_world, dtype=torch.float64) @ _LATLONG_QT
         self.stats["rotate"] += 1
-        return rotate_sampled(self._l_local, R).float()                         # f(Rᵀd): to world
+        # session 35: the rotation by one C call where it runs (`native.rotate`, `NATIVE_ROTATE`)
+        lw = _native.rotate(self._l_local, R) if NATIVE_ROTATE else None
+        return (rotate_sampled(self._l_local, R) if lw is None else lw).float()  # f(Rᵀd): to world
 
     def _light_stage(self, env) -> None:
         """Per-vertex e = t·l (V, 3) and l' = M l (Vg, n², 3), cached until the lighting changes; each
@@ -757,17 +792,7 @@ class SHPRT(Method):
             self.stats["glossy_light"] += 1
             return self._lg3
         if self._lg3 is None:
-            # the previous lighting's table when there is one (session 28): its rows not computed
-            # below are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
-            # and are computed before anything else reads them, so they need no zeroing; a fresh
-            # 2.9 MB zeroed table cost 0.3-0.5 ms of a creature VL frame (page faults, 1 thread)
-            spare, self._lg_spare = getattr(self, "_lg_spare", None), None
-            if spare is not None and spare.shape == (3, ng, n2) and spare.device == self.M.device:
-                self._lg3 = spare
-            else:
-                self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
-            self._lg = self._lg3.permute(1, 2, 0)
-            self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
+            self._partial_table()
         if rows.numel():
             Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
             if Mv is None or not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
@@ -779,6 +804,38 @@ class SHPRT(Method):
         if bool(self._lg_valid.all()):
             self._lg_valid = None
         return self._lg3
+
+    def _partial_table(self) -> None:
+        """An l' table (3, Vg, n²) with no row set (``self._lg_valid`` all False) for the current lighting."""
+        ng, n2 = self.M.shape[0], self.M.shape[1]
+        # the previous lighting's table when there is one (session 28): its rows not computed by the
+        # caller are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
+        # and are computed before anything else reads them, so they need no zeroing; a fresh
+        # 2.9 MB zeroed table cost 0.3-0.5 ms of a creature VL frame (page faults, 1 thread)
+        spare, self._lg_spare = getattr(self, "_lg_spare", None), None
+        if spare is not None and spare.shape == (3, ng, n2) and spare.device == self.M.device:
+            self._lg3 = spare
+        else:
+            self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
+        self._lg = self._lg3.permute(1, 2, 0)
+        self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
+
+    def _view_rows(self, face: Tensor, hit: Tensor, fk: Tensor) -> bool:
+        """A lighting change's frame (`NATIVE_VIEW_ROWS`): l' at the rows its glossy samples read, listed
+        from the G-buffer's faces (`native.view_rows`) and computed by `native.rows_vertex_major` into a
+        table with no other row set; False (nothing changed) where either loop does not run."""
+        Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
+        rows = None if Mv is None else _native.view_rows(face, hit, fk, self._fg, int(self.M.shape[0]), None)
+        if rows is None:
+            return False
+        self._partial_table()
+        if rows.numel() and not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
+            return False             # (no row set: `_lg_valid` all False, the two passes compute them)
+        self._lg_valid[rows] = True
+        self.stats["glossy_light"] += 1
+        if bool(self._lg_valid.all()):
+            self._lg_valid = None
+        return True
 
     def _vertex_major_M(self) -> Tensor | None:
         """M as (Vg, n², n²) with each row's matrix one contiguous block, when the precomputation
@@ -879,8 +936,12 @@ class SHPRT(Method):
         fk = self._face_materials(kd)
         face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
         normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
-        one_pass = (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight
-                    and self._lg3 is not None and (self._lg_valid is None or not self._lg_fresh))
+        native_view = NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight
+        one_pass = native_view and self._lg3 is not None and (self._lg_valid is None or not self._lg_fresh)
+        if not one_pass and native_view and NATIVE_VIEW_ROWS and self._lg3 is None and self._lg_fresh:
+            # session 35: a lighting change's frame — the rows it reads listed from the faces, computed, then
+            # the one pass (`NATIVE_VIEW_ROWS`)
+            one_pass = self._view_rows(face, hit, fk)
         if not one_pass:  # (the compiled kernels' marks: not needed by the C pass)
             for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
                 torch._dynamo.maybe_mark_dynamic(x, 0)
@@ -888,8 +949,9 @@ class SHPRT(Method):
             # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
             # as `_glossy_light` completes it in the two passes below) in ONE C pass — the pixel pass
             # and the glossy samples added to their pixels chunk by chunk (`native.view`): the same
-            # image bit for bit, one OpenMP region, the glossy samples' G-buffer rows read while cached
-            lg3 = self._glossy_light()
+            # image bit for bit, one OpenMP region, the glossy samples' G-buffer rows read while cached;
+            # session 35: a lighting change's frame with the rows it reads (`_view_rows`, above)
+            lg3 = self._glossy_light() if not self._lg_fresh or self._lg_valid is None else self._lg3
             img = _native.view(face, hit, bary, normal, wo, self._ef, fk, S2, reg, self._fg, lg3, kd, ks, G, vcos,
                                *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
             if img is not None:

@@ -29,6 +29,7 @@ from methods.core import native
 _SOURCE = r"""
 #include <stdint.h>
 #include <string.h>
+#include <math.h>
 
 #define RUN 16
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
@@ -87,6 +88,93 @@ void sh_need_rows(const int64_t *g, int64_t Qg, const int64_t *face, int64_t Mf,
     for (int64_t r = 0; r < Vg; ++r)
         if (mark[r] && !(valid && valid[r])) rows[n++] = r;
     *count = n;
+}
+
+/* Session 35: the rows of l' that a view's glossy samples read, from the G-buffer itself (no glossy list):
+   the glossy samples are the pixel pass's (`px_range`: hit[q] && fk[f, 3] != 0, f = face[q] clamped to
+   [0, Mf)), so the rows are fg[f] of the faces f that some hit sample lies on and whose fk[f, 3] != 0.
+   The n samples are split over nt threads, each marking its faces in its own Mf + 1 bytes of ``fmark`` (nt·(Mf + 1),
+   any content on entry; entry Mf a miss's), then merged; the glossy faces' rows marked in ``mark`` (Vg bytes, zero on entry)
+   and those not yet ``valid`` (if given) listed in ascending order into ``rows``, their count into
+   ``count``: the list `sh_need_rows` makes from the pixel pass's glossy list. */
+void sh_view_rows(int64_t n, const int64_t *face, const uint8_t *hit, const float *fk, int64_t Mf,
+                  const int32_t *fg, int64_t Vg, uint8_t *fmark, uint8_t *mark, const uint8_t *valid,
+                  int64_t *rows, int64_t *count, int64_t nt) {
+    if (nt < 1) nt = 1;
+    #pragma omp parallel for num_threads(nt) schedule(static, 1) if (nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        uint8_t *fm = fmark + k * (Mf + 1);
+        memset(fm, 0, (size_t)(Mf + 1));
+        for (int64_t q = n * k / nt; q < n * (k + 1) / nt; ++q) {   /* stores only, no branch: a miss marks */
+            int64_t f = face[q];                                      /* the spare entry Mf */
+            f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            fm[hit[q] ? f : Mf] = 1;
+        }
+    }
+    for (int64_t f = 0; f < Mf; ++f) {
+        uint8_t any = 0;
+        for (int64_t k = 0; k < nt; ++k) any |= fmark[k * (Mf + 1) + f];
+        if (any && fk[4 * f + 3] != 0.f) {
+            const int32_t *r = fg + 3 * f;
+            mark[r[0]] = 1; mark[r[1]] = 1; mark[r[2]] = 1;
+        }
+    }
+    int64_t m = 0;
+    for (int64_t r = 0; r < Vg; ++r)
+        if (mark[r] && !(valid && valid[r])) rows[m++] = r;
+    *count = m;
+}
+
+/* Session 35: `sh.rotate_sampled` (c' = P Y(Rᵀ D) c, the coefficients of f(Rᵀd)) in one C call, float64:
+   X = D R (K, 3), per direction j the n² real SH values y(X_j) by the normalised recurrence of
+   `sh._terms_recurrence` (Holmes & Featherstone; the same basis as `sh.sh_terms`), (Y c)[j] (C), then
+   out = P (Y c) (n², C). c (n², C), R (3, 3), D (K, 3), P (n², K) row-major doubles; n <= 8, C <= 4,
+   K <= 4·64. The same sums as the compiled call in another order: float64 round-off. */
+void sh_rotate(int64_t n, int64_t K, int64_t C, const double *c, const double *R, const double *D,
+               const double *P, double *out) {
+    const int64_t n2 = n * n;
+    double Yc[256 * 4];
+    const double sqrt2 = sqrt(2.0);
+    for (int64_t j = 0; j < K; ++j) {
+        const double *d = D + 3 * j;
+        const double x = d[0] * R[0] + d[1] * R[3] + d[2] * R[6];
+        const double y = d[0] * R[1] + d[1] * R[4] + d[2] * R[7];
+        const double z = d[0] * R[2] + d[1] * R[5] + d[2] * R[8];
+        double v[64];
+        double qmm = 1.0 / sqrt(4.0 * 3.14159265358979323846), cr = 1.0, si = 0.0;
+        for (int64_t m = 0; m < n; ++m) {
+            if (m > 0) {
+                qmm *= sqrt((double)(2 * m + 1) / (double)(2 * m));
+                const double c2 = x * cr - y * si, s2 = x * si + y * cr;
+                cr = c2; si = s2;
+            }
+            double qp2 = 0.0, qp = qmm;
+            for (int64_t l = m; l < n; ++l) {
+                double q;
+                if (l == m) q = qp;
+                else if (l == m + 1) q = sqrt((double)(2 * m + 3)) * z * qp;
+                else {
+                    const double a = sqrt((double)(4 * l * l - 1) / (double)(l * l - m * m));
+                    const double b = sqrt((double)((l - 1) * (l - 1) - m * m) / (double)(4 * (l - 1) * (l - 1) - 1));
+                    q = a * (z * qp - b * qp2);
+                }
+                if (m == 0) v[l * (l + 1)] = q;
+                else { v[l * (l + 1) + m] = sqrt2 * q * cr; v[l * (l + 1) - m] = sqrt2 * q * si; }
+                if (l > m) { qp2 = qp; qp = q; }
+            }
+        }
+        for (int64_t ch = 0; ch < C; ++ch) {
+            double acc = 0.0;
+            for (int64_t i = 0; i < n2; ++i) acc += v[i] * c[i * C + ch];
+            Yc[j * C + ch] = acc;
+        }
+    }
+    for (int64_t i = 0; i < n2; ++i)
+        for (int64_t ch = 0; ch < C; ++ch) {
+            double acc = 0.0;
+            for (int64_t j = 0; j < K; ++j) acc += P[i * K + j] * Yc[j * C + ch];
+            out[i * C + ch] = acc;
+        }
 }
 
 /* img[g[q] / S2, c] += vals[q, c] * inv for q ascending (one thread: each pixel's sum in the order of
@@ -644,6 +732,8 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
+               "sh_rotate": [_I, _I, _I, _P, _P, _P, _P, _P],
+               "sh_view_rows": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
@@ -746,6 +836,65 @@ def need_rows(g: Tensor, face: Tensor, fg: Tensor, Vg: int, valid: Tensor | None
     lib.sh_need_rows(g.data_ptr(), int(g.numel()), face.data_ptr(), int(fg.shape[0]), fg.data_ptr(), Vg, mark.data_ptr(),
                      v.data_ptr() if v is not None else None, out.data_ptr(), n.data_ptr())
     return out[:int(n)]
+
+
+def rotate(c: Tensor, R: Tensor) -> Tensor | None:
+    """`methods.core.sh.rotate_sampled(c, R)` (c (n², C) float64, R (3, 3)) by one C call (`sh_rotate`:
+    the same samples D and pseudo-inverse P, the same recurrence's basis; float64 round-off against the
+    compiled call, which costs ~0.35 ms of Dynamo's dispatch for ~10 K flops). None where it does not run
+    (no compiler, not CPU float64, order above 8, more than 4 channels): the caller takes `rotate_sampled`."""
+    lib = _lib()
+    n = math.isqrt(int(c.shape[0])) if c.ndim == 2 else 0
+    if (lib is None or c.ndim != 2 or n * n != c.shape[0] or not 1 <= n <= 8 or not 1 <= c.shape[1] <= 4
+            or c.dtype != torch.float64 or c.device.type != "cpu" or tuple(R.shape) != (3, 3)):
+        return None
+    from methods.core.sh import _rotation_samples
+
+    D, P = _rotation_samples(n, "cpu")
+    if D.shape[0] > 256 or P.shape != (n * n, D.shape[0]):
+        return None
+    c = c.contiguous()
+    R = R.to(torch.float64).contiguous()
+    out = torch.empty(n * n, int(c.shape[1]), dtype=torch.float64)
+    lib.sh_rotate(n, int(D.shape[0]), int(c.shape[1]), c.data_ptr(), R.data_ptr(), D.contiguous().data_ptr(),
+                  P.contiguous().data_ptr(), out.data_ptr())
+    return out
+
+
+def view_rows_torch(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid: Tensor | None) -> Tensor:
+    """The rows of l' a view's glossy samples read, from the G-buffer (`native.view_rows`' oracle): the
+    glossy samples are the pixel pass's — hit, on a face f (clamped to the table) with fk[f, 3] != 0 — and
+    the rows `need_rows_torch` lists for them."""
+    f = face.clamp(0, fk.shape[0] - 1)
+    g = torch.nonzero(hit & (fk[f, 3] != 0)).squeeze(-1)
+    return need_rows_torch(g, f, fg, Vg, valid)
+
+
+def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid: Tensor | None) -> Tensor | None:
+    """`view_rows_torch` in one C pass over the samples' faces (session 35: the rows a lighting change's
+    view reads, before its one pass `view`, where the two passes took them from the pixel pass's glossy
+    list); the samples split over torch's threads (each marks its faces, then merged: the same list at any
+    thread count). None where the loop does not run (the caller takes the two passes)."""
+    lib = _lib()
+    if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
+            or fk.dtype != torch.float32 or fk.ndim != 2 or fk.shape[1] != 4 or fg.dtype != torch.int32
+            or fg.ndim != 2 or fg.shape[1] != 3 or fg.shape[0] != fk.shape[0] or face.shape != hit.shape
+            or face.ndim != 1 or fk.shape[0] == 0):
+        return None
+    face, hit, fk, fg = face.contiguous(), hit.contiguous(), fk.contiguous(), fg.contiguous()
+    n, Mf = int(face.numel()), int(fk.shape[0])
+    nt = max(1, min(torch.get_num_threads(), n // MIN_SAMPLES_PER_MARK_THREAD))
+    fmark = torch.empty(nt * (Mf + 1), dtype=torch.uint8)
+    mark = torch.zeros(Vg, dtype=torch.uint8)
+    out = torch.empty(Vg, dtype=torch.int64)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    v = valid.contiguous().view(torch.uint8) if valid is not None else None
+    lib.sh_view_rows(n, face.data_ptr(), hit.data_ptr(), fk.data_ptr(), Mf, fg.data_ptr(), Vg, fmark.data_ptr(),
+                     mark.data_ptr(), v.data_ptr() if v is not None else None, out.data_ptr(), cnt.data_ptr(), nt)
+    return out[:int(cnt)]
+
+
+MIN_SAMPLES_PER_MARK_THREAD = 1 << 15   # G-buffer samples below which one thread marks the faces (`view_rows`)
 
 
 def add_pixels_torch(img: Tensor, g: Tensor, vals: Tensor, S2: int) -> None:

@@ -1024,3 +1024,97 @@ def test_native_vertex_major_rows_keep_the_scalar_sums(order, monkeypatch):
         out = torch.full((3, Vg, n2), 7.0)
         assert native.rows_vertex_major(Mv, l, rows, out)
         assert torch.equal(out[:, rows].permute(1, 0, 2), want)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_native_view_rows_equal_the_torch_rows(threads, monkeypatch):
+    """`native.view_rows` (session 35: the rows of l' a view's glossy samples read, from the G-buffer's
+    faces) lists the rows of `native.view_rows_torch` — those `need_rows` lists for the pixel pass's glossy
+    samples (hit, on a face with the glossy flag): ascending, without the ones already ``valid`` — at 1
+    and 2 threads (each thread marking its own faces), misses (face −1) and faces with the flag off."""
+    from methods.sh_prt import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "MIN_SAMPLES_PER_MARK_THREAD", 64)
+    g = torch.Generator().manual_seed(35 + threads)
+    M, Vg, P = 3000, 6000, 4001                      # most faces under one sample or none: hit decides
+    fg = torch.randint(0, Vg, (M, 3), generator=g, dtype=torch.int32)
+    fk = torch.cat([torch.rand(M, 3, generator=g), (torch.rand(M, 1, generator=g) < 0.3).float()], 1)
+    face = torch.randint(-1, M, (P,), generator=g)
+    hit = (face >= 0) & (torch.rand(P, generator=g) < 0.9)
+    valid = torch.rand(Vg, generator=g) < 0.4
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for v in (None, valid):
+            want = native.view_rows_torch(face, hit, fk, fg, Vg, v)
+            got = native.view_rows(face, hit, fk, fg, Vg, v)
+            assert 0 < want.numel() < Vg and torch.equal(got, want)
+        gl = (hit & (fk[face.clamp_min(0), 3] != 0)).nonzero().squeeze(-1)
+        assert torch.equal(native.view_rows_torch(face, hit, fk, fg, Vg, None),
+                           native.need_rows_torch(gl, face, fg, Vg, None))
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lighting_change_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
+    """A VL sequence (every frame a lighting change and a new view) rendered with `NATIVE_VIEW_ROWS`
+    (session 35: the rows each frame reads listed from the faces, computed, then one pass `native.view`)
+    gives the images of the two passes bit for bit, the same rows of l' set, and takes that path."""
+    import copy
+
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene("creature", "test")
+    m = shm.SHPRT(order=5, bounces=0, rays=16)
+    m.precompute(scene)
+    calls = []
+    real = native.view_rows
+    monkeypatch.setattr(native, "view_rows", lambda *a: calls.append(1) or real(*a))
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        a, b = copy.copy(m), copy.copy(m)
+        a._reset_cache()
+        b._reset_cache()
+        for frame in make_sequence(scene, "VL", n_frames=4, seed=5):
+            gb = make_gbuffer(scene, frame, 2)
+            monkeypatch.setattr(shm, "NATIVE_VIEW_ROWS", True)
+            x = a.render(frame, gb)
+            monkeypatch.setattr(shm, "NATIVE_VIEW_ROWS", False)
+            y = b.render(frame, gb)
+            assert torch.equal(x, y)
+            assert (a._lg_valid is None) == (b._lg_valid is None)
+            if a._lg_valid is not None:
+                assert torch.equal(a._lg_valid, b._lg_valid)
+                rows = a._lg_valid.nonzero().squeeze(-1)
+                assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
+    finally:
+        torch.set_num_threads(old)
+    assert len(calls) == 4
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 5, 8])
+@pytest.mark.parametrize("C", [1, 3])
+def test_native_rotate_equals_rotate_sampled(order, C):
+    """`native.rotate` (session 35: the lighting's rotation in one C call) gives `rotate_sampled`'s
+    coefficients to float64 round-off, for proper and improper rotations (Rᵀ applied: not R)."""
+    from methods.core.sh import rotate_sampled
+    from methods.sh_prt import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(order * 10 + C)
+    c = torch.randn(order * order, C, dtype=torch.float64, generator=g)
+    for _ in range(3):
+        R = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=g))[0]
+        want = rotate_sampled(c, R)
+        got = native.rotate(c, R)
+        assert got is not None and got.dtype == torch.float64 and got.shape == want.shape
+        assert (got - want).abs().max() <= 1e-13 * max(1.0, want.abs().max().item())
+        if order > 1:
+            assert (native.rotate(c, R.T) - want).abs().max() > 1e-3
