@@ -1,0 +1,151 @@
+"""The pose path's C calls of session 35 (zh35o) against their oracles: the pose product for the needed
+vertices alone (`native.pose_columns`, X laid out vertex-major) = the columns of `runtime._pose_product`
+bit for bit; the skinning (`native.skin`) = `Scene.geometry` to float32 round-off; and P frames rendered
+with both (the defaults) = with neither (``pose_columns`` / ``native_skinning`` off: `runtime.world_visibility`
+and `Scene.geometry`) to float32 round-off, with the same counts, the same bits at 1 and 2 threads, and
+= the reference."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from methods.zh_shadow import ZHShadow
+from methods.zh_shadow import native as zn
+from methods.zh_shadow import runtime as rt
+
+RENDER_TOL = 1e-5   # (test_fast.py's: fast vs reference render)
+SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
+
+
+def _skip_without_c_compiler() -> None:
+    from methods.core import native as core_native
+
+    if core_native.compiler() is None:   # pragma: no cover - no C compiler here
+        pytest.skip("no C compiler")
+
+
+@pytest.mark.parametrize("J1,N,d", [(11, 13415, 20), (5, 3001, 7), (1, 100, 33), (4, 2500, 256)])
+def test_pose_columns_equal_product_columns(J1, N, d):
+    """`native.pose_columns` of X laid out vertex-major (`native.vertex_major`) = `runtime._pose_product`'s
+    columns (the product over every vertex in `world_visibility`'s point-minor layout) bit for bit: every
+    vertex (idx None), a sorted subset, an unsorted one with repeats, an empty one; the same bits at 1 and 2
+    threads; None for an id out of range, X not vertex-major, a of the wrong length."""
+    from methods.core.threads import torch_threads
+
+    _skip_without_c_compiler()
+    g = torch.Generator().manual_seed(J1 * 1000 + d)
+    X = torch.randn(J1, N, d, generator=g)
+    a = torch.randn(J1, generator=g)
+    Xv = zn.vertex_major(X)
+    assert zn.is_vertex_major(Xv) and (J1 == 1 or not zn.is_vertex_major(X)) and torch.equal(Xv, X) and zn.vertex_major(Xv) is Xv
+    full = rt._pose_product(a, rt.point_minor_model(X).transpose(1, 2).reshape(J1, d * N)).view(d, N)
+    sub = torch.sort(torch.randperm(N, generator=g)[: N // 3]).values
+    mixed = torch.randint(0, N, (N // 5 + 3,), generator=g)
+    for idx in (None, sub, mixed, torch.zeros(0, dtype=torch.int64)):
+        want = full if idx is None else full[:, idx]
+        got = zn.pose_columns(Xv, a, idx)
+        assert got is not None and got.shape == want.shape and torch.equal(got, want)
+        with torch_threads(2):
+            assert torch.equal(zn.pose_columns(Xv, a, idx), want)
+    assert zn.pose_columns(Xv, a, torch.tensor([0, N])) is None
+    assert zn.pose_columns(Xv, a, torch.tensor([-1])) is None
+    if J1 > 1:
+        assert zn.pose_columns(X, a) is None
+    assert zn.pose_columns(Xv, a[:-1] if J1 > 1 else torch.ones(2)) is None
+
+
+@pytest.mark.parametrize("name,size", [("creature", "test"), ("character", "test"), ("creature", "bench")])
+def test_native_skin_equals_scene_geometry(name, size):
+    """`native.skin` (forward kinematics and blend in one C call) = `Scene.geometry(pose)` to float32
+    round-off at the rest pose, random poses and the extreme angles (±π), the unskinned shapes' rows
+    bit for bit; the same bits at 1 and 2 threads; `ZHShadow._posed_geometry` = it too."""
+    from methods.core.threads import torch_threads
+    from scenes.library import get_scene
+
+    _skip_without_c_compiler()
+    scene = get_scene(name, size)
+    st = zn.skin_setup(scene)
+    assert st is not None
+    J = scene.skeleton.num_joints
+    g = torch.Generator().manual_seed(7)
+    rest = scene.rest_geometry()
+    skinned = torch.zeros(rest.num_vertices, dtype=torch.bool)
+    for i, s in enumerate(scene.shapes):
+        if s.name in scene.skin_weights:
+            skinned[int(rest.vertex_offset[i]):int(rest.vertex_offset[i + 1])] = True
+    assert skinned.any()
+    scale = float(rest.V.abs().max())
+    # (every joint at ±π folds some blended maps flat: their normals are ill-conditioned in any float32 path —
+    # 0.49 apart on the character — so they are checked below for the path taken, not against the reference)
+    poses = [torch.zeros(J), (torch.rand(J, generator=g) * 2 - 1) * 1.2, (torch.rand(J, generator=g) * 2 - 1) * 0.5]
+    for pose in poses:
+        pose = pose.float()
+        want = scene.geometry(pose)
+        V, N = zn.skin(st, pose)
+        assert (V - want.V).abs().max() <= 4e-7 * scale, pose
+        assert (N - want.N).abs().max() <= 1e-6, pose
+        assert torch.equal(V[~skinned], want.V[~skinned]) and torch.equal(N[~skinned], want.N[~skinned])
+        with torch_threads(2):
+            V2, N2 = zn.skin(st, pose)
+        assert torch.equal(V, V2) and torch.equal(N, N2)
+    m = ZHShadow(order=8, shading="vertex", specular="cosine")
+    m.scene = scene
+    for pose in (poses[1], torch.full((J,), torch.pi), torch.full((J,), -torch.pi)):   # (±π: a valid pose)
+        pose = pose.float()
+        geom = m._posed_geometry(pose, tuple(pose.tolist()))
+        V, N = zn.skin(st, pose)
+        assert torch.equal(geom.V, V) and torch.equal(geom.N, N) and geom.F is rest.F
+        assert (V - scene.geometry(pose).V).abs().max() <= 4e-7 * scale
+    assert zn.skin(st, torch.zeros(J + 1)) is None
+    with pytest.raises(ValueError):   # (an invalid pose: `Scene.geometry`'s check raises)
+        m._posed_geometry(torch.full((J,), 4.0), (4.0,) * J)
+
+
+@pytest.mark.parametrize("planes", [True, False])
+def test_pose_frames_native_pose_path_equal_torch_path(zh_scene, monkeypatch, planes):
+    """Vertex-shaded cosine P frames (the order-8 configuration) with the pose product for the front-facing,
+    referenced vertices alone (``pose_columns``), the C skinning (``native_skinning``) and those vertices found
+    by one C loop (``front_pass``) = with none (`runtime.world_visibility` over every vertex, `Scene.geometry`,
+    the torch passes) to float32 round-off, the same counts,
+    the same bits at 1 and 2 threads, = the reference; then a view frame of the last pose (every vertex's
+    visibility: `_pose_state`'s full product, by `pose_columns` with every column) likewise."""
+    import dataclasses
+
+    from methods.core.threads import torch_threads
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _skip_without_c_compiler()
+    if planes:
+        monkeypatch.setattr(rt, "PLANAR_MIN_POINTS", 64)
+    calls = {"cols": 0, "skin": 0, "front": 0}
+    pc_, sk_, fc_ = zn.pose_columns, zn.skin, zn.front_columns
+    monkeypatch.setattr(zn, "front_columns", lambda *a: calls.__setitem__("front", calls["front"] + 1) or fc_(*a))
+    monkeypatch.setattr(zn, "pose_columns", lambda *a: calls.__setitem__("cols", calls["cols"] + 1) or pc_(*a))
+    monkeypatch.setattr(zn, "skin", lambda *a: calls.__setitem__("skin", calls["skin"] + 1) or sk_(*a))
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+    slow.pose_columns = slow.native_skinning = slow.front_pass = False
+    for x in (fast, fast2, slow):
+        x.plane_operators = planes
+    frames = list(make_sequence(m.scene, "P", 4, seed=5))
+    view = list(make_sequence(m.scene, "V", 2, seed=5))[1]
+    frames.append(dataclasses.replace(view, pose=frames[-1].pose, changed=frozenset({"view"})))
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(m.scene, f, 2)
+        c0 = dict(calls)
+        a = fast.render(f, gb)
+        assert zn.is_vertex_major(fast.model.X)   # (laid out for `pose_columns`; the slow object lays it back)
+        if i > 0:
+            p = 1 if i < len(frames) - 1 else 0   # (a P frame: a new pose, its front-facing vertices)
+            assert calls["cols"] > c0["cols"] and calls["skin"] >= c0["skin"] + p and calls["front"] >= c0["front"] + p, i
+        with torch_threads(2):
+            a2 = fast2.render(f, gb)
+        b = slow.render(f, gb)
+        assert torch.equal(a, a2), i
+        assert (a - b).abs().max() <= 2e-6 * b.abs().max(), i
+        kind = "P" if i < len(frames) - 1 else "V"
+        assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), i
+        want = fast._render_reference(f, gb)
+        assert (a - want).abs().max() <= RENDER_TOL, i
