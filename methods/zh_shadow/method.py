@@ -441,6 +441,9 @@ class ZHShadow(Method):
     # A P frame's front-facing, referenced vertices (`_front_radiance`) by one C loop over the referenced ones
     # (`native.front_columns`, zh35o); False: torch passes over every vertex (the tests' oracle)
     front_pass = True
+    # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
+    # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
+    table_resolve = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -1306,8 +1309,13 @@ class ZHShadow(Method):
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
         # else in the shared Gouraud resolve's pass (its oracle)
-        img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
-                         gbuffer.width, gbuffer.spp_side) if self.own_resolve else None
+        img = None
+        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o)
+            img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                   gbuffer.width, gbuffer.spp_side)
+        if img is None and self.own_resolve:
+            img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                             gbuffer.width, gbuffer.spp_side)
         return img if img is not None else gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary,
                                                            gbuffer.hit, gbuffer.height, gbuffer.width,
                                                            gbuffer.spp_side)
