@@ -209,3 +209,32 @@ def test_vertex_frames_table_resolve_equal_own_resolve(zh_scene):
                 assert torch.equal(a, b), (kind, f.index)
                 if kind != "L" or f.index == 0:   # (a lighting-only frame resolves by the kept matrix)
                     assert len(calls) == c0 + 1, (kind, f.index)
+
+
+def test_zh35o_libraries_follow_the_off_switch(zh_scene, monkeypatch):
+    """The session-35 libraries follow PRTBENCH_COMPILE at each call (none lru-cached: b541a75): None while
+    it is 0 — then a P frame renders by the fallbacks (`Scene.geometry`, the torch front test,
+    `runtime.world_visibility` from X laid out point-minor again, `gouraud.resolve`), equal to the native
+    frame to float32 round-off — and loaded once it is back on."""
+    from methods.core import native as core_native
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _skip_without_c_compiler()
+    getters = ("_pose_cols_lib", "_skin_lib", "_front_lib", "_tresolve_lib")
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    frames = list(make_sequence(m.scene, "P", 3, seed=4))
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    on = m.with_render_config()
+    want = [on.render(f, g) for f, g in zip(frames, gbs)]
+    assert zn.is_vertex_major(m.model.X)
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    assert all(getattr(zn, g)() is None for g in getters) and not zn.pose_cols_available()
+    off = m.with_render_config()
+    for f, g, w in zip(frames, gbs, want):
+        got = off.render(f, g)
+        assert (got - w).abs().max() <= 2e-6 * w.abs().max()
+    assert not zn.is_vertex_major(m.model.X) and m.model.X.transpose(1, 2).is_contiguous()
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    assert all(getattr(zn, g)() is not None for g in getters) and core_native.compile_enabled()
