@@ -2556,7 +2556,10 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
 # one thread's: the same bits at any thread count).
 _POSE_COLS_SOURCE = r"""
 #include <stdint.h>
+#include <string.h>
 #define DMAX 256
+typedef float v16 __attribute__((vector_size(64)));
+typedef float v4 __attribute__((vector_size(16)));
 #ifndef PF_AHEAD
 #define PF_AHEAD 8
 #endif
@@ -2576,6 +2579,19 @@ static int64_t cols_range(int64_t J1, int64_t d, const float *a, const float *X,
             }
         }
         const float *x = X + j * J1 * d;
+        if (d == 20) {   /* order 8, two lobes: the 20 sums as a 16- and a 4-lane vector (the same operations) */
+            v16 s, xv;
+            v4 s4, x4;
+            memcpy(&xv, x, 64); memcpy(&x4, x + 16, 16);
+            s = 0.0f + a[0] * xv; s4 = 0.0f + a[0] * x4;
+            for (int64_t i = 1; i < J1; ++i) {
+                memcpy(&xv, x + i * 20, 64); memcpy(&x4, x + i * 20 + 16, 16);
+                s = s + a[i] * xv; s4 = s4 + a[i] * x4;
+            }
+            for (int k = 0; k < 16; ++k) out[k * Q + q] = s[k];
+            for (int k = 0; k < 4; ++k) out[(16 + k) * Q + q] = s4[k];
+            continue;
+        }
         for (int64_t k = 0; k < d; ++k) acc[k] = 0.0f + a[0] * x[k];
         for (int64_t i = 1; i < J1; ++i) {
             const float ai = a[i];
@@ -2608,7 +2624,7 @@ def _pose_cols_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
     # products and sums not fused: `runtime._pose_product`'s bits
     return native.load("zh35o_pose_cols", _POSE_COLS_SOURCE, _POSE_COLS_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
 
 
 def pose_cols_available() -> bool:
