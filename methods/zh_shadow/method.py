@@ -358,6 +358,7 @@ class ZHShadow(Method):
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
         self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
         self._skin: tuple | None = None          # (scene, `native.skin_setup` of it): `_posed_geometry`
+        self._pose_libs_warm = False             # `native.warm_pose_libraries` called (`_render_vertex`)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -1189,6 +1190,9 @@ class ZHShadow(Method):
             # (v0 None: for the front-facing vertices alone)
             warm_blocks(_warm_front, [v0[:1]], (self, frame, pose_vec, geom, None, light.to(dev), mats, alphas, spans,
                                                 vreg), [1])
+            if not self._pose_libs_warm:   # (once per object: `native.warm_pose_libraries`, zh35o)
+                zn.warm_pose_libraries()
+                self._pose_libs_warm = True
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:

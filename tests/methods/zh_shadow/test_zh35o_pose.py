@@ -238,3 +238,25 @@ def test_zh35o_libraries_follow_the_off_switch(zh_scene, monkeypatch):
     assert not zn.is_vertex_major(m.model.X) and m.model.X.transpose(1, 2).is_contiguous()
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
     assert all(getattr(zn, g)() is not None for g in getters) and core_native.compile_enabled()
+
+
+def test_full_change_frame_loads_the_p_frame_libraries(zh_scene, monkeypatch):
+    """A vertex-shaded cosine object's first frame (a full change: the harness's untimed frame 0) loads every
+    C library a following P frame calls (`native.warm_pose_libraries`), so the first timed P frame loads none
+    for the first time."""
+    from methods.core import native as core_native
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _skip_without_c_compiler()
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(zh_scene("creature"))
+    frames = list(make_sequence(m.scene, "P", 2, seed=6))
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    names: list[list[str]] = [[], []]
+    load = core_native.load
+    for i, (f, g) in enumerate(zip(frames, gbs)):
+        monkeypatch.setattr(core_native, "load", lambda name, *a, _i=i, **k: names[_i].append(name) or load(name, *a, **k))
+        m.render(f, g)
+    assert {"zh35o_front", "zh35o_pose_cols", "zh35o_skin", "zh35o_resolve"} <= set(names[1])   # (the P frame's)
+    assert set(names[1]) <= set(names[0]), set(names[1]) - set(names[0])
