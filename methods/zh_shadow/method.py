@@ -80,6 +80,7 @@ run both the paper's setting and ``order=8, specular="cosine"`` (reports/suites.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import time
@@ -356,6 +357,8 @@ class ZHShadow(Method):
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
         self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
+        self._skin: tuple | None = None          # (scene, `native.skin_setup` of it): `_posed_geometry`
+        self._pose_libs_warm = False             # `native.warm_pose_libraries` called (`_render_vertex`)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -428,6 +431,20 @@ class ZHShadow(Method):
     # A rotated map's lighting: its kept polar-frame projection rotated by to_world Qᵀ (`_lighting`);
     # False: its own-frame projection, made on the first rotation (the tests' oracle)
     rotated_lighting = True
+    # Vertex-shaded cosine frames (the order-8 configuration) form the pose product [pose, 1] · X for the
+    # vertices they need alone, X laid out vertex-major (`native.pose_columns`, zh35o: a P frame's front-
+    # facing, referenced columns, 4.3 K of 13.4 K on the bench creature); False: `runtime.world_visibility`'s
+    # product over every vertex, then its columns (the tests' oracle)
+    pose_columns = True
+    # A pose's skinning (`_posed_geometry`) by one C call (`native.skin`: forward kinematics and blend,
+    # zh35o); False: `Scene.geometry` (the tests' oracle)
+    native_skinning = True
+    # A P frame's front-facing, referenced vertices (`_front_radiance`) by one C loop over the referenced ones
+    # (`native.front_columns`, zh35o); False: torch passes over every vertex (the tests' oracle)
+    front_pass = True
+    # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
+    # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
+    table_resolve = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -512,14 +529,52 @@ class ZHShadow(Method):
             pose_vec = torch.zeros(scene.skeleton.num_joints) if frame.pose is None else torch.as_tensor(frame.pose).float()
         key = tuple(pose_vec.tolist())
         if self._posed is None or self._posed[0] != key:
-            geom = scene.geometry() if scene.skeleton is None else scene.geometry(pose_vec)
+            geom = scene.geometry() if scene.skeleton is None else self._posed_geometry(pose_vec, key)
             self._posed = (key, geom, None)
         if visibility and self._posed[2] is None:
             vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
-            args, kw = self._visibility_args(pose_vec, self._posed[1])
-            v = rt.world_visibility(*args, **kw)
+            v = self._pose_visibility(pose_vec, self._posed[1])
             self._posed = (key, self._posed[1], v.T if vertex else v)                       # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
+
+    def _posed_geometry(self, pose_vec: Tensor, key: tuple):
+        """`Scene.geometry`(pose) of the scene (a skeleton): with ``native_skinning`` its forward kinematics
+        and blend by one C call (`native.skin`, equal to it to float32 round-off), the rest of the
+        geometry the rest pose's (faces, regions, offsets: `dataclasses.replace`); else, or where the call
+        does not run or the pose is not a valid one (`Skeleton.check_pose` then raises), `Scene.geometry`."""
+        scene = self.scene
+        if self.native_skinning and pose_vec.dtype == torch.float32 and len(key) == scene.skeleton.num_joints \
+                and all(math.isfinite(t) and abs(t) <= _PI32 for t in key):
+            sk = self._skin
+            if sk is None or sk[0] is not scene:
+                self._skin = sk = (scene, zn.skin_setup(scene))
+            out = zn.skin(sk[1], pose_vec)
+            if out is not None:
+                return dataclasses.replace(scene.rest_geometry(), V=out[0], N=out[1])
+        return scene.geometry(pose_vec)
+
+    def _pose_visibility(self, pose_vec: Tensor, geom, cols: Tensor | None = None, nTc: Tensor | None = None
+                         ) -> Tensor:
+        """`runtime.world_visibility` of `_visibility_args` (``cols``: those vertices alone); with vertex
+        shading and the cosine (``pose_columns``) its product for those columns alone by `native.pose_columns`
+        (X laid out vertex-major: the blocks of the vertices asked for, the same bits as the product's
+        columns), then the same compiled eq. 1 (`runtime._vertex_sh`) — the same numbers. ``nTc`` (3, Q):
+        the columns' unit normals when the caller has them (else gathered from ``geom``)."""
+        args, kw = self._visibility_args(pose_vec, geom, cols)
+        X, _, normal, lobes = args
+        if self.pose_columns and kw["frame"] == "zyz" and kw["point_minor"] and zn.is_vertex_major(X):
+            a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
+            pT = zn.pose_columns(X, a, cols) if a.shape[0] == X.shape[0] else None
+            if pT is not None:
+                n = int(X.shape[2]) // lobes - 2
+                nT = nTc if nTc is not None else rt.rows(normal) if cols is None else \
+                    normal.T.index_select(1, cols).contiguous()
+                perm = tuple(int(i) for i in kw["rows"].tolist())
+                fn = rt._vertex_sh if int(pT.shape[1]) >= rt.VERTEX_COMPILE_MIN else rt._vertex_sh.eager
+                torch._dynamo.maybe_mark_dynamic(pT, 1)
+                torch._dynamo.maybe_mark_dynamic(nT, 1)
+                return fn(pT, nT, rt._band_norms(n), lobes, n, 0, True, perm)
+        return rt.world_visibility(*args, **kw)
 
     def _visibility_args(self, pose_vec: Tensor, geom, cols: Tensor | None = None) -> tuple[tuple, dict]:
         """The arguments (positional, keyword) of `runtime.world_visibility` for this method's layout
@@ -531,7 +586,10 @@ class ZHShadow(Method):
         frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
         # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
         rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
-        if not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
+        if self.pose_columns and vertex and frame == "zyz" and m.X.device.type == "cpu" and zn.pose_cols_available():
+            if not zn.is_vertex_major(m.X):   # once per model: the layout `native.pose_columns` reads
+                m.X = zn.vertex_major(m.X)    # (`_pose_visibility`; the same values)
+        elif not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
             m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)
         return (m.X, pose_vec, geom.N.float(), m.lobes), dict(point_minor=vertex, frame=frame, rows=rows, cols=cols)
 
@@ -1132,6 +1190,9 @@ class ZHShadow(Method):
             # (v0 None: for the front-facing vertices alone)
             warm_blocks(_warm_front, [v0[:1]], (self, frame, pose_vec, geom, None, light.to(dev), mats, alphas, spans,
                                                 vreg), [1])
+            if not self._pose_libs_warm:   # (once per object: `native.warm_pose_libraries`, zh35o)
+                zn.warm_pose_libraries()
+                self._pose_libs_warm = True
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:
@@ -1252,8 +1313,13 @@ class ZHShadow(Method):
         self._resolve_matrix = (gkey, geom, None)
         # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
         # else in the shared Gouraud resolve's pass (its oracle)
-        img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
-                         gbuffer.width, gbuffer.spp_side) if self.own_resolve else None
+        img = None
+        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o)
+            img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                   gbuffer.width, gbuffer.spp_side)
+        if img is None and self.own_resolve:
+            img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                             gbuffer.width, gbuffer.spp_side)
         return img if img is not None else gouraud.resolve(radT, geom.F.to(dev).T, gbuffer.face, gbuffer.bary,
                                                            gbuffer.hit, gbuffer.height, gbuffer.width,
                                                            gbuffer.spp_side)
@@ -1315,17 +1381,27 @@ class ZHShadow(Method):
         samples reference (`native.referenced_mask`) — then only the front-facing ones among them
         (the resolve reads no other; their rows of the radiance are the same numbers, the others 0)."""
         dev = geom.N.device
-        nT = rt.rows(geom.N.to(dev).float())
+        fc = None
+        if self.front_pass and ref is not None and dev.type == "cpu":
+            # the front-facing, referenced vertices' ids, normals and ωo by one C loop over the referenced ones
+            # (`native.front_columns`, zh35o); None where it does not run: the torch passes below (its oracle)
+            fc = zn.front_columns(geom.V.float(), geom.N.float(), ref.to(dev),
+                                  torch.as_tensor(frame.camera.origin, dtype=torch.float32))
+        if fc is not None:
+            idx, nTc, woTc = fc
+            nT = geom.N.float().T          # (a view: only the counts read it, `_front_counts`, after the frame)
+            vregc = vreg.index_select(0, idx)
+        else:
+            nT = rt.rows(geom.N.to(dev).float())
+            woT = _view_directions(frame, geom, dev)
+            front = rt.dot_T(nT, woT) > 0
+            if ref is not None:
+                front &= ref.to(dev)
+            idx = front.nonzero().squeeze(-1)
+            nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
         N = int(nT.shape[1])
-        woT = _view_directions(frame, geom, dev)
-        front = rt.dot_T(nT, woT) > 0
-        if ref is not None:
-            front &= ref.to(dev)
-        idx = front.nonzero().squeeze(-1)
-        nTc, woTc, vregc = nT.index_select(1, idx), woT.index_select(1, idx), vreg.index_select(0, idx)
         if v0 is None:
-            args, kw = self._visibility_args(pose_vec, geom, idx)
-            vTc = rt.world_visibility(*args, **kw)
+            vTc = self._pose_visibility(pose_vec, geom, idx, nTc.contiguous())
         else:
             vTc = v0.T.index_select(1, idx)                                  # (v0.T: (n², N) contiguous)
         bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
@@ -1741,6 +1817,10 @@ class ZHShadow(Method):
         if a not in self._ops:
             self._ops[a] = phong_operator(a, self.model.order)
         return self._ops[a]
+
+
+# π as float32 (`Skeleton.check_pose` compares a float32 pose with π in float32: ±that value is valid)
+_PI32 = float(torch.tensor(math.pi, dtype=torch.float32))
 
 
 def _int32_csr(S: Tensor) -> Tensor:
