@@ -899,8 +899,40 @@ def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor |
 # or facing away, the clamp, the samples summed in order from the first and scaled by 1 / S² — pure
 # elementwise float32 (``-ffp-contract=off``), so the compiled pass's bits (tested); a sample off the plane
 # reads nothing else. Each pixel one thread's: the bits do not depend on the thread count.
+# One plane sample (zh35p): its front test n·ωo, its face's three corner values of u interpolated at its
+# barycentrics (Gouraud) and the clamp — included by both plane passes that read the G-buffer (`zh_plane_pixels`
+# and `zh33p_fused`), which wrote these lines twice. Elementwise float32 (both built with ``-ffp-contract=off``):
+# the same bits in either.
+_PLANE_SAMPLE_C = r"""
+/* n·ωo of sample q: ((n_x ωx + n_y ωy) + n_z ωz), normal (P, 3) row-major, ωo rows ws0 apart */
+static inline float zh_plane_dn(const float *nrm, const float *wo, int64_t ws0, int64_t q) {
+    return (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+}
+
+/* x[c] = (u[i0, c] ((1 − bu) − bv) + u[i1, c] bu) + u[i2, c] bv (max(·, 0) if clamp; NaN stays NaN) with
+   bu = bary[q bs1], bv = bary[bs0 + q bs1]; returns 1 (x untouched) when a corner is outside [0, N) */
+static inline int zh_plane_sample(const float *u, int64_t N, int64_t i0, int64_t i1, int64_t i2, const float *bary,
+                                  int64_t bs0, int64_t bs1, int64_t q, int64_t clamp, float *x) {
+    if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N)
+        return 1;
+    const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+    const float w = (1.0f - bu) - bv;
+    const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+    float x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+    float x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+    float x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+    if (clamp) {   /* clamp_min(0): NaN stays NaN */
+        x0 = x0 < 0.f ? 0.f : x0;
+        x1 = x1 < 0.f ? 0.f : x1;
+        x2 = x2 < 0.f ? 0.f : x2;
+    }
+    x[0] = x0; x[1] = x1; x[2] = x2;
+    return 0;
+}
+"""
 _PLANE_PIXELS_SOURCE = r"""
 #include <stdint.h>
+""" + _PLANE_SAMPLE_C + r"""
 
 /* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples q = p S2 + s of pixel p (s ascending, from x_0);
    x_s = 0 unless mask[q] and (n[q, 0] wo[q] + n[q, 1] wo[ws0 + q]) + n[q, 2] wo[2 ws0 + q] > 0, else
@@ -917,31 +949,15 @@ void zh_plane_pixels(int64_t n, int64_t S2, const int64_t *face, const float *ba
         float o0 = 0.f, o1 = 0.f, o2 = 0.f;
         for (int64_t s = 0; s < S2; ++s) {
             const int64_t q = p * S2 + s;
-            float x0 = 0.f, x1 = 0.f, x2 = 0.f;
-            const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
-            if (mask[q] && dn > 0.f) {
+            float x[3] = {0.f, 0.f, 0.f};
+            if (mask[q] && zh_plane_dn(nrm, wo, ws0, q) > 0.f) {
                 const int64_t f = face[q];
-                if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
-                const int64_t i0 = fv[f], i1 = fv[M + f], i2 = fv[2 * M + f];
-                if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                if ((uint64_t)f >= (uint64_t)M
+                        || zh_plane_sample(u, N, fv[f], fv[M + f], fv[2 * M + f], bary, bs0, bs1, q, clamp, x))
                     ++nb;
-                    goto add;
-                }
-                const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                const float w = (1.0f - bu) - bv;
-                const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
-                x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
-                x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
-                x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
-                if (clamp) {   /* clamp_min(0): NaN stays NaN */
-                    x0 = x0 < 0.f ? 0.f : x0;
-                    x1 = x1 < 0.f ? 0.f : x1;
-                    x2 = x2 < 0.f ? 0.f : x2;
-                }
             }
-        add:
-            if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
-            else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+            if (s == 0) { o0 = x[0]; o1 = x[1]; o2 = x[2]; }
+            else { o0 = o0 + x[0]; o1 = o1 + x[1]; o2 = o2 + x[2]; }
         }
         out[3 * p] = o0 * inv; out[3 * p + 1] = o1 * inv; out[3 * p + 2] = o2 * inv;
     }
@@ -1567,6 +1583,7 @@ _FUSED_SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
 #include <math.h>
+""" + _PLANE_SAMPLE_C + r"""
 typedef float v8 __attribute__((vector_size(32)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
 typedef int32_t v8i __attribute__((vector_size(32)));
@@ -1606,35 +1623,19 @@ void zh33p_fused(int64_t n, int64_t S2, const int64_t *face, const float *bary, 
             float o0 = 0.f, o1 = 0.f, o2 = 0.f;
             for (int64_t s = 0; s < S2; ++s) {
                 const int64_t q = p * S2 + s;
-                float x0 = 0.f, x1 = 0.f, x2 = 0.f;
-                const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+                float x[3] = {0.f, 0.f, 0.f};
                 if (mask[q]) {
-                    if (dn > 0.f) {
+                    if (zh_plane_dn(nrm, wo, ws0, q) > 0.f) {
                         const int64_t f = face[q];
-                        if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
-                        const int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
-                        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                        if ((uint64_t)f >= (uint64_t)M
+                                || zh_plane_sample(u, N, F[3 * f], F[3 * f + 1], F[3 * f + 2], bary, bs0, bs1, q, clamp, x))
                             ++nb;
-                            goto add;
-                        }
-                        const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                        const float w = (1.0f - bu) - bv;
-                        const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
-                        x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
-                        x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
-                        x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
-                        if (clamp) {
-                            x0 = x0 < 0.f ? 0.f : x0;
-                            x1 = x1 < 0.f ? 0.f : x1;
-                            x2 = x2 < 0.f ? 0.f : x2;
-                        }
                     }
                 } else if (!hit || hit[q]) {
                     oq[no++] = q;
                 }
-            add:
-                if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
-                else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+                if (s == 0) { o0 = x[0]; o1 = x[1]; o2 = x[2]; }
+                else { o0 = o0 + x[0]; o1 = o1 + x[1]; o2 = o2 + x[2]; }
             }
             const int64_t k = 3 * (p - p0);
             r[k] = o0 * inv; r[k + 1] = o1 * inv; r[k + 2] = o2 * inv;
