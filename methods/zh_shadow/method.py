@@ -824,7 +824,8 @@ class ZHShadow(Method):
         warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3), gbuffer.wo.view(n_, S2, 3),
                                            mask.view(n_, S2), gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
         groups = [(first[0], None)]
-        counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg)
+        # (the mask's count: the plane search's own, ``cnt`` — a miss never matches, `native.plane_mask`)
+        counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg, planar=cnt)
         counts["specular"] = nspec
         self._last_counts = {"P": P, "Q": P - nmiss, **counts}
         self.last_path = "planes"
