@@ -833,25 +833,31 @@ static inline v4 face_sample(const int32_t *face, const float *bary, int64_t bs0
     return (v4)((i4)x & -(i4){on, on, on, on});      /* 0 off the plane */
 }
 
+/* out[p] = (Σ_s face_sample(p S2 + s), s ascending) · inv: one pixel of `zh_face_pixels` (also
+   `zh35p_relight_pixels`') */
+static inline void face_pixel(const int32_t *face, const float *bary, int64_t bs0, int64_t bs1, const float *uf,
+                              int64_t F, int64_t clamp, float inv, float *out, int64_t S2, int64_t p, int64_t *nb) {
+    v4 o;
+    if (S2 == 4) {
+        const int64_t q = 4 * p;
+        o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, nb);
+    } else {
+        o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, nb);
+        for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, nb);
+    }
+    o = o * inv;
+    out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
+}
+
 void zh_face_pixels(int64_t n, int64_t S2, const int32_t *face, const float *bary, int64_t bs0, int64_t bs1,
                     const float *uf, int64_t F, int64_t clamp, float inv, float *out, int64_t nt, int64_t *bad) {
     int64_t nb = 0;
 #pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
-    for (int64_t p = 0; p < n; ++p) {
-        v4 o;
-        if (S2 == 4) {
-            const int64_t q = 4 * p;
-            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, &nb);
-        } else {
-            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, &nb);
-            for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, &nb);
-        }
-        o = o * inv;
-        out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
-    }
+    for (int64_t p = 0; p < n; ++p)
+        face_pixel(face, bary, bs0, bs1, uf, F, clamp, inv, out, S2, p, &nb);
     bad[0] = nb;
 }
 """
@@ -2647,21 +2653,8 @@ void zh35p_relight_pixels(int64_t n, int64_t S2, const int32_t *face, const floa
             cut[k] = lo;
         }
         const int64_t p0 = cut[0], p1 = cut[1];
-        for (int64_t p = p0; p < p1; ++p) {   /* as zh_face_pixels */
-            v4 o;
-            if (S2 == 4) {
-                const int64_t q = 4 * p;
-                o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, &nb);
-                o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, &nb);
-                o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, &nb);
-                o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, &nb);
-            } else {
-                o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, &nb);
-                for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, &nb);
-            }
-            o = o * inv;
-            out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
-        }
+        for (int64_t p = p0; p < p1; ++p)   /* as zh_face_pixels */
+            face_pixel(face, bary, bs0, bs1, uf, F, clamp, inv, out, S2, p, &nb);
         for (int64_t e = 0; e < E; ++e) {     /* as zh_relight_add, entry by entry */
             const int64_t *pix = pixs[e];
             const int64_t a = zh35p_lower(pix, Qs[e], p0), b = zh35p_lower(pix, Qs[e], p1);
