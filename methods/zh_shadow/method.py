@@ -646,7 +646,7 @@ class ZHShadow(Method):
             return self._render_vertex(frame, gbuffer, pose_vec, geom, v0, light, mats, cosine)
         v = v0.to(dev)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
-        spec = [bool((ks > 0).any()) for _, ks, _ in mats]
+        spec = [any(x > 0 for x in ks.tolist()) for _, ks, _ in mats]   # (`(ks > 0).any()`, without 3 ops a region)
         vreg = geom.vertex_region.to(dev)
         state = (frame.camera, pose_key, tuple(al if sp else None for sp, (_, _, al) in zip(spec, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
@@ -656,14 +656,16 @@ class ZHShadow(Method):
         tabs = [(kd, ks, Wd, self._table(light, lkey, al, False).to(dev) if sp and not relight else None)
                 for sp, (kd, ks, al) in zip(spec, mats)]
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
-        all_hit = _all(gbuffer.hit)
+        # (a lighting-only frame with its transfer cache reads the cache's hits: no pass over the G-buffer's)
+        kept = relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0
+        all_hit = True if kept else _all(gbuffer.hit)
         if not relight:
             img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine, all_hit)
             if img is not None:
                 self._relight = None
                 return img
         self.last_path = "samples"
-        if relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0:
+        if kept:
             hits, cache = self._relight[2], self._relight[3]
         else:
             self._relight = None
@@ -880,7 +882,8 @@ class ZHShadow(Method):
         warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3), gbuffer.wo.view(n_, S2, 3),
                                            mask.view(n_, S2), gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
         groups = [(first[0], None)]
-        counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg)
+        # (the mask's count: the plane search's own, ``cnt`` — a miss never matches, `native.plane_mask`)
+        counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg, planar=cnt)
         counts["specular"] = nspec
         self._last_counts = {"P": P, "Q": P - nmiss, **counts}
         self.last_path = "planes"
@@ -896,6 +899,13 @@ class ZHShadow(Method):
     # round-off against the GEMMs) where they run; False: the compiled pass, the GEMMs and ``index_add_``
     # (the tests' oracle)
     native_plane_pass = True
+    # With `native_plane_pass`: the plane faces' table and those two C passes as one (`native.relight_pixels`,
+    # one OpenMP region: the two passes' bits from the table, float32 round-off in the table); False: the
+    # GEMM and the two passes (the tests' oracle)
+    fused_relight = True
+    # `_plane_term`'s v · T¹(n0) by one C pass over the rows (`native.plane_u`: float32 round-off against the
+    # GEMM) where it runs; False: the GEMM (the tests' oracle)
+    native_plane_u = True
     # A P / V frame's plane pass (`_render_planes`) by the C loop (`native.plane_pixels`: the compiled
     # `_plane_pixels`' bits) where it runs; False: the compiled pass (the tests' oracle)
     native_plane_pixels = True
@@ -978,7 +988,10 @@ class ZHShadow(Method):
             ukey0 = ukey[:2] + ukey[3:]
             p0 = self._plane_u0
             if p0 is None or p0[0] != ukey0 or p0[1] is not v0 or p0[2] is not Wd:
-                self._plane_u0 = p0 = (ukey0, v0, Wd, v @ rt.diffuse_at(Wd, n0))
+                T = rt.diffuse_at(Wd, n0)
+                # (one C pass over the rows where it runs, `native.plane_u`: float32 round-off against the GEMM)
+                u0 = zn.plane_u(v, T) if self.native_plane_u else None
+                self._plane_u0 = p0 = (ukey0, v0, Wd, v @ T if u0 is None else u0)
             u0 = p0[3]
             spans = self._region_spans(vreg, len(mats))
             if spans is None:
@@ -1009,7 +1022,12 @@ class ZHShadow(Method):
         clamped and added into their pixels; None otherwise (then `runtime.relight`). Replaces the
         per-sample interpolation of the plane term over all P samples, its (P, 3) → (3, P) copy, the
         scatter of the others and the resolve: bench creature, 1 thread, same process, load ~11 on
-        2 cores: L 1.47x, E 1.35x process CPU (`benchmarks.zh_sample_ab`)."""
+        2 cores: L 1.47x, E 1.35x process CPU (`benchmarks.zh_sample_ab`).
+
+        Session 35 (``fused_relight``): the plane faces' corner table u (its GEMM, the albedos' gather,
+        the 12-float layout), the plane pass and every object entry in one C call and one OpenMP region
+        (`native.relight_pixels`; before: the GEMM and ~8 small ops, `face_pixels`, then `relight_add` per
+        entry with its own region and ~10 small ops): L 1.16x, E 1.09x process CPU at 1 thread."""
         groups, mask = cache["groups"], cache.get("mask")
         if len(groups) != 1 or mask is None or groups[0][1] is not None:
             return None
@@ -1038,15 +1056,27 @@ class ZHShadow(Method):
         faces, pixels, corners, creg = kept
         # the plane term u = kd ⊙ v · T¹(n0) (`_plane_term`) at the plane faces' corners alone (3·F_p
         # rows: 4,341 on the bench creature instead of the mesh's 13,415 vertices), as a face table
-        kd_c = torch.stack([m[0] for m in mats]).to(dev, v.dtype).index_select(0, creg)
-        uf = (v.index_select(0, corners) @ rt.diffuse_at(Wd, n0)).mul_(kd_c).view(-1, 9)
+        kdt = torch.stack([m[0] for m in mats]).to(dev, v.dtype)
+        Tn = rt.diffuse_at(Wd, n0)
         bary = gbuffer.bary.T.view(2, n, S2)
+        light = light.to(dev, v.dtype)
+        if self.native_plane_pass and self.fused_relight:
+            # that table, the plane pass and every object entry in one C pass (`native.relight_pixels`: the
+            # two passes' bits from the table, the table to float32 round-off against the GEMM below)
+            ents = []
+            for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
+                ld = light * kd.to(dev, v.dtype)
+                ls = light * ks.to(dev, v.dtype) if any(ts is not None for _, _, ts in entries) else None
+                ents += [(td, ts, ld, None if ts is None else ls, pix) for (_, td, ts), pix in zip(entries, pxs)]
+            img = zn.relight_pixels(faces, bary, None, clamp, ents, 1.0 / S2, planes=(v, corners, creg, Tn, kdt))
+            if img is not None:
+                return img.view(gbuffer.height, gbuffer.width, 3)
+        uf = (v.index_select(0, corners) @ Tn).mul_(kdt.index_select(0, creg)).view(-1, 9)
         # (one C pass where it runs: the compiled pass's bits, `native.face_pixels`)
         img = zn.face_pixels(faces, bary, uf, clamp) if self.native_plane_pass else None
         if img is None:
             torch._dynamo.maybe_mark_dynamic(uf, 0)
             img = _plane_face_pixels(faces, bary, uf, clamp)
-        light = light.to(dev, v.dtype)
         for (kd, ks, _), entries, pxs in zip(mats, cache["regions"], pixels):
             for (p, td, ts), pix in zip(entries, pxs):              # as `runtime.relight`
                 if self.native_plane_pass and zn.relight_add(     # (one C pass where it runs: float32 round-off)

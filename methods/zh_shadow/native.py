@@ -833,25 +833,31 @@ static inline v4 face_sample(const int32_t *face, const float *bary, int64_t bs0
     return (v4)((i4)x & -(i4){on, on, on, on});      /* 0 off the plane */
 }
 
+/* out[p] = (Σ_s face_sample(p S2 + s), s ascending) · inv: one pixel of `zh_face_pixels` (also
+   `zh35p_relight_pixels`') */
+static inline void face_pixel(const int32_t *face, const float *bary, int64_t bs0, int64_t bs1, const float *uf,
+                              int64_t F, int64_t clamp, float inv, float *out, int64_t S2, int64_t p, int64_t *nb) {
+    v4 o;
+    if (S2 == 4) {
+        const int64_t q = 4 * p;
+        o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, nb);
+        o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, nb);
+    } else {
+        o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, nb);
+        for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, nb);
+    }
+    o = o * inv;
+    out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
+}
+
 void zh_face_pixels(int64_t n, int64_t S2, const int32_t *face, const float *bary, int64_t bs0, int64_t bs1,
                     const float *uf, int64_t F, int64_t clamp, float inv, float *out, int64_t nt, int64_t *bad) {
     int64_t nb = 0;
 #pragma omp parallel for num_threads(nt) schedule(static) reduction(+:nb) if(nt > 1)
-    for (int64_t p = 0; p < n; ++p) {
-        v4 o;
-        if (S2 == 4) {
-            const int64_t q = 4 * p;
-            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, q, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 1, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 2, &nb);
-            o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, q + 3, &nb);
-        } else {
-            o = face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2, &nb);
-            for (int64_t s = 1; s < S2; ++s) o = o + face_sample(face, bary, bs0, bs1, uf, F, clamp, p * S2 + s, &nb);
-        }
-        o = o * inv;
-        out[3 * p] = o[0]; out[3 * p + 1] = o[1]; out[3 * p + 2] = o[2];
-    }
+    for (int64_t p = 0; p < n; ++p)
+        face_pixel(face, bary, bs0, bs1, uf, F, clamp, inv, out, S2, p, &nb);
     bad[0] = nb;
 }
 """
@@ -899,8 +905,40 @@ def face_pixels(face: Tensor, bary: Tensor, uf: Tensor, clamp: bool) -> Tensor |
 # or facing away, the clamp, the samples summed in order from the first and scaled by 1 / S² — pure
 # elementwise float32 (``-ffp-contract=off``), so the compiled pass's bits (tested); a sample off the plane
 # reads nothing else. Each pixel one thread's: the bits do not depend on the thread count.
+# One plane sample (zh35p): its front test n·ωo, its face's three corner values of u interpolated at its
+# barycentrics (Gouraud) and the clamp — included by both plane passes that read the G-buffer (`zh_plane_pixels`
+# and `zh33p_fused`), which wrote these lines twice. Elementwise float32 (both built with ``-ffp-contract=off``):
+# the same bits in either.
+_PLANE_SAMPLE_C = r"""
+/* n·ωo of sample q: ((n_x ωx + n_y ωy) + n_z ωz), normal (P, 3) row-major, ωo rows ws0 apart */
+static inline float zh_plane_dn(const float *nrm, const float *wo, int64_t ws0, int64_t q) {
+    return (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+}
+
+/* x[c] = (u[i0, c] ((1 − bu) − bv) + u[i1, c] bu) + u[i2, c] bv (max(·, 0) if clamp; NaN stays NaN) with
+   bu = bary[q bs1], bv = bary[bs0 + q bs1]; returns 1 (x untouched) when a corner is outside [0, N) */
+static inline int zh_plane_sample(const float *u, int64_t N, int64_t i0, int64_t i1, int64_t i2, const float *bary,
+                                  int64_t bs0, int64_t bs1, int64_t q, int64_t clamp, float *x) {
+    if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N)
+        return 1;
+    const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
+    const float w = (1.0f - bu) - bv;
+    const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
+    float x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
+    float x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
+    float x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
+    if (clamp) {   /* clamp_min(0): NaN stays NaN */
+        x0 = x0 < 0.f ? 0.f : x0;
+        x1 = x1 < 0.f ? 0.f : x1;
+        x2 = x2 < 0.f ? 0.f : x2;
+    }
+    x[0] = x0; x[1] = x1; x[2] = x2;
+    return 0;
+}
+"""
 _PLANE_PIXELS_SOURCE = r"""
 #include <stdint.h>
+""" + _PLANE_SAMPLE_C + r"""
 
 /* out[p, c] = (Σ_s x_s[c]) · inv over the S2 samples q = p S2 + s of pixel p (s ascending, from x_0);
    x_s = 0 unless mask[q] and (n[q, 0] wo[q] + n[q, 1] wo[ws0 + q]) + n[q, 2] wo[2 ws0 + q] > 0, else
@@ -917,31 +955,15 @@ void zh_plane_pixels(int64_t n, int64_t S2, const int64_t *face, const float *ba
         float o0 = 0.f, o1 = 0.f, o2 = 0.f;
         for (int64_t s = 0; s < S2; ++s) {
             const int64_t q = p * S2 + s;
-            float x0 = 0.f, x1 = 0.f, x2 = 0.f;
-            const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
-            if (mask[q] && dn > 0.f) {
+            float x[3] = {0.f, 0.f, 0.f};
+            if (mask[q] && zh_plane_dn(nrm, wo, ws0, q) > 0.f) {
                 const int64_t f = face[q];
-                if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
-                const int64_t i0 = fv[f], i1 = fv[M + f], i2 = fv[2 * M + f];
-                if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                if ((uint64_t)f >= (uint64_t)M
+                        || zh_plane_sample(u, N, fv[f], fv[M + f], fv[2 * M + f], bary, bs0, bs1, q, clamp, x))
                     ++nb;
-                    goto add;
-                }
-                const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                const float w = (1.0f - bu) - bv;
-                const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
-                x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
-                x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
-                x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
-                if (clamp) {   /* clamp_min(0): NaN stays NaN */
-                    x0 = x0 < 0.f ? 0.f : x0;
-                    x1 = x1 < 0.f ? 0.f : x1;
-                    x2 = x2 < 0.f ? 0.f : x2;
-                }
             }
-        add:
-            if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
-            else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+            if (s == 0) { o0 = x[0]; o1 = x[1]; o2 = x[2]; }
+            else { o0 = o0 + x[0]; o1 = o1 + x[1]; o2 = o2 + x[2]; }
         }
         out[3 * p] = o0 * inv; out[3 * p + 1] = o1 * inv; out[3 * p + 2] = o2 * inv;
     }
@@ -1567,6 +1589,7 @@ _FUSED_SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
 #include <math.h>
+""" + _PLANE_SAMPLE_C + r"""
 typedef float v8 __attribute__((vector_size(32)));
 static inline v8 ld(const float* p) { v8 v; __builtin_memcpy(&v, p, 32); return v; }
 typedef int32_t v8i __attribute__((vector_size(32)));
@@ -1606,35 +1629,19 @@ void zh33p_fused(int64_t n, int64_t S2, const int64_t *face, const float *bary, 
             float o0 = 0.f, o1 = 0.f, o2 = 0.f;
             for (int64_t s = 0; s < S2; ++s) {
                 const int64_t q = p * S2 + s;
-                float x0 = 0.f, x1 = 0.f, x2 = 0.f;
-                const float dn = (nrm[3 * q] * wo[q] + nrm[3 * q + 1] * wo[ws0 + q]) + nrm[3 * q + 2] * wo[2 * ws0 + q];
+                float x[3] = {0.f, 0.f, 0.f};
                 if (mask[q]) {
-                    if (dn > 0.f) {
+                    if (zh_plane_dn(nrm, wo, ws0, q) > 0.f) {
                         const int64_t f = face[q];
-                        if ((uint64_t)f >= (uint64_t)M) { ++nb; goto add; }
-                        const int64_t i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
-                        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
+                        if ((uint64_t)f >= (uint64_t)M
+                                || zh_plane_sample(u, N, F[3 * f], F[3 * f + 1], F[3 * f + 2], bary, bs0, bs1, q, clamp, x))
                             ++nb;
-                            goto add;
-                        }
-                        const float bu = bary[q * bs1], bv = bary[bs0 + q * bs1];
-                        const float w = (1.0f - bu) - bv;
-                        const float *a = u + 3 * i0, *b = u + 3 * i1, *c = u + 3 * i2;
-                        x0 = (a[0] * w + b[0] * bu) + c[0] * bv;
-                        x1 = (a[1] * w + b[1] * bu) + c[1] * bv;
-                        x2 = (a[2] * w + b[2] * bu) + c[2] * bv;
-                        if (clamp) {
-                            x0 = x0 < 0.f ? 0.f : x0;
-                            x1 = x1 < 0.f ? 0.f : x1;
-                            x2 = x2 < 0.f ? 0.f : x2;
-                        }
                     }
                 } else if (!hit || hit[q]) {
                     oq[no++] = q;
                 }
-            add:
-                if (s == 0) { o0 = x0; o1 = x1; o2 = x2; }
-                else { o0 = o0 + x0; o1 = o1 + x1; o2 = o2 + x2; }
+                if (s == 0) { o0 = x[0]; o1 = x[1]; o2 = x[2]; }
+                else { o0 = o0 + x[0]; o1 = o1 + x[1]; o2 = o2 + x[2]; }
             }
             const int64_t k = 3 * (p - p0);
             r[k] = o0 * inv; r[k + 1] = o1 * inv; r[k + 2] = o2 * inv;
@@ -3002,3 +3009,216 @@ def warm_pose_libraries() -> None:
         for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib):
             get()
     _kernel()
+
+
+# === zh35p ==================================================================================================
+#
+# A lighting-only frame's image in one parallel region (`ZHShadow._relight_planes`, `relight_pixels`). Session
+# 34's L / E frame (paper setting, bench creature) ran `face_pixels` (the plane samples, over the pixels) and
+# then `relight_add` (the object samples' cached transfer, per region entry) as two C calls, each its own
+# OpenMP region, and `relight_add`'s Python (the pixels' range, the threads' cuts: ~10 small torch ops per
+# entry). Here thread t of the team takes a range of pixels — their plane samples exactly as `zh_face_pixels`
+# (the same function), then, entry by entry in order, the object samples whose pixel lies in the range (each
+# entry's pixels ascending: its range by bisection), exactly as `zh_relight_add` shades and adds them (the
+# same function) — so every pixel sees the same additions in the same order as the two passes: the same bits
+# at any thread count. The ranges balance the two kinds of work (a pixel's plane samples weigh 1, an object
+# sample `RELIGHT_OBJECT_WEIGHT`), as the object is not spread evenly over the image.
+_RELIGHT_PIXELS_SOURCE = _FACE_PIXELS_SOURCE + _RELIGHT_SOURCE + r"""
+#include <omp.h>
+
+/* o[c] = Σ_j x[j] T[j, c] (j ascending, multiplies and adds apart) for c < 3: one row of v · T¹(n0) */
+static inline void zh35p_row3(const float *x, int64_t n2, const float *T, float *o) {
+    float s0 = x[0] * T[0], s1 = x[0] * T[1], s2 = x[0] * T[2];
+    for (int64_t j = 1; j < n2; ++j) {
+        s0 = s0 + x[j] * T[3 * j]; s1 = s1 + x[j] * T[3 * j + 1]; s2 = s2 + x[j] * T[3 * j + 2];
+    }
+    o[0] = s0; o[1] = s1; o[2] = s2;
+}
+
+/* out (N, 3) = v (N, n2) @ T (n2, 3) by rows (`zh35p_row3`), rows split over nt threads (each row one
+   thread's: the same bits at any thread count) — `ZHShadow._plane_term`'s v · T¹(n0) */
+void zh35p_plane_u(int64_t N, const float *v, int64_t n2, const float *T, float *out, int64_t nt) {
+#pragma omp parallel for num_threads(nt) schedule(static) if(nt > 1)
+    for (int64_t i = 0; i < N; ++i) zh35p_row3(v + i * n2, n2, T, out + 3 * i);
+}
+
+/* the first index i of a (n,) ascending with a[i] >= x (n if none) */
+static int64_t zh35p_lower(const int64_t *a, int64_t n, int64_t x) {
+    int64_t lo = 0, hi = n;
+    while (lo < hi) {
+        const int64_t mid = lo + (hi - lo) / 2;
+        if (a[mid] < x) lo = mid + 1; else hi = mid;
+    }
+    return lo;
+}
+
+/* the work of the pixels [0, p): p + w · (the entries' samples whose pixel is below p) */
+static double zh35p_work(int64_t p, int64_t E, const int64_t *Qs, const int64_t *const *pixs, double w) {
+    double c = (double)p;
+    for (int64_t e = 0; e < E; ++e) c += w * (double)zh35p_lower(pixs[e], Qs[e], p);
+    return c;
+}
+
+/* out (n, 3) = zh_face_pixels(face, bary, uf, clamp, inv), then for e = 0 … E − 1: zh_relight_add(td[e], ts[e]
+   (NULL: none), ld[e], ls[e], pix[e], clamp, inv) into it — each pixel's work one thread's. td[e], ts[e] (n2,
+   Qs[e]) row-major, ld[e], ls[e] (n2, 3), pix[e] (Qs[e],) ascending in [0, n) (checked: else bad[0] = −1 and
+   nothing written). With v (N, nv2) given, uf (F, 12) is written first (in the same region, before a barrier):
+   corner i = 3 f + k of plane face f gets uf[f, 4 k + c] = (Σ_j v[corners[i], j] T[j, c], j ascending) ·
+   kd[creg[i], c] and uf[f, 4 k + 3] = 0 — the plane term kd ⊙ v · T¹(n0) at the corners (`ZHShadow._plane_term`'s
+   product, float32 round-off against its GEMM). bad[0]: plane faces ≥ F, corners or regions out of range and
+   object pixels out of range (their work skipped). */
+void zh35p_relight_pixels(int64_t n, int64_t S2, const int32_t *face, const float *bary, int64_t bs0, int64_t bs1,
+                          float *uf, int64_t F, int64_t clamp, float inv, float *out, int64_t E,
+                          const int64_t *Qs, int64_t n2, const int64_t *tds, const int64_t *tss, const int64_t *lds,
+                          const int64_t *lss, const int64_t *pixp, double w, const float *v, int64_t N, int64_t nv2,
+                          const int64_t *corners, const int64_t *creg, const float *T, const float *kd, int64_t R,
+                          int64_t nt, int64_t *bad) {
+    const int64_t *const *pixs = (const int64_t *const *)pixp;
+    for (int64_t e = 0; e < E; ++e) {   /* each entry's pixels ascending and inside the image */
+        const int64_t *pix = pixs[e];
+        for (int64_t q = 0; q < Qs[e]; ++q)
+            if ((uint64_t)pix[q] >= (uint64_t)n || (q && pix[q] < pix[q - 1])) { bad[0] = -1; return; }
+    }
+    int64_t nb = 0;
+#pragma omp parallel num_threads(nt) reduction(+:nb) if(nt > 1)
+    {
+        if (v) {
+#pragma omp for schedule(static)
+            for (int64_t i = 0; i < 3 * F; ++i) {
+                float *o = uf + 4 * i;
+                const int64_t vi = corners[i], r = creg[i];
+                if ((uint64_t)vi >= (uint64_t)N || (uint64_t)r >= (uint64_t)R) {
+                    ++nb;
+                    o[0] = o[1] = o[2] = o[3] = 0.f;
+                    continue;
+                }
+                zh35p_row3(v + vi * nv2, nv2, T, o);
+                o[0] = o[0] * kd[3 * r]; o[1] = o[1] * kd[3 * r + 1]; o[2] = o[2] * kd[3 * r + 2]; o[3] = 0.f;
+            }   /* (the barrier: every thread reads any face's row) */
+        }
+        const int64_t T = omp_get_num_threads(), t = omp_get_thread_num();
+        /* this thread's pixels [p0, p1): the work's t / T and (t + 1) / T points (bisection; the same cuts
+           in every thread) */
+        int64_t cut[2];
+        const double total = zh35p_work(n, E, Qs, pixs, w);
+        for (int k = 0; k < 2; ++k) {
+            const int64_t tk = t + k;
+            if (tk == 0) { cut[k] = 0; continue; }
+            if (tk == T) { cut[k] = n; continue; }
+            const double goal = total * (double)tk / (double)T;
+            int64_t lo = 0, hi = n;
+            while (lo < hi) {
+                const int64_t mid = lo + (hi - lo) / 2;
+                if (zh35p_work(mid, E, Qs, pixs, w) < goal) lo = mid + 1; else hi = mid;
+            }
+            cut[k] = lo;
+        }
+        const int64_t p0 = cut[0], p1 = cut[1];
+        for (int64_t p = p0; p < p1; ++p)   /* as zh_face_pixels */
+            face_pixel(face, bary, bs0, bs1, uf, F, clamp, inv, out, S2, p, &nb);
+        for (int64_t e = 0; e < E; ++e) {     /* as zh_relight_add, entry by entry */
+            const int64_t *pix = pixs[e];
+            const int64_t a = zh35p_lower(pix, Qs[e], p0), b = zh35p_lower(pix, Qs[e], p1);
+            nb += relight_range(a, b, Qs[e], n2, (const float *)tds[e], (const float *)tss[e], (const float *)lds[e],
+                                (const float *)lss[e], pix, clamp, inv, out, n);
+        }
+    }
+    bad[0] = nb;
+}
+"""
+_RELIGHT_PIXELS_SIGNATURES = {"zh35p_relight_pixels": [_I, _I, _P, _P, _I, _I, _P, _I, _I, ctypes.c_float, _P, _I, _P,
+                                                       _I, _P, _P, _P, _P, _P, ctypes.c_double, _P, _I, _I, _P, _P,
+                                                       _P, _P, _I, _I, _P],
+                              "zh35p_plane_u": [_I, _P, _I, _P, _P, _I]}
+MIN_ROWS_PER_PLANE_U_THREAD = 4096   # rows below which one thread makes `plane_u`'s product
+RELIGHT_OBJECT_WEIGHT = 2.0   # an object sample's work in pixels' plane passes (`relight_pixels`' thread ranges)
+
+
+def _relight_pixels_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh35p_relight_pixels", _RELIGHT_PIXELS_SOURCE, _RELIGHT_PIXELS_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+
+
+def relight_pixels(face: Tensor, bary: Tensor, uf: Tensor | None, clamp: bool, entries: list, inv: float,
+                   planes: tuple | None = None) -> Tensor | None:
+    """`face_pixels(face, bary, uf, clamp)` then, for each entry (td, ts, ld, ls, pix) in order, `relight_add(img,
+    td, ts, ld, ls, pix, clamp, inv)` — the same bits — in one C pass (`zh35p_relight_pixels`: one OpenMP
+    region), or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, other dtypes / layouts, a
+    plane face outside uf's rows, an entry's pixels not ascending inside the image): the caller then runs the
+    two passes. face (n, S²) int32 (−1: no plane sample), bary (2, n, S²) with strides (bs0, S² bs1, bs1), uf
+    (F_p, 9); td, ts (n², Q) (ts None: no specular term), ld, ls (n², 3) float32 contiguous, pix (Q,) int64.
+
+    ``uf`` None: made in the same pass from ``planes`` = (v (N, n²), corners (3 F_p,) int64, creg (3 F_p,) int64
+    their regions, T (n², 3), kd (R, 3)) as uf[f, 3 k + c] = (v[corners[3 f + k]] · T[:, c]) kd[creg[3 f + k], c]
+    (`ZHShadow._relight_planes`' ``(v[corners] @ T¹(n0)) ⊙ kd``: float32 round-off against its GEMM)."""
+    lib = _relight_pixels_lib() if terms_switched_on() else None
+    if (lib is None or face.dtype != torch.int32 or face.dim() != 2 or bary.dtype != torch.float32
+            or any(t.device.type != "cpu" for t in (face, bary))):
+        return None
+    if uf is not None:
+        if uf.dtype != torch.float32 or uf.dim() != 2 or uf.shape[1] != 9 or uf.shape[0] == 0 or uf.device.type != "cpu":
+            return None
+        Fp = int(uf.shape[0])
+        u12 = torch.zeros(Fp, 3, 4, dtype=torch.float32)   # (as `face_pixels`)
+        u12[:, :, :3] = uf.view(-1, 3, 3)
+        pl = (0, 0, 0, 0, 0, 0, 0, 0)
+    else:
+        if planes is None:
+            return None
+        v, corners, creg, T, kd = planes
+        n2v = int(v.shape[1]) if v.dim() == 2 else -1
+        if (v.dim() != 2 or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous()
+                                for t in (v, T, kd))
+                or any(t.dtype != torch.int64 or t.device.type != "cpu" or not t.is_contiguous() or t.dim() != 1
+                       for t in (corners, creg))
+                or corners.shape[0] == 0 or corners.shape[0] % 3 or creg.shape != corners.shape
+                or T.shape != (n2v, 3) or kd.dim() != 2 or kd.shape[1] != 3):
+            return None
+        Fp = int(corners.shape[0]) // 3
+        u12 = torch.empty(Fp, 3, 4, dtype=torch.float32)   # (every value written by the pass)
+        pl = (v.data_ptr(), int(v.shape[0]), n2v, corners.data_ptr(), creg.data_ptr(), T.data_ptr(), kd.data_ptr(),
+              int(kd.shape[0]))
+    n, S2 = int(face.shape[0]), int(face.shape[1])
+    if bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2) or not face.is_contiguous():
+        return None
+    n2 = None
+    E = len(entries)
+    ptrs = [(ctypes.c_int64 * max(E, 1))() for _ in range(6)]   # td, ts, ld, ls, pix pointers; Q
+    for e, (td, ts, ld, ls, pix) in enumerate(entries):
+        if n2 is None:
+            n2 = int(td.shape[0]) if td.dim() == 2 else -1
+        arrs = (td, ld) + ((ts, ls) if ts is not None else ())
+        if (td.dim() != 2 or td.shape[0] != n2 or any(t.dtype != torch.float32 or t.device.type != "cpu"
+                                                      or not t.is_contiguous() for t in arrs)
+                or pix.dtype != torch.int64 or pix.shape != (td.shape[1],) or not pix.is_contiguous()
+                or pix.device.type != "cpu" or ld.shape != (n2, 3)
+                or (ts is not None and (ts.shape != td.shape or ls is None or ls.shape != (n2, 3)))):
+            return None
+        for lst, t in zip(ptrs, (td, ts, ld, ls, pix)):
+            lst[e] = 0 if t is None else t.data_ptr()
+        ptrs[5][e] = int(td.shape[1])
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = ctypes.c_int64(0)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.zh35p_relight_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
+                             Fp, int(bool(clamp)), float(inv), out.data_ptr(), E, ctypes.addressof(ptrs[5]),
+                             0 if n2 is None else n2, *(ctypes.addressof(p) for p in ptrs[:5]),
+                             RELIGHT_OBJECT_WEIGHT, *pl, nt, ctypes.byref(bad))
+    return None if bad.value else out
+
+
+def plane_u(v: Tensor, T: Tensor) -> Tensor | None:
+    """(N, 3) v (N, n²) @ T (n², 3) float32 by one C pass over the rows (`zh35p_plane_u`: each row's n² products
+    summed in order; float32 round-off against the GEMM, whose 3-column product runs at a fraction of its
+    peak: ~0.36 ms for the bench creature's 13.4 K rows at 1 thread), or None where it does not run (no
+    compiler, ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 contiguous arrays of these shapes)."""
+    lib = _relight_pixels_lib() if terms_switched_on() else None
+    if (lib is None or v.dim() != 2 or T.shape != (v.shape[1], 3) or v.shape[1] == 0
+            or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() for t in (v, T))):
+        return None
+    N = int(v.shape[0])
+    out = torch.empty(N, 3, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), N // MIN_ROWS_PER_PLANE_U_THREAD))
+    lib.zh35p_plane_u(N, v.data_ptr(), int(v.shape[1]), T.data_ptr(), out.data_ptr(), nt)
+    return out

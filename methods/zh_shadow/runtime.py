@@ -1134,15 +1134,19 @@ def plane_match(normal: Tensor, region: Tensor, spec: Tensor, specular: dict):
 
 
 def _plane_counts(groups: list, mask: Tensor | None, region: Tensor, vertex_normal: Tensor,
-                  vertex_region: Tensor) -> dict:
+                  vertex_region: Tensor, planar: int | None = None) -> dict:
     """{"planar": points on the planes, "groups": planes, "plane_vertices": a zero-argument
     function (evaluated on demand, by `ZHShadow.frame_cost`) counting the vertices whose normal
     is a plane's and whose region has points on that plane — the per-vertex pass a plane needs at
     least; given ``keep`` (N,) bool, those among the kept vertices alone (the frame's referenced
-    ones)}, and zeros for "specular", "planar_specular" (filled by the caller)."""
+    ones)}, and zeros for "specular", "planar_specular" (filled by the caller). ``planar``: the count of
+    ``mask`` where the caller has it already (one group of it: no pass over the mask)."""
     out = {"planar": 0, "groups": len(groups), "planar_specular": 0, "specular": 0}
     for _, pos in groups:
-        out["planar"] += int(torch.count_nonzero(mask)) if pos is None else int(pos.shape[0])   # (3x mask.sum())
+        if pos is None:
+            out["planar"] += int(torch.count_nonzero(mask)) if planar is None else planar   # (3x mask.sum())
+        else:
+            out["planar"] += int(pos.shape[0])
 
     def plane_vertices(keep: Tensor | None = None) -> int:
         nv, total = vertex_normal, 0

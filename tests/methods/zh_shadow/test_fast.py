@@ -2411,3 +2411,156 @@ def test_native_vertex_table_frames(small_model, monkeypatch, kind):
             ca, cb = dict(fast._last_counts), dict(slow._last_counts)
             assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
             assert fast._region_stack is not None and slow._region_stack is None
+
+
+def test_relight_pixels_equals_two_passes():
+    """`native.relight_pixels` (a lighting-only frame's plane pass and object entries in one C pass, one
+    OpenMP region) = `native.face_pixels` then `native.relight_add` per entry in order, bit for bit: random
+    plane faces (−1 = none), three entries whose pixels overlap (the order of the additions into a pixel
+    matters), with and without ts, Q not a multiple of 8, clamp on and off, on 1, 2 and 3 threads and with
+    the object weight of the thread ranges at 0 and 50 (other cuts); None for a plane face outside uf,
+    an entry's pixel outside the image or not ascending, and with the switch off. The plane faces' table
+    made in the pass (``planes``: v, corners, regions, T, kd) = the torch product ``(v[corners] @ T) ⊙
+    kd[regions]`` to float32 round-off, the same bits at any thread count; None for a corner or region out
+    of range or a partial face."""
+    from methods.zh_shadow import native as zn
+
+    g = torch.Generator().manual_seed(35)
+    n, S2, Fp, n2 = 3000, 4, 300, 16
+    face = torch.randint(-1, Fp, (n, S2), generator=g, dtype=torch.int64).to(torch.int32)
+    bT = torch.rand(n * S2, 2, generator=g).T.contiguous().T.T.view(2, n, S2)
+    uf = torch.randn(Fp, 9, generator=g)
+    ents = []
+    for Q, with_ts, lo, hi in ((1003, True, 0, n), (517, False, 200, 1400), (61, True, 1000, 1100)):
+        td = torch.randn(n2, Q, generator=g)
+        ts = torch.randn(n2, Q, generator=g) if with_ts else None
+        ld = torch.randn(n2, 3, generator=g)
+        ls = torch.randn(n2, 3, generator=g) if with_ts else None
+        ents.append((td, ts, ld, ls, torch.sort(torch.randint(lo, hi, (Q,), generator=g)).values))
+    for clamp in (True, False):
+        with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 1):
+            want = zn.face_pixels(face, bT, uf, clamp)
+            if want is None:
+                assert zn._face_pixels_lib() is None or not zn.terms_switched_on()
+                pytest.skip("the native plane pass is not available here")
+            for e in ents:
+                assert zn.relight_add(want, *e, clamp, 0.25)
+            for nt in (1, 2, 3):
+                for w in (0.0, 2.0, 50.0):
+                    with mock.patch.object(torch, "get_num_threads", lambda: nt), \
+                            mock.patch.object(zn, "RELIGHT_OBJECT_WEIGHT", w):
+                        got = zn.relight_pixels(face, bT, uf, clamp, ents, 0.25)
+                    assert got is not None and torch.equal(got, want), (clamp, nt, w)
+    assert torch.equal(zn.relight_pixels(face, bT, uf, True, [], 0.25), zn.face_pixels(face, bT, uf, True))
+    assert zn.relight_pixels(face, bT, uf[:Fp - 1].contiguous(), True, ents, 0.25) is None   # a face outside uf
+    td, ts, ld, ls, pix = ents[0]
+    for bad in (pix.clone().index_fill_(0, torch.tensor([len(pix) - 1]), n),            # outside the image
+                pix.clone().index_fill_(0, torch.tensor([0]), 5000 % n + 1)):           # not ascending
+        assert zn.relight_pixels(face, bT, uf, True, [(td, ts, ld, ls, bad)] + ents[1:], 0.25) is None
+    # the plane faces' table made in the pass from v, the corners, their regions, T and kd = the torch
+    # product to float32 round-off, then the same image as from that table
+    N, R = 900, 3
+    v = torch.randn(N, n2, generator=g)
+    corners = torch.randint(0, N, (3 * Fp,), generator=g)
+    creg = torch.randint(0, R, (3 * Fp,), generator=g)
+    T, kd = torch.randn(n2, 3, generator=g), torch.rand(R, 3, generator=g)
+    uf_t = ((v.index_select(0, corners) @ T) * kd.index_select(0, creg)).view(-1, 9)
+    for clamp in (True, False):
+        for nt in (1, 2, 3):
+            with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 1), mock.patch.object(torch, "get_num_threads",
+                                                                                     lambda: nt):
+                got = zn.relight_pixels(face, bT, None, clamp, ents, 0.25, planes=(v, corners, creg, T, kd))
+                want = zn.relight_pixels(face, bT, uf_t, clamp, ents, 0.25)
+            assert got is not None and float((got - want).abs().max()) <= 1e-5 * float(want.abs().max()), (clamp, nt)
+            if nt == 1:
+                one = got
+            assert torch.equal(got, one), (clamp, nt)   # (the same bits at any thread count)
+    for c2, r2, kd2 in ((corners.clone().index_fill_(0, torch.tensor([7]), N), creg, kd),   # a corner outside v
+                        (corners, creg.clone().index_fill_(0, torch.tensor([5]), R), kd),    # a region outside kd
+                        (corners[:-1], creg[:-1], kd)):                                      # not whole faces
+        assert zn.relight_pixels(face, bT, None, True, ents, 0.25, planes=(v, c2, r2, T, kd2)) is None
+    assert zn.relight_pixels(face, bT, None, True, ents, 0.25) is None                       # neither
+    with mock.patch.dict("os.environ", {"PRTBENCH_ZH_NATIVE": "0"}):
+        assert zn.relight_pixels(face, bT, uf, True, ents, 0.25) is None
+
+
+@pytest.mark.parametrize("name", ("creature", "sphere_plane"))
+def test_fused_relight_equals_two_passes_frames(small_model, monkeypatch, name):
+    """A lighting-only plane frame (`ZHShadow._relight_planes`) by `native.relight_pixels` (``fused_relight``:
+    the plane faces' table, the plane pass and the object entries in one pass) renders the image of the GEMM
+    and the two C passes it joins (``fused_relight`` off) to float32 round-off, and the reference; L and E
+    sequences, clamp on and off, 1 and 2 threads (the pixels split between them); the fused pass is taken."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    monkeypatch.setattr(zn, "MIN_PIXELS_PER_THREAD", 1)   # (test size: 4,096 pixels, one thread otherwise)
+    taken = []
+    real = zn.relight_pixels
+
+    def spy(*a, **k):
+        r = real(*a, **k)
+        taken.append(r is not None)
+        return r
+
+    monkeypatch.setattr(zn, "relight_pixels", spy)
+    m = small_model(name)
+    for kind, clamp, nt in (("L", True, 1), ("E", True, 2), ("L", False, 2)):
+        fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
+        slow.fused_relight = False
+        for fr in make_sequence(m.scene, kind, 4, seed=5):
+            gb = make_gbuffer(m.scene, fr, 2)
+            with torch_threads(nt):
+                a = fast.render(fr, gb)
+                n_taken = len(taken)
+                b = slow.render(fr, gb)
+            assert len(taken) == n_taken   # (the slow side never calls it)
+            assert fast.last_path == slow.last_path
+            # (the plane faces' table in the pass: float32 round-off against the GEMM)
+            assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (name, kind, clamp, nt, fr.index)
+            if fr.index == 2 and nt == 1:
+                assert (a - fast._render_reference(fr, gb)).abs().max().item() <= RENDER_TOL
+        assert fast.last_path == "relight-planes", (name, kind)
+    if zn._relight_pixels_lib() is not None and zn.terms_switched_on():
+        assert taken and all(taken)
+
+
+@pytest.mark.parametrize("kind", ("P", "VL"))
+def test_plane_u_native_equals_gemm(small_model, kind):
+    """`native.plane_u` (`ZHShadow._plane_term`'s v · T¹(n0) by one C pass over the rows) = the GEMM to float32
+    round-off on random rows (several row counts, 1 to 3 threads: the same bits), None for other shapes or
+    strides and with the switch off; P / VL frames of the creature (a new plane term each frame) render the
+    image of ``native_plane_u`` off to round-off and the reference."""
+    from methods.zh_shadow import native as zn
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    g = torch.Generator().manual_seed(36)
+    for N, n2 in ((1, 16), (4099, 16), (9000, 64)):
+        v, T = torch.randn(N, n2, generator=g), torch.randn(n2, 3, generator=g)
+        got = zn.plane_u(v, T)
+        if got is None:
+            assert zn._relight_pixels_lib() is None or not zn.terms_switched_on()
+            pytest.skip("the native plane term is not available here")
+        want = v @ T
+        assert float((got - want).abs().max()) <= 1e-5 * float(want.abs().max()), (N, n2)
+        for nt in (2, 3):
+            with mock.patch.object(zn, "MIN_ROWS_PER_PLANE_U_THREAD", 1), \
+                    mock.patch.object(torch, "get_num_threads", lambda: nt):
+                assert torch.equal(zn.plane_u(v, T), got), (N, nt)
+    v, T = torch.randn(50, 16, generator=g), torch.randn(16, 3, generator=g)
+    assert zn.plane_u(v, T[:15]) is None and zn.plane_u(v.T.contiguous().T, T) is None
+    assert zn.plane_u(v.double(), T.double()) is None
+    with mock.patch.dict("os.environ", {"PRTBENCH_ZH_NATIVE": "0"}):
+        assert zn.plane_u(v, T) is None
+    m = small_model("creature")
+    fast, slow = m.with_render_config(), m.with_render_config()
+    slow.native_plane_u = False
+    for fr in make_sequence(m.scene, kind, 3, seed=12):
+        gb = make_gbuffer(m.scene, fr, 2)
+        a, b = fast.render(fr, gb), slow.render(fr, gb)
+        assert fast.last_path == slow.last_path == "planes", (kind, fr.index)
+        assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (kind, fr.index)
+        if fr.index == 1:
+            assert (a - fast._render_reference(fr, gb)).abs().max().item() <= RENDER_TOL
