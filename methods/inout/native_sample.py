@@ -71,6 +71,19 @@ alternating, the same bits): the memo rows' validity as a mask in the vertex rec
 0.98-1.0×; with it, only the missing rows of a cell computed (memo rows 1.6 → 0.85·10⁵) 0.97-1.04×;
 W = 16 with both 0.96×; 2048 / 512 cache entries 1.02× / 0.97× against 1024; looking 8 samples
 ahead to prefetch a missing key's stamps and memo rows 0.87-0.99×.
+
+Session 35 (`FAST` bits 64 and 128; the same bits): where a V frame's time goes, whole frame under the
+suite's protocol (chess bench): everything of `render` but this loop ~0.08 ms CPU (torch and ctypes
+set-up; 13.7 ms with the loop, 1 thread); at 2 threads the two threads' CPU inside the loop sums to
+the single thread's (14.3 ms, both busy from start to end: the dynamic chunks balance them), so the
+2-thread frame is half the loop's work plus the wake-up. The front end alone (the G-buffer read along
+its layouts and `frame_cells`, every sample dead) ~2.2 ms cold; bit 64 makes it 16 samples wide (2.04
+ms), bit 128 prefetches the next block's rows. The entries outside their window: ~30·10³ calls a frame
+for ~23·10³ distinct (vertex, cell) pairs on ~1.7·10³ vertices (none also in the memo), so a cache of
+them could save ≤ 7·10³ `cell_x` calls (~0.4 ms): not tried. Tried and dropped: two threads from the
+image's two ends towards each other (contiguous runs of 256-pixel chunks, a shared claim count):
+the threads' CPU in the loop 14.26 against 14.30 ms (the same work; 156 against 161·10³ rows made,
+fewer filled twice), wall unmeasurable at load 8.
 """
 from __future__ import annotations
 
@@ -400,8 +413,49 @@ static inline void memo_fill(const Args *A, int64_t g, int64_t s, int64_t row, i
    the same values as the scalar loop but for NaN inputs, whose samples are not shaded: z > 0 fails). */
 static void frame_cells(const float *nx_, const float *ny_, const float *nz_, const float *a_, const float *b_,
                         const float *c_, int64_t n, float h, float top, float top2, int32_t *iu_, int32_t *iv_,
-                        float *fu_, float *fv_, float *z_) {
+                        float *fu_, float *fv_, float *z_, int wide) {
     int64_t i = 0;
+#ifdef __AVX512F__
+    /* bit 64 (AVX-512 builds): 16 samples at a time, the AVX2 loop's operations one for one (so the
+       same values; the inputs padded to a multiple of 16) */
+    if (wide) {
+        const __m512 one = _mm512_set1_ps(1.0f), m1 = _mm512_set1_ps(-1.0f), zero = _mm512_setzero_ps();
+        const __m512 e12 = _mm512_set1_ps(1e-12f), e30 = _mm512_set1_ps(1e-30f), sgn = _mm512_set1_ps(-0.0f);
+        const __m512 H = _mm512_set1_ps(h), T = _mm512_set1_ps(top), T2 = _mm512_set1_ps(top2);
+        for (; i < n; i += 16) {
+            __m512 nx = _mm512_loadu_ps(nx_ + i), ny = _mm512_loadu_ps(ny_ + i), nz = _mm512_loadu_ps(nz_ + i);
+            const __m512 a = _mm512_loadu_ps(a_ + i), b = _mm512_loadu_ps(b_ + i), c = _mm512_loadu_ps(c_ + i);
+            __m512 inv = _mm512_sqrt_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(nx, nx), _mm512_mul_ps(ny, ny)),
+                                                      _mm512_mul_ps(nz, nz)));
+            inv = _mm512_div_ps(one, _mm512_max_ps(inv, e12));
+            nx = _mm512_mul_ps(nx, inv); ny = _mm512_mul_ps(ny, inv); nz = _mm512_mul_ps(nz, inv);
+            const __m512 sign = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(nz, zero, _CMP_GE_OQ), m1, one);
+            const __m512 Am = _mm512_xor_ps(_mm512_div_ps(one, _mm512_add_ps(sign, nz)), sgn);
+            const __m512 d = _mm512_add_ps(_mm512_mul_ps(nx, a), _mm512_mul_ps(ny, b));
+            const __m512 u = _mm512_sub_ps(_mm512_mul_ps(Am, d), c);
+            const __m512 x = _mm512_add_ps(a, _mm512_mul_ps(_mm512_mul_ps(sign, nx), u));
+            const __m512 y = _mm512_add_ps(_mm512_mul_ps(sign, b), _mm512_mul_ps(ny, u));
+            const __m512 z = _mm512_add_ps(d, _mm512_mul_ps(nz, c));
+            __m512 s = _mm512_add_ps(_mm512_add_ps(_mm512_andnot_ps(sgn, x), _mm512_andnot_ps(sgn, y)), _mm512_max_ps(z, zero));
+            s = _mm512_max_ps(s, e30);
+            const __m512 px = _mm512_div_ps(x, s), py = _mm512_div_ps(y, s);
+            __m512 uu = _mm512_mul_ps(_mm512_add_ps(_mm512_add_ps(px, py), one), H);
+            __m512 vv = _mm512_mul_ps(_mm512_add_ps(_mm512_sub_ps(px, py), one), H);
+            uu = _mm512_min_ps(_mm512_max_ps(uu, zero), T);
+            vv = _mm512_min_ps(_mm512_max_ps(vv, zero), T);
+            const __m512 fiu = _mm512_min_ps(_mm512_roundscale_ps(uu, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), T2);
+            const __m512 fiv = _mm512_min_ps(_mm512_roundscale_ps(vv, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), T2);
+            _mm512_storeu_si512((void *)(iu_ + i), _mm512_cvttps_epi32(fiu));
+            _mm512_storeu_si512((void *)(iv_ + i), _mm512_cvttps_epi32(fiv));
+            _mm512_storeu_ps(fu_ + i, _mm512_sub_ps(uu, fiu));
+            _mm512_storeu_ps(fv_ + i, _mm512_sub_ps(vv, fiv));
+            _mm512_storeu_ps(z_ + i, z);
+        }
+        return;
+    }
+#else
+    (void)wide;
+#endif
 #ifdef __AVX2__
     const __m256 one = _mm256_set1_ps(1.0f), m1 = _mm256_set1_ps(-1.0f), zero = _mm256_setzero_ps();
     const __m256 e12 = _mm256_set1_ps(1e-12f), e30 = _mm256_set1_ps(1e-30f), sgn = _mm256_set1_ps(-0.0f);
@@ -456,13 +510,37 @@ static void frame_cells(const float *nx_, const float *ny_, const float *nz_, co
 /* rows q0 .. q0 + n of a (q, nc) float32 array with element strides (s0, s1) as nc columns `cols`,
    read along its layout: column-major as nc runs, row-major rows split, other strides element by
    element (the same values whichever) */
-static inline void columns(const float *a, int64_t s0, int64_t s1, int nc, int64_t q0, int64_t n, float **cols) {
+static inline void columns(const float *a, int64_t s0, int64_t s1, int nc, int64_t q0, int64_t n, float **cols, int wide) {
     if (s0 == 1) {
         for (int c = 0; c < nc; ++c)
             memcpy(cols[c], a + q0 + c * s1, (size_t)n * sizeof(float));
     } else if (s1 == 1 && s0 == nc) {
         const float *src = a + nc * q0;
-        for (int64_t i = 0; i < n; ++i)
+        int64_t i = 0;
+#ifdef __AVX512F__
+        if (wide && nc == 3) {   /* bit 64: 16 rows (48 floats) at a time split by two permutes per column */
+            __m512i i1[3], i2[3];
+            for (int c = 0; c < 3; ++c) {
+                int32_t x1[16], x2[16];
+                for (int l = 0; l < 16; ++l) {
+                    const int e = 3 * l + c;
+                    x1[l] = e < 32 ? e : 0;
+                    x2[l] = e < 32 ? l : 16 + (e - 32);
+                }
+                i1[c] = _mm512_loadu_si512((const void *)x1);
+                i2[c] = _mm512_loadu_si512((const void *)x2);
+            }
+            for (; i + 16 <= n; i += 16) {
+                const __m512 r0 = _mm512_loadu_ps(src + 3 * i), r1 = _mm512_loadu_ps(src + 3 * i + 16),
+                             r2 = _mm512_loadu_ps(src + 3 * i + 32);
+                for (int c = 0; c < 3; ++c)
+                    _mm512_storeu_ps(cols[c] + i, _mm512_permutex2var_ps(_mm512_permutex2var_ps(r0, i1[c], r1), i2[c], r2));
+            }
+        }
+#else
+        (void)wide;
+#endif
+        for (; i < n; ++i)
             for (int c = 0; c < nc; ++c)
                 cols[c][i] = src[nc * i + c];
     } else {
@@ -473,6 +551,30 @@ static inline void columns(const float *a, int64_t s0, int64_t s1, int nc, int64
 }
 
 #define BLK 64   /* pixels per block of the per-sample inputs */
+
+/* bit 128: the next block's G-buffer rows (q0 .. q0 + n) requested into L2 while this block is shaded
+   (prefetches only: no value changes) — the arrays' runs as the layouts lay them out */
+static inline void pf_range(const void *p, int64_t bytes) {
+    const char *c = (const char *)p;
+    for (int64_t o = 0; o < bytes; o += 64)
+        __builtin_prefetch(c + o, 0, 2);
+}
+static inline void pf_array(const float *a, int64_t s0, int64_t s1, int nc, int64_t q0, int64_t n) {
+    if (s0 == 1) {
+        for (int c = 0; c < nc; ++c)
+            pf_range(a + q0 + c * s1, n * 4);
+    } else if (s1 == 1 && s0 == nc) {
+        pf_range(a + nc * q0, nc * n * 4);
+    }
+}
+static inline void pf_block(const Args *A, int64_t q0, int64_t n) {
+    pf_array(A->nrm, A->n0, A->n1, 3, q0, n);
+    pf_array(A->wo, A->w0, A->w1, 3, q0, n);
+    pf_array(A->bary, A->b0, A->b1, 2, q0, n);
+    pf_range(A->face + q0, n * 8);
+    pf_range(A->region + q0, n * 8);
+    pf_range(A->live + q0, n);
+}
 
 /* bit 16 (with 4 and 8): per thread a direct-mapped cache of 2^ylog (face, cell) entries, each its
    X(v_j, n) at the face's 3 vertices and the cell's 4 nodes (the ones computed: `have`), tagged by the
@@ -527,9 +629,10 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
         }
         if (A->fast & 1) {   /* the same values, each array read along its own layout */
             float *nc[3] = {nx_, ny_, nz_}, *wc[3] = {a_, b_, c_}, *bc[2] = {bu_, bv_};
-            columns(A->nrm, A->n0, A->n1, 3, q0, n, nc);
-            columns(A->wo, A->w0, A->w1, 3, q0, n, wc);
-            columns(A->bary, A->b0, A->b1, 2, q0, n, bc);
+            const int wide = (int)(A->fast >> 6 & 1);
+            columns(A->nrm, A->n0, A->n1, 3, q0, n, nc, wide);
+            columns(A->wo, A->w0, A->w1, 3, q0, n, wc, wide);
+            columns(A->bary, A->b0, A->b1, 2, q0, n, bc, wide);
         } else {
             for (int64_t i = 0; i < n; ++i) {      /* the G-buffer's rows, as columns */
                 const int64_t q = q0 + i;
@@ -538,7 +641,9 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
                 bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
             }
         }
-        frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_);
+        frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_, (int)(A->fast >> 6 & 1));
+        if ((A->fast & 128) && pe < p1)
+            pf_block(A, pe * S2, ((pe + BLK < p1 ? pe + BLK : p1) - pe) * S2);
         for (int64_t p = pb; p < pe; ++p) {
             v4 o = {0, 0, 0, 0};
             for (int64_t t = 0; t < S2; ++t) {
@@ -754,7 +859,14 @@ CHUNK = 1024
 # 32 (AVX-512 builds, with 4) `cell_x`'s 12 sums reduced at once by transposing shuffles (`x4_sums`: the
 # same pairs as `hsum16`, the same bits). Loop alone, 1 thread, process CPU, each call after the frame's
 # G-buffer was rasterised, 21 frames alternating, 63 against 15: chess 1.12x, creature 1.10x.
-FAST = 63
+# 64 (AVX-512 builds) the front end 16 samples wide: the row-major normals split 16 rows at a time by
+# permutes, `frame_cells` 16 samples at a time (the AVX2 loop's operations one for one: the same bits).
+# 128 the next block's G-buffer rows prefetched into L2 while a block is shaded (no value changes).
+# Session 35, 1 thread, process CPU, each call after a fresh rasterisation, 41 frames alternating
+# (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1 --frames 41 --cold
+# --variants 63 255``, host at load 5-12): 255 against 63 chess 1.024x (per frame 1.025x), creature
+# 1.019x (per frame 1.026x); the front end alone (no live sample) 1.07x with 64 (2.19 -> 2.04 ms).
+FAST = 255
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
 

@@ -120,7 +120,7 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
     again, with fewer entries summed exactly, and with a 2-entry cache (nearly every look-up evicts); the
     L sequence's frames meet the same keys under another lighting (an entry of an earlier call is stale).
     Bit 32 (`x4_sums`: `cell_x`'s 12 sums at once, on AVX-512 builds) the same bits again, with and
-    without bit 16."""
+    without bit 16, and bits 64 and 128 (the front end 16 samples wide, the next block prefetched) again."""
     if not native_sample.cells_available():
         pytest.skip("no FMA build: bits 4 and 8 fall back to the per-row loop")
     m = precomputed(name)
@@ -129,7 +129,7 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
         frames = make_sequence(m.scene, kind, n_frames=2, seed=11)
         gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
         imgs, exact = {}, {}
-        for fast, ylog in ((7, 10), (15, 10), (31, 10), (31, 1), (47, 10), (63, 10), (0, 10)):
+        for fast, ylog in ((7, 10), (15, 10), (31, 10), (31, 1), (47, 10), (63, 10), (127, 10), (255, 10), (0, 10)):
             for W in ((2, 4, 16) if fast else (4,)):
                 monkeypatch.setattr(native_sample, "FAST", fast)
                 monkeypatch.setattr(native_sample, "WINDOW", W)
@@ -157,6 +157,35 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
                     assert torch.equal(x, y), f"{name} {kind} {key} frame {i}"
         assert exact[15, 16, 10] == exact[7, 16, 10] == exact[31, 16, 10] == 0
         assert 0 < exact[31, 2, 10] < exact[15, 2, 10] < exact[7, 2, 10]
+
+
+@pytest.mark.parametrize("name", ["chess", "creature"])
+def test_native_sample_wide_front_end_same_bits(precomputed, monkeypatch, name):
+    """Bit 64 (AVX-512 builds: the row-major normals split 16 rows at a time by permutes, the samples'
+    frames and cells 16 at a time) and bit 128 (the next block's G-buffer rows prefetched): the same
+    image bits as without them, over a V and an L sequence, with the G-buffer's layouts (row-major
+    normals: the split runs) and row-major copies of every array, at 2 threads in chunks of 99 pixels
+    (blocks of 396 samples: a tail of 12 after the 16-row steps)."""
+    monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
+    monkeypatch.setattr(native_sample, "CHUNK", 99)
+    m = precomputed(name)
+    n = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for kind in ("V", "L"):
+            frames = make_sequence(m.scene, kind, n_frames=2, seed=13)
+            gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+            assert gbs[0].normal.stride() == (3, 1)          # the layout the 16-row split reads
+            assert gbs[0].num_samples // 4 > 2 * 99
+            imgs = {}
+            for fast in (native_sample.FAST | 192, native_sample.FAST & ~192):
+                monkeypatch.setattr(native_sample, "FAST", fast)
+                a = _copy(m)
+                imgs[fast] = [a.render(f, g) for f, gb in zip(frames, gbs) for g in (gb, _row_major(gb))]
+            x, y = imgs.values()
+            assert all(torch.equal(p, q) for p, q in zip(x, y)), f"{name} {kind}"
+    finally:
+        torch.set_num_threads(n)
 
 
 def _row_major(gb):
