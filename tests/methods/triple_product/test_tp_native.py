@@ -110,6 +110,83 @@ def test_points_equal_fine_block(n):
         native.points(Vt, Rt, Lt, vrows + Vt.shape[0], vw, brows, bw, lrows, lw, ch)
 
 
+@pytest.mark.parametrize("n", [64, 48])
+def test_points_chunk_major_same_bits(n):
+    """`native.points` reading the ρ̃ table (and the L table) chunk-major (`native.chunk_major`:
+    ``tp_points_cm``, one pass over a point's chunks for the three channels) = the row-major loop bit
+    for bit — with weights 0 (the first weighted row read in their place), all-zero points, zero rows
+    and on two threads; a row length not a multiple of 8 gets no copy and raises."""
+    gen = torch.Generator().manual_seed(5)
+    Vt, Rt, Lt = _tables(n, gen)
+    B = 70
+    vrows = torch.arange(B) % Vt.shape[0]
+    vw = torch.rand(B, generator=gen) + 0.5
+    vw[::3] = 1.0
+    brows, lrows = torch.randint(0, 7, (B, 4), generator=gen), torch.randint(0, 9, (B, 4), generator=gen)
+    bw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.7)
+    lw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.6)
+    bw[:3], lw[3:6], lw[6:9, 0] = 0, 0, 0
+    ch = native.chunks(Vt)
+    Rm, Lm = native.chunk_major(Rt), native.chunk_major(Lt)
+    assert torch.equal(Rm.view(-1, n // 8, 3, 8), Rt.view(-1, 3, n // 8, 8).transpose(1, 2))
+    args = (vrows, vw, brows, bw, lrows, lw, ch)
+    want = native.points(Vt, Rt, Lt, *args)
+    for R, L, rm, lm in ((Rm, Lt, True, False), (Rt, Lm, False, True), (Rm, Lm, True, True)):
+        assert torch.equal(native.points(Vt, R, L, *args, r_major=rm, l_major=lm), want), (rm, lm)
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 8
+    torch.set_num_threads(2)
+    try:
+        assert torch.equal(native.points(Vt, Rm, Lt, *args, r_major=True), want)
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
+    ref = fast_eval.fine_block(vrows[:, None], vw[:, None], brows, bw, lrows, lw, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    assert (want - ref).abs().max() <= F32 * ref.abs().max()
+    Vo, Ro, Lo = _tables(45, gen)
+    assert native.chunk_major(Ro) is None
+    with pytest.raises(ValueError):
+        native.points(Vo, Ro, Lo, vrows, vw, brows, bw, lrows, lw, native.chunks(Vo), r_major=True)
+
+
+def test_render_rho_chunk_major_same_bits(monkeypatch):
+    """Per-vertex renders reading the ρ̃ table chunk-major (`fast_eval.rho_major`, chess test scene: 160
+    live triangles) = with ``RHO_CHUNK_MAJOR`` off, bit for bit, over view and lighting changes and a
+    material edit (a new ρ̃ table gets a new copy); the copy counts in ``memory()``."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    frames = make_sequence(scene, "V", n_frames=2, seed=1) + make_sequence(scene, "L", n_frames=2, seed=1)
+    region = next(iter(scene.regions))
+    frames.append(dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)}))
+    copies = []
+    for f in frames:
+        gb = make_gbuffer(scene, f, 1)
+        monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", True)
+        img = m.render(f, gb)
+        hit = m._perf_cache.get(("major", "rho"))
+        assert hit is not None and hit[2] is not None                     # the chunk-major loop ran
+        copies.append(hit[2])
+        monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", False)
+        ref = off.render(f, gb)
+        assert off._perf_cache.get(("major", "rho")) is None
+        assert torch.equal(img, ref)
+    assert copies[0] is copies[3] and copies[4] is not copies[3]          # one copy per ρ̃ table
+    assert m.memory()["fine_values"] == off.memory()["fine_values"] + copies[4].numel() * 4
+
+
 @pytest.mark.parametrize("n", [45, 64])
 def test_groups_four_rows_agree(n):
     """`tp_groups` (on a CPU with AVX-512: all four L rows per pass over the chunks, `chunk_sums4`)
