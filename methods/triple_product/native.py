@@ -74,6 +74,21 @@ void tp_chunks(const float* V, int64_t N, int64_t n, int64_t* count, const int64
     }
 }
 
+/* Point i's rho / L weights b0-b3 / l0-l3 and rows R0-R3 / L0-L3 (tp_points, tp_points_cm): a row with
+   weight 0 adds exact zeros (finite tables): read the first weighted row in its place (already in L1),
+   not a row of its own (a third of the grid weights are 0) */
+#define POINT_ROWS \
+    const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3]; \
+    const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3]; \
+    const int64_t kb = b0 != 0.0f ? 0 : b1 != 0.0f ? 1 : b2 != 0.0f ? 2 : 3; \
+    const int64_t kl = l0 != 0.0f ? 0 : l1 != 0.0f ? 1 : l2 != 0.0f ? 2 : 3; \
+    const int64_t* bi = brow + 4 * i; \
+    const int64_t* li = lrow + 4 * i; \
+    const float *R0 = R + bi[b0 != 0.0f ? 0 : kb] * 3 * n, *R1 = R + bi[b1 != 0.0f ? 1 : kb] * 3 * n, \
+                *R2 = R + bi[b2 != 0.0f ? 2 : kb] * 3 * n, *R3 = R + bi[b3 != 0.0f ? 3 : kb] * 3 * n; \
+    const float *L0 = L + li[l0 != 0.0f ? 0 : kl] * 3 * n, *L1 = L + li[l1 != 0.0f ? 1 : kl] * 3 * n, \
+                *L2 = L + li[l2 != 0.0f ? 2 : kl] * 3 * n, *L3 = L + li[l3 != 0.0f ? 3 : kl] * 3 * n;
+
 /* fast_eval.fine_block with one visibility row per point and 4 rho / 4 L rows:
    out[i, c] = sum_t (vw_i V[v_i, t]) (sum_k bw_ik R[b_ik, c, t]) (sum_j lw_ij L[l_ij, c, t])
    over the chunks of row v_i and its tail. R (N_R, 3, n), L (N_L, 3, n). */
@@ -85,18 +100,7 @@ void tp_points(int64_t b, int64_t n, const float* V, const int64_t* vrow, const 
         const int64_t v = vrow[i];
         const float w = vw[i];
         const float* Vr = V + v * n;
-        const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3];
-        const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3];
-        /* a row with weight 0 adds exact zeros (finite tables): read the first weighted row in its
-           place (already in L1), not a row of its own (a third of the grid weights are 0) */
-        const int64_t kb = b0 != 0.0f ? 0 : b1 != 0.0f ? 1 : b2 != 0.0f ? 2 : 3;
-        const int64_t kl = l0 != 0.0f ? 0 : l1 != 0.0f ? 1 : l2 != 0.0f ? 2 : 3;
-        const int64_t* bi = brow + 4 * i;
-        const int64_t* li = lrow + 4 * i;
-        const float *R0 = R + bi[b0 != 0.0f ? 0 : kb] * 3 * n, *R1 = R + bi[b1 != 0.0f ? 1 : kb] * 3 * n,
-                    *R2 = R + bi[b2 != 0.0f ? 2 : kb] * 3 * n, *R3 = R + bi[b3 != 0.0f ? 3 : kb] * 3 * n;
-        const float *L0 = L + li[l0 != 0.0f ? 0 : kl] * 3 * n, *L1 = L + li[l1 != 0.0f ? 1 : kl] * 3 * n,
-                    *L2 = L + li[l2 != 0.0f ? 2 : kl] * 3 * n, *L3 = L + li[l3 != 0.0f ? 3 : kl] * 3 * n;
+        POINT_ROWS
         for (int c = 0; c < 3; ++c) {   /* one channel at a time: 9 rows streamed, not 25 */
             const float *Rc0 = R0 + c * n, *Rc1 = R1 + c * n, *Rc2 = R2 + c * n, *Rc3 = R3 + c * n;
             const float *Lc0 = L0 + c * n, *Lc1 = L1 + c * n, *Lc2 = L2 + c * n, *Lc3 = L3 + c * n;
@@ -144,16 +148,7 @@ static inline __attribute__((always_inline)) void points_cm(
         const int64_t v = vrow[i];
         const float w = vw[i];
         const float* Vr = V + v * n;
-        const float b0 = bw[4 * i], b1 = bw[4 * i + 1], b2 = bw[4 * i + 2], b3 = bw[4 * i + 3];
-        const float l0 = lw[4 * i], l1 = lw[4 * i + 1], l2 = lw[4 * i + 2], l3 = lw[4 * i + 3];
-        const int64_t kb = b0 != 0.0f ? 0 : b1 != 0.0f ? 1 : b2 != 0.0f ? 2 : 3;
-        const int64_t kl = l0 != 0.0f ? 0 : l1 != 0.0f ? 1 : l2 != 0.0f ? 2 : 3;
-        const int64_t* bi = brow + 4 * i;
-        const int64_t* li = lrow + 4 * i;
-        const float *R0 = R + bi[b0 != 0.0f ? 0 : kb] * 3 * n, *R1 = R + bi[b1 != 0.0f ? 1 : kb] * 3 * n,
-                    *R2 = R + bi[b2 != 0.0f ? 2 : kb] * 3 * n, *R3 = R + bi[b3 != 0.0f ? 3 : kb] * 3 * n;
-        const float *L0 = L + li[l0 != 0.0f ? 0 : kl] * 3 * n, *L1 = L + li[l1 != 0.0f ? 1 : kl] * 3 * n,
-                    *L2 = L + li[l2 != 0.0f ? 2 : kl] * 3 * n, *L3 = L + li[l3 != 0.0f ? 3 : kl] * 3 * n;
+        POINT_ROWS
         v8 a[3] = {{0}}, a2[3] = {{0}};
         int64_t e = ptr[v];
         const int64_t e1 = ptr[v + 1];
