@@ -744,8 +744,8 @@ def seed_fine_table(method, name: str, val: Tensor, fine: Tensor) -> None:
 
 def fine_bytes(method) -> int:
     """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``): the
-    whole tables and their live-triangle columns (`live_table`), the ρ̃ table's chunk-major copy
-    (`rho_major`), and the visibility table's chunk lists (`vis_chunks`)."""
+    whole tables and their live-triangle columns (`live_table`), the ρ̃ and lighting tables' chunk-major
+    copies (`rho_major`, `light_major`), and the visibility table's chunk lists (`vis_chunks`)."""
     cache = method.__dict__.get("_perf_cache", {})
     tabs = sum(v[2].element_size() * v[2].nelement() for k, v in cache.items()
                if k[0] in ("fine", "live", "major") and v[2] is not None)
@@ -903,8 +903,10 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
         if read is not None:
             read["group_vis"] = st["group_vis"]
         return out.mul_(0.25 ** Le)
+    per_vertex = ch is not None and vp[3].shape[1] == 1
     return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch,
-                       rho_major=rho_major(method, Rt) if ch is not None and vp[3].shape[1] == 1 else None).mul_(0.25 ** Le)
+                       rho_major=rho_major(method, Rt) if per_vertex else None,
+                       light_major=light_major(method, Lt) if per_vertex else None).mul_(0.25 ** Le)
 
 
 def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor):
@@ -967,10 +969,29 @@ def vis_chunks(method, Vt: Tensor, source: tuple | None = None) -> tuple[Tensor,
 
 # Per-vertex frames read the ρ̃ fine-value table chunk-major (`native.chunk_major`, made once per table
 # and cached like the chunk lists; `native.points` with ``r_major``): the same sums bit for bit, the
-# loop 1.06-1.08x (creature / chess bench vertex, cache cooled, 1 thread). The lighting table stays
-# row-major: a lighting change writes it in place (both chunk-major: 1.09-1.10x, but a copy per
-# lighting of ~2 ms). False: the row-major table (the test oracle).
+# loop 1.06-1.08x (creature / chess bench vertex, cache cooled, 1 thread). The lighting table too once
+# its lighting is complete (`light_major`): a lighting change writes its live table in place while it
+# is pending, so frames of a new lighting read it row-major; a frame with a complete one (a view
+# sequence's: the copy made in the warm-up frame, ~2 ms) reads the copy — the loop 1.09-1.12x with
+# both. False: the row-major tables (the test oracle).
 RHO_CHUNK_MAJOR = True
+LIGHT_CHUNK_MAJOR = True
+
+
+def light_major(method, Lt: Tensor) -> Tensor | None:
+    """`native.chunk_major` of the live lighting table ``Lt`` the frame reads when its lighting is
+    complete (no lazy grid pending: `TripleProduct.fill_lighting` writes ``Lt`` in place only while one
+    is), cached on the identity of ``Lt`` (a new lighting gets new table objects) and dropped while a
+    lighting is pending; else None (also `LIGHT_CHUNK_MAJOR` off, no native loops, a row length not a
+    multiple of `native.W`)."""
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    if not LIGHT_CHUNK_MAJOR or getattr(method, "_lazy_light", None) is not None:
+        cache.pop(("major", "L"), None)
+        return None
+    hit = cache.get(("major", "L"))
+    if hit is None or hit[0] is not Lt:
+        hit = cache[("major", "L")] = (Lt, None, native.chunk_major(Lt))      # holds Lt: no id reuse
+    return hit[2]
 
 
 def rho_major(method, Rt: Tensor) -> Tensor | None:
@@ -1034,7 +1055,7 @@ def _fine_tables(Vt: Tensor, Rt: Tensor, Lt: Tensor) -> tuple[int, torch.dtype, 
 
 def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
                 lrows: Tensor, lw: Tensor, *, points: int | None = None, chunks: tuple | None = None,
-                rho_major: Tensor | None = None) -> Tensor:
+                rho_major: Tensor | None = None, light_major: Tensor | None = None) -> Tensor:
     """Σ_t V̂(t) ρ̂_c(t) L̂_c(t) for B points from fine-value tables (`shade_fine` without the A_L'
     factor): Vt (N_V, K'), Rt (N_ρ, 3K'), Lt (N_L, 3K'); rows/weights (B, k) per table. → (B, 3).
     `fine_block` compiled (`methods.core.fused`) in one call over all B points (a symbolic count),
@@ -1046,13 +1067,13 @@ def fine_kernel(Vt: Tensor, Rt: Tensor, Lt: Tensor, vrows: Tensor, vw: Tensor, b
     frames): the native loop over each row's non-zero chunks (`native.points`), to float32 round-off.
     The points stay in their order (vertex order: the visibility rows, the most bytes, stream; taken
     in the order of their (ρ̃, grid) rows the loop was 1.1x slower, chess bench vertex V, 1 thread).
-    ``rho_major``: `native.chunk_major` of Rt (`rho_major`), which that loop then reads instead (the
-    same bits)."""
+    ``rho_major`` / ``light_major``: `native.chunk_major` of Rt / Lt (`rho_major`, `light_major`), which
+    that loop then reads instead (the same bits)."""
     if chunks is not None and points is None and vrows.shape[1] == 1 and brows.shape[1] == 4 \
             and lrows.shape[1] == 4 and Vt.dtype == torch.float32:
-        if rho_major is not None:
-            return native.points(Vt, rho_major, Lt, vrows[:, 0], vw[:, 0], brows, bw, lrows, lw, chunks, r_major=True)
-        return native.points(Vt, Rt, Lt, vrows[:, 0], vw[:, 0], brows, bw, lrows, lw, chunks)
+        return native.points(Vt, Rt if rho_major is None else rho_major, Lt if light_major is None else light_major,
+                             vrows[:, 0], vw[:, 0], brows, bw, lrows, lw, chunks,
+                             r_major=rho_major is not None, l_major=light_major is not None)
     Kp, dt, R3, L3 = _fine_tables(Vt, Rt, Lt)
     rows = (vrows.long(), vw.to(dt), brows.long(), bw.to(dt), lrows.long(), lw.to(dt))
     if points is None:

@@ -149,10 +149,13 @@ def test_points_chunk_major_same_bits(n):
         native.points(Vo, Ro, Lo, vrows, vw, brows, bw, lrows, lw, native.chunks(Vo), r_major=True)
 
 
-def test_render_rho_chunk_major_same_bits(monkeypatch):
+def test_render_chunk_major_same_bits(monkeypatch):
     """Per-vertex renders reading the ρ̃ table chunk-major (`fast_eval.rho_major`, chess test scene: 160
-    live triangles) = with ``RHO_CHUNK_MAJOR`` off, bit for bit, over view and lighting changes and a
-    material edit (a new ρ̃ table gets a new copy); the copy counts in ``memory()``."""
+    live triangles) and the lighting table once its lighting is complete (`fast_eval.light_major`) = with
+    ``RHO_CHUNK_MAJOR`` / ``LIGHT_CHUNK_MAJOR`` off, bit for bit, over view changes, lighting changes
+    (pending: no lighting copy; completed by the next frame of the same lighting: a copy of that
+    lighting's table) and a material edit (new ρ̃ and live tables get new copies); the copies count in
+    ``memory()``."""
     import dataclasses
 
     from references.gbuffer import make_gbuffer
@@ -168,23 +171,34 @@ def test_render_rho_chunk_major_same_bits(monkeypatch):
     m.precompute(scene)
     off = m.with_evaluator("auto")
     off.__dict__.pop("_perf_cache", None)
-    frames = make_sequence(scene, "V", n_frames=2, seed=1) + make_sequence(scene, "L", n_frames=2, seed=1)
+    views, lights = make_sequence(scene, "V", n_frames=2, seed=1), make_sequence(scene, "L", n_frames=2, seed=1)
+    frames = views + lights + views
     region = next(iter(scene.regions))
     frames.append(dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)}))
-    copies = []
+    rho, light, complete = [], [], []
     for f in frames:
         gb = make_gbuffer(scene, f, 1)
         monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", True)
+        monkeypatch.setattr(fast_eval, "LIGHT_CHUNK_MAJOR", True)
         img = m.render(f, gb)
         hit = m._perf_cache.get(("major", "rho"))
         assert hit is not None and hit[2] is not None                     # the chunk-major loop ran
-        copies.append(hit[2])
+        rho.append(hit[2])
+        hl = m._perf_cache.get(("major", "L"))
+        complete.append(m._lazy_light is None)
+        assert (hl is not None and hl[2] is not None) == complete[-1]     # a copy only of a complete lighting
+        light.append(hl[2] if hl is not None else None)
+        mem = m.memory()["fine_values"]
         monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", False)
+        monkeypatch.setattr(fast_eval, "LIGHT_CHUNK_MAJOR", False)
         ref = off.render(f, gb)
-        assert off._perf_cache.get(("major", "rho")) is None
+        assert off._perf_cache.get(("major", "rho")) is None and off._perf_cache.get(("major", "L")) is None
         assert torch.equal(img, ref)
-    assert copies[0] is copies[3] and copies[4] is not copies[3]          # one copy per ρ̃ table
-    assert m.memory()["fine_values"] == off.memory()["fine_values"] + copies[4].numel() * 4
+        extra = rho[-1].numel() * 4 + (light[-1].numel() * 4 if light[-1] is not None else 0)
+        assert mem == off.memory()["fine_values"] + extra
+    assert rho[0] is rho[5] and rho[6] is not rho[5]                      # one copy per ρ̃ table
+    assert light[0] is light[1] is light[2] and light[5] is not light[0]  # one per lighting table
+    assert complete == [True, True, True, False, False, True, True]      # pending and complete lightings
 
 
 @pytest.mark.parametrize("n", [45, 64])
