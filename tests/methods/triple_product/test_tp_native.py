@@ -113,8 +113,8 @@ def test_points_equal_fine_block(n):
 @pytest.mark.parametrize("n", [64, 48])
 def test_points_chunk_major_same_bits(n):
     """`native.points` reading the ρ̃ table (and the L table) chunk-major (`native.chunk_major`:
-    ``tp_points_cm``, one pass over a point's chunks for the three channels) = the row-major loop bit
-    for bit — with weights 0 (the first weighted row read in their place), all-zero points, zero rows
+    ``tp_points_cm``, one pass over a point's chunks for the three channels) and the visibility chunks
+    packed (`native.packed_chunks`) = the row-major loop bit for bit — with weights 0 (the first weighted row read in their place), all-zero points, zero rows
     and on two threads; a row length not a multiple of 8 gets no copy and raises."""
     gen = torch.Generator().manual_seed(5)
     Vt, Rt, Lt = _tables(n, gen)
@@ -131,13 +131,22 @@ def test_points_chunk_major_same_bits(n):
     assert torch.equal(Rm.view(-1, n // 8, 3, 8), Rt.view(-1, 3, n // 8, 8).transpose(1, 2))
     args = (vrows, vw, brows, bw, lrows, lw, ch)
     want = native.points(Vt, Rt, Lt, *args)
+    Vp = native.packed_chunks(Vt, ch)
+    assert Vp.shape == (ch[1].numel(), 8)
+    for r in range(Vt.shape[0]):                                        # row r's chunks, in order
+        for e in range(int(ch[0][r]), int(ch[0][r + 1])):
+            assert torch.equal(Vp[e], Vt[r, int(ch[1][e]):int(ch[1][e]) + 8])
     for R, L, rm, lm in ((Rm, Lt, True, False), (Rt, Lm, False, True), (Rm, Lm, True, True)):
-        assert torch.equal(native.points(Vt, R, L, *args, r_major=rm, l_major=lm), want), (rm, lm)
+        for vp in (None, Vp):
+            got = native.points(Vt, R, L, *args, r_major=rm, l_major=lm, v_packed=vp)
+            assert torch.equal(got, want), (rm, lm, vp is None)
+    assert torch.equal(native.points(Vt, Rt, Lt, *args, v_packed=Vp), want)
     old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
     native.MIN_ITEMS_PER_THREAD = 8
     torch.set_num_threads(2)
     try:
         assert torch.equal(native.points(Vt, Rm, Lt, *args, r_major=True), want)
+        assert torch.equal(native.points(Vt, Rm, Lm, *args, r_major=True, l_major=True, v_packed=Vp), want)
     finally:
         native.MIN_ITEMS_PER_THREAD = old
         torch.set_num_threads(t)
@@ -149,10 +158,26 @@ def test_points_chunk_major_same_bits(n):
         native.points(Vo, Ro, Lo, vrows, vw, brows, bw, lrows, lw, native.chunks(Vo), r_major=True)
 
 
+def test_vis_packed_follows_its_table():
+    """`fast_eval.vis_packed` is cached per visibility table and chunk lists: another table (or its own
+    table with other lists) gets its own packed chunks, not the cached ones."""
+    from types import SimpleNamespace
+
+    gen = torch.Generator().manual_seed(6)
+    m = SimpleNamespace()
+    V1, V2 = _vis(64, gen), _vis(64, gen)
+    c1, c2 = native.chunks(V1), native.chunks(V2)
+    p1 = fast_eval.vis_packed(m, V1, c1)
+    assert fast_eval.vis_packed(m, V1, c1) is p1                             # cached
+    assert torch.equal(fast_eval.vis_packed(m, V2, c2), native.packed_chunks(V2, c2))
+    assert torch.equal(fast_eval.vis_packed(m, V1, c1), p1)
+
+
 def test_render_chunk_major_same_bits(monkeypatch):
     """Per-vertex renders reading the ρ̃ table chunk-major (`fast_eval.rho_major`, chess test scene: 160
-    live triangles) and the lighting table once its lighting is complete (`fast_eval.light_major`) = with
-    ``RHO_CHUNK_MAJOR`` / ``LIGHT_CHUNK_MAJOR`` off, bit for bit, over view changes, lighting changes
+    live triangles), the lighting table once its lighting is complete (`fast_eval.light_major`) and the
+    packed visibility chunks (`fast_eval.vis_packed`) = with ``RHO_CHUNK_MAJOR`` / ``LIGHT_CHUNK_MAJOR`` /
+    ``VIS_PACKED`` off, bit for bit, over view changes, lighting changes
     (pending: no lighting copy; completed by the next frame of the same lighting: a copy of that
     lighting's table) and a material edit (new ρ̃ and live tables get new copies); the copies count in
     ``memory()``."""
@@ -178,23 +203,25 @@ def test_render_chunk_major_same_bits(monkeypatch):
     rho, light, complete = [], [], []
     for f in frames:
         gb = make_gbuffer(scene, f, 1)
-        monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", True)
-        monkeypatch.setattr(fast_eval, "LIGHT_CHUNK_MAJOR", True)
+        for k in ("RHO_CHUNK_MAJOR", "LIGHT_CHUNK_MAJOR", "VIS_PACKED"):
+            monkeypatch.setattr(fast_eval, k, True)
         img = m.render(f, gb)
         hit = m._perf_cache.get(("major", "rho"))
         assert hit is not None and hit[2] is not None                     # the chunk-major loop ran
         rho.append(hit[2])
+        vp = m._perf_cache.get(("major", "V"))
+        assert vp is not None and vp[2] is not None                       # the packed visibility chunks
         hl = m._perf_cache.get(("major", "L"))
         complete.append(m._lazy_light is None)
         assert (hl is not None and hl[2] is not None) == complete[-1]     # a copy only of a complete lighting
         light.append(hl[2] if hl is not None else None)
         mem = m.memory()["fine_values"]
-        monkeypatch.setattr(fast_eval, "RHO_CHUNK_MAJOR", False)
-        monkeypatch.setattr(fast_eval, "LIGHT_CHUNK_MAJOR", False)
+        for k in ("RHO_CHUNK_MAJOR", "LIGHT_CHUNK_MAJOR", "VIS_PACKED"):
+            monkeypatch.setattr(fast_eval, k, False)
         ref = off.render(f, gb)
-        assert off._perf_cache.get(("major", "rho")) is None and off._perf_cache.get(("major", "L")) is None
+        assert all(off._perf_cache.get(("major", k)) is None for k in ("rho", "L", "V"))
         assert torch.equal(img, ref)
-        extra = rho[-1].numel() * 4 + (light[-1].numel() * 4 if light[-1] is not None else 0)
+        extra = rho[-1].numel() * 4 + vp[2].numel() * 4 + (light[-1].numel() * 4 if light[-1] is not None else 0)
         assert mem == off.memory()["fine_values"] + extra
     assert rho[0] is rho[5] and rho[6] is not rho[5]                      # one copy per ρ̃ table
     assert light[0] is light[1] is light[2] and light[5] is not light[0]  # one per lighting table
