@@ -1088,25 +1088,17 @@ def comb_pairs_uv(pairs: Tensor, u0: Tensor, v0: Tensor, g: float, wT: Tensor, H
             or u0.shape[2] > MAX_SAMPLES or H < 2:
         raise ValueError("u0 (B, n, S <= 64) float64, v0 (B, n, S) float32, wT (n, S) float32, "
                          "out (B·J, 3, n) float32 contiguous, J <= 64 dividing W expected")
-    for t in (u0, v0, wT, CT, out):
-        if t.device.type != "cpu":
-            raise ValueError("CPU tensors expected")
+    _on_cpu(u0, v0, wT, CT, out)
     m = W // J
     if CT.numel() != H * m * 3 * 2 * 2 * J:
         raise ValueError("the comb table of another map")
     pairs = _checked_pairs(pairs, F * n)
-    P = pairs.numel()
-    if P == 0:
+    if pairs.numel() == 0:
         return out
     B, _, S = u0.shape
     u0, v0, wT, CT = u0.contiguous(), v0.contiguous(), wT.contiguous(), CT.contiguous()
-    st = torch.zeros(1, dtype=torch.int64)
-    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
-    lib.tp_comb_pairs_uv(P, pairs.data_ptr(), n, S, n_psi, J, B, u0.data_ptr(), v0.data_ptr(), wT.data_ptr(),
-                         float(g), H, W, CT.data_ptr(), m, out.data_ptr(), nt, st.data_ptr())
-    if int(st[0]) != 0:
-        raise MemoryError("tp_comb_pairs_uv could not allocate its tables")
-    return out
+    return _comb_run(lib.tp_comb_pairs_uv, "tp_comb_pairs_uv", pairs, (n, S, n_psi, J, B),
+                     (u0.data_ptr(), v0.data_ptr(), wT.data_ptr(), float(g), H, W, CT.data_ptr(), m), out)
 
 
 def box(data: Tensor, k: int) -> Tensor | None:
@@ -1125,6 +1117,30 @@ def box(data: Tensor, k: int) -> Tensor | None:
     lib.tp_box(H, W, C, k, data.data_ptr(), out.data_ptr(), st.data_ptr())
     if int(st[0]) != 0:
         raise MemoryError("tp_box could not allocate its row")
+    return out
+
+
+def _on_cpu(*ts: Tensor) -> None:
+    """ValueError unless every tensor is on the CPU."""
+    for t in ts:
+        if t.device.type != "cpu":
+            raise ValueError("CPU tensors expected")
+
+
+def _pair_threads(P: int) -> int:
+    """Threads of a pass over P pairs (`MIN_PAIRS_PER_THREAD` each at least)."""
+    return max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+
+
+def _comb_run(fn, name: str, pairs: Tensor, head: tuple, tables: tuple, out: Tensor) -> Tensor:
+    """Run a comb loop (``tp_comb_pairs`` / ``tp_comb_pairs_uv``: the checked ``pairs``, then ``head``
+    = (n, S, n_psi, J, B), its ``tables``, ``out``, the threads and a status) and return ``out``;
+    MemoryError when the loop could not allocate its tables."""
+    P = pairs.numel()
+    st = torch.zeros(1, dtype=torch.int64)
+    fn(P, pairs.data_ptr(), *head, *tables, out.data_ptr(), _pair_threads(P), st.data_ptr())
+    if int(st[0]) != 0:
+        raise MemoryError(f"{name} could not allocate its tables")
     return out
 
 
@@ -1164,7 +1180,7 @@ def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q:
         return out
     M, cp, wT, Q = (x.contiguous() for x in (M, cp, wT, Q))
     args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
-    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
+    nt = _pair_threads(P)
     lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt)
     return out
 
@@ -1185,21 +1201,13 @@ def comb_pairs(pairs: Tensor, o: Tensor, w4: Tensor, CT: Tensor, n_psi: int, J: 
             or w4.dtype != torch.float32 or CT.dtype != torch.float32 or out.dtype != torch.float32 \
             or not out.is_contiguous() or J > 64 or F != o.shape[0] * J or F % n_psi or o.shape[0] % n_psi:
         raise ValueError("o (B, n, S) int32, w4 (B, n, S, 2, 2) float32, out (B·J, 3, n) float32 contiguous, J <= 64 expected")
-    for t in (o, w4, CT, out):
-        if t.device.type != "cpu":
-            raise ValueError("CPU tensors expected")
+    _on_cpu(o, w4, CT, out)
     pairs = _checked_pairs(pairs, F * n)
-    P = pairs.numel()
-    if P == 0:
+    if pairs.numel() == 0:
         return out
     B, _, S = o.shape
     o, w4, CT = o.contiguous(), w4.contiguous(), CT.contiguous()
     if int(o.min()) < 0 or int(o.max()) + 3 * m * 4 * J + 2 * J + 2 * 4 * J + J - 1 >= CT.numel():   # rs + es + 2 cs + J - 1
         raise IndexError("a comb offset outside the table")
-    st = torch.zeros(1, dtype=torch.int64)
-    nt = max(1, min(torch.get_num_threads(), P // MIN_PAIRS_PER_THREAD))
-    lib.tp_comb_pairs(P, pairs.data_ptr(), n, S, n_psi, J, B, o.data_ptr(), w4.data_ptr(), CT.data_ptr(), m,
-                      out.data_ptr(), nt, st.data_ptr())
-    if int(st[0]) != 0:
-        raise MemoryError("tp_comb_pairs could not allocate its tables")
-    return out
+    return _comb_run(lib.tp_comb_pairs, "tp_comb_pairs", pairs, (n, S, n_psi, J, B),
+                     (o.data_ptr(), w4.data_ptr(), CT.data_ptr(), m), out)

@@ -110,6 +110,124 @@ def test_points_equal_fine_block(n):
         native.points(Vt, Rt, Lt, vrows + Vt.shape[0], vw, brows, bw, lrows, lw, ch)
 
 
+@pytest.mark.parametrize("n", [64, 48])
+def test_points_chunk_major_same_bits(n):
+    """`native.points` reading the ρ̃ table (and the L table) chunk-major (`native.chunk_major`:
+    ``tp_points_cm``, one pass over a point's chunks for the three channels) and the visibility chunks
+    packed (`native.packed_chunks`) = the row-major loop bit for bit — with weights 0 (the first weighted row read in their place), all-zero points, zero rows
+    and on two threads; a row length not a multiple of 8 gets no copy and raises."""
+    gen = torch.Generator().manual_seed(5)
+    Vt, Rt, Lt = _tables(n, gen)
+    B = 70
+    vrows = torch.arange(B) % Vt.shape[0]
+    vw = torch.rand(B, generator=gen) + 0.5
+    vw[::3] = 1.0
+    brows, lrows = torch.randint(0, 7, (B, 4), generator=gen), torch.randint(0, 9, (B, 4), generator=gen)
+    bw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.7)
+    lw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.6)
+    bw[:3], lw[3:6], lw[6:9, 0] = 0, 0, 0
+    ch = native.chunks(Vt)
+    Rm, Lm = native.chunk_major(Rt), native.chunk_major(Lt)
+    assert torch.equal(Rm.view(-1, n // 8, 3, 8), Rt.view(-1, 3, n // 8, 8).transpose(1, 2))
+    args = (vrows, vw, brows, bw, lrows, lw, ch)
+    want = native.points(Vt, Rt, Lt, *args)
+    Vp = native.packed_chunks(Vt, ch)
+    assert Vp.shape == (ch[1].numel(), 8)
+    for r in range(Vt.shape[0]):                                        # row r's chunks, in order
+        for e in range(int(ch[0][r]), int(ch[0][r + 1])):
+            assert torch.equal(Vp[e], Vt[r, int(ch[1][e]):int(ch[1][e]) + 8])
+    for R, L, rm, lm in ((Rm, Lt, True, False), (Rt, Lm, False, True), (Rm, Lm, True, True)):
+        for vp in (None, Vp):
+            got = native.points(Vt, R, L, *args, r_major=rm, l_major=lm, v_packed=vp)
+            assert torch.equal(got, want), (rm, lm, vp is None)
+    assert torch.equal(native.points(Vt, Rt, Lt, *args, v_packed=Vp), want)
+    old, t = native.MIN_ITEMS_PER_THREAD, torch.get_num_threads()
+    native.MIN_ITEMS_PER_THREAD = 8
+    torch.set_num_threads(2)
+    try:
+        assert torch.equal(native.points(Vt, Rm, Lt, *args, r_major=True), want)
+        assert torch.equal(native.points(Vt, Rm, Lm, *args, r_major=True, l_major=True, v_packed=Vp), want)
+    finally:
+        native.MIN_ITEMS_PER_THREAD = old
+        torch.set_num_threads(t)
+    ref = fast_eval.fine_block(vrows[:, None], vw[:, None], brows, bw, lrows, lw, Vt, Rt.view(-1, 3, n), Lt.view(-1, 3, n))
+    assert (want - ref).abs().max() <= F32 * ref.abs().max()
+    Vo, Ro, Lo = _tables(45, gen)
+    assert native.chunk_major(Ro) is None
+    with pytest.raises(ValueError):
+        native.points(Vo, Ro, Lo, vrows, vw, brows, bw, lrows, lw, native.chunks(Vo), r_major=True)
+
+
+def test_vis_packed_follows_its_table():
+    """`fast_eval.vis_packed` is cached per visibility table and chunk lists: another table (or its own
+    table with other lists) gets its own packed chunks, not the cached ones."""
+    from types import SimpleNamespace
+
+    gen = torch.Generator().manual_seed(6)
+    m = SimpleNamespace()
+    V1, V2 = _vis(64, gen), _vis(64, gen)
+    c1, c2 = native.chunks(V1), native.chunks(V2)
+    p1 = fast_eval.vis_packed(m, V1, c1)
+    assert fast_eval.vis_packed(m, V1, c1) is p1                             # cached
+    assert torch.equal(fast_eval.vis_packed(m, V2, c2), native.packed_chunks(V2, c2))
+    assert torch.equal(fast_eval.vis_packed(m, V1, c1), p1)
+
+
+def test_render_chunk_major_same_bits(monkeypatch):
+    """Per-vertex renders reading the ρ̃ table chunk-major (`fast_eval.rho_major`, chess test scene: 160
+    live triangles), the lighting table once its lighting is complete (`fast_eval.light_major`) and the
+    packed visibility chunks (`fast_eval.vis_packed`) = with ``RHO_CHUNK_MAJOR`` / ``LIGHT_CHUNK_MAJOR`` /
+    ``VIS_PACKED`` off, bit for bit, over view changes, lighting changes
+    (pending: no lighting copy; completed by the next frame of the same lighting: a copy of that
+    lighting's table) and a material edit (new ρ̃ and live tables get new copies); the copies count in
+    ``memory()``."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    views, lights = make_sequence(scene, "V", n_frames=2, seed=1), make_sequence(scene, "L", n_frames=2, seed=1)
+    frames = views + lights + views
+    region = next(iter(scene.regions))
+    frames.append(dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)}))
+    rho, light, complete = [], [], []
+    for f in frames:
+        gb = make_gbuffer(scene, f, 1)
+        for k in ("RHO_CHUNK_MAJOR", "LIGHT_CHUNK_MAJOR", "VIS_PACKED"):
+            monkeypatch.setattr(fast_eval, k, True)
+        img = m.render(f, gb)
+        hit = m._perf_cache.get(("major", "rho"))
+        assert hit is not None and hit[2] is not None                     # the chunk-major loop ran
+        rho.append(hit[2])
+        vp = m._perf_cache.get(("major", "V"))
+        assert vp is not None and vp[2] is not None                       # the packed visibility chunks
+        hl = m._perf_cache.get(("major", "L"))
+        complete.append(m._lazy_light is None)
+        assert (hl is not None and hl[2] is not None) == complete[-1]     # a copy only of a complete lighting
+        light.append(hl[2] if hl is not None else None)
+        mem = m.memory()["fine_values"]
+        for k in ("RHO_CHUNK_MAJOR", "LIGHT_CHUNK_MAJOR", "VIS_PACKED"):
+            monkeypatch.setattr(fast_eval, k, False)
+        ref = off.render(f, gb)
+        assert all(off._perf_cache.get(("major", k)) is None for k in ("rho", "L", "V"))
+        assert torch.equal(img, ref)
+        extra = rho[-1].numel() * 4 + vp[2].numel() * 4 + (light[-1].numel() * 4 if light[-1] is not None else 0)
+        assert mem == off.memory()["fine_values"] + extra
+    assert rho[0] is rho[5] and rho[6] is not rho[5]                      # one copy per ρ̃ table
+    assert light[0] is light[1] is light[2] and light[5] is not light[0]  # one per lighting table
+    assert complete == [True, True, True, False, False, True, True]      # pending and complete lightings
+
+
 @pytest.mark.parametrize("n", [45, 64])
 def test_groups_four_rows_agree(n):
     """`tp_groups` (on a CPU with AVX-512: all four L rows per pass over the chunks, `chunk_sums4`)
