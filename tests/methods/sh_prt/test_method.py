@@ -833,16 +833,14 @@ def test_native_view_equals_the_two_passes(S2, threads, chunk, monkeypatch):
     assert torch.equal(got, want)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_view_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
-    """A view sequence rendered with `NATIVE_VIEW` (session 32: from its second frame, once l' is
-    complete, `native.view`) gives the images of the two passes bit for bit, and takes that path."""
+def _switch_frames(monkeypatch, threads: int, kind: str, seed: int, switch: str, entry: str, check=None) -> int:
+    """A ``kind`` sequence of the test creature rendered by two copies of one SH PRT model, ``switch`` on for
+    the first and off for the second: the images equal bit for bit (and ``check(a, b)`` after each frame);
+    returns how many times `native.<entry>` ran."""
     import copy
 
     from methods.sh_prt import method as shm, native
     from references.gbuffer import make_gbuffer
-    from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
     if not native.available():
         pytest.skip("no C compiler")
@@ -850,24 +848,48 @@ def test_view_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
     m = shm.SHPRT(order=5, bounces=0, rays=16)
     m.precompute(scene)
     calls = []
-    real = native.view
-    monkeypatch.setattr(native, "view", lambda *a: calls.append(1) or real(*a))
+    real = getattr(native, entry)
+    monkeypatch.setattr(native, entry, lambda *a: calls.append(1) or real(*a))
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
         a, b = copy.copy(m), copy.copy(m)
         a._reset_cache()
         b._reset_cache()
-        for frame in make_sequence(scene, "V", n_frames=4, seed=2):
+        for frame in make_sequence(scene, kind, n_frames=4, seed=seed):
             gb = make_gbuffer(scene, frame, 2)
-            monkeypatch.setattr(shm, "NATIVE_VIEW", True)
+            monkeypatch.setattr(shm, switch, True)
             x = a.render(frame, gb)
-            monkeypatch.setattr(shm, "NATIVE_VIEW", False)
+            monkeypatch.setattr(shm, switch, False)
             y = b.render(frame, gb)
             assert torch.equal(x, y)
+            if check is not None:
+                check(a, b)
     finally:
         torch.set_num_threads(old)
-    assert len(calls) >= 2
+    return len(calls)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_view_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
+    """A view sequence rendered with `NATIVE_VIEW` (session 32: from its second frame, once l' is
+    complete, `native.view`) gives the images of the two passes bit for bit, and takes that path."""
+    assert _switch_frames(monkeypatch, threads, "V", 2, "NATIVE_VIEW", "view") >= 2
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lighting_change_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
+    """A VL sequence (every frame a lighting change and a new view) rendered with `NATIVE_VIEW_ROWS`
+    (session 35: the rows each frame reads listed from the faces, computed, then one pass `native.view`)
+    gives the images of the two passes bit for bit, the same rows of l' set, and takes that path."""
+    def same_rows(a, b):
+        assert (a._lg_valid is None) == (b._lg_valid is None)
+        if a._lg_valid is not None:
+            assert torch.equal(a._lg_valid, b._lg_valid)
+            rows = a._lg_valid.nonzero().squeeze(-1)
+            assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
+
+    assert _switch_frames(monkeypatch, threads, "VL", 5, "NATIVE_VIEW_ROWS", "view_rows", same_rows) == 4
 
 
 @pytest.mark.parametrize("Q", [1, 8, 1001])
@@ -1058,44 +1080,7 @@ def test_native_view_rows_equal_the_torch_rows(threads, monkeypatch):
         torch.set_num_threads(old)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_lighting_change_frames_in_one_pass_equal_the_two_passes(threads, monkeypatch):
-    """A VL sequence (every frame a lighting change and a new view) rendered with `NATIVE_VIEW_ROWS`
-    (session 35: the rows each frame reads listed from the faces, computed, then one pass `native.view`)
-    gives the images of the two passes bit for bit, the same rows of l' set, and takes that path."""
-    import copy
 
-    from methods.sh_prt import method as shm, native
-
-    if not native.available():
-        pytest.skip("no C compiler")
-    scene = get_scene("creature", "test")
-    m = shm.SHPRT(order=5, bounces=0, rays=16)
-    m.precompute(scene)
-    calls = []
-    real = native.view_rows
-    monkeypatch.setattr(native, "view_rows", lambda *a: calls.append(1) or real(*a))
-    old = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        a, b = copy.copy(m), copy.copy(m)
-        a._reset_cache()
-        b._reset_cache()
-        for frame in make_sequence(scene, "VL", n_frames=4, seed=5):
-            gb = make_gbuffer(scene, frame, 2)
-            monkeypatch.setattr(shm, "NATIVE_VIEW_ROWS", True)
-            x = a.render(frame, gb)
-            monkeypatch.setattr(shm, "NATIVE_VIEW_ROWS", False)
-            y = b.render(frame, gb)
-            assert torch.equal(x, y)
-            assert (a._lg_valid is None) == (b._lg_valid is None)
-            if a._lg_valid is not None:
-                assert torch.equal(a._lg_valid, b._lg_valid)
-                rows = a._lg_valid.nonzero().squeeze(-1)
-                assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
-    finally:
-        torch.set_num_threads(old)
-    assert len(calls) == 4
 
 
 @pytest.mark.parametrize("order", [1, 2, 3, 5, 8])

@@ -2143,14 +2143,17 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
             assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
 
 
-def test_resolve_native_equals_gouraud_resolve():
-    """`native.resolve` (zh_shadow's C loop, the range check in it) = `gouraud.resolve` bit for bit — misses,
-    faces whose corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a
-    read corner out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
+@pytest.mark.parametrize("name", ["resolve", "resolve_table"])
+def test_resolve_native_equals_gouraud_resolve(name):
+    """`native.resolve` (zh_shadow's C loop, the range check in it) and `native.resolve_table` (session 35:
+    every face's corner colours in a face table first) = `gouraud.resolve` bit for bit — misses, faces whose
+    corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a read corner
+    out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
     from methods.core import gouraud
     import methods.zh_shadow.native as zn
 
     _skip_without_c_compiler()
+    resolve = getattr(zn, name)
     g = torch.Generator().manual_seed(31)
     N, M = 900, 1500
     F = torch.randint(0, N, (M + 1, 3), generator=g)[:M]   # (a row M after it: a missed check reads valid ids)
@@ -2165,16 +2168,16 @@ def test_resolve_native_equals_gouraud_resolve():
         want = gouraud.resolve(values, F.T, face, bary, hit, H, W, 2)
         for threads in (1, 2):
             with torch_threads_(threads):
-                got = zn.resolve(values, F, face, bary, hit, H, W, 2)
+                got = resolve(values, F, face, bary, hit, H, W, 2)
             assert got is not None and torch.equal(got, want), (H, threads)
         bad = face.clone()
         bad[int(hit.nonzero()[-1])] = M                                  # a hit sample's face out of range
         with pytest.raises(ValueError):
-            zn.resolve(values, F, bad, bary, hit, H, W, 2)
+            resolve(values, F, bad, bary, hit, H, W, 2)
         Fb = F.clone()
         Fb[int(face[int(hit.nonzero()[3])]), 1] = N                       # a read corner out of range
         with pytest.raises(ValueError):
-            zn.resolve(values, Fb, face, bary, hit, H, W, 2)
+            resolve(values, Fb, face, bary, hit, H, W, 2)
 
 
 @pytest.mark.parametrize("planes", [True, False])

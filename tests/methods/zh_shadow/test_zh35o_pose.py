@@ -151,41 +151,6 @@ def test_pose_frames_native_pose_path_equal_torch_path(zh_scene, monkeypatch, pl
         assert (a - want).abs().max() <= RENDER_TOL, i
 
 
-def test_resolve_table_equals_resolve():
-    """`native.resolve_table` (every face's corner colours in a face table first) = `native.resolve` and
-    `gouraud.resolve` bit for bit — misses, faces whose corners repeat, 1 and 2 threads, an image split over
-    threads and one that is not —; a hit sample's face or a corner out of range raises ValueError."""
-    from methods.core import gouraud
-    from methods.core.threads import torch_threads
-
-    _skip_without_c_compiler()
-    g = torch.Generator().manual_seed(35)
-    N, M = 900, 1500
-    F = torch.randint(0, N, (M + 1, 3), generator=g)[:M]
-    F[7] = torch.tensor([5, 5, 9])
-    values = torch.randn(N, 3, generator=g)
-    for H, W in ((128, 130), (40, 24)):
-        P = H * W * 4
-        face = torch.randint(0, M, (P,), generator=g)
-        hit = torch.rand(P, generator=g) > 0.1
-        face[~hit] = -1
-        bary = torch.rand(2, P, generator=g).T * 0.5                     # column-major, as the G-buffer's
-        want = gouraud.resolve(values, F.T, face, bary, hit, H, W, 2)
-        for threads in (1, 2):
-            with torch_threads(threads):
-                got = zn.resolve_table(values, F, face, bary, hit, H, W, 2)
-                old = zn.resolve(values, F, face, bary, hit, H, W, 2)
-            assert got is not None and torch.equal(got, want) and torch.equal(got, old), (H, threads)
-        bad = face.clone()
-        bad[int(hit.nonzero()[-1])] = M                                  # a hit sample's face out of range
-        with pytest.raises(ValueError):
-            zn.resolve_table(values, F, bad, bary, hit, H, W, 2)
-        Fb = F.clone()
-        Fb[int(face[int(hit.nonzero()[3])]), 1] = N                       # a read corner out of range
-        with pytest.raises(ValueError):
-            zn.resolve_table(values, Fb, face, bary, hit, H, W, 2)
-
-
 def test_vertex_frames_table_resolve_equal_own_resolve(zh_scene):
     """Vertex-shaded order-8 frames (P, V, VB, L) resolved by the face table (``table_resolve``) = by
     `native.resolve` (``table_resolve`` off) bit for bit, the table's path taken."""
