@@ -2350,6 +2350,21 @@ def _resolve_lib():
     return native.load("zh33v_resolve", _RESOLVE_SOURCE, _RESOLVE_SIGNATURES, extra_flags=("-fopenmp",))
 
 
+def _resolve_inputs(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, P: int
+                    ) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The resolve loops' inputs (`resolve`, `resolve_table`): (values contiguous, bu, bv) when they are CPU
+    tensors of the loops' types — values (N, 3) float32, F (M, 3) int64 contiguous, face (P,) int64, hit (P,)
+    bool contiguous, bary (P, 2) float32 — else None (the caller falls back)."""
+    if values.dim() != 2 or values.shape[1] != 3 or values.dtype != torch.float32 \
+            or F.dtype != torch.int64 or F.dim() != 2 or F.shape[1] != 3 or not F.is_contiguous() \
+            or face.dtype != torch.int64 or hit.dtype != torch.bool or bary.dtype != torch.float32 \
+            or bary.dim() != 2 or bary.shape[1] != 2 or not (face.is_contiguous() and hit.is_contiguous()) \
+            or face.shape[0] != P or hit.shape[0] != P \
+            or any(t.device.type != "cpu" for t in (values, F, face, bary, hit)):
+        return None
+    return values.contiguous(), bary[:, 0].contiguous(), bary[:, 1].contiguous()  # (column-major bary's views)
+
+
 def resolve(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
             spp_side: int) -> Tensor | None:
     """`gouraud.resolve`(values, F.T, face, bary, hit, height, width, spp_side) by one C loop with the
@@ -2360,15 +2375,10 @@ def resolve(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, 
     lib = _resolve_lib() if terms_switched_on() else None
     S2 = spp_side * spp_side
     n = height * width
-    if lib is None or values.dim() != 2 or values.shape[1] != 3 or values.dtype != torch.float32 \
-            or F.dtype != torch.int64 or F.dim() != 2 or F.shape[1] != 3 or not F.is_contiguous() \
-            or face.dtype != torch.int64 or hit.dtype != torch.bool or bary.dtype != torch.float32 \
-            or bary.dim() != 2 or bary.shape[1] != 2 or not (face.is_contiguous() and hit.is_contiguous()) \
-            or face.shape[0] != n * S2 or hit.shape[0] != n * S2 \
-            or any(t.device.type != "cpu" for t in (values, F, face, bary, hit)):
+    args = None if lib is None else _resolve_inputs(values, F, face, bary, hit, n * S2)
+    if args is None:
         return None
-    values = values.contiguous()
-    bu, bv = bary[:, 0].contiguous(), bary[:, 1].contiguous()   # (views of the G-buffer's column-major bary)
+    values, bu, bv = args
     out = torch.empty(n, 3, dtype=torch.float32)
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), n // MIN_RESOLVE_PIXELS_PER_THREAD))
@@ -2978,15 +2988,10 @@ def resolve_table(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Te
     lib = _tresolve_lib() if terms_switched_on() else None
     S2 = spp_side * spp_side
     n = height * width
-    if lib is None or values.dim() != 2 or values.shape[1] != 3 or values.dtype != torch.float32 \
-            or F.dtype != torch.int64 or F.dim() != 2 or F.shape[1] != 3 or not F.is_contiguous() \
-            or face.dtype != torch.int64 or hit.dtype != torch.bool or bary.dtype != torch.float32 \
-            or bary.dim() != 2 or bary.shape[1] != 2 or not (face.is_contiguous() and hit.is_contiguous()) \
-            or face.shape[0] != n * S2 or hit.shape[0] != n * S2 \
-            or any(t.device.type != "cpu" for t in (values, F, face, bary, hit)):
+    args = None if lib is None else _resolve_inputs(values, F, face, bary, hit, n * S2)
+    if args is None:
         return None
-    values = values.contiguous()
-    bu, bv = bary[:, 0].contiguous(), bary[:, 1].contiguous()   # (views of the G-buffer's column-major bary)
+    values, bu, bv = args
     M = int(F.shape[0])
     T = torch.empty(M, 9, dtype=torch.float32)
     out = torch.empty(n, 3, dtype=torch.float32)
