@@ -207,7 +207,8 @@ def table(light: Tensor, alpha: float, *, diffuse: bool) -> Tensor:
         (K, n²·3) in the dtype/device of ``light`` (built in float64).
     """
     n2, C = light.shape
-    if TABLE_BANDS:   # Aᵀ from the band parts, lᵀ Aᵀ by numpy (`_table_operator_t`)
+    if TABLE_BANDS and math.isqrt(n2) <= MONOMIAL_MAX_ORDER:   # Aᵀ from the band parts, lᵀ Aᵀ by numpy
+        #                                    (`_table_operator_t`; the band parts ≤ 3.6 MB at these orders)
         AT = _table_operator_t(math.isqrt(n2), float(alpha), bool(diffuse))          # (n², K·n²)
         Y = np.ascontiguousarray(light.detach().double().cpu().numpy().T) @ AT      # (C, K·n²)
         W = torch.from_numpy(np.ascontiguousarray(Y.T)).view(-1, n2 * C)
@@ -218,8 +219,9 @@ def table(light: Tensor, alpha: float, *, diffuse: bool) -> Tensor:
 
 
 # `table` by `_table_operator_t` (the operator from its band parts, the product by numpy: float64 round-off
-# against the direct operator, the tables equal to float32 round-off); False: `_table_operator` and torch's
-# product (the tests' oracle)
+# against the direct operator, the tables equal to float32 round-off) at orders ≤ `MONOMIAL_MAX_ORDER` (above:
+# the band parts grow as B·K·n⁴, 110 MB at order 8); False: `_table_operator` and torch's product (the tests'
+# oracle)
 TABLE_BANDS = True
 
 
