@@ -448,9 +448,11 @@ class ZHShadow(Method):
     # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
     # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
     table_resolve = True
-    # Vertex-shaded cosine frames' pose product and eq. 1 (`_pose_visibility`) in one C call (`native.pose_sh`,
-    # zh36o: per vertex the product's bits and `runtime._vertex_sh`'s operations); False: `native.pose_columns`
-    # then the compiled `runtime._vertex_sh` (the tests' oracle)
+    # A pose's product and eq. 1 (`_pose_visibility`) in one C call (`native.pose_sh`, zh36o: per vertex the
+    # product's bits and `runtime._vertex_sh`'s operations, X laid out vertex-major): a vertex-shaded cosine P
+    # frame's front-facing referenced columns, every vertex's otherwise (the paper configuration's P frames);
+    # False: `native.pose_columns` then the compiled `runtime._vertex_sh`, or `runtime.world_visibility` (the
+    # tests' oracle)
     native_eq1 = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
@@ -569,6 +571,20 @@ class ZHShadow(Method):
         the columns' unit normals when the caller has them (else gathered from ``geom``)."""
         args, kw = self._visibility_args(pose_vec, geom, cols)
         X, _, normal, lobes = args
+        if self.native_eq1 and not (kw["frame"] == "zyz" and kw["point_minor"]) and zn.is_vertex_major(X) \
+                and X.shape[0] == pose_vec.numel() + 1:
+            # (any other layout — the paper configuration's world-space (N, n²) v of every vertex — by the same C
+            # call, `native.pose_sh`: the compiled pass's numbers; kept as the pose's by `_pose_state`)
+            n = int(X.shape[2]) // lobes - 2
+            a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
+            nT = nTc if nTc is not None else rt.rows(normal) if cols is None else \
+                normal.T.index_select(1, cols).contiguous()
+            zyz = kw["frame"] == "zyz"
+            perm = self._zyz_perm(n, kw["rows"]) if zyz else tuple(range(n * n))
+            v = zn.pose_sh(X, a, cols, nT, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, None, zyz,
+                           0 if kw["point_minor"] else 1)
+            if v is not None:
+                return v
         if self.pose_columns and kw["frame"] == "zyz" and kw["point_minor"] and zn.is_vertex_major(X):
             a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
             n = int(X.shape[2]) // lobes - 2
@@ -615,8 +631,9 @@ class ZHShadow(Method):
         frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
         # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
         rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
-        if self.pose_columns and vertex and frame == "zyz" and m.X.device.type == "cpu" and zn.pose_cols_available():
-            if not zn.is_vertex_major(m.X):   # once per model: the layout `native.pose_columns` reads
+        if ((self.pose_columns and vertex and frame == "zyz" and zn.pose_cols_available())
+                or (self.native_eq1 and zn.pose_sh_available())) and m.X.device.type == "cpu":
+            if not zn.is_vertex_major(m.X):   # once per model: the layout `native.pose_columns` / `pose_sh` read
                 m.X = zn.vertex_major(m.X)    # (`_pose_visibility`; the same values)
         elif not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
             m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)

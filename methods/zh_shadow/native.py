@@ -3249,6 +3249,7 @@ _POSE_SH_SOURCE = r"""
 typedef float v16 __attribute__((vector_size(64)));
 typedef float v4 __attribute__((vector_size(16)));
 #define LANES for (int k = 0; k < L; ++k)
+@FAST_TERMS@
 
 /* p[k] = sum_i a[i] x[i * d + k], i ascending (as zh35o_pose_cols) */
 static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, float *p) {
@@ -3272,11 +3273,12 @@ static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, floa
     }
 }
 
-/* columns [q0, q1): out[r * ldo + q] = sum over lobes of Y_perm[r](axis) (k_l Λ_l); 1 at an id out of [0, N) */
+/* columns [q0, q1): out[r * ldo + q] (vmaj: out[q * n2 + r]) = sum over lobes of Y_perm[r](axis) (k_l Λ_l), the
+   axis in the ZYZ frame of the normal (zyz) or in world space; 1 at an id out of [0, N) */
 static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
                         const int64_t *idx, int64_t N, const float *nT, int64_t ldn, const float *lam,
                         const int64_t *perm, const float *cq, float rmax, int64_t q0, int64_t q1, float *out,
-                        int64_t ldo) {
+                        int64_t ldo, int64_t zyz, int64_t vmaj) {
     float P[DMAX][L] __attribute__((aligned(64)));
     float acc[NMAX * NMAX][L] __attribute__((aligned(64)));
     float Y[NMAX * NMAX][L] __attribute__((aligned(64)));
@@ -3343,11 +3345,13 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             const v16 w0 = (vs0 * l0 + vt0 * l1) + vx * zz;
             const v16 w1 = (vs1 * l0 + vt1 * l1) + vy * zz;
             const v16 w2 = (vs2 * l0 + vt2 * l1) + vz * zz;
-            const v16 ax = (ve10 * w0 + ve11 * w1) + ve12 * w2;
-            const v16 ay = (ve20 * w0 + ve21 * w1) + 0.0f * w2;
-            const v16 az = (vx * w0 + vy * w1) + vz * w2;
-            /* sh._terms_recurrence (cq: sqrt2, then per m: qmm, then per l > m: A, B or the l = m + 1 factor) */
+            const v16 ax = zyz ? (ve10 * w0 + ve11 * w1) + ve12 * w2 : w0;
+            const v16 ay = zyz ? (ve20 * w0 + ve21 * w1) + 0.0f * w2 : w1;
+            const v16 az = zyz ? (vx * w0 + vy * w1) + vz * w2 : w2;
             v16 Y[NMAX * NMAX];
+            /* sh._terms_fast's polynomials up to its FAST_MAX_ORDER (generated from it, `_fast_terms_code`) */
+            if (terms_fast(n, ax, ay, az, Y)) goto scaled;
+            /* sh._terms_recurrence (cq: sqrt2, then per m: qmm, then per l > m: A, B or the l = m + 1 factor) */
             v16 cc = (v16){} + 1.0f, ss = (v16){};
             const float *cm = cq + 1;
             for (int64_t m = 0; m < n; ++m) {
@@ -3376,6 +3380,7 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
                     if (l > m) { qp2 = qp; qp = qq; }
                 }
             }
+          scaled:
             for (int64_t l = 0; l < n; ++l) {
                 v16 kl;
                 memcpy(&kl, P[c * per + 2 + l], 64);
@@ -3388,7 +3393,10 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
                 }
             }
         }
-        if (cnt == L) {
+        if (vmaj) {
+            for (int64_t k = 0; k < cnt; ++k)
+                for (int64_t r = 0; r < n2; ++r) out[(b0 + k) * n2 + r] = acc[perm[r]][k];
+        } else if (cnt == L) {
             for (int64_t r = 0; r < n2; ++r) memcpy(out + r * ldo + b0, acc[perm[r]], 64);
         } else {
             for (int64_t r = 0; r < n2; ++r) {
@@ -3403,24 +3411,70 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
 
 void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
                    const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
-                   const int64_t *perm, const float *cq, float rmax, int64_t nt, float *out, int64_t *bad) {
+                   const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
+                   int64_t *bad) {
     int64_t b = 0;
     if (nt <= 1) {
-        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q);
+        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj);
     } else {
         const int64_t nb = (Q + L - 1) / L;
         #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
         for (int64_t t = 0; t < nt; ++t) {
             int64_t a0 = nb * t / nt * L, a1 = nb * (t + 1) / nt * L;
             if (a1 > Q) a1 = Q;
-            if (a0 < a1) b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q);
+            if (a0 < a1)
+                b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q, zyz, vmaj);
         }
     }
     bad[0] = b;
 }
 """
 _POSE_SH_SIGNATURES = {"zh36o_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
-                                         _I, _P, _P]}
+                                         _I, _I, _I, _P, _P]}
+
+
+class _Sym:
+    """A float32 vector expression of `_fast_terms_code`'s trace: each operation one C statement, in Python's order."""
+
+    def __init__(self, name: str, lines: list):
+        self.name, self.lines = name, lines
+
+    def _op(self, other, op: str, swap: bool = False) -> "_Sym":
+        o = other.name if isinstance(other, _Sym) else f"(float){float(other)!r}"
+        a, b = (o, self.name) if swap else (self.name, o)
+        t = _Sym(f"t{len(self.lines)}", self.lines)
+        self.lines.append(f"const v16 {t.name} = {a} {op} {b};")
+        return t
+
+    def __mul__(self, o): return self._op(o, "*")
+    def __rmul__(self, o): return self._op(o, "*", True)
+    def __add__(self, o): return self._op(o, "+")
+    def __radd__(self, o): return self._op(o, "+", True)
+    def __sub__(self, o): return self._op(o, "-")
+    def __rsub__(self, o): return self._op(o, "-", True)
+
+
+def _fast_terms_code() -> str:
+    """C of ``int terms_fast(n, x, y, z, Y)``: for n up to `sh.FAST_MAX_ORDER`, Y[i] = `sh._terms_fast`(x, y, z, n)[i]
+    by the same float32 operations in the same order (traced from it; its constants cast to float as torch
+    takes a Python scalar), returning 1; 0 above it (the caller's recurrence)."""
+    import types
+
+    from methods.core import sh
+
+    fn = sh._terms_fast
+    body = ["static int terms_fast(int64_t n, v16 x, v16 y, v16 z, v16 *Y) {", "    switch (n) {"]
+    for order in range(1, sh.FAST_MAX_ORDER + 1):
+        lines: list = []
+        shim = types.SimpleNamespace(full_like=lambda v, c, _l=lines: _Sym(f"((v16){{}} + (float){float(c)!r})", _l))
+        traced = types.FunctionType(fn.__code__, {**fn.__globals__, "torch": shim})
+        out = traced(_Sym("x", lines), _Sym("y", lines), _Sym("z", lines), order)
+        body.append(f"    case {order}: {{")
+        body += ["        " + ln for ln in lines]
+        body += [f"        Y[{i}] = {t.name};" for i, t in enumerate(out)]
+        body += ["        return 1;", "    }"]
+    body += ["    default: return 0;", "    }", "}"]
+    return "\n".join(body)
 POSE_SH_NMAX = 8
 MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one thread makes `pose_sh`
 
@@ -3428,8 +3482,14 @@ MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one threa
 def _pose_sh_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
     # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
-    return native.load("zh36o_pose_sh", _POSE_SH_SOURCE, _POSE_SH_SIGNATURES,
+    return native.load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
+
+
+@functools.lru_cache(maxsize=None)
+def _pose_sh_source() -> str:
+    """`_POSE_SH_SOURCE` with `_fast_terms_code` in place (made once: pure, no library loaded here)."""
+    return _POSE_SH_SOURCE.replace("@FAST_TERMS@", _fast_terms_code())
 
 
 @functools.lru_cache(maxsize=None)
@@ -3467,7 +3527,7 @@ def pose_sh_available() -> bool:
 
 
 def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, perm: tuple, lobes: int, n: int,
-            rmax: float, out: Tensor | None = None) -> Tensor | None:
+            rmax: float, out: Tensor | None = None, zyz: bool = True, dim: int = 0) -> Tensor | None:
     """(n², Q) float32: `runtime._vertex_sh`(`pose_columns`(X, a, idx), nT, lam, lobes, n, 0, True, perm) — the
     visibility of the vertices idx (None: every vertex) in the ZYZ frames of their unit normals nT (3, Q), rows
     in the order perm — by one C call (`zh36o_pose_sh`, above: the product's bits, eq. 1 to float32 round-off
@@ -3476,13 +3536,15 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
     `POSE_SH_NMAX`, a not (J+1,) float32, idx not int64, nT not (3, Q) float32 with unit column stride, perm
     not a permutation of the n² rows, an id out of [0, N)). ``out``: a float32 buffer of at least n² Q elements
     the result is written into (its first n² Q, viewed (n², Q): the caller's buffer kept across frames, no fresh
-    pages per call), else a new one."""
+    pages per call), else a new one. ``zyz`` False: the SH in world space (`_vertex_sh`'s ``zyz`` False); ``dim``
+    1: the result (Q, n²) (`_vertex_sh`'s ``dim``)."""
     lib = _pose_sh_lib() if terms_switched_on() else None
     if lib is None or X.dtype != torch.float32 or X.device.type != "cpu" or X.dim() != 3 or not is_vertex_major(X) \
             or not 1 <= n <= POSE_SH_NMAX or lobes < 1 or X.shape[2] != lobes * (2 + n) \
             or X.shape[2] > POSE_COLS_DMAX or len(lam) != n or len(perm) != n * n \
             or a.dtype != torch.float32 or a.device.type != "cpu" or a.dim() != 1 or a.shape[0] != X.shape[0] \
-            or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1 or idx.device.type != "cpu")):
+            or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1 or idx.device.type != "cpu")) \
+            or dim not in (0, 1):
         return None
     J1, N, d = (int(s) for s in X.shape)
     Q = N if idx is None else int(idx.shape[0])
@@ -3498,12 +3560,13 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
     if out is not None and (out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous()
                             or out.numel() < n * n * Q):
         out = None
-    out = torch.empty(n * n, Q, dtype=torch.float32) if out is None else out.view(-1)[:n * n * Q].view(n * n, Q)
+    shape = (n * n, Q) if dim == 0 else (Q, n * n)
+    out = torch.empty(shape, dtype=torch.float32) if out is None else out.view(-1)[:n * n * Q].view(shape)
     if Q == 0:
         return out
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
     lib.zh36o_pose_sh(J1, d, lobes, n, a.data_ptr(), X.data_ptr(), 0 if idx is None else idx.data_ptr(), N, Q,
-                      nT.data_ptr(), nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax), nt,
-                      out.data_ptr(), bad.data_ptr())
+                      nT.data_ptr(), nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax),
+                      int(bool(zyz)), int(dim == 1), nt, out.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else out

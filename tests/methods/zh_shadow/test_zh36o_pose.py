@@ -66,11 +66,37 @@ def test_pose_sh_equals_product_then_eq1(J1, N, n, lobes):
     assert zn.pose_sh(Xv, a, None, nT, lam, (0,) * (n * n), lobes, n, CHART_RMAX) is None
 
 
+@pytest.mark.parametrize("J1,N,n,lobes,dim", [(11, 13415, 4, 2, 1), (3, 517, 6, 3, 0), (4, 300, 8, 1, 1)])
+def test_pose_sh_world_frame_equals_vertex_sh(J1, N, n, lobes, dim):
+    """`native.pose_sh` with the SH in world space (``zyz`` False: the paper configuration's `_pose_state`; up to
+    `sh.FAST_MAX_ORDER` its traced polynomials, above it the recurrence), rows or columns per vertex (``dim``) =
+    the compiled `runtime._vertex_sh` of `native.pose_columns` to float32 round-off; the same bits at 2 threads."""
+    from methods.core.threads import torch_threads
+
+    _skip_without_c_compiler()
+    g = torch.Generator().manual_seed(J1 * 10 + n)
+    X = torch.randn(J1, N, lobes * (2 + n), generator=g) * 0.6
+    Xv = zn.vertex_major(X)
+    a = torch.randn(J1, generator=g)
+    nT = torch.nn.functional.normalize(torch.randn(3, N, generator=g), dim=0).contiguous()
+    nT[:, :3] = torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0]]).T
+    lam = rt._band_norms(n)
+    want = rt._vertex_sh(zn.pose_columns(Xv, a, None), nT, lam, lobes, n, dim, False, None)
+    got = zn.pose_sh(Xv, a, None, nT, lam, tuple(range(n * n)), lobes, n, CHART_RMAX, None, False, dim)
+    assert got is not None and got.shape == want.shape
+    assert float((got - want).abs().max()) <= 2e-6 * float(want.abs().max())
+    with torch_threads(2):
+        assert torch.equal(zn.pose_sh(Xv, a, None, nT, lam, tuple(range(n * n)), lobes, n, CHART_RMAX, None, False,
+                                      dim), got)
+
+
+@pytest.mark.parametrize("config", ["order8", "paper"])
 @pytest.mark.parametrize("planes", [True, False])
-def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes):
-    """Vertex-shaded cosine P frames (the order-8 configuration) with the product and eq. 1 in one C call
-    (``native_eq1``) = with the two steps (``native_eq1`` off: `native.pose_columns`, the compiled
-    `runtime._vertex_sh`) to float32 round-off, the same counts, the same bits at 1 and 2 threads, the C call
+def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes, config):
+    """P frames of the order-8 configuration (vertex-shaded cosine: the front-facing referenced vertices) and of
+    the paper configuration (every vertex's world-space v) with the product and eq. 1 in one C call
+    (``native_eq1``) = with the two steps (``native_eq1`` off: `native.pose_columns` and the compiled
+    `runtime._vertex_sh`, or `runtime.world_visibility`) to float32 round-off, the same counts, the same bits at 1 and 2 threads, the C call
     taken; then a view frame of the last pose (every vertex's visibility, kept by `_pose_state`) likewise."""
     import dataclasses
 
@@ -84,7 +110,7 @@ def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes):
     calls = []
     ps_ = zn.pose_sh
     monkeypatch.setattr(zn, "pose_sh", lambda *a: calls.append(1) or ps_(*a))
-    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m = ZHShadow(**SMALL, **(dict(order=8, specular="cosine", shading="vertex") if config == "order8" else {}))
     m.precompute(zh_scene("creature"))
     fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
     slow.native_eq1 = False
@@ -97,7 +123,7 @@ def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes):
         gb = make_gbuffer(m.scene, f, 2)
         c0 = len(calls)
         a = fast.render(f, gb)
-        if i > 0:
+        if 0 < i < len(frames) - 1 or (i and config == "order8"):   # (a new pose; order 8: its view frame's every vertex)
             assert len(calls) > c0, i
         with torch_threads(2):
             a2 = fast2.render(f, gb)
@@ -106,7 +132,8 @@ def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes):
         assert (a - b).abs().max() <= 2e-6 * b.abs().max(), i
         kind = "P" if i < len(frames) - 1 else "V"
         assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), i
-    assert fast.memory()["pose_visibility_sh"] >= fast._pose_sh_buf.numel() * 4 > 0
+    if config == "order8":
+        assert fast.memory()["pose_visibility_sh"] >= fast._pose_sh_buf.numel() * 4 > 0
 
 
 def test_pose_sh_follows_the_off_switch(monkeypatch):
