@@ -600,7 +600,8 @@ class ZHShadow(Method):
                     need = n * n * int(cols.shape[0])
                     buf = self._pose_sh_buf
                     if buf is None or buf.numel() < need:
-                        self._pose_sh_buf = buf = torch.empty(need + need // 4, dtype=X.dtype)   # (+25 %: a few poses)
+                        # (+25 %: a few poses; zeros: its unread tail the same at any thread count, test_threads)
+                        self._pose_sh_buf = buf = torch.zeros(need + need // 4, dtype=X.dtype)
                 vz = zn.pose_sh(X, a, cols, nT, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, buf)
                 if vz is not None:
                     return vz
