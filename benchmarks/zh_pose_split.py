@@ -6,7 +6,8 @@ by wrapping the functions it calls — the skinning (`ZHShadow._posed_geometry`)
 (`native.pose_radiance`), `ZHShadow._front_radiance` (front, visibility, pose pass and its glue), the resolve
 (`native.resolve_table`) and the whole frame — medians over the frames. At 1 thread, 2026-12-06, load ~8 on 2
 cores: skinning 0.40, referenced 0.27, front 0.15, pose product 0.46, visibility 1.20 (eq. 1 ~0.73), pose pass
-0.68, front radiance 2.48, resolve 0.82, frame 4.47 ms.
+0.68, front radiance 2.48, resolve 0.82, frame 4.47 ms. Session 36 (zh36o): the product and eq. 1 are one C call
+(`native.pose_sh`; "pose product" then not called unless ``native_eq1`` is off).
 
     python -m benchmarks.zh_pose_split [--frames 12] [--threads 1] [--settle 0.2] [--precompute-code DIR]
 """
@@ -53,9 +54,10 @@ def main(argv: list[str] | None = None) -> dict:
         setattr(obj, name, timed)
 
     originals = {n: getattr(zn, n) for n in ("referenced_mask", "front_columns", "pose_columns", "pose_radiance",
-                                              "resolve_table")}
+                                              "resolve_table", "pose_sh")}
     for obj, name, label in ((m, "_posed_geometry", "skinning"), (zn, "referenced_mask", "referenced"),
                              (zn, "front_columns", "front"), (zn, "pose_columns", "pose product"),
+                             (zn, "pose_sh", "pose product + eq. 1 (one C call, zh36o)"),
                              (m, "_pose_visibility", "visibility (product + eq. 1)"),
                              (zn, "pose_radiance", "pose pass"), (zn, "resolve_table", "resolve"),
                              (m, "_front_radiance", "front radiance (front, visibility, pose pass, glue)")):

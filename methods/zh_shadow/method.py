@@ -359,6 +359,9 @@ class ZHShadow(Method):
         self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
         self._skin: tuple | None = None          # (scene, `native.skin_setup` of it): `_posed_geometry`
         self._pose_libs_warm = False             # `native.warm_pose_libraries` called (`_render_vertex`)
+        self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
+        #                                 `native.pose_sh`), reused across frames: counted in `memory`
+        self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -445,6 +448,12 @@ class ZHShadow(Method):
     # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
     # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
     table_resolve = True
+    # A pose's product and eq. 1 (`_pose_visibility`) in one C call (`native.pose_sh`, zh36o: per vertex the
+    # product's bits and `runtime._vertex_sh`'s operations, X laid out vertex-major): a vertex-shaded cosine P
+    # frame's front-facing referenced columns, every vertex's otherwise (the paper configuration's P frames);
+    # False: `native.pose_columns` then the compiled `runtime._vertex_sh`, or `runtime.world_visibility` (the
+    # tests' oracle)
+    native_eq1 = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -562,19 +571,56 @@ class ZHShadow(Method):
         the columns' unit normals when the caller has them (else gathered from ``geom``)."""
         args, kw = self._visibility_args(pose_vec, geom, cols)
         X, _, normal, lobes = args
+        if self.native_eq1 and not (kw["frame"] == "zyz" and kw["point_minor"]) and zn.is_vertex_major(X) \
+                and X.shape[0] == pose_vec.numel() + 1:
+            # (any other layout — the paper configuration's world-space (N, n²) v of every vertex — by the same C
+            # call, `native.pose_sh`: the compiled pass's numbers; kept as the pose's by `_pose_state`)
+            n = int(X.shape[2]) // lobes - 2
+            a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
+            nT = nTc if nTc is not None else rt.rows(normal) if cols is None else \
+                normal.T.index_select(1, cols).contiguous()
+            zyz = kw["frame"] == "zyz"
+            perm = self._zyz_perm(n, kw["rows"]) if zyz else tuple(range(n * n))
+            v = zn.pose_sh(X, a, cols, nT, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, None, zyz,
+                           0 if kw["point_minor"] else 1)
+            if v is not None:
+                return v
         if self.pose_columns and kw["frame"] == "zyz" and kw["point_minor"] and zn.is_vertex_major(X):
             a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
-            pT = zn.pose_columns(X, a, cols) if a.shape[0] == X.shape[0] else None
-            if pT is not None:
-                n = int(X.shape[2]) // lobes - 2
+            n = int(X.shape[2]) // lobes - 2
+            perm = self._zyz_perm(n, kw["rows"])
+            if self.native_eq1 and a.shape[0] == X.shape[0]:
+                # the product and eq. 1 in one C call (`native.pose_sh`, zh36o: the compiled pass's numbers);
+                # a P frame's columns into the buffer kept across frames (`_pose_sh_buf`, in `memory`: they are
+                # read within the frame alone), every vertex's (kept as the pose's, `_pose_state`) a new array
                 nT = nTc if nTc is not None else rt.rows(normal) if cols is None else \
                     normal.T.index_select(1, cols).contiguous()
-                perm = tuple(int(i) for i in kw["rows"].tolist())
+                buf = None
+                if cols is not None:
+                    need = n * n * int(cols.shape[0])
+                    buf = self._pose_sh_buf
+                    if buf is None or buf.numel() < need:
+                        # (+25 %: a few poses; zeros: its unread tail the same at any thread count, test_threads)
+                        self._pose_sh_buf = buf = torch.zeros(need + need // 4, dtype=X.dtype)
+                vz = zn.pose_sh(X, a, cols, nT, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, buf)
+                if vz is not None:
+                    return vz
+            pT = zn.pose_columns(X, a, cols) if a.shape[0] == X.shape[0] else None
+            if pT is not None:
+                nT = nTc if nTc is not None else rt.rows(normal) if cols is None else \
+                    normal.T.index_select(1, cols).contiguous()
                 fn = rt._vertex_sh if int(pT.shape[1]) >= rt.VERTEX_COMPILE_MIN else rt._vertex_sh.eager
                 torch._dynamo.maybe_mark_dynamic(pT, 1)
                 torch._dynamo.maybe_mark_dynamic(nT, 1)
                 return fn(pT, nT, rt._band_norms(n), lobes, n, 0, True, perm)
         return rt.world_visibility(*args, **kw)
+
+    def _zyz_perm(self, n: int, rows: Tensor) -> tuple:
+        """`runtime.zyz_rows`(n) (``rows``) as Python ints, kept per order (a (64,) ``tolist`` per P frame)."""
+        zp = self._zyz_perm_cache
+        if zp is None or zp[0] != n:
+            self._zyz_perm_cache = zp = (n, tuple(int(i) for i in rows.tolist()))
+        return zp[1]
 
     def _visibility_args(self, pose_vec: Tensor, geom, cols: Tensor | None = None) -> tuple[tuple, dict]:
         """The arguments (positional, keyword) of `runtime.world_visibility` for this method's layout
@@ -586,8 +632,9 @@ class ZHShadow(Method):
         frame = "zyz" if vertex and self.config["specular"] == "cosine" else "world"
         # (its rows then in the order `cosine_visibility_zyz`'s product reads them: no gather)
         rows = rt.zyz_rows(self.config["order"]) if frame == "zyz" else None
-        if self.pose_columns and vertex and frame == "zyz" and m.X.device.type == "cpu" and zn.pose_cols_available():
-            if not zn.is_vertex_major(m.X):   # once per model: the layout `native.pose_columns` reads
+        if ((self.pose_columns and vertex and frame == "zyz" and zn.pose_cols_available())
+                or (self.native_eq1 and zn.pose_sh_available())) and m.X.device.type == "cpu":
+            if not zn.is_vertex_major(m.X):   # once per model: the layout `native.pose_columns` / `pose_sh` read
                 m.X = zn.vertex_major(m.X)    # (`_pose_visibility`; the same values)
         elif not m.X.transpose(1, 2).is_contiguous():   # once per model: the layout the product reads
             m.X = rt.point_minor_model(m.X)              # (the cache stores the fit's; same values)
@@ -1687,7 +1734,8 @@ class ZHShadow(Method):
         return {"linear_model_X": tensor_bytes(self.model.X),
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
-                "pose_visibility_sh": 0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]),
+                "pose_visibility_sh": (0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]))
+                + (0 if self._pose_sh_buf is None else tensor_bytes(self._pose_sh_buf)),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs)
                 + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3])),
                 "vertex_table": (0 if self._vtable is None else tensor_bytes(self._vtable[2]))
