@@ -879,7 +879,10 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
             read = {"vrows": vp[3], "vw": vp[4], "lrows": lrows, "lw": lw}
             reads.append(read)
         pk = packed_only(method, vp[2], live)     # the table kept only as its packed chunks (`VIS_PACKED_ONLY`)
-        Vt = live_table(method, "V", vp[2], live) if pk is None else None  # (N_V, n')
+        if pk is not None and not native.available():   # the native loops switched off since: the compiled
+            pk, Vt = None, unpacked(pk)                  # kernels read the rows, unpacked for this call
+        else:
+            Vt = live_table(method, "V", vp[2], live) if pk is None else None  # (N_V, n')
         Lt = live_table(method, "L", lp[2], live)                        # (F, 3n')
         Rt = live_table(method, "rho", rps[0][2], live)                  # (R·n_o, 3n')
         brows, bw = rps[0][3], rps[0][4]
