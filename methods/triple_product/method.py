@@ -262,7 +262,7 @@ class TripleProduct(Method):
         self.V: Tensor | None = None          # (N, 3) float32 vertex positions
         self.R: Tensor | None = None          # (N, 3, 3) float32 vertex local frames (rows s, t, n)
         self.vertex_region: Tensor | None = None  # (N,) int64
-        self.V_idx: Tensor | None = None      # (N, n) int32 visibility coefficient indices
+        self.V_idx: Tensor | None = None      # (N, n) int32 visibility coefficient indices (full: one row broadcast, `_broadcast_full`)
         self.V_val: Tensor | None = None      # (N, n) float32 visibility coefficients
         self.materials: dict[str, Any] = {}   # region → material the table was built from
         self.tables: dict[str, tuple[Tensor, Tensor]] = {}  # region → idx (n_o, n), val (n_o, 3, n)
