@@ -57,6 +57,8 @@ def main(argv=None) -> dict:
     if "args" not in cap:
         raise SystemExit("the frame did not run native.points")
     V, R, L, vrow, vw, brows, bw, lrows, lw, ch = cap["args"]
+    if V is None:   # the visibility kept packed only (`fast_eval.VIS_PACKED_ONLY`): its rows unpacked
+        V = native.unpack_chunks(cap["kw"]["v_packed"], ch, cap["kw"]["v_shape"])
     # the frame may have passed chunk-major copies: their row-major tables are the keys of their caches
     cache = m._perf_cache
     Rr = cache[("major", "rho")][0] if cap["kw"].get("r_major") else R

@@ -746,12 +746,14 @@ def fine_bytes(method) -> int:
     """Bytes of the fine-value tables `shade_fine` keeps (reported by ``method.memory()``): the
     whole tables and their live-triangle columns (`live_table`), the ρ̃ and lighting tables' chunk-major
     copies (`rho_major`, `light_major`), the visibility table's chunk lists (`vis_chunks`) and its
-    chunks packed (`vis_packed`)."""
+    chunks packed (`vis_packed`), or those two alone once they are its only copy (`keep_packed_only`)."""
     cache = method.__dict__.get("_perf_cache", {})
     tabs = sum(v[2].element_size() * v[2].nelement() for k, v in cache.items()
                if k[0] in ("fine", "live", "major") and v[2] is not None)
     ch = cache.get(("chunks",))
-    return tabs + (0 if ch is None or ch[1] is None else sum(t.element_size() * t.nelement() for t in ch[1]))
+    pk = cache.get(("packed", "V"))        # the visibility kept packed only (`keep_packed_only`)
+    packed = 0 if pk is None else sum(t.element_size() * t.nelement() for t in (*pk[3], pk[4]))
+    return tabs + packed + (0 if ch is None or ch[1] is None else sum(t.element_size() * t.nelement() for t in ch[1]))
 
 
 # -- live triangles: the fine triangles eq. 7 does not multiply by an exact zero -----------------------
@@ -788,6 +790,7 @@ def live_triangles(method, Kp: int | None = None) -> Tensor | None:
     if live.numel() in (0, Kp):
         live = None
     cache[("live_tris",)] = (method.V_val, bv, live)
+    cache.pop(("packed", "V"), None)                                      # of the live triangles before
     if live is not None:
         cache[("live", "V")] = (method.V_val, live, Vt[:, live].contiguous())
         cache[("live", "rho")] = (bv, live, Rt.view(-1, 3, Kp)[:, :, live].reshape(Rt.shape[0], -1).contiguous())
@@ -805,6 +808,9 @@ def live_table(method, name: str, val: Tensor, live: Tensor) -> Tensor:
     hit = cache.get(("live", name))
     if hit is not None and hit[0] is val and hit[1] is live:
         return hit[2]
+    pk = packed_only(method, val, live) if name == "V" else None
+    if pk is not None:   # kept only as its packed chunks (`VIS_PACKED_ONLY`): unpacked for this reader
+        return unpacked(pk)
     if name != "L":
         raise RuntimeError(f"live table {name!r} not built for this table (call live_triangles first)")
     method.fill_lighting()
@@ -865,14 +871,18 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     Kp = max(_round_size(p[1].shape[-1]) for p in (vp, *rps, lp))
     Le = level_of_size(Kp)
     lrows, lw = _merge_psi(lp[3], lp[4], method.grid.n_psi)
-    read = None
+    read, pk = None, None
     if live is not None and Kp == method.K and len(rps) == 1:   # the live columns only (comment above)
         # the rows this call read, for `frame_cost` (references, no copy; counted after the frame)
         reads = method.stats.get("frame_reads")
         if reads is not None:
             read = {"vrows": vp[3], "vw": vp[4], "lrows": lrows, "lw": lw}
             reads.append(read)
-        Vt = live_table(method, "V", vp[2], live)                        # (N_V, n')
+        pk = packed_only(method, vp[2], live)     # the table kept only as its packed chunks (`VIS_PACKED_ONLY`)
+        if pk is not None and not native.available():   # the native loops switched off since: the compiled
+            pk, Vt = None, unpacked(pk)                  # kernels read the rows, unpacked for this call
+        else:
+            Vt = live_table(method, "V", vp[2], live) if pk is None else None  # (N_V, n')
         Lt = live_table(method, "L", lp[2], live)                        # (F, 3n')
         Rt = live_table(method, "rho", rps[0][2], live)                  # (R·n_o, 3n')
         brows, bw = rps[0][3], rps[0][4]
@@ -896,7 +906,12 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
     # A_L' of the evaluation level (equal-area measure)
     if grouped is None:
         grouped = grouping_pays(vp[3], lrows, brows)
-    ch = vis_chunks(method, Vt, (vp[2], live)) if points is None else None
+    if pk is not None:
+        ch = pk[3] if points is None else None
+        if grouped or points is not None or not _native_points(vp[3], brows, lrows):
+            Vt = unpacked(pk)          # a reader of whole rows: the table unpacked for this call (not kept)
+    else:
+        ch = vis_chunks(method, Vt, (vp[2], live)) if points is None else None
     if grouped:  # the frame's group count goes to `frame_cost` (``method.stats["frame_groups"]``)
         st = {}
         out = fine_grouped(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, stats=st, chunks=ch)
@@ -905,10 +920,26 @@ def shade_fine(method, R: Tensor | None, wo_world: Tensor, region: Tensor, vrows
             read["group_vis"] = st["group_vis"]
         return out.mul_(0.25 ** Le)
     per_vertex = ch is not None and vp[3].shape[1] == 1
-    return fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch,
-                       rho_major=rho_major(method, Rt) if per_vertex else None,
-                       light_major=light_major(method, Lt) if per_vertex else None,
-                       vis_packed=vis_packed(method, Vt, ch) if per_vertex else None).mul_(0.25 ** Le)
+    if pk is not None and Vt is None:   # the packed chunks are the only copy: the native loop streams them
+        rm, lm = rho_major(method, Rt), light_major(method, Lt)
+        return native.points(None, Rt if rm is None else rm, Lt if lm is None else lm, vp[3][:, 0], vp[4][:, 0],
+                             brows, bw, lrows, lw, ch, r_major=rm is not None, l_major=lm is not None,
+                             v_packed=pk[4], v_shape=pk[2]).mul_(0.25 ** Le)
+    packed = vis_packed(method, Vt, ch) if per_vertex else None
+    out = fine_kernel(Vt, Rt, Lt, vp[3], vp[4], brows, bw, lrows, lw, points=points, chunks=ch,
+                      rho_major=rho_major(method, Rt) if per_vertex else None,
+                      light_major=light_major(method, Lt) if per_vertex else None,
+                      vis_packed=packed).mul_(0.25 ** Le)
+    if packed is not None and VIS_PACKED_ONLY and live is not None and Vt.shape[1] % native.W == 0 \
+            and points is None and _native_points(vp[3], brows, lrows):
+        keep_packed_only(method, vp[2], live, Vt, ch, packed)   # the loop read the packed chunks: drop the rows
+    return out
+
+
+def _native_points(vrows: Tensor, brows: Tensor, lrows: Tensor) -> bool:
+    """`fine_kernel` runs the native per-point loop on these rows (with its chunk lists and no ``points``):
+    one visibility row, 4 ρ̃ and 4 grid rows per point."""
+    return vrows.shape[1] == 1 and brows.shape[1] == 4 and lrows.shape[1] == 4
 
 
 def read_pairs(method, live: Tensor | None, vrows: Tensor, vw: Tensor, lrows: Tensor, lw: Tensor):
@@ -939,8 +970,14 @@ def vis_bits(method, live: Tensor | None) -> Tensor | None:
     pair projection."""
     if live is None or not native_light.available():
         return None
+    pk = packed_only(method, method.V_val, live)
+    if pk is not None and pk[5] is not None:
+        return pk[5]
     Vt = live_table(method, "V", method.V_val, live)
     cache = method.__dict__.setdefault("_perf_cache", {})
+    if pk is not None:   # kept packed only, without its bit sets: made once from the rows unpacked
+        cache[("packed", "V")] = (*pk[:5], native_light.vis_bits(Vt))
+        return cache[("packed", "V")][5]
     hit = cache.get(("vis_bits",))
     if hit is None or hit[0] is not Vt:
         hit = cache[("vis_bits",)] = (Vt, native_light.vis_bits(Vt))       # holds Vt: no id reuse
@@ -996,6 +1033,47 @@ def vis_packed(method, Vt: Tensor, ch) -> Tensor | None:
     if hit is None or hit[0] is not Vt or hit[1] is not ch:
         hit = cache[("major", "V")] = (Vt, ch, native.packed_chunks(Vt, ch))     # holds both: no id reuse
     return hit[2]
+
+
+# ... and, once a per-vertex frame has streamed them, the packed chunks are the only copy of the live
+# visibility table kept (`keep_packed_only`, session 36): its row table (creature bench 35 MB, chess 27)
+# and the caches that held it (chunk lists, bit sets: kept, re-keyed on the stored values and the live
+# triangles) are dropped, so the visibility costs its packed chunks and lists (21.5 + 2.8 MB creature)
+# instead of rows + packed. A reader of whole rows (a pixel-style call on a per-vertex instance, the
+# compiled fallback, `frame_cost`'s zero counts: none in a per-vertex frame) gets the rows unpacked
+# (`unpacked`: `native.unpack_chunks`, for that call only); a material edit that rebuilds the live
+# triangles rebuilds the rows (`live_triangles`) until the next per-vertex frame packs them again.
+# False: the rows stay beside the packed chunks (the test oracle).
+VIS_PACKED_ONLY = True
+
+
+def packed_only(method, val: Tensor, live: Tensor | None):
+    """The packed-only entry (`keep_packed_only`) of the live visibility table of the stored values
+    ``val`` and live triangles ``live`` — (val, live, (N, n'), chunk lists, packed chunks, bit sets or
+    None) — or None (the rows are kept, or another table's entry)."""
+    hit = method.__dict__.get("_perf_cache", {}).get(("packed", "V"))
+    if hit is None or live is None or hit[0] is not val or hit[1] is not live:
+        return None
+    return hit
+
+
+def keep_packed_only(method, val: Tensor, live: Tensor, Vt: Tensor, ch, packed: Tensor) -> None:
+    """Make the packed chunks ``packed`` (`vis_packed` of the live visibility table ``Vt`` of ``val`` and
+    ``live``, chunk lists ``ch``) its only copy: the row table and the caches keyed on it (``Vt``'s chunk
+    lists, packed chunks, bit sets) give way to one entry keyed on (``val``, ``live``) holding the
+    lists, the packed chunks and the bit sets (`packed_only`)."""
+    cache = method.__dict__.setdefault("_perf_cache", {})
+    bits = cache.get(("vis_bits",))
+    cache[("packed", "V")] = (val, live, (int(Vt.shape[0]), int(Vt.shape[1])), ch, packed,
+                              bits[1] if bits is not None and bits[0] is Vt else None)
+    for k in (("live", "V"), ("chunks",), ("major", "V"), ("vis_bits",)):
+        cache.pop(k, None)
+
+
+def unpacked(pk) -> Tensor:
+    """The live visibility rows of a packed-only entry (`packed_only`), unpacked (`native.unpack_chunks`;
+    = the rows it was packed from, ±0 aside) for one reader (not kept)."""
+    return native.unpack_chunks(pk[4], pk[3], pk[2])
 
 
 def light_major(method, Lt: Tensor) -> Tensor | None:

@@ -141,6 +141,27 @@ def _hit_faces(gbuffer: GBuffer, n: int) -> Tensor:
     return torch.nonzero(seen[:n], as_tuple=False).squeeze(-1)
 
 
+def _broadcast_full(idx: Tensor) -> Tensor:
+    """A *full* index table (N, n) — every row 0..n−1: all coefficients kept, or ``selection="top"`` —
+    as its one row broadcast over the N rows (a stride-0 view of n indices: the same values, read the
+    same way; the visibility table's indices were N·n int32 that carry nothing, creature bench 68.7 MB;
+    the precompute cache stores the view as its one row); any other table unchanged."""
+    if idx.ndim != 2 or idx.shape[0] == 0:
+        return idx
+    row = torch.arange(idx.shape[1], dtype=idx.dtype, device=idx.device)
+    return row.expand_as(idx) if torch.equal(idx, row.expand_as(idx)) else idx
+
+
+def _held_bytes(*tensors: Tensor | None) -> int:
+    """Bytes a tensor's elements span in its storage (a contiguous tensor: `tensor_bytes`; a broadcast
+    view (`_broadcast_full`): the one row it repeats)."""
+    total = 0
+    for t in tensors:
+        if t is not None and t.numel():
+            total += (1 + sum((k - 1) * st for k, st in zip(t.shape, t.stride()))) * t.element_size()
+    return int(total)
+
+
 def _touched_rows(marks: list[tuple[Tensor, Tensor]], n: int) -> Tensor:
     """The distinct visibility rows (of n) read with a non-zero weight by the chunks' (rows, w)."""
     dev = marks[0][0].device if marks else None
@@ -241,7 +262,7 @@ class TripleProduct(Method):
         self.V: Tensor | None = None          # (N, 3) float32 vertex positions
         self.R: Tensor | None = None          # (N, 3, 3) float32 vertex local frames (rows s, t, n)
         self.vertex_region: Tensor | None = None  # (N,) int64
-        self.V_idx: Tensor | None = None      # (N, n) int32 visibility coefficient indices
+        self.V_idx: Tensor | None = None      # (N, n) int32 visibility coefficient indices (full: one row broadcast, `_broadcast_full`)
         self.V_val: Tensor | None = None      # (N, n) float32 visibility coefficients
         self.materials: dict[str, Any] = {}   # region → material the table was built from
         self.tables: dict[str, tuple[Tensor, Tensor]] = {}  # region → idx (n_o, n), val (n_o, 3, n)
@@ -347,6 +368,7 @@ class TripleProduct(Method):
         self._setup_uv(scene, geom, V, N, F)
         if cfg["vis_texture"] is not None:
             self._visibility_textures(vis, V, N, F, geom)
+        self.V_idx = _broadcast_full(self.V_idx)   # a full table's indices: one row (`_broadcast_full`)
         tb = time.perf_counter()
         self.tables, self.materials = {}, {}
         self.blends, self.bumps = {}, {}  # UV-space edits belong to the previous scene
@@ -900,14 +922,14 @@ class TripleProduct(Method):
         nv = self.n_vertex_rows
         vi = None if self.V_idx is None else self.V_idx[:nv]
         vv = None if self.V_val is None else self.V_val[:nv]
-        mem = {"visibility_idx": tensor_bytes(vi), "visibility_val": tensor_bytes(vv),
+        mem = {"visibility_idx": _held_bytes(vi), "visibility_val": tensor_bytes(vv),
                "fine_values": fast_eval.fine_bytes(self),  # fast-path tables (`fast_eval.fine_table`)
                "frames": tensor_bytes(self.R),
                "lighting_idx": tensor_bytes(self.L_idx), "lighting_val": tensor_bytes(self.L_val)}
         for region, (i, v) in self.tables.items():
             mem[f"brdf[{region}]"] = tensor_bytes(i, v)
         if self.tex_rows is not None:  # visibility textures (Ma 2006 §3.3)
-            mem["vis_texture_idx"] = tensor_bytes(self.V_idx[nv:])
+            mem["vis_texture_idx"] = _held_bytes(self.V_idx[nv:])
             mem["vis_texture_val"] = tensor_bytes(self.V_val[nv:])
             mem["vis_texture_map"] = tensor_bytes(self.tex_rows, self.face_tex)
             mem["vis_texture_points"] = tensor_bytes(self.tex_pos, self.tex_nrm)

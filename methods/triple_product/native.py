@@ -38,7 +38,7 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "chunks", "chunk_major", "packed_chunks", "points", "groups", "hit_faces", "resolve", "vertex_lookups", "W"]
+__all__ = ["available", "chunks", "chunk_major", "packed_chunks", "unpack_chunks", "points", "groups", "hit_faces", "resolve", "vertex_lookups", "W"]
 
 W = 8  # columns per chunk (one 8-lane vector)
 
@@ -603,15 +603,19 @@ def _threads(b: int) -> int:
     return max(1, min(torch.get_num_threads(), b // MIN_ITEMS_PER_THREAD))
 
 
-def _check_tables(V: Tensor, R: Tensor, L: Tensor, ch) -> int:
-    n = V.shape[1]
-    for t in (V, R, L):
+def _check_tables(V: Tensor | None, R: Tensor, L: Tensor, ch, v_shape: tuple[int, int] | None = None) -> int:
+    """The row length n of the tables (checked). V None: a visibility table of shape ``v_shape`` (N, n)
+    kept only as its chunks packed (`packed_chunks`, checked by the caller)."""
+    if V is None and v_shape is None:
+        raise ValueError("a visibility table or its shape (v_shape) expected")
+    N, n = (int(v_shape[0]), int(v_shape[1])) if V is None else (V.shape[0], V.shape[1])
+    for t in (R, L) if V is None else (V, R, L):
         if t.dtype != torch.float32 or t.ndim != 2 or not t.is_contiguous() or t.device.type != "cpu":
             raise ValueError("tables must be contiguous float32 (N, ·) CPU tensors")
     if R.shape[1] != 3 * n or L.shape[1] != 3 * n:
-        raise ValueError(f"tables must be (N, n), (N, 3n), (N, 3n), got {tuple(V.shape)}, {tuple(R.shape)}, {tuple(L.shape)}")
+        raise ValueError(f"tables must be (N, n), (N, 3n), (N, 3n), got {(N, n)}, {tuple(R.shape)}, {tuple(L.shape)}")
     ptr, starts, tail = ch
-    if ptr.numel() != V.shape[0] + 1 or tail.numel() != V.shape[0]:
+    if ptr.numel() != N + 1 or tail.numel() != N:
         raise ValueError("chunk lists of another table")
     return n
 
@@ -646,9 +650,26 @@ def packed_chunks(V: Tensor, ch) -> Tensor | None:
     return out
 
 
-def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
+def unpack_chunks(packed: Tensor, ch, shape: tuple[int, int]) -> Tensor:
+    """The visibility table (N, n) = ``shape`` whose chunks ``ch`` (`chunks` of it) ``packed``
+    (`packed_chunks`) holds: every chunk's 8 values back at its columns, 0 elsewhere — the table
+    `packed_chunks` was made from where it is non-zero (`chunks` covers every non-zero column of a row
+    when 8 divides n; a −0 outside the chunks comes back as +0). In torch (readers that need whole rows
+    of a table kept packed only: slow, not cached by this function)."""
+    ptr, starts, _ = ch
+    N, n = int(shape[0]), int(shape[1])
+    if n % W or ptr.numel() != N + 1 or packed.shape != (starts.numel(), W):
+        raise ValueError("packed chunks of another table, or a row length not a multiple of 8")
+    out = torch.zeros(N * n, dtype=packed.dtype)
+    row = torch.repeat_interleave(torch.arange(N, dtype=torch.int64), ptr.diff())
+    at = (row * n + starts.to(torch.int64))[:, None] + torch.arange(W, dtype=torch.int64)
+    out[at.reshape(-1)] = packed.reshape(-1)
+    return out.view(N, n)
+
+
+def points(V: Tensor | None, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Tensor, bw: Tensor,
            lrows: Tensor, lw: Tensor, ch, *, r_major: bool = False, l_major: bool = False,
-           v_packed: Tensor | None = None) -> Tensor:
+           v_packed: Tensor | None = None, v_shape: tuple[int, int] | None = None) -> Tensor:
     """`fast_eval.fine_block` of b points with one visibility row each (vrow (b,), vw (b,)), 4 ρ̃ rows
     (brows, bw (b, 4)) and 4 grid rows (lrows, lw (b, 4)), over the chunks ``ch`` (`chunks` of V)
     of each point's row: V (N_V, n), R (N_ρ, 3n), L (N_L, 3n) float32 (finite: a row with weight 0
@@ -658,9 +679,13 @@ def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Ten
     bit (creature bench vertex V, cache cooled, 1 thread: the loop 1.12x with both tables chunk-major,
     1.06x with ρ̃ only; `fast_eval.rho_major`, `fast_eval.light_major`). ``v_packed``: `packed_chunks` of
     V and ``ch``, which the loop streams instead of V's rows (the same bits; the loop with both tables
-    chunk-major 1.2-1.3x faster again)."""
+    chunk-major 1.2-1.3x faster again). V None: the table kept only as ``v_packed`` (`fast_eval.vis_packed`
+    with ``VIS_PACKED_ONLY``), its shape ``v_shape`` (N, n)."""
     lib = _lib()
-    n = _check_tables(V, R, L, ch)
+    if V is None and v_packed is None:
+        raise ValueError("V None needs its packed chunks (v_packed)")
+    n = _check_tables(V, R, L, ch, v_shape)
+    N = int(v_shape[0]) if V is None else V.shape[0]
     layout = int(r_major) + 2 * int(l_major) + 4 * int(v_packed is not None)
     if v_packed is not None and (v_packed.dtype != torch.float32 or not v_packed.is_contiguous()
                                  or v_packed.shape != (ch[1].numel(), W)):
@@ -673,13 +698,13 @@ def points(V: Tensor, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, brows: Ten
     if vrow.shape != (b,) or vw.shape != (b,) or brows.shape != (b, 4) or bw.shape != (b, 4) \
             or lrows.shape != (b, 4) or lw.shape != (b, 4):
         raise ValueError("vrow, vw (b,) and brows, bw, lrows, lw (b, 4) expected")
-    if not (_rows_ok(vrow, V.shape[0]) and _rows_ok(brows, R.shape[0]) and _rows_ok(lrows, L.shape[0])):
+    if not (_rows_ok(vrow, N) and _rows_ok(brows, R.shape[0]) and _rows_ok(lrows, L.shape[0])):
         raise IndexError("a row index outside its table")
     out = torch.empty(b, 3, dtype=torch.float32)
     if b == 0:
         return out
     ptr, starts, tail = ch
-    tabs = (V.data_ptr(), R.data_ptr(), L.data_ptr(), ptr.data_ptr(), starts.data_ptr(), tail.data_ptr())
+    tabs = (v_packed.data_ptr() if V is None else V.data_ptr(), R.data_ptr(), L.data_ptr(), ptr.data_ptr(), starts.data_ptr(), tail.data_ptr())
 
     args = (b, n, tabs[0], vrow.data_ptr(), vw.data_ptr(), tabs[1], brows.data_ptr(), bw.data_ptr(),
             tabs[2], lrows.data_ptr(), lw.data_ptr(), *tabs[3:], out.data_ptr())

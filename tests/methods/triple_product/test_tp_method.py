@@ -8,6 +8,7 @@ Measured (level 3, 64×64, S = 1, oracle pairs of 32+32 / 64+64 samples; see the
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -184,3 +185,37 @@ def test_hit_faces_are_the_distinct_faces_of_the_hit_samples(setup):
     g2.hit[idx[2::7]] = False
     want = torch.unique(g2.face[g2.hit])
     assert lone not in want.tolist() and torch.equal(_hit_faces(g2, n + 6), want)
+
+
+def test_full_visibility_indices_broadcast():
+    """A full visibility index table (all coefficients kept: every row 0..n−1) is held as its one row
+    broadcast over the rows (`method._broadcast_full`: a stride-0 view; ``memory()`` counts the n indices
+    it holds) with the dense table's values; renders per vertex, per pixel and with the reference
+    evaluator equal those of the dense table bit for bit; an index table that is not full stays as it
+    is (the same object)."""
+    from methods.triple_product.method import _broadcast_full
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    N, n = m.V_idx.shape
+    assert m.V_idx.stride() == (0, 1) and n == m.K
+    assert torch.equal(m.V_idx, torch.arange(n, dtype=torch.int32).expand(N, n))
+    assert m.memory()["visibility_idx"] == n * 4
+    frame = make_sequence(scene, "V", n_frames=1, seed=3)[0]
+    gb = make_gbuffer(scene, frame, 1)
+    for shading, ev in (("vertex", "auto"), ("pixel", "auto"), ("vertex", "reference")):
+        a = m.with_evaluator(ev)
+        a._config = {**a._config, "shading": shading}
+        a.__dict__.pop("_perf_cache", None)
+        dense = copy.copy(a)
+        dense.V_idx = a.V_idx.contiguous()
+        assert dense.memory()["visibility_idx"] == N * n * 4
+        assert torch.equal(a.render(frame, gb), dense.render(frame, gb)), (shading, ev)
+    idx = torch.arange(n, dtype=torch.int32).repeat(N, 1)
+    assert _broadcast_full(idx).stride() == (0, 1)
+    idx[1, :2] = torch.tensor([1, 0], dtype=torch.int32)                  # one row not 0..n−1
+    assert _broadcast_full(idx) is idx
+    idx = torch.arange(n // 2, dtype=torch.int32) * 2                     # kept coefficients, not a prefix
+    assert _broadcast_full(idx.expand(N, -1).contiguous()).stride() == (n // 2, 1)

@@ -205,6 +205,7 @@ def test_render_chunk_major_same_bits(monkeypatch):
         gb = make_gbuffer(scene, f, 1)
         for k in ("RHO_CHUNK_MAJOR", "LIGHT_CHUNK_MAJOR", "VIS_PACKED"):
             monkeypatch.setattr(fast_eval, k, True)
+        monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", False)          # the rows kept beside (tested below)
         img = m.render(f, gb)
         hit = m._perf_cache.get(("major", "rho"))
         assert hit is not None and hit[2] is not None                     # the chunk-major loop ran
@@ -220,6 +221,7 @@ def test_render_chunk_major_same_bits(monkeypatch):
             monkeypatch.setattr(fast_eval, k, False)
         ref = off.render(f, gb)
         assert all(off._perf_cache.get(("major", k)) is None for k in ("rho", "L", "V"))
+        assert off._perf_cache.get(("packed", "V")) is None
         assert torch.equal(img, ref)
         extra = rho[-1].numel() * 4 + vp[2].numel() * 4 + (light[-1].numel() * 4 if light[-1] is not None else 0)
         assert mem == off.memory()["fine_values"] + extra
@@ -509,3 +511,112 @@ def test_checked_resolve_equals_gouraud_resolve(monkeypatch):
     assert len(calls) == 2
     for a, b, c in zip(on, mid, off):
         assert torch.equal(a, c) and torch.equal(b, c)
+
+
+@pytest.mark.parametrize("n", [64, 48])
+def test_unpack_chunks_gives_the_table(n):
+    """`native.unpack_chunks` of a table's packed chunks (`native.packed_chunks`) is the table (every
+    zero pattern of `_vis`, 8 dividing n: the chunks cover every non-zero); a row length 8 does not
+    divide, or lists of another table, raise."""
+    gen = torch.Generator().manual_seed(7)
+    V = _vis(n, gen)
+    ch = native.chunks(V)
+    got = native.unpack_chunks(native.packed_chunks(V, ch), ch, V.shape)
+    assert torch.equal(got, V)
+    Vo = _vis(45, gen)
+    co = native.chunks(Vo)
+    with pytest.raises(ValueError):
+        native.unpack_chunks(native.packed_chunks(Vo, co), co, Vo.shape)
+    with pytest.raises(ValueError):
+        native.unpack_chunks(native.packed_chunks(V, ch), ch, (V.shape[0] + 1, n))
+
+
+def test_render_packed_only_same_bits(monkeypatch):
+    """Per-vertex renders with the packed visibility chunks as the only copy of the live visibility
+    table (`fast_eval.VIS_PACKED_ONLY`: its rows dropped after the frame that packed them) = with the
+    rows kept beside them, bit for bit, over view changes, lighting changes (the pairs a pending
+    lighting projects read the bit sets kept in the packed entry), a material edit (new live
+    triangles: the rows rebuilt, packed again) and the views after it; the same `frame_cost` (its
+    zero counts read the rows unpacked); ``memory()`` smaller by exactly the rows; readers of whole
+    rows on the packed-only instance (`fast_eval.live_table`, a grouped pixel-style call) get the
+    rows back (`native.unpack_chunks`) and the same sums."""
+    import dataclasses
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.materials import Phong
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    views, lights = make_sequence(scene, "V", n_frames=2, seed=2), make_sequence(scene, "L", n_frames=2, seed=2)
+    frames = views + lights + views
+    region = next(iter(scene.regions))
+    edit = dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)})
+    frames += [edit, dataclasses.replace(views[0], materials=edit.materials)]
+    kinds = ["V", "V", "L", "L", "V", "V", "VB", "V"]
+    packs = []
+    for f, kind in zip(frames, kinds):
+        gb = make_gbuffer(scene, f, 1)
+        monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", True)
+        img = m.render(f, gb)
+        cost = m.frame_cost(kind, gb.num_samples)
+        pk = m._perf_cache.get(("packed", "V"))
+        assert pk is not None and pk[5] is not None                        # packed, bit sets kept
+        assert all(m._perf_cache.get(k) is None for k in (("live", "V"), ("chunks",), ("major", "V"), ("vis_bits",)))
+        packs.append(pk[4])
+        live = fast_eval.live_triangles(m)
+        monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", False)
+        ref = off.render(f, gb)
+        assert off._perf_cache.get(("packed", "V")) is None
+        rows = off._perf_cache[("live", "V")][2]
+        assert torch.equal(img, ref)
+        assert cost == off.frame_cost(kind, gb.num_samples)
+        assert m.memory()["fine_values"] == off.memory()["fine_values"] - rows.numel() * 4
+        assert torch.equal(fast_eval.live_table(m, "V", m.V_val, live), rows)
+        assert torch.equal(packs[-1], off._perf_cache[("major", "V")][2])
+    assert packs[0] is packs[5] and packs[6] is not packs[5]               # packed once per live table
+    # a grouped (pixel-style: 3 visibility rows per point) call on the packed-only instance
+    gen = torch.Generator().manual_seed(8)
+    B = 300
+    v = torch.randint(0, m.V.shape[0], (B,), generator=gen)
+    vrows = torch.randint(0, m.V.shape[0], (B, 3), generator=gen)
+    vw = torch.rand(B, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(B, 3, generator=gen), dim=-1)
+    args = (m.R[v], wo, m.vertex_region[v], vrows, vw / vw.sum(1, keepdim=True))
+    got = fast_eval.shade_fine(m, *args, grouped=True)
+    assert m._perf_cache.get(("live", "V")) is None                      # unpacked for the call, not kept
+    assert torch.equal(got, fast_eval.shade_fine(off, *args, grouped=True))
+
+
+def test_packed_only_native_switched_off(monkeypatch):
+    """An instance holding its visibility packed only (`fast_eval.VIS_PACKED_ONLY`) whose native loops
+    are switched off afterwards (``PRTBENCH_COMPILE=0``: `native.available` False) renders through the
+    torch kernels on the rows unpacked — the image of an instance that kept its rows, bit for bit."""
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    f0, f1 = make_sequence(scene, "V", n_frames=2, seed=4)
+    g0, g1 = make_gbuffer(scene, f0, 1), make_gbuffer(scene, f1, 1)
+    m.render(f0, g0)
+    assert m._perf_cache.get(("packed", "V")) is not None and m._perf_cache.get(("live", "V")) is None
+    off.render(f0, g0)
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    assert not native.available()
+    assert torch.equal(m.render(f1, g1), off.render(f1, g1))
+    assert m._perf_cache.get(("live", "V")) is None                       # unpacked for the frame, not kept
