@@ -258,7 +258,7 @@ def ab_frames(new, base, reference, frames, gbs, kind: str, *, base_root: str | 
                 rimg = reference(f, g)
                 err = max(err, float((img - rimg).abs().max() / rimg.abs().max().clamp_min(1e-12)))
     r = {k: {"wall_ms": 1e3 * statistics.median(v[0]), "cpu_ms": 1e3 * statistics.median(v[1])} for k, v in t.items()}
-    cost = new.frame_cost(kind, gbs[-1].num_samples)
+    cost = new.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
     r.update(bytes=cost.bytes, flops=cost.flops, rel_err=err,
              cpu_ratio=r["base"]["cpu_ms"] / r["new"]["cpu_ms"], wall_ratio=r["base"]["wall_ms"] / r["new"]["wall_ms"])
     return r

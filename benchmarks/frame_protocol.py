@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
                     if rep == 0 and i == len(frames) - 1:
                         images[proto] = img.detach().clone()
         same = bool(torch.equal(images["suite"], images["b2b"]))
-        cost = method.frame_cost(kind, gbs[-1].num_samples)
+        cost = method.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
         out["kinds"][kind] = r = {p: statistics.median(t) for p, t in times.items()}
         r["same_image"] = same
         r["first_pass_ms"] = {p: [round(1e3 * t, 2) for t in v] for p, v in first.items()}

@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> dict:
                     (c_old if which == "old" else c_new).append(time.process_time() - c0)
             diff = max(diff, float((imgs["old"] - imgs["new"]).abs().max()))
             scale = max(scale, float(imgs["old"].abs().max()))
-        cost = new.frame_cost(kind, gbs[-1].num_samples)
+        cost = new.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
         kinds[kind] = {"old_s": t_old, "new_s": t_new, "old_median_s": statistics.median(t_old[1:]),
                        "new_median_s": statistics.median(t_new[1:]), "old_cpu_s": c_old, "new_cpu_s": c_new,
                        "old_cpu_median_s": statistics.median(c_old[1:]),

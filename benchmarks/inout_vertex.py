@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
         r = {"sample_median_s": statistics.median(t["sample"][1:]), "vertex_median_s": statistics.median(t["vertex"][1:]),
              "max_abs_diff_vs_sample": diff, "image_max": scale}
         for which in ("sample", "vertex"):
-            c = ms[which].frame_cost(kind, gbs[-1].num_samples)
+            c = ms[which].frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
             r[f"{which}_bytes"], r[f"{which}_flops"] = c.bytes, c.flops
         kinds[kind] = r
         if last is None or kind == "V":

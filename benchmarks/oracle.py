@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict:
                 t[w][0].append(time.perf_counter() - t0)
                 t[w][1].append(time.process_time() - c0)
             err = max(err, (imgs["fast"] - imgs["reference"]).abs().max().item())
-        cost = m.frame_cost(kind, gbs[-1].num_samples)
+        cost = m.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
         r = {"max_abs_diff": err, "bytes": cost.bytes, "flops": cost.flops}
         for w, (ws, cs) in t.items():
             r[f"{w}_median_s"], r[f"{w}_cpu_s"] = statistics.median(ws), statistics.median(cs)

@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
         r["cpu_ratio"] = r["old"]["cpu_ms"] / r["new"]["cpu_ms"]
         r["wall_ratio"] = r["old"]["wall_ms"] / r["new"]["wall_ms"]
         r["max_abs_diff"], r["image_max"] = diff, vmax
-        cost = new.frame_cost(kind, gbs[-1].num_samples)
+        cost = new.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
         r["bytes"], r["flops"] = cost.bytes, cost.flops
         out["kinds"][kind] = r
         print(f"{kind:4s} old {r['old']['wall_ms']:7.1f} / {r['old']['cpu_ms']:7.1f} ms  new {r['new']['wall_ms']:7.1f} / "

@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
              "new_cpu_median_s": statistics.median(c_new[1:]), "max_abs_diff_old_new": diff,
              "hit_samples": int(gbs[-1].hit.sum())}
         for which, meth in (("old", old), ("new", new)):
-            cost = meth.frame_cost(kind, gbs[-1].num_samples)
+            cost = meth.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
             r[f"{which}_bytes"], r[f"{which}_flops"] = cost.bytes, cost.flops
         if a.check:
             ref = m.with_shading(a.new)

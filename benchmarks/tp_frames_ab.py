@@ -75,7 +75,7 @@ def main(argv=None) -> dict:
                 settle(); t = clock(); img = m.render(f, g); t_new.append(clock() - t)
                 err = max(err, float((img - ref).abs().max() / ref.abs().max()))
             mo, mn = statistics.median(t_old), statistics.median(t_new)
-            cost = m.frame_cost(kind, gbs[-1].num_samples)
+            cost = m.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
             eff, bound = measure.roofline(cost.bytes, cost.flops, B, P, mn)
             r = {"old_ms": 1e3 * mo, "new_ms": 1e3 * mn, "ratio": mo / mn, "max_rel_diff": err,
                  "mflop": cost.flops / 1e6, "mbytes": cost.bytes / 1e6, "roofline_new": eff, "bound": bound}

@@ -244,7 +244,7 @@ def main(argv=None) -> dict:
             out["max_rel_diff_vs_class"] = check_equal(m, frames[0], gbs[0], evaluators)
         res = time_sequences(m, frames, gbs, evaluators)
         m.render(frames[-1], gbs[-1])  # the cost model reads the last frame's counts
-        cost = m.frame_cost(kind, gbs[-1].num_samples)
+        cost = m.frame_cost(kind, gbs[-1].num_samples, pixels=gbs[-1].height * gbs[-1].width)
         out[f"frame_cost_{kind}"] = None if cost is None else {"bytes": cost.bytes, "flops": cost.flops}
         for ev in evaluators:
             ts, cpu = res[ev]

@@ -250,7 +250,7 @@ def main(argv=None) -> dict:
             m = precomputed.with_render_config(shading=mode, specular=a.specular)   # the same precomputation,
             #                                                                      fresh frame caches
             st = time_kind(m, frames, gbs, kind, a.repeats)
-            cost = m.frame_cost(kind, gbs[1].num_samples)
+            cost = m.frame_cost(kind, gbs[1].num_samples, pixels=gbs[1].height * gbs[1].width)
             t_roof, bound = cost.bound(bw, peak)
             st.update({"bytes": cost.bytes, "flops": cost.flops, "roofline_s": t_roof, "bound": bound,
                        "efficiency": t_roof / st["wall"]["median"]})

@@ -124,7 +124,11 @@ class FrameCost:
     machine's limits: efficiency = max(bytes / bandwidth, flops / peak) / frame time.
 
     bytes: bytes the frame must move at least once — every run-time array it reads (each element
-        once, a perfect cache), the G-buffer inputs it reads, and the (P, 3) float32 output it writes.
+        once, a perfect cache), the G-buffer inputs it reads (at their dtypes: the hit flag is a 1-byte
+        bool), and the (H, W, 3) float32 image it returns (`output_bytes`). The per-sample radiance is
+        not output: a frame may average a pixel's S² samples as it shades them (session 36: before, the
+        counts had the hit flag as a 4-byte word and a (P, 3) output, 3·P + 12·(P − H·W) bytes too many,
+        3.1 MB a bench frame).
     flops: floating-point operations it must do (a multiply-add counts 2), for the arithmetic that
         the method's equations require per frame (not work a faster implementation could skip).
     """
@@ -142,8 +146,18 @@ class FrameCost:
         return (tb, "memory") if tb >= tf else (tf, "compute")
 
 
-GBUFFER_BYTES_PER_SAMPLE = 4 * (3 + 3 + 1) + 8 + 8  # what shading reads per sample: normal, wo, hit (as
-# float32 words), face index (int64) and barycentrics (2 × float32); methods add what else they read
+GBUFFER_HIT_BYTES = 1  # the hit flag (``GBuffer.hit``: bool)
+GBUFFER_BYTES_PER_SAMPLE = 4 * (3 + 3) + GBUFFER_HIT_BYTES + 8 + 8  # what shading reads per sample: normal,
+# wo (float32), hit (bool), face index (int64) and barycentrics (2 × float32); methods add what else they read
+
+
+def output_bytes(num_samples: int, pixels: int | None) -> int:
+    """Bytes of a frame's output (``FrameCost``): the (H, W, 3) float32 image ``render`` returns —
+    ``pixels`` = H·W; None (a caller that does not say): ``num_samples``, an upper bound."""
+    n = num_samples if pixels is None else pixels
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n > num_samples:
+        raise ValueError(f"pixels must be an int in [0, num_samples={num_samples}], got {pixels!r}")
+    return n * 3 * 4
 
 
 # -- methods ----------------------------------------------------------------------------------
@@ -191,9 +205,10 @@ class Method(ABC):
             raise NotImplementedError(f"{type(self).__name__} does not implement with_bounces")
         return self
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> "FrameCost | None":
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> "FrameCost | None":
         """The compulsory work of one frame of ``frame_kind`` (a sequence kind: which inputs changed)
-        on a G-buffer of ``num_samples`` samples — the roofline's numerators (``FrameCost``). Called
+        on a G-buffer of ``num_samples`` samples and ``pixels`` = H·W pixels (the output image,
+        `output_bytes`; None: ``num_samples``) — the roofline's numerators (``FrameCost``). Called
         after ``precompute``; None = not modelled. The count is the minimum any implementation of
         the method must do, never what ours happens to do: arrays read once, no padding."""
         return None

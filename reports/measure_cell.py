@@ -393,7 +393,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         info["code"] = precompute_cache._process_fingerprint(type(method).__module__)
         mem = method.memory()
         rows.append(_row("memory_bytes", sum(int(b) for b in mem.values())))
-        cost = method.frame_cost(cell.kind, gb.num_samples)  # the roofline numerators
+        cost = method.frame_cost(cell.kind, gb.num_samples, pixels=gb.height * gb.width)  # the roofline numerators
         bpf = cost.bytes if cost is not None else method.bytes_per_frame(cell.kind)
         if bpf is not None:
             rows.append(_row("bytes_per_frame", bpf))

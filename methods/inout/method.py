@@ -67,8 +67,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes, geometry_key, precompute_memo)
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, GBUFFER_HIT_BYTES, Capabilities, Frame, FrameCost, GBuffer, Method,
+                          geometry_key, output_bytes, precompute_memo, register, tensor_bytes)
 from methods.core import cubemap, gouraud
 from methods.core.fused import map_rows
 from methods.core.frames import frame_matrix
@@ -766,13 +766,13 @@ class InOut(Method):
 
     FRAME_KINDS = ("V", "L", "E", "VL")  # the sequence kinds in scope (static geometry and BRDFs)
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> FrameCost | None:
         """Compulsory work of one frame (Mahajan 2008 eq. 4 at run time; ``methods.base.FrameCost``),
         whatever our implementation does. Multiply-add = 2 flops; transcendentals (the normalising
         square roots, hemi-octahedral division, the env map's atan2/acos) are not counted.
 
         Every frame (view part): per hit sample the G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE`) and
-        its int64 region, per missed sample its hit word (4 B), the (P, 3) float32 output. A *shaded*
+        its int64 region, per missed sample its hit flag (1 B), the (H, W, 3) float32 image (``pixels``). A *shaded*
         sample is a hit whose ω_o is above its horizon (eq. 4 is 0 below); per region with K terms:
         the faces of the shaded samples (3 int64 each), the c_k (K·3 float32) of their vertices
         (*referenced* vertices) and the σ_k h_k rows (3K float32) of every table node their bilinear
@@ -807,11 +807,11 @@ class InOut(Method):
         P = num_samples
         light = "L" in frame_kind or "E" in frame_kind
         if cfg["shading"] == "vertex":
-            return self._frame_cost_vertex(P, light)
+            return self._frame_cost_vertex(P, light, pixels)
         last = self._last_view[1] if self._last_view is not None and self._last_view[0] == P else None
         if last is not None:
             last = self._view_counts(last)
-        b = P * 3 * f4                                                   # output
+        b = output_bytes(P, pixels)                                      # the image
         f = 0
         if last is not None:
             st = self._fast_static()
@@ -841,7 +841,7 @@ class InOut(Method):
         else:
             hit, Q = last["hit"], int(last["front"].sum())
             nfaces = int(torch.unique(faces).numel())
-        b += hit * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - hit) * 4 + nfaces * 3 * self.F.element_size()
+        b += hit * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - hit) * GBUFFER_HIT_BYTES + nfaces * 3 * self.F.element_size()
         f += hit * 2 * 9 + Q * (16 + 2 * 12 * 3)
         if light:
             lb, lf = self._lighting_cost()
@@ -858,12 +858,12 @@ class InOut(Method):
         return (min(H * W, 4 * sub) * 3 * f4 + D * 3 * f4,                # texels read, L written
                 sub * 2 * (9 + 4 * 3 + 3) + D * 3 * 4)                      # resampling, Haar
 
-    def _frame_cost_vertex(self, P: int, light: bool) -> FrameCost:
+    def _frame_cost_vertex(self, P: int, light: bool, pixels: int | None = None) -> FrameCost:
         """`frame_cost` of shading "vertex" (eq. 4 per vertex, Gouraud to the samples).
 
-        Every frame: per hit sample its face index (int64), barycentrics (2 float32) and hit word
-        (4 B) — not its normal or ω_o —, per missed sample its hit word, the (P, 3) float32 output
-        (the convention of the per-sample path); per *referenced* face (a hit sample lies on it)
+        Every frame: per hit sample its face index (int64), barycentrics (2 float32) and hit flag
+        (1 B) — not its normal or ω_o —, per missed sample its hit flag, the (H, W, 3) float32 image
+        (as the per-sample path); per *referenced* face (a hit sample lies on it)
         its 3 vertex ids; per referenced vertex its position and normal (6 float32); per *shaded*
         vertex (referenced, and the camera above its horizon: eq. 4 is 0 below) its c_k (3K
         float32) and the σ_k h_k rows (3K float32) of every table node the shaded vertices' cells
@@ -878,14 +878,14 @@ class InOut(Method):
         vertex referenced and shaded, every node touched (an upper bound of those terms)."""
         f4 = 4
         last = self._last_view[1].get("vertex") if self._last_view is not None and self._last_view[0] == P else None
-        b = P * 3 * f4
+        b = output_bytes(P, pixels)
         f = 0
         if last is None:
             hit, nfaces = P, int(self.F.shape[0])
             nref = sum(int(reg.verts.numel()) for reg in self.regions)
         else:
             hit, nfaces, nref = last["hits"], last["faces"], last["ref"]
-        b += hit * (8 + 8 + 4) + (P - hit) * 4 + nfaces * 3 * self.F.element_size() + nref * 6 * f4
+        b += hit * (8 + 8 + GBUFFER_HIT_BYTES) + (P - hit) * GBUFFER_HIT_BYTES + nfaces * 3 * self.F.element_size() + nref * 6 * f4
         f += hit * 2 * 9 + nref * (3 + 2 * 9)
         for s, reg in enumerate(self.regions):
             K, R = reg.K, int(round(reg.sh_lut.shape[0] ** 0.5))

@@ -70,7 +70,7 @@ from torch import Tensor
 import math
 from dataclasses import fields
 
-from methods.base import Capabilities, Frame, FrameCost, GBuffer, Method, register
+from methods.base import GBUFFER_HIT_BYTES, Capabilities, Frame, FrameCost, GBuffer, Method, output_bytes, register
 from scenes.sequences import KINDS
 from methods.core import native
 from methods.oracle import native_rays as oracle_native
@@ -894,7 +894,7 @@ class Oracle(Method):
     # Per live ray: the shadow-ray origin, the env map's rotation, the bilinear radiance, Σ contribution·L.
     FLOPS_PER_LIVE_RAY = 2 * 3 + 2 * 9 + 2 * 12 + 2 * 3
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> FrameCost | None:
         """Compulsory work of one frame of the estimator (``methods.base.FrameCost``): the oracle
         keeps nothing between frames, so every kind costs the same, plus the skinning of a posed
         frame ("P" in the kind, articulated scenes). Multiply-add = 2 flops; transcendentals
@@ -902,7 +902,7 @@ class Oracle(Method):
         the ray tracer, ``references.visibility``; its cost depends on the BVH) are not counted.
 
         bytes: per hit sample its position, normal and ω_o (3 × 3 float32), face and region (int64)
-        and hit word (4 B), per missed sample the hit word, the (P, 3) float32 output; the faces hit
+        and hit flag (1 B), per missed sample the hit flag, the (H, W, 3) float32 image (``pixels``); the faces hit
         (3 int64) and their distinct vertices (3 float32) for the geometric normals; of the env map, the
         texels the radiance look-ups touch (4 per live ray, at most H·W float32 RGB) and the
         sampling tables a light sample reads (⌈log₂ C⌉ CDF entries by binary search and one cell
@@ -930,7 +930,7 @@ class Oracle(Method):
             Q, live, faces, verts = P, P * rays, int(geom.F.shape[0]), int(geom.V.shape[0])
             H, W = (int(x) for x in self.scene.envmap.data.shape[:2])
         C = (H - 1) * W
-        b = Q * (9 * 4 + 8 + 8 + 4) + (P - Q) * 4 + P * 3 * 4 + faces * 3 * 8 + verts * 3 * 4
+        b = Q * (9 * 4 + 8 + 8 + GBUFFER_HIT_BYTES) + (P - Q) * GBUFFER_HIT_BYTES + output_bytes(P, pixels) + faces * 3 * 8 + verts * 3 * 4
         b += min(H * W, 4 * live) * 3 * 4
         b += min(C, Q * self.n_light * math.ceil(math.log2(max(C, 2)))) * 8 + min(C, Q * self.n_light) * 8
         f = Q * self.FLOPS_PER_SAMPLE + Q * rays * self.FLOPS_PER_RAY + live * self.FLOPS_PER_LIVE_RAY

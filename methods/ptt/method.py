@@ -70,8 +70,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes, geometry_key, precompute_memo)
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, GBUFFER_HIT_BYTES, Capabilities, Frame, FrameCost, GBuffer, Method,
+                          geometry_key, output_bytes, precompute_memo, register, tensor_bytes)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
 from methods.core.threads import torch_threads
@@ -781,10 +781,10 @@ class PTT(Method):
             out[sel] = (ak * L).sum(1)
         return out
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
-        """Compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples (the
-        roofline numerators, ``methods.base.FrameCost``): the sums of `cost_terms`."""
-        terms = self.cost_terms(frame_kind, num_samples)
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> FrameCost | None:
+        """Compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples and an image
+        of ``pixels`` pixels (the roofline numerators, ``methods.base.FrameCost``): the sums of `cost_terms`."""
+        terms = self.cost_terms(frame_kind, num_samples, pixels=pixels)
         if terms is None:
             return None
         nbytes, flops = terms
@@ -796,7 +796,8 @@ class PTT(Method):
         cost = self.frame_cost(frame_kind, self._last_view[0] if self._last_view is not None else 0)
         return None if cost is None else cost.bytes
 
-    def cost_terms(self, frame_kind: str, num_samples: int) -> tuple[dict[str, int], dict[str, int]] | None:
+    def cost_terms(self, frame_kind: str, num_samples: int, *, pixels: int | None = None
+                   ) -> tuple[dict[str, int], dict[str, int]] | None:
         """(bytes by array, flops by equation) of one frame; None before `precompute`.
 
         Stages (Sun Table 1): "V" runs the view stage only; "VB" also the BRDF stage (H products);
@@ -885,11 +886,11 @@ class PTT(Method):
                 tex_maps = [int(torch.unique(idx).numel())] * Lb  # one grid for every lobe (specular.on_env_grid)
         B, Fl = {}, {}
         # -- view stage (every frame)
-        B["output"] = num_samples * 3 * f4
+        B["output"] = output_bytes(num_samples, pixels)  # the (H, W, 3) image
         B["faces"] = ref_faces * 3 * (8 if vertex else self.F.element_size())  # face_pairs (int64) / F
         if vertex:
-            # G-buffer: face (int64), barycentrics, the hit word; with lobes the shading normal and ωo
-            B["gbuffer"] = Q * (8 + 8 + 4 + (24 if lobes else 0)) + (num_samples - Q) * 4
+            # G-buffer: face (int64), barycentrics, the hit flag; with lobes the shading normal and ωo
+            B["gbuffer"] = Q * (8 + 8 + GBUFFER_HIT_BYTES + (24 if lobes else 0)) + (num_samples - Q) * GBUFFER_HIT_BYTES
             B["vertices"] = ref_verts * 6 * f4  # position + normal
             rows = {"E": ref_verts * K * 3 * f4, "W_r": tex_W * K * 3 * f4}
             if lobes:
@@ -905,8 +906,8 @@ class PTT(Method):
                 if sh:
                     Fl["view_lobes_sh"] = 2 * ref_pairs * (S * 3 + Lb * order * 3 + Lb * 3 + 3)
         else:
-            # + region (int64); misses: hit word
-            B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * 4
+            # + region (int64); misses: hit flag
+            B["gbuffer"] = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (num_samples - Q) * GBUFFER_HIT_BYTES
             B["normals"] = ref_verts * 3 * f4
             rows = {"E": ref_verts * K * 3 * f4, "W_r": tex_W * K * 3 * f4}
             if lobes:

@@ -191,8 +191,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes)
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, output_bytes,
+                          register, tensor_bytes)
 from methods.core import sh as _sh
 from methods.core import sh_native
 from methods.core import zh as _zh
@@ -1105,10 +1105,10 @@ class SHPRT(Method):
         gref[rows[rows >= 0]] = True
         return int(ref.sum()), int(gref.sum())
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> FrameCost | None:
         """Compulsory work of one frame (Sloan 2002 §7 run time; ``methods.base.FrameCost``).
 
-        Every frame: per sample the G-buffer inputs and the RGB output; the faces, the per-face
+        Every frame: per sample the G-buffer inputs; the (H, W, 3) image (``pixels``); the faces, the per-face
         material rows (M, 4) float32 (kd and the glossy flag of the face's region: a hit's region is
         its face's, so the per-sample region is not needed — session 25, `_face_materials`), the
         region id (int64) of the glossy samples (the glossy pass's BRDF rows), and the per-vertex
@@ -1151,7 +1151,7 @@ class SHPRT(Method):
         M_b = tensor_bytes(self.M) * ng // max(int(self.M.shape[0]), 1)           # M of the Vgr vertices
         e_b, lg_b = nv * 3 * f4, ng * n2 * 3 * f4
         nf = int(self.F.shape[0])
-        nbytes = num_samples * (GBUFFER_BYTES_PER_SAMPLE + 12) + tensor_bytes(self.F) + nf * 4 * f4 + qg * 8 \
+        nbytes = num_samples * GBUFFER_BYTES_PER_SAMPLE + output_bytes(num_samples, pixels) + tensor_bytes(self.F) + nf * 4 * f4 + qg * 8 \
             + e_b + lg_b
         flops = num_samples * 21 + qg * (18 + 3 + 1 + 6) * n2
         light = "L" in frame_kind or "E" in frame_kind

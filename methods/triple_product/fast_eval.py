@@ -60,8 +60,8 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
     too), the truncated lighting grid, the touched faces' vertex indices, per shaded vertex its
     frame, position and region (vertex shading), the UV-space extras' arrays whole (small); the
     G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region per sample for pixel shading;
-    vertex shading reads no normal / ωo); the (P, 3) float32 output. Frames whose lighting changed
-    ("L" or "E" in the kind) add the env map's texels read and the truncated grid written (and the
+    vertex shading reads no normal / ωo); the (H, W, 3) float32 image (`methods.base.output_bytes`).
+    Frames whose lighting changed ("L" or "E" in the kind) add the env map's texels read and the truncated grid written (and the
     base coordinates read when the last re-projection was azimuthal, `relight_table_bytes`).
   * flops — per shading point (pixel: every hit sample; vertex: every shaded vertex, plus the
     Gouraud blend of 3 vertex colours per hit sample, 3·5 flops): forming the three functions from
@@ -1699,7 +1699,7 @@ def relight_table_bytes(method, live: int | None = None) -> int:
     return g.n_theta * g.n_psi * (method.K if live is None else int(live)) * 4 ** method.config["light_supersample"] * (8 + 4)
 
 
-def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
+def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None, pixels: int | None = None):
     """The compulsory work of a frame (`methods.base.FrameCost`; model in the module docstring).
 
     Args:
@@ -1708,10 +1708,11 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
             lighting changed (re-projection counted).
         num_samples: G-buffer samples P of the frame.
         envmap: the env map of an "L"/"E" frame (its texel count enters); default the scene's.
+        pixels: H·W of the frame's image (its output, `methods.base.output_bytes`); None: num_samples.
     Returns:
         FrameCost(bytes, flops), or None for ``light_lookup="exact"`` (per-point projection).
     """
-    from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost
+    from methods.base import GBUFFER_BYTES_PER_SAMPLE, FrameCost, output_bytes
 
     if not isinstance(frame_kind, str) or not frame_kind or set(frame_kind) - set("VBLEP"):
         raise ValueError(f"frame_kind must be a sequence kind made of 'V', 'B', 'L', 'E', got {frame_kind!r}")
@@ -1753,7 +1754,7 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None):
         gbuf = num_samples * (GBUFFER_BYTES_PER_SAMPLE - 2 * 3 * 4)      # normal and ωo are not read
         extras = 0
         per_vertex = rec["vertices"] * (9 * f4 + 3 * f4 + method.vertex_region.element_size())  # R, p, region
-    out = num_samples * 3 * f4
+    out = output_bytes(num_samples, pixels)                               # the (H, W, 3) image
     nbytes = vis + brdf + grid + mesh + gbuf + extras + per_vertex + out
     relit = "L" in frame_kind or "E" in frame_kind
     # the frame's reads at the grain of their zeros (`nonzero_reads`), where the fine-value path ran

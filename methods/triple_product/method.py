@@ -913,10 +913,10 @@ class TripleProduct(Method):
         return rec
 
     # -- bookkeeping ---------------------------------------------------------------------------
-    def frame_cost(self, frame_kind: str, num_samples: int):
-        """Compulsory bytes and flops of a frame of ``frame_kind`` on ``num_samples`` G-buffer samples
-        (`fast_eval.frame_cost`: the counts of the last rendered frame of that size)."""
-        return fast_eval.frame_cost(self, frame_kind, num_samples)
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None):
+        """Compulsory bytes and flops of a frame of ``frame_kind`` on ``num_samples`` G-buffer samples and an
+        image of ``pixels`` pixels (`fast_eval.frame_cost`: the counts of the last rendered frame of that size)."""
+        return fast_eval.frame_cost(self, frame_kind, num_samples, pixels=pixels)
 
     def memory(self) -> dict[str, int]:
         nv = self.n_vertex_rows

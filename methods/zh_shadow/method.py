@@ -90,8 +90,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from methods.base import (GBUFFER_BYTES_PER_SAMPLE, Capabilities, Frame, FrameCost, GBuffer, Method, register,
-                          tensor_bytes)
+from methods.base import (GBUFFER_BYTES_PER_SAMPLE, GBUFFER_HIT_BYTES, Capabilities, Frame, FrameCost, GBuffer, Method,
+                          output_bytes, register, tensor_bytes)
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
 from methods.core.fused import fused, warm_blocks
@@ -102,6 +102,10 @@ from methods.zh_shadow import precompute as pc
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
+
+# what a vertex-shaded frame reads of the G-buffer per sample to interpolate (`frame_cost`): face (int64),
+# barycentrics (2 float32) and the hit flag
+_VERTEX_GBUFFER = 8 + 8 + GBUFFER_HIT_BYTES
 
 # Samples shaded per batch (bounds the (Q, n², 3) rotated-lighting temporaries).
 SHADE_CHUNK = 1 << 15
@@ -1758,15 +1762,16 @@ class ZHShadow(Method):
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P
-        samples (`frame_cost`): min(the G-buffer's hit, face and barycentrics, 20 bytes per sample;
+        samples (`frame_cost`): min(the G-buffer's hit, face and barycentrics, 17 bytes per sample (`_VERTEX_GBUFFER`);
         the kept `gouraud.resolve_matrix` of that G-buffer, 8 bytes per non-zero + 4 per pixel)."""
         rm = self._resolve_matrix
         if rm is None or rm[2] is None or rm[0][2] != P:
-            return P * 20
-        return min(P * 20, int(rm[2].values().numel()) * 8 + int(rm[2].shape[0]) * 4)
+            return P * _VERTEX_GBUFFER
+        return min(P * _VERTEX_GBUFFER, int(rm[2].values().numel()) * 8 + int(rm[2].shape[0]) * 4)
 
-    def frame_cost(self, frame_kind: str, num_samples: int) -> FrameCost | None:
-        """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples:
+    def frame_cost(self, frame_kind: str, num_samples: int, *, pixels: int | None = None) -> FrameCost | None:
+        """The compulsory work of one frame of ``frame_kind`` on ``num_samples`` G-buffer samples (an image
+        of ``pixels`` pixels):
         the paper's run time (§4.3) at its minimum, whatever our implementation does.
 
         Vertices: only the referenced ones — the corners of the faces the last render's hit samples
@@ -1788,11 +1793,11 @@ class ZHShadow(Method):
         result (18) — fewer flops than the per-point rotations counted for the other points. Per
         kind (frame_kind letters; what did not change is reused):
 
-        * bytes: the (P, 3) float32 output; the faces F (int64); the BRDF parameters (kd, ks, α per
+        * bytes: the (H, W, 3) float32 image (``pixels``); the faces F (int64); the BRDF parameters (kd, ks, α per
           region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
           SH lighting — and for "E" the new env map (H·W·3 float32). Frames that are not
           lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
-          region; "vertex": hit, face and barycentrics — 20 bytes — to interpolate the radiance,
+          region; "vertex": hit, face and barycentrics — 17 bytes — to interpolate the radiance,
           and the referenced vertices' positions and normals for the front test, N_r·6 float32) and
           per vertex whose visibility is needed (N_v: "sample" the referenced N_r, "vertex" the
           points Q), with "P", its columns of the linear model X ((J+1)·N_v·c(2+n) float32: 6c at
@@ -1803,10 +1808,10 @@ class ZHShadow(Method):
           (n² floats per term: diffuse + specular), for a specular point on a plane its specular
           t, for a sample on a plane its face and two barycentrics (12 bytes: the third is
           1 − u − v), and the plane vertices' v (n² floats); "vertex": the interpolation of the
-          radiance, 20 bytes per sample, or — once a lighting-only frame has kept the G-buffer's
+          radiance, 17 bytes per sample, or — once a lighting-only frame has kept the G-buffer's
           interpolation + box-filter operator (`gouraud.resolve_matrix`), when smaller — that
           operator, 8 bytes per non-zero (a float32 weight, an int32 vertex) + 4 per pixel (session 18:
-          the implementation reads it instead of the G-buffer, so the G-buffer's 20 bytes per sample
+          the implementation reads it instead of the G-buffer, so the G-buffer's 17 bytes per sample
           were no longer compulsory).
         * flops (a multiply-add is 2): with "P", per vertex of the N_v the model [pose, 1]·X (2(J+1)·c(2+n)) and
           per lobe the chart → axis → world transform (25) and ZH → SH (3n²: y(s), Λ_l k_l y,
@@ -1867,12 +1872,12 @@ class ZHShadow(Method):
         env_bytes = int(torch.as_tensor(self.scene.envmap.data).numel()) * 4
         H = int(torch.as_tensor(self.scene.envmap.data).shape[0])
         # -- bytes
-        b = P * 3 * 4 + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
+        b = output_bytes(P, pixels) + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
         if lighting_only:
             b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
         else:
-            b += P * 20 + Nr * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
+            b += P * _VERTEX_GBUFFER + Nr * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
             # "P": X's columns and the posed normals — for "vertex" those normals are among the N_r·6
             # positions and normals already counted above (read once: not counted again)
             b += (J1 * Nv * d + (0 if vertex else Nv * 3)) * 4 if pose else Nv * min(n2, d + 3) * 4

@@ -137,7 +137,7 @@ def test_oracle_frame_cost_is_the_hand_count(monkeypatch):
     C = (H - 1) * W
     live = traced[0]
     assert 0 < live < Q * 5
-    b = Q * 56 + (P - Q) * 4 + P * 12 + faces.numel() * 24 + verts * 12 + min(H * W, 4 * live) * 12 \
+    b = Q * 53 + (P - Q) * 1 + P * 12 + faces.numel() * 24 + verts * 12 + min(H * W, 4 * live) * 12 \
         + min(C, Q * 2 * math.ceil(math.log2(C))) * 8 + min(C, Q * 2) * 8
     f = Q * 56 + Q * 5 * 31 + live * 54
     for kind in ("V", "VBL", "L", "E", "P"):          # static scene: a "P" frame skins nothing

@@ -558,7 +558,7 @@ def test_frame_cost_is_the_hand_count(tiny):
     Qh, Qs = int(hit.sum()), int(shaded.sum())
     faces = gb.face[shaded]
     geom_F = m.F
-    b = P * 12 + Qh * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - Qh) * 4 + torch.unique(faces).numel() * 24
+    b = P * 12 + Qh * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P - Qh) * 1 + torch.unique(faces).numel() * 24
     f = Qh * 18 + Qs * (16 + 72)
     light_b, light_f = 0, 0
     for r, name in enumerate(m.scene.regions):
@@ -855,7 +855,7 @@ def test_vertex_frame_cost_is_the_hand_count(tiny):
     Nrm = torch.nn.functional.normalize(torch.as_tensor(geom.N).float(), dim=-1)
     cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
     faces = torch.unique(gb.face[hit])
-    b = P * 12 + Qh * 20 + (P - Qh) * 4 + faces.numel() * 24
+    b = P * 12 + Qh * 17 + (P - Qh) * 1 + faces.numel() * 24
     f = Qh * 18
     light_b, light_f = 0, 0
     nref = culled = 0
@@ -890,7 +890,7 @@ def test_vertex_frame_cost_is_the_hand_count(tiny):
     Pn = 1000
     ub = m.frame_cost("V", Pn)
     nall = sum(int(reg.verts.numel()) for reg in m.regions)
-    b = Pn * 12 + Pn * 20 + m.F.shape[0] * 24 + nall * 24
+    b = Pn * 12 + Pn * 17 + m.F.shape[0] * 24 + nall * 24
     f = Pn * 18 + nall * 21
     for reg in m.regions:
         R = m.config["lut_res"]

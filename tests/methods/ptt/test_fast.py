@@ -203,11 +203,11 @@ def test_frame_cost_is_the_hand_count(tiny):
     # bytes: G-buffer + output + referenced rows (V); a rebuilt cache counts its whole write
     f4 = 4
     if vertex:  # face, barycentrics, hit word, normal and ωo; face_pairs rows; positions + normals
-        v_bytes = Q * 44 + (P_all - Q) * 4 + P_all * 12 + torch.unique(faces).numel() * 24 + verts * 24 \
+        v_bytes = Q * 41 + (P_all - Q) * 1 + P_all * 12 + torch.unique(faces).numel() * 24 + verts * 24 \
             + verts * K * 12 + texW * K * 12 + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + rows_a * L * 12 \
             + L * tex_env * 12 + verts * S * 12
     else:
-        gbuf = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P_all - Q) * 4 + P_all * 12
+        gbuf = Q * (GBUFFER_BYTES_PER_SAMPLE + 8) + (P_all - Q) * 1 + P_all * 12
         v_bytes = gbuf + torch.unique(faces).numel() * 24 + verts * 12 + verts * K * 12 + R * T * T * K * 12 \
             + min(verts * 16 * L, tensor_bytes(m.lobe_vis)) + R * nt * L * 12 + L * min(H * W, Q * 4) * 12 \
             + verts * S * 12
