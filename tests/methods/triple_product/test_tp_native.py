@@ -173,6 +173,24 @@ def test_vis_packed_follows_its_table():
     assert torch.equal(fast_eval.vis_packed(m, V1, c1), p1)
 
 
+def _chess_vertex(seed: int):
+    """A per-vertex triple product on the chess test scene (its auto-evaluator twin without the perf cache),
+    its V, L, V frames of ``seed`` and its first region (the renders below edit that region's material)."""
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
+                      brdf_supersample=1, progress=False)
+    m.precompute(scene)
+    off = m.with_evaluator("auto")
+    off.__dict__.pop("_perf_cache", None)
+    views, lights = make_sequence(scene, "V", n_frames=2, seed=seed), make_sequence(scene, "L", n_frames=2, seed=seed)
+    return scene, m, off, views, views + lights + views, next(iter(scene.regions))
+
+
 def test_render_chunk_major_same_bits(monkeypatch):
     """Per-vertex renders reading the ρ̃ table chunk-major (`fast_eval.rho_major`, chess test scene: 160
     live triangles), the lighting table once its lighting is complete (`fast_eval.light_major`) and the
@@ -184,21 +202,9 @@ def test_render_chunk_major_same_bits(monkeypatch):
     import dataclasses
 
     from references.gbuffer import make_gbuffer
-    from scenes.library import get_scene
     from scenes.materials import Phong
-    from scenes.sequences import make_sequence
 
-    from methods.triple_product import TripleProduct
-
-    scene = get_scene("chess", "test")
-    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
-                      brdf_supersample=1, progress=False)
-    m.precompute(scene)
-    off = m.with_evaluator("auto")
-    off.__dict__.pop("_perf_cache", None)
-    views, lights = make_sequence(scene, "V", n_frames=2, seed=1), make_sequence(scene, "L", n_frames=2, seed=1)
-    frames = views + lights + views
-    region = next(iter(scene.regions))
+    scene, m, off, views, frames, region = _chess_vertex(1)
     frames.append(dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)}))
     rho, light, complete = [], [], []
     for f in frames:
@@ -543,21 +549,9 @@ def test_render_packed_only_same_bits(monkeypatch):
     import dataclasses
 
     from references.gbuffer import make_gbuffer
-    from scenes.library import get_scene
     from scenes.materials import Phong
-    from scenes.sequences import make_sequence
 
-    from methods.triple_product import TripleProduct
-
-    scene = get_scene("chess", "test")
-    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
-                      brdf_supersample=1, progress=False)
-    m.precompute(scene)
-    off = m.with_evaluator("auto")
-    off.__dict__.pop("_perf_cache", None)
-    views, lights = make_sequence(scene, "V", n_frames=2, seed=2), make_sequence(scene, "L", n_frames=2, seed=2)
-    frames = views + lights + views
-    region = next(iter(scene.regions))
+    scene, m, off, views, frames, region = _chess_vertex(2)
     edit = dataclasses.replace(frames[-1], materials={**frames[-1].materials, region: Phong(kd=0.3, ks=0.4, s=20.0)})
     frames += [edit, dataclasses.replace(views[0], materials=edit.materials)]
     kinds = ["V", "V", "L", "L", "V", "V", "VB", "V"]
