@@ -52,8 +52,34 @@ def share_of_cores(cores: int, slots: int) -> int:
     return max(1, cores // slots)
 
 
+ORPHAN_POLL_S = 1.0  # how often a pool worker checks that the process that started it is alive
+
+
+def _exit_with_parent() -> None:
+    """A pool worker ends when the process that started it is gone: killed (SIGKILL, a session's end, an
+    interrupted run) it cannot shut its pool down, and its worker — a cell's precomputation, a timed frame —
+    would run on as an orphan, taking a core from whatever is measured next (session 36: a killed prewarm's
+    child ran 5 CPU-minutes into a perf run). A daemon thread checks once a second (`ORPHAN_POLL_S`) that
+    the parent is still the same process and otherwise exits at once (no results: the run was gone)."""
+    import threading
+    import time
+
+    known = mp.parent_process()      # the pid the parent had when it started us: a parent killed before this
+    parent = known.pid if known is not None and known.pid else os.getppid()   # initializer ran is gone too
+
+    def watch() -> None:
+        while True:
+            time.sleep(ORPHAN_POLL_S)
+            if os.getppid() != parent:
+                os._exit(3)
+
+    threading.Thread(target=watch, name="prtbench-orphan-watch", daemon=True).start()
+
+
 def _init_worker(threads: int) -> None:
-    """Process-pool initializer: the worker's thread share (read per task by ``task_threads``)."""
+    """Process-pool initializer: the worker's thread share (read per task by ``task_threads``); the worker
+    ends with its parent (`_exit_with_parent`)."""
+    _exit_with_parent()
     os.environ[THREADS_ENV] = str(int(threads))
     import torch
 
@@ -102,7 +128,20 @@ class LocalExecutor(BenchExecutor):
 METHOD_PROCESS_ENV = "PRTBENCH_METHOD_PROCESS"  # set inside a MethodProcessExecutor's child
 
 
+class _OrphanCell:
+    """A stand-in cell for tests of `MethodProcessExecutor` (its ``submit`` groups by method and config)."""
+    method, config = "test", "{}"
+
+
+def _orphan_test_sleep(cell, seconds: float = 600.0) -> None:
+    """A task that sleeps (tests: a worker busy when its parent is killed)."""
+    import time
+
+    time.sleep(seconds)
+
+
 def _init_method_process() -> None:
+    _exit_with_parent()
     os.environ[METHOD_PROCESS_ENV] = "1"
 
 

@@ -409,3 +409,54 @@ def test_bad_warm_setting_is_one_clear_error_before_any_cell(tmp_path, monkeypat
     with pytest.raises(ValueError, match="PRTBENCH_WARM must be 0 or 1"):
         R.run_cells([], tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+_ORPHAN_PARENT = r"""
+import os, sys, time
+from reports import executors as X
+ex = X.{cls}()
+fut = ex.submit({submit})
+for _ in range(200):
+    if ex.pids():
+        break
+    time.sleep(0.05)
+print(" ".join(str(p) for p in ex.pids()), flush=True)
+time.sleep(600)
+"""
+
+
+@pytest.mark.parametrize("cls, submit", [("ProcessesExecutor", "time.sleep, 600"),
+                                         ("MethodProcessExecutor", "time.sleep, 600")])
+def test_pool_workers_end_with_a_killed_parent(cls, submit):
+    """A run killed with SIGKILL cannot shut its pool down: its workers notice the parent is gone
+    (`executors._exit_with_parent`) and exit within a few seconds instead of running on as orphans."""
+    import subprocess
+    import sys
+
+    if cls == "MethodProcessExecutor":   # its submit groups by the cell's (method, config): a stand-in cell
+        submit = "X._orphan_test_sleep, X._OrphanCell()"
+    code = _ORPHAN_PARENT.format(cls=cls, submit=submit)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])}
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        pids = [int(x) for x in p.stdout.readline().split()]
+        assert pids, "the pool started no worker"
+    finally:
+        p.kill()
+        p.wait()
+
+    def alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        with open(f"/proc/{pid}/stat") as f:          # a zombie has exited
+            return f.read().split(")")[-1].split()[0] != "Z"
+
+    deadline = time.monotonic() + 15 * X.ORPHAN_POLL_S + 10
+    while any(alive(q) for q in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = [q for q in pids if alive(q)]
+    for q in left:
+        os.kill(q, signal.SIGKILL)
+    assert not left, f"pool workers outlived their killed parent: {left}"
