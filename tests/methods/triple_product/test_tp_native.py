@@ -594,18 +594,8 @@ def test_packed_only_native_switched_off(monkeypatch):
     are switched off afterwards (``PRTBENCH_COMPILE=0``: `native.available` False) renders through the
     torch kernels on the rows unpacked — the image of an instance that kept its rows, bit for bit."""
     from references.gbuffer import make_gbuffer
-    from scenes.library import get_scene
-    from scenes.sequences import make_sequence
 
-    from methods.triple_product import TripleProduct
-
-    scene = get_scene("chess", "test")
-    m = TripleProduct(level=2, n_coeffs=None, shading="vertex", frame_grid=(5, 8, 1), brdf_dirs=(4, 4),
-                      brdf_supersample=1, progress=False)
-    m.precompute(scene)
-    off = m.with_evaluator("auto")
-    off.__dict__.pop("_perf_cache", None)
-    f0, f1 = make_sequence(scene, "V", n_frames=2, seed=4)
+    scene, m, off, (f0, f1), _, _ = _chess_vertex(4)
     g0, g1 = make_gbuffer(scene, f0, 1), make_gbuffer(scene, f1, 1)
     m.render(f0, g0)
     assert m._perf_cache.get(("packed", "V")) is not None and m._perf_cache.get(("live", "V")) is None
