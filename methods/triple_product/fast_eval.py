@@ -56,7 +56,8 @@ frame, n = kept coefficients per function, counts of the last rendered frame of 
 (``method.last_frame()``: shaded samples, distinct faces, distinct visibility rows, shaded
 vertices, groups of `fine_grouped`; before any render, upper bounds from the sample count):
   * bytes — every array read once: the visibility rows the G-buffer touches (n values + n indices;
-    indices of a full table carry nothing and are not counted), every ρ̃ table (SBRDF "b" tables
+    indices of a full table carry nothing and are not counted; on the fine-value path their non-zeros
+    only, see below), every ρ̃ table (SBRDF "b" tables
     too), the truncated lighting grid, the touched faces' vertex indices, per shaded vertex its
     frame, position and region (vertex shading), the UV-space extras' arrays whole (small); the
     G-buffer inputs (`GBUFFER_BYTES_PER_SAMPLE` + the int64 region per sample for pixel shading;
@@ -90,8 +91,11 @@ vertices, groups of `fine_grouped`; before any render, upper bounds from the sam
     non-zero triangles (K' = its count in (b)); a group counts its row's non-zero triangles; and a
     re-projection counts only the (grid frame, live triangle) pairs some point looks up with a
     non-zero weight and has non-zero visibility on (60–67 % of the looked-up frames' pairs), the
-    grid written likewise. Reading a row whole is still the least a frame reads (the zeros are
-    known only from the row), so bytes keep whole rows. Our implementation skips most of those
+    grid written likewise. The visibility rows' bytes at the same grain (session 37; until then whole
+    rows, on the grounds that the zeros are known only from the row — but a bit per live column says
+    where they are for 1/32 of the row): per distinct row read its non-zero values, ⌈n'/8⌉ bytes of
+    bit mask and an int64 start (`visibility_read_bytes`; creature bench per vertex 11.4 → ~6.7 MB).
+    Our implementation skips most of those
     zeros where one visibility row is summed per item (per-vertex points, pixel groups: the native
     loop of `native`, over each row's non-zero 8-column chunks — 63-67 % of the live columns summed
     where 54-57 % are non-zero on the bench scenes, 75-83 % of the zeros skipped); the re-projection
@@ -1691,6 +1695,20 @@ def nonzero_reads(method, live: Tensor, reads: list, *, k_v: int, pairs: bool) -
     return {"point": point, "group": group, "pairs": None if need is None else int((need > 0).sum())}
 
 
+def visibility_read_bytes(method, live: Tensor, rows: Tensor) -> int:
+    """Bytes of the visibility rows ``rows`` (distinct row indices) of the live fine-value table (`live_table`
+    of the live triangles ``live``) a frame must read at least once, at the grain of their zeros (module
+    docstring, "Frame cost"): per row its non-zero values (float32), a bit per live column saying which
+    are non-zero (⌈n'/8⌉ bytes) and where its values start (int64). The native loops read more (the
+    8-column chunks holding the non-zeros and an int32 start per chunk, `native.chunks`); the torch
+    path whole rows."""
+    if rows.numel() == 0:
+        return 0
+    Vl = live_table(method, "V", method.V_val, live)
+    nonzero = int((Vl.index_select(0, rows.to(Vl.device).long()) != 0).sum())
+    return nonzero * 4 + int(rows.numel()) * ((int(Vl.shape[1]) + 7) // 8 + 8)
+
+
 def relight_table_bytes(method, live: int | None = None) -> int:
     """Bytes of the base coordinates an azimuthal re-projection reads (`lighting._azimuthal_samples`:
     float64 u0 and float32 v0 per sample of the n_theta·n_psi base frames; of the live fine
@@ -1738,8 +1756,13 @@ def frame_cost(method, frame_kind: str, num_samples: int, *, envmap=None, pixels
                "vis_rows": min(int(method.V_idx.shape[0]), (4 if method.tex_rows is not None else 3) * num_samples),
                "vertices": min(int(method.V.shape[0]), 3 * num_samples)}
     f4 = 4
-    # run-time arrays read once
-    vis = rec["vis_rows"] * nw * (f4 + _idx_bytes(method, "V", method.V_idx))
+    # run-time arrays read once; the visibility rows of the fine-value path at the grain of their zeros
+    # (`visibility_read_bytes`), else whole (n values + n indices)
+    ids = rec.get("vis_row_ids")
+    if live_t is not None and ids is not None and not callable(ids) and _idx_bytes(method, "V", method.V_idx) == 0:
+        vis = visibility_read_bytes(method, live_t, ids)
+    else:
+        vis = rec["vis_rows"] * nw * (f4 + _idx_bytes(method, "V", method.V_idx))
     bi = _brdf_stack(method)[0]
     n_tab = len(method.tables) + len(getattr(method, "blends", {}) or {})
     brdf = n_tab * method.outgoing.size * nw * (3 * f4 + _idx_bytes(method, "rho", bi))

@@ -893,13 +893,14 @@ class TripleProduct(Method):
     def _record_frame(self, gbuffer: GBuffer, shaded: int, faces, vis_rows, vertices: Tensor | None,
                       groups: int = 0) -> None:
         """What the frame read, for `frame_cost`: shaded samples, distinct faces, distinct
-        visibility rows (vertices / texels), shaded vertices (vertex shading) and the groups eq. 7
+        visibility rows (vertices / texels; and which: ``vis_row_ids``), shaded vertices (vertex shading) and the groups eq. 7
         was summed for (`fast_eval.fine_grouped`; 0: per point), and the rows the fine-value path read
         (``stats["frame_reads"]``, filled while the frame shades). ``faces`` / ``vis_rows``: tensors, or
         callables making them, called by `last_frame` (after the frame: bookkeeping is not timed)."""
         self.stats["last_frame"] = {"samples": int(gbuffer.num_samples), "shaded": int(shaded),
                                     "faces": faces if callable(faces) else int(faces.numel()),
                                     "vis_rows": vis_rows if callable(vis_rows) else int(vis_rows.numel()),
+                                    "vis_row_ids": vis_rows,       # which rows (`frame_cost` counts their non-zeros)
                                     "vertices": 0 if vertices is None else int(vertices.numel()),
                                     "groups": int(groups), "reads": self.stats.get("frame_reads")}
 
@@ -907,9 +908,11 @@ class TripleProduct(Method):
         """`_record_frame`'s record of the last rendered frame with its deferred counts made ({} before
         any frame)."""
         rec = self.stats.get("last_frame") or {}
-        for k in ("faces", "vis_rows"):
-            if callable(rec.get(k)):
-                rec[k] = int(rec[k]().numel())
+        if callable(rec.get("vis_rows")):
+            rec["vis_row_ids"] = rec["vis_rows"]()
+            rec["vis_rows"] = int(rec["vis_row_ids"].numel())
+        if callable(rec.get("faces")):
+            rec["faces"] = int(rec["faces"]().numel())
         return rec
 
     # -- bookkeeping ---------------------------------------------------------------------------

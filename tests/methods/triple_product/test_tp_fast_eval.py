@@ -212,6 +212,8 @@ def test_frame_cost_tiny_config(scene_frame, n):
         assert int(nz.sum()) < nv * nl                   # this scene has such zeros: the grain is tested
         want_f = sum(int(z) * (3 * (4 + 3) + 3 * (4 + 3)) + _hand_triple(m, nk, True, int(z)) for z in nz) \
             + nh * 3 * (3 + 2)
+        # and its visibility row's bytes likewise: its non-zero values, a bit per live triangle, an int64 start
+        want_b += int(nz.sum()) * 4 + nv * ((nl + 7) // 8 + 8) - nv * nw * 4
     assert (got.bytes, got.flops) == (want_b, want_f)
     from methods.triple_product import lighting as lt
 
@@ -260,6 +262,8 @@ def test_frame_cost_tiny_config(scene_frame, n):
     rows = torch.unique(idx[hit][w[hit] != 0])
     c = pixel.frame_cost("V", P)
     want_b = rows.numel() * nw * (4 + ib) + tables + grid + mesh + P * (GBUFFER_BYTES_PER_SAMPLE + 8) + out
+    if n is None:  # the rows' non-zero values, a bit per live triangle, an int64 start (as per vertex)
+        want_b += int(Vfine[rows].sum()) * 4 + rows.numel() * ((nl + 7) // 8 + 8) - rows.numel() * nw * 4
     want_f = nh * (nw * ((3 + 2) + 3 * (4 + 3) + 3 * (4 + 3)) + triple)  # V: 3 vertex rows
     if n is None:  # full tables: summed by groups (fast_eval.fine_grouped) — its count is smaller
         from methods.triple_product import brdf_table as bt
