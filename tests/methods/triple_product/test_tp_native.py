@@ -604,3 +604,65 @@ def test_packed_only_native_switched_off(monkeypatch):
     assert not native.available()
     assert torch.equal(m.render(f1, g1), off.render(f1, g1))
     assert m._perf_cache.get(("live", "V")) is None                       # unpacked for the frame, not kept
+
+
+def test_pixel_frames_read_the_kept_rows(monkeypatch):
+    """A per-pixel instance's frames after its first (views, then a lighting change) read the live
+    visibility rows and chunk lists built once — no row unpacked (`fast_eval.unpacked`,
+    `native.unpack_chunks`: `VIS_PACKED_ONLY` is the per-vertex loop's), nothing packed, no fine-value
+    table, chunk list or fullness test rebuilt — through the grouped native loop (`native.groups`), with
+    the full index table held broadcast (`method._broadcast_full`); the image equals that of an instance
+    built the session-35 way (index table dense, packed-only off) bit for bit. Session 37's check of
+    the per-pixel V frames that read 0.85x in session 36's runs (tp37): a per-frame unpack or rebuild
+    fails it."""
+    import copy
+
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    from methods.triple_product import TripleProduct
+
+    scene = get_scene("chess", "test")
+    m = TripleProduct(level=2, n_coeffs=None, frame_grid=(5, 8, 1), brdf_dirs=(4, 4), brdf_supersample=1,
+                      progress=False)
+    m.precompute(scene)
+    assert m.config["shading"] == "pixel" and m.V_idx.stride() == (0, 1)
+    dense = copy.copy(m.with_evaluator("auto"))
+    dense.__dict__.pop("_perf_cache", None)
+    dense.V_idx = m.V_idx.contiguous()
+    frames = make_sequence(scene, "V", n_frames=3, seed=5) + make_sequence(scene, "L", n_frames=2, seed=5)
+    calls: dict[str, int] = {}
+
+    def counted(mod, name):
+        f = getattr(mod, name)
+
+        def g(*a, **k):
+            calls[name] = calls.get(name, 0) + 1
+            return f(*a, **k)
+        monkeypatch.setattr(mod, name, g)
+
+    for mod, name in ((fast_eval, "unpacked"), (native, "unpack_chunks"), (native, "packed_chunks"),
+                      (native, "chunks"), (fast_eval, "fine_values"), (native, "groups")):
+        counted(mod, name)
+    keep = ("live", "V"), ("chunks",), ("full", "V"), ("live_tris",)
+    held = None
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(scene, f, 1)
+        calls.clear()
+        img = m.render(f, gb)
+        now = {k: m._perf_cache.get(k) for k in keep}
+        assert all(v is not None for v in now.values())
+        assert m._perf_cache.get(("packed", "V")) is None and m._perf_cache.get(("major", "V")) is None
+        if i:
+            assert all(now[k] is held[k] for k in keep), i                # the tables of the first frame
+            assert calls.get("groups", 0) >= 1, calls                     # the grouped native loop ran
+            for name in ("unpacked", "unpack_chunks", "packed_chunks", "chunks"):
+                assert calls.get(name, 0) == 0, (i, name, calls)
+            if i < 3:                                                     # a view change transforms nothing
+                assert calls.get("fine_values", 0) == 0, (i, calls)
+        held = now
+        monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", False)
+        ref = dense.render(f, gb)
+        monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", True)
+        assert torch.equal(img, ref), i
