@@ -3582,13 +3582,17 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
 # `fused_pixels`' object samples with the interpolated dot regrouped (``fma``, `ZHShadow.fma_terms`):
 # `zh33p_fused` evaluates Σ_f ((U0[c, f] b0 + U1[c, f] b1) + U2[c, f] b2) · feature[f] lane by lane as
 # Inductor's `sample_terms` kernel does (its bits: per point and channel 10 eight-lane steps of 3 products,
-# 2 sums, a product and a sum — ~210 vector operations a point, ~2.5 of a paper V frame's ~4.3 ms fused
-# pass at 1 thread); here the same sum as b0 (U0[c]·f) + b1 (U1[c]·f) + b2 (U2[c]·f): per point 9 running
+# 2 sums, a product and a sum — ~210 vector operations a point; `perf` puts ~1/3 of a paper V frame's ~4.3 ms
+# fused pass at 1 thread in that dot); here the same sum as b0 (U0[c]·f) + b1 (U1[c]·f) + b2 (U2[c]·f): per point 9 running
 # dot products of fused multiply-adds (3 corners × 3 channels, 9 independent chains) and one 8-lane
 # combination and tree per channel — 3·K/8·3 multiply-adds instead of 7·3·K/8 operations. The same terms to
 # float32 round-off (not the same bits: the sums in another order, products fused), the plane samples and
 # everything else as `zh33p_fused` (the same source, ``-ffp-contract=off`` outside the explicit multiply-adds).
-# Each point is one thread's: the bits do not depend on the thread count.
+# Each point is one thread's: the bits do not depend on the thread count. Bench creature V frame, 36 K object
+# samples, 1 thread, same process (`benchmarks.zh_fused_ab`): the pass 4.43 → 4.26 ms (p25; 4.19 → 3.94 min),
+# with every table row in L1 3.76 → 3.57 — the dot's arithmetic is not what bounds the object samples (the
+# plane part alone is ~1.8 ms; the table rows' misses ~0.6). Dropped: prefetching the next 8 points' rows
+# (+0.3 ms with the rows in L1, within the noise with the real table).
 def _fma_dot(K: int) -> str:
     assert K % 8 == 0
     return f"""
@@ -3619,20 +3623,6 @@ def _terms_k(D: int, dif: bool, spec: bool) -> int:
     return (((D + 1) * (D + 2) // 2 + 3) if dif else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if spec else 0)
 
 
-# the next batch's table rows fetched while this batch's features and dots run (their first use otherwise
-# waits on the row: ~1/6 of the dot's time in a profile of a V frame's pass)
-_FMA_PREFETCH = r"""            for (int64_t i = g + 8; i < g + 16 && i < no; ++i) {
-                const int64_t f = face[oq[i]];
-                if ((uint64_t)f >= (uint64_t)M) continue;
-                for (int k = 0; k < 3; ++k) {
-                    int64_t v = F[3 * f + k];
-                    if (lut) v = (uint64_t)v < (uint64_t)N ? lut[v] : -1;
-                    if ((uint64_t)v >= (uint64_t)NU) continue;
-                    const char *row = (const char *)(U + v * 3 * K);
-                    for (int64_t b = 0; b < 3 * K * 4; b += 64) __builtin_prefetch(row + b);
-                }
-            }
-            float fb[8 * 80] __attribute__((aligned(64)));"""
 _FMA_DOT_CALL = "dt(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);"
 _FMA_FUSED_SOURCE = _FUSED_SOURCE.replace(
     "typedef void (*dt_fn)", r"""static inline v8 fma8(v8 a, v8 b, v8 c) {
@@ -3646,7 +3636,6 @@ _FMA_FUSED_SOURCE = _FUSED_SOURCE.replace(
 }
 """ + "".join(_fma_dot(_terms_k(*v)) for v in TERMS_VARIANTS) + "typedef void (*dt_fn)", 1) \
     .replace("void zh33p_fused(", "void zh37v_fused(", 1) \
-    .replace("            float fb[8 * 80] __attribute__((aligned(64)));", _FMA_PREFETCH, 1) \
     .replace("    const dt_fn dt = dts[variant];",
              "    static const dt_fn dfs[] = {" + ", ".join(f"df_{_terms_k(*v)}" for v in TERMS_VARIANTS) + "};\n"
              f"    const dt_fn dt = dfs[variant % {len(TERMS_VARIANTS)}];", 1)
