@@ -866,6 +866,11 @@ class ZHShadow(Method):
     # the plane pass (the tests' oracle)
     fused_planes = True
 
+    # `_fused_planes`' object samples with the interpolated dot regrouped into fused multiply-adds (`native.fused_pixels`'
+    # ``fma``, `zh37v_fused`: float32 round-off against the bits below); False: `zh33p_fused`, bit for bit the separate
+    # passes (the tests' oracle)
+    fma_terms = True
+
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
                       mats: list, spec: list[bool], F32: Tensor, fv: Tensor, nmiss: int) -> Tensor | None:
         """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
@@ -928,7 +933,7 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
-                              spec, D, True, has_spec, clamp, S2)
+                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms)
         if res is None:
             return None
         img, nspec = res

@@ -435,8 +435,10 @@ def plane_mask(normal: Tensor, n0: Tensor, region: Tensor, spec: Tensor, hit: Te
     if hit is not None and (hit.dtype != torch.bool or hit.shape != (P,) or not hit.is_contiguous()
                             or hit.device.type != "cpu"):
         return None
-    fn.plane_mask(normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
-                  mask.data_ptr(), cnt.data_ptr(), 0 if hit is None else hit.data_ptr())
+    vec = _pmask_lib() if VECTOR_PLANE_MASK and sp.dim() == 1 and sp.shape[0] <= 64 else None   # (zh37v)
+    (fn.plane_mask if vec is None else vec.zh37v_plane_mask)(
+        normal.data_ptr(), n0.data_ptr(), region.data_ptr(), sp.data_ptr(), int(sp.shape[0]), P, nt,
+        mask.data_ptr(), cnt.data_ptr(), 0 if hit is None else hit.data_ptr())
     c = cnt.tolist()
     if any(r[2] for r in c):
         return None
@@ -1860,7 +1862,8 @@ def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, 
 
 def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
                  F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
-                 D: int, diffuse: bool, specular: bool, clamp: bool, S2: int) -> tuple[Tensor, int] | None:
+                 D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False
+                 ) -> tuple[Tensor, int] | None:
     """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
     (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
     `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
@@ -1868,8 +1871,10 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     layouts, a face, vertex or region out of range). face (P,) int64, bary (P, 2) float32 of any strides, wo
     (P, 3) float32 column-major (the G-buffer's layout), normal (P, 3) contiguous, mask / hit (P,) bool, F32
     (M, 3) int32, u (N, 3), U (NU, 3, K) float32 (rows lut[vertex] when lut (N,) int32 is given), region (P,)
-    int64."""
-    lib = _fused_lib()
+    int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits)."""
+    lib = _fma_fused_lib() if fma else None
+    if lib is None:   # (the regrouped dot's library not built: `zh33p_fused`'s bits)
+        lib, fma = _fused_lib(), False
     key = (D, bool(diffuse), bool(specular))
     if lib is None or key not in TERMS_VARIANTS:
         return None
@@ -1900,7 +1905,8 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     stat = torch.zeros(2, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     variant = TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key)
-    lib.zh33p_fused(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
+    (lib.zh37v_fused if fma else lib.zh33p_fused)(
+                    n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
                     wo.data_ptr(), wo.stride(1), mask.data_ptr(), 0 if hit is None else hit.data_ptr(),
                     F32.data_ptr(), int(F32.shape[0]), u.data_ptr(), N, U.data_ptr(), int(U.shape[0]), K,
                     0 if lut is None else lut.data_ptr(), region.data_ptr(), sreg.data_ptr(), int(sreg.shape[0]),
@@ -3570,3 +3576,135 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
                       nT.data_ptr(), nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax),
                       int(bool(zyz)), int(dim == 1), nt, out.data_ptr(), bad.data_ptr())
     return None if int(bad[0]) else out
+
+
+# -- zh37v ------------------------------------------------------------------------------------------
+# `fused_pixels`' object samples with the interpolated dot regrouped (``fma``, `ZHShadow.fma_terms`):
+# `zh33p_fused` evaluates Σ_f ((U0[c, f] b0 + U1[c, f] b1) + U2[c, f] b2) · feature[f] lane by lane as
+# Inductor's `sample_terms` kernel does (its bits: per point and channel 10 eight-lane steps of 3 products,
+# 2 sums, a product and a sum — ~210 vector operations a point; `perf` puts ~1/3 of a paper V frame's ~4.3 ms
+# fused pass at 1 thread in that dot); here the same sum as b0 (U0[c]·f) + b1 (U1[c]·f) + b2 (U2[c]·f): per point 9 running
+# dot products of fused multiply-adds (3 corners × 3 channels, 9 independent chains) and one 8-lane
+# combination and tree per channel — 3·K/8·3 multiply-adds instead of 7·3·K/8 operations. The same terms to
+# float32 round-off (not the same bits: the sums in another order, products fused), the plane samples and
+# everything else as `zh33p_fused` (the same source, ``-ffp-contract=off`` outside the explicit multiply-adds).
+# Each point is one thread's: the bits do not depend on the thread count. Bench creature V frame, 36 K object
+# samples, 1 thread, same process (`benchmarks.zh_fused_ab`): the pass 4.43 → 4.26 ms (p25; 4.19 → 3.94 min),
+# with every table row in L1 3.76 → 3.57 — the dot's arithmetic is not what bounds the object samples (the
+# plane part alone is ~1.8 ms; the table rows' misses ~0.6). Dropped: prefetching the next 8 points' rows
+# (+0.3 ms with the rows in L1, within the noise with the real table).
+def _fma_dot(K: int) -> str:
+    assert K % 8 == 0
+    return f"""
+static void df_{K}(const float* f, const float* u0, const float* u1, const float* u2, float b0, float b1, float b2,
+                   float* out) {{
+    v8 a0[3] = {{{{0}}, {{0}}, {{0}}}}, a1[3] = {{{{0}}, {{0}}, {{0}}}}, a2[3] = {{{{0}}, {{0}}, {{0}}}};
+#pragma GCC unroll 16
+    for (int j = 0; j < {K}; j += 8) {{
+        const v8 fj = ld(f + j);
+        for (int c = 0; c < 3; ++c) {{
+            a0[c] = fma8(ld(u0 + c * {K} + j), fj, a0[c]);
+            a1[c] = fma8(ld(u1 + c * {K} + j), fj, a1[c]);
+            a2[c] = fma8(ld(u2 + c * {K} + j), fj, a2[c]);
+        }}
+    }}
+    const v8 B0 = {{b0, b0, b0, b0, b0, b0, b0, b0}}, B1 = {{b1, b1, b1, b1, b1, b1, b1, b1}},
+             B2 = {{b2, b2, b2, b2, b2, b2, b2, b2}};
+    for (int c = 0; c < 3; ++c) {{
+        const v8 w = fma8(a2[c], B2, fma8(a1[c], B1, a0[c] * B0));
+        const float s0 = w[0] + w[4], s1 = w[1] + w[5], s2 = w[2] + w[6], s3 = w[3] + w[7];
+        out[c] = (s0 + s2) + (s1 + s3);
+    }}
+}}
+"""
+
+
+def _terms_k(D: int, dif: bool, spec: bool) -> int:
+    return (((D + 1) * (D + 2) // 2 + 3) if dif else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if spec else 0)
+
+
+_FMA_DOT_CALL = "dt(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);"
+_FMA_FUSED_SOURCE = _FUSED_SOURCE.replace(
+    "typedef void (*dt_fn)", r"""static inline v8 fma8(v8 a, v8 b, v8 c) {
+#ifdef __FMA__
+    return __builtin_ia32_vfmaddps256(a, b, c);
+#else
+    v8 r;
+    for (int i = 0; i < 8; ++i) r[i] = __builtin_fmaf(a[i], b[i], c[i]);
+    return r;
+#endif
+}
+""" + "".join(_fma_dot(_terms_k(*v)) for v in TERMS_VARIANTS) + "typedef void (*dt_fn)", 1) \
+    .replace("void zh33p_fused(", "void zh37v_fused(", 1) \
+    .replace("    const dt_fn dt = dts[variant];",
+             "    static const dt_fn dfs[] = {" + ", ".join(f"df_{_terms_k(*v)}" for v in TERMS_VARIANTS) + "};\n"
+             f"    const dt_fn dt = dfs[variant % {len(TERMS_VARIANTS)}];", 1)
+assert _FMA_FUSED_SOURCE.count(_FMA_DOT_CALL) == 1 and "zh37v_fused(" in _FMA_FUSED_SOURCE \
+    and "dfs[variant" in _FMA_FUSED_SOURCE
+_FMA_FUSED_SIGNATURES = {"zh37v_fused": _FUSED_SIGNATURES["zh33p_fused"]}
+
+
+def _fma_fused_lib():
+    """`_fused_lib`'s conditions, then the library of `zh37v_fused` or None. Not cached here (b541a75)."""
+    if not terms_switched_on() or _inductor_lanes() not in TERMS_LANES:
+        return None
+    return native.load("zh37v_fused", _FMA_FUSED_SOURCE, _FMA_FUSED_SIGNATURES,
+                       extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
+
+
+# `plane_mask` as vector code (zh37v): the same match, counts and checks per sample as `zh_plane_split`'s loop,
+# written so that the compiler vectorises it (built with the ISA flags; that library's build has none, and its
+# per-sample ``spec[region]`` load and ``hit ? hit[p] : 1`` kept the loop scalar): the regions' specular flags
+# as one 64-bit word (R ≤ 64), one loop without and one with ``hit``. Integer counts and a byte mask from float
+# compares: the same values. Bench creature, 262,144 samples, 1 thread: 0.65 → 0.28 ms back to back.
+_PMASK_SOURCE = r"""
+#include <stdint.h>
+
+void zh37v_plane_mask(const float* normal, const float* n0, const int64_t* region, const uint8_t* spec, int64_t R,
+                      int64_t P, int64_t nt, uint8_t* mask, int64_t* cnt, const uint8_t* hit) {
+    uint64_t bits = 0;
+    for (int64_t r = 0; r < R && r < 64; ++r) bits |= (uint64_t)(spec[r] != 0) << r;
+    const uint64_t R_ = (uint64_t)R;   /* (the caller: 0 <= R <= 64) */
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if(nt > 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        const float a = n0[0], b = n0[1], c = n0[2];
+        int64_t ne = 0, ns = 0, bad = 0;
+        const int64_t p0 = P * k / nt, p1 = P * (k + 1) / nt;
+        if (!hit) {
+            for (int64_t p = p0; p < p1; ++p) {
+                const float* n = normal + 3 * p;
+                const int64_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
+                mask[p] = (uint8_t)e;
+                ne += e;
+                const uint64_t r = (uint64_t)region[p];
+                const int64_t ok = r < R_;
+                bad += !ok;
+                ns += e & ok & (int64_t)((bits >> (r & 63)) & 1);
+            }
+        } else {
+            for (int64_t p = p0; p < p1; ++p) {
+                const float* n = normal + 3 * p;
+                const int64_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
+                mask[p] = (uint8_t)e;
+                ne += e;
+                const uint64_t r = (uint64_t)region[p];
+                const int64_t ok = r < R_, h = hit[p] != 0;
+                bad += (!ok & h) | (e & !h);
+                ns += e & ok & (int64_t)((bits >> (r & 63)) & 1);
+            }
+        }
+        cnt[3 * k] = ne;
+        cnt[3 * k + 1] = ns;
+        cnt[3 * k + 2] = bad;
+    }
+}
+"""
+_PMASK_SIGNATURES = {"zh37v_plane_mask": _SPLIT_SIGNATURES["plane_mask"]}
+# `plane_mask` by `zh37v_plane_mask` where it builds; False: `zh_plane_split`'s loop (the tests' oracle)
+VECTOR_PLANE_MASK = True
+
+
+def _pmask_lib():
+    """The library of `zh37v_plane_mask` or None. Not cached here (b541a75)."""
+    return native.load("zh37v_plane_mask", _PMASK_SOURCE, _PMASK_SIGNATURES,
+                       extra_flags=("-fopenmp", *native.isa_flags()))
