@@ -3246,6 +3246,9 @@ _POSE_SH_SOURCE = r"""
 #define DMAX 256
 #define NMAX 8
 #define L 16
+#ifndef PFD
+#define PFD L
+#endif
 typedef float v16 __attribute__((vector_size(64)));
 typedef float v4 __attribute__((vector_size(16)));
 #define LANES for (int k = 0; k < L; ++k)
@@ -3278,7 +3281,7 @@ static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, floa
 static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
                         const int64_t *idx, int64_t N, const float *nT, int64_t ldn, const float *lam,
                         const int64_t *perm, const float *cq, float rmax, int64_t q0, int64_t q1, float *out,
-                        int64_t ldo, int64_t zyz, int64_t vmaj) {
+                        int64_t ldo, int64_t zyz, int64_t vmaj, int64_t scat, int64_t sn) {
     float P[DMAX][L] __attribute__((aligned(64)));
     float acc[NMAX * NMAX][L] __attribute__((aligned(64)));
     float Y[NMAX * NMAX][L] __attribute__((aligned(64)));
@@ -3292,8 +3295,8 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             const int64_t q = b0 + (k < cnt ? k : 0);
             const int64_t j = idx ? idx[q] : q;
             if ((uint64_t)j >= (uint64_t)N) return 1;
-            if (k < cnt && idx && q + L < q1) {
-                const int64_t jn = idx[q + L];
+            if (k < cnt && idx && q + PFD < q1) {
+                const int64_t jn = idx[q + PFD];
                 if ((uint64_t)jn < (uint64_t)N) {
                     const char *pp = (const char *)(X + jn * J1 * d);
                     for (int64_t bb = 0; bb < J1 * d * 4; bb += 64) __builtin_prefetch(pp + bb, 0, 3);
@@ -3301,7 +3304,9 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             }
             pose_row(J1, d, a, X + j * J1 * d, p);
             for (int64_t c = 0; c < d; ++c) P[c][k] = p[c];
-            nx[k] = nT[q]; ny[k] = nT[ldn + q]; nz[k] = nT[2 * ldn + q];
+            /* (scat, zh37p: the normals of every vertex, read at the vertex's own id) */
+            const int64_t qn = (scat ? j : q) * sn;
+            nx[k] = nT[qn]; ny[k] = nT[ldn + qn]; nz[k] = nT[2 * ldn + qn];
         }
         /* (s, t) of the normal (frames._coordinate_components) and the ZYZ axes e1, e2 (runtime.zyz_axes) */
         float s0[L], s1[L], s2[L], t0[L], t1[L], t2[L], e10[L], e11[L], e12[L], e20[L], e21[L];
@@ -3394,8 +3399,11 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             }
         }
         if (vmaj) {
-            for (int64_t k = 0; k < cnt; ++k)
-                for (int64_t r = 0; r < n2; ++r) out[(b0 + k) * n2 + r] = acc[perm[r]][k];
+            /* (scat, zh37p: vertex idx[q]'s row of an (N, n2) out) */
+            for (int64_t k = 0; k < cnt; ++k) {
+                float *o = out + (scat ? idx[b0 + k] : b0 + k) * n2;
+                for (int64_t r = 0; r < n2; ++r) o[r] = acc[perm[r]][k];
+            }
         } else if (cnt == L) {
             for (int64_t r = 0; r < n2; ++r) memcpy(out + r * ldo + b0, acc[perm[r]], 64);
         } else {
@@ -3409,28 +3417,49 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
     return 0;
 }
 
+/* scat (zh37p): idx strictly increasing; the rows of out (N, n2) not in idx zeroed (the gaps before each idx[q]
+   of [q0, q1), and after the last id by the range that holds it); 1 if idx is not increasing */
+static int64_t zero_gaps(const int64_t *idx, int64_t Q, int64_t N, int64_t n2, int64_t q0, int64_t q1, float *out) {
+    for (int64_t q = q0; q < q1; ++q) {
+        const int64_t lo = q ? idx[q - 1] + 1 : 0, hi = idx[q];
+        if (hi < lo || (uint64_t)hi >= (uint64_t)N) return 1;
+        if (hi > lo) memset(out + lo * n2, 0, sizeof(float) * (size_t)((hi - lo) * n2));
+    }
+    if (q1 == Q) {
+        const int64_t lo = Q ? idx[Q - 1] + 1 : 0;
+        if (lo < N) memset(out + lo * n2, 0, sizeof(float) * (size_t)((N - lo) * n2));
+    }
+    return 0;
+}
+
 void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
                    const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
                    const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
-                   int64_t *bad) {
+                   int64_t *bad, int64_t scat, int64_t sn) {
     int64_t b = 0;
     if (nt <= 1) {
-        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj);
+        if (scat) b = zero_gaps(idx, Q, N, n * n, 0, Q, out);
+        if (!b) b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj,
+                             scat, sn);
     } else {
         const int64_t nb = (Q + L - 1) / L;
         #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
         for (int64_t t = 0; t < nt; ++t) {
             int64_t a0 = nb * t / nt * L, a1 = nb * (t + 1) / nt * L;
             if (a1 > Q) a1 = Q;
-            if (a0 < a1)
-                b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q, zyz, vmaj);
+            if (a0 < a1) {
+                int64_t bt = scat ? zero_gaps(idx, Q, N, n * n, a0, a1, out) : 0;
+                if (!bt) bt = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q,
+                                       zyz, vmaj, scat, sn);
+                b |= bt;
+            }
         }
     }
     bad[0] = b;
 }
 """
 _POSE_SH_SIGNATURES = {"zh36o_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
-                                         _I, _I, _I, _P, _P]}
+                                         _I, _I, _I, _P, _P, _I, _I]}
 
 
 class _Sym:
@@ -3527,7 +3556,8 @@ def pose_sh_available() -> bool:
 
 
 def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, perm: tuple, lobes: int, n: int,
-            rmax: float, out: Tensor | None = None, zyz: bool = True, dim: int = 0) -> Tensor | None:
+            rmax: float, out: Tensor | None = None, zyz: bool = True, dim: int = 0, scatter: bool = False
+            ) -> Tensor | None:
     """(n², Q) float32: `runtime._vertex_sh`(`pose_columns`(X, a, idx), nT, lam, lobes, n, 0, True, perm) — the
     visibility of the vertices idx (None: every vertex) in the ZYZ frames of their unit normals nT (3, Q), rows
     in the order perm — by one C call (`zh36o_pose_sh`, above: the product's bits, eq. 1 to float32 round-off
@@ -3537,7 +3567,11 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
     not a permutation of the n² rows, an id out of [0, N)). ``out``: a float32 buffer of at least n² Q elements
     the result is written into (its first n² Q, viewed (n², Q): the caller's buffer kept across frames, no fresh
     pages per call), else a new one. ``zyz`` False: the SH in world space (`_vertex_sh`'s ``zyz`` False); ``dim``
-    1: the result (Q, n²) (`_vertex_sh`'s ``dim``)."""
+    1: the result (Q, n²) (`_vertex_sh`'s ``dim``).
+
+    ``scatter`` (zh37p; with ``dim`` 1 and idx strictly increasing): the result (N, n²), vertex idx[q]'s row at row
+    idx[q] (the same bits as the compact call's row q) and every other row 0; nT then (3, N), the normals of every
+    vertex (any strides: read at the vertices' ids). None if idx is not strictly increasing."""
     lib = _pose_sh_lib() if terms_switched_on() else None
     if lib is None or X.dtype != torch.float32 or X.device.type != "cpu" or X.dim() != 3 or not is_vertex_major(X) \
             or not 1 <= n <= POSE_SH_NMAX or lobes < 1 or X.shape[2] != lobes * (2 + n) \
@@ -3548,7 +3582,10 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
         return None
     J1, N, d = (int(s) for s in X.shape)
     Q = N if idx is None else int(idx.shape[0])
-    if nT.dtype != torch.float32 or nT.device.type != "cpu" or tuple(nT.shape) != (3, Q) or (Q and nT.stride(1) != 1):
+    if scatter and (idx is None or dim != 1):
+        return None
+    if nT.dtype != torch.float32 or nT.device.type != "cpu" or tuple(nT.shape) != (3, N if scatter else Q) \
+            or (Q and not scatter and nT.stride(1) != 1):
         return None
     consts = _pose_sh_constants(n, tuple(float(x) for x in lam), tuple(int(i) for i in perm))
     if consts is None:
@@ -3560,13 +3597,94 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
     if out is not None and (out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous()
                             or out.numel() < n * n * Q):
         out = None
-    shape = (n * n, Q) if dim == 0 else (Q, n * n)
-    out = torch.empty(shape, dtype=torch.float32) if out is None else out.view(-1)[:n * n * Q].view(shape)
+    R = N if scatter else Q
+    if out is not None and out.numel() < n * n * R:
+        out = None
+    shape = (n * n, R) if dim == 0 else (R, n * n)
+    out = torch.empty(shape, dtype=torch.float32) if out is None else out.view(-1)[:n * n * R].view(shape)
     if Q == 0:
-        return out
+        return out.zero_() if scatter else out
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
     lib.zh36o_pose_sh(J1, d, lobes, n, a.data_ptr(), X.data_ptr(), 0 if idx is None else idx.data_ptr(), N, Q,
                       nT.data_ptr(), nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax),
-                      int(bool(zyz)), int(dim == 1), nt, out.data_ptr(), bad.data_ptr())
+                      int(bool(zyz)), int(dim == 1), nt, out.data_ptr(), bad.data_ptr(), int(scatter),
+                      nT.stride(1) if scatter else 1)
     return None if int(bad[0]) else out
+
+
+# === zh37p ==================================================================================================
+#
+# A paper-configuration P frame's visibility of the referenced vertices alone (`ZHShadow._pose_state`, session 37):
+# the vertices the hit samples reference (`referenced_mask`'s: the corners of the faces they lie on) marked by both
+# threads (`referenced_ids`: the samples split over the team — each mark a store of 1, the same bytes whatever
+# the team —, then the faces' corners), their ids in ascending order, and then `pose_sh` for those ids alone (``scatter``: their
+# rows of the (N, n²) visibility, every other row 0). Bench creature: 4.4 K of the 13.4 K vertices, a third of X.
+_REFERENCED_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+
+static void mark_faces(const int64_t *face, const uint8_t *hit, int64_t a, int64_t b, int64_t M, uint8_t *fmark) {
+    for (int64_t p = a; p < b; ++p) {   /* branch-free: a miss or a bad id marks the spare slot M */
+        const int64_t f = face[p];
+        const int64_t g = (hit[p] & ((uint64_t)f < (uint64_t)M)) ? f : M;
+        __atomic_store_n(fmark + g, (uint8_t)1, __ATOMIC_RELAXED);
+    }
+}
+
+/* fmark (M + 1) zeroed by the caller; vmark (N) zeroed here; ids (N): the marked vertices ascending, count[0]
+   their number. The samples split over nt threads (one parallel region), the faces and ids on one. */
+void zh37p_referenced(const int64_t *face, const uint8_t *hit, int64_t P, const int64_t *F, int64_t M, int64_t N,
+                      uint8_t *fmark, uint8_t *vmark, int64_t *ids, int64_t *count, int64_t nt) {
+    if (nt <= 1) {
+        mark_faces(face, hit, 0, P, M, fmark);
+    } else {
+        #pragma omp parallel for num_threads(nt) schedule(static, 1)
+        for (int64_t t = 0; t < nt; ++t) mark_faces(face, hit, P * t / nt, P * (t + 1) / nt, M, fmark);
+    }
+    memset(vmark, 0, (size_t)N);
+    for (int64_t f = 0; f < M; ++f) {
+        if (fmark[f]) {
+            for (int k = 0; k < 3; ++k) {
+                const int64_t v = F[3 * f + k];
+                if ((uint64_t)v < (uint64_t)N) vmark[v] = 1;
+            }
+        }
+    }
+    int64_t c = 0;
+    for (int64_t v = 0; v < N; ++v) {
+        ids[c] = v;
+        c += vmark[v];
+    }
+    count[0] = c;
+}
+"""
+_REFERENCED_SIGNATURES = {"zh37p_referenced": [_P, _P, _I, _P, _I, _I, _P, _P, _P, _P, _I]}
+MIN_SAMPLES_PER_REFERENCED_THREAD = 1 << 15   # G-buffer samples per thread below which one thread marks them
+
+
+def _referenced_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh37p_referenced", _REFERENCED_SOURCE, _REFERENCED_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def referenced_ids(F: Tensor, face: Tensor, hit: Tensor, N: int) -> tuple[Tensor, Tensor] | None:
+    """((N,) bool mask, (N_r,) int64 ascending ids) of the vertices the hit samples reference: `referenced_mask`'s
+    mask (its oracle `referenced_mask_torch`) and its ``nonzero``, by one C call on the team (`zh37p_referenced`,
+    above) — or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, arguments not CPU int64
+    faces and F (M, 3), a bool hit mask of the faces' shape). A face id of F out of [0, N) is not marked."""
+    lib = _referenced_lib() if terms_switched_on() else None
+    if lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or F.dtype != torch.int64 \
+            or hit.dtype != torch.bool or face.dim() != 1 or hit.shape != face.shape or F.dim() != 2 \
+            or F.shape[1] != 3 or F.device.type != "cpu" or N < 0:
+        return None
+    face, hit, F = face.contiguous(), hit.contiguous(), F.contiguous()
+    P, M = int(face.shape[0]), int(F.shape[0])
+    fm = torch.zeros(M + 1, dtype=torch.uint8)
+    vm = torch.empty(N, dtype=torch.bool)
+    ids = torch.empty(N, dtype=torch.int64)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_SAMPLES_PER_REFERENCED_THREAD))
+    lib.zh37p_referenced(face.data_ptr(), hit.data_ptr(), P, F.data_ptr(), M, N, fm.data_ptr(), vm.data_ptr(),
+                         ids.data_ptr(), cnt.data_ptr(), nt)
+    return vm, ids[:int(cnt[0])]
