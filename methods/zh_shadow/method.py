@@ -367,6 +367,7 @@ class ZHShadow(Method):
         self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
         #                                 `native.pose_sh`), reused across frames: counted in `memory`
         self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
+        self._rows_libs_warm = False             # `native.warm_rows_libraries` called (`_pose_state`, zh37p)
         self._posed_part: tuple | None = None   # (v, weakref of the G-buffer, (N,) bool rows made) when the pose's
         #                                 visibility ``_posed[2]`` is v made for those rows alone (`_pose_state`, zh37p)
 
@@ -567,6 +568,9 @@ class ZHShadow(Method):
             if gbuffer is not None and not vertex and self.referenced_visibility and "pose" in frame.changed \
                     and "view" not in frame.changed:
                 v = self._referenced_rows(pose_vec, self._posed[1], gbuffer)
+            elif gbuffer is not None and not vertex and self.referenced_visibility and not self._rows_libs_warm:
+                zn.warm_rows_libraries()   # (once per object, in a frame that does not call them: frame 0)
+                self._rows_libs_warm = True
             if v is None:
                 v = self._pose_visibility(pose_vec, self._posed[1])
             self._posed = (key, self._posed[1], v.T if vertex else v)                       # (N, n²)

@@ -3246,6 +3246,437 @@ _POSE_SH_SOURCE = r"""
 #define DMAX 256
 #define NMAX 8
 #define L 16
+typedef float v16 __attribute__((vector_size(64)));
+typedef float v4 __attribute__((vector_size(16)));
+#define LANES for (int k = 0; k < L; ++k)
+@FAST_TERMS@
+
+/* p[k] = sum_i a[i] x[i * d + k], i ascending (as zh35o_pose_cols) */
+static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, float *p) {
+    if (d == 20) {
+        v16 s, xv;
+        v4 s4, x4;
+        memcpy(&xv, x, 64); memcpy(&x4, x + 16, 16);
+        s = 0.0f + a[0] * xv; s4 = 0.0f + a[0] * x4;
+        for (int64_t i = 1; i < J1; ++i) {
+            memcpy(&xv, x + i * 20, 64); memcpy(&x4, x + i * 20 + 16, 16);
+            s = s + a[i] * xv; s4 = s4 + a[i] * x4;
+        }
+        memcpy(p, &s, 64); memcpy(p + 16, &s4, 16);
+        return;
+    }
+    for (int64_t k = 0; k < d; ++k) p[k] = 0.0f + a[0] * x[k];
+    for (int64_t i = 1; i < J1; ++i) {
+        const float ai = a[i];
+        const float *xi = x + i * d;
+        for (int64_t k = 0; k < d; ++k) p[k] = p[k] + ai * xi[k];
+    }
+}
+
+/* columns [q0, q1): out[r * ldo + q] (vmaj: out[q * n2 + r]) = sum over lobes of Y_perm[r](axis) (k_l Λ_l), the
+   axis in the ZYZ frame of the normal (zyz) or in world space; 1 at an id out of [0, N) */
+static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
+                        const int64_t *idx, int64_t N, const float *nT, int64_t ldn, const float *lam,
+                        const int64_t *perm, const float *cq, float rmax, int64_t q0, int64_t q1, float *out,
+                        int64_t ldo, int64_t zyz, int64_t vmaj) {
+    float P[DMAX][L] __attribute__((aligned(64)));
+    float acc[NMAX * NMAX][L] __attribute__((aligned(64)));
+    float Y[NMAX * NMAX][L] __attribute__((aligned(64)));
+    float p[DMAX];
+    const int64_t per = 2 + n, n2 = n * n;
+    const float sqrt2 = cq[0];
+    for (int64_t b0 = q0; b0 < q1; b0 += L) {
+        const int64_t cnt = q1 - b0 < L ? q1 - b0 : L;
+        float nx[L], ny[L], nz[L];
+        for (int k = 0; k < L; ++k) {
+            const int64_t q = b0 + (k < cnt ? k : 0);
+            const int64_t j = idx ? idx[q] : q;
+            if ((uint64_t)j >= (uint64_t)N) return 1;
+            if (k < cnt && idx && q + L < q1) {
+                const int64_t jn = idx[q + L];
+                if ((uint64_t)jn < (uint64_t)N) {
+                    const char *pp = (const char *)(X + jn * J1 * d);
+                    for (int64_t bb = 0; bb < J1 * d * 4; bb += 64) __builtin_prefetch(pp + bb, 0, 3);
+                }
+            }
+            pose_row(J1, d, a, X + j * J1 * d, p);
+            for (int64_t c = 0; c < d; ++c) P[c][k] = p[c];
+            nx[k] = nT[q]; ny[k] = nT[ldn + q]; nz[k] = nT[2 * ldn + q];
+        }
+        /* (s, t) of the normal (frames._coordinate_components) and the ZYZ axes e1, e2 (runtime.zyz_axes) */
+        float s0[L], s1[L], s2[L], t0[L], t1[L], t2[L], e10[L], e11[L], e12[L], e20[L], e21[L];
+        LANES {
+            const float x = nx[k], y = ny[k], z = nz[k];
+            const float sg = z >= 0.0f ? 1.0f : -1.0f;
+            const float aa = -1.0f / (sg + z);
+            const float bb = (x * y) * aa;
+            s0[k] = 1.0f + ((sg * x) * x) * aa; s1[k] = sg * bb; s2[k] = (-sg) * x;
+            t0[k] = bb; t1[k] = sg + (y * y) * aa; t2[k] = -y;
+            const float zc = z < -1.0f ? -1.0f : (z > 1.0f ? 1.0f : z);
+            const float rho = sqrtf(x * x + y * y);
+            const int ok = rho > 1e-20f;
+            const float safe = ok ? rho : 1.0f;
+            const float cp = ok ? x / safe : 1.0f, sp = ok ? y / safe : 0.0f;
+            e10[k] = zc * cp; e11[k] = zc * sp; e12[k] = -rho;
+            e20[k] = -sp; e21[k] = cp;
+        }
+        v16 vx, vy, vz, vs0, vs1, vs2, vt0, vt1, vt2, ve10, ve11, ve12, ve20, ve21;
+        memcpy(&vx, nx, 64); memcpy(&vy, ny, 64); memcpy(&vz, nz, 64);
+        memcpy(&vs0, s0, 64); memcpy(&vs1, s1, 64); memcpy(&vs2, s2, 64);
+        memcpy(&vt0, t0, 64); memcpy(&vt1, t1, 64); memcpy(&vt2, t2, 64);
+        memcpy(&ve10, e10, 64); memcpy(&ve11, e11, 64); memcpy(&ve12, e12, 64);
+        memcpy(&ve20, e20, 64); memcpy(&ve21, e21, 64);
+        for (int64_t c = 0; c < lobes; ++c) {
+            const float *Xc = P[c * per], *Yc = P[c * per + 1];
+            float l0a[L], l1a[L], zza[L];
+            LANES {
+                float X0 = Xc[k], Y0 = Yc[k];
+                float r2 = X0 * X0 + Y0 * Y0;
+                const float sc = r2 > rmax * rmax ? rmax / sqrtf(r2 < 1e-30f ? 1e-30f : r2) : 1.0f;
+                X0 = X0 * sc; Y0 = Y0 * sc;
+                r2 = X0 * X0 + Y0 * Y0;
+                zza[k] = 1.0f - 0.5f * r2;
+                float ff = 1.0f - 0.25f * r2;
+                ff = sqrtf(ff < 0.0f ? 0.0f : ff);
+                l0a[k] = ff * X0; l1a[k] = ff * Y0;
+            }
+            v16 l0, l1, zz;
+            memcpy(&l0, l0a, 64); memcpy(&l1, l1a, 64); memcpy(&zz, zza, 64);
+            const v16 w0 = (vs0 * l0 + vt0 * l1) + vx * zz;
+            const v16 w1 = (vs1 * l0 + vt1 * l1) + vy * zz;
+            const v16 w2 = (vs2 * l0 + vt2 * l1) + vz * zz;
+            const v16 ax = zyz ? (ve10 * w0 + ve11 * w1) + ve12 * w2 : w0;
+            const v16 ay = zyz ? (ve20 * w0 + ve21 * w1) + 0.0f * w2 : w1;
+            const v16 az = zyz ? (vx * w0 + vy * w1) + vz * w2 : w2;
+            v16 Y[NMAX * NMAX];
+            /* sh._terms_fast's polynomials up to its FAST_MAX_ORDER (generated from it, `_fast_terms_code`) */
+            if (terms_fast(n, ax, ay, az, Y)) goto scaled;
+            /* sh._terms_recurrence (cq: sqrt2, then per m: qmm, then per l > m: A, B or the l = m + 1 factor) */
+            v16 cc = (v16){} + 1.0f, ss = (v16){};
+            const float *cm = cq + 1;
+            for (int64_t m = 0; m < n; ++m) {
+                if (m > 0) {
+                    const v16 c2 = ax * cc - ay * ss, s2_ = ax * ss + ay * cc;
+                    cc = c2; ss = s2_;
+                }
+                v16 qp = (v16){} + *cm++, qp2 = (v16){}, qq;
+                for (int64_t l = m; l < n; ++l) {
+                    if (l == m + 1) {
+                        const float f1 = *cm++;
+                        qq = (f1 * az) * qp;
+                    } else if (l > m + 1) {
+                        const float A = cm[0], B = cm[1];
+                        cm += 2;
+                        qq = A * (az * qp - B * qp2);
+                    } else {
+                        qq = qp;
+                    }
+                    if (m == 0) {
+                        Y[l * (l + 1)] = qq;
+                    } else {
+                        const v16 h = sqrt2 * qq;
+                        Y[l * (l + 1) + m] = h * cc; Y[l * (l + 1) - m] = h * ss;
+                    }
+                    if (l > m) { qp2 = qp; qp = qq; }
+                }
+            }
+          scaled:
+            for (int64_t l = 0; l < n; ++l) {
+                v16 kl;
+                memcpy(&kl, P[c * per + 2 + l], 64);
+                const v16 g = kl * lam[l];
+                for (int64_t i = l * l; i < (l + 1) * (l + 1); ++i) {
+                    v16 o;
+                    if (c == 0) o = Y[i] * g;
+                    else { memcpy(&o, acc[i], 64); o = o + Y[i] * g; }
+                    memcpy(acc[i], &o, 64);
+                }
+            }
+        }
+        if (vmaj) {
+            for (int64_t k = 0; k < cnt; ++k)
+                for (int64_t r = 0; r < n2; ++r) out[(b0 + k) * n2 + r] = acc[perm[r]][k];
+        } else if (cnt == L) {
+            for (int64_t r = 0; r < n2; ++r) memcpy(out + r * ldo + b0, acc[perm[r]], 64);
+        } else {
+            for (int64_t r = 0; r < n2; ++r) {
+                const float *o = acc[perm[r]];
+                float *dst = out + r * ldo + b0;
+                for (int64_t k = 0; k < cnt; ++k) dst[k] = o[k];
+            }
+        }
+    }
+    return 0;
+}
+
+void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
+                   const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
+                   const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
+                   int64_t *bad) {
+    int64_t b = 0;
+    if (nt <= 1) {
+        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj);
+    } else {
+        const int64_t nb = (Q + L - 1) / L;
+        #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
+        for (int64_t t = 0; t < nt; ++t) {
+            int64_t a0 = nb * t / nt * L, a1 = nb * (t + 1) / nt * L;
+            if (a1 > Q) a1 = Q;
+            if (a0 < a1)
+                b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q, zyz, vmaj);
+        }
+    }
+    bad[0] = b;
+}
+"""
+_POSE_SH_SIGNATURES = {"zh36o_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
+                                         _I, _I, _I, _P, _P]}
+
+
+class _Sym:
+    """A float32 vector expression of `_fast_terms_code`'s trace: each operation one C statement, in Python's order."""
+
+    def __init__(self, name: str, lines: list):
+        self.name, self.lines = name, lines
+
+    def _op(self, other, op: str, swap: bool = False) -> "_Sym":
+        o = other.name if isinstance(other, _Sym) else f"(float){float(other)!r}"
+        a, b = (o, self.name) if swap else (self.name, o)
+        t = _Sym(f"t{len(self.lines)}", self.lines)
+        self.lines.append(f"const v16 {t.name} = {a} {op} {b};")
+        return t
+
+    def __mul__(self, o): return self._op(o, "*")
+    def __rmul__(self, o): return self._op(o, "*", True)
+    def __add__(self, o): return self._op(o, "+")
+    def __radd__(self, o): return self._op(o, "+", True)
+    def __sub__(self, o): return self._op(o, "-")
+    def __rsub__(self, o): return self._op(o, "-", True)
+
+
+def _fast_terms_code() -> str:
+    """C of ``int terms_fast(n, x, y, z, Y)``: for n up to `sh.FAST_MAX_ORDER`, Y[i] = `sh._terms_fast`(x, y, z, n)[i]
+    by the same float32 operations in the same order (traced from it; its constants cast to float as torch
+    takes a Python scalar), returning 1; 0 above it (the caller's recurrence)."""
+    import types
+
+    from methods.core import sh
+
+    fn = sh._terms_fast
+    body = ["static int terms_fast(int64_t n, v16 x, v16 y, v16 z, v16 *Y) {", "    switch (n) {"]
+    for order in range(1, sh.FAST_MAX_ORDER + 1):
+        lines: list = []
+        shim = types.SimpleNamespace(full_like=lambda v, c, _l=lines: _Sym(f"((v16){{}} + (float){float(c)!r})", _l))
+        traced = types.FunctionType(fn.__code__, {**fn.__globals__, "torch": shim})
+        out = traced(_Sym("x", lines), _Sym("y", lines), _Sym("z", lines), order)
+        body.append(f"    case {order}: {{")
+        body += ["        " + ln for ln in lines]
+        body += [f"        Y[{i}] = {t.name};" for i, t in enumerate(out)]
+        body += ["        return 1;", "    }"]
+    body += ["    default: return 0;", "    }", "}"]
+    return "\n".join(body)
+POSE_SH_NMAX = 8
+MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one thread makes `pose_sh`
+
+
+def _pose_sh_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
+    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
+    return native.load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
+
+
+@functools.lru_cache(maxsize=None)
+def _pose_sh_source() -> str:
+    """`_POSE_SH_SOURCE` with `_fast_terms_code` in place (made once: pure, no library loaded here)."""
+    return _POSE_SH_SOURCE.replace("@FAST_TERMS@", _fast_terms_code())
+
+
+@functools.lru_cache(maxsize=None)
+def _recurrence_constants(n: int) -> Tensor:
+    """float32 constants of `sh._terms_recurrence` at order n, in the order `zh36o_pose_sh` reads them: √2,
+    then per m the sectoral start q_m^m and per l > m the factor √(2m+3) (l = m + 1) or a_lm, b_lm — each
+    the Python float the recurrence multiplies by (float32 as torch takes a scalar)."""
+    out = [math.sqrt(2.0)]
+    qmm = 1.0 / math.sqrt(4.0 * math.pi)
+    for m in range(n):
+        if m > 0:
+            qmm *= math.sqrt((2 * m + 1) / (2 * m))
+        out.append(qmm)
+        for l in range(m + 1, n):
+            if l == m + 1:
+                out.append(math.sqrt(2 * m + 3))
+            else:
+                out += [math.sqrt((4 * l * l - 1) / (l * l - m * m)),
+                        math.sqrt(((l - 1) ** 2 - m * m) / (4 * (l - 1) ** 2 - 1))]
+    return torch.tensor(out, dtype=torch.float32)
+
+
+@functools.lru_cache(maxsize=64)
+def _pose_sh_constants(n: int, lam: tuple, perm: tuple) -> tuple[Tensor, Tensor, Tensor] | None:
+    """(Λ (n,) float32, perm (n²,) int64, `_recurrence_constants`(n)) as `zh36o_pose_sh` reads them, once per
+    (order, Λ, perm) — or None: perm not a permutation of the n² rows (pure: no library is loaded here)."""
+    if sorted(perm) != list(range(n * n)):
+        return None
+    return torch.tensor(lam, dtype=torch.float32), torch.tensor(perm, dtype=torch.int64), _recurrence_constants(n)
+
+
+def pose_sh_available() -> bool:
+    """Whether `pose_sh` can run here (a compiler, ``PRTBENCH_COMPILE`` / ``PRTBENCH_ZH_NATIVE`` on)."""
+    return terms_switched_on() and _pose_sh_lib() is not None
+
+
+def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, perm: tuple, lobes: int, n: int,
+            rmax: float, out: Tensor | None = None, zyz: bool = True, dim: int = 0, scatter: bool = False
+            ) -> Tensor | None:
+    """(n², Q) float32: `runtime._vertex_sh`(`pose_columns`(X, a, idx), nT, lam, lobes, n, 0, True, perm) — the
+    visibility of the vertices idx (None: every vertex) in the ZYZ frames of their unit normals nT (3, Q), rows
+    in the order perm — by one C call (`zh36o_pose_sh`, above: the product's bits, eq. 1 to float32 round-off
+    against the compiled pass), or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, X not
+    float32 CPU vertex-major (`vertex_major`) with d = lobes (2 + n) ≤ `POSE_COLS_DMAX`, n above
+    `POSE_SH_NMAX`, a not (J+1,) float32, idx not int64, nT not (3, Q) float32 with unit column stride, perm
+    not a permutation of the n² rows, an id out of [0, N)). ``out``: a float32 buffer of at least n² Q elements
+    the result is written into (its first n² Q, viewed (n², Q): the caller's buffer kept across frames, no fresh
+    pages per call), else a new one. ``zyz`` False: the SH in world space (`_vertex_sh`'s ``zyz`` False); ``dim``
+    1: the result (Q, n²) (`_vertex_sh`'s ``dim``).
+
+    ``scatter`` (zh37p; with ``dim`` 1 and idx strictly increasing): the result (N, n²), vertex idx[q]'s row at row
+    idx[q] (the same bits as the compact call's row q) and every other row 0; nT then (3, N), the normals of every
+    vertex (any strides: read at the vertices' ids). None if idx is not strictly increasing."""
+    lib = _pose_sh_lib() if terms_switched_on() else None
+    if lib is None or X.dtype != torch.float32 or X.device.type != "cpu" or X.dim() != 3 or not is_vertex_major(X) \
+            or not 1 <= n <= POSE_SH_NMAX or lobes < 1 or X.shape[2] != lobes * (2 + n) \
+            or X.shape[2] > POSE_COLS_DMAX or len(lam) != n or len(perm) != n * n \
+            or a.dtype != torch.float32 or a.device.type != "cpu" or a.dim() != 1 or a.shape[0] != X.shape[0] \
+            or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1 or idx.device.type != "cpu")) \
+            or dim not in (0, 1):
+        return None
+    J1, N, d = (int(s) for s in X.shape)
+    Q = N if idx is None else int(idx.shape[0])
+    if scatter and (idx is None or dim != 1):
+        return None
+    if nT.dtype != torch.float32 or nT.device.type != "cpu" or tuple(nT.shape) != (3, N if scatter else Q) \
+            or (Q and not scatter and nT.stride(1) != 1):
+        return None
+    consts = _pose_sh_constants(n, tuple(float(x) for x in lam), tuple(int(i) for i in perm))
+    if consts is None:
+        return None
+    lamt, permt, cq = consts
+    a = a.contiguous()
+    if idx is not None:
+        idx = idx.contiguous()
+    if out is not None and (out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous()
+                            or out.numel() < n * n * Q):
+        out = None
+    R = N if scatter else Q
+    if out is not None and out.numel() < n * n * R:
+        out = None
+    shape = (n * n, R) if dim == 0 else (R, n * n)
+    out = torch.empty(shape, dtype=torch.float32) if out is None else out.view(-1)[:n * n * R].view(shape)
+    if Q == 0:
+        return out.zero_() if scatter else out
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
+    args = (J1, d, lobes, n, a.data_ptr(), X.data_ptr(), 0 if idx is None else idx.data_ptr(), N, Q, nT.data_ptr(),
+            nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax), int(bool(zyz)), int(dim == 1),
+            nt, out.data_ptr(), bad.data_ptr())
+    if scatter:   # (zh37p's library: this one's loop with the scatter, `_pose_rows_lib`)
+        rows = _pose_rows_lib()
+        if rows is None:
+            return None
+        rows.zh37p_pose_rows(*args, 1, nT.stride(1))
+    else:
+        lib.zh36o_pose_sh(*args)
+    return None if int(bad[0]) else out
+
+
+# === zh37p ==================================================================================================
+#
+# A paper-configuration P frame's visibility of the referenced vertices alone (`ZHShadow._pose_state`, session 37):
+# the vertices the hit samples reference (`referenced_mask`'s: the corners of the faces they lie on) marked by both
+# threads (`referenced_ids`: the samples split over the team — each mark a store of 1, the same bytes whatever
+# the team —, then the faces' corners), their ids in ascending order, and then `pose_sh` for those ids alone (``scatter``: their
+# rows of the (N, n²) visibility, every other row 0). Bench creature: 4.4 K of the 13.4 K vertices, a third of X.
+_REFERENCED_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+
+static void mark_faces(const int64_t *face, const uint8_t *hit, int64_t a, int64_t b, int64_t M, uint8_t *fmark) {
+    for (int64_t p = a; p < b; ++p) {   /* branch-free: a miss or a bad id marks the spare slot M */
+        const int64_t f = face[p];
+        const int64_t g = (hit[p] & ((uint64_t)f < (uint64_t)M)) ? f : M;
+        __atomic_store_n(fmark + g, (uint8_t)1, __ATOMIC_RELAXED);
+    }
+}
+
+/* fmark (M + 1) zeroed by the caller; vmark (N) zeroed here; ids (N): the marked vertices ascending, count[0]
+   their number. The samples split over nt threads (one parallel region), the faces and ids on one. */
+void zh37p_referenced(const int64_t *face, const uint8_t *hit, int64_t P, const int64_t *F, int64_t M, int64_t N,
+                      uint8_t *fmark, uint8_t *vmark, int64_t *ids, int64_t *count, int64_t nt) {
+    if (nt <= 1) {
+        mark_faces(face, hit, 0, P, M, fmark);
+    } else {
+        #pragma omp parallel for num_threads(nt) schedule(static, 1)
+        for (int64_t t = 0; t < nt; ++t) mark_faces(face, hit, P * t / nt, P * (t + 1) / nt, M, fmark);
+    }
+    memset(vmark, 0, (size_t)N);
+    for (int64_t f = 0; f < M; ++f) {
+        if (fmark[f]) {
+            for (int k = 0; k < 3; ++k) {
+                const int64_t v = F[3 * f + k];
+                if ((uint64_t)v < (uint64_t)N) vmark[v] = 1;
+            }
+        }
+    }
+    int64_t c = 0;
+    for (int64_t v = 0; v < N; ++v) {
+        ids[c] = v;
+        c += vmark[v];
+    }
+    count[0] = c;
+}
+"""
+_REFERENCED_SIGNATURES = {"zh37p_referenced": [_P, _P, _I, _P, _I, _I, _P, _P, _P, _P, _I]}
+MIN_SAMPLES_PER_REFERENCED_THREAD = 1 << 15   # G-buffer samples per thread below which one thread marks them
+
+
+def _referenced_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh37p_referenced", _REFERENCED_SOURCE, _REFERENCED_SIGNATURES, extra_flags=("-fopenmp",))
+
+
+def referenced_ids(F: Tensor, face: Tensor, hit: Tensor, N: int) -> tuple[Tensor, Tensor] | None:
+    """((N,) bool mask, (N_r,) int64 ascending ids) of the vertices the hit samples reference: `referenced_mask`'s
+    mask (its oracle `referenced_mask_torch`) and its ``nonzero``, by one C call on the team (`zh37p_referenced`,
+    above) — or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, arguments not CPU int64
+    faces and F (M, 3), a bool hit mask of the faces' shape). A face id of F out of [0, N) is not marked."""
+    lib = _referenced_lib() if terms_switched_on() else None
+    if lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or F.dtype != torch.int64 \
+            or hit.dtype != torch.bool or face.dim() != 1 or hit.shape != face.shape or F.dim() != 2 \
+            or F.shape[1] != 3 or F.device.type != "cpu" or N < 0:
+        return None
+    face, hit, F = face.contiguous(), hit.contiguous(), F.contiguous()
+    P, M = int(face.shape[0]), int(F.shape[0])
+    fm = torch.zeros(M + 1, dtype=torch.uint8)
+    vm = torch.empty(N, dtype=torch.bool)
+    ids = torch.empty(N, dtype=torch.int64)
+    cnt = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), P // MIN_SAMPLES_PER_REFERENCED_THREAD))
+    lib.zh37p_referenced(face.data_ptr(), hit.data_ptr(), P, F.data_ptr(), M, N, fm.data_ptr(), vm.data_ptr(),
+                         ids.data_ptr(), cnt.data_ptr(), nt)
+    return vm, ids[:int(cnt[0])]
+
+
+# `pose_sh`'s ``scatter`` (zh37p): `_POSE_SH_SOURCE`'s loop with two more arguments — scat (vertex idx[q]'s row of an
+# (N, n²) out, the other rows zeroed, the normals read at the vertex's id) and sn (the normals' element stride) —
+# as a library of its own, so that zh36o's library (the order-8 P frames' call) stays the same code.
+_POSE_ROWS_SOURCE = r"""
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+#define DMAX 256
+#define NMAX 8
+#define L 16
 #ifndef PFD
 #define PFD L
 #endif
@@ -3432,7 +3863,7 @@ static int64_t zero_gaps(const int64_t *idx, int64_t Q, int64_t N, int64_t n2, i
     return 0;
 }
 
-void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
+void zh37p_pose_rows(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
                    const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
                    const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
                    int64_t *bad, int64_t scat, int64_t sn) {
@@ -3458,233 +3889,26 @@ void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float 
     bad[0] = b;
 }
 """
-_POSE_SH_SIGNATURES = {"zh36o_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
-                                         _I, _I, _I, _P, _P, _I, _I]}
+_POSE_ROWS_SIGNATURES = {"zh37p_pose_rows": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
+                                             _I, _I, _I, _P, _P, _I, _I]}
 
 
-class _Sym:
-    """A float32 vector expression of `_fast_terms_code`'s trace: each operation one C statement, in Python's order."""
-
-    def __init__(self, name: str, lines: list):
-        self.name, self.lines = name, lines
-
-    def _op(self, other, op: str, swap: bool = False) -> "_Sym":
-        o = other.name if isinstance(other, _Sym) else f"(float){float(other)!r}"
-        a, b = (o, self.name) if swap else (self.name, o)
-        t = _Sym(f"t{len(self.lines)}", self.lines)
-        self.lines.append(f"const v16 {t.name} = {a} {op} {b};")
-        return t
-
-    def __mul__(self, o): return self._op(o, "*")
-    def __rmul__(self, o): return self._op(o, "*", True)
-    def __add__(self, o): return self._op(o, "+")
-    def __radd__(self, o): return self._op(o, "+", True)
-    def __sub__(self, o): return self._op(o, "-")
-    def __rsub__(self, o): return self._op(o, "-", True)
-
-
-def _fast_terms_code() -> str:
-    """C of ``int terms_fast(n, x, y, z, Y)``: for n up to `sh.FAST_MAX_ORDER`, Y[i] = `sh._terms_fast`(x, y, z, n)[i]
-    by the same float32 operations in the same order (traced from it; its constants cast to float as torch
-    takes a Python scalar), returning 1; 0 above it (the caller's recurrence)."""
-    import types
-
-    from methods.core import sh
-
-    fn = sh._terms_fast
-    body = ["static int terms_fast(int64_t n, v16 x, v16 y, v16 z, v16 *Y) {", "    switch (n) {"]
-    for order in range(1, sh.FAST_MAX_ORDER + 1):
-        lines: list = []
-        shim = types.SimpleNamespace(full_like=lambda v, c, _l=lines: _Sym(f"((v16){{}} + (float){float(c)!r})", _l))
-        traced = types.FunctionType(fn.__code__, {**fn.__globals__, "torch": shim})
-        out = traced(_Sym("x", lines), _Sym("y", lines), _Sym("z", lines), order)
-        body.append(f"    case {order}: {{")
-        body += ["        " + ln for ln in lines]
-        body += [f"        Y[{i}] = {t.name};" for i, t in enumerate(out)]
-        body += ["        return 1;", "    }"]
-    body += ["    default: return 0;", "    }", "}"]
-    return "\n".join(body)
-POSE_SH_NMAX = 8
-MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one thread makes `pose_sh`
-
-
-def _pose_sh_lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
-    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
-    return native.load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
+def _pose_rows_lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
+    return native.load("zh37p_pose_rows", _pose_rows_source(), _POSE_ROWS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
 
 
 @functools.lru_cache(maxsize=None)
-def _pose_sh_source() -> str:
-    """`_POSE_SH_SOURCE` with `_fast_terms_code` in place (made once: pure, no library loaded here)."""
-    return _POSE_SH_SOURCE.replace("@FAST_TERMS@", _fast_terms_code())
+def _pose_rows_source() -> str:
+    """`_POSE_ROWS_SOURCE` with `_fast_terms_code` in place (made once: pure, no library loaded here)."""
+    return _POSE_ROWS_SOURCE.replace("@FAST_TERMS@", _fast_terms_code())
 
 
-@functools.lru_cache(maxsize=None)
-def _recurrence_constants(n: int) -> Tensor:
-    """float32 constants of `sh._terms_recurrence` at order n, in the order `zh36o_pose_sh` reads them: √2,
-    then per m the sectoral start q_m^m and per l > m the factor √(2m+3) (l = m + 1) or a_lm, b_lm — each
-    the Python float the recurrence multiplies by (float32 as torch takes a scalar)."""
-    out = [math.sqrt(2.0)]
-    qmm = 1.0 / math.sqrt(4.0 * math.pi)
-    for m in range(n):
-        if m > 0:
-            qmm *= math.sqrt((2 * m + 1) / (2 * m))
-        out.append(qmm)
-        for l in range(m + 1, n):
-            if l == m + 1:
-                out.append(math.sqrt(2 * m + 3))
-            else:
-                out += [math.sqrt((4 * l * l - 1) / (l * l - m * m)),
-                        math.sqrt(((l - 1) ** 2 - m * m) / (4 * (l - 1) ** 2 - 1))]
-    return torch.tensor(out, dtype=torch.float32)
-
-
-@functools.lru_cache(maxsize=64)
-def _pose_sh_constants(n: int, lam: tuple, perm: tuple) -> tuple[Tensor, Tensor, Tensor] | None:
-    """(Λ (n,) float32, perm (n²,) int64, `_recurrence_constants`(n)) as `zh36o_pose_sh` reads them, once per
-    (order, Λ, perm) — or None: perm not a permutation of the n² rows (pure: no library is loaded here)."""
-    if sorted(perm) != list(range(n * n)):
-        return None
-    return torch.tensor(lam, dtype=torch.float32), torch.tensor(perm, dtype=torch.int64), _recurrence_constants(n)
-
-
-def pose_sh_available() -> bool:
-    """Whether `pose_sh` can run here (a compiler, ``PRTBENCH_COMPILE`` / ``PRTBENCH_ZH_NATIVE`` on)."""
-    return terms_switched_on() and _pose_sh_lib() is not None
-
-
-def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, perm: tuple, lobes: int, n: int,
-            rmax: float, out: Tensor | None = None, zyz: bool = True, dim: int = 0, scatter: bool = False
-            ) -> Tensor | None:
-    """(n², Q) float32: `runtime._vertex_sh`(`pose_columns`(X, a, idx), nT, lam, lobes, n, 0, True, perm) — the
-    visibility of the vertices idx (None: every vertex) in the ZYZ frames of their unit normals nT (3, Q), rows
-    in the order perm — by one C call (`zh36o_pose_sh`, above: the product's bits, eq. 1 to float32 round-off
-    against the compiled pass), or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, X not
-    float32 CPU vertex-major (`vertex_major`) with d = lobes (2 + n) ≤ `POSE_COLS_DMAX`, n above
-    `POSE_SH_NMAX`, a not (J+1,) float32, idx not int64, nT not (3, Q) float32 with unit column stride, perm
-    not a permutation of the n² rows, an id out of [0, N)). ``out``: a float32 buffer of at least n² Q elements
-    the result is written into (its first n² Q, viewed (n², Q): the caller's buffer kept across frames, no fresh
-    pages per call), else a new one. ``zyz`` False: the SH in world space (`_vertex_sh`'s ``zyz`` False); ``dim``
-    1: the result (Q, n²) (`_vertex_sh`'s ``dim``).
-
-    ``scatter`` (zh37p; with ``dim`` 1 and idx strictly increasing): the result (N, n²), vertex idx[q]'s row at row
-    idx[q] (the same bits as the compact call's row q) and every other row 0; nT then (3, N), the normals of every
-    vertex (any strides: read at the vertices' ids). None if idx is not strictly increasing."""
-    lib = _pose_sh_lib() if terms_switched_on() else None
-    if lib is None or X.dtype != torch.float32 or X.device.type != "cpu" or X.dim() != 3 or not is_vertex_major(X) \
-            or not 1 <= n <= POSE_SH_NMAX or lobes < 1 or X.shape[2] != lobes * (2 + n) \
-            or X.shape[2] > POSE_COLS_DMAX or len(lam) != n or len(perm) != n * n \
-            or a.dtype != torch.float32 or a.device.type != "cpu" or a.dim() != 1 or a.shape[0] != X.shape[0] \
-            or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1 or idx.device.type != "cpu")) \
-            or dim not in (0, 1):
-        return None
-    J1, N, d = (int(s) for s in X.shape)
-    Q = N if idx is None else int(idx.shape[0])
-    if scatter and (idx is None or dim != 1):
-        return None
-    if nT.dtype != torch.float32 or nT.device.type != "cpu" or tuple(nT.shape) != (3, N if scatter else Q) \
-            or (Q and not scatter and nT.stride(1) != 1):
-        return None
-    consts = _pose_sh_constants(n, tuple(float(x) for x in lam), tuple(int(i) for i in perm))
-    if consts is None:
-        return None
-    lamt, permt, cq = consts
-    a = a.contiguous()
-    if idx is not None:
-        idx = idx.contiguous()
-    if out is not None and (out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous()
-                            or out.numel() < n * n * Q):
-        out = None
-    R = N if scatter else Q
-    if out is not None and out.numel() < n * n * R:
-        out = None
-    shape = (n * n, R) if dim == 0 else (R, n * n)
-    out = torch.empty(shape, dtype=torch.float32) if out is None else out.view(-1)[:n * n * R].view(shape)
-    if Q == 0:
-        return out.zero_() if scatter else out
-    bad = torch.zeros(1, dtype=torch.int64)
-    nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
-    lib.zh36o_pose_sh(J1, d, lobes, n, a.data_ptr(), X.data_ptr(), 0 if idx is None else idx.data_ptr(), N, Q,
-                      nT.data_ptr(), nT.stride(0), lamt.data_ptr(), permt.data_ptr(), cq.data_ptr(), float(rmax),
-                      int(bool(zyz)), int(dim == 1), nt, out.data_ptr(), bad.data_ptr(), int(scatter),
-                      nT.stride(1) if scatter else 1)
-    return None if int(bad[0]) else out
-
-
-# === zh37p ==================================================================================================
-#
-# A paper-configuration P frame's visibility of the referenced vertices alone (`ZHShadow._pose_state`, session 37):
-# the vertices the hit samples reference (`referenced_mask`'s: the corners of the faces they lie on) marked by both
-# threads (`referenced_ids`: the samples split over the team — each mark a store of 1, the same bytes whatever
-# the team —, then the faces' corners), their ids in ascending order, and then `pose_sh` for those ids alone (``scatter``: their
-# rows of the (N, n²) visibility, every other row 0). Bench creature: 4.4 K of the 13.4 K vertices, a third of X.
-_REFERENCED_SOURCE = r"""
-#include <stdint.h>
-#include <string.h>
-
-static void mark_faces(const int64_t *face, const uint8_t *hit, int64_t a, int64_t b, int64_t M, uint8_t *fmark) {
-    for (int64_t p = a; p < b; ++p) {   /* branch-free: a miss or a bad id marks the spare slot M */
-        const int64_t f = face[p];
-        const int64_t g = (hit[p] & ((uint64_t)f < (uint64_t)M)) ? f : M;
-        __atomic_store_n(fmark + g, (uint8_t)1, __ATOMIC_RELAXED);
-    }
-}
-
-/* fmark (M + 1) zeroed by the caller; vmark (N) zeroed here; ids (N): the marked vertices ascending, count[0]
-   their number. The samples split over nt threads (one parallel region), the faces and ids on one. */
-void zh37p_referenced(const int64_t *face, const uint8_t *hit, int64_t P, const int64_t *F, int64_t M, int64_t N,
-                      uint8_t *fmark, uint8_t *vmark, int64_t *ids, int64_t *count, int64_t nt) {
-    if (nt <= 1) {
-        mark_faces(face, hit, 0, P, M, fmark);
-    } else {
-        #pragma omp parallel for num_threads(nt) schedule(static, 1)
-        for (int64_t t = 0; t < nt; ++t) mark_faces(face, hit, P * t / nt, P * (t + 1) / nt, M, fmark);
-    }
-    memset(vmark, 0, (size_t)N);
-    for (int64_t f = 0; f < M; ++f) {
-        if (fmark[f]) {
-            for (int k = 0; k < 3; ++k) {
-                const int64_t v = F[3 * f + k];
-                if ((uint64_t)v < (uint64_t)N) vmark[v] = 1;
-            }
-        }
-    }
-    int64_t c = 0;
-    for (int64_t v = 0; v < N; ++v) {
-        ids[c] = v;
-        c += vmark[v];
-    }
-    count[0] = c;
-}
-"""
-_REFERENCED_SIGNATURES = {"zh37p_referenced": [_P, _P, _I, _P, _I, _I, _P, _P, _P, _P, _I]}
-MIN_SAMPLES_PER_REFERENCED_THREAD = 1 << 15   # G-buffer samples per thread below which one thread marks them
-
-
-def _referenced_lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
-    return native.load("zh37p_referenced", _REFERENCED_SOURCE, _REFERENCED_SIGNATURES, extra_flags=("-fopenmp",))
-
-
-def referenced_ids(F: Tensor, face: Tensor, hit: Tensor, N: int) -> tuple[Tensor, Tensor] | None:
-    """((N,) bool mask, (N_r,) int64 ascending ids) of the vertices the hit samples reference: `referenced_mask`'s
-    mask (its oracle `referenced_mask_torch`) and its ``nonzero``, by one C call on the team (`zh37p_referenced`,
-    above) — or None where it does not run (no compiler, ``PRTBENCH_ZH_NATIVE=0``, arguments not CPU int64
-    faces and F (M, 3), a bool hit mask of the faces' shape). A face id of F out of [0, N) is not marked."""
-    lib = _referenced_lib() if terms_switched_on() else None
-    if lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or F.dtype != torch.int64 \
-            or hit.dtype != torch.bool or face.dim() != 1 or hit.shape != face.shape or F.dim() != 2 \
-            or F.shape[1] != 3 or F.device.type != "cpu" or N < 0:
-        return None
-    face, hit, F = face.contiguous(), hit.contiguous(), F.contiguous()
-    P, M = int(face.shape[0]), int(F.shape[0])
-    fm = torch.zeros(M + 1, dtype=torch.uint8)
-    vm = torch.empty(N, dtype=torch.bool)
-    ids = torch.empty(N, dtype=torch.int64)
-    cnt = torch.zeros(1, dtype=torch.int64)
-    nt = max(1, min(torch.get_num_threads(), P // MIN_SAMPLES_PER_REFERENCED_THREAD))
-    lib.zh37p_referenced(face.data_ptr(), hit.data_ptr(), P, F.data_ptr(), M, N, fm.data_ptr(), vm.data_ptr(),
-                         ids.data_ptr(), cnt.data_ptr(), nt)
-    return vm, ids[:int(cnt[0])]
+def warm_rows_libraries() -> None:
+    """Load (building once) zh37p's libraries (`referenced_ids`, `pose_sh`'s scatter) from a frame that does not
+    call them (the harness's untimed full-change frame 0 of a sample-shaded method), so that the first P frame pays
+    no dlopen."""
+    if terms_switched_on():
+        _referenced_lib()
+        _pose_rows_lib()
