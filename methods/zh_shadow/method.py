@@ -85,7 +85,6 @@ import functools
 import math
 import time
 import warnings
-import weakref
 from typing import Any
 
 import torch
@@ -367,15 +366,11 @@ class ZHShadow(Method):
         self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
         #                                 `native.pose_sh`), reused across frames: counted in `memory`
         self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
-        self._rows_libs_warm = False             # `native.warm_rows_libraries` called (`_pose_state`, zh37p)
-        self._posed_part: tuple | None = None   # (v, weakref of the G-buffer, (N,) bool rows made) when the pose's
-        #                                 visibility ``_posed[2]`` is v made for those rows alone (`_pose_state`, zh37p)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
-        self._posed_part = None
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
@@ -529,7 +524,7 @@ class ZHShadow(Method):
                 out.append((kd, torch.zeros(3), 1.0))
         return out
 
-    def _pose_state(self, frame: Frame, visibility: bool = True, gbuffer: GBuffer | None = None):
+    def _pose_state(self, frame: Frame, visibility: bool = True):
         """(pose vector, posed geometry, (N, n²) world-space SH visibility), cached per pose:
         §4.3 #1 (lobes from the linear model), the local lobe axes taken to world space through the
         posed vertex frame, and eq. 1 (ZH → SH) once per vertex. With vertex shading and
@@ -539,14 +534,7 @@ class ZHShadow(Method):
         ``visibility=False``: the posed geometry alone — the visibility (third item) None unless
         already made for this pose; a P frame's front-only path (`_front_radiance`) makes the
         front-facing vertices' own (`_visibility_args`), and the first later frame of the pose
-        that needs every vertex's makes it then.
-
-        ``gbuffer`` (the frame's; sample shading, ``referenced_visibility``, zh37p): a P frame — a new pose under
-        the same camera — makes the visibility of the vertices its hit samples reference alone (`_referenced_rows`:
-        the (N, n²) array with their rows, the others 0; the only rows the frame reads — the plane samples' face
-        corners, the object samples' — as `frame_cost` counts). A later frame of the pose keeps it if its own hit
-        samples reference no other vertex (the same G-buffer: no test), else (or without ``gbuffer``) makes every
-        vertex's, a new array (the caches keyed on the visibility's identity then start over)."""
+        that needs every vertex's makes it then."""
         scene = self.scene
         if scene.skeleton is None:
             pose_vec = torch.zeros(0)
@@ -556,67 +544,11 @@ class ZHShadow(Method):
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else self._posed_geometry(pose_vec, key)
             self._posed = (key, geom, None)
-            self._posed_part = None
-        if visibility and self._posed[2] is not None and self._posed_part is not None:
-            part = self._posed_part
-            if part[0] is not self._posed[2] or not self._rows_cover(part, gbuffer):
-                self._posed = (key, self._posed[1], None)   # (some rows this frame reads are not made: all of them)
-                self._posed_part = None
         if visibility and self._posed[2] is None:
             vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
-            v = None
-            if gbuffer is not None and not vertex and self.referenced_visibility and "pose" in frame.changed \
-                    and "view" not in frame.changed:
-                v = self._referenced_rows(pose_vec, self._posed[1], gbuffer)
-            elif gbuffer is not None and not vertex and self.referenced_visibility and not self._rows_libs_warm:
-                zn.warm_rows_libraries()   # (once per object, in a frame that does not call them: frame 0)
-                self._rows_libs_warm = True
-            if v is None:
-                v = self._pose_visibility(pose_vec, self._posed[1])
+            v = self._pose_visibility(pose_vec, self._posed[1])
             self._posed = (key, self._posed[1], v.T if vertex else v)                       # (N, n²)
         return pose_vec, self._posed[1], self._posed[2]
-
-    # A sample-shaded P frame (a new pose under the same camera: the paper configuration's) makes the visibility of
-    # the vertices its hit samples reference alone (`_pose_state`, `_referenced_rows`, zh37p: a third of X's rows
-    # on the bench creature); False: every vertex's (the tests' oracle)
-    referenced_visibility = True
-
-    def _referenced_rows(self, pose_vec: Tensor, geom, gbuffer: GBuffer) -> Tensor | None:
-        """The pose's (N, n²) world-space visibility (`_pose_visibility`'s) in the rows of the vertices the hit samples
-        of ``gbuffer`` reference (`native.referenced_ids`: the corners of the faces they lie on), 0 in the others —
-        by `native.pose_sh` for those vertices alone (``scatter``: each row the bits of the every-vertex call's) —
-        kept as ``_posed_part``; or None where that does not run (the caller makes every vertex's)."""
-        args, kw = self._visibility_args(pose_vec, geom)
-        X, _, normal, lobes = args
-        if not (self.native_eq1 and kw["frame"] == "world" and not kw["point_minor"] and zn.is_vertex_major(X)
-                and X.shape[0] == pose_vec.numel() + 1 and X.dtype == torch.float32 and normal.dtype == torch.float32
-                and gbuffer.face.device.type == "cpu"):
-            return None
-        N = int(geom.num_vertices)
-        found = zn.referenced_ids(geom.F, gbuffer.face, gbuffer.hit, N)
-        if found is None:
-            return None
-        mask, idx = found
-        n = int(X.shape[2]) // lobes - 2
-        a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
-        v = zn.pose_sh(X, a, idx, normal.T, rt._band_norms(n), tuple(range(n * n)), lobes, n, pc.CHART_RMAX, None,
-                       False, 1, True)   # (scatter: positional, as the tests' wrappers pass them)
-        if v is None:
-            return None
-        self._posed_part = (v, weakref.ref(gbuffer), mask)
-        return v
-
-    def _rows_cover(self, part: tuple, gbuffer: GBuffer | None) -> bool:
-        """Whether the rows of a partial visibility ``part`` (``_posed_part``) hold every vertex the hit samples of
-        ``gbuffer`` reference (None: every vertex is asked for — no)."""
-        if gbuffer is None:
-            return False
-        if part[1]() is gbuffer:
-            return True
-        N = int(part[2].shape[0])
-        found = zn.referenced_ids(self._posed[1].F, gbuffer.face, gbuffer.hit, N)
-        need = found[0] if found is not None else zn.referenced_mask(self._posed[1].F, gbuffer.face, gbuffer.hit, N)
-        return not bool((need & ~part[2]).any())
 
     def _posed_geometry(self, pose_vec: Tensor, key: tuple):
         """`Scene.geometry`(pose) of the scene (a skeleton): with ``native_skinning`` its forward kinematics
@@ -754,8 +686,7 @@ class ZHShadow(Method):
         vertex = self.config["shading"] == "vertex"
         # (vertex shading: the visibility made in `_render_vertex`, a P frame's for its front-facing
         # vertices alone)
-        # (pose branch, zh37p: a sample-shaded P frame's visibility made for the vertices its G-buffer references)
-        pose_vec, geom, v0 = self._pose_state(frame, visibility=not vertex, gbuffer=None if vertex else gbuffer)
+        pose_vec, geom, v0 = self._pose_state(frame, visibility=not vertex)
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
