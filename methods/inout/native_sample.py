@@ -84,6 +84,28 @@ them could save ≤ 7·10³ `cell_x` calls (~0.4 ms): not tried. Tried and dropp
 image's two ends towards each other (contiguous runs of 256-pixel chunks, a shared claim count):
 the threads' CPU in the loop 14.26 against 14.30 ms (the same work; 156 against 161·10³ rows made,
 fewer filled twice), wall unmeasurable at load 8.
+
+Session 37 (`FAST` bits 256, 512, 1024; the same bits): the batched per-tile form (`shade_tile`). The
+pixels go in tiles of `TILE` pixels (at 2+ threads a tile is a chunk of the dynamic schedule), each in
+three passes over compact per-tile arrays: (1) resolve — the front end as before, then each shaded
+sample's (face, cell) to an entry of the tile (the last sample's, else a 4096-slot hash of packed 8-byte
+slots, 32 KB; the tile closes early after a block when its entries near half the slots), its weights and
+entry kept (20 B a sample), the entry's vertices with a nonzero weight marked; (2) fill — the entries'
+(vertex, cell) needs grouped by vertex (tile-local vertex ids, a counting sort), per vertex its distinct
+table nodes (bit 512; else its distinct cells by `cell_x`) four at a time by `rows_x` (`cell_x`'s loop
+on any four rows: the same bits per (vertex, node) pair), its c row read once a tile (bit 1024: two
+vertices ahead prefetched), each entry's 3 × 4 X written; (3) shade — each sample's B from its entry,
+the loop's sum in the loop's order. No memo, vertex record or stamp is read: a (vertex, node) pair met
+by several tiles is computed again (chess bench ~155·10³ products a frame at 2048 pixels against the
+124.5·10³ distinct ones; 1024: 182·10³, 4096: 148·10³), but each tile reads a vertex's c once and its
+look-ups stay in L1 / L2. Where a chess bench V frame's time goes (1 thread, cold, process CPU, a
+thread-CPU clock around each pass, host at load ~7): resolve ~3.7 ms (the front end ~2.0 of it), grouping
+~0.55, fill ~5.5 (~40·10³ `rows_x` calls: with the four table rows in L1 ~3.5 and with c in L1 too ~3.3,
+so ~2 ms is the table rows' L2 → L1 traffic, 1 KB a (vertex, node) product, and ~1.9 ms the per-vertex
+node book-keeping), shade ~1.4. Tried and dropped: the memo's window rows read and written in the fill
+(128·10³ products, near the minimum, but 0.87-0.92x: a vertex's window rows and stamps cost as many
+misses as its c); tiles of 1024 / 4096 pixels (chess 1.12x / 1.13x, creature 1.17x / 1.07x against 1.17x
+/ 1.24x at 2048, same process).
 """
 from __future__ import annotations
 
@@ -1165,6 +1187,12 @@ CHUNK = 1024
 # (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1 --frames 41 --cold
 # --variants 63 255``, host at load 5-12): 255 against 63 chess 1.024x (per frame 1.025x), creature
 # 1.019x (per frame 1.026x); the front end alone (no live sample) 1.07x with 64 (2.19 -> 2.04 ms).
+# 256 (FMA builds, with 4) the pixels in tiles (`shade_tile`: resolve, fill, shade; no memo), 512 (with 256)
+# a vertex's distinct nodes four at a time (`rows_x`) instead of its distinct cells, 1024 (with 256) a later
+# vertex's c prefetched; the same bits as 4..128. Session 37, 1 thread, process CPU, each call after a fresh
+# rasterisation, alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1
+# --frames 11 --cold --variants 255 2047``, host at load 6-8): chess 1.21x (per frame 1.22x), creature
+# 1.22x (per frame 1.24x).
 FAST = 2047
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
