@@ -1192,7 +1192,10 @@ CHUNK = 1024
 # vertex's c prefetched; the same bits as 4..128. Session 37, 1 thread, process CPU, each call after a fresh
 # rasterisation, alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1
 # --frames 11 --cold --variants 255 2047``, host at load 6-8): chess 1.21x (per frame 1.22x), creature
-# 1.22x (per frame 1.24x).
+# 1.22x (per frame 1.24x); at 2 threads chess 1.45x (per frame 1.42x, load 10). Whole V frames against the
+# base checkout (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --frames 15
+# --threads 1|2 --no-micro``, process CPU, load 7-10): chess 1.18x / 1.01x, creature 1.12x / 1.07x at 1 / 2
+# threads; max |d| 0 (the same bits).
 FAST = 2047
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
