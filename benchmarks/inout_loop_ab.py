@@ -2,7 +2,7 @@
 switches, alternating in one process (issue 14: the V frames' run time).
 
     python -m benchmarks.inout_loop_ab --scene chess|creature [--frames 15] [--threads 1] [--cold]
-                                       [--variants 63 15 63:10:12 ...]
+                                       [--variants 63 15 63:10:12 ...] [--precompute-code DIR]
 
 A variant is ``FAST[:YCACHE_LOG[:WINDOW[:TILE]]]`` (``native_sample``'s module constants; the ones
 left out or empty default to the module's). The scene's bench V sequence (spp side 2) is precomputed under the
@@ -70,7 +70,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cold", action="store_true", help="make the frame's G-buffer right before each call")
     ap.add_argument("--variants", nargs="+", default=[str(ns.FAST), "15"])
+    ap.add_argument("--precompute-code", default=None,
+                    help="take the precomputation from the harness cache entry of the code in DIR (a base checkout)")
     a = ap.parse_args(argv)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
     torch.set_num_threads(a.threads)
     if not ns.available():
         raise SystemExit("the C loop is not available (no compiler or PRTBENCH_COMPILE=0)")
