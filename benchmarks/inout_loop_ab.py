@@ -2,10 +2,10 @@
 switches, alternating in one process (issue 14: the V frames' run time).
 
     python -m benchmarks.inout_loop_ab --scene chess|creature [--frames 15] [--threads 1] [--cold]
-                                       [--variants 63 15 63:10:12 ...]
+                                       [--variants 63 15 63:10:12 ...] [--precompute-code DIR]
 
-A variant is ``FAST[:YCACHE_LOG[:WINDOW]]`` (``native_sample``'s module constants; YCACHE_LOG and
-WINDOW default to the module's). The scene's bench V sequence (spp side 2) is precomputed under the
+A variant is ``FAST[:YCACHE_LOG[:WINDOW[:TILE]]]`` (``native_sample``'s module constants; the ones
+left out or empty default to the module's). The scene's bench V sequence (spp side 2) is precomputed under the
 harness's cache (``benchmarks.common.precomputed``), frame 0 rendered once by ``InOut.render`` (c of
 every vertex), then each frame's G-buffer is shaded by every variant, the order alternating per
 frame, each with its own memo (``native_sample.memo``) and frame stamps, after ``settle()`` (the
@@ -50,12 +50,16 @@ from methods.inout.method import InOut
 from references.gbuffer import make_gbuffer
 
 
-def _variant(spec: str) -> tuple[int, int, int]:
-    parts = [int(x) for x in spec.split(":")]
+# the module's constants as imported (a variant's left-out fields; not the last variant's values)
+_DEFAULTS = (ns.YCACHE_LOG, ns.WINDOW, ns.TILE)
+
+
+def _variant(spec: str) -> tuple[int, int, int, int]:
+    parts = [int(x) if x else None for x in spec.split(":")]
+    parts += [None] * (4 - len(parts))
     fast = parts[0]
-    ylog = parts[1] if len(parts) > 1 else ns.YCACHE_LOG
-    W = parts[2] if len(parts) > 2 else ns.WINDOW
-    return fast, ylog, W
+    ylog, W, tile = (d if x is None else x for x, d in zip(parts[1:], _DEFAULTS))
+    return fast, ylog, W, tile
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -66,7 +70,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cold", action="store_true", help="make the frame's G-buffer right before each call")
     ap.add_argument("--variants", nargs="+", default=[str(ns.FAST), "15"])
+    ap.add_argument("--precompute-code", default=None,
+                    help="take the precomputation from the harness cache entry of the code in DIR (a base checkout)")
     a = ap.parse_args(argv)
+    if a.precompute_code:
+        from reports import precompute_cache
+        from reports.store import code_closure_fingerprint
+
+        precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
     torch.set_num_threads(a.threads)
     if not ns.available():
         raise SystemExit("the C loop is not available (no compiler or PRTBENCH_COMPILE=0)")
@@ -78,7 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     st = m._fast_static()
     cs = [m._cf[r.name] for r in m.regions]
     nv = st.voff[-1]
-    saved = (ns.FAST, ns.YCACHE_LOG)
+    saved = (ns.FAST, ns.YCACHE_LOG, ns.TILE)
     variants = list(dict.fromkeys(a.variants))
     mems = {v: ns.memo(nv, _variant(v)[2]) for v in variants}
     stamp = {v: 0 for v in variants}
@@ -88,7 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
         for i, (f, g) in enumerate(zip(frames, gbs)):
             cam = torch.tensor(f.camera.origin, dtype=torch.float32)
             for v in (variants if i % 2 == 0 else variants[::-1]):
-                ns.FAST, ns.YCACHE_LOG, W = _variant(v)
+                ns.FAST, ns.YCACHE_LOG, W, ns.TILE = _variant(v)
                 stamp[v] += 1
                 settle()
                 if a.cold:
@@ -99,7 +110,7 @@ def main(argv: list[str] | None = None) -> dict:
                 stats[v], imgs[v] = s, out
             diff = max(diff, *(float((imgs[v] - imgs[variants[0]]).abs().max()) for v in variants))
     finally:
-        ns.FAST, ns.YCACHE_LOG = saved
+        ns.FAST, ns.YCACHE_LOG, ns.TILE = saved
     peak = float(imgs[variants[0]].abs().max())
     print(f"{a.scene} {a.size} V, {a.threads} thread(s), {a.frames} frames{' (cold)' if a.cold else ''}; "
           f"max |d| against {variants[0]}: {diff:.3g} (peak {peak:.3g})")

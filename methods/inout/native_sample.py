@@ -84,6 +84,28 @@ them could save ≤ 7·10³ `cell_x` calls (~0.4 ms): not tried. Tried and dropp
 image's two ends towards each other (contiguous runs of 256-pixel chunks, a shared claim count):
 the threads' CPU in the loop 14.26 against 14.30 ms (the same work; 156 against 161·10³ rows made,
 fewer filled twice), wall unmeasurable at load 8.
+
+Session 37 (`FAST` bits 256, 512, 1024; the same bits): the batched per-tile form (`shade_tile`). The
+pixels go in tiles of `TILE` pixels (at 2+ threads a tile is a chunk of the dynamic schedule), each in
+three passes over compact per-tile arrays: (1) resolve — the front end as before, then each shaded
+sample's (face, cell) to an entry of the tile (the last sample's, else a 4096-slot hash of packed 8-byte
+slots, 32 KB; the tile closes early after a block when its entries near half the slots), its weights and
+entry kept (20 B a sample), the entry's vertices with a nonzero weight marked; (2) fill — the entries'
+(vertex, cell) needs grouped by vertex (tile-local vertex ids, a counting sort), per vertex its distinct
+table nodes (bit 512; else its distinct cells by `cell_x`) four at a time by `rows_x` (`cell_x`'s loop
+on any four rows: the same bits per (vertex, node) pair), its c row read once a tile (bit 1024: two
+vertices ahead prefetched), each entry's 3 × 4 X written; (3) shade — each sample's B from its entry,
+the loop's sum in the loop's order. No memo, vertex record or stamp is read: a (vertex, node) pair met
+by several tiles is computed again (chess bench ~155·10³ products a frame at 2048 pixels against the
+124.5·10³ distinct ones; 1024: 182·10³, 4096: 148·10³), but each tile reads a vertex's c once and its
+look-ups stay in L1 / L2. Where a chess bench V frame's time goes (1 thread, cold, process CPU, a
+thread-CPU clock around each pass, host at load ~7): resolve ~3.7 ms (the front end ~2.0 of it), grouping
+~0.55, fill ~5.5 (~40·10³ `rows_x` calls: with the four table rows in L1 ~3.5 and with c in L1 too ~3.3,
+so ~2 ms is the table rows' L2 → L1 traffic, 1 KB a (vertex, node) product, and ~1.9 ms the per-vertex
+node book-keeping), shade ~1.4. Tried and dropped: the memo's window rows read and written in the fill
+(128·10³ products, near the minimum, but 0.87-0.92x: a vertex's window rows and stamps cost as many
+misses as its c); tiles of 1024 / 4096 pixels (chess 1.12x / 1.13x, creature 1.17x / 1.07x against 1.17x
+/ 1.24x at 2048, same process).
 """
 from __future__ import annotations
 
@@ -307,8 +329,8 @@ static inline void x4_sums(__m512 a[4][3], v4 *x) {
    `VSUM`'s fixed tree: each value a function of its (vertex, node) pair alone, whichever cell,
    thread or path (memo fill or an entry outside the window) computes it. One loop for the 12 sums:
    the per-row fills' 6 loops a row and their branches cost more than the arithmetic. */
-static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x, int tree) {
-    const float *r0 = t, *r1 = t + 3 * K, *r2 = t + R3K, *r3 = t + R3K + 3 * K;
+static inline void rows_x(const float *r0, const float *r1, const float *r2, const float *r3, const float *cv, int64_t K,
+                          v4 *x, int tree) {
     vecf a[4][3];
     for (int n = 0; n < 4; ++n)
         for (int ch = 0; ch < 3; ++ch)
@@ -335,6 +357,11 @@ static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t 
     for (int n = 0; n < 4; ++n)
         x[n] = (v4){VSUM(a[n][0]), VSUM(a[n][1]), VSUM(a[n][2]), 0.0f};
 }
+/* the cell's four nodes (rows_x: any four table rows, each X by the same operations; bit 512 calls it
+   with four distinct nodes of a vertex, the same bits per (vertex, node) pair) */
+static inline void cell_x(const float *t, int64_t R3K, const float *cv, int64_t K, v4 *x, int tree) {
+    rows_x(t, t + 3 * K, t + R3K, t + R3K + 3 * K, cv, K, x, tree);
+}
 
 #endif
 
@@ -353,6 +380,7 @@ typedef struct {
     float *memo;                            /* per vertex W^2 rows of 4 floats: X (3) and 0 */
     int32_t *mstamp;                        /* per memo row: the frame that filled it */
     int64_t ylog;                           /* bit 16: log2 of the entries of each thread's (face, cell) cache */
+    int64_t tile;                           /* bit 256: pixels per tile */
 } Args;
 
 /* the vertex's window (its anchor cell's, W x W nodes within the table) and slot, set once a frame */
@@ -778,6 +806,294 @@ static void shade_range(const Args *A, int64_t p0, int64_t p1, float *out, int64
     stats[0] = made; stats[1] = exact; stats[2] = bad;
 }
 
+#ifdef HAVE_DOTF
+/* bit 256 (FMA builds, with 4): the pixels in tiles of A->tile, each in three passes over its samples'
+   compact per-tile data (the memo, vertex records and stamps untouched):
+   (1) resolve: the front end as above (the G-buffer along its layouts, `frame_cells`), then each shaded
+       sample's (face, cell) key to an entry of the tile (the last sample's, else a tile-local hash
+       table), the entry's vertices with a nonzero weight marked;
+   (2) fill: the entries' (vertex, cell) needs grouped by vertex (a counting sort on tile-local vertex
+       ids), each vertex's distinct cells by `cell_x` one after another (its c row read once a tile, from
+       L1 after the first), a repeated cell's four X copied: each entry holds its 3 vertices' 4 X;
+   (3) shade: each sample's B from its entry, the same sum in the same order as the loop above.
+   X(v, n) is `cell_x`'s value of the pair whatever the path, so the image is the same bits as bits 4..128
+   (and the same at any thread count: a tile is shaded by one thread). stats: rows computed = 4 per
+   `cell_x` call, no entries outside a window. */
+#ifndef PFV
+#define PFV 2   /* bit 1024: vertices ahead whose c is prefetched */
+#endif
+#define TH_LOG 12   /* bit 256: log2 of the tile's (face, cell) hash slots (8 B each: 32 KB, L1-sized) */
+/* a slot: (key + 1) << 16 | entry, 0 empty (keys < 2^47, entries < 2^16) */
+typedef uint64_t tslot;
+typedef struct { int64_t f, slot; int32_t node0, need; } tent;
+typedef struct {
+    int64_t cap_q, nv;
+    int32_t *sent, *item_e, *item_lv, *sorted, *vtag, *vid, *vg, *vcnt, *vpos, *cn, *cidx, tag;
+    int64_t rr;                 /* bit 512: per table node (R^2) its tag and slot; a vertex's nodes, their X */
+    int32_t *ntag, *nslot, *nodes, ntg;
+    v4 *xs;
+    float *sw;
+    tent *ent;
+    v4 *ex;
+    tslot *ht;
+} tws;
+static __thread tws tw;
+
+static void *amalloc(size_t bytes) { return aligned_alloc(64, (bytes + 63) / 64 * 64); }
+
+/* the calling thread's buffers for tiles of Q samples, nv vertices and rr table nodes (kept between calls;
+   0 when one cannot be had: the caller takes `shade_range`) */
+static int tws_ensure(int64_t Q, int64_t nv, int64_t rr) {
+    if (tw.rr < rr || tw.ntg >= 0x7FFFFFF0) {
+        free(tw.ntag); free(tw.nslot); free(tw.nodes); free(tw.xs);
+        tw.ntag = (int32_t *)calloc(rr, 4); tw.nslot = (int32_t *)malloc(rr * 4);
+        tw.nodes = (int32_t *)malloc((rr + 4) * 4); tw.xs = (v4 *)amalloc((size_t)(rr + 4) * sizeof(v4));
+        tw.rr = 0; tw.ntg = 0;
+        if (!tw.ntag || !tw.nslot || !tw.nodes || !tw.xs)
+            return 0;
+        tw.rr = rr;
+    }
+    if (tw.cap_q < Q) {
+        const int64_t E = Q < ((int64_t)1 << (TH_LOG - 1)) ? Q : ((int64_t)1 << (TH_LOG - 1));   /* entries */
+        free(tw.sent); free(tw.item_e); free(tw.item_lv); free(tw.sorted); free(tw.vg); free(tw.vcnt);
+        free(tw.vpos); free(tw.cn); free(tw.cidx); free(tw.sw); free(tw.ent); free(tw.ex); free(tw.ht);
+        tw.sent = (int32_t *)malloc(Q * 4); tw.sw = (float *)malloc(Q * 16);
+        tw.item_e = (int32_t *)malloc(3 * E * 4); tw.item_lv = (int32_t *)malloc(3 * E * 4);
+        tw.sorted = (int32_t *)malloc(3 * E * 4); tw.vg = (int32_t *)malloc(3 * E * 4);
+        tw.vcnt = (int32_t *)malloc(3 * E * 4); tw.vpos = (int32_t *)malloc((3 * E + 1) * 4);
+        tw.cn = (int32_t *)malloc(3 * E * 4); tw.cidx = (int32_t *)malloc(3 * E * 4);
+        tw.ent = (tent *)malloc(E * sizeof(tent));
+        tw.ex = (v4 *)amalloc((size_t)E * 12 * sizeof(v4));
+        tw.ht = (tslot *)amalloc(sizeof(tslot) << TH_LOG);
+        tw.cap_q = 0;
+        if (!tw.sent || !tw.sw || !tw.item_e || !tw.item_lv || !tw.sorted || !tw.vg || !tw.vcnt || !tw.vpos || !tw.cn
+            || !tw.cidx || !tw.ent || !tw.ex || !tw.ht)
+            return 0;
+        memset(tw.ht, 0, sizeof(tslot) << TH_LOG);
+        tw.cap_q = Q;
+    }
+    if (tw.nv < nv || tw.tag >= 0x7FFFFFF0) {
+        free(tw.vtag); free(tw.vid);
+        tw.vtag = (int32_t *)calloc(nv, 4); tw.vid = (int32_t *)malloc(nv * 4);
+        tw.nv = 0; tw.tag = 0;
+        if (!tw.vtag || !tw.vid)
+            return 0;
+        tw.nv = nv;
+    }
+    return 1;
+}
+
+/* the tile from pixel p0 up to p1, closed early after a block that leaves fewer than a block's samples of
+   free entries below half the hash's slots; returns the pixel after its last */
+static int64_t shade_tile(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *made_, int64_t *bad_) {
+    const int64_t R = A->R, S2 = A->S2, RR = R * R, hl = TH_LOG, hmask = ((int64_t)1 << hl) - 1;
+    const int64_t E = tw.cap_q < ((int64_t)1 << (hl - 1)) ? tw.cap_q : ((int64_t)1 << (hl - 1));
+    const int32_t emax = (int32_t)(E - BLK * S2);   /* a block adds at most BLK * S2 entries */
+    const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
+    const int tree = (int)(A->fast >> 5 & 1), wide = (int)(A->fast >> 6 & 1);
+    int32_t *sent = tw.sent;
+    float *sw = tw.sw;
+    tent *ent = tw.ent;
+    tslot *ht = tw.ht;
+    v4 *ex = tw.ex;
+    int64_t made = 0, bad = *bad_, lastkey = -1;
+    int32_t nE = 0, laste = -1;
+    float nx_[BLK * 8 + 16], ny_[BLK * 8 + 16], nz_[BLK * 8 + 16], a_[BLK * 8 + 16], b_[BLK * 8 + 16], c_[BLK * 8 + 16];
+    float bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 16], fv_[BLK * 8 + 16], z_[BLK * 8 + 16];
+    int32_t iu_[BLK * 8 + 16], iv_[BLK * 8 + 16];
+    memset(nx_, 0, sizeof nx_); memset(ny_, 0, sizeof ny_); memset(nz_, 0, sizeof nz_);
+    memset(a_, 0, sizeof a_); memset(b_, 0, sizeof b_); memset(c_, 0, sizeof c_);
+    /* (1) resolve */
+    int64_t pend = p0;
+    for (int64_t pb = p0; pb < p1 && (pb == p0 || nE <= emax); pb += BLK) {
+        const int64_t pe = pb + BLK < p1 ? pb + BLK : p1, q0 = pb * S2, n = (pe - pb) * S2;
+        if (A->fast & 1) {
+            float *nc[3] = {nx_, ny_, nz_}, *wc[3] = {a_, b_, c_}, *bc[2] = {bu_, bv_};
+            columns(A->nrm, A->n0, A->n1, 3, q0, n, nc, wide);
+            columns(A->wo, A->w0, A->w1, 3, q0, n, wc, wide);
+            columns(A->bary, A->b0, A->b1, 2, q0, n, bc, wide);
+        } else {
+            for (int64_t i = 0; i < n; ++i) {
+                const int64_t q = q0 + i;
+                nx_[i] = A->nrm[q * A->n0]; ny_[i] = A->nrm[q * A->n0 + A->n1]; nz_[i] = A->nrm[q * A->n0 + 2 * A->n1];
+                a_[i] = A->wo[q * A->w0]; b_[i] = A->wo[q * A->w0 + A->w1]; c_[i] = A->wo[q * A->w0 + 2 * A->w1];
+                bu_[i] = A->bary[q * A->b0]; bv_[i] = A->bary[q * A->b0 + A->b1];
+            }
+        }
+        frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_, wide);
+        if ((A->fast & 128) && pe < p1)
+            pf_block(A, pe * S2, ((pe + BLK < p1 ? pe + BLK : p1) - pe) * S2);
+        pend = pe;
+        for (int64_t i = 0; i < n; ++i) {
+            const int64_t q = q0 + i, qi = q - p0 * S2;
+            if (!A->live[q] || !(z_[i] > 0.0f)) {
+                sent[qi] = -1;
+                continue;
+            }
+            int64_t f = A->face[q];
+            f = f < 0 ? 0 : (f >= A->M ? A->M - 1 : f);
+            if (A->face_region[f] != A->region[q] && bad < 0)
+                bad = q;
+            const int64_t node0 = (int64_t)iv_[i] * R + iu_[i], key = f * RR + node0;
+            int32_t e;
+            if (key == lastkey) {
+                e = laste;
+            } else {
+                int64_t hs = (int64_t)(((uint64_t)key * 0x9E3779B97F4A7C15ull) >> (64 - hl));
+                const uint64_t kk = (uint64_t)(key + 1) << 16;
+                for (;;) {
+                    const uint64_t v = ht[hs];
+                    if ((v & ~(uint64_t)0xFFFF) == kk) {
+                        e = (int32_t)(v & 0xFFFF);
+                        break;
+                    }
+                    if (v == 0) {
+                        e = nE++;
+                        ht[hs] = kk | (uint64_t)e;
+                        ent[e].f = f; ent[e].slot = hs; ent[e].node0 = (int32_t)node0; ent[e].need = 0;
+                        break;
+                    }
+                    hs = (hs + 1) & hmask;
+                }
+                lastkey = key; laste = e;
+            }
+            const float bu = bu_[i], bv = bv_[i];
+            float *w = sw + 4 * qi;
+            w[0] = fu_[i]; w[1] = fv_[i]; w[2] = bu; w[3] = bv;
+            ent[e].need |= (((1.0f - bu) - bv) != 0.0f) | ((bu != 0.0f) << 1) | ((bv != 0.0f) << 2);
+            sent[qi] = e;
+        }
+    }
+    for (int32_t e = 0; e < nE; ++e)
+        ht[ent[e].slot] = 0;
+    /* (2) fill: needs grouped by vertex */
+    const int32_t tag = ++tw.tag;
+    int32_t *vtag = tw.vtag, *vid = tw.vid, *vg = tw.vg, *vcnt = tw.vcnt, *vpos = tw.vpos;
+    int32_t *item_e = tw.item_e, *item_lv = tw.item_lv, *sorted = tw.sorted, *cn = tw.cn, *cidx = tw.cidx;
+    int32_t nL = 0, nI = 0;
+    for (int32_t e = 0; e < nE; ++e) {
+        const int32_t need = ent[e].need;
+        const int32_t *fr = A->face_rows + 3 * ent[e].f;
+        for (int j = 0; j < 3; ++j) {
+            if (!(need >> j & 1))
+                continue;
+            const int32_t g = fr[j];
+            if (vtag[g] != tag) {
+                vtag[g] = tag; vid[g] = nL; vg[nL] = g; vcnt[nL] = 0; ++nL;
+            }
+            const int32_t lv = vid[g];
+            ++vcnt[lv];
+            item_e[nI] = 3 * e + j; item_lv[nI] = lv; ++nI;
+        }
+    }
+    vpos[0] = 0;
+    for (int32_t l = 0; l < nL; ++l) {
+        vpos[l + 1] = vpos[l] + vcnt[l];
+        vcnt[l] = vpos[l];
+    }
+    for (int32_t it = 0; it < nI; ++it)
+        sorted[vcnt[item_lv[it]]++] = item_e[it];
+    for (int32_t l = 0; l < nL; ++l) {
+        const int64_t g = vg[l];
+        int64_t s = 0;
+        while (s + 1 < A->S && g >= A->voff[s + 1]) ++s;
+        const int64_t K = A->Ks[s];
+        const float *sh = (const float *)(intptr_t)A->shp[s];
+        const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * 3 * K;
+        if ((A->fast & 1024) && l + PFV < nL) {      /* bit 1024: a later vertex's c requested */
+            const int64_t g2 = vg[l + PFV];
+            int64_t s2 = 0;
+            while (s2 + 1 < A->S && g2 >= A->voff[s2 + 1]) ++s2;
+            pf_range((const float *)(intptr_t)A->cp[s2] + (g2 - A->voff[s2]) * 3 * A->Ks[s2], 3 * A->Ks[s2] * 4);
+        }
+        if (A->fast & 512) {                /* the vertex's distinct nodes, four at a time */
+            const int32_t vt = ++tw.ntg;
+            int32_t *ntag = tw.ntag, *nslot = tw.nslot, *nodes = tw.nodes, nN = 0;
+            const int32_t d[4] = {0, 1, (int32_t)R, (int32_t)R + 1};
+            for (int32_t it = vpos[l]; it < vpos[l + 1]; ++it) {
+                const int32_t node0 = ent[sorted[it] / 3].node0;
+                for (int k = 0; k < 4; ++k) {
+                    const int32_t nd = node0 + d[k];
+                    if (ntag[nd] != vt) {
+                        ntag[nd] = vt; nslot[nd] = nN; nodes[nN++] = nd;
+                    }
+                }
+            }
+            v4 *xs = tw.xs;
+            const int64_t K3 = 3 * K;
+            made += nN;
+            for (int32_t b = nN; b & 3; ++b)
+                nodes[b] = nodes[nN - 1];
+            for (int32_t b = 0; b < nN; b += 4)
+                rows_x(sh + nodes[b] * K3, sh + nodes[b + 1] * K3, sh + nodes[b + 2] * K3, sh + nodes[b + 3] * K3, cv, K,
+                       xs + b, tree);
+            for (int32_t it = vpos[l]; it < vpos[l + 1]; ++it) {
+                const int32_t ej = sorted[it], node0 = ent[ej / 3].node0;
+                v4 *x = ex + 12 * (ej / 3) + 4 * (ej % 3);
+                x[0] = xs[nslot[node0]]; x[1] = xs[nslot[node0 + 1]];
+                x[2] = xs[nslot[node0 + R]]; x[3] = xs[nslot[node0 + R + 1]];
+            }
+            continue;
+        }
+        int32_t nc = 0;
+        for (int32_t it = vpos[l]; it < vpos[l + 1]; ++it) {
+            const int32_t ej = sorted[it], e = ej / 3, j = ej - 3 * e, node0 = ent[e].node0, xo = 12 * e + 4 * j;
+            int32_t c = 0;
+            while (c < nc && cn[c] != node0) ++c;
+            if (c < nc) {
+                memcpy(ex + xo, ex + cidx[c], 4 * sizeof(v4));
+            } else {
+                cell_x(sh + node0 * 3 * K, R * 3 * K, cv, K, ex + xo, tree);
+                cn[nc] = node0; cidx[nc] = xo; ++nc;
+                made += 4;
+            }
+        }
+    }
+    /* (3) shade */
+    const float is = 1.0f / (float)S2;
+    for (int64_t p = p0; p < pend; ++p) {
+        v4 o = {0, 0, 0, 0};
+        for (int64_t t = 0; t < S2; ++t) {
+            const int64_t qi = (p - p0) * S2 + t;
+            const int32_t e = sent[qi];
+            if (e < 0)
+                continue;
+            const float *w = sw + 4 * qi;
+            const float fu = w[0], fv = w[1], gu = 1.0f - fu, gv = 1.0f - fv;
+            const float w0 = gu * gv, w1 = fu * gv, w2 = gu * fv, w3 = fu * fv;
+            const float bu = w[2], bv = w[3];
+            const float beta[3] = {(1.0f - bu) - bv, bu, bv};
+            const v4 *x = ex + 12 * e;
+            v4 B = {0, 0, 0, 0};
+            for (int j = 0; j < 3; ++j) {
+                if (beta[j] == 0.0f)
+                    continue;
+                const v4 *y = x + 4 * j;
+                B += ((y[0] * w0 + y[1] * w1) + (y[2] * w2 + y[3] * w3)) * beta[j];
+            }
+            o += B;
+        }
+        out[3 * p] = o[0] * is; out[3 * p + 1] = o[1] * is; out[3 * p + 2] = o[2] * is;
+    }
+    *made_ += made;
+    *bad_ = bad;
+    return pend;
+}
+
+/* bit 256: the range's pixels tile by tile (falls back to `shade_range` when its buffers cannot be had) */
+static void shade_tiles(const Args *A, int64_t p0, int64_t p1, float *out, int64_t *stats, uint64_t ygen) {
+    const int64_t T = A->tile > 0 ? A->tile : 1024;
+    if (A->S2 > 8 || A->M * A->R * A->R >= ((int64_t)1 << 47) || !tws_ensure(T * A->S2, A->voff[A->S], A->R * A->R)) {
+        shade_range(A, p0, p1, out, stats, ygen);
+        return;
+    }
+    int64_t made = 0, bad = -1;
+    for (int64_t t0 = p0; t0 < p1;)
+        t0 = shade_tile(A, t0, t0 + T < p1 ? t0 + T : p1, out, &made, &bad);
+    stats[0] = made; stats[1] = 0; stats[2] = bad;
+}
+#endif
+
 /* o[0] = 1 when bits 4 and 8 of `fast` run (`cell_x`: an FMA build), else 0 (they fall back to the
    per-row loop of bits 1 and 2) */
 void have_cells(int64_t *o) {
@@ -796,19 +1112,24 @@ void have_cells(int64_t *o) {
    and a memo row's value is its (vertex, node) pair's whichever thread fills it, so the image and the
    memo are the same bits whatever the schedule. */
 void shade(const Args *A, int64_t npx, float *out, int64_t *stats, int64_t nt) {
+#ifdef HAVE_DOTF
+#define RANGE(...) ((A->fast & 260) == 260 ? shade_tiles(__VA_ARGS__) : shade_range(__VA_ARGS__))
+#else
+#define RANGE(...) shade_range(__VA_ARGS__)
+#endif
     const uint64_t ygen = __atomic_add_fetch(&ygen_all, 1, __ATOMIC_RELAXED);
     for (int64_t t = 0; t < nt; ++t) {
         stats[3 * t] = 0; stats[3 * t + 1] = 0; stats[3 * t + 2] = -1;
     }
     if (nt <= 1 || A->chunk < 1) {
-        shade_range(A, 0, npx, out, stats, ygen);
+        RANGE(A, 0, npx, out, stats, ygen);
         return;
     }
     const int64_t C = A->chunk, nch = (npx + C - 1) / C;
     #pragma omp parallel for num_threads(nt) schedule(dynamic, 1)
     for (int64_t c = 0; c < nch; ++c) {
         int64_t got[3];
-        shade_range(A, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, out, got, ygen);
+        RANGE(A, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, out, got, ygen);
         int64_t *st = stats + 3 * omp_get_thread_num();
         st[0] += got[0]; st[1] += got[1];
         if (got[2] >= 0 && (st[2] < 0 || got[2] < st[2]))
@@ -830,7 +1151,7 @@ class _Args(ctypes.Structure):
                 ("R", ctypes.c_int64), ("W", ctypes.c_int64), ("S2", ctypes.c_int64), ("stamp", ctypes.c_int64),
                 ("chunk", ctypes.c_int64), ("fast", ctypes.c_int64),
                 ("vrec", ctypes.c_void_p), ("memo", ctypes.c_void_p), ("mstamp", ctypes.c_void_p),
-                ("ylog", ctypes.c_int64)]
+                ("ylog", ctypes.c_int64), ("tile", ctypes.c_int64)]
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -866,9 +1187,20 @@ CHUNK = 1024
 # (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1 --frames 41 --cold
 # --variants 63 255``, host at load 5-12): 255 against 63 chess 1.024x (per frame 1.025x), creature
 # 1.019x (per frame 1.026x); the front end alone (no live sample) 1.07x with 64 (2.19 -> 2.04 ms).
-FAST = 255
+# 256 (FMA builds, with 4) the pixels in tiles (`shade_tile`: resolve, fill, shade; no memo), 512 (with 256)
+# a vertex's distinct nodes four at a time (`rows_x`) instead of its distinct cells, 1024 (with 256) a later
+# vertex's c prefetched; the same bits as 4..128. Session 37, 1 thread, process CPU, each call after a fresh
+# rasterisation, alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --threads 1
+# --frames 11 --cold --variants 255 2047``, host at load 6-8): chess 1.21x (per frame 1.22x), creature
+# 1.22x (per frame 1.24x); at 2 threads chess 1.45x (per frame 1.42x, load 10). Whole V frames against the
+# base checkout (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --frames 15
+# --threads 1|2 --no-micro``, process CPU, load 7-10): chess 1.18x / 1.01x, creature 1.12x / 1.07x at 1 / 2
+# threads; max |d| 0 (the same bits).
+FAST = 2047
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
+# pixels per tile of bit 256 (at 2+ threads a chunk, `CHUNK`, is cut into tiles of this many)
+TILE = 2048
 
 
 def _lib():
@@ -953,8 +1285,9 @@ def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: 
               bary.data_ptr(), bary.stride(0), bary.stride(1), face.data_ptr(), region.data_ptr(), live.data_ptr(),
               st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
               voff.data_ptr(), S, shp.data_ptr(), cp.data_ptr(), Ks.data_ptr(),
-              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp, CHUNK, int(FAST),
-              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG)
+              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp,
+              TILE if FAST & 256 else CHUNK, int(FAST),
+              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG, TILE)
     lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
     made, exact = int(stats[:, 0].sum()), int(stats[:, 1].sum())
     bad = [int(b) for b in stats[:, 2].tolist() if b >= 0]

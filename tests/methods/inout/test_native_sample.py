@@ -42,13 +42,16 @@ def _copy(m: InOut) -> InOut:
     return c
 
 
+@pytest.mark.parametrize("tiles", [False, True])
 @pytest.mark.parametrize("W", [2, 4, 16])
 @pytest.mark.parametrize("name", ["bunny", "chess", "creature", "sphere_plane"])
-def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, W):
+def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, W, tiles):
     """Every frame of V, L and E sequences: the C loop's image equals the compiled path's (and the
-    reference's) to float32 round-off; with W = 2 entries take the exact sum, with W ≥ 4 the memo."""
+    reference's) to float32 round-off; with W = 2 entries take the exact sum, with W ≥ 4 the memo
+    (the per-sample loop, `FAST` without bit 256); with the tiles (bit 256, no memo) the same images."""
     m = precomputed(name)
     monkeypatch.setattr(native_sample, "WINDOW", W)
+    monkeypatch.setattr(native_sample, "FAST", native_sample.FAST | 256 if tiles else native_sample.FAST & 255)
     calls = []
     shade = native_sample.shade
 
@@ -70,7 +73,9 @@ def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, 
             assert float((got - exact).abs().max()) <= RTOL * scale, f"{name} {kind} frame {frame.index} W {W}"
     made, summed = sum(c[0] for c in calls), sum(c[1] for c in calls)
     assert len(calls) == 9 and made > 0
-    if W == 2:
+    if tiles and native_sample.cells_available():
+        assert summed == 0         # no window: every X of a tile computed there
+    elif W == 2:
         assert summed > 0          # the exact sums ran
     if W >= 16:
         assert summed == 0         # the window is the whole table (R = 16)
@@ -188,6 +193,49 @@ def test_native_sample_wide_front_end_same_bits(precomputed, monkeypatch, name):
         torch.set_num_threads(n)
 
 
+@pytest.mark.parametrize("name", ["chess", "creature", "sphere_plane"])
+def test_native_sample_tiles_same_bits(precomputed, monkeypatch, name):
+    """Bit 256 (the pixels in tiles: each shaded sample's (face, cell) resolved to an entry of its tile,
+    the entries' X filled vertex by vertex, then the samples shaded from the entries; no memo) with and
+    without bit 512 (a vertex's distinct nodes four at a time instead of its distinct cells) and bit 1024
+    (a later vertex's c prefetched): the same image bits as the per-sample loop (`FAST` & 255: `cell_x`,
+    the same X per (vertex, node) pair) over a V and an L sequence, with the G-buffer's layouts and
+    row-major copies, at 1 and 2 threads, with tiles of 1 pixel (a tile inside a block), 100 (tiles
+    ending inside a block, closed early: 400 samples leave 144 entries before the next block) and 4096
+    pixels (the whole test image, closed early when its entries near half the hash's slots); and the
+    reference to float32 round-off."""
+    if not native_sample.cells_available():
+        pytest.skip("no FMA build: bit 256 falls back to the per-sample loop")
+    monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
+    m = precomputed(name)
+    n = torch.get_num_threads()
+    try:
+        for kind in ("V", "L"):
+            frames = make_sequence(m.scene, kind, n_frames=2, seed=17)
+            gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+            gbs = [g for gb in gbs for g in (gb, _row_major(gb))]
+            frames = [f for f in frames for _ in (0, 1)]
+            torch.set_num_threads(1)
+            monkeypatch.setattr(native_sample, "FAST", native_sample.FAST & 255)
+            want = [_copy(m).render(f, g) for f, g in zip(frames, gbs)]
+            ref = _copy(m)
+            exact = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
+            for fast in (255 | 256, 255 | 256 | 512, 255 | 256 | 512 | 1024):
+                for tile in (1, 100, 4096):
+                    for t in (1, 2):
+                        torch.set_num_threads(t)
+                        monkeypatch.setattr(native_sample, "FAST", fast)
+                        monkeypatch.setattr(native_sample, "TILE", tile)
+                        a = _copy(m)
+                        for i, (f, g) in enumerate(zip(frames, gbs)):
+                            got = a.render(f, g)
+                            assert torch.equal(got, want[i]), f"{name} {kind} FAST {fast} tile {tile} threads {t} frame {i}"
+                            scale = float(exact[i].abs().max())
+                            assert float((got - exact[i]).abs().max()) <= RTOL * scale
+    finally:
+        torch.set_num_threads(n)
+
+
 def _row_major(gb):
     """A copy of the G-buffer with every (q, C) array row-major (the loop's other layout)."""
     g = copy.copy(gb)
@@ -195,9 +243,13 @@ def _row_major(gb):
     return g
 
 
-def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeypatch):
+@pytest.mark.parametrize("tiles", [False, True])
+def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeypatch, tiles):
     """The frame split over two threads (pixels per thread lowered to 1) gives the single thread's
-    image and memo bit for bit: each memo row's value is its (vertex, node) pair's alone."""
+    image and memo bit for bit: each memo row's value is its (vertex, node) pair's alone (the tiles,
+    bit 256: the image; the memo is not used)."""
+    monkeypatch.setattr(native_sample, "FAST", native_sample.FAST | 256 if tiles else native_sample.FAST & 255)
+    monkeypatch.setattr(native_sample, "TILE", 128)
     monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
     monkeypatch.setattr(native_sample, "WINDOW", 4)
     m = precomputed("creature")
@@ -216,14 +268,17 @@ def test_native_sample_bit_identical_at_one_and_two_threads(precomputed, monkeyp
         assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize("tiles", [False, True])
 @pytest.mark.parametrize("chunk", [1, 64, 100])
-def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, chunk):
+def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, chunk, tiles):
     """Two threads taking the pixels in many small chunks (the dynamic schedule; 100: chunks that end
     inside a block of 64 pixels) give the single thread's image and memo bit for bit, and report the
-    same first sample of a face in another region."""
+    same first sample of a face in another region (the tiles, bit 256: chunks of `TILE` pixels)."""
+    monkeypatch.setattr(native_sample, "FAST", native_sample.FAST | 256 if tiles else native_sample.FAST & 255)
     monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
     monkeypatch.setattr(native_sample, "WINDOW", 4)
     monkeypatch.setattr(native_sample, "CHUNK", chunk)
+    monkeypatch.setattr(native_sample, "TILE", chunk)
     m = precomputed("chess")
     frames = make_sequence(m.scene, "V", n_frames=2, seed=3) + make_sequence(m.scene, "L", n_frames=2, seed=3)
     gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
