@@ -663,10 +663,8 @@ void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
 }
 /* shade_mirror over all P pixels on nt threads of OpenMP's team, in chunks of `chunk` pixels (a
    multiple of CELL_RUN / S2, so of 8) dealt round robin: chunk c to thread c mod nt (session 37,
-   pt37). Contiguous halves (before) left one thread ~7 % more work: the image's middle rows cost
-   the most (chess bench V, 1 thread per half: 2.89 vs 3.31 ms); with a chunk of one image row the
-   threads take the even and the odd rows. Each pixel is one thread's, so the bits do not depend on
-   nt or the chunk. */
+   pt37; the Python wrapper passes one contiguous range per thread by default: native.RR_PIXELS).
+   Each pixel is one thread's, so the bits do not depend on nt or the chunk. */
 void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
                       const float* mm, int64_t H, const void* vacos, const void* vatan2, int64_t w16,
                       const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
@@ -1051,9 +1049,14 @@ def mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) -
 # body ``lean16`` where the library is built for AVX-512 (the same bits; tests switch it off to compare).
 LEAN = True
 
-# Pixels per chunk of `shade_mirror` at 2+ threads, dealt round robin (one bench image row: the threads
-# take the even and the odd rows; `_chunk` rounds it to whole runs of the cells' stack buffers).
-RR_PIXELS = 256
+# Pixels per chunk of `shade_mirror` at 2+ threads, dealt round robin (`_chunk` rounds it to whole runs of
+# the cells' stack buffers); 0: one contiguous range of runs per thread. Session 37 (pt37): OFF — the
+# halves leave one thread ~7 % more work on the chess bench (its middle rows cost the most), but dealt
+# rows cost more in all (each core's L2 sees every other row of the env map's footprint): run one share
+# alone each (1 thread, process CPU, lean16), the critical path read 2.29 ms for the halves against
+# 2.44 / 2.49 / 2.32 ms for chunks of 1024 / 2048 / 4096 pixels (sums 4.37 against 4.81 / 4.87 / 4.57),
+# and the 2-thread wall time could not be measured on the loaded host (load 8-10: rounds 0.4-2.3x).
+RR_PIXELS = 0
 
 
 def _chunk(S2: int, P: int, nt: int) -> int:

@@ -878,11 +878,12 @@ def test_lean_pixel_body_is_the_general_body_bit_for_bit(n_pix, monkeypatch):
     """``native.shade_mirror``'s AVX-512 body for the perf suite's rows (``lean16``: width 16 without u
     lanes, S2 = 4, the barycentrics as the G-buffer's columns; `native.LEAN`) gives the bits of the
     general body (``LEAN`` off) and of the compiled `fast.shade_block` on the compiled cells, at 1, 2
-    and 3 threads (the pixels in chunks dealt round robin, `native.RR_PIXELS`): with misses (face −1
+    and 3 threads (one range of whole runs per thread, `native.RR_PIXELS` 0, the default; and chunks of
+    256 pixels dealt round robin): with misses (face −1
     and past the table), negative Gouraud sums (max(0, ·) on the B lanes), a NaN on a B lane of some
     rows (kept, as Inductor's maximum), runs of 128 pixels with a last run that ends in a part group
     of 8 pixels (4098 = 32 · 128 + 2; 1002 = 7 · 128 + 13 · 8 + 2) and chunks of 256 pixels with a
-    part chunk last (and with `native.RR_PIXELS` 0: one range of whole runs per thread)."""
+    part chunk last."""
     from methods.ptt import fast as F
     from methods.ptt import native as N
 
