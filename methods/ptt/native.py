@@ -62,6 +62,20 @@ elsewhere; later blocks a e; the values the general selects pick): the sample st
 same bits (``python -m benchmarks.ptt_sample_ab --base OTHER --precompute-code OTHER [--scene
 creature]``, chess 1.051 / 1.036, creature 1.054).
 
+Session 37 (pt37): ``lean16``, `shade_mirror`'s pixel loop for those rows (width 16, no u lanes,
+S2 = 4, the barycentrics as the G-buffer's columns) on AVX-512 — the same operations per lane in the
+same order (the same bits; `LEAN` off gives the general body): a row is one zmm register, a run's
+per-sample weights (b0, b1, b2, w0..w3) are computed in one vectorised pass into one stack array and
+read as broadcasts, a pixel's four samples are unrolled, and the box filter's channel sums of 8 pixels
+are reduced together by lane permutes (the AVX2 ``vec_reduce_all`` tree of each: the same additions);
+~45 instructions a sample instead of ~100. Same process, 1 thread, process CPU, the sample stage alone
+(the frame's ``shade_mirror`` calls replayed): 1.10-1.16x; frames in the final message of the session
+(``benchmarks.ptt_ab``). What is left of a chess bench V stage at 1 thread (~4.4 ms, loaded host): the
+cells ~1.5 ms (the Sleef acos / atan2 calls), the pixel loop with every env row cached ~1.9 ms, the env
+rows' misses the rest. Tried and dropped: the next run's cells computed inside this run's pixel loop (its
+Sleef calls a few per pixel or per 8 pixels beside the loop's loads: 0.88-0.97x, the calls' spills and
+a larger stack footprint); pixels dealt to the threads in chunks (`RR_PIXELS`: off, see there).
+
 ``vertex_rows`` (session 29, ptt29): ``fast.vertex_view``'s rows of a frame's referenced pairs (with
 lobes, without the SH column) in one pass, the compiled ``pair_cells_of`` + ``pair_rows`` bit for bit
 (the same Sleef calls, 8 pairs at a time; `cells_available`), the compiled passes its fallback and

@@ -925,3 +925,40 @@ def test_lean_pixel_body_is_the_general_body_bit_for_bit(n_pix, monkeypatch):
             finally:
                 torch.set_num_threads(1)
             assert same(got, want), (lean, threads, rr, float((got - want)[~nan].abs().max()))
+
+
+def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
+    """A PTT frame in the perf suite's shape (lobes, no bounce terms, 2 × 2 samples per pixel: rows of
+    width 16 without u lanes, the G-buffer's barycentric columns) reaches ``native.shade_mirror`` with
+    the arguments the AVX-512 body ``lean16`` takes, and renders the same image bit for bit with
+    `native.LEAN` on and off, equal to the reference path to float32 round-off."""
+    from methods.ptt import native as N
+
+    if not N.lean_available():
+        pytest.skip("no AVX-512 build of the native cells")
+    scene = get_scene("chess", "test")
+    m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=0)
+    m.precompute(scene)
+    seen, real = [], N.shade_mirror
+
+    def recording(*a):
+        seen.append(a)
+        return real(*a)
+
+    monkeypatch.setattr(N, "shade_mirror", recording)
+    for kind in ("V", "VB"):
+        for f in make_sequence(scene, kind, n_frames=2, seed=3):
+            f = _small(f)
+            gb = make_gbuffer(scene, f, 2)
+            images = []
+            for lean in (True, False):
+                monkeypatch.setattr(N, "LEAN", lean)
+                images.append(m.render(f, gb))
+            assert seen, "the frame did not reach native.shade_mirror"
+            face, bary, lanes, S2 = seen[-1][4], seen[-1][5], seen[-1][9], seen[-1][11]
+            width = int(seen[-1][7].shape[1])
+            assert S2 == 4 and width == 16 and bary[:, 0].stride(0) == 1 and face.shape[0] % 8 == 0
+            assert not bool(lanes[1, :16].any()) and not bool(lanes[0, 8:16].any())  # plain16's rows
+            assert torch.equal(images[0], images[1])
+            ref = m._render_reference(f, gb)
+            torch.testing.assert_close(images[0], ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
