@@ -68,9 +68,11 @@ same order (the same bits; `LEAN` off gives the general body): a row is one zmm 
 per-sample weights (b0, b1, b2, w0..w3) are computed in one vectorised pass into one stack array and
 read as broadcasts, a pixel's four samples are unrolled, and the box filter's channel sums of 8 pixels
 are reduced together by lane permutes (the AVX2 ``vec_reduce_all`` tree of each: the same additions);
-~45 instructions a sample instead of ~100. Same process, 1 thread, process CPU, the sample stage alone
-(the frame's ``shade_mirror`` calls replayed): 1.10-1.16x; frames in the final message of the session
-(``benchmarks.ptt_ab``). What is left of a chess bench V stage at 1 thread (~4.4 ms, loaded host): the
+~45 instructions a sample instead of ~100. Same process, 1 thread, process CPU, against 6f20090: the
+sample stage alone (``python -m benchmarks.ptt_sample_ab --base B --scene S --kind V --rounds 10``)
+chess 1.136x, creature 1.120x; whole frames (``python -m benchmarks.ptt_ab --base B --precompute-code B
+--scene S --kinds V VB --frames 17 --threads 1``) chess V 1.10x, VB 1.11x, creature V 1.11x, VB 1.08x;
+bit-identical. What is left of a chess bench V stage at 1 thread (~4.4 ms, loaded host): the
 cells ~1.5 ms (the Sleef acos / atan2 calls), the pixel loop with every env row cached ~1.9 ms, the env
 rows' misses the rest. Tried and dropped: the next run's cells computed inside this run's pixel loop (its
 Sleef calls a few per pixel or per 8 pixels beside the loop's loads: 0.88-0.97x, the calls' spills and
