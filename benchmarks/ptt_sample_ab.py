@@ -78,19 +78,30 @@ def main(argv: list[str] | None = None) -> dict:
     want = [real(*c) for c in calls]
     diff = max(float((fns["old"](*c) - w).abs().max()) / max(float(w.abs().max()), 1e-30) for c, w in zip(calls, want))
     t: dict = {"old": [], "new": []}
+    tw: dict = {"old": [], "new": []}
     for k in range(a.rounds):
         for which in (("old", "new") if k % 2 == 0 else ("new", "old")):
             for c, w in zip(calls, want):
                 settle()
-                c0 = time.process_time()
+                c0, w0 = time.process_time(), time.perf_counter()
                 out = fns[which](*c)
                 t[which].append(time.process_time() - c0)
+                tw[which].append(time.perf_counter() - w0)
                 if which == "new" and not torch.equal(out, w):
                     raise AssertionError("new: the sample stage's image differs from its first replay")
     r = {w: 1e3 * statistics.median(v) for w, v in t.items()}
     r["ratio"], r["max_rel_diff"] = r["old"] / r["new"], diff
-    print(f"{a.scene} {a.kind} sample stage ({len(calls)} calls x {a.rounds} rounds, {a.threads} thread(s), cpu): "
-          f"old {r['old']:.3f} ms  new {r['new']:.3f} ms  ratio {r['ratio']:.3f}  max |old - new| / peak {diff:.2e}",
+    rw = {w: 1e3 * statistics.median(v) for w, v in tw.items()}
+    r["wall_old"], r["wall_new"], r["wall_ratio"] = rw["old"], rw["new"], rw["old"] / rw["new"]
+    # per-round wall ratios (each round: every call of both, alternating): their spread
+    k = len(calls)
+    rr = sorted(statistics.median(tw["old"][i:i + k]) / statistics.median(tw["new"][i:i + k])
+                for i in range(0, len(tw["new"]), k))
+    r["wall_ratio_range"] = (rr[0], rr[-1])
+    print(f"{a.scene} {a.kind} sample stage ({len(calls)} calls x {a.rounds} rounds, {a.threads} thread(s)), cpu: "
+          f"old {r['old']:.3f} ms  new {r['new']:.3f} ms  ratio {r['ratio']:.3f}; wall old {rw['old']:.3f} ms  new "
+          f"{rw['new']:.3f} ms  ratio {r['wall_ratio']:.3f} (rounds {rr[0]:.3f}-{rr[-1]:.3f})  "
+          f"max |old - new| / peak {diff:.2e}",
           flush=True)
     return r
 

@@ -62,6 +62,22 @@ elsewhere; later blocks a e; the values the general selects pick): the sample st
 same bits (``python -m benchmarks.ptt_sample_ab --base OTHER --precompute-code OTHER [--scene
 creature]``, chess 1.051 / 1.036, creature 1.054).
 
+Session 37 (pt37): ``lean16``, `shade_mirror`'s pixel loop for those rows (width 16, no u lanes,
+S2 = 4, the barycentrics as the G-buffer's columns) on AVX-512 — the same operations per lane in the
+same order (the same bits; `LEAN` off gives the general body): a row is one zmm register, a run's
+per-sample weights (b0, b1, b2, w0..w3) are computed in one vectorised pass into one stack array and
+read as broadcasts, a pixel's four samples are unrolled, and the box filter's channel sums of 8 pixels
+are reduced together by lane permutes (the AVX2 ``vec_reduce_all`` tree of each: the same additions);
+~45 instructions a sample instead of ~100. Same process, 1 thread, process CPU, against 6f20090: the
+sample stage alone (``python -m benchmarks.ptt_sample_ab --base B --scene S --kind V --rounds 10``)
+chess 1.136x, creature 1.120x; whole frames (``python -m benchmarks.ptt_ab --base B --precompute-code B
+--scene S --kinds V VB --frames 17 --threads 1``) chess V 1.10x, VB 1.11x, creature V 1.11x, VB 1.08x;
+bit-identical. What is left of a chess bench V stage at 1 thread (~4.4 ms, loaded host): the
+cells ~1.5 ms (the Sleef acos / atan2 calls), the pixel loop with every env row cached ~1.9 ms, the env
+rows' misses the rest. Tried and dropped: the next run's cells computed inside this run's pixel loop (its
+Sleef calls a few per pixel or per 8 pixels beside the loop's loads: 0.88-0.97x, the calls' spills and
+a larger stack footprint); pixels dealt to the threads in chunks (`RR_PIXELS`: off, see there).
+
 ``vertex_rows`` (session 29, ptt29): ``fast.vertex_view``'s rows of a frame's referenced pairs (with
 lobes, without the SH column) in one pass, the compiled ``pair_cells_of`` + ``pair_rows`` bit for bit
 (the same Sleef calls, 8 pairs at a time; `cells_available`), the compiled passes its fallback and
@@ -83,7 +99,8 @@ from torch import Tensor
 
 from methods.core import native
 
-__all__ = ["available", "cells_available", "mirror_cells", "shade_mirror", "shade_pixels", "vertex_rows"]
+__all__ = ["available", "cells_available", "lean_available", "mirror_cells", "shade_mirror", "shade_pixels",
+           "vertex_rows"]
 
 # Samples ahead whose env rows are prefetched.
 PREFETCH = 16
@@ -512,40 +529,170 @@ void mirror_cells(const float* nrm, int64_t ns, int64_t nc, const float* wo, int
     cells(nrm, ns, nc, wo, ws, wc, mm, H, W, vacos, vatan2, w16, i0, i1 - i0, r + i0, fx + i0, fy + i0);
 }
 
-/* mirror_cells then shade_pixels, per run of CELL_RUN samples (whole pixels: CELL_RUN a multiple of
-   8 and of S2 — the caller checks), the cells of a run in stack buffers; pixels [p0, p1). */
 #define CELL_RUN 512
+/* The perf suite's rows (width 16, no u lanes, the B lanes within the first 8: shade_pixels' `plain`). */
+static int plain16(const float* lanes, int64_t width) {
+    int plain = width == 16;
+    for (int64_t l = 0; plain && l < width; ++l)
+        plain &= lanes[width + l] == 0.0f && (l < 8 || lanes[l] == 0.0f);
+    return plain;
+}
+
+#if defined(__AVX512F__)
+/* shade_pixels' plain width-16, S2 = 4 body (the perf suite's) on AVX-512, for the np <= CELL_RUN / 4
+   pixels of one run of shade_mirror (b1, b2 contiguous: bs 1): the same operations per lane in the same
+   order, the same bits (session 37, pt37). What differs is the instructions around them: a row of 16
+   lanes is one zmm register (two ymm halves before: twice the loads, products and sums issued); the
+   per-sample scalar weights b0, w0..w3 are computed for the run in a vectorised pass and read as
+   broadcasts (before: 4 scalar loads, 8 scalar operations and 7 register broadcasts a sample, and the
+   loop's pointers spilled into vector registers); a pixel's four samples are unrolled; and the box
+   filter's channel sums (vec_reduce_all of each 8-lane accumulator: halves, lanes two apart,
+   neighbours) run for 8 pixels' 24 sums at once, transposed: s_k = acc_k + acc_(k+4) as 128-bit lane
+   permutes of two accumulators, (s0 + s2) and (s1 + s3) as shuffles of two of those, their sum as
+   shuffles of two of those — the same additions of the same operands (before: ~15 extracts, shuffles
+   and scalar additions per sum). */
+static void lean16(const int64_t* face, const float* b1p, const float* b2p, const int32_t* r, const float* fx,
+                   const float* fy, int64_t np, const int64_t* face_pairs, int64_t M, const float* table,
+                   const float* env, const float* lanes, int64_t W, int64_t prefetch, float* out) {
+    /* the weights of sample i: wt[0..2][i] b0, b1, b2, wt[3..6][i] w0..w3 (one stack array: each read
+       at a constant offset from one index register) */
+    float wt[7][CELL_RUN] __attribute__((aligned(64)));
+    const int64_t n = 4 * np;
+    for (int64_t i = 0; i < n; ++i) {
+        const float x = fx[i], y = fy[i], b1 = b1p[i], b2 = b2p[i];
+        const float gx = 1.0f - x, gy = 1.0f - y;
+        wt[0][i] = (1.0f - b1) - b2, wt[1][i] = b1, wt[2][i] = b2;
+        wt[3][i] = gx * gy, wt[4][i] = x * gy, wt[5][i] = gx * y, wt[6][i] = x * y;
+    }
+    const __m512 zero = _mm512_setzero_ps();
+    const __m256 zero8 = _mm256_setzero_ps(), inv = _mm256_set1_ps(0.25f);
+    const __mmask16 isb = _mm512_cmp_ps_mask(_mm512_loadu_ps(lanes), zero, _CMP_GT_OQ);
+    const __m512 mc0 = _mm512_loadu_ps(lanes + 32), mc1 = _mm512_loadu_ps(lanes + 48), mc2 = _mm512_loadu_ps(lanes + 64);
+    const int64_t rowb = (W + 1) * 16;
+    const __m256i lo_hi = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    float zb[24][16] __attribute__((aligned(64)));
+    for (int64_t g = 0; g < np; g += 8) {
+        const int64_t ng = np - g < 8 ? np - g : 8;
+        for (int64_t q = 0; q < ng; ++q) {
+            __m512 t = zero;
+#pragma GCC unroll 4
+            for (int64_t j = 0; j < 4; ++j) {
+                const int64_t i = 4 * (g + q) + j;
+                if (i + prefetch < n) {
+                    const float* e = env + (int64_t)r[i + prefetch] * 16;
+                    __builtin_prefetch(e);
+                    __builtin_prefetch(e + 16);
+                    __builtin_prefetch(e + rowb);
+                    __builtin_prefetch(e + rowb + 16);
+                }
+                int64_t f = face[i];
+                if ((uint64_t)f >= (uint64_t)M)
+                    f = M - 1;
+                const __m512 a = _mm512_add_ps(
+                    _mm512_add_ps(_mm512_mul_ps(_mm512_loadu_ps(table + face_pairs[3 * f] * 16), _mm512_set1_ps(wt[0][i])),
+                                  _mm512_mul_ps(_mm512_loadu_ps(table + face_pairs[3 * f + 1] * 16), _mm512_set1_ps(wt[1][i]))),
+                    _mm512_mul_ps(_mm512_loadu_ps(table + face_pairs[3 * f + 2] * 16), _mm512_set1_ps(wt[2][i])));
+                const float* e0 = env + (int64_t)r[i] * 16;
+                const float* e2 = e0 + rowb;
+                const __m512 e = _mm512_add_ps(
+                    _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(_mm512_loadu_ps(e0), _mm512_set1_ps(wt[3][i])),
+                                                _mm512_mul_ps(_mm512_loadu_ps(e0 + 16), _mm512_set1_ps(wt[4][i]))),
+                                  _mm512_mul_ps(_mm512_loadu_ps(e2), _mm512_set1_ps(wt[5][i]))),
+                    _mm512_mul_ps(_mm512_loadu_ps(e2 + 16), _mm512_set1_ps(wt[6][i])));
+                /* B lanes: max(0, a) as Inductor's maximum (a > 0 or NaN: a, else +0); the others a e */
+                const __mmask16 pos = _mm512_cmp_ps_mask(a, zero, _CMP_NLE_UQ);
+                const __m512 tj = _mm512_mask_blend_ps(isb, _mm512_mul_ps(a, e), _mm512_maskz_mov_ps(pos, a));
+                t = j ? _mm512_add_ps(t, tj) : tj;
+            }
+            _mm512_store_ps(zb[3 * q], _mm512_mul_ps(t, mc0));
+            _mm512_store_ps(zb[3 * q + 1], _mm512_mul_ps(t, mc1));
+            _mm512_store_ps(zb[3 * q + 2], _mm512_mul_ps(t, mc2));
+        }
+        for (int64_t k = 3 * ng; k < 24; ++k)
+            _mm512_store_ps(zb[k], zero);
+        __m256 res[3];
+        for (int k = 0; k < 3; ++k) {
+            /* acc_l = (0 + lanes 0..7) + lanes 8..15 of sum l (= 8 k + l), as shade_pixels' two blocks */
+            __m256 acc[8];
+            for (int l = 0; l < 8; ++l)
+                acc[l] = _mm256_add_ps(_mm256_add_ps(zero8, _mm256_load_ps(zb[8 * k + l])), _mm256_load_ps(zb[8 * k + l] + 8));
+            /* s_(l, m) = acc_l[m] + acc_l[m + 4] (m < 4), two sums l per vector: [s_A | s_B] */
+            __m256 s[4];
+            for (int l = 0; l < 4; ++l)
+                s[l] = _mm256_add_ps(_mm256_permute2f128_ps(acc[2 * l], acc[2 * l + 1], 0x20),
+                                     _mm256_permute2f128_ps(acc[2 * l], acc[2 * l + 1], 0x31));
+            /* (s0 + s2), (s1 + s3) of four sums: [A02 A13 C02 C13 | B02 B13 D02 D13] */
+            const __m256 u0 = _mm256_add_ps(_mm256_shuffle_ps(s[0], s[1], 0x44), _mm256_shuffle_ps(s[0], s[1], 0xEE));
+            const __m256 u1 = _mm256_add_ps(_mm256_shuffle_ps(s[2], s[3], 0x44), _mm256_shuffle_ps(s[2], s[3], 0xEE));
+            /* (s0 + s2) + (s1 + s3): [A C E G | B D F H] (A..H: sums 0..7) */
+            const __m256 v = _mm256_add_ps(_mm256_shuffle_ps(u0, u1, 0x88), _mm256_shuffle_ps(u0, u1, 0xDD));
+            res[k] = _mm256_mul_ps(_mm256_permutevar8x32_ps(v, lo_hi), inv);
+        }
+        float* o = out + 3 * g;
+        if (ng == 8) {
+            _mm256_storeu_ps(o, res[0]);
+            _mm256_storeu_ps(o + 8, res[1]);
+            _mm256_storeu_ps(o + 16, res[2]);
+        } else {
+            float tmp[24];
+            _mm256_storeu_ps(tmp, res[0]);
+            _mm256_storeu_ps(tmp + 8, res[1]);
+            _mm256_storeu_ps(tmp + 16, res[2]);
+            for (int64_t k = 0; k < 3 * ng; ++k)
+                o[k] = tmp[k];
+        }
+    }
+}
+#endif
+
+/* mirror_cells then shade_pixels, per run of CELL_RUN samples (whole pixels: CELL_RUN a multiple of
+   8 and of S2 — the caller checks), the cells of a run in stack buffers; pixels [p0, p1). lean: the
+   perf suite's rows (plain16, S2 = 4, bs 1) take lean16 where built for AVX-512 (the same bits). */
 void shade_mirror(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
                   const float* mm, int64_t H, const void* vacos, const void* vatan2, int64_t w16,
                   const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
                   int64_t p0, int64_t p1, int64_t S2, const int64_t* face_pairs, int64_t M,
                   const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
-                  int64_t prefetch, float* out) {
+                  int64_t prefetch, int64_t lean, float* out) {
     int32_t r[CELL_RUN];
     float fx[CELL_RUN], fy[CELL_RUN];
     const int64_t ppr = CELL_RUN / S2;
+#if defined(__AVX512F__)
+    lean = lean && S2 == 4 && bs == 1 && plain16(lanes, width);
+#else
+    lean = 0;
+#endif
     for (int64_t a = p0; a < p1; a += ppr) {
         const int64_t b = a + ppr < p1 ? a + ppr : p1;
         const int64_t i0 = a * S2, m = (b - a) * S2;
         cells(nrm, ns, nc, wo, ws, wc, mm, H, W, vacos, vatan2, w16, i0, (m + 7) / 8 * 8, r, fx, fy);
+#if defined(__AVX512F__)
+        if (lean) {
+            lean16(face + i0, b1p + i0, b2p + i0, r, fx, fy, b - a, face_pairs, M, table, env, lanes, W, prefetch,
+                   out + 3 * a);
+            continue;
+        }
+#endif
         shade_pixels(face + i0, b1p + i0 * bs, b2p + i0 * bs, bs, r, fx, fy, 0, b - a, S2, face_pairs, M, table, env,
                      lanes, width, W, prefetch, m, out + 3 * a);
     }
 }
-/* shade_mirror over all P pixels on nt threads of OpenMP's team (shade_pixels_par), the ranges cut at
-   multiples of 8 pixels (whole runs of 8 samples). */
+/* shade_mirror over all P pixels on nt threads of OpenMP's team, in chunks of `chunk` pixels (a
+   multiple of CELL_RUN / S2, so of 8) dealt round robin: chunk c to thread c mod nt (session 37,
+   pt37; the Python wrapper passes one contiguous range per thread by default: native.RR_PIXELS).
+   Each pixel is one thread's, so the bits do not depend on nt or the chunk. */
 void shade_mirror_par(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
                       const float* mm, int64_t H, const void* vacos, const void* vatan2, int64_t w16,
                       const int64_t* face, const float* b1p, const float* b2p, int64_t bs,
                       int64_t P, int64_t nt, int64_t S2, const int64_t* face_pairs, int64_t M,
                       const float* table, const float* env, const float* lanes, int64_t width, int64_t W,
-                      int64_t prefetch, float* out) {
+                      int64_t prefetch, int64_t lean, int64_t chunk, float* out) {
+    const int64_t nch = (P + chunk - 1) / chunk;
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
-        const int64_t a = k ? P * k / nt / 8 * 8 : 0, b = k + 1 < nt ? P * (k + 1) / nt / 8 * 8 : P;
-        if (b > a)
-            shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, w16, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
-                         table, env, lanes, width, W, prefetch, out);
+    for (int64_t c = 0; c < nch; ++c) {
+        const int64_t a = c * chunk, b = a + chunk < P ? a + chunk : P;
+        shade_mirror(nrm, ns, nc, wo, ws, wc, mm, H, vacos, vatan2, w16, face, b1p, b2p, bs, a, b, S2, face_pairs, M,
+                     table, env, lanes, width, W, prefetch, lean, out);
     }
 }
 
@@ -757,10 +904,10 @@ def _functions(lib: ctypes.CDLL):
         fn.mirror_cells.restype = fn.shade_mirror.restype = None
         fn.mirror_cells.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, _I, _I, _P, _P, _P]
         fn.shade_mirror.argtypes = [_P, _I, _I, _P, _I, _I, _P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P, _I,
-                                    _P, _P, _P, _I, _I, _I, _P]
+                                    _P, _P, _P, _I, _I, _I, _I, _P]
         fn.shade_mirror_par = lib.shade_mirror_par
         fn.shade_mirror_par.restype = None
-        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes
+        fn.shade_mirror_par.argtypes = fn.shade_mirror.argtypes[:-1] + [_I, _P]
         fn.vertex_rows = lib.vertex_rows
         fn.vertex_rows.restype = None
         fn.vertex_rows.argtypes = [_P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _P,
@@ -881,6 +1028,14 @@ def cells_available() -> bool:
     return fn is not None and sl is not None and bool(fn.cells_isa & (2 if sl[2] else 1))
 
 
+def lean_available() -> bool:
+    """True when `shade_mirror` runs and its library has the AVX-512 body ``lean16`` (built for AVX-512:
+    ``native_cells_ok`` bit 1), which it takes for the perf suite's rows when `LEAN` (width 16 without u
+    lanes, S2 = 4, the barycentrics as the G-buffer's columns)."""
+    fn = _kernel()
+    return cells_available() and bool(fn.cells_isa & 2)
+
+
 def _dirs(normal: Tensor, wo: Tensor, n: int) -> tuple | None:
     """(pointer, sample stride, component stride) of normal and wo (n, 3) float32 CPU, or None."""
     out = []
@@ -906,6 +1061,29 @@ def mirror_cells(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, W: int) -
     return r, fx, fy
 
 
+# Whether `shade_mirror` shades the perf suite's rows (width 16, no u lanes, S2 = 4) with the AVX-512
+# body ``lean16`` where the library is built for AVX-512 (the same bits; tests switch it off to compare).
+LEAN = True
+
+# Pixels per chunk of `shade_mirror` at 2+ threads, dealt round robin (`_chunk` rounds it to whole runs of
+# the cells' stack buffers); 0: one contiguous range of runs per thread. Session 37 (pt37): OFF — the
+# halves leave one thread ~7 % more work on the chess bench (its middle rows cost the most), but dealt
+# rows cost more in all (each core's L2 sees every other row of the env map's footprint): run one share
+# alone each (1 thread, process CPU, lean16), the critical path read 2.29 ms for the halves against
+# 2.44 / 2.49 / 2.32 ms for chunks of 1024 / 2048 / 4096 pixels (sums 4.37 against 4.81 / 4.87 / 4.57),
+# and the 2-thread wall time could not be measured on the loaded host (load 8-10: rounds 0.4-2.3x).
+RR_PIXELS = 0
+
+
+def _chunk(S2: int, P: int, nt: int) -> int:
+    """`RR_PIXELS` rounded down to whole runs of CELL_RUN = 512 samples (at least one run); with
+    `RR_PIXELS` 0, one contiguous range of whole runs per thread (the split before session 37)."""
+    run = 512 // S2
+    if not RR_PIXELS:
+        return -(-P // (nt * run)) * run
+    return max(run, RR_PIXELS // run * run)
+
+
 def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Tensor, bary: Tensor,
                  face_pairs: Tensor, table: Tensor, env: Tensor, lanes: Tensor, W: int, S2: int) -> Tensor | None:
     """``fast._shade_pixels_block`` (`mirror_cells`, then `shade_pixels` on the cells) in one native
@@ -926,10 +1104,10 @@ def shade_mirror(normal: Tensor, wo: Tensor, to_world: Tensor, H: int, face: Ten
     out = torch.empty(P, 3, dtype=torch.float32)
     head = (*d, m.data_ptr(), int(H), ac, at, w16, face.data_ptr(), b1.data_ptr(), b2.data_ptr(), b1.stride(0))
     rest = (S2, face_pairs.data_ptr(), int(face_pairs.shape[0]), table.data_ptr(), env.data_ptr(), lanes.data_ptr(),
-            width, int(W), PREFETCH, out.data_ptr())
+            width, int(W), PREFETCH, int(LEAN), out.data_ptr())
     nt = _threads(P)
     if nt > 1:
-        fn.shade_mirror_par(*head, P, nt, *rest)
+        fn.shade_mirror_par(*head, P, nt, *rest[:-1], _chunk(S2, P, nt), rest[-1])
     elif P:
         fn.shade_mirror(*head, 0, P, *rest)
     return out

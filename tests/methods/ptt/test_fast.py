@@ -871,3 +871,94 @@ def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch)
                 for out in got:
                     assert out.shape == want.shape and torch.equal(out, want), float((out - want).abs().max())
     assert bool((got[0][:, :3] != 0).any()) and bool((got[0][:, 3:] != 0).any())
+
+
+@pytest.mark.parametrize("n_pix", [4098, 1002])
+def test_lean_pixel_body_is_the_general_body_bit_for_bit(n_pix, monkeypatch):
+    """``native.shade_mirror``'s AVX-512 body for the perf suite's rows (``lean16``: width 16 without u
+    lanes, S2 = 4, the barycentrics as the G-buffer's columns; `native.LEAN`) gives the bits of the
+    general body (``LEAN`` off) and of the compiled `fast.shade_block` on the compiled cells, at 1, 2
+    and 3 threads (one range of whole runs per thread, `native.RR_PIXELS` 0, the default; and chunks of
+    256 pixels dealt round robin): with misses (face −1
+    and past the table), negative Gouraud sums (max(0, ·) on the B lanes), a NaN on a B lane of some
+    rows (kept, as Inductor's maximum), runs of 128 pixels with a last run that ends in a part group
+    of 8 pixels (4098 = 32 · 128 + 2; 1002 = 7 · 128 + 13 · 8 + 2) and chunks of 256 pixels with a
+    part chunk last."""
+    from methods.ptt import fast as F
+    from methods.ptt import native as N
+
+    if not N.lean_available():
+        pytest.skip("no AVX-512 build of the native cells")
+    monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
+    S2 = 4
+    g, n_pairs, L, face_pairs, face, bary, normal, wo, env = _random_shading_inputs(S2 * n_pix, 7)
+    face = torch.where(torch.rand(S2 * n_pix, generator=g) < 0.05, -1, face)
+    past = face.clone()
+    past[7::501] = 10_000  # past the table: the zero face too (the native loops; the compiled one reads -1)
+    face[7::501] = -1
+    bary = bary.T.contiguous().T  # the G-buffer's layout: b1, b2 contiguous
+    fpm = torch.cat([face_pairs, torch.full((1, 3), n_pairs, dtype=face_pairs.dtype)])
+    C = 3 + 3 * L
+    width = F.table_width(C)
+    assert width == 16 and L == 4
+    maps = [_FakeEnv(torch.rand(env.H, env.W, 3, generator=g) * 4.0, env.to_world) for _ in range(L)]
+    erows = F.env_rows(F.env_stack(maps, width), width)
+    table = F.padded(torch.randn(n_pairs + 1, C, generator=g), width)
+    table[3:n_pairs:37, 0] = float("nan")  # a B lane: max(0, NaN) is NaN
+    table[-1] = 0.0
+    lanes = F._lane_masks(C, L, width)
+    r, fx, fy = F.mirror_cells_block(normal, wo, env.to_world, env.H, env.W)
+    want = F.shade_block(face, bary, r, fx, fy, fpm, table, erows, lanes, env.W, S2)
+    nan = torch.isnan(want)
+    assert bool(nan.any()) and bool((~nan).any())
+
+    def same(a, b):
+        return torch.equal(torch.isnan(a), torch.isnan(b)) and torch.equal(a[~torch.isnan(a)], b[~torch.isnan(b)])
+
+    for lean in (False, True):
+        monkeypatch.setattr(N, "LEAN", lean)
+        for threads, rr in ((1, 256), (2, 256), (3, 256), (2, 0), (3, 0)):  # RR_PIXELS 0: a range per thread
+            monkeypatch.setattr(N, "RR_PIXELS", rr)
+            torch.set_num_threads(threads)
+            try:
+                got = N.shade_mirror(normal, wo, env.to_world, env.H, past, bary, fpm, table, erows, lanes, env.W, S2)
+            finally:
+                torch.set_num_threads(1)
+            assert same(got, want), (lean, threads, rr, float((got - want)[~nan].abs().max()))
+
+
+def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
+    """A PTT frame in the perf suite's shape (lobes, no bounce terms, 2 × 2 samples per pixel: rows of
+    width 16 without u lanes, the G-buffer's barycentric columns) reaches ``native.shade_mirror`` with
+    the arguments the AVX-512 body ``lean16`` takes, and renders the same image bit for bit with
+    `native.LEAN` on and off, equal to the reference path to float32 round-off."""
+    from methods.ptt import native as N
+
+    if not N.lean_available():
+        pytest.skip("no AVX-512 build of the native cells")
+    scene = get_scene("chess", "test")
+    m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=0)
+    m.precompute(scene)
+    seen, real = [], N.shade_mirror
+
+    def recording(*a):
+        seen.append(a)
+        return real(*a)
+
+    monkeypatch.setattr(N, "shade_mirror", recording)
+    for kind in ("V", "VB"):
+        for f in make_sequence(scene, kind, n_frames=2, seed=3):
+            f = _small(f)
+            gb = make_gbuffer(scene, f, 2)
+            images = []
+            for lean in (True, False):
+                monkeypatch.setattr(N, "LEAN", lean)
+                images.append(m.render(f, gb))
+            assert seen, "the frame did not reach native.shade_mirror"
+            face, bary, lanes, S2 = seen[-1][4], seen[-1][5], seen[-1][9], seen[-1][11]
+            width = int(seen[-1][7].shape[1])
+            assert S2 == 4 and width == 16 and bary[:, 0].stride(0) == 1 and face.shape[0] % 8 == 0
+            assert not bool(lanes[1, :16].any()) and not bool(lanes[0, 8:16].any())  # plain16's rows
+            assert torch.equal(images[0], images[1])
+            ref = m._render_reference(f, gb)
+            torch.testing.assert_close(images[0], ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
