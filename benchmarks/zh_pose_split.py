@@ -9,7 +9,15 @@ cores: skinning 0.40, referenced 0.27, front 0.15, pose product 0.46, visibility
 0.68, front radiance 2.48, resolve 0.82, frame 4.47 ms. Session 36 (zh36o): the product and eq. 1 are one C call
 (`native.pose_sh`; "pose product" then not called unless ``native_eq1`` is off).
 
-    python -m benchmarks.zh_pose_split [--frames 12] [--threads 1] [--settle 0.2] [--precompute-code DIR]
+``--config '{}'`` splits the paper configuration's P frame instead (session 37, zh37p): skinning, the pose's
+visibility (`native.pose_sh` over every vertex), the plane term, the per-vertex table, the fused pass
+(`native.fused_pixels`) and the plane search's kernels. Session 37, 1 thread, load 6-8 on 2 cores: skinning 0.41,
+visibility 1.11 (`pose_sh` 0.86), plane term 0.39, vertex table 1.05, plane mask 0.59, `fused_pixels` 4.44, frame
+9.37 ms. Computing only the referenced vertices' visibility (4.4 K of 13.4 K: `referenced_ids` ~0.65 ms, then
+`pose_sh` on those ~0.7 ms right after the settle) was tried and dropped: the face scan costs about what the
+skipped rows save (their reads are scattered).
+
+    python -m benchmarks.zh_pose_split [--frames 12] [--threads 1] [--settle 0.2] [--config JSON] [--precompute-code DIR]
 """
 from __future__ import annotations
 
@@ -29,6 +37,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--settle", type=float, default=0.2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--config", default=json.dumps(CONFIG), help="the ZH configuration (default order 8)")
     ap.add_argument("--precompute-code", default=None)
     a = ap.parse_args(argv)
     apply_ab_options(a)
@@ -36,7 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     from methods.zh_shadow.method import ZHShadow
 
     scene, _, _, _ = setup("creature", "bench", kind="V", n_frames=1)
-    m, _ = precomputed(ZHShadow, scene, CONFIG)
+    m, _ = precomputed(ZHShadow, scene, json.loads(a.config))
     _, frames, gbs, _ = setup(scene, "bench", kind="P", n_frames=a.frames + 2, seed=a.seed)
     m = m.with_render_config()
     for f, g in zip(frames[:2], gbs[:2]):
@@ -44,6 +53,8 @@ def main(argv: list[str] | None = None) -> dict:
     times: dict[str, list[float]] = {}
 
     def wrap(obj, name: str, label: str) -> None:
+        if not hasattr(obj, name):   # (a stage of another configuration or code version)
+            return
         fn = getattr(obj, name)
 
         def timed(*args, **kw):
@@ -53,14 +64,20 @@ def main(argv: list[str] | None = None) -> dict:
             return out
         setattr(obj, name, timed)
 
-    originals = {n: getattr(zn, n) for n in ("referenced_mask", "front_columns", "pose_columns", "pose_radiance",
-                                              "resolve_table", "pose_sh")}
+    kernels = ("referenced_mask", "front_columns", "pose_columns", "pose_radiance", "resolve_table", "pose_sh",
+               # the paper configuration's (pixel-shaded planes)
+               "fused_pixels", "referenced_lut", "plane_u", "screen8", "plane_mask", "rest_screen")
+    originals = {n: getattr(zn, n) for n in kernels if hasattr(zn, n)}
     for obj, name, label in ((m, "_posed_geometry", "skinning"), (zn, "referenced_mask", "referenced"),
                              (zn, "front_columns", "front"), (zn, "pose_columns", "pose product"),
                              (zn, "pose_sh", "pose product + eq. 1 (one C call, zh36o)"),
                              (m, "_pose_visibility", "visibility (product + eq. 1)"),
                              (zn, "pose_radiance", "pose pass"), (zn, "resolve_table", "resolve"),
-                             (m, "_front_radiance", "front radiance (front, visibility, pose pass, glue)")):
+                             (m, "_front_radiance", "front radiance (front, visibility, pose pass, glue)"),
+                             (m, "_plane_term", "plane term"), (m, "_vertex_table", "vertex table"),
+                             (m, "_fused_planes", "fused planes (all)"),
+                             *((zn, n, "native." + n) for n in ("fused_pixels", "referenced_lut", "plane_u", "screen8",
+                                                                 "plane_mask", "rest_screen"))):
         wrap(obj, name, label)
     frame = []
     for f, g in zip(frames[2:], gbs[2:]):
