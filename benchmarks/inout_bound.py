@@ -5,7 +5,8 @@ of itself whose data loads are redirected into L1, alternating in one process (i
 
 Each variant is the loop's C source with a few lines replaced (string replacement, built under its own
 name by ``methods.core.native.load``; the module itself is not touched), run with ``FAST`` as the module
-has it. Variants (each adds to the one before, but the last):
+has it but for the tiles' bits (256 | 512 | 1024, session 37: the per-sample loop is what these variants
+edit; `benchmarks.inout_tiles` splits the tile passes). Variants (each adds to the one before, but the last):
 
 - ``base``: the loop as it is;
 - ``L1 table``: ``cell_x`` reads a 4 KB table (four rows of 3K floats) and a 1 KB c that stay in L1 instead
@@ -122,7 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
     mems = {k: ns.memo(st.voff[-1], ns.WINDOW) for k in names}
     T: dict[str, list[float]] = {k: [] for k in names}
     stats = {}
-    saved = ns._lib
+    saved, fast = ns._lib, ns.FAST
+    ns.FAST = fast & 255   # the per-sample loop (not the tiles)
     try:
         for i, (f, g) in enumerate(zip(frames, gbs)):
             cam = torch.tensor(f.camera.origin, dtype=torch.float32)
@@ -138,8 +140,8 @@ def main(argv: list[str] | None = None) -> dict:
                 T[k].append(time.process_time() - c0)
                 stats[k] = s
     finally:
-        ns._lib = saved
-    print(f"{a.scene} {a.size} V, {a.threads} thread(s), {a.frames} frames{'' if a.warm else ' (cold)'}, FAST {ns.FAST}")
+        ns._lib, ns.FAST = saved, fast
+    print(f"{a.scene} {a.size} V, {a.threads} thread(s), {a.frames} frames{'' if a.warm else ' (cold)'}, FAST {fast & 255}")
     res = {}
     for k in names:
         med = 1e3 * statistics.median(T[k][1:])
