@@ -104,6 +104,21 @@ def precomputed(cls, scene, config: dict):
     return m, (None if pre["cached"] else pre["seconds"])
 
 
+def inout_loop_state(scene_name: str, size: str, n_frames: int):
+    """The per-sample C loop's inputs (``methods.inout.native_sample.shade``) for the loop benchmarks: the
+    scene, ``n_frames`` V frames (seed 1, 2×2 samples) and their G-buffers, in-out precomputed (the cache)
+    with its fast path's caches reset, frame 0 rendered (its c complete), the static arrays and each
+    region's c — ``(scene, frames, gbs, m, st, cs)``."""
+    from methods.inout import InOut
+
+    scene, frames, gbs, _ = setup(scene_name, size, kind="V", n_frames=n_frames, seed=1, spp_side=2)
+    m, _ = precomputed(InOut, scene, {})
+    m._fast = None
+    m._reset_cache()
+    m.render(frames[0], gbs[0])
+    return scene, frames, gbs, m, m._fast_static(), [m._cf[r.name] for r in m.regions]
+
+
 def inout_regions(m) -> dict:
     """K and vertex count per region of a precomputed `methods.inout.InOut` (the benchmarks' header)."""
     return {"K": {r.name: r.K for r in m.regions}, "vertices": {r.name: int(r.verts.numel()) for r in m.regions}}

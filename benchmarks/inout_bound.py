@@ -62,10 +62,9 @@ import time
 
 import torch
 
-from benchmarks.common import precomputed, settle, setup
+from benchmarks.common import inout_loop_state, settle
 from methods.core import native
 from methods.inout import native_sample as ns
-from methods.inout.method import InOut
 from references.gbuffer import make_gbuffer
 
 _DUMMY = ("static float l1t[16384] __attribute__((aligned(64))); static float l1c[4096] __attribute__((aligned(64)));"
@@ -112,13 +111,7 @@ def main(argv: list[str] | None = None) -> dict:
     libs = {k: _build(k, r) for k, r in variants().items()}
     if any(lib is None for lib in libs.values()):
         raise SystemExit("the C loop is not available (no compiler or PRTBENCH_COMPILE=0)")
-    scene, frames, gbs, _ = setup(a.scene, a.size, kind="V", n_frames=a.frames, seed=1, spp_side=2)
-    m, _ = precomputed(InOut, scene, {})
-    m._fast = None
-    m._reset_cache()
-    m.render(frames[0], gbs[0])
-    st = m._fast_static()
-    cs = [m._cf[r.name] for r in m.regions]
+    scene, frames, gbs, m, st, cs = inout_loop_state(a.scene, a.size, a.frames)
     names = list(libs)
     mems = {k: ns.memo(st.voff[-1], ns.WINDOW) for k in names}
     T: dict[str, list[float]] = {k: [] for k in names}

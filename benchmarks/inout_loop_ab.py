@@ -44,9 +44,8 @@ import time
 
 import torch
 
-from benchmarks.common import precomputed, settle, setup
+from benchmarks.common import inout_loop_state, settle
 from methods.inout import native_sample as ns
-from methods.inout.method import InOut
 from references.gbuffer import make_gbuffer
 
 
@@ -81,13 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(a.threads)
     if not ns.available():
         raise SystemExit("the C loop is not available (no compiler or PRTBENCH_COMPILE=0)")
-    scene, frames, gbs, _ = setup(a.scene, a.size, kind="V", n_frames=a.frames, seed=1, spp_side=2)
-    m, _ = precomputed(InOut, scene, {})
-    m._fast = None
-    m._reset_cache()
-    m.render(frames[0], gbs[0])
-    st = m._fast_static()
-    cs = [m._cf[r.name] for r in m.regions]
+    scene, frames, gbs, m, st, cs = inout_loop_state(a.scene, a.size, a.frames)
     nv = st.voff[-1]
     saved = (ns.FAST, ns.YCACHE_LOG, ns.TILE)
     variants = list(dict.fromkeys(a.variants))
