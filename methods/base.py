@@ -121,7 +121,7 @@ class Capabilities:
 @dataclass(frozen=True)
 class FrameCost:
     """The compulsory work of one frame (``Method.frame_cost``), what the roofline divides by the
-    machine's limits: efficiency = max(bytes / bandwidth, flops / peak) / frame time.
+    machine's limits: efficiency = max(bytes / bandwidth, flops / peak, rays / ray rate) / frame time.
 
     bytes: bytes the frame must move at least once — every run-time array it reads (each element
         once, a perfect cache), the G-buffer inputs it reads (at their dtypes: the hit flag is a 1-byte
@@ -131,19 +131,29 @@ class FrameCost:
         3.1 MB a bench frame).
     flops: floating-point operations it must do (a multiply-add counts 2), for the arithmetic that
         the method's equations require per frame (not work a faster implementation could skip).
+    rays: occlusion queries (shadow rays) the frame must trace against the scene's triangles — those
+        whose answer the estimate needs (a ray whose contribution is zero whatever it hits is not
+        compulsory). A BVH traversal is neither a stream of bytes nor dense arithmetic, so neither roof
+        bounds it; its roof is the ray rate the machine's fastest tracer reaches on the same scene from
+        the same G-buffer points, measured in the run (``reports.measure.ray_rate``; session 38). 0 for
+        methods whose frame traces nothing (every PRT method: visibility is precomputed).
     """
 
     bytes: int
     flops: int
+    rays: int = 0
 
     def __post_init__(self) -> None:
-        if self.bytes < 0 or self.flops < 0:
+        if self.bytes < 0 or self.flops < 0 or self.rays < 0:
             raise ValueError(f"FrameCost must be non-negative, got {self}")
 
-    def bound(self, bandwidth: float, peak_flops: float) -> tuple[float, str]:
-        """(seconds at the roofline, "memory" | "compute"): the larger of the two lower bounds."""
-        tb, tf = self.bytes / bandwidth, self.flops / peak_flops
-        return (tb, "memory") if tb >= tf else (tf, "compute")
+    def bound(self, bandwidth: float, peak_flops: float, ray_rate: float | None = None) -> tuple[float, str]:
+        """(seconds at the roofline, "memory" | "compute" | "traversal"): the largest of the lower
+        bounds. Without a ``ray_rate`` the rays bound nothing (a lower bound stays a lower bound)."""
+        terms = [(self.bytes / bandwidth, "memory"), (self.flops / peak_flops, "compute")]
+        if self.rays and ray_rate is not None and ray_rate > 0:
+            terms.append((self.rays / ray_rate, "traversal"))
+        return max(terms, key=lambda t: t[0])
 
 
 GBUFFER_HIT_BYTES = 1  # the hit flag (``GBuffer.hit``: bool)

@@ -57,3 +57,18 @@ def test_frame_cost_counts_the_image(case):
         assert upper.flops == image.flops, kind
     with pytest.raises(ValueError):
         m.frame_cost("V", P, pixels=P + 1)
+
+
+def test_frame_cost_bound_has_a_traversal_roof():
+    """Session 38: ``FrameCost.rays`` (compulsory shadow rays) is a third roof, bounded by a measured
+    ray rate; without a rate (or with no rays) it bounds nothing."""
+    from methods.base import FrameCost
+
+    c = FrameCost(bytes=100, flops=50, rays=30)
+    assert c.bound(100.0, 100.0) == (1.0, "memory")                   # no rate: bytes / bandwidth
+    assert c.bound(100.0, 10.0) == (5.0, "compute")
+    assert c.bound(100.0, 100.0, ray_rate=10.0) == (3.0, "traversal")
+    assert c.bound(100.0, 100.0, ray_rate=60.0) == (1.0, "memory")    # traversal 0.5 s < memory
+    assert FrameCost(100, 50).bound(100.0, 100.0, ray_rate=1e-9) == (1.0, "memory")  # no rays
+    with pytest.raises(ValueError):
+        FrameCost(1, 1, rays=-1)
