@@ -7,7 +7,8 @@
 Per sequence kind: frame 0 warms up both paths (compilation), then frames 1.. are rendered by both,
 alternating which goes first; prints the median wall and process-CPU time of each, their ratio,
 the roofline efficiency max(bytes / triad bandwidth, flops / matmul peak) / time with
-``Oracle.frame_cost`` (which does not count the shadow rays' traversal nor the transcendentals) and
+``Oracle.frame_cost``'s bytes and flops (not its rays: the suite's roof for them, the scene's ray rate,
+is measured by the harness, ``reports.measure.ray_rate``; nor the transcendentals) and
 the largest |fast − reference| pixel difference. Then micro-benchmarks on the last frame's shadow
 rays (the live rays the estimator traces): ``occluded`` as the oracle calls it (torch → numpy →
 Dr.Jit and back) and Mitsuba's ``scene.ray_test`` alone on rays already in Dr.Jit arrays, in rays

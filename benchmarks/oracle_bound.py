@@ -12,9 +12,9 @@ reach the oracle's RMSE ÷ the oracle's frame time, so for one cell
 
 That is how close a JIT-compiled, vectorised production renderer running the same estimator comes
 to the roofline of the oracle's honest count (bytes of the G-buffer, env-map tables and output;
-flops of the shading — not the BVH traversal or the transcendentals, which are most of the work). If
-it is far below 10 %, no implementation of this estimator reaches 10 % under that count; and the
-oracle reaches an equal-error speedup ≥ 1 only by out-running Mitsuba on Mitsuba's own estimator.
+flops of the shading; since session 38 the live shadow rays at the scene's measured ray rate,
+``FrameCost.rays`` — before, the traversal, most of the work, was not counted and both sat near 1 %).
+The oracle reaches an equal-error speedup ≥ 1 only by out-running Mitsuba on Mitsuba's own estimator.
 Prints one row per oracle cell (frame kind) and the range.
 """
 from __future__ import annotations

@@ -79,11 +79,16 @@ def table(df: pd.DataFrame, before: pd.DataFrame | None = None, threshold: float
 
 def at_bandwidth(df: pd.DataFrame, bandwidth: float, peak: float) -> pd.DataFrame:
     """``df`` with every cell's ``roofline_efficiency`` recomputed at ``bandwidth`` B/s and ``peak``
-    flop/s (``reports.measure.roofline``: max(bytes / bandwidth, flops / peak) / median frame time)."""
+    flop/s (``reports.measure.roofline``: max(bytes / bandwidth, flops / peak, rays / the run's ray rate of
+    the cell's scene) / median frame time)."""
     from reports import measure
 
-    vals = df[(df["frame"] == -1) & df["metric"].isin(("bytes_per_frame", "flops_per_frame", "render_time_median"))]
+    vals = df[(df["frame"] == -1) & df["metric"].isin(("bytes_per_frame", "flops_per_frame", "render_time_median",
+                                                       "rays_per_frame"))]
     v = vals.pivot_table(index="cell", columns="metric", values="value", aggfunc="first")
+    hr = df[(df["frame"] == -1) & (df["metric"] == "host_ray_rate")]  # the run's ray roof per scene (pipeline.ray_rates)
+    rates = hr.groupby(["scene", "size"])["value"].max().to_dict() if len(hr) else {}
+    where = df.drop_duplicates("cell").set_index("cell")[["scene", "size"]]
     out = df.copy()
     is_roof = (out["metric"] == "roofline_efficiency") & (out["frame"] == -1)
     for i in out.index[is_roof]:
@@ -91,8 +96,9 @@ def at_bandwidth(df: pd.DataFrame, bandwidth: float, peak: float) -> pd.DataFram
         if c not in v.index:
             continue
         r = v.loc[c]
+        rate = rates.get(tuple(where.loc[c])) if c in where.index else None
         roof = measure.roofline(r.get("bytes_per_frame"), r.get("flops_per_frame"), bandwidth, peak,
-                                r.get("render_time_median", float("nan")))
+                                r.get("render_time_median", float("nan")), r.get("rays_per_frame"), rate)
         out.at[i, "value"] = roof[0] if roof is not None else float("nan")
     return out
 

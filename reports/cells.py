@@ -38,6 +38,7 @@ UNITS = {
     "harness_peak_rss_bytes": "B", "bytes_per_frame": "B", "flops_per_frame": "flop", "roofline_efficiency": "1",
     "eq_error_speedup": "x", "mitsuba_time_eq_error": "s", "timed_frames": "1", "other_cpu_cores": "cores",
     "host_triad_bandwidth": "B/s", "host_matmul_peak": "flop/s",
+    "rays_per_frame": "1", "host_ray_rate": "1/s", "roofline_compute_bound": "1", "roofline_traversal_bound": "1",
     "rmse_full_gi": "radiance", "precompute_cached": "1", "precompute_load_time": "s",
     "negative_frac": "1", "mean_ratio": "1", "region_mean_ratio_min": "1", "region_mean_ratio_max": "1",
 }

@@ -188,6 +188,17 @@ def cell_limits_text(df: pd.DataFrame) -> str | None:
     return f"min / median / max over {n} cells: " + ", ".join(parts)
 
 
+def _roof_bound(cells) -> str:
+    """" (memory)" | " (compute)" | " (traversal)": the bound most of a row's cells are at ("" if none says)."""
+    votes = {"memory": 0, "compute": 0, "traversal": 0}
+    for gg in cells:
+        c, t = _val(gg, "roofline_compute_bound")[0], _val(gg, "roofline_traversal_bound")[0]
+        if c is None and t is None:
+            continue
+        votes["traversal" if t else "compute" if c else "memory"] += 1
+    return f" ({max(votes, key=votes.get)})" if any(votes.values()) else ""
+
+
 def summary_table(df: pd.DataFrame) -> str:
     ok = df[df["status"].isin(MEASURED)]
     if len(ok) == 0:
@@ -208,8 +219,7 @@ def summary_table(df: pd.DataFrame) -> str:
         pre = _val(first, "precompute_time")[0]
         fps = "".join(_fps_cell(cells.get(k)) for k in kinds)
         roof = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_efficiency")] if v is not None]
-        cb = [v for gg in cells.values() for v, _ in [_val(gg, "roofline_compute_bound")] if v is not None]
-        bound = "" if not cb else " (compute)" if np.mean(cb) > 0.5 else " (memory)"
+        bound = _roof_bound(cells.values())
         sp = [v for gg in cells.values() for v, _ in [_val(gg, "eq_error_speedup")] if v is not None and math.isfinite(v)]
         body.append(
             f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td><td>{_blabel(b)}</td>"
@@ -225,8 +235,10 @@ def summary_table(df: pd.DataFrame) -> str:
             "<code>benchmarks.frame_protocol</code>); <span class=loaded>shaded</span>: other processes "
             f"used more than {CONTENTION_MAX:g} cores while the cell's frames were timed (its time, roofline and "
             "speedup are slower than the code). Roofline efficiency: max(bytes per frame ÷ triad "
-            "bandwidth, flops per frame ÷ dense-matmul peak) ÷ frame time, both limits measured in this run; in "
-            "brackets the bound that applies (the larger term). Equal-error speedup: Mitsuba time to reach the method's RMSE "
+            "bandwidth, flops per frame ÷ dense-matmul peak, shadow rays per frame ÷ ray rate) ÷ frame time, every "
+            "limit measured in this run (the ray rate per scene: the fastest of the suite's tracers on that scene's "
+            "shadow rays from the G-buffer's points; only the oracle traces rays in a frame); in "
+            "brackets the bound that applies (the largest term). Equal-error speedup: Mitsuba time to reach the method's RMSE "
             "(RMSE ∝ spp<sup>−1/2</sup> fitted to references at several spp, same thread count) ÷ frame time; Mitsuba's "
             "time is its renders alone, without exporting and loading the scene or compiling kernels (as a method's frame "
             "excludes its precomputation and compilation), so the speedup does not credit a method with Mitsuba's "

@@ -126,14 +126,102 @@ def machine_limits(bandwidth_elements: int = TRIAD_ELEMENTS) -> dict[str, float]
 
 
 def roofline(cost_bytes: float | None, cost_flops: float | None, bandwidth: float, peak_flops: float,
-             frame_time: float) -> tuple[float, str] | None:
-    """(efficiency, bound): max(bytes / bandwidth, flops / peak) / frame time and which term is the
-    larger ("memory" | "compute"); None when the method reports no cost or a time is not positive."""
+             frame_time: float, cost_rays: float | None = None, ray_rate: float | None = None) -> tuple[float, str] | None:
+    """(efficiency, bound): max(bytes / bandwidth, flops / peak, rays / ray rate) / frame time and which
+    term is the largest ("memory" | "compute" | "traversal"); None when the method reports no cost or a
+    time is not positive. Rays without a measured ``ray_rate`` bound nothing (``FrameCost.bound``)."""
     if cost_bytes is None or not (bandwidth > 0) or not (frame_time > 0):
         return None
-    tb = float(cost_bytes) / float(bandwidth)
-    tf = float(cost_flops or 0.0) / float(peak_flops) if peak_flops and peak_flops > 0 else 0.0
-    return (max(tb, tf) / float(frame_time), "memory" if tb >= tf else "compute")
+    terms = [(float(cost_bytes) / float(bandwidth), "memory"),
+             (float(cost_flops or 0.0) / float(peak_flops) if peak_flops and peak_flops > 0 else 0.0, "compute")]
+    if cost_rays and ray_rate is not None and math.isfinite(ray_rate) and ray_rate > 0:
+        terms.append((float(cost_rays) / float(ray_rate), "traversal"))
+    t, bound = max(terms, key=lambda x: x[0])
+    return (t / float(frame_time), bound)
+
+
+RAY_SETS = ("cosine", "coherent")
+
+
+def shadow_rays(points, normals, ray_set: str, *, seed: int = 0, offset: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, directions), (R, 3) float32 each: one shadow ray from each surface point, its origin
+    moved ``offset`` along the normal. ``ray_set``: "cosine" — directions cosine-distributed about
+    the normal (incoherent, an ambient-occlusion / Lambertian-sample ray: the kind of ray a Monte
+    Carlo estimator traces); "coherent" — one fixed direction, flipped into each point's upper
+    hemisphere (a directional light's shadow rays: the most coherent shadow rays from these points)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if p.shape != n.shape:
+        raise ValueError(f"points and normals must have the same shape, got {p.shape} and {n.shape}")
+    if ray_set == "coherent":
+        d0 = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+        d = np.where((n @ d0)[:, None] >= 0.0, d0, -d0)
+    elif ray_set == "cosine":
+        g = np.random.default_rng(seed)
+        u1, u2 = g.random(len(p)), g.random(len(p))
+        t = np.where(np.abs(n[:, :1]) > 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+        b1 = np.cross(n, t)
+        b1 /= np.maximum(np.linalg.norm(b1, axis=1, keepdims=True), 1e-30)
+        b2 = np.cross(n, b1)
+        r, phi = np.sqrt(u1)[:, None], 2.0 * np.pi * u2[:, None]
+        d = r * np.cos(phi) * b1 + r * np.sin(phi) * b2 + np.sqrt(1.0 - u1)[:, None] * n
+    else:
+        raise ValueError(f"ray_set must be one of {RAY_SETS}, got {ray_set!r}")
+    return (p + offset * n).astype(np.float32), d.astype(np.float32)
+
+
+def ray_rate(V, F, points, normals, *, repeats: int = 3, seed: int = 0,
+             backends: tuple[str, ...] | None = None) -> tuple[float, str]:
+    """The roof of ``FrameCost.rays`` (session 38): shadow rays per second the fastest of the suite's
+    tracers (``references.visibility``: Mitsuba's ``ray_test``, embreex; robust traversal, as the
+    suite traces) answers on the mesh (V, F), from ``points`` along their ``normals`` — in the harness the
+    cell's last G-buffer's hit points on its last frame's geometry. The best over tracers, both
+    `RAY_SETS` and ``repeats`` passes (after a warm-up each): like the triad and the sgemm, the fastest
+    the machine does this kind of work here, so a frame's traversal term is a lower bound. Mitsuba is
+    timed on rays already in Dr.Jit arrays (its ``ray_test`` alone, no conversion), embreex through
+    ``occluded`` on numpy arrays. Returns (rays / s, "tracer/ray set")."""
+    from references.visibility import make_visibility, mitsuba_usable
+
+    if repeats < 1:
+        raise ValueError("repeats must be >= 1")
+    p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if len(p) == 0:
+        raise ValueError("ray_rate needs at least one point")
+    V = np.asarray(V, dtype=np.float32)
+    scale = float(np.linalg.norm(V.max(0) - V.min(0))) if len(V) else 1.0
+    if backends is None:
+        backends = ("mitsuba", "embree") if mitsuba_usable() else ("embree",)
+    best, which = 0.0, ""
+    for b in backends:
+        vis = make_visibility(V, F, backend=b)
+        for rs in RAY_SETS:
+            o, d = shadow_rays(p, normals, rs, seed=seed, offset=1e-4 * max(scale, 1e-12))
+            trace = _tracer_call(vis, o, d)
+            trace()  # warm-up: Dr.Jit compiles its kernel, embreex its first pass
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                trace()
+                dt = time.perf_counter() - t0
+                if len(o) / max(dt, 1e-12) > best:
+                    best, which = len(o) / max(dt, 1e-12), f"{vis.backend}/{rs}"
+    return best, which
+
+
+def _tracer_call(vis, o: np.ndarray, d: np.ndarray):
+    """A call that traces (o, d) once with ``vis`` and waits for the answers."""
+    if getattr(vis, "backend", "") == "mitsuba" and hasattr(vis, "_rays") and hasattr(vis, "_scene"):
+        import drjit as dr
+
+        ray = vis._rays(o, d, np.float32(np.inf))  # Dr.Jit arrays made once: time the traversal alone
+        dr.eval(ray)
+        dr.sync_thread()
+
+        def trace():
+            h = vis._scene.ray_test(ray)
+            dr.eval(h)
+            dr.sync_thread()
+        return trace
+    return lambda: vis.occluded(o, d)
 
 
 def roofline_efficiency(bytes_per_frame: float | None, bandwidth: float, frame_time: float) -> float | None:

@@ -263,6 +263,14 @@ def cell_limits() -> bool:
     return v == "1"
 
 
+def _ray_rate(scene, frame, gb) -> tuple[float, str]:
+    """``measure.ray_rate`` on ``frame``'s geometry (posed, for an articulated scene) from the hit
+    points of its G-buffer ``gb``: the roof of ``FrameCost.rays`` for this cell (~0.2–0.5 s)."""
+    g = scene.geometry(getattr(frame, "pose", None))
+    hit = gb.hit.cpu()
+    return measure.ray_rate(g.V.cpu(), g.F.cpu(), gb.position.cpu()[hit], gb.normal.cpu()[hit])
+
+
 def _row(metric: str, value, frame: int = -1, noise_floor: float = float("nan")) -> dict:
     v = float("nan") if value is None else float(value)
     return {"frame": frame, "metric": metric, "value": v, "unit": UNITS.get(metric, ""), "noise_floor": noise_floor}
@@ -399,6 +407,12 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
             rows.append(_row("bytes_per_frame", bpf))
         if cost is not None:
             rows.append(_row("flops_per_frame", cost.flops))
+        if cost is not None and cost.rays:  # shadow rays the frame must trace: their roof (`FrameCost.rays`)
+            rows.append(_row("rays_per_frame", cost.rays))
+            if cell_limits():  # the ray rate of this scene, from the last frame's G-buffer points
+                rate, tracer = _ray_rate(scene, frame, gb)
+                rows.append(_row("host_ray_rate", rate))
+                info["ray_rate_tracer"] = tracer
         rows.append(_row("peak_rss_bytes" if cell.isolate is True else "harness_peak_rss_bytes", measure.peak_rss_bytes()))
         load.append(_loadavg())
         info.update({"memory": {k: int(b) for k, b in mem.items()}, "frame_times": times,

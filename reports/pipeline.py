@@ -179,6 +179,22 @@ def run_limits(results: list[CellResult], meta: dict) -> tuple[float, float]:
     return bw, pk
 
 
+def ray_rates(results: list[CellResult]) -> dict[tuple[str, str], float]:
+    """(scene, size) → the ray rate the run's roofline divides ``rays_per_frame`` by: the best of the
+    ``host_ray_rate`` readings of the run's cells on that scene at that size (`reports.measure.ray_rate`;
+    per scene because a traversal's speed depends on the mesh; the best, as `run_limits`)."""
+    out: dict[tuple[str, str], float] = {}
+    for r in results:
+        if r.status not in MEASURED:
+            continue
+        c = Cell.from_dict(r.cell)
+        for row in r.rows:
+            v = float(row["value"])
+            if row["metric"] == "host_ray_rate" and row["frame"] == -1 and math.isfinite(v) and v > 0:
+                out[(c.scene, c.size)] = max(out.get((c.scene, c.size), 0.0), v)
+    return out
+
+
 def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
     """Cell results + run facts → the run's long table (``store.COLUMNS``), with the roofline
     efficiency computed from the run's limits (`run_limits`), and one ``status="run"`` row for the
@@ -186,6 +202,7 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
     base = {"run_id": meta["run_id"], "time": meta["time"], "git_sha": meta["git_sha"],
             "versions": json.dumps(meta["versions"], sort_keys=True), "machine": meta["machine"]}
     bandwidth, peak = run_limits(results, meta)
+    rates = ray_rates(results)
     rows = [{**base, "threads": meta["threads"], "scene": "", "size": "", "sequence": "", "frame": -1, "method": "",
              "config": "", "bounces": -1, "metric": "triad_bandwidth", "value": bandwidth, "unit": "B/s",
              "noise_floor": float("nan"), "status": "run", "reason": "", "cell": ""}]
@@ -202,12 +219,14 @@ def collect(results: list[CellResult], meta: dict) -> pd.DataFrame:
         rows += [{**ident, **row} for row in r.rows]
         # roofline: max(bytes / bandwidth, flops / peak) / frame time, and which bound applies
         roof = measure.roofline(vals.get("bytes_per_frame"), vals.get("flops_per_frame"), bandwidth, peak,
-                                vals.get("render_time_median", float("nan")))
+                                vals.get("render_time_median", float("nan")), vals.get("rays_per_frame"),
+                                rates.get((c.scene, c.size)))
         if roof is not None:
             rows.append({**ident, "frame": -1, "metric": "roofline_efficiency", "value": roof[0], "unit": "1",
                          "noise_floor": float("nan")})
-            rows.append({**ident, "frame": -1, "metric": "roofline_compute_bound", "value": float(roof[1] == "compute"),
-                         "unit": "1", "noise_floor": float("nan")})
+            for bound in ("compute", "traversal"):
+                rows.append({**ident, "frame": -1, "metric": f"roofline_{bound}_bound", "value": float(roof[1] == bound),
+                             "unit": "1", "noise_floor": float("nan")})
     return store.to_frame(rows)
 
 

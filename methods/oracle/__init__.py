@@ -898,8 +898,11 @@ class Oracle(Method):
         """Compulsory work of one frame of the estimator (``methods.base.FrameCost``): the oracle
         keeps nothing between frames, so every kind costs the same, plus the skinning of a posed
         frame ("P" in the kind, articulated scenes). Multiply-add = 2 flops; transcendentals
-        (sin, cos, acos, atan2, pow, sqrt), the CDF searches and the shadow rays' traversal (done by
-        the ray tracer, ``references.visibility``; its cost depends on the BVH) are not counted.
+        (sin, cos, acos, atan2, pow, sqrt) and the CDF searches are not counted.
+        rays: the live shadow rays (those with a non-zero contribution: the only ones the estimate
+        needs traced; the oracle traces exactly these), whose traversal — most of a frame — neither
+        bytes nor flops bound: ``FrameCost.rays``' roof is the ray rate the machine's fastest tracer
+        reaches on the same scene from the same G-buffer points (session 38).
 
         bytes: per hit sample its position, normal and ω_o (3 × 3 float32), face and region (int64)
         and hit flag (1 B), per missed sample the hit flag, the (H, W, 3) float32 image (``pixels``); the faces hit
@@ -939,4 +942,4 @@ class Oracle(Method):
                 nv, J = int(w.shape[0]), int(w.shape[1])
                 b += nv * (6 + J) * 4
                 f += nv * 2 * (12 * J + 21)
-        return FrameCost(int(b), int(f))
+        return FrameCost(int(b), int(f), int(live))

@@ -141,9 +141,10 @@ def test_oracle_frame_cost_is_the_hand_count(monkeypatch):
         + min(C, Q * 2 * math.ceil(math.log2(C))) * 8 + min(C, Q * 2) * 8
     f = Q * 56 + Q * 5 * 31 + live * 54
     for kind in ("V", "VBL", "L", "E", "P"):          # static scene: a "P" frame skins nothing
-        assert o.frame_cost(kind, P) == FrameCost(b, f), kind
+        assert o.frame_cost(kind, P) == FrameCost(b, f, live), kind   # rays: the live rays traced
     big = o.frame_cost("V", 4 * P)                     # no render of that size: all hit, all live
     assert big.flops == 4 * P * (56 + 5 * 31 + 5 * 54)
+    assert big.rays == 4 * P * 5
     for kind, n in (("X", P), ("V", -1), ("V", 2.0)):
         with pytest.raises(ValueError):
             o.frame_cost(kind, n)
