@@ -31,8 +31,6 @@ from reports import measure
 def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
     """Seconds (wall, CPU) of the shadow-ray test of ``frame``'s rays: through ``occluded`` and
     Mitsuba's ``ray_test`` alone (rays already in Dr.Jit arrays; embreex: ``occluded`` only)."""
-    import numpy as np
-
     import methods.oracle as O
 
     rays = {}
@@ -60,16 +58,7 @@ def tracer(m: Oracle, frame, gb, repeats: int = 5) -> dict:
     if vis.backend == "mitsuba":
         import drjit as dr
 
-        ray = vis._rays(o.numpy(), d.numpy(), np.float32(np.inf))
-        dr.eval(ray)
-        dr.sync_thread()
-
-        def trace():
-            h = vis._scene.ray_test(ray)
-            dr.eval(h)
-            dr.sync_thread()
-
-        out["ray_test_s"] = wall_cpu_time(trace, repeats)
+        out["ray_test_s"] = wall_cpu_time(measure.tracer_call(vis, o.numpy(), d.numpy()), repeats)
         out["drjit_threads"] = dr.thread_count()
     return out
 

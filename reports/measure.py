@@ -196,7 +196,7 @@ def ray_rate(V, F, points, normals, *, repeats: int = 3, seed: int = 0,
         vis = make_visibility(V, F, backend=b)
         for rs in RAY_SETS:
             o, d = shadow_rays(p, normals, rs, seed=seed, offset=1e-4 * max(scale, 1e-12))
-            trace = _tracer_call(vis, o, d)
+            trace = tracer_call(vis, o, d)
             trace()  # warm-up: Dr.Jit compiles its kernel, embreex its first pass
             for _ in range(repeats):
                 t0 = time.perf_counter()
@@ -207,7 +207,7 @@ def ray_rate(V, F, points, normals, *, repeats: int = 3, seed: int = 0,
     return best, which
 
 
-def _tracer_call(vis, o: np.ndarray, d: np.ndarray):
+def tracer_call(vis, o: np.ndarray, d: np.ndarray):
     """A call that traces (o, d) once with ``vis`` and waits for the answers."""
     if getattr(vis, "backend", "") == "mitsuba" and hasattr(vis, "_rays") and hasattr(vis, "_scene"):
         import drjit as dr
