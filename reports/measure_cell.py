@@ -268,6 +268,8 @@ def _ray_rate(scene, frame, gb) -> tuple[float, str]:
     points of its G-buffer ``gb``: the roof of ``FrameCost.rays`` for this cell (~0.2–0.5 s)."""
     g = scene.geometry(getattr(frame, "pose", None))
     hit = gb.hit.cpu()
+    if not bool(hit.any()):  # nothing in view: no points to trace from, no roof (the rays bound nothing)
+        return float("nan"), "no hit points"
     return measure.ray_rate(g.V.cpu(), g.F.cpu(), gb.position.cpu()[hit], gb.normal.cpu()[hit])
 
 
