@@ -3708,3 +3708,124 @@ def _pmask_lib():
     """The library of `zh37v_plane_mask` or None. Not cached here (b541a75)."""
     return native.load("zh37v_plane_mask", _PMASK_SOURCE, _PMASK_SIGNATURES,
                        extra_flags=("-fopenmp", *native.isa_flags()))
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# The lighting's ZYZ rotation (`runtime.rotate_lighting`: L / VL / VBL frames rotate the kept projection, E
+# frames take a new map's to world space) in one C call: its three z rotations (cos / sin of |m|·angle per
+# coefficient, the (l, −m) partner's sign) and its two fixed (n², n²) products, the same steps as its numpy
+# code in float64 — the same coefficients to float64 round-off (numpy's cos / sin and BLAS's sums in another
+# order). numpy's ~20 calls on (n², 3) arrays cost ~0.2 ms at order 4 and ~0.4 at order 8 inside a lighting
+# frame (serial at any thread count); the C call a few microseconds.
+_ROTATE_SOURCE = r"""
+#include <stdint.h>
+#include <math.h>
+
+/* one z rotation of x (n2, C) into y: y[i] = cos(t |m_i|) x[i] + (sin(t |m_i|) sgn_i) x[perm_i] */
+static void zh38v_rz(int64_t n2, int64_t C, double t, const double *mabs, const int64_t *perm, const double *sgn,
+                     const double *x, double *y) {
+    for (int64_t i = 0; i < n2; ++i) {
+        const double a = t * mabs[i], cs = cos(a), sn = sin(a) * sgn[i];
+        const double *xi = x + i * C, *xp = x + perm[i] * C;
+        for (int64_t c = 0; c < C; ++c) y[i * C + c] = cs * xi[c] + sn * xp[c];
+    }
+}
+
+/* y (n2, C) = X (n2, n2) x */
+static void zh38v_mm(int64_t n2, int64_t C, const double *X, const double *x, double *y) {
+    for (int64_t i = 0; i < n2; ++i)
+        for (int64_t c = 0; c < C; ++c) {
+            double s = 0.0;
+            for (int64_t j = 0; j < n2; ++j) s += X[i * n2 + j] * x[j * C + c];
+            y[i * C + c] = s;
+        }
+}
+
+/* `runtime.rotate_lighting`'s test and angles of R (3, 3) row-major, as its Python code computes them (the
+   same libm calls and operations: the same values): returns 0 with ang = (g, b, a) when det R > 0 and every
+   |(R Rᵀ)_ij − δ_ij| <= tol, else 1 */
+int64_t zh38v_angles(const double *R, double tol, double *ang) {
+    const double r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7],
+                 r22 = R[8];
+    const double det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20);
+    if (!(det > 0)) return 1;
+    double mx = 0.0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j) {
+            const double d = fabs(((R[3 * i] * R[3 * j]) + R[3 * i + 1] * R[3 * j + 1]) + R[3 * i + 2] * R[3 * j + 2]
+                                  - (double)(i == j));
+            if (!(d <= mx)) mx = d;   /* (Python's max: a NaN first stays) */
+        }
+    if (!(mx <= tol)) return 1;
+    const double s = hypot(r02, r12);
+    const double a = s > 0 ? atan2(r12, r02) : 0.0;
+    const double b = atan2(s, r22);
+    const double ca = cos(a), sa = sin(a), cb = cos(b), sb = sin(b);
+    const double u0 = ca * r00 + sa * r10, u1 = -sa * r00 + ca * r10;
+    ang[0] = atan2(u1, cb * u0 - sb * r20);
+    ang[1] = b;
+    ang[2] = a;
+    return 0;
+}
+
+/* out (n2, C) = Rz(ang[2]) Xm Rz(ang[1]) Xp Rz(ang[0]) c (`runtime.rotate_lighting`'s steps, in its order);
+   w: 2 n2 C doubles of scratch */
+void zh38v_rotate(int64_t n2, int64_t C, const double *c, const double *ang, const double *mabs, const int64_t *perm,
+                  const double *sgn, const double *Xm, const double *Xp, double *w, double *out) {
+    double *a = w, *b = w + n2 * C;
+    zh38v_rz(n2, C, ang[0], mabs, perm, sgn, c, a);
+    zh38v_mm(n2, C, Xp, a, b);
+    zh38v_rz(n2, C, ang[1], mabs, perm, sgn, b, a);
+    zh38v_mm(n2, C, Xm, a, b);
+    zh38v_rz(n2, C, ang[2], mabs, perm, sgn, b, out);
+}
+"""
+_ROTATE_SIGNATURES = {"zh38v_rotate": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P],
+                      "zh38v_angles": [_P, ctypes.c_double, _P]}
+
+
+def _rotate_lib():
+    """The library of `zh38v_rotate` or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``).
+    Not cached here (b541a75)."""
+    if not terms_switched_on():
+        return None
+    lib = native.load("zh38v_rotate", _ROTATE_SOURCE, _ROTATE_SIGNATURES, extra_flags=("-ffp-contract=off",))
+    if lib is not None:
+        lib.zh38v_angles.restype = ctypes.c_int64
+    return lib
+
+
+def rotate_lighting(c: Tensor, R: Tensor, tol: float, tables: tuple) -> Tensor | None:
+    """`runtime.rotate_lighting`(c, R) by two C calls (its test and ZYZ angles of R: the same values; then
+    `rotate_zyz`), or None: the library does not run, c or R not float64 CPU arrays of its shapes, or R not a
+    rotation to ``tol`` (the caller's fallback then)."""
+    lib = _rotate_lib()
+    if lib is None or R.dtype != torch.float64 or R.device.type != "cpu" or R.shape != (3, 3):
+        return None
+    ang = torch.empty(3, dtype=torch.float64)
+    if lib.zh38v_angles(R.contiguous().data_ptr(), float(tol), ang.data_ptr()) != 0:
+        return None
+    return _rotate_zyz(lib, c, ang, tables)
+
+
+def rotate_zyz(c: Tensor, angles: tuple[float, float, float], tables: tuple) -> Tensor | None:
+    """(n², C) float64 = `runtime.rotate_lighting`'s three z rotations by ``angles`` (g, b, a) and its fixed
+    products, ``tables`` its `_lighting_zyz_tables` as contiguous tensors (mabs, perm int64, sgn, Xm, Xp), by
+    one C call; None where it does not run (no library, c not a float64 CPU (n², C) array)."""
+    lib = _rotate_lib()
+    return None if lib is None else _rotate_zyz(lib, c, torch.tensor(angles, dtype=torch.float64), tables)
+
+
+def _rotate_zyz(lib, c: Tensor, ang: Tensor, tables: tuple) -> Tensor | None:
+    if c.dtype != torch.float64 or c.device.type != "cpu" or c.dim() != 2:
+        return None
+    mabs, perm, sgn, Xm, Xp = tables
+    n2, C = int(c.shape[0]), int(c.shape[1])
+    if mabs.shape != (n2,) or Xm.shape != (n2, n2):
+        return None
+    c = c.contiguous()
+    w = torch.empty(2 * n2 * C, dtype=torch.float64)
+    out = torch.empty(n2, C, dtype=torch.float64)
+    lib.zh38v_rotate(n2, C, c.data_ptr(), ang.data_ptr(), mabs.data_ptr(), perm.data_ptr(), sgn.data_ptr(),
+                     Xm.data_ptr(), Xp.data_ptr(), w.data_ptr(), out.data_ptr())
+    return out

@@ -1,0 +1,89 @@
+"""Session 38 (zh38v): the lighting's ZYZ rotation in C (`runtime.NATIVE_ROTATE`, `native.rotate_lighting`)
+against `runtime.rotate_lighting`'s numpy steps (the oracle): float64 round-off, the same fallbacks."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from methods.zh_shadow import ZHShadow, runtime as rt
+
+SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
+
+
+def _rotations(g):
+    """Random proper rotations, and the ZYZ angles' edge cases: the identity (sin b = 0, a arbitrary), a half turn
+    about z, b = π (R e_z = −e_z), a rotation about y alone (the E probes' frames)."""
+    out = [torch.eye(3, dtype=torch.float64), torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64)),
+           torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))]
+    t = 0.7
+    out.append(torch.tensor([[math.cos(t), 0, math.sin(t)], [0, 1, 0], [-math.sin(t), 0, math.cos(t)]],
+                            dtype=torch.float64))
+    for _ in range(12):
+        Q, _ = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=g))
+        if torch.det(Q) < 0:
+            Q[:, 0] = -Q[:, 0]
+        out.append(Q)
+    return out
+
+
+def _skip_unless_native():
+    from methods.zh_shadow import native as zn
+
+    if zn._rotate_lib() is None:
+        pytest.skip("the C rotation does not build here")
+
+
+@pytest.mark.parametrize("order", (1, 2, 4, 8))
+def test_native_rotation_equals_numpy_steps(monkeypatch, order):
+    """`rotate_lighting` by the C calls = by its numpy steps to float64 round-off (1e-14 relative) for rotations
+    with every ZYZ edge case and several columns; a matrix that is not a rotation to `ROTATION_TOL` (scaled,
+    improper) takes `rotate_sampled` on both: the same values."""
+    _skip_unless_native()
+    g = torch.Generator().manual_seed(38 + order)
+    n2 = order * order
+    for R in _rotations(g):
+        for C in (1, 3):
+            c = torch.randn(n2, C, dtype=torch.float64, generator=g)
+            monkeypatch.setattr(rt, "NATIVE_ROTATE", True)
+            a = rt.rotate_lighting(c, R)
+            monkeypatch.setattr(rt, "NATIVE_ROTATE", False)
+            b = rt.rotate_lighting(c, R)
+            assert a.shape == b.shape == (n2, C) and a.dtype == b.dtype == torch.float64
+            assert (a - b).abs().max().item() <= 1e-14 * b.abs().max().item(), (order, R)
+    for R in (_rotations(g)[5] * 1.001, _rotations(g)[6] @ torch.diag(torch.tensor([1.0, 1.0, -1.0],
+                                                                                 dtype=torch.float64))):
+        c = torch.randn(n2, 3, dtype=torch.float64, generator=g)
+        monkeypatch.setattr(rt, "NATIVE_ROTATE", True)
+        a = rt.rotate_lighting(c, R)
+        monkeypatch.setattr(rt, "NATIVE_ROTATE", False)
+        assert torch.equal(a, rt.rotate_lighting(c, R))
+
+
+@pytest.fixture(scope="module")
+def creature():
+    from scenes.library import get_scene
+
+    m = ZHShadow(**SMALL)
+    m.precompute(get_scene("creature", "test"))
+    return m
+
+
+@pytest.mark.parametrize("kind", ("L", "E", "VL"))
+def test_native_rotation_frames(creature, monkeypatch, kind):
+    """Lighting frames with the C rotation = with the numpy steps: the world-space lighting to float32
+    round-off and the image to float32 round-off of its peak."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _skip_unless_native()
+    fast, ref = creature.with_render_config(), creature.with_render_config()
+    for fr in make_sequence(creature.scene, kind, 4, seed=13):
+        gb = make_gbuffer(creature.scene, fr, 2)
+        monkeypatch.setattr(rt, "NATIVE_ROTATE", True)
+        a, la = fast.render(fr, gb), fast._light[1].clone()
+        monkeypatch.setattr(rt, "NATIVE_ROTATE", False)
+        b, lb = ref.render(fr, gb), ref._light[1].clone()
+        assert (la - lb).abs().max().item() <= 4e-7 * lb.abs().max().item(), (kind, fr.index)
+        assert (a - b).abs().max().item() <= 1e-6 * max(b.abs().max().item(), 1e-30), (kind, fr.index)
