@@ -2561,8 +2561,10 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
     U = torch.empty(NU, C, dtype=torch.float32) if out is None else out
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
-    lib.zh34p_vtable(NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(),
-                     C, U.data_ptr(), nt, bad.data_ptr())
+    lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
+    (lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable)(
+        NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
+        U.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else U
 
 
@@ -3829,3 +3831,81 @@ def _rotate_zyz(lib, c: Tensor, ang: Tensor, tables: tuple) -> Tensor | None:
     lib.zh38v_rotate(n2, C, c.data_ptr(), ang.data_ptr(), mabs.data_ptr(), perm.data_ptr(), sgn.data_ptr(),
                      Xm.data_ptr(), Xp.data_ptr(), w.data_ptr(), out.data_ptr())
     return out
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# `vertex_table`'s rows four at a time (``VTABLE_ROWS4``): `zh34p_vtable` streams its region's table W (n², C)
+# once per row — a load of W per multiply-add, ~0.65 ms for a VL frame's 3.6 K referenced rows at 1 thread
+# (n² = 16, C = 240), bound by those loads. Here four consecutive rows of one region share each load of W
+# (4 rows × 16 columns: 8 accumulators), every column of every row the same expression as `vrow`'s — x[0]·w
+# then x[j]·w added in j order, fused as that library fuses them (the same source and flags) — so the same
+# bits; rows of other regions, out-of-range rows and the columns past the last 16 as `vrow` row by row.
+_VTABLE4_SOURCE = _VTABLE_SOURCE + r"""
+/* rows x0..x3 of one region's table w (n2, C): out_k[c] for the columns c < C16 (a multiple of 16) */
+static inline void vrow4(const float* x0, const float* x1, const float* x2, const float* x3, const float* w,
+                         int64_t n2, int64_t C, int64_t C16, float* o0, float* o1, float* o2, float* o3) {
+    for (int64_t c0 = 0; c0 < C16; c0 += 16) {
+        const v8 wa = ld8(w + c0), wb = ld8(w + c0 + 8);
+        v8 a0 = x0[0] * wa, b0 = x0[0] * wb, a1 = x1[0] * wa, b1 = x1[0] * wb;
+        v8 a2 = x2[0] * wa, b2 = x2[0] * wb, a3 = x3[0] * wa, b3 = x3[0] * wb;
+        for (int64_t j = 1; j < n2; ++j) {
+            const v8 ua = ld8(w + j * C + c0), ub = ld8(w + j * C + c0 + 8);
+            a0 = a0 + x0[j] * ua; b0 = b0 + x0[j] * ub;
+            a1 = a1 + x1[j] * ua; b1 = b1 + x1[j] * ub;
+            a2 = a2 + x2[j] * ua; b2 = b2 + x2[j] * ub;
+            a3 = a3 + x3[j] * ua; b3 = b3 + x3[j] * ub;
+        }
+        st8(o0 + c0, a0); st8(o0 + c0 + 8, b0); st8(o1 + c0, a1); st8(o1 + c0 + 8, b1);
+        st8(o2 + c0, a2); st8(o2 + c0 + 8, b2); st8(o3 + c0, a3); st8(o3 + c0 + 8, b3);
+    }
+}
+
+/* `zh34p_vtable`, four rows of one region at a time where they are (each thread its contiguous range of i) */
+void zh38v_vtable(int64_t NU, const int64_t* idx, const float* v, int64_t N, int64_t n2, const int64_t* vreg,
+                  int64_t R, const float* W, int64_t C, float* U, int64_t nt, int64_t* bad) {
+    int64_t nb = 0;
+    const int64_t C16 = C / 16 * 16;
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb) if(nt > 1)
+    for (int64_t t = 0; t < nt; ++t) {
+        const int64_t i1 = NU * (t + 1) / nt;
+        for (int64_t i = NU * t / nt; i < i1;) {
+            int64_t rows[4], rg[4];
+            int ok = i + 4 <= i1;
+            for (int k = 0; ok && k < 4; ++k) {
+                rows[k] = idx ? idx[i + k] : i + k;
+                ok = (uint64_t)rows[k] < (uint64_t)N;
+                if (ok) {
+                    rg[k] = R == 1 ? 0 : vreg[rows[k]];
+                    ok = (uint64_t)rg[k] < (uint64_t)R && rg[k] == rg[0];
+                }
+            }
+            if (ok) {
+                const float* w = W + rg[0] * n2 * C;
+                vrow4(v + rows[0] * n2, v + rows[1] * n2, v + rows[2] * n2, v + rows[3] * n2, w, n2, C, C16,
+                      U + i * C, U + (i + 1) * C, U + (i + 2) * C, U + (i + 3) * C);
+                if (C16 < C)
+                    for (int k = 0; k < 4; ++k) vrow(v + rows[k] * n2, w, n2, C, U + (i + k) * C, C16);
+                i += 4;
+                continue;
+            }
+            const int64_t row = idx ? idx[i] : i;
+            float* out = U + i * C;
+            if ((uint64_t)row >= (uint64_t)N) { ++nb; ++i; continue; }
+            const int64_t r = R == 1 ? 0 : vreg[row];
+            if ((uint64_t)r >= (uint64_t)R) memset(out, 0, sizeof(float) * (size_t)C);
+            else vrow(v + row * n2, W + r * n2 * C, n2, C, out, 0);
+            ++i;
+        }
+    }
+    bad[0] = nb;
+}
+"""
+_VTABLE4_SIGNATURES = {"zh38v_vtable": _VTABLE_SIGNATURES["zh34p_vtable"]}
+# `vertex_table` by `zh38v_vtable` (four rows a load of W: the same bits) where it builds; False: `zh34p_vtable`
+VTABLE_ROWS4 = True
+
+
+def _vtable4_lib():
+    # not cached here (b541a75); `_vtable_lib`'s flags
+    return native.load("zh38v_vtable", _VTABLE4_SOURCE, _VTABLE4_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))

@@ -87,3 +87,36 @@ def test_native_rotation_frames(creature, monkeypatch, kind):
         b, lb = ref.render(fr, gb), ref._light[1].clone()
         assert (la - lb).abs().max().item() <= 4e-7 * lb.abs().max().item(), (kind, fr.index)
         assert (a - b).abs().max().item() <= 1e-6 * max(b.abs().max().item(), 1e-30), (kind, fr.index)
+
+
+def test_vtable_rows4_equals_rows():
+    """`native.vertex_table` four rows a load of W (`VTABLE_ROWS4`, `zh38v_vtable`) = row by row (`zh34p_vtable`)
+    bit for bit: every row or referenced ids, regions changing inside a block of four, a row whose region is out
+    of range (zeros), column counts that are and are not multiples of 16, at 1 and 2 threads; an id out of range:
+    None from both."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+
+    if zn._vtable4_lib() is None or zn._vtable_lib() is None:
+        pytest.skip("the table pass does not build here")
+    g = torch.Generator().manual_seed(381)
+    try:
+        for N, n2, C, R in ((2600, 16, 240, 2), (1000, 16, 93, 3), (517, 64, 40, 1), (50, 9, 8, 2)):
+            v = torch.randn(N, n2, generator=g)
+            vreg = torch.randint(0, R, (N,), generator=g)
+            vreg[: N // 2] = vreg[: N // 2].sort().values      # runs of one region, and a mixed half
+            vreg[N // 3] = R + 1
+            W = torch.randn(R, n2, C, generator=g)
+            for idx in (None, torch.randint(0, N, (N // 3,), generator=g).unique()):
+                outs = []
+                for rows4, nt in ((False, 1), (True, 1), (True, 2)):
+                    zn.VTABLE_ROWS4 = rows4
+                    with torch_threads(nt):
+                        outs.append(zn.vertex_table(v, vreg, W, idx))
+                assert torch.equal(outs[1], outs[0]) and torch.equal(outs[2], outs[0]), (N, n2, C, R, idx is None)
+            bad = torch.tensor([0, 1, 2, N], dtype=torch.int64)
+            for rows4 in (True, False):
+                zn.VTABLE_ROWS4 = rows4
+                assert zn.vertex_table(v, vreg, W, bad) is None
+    finally:
+        zn.VTABLE_ROWS4 = True
