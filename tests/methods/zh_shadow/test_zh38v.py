@@ -120,3 +120,31 @@ def test_vtable_rows4_equals_rows():
                 assert zn.vertex_table(v, vreg, W, bad) is None
     finally:
         zn.VTABLE_ROWS4 = True
+
+
+@pytest.mark.parametrize("kind", ("VL", "VB", "V"))
+def test_plane_term_spans_equal_every_row(creature, kind):
+    """`_fused_planes` with the plane term of the regions without a specular term alone (`plane_term_spans`)
+    = with every vertex's (off), bit for bit, on the same fused path; the rows it makes are the others' rows
+    bit for bit and the specular region's rows are not made (0)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    fast, full = creature.with_render_config(), creature.with_render_config()
+    full.plane_term_spans = False
+    ran = False
+    for fr in make_sequence(creature.scene, kind, 4, seed=14):
+        gb = make_gbuffer(creature.scene, fr, 2)
+        a, b = fast.render(fr, gb), full.render(fr, gb)
+        assert fast.last_path == full.last_path and getattr(fast, "last_fused", False) == getattr(full, "last_fused", False)
+        assert torch.equal(a, b), (kind, fr.index, (a - b).abs().max().item())
+        if getattr(fast, "last_fused", False) and fast._plane_u0[0][-1] is not None:
+            ran = True
+            spans = fast._region_spans(fast.scene.geometry().vertex_region, len(fast.scene.regions))
+            only = fast._plane_u0[0][-1]
+            for (a0, a1), on in zip(spans, only):
+                if on:
+                    assert torch.equal(fast._plane_u[3][a0:a1], full._plane_u[3][a0:a1])
+                else:
+                    assert not fast._plane_u0[3][a0:a1].any()
+    assert ran, "the plane term of the diffuse regions alone never ran"
