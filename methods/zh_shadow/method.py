@@ -1232,6 +1232,9 @@ class ZHShadow(Method):
     # read through their ids; float32 round-off against the GEMMs) where it runs; False: `runtime.vertex_table`
     # (the tests' oracle)
     native_table = True
+    # `_native_table`'s per-region tables by one C call (`native.region_tables`, zh38v: the same products);
+    # False: `runtime.region_tables`' torch products (the tests' oracle)
+    native_region_tables = True
 
     def _native_table(self, v: Tensor, vreg: Tensor, tabs: list, idx: Tensor | None = None) -> Tensor | None:
         """`runtime.vertex_table`(v[idx], vreg[idx], tabs) (idx None: every row) by `native.vertex_table`
@@ -1249,7 +1252,10 @@ class ZHShadow(Method):
             Kd = tabs[0][2].shape[0]
             Ks = next((t[3].shape[0] for t in tabs if t[3] is not None), 0)
             W = torch.empty(len(tabs), n2, 3 * (Kd + Ks), dtype=v.dtype)
-            K, _ = rt.region_tables(tabs, n2, v.device, v.dtype, out=W)
+            # (one C call where it runs, `native.region_tables`: the same products, zh38v)
+            K = zn.region_tables(tabs, n2, W) if self.native_region_tables else None
+            if K is None:
+                K, _ = rt.region_tables(tabs, n2, v.device, v.dtype, out=W)
             self._region_stack = rs = (n2, [tuple(t) for t in tabs], K, W)
         if idx is None:   # (a table kept between frames: its own tensor)
             U = zn.vertex_table(v, vreg, rs[3])

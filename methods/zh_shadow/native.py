@@ -3909,3 +3909,64 @@ def _vtable4_lib():
     # not cached here (b541a75); `_vtable_lib`'s flags
     return native.load("zh38v_vtable", _VTABLE4_SOURCE, _VTABLE4_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# `runtime.region_tables`' ``out`` (R, n², 3K) in one C call (`ZHShadow._native_table`, a lighting or material
+# frame's): out[r, j, c, k] = Wd[k, 3 j + c] · kd_r[c] (k < Kd), Ws_r[k − Kd, 3 j + c] · ks_r[c] (a region with a
+# specular table), 0 (a region without one when another has one) — the same single float32 products as its
+# torch.mul, so the same bits; 2–4 strided torch products and a fill per region (~0.17 ms inside a bench VL
+# frame at 1 thread) become one call.
+_RTABLES_SOURCE = r"""
+#include <stdint.h>
+
+/* Wd (Kd, n2 3); ws[r] the address of region r's Ws (Ks, n2 3) or 0; kd, ks (R, 3); out (R, n2, 3, Kd + Ks) */
+void zh38v_region_tables(int64_t R, int64_t n2, int64_t Kd, int64_t Ks, const float *Wd, const float *kd,
+                         const int64_t *ws, const float *ks, float *out) {
+    const int64_t K = Kd + Ks;
+    for (int64_t r = 0; r < R; ++r) {
+        const float *Ws = (const float *)(intptr_t)ws[r];
+        for (int64_t j = 0; j < n2; ++j)
+            for (int64_t c = 0; c < 3; ++c) {
+                float *o = out + ((r * n2 + j) * 3 + c) * K;
+                const float a = kd[3 * r + c], b = ks[3 * r + c];
+                for (int64_t k = 0; k < Kd; ++k) o[k] = Wd[k * n2 * 3 + 3 * j + c] * a;
+                for (int64_t k = 0; k < Ks; ++k) o[Kd + k] = Ws ? Ws[k * n2 * 3 + 3 * j + c] * b : 0.0f;
+            }
+    }
+}
+"""
+_RTABLES_SIGNATURES = {"zh38v_region_tables": [_I, _I, _I, _I, _P, _P, _P, _P, _P]}
+
+
+def _rtables_lib():
+    # not cached here (b541a75); products only (no sums: nothing to fuse)
+    return native.load("zh38v_region_tables", _RTABLES_SOURCE, _RTABLES_SIGNATURES, extra_flags=("-ffp-contract=off",))
+
+
+def region_tables(tabs: list, n2: int, out: Tensor) -> int | None:
+    """`runtime.region_tables`(tabs, n2, cpu, float32, out=out) by one C call (the same products: the same
+    bits): K = Kd + Ks, or None where it does not run (no library, not float32 CPU tables of its shapes) —
+    then nothing is written. tabs: per region (kd (3,), ks (3,), Wd (Kd, 3 n²), Ws (Ks, 3 n²) or None)."""
+    lib = _rtables_lib() if terms_switched_on() else None
+    if lib is None or not tabs:
+        return None
+    Wd = tabs[0][2]
+    Ws = [t[3] for t in tabs]
+    Kd = int(Wd.shape[0]) if Wd.dim() == 2 else -1
+    Ks = next((int(w.shape[0]) for w in Ws if w is not None), 0)
+    R = len(tabs)
+    ok = Kd > 0 and Wd.shape == (Kd, 3 * n2) and out.shape == (R, n2, 3 * (Kd + Ks)) and out.is_contiguous()
+    for t in (Wd, out, *[w for w in Ws if w is not None]):
+        ok = ok and t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous()
+    ok = ok and all(w is None or w.shape == (Ks, 3 * n2) for w in Ws) and all(t[2] is Wd for t in tabs)
+    if not ok:
+        return None
+    kd = torch.stack([t[0] for t in tabs]).to(torch.float32).contiguous()
+    ks = torch.stack([t[1] for t in tabs]).to(torch.float32).contiguous()
+    if kd.shape != (R, 3) or ks.shape != (R, 3):
+        return None
+    ptr = torch.tensor([0 if w is None else w.data_ptr() for w in Ws], dtype=torch.int64)
+    lib.zh38v_region_tables(R, n2, Kd, Ks, Wd.data_ptr(), kd.data_ptr(), ptr.data_ptr(), ks.data_ptr(),
+                            out.data_ptr())
+    return Kd + Ks

@@ -148,3 +148,38 @@ def test_plane_term_spans_equal_every_row(creature, kind):
                 else:
                     assert not fast._plane_u0[3][a0:a1].any()
     assert ran, "the plane term of the diffuse regions alone never ran"
+
+
+def test_native_region_tables_equal_torch():
+    """`native.region_tables` = `runtime.region_tables`(…, out=) bit for bit: regions with and without a specular
+    table (its columns 0 there), none specular, every cell of ``out`` written (a poisoned buffer)."""
+    from methods.zh_shadow import native as zn
+
+    if zn._rtables_lib() is None:
+        pytest.skip("the C pass does not build here")
+    g = torch.Generator().manual_seed(383)
+    for n2, Kd, Ks in ((16, 31, 49), (9, 5, 7), (64, 3, 2)):
+        Wd, Ws, Ws2 = (torch.randn(k, 3 * n2, generator=g) for k in (Kd, Ks, Ks))
+        rnd = lambda: torch.rand(3, generator=g)   # noqa: E731
+        for tabs in ([(rnd(), rnd(), Wd, Ws), (rnd(), torch.zeros(3), Wd, None), (rnd(), rnd(), Wd, Ws2)],
+                     [(rnd(), torch.zeros(3), Wd, None)] * 2, [(rnd(), rnd(), Wd, Ws)]):
+            K = Kd + (Ks if any(t[3] is not None for t in tabs) else 0)
+            a = torch.full((len(tabs), n2, 3 * K), float("nan"))
+            b = torch.full((len(tabs), n2, 3 * K), float("nan"))
+            assert zn.region_tables(tabs, n2, a) == rt.region_tables(tabs, n2, "cpu", torch.float32, out=b)[0] == K
+            assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("kind", ("VL", "VBL"))
+def test_native_region_tables_frames(creature, kind):
+    """Frames with `native_region_tables` = without it (`runtime.region_tables`), bit for bit."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    fast, ref = creature.with_render_config(), creature.with_render_config()
+    ref.native_region_tables = False
+    for fr in make_sequence(creature.scene, kind, 4, seed=15):
+        gb = make_gbuffer(creature.scene, fr, 2)
+        a, b = fast.render(fr, gb), ref.render(fr, gb)
+        assert fast.last_path == ref.last_path
+        assert torch.equal(a, b), (kind, fr.index, (a - b).abs().max().item())
