@@ -1068,11 +1068,12 @@ class ZHShadow(Method):
                     u0 = zn.plane_u(v, T) if self.native_plane_u else None
                     u0 = v @ T if u0 is None else u0
                 else:   # the rows of the regions without a specular term, each its own product (the same rows)
-                    u0 = torch.zeros(v.shape[0], 3, dtype=v.dtype, device=v.device)
+                    u0 = torch.empty(v.shape[0], 3, dtype=v.dtype, device=v.device)
                     for (a0, a1), on in zip(spans, only):
-                        if on and a1 > a0:
-                            r = zn.plane_u(v[a0:a1], T) if self.native_plane_u else None
-                            u0[a0:a1] = v[a0:a1] @ T if r is None else r
+                        if not on:
+                            u0[a0:a1].zero_()
+                        elif a1 > a0 and (not self.native_plane_u or zn.plane_u(v[a0:a1], T, out=u0[a0:a1]) is None):
+                            u0[a0:a1] = v[a0:a1] @ T
                 self._plane_u0 = p0 = (ukey0, v0, Wd, u0)
             u0 = p0[3]
             spans = self._region_spans(vreg, len(mats))

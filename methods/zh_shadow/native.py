@@ -3221,17 +3221,21 @@ def relight_pixels(face: Tensor, bary: Tensor, uf: Tensor | None, clamp: bool, e
     return None if bad.value else out
 
 
-def plane_u(v: Tensor, T: Tensor) -> Tensor | None:
+def plane_u(v: Tensor, T: Tensor, out: Tensor | None = None) -> Tensor | None:
     """(N, 3) v (N, n²) @ T (n², 3) float32 by one C pass over the rows (`zh35p_plane_u`: each row's n² products
     summed in order; float32 round-off against the GEMM, whose 3-column product runs at a fraction of its
     peak: ~0.36 ms for the bench creature's 13.4 K rows at 1 thread), or None where it does not run (no
-    compiler, ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 contiguous arrays of these shapes)."""
+    compiler, ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 contiguous arrays of these shapes). ``out`` (N, 3) float32
+    contiguous: written there (zh38v: a row range of a caller's array)."""
     lib = _relight_pixels_lib() if terms_switched_on() else None
     if (lib is None or v.dim() != 2 or T.shape != (v.shape[1], 3) or v.shape[1] == 0
             or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() for t in (v, T))):
         return None
     N = int(v.shape[0])
-    out = torch.empty(N, 3, dtype=torch.float32)
+    if out is None:
+        out = torch.empty(N, 3, dtype=torch.float32)
+    elif out.shape != (N, 3) or out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous():
+        return None
     nt = max(1, min(torch.get_num_threads(), N // MIN_ROWS_PER_PLANE_U_THREAD))
     lib.zh35p_plane_u(N, v.data_ptr(), int(v.shape[1]), T.data_ptr(), out.data_ptr(), nt)
     return out
