@@ -2561,8 +2561,10 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
     U = torch.empty(NU, C, dtype=torch.float32) if out is None else out
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
-    lib.zh34p_vtable(NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(),
-                     C, U.data_ptr(), nt, bad.data_ptr())
+    lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
+    (lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable)(
+        NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
+        U.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else U
 
 
@@ -3219,17 +3221,21 @@ def relight_pixels(face: Tensor, bary: Tensor, uf: Tensor | None, clamp: bool, e
     return None if bad.value else out
 
 
-def plane_u(v: Tensor, T: Tensor) -> Tensor | None:
+def plane_u(v: Tensor, T: Tensor, out: Tensor | None = None) -> Tensor | None:
     """(N, 3) v (N, n²) @ T (n², 3) float32 by one C pass over the rows (`zh35p_plane_u`: each row's n² products
     summed in order; float32 round-off against the GEMM, whose 3-column product runs at a fraction of its
     peak: ~0.36 ms for the bench creature's 13.4 K rows at 1 thread), or None where it does not run (no
-    compiler, ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 contiguous arrays of these shapes)."""
+    compiler, ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 contiguous arrays of these shapes). ``out`` (N, 3) float32
+    contiguous: written there (zh38v: a row range of a caller's array)."""
     lib = _relight_pixels_lib() if terms_switched_on() else None
     if (lib is None or v.dim() != 2 or T.shape != (v.shape[1], 3) or v.shape[1] == 0
             or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() for t in (v, T))):
         return None
     N = int(v.shape[0])
-    out = torch.empty(N, 3, dtype=torch.float32)
+    if out is None:
+        out = torch.empty(N, 3, dtype=torch.float32)
+    elif out.shape != (N, 3) or out.dtype != torch.float32 or out.device.type != "cpu" or not out.is_contiguous():
+        return None
     nt = max(1, min(torch.get_num_threads(), N // MIN_ROWS_PER_PLANE_U_THREAD))
     lib.zh35p_plane_u(N, v.data_ptr(), int(v.shape[1]), T.data_ptr(), out.data_ptr(), nt)
     return out
@@ -3708,3 +3714,263 @@ def _pmask_lib():
     """The library of `zh37v_plane_mask` or None. Not cached here (b541a75)."""
     return native.load("zh37v_plane_mask", _PMASK_SOURCE, _PMASK_SIGNATURES,
                        extra_flags=("-fopenmp", *native.isa_flags()))
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# The lighting's ZYZ rotation (`runtime.rotate_lighting`: L / VL / VBL frames rotate the kept projection, E
+# frames take a new map's to world space) in one C call: its three z rotations (cos / sin of |m|·angle per
+# coefficient, the (l, −m) partner's sign) and its two fixed (n², n²) products, the same steps as its numpy
+# code in float64 — the same coefficients to float64 round-off (numpy's cos / sin and BLAS's sums in another
+# order). numpy's ~20 calls on (n², 3) arrays cost ~0.2 ms at order 4 and ~0.4 at order 8 inside a lighting
+# frame (serial at any thread count); the C call a few microseconds.
+_ROTATE_SOURCE = r"""
+#include <stdint.h>
+#include <math.h>
+
+/* one z rotation of x (n2, C) into y: y[i] = cos(t |m_i|) x[i] + (sin(t |m_i|) sgn_i) x[perm_i] */
+static void zh38v_rz(int64_t n2, int64_t C, double t, const double *mabs, const int64_t *perm, const double *sgn,
+                     const double *x, double *y) {
+    for (int64_t i = 0; i < n2; ++i) {
+        const double a = t * mabs[i], cs = cos(a), sn = sin(a) * sgn[i];
+        const double *xi = x + i * C, *xp = x + perm[i] * C;
+        for (int64_t c = 0; c < C; ++c) y[i * C + c] = cs * xi[c] + sn * xp[c];
+    }
+}
+
+/* y (n2, C) = X (n2, n2) x */
+static void zh38v_mm(int64_t n2, int64_t C, const double *X, const double *x, double *y) {
+    for (int64_t i = 0; i < n2; ++i)
+        for (int64_t c = 0; c < C; ++c) {
+            double s = 0.0;
+            for (int64_t j = 0; j < n2; ++j) s += X[i * n2 + j] * x[j * C + c];
+            y[i * C + c] = s;
+        }
+}
+
+/* `runtime.rotate_lighting`'s test and angles of R (3, 3) row-major, as its Python code computes them (the
+   same libm calls and operations: the same values): returns 0 with ang = (g, b, a) when det R > 0 and every
+   |(R Rᵀ)_ij − δ_ij| <= tol, else 1 */
+int64_t zh38v_angles(const double *R, double tol, double *ang) {
+    const double r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7],
+                 r22 = R[8];
+    const double det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20);
+    if (!(det > 0)) return 1;
+    double mx = 0.0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j) {
+            const double d = fabs(((R[3 * i] * R[3 * j]) + R[3 * i + 1] * R[3 * j + 1]) + R[3 * i + 2] * R[3 * j + 2]
+                                  - (double)(i == j));
+            if (!(d <= mx)) mx = d;   /* (Python's max: a NaN first stays) */
+        }
+    if (!(mx <= tol)) return 1;
+    const double s = hypot(r02, r12);
+    const double a = s > 0 ? atan2(r12, r02) : 0.0;
+    const double b = atan2(s, r22);
+    const double ca = cos(a), sa = sin(a), cb = cos(b), sb = sin(b);
+    const double u0 = ca * r00 + sa * r10, u1 = -sa * r00 + ca * r10;
+    ang[0] = atan2(u1, cb * u0 - sb * r20);
+    ang[1] = b;
+    ang[2] = a;
+    return 0;
+}
+
+/* out (n2, C) = Rz(ang[2]) Xm Rz(ang[1]) Xp Rz(ang[0]) c (`runtime.rotate_lighting`'s steps, in its order);
+   w: 2 n2 C doubles of scratch */
+void zh38v_rotate(int64_t n2, int64_t C, const double *c, const double *ang, const double *mabs, const int64_t *perm,
+                  const double *sgn, const double *Xm, const double *Xp, double *w, double *out) {
+    double *a = w, *b = w + n2 * C;
+    zh38v_rz(n2, C, ang[0], mabs, perm, sgn, c, a);
+    zh38v_mm(n2, C, Xp, a, b);
+    zh38v_rz(n2, C, ang[1], mabs, perm, sgn, b, a);
+    zh38v_mm(n2, C, Xm, a, b);
+    zh38v_rz(n2, C, ang[2], mabs, perm, sgn, b, out);
+}
+"""
+_ROTATE_SIGNATURES = {"zh38v_rotate": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P],
+                      "zh38v_angles": [_P, ctypes.c_double, _P]}
+
+
+def _rotate_lib():
+    """The library of `zh38v_rotate` or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``).
+    Not cached here (b541a75)."""
+    if not terms_switched_on():
+        return None
+    lib = native.load("zh38v_rotate", _ROTATE_SOURCE, _ROTATE_SIGNATURES, extra_flags=("-ffp-contract=off",))
+    if lib is not None:
+        lib.zh38v_angles.restype = ctypes.c_int64
+    return lib
+
+
+def rotate_lighting(c: Tensor, R: Tensor, tol: float, tables: tuple) -> Tensor | None:
+    """`runtime.rotate_lighting`(c, R) by two C calls (its test and ZYZ angles of R: the same values; then
+    `rotate_zyz`), or None: the library does not run, c or R not float64 CPU arrays of its shapes, or R not a
+    rotation to ``tol`` (the caller's fallback then)."""
+    lib = _rotate_lib()
+    if lib is None or R.dtype != torch.float64 or R.device.type != "cpu" or R.shape != (3, 3):
+        return None
+    ang = torch.empty(3, dtype=torch.float64)
+    if lib.zh38v_angles(R.contiguous().data_ptr(), float(tol), ang.data_ptr()) != 0:
+        return None
+    return _rotate_zyz(lib, c, ang, tables)
+
+
+def rotate_zyz(c: Tensor, angles: tuple[float, float, float], tables: tuple) -> Tensor | None:
+    """(n², C) float64 = `runtime.rotate_lighting`'s three z rotations by ``angles`` (g, b, a) and its fixed
+    products, ``tables`` its `_lighting_zyz_tables` as contiguous tensors (mabs, perm int64, sgn, Xm, Xp), by
+    one C call; None where it does not run (no library, c not a float64 CPU (n², C) array)."""
+    lib = _rotate_lib()
+    return None if lib is None else _rotate_zyz(lib, c, torch.tensor(angles, dtype=torch.float64), tables)
+
+
+def _rotate_zyz(lib, c: Tensor, ang: Tensor, tables: tuple) -> Tensor | None:
+    if c.dtype != torch.float64 or c.device.type != "cpu" or c.dim() != 2:
+        return None
+    mabs, perm, sgn, Xm, Xp = tables
+    n2, C = int(c.shape[0]), int(c.shape[1])
+    if mabs.shape != (n2,) or Xm.shape != (n2, n2):
+        return None
+    c = c.contiguous()
+    w = torch.empty(2 * n2 * C, dtype=torch.float64)
+    out = torch.empty(n2, C, dtype=torch.float64)
+    lib.zh38v_rotate(n2, C, c.data_ptr(), ang.data_ptr(), mabs.data_ptr(), perm.data_ptr(), sgn.data_ptr(),
+                     Xm.data_ptr(), Xp.data_ptr(), w.data_ptr(), out.data_ptr())
+    return out
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# `vertex_table`'s rows four at a time (``VTABLE_ROWS4``): `zh34p_vtable` streams its region's table W (n², C)
+# once per row — a load of W per multiply-add, ~0.65 ms for a VL frame's 3.6 K referenced rows at 1 thread
+# (n² = 16, C = 240), bound by those loads. Here four consecutive rows of one region share each load of W
+# (4 rows × 16 columns: 8 accumulators), every column of every row the same expression as `vrow`'s — x[0]·w
+# then x[j]·w added in j order, fused as that library fuses them (the same source and flags) — so the same
+# bits; rows of other regions, out-of-range rows and the columns past the last 16 as `vrow` row by row.
+_VTABLE4_SOURCE = _VTABLE_SOURCE + r"""
+/* rows x0..x3 of one region's table w (n2, C): out_k[c] for the columns c < C16 (a multiple of 16) */
+static inline void vrow4(const float* x0, const float* x1, const float* x2, const float* x3, const float* w,
+                         int64_t n2, int64_t C, int64_t C16, float* o0, float* o1, float* o2, float* o3) {
+    for (int64_t c0 = 0; c0 < C16; c0 += 16) {
+        const v8 wa = ld8(w + c0), wb = ld8(w + c0 + 8);
+        v8 a0 = x0[0] * wa, b0 = x0[0] * wb, a1 = x1[0] * wa, b1 = x1[0] * wb;
+        v8 a2 = x2[0] * wa, b2 = x2[0] * wb, a3 = x3[0] * wa, b3 = x3[0] * wb;
+        for (int64_t j = 1; j < n2; ++j) {
+            const v8 ua = ld8(w + j * C + c0), ub = ld8(w + j * C + c0 + 8);
+            a0 = a0 + x0[j] * ua; b0 = b0 + x0[j] * ub;
+            a1 = a1 + x1[j] * ua; b1 = b1 + x1[j] * ub;
+            a2 = a2 + x2[j] * ua; b2 = b2 + x2[j] * ub;
+            a3 = a3 + x3[j] * ua; b3 = b3 + x3[j] * ub;
+        }
+        st8(o0 + c0, a0); st8(o0 + c0 + 8, b0); st8(o1 + c0, a1); st8(o1 + c0 + 8, b1);
+        st8(o2 + c0, a2); st8(o2 + c0 + 8, b2); st8(o3 + c0, a3); st8(o3 + c0 + 8, b3);
+    }
+}
+
+/* `zh34p_vtable`, four rows of one region at a time where they are (each thread its contiguous range of i) */
+void zh38v_vtable(int64_t NU, const int64_t* idx, const float* v, int64_t N, int64_t n2, const int64_t* vreg,
+                  int64_t R, const float* W, int64_t C, float* U, int64_t nt, int64_t* bad) {
+    int64_t nb = 0;
+    const int64_t C16 = C / 16 * 16;
+#pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(+:nb) if(nt > 1)
+    for (int64_t t = 0; t < nt; ++t) {
+        const int64_t i1 = NU * (t + 1) / nt;
+        for (int64_t i = NU * t / nt; i < i1;) {
+            int64_t rows[4], rg[4];
+            int ok = i + 4 <= i1;
+            for (int k = 0; ok && k < 4; ++k) {
+                rows[k] = idx ? idx[i + k] : i + k;
+                ok = (uint64_t)rows[k] < (uint64_t)N;
+                if (ok) {
+                    rg[k] = R == 1 ? 0 : vreg[rows[k]];
+                    ok = (uint64_t)rg[k] < (uint64_t)R && rg[k] == rg[0];
+                }
+            }
+            if (ok) {
+                const float* w = W + rg[0] * n2 * C;
+                vrow4(v + rows[0] * n2, v + rows[1] * n2, v + rows[2] * n2, v + rows[3] * n2, w, n2, C, C16,
+                      U + i * C, U + (i + 1) * C, U + (i + 2) * C, U + (i + 3) * C);
+                if (C16 < C)
+                    for (int k = 0; k < 4; ++k) vrow(v + rows[k] * n2, w, n2, C, U + (i + k) * C, C16);
+                i += 4;
+                continue;
+            }
+            const int64_t row = idx ? idx[i] : i;
+            float* out = U + i * C;
+            if ((uint64_t)row >= (uint64_t)N) { ++nb; ++i; continue; }
+            const int64_t r = R == 1 ? 0 : vreg[row];
+            if ((uint64_t)r >= (uint64_t)R) memset(out, 0, sizeof(float) * (size_t)C);
+            else vrow(v + row * n2, W + r * n2 * C, n2, C, out, 0);
+            ++i;
+        }
+    }
+    bad[0] = nb;
+}
+"""
+_VTABLE4_SIGNATURES = {"zh38v_vtable": _VTABLE_SIGNATURES["zh34p_vtable"]}
+# `vertex_table` by `zh38v_vtable` (four rows a load of W: the same bits) where it builds; False: `zh34p_vtable`
+VTABLE_ROWS4 = True
+
+
+def _vtable4_lib():
+    # not cached here (b541a75); `_vtable_lib`'s flags
+    return native.load("zh38v_vtable", _VTABLE4_SOURCE, _VTABLE4_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
+
+
+# -- zh38v ------------------------------------------------------------------------------------------
+# `runtime.region_tables`' ``out`` (R, n², 3K) in one C call (`ZHShadow._native_table`, a lighting or material
+# frame's): out[r, j, c, k] = Wd[k, 3 j + c] · kd_r[c] (k < Kd), Ws_r[k − Kd, 3 j + c] · ks_r[c] (a region with a
+# specular table), 0 (a region without one when another has one) — the same single float32 products as its
+# torch.mul, so the same bits; 2–4 strided torch products and a fill per region (~0.17 ms inside a bench VL
+# frame at 1 thread) become one call.
+_RTABLES_SOURCE = r"""
+#include <stdint.h>
+
+/* Wd (Kd, n2 3); ws[r] the address of region r's Ws (Ks, n2 3) or 0; kd, ks (R, 3); out (R, n2, 3, Kd + Ks) */
+void zh38v_region_tables(int64_t R, int64_t n2, int64_t Kd, int64_t Ks, const float *Wd, const float *kd,
+                         const int64_t *ws, const float *ks, float *out) {
+    const int64_t K = Kd + Ks;
+    for (int64_t r = 0; r < R; ++r) {
+        const float *Ws = (const float *)(intptr_t)ws[r];
+        for (int64_t j = 0; j < n2; ++j)
+            for (int64_t c = 0; c < 3; ++c) {
+                float *o = out + ((r * n2 + j) * 3 + c) * K;
+                const float a = kd[3 * r + c], b = ks[3 * r + c];
+                for (int64_t k = 0; k < Kd; ++k) o[k] = Wd[k * n2 * 3 + 3 * j + c] * a;
+                for (int64_t k = 0; k < Ks; ++k) o[Kd + k] = Ws ? Ws[k * n2 * 3 + 3 * j + c] * b : 0.0f;
+            }
+    }
+}
+"""
+_RTABLES_SIGNATURES = {"zh38v_region_tables": [_I, _I, _I, _I, _P, _P, _P, _P, _P]}
+
+
+def _rtables_lib():
+    # not cached here (b541a75); products only (no sums: nothing to fuse)
+    return native.load("zh38v_region_tables", _RTABLES_SOURCE, _RTABLES_SIGNATURES, extra_flags=("-ffp-contract=off",))
+
+
+def region_tables(tabs: list, n2: int, out: Tensor) -> int | None:
+    """`runtime.region_tables`(tabs, n2, cpu, float32, out=out) by one C call (the same products: the same
+    bits): K = Kd + Ks, or None where it does not run (no library, not float32 CPU tables of its shapes) —
+    then nothing is written. tabs: per region (kd (3,), ks (3,), Wd (Kd, 3 n²), Ws (Ks, 3 n²) or None)."""
+    lib = _rtables_lib() if terms_switched_on() else None
+    if lib is None or not tabs:
+        return None
+    Wd = tabs[0][2]
+    Ws = [t[3] for t in tabs]
+    Kd = int(Wd.shape[0]) if Wd.dim() == 2 else -1
+    Ks = next((int(w.shape[0]) for w in Ws if w is not None), 0)
+    R = len(tabs)
+    ok = Kd > 0 and Wd.shape == (Kd, 3 * n2) and out.shape == (R, n2, 3 * (Kd + Ks)) and out.is_contiguous()
+    for t in (Wd, out, *[w for w in Ws if w is not None]):
+        ok = ok and t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous()
+    ok = ok and all(w is None or w.shape == (Ks, 3 * n2) for w in Ws) and all(t[2] is Wd for t in tabs)
+    if not ok:
+        return None
+    kd = torch.stack([t[0] for t in tabs]).to(torch.float32).contiguous()
+    ks = torch.stack([t[1] for t in tabs]).to(torch.float32).contiguous()
+    if kd.shape != (R, 3) or ks.shape != (R, 3):
+        return None
+    ptr = torch.tensor([0 if w is None else w.data_ptr() for w in Ws], dtype=torch.int64)
+    lib.zh38v_region_tables(R, n2, Kd, Ks, Wd.data_ptr(), kd.data_ptr(), ptr.data_ptr(), ks.data_ptr(),
+                            out.data_ptr())
+    return Kd + Ks

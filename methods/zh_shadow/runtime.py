@@ -1673,6 +1673,18 @@ def _lighting_zyz_tables(order: int) -> tuple:
     return mabs, perm, sgn, Xm, Xp
 
 
+@functools.lru_cache(maxsize=16)
+def _lighting_zyz_tensors(order: int) -> tuple:
+    """`_lighting_zyz_tables`(order) as contiguous CPU tensors (perm int64) for `native.rotate_zyz`."""
+    mabs, perm, sgn, Xm, Xp = _lighting_zyz_tables(order)
+    return tuple(torch.from_numpy(np.ascontiguousarray(x, dtype=np.int64 if i == 1 else np.float64))
+                 for i, x in enumerate((mabs, perm, sgn, Xm, Xp)))
+
+
+# `rotate_lighting`'s steps by one C call (`native.rotate_zyz`, zh38v: float64 round-off against the numpy
+# steps) where it runs; False: the numpy steps (the tests' oracle)
+NATIVE_ROTATE = True
+
 # `rotate_lighting` takes R as a rotation when |R Rᵀ − I| ≤ this (float32 round-off of a composed one)
 ROTATION_TOL = 1e-7
 
@@ -1691,6 +1703,10 @@ def rotate_lighting(c: Tensor, R: Tensor) -> Tensor:
     third column and the z rotation left over); they agree to ~l·|R Rᵀ − I| relative, float32
     round-off — R not a rotation to `ROTATION_TOL` (|R Rᵀ − I|, det), or c not float64 on the
     CPU: `rotate_sampled`."""
+    if NATIVE_ROTATE and c.dim() == 2 and c.shape[0] <= 256:   # (the test, the angles and the steps in C: `native.rotate_lighting`)
+        out = zn.rotate_lighting(c, R, ROTATION_TOL, _lighting_zyz_tensors(math.isqrt(c.shape[0])))
+        if out is not None:
+            return out
     r = R.tolist() if R.dim() == 2 and R.shape == (3, 3) else None
     ok = r is not None and c.device.type == "cpu" and c.dtype == torch.float64
     if ok:

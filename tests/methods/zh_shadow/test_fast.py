@@ -666,14 +666,18 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
         assert (a - ref).abs().max().item() <= RENDER_TOL
 
 
-def test_plane_term_keeps_the_albedo_free_part(small_model):
+@pytest.mark.parametrize("spans", (False, True))
+def test_plane_term_keeps_the_albedo_free_part(small_model, spans):
     """`ZHShadow._plane_term` over a VB sequence (new albedos every frame, same pose and lighting):
     u = kd ⊙ (v · T¹(n0)) equals, bit for bit, the product with the albedos gathered per vertex
-    (the old expression), and its albedo-free part is made once and kept."""
+    (the old expression), and its albedo-free part is made once and kept. With `plane_term_spans`
+    (zh38v) the rows of the regions without a specular term (those it makes: the key's last entry)
+    equal it bit for bit and the others are 0."""
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    m = small_model("creature")
+    m = small_model("creature").with_render_config()
+    m.plane_term_spans = spans
     u0 = None
     for fr in make_sequence(m.scene, "VB", 3, seed=9):
         m.render(fr, make_gbuffer(m.scene, fr, 2))
@@ -681,7 +685,14 @@ def test_plane_term_keeps_the_albedo_free_part(small_model):
         geom, v = m._posed[1], m._posed[2]
         Wd, n0 = m._plane_u[2], torch.tensor(m._plane_u[0][3])
         kd_v = torch.stack([k for k, _, _ in m._region_materials(fr)]).index_select(0, geom.vertex_region)
-        assert torch.equal(m._plane_u[3], (v @ rt.diffuse_at(Wd, n0)) * kd_v)
+        want = (v @ rt.diffuse_at(Wd, n0)) * kd_v
+        only = m._plane_u[0][4]
+        assert (only is not None) == spans
+        if only is not None:
+            made = torch.tensor(only).index_select(0, geom.vertex_region)
+            assert made.any() and not made.all()
+            want = torch.where(made[:, None], want, torch.zeros_like(want))
+        assert torch.equal(m._plane_u[3], want)
         assert u0 is None or m._plane_u0[3] is u0
         u0 = m._plane_u0[3]
 
