@@ -1403,9 +1403,13 @@ class ZHShadow(Method):
         # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
         # else in the shared Gouraud resolve's pass (its oracle)
         img = None
-        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o)
-            img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
-                                   gbuffer.width, gbuffer.spp_side)
+        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o;
+            # a pixel a vector before it, `native.resolve_vector`, zh38p: the same bits)
+            img = zn.resolve_vector(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                    gbuffer.width, gbuffer.spp_side)
+            if img is None:
+                img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                       gbuffer.width, gbuffer.spp_side)
         if img is None and self.own_resolve:
             img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
                              gbuffer.width, gbuffer.spp_side)

@@ -165,6 +165,7 @@ def test_vertex_frames_table_resolve_equal_own_resolve(zh_scene):
     rt_ = zn.resolve_table
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(zn, "resolve_table", lambda *a: calls.append(1) or rt_(*a))
+        mp.setattr(zn, "VECTOR_RESOLVE", False)   # (session 38's vector loop before it: `test_zh38p.py`)
         for kind in ("P", "V", "VB", "L"):
             fast, slow = m.with_render_config(), m.with_render_config()
             slow.table_resolve = False

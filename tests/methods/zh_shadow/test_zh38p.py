@@ -1,0 +1,69 @@
+"""Session 38 (zh38p): the vertex-shaded frames' resolve with a pixel's 2×2 samples as one AVX-512 vector
+(`native.resolve_vector`, ``VECTOR_RESOLVE``) against `native.resolve_table` (its oracle, the same bits).
+The kernel alone against `gouraud.resolve`: `test_fast.test_resolve_native_equals_gouraud_resolve`."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from methods.zh_shadow import ZHShadow
+from methods.zh_shadow import native as zn
+
+SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
+
+
+def _knock_out(gb, every: int, offset: int):
+    """``gb`` with the samples offset, offset + every, … missing (as `test_fast._knock_out`)."""
+    miss = torch.zeros_like(gb.hit)
+    miss[offset::every] = True
+    S = gb.spp_side
+    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
+    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
+                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
+                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
+                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
+
+
+@pytest.fixture(scope="module")
+def order8():
+    from scenes.library import get_scene
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(get_scene("creature", "test"))
+    return m
+
+
+def test_vector_resolve_frames_equal_table_resolve(order8, monkeypatch):
+    """Order-8 vertex-shaded frames (P, V, VB, VL, VBL, L; with misses; at 1 and 2 threads) with the vector
+    resolve = with `resolve_table` (``VECTOR_RESOLVE`` off) bit for bit, the vector loop taken once per frame
+    that resolves per sample (a lighting-only frame after the first reads the kept matrix). A sum in another
+    order, a miss sample's garbage added, a wrong corner or channel breaks the image."""
+    from methods.core.threads import torch_threads
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._vresolve_lib() is None:
+        pytest.skip("no AVX-512 host or no C compiler")
+    monkeypatch.setattr(zn, "MIN_RESOLVE_PIXELS_PER_THREAD", 1)   # (test size: split over 2 threads too)
+    calls = []
+    rv = zn.resolve_vector
+    monkeypatch.setattr(zn, "resolve_vector", lambda *a: calls.append(1) or rv(*a))
+    for kind in ("P", "V", "VB", "VL", "VBL", "L"):
+        fast, fast2, slow = order8.with_render_config(), order8.with_render_config(), order8.with_render_config()
+        for i, f in enumerate(make_sequence(order8.scene, kind, 3, seed=5)):
+            gb = make_gbuffer(order8.scene, f, 2)
+            if i == 2:
+                gb = _knock_out(gb, 7, 3)
+            c0 = len(calls)
+            a = fast.render(f, gb)
+            with torch_threads(2):
+                a2 = fast2.render(f, gb)
+            monkeypatch.setattr(zn, "VECTOR_RESOLVE", False)
+            b = slow.render(f, gb)
+            monkeypatch.setattr(zn, "VECTOR_RESOLVE", True)
+            assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
+            assert torch.equal(a2, b), (kind, i)
+            if kind != "L" or i == 0:
+                assert len(calls) == c0 + 3, (kind, i)   # (three renders, each the vector loop; off: None)
