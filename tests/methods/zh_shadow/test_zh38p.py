@@ -67,3 +67,45 @@ def test_vector_resolve_frames_equal_table_resolve(order8, monkeypatch):
             assert torch.equal(a2, b), (kind, i)
             if kind != "L" or i == 0:
                 assert len(calls) == c0 + 3, (kind, i)   # (three renders, each the vector loop; off: None)
+
+
+@pytest.mark.parametrize("name,size", [("creature", "test"), ("character", "test"), ("creature", "bench")])
+def test_vector_skin_equals_skin(name, size, monkeypatch):
+    """`native.skin_vector` (16 vertices a vector, the weights joint-major) = `native.skin` bit for bit — the
+    rest pose, random poses, ±π on every joint (flat blended maps), the ranges' tails of fewer than 16 vertices
+    — at 1 and 2 threads (bench: the range split over the team), and `ZHShadow._posed_geometry` takes it (off:
+    `skin`, the same geometry). A lost tail, a wrong cofactor, weight or order breaks it."""
+    from methods.core.threads import torch_threads
+    from scenes.library import get_scene
+
+    if zn._vskin_lib() is None:
+        pytest.skip("no AVX-512 host or no C compiler")
+    scene = get_scene(name, size)
+    st = zn.skin_setup(scene)
+    vs = zn.skin_vector_setup(st)
+    J = scene.skeleton.num_joints
+    g = torch.Generator().manual_seed(11)
+    poses = [torch.zeros(J), torch.full((J,), torch.pi), torch.full((J,), -torch.pi),
+             *((torch.rand(J, generator=g) * 2 - 1) * s for s in (0.3, 1.0, 2.5))]
+    for pose in poses:
+        pose = pose.float()
+        V, N = zn.skin(st, pose)
+        Vv, Nv = zn.skin_vector(st, vs, pose)
+        assert torch.equal(V, Vv) and torch.equal(N, Nv), pose
+        with torch_threads(2):
+            V2, N2 = zn.skin_vector(st, vs, pose)
+        assert torch.equal(V, V2) and torch.equal(N, N2), pose
+    calls = []
+    sv = zn.skin_vector
+    monkeypatch.setattr(zn, "skin_vector", lambda *a: calls.append(1) or sv(*a))
+    m = ZHShadow(order=8, shading="vertex", specular="cosine")
+    m.scene = scene
+    pose = poses[4].float()
+    geom = m._posed_geometry(pose, tuple(pose.tolist()))
+    assert len(calls) == 1 and torch.equal(geom.V, zn.skin(st, pose)[0]) and torch.equal(geom.N, zn.skin(st, pose)[1])
+    monkeypatch.setattr(zn, "VECTOR_SKIN", False)
+    assert zn.skin_vector(st, vs, pose) is None
+    geom2 = ZHShadow(order=8, shading="vertex", specular="cosine")
+    geom2.scene = scene
+    g2 = geom2._posed_geometry(pose, tuple(pose.tolist()))
+    assert torch.equal(g2.V, geom.V) and torch.equal(g2.N, geom.N)
