@@ -3017,7 +3017,8 @@ def warm_pose_libraries() -> None:
     front loop (`front_columns`) is called by no other frame kind, the pose pass (`pose_radiance`, `_view_lib`)
     and the referenced vertices (`referenced_mask`, `_kernel`) by no full-change frame."""
     if terms_switched_on():
-        for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib, _pose_sh_lib):
+        for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib, _pose_sh_lib, _vskin_lib,
+                    _vresolve_lib):   # (+ session 38's vector skinning and resolve)
             get()
     _kernel()
 

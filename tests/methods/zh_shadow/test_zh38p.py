@@ -109,3 +109,32 @@ def test_vector_skin_equals_skin(name, size, monkeypatch):
     geom2.scene = scene
     g2 = geom2._posed_geometry(pose, tuple(pose.tolist()))
     assert torch.equal(g2.V, geom.V) and torch.equal(g2.N, geom.N)
+
+
+def test_zh38p_libraries_follow_the_off_switch(monkeypatch):
+    """The session-38 libraries follow PRTBENCH_COMPILE at each call (not lru-cached: b541a75): None while it is
+    0 (then `skin_vector` / `resolve_vector` return None: the callers' `skin` / `resolve_table` path), loaded
+    once it is back on; and a full-change frame loads them for the P frames after it (`warm_pose_libraries`)."""
+    from methods.core import native as core_native
+    from scenes.library import get_scene
+
+    if zn._vskin_lib() is None or zn._vresolve_lib() is None:
+        pytest.skip("no AVX-512 host or no C compiler")
+    scene = get_scene("creature", "test")
+    st = zn.skin_setup(scene)
+    vs = zn.skin_vector_setup(st)
+    pose = torch.zeros(scene.skeleton.num_joints)
+    N, M, H, W = 30, 40, 4, 6
+    F = torch.randint(0, N, (M, 3))
+    face, hit = torch.randint(0, M, (H * W * 4,)), torch.ones(H * W * 4, dtype=torch.bool)
+    args = (torch.randn(N, 3), F, face, torch.rand(2, H * W * 4).T * 0.5, hit, H, W, 2)
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    assert zn._vskin_lib() is None and zn._vresolve_lib() is None
+    assert zn.skin_vector(st, vs, pose) is None and zn.resolve_vector(*args) is None
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    assert zn.skin_vector(st, vs, pose) is not None and zn.resolve_vector(*args) is not None
+    names = []
+    load = core_native.load
+    monkeypatch.setattr(core_native, "load", lambda name, *a, **k: names.append(name) or load(name, *a, **k))
+    zn.warm_pose_libraries()
+    assert {"zh38p_skin", "zh38p_resolve"} <= set(names)
