@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> dict:
         setattr(obj, name, timed)
 
     kernels = ("referenced_mask", "front_columns", "pose_columns", "pose_radiance", "resolve_table", "pose_sh",
+               "resolve_vector", "skin_vector",   # (session 38's vector loops, where they run)
                # the paper configuration's (pixel-shaded planes)
                "fused_pixels", "referenced_lut", "plane_u", "screen8", "plane_mask", "rest_screen")
     originals = {n: getattr(zn, n) for n in kernels if hasattr(zn, n)}
@@ -73,6 +74,7 @@ def main(argv: list[str] | None = None) -> dict:
                              (zn, "pose_sh", "pose product + eq. 1 (one C call, zh36o)"),
                              (m, "_pose_visibility", "visibility (product + eq. 1)"),
                              (zn, "pose_radiance", "pose pass"), (zn, "resolve_table", "resolve"),
+                             (zn, "resolve_vector", "resolve (vector, zh38p)"), (zn, "skin_vector", "skin (vector, zh38p)"),
                              (m, "_front_radiance", "front radiance (front, visibility, pose pass, glue)"),
                              (m, "_plane_term", "plane term"), (m, "_vertex_table", "vertex table"),
                              (m, "_fused_planes", "fused planes (all)"),

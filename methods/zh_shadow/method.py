@@ -361,7 +361,7 @@ class ZHShadow(Method):
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
         self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
-        self._skin: tuple | None = None          # (scene, `native.skin_setup` of it): `_posed_geometry`
+        self._skin: tuple | None = None          # (scene, `native.skin_setup`, its vector layouts): `_posed_geometry`
         self._pose_libs_warm = False             # `native.warm_pose_libraries` called (`_render_vertex`)
         self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
         #                                 `native.pose_sh`), reused across frames: counted in `memory`
@@ -559,9 +559,13 @@ class ZHShadow(Method):
         if self.native_skinning and pose_vec.dtype == torch.float32 and len(key) == scene.skeleton.num_joints \
                 and all(math.isfinite(t) and abs(t) <= _PI32 for t in key):
             sk = self._skin
-            if sk is None or sk[0] is not scene:
-                self._skin = sk = (scene, zn.skin_setup(scene))
-            out = zn.skin(sk[1], pose_vec)
+            if sk is None or sk[0] is not scene:   # (+ its joint-major layouts, `native.skin_vector_setup`)
+                st = zn.skin_setup(scene)
+                self._skin = sk = (scene, st, zn.skin_vector_setup(st))
+            # 16 vertices a vector first (`native.skin_vector`, zh38p: the same bits), else `native.skin`
+            out = zn.skin_vector(sk[1], sk[2], pose_vec)
+            if out is None:
+                out = zn.skin(sk[1], pose_vec)
             if out is not None:
                 return dataclasses.replace(scene.rest_geometry(), V=out[0], N=out[1])
         return scene.geometry(pose_vec)
@@ -1433,9 +1437,13 @@ class ZHShadow(Method):
         # interpolated per sample and box-filtered in one C loop with its range check (`native.resolve`),
         # else in the shared Gouraud resolve's pass (its oracle)
         img = None
-        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o)
-            img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
-                                   gbuffer.width, gbuffer.spp_side)
+        if self.own_resolve and self.table_resolve:   # (the face table first: `native.resolve_table`, zh35o;
+            # a pixel a vector before it, `native.resolve_vector`, zh38p: the same bits)
+            img = zn.resolve_vector(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                    gbuffer.width, gbuffer.spp_side)
+            if img is None:
+                img = zn.resolve_table(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
+                                       gbuffer.width, gbuffer.spp_side)
         if img is None and self.own_resolve:
             img = zn.resolve(radT, geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
                              gbuffer.width, gbuffer.spp_side)

@@ -3019,7 +3019,8 @@ def warm_pose_libraries() -> None:
     front loop (`front_columns`) is called by no other frame kind, the pose pass (`pose_radiance`, `_view_lib`)
     and the referenced vertices (`referenced_mask`, `_kernel`) by no full-change frame."""
     if terms_switched_on():
-        for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib, _pose_sh_lib):
+        for get in (_pose_cols_lib, _skin_lib, _front_lib, _tresolve_lib, _view_lib, _pose_sh_lib, _vskin_lib,
+                    _vresolve_lib):   # (+ session 38's vector skinning and resolve)
             get()
     _kernel()
 
@@ -3974,3 +3975,262 @@ def region_tables(tabs: list, n2: int, out: Tensor) -> int | None:
     lib.zh38v_region_tables(R, n2, Kd, Ks, Wd.data_ptr(), kd.data_ptr(), ptr.data_ptr(), ks.data_ptr(),
                             out.data_ptr())
     return Kd + Ks
+
+
+# === zh38p ==================================================================================================
+#
+# The vertex-shaded frames' resolve (`resolve_table`: the radiance interpolated per sample, box-filtered per
+# pixel) with a pixel of 2×2 samples as one AVX-512 vector (`VECTOR_RESOLVE`): lane 4j + c holds sample j's
+# channel c; its three corner rows (the face table's (x, y, z) rows) read as 4-float loads into the quarters;
+# per lane the same products and sums as `zh35o_resolve`'s loop (no multiply-adds fused: -ffp-contract=off),
+# the pixel's sum ((((0 + s0) + s1) + s2) + s3) over the quarters in order, a miss sample's quarter +0.0 (the
+# skipped addition's bits: a sum that starts at +0.0 is never -0.0) — the same bits as `resolve_table` (the
+# tests' oracle), ~1.6× faster on a bench frame (0.73 → 0.46 ms at 1 thread: the scalar loop was
+# instruction-bound, ~30 operations a sample; a 16-lane gather per corner channel was slower, 1.1 ms). The face
+# table has 3 spare floats at its end (the last row's z load). Other sample counts, no AVX-512: the scalar loop.
+_VRESOLVE_SOURCE = _TRESOLVE_SOURCE.replace("void zh35o_resolve(", "static void unused_zh35o_resolve(") + r"""
+#include <string.h>
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
+#ifdef __AVX512F__
+/* pix_range for S2 = 4, a pixel a step as one vector: lane 4j + c holds sample j's channel c (lane 3 of each
+   quarter a spare), its three corner rows read as 4-float loads (the table has 3 spare floats at its end);
+   per lane the same products and sums as pix_range, the pixel's sum ((((0 + s0) + s1) + s2) + s3) over the
+   quarters in order; a miss sample's quarter is +0.0, which leaves a sum that starts at +0.0 unchanged (the
+   skipped addition's bits). Build without fused multiply-adds (-ffp-contract=off). */
+static int64_t pix4_range(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit, int64_t M,
+                          const float *T, int64_t i0, int64_t i1, float *out) {
+    const __m512 one = _mm512_set1_ps(1.0f);
+    const __m128 inv = _mm_set1_ps(0.25f);
+    const __m512i rep = _mm512_set_epi32(3, 3, 3, 3, 2, 2, 2, 2, 1, 1, 1, 1, 0, 0, 0, 0);
+    for (int64_t i = i0; i < i1; ++i) {
+        const int64_t p = 4 * i;
+        uint32_t hb;
+        memcpy(&hb, hit + p, 4);
+        if (hb == 0) { out[3 * i] = 0.0f; out[3 * i + 1] = 0.0f; out[3 * i + 2] = 0.0f; continue; }
+        const __mmask16 hm = (__mmask16)((hb & 0xff ? 0x000f : 0) | (hb & 0xff00 ? 0x00f0 : 0)
+                                         | (hb & 0xff0000 ? 0x0f00 : 0) | (hb & 0xff000000u ? 0xf000 : 0));
+        const float *r[4];
+        for (int j = 0; j < 4; ++j) {
+            int64_t f = face[p + j];
+            if ((hb >> (8 * j)) & 0xff) {
+                if ((uint64_t)f >= (uint64_t)M) return 1;
+            } else {
+                f = 0;
+            }
+            r[j] = T + 9 * f;
+        }
+        __m512 X = _mm512_castps128_ps512(_mm_loadu_ps(r[0])), Y = _mm512_castps128_ps512(_mm_loadu_ps(r[0] + 3)),
+               Z = _mm512_castps128_ps512(_mm_loadu_ps(r[0] + 6));
+        X = _mm512_insertf32x4(X, _mm_loadu_ps(r[1]), 1); Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r[1] + 3), 1);
+        Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r[1] + 6), 1);
+        X = _mm512_insertf32x4(X, _mm_loadu_ps(r[2]), 2); Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r[2] + 3), 2);
+        Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r[2] + 6), 2);
+        X = _mm512_insertf32x4(X, _mm_loadu_ps(r[3]), 3); Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r[3] + 3), 3);
+        Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r[3] + 6), 3);
+        const __m512 u = _mm512_permutexvar_ps(rep, _mm512_castps128_ps512(_mm_loadu_ps(bu + p)));
+        const __m512 v = _mm512_permutexvar_ps(rep, _mm512_castps128_ps512(_mm_loadu_ps(bv + p)));
+        const __m512 w = _mm512_sub_ps(_mm512_sub_ps(one, u), v);
+        const __m512 s = _mm512_maskz_add_ps(hm, _mm512_add_ps(_mm512_mul_ps(X, w), _mm512_mul_ps(Y, u)),
+                                             _mm512_mul_ps(Z, v));
+        __m128 a = _mm_add_ps(_mm_setzero_ps(), _mm512_castps512_ps128(s));
+        a = _mm_add_ps(a, _mm512_extractf32x4_ps(s, 1));
+        a = _mm_add_ps(a, _mm512_extractf32x4_ps(s, 2));
+        a = _mm_add_ps(a, _mm512_extractf32x4_ps(s, 3));
+        a = _mm_mul_ps(a, inv);
+        float o[4];
+        _mm_storeu_ps(o, a);
+        out[3 * i] = o[0]; out[3 * i + 1] = o[1]; out[3 * i + 2] = o[2];
+    }
+    return 0;
+}
+#endif
+static int64_t pixels(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit, int64_t M,
+                      const float *T, int64_t S2, int64_t i0, int64_t i1, float *out, int64_t vec) {
+#ifdef __AVX512F__
+    if (vec && S2 == 4) return pix4_range(face, bu, bv, hit, M, T, i0, i1, out);
+#endif
+    return pix_range(face, bu, bv, hit, M, T, S2, i0, i1, out);
+}
+void zh38p_resolve(const int64_t *face, const float *bu, const float *bv, const uint8_t *hit, const int64_t *F,
+                   int64_t M, const float *val, int64_t N, int64_t S2, int64_t n, int64_t nt, float *T, float *out,
+                   int64_t *bad, int64_t vec) {
+    int64_t b = 0;
+    if (nt <= 1) {
+        b = table_range(F, val, N, 0, M, T);
+        if (!b) b = pixels(face, bu, bv, hit, M, T, S2, 0, n, out, vec);
+    } else {
+        #pragma omp parallel num_threads(nt) reduction(|:b)
+        {
+            #pragma omp for schedule(static)
+            for (int64_t t = 0; t < nt; ++t) b |= table_range(F, val, N, M * t / nt, M * (t + 1) / nt, T);
+            #pragma omp for schedule(static)
+            for (int64_t t = 0; t < nt; ++t) b |= pixels(face, bu, bv, hit, M, T, S2, n * t / nt, n * (t + 1) / nt, out, vec);
+        }
+    }
+    bad[0] = b;
+}
+"""
+_VRESOLVE_SIGNATURES = {"zh38p_resolve": [_P, _P, _P, _P, _P, _I, _P, _I, _I, _I, _I, _P, _P, _P, _I]}
+VECTOR_RESOLVE = True   # False: `resolve_table` (the tests switch it to compare)
+
+
+def _vresolve_lib():
+    """The library of `zh38p_resolve` or None (no AVX-512 host: `resolve_table`'s loop). Not cached (b541a75)."""
+    if not _avx512_flags():
+        return None
+    return native.load("zh38p_resolve", _VRESOLVE_SOURCE, _VRESOLVE_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+
+
+def resolve_vector(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
+                   spp_side: int) -> Tensor | None:
+    """`resolve_table` (the same arguments, the same bits, the same ValueError) by `zh38p_resolve` with 2×2
+    samples a pixel (above), or None where it does not run (``VECTOR_RESOLVE`` off, no AVX-512 host, another
+    sample count, and where `resolve_table` does not): then the caller's `resolve_table`."""
+    if not VECTOR_RESOLVE or spp_side != 2:
+        return None
+    lib = _vresolve_lib() if terms_switched_on() else None
+    S2 = 4
+    n = height * width
+    args = None if lib is None else _resolve_inputs(values, F, face, bary, hit, n * S2)
+    if args is None:
+        return None
+    values, bu, bv = args
+    M = int(F.shape[0])
+    T = torch.empty(M * 9 + 3, dtype=torch.float32)   # (+3: the last row's 4-float z load)
+    out = torch.empty(n, 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    nt = max(1, min(torch.get_num_threads(), n // MIN_RESOLVE_PIXELS_PER_THREAD))
+    lib.zh38p_resolve(face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), F.data_ptr(), M,
+                      values.data_ptr(), int(values.shape[0]), S2, n, nt, T.data_ptr(), out.data_ptr(), bad.data_ptr(), 1)
+    if int(bad[0]):
+        raise ValueError(f"G-buffer faces or corner rows out of range of {M} faces and "
+                         f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
+    return out.view(height, width, 3)
+
+
+# A P frame's skinning (`ZHShadow._posed_geometry`, `skin`) with 16 vertices a vector (`VECTOR_SKIN`): the
+# weights laid out joint-major once per scene (`skin_vector_setup`: (J, n_skinned), and the rest positions and
+# normals as (3, n) rows), so a joint's weights of 16 vertices are one load; a joint none of them weighs is
+# skipped, a lane whose weight is 0 keeps its sum (a masked add: `blend_range` skips it) — per lane the same
+# products, sums and order as `blend_range` (no multiply-adds fused), the same square root and division: the
+# same bits as `zh35o_skin` (the tests' oracle). The scalar loop's ~12 multiply-adds a weight, its branch per
+# joint and its scalar cofactor, square root and division were ~24 ns a vertex (bench creature, 9,694
+# skinned vertices, ~0.23 ms at 1 thread).
+_VSKIN_SOURCE = _SKIN_SOURCE.replace("void zh35o_skin(", "static void unused_zh35o_skin(") + r"""
+#ifdef __AVX512F__
+#include <immintrin.h>
+typedef float vf __attribute__((vector_size(64)));
+typedef int32_t vi __attribute__((vector_size(64)));
+/* vertices [i0, i1) of a range starting at a: wT (J rows of stride ldw, the range's column 0 at wT), VT, NT
+   (3, ldv) the rest rows; tail (< 16) by blend_range (w the range's row-major weights as zh35o_skin's). */
+static void blend_vec(int64_t J, const float *T12, const float *V, const float *N, const float *w,
+                      const float *VT, const float *NT, int64_t ldv, const float *wT, int64_t ldw, int64_t a,
+                      int64_t i0, int64_t i1, float *Vo, float *No) {
+    int64_t i = i0;
+    for (; i + 16 <= i1; i += 16) {
+        vf acc[12];
+        for (int k = 0; k < 12; ++k) acc[k] = (vf){0};
+        for (int64_t j = 0; j < J; ++j) {
+            vf wj;
+            memcpy(&wj, wT + j * ldw + (i - a), sizeof wj);
+            const vi m = wj != 0.0f;
+            if (!_mm512_test_epi32_mask((__m512i)m, (__m512i)m)) continue;
+            for (int k = 0; k < 12; ++k) {
+                const vf s = acc[k] + wj * T12[12 * j + k];
+                acc[k] = (vf)(((vi)s & m) | ((vi)acc[k] & ~m));
+            }
+        }
+        vf x, y, z, nx, ny, nz;
+        memcpy(&x, VT + i, sizeof x); memcpy(&y, VT + ldv + i, sizeof y); memcpy(&z, VT + 2 * ldv + i, sizeof z);
+        memcpy(&nx, NT + i, sizeof nx); memcpy(&ny, NT + ldv + i, sizeof ny); memcpy(&nz, NT + 2 * ldv + i, sizeof nz);
+        vf vo[3], n[3];
+        for (int r = 0; r < 3; ++r) vo[r] = acc[4 * r] * x + acc[4 * r + 1] * y + acc[4 * r + 2] * z + acc[4 * r + 3];
+        const vf *c0[3] = {&acc[0], &acc[4], &acc[8]}, *c1[3] = {&acc[1], &acc[5], &acc[9]},
+                 *c2[3] = {&acc[2], &acc[6], &acc[10]};
+        const vf k0[3] = {*c1[1] * *c2[2] - *c1[2] * *c2[1], *c1[2] * *c2[0] - *c1[0] * *c2[2], *c1[0] * *c2[1] - *c1[1] * *c2[0]};
+        const vf k1[3] = {*c2[1] * *c0[2] - *c2[2] * *c0[1], *c2[2] * *c0[0] - *c2[0] * *c0[2], *c2[0] * *c0[1] - *c2[1] * *c0[0]};
+        const vf k2[3] = {*c0[1] * *c1[2] - *c0[2] * *c1[1], *c0[2] * *c1[0] - *c0[0] * *c1[2], *c0[0] * *c1[1] - *c0[1] * *c1[0]};
+        for (int r = 0; r < 3; ++r) n[r] = k0[r] * nx + k1[r] * ny + k2[r] * nz;
+        const vf l = (vf)_mm512_sqrt_ps((__m512)(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]));
+        const vf inv = 1.0f / (vf)_mm512_max_ps((__m512)l, _mm512_set1_ps(1e-12f));   /* (l > 1e-12 ? l : 1e-12) */
+        for (int r = 0; r < 3; ++r) n[r] = n[r] * inv;
+        for (int q = 0; q < 16; ++q)
+            for (int r = 0; r < 3; ++r) { Vo[3 * (i + q) + r] = vo[r][q]; No[3 * (i + q) + r] = n[r][q]; }
+    }
+    blend_range(J, T12, V, N, w, i, i1, Vo, No);
+}
+#endif
+/* zh35o_skin's arguments, then wT (J, ldw) the weights joint-major (range s's columns from wofs[s]), VT, NT
+   (3, n) the rest rows. */
+void zh38p_skin(int64_t J, const int64_t *parent, const float *jp, const float *axis, const float *pose, int64_t n,
+                const float *V, const float *N, int64_t S, const int64_t *ranges, const int64_t *wofs, const float *w,
+                float *Vo, float *No, float *T12, int64_t nt, const float *wT, int64_t ldw, const float *VT,
+                const float *NT) {
+    fk(J, parent, jp, axis, pose, T12);
+    memcpy(Vo, V, sizeof(float) * 3 * n);
+    memcpy(No, N, sizeof(float) * 3 * n);
+    for (int64_t s = 0; s < S; ++s) {
+        const int64_t a = ranges[2 * s], b = ranges[2 * s + 1];
+        const float *ws = w + wofs[s] * J - a * J;
+#ifdef __AVX512F__
+        const float *wTs = wT + wofs[s];
+        if (nt <= 1 || b - a < 2048) {
+            blend_vec(J, T12, V, N, ws, VT, NT, n, wTs, ldw, a, a, b, Vo, No);
+        } else {
+            #pragma omp parallel for num_threads(nt) schedule(static, 1)
+            for (int64_t t = 0; t < nt; ++t)
+                blend_vec(J, T12, V, N, ws, VT, NT, n, wTs, ldw, a, a + (b - a) * t / nt, a + (b - a) * (t + 1) / nt,
+                          Vo, No);
+        }
+#else
+        (void)wT; (void)ldw; (void)VT; (void)NT;
+        blend_range(J, T12, V, N, ws, a, b, Vo, No);
+#endif
+    }
+}
+"""
+_VSKIN_SIGNATURES = {"zh38p_skin": [*_SKIN_SIGNATURES["zh35o_skin"], _P, _I, _P, _P]}
+VECTOR_SKIN = True   # False: `skin` (the tests switch it to compare)
+
+
+def _vskin_lib():
+    """The library of `zh38p_skin` or None (no AVX-512 host: `skin`). Not cached (b541a75)."""
+    if not _avx512_flags():
+        return None
+    return native.load("zh38p_skin", _VSKIN_SOURCE, _VSKIN_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
+
+
+def skin_vector_setup(setup: tuple | None) -> tuple | None:
+    """`skin_vector`'s layouts of a `skin_setup` (kept beside it by the caller): (wT (J, n_skinned) the weights
+    joint-major, VT, NT (3, n) the rest rows), or None (no setup)."""
+    if setup is None:
+        return None
+    J, _, _, _, V, N, _, _, w = setup
+    return (w.T.contiguous(), V.T.contiguous(), N.T.contiguous())
+
+
+def skin_vector(setup: tuple | None, vsetup: tuple | None, pose: Tensor) -> tuple[Tensor, Tensor] | None:
+    """`skin` (the same bits) by `zh38p_skin` (16 vertices a vector, above), or None where it does not run
+    (``VECTOR_SKIN`` off, no AVX-512 host, and where `skin` does not): then the caller's `skin`."""
+    if not VECTOR_SKIN or vsetup is None:
+        return None
+    lib = _vskin_lib() if terms_switched_on() else None
+    if lib is None or setup is None:
+        return None
+    J, par, jp, ax, V, N, rng, wofs, w = setup
+    wT, VT, NT = vsetup
+    if pose.dtype != torch.float32 or pose.device.type != "cpu" or tuple(pose.shape) != (J,):
+        return None
+    pose = pose.contiguous()
+    n = int(V.shape[0])
+    Vo, No = torch.empty(n, 3, dtype=torch.float32), torch.empty(n, 3, dtype=torch.float32)
+    T12 = torch.empty(J, 12, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), n // 4096))
+    lib.zh38p_skin(J, par.data_ptr(), jp.data_ptr(), ax.data_ptr(), pose.data_ptr(), n, V.data_ptr(), N.data_ptr(),
+                   int(rng.shape[0]), rng.data_ptr(), wofs.data_ptr(), w.data_ptr(), Vo.data_ptr(), No.data_ptr(),
+                   T12.data_ptr(), nt, wT.data_ptr(), int(wT.shape[1]), VT.data_ptr(), NT.data_ptr())
+    return Vo, No

@@ -2157,10 +2157,11 @@ def test_view_pass_equals_torch_path(zh_scene, monkeypatch):
             assert (a - want).abs().max() <= RENDER_TOL, (kind, i)
 
 
-@pytest.mark.parametrize("name", ["resolve", "resolve_table"])
+@pytest.mark.parametrize("name", ["resolve", "resolve_table", "resolve_vector"])
 def test_resolve_native_equals_gouraud_resolve(name):
     """`native.resolve` (zh_shadow's C loop, the range check in it) and `native.resolve_table` (session 35:
-    every face's corner colours in a face table first) = `gouraud.resolve` bit for bit — misses, faces whose
+    every face's corner colours in a face table first) and `native.resolve_vector` (session 38: a pixel's 2×2
+    samples as one AVX-512 vector) = `gouraud.resolve` bit for bit — misses, faces whose
     corners repeat, an image split over 2 threads and one that is not —; a hit sample's face or a read corner
     out of range raises ValueError (as `gouraud.resolve`) instead of being read."""
     from methods.core import gouraud
