@@ -189,6 +189,36 @@ def referenced_pairs(st: FastStatic, face: Tensor) -> tuple[Tensor, Tensor]:
     return sel, pos[miss_face_pairs(st)]
 
 
+def referenced_view(st: FastStatic, face: Tensor, cam_origin: Tensor, Wr: Tensor, E: Tensor, T: int, K: int,
+                    lobes: dict, width: int) -> tuple[Tensor, Tensor] | None:
+    """`referenced_pairs` + `vertex_view(..., pairs=sel)` with the rows at the pairs' own positions
+    (``method.FULL_TABLE``): (face_pairs, table) — `miss_face_pairs` (static) and the (n_pairs + 1, C')
+    rows of ``native.vertex_rows(..., rows_at=True)``, whose row p is pair p's row of `vertex_view` (the same
+    bits: the same loop) for the pairs the faces in ``face`` touch, the last row 0, and the other rows
+    unwritten (no face of ``face`` reads them). No compact positions and no (M + 1, 3) corners remapped
+    each frame. None where the native loops do not run (lobes without the SH column, int32 rows); the
+    caller then takes the compact route."""
+    if not USE_NATIVE or lobes is None or lobes["I1"] is not None:
+        return None
+    vis = lobes["vis"]
+    Tv = lobes["Tv"]
+    if max(int(Wr.shape[0]), int(vis.shape[0])) >= 2 ** 31 - Tv * Tv - T * T:
+        return None
+    from methods.ptt import native as _native
+
+    n_pairs = int(st.pair_v.numel())
+    sel = _native.referenced_sel(face, st.face_pairs, n_pairs)
+    if sel is None or sel.numel() == 0:
+        return None
+    ri, vi = pair_indices32(st)
+    table = _native.vertex_rows(sel, st.pair_pos, st.pair_frame, cam_origin.to(st.pair_pos.dtype), ri, vi, T, Tv,
+                                lobes["n_theta"], Wr, E, K, lobes["ar"], vis, max(width, 3 + lobes["ar"].shape[1]),
+                                rows_at=True)
+    if table is None:
+        return None
+    return miss_face_pairs(st), table
+
+
 def all_true(mask: Tensor) -> bool:
     """``bool(mask.all())`` of a bool tensor, as the minimum of its bytes (a bool is stored as one
     byte, 0 false): ``Tensor.all`` on a bool tensor is a slow reduction — the G-buffer's hit mask

@@ -113,6 +113,21 @@ SHADING_DEFAULT = "vertex"
 # without the native loop, whose compiled sample stage would recompile for every table size).
 REFERENCED_PAIRS = True
 
+# FULL_TABLE (session 38, pt38): with REFERENCED_PAIRS and the native loops, the referenced pairs' rows
+# are written at the pairs' own positions of an (n_pairs + 1)-row table (`fast.referenced_view`) and the
+# sample stage reads them through the static face corners (`fast.miss_face_pairs`) — the same rows, the
+# same bits — instead of a compact table read through the faces' corners remapped each frame
+# (`fast.referenced_pairs`' fpc: M + 1 corner triples and the pairs' positions built per frame, serial
+# after the faces' marking at 2 threads). The bench's pair tables are 0.7 MB (chess) full against 0.3
+# compact; the rows read are the same cache lines (one 64-byte row a pair). Measured (1 thread, process
+# CPU, same process, 64 MB touched before each call as the rasteriser would): the pair selection alone
+# 0.52 -> 0.44 ms chess, 0.64 -> 0.52 ms creature; whole V / VB frames with FULL_TABLE on / off
+# alternating chess 1.004-1.012 / 0.964, creature 1.067 / 1.042 (the sample stage then reads the static
+# corners, cache-cold, instead of the freshly written remapped ones: on chess that takes back the gain);
+# against 43313b4 (`benchmarks.ptt_ab ... --frames 17 --threads 1`) chess V 0.98 VB 1.02, creature V 1.04
+# VB 1.06. Images bit-identical (tested).
+FULL_TABLE = True
+
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
 SEPARATE_DEFAULT = True
@@ -586,8 +601,12 @@ class PTT(Method):
         pixels = FUSED_VIEW and env is not None and (_fast.all_true(gb.hit) or bool(((gb.face == -1) != gb.hit).all()))
         if pixels and REFERENCED_PAIRS and _fast.native_shading():
             # the rows of the pairs the samples read only (REFERENCED_PAIRS), the faces remapped onto them
-            sel, fpc = _fast.referenced_pairs(st, gb.face)
-            table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=sel)
+            full = _fast.referenced_view(st, gb.face, cam, Wr, E, T, K, lobes, width) if FULL_TABLE else None
+            if full is not None:  # FULL_TABLE: the rows at the pairs' own positions
+                fpc, table = full
+            else:
+                sel, fpc = _fast.referenced_pairs(st, gb.face)
+                table = _fast.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=sel)
             img = _fast.shade_pixels_fused(fpc, table, gb.face, gb.bary, gb.normal, gb.wo, env, L, gb.spp_side ** 2, C)
             if img is not None:
                 return img.view(gb.height, gb.width, 3)

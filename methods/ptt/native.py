@@ -83,6 +83,17 @@ lobes, without the SH column) in one pass, the compiled ``pair_cells_of`` + ``pa
 (the same Sleef calls, 8 pairs at a time; `cells_available`), the compiled passes its fallback and
 test oracle.
 
+Session 38 (pt38): ``referenced_sel`` / ``vertex_rows_at`` (``method.FULL_TABLE``): the referenced pairs'
+rows at the pairs' own positions of a full-size table, read through the static face corners — no compact
+positions or remapped corners per frame; the same rows, the same bits. Tried and dropped: the lat-long
+angles of the cells from inline minimax polynomials instead of the Sleef calls (``pacos16`` / ``patan2_16``:
+within 1-1.4 eps of the map's size of the Sleef cells, 9 of 2^20 cells flipped at a boundary; cells 1.8 ->
+1.34 ms alone, V frames 1.10x, VB 1.06x at 1 thread) — not the compiled kernel's bits, and a last-bit
+change of (u, v) moves a bilinear look-up by the HDR texel contrast: the fast path then missed the
+reference on sphere_plane's test V frame by 2.0e-4 (3.6e-5 relative, `test_fast_path_equals_reference`'s
+1e-5); and ``vertex_rows`` software-pipelined (block b + 1's offsets and prefetches before block b's rows:
+cold 1.00 -> 1.05 ms, warm 0.311 -> 0.312 ms: its misses are not what the prefetch distance limits).
+
 The library is built and loaded by `methods.core.native.load` (per-user private cache directory, keyed
 by the source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
 ``PRTBENCH_COMPILE=0``, `available` is False and the caller uses ``fast.shade_block``. Building it
@@ -285,6 +296,39 @@ int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pai
     for (int64_t k = 0; k < 3 * M; ++k)
         fpc[k] = pos[face_pairs[k]];
     fpc[3 * M] = fpc[3 * M + 1] = fpc[3 * M + 2] = m;
+    return m;
+}
+
+/* referenced_pairs' sel only (session 38, pt38: FULL_TABLE, whose sample stage reads the rows through the
+   static face corners, fast.miss_face_pairs): the same marking of the faces, pmark (np) bytes scratch,
+   no positions and no remapped corners. Returns m. */
+int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
+                       int64_t nt, uint8_t* fmark, uint8_t* pmark, int64_t* sel) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        uint8_t* fm = fmark + k * (M + 1);
+        for (int64_t f = 0; f <= M; ++f)
+            fm[f] = 0;
+        for (int64_t i = n * k / nt; i < n * (k + 1) / nt; ++i) {  /* no branch: a miss marks the spare entry M */
+            const uint64_t f = (uint64_t)face[i];
+            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
+        }
+    }
+    for (int64_t k = 1; k < nt; ++k)
+        for (int64_t f = 0; f < M; ++f)
+            fmark[f] |= fmark[k * (M + 1) + f];
+    for (int64_t p = 0; p < np; ++p)
+        pmark[p] = 0;
+    for (int64_t f = 0; f < M; ++f)
+        if (fmark[f]) {
+            pmark[face_pairs[3 * f]] = 1;
+            pmark[face_pairs[3 * f + 1]] = 1;
+            pmark[face_pairs[3 * f + 2]] = 1;
+        }
+    int64_t m = 0;
+    for (int64_t p = 0; p < np; ++p)
+        if (pmark[p])
+            sel[m++] = p;
     return m;
 }
 
@@ -725,7 +769,7 @@ static inline __attribute__((always_inline)) void vview_body(
         const int64_t* sel, int64_t i0, int64_t i1, const float* pos, const float* frame, int64_t np,
         const float* cam, const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt,
         const float* Wr, const float* E, const int64_t K, const float* ar, const int64_t L, const float* vis,
-        int64_t width, const void* vacos, const void* vatan2, const int w16, float* out) {
+        int64_t width, const void* vacos, const void* vatan2, const int w16, const int at, float* out) {
     const int64_t KC = 3 * K, LC = 3 * L, step = nt > 1 ? 1 : 0;
     const float c2pi = (float)(2.0 / 3.141592653589793), fnt = (float)((double)nt / (3.141592653589793 / 2.0));
     float X[VROWS_BLOCK], Y[VROWS_BLOCK], Z[VROWS_BLOCK], RH[VROWS_BLOCK], AT[VROWS_BLOCK], AC[VROWS_BLOCK];
@@ -835,7 +879,7 @@ static inline __attribute__((always_inline)) void vview_body(
             const float aw0 = wa[j][0], aw1 = wa[j][1];
             const float* h0 = vis + oh[j];
             const float* h2 = h0 + Tv * L;
-            float* o = out + (ib + j) * width;
+            float* o = out + (at ? sel[ib + j] : ib + j) * width;  /* at: the pair's own row (vertex_rows_at) */
             o[0] = B[0];
             o[1] = B[1];
             o[2] = B[2];
@@ -850,25 +894,41 @@ static inline __attribute__((always_inline)) void vview_body(
     }
 }
 
-void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
-                 const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
-                 const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
-                 const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
+static void vrows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
+                  const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
+                  const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
+                  const void* vacos, const void* vatan2, int64_t w16, int64_t nth, const int at, float* out) {
 #pragma omp parallel for num_threads(nth) schedule(static, 1)
     for (int64_t k = 0; k < nth; ++k) {
         const int64_t i0 = m * k / nth, i1 = m * (k + 1) / nth;
         if (K == 16 && L == 4 && w16)
             vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, vacos,
-                       vatan2, 1, out);
+                       vatan2, 1, at, out);
         else if (K == 16 && L == 4)
             vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, 16, ar, 4, vis, width, vacos,
-                       vatan2, 0, out);
+                       vatan2, 0, at, out);
         else
             vview_body(sel, i0, i1, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, vacos,
-                       vatan2, (int)w16, out);
+                       vatan2, (int)w16, at, out);
     }
+    const int64_t z = at ? np : m;
     for (int64_t l = 0; l < width; ++l)
-        out[m * width + l] = 0.0f;
+        out[z * width + l] = 0.0f;
+}
+void vertex_rows(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
+                 const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
+                 const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
+                 const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
+    vrows(sel, m, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, vacos, vatan2, w16, nth, 0, out);
+}
+/* vertex_rows with pair sel[i]'s row written at row sel[i] of out (np + 1, width) and the zero row at np
+   (session 38, pt38: FULL_TABLE): the rows of the pairs not in sel are not written (never read: the
+   samples' faces touch the pairs in sel only, a miss the zero row). */
+void vertex_rows_at(const int64_t* sel, int64_t m, const float* pos, const float* frame, int64_t np, const float* cam,
+                    const int32_t* pr, const int32_t* pv, int64_t T, int64_t Tv, int64_t nt, const float* Wr,
+                    const float* E, int64_t K, const float* ar, int64_t L, const float* vis, int64_t width,
+                    const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
+    vrows(sel, m, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, vacos, vatan2, w16, nth, 1, out);
 }
 #else
 int native_cells_ok(void) { return 0; }
@@ -885,7 +945,8 @@ _MIN_SAMPLES_PER_THREAD = 1 << 15
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SHADE = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P]
 _SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P],
-               "referenced_pairs": [_P, _I, _P, _I, _I, _I, _P, _P, _P, _P]}
+               "referenced_pairs": [_P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
+               "referenced_sel": [_P, _I, _P, _I, _I, _I, _P, _P, _P]}
 
 
 @functools.lru_cache(maxsize=None)
@@ -897,6 +958,8 @@ def _functions(lib: ctypes.CDLL):
     fn.par, fn.region_rows = lib.shade_pixels_par, lib.region_rows
     fn.referenced_pairs = lib.referenced_pairs
     fn.referenced_pairs.restype = ctypes.c_int64
+    fn.referenced_sel = lib.referenced_sel
+    fn.referenced_sel.restype = ctypes.c_int64
     fn.cells_isa = int(lib.native_cells_ok())  # bit 0: the AVX2 cells; bit 1: the AVX-512 ones
     fn.cells_ok = bool(fn.cells_isa)
     if fn.cells_ok:
@@ -912,6 +975,9 @@ def _functions(lib: ctypes.CDLL):
         fn.vertex_rows.restype = None
         fn.vertex_rows.argtypes = [_P, _I, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _P,
                                    _I, _I, _P]
+        fn.vertex_rows_at = lib.vertex_rows_at
+        fn.vertex_rows_at.restype = None
+        fn.vertex_rows_at.argtypes = fn.vertex_rows.argtypes
     return fn
 
 
@@ -1154,18 +1220,42 @@ def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Te
     return sel[:m], fpc
 
 
+def referenced_sel(face: Tensor, face_pairs: Tensor, n_pairs: int) -> Tensor | None:
+    """`referenced_pairs`' sel alone (the same integers; no remapped face corners: `FULL_TABLE`), or None
+    under the same conditions."""
+    fn = _kernel()
+    if fn is None or face.dtype != torch.int64 or face_pairs.dtype != torch.int64 or face.ndim != 1:
+        return None
+    if face.device.type != "cpu" or face_pairs.device.type != "cpu" or face_pairs.ndim != 2 or face_pairs.shape[1] != 3:
+        return None
+    face, face_pairs = face.contiguous(), face_pairs.contiguous()
+    M, n = int(face_pairs.shape[0]), int(face.shape[0])
+    nt = max(1, min(torch.get_num_threads(), n // _MIN_SAMPLES_PER_THREAD))
+    fmark = torch.empty(nt * (M + 1), dtype=torch.uint8)
+    pmark = torch.empty(max(int(n_pairs), 1), dtype=torch.uint8)
+    sel = torch.empty(n_pairs, dtype=torch.int64)
+    m = fn.referenced_sel(face.data_ptr(), n, face_pairs.data_ptr(), M, int(n_pairs), nt, fmark.data_ptr(),
+                          pmark.data_ptr(), sel.data_ptr())
+    return sel[:m]
+
+
 # Pairs below which one thread computes `vertex_rows`.
 _MIN_PAIRS_PER_THREAD = 1 << 11
 
 
 def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Tensor, v32: Tensor, T: int, Tv: int,
-                nt: int, Wr: Tensor, E: Tensor, K: int, ar: Tensor, vis: Tensor, width: int) -> Tensor | None:
+                nt: int, Wr: Tensor, E: Tensor, K: int, ar: Tensor, vis: Tensor, width: int,
+                rows_at: bool = False) -> Tensor | None:
     """``fast.vertex_view(..., pairs=pairs)``'s rows (m + 1, width) with lobes and without the SH
     column (order 0), by the native loop (`cells_available`: the Sleef atan2 / acos of the compiled
     pass); None when it is not available or the arguments are not what it reads (CPU float32 / int32 /
     int64 as ``FastStatic``'s, E (V, 3K) and Wr (·, 3K) row-major with 3K a multiple of 8 — the lane
     blocks of the compiled pass's reduction that B's sums follow —, ar (·, 3L), vis (·, L), width ≥
-    3 + 3L). The indices are those the compiled passes read unchecked too."""
+    3 + 3L). The indices are those the compiled passes read unchecked too.
+
+    rows_at (`FULL_TABLE`): the rows (n_pairs + 1, width), pair p's at row p and the zero row last (n_pairs =
+    pos.shape[1]); the rows of pairs not in ``pairs`` are not written (uninitialised: never read when
+    ``pairs`` are a frame's `referenced_sel`)."""
     if not cells_available():
         return None
     L = int(vis.shape[1]) if vis.ndim == 2 else -1
@@ -1181,9 +1271,10 @@ def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Ten
     pairs, pos, frame, cam, r32, v32, Wr, E, ar, vis = (t.contiguous() for t in (pairs, pos, frame, cam, r32, v32, Wr,
                                                                                    E, ar, vis))
     m = int(pairs.numel())
-    out = torch.empty(m + 1, width, dtype=torch.float32)
+    out = torch.empty((int(pos.shape[1]) if rows_at else m) + 1, width, dtype=torch.float32)
     nth = max(1, min(torch.get_num_threads(), m // _MIN_PAIRS_PER_THREAD))
-    fn.vertex_rows(pairs.data_ptr(), m, pos.data_ptr(), frame.data_ptr(), int(pos.shape[1]), cam.data_ptr(),
+    (fn.vertex_rows_at if rows_at else fn.vertex_rows)(
+                   pairs.data_ptr(), m, pos.data_ptr(), frame.data_ptr(), int(pos.shape[1]), cam.data_ptr(),
                    r32.data_ptr(), v32.data_ptr(), int(T), int(Tv), int(nt), Wr.data_ptr(), E.data_ptr(), int(K),
                    ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, w16, nth, out.data_ptr())
     return out

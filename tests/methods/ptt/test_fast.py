@@ -757,6 +757,63 @@ def test_referenced_pairs_are_the_pairs_of_the_hit_faces(native, monkeypatch):
             torch.set_num_threads(n_threads)
 
 
+@pytest.mark.parametrize("name", ["chess", "creature"])
+def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypatch):
+    """`method.FULL_TABLE` (session 38): the referenced pairs' rows written at the pairs' own positions
+    (`fast.referenced_view`: ``native.referenced_sel`` + ``native.vertex_rows(..., rows_at=True)``) and
+    read through the static face corners render, bit for bit, the frames of the compact table read
+    through the remapped corners (`fast.referenced_pairs`), at 1 and 2 threads, V and VB frames, with
+    misses; the route is taken (bounces 0, lobes: the perf suite's shape); sel is `referenced_pairs`'
+    and the table's rows at sel are the compact rows, its last row 0."""
+    from methods.ptt import fast as F
+    from methods.ptt import method as PM
+    from methods.ptt import native as N
+
+    if not (F.native_shading() and N.cells_available()):
+        pytest.skip("no native sample stage / cells")
+    monkeypatch.setattr(N, "_MIN_PAIRS_PER_THREAD", 8)
+    monkeypatch.setattr(N, "_MIN_SAMPLES_PER_THREAD", 64)
+    scene = get_scene(name, "test")
+    m = PTT(**{**TINY, **VARIANTS[name], "n_wi": 8, "bounces": 0})  # 3K = 24 lanes: the native rows' 8-lane blocks
+    m.precompute(scene)
+    calls = []
+    real = F.referenced_view
+
+    def recording(*a):
+        out = real(*a)
+        calls.append(a if out is not None else None)
+        return out
+
+    monkeypatch.setattr(F, "referenced_view", recording)
+    for kind in ("V", "VB"):
+        for i, f in enumerate(make_sequence(scene, kind, n_frames=2, seed=4)):
+            f = _small(f)
+            gb = make_gbuffer(scene, f, 2)
+            if i == 1:  # misses, as the G-buffer writes them
+                miss = torch.zeros_like(gb.hit)
+                miss[5::37] = True
+                gb = dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face))
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                try:
+                    monkeypatch.setattr(PM, "FULL_TABLE", True)
+                    n_calls = len(calls)
+                    a = m.render(f, gb)
+                    assert len(calls) == n_calls + 1 and calls[-1] is not None, "the FULL_TABLE route was not taken"
+                    monkeypatch.setattr(PM, "FULL_TABLE", False)
+                    b = m.render(f, gb)
+                finally:
+                    torch.set_num_threads(1)
+                assert torch.equal(a, b), f"{name} {kind} frame {i} threads {threads}: {(a - b).abs().max()}"
+            st, face, cam, Wr, E, T, K, lobes, width = calls[-1]
+            fp, table = real(st, face, cam, Wr, E, T, K, lobes, width)
+            sel, fpc = F.referenced_pairs(st, face)
+            assert torch.equal(N.referenced_sel(face, st.face_pairs, st.pair_v.numel()), sel)
+            compact = F.vertex_view(st, cam, Wr, E, T, K, lobes, width, pairs=sel)
+            assert fp is F.miss_face_pairs(st) and table.shape == (st.pair_v.numel() + 1, compact.shape[1])
+            assert torch.equal(table[sel], compact[:-1]) and not bool(table[-1].any())
+
+
 def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeypatch):
     """`fast.vertex_view(..., pairs=sel)` (the compiled per-pair loops on the pairs ``sel`` only, their
     count symbolic) gives, bit for bit, the rows of those pairs in the full table, and the zero row
@@ -772,6 +829,7 @@ def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeyp
     calls = []
     real = F.referenced_pairs
     monkeypatch.setattr(F, "referenced_pairs", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(PM, "FULL_TABLE", False)  # the compact table (FULL_TABLE's: the next test)
     for bounces in (0, 1):
         m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=bounces)
         m.precompute(scene)
