@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
 __all__ = ["available", "chunks", "chunk_major", "packed_chunks", "unpack_chunks", "points", "groups", "hit_faces", "resolve", "vertex_lookups", "W"]
 
@@ -554,12 +555,41 @@ def switched_on() -> bool:
     return os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() not in ("0", "false", "no", "off")
 
 
-def _lib():
-    """The library (`methods.core.native.load`) or None: no compiler, the build failed,
-    ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
-    if not switched_on():
+# The libraries this package loaded (`loaded`): a `_lib` call in a frame is the two switches and a dict
+# look-up instead of `native.load`'s (its signature tuples built and its lru key hashed at each call: ~25-30
+# µs on a loaded host, 6-11 calls a per-vertex frame). Only a library that loaded is kept — a None (no
+# compiler, an off switch, a failed build) is never remembered, and the switches are read at every call
+# (tests/methods/test_native_off_switch.py). False: `native.load` at every call.
+LIB_MEMO = True
+_LOADED: dict = {}
+
+
+def loaded(name: str, source: str, signatures: dict, flags: tuple[str, ...], *, quiet: bool = False):
+    """`methods.core.native.load` (name, source, signatures, extra_flags=flags) — without its build-failure
+    warning when ``quiet`` — remembered once it loaded (`LIB_MEMO`); None when ``PRTBENCH_TP_NATIVE`` or
+    ``PRTBENCH_COMPILE`` is off (read at each call) or the library does not load."""
+    if not switched_on() or not compile_enabled():
         return None
-    return native.load("tp_zeros", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    key = (name, flags)
+    lib = _LOADED.get(key) if LIB_MEMO else None
+    if lib is None:
+        if quiet:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                lib = native.load(name, source, signatures, extra_flags=flags)
+        else:
+            lib = native.load(name, source, signatures, extra_flags=flags)
+        if lib is not None and LIB_MEMO:
+            _LOADED[key] = lib
+    return lib
+
+
+def _lib():
+    """The library (`methods.core.native.load`, through `loaded`) or None: no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
+    return loaded("tp_zeros", _SOURCE, _SIGNATURES, _flags())
 
 
 def available() -> bool:

@@ -238,9 +238,7 @@ _SIGNATURES = {"tp_runs": [_I, _I, _P, _P, _I, _P, _I, _I, _P, _P, _P, _P],
 def _lib():
     """The library (`methods.core.native.load`) or None: no compiler, the build failed,
     ``PRTBENCH_COMPILE=0`` or ``PRTBENCH_TP_NATIVE=0``."""
-    if not tp_native.switched_on():
-        return None
-    return native.load("tp_group_runs", _SOURCE, _SIGNATURES, extra_flags=("-ffp-contract=fast", "-fopenmp", *native.isa_flags()))
+    return tp_native.loaded("tp_group_runs", _SOURCE, _SIGNATURES, ("-ffp-contract=fast", "-fopenmp", *native.isa_flags()))
 
 
 def available() -> bool:

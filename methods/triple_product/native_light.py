@@ -910,17 +910,14 @@ def _lib():
         lib = _quiet_load("tp_light_pairs_z", wide)
         if lib is not None:
             return lib
-    return native.load("tp_light_pairs", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    return tp_native.loaded("tp_light_pairs", _SOURCE, _SIGNATURES, _flags())
 
 
 def _quiet_load(name: str, flags: tuple[str, ...]):
     """`native.load` of this source with ``flags`` without its build-failure warning (a compiler
-    without AVX-512 support: the AVX2 build serves, the same bits)."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return native.load(name, _SOURCE, _SIGNATURES, extra_flags=flags)
+    without AVX-512 support: the AVX2 build serves, the same bits), remembered once loaded
+    (`tp_native.loaded`)."""
+    return tp_native.loaded(name, _SOURCE, _SIGNATURES, flags, quiet=True)
 
 
 def available() -> bool:

@@ -666,3 +666,26 @@ def test_pixel_frames_read_the_kept_rows(monkeypatch):
         ref = dense.render(f, gb)
         monkeypatch.setattr(fast_eval, "VIS_PACKED_ONLY", True)
         assert torch.equal(img, ref), i
+
+
+def test_library_memo_follows_the_switches(monkeypatch):
+    """`native.loaded` keeps a library that loaded (a `_lib` call in a frame is a dict look-up) but reads
+    ``PRTBENCH_TP_NATIVE`` and ``PRTBENCH_COMPILE`` at every call (None while either is off, the same
+    library when back on), never keeps a None, and is what `native.load` gives."""
+    from methods.core import native as core_native
+    from methods.triple_product import native_group, native_light
+
+    libs = (native._lib(), native_group._lib(), native_light._lib())
+    assert all(lib is not None for lib in libs)
+    assert native._lib() is libs[0] and native_group._lib() is libs[1] and native_light._lib() is libs[2]
+    assert libs[0] is core_native.load("tp_zeros", native._SOURCE, native._SIGNATURES, extra_flags=native._flags())
+    for var in ("PRTBENCH_TP_NATIVE", "PRTBENCH_COMPILE"):
+        monkeypatch.setenv(var, "0")
+        assert native._lib() is None and native_group._lib() is None and native_light._lib() is None, var
+        assert not native.available()
+        monkeypatch.setenv(var, "1")
+        assert native._lib() is libs[0] and native_group._lib() is libs[1] and native_light._lib() is libs[2], var
+    # a library that does not load is not remembered
+    monkeypatch.setattr(core_native, "load", lambda *a, **k: None)
+    assert native.loaded("tp_memo_test", "", {}, ("-x",)) is None
+    assert ("tp_memo_test", ("-x",)) not in native._LOADED
