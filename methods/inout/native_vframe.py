@@ -1,32 +1,35 @@
-"""Shading "vertex"'s view frame as one C loop over the pixels (Mahajan 2008 §6: eq. 4 once per vertex,
-then Gouraud), for frames whose c_k is computed at every vertex (a view-only frame after the first
-lighting, `InOut._render_vertex`).
+"""Shading "vertex"'s view frame as one C call (Mahajan 2008 §6: eq. 4 once per vertex, then Gouraud),
+for frames whose c_k is computed at every vertex (a view-only frame under the first lighting,
+`InOut._render_vertex_native`).
 
-The split path (`InOut._render_vertex`: ``csr.hit_face_mask`` — one pass over the samples for the
+The split path (`InOut._render_vertex`: ``csr.hit_face_mask`` — a pass over the samples for the
 referenced faces, one over the faces for their vertices —, ``native.vertex_cells`` over the marked
-vertices, ``native.vertex_radiance`` per region, then ``core.gouraud.resolve``, a second pass over the
-samples) reads the G-buffer's faces twice and runs five OpenMP regions and ~10 torch / ctypes calls a
-frame. Here one pass over the pixels does all of it: per hit sample its face's three vertices, each
-one's radiance B_v taken from a memo, or computed there at the first sample that reads the vertex in
-this frame (its table cell as ``native.vertex_cells``, eq. 4 as ``native.vertex_radiance``: the same
-operations in the same order, copied; 0 below the vertex's horizon, as the split path's zeroed rows),
-then the Gouraud mix and the box filter as ``core.gouraud``'s loop (its operations in its order). So
-B_v is computed for exactly the vertices of the faces the hits lie on that face the camera (the split
-path's shaded vertices), no mask, list or per-vertex array is written but the memo, and the image is
-the split path's, bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``;
-the tests compare them).
+vertices, serial, ``native.vertex_radiance`` per region, ``core.gouraud.resolve``) runs five to six
+OpenMP regions (each a wake-up of the team at 2 threads) and ~10 torch / ctypes calls a frame. Here the
+same four phases run in one parallel region, split by barriers: (1) the samples in contiguous ranges
+(checks, misses, each hit's face marked with the frame's stamp), (2) the faces (each marked face's
+three vertices marked), (3) the vertices in chunks of 512 ids to the next free thread (each marked
+vertex's cell as ``native.vertex_cells``, eq. 4 as ``native.vertex_radiance``, the same operations
+in the same order, copied, with the next vertex's table and c rows prefetched; 0 below the horizon),
+(4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order). The image is the
+split path's bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``; the
+tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
+in one order; a mark is a relaxed store of the same value by whichever thread).
 
-Deterministic at any thread count: B_v is a function of the vertex and the camera alone, so whichever
-thread fills a memo row writes the same bits (the row's stamp is stored after its values with release
-order and read with acquire order; two threads may both fill a row, with the same bits); the pixels go
-to OpenMP's team (the libgomp torch loaded) in chunks of `CHUNK` pixels, each to the next free thread,
-each pixel summed by one thread in one order. The memo (per concatenated vertex id, 3 floats and a
-stamp, 16 bytes) is kept between frames (zeroed once, `memo`; `InOut.memory` reports it), and a frame
-numbers itself in the stamps, so nothing is allocated per frame but the image.
+Nothing is allocated per frame but the image and three small argument tensors: B (nv, 3) and the face
+and vertex stamps are kept between frames (`memo`, reported by `InOut.memory`), a frame numbers
+itself in the stamps, and B's rows are only read where (3) wrote them this frame. What `frame_cost`
+counts of the view is found after the frame (`InOut._frame_cost_vertex`). The region check of the
+split path and ``gouraud.resolve``'s range check are made in (1); either failing returns a flag, and
+the caller runs the split path, which raises its errors.
 
-The region check of the split path (a hit whose face lies in another region than the sample's) and
-``gouraud.resolve``'s range check (every face in [−1, M)) are made in the same pass; either failing
-returns a flag, and the caller runs the split path, which raises its errors.
+Measured (same process, old and new alternating, 0.2 s idle before each frame, process CPU, 1
+thread, load 9-10 on 2 cores): chess bench 1.02x, creature 1.06x (the split path's Python and calls;
+the 1-thread work is the same); 2 threads: see the session's final message (under that load the
+2-thread medians swung 0.4-3x either way). Tried and dropped: each vertex's B_v computed at the first
+sample that reads it (one pass over the samples, a stamp per memo row): 0.75-0.93x at 1 thread (the
+per-sample stamp checks and the table rows' latency without a batch to prefetch), and in blocks of
+512 samples with a batched, prefetched fill: 0.6-0.9x.
 """
 from __future__ import annotations
 
@@ -136,15 +139,15 @@ static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, con
    (1) samples in nt contiguous ranges: per sample the checks (err bit 1: a face outside [-1, M); bit 2:
        a hit whose face's region is not the sample's), per hit its face f = max(face, 0) marked
        (fst[f] = stamp, a relaxed store: two threads may mark one face), misses counted;
-   (2) faces in nt contiguous ranges: each marked face's three vertices claimed (vst[g]: a compare-
-       and-swap from an older stamp to this one, so each vertex is one thread's) and listed;
-   (3) each thread its listed vertices: the cell (native.vertex_cells' operations), then eq. 4
-       (native.vertex_radiance's) with the next vertex's table and c rows prefetched, into B (nv, 3);
-       0 below the horizon;
+   (2) faces in nt contiguous ranges: each marked face's three vertices marked (vst[g] = stamp,
+       relaxed stores of the same value);
+   (3) vertex ids in chunks of VCHUNK to the next free thread, each marked vertex in ascending order:
+       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with the next
+       vertex's table and c rows prefetched, into B (nv, 3); 0 below the horizon;
    (4) pixels in nt contiguous ranges: core/gouraud.c's resolve3 sums in its order: out[i, c] = (1 / S2)
        * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v.
    Every B row (4) reads is a referenced vertex's, written in (3): no row is cleared. fst (M,) and vst
-   (nv,) int32 stamps, kept between frames; lists (nt, nv) int32 scratch. out (n, 3); stats[0] =
+   (nv,) int32 stamps, kept between frames. out (n, 3); stats[0] =
    misses, stats[1] = error bits. */
 void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit, const float *bu,
                   const float *bv, int64_t n, int64_t S2, const int64_t *face_region, int64_t M,
