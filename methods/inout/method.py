@@ -38,6 +38,9 @@ Render (dynamic lighting and view):
     barycentrics (``methods.core.gouraud``). Only the vertices of the faces the hit samples lie on
     are shaded, and the view part (those vertices and their table cells) is kept while the camera
     and the G-buffer's hits are unchanged, so a lighting-only frame recomputes c_k and B_v only.
+    A view frame under the first lighting (every c_k computed) is one C loop over the pixels
+    (``methods.inout.native_vframe``: the referenced faces, their vertices, eq. 4 at those vertices and
+    the Gouraud resolve in one OpenMP region; the split path's image bit for bit).
     Its cost is per vertex, not per sample; its error follows the mesh density (a highlight or a
     shadow edge narrower than a triangle is blurred): RMSE against the references 1.00–1.11× the
     per-sample shading's at bench size (perf suite: chess, creature; sphere_plane V 1.03×, E
@@ -78,6 +81,7 @@ from methods.inout import csr as _csr
 from methods.inout import fast as _fast
 from methods.inout import native as _native
 from methods.inout import native_sample as _nsample
+from methods.inout import native_vframe as _nvframe
 from methods.inout import transport as tp
 
 # Families with a closed-form K rule of the paper (analysis.k_rule: eq. 13 and §4).
@@ -148,6 +152,8 @@ class InOut(Method):
     # lightings set since the last `_reset_cache` (a class default: a state stored by older code has
     # no such attribute); `_ensure_c` computes every vertex's c under the first one
     _lightings: int = 0
+    _vmemo = None   # (as `_lightings`: a state stored by older code has none)
+    _vstamp: int = 0
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,
@@ -227,6 +233,8 @@ class InOut(Method):
         self._vview = None                     # shading "vertex": the view's referenced vertices (`_vertex_view`)
         self._xmemo = None                     # shading "sample", the C loop: its memo of X (`native_sample.memo`)
         self._xstamp = 0                       # frames shaded on that memo
+        self._vmemo = None                     # shading "vertex", the C loop: its memo of B_v (`native_vframe.memo`)
+        self._vstamp = 0                       # frames shaded on that memo
 
     # -- precompute ---------------------------------------------------------------------------
     def _terms_for(self, region: str, material) -> int | None:
@@ -366,6 +374,7 @@ class InOut(Method):
         self._last_view = None
         self._vview = None
         self._xmemo, self._xstamp = None, 0
+        self._vmemo, self._vstamp = None, 0
 
     def _relight(self, frame: Frame) -> None:
         """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
@@ -725,9 +734,13 @@ class InOut(Method):
         the referenced vertices above their horizon (`_ensure_c`, lazily as the per-sample path),
         B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (a C loop per region,
         ``native.vertex_radiance``; else ``fast.vertex_radiance``, one compiled sampled product per
-        region), then the Gouraud resolve (``core.gouraud.resolve``)."""
+        region), then the Gouraud resolve (``core.gouraud.resolve``) — or, when every c is computed
+        (a view frame under the first lighting), all of it as one C loop (`_render_vertex_native`)."""
         self._relight(frame)
         st = self._fast_static()
+        img = self._render_vertex_native(frame, gbuffer)
+        if img is not None:
+            return img
         vv = self._vertex_view(frame, gbuffer)
         Bv = torch.zeros(st.voff[-1], 3, dtype=torch.float32, device=gbuffer.hit.device)
         for s, (loc, first, wc) in enumerate(vv["slots"]):
@@ -739,6 +752,38 @@ class InOut(Method):
         self._last_view = (gbuffer.num_samples, {"vertex": vv})
         return gouraud.resolve(Bv, st.face_gl, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
                                gbuffer.width, gbuffer.spp_side)
+
+    def _render_vertex_native(self, frame: Frame, gbuffer: GBuffer) -> Tensor | None:
+        """Shading "vertex" as one C loop over the pixels (``native_vframe``: each referenced vertex's
+        B_v computed at the first sample that reads it, then the Gouraud mix and box filter; the image
+        of the split path of `_render_vertex`, bit for bit), when every region's c is computed (a view
+        frame under the first lighting, `_ensure_c_all`; under a later lighting c is computed lazily
+        for the view's vertices, which the split path finds first). None (the split path runs, and
+        raises the G-buffer's errors) when the loop is not available, c is incomplete or the
+        G-buffer fails a check. What `frame_cost` counts of the view (referenced faces and vertices,
+        their cells) is found from the kept frame and G-buffer when it is asked (`_frame_cost_vertex`),
+        not in the frame."""
+        if not _nvframe.available():
+            return None
+        if self._lightings == 1:
+            self._ensure_c_all()
+        if not all(self._cf_full.get(r.name) is not None and self._cf_full[r.name] is self._cf_valid.get(r.name)
+                   for r in self.regions):
+            return None
+        st = self._fast_static()
+        nv, M = st.voff[-1], int(st.face_region.shape[0])
+        if (self._vmemo is None or self._vmemo[0].shape[0] != nv or self._vmemo[1].shape[0] != M
+                or self._vstamp >= _nvframe.STAMP_MAX - 1):
+            self._vmemo, self._vstamp = _nvframe.memo(nv, M), 0
+        self._vstamp += 1
+        g = gbuffer
+        cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
+        got = _nvframe.vertex_frame(st, [self._cf[r.name] for r in self.regions], g.face, g.bary, g.region, g.hit,
+                                    g.height * g.width, g.spp_side ** 2, cam, self._vmemo, self._vstamp)
+        if got is None or got[2]:
+            return None
+        self._last_view = (g.num_samples, {"vertex_of": (frame, g)})
+        return got[0].view(g.height, g.width, 3)
 
     # -- accounting ---------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:
@@ -760,6 +805,8 @@ class InOut(Method):
         # the per-sample C loop's memo of X (``native_sample.memo``: per vertex W² rows and stamps),
         # allocated at its first frame
         m["sample_memo"] = tensor_bytes(*self._xmemo) if self._xmemo is not None else 0
+        # the vertex-shaded frame's C loop's memo of B_v (``native_vframe.memo``: 16 bytes a vertex)
+        m["vertex_memo"] = tensor_bytes(*self._vmemo) if self._vmemo is not None else 0
         N = self.config["cube_res"]
         m["L"] = tensor_bytes(self.L) if self.L is not None else 4 * 6 * N * N * 3
         return m
@@ -877,7 +924,10 @@ class InOut(Method):
         per coefficient). Without a render on ``P`` samples: every sample hit, every face and
         vertex referenced and shaded, every node touched (an upper bound of those terms)."""
         f4 = 4
-        last = self._last_view[1].get("vertex") if self._last_view is not None and self._last_view[0] == P else None
+        lv = self._last_view[1] if self._last_view is not None and self._last_view[0] == P else None
+        if lv is not None and "vertex" not in lv and "vertex_of" in lv:   # the C loop's frame: its view, found now
+            lv["vertex"] = self._vertex_view(*lv["vertex_of"])
+        last = lv.get("vertex") if lv is not None else None
         b = output_bytes(P, pixels)
         f = 0
         if last is None:

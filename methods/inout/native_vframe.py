@@ -1,0 +1,325 @@
+"""Shading "vertex"'s view frame as one C call (Mahajan 2008 §6: eq. 4 once per vertex, then Gouraud),
+for frames whose c_k is computed at every vertex (a view-only frame under the first lighting,
+`InOut._render_vertex_native`).
+
+The split path (`InOut._render_vertex`: ``csr.hit_face_mask`` — a pass over the samples for the
+referenced faces, one over the faces for their vertices —, ``native.vertex_cells`` over the marked
+vertices, serial, ``native.vertex_radiance`` per region, ``core.gouraud.resolve``) runs five to six
+OpenMP regions (each a wake-up of the team at 2 threads) and ~10 torch / ctypes calls a frame. Here the
+same four phases run in one parallel region, split by barriers: (1) the samples in contiguous ranges
+(checks, misses, each hit's face marked with the frame's stamp), (2) the faces (each marked face's
+three vertices marked), (3) the vertices in chunks of 512 ids to the next free thread (each marked
+vertex's cell as ``native.vertex_cells``, eq. 4 as ``native.vertex_radiance``, the same operations
+in the same order, copied, with the next vertex's table and c rows prefetched; 0 below the horizon),
+(4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order). The image is the
+split path's bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``; the
+tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
+in one order; a mark is a relaxed store of the same value by whichever thread).
+
+Nothing is allocated per frame but the image and three small argument tensors: B (nv, 3) and the face
+and vertex stamps are kept between frames (`memo`, reported by `InOut.memory`), a frame numbers
+itself in the stamps, and B's rows are only read where (3) wrote them this frame. What `frame_cost`
+counts of the view is found after the frame (`InOut._frame_cost_vertex`). The region check of the
+split path and ``gouraud.resolve``'s range check are made in (1); either failing returns a flag, and
+the caller runs the split path, which raises its errors.
+
+Measured (same process, old and new alternating, 0.2 s idle before each frame, process CPU, 1
+thread, load 9-10 on 2 cores): chess bench 1.02x, creature 1.06x (the split path's Python and calls;
+the 1-thread work is the same); 2 threads: see the session's final message (under that load the
+2-thread medians swung 0.4-3x either way). Tried and dropped: each vertex's B_v computed at the first
+sample that reads it (one pass over the samples, a stamp per memo row): 0.75-0.93x at 1 thread (the
+per-sample stamp checks and the table rows' latency without a batch to prefetch), and in blocks of
+512 samples with a batched, prefetched fill: 0.6-0.9x.
+"""
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from methods.core import native
+
+__all__ = ["available", "memo", "vertex_frame"]
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <math.h>
+#include <omp.h>
+
+#define VCHUNK 512
+
+typedef float v8 __attribute__((vector_size(32)));
+
+typedef struct {
+    const float *pos, *frames, *cam;            /* (nv, 3), (nv, 9), (3,) */
+    const int64_t *voff;                         /* (S + 1,) */
+    int64_t S, R;
+    const float *const *sh;                      /* per slot: (R^2 3, K) table */
+    const float *const *c;                       /* per slot: (Vr, 3, K) */
+    const int64_t *K;                            /* per slot */
+} View;
+
+/* The table cell of concatenated vertex g (native.vertex_cells' operations in its order): its slot
+   *sp, first node *cp (clamped as native.vertex_radiance) and bilinear weights wt[0:4]; 0 when the
+   camera is below the vertex's horizon (B_v = 0), else 1. */
+static inline int cell_of(const View *w, int64_t g, int64_t *sp, int64_t *cp, float *wt) {
+    int64_t s = 0;
+    while (s + 1 < w->S && g >= w->voff[s + 1])
+        ++s;
+    const int64_t R = w->R;
+    const float *pos = w->pos, *cam = w->cam;
+    const float d0 = cam[0] - pos[3 * g], d1 = cam[1] - pos[3 * g + 1], d2 = cam[2] - pos[3 * g + 2];
+    const float *F = w->frames + 9 * g;
+    const float z = (F[6] * d0 + F[7] * d1) + F[8] * d2;
+    if (!(z > 0.0f))
+        return 0;
+    const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
+    const float x = (F[0] * d0 + F[1] * d1) + F[2] * d2;
+    const float y = (F[3] * d0 + F[4] * d1) + F[5] * d2;
+    float sn = (fabsf(x) + fabsf(y)) + z;
+    sn = sn < 1e-30f ? 1e-30f : sn;
+    const float px = x / sn, py = y / sn;
+    float u = ((px + py) + 1.0f) * h, v = ((px - py) + 1.0f) * h;
+    u = u < 0.0f ? 0.0f : (u > top ? top : u);
+    v = v < 0.0f ? 0.0f : (v > top ? top : v);
+    float iu = floorf(u), iv = floorf(v);
+    iu = iu > top2 ? top2 : iu;
+    iv = iv > top2 ? top2 : iv;
+    const float fu = u - iu, fv = v - iv, gu = 1.0f - fu, gv = 1.0f - fv;
+    wt[0] = gu * gv;
+    wt[1] = fu * gv;
+    wt[2] = gu * fv;
+    wt[3] = fu * fv;
+    const int64_t cmax = R * R - R - 2;
+    int64_t ce = (int64_t)iv * R + (int64_t)iu;
+    *cp = ce < 0 ? 0 : (ce > cmax ? cmax : ce);
+    *sp = s;
+    return 1;
+}
+
+/* Eq. 4 at vertex g of slot s in cell ce (native.vertex_radiance's sums in its order) into b[0:3]. */
+static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, const float *wt, float *b) {
+    const int64_t R = w->R, K = w->K[s], K3 = 3 * K;
+    const float w0 = wt[0], w1 = wt[1], w2 = wt[2], w3 = wt[3];
+    const float *sh = w->sh[s];
+    const float *s0 = sh + ce * K3, *s1 = sh + (ce + 1) * K3, *s2 = sh + (ce + R) * K3, *s3 = sh + (ce + R + 1) * K3;
+    const float *cv = w->c[s] + (g - w->voff[s]) * K3;
+    for (int64_t ch = 0; ch < 3; ++ch) {
+        const int64_t o = ch * K;
+        v8 a8 = {0, 0, 0, 0, 0, 0, 0, 0};
+        int64_t k = 0;
+        for (; k + 8 <= K; k += 8) {
+            v8 x0, x1, x2, x3, cc;
+            __builtin_memcpy(&x0, s0 + o + k, 32);
+            __builtin_memcpy(&x1, s1 + o + k, 32);
+            __builtin_memcpy(&x2, s2 + o + k, 32);
+            __builtin_memcpy(&x3, s3 + o + k, 32);
+            __builtin_memcpy(&cc, cv + o + k, 32);
+            v8 S = x0 * w0;
+            S = S + x1 * w1;
+            S = S + x2 * w2;
+            S = S + x3 * w3;
+            a8 += S * cc;
+        }
+        float acc = ((a8[0] + a8[1]) + (a8[2] + a8[3])) + ((a8[4] + a8[5]) + (a8[6] + a8[7]));
+        for (; k < K; ++k) {
+            const int64_t j = o + k;
+            float S = s0[j] * w0;
+            S = S + s1[j] * w1;
+            S = S + s2[j] * w2;
+            S = S + s3[j] * w3;
+            acc += S * cv[j];
+        }
+        b[ch] = acc;
+    }
+}
+
+/* One frame on nt threads of OpenMP's team (one parallel region, phases split by barriers):
+   (1) samples in nt contiguous ranges: per sample the checks (err bit 1: a face outside [-1, M); bit 2:
+       a hit whose face's region is not the sample's), per hit its face f = max(face, 0) marked
+       (fst[f] = stamp, a relaxed store: two threads may mark one face), misses counted;
+   (2) faces in nt contiguous ranges: each marked face's three vertices marked (vst[g] = stamp,
+       relaxed stores of the same value);
+   (3) vertex ids in chunks of VCHUNK to the next free thread, each marked vertex in ascending order:
+       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with the next
+       vertex's table and c rows prefetched, into B (nv, 3); 0 below the horizon;
+   (4) pixels in nt contiguous ranges: core/gouraud.c's resolve3 sums in its order: out[i, c] = (1 / S2)
+       * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v.
+   Every B row (4) reads is a referenced vertex's, written in (3): no row is cleared. fst (M,) and vst
+   (nv,) int32 stamps, kept between frames. out (n, 3); stats[0] =
+   misses, stats[1] = error bits. */
+void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit, const float *bu,
+                  const float *bv, int64_t n, int64_t S2, const int64_t *face_region, int64_t M,
+                  const int32_t *fv, const float *pos, const float *frames, const float *cam,
+                  const int64_t *voff, int64_t S, int64_t R, const int64_t *shp, const int64_t *cp,
+                  const int64_t *K, float *B, int32_t *fst, int32_t *vst, int64_t stamp,
+                  float *out, int64_t nt, int64_t *stats) {
+    View w = {pos, frames, cam, voff, S, R, (const float *const *)shp, (const float *const *)cp, K};
+    const int64_t nv = voff[S], q = n * S2;
+    const int32_t st32 = (int32_t)stamp;
+    int64_t err = 0, miss = 0;
+    #pragma omp parallel num_threads(nt) reduction(|:err) reduction(+:miss) if (nt > 1)
+    {
+        const int64_t T = omp_get_num_threads(), t = omp_get_thread_num();
+        /* (1) */
+        for (int64_t p = q * t / T; p < q * (t + 1) / T; ++p) {
+            const int64_t f0 = face[p];
+            if (f0 < -1 || f0 >= M)
+                err |= 1;
+            if (!hit[p]) {
+                ++miss;
+                continue;
+            }
+            const int64_t f = f0 < 0 ? 0 : (f0 >= M ? M - 1 : f0);
+            __atomic_store_n(fst + f, st32, __ATOMIC_RELAXED);
+            if (face_region[f] != region[p])
+                err |= 2;
+        }
+        #pragma omp barrier
+        /* (2) */
+        for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
+            if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
+                continue;
+            for (int64_t j = 0; j < 3; ++j)
+                __atomic_store_n(vst + fv[j * M + f], st32, __ATOMIC_RELAXED);
+        }
+        #pragma omp barrier
+        /* (3) chunks of VCHUNK vertex ids to the next free thread; in a chunk, the marked vertices in
+           ascending order in runs of 64: the cells, then eq. 4 */
+        int64_t ls[64], lc[64], lg[64];
+        float lw[4 * 64];
+        #pragma omp for schedule(dynamic, 1)
+        for (int64_t ch = 0; ch < (nv + VCHUNK - 1) / VCHUNK; ++ch) {
+            const int64_t ve = (ch + 1) * VCHUNK < nv ? (ch + 1) * VCHUNK : nv;
+            int64_t g = ch * VCHUNK;
+            while (g < ve) {
+                int64_t m = 0;
+                for (; g < ve && m < 64; ++g) {
+                    if (__atomic_load_n(vst + g, __ATOMIC_RELAXED) != st32)
+                        continue;
+                    if (cell_of(&w, g, ls + m, lc + m, lw + 4 * m)) {
+                        lg[m++] = g;
+                    } else {
+                        B[3 * g] = 0.0f;
+                        B[3 * g + 1] = 0.0f;
+                        B[3 * g + 2] = 0.0f;
+                    }
+                }
+                for (int64_t i = 0; i < m; ++i) {
+                    if (i + 1 < m) {  /* the next vertex's 4 table rows (2 runs of 2 rows) and its c row */
+                        const int64_t s1 = ls[i + 1], K3 = 3 * K[s1], cn = lc[i + 1];
+                        const float *sh = w.sh[s1];
+                        const float *cv = w.c[s1] + (lg[i + 1] - voff[s1]) * K3;
+                        for (int64_t k = 0; k < 2 * K3; k += 16) {
+                            __builtin_prefetch(sh + cn * K3 + k);
+                            __builtin_prefetch(sh + (cn + R) * K3 + k);
+                        }
+                        for (int64_t k = 0; k < K3; k += 16)
+                            __builtin_prefetch(cv + k);
+                    }
+                    radiance(&w, ls[i], lg[i], lc[i], lw + 4 * i, B + 3 * lg[i]);
+                }
+            }
+        }
+        /* (4) */
+        const float inv = 1.0f / (float)S2;
+        for (int64_t i = n * t / T; i < n * (t + 1) / T; ++i) {
+            float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
+            for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+                if (!hit[p])
+                    continue;
+                const int64_t f = face[p] < 0 ? 0 : face[p];
+                const float u = bu[p], v = bv[p], ww = 1.0f - u - v;
+                const float *x = B + 3 * (int64_t)fv[f];
+                const float *y = B + 3 * (int64_t)fv[M + f];
+                const float *z = B + 3 * (int64_t)fv[2 * M + f];
+                a0 += (x[0] * ww + y[0] * u) + z[0] * v;
+                a1 += (x[1] * ww + y[1] * u) + z[1] * v;
+                a2 += (x[2] * ww + y[2] * u) + z[2] * v;
+            }
+            out[3 * i] = a0 * inv;
+            out[3 * i + 1] = a1 * inv;
+            out[3 * i + 2] = a2 * inv;
+        }
+    }
+    stats[0] = miss;
+    stats[1] = err;
+}
+"""
+
+_P, _I = ctypes.c_void_p, ctypes.c_int64
+_SIGNATURES = {"vertex_frame": [_P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _P, _P, _P,
+                                _P, _P, _P, _I, _P, _I, _P]}
+# Frame numbers on one memo are below this (int32 stamps)
+STAMP_MAX = (1 << 31) - 1
+# Pixels per thread below which one thread shades the frame (`core.gouraud`'s threshold)
+MIN_PIXELS_PER_THREAD = 1 << 13
+
+
+def _lib():
+    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call
+    return native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+
+
+def available() -> bool:
+    """True when the C loop runs (else the caller takes the split path)."""
+    return _lib() is not None
+
+
+def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor]:
+    """A memo for ``nv`` concatenated vertices and ``M`` faces: (B (nv, 3) float32, face stamps (M,)
+    int32 zeroed, vertex stamps (nv,) int32 zeroed)."""
+    return (torch.zeros(nv, 3, dtype=torch.float32), torch.zeros(M, dtype=torch.int32),
+            torch.zeros(nv, dtype=torch.int32))
+
+
+def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
+                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int) -> tuple[Tensor, int, int] | None:
+    """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
+    bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
+    used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
+    vertex), face, region (q,) int64, hit (q,) bool, bary (q, 2) float32 (any strides: its columns are
+    read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
+    (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). At most
+    None when the loop is not available or the arrays are not CPU
+    tensors of those types (the caller runs the split path)."""
+    lib = _lib()
+    if lib is None:
+        return None
+    nv, M, S = st.voff[-1], int(st.face_region.shape[0]), len(cs)
+    q = int(face.shape[0])
+    sh = [fr.sh_nc for fr in st.regions]
+    B, fst, vst = mem
+    ts = (face, region, hit, st.face_region, st.face_gl, st.pos, st.frames, cam, B, fst, vst, *sh, *cs)
+    if (q != n * S2 or S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
+            or face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
+            or bary.dtype != torch.float32 or tuple(bary.shape) != (q, 2) or region.shape != (q,) or hit.shape != (q,)
+            or st.face_region.dtype != torch.int64 or st.face_gl.dtype != torch.int32 or st.face_gl.shape != (3, M)
+            or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3) or cam.shape != (3,)
+            or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,)
+            or any(t.dtype != torch.int32 for t in (fst, vst)) or not 0 < stamp < STAMP_MAX
+            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, cam, B, *sh, *cs))
+            or any(t.device.type != "cpu" or not t.is_contiguous() for t in ts)):
+        return None
+    K = []
+    for s in range(S):
+        vr = st.voff[s + 1] - st.voff[s]
+        k = int(cs[s].shape[2])
+        if cs[s].shape != (vr, 3, k) or sh[s].shape != (st.R * st.R * 3, k):
+            return None
+        K.append(k)
+    bu, bv = bary.unbind(-1)
+    bu, bv = bu.contiguous(), bv.contiguous()     # views of the G-buffer's column-major barycentrics: no copy
+    out = torch.empty(n, 3, dtype=torch.float32)
+    meta = torch.tensor([*st.voff, *(t.data_ptr() for t in sh), *(t.data_ptr() for t in cs), *K], dtype=torch.int64)
+    stats = torch.zeros(2, dtype=torch.int64)
+    mp = meta.data_ptr()
+    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+    lib.vertex_frame(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), n, S2,
+                     st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr(),
+                     cam.data_ptr(), mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1),
+                     B.data_ptr(), fst.data_ptr(), vst.data_ptr(), stamp, out.data_ptr(), nt,
+                     stats.data_ptr())
+    miss, err = stats.tolist()
+    return out, int(miss), int(err)

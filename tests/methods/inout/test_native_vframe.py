@@ -1,0 +1,147 @@
+"""Shading "vertex"'s view frame as one C loop (``methods.inout.native_vframe``, `InOut._render_vertex_native`)
+against the split path it replaces in view frames (`InOut._render_vertex` with the loop off: the
+referenced-face pass, ``native.vertex_cells``, ``native.vertex_radiance`` per region, ``core.gouraud``'s
+resolve) — the same operations in the same order, so the same bits — and against the reference
+(`_render_vertex_reference`, float32 round-off); at 1 and 2 threads; and its checks (a face outside
+the mesh, a hit on another region's face) handing the frame to the split path, which raises."""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from methods.inout import native_vframe
+from methods.inout.method import InOut
+from references.gbuffer import make_gbuffer
+from scenes.library import SCENES, get_scene
+from scenes.sequences import make_sequence
+
+TINY = dict(brdf_res=8, cube_res=4, n_coeffs=16, lut_res=16, light_supersample=2, terms=6, shading="vertex")
+# per scene what it exercises besides the default (as tests/methods/inout/test_fast.py): many terms (the
+# K-sum's 8 lanes and its tail), three regions
+VARIANTS = {"sphere_plane": dict(terms=None), "chess": dict(light_coeffs=24), "bunny": dict(terms=None)}
+RTOL = 1e-5
+
+pytestmark = pytest.mark.skipif(not native_vframe.available(), reason="no C compiler (PRTBENCH_COMPILE=0?)")
+
+
+@pytest.fixture(scope="module")
+def precomputed():
+    built = {}
+
+    def get(name: str) -> InOut:
+        if name not in built:
+            m = InOut(**{**TINY, **VARIANTS.get(name, {})})
+            m.precompute(get_scene(name, "test"))
+            built[name] = m
+        return built[name]
+
+    return get
+
+
+def _copies(m: InOut) -> tuple[InOut, InOut]:
+    """(the C loop's copy, the split path's copy) of one precomputation, caches of their own."""
+    a, b = copy.copy(m), copy.copy(m)
+    a._reset_cache()
+    b._reset_cache()
+    b._render_vertex_native = lambda frame, gbuffer: None
+    return a, b
+
+
+def _check_sequence(m: InOut, spp_side: int, n_frames: int = 4, seed: int = 3) -> None:
+    new, old = _copies(m)
+    for frame in make_sequence(m.scene, "V", n_frames=n_frames, seed=seed):
+        gb = make_gbuffer(m.scene, frame, spp_side)
+        stamp = new._vstamp
+        got, split = new.render(frame, gb), old.render(frame, gb)
+        assert new._vstamp == stamp + 1, "the C loop did not run"
+        assert torch.equal(got, split), f"{m.scene.name} frame {frame.index}: {float((got - split).abs().max())}"
+        want = old._render_reference(frame, gb)
+        scale = float(want.abs().max())
+        assert scale > 0 and float((got - want).abs().max()) <= RTOL * scale
+        # what the frame counts: the view found after the frame equals the split path's
+        P, px = gb.num_samples, gb.height * gb.width
+        assert new.frame_cost("V", P, pixels=px) == old.frame_cost("V", P, pixels=px)
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_vertex_frame_equals_the_split_path(precomputed, name):
+    """Every library scene, V frames at 1 and 2×2 samples per pixel: the C loop's image is the split
+    path's bit for bit and the reference's to float32 round-off, and `frame_cost` counts the same."""
+    scene = get_scene(name, "test")
+    why = InOut.capabilities.why_not(scene, "V", 0)
+    if why is not None:
+        pytest.skip(why)
+    m = precomputed(name)
+    for spp in (1, 2):
+        _check_sequence(m, spp)
+
+
+def test_vertex_frame_threads_are_bit_identical(precomputed, monkeypatch):
+    """2 threads (every image split over the team: the per-thread pixel floor lowered) give the bits of 1
+    thread and of the split path, on the three-region chess scene."""
+    monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
+    m = precomputed("chess")
+    frames = make_sequence(m.scene, "V", n_frames=4, seed=5)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    imgs = {}
+    old_threads = torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            new, old = _copies(m)
+            imgs[t] = [new.render(f, g) for f, g in zip(frames, gbs)]
+            for img, f, g in zip(imgs[t], frames, gbs):
+                assert torch.equal(img, old.render(f, g))
+    finally:
+        torch.set_num_threads(old_threads)
+    assert all(torch.equal(a, b) for a, b in zip(imgs[1], imgs[2]))
+
+
+def test_vertex_frame_checks_hand_the_frame_to_the_split_path(precomputed):
+    """A hit on a face of another region, or a face outside the mesh: the loop reports it, the split
+    path runs and raises its error; a frame after it renders with the loop again."""
+    m = precomputed("chess")
+    new, _ = _copies(m)
+    first, frame = make_sequence(m.scene, "V", n_frames=2, seed=0)     # frame 1 changes the view only
+    new.render(first, make_gbuffer(m.scene, first, 1))
+    gb = make_gbuffer(m.scene, frame, 1)
+    bad = copy.copy(gb)
+    bad.region = gb.region.clone()
+    k = int(gb.hit.nonzero()[0, 0])
+    bad.region[k] = (bad.region[k] + 1) % 3
+    with pytest.raises(ValueError, match="another region"):
+        new.render(frame, bad)
+    bad = copy.copy(gb)
+    bad.face = gb.face.clone()
+    bad.face[k] = m.F.shape[0]
+    with pytest.raises(ValueError):
+        new.render(frame, bad)
+    stamp = new._vstamp
+    new.render(frame, gb)
+    assert new._vstamp == stamp + 1
+
+
+def test_vertex_frame_is_not_used_before_every_c_is_computed(precomputed):
+    """Under a later lighting (c computed lazily for the view's vertices) the split path runs."""
+    m = precomputed("sphere_plane")
+    new, _ = _copies(m)
+    frames = make_sequence(m.scene, "L", n_frames=3, seed=1)
+    new.render(frames[0], make_gbuffer(m.scene, frames[0], 1))   # the first lighting: every c computed
+    assert new._vstamp == 1
+    for f in frames[1:]:
+        new.render(f, make_gbuffer(m.scene, f, 1))
+    assert new._lightings == 3 and new._vstamp == 1 and "vertex" in new._last_view[1]
+
+
+def test_vertex_memo_is_reported():
+    """`InOut.memory` counts the loop's memo (B_v and the stamps) once it exists."""
+    scene = get_scene("sphere_plane", "test")
+    m = InOut(**{**TINY, "terms": 4})
+    m.precompute(scene)
+    assert m.memory()["vertex_memo"] == 0
+    f = make_sequence(scene, "V", n_frames=1, seed=0)[0]
+    m.render(f, make_gbuffer(scene, f, 1))
+    nv, M = m._fast_static().voff[-1], int(m._fast_static().face_region.shape[0])
+    assert m.memory()["vertex_memo"] == nv * 12 + M * 4 + nv * 4
