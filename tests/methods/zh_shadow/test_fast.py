@@ -17,6 +17,7 @@ from methods.core.sh import sh_eval
 from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.method import shade
+from testing.gbuffers import knock_out
 
 # Fast vs reference render: both float32, the same quantity summed in a different order (SH product
 # tables vs per-point rotations); measured ≤ 1e-6 absolute on images whose maximum is ~2.
@@ -697,20 +698,6 @@ def test_plane_term_keeps_the_albedo_free_part(small_model, spans):
         u0 = m._plane_u0[3]
 
 
-def _knock_out(gb, every: int = 97, offset: int = 5):
-    """A copy of the G-buffer ``gb`` whose samples offset, offset + every, … miss (as a miss is stored:
-    face / region −1, normal, position and barycentrics 0, coverage off): on the plane and on the
-    object alike."""
-    miss = torch.zeros_like(gb.hit)
-    miss[offset::every] = True
-    S = gb.spp_side
-    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
-    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
-                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
-                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
-                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
-
-
 @pytest.mark.parametrize("kind", ("V", "VB"))
 def test_plane_path_with_misses_equals_general_path(small_model, monkeypatch, kind):
     """A G-buffer with samples that miss (the bench creature's VB / VL views miss one sample in
@@ -727,7 +714,7 @@ def test_plane_path_with_misses_equals_general_path(small_model, monkeypatch, ki
         fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
         for fr in make_sequence(m.scene, kind, 3, seed=7):
             gb0 = make_gbuffer(m.scene, fr, 2)
-            gb = _knock_out(gb0, 97 + fr.index, 5 + fr.index)
+            gb = knock_out(gb0, 97 + fr.index, 5 + fr.index)
             assert bool(gb0.hit.all()) and not bool(gb.hit.all())
             a = fast.render(fr, gb)
             assert fast.last_path == "planes", (kind, fr.index, fast.last_path)
@@ -921,7 +908,7 @@ def test_frame_cost_hand_count():
 
 
 def _left_half_misses(gb):
-    """A copy of ``gb`` whose samples in the left half of the image miss (stored as `_knock_out`'s)."""
+    """A copy of ``gb`` whose samples in the left half of the image miss (stored as `testing.gbuffers.knock_out`'s)."""
     S2 = gb.spp_side ** 2
     x = torch.arange(gb.width).view(1, gb.width, 1).expand(gb.height, gb.width, S2).reshape(-1)
     return dataclasses.replace(gb, **_misses(gb, x < gb.width // 2))
@@ -2005,7 +1992,7 @@ def test_fused_planes_equal_separate_passes(small_model, monkeypatch, kind):
             for fr in make_sequence(m.scene, kind, 3, seed=11):
                 gb = make_gbuffer(m.scene, fr, 2)
                 if misses:
-                    gb = _knock_out(gb, 397 + fr.index, 3 + fr.index)
+                    gb = knock_out(gb, 397 + fr.index, 3 + fr.index)
                     assert 0 < int((~gb.hit).sum()) <= 64
                 with torch_threads(nt):
                     a = fast.render(fr, gb)

@@ -3,13 +3,13 @@ multiply-adds (`ZHShadow.fma_terms`, `native.fused_pixels`' ``fma``: `zh37v_fuse
 with `sample_terms`' bits (`zh33p_fused`, ``fma_terms`` off: itself bit for bit the separate passes)."""
 from __future__ import annotations
 
-import dataclasses
 from unittest import mock
 
 import pytest
 import torch
 
 from methods.zh_shadow import ZHShadow
+from testing.gbuffers import knock_out
 
 SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
 # float32 round-off of an image (peaks at ~2) whose object samples' 80-term sums run in another order with
@@ -24,18 +24,6 @@ def creature():
     m = ZHShadow(**SMALL)
     m.precompute(get_scene("creature", "test"))
     return m
-
-
-def _knock_out(gb, every: int, offset: int):
-    """``gb`` with the samples offset, offset + every, … missing (as `test_fast._knock_out`)."""
-    miss = torch.zeros_like(gb.hit)
-    miss[offset::every] = True
-    S = gb.spp_side
-    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
-    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
-                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
-                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
-                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
 
 
 @pytest.mark.parametrize("kind", ("V", "VB", "VL", "P"))
@@ -62,7 +50,7 @@ def test_fma_terms_equal_exact_fused_pass(creature, monkeypatch, kind):
             for fr in make_sequence(creature.scene, kind, 3, seed=11):
                 gb = make_gbuffer(creature.scene, fr, 2)
                 if misses:
-                    gb = _knock_out(gb, 397 + fr.index, 3 + fr.index)
+                    gb = knock_out(gb, 397 + fr.index, 3 + fr.index)
                     assert 0 < int((~gb.hit).sum()) <= 64
                 with torch_threads(1):
                     a = fast.render(fr, gb)

@@ -3,27 +3,15 @@
 The kernel alone against `gouraud.resolve`: `test_fast.test_resolve_native_equals_gouraud_resolve`."""
 from __future__ import annotations
 
-import dataclasses
 
 import pytest
 import torch
 
 from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import native as zn
+from testing.gbuffers import knock_out
 
 SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
-
-
-def _knock_out(gb, every: int, offset: int):
-    """``gb`` with the samples offset, offset + every, … missing (as `test_fast._knock_out`)."""
-    miss = torch.zeros_like(gb.hit)
-    miss[offset::every] = True
-    S = gb.spp_side
-    cov = gb.coverage & ~miss.view(gb.height, gb.width, S * S).any(-1)
-    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1),
-                               region=gb.region.masked_fill(miss, -1), bary=gb.bary.masked_fill(miss[:, None], 0.0),
-                               normal=gb.normal.masked_fill(miss[:, None], 0.0),
-                               position=gb.position.masked_fill(miss[:, None], 0.0), coverage=cov)
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +43,7 @@ def test_vector_resolve_frames_equal_table_resolve(order8, monkeypatch):
         for i, f in enumerate(make_sequence(order8.scene, kind, 3, seed=5)):
             gb = make_gbuffer(order8.scene, f, 2)
             if i == 2:
-                gb = _knock_out(gb, 7, 3)
+                gb = knock_out(gb, 7, 3)
             c0 = len(calls)
             a = fast.render(f, gb)
             with torch_threads(2):
