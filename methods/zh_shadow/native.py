@@ -4234,3 +4234,102 @@ def skin_vector(setup: tuple | None, vsetup: tuple | None, pose: Tensor) -> tupl
                    int(rng.shape[0]), rng.data_ptr(), wofs.data_ptr(), w.data_ptr(), Vo.data_ptr(), No.data_ptr(),
                    T12.data_ptr(), nt, wT.data_ptr(), int(wT.shape[1]), VT.data_ptr(), NT.data_ptr())
     return Vo, No
+
+
+# --- the resolve matrix of a lighting-only vertex-shaded frame, built by one C pass (zh39o) -----------------
+#
+# `gouraud.resolve_matrix` (the oracle) makes the (H·W, N) interpolation + box-filter operator as a COO tensor
+# of the P·3 (pixel, vertex, weight) entries, coalesced (a sort of all of them) and converted to CSR;
+# `method._int32_csr` then narrows its indices. The first lighting-only frame of a camera and pose (the first
+# timed L / E frame of the perf suite) paid that: 60–77 ms at 2 threads on the bench creature (262,144
+# samples), against a ~1.5 ms frame. The entries of one pixel are its S² samples' 3 corners, so the sort is
+# per pixel: here each pixel's ≤ 3·S² entries in their COO order (sample ascending, corner 0..2) stably
+# sorted by vertex id (an insertion sort) and duplicates summed in that order, from the first — what
+# coalesce's stable sort and sequential accumulation give —, the weights as there: ((1 − u) − v, u, v)
+# each times (float) 1/S² (no multiply-add fused: `-ffp-contract=off`). The same crow / col / values bits
+# (tested against the oracle).
+_RMATRIX_SOURCE = r"""
+#include <stdint.h>
+
+/* pixels [0, n): crow (n + 1) int32, col / val (≤ n·3·S2) the CSR entries; face (n·S2) int64, hit uint8,
+   bu / bv the barycentrics (contiguous), F (M, 3) int64; inv = (float)(1/S2). bad[0] counts hit samples
+   whose face is outside [0, M) or whose corner is outside [0, N) (then the caller falls back). */
+void zh39o_rmatrix(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit, const float *bu,
+                   const float *bv, const int64_t *F, int64_t M, int64_t N, float inv, int32_t *crow,
+                   int32_t *col, float *val, int64_t *bad) {
+    int64_t nb = 0, e = 0;
+    int64_t ec[48];
+    float ew[48];
+    crow[0] = 0;
+    for (int64_t p = 0; p < n; ++p) {
+        int64_t k = 0;
+        for (int64_t s = 0; s < S2; ++s) {
+            const int64_t q = p * S2 + s;
+            if (!hit[q]) continue;
+            const int64_t f = face[q];
+            if ((uint64_t)f >= (uint64_t)M) { ++nb; continue; }
+            const float u = bu[q], v = bv[q];
+            const float w[3] = {((1.0f - u) - v) * inv, u * inv, v * inv};
+            for (int c = 0; c < 3; ++c) {
+                const int64_t vid = F[3 * f + c];
+                if ((uint64_t)vid >= (uint64_t)N) { ++nb; continue; }
+                /* stable insertion: after every entry of a vertex id <= vid */
+                int64_t j = k;
+                while (j > 0 && ec[j - 1] > vid) { ec[j] = ec[j - 1]; ew[j] = ew[j - 1]; --j; }
+                ec[j] = vid; ew[j] = w[c];
+                ++k;
+            }
+        }
+        for (int64_t i = 0; i < k; ) {
+            const int64_t c = ec[i];
+            float acc = ew[i];
+            for (++i; i < k && ec[i] == c; ++i) acc += ew[i];
+            col[e] = (int32_t)c;
+            val[e] = acc;
+            ++e;
+        }
+        crow[p + 1] = (int32_t)e;
+    }
+    bad[0] = nb;
+}
+"""
+_RMATRIX_SIGNATURES = {"zh39o_rmatrix": [_I, _I, _P, _P, _P, _P, _P, _I, _I, ctypes.c_float, _P, _P, _P, _P]}
+NATIVE_RESOLVE_MATRIX = True   # `resolve_matrix` by the C pass (off: `gouraud.resolve_matrix`, the oracle)
+
+
+def _rmatrix_lib():
+    return native.load("zh39o_rmatrix", _RMATRIX_SOURCE, _RMATRIX_SIGNATURES, extra_flags=("-ffp-contract=off",))
+
+
+def resolve_matrix(F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int, spp_side: int,
+                   num_values: int) -> Tensor | None:
+    """`method._int32_csr(gouraud.resolve_matrix(F.T, face, bary, hit, height, width, spp_side, num_values))`
+    — the (H·W, num_values) CSR resolve operator with int32 indices — by one C pass over the pixels (above;
+    the same bits), or None where it does not run (``NATIVE_RESOLVE_MATRIX`` off, no compiler,
+    ``PRTBENCH_ZH_NATIVE=0``, not CPU tensors of the loop's types, more than 16 samples a pixel, counts past
+    int32, a face or corner out of range): then the caller's torch path (which raises where it must)."""
+    if not NATIVE_RESOLVE_MATRIX or not 1 <= spp_side <= 4:
+        return None
+    lib = _rmatrix_lib() if terms_switched_on() else None
+    S2 = spp_side * spp_side
+    n = height * width
+    N = int(num_values)
+    args = None if lib is None else _resolve_inputs(torch.empty(0, 3), F, face, bary, hit, n * S2)
+    if args is None or n * S2 * 3 >= 2 ** 31 - 1 or N >= 2 ** 31 - 1 or n >= 2 ** 31 - 1:
+        return None
+    _, bu, bv = args
+    crow = torch.empty(n + 1, dtype=torch.int32)
+    col = torch.empty(n * S2 * 3, dtype=torch.int32)
+    val = torch.empty(n * S2 * 3, dtype=torch.float32)
+    bad = torch.zeros(1, dtype=torch.int64)
+    lib.zh39o_rmatrix(n, S2, face.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), F.data_ptr(),
+                      int(F.shape[0]), N, float(torch.tensor(1.0 / S2, dtype=torch.float32)), crow.data_ptr(),
+                      col.data_ptr(), val.data_ptr(), bad.data_ptr())
+    if int(bad[0]):
+        return None
+    nnz = int(crow[-1])
+    import warnings
+
+    with warnings.catch_warnings():   # "sparse CSR support is in beta" (as `method._int32_csr`)
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, col[:nnz].clone(), val[:nnz].clone(), (n, N))

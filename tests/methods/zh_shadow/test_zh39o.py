@@ -1,0 +1,123 @@
+"""Session 39 (zh39o): the order-8 vertex-shaded config's lighting-only frames — the resolve matrix built by
+one C pass (`native.resolve_matrix`) against `gouraud.resolve_matrix` + `method._int32_csr` (its oracle, the
+same bits)."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from methods.core import gouraud
+from methods.zh_shadow import ZHShadow
+from methods.zh_shadow import native as zn
+from methods.zh_shadow.method import _int32_csr
+from testing.gbuffers import knock_out
+
+SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
+
+
+@pytest.fixture(scope="module")
+def order8():
+    from scenes.library import get_scene
+
+    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(get_scene("creature", "test"))
+    return m
+
+
+def _oracle(F, gb, N):
+    return _int32_csr(gouraud.resolve_matrix(F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side, N))
+
+
+def _same_csr(A, B):
+    assert A.shape == B.shape and A.layout == B.layout == torch.sparse_csr
+    for a, b in ((A.crow_indices(), B.crow_indices()), (A.col_indices(), B.col_indices()), (A.values(), B.values())):
+        assert a.dtype == b.dtype and torch.equal(a, b), float((a.double() - b.double()).abs().max()) \
+            if a.shape == b.shape else (a.shape, b.shape)
+
+
+@pytest.mark.parametrize("spp", [1, 2, 3])
+def test_native_resolve_matrix_equals_gouraud(order8, spp):
+    """`native.resolve_matrix` = `_int32_csr(gouraud.resolve_matrix(...))` bit for bit (row offsets, columns,
+    weights; int32 indices) on creature G-buffers of 1, 2×2 and 3×3 samples a pixel (1/9: a weight scale that
+    rounds), with misses (and a whole pixel missed), and on one whose every sample of a pixel lies on one face
+    (each vertex met S² times: the duplicates' sum order). A weight summed in another order, a duplicate not
+    merged, a miss counted, a wrong corner or scale breaks it."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._rmatrix_lib() is None:
+        pytest.skip("no C compiler")
+    scene = order8.scene
+    geom = scene.geometry()
+    F, N = geom.F, int(geom.num_vertices)
+    f = make_sequence(scene, "L", 1, seed=3)[0]
+    gb = make_gbuffer(scene, f, spp)
+    S2 = spp * spp
+    cases = [gb, knock_out(gb, 7, 3)]
+    miss = torch.zeros_like(gb.hit)
+    miss[5 * S2:6 * S2] = True                                        # pixel 5: every sample missed
+    cases.append(dataclasses.replace(gb, hit=gb.hit & ~miss, face=gb.face.masked_fill(miss, -1)))
+    # every sample of a pixel on its first sample's face (random barycentrics): S² entries per vertex
+    face = gb.face.view(-1, S2)[:, :1].expand(-1, S2).reshape(-1).contiguous()
+    hit = gb.hit.view(-1, S2)[:, :1].expand(-1, S2).reshape(-1).contiguous()
+    g = torch.Generator().manual_seed(2)
+    u, v = torch.rand(face.shape[0], generator=g), torch.rand(face.shape[0], generator=g)
+    bary = torch.stack([u * 0.5, v * 0.5], 1)
+    cases.append(dataclasses.replace(gb, face=face, hit=hit, bary=bary))
+    cases.append(dataclasses.replace(gb, face=face, hit=hit, bary=bary.T.contiguous().T))   # column-major bary
+    for gbx in cases:
+        B = zn.resolve_matrix(F, gbx.face, gbx.bary, gbx.hit, gbx.height, gbx.width, gbx.spp_side, N)
+        assert B is not None
+        _same_csr(_oracle(F, gbx, N), B)
+
+
+def test_native_resolve_matrix_declines(order8, monkeypatch):
+    """None (the caller's torch path) for a face or corner out of range, int32 faces, the switches off."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._rmatrix_lib() is None:
+        pytest.skip("no C compiler")
+    scene = order8.scene
+    geom = scene.geometry()
+    F, N = geom.F, int(geom.num_vertices)
+    gb = make_gbuffer(scene, make_sequence(scene, "L", 1, seed=3)[0], 2)
+    args = (gb.bary, gb.hit, gb.height, gb.width, gb.spp_side)
+    assert zn.resolve_matrix(F, gb.face, *args, N) is not None
+    i = int(gb.hit.nonzero()[0])
+    assert zn.resolve_matrix(F, gb.face.clone().index_fill_(0, torch.tensor([i]), F.shape[0]), *args, N) is None
+    assert zn.resolve_matrix(F, gb.face, *args, 10) is None                             # a corner ≥ N
+    assert zn.resolve_matrix(F, gb.face.int(), *args, N) is None
+    monkeypatch.setattr(zn, "NATIVE_RESOLVE_MATRIX", False)
+    assert zn.resolve_matrix(F, gb.face, *args, N) is None
+    monkeypatch.setattr(zn, "NATIVE_RESOLVE_MATRIX", True)
+    monkeypatch.setenv("PRTBENCH_ZH_NATIVE", "0")
+    assert zn.resolve_matrix(F, gb.face, *args, N) is None
+
+
+@pytest.mark.parametrize("kind", ["L", "E"])
+def test_lighting_frames_with_native_matrix_equal_oracle(order8, kind, monkeypatch):
+    """Order-8 lighting-only frames (the first builds the matrix; with misses) with the C-built matrix = with
+    the torch-built one bit for bit, the C builder taken once per sequence."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._rmatrix_lib() is None:
+        pytest.skip("no C compiler")
+    calls = []
+    rm = zn.resolve_matrix
+    monkeypatch.setattr(zn, "resolve_matrix", lambda *a: calls.append(1) or rm(*a))
+    fast, slow = order8.with_render_config(), order8.with_render_config()
+    frames = make_sequence(order8.scene, kind, 4, seed=5)
+    gb = knock_out(make_gbuffer(order8.scene, frames[0], 2), 11, 4)
+    for i, f in enumerate(frames):
+        a = fast.render(f, gb)
+        monkeypatch.setattr(zn, "NATIVE_RESOLVE_MATRIX", False)
+        b = slow.render(f, gb)
+        monkeypatch.setattr(zn, "NATIVE_RESOLVE_MATRIX", True)
+        assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
+    assert fast._resolve_matrix is not None and fast._resolve_matrix[2] is not None
+    _same_csr(slow._resolve_matrix[2], fast._resolve_matrix[2])
+    assert len(calls) == 2   # (one build per object: fast's taken, slow's declined)
