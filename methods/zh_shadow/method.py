@@ -1410,8 +1410,13 @@ class ZHShadow(Method):
             if rm[2] is None:
                 # (by one C pass where it runs, `native.resolve_matrix`: the same bits, ~16x faster than the
                 # torch build below, its oracle — a sort of every entry, 51 ms at 1 thread on the bench creature)
+                # (and with `native_resolve` its `native.csr_pack` form in the same pass: the same arrays)
                 S = zn.resolve_matrix(geom.F.to(dev), gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height,
-                                      gbuffer.width, gbuffer.spp_side, int(geom.num_vertices))
+                                      gbuffer.width, gbuffer.spp_side, int(geom.num_vertices),
+                                      packed=self.native_resolve)
+                if S is not None and self.native_resolve:
+                    S, packed = S
+                    self._resolve_packed = (S, packed)
                 self._resolve_matrix = rm = (gkey, geom, S if S is not None else _int32_csr(gouraud.resolve_matrix(
                     geom.F.to(dev).T, gbuffer.face, gbuffer.bary, gbuffer.hit, gbuffer.height, gbuffer.width,
                     gbuffer.spp_side, int(geom.num_vertices))))

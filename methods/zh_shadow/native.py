@@ -4252,48 +4252,100 @@ _RMATRIX_SOURCE = r"""
 #include <stdint.h>
 
 /* pixels [0, n): crow (n + 1) int32, col / val (≤ n·3·S2) the CSR entries; face (n·S2) int64, hit uint8,
-   bu / bv the barycentrics (contiguous), F (M, 3) int64; inv = (float)(1/S2). bad[0] counts hit samples
-   whose face is outside [0, M) or whose corner is outside [0, N) (then the caller falls back). */
+   bu / bv the barycentrics (contiguous), F (M, 3) int64; inv = (float)(1/S2). With col4 non-null also
+   `csr_pack`'s form: col4 / val4 (n, 4) each row's first four entries (padded with column 0, weight 0),
+   trow the rows of more than four, tcrow (T + 1) their tails' offsets, tcol / tval the tails.
+   cnt[0] counts hit samples whose face is outside [0, M) or whose corner is outside [0, N) (then the
+   caller falls back), cnt[1] = T. A pixel whose S2 samples all hit one face of three distinct in-range
+   corners takes the short path: per corner its S2 weights summed in sample order, the corners sorted —
+   what the general path's stable sort and in-order sums give for it. */
 void zh39o_rmatrix(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit, const float *bu,
                    const float *bv, const int64_t *F, int64_t M, int64_t N, float inv, int32_t *crow,
-                   int32_t *col, float *val, int64_t *bad) {
-    int64_t nb = 0, e = 0;
+                   int32_t *col, float *val, int32_t *col4, float *val4, int32_t *trow, int32_t *tcrow,
+                   int32_t *tcol, float *tval, int64_t *cnt) {
+    int64_t nb = 0, e = 0, T = 0;
     int64_t ec[48];
     float ew[48];
     crow[0] = 0;
+    if (col4) tcrow[0] = 0;
     for (int64_t p = 0; p < n; ++p) {
-        int64_t k = 0;
-        for (int64_t s = 0; s < S2; ++s) {
-            const int64_t q = p * S2 + s;
-            if (!hit[q]) continue;
-            const int64_t f = face[q];
-            if ((uint64_t)f >= (uint64_t)M) { ++nb; continue; }
-            const float u = bu[q], v = bv[q];
-            const float w[3] = {((1.0f - u) - v) * inv, u * inv, v * inv};
-            for (int c = 0; c < 3; ++c) {
-                const int64_t vid = F[3 * f + c];
-                if ((uint64_t)vid >= (uint64_t)N) { ++nb; continue; }
-                /* stable insertion: after every entry of a vertex id <= vid */
-                int64_t j = k;
-                while (j > 0 && ec[j - 1] > vid) { ec[j] = ec[j - 1]; ew[j] = ew[j - 1]; --j; }
-                ec[j] = vid; ew[j] = w[c];
-                ++k;
+        const int64_t q0 = p * S2, f0 = face[q0];
+        int one = (uint64_t)f0 < (uint64_t)M;
+        for (int64_t s = 0; s < S2 && one; ++s) one = hit[q0 + s] && face[q0 + s] == f0;
+        int64_t a = 0, b = 0, c = 0;
+        if (one) {
+            a = F[3 * f0]; b = F[3 * f0 + 1]; c = F[3 * f0 + 2];
+            one = (uint64_t)a < (uint64_t)N && (uint64_t)b < (uint64_t)N && (uint64_t)c < (uint64_t)N
+                  && a != b && a != c && b != c;
+        }
+        const int64_t e0 = e;
+        if (one) {
+            float s0 = ((1.0f - bu[q0]) - bv[q0]) * inv, s1 = bu[q0] * inv, s2 = bv[q0] * inv;
+            for (int64_t s = 1; s < S2; ++s) {
+                const float u = bu[q0 + s], v = bv[q0 + s];
+                s0 += ((1.0f - u) - v) * inv; s1 += u * inv; s2 += v * inv;
+            }
+            /* sorted by vertex id (distinct) */
+            int64_t i0 = a, i1 = b, i2 = c;
+            float w0 = s0, w1 = s1, w2 = s2, tw;
+            int64_t ti;
+            if (i0 > i1) { ti = i0; i0 = i1; i1 = ti; tw = w0; w0 = w1; w1 = tw; }
+            if (i1 > i2) { ti = i1; i1 = i2; i2 = ti; tw = w1; w1 = w2; w2 = tw; }
+            if (i0 > i1) { ti = i0; i0 = i1; i1 = ti; tw = w0; w0 = w1; w1 = tw; }
+            col[e] = (int32_t)i0; val[e] = w0;
+            col[e + 1] = (int32_t)i1; val[e + 1] = w1;
+            col[e + 2] = (int32_t)i2; val[e + 2] = w2;
+            e += 3;
+        } else {
+            int64_t k = 0;
+            for (int64_t s = 0; s < S2; ++s) {
+                const int64_t q = q0 + s;
+                if (!hit[q]) continue;
+                const int64_t f = face[q];
+                if ((uint64_t)f >= (uint64_t)M) { ++nb; continue; }
+                const float u = bu[q], v = bv[q];
+                const float w[3] = {((1.0f - u) - v) * inv, u * inv, v * inv};
+                for (int cc = 0; cc < 3; ++cc) {
+                    const int64_t vid = F[3 * f + cc];
+                    if ((uint64_t)vid >= (uint64_t)N) { ++nb; continue; }
+                    /* stable insertion: after every entry of a vertex id <= vid */
+                    int64_t j = k;
+                    while (j > 0 && ec[j - 1] > vid) { ec[j] = ec[j - 1]; ew[j] = ew[j - 1]; --j; }
+                    ec[j] = vid; ew[j] = w[cc];
+                    ++k;
+                }
+            }
+            for (int64_t i = 0; i < k; ) {
+                const int64_t cv = ec[i];
+                float acc = ew[i];
+                for (++i; i < k && ec[i] == cv; ++i) acc += ew[i];
+                col[e] = (int32_t)cv;
+                val[e] = acc;
+                ++e;
             }
         }
-        for (int64_t i = 0; i < k; ) {
-            const int64_t c = ec[i];
-            float acc = ew[i];
-            for (++i; i < k && ec[i] == c; ++i) acc += ew[i];
-            col[e] = (int32_t)c;
-            val[e] = acc;
-            ++e;
-        }
         crow[p + 1] = (int32_t)e;
+        if (col4) {
+            const int64_t k = e - e0;
+            for (int64_t i = 0; i < 4; ++i) {
+                col4[4 * p + i] = i < k ? col[e0 + i] : 0;
+                val4[4 * p + i] = i < k ? val[e0 + i] : 0.f;
+            }
+            if (k > 4) {
+                const int32_t o = tcrow[T];
+                for (int64_t i = 4; i < k; ++i) { tcol[o + i - 4] = col[e0 + i]; tval[o + i - 4] = val[e0 + i]; }
+                trow[T] = (int32_t)p;
+                tcrow[T + 1] = o + (int32_t)(k - 4);
+                ++T;
+            }
+        }
     }
-    bad[0] = nb;
+    cnt[0] = nb;
+    cnt[1] = T;
 }
 """
-_RMATRIX_SIGNATURES = {"zh39o_rmatrix": [_I, _I, _P, _P, _P, _P, _P, _I, _I, ctypes.c_float, _P, _P, _P, _P]}
+_RMATRIX_SIGNATURES = {"zh39o_rmatrix": [_I, _I, _P, _P, _P, _P, _P, _I, _I, ctypes.c_float, _P, _P, _P, _P, _P, _P,
+                                         _P, _P, _P, _P]}
 NATIVE_RESOLVE_MATRIX = True   # `resolve_matrix` by the C pass (off: `gouraud.resolve_matrix`, the oracle)
 
 
@@ -4302,12 +4354,13 @@ def _rmatrix_lib():
 
 
 def resolve_matrix(F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int, spp_side: int,
-                   num_values: int) -> Tensor | None:
+                   num_values: int, packed: bool = False):
     """`method._int32_csr(gouraud.resolve_matrix(F.T, face, bary, hit, height, width, spp_side, num_values))`
     — the (H·W, num_values) CSR resolve operator with int32 indices — by one C pass over the pixels (above;
     the same bits), or None where it does not run (``NATIVE_RESOLVE_MATRIX`` off, no compiler,
     ``PRTBENCH_ZH_NATIVE=0``, not CPU tensors of the loop's types, more than 16 samples a pixel, counts past
-    int32, a face or corner out of range): then the caller's torch path (which raises where it must)."""
+    int32, a face or corner out of range): then the caller's torch path (which raises where it must).
+    ``packed``: (that matrix, its `csr_pack` made in the same pass — the same arrays) or None."""
     if not NATIVE_RESOLVE_MATRIX or not 1 <= spp_side <= 4:
         return None
     lib = _rmatrix_lib() if terms_switched_on() else None
@@ -4315,21 +4368,36 @@ def resolve_matrix(F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: i
     n = height * width
     N = int(num_values)
     args = None if lib is None else _resolve_inputs(torch.empty(0, 3), F, face, bary, hit, n * S2)
-    if args is None or n * S2 * 3 >= 2 ** 31 - 1 or N >= 2 ** 31 - 1 or n >= 2 ** 31 - 1:
+    if args is None or n * S2 * 3 >= 2 ** 31 - 1 or N >= 2 ** 31 - 1 or n >= 2 ** 31 - 1 or (packed and N == 0):
         return None
     _, bu, bv = args
     crow = torch.empty(n + 1, dtype=torch.int32)
     col = torch.empty(n * S2 * 3, dtype=torch.int32)
     val = torch.empty(n * S2 * 3, dtype=torch.float32)
-    bad = torch.zeros(1, dtype=torch.int64)
+    cnt = torch.zeros(2, dtype=torch.int64)
+    if packed:
+        col4 = torch.empty(n, 4, dtype=torch.int32)
+        val4 = torch.empty(n, 4, dtype=torch.float32)
+        nt_max = n * max(S2 * 3 - 4, 0)
+        trow, tcrow = torch.empty(n, dtype=torch.int32), torch.empty(n + 1, dtype=torch.int32)
+        tcol, tval = torch.empty(nt_max, dtype=torch.int32), torch.empty(nt_max, dtype=torch.float32)
+        ptrs = [t.data_ptr() for t in (col4, val4, trow, tcrow, tcol, tval)]
+    else:
+        ptrs = [None] * 6
     lib.zh39o_rmatrix(n, S2, face.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), F.data_ptr(),
                       int(F.shape[0]), N, float(torch.tensor(1.0 / S2, dtype=torch.float32)), crow.data_ptr(),
-                      col.data_ptr(), val.data_ptr(), bad.data_ptr())
-    if int(bad[0]):
+                      col.data_ptr(), val.data_ptr(), *ptrs, cnt.data_ptr())
+    if int(cnt[0]):
         return None
     nnz = int(crow[-1])
     import warnings
 
     with warnings.catch_warnings():   # "sparse CSR support is in beta" (as `method._int32_csr`)
         warnings.simplefilter("ignore", UserWarning)
-        return torch.sparse_csr_tensor(crow, col[:nnz].clone(), val[:nnz].clone(), (n, N))
+        # (the entries' leading views, no copies: the pages past them were never touched, so never mapped)
+        S = torch.sparse_csr_tensor(crow, col[:nnz], val[:nnz], (n, N))
+    if not packed:
+        return S
+    T = int(cnt[1])
+    nt_ = int(tcrow[T])
+    return S, (n, N, col4, val4, trow[:T], tcrow[:T + 1], tcol[:nt_], tval[:nt_])

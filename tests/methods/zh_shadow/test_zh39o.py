@@ -67,10 +67,27 @@ def test_native_resolve_matrix_equals_gouraud(order8, spp):
     bary = torch.stack([u * 0.5, v * 0.5], 1)
     cases.append(dataclasses.replace(gb, face=face, hit=hit, bary=bary))
     cases.append(dataclasses.replace(gb, face=face, hit=hit, bary=bary.T.contiguous().T))   # column-major bary
-    for gbx in cases:
-        B = zn.resolve_matrix(F, gbx.face, gbx.bary, gbx.hit, gbx.height, gbx.width, gbx.spp_side, N)
+    # a degenerate face (a corner twice) under a whole pixel: its duplicates merged by the general path
+    Fd = F.clone()
+    fd = int(gb.face[gb.hit][0])
+    Fd[fd, 2] = Fd[fd, 0]
+    cases_F = [(F, g_) for g_ in cases] + [(Fd, cases[3])]
+    tails = 0
+    for Fx, gbx in cases_F:
+        B = zn.resolve_matrix(Fx, gbx.face, gbx.bary, gbx.hit, gbx.height, gbx.width, gbx.spp_side, N)
         assert B is not None
-        _same_csr(_oracle(F, gbx, N), B)
+        A = _oracle(Fx, gbx, N)
+        _same_csr(A, B)
+        # the packed form made in the same pass = `csr_pack` of the oracle's matrix, array for array
+        S, packed = zn.resolve_matrix(Fx, gbx.face, gbx.bary, gbx.hit, gbx.height, gbx.width, gbx.spp_side, N,
+                                      packed=True)
+        _same_csr(A, S)
+        ref = zn.csr_pack(A)
+        assert packed[:2] == ref[:2]
+        for x, y in zip(packed[2:], ref[2:]):
+            assert x.dtype == y.dtype and torch.equal(x, y)
+        tails += int(ref[4].numel())
+    assert tails > 0 or spp == 1   # (rows of more than four entries met)
 
 
 def test_native_resolve_matrix_declines(order8, monkeypatch):
@@ -108,7 +125,7 @@ def test_lighting_frames_with_native_matrix_equal_oracle(order8, kind, monkeypat
         pytest.skip("no C compiler")
     calls = []
     rm = zn.resolve_matrix
-    monkeypatch.setattr(zn, "resolve_matrix", lambda *a: calls.append(1) or rm(*a))
+    monkeypatch.setattr(zn, "resolve_matrix", lambda *a, **k: calls.append(1) or rm(*a, **k))
     fast, slow = order8.with_render_config(), order8.with_render_config()
     frames = make_sequence(order8.scene, kind, 4, seed=5)
     gb = knock_out(make_gbuffer(order8.scene, frames[0], 2), 11, 4)
@@ -120,4 +137,7 @@ def test_lighting_frames_with_native_matrix_equal_oracle(order8, kind, monkeypat
         assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
     assert fast._resolve_matrix is not None and fast._resolve_matrix[2] is not None
     _same_csr(slow._resolve_matrix[2], fast._resolve_matrix[2])
+    assert fast._resolve_packed[0] is fast._resolve_matrix[2]   # (the pass's packed form kept, not packed again)
+    for x, y in zip(fast._resolve_packed[1][2:], slow._resolve_packed[1][2:]):
+        assert torch.equal(x, y)
     assert len(calls) == 2   # (one build per object: fast's taken, slow's declined)
