@@ -361,6 +361,7 @@ class ZHShadow(Method):
         self._resolve_packed: tuple | None = None  # (that CSR, `native.csr_pack` of it or None)
         self._resolve_compact: tuple | None = None  # (that CSR, compact ids, `native.csr_compact` of the pack)
         self._view_args: tuple | None = None     # ((lighting, materials), `native.view_setup`): `_pass_setup`
+        self._albedo_rows: tuple | None = None   # (materials' albedos, kd (R, 3), ks (R, 3)): `_albedos`
         self._skin: tuple | None = None          # (scene, `native.skin_setup`, its vector layouts): `_posed_geometry`
         self._pose_libs_warm = False             # `native.warm_pose_libraries` called (`_render_vertex`)
         self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
@@ -452,6 +453,9 @@ class ZHShadow(Method):
     # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
     # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
     table_resolve = True
+    # a lighting-only frame's compact radiance and its resolve by one C call (`native.relight_resolve`, zh39o:
+    # float32 round-off from `_radiance_ranges` + `native.csr_product`, its oracle); off: those
+    fused_relight_vertex = True
     # A pose's product and eq. 1 (`_pose_visibility`) in one C call (`native.pose_sh`, zh36o: per vertex the
     # product's bits and `runtime._vertex_sh`'s operations, X laid out vertex-major): a vertex-shaded cosine P
     # frame's front-facing referenced columns, every vertex's otherwise (the paper configuration's P frames);
@@ -1361,10 +1365,14 @@ class ZHShadow(Method):
                 # range by range, scattered into zero rows (the others' radiance is zero) — no pass
                 # over the w of vertices facing away
                 idx, wf, cspans, tsc = cs
-                radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
-                if self.config["clamp"]:
-                    radTc.clamp_min_(0.0)
-                compact = (idx, radTc)   # (scattered into zero rows below, or read by the compact resolve)
+                if self.fused_relight_vertex and self.native_resolve:
+                    # (made with the resolve below by one C call where it runs, `native.relight_resolve`)
+                    compact = (idx, None)
+                else:
+                    radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
+                    if self.config["clamp"]:
+                        radTc.clamp_min_(0.0)
+                    compact = (idx, radTc)   # (scattered into zero rows below, or read by the compact resolve)
             elif spans is not None and all(isinstance(sp, tuple) or (sp.shape[0] and spans[r][0] <= int(sp[0])
                                                                    and int(sp[-1]) < spans[r][1])
                                          for r, (sp, _) in tsr.items()):
@@ -1432,7 +1440,17 @@ class ZHShadow(Method):
                 rc = self._resolve_compact
                 if rc is None or rc[0] is not rm[2] or rc[1] is not idx:
                     self._resolve_compact = rc = (rm[2], idx, zn.csr_compact(rp[1], idx))
-                out = zn.csr_product(rc[2], torch.cat([radTc, radTc.new_zeros(1, 3)]))
+                if radTc is None:   # the radiance and this product by one C call (`native.relight_resolve`)
+                    _, wf, cspans, tsc = cs
+                    out = zn.relight_resolve(light, *self._albedos(mats), cspans, wf, tsc,
+                                             bool(self.config["clamp"]), rc[2])
+                    if out is None:   # (it does not run here: the torch radiance, its oracle)
+                        radTc = self._radiance_ranges(light, mats, wf, cspans, tsc)
+                        if self.config["clamp"]:
+                            radTc.clamp_min_(0.0)
+                        compact = (idx, radTc)
+                if out is None:
+                    out = zn.csr_product(rc[2], torch.cat([radTc, radTc.new_zeros(1, 3)]))
             if out is None and compact is not None:
                 radT = torch.zeros(int(geom.num_vertices), 3, dtype=compact[1].dtype,
                                    device=dev).index_copy_(0, compact[0], compact[1])
@@ -1682,6 +1700,15 @@ class ZHShadow(Method):
                     b0, b1 = sp
                     radT[b0:b1].addmm_(t.T, light * ks.to(dev, light.dtype))
         return radT
+
+    def _albedos(self, mats: list) -> tuple[Tensor, Tensor]:
+        """(kd, ks) (regions, 3) float32 of ``mats`` (`_region_materials`), kept while they are equal."""
+        key = tuple((tuple(kd.tolist()), tuple(ks.tolist())) for kd, ks, _ in mats)
+        ab = self._albedo_rows
+        if ab is None or ab[0] != key:
+            self._albedo_rows = ab = (key, torch.tensor([k[0] for k in key], dtype=torch.float32).view(-1, 3),
+                                      torch.tensor([k[1] for k in key], dtype=torch.float32).view(-1, 3))
+        return ab[1], ab[2]
 
     def _region_spans(self, vreg: Tensor, regions: int) -> list[tuple[int, int]] | None:
         """Per region r < ``regions`` its vertices' range (a0, a1) (a1 = a0: none) when those ranges

@@ -4401,3 +4401,122 @@ def resolve_matrix(F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: i
     T = int(cnt[1])
     nt_ = int(tcrow[T])
     return S, (n, N, col4, val4, trow[:T], tcrow[:T + 1], tcol[:nt_], tval[:nt_])
+
+
+# --- a lighting-only vertex-shaded frame's radiance and resolve by one C call (zh39o) ---------------------
+#
+# A lighting-only order-8 frame under a kept resolve matrix and compact transfer (`ZHShadow._render_vertex`)
+# was ~15 torch ops — per region (l ⊙ kd / π)ᵀ w and (l ⊙ ks)ᵀ t_s by two MKL products, their sum copied
+# transposed, then a zero row appended and `csr_product` — each op after the suite's idle costing 2–10× its
+# warm time. Here one call: per compact column j of region r, x[j] = Σ_i (l ⊙ kd_r / π)[i] w[i, j]
+# (+ Σ_i (l ⊙ ks_r)[i] t_s[i, j − b0]), i ascending (not MKL's order: float32 round-off from the products'),
+# clamped if asked, x[Nc] = 0; then `zh_ell_rows`' product of the compact ELL matrix (`csr_compact`) — the
+# same sums in the same order as `csr_product` on those x.
+_RELIGHTV_SOURCE = r"""
+#include <stdint.h>
+
+/* light (n2, 3), kd / ks (nreg, 3), spans (nreg, 2) compact column ranges (tiling [0, Nc)), wf (n2, Nc),
+   tsp (nreg) addresses of t_s (n2, b1 − b0) or 0, inv_pi = (float)(1/π); x (Nc + 1, 3) written;
+   L (2 · n2 · 3) scratch. */
+void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
+                   const int64_t *spans, const float *wf, const int64_t *tsp, float inv_pi, int64_t clamp,
+                   float *x, float *L) {
+    for (int64_t r = 0; r < nreg; ++r) {
+        const int64_t b0 = spans[2 * r], b1 = spans[2 * r + 1];
+        if (b1 <= b0) continue;
+        const float *ts = (const float *)(intptr_t)tsp[r];
+        float *Ld = L, *Ls = L + 3 * n2;
+        for (int64_t i = 0; i < n2; ++i)
+            for (int c = 0; c < 3; ++c) {
+                Ld[3 * i + c] = light[3 * i + c] * (kd[3 * r + c] * inv_pi);
+                Ls[3 * i + c] = light[3 * i + c] * ks[3 * r + c];
+            }
+        const int64_t m = b1 - b0;
+        for (int64_t j0 = 0; j0 < m; j0 += 64) {
+            const int64_t jn = m - j0 < 64 ? m - j0 : 64;
+            float a0[64], a1[64], a2[64];
+            for (int64_t j = 0; j < jn; ++j) { a0[j] = 0.f; a1[j] = 0.f; a2[j] = 0.f; }
+            for (int64_t i = 0; i < n2; ++i) {
+                const float *w = wf + i * Nc + b0 + j0;
+                const float l0 = Ld[3 * i], l1 = Ld[3 * i + 1], l2 = Ld[3 * i + 2];
+                for (int64_t j = 0; j < jn; ++j) { a0[j] += l0 * w[j]; a1[j] += l1 * w[j]; a2[j] += l2 * w[j]; }
+            }
+            if (ts) {
+                float s0[64], s1[64], s2[64];
+                for (int64_t j = 0; j < jn; ++j) { s0[j] = 0.f; s1[j] = 0.f; s2[j] = 0.f; }
+                for (int64_t i = 0; i < n2; ++i) {
+                    const float *t = ts + i * m + j0;
+                    const float l0 = Ls[3 * i], l1 = Ls[3 * i + 1], l2 = Ls[3 * i + 2];
+                    for (int64_t j = 0; j < jn; ++j) { s0[j] += l0 * t[j]; s1[j] += l1 * t[j]; s2[j] += l2 * t[j]; }
+                }
+                for (int64_t j = 0; j < jn; ++j) { a0[j] += s0[j]; a1[j] += s1[j]; a2[j] += s2[j]; }
+            }
+            float *o = x + 3 * (b0 + j0);
+            for (int64_t j = 0; j < jn; ++j) {
+                float v0 = a0[j], v1 = a1[j], v2 = a2[j];
+                if (clamp) { v0 = v0 < 0.f ? 0.f : v0; v1 = v1 < 0.f ? 0.f : v1; v2 = v2 < 0.f ? 0.f : v2; }
+                o[3 * j] = v0; o[3 * j + 1] = v1; o[3 * j + 2] = v2;
+            }
+        }
+    }
+    x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
+}
+"""
+_RELIGHTV_SIGNATURES = {"zh39o_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P],
+                        "zh_ell_rows": [_I, _P, _P, _P, _P, _I, _I, _P, _P, _P, _P]}
+FUSED_RELIGHT_VERTEX = True   # `relight_resolve` (off: None — the caller's `_radiance_ranges` + `csr_product`)
+
+
+def _relightv_lib():
+    # (`_CSR_SOURCE`'s `zh_ell_rows` in the same library: the product's loop, the same source and flags)
+    return native.load("zh39o_relight", _CSR_SOURCE + _RELIGHTV_SOURCE, _RELIGHTV_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+
+
+def relight_resolve(light: Tensor, kd: Tensor, ks: Tensor, spans: list, wf: Tensor, tsc: dict, clamp: bool,
+                    packed: tuple) -> Tensor | None:
+    """The (R, 3) resolved image of a lighting-only vertex-shaded frame: the compact radiance of the columns
+    of wf (n², Nc) — per region r (kd, ks (nreg, 3) its albedos, ``spans`` its compact columns, tiling
+    [0, Nc)) (l ⊙ kd_r / π)ᵀ w (+ (l ⊙ ks_r)ᵀ t_s for tsc[r] = (its span, t_s (n², b1 − b0))), clamped at 0
+    if ``clamp`` — then `csr_product`(``packed``, [x; 0]) (``packed``: `csr_compact`'s, Nc + 1 columns), by
+    one C call (above): float32 round-off from `ZHShadow._radiance_ranges` + `csr_product`, its oracle. None
+    where it does not run (``FUSED_RELIGHT_VERTEX`` off, no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32
+    CPU arrays of these shapes, a part not its region's span)."""
+    if not FUSED_RELIGHT_VERTEX:
+        return None
+    lib = _relightv_lib() if terms_switched_on() else None
+    if lib is None:
+        return None
+    R, Ncp, col4, val4, trow, tcrow, tcol, tval = packed
+    n2, Nc = int(wf.shape[0]), int(wf.shape[1])
+    nreg = len(spans)
+    if Ncp != Nc + 1 or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in (light, kd, ks, wf)) \
+            or tuple(light.shape) != (n2, 3) or tuple(kd.shape) != (nreg, 3) or tuple(ks.shape) != (nreg, 3) \
+            or not wf.is_contiguous():
+        return None
+    sp = torch.tensor(spans, dtype=torch.int64).view(nreg, 2) if nreg else torch.zeros(0, 2, dtype=torch.int64)
+    if nreg and (int(sp[0, 0]) != 0 or int(sp[-1, 1]) != Nc or bool((sp[1:, 0] != sp[:-1, 1]).any())):
+        return None
+    tsp = torch.zeros(max(nreg, 1), dtype=torch.int64)
+    keep = []
+    for r, (span, t) in tsc.items():
+        if t is None:
+            continue
+        b0, b1 = spans[r]
+        if tuple(span) != (b0, b1) or t.dtype != torch.float32 or tuple(t.shape) != (n2, b1 - b0) \
+                or t.device.type != "cpu":
+            return None
+        t = t.contiguous()
+        keep.append(t)
+        tsp[r] = t.data_ptr()
+    light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
+    x = torch.empty(Nc + 1, 3, dtype=torch.float32)
+    L = torch.empty(2 * n2 * 3, dtype=torch.float32)
+    lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
+                      tsp.data_ptr(), float(torch.tensor(1.0 / math.pi, dtype=torch.float32)), int(bool(clamp)),
+                      x.data_ptr(), L.data_ptr())
+    out = torch.empty(R, 3, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
+    lib.zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
+                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+    return out

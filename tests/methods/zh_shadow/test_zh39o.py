@@ -141,3 +141,67 @@ def test_lighting_frames_with_native_matrix_equal_oracle(order8, kind, monkeypat
     for x, y in zip(fast._resolve_packed[1][2:], slow._resolve_packed[1][2:]):
         assert torch.equal(x, y)
     assert len(calls) == 2   # (one build per object: fast's taken, slow's declined)
+
+
+@pytest.mark.parametrize("clamp", [False, True])
+def test_fused_relight_equals_radiance_ranges_and_csr_product(order8, clamp, monkeypatch):
+    """Order-8 lighting-only frames (L, E; with misses; at 1 and 2 threads) with the radiance and resolve by one
+    C call (`native.relight_resolve`) = with `_radiance_ranges` + `csr_product` (``fused_relight_vertex`` off,
+    its oracle) to float32 round-off (the products summed in another order than MKL's: ≤ 8 ulps of the
+    image's largest value), the fused call taken on every lighting-only frame (the first builds the matrix). A wrong
+    albedo, a dropped specular part, a missed 1/π, a column or region off by one, a lost clamp or zero row
+    breaks it far past that."""
+    from methods.core.threads import torch_threads
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._relightv_lib() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(zn, "MIN_ROWS_PER_CSR_THREAD", 1)   # (test size: the product split over 2 threads too)
+    calls = []
+    rr = zn.relight_resolve
+    monkeypatch.setattr(zn, "relight_resolve", lambda *a: (lambda o: calls.append(o is not None) or o)(rr(*a)))
+    m = order8.with_render_config(clamp=clamp)
+    for kind in ("L", "E"):
+        fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
+        slow.fused_relight_vertex = False
+        frames = make_sequence(order8.scene, kind, 5, seed=7)
+        gb = knock_out(make_gbuffer(order8.scene, frames[0], 2), 13, 2)
+        c0 = len(calls)
+        for i, f in enumerate(frames):
+            a = fast.render(f, gb)
+            with torch_threads(2):
+                a2 = fast2.render(f, gb)
+            b = slow.render(f, gb)
+            tol = 8 * torch.finfo(torch.float32).eps * float(b.abs().max())
+            assert float((a - b).abs().max()) <= tol, (kind, i, float((a - b).abs().max()), tol)
+            assert torch.equal(a, a2), (kind, i)   # (the product's rows split over threads: the same sums)
+            if clamp:
+                assert float(a.min()) >= 0.0
+        assert calls[c0:] == [True] * 2 * (len(frames) - 1), (kind, calls[c0:])   # (frame 0 a full change)
+
+
+def test_fused_relight_declines(order8):
+    """None (the caller's torch path) for a part that is not its region's span, spans not tiling the columns,
+    float64 arrays, the switch off."""
+    if zn._relightv_lib() is None:
+        pytest.skip("no C compiler")
+    n2, Nc = 64, 10
+    light, kd, ks = torch.rand(n2, 3), torch.rand(2, 3), torch.rand(2, 3)
+    wf = torch.rand(n2, Nc)
+    packed = (4, Nc + 1, torch.zeros(4, 4, dtype=torch.int32), torch.zeros(4, 4), torch.zeros(0, dtype=torch.int32),
+              torch.zeros(1, dtype=torch.int32), torch.zeros(0, dtype=torch.int32), torch.zeros(0))
+    ok = zn.relight_resolve(light, kd, ks, [(0, 6), (6, 10)], wf, {1: ((6, 10), torch.rand(n2, 4))}, False, packed)
+    assert ok is not None and torch.equal(ok, torch.zeros(4, 3))
+    assert zn.relight_resolve(light, kd, ks, [(0, 6), (6, 10)], wf, {1: ((7, 10), torch.rand(n2, 3))}, False,
+                              packed) is None
+    assert zn.relight_resolve(light, kd, ks, [(0, 5), (6, 10)], wf, {}, False, packed) is None
+    assert zn.relight_resolve(light.double(), kd, ks, [(0, 6), (6, 10)], wf, {}, False, packed) is None
+    import methods.zh_shadow.native as nat
+
+    old = nat.FUSED_RELIGHT_VERTEX
+    nat.FUSED_RELIGHT_VERTEX = False
+    try:
+        assert zn.relight_resolve(light, kd, ks, [(0, 6), (6, 10)], wf, {}, False, packed) is None
+    finally:
+        nat.FUSED_RELIGHT_VERTEX = old
