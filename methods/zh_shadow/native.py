@@ -4297,6 +4297,8 @@ void zh39o_rmatrix(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hi
             col[e + 2] = (int32_t)i2; val[e + 2] = w2;
             e += 3;
         } else {
+            /* the distinct vertex ids met so far, ascending, each with its weights' running sum (in the
+               entries' order: what the stable sort then the in-order sums give) */
             int64_t k = 0;
             for (int64_t s = 0; s < S2; ++s) {
                 const int64_t q = q0 + s;
@@ -4308,19 +4310,17 @@ void zh39o_rmatrix(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hi
                 for (int cc = 0; cc < 3; ++cc) {
                     const int64_t vid = F[3 * f + cc];
                     if ((uint64_t)vid >= (uint64_t)N) { ++nb; continue; }
-                    /* stable insertion: after every entry of a vertex id <= vid */
                     int64_t j = k;
-                    while (j > 0 && ec[j - 1] > vid) { ec[j] = ec[j - 1]; ew[j] = ew[j - 1]; --j; }
+                    while (j > 0 && ec[j - 1] > vid) --j;
+                    if (j > 0 && ec[j - 1] == vid) { ew[j - 1] += w[cc]; continue; }
+                    for (int64_t i = k; i > j; --i) { ec[i] = ec[i - 1]; ew[i] = ew[i - 1]; }
                     ec[j] = vid; ew[j] = w[cc];
                     ++k;
                 }
             }
-            for (int64_t i = 0; i < k; ) {
-                const int64_t cv = ec[i];
-                float acc = ew[i];
-                for (++i; i < k && ec[i] == cv; ++i) acc += ew[i];
-                col[e] = (int32_t)cv;
-                val[e] = acc;
+            for (int64_t i = 0; i < k; ++i) {
+                col[e] = (int32_t)ec[i];
+                val[e] = ew[i];
                 ++e;
             }
         }
@@ -4415,61 +4415,107 @@ def resolve_matrix(F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: i
 _RELIGHTV_SOURCE = r"""
 #include <stdint.h>
 
+/* columns [j0, j0 + jn) (jn <= 64) of region r's range [b0, b1) of x: Σ_i Ld[i] w[i, j] (+ Σ_i Ls[i] t[i, j − b0])
+   i ascending, clamped if asked (the same expressions whatever thread runs the block) */
+static void relight_block(int64_t n2, int64_t Nc, const float *Ld, const float *Ls, const float *wf, const float *ts,
+                          int64_t b0, int64_t m, int64_t j0, int64_t jn, int64_t clamp, float *x) {
+    float a0[64], a1[64], a2[64];
+    for (int64_t j = 0; j < jn; ++j) { a0[j] = 0.f; a1[j] = 0.f; a2[j] = 0.f; }
+    for (int64_t i = 0; i < n2; ++i) {
+        const float *w = wf + i * Nc + b0 + j0;
+        const float l0 = Ld[3 * i], l1 = Ld[3 * i + 1], l2 = Ld[3 * i + 2];
+        for (int64_t j = 0; j < jn; ++j) { a0[j] += l0 * w[j]; a1[j] += l1 * w[j]; a2[j] += l2 * w[j]; }
+    }
+    if (ts) {
+        float s0[64], s1[64], s2[64];
+        for (int64_t j = 0; j < jn; ++j) { s0[j] = 0.f; s1[j] = 0.f; s2[j] = 0.f; }
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *t = ts + i * m + j0;
+            const float l0 = Ls[3 * i], l1 = Ls[3 * i + 1], l2 = Ls[3 * i + 2];
+            for (int64_t j = 0; j < jn; ++j) { s0[j] += l0 * t[j]; s1[j] += l1 * t[j]; s2[j] += l2 * t[j]; }
+        }
+        for (int64_t j = 0; j < jn; ++j) { a0[j] += s0[j]; a1[j] += s1[j]; a2[j] += s2[j]; }
+    }
+    float *o = x + 3 * (b0 + j0);
+    for (int64_t j = 0; j < jn; ++j) {
+        float v0 = a0[j], v1 = a1[j], v2 = a2[j];
+        if (clamp) { v0 = v0 < 0.f ? 0.f : v0; v1 = v1 < 0.f ? 0.f : v1; v2 = v2 < 0.f ? 0.f : v2; }
+        o[3 * j] = v0; o[3 * j + 1] = v1; o[3 * j + 2] = v2;
+    }
+}
+
 /* light (n2, 3), kd / ks (nreg, 3), spans (nreg, 2) compact column ranges (tiling [0, Nc)), wf (n2, Nc),
-   tsp (nreg) addresses of t_s (n2, b1 − b0) or 0, inv_pi = (float)(1/π); x (Nc + 1, 3) written;
-   L (2 · n2 · 3) scratch. */
+   tsp (nreg) addresses of t_s (n2, b1 − b0) or 0, inv_pi = (float)(1/π); x (Nc + 1, 3) written (row Nc
+   zero); L (nreg · 2 · n2 · 3) scratch; then out (R, 3) = the compact ELL matrix (col4, val4, the tails)
+   times x, as `zh_ell_rows` (its loops and expressions). One OpenMP region of nt threads: the column
+   blocks of 64 split over them, a barrier, then the rows. */
 void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
                    const int64_t *spans, const float *wf, const int64_t *tsp, float inv_pi, int64_t clamp,
-                   float *x, float *L) {
+                   float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out, int64_t nt,
+                   int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
+    int64_t nb = 0;
     for (int64_t r = 0; r < nreg; ++r) {
-        const int64_t b0 = spans[2 * r], b1 = spans[2 * r + 1];
-        if (b1 <= b0) continue;
-        const float *ts = (const float *)(intptr_t)tsp[r];
-        float *Ld = L, *Ls = L + 3 * n2;
+        float *Ld = L + r * 6 * n2, *Ls = Ld + 3 * n2;
         for (int64_t i = 0; i < n2; ++i)
             for (int c = 0; c < 3; ++c) {
                 Ld[3 * i + c] = light[3 * i + c] * (kd[3 * r + c] * inv_pi);
                 Ls[3 * i + c] = light[3 * i + c] * ks[3 * r + c];
             }
-        const int64_t m = b1 - b0;
-        for (int64_t j0 = 0; j0 < m; j0 += 64) {
-            const int64_t jn = m - j0 < 64 ? m - j0 : 64;
-            float a0[64], a1[64], a2[64];
-            for (int64_t j = 0; j < jn; ++j) { a0[j] = 0.f; a1[j] = 0.f; a2[j] = 0.f; }
-            for (int64_t i = 0; i < n2; ++i) {
-                const float *w = wf + i * Nc + b0 + j0;
-                const float l0 = Ld[3 * i], l1 = Ld[3 * i + 1], l2 = Ld[3 * i + 2];
-                for (int64_t j = 0; j < jn; ++j) { a0[j] += l0 * w[j]; a1[j] += l1 * w[j]; a2[j] += l2 * w[j]; }
-            }
-            if (ts) {
-                float s0[64], s1[64], s2[64];
-                for (int64_t j = 0; j < jn; ++j) { s0[j] = 0.f; s1[j] = 0.f; s2[j] = 0.f; }
-                for (int64_t i = 0; i < n2; ++i) {
-                    const float *t = ts + i * m + j0;
-                    const float l0 = Ls[3 * i], l1 = Ls[3 * i + 1], l2 = Ls[3 * i + 2];
-                    for (int64_t j = 0; j < jn; ++j) { s0[j] += l0 * t[j]; s1[j] += l1 * t[j]; s2[j] += l2 * t[j]; }
-                }
-                for (int64_t j = 0; j < jn; ++j) { a0[j] += s0[j]; a1[j] += s1[j]; a2[j] += s2[j]; }
-            }
-            float *o = x + 3 * (b0 + j0);
-            for (int64_t j = 0; j < jn; ++j) {
-                float v0 = a0[j], v1 = a1[j], v2 = a2[j];
-                if (clamp) { v0 = v0 < 0.f ? 0.f : v0; v1 = v1 < 0.f ? 0.f : v1; v2 = v2 < 0.f ? 0.f : v2; }
-                o[3 * j] = v0; o[3 * j + 1] = v1; o[3 * j + 2] = v2;
-            }
-        }
+        const int64_t m = spans[2 * r + 1] - spans[2 * r];
+        nb += m > 0 ? (m + 63) / 64 : 0;
     }
     x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
+#pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+#pragma omp for schedule(static)
+        for (int64_t k = 0; k < nb; ++k) {
+            int64_t r = 0, kk = k, m = 0;
+            for (; r < nreg; ++r) {   /* block k: the kk-th of region r */
+                m = spans[2 * r + 1] - spans[2 * r];
+                const int64_t c = m > 0 ? (m + 63) / 64 : 0;
+                if (kk < c) break;
+                kk -= c;
+            }
+            const int64_t j0 = kk * 64, jn = m - j0 < 64 ? m - j0 : 64;
+            const float *Ld = L + r * 6 * n2;
+            relight_block(n2, Nc, Ld, Ld + 3 * n2, wf, (const float *)(intptr_t)tsp[r], spans[2 * r], m, j0, jn,
+                          clamp, x);
+        }
+        /* (the implicit barrier: every x row written) */
+#pragma omp for schedule(static)
+        for (int64_t r = 0; r < R; ++r) {
+            const int32_t *c = col4 + 4 * r;
+            const float *w = val4 + 4 * r;
+            const float *v0 = x + 3 * (int64_t)c[0], *v1 = x + 3 * (int64_t)c[1];
+            const float *v2 = x + 3 * (int64_t)c[2], *v3 = x + 3 * (int64_t)c[3];
+            float a0 = 0.f, a1 = 0.f, a2 = 0.f;
+            a0 += w[0] * v0[0]; a1 += w[0] * v0[1]; a2 += w[0] * v0[2];
+            a0 += w[1] * v1[0]; a1 += w[1] * v1[1]; a2 += w[1] * v1[2];
+            a0 += w[2] * v2[0]; a1 += w[2] * v2[1]; a2 += w[2] * v2[2];
+            a0 += w[3] * v3[0]; a1 += w[3] * v3[1]; a2 += w[3] * v3[2];
+            out[3 * r] = a0; out[3 * r + 1] = a1; out[3 * r + 2] = a2;
+        }
+#pragma omp for schedule(static)
+        for (int64_t t = 0; t < T; ++t) {
+            float *o = out + 3 * (int64_t)trow[t];
+            float a0 = o[0], a1 = o[1], a2 = o[2];
+            for (int32_t e = tcrow[t]; e < tcrow[t + 1]; ++e) {
+                const float w = tval[e];
+                const float *v = x + 3 * (int64_t)tcol[e];
+                a0 += w * v[0]; a1 += w * v[1]; a2 += w * v[2];
+            }
+            o[0] = a0; o[1] = a1; o[2] = a2;
+        }
+    }
 }
 """
-_RELIGHTV_SIGNATURES = {"zh39o_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P],
-                        "zh_ell_rows": [_I, _P, _P, _P, _P, _I, _I, _P, _P, _P, _P]}
+_RELIGHTV_SIGNATURES = {"zh39o_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P,
+                                          _I, _P, _P, _P, _I, _I, _P, _P, _P, _P]}
 FUSED_RELIGHT_VERTEX = True   # `relight_resolve` (off: None — the caller's `_radiance_ranges` + `csr_product`)
 
 
 def _relightv_lib():
-    # (`_CSR_SOURCE`'s `zh_ell_rows` in the same library: the product's loop, the same source and flags)
-    return native.load("zh39o_relight", _CSR_SOURCE + _RELIGHTV_SOURCE, _RELIGHTV_SIGNATURES,
+    return native.load("zh39o_relight", _RELIGHTV_SOURCE, _RELIGHTV_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
 
 
@@ -4511,12 +4557,11 @@ def relight_resolve(light: Tensor, kd: Tensor, ks: Tensor, spans: list, wf: Tens
         tsp[r] = t.data_ptr()
     light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
     x = torch.empty(Nc + 1, 3, dtype=torch.float32)
-    L = torch.empty(2 * n2 * 3, dtype=torch.float32)
-    lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
-                      tsp.data_ptr(), float(torch.tensor(1.0 / math.pi, dtype=torch.float32)), int(bool(clamp)),
-                      x.data_ptr(), L.data_ptr())
+    L = torch.empty(max(nreg, 1) * 6 * n2, dtype=torch.float32)
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
-    lib.zh_ell_rows(R, col4.data_ptr(), val4.data_ptr(), x.data_ptr(), out.data_ptr(), nt, int(trow.numel()),
-                    trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+    lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
+                      tsp.data_ptr(), float(torch.tensor(1.0 / math.pi, dtype=torch.float32)), int(bool(clamp)),
+                      x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
+                      int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out

@@ -1611,6 +1611,8 @@ def test_resolve_packed_native_equals_csr_product(zh_scene, monkeypatch):
     slow = m.with_render_config()
     slow.native_resolve = False
     fast = m.with_render_config()
+    fast.fused_relight_vertex = False   # (zh39o: that one C call's radiance is float32 round-off from the
+    #                                     products', `test_zh39o.test_fused_relight_*`; here the product alone)
     for fr in make_sequence(scene, "L", 4, seed=3):
         gbf = make_gbuffer(scene, fr, 2)
         assert torch.equal(fast.render(fr, gbf), slow.render(fr, gbf))
