@@ -1649,7 +1649,10 @@ class ZHShadow(Method):
             idx = idx[sel]
             pos = torch.cat([sel.new_zeros(1, dtype=torch.int64), torch.cumsum(sel, 0)])
             cb = pos.index_select(0, bounds).tolist()   # (how many of the first b front columns are kept)
-            tsc = {r: ((cb[r], cb[r + 1]), t[:, sel[b0:b1]]) for r, ((b0, b1), t) in tsc.items()}
+            # (by index_select of the kept positions: the same columns as t[:, sel[b0:b1]], whose boolean
+            # advanced index took ~0.24 against 0.05 ms for a bench specular part, 1 thread)
+            tsc = {r: ((cb[r], cb[r + 1]), t.index_select(1, sel[b0:b1].nonzero().squeeze(1)))
+                   for r, ((b0, b1), t) in tsc.items()}
             cspans = list(zip(cb[:-1], cb[1:]))
         out = (idx, w.index_select(1, idx), cspans, tsc)
         self._vertex_compact = (vt, w, out)
