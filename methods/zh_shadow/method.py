@@ -100,6 +100,7 @@ from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
 from methods.zh_shadow import native as zn
+from methods.zh_shadow import native39s as z39
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -909,7 +910,10 @@ class ZHShadow(Method):
             found[:] = [r]
             return r[0], r[1]
 
-        sc = zn.screen8(nrm.T)
+        # (the screened points split over the threads where it runs, `native39s.screen8`: the same counts)
+        sc = z39.screen8(nrm.T) if self.threaded_helpers else None
+        if sc is None:
+            sc = zn.screen8(nrm.T)
         if sc is None:
             return None
         try:
@@ -924,15 +928,25 @@ class ZHShadow(Method):
         m = P - cnt                           # the samples off the plane (the misses among them)
         if m - nmiss <= 0:
             return None
-        if m >= rt.PLANAR_MIN_POINTS:         # a second plane among them: `_native_split`'s test, screened
-            rs = zn.rest_screen(mask, nrm, m)
+        hit_arg = None if nmiss == 0 else hit
+        N = int(v.shape[0])
+        # `threaded_helpers`: the second plane's screen and, for a frame that will build its own table of the
+        # referenced vertices (`_vertex_table`'s ``refs`` case), those vertices, in one threaded pass over the
+        # samples off the plane (`native39s.rest_lut`: the same counts, vertices and lut); else the serial helpers
+        want_lut = self.threaded_helpers and self.referenced_table and not frame.changed <= {"view"} \
+            and self._vtable is not None and m - nmiss >= VERTEX_TABLE_POINTS * N
+        screen = m >= rt.PLANAR_MIN_POINTS
+        pre = z39.rest_lut(mask, hit_arg, nrm, gbuffer.face, F32, N, m, screen, want_lut) \
+            if self.threaded_helpers and (screen or want_lut) else None
+        found_lut = None if pre is None else pre[1]
+        if screen:                            # a second plane among them: `_native_split`'s test, screened
+            rs = pre[0] if pre is not None else zn.rest_screen(mask, nrm, m)
             if rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs):
                 return None
-        hit_arg = None if nmiss == 0 else hit
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, first[0], spec=spec)
-        N = int(v.shape[0])
         U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
-                               refs=lambda: zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N))
+                               refs=lambda: found_lut if found_lut is not None else
+                               zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N))
         if U is None:
             return None
         lut = None
@@ -956,6 +970,11 @@ class ZHShadow(Method):
         self.last_path = "planes"
         self.last_fused = True
         return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # `_fused_planes`' one-thread helpers as threaded passes (`native39s`: `screen8`, and `rest_screen` with
+    # `referenced_lut` in one walk over the samples off the plane; the same counts and vertices); False: the
+    # serial helpers of `native` (the tests' oracle)
+    threaded_helpers = True
 
     # `_fused_planes`' plane term for the regions without a specular term alone (`_plane_term`'s ``spec``, zh38v:
     # the same rows); False: every vertex's (the tests' oracle)
