@@ -849,6 +849,58 @@ def env_rows(st: EnvStack, width: int) -> Tensor:
     return st.rows[width]
 
 
+# -- the mirror direction's lat-long angles as float32 polynomials (session 39, pt39) --------------
+#
+# Before, `_mirror_uv` called torch.atan2 / torch.acos, which Inductor vectorises as Sleef's 1-ulp
+# (double-float) routines, and the native cells (``native.shade_mirror``) called the same Sleef
+# functions through libtorch_cpu to keep the compiled kernel's bits: ~1.3 of the chess bench cells'
+# ~1.8 ms (1 thread). Now the ONE formula of the mirror look-up evaluates Cephes' single-precision
+# minimax polynomials in plain float32 arithmetic (atanf on |t| <= tan π/8 after one reduction; asinf
+# on |x| <= 1/2, the half-angle identity above it; one division and one square root per sample, no
+# tables; the triple product's footprint kernel uses the same ones, ``triple_product.lighting``).
+# Every step is an IEEE float32 operation (products, sums, one division, one square root, compares
+# and selects; Inductor and the native loop are both compiled without FMA contraction), so the
+# compiled kernel, the eager form and ``native.cells8`` / ``cells16`` (the same operations in the same
+# order) give the same bits — the fast path stays bit-identical to the reference, which reads its
+# maps through this function too. Accuracy (tested, ``test_fast.py``): within a few float32 ulps of
+# the float64 angle of the float32 input, as Sleef's (pt38 found that ANY change of the angle's last
+# bit moves a look-up by a texel's contrast, which is why both paths must share the formula).
+
+
+def atan2_poly(y: Tensor, x: Tensor) -> Tensor:
+    """atan2(y, x) in [−π, π] as float32 polynomials (comment above): the octant reduction t = min /
+    max of |x|, |y| (t → (t − 1)/(t + 1), + π/4, above tan π/8; the same one division), Cephes' atanf
+    polynomial, then the quadrant. atan2(±0, x < 0) = ±π, atan2(0, 0) = 0 (x = −0: π, as ATen's
+    only for y = +0; the same lat-long u mod 1)."""
+    ax, ay = x.abs(), y.abs()
+    mn, mx = torch.minimum(ax, ay), torch.maximum(ax, ay)
+    c = mn > mx * 0.41421356237309503                                      # t > tan(π/8)
+    num = torch.where(c, mn - mx, mn)
+    den = torch.where(c, mn + mx, mx)
+    t = num / torch.where(den > 0.0, den, 1.0)
+    z = t * t
+    p = (((z * 0.0805374449538 - 0.138776856032) * z + 0.199777106478) * z - 0.333329491539) * z * t + t
+    r = torch.where(c, p + 0.7853981633974483, p)
+    r = torch.where(ay > ax, 1.5707963267948966 - r, r)
+    r = torch.where(x < 0.0, 3.141592653589793 - r, r)
+    return torch.where(y < 0.0, -r, r)
+
+
+def acos_poly(y: Tensor) -> Tensor:
+    """acos(y) for y in [−1, 1] as float32 polynomials (comment above): Cephes' asinf polynomial on
+    |y| <= 1/2 (acos = π/2 − asin), 2·asin(√((1 − |y|)/2)) above; acos(−y) = π − acos(y)."""
+    a = y.abs()
+    big = a > 0.5
+    z = torch.where(big, 0.5 - a * 0.5, a * a)
+    # √z through float64: correctly rounded (as the compiled kernel's and the native loop's float32
+    # square root) in eager torch too, whose float32 sqrt is not (an ulp off for ~20 % of inputs)
+    s = torch.where(big, z.double().sqrt().float(), a)
+    p = ((((z * 0.042163199048 + 0.024181311049) * z + 0.045470025998) * z + 0.074953002686) * z
+         + 0.16666752422) * z * s + s
+    r = torch.where(big, p * 2.0, 1.5707963267948966 - p)
+    return torch.where(y < 0.0, 3.141592653589793 - r, r)
+
+
 def _mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Tensor]:
     """`specular.mirror_dirs` then `specular._latlong_uv` as one loop (for ``core.fused``): normal,
     wo (Q, 3), to_world (3, 3) → the lat-long coordinates (u, v) (Q,) each of the unit mirror
@@ -863,8 +915,8 @@ def _mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Te
     lx = rx * m[0, 0] + ry * m[1, 0] + rz * m[2, 0]  # local = to_worldᵀ R (EnvMap.to_local)
     ly = rx * m[0, 1] + ry * m[1, 1] + rz * m[2, 1]
     lz = rx * m[0, 2] + ry * m[1, 2] + rz * m[2, 2]
-    u = torch.atan2(lx, -lz) * (0.5 / math.pi)
-    v = torch.acos(ly.clamp(-1.0, 1.0)) * (1.0 / math.pi)
+    u = atan2_poly(lx, -lz) * (0.5 / math.pi)
+    v = acos_poly(ly.clamp(-1.0, 1.0)) * (1.0 / math.pi)
     return u, v
 
 
@@ -889,7 +941,13 @@ def mirror_uv(normal: Tensor, wo: Tensor, to_world: Tensor) -> tuple[Tensor, Ten
     `specular.mirror_dirs` + `specular._latlong_uv` to a few ulps (and the cells equal except
     within a few ulps of a boundary). Measured on the chess bench V frame (262 144 samples, 1
     thread, CPU time): 2.5 ms vs 2.9 ms eager (its strided (Q, 3) loads make it cost as much as the
-    eager passes); the win is that the cells and the gathers after it become one compiled loop."""
+    eager passes); the win is that the cells and the gathers after it become one compiled loop.
+
+    Session 39 (pt39): the angles are `atan2_poly` / `acos_poly` (float32 polynomials, comment above
+    them) instead of torch.atan2 / torch.acos: this compiled function now equals its eager form
+    `_mirror_uv` bit for bit (tested), the native cells evaluate the same polynomials (their bits
+    tested against this function's cells), and (u, v) stay within the few-ulp tolerance of the eager
+    library formula above."""
     q = int(normal.shape[0])
     B = sample_block(q)
     return map_rows(mirror_uv_block, [normal, wo], (to_world.to(normal).contiguous(),), chunk=B, warm=warm_sizes(B))

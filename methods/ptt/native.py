@@ -94,6 +94,21 @@ reference on sphere_plane's test V frame by 2.0e-4 (3.6e-5 relative, `test_fast_
 1e-5); and ``vertex_rows`` software-pipelined (block b + 1's offsets and prefetches before block b's rows:
 cold 1.00 -> 1.05 ms, warm 0.311 -> 0.312 ms: its misses are not what the prefetch distance limits).
 
+Session 39 (pt39): the cells' lat-long angles are float32 polynomials (``fast.acos_poly`` /
+``fast.atan2_poly``, Cephes' asinf / atanf; ``pacos8`` / ``patan2_8`` / ``pacos16`` / ``patan2_16``) — pt38's
+way round its dropped attempt: not the native loop alone but THE formula, ``fast._mirror_uv``, which the
+reference's look-ups read too, so the fast path keeps the compiled kernel's bits (tested, on 8 and 16
+lanes) and the compiled function now equals its eager form bit for bit (tested). The angles are within
+1.35 ulps (acos) and 2.9 ulps / 2.6e-7 rad (atan2) of the float64 angle (Sleef's: 0.79 / 1.48 ulps,
+2.5e-7 rad; tested with bounds 1.5 and 3 ulps). Against a3a1740, same process, 1 thread, process CPU:
+the cells alone (``python -m benchmarks.ptt_cells_micro --base B``, 2^18 samples) 0.81 -> 0.55 ms
+(1.47x; A/A 1.01x); the chess sample stage (``benchmarks.ptt_sample_ab``, 10 rounds) 1.10x; frames
+(``benchmarks.ptt_ab --base B --precompute-code B --kinds V VB --frames 17 --threads 1``) chess V 1.08x,
+VB 1.05x, creature V 1.10x, VB 1.07x (A/A chess 1.00x / 0.99x). Images: not the base's bits — the
+angles moved by their round-off, max |base - new| 2.4e-7 / 3.6e-7 (chess V / VB, peak 1.3 / 1.6),
+9.5e-7 (creature, peak 3.8). ``vertex_rows`` keeps the Sleef calls (its pair cells' reference is the
+compiled ``fast._pair_cells``; ~4 300 pairs a bench frame: a few µs of calls at the cells' rate).
+
 The library is built and loaded by `methods.core.native.load` (per-user private cache directory, keyed
 by the source text, flags and compiler; atomic rename); without a compiler, on a failed build or with
 ``PRTBENCH_COMPILE=0``, `available` is False and the caller uses ``fast.shade_block``. Building it
@@ -334,9 +349,10 @@ int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs
 
 /* fast._mirror_cells on AVX2, 8 samples per step, with Inductor's vector operations one for one (its
    generated kernel for the compiled function: the same products, sums, divisions, the maximum /
-   minimum that propagate NaN, truncating conversions) and the same Sleef acos / atan2 (passed in: the
-   functions ATen's Vectorized<float> calls, resolved from libtorch_cpu), so the cells and fractions
-   are the compiled kernel's bits. native_cells_ok() is 0 when not built for AVX2. */
+   minimum that propagate NaN, truncating conversions) and, since session 39, the same polynomial acos /
+   atan2 (fast.acos_poly / atan2_poly: pacos8 / patan2_8 below; before, the Sleef functions ATen's
+   Vectorized<float> calls, passed in — vertex_rows still calls those), so the cells and fractions are
+   the compiled kernel's bits. native_cells_ok() is 0 when not built for AVX2. */
 #if defined(__AVX2__)
 #include <immintrin.h>
 typedef __m256 (*vf1)(__m256);
@@ -376,6 +392,45 @@ static inline void aos3(const float* p, __m256* x, __m256* y, __m256* z) {
     *y = _mm256_permutevar8x32_ps(ty, _mm256_setr_epi32(1, 4, 7, 2, 5, 0, 3, 6));
     *z = _mm256_permutevar8x32_ps(tz, _mm256_setr_epi32(2, 5, 0, 3, 6, 1, 4, 7));
 }
+/* fast.acos_poly of y (clamped to [-1, 1]) and fast.atan2_poly(y, x) on 8 lanes: the compiled kernel's
+   float32 operations one for one, in its order (ATen's vec256: abs as and-not of the sign, neg as xor,
+   maximum / minimum OR-ing the NaN mask, ordered compares, blendv on the compare's mask; Inductor's
+   generated kernel of fast._mirror_cells read for this) — the same bits on any lane width. */
+#define PC8(c) _mm256_set1_ps((float)(c))
+static inline __m256 pacos8(__m256 y) {
+    const __m256 sign = _mm256_set1_ps(-0.f), half = _mm256_set1_ps(0.5f);
+    const __m256 a = _mm256_andnot_ps(sign, y);
+    const __m256 big = _mm256_cmp_ps(a, half, _CMP_GT_OQ);
+    const __m256 z = _mm256_blendv_ps(_mm256_mul_ps(a, a), _mm256_sub_ps(half, _mm256_mul_ps(a, half)), big);
+    __m256 q = _mm256_add_ps(_mm256_mul_ps(z, PC8(0.042163199048)), PC8(0.024181311049));
+    q = _mm256_add_ps(_mm256_mul_ps(q, z), PC8(0.045470025998));
+    q = _mm256_add_ps(_mm256_mul_ps(q, z), PC8(0.074953002686));
+    q = _mm256_add_ps(_mm256_mul_ps(q, z), PC8(0.16666752422));
+    q = _mm256_mul_ps(q, z);
+    const __m256 s = _mm256_blendv_ps(a, _mm256_sqrt_ps(z), big);
+    const __m256 p = _mm256_add_ps(_mm256_mul_ps(q, s), s);
+    const __m256 r = _mm256_blendv_ps(_mm256_sub_ps(PC8(1.5707963267948966), p), _mm256_mul_ps(p, PC8(2.0)), big);
+    return _mm256_blendv_ps(r, _mm256_sub_ps(PC8(3.141592653589793), r), _mm256_cmp_ps(y, _mm256_setzero_ps(), _CMP_LT_OQ));
+}
+static inline __m256 patan2_8(__m256 y, __m256 x) {
+    const __m256 sign = _mm256_set1_ps(-0.f), zero = _mm256_setzero_ps();
+    const __m256 ax = _mm256_andnot_ps(sign, x), ay = _mm256_andnot_ps(sign, y);
+    const __m256 mn = vmin(ax, ay), mx = vmax(ax, ay);
+    const __m256 c = _mm256_cmp_ps(mn, _mm256_mul_ps(mx, PC8(0.41421356237309503)), _CMP_GT_OQ);
+    const __m256 num = _mm256_blendv_ps(mn, _mm256_sub_ps(mn, mx), c);
+    __m256 den = _mm256_blendv_ps(mx, _mm256_add_ps(mn, mx), c);
+    den = _mm256_blendv_ps(PC8(1.0), den, _mm256_cmp_ps(den, zero, _CMP_GT_OQ));
+    const __m256 t = _mm256_div_ps(num, den), z = _mm256_mul_ps(t, t);
+    __m256 q = _mm256_sub_ps(_mm256_mul_ps(z, PC8(0.0805374449538)), PC8(0.138776856032));
+    q = _mm256_add_ps(_mm256_mul_ps(q, z), PC8(0.199777106478));
+    q = _mm256_sub_ps(_mm256_mul_ps(q, z), PC8(0.333329491539));
+    q = _mm256_mul_ps(_mm256_mul_ps(q, z), t);
+    const __m256 p = _mm256_add_ps(q, t);
+    __m256 r = _mm256_blendv_ps(p, _mm256_add_ps(p, PC8(0.7853981633974483)), c);
+    r = _mm256_blendv_ps(r, _mm256_sub_ps(PC8(1.5707963267948966), r), _mm256_cmp_ps(ay, ax, _CMP_GT_OQ));
+    r = _mm256_blendv_ps(r, _mm256_sub_ps(PC8(3.141592653589793), r), _mm256_cmp_ps(x, zero, _CMP_LT_OQ));
+    return _mm256_blendv_ps(r, _mm256_xor_ps(sign, r), _mm256_cmp_ps(y, zero, _CMP_LT_OQ));
+}
 /* samples [i0, i0 + m) (m a multiple of 8): normal component c of sample i at nrm[i * ns + c * nc],
    wo's at wo[i * ws + c * wc]; m (3, 3) to_world row-major; out r, fx, fy from index 0. */
 static void cells8(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
@@ -395,7 +450,9 @@ static void cells8(const float* nrm, int64_t ns, int64_t nc, const float* wo, in
        block's acos calls back to back, its atan2 calls, and the cells — the same operations per lane as
        one pass per vector (the same bits). Session 28 (ptt28): the calls' spills and the serial
        dependence of one vector's arithmetic on the previous call were the cost; the chess / creature
-       bench sample stage (1 thread, process CPU, 0.2 s settle, alternating) 1.086x / 1.078x. */
+       bench sample stage (1 thread, process CPU, 0.2 s settle, alternating) 1.086x / 1.078x. Session 39:
+       with the inline polynomials one pass per vector (cells16 with blocks of 1 vector) measured the
+       same (chess sample stage 1.005x, noise), so the sweeps stay. */
     __m256 A[64], X[64], Z[64];
     for (int64_t o0 = 0; o0 < m; o0 += 512) {
         const int64_t nv = (m - o0 < 512 ? m - o0 : 512) / 8;
@@ -425,9 +482,9 @@ static void cells8(const float* nrm, int64_t ns, int64_t nc, const float* wo, in
             Z[k] = _mm256_xor_ps(negz, _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, M[2]), _mm256_mul_ps(ay, M[5])), _mm256_mul_ps(az, M[8])));
         }
         for (int64_t k = 0; k < nv; ++k)
-            A[k] = vacos(A[k]);
+            A[k] = pacos8(A[k]);
         for (int64_t k = 0; k < nv; ++k)
-            X[k] = vatan2(X[k], Z[k]);
+            X[k] = patan2_8(X[k], Z[k]);
         for (int64_t k = 0; k < nv; ++k) {
             const int64_t o = o0 + 8 * k;
             const __m256 v = _mm256_mul_ps(A[k], cpi);
@@ -448,8 +505,8 @@ static void cells8(const float* nrm, int64_t ns, int64_t nc, const float* wo, in
 /* The AVX-512 twin of cells8 for hosts where Inductor vectorises for AVX-512 (16 lanes): its generated
    kernel of fast._mirror_cells is the same operations on __m512 (ATen's vec512: _mm512 products, sums,
    divisions, rsqrt as 1 / sqrt, the maximum / minimum that OR in an all-ones NaN mask, floor as
-   roundscale, truncating conversions, int32 min / max / mullo) and Sleef_acosf16_u10 /
-   Sleef_atan2f16_u10 (passed in, from libtorch_cpu: the symbols its kernel links to). m a multiple of
+   roundscale, truncating conversions, int32 min / max / mullo) and the polynomial acos / atan2
+   (pacos16 / patan2_16; before session 39 Sleef_acosf16_u10 / Sleef_atan2f16_u10). m a multiple of
    8: a last vector of 8 samples reads its lanes 8..15 from the last sample and stores only 8 (each
    lane's result depends on its own inputs only). */
 typedef __m512 (*wf1)(__m512);
@@ -487,6 +544,42 @@ static inline void aos3_16(const float* p, __m512* x, __m512* y, __m512* z) {
     *x = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, ax, m1), bx, m2);
     *y = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, ay, m1), by, m2);
     *z = _mm512_permutex2var_ps(_mm512_permutex2var_ps(m0, az, m1), bz, m2);
+}
+/* pacos8 / patan2_8 on 16 lanes (ATen's vec512: compares as masks, blends on them) */
+#define PC16(c) _mm512_set1_ps((float)(c))
+static inline __m512 pacos16(__m512 y) {
+    const __m512 half = _mm512_set1_ps(0.5f);
+    const __m512 a = _mm512_abs_ps(y);
+    const __mmask16 big = _mm512_cmp_ps_mask(a, half, _CMP_GT_OQ);
+    const __m512 z = _mm512_mask_blend_ps(big, _mm512_mul_ps(a, a), _mm512_sub_ps(half, _mm512_mul_ps(a, half)));
+    __m512 q = _mm512_add_ps(_mm512_mul_ps(z, PC16(0.042163199048)), PC16(0.024181311049));
+    q = _mm512_add_ps(_mm512_mul_ps(q, z), PC16(0.045470025998));
+    q = _mm512_add_ps(_mm512_mul_ps(q, z), PC16(0.074953002686));
+    q = _mm512_add_ps(_mm512_mul_ps(q, z), PC16(0.16666752422));
+    q = _mm512_mul_ps(q, z);
+    const __m512 s = _mm512_mask_blend_ps(big, a, _mm512_sqrt_ps(z));
+    const __m512 p = _mm512_add_ps(_mm512_mul_ps(q, s), s);
+    const __m512 r = _mm512_mask_blend_ps(big, _mm512_sub_ps(PC16(1.5707963267948966), p), _mm512_mul_ps(p, PC16(2.0)));
+    return _mm512_mask_blend_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_LT_OQ), r, _mm512_sub_ps(PC16(3.141592653589793), r));
+}
+static inline __m512 patan2_16(__m512 y, __m512 x) {
+    const __m512 zero = _mm512_setzero_ps();
+    const __m512 ax = _mm512_abs_ps(x), ay = _mm512_abs_ps(y);
+    const __m512 mn = wmin(ax, ay), mx = wmax(ax, ay);
+    const __mmask16 c = _mm512_cmp_ps_mask(mn, _mm512_mul_ps(mx, PC16(0.41421356237309503)), _CMP_GT_OQ);
+    const __m512 num = _mm512_mask_blend_ps(c, mn, _mm512_sub_ps(mn, mx));
+    __m512 den = _mm512_mask_blend_ps(c, mx, _mm512_add_ps(mn, mx));
+    den = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(den, zero, _CMP_GT_OQ), PC16(1.0), den);
+    const __m512 t = _mm512_div_ps(num, den), z = _mm512_mul_ps(t, t);
+    __m512 q = _mm512_sub_ps(_mm512_mul_ps(z, PC16(0.0805374449538)), PC16(0.138776856032));
+    q = _mm512_add_ps(_mm512_mul_ps(q, z), PC16(0.199777106478));
+    q = _mm512_sub_ps(_mm512_mul_ps(q, z), PC16(0.333329491539));
+    q = _mm512_mul_ps(_mm512_mul_ps(q, z), t);
+    const __m512 p = _mm512_add_ps(q, t);
+    __m512 r = _mm512_mask_blend_ps(c, p, _mm512_add_ps(p, PC16(0.7853981633974483)));
+    r = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(ay, ax, _CMP_GT_OQ), r, _mm512_sub_ps(PC16(1.5707963267948966), r));
+    r = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(x, zero, _CMP_LT_OQ), r, _mm512_sub_ps(PC16(3.141592653589793), r));
+    return _mm512_mask_blend_ps(_mm512_cmp_ps_mask(y, zero, _CMP_LT_OQ), r, _mm512_xor_ps(_mm512_set1_ps(-0.f), r));
 }
 static void cells16(const float* nrm, int64_t ns, int64_t nc, const float* wo, int64_t ws, int64_t wc,
                     const float* mm, int64_t H, int64_t W, wf1 vacos, wf2 vatan2, int64_t i0, int64_t m,
@@ -532,9 +625,9 @@ static void cells16(const float* nrm, int64_t ns, int64_t nc, const float* wo, i
             Z[k] = _mm512_xor_ps(negz, _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ax, M[2]), _mm512_mul_ps(ay, M[5])), _mm512_mul_ps(az, M[8])));
         }
         for (int64_t k = 0; k < nv; ++k)
-            A[k] = vacos(A[k]);
+            A[k] = pacos16(A[k]);
         for (int64_t k = 0; k < nv; ++k)
-            X[k] = vatan2(X[k], Z[k]);
+            X[k] = patan2_16(X[k], Z[k]);
         for (int64_t k = 0; k < nv; ++k) {
             const int64_t o = o0 + 16 * k, cnt = len - 16 * k < 16 ? len - 16 * k : 16;
             const __mmask16 st = (__mmask16)((1u << cnt) - 1u);

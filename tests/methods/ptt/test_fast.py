@@ -432,6 +432,67 @@ def test_mirror_uv_is_the_eager_formula_to_round_off():
     assert torch.equal(idx[far], idx_e[far])
 
 
+def _ulps(got: torch.Tensor, want64: torch.Tensor) -> torch.Tensor:
+    """|got − want64| in float32 ulps of the float64 value (the spacing above its float32 rounding)."""
+    w = want64.abs().float()
+    return (got.double() - want64).abs() / (torch.nextafter(w, torch.full_like(w, math.inf)) - w).double()
+
+
+def test_lat_long_polynomials_are_within_a_few_ulps():
+    """`fast.acos_poly` / `fast.atan2_poly` (the mirror look-up's lat-long angles, session 39: float32
+    polynomials instead of torch.acos / torch.atan2, so that the compiled kernel, the eager form and
+    the native cells share one formula bit for bit) are as accurate as the float32 library calls:
+    acos within 1.5 ulps of the float64 acos of the float32 input over every 64th float32 of [−1, 1]
+    (torch.acos: 0.79; the polynomial measured 1.35), atan2 within 3 ulps and 2.7e-7 rad over 2^21
+    (y, x) of magnitudes 1e-9..1e9 and the axes, octant diagonals and the tan π/8 reduction boundary
+    (torch.atan2: 1.48 ulps, 2.5e-7 rad; the polynomial measured 2.9 ulps, 2.6e-7 rad) — and their
+    special values: acos(±1), acos(0), atan2 on the axes."""
+    from methods.ptt import fast as F
+
+    y = torch.arange(0, 0x3F800001, 64, dtype=torch.int64).to(torch.int32).view(torch.float32)
+    for c in torch.cat([y, -y]).split(1 << 21):
+        assert float(_ulps(F.acos_poly(c), torch.acos(c.double())).max()) <= 1.5
+    ends = torch.tensor([1.0, -1.0, 0.0, -0.0, 0.5, -0.5])
+    assert torch.equal(F.acos_poly(ends), torch.tensor([0.0, math.pi, math.pi / 2, math.pi / 2, math.pi / 3,
+                                                        2 * math.pi / 3]))
+    g = torch.Generator().manual_seed(17)
+    n = 1 << 21
+    d = torch.randn(n, 2, generator=g, dtype=torch.float64) * torch.exp(torch.randn(n, 1, generator=g,
+                                                                                     dtype=torch.float64) * 7)
+    d = d.clamp(-1e9, 1e9).float()
+    t8 = math.tan(math.pi / 8)
+    m = torch.rand(4096, generator=g) + 0.5
+    special = [(m, m), (-m, m), (m, -m), (-m, -m), (m * t8, m), (m, m * t8), (-m * t8, -m), (m * 0, m), (m * 0, -m),
+               (m, m * 0), (-m, m * 0), (m * t8 * (1 + 1e-7), m), (m * t8 * (1 - 1e-7), -m)]
+    yy = torch.cat([d[:, 0]] + [a for a, _ in special])
+    xx = torch.cat([d[:, 1]] + [b for _, b in special])
+    got, want = F.atan2_poly(yy, xx), torch.atan2(yy.double(), xx.double())
+    assert float(_ulps(got, want).max()) <= 3.0
+    assert float((got.double() - want).abs().max()) <= 2.7e-7
+    axes = F.atan2_poly(torch.tensor([0.0, 0.0, 1.0, -1.0, 0.0]), torch.tensor([1.0, -1.0, 0.0, 0.0, 0.0]))
+    assert torch.equal(axes, torch.tensor([0.0, math.pi, math.pi / 2, -math.pi / 2, 0.0]))
+
+
+def test_mirror_uv_compiled_is_the_eager_formula_bit_for_bit():
+    """The compiled `fast.mirror_uv` (what the reference and the fast path read the maps with) equals
+    its eager form `fast._mirror_uv` bit for bit (float32 products, sums, one division, correctly
+    rounded square roots, compares and selects, no FMA contraction: the same bits in Inductor's
+    kernel and in eager torch — which is why acos_poly takes its square root through float64)."""
+    from methods.ptt import fast as F
+
+    g = torch.Generator().manual_seed(19)
+    n = 40_000 + 3
+    normal = torch.randn(n, 3, generator=g) * (0.5 + torch.rand(n, 1, generator=g))
+    normal[::997] = torch.tensor([0.0, 1.0, 0.0])
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    wo[::997] = torch.tensor([0.0, 1.0, 0.0])
+    for _ in range(2):
+        to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
+        u, v = F.mirror_uv(normal, wo, to_world)
+        ue, ve = F._mirror_uv(normal, wo, to_world)
+        assert torch.equal(u, ue) and torch.equal(v, ve)
+
+
 def test_mirror_cells_are_the_reference_cells():
     """`fast.mirror_cells_block` (what the compiled sample stage reads: the lat-long cell of the mirror
     direction, computed in the loop that computes it) gives exactly the cell of ``specular._uv_cells``
@@ -650,7 +711,8 @@ def test_pixel_stage_takes_the_native_loop_with_the_same_bits(monkeypatch):
 
 def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
     """``native.mirror_cells`` (Inductor's vector operations one for one for the ISA it vectorises for
-    here — AVX2, 8 lanes, or AVX-512, 16 —, the same Sleef acos / atan2) gives the bits of the compiled
+    here — AVX2, 8 lanes, or AVX-512, 16 —, the same polynomial acos / atan2; on an AVX-512 build the
+    AVX2 body too) gives the bits of the compiled
     `fast.mirror_cells_block` — first row, fx, fy — on two grids and rotations, with the normals
     row-major and the view directions as the G-buffer stores them (columns of a (3, n) array) or
     row-major, n a multiple of 8 but not of 16 (AVX-512: a last vector of 8 samples, as the compiled
@@ -673,13 +735,20 @@ def test_native_mirror_cells_are_the_compiled_cells_bit_for_bit(monkeypatch):
     # the normals row-major (the G-buffer's: the deinterleaving loads, ``aos3``), as columns of a (3, n)
     # array and with a row stride of 4 (the one-float-at-a-time loads)
     layouts = (normal, normal.T.contiguous().T, torch.cat([normal, torch.zeros(n, 1)], 1)[:, :3])
+    sl = N._sleef()
+    # the cells of the ISA Inductor vectorises for, and the AVX2 body (cells8) where the library is built for
+    # AVX-512 too: the polynomial angles are the same bits on 8 or 16 lanes
+    bodies = [sl] + ([(sl[0], sl[1], 0)] if sl[2] else [])
     for (H, W), w in (((256, 512), wo.T.contiguous().T), ((33, 70), wo)):  # the G-buffer's wo layout; row-major
         to_world = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float().contiguous()
         want = F.mirror_cells_block(normal, w, to_world, H, W)
-        for nrm in layouts:
-            got = N.mirror_cells(nrm, w, to_world, H, W)
-            assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
-            assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
+        for body in bodies:
+            monkeypatch.setattr(N, "_sleef", lambda body=body: body)
+            for nrm in layouts:
+                got = N.mirror_cells(nrm, w, to_world, H, W)
+                assert got[0].dtype == torch.int32 and torch.equal(got[0], want[0])
+                assert all(torch.equal(a[ok], b[ok]) for a, b in zip(got[1:], want[1:]))
+        monkeypatch.setattr(N, "_sleef", lambda: sl)
     assert N.mirror_cells(normal[:12], wo[:12], to_world, H, W) is None  # not a multiple of 8
 
     monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
