@@ -1,5 +1,5 @@
 """Micro-benchmark of `_fused_planes`' helpers (zh39s): the serial `native.screen8` + `native.rest_screen` +
-`native.referenced_lut` against the threaded `native39s.screen8` + `native39s.rest_lut` on a real frame's
+`native.referenced_lut` against the threaded `native_threaded.screen8` + `native_threaded.rest_lut` on a real frame's
 arrays (bench creature, the paper configuration, a VL frame's G-buffer and plane mask), alternating, medians of
 wall and process CPU time per call set, at each of ``--threads``.
 
@@ -26,7 +26,7 @@ def main(argv=None):
                          "cold caches")
     a = ap.parse_args(argv)
     from benchmarks.common import precomputed, setup
-    from methods.zh_shadow import native as zn, native39s as z39
+    from methods.zh_shadow import native as zn, native_threaded as z39
     from methods.zh_shadow.method import ZHShadow
 
     scene, _, _, _ = setup("creature", "bench", kind="V", n_frames=1)

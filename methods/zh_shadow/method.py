@@ -100,7 +100,7 @@ from methods.core.sh_rotation import rotate_coeffs
 from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_to_sh
 from methods.zh_shadow import precompute as pc
 from methods.zh_shadow import native as zn
-from methods.zh_shadow import native39s as z39
+from methods.zh_shadow import native_threaded as z39
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -910,7 +910,7 @@ class ZHShadow(Method):
             found[:] = [r]
             return r[0], r[1]
 
-        # (the screened points split over the threads where it runs, `native39s.screen8`: the same counts)
+        # (the screened points split over the threads where it runs, `native_threaded.screen8`: the same counts)
         sc = z39.screen8(nrm.T) if self.threaded_helpers else None
         if sc is None:
             sc = zn.screen8(nrm.T)
@@ -932,7 +932,7 @@ class ZHShadow(Method):
         N = int(v.shape[0])
         # `threaded_helpers`: the second plane's screen and, for a frame that will build its own table of the
         # referenced vertices (`_vertex_table`'s ``refs`` case), those vertices, in one threaded pass over the
-        # samples off the plane (`native39s.rest_lut`: the same counts, vertices and lut); else the serial helpers
+        # samples off the plane (`native_threaded.rest_lut`: the same counts, vertices and lut); else the serial helpers
         want_lut = self.threaded_helpers and self.referenced_table and not frame.changed <= {"view"} \
             and self._vtable is not None and m - nmiss >= VERTEX_TABLE_POINTS * N
         screen = m >= rt.PLANAR_MIN_POINTS
@@ -971,7 +971,7 @@ class ZHShadow(Method):
         self.last_fused = True
         return img.view(gbuffer.height, gbuffer.width, 3)
 
-    # `_fused_planes`' one-thread helpers as threaded passes (`native39s`: `screen8`, and `rest_screen` with
+    # `_fused_planes`' one-thread helpers as threaded passes (`native_threaded`: `screen8`, and `rest_screen` with
     # `referenced_lut` in one walk over the samples off the plane; the same counts and vertices); False: the
     # serial helpers of `native` (the tests' oracle)
     threaded_helpers = True

@@ -653,7 +653,7 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
     from methods.zh_shadow import native as zn
     orig_lut = zn.referenced_lut   # (the fused pass's: the same vertices, found through the mask)
     monkeypatch.setattr(zn, "referenced_lut", lambda *a: calls.append(a[-1]) or orig_lut(*a))
-    from methods.zh_shadow import native39s as z39
+    from methods.zh_shadow import native_threaded as z39
     orig_rl = z39.rest_lut   # (zh39s: the same vertices found with the second plane's screen, `threaded_helpers`)
     monkeypatch.setattr(z39, "rest_lut", lambda *a: (a[-1] and calls.append(a[5])) or orig_rl(*a))
     for fr in make_sequence(m.scene, kind, 3, seed=8):

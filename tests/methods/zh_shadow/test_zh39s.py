@@ -1,4 +1,4 @@
-"""Session 39 (zh39s): `_fused_planes`' one-thread helpers as threaded passes (`native39s`: `screen8`, and
+"""Session 39 (zh39s): `_fused_planes`' one-thread helpers as threaded passes (`native_threaded`: `screen8`, and
 `rest_screen` with `referenced_lut` in one walk, `ZHShadow.threaded_helpers`) against the serial helpers of
 `native` (the oracle): the same counts, vertices and lut at 1, 2 and 3 threads (ranges split where the ranks,
 the every-16th screen rows and the 8 candidates cross them), the same failures, and frames equal bit for bit."""
@@ -10,7 +10,7 @@ import torch
 from methods.core.threads import torch_threads
 from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import native as zn
-from methods.zh_shadow import native39s as z39
+from methods.zh_shadow import native_threaded as z39
 
 SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
 
@@ -33,7 +33,7 @@ def _masks(g, P):
 
 @pytest.mark.parametrize("P", (4999, 65536 + 13))
 def test_rest_lut_equals_serial_helpers(monkeypatch, P):
-    """`native39s.rest_lut` = (`native.rest_screen`, `native.referenced_lut`) for random and run-length masks,
+    """`native_threaded.rest_lut` = (`native.rest_screen`, `native.referenced_lut`) for random and run-length masks,
     with and without hits, the screen and the lut each on and off, a wrong count m (None), a corner outside
     [0, N) and a face outside [0, M) (no lut), at 1, 2 and 3 threads."""
     _skip_unless_native()
@@ -74,7 +74,7 @@ def test_rest_lut_equals_serial_helpers(monkeypatch, P):
 
 
 def test_screen8_equals_serial(monkeypatch):
-    """`native39s.screen8` = `native.screen8` on strided and contiguous rows, counts off the 16-point grid and
+    """`native_threaded.screen8` = `native.screen8` on strided and contiguous rows, counts off the 16-point grid and
     short ones, at 1, 2 and 3 threads."""
     _skip_unless_native()
     monkeypatch.setattr(z39, "MIN_SAMPLES_PER_THREAD", 100)

@@ -1,6 +1,6 @@
-"""Session 39 (zh39s): the fused plane path's one-thread helpers (`native.screen8`, `native.rest_screen`,
+"""The fused plane path's one-thread helpers (`native.screen8`, `native.rest_screen`,
 `native.referenced_lut`) as OpenMP passes — the serial part of the paper configuration's P / V / VB / VBL / VL
-frames at 2 threads (~0.45 ms of a ~3.5 ms VL frame, session 38's zh38v stage timer).
+frames at 2 threads (session 39; ~0.45 ms of a ~3.5 ms VL frame, session 38's zh38v stage timer).
 
 * `rest_lut`: `native.rest_screen` and `native.referenced_lut` in one call — both walk the samples off the
   plane mask; here one walk over them, split over the threads (each thread first counts the mask's zeros
