@@ -968,8 +968,12 @@ def vis_bits(Vt: Tensor) -> Tensor:
 # Pairs below which one thread projects (a hand-off costs more than the share).
 MIN_PAIRS_PER_THREAD = 256
 # The comb loops at 2+ threads (session 39): blocks of this many (base row, triangle) items handed out
-# dynamically (the same bits: each item's sums in one thread); 0: contiguous ranges, one a thread.
-COMB_BLOCK = 64
+# dynamically (the same bits: each item's sums in one thread); 0: contiguous ranges, one a thread — the
+# default: the static halves differ by 4-8 % at 1 thread, but the comb pass alone at 2 threads (host at
+# load ~2, `benchmarks.tp_passes_ab`) read 0.92x / 0.90x / 0.82x with blocks of 64 / 512 / 2048 items
+# (1.58x only under heavy contention); consecutive items share their comb-table rows, which a thread's
+# contiguous range keeps in its cache.
+COMB_BLOCK = 0
 # `project` at 2+ threads (session 39): blocks of this many pairs handed out dynamically (the same bits:
 # each pair's sums in one thread); 0: contiguous ranges, one a thread — the default: the two halves of a
 # creature bench VL frame's pairs cost the same within 0.7 % at 1 thread (`tp_passes_ab` could not time
