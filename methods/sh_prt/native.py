@@ -384,11 +384,12 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
 /* A lighting-only frame's glossy samples (`method._relight_add`) from the packed relight cache
    (`relight_pack`): per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)] floats;
    o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
-   img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the block's samples s < Q, ascending. */
-void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, const int64_t *pix, float inv,
-                    float *img) {
+   img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the samples s in [a, b), ascending
+   (the blocks that hold them computed whole: a block's values do not depend on the range). */
+static void relight_range(int64_t a, int64_t b, int64_t n2, const float *blk, const float *l, const int64_t *pix,
+                          float inv, float *img) {
     const int64_t bs = (2 * n2 + 6) * 8;
-    for (int64_t q0 = 0; q0 < Q; q0 += 8) {
+    for (int64_t q0 = a - a % 8; q0 < b; q0 += 8) {
         const float *bk = blk + (q0 / 8) * bs;
         v8 d0 = {0}, d1 = {0}, d2 = {0}, g0 = {0}, g1 = {0}, g2 = {0};
         for (int64_t i = 0; i < n2; ++i) {
@@ -401,14 +402,32 @@ void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, con
         const v8 r0 = *(const v8 *)(k) * d0 + *(const v8 *)(k + 24) * g0;
         const v8 r1 = *(const v8 *)(k + 8) * d1 + *(const v8 *)(k + 32) * g1;
         const v8 r2 = *(const v8 *)(k + 16) * d2 + *(const v8 *)(k + 40) * g2;
-        const int64_t nb = Q - q0 < 8 ? Q - q0 : 8;
-        for (int64_t b = 0; b < nb; ++b) {
-            float *o = img + 3 * pix[q0 + b];
-            o[0] += (r0[b] < 0.f ? 0.f : r0[b]) * inv;
-            o[1] += (r1[b] < 0.f ? 0.f : r1[b]) * inv;
-            o[2] += (r2[b] < 0.f ? 0.f : r2[b]) * inv;
+        const int64_t b0 = q0 < a ? a - q0 : 0, nb = b - q0 < 8 ? b - q0 : 8;
+        for (int64_t s = b0; s < nb; ++s) {
+            float *o = img + 3 * pix[q0 + s];
+            o[0] += (r0[s] < 0.f ? 0.f : r0[s]) * inv;
+            o[1] += (r1[s] < 0.f ? 0.f : r1[s]) * inv;
+            o[2] += (r2[s] < 0.f ? 0.f : r2[s]) * inv;
         }
     }
+}
+
+/* session 39: the samples [0, Q) split over nt threads at PIXEL boundaries (pix ascending: the split
+   Q k / nt moved on while the pixel repeats), so that each pixel's samples are added in ascending order by
+   one thread — the same sums in the same order as one thread: the same bits at any thread count (the
+   pass was serial: ~1.1 ms of a creature bench L / E frame at 2 threads). */
+static int64_t relight_split(int64_t Q, int64_t k, int64_t nt, const int64_t *pix) {
+    int64_t s = Q * k / nt;
+    while (s > 0 && s < Q && pix[s] == pix[s - 1]) ++s;
+    return s;
+}
+
+void sh_relight_add(int64_t Q, int64_t n2, const float *blk, const float *l, const int64_t *pix, float inv,
+                    float *img, int64_t nt) {
+    if (nt <= 1) { relight_range(0, Q, n2, blk, l, pix, inv, img); return; }
+    #pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k)
+        relight_range(relight_split(Q, k, nt, pix), relight_split(Q, k + 1, nt, pix), n2, blk, l, pix, inv, img);
 }
 
 /* l' = M l at the listed rows from a VERTEX-major grey M (Vg, n², n²) (row r's matrix one
@@ -737,13 +756,17 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
-               "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P],
+               "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I, _I],
                "sh_view": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P, _I,
                            _I, _P, _I, _P, _P, _I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _I, _P]}
 MAX_N2 = 64                     # acc's size: orders up to 8
 MIN_ROWS_PER_THREAD = 256       # rows below which one thread does the sums
+# `relight_add` split over torch's threads at pixel boundaries (session 39; the same bits: each pixel's
+# samples added in order by one thread); False: one thread (the pass before session 39)
+RELIGHT_THREADS = True
+MIN_RELIGHT_PER_THREAD = 1024   # glossy samples below which one thread does the pass
 # The glossy pass with its multiply-adds fused where the build has FMA (`gl_range`; float32 round-off
 # from the unfused loop, which False restores). Creature bench V frame's glossy samples, 1 thread,
 # process CPU, same process alternating: 1.08x the pass.
@@ -1007,7 +1030,9 @@ def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bo
     if int(pix[0]) < 0 or int(pix[-1]) >= img.shape[0]:
         raise IndexError("a sample outside the image")
     lc = l.contiguous()
-    lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr())
+    # session 39: split over the threads at pixel boundaries (the same bits at any thread count)
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_RELIGHT_PER_THREAD)) if RELIGHT_THREADS else 1
+    lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr(), nt)
     return True
 
 

@@ -318,29 +318,40 @@ void tp_groups(int64_t g, int64_t n, const float* V, const int64_t* vrow, const 
 }
 
 /* tp_points / tp_groups over [0, b) items on nt threads of OpenMP's team (the libgomp torch loaded:
-   the threads Inductor's kernels use), thread k the items [b k / nt, b (k + 1) / nt). */
+   the threads Inductor's kernels use): blk <= 0, thread k the items [b k / nt, b (k + 1) / nt); blk > 0
+   (session 39), blocks of blk items handed out dynamically — a thread that shares its core with other
+   work (the harness's, another process's) takes fewer blocks instead of holding the region's end. Each
+   point's sums in one thread either way: the same bits. */
+#define POINTS_SPLIT(CALL)                                                                         \
+    if (blk > 0) {                                                                                 \
+        const int64_t nb = (b + blk - 1) / blk;                                                    \
+        _Pragma("omp parallel for num_threads(nt) schedule(dynamic, 1)")                           \
+        for (int64_t q = 0; q < nb; ++q) {                                                         \
+            const int64_t a = q * blk, e = a + blk < b ? a + blk : b;                              \
+            CALL;                                                                                  \
+        }                                                                                          \
+    } else {                                                                                       \
+        _Pragma("omp parallel for num_threads(nt) schedule(static, 1)")                            \
+        for (int64_t k = 0; k < nt; ++k) {                                                         \
+            const int64_t a = b * k / nt, e = b * (k + 1) / nt;                                    \
+            CALL;                                                                                  \
+        }                                                                                          \
+    }
 void tp_points_par(int64_t b, int64_t n, const float* V, const int64_t* vrow, const float* vw,
                    const float* R, const int64_t* brow, const float* bw,
                    const float* L, const int64_t* lrow, const float* lw,
-                   const int64_t* ptr, const int32_t* starts, const int32_t* tail, float* out, int64_t nt) {
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
-        const int64_t a = b * k / nt, e = b * (k + 1) / nt;
-        tp_points(e - a, n, V, vrow + a, vw + a, R, brow + 4 * a, bw + 4 * a, L, lrow + 4 * a, lw + 4 * a,
-                  ptr, starts, tail, out + 3 * a);
-    }
+                   const int64_t* ptr, const int32_t* starts, const int32_t* tail, float* out, int64_t nt,
+                   int64_t blk) {
+    POINTS_SPLIT(tp_points(e - a, n, V, vrow + a, vw + a, R, brow + 4 * a, bw + 4 * a, L, lrow + 4 * a, lw + 4 * a,
+                           ptr, starts, tail, out + 3 * a))
 }
 void tp_points_cm_par(int64_t b, int64_t n, const float* V, const int64_t* vrow, const float* vw,
                       const float* R, const int64_t* brow, const float* bw,
                       const float* L, const int64_t* lrow, const float* lw,
                       const int64_t* ptr, const int32_t* starts, const int32_t* tail, float* out, int64_t layout,
-                      int64_t nt) {
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
-        const int64_t a = b * k / nt, e = b * (k + 1) / nt;
-        tp_points_cm(e - a, n, V, vrow + a, vw + a, R, brow + 4 * a, bw + 4 * a, L, lrow + 4 * a, lw + 4 * a,
-                     ptr, starts, tail, out + 3 * a, layout);
-    }
+                      int64_t nt, int64_t blk) {
+    POINTS_SPLIT(tp_points_cm(e - a, n, V, vrow + a, vw + a, R, brow + 4 * a, bw + 4 * a, L, lrow + 4 * a,
+                              lw + 4 * a, ptr, starts, tail, out + 3 * a, layout))
 }
 void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, const float* R,
                    const int64_t* brow, const float* L, const int64_t* lrow, const int64_t* ptr,
@@ -357,21 +368,28 @@ void tp_groups_par(int64_t g, int64_t n, const float* V, const int64_t* vrow, co
    counts[0] = the hit samples, counts[1] = -1 when a hit sample's face or a seen face's vertex is
    outside its table (the marks then undefined), else 0. */
 void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf, const int64_t* F, int64_t nv,
-                  uint8_t* fseen, uint8_t* vseen, int64_t* counts) {
+                  uint8_t* fseen, uint8_t* vseen, int64_t* counts, int64_t nt) {
+    /* session 39: the samples, then the faces, split over nt threads (the marks are 1 or untouched, stored
+       relaxed-atomically: the same marks and counts at any thread count; this ran on one thread,
+       ~0.3-0.4 ms of a creature bench vertex frame) */
     int64_t h = 0, bad = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+:h) reduction(|:bad) if (nt > 1)
     for (int64_t i = 0; i < P; ++i) {
         if (!hit[i]) continue;
         const int64_t f = face[i];
         ++h;
         if ((uint64_t)f >= (uint64_t)nf) { bad = 1; continue; }
-        fseen[f] = 1;
+        __atomic_store_n(fseen + f, (uint8_t)1, __ATOMIC_RELAXED);
     }
-    for (int64_t f = 0; f < nf && !bad; ++f) {
-        if (!fseen[f]) continue;
-        for (int k = 0; k < 3; ++k) {
-            const int64_t v = F[3 * f + k];
-            if ((uint64_t)v >= (uint64_t)nv) { bad = 1; break; }
-            vseen[v] = 1;
+    if (!bad) {
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(|:bad) if (nt > 1)
+        for (int64_t f = 0; f < nf; ++f) {
+            if (!fseen[f]) continue;
+            for (int k = 0; k < 3; ++k) {
+                const int64_t v = F[3 * f + k];
+                if ((uint64_t)v >= (uint64_t)nv) { bad = 1; break; }
+                __atomic_store_n(vseen + v, (uint8_t)1, __ATOMIC_RELAXED);
+            }
         }
     }
     counts[0] = h;
@@ -382,8 +400,8 @@ void tp_hit_faces(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf
    lists (nf + nv) int64: the seen faces in order at lists[0 ..), the seen vertices in order at
    lists[nf ..); counts[2], counts[3] their numbers (what torch.nonzero of the marks gives). */
 void tp_hit_lists(int64_t P, const uint8_t* hit, const int64_t* face, int64_t nf, const int64_t* F, int64_t nv,
-                  uint8_t* seen, int64_t* lists, int64_t* counts) {
-    tp_hit_faces(P, hit, face, nf, F, nv, seen, seen + nf, counts);
+                  uint8_t* seen, int64_t* lists, int64_t* counts, int64_t nt) {
+    tp_hit_faces(P, hit, face, nf, F, nv, seen, seen + nf, counts, nt);
     if (counts[1] != 0) return;
     int64_t k = 0;
     for (int64_t f = 0; f < nf; ++f)
@@ -537,14 +555,14 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
                "tp_points": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_groups": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
                "tp_groups2": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P],
-               "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
+               "tp_points_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I],
                "tp_points_cm": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
-               "tp_points_cm_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I],
+               "tp_points_cm_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _I, _I],
                "tp_chunk_major": [_I, _I, _P, _P],
                "tp_pack_chunks": [_I, _I, _P, _P, _P, _P],
                "tp_groups_par": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I],
-               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
-               "tp_hit_lists": [_I, _P, _P, _I, _P, _I, _P, _P, _P],
+               "tp_hit_faces": [_I, _P, _P, _I, _P, _I, _P, _P, _P, _I],
+               "tp_hit_lists": [_I, _P, _P, _I, _P, _I, _P, _P, _P, _I],
                "tp_resolve": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
                "tp_vertex_lookups": [_I, _P, _P, _P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]}
 
@@ -624,6 +642,12 @@ def _rows_ok(rows: Tensor, N: int) -> bool:
 
 # Items below which one thread does the sums (a hand-off costs more than the share).
 MIN_ITEMS_PER_THREAD = 256
+# `points` at 2+ threads (session 39): blocks of this many points handed out dynamically (the same bits:
+# each point's sums in one thread); 0: the static split, thread k the points [b k / nt, b (k + 1) / nt).
+POINTS_BLOCK = 64
+# `hit_faces`' marks split over torch's threads (session 39); False: one thread (the loop before).
+HIT_THREADS = True
+MIN_HIT_SAMPLES_PER_THREAD = 16384
 
 
 def _threads(b: int) -> int:
@@ -742,9 +766,9 @@ def points(V: Tensor | None, R: Tensor, L: Tensor, vrow: Tensor, vw: Tensor, bro
     if layout:
         if v_packed is not None:
             args = (args[0], args[1], v_packed.data_ptr(), *args[3:])
-        lib.tp_points_cm(*args, layout) if nt == 1 else lib.tp_points_cm_par(*args, layout, nt)
+        lib.tp_points_cm(*args, layout) if nt == 1 else lib.tp_points_cm_par(*args, layout, nt, POINTS_BLOCK)
     else:
-        lib.tp_points(*args) if nt == 1 else lib.tp_points_par(*args, nt)
+        lib.tp_points(*args) if nt == 1 else lib.tp_points_par(*args, nt, POINTS_BLOCK)
     return out
 
 
@@ -857,12 +881,14 @@ def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Te
             or not (hit.is_contiguous() and face.is_contiguous() and F.is_contiguous()):
         return None
     nf = F.shape[0]
+    # session 39: the marks over the threads (`HIT_THREADS`; the same marks and lists at any thread count)
+    nt = max(1, min(torch.get_num_threads(), hit.numel() // MIN_HIT_SAMPLES_PER_THREAD)) if HIT_THREADS else 1
     if HIT_LISTS:   # the two lists made by the C loop too (`tp_hit_lists`): no torch.nonzero passes (~0.2 ms)
         seen = torch.zeros(nf + nv, dtype=torch.uint8)
         lists = torch.empty(nf + nv, dtype=torch.int64)
         counts = torch.zeros(4, dtype=torch.int64)
         lib.tp_hit_lists(hit.numel(), hit.data_ptr(), face.data_ptr(), nf, F.data_ptr(), nv, seen.data_ptr(),
-                         lists.data_ptr(), counts.data_ptr())
+                         lists.data_ptr(), counts.data_ptr(), nt)
         h, bad, kf, kv = counts.tolist()
         if bad != 0:
             raise IndexError("a hit sample's face or a face's vertex outside its table")
@@ -871,7 +897,7 @@ def hit_faces(hit: Tensor, face: Tensor, F: Tensor, nv: int) -> tuple[Tensor, Te
     vseen = torch.zeros(nv, dtype=torch.uint8)
     counts = torch.zeros(2, dtype=torch.int64)
     lib.tp_hit_faces(hit.numel(), hit.data_ptr(), face.data_ptr(), nf, F.data_ptr(), nv, fseen.data_ptr(),
-                     vseen.data_ptr(), counts.data_ptr())
+                     vseen.data_ptr(), counts.data_ptr(), nt)
     if int(counts[1]) != 0:
         raise IndexError("a hit sample's face or a face's vertex outside its table")
     return (torch.nonzero(fseen, as_tuple=False).squeeze(-1), torch.nonzero(vseen, as_tuple=False).squeeze(-1),

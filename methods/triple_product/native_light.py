@@ -528,9 +528,20 @@ void tp_project(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const fl
     }
 }
 
-/* tp_project over np pairs on nt threads of OpenMP's team (thread k the pairs [np k / nt, np (k + 1) / nt)). */
+/* tp_project over np pairs on nt threads of OpenMP's team: blk <= 0, thread k the pairs [np k / nt,
+   np (k + 1) / nt); blk > 0 (session 39), blocks of blk pairs handed out dynamically (each pair's sums in
+   one thread either way: the same bits). */
 void tp_project_par(int64_t np, const int64_t* pairs, int64_t n, int64_t S, const float* M, const float* cp,
-                    const float* wT, int64_t H, int64_t W, const float* Q, float* out, int64_t nt) {
+                    const float* wT, int64_t H, int64_t W, const float* Q, float* out, int64_t nt, int64_t blk) {
+    if (blk > 0) {
+        const int64_t nb = (np + blk - 1) / blk;
+#pragma omp parallel for num_threads(nt) schedule(dynamic, 1)
+        for (int64_t q = 0; q < nb; ++q) {
+            const int64_t a = q * blk, e = a + blk < np ? a + blk : np;
+            tp_project(e - a, pairs + a, n, S, M, cp, wT, H, W, Q, out);
+        }
+        return;
+    }
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
     for (int64_t k = 0; k < nt; ++k) {
         const int64_t a = np * k / nt, e = np * (k + 1) / nt;
@@ -767,7 +778,7 @@ static void comb_items(int64_t i0, int64_t i1, const int64_t* items, const uint6
 
 static void comb_pairs_body(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J,
                             int64_t B, const int32_t* o, const float* w4, const float* CT, int64_t m, float* out,
-                            int64_t nt, int64_t* status, const comb_uv* uv) {
+                            int64_t nt, int64_t blk, int64_t* status, const comb_uv* uv) {
     if (J > 64) { status[0] = -1; return; }
     uint64_t* mask = (uint64_t*)calloc((size_t)(B * n), sizeof(uint64_t));
     int64_t* items = (int64_t*)malloc((size_t)(B * n + 1) * sizeof(int64_t));
@@ -789,6 +800,12 @@ static void comb_pairs_body(int64_t np, const int64_t* pairs, int64_t n, int64_t
         if (mask[it]) items[ni++] = it;
     if (nt <= 1 || ni < 2 * nt) {
         comb_items(0, ni, items, mask, n, S, n_psi, J, o, w4, CT, m, out, uv);
+    } else if (blk > 0) {       /* session 39: blocks of blk items handed out dynamically (the same bits) */
+        const int64_t nb = (ni + blk - 1) / blk;
+#pragma omp parallel for num_threads(nt) schedule(dynamic, 1)
+        for (int64_t q = 0; q < nb; ++q)
+            comb_items(q * blk, (q + 1) * blk < ni ? (q + 1) * blk : ni, items, mask, n, S, n_psi, J, o, w4, CT, m,
+                       out, uv);
     } else {
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
         for (int64_t q = 0; q < nt; ++q)
@@ -801,8 +818,8 @@ static void comb_pairs_body(int64_t np, const int64_t* pairs, int64_t n, int64_t
 
 void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
                    const int32_t* o, const float* w4, const float* CT, int64_t m, float* out, int64_t nt,
-                   int64_t* status) {
-    comb_pairs_body(np, pairs, n, S, n_psi, J, B, o, w4, CT, m, out, nt, status, NULL);
+                   int64_t blk, int64_t* status) {
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, o, w4, CT, m, out, nt, blk, status, NULL);
 }
 
 /* tp_comb_pairs with each listed item's taps made in the loop from its samples' base coordinates
@@ -811,10 +828,10 @@ void tp_comb_pairs(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64
    offsets and (B, n, S, 4) weights are neither written nor read back. S <= 64. */
 void tp_comb_pairs_uv(int64_t np, const int64_t* pairs, int64_t n, int64_t S, int64_t n_psi, int64_t J, int64_t B,
                       const double* u0, const float* v0, const float* wT, double g, int64_t H, int64_t W,
-                      const float* CT, int64_t m, float* out, int64_t nt, int64_t* status) {
+                      const float* CT, int64_t m, float* out, int64_t nt, int64_t blk, int64_t* status) {
     if (S > 64) { status[0] = -3; return; }
     const comb_uv uv = {u0, v0, wT, g, H, W};
-    comb_pairs_body(np, pairs, n, S, n_psi, J, B, NULL, NULL, CT, m, out, nt, status, &uv);
+    comb_pairs_body(np, pairs, n, S, n_psi, J, B, NULL, NULL, CT, m, out, nt, blk, status, &uv);
 }
 
 /* lighting.box_filtered of texels d (H, W, C) float32 (k >= 2 dividing H and W) into out (H/k, W/k, C):
@@ -822,12 +839,10 @@ void tp_comb_pairs_uv(int64_t np, const int64_t* pairs, int64_t n, int64_t S, in
    then those k column sums in column order, times 1 / k^2, rounded to float32 once — the torch
    loop's operations in its order, the same bits (no contraction in this library). One output row
    of column sums (W C doubles) at a time. status[0]: 0, -2 out of memory. */
-void tp_box(int64_t H, int64_t W, int64_t C, int64_t k, const float* d, float* out, int64_t* status) {
+static void box_rows(int64_t I0, int64_t I1, int64_t W, int64_t C, int64_t k, const float* d, float* out, double* a) {
     const int64_t n = W * C, Wo = W / k;
     const double inv = 1.0 / (double)(k * k);
-    double* a = (double*)malloc((size_t)n * sizeof(double));
-    if (!a) { status[0] = -2; return; }
-    for (int64_t I = 0; I < H / k; ++I) {
+    for (int64_t I = I0; I < I1; ++I) {
         const float* r = d + I * k * n;
         for (int64_t x = 0; x < n; ++x) a[x] = (double)r[x];
         for (int64_t i = 1; i < k; ++i) {
@@ -843,6 +858,19 @@ void tp_box(int64_t H, int64_t W, int64_t C, int64_t k, const float* d, float* o
                 o[J * C + c] = (float)(b * inv);
             }
     }
+}
+
+/* session 39: the output rows split over nt threads (each output's sums in one thread, each thread its own
+   row of column sums: the same texels at any thread count; this ran on one thread, ~0.2-0.3 ms of a
+   creature bench vertex E frame) */
+void tp_box(int64_t H, int64_t W, int64_t C, int64_t k, const float* d, float* out, int64_t* status, int64_t nt) {
+    const int64_t n = W * C, Ho = H / k;
+    if (nt < 1) nt = 1;
+    double* a = (double*)malloc((size_t)(n * nt) * sizeof(double));
+    if (!a) { status[0] = -2; return; }
+#pragma omp parallel for num_threads(nt) schedule(static, 1) if (nt > 1)
+    for (int64_t q = 0; q < nt; ++q)
+        box_rows(Ho * q / nt, Ho * (q + 1) / nt, W, C, k, d, out, a + q * n);
     free(a);
     status[0] = 0;
 }
@@ -887,14 +915,15 @@ def _wide_flags() -> tuple[str, ...] | None:
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"tp_project": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P],
-               "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I],
+               "tp_project_par": [_I, _P, _I, _I, _P, _P, _P, _I, _I, _P, _P, _I, _I],
                "tp_need": [_I, _I, _P, _P, _I, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I, _P],
                "tp_take_bits": [_I, _I, _I, _P, _P, _P, _P],
                "tp_take": [_I, _I, _P, _P, _P, _P],
-               "tp_comb_pairs_uv": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, ctypes.c_double, _I, _I, _P, _I, _P, _I, _P],
-               "tp_box": [_I, _I, _I, _I, _P, _P, _P],
+               "tp_comb_pairs_uv": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, ctypes.c_double, _I, _I, _P, _I, _P, _I, _I,
+                                    _P],
+               "tp_box": [_I, _I, _I, _I, _P, _P, _P, _I],
                "tp_comb_scatter": [_I, _I, _I, _P, _P, _P],
-               "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _P]}
+               "tp_comb_pairs": [_I, _P, _I, _I, _I, _I, _I, _P, _P, _P, _I, _P, _I, _I, _P]}
 
 MAX_SAMPLES = 64  # 4^s samples per fine triangle the loop takes (MAXS: supersample <= 3)
 
@@ -938,6 +967,22 @@ def vis_bits(Vt: Tensor) -> Tensor:
 
 # Pairs below which one thread projects (a hand-off costs more than the share).
 MIN_PAIRS_PER_THREAD = 256
+# The comb loops at 2+ threads (session 39): blocks of this many (base row, triangle) items handed out
+# dynamically (the same bits: each item's sums in one thread); 0: contiguous ranges, one a thread — the
+# default: the static halves differ by 4-8 % at 1 thread, but the comb pass alone at 2 threads (host at
+# load ~2, `benchmarks.tp_passes_ab`) read 0.92x / 0.90x / 0.82x with blocks of 64 / 512 / 2048 items
+# (1.58x only under heavy contention); consecutive items share their comb-table rows, which a thread's
+# contiguous range keeps in its cache.
+COMB_BLOCK = 0
+# `project` at 2+ threads (session 39): blocks of this many pairs handed out dynamically (the same bits:
+# each pair's sums in one thread); 0: contiguous ranges, one a thread — the default: the two halves of a
+# creature bench VL frame's pairs cost the same within 0.7 % at 1 thread (`tp_passes_ab` could not time
+# 2 threads on a host at load 6-8), so the dynamic split is kept only as an option.
+PROJECT_BLOCK = 0
+# `box` (an E frame's prefilter of the new probe) split over torch's threads by output rows (session 39);
+# False: one thread (the pass before).
+BOX_THREADS = True
+MIN_BOX_ROWS_PER_THREAD = 8
 
 
 # Points below which one thread finds the read pairs (`need`; each range ORs into its own table).
@@ -1111,7 +1156,9 @@ def box(data: Tensor, k: int) -> Tensor | None:
         raise ValueError(f"k = {k} must divide the map's {H} x {W} texels")
     out = torch.empty(H // k, W // k, C, dtype=torch.float32)
     st = torch.zeros(1, dtype=torch.int64)
-    lib.tp_box(H, W, C, k, data.data_ptr(), out.data_ptr(), st.data_ptr())
+    # session 39: the output rows over the threads (`BOX_THREADS`; the same texels at any thread count)
+    nt = max(1, min(torch.get_num_threads(), (H // k) // MIN_BOX_ROWS_PER_THREAD)) if BOX_THREADS else 1
+    lib.tp_box(H, W, C, k, data.data_ptr(), out.data_ptr(), st.data_ptr(), nt)
     if int(st[0]) != 0:
         raise MemoryError("tp_box could not allocate its row")
     return out
@@ -1135,7 +1182,7 @@ def _comb_run(fn, name: str, pairs: Tensor, head: tuple, tables: tuple, out: Ten
     MemoryError when the loop could not allocate its tables."""
     P = pairs.numel()
     st = torch.zeros(1, dtype=torch.int64)
-    fn(P, pairs.data_ptr(), *head, *tables, out.data_ptr(), _pair_threads(P), st.data_ptr())
+    fn(P, pairs.data_ptr(), *head, *tables, out.data_ptr(), _pair_threads(P), COMB_BLOCK, st.data_ptr())
     if int(st[0]) != 0:
         raise MemoryError(f"{name} could not allocate its tables")
     return out
@@ -1178,7 +1225,7 @@ def project(pairs: Tensor, M: Tensor, cp: Tensor, wT: Tensor, H: int, W: int, Q:
     M, cp, wT, Q = (x.contiguous() for x in (M, cp, wT, Q))
     args = (P, pairs.data_ptr(), n, S, M.data_ptr(), cp.data_ptr(), wT.data_ptr(), H, W, Q.data_ptr(), out.data_ptr())
     nt = _pair_threads(P)
-    lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt)
+    lib.tp_project(*args) if nt == 1 else lib.tp_project_par(*args, nt, PROJECT_BLOCK)
     return out
 
 

@@ -1103,3 +1103,40 @@ def test_native_rotate_equals_rotate_sampled(order, C):
         assert (got - want).abs().max() <= 1e-13 * max(1.0, want.abs().max().item())
         if order > 1:
             assert (native.rotate(c, R.T) - want).abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("threads", [2, 3, 7])
+def test_native_relight_add_threads_split_at_pixels(threads, monkeypatch):
+    """Session 39: `native.relight_add` split over the threads at pixel boundaries (`RELIGHT_THREADS`)
+    adds the same bits as one thread (each pixel's samples in order by one thread) — pixels with many
+    samples across block and split boundaries, a padded last block — and both equal the GEMM oracle
+    to float32 round-off."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(threads)
+    n2, S2, n, Q = 25, 4, 300, 5003
+    DG = torch.randn(n2, 2 * Q, generator=gen)
+    kd, ks = torch.rand(3, Q, generator=gen), torch.rand(3, Q, generator=gen)
+    pix = torch.randint(0, n, (Q,), generator=gen).sort().values        # ~17 samples a pixel
+    l = torch.randn(n2, 3, generator=gen)
+    cache = {"DG": DG, "kd": kd, "ks": ks, "pix": pix[:, None].expand(-1, 3)}
+    packed = shm._relight_packed(cache)
+    img0 = torch.rand(n, 3, generator=gen)
+    want = img0.clone()
+    shm._relight_add(want, cache, l, S2)
+    old = torch.get_num_threads()
+    imgs = []
+    try:
+        for nt, on in ((1, True), (threads, False), (threads, True)):
+            torch.set_num_threads(nt)
+            monkeypatch.setattr(native, "RELIGHT_THREADS", on)
+            monkeypatch.setattr(native, "MIN_RELIGHT_PER_THREAD", 1)
+            got = img0.clone()
+            assert native.relight_add(got, packed["blk"], l, packed["p"], S2)
+            imgs.append(got)
+    finally:
+        torch.set_num_threads(old)
+    assert torch.equal(imgs[0], imgs[1]) and torch.equal(imgs[0], imgs[2])
+    assert (imgs[2] - want).abs().max() <= 1e-6 * (want - img0).abs().max()

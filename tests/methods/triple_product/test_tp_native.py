@@ -693,3 +693,68 @@ def test_library_memo_follows_the_switches(monkeypatch):
     monkeypatch.setattr(core_native, "load", lambda *a, **k: None)
     assert native.loaded("tp_memo_test", "", {}, ("-x",)) is None
     assert ("tp_memo_test", ("-x",)) not in native._LOADED
+
+
+@pytest.mark.parametrize("blk", [0, 1, 7, 64])
+def test_points_dynamic_blocks_same_bits(blk, monkeypatch):
+    """Session 39: `native.points` at 2 and 3 threads with its points handed out dynamically in blocks
+    of `POINTS_BLOCK` (0: the static split) = one thread bit for bit, row-major and chunk-major tables,
+    packed visibility chunks too (each point's sums in one thread)."""
+    gen = torch.Generator().manual_seed(11)
+    n = 64
+    Vt, Rt, Lt = _tables(n, gen)
+    B = 203
+    vrows = torch.arange(B) % Vt.shape[0]
+    vw = torch.rand(B, generator=gen) + 0.5
+    brows, lrows = torch.randint(0, 7, (B, 4), generator=gen), torch.randint(0, 9, (B, 4), generator=gen)
+    bw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.7)
+    lw = torch.rand(B, 4, generator=gen) * (torch.rand(B, 4, generator=gen) < 0.6)
+    ch = native.chunks(Vt)
+    Rm, Lm, Vp = native.chunk_major(Rt), native.chunk_major(Lt), native.packed_chunks(Vt, ch)
+    args = (vrows, vw, brows, bw, lrows, lw, ch)
+    want = native.points(Vt, Rt, Lt, *args)
+    want_cm = native.points(Vt, Rm, Lm, *args, r_major=True, l_major=True, v_packed=Vp)
+    assert bool((want != 0).any())
+    monkeypatch.setattr(native, "MIN_ITEMS_PER_THREAD", 8)
+    monkeypatch.setattr(native, "POINTS_BLOCK", blk)
+    t = torch.get_num_threads()
+    try:
+        for nt in (2, 3):
+            torch.set_num_threads(nt)
+            assert torch.equal(native.points(Vt, Rt, Lt, *args), want), nt
+            assert torch.equal(native.points(Vt, Rm, Lm, *args, r_major=True, l_major=True, v_packed=Vp), want_cm), nt
+    finally:
+        torch.set_num_threads(t)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_hit_faces_threads_same_lists(threads, monkeypatch):
+    """Session 39: `native.hit_faces` with its marks split over the threads (`HIT_THREADS`) gives the
+    lists and the count of one thread (C lists and torch.nonzero lists), and still raises on an index
+    outside its table."""
+    gen = torch.Generator().manual_seed(threads)
+    nv, nf, P = 700, 900, 50001
+    F = torch.randint(0, nv, (nf, 3), generator=gen)
+    hit = torch.rand(P, generator=gen) < 0.6
+    face = torch.where(hit, torch.randint(0, nf // 2, (P,), generator=gen) * 2, torch.full((P,), -1))
+    want = native.hit_faces(hit, face, F, nv)
+    if want is None:
+        pytest.skip("no native loops")
+    monkeypatch.setattr(native, "MIN_HIT_SAMPLES_PER_THREAD", 16)
+    t = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        for lists in (True, False):
+            monkeypatch.setattr(native, "HIT_LISTS", lists)
+            got = native.hit_faces(hit, face, F, nv)
+            assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]) and got[2] == want[2], lists
+        bad = face.clone()
+        bad[torch.nonzero(hit)[-1]] = nf                                  # in the last thread's share
+        with pytest.raises(IndexError):
+            native.hit_faces(hit, bad, F, nv)
+        F2 = F.clone()
+        F2[want[0][-1], 0] = nv
+        with pytest.raises(IndexError):
+            native.hit_faces(hit, face, F2, nv)
+    finally:
+        torch.set_num_threads(t)

@@ -373,3 +373,89 @@ def test_lazy_lighting_projects_the_read_pairs_that_the_count_counts(shading):
         count = fast_eval.nonzero_reads(lazy_m, live, rec["reads"], k_v=3 if shading == "pixel" else 1, pairs=True)
         assert lazy_m.stats["projected_pairs"] == int(lz["pairs"].sum()) == count["pairs"] > 0
         assert count["pairs"] < int(lz["pairs"].any(1).sum()) * live.numel()       # fewer than the frames' rows
+
+
+@pytest.mark.parametrize("blk", [0, 1, 5, 64])
+def test_comb_pairs_dynamic_blocks_same_bits(blk, monkeypatch):
+    """Session 39: the comb loops (`native_light.comb_pairs_uv`, and `comb_pairs` of the compiled taps)
+    at 2 and 3 threads with their items handed out dynamically in blocks of `COMB_BLOCK` (0: contiguous
+    ranges, one a thread) write the same entries with the same bits as one thread."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.envmap import EnvMap
+    from scenes.sequences import rotation_y
+
+    gen = torch.Generator().manual_seed(blk)
+    g = lt.FrameGrid(5, 32, 1)
+    geo, R = Geodesic(2), lt.grid_frames(g)
+    env = EnvMap(torch.rand(24, 96, 3, generator=gen) ** 6 * 50).rotated(rotation_y(2.1))
+    assert lt.comb_pairs_ok(env, g)
+    tris = torch.arange(1, 320, 2)
+    F, n = g.size, tris.numel()
+    pairs = torch.nonzero((torch.rand(F, n, generator=gen) < 0.3).view(-1)).squeeze(-1)
+    monkeypatch.setattr(native_light, "MIN_PAIRS_PER_THREAD", 4)
+    for fused in (False, True):
+        monkeypatch.setattr(lt, "COMB_TAPS_NATIVE", fused)
+        with torch_threads(1):
+            want = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs,
+                                    out=torch.full((F, 3, n), 7.0), grid=g)
+        assert bool((want != 7.0).any())
+        monkeypatch.setattr(native_light, "COMB_BLOCK", blk)
+        for nt in (2, 3):
+            with torch_threads(nt):
+                got = lt.project_pairs(env, R, geo, supersample=2, tris=tris, pairs=pairs,
+                                       out=torch.full((F, 3, n), 7.0), grid=g)
+            assert torch.equal(got, want), (fused, nt)
+        monkeypatch.setattr(native_light, "COMB_BLOCK", 64)
+
+
+@pytest.mark.parametrize("blk", [0, 1, 3, 256])
+def test_project_pairs_dynamic_blocks_same_bits(blk, monkeypatch):
+    """Session 39: `lighting.project_pairs` (the general pair loop, `native_light.project`) at 2 and 3
+    threads with its pairs handed out dynamically in blocks of `PROJECT_BLOCK` (0: contiguous ranges,
+    one a thread; blocks that are not whole 4-pair vectors too) writes the same bits as one thread,
+    16 samples a triangle (the method's default) and 4."""
+    from methods.core.spherical_haar import Geodesic
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+    from scenes.library import get_scene
+
+    g = lt.FrameGrid(5, 8, 1)
+    geo, R = Geodesic(1), lt.grid_frames(g)
+    tris = torch.arange(0, 80, 2)
+    gen = torch.Generator().manual_seed(7 + blk)
+    rot = [[1.0, 0.0, 0.0], [0.0, 0.6, -0.8], [0.0, 0.8, 0.6]]
+    monkeypatch.setattr(native_light, "MIN_PAIRS_PER_THREAD", 4)
+    for supersample in (1, 2):
+        env = lt.prefiltered(get_scene("bunny", "test").envmap.rotated(rot), geo, supersample)
+        assert lt.pairs_ok(env)
+        pairs = torch.nonzero((torch.rand(g.size, tris.numel(), generator=gen) < 0.4).view(-1)).squeeze(-1)
+        fill = torch.full((g.size, 3, tris.numel()), 7.0)
+        with torch_threads(1):
+            one = lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=pairs, out=fill.clone())
+        assert bool((one != 7.0).any())
+        monkeypatch.setattr(native_light, "PROJECT_BLOCK", blk)
+        for nt in (2, 3):
+            with torch_threads(nt):
+                got = lt.project_pairs(env, R, geo, supersample=supersample, tris=tris, pairs=pairs, out=fill.clone())
+            assert torch.equal(got, one), (supersample, nt)
+        monkeypatch.setattr(native_light, "PROJECT_BLOCK", 256)
+
+
+@pytest.mark.parametrize("threads", [2, 3, 5])
+def test_native_box_filter_threads_same_texels(threads, monkeypatch):
+    """Session 39: `native_light.box` with its output rows split over the threads (`BOX_THREADS`) gives
+    one thread's texels bit for bit (= the torch passes), also with more threads than output rows."""
+    from methods.core.threads import torch_threads
+    from methods.triple_product import lighting as lt
+
+    gen = torch.Generator().manual_seed(threads)
+    x = torch.rand(48, 96, 3, generator=gen) ** 8 * 1e3
+    x[::5, ::3] *= 1e12
+    monkeypatch.setattr(native_light, "MIN_BOX_ROWS_PER_THREAD", 1)
+    for k in (2, 4, 8, 16):
+        want = lt.box_filtered(x, k, native=False)
+        with torch_threads(threads):
+            got = native_light.box(x, k)
+        assert torch.equal(got, want), k
