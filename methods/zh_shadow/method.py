@@ -1894,7 +1894,8 @@ class ZHShadow(Method):
         result (18) — fewer flops than the per-point rotations counted for the other points. Per
         kind (frame_kind letters; what did not change is reused):
 
-        * bytes: the (H, W, 3) float32 image (``pixels``); the faces F (int64); the BRDF parameters (kd, ks, α per
+        * bytes: the (H, W, 3) float32 image (``pixels``); the faces F (int64; not for a vertex-shaded
+          lighting-only frame that reads the kept interpolation operator below: no face is looked up); the BRDF parameters (kd, ks, α per
           region) and the M^α operators' non-zeros (diffuse + one per specular region); the (n², 3)
           SH lighting — and for "E" the new env map (H·W·3 float32). Frames that are not
           lighting-only also read the G-buffer ("sample": `GBUFFER_BYTES_PER_SAMPLE` + the int64
@@ -1973,10 +1974,14 @@ class ZHShadow(Method):
         env_bytes = int(torch.as_tensor(self.scene.envmap.data).numel()) * 4
         H = int(torch.as_tensor(self.scene.envmap.data).shape[0])
         # -- bytes
-        b = output_bytes(P, pixels) + nF * 3 * 8 + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
+        # the faces F: every frame but a vertex-shaded lighting-only one that reads the kept interpolation
+        # operator (its non-zeros name the vertices: no face is looked up; session 39, zh39o)
+        rb = self._resolve_bytes(P) if vertex and lighting_only else 0
+        faces = 0 if vertex and lighting_only and rb < P * _VERTEX_GBUFFER else nF * 3 * 8
+        b = output_bytes(P, pixels) + faces + len(regions) * 7 * 4 + (1 + n_spec_regions) * nnz * 4 + n2 * 3 * 4
         b += env_bytes if "E" in kind else 0
         if lighting_only:
-            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (self._resolve_bytes(P) if vertex else Qp * 12)
+            b += (Qo + Qs) * n2 * 4 + Np * n2 * 4 + (rb if vertex else Qp * 12)
         else:
             b += P * _VERTEX_GBUFFER + Nr * 6 * 4 if vertex else P * (GBUFFER_BYTES_PER_SAMPLE + 8)
             # "P": X's columns and the posed normals — for "vertex" those normals are among the N_r·6
