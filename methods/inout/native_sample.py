@@ -846,7 +846,7 @@ static void *amalloc(size_t bytes) { return aligned_alloc(64, (bytes + 63) / 64 
 static int tws_ensure(int64_t Q, int64_t nv, int64_t rr) {
     if (tw.rr < rr || tw.ntg >= 0x7FFFFFF0) {
         free(tw.ntag); free(tw.nslot); free(tw.nodes); free(tw.xs);
-        tw.ntag = (int32_t *)calloc(rr, 4); tw.nslot = (int32_t *)malloc(rr * 4);
+        tw.ntag = (int32_t *)calloc(rr, 4); tw.nslot = (int32_t *)calloc(rr, 4);
         tw.nodes = (int32_t *)malloc((rr + 4) * 4); tw.xs = (v4 *)amalloc((size_t)(rr + 4) * sizeof(v4));
         tw.rr = 0; tw.ntg = 0;
         if (!tw.ntag || !tw.nslot || !tw.nodes || !tw.xs)
@@ -1012,6 +1012,14 @@ static int64_t shade_tile(const Args *A, int64_t p0, int64_t p1, float *out, int
             const int32_t d[4] = {0, 1, (int32_t)R, (int32_t)R + 1};
             for (int32_t it = vpos[l]; it < vpos[l + 1]; ++it) {
                 const int32_t node0 = ent[sorted[it] / 3].node0;
+                if (A->fast & 2048) {       /* bit 2048: the same, without branches */
+                    for (int k = 0; k < 4; ++k) {
+                        const int32_t nd = node0 + d[k], fresh = ntag[nd] != vt;
+                        const int32_t sl = nslot[nd];
+                        ntag[nd] = vt; nodes[nN] = nd; nslot[nd] = fresh ? nN : sl; nN += fresh;
+                    }
+                    continue;
+                }
                 for (int k = 0; k < 4; ++k) {
                     const int32_t nd = node0 + d[k];
                     if (ntag[nd] != vt) {
@@ -1196,7 +1204,14 @@ CHUNK = 1024
 # base checkout (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --frames 15
 # --threads 1|2 --no-micro``, process CPU, load 7-10): chess 1.18x / 1.01x, creature 1.12x / 1.07x at 1 / 2
 # threads; max |d| 0 (the same bits).
-FAST = 2047
+# 2048 (with 512) a vertex's distinct nodes tagged without branches (the tag, slot and node list written
+# whether the node is new or not, the count advanced by the test's 0 / 1; the same nodes in the same order, so
+# the same bits): perf put ~14 % of a chess bench V call in the branchy form (its new-or-not branch is
+# data-dependent). Session 39, 1 thread, process CPU, each call after a fresh rasterisation, 15 frames
+# alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --frames 15 --cold --variants 2047
+# 4095 2047: --precompute-code BASE``, host at load ~4): chess 1.063x (per frame 1.068x; warm), creature
+# 1.039x (per frame 1.048x); A/A (2047 against 2047:) 0.999x / 0.990x.
+FAST = 4095
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
 # pixels per tile of bit 256 (at 2+ threads a chunk, `CHUNK`, is cut into tiles of this many)
