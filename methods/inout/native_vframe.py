@@ -229,7 +229,8 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
             for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                 if (!hit[p])
                     continue;
-                const int64_t f = face[p] < 0 ? 0 : face[p];
+                /* clamped as in (1): a face >= M (err bit 1, the image is not used) must not read past fv */
+                const int64_t f = face[p] < 0 ? 0 : (face[p] >= M ? M - 1 : face[p]);
                 const float u = bu[p], v = bv[p], ww = 1.0f - u - v;
                 const float *x = B + 3 * (int64_t)fv[f];
                 const float *y = B + 3 * (int64_t)fv[M + f];
