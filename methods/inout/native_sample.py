@@ -1223,10 +1223,12 @@ CHUNK = 1024
 # 2048 (with 512) a vertex's distinct nodes tagged without branches (the tag, slot and node list written
 # whether the node is new or not, the count advanced by the test's 0 / 1; the same nodes in the same order, so
 # the same bits): perf put ~14 % of a chess bench V call in the branchy form (its new-or-not branch is
-# data-dependent). Session 39, 1 thread, process CPU, each call after a fresh rasterisation, 15 frames
-# alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --frames 15 --cold --variants 2047
-# 4095 2047: --precompute-code BASE``, host at load ~4): chess 1.063x (per frame 1.068x; warm), creature
-# 1.039x (per frame 1.048x); A/A (2047 against 2047:) 0.999x / 0.990x.
+# data-dependent). Session 39, 1 thread, process CPU, each call after a fresh rasterisation, 21 frames
+# alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --frames 21 --cold --variants 2047
+# 4095 2047: --precompute-code BASE``, host at load 3-8): chess 1.053x (per frame 1.061x), creature 1.042x
+# (per frame 1.036x); A/A (2047 against 2047:) 0.998x / 1.009x. Whole V frames against the base checkout
+# (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --threads 1 --frames 21 --no-micro``,
+# with the torch ops trimmed around the loop): CPU chess 1.07x, creature 1.05x; max |d| 0.
 FAST = 4095
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
