@@ -2,7 +2,7 @@
 
     python -m benchmarks.inout [--scene sphere_plane] [--size bench] [--config '{}'] [--frames 5]
                                [--threads 2] [--spp-side 2] [--kinds V L E] [--no-micro]
-                               [--base OTHER_CHECKOUT]
+                               [--base OTHER_CHECKOUT] [--precompute-code DIR]
 
 With ``--base`` the old path is a base checkout's fast path (its ``methods`` package imported beside
 this one's, ``benchmarks.ptt_ab`` style: e.g. a worktree of main) instead of the reference path, and
@@ -139,15 +139,19 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-micro", action="store_true")
     ap.add_argument("--base", default=None, help="time this checkout's fast path (e.g. a worktree of main) "
                                                  "as the old path instead of the reference path")
+    ap.add_argument("--precompute-code", default=None,
+                    help="look the precomputation up under the code fingerprint of the checkout in DIR (default: "
+                         "--base's): e.g. --base a worktree of this branch's last commit with the base39 entry")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     cfg = json.loads(a.config)
     Base = None
     if a.base is not None:
+        Base = base_class(a.base)
+    if a.base is not None or a.precompute_code is not None:
         from reports import precompute_cache
 
-        Base = base_class(a.base)
-        fp = base_fingerprint(a.base)
+        fp = base_fingerprint(a.precompute_code or a.base)
         precompute_cache._process_fingerprint = lambda module: fp
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1, spp_side=a.spp_side)
     m, pre = _precomputed(scene, cfg)

@@ -530,6 +530,9 @@ class InOut(Method):
         each region by one whole-block product (``fast.light_rows`` over all its rows)."""
         st = self._fast_static()
         for reg, fr in zip(self.regions, st.regions):
+            full = self._cf_full.get(reg.name)
+            if full is not None and full is self._cf_valid.get(reg.name):   # computed whole: no reduction
+                continue
             if reg.name in self._cf and bool(self._cf_valid[reg.name].all()):
                 continue
             nv = int(reg.verts.numel())
@@ -625,7 +628,8 @@ class InOut(Method):
         stage of `render` are its fallback and test oracle), or None when the loop is not available.
         c_k: under the first lighting every vertex's at once (`_ensure_c_all`), so a view frame runs
         no pass before the loop; under a later one the referenced vertices' (`_view_refs`)."""
-        if not _nsample.available():
+        lib = _nsample._lib()                    # looked up once a frame (`shade` takes it)
+        if lib is None:
             return None
         self._relight(frame)
         st = self._fast_static()
@@ -644,7 +648,7 @@ class InOut(Method):
         self._xstamp += 1
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
         got = _nsample.shade(st, cs, g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, cam,
-                             self._xmemo, self._xstamp, W)
+                             self._xmemo, self._xstamp, W, lib=lib)
         if got is None:
             return None
         img, (_, _, bad) = got
@@ -763,7 +767,8 @@ class InOut(Method):
         G-buffer fails a check. What `frame_cost` counts of the view (referenced faces and vertices,
         their cells) is found from the kept frame and G-buffer when it is asked (`_frame_cost_vertex`),
         not in the frame."""
-        if not _nvframe.available():
+        lib = _nvframe._lib()                    # looked up once a frame (`vertex_frame` takes it)
+        if lib is None:
             return None
         if self._lightings == 1:
             self._ensure_c_all()
@@ -779,7 +784,7 @@ class InOut(Method):
         g = gbuffer
         cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
         got = _nvframe.vertex_frame(st, [self._cf[r.name] for r in self.regions], g.face, g.bary, g.region, g.hit,
-                                    g.height * g.width, g.spp_side ** 2, cam, self._vmemo, self._vstamp)
+                                    g.height * g.width, g.spp_side ** 2, cam, self._vmemo, self._vstamp, lib=lib)
         if got is None or got[2]:
             return None
         self._last_view = (g.num_samples, {"vertex_of": (frame, g)})

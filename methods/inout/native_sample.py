@@ -106,6 +106,22 @@ node book-keeping), shade ~1.4. Tried and dropped: the memo's window rows read a
 (128·10³ products, near the minimum, but 0.87-0.92x: a vertex's window rows and stamps cost as many
 misses as its c); tiles of 1024 / 4096 pixels (chess 1.12x / 1.13x, creature 1.17x / 1.07x against 1.17x
 / 1.24x at 2048, same process).
+
+Session 39 (`FAST` bit 2048; the same bits): a chess bench V tile pass spends (perf, 1 thread, warm) ~22 % in
+`rows_x`'s loop, ~14 % tagging each vertex's distinct nodes (a data-dependent branch per node), ~25 % in the
+resolve's per-sample loop (hash probes, region check), ~13 % in the shade pass, ~5 % splitting the normals;
+with the table rows in L1 (`benchmarks.inout_tiles`, variant ``table``) the fill drops 4.4 -> 2.3 ms, so the
+table rows' traffic (1 KB a (vertex, node) product, ~155·10³ a frame; ~820 distinct nodes a tile, each read by
+~6 of the tile's ~240 vertices) is what bounds the fill. Bit 2048 tags the nodes without branches (1.04-1.06x).
+Tried and dropped (loop alone, 1 thread, same process, alternating, the same bits): a vertex's cells
+deduplicated before its nodes are tagged 0.97x (its entries rarely repeat a cell); the next ``rows_x`` call's
+four table rows prefetched 0.95x (per frame 0.997x: the rows stream, their bandwidth not latency bounds);
+the table copied with each channel padded to 16 lanes (rows on 64-byte lines, no split loads) 0.97-0.99x;
+consecutive vertices (same slot) as pairs, the nodes both need by a two-vertex ``rows_x`` (each table row read
+once for both: 23 % fewer row reads on chess) 0.90-0.94x (the pairs' node lists, partition and padding cost more).
+Around the loop, each torch op of the frame runs with the loop's cold caches (~20-80 µs each): `shade` passes its
+per-slot arrays as one ctypes array and reads its stats with one ``tolist``, and `InOut._render_native` looks
+the library up once a frame.
 """
 from __future__ import annotations
 
@@ -846,7 +862,7 @@ static void *amalloc(size_t bytes) { return aligned_alloc(64, (bytes + 63) / 64 
 static int tws_ensure(int64_t Q, int64_t nv, int64_t rr) {
     if (tw.rr < rr || tw.ntg >= 0x7FFFFFF0) {
         free(tw.ntag); free(tw.nslot); free(tw.nodes); free(tw.xs);
-        tw.ntag = (int32_t *)calloc(rr, 4); tw.nslot = (int32_t *)malloc(rr * 4);
+        tw.ntag = (int32_t *)calloc(rr, 4); tw.nslot = (int32_t *)calloc(rr, 4);
         tw.nodes = (int32_t *)malloc((rr + 4) * 4); tw.xs = (v4 *)amalloc((size_t)(rr + 4) * sizeof(v4));
         tw.rr = 0; tw.ntg = 0;
         if (!tw.ntag || !tw.nslot || !tw.nodes || !tw.xs)
@@ -1012,6 +1028,14 @@ static int64_t shade_tile(const Args *A, int64_t p0, int64_t p1, float *out, int
             const int32_t d[4] = {0, 1, (int32_t)R, (int32_t)R + 1};
             for (int32_t it = vpos[l]; it < vpos[l + 1]; ++it) {
                 const int32_t node0 = ent[sorted[it] / 3].node0;
+                if (A->fast & 2048) {       /* bit 2048: the same, without branches */
+                    for (int k = 0; k < 4; ++k) {
+                        const int32_t nd = node0 + d[k], fresh = ntag[nd] != vt;
+                        const int32_t sl = nslot[nd];
+                        ntag[nd] = vt; nodes[nN] = nd; nslot[nd] = fresh ? nN : sl; nN += fresh;
+                    }
+                    continue;
+                }
                 for (int k = 0; k < 4; ++k) {
                     const int32_t nd = node0 + d[k];
                     if (ntag[nd] != vt) {
@@ -1196,7 +1220,16 @@ CHUNK = 1024
 # base checkout (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --frames 15
 # --threads 1|2 --no-micro``, process CPU, load 7-10): chess 1.18x / 1.01x, creature 1.12x / 1.07x at 1 / 2
 # threads; max |d| 0 (the same bits).
-FAST = 2047
+# 2048 (with 512) a vertex's distinct nodes tagged without branches (the tag, slot and node list written
+# whether the node is new or not, the count advanced by the test's 0 / 1; the same nodes in the same order, so
+# the same bits): perf put ~14 % of a chess bench V call in the branchy form (its new-or-not branch is
+# data-dependent). Session 39, 1 thread, process CPU, each call after a fresh rasterisation, 21 frames
+# alternating (``python -m benchmarks.inout_loop_ab --scene chess|creature --frames 21 --cold --variants 2047
+# 4095 2047: --precompute-code BASE``, host at load 3-8): chess 1.053x (per frame 1.061x), creature 1.042x
+# (per frame 1.036x); A/A (2047 against 2047:) 0.998x / 1.009x. Whole V frames against the base checkout
+# (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --threads 1 --frames 21 --no-micro``,
+# with the torch ops trimmed around the loop): CPU chess 1.07x, creature 1.05x; max |d| 0.
+FAST = 4095
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
 # pixels per tile of bit 256 (at 2+ threads a chunk, `CHUNK`, is cut into tiles of this many)
@@ -1244,15 +1277,16 @@ def memo(nv: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, region: Tensor,
-          live: Tensor, S2: int, cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, W: int):
+          live: Tensor, S2: int, cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, W: int, lib=None):
     """Eq. 4 at q = n·S2 G-buffer samples (pixel-major; normal, wo (q, 3) and bary (q, 2) float32 in
     any strides, face, region (q,) int64, live (q,) bool), box-filtered → ``(out (n, 3), stats)``;
     ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) the c of slot s (valid at every vertex a
     shaded entry reads), cam (3,), ``mem`` a `memo` of ``st``'s vertices, ``stamp`` > 0 this frame's
     number (distinct from every earlier frame's on this memo). stats: memo rows computed, entries
     summed exactly, the first sample whose face lies in another region than its own (-1: none).
-    None when the loop is not available or the arrays are not CPU tensors of those types."""
-    lib = _lib()
+    None when the loop is not available or the arrays are not CPU tensors of those types. ``lib``: the
+    library as `_lib` gave it to the caller (else looked up here)."""
+    lib = _lib() if lib is None else lib
     vrec, rows, mst = mem
     nv = st.voff[-1]
     q = int(face.shape[0])
@@ -1275,20 +1309,24 @@ def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: 
     npx = q // S2
     out = torch.empty(npx, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), npx // MIN_PER_THREAD))
-    stats = torch.zeros(nt, 3, dtype=torch.int64)
+    stats = torch.empty(nt, 3, dtype=torch.int64)      # the loop sets every thread's row first
     S = len(st.regions)
-    shp = torch.tensor([fr.sh_nc.data_ptr() for fr in st.regions] or [0], dtype=torch.int64)
-    cp = torch.tensor([c.data_ptr() for c in cs] or [0], dtype=torch.int64)
-    Ks = torch.tensor([fr.K for fr in st.regions] or [1], dtype=torch.int64)
-    voff = torch.tensor(st.voff, dtype=torch.int64)
+    # the per-slot arrays as one ctypes int64 array (no torch op: each torch op around the loop runs with
+    # the loop's cold caches): table pointers, c pointers, K (each at least one entry), the slot offsets
+    S1 = max(S, 1)
+    vals = [*([fr.sh_nc.data_ptr() for fr in st.regions] or [0]), *([c.data_ptr() for c in cs] or [0]),
+            *([fr.K for fr in st.regions] or [1]), *st.voff]
+    meta = (ctypes.c_int64 * len(vals))(*vals)
+    mp = ctypes.addressof(meta)
+    shp, cp, Ks, voff = mp, mp + 8 * S1, mp + 16 * S1, mp + 24 * S1
     a = _Args(normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
               bary.data_ptr(), bary.stride(0), bary.stride(1), face.data_ptr(), region.data_ptr(), live.data_ptr(),
               st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
-              voff.data_ptr(), S, shp.data_ptr(), cp.data_ptr(), Ks.data_ptr(),
+              voff, S, shp, cp, Ks,
               st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp,
               TILE if FAST & 256 else CHUNK, int(FAST),
               vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG, TILE)
     lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
-    made, exact = int(stats[:, 0].sum()), int(stats[:, 1].sum())
-    bad = [int(b) for b in stats[:, 2].tolist() if b >= 0]
-    return out, (made, exact, min(bad) if bad else -1)
+    rows = stats.tolist()                               # one conversion (each torch op after the loop runs cold)
+    bad = [r[2] for r in rows if r[2] >= 0]
+    return out, (sum(r[0] for r in rows), sum(r[1] for r in rows), min(bad) if bad else -1)

@@ -229,7 +229,8 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
             for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                 if (!hit[p])
                     continue;
-                const int64_t f = face[p] < 0 ? 0 : face[p];
+                /* clamped as in (1): a face >= M (err bit 1, the image is not used) must not read past fv */
+                const int64_t f = face[p] < 0 ? 0 : (face[p] >= M ? M - 1 : face[p]);
                 const float u = bu[p], v = bv[p], ww = 1.0f - u - v;
                 const float *x = B + 3 * (int64_t)fv[f];
                 const float *y = B + 3 * (int64_t)fv[M + f];
@@ -275,7 +276,7 @@ def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
-                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int) -> tuple[Tensor, int, int] | None:
+                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, lib=None) -> tuple[Tensor, int, int] | None:
     """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
     bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
     used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
@@ -283,8 +284,9 @@ def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tenso
     read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
     (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). At most
     None when the loop is not available or the arrays are not CPU
-    tensors of those types (the caller runs the split path)."""
-    lib = _lib()
+    tensors of those types (the caller runs the split path). ``lib``: the library as `_lib` gave it to the
+    caller (else looked up here)."""
+    lib = _lib() if lib is None else lib
     if lib is None:
         return None
     nv, M, S = st.voff[-1], int(st.face_region.shape[0]), len(cs)
@@ -312,9 +314,11 @@ def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tenso
     bu, bv = bary.unbind(-1)
     bu, bv = bu.contiguous(), bv.contiguous()     # views of the G-buffer's column-major barycentrics: no copy
     out = torch.empty(n, 3, dtype=torch.float32)
-    meta = torch.tensor([*st.voff, *(t.data_ptr() for t in sh), *(t.data_ptr() for t in cs), *K], dtype=torch.int64)
-    stats = torch.zeros(2, dtype=torch.int64)
-    mp = meta.data_ptr()
+    # one ctypes array, no torch op (each torch op around the loop runs with the loop's cold caches)
+    vals = [*st.voff, *(t.data_ptr() for t in sh), *(t.data_ptr() for t in cs), *K]
+    meta = (ctypes.c_int64 * len(vals))(*vals)
+    stats = torch.empty(2, dtype=torch.int64)          # the loop writes both
+    mp = ctypes.addressof(meta)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     lib.vertex_frame(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), n, S2,
                      st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr(),

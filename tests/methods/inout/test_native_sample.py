@@ -198,7 +198,7 @@ def test_native_sample_tiles_same_bits(precomputed, monkeypatch, name):
     """Bit 256 (the pixels in tiles: each shaded sample's (face, cell) resolved to an entry of its tile,
     the entries' X filled vertex by vertex, then the samples shaded from the entries; no memo) with and
     without bit 512 (a vertex's distinct nodes four at a time instead of its distinct cells) and bit 1024
-    (a later vertex's c prefetched): the same image bits as the per-sample loop (`FAST` & 255: `cell_x`,
+    (a later vertex's c prefetched) and bit 2048 (a vertex's distinct nodes found without branches): the same image bits as the per-sample loop (`FAST` & 255: `cell_x`,
     the same X per (vertex, node) pair) over a V and an L sequence, with the G-buffer's layouts and
     row-major copies, at 1 and 2 threads, with tiles of 1 pixel (a tile inside a block), 100 (tiles
     ending inside a block, closed early: 400 samples leave 144 entries before the next block) and 4096
@@ -220,7 +220,7 @@ def test_native_sample_tiles_same_bits(precomputed, monkeypatch, name):
             want = [_copy(m).render(f, g) for f, g in zip(frames, gbs)]
             ref = _copy(m)
             exact = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
-            for fast in (255 | 256, 255 | 256 | 512, 255 | 256 | 512 | 1024):
+            for fast in (255 | 256, 255 | 256 | 512, 255 | 256 | 512 | 1024, 255 | 256 | 512 | 1024 | 2048):
                 for tile in (1, 100, 4096):
                     for t in (1, 2):
                         torch.set_num_threads(t)

@@ -118,6 +118,9 @@ def test_vertex_frame_checks_hand_the_frame_to_the_split_path(precomputed):
     bad.face[k] = m.F.shape[0]
     with pytest.raises(ValueError):
         new.render(frame, bad)
+    bad.face[k] = m.F.shape[0] + 10 ** 9      # far outside: the loop's last phase must not read past the faces
+    with pytest.raises(ValueError):
+        new.render(frame, bad)
     stamp = new._vstamp
     new.render(frame, gb)
     assert new._vstamp == stamp + 1
