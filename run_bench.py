@@ -26,10 +26,44 @@ import os
 import sys
 from pathlib import Path
 
-# OpenMP threads that spin while waiting turn a shared or oversubscribed machine's frame times into
-# noise (measured: an in-out V frame 503 ms with the default policy vs 70 ms passive, 2 threads at
-# load 8); set before torch loads its OpenMP runtime, and only when the user has not chosen.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+# Spin iterations of libgomp's threads after a parallel region before they sleep (``GOMP_SPINCOUNT``) in
+# the perf suite (`openmp_env`).
+PERF_SPINCOUNT = 1_000_000
+
+
+def openmp_env(argv: list[str]) -> dict[str, str]:
+    """The OpenMP settings a run of ``argv`` takes where the user has not set them (`os.environ.setdefault`).
+
+    ``OMP_WAIT_POLICY=PASSIVE`` for every run: OpenMP threads that spin while waiting turn a shared or
+    oversubscribed machine's frame times into noise (measured: an in-out V frame 503 ms with the default
+    policy vs 70 ms passive, 2 threads at load 8). With PASSIVE alone, though, each parallel region of a
+    frame first wakes its sleeping threads: on a quiet 2-core host (session 39) a per-vertex triple
+    product frame read V 3.9 / L 7.8 ms passive against 2.1 / 4.7 ms with a bounded spin
+    (`benchmarks.tp_frames_ab --threads 2 --wall`). So ``--suite perf``, the run-time suite, run alone on
+    the machine (README), also sets ``GOMP_SPINCOUNT`` (libgomp, which torch and the methods' C loops share;
+    other runtimes ignore it): a thread spins that many iterations (milliseconds) after a region, then
+    sleeps — across a frame's regions it is awake, across the harness's idle and G-buffer rasterisation
+    (Dr.Jit's threads) it is not. ``OMP_WAIT_POLICY=ACTIVE`` (spin forever) was tried: a whole perf run
+    2-5x slower, the spinning thread taking the rasteriser's core. The run records both (run.json, the
+    report's header)."""
+    suite = None
+    for i, a in enumerate(argv):
+        if a == "--suite" and i + 1 < len(argv):
+            suite = argv[i + 1]
+        elif a.startswith("--suite="):
+            suite = a.split("=", 1)[1]
+    env = {"OMP_WAIT_POLICY": "PASSIVE"}
+    if suite == "perf":
+        env["GOMP_SPINCOUNT"] = str(PERF_SPINCOUNT)
+    return env
+
+
+# set before torch loads its OpenMP runtime (spawned cell processes inherit them), and only where the
+# user has not chosen
+for _k, _v in openmp_env(sys.argv[1:]).items():
+    os.environ.setdefault(_k, _v)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -674,6 +674,8 @@ def build_report(df: pd.DataFrame, out_path: str | os.PathLike, *, run_dir: str 
         "machine": meta.get("machine", first["machine"] if first is not None else "?"),
         "threads": meta.get("threads", first["threads"] if first is not None else "?"),
     }
+    if meta.get("openmp"):
+        facts["OpenMP"] = meta["openmp"]
     if meta.get("provenance"):
         facts["executor"] = executor_summary(meta["provenance"])
     wall = wall_time_text(meta)

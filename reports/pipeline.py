@@ -80,6 +80,8 @@ def run_meta(out_dir: Path, suite_name: str, *, bandwidth_elements: int = TRIAD_
         "versions": store.package_versions(),
         "machine": store.machine_description(),
         "threads": torch.get_num_threads(),
+        # `run_bench.openmp_env`: the OpenMP settings the run's processes ran under
+        "openmp": " ".join(f"{k}={os.environ[k]}" for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in os.environ),
     }
     meta = with_limits(meta, measure_limits(bandwidth_elements, "start"))
     store.atomic_write_json(p, meta)

@@ -136,3 +136,35 @@ def test_list_shows_what_can_be_run(capsys):
     for k in KINDS:
         assert f"\n{k} " in out, k
     assert "bunny" in SCENES and "character" in SCENES  # the vendored real scenes are listed
+
+
+def test_openmp_env_spins_a_while_for_the_perf_suite_only(tmp_path, capsys):
+    """`run_bench.openmp_env`: PASSIVE for every run, plus a bounded spin (GOMP_SPINCOUNT) for ``--suite
+    perf`` (run alone: every parallel region would otherwise first wake sleeping threads); a user's own
+    setting wins (a fresh interpreter: the variables must be set before torch loads OpenMP); the run
+    records what it ran under in run.json and the report's header."""
+    import json
+    import os
+    import subprocess
+    from pathlib import Path
+
+    perf = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": str(run_bench.PERF_SPINCOUNT)}
+    assert run_bench.openmp_env(["run", "--suite", "perf"]) == perf
+    assert run_bench.openmp_env(["run", "--out", "x", "--suite=perf"]) == perf
+    for argv in (["run"], ["run", "--suite", "nightly"], ["run", "--suite", "smoke"], ["run", "--suite"],
+                 ["compare", "a", "b"], ["run", "--out", "perf"]):
+        assert run_bench.openmp_env(argv) == {"OMP_WAIT_POLICY": "PASSIVE"}, argv
+    root = Path(run_bench.__file__).resolve().parent
+    code = ("import sys; sys.argv = ['run_bench.py', 'run', '--suite', 'perf']; import run_bench, os; "
+            "print(os.environ['OMP_WAIT_POLICY'], os.environ['GOMP_SPINCOUNT'])")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    got = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, check=True)
+    assert got.stdout.split() == ["PASSIVE", str(run_bench.PERF_SPINCOUNT)]
+    got = subprocess.run([sys.executable, "-c", code], cwd=root, env={**env, "GOMP_SPINCOUNT": "7"},
+                         capture_output=True, text=True, check=True)
+    assert got.stdout.split() == ["PASSIVE", "7"]
+    code, _ = _run(capsys, tmp_path / "run", tmp_path / "hist")
+    assert code == 0
+    meta = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert meta["openmp"].startswith(f"OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}")
+    assert f"OpenMP</th><td>{meta['openmp']}" in (tmp_path / "run" / "report.html").read_text()
