@@ -88,3 +88,29 @@ def zh_scene():
         return built[name]
 
     return get
+
+
+# the creature (test size) precomputed by ZH with the tests' small fit: one per test module that asks
+_SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
+
+
+@pytest.fixture(scope="module")
+def creature():
+    """ZH's paper configuration (order 4, sample shading) precomputed on the test-size creature."""
+    from methods.zh_shadow import ZHShadow
+    from scenes.library import get_scene
+
+    m = ZHShadow(**_SMALL)
+    m.precompute(get_scene("creature", "test"))
+    return m
+
+
+@pytest.fixture(scope="module")
+def order8():
+    """ZH's order-8 vertex configuration with the cosine specular, precomputed on the test-size creature."""
+    from methods.zh_shadow import ZHShadow
+    from scenes.library import get_scene
+
+    m = ZHShadow(**_SMALL, order=8, specular="cosine", shading="vertex")
+    m.precompute(get_scene("creature", "test"))
+    return m

@@ -8,22 +8,11 @@ from unittest import mock
 import pytest
 import torch
 
-from methods.zh_shadow import ZHShadow
 from testing.gbuffers import knock_out
 
-SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
 # float32 round-off of an image (peaks at ~2) whose object samples' 80-term sums run in another order with
 # products fused into multiply-adds: as the other fast paths' image tolerance against their oracle
 IMAGE_TOL = 1e-5
-
-
-@pytest.fixture(scope="module")
-def creature():
-    from scenes.library import get_scene
-
-    m = ZHShadow(**SMALL)
-    m.precompute(get_scene("creature", "test"))
-    return m
 
 
 @pytest.mark.parametrize("kind", ("V", "VB", "VL", "P"))

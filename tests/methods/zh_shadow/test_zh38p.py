@@ -11,18 +11,6 @@ from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import native as zn
 from testing.gbuffers import knock_out
 
-SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
-
-
-@pytest.fixture(scope="module")
-def order8():
-    from scenes.library import get_scene
-
-    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
-    m.precompute(get_scene("creature", "test"))
-    return m
-
-
 def test_vector_resolve_frames_equal_table_resolve(order8, monkeypatch):
     """Order-8 vertex-shaded frames (P, V, VB, VL, VBL, L; with misses; at 1 and 2 threads) with the vector
     resolve = with `resolve_table` (``VECTOR_RESOLVE`` off) bit for bit, the vector loop taken once per frame

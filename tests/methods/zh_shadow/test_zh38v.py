@@ -7,10 +7,7 @@ import math
 import pytest
 import torch
 
-from methods.zh_shadow import ZHShadow, runtime as rt
-
-SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
-
+from methods.zh_shadow import runtime as rt
 
 def _rotations(g):
     """Random proper rotations, and the ZYZ angles' edge cases: the identity (sin b = 0, a arbitrary), a half turn
@@ -59,15 +56,6 @@ def test_native_rotation_equals_numpy_steps(monkeypatch, order):
         a = rt.rotate_lighting(c, R)
         monkeypatch.setattr(rt, "NATIVE_ROTATE", False)
         assert torch.equal(a, rt.rotate_lighting(c, R))
-
-
-@pytest.fixture(scope="module")
-def creature():
-    from scenes.library import get_scene
-
-    m = ZHShadow(**SMALL)
-    m.precompute(get_scene("creature", "test"))
-    return m
 
 
 @pytest.mark.parametrize("kind", ("L", "E", "VL"))

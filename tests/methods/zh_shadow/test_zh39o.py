@@ -9,22 +9,9 @@ import pytest
 import torch
 
 from methods.core import gouraud
-from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import native as zn
 from methods.zh_shadow.method import _int32_csr
 from testing.gbuffers import knock_out
-
-SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
-
-
-@pytest.fixture(scope="module")
-def order8():
-    from scenes.library import get_scene
-
-    m = ZHShadow(**SMALL, order=8, specular="cosine", shading="vertex")
-    m.precompute(get_scene("creature", "test"))
-    return m
-
 
 def _oracle(F, gb, N):
     return _int32_csr(gouraud.resolve_matrix(F.T, gb.face, gb.bary, gb.hit, gb.height, gb.width, gb.spp_side, N))

@@ -8,12 +8,8 @@ import pytest
 import torch
 
 from methods.core.threads import torch_threads
-from methods.zh_shadow import ZHShadow
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
-
-SMALL = dict(train_poses=4, n_dirs=64, fit_iters=0)
-
 
 def _skip_unless_native():
     if z39._lib() is None or zn._fused_lib() is None:
@@ -87,15 +83,6 @@ def test_screen8_equals_serial(monkeypatch):
         with torch_threads(nt):
             for cur in (nrm.T, nrm.T.contiguous(), nrm[:37].T, nrm[:5].T, nrm[:16 * 97 + 1].T):
                 assert z39.screen8(cur) == zn.screen8(cur), (nt, cur.shape)
-
-
-@pytest.fixture(scope="module")
-def creature():
-    from scenes.library import get_scene
-
-    m = ZHShadow(**SMALL)
-    m.precompute(get_scene("creature", "test"))
-    return m
 
 
 @pytest.mark.parametrize("kind", ("V", "VB", "VL", "P"))
