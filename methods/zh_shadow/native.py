@@ -665,17 +665,11 @@ def project_latlong_polar(image: Tensor, order: int) -> Tensor:
 # column 0), the rest of the longer rows (~5 %) as a CSR tail; the product is one branch-free pass over
 # the table and one over the tail, each row's sums in the CSR order (the padding adds a zero: the same
 # bits, up to the sign of a zero sum), split over OpenMP's team by rows.
-_CSR_SOURCE = r"""
-#include <stdint.h>
-
-/* out[r, c] = (((0 + w0 x[c0, c]) + w1 x[c1, c]) + w2 x[c2, c]) + w3 x[c3, c] over row r's four table
-   entries (col4, val4 (R, 4)), rows split over nt threads; then for each tail row trow[t] its entries
-   [tcrow[t], tcrow[t+1]) added in order. Columns are checked by the packing (`csr_pack`). */
-void zh_ell_rows(int64_t R, const int32_t *col4, const float *val4, const float *x, float *out, int64_t nt,
-                 int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
-#pragma omp parallel num_threads(nt) if(nt > 1)
-    {
-#pragma omp for schedule(static)
+# The packed resolve product (`csr_pack`'s form: four entries a row in col4 / val4, the longer rows' rest in
+# the tail CSR trow / tcrow / tcol / tval) of x (N, 3) into out (R, 3), as two worksharing loops of an
+# enclosing OpenMP region: one text in `_CSR_SOURCE`'s product and in `_RELIGHTV_SOURCE`'s fused frame
+# (the same operations in the same order: the same bits).
+_PACKED_PRODUCT_C = r"""#pragma omp for schedule(static)
         for (int64_t r = 0; r < R; ++r) {
             const int32_t *c = col4 + 4 * r;
             const float *w = val4 + 4 * r;
@@ -699,7 +693,20 @@ void zh_ell_rows(int64_t R, const int32_t *col4, const float *val4, const float 
             }
             o[0] = a0; o[1] = a1; o[2] = a2;
         }
-    }
+"""
+
+
+_CSR_SOURCE = r"""
+#include <stdint.h>
+
+/* out[r, c] = (((0 + w0 x[c0, c]) + w1 x[c1, c]) + w2 x[c2, c]) + w3 x[c3, c] over row r's four table
+   entries (col4, val4 (R, 4)), rows split over nt threads; then for each tail row trow[t] its entries
+   [tcrow[t], tcrow[t+1]) added in order. Columns are checked by the packing (`csr_pack`). */
+void zh_ell_rows(int64_t R, const int32_t *col4, const float *val4, const float *x, float *out, int64_t nt,
+                 int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
+#pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+""" + _PACKED_PRODUCT_C + r"""    }
 }
 
 /* `csr_pack`: row r's first four entries (crow, col int64, val) into col4 / val4 (R, 4) (a shorter row
@@ -4482,31 +4489,7 @@ void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, con
                           clamp, x);
         }
         /* (the implicit barrier: every x row written) */
-#pragma omp for schedule(static)
-        for (int64_t r = 0; r < R; ++r) {
-            const int32_t *c = col4 + 4 * r;
-            const float *w = val4 + 4 * r;
-            const float *v0 = x + 3 * (int64_t)c[0], *v1 = x + 3 * (int64_t)c[1];
-            const float *v2 = x + 3 * (int64_t)c[2], *v3 = x + 3 * (int64_t)c[3];
-            float a0 = 0.f, a1 = 0.f, a2 = 0.f;
-            a0 += w[0] * v0[0]; a1 += w[0] * v0[1]; a2 += w[0] * v0[2];
-            a0 += w[1] * v1[0]; a1 += w[1] * v1[1]; a2 += w[1] * v1[2];
-            a0 += w[2] * v2[0]; a1 += w[2] * v2[1]; a2 += w[2] * v2[2];
-            a0 += w[3] * v3[0]; a1 += w[3] * v3[1]; a2 += w[3] * v3[2];
-            out[3 * r] = a0; out[3 * r + 1] = a1; out[3 * r + 2] = a2;
-        }
-#pragma omp for schedule(static)
-        for (int64_t t = 0; t < T; ++t) {
-            float *o = out + 3 * (int64_t)trow[t];
-            float a0 = o[0], a1 = o[1], a2 = o[2];
-            for (int32_t e = tcrow[t]; e < tcrow[t + 1]; ++e) {
-                const float w = tval[e];
-                const float *v = x + 3 * (int64_t)tcol[e];
-                a0 += w * v[0]; a1 += w * v[1]; a2 += w * v[2];
-            }
-            o[0] = a0; o[1] = a1; o[2] = a2;
-        }
-    }
+""" + _PACKED_PRODUCT_C + r"""    }
 }
 """
 _RELIGHTV_SIGNATURES = {"zh39o_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P,
