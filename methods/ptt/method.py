@@ -147,6 +147,15 @@ SEPARATE_DEFAULT = True
 # (`fast.vertex_view`) was 1.5-1.6x under load but 0.86x idle (chess V, 2 threads): not adopted.
 
 
+# TABLE_THREADS (session 40, pt40): a VB frame's W_r (`fast.region_tables`, 3 × 2304 rows of 48 lanes
+# on the chess bench, 1.3 MB) by ``native.region_tables``: its rows split over the frame's threads and
+# written into the previous frame's table (no fresh pages), the lanes read from H directly; the rest of
+# the BRDF stage stays on one thread (BRDF_STAGE_THREADS). The same bits at any thread count (each row
+# one thread's; tested). Measured (`benchmarks.ptt_region_tables`, chess bench shapes, after a 64 MB
+# pass, the threads awake): 0.51 -> 0.18 ms at 2 threads; 0.52 -> 0.34 ms process CPU at 1 thread.
+TABLE_THREADS = True
+
+
 def _check_int(name: str, v: Any, lo: int) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
@@ -530,9 +539,11 @@ class PTT(Method):
             wr = self._f_wrows
             if wr is None or wr[0] is not W_tab:
                 wr = self._f_wrows = (W_tab, _fast.view_table_rows(W_tab, self.factors.K))
-            with torch_threads(1):  # BRDF_STAGE_THREADS
+            nt = torch.get_num_threads() if TABLE_THREADS else 1
+            with torch_threads(1):  # BRDF_STAGE_THREADS (the native tables take their own nt: TABLE_THREADS)
                 self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K,
-                                                   self.lobe_table.a if self.separate else None, wr[1])
+                                                   self.lobe_table.a if self.separate else None, wr[1], nt=nt,
+                                                   out=self._f_tabs)
             self._f_H = H
             if self._f_light[1] is not None or self._f_light[2] is not None:
                 # E = E⁰ + the bounce terms, which depend on H (Sun eq. 4); without bounces E = E⁰

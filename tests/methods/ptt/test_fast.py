@@ -97,6 +97,40 @@ def test_region_tables_are_the_products_summed_in_order(R, P, K, T, native, monk
     assert torch.equal(ar, torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * 5, 2 * 3))
 
 
+@pytest.mark.parametrize("R,P,K,T", [(3, 4, 16, 48), (2, 2, 16, 48), (1, 4, 8, 16), (1, 3, 4, 5), (4, 5, 4, 8),
+                                     (2, 1, 2, 3)])
+def test_native_region_tables_are_the_eager_tables_bit_for_bit(R, P, K, T, monkeypatch):
+    """``native.region_tables`` (session 40: W_r's rows over nt threads, the lanes read from H, written
+    into the previous frame's W_r) equals ``native.region_rows`` (and so the eager passes, above) bit for
+    bit, at 1–3 threads, into fresh and reused tables; a_r is untouched (the einsum)."""
+    from methods.ptt import fast as _fast
+    from methods.ptt import native as _native
+
+    if not _native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(R * 1000 + P * 10 + K)
+    W_tab = torch.randn(P * K, T, T, generator=g)
+    W_rows = _fast.view_table_rows(W_tab, K)
+    lobe_a = torch.randn(P, 7, 3, generator=g)
+    prev = None
+    for step in range(3):
+        H = torch.randn(R, P, 3, generator=g)
+        monkeypatch.setattr(_fast, "NATIVE_TABLES", False)
+        want = _fast.region_tables(H, W_tab, K, lobe_a, W_rows)
+        monkeypatch.setattr(_fast, "NATIVE_TABLES", True)
+        for nt in (1, 2, 3):
+            got = _fast.region_tables(H, W_tab, K, lobe_a, W_rows, nt=nt, out=prev)
+            if prev is not None:  # written in place
+                assert got[0].data_ptr() == prev[0].data_ptr()
+            assert torch.equal(got[0], want[0]), (step, nt)
+            assert torch.equal(got[1], want[1]), (step, nt)
+            prev = got
+        assert torch.equal(_native.region_tables(W_rows, H, 2), want[0])
+    other = torch.empty(1, 3)  # a table of another shape is not written into
+    got = _native.region_tables(W_rows, H, 2, other)
+    assert got.data_ptr() != other.data_ptr() and got.shape == (R * T * T, K * 3)
+
+
 def test_world_frame_sh_equals_local_evaluation():
     """The lobes' SH term is evaluated in the world frame: Σ_s I1w(s) Y_s(R) = Σ_s I1(s) Y_s(F R)
     for the rotation built per vertex (``fast.build_static``)."""
@@ -1089,3 +1123,4 @@ def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
             assert torch.equal(images[0], images[1])
             ref = m._render_reference(f, gb)
             torch.testing.assert_close(images[0], ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
+
