@@ -147,6 +147,14 @@ SEPARATE_DEFAULT = True
 # (`fast.vertex_view`) was 1.5-1.6x under load but 0.86x idle (chess V, 2 threads): not adopted.
 
 
+# FAST_COORDS (session 40, pt40): `coords` takes `transport.LobeBasis.coords_rows` (the fit's float64
+# values as Python floats, without the unit-lobe material and most small tensor ops; the same bits,
+# tested) and hands back the last H when every region's material is the very object of the last call
+# (V / L / E frames: no hashing of the materials each frame). Off: the per-material `basis.coords`.
+# Measured in frames (chess bench, 1 thread, process CPU, settled, medians of 7–9 frames): a VB frame's
+# coords (three fits) 0.75 -> 0.55 ms, a V frame's 0.12 -> 0.03 ms; serial also at 2 threads.
+FAST_COORDS = True
+
 # TABLE_THREADS (session 40, pt40): a VB frame's W_r (`fast.region_tables`, 3 × 2304 rows of 48 lanes
 # on the chess bench, 1.3 MB) by ``native.region_tables``: its rows split over the frame's threads and
 # written into the previous frame's table (no fresh pages), the lanes read from H directly; the rest of
@@ -296,7 +304,8 @@ class PTT(Method):
         self._E = None       # (V, K, 3) Σ_l C^L_l U^I_x(l, k, H)
         self._Ek = None      # separated lobes: prefiltered env maps E^(k) (EnvMap per lobe)
         self._I1k = None     # separated lobes: (V, L, S, 3) lobe-prefiltered one-bounce SH radiance
-        self._coords: dict[Any, Tensor] = {}
+        self._coords: dict[Any, Any] = {}  # material -> its H row block (float32 tensor, or FAST_COORDS' floats)
+        self._coords_last = None  # (the regions' material objects, H) of the last `coords` call
         self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
         # fast path (`render`, ``methods.ptt.fast``): its own caches, same stages
         self._f_env = None    # env map object of the cached lighting products
@@ -465,15 +474,26 @@ class PTT(Method):
     # -- run time ---------------------------------------------------------------------------------
     def coords(self, materials: dict[str, Any]) -> Tensor:
         """H (R, n_P, 3) float32 of a frame's materials (memoised per material)."""
+        mats = [materials[r] for r in self.regions]
+        last = getattr(self, "_coords_last", None)  # (absent on a method unpickled from before it existed)
+        if FAST_COORDS and last is not None and all(a is b for a, b in zip(last[0], mats)):
+            return last[1]  # the same material objects as the last call (a V / L frame): the same H
         rows = []
-        for r in self.regions:
-            m = materials[r]
-            if m not in self._coords:
+        for m in mats:
+            h = self._coords.get(m) if FAST_COORDS else None
+            if h is None and m not in self._coords:
                 # one thread (BRDF_STAGE_THREADS): the fit's ops are small
                 with torch_threads(1):
-                    self._coords[m] = torch.as_tensor(self.basis.coords(m), dtype=torch.float32)
+                    fast = self.basis.coords_rows(m) if FAST_COORDS and hasattr(self.basis, "coords_rows") else None
+                    self._coords[m] = fast if fast is not None else torch.as_tensor(self.basis.coords(m),
+                                                                                    dtype=torch.float32)
             rows.append(self._coords[m])
-        return torch.stack(rows)
+        if all(isinstance(h, list) for h in rows):  # float64 values rounded to float32 once (as_tensor's rounding)
+            H = torch.tensor(rows, dtype=torch.float32)
+        else:
+            H = torch.stack([h if isinstance(h, Tensor) else torch.tensor(h, dtype=torch.float32) for h in rows])
+        self._coords_last = (mats, H)
+        return H
 
     def _lighting_stage(self, envmap) -> None:
         c = self.config

@@ -1124,3 +1124,38 @@ def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
             ref = m._render_reference(f, gb)
             torch.testing.assert_close(images[0], ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
 
+
+def test_fast_coords_are_the_per_material_coords(monkeypatch):
+    """`PTT.coords` with FAST_COORDS (session 40: `LobeBasis.coords_rows`, and the last H handed back
+    while every region's material is the very object of the last call) equals the per-material
+    ``basis.coords`` path bit for bit over VB / V frames; a changed material object in any one region —
+    equal or not — is looked up again."""
+    from methods.ptt import method as _method
+
+    scene = get_scene("chess", "test")
+    m = PTT(**TINY, bounces=0)
+    m.precompute(scene)
+    frames = make_sequence(scene, "VB", n_frames=4, seed=5) + make_sequence(scene, "V", n_frames=2, seed=5)
+    monkeypatch.setattr(_method, "FAST_COORDS", False)
+    m._reset_cache()
+    want = [m.coords(f.materials) for f in frames]
+    monkeypatch.setattr(_method, "FAST_COORDS", True)
+    m._reset_cache()
+    for f, w in zip(frames, want):
+        H = m.coords(f.materials)
+        assert H.dtype == torch.float32 and torch.equal(H, w)
+        assert m.coords(f.materials) is H  # the same objects: the same H
+    mats = dict(frames[1].materials)
+    H1 = m.coords(mats)
+    for r in m.regions:  # an equal copy in one region: looked up (by value), the same numbers
+        other = dict(mats)
+        other[r] = dataclasses.replace(mats[r])
+        H2 = m.coords(other)
+        assert H2 is not H1 and torch.equal(H2, H1)
+    for i, r in enumerate(m.regions):  # another material in one region (the last, too): that region's rows change
+        other = dict(mats)
+        other[r] = frames[2].materials[r]
+        H2 = m.coords(other)
+        assert torch.equal(H2[i], want[2][i]) and torch.equal(H2[torch.arange(len(m.regions)) != i],
+                                                               want[1][torch.arange(len(m.regions)) != i])
+        m.coords(mats)
