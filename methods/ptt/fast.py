@@ -322,7 +322,8 @@ def view_table_rows(W_tab: Tensor, K: int) -> Tensor:
 
 
 def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
-                  W_rows: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+                  W_rows: Tensor | None = None, *, nt: int = 1,
+                  out: tuple[Tensor, Tensor | None] | None = None) -> tuple[Tensor, Tensor | None]:
     """Products of the BRDF coordinates H (R, P, 3) cached for the view stage:
     W_r (R·T², K·3) rows (r, texel) of Σ_p H(r, p, c) W(p, ·, k) (W_tab (P·K, T, T)), and
     a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None.
@@ -335,14 +336,24 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
     GFLOP/s (N = 3, K = P = 4: MKL's small-matrix path); chess bench (R = 3, P = 4, K = 16, T = 48;
     1 thread, back to back / 10 ms idle before each): bmm 1.06–1.12 / 1.48–1.58 ms, these seven
     passes 0.44–0.54 / 0.74–0.96 ms, the einsum of session 19 0.80 ms. ``addcmul_`` (0.37 ms) rounds
-    the product and the sum once (FMA): other bits, not taken."""
+    the product and the sum once (FMA): other bits, not taken.
+
+    With the native loop and NATIVE_TABLES (session 40) W_r comes from ``native.region_tables``: its rows
+    over ``nt`` threads, written into ``out``'s W_r (the previous tables, when it fits) instead of fresh
+    pages; the same bits. a_r stays the einsum (MKL's bits, which change with the shapes: fused
+    multiply-adds for some, not for others — not reproduced in C)."""
     R, P, _ = H.shape
     if W_rows is None:
         W_rows = view_table_rows(W_tab, K)
     T2 = W_rows.shape[1]
-    Hl = H.permute(1, 0, 2)[:, :, None, None, :].expand(P, R, 1, K, 3).reshape(P, R, 1, K * 3)  # lane (k, c): H(r, p, c)
     Wr = None
-    if USE_NATIVE:  # the same products and sums in one pass (``native.region_rows``)
+    if USE_NATIVE and NATIVE_TABLES:  # threaded, in place, the lanes from H (``native.region_tables``): the same bits
+        from methods.ptt import native
+
+        Wr = native.region_tables(W_rows, H, nt, None if out is None else out[0])
+    if Wr is None:
+        Hl = H.permute(1, 0, 2)[:, :, None, None, :].expand(P, R, 1, K, 3).reshape(P, R, 1, K * 3)  # lane (k, c): H(r, p, c)
+    if Wr is None and USE_NATIVE:  # the same products and sums in one pass (``native.region_rows``)
         from methods.ptt import native
 
         Wr = native.region_rows(W_rows, Hl)
@@ -1230,6 +1241,9 @@ def shade_cells(face: Tensor, bary: Tensor, r: Tensor, fx: Tensor, fy: Tensor, f
 # Whether the sample stage (`shade_cells`, `_shade_pixels_block`) and `region_tables` may take the
 # native loops of ``methods.ptt.native`` (tests switch it off to reach the compiled / eager code).
 USE_NATIVE = True
+# `region_tables`' W_r through ``native.region_tables`` (threaded, written in place); off:
+# ``native.region_rows`` (the same bits; tests compare the two).
+NATIVE_TABLES = True
 
 
 def native_shading() -> bool:

@@ -33,6 +33,10 @@ from scenes import materials as _mat
 _TINY = _mat._TINY
 
 
+# The families `GridLobes.project` evaluates from cached direction factors (exact types only).
+FAMILIES = {_mat.Phong: "phong", _mat.BlinnPhong: "blinnphong", _mat.CookTorrance: "cooktorrance"}
+
+
 class GridLobes:
     """Unit-weight specular lobes of the supported families on the pairs (wi[j], wo[j]).
 
@@ -115,23 +119,37 @@ class GridLobes:
         (``tests/methods/ptt/test_lobe_grid.py``). Pairs masked out (value exactly 0) are dropped.
         Other families and weights: ``A @ eval(lobe)``."""
         kind = type(lobe)
-        fam = {_mat.Phong: "phong", _mat.BlinnPhong: "blinnphong", _mat.CookTorrance: "cooktorrance"}.get(kind)
+        fam = FAMILIES.get(kind)
         if fam is None or lobe.kd != (0.0, 0.0, 0.0) or lobe.ks_rgb[0] != 1.0:
             return A @ self.eval(lobe).to(A.dtype)
+        if fam == "cooktorrance":
+            return self.project_family(fam, A, lobe.m, lobe.F0)
+        return self.project_family(fam, A, lobe.s)
+
+    def project_family(self, fam: str, A: Tensor, *params: float, as_list: bool = False):
+        """`project` of the unit-weight lobe of family ``fam`` (``FAMILIES``' names) with the lobe
+        parameters ``params`` (s; Cook-Torrance m, F0), without a lobe object: the same operations, so
+        the same bits. as_list: the (P,) result as Python floats (the last combination of Cook-Torrance's
+        two products in Python's float64 arithmetic: the same roundings as the tensor ops)."""
         g = self._groups(fam, A)
         if fam == "phong":
             c, Au = g
-            s = lobe.s
+            s, = params
             v = (s + 1.0) / (2.0 * math.pi) * c.pow(s)
-            return Au @ (0.0 + v)
+            out = Au @ (0.0 + v)
+            return out.tolist() if as_list else out
         if fam == "blinnphong":
             c, Au = g
-            s = lobe.s
+            s, = params
             v = (s + 2.0) / (8.0 * math.pi) * c.pow(s)
-            return Au @ (0.0 + v)
+            out = Au @ (0.0 + v)
+            return out.tolist() if as_list else out
         ntan2, c2, A1, A2 = g
-        m, F0 = lobe.m, lobe.F0
+        m, F0 = params
         D = torch.exp(ntan2 / (m * m)) / (math.pi * m * m * c2 * c2)
+        if as_list:
+            w = 1.0 - F0
+            return [F0 * a + w * b for a, b in zip((A1 @ D).tolist(), (A2 @ D).tolist())]
         return F0 * (A1 @ D) + (1.0 - F0) * (A2 @ D)
 
     def _groups(self, family: str, A: Tensor) -> tuple[Tensor, ...]:

@@ -147,6 +147,23 @@ SEPARATE_DEFAULT = True
 # (`fast.vertex_view`) was 1.5-1.6x under load but 0.86x idle (chess V, 2 threads): not adopted.
 
 
+# FAST_COORDS (session 40, pt40): `coords` takes `transport.LobeBasis.coords_rows` (the fit's float64
+# values as Python floats, without the unit-lobe material and most small tensor ops; the same bits,
+# tested) and hands back the last H when every region's material is the very object of the last call
+# (V / L / E frames: no hashing of the materials each frame). Off: the per-material `basis.coords`.
+# Measured in frames (chess bench, 1 thread, process CPU, settled, medians of 7–9 frames): a VB frame's
+# coords (three fits) 0.75 -> 0.55 ms, a V frame's 0.12 -> 0.03 ms; serial also at 2 threads.
+FAST_COORDS = True
+
+# TABLE_THREADS (session 40, pt40): a VB frame's W_r (`fast.region_tables`, 3 × 2304 rows of 48 lanes
+# on the chess bench, 1.3 MB) by ``native.region_tables``: its rows split over the frame's threads and
+# written into the previous frame's table (no fresh pages), the lanes read from H directly; the rest of
+# the BRDF stage stays on one thread (BRDF_STAGE_THREADS). The same bits at any thread count (each row
+# one thread's; tested). Measured (`benchmarks.ptt_region_tables`, chess bench shapes, after a 64 MB
+# pass, the threads awake): 0.51 -> 0.18 ms at 2 threads; 0.52 -> 0.34 ms process CPU at 1 thread.
+TABLE_THREADS = True
+
+
 def _check_int(name: str, v: Any, lo: int) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
@@ -287,7 +304,8 @@ class PTT(Method):
         self._E = None       # (V, K, 3) Σ_l C^L_l U^I_x(l, k, H)
         self._Ek = None      # separated lobes: prefiltered env maps E^(k) (EnvMap per lobe)
         self._I1k = None     # separated lobes: (V, L, S, 3) lobe-prefiltered one-bounce SH radiance
-        self._coords: dict[Any, Tensor] = {}
+        self._coords: dict[Any, Any] = {}  # material -> its H row block (float32 tensor, or FAST_COORDS' floats)
+        self._coords_last = None  # (the regions' material objects, H) of the last `coords` call
         self.stats = {"light": 0, "brdf": 0, "view": 0}  # how often each stage ran
         # fast path (`render`, ``methods.ptt.fast``): its own caches, same stages
         self._f_env = None    # env map object of the cached lighting products
@@ -456,15 +474,26 @@ class PTT(Method):
     # -- run time ---------------------------------------------------------------------------------
     def coords(self, materials: dict[str, Any]) -> Tensor:
         """H (R, n_P, 3) float32 of a frame's materials (memoised per material)."""
+        mats = [materials[r] for r in self.regions]
+        last = getattr(self, "_coords_last", None)  # (absent on a method unpickled from before it existed)
+        if FAST_COORDS and last is not None and all(a is b for a, b in zip(last[0], mats)):
+            return last[1]  # the same material objects as the last call (a V / L frame): the same H
         rows = []
-        for r in self.regions:
-            m = materials[r]
-            if m not in self._coords:
+        for m in mats:
+            h = self._coords.get(m) if FAST_COORDS else None
+            if h is None and m not in self._coords:
                 # one thread (BRDF_STAGE_THREADS): the fit's ops are small
                 with torch_threads(1):
-                    self._coords[m] = torch.as_tensor(self.basis.coords(m), dtype=torch.float32)
+                    fast = self.basis.coords_rows(m) if FAST_COORDS and hasattr(self.basis, "coords_rows") else None
+                    self._coords[m] = fast if fast is not None else torch.as_tensor(self.basis.coords(m),
+                                                                                    dtype=torch.float32)
             rows.append(self._coords[m])
-        return torch.stack(rows)
+        if all(isinstance(h, list) for h in rows):  # float64 values rounded to float32 once (as_tensor's rounding)
+            H = torch.tensor(rows, dtype=torch.float32)
+        else:
+            H = torch.stack([h if isinstance(h, Tensor) else torch.tensor(h, dtype=torch.float32) for h in rows])
+        self._coords_last = (mats, H)
+        return H
 
     def _lighting_stage(self, envmap) -> None:
         c = self.config
@@ -530,9 +559,11 @@ class PTT(Method):
             wr = self._f_wrows
             if wr is None or wr[0] is not W_tab:
                 wr = self._f_wrows = (W_tab, _fast.view_table_rows(W_tab, self.factors.K))
-            with torch_threads(1):  # BRDF_STAGE_THREADS
+            nt = torch.get_num_threads() if TABLE_THREADS else 1
+            with torch_threads(1):  # BRDF_STAGE_THREADS (the native tables take their own nt: TABLE_THREADS)
                 self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K,
-                                                   self.lobe_table.a if self.separate else None, wr[1])
+                                                   self.lobe_table.a if self.separate else None, wr[1], nt=nt,
+                                                   out=self._f_tabs)
             self._f_H = H
             if self._f_light[1] is not None or self._f_light[2] is not None:
                 # E = E⁰ + the bounce terms, which depend on H (Sun eq. 4); without bounces E = E⁰

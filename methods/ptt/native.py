@@ -268,6 +268,39 @@ void region_rows(const float* Wrows, const float* Hl, int64_t P, int64_t R, int6
         }
 }
 
+/* fast.region_tables' W_r in one threaded call (session 40, pt40): `region_rows`' products and sums per
+   lane, p in order, with the lanes Hl[p, r, (k, c)] = H[r, p, c] read straight from H (R, P, 3), the rows
+   (r, t) split into nt contiguous ranges over OpenMP's team (each row one thread's: the bits do not depend
+   on nt), written into out (R, T2, K·3). */
+void region_tables(const float* Wrows, const float* H, int64_t P, int64_t R, int64_t T2, int64_t K, float* out,
+                   int64_t nt) {
+    const int64_t KC = 3 * K, rows = R * T2;
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        float hl[P * KC];
+        int64_t rcur = -1;
+        for (int64_t i = rows * k / nt; i < rows * (k + 1) / nt; ++i) {
+            const int64_t r = i / T2, t = i - r * T2;
+            if (r != rcur) {
+                for (int64_t p = 0; p < P; ++p)
+                    for (int64_t l = 0; l < KC; ++l)
+                        hl[p * KC + l] = H[(r * P + p) * 3 + l % 3];
+                rcur = r;
+            }
+            float* o = out + i * KC;
+            const float* w = Wrows + t * KC;
+            for (int64_t l = 0; l < KC; ++l)
+                o[l] = w[l] * hl[l];
+            for (int64_t p = 1; p < P; ++p) {
+                const float* wp = w + p * T2 * KC;
+                const float* hp = hl + p * KC;
+                for (int64_t l = 0; l < KC; ++l)
+                    o[l] = o[l] + wp[l] * hp[l];
+            }
+        }
+    }
+}
+
 /* fast.referenced_pairs: the (vertex, region) pairs of the faces the samples lie on. face (n,) int64
    (entries outside [0, M) — misses — skipped), face_pairs (M, 3); fmark (M + 1) and pos (np + 1)
    scratch; out sel (np) the pairs in ascending order (returns their count
@@ -1033,11 +1066,14 @@ int native_cells_ok(void) { return 0; }
 _EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{native.cpu_capability()}")
 # Pixels below which one thread does the pass.
 _MIN_PIXELS_PER_THREAD = 1 << 12
+# W_r rows below which one thread writes the region tables (`region_tables`).
+_MIN_ROWS_PER_THREAD = 1 << 10
 # Samples below which one thread marks the referenced faces (`referenced_pairs`).
 _MIN_SAMPLES_PER_THREAD = 1 << 15
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SHADE = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P]
 _SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P],
+               "region_tables": [_P, _P, _I, _I, _I, _I, _P, _I],
                "referenced_pairs": [_P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
                "referenced_sel": [_P, _I, _P, _I, _I, _I, _P, _P, _P]}
 
@@ -1048,7 +1084,7 @@ def _functions(lib: ctypes.CDLL):
     where the AVX2 build has them — ``cells_ok`` — ``mirror_cells``, ``shade_mirror``,
     ``shade_mirror_par``)."""
     fn = lib.shade_pixels
-    fn.par, fn.region_rows = lib.shade_pixels_par, lib.region_rows
+    fn.par, fn.region_rows, fn.region_tables = lib.shade_pixels_par, lib.region_rows, lib.region_tables
     fn.referenced_pairs = lib.referenced_pairs
     fn.referenced_pairs.restype = ctypes.c_int64
     fn.referenced_sel = lib.referenced_sel
@@ -1287,6 +1323,28 @@ def region_rows(W_rows: Tensor, Hl: Tensor) -> Tensor | None:
     W_rows, Hl = W_rows.contiguous(), Hl.contiguous()
     out = torch.empty(R, T2, KC, dtype=torch.float32)
     fn.region_rows(W_rows.data_ptr(), Hl.data_ptr(), P, R, T2, KC, out.data_ptr())
+    return out
+
+
+def region_tables(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = None) -> Tensor | None:
+    """``fast.region_tables``' W_r (R·T², K·3) by the native loop ``region_tables`` (its C comment): the
+    same bits as `region_rows`, the rows split over ``nt`` threads (the same bits at any ``nt``), the lanes
+    read from H (R, P, 3) directly. ``out``: the previous frame's W_r, written in place when its shape fits
+    (no fresh pages each VB frame). None when the loop is not available or the arguments are not float32
+    CPU tensors."""
+    fn = _kernel()
+    if fn is None or W_rows.dtype != torch.float32 or H.dtype != torch.float32 or W_rows.ndim != 3 or H.ndim != 3:
+        return None
+    P, T2, KC = W_rows.shape
+    R = int(H.shape[0])
+    if H.shape[1:] != (P, 3) or KC % 3 or W_rows.device.type != "cpu" or H.device.type != "cpu":
+        return None
+    W_rows, H = W_rows.contiguous(), H.contiguous()
+    if (out is None or out.shape != (R * T2, KC) or out.dtype != torch.float32 or not out.is_contiguous()
+            or out.device.type != "cpu"):
+        out = torch.empty(R * T2, KC, dtype=torch.float32)
+    nt = max(1, min(int(nt), (R * T2) // _MIN_ROWS_PER_THREAD))
+    fn.region_tables(W_rows.data_ptr(), H.data_ptr(), P, R, T2, KC // 3, out.data_ptr(), nt)
     return out
 
 

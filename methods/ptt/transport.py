@@ -73,6 +73,7 @@ from methods.core.sampling import fibonacci_hemisphere
 from methods.core.stable import canonical_svd, keep_largest
 from methods.core.threads import torch_threads
 from methods.core.visibility import Visibility, vertex_visibility
+from scenes import materials as _mat
 
 __all__ = [
     "BRDFBasis", "LobeBasis", "scene_basis", "BasisFactors", "factor_basis", "disk_grid",
@@ -106,6 +107,15 @@ class BRDFBasis(Protocol):
     def eval(self, wi: Tensor, wo: Tensor) -> Tensor: ...
 
     def coords(self, material: Any) -> Tensor: ...
+
+
+def _lobe_key(material: Any) -> tuple:
+    """(type, the lobe parameters) of a material of a `lobe_grid.FAMILIES` type: (s,) or (m, F0) — the
+    fields of ``_spec_lobe(material)`` beside kd and ks, so two such materials' unit lobes are equal
+    (``==``) exactly when their keys are."""
+    if type(material) is _mat.CookTorrance:
+        return (_mat.CookTorrance, (material.m, material.F0))
+    return (type(material), (material.s,))
 
 
 def _spec_lobe(material: Any) -> Any | None:
@@ -171,6 +181,47 @@ class LobeBasis:
         if self.diffuse:
             H[0] = kd
         return H
+
+    def coords_rows(self, material: Any) -> list[list[float]] | None:
+        """`coords` (material) as (n_P, 3) nested Python floats — the same float64 values (tested bit for
+        bit) — or None where it does not apply (no diffuse function; a material whose type is not exactly
+        Lambert or a `lobe_grid.FAMILIES` one: call `coords`).
+
+        Session 40 (pt40): a chess bench VB frame fits three changed materials on one thread, serial in
+        a 2-thread frame, and `coords` spent most of its time around the lobe projection (building the
+        unit lobe material with its validation, comparing it with the basis lobes, a dozen small
+        float64 tensor ops per material, then the float32 conversion and the stack). Here the unit
+        lobe is the material's own parameters (its type and the fields beside kd / ks: what
+        ``_spec_lobe``'s copy holds, validated already), the lobe is projected by
+        `GridLobes.project_family` (the same ops) and H = g_d kd + g_s ks is formed in Python floats
+        (IEEE float64 products and sums, no fused multiply-add: the tensor ops' roundings)."""
+        kind = type(material)
+        if not self.diffuse:
+            return None
+        from methods.ptt import lobe_grid as _lg
+
+        kd = material.kd
+        if kind is _mat.Lambert:
+            return [list(kd)] + [[0.0, 0.0, 0.0] for _ in range(self.n_P - 1)]
+        fam = _lg.FAMILIES.get(kind)
+        if fam is None:
+            return None
+        key = _lobe_key(material)
+        keys = self.__dict__.get("_lobe_keys")
+        if keys is None:
+            keys = self._lobe_keys = [_lobe_key(l) for l in self.lobes]
+        ks = material.ks_rgb
+        if key in keys:  # the exact lobe: H = kd on b_0, ks on its function
+            j = keys.index(key)
+            rows = [list(kd)] + [[0.0, 0.0, 0.0] for _ in range(self.n_P - 1)]
+            rows[1 + j] = list(ks)
+            return rows
+        grid, A, g_d = self.prepare()
+        gd = self.__dict__.get("_gd_rows")
+        if gd is None or gd[0] is not g_d:
+            gd = self._gd_rows = (g_d, g_d[:, 0].tolist())
+        gs = grid.project_family(fam, A, *key[1], as_list=True)
+        return [[a * kd[0] + b * ks[0], a * kd[1] + b * ks[1], a * kd[2] + b * ks[2]] for a, b in zip(gd[1], gs)]
 
     def _fit(self, material: Any, lobe: Any = False) -> Tensor:
         """Least squares over disk-grid pairs, weight cosθi dωi dωo (error in reflected radiance).

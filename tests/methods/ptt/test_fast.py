@@ -97,6 +97,40 @@ def test_region_tables_are_the_products_summed_in_order(R, P, K, T, native, monk
     assert torch.equal(ar, torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * 5, 2 * 3))
 
 
+@pytest.mark.parametrize("R,P,K,T", [(3, 4, 16, 48), (2, 2, 16, 48), (1, 4, 8, 16), (1, 3, 4, 5), (4, 5, 4, 8),
+                                     (2, 1, 2, 3)])
+def test_native_region_tables_are_the_eager_tables_bit_for_bit(R, P, K, T, monkeypatch):
+    """``native.region_tables`` (session 40: W_r's rows over nt threads, the lanes read from H, written
+    into the previous frame's W_r) equals ``native.region_rows`` (and so the eager passes, above) bit for
+    bit, at 1–3 threads, into fresh and reused tables; a_r is untouched (the einsum)."""
+    from methods.ptt import fast as _fast
+    from methods.ptt import native as _native
+
+    if not _native.available():
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(R * 1000 + P * 10 + K)
+    W_tab = torch.randn(P * K, T, T, generator=g)
+    W_rows = _fast.view_table_rows(W_tab, K)
+    lobe_a = torch.randn(P, 7, 3, generator=g)
+    prev = None
+    for step in range(3):
+        H = torch.randn(R, P, 3, generator=g)
+        monkeypatch.setattr(_fast, "NATIVE_TABLES", False)
+        want = _fast.region_tables(H, W_tab, K, lobe_a, W_rows)
+        monkeypatch.setattr(_fast, "NATIVE_TABLES", True)
+        for nt in (1, 2, 3):
+            got = _fast.region_tables(H, W_tab, K, lobe_a, W_rows, nt=nt, out=prev)
+            if prev is not None:  # written in place
+                assert got[0].data_ptr() == prev[0].data_ptr()
+            assert torch.equal(got[0], want[0]), (step, nt)
+            assert torch.equal(got[1], want[1]), (step, nt)
+            prev = got
+        assert torch.equal(_native.region_tables(W_rows, H, 2), want[0])
+    other = torch.empty(1, 3)  # a table of another shape is not written into
+    got = _native.region_tables(W_rows, H, 2, other)
+    assert got.data_ptr() != other.data_ptr() and got.shape == (R * T * T, K * 3)
+
+
 def test_world_frame_sh_equals_local_evaluation():
     """The lobes' SH term is evaluated in the world frame: Σ_s I1w(s) Y_s(R) = Σ_s I1(s) Y_s(F R)
     for the rotation built per vertex (``fast.build_static``)."""
@@ -1089,3 +1123,39 @@ def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
             assert torch.equal(images[0], images[1])
             ref = m._render_reference(f, gb)
             torch.testing.assert_close(images[0], ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
+
+
+def test_fast_coords_are_the_per_material_coords(monkeypatch):
+    """`PTT.coords` with FAST_COORDS (session 40: `LobeBasis.coords_rows`, and the last H handed back
+    while every region's material is the very object of the last call) equals the per-material
+    ``basis.coords`` path bit for bit over VB / V frames; a changed material object in any one region —
+    equal or not — is looked up again."""
+    from methods.ptt import method as _method
+
+    scene = get_scene("chess", "test")
+    m = PTT(**TINY, bounces=0)
+    m.precompute(scene)
+    frames = make_sequence(scene, "VB", n_frames=4, seed=5) + make_sequence(scene, "V", n_frames=2, seed=5)
+    monkeypatch.setattr(_method, "FAST_COORDS", False)
+    m._reset_cache()
+    want = [m.coords(f.materials) for f in frames]
+    monkeypatch.setattr(_method, "FAST_COORDS", True)
+    m._reset_cache()
+    for f, w in zip(frames, want):
+        H = m.coords(f.materials)
+        assert H.dtype == torch.float32 and torch.equal(H, w)
+        assert m.coords(f.materials) is H  # the same objects: the same H
+    mats = dict(frames[1].materials)
+    H1 = m.coords(mats)
+    for r in m.regions:  # an equal copy in one region: looked up (by value), the same numbers
+        other = dict(mats)
+        other[r] = dataclasses.replace(mats[r])
+        H2 = m.coords(other)
+        assert H2 is not H1 and torch.equal(H2, H1)
+    for i, r in enumerate(m.regions):  # another material in one region (the last, too): that region's rows change
+        other = dict(mats)
+        other[r] = frames[2].materials[r]
+        H2 = m.coords(other)
+        assert torch.equal(H2[i], want[2][i]) and torch.equal(H2[torch.arange(len(m.regions)) != i],
+                                                               want[1][torch.arange(len(m.regions)) != i])
+        m.coords(mats)

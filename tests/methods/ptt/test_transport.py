@@ -213,3 +213,37 @@ def test_factors_do_not_depend_on_lapacks_basis_of_equal_singular_values(basis, 
     assert max(rotated) >= 2  # the basis has equal pairs inside the kept factors
     for a, b in ((ref.U_tab, got.U_tab), (ref.W_tab, got.W_tab)):
         assert float((a - b).abs().max()) <= 1e-5 * float(a.abs().max())
+
+
+def test_coords_rows_are_coords_bit_for_bit():
+    """`LobeBasis.coords_rows` (session 40: no unit-lobe material, the projection by
+    `GridLobes.project_family`, H = g_d kd + g_s ks in Python floats) gives `coords`' float64 values
+    exactly, for perturbed materials of every family `GridLobes` evaluates, the basis lobes themselves
+    (exact coordinates), a Cook-Torrance lobe equal to a basis lobe but for F0, and Lambert; None for the
+    families it leaves to `coords` and for a basis without the diffuse function."""
+    import dataclasses
+
+    import numpy as np
+
+    from scenes.materials import CookTorrance, Phong, TorranceSparrow, Ward
+    from scenes.sequences import perturb_material
+
+    mats = [BlinnPhong(kd=(0.7, 0.68, 0.62), ks=0.25, s=60.0), CookTorrance(kd=(0.06, 0.05, 0.05), ks=0.6, m=0.25, F0=0.04),
+            Phong(kd=(0.45, 0.3, 0.18), ks=0.1, s=10.0), Lambert(kd=(0.5, 0.55, 0.45))]
+    b = tp.scene_basis(mats)
+    rng = np.random.default_rng(7)
+    checked = 0
+    extra = [CookTorrance(kd=(0.1, 0.2, 0.3), ks=0.5, m=0.25, F0=0.5),  # a basis lobe's m, another F0: a fit
+             Phong(kd=0.2, ks=(0.3, 0.2, 0.1), s=10.0), BlinnPhong(kd=0.0, ks=0.4, s=61.0)]
+    for it in range(40):
+        for m in (mats + extra if it == 0 else [perturb_material(x, rng) for x in mats]):
+            got = b.coords_rows(m)
+            assert got is not None
+            assert torch.equal(torch.tensor(got, dtype=torch.float64), b.coords(m)), m
+            checked += 1
+    assert checked == 7 + 39 * 4
+    for f in (Phong, BlinnPhong, CookTorrance):  # the key holds every field of the unit lobe beside kd / ks
+        names = {x.name for x in dataclasses.fields(f)} - {"kd", "ks"}
+        assert len(tp._lobe_key(f())[1]) == len(names)
+    assert b.coords_rows(TorranceSparrow()) is None and b.coords_rows(Ward()) is None
+    assert tp.LobeBasis(b.lobes, diffuse=False).coords_rows(mats[0]) is None
