@@ -7,7 +7,7 @@ a time per machine), joined by ``merge_parts`` into the same result.
 
 Measuring (DESIGN.md "Measuring"): precompute time; per-frame render time (``perf_counter``, first
 frame = warm-up excluded from median/IQR, rendered inside ``methods.core.fused.warming``; all frames
-stored); ``Method.memory()``; peak RSS of the
+stored; Python's garbage collector paused while a frame renders, `gc_paused`); ``Method.memory()``; peak RSS of the
 cell's process (``ru_maxrss``) — the cell's own when ``isolate=True`` runs it in a spawned child
 (with ``isolate="method"``, the process of its method configuration's cells);
 ``bytes_per_frame``; error metrics against the reference of the cell's bounce count on the
@@ -15,6 +15,8 @@ cell's process (``ru_maxrss``) — the cell's own when ``isolate=True`` runs it 
 """
 from __future__ import annotations
 
+import contextlib
+import gc
 import hashlib
 import importlib
 import inspect
@@ -294,6 +296,23 @@ def _loadavg() -> float | None:
         return None
 
 
+@contextlib.contextmanager
+def gc_paused():
+    """Python's cyclic garbage collector off while a frame renders, back on after (timeit's convention,
+    session 40). A collection's pause scales with every object the PROCESS holds (the harness's scenes,
+    Mitsuba, pandas: ~417 k objects in a bench cell's process, a full collection 207 ms; pt40), not with
+    the frame's work, and a young-generation one fires whenever allocations cross a threshold — inside
+    whichever frame that happens to be. The frames' own garbage is reference-counted tensors and is freed
+    at once either way; what a frame leaves in cycles is collected after it, outside the timed region."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
 def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> CellResult:
     """Measure ``cell`` here. part ``"all"``: everything; ``"errors"``: only the image errors (and
     images); ``"timing"``: only times, memory, peak RSS and the convergence fit (``run_part``)."""
@@ -341,7 +360,7 @@ def _measure(cell: Cell, out_dir: Path, progress: bool, part: str = "all") -> Ce
         if cell.device != "cpu":
             gb = gb.to(cell.device)
         t0, c0 = time.perf_counter(), time.process_time()
-        with warming(warm and i == 0):  # the untimed warm-up frame also compiles the block sizes later frames meet
+        with warming(warm and i == 0), gc_paused():  # the untimed warm-up frame also compiles the block sizes later frames meet
             img = method.render(frame, gb)
         if img.device.type == "cuda":
             torch.cuda.synchronize(img.device)  # the frame is done when its image is

@@ -309,3 +309,36 @@ def test_each_cell_makes_its_own_warm_up_calls(tmp_path, monkeypatch):
     monkeypatch.setattr(MC, "warming", spy)
     MC.run_cell(_cell(), tmp_path, progress=False)
     assert seen == [set()]                                 # one warm-up frame, and it started afresh
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_frames_render_with_the_garbage_collector_paused(tmp_path, monkeypatch, enabled):
+    """Session 40 (`measure_cell.gc_paused`, timeit's convention): every frame — warm-up and timed —
+    renders with Python's cyclic collector off, and the collector is back as it was after each frame
+    (on between frames, where the harness rasterises the next G-buffer; left off when it was off)."""
+    import gc
+
+    seen, between = [], []
+    real = fakes.FakeMethod.render
+
+    def spy(self, frame, gbuffer):
+        seen.append(gc.isenabled())
+        return real(self, frame, gbuffer)
+
+    real_gb = fakes.make_gbuffer
+
+    def gb_spy(*a, **k):
+        between.append(gc.isenabled())
+        return real_gb(*a, **k)
+
+    monkeypatch.setattr(fakes.FakeMethod, "render", spy)
+    monkeypatch.setattr(fakes, "make_gbuffer", gb_spy)
+    was = gc.isenabled()
+    try:
+        (gc.enable if enabled else gc.disable)()
+        MC.run_cell(_cell(), tmp_path, progress=False)
+        assert gc.isenabled() is enabled
+    finally:
+        (gc.enable if was else gc.disable)()
+    assert seen == [False] * 4
+    assert len(between) >= 4 and all(b is enabled for b in between)
