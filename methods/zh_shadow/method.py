@@ -880,6 +880,10 @@ class ZHShadow(Method):
     # passes (the tests' oracle)
     fma_terms = True
 
+    # `_fused_planes`' plane samples 16 at a time (`native_fused16`, zh40p: AVX-512, the same bits) where it runs;
+    # False: the scalar plane lines of `native.fused_pixels` (the tests' oracle)
+    vector_plane = True
+
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
                       mats: list, spec: list[bool], F32: Tensor, fv: Tensor, nmiss: int) -> Tensor | None:
         """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
@@ -955,7 +959,7 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
-                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms)
+                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane)
         if res is None:
             return None
         img, nspec = res
