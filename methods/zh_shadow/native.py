@@ -2552,13 +2552,14 @@ def _vtable_lib():
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
 
 
-def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None
-                 ) -> Tensor | None:
+def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None,
+                 wide: bool = False) -> Tensor | None:
     """(NU, C) float32: row i = v[idx[i]] @ W[vreg[idx[i]]] (idx None: every row of v, NU = N; W (R, n², C)
     float32 the per-region tables; R == 1: W[0] for every row; a region outside [0, R): a zero row) by
     `zh34p_vtable` — float32 round-off of the products — or None where it does not run (no compiler,
     ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N)).
-    ``out`` (NU, C) float32 contiguous: written there (and returned)."""
+    ``out`` (NU, C) float32 contiguous: written there (and returned). ``wide``: `zh38v_vtable`'s loop with
+    16-float vectors where it runs (`native_vtable16`, zh40p: the same bits)."""
     lib = _vtable_lib() if terms_switched_on() else None
     if lib is None or v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
             or W.shape[1] != v.shape[1] or vreg.dtype != torch.int64 or vreg.shape != (v.shape[0],) \
@@ -2578,7 +2579,13 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
     lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
-    (lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable)(
+    fn = lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable
+    if wide and lib4 is not None:
+        from methods.zh_shadow import native_vtable16
+
+        lw = native_vtable16.lib()
+        fn = fn if lw is None else lw.zh40p_vtable
+    fn(
         NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
         U.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else U

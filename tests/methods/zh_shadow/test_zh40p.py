@@ -135,3 +135,55 @@ def test_vector_plane_frames_equal_scalar(creature, monkeypatch, kind):
                 ca, cb = dict(vec._last_counts), dict(scal._last_counts)
                 assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
     assert fused, "the fused pass never ran"
+
+
+def test_wide_vertex_table_equals_rows4(monkeypatch):
+    """`native.vertex_table`(…, wide=True) (`native_vtable16`: 16-float vectors) = `zh38v_vtable` bit for bit:
+    every row and through ids, regions sorted and interleaved (runs of four of one region and not), a region
+    outside [0, R) (a zero row), C a multiple of 32, of 16 alone and neither (the 16-wide block, then `vrow`),
+    1 and 3 threads; an id out of range: None alike. A wrong row, column block or term order breaks it."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow import native_vtable16
+
+    if native_vtable16.lib() is None or zn._vtable4_lib() is None:
+        pytest.skip("the wide vertex table is not available here")
+    monkeypatch.setattr(zn, "MIN_ROWS_PER_VTABLE_THREAD", 1)
+    g = torch.Generator().manual_seed(42)
+    N, n2, R = 403, 16, 3
+    v = torch.randn(N, n2, generator=g)
+    ran = 0
+    for C in (240, 48, 80, 19):
+        W = torch.randn(R, n2, C, generator=g)
+        for vreg in (torch.randint(0, R, (N,), generator=g).sort().values, torch.randint(0, R, (N,), generator=g)):
+            vreg = vreg.clone()
+            vreg[5] = R + 2
+            for idx in (None, torch.randperm(N, generator=g)[:150].sort().values, torch.randperm(N, generator=g)[:97]):
+                for threads in (1, 3):
+                    with torch_threads(threads):
+                        a = zn.vertex_table(v, vreg, W, idx)
+                        b = zn.vertex_table(v, vreg, W, idx, wide=True)
+                    assert a is not None and torch.equal(a, b), (C, idx is None, threads)
+                    ran += 1
+        bad = torch.tensor([0, 1, N + 5])
+        assert zn.vertex_table(v, vreg, W, bad) is None and zn.vertex_table(v, vreg, W, bad, wide=True) is None
+    assert ran
+
+
+@pytest.mark.parametrize("kind", ("P", "VB", "VL"))
+def test_wide_table_frames_equal(creature, monkeypatch, kind):
+    """`ZHShadow.wide_table` on = off (`zh38v_vtable`), bit for bit, the kept table and a frame's own."""
+    from methods.zh_shadow import native_vtable16
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if native_vtable16.lib() is None:
+        pytest.skip("the wide vertex table is not available here")
+    for table_points in (0.0, 1e9):
+        monkeypatch.setattr("methods.zh_shadow.method.VERTEX_TABLE_POINTS", table_points)
+        a_m, b_m = creature.with_render_config(), creature.with_render_config()
+        a_m.wide_table, b_m.wide_table = True, False
+        for fr in make_sequence(creature.scene, kind, 3, seed=13):
+            gb = make_gbuffer(creature.scene, fr, 2)
+            a, b = a_m.render(fr, gb), b_m.render(fr, gb)
+            assert a_m.last_path == b_m.last_path and torch.equal(_bits(a), _bits(b)), (kind, fr.index)
