@@ -880,6 +880,10 @@ class ZHShadow(Method):
     # passes (the tests' oracle)
     fma_terms = True
 
+    # `_fused_planes`' plane samples 16 at a time (`native_fused16`, zh40p: AVX-512, the same bits) where it runs;
+    # False: the scalar plane lines of `native.fused_pixels` (the tests' oracle)
+    vector_plane = True
+
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
                       mats: list, spec: list[bool], F32: Tensor, fv: Tensor, nmiss: int) -> Tensor | None:
         """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
@@ -955,7 +959,7 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
-                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms)
+                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane)
         if res is None:
             return None
         img, nspec = res
@@ -1263,6 +1267,9 @@ class ZHShadow(Method):
     # `_native_table`'s per-region tables by one C call (`native.region_tables`, zh38v: the same products);
     # False: `runtime.region_tables`' torch products (the tests' oracle)
     native_region_tables = True
+    # `native.vertex_table` with 16-float vectors (`native_vtable16`, zh40p: the same bits) where it runs; False:
+    # `zh38v_vtable` (the tests' oracle)
+    wide_table = True
 
     def _native_table(self, v: Tensor, vreg: Tensor, tabs: list, idx: Tensor | None = None) -> Tensor | None:
         """`runtime.vertex_table`(v[idx], vreg[idx], tabs) (idx None: every row) by `native.vertex_table`
@@ -1286,7 +1293,7 @@ class ZHShadow(Method):
                 K, _ = rt.region_tables(tabs, n2, v.device, v.dtype, out=W)
             self._region_stack = rs = (n2, [tuple(t) for t in tabs], K, W)
         if idx is None:   # (a table kept between frames: its own tensor)
-            U = zn.vertex_table(v, vreg, rs[3])
+            U = zn.vertex_table(v, vreg, rs[3], wide=self.wide_table)
         else:             # (a frame's own table, not kept: rows of a buffer kept for the next such frame)
             C = int(rs[3].shape[2])
             buf = self._table_rows
@@ -1294,7 +1301,7 @@ class ZHShadow(Method):
                 #                                                                  next frames' counts vary)
                 rows = min(int(v.shape[0]), int(idx.shape[0]) + int(idx.shape[0]) // 4 + 64)
                 buf = self._table_rows = torch.empty(max(rows, int(idx.shape[0])), C, dtype=v.dtype)
-            U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]])
+            U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]], wide=self.wide_table)
         return None if U is None else U.view(-1, 3, rs[2])
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer, pose_vec: Tensor, geom, v0: Tensor | None,

@@ -1869,8 +1869,8 @@ def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, 
 
 def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
                  F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
-                 D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False
-                 ) -> tuple[Tensor, int] | None:
+                 D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False,
+                 vector: bool = False) -> tuple[Tensor, int] | None:
     """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
     (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
     `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
@@ -1878,10 +1878,19 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     layouts, a face, vertex or region out of range). face (P,) int64, bary (P, 2) float32 of any strides, wo
     (P, 3) float32 column-major (the G-buffer's layout), normal (P, 3) contiguous, mask / hit (P,) bool, F32
     (M, 3) int32, u (N, 3), U (NU, 3, K) float32 (rows lut[vertex] when lut (N,) int32 is given), region (P,)
-    int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits)."""
+    int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits).
+    ``vector``: the plane samples 16 at a time where it runs (`native_fused16`, zh40p: the same bits as the
+    pass it replaces)."""
+    vec = None
+    if vector:
+        from methods.zh_shadow import native_fused16
+
+        vec = native_fused16.lib(fma)
     lib = _fma_fused_lib() if fma else None
     if lib is None:   # (the regrouped dot's library not built: `zh33p_fused`'s bits)
         lib, fma = _fused_lib(), False
+        if vector and vec is not None:
+            vec = native_fused16.lib(False)
     key = (D, bool(diffuse), bool(specular))
     if lib is None or key not in TERMS_VARIANTS:
         return None
@@ -1912,7 +1921,7 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     stat = torch.zeros(2, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     variant = TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key)
-    (lib.zh37v_fused if fma else lib.zh33p_fused)(
+    (vec[1] if vec is not None else lib.zh37v_fused if fma else lib.zh33p_fused)(
                     n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
                     wo.data_ptr(), wo.stride(1), mask.data_ptr(), 0 if hit is None else hit.data_ptr(),
                     F32.data_ptr(), int(F32.shape[0]), u.data_ptr(), N, U.data_ptr(), int(U.shape[0]), K,
@@ -2543,13 +2552,14 @@ def _vtable_lib():
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
 
 
-def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None
-                 ) -> Tensor | None:
+def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None,
+                 wide: bool = False) -> Tensor | None:
     """(NU, C) float32: row i = v[idx[i]] @ W[vreg[idx[i]]] (idx None: every row of v, NU = N; W (R, n², C)
     float32 the per-region tables; R == 1: W[0] for every row; a region outside [0, R): a zero row) by
     `zh34p_vtable` — float32 round-off of the products — or None where it does not run (no compiler,
     ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N)).
-    ``out`` (NU, C) float32 contiguous: written there (and returned)."""
+    ``out`` (NU, C) float32 contiguous: written there (and returned). ``wide``: `zh38v_vtable`'s loop with
+    16-float vectors where it runs (`native_vtable16`, zh40p: the same bits)."""
     lib = _vtable_lib() if terms_switched_on() else None
     if lib is None or v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
             or W.shape[1] != v.shape[1] or vreg.dtype != torch.int64 or vreg.shape != (v.shape[0],) \
@@ -2569,7 +2579,13 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
     bad = torch.zeros(1, dtype=torch.int64)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
     lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
-    (lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable)(
+    fn = lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable
+    if wide and lib4 is not None:
+        from methods.zh_shadow import native_vtable16
+
+        lw = native_vtable16.lib()
+        fn = fn if lw is None else lw.zh40p_vtable
+    fn(
         NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
         U.data_ptr(), nt, bad.data_ptr())
     return None if int(bad[0]) else U
