@@ -942,8 +942,12 @@ class SHPRT(Method):
             # session 35: a lighting change's frame — the rows it reads listed from the faces, computed, then
             # the one pass (`NATIVE_VIEW_ROWS`)
             one_pass = self._view_rows(face, hit, fk)
-        if not one_pass:  # (the compiled kernels' marks: not needed by the C pass)
-            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
+        def mark_tables() -> None:
+            # the compiled kernels' marks (per-scene sizes: one compiled kernel), set right before a compiled
+            # kernel runs and only then: session 40 — `torch._dynamo`'s first touch imports it (~1 s of
+            # process CPU), and the C passes never need it (the first lighting-only frame of a perf process
+            # imported it here for nothing: its L cell's ~1 s first timed frame)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
         if one_pass:
             # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
@@ -956,10 +960,9 @@ class SHPRT(Method):
                                *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
             if img is not None:
                 return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
-                torch._dynamo.maybe_mark_dynamic(x, 0)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
+            mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
             rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
             out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
@@ -984,9 +987,6 @@ class SHPRT(Method):
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g.numel():
             lg3 = self._glossy_light(g, face)
-            torch._dynamo.maybe_mark_dynamic(lg3, 1)
-            for x in (face, bary, normal, wo, reg):
-                torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
             # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27),
@@ -995,8 +995,15 @@ class SHPRT(Method):
             AS = _sh_factor_tables(math.isqrt(G.shape[1]), G.device)
             into = img if GLOSSY_ADDS else None
             vals = _native.glossy(g, *args, *AS, img=into, S2=S2) if NATIVE_GLOSSY else None
-            if vals is None or into is None:
-                _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
+            if vals is None:             # the compiled pass (its marks only now: `mark_tables`)
+                mark_tables()
+                torch._dynamo.maybe_mark_dynamic(lg3, 1)
+                for x in (face, bary, normal, wo, reg):
+                    torch._dynamo.maybe_mark_dynamic(x, 0)
+                vals = _glossy_blocks(g, args)
+                into = None
+            if into is None:
+                _native.add_pixels(img, g, vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:

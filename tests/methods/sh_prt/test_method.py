@@ -1140,3 +1140,38 @@ def test_native_relight_add_threads_split_at_pixels(threads, monkeypatch):
         torch.set_num_threads(old)
     assert torch.equal(imgs[0], imgs[1]) and torch.equal(imgs[0], imgs[2])
     assert (imgs[2] - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+
+
+def test_native_frames_do_not_import_dynamo():
+    """Session 40: where the C passes run (order 5, bounces 0, AVX2), V, L, E and VL frames never touch
+    `torch._dynamo` — its first touch imports it (~1 s of process CPU), which the first lighting-only frame
+    of every perf process did for nothing (`torch._dynamo.maybe_mark_dynamic` of kernels that did not run:
+    the creature L cell's ~1 s first timed frame). In a fresh interpreter, as the perf suite's processes."""
+    import os
+    import subprocess
+    import sys
+
+    from methods.sh_prt import native
+
+    if not native.available() or not torch.backends.cpu.get_cpu_capability().startswith("AVX"):
+        pytest.skip("no native SH PRT passes here")
+    code = (
+        "import sys\n"
+        "from methods.sh_prt.method import SHPRT\n"
+        "from references.gbuffer import make_gbuffer\n"
+        "from scenes.library import get_scene\n"
+        "from scenes.sequences import make_sequence\n"
+        "scene = get_scene('sphere_plane', 'test')\n"
+        "m = SHPRT(order=5, bounces=0, rays=16)\n"
+        "m.precompute(scene)\n"
+        "assert 'torch._dynamo' not in sys.modules\n"
+        "for kind in ('V', 'L', 'E', 'VL'):\n"
+        "    for f in make_sequence(scene, kind, n_frames=3, seed=1):\n"
+        "        m.render(f, make_gbuffer(scene, f, 2))\n"
+        "    assert 'torch._dynamo' not in sys.modules, kind\n"
+        "assert m.stats['relight_build'] == 2 and m.stats['relight'] == 2, m.stats\n"
+        "print('ok')\n")
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
