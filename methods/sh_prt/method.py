@@ -250,6 +250,11 @@ NATIVE_VIEW_ROWS = True
 # the compiled call (~0.35-0.4 ms of a creature bench VL frame at 1 thread, most of it Dynamo's dispatch):
 # the same coefficients to float64 round-off; False: `rotate_sampled`.
 NATIVE_ROTATE = True
+# Session 40: the first lighting-only frame's relight cache (`SHPRT._relight_build`) by one C pass straight
+# into the packed layout of `native.relight_add` (`native.relight_build`; float32 round-off from the torch
+# build, which False restores and which stays its oracle): the torch build gathered three (Qg, n², n²)
+# copies of M's rows (~260 MB written on the creature bench) for its batched products.
+NATIVE_RELIGHT_BUILD = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -1029,6 +1034,16 @@ class SHPRT(Method):
         sample's three corners gathered); a frame then reads 2·n²·Qg floats (7.3 MB on the creature
         bench) instead of M (24 MB) and runs no glossy pass (`_relight_add`)."""
         n2 = self.order ** 2
+        if NATIVE_RELIGHT_BUILD and NATIVE_RELIGHT and face.device.type == "cpu" and _native.available():
+            Mv = self._vertex_major_M()
+            if Mv is not None:
+                tp = self.t_parts[0][..., 0] if self.bounces == 0 else None    # (V, n²) vertex-major when it is
+                T = tp if tp is not None and tp.shape == self.t.shape[:2] and tp.dtype == torch.float32 \
+                    else self.t[..., 0]
+                res = _native.relight_build(g, face, bary, normal, wo, reg, self.F, self._fg, T, Mv, kd, ks, G, vcos,
+                                            *_sh_factor_tables(self.order, G.device), S2)
+                if res is not None:
+                    return {"blk": res[0], "p": res[1], "Qg": int(g.numel()), "n2": n2}
         f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
         u, v = bary[g, 0], bary[g, 1]
         w = torch.stack([1.0 - u - v, u, v], -1)                                   # (Qg, 3)

@@ -745,6 +745,108 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
         lg_rows(C, n2, ncols, X, l, rows + a, e - a, Vg, out);
     }
 }
+
+/* Session 40: the relight cache of a lighting-only frame (`method.SHPRT._relight_build`, its oracle: the
+   same quantities, sums in another order, float32 round-off) straight into `relight_add`'s packed layout
+   (`relight_pack`: per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)], a short last
+   block zero-padded). Per glossy sample s = g[q]: f = face[s], r = reg[s] (clamped), w = (1 − u − v, u, v);
+   n̂ = n/max(|n|, 1e-12), R = 2(n̂·ωo)n̂ − ωo normalised, y_i(R) = A_i(z) T_i (`_sh_factor_tables`, as
+   `sh_glossy`), qv_i = y_i G[r, i] (× max(n̂·ωo, 0) where vcos[r]); d_i = Σ_k w_k t[F[f, k], i] (t at
+   T + v·tv + i·ti) and the transferred lobe Σ_k w_k Σ_i qv_i M[fg[f, k], i, j] (M vertex-major (Vg, n², n²));
+   kd, ks of region r, zero where n·ωo <= 0; pix[q] = s / S2. Blocks [b0, b1). n² <= 64. */
+static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+                     const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N,
+                     int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc, const int64_t *F,
+                     const int32_t *fg, const float *T, int64_t tv, int64_t ti, const float *Mv, const float *kd,
+                     const float *ks, const float *G, const uint8_t *vcos, const float *A, const int32_t *sel,
+                     int64_t S2, float *blk, int64_t *pix) {
+    const int64_t n2 = n * n, m = n2 - 1, bs = (2 * n2 + 6) * 8;
+    const float Y00 = 0.28209479177387814f;
+    float qv[64], acc[64], tmp[64];
+    for (int64_t bi = b0; bi < b1; ++bi) {
+        float *bk = blk + bi * bs;
+        memset(bk, 0, (size_t)bs * sizeof(float));
+        for (int64_t s = 0; s < 8; ++s) {
+            const int64_t q = bi * 8 + s;
+            if (q >= Q) break;
+            const int64_t x = g[q];
+            int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            int64_t r = reg[x]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+            pix[q] = x / S2;
+            const float u = B[x * br], v = B[x * br + bc], w0 = 1.0f - u - v;
+            const float nx0 = N[x * nr], ny0 = N[x * nr + nc], nz0 = N[x * nr + 2 * nc];
+            const float ox = O[x * orr], oy = O[x * orr + oc], oz = O[x * orr + 2 * oc];
+            const float front = (nx0 * ox + ny0 * oy) + nz0 * oz > 0.f ? 1.0f : 0.0f;
+            float nn = sqrtf(nx0 * nx0 + ny0 * ny0 + nz0 * nz0);
+            nn = nn > 1e-12f ? nn : 1e-12f;
+            const float nx = nx0 / nn, ny = ny0 / nn, nz = nz0 / nn;
+            const float d = (nx * ox + ny * oy) + nz * oz, d2 = 2.0f * d;
+            const float Rx = d2 * nx - ox, Ry = d2 * ny - oy, Rz = d2 * nz - oz;
+            float rn = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
+            rn = rn > 1e-12f ? rn : 1e-12f;
+            const float X = Rx / rn, Y = Ry / rn, Z = Rz / rn;
+            const float sc = vcos[r] ? (d > 0.f ? d : 0.f) : 1.0f;
+            float Tp[16];
+            Tp[0] = 1.0f;
+            float cm = X, sm = Y;
+            for (int64_t k = 1; k < n; ++k) {
+                if (k > 1) {
+                    const float c2 = X * cm - Y * sm;
+                    sm = X * sm + Y * cm;
+                    cm = c2;
+                }
+                Tp[2 * k - 1] = cm; Tp[2 * k] = sm;
+            }
+            const float *Gr = G + r * n2;
+            qv[0] = Y00 * Gr[0] * sc;
+            for (int64_t i = 0; i < m; ++i) {
+                float P = A[(n - 1) * m + i];
+                for (int64_t j = n - 2; j >= 0; --j) P = P * Z + A[j * m + i];
+                qv[1 + i] = P * Tp[sel[i]] * Gr[1 + i] * sc;
+            }
+            const int64_t *vi = F + 3 * f;
+            const int32_t *ai = fg + 3 * f;
+            const float wk[3] = {w0, u, v};
+            const float *t0 = T + vi[0] * tv, *t1 = T + vi[1] * tv, *t2 = T + vi[2] * tv;
+            for (int64_t i = 0; i < n2; ++i)
+                bk[8 * i + s] = (t0[i * ti] * w0 + t1[i * ti] * u) + t2[i * ti] * v;
+            for (int64_t j = 0; j < n2; ++j) acc[j] = 0.f;
+            for (int64_t k = 0; k < 3; ++k) {
+                const float *Mk = Mv + (int64_t)ai[k] * n2 * n2;
+                for (int64_t j = 0; j < n2; ++j) tmp[j] = 0.f;
+                for (int64_t i = 0; i < n2; ++i) {
+                    const float a = qv[i];
+                    const float *row = Mk + i * n2;
+                    for (int64_t j = 0; j < n2; ++j) tmp[j] += a * row[j];
+                }
+                for (int64_t j = 0; j < n2; ++j) acc[j] += tmp[j] * wk[k];
+            }
+            for (int64_t j = 0; j < n2; ++j) bk[8 * (n2 + j) + s] = acc[j];
+            for (int64_t c = 0; c < 3; ++c) {
+                bk[16 * n2 + 8 * c + s] = kd[r * 3 + c] * front;
+                bk[16 * n2 + 24 + 8 * c + s] = ks[r * 3 + c] * front;
+            }
+        }
+    }
+}
+
+void sh_relight_build(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf, const int64_t *reg,
+                      int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                      const float *O, int64_t orr, int64_t oc, const int64_t *F, const int32_t *fg, const float *T,
+                      int64_t tv, int64_t ti, const float *Mv, const float *kd, const float *ks, const float *G,
+                      const uint8_t *vcos, const float *A, const int32_t *sel, int64_t S2, float *blk,
+                      int64_t *pix, int64_t nt) {
+    const int64_t nb = (Q + 7) / 8;
+    if (nt <= 1) {
+        rb_range(0, nb, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg, T, tv, ti, Mv, kd, ks,
+                 G, vcos, A, sel, S2, blk, pix);
+        return;
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k)
+        rb_range(nb * k / nt, nb * (k + 1) / nt, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg,
+                 T, tv, ti, Mv, kd, ks, G, vcos, A, sel, S2, blk, pix);
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -757,6 +859,8 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
+               "sh_relight_build": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
+                                    _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I, _I],
                "sh_view": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P, _I,
@@ -1005,6 +1109,46 @@ def relight_pack(DG: Tensor, kd: Tensor, ks: Tensor) -> Tensor:
     X[:n2, :Q], X[n2:2 * n2, :Q] = DG[:, :Q], DG[:, Q:]
     X[2 * n2:2 * n2 + 3, :Q], X[2 * n2 + 3:, :Q] = kd, ks
     return X.view(2 * n2 + 6, Qb, 8).permute(1, 0, 2).contiguous().view(Qb, -1)
+
+
+MIN_BUILD_PER_THREAD = 256       # glossy samples below which one thread builds the relight cache
+
+
+def relight_build(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, F: Tensor,
+                  fg: Tensor, T: Tensor, Mv: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor,
+                  S: Tensor, S2: int) -> tuple[Tensor, Tensor] | None:
+    """The packed relight cache of the glossy samples g (Qg,) int64 (`relight_pack`'s (⌈Qg/8⌉, (2n² + 6)·8)
+    float32 and the pixels (Qg,) int64) by one C pass (session 40; `method.SHPRT._relight_build`'s torch
+    build, its oracle: float32 round-off), or None where it does not run. F (M, 3) int64 vertex ids, fg
+    (M, 3) int32 rows of M per face, T (V, n²) float32 the transfer vectors (any strides), Mv (Vg, n², n²)
+    float32 contiguous the vertex-major M (`SHPRT._vertex_major_M`); kd, ks (R, 3), G (R, n²), vcos (R,),
+    A, S `_sh_factor_tables`; the G-buffer arrays as `glossy`'s."""
+    lib = _lib()
+    n = math.isqrt(int(G.shape[1]))
+    if (lib is None or g.device.type != "cpu" or n * n != G.shape[1] or n * n > MAX_N2 or n < 1
+            or any(x.dtype != torch.int64 for x in (g, face, reg, F)) or fg.dtype != torch.int32
+            or any(x.dtype != torch.float32 for x in (bary, normal, wo, T, Mv, kd, ks, G, A))
+            or Mv.dim() != 3 or not Mv.is_contiguous() or tuple(Mv.shape[1:]) != (n * n, n * n)
+            or T.dim() != 2 or T.shape[1] != n * n or F.shape != fg.shape or F.dim() != 2 or F.shape[1] != 3):
+        return None
+    Q = int(g.numel())
+    blk = torch.empty(-(-Q // 8), (2 * n * n + 6) * 8, dtype=torch.float32)
+    pix = torch.empty(Q, dtype=torch.int64)
+    if Q == 0:
+        return blk, pix
+    if int(g.min()) < 0 or int(g.max()) >= face.numel():
+        raise IndexError("a glossy sample outside the G-buffer")
+    g, face, reg, F, fg, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, F, fg, kd, ks, G, A))
+    v8 = vcos.to(torch.uint8).contiguous()
+    sel = S.argmax(0).to(torch.int32).contiguous()
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_BUILD_PER_THREAD))
+    lib.sh_relight_build(Q, n, g.data_ptr(), face.data_ptr(), int(F.shape[0]), reg.data_ptr(), int(kd.shape[0]),
+                         bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0),
+                         normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1), F.data_ptr(), fg.data_ptr(),
+                         T.data_ptr(), T.stride(0), T.stride(1), Mv.data_ptr(), kd.data_ptr(), ks.data_ptr(),
+                         G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), int(S2), blk.data_ptr(),
+                         pix.data_ptr(), nt)
+    return blk, pix
 
 
 def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor]:
