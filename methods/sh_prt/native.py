@@ -531,6 +531,9 @@ static inline float hsum8(__m256 a) {
     return _mm_cvtss_f32(l);
 }
 #define GMAXB 8     /* (n² − 1) / 8 <= 8: orders <= 7 */
+#ifndef SH_PF_DIST
+#define SH_PF_DIST 1 /* blocks of 8 glossy samples between a block's prefetch and its use */
+#endif
 #ifdef __FMA__
 #define MADD(a, b, c) (fused ? _mm256_fmadd_ps(a, b, c) : _mm256_add_ps(_mm256_mul_ps(a, b), c))
 #else
@@ -562,6 +565,29 @@ static inline __attribute__((always_inline)) void gl_body(
             fox[b] = O[s * orr]; foy[b] = O[s * orr + oc]; foz[b] = O[s * orr + 2 * oc];
             fvc[b] = vcos[r] ? 1.0f : 0.0f;
         }
+#ifndef SH_NO_PREFETCH
+        /* session 40: the rows of l' (9 per sample: 3 corners x 3 channels, n² floats each) of the block
+           SH_PF_DIST blocks ahead prefetched while this block computes its y(R) and sums (the rows' first
+           loads were the pass's hot spot: L2 misses on a table larger than L2; the first blocks' rows at
+           the range's start); a face repeated from the sample before skipped */
+        for (int64_t pb = (b0 == q0 ? b0 : b0 + 8 * SH_PF_DIST); pb <= b0 + 8 * SH_PF_DIST && pb < q1; pb += 8) {
+            const int64_t e = q1 - pb < 8 ? q1 - pb : 8;
+            int64_t pf = -1;
+            for (int64_t b = 0; b < e; ++b) {
+                int64_t f = face[g[pb + b]]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+                if (f == pf) continue;
+                pf = f;
+                const int32_t *fr = fg + 3 * f;
+                for (int64_t k = 0; k < 3; ++k)
+                    for (int64_t c = 0; c < 3; ++c) {
+                        const float *L = lg + c * lsc + fr[k] * lsr;
+                        __builtin_prefetch(L);
+                        __builtin_prefetch(L + n2 - 1);
+                        if (n2 > 16) __builtin_prefetch(L + 16);
+                    }
+            }
+        }
+#endif
         {
             const __m256 nx0 = _mm256_loadu_ps(fnx), ny0 = _mm256_loadu_ps(fny), nz0 = _mm256_loadu_ps(fnz);
             const __m256 ox = _mm256_loadu_ps(fox), oy = _mm256_loadu_ps(foy), oz = _mm256_loadu_ps(foz);
