@@ -451,6 +451,9 @@ static inline v8 hsum8x8(const v8 *a) {
     return (v8)_mm256_permutevar8x32_ps(s, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));
 }
 #endif
+#ifndef SH_VM_PF
+#define SH_VM_PF 2  /* rows between a row's prefetch and its sums (`vm_rows`); 0: none */
+#endif
 static void vm_rows(int64_t n2, const float *__restrict M, const float *__restrict lt, const int64_t *rows,
                     int64_t R, int64_t Vg, float *__restrict out) {
     const int64_t n8 = n2 & ~(int64_t)7, nb = n8 / 8;           /* nb <= 8: n² <= 64 */
@@ -460,6 +463,16 @@ static void vm_rows(int64_t n2, const float *__restrict M, const float *__restri
     for (int64_t q = 0; q < R; ++q) {
         const int64_t r = rows[q];
         const float *Mr = M + r * n2 * n2;
+#if SH_VM_PF > 0
+        /* session 40: the row SH_VM_PF ahead (n⁴ floats, one block) prefetched while this one is summed:
+           the listed rows are scattered over M (24 MB on the creature bench, out of cache when a lighting
+           change's frame starts), and each row's start waited for memory */
+        if (q + SH_VM_PF < R) {
+            const float *Mn = M + rows[q + SH_VM_PF] * n2 * n2;
+            for (int64_t o = 0; o < n2 * n2; o += 16) __builtin_prefetch(Mn + o);
+            __builtin_prefetch(Mn + n2 * n2 - 1);
+        }
+#endif
         int64_t i0 = 0;
 #ifdef __AVX2__
         /* session 34: 8 outputs i at a time per channel, their lane sums as one 8 × 8 transpose-and-add
