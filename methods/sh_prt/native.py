@@ -263,6 +263,9 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
     const __m256i zero64 = _mm256_setzero_si256(), top64 = _mm256_set1_epi64x(Mf - 1);
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
     float xs[3][8];
+    __m256 X3[3];
+    const __m256 invv = _mm256_set1_ps(inv);
+    (void)xs; (void)X3; (void)invv;
     for (int64_t p = p0; p < p1; p += 2) {
         const int64_t q = p * 4;
         __m256i fa = _mm256_loadu_si256((const __m256i *)(face + q)), fb = _mm256_loadu_si256((const __m256i *)(face + q + 4));
@@ -325,8 +328,13 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
                                                        _mm256_mul_ps(Ec, v)));
             x = _mm256_blendv_ps(x, zero, _mm256_cmp_ps(x, zero, _CMP_LT_OQ));   /* clamp_min (NaN kept) */
             x = _mm256_and_ps(x, keep);
+#ifdef SH_NO_VSUM
             _mm256_storeu_ps(xs[c], x);
+#else
+            X3[c] = x;
+#endif
         }
+#ifdef SH_NO_VSUM
         for (int k = 0; k < 2; ++k)
             for (int c = 0; c < 3; ++c) {
                 float a = xs[c][4 * k];
@@ -335,6 +343,19 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
                 a += xs[c][4 * k + 3];
                 img[3 * (p + k) + c] = a * inv;
             }
+#else
+        {   /* session 40: each pixel's ((x0 + x1) + x2) + x3 per channel in vector lanes (the scalar sums' order:
+               the same bits) — X_c's 4 x 4 blocks (a pixel's samples, one per 128-bit lane) transposed so that
+               lane c of S_s holds channel c's sample s; the two pixels' 3 values stored as 4 + masked 3 */
+            const __m256 a01 = _mm256_unpacklo_ps(X3[0], X3[1]), b01 = _mm256_unpackhi_ps(X3[0], X3[1]);
+            const __m256 a2z = _mm256_unpacklo_ps(X3[2], zero), b2z = _mm256_unpackhi_ps(X3[2], zero);
+            const __m256 S0 = _mm256_shuffle_ps(a01, a2z, 0x44), S1 = _mm256_shuffle_ps(a01, a2z, 0xEE);
+            const __m256 S2v = _mm256_shuffle_ps(b01, b2z, 0x44), S3 = _mm256_shuffle_ps(b01, b2z, 0xEE);
+            const __m256 sum = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(_mm256_add_ps(S0, S1), S2v), S3), invv);
+            _mm_storeu_ps(img + 3 * p, _mm256_castps256_ps128(sum));
+            _mm_maskstore_ps(img + 3 * p + 3, _mm_setr_epi32(-1, -1, -1, 0), _mm256_extractf128_ps(sum, 1));
+        }
+#endif
     }
     return ng;
 }
