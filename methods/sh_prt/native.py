@@ -249,6 +249,12 @@ static inline void tr8(__m256 *r) {
    operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
    samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
    same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
+#ifndef SH_PX_PF
+#define SH_PX_PF 8       /* groups of 8 samples between a group's face-row prefetch and its use (`px_range8`); 0: none */
+#endif
+#ifndef SH_PX_PF_STEP
+#define SH_PX_PF_STEP 1  /* every sample's face rows prefetched (2: one per two samples, ...) */
+#endif
 static inline __m256 px_ld(const float *p, int64_t stride, __m256i lane) {
     if (stride == 1)
         return _mm256_loadu_ps(p);
@@ -275,6 +281,18 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
         fb = _mm256_blendv_epi8(fb, top64, _mm256_cmpgt_epi64(fb, top64));
         const __m256i f = _mm256_permute2x128_si256(_mm256_permutevar8x32_epi32(fa, lo),
                                                     _mm256_permutevar8x32_epi32(fb, lo), 0x20);   /* (8,) int32 */
+#if SH_PX_PF > 0
+        /* session 40: the face rows (ef, fk: 1.4 MB on the creature bench, more than L2, read in screen order,
+           not the faces' order) of the group SH_PX_PF ahead prefetched — their misses were ~30 % of the pass —
+           every SH_PX_PF_STEP-th sample's (a pixel's samples mostly share a face) */
+        if (p + 2 * SH_PX_PF < p1) {
+            const int64_t *fq = face + q + 8 * SH_PX_PF;
+            for (int b = 0; b < 8; b += SH_PX_PF_STEP) {
+                int64_t ff = fq[b]; ff = ff < 0 ? 0 : (ff >= Mf ? Mf - 1 : ff);
+                __builtin_prefetch(ef + 9 * ff); __builtin_prefetch(ef + 9 * ff + 8); __builtin_prefetch(fk + 4 * ff);
+            }
+        }
+#endif
         int32_t fi[8];
         _mm256_storeu_si256((__m256i *)fi, f);
         __m256 E[8], K[4];
