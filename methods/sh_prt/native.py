@@ -639,6 +639,19 @@ static inline __attribute__((always_inline)) void gl_body(
                     }
             }
         }
+#ifndef SH_NO_PREFETCH2
+        /* and, one block further, what that prefetch and the block's gather read first: the face's rows of
+           l' (fg) and the sample's region (reg: not read by the pixel pass, so out of cache) */
+        for (int64_t pb = (b0 == q0 ? b0 : b0 + 8 * (SH_PF_DIST + 1)); pb <= b0 + 8 * (SH_PF_DIST + 1) && pb < q1; pb += 8) {
+            const int64_t e = q1 - pb < 8 ? q1 - pb : 8;
+            for (int64_t b = 0; b < e; ++b) {
+                const int64_t x = g[pb + b];
+                int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+                __builtin_prefetch(fg + 3 * f);
+                __builtin_prefetch(reg + x);
+            }
+        }
+#endif
 #endif
         {
             const __m256 nx0 = _mm256_loadu_ps(fnx), ny0 = _mm256_loadu_ps(fny), nz0 = _mm256_loadu_ps(fnz);
