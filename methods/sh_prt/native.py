@@ -845,6 +845,35 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
    `sh_glossy`), qv_i = y_i G[r, i] (× max(n̂·ωo, 0) where vcos[r]); d_i = Σ_k w_k t[F[f, k], i] (t at
    T + v·tv + i·ti) and the transferred lobe Σ_k w_k Σ_i qv_i M[fg[f, k], i, j] (M vertex-major (Vg, n², n²));
    kd, ks of region r, zero where n·ωo <= 0; pix[q] = s / S2. Blocks [b0, b1). n² <= 64. */
+/* acc[j] = Σ_k w_k (Σ_i qv_i M_k[i, j]) (i ascending, then k: the sums of the scalar loop before, in 8-lane
+   blocks of j held in registers, the j >= n8 tail scalar) — M_k = Mv's row ai[k] (n² x n², row-major). */
+static inline __attribute__((always_inline)) void rb_lobe(const int64_t n2, const float *Mv, const int32_t *ai,
+                                                          const float *qv, const float *wk, float *acc) {
+    const int64_t n8 = n2 & ~(int64_t)7, nbj = n8 / 8;
+    v8 A8[8];
+    float At[8];
+    for (int64_t b = 0; b < nbj; ++b) A8[b] = (v8){0};
+    for (int64_t j = n8; j < n2; ++j) At[j - n8] = 0.f;
+    for (int64_t k = 0; k < 3; ++k) {
+        const float *Mk = Mv + (int64_t)ai[k] * n2 * n2;
+        v8 T8[8];
+        float Tt[8];
+        for (int64_t b = 0; b < nbj; ++b) T8[b] = (v8){0};
+        for (int64_t j = n8; j < n2; ++j) Tt[j - n8] = 0.f;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float a = qv[i];
+            const float *row = Mk + i * n2;
+            for (int64_t b = 0; b < nbj; ++b) T8[b] += a * *(const v8 *)(row + 8 * b);
+            for (int64_t j = n8; j < n2; ++j) Tt[j - n8] += a * row[j];
+        }
+        const float w = wk[k];
+        for (int64_t b = 0; b < nbj; ++b) A8[b] += T8[b] * w;
+        for (int64_t j = n8; j < n2; ++j) At[j - n8] += Tt[j - n8] * w;
+    }
+    for (int64_t b = 0; b < nbj; ++b) __builtin_memcpy(acc + 8 * b, &A8[b], 32);
+    for (int64_t j = n8; j < n2; ++j) acc[j] = At[j - n8];
+}
+
 static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
                      const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N,
                      int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc, const int64_t *F,
@@ -853,7 +882,7 @@ static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t
                      int64_t S2, float *blk, int64_t *pix) {
     const int64_t n2 = n * n, m = n2 - 1, bs = (2 * n2 + 6) * 8;
     const float Y00 = 0.28209479177387814f;
-    float qv[64], acc[64], tmp[64];
+    float qv[64], acc[64];
     for (int64_t bi = b0; bi < b1; ++bi) {
         float *bk = blk + bi * bs;
         memset(bk, 0, (size_t)bs * sizeof(float));
@@ -901,17 +930,8 @@ static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t
             const float *t0 = T + vi[0] * tv, *t1 = T + vi[1] * tv, *t2 = T + vi[2] * tv;
             for (int64_t i = 0; i < n2; ++i)
                 bk[8 * i + s] = (t0[i * ti] * w0 + t1[i * ti] * u) + t2[i * ti] * v;
-            for (int64_t j = 0; j < n2; ++j) acc[j] = 0.f;
-            for (int64_t k = 0; k < 3; ++k) {
-                const float *Mk = Mv + (int64_t)ai[k] * n2 * n2;
-                for (int64_t j = 0; j < n2; ++j) tmp[j] = 0.f;
-                for (int64_t i = 0; i < n2; ++i) {
-                    const float a = qv[i];
-                    const float *row = Mk + i * n2;
-                    for (int64_t j = 0; j < n2; ++j) tmp[j] += a * row[j];
-                }
-                for (int64_t j = 0; j < n2; ++j) acc[j] += tmp[j] * wk[k];
-            }
+            if (n2 == 25) rb_lobe(25, Mv, ai, qv, wk, acc);     /* order 5: the loops unrolled */
+            else rb_lobe(n2, Mv, ai, qv, wk, acc);
             for (int64_t j = 0; j < n2; ++j) bk[8 * (n2 + j) + s] = acc[j];
             for (int64_t c = 0; c < 3; ++c) {
                 bk[16 * n2 + 8 * c + s] = kd[r * 3 + c] * front;
