@@ -425,11 +425,19 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
    o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
    img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the samples s in [a, b), ascending
    (the blocks that hold them computed whole: a block's values do not depend on the range). */
+#ifndef SH_RL_PF
+#define SH_RL_PF 4
+#endif
 static void relight_range(int64_t a, int64_t b, int64_t n2, const float *blk, const float *l, const int64_t *pix,
                           float inv, float *img) {
     const int64_t bs = (2 * n2 + 6) * 8;
     for (int64_t q0 = a - a % 8; q0 < b; q0 += 8) {
         const float *bk = blk + (q0 / 8) * bs;
+#if SH_RL_PF > 0
+        /* session 40: the block SH_RL_PF ahead ((2n² + 6)·8 floats) prefetched */
+        if (q0 + 8 * SH_RL_PF < b)
+            for (int64_t o = 0; o < bs; o += 16) __builtin_prefetch(bk + SH_RL_PF * bs + o);
+#endif
         v8 d0 = {0}, d1 = {0}, d2 = {0}, g0 = {0}, g1 = {0}, g2 = {0};
         for (int64_t i = 0; i < n2; ++i) {
             const v8 d = *(const v8 *)(bk + 8 * i), g = *(const v8 *)(bk + 8 * (n2 + i));
