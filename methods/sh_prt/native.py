@@ -249,6 +249,9 @@ static inline void tr8(__m256 *r) {
    operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
    samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
    same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
+#ifndef SH_GB_PF
+#define SH_GB_PF 16      /* groups of 8 samples between the G-buffer streams' prefetch and their use; 0: none */
+#endif
 #ifndef SH_PX_PF
 #define SH_PX_PF 8       /* groups of 8 samples between a group's face-row prefetch and its use (`px_range8`); 0: none */
 #endif
@@ -281,6 +284,17 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
         fb = _mm256_blendv_epi8(fb, top64, _mm256_cmpgt_epi64(fb, top64));
         const __m256i f = _mm256_permute2x128_si256(_mm256_permutevar8x32_epi32(fa, lo),
                                                     _mm256_permutevar8x32_epi32(fb, lo), 0x20);   /* (8,) int32 */
+#if SH_GB_PF > 0
+        /* session 40: the G-buffer streams SH_GB_PF groups ahead (as `relight_add`'s stream, the hardware
+           prefetch did not keep up with the frame's first, cold read) */
+        if (p + 2 * SH_GB_PF < p1) {
+            const int64_t qa = q + 8 * SH_GB_PF;
+            __builtin_prefetch(face + qa); __builtin_prefetch(hit + qa);
+            __builtin_prefetch(B + qa * br); __builtin_prefetch(B + qa * br + bc);
+            __builtin_prefetch(N + qa * nr); __builtin_prefetch(N + qa * nr + 16 * nc);
+            __builtin_prefetch(O + qa * orr); __builtin_prefetch(O + qa * orr + oc); __builtin_prefetch(O + qa * orr + 2 * oc);
+        }
+#endif
 #if SH_PX_PF > 0
         /* session 40: the face rows (ef, fk: 1.4 MB on the creature bench, more than L2, read in screen order,
            not the faces' order) of the group SH_PX_PF ahead prefetched — their misses were ~30 % of the pass —
