@@ -163,6 +163,19 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     samples' G-buffer rows gathered eagerly before the pass (0.85×), the radiance stored
     channel-major (0.98×), the region by the face inside the glossy pass (1.01×); alternatives to
     scatter_add_ (np.add.at 0.26×, a bincount per channel 0.87×, index_put_ accumulate 0.88×).
+  * session 40 (issue 14; creature bench, same process against beff8b6, 1 thread, process CPU, 21 frames,
+    `python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V VL L E --frames 21 --threads 1`):
+    V 1.33×, VL 1.23×, L 1.39×, E 1.34×. The perf runs' ~1 s first timed L frame was `torch._dynamo`'s
+    import (the compiled kernels' marks ran on frames only C passes render; now only before a compiled
+    kernel: fresh processes, 756 → 8.5 ms, `python -m benchmarks.sh_prt_first_light --fresh --baseline B`);
+    the relight cache by one C pass into the packed layout (`native.relight_build`, float32 round-off from
+    the torch build, its oracle): the first L / E frame 63 / 68 → 9 / 10 ms. The C passes prefetch what they
+    read out of cache (l' rows and the face's row ids / region in the glossy pass, M rows in `vm_rows`, face
+    rows and the G-buffer streams in the pixel pass, the packed blocks in `relight_add`: bit-identical), and
+    the pixel pass sums each pixel's four samples in vector lanes (same order, same bits). Dropped: AVX-512
+    flags for the library (1.00×), a one-face broadcast path in the pixel pass (1.00×), E8 by a gather
+    (1.00×), the pixel by a shift in the glossy pass (1.01×), view chunks of 1024 pixels (1.015×), FMA in
+    the relight build's lobe (1.02×).
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
