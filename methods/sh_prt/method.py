@@ -163,6 +163,19 @@ equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_C
     samples' G-buffer rows gathered eagerly before the pass (0.85×), the radiance stored
     channel-major (0.98×), the region by the face inside the glossy pass (1.01×); alternatives to
     scatter_add_ (np.add.at 0.26×, a bincount per channel 0.87×, index_put_ accumulate 0.88×).
+  * session 40 (issue 14; creature bench, same process against beff8b6, 1 thread, process CPU, 21 frames,
+    `python -m benchmarks.sh_prt --baseline B --precompute-code B --kinds V VL L E --frames 21 --threads 1`):
+    V 1.33×, VL 1.23×, L 1.39×, E 1.34×. The perf runs' ~1 s first timed L frame was `torch._dynamo`'s
+    import (the compiled kernels' marks ran on frames only C passes render; now only before a compiled
+    kernel: fresh processes, 756 → 8.5 ms, `python -m benchmarks.sh_prt_first_light --fresh --baseline B`);
+    the relight cache by one C pass into the packed layout (`native.relight_build`, float32 round-off from
+    the torch build, its oracle): the first L / E frame 63 / 68 → 9 / 10 ms. The C passes prefetch what they
+    read out of cache (l' rows and the face's row ids / region in the glossy pass, M rows in `vm_rows`, face
+    rows and the G-buffer streams in the pixel pass, the packed blocks in `relight_add`: bit-identical), and
+    the pixel pass sums each pixel's four samples in vector lanes (same order, same bits). Dropped: AVX-512
+    flags for the library (1.00×), a one-face broadcast path in the pixel pass (1.00×), E8 by a gather
+    (1.00×), the pixel by a shift in the glossy pass (1.01×), view chunks of 1024 pixels (1.015×), FMA in
+    the relight build's lobe (1.02×).
 
 BRDFs covered (state exactly):
   * Lambert: exact up to the order-n truncation of the transfer.
@@ -250,6 +263,11 @@ NATIVE_VIEW_ROWS = True
 # the compiled call (~0.35-0.4 ms of a creature bench VL frame at 1 thread, most of it Dynamo's dispatch):
 # the same coefficients to float64 round-off; False: `rotate_sampled`.
 NATIVE_ROTATE = True
+# Session 40: the first lighting-only frame's relight cache (`SHPRT._relight_build`) by one C pass straight
+# into the packed layout of `native.relight_add` (`native.relight_build`; float32 round-off from the torch
+# build, which False restores and which stays its oracle): the torch build gathered three (Qg, n², n²)
+# copies of M's rows (~260 MB written on the creature bench) for its batched products.
+NATIVE_RELIGHT_BUILD = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -942,8 +960,12 @@ class SHPRT(Method):
             # session 35: a lighting change's frame — the rows it reads listed from the faces, computed, then
             # the one pass (`NATIVE_VIEW_ROWS`)
             one_pass = self._view_rows(face, hit, fk)
-        if not one_pass:  # (the compiled kernels' marks: not needed by the C pass)
-            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):  # per-scene sizes: one compiled kernel
+        def mark_tables() -> None:
+            # the compiled kernels' marks (per-scene sizes: one compiled kernel), set right before a compiled
+            # kernel runs and only then: session 40 — `torch._dynamo`'s first touch imports it (~1 s of
+            # process CPU), and the C passes never need it (the first lighting-only frame of a perf process
+            # imported it here for nothing: its L cell's ~1 s first timed frame)
+            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
                 torch._dynamo.maybe_mark_dynamic(x, 0)
         if one_pass:
             # session 32: a view whose l' table is complete (or completed here, all its remaining rows,
@@ -956,10 +978,9 @@ class SHPRT(Method):
                                *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
             if img is not None:
                 return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-            for x in (self._ef, self._fg, fk, kd, ks, G, vcos):
-                torch._dynamo.maybe_mark_dynamic(x, 0)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
+            mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
             rows = (face.view(n, S2), hit.view(n, S2), *(c for v in vecs for c in v))
             out = map_rows(_pixels_kernel(tuple(len(v) for v in vecs)), rows, (self._ef, fk),
@@ -984,9 +1005,6 @@ class SHPRT(Method):
             return img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g.numel():
             lg3 = self._glossy_light(g, face)
-            torch._dynamo.maybe_mark_dynamic(lg3, 1)
-            for x in (face, bary, normal, wo, reg):
-                torch._dynamo.maybe_mark_dynamic(x, 0)
             args = (face, bary, normal, wo, reg, self._ef, self._fg, lg3, kd, ks, G, vcos)
             # added to their pixels × 1/S² in one C pass (`native.add_pixels`, bit-identical to its
             # oracle's scatter_add_: 0.10 against 0.39 ms, 35 K glossy samples, 1 thread; session 27),
@@ -995,8 +1013,15 @@ class SHPRT(Method):
             AS = _sh_factor_tables(math.isqrt(G.shape[1]), G.device)
             into = img if GLOSSY_ADDS else None
             vals = _native.glossy(g, *args, *AS, img=into, S2=S2) if NATIVE_GLOSSY else None
-            if vals is None or into is None:
-                _native.add_pixels(img, g, _glossy_blocks(g, args) if vals is None else vals, S2)
+            if vals is None:             # the compiled pass (its marks only now: `mark_tables`)
+                mark_tables()
+                torch._dynamo.maybe_mark_dynamic(lg3, 1)
+                for x in (face, bary, normal, wo, reg):
+                    torch._dynamo.maybe_mark_dynamic(x, 0)
+                vals = _glossy_blocks(g, args)
+                into = None
+            if into is None:
+                _native.add_pixels(img, g, vals, S2)
         return img.view(gb.height, gb.width, 3).to(gb.hit.device)
 
     def _face_materials(self, kd: Tensor) -> Tensor:
@@ -1022,6 +1047,16 @@ class SHPRT(Method):
         sample's three corners gathered); a frame then reads 2·n²·Qg floats (7.3 MB on the creature
         bench) instead of M (24 MB) and runs no glossy pass (`_relight_add`)."""
         n2 = self.order ** 2
+        if NATIVE_RELIGHT_BUILD and NATIVE_RELIGHT and face.device.type == "cpu" and _native.available():
+            Mv = self._vertex_major_M()
+            if Mv is not None:
+                tp = self.t_parts[0][..., 0] if self.bounces == 0 else None    # (V, n²) vertex-major when it is
+                T = tp if tp is not None and tp.shape == self.t.shape[:2] and tp.dtype == torch.float32 \
+                    else self.t[..., 0]
+                res = _native.relight_build(g, face, bary, normal, wo, reg, self.F, self._fg, T, Mv, kd, ks, G, vcos,
+                                            *_sh_factor_tables(self.order, G.device), S2)
+                if res is not None:
+                    return {"blk": res[0], "p": res[1], "Qg": int(g.numel()), "n2": n2}
         f, r = face[g].clamp_min(0), reg[g].clamp_min(0)
         u, v = bary[g, 0], bary[g, 1]
         w = torch.stack([1.0 - u - v, u, v], -1)                                   # (Qg, 3)

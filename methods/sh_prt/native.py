@@ -249,6 +249,15 @@ static inline void tr8(__m256 *r) {
    operation the scalar loop's in its order (elementwise IEEE, no contraction), each pixel's four
    samples summed in order ((x0 + x1) + x2) + x3, the glossy samples appended in ascending order: the
    same image and list bit for bit. Pixels [p0, p1); returns the count listed. */
+#ifndef SH_GB_PF
+#define SH_GB_PF 16      /* groups of 8 samples between the G-buffer streams' prefetch and their use; 0: none */
+#endif
+#ifndef SH_PX_PF
+#define SH_PX_PF 8       /* groups of 8 samples between a group's face-row prefetch and its use (`px_range8`); 0: none */
+#endif
+#ifndef SH_PX_PF_STEP
+#define SH_PX_PF_STEP 1  /* every sample's face rows prefetched (2: one per two samples, ...) */
+#endif
 static inline __m256 px_ld(const float *p, int64_t stride, __m256i lane) {
     if (stride == 1)
         return _mm256_loadu_ps(p);
@@ -263,6 +272,9 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
     const __m256i zero64 = _mm256_setzero_si256(), top64 = _mm256_set1_epi64x(Mf - 1);
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
     float xs[3][8];
+    __m256 X3[3];
+    const __m256 invv = _mm256_set1_ps(inv);
+    (void)xs; (void)X3; (void)invv;
     for (int64_t p = p0; p < p1; p += 2) {
         const int64_t q = p * 4;
         __m256i fa = _mm256_loadu_si256((const __m256i *)(face + q)), fb = _mm256_loadu_si256((const __m256i *)(face + q + 4));
@@ -272,6 +284,29 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
         fb = _mm256_blendv_epi8(fb, top64, _mm256_cmpgt_epi64(fb, top64));
         const __m256i f = _mm256_permute2x128_si256(_mm256_permutevar8x32_epi32(fa, lo),
                                                     _mm256_permutevar8x32_epi32(fb, lo), 0x20);   /* (8,) int32 */
+#if SH_GB_PF > 0
+        /* session 40: the G-buffer streams SH_GB_PF groups ahead (as `relight_add`'s stream, the hardware
+           prefetch did not keep up with the frame's first, cold read) */
+        if (p + 2 * SH_GB_PF < p1) {
+            const int64_t qa = q + 8 * SH_GB_PF;
+            __builtin_prefetch(face + qa); __builtin_prefetch(hit + qa);
+            __builtin_prefetch(B + qa * br); __builtin_prefetch(B + qa * br + bc);
+            __builtin_prefetch(N + qa * nr); __builtin_prefetch(N + qa * nr + 16 * nc);
+            __builtin_prefetch(O + qa * orr); __builtin_prefetch(O + qa * orr + oc); __builtin_prefetch(O + qa * orr + 2 * oc);
+        }
+#endif
+#if SH_PX_PF > 0
+        /* session 40: the face rows (ef, fk: 1.4 MB on the creature bench, more than L2, read in screen order,
+           not the faces' order) of the group SH_PX_PF ahead prefetched — their misses were ~30 % of the pass —
+           every SH_PX_PF_STEP-th sample's (a pixel's samples mostly share a face) */
+        if (p + 2 * SH_PX_PF < p1) {
+            const int64_t *fq = face + q + 8 * SH_PX_PF;
+            for (int b = 0; b < 8; b += SH_PX_PF_STEP) {
+                int64_t ff = fq[b]; ff = ff < 0 ? 0 : (ff >= Mf ? Mf - 1 : ff);
+                __builtin_prefetch(ef + 9 * ff); __builtin_prefetch(ef + 9 * ff + 8); __builtin_prefetch(fk + 4 * ff);
+            }
+        }
+#endif
         int32_t fi[8];
         _mm256_storeu_si256((__m256i *)fi, f);
         __m256 E[8], K[4];
@@ -325,8 +360,13 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
                                                        _mm256_mul_ps(Ec, v)));
             x = _mm256_blendv_ps(x, zero, _mm256_cmp_ps(x, zero, _CMP_LT_OQ));   /* clamp_min (NaN kept) */
             x = _mm256_and_ps(x, keep);
+#ifdef SH_NO_VSUM
             _mm256_storeu_ps(xs[c], x);
+#else
+            X3[c] = x;
+#endif
         }
+#ifdef SH_NO_VSUM
         for (int k = 0; k < 2; ++k)
             for (int c = 0; c < 3; ++c) {
                 float a = xs[c][4 * k];
@@ -335,6 +375,19 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
                 a += xs[c][4 * k + 3];
                 img[3 * (p + k) + c] = a * inv;
             }
+#else
+        {   /* session 40: each pixel's ((x0 + x1) + x2) + x3 per channel in vector lanes (the scalar sums' order:
+               the same bits) — X_c's 4 x 4 blocks (a pixel's samples, one per 128-bit lane) transposed so that
+               lane c of S_s holds channel c's sample s; the two pixels' 3 values stored as 4 + masked 3 */
+            const __m256 a01 = _mm256_unpacklo_ps(X3[0], X3[1]), b01 = _mm256_unpackhi_ps(X3[0], X3[1]);
+            const __m256 a2z = _mm256_unpacklo_ps(X3[2], zero), b2z = _mm256_unpackhi_ps(X3[2], zero);
+            const __m256 S0 = _mm256_shuffle_ps(a01, a2z, 0x44), S1 = _mm256_shuffle_ps(a01, a2z, 0xEE);
+            const __m256 S2v = _mm256_shuffle_ps(b01, b2z, 0x44), S3 = _mm256_shuffle_ps(b01, b2z, 0xEE);
+            const __m256 sum = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(_mm256_add_ps(S0, S1), S2v), S3), invv);
+            _mm_storeu_ps(img + 3 * p, _mm256_castps256_ps128(sum));
+            _mm_maskstore_ps(img + 3 * p + 3, _mm_setr_epi32(-1, -1, -1, 0), _mm256_extractf128_ps(sum, 1));
+        }
+#endif
     }
     return ng;
 }
@@ -386,11 +439,19 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
    o_d[c] = Σ_i l[i, c] d[i], o_g[c] = Σ_i l[i, c] q[i] (i ascending), then
    img[pix[s], c] += max(0, kd[c] o_d[c] + ks[c] o_g[c]) · inv for the samples s in [a, b), ascending
    (the blocks that hold them computed whole: a block's values do not depend on the range). */
+#ifndef SH_RL_PF
+#define SH_RL_PF 4
+#endif
 static void relight_range(int64_t a, int64_t b, int64_t n2, const float *blk, const float *l, const int64_t *pix,
                           float inv, float *img) {
     const int64_t bs = (2 * n2 + 6) * 8;
     for (int64_t q0 = a - a % 8; q0 < b; q0 += 8) {
         const float *bk = blk + (q0 / 8) * bs;
+#if SH_RL_PF > 0
+        /* session 40: the block SH_RL_PF ahead ((2n² + 6)·8 floats) prefetched */
+        if (q0 + 8 * SH_RL_PF < b)
+            for (int64_t o = 0; o < bs; o += 16) __builtin_prefetch(bk + SH_RL_PF * bs + o);
+#endif
         v8 d0 = {0}, d1 = {0}, d2 = {0}, g0 = {0}, g1 = {0}, g2 = {0};
         for (int64_t i = 0; i < n2; ++i) {
             const v8 d = *(const v8 *)(bk + 8 * i), g = *(const v8 *)(bk + 8 * (n2 + i));
@@ -451,6 +512,9 @@ static inline v8 hsum8x8(const v8 *a) {
     return (v8)_mm256_permutevar8x32_ps(s, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));
 }
 #endif
+#ifndef SH_VM_PF
+#define SH_VM_PF 2  /* rows between a row's prefetch and its sums (`vm_rows`); 0: none */
+#endif
 static void vm_rows(int64_t n2, const float *__restrict M, const float *__restrict lt, const int64_t *rows,
                     int64_t R, int64_t Vg, float *__restrict out) {
     const int64_t n8 = n2 & ~(int64_t)7, nb = n8 / 8;           /* nb <= 8: n² <= 64 */
@@ -460,6 +524,16 @@ static void vm_rows(int64_t n2, const float *__restrict M, const float *__restri
     for (int64_t q = 0; q < R; ++q) {
         const int64_t r = rows[q];
         const float *Mr = M + r * n2 * n2;
+#if SH_VM_PF > 0
+        /* session 40: the row SH_VM_PF ahead (n⁴ floats, one block) prefetched while this one is summed:
+           the listed rows are scattered over M (24 MB on the creature bench, out of cache when a lighting
+           change's frame starts), and each row's start waited for memory */
+        if (q + SH_VM_PF < R) {
+            const float *Mn = M + rows[q + SH_VM_PF] * n2 * n2;
+            for (int64_t o = 0; o < n2 * n2; o += 16) __builtin_prefetch(Mn + o);
+            __builtin_prefetch(Mn + n2 * n2 - 1);
+        }
+#endif
         int64_t i0 = 0;
 #ifdef __AVX2__
         /* session 34: 8 outputs i at a time per channel, their lane sums as one 8 × 8 transpose-and-add
@@ -531,6 +605,9 @@ static inline float hsum8(__m256 a) {
     return _mm_cvtss_f32(l);
 }
 #define GMAXB 8     /* (n² − 1) / 8 <= 8: orders <= 7 */
+#ifndef SH_PF_DIST
+#define SH_PF_DIST 1 /* blocks of 8 glossy samples between a block's prefetch and its use */
+#endif
 #ifdef __FMA__
 #define MADD(a, b, c) (fused ? _mm256_fmadd_ps(a, b, c) : _mm256_add_ps(_mm256_mul_ps(a, b), c))
 #else
@@ -562,6 +639,42 @@ static inline __attribute__((always_inline)) void gl_body(
             fox[b] = O[s * orr]; foy[b] = O[s * orr + oc]; foz[b] = O[s * orr + 2 * oc];
             fvc[b] = vcos[r] ? 1.0f : 0.0f;
         }
+#ifndef SH_NO_PREFETCH
+        /* session 40: the rows of l' (9 per sample: 3 corners x 3 channels, n² floats each) of the block
+           SH_PF_DIST blocks ahead prefetched while this block computes its y(R) and sums (the rows' first
+           loads were the pass's hot spot: L2 misses on a table larger than L2; the first blocks' rows at
+           the range's start); a face repeated from the sample before skipped */
+        for (int64_t pb = (b0 == q0 ? b0 : b0 + 8 * SH_PF_DIST); pb <= b0 + 8 * SH_PF_DIST && pb < q1; pb += 8) {
+            const int64_t e = q1 - pb < 8 ? q1 - pb : 8;
+            int64_t pf = -1;
+            for (int64_t b = 0; b < e; ++b) {
+                int64_t f = face[g[pb + b]]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+                if (f == pf) continue;
+                pf = f;
+                const int32_t *fr = fg + 3 * f;
+                for (int64_t k = 0; k < 3; ++k)
+                    for (int64_t c = 0; c < 3; ++c) {
+                        const float *L = lg + c * lsc + fr[k] * lsr;
+                        __builtin_prefetch(L);
+                        __builtin_prefetch(L + n2 - 1);
+                        if (n2 > 16) __builtin_prefetch(L + 16);
+                    }
+            }
+        }
+#ifndef SH_NO_PREFETCH2
+        /* and, one block further, what that prefetch and the block's gather read first: the face's rows of
+           l' (fg) and the sample's region (reg: not read by the pixel pass, so out of cache) */
+        for (int64_t pb = (b0 == q0 ? b0 : b0 + 8 * (SH_PF_DIST + 1)); pb <= b0 + 8 * (SH_PF_DIST + 1) && pb < q1; pb += 8) {
+            const int64_t e = q1 - pb < 8 ? q1 - pb : 8;
+            for (int64_t b = 0; b < e; ++b) {
+                const int64_t x = g[pb + b];
+                int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+                __builtin_prefetch(fg + 3 * f);
+                __builtin_prefetch(reg + x);
+            }
+        }
+#endif
+#endif
         {
             const __m256 nx0 = _mm256_loadu_ps(fnx), ny0 = _mm256_loadu_ps(fny), nz0 = _mm256_loadu_ps(fnz);
             const __m256 ox = _mm256_loadu_ps(fox), oy = _mm256_loadu_ps(foy), oz = _mm256_loadu_ps(foz);
@@ -745,6 +858,128 @@ void sh_lg_rows(int64_t C, int64_t n2, int64_t ncols, const float *X, const floa
         lg_rows(C, n2, ncols, X, l, rows + a, e - a, Vg, out);
     }
 }
+
+/* Session 40: the relight cache of a lighting-only frame (`method.SHPRT._relight_build`, its oracle: the
+   same quantities, sums in another order, float32 round-off) straight into `relight_add`'s packed layout
+   (`relight_pack`: per block of 8 samples [d (n², 8) | q (n², 8) | kd (3, 8) | ks (3, 8)], a short last
+   block zero-padded). Per glossy sample s = g[q]: f = face[s], r = reg[s] (clamped), w = (1 − u − v, u, v);
+   n̂ = n/max(|n|, 1e-12), R = 2(n̂·ωo)n̂ − ωo normalised, y_i(R) = A_i(z) T_i (`_sh_factor_tables`, as
+   `sh_glossy`), qv_i = y_i G[r, i] (× max(n̂·ωo, 0) where vcos[r]); d_i = Σ_k w_k t[F[f, k], i] (t at
+   T + v·tv + i·ti) and the transferred lobe Σ_k w_k Σ_i qv_i M[fg[f, k], i, j] (M vertex-major (Vg, n², n²));
+   kd, ks of region r, zero where n·ωo <= 0; pix[q] = s / S2. Blocks [b0, b1). n² <= 64. */
+/* acc[j] = Σ_k w_k (Σ_i qv_i M_k[i, j]) (i ascending, then k: the sums of the scalar loop before, in 8-lane
+   blocks of j held in registers, the j >= n8 tail scalar) — M_k = Mv's row ai[k] (n² x n², row-major). */
+static inline __attribute__((always_inline)) void rb_lobe(const int64_t n2, const float *Mv, const int32_t *ai,
+                                                          const float *qv, const float *wk, float *acc) {
+    const int64_t n8 = n2 & ~(int64_t)7, nbj = n8 / 8;
+    v8 A8[8];
+    float At[8];
+    for (int64_t b = 0; b < nbj; ++b) A8[b] = (v8){0};
+    for (int64_t j = n8; j < n2; ++j) At[j - n8] = 0.f;
+    for (int64_t k = 0; k < 3; ++k) {
+        const float *Mk = Mv + (int64_t)ai[k] * n2 * n2;
+        v8 T8[8];
+        float Tt[8];
+        for (int64_t b = 0; b < nbj; ++b) T8[b] = (v8){0};
+        for (int64_t j = n8; j < n2; ++j) Tt[j - n8] = 0.f;
+        for (int64_t i = 0; i < n2; ++i) {
+            const float a = qv[i];
+            const float *row = Mk + i * n2;
+            for (int64_t b = 0; b < nbj; ++b) T8[b] += a * *(const v8 *)(row + 8 * b);
+            for (int64_t j = n8; j < n2; ++j) Tt[j - n8] += a * row[j];
+        }
+        const float w = wk[k];
+        for (int64_t b = 0; b < nbj; ++b) A8[b] += T8[b] * w;
+        for (int64_t j = n8; j < n2; ++j) At[j - n8] += Tt[j - n8] * w;
+    }
+    for (int64_t b = 0; b < nbj; ++b) __builtin_memcpy(acc + 8 * b, &A8[b], 32);
+    for (int64_t j = n8; j < n2; ++j) acc[j] = At[j - n8];
+}
+
+static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
+                     const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N,
+                     int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc, const int64_t *F,
+                     const int32_t *fg, const float *T, int64_t tv, int64_t ti, const float *Mv, const float *kd,
+                     const float *ks, const float *G, const uint8_t *vcos, const float *A, const int32_t *sel,
+                     int64_t S2, float *blk, int64_t *pix) {
+    const int64_t n2 = n * n, m = n2 - 1, bs = (2 * n2 + 6) * 8;
+    const float Y00 = 0.28209479177387814f;
+    float qv[64], acc[64];
+    for (int64_t bi = b0; bi < b1; ++bi) {
+        float *bk = blk + bi * bs;
+        memset(bk, 0, (size_t)bs * sizeof(float));
+        for (int64_t s = 0; s < 8; ++s) {
+            const int64_t q = bi * 8 + s;
+            if (q >= Q) break;
+            const int64_t x = g[q];
+            int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+            int64_t r = reg[x]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+            pix[q] = x / S2;
+            const float u = B[x * br], v = B[x * br + bc], w0 = 1.0f - u - v;
+            const float nx0 = N[x * nr], ny0 = N[x * nr + nc], nz0 = N[x * nr + 2 * nc];
+            const float ox = O[x * orr], oy = O[x * orr + oc], oz = O[x * orr + 2 * oc];
+            const float front = (nx0 * ox + ny0 * oy) + nz0 * oz > 0.f ? 1.0f : 0.0f;
+            float nn = sqrtf(nx0 * nx0 + ny0 * ny0 + nz0 * nz0);
+            nn = nn > 1e-12f ? nn : 1e-12f;
+            const float nx = nx0 / nn, ny = ny0 / nn, nz = nz0 / nn;
+            const float d = (nx * ox + ny * oy) + nz * oz, d2 = 2.0f * d;
+            const float Rx = d2 * nx - ox, Ry = d2 * ny - oy, Rz = d2 * nz - oz;
+            float rn = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
+            rn = rn > 1e-12f ? rn : 1e-12f;
+            const float X = Rx / rn, Y = Ry / rn, Z = Rz / rn;
+            const float sc = vcos[r] ? (d > 0.f ? d : 0.f) : 1.0f;
+            float Tp[16];
+            Tp[0] = 1.0f;
+            float cm = X, sm = Y;
+            for (int64_t k = 1; k < n; ++k) {
+                if (k > 1) {
+                    const float c2 = X * cm - Y * sm;
+                    sm = X * sm + Y * cm;
+                    cm = c2;
+                }
+                Tp[2 * k - 1] = cm; Tp[2 * k] = sm;
+            }
+            const float *Gr = G + r * n2;
+            qv[0] = Y00 * Gr[0] * sc;
+            for (int64_t i = 0; i < m; ++i) {
+                float P = A[(n - 1) * m + i];
+                for (int64_t j = n - 2; j >= 0; --j) P = P * Z + A[j * m + i];
+                qv[1 + i] = P * Tp[sel[i]] * Gr[1 + i] * sc;
+            }
+            const int64_t *vi = F + 3 * f;
+            const int32_t *ai = fg + 3 * f;
+            const float wk[3] = {w0, u, v};
+            const float *t0 = T + vi[0] * tv, *t1 = T + vi[1] * tv, *t2 = T + vi[2] * tv;
+            for (int64_t i = 0; i < n2; ++i)
+                bk[8 * i + s] = (t0[i * ti] * w0 + t1[i * ti] * u) + t2[i * ti] * v;
+            if (n2 == 25) rb_lobe(25, Mv, ai, qv, wk, acc);     /* order 5: the loops unrolled */
+            else rb_lobe(n2, Mv, ai, qv, wk, acc);
+            for (int64_t j = 0; j < n2; ++j) bk[8 * (n2 + j) + s] = acc[j];
+            for (int64_t c = 0; c < 3; ++c) {
+                bk[16 * n2 + 8 * c + s] = kd[r * 3 + c] * front;
+                bk[16 * n2 + 24 + 8 * c + s] = ks[r * 3 + c] * front;
+            }
+        }
+    }
+}
+
+void sh_relight_build(int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf, const int64_t *reg,
+                      int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                      const float *O, int64_t orr, int64_t oc, const int64_t *F, const int32_t *fg, const float *T,
+                      int64_t tv, int64_t ti, const float *Mv, const float *kd, const float *ks, const float *G,
+                      const uint8_t *vcos, const float *A, const int32_t *sel, int64_t S2, float *blk,
+                      int64_t *pix, int64_t nt) {
+    const int64_t nb = (Q + 7) / 8;
+    if (nt <= 1) {
+        rb_range(0, nb, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg, T, tv, ti, Mv, kd, ks,
+                 G, vcos, A, sel, S2, blk, pix);
+        return;
+    }
+    #pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t k = 0; k < nt; ++k)
+        rb_range(nb * k / nt, nb * (k + 1) / nt, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg,
+                 T, tv, ti, Mv, kd, ks, G, vcos, A, sel, S2, blk, pix);
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -757,6 +992,8 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
+               "sh_relight_build": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
+                                    _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I, _I],
                "sh_view": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P, _I,
@@ -1005,6 +1242,46 @@ def relight_pack(DG: Tensor, kd: Tensor, ks: Tensor) -> Tensor:
     X[:n2, :Q], X[n2:2 * n2, :Q] = DG[:, :Q], DG[:, Q:]
     X[2 * n2:2 * n2 + 3, :Q], X[2 * n2 + 3:, :Q] = kd, ks
     return X.view(2 * n2 + 6, Qb, 8).permute(1, 0, 2).contiguous().view(Qb, -1)
+
+
+MIN_BUILD_PER_THREAD = 256       # glossy samples below which one thread builds the relight cache
+
+
+def relight_build(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor, F: Tensor,
+                  fg: Tensor, T: Tensor, Mv: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor,
+                  S: Tensor, S2: int) -> tuple[Tensor, Tensor] | None:
+    """The packed relight cache of the glossy samples g (Qg,) int64 (`relight_pack`'s (⌈Qg/8⌉, (2n² + 6)·8)
+    float32 and the pixels (Qg,) int64) by one C pass (session 40; `method.SHPRT._relight_build`'s torch
+    build, its oracle: float32 round-off), or None where it does not run. F (M, 3) int64 vertex ids, fg
+    (M, 3) int32 rows of M per face, T (V, n²) float32 the transfer vectors (any strides), Mv (Vg, n², n²)
+    float32 contiguous the vertex-major M (`SHPRT._vertex_major_M`); kd, ks (R, 3), G (R, n²), vcos (R,),
+    A, S `_sh_factor_tables`; the G-buffer arrays as `glossy`'s."""
+    lib = _lib()
+    n = math.isqrt(int(G.shape[1]))
+    if (lib is None or g.device.type != "cpu" or n * n != G.shape[1] or n * n > MAX_N2 or n < 1
+            or any(x.dtype != torch.int64 for x in (g, face, reg, F)) or fg.dtype != torch.int32
+            or any(x.dtype != torch.float32 for x in (bary, normal, wo, T, Mv, kd, ks, G, A))
+            or Mv.dim() != 3 or not Mv.is_contiguous() or tuple(Mv.shape[1:]) != (n * n, n * n)
+            or T.dim() != 2 or T.shape[1] != n * n or F.shape != fg.shape or F.dim() != 2 or F.shape[1] != 3):
+        return None
+    Q = int(g.numel())
+    blk = torch.empty(-(-Q // 8), (2 * n * n + 6) * 8, dtype=torch.float32)
+    pix = torch.empty(Q, dtype=torch.int64)
+    if Q == 0:
+        return blk, pix
+    if int(g.min()) < 0 or int(g.max()) >= face.numel():
+        raise IndexError("a glossy sample outside the G-buffer")
+    g, face, reg, F, fg, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, F, fg, kd, ks, G, A))
+    v8 = vcos.to(torch.uint8).contiguous()
+    sel = S.argmax(0).to(torch.int32).contiguous()
+    nt = max(1, min(torch.get_num_threads(), Q // MIN_BUILD_PER_THREAD))
+    lib.sh_relight_build(Q, n, g.data_ptr(), face.data_ptr(), int(F.shape[0]), reg.data_ptr(), int(kd.shape[0]),
+                         bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0),
+                         normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1), F.data_ptr(), fg.data_ptr(),
+                         T.data_ptr(), T.stride(0), T.stride(1), Mv.data_ptr(), kd.data_ptr(), ks.data_ptr(),
+                         G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), int(S2), blk.data_ptr(),
+                         pix.data_ptr(), nt)
+    return blk, pix
 
 
 def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor]:

@@ -1140,3 +1140,105 @@ def test_native_relight_add_threads_split_at_pixels(threads, monkeypatch):
         torch.set_num_threads(old)
     assert torch.equal(imgs[0], imgs[1]) and torch.equal(imgs[0], imgs[2])
     assert (imgs[2] - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+
+
+def test_native_frames_do_not_import_dynamo():
+    """Session 40: where the C passes run (order 5, bounces 0, AVX2), V, L, E and VL frames never touch
+    `torch._dynamo` — its first touch imports it (~1 s of process CPU), which the first lighting-only frame
+    of every perf process did for nothing (`torch._dynamo.maybe_mark_dynamic` of kernels that did not run:
+    the creature L cell's ~1 s first timed frame). In a fresh interpreter, as the perf suite's processes."""
+    import os
+    import subprocess
+    import sys
+
+    from methods.sh_prt import native
+
+    if not native.available() or not torch.backends.cpu.get_cpu_capability().startswith("AVX"):
+        pytest.skip("no native SH PRT passes here")
+    code = (
+        "import sys\n"
+        "from methods.sh_prt.method import SHPRT\n"
+        "from references.gbuffer import make_gbuffer\n"
+        "from scenes.library import get_scene\n"
+        "from scenes.sequences import make_sequence\n"
+        "scene = get_scene('sphere_plane', 'test')\n"
+        "m = SHPRT(order=5, bounces=0, rays=16)\n"
+        "m.precompute(scene)\n"
+        "assert 'torch._dynamo' not in sys.modules\n"
+        "for kind in ('V', 'L', 'E', 'VL'):\n"
+        "    for f in make_sequence(scene, kind, n_frames=3, seed=1):\n"
+        "        m.render(f, make_gbuffer(scene, f, 2))\n"
+        "    assert 'torch._dynamo' not in sys.modules, kind\n"
+        "assert m.stats['relight_build'] == 2 and m.stats['relight'] == 2, m.stats\n"
+        "print('ok')\n")
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
+
+
+def _relight_inputs(scene_name: str, order: int, blinn: bool):
+    """(m, frame, the `SHPRT._relight_build` arguments of a 2×2-sample G-buffer's glossy samples)."""
+    import dataclasses
+
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=order, bounces=0, rays=16)
+    m.precompute(scene)
+    frame = make_sequence(scene, "L", n_frames=1, seed=3)[0]
+    if blinn:
+        frame = dataclasses.replace(frame, materials={
+            r: (BlinnPhong(kd=mt.kd, ks=mt.ks, s=4.0 * mt.s) if isinstance(mt, Phong) else mt)
+            for r, mt in frame.materials.items()})
+    gb = make_gbuffer(scene, frame, 2)
+    m.render(frame, gb)                                                 # sets the per-face tables
+    kd, ks, G, vcos = m._materials(frame)
+    fk = m._face_materials(kd)
+    face, hit = gb.face, gb.hit
+    g = (hit & (fk[face.clamp(0, fk.shape[0] - 1), 3] != 0)).nonzero().squeeze(-1)
+    args = (g, face, gb.bary.float(), gb.normal.float(), gb.wo.float(), gb.region, kd, ks, G, vcos, 4)
+    return m, args
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("scene_name, order, blinn", [("creature", 5, False), ("creature", 5, True),
+                                                      ("alcove", 3, False), ("alcove", 8, True), ("creature", 2, True)])
+def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, threads, monkeypatch):
+    """Session 40: the relight cache by one C pass straight into the packed layout (`native.relight_build`,
+    `NATIVE_RELIGHT_BUILD`) equals the torch build (its oracle, then `relight_pack`): the pixels and the kd /
+    ks rows (zero on back-facing samples) bit for bit, d and the transferred lobe Σ_k w_k M_kᵀ q to float32
+    round-off (their sums in another order), the padding of the last block zero; at 1 and 3 threads the same
+    bits; with the transfer vectors vertex-major or strided (lighting-major) the same bits. Phong and
+    Blinn-Phong (× n·ωo) lobes."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    m, args = _relight_inputs(scene_name, order, blinn)
+    g, n2, Q = args[0], order * order, int(args[0].numel())
+    assert Q > 100 and bool(args[9].any()) == blinn
+    monkeypatch.setattr(shm, "NATIVE_RELIGHT_BUILD", False)
+    want = m._relight_build(*args)
+    monkeypatch.setattr(shm, "NATIVE_RELIGHT_BUILD", True)
+    monkeypatch.setattr(native, "MIN_BUILD_PER_THREAD", 1)
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        got = m._relight_build(*args)
+        torch.set_num_threads(1)
+        one = m._relight_build(*args)
+        # the same pass on the lighting-major (strided) transfer vectors
+        kd, ks, G, vcos = args[6:10]
+        strided = native.relight_build(g, args[1], args[2], args[3], args[4], args[5], m.F, m._fg, m.t[..., 0],
+                                       m._vertex_major_M(), kd, ks, G, vcos, *shm._sh_factor_tables(order, G.device), 4)
+    finally:
+        torch.set_num_threads(old)
+    assert "blk" in got and got["blk"].shape == want["blk"].shape and got["Qg"] == Q and got["n2"] == n2
+    assert torch.equal(got["blk"], one["blk"]) and torch.equal(got["p"], one["p"])
+    assert m.t[..., 0].stride(0) == 1 and torch.equal(strided[0], got["blk"]) and torch.equal(strided[1], got["p"])
+    assert torch.equal(got["p"], want["p"])
+    a, b = native.relight_unpack(got["blk"], Q, n2), native.relight_unpack(want["blk"], Q, n2)
+    assert torch.equal(a[1], b[1]) and torch.equal(a[2], b[2]) and bool((b[1] == 0).any())   # some back-facing
+    for x, y in ((a[0][:, :Q], b[0][:, :Q]), (a[0][:, Q:], b[0][:, Q:])):             # d, then the lobe
+        assert y.abs().max() > 0 and (x - y).abs().max() <= 2e-6 * y.abs().max()
+    pad = got["blk"].view(-1, 2 * n2 + 6, 8)[-1, :, Q % 8:] if Q % 8 else torch.zeros(1)
+    assert bool((pad == 0).all())
