@@ -4510,7 +4510,16 @@ def relight_resolve(light: Tensor, kd: Tensor, ks: Tensor, spans: list, wf: Tens
     if ``clamp`` — then `csr_product`(``packed``, [x; 0]) (``packed``: `csr_compact`'s, Nc + 1 columns), by
     one C call (above): float32 round-off from `ZHShadow._radiance_ranges` + `csr_product`, its oracle. None
     where it does not run (``FUSED_RELIGHT_VERTEX`` off, no compiler, ``PRTBENCH_ZH_NATIVE=0``, not float32
-    CPU arrays of these shapes, a part not its region's span)."""
+    CPU arrays of these shapes, a part not its region's span). = `relight_run`(`relight_setup`(...), ...)."""
+    st = relight_setup(spans, wf, tsc, packed)
+    return None if st is None else relight_run(st, light, kd, ks, clamp)
+
+
+def relight_setup(spans: list, wf: Tensor, tsc: dict, packed: tuple) -> tuple | None:
+    """The lighting-free half of `relight_resolve`'s checks and arguments (zh40l: made once per kept compact
+    transfer and resolve matrix, `ZHShadow._steady_relight`, then `relight_run` per frame): (library, n2, Nc,
+    nreg, spans (nreg, 2) int64, t_s addresses (nreg,) int64, the t_s kept alive, packed, x and L scratch), or
+    None where `relight_resolve` does not run."""
     if not FUSED_RELIGHT_VERTEX:
         return None
     lib = _relightv_lib() if terms_switched_on() else None
@@ -4519,9 +4528,7 @@ def relight_resolve(light: Tensor, kd: Tensor, ks: Tensor, spans: list, wf: Tens
     R, Ncp, col4, val4, trow, tcrow, tcol, tval = packed
     n2, Nc = int(wf.shape[0]), int(wf.shape[1])
     nreg = len(spans)
-    if Ncp != Nc + 1 or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in (light, kd, ks, wf)) \
-            or tuple(light.shape) != (n2, 3) or tuple(kd.shape) != (nreg, 3) or tuple(ks.shape) != (nreg, 3) \
-            or not wf.is_contiguous():
+    if Ncp != Nc + 1 or wf.device.type != "cpu" or wf.dtype != torch.float32 or not wf.is_contiguous():
         return None
     sp = torch.tensor(spans, dtype=torch.int64).view(nreg, 2) if nreg else torch.zeros(0, 2, dtype=torch.int64)
     if nreg and (int(sp[0, 0]) != 0 or int(sp[-1, 1]) != Nc or bool((sp[1:, 0] != sp[:-1, 1]).any())):
@@ -4538,13 +4545,27 @@ def relight_resolve(light: Tensor, kd: Tensor, ks: Tensor, spans: list, wf: Tens
         t = t.contiguous()
         keep.append(t)
         tsp[r] = t.data_ptr()
-    light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
-    x = torch.empty(Nc + 1, 3, dtype=torch.float32)
+    x = torch.empty(Nc + 1, 3, dtype=torch.float32)               # (scratch: every row written by the call)
     L = torch.empty(max(nreg, 1) * 6 * n2, dtype=torch.float32)
+    return lib, n2, Nc, nreg, sp, tsp, keep, packed, wf, x, L
+
+
+_INV_PI32 = float(torch.tensor(1.0 / math.pi, dtype=torch.float32))
+
+
+def relight_run(setup: tuple, light: Tensor, kd: Tensor, ks: Tensor, clamp: bool) -> Tensor | None:
+    """`relight_resolve` of a `relight_setup` for the lighting ``light`` (n², 3) and albedos kd, ks (nreg, 3):
+    the same C call (the same bits); None where it does not run (not float32 CPU arrays of these shapes)."""
+    lib, n2, Nc, nreg, sp, tsp, keep, packed, wf, x, L = setup
+    R, _, col4, val4, trow, tcrow, tcol, tval = packed
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in (light, kd, ks)) \
+            or tuple(light.shape) != (n2, 3) or tuple(kd.shape) != (nreg, 3) or tuple(ks.shape) != (nreg, 3):
+        return None
+    light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
     lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
-                      tsp.data_ptr(), float(torch.tensor(1.0 / math.pi, dtype=torch.float32)), int(bool(clamp)),
+                      tsp.data_ptr(), _INV_PI32, int(bool(clamp)),
                       x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
                       int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out
