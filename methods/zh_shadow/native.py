@@ -3172,34 +3172,55 @@ def relight_pixels(face: Tensor, bary: Tensor, uf: Tensor | None, clamp: bool, e
 
     ``uf`` None: made in the same pass from ``planes`` = (v (N, n²), corners (3 F_p,) int64, creg (3 F_p,) int64
     their regions, T (n², 3), kd (R, 3)) as uf[f, 3 k + c] = (v[corners[3 f + k]] · T[:, c]) kd[creg[3 f + k], c]
-    (`ZHShadow._relight_planes`' ``(v[corners] @ T¹(n0)) ⊙ kd``: float32 round-off against its GEMM)."""
+    (`ZHShadow._relight_planes`' ``(v[corners] @ T¹(n0)) ⊙ kd``: float32 round-off against its GEMM) — then
+    `relight_pixels_run`(`relight_pixels_setup`(...), ...) (zh40l: the same call)."""
+    if uf is None:
+        st = relight_pixels_setup(face, bary, clamp, entries, inv, planes)
+        return None if st is None else relight_pixels_run(st, [e[2] for e in entries], [e[3] for e in entries],
+                                                          planes[3])
     lib = _relight_pixels_lib() if terms_switched_on() else None
     if (lib is None or face.dtype != torch.int32 or face.dim() != 2 or bary.dtype != torch.float32
             or any(t.device.type != "cpu" for t in (face, bary))):
         return None
-    if uf is not None:
-        if uf.dtype != torch.float32 or uf.dim() != 2 or uf.shape[1] != 9 or uf.shape[0] == 0 or uf.device.type != "cpu":
-            return None
-        Fp = int(uf.shape[0])
-        u12 = torch.zeros(Fp, 3, 4, dtype=torch.float32)   # (as `face_pixels`)
-        u12[:, :, :3] = uf.view(-1, 3, 3)
-        pl = (0, 0, 0, 0, 0, 0, 0, 0)
-    else:
-        if planes is None:
-            return None
-        v, corners, creg, T, kd = planes
-        n2v = int(v.shape[1]) if v.dim() == 2 else -1
-        if (v.dim() != 2 or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous()
-                                for t in (v, T, kd))
-                or any(t.dtype != torch.int64 or t.device.type != "cpu" or not t.is_contiguous() or t.dim() != 1
-                       for t in (corners, creg))
-                or corners.shape[0] == 0 or corners.shape[0] % 3 or creg.shape != corners.shape
-                or T.shape != (n2v, 3) or kd.dim() != 2 or kd.shape[1] != 3):
-            return None
-        Fp = int(corners.shape[0]) // 3
-        u12 = torch.empty(Fp, 3, 4, dtype=torch.float32)   # (every value written by the pass)
-        pl = (v.data_ptr(), int(v.shape[0]), n2v, corners.data_ptr(), creg.data_ptr(), T.data_ptr(), kd.data_ptr(),
-              int(kd.shape[0]))
+    if uf.dtype != torch.float32 or uf.dim() != 2 or uf.shape[1] != 9 or uf.shape[0] == 0 or uf.device.type != "cpu":
+        return None
+    Fp = int(uf.shape[0])
+    u12 = torch.zeros(Fp, 3, 4, dtype=torch.float32)   # (as `face_pixels`)
+    u12[:, :, :3] = uf.view(-1, 3, 3)
+    pl = (0, 0, 0, 0, 0, 0, 0, 0)
+    st = _relight_pixels_entries(lib, face, bary, clamp, entries, inv, u12, Fp, pl, None)
+    return None if st is None else relight_pixels_run(st, [e[2] for e in entries], [e[3] for e in entries], None)
+
+
+def relight_pixels_setup(face: Tensor, bary: Tensor, clamp: bool, entries: list, inv: float, planes: tuple | None
+                         ) -> tuple | None:
+    """The checks and arguments of `relight_pixels` with ``uf`` None but the lighting's (each entry's ld, ls and
+    the planes' T: their shapes checked here, their values read by `relight_pixels_run`), or None where it does
+    not run. zh40l: kept by `ZHShadow._relight_planes` for the next lighting-only frames of its transfer cache
+    (`ZHShadow._steady_planes`), which only bring a new lighting."""
+    lib = _relight_pixels_lib() if terms_switched_on() else None
+    if (lib is None or face.dtype != torch.int32 or face.dim() != 2 or bary.dtype != torch.float32
+            or any(t.device.type != "cpu" for t in (face, bary))):
+        return None
+    if planes is None:
+        return None
+    v, corners, creg, T, kd = planes
+    n2v = int(v.shape[1]) if v.dim() == 2 else -1
+    if (v.dim() != 2 or any(t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous()
+                            for t in (v, T, kd))
+            or any(t.dtype != torch.int64 or t.device.type != "cpu" or not t.is_contiguous() or t.dim() != 1
+                   for t in (corners, creg))
+            or corners.shape[0] == 0 or corners.shape[0] % 3 or creg.shape != corners.shape
+            or T.shape != (n2v, 3) or kd.dim() != 2 or kd.shape[1] != 3):
+        return None
+    Fp = int(corners.shape[0]) // 3
+    u12 = torch.empty(Fp, 3, 4, dtype=torch.float32)   # (every value written by the pass: scratch)
+    pl = [v.data_ptr(), int(v.shape[0]), n2v, corners.data_ptr(), creg.data_ptr(), 0, kd.data_ptr(),
+          int(kd.shape[0])]
+    return _relight_pixels_entries(lib, face, bary, clamp, entries, inv, u12, Fp, pl, (v, corners, creg, kd, n2v))
+
+
+def _relight_pixels_entries(lib, face, bary, clamp, entries, inv, u12, Fp, pl, keep) -> tuple | None:
     n, S2 = int(face.shape[0]), int(face.shape[1])
     if bary.shape != (2, n, S2) or bary.stride(1) != S2 * bary.stride(2) or not face.is_contiguous():
         return None
@@ -3216,15 +3237,41 @@ def relight_pixels(face: Tensor, bary: Tensor, uf: Tensor | None, clamp: bool, e
                 or pix.device.type != "cpu" or ld.shape != (n2, 3)
                 or (ts is not None and (ts.shape != td.shape or ls is None or ls.shape != (n2, 3)))):
             return None
-        for lst, t in zip(ptrs, (td, ts, ld, ls, pix)):
+        for lst, t in zip(ptrs, (td, ts, None, None, pix)):
             lst[e] = 0 if t is None else t.data_ptr()
         ptrs[5][e] = int(td.shape[1])
+    spec = [ts is not None for _, ts, _, _, _ in entries]
+    kept = (face, bary, [(td, ts, pix) for td, ts, _, _, pix in entries], keep)
+    return lib, n, S2, face, bary, u12, Fp, bool(clamp), float(inv), E, ptrs, 0 if n2 is None else n2, pl, spec, kept
+
+
+def relight_pixels_run(setup: tuple, lds: list, lss: list, T: Tensor | None) -> Tensor | None:
+    """`relight_pixels` of a `relight_pixels_setup` with the entries' ld, ls (n², 3) and the planes' T (n², 3) of
+    this frame (float32 CPU contiguous, the setup's shapes; else None): the same C call, the same bits."""
+    lib, n, S2, face, bary, u12, Fp, clamp, inv, E, ptrs, n2, pl, spec, kept = setup
+    if len(lds) != E or len(lss) != E:
+        return None
+    for e in range(E):
+        ld, ls = lds[e], lss[e]
+        for t in (ld, ls) if spec[e] else (ld,):
+            if t is None or t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() \
+                    or t.shape != (n2, 3):
+                return None
+        ptrs[2][e] = ld.data_ptr()
+        ptrs[3][e] = ls.data_ptr() if spec[e] else 0
+    if kept[3] is not None:
+        n2v = kept[3][4]
+        if T is None or T.dtype != torch.float32 or T.device.type != "cpu" or not T.is_contiguous() \
+                or T.shape != (n2v, 3):
+            return None
+        pl = list(pl)
+        pl[5] = T.data_ptr()
     out = torch.empty(n, 3, dtype=torch.float32)
     bad = ctypes.c_int64(0)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     lib.zh35p_relight_pixels(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(2), u12.data_ptr(),
-                             Fp, int(bool(clamp)), float(inv), out.data_ptr(), E, ctypes.addressof(ptrs[5]),
-                             0 if n2 is None else n2, *(ctypes.addressof(p) for p in ptrs[:5]),
+                             Fp, int(clamp), inv, out.data_ptr(), E, ctypes.addressof(ptrs[5]),
+                             n2, *(ctypes.addressof(p) for p in ptrs[:5]),
                              RELIGHT_OBJECT_WEIGHT, *pl, nt, ctypes.byref(bad))
     return None if bad.value else out
 

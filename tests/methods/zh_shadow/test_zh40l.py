@@ -1,7 +1,8 @@
-"""Session 40 (zh40l): the order-8 vertex-shaded config's steady lighting-only frames — after a frame that made its
-image by the fused relight (`native.relight_resolve`), a lighting-only frame of the same camera, pose, materials
-and G-buffer size is the frame's lighting and that one C call on the kept arguments (`ZHShadow._steady_relight`);
-its oracle the full `_render_vertex` path (``steady_relight`` off), the same bits."""
+"""Session 40 (zh40l): steady lighting-only frames — after a frame that made its image by the fused relight (the
+order-8 vertex config's `native.relight_resolve`, the paper config's `native.relight_pixels` in `_relight_planes`),
+a lighting-only frame of the same camera, pose, materials and G-buffer size is the frame's lighting and that one
+C call on the kept arguments (`ZHShadow._steady_relight`, `ZHShadow._steady_planes`); its oracle the full path
+(``steady_relight`` off), the same bits."""
 from __future__ import annotations
 
 import dataclasses
@@ -16,19 +17,24 @@ from testing.gbuffers import knock_out
 
 def _spy(monkeypatch):
     taken = []
-    sr = ZHShadow._steady_relight
-
-    def spy(self, frame, gbuffer):
-        out = sr(self, frame, gbuffer)
-        taken.append(out is not None)
-        return out
-    monkeypatch.setattr(ZHShadow, "_steady_relight", spy)
+    for name in ("_steady_relight", "_steady_planes"):
+        def spy(self, frame, gbuffer, _sr=getattr(ZHShadow, name)):
+            out = _sr(self, frame, gbuffer)
+            taken.append(out is not None)
+            return out
+        monkeypatch.setattr(ZHShadow, name, spy)
     return taken
+
+
+# (fixture, a kept cache whose loss makes the next lighting-only frame a full one, the library of the fused call)
+CONFIGS = {"order8": ("_vertex_compact", lambda: zn._relightv_lib()),
+           "creature": ("_relight", lambda: zn._relight_pixels_lib())}
 
 
 @pytest.mark.parametrize("clamp", [False, True])
 @pytest.mark.parametrize("kind", ["L", "E"])
-def test_steady_relight_equals_full_path(order8, kind, clamp, monkeypatch):
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_steady_relight_equals_full_path(config, kind, clamp, monkeypatch, request):
     """L / E sequences (with misses; at 1 and 2 threads): with the steady path = without it (``steady_relight``
     off: `_render_vertex` every frame) bit for bit, the steady path taken on every lighting-only frame after the
     first (which builds the resolve matrix and records what the next reads). A stale lighting, a lost clamp or
@@ -37,14 +43,17 @@ def test_steady_relight_equals_full_path(order8, kind, clamp, monkeypatch):
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    if zn._relightv_lib() is None:
+    order8 = request.getfixturevalue(config)   # (either configuration's model)
+    if CONFIGS[config][1]() is None:
         pytest.skip("no C compiler")
     taken = _spy(monkeypatch)
     m = order8.with_render_config(clamp=clamp)
     fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
     slow.steady_relight = False
     frames = make_sequence(order8.scene, kind, 5, seed=9)
-    gb = knock_out(make_gbuffer(order8.scene, frames[0], 2), 13, 2)
+    gb = make_gbuffer(order8.scene, frames[0], 2)
+    if config == "order8":   # (with misses; the paper config's relight-planes path needs every sample hit)
+        gb = knock_out(gb, 13, 2)
     for i, f in enumerate(frames):
         a = fast.render(f, gb)
         with torch_threads(2):
@@ -53,12 +62,15 @@ def test_steady_relight_equals_full_path(order8, kind, clamp, monkeypatch):
         assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
         assert torch.equal(a, a2), (kind, i)
         assert fast._last_counts["Q"] == slow._last_counts["Q"] and fast._last_counts["P"] == slow._last_counts["P"]
+        if config == "creature" and i > 0:
+            assert slow.last_path == fast.last_path == "relight-planes"
     # frames 2-4 of fast and fast2 (frame 1 builds the matrix: no steady state before it; slow never has one)
     assert taken == [True] * 6, taken
     assert fast.frame_cost(kind, gb.num_samples).bytes == slow.frame_cost(kind, gb.num_samples).bytes
 
 
-def test_steady_relight_declines_other_state(order8, monkeypatch):
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_steady_relight_declines_other_state(config, monkeypatch, request):
     """A frame flagged lighting-only (``changed`` = {"light"}) whose camera, materials, pose or G-buffer size
     differ from the recorded frame's, or after a kept cache was replaced, is not a steady frame: its image = the
     full path's (an object with the same history and ``steady_relight`` off) bit for bit. Dropping any of the
@@ -66,7 +78,8 @@ def test_steady_relight_declines_other_state(order8, monkeypatch):
     from references.gbuffer import make_gbuffer
     from scenes.sequences import make_sequence
 
-    if zn._relightv_lib() is None:
+    order8 = request.getfixturevalue(config)
+    if CONFIGS[config][1]() is None:
         pytest.skip("no C compiler")
     taken = _spy(monkeypatch)
     scene = order8.scene
@@ -99,7 +112,8 @@ def test_steady_relight_declines_other_state(order8, monkeypatch):
     slow.steady_relight = False
     for f in frames[:2]:
         fast.render(f, gb), slow.render(f, gb)
-    fast._vertex_compact = slow._vertex_compact = None
+    setattr(fast, CONFIGS[config][0], None)
+    setattr(slow, CONFIGS[config][0], None)
     taken.clear()
     assert torch.equal(fast.render(frames[2], gb), slow.render(frames[2], gb))
     assert taken == [False]
