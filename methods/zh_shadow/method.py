@@ -1195,7 +1195,8 @@ class ZHShadow(Method):
                 regs.append((kd_, ks_, len(entries), spec))
             # (`native.relight_pixels` as its setup and run: the setup kept for the next lighting-only frames,
             # `_steady_planes`)
-            rs = zn.relight_pixels_setup(faces, bary, clamp, ents, 1.0 / S2, (v, corners, creg, Tn, kdt))
+            rs = zn.relight_pixels_setup(faces, bary, clamp, ents, 1.0 / S2, (v, corners, creg, Tn, kdt),
+                                         blocked=self.steady_relight)   # (blocked copies: kept for the next frames)
             img = None if rs is None else zn.relight_pixels_run(rs, [e[2] for e in ents], [e[3] for e in ents], Tn)
             if img is not None:
                 self._planes_run = (cache, n0, regs, rs)

@@ -120,3 +120,59 @@ def test_steady_relight_declines_other_state(config, monkeypatch, request):
     taken.clear()
     assert torch.equal(fast.render(frames[3], gb), slow.render(frames[3], gb))
     assert taken == [True]   # (recorded again by the full frame before)
+
+
+def test_blocked_relight_pixels_equals_zh35p():
+    """`native.relight_pixels_setup(..., blocked=True)` (the entries read from their blocked copies,
+    ``zh40l_relight_pixels``) = the unblocked setup (zh35p's pass) bit for bit: three entries whose pixels overlap,
+    with and without ts, Q not a multiple of the block (and one shorter than a block), clamp on and off, 1, 2 and 3
+    threads with the object weight at 0, 2 and 50 (thread cuts inside blocks: partial blocks on both sides), two
+    lightings through one setup; a pixel outside the image still refused (None). A block's sample off by one, a
+    lost ts part or its stride, a partial block read at the wrong lane breaks it."""
+    from unittest import mock
+
+    if zn._blk_relight_lib() is None or zn._relight_pixels_lib() is None:
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(40)
+    n, S2, N, n2, R = 3000, 4, 900, 16, 3
+    Fp = 300
+    face = torch.randint(-1, Fp, (n, S2), generator=g, dtype=torch.int64).to(torch.int32)
+    bT = torch.rand(n * S2, 2, generator=g).T.contiguous().T.T.view(2, n, S2)
+    v = torch.randn(N, n2, generator=g)
+    corners = torch.randint(0, N, (3 * Fp,), generator=g)
+    creg = torch.randint(0, R, (3 * Fp,), generator=g)
+    kd = torch.rand(R, 3, generator=g)
+    ents = []
+    for Q, with_ts, lo, hi in ((1003, True, 0, n), (517, False, 200, 1400), (23, True, 1000, 1100)):
+        td = torch.randn(n2, Q, generator=g)
+        ts = torch.randn(n2, Q, generator=g) if with_ts else None
+        ld = torch.randn(n2, 3, generator=g)
+        ls = torch.randn(n2, 3, generator=g) if with_ts else None
+        ents.append((td, ts, ld, ls, torch.sort(torch.randint(lo, hi, (Q,), generator=g)).values))
+    lights = [([e[2] for e in ents], [e[3] for e in ents], torch.randn(n2, 3, generator=g))]
+    lights.append(([torch.randn(n2, 3, generator=g) for _ in ents],
+                   [None if e[1] is None else torch.randn(n2, 3, generator=g) for e in ents],
+                   torch.randn(n2, 3, generator=g)))
+    for clamp in (True, False):
+        for nt in (1, 2, 3):
+            for w in (0.0, 2.0, 50.0):
+                with mock.patch.object(zn, "MIN_PIXELS_PER_THREAD", 1), \
+                        mock.patch.object(torch, "get_num_threads", lambda: nt), \
+                        mock.patch.object(zn, "RELIGHT_OBJECT_WEIGHT", w):
+                    planes = (v, corners, creg, lights[0][2], kd)
+                    a = zn.relight_pixels_setup(face, bT, clamp, ents, 0.25, planes, blocked=True)
+                    b = zn.relight_pixels_setup(face, bT, clamp, ents, 0.25, planes, blocked=False)
+                    assert a[0] is not b[0]   # (the blocked library's function)
+                    for lds, lss, T in lights:
+                        x, y = zn.relight_pixels_run(a, lds, lss, T), zn.relight_pixels_run(b, lds, lss, T)
+                        assert x is not None and torch.equal(x, y), (clamp, nt, w, float((x - y).abs().max()))
+    td, ts, ld, ls, pix = ents[0]
+    bad = pix.clone().index_fill_(0, torch.tensor([len(pix) - 1]), n)                    # outside the image
+    st = zn.relight_pixels_setup(face, bT, True, [(td, ts, ld, ls, bad)] + ents[1:], 0.25,
+                                 (v, corners, creg, lights[0][2], kd), blocked=True)
+    assert st is None or zn.relight_pixels_run(st, *lights[0]) is None
+    xb = zn.blocked_transfer(td, ts)
+    RB = zn.RELIGHT_BLOCK
+    assert xb.shape == ((td.shape[1] + RB - 1) // RB, 2, n2, RB)
+    assert torch.equal(xb[3, 1, 5], ts[5, 3 * RB:4 * RB]) and torch.equal(xb[-1, 0, 2, :td.shape[1] % RB],
+                                                                           td[2, -(td.shape[1] % RB):])
