@@ -1967,7 +1967,10 @@ class ZHShadow(Method):
                 + (0 if self._vertex_diffuse is None else tensor_bytes(self._vertex_diffuse[3]))
                 + (0 if self._vertex_compact is None or self._vertex_compact[2] is None
                    else tensor_bytes(self._vertex_compact[2][1]))
-                + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))}
+                + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))
+                # the steady frames' blocked copies of the object entries' transfer (`native.blocked_transfer`)
+                + (0 if self._steady is None or self._steady[0] != "planes" or len(self._steady[8][-1]) < 5
+                   else sum(tensor_bytes(x) for x in self._steady[8][-1][4]))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P

@@ -64,6 +64,12 @@ def test_steady_relight_equals_full_path(config, kind, clamp, monkeypatch, reque
         assert fast._last_counts["Q"] == slow._last_counts["Q"] and fast._last_counts["P"] == slow._last_counts["P"]
         if config == "creature" and i > 0:
             assert slow.last_path == fast.last_path == "relight-planes"
+            # (the kept blocked copies of the entries' transfer counted: td and ts, padded to whole blocks)
+            extra = fast.memory()["relight_transfer"] - slow.memory()["relight_transfer"]
+            assert extra == sum(-(-td.shape[1] // zn.RELIGHT_BLOCK) * zn.RELIGHT_BLOCK * td.shape[0] * 4
+                                * (1 if ts is None else 2)
+                                for entries in fast._relight[3]["regions"] for _, td, ts in entries
+                                if td is not None), extra
     # frames 2-4 of fast and fast2 (frame 1 builds the matrix: no steady state before it; slow never has one)
     assert taken == [True] * 6, taken
     assert fast.frame_cost(kind, gb.num_samples).bytes == slow.frame_cost(kind, gb.num_samples).bytes
