@@ -33,14 +33,15 @@ def main(argv=None):
     m, _ = precomputed(ZHShadow, scene, {"order": 8, "shading": "vertex", "specular": "cosine"})
     _, frames, gbs, _ = setup(scene, "bench", kind="L", n_frames=3, seed=0)
     r = m.with_render_config()
-    got = []
-    rr = zn.relight_resolve
-    zn.relight_resolve = lambda *x: got.append(x) or rr(*x)
+    got, runs = [], []
+    rs, rr = zn.relight_setup, zn.relight_run   # (zh40l: `relight_resolve` = setup + run, the method calls both)
+    zn.relight_setup = lambda *x: got.append(x) or rs(*x)
+    zn.relight_run = lambda *x: runs.append(x) or rr(*x)
     for f, g in zip(frames, gbs):
         r.render(f, g)
-    zn.relight_resolve = rr
-    args = got[-1]
-    light, kd, ks, spans, wf, tsc, clamp, packed = args
+    zn.relight_setup, zn.relight_run = rs, rr
+    spans, wf, tsc, packed = got[-1]
+    _, light, kd, ks, clamp = runs[-1]
     empty = (0, *packed[1:4], packed[4][:0], packed[5][:1], packed[6], packed[7])
     print(f"compact columns {wf.shape[1]}, specular parts {[tuple(t.shape) for _, t in tsc.values()]}, "
           f"rows {packed[0]}, tails {packed[4].numel()}")

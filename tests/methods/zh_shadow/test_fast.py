@@ -2507,14 +2507,14 @@ def test_fused_relight_equals_two_passes_frames(small_model, monkeypatch, name):
 
     monkeypatch.setattr(zn, "MIN_PIXELS_PER_THREAD", 1)   # (test size: 4,096 pixels, one thread otherwise)
     taken = []
-    real = zn.relight_pixels
+    real = zn.relight_pixels_run   # (the C call: `relight_pixels`', and zh40l's steady frames' `_steady_planes`)
 
     def spy(*a, **k):
         r = real(*a, **k)
         taken.append(r is not None)
         return r
 
-    monkeypatch.setattr(zn, "relight_pixels", spy)
+    monkeypatch.setattr(zn, "relight_pixels_run", spy)
     m = small_model(name)
     for kind, clamp, nt in (("L", True, 1), ("E", True, 2), ("L", False, 2)):
         fast, slow = m.with_render_config(clamp=clamp), m.with_render_config(clamp=clamp)
