@@ -39,8 +39,9 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
-__all__ = ["available", "memo", "vertex_frame"]
+__all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -258,9 +259,22 @@ STAMP_MAX = (1 << 31) - 1
 MIN_PIXELS_PER_THREAD = 1 << 13
 
 
+_LOADED: list = []      # the library once loaded (`_lib`)
+
+
 def _lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call
-    return native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+    """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call).
+    Remembered once loaded: `native.load`'s own cache costs ~50 µs a frame with the caches cold (its key
+    tuples, the signatures' list), here one look-up; ``native.cache_clear`` does not forget it (the
+    same file)."""
+    if not compile_enabled():
+        return None
+    if _LOADED:
+        return _LOADED[0]
+    lib = native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+    if lib is not None:
+        _LOADED.append(lib)
+    return lib
 
 
 def available() -> bool:
@@ -275,33 +289,73 @@ def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor]:
             torch.zeros(nv, dtype=torch.int32))
 
 
-def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
-                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, lib=None) -> tuple[Tensor, int, int] | None:
-    """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
-    bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
-    used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
-    vertex), face, region (q,) int64, hit (q,) bool, bary (q, 2) float32 (any strides: its columns are
-    read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
-    (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). At most
-    None when the loop is not available or the arrays are not CPU
-    tensors of those types (the caller runs the split path). ``lib``: the library as `_lib` gave it to the
-    caller (else looked up here)."""
+class Bound:
+    """`vertex_frame`'s arguments that do not change between frames — the scene's arrays of ``st``, the
+    slots' tables and c, the memo — checked and packed once (`bind`); `frame` checks the G-buffer's
+    arrays and runs one frame. Each torch op and attribute read around the loop runs with the loop's
+    cold caches (the suite's idle, the G-buffer's rasterisation before it): the per-frame checks of the
+    static arrays, the camera as a tensor, the barycentrics' unbind, the stats tensor and the image's
+    view cost a creature bench frame ~0.25 ms of serial Python (1 thread); here ~a tenth of that."""
+
+    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail")
+
+    def fits(self, st, cs: list[Tensor], mem, lib) -> bool:
+        """True when bound to these very objects (the tensors' identity: their storage is not replaced
+        in place anywhere in `InOut`)."""
+        return (self.st is st and self.mem is mem and self.lib is lib and len(cs) == len(self.cs)
+                and all(a is b for a, b in zip(cs, self.cs)))
+
+    def frame(self, face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int, origin,
+              stamp: int, shape: tuple[int, ...] | None = None) -> tuple[Tensor, int, int] | None:
+        """`vertex_frame` with the camera position ``origin`` (3 numbers, taken as float32) and the
+        image allocated as ``shape`` (default (n, 3); its elements n·3)."""
+        q = n * S2
+        if (face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
+                or bary.dtype != torch.float32 or face.shape != (q,) or region.shape != (q,) or hit.shape != (q,)
+                or bary.shape != (q, 2) or not 0 < stamp < STAMP_MAX or len(origin) != 3
+                or face.device.type != "cpu" or region.device.type != "cpu" or hit.device.type != "cpu"
+                or bary.device.type != "cpu" or not (face.is_contiguous() and region.is_contiguous()
+                                                     and hit.is_contiguous())):
+            return None
+        if bary.stride() == (1, q):               # the G-buffer's column-major barycentrics: its columns
+            bu = bary.data_ptr()
+            bv = bu + 4 * q
+        else:
+            u, v = bary.unbind(-1)
+            u, v = u.contiguous(), v.contiguous()
+            bu, bv = u.data_ptr(), v.data_ptr()
+        cam = (ctypes.c_float * 3)(*origin)       # float32 as torch.tensor(origin, dtype=torch.float32)
+        out = torch.empty(shape if shape is not None else (n, 3), dtype=torch.float32)
+        if out.numel() != 3 * n:
+            return None
+        nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+        st = self.stats
+        self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
+                *self.tail, stamp, out.data_ptr(), nt, st)
+        return out, st[0], st[1]
+
+    def __deepcopy__(self, memo):
+        return None    # a deep copy of its owner binds its own call (the library's functions do not copy)
+
+
+def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> Bound | None:
+    """A `Bound` call for ``st`` (the ``fast.FastStatic``), cs[s] (Vr_s, 3, K_s) float32 the c of slot s
+    (valid at every vertex) and ``mem`` (a `memo` of ``st``'s vertices and faces), or None when the
+    loop is not available or the arrays are not CPU tensors of those types and shapes (the caller runs
+    the split path). ``lib``: the library as `_lib` gave it to the caller (else looked up here)."""
     lib = _lib() if lib is None else lib
     if lib is None:
         return None
     nv, M, S = st.voff[-1], int(st.face_region.shape[0]), len(cs)
-    q = int(face.shape[0])
     sh = [fr.sh_nc for fr in st.regions]
     B, fst, vst = mem
-    ts = (face, region, hit, st.face_region, st.face_gl, st.pos, st.frames, cam, B, fst, vst, *sh, *cs)
-    if (q != n * S2 or S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
-            or face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
-            or bary.dtype != torch.float32 or tuple(bary.shape) != (q, 2) or region.shape != (q,) or hit.shape != (q,)
+    ts = (st.face_region, st.face_gl, st.pos, st.frames, B, fst, vst, *sh, *cs)
+    if (S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
             or st.face_region.dtype != torch.int64 or st.face_gl.dtype != torch.int32 or st.face_gl.shape != (3, M)
-            or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3) or cam.shape != (3,)
+            or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3)
             or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,)
-            or any(t.dtype != torch.int32 for t in (fst, vst)) or not 0 < stamp < STAMP_MAX
-            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, cam, B, *sh, *cs))
+            or any(t.dtype != torch.int32 for t in (fst, vst))
+            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, B, *sh, *cs))
             or any(t.device.type != "cpu" or not t.is_contiguous() for t in ts)):
         return None
     K = []
@@ -311,19 +365,31 @@ def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tenso
         if cs[s].shape != (vr, 3, k) or sh[s].shape != (st.R * st.R * 3, k):
             return None
         K.append(k)
-    bu, bv = bary.unbind(-1)
-    bu, bv = bu.contiguous(), bv.contiguous()     # views of the G-buffer's column-major barycentrics: no copy
-    out = torch.empty(n, 3, dtype=torch.float32)
-    # one ctypes array, no torch op (each torch op around the loop runs with the loop's cold caches)
+    b = Bound()
+    b.st, b.cs, b.mem, b.lib, b.fn = st, list(cs), mem, lib, lib.vertex_frame
+    b.nv, b.M, b.S = nv, M, S
     vals = [*st.voff, *(t.data_ptr() for t in sh), *(t.data_ptr() for t in cs), *K]
-    meta = (ctypes.c_int64 * len(vals))(*vals)
-    stats = torch.empty(2, dtype=torch.int64)          # the loop writes both
-    mp = ctypes.addressof(meta)
-    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
-    lib.vertex_frame(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), n, S2,
-                     st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr(),
-                     cam.data_ptr(), mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1),
-                     B.data_ptr(), fst.data_ptr(), vst.data_ptr(), stamp, out.data_ptr(), nt,
-                     stats.data_ptr())
-    miss, err = stats.tolist()
-    return out, int(miss), int(err)
+    b.meta = (ctypes.c_int64 * len(vals))(*vals)     # kept alive with the bound call
+    mp = ctypes.addressof(b.meta)
+    b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
+    b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
+    b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
+              fst.data_ptr(), vst.data_ptr())
+    return b
+
+
+def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
+                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, lib=None) -> tuple[Tensor, int, int] | None:
+    """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
+    bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
+    used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
+    vertex), face, region (q,) int64, hit (q,) bool, bary (q, 2) float32 (any strides: its columns are
+    read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
+    (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). None when
+    the loop is not available or the arrays are not CPU tensors of those types (the caller runs the
+    split path). ``lib``: the library as `_lib` gave it to the caller (else looked up here). One frame
+    of `bind` (`InOut` keeps the bound call between frames)."""
+    if cam.dtype != torch.float32 or cam.shape != (3,) or cam.device.type != "cpu":
+        return None
+    b = bind(st, cs, mem, lib)
+    return None if b is None else b.frame(face, bary, region, hit, n, S2, cam.tolist(), stamp)

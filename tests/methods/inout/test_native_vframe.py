@@ -148,3 +148,38 @@ def test_vertex_memo_is_reported():
     m.render(f, make_gbuffer(scene, f, 1))
     nv, M = m._fast_static().voff[-1], int(m._fast_static().face_region.shape[0])
     assert m.memory()["vertex_memo"] == nv * 12 + M * 4 + nv * 4
+
+
+def test_bound_call_follows_its_arrays(precomputed):
+    """The loop's static arguments are bound once (`native_vframe.bind`, kept as ``InOut._vcall``) and
+    bound again when what they point to changes: another c (new tensors of a region: the image follows
+    them, as the split path's), a deep copy (none: its owner binds again), a G-buffer whose barycentrics
+    are row-major (read through copies of their columns) — each image the split path's bits."""
+    m = precomputed("chess")
+    new, old = _copies(m)
+    frames = make_sequence(m.scene, "V", n_frames=3, seed=2)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    assert torch.equal(new.render(frames[0], gbs[0]), old.render(frames[0], gbs[0]))
+    bound = new._vcall
+    assert bound is not None
+    # c replaced by other tensors (twice the values) in both copies: the next frame reads the new ones
+    for r in m.regions:
+        for x in (new, old):
+            c2 = x._cf[r.name] * 2
+            x._cf[r.name], x._cf_valid[r.name] = c2, torch.ones(c2.shape[0], dtype=torch.bool)
+            x._cf_full[r.name] = x._cf_valid[r.name]
+    got, want = new.render(frames[1], gbs[1]), old.render(frames[1], gbs[1])
+    assert new._vcall is not bound and torch.equal(got, want)
+    # a deep copy of the bound call is none (the library's functions do not copy): its owner binds again
+    twin = copy.copy(new)
+    twin._vcall = copy.deepcopy(new._vcall)
+    assert twin._vcall is None
+    assert torch.equal(twin.render(frames[2], gbs[2]), old.render(frames[2], gbs[2]))
+    assert twin._vcall is not None and twin._vcall is not new._vcall
+    # row-major barycentrics (not the G-buffer's column-major layout): the same image
+    gb = copy.copy(gbs[2])
+    gb.bary = gbs[2].bary.contiguous()
+    assert gb.bary.stride() == (2, 1)
+    stamp = new._vstamp
+    assert torch.equal(new.render(frames[2], gb), old.render(frames[2], gbs[2]))
+    assert new._vstamp == stamp + 1
