@@ -783,8 +783,8 @@ class InOut(Method):
         b = self._vcall                          # the loop's static arguments, bound once (`native_vframe.bind`)
         if b is None or self._vstamp >= _nvframe.STAMP_MAX - 1 or not b.fits(st, cs, self._vmemo, lib):
             nv, M = st.voff[-1], int(st.face_region.shape[0])
-            if (self._vmemo is None or self._vmemo[0].shape[0] != nv or self._vmemo[1].shape[0] != M
-                    or self._vstamp >= _nvframe.STAMP_MAX - 1):
+            if (self._vmemo is None or len(self._vmemo) != 4 or self._vmemo[0].shape[0] != nv
+                    or self._vmemo[1].shape[0] != M or self._vstamp >= _nvframe.STAMP_MAX - 1):
                 self._vmemo, self._vstamp = _nvframe.memo(nv, M), 0
             b = self._vcall = _nvframe.bind(st, cs, self._vmemo, lib)
             if b is None:

@@ -11,14 +11,17 @@ same four phases run in one parallel region, split by barriers: (1) the samples 
 three vertices marked), (3) the vertices in chunks of 512 ids to the next free thread (each marked
 vertex's cell as ``native.vertex_cells``, eq. 4 as ``native.vertex_radiance``, the same operations
 in the same order, copied, with the next vertex's table and c rows prefetched; 0 below the horizon),
-(4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order). The image is the
+(3b) the faces again (each marked face's three corners' B gathered into its row of a face table,
+`FAST` bit 2), (4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order, a
+sample's corners one row of the face table). The image is the
 split path's bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``; the
 tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
 in one order; a mark is a relaxed store of the same value by whichever thread).
 
-Nothing is allocated per frame but the image and three small argument tensors: B (nv, 3) and the face
-and vertex stamps are kept between frames (`memo`, reported by `InOut.memory`), a frame numbers
-itself in the stamps, and B's rows are only read where (3) wrote them this frame. What `frame_cost`
+Nothing is allocated per frame but the image (the arguments bound once, `bind`): B (nv, 3), the face
+and vertex stamps and the face table (M, 12) are kept between frames (`memo`, reported by
+`InOut.memory`), a frame numbers itself in the stamps, and B's rows and the face table's are only read
+where (3) and (3b) wrote them this frame. What `frame_cost`
 counts of the view is found after the frame (`InOut._frame_cost_vertex`). The region check of the
 split path and ``gouraud.resolve``'s range check are made in (1); either failing returns a flag, and
 the caller runs the split path, which raises its errors.
@@ -49,8 +52,25 @@ _SOURCE = r"""
 #include <omp.h>
 
 #define VCHUNK 512
+#define PCHUNK 8192
+
+/* phase (1) at sample p: the checks, the misses counted, a hit's face marked */
+#define SAMPLE_CHECK_MARK(p) {                                                         \
+        const int64_t f0 = face[p];                                                    \
+        if (f0 < -1 || f0 >= M)                                                        \
+            err |= 1;                                                                  \
+        if (!hit[p]) {                                                                 \
+            ++miss;                                                                    \
+        } else {                                                                       \
+            const int64_t f = f0 < 0 ? 0 : (f0 >= M ? M - 1 : f0);                   \
+            __atomic_store_n(fst + f, st32, __ATOMIC_RELAXED);                         \
+            if (face_region[f] != region[p])                                           \
+                err |= 2;                                                              \
+        }                                                                              \
+    }
 
 typedef float v8 __attribute__((vector_size(32)));
+typedef float v4 __attribute__((vector_size(16)));
 
 typedef struct {
     const float *pos, *frames, *cam;            /* (nv, 3), (nv, 9), (3,) */
@@ -137,7 +157,7 @@ static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, con
 }
 
 /* One frame on nt threads of OpenMP's team (one parallel region, phases split by barriers):
-   (1) samples in nt contiguous ranges: per sample the checks (err bit 1: a face outside [-1, M); bit 2:
+   (1) samples in nt contiguous ranges (fast & 4: in chunks of PCHUNK to the next free thread): per sample the checks (err bit 1: a face outside [-1, M); bit 2:
        a hit whose face's region is not the sample's), per hit its face f = max(face, 0) marked
        (fst[f] = stamp, a relaxed store: two threads may mark one face), misses counted;
    (2) faces in nt contiguous ranges: each marked face's three vertices marked (vst[g] = stamp,
@@ -145,8 +165,11 @@ static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, con
    (3) vertex ids in chunks of VCHUNK to the next free thread, each marked vertex in ascending order:
        the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with the next
        vertex's table and c rows prefetched, into B (nv, 3); 0 below the horizon;
+   (3b) (fast & 2) faces in nt contiguous ranges: each marked face's corners' B rows into its FB row
+       (M, 12): [B[fv[0, f]], 0, B[fv[1, f]], 0, B[fv[2, f]], 0];
    (4) pixels in nt contiguous ranges: core/gouraud.c's resolve3 sums in its order: out[i, c] = (1 / S2)
-       * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v.
+       * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v (fast & 2: the
+       corners from f's FB row, the channels as lanes of one vector, the same operations per channel).
    Every B row (4) reads is a referenced vertex's, written in (3): no row is cleared. fst (M,) and vst
    (nv,) int32 stamps, kept between frames. out (n, 3); stats[0] =
    misses, stats[1] = error bits. */
@@ -154,8 +177,8 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                   const float *bv, int64_t n, int64_t S2, const int64_t *face_region, int64_t M,
                   const int32_t *fv, const float *pos, const float *frames, const float *cam,
                   const int64_t *voff, int64_t S, int64_t R, const int64_t *shp, const int64_t *cp,
-                  const int64_t *K, float *B, int32_t *fst, int32_t *vst, int64_t stamp,
-                  float *out, int64_t nt, int64_t *stats) {
+                  const int64_t *K, float *B, int32_t *fst, int32_t *vst, float *FB, int64_t stamp,
+                  float *out, int64_t nt, int64_t fast, int64_t *stats) {
     View w = {pos, frames, cam, voff, S, R, (const float *const *)shp, (const float *const *)cp, K};
     const int64_t nv = voff[S], q = n * S2;
     const int32_t st32 = (int32_t)stamp;
@@ -164,20 +187,21 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
     {
         const int64_t T = omp_get_num_threads(), t = omp_get_thread_num();
         /* (1) */
-        for (int64_t p = q * t / T; p < q * (t + 1) / T; ++p) {
-            const int64_t f0 = face[p];
-            if (f0 < -1 || f0 >= M)
-                err |= 1;
-            if (!hit[p]) {
-                ++miss;
-                continue;
+        if (fast & 4) {
+            /* chunks of PCHUNK samples to the next free thread: a frame's second thread, woken from its
+               sleep after the suite's idle, starts ~10-35 us after the first, which takes the chunks
+               meanwhile instead of waiting for it at the barrier (the marks are the same whoever makes them) */
+            #pragma omp for schedule(dynamic, 1)
+            for (int64_t c = 0; c < (q + PCHUNK - 1) / PCHUNK; ++c) {
+                const int64_t pe = (c + 1) * PCHUNK < q ? (c + 1) * PCHUNK : q;
+                for (int64_t p = c * PCHUNK; p < pe; ++p)
+                    SAMPLE_CHECK_MARK(p)
             }
-            const int64_t f = f0 < 0 ? 0 : (f0 >= M ? M - 1 : f0);
-            __atomic_store_n(fst + f, st32, __ATOMIC_RELAXED);
-            if (face_region[f] != region[p])
-                err |= 2;
+        } else {
+            for (int64_t p = q * t / T; p < q * (t + 1) / T; ++p)
+                SAMPLE_CHECK_MARK(p)
+            #pragma omp barrier
         }
-        #pragma omp barrier
         /* (2) */
         for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
             if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
@@ -223,9 +247,55 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                 }
             }
         }
+        if (fast & 2) {
+            /* (3b) faces in nt contiguous ranges: each marked face's three corners' B in its row of FB
+               (12 floats: the corners' 3 channels and a 0 each), so (4) reads one row a sample */
+            #pragma omp barrier
+            for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
+                if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
+                    continue;
+                float *o = FB + 12 * f;
+                for (int64_t j = 0; j < 3; ++j) {
+                    const float *x = B + 3 * (int64_t)fv[j * M + f];
+                    o[4 * j] = x[0];
+                    o[4 * j + 1] = x[1];
+                    o[4 * j + 2] = x[2];
+                    o[4 * j + 3] = 0.0f;
+                }
+            }
+            #pragma omp barrier
+        }
         /* (4) */
         const float inv = 1.0f / (float)S2;
-        for (int64_t i = n * t / T; i < n * (t + 1) / T; ++i) {
+        const int64_t i0 = n * t / T, i1 = n * (t + 1) / T;
+        if (fast & 2) {
+            /* the sums of the loop below, the three channels as lanes of one vector (the same operations
+               on each channel in the same order: the same bits) */
+            for (int64_t i = i0; i < i1; ++i) {
+                v4 acc = {0.0f, 0.0f, 0.0f, 0.0f};
+                for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+                    if (!hit[p])
+                        continue;
+                    const int64_t f = face[p] < 0 ? 0 : (face[p] >= M ? M - 1 : face[p]);
+                    const float u = bu[p], v = bv[p], ww = 1.0f - u - v;
+                    const float *r = FB + 12 * f;
+                    v4 x, y, z;
+                    __builtin_memcpy(&x, r, 16);
+                    __builtin_memcpy(&y, r + 4, 16);
+                    __builtin_memcpy(&z, r + 8, 16);
+                    acc += (x * ww + y * u) + z * v;
+                }
+                acc *= inv;
+                if (i + 1 < i1) {
+                    __builtin_memcpy(out + 3 * i, &acc, 16);    /* its 4th lane: this thread's next pixel's, written after */
+                } else {
+                    out[3 * i] = acc[0];
+                    out[3 * i + 1] = acc[1];
+                    out[3 * i + 2] = acc[2];
+                }
+            }
+        } else {
+        for (int64_t i = i0; i < i1; ++i) {
             float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
             for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                 if (!hit[p])
@@ -244,6 +314,7 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
             out[3 * i + 1] = a1 * inv;
             out[3 * i + 2] = a2 * inv;
         }
+        }
     }
     stats[0] = miss;
     stats[1] = err;
@@ -252,11 +323,26 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"vertex_frame": [_P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _P, _P, _P,
-                                _P, _P, _P, _I, _P, _I, _P]}
+                                _P, _P, _P, _P, _I, _P, _I, _I, _P]}
+# Samples a chunk of phase (1) under ``FAST`` bit 4 (the C source's PCHUNK)
+PCHUNK = 8192
+assert f"#define PCHUNK {PCHUNK}\n" in _SOURCE
 # Frame numbers on one memo are below this (int32 stamps)
 STAMP_MAX = (1 << 31) - 1
 # Pixels per thread below which one thread shades the frame (`core.gouraud`'s threshold)
 MIN_PIXELS_PER_THREAD = 1 << 13
+# Variants of the loop (the same bits; a bit off: the plain form, kept as the test oracle):
+#   2  the face table FB (phase (3b): each referenced face's three corners' B in one row) and phase (4)
+#      reading one row of it a sample, the three channels as the lanes of one vector. Creature bench V,
+#      1 thread, same process, 30 frames alternating (``python -m benchmarks.inout_vphases --fast 0 2 0``):
+#      the loop 1.07x (phase (4) 0.56 -> 0.41 ms, (3b) +0.07 ms).
+#   4  phase (1) in chunks of 8192 samples to the next free thread (not nt contiguous ranges): at 2
+#      threads the second, woken late, no longer holds the first at (1)'s barrier (the same work, the
+#      same marks; not measurable at 1 thread).
+#   (bit 1, dropped: phase (1) 8 samples a step on AVX-512, only the samples whose (face, region)
+#   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
+#   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
+FAST = 6
 
 
 _LOADED: list = []      # the library once loaded (`_lib`)
@@ -271,10 +357,15 @@ def _lib():
         return None
     if _LOADED:
         return _LOADED[0]
-    lib = native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+    lib = native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=_flags())
     if lib is not None:
         _LOADED.append(lib)
     return lib
+
+
+def _flags() -> tuple[str, ...]:
+    """The split path's flags: the x86-64 baseline, no contraction (module docstring)."""
+    return ("-fopenmp", "-ffp-contract=off")
 
 
 def available() -> bool:
@@ -282,11 +373,12 @@ def available() -> bool:
     return _lib() is not None
 
 
-def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor]:
+def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """A memo for ``nv`` concatenated vertices and ``M`` faces: (B (nv, 3) float32, face stamps (M,)
-    int32 zeroed, vertex stamps (nv,) int32 zeroed)."""
+    int32 zeroed, vertex stamps (nv,) int32 zeroed, the face table FB (M, 12) float32: per face its
+    corners' B, written for the frame's referenced faces, ``FAST`` bit 2)."""
     return (torch.zeros(nv, 3, dtype=torch.float32), torch.zeros(M, dtype=torch.int32),
-            torch.zeros(nv, dtype=torch.int32))
+            torch.zeros(nv, dtype=torch.int32), torch.zeros(M, 12, dtype=torch.float32))
 
 
 class Bound:
@@ -331,7 +423,7 @@ class Bound:
         nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
         st = self.stats
         self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
-                *self.tail, stamp, out.data_ptr(), nt, st)
+                *self.tail, stamp, out.data_ptr(), nt, FAST, st)
         return out, st[0], st[1]
 
     def __deepcopy__(self, memo):
@@ -348,14 +440,16 @@ def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> 
         return None
     nv, M, S = st.voff[-1], int(st.face_region.shape[0]), len(cs)
     sh = [fr.sh_nc for fr in st.regions]
-    B, fst, vst = mem
-    ts = (st.face_region, st.face_gl, st.pos, st.frames, B, fst, vst, *sh, *cs)
+    if len(mem) != 4:
+        return None
+    B, fst, vst, FB = mem
+    ts = (st.face_region, st.face_gl, st.pos, st.frames, B, fst, vst, FB, *sh, *cs)
     if (S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
             or st.face_region.dtype != torch.int64 or st.face_gl.dtype != torch.int32 or st.face_gl.shape != (3, M)
             or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3)
-            or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,)
+            or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,) or FB.shape != (M, 12)
             or any(t.dtype != torch.int32 for t in (fst, vst))
-            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, B, *sh, *cs))
+            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, B, FB, *sh, *cs))
             or any(t.device.type != "cpu" or not t.is_contiguous() for t in ts)):
         return None
     K = []
@@ -374,7 +468,7 @@ def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> 
     b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
     b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
     b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
-              fst.data_ptr(), vst.data_ptr())
+              fst.data_ptr(), vst.data_ptr(), FB.data_ptr())
     return b
 
 
