@@ -155,6 +155,7 @@ class InOut(Method):
     _vmemo = None   # (as `_lightings`: a state stored by older code has none)
     _vstamp: int = 0
     _vcall = None   # `native_vframe.bind`'s bound call (state of older code: none)
+    _xcall = None   # `native_sample.bind`'s
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,
@@ -234,6 +235,7 @@ class InOut(Method):
         self._vview = None                     # shading "vertex": the view's referenced vertices (`_vertex_view`)
         self._xmemo = None                     # shading "sample", the C loop: its memo of X (`native_sample.memo`)
         self._xstamp = 0                       # frames shaded on that memo
+        self._xcall = None                     # and the loop's bound call (`native_sample.bind`)
         self._vmemo = None                     # shading "vertex", the C loop: its memo of B_v (`native_vframe.memo`)
         self._vstamp = 0                       # frames shaded on that memo
         self._vcall = None                     # and the loop's bound call (`native_vframe.bind`)
@@ -378,6 +380,7 @@ class InOut(Method):
         self._xmemo, self._xstamp = None, 0
         self._vmemo, self._vstamp = None, 0
         self._vcall = None
+        self._xcall = None
 
     def _relight(self, frame: Frame) -> None:
         """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
@@ -644,14 +647,19 @@ class InOut(Method):
         else:
             cs = self._view_refs(frame, gbuffer).cs
         g = gbuffer
-        W, nv = min(_nsample.WINDOW, st.R), st.voff[-1]
-        if (self._xmemo is None or self._xmemo[0].shape[0] != nv or self._xmemo[2].shape[0] != nv * W * W
-                or self._xstamp >= 2 ** 31 - 1):
-            self._xmemo, self._xstamp = _nsample.memo(nv, W), 0
+        W = min(_nsample.WINDOW, st.R)
+        b = self._xcall                          # the loop's static arguments, bound once (`native_sample.bind`)
+        if b is None or self._xstamp >= 2 ** 31 - 2 or not b.fits(st, cs, self._xmemo, W, lib):
+            nv = st.voff[-1]
+            if (self._xmemo is None or self._xmemo[0].shape[0] != nv or self._xmemo[2].shape[0] != nv * W * W
+                    or self._xstamp >= 2 ** 31 - 2):
+                self._xmemo, self._xstamp = _nsample.memo(nv, W), 0
+            b = self._xcall = _nsample.bind(st, cs, self._xmemo, W, lib)
+            if b is None:
+                return None
         self._xstamp += 1
-        cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
-        got = _nsample.shade(st, cs, g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, cam,
-                             self._xmemo, self._xstamp, W, lib=lib)
+        got = b.frame(g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, frame.camera.origin,
+                      self._xstamp, (g.height, g.width, 3))
         if got is None:
             return None
         img, (_, _, bad) = got
@@ -659,7 +667,7 @@ class InOut(Method):
             name = self.scene.regions[int(g.region[bad])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
         self._last_view = (g.num_samples, {"gbuffer": g, "sel": None, "window": W})
-        return img.view(g.height, g.width, 3)
+        return img
 
     def _view_counts(self, last: dict) -> dict:
         """What `frame_cost` counts of the last per-sample render (``last`` = its `_last_view` entry),
