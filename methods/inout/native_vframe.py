@@ -14,8 +14,8 @@ in the same order, copied, with the next vertex's table and c rows prefetched; 0
 (3b) the faces again (each marked face's three corners' B gathered into its row of a face table,
 `FAST` bit 2), (4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order, a
 sample's corners one row of the face table). The image is the
-split path's bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``; the
-tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
+split path's bit for bit (no contraction, ``-ffp-contract=off``, and the same operations: the host's ISA
+flags only widen the registers; the tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
 in one order; a mark is a relaxed store of the same value by whichever thread).
 
 Nothing is allocated per frame but the image (the arguments bound once, `bind`): B (nv, 3), the face
@@ -53,6 +53,7 @@ _SOURCE = r"""
 
 #define VCHUNK 512
 #define PCHUNK 8192
+#define PF_AHEAD 6
 
 /* phase (1) at sample p: the checks, the misses counted, a hit's face marked */
 #define SAMPLE_CHECK_MARK(p) {                                                         \
@@ -163,8 +164,9 @@ static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, con
    (2) faces in nt contiguous ranges: each marked face's three vertices marked (vst[g] = stamp,
        relaxed stores of the same value);
    (3) vertex ids in chunks of VCHUNK to the next free thread, each marked vertex in ascending order:
-       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with the next
-       vertex's table and c rows prefetched, into B (nv, 3); 0 below the horizon;
+       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with a later
+       vertex's table and c rows prefetched (the next; fast & 8: the 6th next), into B (nv, 3); 0 below
+       the horizon;
    (3b) (fast & 2) faces in nt contiguous ranges: each marked face's corners' B rows into its FB row
        (M, 12): [B[fv[0, f]], 0, B[fv[1, f]], 0, B[fv[2, f]], 0];
    (4) pixels in nt contiguous ranges: core/gouraud.c's resolve3 sums in its order: out[i, c] = (1 / S2)
@@ -231,11 +233,25 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                         B[3 * g + 2] = 0.0f;
                     }
                 }
+                /* each vertex's 4 table rows (2 runs of 2 rows) and c row prefetched D vertices ahead (fast & 8:
+                   PF_AHEAD, the first D of the run before it; else the next one's) */
+                const int64_t D = (fast & 8) ? PF_AHEAD : 1;
+                for (int64_t i = (fast & 8) ? 0 : 1; i < D && i < m; ++i) {
+                    const int64_t s1 = ls[i], K3 = 3 * K[s1], cn = lc[i];
+                    const float *sh = w.sh[s1];
+                    const float *cv = w.c[s1] + (lg[i] - voff[s1]) * K3;
+                    for (int64_t k = 0; k < 2 * K3; k += 16) {
+                        __builtin_prefetch(sh + cn * K3 + k);
+                        __builtin_prefetch(sh + (cn + R) * K3 + k);
+                    }
+                    for (int64_t k = 0; k < K3; k += 16)
+                        __builtin_prefetch(cv + k);
+                }
                 for (int64_t i = 0; i < m; ++i) {
-                    if (i + 1 < m) {  /* the next vertex's 4 table rows (2 runs of 2 rows) and its c row */
-                        const int64_t s1 = ls[i + 1], K3 = 3 * K[s1], cn = lc[i + 1];
+                    if (i + D < m) {
+                        const int64_t s1 = ls[i + D], K3 = 3 * K[s1], cn = lc[i + D];
                         const float *sh = w.sh[s1];
-                        const float *cv = w.c[s1] + (lg[i + 1] - voff[s1]) * K3;
+                        const float *cv = w.c[s1] + (lg[i + D] - voff[s1]) * K3;
                         for (int64_t k = 0; k < 2 * K3; k += 16) {
                             __builtin_prefetch(sh + cn * K3 + k);
                             __builtin_prefetch(sh + (cn + R) * K3 + k);
@@ -339,10 +355,12 @@ MIN_PIXELS_PER_THREAD = 1 << 13
 #   4  phase (1) in chunks of 8192 samples to the next free thread (not nt contiguous ranges): at 2
 #      threads the second, woken late, no longer holds the first at (1)'s barrier (the same work, the
 #      same marks; not measurable at 1 thread).
+#   8  phase (3): each vertex's table and c rows prefetched 6 vertices ahead (the first 6 of each run of
+#      64 before it), not the next one's only.
 #   (bit 1, dropped: phase (1) 8 samples a step on AVX-512, only the samples whose (face, region)
 #   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
 #   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
-FAST = 6
+FAST = 14
 
 
 _LOADED: list = []      # the library once loaded (`_lib`)
@@ -364,8 +382,13 @@ def _lib():
 
 
 def _flags() -> tuple[str, ...]:
-    """The split path's flags: the x86-64 baseline, no contraction (module docstring)."""
-    return ("-fopenmp", "-ffp-contract=off")
+    """No contraction (each product and sum rounded alone, as the split path's baseline build), and the
+    host's ISA flags (``native.isa_flags``: AVX2, each 8-lane operation of (3) one instruction instead of
+    two; the same IEEE operations lane by lane, so the same bits — the tests compare them with the split
+    path's). Same process, 1 thread, 40 frames alternating against the baseline build
+    (``python -m benchmarks.inout_vframe_flags_ab --scene S``): chess bench V 1.10x (phase (3) 1.23x), creature 1.07x
+    (1.14x)."""
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
 
 
 def available() -> bool:
