@@ -33,6 +33,18 @@ the 1-thread work is the same); 2 threads: see the session's final message (unde
 sample that reads it (one pass over the samples, a stamp per memo row): 0.75-0.93x at 1 thread (the
 per-sample stamp checks and the table rows' latency without a batch to prefetch), and in blocks of
 512 samples with a batched, prefetched fill: 0.6-0.9x.
+
+Session 40 (`FAST` bits 2, 4, 8; the same bits): where a creature bench V frame went at 1 thread (``python -m
+benchmarks.inout_vphases``, new): render 1.75 ms CPU of which the C call 1.36 — (1) 0.26, (2) 0.09, (3) 0.40,
+(4) 0.62 — and ~0.39 ms of Python and torch calls around it, serial at 2 threads (each cold after the suite's
+idle: the static arrays' checks, the camera as a tensor ~0.09, the barycentrics' unbind, the stats tensor,
+the image's view, ``native.load``'s key ~0.05). Now the call is bound once (`bind`), phase (4) reads a face
+table, (1) goes in dynamic chunks and (3) prefetches 6 vertices ahead, built with the host's ISA flags:
+render ~1.28 ms CPU (C call ~1.0: (1) 0.27, (2) 0.07, (3) 0.25, (3b) 0.06, (4) 0.32), creature 1.38x and chess
+1.36x against beff8b6 (1 thread, same process, max |d| 0). At 2 threads under the helpers' load (2 cores,
+load 2-7) every variant's frame swung 0.7-12 ms (the second thread waiting for a core at the first
+barrier): not measured. Dropped: phase (1) 8 samples a step on AVX-512 (1.01x); the G-buffer checks by
+``is_cpu`` (1.00-1.025x).
 """
 from __future__ import annotations
 
@@ -265,8 +277,8 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
         }
         if (fast & 2) {
             /* (3b) faces in nt contiguous ranges: each marked face's three corners' B in its row of FB
-               (12 floats: the corners' 3 channels and a 0 each), so (4) reads one row a sample */
-            #pragma omp barrier
+               (12 floats: the corners' 3 channels and a 0 each), so (4) reads one row a sample; every B
+               row is written: (3)'s worksharing loop ends with a barrier */
             for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
                 if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
                     continue;
