@@ -154,6 +154,8 @@ class InOut(Method):
     _lightings: int = 0
     _vmemo = None   # (as `_lightings`: a state stored by older code has none)
     _vstamp: int = 0
+    _vcall = None   # `native_vframe.bind`'s bound call (state of older code: none)
+    _xcall = None   # `native_sample.bind`'s
     capabilities = Capabilities(
         dynamic_lighting=True, dynamic_brdf=False, dynamic_geometry=False,
         max_bounces=0,
@@ -233,8 +235,10 @@ class InOut(Method):
         self._vview = None                     # shading "vertex": the view's referenced vertices (`_vertex_view`)
         self._xmemo = None                     # shading "sample", the C loop: its memo of X (`native_sample.memo`)
         self._xstamp = 0                       # frames shaded on that memo
+        self._xcall = None                     # and the loop's bound call (`native_sample.bind`)
         self._vmemo = None                     # shading "vertex", the C loop: its memo of B_v (`native_vframe.memo`)
         self._vstamp = 0                       # frames shaded on that memo
+        self._vcall = None                     # and the loop's bound call (`native_vframe.bind`)
 
     # -- precompute ---------------------------------------------------------------------------
     def _terms_for(self, region: str, material) -> int | None:
@@ -375,6 +379,8 @@ class InOut(Method):
         self._vview = None
         self._xmemo, self._xstamp = None, 0
         self._vmemo, self._vstamp = None, 0
+        self._vcall = None
+        self._xcall = None
 
     def _relight(self, frame: Frame) -> None:
         """New lighting when the frame changed it (or none is cached): L, and c_k invalidated."""
@@ -641,14 +647,19 @@ class InOut(Method):
         else:
             cs = self._view_refs(frame, gbuffer).cs
         g = gbuffer
-        W, nv = min(_nsample.WINDOW, st.R), st.voff[-1]
-        if (self._xmemo is None or self._xmemo[0].shape[0] != nv or self._xmemo[2].shape[0] != nv * W * W
-                or self._xstamp >= 2 ** 31 - 1):
-            self._xmemo, self._xstamp = _nsample.memo(nv, W), 0
+        W = min(_nsample.WINDOW, st.R)
+        b = self._xcall                          # the loop's static arguments, bound once (`native_sample.bind`)
+        if b is None or self._xstamp >= 2 ** 31 - 2 or not b.fits(st, cs, self._xmemo, W, lib):
+            nv = st.voff[-1]
+            if (self._xmemo is None or self._xmemo[0].shape[0] != nv or self._xmemo[2].shape[0] != nv * W * W
+                    or self._xstamp >= 2 ** 31 - 2):
+                self._xmemo, self._xstamp = _nsample.memo(nv, W), 0
+            b = self._xcall = _nsample.bind(st, cs, self._xmemo, W, lib)
+            if b is None:
+                return None
         self._xstamp += 1
-        cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
-        got = _nsample.shade(st, cs, g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, cam,
-                             self._xmemo, self._xstamp, W, lib=lib)
+        got = b.frame(g.normal, g.wo, g.bary, g.face, g.region, g.hit, g.spp_side ** 2, frame.camera.origin,
+                      self._xstamp, (g.height, g.width, 3))
         if got is None:
             return None
         img, (_, _, bad) = got
@@ -656,7 +667,7 @@ class InOut(Method):
             name = self.scene.regions[int(g.region[bad])]
             raise ValueError(f"G-buffer samples of region {name!r} lie on faces of another region")
         self._last_view = (g.num_samples, {"gbuffer": g, "sel": None, "window": W})
-        return img.view(g.height, g.width, 3)
+        return img
 
     def _view_counts(self, last: dict) -> dict:
         """What `frame_cost` counts of the last per-sample render (``last`` = its `_last_view` entry),
@@ -776,19 +787,24 @@ class InOut(Method):
                    for r in self.regions):
             return None
         st = self._fast_static()
-        nv, M = st.voff[-1], int(st.face_region.shape[0])
-        if (self._vmemo is None or self._vmemo[0].shape[0] != nv or self._vmemo[1].shape[0] != M
-                or self._vstamp >= _nvframe.STAMP_MAX - 1):
-            self._vmemo, self._vstamp = _nvframe.memo(nv, M), 0
+        cs = [self._cf[r.name] for r in self.regions]
+        b = self._vcall                          # the loop's static arguments, bound once (`native_vframe.bind`)
+        if b is None or self._vstamp >= _nvframe.STAMP_MAX - 1 or not b.fits(st, cs, self._vmemo, lib):
+            nv, M = st.voff[-1], int(st.face_region.shape[0])
+            if (self._vmemo is None or len(self._vmemo) != 4 or self._vmemo[0].shape[0] != nv
+                    or self._vmemo[1].shape[0] != M or self._vstamp >= _nvframe.STAMP_MAX - 1):
+                self._vmemo, self._vstamp = _nvframe.memo(nv, M), 0
+            b = self._vcall = _nvframe.bind(st, cs, self._vmemo, lib)
+            if b is None:
+                return None
         self._vstamp += 1
         g = gbuffer
-        cam = torch.tensor(frame.camera.origin, dtype=torch.float32)
-        got = _nvframe.vertex_frame(st, [self._cf[r.name] for r in self.regions], g.face, g.bary, g.region, g.hit,
-                                    g.height * g.width, g.spp_side ** 2, cam, self._vmemo, self._vstamp, lib=lib)
+        got = b.frame(g.face, g.bary, g.region, g.hit, g.height * g.width, g.spp_side ** 2, frame.camera.origin,
+                      self._vstamp, (g.height, g.width, 3))
         if got is None or got[2]:
             return None
         self._last_view = (g.num_samples, {"vertex_of": (frame, g)})
-        return got[0].view(g.height, g.width, 3)
+        return got[0]
 
     # -- accounting ---------------------------------------------------------------------------
     def memory(self) -> dict[str, int]:

@@ -131,6 +131,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
 __all__ = ["WINDOW", "available", "cells_available", "shade"]
 
@@ -1236,10 +1237,21 @@ YCACHE_LOG = 10
 TILE = 2048
 
 
+_LOADED: list = []      # the library once loaded (`_lib`)
+
+
 def _lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
-    # None met while compilation was off (a test's monkeypatch) is not kept for the process
-    return native.load("inout_sample", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    # PRTBENCH_COMPILE read at each call, so a None met while compilation was off (a test's monkeypatch)
+    # is not kept for the process; the library remembered once loaded (`native.load`'s own cache costs
+    # ~50 us a frame with the caches cold: its key tuples and the flags' queries)
+    if not compile_enabled():
+        return None
+    if _LOADED:
+        return _LOADED[0]
+    lib = native.load("inout_sample", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    if lib is not None:
+        _LOADED.append(lib)
+    return lib
 
 
 # AVX-512 where torch found the CPU to have it (the dot products 16 lanes wide, `dotf`, `dot4f`)
@@ -1276,6 +1288,101 @@ def memo(nv: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
             torch.zeros(nv * W * W, dtype=torch.int32))
 
 
+class Bound:
+    """`shade`'s arguments that do not change between frames — the scene's arrays of ``st``, the slots'
+    tables and c, the memo, W — checked and packed once (`bind`) into the loop's argument struct;
+    `frame` checks the G-buffer's arrays, writes their pointers and the frame's numbers into it and runs
+    one frame. Each torch op and attribute read around the loop runs with the loop's cold caches: the
+    per-frame checks of ~20 static arrays, the camera as a tensor, the stats tensor and its ``tolist``
+    and the image's view cost a chess bench V frame ~0.2 ms of serial Python (1 thread)."""
+
+    __slots__ = ("st", "cs", "mem", "W", "lib", "fn", "args", "meta", "cam", "stats")
+
+    def fits(self, st, cs: list[Tensor], mem, W: int, lib) -> bool:
+        """True when bound to these very objects (the tensors' identity: their storage is not replaced
+        in place anywhere in `InOut`) and window."""
+        return (self.st is st and self.mem is mem and self.W == W and self.lib is lib and len(cs) == len(self.cs)
+                and all(a is b for a, b in zip(cs, self.cs)))
+
+    def frame(self, normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, region: Tensor, live: Tensor, S2: int,
+              origin, stamp: int, shape: tuple[int, ...] | None = None):
+        """`shade` with the camera position ``origin`` (3 numbers, taken as float32) and the image
+        allocated as ``shape`` (default (n, 3); n·3 elements)."""
+        q = int(face.shape[0])
+        if (normal.dtype != torch.float32 or wo.dtype != torch.float32 or bary.dtype != torch.float32
+                or face.dtype != torch.int64 or region.dtype != torch.int64 or live.dtype != torch.bool
+                or normal.shape != (q, 3) or wo.shape != (q, 3) or bary.shape != (q, 2) or face.shape != (q,)
+                or region.shape != (q,) or live.shape != (q,)
+                or not (normal.is_cpu and wo.is_cpu and bary.is_cpu and face.is_cpu and region.is_cpu and live.is_cpu)
+                or not (face.is_contiguous() and region.is_contiguous() and live.is_contiguous())
+                or q % S2 or not 1 <= S2 <= 8 or not 0 < stamp < 2 ** 31 or len(origin) != 3):
+            return None
+        npx = q // S2
+        out = torch.empty(shape if shape is not None else (npx, 3), dtype=torch.float32)
+        if out.numel() != 3 * npx:
+            return None
+        nt = max(1, min(torch.get_num_threads(), npx // MIN_PER_THREAD))
+        if len(self.stats) < 3 * nt:
+            self.stats = (ctypes.c_int64 * (3 * nt))()
+        a = self.args
+        a.nrm, (a.n0, a.n1) = normal.data_ptr(), normal.stride()
+        a.wo, (a.w0, a.w1) = wo.data_ptr(), wo.stride()
+        a.bary, (a.b0, a.b1) = bary.data_ptr(), bary.stride()
+        a.face, a.region, a.live = face.data_ptr(), region.data_ptr(), live.data_ptr()
+        a.S2, a.stamp, a.chunk, a.fast, a.ylog, a.tile = S2, stamp, TILE if FAST & 256 else CHUNK, int(FAST), YCACHE_LOG, TILE
+        self.cam[0], self.cam[1], self.cam[2] = origin      # float32 as torch.tensor(origin, dtype=torch.float32)
+        st = self.stats
+        self.fn(ctypes.byref(a), npx, out.data_ptr(), ctypes.addressof(st), nt)
+        rows = st[:3 * nt]                                   # the loop sets every thread's row first
+        bad = [b for b in rows[2::3] if b >= 0]
+        return out, (sum(rows[0::3]), sum(rows[1::3]), min(bad) if bad else -1)
+
+    def __deepcopy__(self, memo):
+        return None    # a deep copy of its owner binds its own call (the library's functions do not copy)
+
+
+def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], W: int, lib=None) -> Bound | None:
+    """A `Bound` call for ``st`` (the ``fast.FastStatic``), cs[s] (Vr_s, 3, K_s) float32 the c of slot s,
+    ``mem`` a `memo` of ``st``'s vertices for window ``W``, or None when the loop is not available or
+    the arrays are not CPU tensors of those types and shapes (the caller runs the compiled path).
+    ``lib``: the library as `_lib` gave it to the caller (else looked up here)."""
+    lib = _lib() if lib is None else lib
+    if lib is None:
+        return None
+    vrec, rows, mst = mem
+    nv = st.voff[-1]
+    ts = (st.face_rows, st.face_region, st.pos, st.frames, vrec, rows, mst, *cs, *(fr.sh_nc for fr in st.regions))
+    if (any(t.device.type != "cpu" or not t.is_contiguous() for t in ts)
+            or not all(c.dtype == torch.float32 and c.dim() == 3 and c.shape[1] == 3 for c in cs)
+            or not all(fr.sh_nc.dtype == torch.float32 for fr in st.regions)
+            or st.face_rows.dtype != torch.int32 or st.face_region.dtype != torch.int64
+            or st.pos.dtype != torch.float32 or st.frames.dtype != torch.float32
+            or vrec.shape != (nv, 4) or rows.shape != (nv * W * W, 4) or mst.shape != (nv * W * W,) or st.R < W or W < 2
+            or len(cs) != len(st.regions)):
+        return None
+    for s, (c, fr) in enumerate(zip(cs, st.regions)):
+        if c.shape[0] != st.voff[s + 1] - st.voff[s] or c.shape[2] != fr.K or fr.sh_nc.shape != (st.R * st.R * 3, fr.K):
+            return None
+    b = Bound()
+    b.st, b.cs, b.mem, b.W, b.lib, b.fn = st, list(cs), mem, W, lib, lib.shade
+    S = len(st.regions)
+    # the per-slot arrays as one ctypes int64 array: table pointers, c pointers, K (each at least one
+    # entry), the slot offsets
+    S1 = max(S, 1)
+    vals = [*([fr.sh_nc.data_ptr() for fr in st.regions] or [0]), *([c.data_ptr() for c in cs] or [0]),
+            *([fr.K for fr in st.regions] or [1]), *st.voff]
+    b.meta = (ctypes.c_int64 * len(vals))(*vals)      # kept alive with the bound call
+    mp = ctypes.addressof(b.meta)
+    b.cam = (ctypes.c_float * 3)()
+    b.stats = (ctypes.c_int64 * 6)()
+    b.args = _Args(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                   st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
+                   mp + 24 * S1, S, mp, mp + 8 * S1, mp + 16 * S1,
+                   st.pos.data_ptr(), st.frames.data_ptr(), ctypes.addressof(b.cam), st.R, W, 1, 0,
+                   CHUNK, 0, vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG, TILE)
+    return b
+
+
 def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: Tensor, region: Tensor,
           live: Tensor, S2: int, cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, W: int, lib=None):
     """Eq. 4 at q = n·S2 G-buffer samples (pixel-major; normal, wo (q, 3) and bary (q, 2) float32 in
@@ -1286,47 +1393,7 @@ def shade(st, cs: list[Tensor], normal: Tensor, wo: Tensor, bary: Tensor, face: 
     summed exactly, the first sample whose face lies in another region than its own (-1: none).
     None when the loop is not available or the arrays are not CPU tensors of those types. ``lib``: the
     library as `_lib` gave it to the caller (else looked up here)."""
-    lib = _lib() if lib is None else lib
-    vrec, rows, mst = mem
-    nv = st.voff[-1]
-    q = int(face.shape[0])
-    ts = (normal, wo, bary, face, region, live, st.face_rows, st.face_region, st.pos, st.frames, cam, vrec, rows, mst,
-          *cs, *(fr.sh_nc for fr in st.regions))
-    if (lib is None or any(t.device.type != "cpu" for t in ts) or normal.dtype != torch.float32
-            or wo.dtype != torch.float32 or bary.dtype != torch.float32 or face.dtype != torch.int64
-            or region.dtype != torch.int64 or live.dtype != torch.bool or cam.dtype != torch.float32
-            or not all(t.is_contiguous() for t in (face, region, live, st.face_rows, st.face_region, st.pos,
-                                                   st.frames, cam, vrec, rows, mst, *cs))
-            or not all(c.dtype == torch.float32 and c.dim() == 3 and c.shape[1] == 3 for c in cs)
-            or not all(fr.sh_nc.is_contiguous() and fr.sh_nc.dtype == torch.float32 for fr in st.regions)
-            or st.face_rows.dtype != torch.int32 or st.face_region.dtype != torch.int64
-            or vrec.shape != (nv, 4) or rows.shape != (nv * W * W, 4) or mst.shape != (nv * W * W,) or st.R < W or W < 2
-            or q % S2 or not 1 <= S2 <= 8 or len(cs) != len(st.regions) or not 0 < stamp < 2 ** 31):
+    if cam.dtype != torch.float32 or cam.shape != (3,) or cam.device.type != "cpu":
         return None
-    for s, (c, fr) in enumerate(zip(cs, st.regions)):
-        if c.shape[0] != st.voff[s + 1] - st.voff[s] or c.shape[2] != fr.K or fr.sh_nc.shape != (st.R * st.R * 3, fr.K):
-            return None
-    npx = q // S2
-    out = torch.empty(npx, 3, dtype=torch.float32)
-    nt = max(1, min(torch.get_num_threads(), npx // MIN_PER_THREAD))
-    stats = torch.empty(nt, 3, dtype=torch.int64)      # the loop sets every thread's row first
-    S = len(st.regions)
-    # the per-slot arrays as one ctypes int64 array (no torch op: each torch op around the loop runs with
-    # the loop's cold caches): table pointers, c pointers, K (each at least one entry), the slot offsets
-    S1 = max(S, 1)
-    vals = [*([fr.sh_nc.data_ptr() for fr in st.regions] or [0]), *([c.data_ptr() for c in cs] or [0]),
-            *([fr.K for fr in st.regions] or [1]), *st.voff]
-    meta = (ctypes.c_int64 * len(vals))(*vals)
-    mp = ctypes.addressof(meta)
-    shp, cp, Ks, voff = mp, mp + 8 * S1, mp + 16 * S1, mp + 24 * S1
-    a = _Args(normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
-              bary.data_ptr(), bary.stride(0), bary.stride(1), face.data_ptr(), region.data_ptr(), live.data_ptr(),
-              st.face_rows.data_ptr(), st.face_region.data_ptr(), int(st.face_region.shape[0]),
-              voff, S, shp, cp, Ks,
-              st.pos.data_ptr(), st.frames.data_ptr(), cam.data_ptr(), st.R, W, S2, stamp,
-              TILE if FAST & 256 else CHUNK, int(FAST),
-              vrec.data_ptr(), rows.data_ptr(), mst.data_ptr(), YCACHE_LOG, TILE)
-    lib.shade(ctypes.byref(a), npx, out.data_ptr(), stats.data_ptr(), nt)
-    rows = stats.tolist()                               # one conversion (each torch op after the loop runs cold)
-    bad = [r[2] for r in rows if r[2] >= 0]
-    return out, (sum(r[0] for r in rows), sum(r[1] for r in rows), min(bad) if bad else -1)
+    b = bind(st, cs, mem, W, lib)
+    return None if b is None else b.frame(normal, wo, bary, face, region, live, S2, cam.tolist(), stamp)

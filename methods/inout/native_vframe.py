@@ -11,14 +11,17 @@ same four phases run in one parallel region, split by barriers: (1) the samples 
 three vertices marked), (3) the vertices in chunks of 512 ids to the next free thread (each marked
 vertex's cell as ``native.vertex_cells``, eq. 4 as ``native.vertex_radiance``, the same operations
 in the same order, copied, with the next vertex's table and c rows prefetched; 0 below the horizon),
-(4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order). The image is the
-split path's bit for bit (the same compiler flags: the x86-64 baseline, ``-ffp-contract=off``; the
-tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
+(3b) the faces again (each marked face's three corners' B gathered into its row of a face table,
+`FAST` bit 2), (4) the pixels in contiguous ranges (``core.gouraud``'s resolve sums in its order, a
+sample's corners one row of the face table). The image is the
+split path's bit for bit (no contraction, ``-ffp-contract=off``, and the same operations: the host's ISA
+flags only widen the registers; the tests compare them), and the same at any thread count (each vertex and pixel is summed by one thread
 in one order; a mark is a relaxed store of the same value by whichever thread).
 
-Nothing is allocated per frame but the image and three small argument tensors: B (nv, 3) and the face
-and vertex stamps are kept between frames (`memo`, reported by `InOut.memory`), a frame numbers
-itself in the stamps, and B's rows are only read where (3) wrote them this frame. What `frame_cost`
+Nothing is allocated per frame but the image (the arguments bound once, `bind`): B (nv, 3), the face
+and vertex stamps and the face table (M, 12) are kept between frames (`memo`, reported by
+`InOut.memory`), a frame numbers itself in the stamps, and B's rows and the face table's are only read
+where (3) and (3b) wrote them this frame. What `frame_cost`
 counts of the view is found after the frame (`InOut._frame_cost_vertex`). The region check of the
 split path and ``gouraud.resolve``'s range check are made in (1); either failing returns a flag, and
 the caller runs the split path, which raises its errors.
@@ -30,6 +33,18 @@ the 1-thread work is the same); 2 threads: see the session's final message (unde
 sample that reads it (one pass over the samples, a stamp per memo row): 0.75-0.93x at 1 thread (the
 per-sample stamp checks and the table rows' latency without a batch to prefetch), and in blocks of
 512 samples with a batched, prefetched fill: 0.6-0.9x.
+
+Session 40 (`FAST` bits 2, 4, 8; the same bits): where a creature bench V frame went at 1 thread (``python -m
+benchmarks.inout_vphases``, new): render 1.75 ms CPU of which the C call 1.36 — (1) 0.26, (2) 0.09, (3) 0.40,
+(4) 0.62 — and ~0.39 ms of Python and torch calls around it, serial at 2 threads (each cold after the suite's
+idle: the static arrays' checks, the camera as a tensor ~0.09, the barycentrics' unbind, the stats tensor,
+the image's view, ``native.load``'s key ~0.05). Now the call is bound once (`bind`), phase (4) reads a face
+table, (1) goes in dynamic chunks and (3) prefetches 6 vertices ahead, built with the host's ISA flags:
+render ~1.28 ms CPU (C call ~1.0: (1) 0.27, (2) 0.07, (3) 0.25, (3b) 0.06, (4) 0.32), creature 1.38x and chess
+1.36x against beff8b6 (1 thread, same process, max |d| 0). At 2 threads under the helpers' load (2 cores,
+load 2-7) every variant's frame swung 0.7-12 ms (the second thread waiting for a core at the first
+barrier): not measured. Dropped: phase (1) 8 samples a step on AVX-512 (1.01x); the G-buffer checks by
+``is_cpu`` (1.00-1.025x).
 """
 from __future__ import annotations
 
@@ -39,8 +54,9 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
-__all__ = ["available", "memo", "vertex_frame"]
+__all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -48,8 +64,26 @@ _SOURCE = r"""
 #include <omp.h>
 
 #define VCHUNK 512
+#define PCHUNK 8192
+#define PF_AHEAD 6
+
+/* phase (1) at sample p: the checks, the misses counted, a hit's face marked */
+#define SAMPLE_CHECK_MARK(p) {                                                         \
+        const int64_t f0 = face[p];                                                    \
+        if (f0 < -1 || f0 >= M)                                                        \
+            err |= 1;                                                                  \
+        if (!hit[p]) {                                                                 \
+            ++miss;                                                                    \
+        } else {                                                                       \
+            const int64_t f = f0 < 0 ? 0 : (f0 >= M ? M - 1 : f0);                   \
+            __atomic_store_n(fst + f, st32, __ATOMIC_RELAXED);                         \
+            if (face_region[f] != region[p])                                           \
+                err |= 2;                                                              \
+        }                                                                              \
+    }
 
 typedef float v8 __attribute__((vector_size(32)));
+typedef float v4 __attribute__((vector_size(16)));
 
 typedef struct {
     const float *pos, *frames, *cam;            /* (nv, 3), (nv, 9), (3,) */
@@ -136,16 +170,20 @@ static inline void radiance(const View *w, int64_t s, int64_t g, int64_t ce, con
 }
 
 /* One frame on nt threads of OpenMP's team (one parallel region, phases split by barriers):
-   (1) samples in nt contiguous ranges: per sample the checks (err bit 1: a face outside [-1, M); bit 2:
+   (1) samples in nt contiguous ranges (fast & 4: in chunks of PCHUNK to the next free thread): per sample the checks (err bit 1: a face outside [-1, M); bit 2:
        a hit whose face's region is not the sample's), per hit its face f = max(face, 0) marked
        (fst[f] = stamp, a relaxed store: two threads may mark one face), misses counted;
    (2) faces in nt contiguous ranges: each marked face's three vertices marked (vst[g] = stamp,
        relaxed stores of the same value);
    (3) vertex ids in chunks of VCHUNK to the next free thread, each marked vertex in ascending order:
-       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with the next
-       vertex's table and c rows prefetched, into B (nv, 3); 0 below the horizon;
+       the cell (native.vertex_cells' operations), then eq. 4 (native.vertex_radiance's) with a later
+       vertex's table and c rows prefetched (the next; fast & 8: the 6th next), into B (nv, 3); 0 below
+       the horizon;
+   (3b) (fast & 2) faces in nt contiguous ranges: each marked face's corners' B rows into its FB row
+       (M, 12): [B[fv[0, f]], 0, B[fv[1, f]], 0, B[fv[2, f]], 0];
    (4) pixels in nt contiguous ranges: core/gouraud.c's resolve3 sums in its order: out[i, c] = (1 / S2)
-       * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v.
+       * sum over the hits p of (B[fv[0, f]] (1 - u - v) + B[fv[1, f]] u) + B[fv[2, f]] v (fast & 2: the
+       corners from f's FB row, the channels as lanes of one vector, the same operations per channel).
    Every B row (4) reads is a referenced vertex's, written in (3): no row is cleared. fst (M,) and vst
    (nv,) int32 stamps, kept between frames. out (n, 3); stats[0] =
    misses, stats[1] = error bits. */
@@ -153,8 +191,8 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                   const float *bv, int64_t n, int64_t S2, const int64_t *face_region, int64_t M,
                   const int32_t *fv, const float *pos, const float *frames, const float *cam,
                   const int64_t *voff, int64_t S, int64_t R, const int64_t *shp, const int64_t *cp,
-                  const int64_t *K, float *B, int32_t *fst, int32_t *vst, int64_t stamp,
-                  float *out, int64_t nt, int64_t *stats) {
+                  const int64_t *K, float *B, int32_t *fst, int32_t *vst, float *FB, int64_t stamp,
+                  float *out, int64_t nt, int64_t fast, int64_t *stats) {
     View w = {pos, frames, cam, voff, S, R, (const float *const *)shp, (const float *const *)cp, K};
     const int64_t nv = voff[S], q = n * S2;
     const int32_t st32 = (int32_t)stamp;
@@ -163,20 +201,21 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
     {
         const int64_t T = omp_get_num_threads(), t = omp_get_thread_num();
         /* (1) */
-        for (int64_t p = q * t / T; p < q * (t + 1) / T; ++p) {
-            const int64_t f0 = face[p];
-            if (f0 < -1 || f0 >= M)
-                err |= 1;
-            if (!hit[p]) {
-                ++miss;
-                continue;
+        if (fast & 4) {
+            /* chunks of PCHUNK samples to the next free thread: a frame's second thread, woken from its
+               sleep after the suite's idle, starts ~10-35 us after the first, which takes the chunks
+               meanwhile instead of waiting for it at the barrier (the marks are the same whoever makes them) */
+            #pragma omp for schedule(dynamic, 1)
+            for (int64_t c = 0; c < (q + PCHUNK - 1) / PCHUNK; ++c) {
+                const int64_t pe = (c + 1) * PCHUNK < q ? (c + 1) * PCHUNK : q;
+                for (int64_t p = c * PCHUNK; p < pe; ++p)
+                    SAMPLE_CHECK_MARK(p)
             }
-            const int64_t f = f0 < 0 ? 0 : (f0 >= M ? M - 1 : f0);
-            __atomic_store_n(fst + f, st32, __ATOMIC_RELAXED);
-            if (face_region[f] != region[p])
-                err |= 2;
+        } else {
+            for (int64_t p = q * t / T; p < q * (t + 1) / T; ++p)
+                SAMPLE_CHECK_MARK(p)
+            #pragma omp barrier
         }
-        #pragma omp barrier
         /* (2) */
         for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
             if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
@@ -206,11 +245,25 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                         B[3 * g + 2] = 0.0f;
                     }
                 }
+                /* each vertex's 4 table rows (2 runs of 2 rows) and c row prefetched D vertices ahead (fast & 8:
+                   PF_AHEAD, the first D of the run before it; else the next one's) */
+                const int64_t D = (fast & 8) ? PF_AHEAD : 1;
+                for (int64_t i = (fast & 8) ? 0 : 1; i < D && i < m; ++i) {
+                    const int64_t s1 = ls[i], K3 = 3 * K[s1], cn = lc[i];
+                    const float *sh = w.sh[s1];
+                    const float *cv = w.c[s1] + (lg[i] - voff[s1]) * K3;
+                    for (int64_t k = 0; k < 2 * K3; k += 16) {
+                        __builtin_prefetch(sh + cn * K3 + k);
+                        __builtin_prefetch(sh + (cn + R) * K3 + k);
+                    }
+                    for (int64_t k = 0; k < K3; k += 16)
+                        __builtin_prefetch(cv + k);
+                }
                 for (int64_t i = 0; i < m; ++i) {
-                    if (i + 1 < m) {  /* the next vertex's 4 table rows (2 runs of 2 rows) and its c row */
-                        const int64_t s1 = ls[i + 1], K3 = 3 * K[s1], cn = lc[i + 1];
+                    if (i + D < m) {
+                        const int64_t s1 = ls[i + D], K3 = 3 * K[s1], cn = lc[i + D];
                         const float *sh = w.sh[s1];
-                        const float *cv = w.c[s1] + (lg[i + 1] - voff[s1]) * K3;
+                        const float *cv = w.c[s1] + (lg[i + D] - voff[s1]) * K3;
                         for (int64_t k = 0; k < 2 * K3; k += 16) {
                             __builtin_prefetch(sh + cn * K3 + k);
                             __builtin_prefetch(sh + (cn + R) * K3 + k);
@@ -222,9 +275,55 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                 }
             }
         }
+        if (fast & 2) {
+            /* (3b) faces in nt contiguous ranges: each marked face's three corners' B in its row of FB
+               (12 floats: the corners' 3 channels and a 0 each), so (4) reads one row a sample; every B
+               row is written: (3)'s worksharing loop ends with a barrier */
+            for (int64_t f = M * t / T; f < M * (t + 1) / T; ++f) {
+                if (__atomic_load_n(fst + f, __ATOMIC_RELAXED) != st32)
+                    continue;
+                float *o = FB + 12 * f;
+                for (int64_t j = 0; j < 3; ++j) {
+                    const float *x = B + 3 * (int64_t)fv[j * M + f];
+                    o[4 * j] = x[0];
+                    o[4 * j + 1] = x[1];
+                    o[4 * j + 2] = x[2];
+                    o[4 * j + 3] = 0.0f;
+                }
+            }
+            #pragma omp barrier
+        }
         /* (4) */
         const float inv = 1.0f / (float)S2;
-        for (int64_t i = n * t / T; i < n * (t + 1) / T; ++i) {
+        const int64_t i0 = n * t / T, i1 = n * (t + 1) / T;
+        if (fast & 2) {
+            /* the sums of the loop below, the three channels as lanes of one vector (the same operations
+               on each channel in the same order: the same bits) */
+            for (int64_t i = i0; i < i1; ++i) {
+                v4 acc = {0.0f, 0.0f, 0.0f, 0.0f};
+                for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
+                    if (!hit[p])
+                        continue;
+                    const int64_t f = face[p] < 0 ? 0 : (face[p] >= M ? M - 1 : face[p]);
+                    const float u = bu[p], v = bv[p], ww = 1.0f - u - v;
+                    const float *r = FB + 12 * f;
+                    v4 x, y, z;
+                    __builtin_memcpy(&x, r, 16);
+                    __builtin_memcpy(&y, r + 4, 16);
+                    __builtin_memcpy(&z, r + 8, 16);
+                    acc += (x * ww + y * u) + z * v;
+                }
+                acc *= inv;
+                if (i + 1 < i1) {
+                    __builtin_memcpy(out + 3 * i, &acc, 16);    /* its 4th lane: this thread's next pixel's, written after */
+                } else {
+                    out[3 * i] = acc[0];
+                    out[3 * i + 1] = acc[1];
+                    out[3 * i + 2] = acc[2];
+                }
+            }
+        } else {
+        for (int64_t i = i0; i < i1; ++i) {
             float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f;
             for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                 if (!hit[p])
@@ -243,6 +342,7 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
             out[3 * i + 1] = a1 * inv;
             out[3 * i + 2] = a2 * inv;
         }
+        }
     }
     stats[0] = miss;
     stats[1] = err;
@@ -251,16 +351,56 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"vertex_frame": [_P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _P, _P, _P,
-                                _P, _P, _P, _I, _P, _I, _P]}
+                                _P, _P, _P, _P, _I, _P, _I, _I, _P]}
+# Samples a chunk of phase (1) under ``FAST`` bit 4 (the C source's PCHUNK)
+PCHUNK = 8192
+assert f"#define PCHUNK {PCHUNK}\n" in _SOURCE
 # Frame numbers on one memo are below this (int32 stamps)
 STAMP_MAX = (1 << 31) - 1
 # Pixels per thread below which one thread shades the frame (`core.gouraud`'s threshold)
 MIN_PIXELS_PER_THREAD = 1 << 13
+# Variants of the loop (the same bits; a bit off: the plain form, kept as the test oracle):
+#   2  the face table FB (phase (3b): each referenced face's three corners' B in one row) and phase (4)
+#      reading one row of it a sample, the three channels as the lanes of one vector. Creature bench V,
+#      1 thread, same process, 30 frames alternating (``python -m benchmarks.inout_vphases --fast 0 2 0``):
+#      the loop 1.07x (phase (4) 0.56 -> 0.41 ms, (3b) +0.07 ms).
+#   4  phase (1) in chunks of 8192 samples to the next free thread (not nt contiguous ranges): at 2
+#      threads the second, woken late, no longer holds the first at (1)'s barrier (the same work, the
+#      same marks; not measurable at 1 thread).
+#   8  phase (3): each vertex's table and c rows prefetched 6 vertices ahead (the first 6 of each run of
+#      64 before it), not the next one's only.
+#   (bit 1, dropped: phase (1) 8 samples a step on AVX-512, only the samples whose (face, region)
+#   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
+#   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
+FAST = 14
+
+
+_LOADED: list = []      # the library once loaded (`_lib`)
 
 
 def _lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call
-    return native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", "-ffp-contract=off"))
+    """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call).
+    Remembered once loaded: `native.load`'s own cache costs ~50 µs a frame with the caches cold (its key
+    tuples, the signatures' list), here one look-up; ``native.cache_clear`` does not forget it (the
+    same file)."""
+    if not compile_enabled():
+        return None
+    if _LOADED:
+        return _LOADED[0]
+    lib = native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    if lib is not None:
+        _LOADED.append(lib)
+    return lib
+
+
+def _flags() -> tuple[str, ...]:
+    """No contraction (each product and sum rounded alone, as the split path's baseline build), and the
+    host's ISA flags (``native.isa_flags``: AVX2, each 8-lane operation of (3) one instruction instead of
+    two; the same IEEE operations lane by lane, so the same bits — the tests compare them with the split
+    path's). Same process, 1 thread, 40 frames alternating against the baseline build
+    (``python -m benchmarks.inout_vframe_flags_ab --scene S``): chess bench V 1.10x (phase (3) 1.23x), creature 1.07x
+    (1.14x)."""
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
 
 
 def available() -> bool:
@@ -268,40 +408,83 @@ def available() -> bool:
     return _lib() is not None
 
 
-def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor]:
+def memo(nv: int, M: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """A memo for ``nv`` concatenated vertices and ``M`` faces: (B (nv, 3) float32, face stamps (M,)
-    int32 zeroed, vertex stamps (nv,) int32 zeroed)."""
+    int32 zeroed, vertex stamps (nv,) int32 zeroed, the face table FB (M, 12) float32: per face its
+    corners' B, written for the frame's referenced faces, ``FAST`` bit 2)."""
     return (torch.zeros(nv, 3, dtype=torch.float32), torch.zeros(M, dtype=torch.int32),
-            torch.zeros(nv, dtype=torch.int32))
+            torch.zeros(nv, dtype=torch.int32), torch.zeros(M, 12, dtype=torch.float32))
 
 
-def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
-                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, lib=None) -> tuple[Tensor, int, int] | None:
-    """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
-    bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
-    used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
-    vertex), face, region (q,) int64, hit (q,) bool, bary (q, 2) float32 (any strides: its columns are
-    read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
-    (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). At most
-    None when the loop is not available or the arrays are not CPU
-    tensors of those types (the caller runs the split path). ``lib``: the library as `_lib` gave it to the
-    caller (else looked up here)."""
+class Bound:
+    """`vertex_frame`'s arguments that do not change between frames — the scene's arrays of ``st``, the
+    slots' tables and c, the memo — checked and packed once (`bind`); `frame` checks the G-buffer's
+    arrays and runs one frame. Each torch op and attribute read around the loop runs with the loop's
+    cold caches (the suite's idle, the G-buffer's rasterisation before it): the per-frame checks of the
+    static arrays, the camera as a tensor, the barycentrics' unbind, the stats tensor and the image's
+    view cost a creature bench frame ~0.25 ms of serial Python (1 thread); here ~a tenth of that."""
+
+    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail")
+
+    def fits(self, st, cs: list[Tensor], mem, lib) -> bool:
+        """True when bound to these very objects (the tensors' identity: their storage is not replaced
+        in place anywhere in `InOut`)."""
+        return (self.st is st and self.mem is mem and self.lib is lib and len(cs) == len(self.cs)
+                and all(a is b for a, b in zip(cs, self.cs)))
+
+    def frame(self, face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int, origin,
+              stamp: int, shape: tuple[int, ...] | None = None) -> tuple[Tensor, int, int] | None:
+        """`vertex_frame` with the camera position ``origin`` (3 numbers, taken as float32) and the
+        image allocated as ``shape`` (default (n, 3); its elements n·3)."""
+        q = n * S2
+        if (face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
+                or bary.dtype != torch.float32 or face.shape != (q,) or region.shape != (q,) or hit.shape != (q,)
+                or bary.shape != (q, 2) or not 0 < stamp < STAMP_MAX or len(origin) != 3
+                or face.device.type != "cpu" or region.device.type != "cpu" or hit.device.type != "cpu"
+                or bary.device.type != "cpu" or not (face.is_contiguous() and region.is_contiguous()
+                                                     and hit.is_contiguous())):
+            return None
+        if bary.stride() == (1, q):               # the G-buffer's column-major barycentrics: its columns
+            bu = bary.data_ptr()
+            bv = bu + 4 * q
+        else:
+            u, v = bary.unbind(-1)
+            u, v = u.contiguous(), v.contiguous()
+            bu, bv = u.data_ptr(), v.data_ptr()
+        cam = (ctypes.c_float * 3)(*origin)       # float32 as torch.tensor(origin, dtype=torch.float32)
+        out = torch.empty(shape if shape is not None else (n, 3), dtype=torch.float32)
+        if out.numel() != 3 * n:
+            return None
+        nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
+        st = self.stats
+        self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
+                *self.tail, stamp, out.data_ptr(), nt, FAST, st)
+        return out, st[0], st[1]
+
+    def __deepcopy__(self, memo):
+        return None    # a deep copy of its owner binds its own call (the library's functions do not copy)
+
+
+def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> Bound | None:
+    """A `Bound` call for ``st`` (the ``fast.FastStatic``), cs[s] (Vr_s, 3, K_s) float32 the c of slot s
+    (valid at every vertex) and ``mem`` (a `memo` of ``st``'s vertices and faces), or None when the
+    loop is not available or the arrays are not CPU tensors of those types and shapes (the caller runs
+    the split path). ``lib``: the library as `_lib` gave it to the caller (else looked up here)."""
     lib = _lib() if lib is None else lib
     if lib is None:
         return None
     nv, M, S = st.voff[-1], int(st.face_region.shape[0]), len(cs)
-    q = int(face.shape[0])
     sh = [fr.sh_nc for fr in st.regions]
-    B, fst, vst = mem
-    ts = (face, region, hit, st.face_region, st.face_gl, st.pos, st.frames, cam, B, fst, vst, *sh, *cs)
-    if (q != n * S2 or S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
-            or face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
-            or bary.dtype != torch.float32 or tuple(bary.shape) != (q, 2) or region.shape != (q,) or hit.shape != (q,)
+    if len(mem) != 4:
+        return None
+    B, fst, vst, FB = mem
+    ts = (st.face_region, st.face_gl, st.pos, st.frames, B, fst, vst, FB, *sh, *cs)
+    if (S == 0 or S != len(sh) or S != len(st.voff) - 1 or M == 0
             or st.face_region.dtype != torch.int64 or st.face_gl.dtype != torch.int32 or st.face_gl.shape != (3, M)
-            or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3) or cam.shape != (3,)
-            or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,)
-            or any(t.dtype != torch.int32 for t in (fst, vst)) or not 0 < stamp < STAMP_MAX
-            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, cam, B, *sh, *cs))
+            or st.pos.shape != (nv, 3) or st.frames.shape != (nv, 3, 3)
+            or B.shape != (nv, 3) or fst.shape != (M,) or vst.shape != (nv,) or FB.shape != (M, 12)
+            or any(t.dtype != torch.int32 for t in (fst, vst))
+            or any(t.dtype != torch.float32 for t in (st.pos, st.frames, B, FB, *sh, *cs))
             or any(t.device.type != "cpu" or not t.is_contiguous() for t in ts)):
         return None
     K = []
@@ -311,19 +494,31 @@ def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tenso
         if cs[s].shape != (vr, 3, k) or sh[s].shape != (st.R * st.R * 3, k):
             return None
         K.append(k)
-    bu, bv = bary.unbind(-1)
-    bu, bv = bu.contiguous(), bv.contiguous()     # views of the G-buffer's column-major barycentrics: no copy
-    out = torch.empty(n, 3, dtype=torch.float32)
-    # one ctypes array, no torch op (each torch op around the loop runs with the loop's cold caches)
+    b = Bound()
+    b.st, b.cs, b.mem, b.lib, b.fn = st, list(cs), mem, lib, lib.vertex_frame
+    b.nv, b.M, b.S = nv, M, S
     vals = [*st.voff, *(t.data_ptr() for t in sh), *(t.data_ptr() for t in cs), *K]
-    meta = (ctypes.c_int64 * len(vals))(*vals)
-    stats = torch.empty(2, dtype=torch.int64)          # the loop writes both
-    mp = ctypes.addressof(meta)
-    nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
-    lib.vertex_frame(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu.data_ptr(), bv.data_ptr(), n, S2,
-                     st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr(),
-                     cam.data_ptr(), mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1),
-                     B.data_ptr(), fst.data_ptr(), vst.data_ptr(), stamp, out.data_ptr(), nt,
-                     stats.data_ptr())
-    miss, err = stats.tolist()
-    return out, int(miss), int(err)
+    b.meta = (ctypes.c_int64 * len(vals))(*vals)     # kept alive with the bound call
+    mp = ctypes.addressof(b.meta)
+    b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
+    b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
+    b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
+              fst.data_ptr(), vst.data_ptr(), FB.data_ptr())
+    return b
+
+
+def vertex_frame(st, cs: list[Tensor], face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int,
+                 cam: Tensor, mem: tuple[Tensor, Tensor, Tensor], stamp: int, lib=None) -> tuple[Tensor, int, int] | None:
+    """The image (n, 3) of a vertex-shaded frame (module docstring), the miss count and the error
+    bits (1: a face outside [−1, M); 2: a hit on a face of another region; the image is then not to be
+    used). ``st`` the ``fast.FastStatic``, cs[s] (Vr_s, 3, K_s) float32 the c of slot s (valid at every
+    vertex), face, region (q,) int64, hit (q,) bool, bary (q, 2) float32 (any strides: its columns are
+    read as rows), cam (3,) float32, ``mem`` a `memo` of ``st``'s vertices and faces, ``stamp`` in
+    (0, `STAMP_MAX`) this frame's number (distinct from every earlier frame's on ``mem``). None when
+    the loop is not available or the arrays are not CPU tensors of those types (the caller runs the
+    split path). ``lib``: the library as `_lib` gave it to the caller (else looked up here). One frame
+    of `bind` (`InOut` keeps the bound call between frames)."""
+    if cam.dtype != torch.float32 or cam.shape != (3,) or cam.device.type != "cpu":
+        return None
+    b = bind(st, cs, mem, lib)
+    return None if b is None else b.frame(face, bary, region, hit, n, S2, cam.tolist(), stamp)

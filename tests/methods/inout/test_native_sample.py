@@ -53,14 +53,14 @@ def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, 
     monkeypatch.setattr(native_sample, "WINDOW", W)
     monkeypatch.setattr(native_sample, "FAST", native_sample.FAST | 256 if tiles else native_sample.FAST & 255)
     calls = []
-    shade = native_sample.shade
+    shade = native_sample.Bound.frame          # the loop of a frame (`InOut` keeps its bound call)
 
-    def spy(*a, **k):
-        got = shade(*a, **k)
+    def spy(self, *a, **k):
+        got = shade(self, *a, **k)
         calls.append(got[1])
         return got
 
-    monkeypatch.setattr(native_sample, "shade", spy)
+    monkeypatch.setattr(native_sample.Bound, "frame", spy)
     for kind in ("V", "L", "E"):
         new, old, ref = _copy(m), _copy(m), _copy(m)
         old._render_native = lambda f, g: None
@@ -129,7 +129,7 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
     if not native_sample.cells_available():
         pytest.skip("no FMA build: bits 4 and 8 fall back to the per-row loop")
     m = precomputed(name)
-    shade = native_sample.shade
+    shade = native_sample.Bound.frame          # the loop of a frame (`InOut` keeps its bound call)
     for kind in ("V", "L"):
         frames = make_sequence(m.scene, kind, n_frames=2, seed=11)
         gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
@@ -141,16 +141,16 @@ def test_native_sample_cells_same_bits_any_window_and_reuse(precomputed, monkeyp
                 monkeypatch.setattr(native_sample, "YCACHE_LOG", ylog)
                 calls = []
 
-                def spy(*a, **k):
-                    got = shade(*a, **k)
+                def spy(self, *a, **k):
+                    got = shade(self, *a, **k)
                     calls.append(got[1][1])
                     return got
 
-                monkeypatch.setattr(native_sample, "shade", spy)
+                monkeypatch.setattr(native_sample.Bound, "frame", spy)
                 a = _copy(m)
                 imgs[fast, W, ylog] = [a.render(f, g) for f, g in zip(frames, gbs)]
                 exact[fast, W, ylog] = sum(calls)
-                monkeypatch.setattr(native_sample, "shade", shade)
+                monkeypatch.setattr(native_sample.Bound, "frame", shade)
         ref = _copy(m)
         want = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
         for key, got in imgs.items():
@@ -285,7 +285,7 @@ def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, ch
     assert gbs[0].num_samples // 4 > 4 * max(chunk, 64)      # several chunks per thread
     n = torch.get_num_threads()
     runs, bads = [], []
-    shade = native_sample.shade
+    shade = native_sample.Bound.frame          # the loop of a frame (`InOut` keeps its bound call)
     try:
         for t in (1, 2):
             torch.set_num_threads(t)
@@ -298,15 +298,15 @@ def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, ch
             gb.region[ks] = (gb.region[ks] + 1) % len(m.scene.regions)
             got = []
 
-            def spy(*x, **k):
-                r = shade(*x, **k)
+            def spy(self, *x, **k):
+                r = shade(self, *x, **k)
                 got.append(r[1])
                 return r
 
-            monkeypatch.setattr(native_sample, "shade", spy)
+            monkeypatch.setattr(native_sample.Bound, "frame", spy)
             with pytest.raises(ValueError, match="another region"):
                 _copy(m).render(frames[0], gb)     # the first lighting: c of every vertex, no pass before the loop
-            monkeypatch.setattr(native_sample, "shade", shade)
+            monkeypatch.setattr(native_sample.Bound, "frame", shade)
             bads.append(got[0][2])
     finally:
         torch.set_num_threads(n)
@@ -327,3 +327,42 @@ def test_native_sample_rejects_faces_of_another_region(precomputed):
     gb.region[k] = (int(gb.region[k]) + 1) % len(m.scene.regions)
     with pytest.raises(ValueError, match="another region"):
         m.render(frame, gb)
+
+
+def test_bound_call_follows_its_arrays(precomputed, monkeypatch):
+    """The loop's static arguments are bound once (`native_sample.bind`, kept as ``InOut._xcall``) and bound
+    again when what they point to changes: another c (new tensors of each region: the image follows them,
+    as the compiled path's), a deep copy (none: its owner binds again); a frame's own arrays (row-major
+    barycentrics, other strides) are read through their strides — each image the compiled path's to
+    float32 round-off, and the same bits as a fresh method's on the same c."""
+    m = precomputed("chess")
+    new, old = _copy(m), _copy(m)
+    old._render_native = lambda f, g: None
+    frames = make_sequence(m.scene, "V", n_frames=3, seed=2)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+
+    def close(a, b):
+        scale = float(b.abs().max())
+        return scale > 0 and float((a - b).abs().max()) <= RTOL * scale
+
+    assert close(new.render(frames[0], gbs[0]), old.render(frames[0], gbs[0]))
+    bound = new._xcall
+    assert bound is not None
+    for r in m.regions:                                  # c replaced by other tensors (twice the values)
+        for x in (new, old):
+            c2 = x._cf[r.name] * 2
+            x._cf[r.name], x._cf_valid[r.name] = c2, torch.ones(c2.shape[0], dtype=torch.bool)
+            x._cf_full[r.name] = x._cf_valid[r.name]
+    got = new.render(frames[1], gbs[1])
+    assert new._xcall is not bound and close(got, old.render(frames[1], gbs[1]))
+    twin = copy.copy(new)
+    twin._xcall = copy.deepcopy(new._xcall)
+    assert twin._xcall is None
+    gb = copy.copy(gbs[2])
+    gb.bary = gbs[2].bary.contiguous()                   # row-major (the G-buffer's is column-major)
+    assert gb.bary.stride() != gbs[2].bary.stride()
+    stamp = new._xstamp
+    got = new.render(frames[2], gb)
+    assert new._xstamp == stamp + 1
+    assert torch.equal(got, twin.render(frames[2], gbs[2]))
+    assert twin._xcall is not None and twin._xcall is not new._xcall

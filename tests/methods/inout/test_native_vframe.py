@@ -139,7 +139,7 @@ def test_vertex_frame_is_not_used_before_every_c_is_computed(precomputed):
 
 
 def test_vertex_memo_is_reported():
-    """`InOut.memory` counts the loop's memo (B_v and the stamps) once it exists."""
+    """`InOut.memory` counts the loop's memo (B_v, the stamps, the face table) once it exists."""
     scene = get_scene("sphere_plane", "test")
     m = InOut(**{**TINY, "terms": 4})
     m.precompute(scene)
@@ -147,4 +147,111 @@ def test_vertex_memo_is_reported():
     f = make_sequence(scene, "V", n_frames=1, seed=0)[0]
     m.render(f, make_gbuffer(scene, f, 1))
     nv, M = m._fast_static().voff[-1], int(m._fast_static().face_region.shape[0])
-    assert m.memory()["vertex_memo"] == nv * 12 + M * 4 + nv * 4
+    assert m.memory()["vertex_memo"] == nv * 12 + M * 4 + nv * 4 + M * 48     # B, stamps, the face table
+
+
+def test_bound_call_follows_its_arrays(precomputed):
+    """The loop's static arguments are bound once (`native_vframe.bind`, kept as ``InOut._vcall``) and
+    bound again when what they point to changes: another c (new tensors of a region: the image follows
+    them, as the split path's), a deep copy (none: its owner binds again), a G-buffer whose barycentrics
+    are row-major (read through copies of their columns) — each image the split path's bits."""
+    m = precomputed("chess")
+    new, old = _copies(m)
+    frames = make_sequence(m.scene, "V", n_frames=3, seed=2)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    assert torch.equal(new.render(frames[0], gbs[0]), old.render(frames[0], gbs[0]))
+    bound = new._vcall
+    assert bound is not None
+    # c replaced by other tensors (twice the values) in both copies: the next frame reads the new ones
+    for r in m.regions:
+        for x in (new, old):
+            c2 = x._cf[r.name] * 2
+            x._cf[r.name], x._cf_valid[r.name] = c2, torch.ones(c2.shape[0], dtype=torch.bool)
+            x._cf_full[r.name] = x._cf_valid[r.name]
+    got, want = new.render(frames[1], gbs[1]), old.render(frames[1], gbs[1])
+    assert new._vcall is not bound and torch.equal(got, want)
+    # a deep copy of the bound call is none (the library's functions do not copy): its owner binds again
+    twin = copy.copy(new)
+    twin._vcall = copy.deepcopy(new._vcall)
+    assert twin._vcall is None
+    assert torch.equal(twin.render(frames[2], gbs[2]), old.render(frames[2], gbs[2]))
+    assert twin._vcall is not None and twin._vcall is not new._vcall
+    # row-major barycentrics (not the G-buffer's column-major layout): the same image
+    gb = copy.copy(gbs[2])
+    gb.bary = gbs[2].bary.contiguous()
+    assert gb.bary.stride() == (2, 1)
+    stamp = new._vstamp
+    assert torch.equal(new.render(frames[2], gb), old.render(frames[2], gbs[2]))
+    assert new._vstamp == stamp + 1
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
+    """``FAST`` bit 2 (the face table and phase (4) from its rows, channels as lanes), bit 4 (phase (1)
+    in dynamic chunks) and bit 8 (phase (3)'s rows prefetched further ahead), alone and together, against
+    the plain loop: the same bits on the three-region chess scene and on the creature-like sphere_plane, 1 and
+    2×2 samples, at 1 and 2 threads (every image split over the team)."""
+    monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
+    old_threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        for name in ("chess", "sphere_plane"):
+            m = precomputed(name)
+            for spp in (1, 2):
+                imgs = {}
+                for fast in (0, 2, 4, 6, 8, 14):
+                    monkeypatch.setattr(native_vframe, "FAST", fast)
+                    new, _ = _copies(m)
+                    imgs[fast] = []
+                    for f in make_sequence(m.scene, "V", n_frames=3, seed=4):
+                        stamp = new._vstamp
+                        imgs[fast].append(new.render(f, make_gbuffer(m.scene, f, spp)))
+                        assert new._vstamp == stamp + 1, "the C loop did not run"
+                for fast in (2, 4, 6, 8, 14):
+                    assert all(torch.equal(a, b) for a, b in zip(imgs[0], imgs[fast])), f"{name} spp {spp} {fast}"
+    finally:
+        torch.set_num_threads(old_threads)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_face_table_rows_are_written_each_frame(precomputed, monkeypatch, threads):
+    """Every B row and face table row phase (4) reads was written in this frame's (3) and (3b): both poisoned
+    (NaN) before each frame, and the samples at the ends of phase (1)'s chunks and ranges moved onto the
+    first and last faces of the mesh and of each thread's range of faces (the ends of (2)'s and (3b)'s
+    ranges); the image is the split path's bits."""
+    monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
+    m = precomputed("chess")
+    M = int(m.F.shape[0])
+    st_region = None
+    old_threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        new, old = _copies(m)
+        for f in make_sequence(m.scene, "V", n_frames=3, seed=6):
+            gb = copy.copy(make_gbuffer(m.scene, f, 2))
+            if st_region is None:
+                new.render(f, gb)                                  # the first frame: the memo exists after it
+                old.render(f, gb)
+                st_region = new._fast_static().face_region
+                continue
+            gb.face, gb.region, gb.hit = gb.face.clone(), gb.region.clone(), gb.hit.clone()
+            gb.bary = gb.bary.clone()
+            q, C = gb.face.shape[0], native_vframe.PCHUNK
+            ends = sorted({0, M - 1, *(M * t // threads for t in range(1, threads)),
+                           *(M * t // threads - 1 for t in range(1, threads))})
+            # the samples at the ends of (1)'s ranges (its chunks, its threads' halves), each on one of them
+            at = sorted({k for k in (0, C - 1, C, 2 * C - 1, q // 2 - 1, q // 2, q - 1) if 0 <= k < q})
+            for j, k in enumerate(at):
+                fe = ends[j % len(ends)]
+                gb.hit[k] = True
+                gb.bary[k] = torch.tensor([0.25, 0.5])
+                gb.face[k] = fe
+                gb.region[k] = st_region[fe]
+            new._vmemo[0].fill_(float("nan"))                     # B
+            new._vmemo[3].fill_(float("nan"))                     # the face table
+            stamp = new._vstamp
+            got = new.render(f, gb)
+            assert new._vstamp == stamp + 1, "the C loop did not run"
+            assert torch.equal(got, old.render(f, gb))
+    finally:
+        torch.set_num_threads(old_threads)
