@@ -1240,18 +1240,24 @@ TILE = 2048
 _LOADED: list = []      # the library once loaded (`_lib`)
 
 
-def _lib():
-    # PRTBENCH_COMPILE read at each call, so a None met while compilation was off (a test's monkeypatch)
-    # is not kept for the process; the library remembered once loaded (`native.load`'s own cache costs
-    # ~50 us a frame with the caches cold: its key tuples and the flags' queries)
+def load_remembered(loaded: list, name: str, source: str, signatures: dict, flags) -> ctypes.CDLL | None:
+    """`native.load`(name, source, signatures, extra_flags=flags()) remembered in ``loaded`` once it loaded,
+    or None. PRTBENCH_COMPILE is read at each call, so a None met while compilation was off (a test's
+    monkeypatch) is not kept for the process; a loaded library is one look-up afterwards (`native.load`'s
+    own cache costs ~50 us a frame with the caches cold: its key tuples and the flags' queries);
+    ``native.cache_clear`` does not forget it (the same file)."""
     if not compile_enabled():
         return None
-    if _LOADED:
-        return _LOADED[0]
-    lib = native.load("inout_sample", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    if loaded:
+        return loaded[0]
+    lib = native.load(name, source, signatures, extra_flags=flags())
     if lib is not None:
-        _LOADED.append(lib)
+        loaded.append(lib)
     return lib
+
+
+def _lib():
+    return load_remembered(_LOADED, "inout_sample", _SOURCE, _SIGNATURES, _flags)
 
 
 # AVX-512 where torch found the CPU to have it (the dot products 16 lanes wide, `dotf`, `dot4f`)

@@ -54,7 +54,6 @@ import torch
 from torch import Tensor
 
 from methods.core import native
-from methods.core.fused import compile_enabled
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -379,18 +378,11 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 
 
 def _lib():
-    """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call).
-    Remembered once loaded: `native.load`'s own cache costs ~50 µs a frame with the caches cold (its key
-    tuples, the signatures' list), here one look-up; ``native.cache_clear`` does not forget it (the
-    same file)."""
-    if not compile_enabled():
-        return None
-    if _LOADED:
-        return _LOADED[0]
-    lib = native.load("inout_vframe", _SOURCE, _SIGNATURES, extra_flags=_flags())
-    if lib is not None:
-        _LOADED.append(lib)
-    return lib
+    """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
+    remembered once loaded (`native_sample.load_remembered`)."""
+    from methods.inout.native_sample import load_remembered
+
+    return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
 
 
 def _flags() -> tuple[str, ...]:
