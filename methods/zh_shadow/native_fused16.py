@@ -29,11 +29,6 @@ the scalar pass, the tests' oracle).
 """
 from __future__ import annotations
 
-import ctypes
-
-import torch
-from torch import Tensor
-
 from methods.core import native
 from methods.zh_shadow import native as zn
 
