@@ -14,10 +14,7 @@ Prints min / p25 / median ms.
 from __future__ import annotations
 
 import argparse
-import gc
 import json
-import statistics
-import time
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -30,30 +27,12 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     import torch
 
-    from benchmarks.common import apply_ab_options, precomputed, setup
-    from methods.zh_shadow import native as zn
-    from methods.zh_shadow.method import ZHShadow
+    from benchmarks.common import apply_ab_options
+    from benchmarks.zh_fused_ab import alternate, fused_call, report
 
     apply_ab_options(a)
-    scene, _, _, _ = setup("creature", "bench", kind=a.kind, n_frames=1)
-    m, _ = precomputed(ZHShadow, scene, {})
-    _, frames, gbs, _ = setup(scene, "bench", kind=a.kind, n_frames=3, seed=0)
-    cap: list = []
-    orig = zn.fused_pixels
-
-    def spy(*args, **kw):
-        cap.append((args, kw))
-        return orig(*args, **kw)
-
-    zn.fused_pixels = spy
-    mm = m.with_render_config()
-    for f, g in zip(frames, gbs):
-        mm.render(f, g)
-    zn.fused_pixels = orig
-    if not cap:
-        raise SystemExit("no fused pass ran")
-    args, kw = cap[-1]
-    args, kw = list(args), {k: v for k, v in kw.items() if k not in ("fma", "vector")}
+    orig, args, kw = fused_call(a.kind, {})
+    kw = {k: v for k, v in kw.items() if k not in ("fma", "vector")}
     plane_only = list(args)
     plane_only[5] = args[4].clone()   # hit = the plane mask: no object samples
     same = {}
@@ -74,25 +53,10 @@ def main(argv: list[str] | None = None) -> dict:
         "plane scalar": lambda: orig(*plane_only, **kw, fma=True, vector=False),
         "plane vector": lambda: orig(*plane_only, **kw, fma=True, vector=True),
     }
-    ts: dict = {k: [] for k in cases}
-    gc.disable()
-    try:
-        names = list(cases)
-        for it in range(a.repeat):
-            for k in (names if it % 2 == 0 else names[::-1]):
-                flush()
-                c = time.process_time()
-                cases[k]()
-                ts[k].append(time.process_time() - c)
-    finally:
-        gc.enable()
+    ts = alternate(cases, a.repeat, flush)
     out = {"kind": a.kind, "threads": a.threads, "object samples": int((~args[4]).sum()), "bit-equal": same}
     print(json.dumps(out))
-    for k, v in ts.items():
-        v = sorted(v)
-        out[k] = (v[0] * 1e3, v[len(v) // 4] * 1e3, statistics.median(v) * 1e3)
-        print(f"{k:20s} min {out[k][0]:.3f}  p25 {out[k][1]:.3f}  median {out[k][2]:.3f} ms")
-    return out
+    return report(ts, out)
 
 
 if __name__ == "__main__":

@@ -29,31 +29,12 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     import torch
 
-    from benchmarks.common import apply_ab_options, precomputed, setup
+    from benchmarks.common import apply_ab_options
     from methods.zh_shadow import native as zn
-    from methods.zh_shadow.method import ZHShadow
 
     apply_ab_options(a)
-    scene, _, _, _ = setup("creature", "bench", kind=a.kind, n_frames=1)
-    m, _ = precomputed(ZHShadow, scene, json.loads(a.config))
-    _, frames, gbs, _ = setup(scene, "bench", kind=a.kind, n_frames=3, seed=0)
-    cap: list = []
-    orig = zn.fused_pixels
-
-    def spy(*args, **kw):
-        cap.append((args, kw))
-        return orig(*args, **kw)
-
-    zn.fused_pixels = spy
-    mm = m.with_render_config()
-    mm.fma_terms = False
-    for f, g in zip(frames, gbs):
-        mm.render(f, g)
-    zn.fused_pixels = orig
-    if not cap:
-        raise SystemExit("no fused pass ran")
-    args, kw = cap[-1]
-    args, kw = list(args), {k: v for k, v in kw.items() if k != "fma"}
+    orig, args, kw = fused_call(a.kind, json.loads(a.config), fma_terms=False)
+    kw = {k: v for k, v in kw.items() if k != "fma"}
     plane_only = list(args)
     plane_only[5] = args[4].clone()                    # hit = the plane mask: no object samples
     l1 = list(args)
@@ -80,21 +61,71 @@ def main(argv: list[str] | None = None) -> dict:
     p0, p1 = pm(False), pm(True)
     zn.VECTOR_PLANE_MASK = True
     same_mask = torch.equal(p0[0], p1[0]) and p0[1:] == p1[1:]
+    try:
+        ts = alternate(cases, a.repeat)
+    finally:
+        zn.VECTOR_PLANE_MASK = True
+    out = {"kind": a.kind, "object samples": int((~args[4]).sum()), "fma max abs diff": diff,
+           "image max": float(x[0].abs().max()), "plane_mask equal": same_mask}
+    print(json.dumps(out))
+    return report(ts, out)
+
+
+def fused_call(kind: str, config: dict, **attrs) -> tuple:
+    """(`native.fused_pixels` itself, the positional arguments as a list, the keywords) of the last fused call
+    of three ``kind`` frames (bench creature, ``config``), the method's ``attrs`` set before they render;
+    SystemExit when no fused pass ran. Imports here: the caller applied its A/B options first."""
+    from benchmarks.common import precomputed, setup
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow.method import ZHShadow
+
+    scene, _, _, _ = setup("creature", "bench", kind=kind, n_frames=1)
+    m, _ = precomputed(ZHShadow, scene, config)
+    _, frames, gbs, _ = setup(scene, "bench", kind=kind, n_frames=3, seed=0)
+    cap: list = []
+    orig = zn.fused_pixels
+
+    def spy(*args, **kw):
+        cap.append((args, kw))
+        return orig(*args, **kw)
+
+    zn.fused_pixels = spy
+    try:
+        mm = m.with_render_config()
+        for k, v in attrs.items():
+            setattr(mm, k, v)
+        for f, g in zip(frames, gbs):
+            mm.render(f, g)
+    finally:
+        zn.fused_pixels = orig
+    if not cap:
+        raise SystemExit("no fused pass ran")
+    args, kw = cap[-1]
+    return orig, list(args), dict(kw)
+
+
+def alternate(cases: dict, repeat: int, before=None) -> dict:
+    """Process CPU seconds per call of each of ``cases`` (name -> callable), ``repeat`` rounds alternating the
+    order, ``before()`` (untimed) ahead of each call, Python's collector off (the loop's allocations would
+    otherwise trigger it)."""
     ts: dict = {k: [] for k in cases}
+    names = list(cases)
     gc.disable()
     try:
-        names = list(cases)
-        for it in range(a.repeat):
+        for it in range(repeat):
             for k in (names if it % 2 == 0 else names[::-1]):
+                if before is not None:
+                    before()
                 c = time.process_time()
                 cases[k]()
                 ts[k].append(time.process_time() - c)
     finally:
         gc.enable()
-        zn.VECTOR_PLANE_MASK = True
-    out = {"kind": a.kind, "object samples": int((~args[4]).sum()), "fma max abs diff": diff,
-           "image max": float(x[0].abs().max()), "plane_mask equal": same_mask}
-    print(json.dumps(out))
+    return ts
+
+
+def report(ts: dict, out: dict) -> dict:
+    """Print and add to ``out`` each case's (min, p25, median) ms."""
     for k, v in ts.items():
         v = sorted(v)
         out[k] = (v[0] * 1e3, v[len(v) // 4] * 1e3, statistics.median(v) * 1e3)
