@@ -54,6 +54,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.inout.native_sample import load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -380,8 +381,6 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 def _lib():
     """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
     remembered once loaded (`native_sample.load_remembered`)."""
-    from methods.inout.native_sample import load_remembered
-
     return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
 
 
