@@ -14,7 +14,11 @@ as the module has it (bit 256 must be set):
   the entries' X written), shade (each sample's B from its entry);
 - ``table``: ``rows_x`` reads four table rows that stay in L1 instead of the vertex's nodes' rows (the
   same calls, wrong values);
-- ``table+c``: and the vertex's c from L1 as well.
+- ``table+c``: and the vertex's c from L1 as well;
+- ``norows``: no ``rows_x`` call (the fill's book-keeping alone: node tags, the entries' X written);
+- ``front``: every sample dead after the front end (the G-buffer read along its layouts and ``frame_cells``).
+
+``--fast N`` runs the loop with those ``FAST`` bits (default the module's).
 
 Each frame's call is timed right after a fresh ``make_gbuffer`` (the perf suite's protocol; ``--warm``:
 without it), variants alternating per frame; medians over frames 1.. of the call's process CPU and of
@@ -26,6 +30,12 @@ Session 37 (ip37), chess bench V, 1 thread, cold, tiles of 2048 pixels, host at 
 products); table: fill ~3.5; table+c: fill ~3.3, call ~9.2. So the fill's table rows cost ~2 ms as L2 → L1
 traffic (1 KB a product), c ~0.2 ms (read once a tile, prefetched), and ~1.9 ms of the fill is its
 per-vertex book-keeping (the nodes' tags, the entries' X written).
+
+Session 41 (ip41), the same, FAST 4095, host at load 5-8 (ms): base call ~8.1-8.9 (resolve 2.7-2.9, group
+0.45, fill 3.6-4.2, shade 1.0); table: fill ~2.1-2.3; norows: fill ~1.2-1.4; front: resolve ~0.87. So of the
+resolve ~1.9 ms is its per-sample loop after the front end (face / region / live reads, the region check,
+the (face, cell) hash, the weights written), the fill's table rows' traffic ~1.9 ms, ``rows_x``'s arithmetic
+with rows in L1 ~0.9 ms, its book-keeping ~1.3 ms.
 """
 from __future__ import annotations
 
@@ -64,8 +74,13 @@ _TABLE = (_CALL, _CALL.replace("sh + nodes[b] * K3, sh + nodes[b + 1] * K3, sh +
 _TABLE_C = (_CALL, _TABLE[1].replace("cv, K,", "l1c, K,"))
 
 
+_NOROWS = (_CALL, ";")
+_FRONT = ("            if (!A->live[q] || !(z_[i] > 0.0f)) {\n                sent[qi] = -1;",
+          "            if (1) {\n                sent[qi] = -1;")
+
+
 def variants() -> dict[str, list[tuple[str, str]]]:
-    return {"base": [], "table": [_TABLE], "table+c": [_TABLE_C]}
+    return {"base": [], "table": [_TABLE], "table+c": [_TABLE_C], "norows": [_NOROWS], "front": [_FRONT]}
 
 
 def _build(name: str, reps: list[tuple[str, str]]):
@@ -85,6 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--size", default="bench")
     ap.add_argument("--frames", type=int, default=9)
     ap.add_argument("--tile", type=int, default=ns.TILE)
+    ap.add_argument("--fast", type=int, default=ns.FAST, help="the loop's FAST bits (default the module's)")
     ap.add_argument("--warm", action="store_true", help="no fresh G-buffer before each call")
     ap.add_argument("--variants", nargs="+", default=list(variants()))
     ap.add_argument("--precompute-code", default=None,
@@ -95,7 +111,7 @@ def main(argv: list[str] | None = None) -> dict:
         from reports.store import code_closure_fingerprint
 
         precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, a.precompute_code)
-    if not ns.FAST & 256:
+    if not a.fast & 256:
         raise SystemExit("native_sample.FAST has no bit 256 (the tiles)")
     torch.set_num_threads(1)
     table = variants()
@@ -109,9 +125,9 @@ def main(argv: list[str] | None = None) -> dict:
     P = {k: [] for k in names}
     stats = {}
     o = torch.zeros(4, dtype=torch.int64)
-    saved = (ns._lib, ns.TILE)
+    saved = (ns._lib, ns.TILE, ns.FAST)
     try:
-        ns.TILE = a.tile
+        ns.TILE, ns.FAST = a.tile, a.fast
         for i, (f, g) in enumerate(zip(frames, gbs)):
             cam = torch.tensor(f.camera.origin, dtype=torch.float32)
             for k in (names if i % 2 == 0 else names[::-1]):
@@ -129,8 +145,8 @@ def main(argv: list[str] | None = None) -> dict:
                 P[k].append([float(x) / 1e6 for x in o.tolist()])
                 stats[k] = s
     finally:
-        ns._lib, ns.TILE = saved
-    print(f"{a.scene} {a.size} V, 1 thread, {a.frames} frames{'' if a.warm else ' (cold)'}, FAST {ns.FAST}, "
+        ns._lib, ns.TILE, ns.FAST = saved
+    print(f"{a.scene} {a.size} V, 1 thread, {a.frames} frames{'' if a.warm else ' (cold)'}, FAST {a.fast}, "
           f"tiles of {a.tile} pixels")
     res = {}
     for k in names:

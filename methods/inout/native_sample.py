@@ -122,10 +122,32 @@ once for both: 23 % fewer row reads on chess) 0.90-0.94x (the pairs' node lists,
 Around the loop, each torch op of the frame runs with the loop's cold caches (~20-80 µs each): `shade` passes its
 per-slot arrays as one ctypes array and reads its stats with one ``tolist``, and `InOut._render_native` looks
 the library up once a frame.
+
+Session 41 (ip41; chess bench V, 1 thread, process CPU, each call after a fresh rasterisation, host at load 5-9):
+where the call's ~8.1-8.9 ms go (``python -m benchmarks.inout_tiles --scene chess --variants base table norows
+front``): resolve ~2.8 of which the front end ~0.87 (variant ``front``) and the per-sample loop after it ~1.9;
+group ~0.45; fill ~3.6-4.2 of which the table rows' traffic ~1.9 (``table``: 2.1-2.3), ``rows_x``'s arithmetic
+~0.9 and the book-keeping ~1.3 (``norows``); shade ~1.0. The (vertex, node) products per tile carry ~117 MB of
+table rows a frame through L1 (chess: slots K = 88 / 53 / 26: 61 / 77 / 13·10³ products), ~23 MB of them
+distinct per tile; between consecutive bench V frames (10° of orbit) only ~34 % of a frame's ~1.2·10⁵ distinct
+(vertex, node) pairs recur, so X kept across view frames would save at most a third of the fill. Tried and
+dropped (the same bits, the same (vertex, node) products; ``python -m benchmarks.inout_loop_ab --scene chess
+--frames 21 --cold --variants 4095 NEW 4095:``; A/A 0.95-1.03x at that load): a vertex's distinct nodes by one
+bit mask per table row (R <= 64; the nodes in row order, each entry's slots by popcount, no tags) 0.95-0.98x;
+with it the tile's vertices ordered along a Morton curve of their first cell (consecutive vertices reading the
+same rows) 0.98-1.00x; the resolve's look-up without the branch on the last key (one probe a sample, the entry
+written unconditionally, every entry needing its 3 vertices) 1.02-1.04x; with it the samples' keys, liveness
+and region check 8 at a time (AVX-512 gather of the faces' regions) 1.01-1.02x. The per-sample loop after the
+front end does not follow its branches or its arithmetic: ablations (region check off -0.3 ms, weights not
+written -0.2 ms, one face for every sample -0.55 ms) point at its reads of the G-buffer's face / region / live
+columns and its per-tile working set (table rows ~0.6-0.8 MB, c ~0.2 MB, entries' X up to 0.4 MB, weights
+0.13 MB against a 1 MB L2). Not tried: the fill node-major within a tile (each table row read once a tile,
+the ~6 vertices that need it from L2: c rows instead of table rows per product, plus a transposition).
 """
 from __future__ import annotations
 
 import ctypes
+import os
 
 import torch
 from torch import Tensor
@@ -1240,12 +1262,28 @@ TILE = 2048
 _LOADED: list = []      # the library once loaded (`_lib`)
 
 
+_ENV_KEY = b"PRTBENCH_COMPILE"
+
+
+def compile_unset() -> bool:
+    """True when PRTBENCH_COMPILE is not in the environment at all — then ``fused.compile_enabled`` is True —
+    by one look-up in ``os.environ``'s own mapping (POSIX: bytes keys); False (ask `compile_enabled`) when it
+    is set to anything or the mapping is not that dict. ``os.environ.get`` runs ~5 Python frames (the key
+    encoded, the value decoded): ~30 us with the caches the suite's idle and rasterisation leave, ~2 us
+    this way (session 41, `load_remembered`'s per-frame check)."""
+    d = getattr(os.environ, "_data", None)
+    return os.name == "posix" and type(d) is dict and _ENV_KEY not in d
+
+
 def load_remembered(loaded: list, name: str, source: str, signatures: dict, flags) -> ctypes.CDLL | None:
     """`native.load`(name, source, signatures, extra_flags=flags()) remembered in ``loaded`` once it loaded,
     or None. PRTBENCH_COMPILE is read at each call, so a None met while compilation was off (a test's
     monkeypatch) is not kept for the process; a loaded library is one look-up afterwards (`native.load`'s
     own cache costs ~50 us a frame with the caches cold: its key tuples and the flags' queries);
-    ``native.cache_clear`` does not forget it (the same file)."""
+    ``native.cache_clear`` does not forget it (the same file). When the variable is not set at all
+    (`compile_unset`) a loaded library is returned without `compile_enabled`'s read of it (the same answer)."""
+    if loaded and compile_unset():
+        return loaded[0]
     if not compile_enabled():
         return None
     if loaded:

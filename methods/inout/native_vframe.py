@@ -54,6 +54,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.inout.native_sample import load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -380,8 +381,6 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 def _lib():
     """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
     remembered once loaded (`native_sample.load_remembered`)."""
-    from methods.inout.native_sample import load_remembered
-
     return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
 
 
@@ -416,7 +415,7 @@ class Bound:
     static arrays, the camera as a tensor, the barycentrics' unbind, the stats tensor and the image's
     view cost a creature bench frame ~0.25 ms of serial Python (1 thread); here ~a tenth of that."""
 
-    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail")
+    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail", "cam")
 
     def fits(self, st, cs: list[Tensor], mem, lib) -> bool:
         """True when bound to these very objects (the tensors' identity: their storage is not replaced
@@ -427,14 +426,17 @@ class Bound:
     def frame(self, face: Tensor, bary: Tensor, region: Tensor, hit: Tensor, n: int, S2: int, origin,
               stamp: int, shape: tuple[int, ...] | None = None) -> tuple[Tensor, int, int] | None:
         """`vertex_frame` with the camera position ``origin`` (3 numbers, taken as float32) and the
-        image allocated as ``shape`` (default (n, 3); its elements n·3)."""
+        image allocated as ``shape`` (default (n, 3); its elements n·3).
+
+        Session 41 (the same checks, fewer cold code paths: each distinct torch or ctypes operation costs
+        ~10-50 us right after the suite's idle and rasterisation, whatever it does): dtypes compared by
+        identity, devices by ``is_cpu``, the camera written into a kept ctypes array."""
         q = n * S2
-        if (face.dtype != torch.int64 or region.dtype != torch.int64 or hit.dtype != torch.bool
-                or bary.dtype != torch.float32 or face.shape != (q,) or region.shape != (q,) or hit.shape != (q,)
+        if (face.dtype is not torch.int64 or region.dtype is not torch.int64 or hit.dtype is not torch.bool
+                or bary.dtype is not torch.float32 or face.shape != (q,) or region.shape != (q,) or hit.shape != (q,)
                 or bary.shape != (q, 2) or not 0 < stamp < STAMP_MAX or len(origin) != 3
-                or face.device.type != "cpu" or region.device.type != "cpu" or hit.device.type != "cpu"
-                or bary.device.type != "cpu" or not (face.is_contiguous() and region.is_contiguous()
-                                                     and hit.is_contiguous())):
+                or not (face.is_cpu and region.is_cpu and hit.is_cpu and bary.is_cpu)
+                or not (face.is_contiguous() and region.is_contiguous() and hit.is_contiguous())):
             return None
         if bary.stride() == (1, q):               # the G-buffer's column-major barycentrics: its columns
             bu = bary.data_ptr()
@@ -443,8 +445,10 @@ class Bound:
             u, v = bary.unbind(-1)
             u, v = u.contiguous(), v.contiguous()
             bu, bv = u.data_ptr(), v.data_ptr()
-        cam = (ctypes.c_float * 3)(*origin)       # float32 as torch.tensor(origin, dtype=torch.float32)
-        out = torch.empty(shape if shape is not None else (n, 3), dtype=torch.float32)
+        cam = self.cam
+        cam[0], cam[1], cam[2] = origin           # float32 as torch.tensor(origin, dtype=torch.float32)
+        shape = shape if shape is not None else (n, 3)
+        out = torch.empty(shape, dtype=torch.float32)
         if out.numel() != 3 * n:
             return None
         nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
@@ -493,6 +497,7 @@ def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> 
     b.meta = (ctypes.c_int64 * len(vals))(*vals)     # kept alive with the bound call
     mp = ctypes.addressof(b.meta)
     b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
+    b.cam = (ctypes.c_float * 3)()                    # the frame's camera position (`Bound.frame`)
     b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
     b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
               fst.data_ptr(), vst.data_ptr(), FB.data_ptr())

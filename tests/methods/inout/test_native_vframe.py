@@ -185,6 +185,39 @@ def test_bound_call_follows_its_arrays(precomputed):
     assert new._vstamp == stamp + 1
 
 
+def test_bound_frame_checks_each_argument(precomputed):
+    """`native_vframe.Bound.frame` (session 41: dtypes compared by identity, devices by ``is_cpu``, the camera
+    written into a kept ctypes array) hands back None for each G-buffer array of another dtype, shape or
+    device and for non-contiguous ones; and the kept camera array takes each frame's position: two frames
+    of one bound call with different cameras are each the split path's bits."""
+    m = precomputed("chess")
+    new, old = _copies(m)
+    frames = make_sequence(m.scene, "V", n_frames=2, seed=4)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    assert torch.equal(new.render(frames[0], gbs[0]), old.render(frames[0], gbs[0]))
+    b, g = new._vcall, gbs[1]
+    n, S2 = g.height * g.width, g.spp_side ** 2
+    args = dict(face=g.face, bary=g.bary, region=g.region, hit=g.hit)
+
+    def call(**kw):
+        a = {**args, **kw}
+        new._vstamp += 1
+        return b.frame(a["face"], a["bary"], a["region"], a["hit"], n, S2, frames[1].camera.origin, new._vstamp)
+
+    assert call() is not None
+    bad = {"face": [g.face.int(), g.face[:-1], g.face.to("meta"), torch.stack([g.face, g.face], 1)[:, 0]],
+           "region": [g.region.int(), g.region[:-1], g.region.to("meta"), torch.stack([g.region, g.region], 1)[:, 0]],
+           "hit": [g.hit.to(torch.uint8), g.hit[:-1], g.hit.to("meta"), torch.stack([g.hit, g.hit], 1)[:, 0]],
+           "bary": [g.bary.double(), g.bary[:-1], g.bary.to("meta")]}
+    for name, values in bad.items():
+        for v in values:
+            assert call(**{name: v}) is None, (name, v.dtype, tuple(v.shape), v.device)
+    # the kept camera array: each frame's own position (the previous frame's would give other pixels)
+    for f, gb in zip(frames[::-1], gbs[::-1]):
+        assert torch.equal(new.render(f, gb), old.render(f, gb))
+    assert new._vcall is b
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
     """``FAST`` bit 2 (the face table and phase (4) from its rows, channels as lanes), bit 4 (phase (1)
@@ -255,3 +288,22 @@ def test_face_table_rows_are_written_each_frame(precomputed, monkeypatch, thread
             assert torch.equal(got, old.render(f, gb))
     finally:
         torch.set_num_threads(old_threads)
+
+
+@pytest.mark.parametrize("off", ["0", "off", " no "])
+def test_loaded_libraries_follow_the_off_switch(monkeypatch, off):
+    """`native_sample.load_remembered` returns a loaded library without ``compile_enabled``'s read of
+    PRTBENCH_COMPILE only while the variable is not set at all (`native_sample.compile_unset`, session 41):
+    set to an off value after both loops' libraries loaded, both are None; set to 1 or unset again, both load."""
+    from methods.inout import native_sample
+
+    monkeypatch.delenv("PRTBENCH_COMPILE", raising=False)
+    assert native_sample.compile_unset()
+    assert native_vframe._lib() is not None and native_sample._lib() is not None
+    monkeypatch.setenv("PRTBENCH_COMPILE", off)
+    assert not native_sample.compile_unset()
+    assert native_vframe._lib() is None and native_sample._lib() is None
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    assert native_vframe._lib() is not None and native_sample._lib() is not None
+    monkeypatch.delenv("PRTBENCH_COMPILE")
+    assert native_sample.compile_unset() and native_vframe._lib() is not None
