@@ -53,6 +53,9 @@ def main(argv=None):
     frame_args(ap, scene="chess", config='{"light_res_1":4}', frames=9, kinds=("V", "VB"))
     ap.add_argument("--precompute-of", default="/work/wt/base41")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--flags-ab", action="store_true",
+                    help="each kind twice, alternating frame by frame: 'off' = session 40's BRDF stage "
+                         "(method.FIT_BATCH and native_fit.FAST_FIT off) and 'on' (both on)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     if a.precompute_of:
@@ -65,10 +68,18 @@ def main(argv=None):
     m, _ = precomputed(PTT, scene, json.loads(a.config))
     m = m.with_bounces(0)
     m._fast_static()
+    import methods.ptt.method as _mm
+
+    def flags(on):
+        _mm.FIT_BATCH = _nf.FAST_FIT = on
+
     seqs = {}
-    for kind in a.kinds:
-        _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
+    kinds = [f"{k} {w}" for k in a.kinds for w in ("off", "on")] if a.flags_ab else list(a.kinds)
+    for kind in kinds:
+        _, frames, gbs, _ = setup(scene, a.size, kind=kind.split()[0], n_frames=a.frames, seed=1, spp_side=a.spp_side)
         r = m.with_shading("vertex")
+        if a.flags_ab:
+            flags(kind.endswith("on"))
         r.render(frames[0], gbs[0])
         seqs[kind] = (r, frames, gbs)
     wrap(PTT, "coords", "coords")
@@ -84,11 +95,13 @@ def main(argv=None):
 
     wrap(torch, "set_num_threads", "set_num_threads")
     buf = torch.zeros(16 << 20)
-    per = {k: collections.defaultdict(list) for k in a.kinds}
+    per = {k: collections.defaultdict(list) for k in kinds}
     for rnd in range(a.rounds):
         for i in range(1, a.frames):
-            for kind in a.kinds:
+            for kind in (kinds if (i + rnd) % 2 == 0 else kinds[::-1]):
                 r, frames, gbs = seqs[kind]
+                if a.flags_ab:
+                    flags(kind.endswith("on"))
                 if i == 1:
                     r._reset_cache()
                     r.render(frames[0], gbs[0])
@@ -101,7 +114,7 @@ def main(argv=None):
                 per[kind]["frame"].append((w, c))
                 for k, v in T.items():
                     per[kind][k].append(tuple(v))
-    for kind in a.kinds:
+    for kind in kinds:
         n = len(per[kind]["frame"])
         print(f"\n{a.scene} {kind}, {a.threads} thread(s), median of {n} frames (ms wall / cpu):")
         for k, v in per[kind].items():

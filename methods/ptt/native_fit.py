@@ -28,6 +28,7 @@ import ctypes
 import functools
 import math
 import os
+import weakref
 
 import torch
 from torch import Tensor
@@ -350,12 +351,16 @@ _FAMILY_SLOT = {"phong": 1, "blinnphong": 2, "cooktorrance": 3}
 _POW_SPECIAL = frozenset({0.0, 0.5, -0.5, 1.0, -1.0, 2.0, -2.0, 3.0, -3.0})
 
 
-def _family_table(basis, grid, A: Tensor, g_d: Tensor, fams: set) -> tuple | None:
-    """The C arrays of `fit_materials` for the families ``fams`` (kept on the basis for its A: the groups'
+# `_family_table`'s arrays per basis (beside it, not on it: a basis stays picklable).
+_TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _family_table(basis, grid, A: Tensor, g_d: Tensor, fams: set) -> dict | None:
+    """The C arrays of `fit_materials` for the families ``fams`` (kept per basis for its A: the groups'
     addresses, their sizes, g_d's column), or None when a group is not float64 contiguous."""
-    tab = basis.__dict__.get("_native_fit")
+    tab = _TABLES.get(basis)
     if tab is None or tab["A"] is not A:
-        tab = basis._native_fit = {"A": A, "fams": set(), "keep": [], "gd": g_d[:, 0].contiguous(),
+        tab = _TABLES[basis] = {"A": A, "fams": set(), "keep": [], "gd": g_d[:, 0].contiguous(),
                                    "x1": (ctypes.c_int64 * 4)(), "x2": (ctypes.c_int64 * 4)(),
                                    "A1": (ctypes.c_int64 * 4)(), "A2": (ctypes.c_int64 * 4)(),
                                    "n": (ctypes.c_int64 * 4)()}
