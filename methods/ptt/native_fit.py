@@ -207,13 +207,18 @@ _VEC = {"AVX512": (8, "Sleef_powd8_u10"), "AVX2": (4, "Sleef_powd4_u10")}
 _VML_MODE = 0x2 | 0x140000 | 0x100
 
 
-@functools.lru_cache(maxsize=None)
 def _library():
     """(the C library, vector width, Sleef pow, VML exp, BLAS dgemv, BLAS sgemm, MKL's
-    ``MKL_Set_Num_Threads_Local`` — addresses or None) or None (no compiler / build failed)."""
+    ``MKL_Set_Num_Threads_Local`` — addresses or None) or None (no compiler, the build failed,
+    ``PRTBENCH_COMPILE=0``: asked at each call, as ``methods.ptt.native``'s ``_kernel``)."""
     lib = native.load("ptt_fit", _SOURCE, _SIGNATURES, extra_flags=_EXTRA_FLAGS)
-    if lib is None:
-        return None
+    return None if lib is None else (lib, *_entries())
+
+
+@functools.lru_cache(maxsize=None)
+def _entries() -> tuple:
+    """(vector width, Sleef pow, VML exp, BLAS dgemv, BLAS sgemm, MKL_Set_Num_Threads_Local) from
+    libtorch_cpu, looked up once."""
     w, vpow, vexp, gemv, sgemm, local = 0, None, None, None, None, None
     try:
         tl = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so"))
@@ -232,7 +237,7 @@ def _library():
         sgemm = ctypes.cast(tl.sgemm_, ctypes.c_void_p).value
     if tl is not None and torch.backends.mkl.is_available() and hasattr(tl, "MKL_Set_Num_Threads_Local"):
         local = ctypes.cast(tl.MKL_Set_Num_Threads_Local, ctypes.c_void_p).value
-    return lib, w, vpow, vexp, gemv, sgemm, local
+    return w, vpow, vexp, gemv, sgemm, local
 
 
 def available() -> bool:

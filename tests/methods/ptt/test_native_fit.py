@@ -174,3 +174,13 @@ def test_vb_frames_with_the_batched_fit_are_the_same_images(monkeypatch):
             assert calls["fit"] == len(frames) - 1 and calls["ar"] >= len(frames) - 1
     for (a, ha), (b, hb) in zip(out[True], out[False]):
         assert torch.equal(ha, hb) and torch.equal(a, b)
+
+
+def test_the_library_follows_the_compile_switch_at_each_call(monkeypatch):
+    """Asked for while PRTBENCH_COMPILE=0 the calls decline (the torch paths run); back on, they run:
+    no None kept for the process (``tests/methods/test_native_off_switch.py``)."""
+    H, la = torch.rand(3, 4, 3), torch.rand(4, 32, 4)
+    monkeypatch.setenv("PRTBENCH_COMPILE", "0")
+    assert nf._library() is None and not nf.available() and nf.ar_table(H, la) is None
+    monkeypatch.setenv("PRTBENCH_COMPILE", "1")
+    assert nf._library() is not None and nf.available() and nf.ar_table(H, la) is not None
