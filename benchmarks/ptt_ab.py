@@ -14,7 +14,9 @@ and whose BRDF basis, when it is the default ``LobeBasis``, is the base's class 
 run-time fit of changed materials is the base's code too).
 Unless ``--own-precompute``, the
 precomputation is looked up under the base's code fingerprint (valid while this checkout's edits
-leave the precompute alone; it saves recomputing it after every run-time edit). Frames alternate
+leave the precompute alone; it saves recomputing it after every run-time edit). Before each timed frame
+``--flush-mb`` MB are read and written (default 64: the harness's G-buffer and scoring between timed
+frames leave the caches cold; session 41) and ``PRTBENCH_SETTLE`` idled. Frames alternate
 which version goes first; frame 0 of each sequence fills the caches and is not
 counted. Prints per kind the median wall and process-CPU ms of both (CPU time is the less
 load-sensitive: compare CPU ratios at 1 thread), the ratio base / new, the largest |base − new|
@@ -81,6 +83,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--base", required=True, help="the other checkout (e.g. a git worktree of main)")
     ap.add_argument("--bounces", type=int, default=0)
     ap.add_argument("--no-limits", action="store_true", help="skip the bandwidth / peak measurement")
+    ap.add_argument("--flush-mb", type=int, default=64,
+                    help="MB read and written before each timed frame (the harness's G-buffer and scoring between "
+                         "frames evict the caches; session 41; 0: none, as before)")
     ap.add_argument("--own-precompute", action="store_true",
                     help="key the precompute cache on this checkout's code (default: on the base's, see below)")
     ap.add_argument("--precompute-code", default=None,
@@ -103,6 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
     m = m.with_bounces(a.bounces)
     m._fast_static()
     out = {"scene": a.scene, "threads": a.threads, "bounces": a.bounces, "base": a.base, "kinds": {}}
+    flush = torch.zeros(a.flush_mb << 18) if a.flush_mb > 0 else None
     for kind in a.kinds:
         _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=1, spp_side=a.spp_side)
         new, old = copy.copy(m), as_class(m, Base, base_basis(m, a.base))
@@ -117,6 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
                 # the base's frames with the base's modules also for its lazy imports (`checkout_modules`:
                 # its fast.py imports native at call time; without the swap it ran this checkout's)
                 with checkout_modules(a.base) if which == "old" else contextlib.nullcontext():
+                    if flush is not None:
+                        flush.add_(1.0)
                     settle()
                     t0, c0 = time.perf_counter(), time.process_time()
                     imgs[which] = meth.render(f, g)

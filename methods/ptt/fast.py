@@ -323,7 +323,8 @@ def view_table_rows(W_tab: Tensor, K: int) -> Tensor:
 
 def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
                   W_rows: Tensor | None = None, *, nt: int = 1,
-                  out: tuple[Tensor, Tensor | None] | None = None) -> tuple[Tensor, Tensor | None]:
+                  out: tuple[Tensor, Tensor | None] | None = None,
+                  one_thread: bool = False) -> tuple[Tensor, Tensor | None]:
     """Products of the BRDF coordinates H (R, P, 3) cached for the view stage:
     W_r (R·T², K·3) rows (r, texel) of Σ_p H(r, p, c) W(p, ·, k) (W_tab (P·K, T, T)), and
     a_r (R·n_θ, L·3) rows (r, θ node) of Σ_p H(r, p, c) a_k^p(θ) (lobe_a (P, n_θ, L)) or None.
@@ -341,7 +342,23 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
     With the native loop and NATIVE_TABLES (session 40) W_r comes from ``native.region_tables``: its rows
     over ``nt`` threads, written into ``out``'s W_r (the previous tables, when it fits) instead of fresh
     pages; the same bits. a_r stays the einsum (MKL's bits, which change with the shapes: fused
-    multiply-adds for some, not for others — not reproduced in C)."""
+    multiply-adds for some, not for others — not reproduced in C).
+
+    Session 41 (pt41): a_r by ``native_fit.ar_table`` — MKL's sgemm called with the einsum's own arguments
+    (the same bits at every shape, tested) and the output laid out in the same C call, MKL on one thread by
+    ``MKL_Set_Num_Threads_Local`` — instead of the einsum (its permutes, bmm dispatch and reshape copy:
+    0.17–0.19 ms of a chess bench VB frame at 1 thread after the harness's G-buffer, 0.04–0.05 ms now).
+    one_thread: the caller runs at its own thread count (no ``torch_threads(1)`` around the call: two
+    ``set_num_threads`` calls fewer a VB frame); the paths other than the native W_r / a_r then run
+    under ``torch_threads(1)`` here (BRDF_STAGE_THREADS; the einsum's bits at any thread count)."""
+    if one_thread:
+        from methods.core.threads import torch_threads
+
+        Wr, ar = _region_tables_native(H, lobe_a, W_rows, nt, out) if USE_NATIVE else (None, None)
+        if Wr is not None and (ar is not None or lobe_a is None):
+            return Wr.view(-1, Wr.shape[-1]), ar
+        with torch_threads(1):
+            return region_tables(H, W_tab, K, lobe_a, W_rows, nt=nt, out=out)
     R, P, _ = H.shape
     if W_rows is None:
         W_rows = view_table_rows(W_tab, K)
@@ -365,10 +382,30 @@ def region_tables(H: Tensor, W_tab: Tensor, K: int, lobe_a: Tensor | None,
                 torch.mul(W_rows[p], Hl[p], out=tmp)
                 Wr.add_(tmp)
     ar = None
-    if lobe_a is not None:
+    if lobe_a is not None and USE_NATIVE:  # one C call: MKL's sgemm with the einsum's arguments, the same bits
+        from methods.ptt import native_fit
+
+        ar = native_fit.ar_table(H, lobe_a, None if out is None else out[1])
+    if lobe_a is not None and ar is None:
         n, L = lobe_a.shape[1:]
         ar = torch.einsum("rpc,pnl->rnlc", H, lobe_a).reshape(R * n, L * 3)
     return Wr.view(R * T2, K * 3), ar
+
+
+def _region_tables_native(H: Tensor, lobe_a: Tensor | None, W_rows: Tensor | None, nt: int,
+                          out: tuple[Tensor, Tensor | None] | None) -> tuple[Tensor | None, Tensor | None]:
+    """`region_tables`' native W_r (``native.region_tables``, ``nt`` threads) and a_r
+    (``native_fit.ar_table``), each None where its loop does not run (or, W_r, without ``W_rows``)."""
+    Wr = ar = None
+    if W_rows is not None and NATIVE_TABLES:
+        from methods.ptt import native
+
+        Wr = native.region_tables(W_rows, H, nt, None if out is None else out[0])
+    if Wr is not None and lobe_a is not None:
+        from methods.ptt import native_fit
+
+        ar = native_fit.ar_table(H, lobe_a, None if out is None else out[1])
+    return Wr, ar
 
 
 def _channel_weights(w: Tensor) -> Tensor:

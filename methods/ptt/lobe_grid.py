@@ -132,6 +132,12 @@ class GridLobes:
         the same bits. as_list: the (P,) result as Python floats (the last combination of Cook-Torrance's
         two products in Python's float64 arithmetic: the same roundings as the tensor ops)."""
         g = self._groups(fam, A)
+        if as_list:  # one C call (``native_fit``: the same lobe values, the sums to float64 round-off)
+            from methods.ptt import native_fit
+
+            out = native_fit.project(fam, g, params)
+            if out is not None:
+                return out
         if fam == "phong":
             c, Au = g
             s, = params

@@ -164,6 +164,15 @@ FAST_COORDS = True
 TABLE_THREADS = True
 
 
+# FIT_BATCH (session 41, pt41): when a region's material object changed, every region's material fitted in
+# ONE C call (``native_fit.fit_materials``: coords_rows' float64 operations — the torch ops' own pow / exp /
+# dgemv, MKL set to one thread by ``MKL_Set_Num_Threads_Local`` instead of ``torch_threads(1)`` — and
+# float32 rounding, the materials dealt to the frame's threads; the same bits, tested) instead of the memo
+# look-ups and coords_rows per new material (a few torch ops each, run cold after the harness's G-buffer).
+# Off, or where it declines (a basis lobe's own material, another type, no compiler): the memoised path.
+FIT_BATCH = True
+
+
 def _check_int(name: str, v: Any, lo: int) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
@@ -478,6 +487,15 @@ class PTT(Method):
         last = getattr(self, "_coords_last", None)  # (absent on a method unpickled from before it existed)
         if FAST_COORDS and last is not None and all(a is b for a, b in zip(last[0], mats)):
             return last[1]  # the same material objects as the last call (a V / L frame): the same H
+        if FIT_BATCH and FAST_COORDS and hasattr(self.basis, "coords_rows"):
+            # every region's material in one C call (no memo look-ups: the same bits as a memoised H), MKL's
+            # products on one thread (BRDF_STAGE_THREADS), the materials dealt to the frame's threads
+            from methods.ptt import native_fit
+
+            H = native_fit.fit_materials(self.basis, mats, torch.get_num_threads())
+            if H is not None:
+                self._coords_last = (mats, H)
+                return H
         rows = []
         for m in mats:
             h = self._coords.get(m) if FAST_COORDS else None
@@ -560,10 +578,14 @@ class PTT(Method):
             if wr is None or wr[0] is not W_tab:
                 wr = self._f_wrows = (W_tab, _fast.view_table_rows(W_tab, self.factors.K))
             nt = torch.get_num_threads() if TABLE_THREADS else 1
-            with torch_threads(1):  # BRDF_STAGE_THREADS (the native tables take their own nt: TABLE_THREADS)
-                self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K,
-                                                   self.lobe_table.a if self.separate else None, wr[1], nt=nt,
-                                                   out=self._f_tabs)
+            lobe_a = self.lobe_table.a if self.separate else None
+            if FIT_BATCH:  # no threads switch: the native tables take nt, a_r one MKL thread, the rest 1 thread
+                self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K, lobe_a, wr[1], nt=nt, out=self._f_tabs,
+                                                   one_thread=True)
+            else:
+                with torch_threads(1):  # BRDF_STAGE_THREADS (the native tables take their own nt: TABLE_THREADS)
+                    self._f_tabs = _fast.region_tables(H, W_tab, self.factors.K, lobe_a, wr[1], nt=nt,
+                                                       out=self._f_tabs)
             self._f_H = H
             if self._f_light[1] is not None or self._f_light[2] is not None:
                 # E = E⁰ + the bounce terms, which depend on H (Sun eq. 4); without bounces E = E⁰
