@@ -268,6 +268,12 @@ NATIVE_ROTATE = True
 # build, which False restores and which stays its oracle): the torch build gathered three (Qg, n², n²)
 # copies of M's rows (~260 MB written on the creature bench) for its batched products.
 NATIVE_RELIGHT_BUILD = True
+# Session 41: a lighting change's light stage (`SHPRT._light_stage` on grey transfer: the rotation, e = t·l
+# and the face-corner table e[F]) by ONE C call (`native.Light`) instead of ~10 torch calls, each 20-170 µs
+# with the caches cold after the harness's idle (~0.65 ms of a creature VL, L or E frame at 1 thread, serial
+# at 2 threads); and the stage's "same lighting?" key from the rotation's values without a torch call. The
+# torch stage (False) is its oracle: float32 round-off (the GEMM sums over j in its own order).
+NATIVE_LIGHT = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -566,6 +572,22 @@ def lighting_major(X: Tensor) -> Tensor:
     return Xp.contiguous().permute(inv)
 
 
+def _is_lighting_major(X: Tensor) -> bool:
+    """Whether ``lighting_major(X)`` is ``X`` itself (its permuted view contiguous), from the sizes and
+    strides alone (no torch op: `_light_native` asks it every lighting change)."""
+    d = X.dim()
+    if d < 2:
+        return False
+    order = (d - 1, d - 2, *range(d - 2))
+    size, stride = X.shape, X.stride()
+    expect = 1
+    for k in reversed(order):
+        if size[k] != 1 and stride[k] != expect:
+            return False
+        expect *= size[k]
+    return True
+
+
 def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
     """Σ_i X[:, i, c] l[i, c] of transfer rows X (N, n², C) — C = 3 (RGB transfer, bounces ≥ 1) or
     1 (grey, broadcast over the channels) — and the lighting l (n², 3): Sloan 2002 §7's t·l and M l,
@@ -652,6 +674,7 @@ class SHPRT(Method):
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
         self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
+        self._nlight = None     # (t, F, `native.Light` bound to them: `_light_native`; static)
         self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
         self._relight = None    # (that state, the lighting-only frame cache: `_relight_build`)
         self._mat = None        # (device and the regions' materials, `_materials`' tensors)
@@ -757,8 +780,15 @@ class SHPRT(Method):
         product streams the transfer once (`apply_lighting`: a GEMV per channel), and the run-time layouts of
         `_render_fast` are derived here: the face-corner table e[F] (M, 9); l' stays channel-major
         (3, Vg, n²) as the GEMVs write it (``self._lg`` is a (Vg, n², 3) view of it)."""
-        key = (env.data, env.data._version, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
+        W = env.to_world
+        # the rotation's values as the key: ``tolist`` of the (3, 3) tensor itself (no torch op: ~0.09 ms of a
+        # frame with cold caches for the flatten's); another kind of to_world through torch as before
+        wk = W.tolist() if isinstance(W, Tensor) and W.dim() == 2 else torch.as_tensor(W).flatten().tolist()
+        key = (env.data, env.data._version, tuple(x for r in wk for x in r) if wk and isinstance(wk[0], list)
+               else tuple(wk))
         if self._key is not None and self._key[0] is key[0] and self._key[1:] == key[1:]:
+            return
+        if NATIVE_LIGHT and self._light_native(env, key):
             return
         l = self.lighting(env).to(self.t.device)
         self._light = l
@@ -774,6 +804,41 @@ class SHPRT(Method):
         self._ef = e3.view(-1).index_select(0, self._corner_index(e3.device)).view(-1, 9)
         self._key = key
         self.stats["light"] += 1
+
+    def _light_native(self, env, key: tuple) -> bool:
+        """`_light_stage`'s work by one C call (`NATIVE_LIGHT`, `native.Light`: the rotation of the cached
+        polar coefficients, e = t·l and the corner table), for grey transfer in its lighting-major layout
+        on the CPU with the map's rotation a (3, 3) float64 tensor; False (nothing changed) where it
+        does not run (the torch stage then, its oracle)."""
+        W = env.to_world
+        if (not NATIVE_ROTATE or not isinstance(W, Tensor) or W.dtype != torch.float64 or self.t.device.type != "cpu"
+                or self.t.shape[-1] != 1 or not _is_lighting_major(self.t) or not _is_lighting_major(self.M)):
+            return False
+        nl = self._nlight
+        if nl is None or nl[0] is not self.t or nl[1] is not self.F:
+            nl = self._nlight = (self.t, self.F, _native.Light(self.t, self.F, self.order))
+        if not nl[2].ok:
+            return False
+        data = env.data
+        if self._src is None or self._src[0] is not data or self._src[1] != data._version:
+            self._l_local = sh_native.project_latlong_polar(data, self.order)  # (n², 3) polar frame
+            self._src = (data, data._version)
+            self.stats["project"] += 1
+        res = nl[2](self._l_local, W)
+        if res is None:
+            return False
+        self.stats["rotate"] += 1
+        l, e3, ef = res
+        self._light = l
+        self._e = e3.T                                                            # (V, 3) view
+        if self._lg3 is not None:                          # its memory, for the next partial table
+            self._lg_spare = self._lg3
+        self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
+        self._lg_valid, self._lg_fresh = None, True
+        self._ef = ef
+        self._key = key
+        self.stats["light"] += 1
+        return True
 
     def _corner_index(self, device) -> Tensor:
         """(M·9,) int64 flat indices into the channel-major e (3, V) of each face's corners, corner-major

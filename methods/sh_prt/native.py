@@ -980,6 +980,67 @@ void sh_relight_build(int64_t Q, int64_t n, const int64_t *g, const int64_t *fac
         rb_range(nb * k / nt, nb * (k + 1) / nt, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg,
                  T, tv, ti, Mv, kd, ks, G, vcos, A, sel, S2, blk, pix);
 }
+
+/* Session 41: a lighting change's light stage in one call (`SHPRT._light_stage` on grey transfer, `light`):
+   R = W Qᵀ (3 × 3 row-major doubles), lw = `sh_rotate`(cl, R) (n², 3) doubles, lf = (float) lw,
+   e3[c, v] = Σ_j lf[j, c] t[j, v] (t (n², V) floats: the lighting-major grey transfer; j ascending),
+   ef[f, 3k + c] = e3[c, F[f, k]] (F (Mf, 3) int64, each in [0, V)). The vertices, then the faces,
+   split over nt threads (one OpenMP region). Its oracle is the torch stage (`rotate` after the 3 × 3
+   product, `apply_lighting`'s GEMM, the corner gather): float32 round-off (the GEMM's own order). */
+static void le_range(int64_t a, int64_t b, int64_t n2, int64_t V, const float *t, const float *lf, float *e3) {
+    int64_t v = a;
+    for (; v + 8 <= b; v += 8) {
+        v8 s0 = {0}, s1 = {0}, s2 = {0};
+        for (int64_t j = 0; j < n2; ++j) {
+            const v8 x = *(const v8 *)(t + j * V + v);
+            s0 += lf[3 * j] * x; s1 += lf[3 * j + 1] * x; s2 += lf[3 * j + 2] * x;
+        }
+        *(v8 *)(e3 + v) = s0; *(v8 *)(e3 + V + v) = s1; *(v8 *)(e3 + 2 * V + v) = s2;
+    }
+    for (; v < b; ++v) {
+        float s0 = 0, s1 = 0, s2 = 0;
+        for (int64_t j = 0; j < n2; ++j) {
+            const float x = t[j * V + v];
+            s0 += lf[3 * j] * x; s1 += lf[3 * j + 1] * x; s2 += lf[3 * j + 2] * x;
+        }
+        e3[v] = s0; e3[V + v] = s1; e3[2 * V + v] = s2;
+    }
+}
+
+static void lf_range(int64_t a, int64_t b, int64_t V, const int64_t *F, const float *e3, float *ef) {
+    for (int64_t f = a; f < b; ++f)
+        for (int64_t k = 0; k < 3; ++k) {
+            const int64_t x = F[3 * f + k];
+            ef[9 * f + 3 * k] = e3[x]; ef[9 * f + 3 * k + 1] = e3[V + x]; ef[9 * f + 3 * k + 2] = e3[2 * V + x];
+        }
+}
+
+void sh_light(int64_t n, int64_t K, const double *cl, const double *W, const double *QT, const double *D,
+              const double *P, double *lw, float *lf, int64_t V, const float *t, float *e3, int64_t Mf,
+              const int64_t *F, float *ef, int64_t nt) {
+    double R[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            R[i * 3 + j] = W[i * 3] * QT[j] + W[i * 3 + 1] * QT[3 + j] + W[i * 3 + 2] * QT[6 + j];
+    sh_rotate(n, K, 3, cl, R, D, P, lw);
+    const int64_t n2 = n * n;
+    for (int64_t i = 0; i < 3 * n2; ++i) lf[i] = (float)lw[i];
+    if (nt <= 1) {
+        le_range(0, V, n2, V, t, lf, e3);
+        lf_range(0, Mf, V, F, e3, ef);
+        return;
+    }
+    #pragma omp parallel num_threads(nt)
+    {
+        #pragma omp for schedule(static)
+        for (int64_t k = 0; k < nt; ++k)
+            le_range(k == 0 ? 0 : (V * k / nt) & ~(int64_t)7, k == nt - 1 ? V : (V * (k + 1) / nt) & ~(int64_t)7,
+                     n2, V, t, lf, e3);
+        #pragma omp for schedule(static)
+        for (int64_t k = 0; k < nt; ++k)
+            lf_range(Mf * k / nt, Mf * (k + 1) / nt, V, F, e3, ef);
+    }
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -987,6 +1048,7 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
                "sh_rotate": [_I, _I, _I, _P, _P, _P, _P, _P],
+               "sh_light": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _P, _I],
                "sh_view_rows": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
@@ -1435,3 +1497,59 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
                 kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
                 int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ok.data_ptr())
     return img if int(ok) else None
+
+
+MIN_LIGHT_PER_THREAD = 4096     # vertices below which one thread runs `light`'s passes
+
+
+class Light:
+    """A lighting change's light stage by one C call (session 41, `sh_light`): the world-frame lighting
+    l (n², 3) float32 — the polar-frame coefficients cl (n², 3) float64 rotated by W Qᵀ (W the map's
+    ``to_world``, Qᵀ `sh._LATLONG_QT`; `rotate`'s samples and sums) and rounded —, e = t·l channel-major
+    (3, V) and the face-corner table ef (M, 9) (ef[f, 3k + c] = e[c, F[f, k]]), where `SHPRT._light_stage`
+    ran ~10 torch calls (each 20-170 µs with the caches cold after the harness's idle and G-buffer:
+    ~0.65 ms of a creature VL frame, serial at any thread count). Bound once to the static arguments
+    (t, F, the order), checked here; `__call__` returns None where it does not run (the caller takes
+    the torch stage, its oracle: float32 round-off, the GEMM's own order of the sums over j)."""
+
+    def __init__(self, t: Tensor, F: Tensor, order: int) -> None:
+        self.ok = False
+        lib = _lib()
+        if lib is None or not 1 <= order <= 8 or t.device.type != "cpu" or F.device.type != "cpu":
+            return
+        n2 = order * order
+        if t.dim() != 3 or t.shape[1] != n2 or t.shape[2] != 1 or t.dtype != torch.float32:
+            return
+        V = int(t.shape[0])
+        tl = t.permute(2, 1, 0)                        # (1, n², V): the lighting-major memory of grey t
+        if not tl.is_contiguous() or F.dim() != 2 or F.shape[1] != 3 or F.dtype != torch.int64 or F.numel() == 0:
+            return
+        from methods.core.sh import _LATLONG_QT, _rotation_samples
+
+        D, P = _rotation_samples(order, "cpu")
+        if D.shape[0] > 256 or P.shape != (n2, D.shape[0]):
+            return
+        F = F.contiguous()
+        if int(F.min()) < 0 or int(F.max()) >= V:
+            raise IndexError("a face corner outside the vertices")
+        self.lib, self.t, self.F, self.order, self.n2, self.V, self.Mf = lib, t, F, order, n2, V, int(F.shape[0])
+        self.D, self.P = D.contiguous(), P.contiguous()
+        self.QT = _LATLONG_QT.to(torch.float64).contiguous()
+        self.lw = torch.empty(n2, 3, dtype=torch.float64)          # the rotated doubles (scratch)
+        self.ok = True
+
+    def __call__(self, cl: Tensor, W: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+        """(l (n², 3) float32, e (3, V) float32, ef (M, 9) float32) of the polar coefficients cl (n², 3)
+        float64 and the map's rotation W (3, 3) float64 (CPU, contiguous); None where it does not run."""
+        if (not self.ok or cl.dtype != torch.float64 or W.dtype != torch.float64 or tuple(cl.shape) != (self.n2, 3)
+                or tuple(W.shape) != (3, 3) or cl.device.type != "cpu" or W.device.type != "cpu"
+                or not cl.is_contiguous() or not W.is_contiguous()):
+            return None
+        lf = torch.empty(self.n2, 3)
+        e3 = torch.empty(3, self.V)
+        ef = torch.empty(self.Mf, 9)
+        nt = max(1, min(torch.get_num_threads(), self.V // MIN_LIGHT_PER_THREAD))
+        self.lib.sh_light(self.order, int(self.D.shape[0]), cl.data_ptr(), W.data_ptr(), self.QT.data_ptr(),
+                          self.D.data_ptr(), self.P.data_ptr(), self.lw.data_ptr(), lf.data_ptr(), self.V,
+                          self.t.data_ptr(), e3.data_ptr(), self.Mf, self.F.data_ptr(), ef.data_ptr(), nt)
+        return lf, e3, ef

@@ -1242,3 +1242,57 @@ def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, t
         assert y.abs().max() > 0 and (x - y).abs().max() <= 2e-6 * y.abs().max()
     pad = got["blk"].view(-1, 2 * n2 + 6, 8)[-1, :, Q % 8:] if Q % 8 else torch.zeros(1)
     assert bool((pad == 0).all())
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("scene_name, order", [("sphere_plane", 5), ("alcove", 3), ("alcove", 8), ("sphere_plane", 2)])
+def test_native_light_stage_equals_the_torch_stage(scene_name, order, threads, monkeypatch):
+    """Session 41: a lighting change's light stage by one C call (`native.Light`, `NATIVE_LIGHT`: the rotation
+    of the cached polar coefficients, e = t·l and the face-corner table) equals the torch stage (its oracle):
+    l to float32 round-off (the 3 × 3 product W Qᵀ in another order), e = t·l to float32 round-off (the
+    GEMM's own order over j), the corner table = e at each face's corners bit for bit, the same bits at 1
+    and 3 threads (vertex ranges split off the 8-lane blocks); the same lighting is not recomputed, a new
+    rotation is; L and VL frames' images equal the torch stage's to float32 round-off."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=order, bounces=0, rays=16)
+    m.precompute(scene)
+    monkeypatch.setattr(native, "MIN_LIGHT_PER_THREAD", 1)
+    V = int(m.t.shape[0])
+    assert V % 8 and V > 24                     # a scalar tail and, at 3 threads, ranges split off the blocks
+    old = torch.get_num_threads()
+    try:
+        for kind in ("L", "VL", "E"):
+            frames = make_sequence(scene, kind, n_frames=3, seed=2)
+            gbs = [make_gbuffer(scene, f, 2) for f in frames]
+            a, b, one = (m.with_bounces(0) for _ in range(3))
+            for f, gb in zip(frames, gbs):
+                monkeypatch.setattr(shm, "NATIVE_LIGHT", False)
+                want = b.render(f, gb)
+                monkeypatch.setattr(shm, "NATIVE_LIGHT", True)
+                torch.set_num_threads(threads)
+                n_light = a.stats["light"]
+                got = a.render(f, gb)
+                assert a.stats["light"] == n_light + 1 and a._nlight is not None and a._nlight[2].ok
+                a.render(f, gb)                                       # the same lighting: not again
+                assert a.stats["light"] == n_light + 1
+                torch.set_num_threads(1)
+                one.render(f, gb)
+                lmax = b._light.abs().max()
+                assert (a._light - b._light).abs().max() <= 1e-6 * lmax
+                emax = b._e.abs().max()
+                assert (a._e - b._e).abs().max() <= 2e-6 * emax and float((a._e - b._e).abs().max()) < 1e-3
+                e3 = a._e.T
+                assert torch.equal(a._ef, e3.reshape(-1)[m._corner_index("cpu")].view(-1, 9))
+                assert torch.equal(a._e, one._e) and torch.equal(a._ef, one._ef) and torch.equal(a._light, one._light)
+                assert (got - want).abs().max() <= 1e-5 * want.abs().max().clamp_min(1e-6)
+    finally:
+        torch.set_num_threads(old)
+    rgb = m.with_bounces(0)
+    rgb.t = rgb.t.expand(-1, -1, 3)                             # RGB transfer: the torch stage
+    f = make_sequence(scene, "L", n_frames=1, seed=2)[0]
+    rgb._light_stage(f.envmap)
+    assert rgb._nlight is None and rgb.stats["light"] == 1
