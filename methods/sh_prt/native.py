@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -123,6 +124,14 @@ void sh_view_rows(int64_t n, const int64_t *face, const uint8_t *hit, const floa
     for (int64_t r = 0; r < Vg; ++r)
         if (mark[r] && !(valid && valid[r])) rows[m++] = r;
     *count = m;
+}
+
+/* Session 41: `sh_view_rows` with ``mark`` zeroed here (a kept scratch buffer, not a fresh torch.zeros). */
+void sh_view_rows_z(int64_t n, const int64_t *face, const uint8_t *hit, const float *fk, int64_t Mf,
+                    const int32_t *fg, int64_t Vg, uint8_t *fmark, uint8_t *mark, const uint8_t *valid,
+                    int64_t *rows, int64_t *count, int64_t nt) {
+    memset(mark, 0, (size_t)Vg);
+    sh_view_rows(n, face, hit, fk, Mf, fg, Vg, fmark, mark, valid, rows, count, nt);
 }
 
 /* Session 35: `sh.rotate_sampled` (c' = P Y(Rᵀ D) c, the coefficients of f(Rᵀd)) in one C call, float64:
@@ -575,6 +584,20 @@ static void vm_rows(int64_t n2, const float *__restrict M, const float *__restri
             out[r * n2 + i] = s0; out[(Vg + r) * n2 + i] = s1; out[(2 * Vg + r) * n2 + i] = s2;
         }
     }
+}
+
+/* Session 41: `sh_vm_rows` from l (n², 3) as the frame holds it (its (3, n²) transpose built here, not by
+   three torch calls), the rows checked here ([0, Vg): else *bad = 1 and nothing written). */
+void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
+                float *out, int64_t nt);
+void sh_vm_rows_l(int64_t n2, const float *M, const float *l, const int64_t *rows, int64_t R, int64_t Vg,
+                  float *out, int64_t nt, int64_t *bad) {
+    for (int64_t q = 0; q < R; ++q)
+        if (rows[q] < 0 || rows[q] >= Vg) { *bad = 1; return; }
+    float lt[3 * 64];
+    for (int64_t j = 0; j < n2; ++j)
+        for (int64_t c = 0; c < 3; ++c) lt[c * n2 + j] = l[3 * j + c];
+    sh_vm_rows(n2, M, lt, rows, R, Vg, out, nt);
 }
 
 void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
@@ -1053,6 +1076,8 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
+               "sh_vm_rows_l": [_I, _P, _P, _P, _I, _I, _P, _I, _P],
+               "sh_view_rows_z": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
                "sh_relight_build": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                                     _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
@@ -1072,10 +1097,20 @@ MIN_RELIGHT_PER_THREAD = 1024   # glossy samples below which one thread does the
 FUSED_GLOSSY = True
 
 
+_LOADED: list = [None]
+
+
 def _lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
-    # None met while compilation was off (a test's monkeypatch) is not kept for the process
-    return native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    # a None is not kept: `native.load` reads PRTBENCH_COMPILE at each call, so a None met while compilation
+    # was off (a test's monkeypatch) is not kept for the process. Session 41: the loaded library is kept here
+    # (PRTBENCH_COMPILE still read at each call): `native.load`'s lookup (its signature tuples, the flags,
+    # the source key) cost 20-60 µs a call with the caches cold, 3-5 calls a frame
+    if not compile_enabled():
+        return None
+    lib = _LOADED[0]
+    if lib is None:
+        lib = _LOADED[0] = native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    return lib
 
 
 def _flags() -> tuple[str, ...]:
@@ -1203,17 +1238,35 @@ def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid:
             or fg.ndim != 2 or fg.shape[1] != 3 or fg.shape[0] != fk.shape[0] or face.shape != hit.shape
             or face.ndim != 1 or fk.shape[0] == 0):
         return None
-    face, hit, fk, fg = face.contiguous(), hit.contiguous(), fk.contiguous(), fg.contiguous()
+    face, hit, fk, fg = _c(face), _c(hit), _c(fk), _c(fg)
     n, Mf = int(face.numel()), int(fk.shape[0])
     nt = max(1, min(torch.get_num_threads(), n // MIN_SAMPLES_PER_MARK_THREAD))
-    fmark = torch.empty(nt * (Mf + 1), dtype=torch.uint8)
-    mark = torch.zeros(Vg, dtype=torch.uint8)
+    # session 41: the face and row marks in kept scratch buffers (the C call zeroes what it reads), the count
+    # in a ctypes integer: four torch allocations fewer a frame
+    fmark, mark = _scratch(0, nt * (Mf + 1)), _scratch(1, Vg)
     out = torch.empty(Vg, dtype=torch.int64)
-    cnt = torch.zeros(1, dtype=torch.int64)
+    cnt = ctypes.c_int64(0)
     v = valid.contiguous().view(torch.uint8) if valid is not None else None
-    lib.sh_view_rows(n, face.data_ptr(), hit.data_ptr(), fk.data_ptr(), Mf, fg.data_ptr(), Vg, fmark.data_ptr(),
-                     mark.data_ptr(), v.data_ptr() if v is not None else None, out.data_ptr(), cnt.data_ptr(), nt)
-    return out[:int(cnt)]
+    lib.sh_view_rows_z(n, face.data_ptr(), hit.data_ptr(), fk.data_ptr(), Mf, fg.data_ptr(), Vg, fmark.data_ptr(),
+                       mark.data_ptr(), v.data_ptr() if v is not None else None, out.data_ptr(), ctypes.addressof(cnt),
+                       nt)
+    return out[:cnt.value]
+
+
+_SCRATCH: list = [torch.empty(0, dtype=torch.uint8), torch.empty(0, dtype=torch.uint8)]
+
+
+def _scratch(i: int, nbytes: int) -> Tensor:
+    """Kept uint8 scratch buffer ``i`` of at least ``nbytes`` (its contents undefined: `view_rows`' C call
+    zeroes the parts it reads)."""
+    if _SCRATCH[i].numel() < nbytes:
+        _SCRATCH[i] = torch.empty(nbytes, dtype=torch.uint8)
+    return _SCRATCH[i]
+
+
+def _c(x: Tensor) -> Tensor:
+    """``x`` when contiguous (no torch call), else a contiguous copy."""
+    return x if x.is_contiguous() else x.contiguous()
 
 
 MIN_SAMPLES_PER_MARK_THREAD = 1 << 15   # G-buffer samples below which one thread marks the faces (`view_rows`)
@@ -1389,14 +1442,21 @@ def rows_vertex_major(Mv: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> bool:
     if Mv.shape[2] != n2 or l.shape != (n2, 3) or out.shape != (3, Vg, n2):
         raise ValueError(f"M (Vg, n², n²), l (n², 3), out (3, Vg, n²) expected, got {tuple(Mv.shape)}, "
                          f"{tuple(l.shape)}, {tuple(out.shape)}")
-    r = rows.to(torch.int64).contiguous()
+    r = rows if rows.dtype == torch.int64 and rows.is_contiguous() else rows.to(torch.int64).contiguous()
     R = int(r.numel())
     if R == 0:
+        return True
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
+    if l.dtype == torch.float32 and l.is_contiguous() and l.device.type == "cpu":
+        # session 41: l as it is, transposed and the rows checked by the C call (no torch call)
+        bad = ctypes.c_int64(0)
+        lib.sh_vm_rows_l(n2, Mv.data_ptr(), l.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt, ctypes.addressof(bad))
+        if bad.value:
+            raise IndexError("a glossy row outside M")
         return True
     if int(r.min()) < 0 or int(r.max()) >= Vg:
         raise IndexError("a glossy row outside M")
     lt = l.to(torch.float32).T.contiguous()                                    # (3, n²)
-    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
     lib.sh_vm_rows(n2, Mv.data_ptr(), lt.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
     return True
 
@@ -1464,12 +1524,13 @@ VIEW_CHUNK = 256
 
 def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor, S2: int,
          reg: Tensor, fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor,
-         S: Tensor) -> Tensor | None:
+         S: Tensor, shape: tuple | None = None) -> Tensor | None:
     """A view frame's image (n, 3) in one C pass (session 32): `pixels` and then `glossy` adding into the
     pixels (``img``), per chunk of `VIEW_CHUNK` pixels — the same image bit for bit (the same loops, each
     pixel's value written, then its glossy samples added in ascending order, by one thread). For a frame
     whose l' table (``lg3`` (3, Vg, n²)) is complete: no glossy list is returned. None where either loop
-    would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s."""
+    would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s; ``shape``: the
+    image's shape when it holds n·3 values (session 41: the caller's (H, W, 3)), else (n, 3)."""
     lib = _lib()
     n = math.isqrt(int(G.shape[1]))
     if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
@@ -1483,20 +1544,21 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
     P = int(face.numel())
     if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo, reg)):
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
-    face, hit, reg = face.contiguous(), hit.contiguous(), reg.contiguous()
-    ef, fk, fg, kd, ks, G, A = (x.contiguous() for x in (ef, fk, fg, kd, ks, G, A))
+    face, hit, reg, ef, fk, fg, kd, ks, G, A = (_c(x) for x in (face, hit, reg, ef, fk, fg, kd, ks, G, A))
     v8, sel = _view_tables(vcos, S)
     npx = P // S2
-    img = torch.empty(npx, 3)
-    ok = torch.zeros(1, dtype=torch.int64)
+    # session 41: the image in the caller's shape (`SHPRT._render_fast` returns it as it is), the flag a ctypes
+    # integer: two torch calls fewer a frame
+    img = torch.empty(shape if shape is not None and math.prod(shape) == 3 * npx else (npx, 3))
+    ok = ctypes.c_int64(0)
     nt = max(1, min(torch.get_num_threads(), npx // MIN_PIXELS_PER_THREAD))
     lib.sh_view(npx, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
                 normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                 ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), int(bool(VECTOR_PIXELS)),
                 n, reg.data_ptr(), int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1),
                 kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
-                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ok.data_ptr())
-    return img if int(ok) else None
+                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ctypes.addressof(ok))
+    return img if ok.value else None
 
 
 MIN_LIGHT_PER_THREAD = 4096     # vertices below which one thread runs `light`'s passes

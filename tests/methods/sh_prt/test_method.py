@@ -849,7 +849,7 @@ def _switch_frames(monkeypatch, threads: int, kind: str, seed: int, switch: str,
     m.precompute(scene)
     calls = []
     real = getattr(native, entry)
-    monkeypatch.setattr(native, entry, lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(native, entry, lambda *a, **k: calls.append(1) or real(*a, **k))
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -945,8 +945,14 @@ def test_native_vertex_major_rows_equal_the_full_product(order, monkeypatch):
         assert native.rows_vertex_major(Mv, l, rows, out)
         assert (out[:, rows] - full[:, rows]).abs().max() <= 1e-5 * full.abs().max()
         assert bool((out[:, others] == 7.0).all())
-    with pytest.raises(IndexError):
-        native.rows_vertex_major(Mv, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
+        # session 41: l transposed in the C call; a strided l takes the torch transpose: the same bits
+        out2 = torch.full((3, Vg, n2), 7.0)
+        assert native.rows_vertex_major(Mv, l.T.contiguous().T, rows, out2) and torch.equal(out2, out)
+    for bad in ([Vg], [0, -1]):                     # the rows checked (session 41: by the C call)
+        out = torch.full((3, Vg, n2), 7.0)
+        with pytest.raises(IndexError):
+            native.rows_vertex_major(Mv, l, torch.tensor(bad), out)
+        assert bool((out == 7.0).all())
 
 
 def test_vertex_major_M_is_M_without_bounces(alcove):
@@ -1063,16 +1069,17 @@ def test_native_view_rows_equal_the_torch_rows(threads, monkeypatch):
     M, Vg, P = 3000, 6000, 4001                      # most faces under one sample or none: hit decides
     fg = torch.randint(0, Vg, (M, 3), generator=g, dtype=torch.int32)
     fk = torch.cat([torch.rand(M, 3, generator=g), (torch.rand(M, 1, generator=g) < 0.3).float()], 1)
-    face = torch.randint(-1, M, (P,), generator=g)
-    hit = (face >= 0) & (torch.rand(P, generator=g) < 0.9)
     valid = torch.rand(Vg, generator=g) < 0.4
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        for v in (None, valid):
-            want = native.view_rows_torch(face, hit, fk, fg, Vg, v)
-            got = native.view_rows(face, hit, fk, fg, Vg, v)
-            assert 0 < want.numel() < Vg and torch.equal(got, want)
+        for _ in range(3):            # (session 41: the marks in kept scratch buffers: each call its own)
+            face = torch.randint(-1, M, (P,), generator=g)
+            hit = (face >= 0) & (torch.rand(P, generator=g) < 0.9)
+            for v in (None, valid):
+                want = native.view_rows_torch(face, hit, fk, fg, Vg, v)
+                got = native.view_rows(face, hit, fk, fg, Vg, v)
+                assert 0 < want.numel() < Vg and torch.equal(got, want)
         gl = (hit & (fk[face.clamp_min(0), 3] != 0)).nonzero().squeeze(-1)
         assert torch.equal(native.view_rows_torch(face, hit, fk, fg, Vg, None),
                            native.need_rows_torch(gl, face, fg, Vg, None))
@@ -1296,3 +1303,26 @@ def test_native_light_stage_equals_the_torch_stage(scene_name, order, threads, m
     f = make_sequence(scene, "L", n_frames=1, seed=2)[0]
     rgb._light_stage(f.envmap)
     assert rgb._nlight is None and rgb.stats["light"] == 1
+
+
+def test_light_stage_key_follows_the_rotation_in_place():
+    """Session 41: `_light_stage` skips its key's values when the map's ``to_world`` is the same tensor at the
+    same version (a V frame), and recomputes when that tensor is changed in place (its version bumps) or
+    another tensor holds other values; another tensor with the same values is the same lighting."""
+    scene = get_scene("sphere_plane", "test")
+    m = SHPRT(order=3, bounces=0, rays=8)
+    m.precompute(scene)
+    env = make_sequence(scene, "L", n_frames=1, seed=1)[0].envmap.rotated(torch.eye(3, dtype=torch.float64))
+    m._light_stage(env)
+    n, l0 = m.stats["light"], m._light.clone()
+    m._light_stage(env)
+    assert m.stats["light"] == n
+    m._light_stage(env.rotated(torch.eye(3, dtype=torch.float64)))      # a new tensor, the same values
+    assert m.stats["light"] == n
+    m._light_stage(env)                                                 # (this tensor the key's again)
+    assert m.stats["light"] == n and m._key_w[0] is env.to_world
+    env.to_world.copy_(torch.as_tensor(rotation_y(0.7), dtype=torch.float64) @ env.to_world)
+    m._light_stage(env)
+    assert m.stats["light"] == n + 1 and (m._light - l0).abs().max() > 1e-3
+    want = SHPRT.lighting(m, env).float()
+    assert (m._light - want).abs().max() <= 1e-6 * want.abs().max()
