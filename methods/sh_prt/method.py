@@ -537,9 +537,13 @@ def _relight_add(img: Tensor, cache: dict, l: Tensor, S2: int) -> None:
     thread, process CPU: 1.11 against 1.63 ms back to back, 1.42 against 2.35 after 0.2 s idle;
     bit-identical here: the GEMM sums i in order too); this GEMM on the unpacked cache is its oracle."""
     if "blk" in cache:                  # packed (`_relight_build`): one C pass, `native.relight_add`
-        if _native.relight_add(img, cache["blk"], l, cache["p"], S2):
+        p = cache["p"]
+        if "prange" not in cache and p.numel():            # (session 41: the fixed pixels' range kept)
+            cache["prange"] = (int(p[0]), int(p[-1]))
+        if _native.relight_add(img, cache["blk"], l, p, S2, cache.get("prange")):
             return
         cache = _relight_unpacked(cache)
+    img = img.view(-1, 3)                                                       # (an (H, W, 3) image too)
     DG, Qg = cache["DG"], cache["kd"].shape[1]
     o = l.T.contiguous() @ DG                                                   # (3, 2Qg)
     vals = (cache["kd"] * o[:, :Qg] + cache["ks"] * o[:, Qg:]).clamp_min(0.0) * (1.0 / S2)
@@ -1071,7 +1075,10 @@ class SHPRT(Method):
             if img is not None:
                 return img if img.dim() == 3 and img.device == gb.hit.device else \
                     img.view(gb.height, gb.width, 3).to(gb.hit.device)
-        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
+        # session 41: a frame shaded from the relight cache reads no glossy list (and takes its image as it is)
+        cached = relight and self._relight is not None and self._relight[0] == state
+        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2, listed=not cached,
+                            shape=(gb.height, gb.width, 3) if cached else None) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
@@ -1081,12 +1088,13 @@ class SHPRT(Method):
             img, g = out[0], None                                                 # (n, 3)
         else:
             img, g = px
-        if relight and self._relight is not None and self._relight[0] == state:
+        if cached:
             cache = self._relight[1]
             self.stats["relight"] += 1
             if cache is not None:
                 _relight_add(img, cache, self._light, S2)
-            return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+            return img if img.dim() == 3 and img.device == gb.hit.device else \
+                img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g is None:
             g = _flat_nonzero(out[1].view(-1))                                    # glossy hits, ascending
         if relight:              # the first lighting-only frame: build the cache, shade from it

@@ -425,7 +425,8 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
                const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
                float inv, float *img, int64_t *gl, int64_t *count, int64_t nt, int64_t fast) {
     if (nt <= 1) {
-        *count = px_any(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
+        const int64_t c = px_any(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
+        if (count) *count = c;
         return;
     }
     int64_t cnt[64];
@@ -435,6 +436,7 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
         const int64_t a = n * k / nt, e = n * (k + 1) / nt;
         cnt[k] = px_any(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2, fast);
     }
+    if (!count) return;                                /* session 41: no list wanted (a relit frame) */
     int64_t tot = cnt[0];
     for (int64_t k = 1; k < nt; ++k) {                 /* each range's list after the previous ones */
         memmove(gl + tot, gl + (n * k / nt) * S2, (size_t)cnt[k] * sizeof(int64_t));
@@ -1304,7 +1306,7 @@ VECTOR_PIXELS = True
 
 
 def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
-           S2: int) -> tuple[Tensor, Tensor] | None:
+           S2: int, *, listed: bool = True, shape: tuple | None = None) -> tuple[Tensor, Tensor | None] | None:
     """`method._pixels_impl`'s pass as one C loop that also lists the glossy samples: (img (n, 3),
     g (Qg,) int64 ascending, the samples ``hit & fk[face, 3] != 0``) for the G-buffer arrays face
     (P,) int64, hit (P,) bool, bary (P, 2), normal and wo (P, 3) float32 (any strides), P = n·S2,
@@ -1319,18 +1321,19 @@ def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, 
     P = int(face.numel())
     if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo)):
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
-    face, hit = face.contiguous(), hit.contiguous()
-    ef, fk = ef.contiguous(), fk.contiguous()
+    face, hit, ef, fk = _c(face), _c(hit), _c(ef), _c(fk)
     n = P // S2
-    img = torch.empty(n, 3)
+    # session 41: ``listed=False`` (a frame shaded from the relight cache: no glossy list read) skips the
+    # list's serial merge and copy; the image in ``shape`` when given (n·3 values); the count a ctypes int
+    img = torch.empty(shape if shape is not None and math.prod(shape) == 3 * n else (n, 3))
     gl = _gl_buffer(P)
-    cnt = torch.zeros(1, dtype=torch.int64)
+    cnt = ctypes.c_int64(0)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
                   normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                   ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
-                  cnt.data_ptr(), nt, int(bool(VECTOR_PIXELS)))
-    return img, gl[:int(cnt)].clone()
+                  ctypes.addressof(cnt) if listed else None, nt, int(bool(VECTOR_PIXELS)))
+    return img, (gl[:cnt.value].clone() if listed else None)
 
 
 _GL: list = [torch.empty(0, dtype=torch.int64)]
@@ -1405,7 +1408,7 @@ def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor
     return (torch.cat([X[:n2], X[n2:2 * n2]], 1), X[2 * n2:2 * n2 + 3].contiguous(), X[2 * n2 + 3:].contiguous())
 
 
-def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bool:
+def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int, prange: tuple | None = None) -> bool:
     """img (n, 3) += max(0, kd · lᵀd + ks · lᵀq) / S² at the pixels pix (Q,) int64 (ascending) of the
     packed relight cache blk (`relight_pack`) by one C pass (`method._relight_add` on the unpacked
     cache is its oracle: the same products and sums, i ascending); False (nothing done) where it
@@ -1415,13 +1418,16 @@ def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bo
     n2 = int(l.shape[0])
     if (lib is None or img.device.type != "cpu" or any(x.dtype != torch.float32 for x in (img, blk, l))
             or pix.dtype != torch.int64 or not (img.is_contiguous() and blk.is_contiguous() and pix.is_contiguous())
-            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim != 2 or img.shape[1] != 3):
+            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim < 2 or img.shape[-1] != 3):
         return False
     if Q == 0:
         return True
-    if int(pix[0]) < 0 or int(pix[-1]) >= img.shape[0]:
+    # session 41: the pixels of any contiguous (..., 3) image (the caller's (H, W, 3)); ``prange`` = (pix[0],
+    # pix[-1]) when the caller keeps them (the cache's pixels are fixed: two torch calls fewer a frame)
+    lo, hi = prange if prange is not None else (int(pix[0]), int(pix[-1]))
+    if lo < 0 or hi >= img.numel() // 3:
         raise IndexError("a sample outside the image")
-    lc = l.contiguous()
+    lc = _c(l)
     # session 39: split over the threads at pixel boundaries (the same bits at any thread count)
     nt = max(1, min(torch.get_num_threads(), Q // MIN_RELIGHT_PER_THREAD)) if RELIGHT_THREADS else 1
     lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr(), nt)

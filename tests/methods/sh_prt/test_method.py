@@ -740,6 +740,9 @@ def test_native_pixel_pass_equals_the_compiled_pass(S2, threads, vector, monkeyp
             wg = want[1].reshape(-1).nonzero().squeeze(-1)
             assert 0 < g.numel() < P and torch.equal(g, wg)
             assert (want[0] > 0).any() and torch.equal(img, want[0]) and torch.equal(img, comp[0])
+            # session 41: without the list (a relit frame) the same image, in the shape asked for
+            img2, g2 = native.pixels(face, hit, *layout, ef, fk, S2, listed=False, shape=(1, n, 3))
+            assert g2 is None and img2.shape == (1, n, 3) and torch.equal(img2.view(n, 3), img)
     finally:
         torch.set_num_threads(old)
 
@@ -1147,6 +1150,15 @@ def test_native_relight_add_threads_split_at_pixels(threads, monkeypatch):
         torch.set_num_threads(old)
     assert torch.equal(imgs[0], imgs[1]) and torch.equal(imgs[0], imgs[2])
     assert (imgs[2] - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+    # session 41: an (H, W, 3) image and the pixels' range kept by the caller: the same bits; a range
+    # beyond the image is refused before anything is added
+    img3 = img0.clone().view(3, n // 3, 3)
+    assert native.relight_add(img3, packed["blk"], l, packed["p"], S2, (int(pix[0]), int(pix[-1])))
+    assert torch.equal(img3.view(n, 3), imgs[0])
+    with pytest.raises(IndexError):
+        native.relight_add(img0.clone(), packed["blk"], l, packed["p"], S2, (0, n))
+    with pytest.raises(IndexError):
+        native.relight_add(img0.clone()[: n - 1], packed["blk"], l, packed["p"], S2, (0, n - 1))
 
 
 def test_native_frames_do_not_import_dynamo():
