@@ -688,7 +688,7 @@ class SHPRT(Method):
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
         self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
-        self._nlight = None     # (t, F, `native.Light` bound to them: `_light_native`; static)
+        self._nlight = None     # (t, F, `native.Light` bound to them or None, M: `_light_native`; static)
         self._vm = None         # (M, M_parts[0], `_vertex_major_M`'s answer for them)
         self._key_w = None      # (to_world tensor, its version) of the lighting in ``_key``
         self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
@@ -697,6 +697,21 @@ class SHPRT(Method):
         self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0, "glossy_light": 0, "relight_build": 0,
                       "relight": 0}
+
+    @property
+    def _e(self) -> Tensor | None:
+        """(V, 3) e = t·l: a view of the channel-major (3, V) the light stage writes (``_e3``), made when first
+        read (session 41: the frames read the corner table, not e; the view was a torch call of every
+        lighting change)."""
+        e = self.__dict__.get("_e_view")
+        if e is None and self.__dict__.get("_e3") is not None:
+            e = self._e_view = self._e3.T
+        return e
+
+    @_e.setter
+    def _e(self, value: Tensor | None) -> None:
+        self._e3 = None if value is None else value.T
+        self._e_view = value
 
     # -- precompute -------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -835,13 +850,15 @@ class SHPRT(Method):
         on the CPU with the map's rotation a (3, 3) float64 tensor; False (nothing changed) where it
         does not run (the torch stage then, its oracle)."""
         W = env.to_world
-        if (not NATIVE_ROTATE or not isinstance(W, Tensor) or W.dtype != torch.float64 or self.t.device.type != "cpu"
-                or self.t.shape[-1] != 1 or not _is_lighting_major(self.t) or not _is_lighting_major(self.M)):
+        if not NATIVE_ROTATE or not isinstance(W, Tensor) or W.dtype != torch.float64:
             return False
         nl = self._nlight
-        if nl is None or nl[0] is not self.t or nl[1] is not self.F:
-            nl = self._nlight = (self.t, self.F, _native.Light(self.t, self.F, self.order))
-        if not nl[2].ok:
+        if nl is None or nl[0] is not self.t or nl[1] is not self.F or nl[3] is not self.M:
+            # bound to (t, F, M): their layout checked once (a tensor's strides do not change)
+            ok = (self.t.device.type == "cpu" and self.t.shape[-1] == 1 and _is_lighting_major(self.t)
+                  and _is_lighting_major(self.M))
+            nl = self._nlight = (self.t, self.F, _native.Light(self.t, self.F, self.order) if ok else None, self.M)
+        if nl[2] is None or not nl[2].ok:
             return False
         data = env.data
         if self._src is None or self._src[0] is not data or self._src[1] != data._version:
@@ -854,7 +871,7 @@ class SHPRT(Method):
         self.stats["rotate"] += 1
         l, e3, ef = res
         self._light = l
-        self._e = e3.T                                                            # (V, 3) view
+        self._e3, self._e_view = e3, None                                         # (`_e`: its (V, 3) view)
         if self._lg3 is not None:                          # its memory, for the next partial table
             self._lg_spare = self._lg3
         self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
