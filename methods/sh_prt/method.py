@@ -21,6 +21,18 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 41 (sh41): the serial part of a frame, measured as process CPU outside the C passes that split
+    over the threads (``python -m benchmarks.sh_prt_stages``, 1 thread, after `settle`): a lighting change's
+    light stage (rotation, e = t·l, corner table) was ~10 torch calls, 0.7-0.9 ms with the caches cold, all
+    on one core at 2 threads — now one C call (`native.Light`, `NATIVE_LIGHT`; float32 round-off: e within
+    1-2 ulp of the GEMM's), itself split over the threads; and ~20 more torch calls a frame around the C
+    passes went (the loaded library kept, scratch marks, ctypes flags, bounds checks in C, the image
+    allocated in its returned shape, no list for a relit frame's pixel pass, the V frames' lighting key by
+    tensor identity and version). Serial ms 338e016 → now: V 0.52 → 0.31-0.37, VL 1.39 → 0.62, L 1.24 →
+    0.39, E 1.80 → 0.94 (E's includes the map's projection, `sh_native`, 0.63 ms on one thread). The
+    L / E cells' slow first timed frame (~3× the others in every perf run) is the relight cache's build
+    (`native.relight_build`, ~6.8 ms CPU at 1 thread): the first lighting-only frame of a view, paid again
+    whenever a moving camera stops — per-view work, not one-time work a warm-up could honestly take.
   * session 35 (pp35): a lighting change's frame (VL: new lighting and view every frame) runs the one C
     pass of the V frames too (`NATIVE_VIEW_ROWS`): the rows of l' its glossy samples read listed from the
     G-buffer's faces first (`native.view_rows`: every hit sample's face marked, then the glossy faces'
