@@ -21,6 +21,18 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 41 (sh41): the serial part of a frame, measured as process CPU outside the C passes that split
+    over the threads (``python -m benchmarks.sh_prt_stages``, 1 thread, after `settle`): a lighting change's
+    light stage (rotation, e = t·l, corner table) was ~10 torch calls, 0.7-0.9 ms with the caches cold, all
+    on one core at 2 threads — now one C call (`native.Light`, `NATIVE_LIGHT`; float32 round-off: e within
+    1-2 ulp of the GEMM's), itself split over the threads; and ~20 more torch calls a frame around the C
+    passes went (the loaded library kept, scratch marks, ctypes flags, bounds checks in C, the image
+    allocated in its returned shape, no list for a relit frame's pixel pass, the V frames' lighting key by
+    tensor identity and version). Serial ms 338e016 → now: V 0.52 → 0.31-0.37, VL 1.39 → 0.62, L 1.24 →
+    0.39, E 1.80 → 0.94 (E's includes the map's projection, `sh_native`, 0.63 ms on one thread). The
+    L / E cells' slow first timed frame (~3× the others in every perf run) is the relight cache's build
+    (`native.relight_build`, ~6.8 ms CPU at 1 thread): the first lighting-only frame of a view, paid again
+    whenever a moving camera stops — per-view work, not one-time work a warm-up could honestly take.
   * session 35 (pp35): a lighting change's frame (VL: new lighting and view every frame) runs the one C
     pass of the V frames too (`NATIVE_VIEW_ROWS`): the rows of l' its glossy samples read listed from the
     G-buffer's faces first (`native.view_rows`: every hit sample's face marked, then the glossy faces'
@@ -268,6 +280,12 @@ NATIVE_ROTATE = True
 # build, which False restores and which stays its oracle): the torch build gathered three (Qg, n², n²)
 # copies of M's rows (~260 MB written on the creature bench) for its batched products.
 NATIVE_RELIGHT_BUILD = True
+# Session 41: a lighting change's light stage (`SHPRT._light_stage` on grey transfer: the rotation, e = t·l
+# and the face-corner table e[F]) by ONE C call (`native.Light`) instead of ~10 torch calls, each 20-170 µs
+# with the caches cold after the harness's idle (~0.65 ms of a creature VL, L or E frame at 1 thread, serial
+# at 2 threads); and the stage's "same lighting?" key from the rotation's values without a torch call. The
+# torch stage (False) is its oracle: float32 round-off (the GEMM sums over j in its own order).
+NATIVE_LIGHT = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -531,9 +549,13 @@ def _relight_add(img: Tensor, cache: dict, l: Tensor, S2: int) -> None:
     thread, process CPU: 1.11 against 1.63 ms back to back, 1.42 against 2.35 after 0.2 s idle;
     bit-identical here: the GEMM sums i in order too); this GEMM on the unpacked cache is its oracle."""
     if "blk" in cache:                  # packed (`_relight_build`): one C pass, `native.relight_add`
-        if _native.relight_add(img, cache["blk"], l, cache["p"], S2):
+        p = cache["p"]
+        if "prange" not in cache and p.numel():            # (session 41: the fixed pixels' range kept)
+            cache["prange"] = (int(p[0]), int(p[-1]))
+        if _native.relight_add(img, cache["blk"], l, p, S2, cache.get("prange")):
             return
         cache = _relight_unpacked(cache)
+    img = img.view(-1, 3)                                                       # (an (H, W, 3) image too)
     DG, Qg = cache["DG"], cache["kd"].shape[1]
     o = l.T.contiguous() @ DG                                                   # (3, 2Qg)
     vals = (cache["kd"] * o[:, :Qg] + cache["ks"] * o[:, Qg:]).clamp_min(0.0) * (1.0 / S2)
@@ -564,6 +586,32 @@ def lighting_major(X: Tensor) -> Tensor:
         return X
     inv = [perm.index(k) for k in range(d)]
     return Xp.contiguous().permute(inv)
+
+
+def _on(x: Tensor, dev) -> Tensor:
+    """``x.to(dev)`` without a torch call where it already is there."""
+    return x if x.device == dev else x.to(dev)
+
+
+def _f32(x: Tensor, dev) -> Tensor:
+    """``x.to(dev).float()`` without a torch call where it already is a float32 tensor there."""
+    return x if x.device == dev and x.dtype == torch.float32 else x.to(dev).float()
+
+
+def _is_lighting_major(X: Tensor) -> bool:
+    """Whether ``lighting_major(X)`` is ``X`` itself (its permuted view contiguous), from the sizes and
+    strides alone (no torch op: `_light_native` asks it every lighting change)."""
+    d = X.dim()
+    if d < 2:
+        return False
+    order = (d - 1, d - 2, *range(d - 2))
+    size, stride = X.shape, X.stride()
+    expect = 1
+    for k in reversed(order):
+        if size[k] != 1 and stride[k] != expect:
+            return False
+        expect *= size[k]
+    return True
 
 
 def apply_lighting(X: Tensor, l: Tensor) -> Tensor:
@@ -652,12 +700,30 @@ class SHPRT(Method):
         self._fg = None         # (M, 3) int32 rows of l' at each face's corners (gpos[F]; static)
         self._fk = None         # (kd of `_materials`, (M, 4) its rows per face + glossy flag: `_face_materials`)
         self._fidx = None       # (M·9,) flat indices of e at each face's corners (`_corner_index`; static)
+        self._nlight = None     # (t, F, `native.Light` bound to them or None, M: `_light_native`; static)
+        self._vm = None         # (M, M_parts[0], `_vertex_major_M`'s answer for them)
+        self._key_w = None      # (to_world tensor, its version) of the lighting in ``_key``
         self._view_state = None  # (camera, materials key, G-buffer shape) of the last fast render
         self._relight = None    # (that state, the lighting-only frame cache: `_relight_build`)
         self._mat = None        # (device and the regions' materials, `_materials`' tensors)
         self._last_gbuffer = None  # the last render's G-buffer: `frame_cost` takes its glossy share
         self.stats = {"project": 0, "rotate": 0, "light": 0, "view": 0, "glossy_light": 0, "relight_build": 0,
                       "relight": 0}
+
+    @property
+    def _e(self) -> Tensor | None:
+        """(V, 3) e = t·l: a view of the channel-major (3, V) the light stage writes (``_e3``), made when first
+        read (session 41: the frames read the corner table, not e; the view was a torch call of every
+        lighting change)."""
+        e = self.__dict__.get("_e_view")
+        if e is None and self.__dict__.get("_e3") is not None:
+            e = self._e_view = self._e3.T
+        return e
+
+    @_e.setter
+    def _e(self, value: Tensor | None) -> None:
+        self._e3 = None if value is None else value.T
+        self._e_view = value
 
     # -- precompute -------------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -757,8 +823,22 @@ class SHPRT(Method):
         product streams the transfer once (`apply_lighting`: a GEMV per channel), and the run-time layouts of
         `_render_fast` are derived here: the face-corner table e[F] (M, 9); l' stays channel-major
         (3, Vg, n²) as the GEMVs write it (``self._lg`` is a (Vg, n², 3) view of it)."""
-        key = (env.data, env.data._version, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
+        W = env.to_world
+        k = self._key
+        if (k is not None and k[0] is env.data and k[1] == env.data._version and self._key_w is not None
+                and self._key_w[0] is W and self._key_w[1] == getattr(W, "_version", None)):
+            return       # session 41: the same rotation tensor at the same version: the same values (a V frame)
+        # the rotation's values as the key: ``tolist`` of the (3, 3) tensor itself (no torch op: ~0.09 ms of a
+        # frame with cold caches for the flatten's); another kind of to_world through torch as before
+        kw = (W, W._version) if isinstance(W, Tensor) else None
+        wk = W.tolist() if isinstance(W, Tensor) and W.dim() == 2 else torch.as_tensor(W).flatten().tolist()
+        key = (env.data, env.data._version, tuple(x for r in wk for x in r) if wk and isinstance(wk[0], list)
+               else tuple(wk))
         if self._key is not None and self._key[0] is key[0] and self._key[1:] == key[1:]:
+            self._key_w = kw
+            return
+        if NATIVE_LIGHT and self._light_native(env, key):
+            self._key_w = kw
             return
         l = self.lighting(env).to(self.t.device)
         self._light = l
@@ -773,7 +853,45 @@ class SHPRT(Method):
         # gather of the (V, 3) copy took 0.50 ms against 0.21 (creature bench, 1 thread, bit-identical)
         self._ef = e3.view(-1).index_select(0, self._corner_index(e3.device)).view(-1, 9)
         self._key = key
+        self._key_w = kw
         self.stats["light"] += 1
+
+    def _light_native(self, env, key: tuple) -> bool:
+        """`_light_stage`'s work by one C call (`NATIVE_LIGHT`, `native.Light`: the rotation of the cached
+        polar coefficients, e = t·l and the corner table), for grey transfer in its lighting-major layout
+        on the CPU with the map's rotation a (3, 3) float64 tensor; False (nothing changed) where it
+        does not run (the torch stage then, its oracle)."""
+        W = env.to_world
+        if not NATIVE_ROTATE or not isinstance(W, Tensor) or W.dtype != torch.float64:
+            return False
+        nl = self._nlight
+        if nl is None or nl[0] is not self.t or nl[1] is not self.F or nl[3] is not self.M:
+            # bound to (t, F, M): their layout checked once (a tensor's strides do not change)
+            ok = (self.t.device.type == "cpu" and self.t.shape[-1] == 1 and _is_lighting_major(self.t)
+                  and _is_lighting_major(self.M))
+            nl = self._nlight = (self.t, self.F, _native.Light(self.t, self.F, self.order) if ok else None, self.M)
+        if nl[2] is None or not nl[2].ok:
+            return False
+        data = env.data
+        if self._src is None or self._src[0] is not data or self._src[1] != data._version:
+            self._l_local = sh_native.project_latlong_polar(data, self.order)  # (n², 3) polar frame
+            self._src = (data, data._version)
+            self.stats["project"] += 1
+        res = nl[2](self._l_local, W)
+        if res is None:
+            return False
+        self.stats["rotate"] += 1
+        l, e3, ef = res
+        self._light = l
+        self._e3, self._e_view = e3, None                                         # (`_e`: its (V, 3) view)
+        if self._lg3 is not None:                          # its memory, for the next partial table
+            self._lg_spare = self._lg3
+        self._lg3 = self._lg = None                        # M l: on demand (`_glossy_light`)
+        self._lg_valid, self._lg_fresh = None, True
+        self._ef = ef
+        self._key = key
+        self.stats["light"] += 1
+        return True
 
     def _corner_index(self, device) -> Tensor:
         """(M·9,) int64 flat indices into the channel-major e (3, V) of each face's corners, corner-major
@@ -851,7 +969,7 @@ class SHPRT(Method):
             return False             # (no row set: `_lg_valid` all False, the two passes compute them)
         self._lg_valid[rows] = True
         self.stats["glossy_light"] += 1
-        if bool(self._lg_valid.all()):
+        if int(rows.numel()) == int(self.M.shape[0]):       # (the rows listed once each, the table none set)
             self._lg_valid = None
         return True
 
@@ -865,10 +983,16 @@ class SHPRT(Method):
         alternating: 1.5-1.75 against 1.85-3.0 ms back to back, 1.9-2.0 against 2.5-3.2 ms after
         0.2 s idle)."""
         X = self.M_parts[0] if self.bounces == 0 and getattr(self, "M_parts", None) else None
+        c = self._vm
+        if c is not None and c[0] is self.M and c[1] is X:           # session 41: kept per (M, first pass)
+            return c[2]
         if (X is None or X.shape != self.M.shape or X.shape[-1] != 1 or X.dtype != torch.float32
                 or X.device != self.M.device or not X.is_contiguous()):
-            return None
-        return X[..., 0]
+            out = None
+        else:
+            out = X[..., 0]
+        self._vm = (self.M, X, out)
+        return out
 
     def _materials(self, frame: Frame) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """kd (R, 3), ks (R, 3), G (R, n²) (0 for Lambert) and the n·ωo flag (R,) bool
@@ -952,8 +1076,9 @@ class SHPRT(Method):
         if not relight:
             self._relight = None
         fk = self._face_materials(kd)
-        face, bary, hit = gb.face.to(dev), gb.bary.to(dev).float(), gb.hit.to(dev)
-        normal, wo, reg = gb.normal.to(dev).float(), gb.wo.to(dev).float(), gb.region.to(dev)
+        # (session 41: no torch call where the G-buffer already is on the device and float32, as on the CPU)
+        face, bary, hit = _on(gb.face, dev), _f32(gb.bary, dev), _on(gb.hit, dev)
+        normal, wo, reg = _f32(gb.normal, dev), _f32(gb.wo, dev), _on(gb.region, dev)
         native_view = NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS and not relight
         one_pass = native_view and self._lg3 is not None and (self._lg_valid is None or not self._lg_fresh)
         if not one_pass and native_view and NATIVE_VIEW_ROWS and self._lg3 is None and self._lg_fresh:
@@ -975,10 +1100,14 @@ class SHPRT(Method):
             # session 35: a lighting change's frame with the rows it reads (`_view_rows`, above)
             lg3 = self._glossy_light() if not self._lg_fresh or self._lg_valid is None else self._lg3
             img = _native.view(face, hit, bary, normal, wo, self._ef, fk, S2, reg, self._fg, lg3, kd, ks, G, vcos,
-                               *_sh_factor_tables(math.isqrt(G.shape[1]), G.device))
+                               *_sh_factor_tables(math.isqrt(G.shape[1]), G.device), shape=(gb.height, gb.width, 3))
             if img is not None:
-                return img.view(gb.height, gb.width, 3).to(gb.hit.device)
-        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2) if NATIVE_PIXELS else None
+                return img if img.dim() == 3 and img.device == gb.hit.device else \
+                    img.view(gb.height, gb.width, 3).to(gb.hit.device)
+        # session 41: a frame shaded from the relight cache reads no glossy list (and takes its image as it is)
+        cached = relight and self._relight is not None and self._relight[0] == state
+        px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2, listed=not cached,
+                            shape=(gb.height, gb.width, 3) if cached else None) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]
@@ -988,12 +1117,13 @@ class SHPRT(Method):
             img, g = out[0], None                                                 # (n, 3)
         else:
             img, g = px
-        if relight and self._relight is not None and self._relight[0] == state:
+        if cached:
             cache = self._relight[1]
             self.stats["relight"] += 1
             if cache is not None:
                 _relight_add(img, cache, self._light, S2)
-            return img.view(gb.height, gb.width, 3).to(gb.hit.device)
+            return img if img.dim() == 3 and img.device == gb.hit.device else \
+                img.view(gb.height, gb.width, 3).to(gb.hit.device)
         if g is None:
             g = _flat_nonzero(out[1].view(-1))                                    # glossy hits, ascending
         if relight:              # the first lighting-only frame: build the cache, shade from it

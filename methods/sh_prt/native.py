@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
+from methods.core.fused import compile_enabled
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -123,6 +124,14 @@ void sh_view_rows(int64_t n, const int64_t *face, const uint8_t *hit, const floa
     for (int64_t r = 0; r < Vg; ++r)
         if (mark[r] && !(valid && valid[r])) rows[m++] = r;
     *count = m;
+}
+
+/* Session 41: `sh_view_rows` with ``mark`` zeroed here (a kept scratch buffer, not a fresh torch.zeros). */
+void sh_view_rows_z(int64_t n, const int64_t *face, const uint8_t *hit, const float *fk, int64_t Mf,
+                    const int32_t *fg, int64_t Vg, uint8_t *fmark, uint8_t *mark, const uint8_t *valid,
+                    int64_t *rows, int64_t *count, int64_t nt) {
+    memset(mark, 0, (size_t)Vg);
+    sh_view_rows(n, face, hit, fk, Mf, fg, Vg, fmark, mark, valid, rows, count, nt);
 }
 
 /* Session 35: `sh.rotate_sampled` (c' = P Y(Rᵀ D) c, the coefficients of f(Rᵀd)) in one C call, float64:
@@ -416,7 +425,8 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
                const float *O, int64_t orr, int64_t oc, const float *ef, const float *fk, int64_t Mf,
                float inv, float *img, int64_t *gl, int64_t *count, int64_t nt, int64_t fast) {
     if (nt <= 1) {
-        *count = px_any(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
+        const int64_t c = px_any(0, n, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl, fast);
+        if (count) *count = c;
         return;
     }
     int64_t cnt[64];
@@ -426,6 +436,7 @@ void sh_pixels(int64_t n, int64_t S2, const int64_t *face, const uint8_t *hit,
         const int64_t a = n * k / nt, e = n * (k + 1) / nt;
         cnt[k] = px_any(a, e, S2, face, hit, B, br, bc, N, nr, nc, O, orr, oc, ef, fk, Mf, inv, img, gl + a * S2, fast);
     }
+    if (!count) return;                                /* session 41: no list wanted (a relit frame) */
     int64_t tot = cnt[0];
     for (int64_t k = 1; k < nt; ++k) {                 /* each range's list after the previous ones */
         memmove(gl + tot, gl + (n * k / nt) * S2, (size_t)cnt[k] * sizeof(int64_t));
@@ -575,6 +586,20 @@ static void vm_rows(int64_t n2, const float *__restrict M, const float *__restri
             out[r * n2 + i] = s0; out[(Vg + r) * n2 + i] = s1; out[(2 * Vg + r) * n2 + i] = s2;
         }
     }
+}
+
+/* Session 41: `sh_vm_rows` from l (n², 3) as the frame holds it (its (3, n²) transpose built here, not by
+   three torch calls), the rows checked here ([0, Vg): else *bad = 1 and nothing written). */
+void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
+                float *out, int64_t nt);
+void sh_vm_rows_l(int64_t n2, const float *M, const float *l, const int64_t *rows, int64_t R, int64_t Vg,
+                  float *out, int64_t nt, int64_t *bad) {
+    for (int64_t q = 0; q < R; ++q)
+        if (rows[q] < 0 || rows[q] >= Vg) { *bad = 1; return; }
+    float lt[3 * 64];
+    for (int64_t j = 0; j < n2; ++j)
+        for (int64_t c = 0; c < 3; ++c) lt[c * n2 + j] = l[3 * j + c];
+    sh_vm_rows(n2, M, lt, rows, R, Vg, out, nt);
 }
 
 void sh_vm_rows(int64_t n2, const float *M, const float *lt, const int64_t *rows, int64_t R, int64_t Vg,
@@ -980,6 +1005,67 @@ void sh_relight_build(int64_t Q, int64_t n, const int64_t *g, const int64_t *fac
         rb_range(nb * k / nt, nb * (k + 1) / nt, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg,
                  T, tv, ti, Mv, kd, ks, G, vcos, A, sel, S2, blk, pix);
 }
+
+/* Session 41: a lighting change's light stage in one call (`SHPRT._light_stage` on grey transfer, `light`):
+   R = W Qᵀ (3 × 3 row-major doubles), lw = `sh_rotate`(cl, R) (n², 3) doubles, lf = (float) lw,
+   e3[c, v] = Σ_j lf[j, c] t[j, v] (t (n², V) floats: the lighting-major grey transfer; j ascending),
+   ef[f, 3k + c] = e3[c, F[f, k]] (F (Mf, 3) int64, each in [0, V)). The vertices, then the faces,
+   split over nt threads (one OpenMP region). Its oracle is the torch stage (`rotate` after the 3 × 3
+   product, `apply_lighting`'s GEMM, the corner gather): float32 round-off (the GEMM's own order). */
+static void le_range(int64_t a, int64_t b, int64_t n2, int64_t V, const float *t, const float *lf, float *e3) {
+    int64_t v = a;
+    for (; v + 8 <= b; v += 8) {
+        v8 s0 = {0}, s1 = {0}, s2 = {0};
+        for (int64_t j = 0; j < n2; ++j) {
+            const v8 x = *(const v8 *)(t + j * V + v);
+            s0 += lf[3 * j] * x; s1 += lf[3 * j + 1] * x; s2 += lf[3 * j + 2] * x;
+        }
+        *(v8 *)(e3 + v) = s0; *(v8 *)(e3 + V + v) = s1; *(v8 *)(e3 + 2 * V + v) = s2;
+    }
+    for (; v < b; ++v) {
+        float s0 = 0, s1 = 0, s2 = 0;
+        for (int64_t j = 0; j < n2; ++j) {
+            const float x = t[j * V + v];
+            s0 += lf[3 * j] * x; s1 += lf[3 * j + 1] * x; s2 += lf[3 * j + 2] * x;
+        }
+        e3[v] = s0; e3[V + v] = s1; e3[2 * V + v] = s2;
+    }
+}
+
+static void lf_range(int64_t a, int64_t b, int64_t V, const int64_t *F, const float *e3, float *ef) {
+    for (int64_t f = a; f < b; ++f)
+        for (int64_t k = 0; k < 3; ++k) {
+            const int64_t x = F[3 * f + k];
+            ef[9 * f + 3 * k] = e3[x]; ef[9 * f + 3 * k + 1] = e3[V + x]; ef[9 * f + 3 * k + 2] = e3[2 * V + x];
+        }
+}
+
+void sh_light(int64_t n, int64_t K, const double *cl, const double *W, const double *QT, const double *D,
+              const double *P, double *lw, float *lf, int64_t V, const float *t, float *e3, int64_t Mf,
+              const int64_t *F, float *ef, int64_t nt) {
+    double R[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            R[i * 3 + j] = W[i * 3] * QT[j] + W[i * 3 + 1] * QT[3 + j] + W[i * 3 + 2] * QT[6 + j];
+    sh_rotate(n, K, 3, cl, R, D, P, lw);
+    const int64_t n2 = n * n;
+    for (int64_t i = 0; i < 3 * n2; ++i) lf[i] = (float)lw[i];
+    if (nt <= 1) {
+        le_range(0, V, n2, V, t, lf, e3);
+        lf_range(0, Mf, V, F, e3, ef);
+        return;
+    }
+    #pragma omp parallel num_threads(nt)
+    {
+        #pragma omp for schedule(static)
+        for (int64_t k = 0; k < nt; ++k)
+            le_range(k == 0 ? 0 : (V * k / nt) & ~(int64_t)7, k == nt - 1 ? V : (V * (k + 1) / nt) & ~(int64_t)7,
+                     n2, V, t, lf, e3);
+        #pragma omp for schedule(static)
+        for (int64_t k = 0; k < nt; ++k)
+            lf_range(Mf * k / nt, Mf * (k + 1) / nt, V, F, e3, ef);
+    }
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
@@ -987,10 +1073,13 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_add_pixels": [_P, _I, _I, _P, ctypes.c_float, _P],
                "sh_need_rows": [_P, _I, _P, _I, _P, _I, _P, _P, _P, _P],
                "sh_rotate": [_I, _I, _I, _P, _P, _P, _P, _P],
+               "sh_light": [_I, _I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _P, _I],
                "sh_view_rows": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_glossy": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                              _P, _P, _P, _P, _P, _P, _P, _I, _P, _I, _P, _I, ctypes.c_float],
                "sh_vm_rows": [_I, _P, _P, _P, _I, _I, _P, _I],
+               "sh_vm_rows_l": [_I, _P, _P, _P, _I, _I, _P, _I, _P],
+               "sh_view_rows_z": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
                "sh_relight_build": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
                                     _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
@@ -1010,10 +1099,20 @@ MIN_RELIGHT_PER_THREAD = 1024   # glossy samples below which one thread does the
 FUSED_GLOSSY = True
 
 
+_LOADED: list = [None]
+
+
 def _lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call, so a
-    # None met while compilation was off (a test's monkeypatch) is not kept for the process
-    return native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    # a None is not kept: `native.load` reads PRTBENCH_COMPILE at each call, so a None met while compilation
+    # was off (a test's monkeypatch) is not kept for the process. Session 41: the loaded library is kept here
+    # (PRTBENCH_COMPILE still read at each call): `native.load`'s lookup (its signature tuples, the flags,
+    # the source key) cost 20-60 µs a call with the caches cold, 3-5 calls a frame
+    if not compile_enabled():
+        return None
+    lib = _LOADED[0]
+    if lib is None:
+        lib = _LOADED[0] = native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
+    return lib
 
 
 def _flags() -> tuple[str, ...]:
@@ -1141,17 +1240,35 @@ def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid:
             or fg.ndim != 2 or fg.shape[1] != 3 or fg.shape[0] != fk.shape[0] or face.shape != hit.shape
             or face.ndim != 1 or fk.shape[0] == 0):
         return None
-    face, hit, fk, fg = face.contiguous(), hit.contiguous(), fk.contiguous(), fg.contiguous()
+    face, hit, fk, fg = _c(face), _c(hit), _c(fk), _c(fg)
     n, Mf = int(face.numel()), int(fk.shape[0])
     nt = max(1, min(torch.get_num_threads(), n // MIN_SAMPLES_PER_MARK_THREAD))
-    fmark = torch.empty(nt * (Mf + 1), dtype=torch.uint8)
-    mark = torch.zeros(Vg, dtype=torch.uint8)
+    # session 41: the face and row marks in kept scratch buffers (the C call zeroes what it reads), the count
+    # in a ctypes integer: four torch allocations fewer a frame
+    fmark, mark = _scratch(0, nt * (Mf + 1)), _scratch(1, Vg)
     out = torch.empty(Vg, dtype=torch.int64)
-    cnt = torch.zeros(1, dtype=torch.int64)
+    cnt = ctypes.c_int64(0)
     v = valid.contiguous().view(torch.uint8) if valid is not None else None
-    lib.sh_view_rows(n, face.data_ptr(), hit.data_ptr(), fk.data_ptr(), Mf, fg.data_ptr(), Vg, fmark.data_ptr(),
-                     mark.data_ptr(), v.data_ptr() if v is not None else None, out.data_ptr(), cnt.data_ptr(), nt)
-    return out[:int(cnt)]
+    lib.sh_view_rows_z(n, face.data_ptr(), hit.data_ptr(), fk.data_ptr(), Mf, fg.data_ptr(), Vg, fmark.data_ptr(),
+                       mark.data_ptr(), v.data_ptr() if v is not None else None, out.data_ptr(), ctypes.addressof(cnt),
+                       nt)
+    return out[:cnt.value]
+
+
+_SCRATCH: list = [torch.empty(0, dtype=torch.uint8), torch.empty(0, dtype=torch.uint8)]
+
+
+def _scratch(i: int, nbytes: int) -> Tensor:
+    """Kept uint8 scratch buffer ``i`` of at least ``nbytes`` (its contents undefined: `view_rows`' C call
+    zeroes the parts it reads)."""
+    if _SCRATCH[i].numel() < nbytes:
+        _SCRATCH[i] = torch.empty(nbytes, dtype=torch.uint8)
+    return _SCRATCH[i]
+
+
+def _c(x: Tensor) -> Tensor:
+    """``x`` when contiguous (no torch call), else a contiguous copy."""
+    return x if x.is_contiguous() else x.contiguous()
 
 
 MIN_SAMPLES_PER_MARK_THREAD = 1 << 15   # G-buffer samples below which one thread marks the faces (`view_rows`)
@@ -1189,7 +1306,7 @@ VECTOR_PIXELS = True
 
 
 def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
-           S2: int) -> tuple[Tensor, Tensor] | None:
+           S2: int, *, listed: bool = True, shape: tuple | None = None) -> tuple[Tensor, Tensor | None] | None:
     """`method._pixels_impl`'s pass as one C loop that also lists the glossy samples: (img (n, 3),
     g (Qg,) int64 ascending, the samples ``hit & fk[face, 3] != 0``) for the G-buffer arrays face
     (P,) int64, hit (P,) bool, bary (P, 2), normal and wo (P, 3) float32 (any strides), P = n·S2,
@@ -1204,18 +1321,19 @@ def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, 
     P = int(face.numel())
     if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo)):
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
-    face, hit = face.contiguous(), hit.contiguous()
-    ef, fk = ef.contiguous(), fk.contiguous()
+    face, hit, ef, fk = _c(face), _c(hit), _c(ef), _c(fk)
     n = P // S2
-    img = torch.empty(n, 3)
+    # session 41: ``listed=False`` (a frame shaded from the relight cache: no glossy list read) skips the
+    # list's serial merge and copy; the image in ``shape`` when given (n·3 values); the count a ctypes int
+    img = torch.empty(shape if shape is not None and math.prod(shape) == 3 * n else (n, 3))
     gl = _gl_buffer(P)
-    cnt = torch.zeros(1, dtype=torch.int64)
+    cnt = ctypes.c_int64(0)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
     lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
                   normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                   ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
-                  cnt.data_ptr(), nt, int(bool(VECTOR_PIXELS)))
-    return img, gl[:int(cnt)].clone()
+                  ctypes.addressof(cnt) if listed else None, nt, int(bool(VECTOR_PIXELS)))
+    return img, (gl[:cnt.value].clone() if listed else None)
 
 
 _GL: list = [torch.empty(0, dtype=torch.int64)]
@@ -1290,7 +1408,7 @@ def relight_unpack(blk: Tensor, Q: int, n2: int) -> tuple[Tensor, Tensor, Tensor
     return (torch.cat([X[:n2], X[n2:2 * n2]], 1), X[2 * n2:2 * n2 + 3].contiguous(), X[2 * n2 + 3:].contiguous())
 
 
-def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bool:
+def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int, prange: tuple | None = None) -> bool:
     """img (n, 3) += max(0, kd · lᵀd + ks · lᵀq) / S² at the pixels pix (Q,) int64 (ascending) of the
     packed relight cache blk (`relight_pack`) by one C pass (`method._relight_add` on the unpacked
     cache is its oracle: the same products and sums, i ascending); False (nothing done) where it
@@ -1300,13 +1418,16 @@ def relight_add(img: Tensor, blk: Tensor, l: Tensor, pix: Tensor, S2: int) -> bo
     n2 = int(l.shape[0])
     if (lib is None or img.device.type != "cpu" or any(x.dtype != torch.float32 for x in (img, blk, l))
             or pix.dtype != torch.int64 or not (img.is_contiguous() and blk.is_contiguous() and pix.is_contiguous())
-            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim != 2 or img.shape[1] != 3):
+            or blk.shape != (-(-Q // 8), (2 * n2 + 6) * 8) or l.shape != (n2, 3) or img.ndim < 2 or img.shape[-1] != 3):
         return False
     if Q == 0:
         return True
-    if int(pix[0]) < 0 or int(pix[-1]) >= img.shape[0]:
+    # session 41: the pixels of any contiguous (..., 3) image (the caller's (H, W, 3)); ``prange`` = (pix[0],
+    # pix[-1]) when the caller keeps them (the cache's pixels are fixed: two torch calls fewer a frame)
+    lo, hi = prange if prange is not None else (int(pix[0]), int(pix[-1]))
+    if lo < 0 or hi >= img.numel() // 3:
         raise IndexError("a sample outside the image")
-    lc = l.contiguous()
+    lc = _c(l)
     # session 39: split over the threads at pixel boundaries (the same bits at any thread count)
     nt = max(1, min(torch.get_num_threads(), Q // MIN_RELIGHT_PER_THREAD)) if RELIGHT_THREADS else 1
     lib.sh_relight_add(Q, n2, blk.data_ptr(), lc.data_ptr(), pix.data_ptr(), 1.0 / S2, img.data_ptr(), nt)
@@ -1327,14 +1448,21 @@ def rows_vertex_major(Mv: Tensor, l: Tensor, rows: Tensor, out: Tensor) -> bool:
     if Mv.shape[2] != n2 or l.shape != (n2, 3) or out.shape != (3, Vg, n2):
         raise ValueError(f"M (Vg, n², n²), l (n², 3), out (3, Vg, n²) expected, got {tuple(Mv.shape)}, "
                          f"{tuple(l.shape)}, {tuple(out.shape)}")
-    r = rows.to(torch.int64).contiguous()
+    r = rows if rows.dtype == torch.int64 and rows.is_contiguous() else rows.to(torch.int64).contiguous()
     R = int(r.numel())
     if R == 0:
+        return True
+    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
+    if l.dtype == torch.float32 and l.is_contiguous() and l.device.type == "cpu":
+        # session 41: l as it is, transposed and the rows checked by the C call (no torch call)
+        bad = ctypes.c_int64(0)
+        lib.sh_vm_rows_l(n2, Mv.data_ptr(), l.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt, ctypes.addressof(bad))
+        if bad.value:
+            raise IndexError("a glossy row outside M")
         return True
     if int(r.min()) < 0 or int(r.max()) >= Vg:
         raise IndexError("a glossy row outside M")
     lt = l.to(torch.float32).T.contiguous()                                    # (3, n²)
-    nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_THREAD))
     lib.sh_vm_rows(n2, Mv.data_ptr(), lt.data_ptr(), r.data_ptr(), R, Vg, out.data_ptr(), nt)
     return True
 
@@ -1402,12 +1530,13 @@ VIEW_CHUNK = 256
 
 def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor, S2: int,
          reg: Tensor, fg: Tensor, lg3: Tensor, kd: Tensor, ks: Tensor, G: Tensor, vcos: Tensor, A: Tensor,
-         S: Tensor) -> Tensor | None:
+         S: Tensor, shape: tuple | None = None) -> Tensor | None:
     """A view frame's image (n, 3) in one C pass (session 32): `pixels` and then `glossy` adding into the
     pixels (``img``), per chunk of `VIEW_CHUNK` pixels — the same image bit for bit (the same loops, each
     pixel's value written, then its glossy samples added in ascending order, by one thread). For a frame
     whose l' table (``lg3`` (3, Vg, n²)) is complete: no glossy list is returned. None where either loop
-    would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s."""
+    would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s; ``shape``: the
+    image's shape when it holds n·3 values (session 41: the caller's (H, W, 3)), else (n, 3)."""
     lib = _lib()
     n = math.isqrt(int(G.shape[1]))
     if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
@@ -1421,17 +1550,74 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
     P = int(face.numel())
     if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo, reg)):
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
-    face, hit, reg = face.contiguous(), hit.contiguous(), reg.contiguous()
-    ef, fk, fg, kd, ks, G, A = (x.contiguous() for x in (ef, fk, fg, kd, ks, G, A))
+    face, hit, reg, ef, fk, fg, kd, ks, G, A = (_c(x) for x in (face, hit, reg, ef, fk, fg, kd, ks, G, A))
     v8, sel = _view_tables(vcos, S)
     npx = P // S2
-    img = torch.empty(npx, 3)
-    ok = torch.zeros(1, dtype=torch.int64)
+    # session 41: the image in the caller's shape (`SHPRT._render_fast` returns it as it is), the flag a ctypes
+    # integer: two torch calls fewer a frame
+    img = torch.empty(shape if shape is not None and math.prod(shape) == 3 * npx else (npx, 3))
+    ok = ctypes.c_int64(0)
     nt = max(1, min(torch.get_num_threads(), npx // MIN_PIXELS_PER_THREAD))
     lib.sh_view(npx, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
                 normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                 ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), int(bool(VECTOR_PIXELS)),
                 n, reg.data_ptr(), int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1),
                 kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
-                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ok.data_ptr())
-    return img if int(ok) else None
+                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ctypes.addressof(ok))
+    return img if ok.value else None
+
+
+MIN_LIGHT_PER_THREAD = 4096     # vertices below which one thread runs `light`'s passes
+
+
+class Light:
+    """A lighting change's light stage by one C call (session 41, `sh_light`): the world-frame lighting
+    l (n², 3) float32 — the polar-frame coefficients cl (n², 3) float64 rotated by W Qᵀ (W the map's
+    ``to_world``, Qᵀ `sh._LATLONG_QT`; `rotate`'s samples and sums) and rounded —, e = t·l channel-major
+    (3, V) and the face-corner table ef (M, 9) (ef[f, 3k + c] = e[c, F[f, k]]), where `SHPRT._light_stage`
+    ran ~10 torch calls (each 20-170 µs with the caches cold after the harness's idle and G-buffer:
+    ~0.65 ms of a creature VL frame, serial at any thread count). Bound once to the static arguments
+    (t, F, the order), checked here; `__call__` returns None where it does not run (the caller takes
+    the torch stage, its oracle: float32 round-off, the GEMM's own order of the sums over j)."""
+
+    def __init__(self, t: Tensor, F: Tensor, order: int) -> None:
+        self.ok = False
+        lib = _lib()
+        if lib is None or not 1 <= order <= 8 or t.device.type != "cpu" or F.device.type != "cpu":
+            return
+        n2 = order * order
+        if t.dim() != 3 or t.shape[1] != n2 or t.shape[2] != 1 or t.dtype != torch.float32:
+            return
+        V = int(t.shape[0])
+        tl = t.permute(2, 1, 0)                        # (1, n², V): the lighting-major memory of grey t
+        if not tl.is_contiguous() or F.dim() != 2 or F.shape[1] != 3 or F.dtype != torch.int64 or F.numel() == 0:
+            return
+        from methods.core.sh import _LATLONG_QT, _rotation_samples
+
+        D, P = _rotation_samples(order, "cpu")
+        if D.shape[0] > 256 or P.shape != (n2, D.shape[0]):
+            return
+        F = F.contiguous()
+        if int(F.min()) < 0 or int(F.max()) >= V:
+            raise IndexError("a face corner outside the vertices")
+        self.lib, self.t, self.F, self.order, self.n2, self.V, self.Mf = lib, t, F, order, n2, V, int(F.shape[0])
+        self.D, self.P = D.contiguous(), P.contiguous()
+        self.QT = _LATLONG_QT.to(torch.float64).contiguous()
+        self.lw = torch.empty(n2, 3, dtype=torch.float64)          # the rotated doubles (scratch)
+        self.ok = True
+
+    def __call__(self, cl: Tensor, W: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+        """(l (n², 3) float32, e (3, V) float32, ef (M, 9) float32) of the polar coefficients cl (n², 3)
+        float64 and the map's rotation W (3, 3) float64 (CPU, contiguous); None where it does not run."""
+        if (not self.ok or cl.dtype != torch.float64 or W.dtype != torch.float64 or tuple(cl.shape) != (self.n2, 3)
+                or tuple(W.shape) != (3, 3) or cl.device.type != "cpu" or W.device.type != "cpu"
+                or not cl.is_contiguous() or not W.is_contiguous()):
+            return None
+        lf = torch.empty(self.n2, 3)
+        e3 = torch.empty(3, self.V)
+        ef = torch.empty(self.Mf, 9)
+        nt = max(1, min(torch.get_num_threads(), self.V // MIN_LIGHT_PER_THREAD))
+        self.lib.sh_light(self.order, int(self.D.shape[0]), cl.data_ptr(), W.data_ptr(), self.QT.data_ptr(),
+                          self.D.data_ptr(), self.P.data_ptr(), self.lw.data_ptr(), lf.data_ptr(), self.V,
+                          self.t.data_ptr(), e3.data_ptr(), self.Mf, self.F.data_ptr(), ef.data_ptr(), nt)
+        return lf, e3, ef

@@ -740,6 +740,9 @@ def test_native_pixel_pass_equals_the_compiled_pass(S2, threads, vector, monkeyp
             wg = want[1].reshape(-1).nonzero().squeeze(-1)
             assert 0 < g.numel() < P and torch.equal(g, wg)
             assert (want[0] > 0).any() and torch.equal(img, want[0]) and torch.equal(img, comp[0])
+            # session 41: without the list (a relit frame) the same image, in the shape asked for
+            img2, g2 = native.pixels(face, hit, *layout, ef, fk, S2, listed=False, shape=(1, n, 3))
+            assert g2 is None and img2.shape == (1, n, 3) and torch.equal(img2.view(n, 3), img)
     finally:
         torch.set_num_threads(old)
 
@@ -849,7 +852,7 @@ def _switch_frames(monkeypatch, threads: int, kind: str, seed: int, switch: str,
     m.precompute(scene)
     calls = []
     real = getattr(native, entry)
-    monkeypatch.setattr(native, entry, lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(native, entry, lambda *a, **k: calls.append(1) or real(*a, **k))
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -945,8 +948,14 @@ def test_native_vertex_major_rows_equal_the_full_product(order, monkeypatch):
         assert native.rows_vertex_major(Mv, l, rows, out)
         assert (out[:, rows] - full[:, rows]).abs().max() <= 1e-5 * full.abs().max()
         assert bool((out[:, others] == 7.0).all())
-    with pytest.raises(IndexError):
-        native.rows_vertex_major(Mv, l, torch.tensor([Vg]), torch.empty(3, Vg, n2))
+        # session 41: l transposed in the C call; a strided l takes the torch transpose: the same bits
+        out2 = torch.full((3, Vg, n2), 7.0)
+        assert native.rows_vertex_major(Mv, l.T.contiguous().T, rows, out2) and torch.equal(out2, out)
+    for bad in ([Vg], [0, -1]):                     # the rows checked (session 41: by the C call)
+        out = torch.full((3, Vg, n2), 7.0)
+        with pytest.raises(IndexError):
+            native.rows_vertex_major(Mv, l, torch.tensor(bad), out)
+        assert bool((out == 7.0).all())
 
 
 def test_vertex_major_M_is_M_without_bounces(alcove):
@@ -1063,16 +1072,17 @@ def test_native_view_rows_equal_the_torch_rows(threads, monkeypatch):
     M, Vg, P = 3000, 6000, 4001                      # most faces under one sample or none: hit decides
     fg = torch.randint(0, Vg, (M, 3), generator=g, dtype=torch.int32)
     fk = torch.cat([torch.rand(M, 3, generator=g), (torch.rand(M, 1, generator=g) < 0.3).float()], 1)
-    face = torch.randint(-1, M, (P,), generator=g)
-    hit = (face >= 0) & (torch.rand(P, generator=g) < 0.9)
     valid = torch.rand(Vg, generator=g) < 0.4
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        for v in (None, valid):
-            want = native.view_rows_torch(face, hit, fk, fg, Vg, v)
-            got = native.view_rows(face, hit, fk, fg, Vg, v)
-            assert 0 < want.numel() < Vg and torch.equal(got, want)
+        for _ in range(3):            # (session 41: the marks in kept scratch buffers: each call its own)
+            face = torch.randint(-1, M, (P,), generator=g)
+            hit = (face >= 0) & (torch.rand(P, generator=g) < 0.9)
+            for v in (None, valid):
+                want = native.view_rows_torch(face, hit, fk, fg, Vg, v)
+                got = native.view_rows(face, hit, fk, fg, Vg, v)
+                assert 0 < want.numel() < Vg and torch.equal(got, want)
         gl = (hit & (fk[face.clamp_min(0), 3] != 0)).nonzero().squeeze(-1)
         assert torch.equal(native.view_rows_torch(face, hit, fk, fg, Vg, None),
                            native.need_rows_torch(gl, face, fg, Vg, None))
@@ -1140,6 +1150,15 @@ def test_native_relight_add_threads_split_at_pixels(threads, monkeypatch):
         torch.set_num_threads(old)
     assert torch.equal(imgs[0], imgs[1]) and torch.equal(imgs[0], imgs[2])
     assert (imgs[2] - want).abs().max() <= 1e-6 * (want - img0).abs().max()
+    # session 41: an (H, W, 3) image and the pixels' range kept by the caller: the same bits; a range
+    # beyond the image is refused before anything is added
+    img3 = img0.clone().view(3, n // 3, 3)
+    assert native.relight_add(img3, packed["blk"], l, packed["p"], S2, (int(pix[0]), int(pix[-1])))
+    assert torch.equal(img3.view(n, 3), imgs[0])
+    with pytest.raises(IndexError):
+        native.relight_add(img0.clone(), packed["blk"], l, packed["p"], S2, (0, n))
+    with pytest.raises(IndexError):
+        native.relight_add(img0.clone()[: n - 1], packed["blk"], l, packed["p"], S2, (0, n - 1))
 
 
 def test_native_frames_do_not_import_dynamo():
@@ -1242,3 +1261,80 @@ def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, t
         assert y.abs().max() > 0 and (x - y).abs().max() <= 2e-6 * y.abs().max()
     pad = got["blk"].view(-1, 2 * n2 + 6, 8)[-1, :, Q % 8:] if Q % 8 else torch.zeros(1)
     assert bool((pad == 0).all())
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("scene_name, order", [("sphere_plane", 5), ("alcove", 3), ("alcove", 8), ("sphere_plane", 2)])
+def test_native_light_stage_equals_the_torch_stage(scene_name, order, threads, monkeypatch):
+    """Session 41: a lighting change's light stage by one C call (`native.Light`, `NATIVE_LIGHT`: the rotation
+    of the cached polar coefficients, e = t·l and the face-corner table) equals the torch stage (its oracle):
+    l to float32 round-off (the 3 × 3 product W Qᵀ in another order), e = t·l to float32 round-off (the
+    GEMM's own order over j), the corner table = e at each face's corners bit for bit, the same bits at 1
+    and 3 threads (vertex ranges split off the 8-lane blocks); the same lighting is not recomputed, a new
+    rotation is; L and VL frames' images equal the torch stage's to float32 round-off."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene(scene_name, "test")
+    m = SHPRT(order=order, bounces=0, rays=16)
+    m.precompute(scene)
+    monkeypatch.setattr(native, "MIN_LIGHT_PER_THREAD", 1)
+    V = int(m.t.shape[0])
+    assert V % 8 and V > 24                     # a scalar tail and, at 3 threads, ranges split off the blocks
+    old = torch.get_num_threads()
+    try:
+        for kind in ("L", "VL", "E"):
+            frames = make_sequence(scene, kind, n_frames=3, seed=2)
+            gbs = [make_gbuffer(scene, f, 2) for f in frames]
+            a, b, one = (m.with_bounces(0) for _ in range(3))
+            for f, gb in zip(frames, gbs):
+                monkeypatch.setattr(shm, "NATIVE_LIGHT", False)
+                want = b.render(f, gb)
+                monkeypatch.setattr(shm, "NATIVE_LIGHT", True)
+                torch.set_num_threads(threads)
+                n_light = a.stats["light"]
+                got = a.render(f, gb)
+                assert a.stats["light"] == n_light + 1 and a._nlight is not None and a._nlight[2].ok
+                a.render(f, gb)                                       # the same lighting: not again
+                assert a.stats["light"] == n_light + 1
+                torch.set_num_threads(1)
+                one.render(f, gb)
+                lmax = b._light.abs().max()
+                assert (a._light - b._light).abs().max() <= 1e-6 * lmax
+                emax = b._e.abs().max()
+                assert (a._e - b._e).abs().max() <= 2e-6 * emax and float((a._e - b._e).abs().max()) < 1e-3
+                e3 = a._e.T
+                assert torch.equal(a._ef, e3.reshape(-1)[m._corner_index("cpu")].view(-1, 9))
+                assert torch.equal(a._e, one._e) and torch.equal(a._ef, one._ef) and torch.equal(a._light, one._light)
+                assert (got - want).abs().max() <= 1e-5 * want.abs().max().clamp_min(1e-6)
+    finally:
+        torch.set_num_threads(old)
+    rgb = m.with_bounces(0)
+    rgb.t = rgb.t.expand(-1, -1, 3)                             # RGB transfer: the torch stage
+    f = make_sequence(scene, "L", n_frames=1, seed=2)[0]
+    rgb._light_stage(f.envmap)
+    assert (rgb._nlight is None or rgb._nlight[2] is None) and rgb.stats["light"] == 1
+
+
+def test_light_stage_key_follows_the_rotation_in_place():
+    """Session 41: `_light_stage` skips its key's values when the map's ``to_world`` is the same tensor at the
+    same version (a V frame), and recomputes when that tensor is changed in place (its version bumps) or
+    another tensor holds other values; another tensor with the same values is the same lighting."""
+    scene = get_scene("sphere_plane", "test")
+    m = SHPRT(order=3, bounces=0, rays=8)
+    m.precompute(scene)
+    env = make_sequence(scene, "L", n_frames=1, seed=1)[0].envmap.rotated(torch.eye(3, dtype=torch.float64))
+    m._light_stage(env)
+    n, l0 = m.stats["light"], m._light.clone()
+    m._light_stage(env)
+    assert m.stats["light"] == n
+    m._light_stage(env.rotated(torch.eye(3, dtype=torch.float64)))      # a new tensor, the same values
+    assert m.stats["light"] == n
+    m._light_stage(env)                                                 # (this tensor the key's again)
+    assert m.stats["light"] == n and m._key_w[0] is env.to_world
+    env.to_world.copy_(torch.as_tensor(rotation_y(0.7), dtype=torch.float64) @ env.to_world)
+    m._light_stage(env)
+    assert m.stats["light"] == n + 1 and (m._light - l0).abs().max() > 1e-3
+    want = SHPRT.lighting(m, env).float()
+    assert (m._light - want).abs().max() <= 1e-6 * want.abs().max()
