@@ -370,6 +370,7 @@ class ZHShadow(Method):
         self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
+        self._light_plan: tuple | None = None   # ((n², 3), `native.light_setup`): `_light_world`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -487,11 +488,11 @@ class ZHShadow(Method):
         a sequence, bench creature, 1 thread). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
         `project_latlong`."""
-        data = torch.as_tensor(env.data)
+        data = env.data if isinstance(env.data, Tensor) else torch.as_tensor(env.data)
         dkey = (id(env.data), data.data_ptr(), tuple(data.shape))
-        key = (dkey, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
+        tw = env.to_world
+        key = (dkey, tuple((tw if isinstance(tw, Tensor) else torch.as_tensor(tw)).reshape(-1).tolist()))
         if self._light is None or self._light[0] != key:
-            R = torch.as_tensor(env.to_world, dtype=torch.float64, device=data.device)
             if self._env_local is None or self._env_local[0] != dkey:   # a new map
                 self._env_local = (dkey, None)
                 self._env_bytes = int(data.numel() * data.element_size())
@@ -501,15 +502,38 @@ class ZHShadow(Method):
                 polar = zn.project_latlong_polar(data, self.config["order"])
                 if self.rotated_lighting:
                     self._env_local = (dkey, polar)
-                world = rt.rotate_lighting(polar, R @ _LATLONG_QT)
+                world = self._light_world(polar, key[1], tw, data)
+                if world is None:
+                    R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                    world = rt.rotate_lighting(polar, R @ _LATLONG_QT).to(data.dtype).float()
             elif self.rotated_lighting and self._env_local[1] is not None:
-                world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT)
+                world = self._light_world(self._env_local[1], key[1], tw, data)
+                if world is None:
+                    R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                    world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT).to(data.dtype).float()
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
-                world = rt.rotate_lighting(self._env_local[1], R)
-            self._light = (key, world.to(data.dtype).float())
+                R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                world = rt.rotate_lighting(self._env_local[1], R).to(data.dtype).float()
+            self._light = (key, world)
         return self._light[1]
+
+    def _light_world(self, polar: Tensor, flat: tuple, tw, data: Tensor) -> Tensor | None:
+        """``rotate_lighting(polar, R @ Qᵀ).to(data.dtype).float()`` for R = ``tw`` (3, 3), ``flat`` its nine
+        values, by one C call (`native.light_world`, zh41l: the bits of `rotate_lighting`'s C path) where the
+        base's steps take that path and ``data`` is float32 (one rounding); the call's arguments kept per
+        (n², 3) (``self._light_plan``). None elsewhere (then the caller's steps: the oracle, with
+        ``native.NATIVE_LIGHT`` off)."""
+        if not (zn.NATIVE_LIGHT and rt.NATIVE_ROTATE and data.dtype == torch.float32 and data.device.type == "cpu"
+                and getattr(tw, "shape", None) == (3, 3) and polar.dim() == 2 and polar.shape[0] <= 256):
+            return None
+        lp = self._light_plan
+        if lp is None or lp[0] != polar.shape:
+            shape = (int(polar.shape[0]), int(polar.shape[1]))
+            st = zn.light_setup(*shape, _LATLONG_QT, rt._lighting_zyz_tensors(math.isqrt(shape[0])))
+            self._light_plan = lp = (shape, st)
+        return None if lp[1] is None else zn.light_world(lp[1], polar, flat, rt.ROTATION_TOL)
 
     def _window(self, light: Tensor) -> Tensor:
         if self.config["window"] != "none":   # once, on the lighting: every term and mode sees it

@@ -4040,6 +4040,89 @@ def _rotate_zyz(lib, c: Tensor, ang: Tensor, tables: tuple) -> Tensor | None:
     return out
 
 
+# -- zh41l ------------------------------------------------------------------------------------------
+# A lighting frame's world-space lighting (`ZHShadow._lighting`: R = the map's to_world, c its polar-frame
+# projection) by ONE C call: R Q (Q = `sh._LATLONG_QT`, a signed permutation: each entry ((0 + R_i0 Q_0j) +
+# R_i1 Q_1j) + R_i2 Q_2j, exact — one non-zero product — and the zeros' signs torch's 3×3 product gives, +0),
+# `zh38v_angles`' test and angles, `zh38v_rotate` (the same source, the same flags: the same bits as
+# `rotate_lighting`) and the float64 → float32 rounding of ``.float()``. In the base these were a torch product,
+# the key's tensor, `rotate_lighting`'s wrappers (its library lookup, three torch.empty, two ctypes calls) and
+# ``.to(float32)``: ~0.31 ms of a lighting-only order-8 frame at 1 thread after the suite's idle, for ~10 µs of
+# arithmetic. The scratch (float64 angles / steps / result) is kept per projection (`light_setup`); the float32
+# result is a new tensor each call (callers keep it: `ZHShadow._light`).
+_LIGHT_SOURCE = _ROTATE_SOURCE + r"""
+/* out (n2, C) float32 = (float) `zh38v_rotate`(c, angles of R Q); 0, or 1 where `zh38v_angles` refuses R Q
+   (then nothing written). a: the kept arguments n2, C, Q, mabs, perm, sgn, Xm, Xp, w (w: 3 n2 C + 3 doubles
+   of scratch). */
+int64_t zh41l_light(const int64_t *a, const double *R, const double *c, double tol, float *out) {
+    const int64_t n2 = a[0], C = a[1];
+    const double *Q = (const double *)(intptr_t)a[2];
+    double *w = (double *)(intptr_t)a[8];
+    double RQ[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            double s = 0.0;
+            for (int k = 0; k < 3; ++k) s += R[3 * i + k] * Q[3 * k + j];
+            RQ[3 * i + j] = s;
+        }
+    double *ang = w + 3 * n2 * C, *o = w + 2 * n2 * C;
+    if (zh38v_angles(RQ, tol, ang) != 0) return 1;
+    zh38v_rotate(n2, C, c, ang, (const double *)(intptr_t)a[3], (const int64_t *)(intptr_t)a[4],
+                 (const double *)(intptr_t)a[5], (const double *)(intptr_t)a[6], (const double *)(intptr_t)a[7], w, o);
+    for (int64_t i = 0; i < n2 * C; ++i) out[i] = (float)o[i];
+    return 0;
+}
+"""
+_LIGHT_SIGNATURES = {**_ROTATE_SIGNATURES, "zh41l_light": [_P, _P, _P, ctypes.c_double, _P]}
+# `ZHShadow._lighting`'s rotation of a kept projection by `light_world` where it runs; False: the base's steps
+# (R Q by torch, `runtime.rotate_lighting`, ``.float()``; the tests' oracle)
+NATIVE_LIGHT = True
+
+
+def _light_lib():
+    """The library of `zh41l_light` or None (as `_rotate_lib`; not cached here, b541a75)."""
+    if not (NATIVE_LIGHT and terms_switched_on()):
+        return None
+    lib = native.load("zh41l_light", _LIGHT_SOURCE, _LIGHT_SIGNATURES, extra_flags=("-ffp-contract=off",))
+    if lib is not None:
+        lib.zh41l_light.restype = ctypes.c_int64
+        lib.zh38v_angles.restype = ctypes.c_int64
+    return lib
+
+
+def light_setup(n2: int, C: int, Q: Tensor, tables: tuple) -> tuple | None:
+    """`light_world`'s kept arguments for (n², C) projections, Q (3, 3) float64 and ``tables``
+    (`runtime._lighting_zyz_tensors` of order n), or None where it does not run (then the caller's steps):
+    (the library's function, the packed arguments' address, n², C, a 9-double buffer for R, what they point
+    into). The function is kept: `light_world` checks the off switches (``NATIVE_LIGHT``, ``PRTBENCH_ZH_NATIVE``,
+    ``PRTBENCH_COMPILE``) at each call instead of looking the library up (b541a75: no None is kept)."""
+    lib = _light_lib()
+    if lib is None or Q.shape != (3, 3) or Q.dtype != torch.float64 or Q.device.type != "cpu":
+        return None
+    mabs, perm, sgn, Xm, Xp = tables
+    if mabs.shape != (n2,) or Xm.shape != (n2, n2) or Xp.shape != (n2, n2) or perm.dtype != torch.int64 \
+            or not all(t.is_contiguous() and t.device.type == "cpu" for t in tables):
+        return None
+    Q = Q.contiguous()
+    w = torch.empty(3 * n2 * C + 3, dtype=torch.float64)
+    args = torch.tensor([n2, C, Q.data_ptr(), *(t.data_ptr() for t in tables), w.data_ptr()], dtype=torch.int64)
+    Rbuf = (ctypes.c_double * 9)()
+    return lib.zh41l_light, args.data_ptr(), n2, C, Rbuf, (Q, tables, w, args, lib)
+
+
+def light_world(st: tuple, c: Tensor, R: tuple, tol: float) -> Tensor | None:
+    """(n², C) float32 = ``runtime.rotate_lighting(c, R @ Q).float()`` (its C path) for `light_setup`'s Q and R the
+    nine floats of a (3, 3) rotation row-major, by one C call (the same bits), or None: switched off, c not a
+    contiguous (n², C) float64 CPU array, or R Q not a rotation to ``tol`` (`zh38v_angles`)."""
+    fn, args, n2, C, Rbuf, _ = st
+    if not (NATIVE_LIGHT and terms_switched_on() and native.compile_enabled()) or len(R) != 9 \
+            or c.dtype != torch.float64 or c.device.type != "cpu" or c.shape != (n2, C) or not c.is_contiguous():
+        return None
+    Rbuf[:] = R
+    out = torch.empty(n2, C, dtype=torch.float32)
+    return out if fn(args, Rbuf, c.data_ptr(), tol, out.data_ptr()) == 0 else None
+
+
 # -- zh38v ------------------------------------------------------------------------------------------
 # `vertex_table`'s rows four at a time (``VTABLE_ROWS4``): `zh34p_vtable` streams its region's table W (n², C)
 # once per row — a load of W per multiply-add, ~0.65 ms for a VL frame's 3.6 K referenced rows at 1 thread

@@ -1,0 +1,92 @@
+"""Session 41 (zh41l): a lighting frame's world-space lighting by one C call (`native.light_world`: R Q, the ZYZ
+test and angles, the rotation, the float32 rounding; `ZHShadow._light_world`); its oracle the base's steps
+(``native.NATIVE_LIGHT`` off: torch's R @ Qᵀ, `runtime.rotate_lighting`, ``.float()``), the same bits."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from methods.core.sh import _LATLONG_QT
+from methods.zh_shadow import native as zn
+from methods.zh_shadow import runtime as rt
+from methods.zh_shadow.method import ZHShadow
+
+
+def _needs_lib():
+    if zn._light_lib() is None:
+        pytest.skip("no C compiler")
+
+
+def _rotations(n: int, seed: int) -> list[torch.Tensor]:
+    """Random rotations, y rotations (exact zeros: the E
+    sequences' to_world), the identity and signed permutations (zeros of either sign)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(n):
+        q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+        q = q * torch.sign(torch.diagonal(r))
+        if torch.linalg.det(q) < 0:
+            q[:, 0] = -q[:, 0]
+        out.append(q)
+        t = float(torch.rand(1, generator=g)) * 8 - 4
+        c, s = math.cos(t), math.sin(t)
+        out.append(torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64))
+    out.append(torch.eye(3, dtype=torch.float64))
+    out.append(torch.tensor([[-0.0, 0.0, 1.0], [0.0, -1.0, -0.0], [1.0, 0.0, 0.0]], dtype=torch.float64))
+    out.append(torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, -0.0], [0.0, 0.0, 1.0]], dtype=torch.float64))
+    return out
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_light_world_equals_base_steps(order):
+    """`native.light_world` = (R @ Qᵀ by torch, `runtime.rotate_lighting`, ``.float()``) bit for bit over random,
+    y-axis (zeros), identity and permutation rotations; None (the caller's steps) where R Q is no rotation."""
+    _needs_lib()
+    g = torch.Generator().manual_seed(order)
+    n2 = order * order
+    st = zn.light_setup(n2, 3, _LATLONG_QT, rt._lighting_zyz_tensors(order))
+    assert st is not None
+    for k, R in enumerate(_rotations(40, order)):
+        c = torch.randn(n2, 3, generator=g, dtype=torch.float64)
+        got = zn.light_world(st, c, tuple(R.reshape(-1).tolist()), rt.ROTATION_TOL)
+        want = rt.rotate_lighting(c, R @ _LATLONG_QT).float()
+        assert got is not None and got.dtype == torch.float32, k
+        assert torch.equal(got, want) and torch.equal(torch.signbit(got), torch.signbit(want)), (k, R)
+    c = torch.randn(n2, 3, generator=g, dtype=torch.float64)
+    assert zn.light_world(st, c, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0), 1e-7) is None
+    assert zn.light_world(st, c, (1.01, 0.0, 0.0, 0.0, 1.01, 0.0, 0.0, 0.0, 1.01), 1e-7) is None
+    assert zn.light_world(st, c.float(), (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 1e-7) is None
+    assert zn.light_world(st, c[:-1], (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 1e-7) is None
+
+
+@pytest.mark.parametrize("kind", ["L", "E"])
+@pytest.mark.parametrize("config", ["order8", "creature"])
+def test_lighting_frames_equal_base_steps(config, kind, request, monkeypatch):
+    """L / E sequences of both configurations: with `_light_world` = without it (``NATIVE_LIGHT`` off) bit for
+    bit, image and lighting, and `_light_world` made every frame's lighting."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _needs_lib()
+    model = request.getfixturevalue(config)
+    made = []
+
+    def spy(self, polar, flat, tw, data, _f=ZHShadow._light_world):
+        out = _f(self, polar, flat, tw, data)
+        made.append((self is fast, out is not None))
+        return out
+    monkeypatch.setattr(ZHShadow, "_light_world", spy)
+    fast, slow = model.with_render_config(), model.with_render_config()
+    frames = make_sequence(model.scene, kind, 5, seed=3)
+    gb = make_gbuffer(model.scene, frames[0], 2)
+    for i, f in enumerate(frames):
+        a = fast.render(f, gb)
+        monkeypatch.setattr(zn, "NATIVE_LIGHT", False)
+        b = slow.render(f, gb)
+        monkeypatch.setattr(zn, "NATIVE_LIGHT", True)
+        assert torch.equal(fast._light[1], slow._light[1]), (kind, i)
+        assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
+    assert made and all(m == (True, True) for m in made if m[0]) and not any(m[1] for m in made if not m[0]), made
+    assert sum(m[0] for m in made) == 5, made   # (one lighting a frame: E a new map, L a new rotation)
