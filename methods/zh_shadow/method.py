@@ -2001,7 +2001,10 @@ class ZHShadow(Method):
                 + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))
                 # the steady frames' blocked copies of the object entries' transfer (`native.blocked_transfer`)
                 + (0 if self._steady is None or self._steady[0] != "planes" or len(self._steady[8][-1]) < 5
-                   else sum(tensor_bytes(x) for x in self._steady[8][-1][4]))}
+                   else sum(tensor_bytes(x) for x in self._steady[8][-1][4]))
+                # (vertex shading) the steady frames' tiles of w and t_s (`native.relight_blocks`)
+                + (0 if self._steady is None or self._steady[0] != "vertex" or not isinstance(self._steady[8][8], tuple)
+                   else sum(tensor_bytes(x) for x in self._steady[8][8] if x is not None))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P

@@ -4825,7 +4825,120 @@ def relight_setup(spans: list, wf: Tensor, tsc: dict, packed: tuple) -> tuple | 
         tsp[r] = t.data_ptr()
     x = torch.empty(Nc + 1, 3, dtype=torch.float32)               # (scratch: every row written by the call)
     L = torch.empty(max(nreg, 1) * 6 * n2, dtype=torch.float32)
+    libb = _relightb_lib() if BLOCKED_RELIGHT_VERTEX else None
+    if libb is not None:   # (zh41l: the tiles in place of wf and t_s)
+        wb, tb = relight_blocks(spans, wf, tsc)
+        keep = [*keep, wb] + ([] if tb is None else [tb])
+        return libb, n2, Nc, nreg, sp, tsp, keep, packed, (wb, tb), x, L
     return lib, n2, Nc, nreg, sp, tsp, keep, packed, wf, x, L
+
+
+# zh41l: `zh39o_relight` reading a blocked copy of its transfer (``BLOCKED_RELIGHT_VERTEX``): each 64-column block of
+# w (and t_s) as one contiguous (n², 64) tile, padded with zero columns (`relight_blocks`, made once by
+# `relight_setup`), so a block streams 16 KB in order instead of n² rows of 256 bytes each Nc floats apart, and
+# its sums (64 columns × 3 channels, fixed width) stay in registers; every column the same products and sums in
+# the same order as `relight_block` (the padding's columns are computed and not stored): the same bits.
+_RELIGHTB_SOURCE = _RELIGHTV_SOURCE + r"""
+/* `relight_block` of one (n2, 64) tile wb (and tb) of a block with jn <= 64 real columns */
+static void relight_tile(int64_t n2, const float *Ld, const float *Ls, const float *wb, const float *tb,
+                         int64_t jn, int64_t clamp, float *o) {
+    float a0[64], a1[64], a2[64];
+    for (int64_t j = 0; j < 64; ++j) { a0[j] = 0.f; a1[j] = 0.f; a2[j] = 0.f; }
+    for (int64_t i = 0; i < n2; ++i) {
+        const float *w = wb + i * 64;
+        const float l0 = Ld[3 * i], l1 = Ld[3 * i + 1], l2 = Ld[3 * i + 2];
+        for (int64_t j = 0; j < 64; ++j) { a0[j] += l0 * w[j]; a1[j] += l1 * w[j]; a2[j] += l2 * w[j]; }
+    }
+    if (tb) {
+        float s0[64], s1[64], s2[64];
+        for (int64_t j = 0; j < 64; ++j) { s0[j] = 0.f; s1[j] = 0.f; s2[j] = 0.f; }
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *t = tb + i * 64;
+            const float l0 = Ls[3 * i], l1 = Ls[3 * i + 1], l2 = Ls[3 * i + 2];
+            for (int64_t j = 0; j < 64; ++j) { s0[j] += l0 * t[j]; s1[j] += l1 * t[j]; s2[j] += l2 * t[j]; }
+        }
+        for (int64_t j = 0; j < 64; ++j) { a0[j] += s0[j]; a1[j] += s1[j]; a2[j] += s2[j]; }
+    }
+    for (int64_t j = 0; j < jn; ++j) {
+        float v0 = a0[j], v1 = a1[j], v2 = a2[j];
+        if (clamp) { v0 = v0 < 0.f ? 0.f : v0; v1 = v1 < 0.f ? 0.f : v1; v2 = v2 < 0.f ? 0.f : v2; }
+        o[3 * j] = v0; o[3 * j + 1] = v1; o[3 * j + 2] = v2;
+    }
+}
+
+/* `zh39o_relight` with the transfer's blocks read from their tiles: block k (in region order) of region r is
+   wb + k n2 64 (and tb + k n2 64 where region r has t_s, tsp[r] != 0); the same values written */
+void zh41l_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
+                   const int64_t *spans, const float *wb, const float *tb, const int64_t *tsp, float inv_pi,
+                   int64_t clamp, float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out,
+                   int64_t nt, int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol,
+                   const float *tval) {
+    int64_t nb = 0;
+    for (int64_t r = 0; r < nreg; ++r) {
+        float *Ld = L + r * 6 * n2, *Ls = Ld + 3 * n2;
+        for (int64_t i = 0; i < n2; ++i)
+            for (int c = 0; c < 3; ++c) {
+                Ld[3 * i + c] = light[3 * i + c] * (kd[3 * r + c] * inv_pi);
+                Ls[3 * i + c] = light[3 * i + c] * ks[3 * r + c];
+            }
+        const int64_t m = spans[2 * r + 1] - spans[2 * r];
+        nb += m > 0 ? (m + 63) / 64 : 0;
+    }
+    x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
+#pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+#pragma omp for schedule(static)
+        for (int64_t k = 0; k < nb; ++k) {
+            int64_t r = 0, kk = k, m = 0;
+            for (; r < nreg; ++r) {   /* block k: the kk-th of region r */
+                m = spans[2 * r + 1] - spans[2 * r];
+                const int64_t c = m > 0 ? (m + 63) / 64 : 0;
+                if (kk < c) break;
+                kk -= c;
+            }
+            const int64_t j0 = kk * 64, jn = m - j0 < 64 ? m - j0 : 64;
+            const float *Ld = L + r * 6 * n2;
+            relight_tile(n2, Ld, Ld + 3 * n2, wb + k * n2 * 64, tsp[r] ? tb + k * n2 * 64 : 0, jn, clamp,
+                         x + 3 * (spans[2 * r] + j0));
+        }
+        /* (the implicit barrier: every x row written) */
+""" + _PACKED_PRODUCT_C + r"""    }
+}
+"""
+_RELIGHTB_SIGNATURES = {"zh41l_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P,
+                                          _I, _P, _P, _P, _I, _I, _P, _P, _P, _P]}
+# `relight_setup` keeps the blocked tiles and `relight_run` calls `zh41l_relight`; False: `zh39o_relight` over
+# wf and t_s (the tests' oracle)
+BLOCKED_RELIGHT_VERTEX = True
+
+
+def _relightb_lib():
+    return native.load("zh41l_relight", _RELIGHTB_SOURCE, _RELIGHTB_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+
+
+def relight_blocks(spans: list, wf: Tensor, tsc: dict) -> tuple[Tensor, Tensor | None]:
+    """The tiles `zh41l_relight` reads: wb (nb, n², 64) — block k (region order: region r's columns
+    [b0 + 64 kk, b0 + 64 kk + 64) of wf (n², Nc), zero past b1) — and tb alike of each region's t_s (n², b1 − b0)
+    (the blocks of a region without t_s left unwritten), or None when no region has t_s."""
+    n2 = int(wf.shape[0])
+    wparts, tparts = [], []
+    for r, (b0, b1) in enumerate(spans):
+        m = b1 - b0
+        nbr = -(-m // 64) if m > 0 else 0
+        if nbr == 0:
+            continue
+        pad = torch.zeros(n2, nbr * 64, dtype=torch.float32)
+        pad[:, :m] = wf[:, b0:b1]
+        wparts.append(pad.view(n2, nbr, 64).transpose(0, 1))
+        t = tsc.get(r, (None, None))[1] if r in tsc else None
+        tp = torch.zeros(n2, nbr * 64, dtype=torch.float32)
+        if t is not None:
+            tp[:, :m] = t
+        tparts.append((t is not None, tp.view(n2, nbr, 64).transpose(0, 1)))
+    wb = torch.cat(wparts).contiguous() if wparts else torch.zeros(0, n2, 64)
+    tb = torch.cat([t for _, t in tparts]).contiguous() if any(h for h, _ in tparts) else None
+    return wb, tb
 
 
 _INV_PI32 = float(torch.tensor(1.0 / math.pi, dtype=torch.float32))
@@ -4842,6 +4955,13 @@ def relight_run(setup: tuple, light: Tensor, kd: Tensor, ks: Tensor, clamp: bool
     light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
+    if isinstance(wf, tuple):   # (`zh41l_relight`: the tiles)
+        wb, tb = wf
+        lib.zh41l_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wb.data_ptr(),
+                          0 if tb is None else tb.data_ptr(), tsp.data_ptr(), _INV_PI32, int(bool(clamp)),
+                          x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
+                          int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+        return out
     lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
                       tsp.data_ptr(), _INV_PI32, int(bool(clamp)),
                       x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,

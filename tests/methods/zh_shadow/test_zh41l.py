@@ -90,3 +90,49 @@ def test_lighting_frames_equal_base_steps(config, kind, request, monkeypatch):
         assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
     assert made and all(m == (True, True) for m in made if m[0]) and not any(m[1] for m in made if not m[0]), made
     assert sum(m[0] for m in made) == 5, made   # (one lighting a frame: E a new map, L a new rotation)
+
+
+def test_relight_blocks_layout():
+    """`native.relight_blocks`: tile k of region r is its columns [b0 + 64 kk, +64) of wf (zero past b1), t_s's
+    alike where the region has one; no t_s anywhere: None."""
+    g = torch.Generator().manual_seed(0)
+    n2, spans = 16, [(0, 70), (70, 70), (70, 200)]
+    wf = torch.randn(n2, 200, generator=g)
+    t2 = torch.randn(n2, 130, generator=g)
+    wb, tb = zn.relight_blocks(spans, wf, {2: ((70, 200), t2)})
+    assert wb.shape == (2 + 3, n2, 64) and tb.shape == wb.shape
+    assert torch.equal(wb[1, :, :6], wf[:, 64:70]) and not wb[1, :, 6:].any()
+    assert torch.equal(wb[2], wf[:, 70:134]) and torch.equal(wb[4, :, :2], wf[:, 198:200]) and not wb[4, :, 2:].any()
+    assert torch.equal(tb[3], t2[:, 64:128]) and torch.equal(tb[4, :, :2], t2[:, 128:130])
+    assert zn.relight_blocks(spans, wf, {})[1] is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("clamp", [False, True])
+@pytest.mark.parametrize("kind", ["L", "E"])
+def test_blocked_relight_equals_zh39o(order8, kind, clamp, threads, monkeypatch):
+    """Order-8 L / E sequences (with misses): the steady frames' `zh41l_relight` over the tiles = `zh39o_relight`
+    over wf and t_s (``BLOCKED_RELIGHT_VERTEX`` off when the setup is made) bit for bit, at 1 and 2 threads; the
+    tiles counted in `memory` (the difference of the two objects' ``relight_transfer``)."""
+    from methods.core.threads import torch_threads
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+    from testing.gbuffers import knock_out
+
+    if zn._relightb_lib() is None or zn._relightv_lib() is None:
+        pytest.skip("no C compiler")
+    m = order8.with_render_config(clamp=clamp)
+    fast, slow = m.with_render_config(), m.with_render_config()
+    frames = make_sequence(order8.scene, kind, 5, seed=4)
+    gb = knock_out(make_gbuffer(order8.scene, frames[0], 2), 13, 2)
+    with torch_threads(threads):
+        for i, f in enumerate(frames):
+            a = fast.render(f, gb)
+            monkeypatch.setattr(zn, "BLOCKED_RELIGHT_VERTEX", False)
+            b = slow.render(f, gb)
+            monkeypatch.setattr(zn, "BLOCKED_RELIGHT_VERTEX", True)
+            assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
+    assert isinstance(fast._steady[8][8], tuple) and not isinstance(slow._steady[8][8], tuple)
+    wb, tb = fast._steady[8][8]
+    extra = fast.memory()["relight_transfer"] - slow.memory()["relight_transfer"]
+    assert extra == wb.numel() * 4 + (0 if tb is None else tb.numel() * 4) > 0
