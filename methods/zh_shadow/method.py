@@ -371,6 +371,7 @@ class ZHShadow(Method):
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
         self._light_plan: tuple | None = None   # ((n², 3), `native.light_setup`): `_light_world`
+        self._plane_light: tuple | None = None  # (the steady record, `_plane_light_setup`): `_steady_plane_terms`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -1618,23 +1619,70 @@ class ZHShadow(Method):
         if not self._steady_same(frame, gbuffer, cam, pose, mats, gk, caches, self._planes_caches()):
             return None
         light = self._window(self._lighting(frame.envmap))
-        lkey = self._light[0]
-        dev = gbuffer.hit.device
-        Wd = self._table(light, lkey, 1.0, True).to(dev)
-        Tn = rt.diffuse_at(Wd, n0)
-        light = light.to(dev, torch.float32)
-        lds, lss = [], []
-        for kd, ks, n_entries, spec in regs:
-            ld = light * kd
-            ls = light * ks if spec else None
-            lds += [ld] * n_entries
-            lss += [ls] * n_entries
+        terms = self._steady_plane_terms(light, n0, regs)
+        if terms is not None:
+            Tn, lds, lss = terms
+        else:
+            lkey = self._light[0]
+            dev = gbuffer.hit.device
+            Wd = self._table(light, lkey, 1.0, True).to(dev)
+            Tn = rt.diffuse_at(Wd, n0)
+            light = light.to(dev, torch.float32)
+            lds, lss = [], []
+            for kd, ks, n_entries, spec in regs:
+                ld = light * kd
+                ls = light * ks if spec else None
+                lds += [ld] * n_entries
+                lss += [ls] * n_entries
         img = zn.relight_pixels_run(rs, lds, lss, Tn)
         if img is None:
             return None
         self._last_counts = {"P": gbuffer.num_samples, "Q": gbuffer.num_samples, **counts}
         self.last_path = "relight-planes"
         return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # A steady paper-configuration frame's T¹(n0) and l ⊙ kd, l ⊙ ks by one C call (`native.plane_light`, zh41l: the
+    # table's operator folded with the plane normal's features once per kept state; float32 round-off from
+    # `_table` + `runtime.diffuse_at`); False: those (the tests' oracle)
+    steady_plane_operator = True
+
+    def _steady_plane_terms(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
+        """(T¹(n0), the entries' l ⊙ kd list, their l ⊙ ks list — views of `native.plane_light`'s kept buffers,
+        rewritten by the next call) of `_steady_planes` by `native.plane_light` on a setup kept with this steady
+        state (``self._plane_light``: G = Σ_k f_k A_k, `runtime.table`'s operator A
+        at α = 1 and the features f of n0 at the table's dtype), or None (``steady_plane_operator`` off, no
+        library, not the CPU): then `_table` and `runtime.diffuse_at`."""
+        if not self.steady_plane_operator or light.device.type != "cpu" or light.dtype != torch.float32:
+            return None
+        pl = self._plane_light
+        if pl is None or pl[0] is not self._steady:
+            pl = self._plane_light = (self._steady, self._plane_light_setup(light, n0, regs))
+        if pl[1] is None:
+            return None
+        st, lds, lss = pl[1]
+        out = zn.plane_light(st, light)
+        return None if out is None else (out[0], lds, lss)
+
+    def _plane_light_setup(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
+        n2 = int(light.shape[0])
+        n = math.isqrt(n2)
+        if n * n != n2 or light.shape[1] != 3:
+            return None
+        A = rt._table_operator_b(n, 1.0, True) if rt.TABLE_BANDS and n <= rt.MONOMIAL_MAX_ORDER \
+            else rt._table_operator(n, 1.0, True)                                   # (K·n², n²) float64
+        f = rt._normal_features(tuple(n0.tolist()), n, light.dtype, light.device)  # (K, 1) (`diffuse_at`'s)
+        G = (f.double().view(-1, 1, 1) * A.view(-1, n2, n2)).sum(0)                 # Σ_k f_k A_k (n², n²)
+        kd = torch.stack([kd for kd, _, _, _ in regs]) if regs else torch.zeros(0, 3)
+        ks = torch.stack([ks if spec else torch.zeros(3) for _, ks, _, spec in regs]) if regs else torch.zeros(0, 3)
+        st = zn.plane_light_setup(G, kd.float(), ks.float())
+        if st is None:
+            return None
+        Lo = st[8]   # (the kept buffers `plane_light` rewrites: each entry's views made once)
+        lds, lss = [], []
+        for r, (_, _, n_entries, spec) in enumerate(regs):
+            lds += [Lo[r, 0]] * n_entries
+            lss += [Lo[r, 1] if spec else None] * n_entries
+        return st, lds, lss
 
     def _view_radiance(self, frame: Frame, geom, light: Tensor, mats: list, alphas: list, spans: list | None,
                        w: Tensor, nT: Tensor) -> tuple[Tensor, "_LazyCounts"] | None:
@@ -1981,7 +2029,11 @@ class ZHShadow(Method):
                 "pose_visibility_sh": (0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]))
                 + (0 if self._pose_sh_buf is None else tensor_bytes(self._pose_sh_buf)),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs)
-                + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3])),
+                + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3]))
+                # (the steady paper frames' folded operator G and its buffers, `_steady_plane_terms`)
+                + (0 if self._plane_light is None or self._plane_light[1] is None
+                   else sum(tensor_bytes(t) for t in (self._plane_light[1][0][-1][0], self._plane_light[1][0][6],
+                                                      self._plane_light[1][0][8]))),
                 "vertex_table": (0 if self._vtable is None else tensor_bytes(self._vtable[2]))
                 + (0 if self._table_rows is None else tensor_bytes(self._table_rows)),
                 "resolve_matrix": 0 if self._resolve_matrix is None or self._resolve_matrix[2] is None

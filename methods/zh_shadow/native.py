@@ -4941,6 +4941,77 @@ def relight_blocks(spans: list, wf: Tensor, tsc: dict) -> tuple[Tensor, Tensor |
     return wb, tb
 
 
+# zh41l: a steady lighting-only frame's lighting terms of the paper configuration (`ZHShadow._steady_planes`) by one
+# C call: the plane's T¹(n0) (n², 3) = (float) (G (n², n²) · l) in float64 — G = Σ_k f_k A_k, the diffuse table's
+# operator (`runtime.table`: W = A l) folded with the plane normal's features f (`runtime.diffuse_at`: Tᵀ = Wᵀ f),
+# made once per kept state — and each region's l ⊙ kd, l ⊙ ks (float32 products: the bits of torch's). The base
+# made W by a float64 GEMM, rounded it to float32 and took Wᵀ f by a float32 GEMV (two MKL calls whose code, cold
+# after the suite's idle, cost ~0.1-0.2 ms of a ~1.4 ms frame at 1 thread): T¹(n0) here is the same sums in another
+# order and rounding, float32 round-off from the base's.
+_PLANE_LIGHT_SOURCE = r"""
+#include <stdint.h>
+
+/* T (n2, 3) = (float)(G (n2, n2) · (double) l), l (n2, 3) float32; Lo (nreg, 2, n2, 3) = l ⊙ kd_r, l ⊙ ks_r */
+void zh41l_plane_light(int64_t n2, const float *l, const double *G, int64_t nreg, const float *kd, const float *ks,
+                       float *T, float *Lo) {
+    for (int64_t j = 0; j < n2; ++j) {
+        double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+        for (int64_t i = 0; i < n2; ++i) {
+            const double g = G[j * n2 + i];
+            s0 += g * (double)l[3 * i]; s1 += g * (double)l[3 * i + 1]; s2 += g * (double)l[3 * i + 2];
+        }
+        T[3 * j] = (float)s0; T[3 * j + 1] = (float)s1; T[3 * j + 2] = (float)s2;
+    }
+    for (int64_t r = 0; r < nreg; ++r) {
+        float *d = Lo + r * 6 * n2, *s = d + 3 * n2;
+        for (int64_t i = 0; i < n2; ++i)
+            for (int c = 0; c < 3; ++c) {
+                d[3 * i + c] = l[3 * i + c] * kd[3 * r + c];
+                s[3 * i + c] = l[3 * i + c] * ks[3 * r + c];
+            }
+    }
+}
+"""
+_PLANE_LIGHT_SIGNATURES = {"zh41l_plane_light": [_I, _P, _P, _I, _P, _P, _P, _P]}
+
+
+def _plane_light_lib():
+    """The library of `zh41l_plane_light` or None (not cached here, b541a75)."""
+    if not terms_switched_on():
+        return None
+    return native.load("zh41l_plane_light", _PLANE_LIGHT_SOURCE, _PLANE_LIGHT_SIGNATURES,
+                       extra_flags=("-ffp-contract=off",))
+
+
+def plane_light_setup(G: Tensor, kd: Tensor, ks: Tensor) -> tuple | None:
+    """`plane_light`'s kept arguments: G (n², n²) float64, the regions' kd, ks (nreg, 3) float32; or None where it
+    does not run. Its outputs are kept buffers (T (n², 3) and each region's l ⊙ kd, l ⊙ ks (n², 3)), rewritten by
+    every call: read them before the next."""
+    lib = _plane_light_lib()
+    if lib is None or G.dtype != torch.float64 or G.dim() != 2 or G.shape[0] != G.shape[1] \
+            or any(t.dtype != torch.float32 or t.dim() != 2 or t.shape[1] != 3 for t in (kd, ks)) \
+            or kd.shape != ks.shape or any(t.device.type != "cpu" for t in (G, kd, ks)):
+        return None
+    n2, nreg = int(G.shape[0]), int(kd.shape[0])
+    G, kd, ks = G.contiguous(), kd.contiguous(), ks.contiguous()
+    T = torch.empty(n2, 3, dtype=torch.float32)
+    Lo = torch.empty(max(nreg, 1), 2, n2, 3, dtype=torch.float32)
+    return (lib.zh41l_plane_light, n2, nreg, G.data_ptr(), kd.data_ptr(), ks.data_ptr(), T, T.data_ptr(), Lo,
+            Lo.data_ptr(), (G, kd, ks, lib))
+
+
+def plane_light(st: tuple, light: Tensor) -> tuple[Tensor, Tensor] | None:
+    """(T (n², 3), L (nreg, 2, n², 3): l ⊙ kd_r, l ⊙ ks_r) of `plane_light_setup` for the lighting (n², 3) float32
+    CPU, by one C call (the kept buffers), or None (switched off, another shape)."""
+    fn, n2, nreg, G, kd, ks, T, Tp, Lo, Lp, _ = st
+    if not (terms_switched_on() and native.compile_enabled()) or light.dtype != torch.float32 \
+            or light.device.type != "cpu" or light.shape != (n2, 3):
+        return None
+    light = light.contiguous()
+    fn(n2, light.data_ptr(), G, nreg, kd, ks, Tp, Lp)
+    return T, Lo
+
+
 _INV_PI32 = float(torch.tensor(1.0 / math.pi, dtype=torch.float32))
 
 
