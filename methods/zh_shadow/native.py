@@ -3244,7 +3244,11 @@ def relight_pixels_setup(face: Tensor, bary: Tensor, clamp: bool, entries: list,
         xbs.append(blocked_transfer(td, ts))
         ptrs[0][e] = xbs[-1].data_ptr()
         ptrs[1][e] = 0 if ts is None else 1
-    return (blib.zh40l_relight_pixels, *st[1:-1], (*st[-1], xbs))
+    fn = blib.zh40l_relight_pixels
+    olib = _once_relight_lib() if PIXELS_CHECKED_ONCE else None
+    if olib is not None and all(_pixels_ascending_inside(pix, int(face.shape[0])) for _, _, _, _, pix in entries):
+        fn = olib.zh41l_relight_pixels   # (zh41l: the kept pixels checked here, once)
+    return (fn, *st[1:-1], (*st[-1], xbs))
 
 
 def _relight_pixels_entries(lib, face, bary, clamp, entries, inv, u12, Fp, pl, keep) -> tuple | None:
@@ -3400,6 +3404,36 @@ _BLK_RELIGHT_SOURCE = _blocked_source(_RELIGHT_PIXELS_SOURCE)
 _BLK_RELIGHT_SIGNATURES = {"zh40l_relight_pixels": _RELIGHT_PIXELS_SIGNATURES["zh35p_relight_pixels"]}
 BLOCKED_RELIGHT = True   # `relight_pixels_setup(..., blocked=True)` by the blocked copies (off: zh35p's pass)
 RELIGHT_BLOCK = 32       # RB of `_BLK_RELIGHT_C`
+
+
+# zh41l: `zh40l_relight_pixels` without its per-call check of the entries' pixel indices (ascending, inside the
+# image): a serial loop over every object sample (35.7 K on the bench creature, 286 KB read cold) before the
+# parallel region, every frame, of arrays the kept setup never changes. `relight_pixels_setup` checks them once
+# (the same conditions, `_pixels_ascending_inside`) and takes this pass only when they hold (else zh40l's, which
+# refuses them). ``PIXELS_CHECKED_ONCE`` False: zh40l's pass (the tests' oracle; the same bits either way).
+_CHK = """    for (int64_t e = 0; e < E; ++e) {   /* each entry's pixels ascending and inside the image */
+        const int64_t *pix = pixs[e];
+        for (int64_t q = 0; q < Qs[e]; ++q)
+            if ((uint64_t)pix[q] >= (uint64_t)n || (q && pix[q] < pix[q - 1])) { bad[0] = -1; return; }
+    }
+"""
+assert _BLK_RELIGHT_SOURCE.count(_CHK) == 1
+_ONCE_RELIGHT_SOURCE = _BLK_RELIGHT_SOURCE.replace(_CHK, "    /* (the entries' pixels checked by the setup) */\n").replace(
+    "void zh40l_relight_pixels(", "void zh41l_relight_pixels(")
+_ONCE_RELIGHT_SIGNATURES = {"zh41l_relight_pixels": _RELIGHT_PIXELS_SIGNATURES["zh35p_relight_pixels"]}
+PIXELS_CHECKED_ONCE = True
+
+
+def _once_relight_lib():
+    return native.load("zh41l_relight_pixels", _ONCE_RELIGHT_SOURCE, _ONCE_RELIGHT_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+
+
+def _pixels_ascending_inside(pix: Tensor, n: int) -> bool:
+    """zh40l's check of one entry's pixel indices (int64 (Q,)): every one in [0, n), ascending."""
+    if pix.numel() == 0:
+        return True
+    return int(pix.min()) >= 0 and int(pix.max()) < n and not bool((pix[1:] < pix[:-1]).any())
 
 
 def _blk_relight_lib():
@@ -4012,7 +4046,8 @@ def rotate_lighting(c: Tensor, R: Tensor, tol: float, tables: tuple) -> Tensor |
     if lib is None or R.dtype != torch.float64 or R.device.type != "cpu" or R.shape != (3, 3):
         return None
     ang = torch.empty(3, dtype=torch.float64)
-    if lib.zh38v_angles(R.contiguous().data_ptr(), float(tol), ang.data_ptr()) != 0:
+    R = R.contiguous()   # (zh41l: kept alive through the call — a temporary's memory was freed before C read it)
+    if lib.zh38v_angles(R.data_ptr(), float(tol), ang.data_ptr()) != 0:
         return None
     return _rotate_zyz(lib, c, ang, tables)
 

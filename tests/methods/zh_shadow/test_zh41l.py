@@ -180,3 +180,52 @@ def test_steady_plane_operator_equals_tables(creature, kind, clamp, monkeypatch)
         assert fast.last_path == slow.last_path
         assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max()), (kind, i, float((a - b).abs().max()))
     assert seen.count(True) == 3 and fast.memory()["shade_tables"] > slow.memory()["shade_tables"], seen
+
+
+@pytest.mark.parametrize("kind", ["L", "E"])
+def test_pixels_checked_once_equals_zh40l(creature, kind, monkeypatch):
+    """Paper configuration: the steady setup's pass without the per-call pixel check (`zh41l_relight_pixels`, the
+    kept pixels checked once by the setup) = zh40l's (``PIXELS_CHECKED_ONCE`` off) bit for bit, and taken."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    if zn._once_relight_lib() is None or zn._blk_relight_lib() is None:
+        pytest.skip("no C compiler")
+    fast, slow = creature.with_render_config(), creature.with_render_config()
+    frames = make_sequence(creature.scene, kind, 4, seed=6)
+    gb = make_gbuffer(creature.scene, frames[0], 2)
+    for i, f in enumerate(frames):
+        a = fast.render(f, gb)
+        monkeypatch.setattr(zn, "PIXELS_CHECKED_ONCE", False)
+        b = slow.render(f, gb)
+        monkeypatch.setattr(zn, "PIXELS_CHECKED_ONCE", True)
+        assert torch.equal(a, b), (kind, i, float((a - b).abs().max()))
+    assert fast._steady[8][0].__name__ == "zh41l_relight_pixels"
+    assert slow._steady[8][0].__name__ == "zh40l_relight_pixels"
+
+
+def test_pixels_checked_once_refuses_bad_pixels():
+    """The setup's check (`_pixels_ascending_inside`) = zh40l's per-call one: an index out of the image, negative or
+    out of order is refused (then zh40l's pass, which reports it: the run gives None)."""
+    assert zn._pixels_ascending_inside(torch.tensor([0, 0, 3, 9]), 10)
+    assert zn._pixels_ascending_inside(torch.zeros(0, dtype=torch.int64), 10)
+    assert not zn._pixels_ascending_inside(torch.tensor([0, 3, 10]), 10)
+    assert not zn._pixels_ascending_inside(torch.tensor([-1, 3, 4]), 10)
+    assert not zn._pixels_ascending_inside(torch.tensor([0, 4, 3]), 10)
+    if zn._once_relight_lib() is None or zn._blk_relight_lib() is None:
+        pytest.skip("no C compiler")
+    n, S2, n2, Q = 8, 4, 4, 5
+    face = torch.full((n, S2), -1, dtype=torch.int32)
+    bary = torch.zeros(2, n, S2)
+    v, corners, creg = torch.zeros(3, n2), torch.tensor([0, 1, 2]), torch.zeros(3, dtype=torch.int64)
+    T, kd = torch.zeros(n2, 3), torch.ones(1, 3)
+    td = torch.rand(n2, Q)
+    ld = torch.rand(n2, 3)
+    for pix, ok in ((torch.tensor([0, 1, 1, 5, 7]), True), (torch.tensor([0, 1, 1, 5, 8]), False),
+                    (torch.tensor([0, 2, 1, 5, 7]), False)):
+        st = zn.relight_pixels_setup(face, bary, False, [(td, None, ld, None, pix)], 0.25, (v, corners, creg, T, kd),
+                                     blocked=True)
+        assert st is not None
+        assert st[0].__name__ == ("zh41l_relight_pixels" if ok else "zh40l_relight_pixels")
+        out = zn.relight_pixels_run(st, [ld], [None], T)
+        assert (out is not None) == ok
