@@ -370,6 +370,8 @@ class ZHShadow(Method):
         self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
+        self._light_plan: tuple | None = None   # ((n², 3), `native.light_setup`): `_light_world`
+        self._plane_light: tuple | None = None  # (the steady record, `_plane_light_setup`): `_steady_plane_terms`
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -487,11 +489,11 @@ class ZHShadow(Method):
         a sequence, bench creature, 1 thread). Rotations by `runtime.rotate_lighting` (ZYZ, numpy
         float64, = `sh.rotate_sampled` and `sh_rotation.rotate_coeffs` to round-off), then float32 as
         `project_latlong`."""
-        data = torch.as_tensor(env.data)
+        data = env.data if isinstance(env.data, Tensor) else torch.as_tensor(env.data)
         dkey = (id(env.data), data.data_ptr(), tuple(data.shape))
-        key = (dkey, tuple(torch.as_tensor(env.to_world).flatten().tolist()))
+        tw = env.to_world
+        key = (dkey, tuple((tw if isinstance(tw, Tensor) else torch.as_tensor(tw)).reshape(-1).tolist()))
         if self._light is None or self._light[0] != key:
-            R = torch.as_tensor(env.to_world, dtype=torch.float64, device=data.device)
             if self._env_local is None or self._env_local[0] != dkey:   # a new map
                 self._env_local = (dkey, None)
                 self._env_bytes = int(data.numel() * data.element_size())
@@ -501,15 +503,38 @@ class ZHShadow(Method):
                 polar = zn.project_latlong_polar(data, self.config["order"])
                 if self.rotated_lighting:
                     self._env_local = (dkey, polar)
-                world = rt.rotate_lighting(polar, R @ _LATLONG_QT)
+                world = self._light_world(polar, key[1], tw, data)
+                if world is None:
+                    R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                    world = rt.rotate_lighting(polar, R @ _LATLONG_QT).to(data.dtype).float()
             elif self.rotated_lighting and self._env_local[1] is not None:
-                world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT)
+                world = self._light_world(self._env_local[1], key[1], tw, data)
+                if world is None:
+                    R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                    world = rt.rotate_lighting(self._env_local[1], R @ _LATLONG_QT).to(data.dtype).float()
             else:
                 if self._env_local[1] is None:
                     self._env_local = (dkey, project_latlong(data.double(), self.config["order"]))
-                world = rt.rotate_lighting(self._env_local[1], R)
-            self._light = (key, world.to(data.dtype).float())
+                R = torch.as_tensor(tw, dtype=torch.float64, device=data.device)
+                world = rt.rotate_lighting(self._env_local[1], R).to(data.dtype).float()
+            self._light = (key, world)
         return self._light[1]
+
+    def _light_world(self, polar: Tensor, flat: tuple, tw, data: Tensor) -> Tensor | None:
+        """``rotate_lighting(polar, R @ Qᵀ).to(data.dtype).float()`` for R = ``tw`` (3, 3), ``flat`` its nine
+        values, by one C call (`native.light_world`, zh41l: the bits of `rotate_lighting`'s C path) where the
+        base's steps take that path and ``data`` is float32 (one rounding); the call's arguments kept per
+        (n², 3) (``self._light_plan``). None elsewhere (then the caller's steps: the oracle, with
+        ``native.NATIVE_LIGHT`` off)."""
+        if not (zn.NATIVE_LIGHT and rt.NATIVE_ROTATE and data.dtype == torch.float32 and data.device.type == "cpu"
+                and getattr(tw, "shape", None) == (3, 3) and polar.dim() == 2 and polar.shape[0] <= 256):
+            return None
+        lp = self._light_plan
+        if lp is None or lp[0] != polar.shape:
+            shape = (int(polar.shape[0]), int(polar.shape[1]))
+            st = zn.light_setup(*shape, _LATLONG_QT, rt._lighting_zyz_tensors(math.isqrt(shape[0])))
+            self._light_plan = lp = (shape, st)
+        return None if lp[1] is None else zn.light_world(lp[1], polar, flat, rt.ROTATION_TOL)
 
     def _window(self, light: Tensor) -> Tensor:
         if self.config["window"] != "none":   # once, on the lighting: every term and mode sees it
@@ -1594,23 +1619,70 @@ class ZHShadow(Method):
         if not self._steady_same(frame, gbuffer, cam, pose, mats, gk, caches, self._planes_caches()):
             return None
         light = self._window(self._lighting(frame.envmap))
-        lkey = self._light[0]
-        dev = gbuffer.hit.device
-        Wd = self._table(light, lkey, 1.0, True).to(dev)
-        Tn = rt.diffuse_at(Wd, n0)
-        light = light.to(dev, torch.float32)
-        lds, lss = [], []
-        for kd, ks, n_entries, spec in regs:
-            ld = light * kd
-            ls = light * ks if spec else None
-            lds += [ld] * n_entries
-            lss += [ls] * n_entries
+        terms = self._steady_plane_terms(light, n0, regs)
+        if terms is not None:
+            Tn, lds, lss = terms
+        else:
+            lkey = self._light[0]
+            dev = gbuffer.hit.device
+            Wd = self._table(light, lkey, 1.0, True).to(dev)
+            Tn = rt.diffuse_at(Wd, n0)
+            light = light.to(dev, torch.float32)
+            lds, lss = [], []
+            for kd, ks, n_entries, spec in regs:
+                ld = light * kd
+                ls = light * ks if spec else None
+                lds += [ld] * n_entries
+                lss += [ls] * n_entries
         img = zn.relight_pixels_run(rs, lds, lss, Tn)
         if img is None:
             return None
         self._last_counts = {"P": gbuffer.num_samples, "Q": gbuffer.num_samples, **counts}
         self.last_path = "relight-planes"
         return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # A steady paper-configuration frame's T¹(n0) and l ⊙ kd, l ⊙ ks by one C call (`native.plane_light`, zh41l: the
+    # table's operator folded with the plane normal's features once per kept state; float32 round-off from
+    # `_table` + `runtime.diffuse_at`); False: those (the tests' oracle)
+    steady_plane_operator = True
+
+    def _steady_plane_terms(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
+        """(T¹(n0), the entries' l ⊙ kd list, their l ⊙ ks list — views of `native.plane_light`'s kept buffers,
+        rewritten by the next call) of `_steady_planes` by `native.plane_light` on a setup kept with this steady
+        state (``self._plane_light``: G = Σ_k f_k A_k, `runtime.table`'s operator A
+        at α = 1 and the features f of n0 at the table's dtype), or None (``steady_plane_operator`` off, no
+        library, not the CPU): then `_table` and `runtime.diffuse_at`."""
+        if not self.steady_plane_operator or light.device.type != "cpu" or light.dtype != torch.float32:
+            return None
+        pl = self._plane_light
+        if pl is None or pl[0] is not self._steady:
+            pl = self._plane_light = (self._steady, self._plane_light_setup(light, n0, regs))
+        if pl[1] is None:
+            return None
+        st, lds, lss = pl[1]
+        out = zn.plane_light(st, light)
+        return None if out is None else (out[0], lds, lss)
+
+    def _plane_light_setup(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
+        n2 = int(light.shape[0])
+        n = math.isqrt(n2)
+        if n * n != n2 or light.shape[1] != 3:
+            return None
+        A = rt._table_operator_b(n, 1.0, True) if rt.TABLE_BANDS and n <= rt.MONOMIAL_MAX_ORDER \
+            else rt._table_operator(n, 1.0, True)                                   # (K·n², n²) float64
+        f = rt._normal_features(tuple(n0.tolist()), n, light.dtype, light.device)  # (K, 1) (`diffuse_at`'s)
+        G = (f.double().view(-1, 1, 1) * A.view(-1, n2, n2)).sum(0)                 # Σ_k f_k A_k (n², n²)
+        kd = torch.stack([kd for kd, _, _, _ in regs]) if regs else torch.zeros(0, 3)
+        ks = torch.stack([ks if spec else torch.zeros(3) for _, ks, _, spec in regs]) if regs else torch.zeros(0, 3)
+        st = zn.plane_light_setup(G, kd.float(), ks.float())
+        if st is None:
+            return None
+        Lo = st[8]   # (the kept buffers `plane_light` rewrites: each entry's views made once)
+        lds, lss = [], []
+        for r, (_, _, n_entries, spec) in enumerate(regs):
+            lds += [Lo[r, 0]] * n_entries
+            lss += [Lo[r, 1] if spec else None] * n_entries
+        return st, lds, lss
 
     def _view_radiance(self, frame: Frame, geom, light: Tensor, mats: list, alphas: list, spans: list | None,
                        w: Tensor, nT: Tensor) -> tuple[Tensor, "_LazyCounts"] | None:
@@ -1957,7 +2029,11 @@ class ZHShadow(Method):
                 "pose_visibility_sh": (0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]))
                 + (0 if self._pose_sh_buf is None else tensor_bytes(self._pose_sh_buf)),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs)
-                + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3])),
+                + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3]))
+                # (the steady paper frames' folded operator G and its buffers, `_steady_plane_terms`)
+                + (0 if self._plane_light is None or self._plane_light[1] is None
+                   else sum(tensor_bytes(t) for t in (self._plane_light[1][0][-1][0], self._plane_light[1][0][6],
+                                                      self._plane_light[1][0][8]))),
                 "vertex_table": (0 if self._vtable is None else tensor_bytes(self._vtable[2]))
                 + (0 if self._table_rows is None else tensor_bytes(self._table_rows)),
                 "resolve_matrix": 0 if self._resolve_matrix is None or self._resolve_matrix[2] is None
@@ -1977,7 +2053,10 @@ class ZHShadow(Method):
                 + (0 if self._vertex_rad_d is None else tensor_bytes(self._vertex_rad_d[2]))
                 # the steady frames' blocked copies of the object entries' transfer (`native.blocked_transfer`)
                 + (0 if self._steady is None or self._steady[0] != "planes" or len(self._steady[8][-1]) < 5
-                   else sum(tensor_bytes(x) for x in self._steady[8][-1][4]))}
+                   else sum(tensor_bytes(x) for x in self._steady[8][-1][4]))
+                # (vertex shading) the steady frames' tiles of w and t_s (`native.relight_blocks`)
+                + (0 if self._steady is None or self._steady[0] != "vertex" or not isinstance(self._steady[8][8], tuple)
+                   else sum(tensor_bytes(x) for x in self._steady[8][8] if x is not None))}
 
     def _resolve_bytes(self, P: int) -> int:
         """Compulsory bytes of a lighting-only vertex-shaded frame's interpolation on a G-buffer of P

@@ -3244,7 +3244,11 @@ def relight_pixels_setup(face: Tensor, bary: Tensor, clamp: bool, entries: list,
         xbs.append(blocked_transfer(td, ts))
         ptrs[0][e] = xbs[-1].data_ptr()
         ptrs[1][e] = 0 if ts is None else 1
-    return (blib.zh40l_relight_pixels, *st[1:-1], (*st[-1], xbs))
+    fn = blib.zh40l_relight_pixels
+    olib = _once_relight_lib() if PIXELS_CHECKED_ONCE else None
+    if olib is not None and all(_pixels_ascending_inside(pix, int(face.shape[0])) for _, _, _, _, pix in entries):
+        fn = olib.zh41l_relight_pixels   # (zh41l: the kept pixels checked here, once)
+    return (fn, *st[1:-1], (*st[-1], xbs))
 
 
 def _relight_pixels_entries(lib, face, bary, clamp, entries, inv, u12, Fp, pl, keep) -> tuple | None:
@@ -3400,6 +3404,36 @@ _BLK_RELIGHT_SOURCE = _blocked_source(_RELIGHT_PIXELS_SOURCE)
 _BLK_RELIGHT_SIGNATURES = {"zh40l_relight_pixels": _RELIGHT_PIXELS_SIGNATURES["zh35p_relight_pixels"]}
 BLOCKED_RELIGHT = True   # `relight_pixels_setup(..., blocked=True)` by the blocked copies (off: zh35p's pass)
 RELIGHT_BLOCK = 32       # RB of `_BLK_RELIGHT_C`
+
+
+# zh41l: `zh40l_relight_pixels` without its per-call check of the entries' pixel indices (ascending, inside the
+# image): a serial loop over every object sample (35.7 K on the bench creature, 286 KB read cold) before the
+# parallel region, every frame, of arrays the kept setup never changes. `relight_pixels_setup` checks them once
+# (the same conditions, `_pixels_ascending_inside`) and takes this pass only when they hold (else zh40l's, which
+# refuses them). ``PIXELS_CHECKED_ONCE`` False: zh40l's pass (the tests' oracle; the same bits either way).
+_CHK = """    for (int64_t e = 0; e < E; ++e) {   /* each entry's pixels ascending and inside the image */
+        const int64_t *pix = pixs[e];
+        for (int64_t q = 0; q < Qs[e]; ++q)
+            if ((uint64_t)pix[q] >= (uint64_t)n || (q && pix[q] < pix[q - 1])) { bad[0] = -1; return; }
+    }
+"""
+assert _BLK_RELIGHT_SOURCE.count(_CHK) == 1
+_ONCE_RELIGHT_SOURCE = _BLK_RELIGHT_SOURCE.replace(_CHK, "    /* (the entries' pixels checked by the setup) */\n").replace(
+    "void zh40l_relight_pixels(", "void zh41l_relight_pixels(")
+_ONCE_RELIGHT_SIGNATURES = {"zh41l_relight_pixels": _RELIGHT_PIXELS_SIGNATURES["zh35p_relight_pixels"]}
+PIXELS_CHECKED_ONCE = True
+
+
+def _once_relight_lib():
+    return native.load("zh41l_relight_pixels", _ONCE_RELIGHT_SOURCE, _ONCE_RELIGHT_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
+
+
+def _pixels_ascending_inside(pix: Tensor, n: int) -> bool:
+    """zh40l's check of one entry's pixel indices (int64 (Q,)): every one in [0, n), ascending."""
+    if pix.numel() == 0:
+        return True
+    return int(pix.min()) >= 0 and int(pix.max()) < n and not bool((pix[1:] < pix[:-1]).any())
 
 
 def _blk_relight_lib():
@@ -4012,7 +4046,8 @@ def rotate_lighting(c: Tensor, R: Tensor, tol: float, tables: tuple) -> Tensor |
     if lib is None or R.dtype != torch.float64 or R.device.type != "cpu" or R.shape != (3, 3):
         return None
     ang = torch.empty(3, dtype=torch.float64)
-    if lib.zh38v_angles(R.contiguous().data_ptr(), float(tol), ang.data_ptr()) != 0:
+    R = R.contiguous()   # (zh41l: kept alive through the call — a temporary's memory was freed before C read it)
+    if lib.zh38v_angles(R.data_ptr(), float(tol), ang.data_ptr()) != 0:
         return None
     return _rotate_zyz(lib, c, ang, tables)
 
@@ -4038,6 +4073,89 @@ def _rotate_zyz(lib, c: Tensor, ang: Tensor, tables: tuple) -> Tensor | None:
     lib.zh38v_rotate(n2, C, c.data_ptr(), ang.data_ptr(), mabs.data_ptr(), perm.data_ptr(), sgn.data_ptr(),
                      Xm.data_ptr(), Xp.data_ptr(), w.data_ptr(), out.data_ptr())
     return out
+
+
+# -- zh41l ------------------------------------------------------------------------------------------
+# A lighting frame's world-space lighting (`ZHShadow._lighting`: R = the map's to_world, c its polar-frame
+# projection) by ONE C call: R Q (Q = `sh._LATLONG_QT`, a signed permutation: each entry ((0 + R_i0 Q_0j) +
+# R_i1 Q_1j) + R_i2 Q_2j, exact — one non-zero product — and the zeros' signs torch's 3×3 product gives, +0),
+# `zh38v_angles`' test and angles, `zh38v_rotate` (the same source, the same flags: the same bits as
+# `rotate_lighting`) and the float64 → float32 rounding of ``.float()``. In the base these were a torch product,
+# the key's tensor, `rotate_lighting`'s wrappers (its library lookup, three torch.empty, two ctypes calls) and
+# ``.to(float32)``: ~0.31 ms of a lighting-only order-8 frame at 1 thread after the suite's idle, for ~10 µs of
+# arithmetic. The scratch (float64 angles / steps / result) is kept per projection (`light_setup`); the float32
+# result is a new tensor each call (callers keep it: `ZHShadow._light`).
+_LIGHT_SOURCE = _ROTATE_SOURCE + r"""
+/* out (n2, C) float32 = (float) `zh38v_rotate`(c, angles of R Q); 0, or 1 where `zh38v_angles` refuses R Q
+   (then nothing written). a: the kept arguments n2, C, Q, mabs, perm, sgn, Xm, Xp, w (w: 3 n2 C + 3 doubles
+   of scratch). */
+int64_t zh41l_light(const int64_t *a, const double *R, const double *c, double tol, float *out) {
+    const int64_t n2 = a[0], C = a[1];
+    const double *Q = (const double *)(intptr_t)a[2];
+    double *w = (double *)(intptr_t)a[8];
+    double RQ[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            double s = 0.0;
+            for (int k = 0; k < 3; ++k) s += R[3 * i + k] * Q[3 * k + j];
+            RQ[3 * i + j] = s;
+        }
+    double *ang = w + 3 * n2 * C, *o = w + 2 * n2 * C;
+    if (zh38v_angles(RQ, tol, ang) != 0) return 1;
+    zh38v_rotate(n2, C, c, ang, (const double *)(intptr_t)a[3], (const int64_t *)(intptr_t)a[4],
+                 (const double *)(intptr_t)a[5], (const double *)(intptr_t)a[6], (const double *)(intptr_t)a[7], w, o);
+    for (int64_t i = 0; i < n2 * C; ++i) out[i] = (float)o[i];
+    return 0;
+}
+"""
+_LIGHT_SIGNATURES = {**_ROTATE_SIGNATURES, "zh41l_light": [_P, _P, _P, ctypes.c_double, _P]}
+# `ZHShadow._lighting`'s rotation of a kept projection by `light_world` where it runs; False: the base's steps
+# (R Q by torch, `runtime.rotate_lighting`, ``.float()``; the tests' oracle)
+NATIVE_LIGHT = True
+
+
+def _light_lib():
+    """The library of `zh41l_light` or None (as `_rotate_lib`; not cached here, b541a75)."""
+    if not (NATIVE_LIGHT and terms_switched_on()):
+        return None
+    lib = native.load("zh41l_light", _LIGHT_SOURCE, _LIGHT_SIGNATURES, extra_flags=("-ffp-contract=off",))
+    if lib is not None:
+        lib.zh41l_light.restype = ctypes.c_int64
+        lib.zh38v_angles.restype = ctypes.c_int64
+    return lib
+
+
+def light_setup(n2: int, C: int, Q: Tensor, tables: tuple) -> tuple | None:
+    """`light_world`'s kept arguments for (n², C) projections, Q (3, 3) float64 and ``tables``
+    (`runtime._lighting_zyz_tensors` of order n), or None where it does not run (then the caller's steps):
+    (the library's function, the packed arguments' address, n², C, a 9-double buffer for R, what they point
+    into). The function is kept: `light_world` checks the off switches (``NATIVE_LIGHT``, ``PRTBENCH_ZH_NATIVE``,
+    ``PRTBENCH_COMPILE``) at each call instead of looking the library up (b541a75: no None is kept)."""
+    lib = _light_lib()
+    if lib is None or Q.shape != (3, 3) or Q.dtype != torch.float64 or Q.device.type != "cpu":
+        return None
+    mabs, perm, sgn, Xm, Xp = tables
+    if mabs.shape != (n2,) or Xm.shape != (n2, n2) or Xp.shape != (n2, n2) or perm.dtype != torch.int64 \
+            or not all(t.is_contiguous() and t.device.type == "cpu" for t in tables):
+        return None
+    Q = Q.contiguous()
+    w = torch.empty(3 * n2 * C + 3, dtype=torch.float64)
+    args = torch.tensor([n2, C, Q.data_ptr(), *(t.data_ptr() for t in tables), w.data_ptr()], dtype=torch.int64)
+    Rbuf = (ctypes.c_double * 9)()
+    return lib.zh41l_light, args.data_ptr(), n2, C, Rbuf, (Q, tables, w, args, lib)
+
+
+def light_world(st: tuple, c: Tensor, R: tuple, tol: float) -> Tensor | None:
+    """(n², C) float32 = ``runtime.rotate_lighting(c, R @ Q).float()`` (its C path) for `light_setup`'s Q and R the
+    nine floats of a (3, 3) rotation row-major, by one C call (the same bits), or None: switched off, c not a
+    contiguous (n², C) float64 CPU array, or R Q not a rotation to ``tol`` (`zh38v_angles`)."""
+    fn, args, n2, C, Rbuf, _ = st
+    if not (NATIVE_LIGHT and terms_switched_on() and native.compile_enabled()) or len(R) != 9 \
+            or c.dtype != torch.float64 or c.device.type != "cpu" or c.shape != (n2, C) or not c.is_contiguous():
+        return None
+    Rbuf[:] = R
+    out = torch.empty(n2, C, dtype=torch.float32)
+    return out if fn(args, Rbuf, c.data_ptr(), tol, out.data_ptr()) == 0 else None
 
 
 # -- zh38v ------------------------------------------------------------------------------------------
@@ -4742,7 +4860,191 @@ def relight_setup(spans: list, wf: Tensor, tsc: dict, packed: tuple) -> tuple | 
         tsp[r] = t.data_ptr()
     x = torch.empty(Nc + 1, 3, dtype=torch.float32)               # (scratch: every row written by the call)
     L = torch.empty(max(nreg, 1) * 6 * n2, dtype=torch.float32)
+    libb = _relightb_lib() if BLOCKED_RELIGHT_VERTEX else None
+    if libb is not None:   # (zh41l: the tiles in place of wf and t_s)
+        wb, tb = relight_blocks(spans, wf, tsc)
+        keep = [*keep, wb] + ([] if tb is None else [tb])
+        return libb, n2, Nc, nreg, sp, tsp, keep, packed, (wb, tb), x, L
     return lib, n2, Nc, nreg, sp, tsp, keep, packed, wf, x, L
+
+
+# zh41l: `zh39o_relight` reading a blocked copy of its transfer (``BLOCKED_RELIGHT_VERTEX``): each 64-column block of
+# w (and t_s) as one contiguous (n², 64) tile, padded with zero columns (`relight_blocks`, made once by
+# `relight_setup`), so a block streams 16 KB in order instead of n² rows of 256 bytes each Nc floats apart, and
+# its sums (64 columns × 3 channels, fixed width) stay in registers; every column the same products and sums in
+# the same order as `relight_block` (the padding's columns are computed and not stored): the same bits.
+_RELIGHTB_SOURCE = _RELIGHTV_SOURCE + r"""
+/* `relight_block` of one (n2, 64) tile wb (and tb) of a block with jn <= 64 real columns */
+static void relight_tile(int64_t n2, const float *Ld, const float *Ls, const float *wb, const float *tb,
+                         int64_t jn, int64_t clamp, float *o) {
+    float a0[64], a1[64], a2[64];
+    for (int64_t j = 0; j < 64; ++j) { a0[j] = 0.f; a1[j] = 0.f; a2[j] = 0.f; }
+    for (int64_t i = 0; i < n2; ++i) {
+        const float *w = wb + i * 64;
+        const float l0 = Ld[3 * i], l1 = Ld[3 * i + 1], l2 = Ld[3 * i + 2];
+        for (int64_t j = 0; j < 64; ++j) { a0[j] += l0 * w[j]; a1[j] += l1 * w[j]; a2[j] += l2 * w[j]; }
+    }
+    if (tb) {
+        float s0[64], s1[64], s2[64];
+        for (int64_t j = 0; j < 64; ++j) { s0[j] = 0.f; s1[j] = 0.f; s2[j] = 0.f; }
+        for (int64_t i = 0; i < n2; ++i) {
+            const float *t = tb + i * 64;
+            const float l0 = Ls[3 * i], l1 = Ls[3 * i + 1], l2 = Ls[3 * i + 2];
+            for (int64_t j = 0; j < 64; ++j) { s0[j] += l0 * t[j]; s1[j] += l1 * t[j]; s2[j] += l2 * t[j]; }
+        }
+        for (int64_t j = 0; j < 64; ++j) { a0[j] += s0[j]; a1[j] += s1[j]; a2[j] += s2[j]; }
+    }
+    for (int64_t j = 0; j < jn; ++j) {
+        float v0 = a0[j], v1 = a1[j], v2 = a2[j];
+        if (clamp) { v0 = v0 < 0.f ? 0.f : v0; v1 = v1 < 0.f ? 0.f : v1; v2 = v2 < 0.f ? 0.f : v2; }
+        o[3 * j] = v0; o[3 * j + 1] = v1; o[3 * j + 2] = v2;
+    }
+}
+
+/* `zh39o_relight` with the transfer's blocks read from their tiles: block k (in region order) of region r is
+   wb + k n2 64 (and tb + k n2 64 where region r has t_s, tsp[r] != 0); the same values written */
+void zh41l_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
+                   const int64_t *spans, const float *wb, const float *tb, const int64_t *tsp, float inv_pi,
+                   int64_t clamp, float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out,
+                   int64_t nt, int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol,
+                   const float *tval) {
+    int64_t nb = 0;
+    for (int64_t r = 0; r < nreg; ++r) {
+        float *Ld = L + r * 6 * n2, *Ls = Ld + 3 * n2;
+        for (int64_t i = 0; i < n2; ++i)
+            for (int c = 0; c < 3; ++c) {
+                Ld[3 * i + c] = light[3 * i + c] * (kd[3 * r + c] * inv_pi);
+                Ls[3 * i + c] = light[3 * i + c] * ks[3 * r + c];
+            }
+        const int64_t m = spans[2 * r + 1] - spans[2 * r];
+        nb += m > 0 ? (m + 63) / 64 : 0;
+    }
+    x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
+#pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+#pragma omp for schedule(static)
+        for (int64_t k = 0; k < nb; ++k) {
+            int64_t r = 0, kk = k, m = 0;
+            for (; r < nreg; ++r) {   /* block k: the kk-th of region r */
+                m = spans[2 * r + 1] - spans[2 * r];
+                const int64_t c = m > 0 ? (m + 63) / 64 : 0;
+                if (kk < c) break;
+                kk -= c;
+            }
+            const int64_t j0 = kk * 64, jn = m - j0 < 64 ? m - j0 : 64;
+            const float *Ld = L + r * 6 * n2;
+            relight_tile(n2, Ld, Ld + 3 * n2, wb + k * n2 * 64, tsp[r] ? tb + k * n2 * 64 : 0, jn, clamp,
+                         x + 3 * (spans[2 * r] + j0));
+        }
+        /* (the implicit barrier: every x row written) */
+""" + _PACKED_PRODUCT_C + r"""    }
+}
+"""
+_RELIGHTB_SIGNATURES = {"zh41l_relight": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P, ctypes.c_float, _I, _P, _P,
+                                          _I, _P, _P, _P, _I, _I, _P, _P, _P, _P]}
+# `relight_setup` keeps the blocked tiles and `relight_run` calls `zh41l_relight`; False: `zh39o_relight` over
+# wf and t_s (the tests' oracle)
+BLOCKED_RELIGHT_VERTEX = True
+
+
+def _relightb_lib():
+    return native.load("zh41l_relight", _RELIGHTB_SOURCE, _RELIGHTB_SIGNATURES,
+                       extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+
+
+def relight_blocks(spans: list, wf: Tensor, tsc: dict) -> tuple[Tensor, Tensor | None]:
+    """The tiles `zh41l_relight` reads: wb (nb, n², 64) — block k (region order: region r's columns
+    [b0 + 64 kk, b0 + 64 kk + 64) of wf (n², Nc), zero past b1) — and tb alike of each region's t_s (n², b1 − b0)
+    (the blocks of a region without t_s left unwritten), or None when no region has t_s."""
+    n2 = int(wf.shape[0])
+    wparts, tparts = [], []
+    for r, (b0, b1) in enumerate(spans):
+        m = b1 - b0
+        nbr = -(-m // 64) if m > 0 else 0
+        if nbr == 0:
+            continue
+        pad = torch.zeros(n2, nbr * 64, dtype=torch.float32)
+        pad[:, :m] = wf[:, b0:b1]
+        wparts.append(pad.view(n2, nbr, 64).transpose(0, 1))
+        t = tsc.get(r, (None, None))[1] if r in tsc else None
+        tp = torch.zeros(n2, nbr * 64, dtype=torch.float32)
+        if t is not None:
+            tp[:, :m] = t
+        tparts.append((t is not None, tp.view(n2, nbr, 64).transpose(0, 1)))
+    wb = torch.cat(wparts).contiguous() if wparts else torch.zeros(0, n2, 64)
+    tb = torch.cat([t for _, t in tparts]).contiguous() if any(h for h, _ in tparts) else None
+    return wb, tb
+
+
+# zh41l: a steady lighting-only frame's lighting terms of the paper configuration (`ZHShadow._steady_planes`) by one
+# C call: the plane's T¹(n0) (n², 3) = (float) (G (n², n²) · l) in float64 — G = Σ_k f_k A_k, the diffuse table's
+# operator (`runtime.table`: W = A l) folded with the plane normal's features f (`runtime.diffuse_at`: Tᵀ = Wᵀ f),
+# made once per kept state — and each region's l ⊙ kd, l ⊙ ks (float32 products: the bits of torch's). The base
+# made W by a float64 GEMM, rounded it to float32 and took Wᵀ f by a float32 GEMV (two MKL calls whose code, cold
+# after the suite's idle, cost ~0.1-0.2 ms of a ~1.4 ms frame at 1 thread): T¹(n0) here is the same sums in another
+# order and rounding, float32 round-off from the base's.
+_PLANE_LIGHT_SOURCE = r"""
+#include <stdint.h>
+
+/* T (n2, 3) = (float)(G (n2, n2) · (double) l), l (n2, 3) float32; Lo (nreg, 2, n2, 3) = l ⊙ kd_r, l ⊙ ks_r */
+void zh41l_plane_light(int64_t n2, const float *l, const double *G, int64_t nreg, const float *kd, const float *ks,
+                       float *T, float *Lo) {
+    for (int64_t j = 0; j < n2; ++j) {
+        double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+        for (int64_t i = 0; i < n2; ++i) {
+            const double g = G[j * n2 + i];
+            s0 += g * (double)l[3 * i]; s1 += g * (double)l[3 * i + 1]; s2 += g * (double)l[3 * i + 2];
+        }
+        T[3 * j] = (float)s0; T[3 * j + 1] = (float)s1; T[3 * j + 2] = (float)s2;
+    }
+    for (int64_t r = 0; r < nreg; ++r) {
+        float *d = Lo + r * 6 * n2, *s = d + 3 * n2;
+        for (int64_t i = 0; i < n2; ++i)
+            for (int c = 0; c < 3; ++c) {
+                d[3 * i + c] = l[3 * i + c] * kd[3 * r + c];
+                s[3 * i + c] = l[3 * i + c] * ks[3 * r + c];
+            }
+    }
+}
+"""
+_PLANE_LIGHT_SIGNATURES = {"zh41l_plane_light": [_I, _P, _P, _I, _P, _P, _P, _P]}
+
+
+def _plane_light_lib():
+    """The library of `zh41l_plane_light` or None (not cached here, b541a75)."""
+    if not terms_switched_on():
+        return None
+    return native.load("zh41l_plane_light", _PLANE_LIGHT_SOURCE, _PLANE_LIGHT_SIGNATURES,
+                       extra_flags=("-ffp-contract=off",))
+
+
+def plane_light_setup(G: Tensor, kd: Tensor, ks: Tensor) -> tuple | None:
+    """`plane_light`'s kept arguments: G (n², n²) float64, the regions' kd, ks (nreg, 3) float32; or None where it
+    does not run. Its outputs are kept buffers (T (n², 3) and each region's l ⊙ kd, l ⊙ ks (n², 3)), rewritten by
+    every call: read them before the next."""
+    lib = _plane_light_lib()
+    if lib is None or G.dtype != torch.float64 or G.dim() != 2 or G.shape[0] != G.shape[1] \
+            or any(t.dtype != torch.float32 or t.dim() != 2 or t.shape[1] != 3 for t in (kd, ks)) \
+            or kd.shape != ks.shape or any(t.device.type != "cpu" for t in (G, kd, ks)):
+        return None
+    n2, nreg = int(G.shape[0]), int(kd.shape[0])
+    G, kd, ks = G.contiguous(), kd.contiguous(), ks.contiguous()
+    T = torch.empty(n2, 3, dtype=torch.float32)
+    Lo = torch.empty(max(nreg, 1), 2, n2, 3, dtype=torch.float32)
+    return (lib.zh41l_plane_light, n2, nreg, G.data_ptr(), kd.data_ptr(), ks.data_ptr(), T, T.data_ptr(), Lo,
+            Lo.data_ptr(), (G, kd, ks, lib))
+
+
+def plane_light(st: tuple, light: Tensor) -> tuple[Tensor, Tensor] | None:
+    """(T (n², 3), L (nreg, 2, n², 3): l ⊙ kd_r, l ⊙ ks_r) of `plane_light_setup` for the lighting (n², 3) float32
+    CPU, by one C call (the kept buffers), or None (switched off, another shape)."""
+    fn, n2, nreg, G, kd, ks, T, Tp, Lo, Lp, _ = st
+    if not (terms_switched_on() and native.compile_enabled()) or light.dtype != torch.float32 \
+            or light.device.type != "cpu" or light.shape != (n2, 3):
+        return None
+    light = light.contiguous()
+    fn(n2, light.data_ptr(), G, nreg, kd, ks, Tp, Lp)
+    return T, Lo
 
 
 _INV_PI32 = float(torch.tensor(1.0 / math.pi, dtype=torch.float32))
@@ -4759,6 +5061,13 @@ def relight_run(setup: tuple, light: Tensor, kd: Tensor, ks: Tensor, clamp: bool
     light, kd, ks = light.contiguous(), kd.contiguous(), ks.contiguous()
     out = torch.empty(R, 3, dtype=torch.float32)
     nt = max(1, min(torch.get_num_threads(), R // MIN_ROWS_PER_CSR_THREAD))
+    if isinstance(wf, tuple):   # (`zh41l_relight`: the tiles)
+        wb, tb = wf
+        lib.zh41l_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wb.data_ptr(),
+                          0 if tb is None else tb.data_ptr(), tsp.data_ptr(), _INV_PI32, int(bool(clamp)),
+                          x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
+                          int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
+        return out
     lib.zh39o_relight(n2, Nc, light.data_ptr(), nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wf.data_ptr(),
                       tsp.data_ptr(), _INV_PI32, int(bool(clamp)),
                       x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
