@@ -94,6 +94,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, GBUFFER_HIT_BYTES, Capabilit
                           output_bytes, register, tensor_bytes)
 from methods.core import gouraud
 from methods.core.frames import frame_matrix, reflect
+from methods.core import fused as _core_fused
 from methods.core.fused import fused, warm_blocks
 from methods.core.sh import _LATLONG_QT, project_latlong
 from methods.core.sh_rotation import rotate_coeffs
@@ -181,6 +182,12 @@ def shade(k: Tensor, axes: Tensor, normal: Tensor, wo: Tensor, light: Tensor, kd
         out[idx] = out[idx] + ks[idx] * sp
     front = (normal * wo).sum(-1, keepdim=True) > 0
     return torch.where(front, out, torch.zeros_like(out))
+
+
+def _warming() -> bool:
+    """Whether `methods.core.fused.warming` is on (the harness's untimed warm-up frame), where `warm_blocks` may
+    compile; True where the flag cannot be read (then `warm_blocks` decides, as before)."""
+    return bool(getattr(_core_fused, "_warming", True))
 
 
 def _all(mask: Tensor) -> bool:
@@ -368,6 +375,12 @@ class ZHShadow(Method):
         self._pose_sh_buf: Tensor | None = None  # a P frame's (n², Q) visibility columns (`_pose_visibility`,
         #                                 `native.pose_sh`), reused across frames: counted in `memory`
         self._zyz_perm_cache: tuple | None = None   # (order, `runtime.zyz_rows` as ints): `_zyz_perm`
+        self._v_pending: tuple | None = None   # (v0, pose, geometry, key[, made in part]): `_fill_visibility`
+        self._pose_kept: tuple | None = None   # (frame.pose, scene, pose vector, key): `_pose_state`
+        self._mats_kept: tuple | None = None   # (materials, `_region_materials`' list, their values): zh41p
+        self._spec_t: tuple | None = None      # (the regions' specular flags, as a bool tensor): `_fused_planes`
+        self._plane_T: tuple | None = None     # (Wd, n0 as floats, `runtime.diffuse_at`(Wd, n0)): `_plane_term`
+        self._pose_bound = None   # `native.PoseSHBound` of every vertex's v (`_pose_visibility`, `bound_calls`)
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
         self._light_plan: tuple | None = None   # ((n², 3), `native.light_setup`): `_light_world`
@@ -377,6 +390,7 @@ class ZHShadow(Method):
     def precompute(self, scene) -> None:
         self.scene = scene
         self._light = self._env_local = self._posed = self._vertex_transfer = self._tables = self._frame_state = None
+        self._v_pending = self._pose_bound = self._pose_kept = self._mats_kept = self._plane_T = None   # (zh41p's)
         self._vertex_diffuse = self._vertex_compact = self._vertex_rad_d = None
         self._relight = None
         self._vtable = self._plane_u = self._plane_u0 = self._faces = self._resolve_matrix = None
@@ -467,6 +481,10 @@ class ZHShadow(Method):
     # False: `native.pose_columns` then the compiled `runtime._vertex_sh`, or `runtime.world_visibility` (the
     # tests' oracle)
     native_eq1 = True
+    # A P frame's skinning and every vertex's `native.pose_sh` by calls bound once (`native.SkinBound`,
+    # `native.PoseSHBound`, zh41p: the same C loops and bits, the constant arguments checked and resolved once,
+    # the normals read in place); False: `native.skin_vector` / `native.pose_sh` each frame (the tests' oracle)
+    bound_calls = True
 
     def with_render_config(self, **changes) -> "ZHShadow":
         """A new method with some render-time config keys (`RENDER_KEYS`) changed, sharing this
@@ -543,7 +561,26 @@ class ZHShadow(Method):
         return light
 
     def _region_materials(self, frame: Frame) -> list[tuple[Tensor, Tensor, float]]:
-        """Per region of the scene: kd (3,), ks (3,) float32 and α (1 for Lambert)."""
+        """Per region of the scene: kd (3,), ks (3,) float32 and α (1 for Lambert). The list kept while the
+        frame's materials equal the last frame's (the same list and tensors: `_mat_values` then gives their
+        values as Python tuples without a ``tolist`` each; zh41p — ~6 small tensors a frame, ~0.05 ms of
+        serial Python with the caches cold)."""
+        mk = tuple(frame.materials[name] for name in self.scene.regions)
+        rm = self._mats_kept
+        if rm is not None and len(rm[0]) == len(mk) and all(a is b or a == b for a, b in zip(rm[0], mk)):
+            return rm[1]
+        out = self._region_materials_of(frame)
+        self._mats_kept = (mk, out, tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al)) for kd, ks, al in out))
+        return out
+
+    def _mat_values(self, mats: list) -> tuple:
+        """((kd, ks) as tuples of Python floats, α) per region of ``mats`` (kept with `_region_materials`' list)."""
+        rm = self._mats_kept
+        if rm is not None and rm[1] is mats:
+            return rm[2]
+        return tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al)) for kd, ks, al in mats)
+
+    def _region_materials_of(self, frame: Frame) -> list[tuple[Tensor, Tensor, float]]:
         out = []
         for name in self.scene.regions:
             mat = frame.materials[name]
@@ -568,14 +605,25 @@ class ZHShadow(Method):
         front-facing vertices' own (`_visibility_args`), and the first later frame of the pose
         that needs every vertex's makes it then."""
         scene = self.scene
-        if scene.skeleton is None:
-            pose_vec = torch.zeros(0)
+        pk = self._pose_kept   # (the rest pose of a frame without one — a view / lighting / material frame's —
+        #                        its zeros and key kept, zh41p: ~0.05 ms of cold small ops)
+        if pk is not None and pk[0] is frame.pose and pk[1] is scene:
+            pose_vec, key = pk[2], pk[3]
         else:
-            pose_vec = torch.zeros(scene.skeleton.num_joints) if frame.pose is None else torch.as_tensor(frame.pose).float()
-        key = tuple(pose_vec.tolist())
+            if scene.skeleton is None:
+                pose_vec = torch.zeros(0)
+            else:
+                pose_vec = torch.zeros(scene.skeleton.num_joints) if frame.pose is None \
+                    else torch.as_tensor(frame.pose).float()
+            key = tuple(pose_vec.tolist())
+            if frame.pose is None:   # (a frame's pose tensor is not kept: an in-place change of it is not missed)
+                self._pose_kept = (None, scene, pose_vec, key)
         if self._posed is None or self._posed[0] != key:
             geom = scene.geometry() if scene.skeleton is None else self._posed_geometry(pose_vec, key)
             self._posed = (key, geom, None)
+        pend = self._v_pending
+        if visibility and self._posed[2] is None and pend is not None and pend[3] == key and pend[2] is self._posed[1]:
+            self._fill_visibility(pend[0])   # (a P frame's array of this pose, made in part: every row, kept)
         if visibility and self._posed[2] is None:
             vertex = self.config["shading"] == "vertex"   # (its rows layout: (n², N), kept as its (N, n²) view)
             v = self._pose_visibility(pose_vec, self._posed[1])
@@ -593,9 +641,13 @@ class ZHShadow(Method):
             sk = self._skin
             if sk is None or sk[0] is not scene:   # (+ its joint-major layouts, `native.skin_vector_setup`)
                 st = zn.skin_setup(scene)
-                self._skin = sk = (scene, st, zn.skin_vector_setup(st))
-            # 16 vertices a vector first (`native.skin_vector`, zh38p: the same bits), else `native.skin`
-            out = zn.skin_vector(sk[1], sk[2], pose_vec)
+                vs = zn.skin_vector_setup(st)
+                self._skin = sk = (scene, st, vs, zn.skin_bind(st, vs))
+            # 16 vertices a vector first (`native.skin_vector`, zh38p: the same bits; with `bound_calls` its bound
+            # call, `native.SkinBound`), else `native.skin`
+            out = sk[3](pose_vec) if sk[3] is not None and self.bound_calls and zn.switches_on() else None
+            if out is None:
+                out = zn.skin_vector(sk[1], sk[2], pose_vec)
             if out is None:
                 out = zn.skin(sk[1], pose_vec)
             if out is not None:
@@ -609,6 +661,14 @@ class ZHShadow(Method):
         (X laid out vertex-major: the blocks of the vertices asked for, the same bits as the product's
         columns), then the same compiled eq. 1 (`runtime._vertex_sh`) — the same numbers. ``nTc`` (3, Q):
         the columns' unit normals when the caller has them (else gathered from ``geom``)."""
+        pb = self._pose_bound
+        if cols is None and nTc is None and pb is not None and pb.X is self.model.X and self.bound_calls \
+                and self.native_eq1 and zn.switches_on():
+            # (every vertex's v of the paper configuration by the bound call, `native.PoseSHBound`: bound by the
+            # first such frame below, once X is vertex-major; the same C loop and bits)
+            v = pb(pose_vec, geom.N)
+            if v is not None:
+                return v
         args, kw = self._visibility_args(pose_vec, geom, cols)
         X, _, normal, lobes = args
         if self.native_eq1 and not (kw["frame"] == "zyz" and kw["point_minor"]) and zn.is_vertex_major(X) \
@@ -624,6 +684,9 @@ class ZHShadow(Method):
             v = zn.pose_sh(X, a, cols, nT, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, None, zyz,
                            0 if kw["point_minor"] else 1)
             if v is not None:
+                if cols is None and nTc is None and self.bound_calls:   # (the next poses' call: `_pose_bound`)
+                    self._pose_bound = zn.pose_sh_bind(X, rt._band_norms(n), perm, lobes, n, pc.CHART_RMAX, zyz,
+                                                       0 if kw["point_minor"] else 1)
                 return v
         if self.pose_columns and kw["frame"] == "zyz" and kw["point_minor"] and zn.is_vertex_major(X):
             a = torch.cat([pose_vec.to(X.dtype).reshape(-1), torch.ones(1, dtype=X.dtype)])
@@ -654,6 +717,39 @@ class ZHShadow(Method):
                 torch._dynamo.maybe_mark_dynamic(nT, 1)
                 return fn(pT, nT, rt._band_norms(n), lobes, n, 0, True, perm)
         return rt.world_visibility(*args, **kw)
+
+    # A new pose's visibility in a paper-config frame made for the rows that frame reads alone (`_fill_visibility`,
+    # zh41p: the ground's and the referenced vertices' — ~7.3 K of the bench creature's 13.4 K — by the bound call,
+    # those rows the same bits; every row before any other path reads it); False: every vertex's (the tests' oracle)
+    lazy_visibility = True
+
+    def _lazy_ok(self, gbuffer: GBuffer) -> bool:
+        """Whether this frame may leave a new pose's visibility to `_fill_visibility` (`lazy_visibility`, the bound
+        call bound for this model, the C switches on, a CPU G-buffer)."""
+        pb = self._pose_bound
+        return self.lazy_visibility and self.bound_calls and self.native_eq1 and pb is not None \
+            and pb.X is self.model.X and pb.vmaj == 1 and gbuffer.hit.device.type == "cpu" and zn.switches_on()
+
+    def _fill_visibility(self, v0: Tensor, rows: Tensor | None = None) -> None:
+        """Make the pending visibility ``v0`` (`_render`'s, `lazy_visibility`) — its ``rows`` alone (then still
+        pending for the rest: a later call without rows makes every row), or every row (then kept as the pose's,
+        `_pose_state`) — by the bound call (`native.PoseSHBound`), else `_pose_visibility`'s own path. Nothing
+        when ``v0`` is not pending."""
+        pend = self._v_pending
+        if pend is None or pend[0] is not v0:
+            return
+        _, pose_vec, geom, key = pend[:4]
+        pb = self._pose_bound
+        if rows is not None and pb is not None:
+            if pb(pose_vec, geom.N, rows, out=v0) is not None:
+                self._v_pending = (*pend[:4], True)   # (made in part; kept after the frame: `_pose_state`)
+                return
+        if pb is None or not zn.switches_on() or pb(pose_vec, geom.N, out=v0) is None:
+            self._v_pending = None
+            v0.copy_(self._pose_visibility(pose_vec, geom))
+        self._v_pending = None
+        if self._posed is not None and self._posed[0] == key and self._posed[1] is geom and self._posed[2] is None:
+            self._posed = (key, geom, v0)   # (every row made: the pose's, as `_pose_state` keeps it)
 
     def _zyz_perm(self, n: int, rows: Tensor) -> tuple:
         """`runtime.zyz_rows`(n) (``rows``) as Python ints, kept per order (a (64,) ``tolist`` per P frame)."""
@@ -727,7 +823,20 @@ class ZHShadow(Method):
         vertex = self.config["shading"] == "vertex"
         # (vertex shading: the visibility made in `_render_vertex`, a P frame's for its front-facing
         # vertices alone)
-        pose_vec, geom, v0 = self._pose_state(frame, visibility=not vertex)
+        lazy = not vertex and frame.pose is not None and self._lazy_ok(gbuffer)   # (a posed frame's alone)
+        prev = self._posed
+        pose_vec, geom, v0 = self._pose_state(frame, visibility=not vertex and not lazy)
+        if lazy and v0 is None and prev is not None and prev is self._posed:
+            # (the last frame's pose again — a lighting, view or material frame after a P frame: the pose's
+            # visibility made whole now, in that frame's array, and kept — `_pose_state` — so that this frame
+            # finds the last one's caches, as with every row made then)
+            pose_vec, geom, v0 = self._pose_state(frame)
+        elif lazy and v0 is None:
+            # (a new pose's visibility: made in `_fused_planes` for the rows it reads, or whole before any other
+            # path reads it — `_fill_visibility`; until then an unfilled array of its shape and identity)
+            pb = self._pose_bound
+            v0 = torch.empty(pb.N, pb.n * pb.n, dtype=torch.float32)
+            self._v_pending = (v0, pose_vec, geom, self._posed[0])
         pose_key = self._posed[0]
         light = self._window(self._lighting(frame.envmap))
         lkey = self._light[0]
@@ -738,7 +847,8 @@ class ZHShadow(Method):
             return self._render_vertex(frame, gbuffer, pose_vec, geom, v0, light, mats, cosine)
         v = v0.to(dev)
         Wd = self._table(light, lkey, 1.0, True).to(dev)
-        spec = [any(x > 0 for x in ks.tolist()) for _, ks, _ in mats]   # (`(ks > 0).any()`, without 3 ops a region)
+        # (`(ks > 0).any()`, without 3 ops a region; the values kept with the materials, `_mat_values`)
+        spec = [any(x > 0 for x in mv[1]) for mv in self._mat_values(mats)]
         vreg = geom.vertex_region.to(dev)
         state = (frame.camera, pose_key, tuple(al if sp else None for sp, (_, _, al) in zip(spec, mats)),
                  P, gbuffer.spp_side, self.config["shading"])
@@ -756,6 +866,7 @@ class ZHShadow(Method):
             if img is not None:
                 self._relight = None
                 return img
+        self._fill_visibility(v0)   # (whole, if still pending: the paths below read every row)
         self.last_path = "samples"
         if kept:
             hits, cache = self._relight[2], self._relight[3]
@@ -838,6 +949,7 @@ class ZHShadow(Method):
             img = self._fused_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, spec, F32, fv, nmiss)
             if img is not None:
                 return img
+        self._fill_visibility(v0)   # (whole, if pending or made in part: the paths below read every row)
         misses = None if all_hit else (~gbuffer.hit).nonzero().squeeze(-1)
         split = self._native_split(gbuffer, spec, F32, misses) \
             if self.native_split and (misses is None or misses.shape[0] <= SPLIT_MAX_MISSES) else None
@@ -941,7 +1053,10 @@ class ZHShadow(Method):
         if n > rt.MONOMIAL_MAX_ORDER or P < rt.PLANAR_MIN_POINTS or not zn.fused_available(D, True, has_spec) \
                 or not zn.split_available() or not nrm.is_contiguous() or nrm.device.type != "cpu":
             return None
-        spec_t = torch.tensor(spec)
+        st = self._spec_t   # (kept per flags: zh41p)
+        if st is None or st[0] != spec:
+            self._spec_t = st = (list(spec), torch.tensor(spec))
+        spec_t = st[1]
         found: list = []
 
         def match(n0: Tensor) -> tuple[Tensor, int]:
@@ -984,6 +1099,18 @@ class ZHShadow(Method):
             rs = pre[0] if pre is not None else zn.rest_screen(mask, nrm, m)
             if rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs):
                 return None
+        pend = self._v_pending
+        if pend is not None and pend[0] is v0 and not pend[4:]:
+            # (a new pose's visibility pending, `lazy_visibility`: the rows the plane term and this frame's own
+            # table read alone — the regions without a specular term (`_plane_term`'s spans) and the vertices the
+            # object samples reference (``found_lut``, the table's rows); anything else: every row)
+            rows = None
+            sp = self._region_spans(vreg, len(mats)) if self.plane_term_spans and any(spec) \
+                and len(spec) == len(mats) else None
+            if found_lut is not None and sp is not None and want_lut:
+                rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
+                                  found_lut[0]])
+            self._fill_visibility(v0, rows)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, first[0], spec=spec)
         U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
                                refs=lambda: found_lut if found_lut is not None else
@@ -1001,8 +1128,10 @@ class ZHShadow(Method):
             return None
         img, nspec = res
         n_ = gbuffer.height * gbuffer.width
-        warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3), gbuffer.wo.view(n_, S2, 3),
-                                           mask.view(n_, S2), gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
+        if _warming():   # (outside the warm-up frame `warm_blocks` returns at once: not its five views; zh41p)
+            warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3),
+                                               gbuffer.wo.view(n_, S2, 3), mask.view(n_, S2),
+                                               gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
         groups = [(first[0], None)]
         # (the mask's count: the plane search's own, ``cnt`` — a miss never matches, `native.plane_mask`)
         counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg, planar=cnt)
@@ -1120,7 +1249,8 @@ class ZHShadow(Method):
         spans = self._region_spans(vreg, len(mats)) if spec is not None and self.plane_term_spans \
             and any(spec) and len(spec) == len(mats) else None
         only = None if spans is None else tuple(not x for x in spec)   # (the rows made: part of the keys)
-        ukey = (self._posed[0], self._light[0], tuple(tuple(m[0].tolist()) for m in mats), tuple(n0.tolist()), only)
+        n0k = tuple(n0.tolist())
+        ukey = (self._posed[0], self._light[0], tuple(mv[0] for mv in self._mat_values(mats)), n0k, only)
         pu = self._plane_u
         if pu is None or pu[0] != ukey or pu[1] is not v0 or pu[2] is not Wd:   # (Wd: the cached table itself)
             # the albedo-free v · T¹(n0) kept while pose, lighting and plane stay (a material frame, VB:
@@ -1130,7 +1260,10 @@ class ZHShadow(Method):
             ukey0 = ukey[:2] + ukey[3:]
             p0 = self._plane_u0
             if p0 is None or p0[0] != ukey0 or p0[1] is not v0 or p0[2] is not Wd:
-                T = rt.diffuse_at(Wd, n0)
+                pt = self._plane_T   # (T¹(n0) kept with the table Wd itself and n0: a P frame's pose alone changes)
+                if pt is None or pt[0] is not Wd or pt[1] != n0k:
+                    self._plane_T = pt = (Wd, n0k, rt.diffuse_at(Wd, n0))
+                T = pt[2]
                 if only is None:
                     # (one C pass over the rows where it runs, `native.plane_u`: float32 round-off against the GEMM)
                     u0 = zn.plane_u(v, T) if self.native_plane_u else None
@@ -1279,8 +1412,7 @@ class ZHShadow(Method):
         a lut (N,) of their ranks: the renumbered id of vertex i is lut[i]) or None (then no table:
         None), called only when that table is built (`_fused_planes`: `native.referenced_lut`)."""
         key = (self._posed[0], self._light[0],
-               tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al), t[3] is not None)
-                     for (kd, ks, al), t in zip(mats, tabs)))
+               tuple((mv[0], mv[1], mv[2], t[3] is not None) for mv, t in zip(self._mat_values(mats), tabs)))
         vt = self._vtable
         if vt is not None and vt[0] == key and vt[1] is v0 and len(vt[3]) == len(tabs) \
                 and all(x is y for ta, tb in zip(vt[3], tabs) for x, y in zip(ta[2:], tb[2:])):
@@ -1325,7 +1457,8 @@ class ZHShadow(Method):
         rs = self._region_stack
         n2 = int(v.shape[1])
         if rs is None or rs[0] != n2 or len(rs[1]) != len(tabs) or not all(
-                a[2] is b[2] and a[3] is b[3] and torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+                a[2] is b[2] and a[3] is b[3] and (a[0] is b[0] or torch.equal(a[0], b[0]))
+                and (a[1] is b[1] or torch.equal(a[1], b[1]))
                 for a, b in zip(rs[1], tabs)):
             # (kept while the tables — the cached W tensors themselves — and the albedos stay: a P frame's;
             # ~0.3 ms of small products at 1 thread)
@@ -2027,7 +2160,8 @@ class ZHShadow(Method):
                 "operators": sum(tensor_bytes(t) for t in self._ops.values()),
                 "light_sh": 0 if self._light is None else tensor_bytes(self._light[1]),
                 "pose_visibility_sh": (0 if self._posed is None or self._posed[2] is None else tensor_bytes(self._posed[2]))
-                + (0 if self._pose_sh_buf is None else tensor_bytes(self._pose_sh_buf)),
+                + (0 if self._pose_sh_buf is None else tensor_bytes(self._pose_sh_buf))
+                + (0 if self._v_pending is None else tensor_bytes(self._v_pending[0])),
                 "shade_tables": sum(tensor_bytes(t) for t in tabs)
                 + (0 if self._region_stack is None else tensor_bytes(self._region_stack[3]))
                 # (the steady paper frames' folded operator G and its buffers, `_steady_plane_terms`)

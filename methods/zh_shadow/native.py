@@ -255,6 +255,34 @@ void sample_terms(const float* U, int64_t N, const int64_t* vi, const float* b, 
 _TERMS_SIGNATURES = {"sample_terms": [_P, _I, _P, _P, _P, _P, _I, _I, _I, _P, _P]}
 
 
+_LOADED: dict = {}
+
+
+def load(name: str, source: str, signatures: dict, extra_flags: tuple = ()):
+    """`native.load`(name, source, signatures, extra_flags) remembered once it loaded (zh41p): a later call with
+    the same source and signatures objects and flags — while ``native.load`` is the same function (a test's spy
+    on it sees every call) — is one dict look-up. ``PRTBENCH_COMPILE`` is read at each call (a None met while
+    it is off is not kept). `native.load`'s own cache rebuilds its key each call (the signatures as nested
+    tuples, the flags): ~8 µs a library with the caches cold, ~10 libraries in a paper-config frame."""
+    if not native.compile_enabled():
+        return None
+    hit = _LOADED.get(name)
+    if hit is not None and hit[0] is source and hit[1] is signatures and hit[2] == extra_flags \
+            and hit[3] is native.load:
+        return hit[4]
+    lib = native.load(name, source, signatures, extra_flags=extra_flags)
+    if lib is not None:
+        _LOADED[name] = (source, signatures, extra_flags, native.load, lib)
+    return lib
+
+
+def switches_on() -> bool:
+    """``PRTBENCH_COMPILE`` and ``PRTBENCH_ZH_NATIVE`` both on: read once a frame by a caller of the bound calls
+    (`SkinBound`, `PoseSHBound`, zh41p), which do not read them per call (each read ~1 µs warm, ~15 µs as the
+    first of a frame with the caches cold)."""
+    return native.compile_enabled() and terms_switched_on()
+
+
 def terms_switched_on() -> bool:
     """False when ``PRTBENCH_ZH_NATIVE`` is 0 / false / no / off: `sample_terms` then returns None
     (the compiled `runtime._sample_block` runs; A/Bs and tests)."""
@@ -406,7 +434,7 @@ _SPLIT_SIGNATURES = {"plane_mask": [_P, _P, _P, _P, _I, _I, _I, _P, _P, _P],
 
 def _split_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
-    return native.load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
+    return load("zh_plane_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=("-fopenmp",))
 
 
 def split_available() -> bool:
@@ -1810,7 +1838,7 @@ def _fused_lib():
     `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)."""
     if not terms_switched_on() or _inductor_lanes() not in TERMS_LANES:
         return None
-    lib = native.load("zh33p_fused", _FUSED_SOURCE, _FUSED_SIGNATURES,
+    lib = load("zh33p_fused", _FUSED_SOURCE, _FUSED_SIGNATURES,
                       extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
     if lib is not None:
         for name, rt_ in _FUSED_RESTYPES.items():
@@ -2548,7 +2576,7 @@ MIN_ROWS_PER_VTABLE_THREAD = 1024   # table rows below which one thread builds t
 def _vtable_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
     # multiply-adds fused (float32 round-off against the GEMMs)
-    return native.load("zh34p_vtable", _VTABLE_SOURCE, _VTABLE_SIGNATURES,
+    return load("zh34p_vtable", _VTABLE_SOURCE, _VTABLE_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
 
 
@@ -3173,7 +3201,7 @@ RELIGHT_OBJECT_WEIGHT = 2.0   # an object sample's work in pixels' plane passes 
 
 def _relight_pixels_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
-    return native.load("zh35p_relight_pixels", _RELIGHT_PIXELS_SOURCE, _RELIGHT_PIXELS_SIGNATURES,
+    return load("zh35p_relight_pixels", _RELIGHT_PIXELS_SOURCE, _RELIGHT_PIXELS_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags()))
 
 
@@ -3525,9 +3553,9 @@ static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, floa
 /* columns [q0, q1): out[r * ldo + q] (vmaj: out[q * n2 + r]) = sum over lobes of Y_perm[r](axis) (k_l Λ_l), the
    axis in the ZYZ frame of the normal (zyz) or in world space; 1 at an id out of [0, N) */
 static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
-                        const int64_t *idx, int64_t N, const float *nT, int64_t ldn, const float *lam,
+                        const int64_t *idx, int64_t N, const float *nT, int64_t ldn, int64_t ldq, const float *lam,
                         const int64_t *perm, const float *cq, float rmax, int64_t q0, int64_t q1, float *out,
-                        int64_t ldo, int64_t zyz, int64_t vmaj) {
+                        int64_t ldo, int64_t zyz, int64_t vmaj, int64_t scatter) {
     float P[DMAX][L] __attribute__((aligned(64)));
     float acc[NMAX * NMAX][L] __attribute__((aligned(64)));
     float Y[NMAX * NMAX][L] __attribute__((aligned(64)));
@@ -3550,7 +3578,8 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             }
             pose_row(J1, d, a, X + j * J1 * d, p);
             for (int64_t c = 0; c < d; ++c) P[c][k] = p[c];
-            nx[k] = nT[q]; ny[k] = nT[ldn + q]; nz[k] = nT[2 * ldn + q];
+            const int64_t qn = scatter ? j : q;   /* (scatter: the normal and the output row of vertex j) */
+            nx[k] = nT[qn * ldq]; ny[k] = nT[ldn + qn * ldq]; nz[k] = nT[2 * ldn + qn * ldq];
         }
         /* (s, t) of the normal (frames._coordinate_components) and the ZYZ axes e1, e2 (runtime.zyz_axes) */
         float s0[L], s1[L], s2[L], t0[L], t1[L], t2[L], e10[L], e11[L], e12[L], e20[L], e21[L];
@@ -3643,8 +3672,10 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
             }
         }
         if (vmaj) {
-            for (int64_t k = 0; k < cnt; ++k)
-                for (int64_t r = 0; r < n2; ++r) out[(b0 + k) * n2 + r] = acc[perm[r]][k];
+            for (int64_t k = 0; k < cnt; ++k) {
+                const int64_t row = scatter ? idx[b0 + k] : b0 + k;
+                for (int64_t r = 0; r < n2; ++r) out[row * n2 + r] = acc[perm[r]][k];
+            }
         } else if (cnt == L) {
             for (int64_t r = 0; r < n2; ++r) memcpy(out + r * ldo + b0, acc[perm[r]], 64);
         } else {
@@ -3658,13 +3689,18 @@ static int64_t sh_range(int64_t J1, int64_t d, int64_t lobes, int64_t n, const f
     return 0;
 }
 
-void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
-                   const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
-                   const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
-                   int64_t *bad) {
+/* zh41p: the normal of column q read at nT[r * ldn + q * ldq] (ldq 3, ldn 1: the (N, 3) rows as they are);
+   scatter (with idx and vmaj): vertex idx[q]'s normal read at nT[r * ldn + idx[q] * ldq] and its row written
+   to out[idx[q] * n2 ...] (an (N, n2) array: the rows of the vertices asked for, each the same bits as there) */
+void zh41p_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
+                   const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, int64_t ldq,
+                   const float *lam, const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj,
+                   int64_t scatter, int64_t nt, float *out, int64_t *bad) {
     int64_t b = 0;
+    if (!idx || !vmaj) scatter = 0;
     if (nt <= 1) {
-        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj);
+        b = sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, ldq, lam, perm, cq, rmax, 0, Q, out, Q, zyz, vmaj,
+                     scatter);
     } else {
         const int64_t nb = (Q + L - 1) / L;
         #pragma omp parallel for num_threads(nt) schedule(static, 1) reduction(|:b)
@@ -3672,14 +3708,24 @@ void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float 
             int64_t a0 = nb * t / nt * L, a1 = nb * (t + 1) / nt * L;
             if (a1 > Q) a1 = Q;
             if (a0 < a1)
-                b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, lam, perm, cq, rmax, a0, a1, out, Q, zyz, vmaj);
+                b |= sh_range(J1, d, lobes, n, a, X, idx, N, nT, ldn, ldq, lam, perm, cq, rmax, a0, a1, out, Q, zyz,
+                              vmaj, scatter);
         }
     }
     bad[0] = b;
 }
+
+void zh36o_pose_sh(int64_t J1, int64_t d, int64_t lobes, int64_t n, const float *a, const float *X,
+                   const int64_t *idx, int64_t N, int64_t Q, const float *nT, int64_t ldn, const float *lam,
+                   const int64_t *perm, const float *cq, float rmax, int64_t zyz, int64_t vmaj, int64_t nt, float *out,
+                   int64_t *bad) {
+    zh41p_pose_sh(J1, d, lobes, n, a, X, idx, N, Q, nT, ldn, 1, lam, perm, cq, rmax, zyz, vmaj, 0, nt, out, bad);
+}
 """
 _POSE_SH_SIGNATURES = {"zh36o_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, ctypes.c_float,
-                                         _I, _I, _I, _P, _P]}
+                                         _I, _I, _I, _P, _P],
+                       "zh41p_pose_sh": [_I, _I, _I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _P, _P, ctypes.c_float,
+                                         _I, _I, _I, _I, _P, _P]}
 
 
 class _Sym:
@@ -3731,7 +3777,7 @@ MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one threa
 def _pose_sh_lib():
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
     # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
-    return native.load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
+    return load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
 
 
@@ -3821,6 +3867,75 @@ def pose_sh(X: Tensor, a: Tensor, idx: Tensor | None, nT: Tensor, lam: tuple, pe
     return None if int(bad[0]) else out
 
 
+class PoseSHBound:
+    """`pose_sh` of every vertex (``idx`` None) for one model X, Λ, perm, order and layout, its constant
+    arguments checked and resolved once (`pose_sh_bind`; zh41p): per pose only the pose's checks, ``a`` = [pose, 1]
+    written into a kept buffer and one C call (`zh41p_pose_sh`, the same loop as `zh36o_pose_sh`: the same
+    bits), the normals read as the (N, 3) rows they are (no (3, N) copy). A P frame's serial Python around
+    the call (the library look-up, the checks of X, the constants' keys, ``torch.cat`` of the pose and the
+    normals' transpose) was ~0.2 ms of the bench creature's frame with the caches cold (1 thread)."""
+
+    __slots__ = ("X", "fn", "J1", "d", "lobes", "n", "N", "lamt", "permt", "cq", "rmax", "zyz", "vmaj", "a", "bad",
+                 "xp", "lp", "pp", "qp", "ap", "bp")
+
+    def __call__(self, pose: Tensor, normal: Tensor, rows: Tensor | None = None, out: Tensor | None = None
+                 ) -> Tensor | None:
+        """(N, n²) (``dim`` 1) or (n², N): `pose_sh`(X, [pose, 1], None, normal.T, …) — or None where it does not
+        run (``pose`` not (J1 − 1,) float32 CPU, ``normal`` not (N, 3) float32 CPU contiguous, ``out`` not such
+        an array of that shape, ``rows`` given without ``dim`` 1 or ``out``, or not int64 CPU, or an id out of
+        [0, N)). ``out``: written there. ``rows`` (Q,) int64: the rows of those vertices alone written into
+        ``out`` (each the same bits as the full call's; the others untouched; an id twice: written twice, the
+        same) — a P frame's rows it reads (`ZHShadow._fill_visibility`). The switches (``PRTBENCH_COMPILE``,
+        ``PRTBENCH_ZH_NATIVE``) are the caller's to read (`switches_on`, once a frame)."""
+        N, n2 = self.N, self.n * self.n
+        shape = (N, n2) if self.vmaj else (n2, N)
+        if pose.dtype != torch.float32 \
+                or pose.device.type != "cpu" or pose.shape != (self.J1 - 1,) or normal.dtype != torch.float32 \
+                or normal.device.type != "cpu" or normal.shape != (N, 3) or not normal.is_contiguous() \
+                or (out is not None and (out.dtype != torch.float32 or out.device.type != "cpu"
+                                         or out.shape != shape or not out.is_contiguous())) \
+                or (rows is not None and (out is None or not self.vmaj or rows.dtype != torch.int64
+                                          or rows.device.type != "cpu" or rows.dim() != 1)):
+            return None
+        self.a[:-1].copy_(pose)
+        if out is None:
+            out = torch.empty(shape, dtype=torch.float32)
+        if rows is not None:
+            rows = rows.contiguous()
+        Q = N if rows is None else int(rows.shape[0])
+        if Q == 0:
+            return out
+        nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
+        self.fn(self.J1, self.d, self.lobes, self.n, self.ap, self.xp, 0 if rows is None else rows.data_ptr(), N, Q,
+                normal.data_ptr(), 1, 3, self.lp, self.pp, self.qp, self.rmax, self.zyz, self.vmaj,
+                int(rows is not None), nt, out.data_ptr(), self.bp)
+        return None if int(self.bad[0]) else out
+
+
+def pose_sh_bind(X: Tensor, lam: tuple, perm: tuple, lobes: int, n: int, rmax: float, zyz: bool = True,
+                 dim: int = 0) -> PoseSHBound | None:
+    """A `PoseSHBound` of `pose_sh`(X, ·, None, ·, lam, perm, lobes, n, rmax, None, zyz, dim), or None where
+    `pose_sh` would not run for these arguments (then the caller's `pose_sh`)."""
+    lib = _pose_sh_lib() if terms_switched_on() else None
+    if lib is None or X.dtype != torch.float32 or X.device.type != "cpu" or X.dim() != 3 or not is_vertex_major(X) \
+            or not 1 <= n <= POSE_SH_NMAX or lobes < 1 or X.shape[2] != lobes * (2 + n) \
+            or X.shape[2] > POSE_COLS_DMAX or len(lam) != n or len(perm) != n * n or dim not in (0, 1):
+        return None
+    consts = _pose_sh_constants(n, tuple(float(x) for x in lam), tuple(int(i) for i in perm))
+    if consts is None:
+        return None
+    b = PoseSHBound()
+    b.X, b.fn = X, lib.zh41p_pose_sh
+    b.J1, b.N, b.d = (int(s) for s in X.shape)
+    b.lobes, b.n, b.rmax, b.zyz, b.vmaj = int(lobes), int(n), float(rmax), int(bool(zyz)), int(dim == 1)
+    b.lamt, b.permt, b.cq = consts
+    b.a = torch.ones(b.J1, dtype=torch.float32)
+    b.bad = torch.zeros(1, dtype=torch.int64)
+    b.xp, b.lp, b.pp, b.qp = X.data_ptr(), b.lamt.data_ptr(), b.permt.data_ptr(), b.cq.data_ptr()
+    b.ap, b.bp = b.a.data_ptr(), b.bad.data_ptr()
+    return b
+
+
 # -- zh37v ------------------------------------------------------------------------------------------
 # `fused_pixels`' object samples with the interpolated dot regrouped (``fma``, `ZHShadow.fma_terms`):
 # `zh33p_fused` evaluates Σ_f ((U0[c, f] b0 + U1[c, f] b1) + U2[c, f] b2) · feature[f] lane by lane as
@@ -3891,7 +4006,7 @@ def _fma_fused_lib():
     """`_fused_lib`'s conditions, then the library of `zh37v_fused` or None. Not cached here (b541a75)."""
     if not terms_switched_on() or _inductor_lanes() not in TERMS_LANES:
         return None
-    return native.load("zh37v_fused", _FMA_FUSED_SOURCE, _FMA_FUSED_SIGNATURES,
+    return load("zh37v_fused", _FMA_FUSED_SOURCE, _FMA_FUSED_SIGNATURES,
                        extra_flags=("-ffp-contract=off", "-fopenmp", *native.isa_flags()))
 
 
@@ -3949,7 +4064,7 @@ VECTOR_PLANE_MASK = True
 
 def _pmask_lib():
     """The library of `zh37v_plane_mask` or None. Not cached here (b541a75)."""
-    return native.load("zh37v_plane_mask", _PMASK_SOURCE, _PMASK_SIGNATURES,
+    return load("zh37v_plane_mask", _PMASK_SOURCE, _PMASK_SIGNATURES,
                        extra_flags=("-fopenmp", *native.isa_flags()))
 
 
@@ -4232,7 +4347,7 @@ VTABLE_ROWS4 = True
 
 def _vtable4_lib():
     # not cached here (b541a75); `_vtable_lib`'s flags
-    return native.load("zh38v_vtable", _VTABLE4_SOURCE, _VTABLE4_SIGNATURES,
+    return load("zh38v_vtable", _VTABLE4_SOURCE, _VTABLE4_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags()))
 
 
@@ -4266,7 +4381,7 @@ _RTABLES_SIGNATURES = {"zh38v_region_tables": [_I, _I, _I, _I, _P, _P, _P, _P, _
 
 def _rtables_lib():
     # not cached here (b541a75); products only (no sums: nothing to fuse)
-    return native.load("zh38v_region_tables", _RTABLES_SOURCE, _RTABLES_SIGNATURES, extra_flags=("-ffp-contract=off",))
+    return load("zh38v_region_tables", _RTABLES_SOURCE, _RTABLES_SIGNATURES, extra_flags=("-ffp-contract=off",))
 
 
 def region_tables(tabs: list, n2: int, out: Tensor) -> int | None:
@@ -4520,7 +4635,7 @@ def _vskin_lib():
     """The library of `zh38p_skin` or None (no AVX-512 host: `skin`). Not cached (b541a75)."""
     if not _avx512_flags():
         return None
-    return native.load("zh38p_skin", _VSKIN_SOURCE, _VSKIN_SIGNATURES,
+    return load("zh38p_skin", _VSKIN_SOURCE, _VSKIN_SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
 
 
@@ -4554,6 +4669,44 @@ def skin_vector(setup: tuple | None, vsetup: tuple | None, pose: Tensor) -> tupl
                    int(rng.shape[0]), rng.data_ptr(), wofs.data_ptr(), w.data_ptr(), Vo.data_ptr(), No.data_ptr(),
                    T12.data_ptr(), nt, wT.data_ptr(), int(wT.shape[1]), VT.data_ptr(), NT.data_ptr())
     return Vo, No
+
+
+class SkinBound:
+    """`skin_vector` for one setup, its constant arguments resolved once (`skin_bind`; zh41p): per pose only the
+    pose's checks, the two outputs and one C call (the same bits); the joints' scratch T12 kept. The look-ups
+    and checks around the call were ~0.15 ms of a bench P frame's serial Python with the caches cold."""
+
+    __slots__ = ("setup", "vsetup", "fn", "J", "n", "head", "tail", "T12")
+
+    def __call__(self, pose: Tensor) -> tuple[Tensor, Tensor] | None:
+        """`skin_vector`(setup, vsetup, pose) or None; the switches are the caller's (`switches_on`)."""
+        if not VECTOR_SKIN or pose.dtype != torch.float32 or pose.device.type != "cpu" or pose.shape != (self.J,):
+            return None
+        pose = pose.contiguous()
+        n = self.n
+        Vo, No = torch.empty(n, 3, dtype=torch.float32), torch.empty(n, 3, dtype=torch.float32)
+        nt = max(1, min(torch.get_num_threads(), n // 4096))
+        self.fn(*self.head, pose.data_ptr(), n, *self.tail[0], Vo.data_ptr(), No.data_ptr(), self.T12.data_ptr(), nt,
+                *self.tail[1])
+        return Vo, No
+
+
+def skin_bind(setup: tuple | None, vsetup: tuple | None) -> SkinBound | None:
+    """A `SkinBound` of `skin_vector`(setup, vsetup, ·), or None where `skin_vector` would not run."""
+    if not VECTOR_SKIN or vsetup is None or setup is None:
+        return None
+    lib = _vskin_lib() if terms_switched_on() else None
+    if lib is None:
+        return None
+    J, par, jp, ax, V, N, rng, wofs, w = setup
+    wT, VT, NT = vsetup
+    b = SkinBound()
+    b.setup, b.vsetup, b.fn, b.J, b.n = setup, vsetup, lib.zh38p_skin, int(J), int(V.shape[0])
+    b.head = (J, par.data_ptr(), jp.data_ptr(), ax.data_ptr())
+    b.tail = ((V.data_ptr(), N.data_ptr(), int(rng.shape[0]), rng.data_ptr(), wofs.data_ptr(), w.data_ptr()),
+              (wT.data_ptr(), int(wT.shape[1]), VT.data_ptr(), NT.data_ptr()))
+    b.T12 = torch.empty(J, 12, dtype=torch.float32)
+    return b
 
 
 # --- the resolve matrix of a lighting-only vertex-shaded frame, built by one C pass (zh39o) -----------------

@@ -237,8 +237,8 @@ def lib(fma: bool):
         return None
     flags = ("-ffp-contract=off", "-fopenmp", *native.isa_flags(), *zn._avx512_flags())
     if fma:
-        lb = native.load("zh40p_fused_fma", _FMA_SOURCE, _FMA_SIGNATURES, extra_flags=flags)
+        lb = zn.load("zh40p_fused_fma", _FMA_SOURCE, _FMA_SIGNATURES, extra_flags=flags)
         return None if lb is None else (lb, lb.zh40p_fused_fma)
-    lb = native.load("zh40p_fused", _SOURCE, _SIGNATURES, extra_flags=flags)
+    lb = zn.load("zh40p_fused", _SOURCE, _SIGNATURES, extra_flags=flags)
     return None if lb is None else (lb, lb.zh40p_fused)
 

@@ -207,7 +207,7 @@ def _lib():
     switch). Not cached here (`native.load` caches the build, b541a75)."""
     if not zn.terms_switched_on():
         return None
-    return native.load("zh39s_helpers", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", *native.isa_flags()))
+    return zn.load("zh39s_helpers", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", *native.isa_flags()))
 
 
 def _threads(n: int) -> int:

@@ -71,5 +71,5 @@ def lib():
     (`native.load` caches the build)."""
     if not zn._avx512_flags() or not zn.terms_switched_on():
         return None
-    return native.load("zh40p_vtable", _SOURCE, _SIGNATURES,
+    return zn.load("zh40p_vtable", _SOURCE, _SIGNATURES,
                        extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *zn._avx512_flags()))

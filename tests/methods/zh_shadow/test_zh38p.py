@@ -76,9 +76,15 @@ def test_vector_skin_equals_skin(name, size, monkeypatch):
     monkeypatch.setattr(zn, "skin_vector", lambda *a: calls.append(1) or sv(*a))
     m = ZHShadow(order=8, shading="vertex", specular="cosine")
     m.scene = scene
+    m.bound_calls = False   # (the bound call, `native.SkinBound`: below)
     pose = poses[4].float()
     geom = m._posed_geometry(pose, tuple(pose.tolist()))
     assert len(calls) == 1 and torch.equal(geom.V, zn.skin(st, pose)[0]) and torch.equal(geom.N, zn.skin(st, pose)[1])
+    mb = ZHShadow(order=8, shading="vertex", specular="cosine")
+    mb.scene = scene
+    gb = mb._posed_geometry(pose, tuple(pose.tolist()))
+    assert len(calls) == 1 and mb._skin[3] is not None   # (zh41p: the bound call, not `skin_vector`)
+    assert torch.equal(gb.V, geom.V) and torch.equal(gb.N, geom.N)
     monkeypatch.setattr(zn, "VECTOR_SKIN", False)
     assert zn.skin_vector(st, vs, pose) is None
     geom2 = ZHShadow(order=8, shading="vertex", specular="cosine")
