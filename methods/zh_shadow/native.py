@@ -4255,9 +4255,10 @@ def light_setup(n2: int, C: int, Q: Tensor, tables: tuple) -> tuple | None:
         return None
     Q = Q.contiguous()
     w = torch.empty(3 * n2 * C + 3, dtype=torch.float64)
-    args = torch.tensor([n2, C, Q.data_ptr(), *(t.data_ptr() for t in tables), w.data_ptr()], dtype=torch.int64)
+    vals = [n2, C, Q.data_ptr(), *(t.data_ptr() for t in tables), w.data_ptr()]
+    args = (ctypes.c_int64 * len(vals))(*vals)  # not a tensor: the method's state holds no addresses (test_threads)
     Rbuf = (ctypes.c_double * 9)()
-    return lib.zh41l_light, args.data_ptr(), n2, C, Rbuf, (Q, tables, w, args, lib)
+    return lib.zh41l_light, ctypes.addressof(args), n2, C, Rbuf, (Q, tables, w, args, lib)
 
 
 def light_world(st: tuple, c: Tensor, R: tuple, tol: float) -> Tensor | None:
