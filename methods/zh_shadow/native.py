@@ -4918,15 +4918,10 @@ static void relight_block(int64_t n2, int64_t Nc, const float *Ld, const float *
     }
 }
 
-/* light (n2, 3), kd / ks (nreg, 3), spans (nreg, 2) compact column ranges (tiling [0, Nc)), wf (n2, Nc),
-   tsp (nreg) addresses of t_s (n2, b1 − b0) or 0, inv_pi = (float)(1/π); x (Nc + 1, 3) written (row Nc
-   zero); L (nreg · 2 · n2 · 3) scratch; then out (R, 3) = the compact ELL matrix (col4, val4, the tails)
-   times x, as `zh_ell_rows` (its loops and expressions). One OpenMP region of nt threads: the column
-   blocks of 64 split over them, a barrier, then the rows. */
-void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
-                   const int64_t *spans, const float *wf, const int64_t *tsp, float inv_pi, int64_t clamp,
-                   float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out, int64_t nt,
-                   int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
+/* The relight passes' shared head: per region r the scaled lighting Ld = light (kd_r / π), Ls = light ks_r
+   into L (nreg · 2 · n2 · 3); returns the number of 64-column blocks over the regions' spans. */
+static int64_t relight_light(int64_t n2, const float *light, int64_t nreg, const float *kd, const float *ks,
+                             const int64_t *spans, float inv_pi, float *L) {
     int64_t nb = 0;
     for (int64_t r = 0; r < nreg; ++r) {
         float *Ld = L + r * 6 * n2, *Ls = Ld + 3 * n2;
@@ -4938,19 +4933,42 @@ void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, con
         const int64_t m = spans[2 * r + 1] - spans[2 * r];
         nb += m > 0 ? (m + 63) / 64 : 0;
     }
+    return nb;
+}
+
+/* Block k (in region order) is the kk-th of region r (returned): its columns j0 .. j0 + jn of the region's m. */
+static int64_t relight_block_of(int64_t k, int64_t nreg, const int64_t *spans, int64_t *j0, int64_t *jn,
+                                int64_t *m) {
+    int64_t r = 0, kk = k;
+    *m = 0;
+    for (; r < nreg; ++r) {
+        *m = spans[2 * r + 1] - spans[2 * r];
+        const int64_t c = *m > 0 ? (*m + 63) / 64 : 0;
+        if (kk < c) break;
+        kk -= c;
+    }
+    *j0 = kk * 64;
+    *jn = *m - *j0 < 64 ? *m - *j0 : 64;
+    return r;
+}
+
+/* light (n2, 3), kd / ks (nreg, 3), spans (nreg, 2) compact column ranges (tiling [0, Nc)), wf (n2, Nc),
+   tsp (nreg) addresses of t_s (n2, b1 − b0) or 0, inv_pi = (float)(1/π); x (Nc + 1, 3) written (row Nc
+   zero); L (nreg · 2 · n2 · 3) scratch; then out (R, 3) = the compact ELL matrix (col4, val4, the tails)
+   times x, as `zh_ell_rows` (its loops and expressions). One OpenMP region of nt threads: the column
+   blocks of 64 split over them, a barrier, then the rows. */
+void zh39o_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, const float *kd, const float *ks,
+                   const int64_t *spans, const float *wf, const int64_t *tsp, float inv_pi, int64_t clamp,
+                   float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out, int64_t nt,
+                   int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol, const float *tval) {
+    const int64_t nb = relight_light(n2, light, nreg, kd, ks, spans, inv_pi, L);
     x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
 #pragma omp parallel num_threads(nt) if(nt > 1)
     {
 #pragma omp for schedule(static)
         for (int64_t k = 0; k < nb; ++k) {
-            int64_t r = 0, kk = k, m = 0;
-            for (; r < nreg; ++r) {   /* block k: the kk-th of region r */
-                m = spans[2 * r + 1] - spans[2 * r];
-                const int64_t c = m > 0 ? (m + 63) / 64 : 0;
-                if (kk < c) break;
-                kk -= c;
-            }
-            const int64_t j0 = kk * 64, jn = m - j0 < 64 ? m - j0 : 64;
+            int64_t j0, jn, m;
+            const int64_t r = relight_block_of(k, nreg, spans, &j0, &jn, &m);
             const float *Ld = L + r * 6 * n2;
             relight_block(n2, Nc, Ld, Ld + 3 * n2, wf, (const float *)(intptr_t)tsp[r], spans[2 * r], m, j0, jn,
                           clamp, x);
@@ -5062,30 +5080,14 @@ void zh41l_relight(int64_t n2, int64_t Nc, const float *light, int64_t nreg, con
                    int64_t clamp, float *x, float *L, int64_t R, const int32_t *col4, const float *val4, float *out,
                    int64_t nt, int64_t T, const int32_t *trow, const int32_t *tcrow, const int32_t *tcol,
                    const float *tval) {
-    int64_t nb = 0;
-    for (int64_t r = 0; r < nreg; ++r) {
-        float *Ld = L + r * 6 * n2, *Ls = Ld + 3 * n2;
-        for (int64_t i = 0; i < n2; ++i)
-            for (int c = 0; c < 3; ++c) {
-                Ld[3 * i + c] = light[3 * i + c] * (kd[3 * r + c] * inv_pi);
-                Ls[3 * i + c] = light[3 * i + c] * ks[3 * r + c];
-            }
-        const int64_t m = spans[2 * r + 1] - spans[2 * r];
-        nb += m > 0 ? (m + 63) / 64 : 0;
-    }
+    const int64_t nb = relight_light(n2, light, nreg, kd, ks, spans, inv_pi, L);
     x[3 * Nc] = 0.f; x[3 * Nc + 1] = 0.f; x[3 * Nc + 2] = 0.f;
 #pragma omp parallel num_threads(nt) if(nt > 1)
     {
 #pragma omp for schedule(static)
         for (int64_t k = 0; k < nb; ++k) {
-            int64_t r = 0, kk = k, m = 0;
-            for (; r < nreg; ++r) {   /* block k: the kk-th of region r */
-                m = spans[2 * r + 1] - spans[2 * r];
-                const int64_t c = m > 0 ? (m + 63) / 64 : 0;
-                if (kk < c) break;
-                kk -= c;
-            }
-            const int64_t j0 = kk * 64, jn = m - j0 < 64 ? m - j0 : 64;
+            int64_t j0, jn, m;
+            const int64_t r = relight_block_of(k, nreg, spans, &j0, &jn, &m);
             const float *Ld = L + r * 6 * n2;
             relight_tile(n2, Ld, Ld + 3 * n2, wb + k * n2 * 64, tsp[r] ? tb + k * n2 * 64 : 0, jn, clamp,
                          x + 3 * (spans[2 * r] + j0));
