@@ -900,6 +900,10 @@ class ZHShadow(Method):
                     # what the next lighting-only frame of this transfer reads (`_steady_planes`)
                     self._steady = ("planes", frame.camera, frame.pose, dict(frame.materials),
                                     self._steady_key(gbuffer), self._planes_caches(), *pr[1:], cache["counts"])
+                    # ... and its plane operator, made here with the transfer this frame builds: it depends on
+                    # n0, the materials and the lighting's size, not on the lighting (session 41: made by the
+                    # first steady frame, that frame read 1.5-1.6 ms against 0.75 for the next ones)
+                    self._plane_light_for(light, self._steady[6], self._steady[7])
                 return img
         if relight:
             out = rt.relight(cache, v, Wd, light, vreg, [(kd, ks) for kd, ks, _ in mats])
@@ -1785,16 +1789,22 @@ class ZHShadow(Method):
         state (``self._plane_light``: G = Σ_k f_k A_k, `runtime.table`'s operator A
         at α = 1 and the features f of n0 at the table's dtype), or None (``steady_plane_operator`` off, no
         library, not the CPU): then `_table` and `runtime.diffuse_at`."""
+        pl = self._plane_light_for(light, n0, regs)
+        if pl is None or pl[1] is None:
+            return None
+        st, lds, lss = pl[1]
+        out = zn.plane_light(st, light)
+        return None if out is None else (out[0], lds, lss)
+
+    def _plane_light_for(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
+        """``self._plane_light`` for the current steady state (made by `_plane_light_setup` where it was made for
+        another), or None where `_steady_plane_terms` does not run (switched off, not the CPU, not float32)."""
         if not self.steady_plane_operator or light.device.type != "cpu" or light.dtype != torch.float32:
             return None
         pl = self._plane_light
         if pl is None or pl[0] is not self._steady:
             pl = self._plane_light = (self._steady, self._plane_light_setup(light, n0, regs))
-        if pl[1] is None:
-            return None
-        st, lds, lss = pl[1]
-        out = zn.plane_light(st, light)
-        return None if out is None else (out[0], lds, lss)
+        return pl
 
     def _plane_light_setup(self, light: Tensor, n0: Tensor, regs: list) -> tuple | None:
         n2 = int(light.shape[0])
