@@ -4,7 +4,7 @@ idle (the harness's G-buffer and scoring between timed frames), V and VB sequenc
 frame; every call of the frame's parts wrapped in a timer (wall and process CPU).
 
     python -m benchmarks.ptt41_vb_split [--scene chess] [--frames 9] [--threads 2] [--rounds 2]
-                                        [--precompute-of /work/wt/base41]
+                                        [--precompute-of BASE_CHECKOUT]
 
 Prints per kind the median ms (wall / cpu) of the frame and of each part: `PTT.coords` (the run-time
 fit; ``native_fit.fit_materials`` inside it), `fast.region_tables` (``native.region_tables`` — W_r —
@@ -51,7 +51,9 @@ def flush(buf):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     frame_args(ap, scene="chess", config='{"light_res_1":4}', frames=9, kinds=("V", "VB"))
-    ap.add_argument("--precompute-of", default="/work/wt/base41")
+    ap.add_argument("--precompute-of", default="",
+                    help="look the precomputation up under this checkout's code fingerprint ('' = this one's; "
+                         "benchmarks.ptt_ab.base_fingerprint)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--flags-ab", action="store_true",
                     help="each kind twice, alternating frame by frame: 'off' = session 40's BRDF stage "
