@@ -94,7 +94,10 @@ def test_load_remembered_follows_the_switch_and_a_spy(monkeypatch):
     names = []
     load = core_native.load
     monkeypatch.setattr(core_native, "load", lambda name, *a, **k: names.append(name) or load(name, *a, **k))
-    assert zn._split_lib() is lib and names == ["zh_plane_split"]
+    # the same library (dlopen's handle): after an earlier test's `core_native.cache_clear` the core cache makes a new
+    # CDLL object of the same file while zh's remembered one is the old object (CI replica of 5d24570, xdist order)
+    again = zn._split_lib()
+    assert again is not None and again._handle == lib._handle and names == ["zh_plane_split"]
 
 
 def _oracle_frame(m) -> None:
