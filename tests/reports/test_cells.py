@@ -311,6 +311,34 @@ def test_each_cell_makes_its_own_warm_up_calls(tmp_path, monkeypatch):
     assert seen == [set()]                                 # one warm-up frame, and it started afresh
 
 
+def test_previous_frame_freed_after_the_timer_stops(tmp_path, monkeypatch):
+    """Session 42: a method that keeps its last G-buffer (frame state, `frame_cost`'s statistics) drops it
+    inside its next render; the harness keeps the previous frame's G-buffer and image referenced until that
+    frame's timer stops, so their memory is freed outside the timed region (SH PRT E: 4-6 ms munmap in 5 of
+    90 steady frames before). Each render ends with the previous frame's G-buffer and image still alive, and
+    they are gone once the next frame was timed."""
+    import weakref
+
+    alive_in_render, gone_after = [], []
+    refs: list = []
+    real = fakes.FakeMethod.render
+
+    def keeping(self, frame, gbuffer):
+        self._last = gbuffer                               # drops the previous frame's G-buffer here
+        img = real(self, frame, gbuffer)
+        alive_in_render.append([r() is not None for r in refs[-2:]])
+        gone_after.append([r() is None for r in refs[2:-2]])   # (frame 0's: the scored frame, kept for its artifacts)
+        refs.extend([weakref.ref(gbuffer), weakref.ref(img)])
+        return img
+
+    monkeypatch.setattr(fakes.FakeMethod, "render", keeping)
+    MC.run_cell(_cell(n_frames=5, score_frames=(0,)), tmp_path, progress=False)   # the scoring keeps no frame
+    assert len(alive_in_render) == 5
+    assert alive_in_render[0] == [] and all(a == [True, True] for a in alive_in_render[1:])
+    assert all(all(g) for g in gone_after), gone_after     # nothing older than the previous frame leaks
+    assert sum(map(len, gone_after)) == 2 + 4              # frames 1 and 2 checked after frames 3 and 4
+
+
 @pytest.mark.parametrize("enabled", [True, False])
 def test_frames_render_with_the_garbage_collector_paused(tmp_path, monkeypatch, enabled):
     """Session 40 (`measure_cell.gc_paused`, timeit's convention): every frame — warm-up and timed —
