@@ -1263,6 +1263,57 @@ def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, t
     assert bool((pad == 0).all())
 
 
+@pytest.mark.parametrize("isa", ["host", "scalar"])
+@pytest.mark.parametrize("scene_name, order, blinn", [("creature", 5, False), ("creature", 5, True),
+                                                      ("alcove", 3, False), ("alcove", 8, True), ("creature", 2, True)])
+def test_fast_relight_build_equals_the_session_40_pass(scene_name, order, blinn, isa, monkeypatch):
+    """Session 42 (sh42): `rb_range2` (`FAST_RELIGHT_BUILD`: each block's per-sample scalars and lobe row in
+    vector lanes, the three corners' lobes in one loop, no memset of the blocks) equals `rb_range` (session 40's
+    pass, its oracle) bit for bit: every value of every block, the last block's padding lanes zero even where
+    the buffer held other values, the pixels; at 1 and 3 threads (block ranges split over the threads); with
+    the host's ISA flags (the AVX2 lanes) and without any ("scalar": the library's fallback loops). Phong and
+    Blinn-Phong lobes, orders 2, 3, 5 (unrolled) and 8."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    if isa == "scalar":
+        monkeypatch.setattr(native, "_flags", lambda: ("-fopenmp", "-ffp-contract=off"))
+        monkeypatch.setattr(native, "_LOADED", [None])          # (the library rebuilt with those flags)
+    m, args = _relight_inputs(scene_name, order, blinn)
+    g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2 = args
+    Q = int(g.numel())
+    assert Q > 100 and (isa == "host" or Q % 8)        # (the creature's test G-buffer: a short last block)
+    T, Mv = m.t_parts[0][..., 0], m._vertex_major_M()
+    AS = shm._sh_factor_tables(order, G.device)
+    monkeypatch.setattr(native, "MIN_BUILD_PER_THREAD", 1)
+    real_empty = torch.empty
+
+    def dirty_empty(*a, **k):                          # a buffer full of garbage: the padding must be written
+        return real_empty(*a, **k).fill_(float("nan") if k.get("dtype", torch.float32) == torch.float32 else -7)
+
+    old = torch.get_num_threads()
+    try:
+        res = {}
+        for fast in (False, True):
+            monkeypatch.setattr(native, "FAST_RELIGHT_BUILD", fast)
+            for threads in (1, 3):
+                torch.set_num_threads(threads)
+                monkeypatch.setattr(native.torch, "empty", dirty_empty)
+                res[fast, threads] = native.relight_build(g, face, bary, normal, wo, reg, m.F, m._fg, T, Mv, kd, ks, G,
+                                                          vcos, *AS, S2)
+                monkeypatch.setattr(native.torch, "empty", real_empty)
+    finally:
+        torch.set_num_threads(old)
+        monkeypatch.setattr(native.torch, "empty", real_empty)
+    want = res[False, 1]
+    assert want is not None and bool(torch.isfinite(want[0]).all())
+    for key, got in res.items():
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]), key
+    if Q % 8:
+        assert bool((want[0].view(-1, 2 * order ** 2 + 6, 8)[-1, :, Q % 8:] == 0).all())
+
+
 @pytest.mark.parametrize("threads", [1, 3])
 @pytest.mark.parametrize("scene_name, order", [("sphere_plane", 5), ("alcove", 3), ("alcove", 8), ("sphere_plane", 2)])
 def test_native_light_stage_equals_the_torch_stage(scene_name, order, threads, monkeypatch):
