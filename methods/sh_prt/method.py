@@ -1106,8 +1106,11 @@ class SHPRT(Method):
                     img.view(gb.height, gb.width, 3).to(gb.hit.device)
         # session 41: a frame shaded from the relight cache reads no glossy list (and takes its image as it is)
         cached = relight and self._relight is not None and self._relight[0] == state
+        # (session 42: the first lighting-only frame's glossy list as a view of `pixels`' kept buffer — read only by
+        # the build below, within this frame — not a copy)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2, listed=not cached,
-                            shape=(gb.height, gb.width, 3) if cached else None) if NATIVE_PIXELS else None
+                            shape=(gb.height, gb.width, 3) if cached else None,
+                            copy=not relight) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]

@@ -1181,10 +1181,15 @@ void sh_relight_build(int64_t Q, int64_t n, const int64_t *g, const int64_t *fac
                       const float *O, int64_t orr, int64_t oc, const int64_t *F, const int32_t *fg, const float *T,
                       int64_t tv, int64_t ti, const float *Mv, const float *kd, const float *ks, const float *G,
                       const uint8_t *vcos, const float *A, const int32_t *sel, int64_t S2, float *blk,
-                      int64_t *pix, int64_t nt) {
+                      int64_t *pix, int64_t nt, int64_t P, int64_t *bad) {
     const int64_t nb = (Q + 7) / 8;
     if (nt < 0) {                                     /* session 42: `rb_range2` (the same bits), -nt threads */
         nt = -nt;
+        if (P >= 0) {                                 /* the samples checked here: g in [0, P), else *bad = 1 */
+            int64_t lo = 0, hi = 0;
+            for (int64_t q = 0; q < Q; ++q) { lo |= g[q] < 0; hi |= g[q] >= P; }
+            if (lo | hi) { *bad = 1; return; }
+        }
         if (nt <= 1) {
             rb_range2(0, nb, Q, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, F, fg, T, tv, ti, Mv, kd, ks,
                       G, vcos, A, sel, S2, blk, pix);
@@ -1283,7 +1288,7 @@ _SIGNATURES = {"sh_lg_rows": [_I, _I, _I, _P, _P, _P, _I, _I, _P, _I],
                "sh_view_rows_z": [_I, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _I],
                "sh_relight_add": [_I, _I, _P, _P, _P, ctypes.c_float, _P, _I],
                "sh_relight_build": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _P, _I, _I,
-                                    _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I],
+                                    _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _I, _P],
                "sh_pixels": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P,
                              _P, _P, _I, _I],
                "sh_view": [_I, _I, _P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _P, _P, _I, ctypes.c_float, _P, _I,
@@ -1507,7 +1512,8 @@ VECTOR_PIXELS = True
 
 
 def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef: Tensor, fk: Tensor,
-           S2: int, *, listed: bool = True, shape: tuple | None = None) -> tuple[Tensor, Tensor | None] | None:
+           S2: int, *, listed: bool = True, shape: tuple | None = None, copy: bool = True
+           ) -> tuple[Tensor, Tensor | None] | None:
     """`method._pixels_impl`'s pass as one C loop that also lists the glossy samples: (img (n, 3),
     g (Qg,) int64 ascending, the samples ``hit & fk[face, 3] != 0``) for the G-buffer arrays face
     (P,) int64, hit (P,) bool, bary (P, 2), normal and wo (P, 3) float32 (any strides), P = n·S2,
@@ -1534,7 +1540,9 @@ def pixels(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, 
                   normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1),
                   ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), gl.data_ptr(),
                   ctypes.addressof(cnt) if listed else None, nt, int(bool(VECTOR_PIXELS)))
-    return img, (gl[:cnt.value].clone() if listed else None)
+    # session 42: ``copy=False`` returns the list as a view of the kept buffer (valid until the next `pixels`
+    # call: the caller consumes it within its frame; the copy was ~0.1 ms of the first lighting-only frame)
+    return img, ((gl[:cnt.value].clone() if copy else gl[:cnt.value]) if listed else None)
 
 
 _GL: list = [torch.empty(0, dtype=torch.int64)]
@@ -1591,20 +1599,28 @@ def relight_build(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Ten
     pix = torch.empty(Q, dtype=torch.int64)
     if Q == 0:
         return blk, pix
-    if int(g.min()) < 0 or int(g.max()) >= face.numel():
-        raise IndexError("a glossy sample outside the G-buffer")
-    g, face, reg, F, fg, kd, ks, G, A = (x.contiguous() for x in (g, face, reg, F, fg, kd, ks, G, A))
-    v8 = vcos.to(torch.uint8).contiguous()
-    sel = S.argmax(0).to(torch.int32).contiguous()
+    g, face, reg, F, fg, kd, ks, G, A = (_c(x) for x in (g, face, reg, F, fg, kd, ks, G, A))
     nt = max(1, min(torch.get_num_threads(), Q // MIN_BUILD_PER_THREAD))
+    bad = ctypes.c_int64(0)
     if FAST_RELIGHT_BUILD:
-        nt = -nt                                         # (`rb_range2`: the same bits)
+        # session 42 (sh42): `rb_range2` (the same bits); the samples' bounds checked by the C call and vcos / S's
+        # tables kept (`_view_tables`): g.min / max, vcos.to and S.argmax were ~0.1-0.15 ms each with the caches
+        # cold (the first lighting-only frame, 1 thread)
+        nt = -nt
+        v8, sel = _view_tables(vcos, S)
+    else:
+        if int(g.min()) < 0 or int(g.max()) >= face.numel():
+            raise IndexError("a glossy sample outside the G-buffer")
+        v8 = vcos.to(torch.uint8).contiguous()
+        sel = S.argmax(0).to(torch.int32).contiguous()
     lib.sh_relight_build(Q, n, g.data_ptr(), face.data_ptr(), int(F.shape[0]), reg.data_ptr(), int(kd.shape[0]),
                          bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0),
                          normal.stride(1), wo.data_ptr(), wo.stride(0), wo.stride(1), F.data_ptr(), fg.data_ptr(),
                          T.data_ptr(), T.stride(0), T.stride(1), Mv.data_ptr(), kd.data_ptr(), ks.data_ptr(),
                          G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), int(S2), blk.data_ptr(),
-                         pix.data_ptr(), nt)
+                         pix.data_ptr(), nt, int(face.numel()), ctypes.addressof(bad))
+    if bad.value:
+        raise IndexError("a glossy sample outside the G-buffer")
     return blk, pix
 
 

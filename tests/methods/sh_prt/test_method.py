@@ -1312,6 +1312,14 @@ def test_fast_relight_build_equals_the_session_40_pass(scene_name, order, blinn,
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]), key
     if Q % 8:
         assert bool((want[0].view(-1, 2 * order ** 2 + 6, 8)[-1, :, Q % 8:] == 0).all())
+    # the samples' bounds, checked by the C call on this path (`FAST_RELIGHT_BUILD`): one sample outside the
+    # G-buffer, at either end, raises as the Python check did
+    monkeypatch.setattr(native, "FAST_RELIGHT_BUILD", True)
+    for bad in (-1, int(face.numel())):
+        gb_ = g.clone()
+        gb_[Q // 2] = bad
+        with pytest.raises(IndexError):
+            native.relight_build(gb_, face, bary, normal, wo, reg, m.F, m._fg, T, Mv, kd, ks, G, vcos, *AS, S2)
 
 
 @pytest.mark.parametrize("threads", [1, 3])
