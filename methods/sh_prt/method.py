@@ -286,6 +286,10 @@ NATIVE_RELIGHT_BUILD = True
 # at 2 threads); and the stage's "same lighting?" key from the rotation's values without a torch call. The
 # torch stage (False) is its oracle: float32 round-off (the GEMM sums over j in its own order).
 NATIVE_LIGHT = True
+# Session 42 (sh42): a lighting change's frame (`SHPRT._view_rows`) takes its table's "row set" flags from the
+# marks `native.view_rows` writes (the rows listed = the rows marked) instead of a zeroed flag tensor and an
+# index_put of the rows; False: those two torch calls (the same flags).
+VIEW_ROWS_MARKS = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -941,8 +945,9 @@ class SHPRT(Method):
             self._lg_valid = None
         return self._lg3
 
-    def _partial_table(self) -> None:
-        """An l' table (3, Vg, n²) with no row set (``self._lg_valid`` all False) for the current lighting."""
+    def _partial_table(self, valid: bool | None = None) -> None:
+        """An l' table (3, Vg, n²) with no row set (``self._lg_valid`` all False) for the current lighting
+        (``valid=False``: ``self._lg_valid`` left unmade, the caller sets it)."""
         ng, n2 = self.M.shape[0], self.M.shape[1]
         # the previous lighting's table when there is one (session 28): its rows not computed by the
         # caller are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
@@ -954,20 +959,33 @@ class SHPRT(Method):
         else:
             self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
         self._lg = self._lg3.permute(1, 2, 0)
-        self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
+        if valid is None:
+            self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
 
     def _view_rows(self, face: Tensor, hit: Tensor, fk: Tensor) -> bool:
         """A lighting change's frame (`NATIVE_VIEW_ROWS`): l' at the rows its glossy samples read, listed
         from the G-buffer's faces (`native.view_rows`) and computed by `native.rows_vertex_major` into a
         table with no other row set; False (nothing changed) where either loop does not run."""
         Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
-        rows = None if Mv is None else _native.view_rows(face, hit, fk, self._fg, int(self.M.shape[0]), None)
+        if Mv is None:
+            return False
+        ng = int(self.M.shape[0])
+        # session 42 (sh42): the rows' marks written by the C call straight into the table's (Vg,) bool "set" flags
+        # (the rows listed = the rows marked: `view_rows` with ``marks``), where a zeroed table of flags and an
+        # index_put of the rows were two torch calls (~0.07 + ~0.1 ms with the caches cold, serial)
+        valid = torch.empty(ng, dtype=torch.bool, device=self.M.device) if VIEW_ROWS_MARKS else None
+        rows = _native.view_rows(face, hit, fk, self._fg, ng, None, marks=valid)
         if rows is None:
             return False
-        self._partial_table()
+        self._partial_table(valid=None if valid is None else False)
         if rows.numel() and not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
+            if valid is not None:
+                self._lg_valid = valid.zero_()
             return False             # (no row set: `_lg_valid` all False, the two passes compute them)
-        self._lg_valid[rows] = True
+        if valid is None:
+            self._lg_valid[rows] = True
+        else:
+            self._lg_valid = valid
         self.stats["glossy_light"] += 1
         if int(rows.numel()) == int(self.M.shape[0]):       # (the rows listed once each, the table none set)
             self._lg_valid = None

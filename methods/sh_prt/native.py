@@ -1435,11 +1435,15 @@ def view_rows_torch(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, 
     return need_rows_torch(g, f, fg, Vg, valid)
 
 
-def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid: Tensor | None) -> Tensor | None:
+def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid: Tensor | None,
+              marks: Tensor | None = None) -> Tensor | None:
     """`view_rows_torch` in one C pass over the samples' faces (session 35: the rows a lighting change's
     view reads, before its one pass `view`, where the two passes took them from the pixel pass's glossy
     list); the samples split over torch's threads (each marks its faces, then merged: the same list at any
-    thread count). None where the loop does not run (the caller takes the two passes)."""
+    thread count). None where the loop does not run (the caller takes the two passes). ``marks`` (session 42):
+    a contiguous (≥ Vg,) bool or uint8 CPU tensor that receives the row marks (1 at every row the glossy
+    faces touch, 0 elsewhere; with ``valid`` None: exactly the rows listed) instead of a kept scratch buffer
+    — the caller's table of rows set, without a fill of its own (`SHPRT._view_rows`)."""
     lib = _lib()
     if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
             or fk.dtype != torch.float32 or fk.ndim != 2 or fk.shape[1] != 4 or fg.dtype != torch.int32
@@ -1451,7 +1455,11 @@ def view_rows(face: Tensor, hit: Tensor, fk: Tensor, fg: Tensor, Vg: int, valid:
     nt = max(1, min(torch.get_num_threads(), n // MIN_SAMPLES_PER_MARK_THREAD))
     # session 41: the face and row marks in kept scratch buffers (the C call zeroes what it reads), the count
     # in a ctypes integer: four torch allocations fewer a frame
-    fmark, mark = _scratch(0, nt * (Mf + 1)), _scratch(1, Vg)
+    fmark = _scratch(0, nt * (Mf + 1))
+    if marks is not None and (marks.device.type != "cpu" or marks.dtype not in (torch.bool, torch.uint8)
+                              or not marks.is_contiguous() or marks.numel() < Vg):
+        raise ValueError("marks: a contiguous CPU bool / uint8 tensor of at least Vg entries expected")
+    mark = marks if marks is not None else _scratch(1, Vg)
     out = torch.empty(Vg, dtype=torch.int64)
     cnt = ctypes.c_int64(0)
     v = valid.contiguous().view(torch.uint8) if valid is not None else None

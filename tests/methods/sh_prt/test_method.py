@@ -895,6 +895,29 @@ def test_lighting_change_frames_in_one_pass_equal_the_two_passes(threads, monkey
     assert _switch_frames(monkeypatch, threads, "VL", 5, "NATIVE_VIEW_ROWS", "view_rows", same_rows) == 4
 
 
+@pytest.mark.parametrize("fail_rows", [False, True])
+@pytest.mark.parametrize("kind, threads", [("VL", 1), ("VL", 2), ("V", 1)])
+def test_view_rows_marks_equal_the_index_put(kind, threads, fail_rows, monkeypatch):
+    """Session 42 (sh42): a lighting change's frame taking its table's "row set" flags from `native.view_rows`'
+    marks (`VIEW_ROWS_MARKS`) gives the images of the zeroed flags + index_put bit for bit and the same flags
+    and rows after every frame (a V sequence: its second frame completes the table from those flags); with
+    `native.rows_vertex_major` failing (``fail_rows``: the two passes then compute the rows) no row is taken
+    as set."""
+    from methods.sh_prt import native
+
+    if fail_rows:
+        monkeypatch.setattr(native, "rows_vertex_major", lambda *a, **k: False)
+
+    def same_rows(a, b):
+        assert (a._lg_valid is None) == (b._lg_valid is None)
+        if a._lg_valid is not None:
+            assert a._lg_valid.dtype == torch.bool and torch.equal(a._lg_valid, b._lg_valid)
+            rows = a._lg_valid.nonzero().squeeze(-1)
+            assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
+
+    assert _switch_frames(monkeypatch, threads, kind, 7, "VIEW_ROWS_MARKS", "view_rows", same_rows) >= 1
+
+
 @pytest.mark.parametrize("Q", [1, 8, 1001])
 def test_native_relight_add_equals_the_gemm(Q):
     """`native.relight_add` on the packed relight cache (`native.relight_pack`, per 8 samples) adds
