@@ -1768,6 +1768,11 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
     would not run (then the caller takes the two passes). Arguments as `pixels`' and `glossy`'s; ``shape``: the
     image's shape when it holds n·3 values (session 41: the caller's (H, W, 3)), else (n, 3)."""
     lib = _lib()
+    c = _VS[0]
+    if (VIEW_STATIC_KEPT and c is not None and c[0] is lib and c[1] is ef and c[2] is fk and c[3] is fg
+            and c[4] is lg3 and c[5] is kd and c[6] is ks and c[7] is G and c[8] is vcos and c[9] is A and c[10] is S
+            and c[11] == (vcos._version, S._version) and c[12] == S2):
+        return _view_kept(c, face, hit, bary, normal, wo, reg, shape)
     n = math.isqrt(int(G.shape[1]))
     if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
             or any(x.dtype != torch.float32 or x.dim() != 2 for x in (bary, normal, wo, ef, fk))
@@ -1780,8 +1785,17 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
     P = int(face.numel())
     if P % S2 or any(int(x.shape[0]) != P for x in (hit, bary, normal, wo, reg)):
         raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
+    static = (ef, fk, fg, kd, ks, G, A)
+    kept = VIEW_STATIC_KEPT and all(x.is_contiguous() and x.device.type == "cpu" for x in static) \
+        and lg3.device.type == "cpu" and int(kd.shape[0]) == int(ks.shape[0]) == int(G.shape[0])
     face, hit, reg, ef, fk, fg, kd, ks, G, A = (_c(x) for x in (face, hit, reg, ef, fk, fg, kd, ks, G, A))
     v8, sel = _view_tables(vcos, S)
+    if kept:        # session 42: the checked static arguments kept for the next frame with the same tensors
+        _VS[0] = (lib, ef, fk, fg, lg3, kd, ks, G, vcos, A, S, (vcos._version, S._version), S2,
+                  (ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, int(bool(VECTOR_PIXELS)), n,
+                   int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1), kd.data_ptr(),
+                   ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), int(bool(FUSED_GLOSSY)),
+                   int(VIEW_CHUNK)), v8, sel)
     npx = P // S2
     # session 41: the image in the caller's shape (`SHPRT._render_fast` returns it as it is), the flag a ctypes
     # integer: two torch calls fewer a frame
@@ -1794,6 +1808,43 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
                 n, reg.data_ptr(), int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1),
                 kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
                 int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ctypes.addressof(ok))
+    return img if ok.value else None
+
+
+# Session 42 (sh42): `view` keeps the checked values of its static arguments (the corner and face tables, the
+# l' table, the materials, the SH tables: the method's kept tensors, the same objects frame after frame) and
+# on a frame with the very same tensors checks and passes only the G-buffer's; False: every argument checked
+# and read each call. The tensors are compared by identity (and vcos / S by version, their derived tables):
+# their pointers, shapes and strides do not change while they live (the method never resizes them).
+VIEW_STATIC_KEPT = True
+_VS: list = [None]
+
+
+def _view_kept(c: tuple, face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, reg: Tensor,
+               shape: tuple | None) -> Tensor | None:
+    """`view` with its static arguments' values ``c`` (kept by the last call with the same tensors): the
+    G-buffer's arrays checked (as `view` checks them) and the C pass run."""
+    if (face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool or reg.dtype != torch.int64
+            or bary.dtype != torch.float32 or normal.dtype != torch.float32 or wo.dtype != torch.float32
+            or bary.dim() != 2 or normal.dim() != 2 or wo.dim() != 2 or bary.shape[1] != 2 or normal.shape[1] != 3
+            or wo.shape[1] != 3 or bary.device.type != "cpu" or normal.device.type != "cpu"
+            or wo.device.type != "cpu" or hit.device.type != "cpu" or reg.device.type != "cpu"):
+        return None
+    S2 = c[12]
+    P = int(face.numel())
+    if (P % S2 or hit.shape[0] != P or bary.shape[0] != P or normal.shape[0] != P or wo.shape[0] != P
+            or reg.shape[0] != P):
+        raise ValueError("the G-buffer arrays differ in length or are not whole pixels")
+    face, hit, reg = _c(face), _c(hit), _c(reg)
+    npx = P // S2
+    img = torch.empty(shape if shape is not None and math.prod(shape) == 3 * npx else (npx, 3))
+    ok = ctypes.c_int64(0)
+    nt = max(1, min(torch.get_num_threads(), npx // MIN_PIXELS_PER_THREAD))
+    bs, ns, os_ = bary.stride(), normal.stride(), wo.stride()
+    a = c[13]
+    c[0].sh_view(npx, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bs[0], bs[1], normal.data_ptr(), ns[0],
+                 ns[1], wo.data_ptr(), os_[0], os_[1], a[0], a[1], a[2], a[3], img.data_ptr(), a[4], a[5],
+                 reg.data_ptr(), a[6], *a[7:], nt, ctypes.addressof(ok))
     return img if ok.value else None
 
 

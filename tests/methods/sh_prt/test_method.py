@@ -790,6 +790,71 @@ def test_native_glossy_adding_to_the_pixels_equals_add_pixels(S2, threads, monke
     assert not torch.equal(want, img0) and torch.equal(got, want)
 
 
+@pytest.mark.parametrize("S2", [1, 4])
+def test_native_view_kept_static_arguments(S2, monkeypatch):
+    """Session 42 (sh42): `native.view` keeping its static arguments' checked values (`VIEW_STATIC_KEPT`) gives
+    the image of the path that reads every argument each call, bit for bit, call after call: with the same
+    tensors (kept), after any one of them is another tensor (the l' table, the corner table, the materials,
+    vcos changed in place: read anew, never a stale pointer), with another S2 and other G-buffer arrays; the
+    kept path checks the G-buffer's arrays as the full path does."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(42 + S2)
+    order, n, M, Vg, R = 5, 515, 60, 50, 3
+    n2, P = order * order, n * S2
+
+    def gbuffer():
+        face = torch.randint(-1, M, (P,), generator=gen)
+        hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+        return (face, hit, (torch.rand(2, P, generator=gen) * 0.5).T, torch.randn(P, 3, generator=gen),
+                torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T,
+                torch.randint(0, R, (P,), generator=gen))
+
+    def tables():
+        return {"ef": torch.randn(M, 9, generator=gen),
+                "fk": torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.4).float()], 1),
+                "fg": torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32),
+                "lg3": torch.randn(3, Vg, n2, generator=gen), "kd": torch.rand(R, 3, generator=gen),
+                "ks": torch.rand(R, 3, generator=gen), "G": torch.rand(R, n2, generator=gen),
+                "vcos": torch.tensor([False, True, False])}
+
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+
+    def run(gb, t, kept):
+        monkeypatch.setattr(native, "VIEW_STATIC_KEPT", kept)
+        face, hit, bary, normal, wo, reg = gb
+        return native.view(face, hit, bary, normal, wo, t["ef"], t["fk"], S2, reg, t["fg"], t["lg3"], t["kd"], t["ks"],
+                           t["G"], t["vcos"], *AS)
+
+    gb, t = gbuffer(), tables()
+    first = run(gb, t, True)
+    if first is None:
+        pytest.skip("no AVX2")
+    assert native._VS[0] is not None and native._VS[0][4] is t["lg3"]
+    seen = [first]
+    steps = [lambda: None, lambda: gb.__setitem__(slice(None), gbuffer())]
+    steps += [lambda k=k: t.__setitem__(k, tables()[k]) for k in ("lg3", "ef", "fk", "fg", "kd", "ks", "G", "vcos")]
+    steps += [lambda: t["lg3"].mul_(2.0), lambda: t["vcos"].logical_not_()]
+    gb = list(gb)
+    for step in steps:
+        step()
+        got, want = run(gb, t, True), run(gb, t, False)
+        assert got is not None and torch.equal(got, want)
+        seen.append(got)
+    assert sum(not torch.equal(a, b) for a, b in zip(seen, seen[1:])) >= len(steps) - 2   # each change shows
+    run(gb, t, True)
+    assert native._VS[0] is not None and native._VS[0][4] is t["lg3"]        # kept: the next call takes the kept path
+    face, hit, bary, normal, wo, reg = gb
+    monkeypatch.setattr(native, "VIEW_STATIC_KEPT", True)
+    args = (t["ef"], t["fk"], S2, reg, t["fg"], t["lg3"], t["kd"], t["ks"], t["G"], t["vcos"], *AS)
+    assert native.view(face, hit, bary.double(), normal, wo, *args) is None
+    assert native.view(face.int(), hit, bary, normal, wo, *args) is None
+    with pytest.raises(ValueError):
+        native.view(face, hit[:-1], bary, normal, wo, *args)
+
+
 @pytest.mark.parametrize("S2", [1, 4, 9])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("chunk", [2, 7, 256])
