@@ -1356,7 +1356,8 @@ def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, t
                                                       ("alcove", 3, False), ("alcove", 8, True), ("creature", 2, True)])
 def test_fast_relight_build_equals_the_session_40_pass(scene_name, order, blinn, isa, monkeypatch):
     """Session 42 (sh42): `rb_range2` (`FAST_RELIGHT_BUILD`: each block's per-sample scalars and lobe row in
-    vector lanes, the three corners' lobes in one loop, no memset of the blocks) equals `rb_range` (session 40's
+    vector lanes, the three corners' lobes in one loop, the [d | lobe] rows stored by 8 x 8 transposes, no
+    memset of the blocks) equals `rb_range` (session 40's
     pass, its oracle) bit for bit: every value of every block, the last block's padding lanes zero even where
     the buffer held other values, the pixels; at 1 and 3 threads (block ranges split over the threads); with
     the host's ISA flags (the AVX2 lanes) and without any ("scalar": the library's fallback loops). Phong and
