@@ -21,6 +21,20 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 42 (sh42): the first lighting-only frame (the relight cache's build, `native.relight_build`) by
+    `rb_range2` (`native.FAST_RELIGHT_BUILD`: each block's scalars and lobe row y(R) G sc in 8 vector lanes,
+    the three corners' lobes in one loop, the block's rows stored by 8 x 8 transposes; the same bits as
+    session 40's pass, its oracle), its bounds checked in C and its tables kept, its glossy list not copied:
+    the frame 1.25x at 1 thread (creature bench, process CPU, L 9.11 -> 7.31 ms, E 9.51 -> 7.62; serial
+    0.99 -> 0.67 ms; ``python -m benchmarks.sh_prt ... --build-repeat 15``). What bounds it: the lobe's
+    n²·n²·3 multiply-adds per glossy sample (67 M on the creature bench, ~75 % of the pass in `perf`; FMA does
+    not pay: the adds run on their own pipes), ~5.1-5.5 ms of the pass at 1 thread with the caches cold. A
+    lighting change's frame takes its l' table's row flags from `native.view_rows`' marks
+    (`VIEW_ROWS_MARKS`), `native.view` keeps its static arguments' checked values (`native.VIEW_STATIC_KEPT`):
+    serial VL 0.61 -> 0.53 ms (1 thread, caches cold, base and new alternating twice: 0.615 / 0.607 against
+    0.544 / 0.522), V within noise (0.37 / 0.30 against 0.31 / 0.32); whole V / VL frames within noise.
+    Tried and dropped: prefetching the next faces' M blocks in the build (no gain), l' interleaved per vertex
+    (Vg, 3, n²) for the view pass (1.00x).
   * session 41 (sh41): the serial part of a frame, measured as process CPU outside the C passes that split
     over the threads (``python -m benchmarks.sh_prt_stages``, 1 thread, after `settle`): a lighting change's
     light stage (rotation, e = t·l, corner table) was ~10 torch calls, 0.7-0.9 ms with the caches cold, all
