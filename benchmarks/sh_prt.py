@@ -2,6 +2,7 @@
 
     python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT [--scene creature] [--kinds V L E VL]
                                 [--frames 9] [--threads 1] [--bounces 0] [--micro] [--precompute-code DIR]
+                                [--build-repeat N]
 
 Precomputes once (`benchmarks.common.precomputed`; ``--precompute-code DIR``: take the harness cache
 entry of the code in DIR — a change of run-time code only leaves the precomputed state the same),
@@ -10,6 +11,10 @@ package, `benchmarks.vview.baseline_class`; its frames render inside `checkout_m
 alternating which goes first, frames 0–1 untimed, and prints per kind the medians of process CPU
 and wall time, their ratio, the roofline efficiency of the new code (its ``frame_cost``, the machine
 limits measured in the run) and max |new − reference| / max |reference| (`render_reference`).
+
+``--build-repeat N`` (session 42): the L / E kinds' medians above are of their steady frames (frames 0-1 untimed:
+the relight cache's build is frame 1); this also times that first lighting-only frame N times per kind, each
+object's cache reset, old and new alternating (`benchmarks.sh_prt_first_light`, first repeat dropped).
 
 ``--micro``: each stage of the new code alone on the last frame's real sizes (median of 7 after a
 warm-up, process CPU ms), with its achieved GB/s or GFLOP/s next to the machine's:
@@ -44,6 +49,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--baseline", required=True, help="the checkout whose methods/sh_prt is the 'before'")
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--micro", action="store_true")
+    ap.add_argument("--build-repeat", type=int, default=0,
+                    help="session 42: also time the first lighting-only frame (the relight cache's build, never in "
+                         "the steady medians above: frames 0-1 are untimed) of the L / E kinds this many times, "
+                         "old and new alternating (`benchmarks.sh_prt_first_light`'s same-process mode, bounces 0)")
     ap.add_argument("--bounces", type=int, default=0, help="interreflection passes rendered (`SHPRT.with_bounces`; "
                     "the perf suite's cells: 0)")
     a = ap.parse_args(argv)
@@ -79,6 +88,14 @@ def main(argv: list[str] | None = None) -> dict:
         out["micro"] = micro(last["m"], last["frames"], last["gb"], B, Pk)
     ab_report(out, kinds, B, Pk, f"sh_prt {a.config} bounces {a.bounces}, {a.scene} {a.size}, {a.threads} thread(s)",
               show_mb=True)
+    build_kinds = [k for k in a.kinds if k in ("L", "E")]
+    if a.build_repeat > 0 and build_kinds:
+        from benchmarks import sh_prt_first_light
+
+        print("the first lighting-only frame (the relight cache's build; the steady medians above exclude it):")
+        sh_prt_first_light.same_process(argparse.Namespace(baseline=a.baseline, precompute_code=a.precompute_code,
+                                                           kinds=build_kinds, repeat=a.build_repeat,
+                                                           threads=a.threads))
     return out
 
 

@@ -21,6 +21,20 @@ Run time (Sloan 2002 §7), per frame:
 
 How the run time is computed (issue 14; `render_reference` is the step-by-step oracle, the fast path
 equals it to float32 round-off; ``python -m benchmarks.sh_prt --baseline OTHER_CHECKOUT --micro``):
+  * session 42 (sh42): the first lighting-only frame (the relight cache's build, `native.relight_build`) by
+    `rb_range2` (`native.FAST_RELIGHT_BUILD`: each block's scalars and lobe row y(R) G sc in 8 vector lanes,
+    the three corners' lobes in one loop, the block's rows stored by 8 x 8 transposes; the same bits as
+    session 40's pass, its oracle), its bounds checked in C and its tables kept, its glossy list not copied:
+    the frame 1.25x at 1 thread (creature bench, process CPU, L 9.11 -> 7.31 ms, E 9.51 -> 7.62; serial
+    0.99 -> 0.67 ms; ``python -m benchmarks.sh_prt ... --build-repeat 15``). What bounds it: the lobe's
+    n²·n²·3 multiply-adds per glossy sample (67 M on the creature bench, ~75 % of the pass in `perf`; FMA does
+    not pay: the adds run on their own pipes), ~5.1-5.5 ms of the pass at 1 thread with the caches cold. A
+    lighting change's frame takes its l' table's row flags from `native.view_rows`' marks
+    (`VIEW_ROWS_MARKS`), `native.view` keeps its static arguments' checked values (`native.VIEW_STATIC_KEPT`):
+    serial VL 0.61 -> 0.53 ms (1 thread, caches cold, base and new alternating twice: 0.615 / 0.607 against
+    0.544 / 0.522), V within noise (0.37 / 0.30 against 0.31 / 0.32); whole V / VL frames within noise.
+    Tried and dropped: prefetching the next faces' M blocks in the build (no gain), l' interleaved per vertex
+    (Vg, 3, n²) for the view pass (1.00x).
   * session 41 (sh41): the serial part of a frame, measured as process CPU outside the C passes that split
     over the threads (``python -m benchmarks.sh_prt_stages``, 1 thread, after `settle`): a lighting change's
     light stage (rotation, e = t·l, corner table) was ~10 torch calls, 0.7-0.9 ms with the caches cold, all
@@ -286,6 +300,10 @@ NATIVE_RELIGHT_BUILD = True
 # at 2 threads); and the stage's "same lighting?" key from the rotation's values without a torch call. The
 # torch stage (False) is its oracle: float32 round-off (the GEMM sums over j in its own order).
 NATIVE_LIGHT = True
+# Session 42 (sh42): a lighting change's frame (`SHPRT._view_rows`) takes its table's "row set" flags from the
+# marks `native.view_rows` writes (the rows listed = the rows marked) instead of a zeroed flag tensor and an
+# index_put of the rows; False: those two torch calls (the same flags).
+VIEW_ROWS_MARKS = True
 
 
 def _pixels_impl(face: Tensor, hit: Tensor, *xs: Tensor, layout: tuple[int, int, int] = (1, 1, 1)
@@ -941,8 +959,9 @@ class SHPRT(Method):
             self._lg_valid = None
         return self._lg3
 
-    def _partial_table(self) -> None:
-        """An l' table (3, Vg, n²) with no row set (``self._lg_valid`` all False) for the current lighting."""
+    def _partial_table(self, valid: bool | None = None) -> None:
+        """An l' table (3, Vg, n²) with no row set (``self._lg_valid`` all False) for the current lighting
+        (``valid=False``: ``self._lg_valid`` left unmade, the caller sets it)."""
         ng, n2 = self.M.shape[0], self.M.shape[1]
         # the previous lighting's table when there is one (session 28): its rows not computed by the
         # caller are not read (the glossy samples read the rows listed; `_lg_valid` marks them)
@@ -954,20 +973,33 @@ class SHPRT(Method):
         else:
             self._lg3 = torch.zeros(3, ng, n2, device=self.M.device)
         self._lg = self._lg3.permute(1, 2, 0)
-        self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
+        if valid is None:
+            self._lg_valid = torch.zeros(ng, dtype=torch.bool, device=self.M.device)
 
     def _view_rows(self, face: Tensor, hit: Tensor, fk: Tensor) -> bool:
         """A lighting change's frame (`NATIVE_VIEW_ROWS`): l' at the rows its glossy samples read, listed
         from the G-buffer's faces (`native.view_rows`) and computed by `native.rows_vertex_major` into a
         table with no other row set; False (nothing changed) where either loop does not run."""
         Mv = self._vertex_major_M() if NATIVE_VM_ROWS else None
-        rows = None if Mv is None else _native.view_rows(face, hit, fk, self._fg, int(self.M.shape[0]), None)
+        if Mv is None:
+            return False
+        ng = int(self.M.shape[0])
+        # session 42 (sh42): the rows' marks written by the C call straight into the table's (Vg,) bool "set" flags
+        # (the rows listed = the rows marked: `view_rows` with ``marks``), where a zeroed table of flags and an
+        # index_put of the rows were two torch calls (~0.07 + ~0.1 ms with the caches cold, serial)
+        valid = torch.empty(ng, dtype=torch.bool, device=self.M.device) if VIEW_ROWS_MARKS else None
+        rows = _native.view_rows(face, hit, fk, self._fg, ng, None, marks=valid)
         if rows is None:
             return False
-        self._partial_table()
+        self._partial_table(valid=None if valid is None else False)
         if rows.numel() and not _native.rows_vertex_major(Mv, self._light, rows, self._lg3):
+            if valid is not None:
+                self._lg_valid = valid.zero_()
             return False             # (no row set: `_lg_valid` all False, the two passes compute them)
-        self._lg_valid[rows] = True
+        if valid is None:
+            self._lg_valid[rows] = True
+        else:
+            self._lg_valid = valid
         self.stats["glossy_light"] += 1
         if int(rows.numel()) == int(self.M.shape[0]):       # (the rows listed once each, the table none set)
             self._lg_valid = None
@@ -1106,8 +1138,11 @@ class SHPRT(Method):
                     img.view(gb.height, gb.width, 3).to(gb.hit.device)
         # session 41: a frame shaded from the relight cache reads no glossy list (and takes its image as it is)
         cached = relight and self._relight is not None and self._relight[0] == state
+        # (session 42: the first lighting-only frame's glossy list as a view of `pixels`' kept buffer — read only by
+        # the build below, within this frame — not a copy)
         px = _native.pixels(face, hit, bary, normal, wo, self._ef, fk, S2, listed=not cached,
-                            shape=(gb.height, gb.width, 3) if cached else None) if NATIVE_PIXELS else None
+                            shape=(gb.height, gb.width, 3) if cached else None,
+                            copy=not relight) if NATIVE_PIXELS else None
         if px is None:                       # no C loop: the compiled pass, then its glossy flags' list
             mark_tables()
             vecs = [_pixel_rows(x, n, S2) for x in (bary, normal, wo)]

@@ -790,6 +790,71 @@ def test_native_glossy_adding_to_the_pixels_equals_add_pixels(S2, threads, monke
     assert not torch.equal(want, img0) and torch.equal(got, want)
 
 
+@pytest.mark.parametrize("S2", [1, 4])
+def test_native_view_kept_static_arguments(S2, monkeypatch):
+    """Session 42 (sh42): `native.view` keeping its static arguments' checked values (`VIEW_STATIC_KEPT`) gives
+    the image of the path that reads every argument each call, bit for bit, call after call: with the same
+    tensors (kept), after any one of them is another tensor (the l' table, the corner table, the materials,
+    vcos changed in place: read anew, never a stale pointer), with another S2 and other G-buffer arrays; the
+    kept path checks the G-buffer's arrays as the full path does."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    gen = torch.Generator().manual_seed(42 + S2)
+    order, n, M, Vg, R = 5, 515, 60, 50, 3
+    n2, P = order * order, n * S2
+
+    def gbuffer():
+        face = torch.randint(-1, M, (P,), generator=gen)
+        hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+        return (face, hit, (torch.rand(2, P, generator=gen) * 0.5).T, torch.randn(P, 3, generator=gen),
+                torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T,
+                torch.randint(0, R, (P,), generator=gen))
+
+    def tables():
+        return {"ef": torch.randn(M, 9, generator=gen),
+                "fk": torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.4).float()], 1),
+                "fg": torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32),
+                "lg3": torch.randn(3, Vg, n2, generator=gen), "kd": torch.rand(R, 3, generator=gen),
+                "ks": torch.rand(R, 3, generator=gen), "G": torch.rand(R, n2, generator=gen),
+                "vcos": torch.tensor([False, True, False])}
+
+    AS = shm._sh_factor_tables(order, torch.device("cpu"))
+
+    def run(gb, t, kept):
+        monkeypatch.setattr(native, "VIEW_STATIC_KEPT", kept)
+        face, hit, bary, normal, wo, reg = gb
+        return native.view(face, hit, bary, normal, wo, t["ef"], t["fk"], S2, reg, t["fg"], t["lg3"], t["kd"], t["ks"],
+                           t["G"], t["vcos"], *AS)
+
+    gb, t = gbuffer(), tables()
+    first = run(gb, t, True)
+    if first is None:
+        pytest.skip("no AVX2")
+    assert native._VS[0] is not None and native._VS[0][4] is t["lg3"]
+    seen = [first]
+    steps = [lambda: None, lambda: gb.__setitem__(slice(None), gbuffer())]
+    steps += [lambda k=k: t.__setitem__(k, tables()[k]) for k in ("lg3", "ef", "fk", "fg", "kd", "ks", "G", "vcos")]
+    steps += [lambda: t["lg3"].mul_(2.0), lambda: t["vcos"].logical_not_()]
+    gb = list(gb)
+    for step in steps:
+        step()
+        got, want = run(gb, t, True), run(gb, t, False)
+        assert got is not None and torch.equal(got, want)
+        seen.append(got)
+    assert sum(not torch.equal(a, b) for a, b in zip(seen, seen[1:])) >= len(steps) - 2   # each change shows
+    run(gb, t, True)
+    assert native._VS[0] is not None and native._VS[0][4] is t["lg3"]        # kept: the next call takes the kept path
+    face, hit, bary, normal, wo, reg = gb
+    monkeypatch.setattr(native, "VIEW_STATIC_KEPT", True)
+    args = (t["ef"], t["fk"], S2, reg, t["fg"], t["lg3"], t["kd"], t["ks"], t["G"], t["vcos"], *AS)
+    assert native.view(face, hit, bary.double(), normal, wo, *args) is None
+    assert native.view(face.int(), hit, bary, normal, wo, *args) is None
+    with pytest.raises(ValueError):
+        native.view(face, hit[:-1], bary, normal, wo, *args)
+
+
 @pytest.mark.parametrize("S2", [1, 4, 9])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("chunk", [2, 7, 256])
@@ -893,6 +958,29 @@ def test_lighting_change_frames_in_one_pass_equal_the_two_passes(threads, monkey
             assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
 
     assert _switch_frames(monkeypatch, threads, "VL", 5, "NATIVE_VIEW_ROWS", "view_rows", same_rows) == 4
+
+
+@pytest.mark.parametrize("fail_rows", [False, True])
+@pytest.mark.parametrize("kind, threads", [("VL", 1), ("VL", 2), ("V", 1)])
+def test_view_rows_marks_equal_the_index_put(kind, threads, fail_rows, monkeypatch):
+    """Session 42 (sh42): a lighting change's frame taking its table's "row set" flags from `native.view_rows`'
+    marks (`VIEW_ROWS_MARKS`) gives the images of the zeroed flags + index_put bit for bit and the same flags
+    and rows after every frame (a V sequence: its second frame completes the table from those flags); with
+    `native.rows_vertex_major` failing (``fail_rows``: the two passes then compute the rows) no row is taken
+    as set."""
+    from methods.sh_prt import native
+
+    if fail_rows:
+        monkeypatch.setattr(native, "rows_vertex_major", lambda *a, **k: False)
+
+    def same_rows(a, b):
+        assert (a._lg_valid is None) == (b._lg_valid is None)
+        if a._lg_valid is not None:
+            assert a._lg_valid.dtype == torch.bool and torch.equal(a._lg_valid, b._lg_valid)
+            rows = a._lg_valid.nonzero().squeeze(-1)
+            assert torch.equal(a._lg3[:, rows], b._lg3[:, rows])
+
+    assert _switch_frames(monkeypatch, threads, kind, 7, "VIEW_ROWS_MARKS", "view_rows", same_rows) >= 1
 
 
 @pytest.mark.parametrize("Q", [1, 8, 1001])
@@ -1261,6 +1349,66 @@ def test_native_relight_build_equals_the_torch_build(scene_name, order, blinn, t
         assert y.abs().max() > 0 and (x - y).abs().max() <= 2e-6 * y.abs().max()
     pad = got["blk"].view(-1, 2 * n2 + 6, 8)[-1, :, Q % 8:] if Q % 8 else torch.zeros(1)
     assert bool((pad == 0).all())
+
+
+@pytest.mark.parametrize("isa", ["host", "scalar"])
+@pytest.mark.parametrize("scene_name, order, blinn", [("creature", 5, False), ("creature", 5, True),
+                                                      ("alcove", 3, False), ("alcove", 8, True), ("creature", 2, True)])
+def test_fast_relight_build_equals_the_session_40_pass(scene_name, order, blinn, isa, monkeypatch):
+    """Session 42 (sh42): `rb_range2` (`FAST_RELIGHT_BUILD`: each block's per-sample scalars and lobe row in
+    vector lanes, the three corners' lobes in one loop, the [d | lobe] rows stored by 8 x 8 transposes, no
+    memset of the blocks) equals `rb_range` (session 40's
+    pass, its oracle) bit for bit: every value of every block, the last block's padding lanes zero even where
+    the buffer held other values, the pixels; at 1 and 3 threads (block ranges split over the threads); with
+    the host's ISA flags (the AVX2 lanes) and without any ("scalar": the library's fallback loops). Phong and
+    Blinn-Phong lobes, orders 2, 3, 5 (unrolled) and 8."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    if isa == "scalar":
+        monkeypatch.setattr(native, "_flags", lambda: ("-fopenmp", "-ffp-contract=off"))
+        monkeypatch.setattr(native, "_LOADED", [None])          # (the library rebuilt with those flags)
+    m, args = _relight_inputs(scene_name, order, blinn)
+    g, face, bary, normal, wo, reg, kd, ks, G, vcos, S2 = args
+    Q = int(g.numel())
+    assert Q > 100 and (isa == "host" or Q % 8)        # (the creature's test G-buffer: a short last block)
+    T, Mv = m.t_parts[0][..., 0], m._vertex_major_M()
+    AS = shm._sh_factor_tables(order, G.device)
+    monkeypatch.setattr(native, "MIN_BUILD_PER_THREAD", 1)
+    real_empty = torch.empty
+
+    def dirty_empty(*a, **k):                          # a buffer full of garbage: the padding must be written
+        return real_empty(*a, **k).fill_(float("nan") if k.get("dtype", torch.float32) == torch.float32 else -7)
+
+    old = torch.get_num_threads()
+    try:
+        res = {}
+        for fast in (False, True):
+            monkeypatch.setattr(native, "FAST_RELIGHT_BUILD", fast)
+            for threads in (1, 3):
+                torch.set_num_threads(threads)
+                monkeypatch.setattr(native.torch, "empty", dirty_empty)
+                res[fast, threads] = native.relight_build(g, face, bary, normal, wo, reg, m.F, m._fg, T, Mv, kd, ks, G,
+                                                          vcos, *AS, S2)
+                monkeypatch.setattr(native.torch, "empty", real_empty)
+    finally:
+        torch.set_num_threads(old)
+        monkeypatch.setattr(native.torch, "empty", real_empty)
+    want = res[False, 1]
+    assert want is not None and bool(torch.isfinite(want[0]).all())
+    for key, got in res.items():
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]), key
+    if Q % 8:
+        assert bool((want[0].view(-1, 2 * order ** 2 + 6, 8)[-1, :, Q % 8:] == 0).all())
+    # the samples' bounds, checked by the C call on this path (`FAST_RELIGHT_BUILD`): one sample outside the
+    # G-buffer, at either end, raises as the Python check did
+    monkeypatch.setattr(native, "FAST_RELIGHT_BUILD", True)
+    for bad in (-1, int(face.numel())):
+        gb_ = g.clone()
+        gb_[Q // 2] = bad
+        with pytest.raises(IndexError):
+            native.relight_build(gb_, face, bary, normal, wo, reg, m.F, m._fg, T, Mv, kd, ks, G, vcos, *AS, S2)
 
 
 @pytest.mark.parametrize("threads", [1, 3])
