@@ -94,6 +94,7 @@ def main(argv=None):
     wrap(_native, "referenced_sel", "referenced_sel")
     wrap(_native, "vertex_rows", "vertex_rows")
     wrap(_native, "shade_mirror", "shade_mirror")
+    wrap(_native, "view_frame", "view_frame (one call)")  # session 42: the three above in one C call
 
     wrap(torch, "set_num_threads", "set_num_threads")
     buf = torch.zeros(16 << 20)

@@ -66,6 +66,9 @@ def main(argv: list[str] | None = None) -> dict:
     _, frames, gbs, _ = setup(scene, a.size, kind=a.kind, n_frames=a.frames, seed=1)
     calls, real = [], N.shade_mirror
     N.shade_mirror = lambda *args: calls.append(args) or real(*args)
+    import methods.ptt.method as _pm
+
+    _pm.VIEW_FRAME = False  # (session 42) the frames' shade_mirror calls as separate calls, to record them
     try:
         for f, g in zip(frames, gbs):
             m.render(f, g)

@@ -65,6 +65,7 @@ compression (§4.3 CPCA + clustered tensor approximation) is ``methods.ptt.compr
 """
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import torch
@@ -74,6 +75,7 @@ from methods.base import (GBUFFER_BYTES_PER_SAMPLE, GBUFFER_HIT_BYTES, Capabilit
                           geometry_key, output_bytes, precompute_memo, register, tensor_bytes)
 from methods.core import zh as _zh
 from methods.core.frames import reflect, to_local
+from methods.core.fused import compile_enabled
 from methods.core.threads import torch_threads
 from references.visibility import make_visibility
 from methods.ptt import bounce as _bounce
@@ -127,6 +129,24 @@ REFERENCED_PAIRS = True
 # against 43313b4 (`benchmarks.ptt_ab ... --frames 17 --threads 1`) chess V 0.98 VB 1.02, creature V 1.04
 # VB 1.06. Images bit-identical (tested).
 FULL_TABLE = True
+
+# VIEW_FRAME (session 42, pt42): a shading="vertex" frame that takes the FULL_TABLE route runs its native
+# view stage — `fast.referenced_view`'s ``native.referenced_sel`` and ``native.vertex_rows`` (rows_at), then
+# ``native.shade_mirror`` — as ONE C call (``native.view_frame``) on a packed argument array made once per
+# (region tables, E, lighting, static arrays, thread count, switches) and G-buffer layout (`_VIEW_PLANS`),
+# with the G-buffer's hit / face -1 check (the `pixels` condition) in its marking pass. The same loops, the
+# same arguments, the same order: the same bits (tested). What it removes is the Python between them, cold
+# after the harness's G-buffer and serial at 2 threads: a chess bench V frame's time outside its C calls
+# (1 thread, after a 64 MB write and 50 ms idle, median of 32 frames) 0.64 -> 0.21 ms, VB 0.98 -> 0.62 ms
+# (`all_true`'s torch reduction, `torch.as_tensor` of the camera — 82 µs cold —, the wrappers' checks,
+# contiguous / to / empty calls, six library look-ups). Same process, 1 thread, process CPU, 21 frames
+# (``python -m benchmarks.ptt_ab --base B --precompute-code B --threads 1 --kinds V VB --frames 21 --scene S``,
+# B = ce67f85): chess V 1.12 / 1.09, VB 1.06 / 1.07; creature V 1.12, VB 1.08; A/A chess 0.99 / 1.00.
+# Off, or where the plan declines (`native.view_plan`) or the call returns None: the path below, as before.
+VIEW_FRAME = True
+# method → its `native.ViewPlan` (outside the instance: not pickled, not part of the state the thread test
+# compares, not shared by `with_shading` copies)
+_VIEW_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
@@ -571,7 +591,7 @@ class PTT(Method):
         light = self._f_light is None or "light" in frame.changed or frame.envmap is not self._f_env
         if light:
             self._fast_lighting(frame.envmap)
-        brdf = self._f_H is None or "brdf" in frame.changed or not torch.equal(H, self._f_H)
+        brdf = self._f_H is None or "brdf" in frame.changed or not (H is self._f_H or torch.equal(H, self._f_H))
         if brdf:
             W_tab = self.factors.W_tab
             wr = self._f_wrows
@@ -637,8 +657,12 @@ class PTT(Method):
         c = self.config
         E, I1 = self._f_E
         Wr, ar = self._f_tabs
-        T, K = self.factors.W_tab.shape[-1], self.factors.K
+        if VIEW_FRAME and I1 is None and self.separate:
+            img = self._view_frame(frame, gbuffer, st)
+            if img is not None:
+                return img
         cam = torch.as_tensor(frame.camera.origin, dtype=torch.float32, device=self.V.device)
+        T, K = self.factors.W_tab.shape[-1], self.factors.K
         lobes = env = None
         L = 0
         if self.separate:
@@ -697,6 +721,67 @@ class PTT(Method):
                                            gb.normal[sel] if env is not None else None,
                                            gb.wo[sel] if env is not None else None, env, L)
         return gb.resolve(out)
+
+    def _view_frame(self, frame: Frame, gb: GBuffer, st: _fast.FastStatic) -> Tensor | None:
+        """`VIEW_FRAME`: the frame's image by ``native.view_frame`` on this method's plan (made or remade here
+        when its key or the G-buffer layout changed), or None (no plan here, or the call declined: nothing
+        shaded). The camera origin is written into the plan's (3,) float32 tensor (the float32 rounding of
+        ``torch.as_tensor``), which `_last_view` holds as the last frame's camera (`cost_terms`)."""
+        from methods.ptt import native as _native
+
+        tabs = self._f_tabs
+        objs = (tabs, self._f_E, self._f_light, st)  # compared by identity
+        vals = (torch.get_num_threads(), _fast.USE_NATIVE, compile_enabled(), _native.LEAN, FUSED_VIEW,
+                REFERENCED_PAIRS, FULL_TABLE)
+        face, bary, normal, wo, hit = gb.face, gb.bary, gb.normal, gb.wo, gb.hit
+        layout = _native.gbuffer_layout(face, bary, normal, wo, hit, gb.spp_side, gb.height, gb.width)
+        plan = _VIEW_PLANS.get(self)
+        if plan is None or plan.layout != layout or plan.key[1] != vals or not all(
+                x is y for x, y in zip(plan.key[0], objs)):
+            if plan is not None and plan.layout == layout and plan.key[1] == vals and all(
+                    x is y for x, y in zip(plan.key[0][1:], objs[1:])) and plan.same_tables(*tabs):
+                plan.key = (objs, vals)  # a VB frame's tables rewritten in place (``native.region_tables``' out)
+            else:
+                plan = self._make_view_plan(gb, st, (objs, vals), layout)
+                if plan is None:
+                    _VIEW_PLANS.pop(self, None)
+                    return None
+                _VIEW_PLANS[self] = plan
+        plan.cam_c[0], plan.cam_c[1], plan.cam_c[2] = frame.camera.origin
+        img = _native.view_frame(plan, face, bary, normal, wo, hit, gb.height, gb.width)
+        if img is not None:
+            self._last_view = (gb.num_samples, gb, plan.cam)
+        return img
+
+    def _make_view_plan(self, gb: GBuffer, st: _fast.FastStatic, key: tuple, layout: tuple):
+        """``native.view_plan`` for the route `_fast_view_vertex` takes with FULL_TABLE and the native
+        sample stage on a whole-block frame, or None where that route would not be taken."""
+        from methods.ptt import native as _native
+
+        if not (FUSED_VIEW and REFERENCED_PAIRS and FULL_TABLE and self.separate and _fast.USE_NATIVE
+                and _fast.native_shading() and self.config["shading"] == "vertex"):
+            return None
+        E, I1 = self._f_E
+        Wr, ar = self._f_tabs
+        if I1 is not None or ar is None:
+            return None
+        T, K = self.factors.W_tab.shape[-1], self.factors.K
+        L = len(self.config["lobe_degrees"])
+        Tv = self.lobe_vis.shape[-1]
+        vis = self.lobe_vis.permute(0, 2, 3, 1).reshape(-1, L)
+        if max(int(Wr.shape[0]), int(vis.shape[0])) >= 2 ** 31 - Tv * Tv - T * T:
+            return None
+        C = 3 + 3 * L
+        width = _fast.table_width(C)
+        q, S2 = int(gb.face.shape[0]), gb.spp_side ** 2
+        if q % S2 or q == 0:  # (any block size: each pixel's result is its own samples' alone, as the blocks')
+            return None
+        env = self._f_light[3][1]
+        _, erows, lanes = _fast._fused_inputs(torch.empty(0, width), env, L, C)
+        ri, vi = _fast.pair_indices32(st)
+        return _native.view_plan(st.face_pairs, _fast.miss_face_pairs(st), st.pair_pos, st.pair_frame, ri, vi, T, Tv,
+                                 self.lobe_table.theta.shape[0], Wr, E, K, ar, vis, width, env.to_world, env.H, erows,
+                                 lanes, env.W, S2, gb.face, gb.bary, gb.normal, gb.wo, gb.hit, key, layout)
 
     def _fast_view_pixel(self, frame: Frame, gbuffer: GBuffer, st: _fast.FastStatic) -> Tensor:
         """Stage 3, shading="pixel", at the G-buffer's hit samples, FAST_CHUNK samples at a time."""

@@ -1056,6 +1056,90 @@ void vertex_rows_at(const int64_t* sel, int64_t m, const float* pos, const float
                     const void* vacos, const void* vatan2, int64_t w16, int64_t nth, float* out) {
     vrows(sel, m, pos, frame, np, cam, pr, pv, T, Tv, nt, Wr, E, K, ar, L, vis, width, vacos, vatan2, w16, nth, 1, out);
 }
+
+/* A shading="vertex" frame's whole native view stage in one call (session 42, pt42: `view_frame`): the
+   Python between referenced_sel, vertex_rows_at and shade_mirror(_par) — ~0.4 ms of cold interpreter work a
+   chess bench V frame, serial at 2 threads — replaced by one call on a packed argument array (VF_* below;
+   the static entries written once per plan, the G-buffer's pointers and the camera each frame). The same
+   three loops with the same arguments, in the same order: the same bits. Also the G-buffer's contract that
+   the Python path checked first (all samples hit, or exactly the misses have face -1), in the marking
+   pass over the faces. The marking reads face_pairs (M, 3), the shading fps (Ms, 3) — fast.miss_face_pairs,
+   whose last face is the zero row's: a miss's face -1 reads it, as the Python path's two calls. Returns m (the referenced pairs, > 0), or -1 (the contract does not hold), or 0
+   (no pair referenced): then nothing is shaded and the caller takes the Python path. */
+enum { VF_FACE, VF_HIT, VF_N, VF_M, VF_NP, VF_NTS, VF_FACE_PAIRS, VF_FMARK, VF_PMARK, VF_SEL,
+       VF_POS, VF_FRAME, VF_CAM, VF_PR, VF_PV, VF_T, VF_TV, VF_NTHETA, VF_WR, VF_E, VF_K, VF_AR, VF_L, VF_VIS,
+       VF_WIDTH, VF_ACOS, VF_ATAN2, VF_W16, VF_THREADS, VF_MIN_PAIRS, VF_TABLE,
+       VF_NRM, VF_NS, VF_NC, VF_WO, VF_WS, VF_WC, VF_MM, VF_H, VF_B1, VF_B2, VF_BS, VF_P, VF_NT, VF_S2,
+       VF_ENV, VF_LANES, VF_W, VF_PREFETCH, VF_LEAN, VF_CHUNK, VF_OUT, VF_FPS, VF_MS, VF_COUNT };
+int64_t view_frame_count(void) { return VF_COUNT; }
+int64_t view_frame(const int64_t* a) {
+    const int64_t* face = (const int64_t*)a[VF_FACE];
+    const uint8_t* hit = (const uint8_t*)a[VF_HIT];
+    const int64_t n = a[VF_N], M = a[VF_M], np = a[VF_NP], nts = a[VF_NTS];
+    const int64_t* face_pairs = (const int64_t*)a[VF_FACE_PAIRS];
+    uint8_t* fmark = (uint8_t*)a[VF_FMARK];
+    uint8_t* pmark = (uint8_t*)a[VF_PMARK];
+    int64_t* sel = (int64_t*)a[VF_SEL];
+    /* referenced_sel's marking (the same marks), with the contract's two flags */
+    int allhit = 1, cons = 1;
+#pragma omp parallel for num_threads(nts) schedule(static, 1) reduction(&: allhit, cons)
+    for (int64_t k = 0; k < nts; ++k) {
+        uint8_t* fm = fmark + k * (M + 1);
+        for (int64_t f = 0; f <= M; ++f)
+            fm[f] = 0;
+        int ah = 1, cs = 1;
+        for (int64_t i = n * k / nts; i < n * (k + 1) / nts; ++i) {
+            const uint64_t f = (uint64_t)face[i];
+            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
+            const int h = hit[i] != 0;
+            ah &= h;
+            cs &= (face[i] == -1) != h;
+        }
+        allhit &= ah;
+        cons &= cs;
+    }
+    if (!(allhit | cons))
+        return -1;
+    for (int64_t k = 1; k < nts; ++k)
+        for (int64_t f = 0; f < M; ++f)
+            fmark[f] |= fmark[k * (M + 1) + f];
+    for (int64_t p = 0; p < np; ++p)
+        pmark[p] = 0;
+    for (int64_t f = 0; f < M; ++f)
+        if (fmark[f]) {
+            pmark[face_pairs[3 * f]] = 1;
+            pmark[face_pairs[3 * f + 1]] = 1;
+            pmark[face_pairs[3 * f + 2]] = 1;
+        }
+    int64_t m = 0;
+    for (int64_t p = 0; p < np; ++p)
+        if (pmark[p])
+            sel[m++] = p;
+    if (m == 0)
+        return 0;
+    /* vertex_rows_at: the referenced pairs' rows at their own positions, the zero row at np */
+    int64_t nth = m / a[VF_MIN_PAIRS];
+    nth = nth < a[VF_THREADS] ? nth : a[VF_THREADS];
+    nth = nth > 1 ? nth : 1;
+    vrows(sel, m, (const float*)a[VF_POS], (const float*)a[VF_FRAME], np, (const float*)a[VF_CAM],
+          (const int32_t*)a[VF_PR], (const int32_t*)a[VF_PV], a[VF_T], a[VF_TV], a[VF_NTHETA], (const float*)a[VF_WR],
+          (const float*)a[VF_E], a[VF_K], (const float*)a[VF_AR], a[VF_L], (const float*)a[VF_VIS], a[VF_WIDTH],
+          (const void*)a[VF_ACOS], (const void*)a[VF_ATAN2], a[VF_W16], nth, 1, (float*)a[VF_TABLE]);
+    /* shade_mirror over the pixels (shade_mirror_par at 2+ threads) */
+    if (a[VF_NT] > 1)
+        shade_mirror_par((const float*)a[VF_NRM], a[VF_NS], a[VF_NC], (const float*)a[VF_WO], a[VF_WS], a[VF_WC],
+                         (const float*)a[VF_MM], a[VF_H], (const void*)a[VF_ACOS], (const void*)a[VF_ATAN2], a[VF_W16],
+                         face, (const float*)a[VF_B1], (const float*)a[VF_B2], a[VF_BS], a[VF_P], a[VF_NT], a[VF_S2],
+                         (const int64_t*)a[VF_FPS], a[VF_MS], (const float*)a[VF_TABLE], (const float*)a[VF_ENV], (const float*)a[VF_LANES],
+                         a[VF_WIDTH], a[VF_W], a[VF_PREFETCH], a[VF_LEAN], a[VF_CHUNK], (float*)a[VF_OUT]);
+    else if (a[VF_P])
+        shade_mirror((const float*)a[VF_NRM], a[VF_NS], a[VF_NC], (const float*)a[VF_WO], a[VF_WS], a[VF_WC],
+                     (const float*)a[VF_MM], a[VF_H], (const void*)a[VF_ACOS], (const void*)a[VF_ATAN2], a[VF_W16],
+                     face, (const float*)a[VF_B1], (const float*)a[VF_B2], a[VF_BS], 0, a[VF_P], a[VF_S2],
+                     (const int64_t*)a[VF_FPS], a[VF_MS], (const float*)a[VF_TABLE], (const float*)a[VF_ENV], (const float*)a[VF_LANES],
+                     a[VF_WIDTH], a[VF_W], a[VF_PREFETCH], a[VF_LEAN], (float*)a[VF_OUT]);
+    return m;
+}
 #else
 int native_cells_ok(void) { return 0; }
 #endif
@@ -1107,6 +1191,11 @@ def _functions(lib: ctypes.CDLL):
         fn.vertex_rows_at = lib.vertex_rows_at
         fn.vertex_rows_at.restype = None
         fn.vertex_rows_at.argtypes = fn.vertex_rows.argtypes
+        fn.view_frame = lib.view_frame
+        fn.view_frame.restype = ctypes.c_int64
+        fn.view_frame.argtypes = [_P]
+        lib.view_frame_count.restype = ctypes.c_int64
+        fn.view_frame_count = int(lib.view_frame_count())
     return fn
 
 
@@ -1429,3 +1518,122 @@ def vertex_rows(pairs: Tensor, pos: Tensor, frame: Tensor, cam: Tensor, r32: Ten
                    r32.data_ptr(), v32.data_ptr(), int(T), int(Tv), int(nt), Wr.data_ptr(), E.data_ptr(), int(K),
                    ar.data_ptr(), L, vis.data_ptr(), int(width), ac, at, w16, nth, out.data_ptr())
     return out
+
+
+# -- one call per shading="vertex" frame (session 42, pt42) ---------------------------------------------
+
+# The slots of `view_frame`'s packed argument array (the C enum VF_*, in its order).
+VF = ("face", "hit", "n", "M", "np", "nts", "face_pairs", "fmark", "pmark", "sel", "pos", "frame", "cam", "pr", "pv",
+      "T", "Tv", "ntheta", "Wr", "E", "K", "ar", "L", "vis", "width", "acos", "atan2", "w16", "threads", "min_pairs",
+      "table", "nrm", "ns", "nc", "wo", "ws", "wc", "mm", "H", "b1", "b2", "bs", "P", "nt", "S2", "env", "lanes", "W",
+      "prefetch", "lean", "chunk", "out", "fps", "Ms")
+_VF = {k: i for i, k in enumerate(VF)}
+
+
+class ViewPlan:
+    """The packed arguments of ``view_frame`` (`view_plan`): ``args`` a ctypes int64 array whose static
+    slots are written once, ``keep`` the tensors whose addresses it holds (kept alive with it), ``layout``
+    the G-buffer layout it was made for (`gbuffer_layout`), ``P`` the pixels. Not a tensor-holding object
+    of the ``methods`` packages' state walk (tests/methods/test_threads.py): its tensors are in a tuple of
+    a plain namespace."""
+
+    __slots__ = ("args", "keep", "layout", "P", "fn", "key", "cam", "cam_c", "tables")
+
+    def __init__(self, args, keep, layout, P, fn, key, tables):
+        self.args, self.keep, self.layout, self.P, self.fn, self.key = args, keep, layout, P, fn, key
+        self.cam = torch.zeros(3, dtype=torch.float32)  # the camera origin, written through cam_c each frame
+        self.cam_c = (ctypes.c_float * 3).from_address(self.cam.data_ptr())
+        self.args[_VF["cam"]] = self.cam.data_ptr()
+        self.tables = tables  # (W_r, a_r) as given: `same_tables`
+
+    def same_tables(self, Wr: Tensor, ar: Tensor | None) -> bool:
+        """Whether (Wr, ar) are the plan's tables' memory (the same address, shape and strides: the plan keeps
+        its tensors alive, so only a tensor of the same storage can have that address)."""
+        if ar is None:
+            return False
+        return all(a.data_ptr() == b.data_ptr() and a.shape == b.shape and a.stride() == b.stride()
+                   and a.dtype == b.dtype for a, b in zip((Wr, ar), self.tables))
+
+
+def gbuffer_layout(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, hit: Tensor, spp_side: int, height: int,
+                   width: int) -> tuple:
+    """What a `ViewPlan` assumes of a G-buffer: dtype, shape, strides and device of each array, and its
+    samples per pixel side and image size."""
+    return tuple((t.dtype, t.shape, t.stride(), t.is_cpu) for t in (face, bary, normal, wo, hit)) + (spp_side, height,
+                                                                                                  width)
+
+
+def view_plan(st_face_pairs: Tensor, miss_pairs: Tensor, pos: Tensor, frame: Tensor, r32: Tensor, v32: Tensor, T: int, Tv: int, nt: int,
+              Wr: Tensor, E: Tensor, K: int, ar: Tensor, vis: Tensor, width: int, to_world: Tensor, H: int,
+              env: Tensor, lanes: Tensor, W: int, S2: int, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor,
+              hit: Tensor, key: tuple, layout: tuple) -> ViewPlan | None:
+    """A `ViewPlan` for frames of this G-buffer layout: `referenced_sel`, `vertex_rows` (rows_at) and
+    `shade_mirror` with these arguments, or None where any of the three would not run (their own checks,
+    repeated here: the caller then takes those calls' path, which decides as before)."""
+    fn = _kernel()
+    if fn is None or not cells_available() or not hasattr(fn, "view_frame") or len(VF) != fn.view_frame_count:
+        return None
+    n = int(face.shape[0])
+    L = int(vis.shape[1]) if vis.ndim == 2 else -1
+    ok = (face.dtype == torch.int64 and face.ndim == 1 and st_face_pairs.dtype == torch.int64
+          and hit.dtype == torch.bool and hit.shape == (n,) and hit.is_contiguous() and face.is_contiguous()
+          and r32.dtype == v32.dtype == torch.int32
+          and all(t.dtype == torch.float32 for t in (pos, frame, Wr, E, ar, vis))
+          and pos.ndim == 2 and pos.shape[0] == 3 and frame.shape == (9, pos.shape[1])
+          and Wr.ndim == 2 and Wr.shape[1] == 3 * K and E.ndim == 2 and E.shape[1] == 3 * K and (3 * K) % 8 == 0
+          and ar.ndim == 2 and ar.shape[1] == 3 * L and width >= 3 + 3 * L
+          and all(t.device.type == "cpu" for t in (pos, frame, r32, v32, Wr, E, ar, vis, hit)))
+    d = _dirs(normal, wo, n)
+    if not ok or d is None or n % 8 or S2 <= 0 or 512 % S2 or n % S2 or layout[-2] * layout[-1] * S2 != n:
+        return None
+    chk = _check(face, bary, miss_pairs, env, env, lanes, S2, n)  # (env for the table: its width is checked)
+    if chk is None or int(env.shape[1]) != width:
+        return None
+    _, b1, b2, fps, _, env, lanes, _ = chk
+    face_pairs = st_face_pairs.contiguous()
+    if face_pairs.ndim != 2 or face_pairs.shape[1] != 3:
+        return None
+    Wr0, ar0 = Wr, ar
+    pos, frame, r32, v32, Wr, E, ar, vis = (t.contiguous() for t in (pos, frame, r32, v32, Wr, E, ar, vis))
+    M, np_ = int(face_pairs.shape[0]), int(pos.shape[1])
+    if np_ == 0:
+        return None
+    threads = torch.get_num_threads()
+    nts = max(1, min(threads, n // _MIN_SAMPLES_PER_THREAD))
+    P = n // S2
+    ntp = _threads(P)
+    ac, at, w16 = _sleef()
+    m = to_world.to(torch.float32).contiguous()
+    fmark = torch.empty(nts * (M + 1), dtype=torch.uint8)
+    pmark = torch.empty(max(np_, 1), dtype=torch.uint8)
+    sel = torch.empty(np_, dtype=torch.int64)
+    table = torch.empty(np_ + 1, width, dtype=torch.float32)
+    v = dict(n=n, M=M, np=np_, nts=nts, face_pairs=face_pairs.data_ptr(), fmark=fmark.data_ptr(),
+             pmark=pmark.data_ptr(), sel=sel.data_ptr(), pos=pos.data_ptr(), frame=frame.data_ptr(), pr=r32.data_ptr(),
+             pv=v32.data_ptr(), T=int(T), Tv=int(Tv), ntheta=int(nt), Wr=Wr.data_ptr(), E=E.data_ptr(), K=int(K),
+             ar=ar.data_ptr(), L=L, vis=vis.data_ptr(), width=int(width), acos=ac, atan2=at, w16=w16, threads=threads,
+             min_pairs=_MIN_PAIRS_PER_THREAD, table=table.data_ptr(), ns=d[1], nc=d[2], ws=d[4], wc=d[5],
+             mm=m.data_ptr(), H=int(H), bs=b1.stride(0), P=P, nt=ntp, S2=int(S2), env=env.data_ptr(),
+             lanes=lanes.data_ptr(), W=int(W), prefetch=PREFETCH, lean=int(LEAN), chunk=_chunk(S2, P, max(ntp, 1)),
+             fps=fps.data_ptr(), Ms=int(fps.shape[0]))
+    args = (ctypes.c_int64 * len(VF))()
+    for k, x in v.items():
+        args[_VF[k]] = int(x)
+    if not (Wr0.data_ptr() == Wr.data_ptr() and ar0.data_ptr() == ar.data_ptr()):
+        return None  # (contiguous copies: `same_tables` could not tell a rewritten table)
+    keep = (face_pairs, fps, fmark, pmark, sel, pos, frame, r32, v32, Wr, E, ar, vis, table, m, env, lanes)
+    return ViewPlan(args, keep, layout, P, fn, key, (Wr0, ar0))
+
+
+def view_frame(plan: ViewPlan, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, hit: Tensor, height: int,
+               width: int) -> Tensor | None:
+    """The image (height, width, 3) of one frame by ``view_frame`` on ``plan`` (the G-buffer of `plan.layout`,
+    height · width = plan.P; the camera in ``plan.cam``), or None: the G-buffer breaks the contract the Python
+    path checks (hit / face -1) or its samples reference no pair — nothing was shaded, the caller takes the
+    Python path."""
+    a = plan.args
+    out = torch.empty(height, width, 3, dtype=torch.float32)
+    p = bary.data_ptr()
+    a[0], a[1], a[31], a[34], a[39], a[40], a[51] = (face.data_ptr(), hit.data_ptr(), normal.data_ptr(), wo.data_ptr(),
+                                                      p, p + 4 * bary.stride(1), out.data_ptr())
+    return out if plan.fn.view_frame(a) > 0 else None

@@ -888,6 +888,7 @@ def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypat
         return out
 
     monkeypatch.setattr(F, "referenced_view", recording)
+    monkeypatch.setattr(PM, "VIEW_FRAME", False)  # the Python route's calls (VIEW_FRAME: tests/methods/ptt/test_view_frame.py)
     for kind in ("V", "VB"):
         for i, f in enumerate(make_sequence(scene, kind, n_frames=2, seed=4)):
             f = _small(f)
@@ -1107,6 +1108,9 @@ def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
         return real(*a)
 
     monkeypatch.setattr(N, "shade_mirror", recording)
+    from methods.ptt import method as PM
+
+    monkeypatch.setattr(PM, "VIEW_FRAME", False)  # the Python route's calls (VIEW_FRAME: test_view_frame.py)
     for kind in ("V", "VB"):
         for f in make_sequence(scene, kind, n_frames=2, seed=3):
             f = _small(f)
