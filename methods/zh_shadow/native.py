@@ -1898,7 +1898,7 @@ def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, 
 def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
                  F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
                  D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False,
-                 vector: bool = False) -> tuple[Tensor, int] | None:
+                 vector: bool = False, wide: bool = False) -> tuple[Tensor, int] | None:
     """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
     (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
     `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
@@ -1908,12 +1908,15 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     (M, 3) int32, u (N, 3), U (NU, 3, K) float32 (rows lut[vertex] when lut (N,) int32 is given), region (P,)
     int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits).
     ``vector``: the plane samples 16 at a time where it runs (`native_fused16`, zh40p: the same bits as the
-    pass it replaces)."""
+    pass it replaces). ``wide`` (with ``fma`` and ``vector``): the object samples' dot in 16-float vectors
+    (`native_fused16`'s `zh42p_fused_wide`, zh42p: float32 round-off against the ``fma`` pass)."""
     vec = None
     if vector:
         from methods.zh_shadow import native_fused16
 
-        vec = native_fused16.lib(fma)
+        vec = native_fused16.lib(fma, wide=True) if fma and wide else None
+        if vec is None:   # (no wide dot asked for, or its library not built: the 8-float dot's)
+            vec = native_fused16.lib(fma)
     lib = _fma_fused_lib() if fma else None
     if lib is None:   # (the regrouped dot's library not built: `zh33p_fused`'s bits)
         lib, fma = _fused_lib(), False

@@ -224,18 +224,74 @@ _SIGNATURES = {"zh40p_fused": zn._FUSED_SIGNATURES["zh33p_fused"]}
 _FMA_SIGNATURES = {"zh40p_fused_fma": zn._FUSED_SIGNATURES["zh33p_fused"]}
 
 
+# -- zh42p ------------------------------------------------------------------------------------------------------
+# The regrouped pass (`zh37v_fused`'s dot, ``fma``) with the object samples' dot in 16-float vectors (session 42,
+# zh42p; `ZHShadow.wide_dot`): b0 (U0[c]·f) + b1 (U1[c]·f) + b2 (U2[c]·f) as `_fma_dot`'s nine running dots of fused
+# multiply-adds, 16 lanes a step instead of 8 (K = 80: 5 steps, 45 multiply-adds a point instead of 90), combined by
+# the same two multiply-adds and one product per channel, then the 16 lanes summed by a tree
+# (``_mm512_reduce_add_ps``). The same terms to float32 round-off (not the same bits as the 8-lane dot: each lane
+# sums other products, the final tree differs); the plane samples, the front test, the clamp and every sum into
+# the pixels unchanged (the same source). Each point is one thread's: the bits do not depend on the thread count.
+# Bench creature P frame's pass (35,800 object samples), 1 thread, process CPU, the pass's own arguments, 64 MB
+# written before each call (`python -m benchmarks.zh42p_fused_ab --kind P`): 2.93 → 2.65 ms median (1.11×; A/A
+# 1.00), caches warm 2.58 → 2.35 (1.10×); max |diff| 2.2e-7 of the image's largest pixel.
+def _wide_dot(K: int) -> str:
+    assert K % 16 == 0
+    return f"""
+static inline void zh42_dw_{K}(const float* f, const float* u0, const float* u1, const float* u2, float b0, float b1,
+                               float b2, float* out) {{
+    __m512 a0[3], a1[3], a2[3];
+    for (int c = 0; c < 3; ++c) a0[c] = a1[c] = a2[c] = _mm512_setzero_ps();
+#pragma GCC unroll 8
+    for (int j = 0; j < {K}; j += 16) {{
+        const __m512 fj = _mm512_loadu_ps(f + j);
+        for (int c = 0; c < 3; ++c) {{
+            a0[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u0 + c * {K} + j), fj, a0[c]);
+            a1[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u1 + c * {K} + j), fj, a1[c]);
+            a2[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u2 + c * {K} + j), fj, a2[c]);
+        }}
+    }}
+    const __m512 B0 = _mm512_set1_ps(b0), B1 = _mm512_set1_ps(b1), B2 = _mm512_set1_ps(b2);
+    for (int c = 0; c < 3; ++c)
+        out[c] = _mm512_reduce_add_ps(_mm512_fmadd_ps(a2[c], B2, _mm512_fmadd_ps(a1[c], B1, _mm512_mul_ps(a0[c], B0))));
+}}
+"""
+
+
+# the K of each `TERMS_VARIANTS` entry with a 16-lane dot (every one: 80 and 48)
+_WIDE_KS = tuple(k for k in (zn._terms_k(*v) for v in zn.TERMS_VARIANTS) if k % 16 == 0)
+
+
+def _wide_source() -> str:
+    src = _FMA_SOURCE.replace("void zh40p_fused_fma(", "void zh42p_fused_wide(", 1)
+    call = "                " + zn._FMA_DOT_CALL
+    assert src.count(call) == 1 and src.count("typedef void (*dt_fn)") == 1
+    args = "(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);"
+    wide = "".join(f"                if (K == {k}) zh42_dw_{k}{args}\n                else " for k in _WIDE_KS)
+    src = src.replace(call, wide + zn._FMA_DOT_CALL, 1)
+    return src.replace("typedef void (*dt_fn)", "".join(_wide_dot(k) for k in _WIDE_KS) + "typedef void (*dt_fn)", 1)
+
+
+_WIDE_SOURCE = _wide_source()
+_WIDE_SIGNATURES = {"zh42p_fused_wide": zn._FUSED_SIGNATURES["zh33p_fused"]}
+
+
 def available() -> bool:
     """Whether the vector pass can run here: the fused pass's conditions and AVX-512 (`native._avx512_flags`)."""
     return bool(zn._avx512_flags()) and zn.terms_switched_on() and zn._inductor_lanes() in zn.TERMS_LANES
 
 
-def lib(fma: bool):
-    """(library, its pass) of the vector plane part — `zh40p_fused_fma` (``fma``: `zh37v_fused`'s dot) or
-    `zh40p_fused` (`zh33p_fused`'s) — or None (no AVX-512, no compiler, switched off). Not cached here
-    (`native.load` caches the build and reads PRTBENCH_COMPILE at each call)."""
+def lib(fma: bool, wide: bool = False):
+    """(library, its pass) of the vector plane part — `zh40p_fused_fma` (``fma``: `zh37v_fused`'s dot),
+    `zh42p_fused_wide` (``fma`` and ``wide``: that dot in 16-float vectors, zh42p) or `zh40p_fused` (`zh33p_fused`'s)
+    — or None (no AVX-512, no compiler, switched off). Not cached here (`native.load` caches the build and reads
+    PRTBENCH_COMPILE at each call)."""
     if not available():
         return None
     flags = ("-ffp-contract=off", "-fopenmp", *native.isa_flags(), *zn._avx512_flags())
+    if fma and wide:
+        lb = zn.load("zh42p_fused_wide", _WIDE_SOURCE, _WIDE_SIGNATURES, extra_flags=flags)
+        return None if lb is None else (lb, lb.zh42p_fused_wide)
     if fma:
         lb = zn.load("zh40p_fused_fma", _FMA_SOURCE, _FMA_SIGNATURES, extra_flags=flags)
         return None if lb is None else (lb, lb.zh40p_fused_fma)
