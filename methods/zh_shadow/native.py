@@ -3533,6 +3533,21 @@ typedef float v4 __attribute__((vector_size(16)));
 
 /* p[k] = sum_i a[i] x[i * d + k], i ascending (as zh35o_pose_cols) */
 static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, float *p) {
+#ifndef ZH42P_NO_ROW12
+    if (d == 12) {   /* order 4, two lobes (zh42p): the 12 sums as an 8- and a 4-lane vector (the same operations) */
+        typedef float v8p __attribute__((vector_size(32)));
+        v8p s, xv;
+        v4 s4, x4;
+        memcpy(&xv, x, 32); memcpy(&x4, x + 8, 16);
+        s = 0.0f + a[0] * xv; s4 = 0.0f + a[0] * x4;
+        for (int64_t i = 1; i < J1; ++i) {
+            memcpy(&xv, x + i * 12, 32); memcpy(&x4, x + i * 12 + 8, 16);
+            s = s + a[i] * xv; s4 = s4 + a[i] * x4;
+        }
+        memcpy(p, &s, 32); memcpy(p + 8, &s4, 16);
+        return;
+    }
+#endif
     if (d == 20) {
         v16 s, xv;
         v4 s4, x4;
@@ -3777,11 +3792,14 @@ POSE_SH_NMAX = 8
 MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one thread makes `pose_sh`
 
 
-def _pose_sh_lib():
+def _pose_sh_lib(row12: bool = True):
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
-    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
-    return load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
+    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits).
+    # ``row12`` False: built without the 12-sum vector pose row (zh42p; `-DZH42P_NO_ROW12`: the generic loop,
+    # the tests' oracle of the same bits)
+    return load("zh36o_pose_sh" if row12 else "zh42p_pose_sh_loop", _pose_sh_source(), _POSE_SH_SIGNATURES,
+                extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags(),
+                             *(() if row12 else ("-DZH42P_NO_ROW12",))))
 
 
 @functools.lru_cache(maxsize=None)

@@ -164,3 +164,56 @@ def test_wide_dot_frames_equal_8_float(creature, monkeypatch, kind):
                 ca, cb = dict(wide._last_counts), dict(base._last_counts)
                 assert ca.pop("plane_vertices")() == cb.pop("plane_vertices")() and ca == cb
     assert differ, "the wide pass never ran"
+
+
+@pytest.mark.parametrize("n,lobes", ((4, 2), (8, 2), (3, 2), (4, 1)))
+def test_pose_row12_equals_loop(n, lobes):
+    """`native.pose_sh`'s library with the 12-sum vector pose row (zh42p: d = lobes (2 + n) = 12, the paper
+    config) = the same source built without it (`_pose_sh_lib(row12=False)`: the generic loop, the oracle), bit
+    for bit — through `PoseSHBound` on every vertex and on rows (unsorted, a tail of fewer than 16), vertex- and
+    row-major, world and ZYZ frames, 1 and 2 threads, poses one after another; d = 20, 10 and 6 (the loop and the
+    order-8 vector row in both libraries) alike. A wrong joint's row, a lost joint, the 4-lane part read or
+    written at the wrong offset breaks it."""
+    from methods.core.threads import torch_threads
+
+    if not zn_pose_sh_available():
+        pytest.skip("no C compiler or the native passes switched off")
+    from methods.zh_shadow import native as zn
+    from methods.zh_shadow import runtime as rt
+    from methods.zh_shadow.precompute import CHART_RMAX
+
+    loop = zn._pose_sh_lib(row12=False)
+    assert loop is not None and loop is not zn._pose_sh_lib()
+    J1, N = 11, 203
+    g = torch.Generator().manual_seed(4242 + 10 * n + lobes)
+    Xv = zn.vertex_major(torch.randn(J1, N, lobes * (2 + n), generator=g) * 0.6)
+    nrm = torch.nn.functional.normalize(torch.randn(N, 3, generator=g), dim=1).contiguous()
+    lam = rt._band_norms(n)
+    ran = 0
+    for zyz, dim in ((False, 1), (True, 0), (True, 1)):
+        perm = tuple(int(i) for i in rt.zyz_rows(n).tolist()) if zyz else tuple(range(n * n))
+        new = zn.pose_sh_bind(Xv, lam, perm, lobes, n, CHART_RMAX, zyz, dim)
+        old = zn.pose_sh_bind(Xv, lam, perm, lobes, n, CHART_RMAX, zyz, dim)
+        assert new is not None and old is not None
+        old.fn = loop.zh41p_pose_sh
+        for k in range(2):
+            pose = torch.randn(J1 - 1, generator=g)
+            for threads in (1, 2):
+                with torch_threads(threads):
+                    a, b = new(pose, nrm), old(pose, nrm)
+                assert a is not None and torch.equal(a.view(torch.int32), b.view(torch.int32)), (zyz, dim, k, threads)
+                ran += 1
+                if dim == 1:
+                    rows = torch.randperm(N, generator=g)[:77]
+                    oa, ob = torch.full((N, n * n), float("nan")), torch.full((N, n * n), float("nan"))
+                    with torch_threads(threads):
+                        new(pose, nrm, rows, out=oa)
+                        old(pose, nrm, rows, out=ob)
+                    assert torch.equal(oa.view(torch.int32), ob.view(torch.int32)), (zyz, k, threads)
+    assert ran == 12
+
+
+def zn_pose_sh_available() -> bool:
+    from methods.zh_shadow import native as zn
+
+    return zn.pose_sh_available() and zn._pose_sh_lib(row12=False) is not None
