@@ -1037,9 +1037,10 @@ class ZHShadow(Method):
     # False: the scalar plane lines of `native.fused_pixels` (the tests' oracle)
     vector_plane = True
 
-    # `_fused_planes`' object samples' regrouped dot (``fma_terms``, with ``vector_plane``) in 16-float vectors
-    # (`native_fused16`'s `zh42p_fused_wide`, zh42p: float32 round-off against the 8-float dot) where it runs;
-    # False: `zh40p_fused_fma`'s 8-float dot (the tests' oracle)
+    # `_fused_planes`' object samples' regrouped dot (``fma_terms``, with ``vector_plane``) in 16-float vectors and
+    # its plane samples' corners read once per distinct face of a 16-sample vector (`native_fused16`'s
+    # `zh42p_fused_wide`, zh42p: float32 round-off against the 8-float dot; the plane samples the same bits) where it
+    # runs; False: `zh40p_fused_fma` (the tests' oracle)
     wide_dot = True
 
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,

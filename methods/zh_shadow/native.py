@@ -1909,7 +1909,8 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits).
     ``vector``: the plane samples 16 at a time where it runs (`native_fused16`, zh40p: the same bits as the
     pass it replaces). ``wide`` (with ``fma`` and ``vector``): the object samples' dot in 16-float vectors
-    (`native_fused16`'s `zh42p_fused_wide`, zh42p: float32 round-off against the ``fma`` pass)."""
+    and the plane samples' corners read once per distinct face of a vector (`native_fused16`'s `zh42p_fused_wide`,
+    zh42p: float32 round-off against the ``fma`` pass; the plane samples the same bits)."""
     vec = None
     if vector:
         from methods.zh_shadow import native_fused16

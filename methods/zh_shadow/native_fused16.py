@@ -234,7 +234,9 @@ _FMA_SIGNATURES = {"zh40p_fused_fma": zn._FUSED_SIGNATURES["zh33p_fused"]}
 # the pixels unchanged (the same source). Each point is one thread's: the bits do not depend on the thread count.
 # Bench creature P frame's pass (35,800 object samples), 1 thread, process CPU, the pass's own arguments, 64 MB
 # written before each call (`python -m benchmarks.zh42p_fused_ab --kind P`): 2.93 → 2.65 ms median (1.11×; A/A
-# 1.00), caches warm 2.58 → 2.35 (1.10×); max |diff| 2.2e-7 of the image's largest pixel.
+# 1.00), caches warm 2.58 → 2.35 (1.10×); max |diff| 2.2e-7 of the image's largest pixel. With the plane samples
+# grouped by face (`_FACE_GROUPS`, below): 2.99 → 2.46 ms (1.22×, A/A 0.995). Tried and dropped: the features 16
+# points at once (`_features8`'s statements on 16-float vectors, the same bits): 0.98× against the wide pass.
 def _wide_dot(K: int) -> str:
     assert K % 16 == 0
     return f"""
@@ -272,7 +274,50 @@ def _wide_source() -> str:
     return src.replace("typedef void (*dt_fn)", "".join(_wide_dot(k) for k in _WIDE_KS) + "typedef void (*dt_fn)", 1)
 
 
-_WIDE_SOURCE = _wide_source()
+# The plane lanes of `_VECTOR_PLANE` grouped by face (zh42p, the wide library only): every distinct face among a
+# vector's active samples (plane, facing the camera) reads its corners' u once and broadcasts them over its lanes —
+# where zh40p's block broadcasts a pixel only when all its active samples lie on its first sample's face and runs
+# the others (21 % of the bench P frame's plane pixels) through the scalar lines one by one. Every sample's value is
+# the same expression on the same operands ((u_a w + u_b b_u) + u_c b_v, w = (1 − b_u) − b_v, the clamp keeping NaN)
+# and a face or corner out of range counts one failure a sample as the scalar lines do: the same bits.
+_PIXEL_FACES = _VECTOR_PLANE[_VECTOR_PLANE.index("                        /* a pixel whose active samples share the face"):
+                             _VECTOR_PLANE.index("                        if (ok) {\n                            __m512 xs[3];")]
+_FACE_GROUPS = r"""                        /* each distinct face among the active samples: its corners' u read once, broadcast over
+                           its lanes (zh42p) */
+                        __mmask16 rx = 0;
+                        __m512 xr0 = zero, xr1 = zero, xr2 = zero;
+                        __m512 ua[3], ub[3], uc[3];
+                        for (int c = 0; c < 3; ++c) ua[c] = ub[c] = uc[c] = zero;
+                        __mmask16 ok = 0;
+                        const __mmask16 badf = act & (__mmask16)~fok;   /* a face out of range: one failure a sample */
+                        nb += __builtin_popcount((unsigned)badf);
+                        __mmask16 todo = act & fok;
+                        while (todo) {
+                            const int l = __builtin_ctz((unsigned)todo);
+                            const int64_t f = face[q0 + l];
+                            const __mmask16 sm = todo & _mm512_cmpeq_epi32_mask(f32, _mm512_set1_epi32((int32_t)f));
+                            todo &= (__mmask16)~sm;
+                            const int64_t j0 = F[3 * f], j1 = F[3 * f + 1], j2 = F[3 * f + 2];
+                            if ((uint64_t)j0 >= (uint64_t)N || (uint64_t)j1 >= (uint64_t)N || (uint64_t)j2 >= (uint64_t)N) {
+                                nb += __builtin_popcount((unsigned)sm);
+                                continue;
+                            }
+                            ok |= sm;
+                            for (int c = 0; c < 3; ++c) {
+                                ua[c] = _mm512_mask_mov_ps(ua[c], sm, _mm512_set1_ps(u[3 * j0 + c]));
+                                ub[c] = _mm512_mask_mov_ps(ub[c], sm, _mm512_set1_ps(u[3 * j1 + c]));
+                                uc[c] = _mm512_mask_mov_ps(uc[c], sm, _mm512_set1_ps(u[3 * j2 + c]));
+                            }
+                        }
+"""
+
+
+def _face_groups(src: str) -> str:
+    assert src.count(_PIXEL_FACES) == 1
+    return src.replace(_PIXEL_FACES, _FACE_GROUPS, 1)
+
+
+_WIDE_SOURCE = _face_groups(_wide_source())
 _WIDE_SIGNATURES = {"zh42p_fused_wide": zn._FUSED_SIGNATURES["zh33p_fused"]}
 
 

@@ -217,3 +217,52 @@ def zn_pose_sh_available() -> bool:
     from methods.zh_shadow import native as zn
 
     return zn.pose_sh_available() and zn._pose_sh_lib(row12=False) is not None
+
+
+def test_face_groups_plane_equals_scalar_random(monkeypatch):
+    """The wide library's plane samples grouped by face (`native_fused16._FACE_GROUPS`, zh42p) = the scalar plane
+    lines (``vector`` False: the oracle) bit for bit (NaN and zeros' signs too): `test_zh40p`'s random G-buffers
+    (pixels of one face, of mixed faces, samples facing away, a NaN vertex), every non-plane sample a miss (no
+    object samples: the plane part alone) and with object samples (their pixels then within round-off, the
+    others bit for bit), clamp on and off, a tail in the last chunk, 1 and 2 threads; a plane sample's face or a
+    corner out of range: None alike. A lane of another face taken in, a corner or channel swapped, a lost clamp or
+    front test breaks it."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native as zn
+
+    from tests.methods.zh_shadow.test_zh40p import _bits, _inputs
+
+    _skip_unless_wide()
+    monkeypatch.setattr(zn, "MIN_PIXELS_PER_THREAD", 1)
+    g = torch.Generator().manual_seed(4242)
+    ran = 0
+    for n in (701, 64 * 9, 3):
+        face, bary, nrm, wo, mask, F32, u, U, region = _inputs(g, n)
+        P = 4 * n
+        for hit in (mask.clone(), mask | (torch.rand(P, generator=g) < 0.5)):
+            for clamp in (False, True):
+                args = (face, bary, nrm, wo, mask, hit, F32, u, U, None, region, [False, True], 6, True, True,
+                        clamp, 4)
+                for threads in (1, 2):
+                    with torch_threads(threads):
+                        a = zn.fused_pixels(*args, fma=True, vector=False)
+                        b = zn.fused_pixels(*args, fma=True, vector=True, wide=True)
+                    assert a is not None and b is not None and a[1] == b[1]
+                    px = (mask | ~hit).view(n, 4).all(1)   # pixels without object samples: the same bits
+                    assert bool(px.any())
+                    assert torch.equal(_bits(a[0][px]), _bits(b[0][px])), (n, clamp, threads)
+                    ran += 1
+        front = (mask & ((nrm * wo).sum(1) > 0)).nonzero().squeeze(1)   # (plane samples facing the camera)
+        for q in (int(front[len(front) // 2]), int(front[-1])):
+            bad = face.clone()
+            bad[q] = 10 ** 6
+            args = (bad, bary, nrm, wo, mask, None, F32, u, U, None, region, [False, True], 6, True, True, True, 4)
+            assert zn.fused_pixels(*args, fma=True, vector=False) is None
+            assert zn.fused_pixels(*args, fma=True, vector=True, wide=True) is None
+        F_bad = F32.clone()
+        F_bad[:, 1] = 10 ** 6
+        for h in (None, mask):   # (hit = the mask: no object samples, the plane lines' own check)
+            args = (face, bary, nrm, wo, mask, h, F_bad, u, U, None, region, [False, True], 6, True, True, True, 4)
+            assert zn.fused_pixels(*args, fma=True, vector=False) is None
+            assert zn.fused_pixels(*args, fma=True, vector=True, wide=True) is None
+    assert ran == 24
