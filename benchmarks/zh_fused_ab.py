@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     apply_ab_options(a)
     orig, args, kw = fused_call(a.kind, json.loads(a.config), fma_terms=False)
-    kw = {k: v for k, v in kw.items() if k != "fma"}
+    kw = {k: v for k, v in kw.items() if k not in ("fma", "wide")}   # (wide: zh42p's dot, off here)
     plane_only = list(args)
     plane_only[5] = args[4].clone()                    # hit = the plane mask: no object samples
     l1 = list(args)

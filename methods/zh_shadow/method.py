@@ -1037,6 +1037,12 @@ class ZHShadow(Method):
     # False: the scalar plane lines of `native.fused_pixels` (the tests' oracle)
     vector_plane = True
 
+    # `_fused_planes`' object samples' regrouped dot (``fma_terms``, with ``vector_plane``) in 16-float vectors and
+    # its plane samples' corners read once per distinct face of a 16-sample vector (`native_fused16`'s
+    # `zh42p_fused_wide`, zh42p: float32 round-off against the 8-float dot; the plane samples the same bits) where it
+    # runs; False: `zh40p_fused_fma` (the tests' oracle)
+    wide_dot = True
+
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
                       mats: list, spec: list[bool], F32: Tensor, fv: Tensor, nmiss: int) -> Tensor | None:
         """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
@@ -1127,7 +1133,8 @@ class ZHShadow(Method):
         clamp = self.config["clamp"]
         S2 = gbuffer.spp_side ** 2
         res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
-                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane)
+                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane,
+                              wide=self.wide_dot)
         if res is None:
             return None
         img, nspec = res

@@ -1898,7 +1898,7 @@ def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, 
 def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
                  F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
                  D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False,
-                 vector: bool = False) -> tuple[Tensor, int] | None:
+                 vector: bool = False, wide: bool = False) -> tuple[Tensor, int] | None:
     """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
     (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
     `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
@@ -1908,12 +1908,16 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     (M, 3) int32, u (N, 3), U (NU, 3, K) float32 (rows lut[vertex] when lut (N,) int32 is given), region (P,)
     int64. ``fma``: the object samples' dot regrouped (`zh37v_fused`: float32 round-off against those bits).
     ``vector``: the plane samples 16 at a time where it runs (`native_fused16`, zh40p: the same bits as the
-    pass it replaces)."""
+    pass it replaces). ``wide`` (with ``fma`` and ``vector``): the object samples' dot in 16-float vectors
+    and the plane samples' corners read once per distinct face of a vector (`native_fused16`'s `zh42p_fused_wide`,
+    zh42p: float32 round-off against the ``fma`` pass; the plane samples the same bits)."""
     vec = None
     if vector:
         from methods.zh_shadow import native_fused16
 
-        vec = native_fused16.lib(fma)
+        vec = native_fused16.lib(fma, wide=True) if fma and wide else None
+        if vec is None:   # (no wide dot asked for, or its library not built: the 8-float dot's)
+            vec = native_fused16.lib(fma)
     lib = _fma_fused_lib() if fma else None
     if lib is None:   # (the regrouped dot's library not built: `zh33p_fused`'s bits)
         lib, fma = _fused_lib(), False
@@ -3530,6 +3534,21 @@ typedef float v4 __attribute__((vector_size(16)));
 
 /* p[k] = sum_i a[i] x[i * d + k], i ascending (as zh35o_pose_cols) */
 static void pose_row(int64_t J1, int64_t d, const float *a, const float *x, float *p) {
+#ifndef ZH42P_NO_ROW12
+    if (d == 12) {   /* order 4, two lobes (zh42p): the 12 sums as an 8- and a 4-lane vector (the same operations) */
+        typedef float v8p __attribute__((vector_size(32)));
+        v8p s, xv;
+        v4 s4, x4;
+        memcpy(&xv, x, 32); memcpy(&x4, x + 8, 16);
+        s = 0.0f + a[0] * xv; s4 = 0.0f + a[0] * x4;
+        for (int64_t i = 1; i < J1; ++i) {
+            memcpy(&xv, x + i * 12, 32); memcpy(&x4, x + i * 12 + 8, 16);
+            s = s + a[i] * xv; s4 = s4 + a[i] * x4;
+        }
+        memcpy(p, &s, 32); memcpy(p + 8, &s4, 16);
+        return;
+    }
+#endif
     if (d == 20) {
         v16 s, xv;
         v4 s4, x4;
@@ -3774,11 +3793,14 @@ POSE_SH_NMAX = 8
 MIN_COLS_PER_POSE_SH_THREAD = 1024   # vertices per thread below which one thread makes `pose_sh`
 
 
-def _pose_sh_lib():
+def _pose_sh_lib(row12: bool = True):
     # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75);
-    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits)
-    return load("zh36o_pose_sh", _pose_sh_source(), _POSE_SH_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags()))
+    # products and sums not fused: `runtime._vertex_sh`'s operations (and `zh35o_pose_cols`' bits).
+    # ``row12`` False: built without the 12-sum vector pose row (zh42p; `-DZH42P_NO_ROW12`: the generic loop,
+    # the tests' oracle of the same bits)
+    return load("zh36o_pose_sh" if row12 else "zh42p_pose_sh_loop", _pose_sh_source(), _POSE_SH_SIGNATURES,
+                extra_flags=("-fopenmp", "-ffp-contract=off", *native.isa_flags(), *_avx512_flags(),
+                             *(() if row12 else ("-DZH42P_NO_ROW12",))))
 
 
 @functools.lru_cache(maxsize=None)

@@ -224,18 +224,119 @@ _SIGNATURES = {"zh40p_fused": zn._FUSED_SIGNATURES["zh33p_fused"]}
 _FMA_SIGNATURES = {"zh40p_fused_fma": zn._FUSED_SIGNATURES["zh33p_fused"]}
 
 
+# -- zh42p ------------------------------------------------------------------------------------------------------
+# The regrouped pass (`zh37v_fused`'s dot, ``fma``) with the object samples' dot in 16-float vectors (session 42,
+# zh42p; `ZHShadow.wide_dot`): b0 (U0[c]·f) + b1 (U1[c]·f) + b2 (U2[c]·f) as `_fma_dot`'s nine running dots of fused
+# multiply-adds, 16 lanes a step instead of 8 (K = 80: 5 steps, 45 multiply-adds a point instead of 90), combined by
+# the same two multiply-adds and one product per channel, then the 16 lanes summed by a tree
+# (``_mm512_reduce_add_ps``). The same terms to float32 round-off (not the same bits as the 8-lane dot: each lane
+# sums other products, the final tree differs); the plane samples, the front test, the clamp and every sum into
+# the pixels unchanged (the same source). Each point is one thread's: the bits do not depend on the thread count.
+# Bench creature P frame's pass (35,800 object samples), 1 thread, process CPU, the pass's own arguments, 64 MB
+# written before each call (`python -m benchmarks.zh42p_fused_ab --kind P`): 2.93 → 2.65 ms median (1.11×; A/A
+# 1.00), caches warm 2.58 → 2.35 (1.10×); max |diff| 2.2e-7 of the image's largest pixel. With the plane samples
+# grouped by face (`_FACE_GROUPS`, below): 2.99 → 2.46 ms (1.22×, A/A 0.995). Tried and dropped: the features 16
+# points at once (`_features8`'s statements on 16-float vectors, the same bits): 0.98× against the wide pass.
+def _wide_dot(K: int) -> str:
+    assert K % 16 == 0
+    return f"""
+static inline void zh42_dw_{K}(const float* f, const float* u0, const float* u1, const float* u2, float b0, float b1,
+                               float b2, float* out) {{
+    __m512 a0[3], a1[3], a2[3];
+    for (int c = 0; c < 3; ++c) a0[c] = a1[c] = a2[c] = _mm512_setzero_ps();
+#pragma GCC unroll 8
+    for (int j = 0; j < {K}; j += 16) {{
+        const __m512 fj = _mm512_loadu_ps(f + j);
+        for (int c = 0; c < 3; ++c) {{
+            a0[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u0 + c * {K} + j), fj, a0[c]);
+            a1[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u1 + c * {K} + j), fj, a1[c]);
+            a2[c] = _mm512_fmadd_ps(_mm512_loadu_ps(u2 + c * {K} + j), fj, a2[c]);
+        }}
+    }}
+    const __m512 B0 = _mm512_set1_ps(b0), B1 = _mm512_set1_ps(b1), B2 = _mm512_set1_ps(b2);
+    for (int c = 0; c < 3; ++c)
+        out[c] = _mm512_reduce_add_ps(_mm512_fmadd_ps(a2[c], B2, _mm512_fmadd_ps(a1[c], B1, _mm512_mul_ps(a0[c], B0))));
+}}
+"""
+
+
+# the K of each `TERMS_VARIANTS` entry with a 16-lane dot (every one: 80 and 48)
+_WIDE_KS = tuple(k for k in (zn._terms_k(*v) for v in zn.TERMS_VARIANTS) if k % 16 == 0)
+
+
+def _wide_source() -> str:
+    src = _FMA_SOURCE.replace("void zh40p_fused_fma(", "void zh42p_fused_wide(", 1)
+    call = "                " + zn._FMA_DOT_CALL
+    assert src.count(call) == 1 and src.count("typedef void (*dt_fn)") == 1
+    args = "(fb + i * K, U + i0 * 3 * K, U + i1 * 3 * K, U + i2 * 3 * K, (1.0f - bu) - bv, bu, bv, t);"
+    wide = "".join(f"                if (K == {k}) zh42_dw_{k}{args}\n                else " for k in _WIDE_KS)
+    src = src.replace(call, wide + zn._FMA_DOT_CALL, 1)
+    return src.replace("typedef void (*dt_fn)", "".join(_wide_dot(k) for k in _WIDE_KS) + "typedef void (*dt_fn)", 1)
+
+
+# The plane lanes of `_VECTOR_PLANE` grouped by face (zh42p, the wide library only): every distinct face among a
+# vector's active samples (plane, facing the camera) reads its corners' u once and broadcasts them over its lanes —
+# where zh40p's block broadcasts a pixel only when all its active samples lie on its first sample's face and runs
+# the others (21 % of the bench P frame's plane pixels) through the scalar lines one by one. Every sample's value is
+# the same expression on the same operands ((u_a w + u_b b_u) + u_c b_v, w = (1 − b_u) − b_v, the clamp keeping NaN)
+# and a face or corner out of range counts one failure a sample as the scalar lines do: the same bits.
+_PIXEL_FACES = _VECTOR_PLANE[_VECTOR_PLANE.index("                        /* a pixel whose active samples share the face"):
+                             _VECTOR_PLANE.index("                        if (ok) {\n                            __m512 xs[3];")]
+_FACE_GROUPS = r"""                        /* each distinct face among the active samples: its corners' u read once, broadcast over
+                           its lanes (zh42p) */
+                        __mmask16 rx = 0;
+                        __m512 xr0 = zero, xr1 = zero, xr2 = zero;
+                        __m512 ua[3], ub[3], uc[3];
+                        for (int c = 0; c < 3; ++c) ua[c] = ub[c] = uc[c] = zero;
+                        __mmask16 ok = 0;
+                        const __mmask16 badf = act & (__mmask16)~fok;   /* a face out of range: one failure a sample */
+                        nb += __builtin_popcount((unsigned)badf);
+                        __mmask16 todo = act & fok;
+                        while (todo) {
+                            const int l = __builtin_ctz((unsigned)todo);
+                            const int64_t f = face[q0 + l];
+                            const __mmask16 sm = todo & _mm512_cmpeq_epi32_mask(f32, _mm512_set1_epi32((int32_t)f));
+                            todo &= (__mmask16)~sm;
+                            const int64_t j0 = F[3 * f], j1 = F[3 * f + 1], j2 = F[3 * f + 2];
+                            if ((uint64_t)j0 >= (uint64_t)N || (uint64_t)j1 >= (uint64_t)N || (uint64_t)j2 >= (uint64_t)N) {
+                                nb += __builtin_popcount((unsigned)sm);
+                                continue;
+                            }
+                            ok |= sm;
+                            for (int c = 0; c < 3; ++c) {
+                                ua[c] = _mm512_mask_mov_ps(ua[c], sm, _mm512_set1_ps(u[3 * j0 + c]));
+                                ub[c] = _mm512_mask_mov_ps(ub[c], sm, _mm512_set1_ps(u[3 * j1 + c]));
+                                uc[c] = _mm512_mask_mov_ps(uc[c], sm, _mm512_set1_ps(u[3 * j2 + c]));
+                            }
+                        }
+"""
+
+
+def _face_groups(src: str) -> str:
+    assert src.count(_PIXEL_FACES) == 1
+    return src.replace(_PIXEL_FACES, _FACE_GROUPS, 1)
+
+
+_WIDE_SOURCE = _face_groups(_wide_source())
+_WIDE_SIGNATURES = {"zh42p_fused_wide": zn._FUSED_SIGNATURES["zh33p_fused"]}
+
+
 def available() -> bool:
     """Whether the vector pass can run here: the fused pass's conditions and AVX-512 (`native._avx512_flags`)."""
     return bool(zn._avx512_flags()) and zn.terms_switched_on() and zn._inductor_lanes() in zn.TERMS_LANES
 
 
-def lib(fma: bool):
-    """(library, its pass) of the vector plane part — `zh40p_fused_fma` (``fma``: `zh37v_fused`'s dot) or
-    `zh40p_fused` (`zh33p_fused`'s) — or None (no AVX-512, no compiler, switched off). Not cached here
-    (`native.load` caches the build and reads PRTBENCH_COMPILE at each call)."""
+def lib(fma: bool, wide: bool = False):
+    """(library, its pass) of the vector plane part — `zh40p_fused_fma` (``fma``: `zh37v_fused`'s dot),
+    `zh42p_fused_wide` (``fma`` and ``wide``: that dot in 16-float vectors, zh42p) or `zh40p_fused` (`zh33p_fused`'s)
+    — or None (no AVX-512, no compiler, switched off). Not cached here (`native.load` caches the build and reads
+    PRTBENCH_COMPILE at each call)."""
     if not available():
         return None
     flags = ("-ffp-contract=off", "-fopenmp", *native.isa_flags(), *zn._avx512_flags())
+    if fma and wide:
+        lb = zn.load("zh42p_fused_wide", _WIDE_SOURCE, _WIDE_SIGNATURES, extra_flags=flags)
+        return None if lb is None else (lb, lb.zh42p_fused_wide)
     if fma:
         lb = zn.load("zh40p_fused_fma", _FMA_SOURCE, _FMA_SIGNATURES, extra_flags=flags)
         return None if lb is None else (lb, lb.zh40p_fused_fma)
