@@ -7,8 +7,11 @@ baseline's instead (max |new − base| / max |base|), and the path the new code 
         [--frames 11] [--scene creature] [--size bench] [--precompute-code /work/base] [--threads 1] [--repeat 1]
 
 The baseline is the checkout's whole ``methods`` package (`benchmarks.zh_pose_ab.baseline_class`), its
-frames rendered inside `benchmarks.common.checkout_modules`. Frames alternate which code goes first; frames 0–1 are untimed; medians of process CPU time (and wall
-time), ``--threads`` torch threads (default 1; the perf suite runs 2). Use 1 thread for evidence:
+frames rendered inside `benchmarks.common.checkout_modules`. Frames alternate which code goes first; frames 0–1 of each
+repeat are untimed (zh42l: before, a repeat's frame 1 — after its frame 0's full change, a lighting-only sequence's
+build frame — was timed from the second repeat on); before each frame a 64 MB buffer is written (zh42l; ``--no-flush``
+off) and ``PRTBENCH_SETTLE`` idled, as the perf harness's G-buffer and idle leave the caches; medians of process CPU
+time (and wall time), ``--threads`` torch threads (default 1; the perf suite runs 2). Use 1 thread for evidence:
 at 2 threads an A/A run (this checkout as its own baseline, creature bench order-8 P frames, quiet
 machine, session 24) read 1.03× and 1.70× wall — P frames came out either ~12 or ~20 ms on either
 side — so a 2-thread ratio says nothing about the code.
@@ -40,6 +43,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--repeat", type=int, default=1,
                     help="run the --frames sequence this many times over (the suite's spacing: --frames 5); "
                          "each repeat's frame 0 (a full change) untimed")
+    ap.add_argument("--no-flush", action="store_true", help="no 64 MB write before each frame (warm caches)")
     a = ap.parse_args(argv)
     apply_ab_options(a)
     from methods.zh_shadow.method import ZHShadow as New
@@ -47,6 +51,9 @@ def main(argv: list[str] | None = None) -> dict:
     Base = baseline_class(a.baseline)
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
     m, _ = precomputed(New, scene, json.loads(a.config))
+    import torch
+
+    buf = None if a.no_flush else torch.empty(16 * 1024 * 1024)
     out = {}
     for kind in a.kinds:
         _, frames, gbs, _ = setup(scene, a.size, kind=kind, n_frames=a.frames, seed=a.seed)
@@ -63,11 +70,13 @@ def main(argv: list[str] | None = None) -> dict:
             imgs = {}
             for w in (("new", "base") if i % 2 == 0 else ("base", "new")):
                 with base_modules(a.baseline, w):   # the baseline's lazy imports its own (swap untimed)
+                    if buf is not None:
+                        buf.fill_(float(i))
                     settle()
                     c, c0 = time.process_time(), time.perf_counter()
                     imgs[w] = (new if w == "new" else base).render(f, g)
                     dc, dw = time.process_time() - c, time.perf_counter() - c0
-                if i >= 2 and (i < len(frames) or f.index > 0):
+                if i % len(frames) >= 2:
                     t[w].append(dc)
                     tw[w].append(dw)
             err = max(err, float((imgs["new"] - imgs["base"]).abs().max() / imgs["base"].abs().max().clamp_min(1e-12)))

@@ -618,10 +618,18 @@ def _avx512_flags() -> tuple[str, ...]:
     return ("-mavx512f",) if native.cpu_capability() == "AVX512" else ()
 
 
+_LANES: dict = {}
+
+
 def _project_lanes(lib) -> int:
-    out = torch.zeros(1, dtype=torch.int64)
-    lib.zh_project_lanes(out.data_ptr())
-    return int(out[0])
+    """The vector lanes ``lib`` (`_project_lib`) was built for, asked once per library object (zh42l: a tensor and
+    a C call in every E frame before)."""
+    got = _LANES.get(lib)
+    if got is None:
+        out = torch.zeros(1, dtype=torch.int64)
+        lib.zh_project_lanes(out.data_ptr())
+        _LANES[lib] = got = int(out[0])
+    return got
 
 
 @functools.lru_cache(maxsize=8)
@@ -5251,3 +5259,96 @@ def relight_run(setup: tuple, light: Tensor, kd: Tensor, ks: Tensor, clamp: bool
                       x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(), out.data_ptr(), nt,
                       int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr())
     return out
+
+
+# -- zh42l ------------------------------------------------------------------------------------------
+# A steady lighting-only order-8 / vertex-shaded frame (`ZHShadow._steady_relight`) by ONE C call on arguments kept
+# per steady state: the world-space lighting of the kept polar-frame projection (`zh41l_light`, the very function:
+# the same bits as `light_world`) and, from it, the radiance and resolve (`zh41l_relight`, the very function: the
+# same bits as `relight_run`). In session 41's frame those were two calls, each behind ~15 Python checks, tensor
+# allocations, ~25 `data_ptr` calls, 24 ctypes conversions and the off switches' environment reads (each torch call
+# the first of its kind after the harness's G-buffer: 10-70 µs with the caches cold), all of it serial at 2 threads.
+# (Tried and dropped, zh42l: the resolve's rows four at a time — a row's three channels one 4-float vector, the tail
+# rows' entries in the same pass, 16-bit columns; the same bits — L 1.047x, E 1.008x against an A/A of 1.043x /
+# 1.015x (`benchmarks.zh41l_flag_ab`); with streaming stores L 0.98x, E 0.97x: the pass is bound by its cold reads.)
+_STEADY_SOURCE = _LIGHT_SOURCE + _RELIGHTB_SOURCE.replace("#include <stdint.h>\n", "", 1) + r"""
+/* a: `zh41l_light`'s nine kept arguments (n2, C = 3, Q, mabs, perm, sgn, Xm, Xp, w), then `zh41l_relight`'s kept
+   ones: Nc, nreg, kd, ks, spans, wb, tb, tsp, clamp, x, L, R, col4, val4, T, trow, tcrow, tcol, tval. With R (3, 3)
+   given, light (n2, 3) = `zh41l_light`(R, c) first (returns 1, nothing written, where it refuses R); else light is
+   read as given. Then out (R, 3) = `zh41l_relight`(light) on nt threads; returns 0. */
+int64_t zh42l_steady(const int64_t *a, const double *R, const double *c, double tol, float inv_pi, float *light,
+                     float *out, int64_t nt) {
+    if (R && zh41l_light(a, R, c, tol, light) != 0) return 1;
+    const int64_t *b = a + 9;
+#define P_(k, T) ((T)(intptr_t)b[k])
+    zh41l_relight(a[0], b[0], light, b[1], P_(2, const float *), P_(3, const float *), P_(4, const int64_t *),
+                  P_(5, const float *), P_(6, const float *), P_(7, const int64_t *), inv_pi, b[8], P_(9, float *),
+                  P_(10, float *), b[11], P_(12, const int32_t *), P_(13, const float *), out, nt, b[14],
+                  P_(15, const int32_t *), P_(16, const int32_t *), P_(17, const int32_t *), P_(18, const float *));
+#undef P_
+    return 0;
+}
+"""
+_STEADY_SIGNATURES = {"zh42l_steady": [_P, _P, _P, ctypes.c_double, ctypes.c_float, _P, _P, _I]}
+# `ZHShadow._steady_relight` by `steady_run` where it runs; False: `light_world` / `_lighting` then `relight_run`
+# (the tests' oracle)
+STEADY_FUSED = True
+
+
+def _steady_lib():
+    """The library of `zh42l_steady` or None (switched off, no compiler; not cached here, b541a75)."""
+    if not (STEADY_FUSED and terms_switched_on()):
+        return None
+    lib = load("zh42l_steady", _STEADY_SOURCE, _STEADY_SIGNATURES,
+               extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+    if lib is not None:
+        lib.zh42l_steady.restype = ctypes.c_int64
+    return lib
+
+
+def steady_setup(rs: tuple, kd: Tensor, ks: Tensor, clamp: bool, Q: Tensor, tables: tuple) -> tuple | None:
+    """`steady_run`'s kept arguments for a `relight_setup` ``rs`` of the blocked pass (`zh41l_relight`), the albedos
+    kd, ks (nreg, 3) float32 CPU, ``clamp``, and `light_setup`'s Q and rotation ``tables`` (C = 3); or None where it
+    does not run (then `light_world` and `relight_run`): (the function, the packed arguments' address, a 9-double
+    buffer for R, n2, R, what the addresses point into). Addresses in a ctypes array, not a tensor (test_threads:
+    the method's state holds no addresses)."""
+    lib = _steady_lib()
+    if lib is None or not native.compile_enabled():
+        return None
+    _, n2, Nc, nreg, sp, tsp, keep, packed, wf, x, L = rs
+    if not isinstance(wf, tuple):   # (zh39o's pass: `relight_run`)
+        return None
+    wb, tb = wf
+    R, _, col4, val4, trow, tcrow, tcol, tval = packed
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in (kd, ks)) \
+            or tuple(kd.shape) != (nreg, 3) or tuple(ks.shape) != (nreg, 3):
+        return None
+    if Q.shape != (3, 3) or Q.dtype != torch.float64 or Q.device.type != "cpu":
+        return None
+    mabs, perm, sgn, Xm, Xp = tables
+    if mabs.shape != (n2,) or Xm.shape != (n2, n2) or Xp.shape != (n2, n2) or perm.dtype != torch.int64 \
+            or not all(t.is_contiguous() and t.device.type == "cpu" for t in tables):
+        return None
+    kd, ks, Q = kd.contiguous(), ks.contiguous(), Q.contiguous()
+    w = torch.empty(3 * n2 * 3 + 3, dtype=torch.float64)
+    vals = [n2, 3, Q.data_ptr(), *(t.data_ptr() for t in tables), w.data_ptr(),
+            Nc, nreg, kd.data_ptr(), ks.data_ptr(), sp.data_ptr(), wb.data_ptr(), 0 if tb is None else tb.data_ptr(),
+            tsp.data_ptr(), int(bool(clamp)), x.data_ptr(), L.data_ptr(), R, col4.data_ptr(), val4.data_ptr(),
+            int(trow.numel()), trow.data_ptr(), tcrow.data_ptr(), tcol.data_ptr(), tval.data_ptr()]
+    args = (ctypes.c_int64 * len(vals))(*vals)
+    Rbuf = (ctypes.c_double * 9)()
+    return lib.zh42l_steady, ctypes.addressof(args), Rbuf, n2, R, (rs, kd, ks, Q, tables, w, args, lib)
+
+
+def steady_run(st: tuple, R: tuple | None, c: Tensor | None, tol: float, light: Tensor, out: Tensor, nt: int) -> bool:
+    """One `zh42l_steady` call of `steady_setup`'s ``st``: with ``R`` (nine floats, row-major) the lighting (n², 3)
+    float32 ``light`` = `light_world`(c, R) first (c the kept (n², 3) float64 contiguous projection) — False, nothing
+    written, where that refuses R —, else ``light`` read as given; then ``out`` (R, 3) float32 = `relight_run`'s
+    image on ``nt`` threads. The caller owns the checks: ``light`` and ``out`` new contiguous float32 CPU tensors of
+    those shapes, c the projection `light_world` would read (no check
+    here: the steady frame's hot path)."""
+    fn, args, Rbuf, _, _, _ = st
+    if R is None:
+        return fn(args, None, None, 0.0, _INV_PI32, light.data_ptr(), out.data_ptr(), nt) == 0
+    Rbuf[:] = R
+    return fn(args, Rbuf, c.data_ptr(), tol, _INV_PI32, light.data_ptr(), out.data_ptr(), nt) == 0

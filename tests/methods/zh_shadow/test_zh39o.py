@@ -148,6 +148,9 @@ def test_fused_relight_equals_radiance_ranges_and_csr_product(order8, clamp, mon
     calls = []
     rr = zn.relight_run   # (the C call: `relight_resolve`'s, and zh40l's steady frames' `_steady_relight`)
     monkeypatch.setattr(zn, "relight_run", lambda *a: (lambda o: calls.append(o is not None) or o)(rr(*a)))
+    sr = zn.steady_run    # (zh42l: the steady frames' one call, `zh41l_relight` in it; False where it refused a
+    #                       rotation without writing, then called again with `_lighting`'s lighting)
+    monkeypatch.setattr(zn, "steady_run", lambda *a: (lambda o: (o and calls.append(o)) or o)(sr(*a)))
     m = order8.with_render_config(clamp=clamp)
     for kind in ("L", "E"):
         fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
