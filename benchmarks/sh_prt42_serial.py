@@ -8,7 +8,7 @@ The checkout on PYTHONPATH is the one measured (run it with another checkout's P
 the precomputation of /work/wt/base42's code is taken when PRTBENCH_SH42_PRECOMPUTE_CODE is unset). ``serial``
 = the frame minus the C entry points (each splits over the threads): what a 2-thread frame runs on one core.
 """
-import copy, time, statistics, sys, functools, os
+import copy, time, statistics, sys, functools
 import torch
 torch.set_num_threads(1)
 from reports import precompute_cache

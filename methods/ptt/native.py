@@ -347,21 +347,11 @@ int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pai
     return m;
 }
 
-/* referenced_pairs' sel only (session 38, pt38: FULL_TABLE, whose sample stage reads the rows through the
-   static face corners, fast.miss_face_pairs): the same marking of the faces, pmark (np) bytes scratch,
-   no positions and no remapped corners. Returns m. */
-int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
-                       int64_t nt, uint8_t* fmark, uint8_t* pmark, int64_t* sel) {
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
-        uint8_t* fm = fmark + k * (M + 1);
-        for (int64_t f = 0; f <= M; ++f)
-            fm[f] = 0;
-        for (int64_t i = n * k / nt; i < n * (k + 1) / nt; ++i) {  /* no branch: a miss marks the spare entry M */
-            const uint64_t f = (uint64_t)face[i];
-            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
-        }
-    }
+/* the per-thread face marks (nt rows of M + 1 bytes, the spare entry M for misses) merged into row 0, the pairs
+   of the marked faces' corners marked in pmark (np bytes) and listed ascending in sel: their count
+   (referenced_sel and view_frame's marking) */
+static int64_t merge_marks(uint8_t* fmark, int64_t M, int64_t nt, const int64_t* face_pairs, int64_t np,
+                           uint8_t* pmark, int64_t* sel) {
     for (int64_t k = 1; k < nt; ++k)
         for (int64_t f = 0; f < M; ++f)
             fmark[f] |= fmark[k * (M + 1) + f];
@@ -378,6 +368,24 @@ int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs
         if (pmark[p])
             sel[m++] = p;
     return m;
+}
+
+/* referenced_pairs' sel only (session 38, pt38: FULL_TABLE, whose sample stage reads the rows through the
+   static face corners, fast.miss_face_pairs): the same marking of the faces, pmark (np) bytes scratch,
+   no positions and no remapped corners. Returns m. */
+int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
+                       int64_t nt, uint8_t* fmark, uint8_t* pmark, int64_t* sel) {
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int64_t k = 0; k < nt; ++k) {
+        uint8_t* fm = fmark + k * (M + 1);
+        for (int64_t f = 0; f <= M; ++f)
+            fm[f] = 0;
+        for (int64_t i = n * k / nt; i < n * (k + 1) / nt; ++i) {  /* no branch: a miss marks the spare entry M */
+            const uint64_t f = (uint64_t)face[i];
+            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
+        }
+    }
+    return merge_marks(fmark, M, nt, face_pairs, np, pmark, sel);
 }
 
 /* fast._mirror_cells on AVX2, 8 samples per step, with Inductor's vector operations one for one (its
@@ -1100,21 +1108,7 @@ int64_t view_frame(const int64_t* a) {
     }
     if (!(allhit | cons))
         return -1;
-    for (int64_t k = 1; k < nts; ++k)
-        for (int64_t f = 0; f < M; ++f)
-            fmark[f] |= fmark[k * (M + 1) + f];
-    for (int64_t p = 0; p < np; ++p)
-        pmark[p] = 0;
-    for (int64_t f = 0; f < M; ++f)
-        if (fmark[f]) {
-            pmark[face_pairs[3 * f]] = 1;
-            pmark[face_pairs[3 * f + 1]] = 1;
-            pmark[face_pairs[3 * f + 2]] = 1;
-        }
-    int64_t m = 0;
-    for (int64_t p = 0; p < np; ++p)
-        if (pmark[p])
-            sel[m++] = p;
+    const int64_t m = merge_marks(fmark, M, nts, face_pairs, np, pmark, sel);
     if (m == 0)
         return 0;
     /* vertex_rows_at: the referenced pairs' rows at their own positions, the zero row at np */

@@ -921,14 +921,61 @@ static inline __attribute__((always_inline)) void rb_lobe(const int64_t n2, cons
     for (int64_t j = n8; j < n2; ++j) acc[j] = At[j - n8];
 }
 
+/* one glossy sample x: its face and region (clamped into range), barycentrics u, v, the front flag and the
+   n² coefficients qv of its lobe about the reflected view direction (Y00·G_0·sc, then each band's Legendre
+   polynomial in Z times the azimuth factor cos / sin(k φ) by recurrence times G times sc, sc = n·ωo for
+   view-cosine BRDFs): the scalar set-up of rb_range and of rb_range2's path without AVX2 (the same operations) */
+static inline void rb_sample(int64_t x, int64_t n, const int64_t *face, int64_t Mf, const int64_t *reg, int64_t Rn,
+                             const float *B, int64_t br, int64_t bc, const float *N, int64_t nr, int64_t nc,
+                             const float *O, int64_t orr, int64_t oc, const float *G, const uint8_t *vcos,
+                             const float *A, const int32_t *sel, int64_t *fo, int64_t *ro, float *uo, float *vo,
+                             float *fronto, float *qv) {
+    const int64_t n2 = n * n, m = n2 - 1;
+    const float Y00 = 0.28209479177387814f;
+    int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
+    int64_t r = reg[x]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+    const float u = B[x * br], v = B[x * br + bc], w0 = 1.0f - u - v;
+    const float nx0 = N[x * nr], ny0 = N[x * nr + nc], nz0 = N[x * nr + 2 * nc];
+    const float ox = O[x * orr], oy = O[x * orr + oc], oz = O[x * orr + 2 * oc];
+    const float front = (nx0 * ox + ny0 * oy) + nz0 * oz > 0.f ? 1.0f : 0.0f;
+    float nn = sqrtf(nx0 * nx0 + ny0 * ny0 + nz0 * nz0);
+    nn = nn > 1e-12f ? nn : 1e-12f;
+    const float nx = nx0 / nn, ny = ny0 / nn, nz = nz0 / nn;
+    const float d = (nx * ox + ny * oy) + nz * oz, d2 = 2.0f * d;
+    const float Rx = d2 * nx - ox, Ry = d2 * ny - oy, Rz = d2 * nz - oz;
+    float rn = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
+    rn = rn > 1e-12f ? rn : 1e-12f;
+    const float X = Rx / rn, Y = Ry / rn, Z = Rz / rn;
+    const float sc = vcos[r] ? (d > 0.f ? d : 0.f) : 1.0f;
+    float Tp[16];
+    Tp[0] = 1.0f;
+    float cm = X, sm = Y;
+    for (int64_t k = 1; k < n; ++k) {
+        if (k > 1) {
+            const float c2 = X * cm - Y * sm;
+            sm = X * sm + Y * cm;
+            cm = c2;
+        }
+        Tp[2 * k - 1] = cm; Tp[2 * k] = sm;
+    }
+    const float *Gr = G + r * n2;
+    qv[0] = Y00 * Gr[0] * sc;
+    for (int64_t i = 0; i < m; ++i) {
+        float P = A[(n - 1) * m + i];
+        for (int64_t j = n - 2; j >= 0; --j) P = P * Z + A[j * m + i];
+        qv[1 + i] = P * Tp[sel[i]] * Gr[1 + i] * sc;
+    }
+    (void)w0;
+    *fo = f; *ro = r; *uo = u; *vo = v; *fronto = front;
+}
+
 static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t *g, const int64_t *face, int64_t Mf,
                      const int64_t *reg, int64_t Rn, const float *B, int64_t br, int64_t bc, const float *N,
                      int64_t nr, int64_t nc, const float *O, int64_t orr, int64_t oc, const int64_t *F,
                      const int32_t *fg, const float *T, int64_t tv, int64_t ti, const float *Mv, const float *kd,
                      const float *ks, const float *G, const uint8_t *vcos, const float *A, const int32_t *sel,
                      int64_t S2, float *blk, int64_t *pix) {
-    const int64_t n2 = n * n, m = n2 - 1, bs = (2 * n2 + 6) * 8;
-    const float Y00 = 0.28209479177387814f;
+    const int64_t n2 = n * n, bs = (2 * n2 + 6) * 8;
     float qv[64], acc[64];
     for (int64_t bi = b0; bi < b1; ++bi) {
         float *bk = blk + bi * bs;
@@ -937,40 +984,11 @@ static void rb_range(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_t
             const int64_t q = bi * 8 + s;
             if (q >= Q) break;
             const int64_t x = g[q];
-            int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
-            int64_t r = reg[x]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
+            int64_t f, r;
+            float u, v, front;
+            rb_sample(x, n, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, G, vcos, A, sel, &f, &r, &u, &v, &front, qv);
+            const float w0 = 1.0f - u - v;
             pix[q] = x / S2;
-            const float u = B[x * br], v = B[x * br + bc], w0 = 1.0f - u - v;
-            const float nx0 = N[x * nr], ny0 = N[x * nr + nc], nz0 = N[x * nr + 2 * nc];
-            const float ox = O[x * orr], oy = O[x * orr + oc], oz = O[x * orr + 2 * oc];
-            const float front = (nx0 * ox + ny0 * oy) + nz0 * oz > 0.f ? 1.0f : 0.0f;
-            float nn = sqrtf(nx0 * nx0 + ny0 * ny0 + nz0 * nz0);
-            nn = nn > 1e-12f ? nn : 1e-12f;
-            const float nx = nx0 / nn, ny = ny0 / nn, nz = nz0 / nn;
-            const float d = (nx * ox + ny * oy) + nz * oz, d2 = 2.0f * d;
-            const float Rx = d2 * nx - ox, Ry = d2 * ny - oy, Rz = d2 * nz - oz;
-            float rn = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
-            rn = rn > 1e-12f ? rn : 1e-12f;
-            const float X = Rx / rn, Y = Ry / rn, Z = Rz / rn;
-            const float sc = vcos[r] ? (d > 0.f ? d : 0.f) : 1.0f;
-            float Tp[16];
-            Tp[0] = 1.0f;
-            float cm = X, sm = Y;
-            for (int64_t k = 1; k < n; ++k) {
-                if (k > 1) {
-                    const float c2 = X * cm - Y * sm;
-                    sm = X * sm + Y * cm;
-                    cm = c2;
-                }
-                Tp[2 * k - 1] = cm; Tp[2 * k] = sm;
-            }
-            const float *Gr = G + r * n2;
-            qv[0] = Y00 * Gr[0] * sc;
-            for (int64_t i = 0; i < m; ++i) {
-                float P = A[(n - 1) * m + i];
-                for (int64_t j = n - 2; j >= 0; --j) P = P * Z + A[j * m + i];
-                qv[1 + i] = P * Tp[sel[i]] * Gr[1 + i] * sc;
-            }
             const int64_t *vi = F + 3 * f;
             const int32_t *ai = fg + 3 * f;
             const float wk[3] = {w0, u, v};
@@ -1129,39 +1147,10 @@ static void rb_range2(int64_t b0, int64_t b1, int64_t Q, int64_t n, const int64_
             const float *qv = &QV[0][s];
             const int64_t qs = 8;
 #else
-            int64_t f = face[x]; f = f < 0 ? 0 : (f >= Mf ? Mf - 1 : f);
-            int64_t r = reg[x]; r = r < 0 ? 0 : (r >= Rn ? Rn - 1 : r);
-            const float u = B[x * br], v = B[x * br + bc], w0 = 1.0f - u - v;
-            const float nx0 = N[x * nr], ny0 = N[x * nr + nc], nz0 = N[x * nr + 2 * nc];
-            const float ox = O[x * orr], oy = O[x * orr + oc], oz = O[x * orr + 2 * oc];
-            const float front = (nx0 * ox + ny0 * oy) + nz0 * oz > 0.f ? 1.0f : 0.0f;
-            float nn = sqrtf(nx0 * nx0 + ny0 * ny0 + nz0 * nz0);
-            nn = nn > 1e-12f ? nn : 1e-12f;
-            const float nx = nx0 / nn, ny = ny0 / nn, nz = nz0 / nn;
-            const float d = (nx * ox + ny * oy) + nz * oz, d2 = 2.0f * d;
-            const float Rx = d2 * nx - ox, Ry = d2 * ny - oy, Rz = d2 * nz - oz;
-            float rn = sqrtf(Rx * Rx + Ry * Ry + Rz * Rz);
-            rn = rn > 1e-12f ? rn : 1e-12f;
-            const float X = Rx / rn, Y = Ry / rn, Z = Rz / rn;
-            const float sc = vcos[r] ? (d > 0.f ? d : 0.f) : 1.0f;
-            float Tp[16];
-            Tp[0] = 1.0f;
-            float cm = X, sm = Y;
-            for (int64_t k = 1; k < n; ++k) {
-                if (k > 1) {
-                    const float c2 = X * cm - Y * sm;
-                    sm = X * sm + Y * cm;
-                    cm = c2;
-                }
-                Tp[2 * k - 1] = cm; Tp[2 * k] = sm;
-            }
-            const float *Gr = G + r * n2;
-            qv[0] = Y00 * Gr[0] * sc;
-            for (int64_t i = 0; i < m; ++i) {
-                float P = A[(n - 1) * m + i];
-                for (int64_t j = n - 2; j >= 0; --j) P = P * Z + A[j * m + i];
-                qv[1 + i] = P * Tp[sel[i]] * Gr[1 + i] * sc;
-            }
+            int64_t f, r;
+            float u, v, front;
+            rb_sample(x, n, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, G, vcos, A, sel, &f, &r, &u, &v, &front, qv);
+            const float w0 = 1.0f - u - v;
             const int64_t qs = 1;
 #endif
             const int64_t *vi = F + 3 * f;

@@ -13,7 +13,6 @@ import torch
 from methods.core.sh import _LATLONG_QT
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import runtime as rt
-from methods.zh_shadow.method import ZHShadow
 
 
 def _needs_lib():
