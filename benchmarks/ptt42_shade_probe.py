@@ -72,7 +72,7 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--flush-mb", type=int, default=64)
-    ap.add_argument("--precompute-of", default="/work/wt/base42")
+    ap.add_argument("--precompute-of", default=None)   # another checkout whose precomputation to reuse
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     if a.precompute_of:

@@ -50,7 +50,7 @@ def main(argv=None):
     ap.add_argument("--kind", default="V")
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--rounds", type=int, default=9)
-    ap.add_argument("--precompute-of", default="/work/wt/base42")
+    ap.add_argument("--precompute-of", default=None)   # another checkout whose precomputation to reuse
     ap.add_argument("--glue", action="store_true", help="also the frames' wall time outside the C call")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)

@@ -5,7 +5,7 @@ the relight cache build; per repeat the cache reset, frame 0 rendered, `settle`,
     python -m benchmarks.sh_prt42_serial [Lb] [Eb] [V] [VL] [L] [E]
 
 The checkout on PYTHONPATH is the one measured (run it with another checkout's PYTHONPATH for that code's split;
-the precomputation of /work/wt/base42's code is taken when PRTBENCH_SH42_PRECOMPUTE_CODE is unset). ``serial``
+the precomputation of the checkout PRTBENCH_SH42_PRECOMPUTE_CODE names is taken when it is set, else this one's). ``serial``
 = the frame minus the C entry points (each splits over the threads): what a 2-thread frame runs on one core.
 """
 import copy, time, statistics, sys, functools
@@ -13,7 +13,9 @@ import torch
 torch.set_num_threads(1)
 from reports import precompute_cache
 from reports.store import code_closure_fingerprint
-precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, __import__("os").environ.get("PRTBENCH_SH42_PRECOMPUTE_CODE", "/work/wt/base42"))
+_PRE = __import__("os").environ.get("PRTBENCH_SH42_PRECOMPUTE_CODE")   # another checkout's precomputation (unset: this one's)
+if _PRE:
+    precompute_cache._process_fingerprint = lambda mod: code_closure_fingerprint(mod, _PRE)
 import torch._dynamo
 from benchmarks.common import precomputed, settle, setup
 from methods.sh_prt import method as shm, native as nat

@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--kinds", nargs="+", default=["L", "E"])
     ap.add_argument("--repeat", type=int, default=30)
-    ap.add_argument("--precompute-code", default="/work/wt/base42")
+    ap.add_argument("--precompute-code", default=None)   # another checkout whose precomputation to reuse
     ap.add_argument("--root", default=None, help="import ``methods`` from this checkout (before anything imports it)")
     a = ap.parse_args(argv)
     if a.root:
