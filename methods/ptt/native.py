@@ -301,14 +301,10 @@ void region_tables(const float* Wrows, const float* H, int64_t P, int64_t R, int
     }
 }
 
-/* fast.referenced_pairs: the (vertex, region) pairs of the faces the samples lie on. face (n,) int64
-   (entries outside [0, M) — misses — skipped), face_pairs (M, 3); fmark (M + 1) and pos (np + 1)
-   scratch; out sel (np) the pairs in ascending order (returns their count
-   m) and fpc (M + 1, 3) the position in sel of each face corner's pair (m for a pair not in sel; row
-   M, the miss face, m: the zero row of the compact table). The samples are split over nt threads of
-   OpenMP's team, each marking its own nt-th of fmark (nt (M + 1) bytes), then merged. */
-int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
-                         int64_t nt, uint8_t* fmark, int64_t* pos, int64_t* sel, int64_t* fpc) {
+/* each of nt threads marks the faces of its nt-th of the n samples in its own row of fmark (nt rows of M + 1
+   bytes; entries outside [0, M) — misses — mark the spare entry M): referenced_pairs' and referenced_sel's
+   marking, merged by their callers */
+static void mark_faces(const int64_t* face, int64_t n, int64_t M, int64_t nt, uint8_t* fmark) {
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
     for (int64_t k = 0; k < nt; ++k) {
         uint8_t* fm = fmark + k * (M + 1);
@@ -319,6 +315,17 @@ int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pai
             fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
         }
     }
+}
+
+/* fast.referenced_pairs: the (vertex, region) pairs of the faces the samples lie on. face (n,) int64
+   (entries outside [0, M) — misses — skipped), face_pairs (M, 3); fmark (M + 1) and pos (np + 1)
+   scratch; out sel (np) the pairs in ascending order (returns their count
+   m) and fpc (M + 1, 3) the position in sel of each face corner's pair (m for a pair not in sel; row
+   M, the miss face, m: the zero row of the compact table). The samples are split over nt threads of
+   OpenMP's team, each marking its own nt-th of fmark (nt (M + 1) bytes), then merged. */
+int64_t referenced_pairs(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
+                         int64_t nt, uint8_t* fmark, int64_t* pos, int64_t* sel, int64_t* fpc) {
+    mark_faces(face, n, M, nt, fmark);
     for (int64_t k = 1; k < nt; ++k)
         for (int64_t f = 0; f < M; ++f)
             fmark[f] |= fmark[k * (M + 1) + f];
@@ -375,16 +382,7 @@ static int64_t merge_marks(uint8_t* fmark, int64_t M, int64_t nt, const int64_t*
    no positions and no remapped corners. Returns m. */
 int64_t referenced_sel(const int64_t* face, int64_t n, const int64_t* face_pairs, int64_t M, int64_t np,
                        int64_t nt, uint8_t* fmark, uint8_t* pmark, int64_t* sel) {
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
-        uint8_t* fm = fmark + k * (M + 1);
-        for (int64_t f = 0; f <= M; ++f)
-            fm[f] = 0;
-        for (int64_t i = n * k / nt; i < n * (k + 1) / nt; ++i) {  /* no branch: a miss marks the spare entry M */
-            const uint64_t f = (uint64_t)face[i];
-            fm[f < (uint64_t)M ? f : (uint64_t)M] = 1;
-        }
-    }
+    mark_faces(face, n, M, nt, fmark);
     return merge_marks(fmark, M, nt, face_pairs, np, pmark, sel);
 }
 
