@@ -151,7 +151,6 @@ def dir_to_face_uv(d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     ax, ay, az = x.abs(), y.abs(), z.abs()
     isx = (ax >= ay) & (ax >= az)
     isy = ~isx & (ay >= az)
-    isz = ~isx & ~isy
     face = torch.where(isx, torch.where(x >= 0, 0, 1), torch.where(isy, torch.where(y >= 0, 2, 3),
                                                                       torch.where(z >= 0, 4, 5)))
     ma = torch.where(isx, ax, torch.where(isy, ay, az)).clamp_min(torch.finfo(d.dtype).tiny)

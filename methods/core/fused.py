@@ -53,12 +53,13 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import os
 import warnings
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
+
+from methods.core import switches
 
 __all__ = ["CHUNK", "call_rows", "compile_enabled", "fused", "map_rows", "neighbour_blocks", "pow2_block", "warm_blocks", "warming"]
 
@@ -68,8 +69,9 @@ CHUNK = 1 << 15
 
 
 def compile_enabled() -> bool:
-    """False when ``PRTBENCH_COMPILE=0`` (read at each call, so tests can switch it)."""
-    return os.environ.get("PRTBENCH_COMPILE", "1").strip() not in ("0", "false", "no", "off")
+    """False when ``PRTBENCH_COMPILE`` is 0 / false / no / off (`switches.on`: read at each call, so tests
+    can switch it; any case since session 43)."""
+    return switches.on("PRTBENCH_COMPILE")
 
 
 # Compiled variants kept per function (one per distinct static shape signature; see the module

@@ -31,12 +31,11 @@ check every row index once per call (`_rows_ok`).
 from __future__ import annotations
 
 import ctypes
-import os
 
 import torch
 from torch import Tensor
 
-from methods.core import native
+from methods.core import native, switches
 from methods.core.fused import compile_enabled
 
 __all__ = ["available", "chunks", "chunk_major", "packed_chunks", "unpack_chunks", "points", "groups", "hit_faces", "resolve", "vertex_lookups", "W"]
@@ -570,7 +569,7 @@ _SIGNATURES = {"tp_chunks": [_P, _I, _I, _P, _P, _P, _P],
 def switched_on() -> bool:
     """False when ``PRTBENCH_TP_NATIVE`` is 0 / false / no / off: the triple product's native loops
     (this module's and `native_light`'s) are then not used."""
-    return os.environ.get("PRTBENCH_TP_NATIVE", "1").strip() not in ("0", "false", "no", "off")
+    return switches.on("PRTBENCH_TP_NATIVE")
 
 
 # The libraries this package loaded (`loaded`): a `_lib` call in a frame is the two switches and a dict
