@@ -388,6 +388,7 @@ class ZHShadow(Method):
         self._steady_call: tuple | None = None  # (the relight setup, `native.steady_setup`, ...): `_steady_fused`
         self._plane_g: tuple | None = None      # (lighting, kd, n0, order, its (3, n²) plane row): `_front_radiance`
         self._cam_kept: tuple | None = None     # (camera origin, as a float32 tensor): `_front_radiance`
+        self._credited: tuple | None = None   # (steady record, posed, G-buffer key, counts, mask): `render` (zh43o)
         self._pose_cols_bound: tuple | None = None  # (X, `native.pose_sh_bind` of its P-frame columns or None): zh43o
 
     # -- precompute ---------------------------------------------------------------------------
@@ -474,10 +475,15 @@ class ZHShadow(Method):
     # (`native.front_columns`, zh35o); False: torch passes over every vertex (the tests' oracle)
     front_pass = True
     # zh43o: with ``front_pass``, that loop's columns written compact with each region's column bounds and plane
-    # test (`native.front_regions`: no copies, ``searchsorted`` or compare after it), a plane's (3, n²) row kept
-    # per lighting, albedo and normal, the regions' columns gathered only for the torch path, the specular
-    # flags from the kept material values: the same numbers with ~0.3 ms less serial Python and torch calls a
-    # bench P frame (1 thread, caches cold); False: zh35o's calls (the tests' oracle)
+    # test (`native.front_regions`: no copies, ``searchsorted`` or compare after it), the columns' visibility by a
+    # call bound once per model (`_cols_bound`, `native.PoseSHBound.columns`), the planes' rows by one C loop
+    # (`native.plane_rows`, no thread switch) from a (3, n²) row kept per lighting, albedo and normal, the regions'
+    # columns gathered only for the torch path, the specular flags from the kept material values, the skinned
+    # geometry without `dataclasses.replace`, a steady lighting-only frame's counts kept from the last one
+    # (`render`). The same image bits on the bench frames (the plane rows: float32 round-off by construction).
+    # Bench creature P frame, 1 thread, 64 MB flush before each frame (`benchmarks.zh43o_serial`): the time outside
+    # the C calls 1.22-1.25 -> 0.62-0.66 ms (what a 2-thread frame runs serially); same-process A/B
+    # (`benchmarks.zh_sample_ab`, 60 frames) 2.54 -> 2.12 ms (1.20x; A/A 1.04x). False: zh35o's calls (the oracle)
     lean_pose = True
     # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
     # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
@@ -834,7 +840,17 @@ class ZHShadow(Method):
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """`_render` (the fast path), then the vertices its count credits (`_credit_referenced`)."""
         img = self._render(frame, gbuffer)
+        st, cr = self._steady, self._credited
+        if self.lean_pose and st is not None and st[0] == "vertex" and self._last_counts is st[6] and cr is not None \
+                and cr[0] is st and cr[1] is self._posed and cr[2] == self._steady_key(gbuffer):
+            # (zh43o: a steady vertex-shaded lighting-only frame after another — `_steady_relight` took it: the same
+            # camera, pose and G-buffer size, so the same referenced vertices — keeps the last credit's counts and
+            # mask instead of making them anew: ~0.02 ms of serial Python with the caches cold)
+            self._last_counts, self._last_vertices = cr[3], cr[4]
+            return img
         self._credit_referenced(gbuffer)
+        if st is not None and st[0] == "vertex" and self._steady is st:
+            self._credited = (st, self._posed, self._steady_key(gbuffer), self._last_counts, self._last_vertices)
         return img
 
     def _credit_referenced(self, gbuffer: GBuffer) -> None:
@@ -1586,7 +1602,12 @@ class ZHShadow(Method):
                 self._pose_libs_warm = True
             if self.lean_pose and self.bound_calls and self.native_eq1 and self.pose_columns and zn.switches_on() \
                     and zn.is_vertex_major(self.model.X):
-                self._cols_bound()   # (zh43o: the P frames' bound visibility call, bound here once per model)
+                cb = self._cols_bound()   # (zh43o: the P frames' bound visibility call, bound here once per model)
+                if cb[1] is not None and self._pose_sh_buf is None:
+                    # (zh43o: and their columns' buffer made here for half the vertices — the bench creature's P
+                    # frames read 5.3-5.4 K of 13.4 K — not in the first timed P frame: its 1.4 MB of fresh
+                    # zeroed pages were that frame's, perf-s42d's P frame 1 2.38 against 2.21-2.23 ms)
+                    self._pose_sh_buf = torch.zeros(cb[1].n * cb[1].n * (int(geom.num_vertices) // 2))
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:

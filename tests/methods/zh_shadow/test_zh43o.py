@@ -148,6 +148,9 @@ def test_lean_pose_frames_equal_zh35o_calls(order8, monkeypatch, planes):
     for x in (fast, fast2, slow):
         x.plane_operators = planes
     frames = list(make_sequence(m.scene, "P", 4, seed=8))
+    # (a new pose with new albedos: the planes' kept rows are the lighting's, albedos' and normal's)
+    mats = {k: dataclasses.replace(v, kd=tuple(0.5 * x for x in v.kd)) for k, v in frames[2].materials.items()}
+    frames.append(dataclasses.replace(frames[2], materials=mats, changed=frozenset({"pose", "brdf"})))
     view = list(make_sequence(m.scene, "V", 2, seed=8))[1]
     frames.append(dataclasses.replace(view, pose=frames[-1].pose, changed=frozenset({"view"})))
     for i, f in enumerate(frames):
@@ -164,3 +167,48 @@ def test_lean_pose_frames_equal_zh35o_calls(order8, monkeypatch, planes):
         assert (a - b).abs().max() <= 1e-6 * b.abs().max(), i
         kind = "P" if i < len(frames) - 1 else "V"
         assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), i
+
+
+@pytest.mark.parametrize("kind", ["L", "E"])
+def test_lean_steady_counts_equal(order8, kind):
+    """Order-8 lighting-only sequences: a steady frame after another keeps the last credit's counts (``lean_pose``,
+    `ZHShadow.render`) — the same frame costs and images as making them anew (``lean_pose`` off), frame by frame,
+    the kept branch taken from the second steady frame on."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _needs_lib()
+    fast, slow = order8.with_render_config(), order8.with_render_config()
+    slow.lean_pose = False
+    frames = list(make_sequence(order8.scene, kind, 5, seed=2))
+    kept = 0
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(order8.scene, f, 2)
+        cr = fast._credited
+        a, b = fast.render(f, gb), slow.render(f, gb)
+        kept += cr is not None and fast._credited is cr and fast._last_counts is cr[3]
+        assert torch.equal(a, b), i
+        assert fast.frame_cost(kind, gb.num_samples) == slow.frame_cost(kind, gb.num_samples), i
+    assert kept >= 2
+
+
+def test_full_change_frame_sizes_the_p_frame_buffer(order8):
+    """The full-change frame binds the P frames' visibility call and makes their columns' buffer (half the vertices'
+    columns), so the P frames after it make neither while it is large enough (`ZHShadow._cols_bound`)."""
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    _needs_lib()
+    m = order8.with_render_config()
+    frames = list(make_sequence(m.scene, "P", 4, seed=3))
+    for i, f in enumerate(frames):
+        gb = make_gbuffer(m.scene, f, 2)
+        b0, cb0 = m._pose_sh_buf, m._pose_cols_bound
+        m.render(f, gb)
+        if i == 0:
+            N = int(m.scene.geometry().num_vertices)
+            assert m._pose_sh_buf is not None and m._pose_sh_buf.numel() == 64 * (N // 2)
+            assert m._pose_cols_bound is not None and m._pose_cols_bound[1] is not None
+        else:
+            assert m._pose_cols_bound is cb0
+            assert m._pose_sh_buf is b0 or b0.numel() < 64 * int(m._last_counts["Q"]), i
