@@ -2123,7 +2123,8 @@ class ZHShadow(Method):
             for r, n0 in planes.items())
         # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
         # caller's threads costs the next parallel work, `runtime.world_visibility`)
-        with pc.torch_threads(1) if not lean_planes and (planes or (hi > lo and not fused)) else contextlib.nullcontext():
+        switch = not lean_planes and (planes or (hi > lo and not fused))
+        with pc.torch_threads(1) if switch else contextlib.nullcontext():
             if hi > lo and not fused:
                 sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
                 radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
@@ -2137,7 +2138,8 @@ class ZHShadow(Method):
         return radT, counts
 
     def _plane_row(self, light: Tensor, mats: list, r: int, n0: tuple, dtype) -> Tensor:
-        """(3, n²) ((l ⊙ kd_r / π)ᵀ K(n0)) of `_front_radiance`'s plane term, K(n0) = `runtime.plane_cosine_operator`;
+        """(3, n²) ((l ⊙ kd_r / π)ᵀ K(n0)) of `_front_radiance`'s plane term, K(n0) =
+        `runtime.plane_cosine_operator`;
         with ``lean_pose`` kept while the lighting tensor, region r's albedo values, n0, order and dtype stay
         (zh43o: ~5 small torch calls a P frame; the same bits)."""
         order = self.config["order"]

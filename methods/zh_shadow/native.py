@@ -3155,8 +3155,8 @@ def front_regions(pos: Tensor, nrm: Tensor, ref: Tensor, cam: Tensor, starts: li
     for i, b in enumerate(starts):   # (no torch call: `ctypes` writes of Python ints)
         tail[2 + 2 * nreg + i] = int(b)
     fp = fb.data_ptr()
-    lib.zh43o_front(N, pos.data_ptr(), nrm.data_ptr(), ref.data_ptr(), cam.data_ptr(), nreg, ip + 8 * (N + 2 + 2 * nreg),
-                    ip, fp, fp + 12 * N, ip + 8 * N)
+    lib.zh43o_front(N, pos.data_ptr(), nrm.data_ptr(), ref.data_ptr(), cam.data_ptr(), nreg,
+                    ip + 8 * (N + 2 + 2 * nreg), ip, fp, fp + 12 * N, ip + 8 * N)
     Q = int(tail[0])
     return (ib[:Q], fb.as_strided((3, Q), (Q, 1)), fb.as_strided((3, Q), (Q, 1), 3 * N), list(tail[1:2 + nreg]),
             [bool(x) for x in tail[2 + nreg:2 + 2 * nreg]])
