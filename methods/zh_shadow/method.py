@@ -386,6 +386,10 @@ class ZHShadow(Method):
         self._light_plan: tuple | None = None   # ((n², 3), `native.light_setup`): `_light_world`
         self._plane_light: tuple | None = None  # (the steady record, `_plane_light_setup`): `_steady_plane_terms`
         self._steady_call: tuple | None = None  # (the relight setup, `native.steady_setup`, ...): `_steady_fused`
+        self._plane_g: tuple | None = None      # (lighting, kd, n0, order, its (3, n²) plane row): `_front_radiance`
+        self._cam_kept: tuple | None = None     # (camera origin, as a float32 tensor): `_front_radiance`
+        self._credited: tuple | None = None   # (steady record, posed, G-buffer key, counts, mask): `render` (zh43o)
+        self._pose_cols_bound: tuple | None = None  # (X, `native.pose_sh_bind` of its P-frame columns or None): zh43o
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -470,6 +474,17 @@ class ZHShadow(Method):
     # A P frame's front-facing, referenced vertices (`_front_radiance`) by one C loop over the referenced ones
     # (`native.front_columns`, zh35o); False: torch passes over every vertex (the tests' oracle)
     front_pass = True
+    # zh43o: with ``front_pass``, that loop's columns written compact with each region's column bounds and plane
+    # test (`native.front_regions`: no copies, ``searchsorted`` or compare after it), the columns' visibility by a
+    # call bound once per model (`_cols_bound`, `native.PoseSHBound.columns`), the planes' rows by one C loop
+    # (`native.plane_rows`, no thread switch) from a (3, n²) row kept per lighting, albedo and normal, the regions'
+    # columns gathered only for the torch path, the specular flags from the kept material values, the skinned
+    # geometry without `dataclasses.replace`, a steady lighting-only frame's counts kept from the last one
+    # (`render`). The same image bits on the bench frames (the plane rows: float32 round-off by construction).
+    # Bench creature P frame, 1 thread, 64 MB flush before each frame (`benchmarks.zh43o_serial`): the time outside
+    # the C calls 1.22-1.25 -> 0.62-0.66 ms (what a 2-thread frame runs serially); same-process A/B
+    # (`benchmarks.zh_sample_ab`, 60 frames) 2.54 -> 2.12 ms (1.20x; A/A 1.04x). False: zh35o's calls (the oracle)
+    lean_pose = True
     # Vertex-shaded frames' own resolve (``own_resolve``) with every face's corner colours gathered into a face
     # table first (`native.resolve_table`, zh35o: the same bits); False: `native.resolve` (the tests' oracle)
     table_resolve = True
@@ -652,7 +667,15 @@ class ZHShadow(Method):
             if out is None:
                 out = zn.skin(sk[1], pose_vec)
             if out is not None:
-                return dataclasses.replace(scene.rest_geometry(), V=out[0], N=out[1])
+                rest = scene.rest_geometry()
+                if self.lean_pose and type(rest).__dataclass_params__.init and not hasattr(rest, "__slots__"):
+                    # (zh43o: `dataclasses.replace`'s field walk, ~0.03 ms cold, as one copy of the instance's
+                    # fields — the same object graph: every field the rest pose's but V and N)
+                    g = object.__new__(type(rest))
+                    g.__dict__.update(rest.__dict__)
+                    g.V, g.N = out
+                    return g
+                return dataclasses.replace(rest, V=out[0], N=out[1])
         return scene.geometry(pose_vec)
 
     def _pose_visibility(self, pose_vec: Tensor, geom, cols: Tensor | None = None, nTc: Tensor | None = None
@@ -670,6 +693,21 @@ class ZHShadow(Method):
             v = pb(pose_vec, geom.N)
             if v is not None:
                 return v
+        if self.lean_pose and cols is not None and nTc is not None and self.bound_calls and self.native_eq1 \
+                and self.pose_columns and self.config["shading"] == "vertex" and self.config["specular"] == "cosine" \
+                and zn.switches_on():
+            # (zh43o: a P frame's columns by a call bound to this model, `native.PoseSHBound.columns` — the C loop
+            # and bits of `native.pose_sh` below, its arguments resolved once — into the kept buffer; the bound
+            # call does not read the switches: read here)
+            cb = self._cols_bound()
+            if cb[1] is not None:
+                need = cb[1].n * cb[1].n * int(cols.shape[0])
+                buf = self._pose_sh_buf
+                if buf is None or buf.numel() < need:
+                    self._pose_sh_buf = buf = torch.zeros(need + need // 4, dtype=torch.float32)
+                v = cb[1].columns(pose_vec, cols, nTc, buf)
+                if v is not None:
+                    return v
         args, kw = self._visibility_args(pose_vec, geom, cols)
         X, _, normal, lobes = args
         if self.native_eq1 and not (kw["frame"] == "zyz" and kw["point_minor"]) and zn.is_vertex_major(X) \
@@ -718,6 +756,19 @@ class ZHShadow(Method):
                 torch._dynamo.maybe_mark_dynamic(nT, 1)
                 return fn(pT, nT, rt._band_norms(n), lobes, n, 0, True, perm)
         return rt.world_visibility(*args, **kw)
+
+    def _cols_bound(self) -> tuple:
+        """(X, `native.pose_sh_bind` of a vertex-shaded cosine P frame's columns of X — `_pose_visibility`'s
+        `native.pose_sh` call with ``cols`` — or None where it does not bind), kept per model array X (zh43o;
+        bound by the full-change frame, `_render_vertex`, so that no timed P frame binds)."""
+        cb = self._pose_cols_bound
+        if cb is None or cb[0] is not self.model.X:
+            X = self.model.X
+            n = self.config["order"]
+            b = zn.pose_sh_bind(X, rt._band_norms(n), self._zyz_perm(n, rt.zyz_rows(n)), self.model.lobes, n,
+                                pc.CHART_RMAX, True, 0) if zn.is_vertex_major(X) else None
+            self._pose_cols_bound = cb = (X, b)
+        return cb
 
     # A new pose's visibility in a paper-config frame made for the rows that frame reads alone (`_fill_visibility`,
     # zh41p: the ground's and the referenced vertices' — ~7.3 K of the bench creature's 13.4 K — by the bound call,
@@ -789,7 +840,17 @@ class ZHShadow(Method):
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """`_render` (the fast path), then the vertices its count credits (`_credit_referenced`)."""
         img = self._render(frame, gbuffer)
+        st, cr = self._steady, self._credited
+        if self.lean_pose and st is not None and st[0] == "vertex" and self._last_counts is st[6] and cr is not None \
+                and cr[0] is st and cr[1] is self._posed and cr[2] == self._steady_key(gbuffer):
+            # (zh43o: a steady vertex-shaded lighting-only frame after another — `_steady_relight` took it: the same
+            # camera, pose and G-buffer size, so the same referenced vertices — keeps the last credit's counts and
+            # mask instead of making them anew: ~0.02 ms of serial Python with the caches cold)
+            self._last_counts, self._last_vertices = cr[3], cr[4]
+            return img
         self._credit_referenced(gbuffer)
+        if st is not None and st[0] == "vertex" and self._steady is st:
+            self._credited = (st, self._posed, self._steady_key(gbuffer), self._last_counts, self._last_vertices)
         return img
 
     def _credit_referenced(self, gbuffer: GBuffer) -> None:
@@ -1508,7 +1569,10 @@ class ZHShadow(Method):
         reads no other vertex, whose radiance is then 0."""
         dev = gbuffer.hit.device
         vreg = geom.vertex_region.to(dev)
-        alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
+        if self.lean_pose:   # (the kept material values, `_mat_values`: no torch call a region)
+            alphas = [al if any(x > 0 for x in mv[1]) else None for (_, _, al), mv in zip(mats, self._mat_values(mats))]
+        else:
+            alphas = [al if bool((ks > 0).any()) else None for _, ks, al in mats]
         key = (frame.camera, tuple(alphas))
         ref = (lambda: zn.referenced_mask(geom.F, gbuffer.face, gbuffer.hit, int(geom.num_vertices))) \
             if self.referenced_work else None
@@ -1536,6 +1600,14 @@ class ZHShadow(Method):
             if not self._pose_libs_warm:   # (once per object: `native.warm_pose_libraries`, zh35o)
                 zn.warm_pose_libraries()
                 self._pose_libs_warm = True
+            if self.lean_pose and self.bound_calls and self.native_eq1 and self.pose_columns and zn.switches_on() \
+                    and zn.is_vertex_major(self.model.X):
+                cb = self._cols_bound()   # (zh43o: the P frames' bound visibility call, bound here once per model)
+                if cb[1] is not None and self._pose_sh_buf is None:
+                    # (zh43o: and their columns' buffer made here for half the vertices — the bench creature's P
+                    # frames read 5.3-5.4 K of 13.4 K — not in the first timed P frame: its 1.4 MB of fresh
+                    # zeroed pages were that frame's, perf-s42d's P frame 1 2.38 against 2.21-2.23 ms)
+                    self._pose_sh_buf = torch.zeros(cb[1].n * cb[1].n * (int(geom.num_vertices) // 2))
         if radT is None:
             vd = self._vertex_diffuse                     # t_d and w depend on the pose alone
             if vd is None or vd[0] is not v0:
@@ -1982,16 +2054,22 @@ class ZHShadow(Method):
         samples reference (`native.referenced_mask`) — then only the front-facing ones among them
         (the resolve reads no other; their rows of the radiance are the same numbers, the others 0)."""
         dev = geom.N.device
-        fc = None
+        fc = fr = None
+        starts = [a0 for a0, _ in spans] + [spans[-1][1]]
         if self.front_pass and ref is not None and dev.type == "cpu":
+            ck = self._cam_kept   # (the camera's origin tensor kept per camera object)
+            if ck is None or ck[0] is not frame.camera:
+                self._cam_kept = ck = (frame.camera, torch.as_tensor(frame.camera.origin, dtype=torch.float32))
+            if self.lean_pose:
+                # (zh43o: the same loop, its columns compact, each region's bounds and plane test: `front_regions`)
+                fr = zn.front_regions(geom.V.float(), geom.N.float(), ref.to(dev), ck[1], starts)
             # the front-facing, referenced vertices' ids, normals and ωo by one C loop over the referenced ones
             # (`native.front_columns`, zh35o); None where it does not run: the torch passes below (its oracle)
-            fc = zn.front_columns(geom.V.float(), geom.N.float(), ref.to(dev),
-                                  torch.as_tensor(frame.camera.origin, dtype=torch.float32))
+            fc = fr[:3] if fr is not None else zn.front_columns(geom.V.float(), geom.N.float(), ref.to(dev), ck[1])
         if fc is not None:
             idx, nTc, woTc = fc
             nT = geom.N.float().T          # (a view: only the counts read it, `_front_counts`, after the frame)
-            vregc = vreg.index_select(0, idx)
+            vregc = None if fr is not None else vreg.index_select(0, idx)   # (lean: gathered where read, below)
         else:
             nT = rt.rows(geom.N.to(dev).float())
             woT = _view_directions(frame, geom, dev)
@@ -2005,7 +2083,7 @@ class ZHShadow(Method):
             vTc = self._pose_visibility(pose_vec, geom, idx, nTc.contiguous())
         else:
             vTc = v0.T.index_select(1, idx)                                  # (v0.T: (n², N) contiguous)
-        bounds = torch.searchsorted(idx, torch.tensor([a0 for a0, _ in spans] + [spans[-1][1]], device=dev)).tolist()
+        bounds = fr[3] if fr is not None else torch.searchsorted(idx, torch.tensor(starts, device=dev)).tolist()
         cspans = list(zip(bounds[:-1], bounds[1:]))                         # each region's front columns
         # planes (a diffuse region whose front vertices share one normal bitwise: the ground): their
         # diffuse term is ((l ⊙ kd / π)ᵀ K(n0)) v, K(n0) = M(R_n0) M¹ the same for all of them
@@ -2014,7 +2092,8 @@ class ZHShadow(Method):
         # (over the referenced vertices a ground keeps fewer columns — 826 of its 3,721 front-facing
         # ones on a bench creature P frame — still one product cheaper than their w: a lower floor)
         planes = self._front_planes(nTc, cspans, alphas, rt.PLANAR_MIN_POINTS if ref is None else
-                                    min(rt.PLANAR_MIN_POINTS, FRONT_PLANE_MIN_POINTS)) if self.plane_operators else {}
+                                    min(rt.PLANAR_MIN_POINTS, FRONT_PLANE_MIN_POINTS), None if fr is None else fr[4]) \
+            if self.plane_operators else {}
         rest = [sp for r, sp in enumerate(cspans) if r not in planes and sp[1] > sp[0]]
         lo, hi = (min(a for a, _ in rest), max(b for _, b in rest)) if rest else (0, 0)
         planes = {r: n0 for r, n0 in planes.items() if not (lo < cspans[r][1] and cspans[r][0] < hi)}
@@ -2023,10 +2102,12 @@ class ZHShadow(Method):
             self._pass_setup(light, mats, alphas, vTc.dtype),
             rt._block_plan(("phong", 1.0), self.config["order"], True, vTc.dtype, dev),
             [(0, 0) if r in planes else sp for r, sp in enumerate(cspans)], vTc, nTc.contiguous(), woTc.contiguous(),
-            idx, radT, bool(self.config["clamp"]))
+            idx, radT, bool(self.config["clamp"]), ids_in_range=fr is not None)
         # (fused: w, t_s and the radiance of the columns lo..hi by one C pass, `native.pose_radiance`, the
         # rows written into radT — clamped there; else the passes below, its oracle)
         if hi > lo and not fused:
+            if vregc is None:
+                vregc = vreg.index_select(0, idx)
             wc = rt.cosine_visibility_zyz(vTc[:, lo:hi] if planes else vTc, nTc[:, lo:hi] if planes else nTc,
                                           ordered=True)
             if planes:
@@ -2035,21 +2116,45 @@ class ZHShadow(Method):
             tsr = {r: (sp, t) for r, sp, t in ts} if ts is not None else {}
         else:
             wc, tsr = None, {}
+        # (zh43o, ``lean_pose``: after the C pass, the planes' rows by one C loop each, `native.plane_rows` — torch's
+        # product to float32 round-off — with no thread switch and no torch product, gather or scatter)
+        lean_planes = bool(planes) and fused and fr is not None and self.lean_pose and all(
+            zn.plane_rows(self._plane_row(light, mats, r, n0, vTc.dtype), vTc, *cspans[r], idx, radT)
+            for r, n0 in planes.items())
         # (the thin products on one thread as `_radiance_ranges`, in one switch: a switch back to the
         # caller's threads costs the next parallel work, `runtime.world_visibility`)
-        with pc.torch_threads(1):
+        switch = not lean_planes and (planes or (hi > lo and not fused))
+        with pc.torch_threads(1) if switch else contextlib.nullcontext():
             if hi > lo and not fused:
                 sub = [(a0 - lo, a1 - lo) if r not in planes else (0, 0) for r, (a0, a1) in enumerate(cspans)]
                 radT.index_copy_(0, idx[lo:hi] if planes else idx, self._radiance_ranges(light, mats, wc, sub, tsr))
-            for r, n0 in planes.items():
+            for r, n0 in planes.items() if not lean_planes else ():
                 b0, b1 = cspans[r]
-                K = rt.plane_cosine_operator(n0, self.config["order"])
-                g = ((light * (mats[r][0].to(dev, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(vTc.dtype)
+                g = self._plane_row(light, mats, r, n0, vTc.dtype)
                 radT.index_copy_(0, idx[b0:b1], torch.mm(g, vTc[:, b0:b1]).T)
         if self.config["clamp"]:   # per vertex, before the interpolation (module docstring)
             radT.clamp_min_(0.0)
         counts = _front_counts(idx, nT, vreg, [a is not None for a in alphas], geom.N.to(dev))
         return radT, counts
+
+    def _plane_row(self, light: Tensor, mats: list, r: int, n0: tuple, dtype) -> Tensor:
+        """(3, n²) ((l ⊙ kd_r / π)ᵀ K(n0)) of `_front_radiance`'s plane term, K(n0) =
+        `runtime.plane_cosine_operator`;
+        with ``lean_pose`` kept while the lighting tensor, region r's albedo values, n0, order and dtype stay
+        (zh43o: ~5 small torch calls a P frame; the same bits)."""
+        order = self.config["order"]
+        key = None
+        if self.lean_pose:
+            key = (r, self._mat_values(mats)[r][0], n0, order, dtype, light.device)
+            pg = self._plane_g
+            if pg is not None and pg[0] is light and pg[1] == key:
+                return pg[2]
+        K = rt.plane_cosine_operator(n0, order)
+        with pc.torch_threads(1):   # (one thread's rounding, as the caller's block)
+            g = ((light * (mats[r][0].to(light.device, light.dtype) * (1.0 / math.pi))).T.double() @ K).to(dtype)
+        if key is not None:
+            self._plane_g = (light, key, g)
+        return g
 
     def _diffuse_ranges(self, light: Tensor, mats: list, w: Tensor, spans: list) -> Tensor:
         """(N, 3) diffuse radiance kd ⊙ (lᵀ w / π) of every vertex, region range by region range: the
@@ -2105,7 +2210,8 @@ class ZHShadow(Method):
         self._vertex_compact = (vt, w, out)
         return out
 
-    def _front_planes(self, nT: Tensor, spans: list, alphas: list, min_points: int | None = None) -> dict:
+    def _front_planes(self, nT: Tensor, spans: list, alphas: list, min_points: int | None = None,
+                      same: list | None = None) -> dict:
         """Region → its normal n0 (a tuple of floats) for each region with no specular term whose
         columns ``spans[r]`` of nT (3, Q) — at least ``min_points`` (default
         `runtime.PLANAR_MIN_POINTS`) of them — all hold the same normal bitwise (`_front_radiance`:
@@ -2114,6 +2220,10 @@ class ZHShadow(Method):
         min_points = rt.PLANAR_MIN_POINTS if min_points is None else min_points
         for r, (b0, b1) in enumerate(spans):
             if alphas[r] is not None or b1 - b0 < min_points:
+                continue
+            if same is not None:   # (the test made by the C loop, `native.front_regions`: zh43o)
+                if same[r]:
+                    out[r] = tuple(float(x) for x in nT[:, b0].tolist())
                 continue
             blk = nT[:, b0:b1]
             if bool((blk == blk[:, :1]).all()):

@@ -65,15 +65,69 @@ def referenced_mask_torch(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tenso
     return vm
 
 
+# zh43o: `referenced_vertices` split over the frame's threads (OpenMP; a P frame's serial ~0.2 ms pass over the
+# G-buffer's 2 MB of face ids with the caches cold, 1 thread): each thread marks the faces of its samples, then
+# of its faces the corners — the marks' stores relaxed atomics (several threads may mark one face or vertex: the
+# same 1), so the same mask at any thread count; both mark arrays zeroed in the call (no torch zeros). False:
+# `referenced_vertices` (the tests' oracle).
+PARALLEL_REFERENCED = True
+_PREF_SOURCE = r"""
+#include <stdint.h>
+#include <string.h>
+#include <omp.h>
+
+void zh43o_referenced(const int64_t *face, const uint8_t *hit, int64_t P, const int64_t *F, int64_t M,
+                      uint8_t *fmark, uint8_t *vmark, int64_t N, int64_t nt)
+{
+    memset(fmark, 0, (size_t)(M + 1));
+    memset(vmark, 0, (size_t)N);
+    #pragma omp parallel num_threads(nt) if(nt > 1)
+    {
+        #pragma omp for schedule(static)
+        for (int64_t p = 0; p < P; p++) {   /* as `referenced_vertices`: a miss or a bad id marks the spare slot M */
+            const int64_t f = face[p];
+            const int ok = hit[p] & ((uint64_t)f < (uint64_t)M);
+            __atomic_store_n(&fmark[ok ? f : M], (uint8_t)1, __ATOMIC_RELAXED);
+        }
+        #pragma omp for schedule(static)
+        for (int64_t f = 0; f < M; f++) {
+            if (__atomic_load_n(&fmark[f], __ATOMIC_RELAXED)) {
+                __atomic_store_n(&vmark[F[3 * f]], (uint8_t)1, __ATOMIC_RELAXED);
+                __atomic_store_n(&vmark[F[3 * f + 1]], (uint8_t)1, __ATOMIC_RELAXED);
+                __atomic_store_n(&vmark[F[3 * f + 2]], (uint8_t)1, __ATOMIC_RELAXED);
+            }
+        }
+    }
+}
+"""
+_PREF_SIGNATURES = {"zh43o_referenced": [_P, _P, _I, _P, _I, _P, _P, _I, _I]}
+MIN_REFERENCED_SAMPLES_PER_THREAD = 32768
+
+
+def _pref_lib():
+    return load("zh43o_referenced", _PREF_SOURCE, _PREF_SIGNATURES, extra_flags=("-fopenmp",))
+
+
 def referenced_mask(F: Tensor, face: Tensor, hit: Tensor, N: int) -> Tensor:
     """`referenced_mask_torch` by the C loop when it is available and the arguments suit it (CPU,
-    int64 faces and F, a bool hit mask), else by the torch path; the same mask."""
-    fn = _kernel()
+    int64 faces and F, a bool hit mask), else by the torch path; the same mask. (zh43o: by the threads'
+    loop `zh43o_referenced` where it runs, ``PARALLEL_REFERENCED``.)"""
+    pl = _pref_lib() if PARALLEL_REFERENCED else None
+    fn = _kernel() if pl is None else pl.zh43o_referenced
     if fn is None or face.device.type != "cpu" or face.dtype != torch.int64 or F.dtype != torch.int64 \
             or hit.dtype != torch.bool or face.dim() != 1 or hit.shape != face.shape or F.dim() != 2 \
             or F.shape[1] != 3 or F.device.type != "cpu":
         return referenced_mask_torch(F, face, hit, N)
-    face, hit, F = face.contiguous(), hit.contiguous(), F.contiguous()
+    if not (face.is_contiguous() and hit.is_contiguous() and F.is_contiguous()):
+        face, hit, F = face.contiguous(), hit.contiguous(), F.contiguous()
+    if pl is not None:
+        M, P = int(F.shape[0]), int(face.shape[0])
+        fm = (ctypes.c_uint8 * (M + 1))()
+        vm = torch.empty(N, dtype=torch.bool)
+        nt = max(1, min(torch.get_num_threads(), P // MIN_REFERENCED_SAMPLES_PER_THREAD))
+        pl.zh43o_referenced(face.data_ptr(), hit.data_ptr(), P, F.data_ptr(), M, ctypes.addressof(fm), vm.data_ptr(),
+                            N, nt)
+        return vm
     fm = torch.zeros(int(F.shape[0]) + 1, dtype=torch.uint8)
     vm = torch.zeros(N, dtype=torch.bool)
     fn(face.data_ptr(), hit.data_ptr(), int(face.shape[0]), F.data_ptr(), int(F.shape[0]), fm.data_ptr(),
@@ -2221,9 +2275,9 @@ _VIEW_SIGNATURES = {"zh33v_sq": [_I, _P, _P, _P],
 
 
 def _view_lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
-    return native.load("zh33v_view", _VIEW_SOURCE, _VIEW_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
+    # (zh43o: through this module's `load`, remembered once loaded; PRTBENCH_COMPILE still read at each call)
+    return load("zh33v_view", _VIEW_SOURCE, _VIEW_SIGNATURES,
+                extra_flags=("-fopenmp", "-ffp-contract=fast", *native.isa_flags(), *_avx512_flags()))
 
 
 def view_setup(light: Tensor, kd: Tensor, ks: Tensor, plans: list, tables: tuple) -> tuple | None:
@@ -2312,7 +2366,7 @@ def view_radiance(setup: tuple | None, spans: list, pos: Tensor, nT: Tensor, w: 
 
 
 def pose_radiance(setup: tuple | None, lifted: tuple, spans: list, vz: Tensor, nTc: Tensor, woTc: Tensor,
-                  idx: Tensor, out: Tensor, clamp: bool) -> bool:
+                  idx: Tensor, out: Tensor, clamp: bool, ids_in_range: bool = False) -> bool:
     """A P frame's radiance of its front-facing vertices (`ZHShadow._front_radiance`) by one C pass: per
     column j of vz (n², Q) — the visibility in the ZYZ normal frames, rows in the lifted plan's order
     (`runtime.world_visibility`, ``frame="zyz"``) — w = `runtime.cosine_visibility_zyz` (``ordered``), then
@@ -2320,14 +2374,19 @@ def pose_radiance(setup: tuple | None, lifted: tuple, spans: list, vz: Tensor, n
     R = reflect(ωo, n), clamped if asked, written to row idx[j] of out (N, 3); w and t_s never written.
     spans per region its columns (a0, a1) (empty: not made here, e.g. a plane's); nTc, woTc (3, Q)
     contiguous; lifted `runtime._block_plan`(("phong", 1.0), n, True, …). False (out untouched) where it
-    does not run (as `view_radiance`)."""
+    does not run (as `view_radiance`). ``ids_in_range``: the caller's idx are known to lie in [0, N) (made by
+    `front_regions` for out's N rows: no min / max pass; zh43o). (zh43o: the small arrays — region rows, the
+    lifted plan's addresses, the block scratch — as `ctypes` arrays, not tensors: ~0.05 ms of torch calls a P
+    frame with the caches cold; the same values.)"""
     lib = _view_lib() if terms_switched_on() else None
     if lib is None or setup is None or vz.dim() != 2:
         return False
     R, lT, co, spec, plt, tables, _ = setup
     n2, Q = int(vz.shape[0]), int(vz.shape[1])
     n = int(round(n2 ** 0.5))
-    rsp = _region_rows(spans, R, Q, False)
+    rsp = None
+    if len(spans) == R and all(0 <= a0 <= a1 <= Q for a0, a1 in spans):   # (`_region_rows`' test, ``tile`` off)
+        rsp = (ctypes.c_int64 * (2 * R))(*(x for sp in spans for x in sp))
     if rsp is None or n * n != n2 or n > CONJ_MAX_ORDER or tuple(nTc.shape) != (3, Q) \
             or tuple(woTc.shape) != (3, Q) or tuple(idx.shape) != (Q,) or int(lT.shape[1]) != n2 \
             or out.dim() != 2 or out.shape[1] != 3:
@@ -2336,17 +2395,17 @@ def pose_radiance(setup: tuple | None, lifted: tuple, spans: list, vz: Tensor, n
             or idx.dtype != torch.int64 or not (nTc.is_contiguous() and woTc.is_contiguous() and idx.is_contiguous()
                                                 and out.is_contiguous()) or vz.stride(1) != 1:
         return False
-    if Q and (int(idx.min()) < 0 or int(idx.max()) >= out.shape[0]):
+    if Q and not ids_in_range and (int(idx.min()) < 0 or int(idx.max()) >= out.shape[0]):
         return False
     perm, absm, sgn, xi, xw, ti, tw = tables
     lspans, lKv, _, lsrc = _flat_plan(lifted)
-    lp = torch.tensor([len(lifted[2]), lspans.data_ptr(), lKv.data_ptr(), lsrc.data_ptr()], dtype=torch.int64)
-    blk = torch.empty(Q // 16 + 2 * R + 1, 3, dtype=torch.int64)
+    lp = (ctypes.c_int64 * 4)(len(lifted[2]), lspans.data_ptr(), lKv.data_ptr(), lsrc.data_ptr())
+    blk = (ctypes.c_int64 * (3 * (Q // 16 + 2 * R + 1)))()
     lib.zh33v_pose(n, Q, vz.data_ptr(), vz.stride(0), nTc.data_ptr(), woTc.data_ptr(), idx.data_ptr(), R,
-                   rsp.data_ptr(), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt), lp.data_ptr(),
-                   perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]), xi.data_ptr(), xw.data_ptr(),
-                   ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), blk.data_ptr(), out.data_ptr(),
-                   max(1, torch.get_num_threads()))
+                   ctypes.addressof(rsp), lT.data_ptr(), co.data_ptr(), spec.data_ptr(), ctypes.addressof(plt),
+                   ctypes.addressof(lp), perm.data_ptr(), absm.data_ptr(), sgn.data_ptr(), int(xi.shape[1]),
+                   xi.data_ptr(), xw.data_ptr(), ti.data_ptr(), tw.data_ptr(), int(bool(clamp)), ctypes.addressof(blk),
+                   out.data_ptr(), max(1, torch.get_num_threads()))
     return True
 
 # `gouraud.resolve` for the vertex-shaded frames (zh33v): the same C loop (the same sums in the same order:
@@ -2944,14 +3003,81 @@ void zh35o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *r
     }
     cnt[0] = Q;
 }
+
+/* zh43o: `zh35o_front`'s loop (the same statements: the same bits), its columns written straight into the
+   compact (3, Q) layout (cnT, cwo (3 N) each, rows 1, 2 moved down to Q after the loop: no copies by the
+   caller), and per region of the nreg ranges bnd (nreg + 1 ascending starts, then the end) the column bounds
+   cnt[1 .. nreg + 1] (how many ids lie below each: `torch.searchsorted`'s left side, the ids ascending) and
+   in cnt[2 + nreg + r] whether region r's columns all hold its first column's normal (float ==, as
+   `ZHShadow._front_planes`' ``(blk == blk[:, :1]).all()``; 1 for an empty region). */
+void zh43o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *ref, const float *cam,
+                 int64_t nreg, const int64_t *bnd, int64_t *idx, float *cnT, float *cwo, int64_t *cnt) {
+    const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
+    const int64_t ld = N;
+    int64_t Q = 0;
+    for (int64_t j = 0; j < N; ++j) {
+        if (!ref[j]) continue;
+        const float x0 = c0 - pos[3 * j], x1 = c1 - pos[3 * j + 1], x2 = c2 - pos[3 * j + 2];
+        const float x00 = x0 * x0, x11 = x1 * x1, x22 = x2 * x2;
+        float nn = sqrtf((x00 + x11) + x22);
+        nn = nn < 1e-12f ? 1e-12f : nn;
+        const float w0 = x0 / nn, w1 = x1 / nn, w2 = x2 / nn;
+        const float n0 = nrm[3 * j], n1 = nrm[3 * j + 1], n2 = nrm[3 * j + 2];
+        const float d = fmaf(n2, w2, fmaf(n1, w1, n0 * w0));
+        if (d > 0.0f) {
+            idx[Q] = j;
+            cnT[Q] = n0; cnT[ld + Q] = n1; cnT[2 * ld + Q] = n2;
+            cwo[Q] = w0; cwo[ld + Q] = w1; cwo[2 * ld + Q] = w2;
+            ++Q;
+        }
+    }
+    for (int64_t q = 0; q < Q; ++q) { cnT[Q + q] = cnT[ld + q]; cwo[Q + q] = cwo[ld + q]; }
+    for (int64_t q = 0; q < Q; ++q) { cnT[2 * Q + q] = cnT[2 * ld + q]; cwo[2 * Q + q] = cwo[2 * ld + q]; }
+    cnt[0] = Q;
+    int64_t q = 0;
+    for (int64_t b = 0; b <= nreg; ++b) {
+        while (q < Q && idx[q] < bnd[b]) ++q;
+        cnt[1 + b] = q;
+    }
+    for (int64_t r = 0; r < nreg; ++r) {
+        const int64_t b0 = cnt[1 + r], b1 = cnt[2 + r];
+        int all = 1;
+        for (int64_t k = b0 + 1; k < b1 && all; ++k)
+            all = cnT[k] == cnT[b0] && cnT[Q + k] == cnT[Q + b0] && cnT[2 * Q + k] == cnT[2 * Q + b0];
+        cnt[2 + nreg + r] = all;
+    }
+}
+
+/* zh43o: a P frame's plane rows (`ZHShadow._front_radiance`): for j in [b0, b1) row idx[j] of out (N, 3) =
+   g (3, n2) . vz[:, j] (vz rows of stride ldz), the n2 products summed in k order (float32, no multiply-add
+   fused), 64 columns at a time. */
+void zh43o_plane(int64_t n2, const float *g, const float *vz, int64_t ldz, int64_t b0, int64_t b1,
+                 const int64_t *idx, float *out) {
+    for (int64_t j0 = b0; j0 < b1; j0 += 64) {
+        const int64_t m = b1 - j0 < 64 ? b1 - j0 : 64;
+        float a0[64], a1[64], a2[64];
+        for (int64_t l = 0; l < 64; ++l) { a0[l] = 0.0f; a1[l] = 0.0f; a2[l] = 0.0f; }
+        for (int64_t k = 0; k < n2; ++k) {
+            const float g0 = g[k], g1 = g[n2 + k], g2 = g[2 * n2 + k];
+            const float *v = vz + k * ldz + j0;
+            for (int64_t l = 0; l < m; ++l) { a0[l] += g0 * v[l]; a1[l] += g1 * v[l]; a2[l] += g2 * v[l]; }
+        }
+        for (int64_t l = 0; l < m; ++l) {
+            const int64_t q = idx[j0 + l];
+            out[3 * q] = a0[l]; out[3 * q + 1] = a1[l]; out[3 * q + 2] = a2[l];
+        }
+    }
+}
 """
-_FRONT_SIGNATURES = {"zh35o_front": [_I, _P, _P, _P, _P, _I, _P, _P, _P, _P]}
+_FRONT_SIGNATURES = {"zh35o_front": [_I, _P, _P, _P, _P, _I, _P, _P, _P, _P],
+                     "zh43o_front": [_I, _P, _P, _P, _P, _I, _P, _P, _P, _P, _P],
+                     "zh43o_plane": [_I, _P, _P, _I, _I, _I, _P, _P]}
 
 
 def _front_lib():
-    # not cached here: `native.load` caches the build and reads PRTBENCH_COMPILE at each call (b541a75)
-    return native.load("zh35o_front", _FRONT_SOURCE, _FRONT_SIGNATURES,
-                       extra_flags=("-ffp-contract=off", *native.isa_flags()))
+    # (zh43o: through this module's `load`, remembered once loaded; PRTBENCH_COMPILE still read at each call)
+    return load("zh35o_front", _FRONT_SOURCE, _FRONT_SIGNATURES,
+                extra_flags=("-ffp-contract=off", *native.isa_flags()))
 
 
 def front_columns(pos: Tensor, nrm: Tensor, ref: Tensor, cam: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
@@ -2976,6 +3102,64 @@ def front_columns(pos: Tensor, nrm: Tensor, ref: Tensor, cam: Tensor) -> tuple[T
                     cn.data_ptr(), cw.data_ptr(), cnt.data_ptr())
     Q = int(cnt[0])
     return idx[:Q], cn[:, :Q].contiguous(), cw[:, :Q].contiguous()
+
+
+def plane_rows(g: Tensor, vz: Tensor, b0: int, b1: int, idx: Tensor, out: Tensor) -> bool:
+    """Rows idx[b0:b1] of out (N, 3) float32 contiguous = (g @ vz[:, b0:b1]).T — g (3, n²), vz (n², Q) float32 of
+    unit column stride, idx (Q,) int64 contiguous ids in [0, N) (the caller's: `front_regions`') — by one C loop
+    (`zh43o_plane`: the products summed in order, float32; torch's product to float32 round-off, not its bits),
+    True; False where it does not run (out untouched)."""
+    lib = _front_lib() if terms_switched_on() else None
+    if lib is None or g.dtype != torch.float32 or vz.dtype != torch.float32 or out.dtype != torch.float32 \
+            or idx.dtype != torch.int64 or g.dim() != 2 or vz.dim() != 2 or g.shape[0] != 3 \
+            or g.shape[1] != vz.shape[0] or not g.is_contiguous() or vz.stride(1) != 1 or not idx.is_contiguous() \
+            or not out.is_contiguous() or out.dim() != 2 or out.shape[1] != 3 \
+            or not 0 <= b0 <= b1 <= min(int(vz.shape[1]), int(idx.shape[0])) \
+            or any(t.device.type != "cpu" for t in (g, vz, idx, out)):
+        return False
+    lib.zh43o_plane(int(g.shape[1]), g.data_ptr(), vz.data_ptr(), vz.stride(0), b0, b1, idx.data_ptr(), out.data_ptr())
+    return True
+
+
+def front_regions(pos: Tensor, nrm: Tensor, ref: Tensor, cam: Tensor, starts: list
+                  ) -> tuple[Tensor, Tensor, Tensor, list, list] | None:
+    """`front_columns` (the same idx, nTc, woTc bits: `zh43o_front`, the same loop, its columns written compact —
+    no copies after the call) and, for the regions whose vertices are the ranges ``starts`` (nreg + 1 ascending
+    ints: each region's first vertex, then the end), the list of nreg + 1 column bounds (each region's front
+    columns [b[r], b[r + 1]): `torch.searchsorted`(idx, starts)) and per region whether its columns all hold
+    one normal (`ZHShadow._front_planes`' test) — or None where it does not run (as `front_columns`, or
+    ``starts`` not ascending). (zh43o: a P frame's ~0.1-0.2 ms of serial torch calls around the loop with the
+    caches cold: the outputs' copies, the search, the planes' compare.)"""
+    lib = _front_lib() if terms_switched_on() else None
+    if lib is None or pos.dim() != 2 or pos.shape[1] != 3 or nrm.shape != pos.shape or ref.shape != (pos.shape[0],) \
+            or ref.dtype != torch.bool or cam.numel() != 3 \
+            or any(t.dtype != torch.float32 for t in (pos, nrm, cam)) \
+            or any(t.device.type != "cpu" for t in (pos, nrm, ref, cam)) \
+            or len(starts) < 2 or any(b < a for a, b in zip(starts[:-1], starts[1:])):
+        return None
+    # (each torch call ~10-30 µs with the caches cold: the inputs' copies only where not contiguous, the scalars
+    # through `ctypes`, the outputs one strided view each)
+    if not pos.is_contiguous():
+        pos = pos.contiguous()
+    if not nrm.is_contiguous():
+        nrm = nrm.contiguous()
+    if not ref.is_contiguous():
+        ref = ref.contiguous()
+    if cam.dim() != 1 or not cam.is_contiguous():
+        cam = cam.reshape(3).contiguous()
+    N, nreg = int(pos.shape[0]), len(starts) - 1
+    ib = torch.empty(N + 3 + 3 * nreg, dtype=torch.int64)     # idx, then cnt (Q, bounds, flags), then starts
+    fb = torch.empty(6 * N, dtype=torch.float32)              # nTc, then woTc
+    ip = ib.data_ptr()
+    tail = (ctypes.c_int64 * (3 + 3 * nreg)).from_address(ip + 8 * N)
+    for i, b in enumerate(starts):   # (no torch call: `ctypes` writes of Python ints)
+        tail[2 + 2 * nreg + i] = int(b)
+    fp = fb.data_ptr()
+    lib.zh43o_front(N, pos.data_ptr(), nrm.data_ptr(), ref.data_ptr(), cam.data_ptr(), nreg,
+                    ip + 8 * (N + 2 + 2 * nreg), ip, fp, fp + 12 * N, ip + 8 * N)
+    Q = int(tail[0])
+    return (ib[:Q], fb.as_strided((3, Q), (Q, 1)), fb.as_strided((3, Q), (Q, 1), 3 * N), list(tail[1:2 + nreg]),
+            [bool(x) for x in tail[2 + nreg:2 + 2 * nreg]])
 
 
 # --- zh35o: the checked resolve with a face table (`ZHShadow._render_vertex`) --------------------------------
@@ -3086,6 +3270,8 @@ def warm_pose_libraries() -> None:
                     _vresolve_lib):   # (+ session 38's vector skinning and resolve)
             get()
     _kernel()
+    if PARALLEL_REFERENCED:   # (zh43o's threaded referenced loop)
+        _pref_lib()
 
 
 # === zh35p ==================================================================================================
@@ -3941,6 +4127,37 @@ class PoseSHBound:
                 int(rows is not None), nt, out.data_ptr(), self.bp)
         return None if int(self.bad[0]) else out
 
+    def columns(self, pose: Tensor, idx: Tensor, nT: Tensor, buf: Tensor | None = None) -> Tensor | None:
+        """(n², Q) float32: `pose_sh`(X, [pose, 1], idx, nT, …) of this binding (``dim`` 0 only: None for a
+        vertex-major one) — a P frame's columns (zh43o: without `pose_sh`'s look-ups, checks of X and constants'
+        keys and the ``torch.cat`` of the pose: ~0.1 ms of serial Python a bench frame with the caches cold; the
+        same C loop, the same bits) — written into ``buf``'s first n² Q elements (float32 CPU contiguous, at least
+        that many; else a new array), or None where it does not run (``pose`` not (J1 − 1,) float32 CPU, idx not
+        (Q,) int64 CPU, nT not (3, Q) float32 CPU of unit column stride, an id out of [0, N))."""
+        if self.vmaj or pose.dtype != torch.float32 or pose.device.type != "cpu" or pose.shape != (self.J1 - 1,) \
+                or idx.dtype != torch.int64 or idx.device.type != "cpu" or idx.dim() != 1 \
+                or nT.dtype != torch.float32 or nT.device.type != "cpu" or nT.dim() != 2:
+            return None
+        Q, n2 = int(idx.shape[0]), self.n * self.n
+        if tuple(nT.shape) != (3, Q) or (Q and nT.stride(1) != 1):
+            return None
+        if buf is None or buf.dtype != torch.float32 or buf.device.type != "cpu" or not buf.is_contiguous() \
+                or buf.numel() < n2 * Q:
+            out = torch.empty(n2, Q, dtype=torch.float32)
+        else:
+            out = buf.view(-1)[:n2 * Q].view(n2, Q)
+        if Q == 0:
+            return out
+        if not pose.is_contiguous():
+            pose = pose.contiguous()
+        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))   # (a = [pose, 1]: no torch call)
+        if not idx.is_contiguous():
+            idx = idx.contiguous()
+        nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
+        self.fn(self.J1, self.d, self.lobes, self.n, self.ap, self.xp, idx.data_ptr(), self.N, Q, nT.data_ptr(),
+                nT.stride(0), 1, self.lp, self.pp, self.qp, self.rmax, self.zyz, 0, 0, nt, out.data_ptr(), self.bp)
+        return None if ctypes.c_int64.from_address(self.bp).value else out
+
 
 def pose_sh_bind(X: Tensor, lam: tuple, perm: tuple, lobes: int, n: int, rmax: float, zyz: bool = True,
                  dim: int = 0) -> PoseSHBound | None:
@@ -4546,8 +4763,8 @@ def _vresolve_lib():
     """The library of `zh38p_resolve` or None (no AVX-512 host: `resolve_table`'s loop). Not cached (b541a75)."""
     if not _avx512_flags():
         return None
-    return native.load("zh38p_resolve", _VRESOLVE_SOURCE, _VRESOLVE_SIGNATURES,
-                       extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
+    return load("zh38p_resolve", _VRESOLVE_SOURCE, _VRESOLVE_SIGNATURES,   # (zh43o: the module's `load`)
+                extra_flags=("-fopenmp", "-ffp-contract=off", *_avx512_flags()))
 
 
 def resolve_vector(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: Tensor, height: int, width: int,
@@ -4567,11 +4784,12 @@ def resolve_vector(values: Tensor, F: Tensor, face: Tensor, bary: Tensor, hit: T
     M = int(F.shape[0])
     T = torch.empty(M * 9 + 3, dtype=torch.float32)   # (+3: the last row's 4-float z load)
     out = torch.empty(n, 3, dtype=torch.float32)
-    bad = torch.zeros(1, dtype=torch.int64)
+    bad = ctypes.c_int64(0)   # (zh43o: a `ctypes` scalar, not a tensor: two torch calls less)
     nt = max(1, min(torch.get_num_threads(), n // MIN_RESOLVE_PIXELS_PER_THREAD))
     lib.zh38p_resolve(face.data_ptr(), bu.data_ptr(), bv.data_ptr(), hit.data_ptr(), F.data_ptr(), M,
-                      values.data_ptr(), int(values.shape[0]), S2, n, nt, T.data_ptr(), out.data_ptr(), bad.data_ptr(), 1)
-    if int(bad[0]):
+                      values.data_ptr(), int(values.shape[0]), S2, n, nt, T.data_ptr(), out.data_ptr(),
+                      ctypes.addressof(bad), 1)
+    if bad.value:
         raise ValueError(f"G-buffer faces or corner rows out of range of {M} faces and "
                          f"{int(values.shape[0])} vertex rows (a G-buffer of another mesh?)")
     return out.view(height, width, 3)

@@ -112,6 +112,8 @@ def test_pose_frames_native_eq1_equal_two_steps(zh_scene, monkeypatch, planes, c
     monkeypatch.setattr(zn, "pose_sh", lambda *a: calls.append(1) or ps_(*a))
     pb_ = zn.PoseSHBound.__call__   # (session 41: the paper config's bound call, `native.PoseSHBound`; counted as it)
     monkeypatch.setattr(zn.PoseSHBound, "__call__", lambda self, *a: calls.append(1) or pb_(self, *a))
+    pc_ = zn.PoseSHBound.columns   # (zh43o: the order-8 P frame's bound call of its columns; counted as it)
+    monkeypatch.setattr(zn.PoseSHBound, "columns", lambda self, *a: calls.append(1) or pc_(self, *a))
     m = ZHShadow(**SMALL, **(dict(order=8, specular="cosine", shading="vertex") if config == "order8" else {}))
     m.precompute(zh_scene("creature"))
     fast, fast2, slow = m.with_render_config(), m.with_render_config(), m.with_render_config()
