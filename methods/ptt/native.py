@@ -1413,6 +1413,19 @@ def region_tables(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = N
     read from H (R, P, 3) directly. ``out``: the previous frame's W_r, written in place when its shape fits
     (no fresh pages each VB frame). None when the loop is not available or the arguments are not float32
     CPU tensors."""
+    ta = region_tables_args(W_rows, H, nt, out)
+    if ta is None:
+        return None
+    fn, W_rows, P, R, T2, K, out, nt = ta
+    H = H.contiguous()
+    fn.region_tables(W_rows.data_ptr(), H.data_ptr(), P, R, T2, K, out.data_ptr(), nt)
+    return out
+
+
+def region_tables_args(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = None) -> tuple | None:
+    """`region_tables`' C call without H's values: (the loops, W_rows contiguous, P, R, T², K, the output —
+    ``out`` where it fits, else a new tensor —, the threads), or None where `region_tables` declines (the
+    same checks)."""
     fn = _kernel()
     if fn is None or W_rows.dtype != torch.float32 or H.dtype != torch.float32 or W_rows.ndim != 3 or H.ndim != 3:
         return None
@@ -1420,13 +1433,12 @@ def region_tables(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = N
     R = int(H.shape[0])
     if H.shape[1:] != (P, 3) or KC % 3 or W_rows.device.type != "cpu" or H.device.type != "cpu":
         return None
-    W_rows, H = W_rows.contiguous(), H.contiguous()
+    W_rows = W_rows.contiguous()
     if (out is None or out.shape != (R * T2, KC) or out.dtype != torch.float32 or not out.is_contiguous()
             or out.device.type != "cpu"):
         out = torch.empty(R * T2, KC, dtype=torch.float32)
     nt = max(1, min(int(nt), (R * T2) // _MIN_ROWS_PER_THREAD))
-    fn.region_tables(W_rows.data_ptr(), H.data_ptr(), P, R, T2, KC // 3, out.data_ptr(), nt)
-    return out
+    return fn, W_rows, P, R, T2, KC // 3, out, nt
 
 
 def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Tensor, Tensor] | None:

@@ -191,13 +191,58 @@ void fit_materials(int64_t nm, const int64_t* fam, const double* prm, const int6
         if (mkl_local) ((mkl_local_t)mkl_local)(prev);
     }
 }
+/* A shading="vertex" frame of the one-call route (session 43, pt43: method.FRAME_CALL) on a packed argument
+   array (FC_* below): where the frame's materials changed (a[FC_NM] > 0), `fit_materials` into a[FC_H]; then,
+   where H differs from the last frame's (a[FC_HOLD]: any entry not ==, as torch.equal; no last H, or
+   a[FC_FORCE]: recomputed), the region tables — ``methods.ptt.native``'s region_tables (its address in
+   a[FC_TABLES]) into W_r in place, `ar_table` into a_r in place — and a[FC_CHANGED] = 1; then that library's
+   view_frame (a[FC_VIEW]) on its own packed arguments (a[FC_VARGS]), whose result is returned. The calls and
+   arguments of the Python route (PTT.coords -> fit_materials, fast.region_tables -> native.region_tables and
+   ar_table, PTT._view_frame -> view_frame), in its order: the same bits. */
+typedef void (*tables_t)(const float*, const float*, int64_t, int64_t, int64_t, int64_t, float*, int64_t);
+typedef int64_t (*view_t)(const int64_t*);
+enum { FC_NM, FC_FAM, FC_PRM, FC_X1, FC_X2, FC_A1, FC_A2, FC_NN, FC_P, FC_GD, FC_VPOW, FC_W, FC_VEXP, FC_MODE,
+       FC_GEMV, FC_LOCAL, FC_SCRATCH, FC_NMAX, FC_H, FC_NTFIT, FC_HOLD, FC_FORCE, FC_TABLES, FC_WROWS, FC_R, FC_T2,
+       FC_K, FC_WR, FC_NTTAB, FC_LA, FC_N, FC_L, FC_SGEMM, FC_HL, FC_C, FC_AR, FC_VIEW, FC_VARGS, FC_CHANGED,
+       FC_COUNT };
+int64_t frame_call_count(void) { return FC_COUNT; }
+int64_t frame_call(int64_t* a) {
+    a[FC_CHANGED] = 0;
+    if (a[FC_NM] > 0) {
+        const int64_t P = a[FC_P];
+        float* H = (float*)a[FC_H];
+        fit_materials(a[FC_NM], (const int64_t*)a[FC_FAM], (const double*)a[FC_PRM], (const int64_t*)a[FC_X1],
+                      (const int64_t*)a[FC_X2], (const int64_t*)a[FC_A1], (const int64_t*)a[FC_A2],
+                      (const int64_t*)a[FC_NN], P, (const double*)a[FC_GD], (const void*)a[FC_VPOW], a[FC_W],
+                      (const void*)a[FC_VEXP], a[FC_MODE], (const void*)a[FC_GEMV], (const void*)a[FC_LOCAL],
+                      (double*)a[FC_SCRATCH], a[FC_NMAX], H, a[FC_NTFIT]);
+        int changed = a[FC_FORCE] != 0 || a[FC_HOLD] == 0;
+        if (!changed) {
+            const float* h0 = (const float*)a[FC_HOLD];
+            for (int64_t i = 0; i < a[FC_NM] * P * 3; ++i)
+                if (!(H[i] == h0[i])) {
+                    changed = 1;
+                    break;
+                }
+        }
+        if (changed) {
+            ((tables_t)a[FC_TABLES])((const float*)a[FC_WROWS], H, P, a[FC_R], a[FC_T2], a[FC_K], (float*)a[FC_WR],
+                                     a[FC_NTTAB]);
+            ar_table(H, (const float*)a[FC_LA], a[FC_R], P, a[FC_N], a[FC_L], (const void*)a[FC_SGEMM],
+                     (const void*)a[FC_LOCAL], (float*)a[FC_HL], (float*)a[FC_C], (float*)a[FC_AR]);
+            a[FC_CHANGED] = 1;
+        }
+    }
+    return ((view_t)a[FC_VIEW])((const int64_t*)a[FC_VARGS]);
+}
 """
 
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
 _SIGNATURES = {"lobe_pow": [_P, _P, _I, _I, _D, _D, _P, _I, _P, _P, _P],
                "lobe_ct": [_P, _P, _P, _P, _I, _I, _D, _D, _P, _I, _P, _P, _P, _P],
                "ar_table": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P],
-               "fit_materials": [_I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _I, _P, _P, _P, _I, _P, _I]}
+               "fit_materials": [_I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _I, _P, _P, _P, _I, _P, _I],
+               "frame_call": [_P]}
 # As ``methods.ptt.native``: the host's ISA, no contraction into fused multiply-adds (the torch ops'
 # roundings: each product and sum rounded), OpenMP (the library binds to the libgomp torch loaded).
 _EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{native.cpu_capability()}")
@@ -314,6 +359,19 @@ def ar_table(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> Tensor | N
     (MKL's sgemm with the einsum's arguments: the same bits, tested), written into ``out`` when it fits;
     None when it does not run here (`available`, no sgemm entry, not float32 contiguous CPU arrays, a
     product small enough for ATen's own loops)."""
+    fa = ar_args(H, lobe_a, out)
+    if fa is None:
+        return None
+    Lb, R, P, n, L, hl, c, out = fa
+    with _one_mkl_thread(Lb):
+        Lb[0].ar_table(H.data_ptr(), lobe_a.data_ptr(), R, P, n, L, Lb[5], Lb[6], hl.data_ptr(), c.data_ptr(),
+                       out.data_ptr())
+    return out
+
+
+def ar_args(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> tuple | None:
+    """`ar_table`'s C call without H's values: (the library tuple, R, P, n, L, its two scratch tensors, the
+    output — ``out`` where it fits, else a new tensor), or None where `ar_table` declines (the same checks)."""
     if not FAST_FIT:
         return None
     Lb = _library()
@@ -333,10 +391,7 @@ def ar_table(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> Tensor | N
     buf = _AR_BUF.get(key)
     if buf is None:
         buf = _AR_BUF[key] = (torch.empty(R * 3 * P, dtype=torch.float32), torch.empty(R * 3 * n * L, dtype=torch.float32))
-    with _one_mkl_thread(Lb):
-        Lb[0].ar_table(H.data_ptr(), lobe_a.data_ptr(), R, P, n, L, Lb[5], Lb[6], buf[0].data_ptr(), buf[1].data_ptr(),
-                       out.data_ptr())
-    return out
+    return Lb, R, P, n, L, buf[0], buf[1], out
 
 
 def _one_mkl_thread(Lb):
@@ -386,6 +441,21 @@ def _family_table(basis, grid, A: Tensor, g_d: Tensor, fams: set) -> dict | None
     return tab
 
 
+_MODULES: tuple = ()
+
+
+def _modules() -> tuple:
+    """(lobe_grid, transport, scenes.materials), imported once (not at import time: transport imports this
+    module's callers)."""
+    global _MODULES
+    from methods.ptt import lobe_grid as _lg
+    from methods.ptt import transport as _tp
+    from scenes import materials as _mat
+
+    _MODULES = (_lg, _tp, _mat)
+    return _MODULES
+
+
 def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     """(len(mats), P, 3) float32: ``torch.tensor(basis.coords_rows(m), dtype=torch.float32)`` of each
     material (`transport.LobeBasis.coords_rows`: Lambert, or a `lobe_grid.FAMILIES` material fitted on
@@ -393,14 +463,59 @@ def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     bits at any nt; the float64 values and their float32 rounding as coords_rows', tested). None when it
     does not run here (`available`), the basis has no diffuse function, or a material is of another type
     or is one of the basis's own lobes (coords_rows' exact rows): the caller then fits per material."""
-    if not FAST_FIT or not mats or not getattr(basis, "diffuse", False):
+    fa = fit_args(basis, mats, nt)
+    if fa is None:
+        return None
+    Lb, args, keep = fa
+    H = torch.empty(args[0], args[8], 3, dtype=torch.float32)
+    args[18] = H.data_ptr()
+    with _one_mkl_thread(Lb):
+        Lb[0].fit_materials(*args)
+    del keep  # (the material arrays the call read)
+    return H
+
+
+@functools.lru_cache(maxsize=None)
+def _frame_fn(lib: ctypes.CDLL):
+    """The library's ``frame_call`` with its int64 result and ``frame_call_count``'s slot count."""
+    fn = lib.frame_call
+    fn.restype = ctypes.c_int64
+    fn.argtypes = [ctypes.c_void_p]
+    lib.frame_call_count.restype = ctypes.c_int64
+    return fn, int(lib.frame_call_count())
+
+
+# The slots of ``frame_call``'s packed argument array (the C enum FC_*, in its order): 0-19 `fit_materials`'.
+FC = ("nm", "fam", "prm", "x1", "x2", "A1", "A2", "nn", "P", "gd", "vpow", "w", "vexp", "mode", "gemv", "local",
+      "scratch", "nmax", "H", "ntfit", "hold", "force", "tables", "wrows", "R", "T2", "K", "wr", "nttab", "la", "n",
+      "L", "sgemm", "hl", "c", "ar", "view", "vargs", "changed")
+_FC = {k: i for i, k in enumerate(FC)}
+
+
+def frame_call_fn():
+    """(``frame_call``, its slot count) or None (`available` false, or no MKL per-thread switch: the Python
+    route then wraps the products in ``torch_threads(1)``, which the one call does not)."""
+    if not FAST_FIT:
         return None
     Lb = _library()
+    if Lb is None or Lb[2] is None or Lb[4] is None or Lb[5] is None or Lb[6] is None:
+        return None
+    fn, n = _frame_fn(Lb[0])
+    return (fn, n) if n == len(FC) else None
+
+
+def fit_args(basis, mats: list, nt: int = 1, Lb: tuple | None = None) -> tuple | None:
+    """`fit_materials`' C call without its output: (the library tuple, the call's 20 arguments as a list —
+    slot 18, H's address, still 0 —, the ctypes arrays they point into, to keep alive), or None where
+    `fit_materials` declines (the same checks). ``Lb``: `_library()`'s tuple as the caller looked it up in
+    this frame (``method.FRAME_CALL``'s plan, made under the same compile switch), else looked up here."""
+    if not FAST_FIT or not mats or not getattr(basis, "diffuse", False):
+        return None
+    if Lb is None:
+        Lb = _library()
     if Lb is None or Lb[2] is None or Lb[4] is None:
         return None
-    from methods.ptt import lobe_grid as _lg
-    from methods.ptt import transport as _tp
-    from scenes import materials as _mat
+    _lg, _tp, _mat = _MODULES or _modules()
 
     keys = basis.__dict__.get("_lobe_keys")
     if keys is None:
@@ -441,10 +556,8 @@ def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     nmax = max([tab["n"][_FAMILY_SLOT[f]] for f in fams], default=0)
     nt = max(1, min(int(nt), nm))
     scratch = _scratch(nt * (2 * nmax + 2 * P))
-    H = torch.empty(nm, P, 3, dtype=torch.float32)
     _, w, vpow, vexp, gemv, _, local = Lb
-    with _one_mkl_thread(Lb):
-        Lb[0].fit_materials(nm, fam, prm, tab["x1"], tab["x2"], tab["A1"], tab["A2"], tab["n"], P,
-                            tab["gd"].data_ptr(), vpow, w, vexp, _VML_MODE, gemv, local, scratch.data_ptr(), nmax,
-                            H.data_ptr(), nt)
-    return H
+    ad = ctypes.addressof
+    return Lb, [nm, ad(fam), ad(prm), ad(tab["x1"]), ad(tab["x2"]), ad(tab["A1"]), ad(tab["A2"]), ad(tab["n"]), P,
+                tab["gd"].data_ptr(), vpow or 0, w, vexp or 0, _VML_MODE, gemv or 0, local or 0, scratch.data_ptr(),
+                nmax, 0, nt], (fam, prm)
