@@ -154,15 +154,23 @@ _VIEW_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 # FRAME_CALL (session 43, pt43): a frame that would take VIEW_FRAME's route on the plan made by an earlier frame,
 # with the lighting unchanged and no bounce terms (E does not depend on H), runs as ONE C call
 # (``native_fit.frame_call``) from the top of `render`: where a region's material object changed (a VB
-# frame) the batched fit (``fit_materials``), the region tables in place (``native.region_tables``,
-# ``native_fit.ar_table``; skipped where H equals the last frame's H, as `render`'s torch.equal), then
-# ``native.view_frame`` on the view plan — the calls, arguments and order of the route it replaces
-# (`_check_frame` → `coords` → `fast.region_tables` → `_view_frame`): the same bits (tested). What it removes
-# is that route's Python, serial at 2 threads and cold after the harness's G-buffer: the checks of each
-# wrapper, `torch.equal`, the tables' new views and the plan's re-keying, two library look-ups with their
-# environment reads. Off, or where it declines (no plan yet, another switch or layout, a decline of any
-# call's checks): the route below, as before.
+# frame) the batched fit's materials, W_r's rows (``native.region_rows_range``, in place) and a_r
+# (``native_fit.ar_table``, in place) as tasks of one OpenMP team (a row chunk starts once its region's fit is
+# done, a_r once every fit is: at 2 threads the fits, rows and a_r overlap instead of three regions in turn,
+# a_r serial), then ``native.view_frame`` on the view plan — the functions and arguments of the route it
+# replaces (`_check_frame` → `coords` → `fast.region_tables` → `_view_frame`): the same bits (tested). What
+# it removes is that route's Python, serial at 2 threads and cold after the harness's G-buffer: each
+# wrapper's checks, `torch.equal` (done in C), the tables' new views and the plan's re-keying, two library
+# look-ups. Measured (`benchmarks.ptt43_serial`, 1 thread, process CPU, 64 MB written + settle before each
+# frame, 28 frames, on / off alternating): a VB frame's time outside its C calls chess 0.494 -> 0.284 ms,
+# creature 0.475 -> 0.276 ms (all of it serial at 2 threads: ~0.2 ms of the perf suite's 2.46 / 2.15 ms VB
+# frames). ``benchmarks.ptt_ab --base B --precompute-code B --threads 1 --frames 21`` (B = 0a8e785): chess
+# VB 1.04-1.07, creature VB 1.07 (process CPU; the task overlap is a 2-thread effect), V 0.99-1.01 (a V frame's
+# Python is the route's size: no gain there). Off, or where it declines (no plan yet, another switch, layout
+# or lighting, a decline of any call's checks): the route below, as before.
 FRAME_CALL = True
+# W_r rows a task of the frame call (its threads take the fits, then chunks of the rows, a_r among them)
+FRAME_CHUNK = 256
 # method → its `_FramePlan` (as _VIEW_PLANS: outside the instance)
 _FRAME_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
@@ -798,7 +806,7 @@ class PTT(Method):
             return None
         a = fplan.args
         if fa is not None:
-            fa = _pnf.fit_args(self.basis, mats, threads, fplan.lib)
+            fa = _pnf.fit_args(self.basis, mats, threads, fplan.lib, team=threads)
             if fa is None:
                 return None
             fargs = fa[1]
@@ -810,7 +818,6 @@ class PTT(Method):
             hold = fplan.hold
             a[20] = hold[1] if hold[0] is H0 else (
                 H0.data_ptr() if H0.shape == H.shape and H0.is_contiguous() and H0.dtype == H.dtype else 0)
-            a[21] = int("brdf" in changed)
         else:
             a[0] = 0
         # the view call's per-frame slots, as `native.view_frame`
@@ -825,7 +832,9 @@ class PTT(Method):
             self._coords_last = (mats, H)
             self._f_H = H
             fplan.hold = (H, fargs[18])
-            if a[38] and (r > 0 or "brdf" not in changed):  # (declined with "brdf" changed: the route counts it)
+            # the BRDF stage as the route counts it (H changed, or the frame says so); declined, the route runs
+            # next and counts a frame that says so itself
+            if (a[38] or "brdf" in changed) if r > 0 else (a[38] and "brdf" not in changed):
                 self.stats["brdf"] += 1
         if r <= 0:
             return None
@@ -841,7 +850,7 @@ class PTT(Method):
         _native, _nf = _pn, _pnf
         wr, lobe_a = self._f_wrows, self.lobe_table.a
         nt = threads if TABLE_THREADS else 1
-        key = (vplan, tabs, wr, lobe_a, nt, _fast.USE_NATIVE, _fast.NATIVE_TABLES, _nf.FAST_FIT)
+        key = (vplan, tabs, wr, lobe_a, nt, _fast.USE_NATIVE, _fast.NATIVE_TABLES, _nf.FAST_FIT, FRAME_CHUNK)
         fplan = _FRAME_PLANS.get(self)
         if fplan is not None and len(fplan.key) == len(key) and all(x is y or (type(x) in (int, bool) and x == y) for x, y in zip(fplan.key, key)):
             return fplan
@@ -859,8 +868,8 @@ class PTT(Method):
         if (Ra, Pa) != (R, P) or tuple(H0.shape) != (R, P, 3):
             return None
         args = (ctypes.c_int64 * fc[1])()
-        v = dict(tables=ctypes.cast(fn.region_tables, ctypes.c_void_p).value, wrows=W_rows.data_ptr(), R=R, T2=T2, K=K,
-                 wr=Wr.data_ptr(), nttab=ntt, la=lobe_a.data_ptr(), n=n, L=L, sgemm=_nf._library()[5], hl=hl.data_ptr(),
+        v = dict(rows=ctypes.cast(fn.region_rows_range, ctypes.c_void_p).value, wrows=W_rows.data_ptr(), R=R, T2=T2,
+                 K=K, wr=Wr.data_ptr(), team=max(1, threads), chunk=FRAME_CHUNK, la=lobe_a.data_ptr(), n=n, L=L, sgemm=_nf._library()[5], hl=hl.data_ptr(),
                  c=c.data_ptr(), ar=ar.data_ptr(), view=ctypes.cast(vplan.fn.view_frame, ctypes.c_void_p).value,
                  vargs=ctypes.addressof(vplan.args))
         for k, x in v.items():

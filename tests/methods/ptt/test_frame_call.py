@@ -70,6 +70,7 @@ def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch):
     monkeypatch.setattr(N, "_MIN_SAMPLES_PER_THREAD", 64)
     monkeypatch.setattr(N, "_MIN_PIXELS_PER_THREAD", 16)
     monkeypatch.setattr(N, "_MIN_ROWS_PER_THREAD", 8)
+    monkeypatch.setattr(PM, "FRAME_CHUNK", 5)  # W_r's rows in many chunks (regions of 16-64 rows at this size)
     scene = get_scene(name, "test")
     fast = PTT(**TINY)
     fast.precompute(scene)
@@ -103,9 +104,9 @@ def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch):
 
 
 def test_frame_call_equal_h_keeps_the_tables_and_brdf_change_forces_them(monkeypatch):
-    """A VB frame whose new material objects have the last frame's values (the same H): the tables are not
-    rewritten and the BRDF stage is not counted unless the frame says "brdf" changed — as the route's
-    torch.equal; the images equal the route's either way."""
+    """A VB frame whose new material objects have the last frame's values (the same H): the tables keep their
+    memory and values and the BRDF stage is not counted unless the frame says "brdf" changed — as the route's
+    torch.equal; the images equal the route's either way. Then one entry of H changed: seen."""
     scene = get_scene("chess", "test")
     fast = PTT(**TINY)
     fast.precompute(scene)
