@@ -165,8 +165,10 @@ _VIEW_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 # frame, 28 frames, on / off alternating): a VB frame's time outside its C calls chess 0.494 -> 0.284 ms,
 # creature 0.475 -> 0.276 ms (all of it serial at 2 threads: ~0.2 ms of the perf suite's 2.46 / 2.15 ms VB
 # frames). ``benchmarks.ptt_ab --base B --precompute-code B --threads 1 --frames 21`` (B = 0a8e785): chess
-# VB 1.04-1.07, creature VB 1.07 (process CPU; the task overlap is a 2-thread effect), V 0.99-1.01 (a V frame's
-# Python is the route's size: no gain there). Off, or where it declines (no plan yet, another switch, layout
+# VB 1.04-1.07, creature VB 1.04-1.07 (process CPU; A/A chess 0.98-0.99), V 0.98-1.01 (a V frame's Python is
+# about the route's: outside its C calls 0.262 -> 0.243 ms, chess). The BRDF part's C work itself is ~0.2 ms
+# (`benchmarks.ptt43_brdf_tasks`, chess: 1 thread route 0.217 / tasks 0.203 ms; 2 threads 0.228 / 0.197 ms
+# median, 0.150 / 0.136 ms 10th percentile, on a loaded host). Off, or where it declines (no plan yet, another switch, layout
 # or lighting, a decline of any call's checks): the route below, as before.
 FRAME_CALL = True
 # W_r rows a task of the frame call (its threads take the fits, then chunks of the rows, a_r among them)
