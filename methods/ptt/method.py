@@ -65,6 +65,7 @@ compression (§4.3 CPCA + clustered tensor approximation) is ``methods.ptt.compr
 """
 from __future__ import annotations
 
+import ctypes
 import weakref
 from typing import Any
 
@@ -82,6 +83,8 @@ from methods.ptt import bounce as _bounce
 from methods.ptt import compress as _cmp
 from methods.ptt import fast as _fast
 from methods.ptt import lobes as _lobes
+from methods.ptt import native as _pn
+from methods.ptt import native_fit as _pnf
 from methods.ptt import pca as _pca
 from methods.ptt import specular as _spec
 from methods.ptt import transport as _tp
@@ -147,6 +150,43 @@ VIEW_FRAME = True
 # method → its `native.ViewPlan` (outside the instance: not pickled, not part of the state the thread test
 # compares, not shared by `with_shading` copies)
 _VIEW_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+# FRAME_CALL (session 43, pt43): a frame that would take VIEW_FRAME's route on the plan made by an earlier frame,
+# with the lighting unchanged and no bounce terms (E does not depend on H), runs as ONE C call
+# (``native_fit.frame_call``) from the top of `render`: where a region's material object changed (a VB
+# frame) the batched fit's materials, W_r's rows (``native.region_rows_range``, in place) and a_r
+# (``native_fit.ar_table``, in place) as tasks of one OpenMP team (a row chunk starts once its region's fit is
+# done, a_r once every fit is: at 2 threads the fits, rows and a_r overlap instead of three regions in turn,
+# a_r serial), then ``native.view_frame`` on the view plan — the functions and arguments of the route it
+# replaces (`_check_frame` → `coords` → `fast.region_tables` → `_view_frame`): the same bits (tested). What
+# it removes is that route's Python, serial at 2 threads and cold after the harness's G-buffer: each
+# wrapper's checks, `torch.equal` (done in C), the tables' new views and the plan's re-keying, two library
+# look-ups. Measured (`benchmarks.ptt43_serial`, 1 thread, process CPU, 64 MB written + settle before each
+# frame, 28 frames, on / off alternating): a VB frame's time outside its C calls chess 0.494 -> 0.284 ms,
+# creature 0.475 -> 0.276 ms (all of it serial at 2 threads: ~0.2 ms of the perf suite's 2.46 / 2.15 ms VB
+# frames). ``benchmarks.ptt_ab --base B --precompute-code B --threads 1 --frames 21`` (B = 0a8e785): chess
+# VB 1.04-1.07, creature VB 1.04-1.07 (process CPU; A/A chess 0.98-0.99), V 0.98-1.01 (a V frame's Python is
+# about the route's: outside its C calls 0.262 -> 0.243 ms, chess). The BRDF part's C work itself is ~0.2 ms
+# (`benchmarks.ptt43_brdf_tasks`, chess: 1 thread route 0.217 / tasks 0.203 ms; 2 threads 0.228 / 0.197 ms
+# median, 0.150 / 0.136 ms 10th percentile, on a loaded host). Off, or where it declines (no plan yet, another switch, layout
+# or lighting, a decline of any call's checks): the route below, as before.
+FRAME_CALL = True
+# W_r rows a task of the frame call (its threads take the fits, then chunks of the rows, a_r among them)
+FRAME_CHUNK = 256
+# method → its `_FramePlan` (as _VIEW_PLANS: outside the instance)
+_FRAME_PLANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+class _FramePlan:
+    """``native_fit.frame_call``'s packed arguments: ``args`` (ctypes int64, the tables' and view's slots
+    written once), ``key`` what they were made from (compared by identity / value), ``keep`` the tensors
+    whose addresses they hold."""
+
+    __slots__ = ("args", "key", "keep", "fn", "lib", "hold")
+
+    def __init__(self, args, key, keep, fn, lib):
+        self.args, self.key, self.keep, self.fn, self.lib = args, key, keep, fn, lib
+        self.hold = (None, 0)  # (the H this route made last, its address)
 
 # Default of the `separate` config (Sun §4.1 lobe separation): on, it lowers the Fig. 11 RMSEs of
 # chess and alcove (numbers in the class docstring).
@@ -582,6 +622,10 @@ class PTT(Method):
     # -- fast path (``methods.ptt.fast``; equals `_render_reference` to float32 round-off) --------
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """Sun eq. 3–4 with the three cached stages (module docstring), batched (``methods.ptt.fast``)."""
+        if FRAME_CALL and VIEW_FRAME:
+            img = self._frame_call(frame, gbuffer)
+            if img is not None:
+                return img
         H = self._check_frame(frame)
         st = self._fast_static()
         if self._f_H is None and isinstance(self.basis, _tp.LobeBasis):
@@ -721,6 +765,119 @@ class PTT(Method):
                                            gb.normal[sel] if env is not None else None,
                                            gb.wo[sel] if env is not None else None, env, L)
         return gb.resolve(out)
+
+    def _frame_call(self, frame: Frame, gb: GBuffer) -> Tensor | None:
+        """`FRAME_CALL`: the frame's image by ``native_fit.frame_call``, or None where the route of `render` below
+        is to run (nothing changed then, except — the view call declining after a fit — the new H and tables,
+        which that route then finds current, as it would have made them)."""
+        vplan = _VIEW_PLANS.get(self)
+        H0, E, light = self._f_H, self._f_E, self._f_light
+        if vplan is None or H0 is None or E is None or E[1] is not None or light is None or not self.separate:
+            return None
+        changed = frame.changed
+        if "light" in changed or frame.envmap is not self._f_env or self._config["shading"] != "vertex":
+            return None
+        tabs, st = self._f_tabs, getattr(self, "_fs", None)
+        objs, vals = vplan.key
+        if objs[0] is not tabs or objs[1] is not E or objs[2] is not light or objs[3] is not st or st.pair_pos is None:
+            return None
+        threads = torch.get_num_threads()
+        if vals != (threads, _fast.USE_NATIVE, compile_enabled(), _pn.LEAN, FUSED_VIEW, REFERENCED_PAIRS, FULL_TABLE):
+            return None
+        face, bary, normal, wo, hit = gb.face, gb.bary, gb.normal, gb.wo, gb.hit
+        if vplan.layout != _pn.gbuffer_layout(face, bary, normal, wo, hit, gb.spp_side, gb.height, gb.width):
+            return None
+        last = self._coords_last
+        if not FAST_COORDS or last is None:
+            return None
+        fm = frame.materials
+        try:
+            mats = [fm[r] for r in self.regions]
+        except KeyError:
+            return None
+        if len(mats) == len(last[0]) and all(a is b for a, b in zip(last[0], mats)):  # a V frame: `coords`' memo
+            if last[1] is not H0 or "brdf" in changed:
+                return None
+            H, fa = H0, None
+        else:  # a VB frame (bounce terms: E would depend on H)
+            if not FIT_BATCH or light[1] is not None or light[2] is not None or not hasattr(self.basis, "coords_rows"):
+                return None
+            fa = True  # (the fit's arguments below, with the plan's library)
+        fplan = self._frame_plan(vplan, tabs, threads, H0)
+        if fplan is None:
+            return None
+        a = fplan.args
+        if fa is not None:
+            fa = _pnf.fit_args(self.basis, mats, threads, fplan.lib, team=threads)
+            if fa is None:
+                return None
+            fargs = fa[1]
+            H = torch.empty(fargs[0], fargs[8], 3, dtype=torch.float32)
+            fargs[18] = H.data_ptr()
+            a[0:20] = fargs
+            # the last H's values (the equality test): its address where it is one of this route's own H, else
+            # where it is laid out as H
+            hold = fplan.hold
+            a[20] = hold[1] if hold[0] is H0 else (
+                H0.data_ptr() if H0.shape == H.shape and H0.is_contiguous() and H0.dtype == H.dtype else 0)
+        else:
+            a[0] = 0
+        # the view call's per-frame slots, as `native.view_frame`
+        va = vplan.args
+        out = torch.empty(gb.height, gb.width, 3, dtype=torch.float32)
+        p = bary.data_ptr()
+        va[0], va[1], va[31], va[34], va[39], va[40], va[51] = (face.data_ptr(), hit.data_ptr(), normal.data_ptr(),
+                                                                wo.data_ptr(), p, p + 4 * bary.stride(1), out.data_ptr())
+        vplan.cam_c[0], vplan.cam_c[1], vplan.cam_c[2] = frame.camera.origin
+        r = fplan.fn(a)
+        if fa is not None:
+            self._coords_last = (mats, H)
+            self._f_H = H
+            fplan.hold = (H, fargs[18])
+            # the BRDF stage as the route counts it (H changed, or the frame says so); declined, the route runs
+            # next and counts a frame that says so itself
+            if (a[38] or "brdf" in changed) if r > 0 else (a[38] and "brdf" not in changed):
+                self.stats["brdf"] += 1
+        if r <= 0:
+            return None
+        self.stats["view"] += 1
+        self._last_view = (gb.num_samples, gb, vplan.cam)
+        return out
+
+    def _frame_plan(self, vplan, tabs, threads: int, H0: Tensor) -> "_FramePlan | None":
+        """The `_FramePlan` of this view plan and these region tables (made here where missing or made for
+        others), or None where the route of `render` would not take the native tables in place
+        (`fast.region_tables`' one-thread route: ``native.region_tables`` and ``native_fit.ar_table`` into
+        the tables' own memory) or ``frame_call`` is not available."""
+        _native, _nf = _pn, _pnf
+        wr, lobe_a = self._f_wrows, self.lobe_table.a
+        nt = threads if TABLE_THREADS else 1
+        key = (vplan, tabs, wr, lobe_a, nt, _fast.USE_NATIVE, _fast.NATIVE_TABLES, _nf.FAST_FIT, FRAME_CHUNK)
+        fplan = _FRAME_PLANS.get(self)
+        if fplan is not None and len(fplan.key) == len(key) and all(x is y or (type(x) in (int, bool) and x == y) for x, y in zip(fplan.key, key)):
+            return fplan
+        _FRAME_PLANS.pop(self, None)
+        fc = _nf.frame_call_fn()
+        if fc is None or wr is None or wr[0] is not self.factors.W_tab or not (_fast.USE_NATIVE and _fast.NATIVE_TABLES):
+            return None
+        Wr, ar = tabs
+        ta = _native.region_tables_args(wr[1], H0, nt, Wr)
+        aa = _nf.ar_args(H0, lobe_a, ar)
+        if ta is None or aa is None or ta[6] is not Wr or aa[-1] is not ar or ta[1].data_ptr() != wr[1].data_ptr():
+            return None
+        fn, W_rows, P, R, T2, K, _, ntt = ta
+        _, Ra, Pa, n, L, hl, c, _ = aa
+        if (Ra, Pa) != (R, P) or tuple(H0.shape) != (R, P, 3):
+            return None
+        args = (ctypes.c_int64 * fc[1])()
+        v = dict(rows=ctypes.cast(fn.region_rows_range, ctypes.c_void_p).value, wrows=W_rows.data_ptr(), R=R, T2=T2,
+                 K=K, wr=Wr.data_ptr(), team=max(1, threads), chunk=FRAME_CHUNK, la=lobe_a.data_ptr(), n=n, L=L, sgemm=_nf._library()[5], hl=hl.data_ptr(),
+                 c=c.data_ptr(), ar=ar.data_ptr(), view=ctypes.cast(vplan.fn.view_frame, ctypes.c_void_p).value,
+                 vargs=ctypes.addressof(vplan.args))
+        for k, x in v.items():
+            args[_nf._FC[k]] = int(x)
+        fplan = _FRAME_PLANS[self] = _FramePlan(args, key, (W_rows, lobe_a, hl, c, Wr, ar), fc[0], _nf._library())
+        return fplan
 
     def _view_frame(self, frame: Frame, gb: GBuffer, st: _fast.FastStatic) -> Tensor | None:
         """`VIEW_FRAME`: the frame's image by ``native.view_frame`` on this method's plan (made or remade here

@@ -272,14 +272,25 @@ void region_rows(const float* Wrows, const float* Hl, int64_t P, int64_t R, int6
    lane, p in order, with the lanes Hl[p, r, (k, c)] = H[r, p, c] read straight from H (R, P, 3), the rows
    (r, t) split into nt contiguous ranges over OpenMP's team (each row one thread's: the bits do not depend
    on nt), written into out (R, T2, K·3). */
+void region_rows_range(const float* Wrows, const float* H, int64_t P, int64_t R, int64_t T2, int64_t K, float* out,
+                       int64_t i0, int64_t i1);
 void region_tables(const float* Wrows, const float* H, int64_t P, int64_t R, int64_t T2, int64_t K, float* out,
                    int64_t nt) {
-    const int64_t KC = 3 * K, rows = R * T2;
+    const int64_t rows = R * T2;
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int64_t k = 0; k < nt; ++k) {
+    for (int64_t k = 0; k < nt; ++k)
+        region_rows_range(Wrows, H, P, R, T2, K, out, rows * k / nt, rows * (k + 1) / nt);
+}
+/* region_tables' rows i0 <= i < i1 (each row's products and sums as there, whoever computes it: the same bits;
+   also ``methods.ptt.native_fit``'s frame_call, which deals them to its team in chunks) */
+void region_rows_range(const float* Wrows, const float* H, int64_t P, int64_t R, int64_t T2, int64_t K, float* out,
+                       int64_t i0, int64_t i1) {
+    const int64_t KC = 3 * K;
+    (void)R;
+    {
         float hl[P * KC];
         int64_t rcur = -1;
-        for (int64_t i = rows * k / nt; i < rows * (k + 1) / nt; ++i) {
+        for (int64_t i = i0; i < i1; ++i) {
             const int64_t r = i / T2, t = i - r * T2;
             if (r != rcur) {
                 for (int64_t p = 0; p < P; ++p)
@@ -1150,6 +1161,7 @@ _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SHADE = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _I, _P, _I, _P, _P, _P, _I, _I, _I, _I, _P]
 _SIGNATURES = {"shade_pixels": _SHADE, "shade_pixels_par": _SHADE, "region_rows": [_P, _P, _I, _I, _I, _I, _P],
                "region_tables": [_P, _P, _I, _I, _I, _I, _P, _I],
+               "region_rows_range": [_P, _P, _I, _I, _I, _I, _P, _I, _I],
                "referenced_pairs": [_P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
                "referenced_sel": [_P, _I, _P, _I, _I, _I, _P, _P, _P]}
 
@@ -1161,6 +1173,7 @@ def _functions(lib: ctypes.CDLL):
     ``shade_mirror_par``)."""
     fn = lib.shade_pixels
     fn.par, fn.region_rows, fn.region_tables = lib.shade_pixels_par, lib.region_rows, lib.region_tables
+    fn.region_rows_range = lib.region_rows_range
     fn.referenced_pairs = lib.referenced_pairs
     fn.referenced_pairs.restype = ctypes.c_int64
     fn.referenced_sel = lib.referenced_sel
@@ -1413,6 +1426,19 @@ def region_tables(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = N
     read from H (R, P, 3) directly. ``out``: the previous frame's W_r, written in place when its shape fits
     (no fresh pages each VB frame). None when the loop is not available or the arguments are not float32
     CPU tensors."""
+    ta = region_tables_args(W_rows, H, nt, out)
+    if ta is None:
+        return None
+    fn, W_rows, P, R, T2, K, out, nt = ta
+    H = H.contiguous()
+    fn.region_tables(W_rows.data_ptr(), H.data_ptr(), P, R, T2, K, out.data_ptr(), nt)
+    return out
+
+
+def region_tables_args(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = None) -> tuple | None:
+    """`region_tables`' C call without H's values: (the loops, W_rows contiguous, P, R, T², K, the output —
+    ``out`` where it fits, else a new tensor —, the threads), or None where `region_tables` declines (the
+    same checks)."""
     fn = _kernel()
     if fn is None or W_rows.dtype != torch.float32 or H.dtype != torch.float32 or W_rows.ndim != 3 or H.ndim != 3:
         return None
@@ -1420,13 +1446,12 @@ def region_tables(W_rows: Tensor, H: Tensor, nt: int = 1, out: Tensor | None = N
     R = int(H.shape[0])
     if H.shape[1:] != (P, 3) or KC % 3 or W_rows.device.type != "cpu" or H.device.type != "cpu":
         return None
-    W_rows, H = W_rows.contiguous(), H.contiguous()
+    W_rows = W_rows.contiguous()
     if (out is None or out.shape != (R * T2, KC) or out.dtype != torch.float32 or not out.is_contiguous()
             or out.device.type != "cpu"):
         out = torch.empty(R * T2, KC, dtype=torch.float32)
     nt = max(1, min(int(nt), (R * T2) // _MIN_ROWS_PER_THREAD))
-    fn.region_tables(W_rows.data_ptr(), H.data_ptr(), P, R, T2, KC // 3, out.data_ptr(), nt)
-    return out
+    return fn, W_rows, P, R, T2, KC // 3, out, nt
 
 
 def referenced_pairs(face: Tensor, face_pairs: Tensor, n_pairs: int) -> tuple[Tensor, Tensor] | None:

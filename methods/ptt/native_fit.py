@@ -154,6 +154,33 @@ void lobe_ct(const double* ntan2, const double* c2, const double* A1, const doub
    projection (`lobe_pow` / `lobe_ct`; Lambert: kd on row 0, 0 elsewhere) — `LobeBasis.coords_rows`'
    float64 operations and its float32 rounding. The materials are dealt to nt threads (each material one
    thread's: the same bits at any nt); scratch nt (2 nmax + 2 P) doubles. */
+/* material j of fit_materials (its comment) with the thread's scratch v (2 nmax) and o1, o2 (P each) */
+static void fit_one(int64_t j, const int64_t* fam, const double* prm, const int64_t* x1, const int64_t* x2,
+                    const int64_t* A1, const int64_t* A2, const int64_t* nn, int64_t P, const double* gd,
+                    const void* vpow_fn, int64_t w, const void* vexp, int64_t mode, const void* gemv, double* v,
+                    double* o1, double* o2, float* H) {
+    const double* q = prm + 8 * j;
+    const int64_t f = fam[j];
+    float* h = H + j * P * 3;
+    if (f == 0) {
+        for (int64_t p = 0; p < P; ++p)
+            for (int64_t c = 0; c < 3; ++c) h[p * 3 + c] = p == 0 ? (float)q[c] : 0.0f;
+        return;
+    }
+    const int64_t n = nn[f];
+    if (f == 1 || f == 2) {
+        const double s = q[6];
+        const double k = f == 1 ? (s + 1.0) / (2.0 * M_PI) : (s + 2.0) / (8.0 * M_PI);
+        lobe_pow((const double*)x1[f], (const double*)A1[f], P, n, k, s, vpow_fn, w, gemv, v, o1);
+    } else {
+        const double m = q[6], F0 = q[7], wF = 1.0 - F0;
+        lobe_ct((const double*)x1[f], (const double*)x2[f], (const double*)A1[f], (const double*)A2[f], P, n,
+                m * m, M_PI * m * m, vexp, mode, gemv, v, o1, o2);
+        for (int64_t p = 0; p < P; ++p) o1[p] = F0 * o1[p] + wF * o2[p];
+    }
+    for (int64_t p = 0; p < P; ++p)
+        for (int64_t c = 0; c < 3; ++c) h[p * 3 + c] = (float)(gd[p] * q[c] + o1[p] * q[3 + c]);
+}
 void fit_materials(int64_t nm, const int64_t* fam, const double* prm, const int64_t* x1, const int64_t* x2,
                    const int64_t* A1, const int64_t* A2, const int64_t* nn, int64_t P, const double* gd,
                    const void* vpow_fn, int64_t w, const void* vexp, int64_t mode, const void* gemv,
@@ -165,31 +192,87 @@ void fit_materials(int64_t nm, const int64_t* fam, const double* prm, const int6
         double* v = scratch + tid * (2 * nmax + 2 * P);
         double* o1 = v + 2 * nmax;
         double* o2 = o1 + P;
-        for (int64_t j = tid; j < nm; j += nth) {
-            const double* q = prm + 8 * j;
-            const int64_t f = fam[j];
-            float* h = H + j * P * 3;
-            if (f == 0) {
-                for (int64_t p = 0; p < P; ++p)
-                    for (int64_t c = 0; c < 3; ++c) h[p * 3 + c] = p == 0 ? (float)q[c] : 0.0f;
-                continue;
-            }
-            const int64_t n = nn[f];
-            if (f == 1 || f == 2) {
-                const double s = q[6];
-                const double k = f == 1 ? (s + 1.0) / (2.0 * M_PI) : (s + 2.0) / (8.0 * M_PI);
-                lobe_pow((const double*)x1[f], (const double*)A1[f], P, n, k, s, vpow_fn, w, gemv, v, o1);
-            } else {
-                const double m = q[6], F0 = q[7], wF = 1.0 - F0;
-                lobe_ct((const double*)x1[f], (const double*)x2[f], (const double*)A1[f], (const double*)A2[f], P, n,
-                        m * m, M_PI * m * m, vexp, mode, gemv, v, o1, o2);
-                for (int64_t p = 0; p < P; ++p) o1[p] = F0 * o1[p] + wF * o2[p];
-            }
-            for (int64_t p = 0; p < P; ++p)
-                for (int64_t c = 0; c < 3; ++c) h[p * 3 + c] = (float)(gd[p] * q[c] + o1[p] * q[3 + c]);
-        }
+        for (int64_t j = tid; j < nm; j += nth)
+            fit_one(j, fam, prm, x1, x2, A1, A2, nn, P, gd, vpow_fn, w, vexp, mode, gemv, v, o1, o2, H);
         if (mkl_local) ((mkl_local_t)mkl_local)(prev);
     }
+}
+/* A shading="vertex" frame of the one-call route (session 43, pt43: method.FRAME_CALL) on a packed argument
+   array (FC_* below): where the frame's materials changed (a[FC_NM] > 0), the work of the Python route's
+   fit_materials (into a[FC_H]), ``methods.ptt.native``'s region_tables (W_r in place) and ar_table (a_r in
+   place), as tasks of one team of a[FC_TEAM] threads taken in order from a shared counter: the fits (material
+   j one task), then W_r's rows in chunks of a[FC_CHUNK] rows of one region each (a chunk waits for its
+   region's fit), a_r's product after half of the chunks (it waits for every fit). Each material, row and a_r
+   computed by the route's own code with its own arguments (fit_one, native's region_rows_range, ar_table):
+   the same bits, whichever thread computes it. a[FC_CHANGED] = 1 where H differs from the last frame's
+   (a[FC_HOLD]: any entry not ==, as `render`'s torch.equal; 1 without a last H): the BRDF stage the route
+   would count (where the last H is equal the tables are rewritten with the same values). Then that library's
+   view_frame (a[FC_VIEW]) on its own packed arguments (a[FC_VARGS]), whose result is returned. */
+typedef void (*rows_t)(const float*, const float*, int64_t, int64_t, int64_t, int64_t, float*, int64_t, int64_t);
+typedef int64_t (*view_t)(const int64_t*);
+enum { FC_NM, FC_FAM, FC_PRM, FC_X1, FC_X2, FC_A1, FC_A2, FC_NN, FC_P, FC_GD, FC_VPOW, FC_W, FC_VEXP, FC_MODE,
+       FC_GEMV, FC_LOCAL, FC_SCRATCH, FC_NMAX, FC_H, FC_NTFIT, FC_HOLD, FC_TEAM, FC_ROWS, FC_WROWS, FC_R, FC_T2,
+       FC_K, FC_WR, FC_CHUNK, FC_LA, FC_N, FC_L, FC_SGEMM, FC_HL, FC_C, FC_AR, FC_VIEW, FC_VARGS, FC_CHANGED,
+       FC_COUNT };
+int64_t frame_call_count(void) { return FC_COUNT; }
+int64_t frame_call(int64_t* a) {
+    a[FC_CHANGED] = 0;
+    const int64_t nm = a[FC_NM];
+    if (nm > 0) {
+        const int64_t P = a[FC_P], R = a[FC_R], T2 = a[FC_T2], K = a[FC_K], nmax = a[FC_NMAX];
+        const int64_t ch = a[FC_CHUNK] > 0 ? a[FC_CHUNK] : T2, per = (T2 + ch - 1) / ch, nchunks = R * per;
+        const int64_t ar_at = nm + nchunks / 2, ntasks = nm + nchunks + 1;
+        float* H = (float*)a[FC_H];
+        const void* local = (const void*)a[FC_LOCAL];
+        int64_t next = 0;
+        unsigned char ready[R > 0 ? R : 1];
+        for (int64_t r = 0; r < R; ++r) ready[r] = 0;
+#pragma omp parallel num_threads(a[FC_TEAM])
+        {
+            const int64_t tid = omp_get_thread_num();
+            const int prev = local ? ((mkl_local_t)local)(1) : 0;  /* MKL on this thread alone */
+            double* v = (double*)a[FC_SCRATCH] + tid * (2 * nmax + 2 * P);
+            double* o1 = v + 2 * nmax;
+            double* o2 = o1 + P;
+            for (;;) {
+                const int64_t k = __atomic_fetch_add(&next, 1, __ATOMIC_RELAXED);
+                if (k >= ntasks)
+                    break;
+                if (k < nm) {
+                    fit_one(k, (const int64_t*)a[FC_FAM], (const double*)a[FC_PRM], (const int64_t*)a[FC_X1],
+                            (const int64_t*)a[FC_X2], (const int64_t*)a[FC_A1], (const int64_t*)a[FC_A2],
+                            (const int64_t*)a[FC_NN], P, (const double*)a[FC_GD], (const void*)a[FC_VPOW], a[FC_W],
+                            (const void*)a[FC_VEXP], a[FC_MODE], (const void*)a[FC_GEMV], v, o1, o2, H);
+                    __atomic_store_n(&ready[k], 1, __ATOMIC_RELEASE);
+                } else if (k == ar_at) {
+                    for (int64_t r = 0; r < R; ++r)
+                        while (!__atomic_load_n(&ready[r], __ATOMIC_ACQUIRE))
+                            ;
+                    ar_table(H, (const float*)a[FC_LA], R, P, a[FC_N], a[FC_L], (const void*)a[FC_SGEMM], local,
+                             (float*)a[FC_HL], (float*)a[FC_C], (float*)a[FC_AR]);
+                } else {
+                    const int64_t c = k - nm - (k > ar_at), r = c / per, t0 = (c - r * per) * ch;
+                    const int64_t t1 = t0 + ch < T2 ? t0 + ch : T2;
+                    while (!__atomic_load_n(&ready[r], __ATOMIC_ACQUIRE))
+                        ;
+                    ((rows_t)a[FC_ROWS])((const float*)a[FC_WROWS], H, P, R, T2, K, (float*)a[FC_WR], r * T2 + t0,
+                                         r * T2 + t1);
+                }
+            }
+            if (local) ((mkl_local_t)local)(prev);
+        }
+        int changed = a[FC_HOLD] == 0;
+        if (!changed) {
+            const float* h0 = (const float*)a[FC_HOLD];
+            for (int64_t i = 0; i < nm * P * 3; ++i)
+                if (!(H[i] == h0[i])) {
+                    changed = 1;
+                    break;
+                }
+        }
+        a[FC_CHANGED] = changed;
+    }
+    return ((view_t)a[FC_VIEW])((const int64_t*)a[FC_VARGS]);
 }
 """
 
@@ -197,7 +280,8 @@ _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
 _SIGNATURES = {"lobe_pow": [_P, _P, _I, _I, _D, _D, _P, _I, _P, _P, _P],
                "lobe_ct": [_P, _P, _P, _P, _I, _I, _D, _D, _P, _I, _P, _P, _P, _P],
                "ar_table": [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P],
-               "fit_materials": [_I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _I, _P, _P, _P, _I, _P, _I]}
+               "fit_materials": [_I, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _I, _P, _P, _P, _I, _P, _I],
+               "frame_call": [_P]}
 # As ``methods.ptt.native``: the host's ISA, no contraction into fused multiply-adds (the torch ops'
 # roundings: each product and sum rounded), OpenMP (the library binds to the libgomp torch loaded).
 _EXTRA_FLAGS = ("-march=native", "-ffp-contract=off", "-fopenmp", f"-DPRTBENCH_CPU_{native.cpu_capability()}")
@@ -314,6 +398,19 @@ def ar_table(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> Tensor | N
     (MKL's sgemm with the einsum's arguments: the same bits, tested), written into ``out`` when it fits;
     None when it does not run here (`available`, no sgemm entry, not float32 contiguous CPU arrays, a
     product small enough for ATen's own loops)."""
+    fa = ar_args(H, lobe_a, out)
+    if fa is None:
+        return None
+    Lb, R, P, n, L, hl, c, out = fa
+    with _one_mkl_thread(Lb):
+        Lb[0].ar_table(H.data_ptr(), lobe_a.data_ptr(), R, P, n, L, Lb[5], Lb[6], hl.data_ptr(), c.data_ptr(),
+                       out.data_ptr())
+    return out
+
+
+def ar_args(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> tuple | None:
+    """`ar_table`'s C call without H's values: (the library tuple, R, P, n, L, its two scratch tensors, the
+    output — ``out`` where it fits, else a new tensor), or None where `ar_table` declines (the same checks)."""
     if not FAST_FIT:
         return None
     Lb = _library()
@@ -333,10 +430,7 @@ def ar_table(H: Tensor, lobe_a: Tensor, out: Tensor | None = None) -> Tensor | N
     buf = _AR_BUF.get(key)
     if buf is None:
         buf = _AR_BUF[key] = (torch.empty(R * 3 * P, dtype=torch.float32), torch.empty(R * 3 * n * L, dtype=torch.float32))
-    with _one_mkl_thread(Lb):
-        Lb[0].ar_table(H.data_ptr(), lobe_a.data_ptr(), R, P, n, L, Lb[5], Lb[6], buf[0].data_ptr(), buf[1].data_ptr(),
-                       out.data_ptr())
-    return out
+    return Lb, R, P, n, L, buf[0], buf[1], out
 
 
 def _one_mkl_thread(Lb):
@@ -386,6 +480,21 @@ def _family_table(basis, grid, A: Tensor, g_d: Tensor, fams: set) -> dict | None
     return tab
 
 
+_MODULES: tuple = ()
+
+
+def _modules() -> tuple:
+    """(lobe_grid, transport, scenes.materials), imported once (not at import time: transport imports this
+    module's callers)."""
+    global _MODULES
+    from methods.ptt import lobe_grid as _lg
+    from methods.ptt import transport as _tp
+    from scenes import materials as _mat
+
+    _MODULES = (_lg, _tp, _mat)
+    return _MODULES
+
+
 def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     """(len(mats), P, 3) float32: ``torch.tensor(basis.coords_rows(m), dtype=torch.float32)`` of each
     material (`transport.LobeBasis.coords_rows`: Lambert, or a `lobe_grid.FAMILIES` material fitted on
@@ -393,14 +502,60 @@ def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     bits at any nt; the float64 values and their float32 rounding as coords_rows', tested). None when it
     does not run here (`available`), the basis has no diffuse function, or a material is of another type
     or is one of the basis's own lobes (coords_rows' exact rows): the caller then fits per material."""
-    if not FAST_FIT or not mats or not getattr(basis, "diffuse", False):
+    fa = fit_args(basis, mats, nt)
+    if fa is None:
+        return None
+    Lb, args, keep = fa
+    H = torch.empty(args[0], args[8], 3, dtype=torch.float32)
+    args[18] = H.data_ptr()
+    with _one_mkl_thread(Lb):
+        Lb[0].fit_materials(*args)
+    del keep  # (the material arrays the call read)
+    return H
+
+
+@functools.lru_cache(maxsize=None)
+def _frame_fn(lib: ctypes.CDLL):
+    """The library's ``frame_call`` with its int64 result and ``frame_call_count``'s slot count."""
+    fn = lib.frame_call
+    fn.restype = ctypes.c_int64
+    fn.argtypes = [ctypes.c_void_p]
+    lib.frame_call_count.restype = ctypes.c_int64
+    return fn, int(lib.frame_call_count())
+
+
+# The slots of ``frame_call``'s packed argument array (the C enum FC_*, in its order): 0-19 `fit_materials`'.
+FC = ("nm", "fam", "prm", "x1", "x2", "A1", "A2", "nn", "P", "gd", "vpow", "w", "vexp", "mode", "gemv", "local",
+      "scratch", "nmax", "H", "ntfit", "hold", "team", "rows", "wrows", "R", "T2", "K", "wr", "chunk", "la", "n",
+      "L", "sgemm", "hl", "c", "ar", "view", "vargs", "changed")
+_FC = {k: i for i, k in enumerate(FC)}
+
+
+def frame_call_fn():
+    """(``frame_call``, its slot count) or None (`available` false, or no MKL per-thread switch: the Python
+    route then wraps the products in ``torch_threads(1)``, which the one call does not)."""
+    if not FAST_FIT:
         return None
     Lb = _library()
+    if Lb is None or Lb[2] is None or Lb[4] is None or Lb[5] is None or Lb[6] is None:
+        return None
+    fn, n = _frame_fn(Lb[0])
+    return (fn, n) if n == len(FC) else None
+
+
+def fit_args(basis, mats: list, nt: int = 1, Lb: tuple | None = None, team: int = 0) -> tuple | None:
+    """`fit_materials`' C call without its output: (the library tuple, the call's 20 arguments as a list —
+    slot 18, H's address, still 0 —, the ctypes arrays they point into, to keep alive), or None where
+    `fit_materials` declines (the same checks). ``Lb``: `_library()`'s tuple as the caller looked it up in
+    this frame (``method.FRAME_CALL``'s plan, made under the same compile switch), else looked up here.
+    ``team``: scratch for that many threads at least (``frame_call``'s team)."""
+    if not FAST_FIT or not mats or not getattr(basis, "diffuse", False):
+        return None
+    if Lb is None:
+        Lb = _library()
     if Lb is None or Lb[2] is None or Lb[4] is None:
         return None
-    from methods.ptt import lobe_grid as _lg
-    from methods.ptt import transport as _tp
-    from scenes import materials as _mat
+    _lg, _tp, _mat = _MODULES or _modules()
 
     keys = basis.__dict__.get("_lobe_keys")
     if keys is None:
@@ -440,11 +595,9 @@ def fit_materials(basis, mats: list, nt: int = 1) -> Tensor | None:
     P = int(tab["gd"].shape[0])
     nmax = max([tab["n"][_FAMILY_SLOT[f]] for f in fams], default=0)
     nt = max(1, min(int(nt), nm))
-    scratch = _scratch(nt * (2 * nmax + 2 * P))
-    H = torch.empty(nm, P, 3, dtype=torch.float32)
+    scratch = _scratch(max(nt, team) * (2 * nmax + 2 * P))
     _, w, vpow, vexp, gemv, _, local = Lb
-    with _one_mkl_thread(Lb):
-        Lb[0].fit_materials(nm, fam, prm, tab["x1"], tab["x2"], tab["A1"], tab["A2"], tab["n"], P,
-                            tab["gd"].data_ptr(), vpow, w, vexp, _VML_MODE, gemv, local, scratch.data_ptr(), nmax,
-                            H.data_ptr(), nt)
-    return H
+    ad = ctypes.addressof
+    return Lb, [nm, ad(fam), ad(prm), ad(tab["x1"]), ad(tab["x2"]), ad(tab["A1"]), ad(tab["A2"]), ad(tab["n"]), P,
+                tab["gd"].data_ptr(), vpow or 0, w, vexp or 0, _VML_MODE, gemv or 0, local or 0, scratch.data_ptr(),
+                nmax, 0, nt], (fam, prm)
