@@ -1486,3 +1486,100 @@ def test_light_stage_key_follows_the_rotation_in_place():
     assert m.stats["light"] == n + 1 and (m._light - l0).abs().max() > 1e-3
     want = SHPRT.lighting(m, env).float()
     assert (m._light - want).abs().max() <= 1e-6 * want.abs().max()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("S2", [1, 4])
+def test_order5_glossy_body_equals_the_body_for_any_order(threads, S2, monkeypatch):
+    """Session 43 (sh43): the fused glossy pass's order-5 body (`native.ORDER5_BODY`: n a compile-time constant)
+    and the pass's values handed to the pixels' add in registers give bit for bit the body for any order's
+    results — `native.glossy` (its values and the pixels it adds to) and `native.view` — on random tables with a
+    Phong and a Blinn-Phong region, back-facing samples, unnormalised normals, a partial last block; and order 3
+    and 7 (the body for any order) are unchanged by the switch."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "FUSED_GLOSSY", True)
+    monkeypatch.setattr(native, "MIN_PIXELS_PER_THREAD", 64)
+    monkeypatch.setattr(native, "MIN_GLOSSY_PER_THREAD", 64)
+    gen = torch.Generator().manual_seed(43 + S2 + 10 * threads)
+    for order in (5, 3, 7):
+        n2, n, M, Vg, R = order * order, 1001, 60, 50, 3
+        P = n * S2
+        face = torch.randint(-1, M, (P,), generator=gen)
+        hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+        bary = (torch.rand(2, P, generator=gen) * 0.5).T
+        normal = torch.randn(P, 3, generator=gen) * 1.7
+        wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+        reg = torch.randint(0, R, (P,), generator=gen)
+        ef = torch.randn(M, 9, generator=gen)
+        fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.5).float()], 1)
+        fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+        kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
+        vcos = torch.tensor([False, True, False])
+        lg3 = torch.randn(3, Vg, n2, generator=gen)
+        AS = shm._sh_factor_tables(order, torch.device("cpu"))
+        g = hit.logical_and(fk[face.clamp(0, M - 1), 3] != 0).nonzero().squeeze(-1)
+        old = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        out = {}
+        try:
+            for body in (True, False):
+                monkeypatch.setattr(native, "ORDER5_BODY", body)
+                img = torch.rand(n, 3, generator=torch.Generator().manual_seed(7))
+                vals = native.glossy(g, face.clamp(0, M - 1), bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos, *AS,
+                                     img=img, S2=S2)
+                view = native.view(face, hit, bary, normal, wo, ef, fk, S2, reg, fg, lg3, kd, ks, G, vcos, *AS)
+                out[body] = (vals, img, view)
+        finally:
+            torch.set_num_threads(old)
+        if out[True][2] is None:
+            pytest.skip("no AVX2")
+        (va, ia, wa), (vb, ib, wb) = out[True], out[False]
+        assert g.numel() > 100 and (va > 0).float().mean() > 0.2 and (va == 0).float().mean() > 0.05
+        assert torch.equal(va, vb) and torch.equal(ia, ib) and torch.equal(wa, wb)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("n", [1000, 1001])
+def test_pixel_pass_writes_no_pixel_past_its_range(threads, n, monkeypatch):
+    """Session 43 (sh43): the 8-lane pixel pass stores a pixel pair's second pixel 4 floats wide (the 4th on the next
+    pixel, written after it) except in its range's last group (`SH_PX_WIDE_STORE`): called on an image buffer one
+    pixel longer than its n pixels, the pixel after them keeps its values (a wide last store would zero its first
+    channel), and the n pixels are `native.pixels`' — at 1 and 2 threads (ranges ending mid-image), n even and odd."""
+    import ctypes
+
+    from methods.sh_prt import native
+
+    lib = native._lib()
+    if lib is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "MIN_PIXELS_PER_THREAD", 64)
+    gen = torch.Generator().manual_seed(n + threads)
+    S2, M = 4, 60
+    P = n * S2
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T
+    normal = torch.randn(P, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+    ef = torch.rand(M, 9, generator=gen) + 0.5
+    fk = torch.cat([torch.rand(M, 3, generator=gen) + 0.5, (torch.rand(M, 1, generator=gen) < 0.3).float()], 1)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        want = native.pixels(face, hit, bary, normal, wo, ef, fk, S2)
+        if want is None:
+            pytest.skip("no C loop")
+        img = torch.full((n + 1, 3), 7.0)
+        gl = torch.empty(P, dtype=torch.int64)
+        cnt = ctypes.c_int64(0)
+        lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
+                      normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0),
+                      wo.stride(1), ef.data_ptr(), fk.data_ptr(), M, 1.0 / S2, img.data_ptr(), gl.data_ptr(),
+                      ctypes.addressof(cnt), threads, 1)
+    finally:
+        torch.set_num_threads(old)
+    assert (want[0] > 0).float().mean() > 0.3
+    assert torch.equal(img[n], torch.full((3,), 7.0)) and torch.equal(img[:n], want[0])
