@@ -1542,6 +1542,78 @@ def test_order5_glossy_body_equals_the_body_for_any_order(threads, S2, monkeypat
 
 
 @pytest.mark.parametrize("threads", [1, 2])
+def test_view_again_equals_render(threads, monkeypatch):
+    """Session 43 (sh43): a view frame after a one-pass view frame rendered by `SHPRT._view_again` (`VIEW_AGAIN`:
+    the kept `native.view` call) gives bit for bit `_render`'s image (the switch off) and the same state, frame after
+    frame of a sequence that also changes, between view frames, the lighting's rotation (a new tensor, and the same
+    tensor rotated in place), the env map's texels in place, a material (a new object), the G-buffer's sample
+    count, the thread count and the glossy pass's switches; it takes the fast path on the plain view frames only."""
+    import copy
+    import dataclasses
+
+    from methods.sh_prt import method as shm, native
+    from scenes.library import rotation_y
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene("creature", "test")
+    m = shm.SHPRT(order=5, bounces=0, rays=16)
+    m.precompute(scene)
+    frames = make_sequence(scene, "V", n_frames=14, seed=3)
+    env2 = EnvMap(frames[0].envmap.data.clone(), frames[0].envmap.to_world)
+    name = next(r for r in m.regions if frames[0].materials[r].kind == "lambert")
+    mats = dict(frames[0].materials, **{name: Lambert(kd=(0.2, 0.5, 0.3))})
+    events = {4: "rotation", 6: "rotate in place", 8: "texels", 10: "material", 11: "spp", 12: "threads",
+              13: "fused"}
+    taken = []
+    real = shm.SHPRT._view_again
+
+    def spy(self, *a):
+        img = real(self, *a)
+        taken.append(img is not None)
+        return img
+    monkeypatch.setattr(shm.SHPRT, "_view_again", spy)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    a, b = copy.copy(m), copy.copy(m)
+    a._reset_cache()
+    b._reset_cache()
+    try:
+        for i, frame in enumerate(frames):
+            ev = events.get(i)
+            if ev == "rotation":
+                env2.to_world = torch.as_tensor(rotation_y(0.7), dtype=env2.to_world.dtype)
+            if ev == "rotate in place":
+                env2.to_world.copy_(torch.as_tensor(rotation_y(-0.4), dtype=env2.to_world.dtype))
+            if ev == "texels":
+                env2.data.mul_(1.5)
+            if ev == "threads":
+                torch.set_num_threads(3 - threads)
+            if ev == "fused":
+                monkeypatch.setattr(native, "ORDER5_BODY", False)
+            if i >= 4:
+                frame = dataclasses.replace(frame, envmap=env2, materials=mats if i >= 10 else frame.materials)
+            gb = make_gbuffer(scene, frame, 1 if ev == "spp" else 2)
+            taken.clear()
+            monkeypatch.setattr(shm, "VIEW_AGAIN", True)
+            x = a.render(frame, gb)
+            fast = taken == [True]
+            monkeypatch.setattr(shm, "VIEW_AGAIN", False)
+            y = b.render(frame, gb)
+            assert torch.equal(x, y), (i, ev)
+            assert a.stats == b.stats and a._view_state == b._view_state and a._last_gbuffer is b._last_gbuffer
+            assert (a._relight is None) == (b._relight is None)
+            # frames 0-1: the lighting change and the table's completion; the first frame after each change, and
+            # the spp / thread frames (another G-buffer or the same call at another thread count: fast), take it
+            # only where nothing it checks changed
+            want_fast = i >= 2 and ev not in ("rotation", "rotate in place", "texels", "material", "spp", "fused") \
+                and events.get(i - 1) not in ("rotation", "rotate in place", "texels", "material", "spp", "fused")
+            assert fast == want_fast, (i, ev, taken)
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("n", [1000, 1001])
 def test_pixel_pass_writes_no_pixel_past_its_range(threads, n, monkeypatch):
     """Session 43 (sh43): the 8-lane pixel pass stores a pixel pair's second pixel 4 floats wide (the 4th on the next
