@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 
 import torch
 from torch import Tensor
@@ -264,6 +265,9 @@ static inline void tr8(__m256 *r) {
 #ifndef SH_PX_PF
 #define SH_PX_PF 8       /* groups of 8 samples between a group's face-row prefetch and its use (`px_range8`); 0: none */
 #endif
+#ifndef SH_PX_WIDE_STORE
+#define SH_PX_WIDE_STORE 1  /* session 43: the pixel pair's second pixel stored 4 wide but in a range's last group */
+#endif
 #ifndef SH_PX_PF_STEP
 #define SH_PX_PF_STEP 1  /* every sample's face rows prefetched (2: one per two samples, ...) */
 #endif
@@ -394,6 +398,14 @@ static int64_t px_range8(int64_t p0, int64_t p1, const int64_t *face, const uint
             const __m256 S2v = _mm256_shuffle_ps(b01, b2z, 0x44), S3 = _mm256_shuffle_ps(b01, b2z, 0xEE);
             const __m256 sum = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(_mm256_add_ps(S0, S1), S2v), S3), invv);
             _mm_storeu_ps(img + 3 * p, _mm256_castps256_ps128(sum));
+#if SH_PX_WIDE_STORE
+            /* session 43: the second pixel's 3 values stored as 4 floats (the 4th, 0, on the next pixel's first
+               channel, which the next group's store writes after it, in this thread) except in a range's last
+               group, whose pixel after is another range's: AMD's masked store was a slow spot of the pass */
+            if (p + 2 < p1)
+                _mm_storeu_ps(img + 3 * p + 3, _mm256_extractf128_ps(sum, 1));
+            else
+#endif
             _mm_maskstore_ps(img + 3 * p + 3, _mm_setr_epi32(-1, -1, -1, 0), _mm256_extractf128_ps(sum, 1));
         }
 #endif
@@ -757,6 +769,7 @@ static inline __attribute__((always_inline)) void gl_body(
             const int32_t *fr = fg + 3 * f;
             const float *ec = ef + 9 * f;
             const __m256 W = _mm256_set1_ps(w0), U = _mm256_set1_ps(u), V = _mm256_set1_ps(v);
+            float ov[3];
             for (int64_t c = 0; c < 3; ++c) {
                 const float *L0 = lg + c * lsc + fr[0] * lsr, *L1 = lg + c * lsc + fr[1] * lsr,
                             *L2 = lg + c * lsc + fr[2] * lsr;
@@ -775,9 +788,12 @@ static inline __attribute__((always_inline)) void gl_body(
                 const float spec = hsum8(acc) + (L0[0] * w0 + L1[0] * u + L2[0] * v) * y0;
                 const float e = ec[c] * w0 + ec[3 + c] * u + ec[6 + c] * v;
                 const float val = kd[r * 3 + c] * e + ks[r * 3 + c] * spec;
-                o[c] = val < 0.0f ? 0.0f : val;
+                ov[c] = val < 0.0f ? 0.0f : val;
             }
-            if (po) { po[0] += o[0] * inv; po[1] += o[1] * inv; po[2] += o[2] * inv; }
+            /* session 43: the values kept in registers for the pixel's add (they were stored to ``out`` and read
+               back: ``out`` and ``img`` may alias, as far as the compiler knows) */
+            o[0] = ov[0]; o[1] = ov[1]; o[2] = ov[2];
+            if (po) { po[0] += ov[0] * inv; po[1] += ov[1] * inv; po[2] += ov[2] * inv; }
         }
     }
 }
@@ -795,6 +811,13 @@ static void gl_range(int64_t q0, int64_t q1, int64_t n, const int64_t *g, const 
                      const float *A, const int32_t *sel, float *out, float *img, int64_t S2, float inv,
                      int64_t fused) {
 #ifdef __FMA__
+    /* session 43: the paper's order 5 (the perf suite's) a body of its own, n a constant (its loops unrolled:
+       the same operations, the same bits; `ORDER5_BODY`); fused = 3: fused, always the body for any n */
+    if (fused == 1 && n == 5) {
+        gl_body(q0, q1, 5, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
+                vcos, A, sel, out, img, S2, inv, 1);
+        return;
+    }
     if (fused) {
         gl_body(q0, q1, n, g, face, Mf, reg, Rn, B, br, bc, N, nr, nc, O, orr, oc, ef, fg, lg, lsc, lsr, kd, ks, G,
                 vcos, A, sel, out, img, S2, inv, 1);
@@ -1319,6 +1342,18 @@ MIN_RELIGHT_PER_THREAD = 1024   # glossy samples below which one thread does the
 # from the unfused loop, which False restores). Creature bench V frame's glossy samples, 1 thread,
 # process CPU, same process alternating: 1.08x the pass.
 FUSED_GLOSSY = True
+# Session 43 (sh43): the fused glossy pass at order 5 (the paper's and the perf suite's) by a body compiled with
+# n = 5 a constant (`gl_range`: its loops unrolled, the same operations in the same order: the same bits) and the
+# pass's values handed to the pixel's add in registers (they went through ``out`` in memory, for all orders);
+# creature bench V frame's one pass (`benchmarks.sh_prt43_view`, 1 thread, caches cold, same process alternating
+# against the base's library): 1.08x. False: the body for any order (its oracle).
+ORDER5_BODY = True
+
+
+def _fused() -> int:
+    """The glossy pass's ``fused`` argument: 0 unfused, 1 fused (at order 5 its own body: `ORDER5_BODY`), 3 fused
+    with the body for any order."""
+    return (1 if ORDER5_BODY else 3) if FUSED_GLOSSY else 0
 
 
 _LOADED: list = [None]
@@ -1329,12 +1364,27 @@ def _lib():
     # was off (a test's monkeypatch) is not kept for the process. Session 41: the loaded library is kept here
     # (PRTBENCH_COMPILE still read at each call): `native.load`'s lookup (its signature tuples, the flags,
     # the source key) cost 20-60 µs a call with the caches cold, 3-5 calls a frame
-    if not compile_enabled():
+    if not _compile_on():
         return None
     lib = _LOADED[0]
     if lib is None:
         lib = _LOADED[0] = native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
     return lib
+
+
+_ENV_DATA = getattr(os.environ, "_data", None)      # POSIX: os.environ's own dict, bytes keys and values
+_OFF = ("0", "false", "no", "off")
+
+
+def _compile_on() -> bool:
+    """`compile_enabled` (PRTBENCH_COMPILE read at each call) by one lookup in os.environ's dict (session 43: its
+    Mapping ``get`` — encode the key, ``__getitem__``, a KeyError caught when unset — was 14-18 µs a call with the
+    caches cold, 50 µs after 0.2 s idle, 1-5 calls a frame); `compile_enabled` itself where that dict is not there."""
+    d = _ENV_DATA
+    if d is None or os.name != "posix":
+        return compile_enabled()
+    v = d.get(b"PRTBENCH_COMPILE")
+    return v is None or os.fsdecode(v).strip() not in _OFF
 
 
 def _flags() -> tuple[str, ...]:
@@ -1752,7 +1802,7 @@ def glossy(g: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, re
                   bary.data_ptr(), bary.stride(0), bary.stride(1), normal.data_ptr(), normal.stride(0), normal.stride(1),
                   wo.data_ptr(), wo.stride(0), wo.stride(1), ef.data_ptr(), fg.data_ptr(), lg3.data_ptr(),
                   lg3.stride(0), lg3.stride(1), kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(),
-                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr(), int(bool(FUSED_GLOSSY)),
+                  A.data_ptr(), sel.data_ptr(), out.data_ptr(), nt, ok.data_ptr(), _fused(),
                   None if img is None else img.data_ptr(), int(S2), 1.0 / S2)
     return out if int(ok) else None
 
@@ -1787,7 +1837,7 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
     c = _VS[0]
     if (VIEW_STATIC_KEPT and c is not None and c[0] is lib and c[1] is ef and c[2] is fk and c[3] is fg
             and c[4] is lg3 and c[5] is kd and c[6] is ks and c[7] is G and c[8] is vcos and c[9] is A and c[10] is S
-            and c[11] == (vcos._version, S._version) and c[12] == S2):
+            and c[11] == (vcos._version, S._version) and c[12] == S2 and c[13][17] == _fused()):
         return _view_kept(c, face, hit, bary, normal, wo, reg, shape)
     n = math.isqrt(int(G.shape[1]))
     if (lib is None or face.device.type != "cpu" or face.dtype != torch.int64 or hit.dtype != torch.bool
@@ -1810,7 +1860,7 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
         _VS[0] = (lib, ef, fk, fg, lg3, kd, ks, G, vcos, A, S, (vcos._version, S._version), S2,
                   (ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, int(bool(VECTOR_PIXELS)), n,
                    int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1), kd.data_ptr(),
-                   ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), int(bool(FUSED_GLOSSY)),
+                   ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(), _fused(),
                    int(VIEW_CHUNK)), v8, sel)
     npx = P // S2
     # session 41: the image in the caller's shape (`SHPRT._render_fast` returns it as it is), the flag a ctypes
@@ -1823,7 +1873,7 @@ def view(face: Tensor, hit: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, ef
                 ef.data_ptr(), fk.data_ptr(), int(ef.shape[0]), 1.0 / S2, img.data_ptr(), int(bool(VECTOR_PIXELS)),
                 n, reg.data_ptr(), int(kd.shape[0]), fg.data_ptr(), lg3.data_ptr(), lg3.stride(0), lg3.stride(1),
                 kd.data_ptr(), ks.data_ptr(), G.data_ptr(), v8.data_ptr(), A.data_ptr(), sel.data_ptr(),
-                int(bool(FUSED_GLOSSY)), int(VIEW_CHUNK), nt, ctypes.addressof(ok))
+                _fused(), int(VIEW_CHUNK), nt, ctypes.addressof(ok))
     return img if ok.value else None
 
 

@@ -1486,3 +1486,172 @@ def test_light_stage_key_follows_the_rotation_in_place():
     assert m.stats["light"] == n + 1 and (m._light - l0).abs().max() > 1e-3
     want = SHPRT.lighting(m, env).float()
     assert (m._light - want).abs().max() <= 1e-6 * want.abs().max()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("S2", [1, 4])
+def test_order5_glossy_body_equals_the_body_for_any_order(threads, S2, monkeypatch):
+    """Session 43 (sh43): the fused glossy pass's order-5 body (`native.ORDER5_BODY`: n a compile-time constant)
+    and the pass's values handed to the pixels' add in registers give bit for bit the body for any order's
+    results — `native.glossy` (its values and the pixels it adds to) and `native.view` — on random tables with a
+    Phong and a Blinn-Phong region, back-facing samples, unnormalised normals, a partial last block; and order 3
+    and 7 (the body for any order) are unchanged by the switch."""
+    from methods.sh_prt import method as shm, native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "FUSED_GLOSSY", True)
+    monkeypatch.setattr(native, "MIN_PIXELS_PER_THREAD", 64)
+    monkeypatch.setattr(native, "MIN_GLOSSY_PER_THREAD", 64)
+    gen = torch.Generator().manual_seed(43 + S2 + 10 * threads)
+    for order in (5, 3, 7):
+        n2, n, M, Vg, R = order * order, 1001, 60, 50, 3
+        P = n * S2
+        face = torch.randint(-1, M, (P,), generator=gen)
+        hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+        bary = (torch.rand(2, P, generator=gen) * 0.5).T
+        normal = torch.randn(P, 3, generator=gen) * 1.7
+        wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+        reg = torch.randint(0, R, (P,), generator=gen)
+        ef = torch.randn(M, 9, generator=gen)
+        fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.5).float()], 1)
+        fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+        kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
+        vcos = torch.tensor([False, True, False])
+        lg3 = torch.randn(3, Vg, n2, generator=gen)
+        AS = shm._sh_factor_tables(order, torch.device("cpu"))
+        g = hit.logical_and(fk[face.clamp(0, M - 1), 3] != 0).nonzero().squeeze(-1)
+        old = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        out = {}
+        try:
+            for body in (True, False):
+                monkeypatch.setattr(native, "ORDER5_BODY", body)
+                img = torch.rand(n, 3, generator=torch.Generator().manual_seed(7))
+                vals = native.glossy(g, face.clamp(0, M - 1), bary, normal, wo, reg, ef, fg, lg3, kd, ks, G, vcos, *AS,
+                                     img=img, S2=S2)
+                view = native.view(face, hit, bary, normal, wo, ef, fk, S2, reg, fg, lg3, kd, ks, G, vcos, *AS)
+                out[body] = (vals, img, view)
+        finally:
+            torch.set_num_threads(old)
+        if out[True][2] is None:
+            pytest.skip("no AVX2")
+        (va, ia, wa), (vb, ib, wb) = out[True], out[False]
+        assert g.numel() > 100 and (va > 0).float().mean() > 0.2 and (va == 0).float().mean() > 0.05
+        assert torch.equal(va, vb) and torch.equal(ia, ib) and torch.equal(wa, wb)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_view_again_equals_render(threads, monkeypatch):
+    """Session 43 (sh43): a view frame after a one-pass view frame rendered by `SHPRT._view_again` (`VIEW_AGAIN`:
+    the kept `native.view` call) gives bit for bit `_render`'s image (the switch off) and the same state, frame after
+    frame of a sequence that also changes, between view frames, the lighting's rotation (a new tensor, and the same
+    tensor rotated in place), the env map's texels in place, a material (a new object), the G-buffer's sample
+    count, the thread count and the glossy pass's switches; it takes the fast path on the plain view frames only."""
+    import copy
+    import dataclasses
+
+    from methods.sh_prt import method as shm, native
+    from scenes.library import rotation_y
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    scene = get_scene("creature", "test")
+    m = shm.SHPRT(order=5, bounces=0, rays=16)
+    m.precompute(scene)
+    frames = make_sequence(scene, "V", n_frames=14, seed=3)
+    env2 = EnvMap(frames[0].envmap.data.clone(), frames[0].envmap.to_world)
+    name = next(r for r in m.regions if frames[0].materials[r].kind == "lambert")
+    mats = dict(frames[0].materials, **{name: Lambert(kd=(0.2, 0.5, 0.3))})
+    events = {4: "rotation", 6: "rotate in place", 8: "texels", 10: "material", 11: "spp", 12: "threads",
+              13: "fused"}
+    taken = []
+    real = shm.SHPRT._view_again
+
+    def spy(self, *a):
+        img = real(self, *a)
+        taken.append(img is not None)
+        return img
+    monkeypatch.setattr(shm.SHPRT, "_view_again", spy)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    a, b = copy.copy(m), copy.copy(m)
+    a._reset_cache()
+    b._reset_cache()
+    try:
+        for i, frame in enumerate(frames):
+            ev = events.get(i)
+            if ev == "rotation":
+                env2.to_world = torch.as_tensor(rotation_y(0.7), dtype=env2.to_world.dtype)
+            if ev == "rotate in place":
+                env2.to_world.copy_(torch.as_tensor(rotation_y(-0.4), dtype=env2.to_world.dtype))
+            if ev == "texels":
+                env2.data.mul_(1.5)
+            if ev == "threads":
+                torch.set_num_threads(3 - threads)
+            if ev == "fused":
+                monkeypatch.setattr(native, "ORDER5_BODY", False)
+            if i >= 4:
+                frame = dataclasses.replace(frame, envmap=env2, materials=mats if i >= 10 else frame.materials)
+            gb = make_gbuffer(scene, frame, 1 if ev == "spp" else 2)
+            taken.clear()
+            monkeypatch.setattr(shm, "VIEW_AGAIN", True)
+            x = a.render(frame, gb)
+            fast = taken == [True]
+            monkeypatch.setattr(shm, "VIEW_AGAIN", False)
+            y = b.render(frame, gb)
+            assert torch.equal(x, y), (i, ev)
+            assert a.stats == b.stats and a._view_state == b._view_state and a._last_gbuffer is b._last_gbuffer
+            assert (a._relight is None) == (b._relight is None)
+            # frames 0-1: the lighting change and the table's completion; the first frame after each change, and
+            # the spp / thread frames (another G-buffer or the same call at another thread count: fast), take it
+            # only where nothing it checks changed
+            want_fast = i >= 2 and ev not in ("rotation", "rotate in place", "texels", "material", "spp", "fused") \
+                and events.get(i - 1) not in ("rotation", "rotate in place", "texels", "material", "spp", "fused")
+            assert fast == want_fast, (i, ev, taken)
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("n", [1000, 1001])
+def test_pixel_pass_writes_no_pixel_past_its_range(threads, n, monkeypatch):
+    """Session 43 (sh43): the 8-lane pixel pass stores a pixel pair's second pixel 4 floats wide (the 4th on the next
+    pixel, written after it) except in its range's last group (`SH_PX_WIDE_STORE`): called on an image buffer one
+    pixel longer than its n pixels, the pixel after them keeps its values (a wide last store would zero its first
+    channel), and the n pixels are `native.pixels`' — at 1 and 2 threads (ranges ending mid-image), n even and odd."""
+    import ctypes
+
+    from methods.sh_prt import native
+
+    lib = native._lib()
+    if lib is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(native, "MIN_PIXELS_PER_THREAD", 64)
+    gen = torch.Generator().manual_seed(n + threads)
+    S2, M = 4, 60
+    P = n * S2
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T
+    normal = torch.randn(P, 3, generator=gen)
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+    ef = torch.rand(M, 9, generator=gen) + 0.5
+    fk = torch.cat([torch.rand(M, 3, generator=gen) + 0.5, (torch.rand(M, 1, generator=gen) < 0.3).float()], 1)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        want = native.pixels(face, hit, bary, normal, wo, ef, fk, S2)
+        if want is None:
+            pytest.skip("no C loop")
+        img = torch.full((n + 1, 3), 7.0)
+        gl = torch.empty(P, dtype=torch.int64)
+        cnt = ctypes.c_int64(0)
+        lib.sh_pixels(n, S2, face.data_ptr(), hit.data_ptr(), bary.data_ptr(), bary.stride(0), bary.stride(1),
+                      normal.data_ptr(), normal.stride(0), normal.stride(1), wo.data_ptr(), wo.stride(0),
+                      wo.stride(1), ef.data_ptr(), fk.data_ptr(), M, 1.0 / S2, img.data_ptr(), gl.data_ptr(),
+                      ctypes.addressof(cnt), threads, 1)
+    finally:
+        torch.set_num_threads(old)
+    assert (want[0] > 0).float().mean() > 0.3
+    assert torch.equal(img[n], torch.full((3,), 7.0)) and torch.equal(img[:n], want[0])
