@@ -49,12 +49,13 @@ barrier): not measured. Dropped: phase (1) 8 samples a step on AVX-512 (1.01x); 
 from __future__ import annotations
 
 import ctypes
+import os
 
 import torch
 from torch import Tensor
 
 from methods.core import native
-from methods.inout.native_sample import load_remembered
+from methods.inout.native_sample import _ENV_KEY, load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -347,11 +348,24 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
     stats[0] = miss;
     stats[1] = err;
 }
+
+/* vertex_frame with its frame-independent arguments from the packed array a (`bind`: face_region, M, fv, pos,
+   frames, cam, voff, S, R, shp, cp, K, B, fst, vst, FB, stats, in vertex_frame's order): a cold ctypes call
+   costs ~1 us an argument (session 43) */
+void vertex_frame_packed(const int64_t *a, const int64_t *face, const int64_t *region, const uint8_t *hit,
+                         const float *bu, const float *bv, int64_t n, int64_t S2, int64_t stamp, float *out,
+                         int64_t nt, int64_t fast) {
+    vertex_frame(face, region, hit, bu, bv, n, S2, (const int64_t *)a[0], a[1], (const int32_t *)a[2],
+                 (const float *)a[3], (const float *)a[4], (const float *)a[5], (const int64_t *)a[6], a[7], a[8],
+                 (const int64_t *)a[9], (const int64_t *)a[10], (const int64_t *)a[11], (float *)a[12],
+                 (int32_t *)a[13], (int32_t *)a[14], (float *)a[15], stamp, out, nt, fast, (int64_t *)a[16]);
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"vertex_frame": [_P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _P, _P, _P,
-                                _P, _P, _P, _P, _I, _P, _I, _I, _P]}
+                                _P, _P, _P, _P, _I, _P, _I, _I, _P],
+               "vertex_frame_packed": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _P, _I, _I]}
 # Samples a chunk of phase (1) under ``FAST`` bit 4 (the C source's PCHUNK)
 PCHUNK = 8192
 assert f"#define PCHUNK {PCHUNK}\n" in _SOURCE
@@ -373,6 +387,10 @@ MIN_PIXELS_PER_THREAD = 1 << 13
 #   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
 #   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
 FAST = 14
+# `Bound.frame` calls ``vertex_frame_packed`` (12 arguments: the frame-independent ones packed once by `bind`) instead
+# of ``vertex_frame`` (28): with the caches the suite's rasteriser leaves, a ctypes call of a trivial C function
+# took 36 us with 28 integer arguments and 24 with 11 (session 43, median of 48 cold calls); the same loop
+PACKED = True
 
 
 _LOADED: list = []      # the library once loaded (`_lib`)
@@ -380,8 +398,17 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 
 def _lib():
     """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
-    remembered once loaded (`native_sample.load_remembered`)."""
+    remembered once loaded (`native_sample.load_remembered`). Session 43: `native_sample.compile_unset`'s test
+    inline (``os.environ``'s own mapping, taken once: the variable set or removed later changes that very
+    dict), one Python call fewer a frame."""
+    if _LOADED and _ENV_DATA is not None and _ENV_KEY not in _ENV_DATA:
+        return _LOADED[0]
     return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
+
+
+# os.environ's mapping of encoded keys (POSIX), as `native_sample.compile_unset` reads it, or None
+_ENV_DATA = getattr(os.environ, "_data", None) if os.name == "posix" else None
+_ENV_DATA = _ENV_DATA if type(_ENV_DATA) is dict else None
 
 
 def _flags() -> tuple[str, ...]:
@@ -415,7 +442,8 @@ class Bound:
     static arrays, the camera as a tensor, the barycentrics' unbind, the stats tensor and the image's
     view cost a creature bench frame ~0.25 ms of serial Python (1 thread); here ~a tenth of that."""
 
-    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail", "cam")
+    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail", "cam", "like",
+                 "regions", "names", "fnp", "pack", "pk")
 
     def fits(self, st, cs: list[Tensor], mem, lib) -> bool:
         """True when bound to these very objects (the tensors' identity: their storage is not replaced
@@ -446,15 +474,24 @@ class Bound:
             u, v = u.contiguous(), v.contiguous()
             bu, bv = u.data_ptr(), v.data_ptr()
         cam = self.cam
-        cam[0], cam[1], cam[2] = origin           # float32 as torch.tensor(origin, dtype=torch.float32)
+        cam[0:3] = origin                         # float32 as torch.tensor(origin, dtype=torch.float32)
         shape = shape if shape is not None else (n, 3)
-        out = torch.empty(shape, dtype=torch.float32)
+        like = self.like
+        if like is None or like.shape != shape:
+            # a float32 tensor of the image's shape and no memory (strides 0): `torch.empty_like` of it is a
+            # contiguous image, ~10 us cheaper than `torch.empty`'s argument parsing with cold caches (session 43)
+            like = self.like = torch.zeros((), dtype=torch.float32).expand(shape)
+        out = torch.empty_like(like, memory_format=torch.contiguous_format)
         if out.numel() != 3 * n:
             return None
         nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
         st = self.stats
-        self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
-                *self.tail, stamp, out.data_ptr(), nt, FAST, st)
+        if PACKED:
+            self.fnp(self.pk, face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, stamp, out.data_ptr(),
+                     nt, FAST)
+        else:
+            self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
+                    *self.tail, stamp, out.data_ptr(), nt, FAST, st)
         return out, st[0], st[1]
 
     def __deepcopy__(self, memo):
@@ -498,9 +535,14 @@ def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> 
     mp = ctypes.addressof(b.meta)
     b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
     b.cam = (ctypes.c_float * 3)()                    # the frame's camera position (`Bound.frame`)
+    b.like = b.regions = b.names = None
     b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
     b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
               fst.data_ptr(), vst.data_ptr(), FB.data_ptr())
+    b.fnp = lib.vertex_frame_packed
+    statics = (*b.head, ctypes.addressof(b.cam), *b.tail, ctypes.addressof(b.stats))
+    b.pack = (ctypes.c_int64 * len(statics))(*statics)      # `vertex_frame_packed`'s a, kept with the bound call
+    b.pk = ctypes.addressof(b.pack)
     return b
 
 
