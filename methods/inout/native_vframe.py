@@ -55,7 +55,7 @@ import torch
 from torch import Tensor
 
 from methods.core import native
-from methods.inout.native_sample import _ENV_KEY, load_remembered
+from methods.inout.native_sample import _ENV_KEY, AVX512_FLAGS, load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -63,6 +63,9 @@ _SOURCE = r"""
 #include <stdint.h>
 #include <math.h>
 #include <omp.h>
+#if defined(__AVX2__) || defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #define VCHUNK 512
 #define PCHUNK 8192
@@ -302,6 +305,54 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                on each channel in the same order: the same bits) */
             for (int64_t i = i0; i < i1; ++i) {
                 v4 acc = {0.0f, 0.0f, 0.0f, 0.0f};
+#if defined(__AVX512F__)
+                uint32_t h4 = 0;
+                if ((fast & 32) && S2 == 4)
+                    __builtin_memcpy(&h4, hit + 4 * i, 4);
+                if (h4 == 0x01010101u) {
+                    /* (fast & 32) a pixel's 4 samples, all hits, as the 4 lane groups of one 16-float vector: each
+                       sample's (x ww + y u) + z v in its group (the same operations per lane), then added to acc
+                       in the samples' order (the loop below's bits) */
+                    const int64_t p = 4 * i;
+                    int64_t fq[4];
+                    for (int64_t j = 0; j < 4; ++j)
+                        fq[j] = face[p + j] < 0 ? 0 : (face[p + j] >= M ? M - 1 : face[p + j]);
+                    const float *r0 = FB + 12 * fq[0], *r1 = FB + 12 * fq[1], *r2 = FB + 12 * fq[2], *r3 = FB + 12 * fq[3];
+                    __m512 X = _mm512_castps128_ps512(_mm_loadu_ps(r0));
+                    __m512 Y = _mm512_castps128_ps512(_mm_loadu_ps(r0 + 4));
+                    __m512 Z = _mm512_castps128_ps512(_mm_loadu_ps(r0 + 8));
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r1), 1);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r1 + 4), 1);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r1 + 8), 1);
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r2), 2);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r2 + 4), 2);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r2 + 8), 2);
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r3), 3);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r3 + 4), 3);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r3 + 8), 3);
+                    const __m128 u4 = _mm_loadu_ps(bu + p), v4_ = _mm_loadu_ps(bv + p);
+                    const __m128 w4 = _mm_sub_ps(_mm_sub_ps(_mm_set1_ps(1.0f), u4), v4_);   /* 1.0f - u - v */
+                    const __m512i spread = _mm512_set_epi32(3, 3, 3, 3, 2, 2, 2, 2, 1, 1, 1, 1, 0, 0, 0, 0);
+                    const __m512 U = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(u4));
+                    const __m512 V = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(v4_));
+                    const __m512 WW = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(w4));
+                    const __m512 Sm = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(X, WW), _mm512_mul_ps(Y, U)),
+                                                    _mm512_mul_ps(Z, V));
+                    v4 s0, s1, s2, s3;
+                    {
+                        const __m128 e0 = _mm512_castps512_ps128(Sm), e1 = _mm512_extractf32x4_ps(Sm, 1);
+                        const __m128 e2 = _mm512_extractf32x4_ps(Sm, 2), e3 = _mm512_extractf32x4_ps(Sm, 3);
+                        __builtin_memcpy(&s0, &e0, 16);
+                        __builtin_memcpy(&s1, &e1, 16);
+                        __builtin_memcpy(&s2, &e2, 16);
+                        __builtin_memcpy(&s3, &e3, 16);
+                    }
+                    acc += s0;
+                    acc += s1;
+                    acc += s2;
+                    acc += s3;
+                } else
+#endif
                 for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                     if (!hit[p])
                         continue;
@@ -383,10 +434,18 @@ MIN_PIXELS_PER_THREAD = 1 << 13
 #      same marks; not measurable at 1 thread).
 #   8  phase (3): each vertex's table and c rows prefetched 6 vertices ahead (the first 6 of each run of
 #      64 before it), not the next one's only.
+#   32 (with 2, AVX-512 builds, 2×2 samples) phase (4): a pixel whose 4 samples all hit in one 16-float vector (the 4
+#      samples' corner rows as its 4 lane groups, the same operations per lane), the 4 sums then added to the
+#      pixel's accumulator in the samples' order (session 43; creature bench V, 1 thread, 30 frames alternating,
+#      ``python -m benchmarks.inout_vphases --fast 14 46``: phase (4) 0.342 -> 0.316 ms, the C call 1.035x).
+#   (session 43, dropped: phase (1) marking the vertices of each face it marks first (no phase (2)), per run of
+#   samples on one face: the C call 0.75x, phase (1) 0.28 -> 0.67 ms, the run test's branch mispredicted at
+#   ~48·10³ face changes a frame; phase (3)'s K-sum tail (K mod 8 terms) as masked 8-lane vectors: 1.00x,
+#   (3) is bound by reaching its rows; phase (4)'s G-buffer streams prefetched 512 samples ahead: 1.00x.)
 #   (bit 1, dropped: phase (1) 8 samples a step on AVX-512, only the samples whose (face, region)
 #   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
 #   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
-FAST = 14
+FAST = 46
 # `Bound.frame` calls ``vertex_frame_packed`` (12 arguments: the frame-independent ones packed once by `bind`) instead
 # of ``vertex_frame`` (28): with the caches the suite's rasteriser leaves, a ctypes call of a trivial C function
 # took 36 us with 28 integer arguments and 24 with 11 (session 43, median of 48 cold calls); the same loop
@@ -418,7 +477,8 @@ def _flags() -> tuple[str, ...]:
     path's). Same process, 1 thread, 40 frames alternating against the baseline build
     (``python -m benchmarks.inout_vframe_flags_ab --scene S``): chess bench V 1.10x (phase (3) 1.23x), creature 1.07x
     (1.14x)."""
-    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags(),
+            *(AVX512_FLAGS if native.cpu_capability() == "AVX512" else ()))
 
 
 def available() -> bool:

@@ -221,7 +221,8 @@ def test_bound_frame_checks_each_argument(precomputed):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
     """``FAST`` bit 2 (the face table and phase (4) from its rows, channels as lanes), bit 4 (phase (1)
-    in dynamic chunks) and bit 8 (phase (3)'s rows prefetched further ahead), alone and together, against
+    in dynamic chunks), bit 8 (phase (3)'s rows prefetched further ahead) and bit 32 (with 2: phase (4) a
+    pixel's 4 samples in one AVX-512 vector; 2×2 samples, pixels with misses the per-sample loop), alone and together, against
     the plain loop: the same bits on the three-region chess scene and on the creature-like sphere_plane, 1 and
     2×2 samples, at 1 and 2 threads (every image split over the team)."""
     monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
@@ -232,7 +233,7 @@ def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
             m = precomputed(name)
             for spp in (1, 2):
                 imgs = {}
-                for fast in (0, 2, 4, 6, 8, 14):
+                for fast in (0, 2, 4, 6, 8, 14, 34, 46):
                     monkeypatch.setattr(native_vframe, "FAST", fast)
                     new, _ = _copies(m)
                     imgs[fast] = []
@@ -240,7 +241,7 @@ def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
                         stamp = new._vstamp
                         imgs[fast].append(new.render(f, make_gbuffer(m.scene, f, spp)))
                         assert new._vstamp == stamp + 1, "the C loop did not run"
-                for fast in (2, 4, 6, 8, 14):
+                for fast in (2, 4, 6, 8, 14, 34, 46):
                     assert all(torch.equal(a, b) for a, b in zip(imgs[0], imgs[fast])), f"{name} spp {spp} {fast}"
     finally:
         torch.set_num_threads(old_threads)
