@@ -45,6 +45,16 @@ render ~1.28 ms CPU (C call ~1.0: (1) 0.27, (2) 0.07, (3) 0.25, (3b) 0.06, (4) 0
 load 2-7) every variant's frame swung 0.7-12 ms (the second thread waiting for a core at the first
 barrier): not measured. Dropped: phase (1) 8 samples a step on AVX-512 (1.01x); the G-buffer checks by
 ``is_cpu`` (1.00-1.025x).
+
+Session 43 (the same bits; ``python -m benchmarks.inout43_vframe_ab``: base 0a8e785 against this code, one process,
+each frame right after its ``make_gbuffer`` as the harness, alternating, 39 timed frames; A/A 0.98-1.00): creature
+bench V 1.12-1.13x at 1 thread (process CPU 1.14-1.19 -> 1.01-1.05 ms), chess 1.09x; at 2 threads
+(``GOMP_SPINCOUNT=1000000``, host load 2-4) creature 1.07-1.09x (0.68-0.70 -> 0.64 ms), chess 1.04-1.05x. A creature
+frame at 1 thread now: ~91 us of Python before the C call (was ~126: `InOut._vcall_current`, the packed 12-argument
+entry — a cold ctypes call costs ~1 us an argument —, ``empty_like``, `_lib`'s inline test), ~16 us after it, the
+call ~0.94-1.0 ms: (1) 0.27, (2) 0.07, (3) 0.27, (3b) 0.07, (4) 0.32 (``FAST`` bit 32). Phases (1) and (4) stream the
+G-buffer (face read by both: 2 MB each time; region 2 MB for the check) at ~13-16 GB/s whether the frame's caches are
+cold or warm; (2), (3), (3b) are bound by reaching their rows (0.18 + 0.06 ms back to back, 0.27 + 0.14 cold).
 """
 from __future__ import annotations
 
