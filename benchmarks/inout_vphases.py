@@ -55,6 +55,7 @@ def main(argv=None):
     nv._lib = lambda: lib
     calls = []
     real = lib.vertex_frame
+    real_packed = lib.vertex_frame_packed        # what `native_vframe.Bound.frame` calls under ``PACKED`` (session 43)
 
     class Wrap:
         def __getattr__(self, k):
@@ -63,6 +64,11 @@ def main(argv=None):
         def vertex_frame(self, *args):
             t0 = time.perf_counter()
             real(*args)
+            calls.append((time.perf_counter() - t0, list(times)))
+
+        def vertex_frame_packed(self, *args):
+            t0 = time.perf_counter()
+            real_packed(*args)
             calls.append((time.perf_counter() - t0, list(times)))
 
     w = Wrap()

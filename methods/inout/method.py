@@ -750,10 +750,20 @@ class InOut(Method):
         B_v = Σ_n w_n Σ_k σ_k h_k(n) c_{v,k} at each one's own cell (a C loop per region,
         ``native.vertex_radiance``; else ``fast.vertex_radiance``, one compiled sampled product per
         region), then the Gouraud resolve (``core.gouraud.resolve``) — or, when every c is computed
-        (a view frame under the first lighting), all of it as one C loop (`_render_vertex_native`)."""
+        (a view frame under the first lighting), all of it as one C loop (`_render_vertex_native`).
+
+        Session 43: a view frame whose loop is bound to the current c, statics and memo (`_vcall_current`:
+        the same conditions as `_render_vertex_native`'s checks, fewer Python calls) goes to the bound call
+        first (`_vertex_frame_bound`); each cold Python call costs ~5-30 us here, serial at 2 threads."""
+        b, tried = self._vcall, False
+        if b is not None and self.L is not None and "light" not in frame.changed and self._vcall_current(b):
+            img = self._vertex_frame_bound(b, frame, gbuffer)
+            if img is not None:
+                return img
+            tried = True                         # `_render_vertex_native` would run the same call: the split path
         self._relight(frame)
         st = self._fast_static()
-        img = self._render_vertex_native(frame, gbuffer)
+        img = None if tried else self._render_vertex_native(frame, gbuffer)
         if img is not None:
             return img
         vv = self._vertex_view(frame, gbuffer)
@@ -797,8 +807,27 @@ class InOut(Method):
             b = self._vcall = _nvframe.bind(st, cs, self._vmemo, lib)
             if b is None:
                 return None
+            b.regions, b.names = self.regions, tuple(r.name for r in self.regions)   # for `_vcall_current`
+        return self._vertex_frame_bound(b, frame, gbuffer)
+
+    def _vcall_current(self, b: _nvframe.Bound) -> bool:
+        """True when `_render_vertex_native` would run the bound call ``b`` as it is (no lighting work, no
+        rebind): ``b`` bound to this object's statics, memo, regions and library, every region's c computed
+        whole (`_ensure_c_all`'s mark) and the very tensors ``b`` holds, the stamps not exhausted. The
+        caller checks that the lighting is kept (`_relight` would do nothing)."""
+        if (b.st is not self._fast or b.mem is not self._vmemo or b.regions is not self.regions
+                or self._vstamp >= _nvframe.STAMP_MAX - 1 or _nvframe._lib() is not b.lib):
+            return False
+        cf, full, valid = self._cf, self._cf_full, self._cf_valid
+        for name, c in zip(b.names, b.cs):
+            f = full.get(name)
+            if f is None or f is not valid.get(name) or cf.get(name) is not c:
+                return False
+        return True
+
+    def _vertex_frame_bound(self, b: _nvframe.Bound, frame: Frame, g: GBuffer) -> Tensor | None:
+        """One frame of the bound call ``b`` (the next stamp), or None when the G-buffer fails its checks."""
         self._vstamp += 1
-        g = gbuffer
         got = b.frame(g.face, g.bary, g.region, g.hit, g.height * g.width, g.spp_side ** 2, frame.camera.origin,
                       self._vstamp, (g.height, g.width, 3))
         if got is None or got[2]:

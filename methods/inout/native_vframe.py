@@ -45,16 +45,27 @@ render ~1.28 ms CPU (C call ~1.0: (1) 0.27, (2) 0.07, (3) 0.25, (3b) 0.06, (4) 0
 load 2-7) every variant's frame swung 0.7-12 ms (the second thread waiting for a core at the first
 barrier): not measured. Dropped: phase (1) 8 samples a step on AVX-512 (1.01x); the G-buffer checks by
 ``is_cpu`` (1.00-1.025x).
+
+Session 43 (the same bits; ``python -m benchmarks.inout43_vframe_ab``: base 0a8e785 against this code, one process,
+each frame right after its ``make_gbuffer`` as the harness, alternating, 39 timed frames; A/A 0.98-1.00): creature
+bench V 1.12-1.13x at 1 thread (process CPU 1.14-1.19 -> 1.01-1.05 ms), chess 1.09x; at 2 threads
+(``GOMP_SPINCOUNT=1000000``, host load 2-4) creature 1.07-1.09x (0.68-0.70 -> 0.64 ms), chess 1.04-1.05x. A creature
+frame at 1 thread now: ~91 us of Python before the C call (was ~126: `InOut._vcall_current`, the packed 12-argument
+entry — a cold ctypes call costs ~1 us an argument —, ``empty_like``, `_lib`'s inline test), ~16 us after it, the
+call ~0.94-1.0 ms: (1) 0.27, (2) 0.07, (3) 0.27, (3b) 0.07, (4) 0.32 (``FAST`` bit 32). Phases (1) and (4) stream the
+G-buffer (face read by both: 2 MB each time; region 2 MB for the check) at ~13-16 GB/s whether the frame's caches are
+cold or warm; (2), (3), (3b) are bound by reaching their rows (0.18 + 0.06 ms back to back, 0.27 + 0.14 cold).
 """
 from __future__ import annotations
 
 import ctypes
+import os
 
 import torch
 from torch import Tensor
 
 from methods.core import native
-from methods.inout.native_sample import load_remembered
+from methods.inout.native_sample import _ENV_KEY, AVX512_FLAGS, load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -62,6 +73,9 @@ _SOURCE = r"""
 #include <stdint.h>
 #include <math.h>
 #include <omp.h>
+#if defined(__AVX2__) || defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #define VCHUNK 512
 #define PCHUNK 8192
@@ -301,6 +315,54 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
                on each channel in the same order: the same bits) */
             for (int64_t i = i0; i < i1; ++i) {
                 v4 acc = {0.0f, 0.0f, 0.0f, 0.0f};
+#if defined(__AVX512F__)
+                uint32_t h4 = 0;
+                if ((fast & 32) && S2 == 4)
+                    __builtin_memcpy(&h4, hit + 4 * i, 4);
+                if (h4 == 0x01010101u) {
+                    /* (fast & 32) a pixel's 4 samples, all hits, as the 4 lane groups of one 16-float vector: each
+                       sample's (x ww + y u) + z v in its group (the same operations per lane), then added to acc
+                       in the samples' order (the loop below's bits) */
+                    const int64_t p = 4 * i;
+                    int64_t fq[4];
+                    for (int64_t j = 0; j < 4; ++j)
+                        fq[j] = face[p + j] < 0 ? 0 : (face[p + j] >= M ? M - 1 : face[p + j]);
+                    const float *r0 = FB + 12 * fq[0], *r1 = FB + 12 * fq[1], *r2 = FB + 12 * fq[2], *r3 = FB + 12 * fq[3];
+                    __m512 X = _mm512_castps128_ps512(_mm_loadu_ps(r0));
+                    __m512 Y = _mm512_castps128_ps512(_mm_loadu_ps(r0 + 4));
+                    __m512 Z = _mm512_castps128_ps512(_mm_loadu_ps(r0 + 8));
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r1), 1);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r1 + 4), 1);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r1 + 8), 1);
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r2), 2);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r2 + 4), 2);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r2 + 8), 2);
+                    X = _mm512_insertf32x4(X, _mm_loadu_ps(r3), 3);
+                    Y = _mm512_insertf32x4(Y, _mm_loadu_ps(r3 + 4), 3);
+                    Z = _mm512_insertf32x4(Z, _mm_loadu_ps(r3 + 8), 3);
+                    const __m128 u4 = _mm_loadu_ps(bu + p), v4_ = _mm_loadu_ps(bv + p);
+                    const __m128 w4 = _mm_sub_ps(_mm_sub_ps(_mm_set1_ps(1.0f), u4), v4_);   /* 1.0f - u - v */
+                    const __m512i spread = _mm512_set_epi32(3, 3, 3, 3, 2, 2, 2, 2, 1, 1, 1, 1, 0, 0, 0, 0);
+                    const __m512 U = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(u4));
+                    const __m512 V = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(v4_));
+                    const __m512 WW = _mm512_permutexvar_ps(spread, _mm512_castps128_ps512(w4));
+                    const __m512 Sm = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(X, WW), _mm512_mul_ps(Y, U)),
+                                                    _mm512_mul_ps(Z, V));
+                    v4 s0, s1, s2, s3;
+                    {
+                        const __m128 e0 = _mm512_castps512_ps128(Sm), e1 = _mm512_extractf32x4_ps(Sm, 1);
+                        const __m128 e2 = _mm512_extractf32x4_ps(Sm, 2), e3 = _mm512_extractf32x4_ps(Sm, 3);
+                        __builtin_memcpy(&s0, &e0, 16);
+                        __builtin_memcpy(&s1, &e1, 16);
+                        __builtin_memcpy(&s2, &e2, 16);
+                        __builtin_memcpy(&s3, &e3, 16);
+                    }
+                    acc += s0;
+                    acc += s1;
+                    acc += s2;
+                    acc += s3;
+                } else
+#endif
                 for (int64_t p = i * S2; p < (i + 1) * S2; ++p) {
                     if (!hit[p])
                         continue;
@@ -347,11 +409,24 @@ void vertex_frame(const int64_t *face, const int64_t *region, const uint8_t *hit
     stats[0] = miss;
     stats[1] = err;
 }
+
+/* vertex_frame with its frame-independent arguments from the packed array a (`bind`: face_region, M, fv, pos,
+   frames, cam, voff, S, R, shp, cp, K, B, fst, vst, FB, stats, in vertex_frame's order): a cold ctypes call
+   costs ~1 us an argument (session 43) */
+void vertex_frame_packed(const int64_t *a, const int64_t *face, const int64_t *region, const uint8_t *hit,
+                         const float *bu, const float *bv, int64_t n, int64_t S2, int64_t stamp, float *out,
+                         int64_t nt, int64_t fast) {
+    vertex_frame(face, region, hit, bu, bv, n, S2, (const int64_t *)a[0], a[1], (const int32_t *)a[2],
+                 (const float *)a[3], (const float *)a[4], (const float *)a[5], (const int64_t *)a[6], a[7], a[8],
+                 (const int64_t *)a[9], (const int64_t *)a[10], (const int64_t *)a[11], (float *)a[12],
+                 (int32_t *)a[13], (int32_t *)a[14], (float *)a[15], stamp, out, nt, fast, (int64_t *)a[16]);
+}
 """
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
 _SIGNATURES = {"vertex_frame": [_P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _P, _P, _P, _P, _I, _I, _P, _P, _P,
-                                _P, _P, _P, _P, _I, _P, _I, _I, _P]}
+                                _P, _P, _P, _P, _I, _P, _I, _I, _P],
+               "vertex_frame_packed": [_P, _P, _P, _P, _P, _P, _I, _I, _I, _P, _I, _I]}
 # Samples a chunk of phase (1) under ``FAST`` bit 4 (the C source's PCHUNK)
 PCHUNK = 8192
 assert f"#define PCHUNK {PCHUNK}\n" in _SOURCE
@@ -369,10 +444,22 @@ MIN_PIXELS_PER_THREAD = 1 << 13
 #      same marks; not measurable at 1 thread).
 #   8  phase (3): each vertex's table and c rows prefetched 6 vertices ahead (the first 6 of each run of
 #      64 before it), not the next one's only.
+#   32 (with 2, AVX-512 builds, 2×2 samples) phase (4): a pixel whose 4 samples all hit in one 16-float vector (the 4
+#      samples' corner rows as its 4 lane groups, the same operations per lane), the 4 sums then added to the
+#      pixel's accumulator in the samples' order (session 43; creature bench V, 1 thread, 30 frames alternating,
+#      ``python -m benchmarks.inout_vphases --fast 14 46``: phase (4) 0.342 -> 0.316 ms, the C call 1.035x).
+#   (session 43, dropped: phase (1) marking the vertices of each face it marks first (no phase (2)), per run of
+#   samples on one face: the C call 0.75x, phase (1) 0.28 -> 0.67 ms, the run test's branch mispredicted at
+#   ~48·10³ face changes a frame; phase (3)'s K-sum tail (K mod 8 terms) as masked 8-lane vectors: 1.00x,
+#   (3) is bound by reaching its rows; phase (4)'s G-buffer streams prefetched 512 samples ahead: 1.00x.)
 #   (bit 1, dropped: phase (1) 8 samples a step on AVX-512, only the samples whose (face, region)
 #   differs from the previous hit's marking and checking their face: 1.01x, within the A/A's 1.02x;
 #   the phase streams 4.5 MB of G-buffer and is not bound by its instructions.)
-FAST = 14
+FAST = 46
+# `Bound.frame` calls ``vertex_frame_packed`` (12 arguments: the frame-independent ones packed once by `bind`) instead
+# of ``vertex_frame`` (28): with the caches the suite's rasteriser leaves, a ctypes call of a trivial C function
+# took 36 us with 28 integer arguments and 24 with 11 (session 43, median of 48 cold calls); the same loop
+PACKED = True
 
 
 _LOADED: list = []      # the library once loaded (`_lib`)
@@ -380,8 +467,17 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 
 def _lib():
     """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
-    remembered once loaded (`native_sample.load_remembered`)."""
+    remembered once loaded (`native_sample.load_remembered`). Session 43: `native_sample.compile_unset`'s test
+    inline (``os.environ``'s own mapping, taken once: the variable set or removed later changes that very
+    dict), one Python call fewer a frame."""
+    if _LOADED and _ENV_DATA is not None and _ENV_KEY not in _ENV_DATA:
+        return _LOADED[0]
     return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
+
+
+# os.environ's mapping of encoded keys (POSIX), as `native_sample.compile_unset` reads it, or None
+_ENV_DATA = getattr(os.environ, "_data", None) if os.name == "posix" else None
+_ENV_DATA = _ENV_DATA if type(_ENV_DATA) is dict else None
 
 
 def _flags() -> tuple[str, ...]:
@@ -391,7 +487,8 @@ def _flags() -> tuple[str, ...]:
     path's). Same process, 1 thread, 40 frames alternating against the baseline build
     (``python -m benchmarks.inout_vframe_flags_ab --scene S``): chess bench V 1.10x (phase (3) 1.23x), creature 1.07x
     (1.14x)."""
-    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
+    return ("-fopenmp", "-ffp-contract=off", *native.isa_flags(),
+            *(AVX512_FLAGS if native.cpu_capability() == "AVX512" else ()))
 
 
 def available() -> bool:
@@ -415,7 +512,8 @@ class Bound:
     static arrays, the camera as a tensor, the barycentrics' unbind, the stats tensor and the image's
     view cost a creature bench frame ~0.25 ms of serial Python (1 thread); here ~a tenth of that."""
 
-    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail", "cam")
+    __slots__ = ("st", "cs", "mem", "lib", "fn", "nv", "M", "S", "meta", "stats", "head", "tail", "cam", "like",
+                 "regions", "names", "fnp", "pack", "pk")
 
     def fits(self, st, cs: list[Tensor], mem, lib) -> bool:
         """True when bound to these very objects (the tensors' identity: their storage is not replaced
@@ -446,15 +544,24 @@ class Bound:
             u, v = u.contiguous(), v.contiguous()
             bu, bv = u.data_ptr(), v.data_ptr()
         cam = self.cam
-        cam[0], cam[1], cam[2] = origin           # float32 as torch.tensor(origin, dtype=torch.float32)
+        cam[0:3] = origin                         # float32 as torch.tensor(origin, dtype=torch.float32)
         shape = shape if shape is not None else (n, 3)
-        out = torch.empty(shape, dtype=torch.float32)
+        like = self.like
+        if like is None or like.shape != shape:
+            # a float32 tensor of the image's shape and no memory (strides 0): `torch.empty_like` of it is a
+            # contiguous image, ~10 us cheaper than `torch.empty`'s argument parsing with cold caches (session 43)
+            like = self.like = torch.zeros((), dtype=torch.float32).expand(shape)
+        out = torch.empty_like(like, memory_format=torch.contiguous_format)
         if out.numel() != 3 * n:
             return None
         nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
         st = self.stats
-        self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
-                *self.tail, stamp, out.data_ptr(), nt, FAST, st)
+        if PACKED:
+            self.fnp(self.pk, face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, stamp, out.data_ptr(),
+                     nt, FAST)
+        else:
+            self.fn(face.data_ptr(), region.data_ptr(), hit.data_ptr(), bu, bv, n, S2, *self.head, cam,
+                    *self.tail, stamp, out.data_ptr(), nt, FAST, st)
         return out, st[0], st[1]
 
     def __deepcopy__(self, memo):
@@ -498,9 +605,14 @@ def bind(st, cs: list[Tensor], mem: tuple[Tensor, Tensor, Tensor], lib=None) -> 
     mp = ctypes.addressof(b.meta)
     b.stats = (ctypes.c_int64 * 2)()                  # the loop writes both
     b.cam = (ctypes.c_float * 3)()                    # the frame's camera position (`Bound.frame`)
+    b.like = b.regions = b.names = None
     b.head = (st.face_region.data_ptr(), M, st.face_gl.data_ptr(), st.pos.data_ptr(), st.frames.data_ptr())
     b.tail = (mp, S, st.R, mp + 8 * (S + 1), mp + 8 * (2 * S + 1), mp + 8 * (3 * S + 1), B.data_ptr(),
               fst.data_ptr(), vst.data_ptr(), FB.data_ptr())
+    b.fnp = lib.vertex_frame_packed
+    statics = (*b.head, ctypes.addressof(b.cam), *b.tail, ctypes.addressof(b.stats))
+    b.pack = (ctypes.c_int64 * len(statics))(*statics)      # `vertex_frame_packed`'s a, kept with the bound call
+    b.pk = ctypes.addressof(b.pack)
     return b
 
 

@@ -221,7 +221,8 @@ def test_bound_frame_checks_each_argument(precomputed):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
     """``FAST`` bit 2 (the face table and phase (4) from its rows, channels as lanes), bit 4 (phase (1)
-    in dynamic chunks) and bit 8 (phase (3)'s rows prefetched further ahead), alone and together, against
+    in dynamic chunks), bit 8 (phase (3)'s rows prefetched further ahead) and bit 32 (with 2: phase (4) a
+    pixel's 4 samples in one AVX-512 vector; 2×2 samples, pixels with misses the per-sample loop), alone and together, against
     the plain loop: the same bits on the three-region chess scene and on the creature-like sphere_plane, 1 and
     2×2 samples, at 1 and 2 threads (every image split over the team)."""
     monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
@@ -232,7 +233,7 @@ def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
             m = precomputed(name)
             for spp in (1, 2):
                 imgs = {}
-                for fast in (0, 2, 4, 6, 8, 14):
+                for fast in (0, 2, 4, 6, 8, 14, 34, 46):
                     monkeypatch.setattr(native_vframe, "FAST", fast)
                     new, _ = _copies(m)
                     imgs[fast] = []
@@ -240,7 +241,7 @@ def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
                         stamp = new._vstamp
                         imgs[fast].append(new.render(f, make_gbuffer(m.scene, f, spp)))
                         assert new._vstamp == stamp + 1, "the C loop did not run"
-                for fast in (2, 4, 6, 8, 14):
+                for fast in (2, 4, 6, 8, 14, 34, 46):
                     assert all(torch.equal(a, b) for a, b in zip(imgs[0], imgs[fast])), f"{name} spp {spp} {fast}"
     finally:
         torch.set_num_threads(old_threads)
@@ -307,3 +308,70 @@ def test_loaded_libraries_follow_the_off_switch(monkeypatch, off):
     assert native_vframe._lib() is not None and native_sample._lib() is not None
     monkeypatch.delenv("PRTBENCH_COMPILE")
     assert native_sample.compile_unset() and native_vframe._lib() is not None
+
+
+def test_bound_call_runs_first_while_current(precomputed, monkeypatch):
+    """Session 43: a view frame whose bound call is current (`InOut._vcall_current`) runs it without
+    `_render_vertex_native` (made to raise here): the split path's bits, a new contiguous image each frame
+    (not the previous one's storage); with another memo, a region's c or its validity flags replaced it is
+    not current (the checks `_render_vertex_native` makes; a light change:
+    `test_vertex_frame_is_not_used_before_every_c_is_computed`)."""
+    m = precomputed("chess")
+    new, old = _copies(m)
+    frames = make_sequence(m.scene, "V", n_frames=4, seed=7)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    prev = new.render(frames[0], gbs[0])
+    assert torch.equal(prev, old.render(frames[0], gbs[0]))
+    b = new._vcall
+
+    def boom(frame, gbuffer):
+        raise AssertionError("the bound call was not taken first")
+
+    monkeypatch.setattr(new, "_render_vertex_native", boom)
+    for f, g in zip(frames[1:], gbs[1:]):
+        stamp = new._vstamp
+        img = new.render(f, g)
+        assert new._vstamp == stamp + 1 and new._vcall is b
+        assert img.is_contiguous() and img.shape == (g.height, g.width, 3)
+        assert img.data_ptr() != prev.data_ptr() and torch.equal(img, old.render(f, g))
+        prev = img
+    assert new._vcall_current(b)
+    saved = new._vmemo
+    new._vmemo = tuple(x.clone() for x in saved)
+    assert not new._vcall_current(b)
+    new._vmemo = saved
+    name = m.regions[0].name
+    c = new._cf[name]
+    new._cf[name] = c.clone()
+    assert not new._vcall_current(b)
+    new._cf[name] = c
+    v = new._cf_valid[name]
+    new._cf_valid[name] = v.clone()
+    assert not new._vcall_current(b)
+    new._cf_valid[name] = v
+    assert new._vcall_current(b)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_packed_call_same_bits(precomputed, monkeypatch, threads):
+    """``PACKED`` (``vertex_frame_packed``: the frame-independent arguments from `bind`'s packed array) against
+    the 28-argument ``vertex_frame``: the same bits, chess and sphere_plane, 1 and 2×2 samples, 1 and 2 threads."""
+    monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
+    old_threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        for name in ("chess", "sphere_plane"):
+            m = precomputed(name)
+            for spp in (1, 2):
+                imgs = {}
+                for packed in (False, True):
+                    monkeypatch.setattr(native_vframe, "PACKED", packed)
+                    new, _ = _copies(m)
+                    imgs[packed] = []
+                    for f in make_sequence(m.scene, "V", n_frames=3, seed=4):
+                        stamp = new._vstamp
+                        imgs[packed].append(new.render(f, make_gbuffer(m.scene, f, spp)))
+                        assert new._vstamp == stamp + 1, "the C loop did not run"
+                assert all(torch.equal(a, b) for a, b in zip(imgs[False], imgs[True])), f"{name} spp {spp}"
+    finally:
+        torch.set_num_threads(old_threads)
