@@ -1,7 +1,7 @@
 """In-out shading "vertex" V frames: a base checkout's method code (``--base``) against this checkout's, in one
 process on one precomputation, each frame right after its G-buffer is made (the perf suite's protocol).
 
-    python -m benchmarks.inout43_vframe_ab [--base /work/wt/base43] [--precompute-code DIR] [--scene creature]
+    python -m benchmarks.inout43_vframe_ab --base CHECKOUT [--precompute-code DIR] [--scene creature]
                                            [--threads 1] [--frames 41] [--aa]
 
 The base's ``methods`` package is imported beside this one (`benchmarks.common.checkout_class`; its frames
@@ -43,7 +43,7 @@ def _fresh(m: InOut, cls) -> InOut:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--base", default="/work/wt/base43")
+    ap.add_argument("--base", required=True, help="a checkout of the code to compare against (e.g. a git worktree of the base commit)")
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--scene", default="creature")
     ap.add_argument("--size", default="bench")

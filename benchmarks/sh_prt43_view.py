@@ -32,10 +32,14 @@ VARIANTS["noY"] = [("for (int64_t j = n - 2; j >= 0; --j) P = MADD(P, z, _mm256_
 
 
 def _base_source() -> str:
-    """`native._SOURCE` of the checkout in PRTBENCH_SH43_BASE (default /work/wt/base43), read from its file."""
+    """`native._SOURCE` of the checkout in PRTBENCH_SH43_BASE (a checkout of the code to compare against),
+    read from its file."""
     import ast
     import os
-    path = os.path.join(os.environ.get("PRTBENCH_SH43_BASE", "/work/wt/base43"), "methods/sh_prt/native.py")
+    root = os.environ.get("PRTBENCH_SH43_BASE")
+    if not root:
+        raise SystemExit("variant base43 needs PRTBENCH_SH43_BASE=<a checkout of the base code>")
+    path = os.path.join(root, "methods/sh_prt/native.py")
     for node in ast.parse(open(path).read()).body:
         if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "_SOURCE":
             return node.value.value
@@ -104,7 +108,6 @@ def main(argv=None):
     ap.add_argument("--warm", action="store_true", help="no 64 MB write between calls")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    from methods.sh_prt import native as nat
     m, got, ref = capture(a.precompute_code)
     args, img, ok, keep = call_args(got)
     libs = {v: build(v, VARIANTS[v]) for v in a.variants}

@@ -147,7 +147,6 @@ the ~6 vertices that need it from L2: c rows instead of table rows per product, 
 from __future__ import annotations
 
 import ctypes
-import os
 
 import torch
 from torch import Tensor
@@ -1262,28 +1261,14 @@ TILE = 2048
 _LOADED: list = []      # the library once loaded (`_lib`)
 
 
-_ENV_KEY = b"PRTBENCH_COMPILE"
-
-
-def compile_unset() -> bool:
-    """True when PRTBENCH_COMPILE is not in the environment at all — then ``fused.compile_enabled`` is True —
-    by one look-up in ``os.environ``'s own mapping (POSIX: bytes keys); False (ask `compile_enabled`) when it
-    is set to anything or the mapping is not that dict. ``os.environ.get`` runs ~5 Python frames (the key
-    encoded, the value decoded): ~30 us with the caches the suite's idle and rasterisation leave, ~2 us
-    this way (session 41, `load_remembered`'s per-frame check)."""
-    d = getattr(os.environ, "_data", None)
-    return os.name == "posix" and type(d) is dict and _ENV_KEY not in d
-
-
 def load_remembered(loaded: list, name: str, source: str, signatures: dict, flags) -> ctypes.CDLL | None:
     """`native.load`(name, source, signatures, extra_flags=flags()) remembered in ``loaded`` once it loaded,
     or None. PRTBENCH_COMPILE is read at each call, so a None met while compilation was off (a test's
     monkeypatch) is not kept for the process; a loaded library is one look-up afterwards (`native.load`'s
     own cache costs ~50 us a frame with the caches cold: its key tuples and the flags' queries);
-    ``native.cache_clear`` does not forget it (the same file). When the variable is not set at all
-    (`compile_unset`) a loaded library is returned without `compile_enabled`'s read of it (the same answer)."""
-    if loaded and compile_unset():
-        return loaded[0]
+    ``native.cache_clear`` does not forget it (the same file). `compile_enabled` reads the variable by one
+    look-up in ``os.environ``'s mapping (`methods.core.switches`, session 43; session 41 had that look-up
+    here as ``compile_unset``)."""
     if not compile_enabled():
         return None
     if loaded:

@@ -59,13 +59,12 @@ cold or warm; (2), (3), (3b) are bound by reaching their rows (0.18 + 0.06 ms ba
 from __future__ import annotations
 
 import ctypes
-import os
 
 import torch
 from torch import Tensor
 
 from methods.core import native
-from methods.inout.native_sample import _ENV_KEY, AVX512_FLAGS, load_remembered
+from methods.inout.native_sample import AVX512_FLAGS, load_remembered
 
 __all__ = ["Bound", "available", "bind", "memo", "vertex_frame"]
 
@@ -467,17 +466,8 @@ _LOADED: list = []      # the library once loaded (`_lib`)
 
 def _lib():
     """The library, or None (no compiler, the build failed, ``PRTBENCH_COMPILE=0``: read at each call);
-    remembered once loaded (`native_sample.load_remembered`). Session 43: `native_sample.compile_unset`'s test
-    inline (``os.environ``'s own mapping, taken once: the variable set or removed later changes that very
-    dict), one Python call fewer a frame."""
-    if _LOADED and _ENV_DATA is not None and _ENV_KEY not in _ENV_DATA:
-        return _LOADED[0]
+    remembered once loaded (`native_sample.load_remembered`)."""
     return load_remembered(_LOADED, "inout_vframe", _SOURCE, _SIGNATURES, _flags)
-
-
-# os.environ's mapping of encoded keys (POSIX), as `native_sample.compile_unset` reads it, or None
-_ENV_DATA = getattr(os.environ, "_data", None) if os.name == "posix" else None
-_ENV_DATA = _ENV_DATA if type(_ENV_DATA) is dict else None
 
 
 def _flags() -> tuple[str, ...]:

@@ -1105,7 +1105,7 @@ class SHPRT(Method):
         if (data is not k[0] or data._version != k[1] or W is not k[2] or W._version != k[3] or self._mat is not k[5]
                 or self._lg3 is not k[6] or self._lg_valid is not None or self._lg_fresh
                 or (c[8]._version, c[10]._version) != c[11] or frame.changed <= _LIGHT_ONLY or not (NATIVE_VIEW and NATIVE_PIXELS and NATIVE_GLOSSY and GLOSSY_ADDS)
-                or not _native.VIEW_STATIC_KEPT or c[13][17] != _native._fused() or not _native._compile_on()):
+                or not _native.VIEW_STATIC_KEPT or c[13][17] != _native._fused() or not _native.compile_enabled()):
             return None
         mats = frame.materials
         for name, mk in zip(self.regions, k[4]):

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import os
 
 import torch
 from torch import Tensor
@@ -1364,27 +1363,12 @@ def _lib():
     # was off (a test's monkeypatch) is not kept for the process. Session 41: the loaded library is kept here
     # (PRTBENCH_COMPILE still read at each call): `native.load`'s lookup (its signature tuples, the flags,
     # the source key) cost 20-60 µs a call with the caches cold, 3-5 calls a frame
-    if not _compile_on():
+    if not compile_enabled():
         return None
     lib = _LOADED[0]
     if lib is None:
         lib = _LOADED[0] = native.load("sh_lg_rows", _SOURCE, _SIGNATURES, extra_flags=_flags())
     return lib
-
-
-_ENV_DATA = getattr(os.environ, "_data", None)      # POSIX: os.environ's own dict, bytes keys and values
-_OFF = ("0", "false", "no", "off")
-
-
-def _compile_on() -> bool:
-    """`compile_enabled` (PRTBENCH_COMPILE read at each call) by one lookup in os.environ's dict (session 43: its
-    Mapping ``get`` — encode the key, ``__getitem__``, a KeyError caught when unset — was 14-18 µs a call with the
-    caches cold, 50 µs after 0.2 s idle, 1-5 calls a frame); `compile_enabled` itself where that dict is not there."""
-    d = _ENV_DATA
-    if d is None or os.name != "posix":
-        return compile_enabled()
-    v = d.get(b"PRTBENCH_COMPILE")
-    return v is None or os.fsdecode(v).strip() not in _OFF
 
 
 def _flags() -> tuple[str, ...]:

@@ -15,12 +15,11 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
-import os
 
 import torch
 from torch import Tensor
 
-from methods.core import native, sh_native
+from methods.core import native, sh_native, switches
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -340,7 +339,7 @@ def switches_on() -> bool:
 def terms_switched_on() -> bool:
     """False when ``PRTBENCH_ZH_NATIVE`` is 0 / false / no / off: `sample_terms` then returns None
     (the compiled `runtime._sample_block` runs; A/Bs and tests)."""
-    return os.environ.get("PRTBENCH_ZH_NATIVE", "1").strip().lower() not in ("0", "false", "no", "off")
+    return switches.on("PRTBENCH_ZH_NATIVE")
 
 
 @functools.lru_cache(maxsize=None)

@@ -293,21 +293,18 @@ def test_face_table_rows_are_written_each_frame(precomputed, monkeypatch, thread
 
 @pytest.mark.parametrize("off", ["0", "off", " no "])
 def test_loaded_libraries_follow_the_off_switch(monkeypatch, off):
-    """`native_sample.load_remembered` returns a loaded library without ``compile_enabled``'s read of
-    PRTBENCH_COMPILE only while the variable is not set at all (`native_sample.compile_unset`, session 41):
-    set to an off value after both loops' libraries loaded, both are None; set to 1 or unset again, both load."""
+    """`native_sample.load_remembered` reads PRTBENCH_COMPILE at each call (`methods.core.switches`): set to
+    an off value after both loops' libraries loaded, both are None; set to 1 or unset again, both load."""
     from methods.inout import native_sample
 
     monkeypatch.delenv("PRTBENCH_COMPILE", raising=False)
-    assert native_sample.compile_unset()
     assert native_vframe._lib() is not None and native_sample._lib() is not None
     monkeypatch.setenv("PRTBENCH_COMPILE", off)
-    assert not native_sample.compile_unset()
     assert native_vframe._lib() is None and native_sample._lib() is None
     monkeypatch.setenv("PRTBENCH_COMPILE", "1")
     assert native_vframe._lib() is not None and native_sample._lib() is not None
     monkeypatch.delenv("PRTBENCH_COMPILE")
-    assert native_sample.compile_unset() and native_vframe._lib() is not None
+    assert native_vframe._lib() is not None
 
 
 def test_bound_call_runs_first_while_current(precomputed, monkeypatch):
