@@ -2980,8 +2980,10 @@ _FRONT_SOURCE = r"""
 /* pos, nrm (N, 3) rows; ref (N,) uint8; cam (3,). Out: idx (N,) the ids of the referenced vertices with
    n . wo > 0, ascending, cnT and cwo (3, ld) their normals and directions as columns; returns their count
    in cnt[0]. */
-void zh35o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *ref, const float *cam, int64_t ld,
-                 int64_t *idx, float *cnT, float *cwo, int64_t *cnt) {
+/* the front test's loop (zh35o_front, zh43o_front): the ids of the referenced vertices with n . wo > 0,
+   ascending, into idx; their normals and directions as columns of leading dimension ld; returns their count */
+static int64_t front_loop(int64_t N, const float *pos, const float *nrm, const uint8_t *ref, const float *cam,
+                          int64_t ld, int64_t *idx, float *cnT, float *cwo) {
     const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
     int64_t Q = 0;
     for (int64_t j = 0; j < N; ++j) {
@@ -3000,7 +3002,12 @@ void zh35o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *r
             ++Q;
         }
     }
-    cnt[0] = Q;
+    return Q;
+}
+
+void zh35o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *ref, const float *cam, int64_t ld,
+                 int64_t *idx, float *cnT, float *cwo, int64_t *cnt) {
+    cnt[0] = front_loop(N, pos, nrm, ref, cam, ld, idx, cnT, cwo);
 }
 
 /* zh43o: `zh35o_front`'s loop (the same statements: the same bits), its columns written straight into the
@@ -3011,25 +3018,8 @@ void zh35o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *r
    `ZHShadow._front_planes`' ``(blk == blk[:, :1]).all()``; 1 for an empty region). */
 void zh43o_front(int64_t N, const float *pos, const float *nrm, const uint8_t *ref, const float *cam,
                  int64_t nreg, const int64_t *bnd, int64_t *idx, float *cnT, float *cwo, int64_t *cnt) {
-    const float c0 = cam[0], c1 = cam[1], c2 = cam[2];
     const int64_t ld = N;
-    int64_t Q = 0;
-    for (int64_t j = 0; j < N; ++j) {
-        if (!ref[j]) continue;
-        const float x0 = c0 - pos[3 * j], x1 = c1 - pos[3 * j + 1], x2 = c2 - pos[3 * j + 2];
-        const float x00 = x0 * x0, x11 = x1 * x1, x22 = x2 * x2;
-        float nn = sqrtf((x00 + x11) + x22);
-        nn = nn < 1e-12f ? 1e-12f : nn;
-        const float w0 = x0 / nn, w1 = x1 / nn, w2 = x2 / nn;
-        const float n0 = nrm[3 * j], n1 = nrm[3 * j + 1], n2 = nrm[3 * j + 2];
-        const float d = fmaf(n2, w2, fmaf(n1, w1, n0 * w0));
-        if (d > 0.0f) {
-            idx[Q] = j;
-            cnT[Q] = n0; cnT[ld + Q] = n1; cnT[2 * ld + Q] = n2;
-            cwo[Q] = w0; cwo[ld + Q] = w1; cwo[2 * ld + Q] = w2;
-            ++Q;
-        }
-    }
+    const int64_t Q = front_loop(N, pos, nrm, ref, cam, ld, idx, cnT, cwo);
     for (int64_t q = 0; q < Q; ++q) { cnT[Q + q] = cnT[ld + q]; cwo[Q + q] = cwo[ld + q]; }
     for (int64_t q = 0; q < Q; ++q) { cnT[2 * Q + q] = cnT[2 * ld + q]; cwo[2 * Q + q] = cwo[2 * ld + q]; }
     cnt[0] = Q;
