@@ -225,26 +225,7 @@ def test_face_table_variant_same_bits(precomputed, monkeypatch, threads):
     pixel's 4 samples in one AVX-512 vector; 2×2 samples, pixels with misses the per-sample loop), alone and together, against
     the plain loop: the same bits on the three-region chess scene and on the creature-like sphere_plane, 1 and
     2×2 samples, at 1 and 2 threads (every image split over the team)."""
-    monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
-    old_threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(threads)
-        for name in ("chess", "sphere_plane"):
-            m = precomputed(name)
-            for spp in (1, 2):
-                imgs = {}
-                for fast in (0, 2, 4, 6, 8, 14, 34, 46):
-                    monkeypatch.setattr(native_vframe, "FAST", fast)
-                    new, _ = _copies(m)
-                    imgs[fast] = []
-                    for f in make_sequence(m.scene, "V", n_frames=3, seed=4):
-                        stamp = new._vstamp
-                        imgs[fast].append(new.render(f, make_gbuffer(m.scene, f, spp)))
-                        assert new._vstamp == stamp + 1, "the C loop did not run"
-                for fast in (2, 4, 6, 8, 14, 34, 46):
-                    assert all(torch.equal(a, b) for a, b in zip(imgs[0], imgs[fast])), f"{name} spp {spp} {fast}"
-    finally:
-        torch.set_num_threads(old_threads)
+    _variants_same_bits(precomputed, monkeypatch, threads, "FAST", (0, 2, 4, 6, 8, 14, 34, 46))
 
 
 @pytest.mark.parametrize("threads", [1, 2])
@@ -353,6 +334,13 @@ def test_bound_call_runs_first_while_current(precomputed, monkeypatch):
 def test_packed_call_same_bits(precomputed, monkeypatch, threads):
     """``PACKED`` (``vertex_frame_packed``: the frame-independent arguments from `bind`'s packed array) against
     the 28-argument ``vertex_frame``: the same bits, chess and sphere_plane, 1 and 2×2 samples, 1 and 2 threads."""
+    _variants_same_bits(precomputed, monkeypatch, threads, "PACKED", (False, True))
+
+
+def _variants_same_bits(precomputed, monkeypatch, threads, attr, values):
+    """`native_vframe`.``attr`` set to each of ``values`` in turn: a 3-frame V sequence on chess and sphere_plane at
+    1 and 2×2 samples, ``threads`` threads, through the C loop every frame; every value's images the same bits
+    as the first value's."""
     monkeypatch.setattr(native_vframe, "MIN_PIXELS_PER_THREAD", 1)
     old_threads = torch.get_num_threads()
     try:
@@ -361,14 +349,15 @@ def test_packed_call_same_bits(precomputed, monkeypatch, threads):
             m = precomputed(name)
             for spp in (1, 2):
                 imgs = {}
-                for packed in (False, True):
-                    monkeypatch.setattr(native_vframe, "PACKED", packed)
+                for v in values:
+                    monkeypatch.setattr(native_vframe, attr, v)
                     new, _ = _copies(m)
-                    imgs[packed] = []
+                    imgs[v] = []
                     for f in make_sequence(m.scene, "V", n_frames=3, seed=4):
                         stamp = new._vstamp
-                        imgs[packed].append(new.render(f, make_gbuffer(m.scene, f, spp)))
+                        imgs[v].append(new.render(f, make_gbuffer(m.scene, f, spp)))
                         assert new._vstamp == stamp + 1, "the C loop did not run"
-                assert all(torch.equal(a, b) for a, b in zip(imgs[False], imgs[True])), f"{name} spp {spp}"
+                for v in values[1:]:
+                    assert all(torch.equal(a, b) for a, b in zip(imgs[values[0]], imgs[v])), f"{name} spp {spp} {attr}={v}"
     finally:
         torch.set_num_threads(old_threads)
