@@ -1303,20 +1303,19 @@ static void vm_resolve(const Args *A, vmstate *V, int64_t p0, int64_t p1, int64_
     const int wide = (int)(A->fast >> 6 & 1);
     int64_t bad = *bad_, lf = -1, lnode = -1;
     int32_t lneed = 0;
-    float nx_[BLK * 8 + 16], ny_[BLK * 8 + 16], nz_[BLK * 8 + 16], a_[BLK * 8 + 16], b_[BLK * 8 + 16], c_[BLK * 8 + 16];
-    float bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 16], fv_[BLK * 8 + 16], z_[BLK * 8 + 16];
-    int32_t iu_[BLK * 8 + 16], iv_[BLK * 8 + 16];
-    memset(nx_, 0, sizeof nx_); memset(ny_, 0, sizeof ny_); memset(nz_, 0, sizeof nz_);
-    memset(a_, 0, sizeof a_); memset(b_, 0, sizeof b_); memset(c_, 0, sizeof c_);
+    /* a block's columns (the G-buffer's inputs padded to 16 lanes, zeroed once) and cells */
+    struct { float in[6][BLK * 8 + 16], bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 16], fv_[BLK * 8 + 16], z_[BLK * 8 + 16];
+             int32_t iu_[BLK * 8 + 16], iv_[BLK * 8 + 16]; } cb;
+    memset(cb.in, 0, sizeof cb.in);
+    float *const bu_ = cb.bu_, *const bv_ = cb.bv_, *const fu_ = cb.fu_, *const fv_ = cb.fv_, *const z_ = cb.z_;
+    const int32_t *const iu_ = cb.iu_, *const iv_ = cb.iv_;
     for (int64_t pb = p0; pb < p1; pb += BLK) {
         const int64_t pe = pb + BLK < p1 ? pb + BLK : p1, q0 = pb * S2, n = (pe - pb) * S2;
-        {
-            float *nc[3] = {nx_, ny_, nz_}, *wc[3] = {a_, b_, c_}, *bc[2] = {bu_, bv_};
-            columns(A->nrm, A->n0, A->n1, 3, q0, n, nc, wide);
-            columns(A->wo, A->w0, A->w1, 3, q0, n, wc, wide);
-            columns(A->bary, A->b0, A->b1, 2, q0, n, bc, wide);
-        }
-        frame_cells(nx_, ny_, nz_, a_, b_, c_, n, h, top, top2, iu_, iv_, fu_, fv_, z_, wide);
+        float *in[8] = {cb.in[0], cb.in[1], cb.in[2], cb.in[3], cb.in[4], cb.in[5], cb.bu_, cb.bv_};
+        columns(A->nrm, A->n0, A->n1, 3, q0, n, in, wide);
+        columns(A->wo, A->w0, A->w1, 3, q0, n, in + 3, wide);
+        columns(A->bary, A->b0, A->b1, 2, q0, n, in + 6, wide);
+        frame_cells(in[0], in[1], in[2], in[3], in[4], in[5], n, h, top, top2, cb.iu_, cb.iv_, cb.fu_, cb.fv_, cb.z_, wide);
         if ((A->fast & 128) && pe < p1)
             pf_block(A, pe * S2, ((pe + BLK < p1 ? pe + BLK : p1) - pe) * S2);
         for (int64_t i = 0; i < n; ++i) {
