@@ -19,9 +19,9 @@ Each call right after a fresh ``make_gbuffer`` (the perf suite's protocol), vari
 medians over frames 1.. of the call's process CPU and each pass's thread CPU (thread 0). Also timed: the
 tiles (``FAST`` without 131072) as ``tiles``, the reference of the ratio.
 
-Session 44 (ip44), 1 thread, host at load ~1-2 (ms): chess tiles ~8.0, base ~9.0 (resolve 3.3, count 0.2,
-fill 3.0, shade 2.0; 125.2·10³ products), table fill ~2.1, norows fill ~1.1; creature base ~6.5 (3.2, 0.17,
-1.2, 1.7; 88.7·10³ products).
+Session 44 (ip44), 1 thread, host at load ~1-4 (ms): chess tiles ~7.7, base ~9.0-9.8 (resolve 3.3-3.4, count
+0.2, fill 3.0-3.5, shade 2.0-2.5; 125.2·10³ products), table fill ~1.6-2.1, norows fill ~1.2; creature tiles
+~6.0, base ~6.5-7.0 (3.2-3.3, 0.17, 1.2-1.3, 1.7-2.0; 88.7·10³ products).
 """
 from __future__ import annotations
 

@@ -144,22 +144,27 @@ columns and its per-tile working set (table rows ~0.6-0.8 MB, c ~0.2 MB, entries
 0.13 MB against a 1 MB L2). Not tried: the fill node-major within a tile (each table row read once a tile,
 the ~6 vertices that need it from L2: c rows instead of table rows per product, plus a transposition).
 
-Session 44 (ip44; 1 thread, process CPU, each call after a fresh rasterisation, host at load ~1-2). The frame
+Session 44 (ip44; 1 thread, process CPU, each call after a fresh rasterisation, host at load ~1-4). The frame
 vertex-major (`FAST` bit 131072, `shade_vm`; off: it loses): the samples resolved once (front end, a 24-byte
 record per sample), per vertex the spans of the node rows its samples read (16-bit words by bytewise max:
-order-free, so the same at any thread count), X at each span node by ``rows_x`` vertex after vertex, then the
-samples shaded from that buffer; the same bits as the tiles. Its spans hold 127.8·10³ nodes on a chess bench
-V frame against 124.5·10³ distinct (vertex, node) pairs (a box per vertex: 278.6·10³; the tiles: 155·10³
-products), but its passes (``python -m benchmarks.inout_vm --scene chess|creature``) cost chess resolve 3.3
-ms (front end 0.87, the per-sample record ~0.6, the span words ~1.8 of which their atomics at 2+ threads
-~0.45), count + prefix 0.2, fill 3.0 (table rows in L1: 1.7, no ``rows_x`` but the first touch of each c:
-1.1), shade 2.0 (the records back from L3, six dependent look-ups per new (face, cell)) — ~8.5-9 ms against
-the tiles' ~8 (chess 0.89x, creature 0.88x, ``benchmarks.inout_loop_ab --variants 4095 69631 200703``): the fill
-per product is not cheaper vertex-major (the table rows stream from L3 rather than the tile's L2; sorting
-the vertices by their first cell 0.94x), and the second pass over the samples costs what the tile's L2-local
-passes save. Node-row spans inside a tile instead of the nodes' tags (the tile fill's book-keeping): 160.5
-against 155.4·10³ products, 0.97x (dropped). Kept: bit 65536, the tile's shade pass four samples (a pixel)
-per AVX-512 vector, the same bits (shade 1.0 -> 0.59 ms on chess).
+order-free, so the same at any thread count), X at each span node by ``rows_x`` vertex after vertex (a later
+vertex's c prefetched), then the samples shaded from that buffer; the same bits as the tiles. Its spans hold
+127.8·10³ nodes on a chess bench V frame against 124.5·10³ distinct (vertex, node) pairs (a box per vertex:
+278.6·10³; the tiles: 155·10³ products; creature 88.7 / 85.4 / 203.8 / 105·10³), but its passes (``python -m
+benchmarks.inout_vm --scene chess|creature``) cost, chess: resolve 3.3-3.4 ms (front end 0.87, writing the
+per-sample records ~0.6 — the front end alone with them 1.48 —, the rest the face / region reads and the
+span words; their compare-and-swap, needed at 2+ threads only, ~0.45 more), count + prefix 0.2, fill 3.0-3.5
+(table rows in L1: 1.6-2.1; no ``rows_x`` but each vertex's last group, i.e. c's first touch, the X buffer's
+writes and the spans: 1.1-1.2), shade 2.0-2.5 (the records back from L3, then up to six dependent look-ups
+per new (face, cell)): a call of ~9-9.8 ms against the tiles' ~8.0 (~7.7 with bit 65536); creature 6.5-7.0
+against 5.7 (6.0). ``benchmarks.inout_loop_ab --cold --variants 4095 69631 200703``: chess 0.83-0.89x,
+creature 0.87-0.88x against 4095. So the fill per product is not cheaper vertex-major (its table rows stream
+from L3 where the tile's sit in L2; the vertices sorted by their first cell: 0.94x) and the second pass over
+the samples costs more than the tile's grouping: the brief's stop rule (sort + vertex pass must beat ~4 ms)
+fails on the vertex pass alone. Node-row spans inside a tile instead of the nodes' tags (the tile fill's
+book-keeping): 160.5 against 155.4·10³ products, 0.97x (dropped). Kept: bit 65536, the tile's shade pass a
+pixel's four samples per AVX-512 vector, the same bits (chess shade pass 1.0 -> 0.59 ms); with one entry for
+all four samples its X broadcast instead of four inserts: 1.00x (dropped).
 """
 from __future__ import annotations
 
