@@ -164,7 +164,10 @@ the samples costs more than the tile's grouping: the brief's stop rule (sort + v
 fails on the vertex pass alone. Node-row spans inside a tile instead of the nodes' tags (the tile fill's
 book-keeping): 160.5 against 155.4·10³ products, 0.97x (dropped). Kept: bit 65536, the tile's shade pass a
 pixel's four samples per AVX-512 vector, the same bits (chess shade pass 1.0 -> 0.59 ms); with one entry for
-all four samples its X broadcast instead of four inserts: 1.00x (dropped).
+all four samples its X broadcast instead of four inserts: 1.00x; the resolve's per-sample weights written four
+samples at a time (a 4 x 4 transpose) 0.99x (both dropped). Whole V frames against the base checkout
+(``python -m benchmarks.inout --base BASE --scene chess|creature --kinds V --frames 15|21 --threads 1|2
+--no-micro``, warm, max |d| 0): chess CPU 1.06x at 1 thread (load ~3), wall 1.17x at 2; creature 1.09x / 1.08x.
 """
 from __future__ import annotations
 
