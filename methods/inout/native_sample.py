@@ -145,13 +145,13 @@ columns and its per-tile working set (table rows ~0.6-0.8 MB, c ~0.2 MB, entries
 the ~6 vertices that need it from L2: c rows instead of table rows per product, plus a transposition).
 
 Session 44 (ip44; 1 thread, process CPU, each call after a fresh rasterisation, host at load ~1-4). The frame
-vertex-major (`FAST` bit 131072, `shade_vm`; off: it loses): the samples resolved once (front end, a 24-byte
+vertex-major (`FAST` bit 131072, `shade_vm`; it loses, so it was not merged: its code is on branch ip44): the samples resolved once (front end, a 24-byte
 record per sample), per vertex the spans of the node rows its samples read (16-bit words by bytewise max:
 order-free, so the same at any thread count), X at each span node by ``rows_x`` vertex after vertex (a later
 vertex's c prefetched), then the samples shaded from that buffer; the same bits as the tiles. Its spans hold
 127.8·10³ nodes on a chess bench V frame against 124.5·10³ distinct (vertex, node) pairs (a box per vertex:
 278.6·10³; the tiles: 155·10³ products; creature 88.7 / 85.4 / 203.8 / 105·10³), but its passes (``python -m
-benchmarks.inout_vm --scene chess|creature``) cost, chess: resolve 3.3-3.4 ms (front end 0.87, writing the
+benchmarks.inout_vm --scene chess|creature`` on branch ip44) cost, chess: resolve 3.3-3.4 ms (front end 0.87, writing the
 per-sample records ~0.6 — the front end alone with them 1.48 —, the rest the face / region reads and the
 span words; their compare-and-swap, needed at 2+ threads only, ~0.45 more), count + prefix 0.2, fill 3.0-3.5
 (table rows in L1: 1.6-2.1; no ``rows_x`` but each vertex's last group, i.e. c's first touch, the X buffer's
@@ -1222,348 +1222,6 @@ static void shade_tiles(const Args *A, int64_t p0, int64_t p1, float *out, int64
     stats[0] = made; stats[1] = 0; stats[2] = bad;
 }
 
-/* bit 131072 (FMA builds, with 256 and 4): the frame VERTEX-major (`shade_vm`), one OpenMP region of
-   four passes, X formed once a frame at each (vertex, node) pair of the vertex's node-row spans:
-   (A) resolve, over the pixels (chunks): the front end (`frame_cells`), each shaded sample's face, node0
-       and weights to a per-sample record (24 B); per (vertex, cell row) the span of the cells its samples
-       read and per vertex the span of its cell rows, each as a 16-bit word of two bytes updated by a
-       bytewise max (255 - min, max + 1; 0 = none: order-free, so the same words at any thread count;
-       a CAS only when the word grows);
-   (B) count, over the referenced vertices: node row r of a vertex spans the union of its cell rows r - 1
-       and r; per row the offset of its first node in the vertex's run of X (the row-span nodes: ~1.03x
-       the distinct (vertex, node) pairs on the chess bench); a serial prefix gives each vertex its base;
-   (C) fill, over the referenced vertices (dynamic): its nodes in row order four at a time by `rows_x`
-       (any four rows: each X the same bits per pair as every other path), written to the frame's X
-       buffer; the vertex's words zeroed for the next frame;
-   (D) shade, over the pixels: each sample's X from the buffer (face -> vertices -> row offsets), the
-       last sample's 12 X reused in the same (face, cell), B summed as `shade_tile` sums it.
-   No memo, hash, stamp or per-tile grouping; the image is the same bits as bit 256's. The state is one
-   per process (`vmstate`, its span words zero between calls), taken by a flag: a concurrent call, R > 255
-   or a failed allocation takes `shade_tiles`. */
-#include <time.h>
-static inline uint64_t vm_now(void) {
-    struct timespec t;
-    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-    return (uint64_t)t.tv_sec * 1000000000ull + (uint64_t)t.tv_nsec;
-}
-typedef struct { int32_t f, node0; float w[4]; } vsamp;
-typedef struct {
-    int64_t nvR, nv, R, scap, xcap;
-    uint16_t *vw, *rw;          /* per vertex its cell rows' word, per (vertex, cell row) its cells' word */
-    int32_t *roff;              /* per (vertex, node row): X index of the row's node 0 (base + run - umin) */
-    int32_t *vlist, *vcnt;      /* the referenced vertices, their node counts */
-    int64_t *vbase;
-    vsamp *samp;
-    v4 *xb;
-    int64_t made;
-} vmstate;
-static vmstate vms;
-static int vm_busy;
-
-static inline void wmax16(uint16_t *p, uint16_t add, int shared) {
-    uint16_t cur = __atomic_load_n(p, __ATOMIC_RELAXED);
-    if (!shared) {     /* one thread: a plain store */
-        const uint16_t lo = (cur & 0xFF) > (add & 0xFF) ? (cur & 0xFF) : (add & 0xFF);
-        const uint16_t hi = (cur >> 8) > (add >> 8) ? (cur >> 8) : (add >> 8);
-        *p = (uint16_t)(lo | hi << 8);
-        return;
-    }
-    for (;;) {
-        const uint16_t lo = (cur & 0xFF) > (add & 0xFF) ? (cur & 0xFF) : (add & 0xFF);
-        const uint16_t hi = (cur >> 8) > (add >> 8) ? (cur >> 8) : (add >> 8);
-        const uint16_t nw = (uint16_t)(lo | hi << 8);
-        if (nw == cur || __atomic_compare_exchange_n(p, &cur, nw, 0, __ATOMIC_RELAXED, __ATOMIC_RELAXED))
-            return;
-    }
-}
-
-static int vm_ensure(int64_t nv, int64_t R, int64_t Q) {
-    vmstate *V = &vms;
-    if (V->nvR < nv * R || V->R != R) {
-        free(V->vw); free(V->rw); free(V->roff); free(V->vlist); free(V->vcnt); free(V->vbase);
-        V->vw = (uint16_t *)calloc(nv, 2); V->rw = (uint16_t *)calloc(nv * R, 2);
-        V->roff = (int32_t *)malloc(nv * (R + 1) * 4); V->vlist = (int32_t *)malloc(nv * 4);
-        V->vcnt = (int32_t *)malloc(nv * 4); V->vbase = (int64_t *)malloc((nv + 1) * 8);
-        V->nvR = 0; V->nv = 0;
-        if (!V->vw || !V->rw || !V->roff || !V->vlist || !V->vcnt || !V->vbase)
-            return 0;
-        V->nvR = nv * R; V->nv = nv; V->R = R;
-    }
-    if (V->nv < nv) {    /* the same R, fewer rows per vertex needed than held: re-cut (all zero) */
-        V->nv = V->nvR / R;
-        if (V->nv < nv)
-            return 0;
-    }
-    if (V->scap < Q) {
-        free(V->samp);
-        V->samp = (vsamp *)amalloc((size_t)Q * sizeof(vsamp));
-        V->scap = V->samp ? Q : 0;
-        if (!V->samp)
-            return 0;
-    }
-    return 1;
-}
-
-/* (A) over pixels p0 .. p1 */
-static void vm_resolve(const Args *A, vmstate *V, int64_t p0, int64_t p1, int64_t *bad_, int shared) {
-    const int64_t R = A->R, S2 = A->S2;
-    const float h = 0.5f * (float)(R - 1), top = (float)(R - 1), top2 = (float)(R - 2);
-    const int wide = (int)(A->fast >> 6 & 1);
-    int64_t bad = *bad_, lf = -1, lnode = -1;
-    int32_t lneed = 0;
-    /* a block's columns (the G-buffer's inputs padded to 16 lanes, zeroed once) and cells */
-    struct { float in[6][BLK * 8 + 16], bu_[BLK * 8], bv_[BLK * 8], fu_[BLK * 8 + 16], fv_[BLK * 8 + 16], z_[BLK * 8 + 16];
-             int32_t iu_[BLK * 8 + 16], iv_[BLK * 8 + 16]; } cb;
-    memset(cb.in, 0, sizeof cb.in);
-    float *const bu_ = cb.bu_, *const bv_ = cb.bv_, *const fu_ = cb.fu_, *const fv_ = cb.fv_, *const z_ = cb.z_;
-    const int32_t *const iu_ = cb.iu_, *const iv_ = cb.iv_;
-    for (int64_t pb = p0; pb < p1; pb += BLK) {
-        const int64_t pe = pb + BLK < p1 ? pb + BLK : p1, q0 = pb * S2, n = (pe - pb) * S2;
-        float *in[8] = {cb.in[0], cb.in[1], cb.in[2], cb.in[3], cb.in[4], cb.in[5], cb.bu_, cb.bv_};
-        columns(A->nrm, A->n0, A->n1, 3, q0, n, in, wide);
-        columns(A->wo, A->w0, A->w1, 3, q0, n, in + 3, wide);
-        columns(A->bary, A->b0, A->b1, 2, q0, n, in + 6, wide);
-        frame_cells(in[0], in[1], in[2], in[3], in[4], in[5], n, h, top, top2, cb.iu_, cb.iv_, cb.fu_, cb.fv_, cb.z_, wide);
-        if ((A->fast & 128) && pe < p1)
-            pf_block(A, pe * S2, ((pe + BLK < p1 ? pe + BLK : p1) - pe) * S2);
-        for (int64_t i = 0; i < n; ++i) {
-            const int64_t q = q0 + i;
-            vsamp *sp = V->samp + q;
-            if (!A->live[q] || !(z_[i] > 0.0f)) {
-                sp->f = -1;
-                continue;
-            }
-            int64_t f = A->face[q];
-            f = f < 0 ? 0 : (f >= A->M ? A->M - 1 : f);
-            if (A->face_region[f] != A->region[q] && bad < 0)
-                bad = q;
-            const int32_t iu = iu_[i], iv = iv_[i], node0 = iv * (int32_t)R + iu;
-            const float bu = bu_[i], bv = bv_[i];
-            sp->f = (int32_t)f; sp->node0 = node0;
-            sp->w[0] = fu_[i]; sp->w[1] = fv_[i]; sp->w[2] = bu; sp->w[3] = bv;
-            const int32_t need = (((1.0f - bu) - bv) != 0.0f) | ((bu != 0.0f) << 1) | ((bv != 0.0f) << 2);
-            if (f == lf && node0 == lnode && (need & ~lneed) == 0)
-                continue;                  /* the same words as the last sample's updates */
-            if (f != lf || node0 != lnode)
-                lneed = 0;
-            lf = f; lnode = node0;
-            const int32_t *fr = A->face_rows + 3 * f;
-            const uint16_t cw = (uint16_t)((255 - iu) | (iu + 1) << 8), rwd = (uint16_t)((255 - iv) | (iv + 1) << 8);
-            for (int j = 0; j < 3; ++j) {
-                if (!((need & ~lneed) >> j & 1))
-                    continue;
-                const int64_t g = fr[j];
-                wmax16(V->vw + g, rwd, shared);
-                wmax16(V->rw + g * R + iv, cw, shared);
-            }
-            lneed |= need;
-        }
-    }
-    *bad_ = bad;
-}
-
-/* (B) vertex g's node rows: offsets within its run, returns its node count */
-static inline int32_t vm_count(const vmstate *V, int64_t g, int64_t R) {
-    const uint16_t w = V->vw[g];
-    const int32_t r0 = 255 - (w & 0xFF), r1 = (w >> 8) - 1;     /* cell rows r0 .. r1: node rows r0 .. r1 + 1 */
-    const uint16_t *rw = V->rw + g * R;
-    int32_t *ro = V->roff + g * (R + 1);
-    int32_t run = 0;
-    for (int32_t r = r0; r <= r1 + 1; ++r) {
-        const uint16_t a = r <= r1 ? rw[r] : 0, b = r > r0 ? rw[r - 1] : 0;
-        const int32_t lo = (a & 0xFF) > (b & 0xFF) ? (a & 0xFF) : (b & 0xFF), hi = (a >> 8) > (b >> 8) ? (a >> 8) : (b >> 8);
-        const int32_t umin = 255 - lo, umax = hi;          /* nodes umin .. umax (cells .. hi - 1, + 1) */
-        ro[r] = run - umin;
-        run += umax >= umin ? umax - umin + 1 : 0;
-    }
-    return run;
-}
-
-/* (C) vertex g's X: nodes in row order, four at a time; the words zeroed */
-static inline void vm_fill(const Args *A, vmstate *V, int64_t g, int tree) {
-    const int64_t R = A->R;
-    int64_t s = 0;
-    while (s + 1 < A->S && g >= A->voff[s + 1]) ++s;
-    const int64_t K = A->Ks[s], K3 = 3 * K;
-    const float *sh = (const float *)(intptr_t)A->shp[s];
-    const float *cv = (const float *)(intptr_t)A->cp[s] + (g - A->voff[s]) * K3;
-    const uint16_t w = V->vw[g];
-    const int32_t r0 = 255 - (w & 0xFF), r1 = (w >> 8) - 1;
-    uint16_t *rw = V->rw + g * R;
-    int32_t *ro = V->roff + g * (R + 1);
-    const int64_t base = V->vbase[g];
-    v4 *xo = V->xb + base;
-    const float *rp[4];
-    int32_t nb = 0, at = 0;
-    for (int32_t r = r0; r <= r1 + 1; ++r) {
-        const uint16_t a = r <= r1 ? rw[r] : 0, b = r > r0 ? rw[r - 1] : 0;
-        const int32_t lo = (a & 0xFF) > (b & 0xFF) ? (a & 0xFF) : (b & 0xFF), hi = (a >> 8) > (b >> 8) ? (a >> 8) : (b >> 8);
-        const int32_t umin = 255 - lo, umax = hi;
-        ro[r] += (int32_t)base;
-        for (int32_t u = umin; u <= umax; ++u) {
-            rp[nb++] = sh + ((int64_t)r * R + u) * K3;
-            if (nb == 4) {
-                rows_x(rp[0], rp[1], rp[2], rp[3], cv, K, xo + at, tree);
-                at += 4; nb = 0;
-            }
-        }
-    }
-    for (int32_t r = r0; r <= r1; ++r)
-        rw[r] = 0;
-    V->vw[g] = 0;
-    if (nb) {
-        v4 tmp[4];
-        for (int32_t k = nb; k < 4; ++k)
-            rp[k] = rp[nb - 1];
-        rows_x(rp[0], rp[1], rp[2], rp[3], cv, K, tmp, tree);
-        for (int32_t k = 0; k < nb; ++k)
-            xo[at + k] = tmp[k];
-    }
-}
-
-/* (D) over pixels p0 .. p1 */
-static void vm_shade(const Args *A, const vmstate *V, int64_t p0, int64_t p1, float *out) {
-    const int64_t R = A->R, S2 = A->S2, R1 = R + 1;
-    const float is = 1.0f / (float)S2;
-    int64_t pf = -1, pnode = -1;
-    int32_t have = 0;
-    const int32_t *pg = 0;
-    v4 x[3][4];
-    for (int64_t p = p0; p < p1; ++p) {
-        v4 o = {0, 0, 0, 0};
-        for (int64_t t = 0; t < S2; ++t) {
-            const vsamp *sp = V->samp + p * S2 + t;
-            const int64_t f = sp->f;
-            if (f < 0)
-                continue;
-            const int32_t node0 = sp->node0;
-            const float fu = sp->w[0], fv = sp->w[1], gu = 1.0f - fu, gv = 1.0f - fv;
-            const float w0 = gu * gv, w1 = fu * gv, w2 = gu * fv, w3 = fu * fv;
-            const float bv = sp->w[3], bu = sp->w[2];
-            const float beta[3] = {(1.0f - bu) - bv, bu, bv};
-            if (f != pf) {
-                pf = f; pg = A->face_rows + 3 * f; have = 0;
-            } else if (node0 != pnode) {
-                have = 0;
-            }
-            pnode = node0;
-            const int32_t iv = node0 / (int32_t)R, iu = node0 - iv * (int32_t)R;
-            v4 B = {0, 0, 0, 0};
-            for (int j = 0; j < 3; ++j) {
-                if (beta[j] == 0.0f)
-                    continue;
-                if (!(have >> j & 1)) {
-                    have |= 1 << j;
-                    const int32_t *ro = V->roff + (int64_t)pg[j] * R1 + iv;
-                    const v4 *a = V->xb + ro[0] + iu, *b = V->xb + ro[1] + iu;
-                    x[j][0] = a[0]; x[j][1] = a[1]; x[j][2] = b[0]; x[j][3] = b[1];
-                }
-                const v4 *y = x[j];
-                B += ((y[0] * w0 + y[1] * w1) + (y[2] * w2 + y[3] * w3)) * beta[j];
-            }
-            o += B;
-        }
-        out[3 * p] = o[0] * is; out[3 * p + 1] = o[1] * is; out[3 * p + 2] = o[2] * is;
-    }
-}
-
-/* the frame vertex-major; 0 when it cannot run (the caller takes the tiles). prof (may be 0): thread 0's
-   CPU ns in passes A, B (with the prefix), C, D */
-static int shade_vm(const Args *A, int64_t npx, float *out, int64_t *stats, int64_t nt, int64_t *prof) {
-    const int64_t R = A->R, S2 = A->S2, nv = A->voff[A->S], q = npx * S2;
-    if (R > 255 || R < 2 || S2 > 8 || nv >= ((int64_t)1 << 31) || __atomic_exchange_n(&vm_busy, 1, __ATOMIC_ACQUIRE))
-        return 0;
-    vmstate *V = &vms;
-    if (!vm_ensure(nv, R, q)) {
-        __atomic_store_n(&vm_busy, 0, __ATOMIC_RELEASE);
-        return 0;
-    }
-    const int tree = (int)(A->fast >> 5 & 1);
-    const int64_t C = A->chunk > 0 ? A->chunk : 1024, nch = (npx + C - 1) / C;
-    int64_t bad = -1, nref = 0, total = 0, fail = 0;
-    uint64_t T[5] = {0, 0, 0, 0, 0};
-    #pragma omp parallel num_threads(nt > 1 ? nt : 1)
-    {
-        const int me = omp_get_thread_num();
-        if (me == 0 && prof) T[0] = vm_now();
-        int64_t mybad = -1;
-        #pragma omp for schedule(dynamic, 1) nowait
-        for (int64_t c = 0; c < nch; ++c) {
-            int64_t b = -1;
-            vm_resolve(A, V, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, &b, nt > 1);
-            if (b >= 0 && (mybad < 0 || b < mybad))
-                mybad = b;
-        }
-        #pragma omp critical
-        if (mybad >= 0 && (bad < 0 || mybad < bad))
-            bad = mybad;
-        #pragma omp barrier
-        #pragma omp single
-        {
-            if (me == 0 && prof) T[1] = vm_now();
-            int64_t n = 0;
-            for (int64_t g = 0; g < nv; ++g)
-                if (V->vw[g])
-                    V->vlist[n++] = (int32_t)g;
-            nref = n;
-        }
-        #pragma omp for schedule(static)
-        for (int64_t l = 0; l < nref; ++l)
-            V->vcnt[l] = vm_count(V, V->vlist[l], R);
-        #pragma omp single
-        {
-            int64_t run = 0;
-            for (int64_t l = 0; l < nref; ++l) {
-                V->vbase[V->vlist[l]] = run;
-                run += V->vcnt[l];
-            }
-            total = run;
-            if (V->xcap < total) {
-                free(V->xb);
-                V->xb = (v4 *)amalloc((size_t)(total + total / 4 + 64) * sizeof(v4));
-                V->xcap = V->xb ? total + total / 4 + 64 : 0;
-                if (!V->xb)
-                    fail = 1;
-            }
-            if (me == 0 && prof) T[2] = vm_now();
-        }
-        if (!fail) {
-            #pragma omp for schedule(dynamic, 8)
-            for (int64_t l = 0; l < nref; ++l) {
-                if (l + PFV < nref) {     /* a later vertex's c requested (as bit 1024) */
-                    const int64_t g2 = V->vlist[l + PFV];
-                    int64_t s2 = 0;
-                    while (s2 + 1 < A->S && g2 >= A->voff[s2 + 1]) ++s2;
-                    pf_range((const float *)(intptr_t)A->cp[s2] + (g2 - A->voff[s2]) * 3 * A->Ks[s2], 3 * A->Ks[s2] * 4);
-                }
-                vm_fill(A, V, V->vlist[l], tree);
-            }
-            if (me == 0 && prof) T[3] = vm_now();
-            #pragma omp for schedule(dynamic, 1)
-            for (int64_t c = 0; c < nch; ++c)
-                vm_shade(A, V, c * C, (c + 1) * C < npx ? (c + 1) * C : npx, out);
-            if (me == 0 && prof) T[4] = vm_now();
-        } else {
-            #pragma omp for schedule(static)
-            for (int64_t l = 0; l < nref; ++l) {     /* keep the words zero between calls */
-                const int64_t g = V->vlist[l];
-                memset(V->rw + g * R, 0, (size_t)R * 2);
-                V->vw[g] = 0;
-            }
-        }
-    }
-    __atomic_store_n(&vm_busy, 0, __ATOMIC_RELEASE);
-    if (fail)
-        return 0;
-    if (prof)
-        for (int k = 0; k < 4; ++k)
-            prof[k] = (int64_t)(T[k + 1] - T[k]);
-    for (int64_t t = 0; t < nt; ++t) {
-        stats[3 * t] = 0; stats[3 * t + 1] = 0; stats[3 * t + 2] = -1;
-    }
-    stats[0] = total; stats[2] = bad;
-    return 1;
-}
 #endif
 
 /* o[0] = 1 when bits 4 and 8 of `fast` run (`cell_x`: an FMA build), else 0 (they fall back to the
@@ -1583,17 +1241,11 @@ void have_cells(int64_t *o) {
    thread ~10 % longer busy on the chess bench); a pixel is still summed by one thread in one order,
    and a memo row's value is its (vertex, node) pair's whichever thread fills it, so the image and the
    memo are the same bits whatever the schedule. */
-static int64_t *vm_prof;   /* bit 131072: where `shade_vm` writes its passes' CPU ns (`vm_profile`; 0: not) */
-void vm_profile(int64_t *p) { vm_prof = p; }
 void shade(const Args *A, int64_t npx, float *out, int64_t *stats, int64_t nt) {
 #ifdef HAVE_DOTF
 #define RANGE(...) ((A->fast & 260) == 260 ? shade_tiles(__VA_ARGS__) : shade_range(__VA_ARGS__))
 #else
 #define RANGE(...) shade_range(__VA_ARGS__)
-#endif
-#ifdef HAVE_DOTF
-    if ((A->fast & 131332) == 131332 && shade_vm(A, npx, out, stats, nt, vm_prof))
-        return;
 #endif
     const uint64_t ygen = __atomic_add_fetch(&ygen_all, 1, __ATOMIC_RELAXED);
     for (int64_t t = 0; t < nt; ++t) {
@@ -1633,7 +1285,7 @@ class _Args(ctypes.Structure):
 
 
 _P, _I = ctypes.c_void_p, ctypes.c_int64
-_SIGNATURES = {"shade": [_P, _I, _P, _P, _I], "have_cells": [_P], "vm_profile": [_P]}
+_SIGNATURES = {"shade": [_P, _I, _P, _P, _I], "have_cells": [_P]}
 # Pixels below which one thread shades the frame (a hand-off costs more than its share).
 MIN_PER_THREAD = 1024
 # Pixels per chunk of the dynamic schedule at 2+ threads (16 blocks of 64; the chess bench has 64 chunks).
@@ -1684,8 +1336,7 @@ CHUNK = 1024
 # (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --threads 1 --frames 21 --no-micro``,
 # with the torch ops trimmed around the loop): CPU chess 1.07x, creature 1.05x; max |d| 0.
 # (4096, 8192, 16384 and 32768: the edits of ``benchmarks.inout_nodemajor_ab``, session 42.)
-# 131072 (FMA builds, with 256 and 4; not set: 0.85-0.89x) the frame vertex-major (`shade_vm`, module docstring,
-# session 44): the same bits as the tiles; R > 255, S2 > 8 or a concurrent call take the tiles.
+# (131072: the frame vertex-major, `shade_vm`, session 44: 0.83-0.89x, not merged; branch ip44, module docstring.)
 # 65536 (AVX-512 builds, with 256, 2 x 2 samples) the tile's shade pass a pixel's four samples per vector (the
 # loop's operations lane for lane, a skipped term or sample masked; the same bits). Session 44, 1 thread,
 # process CPU, each call after a fresh rasterisation, 21 frames alternating (``python -m
