@@ -143,6 +143,31 @@ written -0.2 ms, one face for every sample -0.55 ms) point at its reads of the G
 columns and its per-tile working set (table rows ~0.6-0.8 MB, c ~0.2 MB, entries' X up to 0.4 MB, weights
 0.13 MB against a 1 MB L2). Not tried: the fill node-major within a tile (each table row read once a tile,
 the ~6 vertices that need it from L2: c rows instead of table rows per product, plus a transposition).
+
+Session 44 (ip44; 1 thread, process CPU, each call after a fresh rasterisation, host at load ~1-4). The frame
+vertex-major (`FAST` bit 131072, `shade_vm`; it loses, so it was not merged: its code is on branch ip44): the samples resolved once (front end, a 24-byte
+record per sample), per vertex the spans of the node rows its samples read (16-bit words by bytewise max:
+order-free, so the same at any thread count), X at each span node by ``rows_x`` vertex after vertex (a later
+vertex's c prefetched), then the samples shaded from that buffer; the same bits as the tiles. Its spans hold
+127.8·10³ nodes on a chess bench V frame against 124.5·10³ distinct (vertex, node) pairs (a box per vertex:
+278.6·10³; the tiles: 155·10³ products; creature 88.7 / 85.4 / 203.8 / 105·10³), but its passes (``python -m
+benchmarks.inout_vm --scene chess|creature`` on branch ip44) cost, chess: resolve 3.3-3.4 ms (front end 0.87, writing the
+per-sample records ~0.6 — the front end alone with them 1.48 —, the rest the face / region reads and the
+span words; their compare-and-swap, needed at 2+ threads only, ~0.45 more), count + prefix 0.2, fill 3.0-3.5
+(table rows in L1: 1.6-2.1; no ``rows_x`` but each vertex's last group, i.e. c's first touch, the X buffer's
+writes and the spans: 1.1-1.2), shade 2.0-2.5 (the records back from L3, then up to six dependent look-ups
+per new (face, cell)): a call of ~9-9.8 ms against the tiles' ~8.0 (~7.7 with bit 65536); creature 6.5-7.0
+against 5.7 (6.0). ``benchmarks.inout_loop_ab --cold --variants 4095 69631 200703``: chess 0.83-0.89x,
+creature 0.87-0.88x against 4095. So the fill per product is not cheaper vertex-major (its table rows stream
+from L3 where the tile's sit in L2; the vertices sorted by their first cell: 0.94x) and the second pass over
+the samples costs more than the tile's grouping: the brief's stop rule (sort + vertex pass must beat ~4 ms)
+fails on the vertex pass alone. Node-row spans inside a tile instead of the nodes' tags (the tile fill's
+book-keeping): 160.5 against 155.4·10³ products, 0.97x (dropped). Kept: bit 65536, the tile's shade pass a
+pixel's four samples per AVX-512 vector, the same bits (chess shade pass 1.0 -> 0.59 ms); with one entry for
+all four samples its X broadcast instead of four inserts: 1.00x; the resolve's per-sample weights written four
+samples at a time (a 4 x 4 transpose) 0.99x (both dropped). Whole V frames against the base checkout
+(``python -m benchmarks.inout --base BASE --scene chess|creature --kinds V --frames 15|21 --threads 1|2
+--no-micro``, warm, max |d| 0): chess CPU 1.06x at 1 thread (load ~3), wall 1.17x at 2; creature 1.09x / 1.08x.
 """
 from __future__ import annotations
 
@@ -1097,7 +1122,65 @@ static int64_t shade_tile(const Args *A, int64_t p0, int64_t p1, float *out, int
     }
     /* (3) shade */
     const float is = 1.0f / (float)S2;
-    for (int64_t p = p0; p < pend; ++p) {
+    int64_t p = p0;
+#ifdef __AVX512F__
+    if ((A->fast & 65536) && S2 == 4) {
+        /* bit 65536 (AVX-512 builds, 2 x 2 samples): a pixel's four samples at once, sample t in lanes
+           4t .. 4t + 3 (its X channels), the loop's operations lane for lane (the weights from each
+           sample's (fu, fv, bu, bv) broadcast in its lanes; a term with beta_j = 0 or a dead sample's
+           masked, as the loop skips it), then o = (((0 + B_0) + B_1) + B_2) + B_3 in order: a skipped
+           sample adds +0, which leaves o as it is (o is never -0: it starts at +0), so the same bits */
+        const __m512 one = _mm512_set1_ps(1.0f), zero = _mm512_setzero_ps();
+        for (; p < pend; ++p) {
+            const int64_t qi = (p - p0) * 4;
+            const int32_t *se = sent + qi;
+            __mmask16 live = 0;
+            const v4 *xe[4];
+            for (int t = 0; t < 4; ++t) {
+                const int32_t e = se[t];
+                xe[t] = ex + 12 * (e < 0 ? 0 : e);
+                live |= (__mmask16)(e >= 0 ? 0xF << (4 * t) : 0);
+            }
+            if (!live) {                  /* no sample shaded: the loop's 0 * is */
+                out[3 * p] = 0.0f * is; out[3 * p + 1] = 0.0f * is; out[3 * p + 2] = 0.0f * is;
+                continue;
+            }
+            const __m512 w = _mm512_loadu_ps(sw + 4 * qi);
+            const __m512 fu = _mm512_permute_ps(w, 0x00), fv = _mm512_permute_ps(w, 0x55);
+            const __m512 bu = _mm512_permute_ps(w, 0xAA), bv = _mm512_permute_ps(w, 0xFF);
+            const __m512 gu = _mm512_sub_ps(one, fu), gv = _mm512_sub_ps(one, fv);
+            const __m512 w0 = _mm512_mul_ps(gu, gv), w1 = _mm512_mul_ps(fu, gv), w2 = _mm512_mul_ps(gu, fv),
+                         w3 = _mm512_mul_ps(fu, fv);
+            const __m512 beta[3] = {_mm512_sub_ps(_mm512_sub_ps(one, bu), bv), bu, bv};
+            __m512 B = zero;
+            for (int j = 0; j < 3; ++j) {
+                const __mmask16 m = live & (__mmask16)~_mm512_cmp_ps_mask(beta[j], zero, _CMP_EQ_OQ);
+                if (!m)
+                    continue;
+                __m512 y[4];
+                for (int n = 0; n < 4; ++n) {
+                    __m512 v = _mm512_castps128_ps512(_mm_loadu_ps((const float *)(xe[0] + 4 * j + n)));
+                    v = _mm512_insertf32x4(v, _mm_loadu_ps((const float *)(xe[1] + 4 * j + n)), 1);
+                    v = _mm512_insertf32x4(v, _mm_loadu_ps((const float *)(xe[2] + 4 * j + n)), 2);
+                    y[n] = _mm512_insertf32x4(v, _mm_loadu_ps((const float *)(xe[3] + 4 * j + n)), 3);
+                }
+                const __m512 term = _mm512_mul_ps(_mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(y[0], w0), _mm512_mul_ps(y[1], w1)),
+                                                                _mm512_add_ps(_mm512_mul_ps(y[2], w2), _mm512_mul_ps(y[3], w3))),
+                                                  beta[j]);
+                B = _mm512_mask_add_ps(B, m, B, term);
+            }
+            __m128 o = _mm_add_ps(_mm_setzero_ps(), _mm512_castps512_ps128(B));
+            o = _mm_add_ps(o, _mm512_extractf32x4_ps(B, 1));
+            o = _mm_add_ps(o, _mm512_extractf32x4_ps(B, 2));
+            o = _mm_add_ps(o, _mm512_extractf32x4_ps(B, 3));
+            o = _mm_mul_ps(o, _mm_set1_ps(is));
+            float r[4];
+            _mm_storeu_ps(r, o);
+            out[3 * p] = r[0]; out[3 * p + 1] = r[1]; out[3 * p + 2] = r[2];
+        }
+    }
+#endif
+    for (; p < pend; ++p) {
         v4 o = {0, 0, 0, 0};
         for (int64_t t = 0; t < S2; ++t) {
             const int64_t qi = (p - p0) * S2 + t;
@@ -1138,6 +1221,7 @@ static void shade_tiles(const Args *A, int64_t p0, int64_t p1, float *out, int64
         t0 = shade_tile(A, t0, t0 + T < p1 ? t0 + T : p1, out, &made, &bad);
     stats[0] = made; stats[1] = 0; stats[2] = bad;
 }
+
 #endif
 
 /* o[0] = 1 when bits 4 and 8 of `fast` run (`cell_x`: an FMA build), else 0 (they fall back to the
@@ -1251,7 +1335,14 @@ CHUNK = 1024
 # (per frame 1.036x); A/A (2047 against 2047:) 0.998x / 1.009x. Whole V frames against the base checkout
 # (``python -m benchmarks.inout --base B --scene chess|creature --kinds V --threads 1 --frames 21 --no-micro``,
 # with the torch ops trimmed around the loop): CPU chess 1.07x, creature 1.05x; max |d| 0.
-FAST = 4095
+# (4096, 8192, 16384 and 32768: the edits of ``benchmarks.inout_nodemajor_ab``, session 42.)
+# (131072: the frame vertex-major, `shade_vm`, session 44: 0.83-0.89x, not merged; branch ip44, module docstring.)
+# 65536 (AVX-512 builds, with 256, 2 x 2 samples) the tile's shade pass a pixel's four samples per vector (the
+# loop's operations lane for lane, a skipped term or sample masked; the same bits). Session 44, 1 thread,
+# process CPU, each call after a fresh rasterisation, 21 frames alternating (``python -m
+# benchmarks.inout_loop_ab --scene chess|creature --frames 21 --cold --variants 4095 69631 4095:``, host at
+# load ~1-2): chess 1.072x (per frame 1.094x), creature 1.072x (per frame 1.078x); A/A 1.002x / 0.994x.
+FAST = 69631
 # log2 of the entries of each thread's (face, cell) cache (bit 16 of `FAST`)
 YCACHE_LOG = 10
 # pixels per tile of bit 256 (at 2+ threads a chunk, `CHUNK`, is cut into tiles of this many)

@@ -36,6 +36,20 @@ def precomputed():
     return get
 
 
+def _spy(monkeypatch, calls: list):
+    """Each frame's loop call (`InOut` keeps its bound call: `Bound.frame`) appends its stats to ``calls``;
+    returns the unpatched `Bound.frame`."""
+    shade = native_sample.Bound.frame
+
+    def spy(self, *a, **k):
+        got = shade(self, *a, **k)
+        calls.append(got[1])
+        return got
+
+    monkeypatch.setattr(native_sample.Bound, "frame", spy)
+    return shade
+
+
 def _copy(m: InOut) -> InOut:
     c = copy.copy(m)
     c._reset_cache()
@@ -53,14 +67,7 @@ def test_native_sample_equals_the_compiled_path(precomputed, monkeypatch, name, 
     monkeypatch.setattr(native_sample, "WINDOW", W)
     monkeypatch.setattr(native_sample, "FAST", native_sample.FAST | 256 if tiles else native_sample.FAST & 255)
     calls = []
-    shade = native_sample.Bound.frame          # the loop of a frame (`InOut` keeps its bound call)
-
-    def spy(self, *a, **k):
-        got = shade(self, *a, **k)
-        calls.append(got[1])
-        return got
-
-    monkeypatch.setattr(native_sample.Bound, "frame", spy)
+    _spy(monkeypatch, calls)
     for kind in ("V", "L", "E"):
         new, old, ref = _copy(m), _copy(m), _copy(m)
         old._render_native = lambda f, g: None
@@ -220,20 +227,29 @@ def test_native_sample_tiles_same_bits(precomputed, monkeypatch, name):
             want = [_copy(m).render(f, g) for f, g in zip(frames, gbs)]
             ref = _copy(m)
             exact = [ref._render_reference(f, g) for f, g in zip(frames, gbs)]
-            for fast in (255 | 256, 255 | 256 | 512, 255 | 256 | 512 | 1024, 255 | 256 | 512 | 1024 | 2048):
-                for tile in (1, 100, 4096):
-                    for t in (1, 2):
-                        torch.set_num_threads(t)
-                        monkeypatch.setattr(native_sample, "FAST", fast)
-                        monkeypatch.setattr(native_sample, "TILE", tile)
-                        a = _copy(m)
-                        for i, (f, g) in enumerate(zip(frames, gbs)):
-                            got = a.render(f, g)
-                            assert torch.equal(got, want[i]), f"{name} {kind} FAST {fast} tile {tile} threads {t} frame {i}"
-                            scale = float(exact[i].abs().max())
-                            assert float((got - exact[i]).abs().max()) <= RTOL * scale
+            fasts = (255 | 256, 255 | 256 | 512, 255 | 256 | 512 | 1024, 255 | 256 | 512 | 1024 | 2048)
+            for what, i, got in _each_setting(m, monkeypatch, frames, gbs, fasts, (1, 100, 4096)):
+                assert torch.equal(got, want[i]), f"{name} {kind} {what}"
+                scale = float(exact[i].abs().max())
+                assert float((got - exact[i]).abs().max()) <= RTOL * scale
     finally:
         torch.set_num_threads(n)
+
+
+def _each_setting(m, monkeypatch, frames, gbs, fasts, tiles, chunks: bool = False):
+    """Per `FAST` value, tile (with ``chunks``: also the chunk of the dynamic schedule) and 1 / 2 threads, a
+    fresh copy of ``m`` renders the frames: yields (the setting as text, the frame's index, its image)."""
+    for fast in fasts:
+        for tile in tiles:
+            for t in (1, 2):
+                torch.set_num_threads(t)
+                monkeypatch.setattr(native_sample, "FAST", fast)
+                monkeypatch.setattr(native_sample, "TILE", tile)
+                if chunks:
+                    monkeypatch.setattr(native_sample, "CHUNK", tile)
+                a = _copy(m)
+                for i, (f, g) in enumerate(zip(frames, gbs)):
+                    yield f"FAST {fast} tile {tile} threads {t} frame {i}", i, a.render(f, g)
 
 
 def _row_major(gb):
@@ -285,34 +301,35 @@ def test_native_sample_dynamic_chunks_bit_identical(precomputed, monkeypatch, ch
     assert gbs[0].num_samples // 4 > 4 * max(chunk, 64)      # several chunks per thread
     n = torch.get_num_threads()
     runs, bads = [], []
-    shade = native_sample.Bound.frame          # the loop of a frame (`InOut` keeps its bound call)
     try:
         for t in (1, 2):
             torch.set_num_threads(t)
             a = _copy(m)
             runs.append(([a.render(f, g) for f, g in zip(frames, gbs)], [x.clone() for x in a._xmemo]))
-            gb = copy.copy(gbs[0])
-            gb.region = gb.region.clone()
-            hits = gb.hit.nonzero()[:, 0]
-            ks = hits[torch.tensor([hits.numel() // 3, hits.numel() // 2, hits.numel() - 1])]
-            gb.region[ks] = (gb.region[ks] + 1) % len(m.scene.regions)
-            got = []
-
-            def spy(self, *x, **k):
-                r = shade(self, *x, **k)
-                got.append(r[1])
-                return r
-
-            monkeypatch.setattr(native_sample.Bound, "frame", spy)
-            with pytest.raises(ValueError, match="another region"):
-                _copy(m).render(frames[0], gb)     # the first lighting: c of every vertex, no pass before the loop
-            monkeypatch.setattr(native_sample.Bound, "frame", shade)
-            bads.append(got[0][2])
+            # the first lighting: c of every vertex, no pass before the loop
+            bad, ks = _first_foreign_sample(m, frames[0], gbs[0], monkeypatch, (3, 2, 1))
+            bads.append(bad)
     finally:
         torch.set_num_threads(n)
     for x, y in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1]):
         assert torch.equal(x, y)
     assert bads[0] == bads[1] == int(ks.min())
+
+
+def _first_foreign_sample(m, frame, gb, monkeypatch, at):
+    """Render ``frame`` with ``gb``'s region changed at the hits numel // a for a in ``at`` (1: the last hit):
+    the loop's reported first sample of a foreign face (the render raises) and those samples."""
+    gb = copy.copy(gb)
+    gb.region = gb.region.clone()
+    hits = gb.hit.nonzero()[:, 0]
+    ks = hits[torch.tensor([hits.numel() // a if a > 1 else hits.numel() - 1 for a in at])]
+    gb.region[ks] = (gb.region[ks] + 1) % len(m.scene.regions)
+    got = []
+    shade = _spy(monkeypatch, got)
+    with pytest.raises(ValueError, match="another region"):
+        _copy(m).render(frame, gb)
+    monkeypatch.setattr(native_sample.Bound, "frame", shade)
+    return got[0][2], ks
 
 
 def test_native_sample_rejects_faces_of_another_region(precomputed):
@@ -366,3 +383,35 @@ def test_bound_call_follows_its_arrays(precomputed, monkeypatch):
     assert new._xstamp == stamp + 1
     assert torch.equal(got, twin.render(frames[2], gbs[2]))
     assert twin._xcall is not None and twin._xcall is not new._xcall
+
+
+WIDE = 65536   # `native_sample.FAST`'s bit: the tile's shade pass a pixel's four samples per vector
+
+
+@pytest.mark.parametrize("name", ["chess", "creature", "sphere_plane"])
+def test_native_sample_wide_shade_same_bits(precomputed, monkeypatch, name):
+    """Bit 65536 (the tile's shade pass a pixel's four samples per AVX-512 vector) gives the tiles' image bits
+    (bit 256 without it: the tile loop, its oracle), over a V and an L sequence, at 2 x 2 samples (the vector
+    shade) and 1 x 1 (its fallback), with the G-buffer's layouts and row-major copies, at 1 and 2 threads,
+    with chunks of 100 pixels (ending inside a block) and 4096 (the whole test image). Planted errors it
+    caught (session 44): a pixel's samples summed last first, beta_0 without - bv. (Swapping the first two
+    samples' sum is not an error: IEEE addition commutes.)"""
+    if not native_sample.cells_available():
+        pytest.skip("no FMA build: bit 256 falls back to the per-sample loop")
+    monkeypatch.setattr(native_sample, "MIN_PER_THREAD", 1)
+    m = precomputed(name)
+    n = torch.get_num_threads()
+    base = (native_sample.FAST | 256) & ~WIDE
+    try:
+        for kind, spp in (("V", 2), ("L", 2), ("V", 1)):
+            frames = make_sequence(m.scene, kind, n_frames=2, seed=23)
+            gbs = [make_gbuffer(m.scene, f, spp) for f in frames]
+            gbs = [g for gb in gbs for g in (gb, _row_major(gb))]
+            frames = [f for f in frames for _ in (0, 1)]
+            torch.set_num_threads(1)
+            monkeypatch.setattr(native_sample, "FAST", base)
+            want = [_copy(m).render(f, g) for f, g in zip(frames, gbs)]
+            for what, i, got in _each_setting(m, monkeypatch, frames, gbs, (base | WIDE,), (100, 4096), chunks=True):
+                assert torch.equal(got, want[i]), f"{name} {kind} spp {spp} {what}"
+    finally:
+        torch.set_num_threads(n)
