@@ -741,7 +741,7 @@ class TripleProduct(Method):
     def shading_normals(self, gbuffer: GBuffer) -> Tensor:
         """Unit shading normals (P, 3) of the G-buffer samples with every region's bump map applied
         (the frame pixel shading uses for L and ρ̃; also what an oracle must shade with to compare)."""
-        n = torch.nn.functional.normalize(gbuffer.normal.float(), dim=-1)
+        n = native_group.normalize(gbuffer.normal)      # = normalize(normal.float(), dim=-1), one C pass
         if not self.bumps:
             return n
         uv, ok = self.sample_uv(gbuffer)
