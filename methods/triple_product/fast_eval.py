@@ -1515,17 +1515,34 @@ def shade(method, R: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw
     return out
 
 
+def lookups_fill_ok(method, evaluator: str, mix: Tensor | None = None) -> bool:
+    """`shade_pixels` takes its look-ups from `pixel_lookups` (so it can ``fill`` rows of them)."""
+    return evaluator in ("auto", "fine") and fine_ok(method, mix) and front_ok(method)
+
+
 def shade_pixels(method, normals: Tensor, wo_world: Tensor, region: Tensor, vrows: Tensor, vw: Tensor,
-                 mix: Tensor | None = None, *, evaluator: str = "auto") -> Tensor:
+                 mix: Tensor | None = None, *, evaluator: str = "auto",
+                 fill: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """`shade` at G-buffer samples given by their unit shading normals (B, 3) instead of their
     frames: ``shade(method, local_frames(normals, tangent), ...)``. When the fine-value path runs
     with the "grid" tangent and a trilinear look-up on a one-ψ grid (the default config), the
-    look-ups come straight from the normals (`pixel_lookups`) and the frames are never formed."""
+    look-ups come straight from the normals (`pixel_lookups`) and the frames are never formed.
+
+    ``fill`` = (dst, src) (k,) int64 (`lookups_fill_ok` only): the points dst take the look-ups (ωo rows
+    with their regions' offsets, grid rows, weights) of the points src, before anything reads them —
+    a frame's missed samples (zero normal, region −1: rows outside the ρ̃ stack) shaded as a copy of a
+    neighbouring hit (`TripleProduct.render`); their radiance is the caller's to discard."""
     if evaluator not in EVALUATORS:
         raise ValueError(f"evaluator must be one of {EVALUATORS}, got {evaluator!r}")
-    if evaluator in ("auto", "fine") and fine_ok(method, mix) and front_ok(method):
-        look = (*pixel_lookups(normals, wo_world, method.outgoing, method.grid, region), True)
-        return shade_fine(method, None, wo_world, region, vrows, vw, mix, lookups=look)
+    if lookups_fill_ok(method, evaluator, mix):
+        look = pixel_lookups(normals, wo_world, method.outgoing, method.grid, region)
+        if fill is not None:
+            dst, src = fill
+            for t in look:                      # (B, 4) each: k rows copied
+                t.index_copy_(0, dst, t.index_select(0, src))
+        return shade_fine(method, None, wo_world, region, vrows, vw, mix, lookups=(*look, True))
+    if fill is not None:
+        raise ValueError("fill needs the pixel look-ups' path (`lookups_fill_ok`)")
     R = local_frames(normals, method.config["tangent"])
     return shade(method, R, wo_world, region, vrows, vw, mix, evaluator=evaluator)
 

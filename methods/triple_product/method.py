@@ -114,6 +114,13 @@ FINE_RENDER_POINTS = 1 << 18
 # the same rows and weights as the compiled `fast_eval.grid_lookups` on the bench scenes). False: the
 # torch path (the test oracle).
 VERTEX_LOOKUPS = True
+# Per-pixel frames with a few missed samples (at most MISS_SHARE of them) shade every sample by slices, each
+# miss as a copy of a neighbouring hit, zeroed after (`TripleProduct._miss_fill`) — not by gathering the hit
+# samples' rows. False: the gathers (the test oracle). The slices shade the misses too: with misses planted at
+# random in a creature bench frame (`benchmarks.tp_miss_ab` with MISS_SHARE 1, 1 thread) gathers / slices
+# 1.24x at 1/8 of the samples missed, 1.03x at 1/4, 0.96x at 3/8, 0.79x at 1/2.
+MISS_FILL = True
+MISS_SHARE = 1 / 8
 # Visibility-texture look-up: a bilinear tap counts only if its texel's surface point lies within
 # this many texel footprints (|∂p/∂u| + |∂p/∂v|)/res of the shaded point (a neighbouring texel is at
 # most one footprint away; 2 allows for the Jacobian changing between adjacent triangles) and its
@@ -139,6 +146,25 @@ def _hit_faces(gbuffer: GBuffer, n: int) -> Tensor:
     1.2 -> 0.67 ms (the same faces)."""
     seen = torch.bincount(torch.where(gbuffer.hit, gbuffer.face, n), minlength=n + 1)
     return torch.nonzero(seen[:n], as_tuple=False).squeeze(-1)
+
+
+def _miss_donors(hit: Tensor) -> tuple[Tensor, Tensor]:
+    """(misses, donors) (k,) int64 of a hit mask (P,) with at least one hit and one miss: the missed samples
+    (sorted) and for each the nearest hit before its run of adjacent misses — after it for the run that
+    starts the mask (`TripleProduct._miss_fill`). O(P) once (the misses found), then O(k)."""
+    miss = torch.nonzero(~hit, as_tuple=False).squeeze(-1)                            # (k,) sorted
+    k = miss.numel()
+    if k == 0 or k == hit.numel():
+        raise ValueError(f"a mask with hits and misses expected ({k} of {hit.numel()} missed)")
+    j = torch.arange(k, device=miss.device)
+    start = torch.ones(k, dtype=torch.bool, device=miss.device)                       # runs of adjacent misses
+    torch.ne(miss[1:], miss[:-1] + 1, out=start[1:])
+    first = torch.where(start, j, 0).cummax(0).values                               # each miss's run start
+    donor = miss.index_select(0, first) - 1                                         # the hit before the run
+    if int(miss[0]) == 0:   # the mask starts with a run of n0 misses: the hit after it (n0 < P)
+        n0 = int((first == 0).sum())
+        donor[:n0] = n0
+    return miss, donor
 
 
 def _broadcast_full(idx: Tensor) -> Tensor:
@@ -717,7 +743,7 @@ class TripleProduct(Method):
     def shading_normals(self, gbuffer: GBuffer) -> Tensor:
         """Unit shading normals (P, 3) of the G-buffer samples with every region's bump map applied
         (the frame pixel shading uses for L and ρ̃; also what an oracle must shade with to compare)."""
-        n = torch.nn.functional.normalize(gbuffer.normal.float(), dim=-1)
+        n = native_group.normalize(gbuffer.normal)      # = normalize(normal.float(), dim=-1), one C pass
         if not self.bumps:
             return n
         uv, ok = self.sample_uv(gbuffer)
@@ -824,20 +850,27 @@ class TripleProduct(Method):
                 return fast_eval.gouraud_image(gbuffer, self.F, Bv, checked=checked, faces=faces if checked else None)
             out = gbuffer.interpolate(Bv, self.F)                        # Gouraud (Ma 2006 §3.3)
         else:
-            hit = torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
-            # every sample hit and one batch: the batch's radiance is the frame's (no zero-filled (P, 3)
+            P = gbuffer.num_samples
+            n_hit = int(torch.count_nonzero(gbuffer.hit))   # (the hit indices only where gathered: ~0.4 ms)
+            textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
+            # a few missed samples: shaded by slices too, each as a copy of a neighbouring hit, and zeroed
+            # after (`_miss_fill`)
+            fill = self._miss_fill(gbuffer, n_hit, chunk, textured)
+            every = n_hit == P or fill is not None   # slices, not gathers
+            hit = None if every and not textured else torch.nonzero(gbuffer.hit, as_tuple=False).squeeze(-1)
+            # every sample shaded in one batch: the batch's radiance is the frame's (no zero-filled (P, 3)
             # array written and the batch copied into it, no masking in the resolve)
-            whole = 0 < hit.numel() == gbuffer.num_samples <= chunk
-            out = None if whole else torch.zeros(gbuffer.num_samples, 3, device=gbuffer.hit.device)
+            whole = every and 0 < n_hit and P <= chunk
+            out = None if whole else torch.zeros(P, 3, device=gbuffer.hit.device)
             vidx, vw = native_group.vertex_weights(gbuffer, self.F)     # = gbuffer.vertex_weights, one pass
+            if fill is not None:   # a miss's vertex rows those of its donor, its weights stay 0
+                vidx.index_copy_(0, fill[0], vidx.index_select(0, fill[1]))
             normals = self.shading_normals(gbuffer)                     # bump maps applied
             mix = self.blend_weights(gbuffer)
-            textured = self.tex_rows is not None and self.tex_rows.shape[0] > 0
             uv = self.sample_uv(gbuffer)[0] if textured else None
             marks: list[tuple[Tensor, Tensor]] = []
             self.stats["frame_groups"] = 0  # `fast_eval.shade_fine` adds the groups it summed
-            every = hit.numel() == gbuffer.num_samples  # every sample hit: slices, not gathers
-            for a in range(0, hit.numel(), chunk):
+            for a in range(0, P if every else n_hit, chunk):
                 s = slice(a, a + chunk) if every else hit[a:a + chunk]
                 # the hit samples' rows: `index_select` (eager x[s] of a (P, 3) array: ~4x slower)
                 take = (lambda x: x[s]) if every else (lambda x: x.index_select(0, s))
@@ -851,21 +884,44 @@ class TripleProduct(Method):
                 else:  # frames from the normals inside `fast_eval.shade_pixels`
                     res = fast_eval.shade_pixels(self, take(normals), take(gbuffer.wo).float(), take(gbuffer.region),
                                                  rows, w, take(mix) if self.blends else None,
-                                                 evaluator=self.config["evaluator"])
+                                                 evaluator=self.config["evaluator"], fill=fill)
                 if whole:
                     out = res
                 else:
                     out[s] = res
+            if fill is not None:   # the misses' radiance (their donors') discarded: +0, as the gather path leaves it
+                out.index_fill_(0, fill[0], 0.0)
             # what the frame read is counted when `frame_cost` asks, not inside the timed frame (the
             # distinct visibility rows and faces: ~5 ms of a chess bench per-pixel frame, 1 thread)
             nv, nf = self.V_idx.shape[0], self.F.shape[0]
-            self._record_frame(gbuffer, hit.numel(), lambda: _hit_faces(gbuffer, nf),
+            self._record_frame(gbuffer, n_hit, lambda: _hit_faces(gbuffer, nf),
                                lambda: _touched_rows(marks, nv), None, self.stats.pop("frame_groups", 0))
             # `gbuffer.resolve` without its mask: a miss is already +0 in ``out`` (or there is none), so
             # the same mean bit for bit
             # (`native_group.pixel_mean`: that mean in one pass, bit for bit)
             return native_group.pixel_mean(out.float(), gbuffer.height, gbuffer.width, gbuffer.spp_side ** 2)
         return gbuffer.resolve(out)
+
+    def _miss_fill(self, gbuffer: GBuffer, n_hit: int, chunk: int, textured: bool) -> tuple[Tensor, Tensor] | None:
+        """(misses, donors) (k,) int64 for a per-pixel frame with a few missed samples (`MISS_FILL`), or None
+        (gathers of the hit samples; also every sample hit, none hit, more than `MISS_SHARE` missed, more
+        than one batch, visibility textures / SBRDF blends / an evaluator other than the fine-value path
+        with `fast_eval.pixel_lookups`, whose look-ups `fast_eval.shade_pixels` fills).
+
+        Every sample is then shaded by slices, as in an all-hit frame: a miss's rows (vertex rows, and in
+        `fast_eval.shade_pixels` its ωo and grid rows and weights) copied from its donor, the nearest hit
+        before it (after it when the misses start the frame) — what the G-buffer stores for a miss (face
+        and region −1, a zero normal) reaches no look-up; its visibility weights stay 0 (no read for
+        `frame_cost`) and its radiance is zeroed after. A copy joins its donor's run of equal rows in
+        `fast_eval.group_runs`, so the frame sums the same groups as the gather path, the hits the same
+        values. The gathers (5 `index_select` of 2^18 rows, ωo's rows copied back to planes, the batch
+        written into a zeroed array) made a creature bench frame with one miss of 262,144 samples ~1.6x
+        the all-hit frames (1 thread; the perf suite's +10-15 ms frames)."""
+        P = gbuffer.num_samples
+        if not MISS_FILL or textured or not 0 < n_hit < P or P > chunk or P - n_hit > MISS_SHARE * P \
+                or self.blends or not fast_eval.lookups_fill_ok(self, self.config["evaluator"]):
+            return None
+        return _miss_donors(gbuffer.hit)
 
     def _vertex_lookups(self, used: Tensor, cam: Tensor, chunk: int):
         """A per-vertex frame's look-ups of the vertices ``used`` by `native.vertex_lookups` (ωo rows with the

@@ -150,3 +150,43 @@ def test_vertex_weights_equal_the_gbuffers():
     g.face[3] = 30
     with pytest.raises(IndexError):
         native_group.vertex_weights(g, F)
+
+
+def test_normalize_equals_torch():
+    """`native_group.normalize` = ``torch.nn.functional.normalize(x, dim=-1)``, bit for bit (torch at 1 and
+    2 threads): unit-ish rows at scales 1, 1e-3, 1e3, tiny rows (the 1e-12 clamp), huge ones (the squares
+    overflow), zero rows (a G-buffer miss), a NaN row, a real G-buffer's normals, rows of a wider array (row
+    stride 4); a (3, P) planes layout takes torch's path."""
+    from references.gbuffer import make_gbuffer
+    from scenes.library import get_scene
+    from scenes.sequences import make_sequence
+
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randn(50000, 3, generator=gen)
+    x = x / x.norm(dim=-1, keepdim=True) * (1 + 1e-3 * torch.randn(50000, 1, generator=gen))
+    rows = [x, x * 1e-3, x * 1e3, x * 1e-13, x * 1e-30, x * 1e25, torch.randn(999, 3, generator=gen) * 7]
+    edge = torch.zeros(5, 3)
+    edge[1] = float("nan")
+    edge[2, 0] = float("nan")
+    edge[3] = torch.tensor([0.0, -0.0, 1e-45])
+    edge[4] = torch.tensor([float("inf"), 1.0, 0.0])
+    rows.append(edge)
+    scene = get_scene("chess", "test")
+    gb = make_gbuffer(scene, make_sequence(scene, "V", n_frames=1, seed=1)[0], 2)
+    rows.append(gb.normal)
+    wide = torch.randn(777, 4, generator=gen)
+    rows.append(wide[:, :3])
+    threads = torch.get_num_threads()
+    try:
+        for nt in (1, 2):
+            torch.set_num_threads(nt)
+            for r in rows:
+                want = torch.nn.functional.normalize(r.float(), dim=-1)
+                got = native_group.normalize(r)
+                assert got.dtype == want.dtype and got.shape == want.shape
+                assert torch.equal(got.nan_to_num(7.0), want.nan_to_num(7.0)) and torch.equal(got.isnan(), want.isnan())
+                assert torch.equal(got.signbit(), want.signbit())
+    finally:
+        torch.set_num_threads(threads)
+    planes = x.t().contiguous().t()
+    assert torch.equal(native_group.normalize(planes), torch.nn.functional.normalize(planes, dim=-1))
