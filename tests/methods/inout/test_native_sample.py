@@ -415,3 +415,39 @@ def test_native_sample_wide_shade_same_bits(precomputed, monkeypatch, name):
                 assert torch.equal(got, want[i]), f"{name} {kind} spp {spp} {what}"
     finally:
         torch.set_num_threads(n)
+
+
+def test_first_lighting_warm_up_compiles_the_later_lightings_pass(precomputed, monkeypatch):
+    """Under the first lighting the loop runs no referenced-vertex pass (every vertex's c is computed), so
+    the harness's untimed warm-up frame (``core.fused.warming``) compiles that pass's kernel
+    (``fast.shaded_faces_cols``) for the frame's sample block: the next lighting's frame — the first timed
+    frame of a lighting cell — runs the pass without compiling (it compiled there before: ~110 ms of a
+    chess bench L frame, session 44). Dynamo's caches are reset first, so nothing compiled by an earlier
+    test can stand in for the warm-up."""
+    from torch._dynamo.utils import counters
+
+    from methods.core import fused
+
+    if not fused.compile_enabled():
+        pytest.skip("PRTBENCH_COMPILE off: nothing is compiled")
+    m = precomputed("creature")
+    frames = make_sequence(m.scene, "L", n_frames=2, seed=5)
+    gbs = [make_gbuffer(m.scene, f, 2) for f in frames]
+    torch._dynamo.reset()
+    fused._warmed.clear()     # what was warmed was compiled code the reset dropped (later tests warm it again)
+    refs = []
+    view_refs = InOut._view_refs
+
+    def spy(self, *a, **k):
+        refs.append(1)
+        return view_refs(self, *a, **k)
+
+    monkeypatch.setattr(InOut, "_view_refs", spy)
+    a = _copy(m)
+    with fused.warming():
+        a.render(frames[0], gbs[0])
+    assert not refs                                  # the first lighting: no pass before the loop
+    graphs = int(counters["stats"]["unique_graphs"])
+    a.render(frames[1], gbs[1])
+    assert refs                                      # the second lighting runs the pass ...
+    assert int(counters["stats"]["unique_graphs"]) == graphs     # ... compiled in the warm-up frame
