@@ -31,14 +31,9 @@ VARIANTS = {"sphere_plane": {}, "chess": dict(sh_order=3), "alcove": dict(separa
 KINDS = ("V", "VB", "VBL", "L", "E")
 
 
-def _small(frame, side=32):
-    """The frame seen by a side×side camera (same view)."""
-    return dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=side, height=side))
-
-
 @pytest.mark.parametrize("shading", ["vertex", "pixel"])
 @pytest.mark.parametrize("name", SCENES)
-def test_fast_path_equals_reference(name, shading):
+def test_fast_path_equals_reference(name, shading, small):
     """Every library scene PTT accepts, both view stages, V / VB / VBL / L / E sequences rendered in
     order (so the caches of both paths are exercised): the fast image equals the reference to
     float32 round-off."""
@@ -50,7 +45,7 @@ def test_fast_path_equals_reference(name, shading):
     kinds = KINDS if name in ("chess", "alcove") else ("V", "VB", "VBL")
     for kind in kinds:
         for frame in make_sequence(scene, kind, n_frames=2, seed=3):
-            frame = _small(frame)
+            frame = small(frame)
             gb = make_gbuffer(scene, frame, 1)
             fast, ref = m.render(frame, gb), m._render_reference(frame, gb)
             scale = float(ref.abs().max())
@@ -149,11 +144,11 @@ def test_world_frame_sh_equals_local_evaluation():
 
 
 @pytest.fixture(scope="module", params=["vertex", "pixel"])
-def tiny(request):
+def tiny(request, small):
     scene = get_scene("sphere_plane", "test")
     m = PTT(**TINY, shading=request.param)
     m.precompute(scene)
-    frame = _small(make_sequence(scene, "V", n_frames=1, seed=0)[0], 24)
+    frame = small(make_sequence(scene, "V", n_frames=1, seed=0)[0], 24)
     gb = make_gbuffer(scene, frame, 1)
     return m, frame, gb
 
@@ -573,7 +568,7 @@ def test_mirror_cells_of_a_nan_direction_stay_in_the_table():
         assert torch.equal(r[~bad].long(), idx[:, 0])
 
 
-def test_misses_take_the_compiled_pixel_stage_without_recompiling():
+def test_misses_take_the_compiled_pixel_stage_without_recompiling(small):
     """A frame with misses after frames without (chess bench V frame 4 had one miss in 262 144
     samples and compiled two more graphs in a timed frame, 0.98 s against 0.05 s): misses (face −1)
     read the zero face of `fast.miss_face_pairs`, so `fast.shade_pixels_fused` shades them as 0 with
@@ -586,7 +581,7 @@ def test_misses_take_the_compiled_pixel_stage_without_recompiling():
     scene = get_scene("chess", "test")
     m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=0)
     m.precompute(scene)
-    frames = [_small(f) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
+    frames = [small(f) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
     gb = make_gbuffer(scene, frames[0], 2)
     j = int(torch.nonzero(gb.hit)[0])
     full = dataclasses.replace(gb, **{k: torch.where(gb.hit.view(-1, *[1] * (getattr(gb, k).dim() - 1)),
@@ -861,7 +856,7 @@ def test_referenced_pairs_are_the_pairs_of_the_hit_faces(native, monkeypatch):
 
 
 @pytest.mark.parametrize("name", ["chess", "creature"])
-def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypatch):
+def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypatch, small):
     """`method.FULL_TABLE` (session 38): the referenced pairs' rows written at the pairs' own positions
     (`fast.referenced_view`: ``native.referenced_sel`` + ``native.vertex_rows(..., rows_at=True)``) and
     read through the static face corners render, bit for bit, the frames of the compact table read
@@ -891,7 +886,7 @@ def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypat
     monkeypatch.setattr(PM, "VIEW_FRAME", False)  # the Python route's calls (VIEW_FRAME: tests/methods/ptt/test_view_frame.py)
     for kind in ("V", "VB"):
         for i, f in enumerate(make_sequence(scene, kind, n_frames=2, seed=4)):
-            f = _small(f)
+            f = small(f)
             gb = make_gbuffer(scene, f, 2)
             if i == 1:  # misses, as the G-buffer writes them
                 miss = torch.zeros_like(gb.hit)
@@ -918,7 +913,7 @@ def test_full_table_renders_the_compact_table_frames_bit_for_bit(name, monkeypat
             assert torch.equal(table[sel], compact[:-1]) and not bool(table[-1].any())
 
 
-def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeypatch):
+def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeypatch, small):
     """`fast.vertex_view(..., pairs=sel)` (the compiled per-pair loops on the pairs ``sel`` only, their
     count symbolic) gives, bit for bit, the rows of those pairs in the full table, and the zero row
     last (also for 0 and 1 pairs, padded inside); and a frame rendered through the referenced pairs
@@ -937,7 +932,7 @@ def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeyp
     for bounces in (0, 1):
         m = PTT(**{**TINY, **VARIANTS["chess"]}, bounces=bounces)
         m.precompute(scene)
-        frames = [_small(f) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
+        frames = [small(f) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
         for i, f in enumerate(frames):
             gb = make_gbuffer(scene, f, 2)
             if i == 2:  # misses, as the G-buffer writes them
@@ -975,7 +970,7 @@ def test_view_rows_of_the_referenced_pairs_are_the_full_rows_bit_for_bit(monkeyp
 
 
 @pytest.mark.parametrize("n_wi", [8, 24])
-def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch):
+def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch, small):
     """``native.vertex_rows`` (`fast.vertex_view(..., pairs=sel)` with lobes and no SH column as one C
     pass: the compiled passes' products and sums in their order, the same Sleef atan2 / acos, B's lane
     sums as their reduction) gives the bits of the compiled `fast.pair_cells_of` + `fast.pair_rows`
@@ -993,7 +988,7 @@ def test_native_vertex_rows_are_the_compiled_rows_bit_for_bit(n_wi, monkeypatch)
     scene = get_scene("chess", "test")
     m = PTT(**{**TINY, **VARIANTS["chess"], "n_wi": n_wi}, bounces=0)  # 3K-lane rows (the native loop reads 8-lane blocks)
     m.precompute(scene)
-    frames = [_small(f) for f in make_sequence(scene, "V", n_frames=2, seed=5)]
+    frames = [small(f) for f in make_sequence(scene, "V", n_frames=2, seed=5)]
     gb = make_gbuffer(scene, frames[0], 2)
     m.render(frames[0], gb)
     st = m._fast_static()
@@ -1089,7 +1084,7 @@ def test_lean_pixel_body_is_the_general_body_bit_for_bit(n_pix, monkeypatch):
             assert same(got, want), (lean, threads, rr, float((got - want)[~nan].abs().max()))
 
 
-def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
+def test_lean_pixel_body_renders_the_same_frames(monkeypatch, small):
     """A PTT frame in the perf suite's shape (lobes, no bounce terms, 2 × 2 samples per pixel: rows of
     width 16 without u lanes, the G-buffer's barycentric columns) reaches ``native.shade_mirror`` with
     the arguments the AVX-512 body ``lean16`` takes, and renders the same image bit for bit with
@@ -1113,7 +1108,7 @@ def test_lean_pixel_body_renders_the_same_frames(monkeypatch):
     monkeypatch.setattr(PM, "VIEW_FRAME", False)  # the Python route's calls (VIEW_FRAME: test_view_frame.py)
     for kind in ("V", "VB"):
         for f in make_sequence(scene, kind, n_frames=2, seed=3):
-            f = _small(f)
+            f = small(f)
             gb = make_gbuffer(scene, f, 2)
             images = []
             for lean in (True, False):

@@ -26,16 +26,6 @@ TINY = dict(rays=4, cube_res=4, n_wi=8, brdf_grid=8, brdf_table=8, light_res_1=2
             bounces=0)
 
 
-def _small(frame, side):
-    return dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=side, height=side))
-
-
-def _with_misses(gb, step=37):
-    miss = torch.zeros_like(gb.hit)
-    miss[5::step] = True  # misses as the G-buffer writes them: hit False, face -1
-    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face))
-
-
 @pytest.fixture(autouse=True)
 def _skip_without_native():
     if not (F.native_shading() and N.cells_available() and NF.frame_call_fn() is not None):
@@ -60,8 +50,18 @@ def _state(m):
     return (m._f_H, m._f_tabs[0], m._f_tabs[1], dict(m.stats), m._last_view[0], m._last_view[2])
 
 
+def _chess_vb(monkeypatch, small, seed):
+    """The chess test scene, its PTT, the route's twin (shading "vertex": the same precomputed arrays, its own
+    caches), the calls' spy and three VB frames on a 24 x 24 film."""
+    scene = get_scene("chess", "test")
+    fast = PTT(**TINY)
+    fast.precompute(scene)
+    frames = [small(f, 24) for f in make_sequence(scene, "VB", n_frames=3, seed=seed)]
+    return scene, fast, fast.with_shading("vertex"), _spy(monkeypatch), frames
+
+
 @pytest.mark.parametrize("name", ["chess", "creature", "sphere_plane"])
-def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch):
+def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch, small, with_misses):
     """V, VB, L, VB sequences at 1 and 2 threads (the loops' minimum shares lowered so every loop splits), two
     image sizes alternating (a new view plan, then a new frame plan), frames with misses: the same images and
     the same state as the route with FRAME_CALL off, and the one call taken on every V / VB frame after a
@@ -82,10 +82,10 @@ def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch):
         try:
             for kind in ("V", "VB", "L", "VB"):
                 for i, f in enumerate(make_sequence(scene, kind, n_frames=5, seed=5)):
-                    f = _small(f, 16 if i == 3 else 24)  # frame 3 on a new layout (a new plan: the route)
+                    f = small(f, 16 if i == 3 else 24)  # frame 3 on a new layout (a new plan: the route)
                     gb = make_gbuffer(scene, f, 2)
                     if i == 2:
-                        gb = _with_misses(gb)
+                        gb = with_misses(gb)
                     monkeypatch.setattr(PM, "FRAME_CALL", True)
                     before = n["taken"]
                     a = fast.render(f, gb)
@@ -103,16 +103,11 @@ def test_frame_call_renders_the_route_frames_bit_for_bit(name, monkeypatch):
     assert n["taken"] >= expect > 0
 
 
-def test_frame_call_equal_h_keeps_the_tables_and_brdf_change_forces_them(monkeypatch):
+def test_frame_call_equal_h_keeps_the_tables_and_brdf_change_forces_them(monkeypatch, small):
     """A VB frame whose new material objects have the last frame's values (the same H): the tables keep their
     memory and values and the BRDF stage is not counted unless the frame says "brdf" changed — as the route's
     torch.equal; the images equal the route's either way. Then one entry of H changed: seen."""
-    scene = get_scene("chess", "test")
-    fast = PTT(**TINY)
-    fast.precompute(scene)
-    slow = fast.with_shading("vertex")
-    n = _spy(monkeypatch)
-    frames = [_small(f, 24) for f in make_sequence(scene, "VB", n_frames=3, seed=2)]
+    scene, fast, slow, n, frames = _chess_vb(monkeypatch, small, 2)
     for f in frames[:2]:
         gb = make_gbuffer(scene, f, 2)
         fast.render(f, gb)
@@ -148,19 +143,14 @@ def test_frame_call_equal_h_keeps_the_tables_and_brdf_change_forces_them(monkeyp
     assert n["taken"] == taken + 3
 
 
-def test_frame_call_declines_a_gbuffer_off_contract(monkeypatch):
+def test_frame_call_declines_a_gbuffer_off_contract(monkeypatch, small, with_misses):
     """Misses whose face is not -1 on a VB frame: the view call declines after the fit and the tables, the route
     then renders the frame (finding H and the tables current) — the same image and state as FRAME_CALL off."""
-    scene = get_scene("chess", "test")
-    fast = PTT(**TINY)
-    fast.precompute(scene)
-    slow = fast.with_shading("vertex")
-    n = _spy(monkeypatch)
-    frames = [_small(f, 24) for f in make_sequence(scene, "VB", n_frames=3, seed=3)]
+    scene, fast, slow, n, frames = _chess_vb(monkeypatch, small, 3)
     for i, f in enumerate(frames):
         gb = make_gbuffer(scene, f, 2)
         if i == 2:
-            holes = _with_misses(gb, 29)
+            holes = with_misses(gb, 29)
             gb = dataclasses.replace(holes, face=torch.where(holes.hit, holes.face, 0))
         a = fast.render(f, gb)
         monkeypatch.setattr(PM, "FRAME_CALL", False)

@@ -22,16 +22,6 @@ TINY = dict(rays=4, cube_res=4, n_wi=8, brdf_grid=8, brdf_table=8, light_res_1=2
             bounces=0)  # the perf suite's shape: lobes, no bounce terms (3K = 24 lanes: the native rows' blocks)
 
 
-def _small(frame, side):
-    return dataclasses.replace(frame, camera=dataclasses.replace(frame.camera, width=side, height=side))
-
-
-def _with_misses(gb, step=37):
-    miss = torch.zeros_like(gb.hit)
-    miss[5::step] = True  # misses as the G-buffer writes them: hit False, face -1
-    return dataclasses.replace(gb, hit=gb.hit & ~miss, face=torch.where(miss, -1, gb.face))
-
-
 @pytest.fixture(autouse=True)
 def _skip_without_native(monkeypatch):
     if not (F.native_shading() and N.cells_available()):
@@ -57,7 +47,7 @@ def _spy(monkeypatch):
 
 @pytest.mark.parametrize("native_tables", [True, False])
 @pytest.mark.parametrize("name", ["chess", "creature", "sphere_plane"])
-def test_view_frame_renders_the_python_path_frames_bit_for_bit(name, native_tables, monkeypatch):
+def test_view_frame_renders_the_python_path_frames_bit_for_bit(name, native_tables, monkeypatch, small, with_misses):
     """V, VB and L sequences (camera moves, tables rewritten in place — or, without ``fast.NATIVE_TABLES``,
     made anew each VB frame —, a new lighting), at 1 and 2 threads with the threads' minimum shares lowered
     so every loop splits, two image sizes alternating (a new plan per G-buffer layout) and frames with
@@ -77,10 +67,10 @@ def test_view_frame_renders_the_python_path_frames_bit_for_bit(name, native_tabl
         try:
             for kind in ("V", "VB", "L"):
                 for i, f in enumerate(make_sequence(scene, kind, n_frames=4, seed=5)):
-                    f = _small(f, 16 if i == 3 else 24)  # frames 1, 2 on frame 0's plan (its layout)
+                    f = small(f, 16 if i == 3 else 24)  # frames 1, 2 on frame 0's plan (its layout)
                     gb = make_gbuffer(scene, f, 2)
                     if i == 2:
-                        gb = _with_misses(gb)
+                        gb = with_misses(gb)
                     monkeypatch.setattr(PM, "VIEW_FRAME", True)
                     before = n["shaded"]
                     a = fast.render(f, gb)
@@ -97,7 +87,7 @@ def test_view_frame_renders_the_python_path_frames_bit_for_bit(name, native_tabl
     assert fast.frame_cost("V", gb.num_samples) == slow.frame_cost("V", gb.num_samples)
 
 
-def test_view_frame_declines_a_gbuffer_off_contract(monkeypatch):
+def test_view_frame_declines_a_gbuffer_off_contract(monkeypatch, small, with_misses):
     """Misses whose face is not -1 (the contract the Python path checks before its native route): the C
     marking pass finds it, shades nothing, and the frame takes the Python path — the same image as
     VIEW_FRAME off, equal to the reference."""
@@ -105,9 +95,9 @@ def test_view_frame_declines_a_gbuffer_off_contract(monkeypatch):
     m = PTT(**TINY)
     m.precompute(scene)
     n = _spy(monkeypatch)
-    f = _small(make_sequence(scene, "V", n_frames=1, seed=3)[0], 24)
+    f = small(make_sequence(scene, "V", n_frames=1, seed=3)[0], 24)
     gb = make_gbuffer(scene, f, 2)
-    holes = _with_misses(gb, 29)
+    holes = with_misses(gb, 29)
     odd = dataclasses.replace(holes, face=torch.where(holes.hit, holes.face, 0))
     monkeypatch.setattr(PM, "VIEW_FRAME", True)
     m.render(f, holes)
@@ -121,7 +111,7 @@ def test_view_frame_declines_a_gbuffer_off_contract(monkeypatch):
     torch.testing.assert_close(a, ref, rtol=1e-5, atol=2e-6 * max(float(ref.abs().max()), 1.0))
 
 
-def test_view_frame_plan_follows_the_switches(monkeypatch):
+def test_view_frame_plan_follows_the_switches(monkeypatch, small):
     """The plan is made again when a switch it was made under changes (here ``native.LEAN`` and the thread
     count), and not made while they and the frame's inputs stay the same."""
     scene = get_scene("chess", "test")
@@ -136,7 +126,7 @@ def test_view_frame_plan_follows_the_switches(monkeypatch):
 
     monkeypatch.setattr(PTT, "_make_view_plan", counting)
     monkeypatch.setattr(PM, "VIEW_FRAME", True)
-    frames = [_small(f, 24) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
+    frames = [small(f, 24) for f in make_sequence(scene, "V", n_frames=3, seed=3)]
     gbs = [make_gbuffer(scene, f, 2) for f in frames]
     m.render(frames[0], gbs[0])
     m.render(frames[1], gbs[1])

@@ -855,6 +855,26 @@ def test_native_view_kept_static_arguments(S2, monkeypatch):
         native.view(face, hit[:-1], bary, normal, wo, *args)
 
 
+def _random_view_inputs(gen, n2, P, M, Vg, R, *, normal_scale=1.0, glossy_share=0.4):
+    """A view pass's random G-buffer (P samples: misses, column-major barycentrics, unnormalised normals times
+    ``normal_scale``) and tables (M faces, a ``glossy_share`` of them glossy, Vg glossy vertices, R regions of n2
+    SH terms, the second region's lobe with its cosine), drawn from ``gen`` in one fixed order:
+    (face, hit, bary, normal, wo, reg, ef, fk, fg, kd, ks, G, vcos, lg3)."""
+    face = torch.randint(-1, M, (P,), generator=gen)
+    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
+    bary = (torch.rand(2, P, generator=gen) * 0.5).T                              # column-major (Mitsuba)
+    normal = torch.randn(P, 3, generator=gen) * normal_scale
+    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
+    reg = torch.randint(0, R, (P,), generator=gen)
+    ef = torch.randn(M, 9, generator=gen)
+    fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < glossy_share).float()], 1)
+    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
+    kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
+    vcos = torch.tensor([False, True, False])
+    lg3 = torch.randn(3, Vg, n2, generator=gen)
+    return face, hit, bary, normal, wo, reg, ef, fk, fg, kd, ks, G, vcos, lg3
+
+
 @pytest.mark.parametrize("S2", [1, 4, 9])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("chunk", [2, 7, 256])
@@ -872,18 +892,7 @@ def test_native_view_equals_the_two_passes(S2, threads, chunk, monkeypatch):
     gen = torch.Generator().manual_seed(32 + S2 + 10 * threads + chunk)
     order, n = 5, 1001
     n2, P, M, Vg, R = order * order, n * S2, 60, 50, 3
-    face = torch.randint(-1, M, (P,), generator=gen)
-    hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
-    bary = (torch.rand(2, P, generator=gen) * 0.5).T                              # column-major (Mitsuba)
-    normal = torch.randn(P, 3, generator=gen)
-    wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
-    reg = torch.randint(0, R, (P,), generator=gen)
-    ef = torch.randn(M, 9, generator=gen)
-    fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.4).float()], 1)
-    fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
-    kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
-    vcos = torch.tensor([False, True, False])
-    lg3 = torch.randn(3, Vg, n2, generator=gen)
+    face, hit, bary, normal, wo, reg, ef, fk, fg, kd, ks, G, vcos, lg3 = _random_view_inputs(gen, n2, P, M, Vg, R)
     AS = shm._sh_factor_tables(order, torch.device("cpu"))
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
@@ -1507,18 +1516,8 @@ def test_order5_glossy_body_equals_the_body_for_any_order(threads, S2, monkeypat
     for order in (5, 3, 7):
         n2, n, M, Vg, R = order * order, 1001, 60, 50, 3
         P = n * S2
-        face = torch.randint(-1, M, (P,), generator=gen)
-        hit = (face >= 0) & (torch.rand(P, generator=gen) < 0.95)
-        bary = (torch.rand(2, P, generator=gen) * 0.5).T
-        normal = torch.randn(P, 3, generator=gen) * 1.7
-        wo = torch.nn.functional.normalize(torch.randn(3, P, generator=gen), dim=0).T
-        reg = torch.randint(0, R, (P,), generator=gen)
-        ef = torch.randn(M, 9, generator=gen)
-        fk = torch.cat([torch.rand(M, 3, generator=gen), (torch.rand(M, 1, generator=gen) < 0.5).float()], 1)
-        fg = torch.randint(0, Vg, (M, 3), generator=gen, dtype=torch.int32)
-        kd, ks, G = torch.rand(R, 3, generator=gen), torch.rand(R, 3, generator=gen), torch.rand(R, n2, generator=gen)
-        vcos = torch.tensor([False, True, False])
-        lg3 = torch.randn(3, Vg, n2, generator=gen)
+        face, hit, bary, normal, wo, reg, ef, fk, fg, kd, ks, G, vcos, lg3 = _random_view_inputs(
+            gen, n2, P, M, Vg, R, normal_scale=1.7, glossy_share=0.5)
         AS = shm._sh_factor_tables(order, torch.device("cpu"))
         g = hit.logical_and(fk[face.clamp(0, M - 1), 3] != 0).nonzero().squeeze(-1)
         old = torch.get_num_threads()
