@@ -103,6 +103,7 @@ from methods.zh_shadow import precompute as pc
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
 from methods.zh_shadow import native_zh44 as z44
+from methods.zh_shadow import native_zh45 as z45
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -381,6 +382,7 @@ class ZHShadow(Method):
         self._mats_kept: tuple | None = None   # (materials, `_region_materials`' list, their values): zh41p
         self._spec_t: tuple | None = None      # (the regions' specular flags, as a bool tensor): `_fused_planes`
         self._plane_T: tuple | None = None     # (Wd, n0 as floats, `runtime.diffuse_at`(Wd, n0)): `_plane_term`
+        self._plane_args: tuple | None = None  # (materials list, kd (R, 3), flags, on (R,) uint8): `_plane_term` (zh45)
         self._pose_bound = None   # `native.PoseSHBound` of every vertex's v (`_pose_visibility`, `bound_calls`)
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
@@ -1417,6 +1419,13 @@ class ZHShadow(Method):
                 if pt is None or pt[0] is not Wd or pt[1] != n0k:
                     self._plane_T = pt = (Wd, n0k, rt.diffuse_at(Wd, n0))
                 T = pt[2]
+                if only is not None and self.native_plane_terms:
+                    # (zh45: u0 and u in one threaded C call, `native_zh45.plane_terms`: the same bits as below)
+                    r = self._native_plane_terms(v, T, vreg, mats, only)
+                    if r is not None:
+                        self._plane_u0 = (ukey0, v0, Wd, r[0])
+                        self._plane_u = pu = (ukey, v0, Wd, r[1])
+                        return pu[3]
                 if only is None:
                     # (one C pass over the rows where it runs, `native.plane_u`: float32 round-off against the GEMM)
                     u0 = zn.plane_u(v, T) if self.native_plane_u else None
@@ -1440,6 +1449,22 @@ class ZHShadow(Method):
                     torch.mul(u0[a0:a1], m[0].to(v.device, v.dtype), out=u[a0:a1])
             self._plane_u = pu = (ukey, v0, Wd, u)
         return pu[3]
+
+    # `_plane_term`'s new u0 and u for the regions without a specular term (its ``spec`` case) by one threaded C call
+    # (`native_zh45.plane_terms`, zh45: the same bits) where it runs; False: `native.plane_u` a region, ``zero_`` and
+    # ``torch.mul`` (the tests' oracle)
+    native_plane_terms = True
+
+    def _native_plane_terms(self, v: Tensor, T: Tensor, vreg: Tensor, mats: list, only: tuple) -> tuple | None:
+        """`native_zh45.plane_terms` of `_plane_term`'s ``only`` case — its kd rows stacked and its flags as bytes,
+        kept while the materials list and flags stay — or None (then `_plane_term`'s own steps)."""
+        pa = self._plane_args
+        if pa is None or pa[0] is not mats or pa[2] != only:
+            if len(mats) != len(only) or any(m[0].shape != (3,) or m[0].dtype != torch.float32 for m in mats):
+                return None
+            self._plane_args = pa = (mats, torch.stack([m[0] for m in mats]).contiguous(), only,
+                                     torch.tensor(only, dtype=torch.uint8))
+        return z45.plane_terms(v, T, vreg, pa[3], pa[1])
 
     def _face_rows(self, geom, dev) -> tuple[Tensor, Tensor]:
         """(F int32 (M, 3), Fᵀ int64 (3, M)) of the posed geometry's face table, kept with that table:
