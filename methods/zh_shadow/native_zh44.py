@@ -27,6 +27,7 @@ from torch import Tensor
 
 from methods.core import native
 from methods.zh_shadow import native as zn
+from methods.zh_shadow import native_threaded as z39
 
 _I, _P, _D = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
 
@@ -67,18 +68,24 @@ int64_t zh44_table(int64_t B, double alpha, int64_t use_alpha, const double *A, 
 """
 _SIGNATURES = {"zh44_table": [_I, _D, _I, _P, _I, _I, _I, _P, _P]}
 
-_FLAGS: tuple | None = None   # (made once: `native.isa_flags` asks torch for the CPU at each call)
+_FLAGS: dict = {}   # (the flags asked for -> with `native.isa_flags`, made once: it asks torch for the CPU each call)
+
+
+def switched_load(name: str, source: str, signatures: dict, *flags: str):
+    """`native.load`(name, source, signatures) built with ``flags`` and the ISA flags (`native.isa_flags`) — or None
+    (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``). Not cached here (`native.load` caches the
+    build; `zh_shadow.native.load` the look-up)."""
+    if not zn.terms_switched_on():
+        return None
+    f = _FLAGS.get(flags)
+    if f is None:
+        _FLAGS[flags] = f = (*flags, *native.isa_flags())
+    return zn.load(name, source, signatures, extra_flags=f)
 
 
 def _lib():
-    """The library or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``). Not cached here
-    (`native.load` caches the build)."""
-    global _FLAGS
-    if not zn.terms_switched_on():
-        return None
-    if _FLAGS is None:
-        _FLAGS = ("-ffp-contract=off", *native.isa_flags())
-    lib = zn.load("zh44_table", _SOURCE, _SIGNATURES, extra_flags=_FLAGS)
+    """The table's library or None (`switched_load`)."""
+    lib = switched_load("zh44_table", _SOURCE, _SIGNATURES, "-ffp-contract=off")
     if lib is not None:
         lib.zh44_table.restype = ctypes.c_int64
     return lib
@@ -123,6 +130,10 @@ def light_table(A: Tensor, light: Tensor, alpha: float | None) -> Tensor | None:
 # per-thread zero counts of the mask) — the same integer counts, mask, lut and vertex list. Where the first
 # screened candidate's full count falls short or a sample is out of range (the old search would go on to the next
 # candidate or give up), it reports that and the caller runs the old calls.
+# `native_threaded`'s one-thread walk over the samples off the mask (`walk`) and `native.plane_mask`'s two loops over a
+# thread's range (`zh37v_plane_mask`), their text taken from those sources: the same code in the split
+_WALK = z39._SOURCE[z39._SOURCE.index("/* One thread's range"):z39._SOURCE.index("    return j;\n}\n") + len("    return j;\n}\n")]
+_MASK_LOOPS = zn._PMASK_SOURCE[zn._PMASK_SOURCE.index("        if (!hit) {"):zn._PMASK_SOURCE.index("        cnt[3 * k] = ne;")]
 _SPLIT_SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
@@ -130,7 +141,7 @@ _SPLIT_SOURCE = r"""
 #ifdef _OPENMP
 #include <omp.h>
 #endif
-
+""" + _WALK + r"""
 /* st (out, 24 int64): [0] status (0 ok: the first screened candidate's mask made and walked; 1 no candidate passes
    the screen; 2 its count < min_points or a sample out of range: nothing trusted but st[1..]), [1] the candidate
    (0..7), [2] the mask's count, [3] its samples in a specular region, [4] m = P - count, [5] rest screen made
@@ -145,7 +156,7 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
     const uint64_t R_ = (uint64_t)R;
     for (int i = 0; i < 24; ++i) st[i] = 0;
     st[14] = -1;
-    int64_t cand = -1, m = 0, ns = 0, screen = 0, walk = 0, lut_bad = 0;
+    int64_t cand = -1, m = 0, ns = 0, screen = 0, do_walk = 0, lut_bad = 0;
     float a = 0.f, b = 0.f, c = 0.f;
     float *sub = NULL;
     float cn[24];
@@ -193,28 +204,10 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
             /* 2. the mask of that normal (`zh37v_plane_mask`'s loop and counts) */
             const int64_t p0 = P * k / T, p1 = P * (k + 1) / T;
             int64_t ne = 0, nsp = 0, bad = 0;
-            if (!hit) {
-                for (int64_t p = p0; p < p1; ++p) {
-                    const float *n = nrm + 3 * p;
-                    const int64_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
-                    mask[p] = (uint8_t)e;
-                    ne += e;
-                    const uint64_t r = (uint64_t)region[p];
-                    const int64_t ok = r < R_;
-                    bad += !ok;
-                    nsp += e & ok & (int64_t)((bits >> (r & 63)) & 1);
-                }
-            } else {
-                for (int64_t p = p0; p < p1; ++p) {
-                    const float *n = nrm + 3 * p;
-                    const int64_t e = (n[0] == a) & (n[1] == b) & (n[2] == c);
-                    mask[p] = (uint8_t)e;
-                    ne += e;
-                    const uint64_t r = (uint64_t)region[p];
-                    const int64_t ok = r < R_, h = hit[p] != 0;
-                    bad += (!ok & h) | (e & !h);
-                    nsp += e & ok & (int64_t)((bits >> (r & 63)) & 1);
-                }
+            {   /* (`zh37v_plane_mask`'s two loops, their text: `native._PMASK_SOURCE`) */
+                const float *normal = nrm;
+                int64_t ns = 0;
+""" + _MASK_LOOPS + r"""                nsp = ns;
             }
             my[8] = ne; my[9] = nsp; my[10] = bad; my[11] = (p1 - p0) - ne; my[12] = 0;
             if (do_lut) {
@@ -236,10 +229,10 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
                         if (!sub) screen = 0, st[5] = -1;
                         for (int q = 0; q < 8; ++q) rank[q] = q * m / 8;
                     }
-                    walk = screen || do_lut;
+                    do_walk = screen || do_lut;
                 }
             }   /* (implicit barrier) */
-            if (walk) {
+            if (do_walk) {
                 /* 3. the samples off the mask, ranked j in p order (`zh39s_rest_lut`'s walk) */
                 const int64_t ns16 = (m + 15) / 16;
                 int64_t j = 0;
@@ -247,38 +240,9 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
                 int next = 0;
                 if (screen)
                     while (next < 8 && rank[next] < j) ++next;
-                int lbad = 0;
-                for (int64_t p = p0; p < p1; ++p) {
-                    if (mask[p]) {
-                        uint64_t w;
-                        while (p + 9 <= p1 && (memcpy(&w, mask + p + 1, 8), w == 0x0101010101010101ULL)) p += 8;
-                        continue;
-                    }
-                    if (screen) {
-                        const float *x = nrm + 3 * p;
-                        if ((j & 15) == 0 && (j >> 4) < ns16) {
-                            sub[3 * (j >> 4)] = x[0]; sub[3 * (j >> 4) + 1] = x[1]; sub[3 * (j >> 4) + 2] = x[2];
-                        }
-                        while (next < 8 && rank[next] == j) {
-                            cn[3 * next] = x[0]; cn[3 * next + 1] = x[1]; cn[3 * next + 2] = x[2];
-                            ++next;
-                        }
-                        ++j;
-                    }
-                    if (do_lut && !lbad && (!hit || hit[p])) {
-                        const int64_t f = face[p];
-                        if ((uint64_t)f >= (uint64_t)M) { lbad = 1; continue; }
-                        const int32_t *cc = F + 3 * f;
-                        const int64_t i0 = cc[0], i1 = cc[1], i2 = cc[2];
-                        if ((uint64_t)i0 >= (uint64_t)N || (uint64_t)i1 >= (uint64_t)N || (uint64_t)i2 >= (uint64_t)N) {
-                            lbad = 1;
-                            continue;
-                        }
-                        __atomic_store_n(lut + i0, 1, __ATOMIC_RELAXED);
-                        __atomic_store_n(lut + i1, 1, __ATOMIC_RELAXED);
-                        __atomic_store_n(lut + i2, 1, __ATOMIC_RELAXED);
-                    }
-                }
+                int lbad = 0;   /* (`zh39s_rest_lut`'s walk over this thread's range, the same function) */
+                walk(mask, hit, nrm, face, F, M, N, p0, p1, (int)screen, (int)do_lut, j, next, rank, ns16, sub, cn, lut,
+                     &lbad);
                 my[12] = lbad;
             }
         }
@@ -312,16 +276,9 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
 """
 _SPLIT_SIGNATURES = {"zh44_split": [_I, _P, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I, _I, _I, _P, _P, _P, _P, _P]}
 
-_SPLIT_FLAGS: tuple | None = None
-
-
 def _split_lib():
-    global _SPLIT_FLAGS
-    if not zn.terms_switched_on():
-        return None
-    if _SPLIT_FLAGS is None:
-        _SPLIT_FLAGS = ("-fopenmp", *native.isa_flags())
-    return zn.load("zh44_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, extra_flags=_SPLIT_FLAGS)
+    """The split's library or None (`switched_load`)."""
+    return switched_load("zh44_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, "-fopenmp")
 
 
 # samples a thread takes at least (`native_threaded.MIN_SAMPLES_PER_THREAD`'s rule)

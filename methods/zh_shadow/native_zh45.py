@@ -16,8 +16,7 @@ import ctypes
 import torch
 from torch import Tensor
 
-from methods.core import native
-from methods.zh_shadow import native as zn
+from methods.zh_shadow.native_zh44 import switched_load
 
 _I, _P = ctypes.c_int64, ctypes.c_void_p
 
@@ -46,21 +45,13 @@ void zh45_plane_terms(int64_t N, const float *v, int64_t n2, const float *T, con
 }
 """
 _SIGNATURES = {"zh45_plane_terms": [_I, _P, _I, _P, _P, _I, _P, _P, _P, _P, _I]}
-_FLAGS: tuple | None = None   # (made once: `native.isa_flags` asks torch for the CPU at each call)
-
 # rows a thread takes at least (the rows are light: 16 multiply-adds and 6 stores)
 MIN_ROWS_PER_THREAD = 1024
 
 
 def _lib():
-    """The library or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``). Not cached here
-    (`native.load` caches the build)."""
-    global _FLAGS
-    if not zn.terms_switched_on():
-        return None
-    if _FLAGS is None:
-        _FLAGS = ("-fopenmp", "-ffp-contract=off", *native.isa_flags())
-    return zn.load("zh45_plane_terms", _SOURCE, _SIGNATURES, extra_flags=_FLAGS)
+    """The library or None (`native_zh44.switched_load`: no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``)."""
+    return switched_load("zh45_plane_terms", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
 
 
 def plane_terms(v: Tensor, T: Tensor, vreg: Tensor, on: Tensor, kd: Tensor) -> tuple[Tensor, Tensor] | None:

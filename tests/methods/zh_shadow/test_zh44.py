@@ -8,6 +8,7 @@ import torch
 
 from methods.zh_shadow import native_zh44 as z44
 from methods.zh_shadow import runtime as rt
+from tests.methods.zh_shadow.conftest import assert_frames_equal
 
 
 def _bits(x: torch.Tensor) -> torch.Tensor:
@@ -90,23 +91,9 @@ def test_zh44_frames_equal_oracle(creature, kind):
     """Frames with the C tables and packed materials = the oracle (`runtime.table`, a tensor per colour), the same
     bits here (float32 round-off allowed by the table's docstring: none on these frames), the same path and counts,
     at 1 and 2 threads. A table made for the wrong exponent or lighting, or a region's ks read as its kd, breaks it."""
-    from methods.core.threads import torch_threads
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
     new, orc = creature.with_render_config(), creature.with_render_config()
     orc.native_light_table = orc.packed_materials = False
-    for fr in make_sequence(creature.scene, kind, 4, seed=44):
-        gb = make_gbuffer(creature.scene, fr, 2)
-        for threads in (1, 2):
-            with torch_threads(threads):
-                a = new.render(fr, gb)
-                b = orc.render(fr, gb)
-            assert new.last_path == orc.last_path
-            assert torch.equal(_bits(a), _bits(b)), (kind, fr.index, threads, float((a - b).abs().max()))
-        ca, cb = dict(new._last_counts), dict(orc._last_counts)
-        pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
-        assert ca == cb and (pa is None) == (pb is None) and (pa is None or pa() == pb())
+    assert_frames_equal(creature.scene, new, orc, kind, 44)
 
 
 def _old_split(nrm, region, spec_t, hit, face, F32, N, lut):
@@ -222,10 +209,6 @@ def test_split_reports_a_short_or_bad_candidate():
 def test_one_split_frames_equal_oracle(creature, kind):
     """Frames with `one_split` = the three calls (`one_split` off) bit for bit, the same path and counts, 1 and 2
     threads."""
-    from methods.core.threads import torch_threads
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
     new, orc = creature.with_render_config(), creature.with_render_config()
     orc.one_split = False
     calls = []
@@ -239,17 +222,7 @@ def test_one_split_frames_equal_oracle(creature, kind):
     import methods.zh_shadow.method as M
     M.z44.split, old = spy, M.z44.split
     try:
-        for fr in make_sequence(creature.scene, kind, 4, seed=7):
-            gb = make_gbuffer(creature.scene, fr, 2)
-            for threads in (1, 2):
-                with torch_threads(threads):
-                    a = new.render(fr, gb)
-                    b = orc.render(fr, gb)
-                assert new.last_path == orc.last_path and new.last_fused == orc.last_fused
-                assert torch.equal(_bits(a), _bits(b)), (kind, fr.index, threads)
-            ca, cb = dict(new._last_counts), dict(orc._last_counts)
-            pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
-            assert ca == cb and (pa is None) == (pb is None) and (pa is None or pa() == pb())
+        assert_frames_equal(creature.scene, new, orc, kind, 7, fused=True)
     finally:
         M.z44.split = old
     assert 0 in calls   # (the one call took the frames)
