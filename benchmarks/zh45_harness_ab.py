@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--precompute-code", default=None)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--mitsuba", action="store_true",
+                    help="each frame's G-buffer rasterised anew right before it (`references.gbuffer.make_gbuffer`, "
+                         "Mitsuba: the harness's own step) instead of the 64 MB write and a clone")
     ap.add_argument("--set", nargs="*", default=[], metavar="ATTR=0|1",
                     help="class switches of the new code's ZHShadow set for this run (e.g. one_split=0)")
     a = ap.parse_args(argv)
@@ -60,6 +63,8 @@ def main(argv: list[str] | None = None) -> dict:
         if not hasattr(New, k):
             raise SystemExit(f"ZHShadow has no switch {k!r}")
         setattr(New, k, bool(int(v)))
+    from references.gbuffer import make_gbuffer
+
     Base = baseline_class(a.baseline)
     scene, _, _, _ = setup(a.scene, a.size, kind="V", n_frames=1)
     m, _ = precomputed(New, scene, json.loads(a.config))
@@ -79,8 +84,11 @@ def main(argv: list[str] | None = None) -> dict:
                 imgs = {}
                 for w in (("new", "base") if i % 2 == 0 else ("base", "new")):
                     with base_modules(a.baseline, w):
-                        buf.fill_(float(i))
-                        g2 = fresh(g)
+                        if a.mitsuba:
+                            g2 = make_gbuffer(scene, f, g.spp_side)
+                        else:
+                            buf.fill_(float(i))
+                            g2 = fresh(g)
                         gc.disable()
                         c, c0 = time.process_time(), time.perf_counter()
                         imgs[w] = (new if w == "new" else base).render(f, g2)

@@ -17,6 +17,12 @@ the operator a_r = Σ_b F_b A_b[r] (float64, b in order) and each output Σ_i a_
 multiply-adds fused), rounded once to float32. Float32 round-off against `runtime.table` at most (float64 sums in
 another order than BLAS's: an output can round to the neighbouring float32 only at a tie; tests). The diffuse
 table (α = 1, its operator kept by `runtime._table_operator_b`'s cache) goes through the same call with B = 1, F = 1.
+
+Below, the plane split in one call (`split`). Session 44 measured both at 1 thread only (0.98-1.04x: not merged);
+session 45 (zh45) took them for their effect at 2 threads, where each serial step is paid in full while the
+second thread waits: wall time, same process, alternating, harness-like frames (`benchmarks.zh45_harness_ab
+--threads 2`, 120 frames a side): VB 1.059x, VBL 1.052x (without the table, ``native_light_table`` off: 1.017x,
+1.030x), P 1.018x; A/A 0.99-1.01x. The images were the same bits in every A/B frame.
 """
 from __future__ import annotations
 
@@ -130,6 +136,7 @@ def light_table(A: Tensor, light: Tensor, alpha: float | None) -> Tensor | None:
 # per-thread zero counts of the mask) — the same integer counts, mask, lut and vertex list. Where the first
 # screened candidate's full count falls short or a sample is out of range (the old search would go on to the next
 # candidate or give up), it reports that and the caller runs the old calls.
+#
 # `native_threaded`'s one-thread walk over the samples off the mask (`walk`) and `native.plane_mask`'s two loops over a
 # thread's range (`zh37v_plane_mask`), their text taken from those sources: the same code in the split
 _WALK = z39._SOURCE[z39._SOURCE.index("/* One thread's range"):z39._SOURCE.index("    return j;\n}\n") + len("    return j;\n}\n")]
