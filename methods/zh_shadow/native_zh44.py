@@ -43,10 +43,11 @@ _SOURCE = r"""
 
 /* out (R, C) float32: row r = (float)(sum_i a_r[i] L[i, c]) with a_r = sum_b F_b A[b, r, :] (A (B, R, n2) float64),
    F = phong factors of alpha over B bands when use_alpha (the recurrence of `core.zh.phong_factors`), else F_0 = 1
-   (B must be 1). Returns 0, or 1 (a shape the buffers below do not hold: nothing written). */
+   (B must be 1). Returns 0, or 1 (a shape the buffers below do not hold: nothing written). The rows split over nt
+   threads (zh45: each row one thread's, the same operations: the same bits at any thread count). */
 int64_t zh44_table(int64_t B, double alpha, int64_t use_alpha, const double *A, int64_t R, int64_t n2, int64_t C,
-                   const float *L, float *out) {
-    double F[64], l[256], a[64];
+                   const float *L, float *out, int64_t nt) {
+    double F[64], l[256];
     if (B < 1 || B > 64 || n2 < 1 || n2 > 64 || C < 1 || n2 * C > 256 || (!use_alpha && B != 1)) return 1;
     F[0] = 1.0;
     if (use_alpha) {
@@ -56,7 +57,9 @@ int64_t zh44_table(int64_t B, double alpha, int64_t use_alpha, const double *A, 
     }
     for (int64_t i = 0; i < n2 * C; ++i) l[i] = (double)L[i];
     const int64_t stride = R * n2;
+#pragma omp parallel for num_threads(nt) schedule(static) if(nt > 1)
     for (int64_t r = 0; r < R; ++r) {
+        double a[64];
         const double *ar = A + r * n2;
         for (int64_t i = 0; i < n2; ++i) a[i] = F[0] * ar[i];
         for (int64_t b = 1; b < B; ++b) {
@@ -72,7 +75,10 @@ int64_t zh44_table(int64_t B, double alpha, int64_t use_alpha, const double *A, 
     return 0;
 }
 """
-_SIGNATURES = {"zh44_table": [_I, _D, _I, _P, _I, _I, _I, _P, _P]}
+_SIGNATURES = {"zh44_table": [_I, _D, _I, _P, _I, _I, _I, _P, _P, _I]}
+
+# operator rows a thread takes at least (zh45: each row B · n² + n² · C multiply-adds, its B · n² doubles read)
+MIN_TABLE_ROWS_PER_THREAD = 256
 
 _FLAGS: dict = {}   # (the flags asked for -> with `native.isa_flags`, made once: it asks torch for the CPU each call)
 
@@ -91,7 +97,7 @@ def switched_load(name: str, source: str, signatures: dict, *flags: str):
 
 def _lib():
     """The table's library or None (`switched_load`)."""
-    lib = switched_load("zh44_table", _SOURCE, _SIGNATURES, "-ffp-contract=off")
+    lib = switched_load("zh44_table", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
     if lib is not None:
         lib.zh44_table.restype = ctypes.c_int64
     return lib
@@ -119,8 +125,9 @@ def light_table(A: Tensor, light: Tensor, alpha: float | None) -> Tensor | None:
     if n2 == 0 or R % n2:
         return None
     out = torch.empty(R // n2, n2 * C, dtype=torch.float32)
+    nt = max(1, min(torch.get_num_threads(), R // MIN_TABLE_ROWS_PER_THREAD))
     if lib.zh44_table(B, 0.0 if alpha is None else float(alpha), int(alpha is not None), A.data_ptr(), R, n2, C,
-                      light.data_ptr(), out.data_ptr()) != 0:
+                      light.data_ptr(), out.data_ptr(), nt) != 0:
         return None
     return out
 

@@ -114,3 +114,30 @@ def test_native_plane_terms_frames_equal_oracle(creature, monkeypatch, kind):
             assert len(ran) > n_ran
     finally:
         torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("n", (3, 4))
+def test_light_table_rows_over_threads_same_bits(n, monkeypatch):
+    """`native_zh44.light_table`'s rows split over 2 threads (zh45; its threshold lowered so that small orders split
+    too) = the 1-thread table bit for bit, for the specular table at several exponents and the diffuse one. A row
+    range that skips or repeats rows, or a row buffer shared between the threads, breaks it."""
+    from methods.core.threads import torch_threads
+    from methods.zh_shadow import native_zh44 as z44
+    from methods.zh_shadow import runtime as rt
+
+    if z44._lib() is None:
+        pytest.skip("no C compiler or the native passes switched off")
+    monkeypatch.setattr(z44, "MIN_TABLE_ROWS_PER_THREAD", 8)
+    g = torch.Generator().manual_seed(450 + n)
+    for t in range(4):
+        L = torch.randn(n * n, 3, generator=g) * (1 + t)
+        for alpha in (None, 0.0, 3.0, 37.5):
+            A = rt._table_operator_b(n, 1.0, True) if alpha is None else rt._band_operators(n, False)
+            with torch_threads(1):
+                one = z44.light_table(A, L, alpha)
+            with torch_threads(2):
+                two = z44.light_table(A, L, alpha)
+            assert one is not None and two is not None
+            assert torch.equal(_bits(one), _bits(two)), (n, t, alpha)
+            want = rt.table(L, 1.0 if alpha is None else alpha, diffuse=alpha is None)
+            assert float((two - want).abs().max()) <= 2 * torch.finfo(torch.float32).eps * float(want.abs().max())
