@@ -102,6 +102,8 @@ from methods.core.zh import WINDOWS, convolve_factors, window_factors, zh_lobes_
 from methods.zh_shadow import precompute as pc
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
+from methods.zh_shadow import native_split as z44
+from methods.zh_shadow import native_plane_terms as z45
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -380,6 +382,7 @@ class ZHShadow(Method):
         self._mats_kept: tuple | None = None   # (materials, `_region_materials`' list, their values): zh41p
         self._spec_t: tuple | None = None      # (the regions' specular flags, as a bool tensor): `_fused_planes`
         self._plane_T: tuple | None = None     # (Wd, n0 as floats, `runtime.diffuse_at`(Wd, n0)): `_plane_term`
+        self._plane_args: tuple | None = None  # (materials list, kd (R, 3), flags, on (R,) uint8): `_plane_term` (zh45)
         self._pose_bound = None   # `native.PoseSHBound` of every vertex's v (`_pose_visibility`, `bound_calls`)
         self._steady: tuple | None = None   # the last fused relight's frame and arguments: `_steady_relight`
         self._planes_run: tuple | None = None   # (transfer cache, n0, regions, setup): `_relight_planes`' last call
@@ -585,9 +588,42 @@ class ZHShadow(Method):
         rm = self._mats_kept
         if rm is not None and len(rm[0]) == len(mk) and all(a is b or a == b for a, b in zip(rm[0], mk)):
             return rm[1]
-        out = self._region_materials_of(frame)
-        self._mats_kept = (mk, out, tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al)) for kd, ks, al in out))
+        if self.packed_materials:
+            out, vals = self._region_materials_packed(mk)
+        else:
+            out = self._region_materials_of(frame)
+            vals = tuple((tuple(kd.tolist()), tuple(ks.tolist()), float(al)) for kd, ks, al in out)
+        self._mats_kept = (mk, out, vals)
         return out
+
+    # `_region_materials`' kd / ks rows as views of ONE float32 tensor made from the Python values, their values
+    # by one ``tolist`` (`_region_materials_packed`: the same values); False: a tensor per colour and a ``tolist``
+    # each (`_region_materials_of`, the tests' oracle)
+    packed_materials = True
+
+    def _region_materials_packed(self, mk: tuple) -> tuple[list, tuple]:
+        """`_region_materials_of`'s list for the materials ``mk`` (one per region, in `Scene.regions` order) and
+        `_mat_values`' tuples, the same values: the kd and ks rows of every region (ks zeros for Lambert) in one
+        (2R, 3) float32 tensor — one ``torch.tensor`` and one ``tolist`` instead of two tensors and two
+        ``tolist`` a region (a VB frame's new exponent: 0.17 ms of serial Python and torch with the caches cold,
+        1 thread, two regions: `benchmarks.zh44_sections VB`)."""
+        brdfs = self.capabilities.brdfs
+        rows, als = [], []
+        for name, mat in zip(self.scene.regions, mk):
+            kind = mat.kind
+            if kind not in brdfs:
+                raise ValueError(f"zh_shadow supports {sorted(brdfs)} BRDFs, region {name!r} is {kind!r}")
+            if kind == "phong":
+                rows += (mat.kd, mat.ks)
+                als.append(float(mat.s))
+            else:
+                rows += (mat.kd, (0.0, 0.0, 0.0))
+                als.append(1.0)
+        T = torch.tensor(rows, dtype=torch.float32)
+        flat = T.tolist()
+        out = [(T[2 * r], T[2 * r + 1], al) for r, al in enumerate(als)]
+        vals = tuple((tuple(flat[2 * r]), tuple(flat[2 * r + 1]), al) for r, al in enumerate(als))
+        return out, vals
 
     def _mat_values(self, mats: list) -> tuple:
         """((kd, ks) as tuples of Python floats, α) per region of ``mats`` (kept with `_region_materials`' list)."""
@@ -834,8 +870,29 @@ class ZHShadow(Method):
         tkey = ("d", 1.0) if diffuse else ("s", float(alpha))
         tabs = self._tables[1]
         if tkey not in tabs:
-            tabs[tkey] = rt.table(light, 1.0 if diffuse else alpha, diffuse=diffuse)
+            W = self._light_table(light, alpha, diffuse) if self.native_light_table else None
+            tabs[tkey] = rt.table(light, 1.0 if diffuse else alpha, diffuse=diffuse) if W is None else W
         return tabs[tkey]
+
+    # `_table` by one C call (`native_split.light_table`: the Phong factors, the operator from its band parts and its
+    # product with the lighting; float32 round-off against `runtime.table`) where it runs; False: `runtime.table`
+    # (the tests' oracle)
+    native_light_table = True
+
+    def _light_table(self, light: Tensor, alpha: float, diffuse: bool) -> Tensor | None:
+        """`runtime.table`(light, α or 1, diffuse) by `native_split.light_table` — the specular table from the band
+        parts (`runtime._band_operators`) and α, the diffuse one from its kept operator — or None where it does not
+        run (then `runtime.table`): orders above `runtime.MONOMIAL_MAX_ORDER`, ``runtime.TABLE_BANDS`` off, an
+        exponent `phong_factors` refuses (it raises there)."""
+        n = self.model.order
+        if not rt.TABLE_BANDS or n > rt.MONOMIAL_MAX_ORDER:
+            return None
+        if diffuse:
+            return z44.light_table(rt._table_operator_b(n, 1.0, True), light, None)
+        a = float(alpha)
+        if not (math.isfinite(a) and a >= 0):
+            return None
+        return z44.light_table(rt._band_operators(n, False), light, a)
 
     def render(self, frame: Frame, gbuffer: GBuffer) -> Tensor:
         """`_render` (the fast path), then the vertices its count credits (`_credit_referenced`)."""
@@ -1129,48 +1186,67 @@ class ZHShadow(Method):
         if st is None or st[0] != spec:
             self._spec_t = st = (list(spec), torch.tensor(spec))
         spec_t = st[1]
-        found: list = []
-
-        def match(n0: Tensor) -> tuple[Tensor, int]:
-            r = zn.plane_mask(nrm, n0, region, spec_t, None if nmiss == 0 else hit)
-            if r is None:
-                raise LookupError   # (the torch match: `_render_planes` goes on)
-            found[:] = [r]
-            return r[0], r[1]
-
-        # (the screened points split over the threads where it runs, `native_threaded.screen8`: the same counts)
-        sc = z39.screen8(nrm.T) if self.threaded_helpers else None
-        if sc is None:
-            sc = zn.screen8(nrm.T)
-        if sc is None:
-            return None
-        try:
-            first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match, screen=sc)
-        except LookupError:
-            return None
-        if first is None or 2 * first[2] <= P:
-            return None
-        mask, cnt, ns, _ = found[0]
-        if has_spec and ns:
-            return None
-        m = P - cnt                           # the samples off the plane (the misses among them)
-        if m - nmiss <= 0:
-            return None
         hit_arg = None if nmiss == 0 else hit
         N = int(v.shape[0])
-        # `threaded_helpers`: the second plane's screen and, for a frame that will build its own table of the
-        # referenced vertices (`_vertex_table`'s ``refs`` case), those vertices, in one threaded pass over the
-        # samples off the plane (`native_threaded.rest_lut`: the same counts, vertices and lut); else the serial helpers
-        want_lut = self.threaded_helpers and self.referenced_table and not frame.changed <= {"view"} \
-            and self._vtable is not None and m - nmiss >= VERTEX_TABLE_POINTS * N
-        screen = m >= rt.PLANAR_MIN_POINTS
-        pre = z39.rest_lut(mask, hit_arg, nrm, gbuffer.face, F32, N, m, screen, want_lut) \
-            if self.threaded_helpers and (screen or want_lut) else None
-        found_lut = None if pre is None else pre[1]
-        if screen:                            # a second plane among them: `_native_split`'s test, screened
-            rs = pre[0] if pre is not None else zn.rest_screen(mask, nrm, m)
-            if rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs):
+        # (`_vertex_table`'s ``refs`` case but for the count of samples off the plane, known after the mask)
+        lut_ok = self.threaded_helpers and self.referenced_table and not frame.changed <= {"view"} \
+            and self._vtable is not None
+        one = z44.split(nrm, region, spec_t, hit_arg, rt.PLANAR_MIN_POINTS, rt.PLANAR_MIN_POINTS, lut_ok,
+                        gbuffer.face, F32, N) if self.one_split and self.threaded_helpers else None
+        if one is not None and one[0] == 1:
+            return None                       # no candidate passes the screen: `first_plane` finds none
+        if one is not None and one[0] == 0:   # the first screened candidate's mask (`native_split.split`)
+            _, c0, mask, cnt, ns, m, rs, rl, _ = one
+            n0 = nrm[c0 * P // 8].clone()     # (`first_plane`'s ``cur[:, c m // 8]``)
+            if 2 * cnt <= P or (has_spec and ns) or m - nmiss <= 0:
                 return None
+            want_lut = lut_ok and m - nmiss >= VERTEX_TABLE_POINTS * N
+            screen = m >= rt.PLANAR_MIN_POINTS
+            found_lut = rl if want_lut else None
+            if screen and (rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs)):
+                return None
+        else:
+            found: list = []
+
+            def match(n0: Tensor) -> tuple[Tensor, int]:
+                r = zn.plane_mask(nrm, n0, region, spec_t, hit_arg)
+                if r is None:
+                    raise LookupError   # (the torch match: `_render_planes` goes on)
+                found[:] = [r]
+                return r[0], r[1]
+
+            # (the screened points split over the threads where it runs, `native_threaded.screen8`: the same counts)
+            sc = z39.screen8(nrm.T) if self.threaded_helpers else None
+            if sc is None:
+                sc = zn.screen8(nrm.T)
+            if sc is None:
+                return None
+            try:
+                first = rt.first_plane(nrm.T, rt.PLANAR_MIN_POINTS, match, screen=sc)
+            except LookupError:
+                return None
+            if first is None or 2 * first[2] <= P:
+                return None
+            n0 = first[0]
+            mask, cnt, ns, _ = found[0]
+            if has_spec and ns:
+                return None
+            m = P - cnt                           # the samples off the plane (the misses among them)
+            if m - nmiss <= 0:
+                return None
+            # `threaded_helpers`: the second plane's screen and, for a frame that will build its own table of the
+            # referenced vertices (`_vertex_table`'s ``refs`` case), those vertices, in one threaded pass over the
+            # samples off the plane (`native_threaded.rest_lut`: the same counts, vertices and lut); else the serial
+            # helpers
+            want_lut = lut_ok and m - nmiss >= VERTEX_TABLE_POINTS * N
+            screen = m >= rt.PLANAR_MIN_POINTS
+            pre = z39.rest_lut(mask, hit_arg, nrm, gbuffer.face, F32, N, m, screen, want_lut) \
+                if self.threaded_helpers and (screen or want_lut) else None
+            found_lut = None if pre is None else pre[1]
+            if screen:                            # a second plane among them: `_native_split`'s test, screened
+                rs = pre[0] if pre is not None else zn.rest_screen(mask, nrm, m)
+                if rs is None or any(c * 32 >= rt.PLANAR_MIN_POINTS for c in rs):
+                    return None
         pend = self._v_pending
         if pend is not None and pend[0] is v0 and not pend[4:]:
             # (a new pose's visibility pending, `lazy_visibility`: the rows the plane term and this frame's own
@@ -1183,7 +1259,7 @@ class ZHShadow(Method):
                 rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
                                   found_lut[0]])
             self._fill_visibility(v0, rows)
-        u = self._plane_term(v0, v, vreg, tabs[0][2], mats, first[0], spec=spec)
+        u = self._plane_term(v0, v, vreg, tabs[0][2], mats, n0, spec=spec)
         U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
                                refs=lambda: found_lut if found_lut is not None else
                                zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N))
@@ -1205,7 +1281,7 @@ class ZHShadow(Method):
             warm_blocks(_warm_relight_planes, (gbuffer.face.view(n_, S2), nrm.view(n_, S2, 3),
                                                gbuffer.wo.view(n_, S2, 3), mask.view(n_, S2),
                                                gbuffer.bary.view(n_, S2, 2)), (fv, u, clamp), (n_,))
-        groups = [(first[0], None)]
+        groups = [(n0, None)]
         # (the mask's count: the plane search's own, ``cnt`` — a miss never matches, `native.plane_mask`)
         counts = rt._plane_counts(groups, mask, region, geom.N.to(gbuffer.hit.device), vreg, planar=cnt)
         counts["specular"] = nspec
@@ -1218,6 +1294,12 @@ class ZHShadow(Method):
     # `referenced_lut` in one walk over the samples off the plane; the same counts and vertices); False: the
     # serial helpers of `native` (the tests' oracle)
     threaded_helpers = True
+
+    # With `threaded_helpers`: `_fused_planes`' screen, plane mask and walk over the samples off it as ONE threaded C
+    # call (`native_split.split`: the same counts, mask, vertices and lut) where it runs and the first screened
+    # candidate is the plane; False (or elsewhere): `native_threaded.screen8`, `runtime.first_plane` over
+    # `native.plane_mask`, `native_threaded.rest_lut` (the tests' oracle)
+    one_split = True
 
     # `_fused_planes`' plane term for the regions without a specular term alone (`_plane_term`'s ``spec``, zh38v:
     # the same rows); False: every vertex's (the tests' oracle)
@@ -1337,6 +1419,13 @@ class ZHShadow(Method):
                 if pt is None or pt[0] is not Wd or pt[1] != n0k:
                     self._plane_T = pt = (Wd, n0k, rt.diffuse_at(Wd, n0))
                 T = pt[2]
+                if only is not None and self.native_plane_terms:
+                    # (zh45: u0 and u in one threaded C call, `native_plane_terms.plane_terms`: the same bits as below)
+                    r = self._native_plane_terms(v, T, vreg, mats, only)
+                    if r is not None:
+                        self._plane_u0 = (ukey0, v0, Wd, r[0])
+                        self._plane_u = pu = (ukey, v0, Wd, r[1])
+                        return pu[3]
                 if only is None:
                     # (one C pass over the rows where it runs, `native.plane_u`: float32 round-off against the GEMM)
                     u0 = zn.plane_u(v, T) if self.native_plane_u else None
@@ -1360,6 +1449,22 @@ class ZHShadow(Method):
                     torch.mul(u0[a0:a1], m[0].to(v.device, v.dtype), out=u[a0:a1])
             self._plane_u = pu = (ukey, v0, Wd, u)
         return pu[3]
+
+    # `_plane_term`'s new u0 and u for the regions without a specular term (its ``spec`` case) by one threaded C call
+    # (`native_plane_terms.plane_terms`, zh45: the same bits) where it runs; False: `native.plane_u` a region, ``zero_`` and
+    # ``torch.mul`` (the tests' oracle)
+    native_plane_terms = True
+
+    def _native_plane_terms(self, v: Tensor, T: Tensor, vreg: Tensor, mats: list, only: tuple) -> tuple | None:
+        """`native_plane_terms.plane_terms` of `_plane_term`'s ``only`` case — its kd rows stacked and its flags as bytes,
+        kept while the materials list and flags stay — or None (then `_plane_term`'s own steps)."""
+        pa = self._plane_args
+        if pa is None or pa[0] is not mats or pa[2] != only:
+            if len(mats) != len(only) or any(m[0].shape != (3,) or m[0].dtype != torch.float32 for m in mats):
+                return None
+            self._plane_args = pa = (mats, torch.stack([m[0] for m in mats]).contiguous(), only,
+                                     torch.tensor(only, dtype=torch.uint8))
+        return z45.plane_terms(v, T, vreg, pa[3], pa[1])
 
     def _face_rows(self, geom, dev) -> tuple[Tensor, Tensor]:
         """(F int32 (M, 3), Fᵀ int64 (3, M)) of the posed geometry's face table, kept with that table:

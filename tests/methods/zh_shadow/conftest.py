@@ -114,3 +114,31 @@ def order8():
     m = ZHShadow(**_SMALL, order=8, specular="cosine", shading="vertex")
     m.precompute(get_scene("creature", "test"))
     return m
+
+
+def assert_frames_equal(scene, new, orc, kind: str, seed: int, *, n: int = 4, before_oracle=None,
+                        fused: bool = False) -> None:
+    """Render ``n`` frames of ``kind`` (``seed``) with ``new`` and its oracle ``orc``, each at 1 and 2 threads: the
+    same path (and ``last_fused`` with ``fused``), the same image bits, the same counts (``plane_vertices`` by value).
+    ``before_oracle(orc)``: called before each oracle frame (e.g. forgetting its kept objects)."""
+    import torch
+
+    from methods.core.threads import torch_threads
+    from references.gbuffer import make_gbuffer
+    from scenes.sequences import make_sequence
+
+    for fr in make_sequence(scene, kind, n, seed=seed):
+        gb = make_gbuffer(scene, fr, 2)
+        for threads in (1, 2):
+            with torch_threads(threads):
+                a = new.render(fr, gb)
+                if before_oracle is not None:
+                    before_oracle(orc)
+                b = orc.render(fr, gb)
+            assert new.last_path == orc.last_path
+            assert not fused or new.last_fused == orc.last_fused
+            assert torch.equal(a.contiguous().view(torch.int32), b.contiguous().view(torch.int32)), \
+                (kind, fr.index, threads, float((a - b).abs().max()))
+        ca, cb = dict(new._last_counts), dict(orc._last_counts)
+        pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
+        assert ca == cb and (pa is None) == (pb is None) and (pa is None or pa() == pb())

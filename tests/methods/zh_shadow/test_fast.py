@@ -656,6 +656,15 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
     from methods.zh_shadow import native_threaded as z39
     orig_rl = z39.rest_lut   # (zh39s: the same vertices found with the second plane's screen, `threaded_helpers`)
     monkeypatch.setattr(z39, "rest_lut", lambda *a: (a[-1] and calls.append(a[5])) or orig_rl(*a))
+    from methods.zh_shadow import native_split as z44
+    orig_split = z44.split   # (zh44 / zh45: the same vertices found by the one-call split, `one_split`)
+
+    def split(*a):
+        r = orig_split(*a)
+        if r is not None and r[0] == 0 and r[7] is not None:
+            calls.append(a[9])
+        return r
+    monkeypatch.setattr(z44, "split", split)
     for fr in make_sequence(m.scene, kind, 3, seed=8):
         gb = make_gbuffer(m.scene, fr, 2)
         kept = fast._vtable

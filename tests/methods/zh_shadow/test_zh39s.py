@@ -118,6 +118,7 @@ def test_threaded_helpers_frames(creature, monkeypatch, kind):
     for nt, misses in ((1, False), (2, False), (2, True)):
         fast, slow = creature.with_render_config(), creature.with_render_config()
         slow.threaded_helpers = False
+        fast.one_split = False   # (these helpers, not the one-call split that replaces them: test_zh44.py)
         for fr in make_sequence(creature.scene, kind, 4, seed=5):
             gb = make_gbuffer(creature.scene, fr, 2)
             if misses:   # (a few misses: the hits' vertices alone)

@@ -11,6 +11,7 @@ import torch
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.precompute import CHART_RMAX
+from tests.methods.zh_shadow.conftest import assert_frames_equal
 
 
 def _bits(x: torch.Tensor) -> torch.Tensor:
@@ -111,24 +112,9 @@ def test_kept_state_frames_equal_oracle(creature, kind):
     rebuilt every frame) bit for bit, with the same path and counts, at 1 and 2 threads. A materials cache not
     dropped when a material changes (VB, VBL), a T¹(n0) not keyed on the table (VL, VBL, L), a pose not
     written into the bound call (P) breaks it."""
-    from methods.core.threads import torch_threads
-    from references.gbuffer import make_gbuffer
-    from scenes.sequences import make_sequence
-
     new, orc = creature.with_render_config(), creature.with_render_config()
     orc.bound_calls = False
-    for fr in make_sequence(creature.scene, kind, 4, seed=41):
-        gb = make_gbuffer(creature.scene, fr, 2)
-        for threads in (1, 2):
-            with torch_threads(threads):
-                a = new.render(fr, gb)
-                _oracle_frame(orc)
-                b = orc.render(fr, gb)
-            assert new.last_path == orc.last_path and new.last_fused == orc.last_fused
-            assert torch.equal(_bits(a), _bits(b)), (kind, fr.index, threads)
-        ca, cb = dict(new._last_counts), dict(orc._last_counts)
-        pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
-        assert ca == cb and (pa is None) == (pb is None) and (pa is None or pa() == pb())
+    assert_frames_equal(creature.scene, new, orc, kind, 41, before_oracle=_oracle_frame, fused=True)
     if kind == "P" and zn.pose_sh_available():
         assert new._pose_bound is not None and orc._pose_bound is None   # (the bound call ran)
 
