@@ -15,6 +15,9 @@ time (and wall time), ``--threads`` torch threads (default 1; the perf suite run
 at 2 threads an A/A run (this checkout as its own baseline, creature bench order-8 P frames, quiet
 machine, session 24) read 1.03× and 1.70× wall — P frames came out either ~12 or ~20 ms on either
 side — so a 2-thread ratio says nothing about the code.
+For 2-thread wall-time evidence use `benchmarks.zh45_harness_ab` (session 45): no idle before a frame (the
+harness renders right after making the G-buffer; here the settle's idle sends a 2-thread P frame to 9-12 ms and
+an A/A read 1.42x), its A/A 0.99-1.02x.
 """
 from __future__ import annotations
 
