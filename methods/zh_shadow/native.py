@@ -342,6 +342,21 @@ def terms_switched_on() -> bool:
     return switches.on("PRTBENCH_ZH_NATIVE")
 
 
+_FLAGS: dict = {}   # (the flags asked for -> with `native.isa_flags`, made once: it asks torch for the CPU each call)
+
+
+def switched_load(name: str, source: str, signatures: dict, *flags: str):
+    """`native.load`(name, source, signatures) built with ``flags`` and the ISA flags (`native.isa_flags`) — or None
+    (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``). Not cached here (`native.load` caches the
+    build; `load` the look-up)."""
+    if not terms_switched_on():
+        return None
+    f = _FLAGS.get(flags)
+    if f is None:
+        _FLAGS[flags] = f = (*flags, *native.isa_flags())
+    return load(name, source, signatures, extra_flags=f)
+
+
 @functools.lru_cache(maxsize=None)
 def _inductor_lanes() -> int | None:
     """The float lanes of Inductor's CPU vectors here — 8 (AVX2) or 16 (AVX-512): the width and

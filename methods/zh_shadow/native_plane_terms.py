@@ -16,7 +16,7 @@ import ctypes
 import torch
 from torch import Tensor
 
-from methods.zh_shadow.native_split import switched_load
+from methods.zh_shadow import native as zn
 
 _I, _P = ctypes.c_int64, ctypes.c_void_p
 
@@ -50,8 +50,8 @@ MIN_ROWS_PER_THREAD = 1024
 
 
 def _lib():
-    """The library or None (`native_split.switched_load`: no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``)."""
-    return switched_load("zh45_plane_terms", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
+    """The library or None (`native.switched_load`: no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``)."""
+    return zn.switched_load("zh45_plane_terms", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
 
 
 def plane_terms(v: Tensor, T: Tensor, vreg: Tensor, on: Tensor, kd: Tensor) -> tuple[Tensor, Tensor] | None:

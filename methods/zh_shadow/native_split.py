@@ -32,7 +32,6 @@ import ctypes
 import torch
 from torch import Tensor
 
-from methods.core import native
 from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
 
@@ -81,24 +80,9 @@ _SIGNATURES = {"zh44_table": [_I, _D, _I, _P, _I, _I, _I, _P, _P, _I]}
 # operator rows a thread takes at least (zh45: each row B · n² + n² · C multiply-adds, its B · n² doubles read)
 MIN_TABLE_ROWS_PER_THREAD = 256
 
-_FLAGS: dict = {}   # (the flags asked for -> with `native.isa_flags`, made once: it asks torch for the CPU each call)
-
-
-def switched_load(name: str, source: str, signatures: dict, *flags: str):
-    """`native.load`(name, source, signatures) built with ``flags`` and the ISA flags (`native.isa_flags`) — or None
-    (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``). Not cached here (`native.load` caches the
-    build; `zh_shadow.native.load` the look-up)."""
-    if not zn.terms_switched_on():
-        return None
-    f = _FLAGS.get(flags)
-    if f is None:
-        _FLAGS[flags] = f = (*flags, *native.isa_flags())
-    return zn.load(name, source, signatures, extra_flags=f)
-
-
 def _lib():
-    """The table's library or None (`switched_load`)."""
-    lib = switched_load("zh44_table", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
+    """The table's library or None (`native.switched_load`)."""
+    lib = zn.switched_load("zh44_table", _SOURCE, _SIGNATURES, "-fopenmp", "-ffp-contract=off")
     if lib is not None:
         lib.zh44_table.restype = ctypes.c_int64
     return lib
@@ -292,8 +276,8 @@ void zh44_split(int64_t P, const float *nrm, const int64_t *region, const uint8_
 _SPLIT_SIGNATURES = {"zh44_split": [_I, _P, _P, _P, _I, _P, _I, _I, _I, _P, _P, _I, _I, _I, _P, _P, _P, _P, _P]}
 
 def _split_lib():
-    """The split's library or None (`switched_load`)."""
-    return switched_load("zh44_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, "-fopenmp")
+    """The split's library or None (`native.switched_load`)."""
+    return zn.switched_load("zh44_split", _SPLIT_SOURCE, _SPLIT_SIGNATURES, "-fopenmp")
 
 
 # samples a thread takes at least (`native_threaded.MIN_SAMPLES_PER_THREAD`'s rule)

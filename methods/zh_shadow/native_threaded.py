@@ -18,7 +18,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from methods.core import native
 from methods.zh_shadow import native as zn
 
 import ctypes
@@ -205,9 +204,7 @@ MIN_SAMPLES_PER_THREAD = 32768
 def _lib():
     """The library or None (no compiler, ``PRTBENCH_COMPILE=0``, ``PRTBENCH_ZH_NATIVE=0``: `native`'s
     switch). Not cached here (`native.load` caches the build, b541a75)."""
-    if not zn.terms_switched_on():
-        return None
-    return zn.load("zh39s_helpers", _SOURCE, _SIGNATURES, extra_flags=("-fopenmp", *native.isa_flags()))
+    return zn.switched_load("zh39s_helpers", _SOURCE, _SIGNATURES, "-fopenmp")
 
 
 def _threads(n: int) -> int:
