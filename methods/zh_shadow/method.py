@@ -104,6 +104,7 @@ from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
 from methods.zh_shadow import native_split as z44
 from methods.zh_shadow import native_plane_terms as z45
+from methods.zh_shadow import native_hits as zh46_hits
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -394,6 +395,8 @@ class ZHShadow(Method):
         self._credited: tuple | None = None   # (steady record, posed, G-buffer key, counts, mask): `render` (zh43o)
         self._pose_cols_bound: tuple | None = None  # (X, `native.pose_sh_bind` of its P-frame columns or None): zh43o
         self._glue: tuple | None = None   # (key, `_fused_planes`' bound calls): `_frame_glue` (zh46)
+        self._hits_fn = None   # `native_hits`' C function (False: none): `_all_hit` (zh46)
+        self._glue_rows: tuple | None = None   # (spans, flags, their diffuse regions' rows): `_fused_planes` (zh46)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -830,7 +833,9 @@ class ZHShadow(Method):
         _, pose_vec, geom, key = pend[:4]
         pb = self._pose_bound
         if rows is not None and pb is not None:
-            if pb(pose_vec, geom.N, rows, out=v0) is not None:
+            # (`bound_glue`: its C call with the pose by memmove, `native.PoseSHBound.rows_into`: the same rows, zh46)
+            if (pb.rows_into(pose_vec, geom.N, rows, v0) if self.bound_glue else
+                    pb(pose_vec, geom.N, rows, out=v0)) is not None:
                 self._v_pending = (*pend[:4], True)   # (made in part; kept after the frame: `_pose_state`)
                 return
         if pb is None or not zn.switches_on() or pb(pose_vec, geom.N, out=v0) is None:
@@ -980,7 +985,7 @@ class ZHShadow(Method):
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
         # (a lighting-only frame with its transfer cache reads the cache's hits: no pass over the G-buffer's)
         kept = relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0
-        all_hit = True if kept else _all(gbuffer.hit)
+        all_hit = True if kept else self._all_hit(gbuffer.hit)
         if not relight:
             img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine, all_hit)
             if img is not None:
@@ -1271,8 +1276,16 @@ class ZHShadow(Method):
             sp = self._region_spans(vreg, len(mats)) if self.plane_term_spans and any(spec) \
                 and len(spec) == len(mats) else None
             if found_lut is not None and sp is not None and want_lut:
-                rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
-                                  found_lut[0]])
+                if self.bound_glue:   # (the regions' rows kept per spans and flags: one ``torch.arange`` fewer, zh46)
+                    gr = self._glue_rows
+                    if gr is None or gr[0] is not sp or gr[1] != spec:
+                        self._glue_rows = gr = (sp, list(spec), torch.cat(
+                            [torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0]
+                            or [torch.zeros(0, dtype=torch.int64)]))
+                    rows = torch.cat([gr[2], found_lut[0]])
+                else:
+                    rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
+                                      found_lut[0]])
             self._fill_visibility(v0, rows)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, n0, spec=spec)
         U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
@@ -1311,6 +1324,20 @@ class ZHShadow(Method):
     # `native.FusedBound`, `native.VTableBound` — the same calls, the same bits; zh46) while the switches are on (read
     # once a frame); False: every call resolves its library (the tests' oracle)
     bound_glue = True
+
+    def _all_hit(self, hit: Tensor) -> bool:
+        """`_all`(hit); with `bound_glue` and the switches on by one serial C scan (`native_hits.all_hit`, its function
+        resolved once: the same answer) where it runs."""
+        if self.bound_glue and zn.switches_on():
+            hf = self._hits_fn
+            if hf is None:
+                lib = zh46_hits._lib()
+                self._hits_fn = hf = lib.zh46_all if lib is not None else False
+            if hf is not False:
+                r = zh46_hits.all_hit(hit, hf)
+                if r is not None:
+                    return r
+        return _all(hit)
 
     def _frame_glue(self, spec_t: Tensor, spec: list[bool], D: int, has_spec: bool, clamp: bool, S2: int) -> tuple:
         """(whether `fused_pixels` and the native split run — `native.fused_available` and `native.split_available`

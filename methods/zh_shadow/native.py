@@ -4228,6 +4228,31 @@ class PoseSHBound:
                 int(rows is not None), nt, out.data_ptr(), self.bp)
         return None if int(self.bad[0]) else out
 
+    def rows_into(self, pose: Tensor, normal: Tensor, rows: Tensor, out: Tensor) -> Tensor | None:
+        """``__call__``(pose, normal, rows, out) of a vertex-major binding (the same C call, the same rows bits) with
+        its pose written by ``memmove`` and the failure flag read by ctypes instead of torch indexing (zh46: a P
+        frame's `ZHShadow._fill_visibility` under ``bound_glue``); the same checks, None where ``__call__`` gives
+        None."""
+        N, n2 = self.N, self.n * self.n
+        if not self.vmaj or pose.dtype != torch.float32 or pose.device.type != "cpu" or pose.shape != (self.J1 - 1,) \
+                or normal.dtype != torch.float32 or normal.device.type != "cpu" or normal.shape != (N, 3) \
+                or not normal.is_contiguous() or out.dtype != torch.float32 or out.device.type != "cpu" \
+                or out.shape != (N, n2) or not out.is_contiguous() or rows.dtype != torch.int64 \
+                or rows.device.type != "cpu" or rows.dim() != 1:
+            return None
+        if not pose.is_contiguous():
+            pose = pose.contiguous()
+        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))   # (a = [pose, 1]: no torch call)
+        if not rows.is_contiguous():
+            rows = rows.contiguous()
+        Q = int(rows.shape[0])
+        if Q == 0:
+            return out
+        nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
+        self.fn(self.J1, self.d, self.lobes, self.n, self.ap, self.xp, rows.data_ptr(), N, Q, normal.data_ptr(), 1, 3,
+                self.lp, self.pp, self.qp, self.rmax, self.zyz, self.vmaj, 1, nt, out.data_ptr(), self.bp)
+        return None if ctypes.c_int64.from_address(self.bp).value else out
+
     def columns(self, pose: Tensor, idx: Tensor, nT: Tensor, buf: Tensor | None = None) -> Tensor | None:
         """(n², Q) float32: `pose_sh`(X, [pose, 1], idx, nT, …) of this binding (``dim`` 0 only: None for a
         vertex-major one) — a P frame's columns (zh43o: without `pose_sh`'s look-ups, checks of X and constants'

@@ -192,3 +192,57 @@ def test_zh46_frames_equal_oracle(creature, monkeypatch, kind):
                 pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
                 assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
             assert len(ran) > n_ran, (kind, threads)
+
+
+def test_all_hit_equals_all():
+    """`native_hits.all_hit` = ``bool(mask.all())`` on masks with no zero, one zero at any position of a 64-byte block
+    or in the tail, several zeros, and the empty mask; None for another dtype or a strided mask."""
+    from methods.zh_shadow import native_hits
+
+    if native_hits._lib() is None:
+        pytest.skip("no C compiler or the native passes switched off")
+    for n in (0, 1, 63, 64, 65, 1000, 262144):
+        m = torch.ones(n, dtype=torch.bool)
+        assert native_hits.all_hit(m) is True
+        for p in sorted({0, n // 2, n - 1, 63, 64} & set(range(n))):
+            z = m.clone()
+            z[p] = False
+            assert native_hits.all_hit(z) is False, (n, p)
+    g = torch.Generator().manual_seed(9)
+    for _ in range(20):
+        m = torch.rand(5000, generator=g) > 0.0005
+        assert native_hits.all_hit(m) == bool(m.all())
+    assert native_hits.all_hit(torch.ones(10, dtype=torch.uint8)) is None
+    assert native_hits.all_hit(torch.ones(20, dtype=torch.bool)[::2]) is None
+
+
+def test_rows_into_equals_call(creature, monkeypatch):
+    """`native.PoseSHBound.rows_into` = its ``__call__`` with ``rows`` and ``out``: the rows asked for the same bits,
+    the others untouched, at 1 and 2 threads; None where the call gives None (an id out of range, another layout)."""
+    from methods.zh_shadow import native as zn
+
+    monkeypatch.setattr(zn, "MIN_COLS_PER_POSE_SH_THREAD", 8)
+    m = creature.with_render_config()
+    from scenes.sequences import make_sequence
+    from references.gbuffer import make_gbuffer
+
+    fr = make_sequence(m.scene, "P", 2, seed=46)[1]
+    m.render(fr, make_gbuffer(m.scene, fr, 2))
+    pb = m._pose_bound
+    if pb is None or not pb.vmaj:
+        pytest.skip("no vertex-major bound call here")
+    pose = torch.as_tensor(fr.pose).float()
+    geom = m._posed[1]
+    g = torch.Generator().manual_seed(4)
+    rows = torch.randint(0, pb.N, (pb.N // 3,), generator=g)
+    for t in (1, 2):
+        with torch_threads(t):
+            a = torch.full((pb.N, pb.n * pb.n), 7.0)
+            b = a.clone()
+            assert pb.rows_into(pose, geom.N, rows, a) is a
+            assert pb(pose, geom.N, rows, out=b) is b
+        assert torch.equal(_bits(a), _bits(b)) and bool((a[:5][~torch.isin(torch.arange(5), rows)] == 7.0).all())
+    bad = rows.clone()
+    bad[-1] = pb.N
+    assert pb.rows_into(pose, geom.N, bad, torch.empty(pb.N, pb.n * pb.n)) is None
+    assert pb.rows_into(pose, geom.N, rows, torch.empty(pb.n * pb.n, pb.N)) is None
