@@ -4228,6 +4228,12 @@ class PoseSHBound:
                 int(rows is not None), nt, out.data_ptr(), self.bp)
         return None if int(self.bad[0]) else out
 
+    def _write_pose(self, pose: Tensor) -> None:
+        """a = [pose, 1]: the pose's J1 − 1 floats into the kept buffer by ``memmove`` (no torch call)."""
+        if not pose.is_contiguous():
+            pose = pose.contiguous()
+        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))
+
     def rows_into(self, pose: Tensor, normal: Tensor, rows: Tensor, out: Tensor) -> Tensor | None:
         """``__call__``(pose, normal, rows, out) of a vertex-major binding (the same C call, the same rows bits) with
         its pose written by ``memmove`` and the failure flag read by ctypes instead of torch indexing (zh46: a P
@@ -4240,9 +4246,7 @@ class PoseSHBound:
                 or out.shape != (N, n2) or not out.is_contiguous() or rows.dtype != torch.int64 \
                 or rows.device.type != "cpu" or rows.dim() != 1:
             return None
-        if not pose.is_contiguous():
-            pose = pose.contiguous()
-        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))   # (a = [pose, 1]: no torch call)
+        self._write_pose(pose)
         if not rows.is_contiguous():
             rows = rows.contiguous()
         Q = int(rows.shape[0])
@@ -4274,9 +4278,7 @@ class PoseSHBound:
             out = buf.view(-1)[:n2 * Q].view(n2, Q)
         if Q == 0:
             return out
-        if not pose.is_contiguous():
-            pose = pose.contiguous()
-        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))   # (a = [pose, 1]: no torch call)
+        self._write_pose(pose)
         if not idx.is_contiguous():
             idx = idx.contiguous()
         nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
