@@ -1506,6 +1506,15 @@ class ZHShadow(Method):
                 self._plane_u0 = p0 = (ukey0, v0, Wd, u0)
             u0 = p0[3]
             spans = self._region_spans(vreg, len(mats))
+            pt = self._plane_T
+            if self.bound_glue and only is not None and self.native_plane_terms and spans is not None \
+                    and pt is not None and pt[0] is Wd and pt[1] == n0k:
+                # (zh46: a kept u0 — new albedos alone, a VB frame — u by the one threaded call, u0 made again in it:
+                # the same bits as the kept u0, the same call that made it; one C call for ~9 small torch ops)
+                r = self._native_plane_terms(v, pt[2], vreg, mats, only)
+                if r is not None:
+                    self._plane_u = pu = (ukey, v0, Wd, r[1])
+                    return pu[3]
             if spans is None:
                 kd_v = torch.stack([m[0] for m in mats]).to(v.device, v.dtype).index_select(0, vreg)   # (N, 3)
                 u = u0 * kd_v

@@ -191,6 +191,8 @@ def test_zh46_frames_equal_oracle(creature, monkeypatch, kind):
                 ca, cb = dict(new._last_counts), dict(old._last_counts)
                 pa, pb = ca.pop("plane_vertices", None), cb.pop("plane_vertices", None)
                 assert ca == cb and (pa() if callable(pa) else pa) == (pb() if callable(pb) else pb)
+                if new._plane_u is not None or old._plane_u is not None:   # (the kept plane term: the same bits)
+                    assert torch.equal(_bits(new._plane_u[3]), _bits(old._plane_u[3])), (kind, threads, fr.index)
             assert len(ran) > n_ran, (kind, threads)
 
 
