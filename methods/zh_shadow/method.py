@@ -104,6 +104,7 @@ from methods.zh_shadow import native as zn
 from methods.zh_shadow import native_threaded as z39
 from methods.zh_shadow import native_split as z44
 from methods.zh_shadow import native_plane_terms as z45
+from methods.zh_shadow import native_hits as zh46_hits
 from methods.zh_shadow import runtime as rt
 from methods.zh_shadow.convolution import phong_operator
 
@@ -393,6 +394,9 @@ class ZHShadow(Method):
         self._cam_kept: tuple | None = None     # (camera origin, as a float32 tensor): `_front_radiance`
         self._credited: tuple | None = None   # (steady record, posed, G-buffer key, counts, mask): `render` (zh43o)
         self._pose_cols_bound: tuple | None = None  # (X, `native.pose_sh_bind` of its P-frame columns or None): zh43o
+        self._glue: tuple | None = None   # (key, `_fused_planes`' bound calls): `_frame_glue` (zh46)
+        self._hits_fn = None   # `native_hits`' C function (False: none): `_all_hit` (zh46)
+        self._glue_rows: tuple | None = None   # (spans, flags, their diffuse regions' rows): `_fused_planes` (zh46)
 
     # -- precompute ---------------------------------------------------------------------------
     def precompute(self, scene) -> None:
@@ -829,7 +833,9 @@ class ZHShadow(Method):
         _, pose_vec, geom, key = pend[:4]
         pb = self._pose_bound
         if rows is not None and pb is not None:
-            if pb(pose_vec, geom.N, rows, out=v0) is not None:
+            # (`bound_glue`: its C call with the pose by memmove, `native.PoseSHBound.rows_into`: the same rows, zh46)
+            if (pb.rows_into(pose_vec, geom.N, rows, v0) if self.bound_glue else
+                    pb(pose_vec, geom.N, rows, out=v0)) is not None:
                 self._v_pending = (*pend[:4], True)   # (made in part; kept after the frame: `_pose_state`)
                 return
         if pb is None or not zn.switches_on() or pb(pose_vec, geom.N, out=v0) is None:
@@ -979,7 +985,7 @@ class ZHShadow(Method):
         self._frame_state = (state, v0)   # v0: the cached per-pose visibility (its identity is the pose's)
         # (a lighting-only frame with its transfer cache reads the cache's hits: no pass over the G-buffer's)
         kept = relight and self._relight is not None and self._relight[0] == state and self._relight[1] is v0
-        all_hit = True if kept else _all(gbuffer.hit)
+        all_hit = True if kept else self._all_hit(gbuffer.hit)
         if not relight:
             img = self._render_planes(frame, gbuffer, geom, v0, v, vreg, tabs, mats, cosine, all_hit)
             if img is not None:
@@ -1162,6 +1168,11 @@ class ZHShadow(Method):
     # runs; False: `zh40p_fused_fma` (the tests' oracle)
     wide_dot = True
 
+    # With `wide_dot`: the fused pass's 64-pixel chunks handed out to the threads dynamically (`native_balanced`, zh46:
+    # the same bits; its static split gave one of 2 threads 56-59 % of the bench creature's object samples) where it
+    # runs; False: `zh42p_fused_wide`'s static split (the tests' oracle)
+    balanced_fused = True
+
     def _fused_planes(self, frame: Frame, gbuffer: GBuffer, geom, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list,
                       mats: list, spec: list[bool], F32: Tensor, fv: Tensor, nmiss: int) -> Tensor | None:
         """`_render_planes` with the native split (`_native_split`) and the per-vertex table, as one pass
@@ -1179,20 +1190,29 @@ class ZHShadow(Method):
         n = self.model.order
         D = 2 * n - 2
         has_spec = any(spec)
-        if n > rt.MONOMIAL_MAX_ORDER or P < rt.PLANAR_MIN_POINTS or not zn.fused_available(D, True, has_spec) \
-                or not zn.split_available() or not nrm.is_contiguous() or nrm.device.type != "cpu":
-            return None
+        clamp = self.config["clamp"]
+        S2 = gbuffer.spp_side ** 2
         st = self._spec_t   # (kept per flags: zh41p)
         if st is None or st[0] != spec:
             self._spec_t = st = (list(spec), torch.tensor(spec))
         spec_t = st[1]
+        # (`bound_glue`: the libraries' look-ups of this frame's calls made once, `_frame_glue`)
+        gl = self._frame_glue(spec_t, spec, D, has_spec, clamp, S2) if self.bound_glue and zn.switches_on() else None
+        if n > rt.MONOMIAL_MAX_ORDER or P < rt.PLANAR_MIN_POINTS or not (
+                gl[0] if gl is not None else zn.fused_available(D, True, has_spec) and zn.split_available()) \
+                or not nrm.is_contiguous() or nrm.device.type != "cpu":
+            return None
         hit_arg = None if nmiss == 0 else hit
         N = int(v.shape[0])
         # (`_vertex_table`'s ``refs`` case but for the count of samples off the plane, known after the mask)
         lut_ok = self.threaded_helpers and self.referenced_table and not frame.changed <= {"view"} \
             and self._vtable is not None
-        one = z44.split(nrm, region, spec_t, hit_arg, rt.PLANAR_MIN_POINTS, rt.PLANAR_MIN_POINTS, lut_ok,
-                        gbuffer.face, F32, N) if self.one_split and self.threaded_helpers else None
+        one = None
+        if self.one_split and self.threaded_helpers:
+            one = gl[1](nrm, region, hit_arg, rt.PLANAR_MIN_POINTS, rt.PLANAR_MIN_POINTS, lut_ok, gbuffer.face, F32, N) \
+                if gl is not None and gl[1] is not None else \
+                z44.split(nrm, region, spec_t, hit_arg, rt.PLANAR_MIN_POINTS, rt.PLANAR_MIN_POINTS, lut_ok,
+                          gbuffer.face, F32, N)
         if one is not None and one[0] == 1:
             return None                       # no candidate passes the screen: `first_plane` finds none
         if one is not None and one[0] == 0:   # the first screened candidate's mask (`native_split.split`)
@@ -1256,23 +1276,33 @@ class ZHShadow(Method):
             sp = self._region_spans(vreg, len(mats)) if self.plane_term_spans and any(spec) \
                 and len(spec) == len(mats) else None
             if found_lut is not None and sp is not None and want_lut:
-                rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
-                                  found_lut[0]])
+                if self.bound_glue:   # (the regions' rows kept per spans and flags: one ``torch.arange`` fewer, zh46)
+                    gr = self._glue_rows
+                    if gr is None or gr[0] is not sp or gr[1] != spec:
+                        self._glue_rows = gr = (sp, list(spec), torch.cat(
+                            [torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0]
+                            or [torch.zeros(0, dtype=torch.int64)]))
+                    rows = torch.cat([gr[2], found_lut[0]])
+                else:
+                    rows = torch.cat([*(torch.arange(a0, a1) for (a0, a1), s in zip(sp, spec) if not s and a1 > a0),
+                                      found_lut[0]])
             self._fill_visibility(v0, rows)
         u = self._plane_term(v0, v, vreg, tabs[0][2], mats, n0, spec=spec)
         U = self._vertex_table(frame, v0, v, vreg, tabs, mats, points=m - nmiss,
                                refs=lambda: found_lut if found_lut is not None else
-                               zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N))
+                               zn.referenced_lut(mask, hit_arg, gbuffer.face, F32, N),
+                               vb=None if gl is None else gl[3])
         if U is None:
             return None
         lut = None
         if isinstance(U, tuple):   # this frame's own table, of the referenced vertices alone: lut their ranks
             U, lut = U
-        clamp = self.config["clamp"]
-        S2 = gbuffer.spp_side ** 2
-        res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
-                              spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane,
-                              wide=self.wide_dot)
+        if gl is not None and gl[2] is not None:   # (the same pass, `native.FusedBound`)
+            res = gl[2](gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region)
+        else:
+            res = zn.fused_pixels(gbuffer.face, gbuffer.bary, nrm, gbuffer.wo, mask, hit_arg, F32, u, U, lut, region,
+                                  spec, D, True, has_spec, clamp, S2, fma=self.fma_terms, vector=self.vector_plane,
+                                  wide=self.wide_dot, balanced=self.balanced_fused)
         if res is None:
             return None
         img, nspec = res
@@ -1289,6 +1319,42 @@ class ZHShadow(Method):
         self.last_path = "planes"
         self.last_fused = True
         return img.view(gbuffer.height, gbuffer.width, 3)
+
+    # `_fused_planes`' library look-ups made once per flags (`_frame_glue`: `native_split.SplitBound`,
+    # `native.FusedBound`, `native.VTableBound` — the same calls, the same bits; zh46) while the switches are on (read
+    # once a frame); False: every call resolves its library (the tests' oracle)
+    bound_glue = True
+
+    def _all_hit(self, hit: Tensor) -> bool:
+        """`_all`(hit); with `bound_glue` and the switches on by one serial C scan (`native_hits.all_hit`, its function
+        resolved once: the same answer) where it runs."""
+        if self.bound_glue and zn.switches_on():
+            hf = self._hits_fn
+            if hf is None:
+                lib = zh46_hits._lib()
+                self._hits_fn = hf = lib.zh46_all if lib is not None else False
+            if hf is not False:
+                r = zh46_hits.all_hit(hit, hf)
+                if r is not None:
+                    return r
+        return _all(hit)
+
+    def _frame_glue(self, spec_t: Tensor, spec: list[bool], D: int, has_spec: bool, clamp: bool, S2: int) -> tuple:
+        """(whether `fused_pixels` and the native split run — `native.fused_available` and `native.split_available`
+        —, `native_split.split_bind`(spec_t) or None, `native.fused_bind` of this frame's flags or None,
+        `native.vtable_bind`(`wide_table`) or None), kept while spec_t (the kept flags' tensor, `_spec_t`), D, the
+        clamp, S² and the switches of these calls stay. Only with the switches on (the caller reads them)."""
+        key = (spec_t, D, has_spec, bool(clamp), S2, self.fma_terms, self.vector_plane, self.wide_dot,
+               self.balanced_fused, self.wide_table)
+        g = self._glue
+        if g is None or g[0][0] is not spec_t or g[0][1:] != key[1:]:
+            self._glue = g = (key, (zn.fused_available(D, True, has_spec) and zn.split_available(),
+                                    z44.split_bind(spec_t),
+                                    zn.fused_bind(spec, D, True, has_spec, clamp, S2, fma=self.fma_terms,
+                                                  vector=self.vector_plane, wide=self.wide_dot,
+                                                  balanced=self.balanced_fused),
+                                    zn.vtable_bind(self.wide_table)))
+        return g[1]
 
     # `_fused_planes`' one-thread helpers as threaded passes (`native_threaded`: `screen8`, and `rest_screen` with
     # `referenced_lut` in one walk over the samples off the plane; the same counts and vertices); False: the
@@ -1440,6 +1506,15 @@ class ZHShadow(Method):
                 self._plane_u0 = p0 = (ukey0, v0, Wd, u0)
             u0 = p0[3]
             spans = self._region_spans(vreg, len(mats))
+            pt = self._plane_T
+            if self.bound_glue and only is not None and self.native_plane_terms and spans is not None \
+                    and pt is not None and pt[0] is Wd and pt[1] == n0k:
+                # (zh46: a kept u0 — new albedos alone, a VB frame — u by the one threaded call, u0 made again in it:
+                # the same bits as the kept u0, the same call that made it; one C call for ~9 small torch ops)
+                r = self._native_plane_terms(v, pt[2], vreg, mats, only)
+                if r is not None:
+                    self._plane_u = pu = (ukey, v0, Wd, r[1])
+                    return pu[3]
             if spans is None:
                 kd_v = torch.stack([m[0] for m in mats]).to(v.device, v.dtype).index_select(0, vreg)   # (N, 3)
                 u = u0 * kd_v
@@ -1568,7 +1643,8 @@ class ZHShadow(Method):
     referenced_table = True
 
     def _vertex_table(self, frame: Frame, v0: Tensor, v: Tensor, vreg: Tensor, tabs: list, mats: list,
-                      points: int | None = None, vi: Tensor | None = None, refs=None) -> Tensor | tuple | None:
+                      points: int | None = None, vi: Tensor | None = None, refs=None, vb=None
+                      ) -> Tensor | tuple | None:
         """The per-vertex table U of `runtime.vertex_table` for this frame's pose, lighting and
         materials, or None (shade through the per-point feature GEMMs). Kept while those do not
         change; built by a view-only frame (``changed`` ⊆ {"view"}), when the next frames are likely
@@ -1588,7 +1664,8 @@ class ZHShadow(Method):
         of the 13.4 K vertices (the object's visible side), U 4.4 → 1.7 ms + ~0.6 ms to find and
         renumber them. ``refs`` (in place of ``vi``): a zero-argument function giving (those vertices,
         a lut (N,) of their ranks: the renumbered id of vertex i is lut[i]) or None (then no table:
-        None), called only when that table is built (`_fused_planes`: `native.referenced_lut`)."""
+        None), called only when that table is built (`_fused_planes`: `native.referenced_lut`). ``vb``: the
+        bound `native.vertex_table` (`native.VTableBound`, `_fused_planes`' `_frame_glue`) for `_native_table`."""
         key = (self._posed[0], self._light[0],
                tuple((mv[0], mv[1], mv[2], t[3] is not None) for mv, t in zip(self._mat_values(mats), tabs)))
         vt = self._vtable
@@ -1605,11 +1682,11 @@ class ZHShadow(Method):
             if found is None:
                 return None
             idx, vi_r = found
-            U = self._native_table(v, vreg, tabs, idx)
+            U = self._native_table(v, vreg, tabs, idx, vb=vb)
             if U is None:
                 U = rt.vertex_table(v.index_select(0, idx), vreg.index_select(0, idx), tabs)
             return U, vi_r
-        U = self._native_table(v, vreg, tabs)
+        U = self._native_table(v, vreg, tabs, vb=vb)
         if U is None:
             U = rt.vertex_table(v, vreg, tabs)
         self._vtable = (key, v0, U, [tuple(t) for t in tabs])   # the tables kept: their identity is the key
@@ -1626,10 +1703,11 @@ class ZHShadow(Method):
     # `zh38v_vtable` (the tests' oracle)
     wide_table = True
 
-    def _native_table(self, v: Tensor, vreg: Tensor, tabs: list, idx: Tensor | None = None) -> Tensor | None:
+    def _native_table(self, v: Tensor, vreg: Tensor, tabs: list, idx: Tensor | None = None, vb=None) -> Tensor | None:
         """`runtime.vertex_table`(v[idx], vreg[idx], tabs) (idx None: every row) by `native.vertex_table`
         — its per-region tables (`runtime.region_tables`), the rows v[idx] read in place — or None (not
-        on, or the C pass does not run: the caller's GEMMs then)."""
+        on, or the C pass does not run: the caller's GEMMs then). ``vb``: `native.VTableBound` of `wide_table` (the
+        same call) in place of `native.vertex_table`."""
         if not self.native_table or v.dtype != torch.float32 or v.device.type != "cpu":
             return None
         rs = self._region_stack
@@ -1649,7 +1727,7 @@ class ZHShadow(Method):
                 K, _ = rt.region_tables(tabs, n2, v.device, v.dtype, out=W)
             self._region_stack = rs = (n2, [tuple(t) for t in tabs], K, W)
         if idx is None:   # (a table kept between frames: its own tensor)
-            U = zn.vertex_table(v, vreg, rs[3], wide=self.wide_table)
+            U = zn.vertex_table(v, vreg, rs[3], wide=self.wide_table) if vb is None else vb(v, vreg, rs[3])
         else:             # (a frame's own table, not kept: rows of a buffer kept for the next such frame)
             C = int(rs[3].shape[2])
             buf = self._table_rows
@@ -1657,7 +1735,8 @@ class ZHShadow(Method):
                 #                                                                  next frames' counts vary)
                 rows = min(int(v.shape[0]), int(idx.shape[0]) + int(idx.shape[0]) // 4 + 64)
                 buf = self._table_rows = torch.empty(max(rows, int(idx.shape[0])), C, dtype=v.dtype)
-            U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]], wide=self.wide_table)
+            U = zn.vertex_table(v, vreg, rs[3], idx, out=buf[:idx.shape[0]], wide=self.wide_table) if vb is None \
+                else vb(v, vreg, rs[3], idx, out=buf[:idx.shape[0]])
         return None if U is None else U.view(-1, 3, rs[2])
 
     def _render_vertex(self, frame: Frame, gbuffer: GBuffer, pose_vec: Tensor, geom, v0: Tensor | None,

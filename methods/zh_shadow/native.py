@@ -1974,7 +1974,7 @@ def referenced_lut(mask: Tensor, hit: Tensor | None, face: Tensor, F32: Tensor, 
 def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
                  F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor, spec_regions: list[bool],
                  D: int, diffuse: bool, specular: bool, clamp: bool, S2: int, fma: bool = False,
-                 vector: bool = False, wide: bool = False) -> tuple[Tensor, int] | None:
+                 vector: bool = False, wide: bool = False, balanced: bool = False) -> tuple[Tensor, int] | None:
     """(img (n, 3), the object samples in a region with a specular term) of a plane frame in one pass
     (`zh33p_fused`): the plane samples (``mask``) as `plane_pixels`(…, u, clamp) and the others (hit) as
     `sample_terms`(U, …) × (n·ωo > 0), clamped, added in order as ``index_add_`` — bit for bit those passes'
@@ -1986,12 +1986,31 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     ``vector``: the plane samples 16 at a time where it runs (`native_fused16`, zh40p: the same bits as the
     pass it replaces). ``wide`` (with ``fma`` and ``vector``): the object samples' dot in 16-float vectors
     and the plane samples' corners read once per distinct face of a vector (`native_fused16`'s `zh42p_fused_wide`,
-    zh42p: float32 round-off against the ``fma`` pass; the plane samples the same bits)."""
+    zh42p: float32 round-off against the ``fma`` pass; the plane samples the same bits). ``balanced`` (with
+    ``wide``): its chunks handed out to the threads dynamically where it runs (`native_balanced`, zh46: the same
+    bits)."""
+    r = _fused_resolve(D, diffuse, specular, fma, vector, wide, balanced)
+    if r is None:
+        return None
+    sreg = torch.tensor([bool(s) for s in spec_regions], dtype=torch.uint8)
+    stat = torch.zeros(2, dtype=torch.int64)
+    return _fused_run(r, sreg, stat, face, bary, normal, wo, mask, hit, F32, u, U, lut, region, clamp, S2)
+
+
+def _fused_resolve(D: int, diffuse: bool, specular: bool, fma: bool, vector: bool, wide: bool, balanced: bool
+                   ) -> tuple | None:
+    """(C function, variant, K) `fused_pixels` runs for these flags, or None (no library, a variant lacking)."""
     vec = None
     if vector:
         from methods.zh_shadow import native_fused16
 
-        vec = native_fused16.lib(fma, wide=True) if fma and wide else None
+        vec = None
+        if balanced and fma and wide:
+            from methods.zh_shadow import native_balanced
+
+            vec = native_balanced.lib()
+        if vec is None:
+            vec = native_fused16.lib(fma, wide=True) if fma and wide else None
         if vec is None:   # (no wide dot asked for, or its library not built: the 8-float dot's)
             vec = native_fused16.lib(fma)
     lib = _fma_fused_lib() if fma else None
@@ -2002,6 +2021,17 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     key = (D, bool(diffuse), bool(specular))
     if lib is None or key not in TERMS_VARIANTS:
         return None
+    K = (((D + 1) * (D + 2) // 2 + 3) if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
+    variant = TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key)
+    return (vec[1] if vec is not None else lib.zh37v_fused if fma else lib.zh33p_fused), variant, K
+
+
+def _fused_run(r: tuple, sreg: Tensor, stat: Tensor, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor,
+               mask: Tensor, hit: Tensor | None, F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None,
+               region: Tensor, clamp: bool, S2: int) -> tuple[Tensor, int] | None:
+    """`fused_pixels`' checks and call of the resolved pass ``r`` (`_fused_resolve`), sreg (R,) uint8 the regions'
+    specular flags, stat (2,) int64 scratch (zeroed here)."""
+    fn, variant, K = r
     P = int(face.shape[0])
     if S2 <= 0 or S2 > 16 or P % S2 or face.dtype != torch.int64 or face.shape != (P,) or not face.is_contiguous() \
             or mask.dtype != torch.bool or mask.shape != (P,) or not mask.is_contiguous() \
@@ -2016,7 +2046,6 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
             or (lut is not None and (lut.dtype != torch.int32 or not lut.is_contiguous())) \
             or any(t.device.type != "cpu" for t in (face, bary, normal, wo, mask, F32, u, U, region)):
         return None
-    K = (((D + 1) * (D + 2) // 2 + 3) if diffuse else 0) + ((D + 1) * (D + 2) // 2 + D * (D + 1) // 2 if specular else 0)
     if U.shape[2] != K:
         return None
     u, U = u.contiguous(), U.contiguous()
@@ -2024,20 +2053,49 @@ def fused_pixels(face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: T
     if lut is not None and lut.shape != (N,):
         return None
     n = P // S2
-    sreg = torch.tensor([bool(s) for s in spec_regions], dtype=torch.uint8)
     out = torch.empty(n, 3, dtype=torch.float32)
-    stat = torch.zeros(2, dtype=torch.int64)
+    sp = stat.data_ptr()
+    ctypes.memset(sp, 0, 16)
     nt = max(1, min(torch.get_num_threads(), n // MIN_PIXELS_PER_THREAD))
-    variant = TERMS_LANES.index(_inductor_lanes()) * len(TERMS_VARIANTS) + TERMS_VARIANTS.index(key)
-    (vec[1] if vec is not None else lib.zh37v_fused if fma else lib.zh33p_fused)(
-                    n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
-                    wo.data_ptr(), wo.stride(1), mask.data_ptr(), 0 if hit is None else hit.data_ptr(),
-                    F32.data_ptr(), int(F32.shape[0]), u.data_ptr(), N, U.data_ptr(), int(U.shape[0]), K,
-                    0 if lut is None else lut.data_ptr(), region.data_ptr(), sreg.data_ptr(), int(sreg.shape[0]),
-                    variant, int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, stat.data_ptr())
-    if int(stat[0]):
+    fn(n, S2, face.data_ptr(), bary.data_ptr(), bary.stride(1), bary.stride(0), normal.data_ptr(),
+       wo.data_ptr(), wo.stride(1), mask.data_ptr(), 0 if hit is None else hit.data_ptr(),
+       F32.data_ptr(), int(F32.shape[0]), u.data_ptr(), N, U.data_ptr(), int(U.shape[0]), K,
+       0 if lut is None else lut.data_ptr(), region.data_ptr(), sreg.data_ptr(), int(sreg.shape[0]),
+       variant, int(bool(clamp)), 1.0 / S2, out.data_ptr(), nt, sp)
+    if ctypes.c_int64.from_address(sp).value:
         return None
-    return out, int(stat[1])
+    return out, ctypes.c_int64.from_address(sp + 8).value
+
+
+class FusedBound:
+    """`fused_pixels` for one set of flags, regions' specular flags, clamp and S² (zh46): its library, variant and
+    small arrays resolved once (`fused_bind`) — per call only the arrays' checks and the C call (the same pass, the
+    same bits). The library look-ups, ``torch.tensor`` of the flags and the stat array were ~0.1 ms of serial
+    Python a bench P frame at 2 threads with the caches cold. The switches are the caller's to read."""
+
+    __slots__ = ("key", "r", "sreg", "stat", "clamp", "S2")
+
+    def __call__(self, face: Tensor, bary: Tensor, normal: Tensor, wo: Tensor, mask: Tensor, hit: Tensor | None,
+                 F32: Tensor, u: Tensor, U: Tensor, lut: Tensor | None, region: Tensor) -> tuple[Tensor, int] | None:
+        return _fused_run(self.r, self.sreg, self.stat, face, bary, normal, wo, mask, hit, F32, u, U, lut, region,
+                          self.clamp, self.S2)
+
+
+def fused_bind(spec_regions: list[bool], D: int, diffuse: bool, specular: bool, clamp: bool, S2: int,
+               fma: bool = False, vector: bool = False, wide: bool = False, balanced: bool = False
+               ) -> FusedBound | None:
+    """A `FusedBound` of `fused_pixels`(…, spec_regions, D, diffuse, specular, clamp, S2, fma, vector, wide,
+    balanced), or None where `fused_pixels` would not run (no library, a variant lacking)."""
+    r = _fused_resolve(D, diffuse, specular, fma, vector, wide, balanced)
+    if r is None:
+        return None
+    b = FusedBound()
+    b.key = (tuple(bool(s) for s in spec_regions), D, bool(diffuse), bool(specular), bool(clamp), int(S2), bool(fma),
+             bool(vector), bool(wide), bool(balanced))
+    b.r, b.clamp, b.S2 = r, bool(clamp), int(S2)
+    b.sreg = torch.tensor([bool(s) for s in spec_regions], dtype=torch.uint8)
+    b.stat = torch.zeros(2, dtype=torch.int64)
+    return b
 
 
 # -- zh33v ------------------------------------------------------------------------------------------
@@ -2673,8 +2731,31 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
     ``PRTBENCH_ZH_NATIVE=0``, not CPU float32 / int64 arrays of these shapes, an id outside [0, N)).
     ``out`` (NU, C) float32 contiguous: written there (and returned). ``wide``: `zh38v_vtable`'s loop with
     16-float vectors where it runs (`native_vtable16`, zh40p: the same bits)."""
+    fn = _vtable_resolve(wide)
+    if fn is None:
+        return None
+    return _vtable_run(fn, torch.zeros(1, dtype=torch.int64), v, vreg, W, idx, out)
+
+
+def _vtable_resolve(wide: bool):
+    """The C function `vertex_table`(…, ``wide``) runs, or None (no library, switched off)."""
     lib = _vtable_lib() if terms_switched_on() else None
-    if lib is None or v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
+    if lib is None:
+        return None
+    lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
+    fn = lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable
+    if wide and lib4 is not None:
+        from methods.zh_shadow import native_vtable16
+
+        lw = native_vtable16.lib()
+        fn = fn if lw is None else lw.zh40p_vtable
+    return fn
+
+
+def _vtable_run(fn, bad: Tensor, v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None, out: Tensor | None
+                ) -> Tensor | None:
+    """`vertex_table`'s checks and call of ``fn`` (`_vtable_resolve`), bad (1,) int64 scratch (zeroed here)."""
+    if v.dtype != torch.float32 or v.dim() != 2 or W.dtype != torch.float32 or W.dim() != 3 \
             or W.shape[1] != v.shape[1] or vreg.dtype != torch.int64 or vreg.shape != (v.shape[0],) \
             or (idx is not None and (idx.dtype != torch.int64 or idx.dim() != 1)) \
             or any(t.device.type != "cpu" for t in (v, vreg, W)) or (idx is not None and idx.device.type != "cpu"):
@@ -2689,19 +2770,35 @@ def vertex_table(v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, 
                             or out.device.type != "cpu"):
         return None
     U = torch.empty(NU, C, dtype=torch.float32) if out is None else out
-    bad = torch.zeros(1, dtype=torch.int64)
+    bp = bad.data_ptr()
+    ctypes.memset(bp, 0, 8)
     nt = max(1, min(torch.get_num_threads(), NU // MIN_ROWS_PER_VTABLE_THREAD))
-    lib4 = _vtable4_lib() if VTABLE_ROWS4 else None   # (four rows a load of W where it builds: the same bits)
-    fn = lib.zh34p_vtable if lib4 is None else lib4.zh38v_vtable
-    if wide and lib4 is not None:
-        from methods.zh_shadow import native_vtable16
+    fn(NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
+       U.data_ptr(), nt, bp)
+    return None if ctypes.c_int64.from_address(bp).value else U
 
-        lw = native_vtable16.lib()
-        fn = fn if lw is None else lw.zh40p_vtable
-    fn(
-        NU, 0 if idx is None else idx.data_ptr(), v.data_ptr(), N, n2, vreg.data_ptr(), R, W.data_ptr(), C,
-        U.data_ptr(), nt, bad.data_ptr())
-    return None if int(bad[0]) else U
+
+class VTableBound:
+    """`vertex_table`(…, ``wide``) with its C function resolved once (`vtable_bind`, zh46): per call the arrays'
+    checks and the call (the same loop, the same bits). The three libraries' look-ups (each reading the switches
+    and the ISA flags) were ~0.05 ms of serial Python a bench P frame with the caches cold. The switches are the
+    caller's to read."""
+
+    __slots__ = ("wide", "fn", "bad")
+
+    def __call__(self, v: Tensor, vreg: Tensor, W: Tensor, idx: Tensor | None = None, out: Tensor | None = None
+                 ) -> Tensor | None:
+        return _vtable_run(self.fn, self.bad, v, vreg, W, idx, out)
+
+
+def vtable_bind(wide: bool = False) -> VTableBound | None:
+    """A `VTableBound` of `vertex_table`(…, ``wide``), or None where it would not run."""
+    fn = _vtable_resolve(wide)
+    if fn is None:
+        return None
+    b = VTableBound()
+    b.wide, b.fn, b.bad = bool(wide), fn, torch.zeros(1, dtype=torch.int64)
+    return b
 
 
 # --- zh35o ------------------------------------------------------------------------------------------------
@@ -4131,6 +4228,35 @@ class PoseSHBound:
                 int(rows is not None), nt, out.data_ptr(), self.bp)
         return None if int(self.bad[0]) else out
 
+    def _write_pose(self, pose: Tensor) -> None:
+        """a = [pose, 1]: the pose's J1 − 1 floats into the kept buffer by ``memmove`` (no torch call)."""
+        if not pose.is_contiguous():
+            pose = pose.contiguous()
+        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))
+
+    def rows_into(self, pose: Tensor, normal: Tensor, rows: Tensor, out: Tensor) -> Tensor | None:
+        """``__call__``(pose, normal, rows, out) of a vertex-major binding (the same C call, the same rows bits) with
+        its pose written by ``memmove`` and the failure flag read by ctypes instead of torch indexing (zh46: a P
+        frame's `ZHShadow._fill_visibility` under ``bound_glue``); the same checks, None where ``__call__`` gives
+        None."""
+        N, n2 = self.N, self.n * self.n
+        if not self.vmaj or pose.dtype != torch.float32 or pose.device.type != "cpu" or pose.shape != (self.J1 - 1,) \
+                or normal.dtype != torch.float32 or normal.device.type != "cpu" or normal.shape != (N, 3) \
+                or not normal.is_contiguous() or out.dtype != torch.float32 or out.device.type != "cpu" \
+                or out.shape != (N, n2) or not out.is_contiguous() or rows.dtype != torch.int64 \
+                or rows.device.type != "cpu" or rows.dim() != 1:
+            return None
+        self._write_pose(pose)
+        if not rows.is_contiguous():
+            rows = rows.contiguous()
+        Q = int(rows.shape[0])
+        if Q == 0:
+            return out
+        nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))
+        self.fn(self.J1, self.d, self.lobes, self.n, self.ap, self.xp, rows.data_ptr(), N, Q, normal.data_ptr(), 1, 3,
+                self.lp, self.pp, self.qp, self.rmax, self.zyz, self.vmaj, 1, nt, out.data_ptr(), self.bp)
+        return None if ctypes.c_int64.from_address(self.bp).value else out
+
     def columns(self, pose: Tensor, idx: Tensor, nT: Tensor, buf: Tensor | None = None) -> Tensor | None:
         """(n², Q) float32: `pose_sh`(X, [pose, 1], idx, nT, …) of this binding (``dim`` 0 only: None for a
         vertex-major one) — a P frame's columns (zh43o: without `pose_sh`'s look-ups, checks of X and constants'
@@ -4152,9 +4278,7 @@ class PoseSHBound:
             out = buf.view(-1)[:n2 * Q].view(n2, Q)
         if Q == 0:
             return out
-        if not pose.is_contiguous():
-            pose = pose.contiguous()
-        ctypes.memmove(self.ap, pose.data_ptr(), 4 * (self.J1 - 1))   # (a = [pose, 1]: no torch call)
+        self._write_pose(pose)
         if not idx.is_contiguous():
             idx = idx.contiguous()
         nt = max(1, min(torch.get_num_threads(), Q // MIN_COLS_PER_POSE_SH_THREAD))

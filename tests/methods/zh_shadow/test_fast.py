@@ -657,14 +657,16 @@ def test_referenced_vertex_table_equals_full_table(small_model, monkeypatch, kin
     orig_rl = z39.rest_lut   # (zh39s: the same vertices found with the second plane's screen, `threaded_helpers`)
     monkeypatch.setattr(z39, "rest_lut", lambda *a: (a[-1] and calls.append(a[5])) or orig_rl(*a))
     from methods.zh_shadow import native_split as z44
-    orig_split = z44.split   # (zh44 / zh45: the same vertices found by the one-call split, `one_split`)
+    # (zh44 / zh45: the same vertices found by the one-call split, `one_split`; zh46: `split` and its bound call,
+    # `native_split.SplitBound`, both run `_run`)
+    orig_split = z44._run
 
     def split(*a):
         r = orig_split(*a)
         if r is not None and r[0] == 0 and r[7] is not None:
-            calls.append(a[9])
+            calls.append(a[-1])
         return r
-    monkeypatch.setattr(z44, "split", split)
+    monkeypatch.setattr(z44, "_run", split)
     for fr in make_sequence(m.scene, kind, 3, seed=8):
         gb = make_gbuffer(m.scene, fr, 2)
         kept = fast._vtable

@@ -181,18 +181,20 @@ def test_lazy_visibility_frames(creature, monkeypatch):
     # second takes the transfer cache as the oracle does; then a view frame at that pose)
     frames += [dataclasses.replace(light[i], pose=frames[-1].pose, changed=frozenset({"light"})) for i in (1, 2)]
     frames.append(dataclasses.replace(view, pose=frames[-1].pose, changed=frozenset({"view"})))
-    fused_pixels = zn.fused_pixels
+    fused_pixels, fused_run = zn.fused_pixels, zn._fused_run
     N = int(creature.scene.geometry().num_vertices)
     for i, fr in enumerate(frames):
         gb = make_gbuffer(creature.scene, fr, 2)
         del seen[:]
         if i == 3:   # the fused pass declines after the rows were made: the split path reads every row
             monkeypatch.setattr(zn, "fused_pixels", lambda *a, **k: None)
+            monkeypatch.setattr(zn, "_fused_run", lambda *a, **k: None)   # (and its bound call's, zh46)
         if i == 4:
             new.fused_planes = orc.fused_planes = False
         a = new.render(fr, gb)
         b = orc.render(fr, gb)
         monkeypatch.setattr(zn, "fused_pixels", fused_pixels)
+        monkeypatch.setattr(zn, "_fused_run", fused_run)
         new.fused_planes = orc.fused_planes = True
         assert new.last_path == orc.last_path and new.last_fused == orc.last_fused, i
         assert torch.equal(_bits(a), _bits(b)), i
