@@ -2,7 +2,10 @@
 `zh44_sections` with two changes): ``--wall`` adds up wall time (``perf_counter``) instead of thread CPU — at 2
 threads the thread CPU of the calling thread says nothing about the other — and each frame renders a fresh clone of
 its G-buffer (`benchmarks.zh45_harness_ab.fresh`: written just before the frame, as the harness's) after the 64 MB
-write. Set ``PRTBENCH_SETTLE=0``: the perf harness does not idle before a frame.
+write. Set ``PRTBENCH_SETTLE=0``: the perf harness does not idle before a frame. With session 46's
+``ZHShadow.bound_glue`` on (the default) the fused pass, the split and the vertex table are called through bound
+objects: their time shows under ``zn._fused_run``, ``z44._run`` and ``zn._vtable_run``, not under the wrappers'
+labels (``--set``-style: set ``bound_glue = False`` on the class to see those).
 
     PRTBENCH_SETTLE=0 python -m benchmarks.zh45_sections KIND [--repeat 6] [--seed 0] [--threads 2] [--wall]
 
@@ -82,6 +85,13 @@ def main(argv: list[str] | None = None) -> dict:
     for n in ["fused_pixels", "plane_mask", "region_tables", "vertex_table", "plane_u", "skin", "light_world"]:
         if hasattr(zn, n):
             wrap(zn, n, "zn." + n)
+    # (zh46's `bound_glue` calls the passes through bound objects that skip the wrappers above: these are the passes
+    # themselves, under both settings — with it off a pass counts under its wrapper's label and this one)
+    for n in ["_fused_run", "_vtable_run"]:
+        if hasattr(zn, n):
+            wrap(zn, n, "zn." + n)
+    if z44 is not None and hasattr(z44, "_run"):
+        wrap(z44, "_run", "z44._run")
     for n in ["screen8", "rest_lut"]:
         wrap(z39, n, "z39." + n)
     for n in ["split", "light_table"]:
