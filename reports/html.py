@@ -560,6 +560,12 @@ def vertex_error_renders(art: dict, *, window: int = 260) -> str:
         import pyvista as pv
 
         pv.OFF_SCREEN = True
+        try:  # without an X display VTK logs "bad X server connection" at WARN, then renders off-screen (EGL / OSMesa)
+            from vtkmodules.vtkCommonCore import vtkLogger
+
+            vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
+        except Exception:  # pragma: no cover - a VTK without vtkLogger: its warning stays in the log
+            pass
     except Exception as e:  # pragma: no cover - pyvista missing
         return f"<p>Per-vertex error skipped: pyvista unavailable ({esc(e)}).</p>"
     parts = []

@@ -318,8 +318,10 @@ class _Decoder:
                                         is_coalesced=bool(x["coalesced"]), check_invariants=True)
             return self._reg(x, t.requires_grad_() if x.get("requires_grad") else t)
         if tag == "sparse_csr":
-            t = torch.sparse_csr_tensor(self._t(x["crow"]), self._t(x["col"]), self._t(x["values"]),
-                                        tuple(x["size"]), check_invariants=True)
+            with warnings.catch_warnings():  # torch flags sparse CSR "beta" once a process: once a cell in a run's log
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+                t = torch.sparse_csr_tensor(self._t(x["crow"]), self._t(x["col"]), self._t(x["values"]),
+                                            tuple(x["size"]), check_invariants=True)
             return self._reg(x, t.requires_grad_() if x.get("requires_grad") else t)
         if tag == "ndarray":
             a = self._t(x["i"]).numpy()

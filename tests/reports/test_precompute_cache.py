@@ -181,6 +181,28 @@ def test_decoder_resolves_only_classes_defined_in_our_packages(cls):
         PC.decode_state(tree, [])
 
 
+def test_decoding_a_sparse_csr_entry_prints_no_beta_warning(tmp_path):
+    """torch warns "Sparse CSR tensor support is in beta state" once per process at the first CSR it builds; a
+    cached precompute (in-out's transport) must not print it into every run's log. The entry is encoded here and
+    decoded in a fresh interpreter that has built no CSR yet (this process may already have spent the warning)."""
+    import subprocess
+    import sys
+    tree, tensors = PC.encode_state({"csr": torch.eye(3).to_sparse_csr()}, None)
+    torch.save({"tree": tree, "tensors": tensors}, tmp_path / "entry.pt")
+    code = ("import sys, torch, warnings\n"
+            "from reports import precompute_cache as PC\n"
+            "blob = torch.load(sys.argv[1], weights_only=True)\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            "    out = PC.decode_state(blob['tree'], blob['tensors'], None)\n"
+            "assert out['csr'].layout == torch.sparse_csr and torch.equal(out['csr'].to_dense(), torch.eye(3))\n"
+            "print('WARNINGS', [str(x.message) for x in w])\n")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "entry.pt")], capture_output=True, text=True,
+                       timeout=120, cwd=Path(__file__).resolve().parents[2])
+    assert r.returncode == 0, r.stderr
+    assert "WARNINGS []" in r.stdout and "beta" not in r.stderr, (r.stdout, r.stderr)
+
+
 def test_decoder_checks_sparse_invariants():
     """Out-of-range indices in a file must not reach a sparse kernel."""
     tree = json.dumps({"$": "dict", "id": 0, "items": [["s", {"$": "sparse_csr", "id": 1, "size": [2, 2],
