@@ -30,7 +30,10 @@ if ! command -v chromium >/dev/null 2>&1 && [ ! -x /usr/bin/chromium ]; then
 fi
 
 # 2. Python packages.  torch is pinned to the CPU build that lies on this machine's disk; it is
-#    installed first and alone so nothing else can pull a CUDA build.
+#    installed first and alone so nothing else can pull a CUDA build.  (This machine kind runs as root, and pip
+#    then warns on every call that a virtual environment is recommended: the setup installs into the machine's
+#    Python on purpose. Older pips ignore the variable.)
+export PIP_ROOT_USER_ACTION=ignore
 $PY -m pip install -q --disable-pip-version-check "torch==2.13.0"
 $PY -m pip install -q --disable-pip-version-check -e ".[dev]"
 echo "[setup] done"
