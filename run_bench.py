@@ -9,6 +9,7 @@
                                                         # regressions, 2: no cell in common)
   python run_bench.py study NAME [--out DIR] [--quick]  # a paper figure/table or a sweep
   python run_bench.py study terms-vs-exponent [--jobs N] [--scenes S,..] [--exponents 1,16,..] [--methods M,..]
+                                              [--measure region|image]
   python run_bench.py study --list                      # every registered study
   python run_bench.py report RUN_DIR                    # rebuild a run's HTML report
   python run_bench.py list                              # scenes, methods, suites, kinds, studies
@@ -137,6 +138,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="terms-vs-exponent: comma-separated Phong exponents (default: 1,2,...,256)")
     s.add_argument("--methods", default=None,
                    help="terms-vs-exponent: comma-separated term ladders (default: every registered one)")
+    s.add_argument("--measure", choices=("region", "image"), default=None,
+                   help="terms-vs-exponent: the pixels the searched error is taken over: the varied (glossy) region's "
+                        "(default) or the whole image's (the study before session 47)")
 
     ls = sub.add_parser("list", help="what can be run: scenes, methods, suites, sequence kinds, studies")
     ls.add_argument("--test-only", action="store_true", help="vertex counts at test size only (faster)")
@@ -297,6 +301,8 @@ def cmd_study(args) -> int:
     for key in ("scenes", "methods"):
         if getattr(args, key) is not None:
             options[key] = [x.strip() for x in getattr(args, key).split(",") if x.strip()]
+    if args.measure is not None:
+        options["measure"] = args.measure
     if args.exponents is not None:
         try:
             options["exponents"] = [float(x) for x in args.exponents.split(",") if x.strip()]

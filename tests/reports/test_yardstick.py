@@ -267,3 +267,77 @@ def test_restrict_and_run_study_options(tmp_path):
         S.yardstick_table(S.YARDSTICK_QUICK, jobs=0)
     with pytest.raises(ValueError, match="takes no option"):
         MS.run_study("terms-own-criteria", tmp_path, quick=True, jobs=2)
+
+
+def test_measure_option_is_validated_and_restricted():
+    assert S.YARDSTICK.measure == "region" and S.YARDSTICK_QUICK.measure == "region"
+    assert S.restrict(S.YARDSTICK, measure="image").measure == "image"
+    with pytest.raises(ValueError, match="measure"):
+        S.YardstickConfig(measure="pixels")
+    with pytest.raises(ValueError, match="measure"):
+        S.restrict(S.YARDSTICK, measure="pixels")
+
+
+def test_region_pixels_are_those_seen_by_the_region_alone():
+    """On the study's sphere_plane frame: the searched pixels are the covered ones all of whose G-buffer
+    sub-samples hit the sphere (counted here per pixel from the samples directly), a strict subset of the
+    covered pixels that leaves out the silhouette; the frame's mean and floor are the reference's over them."""
+    from references.metrics import rmse
+
+    cfg = S.YARDSTICK_QUICK
+    fr = S._phong_frame("sphere_plane", "sphere", 1.0, cfg)
+    g = fr.gbuffer
+    k = g.spp_side ** 2
+    sph = list(fr.scene.regions).index("sphere")
+    own = ((g.region == sph) & g.hit).view(g.height, g.width, k)
+    want = own.all(-1) & fr.image_mask
+    assert torch.equal(fr.mask, want)
+    some = own.any(-1) & ~own.all(-1) & fr.image_mask       # silhouette pixels: sphere and plane mixed
+    assert int(some.sum()) > 0 and not bool((fr.mask & some).any())
+    assert 0 < int(fr.mask.sum()) < int(fr.image_mask.sum())
+    assert fr.mean == pytest.approx(float(fr.reference.image[fr.mask].mean()), rel=1e-6)
+    ref = fr.reference
+    assert fr.floor == pytest.approx(rmse(ref.half_a, ref.half_b, fr.mask) / 2 / fr.mean, rel=1e-6)
+    with pytest.raises(ValueError, match="no region"):
+        S.region_pixels(g, fr.scene, "teapot", fr.image_mask)
+    img = S._phong_frame("sphere_plane", "sphere", 1.0, S.restrict(cfg, measure="image"))
+    assert torch.equal(img.mask, fr.image_mask) and img.image_mask is None and img.mean == fr.image_mean
+
+
+def _split_frame(scene_name, region, s, cfg):
+    """4 × 4 pixels, the varied region the right half: `_Split` renders its error on the left half only."""
+    full = torch.ones(4, 4, dtype=torch.bool)
+    right = torch.zeros(4, 4, dtype=torch.bool)
+    right[:, 2:] = True
+    if cfg.measure == "image":
+        return S._Frame({"s": s}, {"s": s}, None, _Ref(), full, 1.0, 0.001, 10)
+    return S._Frame({"s": s}, {"s": s}, None, _Ref(), right, 1.0, 0.001, 10, full, 1.0, 0.002)
+
+
+def test_search_takes_the_error_over_the_measured_pixels(tmp_path, monkeypatch, clean_ladders):
+    """A method whose error lies only outside the varied region (as the ground's per-vertex shadows do, which no
+    rung changes): over the region it reaches every target at the first rung, over the image at the rung its curve
+    says; both errors are in the CSV either way."""
+    monkeypatch.setattr(S, "_phong_frame", _split_frame)
+    MS.TERM_LADDERS.clear()
+
+    class _Split(_Fake):
+        def render(self, frame, gbuffer):
+            img = torch.ones(4, 4, 3)
+            img[:, :2] += 0.09 * frame["s"] / self.config["terms"]
+            return img
+
+    MS.register_term_ladder("split", [dict(terms=k) for k in range(1, 65)], lambda c, r: _Split(**c), replace=True)
+    for measure in ("region", "image"):
+        cfg = S.YardstickConfig(scenes=(("a", "r"),), exponents=(1, 4), targets=(0.05,), ref_spp=2, measure=measure)
+        S.terms_vs_exponent(tmp_path / measure, config=cfg)
+        rows = list(csv.DictReader(open(tmp_path / measure / "terms_vs_exponent.csv")))
+        assert len(rows) == 2 and all(r["measure"] == measure for r in rows)
+        for r in rows:
+            s, k = float(r["exponent"]), int(r["terms"])
+            image_err = 0.09 * s / k / math.sqrt(2)                  # half the pixels off by 0.09 s / K
+            assert float(r["rel_rmse_image"]) == pytest.approx(image_err, rel=1e-5)
+            if measure == "region":
+                assert k == 1 and float(r["rel_rmse"]) == 0.0 and float(r["noise_floor_image"]) == 0.002
+            else:
+                assert k == math.ceil(0.09 * s / math.sqrt(2) / 0.05) and float(r["rel_rmse"]) == float(r["rel_rmse_image"])
