@@ -89,6 +89,10 @@ def test_every_method_has_a_ladder():
         # fine: <= 2x between rungs, except SH order 2 -> 3 (4 -> 9 terms: no order in between)
         assert max(b / a for a, b in zip(terms, terms[1:])) <= 2.25, name
     assert MS.TERM_LADDERS["zh_shadow"].material_at_render
+    # the lobe Mitsuba renders (cos θ_i included), as every other ladder: the paper's lobe is another BRDF
+    zh = MS.TERM_LADDERS["zh_shadow"]
+    assert all(c["specular"] == "cosine" for c in zh.ladder + zh.quick)
+    assert all(zh.make(dict(c), "sphere").config["specular"] == "cosine" for c in zh.ladder[:1])
 
 
 def test_search_matches_exhaustive_and_csv_shape(tmp_path, monkeypatch, clean_ladders):
