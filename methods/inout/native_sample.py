@@ -168,6 +168,14 @@ all four samples its X broadcast instead of four inserts: 1.00x; the resolve's p
 samples at a time (a 4 x 4 transpose) 0.99x (both dropped). Whole V frames against the base checkout
 (``python -m benchmarks.inout --base BASE --scene chess|creature --kinds V --frames 15|21 --threads 1|2
 --no-micro``, warm, max |d| 0): chess CPU 1.06x at 1 thread (load ~3), wall 1.17x at 2; creature 1.09x / 1.08x.
+
+Session 48 (tried and dropped, not merged): 2-D tiles instead of 8 image rows (a tile's runs its row segments,
+each tile a chunk of the dynamic schedule; the same bits). Fewer (vertex, node) products are made again in a
+neighbouring tile (a bench V frame: chess 155.4 -> 133.3·10³ at 64 x 32 pixels, 131.0 at 32 x 64, 133.6 at 32 x 32;
+creature 105.3 -> 94.7·10³, 92.7 at 64 x 64; the frame's distinct pairs: 124.5 / 85.4·10³), but the call barely
+moves (1 thread, process CPU, each call after a fresh rasterisation, 15 frames alternating, host at load ~0.3;
+A/A 0.98-0.99x): chess 1.02-1.03x, creature 0.99-1.02x. So the fill's time does not follow its product count:
+another ~14 % fewer products is worth ~2 % of the call.
 """
 from __future__ import annotations
 
