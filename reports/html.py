@@ -114,6 +114,16 @@ def fmt(v, spec: str = ".3g", unit: str = "") -> str:
     return f"{v:{spec}}{unit}"
 
 
+def fmt_seconds(t) -> str:
+    """A duration: seconds from 1 s up, milliseconds below, "< 1 ms" under a millisecond (a method with
+    nothing to precompute, such as the oracle, reads a few µs, not "1.97e-06 s")."""
+    if t is None or not math.isfinite(t):
+        return "–"
+    if t >= 1.0:
+        return f"{t:.3g} s"
+    return f"{1e3 * t:.3g} ms" if t >= 1e-3 else "< 1 ms"
+
+
 def fmt_bytes(b) -> str:
     if b is None or not math.isfinite(b):
         return "–"
@@ -224,7 +234,7 @@ def summary_table(df: pd.DataFrame) -> str:
         body.append(
             f"<tr><td>{esc(scene)}</td><td>{esc(_method_label(method, config))}</td><td>{_blabel(b)}</td>"
             f"<td>{rmse}</td><td>{fmt(np.mean(fl) if fl else None, '.3f')}</td><td>{fmt_bytes(mem)}</td>"
-            f"<td>{fmt_bytes(max(rss)) if rss else '–'}</td><td>{fmt(pre, '.3g', ' s')}</td>{fps}"
+            f"<td>{fmt_bytes(max(rss)) if rss else '–'}</td><td>{fmt_seconds(pre)}</td>{fps}"
             f"<td>{fmt(float(np.median(roof)) if roof else None, '.2%')}{bound if roof else ''}</td>"
             f"<td>{fmt(float(np.median(sp)) if sp else None, '.3g', '×')}</td></tr>")
     note = ("<p class=note>RMSE: mean over sequence kinds and scored frames, against the reference of the "

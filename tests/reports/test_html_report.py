@@ -152,3 +152,14 @@ def test_vertex_renders_without_a_display_log_no_vtk_warning(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "VTX 1" in r.stdout, (r.stdout, r.stderr[-2000:])
     assert "bad X server" not in r.stderr and "WARN" not in r.stderr, r.stderr[-2000:]
+
+
+def test_durations_read_in_seconds_milliseconds_or_under_a_millisecond():
+    """The summary's precompute column: no exponent notation for a method with (almost) nothing to precompute."""
+    assert H.fmt_seconds(17.2179) == "17.2 s"
+    assert H.fmt_seconds(1.0) == "1 s"
+    assert H.fmt_seconds(0.0123) == "12.3 ms"
+    assert H.fmt_seconds(1e-3) == "1 ms"
+    assert H.fmt_seconds(1.97e-06) == "< 1 ms"
+    assert H.fmt_seconds(None) == "–"
+    assert H.fmt_seconds(float("nan")) == "–"
