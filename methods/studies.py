@@ -157,7 +157,16 @@ class TermLadder:
     """A method's configurations ordered by cost, searched by the ``terms-vs-exponent`` study.
 
     ladder: configs (dicts of the factory's keys), cheapest first; the study assumes the rendered
-        error does not grow along it (it bisects) and records the rung below the one it keeps.
+        error does not grow along it (it bisects) and records the rung below the one it keeps —
+        unless ``scan``.
+    scan: True when the rendered error can grow from one rung to the next, so a bisection could
+        step over the smallest rung that reaches a target (or call a target unreached that a lower
+        rung reaches): the study then evaluates the rungs in order from the lowest candidate and keeps
+        the first that reaches it. The SH ladders (ZH, SH PRT) set it: a shadowed render truncated
+        at order n misses Σ_{l ≥ n} L_lm T_lm, a sum of signed products rather than an orthogonal
+        projection's residual, and on sphere_plane at s = 1 the sphere's error reads SH PRT order
+        6 / 8 / 10: 3.0 / 6.4 / 2.4 %, ZH (cos θi) order 6 / 7 / 8: 3.9 / 5.1 / 5.9 % (session 48,
+        ``python -m benchmarks.yardstick_split``).
     make(config, region) -> an un-precomputed `methods.base.Method`; ``region`` names the scene
         region whose material the study varies (a factory may spend the config's terms there only).
     terms_of(config) -> int: the method's own term count at that rung (non-decreasing along ladder).
@@ -176,6 +185,7 @@ class TermLadder:
     material_at_render: bool = False
     term_name: str = "terms"
     note: str = ""
+    scan: bool = False
 
 
 TERM_LADDERS: dict[str, TermLadder] = {}
@@ -184,7 +194,7 @@ TERM_LADDERS: dict[str, TermLadder] = {}
 def register_term_ladder(method_name: str, ladder: Sequence[Mapping], make: Callable[[dict, str], Any],
                          terms_of: Callable[[dict], int] | None = None, *, quick: Sequence[Mapping] | None = None,
                          material_at_render: bool = False, term_name: str = "terms", note: str = "",
-                         replace: bool = False) -> TermLadder:
+                         replace: bool = False, scan: bool = False) -> TermLadder:
     """Register ``method_name``'s term ladder (`TermLadder`). ``terms_of`` defaults to
     ``config["terms"]``; ``quick`` defaults to the ladder's first two rungs. ``ValueError`` for an
     empty ladder, a non-callable factory, terms that decrease along a ladder, or a taken name."""
@@ -200,7 +210,7 @@ def register_term_ladder(method_name: str, ladder: Sequence[Mapping], make: Call
         raise ValueError(f"term ladder {method_name!r} is already registered")
     rungs = _check_ladder("ladder", ladder, terms_of)
     q = _check_ladder("quick", ladder[:2] if quick is None else quick, terms_of)
-    lad = TermLadder(method_name, rungs, make, terms_of, q, bool(material_at_render), term_name, note)
+    lad = TermLadder(method_name, rungs, make, terms_of, q, bool(material_at_render), term_name, note, bool(scan))
     TERM_LADDERS[method_name] = lad
     return lad
 

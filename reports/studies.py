@@ -9,9 +9,10 @@ smallest configuration whose rendered image reaches a relative RMSE (RMSE / mean
 radiance, over the pixels every sub-sample of which sees the varied region: ``measure="region"``,
 `MEASURES`) of 5 % and of 10 % against a converged Mitsuba reference of the same frame (direct
 lighting, ``ref_spp`` samples per pixel, cached on disk); record the term count and
-the run-time bytes per vertex (``sum(method.memory()) / vertices``). The ladder is bisected
-(renders cached per (method, rung, s) within a run); targets are searched loosest first, the
-tighter one starting at the looser one's rung. Outputs (in ``out_dir``):
+the run-time bytes per vertex (``sum(method.memory()) / vertices``). The ladder is bisected, or
+scanned rung by rung where its error can grow along it (``TermLadder.scan``: the SH ladders) (renders
+cached per (method, rung, s) within a run); targets are searched loosest first, the tighter one
+starting at the looser one's rung (a rung that reaches the tighter target reaches the looser one). Outputs (in ``out_dir``):
 
 * ``terms_vs_exponent.png`` — terms (top) and bytes per vertex (bottom) vs s, one column per
   scene, one colour per method (`reports.palette`), solid 5 %, dashed 10 %; an open marker = not
@@ -20,7 +21,7 @@ tighter one starting at the looser one's rung. Outputs (in ``out_dir``):
   kept rung, its terms and bytes, its error (``rel_rmse``, searched; ``rel_rmse_image``, the whole
   image's), the rung below (the ladder step) and its error, the noise floor of the reference over
   the searched pixels and over the image, ``monotone`` (False: fewer terms than at a smaller s, or reached
-  after a smaller s was not) and a note saying why;
+  after a smaller s was not) and a note saying why, ``search`` (``bisect`` or ``scan``);
 * ``ladder_evaluations.csv`` — every render the search made (scene, method, s, rung, error,
   bytes, seconds); ``summary.json`` — settings, floors, seconds per method.
 
@@ -227,14 +228,18 @@ class _Evaluator:
 
 
 def _first_below(ev: _Evaluator, s: float, fr: _Frame, t: float, lo: int, hint: int) -> int | None:
-    """Smallest rung i in [lo, top] with rel_rmse <= t, assuming the error does not grow along the
-    ladder (None: not even the top rung): gallop up from ``hint`` (the same target's rung at the
-    previous s), then bisect — a few renders when the answer moves by a rung or two."""
+    """Smallest rung i in [lo, top] with rel_rmse <= t (None: none of them): for a ``scan`` ladder
+    the rungs in order from ``lo``; else, assuming the error does not grow along the ladder, gallop
+    up from ``hint`` (the same target's rung at the previous s), then bisect — a few renders when
+    the answer moves by a rung or two."""
     top = len(ev.rungs) - 1
 
     def ok(i: int) -> bool:
         e = ev(i, s, fr)["rel_rmse"]
         return math.isfinite(e) and e <= t
+
+    if ev.ladder.scan:
+        return next((i for i in range(lo, top + 1) if ok(i)), None)
 
     h = min(max(hint, lo), top)
     step = 1
@@ -341,6 +346,7 @@ def _search_one(scene_name: str, region: str, name: str, frames: dict[float, _Fr
                    "noise_floor": fr.floor, "noise_floor_image": fr.floor if fr.image_floor is None else fr.image_floor,
                    "ref_spp": cfg.ref_spp}
             row["ladder_step"] = (row["terms"] / row["prev_terms"]) if row["prev_terms"] not in ("", 0) else ""
+            row["search"] = "scan" if lad.scan else "bisect"
             mrows[t].append(row)
         if on_exponent is not None:
             on_exponent()

@@ -36,4 +36,4 @@ register_terms_contributor("sh_prt", terms_needed, target=0.99, target_kind=TARG
 # direct lighting (bounces = 0, so the material may change at render time).
 register_term_ladder("sh_prt", [dict(order=n) for n in range(2, 11)], lambda c, r: SHPRT(bounces=0, **c),
                      lambda c: c["order"] ** 2, quick=[dict(order=2, rays=32), dict(order=3, rays=32)],
-                     material_at_render=True, term_name="n^2 (SH order n)")
+                     material_at_render=True, term_name="n^2 (SH order n)", scan=True)

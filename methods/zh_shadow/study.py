@@ -169,4 +169,4 @@ def make_for_ladder(config: dict, region: str):
 
 
 register_term_ladder("zh_shadow", TERM_LADDER, make_for_ladder, lambda c: c["order"] ** 2, quick=TERM_LADDER_QUICK,
-                     material_at_render=True, term_name="n^2 (SH order n, 2 ZH lobes)")
+                     material_at_render=True, term_name="n^2 (SH order n, 2 ZH lobes)", scan=True)

@@ -51,7 +51,7 @@ def _fake_frame(scene_name, region, s, cfg):
     return S._Frame({"s": s}, {"s": s}, None, _Ref(), torch.ones(4, 4, dtype=torch.bool), 1.0, 0.001, 10)
 
 
-def _ladder(name, err, renders):
+def _ladder(name, err, renders, scan=False):
     class M(_Fake):
         pass
 
@@ -61,7 +61,7 @@ def _ladder(name, err, renders):
         renders.append((name, config["terms"]))
         return M(**config)
 
-    return MS.register_term_ladder(name, [dict(terms=k) for k in range(1, 65)], make, replace=True)
+    return MS.register_term_ladder(name, [dict(terms=k) for k in range(1, 65)], make, replace=True, scan=scan)
 
 
 def test_register_term_ladder_validates(clean_ladders):
@@ -345,3 +345,33 @@ def test_search_takes_the_error_over_the_measured_pixels(tmp_path, monkeypatch, 
                 assert k == 1 and float(r["rel_rmse"]) == 0.0 and float(r["noise_floor_image"]) == 0.002
             else:
                 assert k == math.ceil(0.09 * s / math.sqrt(2) / 0.05) and float(r["rel_rmse"]) == float(r["rel_rmse_image"])
+
+
+
+def test_scan_ladder_finds_the_smallest_rung_where_the_error_is_not_monotone(tmp_path, monkeypatch, clean_ladders):
+    """A ladder whose error grows along it (the SH ladders: a truncated shadowed render's error is a signed tail
+    sum): err = 0.5 / k, plus 0.2 from k = 12 on except a dip at 21 <= k <= 26. Targets 0.11 (k = 5; k = 4 reads
+    0.125) and 0.03 (k = 21 reads 0.024, k = 20 0.225, the top k = 64 0.208). Scanned: 5 and 21, each with the
+    rung below missing. The gallop and bisection of a monotone ladder on the same curve (rungs k = 6, 8, 12, 20,
+    36, 64 from the looser target's) miss the dip and call 0.03 unreached, so the test can fail."""
+    monkeypatch.setattr(S, "_phong_frame", _fake_frame)
+    MS.TERM_LADDERS.clear()
+    renders: list = []
+    err = lambda s, k: 0.5 / k + (0.2 if k >= 12 and not 21 <= k <= 26 else 0.0)  # noqa: E731
+    _ladder("scanned", err, renders, scan=True)
+    _ladder("bisected", err, renders, scan=False)
+    cfg = S.YardstickConfig(scenes=(("a", "r"),), exponents=(1,), targets=(0.03, 0.11), ref_spp=2)
+    S.terms_vs_exponent(tmp_path, config=cfg)
+    rows = {(r["method"], float(r["target"])): r for r in csv.DictReader(open(tmp_path / "terms_vs_exponent.csv"))}
+    for t, k in {0.11: 5, 0.03: 21}.items():
+        r = rows[("scanned", t)]
+        assert r["reached"] == "True" and int(r["terms"]) == k and r["search"] == "scan", r
+        assert float(r["prev_rel_rmse"]) > t
+    b = rows[("bisected", 0.03)]
+    assert b["search"] == "bisect" and b["reached"] == "False"
+    assert int(rows[("bisected", 0.11)]["terms"]) == 5
+
+
+def test_sh_ladders_scan():
+    assert MS.TERM_LADDERS["zh_shadow"].scan and MS.TERM_LADDERS["sh_prt"].scan
+    assert not MS.TERM_LADDERS["inout"].scan
