@@ -10,9 +10,10 @@ radiance, over the pixels every sub-sample of which sees the varied region: ``me
 `MEASURES`) of 5 % and of 10 % against a converged Mitsuba reference of the same frame (direct
 lighting, ``ref_spp`` samples per pixel, cached on disk); record the term count and
 the run-time bytes per vertex (``sum(method.memory()) / vertices``). The ladder is bisected, or
-scanned rung by rung where its error can grow along it (``TermLadder.scan``: the SH ladders) (renders
-cached per (method, rung, s) within a run); targets are searched loosest first, the tighter one
-starting at the looser one's rung (a rung that reaches the tighter target reaches the looser one). Outputs (in ``out_dir``):
+scanned rung by rung where its error can grow along it (``TermLadder.scan``: the SH ladders); renders
+are cached per (method, rung, s) within a run. Targets are searched loosest first, the tighter one
+starting at the looser one's rung (a rung that reaches the tighter target reaches the looser one).
+Outputs (in ``out_dir``):
 
 * ``terms_vs_exponent.png`` — terms (top) and bytes per vertex (bottom) vs s, one column per
   scene, one colour per method (`reports.palette`), solid 5 %, dashed 10 %; an open marker = not

@@ -347,7 +347,6 @@ def test_search_takes_the_error_over_the_measured_pixels(tmp_path, monkeypatch, 
                 assert k == math.ceil(0.09 * s / math.sqrt(2) / 0.05) and float(r["rel_rmse"]) == float(r["rel_rmse_image"])
 
 
-
 def test_scan_ladder_finds_the_smallest_rung_where_the_error_is_not_monotone(tmp_path, monkeypatch, clean_ladders):
     """A ladder whose error grows along it (the SH ladders: a truncated shadowed render's error is a signed tail
     sum): err = 0.5 / k, plus 0.2 from k = 12 on except a dip at 21 <= k <= 26. Targets 0.11 (k = 5; k = 4 reads
